@@ -1,0 +1,1 @@
+"""Sub-commands of the ``hapsim`` command line, one module each (see :mod:`hapsim.cli`)."""

@@ -1,0 +1,17 @@
+"""``hapsim mock``: not implemented yet."""
+
+from __future__ import annotations
+
+import sys
+
+
+def register(sub) -> None:
+    """Add the ``mock`` parser to ``sub`` (an argparse sub-parsers action)."""
+    p = sub.add_parser("mock", help="(not implemented yet)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Report that the command does not exist yet; exit code 2."""
+    print("hapsim mock: not implemented yet", file=sys.stderr)
+    return 2

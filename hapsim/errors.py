@@ -1,0 +1,78 @@
+"""One error root for hapsim.
+
+Every error hapsim raises on purpose derives from :class:`HapsimError` and from the
+matching built-in, so callers may catch either (pattern of pyserial's
+``SerialException(IOError)``).
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "HapsimError",
+    "ConfigError",
+    "ProtocolError",
+    "DeviceError",
+    "UnstableConfigError",
+]
+
+
+class HapsimError(Exception):
+    """Root of every error hapsim raises on purpose."""
+
+
+class ConfigError(HapsimError, ValueError):
+    """A scene file, a command-line argument or a keyword argument is invalid.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong and, where one exists, the valid choices.
+    file : str, optional
+        Path of the file the bad value came from.
+    line : int, optional
+        1-based line number in ``file``.
+    key : str, optional
+        Dotted path of the offending key, e.g. ``links[2].stiffness``.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None,
+                 line: int | None = None, key: str | None = None) -> None:
+        self.file = file
+        self.line = line
+        self.key = key
+        self.reason = message
+        where = ""
+        if file is not None:
+            where = f"{file}:{line}: " if line is not None else f"{file}: "
+        elif line is not None:
+            where = f"line {line}: "
+        what = f"{key}: " if key else ""
+        super().__init__(f"{where}{what}{message}")
+
+
+class ProtocolError(HapsimError, ValueError):
+    """A frame or message violates the device protocol."""
+
+
+class DeviceError(HapsimError, OSError):
+    """The device or its port failed (absent, silent, reset, faulted)."""
+
+
+class UnstableConfigError(HapsimError, ValueError):
+    """A configuration whose closed loop is unstable or whose target is not renderable.
+
+    Parameters
+    ----------
+    message : str
+        Explanation, with the spectral radius and the stiffness limit where known.
+    spectral_radius : float, optional
+        Largest closed-loop pole modulus (>= 1 means unstable).
+    stiffness_limit : float, optional
+        Largest stable virtual stiffness K for the configuration [N/m].
+    """
+
+    def __init__(self, message: str, *, spectral_radius: float | None = None,
+                 stiffness_limit: float | None = None) -> None:
+        self.spectral_radius = spectral_radius
+        self.stiffness_limit = stiffness_limit
+        super().__init__(message)
