@@ -1,0 +1,246 @@
+"""Closed-loop poles as physical modes (the THS read as a mass-spring-damper).
+
+A discrete pole ``z`` of the sampled closed loop is mapped to its continuous
+equivalent ``s = ln(z) / T`` and then to the oscillator ``m s^2 + b s + k = 0`` that
+has ``s`` (and its conjugate) as poles, with ``m`` the real (hand + handle) mass:
+
+    k = m |s|^2,     b = -2 m Re(s),
+    f0_hz = |s| / (2 pi) = sqrt(k / m) / (2 pi),   damping_ratio = b / (2 sqrt(k m)) = -Re(s) / |s|.
+
+``f0_hz`` is therefore the *undamped natural frequency* of the equivalent oscillator,
+not the damped frequency ``|Im s| / (2 pi)``; the two coincide for light damping.
+This is the inverse map of Florens, Voda & Urma, Sec. 5 ((K, B) -> (k, b)) and
+DESIGN.md Sec. 4.
+
+Real poles are kept as ``kind="real"`` modes. Their ``k`` and ``b`` are those of the
+critically damped oscillator with a double pole at ``s`` (``damping_ratio = 1``):
+indicative only, since a single real pole is not an oscillator. A real pole
+``z in (0, 1)`` has a real ``s < 0``. A real *negative* ``z`` has no continuous
+equivalent (it alternates sign every sample): ``s`` is then the principal value
+``(ln|z| + i pi) / T``, i.e. an oscillation at the Nyquist frequency, and the mode is still
+reported as ``kind="real"``. A pole at ``z = 0`` (a pure delay state, dead-beat) gives
+``s = -inf``; its ``k``, ``b`` and ``f0_hz`` are ``inf``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Mode", "modes_from_poles", "rendered_pair", "log_abs", "log_z"]
+
+#: Poles with ``|Im z| <= _REAL_TOL * max(1, |z|)`` are treated as real.
+_REAL_TOL = 1e-12
+
+
+def log_abs(z: complex) -> float:
+    """``ln |z|`` computed accurately for ``z`` near 1.
+
+    Parameters
+    ----------
+    z : complex
+        A pole.
+
+    Returns
+    -------
+    float
+        ``ln |z|`` (``-inf`` for ``z = 0``). Uses ``log1p(2 Re w + |w|^2) / 2`` with
+        ``w = z - 1`` when ``|w|`` is small, so that damping near the unit circle keeps
+        its relative precision.
+    """
+    z = complex(z)
+    if z == 0:
+        return -math.inf
+    w = z - 1.0
+    if abs(w) < 0.5:
+        return 0.5 * math.log1p(2.0 * w.real + w.real * w.real + w.imag * w.imag)
+    return math.log(abs(z))
+
+
+def log_z(z: complex, w: complex | None = None) -> complex:
+    """Principal value of ``ln z``, accurate near ``z = 1``.
+
+    Parameters
+    ----------
+    z : complex
+        A pole.
+    w : complex, optional
+        ``z - 1`` if known more accurately than by subtraction.
+
+    Returns
+    -------
+    complex
+        ``ln|z| + i arg z``, with ``arg z in (-pi, pi]``; ``-inf`` for ``z = 0``.
+    """
+    z = complex(z)
+    if z == 0:
+        return complex(-math.inf, 0.0)
+    if w is not None and abs(w) < 0.5:
+        w = complex(w)
+        re = 0.5 * math.log1p(2.0 * w.real + w.real * w.real + w.imag * w.imag)
+        return complex(re, math.atan2(w.imag, 1.0 + w.real))
+    return complex(log_abs(z), math.atan2(z.imag, z.real))
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One mode of the sampled closed loop, read as a mass-spring-damper.
+
+    Attributes
+    ----------
+    z : complex
+        Discrete pole (for a pair: the member with ``Im z > 0``).
+    s : complex
+        Continuous equivalent ``ln(z) / T`` [1/s] (principal value).
+    f0_hz : float
+        Undamped natural frequency ``|s| / (2 pi) = sqrt(k/m) / (2 pi)`` [Hz].
+    damping_ratio : float
+        ``-Re(s) / |s| = b / (2 sqrt(k m))`` [-]; negative for a growing mode.
+    k : float
+        Equivalent stiffness ``m |s|^2`` [N/m] (``m``: the loop's real mass).
+    b : float
+        Equivalent damping ``-2 m Re(s)`` [N s/m] (whole THS damping, real + virtual).
+    kind : str
+        ``"pair"`` (complex-conjugate pair) or ``"real"`` (single real pole).
+    """
+
+    z: complex
+    s: complex
+    f0_hz: float
+    damping_ratio: float
+    k: float
+    b: float
+    kind: str
+
+    @property
+    def modulus(self) -> float:
+        """``|z|`` [-]: the mode decays iff ``< 1``."""
+        return abs(self.z)
+
+    @property
+    def stable(self) -> bool:
+        """True iff ``|z| < 1``."""
+        return abs(self.z) < 1.0
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict; non-finite floats become ``None``.
+
+        Returns
+        -------
+        dict
+            Keys ``z_re, z_im, abs_z, s_re, s_im, f0_hz, damping_ratio, k, b, kind``.
+        """
+        def f(v: float):
+            v = float(v)
+            return v if math.isfinite(v) else None
+        return {"z_re": f(self.z.real), "z_im": f(self.z.imag), "abs_z": f(abs(self.z)),
+                "s_re": f(self.s.real), "s_im": f(self.s.imag), "f0_hz": f(self.f0_hz),
+                "damping_ratio": f(self.damping_ratio), "k": f(self.k), "b": f(self.b),
+                "kind": self.kind}
+
+
+def mode_from_pole(z: complex, mass: float, period: float, kind: str,
+                   w: complex | None = None) -> Mode:
+    """Build one :class:`Mode` from a discrete pole.
+
+    Parameters
+    ----------
+    z : complex
+        Discrete pole.
+    mass : float > 0
+        Real mass ``m`` [kg].
+    period : float > 0
+        Sample period ``T`` [s].
+    kind : {"pair", "real"}
+        Mode kind.
+    w : complex, optional
+        ``z - 1`` computed more accurately than by subtraction.
+
+    Returns
+    -------
+    Mode
+        With ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (DESIGN.md Sec. 4).
+    """
+    z = complex(z)
+    s = log_z(z, w) / period
+    if z == 0:
+        return Mode(z=z, s=s, f0_hz=math.inf, damping_ratio=1.0, k=math.inf, b=math.inf,
+                    kind=kind)
+    wn = abs(s)
+    k = mass * wn * wn
+    b = -2.0 * mass * s.real
+    zeta = -s.real / wn if wn > 0 else math.nan
+    return Mode(z=z, s=s, f0_hz=wn / (2.0 * math.pi), damping_ratio=zeta, k=k, b=b,
+                kind=kind)
+
+
+def modes_from_poles(poles, mass: float, period: float, *, w=None) -> list[Mode]:
+    """Group the poles of a real polynomial into modes.
+
+    Parameters
+    ----------
+    poles : array_like of complex, shape (n,)
+        Closed-loop poles, closed under conjugation (roots of a real polynomial).
+    mass : float > 0
+        Real mass ``m`` [kg] used for ``k`` and ``b``.
+    period : float > 0
+        Sample period ``T`` [s].
+    w : array_like of complex, shape (n,), optional
+        ``poles - 1`` computed accurately (e.g. roots of the characteristic polynomial in
+        ``w = z - 1``); improves ``s`` near ``z = 1``.
+
+    Returns
+    -------
+    list of Mode
+        One ``"pair"`` mode per conjugate pair (represented by ``Im z > 0``), one
+        ``"real"`` mode per real pole, sorted least damped first (largest ``|z|`` first;
+        ties: pairs before real modes, then by frequency).
+
+    Raises
+    ------
+    ValueError
+        If the complex poles are not closed under conjugation.
+    """
+    z = np.asarray(poles, dtype=complex).ravel()
+    ww = None if w is None else np.asarray(w, dtype=complex).ravel()
+    tol = _REAL_TOL * np.maximum(1.0, np.abs(z))
+    upper = z.imag > tol
+    lower = z.imag < -tol
+    if int(upper.sum()) != int(lower.sum()):
+        raise ValueError("poles are not closed under conjugation: "
+                         f"{int(upper.sum())} with Im > 0, {int(lower.sum())} with Im < 0")
+    modes = []
+    for i in range(z.size):
+        if lower[i]:
+            continue
+        kind = "pair" if upper[i] else "real"
+        zi = z[i] if upper[i] else complex(z[i].real, 0.0)
+        wi = None
+        if ww is not None:
+            wi = ww[i] if upper[i] else complex(ww[i].real, 0.0)
+        modes.append(mode_from_pole(zi, mass, period, kind, wi))
+    modes.sort(key=lambda md: (-abs(md.z), md.kind != "pair", md.f0_hz))
+    return modes
+
+
+def rendered_pair(modes) -> Mode | None:
+    """The rendered oscillator: the least damped complex pair.
+
+    Parameters
+    ----------
+    modes : iterable of Mode
+        Modes of one closed loop.
+
+    Returns
+    -------
+    Mode or None
+        The ``"pair"`` mode with the largest ``|z|`` (Florens et al. Sec. 5, DESIGN.md
+        Sec. 4), or None when the loop has no complex pair.
+    """
+    best = None
+    for md in modes:
+        if md.kind == "pair" and (best is None or abs(md.z) > abs(best.z)):
+            best = md
+    return best
