@@ -124,7 +124,7 @@ def bad_vectors() -> list[dict]:
     """Frames every decoder must drop, each with the counter it must feed."""
     force = frame_of("FORCE", dict(seq=1, force=[0.5]))
     flipped = bytearray(force)
-    flipped[3] ^= 0x10  # one bit in the body: CRC mismatch
+    flipped[12] ^= 0x10  # one bit of the float 0.5 (not a COBS code byte): CRC mismatch
     unknown = cobs_encode(b"\x7f" + bytes([crc16_ccitt_false(b"\x7f") >> 8,
                                            crc16_ccitt_false(b"\x7f") & 0xFF])) + b"\x00"
     short_body = b"\x11\x01\x00\x00\x00"  # FORCE with no axis
