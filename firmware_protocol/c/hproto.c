@@ -1,0 +1,405 @@
+/*
+ * hproto.c -- reference C99 implementation of the hapsim framed serial protocol.
+ * See hproto.h for the API and ../PROTOCOL.md for the specification.
+ */
+#include "hproto.h"
+
+#include <string.h>
+
+/* The wire carries IEEE-754 binary64; refuse to build where double is narrower (AVR). */
+typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
+
+#define HP_STATE_FIXED 19u /* type + seq + time_us + status + force_seq */
+#define HP_FORCE_FIXED 5u  /* type + seq */
+
+/* ------------------------------------------------------------------ CRC */
+
+uint16_t hp_crc16(uint16_t crc, const uint8_t *data, size_t len)
+{
+    size_t i;
+    int bit;
+    for (i = 0; i < len; i++) {
+        crc = (uint16_t)(crc ^ ((uint16_t)data[i] << 8));
+        for (bit = 0; bit < 8; bit++) {
+            if (crc & 0x8000u) {
+                crc = (uint16_t)((crc << 1) ^ 0x1021u);
+            } else {
+                crc = (uint16_t)(crc << 1);
+            }
+        }
+    }
+    return crc;
+}
+
+/* ------------------------------------------------------------------ COBS */
+
+size_t hp_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t out_size)
+{
+    size_t i, o = 1, code_at = 0;
+    uint8_t code = 1;
+    if (out_size < len + len / 254u + 1u) {
+        return 0;
+    }
+    for (i = 0; i < len; i++) {
+        if (in[i] == 0) {
+            out[code_at] = code;
+            code_at = o++;
+            code = 1;
+        } else {
+            out[o++] = in[i];
+            code++;
+            if (code == 0xFFu) {
+                out[code_at] = code;
+                code_at = o++;
+                code = 1;
+            }
+        }
+    }
+    out[code_at] = code;
+    return o;
+}
+
+size_t hp_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t out_size)
+{
+    size_t i = 0, o = 0, k;
+    while (i < len) {
+        uint8_t code = in[i++];
+        if (code == 0 || (size_t)(code - 1u) > len - i) {
+            return (size_t)-1;
+        }
+        for (k = 1; k < code; k++) {
+            uint8_t b = in[i++];
+            if (b == 0 || o >= out_size) {
+                return (size_t)-1;
+            }
+            out[o++] = b;
+        }
+        if (code != 0xFFu && i < len) {
+            if (o >= out_size) {
+                return (size_t)-1;
+            }
+            out[o++] = 0;
+        }
+    }
+    return o;
+}
+
+/* ------------------------------------------------------------------ little-endian fields */
+
+static uint8_t *put_u16(uint8_t *p, uint16_t v)
+{
+    p[0] = (uint8_t)v;
+    p[1] = (uint8_t)(v >> 8);
+    return p + 2;
+}
+
+static uint8_t *put_u32(uint8_t *p, uint32_t v)
+{
+    int i;
+    for (i = 0; i < 4; i++) {
+        p[i] = (uint8_t)(v >> (8 * i));
+    }
+    return p + 4;
+}
+
+static uint8_t *put_u64(uint8_t *p, uint64_t v)
+{
+    int i;
+    for (i = 0; i < 8; i++) {
+        p[i] = (uint8_t)(v >> (8 * i));
+    }
+    return p + 8;
+}
+
+static uint8_t *put_f64(uint8_t *p, double v)
+{
+    uint64_t bits;
+    memcpy(&bits, &v, sizeof bits);
+    return put_u64(p, bits);
+}
+
+static uint16_t get_u16(const uint8_t *p)
+{
+    return (uint16_t)(p[0] | ((uint16_t)p[1] << 8));
+}
+
+static uint32_t get_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
+           ((uint32_t)p[3] << 24);
+}
+
+static uint64_t get_u64(const uint8_t *p)
+{
+    return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);
+}
+
+static double get_f64(const uint8_t *p)
+{
+    uint64_t bits = get_u64(p);
+    double v;
+    memcpy(&v, &bits, sizeof v);
+    return v;
+}
+
+/* ------------------------------------------------------------------ encoder */
+
+/* Packet body without CRC; returns its length or 0 on an invalid message. */
+static size_t pack(const hp_msg_t *m, uint8_t *p0)
+{
+    uint8_t *p = p0;
+    unsigned i;
+    *p++ = m->type;
+    switch (m->type) {
+    case HP_MSG_HELLO:
+        if (m->u.hello.n_axes < 1 || m->u.hello.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        *p++ = m->u.hello.protocol_version;
+        *p++ = m->u.hello.n_axes;
+        p = put_u32(p, m->u.hello.device_id);
+        p = put_f64(p, m->u.hello.position_scale);
+        p = put_f64(p, m->u.hello.force_scale);
+        p = put_f64(p, m->u.hello.force_limit);
+        p = put_f64(p, m->u.hello.native_rate_hz);
+        break;
+    case HP_MSG_HELLO_REQUEST:
+        *p++ = m->u.hello_request.protocol_version;
+        break;
+    case HP_MSG_CONFIG:
+        p = put_f64(p, m->u.config.rate_hz);
+        p = put_u32(p, m->u.config.watchdog_us);
+        p = put_f64(p, m->u.config.force_limit);
+        break;
+    case HP_MSG_STATE:
+        if (m->u.state.n_axes < 1 || m->u.state.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        p = put_u32(p, m->u.state.seq);
+        p = put_u64(p, m->u.state.time_us);
+        p = put_u16(p, m->u.state.status);
+        p = put_u32(p, m->u.state.force_seq);
+        for (i = 0; i < m->u.state.n_axes; i++) {
+            p = put_f64(p, m->u.state.position[i]);
+        }
+        break;
+    case HP_MSG_FORCE:
+        if (m->u.force.n_axes < 1 || m->u.force.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        p = put_u32(p, m->u.force.seq);
+        for (i = 0; i < m->u.force.n_axes; i++) {
+            p = put_f64(p, m->u.force.force[i]);
+        }
+        break;
+    case HP_MSG_PING:
+        p = put_u32(p, m->u.ping.nonce);
+        p = put_u64(p, m->u.ping.host_time_us);
+        break;
+    case HP_MSG_PONG:
+        p = put_u32(p, m->u.pong.nonce);
+        p = put_u64(p, m->u.pong.host_time_us);
+        p = put_u64(p, m->u.pong.device_time_us);
+        break;
+    case HP_MSG_FAULT:
+        p = put_u16(p, m->u.fault.code);
+        p = put_u32(p, m->u.fault.detail);
+        break;
+    case HP_MSG_STOP:
+        break;
+    default:
+        return 0;
+    }
+    return (size_t)(p - p0);
+}
+
+size_t hp_encode(const hp_msg_t *msg, uint8_t *out, size_t out_size)
+{
+    uint8_t packet[HP_MAX_PACKET];
+    size_t n = pack(msg, packet);
+    size_t o;
+    uint16_t crc;
+    if (n == 0) {
+        return 0;
+    }
+    crc = hp_crc16(0xFFFFu, packet, n);
+    packet[n++] = (uint8_t)(crc >> 8); /* CRC is sent MSB first */
+    packet[n++] = (uint8_t)crc;
+    if (out_size < 1) {
+        return 0;
+    }
+    o = hp_cobs_encode(packet, n, out, out_size - 1);
+    if (o == 0) {
+        return 0;
+    }
+    out[o++] = 0;
+    return o;
+}
+
+/* ------------------------------------------------------------------ decoder */
+
+static int fixed_len(size_t len, size_t want)
+{
+    return len == want ? HP_OK : HP_ERR_MALFORMED;
+}
+
+int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
+{
+    const uint8_t *p = pk + 1;
+    size_t n, i;
+    if (len < 3) {
+        return HP_ERR_BAD_CRC;
+    }
+    if (len > HP_MAX_PACKET) {
+        return HP_ERR_OVERLONG;
+    }
+    /* With the CRC appended MSB first, the CRC of the whole packet is zero. */
+    if (hp_crc16(0xFFFFu, pk, len) != 0) {
+        return HP_ERR_BAD_CRC;
+    }
+    n = len - 2; /* type + body */
+    m->type = pk[0];
+    switch (pk[0]) {
+    case HP_MSG_HELLO:
+        if (n != 39) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.hello.protocol_version = p[0];
+        m->u.hello.n_axes = p[1];
+        if (p[1] < 1 || p[1] > HP_MAX_AXES) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.hello.device_id = get_u32(p + 2);
+        m->u.hello.position_scale = get_f64(p + 6);
+        m->u.hello.force_scale = get_f64(p + 14);
+        m->u.hello.force_limit = get_f64(p + 22);
+        m->u.hello.native_rate_hz = get_f64(p + 30);
+        return HP_OK;
+    case HP_MSG_HELLO_REQUEST:
+        m->u.hello_request.protocol_version = p[0];
+        return fixed_len(n, 2);
+    case HP_MSG_CONFIG:
+        if (n != 21) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.config.rate_hz = get_f64(p);
+        m->u.config.watchdog_us = get_u32(p + 8);
+        m->u.config.force_limit = get_f64(p + 12);
+        return HP_OK;
+    case HP_MSG_STATE:
+        if (n < HP_STATE_FIXED + 8u || n > HP_STATE_FIXED + 8u * HP_MAX_AXES ||
+            (n - HP_STATE_FIXED) % 8u != 0) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.state.seq = get_u32(p);
+        m->u.state.time_us = get_u64(p + 4);
+        m->u.state.status = get_u16(p + 12);
+        m->u.state.force_seq = get_u32(p + 14);
+        m->u.state.n_axes = (uint8_t)((n - HP_STATE_FIXED) / 8u);
+        for (i = 0; i < m->u.state.n_axes; i++) {
+            m->u.state.position[i] = get_f64(p + 18 + 8 * i);
+        }
+        return HP_OK;
+    case HP_MSG_FORCE:
+        if (n < HP_FORCE_FIXED + 8u || n > HP_FORCE_FIXED + 8u * HP_MAX_AXES ||
+            (n - HP_FORCE_FIXED) % 8u != 0) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.force.seq = get_u32(p);
+        m->u.force.n_axes = (uint8_t)((n - HP_FORCE_FIXED) / 8u);
+        for (i = 0; i < m->u.force.n_axes; i++) {
+            m->u.force.force[i] = get_f64(p + 4 + 8 * i);
+        }
+        return HP_OK;
+    case HP_MSG_PING:
+        if (n != 13) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.ping.nonce = get_u32(p);
+        m->u.ping.host_time_us = get_u64(p + 4);
+        return HP_OK;
+    case HP_MSG_PONG:
+        if (n != 21) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.pong.nonce = get_u32(p);
+        m->u.pong.host_time_us = get_u64(p + 4);
+        m->u.pong.device_time_us = get_u64(p + 12);
+        return HP_OK;
+    case HP_MSG_FAULT:
+        if (n != 7) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.fault.code = get_u16(p);
+        m->u.fault.detail = get_u32(p + 2);
+        return HP_OK;
+    case HP_MSG_STOP:
+        return fixed_len(n, 1);
+    default:
+        return HP_ERR_UNKNOWN_TYPE;
+    }
+}
+
+int hp_decode_frame(const uint8_t *frame, size_t len, hp_msg_t *msg)
+{
+    uint8_t buf[HP_MAX_FRAME];
+    size_t n;
+    if (len > 0 && frame[len - 1] == 0) {
+        len--;
+    }
+    if (len > HP_MAX_FRAME - 1u) {
+        return HP_ERR_OVERLONG;
+    }
+    if (len == 0) {
+        return HP_ERR_BAD_COBS;
+    }
+    n = hp_cobs_decode(frame, len, buf, sizeof buf);
+    if (n == (size_t)-1) {
+        return HP_ERR_BAD_COBS;
+    }
+    return hp_decode_packet(buf, n, msg);
+}
+
+void hp_decoder_init(hp_decoder_t *dec)
+{
+    memset(dec, 0, sizeof *dec);
+}
+
+int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg)
+{
+    size_t n;
+    int r;
+    if (byte != 0) {
+        if (dec->overflow) {
+            return HP_NONE;
+        }
+        if (dec->len >= HP_MAX_FRAME - 1u) {
+            dec->overflow = 1; /* drop the rest of this frame */
+            return HP_NONE;
+        }
+        dec->buf[dec->len++] = byte;
+        return HP_NONE;
+    }
+    /* Delimiter: a frame ends here. */
+    if (dec->overflow) {
+        dec->overflow = 0;
+        dec->len = 0;
+        dec->overlong++;
+        return HP_ERR_OVERLONG;
+    }
+    if (dec->len == 0) {
+        return HP_NONE; /* idle fill */
+    }
+    n = hp_cobs_decode(dec->buf, dec->len, dec->buf, sizeof dec->buf); /* in place */
+    dec->len = 0;
+    r = (n == (size_t)-1) ? HP_ERR_BAD_COBS : hp_decode_packet(dec->buf, n, msg);
+    switch (r) {
+    case HP_OK: dec->frames_ok++; break;
+    case HP_ERR_BAD_COBS: dec->bad_cobs++; break;
+    case HP_ERR_BAD_CRC: dec->bad_crc++; break;
+    case HP_ERR_OVERLONG: dec->overlong++; break;
+    case HP_ERR_UNKNOWN_TYPE: dec->unknown_type++; break;
+    default: dec->malformed++; break;
+    }
+    return r;
+}

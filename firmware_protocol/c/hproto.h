@@ -1,0 +1,180 @@
+/*
+ * hproto.h -- reference C99 implementation of the hapsim framed serial protocol.
+ *
+ * Specification: ../PROTOCOL.md. Golden vectors: ../vectors/vectors.json.
+ *
+ * Portable C99 for firmware: no malloc, no stdio, only <stdint.h>, <stddef.h>, <string.h>.
+ * Frame on the wire: COBS(type:u8 | body | crc16:u16 MSB first) followed by one 0x00.
+ * Bodies are little-endian with no padding; positions and forces are IEEE-754 binary64.
+ * Requires a 64-bit `double` (checked at compile time; AVR-GCC's 32-bit double is refused).
+ */
+#ifndef HPROTO_H
+#define HPROTO_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define HP_PROTOCOL_VERSION 1u
+#define HP_MAX_FRAME 128u  /* bytes on the wire, delimiter included */
+#define HP_MAX_PACKET 126u /* type + body + CRC, before COBS */
+#define HP_MAX_AXES 8u
+
+/* Message type ids. */
+#define HP_MSG_HELLO 0x01u
+#define HP_MSG_HELLO_REQUEST 0x02u
+#define HP_MSG_CONFIG 0x03u
+#define HP_MSG_STATE 0x10u
+#define HP_MSG_FORCE 0x11u
+#define HP_MSG_PING 0x20u
+#define HP_MSG_PONG 0x21u
+#define HP_MSG_FAULT 0x30u
+#define HP_MSG_STOP 0x31u
+
+/* STATE.status bits. */
+#define HP_STATUS_ARMED 0x0001u
+#define HP_STATUS_WATCHDOG_TRIPPED 0x0002u
+#define HP_STATUS_FORCE_CLAMPED 0x0004u
+#define HP_STATUS_FAULT 0x0008u
+#define HP_STATUS_RX_ERROR 0x0010u
+#define HP_STATUS_OVERRUN 0x0020u
+#define HP_STATUS_CONFIGURED 0x0040u
+
+/* FAULT.code values. */
+#define HP_FAULT_WATCHDOG 0x0001u
+#define HP_FAULT_BAD_CONFIG 0x0002u
+#define HP_FAULT_SENSOR 0x0003u
+#define HP_FAULT_AMPLIFIER 0x0004u
+#define HP_FAULT_NON_FINITE_FORCE 0x0005u
+#define HP_FAULT_AXES_MISMATCH 0x0006u
+#define HP_FAULT_RX_ERRORS 0x0007u
+#define HP_FAULT_OVERRUN 0x0008u
+#define HP_FAULT_VERSION_MISMATCH 0x0009u
+
+/* Results of hp_decode_frame / hp_decoder_feed (negative: frame dropped). */
+#define HP_OK 0
+#define HP_NONE 1 /* hp_decoder_feed: no message completed by this byte */
+#define HP_ERR_BAD_COBS (-1)
+#define HP_ERR_BAD_CRC (-2)
+#define HP_ERR_OVERLONG (-3)
+#define HP_ERR_UNKNOWN_TYPE (-4)
+#define HP_ERR_MALFORMED (-5)
+
+typedef struct {
+    uint8_t protocol_version;
+    uint8_t n_axes;          /* 1..8 */
+    uint32_t device_id;
+    double position_scale;   /* [m/count] */
+    double force_scale;      /* [N/unit] */
+    double force_limit;      /* [N] */
+    double native_rate_hz;   /* [Hz] */
+} hp_hello_t;
+
+typedef struct {
+    uint8_t protocol_version;
+} hp_hello_request_t;
+
+typedef struct {
+    double rate_hz;          /* [Hz] */
+    uint32_t watchdog_us;    /* [us] */
+    double force_limit;      /* [N] */
+} hp_config_t;
+
+typedef struct {
+    uint32_t seq;
+    uint64_t time_us;        /* [us] */
+    uint16_t status;         /* HP_STATUS_* bits */
+    uint32_t force_seq;
+    uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
+    double position[HP_MAX_AXES]; /* [m] */
+} hp_state_t;
+
+typedef struct {
+    uint32_t seq;
+    uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
+    double force[HP_MAX_AXES]; /* [N] */
+} hp_force_t;
+
+typedef struct {
+    uint32_t nonce;
+    uint64_t host_time_us;   /* [us] */
+} hp_ping_t;
+
+typedef struct {
+    uint32_t nonce;
+    uint64_t host_time_us;   /* [us] */
+    uint64_t device_time_us; /* [us] */
+} hp_pong_t;
+
+typedef struct {
+    uint16_t code;           /* HP_FAULT_* */
+    uint32_t detail;
+} hp_fault_t;
+
+/* A message: `type` selects the member of `u` (STOP has no body). */
+typedef struct {
+    uint8_t type;
+    union {
+        hp_hello_t hello;
+        hp_hello_request_t hello_request;
+        hp_config_t config;
+        hp_state_t state;
+        hp_force_t force;
+        hp_ping_t ping;
+        hp_pong_t pong;
+        hp_fault_t fault;
+    } u;
+} hp_msg_t;
+
+/* Stream decoder: a fixed buffer and counters; zero-initialise or call hp_decoder_init. */
+typedef struct {
+    uint8_t buf[HP_MAX_FRAME];
+    size_t len;
+    uint8_t overflow;        /* current frame is over-long: drop until the next 0x00 */
+    uint32_t frames_ok;
+    uint32_t bad_cobs;
+    uint32_t bad_crc;
+    uint32_t overlong;
+    uint32_t unknown_type;
+    uint32_t malformed;
+} hp_decoder_t;
+
+/* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no xorout).
+ * Pass crc = 0xFFFF to start. hp_crc16(0xFFFF, "123456789", 9) == 0x29B1. */
+uint16_t hp_crc16(uint16_t crc, const uint8_t *data, size_t len);
+
+/* COBS-encode `len` bytes into `out` (no delimiter). Returns the length written, or 0 if
+ * `out_size` is too small. Needs out_size >= len + len / 254 + 1. */
+size_t hp_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t out_size);
+
+/* COBS-decode `len` bytes (no delimiter, no 0x00 inside) into `out`; `out` may equal `in`
+ * (in-place). Returns the decoded length, or (size_t)-1 on a COBS error. */
+size_t hp_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t out_size);
+
+/* Encode `msg` as a whole frame (delimiter included) into `out`. Returns the frame length,
+ * or 0 if the type is unknown, n_axes is not 1..8 or `out_size` is too small.
+ * HP_MAX_FRAME bytes are always enough. */
+size_t hp_encode(const hp_msg_t *msg, uint8_t *out, size_t out_size);
+
+/* Decode a packet (type | body | crc, already COBS-decoded). Returns HP_OK or HP_ERR_*. */
+int hp_decode_packet(const uint8_t *packet, size_t len, hp_msg_t *msg);
+
+/* Decode one frame (with or without its trailing 0x00). `frame` is not modified.
+ * Returns HP_OK or HP_ERR_*; `msg` is only meaningful on HP_OK. */
+int hp_decode_frame(const uint8_t *frame, size_t len, hp_msg_t *msg);
+
+void hp_decoder_init(hp_decoder_t *dec);
+
+/* Feed one received byte. Returns HP_OK when it completes a good frame (then `*msg` holds
+ * the message), HP_NONE when no frame ended or only an empty one, or HP_ERR_* when a frame
+ * ended and was dropped (already counted). Never act on a message unless HP_OK. */
+int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* HPROTO_H */
