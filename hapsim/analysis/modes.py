@@ -12,9 +12,10 @@ not the damped frequency ``|Im s| / (2 pi)``; the two coincide for light damping
 This is the inverse map of Florens, Voda & Urma, Sec. 5 ((K, B) -> (k, b)) and
 DESIGN.md Sec. 4.
 
-Real poles are kept as ``kind="real"`` modes. Their ``k`` and ``b`` are those of the
-critically damped oscillator with a double pole at ``s`` (``damping_ratio = 1``):
-indicative only, since a single real pole is not an oscillator. A real pole
+Real poles are kept as ``kind="real"`` modes, converted with the same formulas. For
+``z in (0, 1)`` their ``k`` and ``b`` are those of the critically damped oscillator with a
+double pole at ``s`` (``damping_ratio = 1``): indicative only, since a single real pole
+is not an oscillator. A real pole
 ``z in (0, 1)`` has a real ``s < 0``. A real *negative* ``z`` has no continuous
 equivalent (it alternates sign every sample): ``s`` is then the principal value
 ``(ln|z| + i pi) / T``, i.e. an oscillation at the Nyquist frequency, and the mode is still
@@ -166,7 +167,7 @@ def mode_from_pole(z: complex, mass: float, period: float, kind: str,
     z = complex(z)
     s = log_z(z, w) / period
     if z == 0:
-        return Mode(z=z, s=s, f0_hz=math.inf, damping_ratio=1.0, k=math.inf, b=math.inf,
+        return Mode(z=z, s=complex(-math.inf, 0.0), f0_hz=math.inf, damping_ratio=1.0, k=math.inf, b=math.inf,
                     kind=kind)
     wn = abs(s)
     k = mass * wn * wn

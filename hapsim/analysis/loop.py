@@ -1,0 +1,387 @@
+"""The sampled THS loop: real mass + friction, hold, delay, virtual spring/damper.
+
+Real side ``m x'' + b0 x' = f`` (DESIGN.md Sec. 4). The pulse transfer from force samples to
+position samples is ``G(z) = N(z) / D(z)``; the virtual element is
+``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1]) / T``; the closed loop is
+
+    z^(d+1) D(z) + N(z) (K z + (B/T)(z - 1)) = 0,  i.e.  P K + Q B + R = 0,
+    P = z N,  Q = (z - 1) N / T,  R = z^(d+1) D          (Florens et al., eq. (1) of Sec. 6).
+
+Numerics. The roots that matter cluster near ``z = 1`` when ``T`` is small, so every
+computation is done on dimensionless polynomials in ``w = z - 1`` (the delta operator):
+``kappa = K T^2 / m``, ``beta = B T / m``, ``N~ = N m / T^2``; then
+``kappa P~ + beta Q~ + R~ = 0`` with ``P~ = z N~``, ``Q~ = (z - 1) N~``, ``R~ = z^(d+1) D``,
+all with O(1) coefficients. ``1 - e^(-b0 T/m)`` and the hold coefficients are computed
+with ``expm1`` or series, so 20 kHz loops keep ~1e-12 relative precision.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["LoopModel", "HOLDS", "plant", "characteristic", "closed_loop_poles",
+           "zoh_state_space", "spectral_radius"]
+
+#: Valid values of :attr:`LoopModel.hold`.
+HOLDS = ("zoh", "ideal")
+
+
+@dataclass(frozen=True)
+class LoopModel:
+    """One simulator configuration seen from the THS.
+
+    Parameters
+    ----------
+    mass : float > 0
+        Real moving mass ``m`` (hand + handle) [kg].
+    friction : float >= 0
+        Real viscous friction ``b0`` [N s/m].
+    rate_hz : float > 0
+        Sample rate [Hz]; the period is ``T = 1 / rate_hz`` [s].
+    delay : int >= 0
+        Whole samples ``d`` between the position a force is computed from and the sample
+        it is applied at.
+    hold : {"zoh", "ideal"}
+        ``"zoh"``: exact zero-order hold of ``m x'' + b0 x' = f``. ``"ideal"``: the paper's
+        idealised sampled image, a centred-difference mass (Florens et al. eqs. (2)-(4)).
+
+    Raises
+    ------
+    ConfigError
+        On a non-positive mass or rate, a negative friction, a negative or non-integer
+        delay, or an unknown hold; ``key`` names the field.
+
+    Notes
+    -----
+    ``LoopModel(mass=1, friction=0, rate_hz=1, ...)`` gives the paper's normalised units
+    (``m = T = 1``).
+    """
+
+    mass: float
+    friction: float = 0.0
+    rate_hz: float = 1000.0
+    delay: int = 1
+    hold: str = "zoh"
+
+    def __post_init__(self) -> None:
+        def num(key, value):
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise ConfigError(f"must be a number, got {value!r}", key=key) from None
+            if not math.isfinite(v):
+                raise ConfigError(f"must be finite, got {value!r}", key=key)
+            return v
+        m = num("mass", self.mass)
+        if m <= 0:
+            raise ConfigError(f"must be > 0 [kg], got {self.mass!r}", key="mass")
+        b0 = num("friction", self.friction)
+        if b0 < 0:
+            raise ConfigError(f"must be >= 0 [N s/m], got {self.friction!r}", key="friction")
+        r = num("rate_hz", self.rate_hz)
+        if r <= 0:
+            raise ConfigError(f"must be > 0 [Hz], got {self.rate_hz!r}", key="rate_hz")
+        d = self.delay
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
+                or not float(d).is_integer() or d < 0:
+            raise ConfigError(f"must be a whole number of samples >= 0, got {d!r}",
+                              key="delay")
+        if self.hold not in HOLDS:
+            raise ConfigError(f"unknown hold {self.hold!r}; valid choices: "
+                              f"{', '.join(HOLDS)}", key="hold")
+        object.__setattr__(self, "mass", m)
+        object.__setattr__(self, "friction", b0)
+        object.__setattr__(self, "rate_hz", r)
+        object.__setattr__(self, "delay", int(d))
+
+    @property
+    def period(self) -> float:
+        """Sample period ``T = 1 / rate_hz`` [s]."""
+        return 1.0 / self.rate_hz
+
+    @property
+    def b0_T_over_m(self) -> float:
+        """Dimensionless friction ``b0 T / m`` [-] (the paper's normalised ``b0``)."""
+        return self.friction * self.period / self.mass
+
+    @classmethod
+    def from_device(cls, device, rate_hz: float) -> "LoopModel":
+        """Loop model of a scene's device.
+
+        Parameters
+        ----------
+        device : hapsim.scene.Device
+            Anything with ``mass`` [kg], ``friction`` [N s/m], ``delay`` [samples] and
+            ``hold`` attributes.
+        rate_hz : float > 0
+            Sample rate [Hz].
+
+        Returns
+        -------
+        LoopModel
+
+        Raises
+        ------
+        ConfigError
+            As for the constructor.
+        """
+        return cls(mass=device.mass, friction=getattr(device, "friction", 0.0),
+                   rate_hz=rate_hz, delay=getattr(device, "delay", 1),
+                   hold=getattr(device, "hold", "zoh"))
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of the fields (SI units)."""
+        return {"mass": self.mass, "friction": self.friction, "rate_hz": self.rate_hz,
+                "delay": self.delay, "hold": self.hold}
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _phi(x: float) -> tuple[float, float, float]:
+    """``(psi, phi1, phi0)`` of ``x = b0 T / m``, accurate for small ``x``.
+
+    ``psi = (1 - e^-x)/x``, ``phi1 = (e^-x - 1 + x)/x^2``, ``phi0 = (1 - e^-x - x e^-x)/x^2``;
+    all tend to ``(1, 1/2, 1/2)`` as ``x -> 0``.
+    """
+    if x < 0.1:
+        psi = phi1 = phi0 = 0.0
+        term = 1.0  # (-x)^j / j!
+        for j in range(25):
+            psi += term / (j + 1)
+            phi1 += term / ((j + 1) * (j + 2))
+            phi0 += term * (j + 1) / ((j + 1) * (j + 2))
+            term *= -x / (j + 1)
+        return psi, phi1, phi0
+    em = math.expm1(-x)  # e^-x - 1
+    a = em + 1.0
+    return -em / x, (em + x) / (x * x), (-em - x * a) / (x * x)
+
+
+def zoh_state_space(mass: float, friction: float, period: float):
+    """Exact zero-order-hold discretisation of ``m x'' + b0 x' = f``.
+
+    Parameters
+    ----------
+    mass : float > 0
+        Mass ``m`` [kg].
+    friction : float >= 0
+        Viscous friction ``b0`` [N s/m].
+    period : float > 0
+        Hold period ``T`` [s].
+
+    Returns
+    -------
+    Ad : ndarray, shape (2, 2)
+        State transition of ``[x, v]`` ([m], [m/s]) over one period.
+    Bd : ndarray, shape (2,)
+        Response of ``[x, v]`` to a unit force held over the period [m/N, m/(N s)].
+
+    Notes
+    -----
+    Closed form, with ``x = b0 T / m``, ``a = e^-x``::
+
+        Ad = [[1, T psi], [0, a]],   Bd = [T^2/m phi1, T/m psi]
+        psi = (1 - a)/x,  phi1 = (a - 1 + x)/x^2
+
+    (``b0 = 0``: ``Ad = [[1, T], [0, 1]]``, ``Bd = [T^2/(2m), T/m]``). Equal to
+    ``expm([[A, b], [0, 0]] T)`` of the continuous system (tested against scipy).
+    """
+    m, b0, T = float(mass), float(friction), float(period)
+    if m <= 0 or T <= 0 or b0 < 0:
+        raise ConfigError("need mass > 0, friction >= 0, period > 0; got "
+                          f"mass={mass!r}, friction={friction!r}, period={period!r}")
+    x = b0 * T / m
+    psi, phi1, _ = _phi(x)
+    a = math.exp(-x)
+    Ad = np.array([[1.0, T * psi], [0.0, a]])
+    Bd = np.array([T * T / m * phi1, T / m * psi])
+    return Ad, Bd
+
+
+def _pmul(*polys):
+    out = np.array([1.0])
+    for p in polys:
+        out = np.polymul(out, p)
+    return out
+
+
+def _padd(*polys):
+    out = np.array([0.0])
+    for p in polys:
+        out = np.polyadd(out, p)
+    return out
+
+
+def _plant_w(loop: LoopModel):
+    """Dimensionless plant in ``w = z - 1``: ``(N~, D)``, ``N~ = N m / T^2`` (highest first)."""
+    x = loop.b0_T_over_m
+    psi, phi1, phi0 = _phi(x)
+    one_minus_a = x * psi  # 1 - e^-x, accurate
+    D = np.array([1.0, one_minus_a, 0.0])  # (z - 1)(z - a) = w (w + 1 - a)
+    if loop.hold == "ideal":
+        Nn = np.array([1.0, 1.0])  # z
+        if x > 0:
+            D = D / psi  # eq. (4): times (b0T/m) / (1 - e^-b0T/m)
+    else:
+        Nn = np.array([phi1, phi1 + phi0])  # phi1 z + phi0
+    return Nn, D
+
+
+def _char_w(loop: LoopModel):
+    """``(P~, Q~, R~)`` in ``w``, dimensionless: ``kappa P~ + beta Q~ + R~ = 0``."""
+    Nn, D = _plant_w(loop)
+    z = np.array([1.0, 1.0])
+    Pw = np.polymul(z, Nn)
+    Qw = np.polymul(np.array([1.0, 0.0]), Nn)
+    Rw = _pmul(*([z] * (loop.delay + 1)), D)
+    return Pw, Qw, Rw
+
+
+def _w_to_z(p):
+    """Re-express a polynomial in ``w = z - 1`` as one in ``z`` (highest power first)."""
+    out = np.array([0.0])
+    zm1 = np.array([1.0, -1.0])
+    for c in p:
+        out = np.polyadd(np.polymul(out, zm1), [c])
+    return np.trim_zeros(out, "f") if np.any(out) else np.array([0.0])
+
+
+def plant(loop: LoopModel):
+    """Pulse transfer ``G(z) = N(z) / D(z)`` from force samples [N] to position samples [m].
+
+    Parameters
+    ----------
+    loop : LoopModel
+
+    Returns
+    -------
+    N : ndarray, shape (n,)
+        Numerator coefficients in ``z``, highest power first [m/N].
+    D : ndarray, shape (3,)
+        Denominator coefficients in ``z``, highest power first (monic for ``"zoh"``).
+
+    Notes
+    -----
+    ``"ideal"``: ``N = T^2/m z``, ``D = (z - 1)^2`` (Florens et al. eqs. (2)-(3)); for
+    ``b0 > 0``, ``D = (z - 1)(z - e^(-b0T/m)) (b0T/m) / (1 - e^(-b0T/m))`` (eq. (4)).
+    ``"zoh"``: ``Z{(1 - e^(-sT))/s / (m s^2 + b0 s)}``, i.e.
+    ``N = T^2/m (phi1 z + phi0)``, ``D = (z - 1)(z - e^(-b0T/m))`` with
+    ``phi1 = (e^-x - 1 + x)/x^2``, ``phi0 = (1 - e^-x - x e^-x)/x^2``, ``x = b0T/m``
+    (``b0 = 0``: ``N = T^2/(2m) (z + 1)``). Equal to ``scipy.signal.cont2discrete``.
+    """
+    Nn, D = _plant_w(loop)
+    T = loop.period
+    return _w_to_z(Nn) * (T * T / loop.mass), _w_to_z(D)
+
+
+def characteristic(loop: LoopModel):
+    """Polynomials of the closed loop ``P(z) K + Q(z) B + R(z) = 0``.
+
+    Parameters
+    ----------
+    loop : LoopModel
+
+    Returns
+    -------
+    P : ndarray
+        ``z N(z)`` [m/N], highest power first.
+    Q : ndarray
+        ``(z - 1) N(z) / T`` [m/(N s)], highest power first.
+    R : ndarray
+        ``z^(d+1) D(z)`` [-], highest power first.
+
+    Notes
+    -----
+    Florens et al. Sec. 6 eq. (1); with ``m = T = 1``, ``"ideal"``, ``b0 = 0``: ``z`` times
+    their eq. (2) (d = 0) and eq. (3) (d = 1); with ``b0 > 0``, ``z`` times eq. (4).
+    """
+    Pw, Qw, Rw = _char_w(loop)
+    T, m = loop.period, loop.mass
+    return _w_to_z(Pw) * (T * T / m), _w_to_z(Qw) * (T / m), _w_to_z(Rw)
+
+
+def _char_poly_w(loop: LoopModel, kappa: float, beta: float):
+    Pw, Qw, Rw = _char_w(loop)
+    return _padd(kappa * Pw, beta * Qw, Rw)
+
+
+def _polish(c, roots, iters: int = 3):
+    """Newton-polish the roots of polynomial ``c`` (highest first); keep improvements only."""
+    dc = np.polyder(c)
+    out = np.array(roots, dtype=complex)
+    for i, r in enumerate(out):
+        best, fbest = r, abs(np.polyval(c, r))
+        x = r
+        for _ in range(iters):
+            d = np.polyval(dc, x)
+            if d == 0:
+                break
+            x = x - np.polyval(c, x) / d
+            fx = abs(np.polyval(c, x))
+            if fx < fbest and abs(x - r) < 1e-3 * max(1e-300, abs(r)) + 1e-300:
+                best, fbest = x, fx
+        out[i] = best
+    # keep conjugate symmetry exact: polish may break it slightly
+    return out
+
+
+def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+    """Closed-loop poles as ``w = z - 1`` (polished)."""
+    c = _char_poly_w(loop, kappa, beta)
+    r = np.roots(c)
+    r = _polish(c, r)
+    # re-impose exact conjugate pairs
+    out = []
+    used = np.zeros(r.size, bool)
+    for i in range(r.size):
+        if used[i]:
+            continue
+        used[i] = True
+        if abs(r[i].imag) <= 1e-14 * max(abs(r[i]), 1e-300):
+            out.append(complex(r[i].real, 0.0))
+            continue
+        cand = [j for j in range(r.size) if not used[j]]
+        if not cand:
+            out.append(r[i])
+            continue
+        j = min(cand, key=lambda j: abs(r[j] - np.conj(r[i])))
+        used[j] = True
+        zr = complex(r[i].real, abs(r[i].imag))
+        out.extend([zr, zr.conjugate()])
+    return np.array(out, dtype=complex)
+
+
+def _scaled(loop: LoopModel, K: float, B: float) -> tuple[float, float]:
+    T, m = loop.period, loop.mass
+    return float(K) * T * T / m, float(B) * T / m
+
+
+def closed_loop_poles(loop: LoopModel, K: float, B: float = 0.0) -> np.ndarray:
+    """Poles of the closed loop for a virtual spring ``K`` and damper ``B``.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    K : float
+        Virtual stiffness [N/m].
+    B : float, optional
+        Virtual damping [N s/m] (backward difference of the delayed position).
+
+    Returns
+    -------
+    ndarray of complex, shape (d + 3,)
+        Roots of ``P K + Q B + R`` (see :func:`characteristic`), computed in ``w = z - 1``
+        and Newton-polished; conjugate pairs are exact.
+    """
+    kappa, beta = _scaled(loop, K, B)
+    return 1.0 + _roots_w(loop, kappa, beta)
+
+
+def spectral_radius(loop: LoopModel, K: float, B: float = 0.0) -> float:
+    """Largest closed-loop pole modulus ``max |z|`` [-] (``< 1``: asymptotically stable)."""
+    return float(np.max(np.abs(closed_loop_poles(loop, K, B))))
