@@ -1,17 +1,96 @@
-"""``hapsim simulate``: not implemented yet."""
+"""``hapsim simulate``: run a scene offline and write the trajectories."""
 
 from __future__ import annotations
 
-import sys
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError
+from hapsim.progress import Progress
+from hapsim.scene import load_scene
 
 
 def register(sub) -> None:
     """Add the ``simulate`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("simulate", help="(not implemented yet)")
+    p = sub.add_parser(
+        "simulate", help="run a scene offline (no device) and write positions to .npz or .csv",
+        description=(
+            "Run the mass-interaction scene offline with the CORDIS-ANIMA scheme and write "
+            "the positions of the recorded masses. No device is involved: the port, if any, "
+            "is held at the excitation's initial displacement x0 (so a plucking port starts "
+            "pressed into the string)."),
+        epilog=(
+            "output:\n"
+            "  time [s] shape (N+1,), position [m] shape (N+1, R), names shape (R,);\n"
+            "  row 0 is the initial state at t = 0, row i the state after i samples.\n"
+            "  .npz holds the three arrays; .csv has a header 'time,<name>,...'.\n"
+            "example:\n"
+            "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10"),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="YAML scene file")
+    p.add_argument("--steps", "-n", type=int, required=True, metavar="N",
+                   help="number of samples to simulate (>= 0)")
+    p.add_argument("--out", "-o", required=True, metavar="FILE",
+                   help="output file, .npz or .csv (format chosen by extension)")
+    p.add_argument("--record", nargs="+", metavar="NAME",
+                   help="masses to record, in this order (default: all)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim simulate: not implemented yet", file=sys.stderr)
-    return 2
+def run(args: argparse.Namespace) -> int:
+    """Run ``hapsim simulate``; returns the exit code (0, or raises ConfigError)."""
+    ext = os.path.splitext(args.out)[1].lower()
+    if ext not in (".npz", ".csv"):
+        raise ConfigError(f"unknown output format {ext or '(none)'!r}; valid: .npz, .csv",
+                          key="--out")
+    if args.steps < 0:
+        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
+    scene = load_scene(args.scene)
+    engine = Engine(scene)
+    if scene.port is not None:
+        engine.set_port_position(scene.excitation.x0, at_rest=True)
+    names = list(args.record) if args.record else list(engine.names)
+    t0 = time.perf_counter()
+    with Progress(args.steps, "simulate", unit="samples") as bar:
+        t, x = engine.run(args.steps, names, progress=bar.update)
+    elapsed = time.perf_counter() - t0
+    write_trajectory(args.out, t, x, names)
+    summary = {"scene": args.scene, "out": args.out, "steps": args.steps,
+               "rate_hz": scene.rate_hz, "recorded": len(names), "seconds": elapsed}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses "
+              f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
+    return 0
+
+
+def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names: list[str]) -> None:
+    """Write a trajectory atomically (temporary file, then rename).
+
+    Parameters
+    ----------
+    path : str
+        ``.npz`` or ``.csv`` file.
+    time_s : ndarray, shape (N+1,)
+        Time [s].
+    position : ndarray, shape (N+1, R)
+        Positions [m].
+    names : list of str, length R
+        Recorded mass names.
+    """
+    tmp = f"{path}.partial"
+    if path.lower().endswith(".npz"):
+        with open(tmp, "wb") as fh:
+            np.savez(fh, time=time_s, position=position, names=np.array(names))
+    else:
+        data = np.column_stack([time_s, position])
+        np.savetxt(tmp, data, delimiter=",", header=",".join(["time"] + names), comments="",
+                   fmt="%.17g")
+    os.replace(tmp, path)
