@@ -7,3 +7,5 @@ Compute functions here return plain data; drawing lives in :mod:`hapsim.plot`.
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
 from hapsim.analysis.loop import (HOLDS, LoopModel, characteristic, closed_loop_poles, plant,
                                   spectral_radius, zoh_state_space)
+from hapsim.analysis.ths import (CalibrationResult, RenderResult, calibrate, published_limits,
+                                 render, stability_boundary, stability_limit)

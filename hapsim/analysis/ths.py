@@ -1,0 +1,474 @@
+"""Rendered (k, b), calibration (k, b) -> (K, B) and the exact stability boundary.
+
+Florens, Voda & Urma, Secs. 5-6; DESIGN.md Sec. 4. All computations use the dimensionless
+polynomials of :mod:`hapsim.analysis.loop` in ``w = z - 1``.
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import brentq
+
+from hapsim.analysis.loop import LoopModel, _char_w, _polish, _roots_w, _scaled
+from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
+from hapsim.errors import ConfigError
+
+__all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "stability_limit",
+           "stability_boundary", "published_limits"]
+
+
+def _f(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _modes_of(loop: LoopModel, w: np.ndarray) -> list[Mode]:
+    return modes_from_poles(1.0 + w, loop.mass, loop.period, w=w)
+
+
+def _log_rho(w: np.ndarray) -> float:
+    """``ln max |1 + w|``, accurate near the unit circle."""
+    wr, wi = w.real, w.imag
+    arg = 2.0 * wr + wr * wr + wi * wi
+    with np.errstate(divide="ignore"):
+        return float(np.max(0.5 * np.log1p(np.maximum(arg, -1.0))))
+
+
+def _log_abs_w(w: complex) -> float:
+    """``ln |1 + w|``, accurate near the unit circle; ``-inf`` at ``w = -1``."""
+    arg = 2.0 * w.real + w.real * w.real + w.imag * w.imag
+    return 0.5 * math.log1p(arg) if arg > -1.0 else -math.inf
+
+
+# --------------------------------------------------------------------------- render
+
+@dataclass(frozen=True)
+class RenderResult:
+    """What the user feels for a virtual ``(K, B)``: the rendered oscillator.
+
+    Attributes
+    ----------
+    K, B : float
+        The virtual stiffness [N/m] and damping [N s/m] analysed.
+    k : float
+        Rendered stiffness ``m |s|^2`` of the least damped complex pair [N/m]; nan if the
+        loop has no complex pair.
+    b : float
+        Rendered damping ``-2 m Re s`` [N s/m]: the whole THS damping (real ``b0`` plus
+        virtual, as deformed by sampling and delay); nan if no complex pair.
+    f0_hz : float
+        Natural frequency ``sqrt(k/m) / (2 pi)`` [Hz]; nan if no complex pair.
+    damping_ratio : float
+        ``b / (2 sqrt(k m))`` [-]; nan if no complex pair.
+    stable : bool
+        True iff every closed-loop pole has ``|z| < 1``.
+    spectral_radius : float
+        ``max |z|`` over the closed-loop poles [-].
+    modes : list of Mode
+        The parasitic modes: every mode except the rendered pair, least damped first.
+    rendered : Mode or None
+        The rendered pair itself.
+    note : str
+        Empty, or why ``k``/``b`` are nan.
+    """
+
+    K: float
+    B: float
+    k: float
+    b: float
+    f0_hz: float
+    damping_ratio: float
+    stable: bool
+    spectral_radius: float
+    modes: list = field(default_factory=list)
+    rendered: Mode | None = None
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (non-finite floats become ``None``)."""
+        return {"K": _f(self.K), "B": _f(self.B), "k": _f(self.k), "b": _f(self.b),
+                "f0_hz": _f(self.f0_hz), "damping_ratio": _f(self.damping_ratio),
+                "stable": bool(self.stable), "spectral_radius": _f(self.spectral_radius),
+                "rendered": None if self.rendered is None else self.rendered.to_dict(),
+                "modes": [md.to_dict() for md in self.modes], "note": self.note}
+
+
+def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
+    """Inverse map ``(K, B) -> (k, b)``: the oscillator the user feels.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The simulator configuration.
+    K : float
+        Virtual stiffness [N/m].
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    RenderResult
+        Rendered pair = least damped complex pair of the closed loop (largest ``|z|``);
+        ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5,
+        DESIGN.md Sec. 4). Other poles are reported as parasitic modes.
+
+    Raises
+    ------
+    ConfigError
+        If ``K`` or ``B`` is not finite.
+    """
+    for key, v in (("K", K), ("B", B)):
+        if not math.isfinite(float(v)):
+            raise ConfigError(f"must be finite, got {v!r}", key=key)
+    kappa, beta = _scaled(loop, K, B)
+    w = _roots_w(loop, kappa, beta)
+    modes = _modes_of(loop, w)
+    pair = rendered_pair(modes)
+    rho = float(np.max(np.abs(1.0 + w)))
+    stable = _log_rho(w) < 0.0
+    if pair is None:
+        return RenderResult(K=float(K), B=float(B), k=math.nan, b=math.nan, f0_hz=math.nan,
+                            damping_ratio=math.nan, stable=stable, spectral_radius=rho,
+                            modes=modes, rendered=None,
+                            note="the closed loop has no complex pair: nothing oscillates, "
+                                 "no (k, b) is rendered")
+    others = [md for md in modes if md is not pair]
+    return RenderResult(K=float(K), B=float(B), k=pair.k, b=pair.b, f0_hz=pair.f0_hz,
+                        damping_ratio=pair.damping_ratio, stable=stable, spectral_radius=rho,
+                        modes=others, rendered=pair)
+
+
+# --------------------------------------------------------------------------- calibrate
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Virtual ``(K, B)`` that renders a target ``(k, b)``, and whether it really does.
+
+    Attributes
+    ----------
+    k, b : float
+        The target stiffness [N/m] and whole THS damping [N s/m].
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m] placing two closed-loop poles on the
+        target's; nan if the equations have no solution.
+    renderable : bool
+        True iff the solution exists, the loop is stable and every other pole decays faster
+        than the target (``|z_other| < |z_target|``), i.e. the target is what is felt.
+    reason : str
+        Human explanation (names the offending pole when not renderable).
+    spectral_radius : float
+        ``max |z|`` of the calibrated closed loop [-]; nan without a solution.
+    modes : list of Mode
+        The parasitic modes (every pole except the two target ones), least damped first.
+    target : Mode or None
+        The target pair (``kind="pair"``) or, for an over-damped target, its slower pole.
+    """
+
+    k: float
+    b: float
+    K: float
+    B: float
+    renderable: bool
+    reason: str
+    spectral_radius: float
+    modes: list = field(default_factory=list)
+    target: Mode | None = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (non-finite floats become ``None``)."""
+        return {"k": _f(self.k), "b": _f(self.b), "K": _f(self.K), "B": _f(self.B),
+                "renderable": bool(self.renderable), "reason": self.reason,
+                "spectral_radius": _f(self.spectral_radius),
+                "target": None if self.target is None else self.target.to_dict(),
+                "modes": [md.to_dict() for md in self.modes]}
+
+
+def _expm1c(x: complex) -> complex:
+    """``e^x - 1`` for complex ``x``, accurate for small ``|x|``."""
+    a, b = x.real, x.imag
+    s2 = math.sin(0.5 * b)
+    return complex(math.expm1(a) * math.cos(b) - 2.0 * s2 * s2, math.exp(a) * math.sin(b))
+
+
+def _target_w(loop: LoopModel, k: float, b: float):
+    """Target poles as ``w = z - 1`` and the monic quadratic ``w^2 + c1 w + c0``."""
+    m, T = loop.mass, loop.period
+    disc = b * b - 4.0 * m * k
+    if disc < 0:
+        s = complex(-b / (2 * m), math.sqrt(-disc) / (2 * m))
+        w1 = _expm1c(s * T)
+        w = (w1, w1.conjugate())
+        c1 = -2.0 * w1.real
+        c0 = w1.real * w1.real + w1.imag * w1.imag
+        return w, c1, c0, "pair", s
+    r = math.sqrt(disc)
+    s_fast = (-b - r) / (2 * m) if b >= 0 else (-b + r) / (2 * m)
+    s_slow = k / (m * s_fast)  # product of roots = k/m (no cancellation)
+    w1, w2 = math.expm1(s_slow * T), math.expm1(s_fast * T)
+    return (complex(w1), complex(w2)), -(w1 + w2), w1 * w2, "real", complex(s_slow)
+
+
+def _divmod_quadratic(p, c1: float, c0: float):
+    """Quotient and remainder ``(r1, r0)`` of ``p`` (highest first) by ``w^2 + c1 w + c0``."""
+    p = np.asarray(p, dtype=float)
+    if p.size < 3:
+        p = np.concatenate([np.zeros(3 - p.size), p])
+    q = np.zeros(p.size - 2)
+    rem = p.copy()
+    for i in range(q.size):
+        q[i] = rem[i]
+        rem[i + 1] -= c1 * q[i]
+        rem[i + 2] -= c0 * q[i]
+    return q, rem[-2], rem[-1]
+
+
+def _calibrate_core(loop: LoopModel, k: float, b: float):
+    """Solve for ``(kappa, beta)`` and return the deflated other poles (in ``w``)."""
+    w_t, c1, c0, kind, s_t = _target_w(loop, k, b)
+    Pw, Qw, Rw = _char_w(loop)
+    qP, p1, p0 = _divmod_quadratic(Pw, c1, c0)
+    qQ, q1, q0 = _divmod_quadratic(Qw, c1, c0)
+    qR, r1, r0 = _divmod_quadratic(Rw, c1, c0)
+    A = np.array([[p1, q1], [p0, q0]])
+    rhs = -np.array([r1, r0])
+    det = p1 * q0 - q1 * p0
+    scale = max(abs(p1 * q0), abs(q1 * p0), 1e-300)
+    if abs(det) <= 1e-13 * scale:
+        return None
+    kappa, beta = np.linalg.solve(A, rhs)
+    quot = np.polyadd(np.polyadd(kappa * qP, beta * qQ), qR)
+    quot = np.trim_zeros(quot, "f")
+    full = np.polyadd(np.polyadd(kappa * Pw, beta * Qw), Rw)
+    others = np.roots(quot) if quot.size > 1 else np.array([], dtype=complex)
+    others = _polish(full, others)
+    return float(kappa), float(beta), others, w_t, kind, s_t
+
+
+def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
+    """Forward map ``(k, b) -> (K, B)``: virtual parameters rendering a target oscillator.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The simulator configuration.
+    k : float > 0
+        Target stiffness [N/m] (what the user should feel).
+    b : float
+        Target whole THS damping [N s/m] (real ``b0`` included).
+
+    Returns
+    -------
+    CalibrationResult
+        ``renderable=False`` with a reason when the equations have no solution, the target
+        is above the Nyquist frequency, undamped, or when another closed-loop pole lies on or
+        outside the unit circle or is less damped than the target.
+
+    Raises
+    ------
+    ConfigError
+        If ``k <= 0`` or ``k``, ``b`` are not finite.
+
+    Notes
+    -----
+    Poles of ``m s^2 + b s + k`` (m: the loop mass) are mapped by ``z = e^(sT)`` and placed
+    on the closed loop ``P K + Q B + R = 0`` (Florens et al. Sec. 5, Fig. 4; DESIGN.md
+    Sec. 4). Rather than evaluating at one complex root, the characteristic polynomial is
+    required to be divisible by the real quadratic ``(w - w1)(w - w2)``, ``w = z - 1``: the
+    remainder is linear in ``(K, B)`` and gives two real equations. This single form covers
+    the under-damped pair, the two real poles of an over-damped target and the double pole
+    of a critically damped one (where it equals the value + derivative conditions), without
+    perturbation. The other poles are the roots of the exact quotient (deflation).
+    """
+    k = float(k)
+    b = float(b)
+    if not (math.isfinite(k) and math.isfinite(b)):
+        raise ConfigError(f"target must be finite, got k={k!r}, b={b!r}", key="k")
+    if k <= 0:
+        raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
+    m, T = loop.mass, loop.period
+    nan = math.nan
+
+    def fail(reason, K=nan, B=nan, rho=nan, modes=(), target=None):
+        return CalibrationResult(k=k, b=b, K=K, B=B, renderable=False, reason=reason,
+                                 spectral_radius=rho, modes=list(modes), target=target)
+
+    disc = b * b - 4 * m * k
+    if disc < 0 and math.sqrt(-disc) / (2 * m) * T >= math.pi:
+        fN = 0.5 / T
+        return fail(f"target damped frequency {math.sqrt(-disc) / (4 * math.pi * m):.6g} Hz "
+                    f"is at or above the Nyquist frequency {fN:.6g} Hz")
+    core = _calibrate_core(loop, k, b)
+    if core is None:
+        return fail("the calibration equations are singular for this target: no (K, B) "
+                    "places a closed-loop pole pair there")
+    kappa, beta, others, w_t, kind, s_t = core
+    K, B = kappa * m / (T * T), beta * m / T
+    zt = 1.0 + np.asarray(w_t)
+    if kind == "pair":
+        target = mode_from_pole(zt[0], m, T, "pair", w_t[0])
+    else:
+        target = mode_from_pole(zt[0], m, T, "real", w_t[0])
+    modes = _modes_of(loop, others) if others.size else []
+    all_w = np.concatenate([np.asarray(w_t), others])
+    rho = float(np.max(np.abs(1.0 + all_w)))
+    log_t = min(_log_abs_w(w) for w in w_t)
+    if b <= 0:
+        return fail(f"target damping b = {b:.6g} N s/m is not positive: the target "
+                    f"oscillator does not decay (spectral radius {rho:.12g})",
+                    K, B, rho, modes, target)
+    worst = None
+    for w in others:
+        z = 1.0 + w
+        lz = _log_abs_w(w)
+        if worst is None or lz > worst[0]:
+            worst = (lz, complex(z))
+    if worst is not None:
+        lz, z = worst
+        where = (f"z = {z.real:.9g}{z.imag:+.9g}j (|z| = {abs(z):.12g}, "
+                 f"{abs(cmath.log(z).imag) / (2 * math.pi * T) if z != 0 else 0:.6g} Hz)")
+        if lz >= 0:
+            return fail(f"unstable: the parasitic pole {where} is on or outside the unit "
+                        f"circle; spectral radius {rho:.12g}", K, B, rho, modes, target)
+        if lz >= log_t:
+            return fail(f"the parasitic pole {where} is less damped than the target "
+                        f"(|z_target| = {math.exp(log_t):.12g}); the user would feel it, not "
+                        f"the target; spectral radius {rho:.12g}", K, B, rho, modes, target)
+    return CalibrationResult(k=k, b=b, K=K, B=B, renderable=True,
+                             reason=f"renderable: every other pole decays faster than the "
+                                    f"target; spectral radius {rho:.12g}",
+                             spectral_radius=rho, modes=modes, target=target)
+
+
+# --------------------------------------------------------------------------- stability
+
+def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
+    return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
+
+
+def _kappa_max(loop: LoopModel, beta: float) -> float:
+    """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
+    if loop.hold == "ideal" and loop.delay == 0 and loop.friction == 0 and beta == 0:
+        return 4.0  # lossless centred-difference oscillator: marginal for 0 < K < 4m/T^2
+    Pw, Qw, Rw = _char_w(loop)
+
+    def parts(theta):
+        w = complex(-2.0 * math.sin(0.5 * theta) ** 2, math.sin(theta))  # e^{i theta} - 1
+        p = np.polyval(Pw, w)
+        num = beta * np.polyval(Qw, w) + np.polyval(Rw, w)
+        return p, num
+
+    def g(theta):
+        p, num = parts(theta)
+        return (num * np.conj(p)).imag / max(abs(num) * abs(p), 1e-300)
+
+    thetas = np.unique(np.concatenate([np.geomspace(1e-9, math.pi, 4000),
+                                       np.linspace(0.0, math.pi, 4001)[1:]]))
+    wv = -2.0 * np.sin(0.5 * thetas) ** 2 + 1j * np.sin(thetas)
+    pv = np.polyval(Pw, wv)
+    nv = beta * np.polyval(Qw, wv) + np.polyval(Rw, wv)
+    gv = (nv * np.conj(pv)).imag / np.maximum(np.abs(nv) * np.abs(pv), 1e-300)
+    cands = []
+    for i in range(thetas.size - 1):
+        a, c = gv[i], gv[i + 1]
+        if a == 0.0:
+            th = thetas[i]
+        elif a * c < 0:
+            th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15, maxiter=200)
+        else:
+            continue
+        p, num = parts(th)
+        if abs(p) > 0:
+            cands.append((-(num / p)).real)
+    p, num = parts(math.pi)
+    if abs(p) > 1e-14 * max(abs(num), 1.0):
+        cands.append((-(num / p)).real)
+    cands = sorted({c for c in cands if c > 0 and math.isfinite(c)})
+    # stability is constant between consecutive crossings: test each interval's middle
+    edges = [0.0] + cands
+    for i, lo in enumerate(edges):
+        hi = edges[i + 1] if i + 1 < len(edges) else (2.0 * lo if lo > 0 else 1.0)
+        mid = math.sqrt(lo * hi) if lo > 0 else 0.5 * hi
+        if not _stable_at(loop, mid, beta):
+            return lo
+    return math.inf
+
+
+def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
+    """Exact largest stable virtual stiffness ``K_max(B)`` [N/m].
+
+    Parameters
+    ----------
+    loop : LoopModel
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    float
+        ``sup {K : the loop is stable for every K' in (0, K)}``, where the spectral radius
+        reaches 1. ``0.0`` when no small positive ``K`` is stable (e.g. ZOH with
+        ``b0 = B = 0``, or a delay without damping); ``inf`` when every ``K > 0`` is stable
+        (no finite crossing, e.g. the ideal hold with large damping ratio; rare).
+        For ``"ideal"``, ``d = 0``, ``b0 = B = 0`` it is the centred-difference limit
+        ``4 m / T^2`` (poles on the unit circle below it: marginal stability).
+
+    Notes
+    -----
+    On the boundary a pole is ``z = e^{i theta}`` and ``K(theta) = -(Q B + R)/P`` must be
+    real: ``Im[(QB + R) conj(P)] = 0`` is solved for ``theta`` in ``(0, pi]`` (dense scan
+    then Brent, relative precision ~1e-15), each root gives a candidate ``K``; between
+    consecutive candidates stability cannot change, so each interval is classified by the
+    spectral radius at one interior point. The boundary is the ``b = 0`` curve of the grid
+    (Florens et al. Sec. 6.2).
+    """
+    if not math.isfinite(float(B)):
+        raise ConfigError(f"must be finite, got {B!r}", key="B")
+    T, m = loop.period, loop.mass
+    beta = float(B) * T / m
+    return _kappa_max(loop, beta) * m / (T * T)
+
+
+def stability_boundary(loop: LoopModel, B_values) -> np.ndarray:
+    """``K_max(B)`` [N/m] for each virtual damping in ``B_values`` [N s/m].
+
+    Parameters
+    ----------
+    loop : LoopModel
+    B_values : array_like, shape (n,)
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        :func:`stability_limit` at each ``B`` (``0.0`` / ``inf`` as documented there).
+    """
+    return np.array([stability_limit(loop, float(B)) for B in np.ravel(B_values)])
+
+
+def published_limits(loop: LoopModel, B: float = 0.0) -> dict:
+    """First-order stiffness limits from the literature, for reference [N/m].
+
+    Parameters
+    ----------
+    loop : LoopModel
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    dict
+        ``passivity_K``: Colgate & Schenkel (1997), ``b0 > K T/2 + |B|`` i.e.
+        ``K < 2 (b0 - |B|) / T`` (sufficient, ZOH, no delay; may be <= 0).
+        ``diolaiti_K``: Diolaiti et al. (2006), ``K < (b0 + B) / (T/2 + d T)`` (first order
+        in ``b0 T / m``). ``centred_difference_K``: ``4 m / T^2`` (ideal hold, d = 0,
+        Florens et al. eq. (2) at ``T sqrt(k/m) = pi``).
+    """
+    T, m, b0, d = loop.period, loop.mass, loop.friction, loop.delay
+    return {"passivity_K": 2.0 * (b0 - abs(B)) / T,
+            "diolaiti_K": (b0 + B) / (T / 2.0 + d * T),
+            "centred_difference_K": 4.0 * m / (T * T)}
