@@ -1,17 +1,193 @@
-"""``hapsim check``: not implemented yet."""
+"""``hapsim check``: scene-level closed-loop check (stability and what the hand feels)."""
 
 from __future__ import annotations
 
-import sys
+import argparse
+import json
+import math
+
+from hapsim.errors import ConfigError
+
+_DESCRIPTION = """\
+Check a whole scene felt through its device, before touching the device.
+
+The scene and the device section are turned into ONE linear closed loop, sampled at the
+scene rate: the hand + handle mass m with its real friction b0 (integrated exactly over each
+period with the force held, or the paper's ideal sampled image with hold: ideal), the
+computation delay of d samples, every virtual mass, and every link (contacts taken as
+engaged, i.e. pressing: the stiffest case the scene reaches). Its eigenvalues z are the
+closed-loop poles. The loop is stable when every |z| < 1 (the spectral radius); poles on
+the unit circle belong to lossless virtual parts (marginal) and are accepted.
+
+What the hand feels is read from the least damped pole pair z: with s = ln(z)/T and m the
+device mass, the felt stiffness is k = m |s|^2 and the felt damping b = -2 m Re(s) (real +
+virtual damping, as deformed by sampling and delay; Florens, Voda & Urma). The other
+poles are the parasitic modes.
+
+Links given as a felt target {k, b} (a spring_damper between the port and a ground) are
+first calibrated: the virtual (K, B) that puts the closed-loop pair on the target is
+computed for the device alone, then the whole scene is checked with it."""
+
+_EPILOG = """\
+examples:
+  hapsim check configs/wall.yaml
+  hapsim check configs/string.yaml --modes 5
+  hapsim check configs/wall.yaml --json | python -m json.tool
+
+exit codes:
+  0  the closed loop is stable (and every target is renderable)
+  1  unstable, or a target (k, b) is not renderable with this device
+  2  bad scene file or option"""
 
 
 def register(sub) -> None:
-    """Add the ``check`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("check", help="(not implemented yet)")
+    """Add the ``check`` parser to ``sub`` (an argparse sub-parsers action).
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-command registry.
+    """
+    p = sub.add_parser(
+        "check", help="closed-loop check of a whole scene: stable? what (k, b) is felt?",
+        description=_DESCRIPTION, epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="YAML scene file")
+    p.add_argument("--json", action="store_true",
+                   help="print the result as one JSON object on stdout")
+    p.add_argument("--modes", type=int, default=8, metavar="N",
+                   help="parasitic modes listed in the table (default 8; 0 for none)")
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim check: not implemented yet", file=sys.stderr)
-    return 2
+def _calibrate_targets(scene):
+    """Calibrate every uncalibrated ``target`` link; returns (calibrated dict, reports)."""
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import calibrate
+
+    calibrated, reports = {}, []
+    targets = scene.unresolved_targets
+    if not targets:
+        return calibrated, reports
+    port = scene.port
+    if port is None or scene.device is None:
+        raise ConfigError("target links need a port and a device section to be calibrated",
+                          file=scene.path, key="links")
+    loop = LoopModel.from_device(scene.device, scene.rate_hz)
+    kinds = {m.name: m.kind for m in scene.masses}
+    for lk in targets:
+        ends = {kinds.get(lk.m1), kinds.get(lk.m2)}
+        if lk.kind != "spring_damper" or ends != {"port", "ground"}:
+            raise ConfigError("a target (k, b) can only be calibrated on a spring_damper "
+                              "between the port and a ground", file=scene.path,
+                              line=lk.line or None, key=f"links.{lk.name}")
+        k, b = lk.target
+        res = calibrate(loop, k, b)
+        reports.append({"link": lk.name, "k": k, "b": b, "result": res})
+        if math.isfinite(res.K) and math.isfinite(res.B):
+            calibrated[lk.name] = (res.K, res.B)
+    return calibrated, reports
+
+
+def _fmt_mode(md) -> str:
+    def g(v, spec):
+        return "-" if not math.isfinite(v) else format(v, spec)
+    return (f"  {abs(md.z):<14.10f} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
+            f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hapsim check``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene`` (path), ``json`` (bool), ``modes`` (int).
+
+    Returns
+    -------
+    int
+        0 stable (and every target renderable), 1 unstable or unrenderable target.
+
+    Raises
+    ------
+    ConfigError
+        Bad scene file or option (exit code 2, handled by :mod:`hapsim.cli`).
+    """
+    from hapsim.analysis.scene_check import check_scene
+    from hapsim.scene import load_scene
+
+    if args.modes < 0:
+        raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
+    scene = load_scene(args.scene)
+    calibrated, reports = _calibrate_targets(scene)
+    missing = [r for r in reports if r["link"] not in calibrated]
+    if missing:
+        # No (K, B) at all: nothing to check the scene with.
+        if args.json:
+            print(json.dumps({"scene": args.scene, "stable": None, "verdict": "unrenderable",
+                              "calibrations": [{"link": r["link"], **r["result"].to_dict()}
+                                               for r in reports]}))
+        else:
+            for r in missing:
+                print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) "
+                      f"cannot be calibrated: {r['result'].reason}")
+            print("verdict: UNRENDERABLE")
+        return 1
+    chk = check_scene(scene, calibrated=calibrated)
+    all_renderable = all(r["result"].renderable for r in reports)
+    ok = chk.stable and all_renderable
+    verdict = ("stable" if chk.stable else "unstable") if all_renderable else (
+        "target not renderable" + ("" if chk.stable else ", unstable"))
+
+    if args.json:
+        out = {"scene": args.scene, "verdict": verdict, "rate_hz": scene.rate_hz,
+               "device": None if scene.device is None else {
+                   "mass": scene.device.mass, "friction": scene.device.friction,
+                   "delay": scene.device.delay, "hold": scene.device.hold},
+               "calibrations": [{"link": r["link"], **r["result"].to_dict()} for r in reports],
+               **chk.to_dict()}
+        print(json.dumps(out))
+        return 0 if ok else 1
+
+    T = scene.period
+    print(f"scene {args.scene}: {scene.rate_hz:g} Hz (T = {T * 1e3:g} ms), "
+          f"{sum(m.kind == 'mass' for m in scene.masses)} virtual masses, "
+          f"{len(scene.links)} links (contacts taken as engaged)")
+    if chk.has_port:
+        dv = scene.device
+        print(f"device: m = {dv.mass:g} kg, b0 = {dv.friction:g} N s/m, delay d = {dv.delay}, "
+              f"hold {dv.hold}")
+    else:
+        print("no port: the virtual network alone is checked (no device in the loop)")
+    for r in reports:
+        res = r["result"]
+        print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) -> "
+              f"K = {res.K:.6g} N/m, B = {res.B:.6g} N s/m; "
+              f"{'renderable' if res.renderable else 'NOT renderable: ' + res.reason}")
+    tag = verdict.upper()
+    if chk.stable and chk.marginal:
+        tag += " (marginal: some poles sit on the unit circle and never decay)"
+    print(f"verdict: {tag}")
+    print(f"spectral radius: {chk.spectral_radius:.12g}  ({len(chk.eigenvalues)} states)")
+    rp = chk.rendered
+    if rp is not None:
+        print(f"felt at the port: k = {rp.k:.6g} N/m, b = {rp.b:.6g} N s/m "
+              f"(f0 = {rp.f0_hz:.6g} Hz, damping ratio {rp.damping_ratio:.4g}; "
+              f"m = {chk.reference_mass:g} kg)")
+    elif chk.has_port:
+        print("felt at the port: no oscillating pole pair (nothing rings)")
+    others = [md for md in chk.modes if md is not rp and md.z != 0]
+    deadbeat = sum(1 for md in chk.modes if md.z == 0)
+    if args.modes and others:
+        label = "parasitic modes" if chk.has_port else "modes"
+        print(f"{label} (least damped first; k, b with m = {chk.reference_mass:g} kg):")
+        print(f"  {'|z|':<14} {'f0 [Hz]':<10} {'zeta':<11} {'k [N/m]':<12} "
+              f"{'b [N s/m]':<12} kind")
+        for md in others[:args.modes]:
+            print(_fmt_mode(md))
+        if len(others) > args.modes:
+            print(f"  ... and {len(others) - args.modes} more (--modes N, --json)")
+    if deadbeat:
+        print(f"  + {deadbeat} dead-beat mode(s) at z = 0 (delay line)")
+    return 0 if ok else 1
