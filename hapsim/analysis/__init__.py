@@ -9,3 +9,4 @@ from hapsim.analysis.loop import (HOLDS, LoopModel, characteristic, closed_loop_
                                   spectral_radius, zoh_state_space)
 from hapsim.analysis.ths import (CalibrationResult, RenderResult, calibrate, published_limits,
                                  render, stability_boundary, stability_limit)
+from hapsim.analysis.grid import PAPER_PRESETS, GridResult, grid, paper_preset
