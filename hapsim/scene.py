@@ -385,7 +385,7 @@ class _Ctx:
         self.path = path
 
     def error(self, message: str, line: int | None, key: str) -> ConfigError:
-        return ConfigError(message, file=self.path, line=line, key=key)
+        return ConfigError(message, file=self.path, line=line, key=key or None)
 
     @staticmethod
     def line_of(container: Any, key: Any) -> int | None:

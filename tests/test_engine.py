@@ -1,0 +1,230 @@
+"""The numba engine against closed forms, conservation laws and a plain-Python reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError
+from hapsim.scene import Link, Mass, Scene, load_scene, parse_scene
+
+RATE = 1000.0
+T = 1.0 / RATE
+
+
+def oscillator(stiffness: float, mass: float = 0.1, x0: float = 0.01, damping: float = 0.0) -> Scene:
+    return Scene(rate_hz=RATE,
+                 masses=(Mass("anchor", "ground"), Mass("bob", "mass", mass, x0)),
+                 links=(Link("spring", "spring_damper", "bob", "anchor", stiffness, damping),))
+
+
+def closed_form_oscillator(n: int, stiffness: float, mass: float, x0: float) -> np.ndarray:
+    """Exact solution of x[k+1] - 2 x[k] + x[k-1] = -K T^2/m x[k], x[0] = x[-1] = x0.
+
+    With cos(theta) = 1 - K T^2 / (2 m) (Florens-Voda-Urma eq. 2), x[k] = A cos(k theta)
+    + C sin(k theta), A = x0, C = x0 (cos theta - 1) / sin theta.
+    """
+    theta = math.acos(1.0 - stiffness * T * T / (2.0 * mass))
+    k = np.arange(n + 1)
+    c = x0 * (math.cos(theta) - 1.0) / math.sin(theta)
+    return x0 * np.cos(k * theta) + c * np.sin(k * theta)
+
+
+@pytest.mark.parametrize("stiffness", [10.0, 1000.0, 1.0e5, 3.9e5])
+def test_oscillator_follows_eq2_closed_form(stiffness):
+    mass, x0, n = 0.1, 0.01, 20000
+    _, x = Engine(oscillator(stiffness, mass, x0)).run(n, ["bob"])
+    expected = closed_form_oscillator(n, stiffness, mass, x0)
+    amplitude = np.max(np.abs(expected))
+    assert np.max(np.abs(x[:, 0] - expected)) < 1e-9 * amplitude
+
+
+def test_oscillator_eigenfrequency_eq2_fitted():
+    """Fit w from the trajectory (least squares over all samples) and check eq. 2 to 1e-9."""
+    mass, stiffness, n = 0.1, 1000.0, 4000
+    _, x = Engine(oscillator(stiffness, mass)).run(n, ["bob"])
+    y = x[:, 0]
+    # x[k+1] + x[k-1] = 2 cos(wT) x[k] holds for the exact discrete oscillator: least squares
+    # over the whole record estimates cos(wT) from thousands of samples.
+    c = np.dot(y[2:] + y[:-2], y[1:-1]) / (2.0 * np.dot(y[1:-1], y[1:-1]))
+    w_measured = math.acos(c) / T
+    w_theory = math.acos(1.0 - stiffness * T * T / (2.0 * mass)) / T
+    assert abs(w_measured - w_theory) < 1e-9 * w_theory
+    # ... and it is not the continuous sqrt(K/m): the scheme's frequency warping is visible.
+    assert abs(w_theory - math.sqrt(stiffness / mass)) > 1e-4 * w_theory
+
+
+@pytest.mark.parametrize("factor,grows", [(0.999, False), (1.001, True)])
+def test_centred_difference_limit_4m_over_T2(factor, grows):
+    mass, x0 = 0.1, 0.01
+    n = 2000 if grows else 20000  # growth of |z| = 1.065 per sample overflows past ~11000
+    k_limit = 4.0 * mass / T**2
+    _, x = Engine(oscillator(factor * k_limit, mass, x0)).run(n, ["bob"])
+    peak = np.max(np.abs(x[:, 0]))
+    if grows:
+        assert peak > 1e6 * x0
+    else:
+        # bounded by |A| + |C| of the closed form
+        theta = math.acos(1.0 - factor * k_limit * T * T / (2.0 * mass))
+        bound = x0 * (1.0 + abs((math.cos(theta) - 1.0) / math.sin(theta)))
+        assert peak <= bound * (1 + 1e-9)
+
+
+def test_damped_oscillator_matches_pole_closed_form():
+    """x[k] = a p1^k + c p2^k with p1, p2 the roots of
+    z^2 - (2 - (K T^2 + B T)/m) z + (1 - B T / m) (the scheme of DESIGN §3 in z)."""
+    mass, stiffness, damping, x0, n = 0.1, 1000.0, 0.5, 0.01, 3000
+    _, x = Engine(oscillator(stiffness, mass, x0, damping)).run(n, ["bob"])
+    p1, p2 = np.roots([1.0, -(2.0 - (stiffness * T * T + damping * T) / mass), 1.0 - damping * T / mass])
+    # x[0] = x0 and x[-1] = x0 (released at rest)
+    a, c = np.linalg.solve(np.array([[1.0, 1.0], [1.0 / p1, 1.0 / p2]]), np.array([x0, x0]))
+    k = np.arange(n + 1)
+    expected = (a * p1**k + c * p2**k).real
+    assert abs(p1) < 1.0
+    assert np.max(np.abs(x[:, 0] - expected)) < 1e-10 * x0
+
+
+def random_network(rng: np.random.Generator, n_mass: int = 8, n_links: int = 14,
+                   with_fixed: bool = True) -> Scene:
+    masses = [Mass(f"m{i}", "mass", float(rng.uniform(0.01, 1.0)), float(rng.normal(0, 0.01)),
+                   float(rng.normal(0, 0.1))) for i in range(n_mass)]
+    if with_fixed:
+        masses += [Mass("g", "ground", 0.0, float(rng.normal(0, 0.01))), Mass("p", "port")]
+    names = [m.name for m in masses]
+    links = []
+    for j in range(n_links):
+        a, b = rng.choice(len(names), 2, replace=False)
+        kind = "contact" if j % 3 == 2 else "spring_damper"
+        links.append(Link(f"l{j}", kind, names[a], names[b], float(rng.uniform(0, 500.0)),
+                          float(rng.uniform(0, 0.5)), float(rng.normal(0, 0.005)) if kind == "contact" else 0.0))
+    return Scene(rate_hz=RATE, masses=tuple(masses), links=tuple(links))
+
+
+def reference_run(scene: Scene, n: int, port_positions=None) -> np.ndarray:
+    """Plain-Python CORDIS-ANIMA, written from DESIGN §3 independently of the kernels."""
+    T_ = scene.period
+    names = [m.name for m in scene.masses]
+    x = {m.name: m.x0 for m in scene.masses}
+    xp = {m.name: m.x0 - (m.v0 * T_ if m.kind == "mass" else 0.0) for m in scene.masses}
+    rows = [[x[nm] for nm in names]]
+    for s in range(n):
+        if port_positions is not None:
+            for m in scene.masses:
+                if m.kind == "port":
+                    x[m.name] = port_positions[s]
+        force = {nm: 0.0 for nm in names}
+        for lk in scene.links:
+            x1, x2, x1p, x2p = x[lk.m1], x[lk.m2], xp[lk.m1], xp[lk.m2]
+            if lk.kind == "contact" and not (x2 - x1 < lk.threshold):
+                continue
+            f = lk.stiffness * (x1 - x2) + lk.damping * ((x1 - x2) - (x1p - x2p)) / T_
+            force[lk.m1] -= f
+            force[lk.m2] += f
+        for m in scene.masses:
+            if m.kind == "mass":
+                new = 2 * x[m.name] - xp[m.name] + T_ * T_ * force[m.name] / m.mass
+                xp[m.name], x[m.name] = x[m.name], new
+            else:
+                xp[m.name] = x[m.name]
+        rows.append([x[nm] for nm in names])
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_engine_equals_plain_python_reference(seed):
+    rng = np.random.default_rng(seed)
+    scene = random_network(rng)
+    n = 400
+    _, got = Engine(scene).run(n)
+    want = reference_run(scene, n)
+    scale = np.max(np.abs(want))
+    assert np.max(np.abs(got - want)) <= 1e-12 * scale
+    # contacts really switched during the run (the test covers both branches)
+    assert any(lk.kind == "contact" for lk in scene.links)
+
+
+def test_port_step_equals_reference_with_driven_port():
+    rng = np.random.default_rng(42)
+    scene = random_network(rng)
+    n = 300
+    drive = 0.01 * np.sin(np.arange(n) * 0.05)
+    eng = Engine(scene)
+    rows = [eng.positions]
+    forces = []
+    for s in range(n):
+        forces.append(eng.port_step(drive[s]))
+        rows.append(eng.positions)
+    want = reference_run(scene, n, drive)
+    got = np.array(rows)
+    assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want))
+    # the port force is the sum of the link forces on the port at that sample
+    p = scene.index("p")
+    assert got[1:, p] == pytest.approx(drive, abs=0)
+    assert np.all(np.isfinite(forces))
+
+
+def test_port_force_is_minus_K_x_minus_B_v():
+    scene = parse_scene("""
+rate_hz: 1000
+masses: [{name: hand, kind: port}, {name: wall, kind: ground}]
+links: [{kind: spring_damper, between: [hand, wall], stiffness: 2000, damping: 3}]
+device: {mass: 0.1}
+""")
+    eng = Engine(scene)
+    eng.port_step(0.001)
+    f = eng.port_step(0.003)
+    assert f == pytest.approx(-2000 * 0.003 - 3 * (0.003 - 0.001) / 1e-3, rel=1e-14)
+
+
+def test_internal_links_conserve_momentum():
+    rng = np.random.default_rng(7)
+    scene = random_network(rng, n_mass=12, n_links=30, with_fixed=False)
+    n = 2000
+    _, x = Engine(scene).run(n)
+    m = np.array([ms.mass for ms in scene.masses])
+    momentum = (x[1:] - x[:-1]) @ m / scene.period
+    assert np.ptp(momentum) <= 1e-12 * np.max(np.abs(x)) * m.sum() / scene.period * 10
+
+
+def test_undamped_string_keeps_discrete_energy():
+    base = load_scene("configs/string.yaml")
+    links = tuple(Link(lk.name, lk.kind, lk.m1, lk.m2, lk.stiffness, 0.0, lk.threshold)
+                  for lk in base.links if lk.kind == "spring_damper")
+    masses = tuple(Mass(m.name, m.kind, m.mass, 0.001 * math.sin(math.pi * i / 51) if m.kind == "mass" else 0.0,
+                        0.0) for i, m in enumerate(base.masses) if m.kind != "port")
+    eng = Engine(Scene(rate_hz=base.rate_hz, masses=masses, links=links))
+    e0 = eng.energy()
+    energies = []
+    for _ in range(50):
+        eng.step(2000)
+        energies.append(eng.energy())
+    assert e0 > 0
+    assert max(abs(e - e0) for e in energies) <= 1e-9 * e0
+
+
+def test_target_link_must_be_calibrated_first():
+    scene = parse_scene("""
+rate_hz: 1000
+masses: [{name: hand, kind: port}, {name: wall, kind: ground}]
+links: [{name: felt, kind: spring_damper, between: [hand, wall], target: {k: 1000, b: 3}}]
+device: {mass: 0.1}
+""", "felt.yaml")
+    with pytest.raises(ConfigError, match=r"felt.yaml:4: links.felt: .*calibrate"):
+        Engine(scene)
+    eng = Engine(scene.with_link("felt", stiffness=900.0, damping=2.0))
+    assert eng.port_step(0.001) == pytest.approx(-0.9 - 2.0)
+
+
+def test_kernel_chosen_by_link_kinds():
+    from hapsim.kernels import cordis
+    assert Engine(oscillator(10.0))._kernel is cordis.run_sd
+    string = Engine(load_scene("configs/string.yaml"))
+    assert string._kernel is cordis.run_sd_contact
+
+
+def test_record_unknown_name_lists_masses():
+    with pytest.raises(ConfigError, match="no mass named 'nope'; masses are: anchor, bob"):
+        Engine(oscillator(10.0)).run(3, ["nope"])
