@@ -8,6 +8,7 @@ byte streams (split input, garbage, bit flips, truncation, zero runs, length lim
 from __future__ import annotations
 
 import ast
+import dataclasses
 import importlib.util
 import json
 import math
@@ -180,7 +181,7 @@ def test_round_trip_every_message(msg):
     # The independent oracle builds the same bytes.
     name = next(k for k, c in CLASSES.items() if isinstance(msg, c))
     fields = {k: list(getattr(msg, k)) if isinstance(getattr(msg, k), tuple)
-              else getattr(msg, k) for k in msg.__dataclass_fields__}
+              else getattr(msg, k) for k in (f.name for f in dataclasses.fields(msg))}
     assert frame == ORACLE.frame_of(name, fields)
 
 
