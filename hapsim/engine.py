@@ -42,7 +42,8 @@ class Engine:
     Scheme (DESIGN §3, Florens-Voda-Urma Fig. 5): masses
     ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``; links
     ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` applied ``-F`` on the first mass and
-    ``+F`` on the second; contacts only while ``x2 - x1 < threshold``. A mass starting with
+    ``+F`` on the second; contacts only while ``x2 - x1 < threshold``, with the spring term
+    ``K (x1 - x2 + threshold)``. A mass starting with
     velocity ``v0`` gets ``x[-1] = x0 - v0 T``. The port and grounds never move by
     themselves; the port moves when :meth:`set_port_position` is called (once per device
     sample), which makes the port's velocity the backward difference of device samples.
@@ -262,9 +263,10 @@ class Engine:
             e += 0.5 * (T * T / self._t2m[j]) * v * v
         for lk in self.scene.links:
             a, c = self.scene.index(lk.m1), self.scene.index(lk.m2)
-            if lk.kind == "contact" and not (x[c] - x[a] < lk.threshold):
+            off = lk.threshold if lk.kind == "contact" else 0.0
+            if lk.kind == "contact" and not (x[c] - x[a] < off):
                 continue
-            e += 0.5 * lk.stiffness * (x[a] - x[c]) * (xp[a] - xp[c])
+            e += 0.5 * lk.stiffness * (x[a] - x[c] + off) * (xp[a] - xp[c] + off)
         return e
 
     def __repr__(self) -> str:

@@ -39,7 +39,9 @@ Format
 Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
 the positions of the first and second mass named in ``between``,
 ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` is applied as ``-F`` on the first
-mass and ``+F`` on the second; a contact applies it only while ``x2 - x1 < threshold``.
+mass and ``+F`` on the second. A contact acts only while ``x2 - x1 < threshold``, with its
+spring measured from the threshold, ``F = K (x1 - x2 + threshold) + B (...) / T``, so the
+force is continuous when the contact engages (Faust 2.54 ``mi.lib`` ``collision``).
 """
 
 from __future__ import annotations
@@ -115,7 +117,8 @@ class Link:
     name : str
         Unique name.
     kind : {"spring_damper", "contact"}
-        ``contact`` acts only while ``x2 - x1 < threshold`` (Faust ``mi.lib`` ``collision``).
+        ``contact`` acts only while ``x2 - x1 < threshold``, with its spring force
+        ``K (x1 - x2 + threshold)`` (Faust 2.54 ``mi.lib`` ``collision``).
     m1, m2 : str
         Names of the first and second mass (order fixes the sign convention).
     stiffness : float

@@ -118,9 +118,12 @@ def reference_run(scene: Scene, n: int, port_positions=None) -> np.ndarray:
         force = {nm: 0.0 for nm in names}
         for lk in scene.links:
             x1, x2, x1p, x2p = x[lk.m1], x[lk.m2], xp[lk.m1], xp[lk.m2]
-            if lk.kind == "contact" and not (x2 - x1 < lk.threshold):
-                continue
-            f = lk.stiffness * (x1 - x2) + lk.damping * ((x1 - x2) - (x1p - x2p)) / T_
+            rest = 0.0
+            if lk.kind == "contact":
+                if not (x2 - x1 < lk.threshold):
+                    continue
+                rest = lk.threshold  # spring measured from the threshold: continuous force
+            f = lk.stiffness * (x1 - x2 + rest) + lk.damping * ((x1 - x2) - (x1p - x2p)) / T_
             force[lk.m1] -= f
             force[lk.m2] += f
         for m in scene.masses:

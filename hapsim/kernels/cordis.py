@@ -19,7 +19,9 @@ contacts ``thr`` [m].
 
 Scheme (DESIGN §3; Florens, Voda & Urma Fig. 5; Faust ``mi.lib`` ``mass``/``spring``/
 ``collision``): a link's force ``F = k (x1 - x2) + z ((x1 - x2) - (x1p - x2p))`` is applied
-as ``-F`` on mass 1 and ``+F`` on mass 2; a contact only while ``x2 - x1 < thr``; then each
+as ``-F`` on mass 1 and ``+F`` on mass 2; a contact applies
+``F = k (x1 - x2 + thr) + z ((x1 - x2) - (x1p - x2p))`` only while ``x2 - x1 < thr`` (so its
+force is continuous at engagement, as Faust 2.54 ``mi.lib`` ``collision``); then each
 mobile mass moves by ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``.
 
 One top-level kernel per set of link kinds (``run_masses``, ``run_sd``, ``run_contact``,
@@ -59,9 +61,9 @@ def _contacts(x, xp, f, i1, i2, k, z, thr):
     for j in range(i1.size):
         a = i1[j]
         c = i2[j]
-        if x[c] - x[a] < thr[j]:
-            d = x[a] - x[c]
-            force = k[j] * d + z[j] * (d - (xp[a] - xp[c]))
+        d = x[a] - x[c]
+        if -d < thr[j]:
+            force = k[j] * (d + thr[j]) + z[j] * (d - (xp[a] - xp[c]))
             f[a] -= force
             f[c] += force
 
