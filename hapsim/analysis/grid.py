@@ -186,8 +186,13 @@ def grid(loop: LoopModel, k_values, b_values, *, boundary_B=None, n_boundary: in
     idB = np.repeat(bv[None, :], kv.size, axis=0) - b0
     if boundary_B is None:
         finite = B[np.isfinite(B)]
-        lo = min([float(np.min(idB))] + ([float(finite.min())] if finite.size else []))
-        hi = max([float(np.max(idB))] + ([float(finite.max())] if finite.size else []))
+        lo, hi = float(np.min(idB)), float(np.max(idB))
+        if finite.size:
+            span = max(hi - lo, float(np.ptp(finite)), 1e-300)
+            # ignore round-off below the identity's range (e.g. B = -1e-17 for b = b0)
+            if finite.min() < lo - 1e-9 * span:
+                lo = float(finite.min())
+            hi = max(hi, float(finite.max()))
         if hi <= lo:
             hi = lo + 1.0
         boundary_B = np.linspace(lo, hi, n_boundary)

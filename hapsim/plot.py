@@ -1,0 +1,134 @@
+"""Figures. The only hapsim module that imports matplotlib (lazily, Agg backend).
+
+Install the extra with ``pip install 'hapsim[plot]'``.
+"""
+
+from __future__ import annotations
+
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["plot_grid", "save_figure"]
+
+
+def _mpl():
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ConfigError("matplotlib is not installed; install the plot extra: "
+                          "pip install 'hapsim[plot]'", key="plot") from exc
+    return plt
+
+
+def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1):
+    """Draw a :class:`hapsim.analysis.GridResult` in the (K, B + b0) plane.
+
+    Parameters
+    ----------
+    result : hapsim.analysis.GridResult
+        Output of :func:`hapsim.analysis.grid` (use ``samples > 0`` for smooth curves).
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw into; a new figure is made when None.
+    title : str, optional
+        Axes title; a description of the loop by default.
+    label_every : int, optional
+        Label every n-th iso curve.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Iso-k curves (solid blue, labelled ``k=``), iso-b curves (solid red, ``b=``), the
+        identity grid ``K = k``, ``B + b0 = b`` (dashed grey), the exact stability boundary
+        ``K_max(B)`` (bold black). Axes: ``K`` [N/m] and ``B + b0`` [N s/m] (Florens et al.
+        Fig. 9 convention).
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing (message: install the plot extra).
+    """
+    plt = _mpl()
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(7.5, 6.0), dpi=110)
+    else:
+        fig = ax.figure
+    g = result
+    b0 = g.b_bias
+    loop = g.loop
+    # identity grid
+    kv, bv = g.k_values, g.b_values
+    Bid = bv  # on the B + b0 axis, the identity is b itself
+    for k in kv:
+        ax.plot([k, k], [Bid.min(), Bid.max()], ls="--", color="0.6", lw=0.8, zorder=1)
+    for b in bv:
+        ax.plot([kv.min(), kv.max()], [b, b], ls="--", color="0.6", lw=0.8, zorder=1)
+    # iso curves
+    if g.iso_k_K is not None:
+        ikK, ikB = g.iso_k_K, g.iso_k_B + b0
+        ibK, ibB = g.iso_b_K, g.iso_b_B + b0
+    else:
+        ikK, ikB = g.K, g.B + b0
+        ibK, ibB = g.K.T, g.B.T + b0
+
+    def label_end(x, y, text, color, where):
+        ok = np.isfinite(x) & np.isfinite(y)
+        if not ok.any():
+            return
+        i = np.flatnonzero(ok)[where]
+        ax.annotate(text, (x[i], y[i]), color=color, fontsize=7, xytext=(2, 2),
+                    textcoords="offset points")
+
+    for i, k in enumerate(kv):
+        ax.plot(ikK[i], ikB[i], color="tab:blue", lw=1.2, zorder=3,
+                label="iso-k (felt stiffness k)" if i == 0 else None)
+        if i % label_every == 0:
+            label_end(ikK[i], ikB[i], f"k={k:.3g}", "tab:blue", 0)
+    for j, b in enumerate(bv):
+        ax.plot(ibK[j], ibB[j], color="tab:red", lw=1.2, zorder=3,
+                label="iso-b (felt damping b)" if j == 0 else None)
+        if j % label_every == 0:
+            label_end(ibK[j], ibB[j], f"b={b:.3g}", "tab:red", -1)
+    ax.plot([], [], ls="--", color="0.6", lw=0.8, label="identity (K = k, B + b0 = b)")
+    # boundary
+    bK = np.where(np.isfinite(g.boundary_K), g.boundary_K, np.nan)
+    ax.plot(bK, g.boundary_B + b0, color="black", lw=2.6, zorder=4,
+            label="stability boundary (spectral radius 1)")
+    # limits: the grid, with a margin
+    xs = np.concatenate([np.ravel(ikK), np.ravel(ibK)])
+    ys = np.concatenate([np.ravel(ikB), np.ravel(ibB)])
+    xs, ys = xs[np.isfinite(xs)], ys[np.isfinite(ys)]
+    if xs.size and ys.size:
+        xr = max(xs.max(), 1e-12)
+        ax.set_xlim(min(0.0, xs.min()), xr * 1.12)
+        yr = ys.max() - min(0.0, ys.min())
+        ax.set_ylim(min(0.0, ys.min()) - 0.03 * yr, ys.max() + 0.08 * max(yr, 1e-12))
+    ax.set_xlabel("virtual stiffness K [N/m]")
+    ax.set_ylabel("virtual damping B + b0 [N s/m]" if b0 else "virtual damping B [N s/m]")
+    if title is None:
+        title = (f"m = {loop.mass:g} kg, b0 = {loop.friction:g} N s/m, "
+                 f"{loop.rate_hz:g} Hz, d = {loop.delay}, hold = {loop.hold}")
+    ax.set_title(title, fontsize=10)
+    ax.grid(False)
+    ax.legend(fontsize=7, loc="upper right", framealpha=0.9)
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(fig, path: str) -> None:
+    """Write ``fig`` to ``path`` (format from the extension) and close it.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    path : str
+        Output file, e.g. ``docs/fig8_ideal.png``.
+    """
+    plt = _mpl()
+    fig.savefig(path)
+    plt.close(fig)
+
+
