@@ -19,6 +19,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from cobs import cobs
 
 import firmware_protocol as fp
 
@@ -196,6 +197,12 @@ def hostile_streams():
                 x = bytearray(fr)
                 x[i] ^= 1 << bit
                 flips += x + b"\x00"
+    # Valid-CRC packets making a frame of exactly MAX_FRAME bytes and of one more.
+    edge = b""
+    for size in (fp.MAX_PACKET - 2, fp.MAX_PACKET - 1):
+        raw = bytes([0x7F]) + bytes(range(1, size))
+        edge += cobs.encode(raw + struct.pack(">H", fp.crc16(raw))) + b"\x00"
+    assert len(edge) == 2 * fp.MAX_FRAME + 1
     noisy = bytearray(allg * 20)
     for _ in range(80):
         noisy[rng.randrange(len(noisy))] = rng.randrange(256)
@@ -209,6 +216,7 @@ def hostile_streams():
         ("random_noise", bytes(noisy)),
         ("random_bytes", bytes(rng.getrandbits(8) for _ in range(20000))),
         ("overlong_tail", allg + b"\x11" * 1000),
+        ("at_and_over_max_frame", edge + allg + edge),
     ]
 
 
