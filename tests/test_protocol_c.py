@@ -232,3 +232,30 @@ def test_c_stream_decoder_matches_python(driver, name, data):
     if name in ("back_to_back", "zeros_and_frames", "every_bit_flip"):
         n_good = len(VECTORS["good"])
         assert c_stats["frames_ok"] == n_good
+
+
+INF, NAN = float("inf"), float("nan")
+
+
+@pytest.mark.parametrize("limit,force,status,want", [
+    (4.0, (1.0, -2.0), 0, (1.0, -2.0)),
+    (4.0, (4.0, -4.0), 0, (4.0, -4.0)),                       # at the limit: not clamped
+    (4.0, (5.0, -1e300, 3.0), fp.STATUS_FORCE_CLAMPED, (4.0, -4.0, 3.0)),
+    (0.0, (1e-300,), fp.STATUS_FORCE_CLAMPED, (0.0,)),
+    (4.0, (1.0, NAN), fp.STATUS_FAULT, (0.0, 0.0)),           # non-finite: all zero
+    (4.0, (INF,), fp.STATUS_FAULT, (0.0,)),
+    (4.0, (2.0, -INF, 9.0), fp.STATUS_FAULT, (0.0, 0.0, 0.0)),
+], ids=lambda p: repr(p)[:30])
+def test_c_force_limit(driver, limit, force, status, want):
+    out = driver(["L " + " ".join(bits(x) for x in (limit, *force))])
+    assert out == [{"status": status, "force": [bits(x) for x in want]}]
+
+
+@pytest.mark.parametrize("last,now,timeout,expired", [
+    (100, 5100, 5000, 0),          # exactly the timeout: a FORCE then is in time
+    (100, 5101, 5000, 1),
+    (2**64 - 1000, 3000, 5000, 0),  # clock wrapped: 4000 us elapsed
+    (2**64 - 1000, 4001, 5000, 1),
+])
+def test_c_watchdog(driver, last, now, timeout, expired):
+    assert driver([f"W {last} {now} {timeout}"]) == [{"expired": expired}]

@@ -403,3 +403,35 @@ int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg)
     }
     return r;
 }
+
+/* ------------------------------------------------------------------ device-side duties */
+
+uint16_t hp_limit_force(double *force, uint8_t n, double limit)
+{
+    uint16_t status = 0;
+    uint8_t i;
+    for (i = 0; i < n; i++) {
+        double f = force[i];
+        if (f != f || f - f != 0.0) { /* NaN, or inf (inf - inf is NaN) */
+            for (i = 0; i < n; i++) {
+                force[i] = 0.0;
+            }
+            return HP_STATUS_FAULT;
+        }
+    }
+    for (i = 0; i < n; i++) {
+        if (force[i] > limit) {
+            force[i] = limit;
+            status = HP_STATUS_FORCE_CLAMPED;
+        } else if (force[i] < -limit) {
+            force[i] = -limit;
+            status = HP_STATUS_FORCE_CLAMPED;
+        }
+    }
+    return status;
+}
+
+int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeout_us)
+{
+    return (uint64_t)(now_us - last_force_us) > (uint64_t)timeout_us;
+}

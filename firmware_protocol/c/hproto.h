@@ -173,6 +173,22 @@ void hp_decoder_init(hp_decoder_t *dec);
  * ended and was dropped (already counted). Never act on a message unless HP_OK. */
 int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg);
 
+/* ------------------------------------------------------------------ device-side duties
+ * Helpers for PROTOCOL.md section 5 (the firmware still owns its timer and its actuator). */
+
+/* Force rules applied to force[0..n) before it reaches the actuator. If any component is
+ * not finite (NaN, +-inf), every component is set to 0 and HP_STATUS_FAULT is returned
+ * (raise the latched fault HP_FAULT_NON_FINITE_FORCE). Otherwise each component is clamped
+ * to [-limit, +limit] [N] and HP_STATUS_FORCE_CLAMPED is returned if any was; 0 if none.
+ * `limit` is min(CONFIG.force_limit, HELLO.force_limit) >= 0. Needs IEEE semantics
+ * (do not build with -ffast-math). */
+uint16_t hp_limit_force(double *force, uint8_t n, double limit);
+
+/* 1 when the watchdog has expired: more than `timeout_us` [us] elapsed between the last
+ * valid FORCE (`last_force_us`) and `now_us`, on a free-running microsecond clock
+ * (wrap-safe: the difference is taken modulo 2^64). 0 otherwise. */
+int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeout_us);
+
 #ifdef __cplusplus
 }
 #endif

@@ -7,6 +7,8 @@
  *                    -> one JSON line per frame ended (message or error), then
  *                       {"stats": {...}, "buffered": n}
  *   I                reset the stream decoder
+ *   L <limit> <f>... hp_limit_force on the doubles -> {"status": s, "force": [...]}
+ *   W <last> <now> <timeout>  hp_watchdog_expired -> {"expired": 0|1}
  *   E <type> <v>...  encode a message: type id in decimal, then the fields in wire order,
  *                    integers in decimal, doubles as 0x + 16 hex digits of their bits
  *                    -> {"frame": "<hex>"} or {"error": "encode"}
@@ -275,6 +277,27 @@ int main(void)
         case 'E':
             do_encode(line + 2);
             break;
+        case 'L': {
+            char *s = line + 2;
+            double lim = next_f(&s), f[HP_MAX_AXES];
+            uint8_t k = next_fs(&s, f);
+            unsigned st;
+            if (k > HP_MAX_AXES) {
+                k = HP_MAX_AXES;
+            }
+            st = hp_limit_force(f, k, lim);
+            printf("{\"status\": %u, \"force\": ", st);
+            print_f64s(f, k);
+            printf("}\n");
+            break;
+        }
+        case 'W': {
+            char *s = line + 2;
+            unsigned long long last = next_u(&s), now = next_u(&s), to = next_u(&s);
+            printf("{\"expired\": %d}\n",
+                   hp_watchdog_expired((uint64_t)last, (uint64_t)now, (uint32_t)to));
+            break;
+        }
         default:
             printf("{\"error\": \"command\"}\n");
             break;
