@@ -1,17 +1,54 @@
-"""``hapsim calibrate``: not implemented yet."""
+"""``hapsim calibrate``: virtual (K, B) that make the user feel a target (k, b)."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import sys
+
+from hapsim.commands._loop_args import (UNITS_HELP, add_loop_arguments, fmt, loop_from_args,
+                                        print_modes)
 
 
 def register(sub) -> None:
     """Add the ``calibrate`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("calibrate", help="(not implemented yet)")
+    p = sub.add_parser(
+        "calibrate", help="find the virtual K, B that render a target k, b",
+        description="Place two closed-loop poles on those of the target oscillator "
+                    "m s^2 + b s + k = 0 and solve for the virtual K and B. Then check every "
+                    "other pole: if one is unstable or less damped than the target, the "
+                    "target is not renderable with this configuration and the command says "
+                    "why (exit 1).",
+        epilog=UNITS_HELP + "\nexample:\n  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 "
+               "--delay 1 --hold zoh --k 2000 --b 3\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_arguments(p)
+    p.add_argument("--k", type=float, required=True, help="target felt stiffness k [N/m], > 0")
+    p.add_argument("--b", type=float, required=True,
+                   help="target felt damping b [N s/m] (whole: real b0 + virtual)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim calibrate: not implemented yet", file=sys.stderr)
-    return 2
+    """Run ``hapsim calibrate``; 0 if renderable, 1 if not."""
+    from hapsim.analysis.ths import calibrate
+    loop = loop_from_args(args)
+    c = calibrate(loop, args.k, args.b)
+    if args.json:
+        d = c.to_dict()
+        d["loop"] = loop.to_dict()
+        print(json.dumps(d))
+    else:
+        out = sys.stdout
+        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
+              f"d={loop.delay}  hold={loop.hold}   target k={args.k:g} N/m  b={args.b:g} N s/m",
+              file=out)
+        print(f"  virtual K     {fmt(c.K):>14} N/m", file=out)
+        print(f"  virtual B     {fmt(c.B):>14} N s/m", file=out)
+        print(f"  renderable    {'yes' if c.renderable else 'NO':>14}", file=out)
+        print(f"  spectral rad. {fmt(c.spectral_radius):>14}", file=out)
+        print(f"  {c.reason}", file=out)
+        print("other (parasitic) modes:", file=out)
+        print_modes(c.modes, out)
+    return 0 if c.renderable else 1

@@ -1,17 +1,56 @@
-"""``hapsim render``: not implemented yet."""
+"""``hapsim render``: what the user feels, (K, B) -> (k, b)."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import sys
+
+from hapsim.commands._loop_args import (UNITS_HELP, add_loop_arguments, fmt, loop_from_args,
+                                        print_modes)
 
 
 def register(sub) -> None:
     """Add the ``render`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("render", help="(not implemented yet)")
+    p = sub.add_parser(
+        "render", help="predict the stiffness k and damping b felt for a virtual K, B",
+        description="Close the THS loop (real mass + friction, hold, delay, virtual spring K "
+                    "and damper B) and report the oscillator the user feels: the least "
+                    "damped closed-loop pole pair as k, b, f0, damping ratio; the other "
+                    "poles are listed as parasitic modes. Exit 1 when the loop is unstable.",
+        epilog=UNITS_HELP + "\nexample:\n  hapsim render --mass 0.1 --friction 0.5 --rate 1000 "
+               "--delay 1 --hold zoh --K 2000 --B 2\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_arguments(p)
+    p.add_argument("--K", type=float, required=True, help="virtual stiffness K [N/m]")
+    p.add_argument("--B", type=float, default=0.0, help="virtual damping B [N s/m] "
+                   "(default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim render: not implemented yet", file=sys.stderr)
-    return 2
+    """Run ``hapsim render``; 0 if the loop is stable, 1 if not."""
+    from hapsim.analysis.ths import render
+    loop = loop_from_args(args)
+    r = render(loop, args.K, args.B)
+    if args.json:
+        d = r.to_dict()
+        d["loop"] = loop.to_dict()
+        print(json.dumps(d))
+    else:
+        out = sys.stdout
+        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
+              f"d={loop.delay}  hold={loop.hold}   virtual K={args.K:g} N/m  B={args.B:g} N s/m",
+              file=out)
+        print(f"  felt k        {fmt(r.k):>12} N/m", file=out)
+        print(f"  felt b        {fmt(r.b):>12} N s/m  (real + virtual)", file=out)
+        print(f"  f0            {fmt(r.f0_hz):>12} Hz", file=out)
+        print(f"  damping ratio {fmt(r.damping_ratio):>12}", file=out)
+        print(f"  spectral rad. {r.spectral_radius:>12.9f}  "
+              f"({'stable' if r.stable else 'UNSTABLE'})", file=out)
+        if r.note:
+            print(f"  note: {r.note}", file=out)
+        print("parasitic modes:", file=out)
+        print_modes(r.modes, out)
+    return 0 if r.stable else 1

@@ -1,17 +1,57 @@
-"""``hapsim stability``: not implemented yet."""
+"""``hapsim stability``: the exact largest stable virtual stiffness K_max(B)."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import math
 import sys
+
+from hapsim.commands._loop_args import UNITS_HELP, add_loop_arguments, fmt, loop_from_args
 
 
 def register(sub) -> None:
     """Add the ``stability`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("stability", help="(not implemented yet)")
+    p = sub.add_parser(
+        "stability", help="exact stiffness limit K_max for a virtual damping B",
+        description="Compute the exact K_max(B) where the closed loop's spectral radius "
+                    "reaches 1, and, for reference, the published first-order limits: "
+                    "passivity (Colgate & Schenkel 1997, b0 > K T/2 + |B|), Diolaiti et al. "
+                    "2006 (K < (b0 + B)/(T/2 + d T)) and the centred-difference oscillator "
+                    "(4 m / T^2). K_max = 0 means no positive K is stable; null (JSON) or "
+                    "inf means no finite limit.",
+        epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
+               "--delay 1 --hold zoh --B 0\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_arguments(p)
+    p.add_argument("--B", type=float, default=0.0,
+                   help="virtual damping B [N s/m] (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim stability: not implemented yet", file=sys.stderr)
-    return 2
+    """Run ``hapsim stability``; 0 if some K > 0 is stable, 1 if none is."""
+    from hapsim.analysis.loop import spectral_radius
+    from hapsim.analysis.ths import published_limits, stability_limit
+    loop = loop_from_args(args)
+    kmax = stability_limit(loop, args.B)
+    rho = spectral_radius(loop, kmax, args.B) if math.isfinite(kmax) else None
+    d = {"K_max": kmax if math.isfinite(kmax) else None, "B": args.B,
+         "spectral_radius_at_K_max": rho, **published_limits(loop, args.B),
+         "loop": loop.to_dict()}
+    if args.json:
+        print(json.dumps(d))
+    else:
+        out = sys.stdout
+        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
+              f"d={loop.delay}  hold={loop.hold}   virtual B={args.B:g} N s/m", file=out)
+        print(f"  exact K_max            {fmt(kmax):>14} N/m  (spectral radius "
+              f"{fmt(rho)} there)", file=out)
+        print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
+              "zoh, d = 0", file=out)
+        print(f"  Diolaiti et al. 2006   {fmt(d['diolaiti_K']):>14} N/m  first order in "
+              "b0 T/m", file=out)
+        print(f"  centred difference     {fmt(d['centred_difference_K']):>14} N/m  "
+              "ideal, d = 0, b0 = B = 0", file=out)
+    return 0 if kmax > 0 else 1

@@ -1,0 +1,86 @@
+"""Loop options shared by ``render``, ``calibrate``, ``stability`` and ``map``."""
+
+from __future__ import annotations
+
+import argparse
+
+from hapsim.analysis.loop import HOLDS, LoopModel
+
+#: Text appended to each command's help: what k/b and K/B are, and the units.
+UNITS_HELP = """\
+terms:
+  K, B  virtual stiffness [N/m] and damping [N s/m] you put in the simulation:
+        F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1]) / T
+  k, b  stiffness [N/m] and damping [N s/m] the user actually feels: the real mass m
+        with the least damped closed-loop pole pair, read as m s^2 + b s + k = 0.
+        b is the whole damping (real friction b0 + virtual), k differs from K because
+        of sampling, hold and delay (Florens, Voda & Urma's temporary hybrid system).
+units: SI throughout. --mass 1 --rate 1 gives the paper's normalised units (m = T = 1).
+"""
+
+
+def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None = None
+                       ) -> None:
+    """Add ``--mass --friction --rate --delay --hold`` to ``parser``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    defaults : dict, optional
+        Overrides of the defaults (``mass``, ``friction``, ``rate``, ``delay``, ``hold``).
+    """
+    d = {"mass": None, "friction": 0.0, "rate": None, "delay": 1, "hold": "zoh"}
+    d.update(defaults or {})
+    g = parser.add_argument_group("loop (the real side of the THS)")
+    g.add_argument("--mass", type=float, default=d["mass"], required=d["mass"] is None,
+                   metavar="M", help="moving mass m of hand + handle [kg], > 0")
+    g.add_argument("--friction", type=float, default=d["friction"], metavar="B0",
+                   help="real viscous friction b0 [N s/m], >= 0 (default %(default)s)")
+    g.add_argument("--rate", type=float, default=d["rate"], required=d["rate"] is None,
+                   metavar="HZ", help="sample rate [Hz], > 0; period T = 1/rate")
+    g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
+                   help="whole samples between reading x and applying the force, >= 0 "
+                        "(default %(default)s)")
+    g.add_argument("--hold", choices=HOLDS, default=d["hold"],
+                   help="zoh: exact zero-order hold of the force; ideal: the paper's "
+                        "idealised sampled mass (default %(default)s)")
+
+
+def loop_from_args(args) -> LoopModel:
+    """Build the :class:`LoopModel` from parsed arguments.
+
+    Raises
+    ------
+    ConfigError
+        With the option name (``--mass`` ...) as key, on an invalid value.
+    """
+    from hapsim.errors import ConfigError
+    try:
+        return LoopModel(mass=args.mass, friction=args.friction, rate_hz=args.rate,
+                         delay=args.delay, hold=args.hold)
+    except ConfigError as exc:
+        opt = {"mass": "--mass", "friction": "--friction", "rate_hz": "--rate",
+               "delay": "--delay", "hold": "--hold"}.get(exc.key, exc.key)
+        raise ConfigError(exc.reason, key=opt) from None
+
+
+def fmt(v) -> str:
+    """Format a float for the human tables."""
+    if v is None:
+        return "-"
+    try:
+        return f"{float(v):.6g}"
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def print_modes(modes, out) -> None:
+    """Print a short table of parasitic modes."""
+    if not modes:
+        print("  (no other modes)", file=out)
+        return
+    print(f"  {'kind':<5} {'|z|':>12} {'f0 [Hz]':>11} {'zeta':>9} {'k [N/m]':>11} "
+          f"{'b [N s/m]':>11}", file=out)
+    for md in modes:
+        print(f"  {md.kind:<5} {abs(md.z):>12.9f} {fmt(md.f0_hz):>11} "
+              f"{fmt(md.damping_ratio):>9} {fmt(md.k):>11} {fmt(md.b):>11}", file=out)
