@@ -19,8 +19,8 @@ units: SI throughout. --mass 1 --rate 1 gives the paper's normalised units (m = 
 """
 
 
-def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None = None
-                       ) -> None:
+def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None = None,
+                       require: bool = True) -> None:
     """Add ``--mass --friction --rate --delay --hold`` to ``parser``.
 
     Parameters
@@ -28,22 +28,24 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
     parser : argparse.ArgumentParser
     defaults : dict, optional
         Overrides of the defaults (``mass``, ``friction``, ``rate``, ``delay``, ``hold``).
+    require : bool, optional
+        Make ``--mass`` and ``--rate`` required when their default is None.
     """
     d = {"mass": None, "friction": 0.0, "rate": None, "delay": 1, "hold": "zoh"}
     d.update(defaults or {})
     g = parser.add_argument_group("loop (the real side of the THS)")
-    g.add_argument("--mass", type=float, default=d["mass"], required=d["mass"] is None,
+    g.add_argument("--mass", type=float, default=d["mass"], required=require and d["mass"] is None,
                    metavar="M", help="moving mass m of hand + handle [kg], > 0")
     g.add_argument("--friction", type=float, default=d["friction"], metavar="B0",
-                   help="real viscous friction b0 [N s/m], >= 0 (default %(default)s)")
-    g.add_argument("--rate", type=float, default=d["rate"], required=d["rate"] is None,
+                   help="real viscous friction b0 [N s/m], >= 0 (default: %(default)s)")
+    g.add_argument("--rate", type=float, default=d["rate"], required=require and d["rate"] is None,
                    metavar="HZ", help="sample rate [Hz], > 0; period T = 1/rate")
     g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
                    help="whole samples between reading x and applying the force, >= 0 "
-                        "(default %(default)s)")
+                        "(default: %(default)s)")
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],
                    help="zoh: exact zero-order hold of the force; ideal: the paper's "
-                        "idealised sampled mass (default %(default)s)")
+                        "idealised sampled mass (default: %(default)s)")
 
 
 def loop_from_args(args) -> LoopModel:

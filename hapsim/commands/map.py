@@ -1,17 +1,102 @@
-"""``hapsim map``: not implemented yet."""
+"""``hapsim map``: the (k, b) grid in the (K, B) plane (Florens et al. Figs. 4, 7-9)."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import sys
+
+import numpy as np
+
+from hapsim.commands._loop_args import UNITS_HELP, add_loop_arguments, loop_from_args
+from hapsim.errors import ConfigError
 
 
 def register(sub) -> None:
     """Add the ``map`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("map", help="(not implemented yet)")
+    p = sub.add_parser(
+        "map", help="draw the felt (k, b) grid in the virtual (K, B) plane",
+        description="Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
+                    "curves in the (K, B + b0) plane, with the identity grid (dashed: what a "
+                    "perfect simulator would need) and the exact stability boundary (bold; "
+                    "it is the b = 0 curve). A bent or sheared grid is a distorted parameter "
+                    "scale. --paper 7|8|9 reproduces the paper's figures (normalised units, "
+                    "ideal hold; --hold zoh gives the exact zero-order hold instead).",
+        epilog=UNITS_HELP + "\nthe damping axis is B + b0 (the paper's Fig. 9 convention).\n"
+               "\nexamples:\n  hapsim map --paper 8 --out fig8.png\n"
+               "  hapsim map --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh "
+               "--k-range 100 1500 --b-range 0.5 5 --out map.png --data map.json\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_arguments(p, defaults={"friction": None, "delay": None, "hold": None},
+                       require=False)
+    p.add_argument("--paper", type=int, choices=(7, 8, 9),
+                   help="preset of the paper's Fig. 7, 8 or 9 (m = T = 1, ideal hold; "
+                        "d = 0/1/1, b0 = 0/0/0.5); loop options override it")
+    p.add_argument("--k-range", type=float, nargs=2, metavar=("KMIN", "KMAX"),
+                   help="range of felt stiffness k [N/m] (required without --paper)")
+    p.add_argument("--b-range", type=float, nargs=2, metavar=("BMIN", "BMAX"),
+                   help="range of felt damping b [N s/m] (required without --paper)")
+    p.add_argument("--n", type=int, default=9, help="iso curves per family (default: 9)")
+    p.add_argument("--samples", type=int, default=80,
+                   help="points along each curve (default: 80)")
+    p.add_argument("--out", metavar="FIG.png", help="write the figure (needs matplotlib)")
+    p.add_argument("--data", metavar="FILE.json", help="write the grid data as JSON")
+    p.add_argument("--json", action="store_true", help="print the grid data as JSON")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim map: not implemented yet", file=sys.stderr)
-    return 2
+    """Run ``hapsim map``; 0 on success."""
+    from hapsim.analysis.grid import grid, paper_preset
+    title = None
+    if args.paper is not None:
+        base, k_range, b_range, title = paper_preset(args.paper)
+        for key, attr in (("mass", "mass"), ("friction", "friction"), ("rate", "rate_hz"),
+                          ("delay", "delay"), ("hold", "hold")):
+            if getattr(args, key) is None:
+                setattr(args, key, getattr(base, attr))
+        if args.k_range is None:
+            args.k_range = k_range
+        if args.b_range is None:
+            args.b_range = b_range
+    else:
+        for key in ("mass", "rate", "k_range", "b_range"):
+            if getattr(args, key) is None:
+                raise ConfigError("is required without --paper",
+                                  key="--" + key.replace("_", "-"))
+        args.friction = 0.0 if args.friction is None else args.friction
+        args.delay = 1 if args.delay is None else args.delay
+        args.hold = "zoh" if args.hold is None else args.hold
+    loop = loop_from_args(args)
+    if args.n < 2:
+        raise ConfigError(f"must be >= 2, got {args.n}", key="--n")
+    k0, k1 = args.k_range
+    b0_, b1 = args.b_range
+    if not (0 < k0 < k1):
+        raise ConfigError(f"need 0 < KMIN < KMAX, got {k0:g} {k1:g}", key="--k-range")
+    if not (0 <= b0_ < b1):
+        raise ConfigError(f"need 0 <= BMIN < BMAX, got {b0_:g} {b1:g}", key="--b-range")
+    g = grid(loop, np.linspace(k0, k1, args.n), np.linspace(b0_, b1, args.n),
+             samples=max(0, args.samples))
+    if title is not None and loop.hold != "ideal":
+        title += f" ({loop.hold} hold)"
+    if args.out:
+        from hapsim.plot import plot_grid, save_figure
+        save_figure(plot_grid(g, title=title), args.out)
+    data = g.to_dict()
+    if args.data:
+        with open(args.data, "w", encoding="utf-8") as fh:
+            json.dump(data, fh)
+    if args.json:
+        print(json.dumps(data))
+    else:
+        n_ok = int(np.count_nonzero(g.rendered))
+        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
+              f"d={loop.delay}  hold={loop.hold}")
+        print(f"  {n_ok} of {g.rendered.size} grid targets renderable; "
+              f"boundary K_max peaks at {np.nanmax(np.where(np.isfinite(g.boundary_K), g.boundary_K, np.nan)):.6g} N/m")
+        if args.out:
+            print(f"  figure: {args.out}")
+        if args.data:
+            print(f"  data:   {args.data}")
+    return 0
