@@ -206,9 +206,9 @@ def grid(loop: LoopModel, k_values, b_values, *, boundary_B=None, n_boundary: in
 #: The paper's Figs. 7-9 (normalised units m = T = 1, ideal hold): loop and target ranges.
 PAPER_PRESETS = {
     7: {"loop": dict(mass=1.0, friction=0.0, rate_hz=1.0, delay=0, hold="ideal"),
-        "k": (1.0, 9.0), "b": (0.0, 2.0), "title": "Fig. 7: ideal interface, no delay"},
+        "k": (1.0, 9.0), "b": (0.0, 2.0), "zoh_k": (0.1, 2.0), "zoh_b": (0.0, 1.6), "title": "Fig. 7: ideal interface, no delay"},
     8: {"loop": dict(mass=1.0, friction=0.0, rate_hz=1.0, delay=1, hold="ideal"),
-        "k": (0.1, 1.0), "b": (0.0, 0.8), "title": "Fig. 8: one sample of delay"},
+        "k": (0.1, 1.0), "b": (0.0, 0.8), "zoh_k": (0.05, 0.6), "zoh_b": (0.0, 0.6), "title": "Fig. 8: one sample of delay"},
     9: {"loop": dict(mass=1.0, friction=0.5, rate_hz=1.0, delay=1, hold="ideal"),
         "k": (0.1, 1.2), "b": (0.0, 1.2),
         "title": "Fig. 9: one sample of delay and real damping b0 = 0.5"},
@@ -229,7 +229,8 @@ def paper_preset(number: int, hold: str | None = None):
     -------
     loop : LoopModel
     k_range : tuple of float
-        ``(k_min, k_max)`` [N/m, normalised].
+        ``(k_min, k_max)`` [N/m, normalised] (smaller for ``"zoh"``, whose renderable
+        domain is smaller).
     b_range : tuple of float
         ``(b_min, b_max)`` [N s/m, normalised].
     title : str
@@ -238,4 +239,7 @@ def paper_preset(number: int, hold: str | None = None):
     kw = dict(p["loop"])
     if hold is not None:
         kw["hold"] = hold
-    return LoopModel(**kw), p["k"], p["b"], p["title"]
+    loop = LoopModel(**kw)
+    if loop.hold == "zoh":  # the ZOH renders a smaller (k, b) domain: zoom on it
+        return loop, p.get("zoh_k", p["k"]), p.get("zoh_b", p["b"]), p["title"]
+    return loop, p["k"], p["b"], p["title"]
