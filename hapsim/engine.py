@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels import cordis
+from hapsim.kernels import cordis, schemes
 from hapsim.scene import Scene
 
 __all__ = ["Engine"]
@@ -47,6 +47,8 @@ class Engine:
     velocity ``v0`` gets ``x[-1] = x0 - v0 T``. The port and grounds never move by
     themselves; the port moves when :meth:`set_port_position` is called (once per device
     sample), which makes the port's velocity the backward difference of device samples.
+    ``scene.integrator`` (``symplectic_euler``, ``exact``) swaps the mass integrator for one
+    of :mod:`hapsim.kernels.schemes` (stability limits there); ``centred`` is the above.
 
     Examples
     --------
@@ -96,8 +98,24 @@ class Engine:
             link_args += arrays("spring_damper")
         if "contact" in kinds:
             link_args += arrays("contact")
-        self._kernel = cordis.KERNELS[kinds]
-        self._args = (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed) + link_args
+        #: Velocity state [m/s] of the non-default integrators (None for centred).
+        self._v = None
+        integrator = getattr(scene, "integrator", "centred")
+        if integrator == "centred":
+            self._kernel = cordis.KERNELS[kinds]
+            self._args = (self._x, self._xp, self._f, self._mobile, self._t2m,
+                          self._fixed) + link_args
+        else:  # hapsim.kernels.schemes: symplectic_euler, exact
+            if integrator == "exact" and "contact" in kinds:
+                lk = next(lk for lk in scene.links if lk.kind == "contact")
+                raise ConfigError("the exact integrator takes linear links only (no contacts)",
+                                  file=scene.path, line=lk.line or None,
+                                  key=f"links.{lk.name}.kind")
+            self._kernel, self._args = schemes.build(
+                integrator, T, self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed,
+                sd=arrays("spring_damper") if "spring_damper" in kinds else None,
+                contact=arrays("contact") if "contact" in kinds else None)
+            self._v = self._args[6]
         #: Samples advanced since construction.
         self.sample = 0
 
@@ -253,13 +271,17 @@ class Engine:
         engaged contact: the product form is the quantity the centred-difference scheme
         conserves exactly for undamped linear networks (the discrete energy of the
         leapfrog/Verlet scheme, Hairer, Lubich & Wanner, *Geometric Numerical
-        Integration*, §I.1.4).
+        Integration*, §I.1.4). With ``integrator: exact`` it is the continuous energy
+        (velocity state, ``K/2 (x1 - x2)^2``), which that scheme conserves.
         """
         T = self.period
         x, xp = self._x, self._xp
+        exact = getattr(self.scene, "integrator", "centred") == "exact"
+        if exact:  # the exact scheme conserves the continuous energy: v state, K/2 d^2
+            xp = x
         e = 0.0
         for j, i in enumerate(self._mobile):
-            v = (x[i] - xp[i]) / T
+            v = self._v[i] if exact else (x[i] - xp[i]) / T
             e += 0.5 * (T * T / self._t2m[j]) * v * v
         for lk in self.scene.links:
             a, c = self.scene.index(lk.m1), self.scene.index(lk.m2)

@@ -10,6 +10,8 @@ Format
 .. code-block:: yaml
 
     rate_hz: 1000                 # sample rate [Hz], > 0 (required)
+    integrator: centred           # centred | symplectic_euler | exact (default centred;
+                                  # hapsim.kernels.schemes; exact: no contact links)
     masses:                       # list; names unique
       - {name: hand, kind: port}                    # driven by the device position
       - {name: wall, kind: ground, x0: 0.0}         # fixed point [m]
@@ -57,7 +59,7 @@ import yaml
 from hapsim.errors import ConfigError
 
 __all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Scene",
-           "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS"]
+           "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
@@ -65,8 +67,10 @@ MASS_KINDS = ("mass", "ground", "port")
 LINK_KINDS = ("spring_damper", "contact")
 #: Output holds a device may use (DESIGN §4).
 HOLDS = ("zoh", "ideal")
+#: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
+INTEGRATORS = ("centred", "symplectic_euler", "exact")
 
-_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation")
+_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator")
 _MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
               "ground": ("name", "kind", "x0"),
               "port": ("name", "kind")}
@@ -230,6 +234,8 @@ class Scene:
         Excitation section (all zero when absent).
     path : str
         File the scene came from (``"<string>"`` for text).
+    integrator : {"centred", "symplectic_euler", "exact"}
+        Integrator of the virtual masses (:mod:`hapsim.kernels.schemes`).
     """
 
     rate_hz: float
@@ -238,6 +244,7 @@ class Scene:
     device: Device | None = None
     excitation: Excitation = field(default_factory=Excitation)
     path: str = "<string>"
+    integrator: str = "centred"
 
     @property
     def period(self) -> float:
@@ -510,7 +517,8 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
         On YAML syntax errors, unknown keys (listing the valid ones), wrong types,
         non-positive masses or rates, negative stiffness or damping, links naming masses
         that do not exist, a link from a mass to itself, duplicate names, a missing
-        ``rate_hz``, a port without a device section, more than one port, or a
+        ``rate_hz``, an unknown ``integrator`` (listing the choices), a contact link with
+        ``integrator: exact``, a port without a device section, more than one port, or a
         ``target`` on a link that is not between the port and a ground.
     """
     loader = _LineLoader(text)
@@ -555,8 +563,16 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
     if "excitation" in doc:
         excitation = _parse_excitation(ctx, doc, path)
 
+    integrator = ctx.string(doc, "integrator", "", INTEGRATORS, default="centred")
+    if integrator == "exact":
+        for i, lk in enumerate(links):
+            if lk.kind == "contact":
+                raise ctx.error("the exact integrator takes linear links only; a contact "
+                                "switches the network (use centred or symplectic_euler)",
+                                lk.line, f"links[{i}].kind")
+
     return Scene(rate_hz=rate_hz, masses=tuple(masses), links=tuple(links), device=device,
-                 excitation=excitation, path=path)
+                 excitation=excitation, path=path, integrator=integrator)
 
 
 def _parse_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
