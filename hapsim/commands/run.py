@@ -1,17 +1,113 @@
-"""``hapsim run``: not implemented yet."""
+"""``hapsim run``: close the THS of a scene on a device (or its mock) and measure it."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import math
 import sys
+
+from hapsim.errors import ConfigError
+
+_DESCRIPTION = """\
+Run a scene in real time against a force-feedback device and measure what the hand feels.
+
+The hand + handle mass m, the device's real friction b0, the zero-order hold of the force,
+the d samples of delay and the virtual spring K / damper B of the scene together form one
+sampled oscillator, the temporary hybrid system (THS; Florens, Voda & Urma). hapsim closes
+it through the framed serial protocol, logs every sample, and identifies the oscillation of
+the free response (after the excitation has ended) by the matrix pencil method: its
+eigenfrequency f0 and damping ratio zeta, i.e. the stiffness k = m (2 pi f0)^2 and damping
+b = 2 zeta sqrt(k m) really felt. It prints them beside what the analysis predicted for
+this (K, B) and, for links given as 'target: {k, b}', beside what the scene asked for (the
+(K, B) are then calibrated to render that target, or the run is refused).
+
+Without --port, the embedded mock device runs in a child process behind a real
+pseudo-terminal (real-time: it ticks on the clock; --lockstep: one period per FORCE,
+deterministic, measured = predicted to round-off). With --port, the same daemon drives
+hardware (or a 'hapsim mock' started elsewhere)."""
+
+_EPILOG = """\
+what the numbers mean:
+  target      the (k, b) the scene asked for, with its f0 and zeta
+  virtual     the K [N/m], B [N s/m] simulated (calibrated when a target is given)
+  predicted   the rendered (k, b): least damped closed-loop pole pair z, s = ln(z)/T,
+              k = m |s|^2, b = -2 m Re(s) (b is the whole THS damping, b0 included)
+  measured    the same figures identified from the logged positions
+  rel. error  (measured - predicted) / predicted; 'vs target': against the target
+  loop        rate, ticks, late (device held an older force), missed (STATE gaps),
+              turnaround p50/p99/p99.9/max [us] from STATE read to FORCE written,
+              low-latency serial mode on/off
+timing: STATE n carries x(nT); FORCE n is computed from x[n], x[n-1] and applied over
+  [(n+d)T, (n+d+1)T) by the device's zero-order hold.
+safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM -> zero
+  force, STOP, telemetry flushed, exit 0; an unstable scene is refused unless
+  --allow-unstable, which runs it under safety stops (force at the limit in half of the
+  last 100 samples, position beyond bounds, non-finite values) that end with zero force.
+examples:
+  hapsim run configs/wall.yaml
+  hapsim run configs/felt_wall.yaml --lockstep --json
+  hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
+  hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
+exit codes:
+  0  ran to the end (or stopped by SIGINT/SIGTERM)
+  1  refused (unstable loop, target not renderable), safety stop, device fault/silence
+  2  bad arguments or invalid scene"""
 
 
 def register(sub) -> None:
     """Add the ``run`` parser to ``sub`` (an argparse sub-parsers action)."""
-    p = sub.add_parser("run", help="(not implemented yet)")
+    p = sub.add_parser("run", help="close the THS on a device or the mock and measure the "
+                                   "felt stiffness and damping",
+                       description=_DESCRIPTION, epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
+    p.add_argument("--port", metavar="PORT",
+                   help="serial port of the device (default: embedded mock on a pty)")
+    p.add_argument("--baud", type=int, default=115200, metavar="B",
+                   help="baud rate (default 115200; ignored by USB CDC and ptys)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="run length [s] (default 1 s, longer for slow oscillations)")
+    p.add_argument("--rate", type=float, metavar="HZ", help="override the scene's rate [Hz]")
+    p.add_argument("--lockstep", action="store_true",
+                   help="lockstep mock: one period per FORCE, deterministic")
+    p.add_argument("--host-clocked", action="store_true",
+                   help="tick on the host's clock instead of answering each STATE")
+    p.add_argument("--telemetry", metavar="FILE",
+                   help="write per-sample time, position, force, seq, turnaround (.npz/.csv)")
+    p.add_argument("--allow-unstable", action="store_true",
+                   help="run a loop the analysis finds unstable, under the safety stops")
+    p.add_argument("--seed", type=int, default=0, help="mock sensor-noise seed (default 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
 
+def _clean(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj
+
+
 def run(args) -> int:
-    """Report that the command does not exist yet; exit code 2."""
-    print("hapsim run: not implemented yet", file=sys.stderr)
-    return 2
+    """Run ``hapsim run``; returns the exit code (0, 1 after a safety stop or fault)."""
+    from hapsim.daemon.runner import format_report, run_scene
+    from hapsim.scene import load_scene
+
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
+    scene = load_scene(args.scene)
+    rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
+                    rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                    telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                    seed=args.seed)
+    code = rep.pop("exit_code")
+    if args.json:
+        print(json.dumps(_clean(rep)))
+    else:
+        print(format_report(rep))
+    sys.stdout.flush()
+    return code

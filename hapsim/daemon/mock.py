@@ -1,0 +1,742 @@
+"""The mock device: the real side of the THS, behind the device side of the protocol.
+
+Physics (DESIGN §4-§5)
+----------------------
+``m x'' + b0 x' = u(t) + f_ext(t)`` with the commanded force ``u`` held constant over each
+period (zero-order hold), integrated *exactly* from tick to tick with the closed form of
+:func:`zoh_step_coefficients` (written here independently of
+:func:`hapsim.analysis.loop.zoh_state_space`; the tests compare both with
+``scipy.linalg.expm`` of the augmented matrix). With ``hold: ideal`` the mock is the paper's
+idealised sampled image instead, a centred-difference mass with the friction form of
+Florens, Voda & Urma eq. (4)::
+
+    x[n+1] = (1 + a) x[n] - a x[n-1] + psi T^2/m u[n],   a = e^(-b0 T/m),
+    psi = (1 - a) / (b0 T / m)                            (psi = 1 when b0 = 0)
+
+i.e. ``D(z) X = N(z) U`` with ``N = T^2/m z`` and ``D = (z-1)(z-a)(b0T/m)/(1-a)`` shifted
+by one sample, the plant the analysis uses for ``"ideal"``.
+
+Timing convention
+-----------------
+Tick ``n`` samples ``x(nT)`` and sends STATE ``seq = n``. The FORCE answering STATE ``n``
+(``seq = n``) is applied over ``[(n+d)T, (n+d+1)T)``: at tick ``n`` the device applies the
+FORCE with ``seq = n - d`` if it has arrived, and otherwise holds the force it applied last
+(real-time mode; the tick is counted *late*). ``d = 0`` ("apply at once") exists in lockstep
+only, where tick ``n`` waits for FORCE ``n``. STATE ``n`` carries in ``force_seq`` the seq of
+the force applied from tick ``n`` on (``seq - force_seq = d`` when on time); with ``d = 0``
+it is the one applied over the previous period (FORCE ``n`` is not known yet).
+
+Only what a scene asks for is added: encoder quantisation (``position_resolution``),
+Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the force clamp
+(``force_limit``) and the excitation (``x0``, ``v0``, a force ``impulse``, a recorded hand
+force ``profile``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import select
+import signal
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import firmware_protocol as fp
+from hapsim.errors import ConfigError
+from hapsim.scene import Device, Excitation
+
+__all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_samples",
+           "MockPhysics", "MockDevice", "MockStats", "serve_fd", "MOCK_DEVICE_ID",
+           "DEFAULT_DEVICE", "DEFAULT_EXCITATION"]
+
+#: HELLO.device_id of the mock ("MOCK" in ASCII).
+MOCK_DEVICE_ID = 0x4D4F434B
+#: Device used by ``hapsim mock`` without ``--scene`` (the device of ``configs/wall.yaml``).
+DEFAULT_DEVICE = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=10.0)
+#: Excitation used by ``hapsim mock`` without ``--scene``: 5 mm initial displacement.
+DEFAULT_EXCITATION = Excitation(x0=0.005)
+
+
+# --------------------------------------------------------------------------- physics
+
+def _series_psi_phi1(y: float) -> tuple[float, float]:
+    """``psi = (1 - e^-y)/y`` and ``phi1 = (e^-y - 1 + y)/y^2`` by their Taylor series."""
+    psi = 0.0
+    phi1 = 0.0
+    term = 1.0            # (-y)^j / j!
+    for j in range(30):
+        psi += term / (j + 1)
+        phi1 += term / ((j + 1) * (j + 2))
+        term *= -y / (j + 1)
+        if abs(term) < 1e-20:
+            break
+    return psi, phi1
+
+
+def zoh_step_coefficients(mass: float, friction: float, period: float):
+    """Coefficients of one exact ZOH step of ``m x'' + b0 x' = u`` (u held over the period).
+
+    Parameters
+    ----------
+    mass : float
+        Moving mass m [kg], > 0.
+    friction : float
+        Viscous friction b0 [N s/m], >= 0.
+    period : float
+        Period T [s], > 0.
+
+    Returns
+    -------
+    tuple of float
+        ``(a, c_xv, c_xu, c_vu)`` such that over one period
+        ``x' = x + c_xv v + c_xu u`` and ``v' = a v + c_vu u``, with ``y = b0 T/m``,
+        ``a = e^-y`` [-], ``c_xv = T (1 - e^-y)/y`` [s], ``c_xu = T^2/m (e^-y - 1 + y)/y^2``
+        [m/N], ``c_vu = T/m (1 - e^-y)/y`` [m/(N s)] (limits ``T``, ``T^2/(2m)``, ``T/m``
+        at ``b0 = 0``).
+
+    Raises
+    ------
+    ConfigError
+        On a non-positive mass or period or a negative friction.
+
+    Notes
+    -----
+    Solution of ``v' = -(b0/m) v + u/m`` and ``x' = v`` with ``u`` constant (variation of
+    constants); the small-``y`` branch (``y < 1e-2``) uses the Taylor series of ``psi`` and
+    ``phi1`` so no cancellation occurs. Matches ``expm([[A, B], [0, 0]] T)`` to ~1e-15.
+    """
+    m, b0, T = float(mass), float(friction), float(period)
+    if not (m > 0 and T > 0 and b0 >= 0):
+        raise ConfigError(f"need mass > 0, friction >= 0, period > 0; got m={mass!r}, "
+                          f"b0={friction!r}, T={period!r}")
+    y = b0 * T / m
+    if y < 1e-2:
+        psi, phi1 = _series_psi_phi1(y)
+    else:
+        em1 = math.expm1(-y)          # e^-y - 1
+        psi = -em1 / y
+        phi1 = (em1 + y) / (y * y)
+    a = math.exp(-y)
+    return a, T * psi, T * T / m * phi1, T / m * psi
+
+
+def ideal_step_coefficients(mass: float, friction: float, period: float):
+    """Coefficients of the paper's idealised sampled mass (Florens et al. eqs. (2)-(4)).
+
+    Parameters
+    ----------
+    mass, friction, period : float
+        m [kg] > 0, b0 [N s/m] >= 0, T [s] > 0.
+
+    Returns
+    -------
+    tuple of float
+        ``(a, c_u)`` with ``x[n+1] = (1 + a) x[n] - a x[n-1] + c_u u[n]``, ``a = e^-y``,
+        ``c_u = T^2/m (1 - e^-y)/y`` [m/N], ``y = b0 T / m``.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`zoh_step_coefficients`.
+    """
+    m, b0, T = float(mass), float(friction), float(period)
+    if not (m > 0 and T > 0 and b0 >= 0):
+        raise ConfigError(f"need mass > 0, friction >= 0, period > 0; got m={mass!r}, "
+                          f"b0={friction!r}, T={period!r}")
+    y = b0 * T / m
+    psi = _series_psi_phi1(y)[0] if y < 1e-2 else -math.expm1(-y) / y
+    return math.exp(-y), T * T / m * psi
+
+
+def _load_profile(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Time [s] and force [N] columns of a ``.csv`` (header allowed) or ``.npz`` profile."""
+    try:
+        if path.lower().endswith(".npz"):
+            with np.load(path) as z:
+                t, f = np.asarray(z["time"], float), np.asarray(z["force"], float)
+        else:
+            data = np.genfromtxt(path, delimiter=",", comments="#")
+            if data.ndim == 2 and not np.all(np.isfinite(data[0])):
+                data = data[1:]          # header line
+            data = np.atleast_2d(data)
+            t, f = data[:, 0], data[:, 1]
+    except (OSError, KeyError, ValueError, IndexError) as exc:
+        raise ConfigError(f"cannot read the hand-force profile: {exc}",
+                          key="excitation.profile") from None
+    if t.size < 1 or t.shape != f.shape or not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
+        raise ConfigError("profile needs finite columns time [s], force [N]",
+                          key="excitation.profile")
+    if np.any(np.diff(t) <= 0):
+        raise ConfigError("profile times must increase strictly", key="excitation.profile")
+    return t, f
+
+
+def hand_force_samples(excitation: Excitation, period: float,
+                       base_dir: str | None = None) -> np.ndarray:
+    """The hand force of the excitation, one value per period [N].
+
+    Parameters
+    ----------
+    excitation : Excitation
+        The scene's excitation (``impulse`` and ``profile`` are used here).
+    period : float
+        Tick period T [s].
+    base_dir : str, optional
+        Directory a relative ``profile`` path is resolved against.
+
+    Returns
+    -------
+    ndarray, shape (n_ticks,)
+        Element ``n`` is the force held over ``[nT, (n+1)T)``: for the impulse, its mean over
+        the period (exact when ``start`` and ``duration`` are multiples of T); for the
+        profile, the profile linearly interpolated at the middle of the period (zero after
+        its last time). Empty when there is no hand force.
+
+    Raises
+    ------
+    ConfigError
+        When the profile cannot be read.
+    """
+    T = float(period)
+    n = 0
+    imp = excitation.impulse
+    prof = None
+    if imp is not None and imp.duration > 0 and imp.force != 0:
+        n = max(n, int(math.ceil((imp.start + imp.duration) / T - 1e-9)))
+    if excitation.profile:
+        path = excitation.profile
+        if base_dir and not os.path.isabs(path):
+            path = os.path.join(base_dir, path)
+        prof = _load_profile(path)
+        n = max(n, int(math.ceil(prof[0][-1] / T - 1e-9)) + 1)
+    out = np.zeros(n)
+    if imp is not None and imp.duration > 0 and imp.force != 0:
+        a, b = imp.start, imp.start + imp.duration
+        for i in range(n):
+            lo, hi = max(a, i * T), min(b, (i + 1) * T)
+            if hi > lo:
+                out[i] += imp.force * (hi - lo) / T
+    if prof is not None:
+        mid = (np.arange(n) + 0.5) * T
+        out += np.interp(mid, prof[0], prof[1], left=0.0, right=0.0)
+    return out
+
+
+class MockPhysics:
+    """The real side of the THS, advanced one period at a time.
+
+    Parameters
+    ----------
+    device : Device
+        Mass, friction, hold and the optional imperfections (quantisation, Coulomb, noise).
+    rate_hz : float
+        Tick rate [Hz], > 0.
+    excitation : Excitation, optional
+        Initial displacement/velocity and hand force.
+    seed : int, optional
+        Seed of the sensor-noise generator (numpy ``default_rng``).
+    base_dir : str, optional
+        Directory relative profile paths are resolved against.
+
+    Attributes
+    ----------
+    x : float
+        True position at the current tick [m].
+    v : float
+        Velocity at the current tick [m/s] (``"zoh"``; backward difference for ``"ideal"``).
+    n : int
+        Current tick.
+    hand : ndarray
+        Hand force per period [N] (see :func:`hand_force_samples`).
+
+    Raises
+    ------
+    ConfigError
+        On invalid device values or an unreadable profile.
+    """
+
+    def __init__(self, device: Device, rate_hz: float, excitation: Excitation | None = None,
+                 *, seed: int = 0, base_dir: str | None = None) -> None:
+        exc = excitation or Excitation()
+        self.device = device
+        self.period = T = 1.0 / float(rate_hz)
+        self.hold = device.hold
+        if self.hold == "zoh":
+            self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
+                device.mass, device.friction, T)
+        elif self.hold == "ideal":
+            self._a, self._cu = ideal_step_coefficients(device.mass, device.friction, T)
+        else:
+            raise ConfigError(f"unknown hold {device.hold!r}; valid: zoh, ideal", key="device.hold")
+        self.x = float(exc.x0)
+        self.v = float(exc.v0)
+        self._xprev = self.x - self.v * T          # ideal hold: x[-1]
+        self.n = 0
+        self.hand = hand_force_samples(exc, T, base_dir)
+        self._q = float(device.position_resolution or 0.0)
+        self._coulomb = float(device.coulomb or 0.0)
+        self._noise = float(device.noise or 0.0)
+        self._rng = np.random.default_rng(seed) if self._noise > 0 else None
+
+    @property
+    def excitation_end(self) -> float:
+        """Time after which no hand force acts [s] (0.0 without impulse or profile)."""
+        return self.hand.size * self.period
+
+    def sample(self) -> float:
+        """Position the encoder reports at the current tick [m] (noise, then quantisation)."""
+        y = self.x
+        if self._rng is not None:
+            y += self._noise * float(self._rng.standard_normal())
+        if self._q > 0:
+            y = self._q * round(y / self._q)
+        return y
+
+    def advance(self, u: float) -> None:
+        """Advance one period with the force ``u`` [N] held (plus the hand force of this tick).
+
+        Parameters
+        ----------
+        u : float
+            Commanded force held over ``[nT, (n+1)T)`` [N].
+
+        Notes
+        -----
+        Coulomb friction ``C`` (when asked for) is added as the held force
+        ``-C sign(v)`` (``-C sign(u_total)`` from rest); if the velocity would change sign
+        within the period while ``|u_total| <= C`` the mass sticks (v = 0). This is a
+        first-order model, exact only while the sign of ``v`` does not change in the period.
+        """
+        n = self.n
+        f = u + (self.hand[n] if n < self.hand.size else 0.0)
+        if self.hold == "zoh":
+            x, v = self.x, self.v
+            fc = 0.0
+            if self._coulomb > 0:
+                C = self._coulomb
+                if v != 0.0:
+                    fc = -C if v > 0 else C
+                elif abs(f) > C:
+                    fc = -C if f > 0 else C
+                else:                         # stuck and the force cannot break it loose
+                    self.n = n + 1
+                    return
+            ft = f + fc
+            vn = self._a * v + self._cvu * ft
+            xn = x + self._cxv * v + self._cxu * ft
+            if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
+                vn = 0.0
+            self.x, self.v = xn, vn
+        else:
+            x, xp = self.x, self._xprev
+            xn = (1.0 + self._a) * x - self._a * xp + self._cu * f
+            self._xprev = x
+            self.x = xn
+            self.v = (xn - x) / self.period
+        self.n = n + 1
+
+
+# --------------------------------------------------------------------------- protocol side
+
+@dataclass
+class MockStats:
+    """What the mock saw, for tests and reports (all counts since the last CONFIG).
+
+    Attributes
+    ----------
+    ticks : int
+        STATE messages produced.
+    forces_rx : int
+        FORCE messages received.
+    late : int
+        Ticks at which the FORCE due (``seq = n - d``) had not arrived: last force held.
+    watchdog_trips : int
+        Ticks at which the watchdog zeroed the force.
+    clamped : int
+        Ticks whose applied force was clamped to the force limit.
+    overruns : int
+        Real-time ticks more than one period late (the mock's own scheduling).
+    unexpected : int
+        FORCE messages that were ignored (disarmed, or wrong seq in lockstep).
+    saw_stop : bool
+        A STOP was received.
+    last_applied : float
+        Force applied at the last tick, or 0.0 after STOP [N].
+    last_host_message : str
+        Type name of the last message received from the host.
+    faults : list of str
+        FAULT names sent.
+    """
+
+    ticks: int = 0
+    forces_rx: int = 0
+    late: int = 0
+    watchdog_trips: int = 0
+    clamped: int = 0
+    overruns: int = 0
+    unexpected: int = 0
+    saw_stop: bool = False
+    last_applied: float = 0.0
+    last_host_message: str = ""
+    faults: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of the counters."""
+        return {"ticks": self.ticks, "forces_rx": self.forces_rx, "late": self.late,
+                "watchdog_trips": self.watchdog_trips, "clamped": self.clamped,
+                "overruns": self.overruns, "unexpected": self.unexpected,
+                "saw_stop": self.saw_stop, "last_applied": self.last_applied,
+                "last_host_message": self.last_host_message, "faults": list(self.faults)}
+
+
+class MockDevice:
+    """The device side of the protocol around :class:`MockPhysics`; I/O-free.
+
+    Parameters
+    ----------
+    device : Device
+        Physics and imperfections of the device; ``device.delay`` is ``d``,
+        ``device.force_limit`` the device's own clamp (HELLO.force_limit).
+    excitation : Excitation, optional
+        How the hand starts the motion at each CONFIG.
+    native_rate_hz : float
+        Rate announced in HELLO [Hz]; CONFIG sets the rate actually used.
+    lockstep : bool
+        True: one period per FORCE (tick ``n + 1`` is produced when FORCE ``n`` arrives).
+        False: :meth:`tick` is called by a clock.
+    seed : int
+        Sensor-noise seed.
+    base_dir : str, optional
+        Directory for relative profile paths.
+
+    Raises
+    ------
+    ConfigError
+        When ``d = 0`` is asked for in real-time mode, or on invalid device values.
+
+    Notes
+    -----
+    Host duties served (see ``firmware_protocol``): HELLO on connect (:meth:`hello`) and on
+    HELLO_REQUEST; CONFIG (re)starts the physics from the excitation and arms; STATE each
+    tick; FORCE stored in a delay line and applied at tick ``seq + d``, clamped to
+    ``min(CONFIG.force_limit, device force limit)``; a non-finite FORCE zeroes the force,
+    sends FAULT NON_FINITE_FORCE and disarms; PING -> PONG; STOP zeroes the force at once and
+    disarms; watchdog (real-time): no FORCE for ``CONFIG.watchdog_us`` zeroes the force.
+    """
+
+    def __init__(self, device: Device, excitation: Excitation | None = None, *,
+                 native_rate_hz: float = 1000.0, lockstep: bool = True, seed: int = 0,
+                 base_dir: str | None = None) -> None:
+        self.device = device
+        self.excitation = excitation or Excitation()
+        self.native_rate_hz = float(native_rate_hz)
+        self.lockstep = bool(lockstep)
+        self.seed = seed
+        self.base_dir = base_dir
+        self.delay = int(device.delay)
+        if self.delay == 0 and not self.lockstep:
+            raise ConfigError("delay d = 0 (force applied at once) exists in lockstep only; "
+                              "a real-time device needs d >= 1", key="device.delay")
+        self._ring = max(16, 2 * self.delay + 2)
+        self._rf = [0.0] * self._ring
+        self._rs = [-1] * self._ring
+        self.armed = False
+        self.configured = False
+        self.physics: MockPhysics | None = None
+        self.stats = MockStats()
+        self.rate_hz = self.native_rate_hz
+        self.force_limit = float(device.force_limit)
+        self.watchdog_us = 0
+        self._applied = 0.0
+        self._applied_seq = 0
+        self._status_extra = 0
+        self._last_force_us = 0
+        self._u = 0.0
+
+    # ------------------------------------------------------------------ messages
+    def hello(self) -> fp.Hello:
+        """HELLO message of this device (sent on connect and on HELLO_REQUEST)."""
+        fl = self.device.force_limit
+        return fp.Hello(fp.PROTOCOL_VERSION, 1, MOCK_DEVICE_ID,
+                        float(self.device.position_resolution or 0.0), 0.0,
+                        float(fl) if math.isfinite(fl) else 1e300, self.native_rate_hz)
+
+    def handle(self, msg, now_us: int = 0) -> list:
+        """Act on one host message.
+
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            Message from the host.
+        now_us : int
+            Device clock [us] (real-time mode; PONG and watchdog).
+
+        Returns
+        -------
+        list of messages
+            Replies to send, in order (in lockstep, a FORCE is answered by the next STATE).
+        """
+        st = self.stats
+        st.last_host_message = type(msg).__name__
+        if isinstance(msg, fp.Force):
+            return self._on_force(msg, now_us)
+        if isinstance(msg, fp.HelloRequest):
+            return [self.hello()]
+        if isinstance(msg, fp.Ping):
+            return [fp.Pong(msg.nonce, msg.host_time_us, now_us)]
+        if isinstance(msg, fp.Config):
+            return self._on_config(msg, now_us)
+        if isinstance(msg, fp.Stop):
+            self.stop()
+            st.saw_stop = True
+            return []
+        return []
+
+    def stop(self) -> None:
+        """Zero the force at once and disarm (STOP, or the mock shutting down)."""
+        self._applied = 0.0
+        self._u = 0.0
+        self.armed = False
+        self.stats.last_applied = 0.0
+        self._rs = [-1] * self._ring
+
+    def _on_config(self, msg: fp.Config, now_us: int) -> list:
+        ok = (math.isfinite(msg.rate_hz) and msg.rate_hz > 0 and msg.watchdog_us > 0
+              and math.isfinite(msg.force_limit) and msg.force_limit >= 0)
+        if not ok:
+            self.stats.faults.append("BAD_CONFIG")
+            return [fp.Fault(fp.FAULT_BAD_CONFIG, 0)]
+        self.rate_hz = float(msg.rate_hz)
+        self.watchdog_us = int(msg.watchdog_us)
+        self.force_limit = min(float(msg.force_limit), float(self.device.force_limit))
+        self.physics = MockPhysics(self.device, self.rate_hz, self.excitation,
+                                   seed=self.seed, base_dir=self.base_dir)
+        self.stats = MockStats(last_host_message="Config")
+        self._rs = [-1] * self._ring
+        self._applied = 0.0
+        self._applied_seq = 0
+        self._u = 0.0
+        self._last_force_us = now_us
+        self.armed = self.configured = True
+        if self.lockstep:
+            return [self._emit(now_us)]
+        return []
+
+    def _on_force(self, msg: fp.Force, now_us: int) -> list:
+        st = self.stats
+        if not self.armed or self.physics is None:
+            st.unexpected += 1
+            return []
+        f = msg.force[0]
+        if not math.isfinite(f):
+            self.stop()
+            st.faults.append("NON_FINITE_FORCE")
+            return [fp.Fault(fp.FAULT_NON_FINITE_FORCE, msg.seq)]
+        st.forces_rx += 1
+        self._last_force_us = now_us
+        i = msg.seq % self._ring
+        self._rf[i] = f
+        self._rs[i] = msg.seq
+        if not self.lockstep:
+            return []
+        n = self.physics.n
+        if msg.seq != n:
+            st.unexpected += 1
+            return []
+        if self.delay == 0:
+            self._apply_due(n, now_us)
+        self.physics.advance(self._u)
+        return [self._emit(now_us)]
+
+    # ------------------------------------------------------------------ ticks
+    def _apply_due(self, n: int, now_us: int) -> None:
+        """Choose the force held over ``[nT, (n+1)T)``: FORCE ``n - d`` or the last one."""
+        due = n - self.delay
+        self._status_extra = 0
+        if due < 0:
+            f, seq = 0.0, 0
+        else:
+            i = due % self._ring
+            if self._rs[i] == due:
+                f, seq = self._rf[i], due
+            else:
+                self.stats.late += 1
+                self._status_extra |= fp.STATUS_OVERRUN
+                f, seq = self._applied, self._applied_seq
+        if (not self.lockstep and self.watchdog_us > 0
+                and now_us - self._last_force_us > self.watchdog_us):
+            f = 0.0
+            self.stats.watchdog_trips += 1
+            self._status_extra |= fp.STATUS_WATCHDOG_TRIPPED
+        lim = self.force_limit
+        if f > lim or f < -lim:
+            f = lim if f > 0 else -lim
+            self.stats.clamped += 1
+            self._status_extra |= fp.STATUS_FORCE_CLAMPED
+        self._applied = f
+        self._applied_seq = seq
+        self._u = f
+        self.stats.last_applied = f
+
+    def _emit(self, now_us: int) -> fp.State:
+        """STATE of the current tick (choosing its force first when ``d >= 1``)."""
+        ph = self.physics
+        n = ph.n
+        if self.delay > 0:
+            self._apply_due(n, now_us)
+        self.stats.ticks += 1
+        time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
+        status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
+        return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
+                        (ph.sample(),))
+
+    def tick(self, now_us: int) -> fp.State | None:
+        """Real-time tick: apply the force due, emit STATE, advance the physics one period.
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock at the tick [us].
+
+        Returns
+        -------
+        State or None
+            The STATE to send; None when disarmed.
+        """
+        if not self.armed or self.physics is None:
+            return None
+        state = self._emit(now_us)
+        self.physics.advance(self._u)
+        return state
+
+
+# --------------------------------------------------------------------------- serving
+
+class _Flag:
+    """A stop flag set from a signal handler."""
+
+    def __init__(self) -> None:
+        self.set = False
+
+
+def _write(fd: int, data: bytes) -> bool:
+    """Write ``data`` to a non-blocking fd; False when the peer is gone or the buffer full."""
+    try:
+        os.write(fd, data)
+        return True
+    except BlockingIOError:
+        return False
+
+
+def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
+             report_path: str | None = None, flag: _Flag | None = None,
+             handle_signals: bool = True) -> dict:
+    """Serve the mock device on a byte stream (the master side of a pty).
+
+    Parameters
+    ----------
+    fd : int
+        File descriptor to read host frames from and write device frames to; made
+        non-blocking (a full buffer drops the frame rather than stalling the device).
+    mock : MockDevice
+        The device; its ``lockstep`` selects the serving loop (FORCE-driven or clock-driven).
+    exit_on_stop : bool
+        Return after a STOP from the host.
+    report_path : str, optional
+        Write :class:`MockStats` (plus decoder counters) there as JSON on exit (atomic).
+    flag : object with a bool ``set`` attribute, optional
+        Polled each iteration; serving ends when it becomes true.
+    handle_signals : bool
+        Install SIGTERM/SIGINT handlers that end serving cleanly (main thread only).
+
+    Returns
+    -------
+    dict
+        The final report (same content as the JSON file).
+
+    Notes
+    -----
+    Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until 300 us before the
+    deadline and a short spin reads the host's bytes until it. A tick more than one period
+    late is counted in ``overruns`` and the schedule restarts from now (no burst of STATEs).
+    Serving ends on EOF/EIO (host side closed), STOP (when ``exit_on_stop``), or the flag.
+    """
+    flag = flag or _Flag()
+    if handle_signals:
+        def _on_signal(signum, frame):
+            flag.set = True
+        for s in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(s, _on_signal)
+    os.set_blocking(fd, False)
+    dec = fp.StreamDecoder()
+    t0 = time.monotonic_ns()
+
+    def now_us() -> int:
+        return (time.monotonic_ns() - t0) // 1000
+
+    _write(fd, fp.encode(mock.hello()))
+    deadline = None            # monotonic ns of the next real-time tick
+    period_ns = 0
+    reason = "flag"
+    try:
+        while not flag.set:
+            if not mock.lockstep and mock.armed:
+                if deadline is None:
+                    period_ns = int(round(1e9 / mock.rate_hz))
+                    deadline = time.monotonic_ns()
+                wait = (deadline - time.monotonic_ns() - 300_000) / 1e9
+            else:
+                deadline = None
+                wait = 0.05
+            if wait > 0:
+                try:
+                    r, _, _ = select.select([fd], [], [], min(wait, 0.05))
+                except InterruptedError:
+                    continue
+            else:
+                r = [fd]
+            if r:
+                try:
+                    chunk = os.read(fd, 4096)
+                except BlockingIOError:
+                    chunk = None
+                except OSError:            # EIO: every slave fd closed
+                    reason = "host closed"
+                    break
+                if chunk == b"":
+                    reason = "host closed"
+                    break
+                if chunk:
+                    stop_seen = False
+                    for msg in dec.feed(chunk):
+                        for reply in mock.handle(msg, now_us()):
+                            _write(fd, fp.encode(reply))
+                        if isinstance(msg, fp.Stop):
+                            stop_seen = True
+                    if stop_seen and exit_on_stop:
+                        reason = "stop"
+                        break
+            if deadline is not None and mock.armed:
+                now = time.monotonic_ns()
+                if now >= deadline:
+                    if now - deadline > period_ns:
+                        mock.stats.overruns += 1
+                        deadline = now
+                    state = mock.tick(now_us())
+                    if state is not None:
+                        _write(fd, fp.encode(state))
+                    deadline += period_ns
+    finally:
+        mock.stop()
+        report = mock.stats.to_dict()
+        report["end"] = reason
+        report["decoder"] = dec.stats.as_dict()
+        if report_path:
+            tmp = report_path + ".partial"
+            with open(tmp, "w") as fh:
+                json.dump(report, fh)
+            os.replace(tmp, report_path)
+    return report

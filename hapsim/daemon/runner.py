@@ -1,0 +1,546 @@
+"""``run_scene``: calibrate, check, close the THS on a device, identify it, report.
+
+Steps (DESIGN §4-§5):
+
+1. Links given as a felt ``target: {k, b}`` are calibrated with
+   :func:`hapsim.analysis.calibrate` on ``LoopModel.from_device(scene.device, rate)``; a
+   target that is not renderable is refused (:class:`UnstableConfigError`, with the reason).
+2. The closed loop is predicted (``check_scene`` when the analysis provides it, otherwise
+   :func:`hapsim.analysis.render` for the one port-ground spring-damper of a wall scene); an
+   unstable loop is refused with its spectral radius and the stiffness limit
+   (:func:`hapsim.analysis.stability_limit`) unless ``allow_unstable``.
+3. The engine is built and warmed up (numba kernel loaded before the real-time loop), the
+   transport opened (in-process mock, embedded mock on a pty, or a given port), and the host
+   loop run (:class:`~hapsim.daemon.loop.HostLoop`).
+4. The logged positions after the excitation has ended are identified with
+   :func:`hapsim.analysis.fit_rendered` (matrix pencil, model order = number of non-zero
+   predicted closed-loop poles, i.e. plant order 2 + d + 1 for a wall with damping) and
+   compared with the prediction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import signal
+import threading
+
+import numpy as np
+
+from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.daemon.mock import MockDevice, hand_force_samples
+from hapsim.daemon.telemetry import Telemetry
+from hapsim.errors import ConfigError, UnstableConfigError
+from hapsim.scene import Scene
+
+__all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
+           "DEFAULT_DURATION"]
+
+#: Default run length [s] (at least; longer when the predicted oscillation is slow).
+DEFAULT_DURATION = 1.0
+
+_ZERO_POLE = 1e-9
+
+
+def _analysis():
+    """The analysis functions, from :mod:`hapsim.analysis` or its submodules."""
+    import hapsim.analysis as an
+    out = {}
+    for name, mod in (("LoopModel", "loop"), ("closed_loop_poles", "loop"), ("render", "ths"),
+                      ("calibrate", "ths"), ("stability_limit", "ths"),
+                      ("fit_rendered", "identify"), ("check_scene", None)):
+        fn = getattr(an, name, None)
+        if fn is None and mod is not None:
+            import importlib
+            try:
+                fn = getattr(importlib.import_module(f"hapsim.analysis.{mod}"), name, None)
+            except ImportError:
+                fn = None
+        if fn is None and name == "check_scene":
+            for mod2 in ("scene_check", "check", "closed", "coupled"):
+                try:
+                    import importlib
+                    fn = getattr(importlib.import_module(f"hapsim.analysis.{mod2}"),
+                                 "check_scene", None)
+                except ImportError:
+                    fn = None
+                if fn is not None:
+                    break
+        out[name] = fn
+    return out
+
+
+def _port_links(scene: Scene):
+    port = scene.port
+    grounds = {m.name for m in scene.masses if m.kind == "ground"}
+    return [lk for lk in scene.links if lk.kind == "spring_damper" and port is not None
+            and {lk.m1, lk.m2} <= ({port.name} | grounds) and port.name in (lk.m1, lk.m2)]
+
+
+def _require_device(scene: Scene):
+    if scene.port is None:
+        raise ConfigError("the scene has no port: nothing for a device to feel",
+                          file=scene.path, key="masses")
+    if scene.device is None:
+        raise ConfigError("the scene has a port but no device section", file=scene.path,
+                          key="device")
+    return scene.device
+
+
+def prepare_scene(scene: Scene, rate_hz: float | None = None):
+    """Apply a rate override and calibrate every ``target`` link.
+
+    Parameters
+    ----------
+    scene : Scene
+        Validated scene with a port and a device.
+    rate_hz : float, optional
+        Rate override [Hz].
+
+    Returns
+    -------
+    scene : Scene
+        The scene with calibrated (K, B).
+    targets : list of dict
+        One per target link: ``link``, ``k``, ``b`` [N/m, N s/m], ``K``, ``B``,
+        ``renderable``, ``reason``, ``f0_hz``, ``damping_ratio`` of the target oscillator.
+
+    Raises
+    ------
+    ConfigError
+        No port or device.
+    UnstableConfigError
+        A target is not renderable (message: the analysis's reason).
+    """
+    if rate_hz is not None:
+        scene = scene.with_rate(rate_hz)
+    dev = _require_device(scene)
+    an = _analysis()
+    targets = []
+    for lk in scene.unresolved_targets:
+        k, b = lk.target
+        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+        cal = an["calibrate"](loop, k, b)
+        m = dev.mass
+        info = {"link": lk.name, "k": float(k), "b": float(b), "K": float(cal.K),
+                "B": float(cal.B), "renderable": bool(cal.renderable), "reason": cal.reason,
+                "f0_hz": math.sqrt(k / m) / (2 * math.pi),
+                "damping_ratio": b / (2 * math.sqrt(k * m))}
+        targets.append(info)
+        if not cal.renderable:
+            raise UnstableConfigError(
+                f"{scene.path}: link {lk.name!r}: target k = {k:g} N/m, b = {b:g} N s/m is not "
+                f"renderable with this device at {scene.rate_hz:g} Hz: {cal.reason}",
+                spectral_radius=cal.spectral_radius if math.isfinite(cal.spectral_radius) else None)
+        scene = scene.with_link(lk.name, stiffness=cal.K, damping=cal.B)
+    return scene, targets
+
+
+def predict(scene: Scene) -> dict:
+    """Predicted closed loop of a (calibrated) scene coupled to its device.
+
+    Parameters
+    ----------
+    scene : Scene
+        Calibrated scene with a port and a device.
+
+    Returns
+    -------
+    dict
+        ``k``, ``b`` [N/m, N s/m], ``f0_hz``, ``damping_ratio`` of the rendered pair (None
+        when no pair), ``stable``, ``spectral_radius``, ``order`` (number of non-zero
+        closed-loop poles, the identification order), ``stiffness_limit`` [N/m] at the port
+        link's B, ``source`` (``"render"`` or ``"check_scene"``).
+
+    Raises
+    ------
+    ConfigError
+        When the scene cannot be analysed (no port/device).
+    """
+    dev = _require_device(scene)
+    an = _analysis()
+    loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+    plinks = _port_links(scene)
+    B_port = sum(lk.damping for lk in plinks) if plinks else 0.0
+    K_port = sum(lk.stiffness for lk in plinks) if plinks else 0.0
+    out = {"k": None, "b": None, "f0_hz": None, "damping_ratio": None, "stable": None,
+           "spectral_radius": None, "order": None, "stiffness_limit": None, "source": None}
+    try:
+        out["stiffness_limit"] = float(an["stability_limit"](loop, B_port))
+    except Exception:  # the limit is advisory in the report
+        out["stiffness_limit"] = None
+    single = len(scene.links) == 1 and len(plinks) == 1 and all(
+        m.kind != "mass" for m in scene.masses)
+    if single or an["check_scene"] is None:
+        if not single:
+            out["source"] = "unavailable (check_scene not in hapsim.analysis yet)"
+            return out
+        r = an["render"](loop, K_port, B_port)
+        poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))
+        out.update(source="render", stable=bool(r.stable), spectral_radius=float(r.spectral_radius),
+                   order=int(np.sum(np.abs(poles) > _ZERO_POLE)))
+        if r.rendered is not None:
+            out.update(k=float(r.k), b=float(r.b), f0_hz=float(r.f0_hz),
+                       damping_ratio=float(r.damping_ratio))
+        return out
+    chk = an["check_scene"](scene)
+    eig = np.asarray(chk.eigenvalues)
+    out.update(source="check_scene", stable=bool(chk.stable),
+               spectral_radius=float(chk.spectral_radius),
+               order=int(np.sum(np.abs(eig) > _ZERO_POLE)))
+    md = chk.rendered
+    if md is not None:
+        out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
+                   damping_ratio=float(md.damping_ratio))
+    return out
+
+
+def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
+             start: int, *, offset: bool = False) -> dict:
+    """Measure the rendered oscillator from logged positions.
+
+    Parameters
+    ----------
+    position : ndarray, shape (n,)
+        Logged device positions [m].
+    seq : ndarray of int, shape (n,)
+        Their STATE sequence numbers.
+    period : float
+        Sample period T [s].
+    order : int
+        Identification order (number of non-zero closed-loop poles).
+    mass : float
+        Device mass m [kg] (k = m |s|^2, b = -2 m Re s).
+    start : int
+        First sequence number of the free response (after the excitation and the
+        dead-beat transient).
+    offset : bool
+        Difference the signal first (constant equilibrium offset).
+
+    Returns
+    -------
+    dict
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``, ``order``;
+        or ``error`` (str) when nothing can be identified.
+    """
+    from hapsim.analysis.identify import fit_rendered
+
+    seq = np.asarray(seq, dtype=np.int64)
+    sel = seq >= start
+    y, s = np.asarray(position)[sel], seq[sel]
+    if y.size:
+        # the longest run of consecutive sequence numbers
+        breaks = np.flatnonzero(np.diff(s) != 1) + 1
+        edges = np.concatenate([[0], breaks, [y.size]])
+        j = int(np.argmax(np.diff(edges)))
+        y, s = y[edges[j]:edges[j + 1]], s[edges[j]:edges[j + 1]]
+    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
+           "order": int(order)}
+    try:
+        md = fit_rendered(y, period, int(order), mass, offset=offset)
+    except ConfigError as exc:
+        out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+        return out
+    out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
+               damping_ratio=float(md.damping_ratio))
+    return out
+
+
+def _rel(a, b):
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b == 0:
+        return None
+    return (a - b) / abs(b)
+
+
+def _warm_up(scene: Scene) -> None:
+    """Load the numba kernel of the scene's link kinds before the real-time loop."""
+    from hapsim.engine import Engine
+    eng = Engine(scene)
+    if scene.port is not None:
+        eng.set_port_position(0.0, at_rest=True)
+        for _ in range(3):
+            eng.port_step(0.0)
+    else:
+        eng.step(3)
+
+
+def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
+              duration: float | None = None, rate_hz: float | None = None,
+              lockstep: bool = False, host_clocked: bool = False,
+              telemetry: str | None = None, allow_unstable: bool = False,
+              transport: str | None = None, seed: int = 0,
+              stop: StopFlag | None = None, handle_signals: bool = True) -> dict:
+    """Close the THS of a scene on a device and measure what is felt.
+
+    Parameters
+    ----------
+    scene : Scene
+        Validated scene with a port and a device.
+    port : str, optional
+        Serial port of a device (hardware or ``hapsim mock``); None: a mock.
+    baud : int
+        Baud rate for ``port``.
+    duration : float, optional
+        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops.
+    rate_hz : float, optional
+        Rate override [Hz].
+    lockstep : bool
+        Lockstep mock (one period per FORCE; deterministic).
+    host_clocked : bool
+        Host's clock instead of the device's (real-time only).
+    telemetry : str, optional
+        ``.npz`` / ``.csv`` path for the per-sample telemetry.
+    allow_unstable : bool
+        Run a loop the analysis finds unstable (safety stops end it).
+    transport : {"serial", "pty", "inprocess"}, optional
+        Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
+        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly.
+    seed : int
+        Mock sensor-noise seed.
+    stop : StopFlag, optional
+        External stop flag; a new one otherwise.
+    handle_signals : bool
+        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only).
+
+    Returns
+    -------
+    dict
+        Keys ``target``, ``virtual``, ``predicted``, ``measured``, ``loop``, ``telemetry``
+        (see ``hapsim run --help``) and ``exit_code`` (0, or 1 after a safety stop or a
+        device fault).
+
+    Raises
+    ------
+    ConfigError
+        Invalid arguments or scene.
+    UnstableConfigError
+        Target not renderable, or unstable loop without ``allow_unstable``.
+    DeviceError
+        Port failure or silent device.
+    """
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
+                          key="--duration")
+    if transport is None:
+        transport = "serial" if port else "pty"
+    if transport not in ("serial", "pty", "inprocess"):
+        raise ConfigError(f"unknown transport {transport!r}; valid: serial, pty, inprocess",
+                          key="transport")
+    if transport == "serial" and not port:
+        raise ConfigError("transport 'serial' needs a port", key="--port")
+    if transport == "inprocess" and not lockstep:
+        raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+    if host_clocked and lockstep:
+        raise ConfigError("--host-clocked needs a real-time device; it cannot be combined "
+                          "with --lockstep", key="--host-clocked")
+    if telemetry is not None and os.path.splitext(telemetry)[1].lower() not in (".npz", ".csv"):
+        raise ConfigError(f"unknown telemetry format for {telemetry!r}; valid: .npz, .csv",
+                          key="--telemetry")
+    scene, targets = prepare_scene(scene, rate_hz)
+    dev = scene.device
+    if dev.delay == 0 and not lockstep:
+        raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
+                          "lockstep (--lockstep); a real-time device needs d >= 1",
+                          file=scene.path, key="device.delay")
+    pred = predict(scene)
+    if pred["stable"] is False and not allow_unstable:
+        lim = pred["stiffness_limit"]
+        plinks = _port_links(scene)
+        B = sum(lk.damping for lk in plinks)
+        K = sum(lk.stiffness for lk in plinks)
+        raise UnstableConfigError(
+            f"{scene.path}: the closed loop is unstable: spectral radius "
+            f"{pred['spectral_radius']:.9g} >= 1 (K = {K:g} N/m, B = {B:g} N s/m, "
+            f"m = {dev.mass:g} kg, b0 = {dev.friction:g} N s/m, d = {dev.delay}, "
+            f"{dev.hold}, {scene.rate_hz:g} Hz); stiffness limit K_max = "
+            f"{lim:.6g} N/m at this B. Lower K, raise B or the rate, or pass "
+            f"--allow-unstable to run it under the safety stops",
+            spectral_radius=pred["spectral_radius"], stiffness_limit=lim)
+    T = scene.period
+    base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
+    exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
+    if duration is None:
+        duration = DEFAULT_DURATION
+        if pred.get("f0_hz"):
+            duration = max(duration, exc_end + 10.0 / pred["f0_hz"])
+    n_samples = max(int(round(duration * scene.rate_hz)), 1)
+
+    from hapsim.engine import Engine
+    _warm_up(scene)
+    engine = Engine(scene)
+    tel = Telemetry(n_samples)
+    x0 = abs(scene.excitation.x0)
+    cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
+                     force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
+                     state_timeout=10.0 if lockstep else 1.0,
+                     position_bound=max(0.1, 20.0 * x0))
+    stop = stop or StopFlag()
+    embedded = None
+    mock_report = None
+    if transport == "inprocess":
+        from hapsim.daemon.transport import InProcessTransport
+        mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
+                          seed=seed, base_dir=base_dir)
+        tr = InProcessTransport(mock)
+    elif transport == "pty":
+        from hapsim.daemon.transport import EmbeddedMock, SerialTransport
+        embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
+                                seed=seed, base_dir=base_dir)
+        try:
+            tr = SerialTransport(embedded.port, baud)
+        except Exception:
+            embedded.close()
+            raise
+        embedded.release_slave()
+    else:
+        from hapsim.daemon.transport import SerialTransport
+        tr = SerialTransport(port, baud)
+
+    old = {}
+    if handle_signals and threading.current_thread() is threading.main_thread():
+        def _on_signal(signum, frame):
+            stop.request(signum)
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, _on_signal)
+    try:
+        loop = HostLoop(engine, tr, cfg, tel, stop)
+        res = loop.run()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        tr.close()
+        if embedded is not None:
+            mock_report = embedded.report()
+            embedded.close()
+    if transport == "inprocess":
+        mock_report = mock.stats.to_dict()
+
+    tel_info = None
+    if telemetry:
+        tel.write(telemetry)
+        tel_info = {"path": telemetry, "samples": tel.n,
+                    "columns": ["time [s]", "position [m]", "force [N]", "seq",
+                                "turnaround [us]"]}
+
+    cols = tel.columns()
+    measured = {"error": "not identified"}
+    if pred["order"]:
+        start = int(math.ceil(exc_end / T - 1e-9)) + dev.delay + 3
+        if cols["seq"].size:
+            start += int(cols["seq"][0])
+        offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
+        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
+                            offset=offset)
+    if "k" in measured:
+        measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
+                               for q in ("k", "b", "f0_hz", "damping_ratio")}
+        if targets:
+            t0 = targets[0]
+            measured["rel_err_target"] = {q: _rel(measured[q], t0[q])
+                                          for q in ("k", "b", "f0_hz", "damping_ratio")}
+    plinks = _port_links(scene)
+    virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
+                         for lk in scene.links]}
+    if plinks:
+        virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
+    hello = res.hello
+    loop_info = {
+        "mode": "host-clocked" if host_clocked else "device-clocked",
+        "lockstep": bool(lockstep), "transport": transport if transport != "pty" else
+        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
+        "rate_hz": scene.rate_hz, "ticks": res.samples, "requested": n_samples,
+        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "low_latency": bool(tr.info.get("low_latency")),
+        "low_latency_note": tr.info.get("low_latency_note", ""),
+        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop,
+        "faults": res.faults, "decoder": res.decoder,
+        "device": None if hello is None else {
+            "device_id": hello.device_id, "force_limit": hello.force_limit,
+            "native_rate_hz": hello.native_rate_hz},
+        "mock": mock_report,
+        "excitation_end_s": exc_end,
+    }
+    return {"scene": scene.path, "target": targets[0] if targets else None,
+            "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
+            "telemetry": tel_info,
+            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+
+
+def _fmt(v, spec: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return format(v, spec)
+
+
+def format_report(rep: dict) -> str:
+    """The compact, aligned human report of :func:`run_scene`.
+
+    Parameters
+    ----------
+    rep : dict
+        A report returned by :func:`run_scene`.
+
+    Returns
+    -------
+    str
+        Several lines, no trailing newline.
+    """
+    lp = rep["loop"]
+    lines = []
+    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else ", real-time")
+    lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
+                 .replace("  ", " "))
+    lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
+
+    def row(name, d):
+        if d is None:
+            return
+        lines.append(f"  {name:<12} {_fmt(d.get('k'), '12.4f')} {_fmt(d.get('b'), '11.5f')} "
+                     f"{_fmt(d.get('f0_hz'), '10.4f')} {_fmt(d.get('damping_ratio'), '9.5f')}")
+
+    t = rep["target"]
+    if t is not None:
+        row("target", t)
+    v = rep["virtual"]
+    if "K" in v:
+        lines.append(f"  {'virtual K,B':<12} {_fmt(v['K'], '12.4f')} {_fmt(v['B'], '11.5f')}"
+                     f"   (link {v['link']})")
+    p = rep["predicted"]
+    row("predicted", p)
+    m = rep["measured"]
+    if "k" in m:
+        row("measured", m)
+        re = m["rel_err"]
+        lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
+                     f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
+        if "rel_err_target" in m:
+            rt = m["rel_err_target"]
+            lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
+                         f"{_fmt(rt['b'], '+11.2e')} {_fmt(rt['f0_hz'], '+10.2e')} "
+                         f"{_fmt(rt['damping_ratio'], '+9.2e')}")
+    else:
+        lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
+    if p.get("stable") is not None:
+        lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
+                     f"{_fmt(p['spectral_radius'], '.9f')}, K_max "
+                     f"{_fmt(p['stiffness_limit'], '.6g')} N/m; identification order "
+                     f"{p['order']} from {m.get('samples_used', 0)} samples)")
+    ta = lp["turnaround_us"]
+    ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
+    lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/{lp['requested']} ticks, "
+                 f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
+                 f"stop: {lp['stop_reason']}")
+    lines.append(f"turnaround [us]: p50 {_fmt(ta.get('p50'), '.0f')}  p99 "
+                 f"{_fmt(ta.get('p99'), '.0f')}  p99.9 {_fmt(ta.get('p999'), '.0f')}  max "
+                 f"{_fmt(ta.get('max'), '.0f')}; low-latency mode {ll}")
+    mk = lp.get("mock")
+    if mk:
+        lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
+                     f"{mk['watchdog_trips']}, overruns {mk['overruns']}, clamped {mk['clamped']}, "
+                     f"last force {mk['last_applied']:g} N, STOP {'seen' if mk['saw_stop'] else 'not seen'}")
+    tl = rep["telemetry"]
+    if tl:
+        lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples)")
+    return "\n".join(lines)
