@@ -185,7 +185,8 @@ def grid(loop: LoopModel, k_values, b_values, *, boundary_B=None, n_boundary: in
     idK = np.repeat(kv[:, None], bv.size, axis=1)
     idB = np.repeat(bv[None, :], kv.size, axis=0) - b0
     if boundary_B is None:
-        finite = B[np.isfinite(B)]
+        allB = [B] + [fine[key] for key in ("iso_k_B", "iso_b_B") if key in fine]
+        finite = np.concatenate([a[np.isfinite(a)] for a in allB])
         lo, hi = float(np.min(idB)), float(np.max(idB))
         if finite.size:
             span = max(hi - lo, float(np.ptp(finite)), 1e-300)
