@@ -18,6 +18,7 @@ FORCE then STOP.
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from dataclasses import dataclass, field
@@ -235,6 +236,9 @@ class HostLoop:
             attempted).
         """
         self.handshake()
+        gc_was = gc.isenabled()
+        gc.collect()
+        gc.disable()             # no collector pauses in the hot loop (CONVENTIONS §4)
         try:
             if self.config.host_clocked:
                 self._run_host_clocked()
@@ -242,6 +246,8 @@ class HostLoop:
                 self._run_device_clocked()
         finally:
             self._shutdown()
+            if gc_was:
+                gc.enable()
         res = self.result
         res.samples = self.tel.n
         res.turnaround_us = percentiles_us(self.tel.turnaround_us[:self.tel.n])

@@ -34,6 +34,7 @@ force ``profile``).
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -660,8 +661,12 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     Notes
     -----
     Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until 300 us before the
-    deadline and a short spin reads the host's bytes until it. A tick more than one period
-    late is counted in ``overruns`` and the schedule restarts from now (no burst of STATEs).
+    deadline and a short spin reads the host's bytes until it. The mock is a process on a
+    shared machine, not a microcontroller: when the OS schedules it more than half a period
+    late, the tick is counted in ``overruns`` and the next tick is put at least half a period
+    later (the schedule slips rather than compressing the host's time to answer, so ``late``
+    counts the host's lateness, not the mock's). The physics is per tick, so slips do not
+    change it. The garbage collector is disabled while serving.
     Serving ends on EOF/EIO (host side closed), STOP (when ``exit_on_stop``), or the flag.
     """
     flag = flag or _Flag()
@@ -678,6 +683,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         return (time.monotonic_ns() - t0) // 1000
 
     _write(fd, fp.encode(mock.hello()))
+    gc_was = gc.isenabled()
+    gc.disable()
     deadline = None            # monotonic ns of the next real-time tick
     period_ns = 0
     reason = "flag"
@@ -722,14 +729,17 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             if deadline is not None and mock.armed:
                 now = time.monotonic_ns()
                 if now >= deadline:
-                    if now - deadline > period_ns:
+                    if now - deadline > period_ns // 2:
                         mock.stats.overruns += 1
-                        deadline = now
                     state = mock.tick(now_us())
                     if state is not None:
                         _write(fd, fp.encode(state))
-                    deadline += period_ns
+                    # the host always gets at least half a period to answer: a mock
+                    # scheduled late slips its schedule (counted) instead of compressing it
+                    deadline = max(deadline + period_ns, now + period_ns // 2)
     finally:
+        if gc_was:
+            gc.enable()
         mock.stop()
         report = mock.stats.to_dict()
         report["end"] = reason

@@ -28,6 +28,7 @@ import threading
 
 import numpy as np
 
+from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.telemetry import Telemetry
@@ -237,8 +238,14 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         y, s = y[edges[j]:edges[j + 1]], s[edges[j]:edges[j + 1]]
     out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
            "order": int(order)}
+    # pencil parameter: Hua & Sarkar's N/3 is the low-variance choice but makes the Hankel
+    # matrix square-ish (an SVD of seconds on a loaded machine for N = 1000); a thin
+    # Hankel with L = max(10 order, 60) columns is exact on noise-free data and cheap.
+    n_use = y.size - (1 if offset else 0)
+    pencil = min(max(int(order), n_use // 3), max(10 * int(order), 60))
+    out["pencil"] = pencil
     try:
-        md = fit_rendered(y, period, int(order), mass, offset=offset)
+        md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
     except ConfigError as exc:
         out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
         return out
@@ -367,6 +374,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     n_samples = max(int(round(duration * scene.rate_hz)), 1)
 
     from hapsim.engine import Engine
+    limit_blas_threads(1)
     _warm_up(scene)
     engine = Engine(scene)
     tel = Telemetry(n_samples)
