@@ -1,0 +1,384 @@
+"""The daemon in-process: mock physics, the mock's protocol duties, the lockstep closed THS.
+
+Precision carried here (lockstep, no bytes): the measured (k, b) of the closed THS equal the
+analysis prediction ``render`` to 1e-6 relative over a grid of (m, b0, T, K, B, d, hold), and
+calibrated targets are felt as asked to 1e-6. The mock's ZOH step is checked against an
+independent formula (scipy.linalg.expm of the augmented matrix) to 1e-12.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.signal
+
+import firmware_protocol as fp
+from hapsim.analysis.loop import LoopModel, plant, zoh_state_space
+from hapsim.analysis.ths import calibrate, render, stability_limit
+from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.daemon.mock import (MockDevice, MockPhysics, hand_force_samples,
+                                ideal_step_coefficients, zoh_step_coefficients)
+from hapsim.daemon.runner import identify, run_scene
+from hapsim.daemon.telemetry import Telemetry, load_telemetry
+from hapsim.daemon.transport import InProcessTransport
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError, UnstableConfigError
+from hapsim.scene import Device, Excitation, Impulse, parse_scene
+
+
+def wall_text(K, B, *, m=0.1, b0=0.5, d=1, hold="zoh", rate=1000.0, x0=0.005, extra_dev="",
+              excitation=None, target=None, force_limit=10.0):
+    link = (f"target: {{k: {target[0]}, b: {target[1]}}}" if target is not None
+            else f"stiffness: {K}, damping: {B}")
+    exc = excitation if excitation is not None else f"{{x0: {x0}}}"
+    return f"""
+rate_hz: {rate}
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: wall, kind: ground, x0: 0.0}}
+links:
+  - {{name: wall, kind: spring_damper, between: [hand, wall], {link}}}
+device: {{mass: {m}, friction: {b0}, delay: {d}, hold: {hold}, force_limit: {force_limit}{extra_dev}}}
+excitation: {exc}
+"""
+
+
+def lockstep(text, **kw):
+    kw.setdefault("duration", 1.0)
+    return run_scene(parse_scene(text), transport="inprocess", lockstep=True,
+                     handle_signals=False, **kw)
+
+
+# --------------------------------------------------------------------------- physics
+
+@pytest.mark.parametrize("m,b0,T", [(0.1, 0.5, 1e-3), (1.0, 0.0, 1e-3), (0.05, 3.0, 2e-4),
+                                    (0.2, 40.0, 1e-3), (2.0, 1e-4, 5e-5)])
+def test_zoh_step_matches_expm_of_augmented_matrix(m, b0, T):
+    """Closed form of the mock == expm([[A, B], [0, 0]] T) to 1e-12 (independent formula)."""
+    a, cxv, cxu, cvu = zoh_step_coefficients(m, b0, T)
+    M = np.zeros((3, 3))
+    M[0, 1] = 1.0
+    M[1, 1] = -b0 / m
+    M[1, 2] = 1.0 / m
+    E = scipy.linalg.expm(M * T)
+    ours = np.array([[1.0, cxv, cxu], [0.0, a, cvu]])
+    np.testing.assert_allclose(ours, E[:2], rtol=1e-12, atol=1e-15 * max(T, 1e-3))
+    # and the analysis's own closed form agrees
+    Ad, Bd = zoh_state_space(m, b0, T)
+    np.testing.assert_allclose(ours[:, :2], Ad, rtol=1e-12)
+    np.testing.assert_allclose(ours[:, 2], Bd, rtol=1e-12)
+
+
+def test_mock_trajectory_matches_expm_propagation():
+    """1000 ticks with random held forces: MockPhysics == expm propagation to 1e-12."""
+    m, b0, rate = 0.1, 0.5, 1000.0
+    T = 1 / rate
+    ph = MockPhysics(Device(mass=m, friction=b0), rate, Excitation(x0=0.003, v0=-0.02))
+    M = np.zeros((3, 3))
+    M[0, 1], M[1, 1], M[1, 2] = 1.0, -b0 / m, 1.0 / m
+    E = scipy.linalg.expm(M * T)
+    rng = np.random.default_rng(1)
+    s = np.array([0.003, -0.02, 0.0])
+    xs, ref = [], []
+    for _ in range(1000):
+        u = float(rng.normal())
+        s[2] = u
+        s = E @ s
+        ph.advance(u)
+        xs.append(ph.x)
+        ref.append(s[0])
+    np.testing.assert_allclose(xs, ref, rtol=1e-12, atol=1e-12 * np.max(np.abs(ref)))
+
+
+def test_ideal_hold_is_the_papers_sampled_image():
+    """Ideal hold: x follows D(z) X = N(z) U of analysis.plant(hold='ideal') (eq. (4))."""
+    m, b0, rate = 0.1, 0.5, 1000.0
+    loop = LoopModel(m, b0, rate, 1, "ideal")
+    N, D = plant(loop)
+    ph = MockPhysics(Device(mass=m, friction=b0, hold="ideal"), rate, Excitation())
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=500)
+    x = []
+    for ui in u:
+        ph.advance(float(ui))
+        x.append(ph.x)
+    # X(z)/U(z) = N/D, proper: pad N to D's length so lfilter's z^-1 powers line up;
+    # then y[n] = x[n] (x[0] = 0) while the list holds x[1], x[2], ...
+    y = scipy.signal.lfilter(np.concatenate([np.zeros(len(D) - len(N)), N]), D, u)
+    np.testing.assert_allclose(np.array(x)[:-1], y[1:], rtol=1e-10, atol=1e-14)
+    a, cu = ideal_step_coefficients(m, 0.0, 1 / rate)
+    assert a == 1.0 and cu == pytest.approx((1 / rate) ** 2 / m, rel=1e-15)
+
+
+def test_impulse_mean_over_period_and_profile(tmp_path):
+    T = 1e-3
+    h = hand_force_samples(Excitation(impulse=Impulse(2.0, 0.0015, 0.002)), T)
+    np.testing.assert_allclose(h, [0, 1.0, 2.0, 1.0])
+    prof = tmp_path / "hand.csv"
+    prof.write_text("time,force\n0.0,0.0\n0.004,4.0\n")
+    h = hand_force_samples(Excitation(profile=str(prof)), T)
+    np.testing.assert_allclose(h, [0.5, 1.5, 2.5, 3.5, 0.0])
+
+
+def test_quantisation_noise_and_coulomb_only_when_asked():
+    dev = Device(mass=0.1, friction=0.5, position_resolution=1e-4, noise=1e-5)
+    ph = MockPhysics(dev, 1000.0, Excitation(x0=0.00123), seed=3)
+    s = ph.sample()
+    assert abs(s / 1e-4 - round(s / 1e-4)) < 1e-9 and abs(s - 0.00123) < 2e-4
+    stuck = MockPhysics(Device(mass=0.1, coulomb=1.0), 1000.0, Excitation(x0=0.001))
+    stuck.advance(0.5)          # below the Coulomb level from rest: does not move
+    assert stuck.x == 0.001 and stuck.v == 0.0
+    plain = MockPhysics(Device(mass=0.1), 1000.0, Excitation(x0=0.001))
+    assert plain.sample() == 0.001
+
+
+# --------------------------------------------------------------------------- protocol duties
+
+def _armed(lockstep=True, d=1, limit=10.0, watchdog_us=5000):
+    mock = MockDevice(Device(mass=0.1, friction=0.5, delay=d, force_limit=limit),
+                      Excitation(x0=0.001), lockstep=lockstep)
+    out = mock.handle(fp.Config(1000.0, watchdog_us, 100.0), 0)
+    return mock, out
+
+
+def test_mock_hello_ping_config_stop():
+    mock, out = _armed()
+    assert isinstance(out[0], fp.State) and out[0].seq == 0 and out[0].status & fp.STATUS_ARMED
+    hello = mock.handle(fp.HelloRequest(), 0)[0]
+    assert isinstance(hello, fp.Hello) and hello.n_axes == 1 and hello.force_limit == 10.0
+    assert mock.handle(fp.Ping(7, 123), 456) == [fp.Pong(7, 123, 456)]
+    # CONFIG's limit 100 N is lowered to the device's 10 N: a 50 N force is clamped
+    st = mock.handle(fp.Force(0, (50.0,)), 0)[0]
+    assert st.seq == 1 and st.force_seq == 0 and st.status & fp.STATUS_FORCE_CLAMPED
+    assert mock.stats.last_applied == 10.0 and mock.stats.clamped == 1
+    assert mock.handle(fp.Stop(), 0) == []
+    assert mock.stats.saw_stop and mock.stats.last_applied == 0.0 and not mock.armed
+    assert mock.handle(fp.Force(1, (1.0,)), 0) == []     # disarmed: ignored
+    assert isinstance(mock.handle(fp.Config(0.0, 1, 1.0))[0], fp.Fault)
+
+
+def test_mock_non_finite_force_faults_and_disarms():
+    mock, _ = _armed()
+    out = mock.handle(fp.Force(0, (math.nan,)), 0)
+    assert out == [fp.Fault(fp.FAULT_NON_FINITE_FORCE, 0)]
+    assert not mock.armed and mock.stats.last_applied == 0.0
+
+
+def test_real_time_late_force_holds_and_watchdog_zeroes():
+    mock, out = _armed(lockstep=False, d=1, watchdog_us=5000)
+    assert out == []
+    s0 = mock.tick(0)
+    assert s0.seq == 0
+    mock.handle(fp.Force(0, (2.0,)), 500)
+    s1 = mock.tick(1000)                       # FORCE 0 due at tick 1: applied
+    assert s1.force_seq == 0 and mock.stats.last_applied == 2.0 and mock.stats.late == 0
+    s2 = mock.tick(2000)                       # FORCE 1 missing: last force held, counted
+    assert s2.status & fp.STATUS_OVERRUN and mock.stats.late == 1
+    assert mock.stats.last_applied == 2.0 and s2.force_seq == 0
+    mock.handle(fp.Force(1, (3.0,)), 2100)     # late: never applied at tick 3 (wants seq 2)
+    mock.tick(3000)
+    assert mock.stats.last_applied == 2.0 and mock.stats.late == 2
+    for t in range(4000, 12000, 1000):         # silence beyond 5 ms: watchdog zeroes force
+        st = mock.tick(t)
+    assert st.status & fp.STATUS_WATCHDOG_TRIPPED and mock.stats.last_applied == 0.0
+    assert mock.stats.watchdog_trips >= 1
+
+
+def test_real_time_mock_refuses_zero_delay():
+    with pytest.raises(ConfigError, match="lockstep only"):
+        MockDevice(Device(mass=0.1, delay=0), lockstep=False)
+
+
+# --------------------------------------------------------------------------- lockstep THS
+
+def _grid():
+    cases = []
+    for m, b0, rate, d, hold in itertools.product((0.1, 0.5), (0.0, 0.5, 2.0), (1000.0, 4000.0),
+                                                  (0, 1, 2), ("zoh", "ideal")):
+        loop = LoopModel(m, b0, rate, d, hold)
+        for B in (0.5, 3.0):
+            kmax = stability_limit(loop, B)
+            if not (kmax > 0):
+                continue
+            K = 0.5 * min(kmax, 4e4)
+            cases.append((m, b0, rate, d, hold, K, B))
+    # keep the test under a few seconds: every 2nd case (all m, b0, rate, d, hold covered)
+    return cases[::2]
+
+
+GRID = _grid()
+
+
+@pytest.mark.parametrize("m,b0,rate,d,hold,K,B", GRID,
+                         ids=[f"m{c[0]}-b{c[1]}-r{c[2]:g}-d{c[3]}-{c[4]}-K{c[5]:.0f}-B{c[6]}"
+                              for c in GRID])
+def test_lockstep_measured_equals_render(m, b0, rate, d, hold, K, B):
+    """In-process lockstep: measured (k, b) == analysis.render (k, b) to 1e-6 relative."""
+    rep = lockstep(wall_text(K, B, m=m, b0=b0, d=d, hold=hold, rate=rate, force_limit=1e6))
+    r = render(LoopModel(m, b0, rate, d, hold), K, B)
+    meas = rep["measured"]
+    assert "k" in meas, meas
+    assert meas["k"] == pytest.approx(r.k, rel=1e-6)
+    assert meas["b"] == pytest.approx(r.b, rel=1e-6, abs=1e-9 * m * rate)
+    assert rep["predicted"]["k"] == pytest.approx(r.k, rel=1e-12)
+    assert rep["loop"]["late"] == 0 and rep["loop"]["missed"] == 0
+    assert rep["loop"]["mock"]["saw_stop"] and rep["loop"]["mock"]["last_applied"] == 0.0
+
+
+def test_grid_covers_every_dimension():
+    for i, values in enumerate(((0.1, 0.5), (0.0, 0.5, 2.0), (1000.0, 4000.0), (0, 1, 2),
+                                ("zoh", "ideal"))):
+        assert {c[i] for c in GRID} == set(values)
+
+
+@pytest.mark.parametrize("k,b,d,hold", [(1000.0, 3.0, 1, "zoh"), (300.0, 1.0, 2, "zoh"),
+                                        (2000.0, 4.0, 0, "zoh"), (800.0, 2.0, 1, "ideal")])
+def test_calibrated_target_is_felt_as_asked(k, b, d, hold):
+    """A link given as target {k, b}: the lockstep THS rings at exactly (k, b) (1e-6)."""
+    rep = lockstep(wall_text(0, 0, d=d, hold=hold, target=(k, b)))
+    assert rep["target"]["renderable"]
+    cal = calibrate(LoopModel(0.1, 0.5, 1000.0, d, hold), k, b)
+    assert rep["virtual"]["K"] == pytest.approx(cal.K, rel=1e-12)
+    assert rep["measured"]["k"] == pytest.approx(k, rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(b, rel=1e-6)
+
+
+def test_felt_wall_config_is_felt_as_asked():
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/felt_wall.yaml"), transport="inprocess", lockstep=True,
+                    handle_signals=False)
+    assert rep["target"]["k"] == 1000.0 and rep["target"]["b"] == 3.0
+    assert rep["measured"]["k"] == pytest.approx(1000.0, rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(3.0, rel=1e-6)
+
+
+def test_unrenderable_target_is_refused():
+    # 40 Hz with a tiny damping through one sample of delay and little friction: the
+    # analysis finds a parasitic pole or instability; the run refuses with the reason
+    text = wall_text(0, 0, b0=0.0, d=2, target=(50000.0, 0.01))
+    with pytest.raises(UnstableConfigError, match="not renderable"):
+        lockstep(text)
+
+
+def test_impulse_excitation_is_identified_after_it_ends():
+    text = wall_text(1000.0, 1.5, x0=0.0,
+                     excitation="{impulse: {force: 2.0, start: 0.002, duration: 0.003}}")
+    rep = lockstep(text)
+    assert rep["loop"]["excitation_end_s"] == pytest.approx(0.005)
+    assert rep["measured"]["first_seq"] >= 5 + 1 + 3
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+
+
+def test_unstable_scene_refused_with_radius_and_limit():
+    with pytest.raises(UnstableConfigError) as ei:
+        lockstep(wall_text(3000.0, 1.5))
+    e = ei.value
+    assert e.spectral_radius > 1 and 1000 < e.stiffness_limit < 3000
+    assert "spectral radius" in str(e) and "stiffness limit" in str(e)
+
+
+def test_allow_unstable_ends_in_safety_stop_with_zero_force():
+    rep = lockstep(wall_text(3000.0, 1.5), allow_unstable=True, duration=5.0)
+    lp = rep["loop"]
+    assert lp["safety_stop"] and lp["stop_reason"].startswith("safety")
+    assert lp["ticks"] < 5000
+    assert lp["mock"]["saw_stop"] and lp["mock"]["last_applied"] == 0.0
+    assert lp["mock"]["last_host_message"] == "Stop"
+    assert rep["exit_code"] == 1
+
+
+# --------------------------------------------------------------------------- host safety
+
+class _NanMock(MockDevice):
+    """A device whose encoder returns NaN from tick 10 on."""
+
+    def _emit(self, now_us):
+        st = super()._emit(now_us)
+        if st.seq >= 10:
+            return fp.State(st.seq, st.time_us, st.status, st.force_seq, (math.nan,))
+        return st
+
+
+def test_non_finite_position_sends_zero_force_and_stops():
+    scene = parse_scene(wall_text(1000.0, 1.5))
+    mock = _NanMock(scene.device, scene.excitation, lockstep=True)
+    sent = []
+    tr = InProcessTransport(mock)
+    orig = tr.send
+    tr.send = lambda msg: (sent.append(msg), orig(msg))
+    tel = Telemetry(100)
+    eng = Engine(scene)
+    res = HostLoop(eng, tr, LoopConfig(1000.0, 100, force_limit=10.0), tel).run()
+    assert res.safety_stop and "non-finite" in res.stop_reason
+    forces = [m for m in sent if isinstance(m, fp.Force)]
+    assert forces[-1].force == (0.0,) and isinstance(sent[-1], fp.Stop)
+    assert mock.stats.saw_stop and mock.stats.last_applied == 0.0
+    assert tel.n == 10
+
+
+def test_stop_flag_ends_loop_cleanly():
+    scene = parse_scene(wall_text(1000.0, 1.5))
+    mock = MockDevice(scene.device, scene.excitation, lockstep=True)
+    flag = StopFlag()
+
+    class Tr(InProcessTransport):
+        def receive(self, timeout=0.0):
+            if self.mock.stats.ticks >= 50:
+                flag.request(15)
+            return super().receive(timeout)
+
+    tel = Telemetry(1000)
+    res = HostLoop(Engine(scene), Tr(mock), LoopConfig(1000.0, 1000), tel, flag).run()
+    assert res.stop_reason == "signal SIGTERM" and not res.safety_stop
+    assert 49 <= tel.n <= 51 and mock.stats.saw_stop and mock.stats.last_applied == 0.0
+
+
+def test_host_clamps_force():
+    rep = lockstep(wall_text(1000.0, 1.5, x0=0.02, force_limit=10.0), allow_unstable=False,
+                   duration=0.05)
+    assert rep["loop"]["clamped"] > 0
+    assert rep["loop"]["mock"]["clamped"] == 0        # the host clamped first
+
+
+# --------------------------------------------------------------------------- telemetry
+
+@pytest.mark.parametrize("ext", [".npz", ".csv"])
+def test_telemetry_written_atomically_and_loads(tmp_path, ext):
+    path = str(tmp_path / f"t{ext}")
+    rep = lockstep(wall_text(1000.0, 1.5), telemetry=path, duration=0.2)
+    data = load_telemetry(path)
+    assert rep["telemetry"]["samples"] == 200 == data["seq"].size
+    np.testing.assert_array_equal(data["seq"], np.arange(200))
+    np.testing.assert_allclose(data["time"], np.arange(200) * 1e-3, atol=1e-6)
+    assert data["position"][0] == pytest.approx(0.005)
+    assert data["force"][0] == pytest.approx(-5.0)
+    assert not (tmp_path / f"t{ext}.partial").exists()
+
+
+def test_identify_uses_longest_consecutive_run():
+    T, m = 1e-3, 0.1
+    n = np.arange(600)
+    s = -5 + 100j
+    y = np.exp(s.real * n * T) * np.cos(s.imag * n * T)
+    seq = n.copy()
+    seq[100:] += 3            # a gap: the longest run is after it
+    out = identify(y, seq, T, 2, m, 0)
+    assert out["first_seq"] == 103 and out["k"] == pytest.approx(m * abs(s) ** 2, rel=1e-9)
+
+
+def test_bad_arguments():
+    text = wall_text(1000.0, 1.5)
+    with pytest.raises(ConfigError):
+        lockstep(text, duration=-1.0)
+    with pytest.raises(ConfigError):
+        run_scene(parse_scene(text), transport="inprocess", lockstep=False, handle_signals=False)
+    with pytest.raises(ConfigError):
+        run_scene(parse_scene(text), lockstep=True, host_clocked=True, handle_signals=False)
+    with pytest.raises(ConfigError):
+        lockstep(text, telemetry="x.txt")
+    with pytest.raises(ConfigError, match="lockstep"):
+        run_scene(parse_scene(wall_text(1000.0, 1.5, d=0)), handle_signals=False)
