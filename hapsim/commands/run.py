@@ -92,6 +92,11 @@ def _clean(obj):
     return obj
 
 
+def _announce(port, n_samples) -> None:
+    print(f"hapsim run: closing the loop on {port or 'the in-process mock'} for "
+          f"{n_samples} samples (SIGINT/SIGTERM stop cleanly)", file=sys.stderr, flush=True)
+
+
 def run(args) -> int:
     """Run ``hapsim run``; returns the exit code (0, 1 after a safety stop or fault)."""
     from hapsim.daemon.runner import format_report, run_scene
@@ -103,7 +108,7 @@ def run(args) -> int:
     rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                    seed=args.seed)
+                    seed=args.seed, on_start=_announce)
     code = rep.pop("exit_code")
     if args.json:
         print(json.dumps(_clean(rep)))

@@ -277,7 +277,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               lockstep: bool = False, host_clocked: bool = False,
               telemetry: str | None = None, allow_unstable: bool = False,
               transport: str | None = None, seed: int = 0,
-              stop: StopFlag | None = None, handle_signals: bool = True) -> dict:
+              stop: StopFlag | None = None, handle_signals: bool = True,
+              on_start=None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -309,6 +310,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         External stop flag; a new one otherwise.
     handle_signals : bool
         Install SIGINT/SIGTERM handlers that request a clean stop (main thread only).
+    on_start : callable, optional
+        Called as ``on_start(port, n_samples)`` once the port is open and the signal
+        handlers are installed, just before the handshake (e.g. to tell the user that
+        Ctrl-C now stops cleanly).
 
     Returns
     -------
@@ -412,6 +417,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, _on_signal)
     try:
+        if on_start is not None:
+            on_start(tr.info.get("port"), n_samples)
         loop = HostLoop(engine, tr, cfg, tel, stop)
         res = loop.run()
     finally:
