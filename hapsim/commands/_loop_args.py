@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import textwrap
 
 from hapsim.analysis.loop import HOLDS, LoopModel
 
@@ -17,6 +18,11 @@ terms:
         of sampling, hold and delay (Florens, Voda & Urma's temporary hybrid system).
 units: SI throughout. --mass 1 --rate 1 gives the paper's normalised units (m = T = 1).
 """
+
+
+def para(text: str) -> str:
+    """Wrap a help paragraph to 78 columns (the raw formatter does not wrap)."""
+    return textwrap.fill(" ".join(text.split()), 78)
 
 
 def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None = None,

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from hapsim.commands._loop_args import (UNITS_HELP, add_loop_arguments, fmt, loop_from_args,
+from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
                                         print_modes)
 
 
@@ -14,11 +14,11 @@ def register(sub) -> None:
     """Add the ``calibrate`` parser to ``sub`` (an argparse sub-parsers action)."""
     p = sub.add_parser(
         "calibrate", help="find the virtual K, B that render a target k, b",
-        description="Place two closed-loop poles on those of the target oscillator "
+        description=para("Place two closed-loop poles on those of the target oscillator "
                     "m s^2 + b s + k = 0 and solve for the virtual K and B. Then check every "
                     "other pole: if one is unstable or less damped than the target, the "
                     "target is not renderable with this configuration and the command says "
-                    "why (exit 1).",
+                    "why (exit 1)."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --k 2000 --b 3\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from hapsim.commands._loop_args import UNITS_HELP, add_loop_arguments, loop_from_args
+from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, loop_from_args
 from hapsim.errors import ConfigError
 
 
@@ -16,12 +16,12 @@ def register(sub) -> None:
     """Add the ``map`` parser to ``sub`` (an argparse sub-parsers action)."""
     p = sub.add_parser(
         "map", help="draw the felt (k, b) grid in the virtual (K, B) plane",
-        description="Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
+        description=para("Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
                     "curves in the (K, B + b0) plane, with the identity grid (dashed: what a "
                     "perfect simulator would need) and the exact stability boundary (bold; "
                     "it is the b = 0 curve). A bent or sheared grid is a distorted parameter "
                     "scale. --paper 7|8|9 reproduces the paper's figures (normalised units, "
-                    "ideal hold; --hold zoh gives the exact zero-order hold instead).",
+                    "ideal hold; --hold zoh gives the exact zero-order hold instead)."),
         epilog=UNITS_HELP + "\nthe damping axis is B + b0 (the paper's Fig. 9 convention).\n"
                "\nexamples:\n  hapsim map --paper 8 --out fig8.png\n"
                "  hapsim map --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh "

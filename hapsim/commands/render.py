@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from hapsim.commands._loop_args import (UNITS_HELP, add_loop_arguments, fmt, loop_from_args,
+from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
                                         print_modes)
 
 
@@ -14,10 +14,10 @@ def register(sub) -> None:
     """Add the ``render`` parser to ``sub`` (an argparse sub-parsers action)."""
     p = sub.add_parser(
         "render", help="predict the stiffness k and damping b felt for a virtual K, B",
-        description="Close the THS loop (real mass + friction, hold, delay, virtual spring K "
+        description=para("Close the THS loop (real mass + friction, hold, delay, virtual spring K "
                     "and damper B) and report the oscillator the user feels: the least "
                     "damped closed-loop pole pair as k, b, f0, damping ratio; the other "
-                    "poles are listed as parasitic modes. Exit 1 when the loop is unstable.",
+                    "poles are listed as parasitic modes. Exit 1 when the loop is unstable."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim render --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --K 2000 --B 2\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -7,19 +7,19 @@ import json
 import math
 import sys
 
-from hapsim.commands._loop_args import UNITS_HELP, add_loop_arguments, fmt, loop_from_args
+from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args
 
 
 def register(sub) -> None:
     """Add the ``stability`` parser to ``sub`` (an argparse sub-parsers action)."""
     p = sub.add_parser(
         "stability", help="exact stiffness limit K_max for a virtual damping B",
-        description="Compute the exact K_max(B) where the closed loop's spectral radius "
+        description=para("Compute the exact K_max(B) where the closed loop's spectral radius "
                     "reaches 1, and, for reference, the published first-order limits: "
                     "passivity (Colgate & Schenkel 1997, b0 > K T/2 + |B|), Diolaiti et al. "
                     "2006 (K < (b0 + B)/(T/2 + d T)) and the centred-difference oscillator "
                     "(4 m / T^2). K_max = 0 means no positive K is stable; null (JSON) or "
-                    "inf means no finite limit.",
+                    "inf means no finite limit."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --B 0\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
