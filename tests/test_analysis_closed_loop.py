@@ -76,23 +76,22 @@ def simulate_loop(m, b0, rate, d, hold, K, B, n, x0=1e-3):
         M[:2, :2] = Ac
         M[1, 2] = 1.0 / m
         E = expm(M * T)
-        Ad, Bd = E[:2, :2], E[:2, 2]
+        (a00, a01), (a10, a11) = E[:2, :2].tolist()
+        b0_, b1_ = E[:2, 2].tolist()
     else:
-        Ad = expm(Ac * T)
+        (a00, a01), (a10, a11) = expm(Ac * T).tolist()
+        # impulse of area T u at t = nT: velocity jump T u / m, then free motion
+        b0_, b1_ = a01 * T / m, a11 * T / m
     xs = [x0] * (d + 2)  # history x[-d-2 .. -1]: at rest
-    state = np.array([x0, 0.0])
-    out = np.empty(n)
-    for i in range(n):
-        x = state[0]
+    x, v = x0, 0.0
+    out = [0.0] * n
+    for i in range(n):     # plain floats: the loop is the test's own integrator
         out[i] = x
         xs.append(x)
         xd, xd1 = xs[-1 - d], xs[-2 - d]
         u = -K * xd - B * (xd - xd1) / T
-        if hold == "zoh":
-            state = Ad @ state + Bd * u
-        else:
-            state = Ad @ (state + np.array([0.0, T * u / m]))
-    return out
+        x, v = a00 * x + a01 * v + b0_ * u, a10 * x + a11 * v + b1_ * u
+    return np.array(out)
 
 
 def envelope_log_rate(x, period_samples, start, stop):
@@ -180,7 +179,7 @@ def test_simulated_loop_matches_render(m, b0, rate, B, d, hold):
     assert pred.stable
     nz = int(np.sum(np.abs(closed_loop_poles(loop, K, B)) > 1e-9))
     per = 2 * math.pi / max(abs(pred.rendered.s.imag) * T, 1e-3)
-    n = int(min(max(6 * per, 200), 3000))
+    n = int(min(max(6 * per, 200), 800))
     x = simulate_loop(m, b0, rate, d, hold, K, B, n + d + 3)[d + 3:]
     fit = fit_rendered(x, T, nz, m)
     assert fit.k == pytest.approx(pred.k, rel=1e-6)
@@ -194,12 +193,12 @@ def test_simulated_loop_matches_render(m, b0, rate, B, d, hold):
         zc = closed_loop_poles(loop, frac * kmax, B)
         top = zc[np.argmax(np.abs(zc))]            # may be a real pole crossing at z = -1
         per = 2 * math.pi / max(abs(np.angle(top)), 1e-3)
-        n = int(min(max(3.0 / abs(math.log(rho)), 20 * per), 60000))
+        n = int(min(max(3.0 / abs(math.log(rho)), 20 * per), 30000))
         x = simulate_loop(m, b0, rate, d, hold, frac * kmax, B, n)
         rate_meas = envelope_log_rate(x, per, n // 10, n)
         assert (rate_meas < 0) == (frac < 1)          # it really decays / grows
         nz = int(np.sum(np.abs(zc) > 1e-9))
-        n_fit = int(min(3000, max(40, 10.0 / abs(math.log(rho)))))
+        n_fit = int(min(800, max(40, 10.0 / abs(math.log(rho)))))
         zf = pencil_poles(x[d + 3:d + 3 + n_fit], nz)
         assert np.max(np.abs(zf)) == pytest.approx(rho, rel=1e-6)   # at the predicted rate
 
