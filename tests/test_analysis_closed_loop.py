@@ -510,3 +510,9 @@ def test_table1_v_continuous_limit_and_unstable_iv():
         table1_experiment([10.0])   # T sqrt(k/m) > pi: eq. (2) cannot tune
     md = table1_markdown(table1_experiment())
     assert md.count("\n") == 2 + 6 and "unstable" in md
+
+
+def test_docs_table1_is_the_computed_table():
+    with open("docs/table1.md", encoding="utf-8") as fh:
+        doc = fh.read()
+    assert table1_markdown(table1_experiment()) in doc

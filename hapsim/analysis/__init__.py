@@ -10,3 +10,6 @@ from hapsim.analysis.loop import (HOLDS, LoopModel, characteristic, closed_loop_
 from hapsim.analysis.ths import (CalibrationResult, RenderResult, calibrate, published_limits,
                                  render, stability_boundary, stability_limit)
 from hapsim.analysis.grid import PAPER_PRESETS, GridResult, grid, paper_preset
+from hapsim.analysis.identify import fit_modes, fit_rendered, pencil_poles
+from hapsim.analysis.scene_check import SceneCheck, check_scene, scene_state_matrix
+from hapsim.analysis.table1 import table1_experiment

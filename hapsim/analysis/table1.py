@@ -161,17 +161,18 @@ def table1_markdown(rows: list[dict]) -> str:
     Returns
     -------
     str
-        A Markdown table (frequencies in rad/s, i.e. rad per sample for ``T = 1``).
+        A Markdown table (frequencies in rad/s, i.e. rad per sample for ``T = 1``;
+        deviations ``w_a / w_b - 1`` in percent; felt stiffness ``m w^2`` over ``2k``).
     """
     head = ("| k T²/m | K (eq. 2) | ω I | ω II | ω III (2k) | ω IV (2K) | ω V (K + k) "
-            "| IV vs III | V vs III | IV vs V |\n"
-            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+            "| IV vs III | V vs III | IV vs V | felt k IV / 2k | felt k V / 2k |\n"
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n")
     out = []
     for r in rows:
         w_iv = f"{r['w_IV']:.5f}" + ("" if r["stable_IV"] else
                                      f" (unstable, \\|z\\| = {r['radius_IV']:.3f})")
         out.append(f"| {r['kT2_m']:g} | {r['K']:.5f} | {r['w_I']:.5f} | {r['w_II']:.5f} "
                    f"| {r['w_III']:.5f} | {w_iv} | {r['w_V']:.5f} "
-                   f"| {100 * r['dev_IV_III']:+.3f} % | {100 * r['dev_V_III']:+.3f} % "
-                   f"| {100 * r['dev_IV_V']:+.3f} % |")
+                   f"| {100 * r['dev_IV_III']:+.3g} % | {100 * r['dev_V_III']:+.3g} % "
+                   f"| {100 * r['dev_IV_V']:+.3g} % | {r['kfelt_IV']:.4f} | {r['kfelt_V']:.4f} |")
     return head + "\n".join(out) + "\n"
