@@ -250,6 +250,16 @@ def test_centred_difference_limit():
         assert spectral_radius(loop, 0.999 * kmax) <= 1 + 1e-9
         assert spectral_radius(loop, 1.001 * kmax) > 1 + 1e-6
         assert published_limits(loop)["centred_difference_K"] == pytest.approx(4 * m * rate**2)
+    # lossless again with friction cancelled by B = -b0 (eq. 4): the poles leave the circle
+    # at z = -1, where K = (m/T^2)(2x + 2(1 + e^-x) x/(1 - e^-x)), x = b0 T/m
+    m, b0, rate = 0.2, 0.5, 1000.0
+    x = b0 / (m * rate)
+    loop = LoopModel(m, b0, rate, 0, "ideal")
+    kmax = stability_limit(loop, -b0)
+    ref = m * rate**2 * (2 * x + 2 * (1 + math.exp(-x)) * x / -math.expm1(-x))
+    assert kmax == pytest.approx(ref, rel=1e-9)
+    assert spectral_radius(loop, 0.999 * kmax, -b0) <= 1 + 1e-9
+    assert spectral_radius(loop, 1.001 * kmax, -b0) > 1 + 1e-6
 
 
 BOUNDARY_CASES = [(LoopModel(0.1, 0.5, 1000.0, d, h), B) for h in ("zoh", "ideal")

@@ -326,8 +326,7 @@ def _polish(c, roots, iters: int = 3):
             if fx < fbest and abs(x - r) < 1e-3 * max(1e-300, abs(r)) + 1e-300:
                 best, fbest = x, fx
         out[i] = best
-    # keep conjugate symmetry exact: polish may break it slightly
-    return out
+    return out  # conjugate symmetry is re-imposed by the caller
 
 
 def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:

@@ -353,8 +353,6 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
 
 def _kappa_max(loop: LoopModel, beta: float) -> float:
     """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
-    if loop.hold == "ideal" and loop.delay == 0 and loop.friction == 0 and beta == 0:
-        return 4.0  # lossless centred-difference oscillator: marginal for 0 < K < 4m/T^2
     Pw, Qw, Rw = _char_w(loop)
 
     def parts(theta):
@@ -373,13 +371,24 @@ def _kappa_max(loop: LoopModel, beta: float) -> float:
     pv = np.polyval(Pw, wv)
     nv = beta * np.polyval(Qw, wv) + np.polyval(Rw, wv)
     gv = (nv * np.conj(pv)).imag / np.maximum(np.abs(nv) * np.abs(pv), 1e-300)
+    if np.max(np.abs(gv[thetas >= 1e-3])) < 1e-9:  # (tiny theta: cancellation noise)
+        # Lossless loop (e.g. ideal hold, d = 0, B = -b0: the centred-difference
+        # oscillator): K(theta) is real all round the circle, the poles sit on it for small
+        # K (marginal stability) and leave it at z = -1.
+        p, num = parts(math.pi)
+        kpi = (-(num / p)).real if abs(p) > 0 else math.nan
+        return kpi if kpi > 0 else 0.0
     cands = []
     for i in range(thetas.size - 1):
         a, c = gv[i], gv[i + 1]
         if a == 0.0:
             th = thetas[i]
         elif a * c < 0:
-            th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15, maxiter=200)
+            try:
+                th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
+                            maxiter=200)
+            except ValueError:  # scalar and vector rounding disagree on a tiny |g|
+                th = 0.5 * (thetas[i] + thetas[i + 1])
         else:
             continue
         p, num = parts(th)
@@ -415,8 +424,9 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
         reaches 1. ``0.0`` when no small positive ``K`` is stable (e.g. ZOH with
         ``b0 = B = 0``, or a delay without damping); ``inf`` when every ``K > 0`` is stable
         (no finite crossing, e.g. the ideal hold with large damping ratio; rare).
-        For ``"ideal"``, ``d = 0``, ``b0 = B = 0`` it is the centred-difference limit
-        ``4 m / T^2`` (poles on the unit circle below it: marginal stability).
+        For a lossless loop (``"ideal"``, ``d = 0``, ``B = -b0``; e.g. ``b0 = B = 0``) the
+        poles stay on the unit circle (marginal stability) up to where they leave it at
+        ``z = -1``: for ``b0 = B = 0`` the centred-difference limit ``4 m / T^2``.
 
     Notes
     -----
