@@ -28,7 +28,7 @@ N = 2000
 TOL = 1e-12
 
 _reason = faust_gen.tools_available()
-pytestmark = pytest.mark.skipif(_reason is not None, reason=f"Faust oracle: {_reason}")
+needs_faust = pytest.mark.skipif(_reason is not None, reason=f"Faust oracle: {_reason}")
 
 
 def string_scene() -> Scene:
@@ -72,6 +72,7 @@ def _mobile_columns(scene: Scene) -> list[int]:
     return [i for i, m in enumerate(scene.masses) if m.kind != "port"]
 
 
+@needs_faust
 def test_displaced_string_matches_faust(faust_binaries):
     scene = displaced_string()
     _, x = Engine(scene).run(N)
@@ -84,6 +85,7 @@ def test_displaced_string_matches_faust(faust_binaries):
     assert err < TOL * amplitude, f"max |hapsim - Faust| = {err:.3g} m, amplitude {amplitude:.3g} m"
 
 
+@needs_faust
 def test_port_pluck_through_contact_matches_faust(faust_binaries):
     scene = string_scene()
     p = hand_stream(N)
@@ -105,6 +107,7 @@ def test_port_pluck_through_contact_matches_faust(faust_binaries):
     assert err < TOL * amplitude, f"max |hapsim - Faust| = {err:.3g} m, amplitude {amplitude:.3g} m"
 
 
+@needs_faust
 def test_oracle_detects_a_wrong_parameter(faust_binaries, tmp_path):
     """The comparison is sensitive: 0.1 % more damping in one segment is visible."""
     scene = displaced_string()
@@ -115,3 +118,52 @@ def test_oracle_detects_a_wrong_parameter(faust_binaries, tmp_path):
     y = faust_gen.run_binary(exe, N, np.zeros(N))
     cols = _mobile_columns(scene)
     assert np.max(np.abs(y[:, cols] - x[1:, cols])) > 1e-6 * np.max(np.abs(x[:, cols]))
+
+
+# --------------------------------------------------------------------------------------------
+# The kernels' chain fast path (hapsim/kernels/cordis.py), which the string above exercises:
+# checked here against the plain-Python reference of tests/test_engine.py on strings with
+# contacts on inner beads, between beads, two contacts on one bead, non-uniform K, B, m.
+# These do not need Faust.
+
+def _chain_scene(rng: np.random.Generator, n: int) -> Scene:
+    from hapsim.scene import Device, Link, Mass
+    names = ["g0"] + [f"b{i}" for i in range(1, n + 1)] + ["g1"]
+    masses = [Mass("g0", "ground", 0.0, 1e-3)]
+    masses += [Mass(f"b{i}", "mass", float(rng.uniform(0.005, 0.02)), float(rng.normal(0, 1e-3)),
+                    float(rng.normal(0, 0.05))) for i in range(1, n + 1)]
+    masses += [Mass("g1", "ground", 0.0, -1e-3), Mass("p", "port")]
+    links = [Link(f"s{i}", "spring_damper", names[i], names[i + 1],
+                  float(rng.uniform(100, 3000)), float(rng.uniform(0, 0.01))) for i in range(n + 1)]
+    mid = n // 2
+    links += [Link("c0", "contact", "p", f"b{mid}", 800.0, 0.02, 0.0),
+              Link("c1", "contact", "p", f"b{mid}", 300.0, 0.01, 5e-4),   # same bead twice
+              Link("c2", "contact", f"b{mid + 3}", f"b{mid + 4}", 400.0, 0.03, 1e-4),
+              Link("c3", "contact", "g0", "b1", 200.0, 0.0, 2e-3)]        # at the chain's end
+    return Scene(rate_hz=1000.0, masses=tuple(masses), links=tuple(links),
+                 device=Device(mass=0.1))
+
+
+@pytest.mark.parametrize("seed,with_contacts", [(0, True), (1, True), (2, False)])
+def test_chain_fast_path_equals_reference(seed, with_contacts):
+    from hapsim.kernels import cordis
+    from test_engine import reference_run
+    rng = np.random.default_rng(seed)
+    scene = _chain_scene(rng, 40)
+    if not with_contacts:
+        scene = dataclasses.replace(scene, links=tuple(lk for lk in scene.links
+                                                       if lk.kind != "contact"))
+    eng = Engine(scene)
+    a = eng._args
+    assert cordis._chain_start(a[0], a[3], a[5], a[6], a[7]) == 0   # the fast path is taken
+    n = 600
+    drive = 3e-3 * np.sin(np.arange(n) * 0.03)
+    rows = [eng.positions]
+    forces = []
+    for s in range(n):
+        forces.append(eng.port_step(drive[s]))
+        rows.append(eng.positions)
+    got = np.array(rows)
+    assert with_contacts == any(f != 0.0 for f in forces)
+    want = reference_run(scene, n, drive)
+    assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want))
