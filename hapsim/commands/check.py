@@ -15,8 +15,8 @@ The scene and the device section are turned into ONE linear closed loop, sampled
 scene rate: the hand + handle mass m with its real friction b0 (integrated exactly over each
 period with the force held, or the paper's ideal sampled image with hold: ideal), the
 computation delay of d samples, every virtual mass, and every link. Contacts are taken as
-engaged (acting as spring-dampers), the case in which they can destabilise the loop;
-a disengaged contact only removes a spring. Its eigenvalues z are the
+engaged (acting as spring-dampers, the usual stability-critical case); to check a scene
+with a contact released, check a copy without that contact. Its eigenvalues z are the
 closed-loop poles. The loop is stable when every |z| < 1 (the spectral radius); poles on
 the unit circle belong to lossless virtual parts (marginal) and are accepted.
 
