@@ -367,7 +367,15 @@ def test_identify_uses_longest_consecutive_run():
     seq = n.copy()
     seq[100:] += 3            # a gap: the longest run is after it
     out = identify(y, seq, T, 2, m, 0)
-    assert out["first_seq"] == 103 and out["k"] == pytest.approx(m * abs(s) ** 2, rel=1e-9)
+    assert out["first_seq"] == 103 + 3 and out["k"] == pytest.approx(m * abs(s) ** 2, rel=1e-9)
+    # a late tick cuts the record too; with no long clean stretch the whole run is used
+    late = np.zeros(600, dtype=np.int8)
+    late[300] = 1
+    out = identify(y, seq, T, 2, m, 0, late=late, skip=2)
+    assert out["first_seq"] == 300 + 3 + 2 and out["late_in_segment"] == 0   # seq 303 late
+    late[::50] = 1
+    out = identify(y, n, T, 2, m, 0, late=late)
+    assert out["samples_used"] == 600 and out["late_in_segment"] == 11
 
 
 def test_bad_arguments():

@@ -179,10 +179,17 @@ def test_real_time_embedded_wall_measures_roughly_the_prediction():
     assert lp["mock"]["saw_stop"] and lp["mock"]["last_applied"] == 0.0
     pred, meas = rep["predicted"], rep["measured"]
     assert "k" in meas, meas
-    # late ticks (host preempted) hold the previous force: an extra delay that mostly
-    # lowers the damping of this lightly damped loop; the frequency is robust
-    assert meas["f0_hz"] == pytest.approx(pred["f0_hz"], rel=0.2)
-    assert meas["k"] == pytest.approx(pred["k"], rel=0.4)
+    if meas["late_in_segment"] == 0:
+        # a stretch without late ticks: the mock's physics is exact per tick, so even in
+        # real time the free response is the THS's own, to round-off
+        assert meas["samples_used"] >= 100
+        assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
+        assert meas["b"] == pytest.approx(pred["b"], rel=1e-6)
+    else:
+        # late ticks (host preempted) hold the previous force: an extra delay that mostly
+        # lowers the damping of this lightly damped loop; the frequency is robust
+        assert meas["f0_hz"] == pytest.approx(pred["f0_hz"], rel=0.2)
+        assert meas["k"] == pytest.approx(pred["k"], rel=0.4)
 
 
 def test_host_clocked_real_time_run_completes():

@@ -33,7 +33,9 @@ what the numbers mean:
   virtual     the K [N/m], B [N s/m] simulated (calibrated when a target is given)
   predicted   the rendered (k, b): least damped closed-loop pole pair z, s = ln(z)/T,
               k = m |s|^2, b = -2 m Re(s) (b is the whole THS damping, b0 included)
-  measured    the same figures identified from the logged positions
+  measured    the same figures identified from the logged positions (matrix pencil of
+              the closed-loop order, on the longest stretch of the free response without
+              late ticks: a late FORCE is a disturbance, not part of the THS)
   rel. error  (measured - predicted) / predicted; 'vs target': against the target
   loop        rate, ticks, late (device held an older force), missed (STATE gaps),
               turnaround p50/p99/p99.9/max [us] from STATE read to FORCE written,

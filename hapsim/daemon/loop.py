@@ -235,10 +235,15 @@ class HostLoop:
             Device silent, port failure, or handshake failure (zero force + STOP are still
             attempted).
         """
-        self.handshake()
         gc_was = gc.isenabled()
-        gc.collect()
-        gc.disable()             # no collector pauses in the hot loop (CONVENTIONS §4)
+        gc.collect()             # before CONFIG arms the device: a real-time device ticks
+        gc.disable()             # from then on; no collector pauses in the hot loop (§4)
+        try:
+            self.handshake()
+        except BaseException:
+            if gc_was:
+                gc.enable()
+            raise
         try:
             if self.config.host_clocked:
                 self._run_host_clocked()
@@ -277,8 +282,8 @@ class HostLoop:
         stop = self.stop
         res = self.result
         n_max = min(cfg.n_samples, tel.capacity)
-        t_arr, x_arr, f_arr, s_arr, ta_arr = (tel.time, tel.position, tel.force, tel.seq,
-                                              tel.turnaround_us)
+        t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr = (tel.time, tel.position, tel.force,
+                                                        tel.seq, tel.turnaround_us, tel.late)
         lim = self.force_limit
         d = cfg.delay
         pos_bound = cfg.position_bound
@@ -320,8 +325,10 @@ class HostLoop:
                 elif seq != expect:
                     res.missed += (seq - expect) & _U32
                 expect = (seq + 1) & _U32
+                lt = 0
                 if seq >= d and ((seq - msg.force_seq) & _U32 != d or msg.status & overrun_bit):
                     if d > 0 or msg.status & overrun_bit:
+                        lt = 1
                         res.late += 1
                 f = eng.port_step(x) if isfinite(x) else math.nan
                 if not isfinite(f):
@@ -350,6 +357,7 @@ class HostLoop:
                 f_arr[i] = f
                 s_arr[i] = seq
                 ta_arr[i] = (t_tx - t_rx) * 1e-3
+                late_arr[i] = lt
                 i += 1
                 tel.n = i
                 if wsum >= clamp_max:
@@ -424,6 +432,12 @@ class HostLoop:
                 last_new = time.monotonic()
             x = latest.position[0]
             seq = latest.seq
+            lt = 0
+            if seq != used_seq and seq >= cfg.delay > 0 and (
+                    (seq - latest.force_seq) & _U32 != cfg.delay
+                    or latest.status & fp.STATUS_OVERRUN):
+                lt = 1
+                res.late += 1
             used_seq = seq
             f = eng.port_step(x) if isfinite(x) else math.nan
             if not isfinite(f):
@@ -448,6 +462,7 @@ class HostLoop:
             tel.force[i] = f
             tel.seq[i] = seq
             tel.turnaround_us[i] = (t_tx - t_rx) * 1e-3
+            tel.late[i] = lt
             i += 1
             tel.n = i
             if wsum >= cfg.clamp_max:

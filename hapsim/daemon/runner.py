@@ -79,6 +79,14 @@ def _port_links(scene: Scene):
             and {lk.m1, lk.m2} <= ({port.name} | grounds) and port.name in (lk.m1, lk.m2)]
 
 
+def _links_at_port(scene: Scene):
+    """Every link with the port at one end (contacts included, taken engaged)."""
+    port = scene.port
+    if port is None:
+        return []
+    return [lk for lk in scene.links if port.name in (lk.m1, lk.m2)]
+
+
 def _require_device(scene: Scene):
     if scene.port is None:
         raise ConfigError("the scene has no port: nothing for a device to feel",
@@ -151,8 +159,8 @@ def predict(scene: Scene) -> dict:
     dict
         ``k``, ``b`` [N/m, N s/m], ``f0_hz``, ``damping_ratio`` of the rendered pair (None
         when no pair), ``stable``, ``spectral_radius``, ``order`` (number of non-zero
-        closed-loop poles, the identification order), ``stiffness_limit`` [N/m] at the port
-        link's B, ``source`` (``"render"`` or ``"check_scene"``).
+        closed-loop poles, the identification order), ``stiffness_limit`` [N/m] of a
+        port-ground spring at the summed B of the links at the port, ``source`` (``"render"`` or ``"check_scene"``).
 
     Raises
     ------
@@ -163,7 +171,7 @@ def predict(scene: Scene) -> dict:
     an = _analysis()
     loop = an["LoopModel"].from_device(dev, scene.rate_hz)
     plinks = _port_links(scene)
-    B_port = sum(lk.damping for lk in plinks) if plinks else 0.0
+    B_port = sum(lk.damping for lk in _links_at_port(scene))
     K_port = sum(lk.stiffness for lk in plinks) if plinks else 0.0
     out = {"k": None, "b": None, "f0_hz": None, "damping_ratio": None, "stable": None,
            "spectral_radius": None, "order": None, "stiffness_limit": None, "source": None}
@@ -198,7 +206,8 @@ def predict(scene: Scene) -> dict:
 
 
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
-             start: int, *, offset: bool = False) -> dict:
+             start: int, *, offset: bool = False, late: np.ndarray | None = None,
+             skip: int = 3) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -218,26 +227,55 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         dead-beat transient).
     offset : bool
         Difference the signal first (constant equilibrium offset).
+    late : ndarray of int, shape (n,), optional
+        1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
+        not part of the linear THS: the record is cut there and the longest clean segment
+        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
+        disturbance is again a free response, minus ``skip`` samples of dead-beat
+        transient. Without a long enough clean segment the longest run is used as is
+        (``late_in_segment`` says how many disturbances it holds).
+    skip : int
+        Samples dropped at the start of a segment that follows a disturbance or a gap
+        (``d + 2`` is enough: the dead-beat states of the delay line).
 
     Returns
     -------
     dict
-        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``, ``order``;
-        or ``error`` (str) when nothing can be identified.
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
+        ``order``, ``pencil``, ``late_in_segment``; or ``error`` (str) when nothing can be
+        identified.
     """
     from hapsim.analysis.identify import fit_rendered
 
     seq = np.asarray(seq, dtype=np.int64)
+    pos = np.asarray(position, dtype=float)
+    lt = np.zeros(seq.size, dtype=bool) if late is None else np.asarray(late).astype(bool)
     sel = seq >= start
-    y, s = np.asarray(position)[sel], seq[sel]
+    y, s, lt = pos[sel], seq[sel], lt[sel]
+
+    def segments(cut_late: bool):
+        """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks."""
+        cut = np.diff(s) != 1
+        if cut_late:
+            cut = cut | lt[1:]
+        edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [y.size]])
+        out = []
+        for a, b in zip(edges[:-1], edges[1:]):
+            a2 = a if a == 0 else min(a + skip, b)
+            out.append((a2, b))
+        return out
+
+    need = max(4 * int(order) + 10, 100)
+    a = b = 0
     if y.size:
-        # the longest run of consecutive sequence numbers
-        breaks = np.flatnonzero(np.diff(s) != 1) + 1
-        edges = np.concatenate([[0], breaks, [y.size]])
-        j = int(np.argmax(np.diff(edges)))
-        y, s = y[edges[j]:edges[j + 1]], s[edges[j]:edges[j + 1]]
+        segs = segments(True)
+        a, b = max(segs, key=lambda ab: ab[1] - ab[0])
+        if b - a < need:
+            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
+    late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
+    y, s = y[a:b], s[a:b]
     out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
-           "order": int(order)}
+           "order": int(order), "late_in_segment": late_in}
     # pencil parameter: Hua & Sarkar's N/3 is the low-variance choice but makes the Hankel
     # matrix square-ish (an SVD of seconds on a loaded machine for N = 1000); a thin
     # Hankel with L = max(10 order, 60) columns is exact on noise-free data and cheap.
@@ -358,12 +396,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     pred = predict(scene)
     if pred["stable"] is False and not allow_unstable:
         lim = pred["stiffness_limit"]
-        plinks = _port_links(scene)
-        B = sum(lk.damping for lk in plinks)
-        K = sum(lk.stiffness for lk in plinks)
+        at_port = _links_at_port(scene)
+        B = sum(lk.damping for lk in at_port)
+        K = sum(lk.stiffness for lk in at_port)
         raise UnstableConfigError(
             f"{scene.path}: the closed loop is unstable: spectral radius "
-            f"{pred['spectral_radius']:.9g} >= 1 (K = {K:g} N/m, B = {B:g} N s/m, "
+            f"{pred['spectral_radius']:.9g} >= 1 (links at the port, contacts engaged: "
+            f"K = {K:g} N/m, B = {B:g} N s/m, "
             f"m = {dev.mass:g} kg, b0 = {dev.friction:g} N s/m, d = {dev.delay}, "
             f"{dev.hold}, {scene.rate_hz:g} Hz); stiffness limit K_max = "
             f"{lim:.6g} N/m at this B. Lower K, raise B or the rate, or pass "
@@ -446,7 +485,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             start += int(cols["seq"][0])
         offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
-                            offset=offset)
+                            offset=offset, late=cols["late"], skip=dev.delay + 2)
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}

@@ -16,6 +16,9 @@ Columns
     STATE sequence number (int64).
 ``turnaround_us`` [us]
     Host time from the STATE frame read to the FORCE frame written.
+``late`` [-]
+    1 when the device reported holding an older force at this tick (its FORCE came too
+    late: ``seq - force_seq != d`` or STATUS_OVERRUN), else 0 (int8).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from hapsim.errors import ConfigError
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS"]
 
 #: Column names, in file order.
-COLUMNS = ("time", "position", "force", "seq", "turnaround_us")
+COLUMNS = ("time", "position", "force", "seq", "turnaround_us", "late")
 
 
 class Telemetry:
@@ -46,6 +49,8 @@ class Telemetry:
         Columns [s], [m], [N], [us]; only the first :attr:`n` rows are valid.
     seq : ndarray of int64, shape (capacity,)
         STATE sequence numbers.
+    late : ndarray of int8, shape (capacity,)
+        1 where the device held an older force (late FORCE).
     n : int
         Rows recorded.
     """
@@ -60,13 +65,15 @@ class Telemetry:
         self.force = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
         self.turnaround_us = np.zeros(capacity)
+        self.late = np.zeros(capacity, dtype=np.int8)
         self.n = 0
 
     def columns(self) -> dict[str, np.ndarray]:
         """Views of the valid rows, by column name (shape (n,) each)."""
         n = self.n
         return {"time": self.time[:n], "position": self.position[:n], "force": self.force[:n],
-                "seq": self.seq[:n], "turnaround_us": self.turnaround_us[:n]}
+                "seq": self.seq[:n], "turnaround_us": self.turnaround_us[:n],
+                "late": self.late[:n]}
 
     def write(self, path: str) -> str:
         """Write the valid rows to ``path`` atomically.
@@ -101,7 +108,7 @@ class Telemetry:
             else:
                 data = np.column_stack([cols[c].astype(float) for c in COLUMNS])
                 np.savetxt(tmp, data, delimiter=",", header=",".join(COLUMNS), comments="",
-                           fmt=["%.9f", "%.17g", "%.17g", "%d", "%.1f"])
+                           fmt=["%.9f", "%.17g", "%.17g", "%d", "%.1f", "%d"])
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):
@@ -120,7 +127,7 @@ def load_telemetry(path: str) -> dict[str, np.ndarray]:
     Returns
     -------
     dict of str to ndarray
-        The columns of :data:`COLUMNS`, each shape (n,); ``seq`` as int64.
+        The columns of :data:`COLUMNS`, each shape (n,); ``seq`` as int64, ``late`` int8.
     """
     if path.lower().endswith(".npz"):
         with np.load(path) as z:
@@ -128,4 +135,5 @@ def load_telemetry(path: str) -> dict[str, np.ndarray]:
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     out = {c: data[:, i] for i, c in enumerate(COLUMNS)}
     out["seq"] = out["seq"].astype(np.int64)
+    out["late"] = out["late"].astype(np.int8)
     return out
