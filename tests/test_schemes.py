@@ -1,0 +1,139 @@
+"""Integrators of hapsim.kernels.schemes against closed forms, scipy's expm and the linear maps
+of hapsim.bench.methods (each test compares the kernel with something computed otherwise)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from hapsim.bench.methods import _network, _virtual_blocks, oscillator_poles
+from hapsim.bench.cost import oscillator_scene, string_scene
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError
+from hapsim.scene import parse_scene
+
+SCHEMES = ("centred", "symplectic_euler", "exact")
+
+
+def _fit_recursion(x):
+    """Least-squares ``x[n+1] + c1 x[n] + c0 x[n-1] = 0``: the characteristic polynomial."""
+    A = np.column_stack([x[1:-1], x[:-2]])
+    c, *_ = np.linalg.lstsq(A, -x[2:], rcond=None)
+    return c
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("rate,K,B", [(1000.0, 1000.0, 0.5), (500.0, 20000.0, 3.0),
+                                      (20000.0, 5000.0, 10.0)])
+def test_single_oscillator_poles_match_closed_form(scheme, rate, K, B):
+    # the simulated positions obey the 2-term recursion whose roots are the scheme's poles
+    sc = dataclasses.replace(oscillator_scene(rate, mass=0.1, K=K, B=B), integrator=scheme)
+    _, x = Engine(sc).run(400, record=["bob"])
+    c1, c0 = _fit_recursion(x[:, 0] / x[0, 0])
+    z = oscillator_poles(scheme, 0.1, K, B, 1.0 / rate)
+    assert c1 == pytest.approx(-(z[0] + z[1]).real, rel=1e-8, abs=1e-10)
+    assert c0 == pytest.approx((z[0] * z[1]).real, rel=1e-8, abs=1e-10)
+
+
+def test_schemes_differ_as_derived():
+    # centred and symplectic Euler differ only by the damping: same poles when B = 0
+    za = np.sort_complex(oscillator_poles("centred", 0.1, 1000.0, 0.0, 1e-3))
+    zb = np.sort_complex(oscillator_poles("symplectic_euler", 0.1, 1000.0, 0.0, 1e-3))
+    assert np.allclose(za, zb, atol=1e-15)
+    zc = np.sort_complex(oscillator_poles("centred", 0.1, 1000.0, 2.0, 1e-3))
+    zd = np.sort_complex(oscillator_poles("symplectic_euler", 0.1, 1000.0, 2.0, 1e-3))
+    assert np.max(np.abs(zc - zd)) > 1e-4
+
+
+@pytest.mark.parametrize("rate", [250.0, 1000.0, 20000.0])
+def test_exact_oscillator_against_expm(rate):
+    m, K, B, x0 = 0.1, 1000.0, 0.3, 0.01
+    sc = dataclasses.replace(oscillator_scene(rate, mass=m, K=K, B=B), integrator="exact")
+    eng = Engine(sc)
+    _, x = eng.run(300, record=["bob"])
+    A = np.array([[0.0, 1.0], [-K / m, -B / m]])
+    T = 1.0 / rate
+    ref = np.array([(expm(A * n * T) @ [x0, 0.0])[0] for n in range(301)])
+    assert np.max(np.abs(x[:, 0] - ref)) <= 1e-12 * x0
+
+
+def test_exact_string_against_expm():
+    sc = dataclasses.replace(string_scene(1000.0, n=6, B=0.01), integrator="exact")
+    eng = Engine(sc)
+    names = [f"s{i}" for i in range(1, 7)]
+    _, x = eng.run(200, record=names)
+    N = 6
+    m, K, B = 0.01, 2000.0, 0.01
+    L = 2 * np.eye(N) - np.eye(N, k=1) - np.eye(N, k=-1)
+    A = np.block([[np.zeros((N, N)), np.eye(N)], [-K / m * L, -B / m * L]])
+    s0 = np.concatenate([x[0], np.zeros(N)])
+    P = expm(A * 1e-3)
+    s = s0.copy()
+    for n in range(1, 201):
+        s = P @ s
+        assert np.max(np.abs(x[n] - s[:N])) <= 1e-12 * 1e-3
+
+
+def test_exact_conserves_continuous_energy():
+    sc = dataclasses.replace(oscillator_scene(500.0, K=30000.0, B=0.0), integrator="exact")
+    eng = Engine(sc)
+    e0 = eng.energy()
+    assert e0 == pytest.approx(0.5 * 30000.0 * 0.01 ** 2)
+    eng.step(5000)
+    assert eng.energy() == pytest.approx(e0, rel=1e-10)
+
+
+_CHAIN = """
+rate_hz: 2000
+integrator: {scheme}
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: a, kind: mass, mass: 0.02, x0: 0.001}}
+  - {{name: b, kind: mass, mass: 0.05}}
+  - {{name: g, kind: ground}}
+links:
+  - {{between: [hand, a], kind: spring_damper, stiffness: 3000, damping: 0.4}}
+  - {{between: [a, b], kind: spring_damper, stiffness: 1500, damping: 0.1}}
+  - {{between: [b, g], kind: spring_damper, stiffness: 800, damping: 2.0}}
+device: {{mass: 0.1, friction: 0.5, delay: 1}}
+"""
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_kernel_equals_linear_map_with_a_moving_port(scheme):
+    # the kernels and hapsim.bench.methods (used for stability and advice) are one map
+    sc = parse_scene(_CHAIN.format(scheme=scheme))
+    eng = Engine(sc)
+    net = _network(sc)
+    Av, bp, bpp, cx, cp, cpp = _virtual_blocks(net, scheme, sc.period)
+    x = eng.positions
+    X = np.array([x[1], x[2], x[1], x[2]]) if scheme == "centred" else \
+        np.array([x[1], x[2], 0.0, 0.0])
+    rng = np.random.default_rng(3)
+    p_prev = 0.0
+    eng.set_port_position(0.0, at_rest=True)
+    for _ in range(300):
+        p = float(rng.normal(0, 1e-3))
+        f = eng.port_step(p)
+        f_ref = cx @ X + cp * p + cpp * p_prev
+        X = Av @ X + bp * p + bpp * p_prev
+        p_prev = p
+        assert f == pytest.approx(f_ref, rel=1e-9, abs=1e-12)
+        assert np.allclose(eng.positions[1:3], X[:2], rtol=1e-9, atol=1e-15)
+
+
+def test_scene_integrator_key():
+    base = "rate_hz: 1000\n{line}masses: [{{name: a, kind: ground}}, {{name: b, kind: mass, mass: 1}}]\n" \
+           "links: [{{kind: contact, between: [a, b], stiffness: 10}}]\n"
+    assert parse_scene(base.format(line="")).integrator == "centred"
+    assert parse_scene(base.format(line="integrator: symplectic_euler\n")).integrator \
+        == "symplectic_euler"
+    with pytest.raises(ConfigError, match="centred, symplectic_euler, exact") as ei:
+        parse_scene(base.format(line="integrator: rk4\n"))
+    assert ei.value.key == "integrator"
+    with pytest.raises(ConfigError) as ei:
+        parse_scene(base.format(line="integrator: exact\n"))
+    assert ei.value.key == "links[0].kind"
