@@ -48,6 +48,9 @@ import numpy as np
 
 from hapsim.scene import Scene
 
+#: Faust version whose ``mi.lib`` the mapping was read from.
+MIN_VERSION = (2, 54)
+
 __all__ = ["faust_program", "driver_source", "tools_available", "build", "run_binary",
            "bench_binary"]
 
@@ -170,11 +173,17 @@ _DRIVER = r"""
 // Minimal standalone driver for a Faust-generated class (no architecture files).
 #define FAUSTFLOAT double
 #include <algorithm>
-#include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <ctime>
 #include <vector>
+
+static double thread_seconds() {
+  timespec t;
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+}
 
 struct Meta { void declare(const char*, const char*) {} };
 struct Soundfile;
@@ -198,7 +207,7 @@ struct dsp {
 
 // usage: prog run N   (reads N input samples from stdin if the model has an input,
 //                      prints N rows of outputs, %.17g)
-//        prog bench N REPEATS BLOCK   (prints the median seconds per N samples)
+//        prog bench N REPEATS BLOCK   (prints the median thread CPU seconds per N samples)
 int main(int argc, char** argv) {
   if (argc < 3) return 2;
   long n = atol(argv[2]);
@@ -231,13 +240,12 @@ int main(int argc, char** argv) {
   std::vector<double> times;
   double sink = 0.0;
   for (int r = 0; r < reps; ++r) {
-    auto t0 = std::chrono::steady_clock::now();
+    double t0 = thread_seconds();
     for (long s = 0; s < n; s += block) {
       d.compute(block, ip.data(), op.data());
       sink += op.empty() ? 0.0 : op[0][0];
     }
-    auto t1 = std::chrono::steady_clock::now();
-    times.push_back(std::chrono::duration<double>(t1 - t0).count());
+    times.push_back(thread_seconds() - t0);
   }
   std::sort(times.begin(), times.end());
   printf("%.9g %ld %g\n", times[times.size() / 2], ((n + block - 1) / block) * (long)block, sink);
@@ -254,7 +262,7 @@ def driver_source() -> str:
     str
         C++ source: ``prog run N`` reads ``N`` input samples per input channel from stdin
         and prints ``N`` rows of outputs (``%.17g``); ``prog bench N REPEATS BLOCK`` prints
-        the median time [s] of ``N`` samples over ``REPEATS`` runs, the samples actually run
+        the median thread CPU time [s] of ``N`` samples over ``REPEATS`` runs, the samples actually run
         and a checksum.
     """
     return _DRIVER
@@ -266,12 +274,22 @@ def tools_available() -> str | None:
     Returns
     -------
     str or None
-        A human-readable reason to skip, or None.
+        A human-readable reason to skip (no ``faust``, no compiler, or a Faust older than
+        :data:`MIN_VERSION`), or None.
     """
     if shutil.which("faust") is None:
         return "faust is not on PATH (apt-get install faust)"
     if shutil.which(os.environ.get("CXX", "c++")) is None and shutil.which("g++") is None:
         return "no C++ compiler (c++/g++) on PATH"
+    try:
+        out = subprocess.run(["faust", "--version"], capture_output=True, text=True,
+                             timeout=30).stdout
+        ver = tuple(int(p) for p in out.split("Version")[1].split()[0].split(".")[:2])
+    except (OSError, subprocess.SubprocessError, IndexError, ValueError):
+        return "could not read `faust --version`"
+    if ver < MIN_VERSION:
+        return (f"faust {ver[0]}.{ver[1]} is older than {MIN_VERSION[0]}.{MIN_VERSION[1]}, "
+                "whose mi.lib (collision, initState) the mapping was derived from")
     return None
 
 
@@ -355,7 +373,7 @@ def run_binary(exe: str | os.PathLike, n: int, inputs: np.ndarray | None = None)
 
 
 def bench_binary(exe: str | os.PathLike, n: int, repeats: int = 5, block: int = 64) -> float:
-    """Median wall time of ``n`` samples of a built program [s].
+    """Median thread CPU time of ``n`` samples of a built program [s].
 
     Parameters
     ----------
