@@ -177,7 +177,7 @@ def plot_capacity(data: dict):
         curves when it is not available.
     """
     plt = _mpl()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12.5, 5.0), dpi=110)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12.5, 5.8), dpi=110)
     rates = np.array(data["rates"])
     styles = {"p50": "-", "p99": "--", "p999": ":"}
     for key, col, lab in (("echo", "tab:gray", "raw pty echo (floor)"),
@@ -199,9 +199,10 @@ def plot_capacity(data: dict):
     a1.set_yscale("log")
     a1.set_xlabel("loop rate [Hz]")
     a1.set_ylabel("turnaround [us]")
-    a1.set_title("turnaround (request written -> reply read)", fontsize=10)
+    a1.set_title("echo: round trip write -> echo read; daemon: STATE read -> FORCE written",
+                 fontsize=9)
     a1.grid(True, which="both", alpha=0.3)
-    a1.legend(fontsize=7, ncol=2)
+    a1.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.13))
     a2.set_xscale("log")
     a2.set_yscale("log")
     a2.set_xlabel("loop rate [Hz]")

@@ -1,0 +1,146 @@
+"""bench compute functions on tiny grids, advise against render/check_scene, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from hapsim.analysis import LoopModel, check_scene, render
+from hapsim.bench.accuracy import accuracy_vs_rate
+from hapsim.bench.advise import advise_scene
+from hapsim.bench.cost import accuracy_vs_cost
+from hapsim.cli import main
+from hapsim.scene import parse_scene
+
+
+def test_accuracy_vs_rate_structure_and_numbers():
+    rates = (500.0, 1000.0, 2000.0, 4000.0)
+    d = accuracy_vs_rate(rates, {"soft": (200.0, 1.0)}, delays=(0, 1), holds=("zoh",))
+    (t,) = d["targets"]
+    assert len(t["curves"]) == 4 and d["rates"] == list(rates)
+    by = {(c["method"], c["delay"]): c for c in t["curves"]}
+    for dl in (0, 1):
+        cal = by[("calibrated", dl)]
+        assert all(cal["ok"]) and max(cal["err"]) < 1e-9
+        naive = np.array(by[("naive", dl)]["err"])
+        # first order in T: doubling the rate halves the error (within 15 %)
+        assert np.all(naive > 1e-3)
+        assert np.allclose(naive[:-1] / naive[1:], 2.0, rtol=0.15)
+    # the delay makes naive worse, about (d + 1/2) K T / b for the damping
+    assert by[("naive", 1)]["err"][-1] > 2 * by[("naive", 0)]["err"][-1]
+
+
+def test_accuracy_boundary_is_the_stability_limit():
+    from hapsim.analysis import stability_limit
+
+    d = accuracy_vs_rate((1000.0, 2000.0, 4000.0, 8000.0, 16000.0), {"stiff": (20000.0, 4.0)},
+                         delays=(1,), holds=("zoh",), methods=("naive",))
+    bnd = d["targets"][0]["curves"][0]["boundary_hz"]
+    assert 4000.0 < bnd < 16000.0
+    # at the boundary rate the naive K = k sits on the exact stability limit
+    for f, stable in ((1.02, True), (0.98, False)):
+        loop = LoopModel(0.1, 0.5, bnd * f, 1, "zoh")
+        assert (stability_limit(loop, 3.5) > 20000.0) == stable
+
+
+def test_accuracy_vs_cost_structure_and_numbers():
+    d = accuracy_vs_cost((250.0, 1000.0), samples=500, repeats=1, string_n=50)
+    osc, string = d["networks"]
+    assert set(osc["ns_per_sample"]) == {"centred", "symplectic_euler", "exact"}
+    assert all(v > 0 for v in osc["ns_per_sample"].values())
+    pts = {(p["integrator"], p["rate_hz"]): p for p in osc["points"]}
+    # centred oscillator: error of the closed-form poles of z^2 + (kappa+beta-2) z + 1-beta
+    from hapsim.bench.methods import oscillator_poles
+    T = 1e-3
+    for integ in ("centred", "symplectic_euler"):
+        z = oscillator_poles(integ, 0.1, 1000.0, 0.2, T)
+        s = np.log(z[z.imag > 0][0]) / T
+        lam = np.roots([0.1, 0.2, 1000.0])
+        lam = lam[lam.imag > 0][0]
+        assert pts[(integ, 1000.0)]["freq_err"] == pytest.approx(
+            abs(abs(s) - abs(lam)) / abs(lam), rel=1e-6)
+        assert pts[(integ, 1000.0)]["damp_err"] == pytest.approx(
+            abs(s.real - lam.real) / abs(lam.real), rel=1e-6)
+    assert pts[("exact", 1000.0)]["freq_err"] < 1e-12
+    sp = {(p["integrator"], p["rate_hz"]): p for p in string["points"]}
+    # 50-bead string: w_max T = 0.894e3 / 250 > 2, beyond the explicit schemes' limit
+    assert not sp[("centred", 250.0)]["stable"] and not sp[("symplectic_euler", 250.0)]["stable"]
+    assert sp[("exact", 250.0)]["stable"] and sp[("exact", 250.0)]["freq_err"] < 1e-9
+    assert sp[("centred", 1000.0)]["stable"]
+
+
+_TARGET = """
+rate_hz: 1000
+masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
+links: [{{name: w, kind: spring_damper, between: [hand, wall], target: {{k: {k}, b: {b}}}}}]
+device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh}}
+"""
+
+
+def test_advise_soft_below_stiff_and_applied_within_tolerance():
+    soft = parse_scene(_TARGET.format(k=200.0, b=1.0))
+    stiff = parse_scene(_TARGET.format(k=20000.0, b=4.0))
+    a_soft, a_stiff = advise_scene(soft, 0.01), advise_scene(stiff, 0.01)
+    assert a_soft.ok and a_stiff.ok
+    assert a_soft.rate_hz < a_stiff.rate_hz
+    for adv, (k, b) in ((a_soft, (200.0, 1.0)), (a_stiff, (20000.0, 4.0))):
+        sc = adv.apply(soft if k == 200.0 else stiff)
+        assert sc.rate_hz == adv.rate_hz and sc.integrator == adv.integrator
+        lk = sc.link("w")
+        r = render(LoopModel(0.1, 0.5, sc.rate_hz, 1, "zoh"), lk.stiffness, lk.damping)
+        assert r.stable and abs(r.k - k) / k <= 0.01 and abs(r.b - b) / b <= 0.01
+        chk = check_scene(sc)
+        assert chk.stable and abs(chk.rendered.k - k) / k <= 0.01
+        # margin: still stable with (K, B) / 0.95
+        assert render(LoopModel(0.1, 0.5, sc.rate_hz, 1, "zoh"), lk.stiffness / 0.95,
+                      lk.damping / 0.95).stable
+        # one rung lower on the ladder does not meet the criteria (it is the lowest)
+        from hapsim.bench.advise import RATES
+        i = RATES.index(adv.rate_hz)
+        if i > 0:
+            assert advise_scene(soft if k == 200.0 else stiff, 0.01,
+                                rates=RATES[i - 1:i]).ok is False
+
+
+def test_advise_picks_a_cheaper_integrator_only_when_it_is_stable():
+    text = """
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: bob, kind: mass, mass: 0.001}
+  - {name: g, kind: ground}
+links:
+  - {between: [hand, bob], kind: spring_damper, stiffness: 50, damping: 0.5}
+  - {between: [bob, g], kind: spring_damper, stiffness: 3000, damping: 0.001}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
+"""
+    adv = advise_scene(parse_scene(text), 0.5)
+    assert adv.ok
+    # bob: w = sqrt(3050/0.001) = 1746 rad/s; explicit schemes need w T < 2 -> rate > 873 Hz
+    if adv.integrator in ("centred", "symplectic_euler"):
+        assert adv.rate_hz > 873.0
+    from hapsim.bench.methods import stability_margin
+    assert stability_margin(adv.apply(parse_scene(text))).ok
+
+
+def test_cli_bench_quick_and_advise_json(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "--quick", "--out", str(out)]) == 0
+    for name in ("accuracy_vs_rate", "accuracy_vs_cost", "loop_capacity"):
+        assert (out / f"{name}.png").stat().st_size > 10_000
+        data = json.loads((out / f"{name}.json").read_text())
+        assert data["generated_by"] == "hapsim bench --quick"
+    cap = json.loads((out / "loop_capacity.json").read_text())
+    assert len(cap["echo"]) == len(cap["rates"])
+    assert all(e["turnaround_us"]["p50"] > 0 for e in cap["echo"])
+    capsys.readouterr()
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    rc = main(["advise", os.path.join(here, "configs", "wall.yaml"), "--json"])
+    d = json.loads(capsys.readouterr().out)
+    assert rc == 0 and d["ok"] is True
+    assert d["links"][0]["link"] == "wall" and d["rate_hz"] in (250.0, 315.0, 400.0, 500.0)
+    assert main(["advise", os.path.join(here, "configs", "wall.yaml"), "--tolerance", "-1"]) == 2
