@@ -90,10 +90,10 @@ def run(args) -> int:
         # embedded in hapsim run: the host owns the terminal; end on STOP, EOF or SIGTERM
         import signal
 
-        from hapsim.daemon.mock import _Flag
-        flag = _Flag()
+        from hapsim.daemon.loop import StopFlag
+        flag = StopFlag()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, lambda signum, frame: setattr(flag, "set", True))
+        signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
         serve_fd(args.fd, mock, exit_on_stop=True, report_path=args.report, flag=flag,
                  handle_signals=False)
         return 0

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import firmware_protocol as fp
+from hapsim.daemon.loop import StopFlag
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 
@@ -616,13 +617,6 @@ class MockDevice:
 
 # --------------------------------------------------------------------------- serving
 
-class _Flag:
-    """A stop flag set from a signal handler."""
-
-    def __init__(self) -> None:
-        self.set = False
-
-
 def _write(fd: int, data: bytes) -> bool:
     """Write ``data`` to a non-blocking fd; False when the peer is gone or the buffer full."""
     try:
@@ -633,7 +627,7 @@ def _write(fd: int, data: bytes) -> bool:
 
 
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
-             report_path: str | None = None, flag: _Flag | None = None,
+             report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
@@ -648,8 +642,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         Return after a STOP from the host.
     report_path : str, optional
         Write :class:`MockStats` (plus decoder counters) there as JSON on exit (atomic).
-    flag : object with a bool ``set`` attribute, optional
-        Polled each iteration; serving ends when it becomes true.
+    flag : StopFlag, optional
+        Polled each iteration; serving ends when its ``set`` becomes true.
     handle_signals : bool
         Install SIGTERM/SIGINT handlers that end serving cleanly (main thread only).
 
@@ -669,10 +663,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     change it. The garbage collector is disabled while serving.
     Serving ends on EOF/EIO (host side closed), STOP (when ``exit_on_stop``), or the flag.
     """
-    flag = flag or _Flag()
+    flag = flag or StopFlag()
     if handle_signals:
         def _on_signal(signum, frame):
-            flag.set = True
+            flag.request(signum)
         for s in (signal.SIGTERM, signal.SIGINT):
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
