@@ -107,18 +107,16 @@ def _chain_start(x, mobile, fixed, i1, i2):
     arrays in their inner loops, with the same floating-point operations in the same order.
     """
     nl = i1.size
-    if nl < 2 or mobile.size != nl - 1:
+    if nl < 2 or mobile.size != nl - 1 or fixed.size + mobile.size != x.size:
         return -1
     s = i1[0]
+    # Branch-free OR reductions (vectorised): this runs on every call, port_step included.
+    bad = np.int64(0)
     for j in range(nl):
-        if i1[j] != s + j or i2[j] != s + j + 1:
-            return -1
+        bad |= (i1[j] - (s + j)) | (i2[j] - (s + j + 1))
     for j in range(mobile.size):
-        if mobile[j] != s + 1 + j:
-            return -1
-    if fixed.size + mobile.size != x.size:
-        return -1
-    return s
+        bad |= mobile[j] - (s + 1 + j)
+    return s if bad == 0 else -1
 
 
 @_jit_inline
