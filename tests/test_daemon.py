@@ -390,3 +390,27 @@ def test_bad_arguments():
         lockstep(text, telemetry="x.txt")
     with pytest.raises(ConfigError, match="lockstep"):
         run_scene(parse_scene(wall_text(1000.0, 1.5, d=0)), handle_signals=False)
+
+
+def test_scene_with_virtual_mass_matches_check_scene():
+    """Port - spring - mass - spring - ground: measured == check_scene's rendered pair."""
+    from hapsim.analysis.scene_check import check_scene
+    text = """
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: bob, kind: mass, mass: 0.05}
+  - {name: wall, kind: ground, x0: 0.0}
+links:
+  - {name: a, kind: spring_damper, between: [hand, bob], stiffness: 800.0, damping: 1.0}
+  - {name: b, kind: spring_damper, between: [bob, wall], stiffness: 500.0, damping: 0.5}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10.0}
+excitation: {x0: 0.005}
+"""
+    scene = parse_scene(text)
+    rep = lockstep(text, duration=2.0)
+    chk = check_scene(scene)
+    assert rep["predicted"]["source"] == "check_scene" and rep["predicted"]["order"] == 6
+    assert rep["measured"]["k"] == pytest.approx(chk.rendered.k, rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(chk.rendered.b, rel=1e-6)
+    assert "virtual masses" in rep["measured"]["note"]

@@ -486,6 +486,18 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2)
+    notes = []
+    if any(lk.kind == "contact" for lk in scene.links):
+        notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
+                     "them open, so the two agree only while every contact stays closed")
+    if any(m.kind == "mass" for m in scene.masses):
+        notes.append("virtual masses add modes: the identified pair is the least damped "
+                     "one seen at the port, which the excitation may barely excite")
+    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
+        notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
+                     "loop is not the linear THS exactly")
+    if notes:
+        measured["note"] = "; ".join(notes)
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
@@ -576,6 +588,8 @@ def format_report(rep: dict) -> str:
                          f"{_fmt(rt['damping_ratio'], '+9.2e')}")
     else:
         lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
+    if m.get("note"):
+        lines.append(f"  note: {m['note']}")
     if p.get("stable") is not None:
         lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
                      f"{_fmt(p['spectral_radius'], '.9f')}, K_max "
