@@ -172,8 +172,8 @@ def plot_capacity(data: dict):
     Returns
     -------
     matplotlib.figure.Figure
-        Left: turnaround p50/p99/p999 [us] against rate for the raw echo and the daemon,
-        with the period. Right: missed deadlines [%] of each. A note replaces the daemon
+        Left: host turnaround p50/p99/p999 [us] against rate for the raw echo and the
+        daemon, and the period. Right: missed deadlines [%] of each. A note replaces the daemon
         curves when it is not available.
     """
     plt = _mpl()
@@ -199,8 +199,7 @@ def plot_capacity(data: dict):
     a1.set_yscale("log")
     a1.set_xlabel("loop rate [Hz]")
     a1.set_ylabel("turnaround [us]")
-    a1.set_title("echo: round trip write -> echo read; daemon: STATE read -> FORCE written",
-                 fontsize=9)
+    a1.set_title("host turnaround: message read -> reply written", fontsize=10)
     a1.grid(True, which="both", alpha=0.3)
     a1.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.13))
     a2.set_xscale("log")

@@ -2,17 +2,18 @@
 
 Two measurements in the same run, at each rate:
 
-- **raw echo floor**: a child process echoes bytes on the slave side of a raw pty with bare
-  ``os.read``/``os.write``; the parent, clocked on ``time.perf_counter`` (sleep, then spin to
-  each deadline), writes one frame-sized message per period and reads the echo back. This
-  is the least any host loop can do through a pty on this machine (no codec, no physics).
+- **raw echo floor** (:func:`echo_floor`): a child process ticks like the mock device on the
+  pty master (one frame-sized message per period on its own clock) and this process echoes
+  each message with bare ``os.read``/``os.write`` on the raw slave. This is the least any
+  host loop can do through a pty on this machine (no codec, no physics, no telemetry).
 - **daemon**: :func:`hapsim.daemon.runner.run_scene` on ``configs/wall.yaml`` at that rate,
   real-time, with the mock device in another process on a pty (``transport="pty"``); its
   loop report gives missed/late samples and the turnaround (STATE read -> FORCE written).
 
-Missed deadlines: echo, replies that arrive after the next deadline (``t_k + T``); daemon,
-``missed + late`` samples of its report. Ratios daemon / echo of the p50/p99 turnaround are
-reported. The machine is shared: figures are medians of what one run saw, not guarantees.
+Both report the same two things: missed deadlines (echo: ticks at which the reply to the
+previous tick had not arrived; daemon: ``missed + late`` samples of its loop report) and the
+host turnaround (message read -> reply written). Ratios daemon / echo of the p50/p99
+turnaround and of the missed fraction are reported. The machine is shared: figures are medians of what one run saw, not guarantees.
 """
 
 from __future__ import annotations
@@ -32,17 +33,45 @@ __all__ = ["RATES", "QUICK_RATES", "echo_floor", "daemon_run", "loop_capacity"]
 RATES = (1000.0, 2000.0, 5000.0, 10000.0)
 QUICK_RATES = (1000.0, 5000.0)
 
-_ECHO = r"""
-import os, sys
-fd = int(sys.argv[1])
-try:
+_TICKER = r"""
+import json, os, sys, time
+fd, rate, n, frame = int(sys.argv[1]), float(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+os.set_blocking(fd, False)
+T = 1.0 / rate
+buf = bytearray()
+sent = [0.0] * n
+got = bytearray(n)
+rtt = []
+late = 0
+pad = bytes(frame - 4)
+t0 = time.perf_counter() + 0.05
+for k in range(n + 1):
+    dl = t0 + k * T
     while True:
-        b = os.read(fd, 256)
-        if not b:
+        now = time.perf_counter()
+        try:
+            buf += os.read(fd, 65536)
+            now = time.perf_counter()
+        except BlockingIOError:
+            pass
+        while len(buf) >= frame:
+            seq = int.from_bytes(buf[:4], "little")
+            del buf[:frame]
+            if seq < n and not got[seq]:
+                got[seq] = 1
+                rtt.append((now - sent[seq]) * 1e6)
+        if now >= dl:
             break
-        os.write(fd, b)
-except OSError:  # the host closed its end
-    pass
+        if dl - now > 0.002:
+            time.sleep(dl - now - 0.0015)
+    if now - dl > T:       # descheduled for more than a period: the schedule slips (as the
+        t0 += now - dl     # daemon's mock) instead of firing the missed ticks back to back
+    if k > 0 and not got[k - 1]:
+        late += 1          # the reply to tick k-1 is not in at tick k: the device holds
+    if k < n:
+        sent[k] = time.perf_counter()
+        os.write(fd, k.to_bytes(4, "little") + pad)
+print(json.dumps({"late": late, "rtt": rtt}))
 """
 
 
@@ -55,71 +84,71 @@ def _pct(values) -> dict:
 
 
 def echo_floor(rate_hz: float, duration: float = 1.0, frame: int = 24) -> dict:
-    """Raw pty echo at a rate: turnaround and missed deadlines.
+    """The floor: a device-clocked ticker and a host that only echoes, over a raw pty.
+
+    A child process (the device side, on the pty master, as the daemon's mock) writes one
+    ``frame``-byte message per period on its own clock and counts the ticks at which the
+    reply to the previous tick has not arrived (late: a device would hold the old force);
+    this process (the host side, raw slave) reads each message with ``os.read`` and writes it
+    straight back with ``os.write``: a host loop with no codec, no physics, no telemetry.
 
     Parameters
     ----------
     rate_hz : float
-        Request rate [Hz].
+        Tick rate [Hz].
     duration : float
         Run length [s].
     frame : int
-        Bytes per message (about a STATE frame of the hapsim protocol).
+        Bytes per message (about a STATE frame of the hapsim protocol), >= 4.
 
     Returns
     -------
     dict
-        ``rate_hz``, ``samples``, ``missed`` (replies later than the next deadline),
-        ``missed_pct``, ``turnaround_us`` (``p50``, ``p99``, ``p999``, ``max``).
+        ``rate_hz``, ``samples``, ``missed`` (late ticks), ``missed_pct``,
+        ``turnaround_us`` (host side, message read -> echo written; ``p50``, ``p99``,
+        ``p999``, ``max``), ``round_trip_upper_us`` (device side, written -> reply seen; an
+        upper bound, the ticker sleeps between deadlines).
     """
+    import json
     import pty
     import tty
 
+    n = max(10, int(duration * rate_hz))
     master, slave = pty.openpty()
     tty.setraw(slave)
-    # as hapsim.daemon.transport: the far side (here the echo) owns the master, the host
-    # loop reads and writes the raw slave
-    child = subprocess.Popen([sys.executable, "-c", _ECHO, str(master)], pass_fds=[master])
+    child = subprocess.Popen([sys.executable, "-c", _TICKER, str(master), repr(float(rate_hz)),
+                              str(n), str(frame)], pass_fds=[master], stdout=subprocess.PIPE)
     os.close(master)
-    master = slave  # the host's end, below
+    turn = np.empty(n)
+    got = 0
+    buf = bytearray()
     try:
-        msg = bytes(range(frame))
-        # warm-up: the child is up when an echo comes back
-        os.write(master, msg)
-        got = 0
-        while got < frame:
-            got += len(os.read(master, 256))
-        T = 1.0 / rate_hz
-        n = max(10, int(duration * rate_hz))
-        turn = np.empty(n)
-        missed = 0
-        t0 = time.perf_counter() + 0.01
-        for k in range(n):
-            dl = t0 + k * T
-            while True:
-                now = time.perf_counter()
-                if now >= dl:
-                    break
-                if dl - now > 0.0015:
-                    time.sleep(dl - now - 0.001)
-            ts = time.perf_counter()
-            os.write(master, msg)
-            got = 0
-            while got < frame:
-                got += len(os.read(master, 256))
-            te = time.perf_counter()
-            turn[k] = (te - ts) * 1e6
-            if te > dl + T:
-                missed += 1
-        return {"rate_hz": float(rate_hz), "samples": n, "missed": missed,
-                "missed_pct": 100.0 * missed / n, "turnaround_us": _pct(turn)}
+        while got < n:
+            b = os.read(slave, 65536)
+            t_in = time.perf_counter()
+            if not b:
+                break
+            buf += b
+            m = len(buf) // frame * frame
+            if m:
+                os.write(slave, bytes(buf[:m]))
+                t_out = time.perf_counter()
+                del buf[:m]
+                for _ in range(m // frame):
+                    if got < n:
+                        turn[got] = (t_out - t_in) * 1e6
+                        got += 1
+        out, _ = child.communicate(timeout=10 + 2 * duration)
+        res = json.loads(out)
     finally:
-        os.close(master)
-        child.terminate()
-        try:
-            child.wait(timeout=2)
-        except subprocess.TimeoutExpired:  # pragma: no cover
+        os.close(slave)
+        if child.poll() is None:  # pragma: no cover
             child.kill()
+    return {"rate_hz": float(rate_hz), "samples": n, "missed": int(res["late"]),
+            "missed_pct": 100.0 * res["late"] / n, "turnaround_us": _pct(turn[:got]),
+            "round_trip_upper_us": _pct(res["rtt"]),
+            "round_trip_note": "device side, written -> reply seen; an upper bound: a reply "
+                               "that arrives while the ticker sleeps is seen when it wakes"}
 
 
 def daemon_run(rate_hz: float, duration: float = 1.0, scene_path: str | None = None) -> dict:
@@ -202,7 +231,9 @@ def loop_capacity(rates=RATES, duration: float = 1.0, *, daemon: bool = True) ->
             for q in ("p50", "p99"):
                 a = (d.get("turnaround_us") or {}).get(q)
                 b = e["turnaround_us"].get(q)
-                ratio[q] = (a / b) if a and b else None
+                ratio[f"turnaround_{q}"] = (a / b) if a and b else None
+            a, b = d.get("missed_pct"), e["missed_pct"]
+            ratio["missed"] = (a / b) if a is not None and b else None
             out["ratios"].append(ratio)
     if have and any("error" in d for d in out["daemon"]):
         out["daemon_note"] = "; ".join(f"{d['rate_hz']:g} Hz: {d['error']}"
