@@ -49,6 +49,7 @@ force is continuous when the contact engages (Faust 2.54 ``mi.lib`` ``collision`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -267,10 +268,11 @@ class Scene:
         KeyError
             When no mass has that name.
         """
-        for i, m in enumerate(self.masses):
-            if m.name == name:
-                return i
-        raise KeyError(name)
+        return self._mass_index[name]
+
+    @functools.cached_property
+    def _mass_index(self) -> dict[str, int]:
+        return {m.name: i for i, m in enumerate(self.masses)}
 
     def link(self, name: str) -> Link:
         """The link called ``name``.
