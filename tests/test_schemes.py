@@ -60,12 +60,12 @@ def test_exact_oscillator_against_expm(rate):
     assert np.max(np.abs(x[:, 0] - ref)) <= 1e-12 * x0
 
 
-def test_exact_string_against_expm():
-    sc = dataclasses.replace(string_scene(1000.0, n=6, B=0.01), integrator="exact")
+@pytest.mark.parametrize("N", [6, 12])          # plain loop and BLAS gemv paths
+def test_exact_string_against_expm(N):
+    sc = dataclasses.replace(string_scene(1000.0, n=N, B=0.01), integrator="exact")
     eng = Engine(sc)
-    names = [f"s{i}" for i in range(1, 7)]
+    names = [f"s{i}" for i in range(1, N + 1)]
     _, x = eng.run(200, record=names)
-    N = 6
     m, K, B = 0.01, 2000.0, 0.01
     L = 2 * np.eye(N) - np.eye(N, k=1) - np.eye(N, k=-1)
     A = np.block([[np.zeros((N, N)), np.eye(N)], [-K / m * L, -B / m * L]])

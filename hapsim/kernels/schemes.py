@@ -66,25 +66,36 @@ __all__ = ["INTEGRATORS", "run_symplectic_euler", "run_exact", "exact_matrices",
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
 
 _jit = nb.njit(cache=True, nogil=True, boundscheck=False)
+_jit_inline = nb.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+_U = nb.uint64   # unsigned indices: no negative-index wraparound code in the inner loops
 
 
-@_jit
-def _se_forces(x, v, f, c, i1, i2, k, z, T, thr, contact):
+@_jit_inline
+def _se_spring_dampers(x, v, f, c, i1, i2, k, z, T):
     for j in range(i1.size):
-        a = i1[j]
-        b = i2[j]
-        d = x[a] - x[b]
-        off = 0.0
-        if contact:
-            off = thr[j]
-            if not (-d < off):
-                continue
+        a = _U(i1[j])
+        b = _U(i2[j])
         bb = z[j] * T
-        force = k[j] * (d + off) + bb * (v[a] - v[b])
+        force = k[j] * (x[a] - x[b]) + bb * (v[a] - v[b])
         f[a] -= force
         f[b] += force
         c[a] += bb
         c[b] += bb
+
+
+@_jit_inline
+def _se_contacts(x, v, f, c, i1, i2, k, z, thr, T):
+    for j in range(i1.size):
+        a = _U(i1[j])
+        b = _U(i2[j])
+        d = x[a] - x[b]
+        if -d < thr[j]:
+            bb = z[j] * T
+            force = k[j] * (d + thr[j]) + bb * (v[a] - v[b])
+            f[a] -= force
+            f[b] += force
+            c[a] += bb
+            c[b] += bb
 
 
 @_jit
@@ -131,10 +142,10 @@ def run_symplectic_euler(n, x, xp, f, mobile, t2m, fixed, v, c, T,
         for i in range(f.size):
             f[i] = 0.0
             c[i] = 0.0
-        _se_forces(x, v, f, c, sd_i1, sd_i2, sd_k, sd_z, T, sd_z, False)
-        _se_forces(x, v, f, c, c_i1, c_i2, c_k, c_z, T, c_thr, True)
+        _se_spring_dampers(x, v, f, c, sd_i1, sd_i2, sd_k, sd_z, T)
+        _se_contacts(x, v, f, c, c_i1, c_i2, c_k, c_z, c_thr, T)
         for j in range(mobile.size):
-            i = mobile[j]
+            i = _U(mobile[j])
             h = t2m[j] / T  # T / m
             vn = v[i] + h * f[i] / (1.0 + h * c[i])
             xp[i] = x[i]
@@ -148,7 +159,7 @@ def run_symplectic_euler(n, x, xp, f, mobile, t2m, fixed, v, c, T,
 
 
 @_jit
-def run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
+def run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold, uold,
               sd_i1, sd_i2, sd_k, sd_z, rec, out, row0):
     """Advance ``n`` samples with the exact ZOH state transition (module docstring).
 
@@ -174,8 +185,10 @@ def run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
         Response to held fixed positions [-, 1/s].
     psi : ndarray, shape (2N, n_fixed)
         Response to a jump of the fixed positions through the dampers [-, 1/s].
-    snew : ndarray, shape (2N,)
-        Work array.
+    snew, sold : ndarray, shape (2N,)
+        Work arrays (new and gathered old state).
+    uold : ndarray, shape (2 n_fixed,)
+        Work array (fixed positions and their jumps).
     sd_i1, sd_i2, sd_k, sd_z : ndarray
         Spring-dampers (for the force sent to the port): int64 ends, K [N/m], B/T [N/m].
     rec, out, row0
@@ -195,14 +208,26 @@ def run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
             force = sd_k[j] * (x[a] - x[b]) + sd_z[j] * T * (v[a] - v[b])
             f[a] -= force
             f[b] += force
+        for j in range(nm):  # gather the state contiguously: the product then vectorises
+            i = _U(mobile[j])
+            sold[j] = x[i]
+            sold[nm + j] = v[i]
+        for j in range(nf):
+            i = _U(fixed[j])
+            uold[j] = x[i]
+            uold[nf + j] = x[i] - xp[i]
+        if nm >= 8:
+            np.dot(phi, sold, snew)  # BLAS gemv into the work array (no allocation)
+        else:                        # small: a plain loop beats the BLAS call overhead
+            for r in range(2 * nm):
+                acc = 0.0
+                for j in range(2 * nm):
+                    acc += phi[r, j] * sold[j]
+                snew[r] = acc
         for r in range(2 * nm):
-            acc = 0.0
-            for j in range(nm):
-                i = mobile[j]
-                acc += phi[r, j] * x[i] + phi[r, nm + j] * v[i]
+            acc = snew[r]
             for j in range(nf):
-                i = fixed[j]
-                acc += gam[r, j] * x[i] + psi[r, j] * (x[i] - xp[i])
+                acc += gam[r, j] * uold[j] + psi[r, j] * uold[nf + j]
             snew[r] = acc
         for j in range(nm):
             i = mobile[j]
@@ -352,5 +377,8 @@ def build(integrator: str, T: float, x, xp, f, mobile, t2m, fixed, sd=None, cont
         phi, gam, psi = exact_matrices(x.size, mobile, masses, fixed, sd[0], sd[1], sd[2],
                                        np.asarray(sd[3]) * T, T)
         snew = np.zeros(2 * mobile.size)
-        return run_exact, (x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew) + tuple(sd)
+        sold = np.zeros(2 * mobile.size)
+        uold = np.zeros(2 * fixed.size)
+        return run_exact, (x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold,
+                           uold) + tuple(sd)
     raise ValueError(f"unknown integrator {integrator!r}; valid: {', '.join(INTEGRATORS[1:])}")
