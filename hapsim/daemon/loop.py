@@ -186,7 +186,8 @@ class HostLoop:
 
         Returns
         -------
-        Hello
+        Hello or None
+            None when the stop flag was set before the device answered.
 
         Raises
         ------
@@ -199,10 +200,13 @@ class HostLoop:
         end = time.monotonic() + cfg.hello_timeout
         next_ask = 0.0
         while hello is None:
+            if self.stop.set:
+                return None
             now = time.monotonic()
             if now >= end:
                 raise DeviceError(f"no HELLO from the device within {cfg.hello_timeout:g} s "
-                                  f"(port {tr.info.get('port')}); last frames:\n{tr.last_frames()}")
+                                  f"(port {tr.info.get('port')}); last frames:\n"
+                                  f"{tr.last_frames() or '(none received)'}")
             if now >= next_ask:
                 tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
                 next_ask = now + 0.5
@@ -239,13 +243,15 @@ class HostLoop:
         gc.collect()             # before CONFIG arms the device: a real-time device ticks
         gc.disable()             # from then on; no collector pauses in the hot loop (§4)
         try:
-            self.handshake()
+            hello = self.handshake()
         except BaseException:
             if gc_was:
                 gc.enable()
             raise
         try:
-            if self.config.host_clocked:
+            if hello is None:
+                pass
+            elif self.config.host_clocked:
                 self._run_host_clocked()
             else:
                 self._run_device_clocked()
@@ -254,6 +260,8 @@ class HostLoop:
             if gc_was:
                 gc.enable()
         res = self.result
+        if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
+            res.stop_reason = f"signal {_signame(self.stop.signal)}"
         res.samples = self.tel.n
         res.turnaround_us = percentiles_us(self.tel.turnaround_us[:self.tel.n])
         dec = getattr(self.transport, "decoder", None)
@@ -272,7 +280,8 @@ class HostLoop:
     def _state_timeout(self) -> None:
         tr = self.transport
         raise DeviceError(f"no STATE from the device for {self.config.state_timeout:g} s "
-                          f"(port {tr.info.get('port')}); last frames:\n{tr.last_frames()}")
+                          f"(port {tr.info.get('port')}); last frames:\n"
+                          f"{tr.last_frames() or '(none received)'}")
 
     def _run_device_clocked(self) -> None:
         cfg = self.config

@@ -426,6 +426,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
                      force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
                      state_timeout=10.0 if lockstep else 1.0,
+                     # the embedded mock is a fresh Python process (imports take seconds
+                     # on a loaded machine); hardware answers at once
+                     hello_timeout=30.0 if transport == "pty" else 5.0,
                      position_bound=max(0.1, 20.0 * x0))
     stop = stop or StopFlag()
     embedded = None
