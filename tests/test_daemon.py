@@ -414,3 +414,21 @@ excitation: {x0: 0.005}
     assert rep["measured"]["k"] == pytest.approx(chk.rendered.k, rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(chk.rendered.b, rel=1e-6)
     assert "virtual masses" in rep["measured"]["note"]
+
+
+def test_coulomb_stops_a_free_mass_at_the_physical_distance():
+    """Free mass, v0, Coulomb C: stops after v0^2 m / (2 C) (to one tick of motion)."""
+    ph = MockPhysics(Device(mass=0.1, coulomb=0.01), 1000.0, Excitation(v0=0.01))
+    for _ in range(300):
+        ph.advance(0.0)
+    assert ph.v == 0.0 and ph.x == pytest.approx(0.01 ** 2 * 0.1 / (2 * 0.01), rel=1e-3)
+
+
+@pytest.mark.parametrize("extra", [", noise: 1.0e-7", ", position_resolution: 1.0e-6"])
+def test_noise_and_quantisation_only_perturb_the_measurement_slightly(extra):
+    """Seeded noise / encoder quantum: deterministic, measured within 1e-3 of render."""
+    rep = lockstep(wall_text(1000.0, 1.5, extra_dev=extra))
+    assert "quantisation" in rep["measured"]["note"]
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-3)
+    assert rep["measured"]["b"] == pytest.approx(rep["predicted"]["b"], rel=1e-2)
+    assert rep["measured"]["k"] != rep["predicted"]["k"]

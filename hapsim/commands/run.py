@@ -76,7 +76,7 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE")
     p.add_argument("--telemetry", metavar="FILE",
-                   help="write per-sample time, position, force, seq, turnaround (.npz/.csv)")
+                   help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
                    help="run a loop the analysis finds unstable, under the safety stops")
     p.add_argument("--seed", type=int, default=0, help="mock sensor-noise seed (default 0)")
