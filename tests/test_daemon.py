@@ -42,7 +42,8 @@ masses:
   - {{name: wall, kind: ground, x0: 0.0}}
 links:
   - {{name: wall, kind: spring_damper, between: [hand, wall], {link}}}
-device: {{mass: {m}, friction: {b0}, delay: {d}, hold: {hold}, force_limit: {force_limit}{extra_dev}}}
+device: {{mass: {m}, friction: {b0}, delay: {d}, hold: {hold},
+          force_limit: {force_limit}{extra_dev}}}
 excitation: {exc}
 """
 

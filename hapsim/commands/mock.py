@@ -7,7 +7,6 @@ import json
 import math
 import os
 import pty
-import sys
 import tty
 
 from hapsim.errors import ConfigError

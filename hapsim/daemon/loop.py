@@ -171,7 +171,8 @@ class HostLoop:
         Polled every sample.
     """
 
-    def __init__(self, engine, transport, config: LoopConfig, telemetry, stop: StopFlag | None = None):
+    def __init__(self, engine, transport, config: LoopConfig, telemetry,
+                 stop: StopFlag | None = None):
         self.engine = engine
         self.transport = transport
         self.config = config

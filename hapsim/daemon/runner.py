@@ -20,7 +20,6 @@ Steps (DESIGN §4-§5):
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import signal
@@ -160,7 +159,8 @@ def predict(scene: Scene) -> dict:
         ``k``, ``b`` [N/m, N s/m], ``f0_hz``, ``damping_ratio`` of the rendered pair (None
         when no pair), ``stable``, ``spectral_radius``, ``order`` (number of non-zero
         closed-loop poles, the identification order), ``stiffness_limit`` [N/m] of a
-        port-ground spring at the summed B of the links at the port, ``source`` (``"render"`` or ``"check_scene"``).
+        port-ground spring at the summed B of the links at the port, ``source``
+        (``"render"`` or ``"check_scene"``).
 
     Raises
     ------
@@ -610,7 +610,8 @@ def format_report(rep: dict) -> str:
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
                      f"{mk['watchdog_trips']}, overruns {mk['overruns']}, clamped {mk['clamped']}, "
-                     f"last force {mk['last_applied']:g} N, STOP {'seen' if mk['saw_stop'] else 'not seen'}")
+                     f"last force {mk['last_applied']:g} N, "
+                     f"STOP {'seen' if mk['saw_stop'] else 'not seen'}")
     tl = rep["telemetry"]
     if tl:
         lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples)")
