@@ -130,6 +130,9 @@ class LoopResult:
         FAULT names received.
     decoder : dict
         Stream decoder counters (serial transports).
+    ping_rtt_us : dict
+        PING -> PONG round trip before arming [us]: ``p50``, ``p99``, ``p999``, ``max``,
+        ``answered``, ``sent``.
     """
 
     samples: int = 0
@@ -143,6 +146,7 @@ class LoopResult:
     hello: object = None
     faults: list = field(default_factory=list)
     decoder: dict = field(default_factory=dict)
+    ping_rtt_us: dict = field(default_factory=dict)
 
 
 def percentiles_us(values: np.ndarray) -> dict:
@@ -221,10 +225,30 @@ class HostLoop:
             raise DeviceError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF devices")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
+        self._measure_ping()
         tr.receive(0.0)  # drop anything stale before arming
         tr.send(fp.Config(float(cfg.rate_hz), int(cfg.watchdog_us), float(self.force_limit)))
         self.result.hello = hello
         return hello
+
+    def _measure_ping(self, count: int = 16) -> None:
+        """Round-trip PING -> PONG before arming [us] (transport + device answer time)."""
+        tr = self.transport
+        rtts = []
+        for nonce in range(count):
+            t0 = time.perf_counter_ns()
+            tr.send(fp.Ping(nonce, t0 // 1000))
+            end = time.monotonic() + 0.2
+            got = False
+            while not got and time.monotonic() < end:
+                for msg in tr.receive(0.02):
+                    if isinstance(msg, fp.Pong) and msg.nonce == nonce:
+                        got = True
+            if got:
+                rtts.append((time.perf_counter_ns() - t0) * 1e-3)
+        self.result.ping_rtt_us = percentiles_us(np.array(rtts))
+        self.result.ping_rtt_us["answered"] = len(rtts)
+        self.result.ping_rtt_us["sent"] = count
 
     # ------------------------------------------------------------------ run
     def run(self) -> LoopResult:

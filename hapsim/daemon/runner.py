@@ -286,6 +286,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
     except ConfigError as exc:
         out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+        if "identically zero" in out["error"]:
+            out["error"] += ("; the loop never moved: give the scene an excitation "
+                             "(x0, v0, impulse or profile)")
         return out
     out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
                damping_ratio=float(md.damping_ratio))
@@ -521,6 +524,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "rate_hz": scene.rate_hz, "ticks": res.samples, "requested": n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
         "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
         "low_latency_note": tr.info.get("low_latency_note", ""),
         "stop_reason": res.stop_reason, "safety_stop": res.safety_stop,
@@ -603,6 +607,11 @@ def format_report(rep: dict) -> str:
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/{lp['requested']} ticks, "
                  f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']}")
+    pr = lp.get("ping_rtt_us") or {}
+    if pr.get("p50") is not None:
+        lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
+                     f"{_fmt(pr.get('max'), '.0f')} ({pr.get('answered')}/{pr.get('sent')} "
+                     f"answered, before arming)")
     lines.append(f"turnaround [us]: p50 {_fmt(ta.get('p50'), '.0f')}  p99 "
                  f"{_fmt(ta.get('p99'), '.0f')}  p99.9 {_fmt(ta.get('p999'), '.0f')}  max "
                  f"{_fmt(ta.get('max'), '.0f')}; low-latency mode {ll}")
