@@ -433,3 +433,21 @@ def test_noise_and_quantisation_only_perturb_the_measurement_slightly(extra):
     assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-3)
     assert rep["measured"]["b"] == pytest.approx(rep["predicted"]["b"], rel=1e-2)
     assert rep["measured"]["k"] != rep["predicted"]["k"]
+
+
+def test_device_falling_silent_raises_device_error_and_keeps_telemetry(tmp_path, monkeypatch):
+    """A device that stops answering: DeviceError with the last frames; telemetry kept."""
+    import hapsim.daemon.runner as runner_mod
+    from hapsim.errors import DeviceError
+
+    class Silent(MockDevice):
+        def _on_force(self, msg, now_us):
+            return [] if msg.seq >= 20 else super()._on_force(msg, now_us)
+
+    scene = parse_scene(wall_text(1000.0, 1.5))
+    path = str(tmp_path / "t.npz")
+    monkeypatch.setattr(runner_mod, "MockDevice", Silent)
+    with pytest.raises(DeviceError, match="no STATE"):
+        run_scene(scene, transport="inprocess", lockstep=True, handle_signals=False,
+                  telemetry=path)
+    assert load_telemetry(path)["seq"].size == 21

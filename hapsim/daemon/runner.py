@@ -31,7 +31,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.telemetry import Telemetry
-from hapsim.errors import ConfigError, UnstableConfigError
+from hapsim.errors import ConfigError, DeviceError, UnstableConfigError
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -428,7 +428,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     x0 = abs(scene.excitation.x0)
     cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
                      force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
-                     state_timeout=10.0 if lockstep else 1.0,
+                     state_timeout=(0.5 if transport == "inprocess" else 10.0) if lockstep
+                     else 1.0,
                      # the embedded mock is a fresh Python process (imports take seconds
                      # on a loaded machine); hardware answers at once
                      hello_timeout=30.0 if transport == "pty" else 5.0,
@@ -465,7 +466,12 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         if on_start is not None:
             on_start(tr.info.get("port"), n_samples)
         loop = HostLoop(engine, tr, cfg, tel, stop)
-        res = loop.run()
+        try:
+            res = loop.run()
+        except DeviceError:
+            if telemetry and tel.n:
+                tel.write(telemetry)      # what was logged helps diagnose the failure
+            raise
     finally:
         for s, h in old.items():
             signal.signal(s, h)
