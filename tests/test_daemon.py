@@ -386,8 +386,6 @@ def test_bad_arguments():
     with pytest.raises(ConfigError):
         run_scene(parse_scene(text), transport="inprocess", lockstep=False, handle_signals=False)
     with pytest.raises(ConfigError):
-        run_scene(parse_scene(text), lockstep=True, host_clocked=True, handle_signals=False)
-    with pytest.raises(ConfigError):
         lockstep(text, telemetry="x.txt")
     with pytest.raises(ConfigError, match="lockstep"):
         run_scene(parse_scene(wall_text(1000.0, 1.5, d=0)), handle_signals=False)

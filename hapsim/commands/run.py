@@ -74,7 +74,8 @@ def register(sub) -> None:
     p.add_argument("--lockstep", action="store_true",
                    help="lockstep mock: one period per FORCE, deterministic")
     p.add_argument("--host-clocked", action="store_true",
-                   help="tick on the host's clock instead of answering each STATE")
+                   help="tick on the host's clock instead of answering each STATE "
+                        "(with --lockstep: the host paces the lockstep mock in real time)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",

@@ -72,7 +72,10 @@ class LoopConfig:
         The device is a lockstep mock: generous timeouts, no real-time expectations.
     host_clocked : bool
         Use the host's monotonic clock (sleep, then spin to each deadline) instead of
-        answering each STATE.
+        answering each STATE: at each deadline the latest STATE is answered. With a
+        lockstep device the host's clock paces the device (exact THS in real time); with
+        a real-time device two clocks run side by side (host ticks a third of a period
+        after the device's; ticks without a new STATE are skipped and counted as missed).
     watchdog_us : int
         CONFIG.watchdog_us [us].
     state_timeout : float
@@ -117,7 +120,8 @@ class LoopResult:
         Ticks the device reported holding an older force (``seq - force_seq != d`` or
         STATUS_OVERRUN).
     missed : int
-        STATE sequence numbers never seen (gaps); host-clocked: deadlines without a new STATE.
+        STATE sequence numbers never seen (gaps); host-clocked: host ticks without a new
+        STATE (skipped: no engine step, no FORCE).
     overruns : int
         Host-clocked deadlines missed by more than one period.
     clamped : int
@@ -444,7 +448,10 @@ class HostLoop:
         eng.set_port_position(latest.position[0], at_rest=True)
         used_seq = -1
         last_new = time.monotonic()
-        deadline = mono_ns()
+        # a real-time device ticks on the same monotonic clock: tick a third of a period
+        # after its STATE arrives, so the STATE is in and the FORCE is back before its
+        # next tick (ticking in phase with the device would race it every period)
+        deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
         i = 0
         while i < n_max and not stop.set:
             remaining = deadline - mono_ns()
@@ -459,11 +466,14 @@ class HostLoop:
                     latest = msg
             t_rx = perf()
             if latest.seq == used_seq:
+                # no new sample since the last tick: stepping the engine with a stale
+                # position would corrupt its velocity; skip this tick (counted)
                 res.missed += 1
                 if time.monotonic() - last_new > cfg.state_timeout:
                     self._state_timeout()
-            else:
-                last_new = time.monotonic()
+                deadline += period_ns
+                continue
+            last_new = time.monotonic()
             x = latest.position[0]
             seq = latest.seq
             lt = 0

@@ -337,7 +337,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     lockstep : bool
         Lockstep mock (one period per FORCE; deterministic).
     host_clocked : bool
-        Host's clock instead of the device's (real-time only).
+        Host's clock instead of the device's (with ``lockstep``: the host paces the
+        lockstep device in real time).
     telemetry : str, optional
         ``.npz`` / ``.csv`` path for the per-sample telemetry.
     allow_unstable : bool
@@ -384,9 +385,6 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         raise ConfigError("transport 'serial' needs a port", key="--port")
     if transport == "inprocess" and not lockstep:
         raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
-    if host_clocked and lockstep:
-        raise ConfigError("--host-clocked needs a real-time device; it cannot be combined "
-                          "with --lockstep", key="--host-clocked")
     if telemetry is not None and os.path.splitext(telemetry)[1].lower() not in (".npz", ".csv"):
         raise ConfigError(f"unknown telemetry format for {telemetry!r}; valid: .npz, .csv",
                           key="--telemetry")
