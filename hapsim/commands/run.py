@@ -50,6 +50,7 @@ examples:
   hapsim run configs/wall.yaml
   hapsim run configs/felt_wall.yaml --lockstep --json
   hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
+  hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
   hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
@@ -81,6 +82,11 @@ def register(sub) -> None:
     p.add_argument("--allow-unstable", action="store_true",
                    help="run a loop the analysis finds unstable, under the safety stops")
     p.add_argument("--seed", type=int, default=0, help="mock sensor-noise seed (default 0)")
+    p.add_argument("--auto", action="store_true",
+                   help="use 'hapsim advise': the lowest rate and cheapest method that keep "
+                        "the felt (k, b) within --tolerance (calibrating port links)")
+    p.add_argument("--tolerance", type=float, default=0.01, metavar="REL",
+                   help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -108,11 +114,26 @@ def run(args) -> int:
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
     scene = load_scene(args.scene)
+    advice = None
+    if args.auto:
+        from hapsim.bench.advise import advise_scene
+        from hapsim.errors import UnstableConfigError
+        if args.rate is not None:
+            raise ConfigError("--auto chooses the rate; drop --rate or --auto", key="--auto")
+        advice = advise_scene(scene, args.tolerance)
+        if not advice.ok:
+            raise UnstableConfigError(f"{scene.path}: no rate and method keep what is felt "
+                                      f"within {args.tolerance:g}: {advice.reason}")
+        scene = advice.apply(scene)
+        print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
+              f"{advice.reason}", file=sys.stderr, flush=True)
     rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
                     seed=args.seed, on_start=_announce)
     code = rep.pop("exit_code")
+    if advice is not None:
+        rep["advice"] = advice.to_dict()
     if args.json:
         print(json.dumps(_clean(rep)))
     else:

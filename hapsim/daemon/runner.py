@@ -44,31 +44,11 @@ _ZERO_POLE = 1e-9
 
 
 def _analysis():
-    """The analysis functions, from :mod:`hapsim.analysis` or its submodules."""
+    """The analysis functions the runner uses, by name."""
     import hapsim.analysis as an
-    out = {}
-    for name, mod in (("LoopModel", "loop"), ("closed_loop_poles", "loop"), ("render", "ths"),
-                      ("calibrate", "ths"), ("stability_limit", "ths"),
-                      ("fit_rendered", "identify"), ("check_scene", None)):
-        fn = getattr(an, name, None)
-        if fn is None and mod is not None:
-            import importlib
-            try:
-                fn = getattr(importlib.import_module(f"hapsim.analysis.{mod}"), name, None)
-            except ImportError:
-                fn = None
-        if fn is None and name == "check_scene":
-            for mod2 in ("scene_check", "check", "closed", "coupled"):
-                try:
-                    import importlib
-                    fn = getattr(importlib.import_module(f"hapsim.analysis.{mod2}"),
-                                 "check_scene", None)
-                except ImportError:
-                    fn = None
-                if fn is not None:
-                    break
-        out[name] = fn
-    return out
+    return {name: getattr(an, name) for name in (
+        "LoopModel", "closed_loop_poles", "render", "calibrate", "stability_limit",
+        "fit_rendered", "check_scene")}
 
 
 def _port_links(scene: Scene):
@@ -181,10 +161,21 @@ def predict(scene: Scene) -> dict:
         out["stiffness_limit"] = None
     single = len(scene.links) == 1 and len(plinks) == 1 and all(
         m.kind != "mass" for m in scene.masses)
-    if single or an["check_scene"] is None:
-        if not single:
-            out["source"] = "unavailable (check_scene not in hapsim.analysis yet)"
-            return out
+    if scene.integrator != "centred" and any(m.kind == "mass" for m in scene.masses):
+        # virtual masses advanced by another scheme: that scheme's own closed-loop matrix
+        from hapsim.analysis.modes import modes_from_poles, rendered_pair
+        from hapsim.bench.methods import closed_loop_matrix, spectral_radius_of
+        A = closed_loop_matrix(scene, scene.integrator)
+        eig = np.linalg.eigvals(A)
+        rho, stable = spectral_radius_of(A)
+        out.update(source=f"closed_loop_matrix ({scene.integrator})", stable=bool(stable),
+                   spectral_radius=float(rho), order=int(np.sum(np.abs(eig) > _ZERO_POLE)))
+        md = rendered_pair(modes_from_poles(eig, dev.mass, scene.period))
+        if md is not None:
+            out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
+                       damping_ratio=float(md.damping_ratio))
+        return out
+    if single:
         r = an["render"](loop, K_port, B_port)
         poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))
         out.update(source="render", stable=bool(r.stable), spectral_radius=float(r.spectral_radius),
