@@ -12,8 +12,32 @@ Timing convention: STATE ``n`` (``x(nT)``) is answered by FORCE ``seq = n`` comp
 Safety (from the first version): host-side clamp at the force limit; a non-finite position
 or force sends zero force and stops; a stop flag (set by SIGINT/SIGTERM handlers) ends the
 loop; safety stops end it with zero force: force at the limit in at least ``clamp_max`` of the
-last ``clamp_window`` samples, or ``|x|`` beyond ``position_bound``. Every end sends a zero
-FORCE then STOP.
+last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
+``velocity_limit``, or the energy the virtual environment gave the hand beyond
+``energy_limit``. Every end sends a zero FORCE then STOP.
+
+Reliability (device-clocked loop): bad frames are dropped by the decoder and never acted on;
+a STATE older than the last one (duplicated, reordered) is ignored (``stale``), one with the
+wrong number of axes too (``bad_axes``); silence longer than ``lost_timeout`` (default: the
+watchdog), a port error, or an unarmed STATE after arming make the device *lost*: zero FORCE
+and STOP are sent (best effort), then, when ``reconnect`` is on, the host re-opens the port if
+it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at most
+``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts from
+its initial state with the port at the device's position at rest, the force ramped up over
+``ramp_samples``. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
+counted; latched ones end the run.
+
+Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
+IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
+``T sum f v`` with ``v`` the backward-difference velocity, where ``f_held(k)`` is the force
+the device held over ``[kT, (k+1)T)`` (the FORCE answering STATE ``k - d``). Sign convention:
+``E`` is the energy that flowed **out of the virtual environment into the hand** (work done
+by the actuator on the hand); a passive environment that starts at rest keeps ``E <= 0``,
+one that starts with stored energy ``E0`` keeps ``E <= E0``. Hannaford & Ryu's ``E_obs`` (energy
+*into* the one-port) is ``-E``. The optional passivity controller adds the damping
+``alpha = E / (T v^2)`` (their ``alpha = -E_obs / (T v^2)``) when ``E > 0``, capped at
+``max_damping``: ``f <- f - alpha v``. With d samples of delay the damping acts d samples
+late; the observer still measures the work really done (the force held, not the force sent).
 """
 
 from __future__ import annotations
@@ -28,9 +52,23 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us"]
+__all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
+           "LATCHED_FAULTS"]
 
 _U32 = 0xFFFFFFFF
+_HALF = 0x80000000
+
+#: Fault codes that latch on the device (PROTOCOL.md §4): they end the run.
+LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLIFIER,
+                            fp.FAULT_NON_FINITE_FORCE, fp.FAULT_VERSION_MISMATCH))
+
+
+class _Lost(Exception):
+    """Internal: the device is lost (silence, port error, reset); carries the reason."""
+
+    def __init__(self, reason: str, port_error: bool = False) -> None:
+        super().__init__(reason)
+        self.port_error = port_error
 
 
 class StopFlag:
@@ -87,6 +125,32 @@ class LoopConfig:
         ``clamp_window`` samples.
     position_bound : float
         Safety stop when ``|x|`` exceeds it [m].
+    velocity_limit : float
+        Safety stop when the backward-difference velocity ``|v|`` exceeds it [m/s].
+    energy_limit : float
+        Safety stop when the energy given to the hand ``E`` exceeds it [J] (module notes).
+    passivity_controller : bool
+        Add the adaptive damping of Hannaford & Ryu when ``E > 0``.
+    max_damping : float
+        Cap of that damping [N s/m].
+    reconnect : bool
+        Recover a lost device (re-open, HELLO, CONFIG) instead of raising
+        :class:`DeviceError` (device-clocked loop only).
+    lost_timeout : float or None
+        Silence after which the device is lost [s]; None: ``watchdog_us``. Without
+        ``reconnect`` the silence allowed is ``state_timeout``.
+    reconnect_attempts : int
+        Most HELLO + CONFIG attempts per loss.
+    reconnect_time : float
+        Most time spent recovering one loss [s].
+    backoff : float
+        First wait between attempts [s]; doubled each time up to ``backoff_max``.
+    backoff_max : float
+        Longest wait between attempts [s].
+    attempt_timeout : float
+        Wait for HELLO per attempt [s].
+    ramp_samples : int
+        After a recovery the force is scaled by ``k / ramp_samples`` for its first samples.
     """
 
     rate_hz: float
@@ -101,6 +165,18 @@ class LoopConfig:
     clamp_window: int = 100
     clamp_max: int = 50
     position_bound: float = math.inf
+    velocity_limit: float = math.inf
+    energy_limit: float = math.inf
+    passivity_controller: bool = False
+    max_damping: float = 50.0
+    reconnect: bool = False
+    lost_timeout: float | None = None
+    reconnect_attempts: int = 8
+    reconnect_time: float = 10.0
+    backoff: float = 0.05
+    backoff_max: float = 1.0
+    attempt_timeout: float = 0.25
+    ramp_samples: int = 50
 
 
 @dataclass
@@ -137,6 +213,35 @@ class LoopResult:
     ping_rtt_us : dict
         PING -> PONG round trip before arming [us]: ``p50``, ``p99``, ``p999``, ``max``,
         ``answered``, ``sent``.
+    stale : int
+        STATEs older than the last one used (duplicated or reordered): ignored.
+    bad_axes : int
+        STATEs with another number of axes than HELLO's: ignored.
+    unarmed : int
+        STATEs without STATUS_ARMED (before the first armed one after CONFIG): ignored.
+    hello_mid_run : int
+        HELLO messages received after the handshake (a reset, or answers to retries).
+    device_faults : dict of str to int
+        Non-latched FAULTs received, by name (the run goes on).
+    lost : int
+        Times the device was lost (silence, port error, reset).
+    recovered : int
+        Times it came back (re-handshake and a first armed STATE).
+    reconnect_attempts : int
+        HELLO + CONFIG attempts made in all.
+    events : list of dict
+        ``{"event": "lost"|"attempt"|"recovered", "t": [s since arming], "sample",
+        ...}`` (off the hot path: only on faults).
+    energy : float
+        Energy the virtual environment gave the hand at the end [J] (module notes).
+    energy_max : float
+        Its largest value [J].
+    passivity_samples : int
+        Samples where the passivity controller added damping.
+    v_max : float
+        Largest ``|v|`` seen [m/s].
+    f_max : float
+        Largest ``|f|`` sent [N].
     """
 
     samples: int = 0
@@ -151,6 +256,20 @@ class LoopResult:
     faults: list = field(default_factory=list)
     decoder: dict = field(default_factory=dict)
     ping_rtt_us: dict = field(default_factory=dict)
+    stale: int = 0
+    bad_axes: int = 0
+    unarmed: int = 0
+    hello_mid_run: int = 0
+    device_faults: dict = field(default_factory=dict)
+    lost: int = 0
+    recovered: int = 0
+    reconnect_attempts: int = 0
+    events: list = field(default_factory=list)
+    energy: float = 0.0
+    energy_max: float = 0.0
+    passivity_samples: int = 0
+    v_max: float = 0.0
+    f_max: float = 0.0
 
 
 def percentiles_us(values: np.ndarray) -> dict:
@@ -170,7 +289,9 @@ class HostLoop:
     engine : hapsim.engine.Engine
         The scene (warmed up: its kernel already compiled/loaded).
     transport : object
-        A transport of :mod:`hapsim.daemon.transport`.
+        A transport of :mod:`hapsim.daemon.transport`. When it has ``clock()`` and
+        ``sleep(s)`` (the virtual-clock :class:`~hapsim.daemon.transport.SimTransport`) the
+        loop's timeouts use them; ``reopen()`` is used to recover a failed port.
     config : LoopConfig
         Run parameters.
     telemetry : Telemetry
@@ -188,8 +309,52 @@ class HostLoop:
         self.stop = stop or StopFlag()
         self.result = LoopResult()
         self._last_seq = -1
+        self._clock = getattr(transport, "clock", time.monotonic)
+        self._sleep = getattr(transport, "sleep", time.sleep)
+        self._fresh = True          # next armed STATE (re)starts the scene at rest
+        self._ramp = 0              # samples left in the force ramp after a recovery
+        self._lost_since = None     # clock time of the current loss, None when healthy
+        self._attempts = 0
+        self._t0 = 0.0
+        self.force_limit = math.inf
 
     # ------------------------------------------------------------------ handshake
+    def _ask_hello(self, timeout: float):
+        """Send HELLO_REQUEST (every 0.5 s) until a HELLO arrives; None after ``timeout``."""
+        tr = self.transport
+        clock = self._clock
+        end = clock() + timeout
+        next_ask = -math.inf
+        while True:
+            if self.stop.set:
+                return None
+            now = clock()
+            if now >= end:
+                return None
+            if now >= next_ask:
+                tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
+                next_ask = now + 0.5
+            for msg in tr.receive(min(0.05, max(end - now, 0.0))):
+                if isinstance(msg, fp.Hello):
+                    return msg
+
+    def _check_hello(self, hello) -> None:
+        cfg = self.config
+        if hello.protocol_version != fp.PROTOCOL_VERSION:
+            raise DeviceError(f"device speaks protocol {hello.protocol_version}, "
+                              f"hapsim speaks {fp.PROTOCOL_VERSION}")
+        if hello.n_axes != 1:
+            raise DeviceError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF devices")
+        limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
+        self.force_limit = min(float(limit), float(hello.force_limit))
+
+    def _send_config(self) -> None:
+        cfg = self.config
+        self.transport.receive(0.0)  # drop anything stale before arming
+        self.transport.send(fp.Config(float(cfg.rate_hz), int(cfg.watchdog_us),
+                                      float(self.force_limit)))
+        self._fresh = True
+
     def handshake(self) -> fp.Hello:
         """Ask for HELLO, check it, send CONFIG (arms the device).
 
@@ -205,46 +370,31 @@ class HostLoop:
         """
         cfg = self.config
         tr = self.transport
-        hello = None
-        end = time.monotonic() + cfg.hello_timeout
-        next_ask = 0.0
-        while hello is None:
+        hello = self._ask_hello(cfg.hello_timeout)
+        if hello is None:
             if self.stop.set:
                 return None
-            now = time.monotonic()
-            if now >= end:
-                raise DeviceError(f"no HELLO from the device within {cfg.hello_timeout:g} s "
-                                  f"(port {tr.info.get('port')}); last frames:\n"
-                                  f"{tr.last_frames() or '(none received)'}")
-            if now >= next_ask:
-                tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
-                next_ask = now + 0.5
-            for msg in tr.receive(0.05):
-                if isinstance(msg, fp.Hello):
-                    hello = msg
-        if hello.protocol_version != fp.PROTOCOL_VERSION:
-            raise DeviceError(f"device speaks protocol {hello.protocol_version}, "
-                              f"hapsim speaks {fp.PROTOCOL_VERSION}")
-        if hello.n_axes != 1:
-            raise DeviceError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF devices")
-        limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
-        self.force_limit = min(float(limit), float(hello.force_limit))
+            raise DeviceError(f"no HELLO from the device within {cfg.hello_timeout:g} s "
+                              f"(port {tr.info.get('port')}); last frames:\n"
+                              f"{tr.last_frames() or '(none received)'}")
+        self._check_hello(hello)
         self._measure_ping()
-        tr.receive(0.0)  # drop anything stale before arming
-        tr.send(fp.Config(float(cfg.rate_hz), int(cfg.watchdog_us), float(self.force_limit)))
+        self._send_config()
         self.result.hello = hello
+        self._t0 = self._clock()
         return hello
 
     def _measure_ping(self, count: int = 16) -> None:
         """Round-trip PING -> PONG before arming [us] (transport + device answer time)."""
         tr = self.transport
+        clock = self._clock
         rtts = []
         for nonce in range(count):
             t0 = time.perf_counter_ns()
             tr.send(fp.Ping(nonce, t0 // 1000))
-            end = time.monotonic() + 0.2
+            end = clock() + 0.2
             got = False
-            while not got and time.monotonic() < end:
+            while not got and clock() < end:
                 for msg in tr.receive(0.02):
                     if isinstance(msg, fp.Pong) and msg.nonce == nonce:
                         got = True
@@ -265,8 +415,8 @@ class HostLoop:
         Raises
         ------
         DeviceError
-            Device silent, port failure, or handshake failure (zero force + STOP are still
-            attempted).
+            Device silent or lost beyond recovery, port failure, or handshake failure
+            (zero force + STOP are still attempted).
         """
         gc_was = gc.isenabled()
         gc.collect()             # before CONFIG arms the device: a real-time device ticks
@@ -312,107 +462,298 @@ class HostLoop:
                           f"(port {tr.info.get('port')}); last frames:\n"
                           f"{tr.last_frames() or '(none received)'}")
 
-    def _run_device_clocked(self) -> None:
+    # ------------------------------------------------------------------ recovery
+    def _event(self, event: str, **kw) -> None:
+        self.result.events.append({"event": event, "t": round(self._clock() - self._t0, 6),
+                                   "sample": self.tel.n, **kw})
+
+    def _recover(self, lost: _Lost) -> bool:
+        """Zero force and STOP, then re-open / HELLO / CONFIG with backoff.
+
+        Returns
+        -------
+        bool
+            True when CONFIG was sent again (the loop resumes at the next armed STATE);
+            False when the stop flag was set meanwhile.
+
+        Raises
+        ------
+        DeviceError
+            ``reconnect`` is off, or the attempts / time allowed for this loss are used up,
+            or the device that answered is not one hapsim can drive.
+        """
         cfg = self.config
         tr = self.transport
-        eng = self.engine
+        res = self.result
+        clock = self._clock
+        reason = str(lost)
+        if self._lost_since is None:
+            self._lost_since = clock()
+            self._attempts = 0
+            res.lost += 1
+            self._event("lost", reason=reason)
+        else:
+            self._event("lost again", reason=reason)
+        try:                                   # the device's own watchdog zeroes it anyway
+            tr.send(fp.Force((self._last_seq + 1) & _U32, (0.0,)))
+            tr.send(fp.Stop())
+        except DeviceError:
+            lost.port_error = True
+        if not cfg.reconnect:
+            if "no STATE" in reason:
+                self._state_timeout()
+            raise DeviceError(f"{reason} (port {tr.info.get('port')}); last frames:\n"
+                              f"{tr.last_frames() or '(none received)'}")
+        port_error = lost.port_error
+        delay = cfg.backoff
+        last_err = reason
+        while not self.stop.set:
+            spent = clock() - self._lost_since
+            if self._attempts >= cfg.reconnect_attempts or spent > cfg.reconnect_time:
+                raise DeviceError(
+                    f"device lost ({reason}); {self._attempts} reconnect attempts in "
+                    f"{spent:.3g} s failed (last: {last_err}); port {tr.info.get('port')}; "
+                    f"last frames:\n{tr.last_frames() or '(none received)'}")
+            self._attempts += 1
+            res.reconnect_attempts += 1
+            self._event("attempt", n=self._attempts)
+            try:
+                if port_error and hasattr(tr, "reopen"):
+                    tr.reopen()
+                    port_error = False
+                hello = self._ask_hello(cfg.attempt_timeout)
+                if hello is not None:
+                    self._check_hello(hello)
+                    self._send_config()
+                    return True
+                last_err = f"no HELLO within {cfg.attempt_timeout:g} s"
+            except DeviceError as exc:
+                if "protocol" in str(exc) or "axes" in str(exc):
+                    raise
+                last_err = str(exc).split("\n")[0]
+                port_error = True
+            if self.stop.set:
+                break
+            self._sleep(delay)
+            delay = min(2 * delay, cfg.backoff_max)
+        return False
+
+    # ------------------------------------------------------------------ device-clocked
+    def _run_device_clocked(self) -> None:
+        res = self.result
+        stop = self.stop
+        n_max = min(self.config.n_samples, self.tel.capacity)
+        self._energy = 0.0
+        while self.tel.n < n_max and not stop.set:
+            try:
+                self._device_clocked_stretch(n_max)
+            except _Lost as lost:
+                if not self._recover(lost):
+                    break
+        if stop.set and res.stop_reason == "duration" and stop.signal is not None:
+            res.stop_reason = f"signal {_signame(stop.signal)}"
+
+    def _device_clocked_stretch(self, n_max: int) -> None:
+        """The hot loop, from the next armed STATE until the end, a stop, or a loss."""
+        cfg = self.config
+        tr = self.transport
         tel = self.tel
         stop = self.stop
         res = self.result
-        n_max = min(cfg.n_samples, tel.capacity)
         t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr = (tel.time, tel.position, tel.force,
                                                         tel.seq, tel.turnaround_us, tel.late)
         lim = self.force_limit
         d = cfg.delay
+        T = 1.0 / cfg.rate_hz
+        rate = float(cfg.rate_hz)
         pos_bound = cfg.position_bound
+        vlim = cfg.velocity_limit
+        elim = cfg.energy_limit
+        pc_on = bool(cfg.passivity_controller)
+        bmax = float(cfg.max_damping)
         win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
         wlen = win.size
         wsum = 0
         clamp_max = cfg.clamp_max
-        State, Fault, Force = fp.State, fp.Fault, fp.Force
+        fh = [0.0] * (d + 2)                # forces sent, by local sample index
+        fhl = len(fh)
+        State, Fault, Force, Hello = fp.State, fp.Fault, fp.Force, fp.Hello
         overrun_bit = fp.STATUS_OVERRUN
+        armed_bit = fp.STATUS_ARMED
+        latched = LATCHED_FAULTS
         isfinite = math.isfinite
         perf = time.perf_counter_ns
-        mono = time.monotonic
+        clock = self._clock
         receive, send = tr.receive, tr.send
+        eng = self.engine
         expect = -1
-        i = 0
-        last_rx = mono()
-        timeout = cfg.state_timeout
-        while i < n_max and not stop.set:
-            msgs = receive(0.1)
-            t_rx = perf()
-            if not msgs:
-                if mono() - last_rx > timeout:
-                    self._state_timeout()
-                continue
-            last_rx = mono()
-            for msg in msgs:
-                if type(msg) is not State:
-                    if type(msg) is Fault:
-                        name = fp.FAULT_NAMES.get(msg.code, f"0x{msg.code:04X}")
-                        res.faults.append(name)
-                        res.stop_reason = f"device: FAULT {name} (detail {msg.detail})"
+        k = 0                               # samples since this stretch (re)started
+        x_prev = 0.0
+        energy = self._energy
+        e_max = res.energy_max
+        v_max = res.v_max
+        f_max = res.f_max
+        ramp_n = max(int(cfg.ramp_samples), 1)
+        if cfg.reconnect:
+            silence = cfg.lost_timeout if cfg.lost_timeout is not None else cfg.watchdog_us * 1e-6
+        else:
+            silence = cfg.state_timeout
+        poll = min(0.1, silence)
+        i = tel.n
+        last_rx = clock()
+        try:
+            while i < n_max and not stop.set:
+                try:
+                    msgs = receive(poll)
+                except DeviceError as exc:
+                    raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+                t_rx = perf()
+                if not msgs:
+                    if clock() - last_rx > silence:
+                        raise _Lost(f"no STATE from the device for {silence:g} s")
+                    continue
+                for msg in msgs:
+                    tm = type(msg)
+                    if tm is not State:
+                        if tm is Fault:
+                            name = fp.FAULT_NAMES.get(msg.code, f"0x{msg.code:04X}")
+                            if msg.code in latched:
+                                res.faults.append(name)
+                                res.stop_reason = f"device: FAULT {name} (detail {msg.detail})"
+                                stop.set = True
+                                break
+                            res.device_faults[name] = res.device_faults.get(name, 0) + 1
+                        elif tm is Hello:
+                            res.hello_mid_run += 1
+                        continue
+                    if len(msg.position) != 1:
+                        res.bad_axes += 1
+                        continue
+                    seq = msg.seq
+                    if not msg.status & armed_bit:
+                        if self._fresh:
+                            res.unarmed += 1
+                            continue
+                        raise _Lost("the device reports itself disarmed (reset?)")
+                    last_rx = clock()
+                    x = msg.position[0]
+                    if self._fresh:
+                        if not isfinite(x):
+                            x = math.nan          # handled below as a non-finite position
+                        else:
+                            if self._lost_since is not None:
+                                eng = self.engine = type(eng)(eng.scene)
+                                self._ramp = ramp_n
+                                res.recovered += 1
+                                self._event("recovered", attempts=self._attempts,
+                                            after_s=round(clock() - self._lost_since, 6))
+                                self._lost_since = None
+                            eng.set_port_position(x, at_rest=True)
+                            self._fresh = False
+                            expect = seq
+                            k = 0
+                            x_prev = x
+                            for j in range(fhl):
+                                fh[j] = 0.0
+                    if expect >= 0:
+                        gap = (seq - expect) & _U32
+                        if gap >= _HALF:
+                            res.stale += 1            # duplicated or reordered: older
+                            continue
+                        res.missed += gap
+                    expect = (seq + 1) & _U32
+                    lt = 0
+                    if seq >= d and ((seq - msg.force_seq) & _U32 != d or msg.status & overrun_bit):
+                        if d > 0 or msg.status & overrun_bit:
+                            lt = 1
+                            res.late += 1
+                    f = eng.port_step(x) if isfinite(x) else math.nan
+                    if not isfinite(f):
+                        send(Force(seq, (0.0,)))
+                        self._last_seq = seq
+                        res.stop_reason = "safety: non-finite position or force"
+                        res.safety_stop = True
                         stop.set = True
                         break
-                    continue
-                seq = msg.seq
-                x = msg.position[0]
-                if expect < 0:
-                    eng.set_port_position(x, at_rest=True)
-                elif seq != expect:
-                    res.missed += (seq - expect) & _U32
-                expect = (seq + 1) & _U32
-                lt = 0
-                if seq >= d and ((seq - msg.force_seq) & _U32 != d or msg.status & overrun_bit):
-                    if d > 0 or msg.status & overrun_bit:
-                        lt = 1
-                        res.late += 1
-                f = eng.port_step(x) if isfinite(x) else math.nan
-                if not isfinite(f):
-                    send(Force(seq, (0.0,)))
+                    # passivity observer: work of the force held over the last period
+                    dx = x - x_prev
+                    x_prev = x
+                    v = dx * rate
+                    if k > 0:
+                        energy += fh[(k - 1 - d) % fhl] * dx if k - 1 - d >= 0 else 0.0
+                    if pc_on and energy > 0.0 and v != 0.0:
+                        alpha = energy / (T * v * v)
+                        if alpha > bmax:
+                            alpha = bmax
+                        f -= alpha * v
+                        res.passivity_samples += 1
+                    if self._ramp > 0:
+                        f *= (ramp_n - self._ramp + 1) / ramp_n
+                        self._ramp -= 1
+                    c = 0
+                    if f > lim:
+                        f = lim
+                        c = 1
+                    elif f < -lim:
+                        f = -lim
+                        c = 1
+                    send(Force(seq, (f,)))
+                    t_tx = perf()
                     self._last_seq = seq
-                    res.stop_reason = "safety: non-finite position or force"
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                c = 0
-                if f > lim:
-                    f = lim
-                    c = 1
-                elif f < -lim:
-                    f = -lim
-                    c = 1
-                send(Force(seq, (f,)))
-                t_tx = perf()
-                self._last_seq = seq
-                j = i % wlen
-                wsum += c - win[j]
-                win[j] = c
-                res.clamped += c
-                t_arr[i] = msg.time_us * 1e-6
-                x_arr[i] = x
-                f_arr[i] = f
-                s_arr[i] = seq
-                ta_arr[i] = (t_tx - t_rx) * 1e-3
-                late_arr[i] = lt
-                i += 1
-                tel.n = i
-                if wsum >= clamp_max:
-                    res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of the "
-                                       f"last {wlen} samples")
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                if x > pos_bound or x < -pos_bound:
-                    res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                if i >= n_max:
-                    break
-        if stop.set and res.stop_reason == "duration" and stop.signal is not None:
-            res.stop_reason = f"signal {_signame(stop.signal)}"
+                    fh[k % fhl] = f
+                    k += 1
+                    j = i % wlen
+                    wsum += c - win[j]
+                    win[j] = c
+                    res.clamped += c
+                    t_arr[i] = msg.time_us * 1e-6
+                    x_arr[i] = x
+                    f_arr[i] = f
+                    s_arr[i] = seq
+                    ta_arr[i] = (t_tx - t_rx) * 1e-3
+                    late_arr[i] = lt
+                    i += 1
+                    tel.n = i
+                    if energy > e_max:
+                        e_max = energy
+                    av = v if v >= 0.0 else -v
+                    if av > v_max:
+                        v_max = av
+                    af = f if f >= 0.0 else -f
+                    if af > f_max:
+                        f_max = af
+                    if wsum >= clamp_max:
+                        res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of "
+                                           f"the last {wlen} samples")
+                        res.safety_stop = True
+                        stop.set = True
+                        break
+                    if x > pos_bound or x < -pos_bound:
+                        res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
+                        res.safety_stop = True
+                        stop.set = True
+                        break
+                    if av > vlim:
+                        res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
+                        res.safety_stop = True
+                        stop.set = True
+                        break
+                    if energy > elim:
+                        res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
+                                           f"beyond the energy limit {elim:g} J")
+                        res.safety_stop = True
+                        stop.set = True
+                        break
+                    if i >= n_max:
+                        break
+        except DeviceError as exc:        # a write failed: the port is gone
+            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+        finally:
+            self._energy = energy
+            res.energy = energy
+            res.energy_max = e_max
+            res.v_max = v_max
+            res.f_max = f_max
 
     def _run_host_clocked(self) -> None:
         cfg = self.config

@@ -17,6 +17,12 @@ Every transport offers the same small interface to :mod:`hapsim.daemon.loop`:
 bytes: fast lockstep tests). :class:`SerialTransport` opens any port with pyserial (a pty of
 the mock or hardware). :class:`EmbeddedMock` starts ``python -m hapsim mock --fd`` on the
 master side of a fresh pseudo-terminal whose slave path a :class:`SerialTransport` opens.
+:class:`SimTransport` runs a real-time mock (with an optional fault plan) on a virtual clock
+in-process: bytes, decoder, ticks, watchdog and faults are real, time is simulated, so fault
+tests are fast and deterministic.
+
+Optional members the loop uses when present: ``clock()`` and ``sleep(s)`` (virtual time),
+``reopen()`` (recover a failed port), ``decoder`` (counters).
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from collections import deque
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock"]
+__all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock", "SimTransport"]
 
 
 class InProcessTransport:
@@ -110,6 +116,7 @@ class SerialTransport:
         except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
             self.info["low_latency_note"] = f"not available: {exc}".strip()
         self._dec = fp.StreamDecoder()
+        self._timeout = read_timeout
         self._read = self._ser.read
         self._write = self._ser.write
 
@@ -167,6 +174,34 @@ class SerialTransport:
         except Exception:  # pragma: no cover - closing a vanished port
             pass
 
+    def reopen(self) -> None:
+        """Close the port and open the same path again (after the device vanished).
+
+        The decoder keeps its counters and history; its partial frame is dropped.
+
+        Raises
+        ------
+        DeviceError
+            When the port cannot be opened (yet).
+        """
+        import serial
+
+        self.close()
+        port = self.info["port"]
+        try:
+            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
+                                              timeout=self._timeout, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"cannot open port {port}: {exc}") from None
+        try:
+            self._ser.set_low_latency_mode(True)
+        except (AttributeError, NotImplementedError, ValueError, OSError):
+            pass
+        self._dec.reset()
+        self._read = self._ser.read
+        self._write = self._ser.write
+        self.reopened = getattr(self, "reopened", 0) + 1
+
     def last_frames(self) -> str:
         """The last frames received as text (CONVENTIONS §11)."""
         return self._dec.format_last_frames()
@@ -194,11 +229,17 @@ class EmbeddedMock:
         Sensor-noise seed.
     base_dir : str, optional
         Directory relative profile paths are resolved against.
+    faults : str, optional
+        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); validated here first.
+    fault_seed : int
+        Seed of the fault generator.
 
     Attributes
     ----------
     port : str
-        Slave path (``/dev/pts/N``), to open with :class:`SerialTransport`.
+        Slave path (``/dev/pts/N``), to open with :class:`SerialTransport`; with a
+        ``vanish`` fault, a symbolic link in a temporary directory that the child points
+        at each new pty (like a udev ``/dev/serial/by-id`` link).
     report_path : str
         JSON file where the child writes its :class:`~hapsim.daemon.mock.MockStats` on exit.
 
@@ -212,14 +253,24 @@ class EmbeddedMock:
     """
 
     def __init__(self, device, excitation, rate_hz: float, *, lockstep: bool = False,
-                 seed: int = 0, base_dir: str | None = None) -> None:
+                 seed: int = 0, base_dir: str | None = None, faults: str | None = None,
+                 fault_seed: int = 0) -> None:
         import dataclasses
         import tempfile
 
+        from hapsim.daemon.faults import parse_faults
+
+        plan = parse_faults(faults, fault_seed)      # ConfigError before any process starts
         master, slave = pty.openpty()
         tty.setraw(slave)
         self.port = os.ttyname(slave)
         self._slave = slave
+        self._linkdir = None
+        if plan.has_vanish:
+            self._linkdir = tempfile.mkdtemp(prefix="hapsim-port-")
+            link = os.path.join(self._linkdir, "port")
+            os.symlink(self.port, link)
+            self.port = link
         fd, self.report_path = tempfile.mkstemp(prefix="hapsim-mock-", suffix=".json")
         os.close(fd)
         os.unlink(self.report_path)
@@ -232,6 +283,10 @@ class EmbeddedMock:
                "--report", self.report_path, "--seed", str(seed)]
         if lockstep:
             cmd.append("--lockstep")
+        if faults:
+            cmd += ["--faults", faults, "--fault-seed", str(int(fault_seed))]
+        if self._linkdir:
+            cmd += ["--link", self.port]
         env = dict(os.environ)
         root = _package_root()
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -278,3 +333,175 @@ class EmbeddedMock:
             os.unlink(self.report_path)
         except OSError:
             pass
+        if self._linkdir:
+            import shutil
+            shutil.rmtree(self._linkdir, ignore_errors=True)
+
+
+class SimTransport:
+    """A real-time mock device on a virtual clock, in-process, with optional faults.
+
+    Parameters
+    ----------
+    mock : MockDevice
+        A real-time mock (``lockstep=False``).
+    plan : FaultPlan, optional
+        Faults to inject (:mod:`hapsim.daemon.faults`).
+    host_latency_us : int
+        Virtual time the host takes per call to :meth:`send` [us] (0: instant).
+
+    Attributes
+    ----------
+    device : FaultyDevice
+        The device side (mock + faults), for inspection by tests.
+    now_us : int
+        Virtual time [us].
+    sent : list or None
+        When a list, every message the host sends is appended (tests).
+
+    Notes
+    -----
+    Frames are really encoded, faulted, and decoded by this transport's
+    :class:`firmware_protocol.StreamDecoder`; the device ticks every ``1 / rate`` of
+    virtual time while armed; :meth:`receive` advances virtual time to the next event
+    (tick, held frame) up to its timeout; :meth:`sleep` advances it. While the device's
+    port has vanished, :meth:`send` and :meth:`receive` raise :class:`DeviceError` and
+    :meth:`reopen` fails until the port is back. While its link is stalled, the host's bytes
+    wait and are read when it resumes.
+    """
+
+    def __init__(self, mock, plan=None, *, host_latency_us: int = 0) -> None:
+        from hapsim.daemon.faults import FaultyDevice
+
+        self.device = FaultyDevice(mock, plan)
+        self.mock = mock
+        self.now_us = 0
+        self._next_tick = None
+        self._dec = fp.StreamDecoder()
+        self._pending_in = []
+        self._dead = False
+        self.host_latency_us = int(host_latency_us)
+        self.sent = None
+        self.reopened = 0
+        self.info = {"kind": "sim", "port": "sim://mock", "baud": None, "low_latency": False,
+                     "low_latency_note": "virtual clock"}
+        self.device.connect(0)
+
+    @property
+    def decoder(self) -> fp.StreamDecoder:
+        """The host-side stream decoder (counters in ``.stats``)."""
+        return self._dec
+
+    def clock(self) -> float:
+        """Virtual time [s]."""
+        return self.now_us * 1e-6
+
+    def _check_port(self) -> None:
+        dev = self.device
+        if dev.vanish_pending:
+            dev.vanish_pending = False
+            self._dead = True
+        if self._dead:
+            raise DeviceError("read from sim://mock failed: [Errno 5] Input/output error "
+                              "(the port vanished)")
+
+    def _step_to(self, t_us: int) -> None:
+        """Advance virtual time to ``t_us``, ticking the device on the way."""
+        dev = self.device
+        while True:
+            if self._pending_in and not dev.link_down(self.now_us):
+                data = b"".join(self._pending_in)
+                self._pending_in.clear()
+                dev.feed(data, self.now_us)
+            if dev.ticking:
+                period = int(round(1e6 / self.mock.rate_hz))
+                if self._next_tick is None:
+                    self._next_tick = self.now_us
+                if self._next_tick <= t_us:
+                    self.now_us = max(self.now_us, self._next_tick)
+                    self._next_tick += period
+                    dev.tick(self.now_us)
+                    continue
+            else:
+                self._next_tick = None
+            break
+        self.now_us = max(self.now_us, t_us)
+        dev.poll(self.now_us)
+        if dev.vanish_pending:
+            dev.vanish_pending = False
+            self._dead = True
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of virtual time pass."""
+        self._step_to(self.now_us + max(int(seconds * 1e6), 0))
+
+    def send(self, msg) -> None:
+        """Encode ``msg`` and hand the bytes to the device (queued while it is stalled).
+
+        Raises
+        ------
+        DeviceError
+            While the port is gone.
+        """
+        self._check_port()
+        if self.sent is not None:
+            self.sent.append(msg)
+        data = fp.encode(msg)
+        if self.host_latency_us:
+            self._step_to(self.now_us + self.host_latency_us)
+        if self.device.link_down(self.now_us) or self._pending_in:
+            self._pending_in.append(data)
+        else:
+            self.device.feed(data, self.now_us)
+
+    def receive(self, timeout: float = 0.0) -> list:
+        """Messages received, advancing virtual time up to ``timeout`` [s] for one.
+
+        Raises
+        ------
+        DeviceError
+            While the port is gone.
+        """
+        dev = self.device
+        end = self.now_us + max(int(timeout * 1e6), 0)
+        while True:
+            self._check_port()
+            data = dev.pop_due(self.now_us)
+            if data:
+                msgs = self._dec.feed(data)
+                if msgs:
+                    return msgs
+            if self.now_us >= end:
+                return []
+            nxt = end
+            if dev.ticking:
+                nt = self._next_tick if self._next_tick is not None else self.now_us
+                nxt = min(nxt, max(nt, self.now_us))
+            rel = dev.next_release_us()
+            if rel is not None and rel > self.now_us:
+                nxt = min(nxt, rel)
+            if dev.link_down(self.now_us):
+                nxt = min(nxt, max(dev.stalled_until_us, dev.vanished_until_us))
+            self._step_to(nxt)
+
+    def reopen(self) -> None:
+        """Open the port again: fails while the device's port is still gone.
+
+        Raises
+        ------
+        DeviceError
+            While the port is gone.
+        """
+        if self.device.vanished(self.now_us):
+            raise DeviceError("cannot open port sim://mock: [Errno 2] No such file or directory")
+        self._dead = False
+        self.device.vanish_pending = False
+        self._dec.reset()
+        self.reopened += 1
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def last_frames(self) -> str:
+        """The last frames received as text (CONVENTIONS §11)."""
+        return self._dec.format_last_frames()

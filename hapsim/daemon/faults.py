@@ -1,0 +1,427 @@
+"""Seeded fault injection for the mock device: wire faults and device-state faults.
+
+A :class:`FaultPlan` says which faults to inject, either at random (a probability per
+frame or per tick) or at scheduled device ticks; :class:`FaultyDevice` applies it around a
+:class:`~hapsim.daemon.mock.MockDevice`, I/O-free: bytes in, timed bytes out. The mock's
+serving loop (:func:`hapsim.daemon.mock.serve_fd`, a real pty) and the in-process
+virtual-clock transport (:class:`hapsim.daemon.transport.SimTransport`) both use it, so the
+host always sees real wire faults (torn, corrupted, repeated, reordered, delayed frames)
+through its own stream decoder.
+
+SPEC syntax (``hapsim mock --faults SPEC``, ``hapsim run --faults SPEC``)
+-------------------------------------------------------------------------
+A comma-separated list of items::
+
+    NAME=RATE[:DURATION]     at random: probability RATE in [0, 1] per frame (wire faults)
+                             or per device tick (device faults)
+    NAME@TICK[:DURATION]     once, at device tick TICK (ticks counted since the mock
+                             started, across CONFIGs and resets)
+    nohello                  the device never answers HELLO_REQUEST (nor says HELLO)
+
+DURATION is a number with a unit ``us``, ``ms`` or ``s`` (``5ms``, ``0.3s``).
+
+Wire faults (device -> host bytes):
+
+``drop``     the frame is not sent.
+``corrupt``  one byte of the frame is XORed with a random non-zero byte (CRC catches it; a
+             byte becoming ``0x00`` splits it into two bad frames).
+``garbage``  a burst of 1-64 random bytes is sent before the frame.
+``dup``      the frame is sent twice.
+``reorder``  the frame is held back and sent after the next one.
+``spike``    every frame is held for DURATION (default 5 ms), then sent in one burst.
+
+Device faults:
+
+``stall``    the device's link stalls for DURATION (default 200 ms): no STATE goes out and
+             nothing is read (the host's bytes wait in the port); its control loop keeps
+             ticking, so its watchdog zeroes the force.
+``reset``    the device resets: disarmed, zero force, its receiver buffer cleared; it sends
+             ``0x00`` then HELLO and waits for CONFIG.
+``vanish``   the port disappears for DURATION (default 300 ms): on a pty the master is
+             closed (the host's reads fail) and a new pty is linked at the same path when it
+             comes back (then ``0x00`` + HELLO); the device keeps ticking (watchdog).
+
+Example: ``drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
+stall@500:200ms,reset@800,vanish@1200:300ms`` with ``--fault-seed 1``.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import re
+from dataclasses import dataclass, field
+
+import firmware_protocol as fp
+from hapsim.errors import ConfigError
+
+__all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "WIRE_FAULTS", "DEVICE_FAULTS",
+           "FAULT_NAMES", "DEFAULT_DURATIONS"]
+
+#: Faults applied to each device -> host frame.
+WIRE_FAULTS = ("drop", "corrupt", "garbage", "dup", "reorder", "spike")
+#: Faults of the device's state machine (per tick).
+DEVICE_FAULTS = ("stall", "reset", "vanish")
+#: Every fault name the SPEC accepts.
+FAULT_NAMES = WIRE_FAULTS + DEVICE_FAULTS + ("nohello",)
+#: Default DURATION [s] of the faults that have one.
+DEFAULT_DURATIONS = {"spike": 0.005, "stall": 0.2, "vanish": 0.3}
+
+_ITEM = re.compile(r"^\s*([a-z]+)\s*(?:([=@])\s*([^:\s]+)\s*(?::\s*(\S+))?)?\s*$")
+_DUR = re.compile(r"^([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)(us|ms|s)$")
+_UNIT = {"us": 1e-6, "ms": 1e-3, "s": 1.0}
+
+
+def _duration(text: str, item: str) -> float:
+    m = _DUR.match(text)
+    if not m:
+        raise ConfigError(f"bad duration {text!r} in {item!r}: a number with a unit us, ms "
+                          f"or s (e.g. 5ms)", key="--faults")
+    return float(m.group(1)) * _UNIT[m.group(2)]
+
+
+@dataclass
+class FaultPlan:
+    """Which faults to inject, and the seeded generator that decides when.
+
+    Parameters
+    ----------
+    rates : dict of str to float
+        Probability per frame (wire faults) or per tick (device faults), in [0, 1].
+    durations : dict of str to float
+        DURATION of the random ``spike``, ``stall`` and ``vanish`` [s].
+    schedule : list of (int, str, float)
+        ``(tick, name, duration [s])`` events, each fired once at that device tick.
+    nohello : bool
+        The device never answers HELLO_REQUEST.
+    seed : int
+        Seed of the generator (:class:`random.Random`: cheap per-frame draws).
+    spec : str
+        The SPEC text the plan came from (for reports).
+
+    Attributes
+    ----------
+    injected : dict of str to int
+        How many of each fault were injected so far.
+    """
+
+    rates: dict = field(default_factory=dict)
+    durations: dict = field(default_factory=lambda: dict(DEFAULT_DURATIONS))
+    schedule: list = field(default_factory=list)
+    nohello: bool = False
+    seed: int = 0
+    spec: str = ""
+    injected: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.rng = random.Random(self.seed)
+        self.injected = {name: 0 for name in FAULT_NAMES}
+        self._wire = any(self.rates.get(n, 0.0) > 0 for n in WIRE_FAULTS) or any(
+            name in WIRE_FAULTS for _, name, _ in self.schedule)
+        self._dev_rates = [(n, self.rates[n]) for n in DEVICE_FAULTS if self.rates.get(n, 0) > 0]
+        self._by_tick: dict[int, list] = {}
+        for tick, name, dur in self.schedule:
+            self._by_tick.setdefault(int(tick), []).append((name, dur))
+        self._armed_wire: list = []      # scheduled wire faults waiting for the next frame
+
+    @property
+    def empty(self) -> bool:
+        """True when the plan injects nothing."""
+        return not (self.rates and any(v > 0 for v in self.rates.values())) \
+            and not self.schedule and not self.nohello
+
+    @property
+    def has_vanish(self) -> bool:
+        """True when the plan can make the port vanish."""
+        return self.rates.get("vanish", 0) > 0 or any(n == "vanish" for _, n, _ in self.schedule)
+
+    def to_dict(self) -> dict:
+        """JSON-ready description: spec, seed, injected counts."""
+        return {"spec": self.spec, "seed": self.seed,
+                "injected": {k: v for k, v in self.injected.items() if v}}
+
+    # ------------------------------------------------------------------ decisions
+    def device_events(self, tick: int) -> list:
+        """Device faults firing at device tick ``tick``: list of ``(name, duration [s])``."""
+        out = list(self._by_tick.get(tick, ()))
+        if self._dev_rates:
+            rnd = self.rng.random
+            for name, p in self._dev_rates:
+                if rnd() < p:
+                    out.append((name, self.durations.get(name, 0.0)))
+        for name, dur in list(out):
+            if name in WIRE_FAULTS:
+                out.remove((name, dur))
+                self._armed_wire.append((name, dur))
+        for name, _ in out:
+            self.injected[name] += 1
+        return out
+
+    def wire(self, frame: bytes) -> tuple[list, float]:
+        """Apply the wire faults to one device -> host frame.
+
+        Parameters
+        ----------
+        frame : bytes
+            One encoded frame (with its ``0x00`` delimiter).
+
+        Returns
+        -------
+        frames : list of bytes
+            What to send instead, in order (possibly empty).
+        hold : float
+            Hold every frame from now on for this long [s] (``spike``), else 0.0.
+        """
+        if not self._wire:
+            return [frame], 0.0
+        rates = self.rates
+        rnd = self.rng.random
+        fire = {name for name, _ in self._armed_wire}
+        spike_dur = next((d for n, d in self._armed_wire if n == "spike"), None)
+        self._armed_wire.clear()
+        hold = 0.0
+        if "spike" in fire or rnd() < rates.get("spike", 0.0):
+            hold = spike_dur if spike_dur else self.durations.get("spike", 0.005)
+            self.injected["spike"] += 1
+        if "drop" in fire or rnd() < rates.get("drop", 0.0):
+            self.injected["drop"] += 1
+            return [], hold
+        out = [frame]
+        if "corrupt" in fire or rnd() < rates.get("corrupt", 0.0):
+            self.injected["corrupt"] += 1
+            b = bytearray(frame)
+            i = self.rng.randrange(len(b) - 1)
+            b[i] ^= self.rng.randrange(1, 256)
+            out = [bytes(b)]
+        if "garbage" in fire or rnd() < rates.get("garbage", 0.0):
+            self.injected["garbage"] += 1
+            n = self.rng.randrange(1, 65)
+            out.insert(0, bytes(self.rng.getrandbits(8) for _ in range(n)))
+        if "dup" in fire or rnd() < rates.get("dup", 0.0):
+            self.injected["dup"] += 1
+            out.append(out[-1])
+        if "reorder" in fire or rnd() < rates.get("reorder", 0.0):
+            self.injected["reorder"] += 1
+            return ["REORDER"] + out, hold       # marker: hold these behind the next frame
+        return out, hold
+
+
+def parse_faults(spec: str | None, seed: int = 0) -> FaultPlan:
+    """Parse a fault SPEC (see the module docstring).
+
+    Parameters
+    ----------
+    spec : str or None
+        The SPEC; None or empty: no faults.
+    seed : int
+        Generator seed.
+
+    Returns
+    -------
+    FaultPlan
+
+    Raises
+    ------
+    ConfigError
+        Unknown fault name (the message lists the valid ones), a rate outside [0, 1], a bad
+        tick or duration, or a form the fault does not take (key ``--faults``).
+    """
+    plan_rates: dict = {}
+    durations = dict(DEFAULT_DURATIONS)
+    schedule: list = []
+    nohello = False
+    text = (spec or "").strip()
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        m = _ITEM.match(item)
+        if not m:
+            raise ConfigError(f"cannot parse {item!r}: expected NAME=RATE[:DURATION], "
+                              f"NAME@TICK[:DURATION] or nohello", key="--faults")
+        name, op, value, dur = m.groups()
+        if name not in FAULT_NAMES:
+            raise ConfigError(f"unknown fault {name!r}; valid faults: {', '.join(FAULT_NAMES)}",
+                              key="--faults")
+        if name == "nohello":
+            if op:
+                raise ConfigError("nohello takes no rate or tick", key="--faults")
+            nohello = True
+            continue
+        if not op:
+            raise ConfigError(f"{name} needs =RATE or @TICK (e.g. {name}=0.01 or {name}@500)",
+                              key="--faults")
+        d = None
+        if dur is not None:
+            if name not in DEFAULT_DURATIONS:
+                raise ConfigError(f"{name} takes no duration (only "
+                                  f"{', '.join(DEFAULT_DURATIONS)} do)", key="--faults")
+            d = _duration(dur, item)
+        if op == "=":
+            try:
+                p = float(value)
+            except ValueError:
+                p = math.nan
+            if not 0.0 <= p <= 1.0:
+                raise ConfigError(f"rate of {name} must be a probability in [0, 1], got "
+                                  f"{value!r}", key="--faults")
+            plan_rates[name] = p
+            if d is not None:
+                durations[name] = d
+        else:
+            if not value.isdigit():
+                raise ConfigError(f"tick of {name} must be a whole number >= 0, got {value!r}",
+                                  key="--faults")
+            schedule.append((int(value), name, d if d is not None
+                             else DEFAULT_DURATIONS.get(name, 0.0)))
+    return FaultPlan(rates=plan_rates, durations=durations, schedule=schedule,
+                     nohello=nohello, seed=int(seed), spec=text)
+
+
+class FaultyDevice:
+    """A :class:`~hapsim.daemon.mock.MockDevice` behind a fault plan, I/O-free.
+
+    Parameters
+    ----------
+    mock : MockDevice
+        A real-time mock (``lockstep=False``) or a lockstep one.
+    plan : FaultPlan, optional
+        Faults to inject; none when omitted.
+
+    Attributes
+    ----------
+    tick_count : int
+        Device ticks since start (the clock of scheduled faults).
+    stalled_until_us, vanished_until_us : int
+        Device time until which the link is stalled / gone [us] (0: not).
+    events : list of dict
+        Device faults fired: ``{"tick", "name", "t_us", "duration_s"}``.
+    decoder : firmware_protocol.StreamDecoder
+        The device's receiver.
+
+    Notes
+    -----
+    Use: :meth:`connect` when the port opens, :meth:`feed` with the host's bytes,
+    :meth:`tick` at each device tick (real-time), :meth:`pop_due` for the bytes to write by
+    now (in order), :meth:`next_release_us` for the next held frame.
+    """
+
+    def __init__(self, mock, plan: FaultPlan | None = None) -> None:
+        self.mock = mock
+        self.plan = plan or FaultPlan()
+        self.decoder = fp.StreamDecoder()
+        self.tick_count = 0
+        self.stalled_until_us = 0
+        self.vanished_until_us = 0
+        self.events: list = []
+        self._out: list = []            # (release_us, bytes), release non-decreasing
+        self._hold_until = 0
+        self._held: list = []           # frames held back by 'reorder'
+        self.vanish_pending = False     # serve_fd: close the port now
+        self.reconnect_pending = False  # the port came back: say HELLO
+
+    # ------------------------------------------------------------------ output
+    def _send(self, msg, now_us: int) -> None:
+        frames, hold = self.plan.wire(fp.encode(msg))
+        if hold > 0:
+            self._hold_until = max(self._hold_until, now_us + int(hold * 1e6))
+        rel = max(now_us, self._hold_until)
+        if frames and frames[0] == "REORDER":
+            self._held.extend(frames[1:])
+            return
+        for f in frames:
+            self._out.append((rel, f))
+        if self._held:
+            for f in self._held:
+                self._out.append((rel, f))
+            self._held.clear()
+
+    def connect(self, now_us: int) -> None:
+        """The port (re)opened: ``0x00`` then HELLO (unless ``nohello``)."""
+        self._out.append((now_us, b"\x00"))
+        if not self.plan.nohello:
+            self._send(self.mock.hello(), now_us)
+
+    def pop_due(self, now_us: int) -> bytes:
+        """Bytes whose release time has come (in order); empty while stalled or gone."""
+        if not self._out or self.link_down(now_us):
+            return b""
+        i = 0
+        out = self._out
+        while i < len(out) and out[i][0] <= now_us:
+            i += 1
+        if i == 0:
+            return b""
+        data = b"".join(f for _, f in out[:i])
+        del out[:i]
+        return data
+
+    def next_release_us(self) -> int | None:
+        """Release time of the next held frame [us], or None."""
+        return self._out[0][0] if self._out else None
+
+    def link_down(self, now_us: int) -> bool:
+        """True while the link is stalled or the port is gone."""
+        return now_us < self.stalled_until_us or now_us < self.vanished_until_us
+
+    def vanished(self, now_us: int) -> bool:
+        """True while the port is gone."""
+        return now_us < self.vanished_until_us
+
+    # ------------------------------------------------------------------ input
+    def feed(self, data: bytes, now_us: int) -> list:
+        """Bytes from the host (call only while the link is up); returns the messages seen."""
+        msgs = self.decoder.feed(data)
+        mock = self.mock
+        for msg in msgs:
+            if self.plan.nohello and isinstance(msg, fp.HelloRequest):
+                mock.stats.last_host_message = "HelloRequest"
+                continue
+            for reply in mock.handle(msg, now_us):
+                self._send(reply, now_us)
+        return msgs
+
+    # ------------------------------------------------------------------ ticks
+    def tick(self, now_us: int) -> None:
+        """One device tick: fire scheduled/random device faults, then tick the mock."""
+        n = self.tick_count
+        self.tick_count = n + 1
+        if not self.plan.empty:
+            for name, dur in self.plan.device_events(n):
+                self.events.append({"tick": n, "name": name, "t_us": now_us,
+                                    "duration_s": dur})
+                if name == "stall":
+                    self.stalled_until_us = now_us + int(dur * 1e6)
+                elif name == "vanish":
+                    self.vanished_until_us = now_us + int(dur * 1e6)
+                    self.vanish_pending = True
+                    self.reconnect_pending = True
+                    self._out.clear()
+                    self._held.clear()
+                elif name == "reset":
+                    self.reset(now_us)
+        self.poll(now_us)
+        st = self.mock.tick(now_us)
+        if st is not None and not self.link_down(now_us):
+            self._send(st, now_us)
+
+    def poll(self, now_us: int) -> None:
+        """Housekeeping between ticks: when a vanished port is back, say ``0x00`` + HELLO."""
+        if self.reconnect_pending and not self.vanished(now_us) and not self.vanish_pending:
+            self.reconnect_pending = False
+            self.decoder.reset()
+            self.connect(now_us)
+
+    def reset(self, now_us: int) -> None:
+        """Device reset: zero force, disarmed, unconfigured, receiver cleared, HELLO."""
+        mock = self.mock
+        mock.stop()
+        mock.configured = False
+        mock.physics = None
+        self.decoder.reset()
+        self._out.clear()
+        self._held.clear()
+        self._hold_until = 0
+        self.connect(now_us)
+
+    @property
+    def ticking(self) -> bool:
+        """True when the device produces ticks (armed and configured)."""
+        return self.mock.armed and self.mock.physics is not None
