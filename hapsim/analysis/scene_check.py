@@ -1,36 +1,11 @@
 """Scene-level closed-loop check: one state matrix for a whole scene coupled to its device.
 
 DESIGN.md Sec. 4, last bullet: the whole sampled THS (device plant, force delay line, every
-virtual mass, linearised links) is one linear recursion ``s[n+1] = A s[n]``; its eigenvalues
-are the closed-loop poles of the scene as the hand feels it.
-
-State at sample ``n`` (``state_names`` spells it out):
-
-=============================  =====================================================
-``"zoh"`` hold                 ``x_dev[n]``, ``v_dev[n]`` (exact ZOH of
-                               ``m x'' + b0 x' = f``), ``x_port[n-1]``
-``"ideal"`` hold               ``x_dev[n]``, ``x_dev[n-1]`` (centred-difference image
-                               of the mass, eq. (4) friction form)
-force delay line (d states)    ``F[n-1], ..., F[n-d]`` (forces computed, not yet applied)
-each virtual ``mass`` j        ``x_j[n]``, ``x_j[n-1]``
-=============================  =====================================================
-
-Grounds are constants: they enter the link forces as a constant input that drops out of
-the linear dynamics (deviations from equilibrium), so they contribute no state.
-
-Timing. At sample ``n`` the port position is the device sample, ``x_port[n] = x_dev[n]``;
-every link force is computed from the positions at ``n`` and ``n - 1``
-(``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T``, ``-F`` on the first mass, ``+F`` on
-the second); the virtual masses advance ``x[n+1] = 2 x[n] - x[n-1] + T^2 F / m``; the force
-on the port computed at ``n``, ``F[n]``, is applied by the device over the period starting
-at sample ``n + d``: the force held over ``[nT, (n+1)T)`` is ``u[n] = F[n-d]`` (``d = 0``: the
-force computed from ``x[n]`` acts over the period that starts at ``n``). The device then
-advances ``[x, v][n+1] = Ad [x, v][n] + Bd u[n]`` (``"zoh"``) or
-``x[n+1] = (1+a) x[n] - a x[n-1] + T^2 u[n] / (m c)`` with ``a = e^(-b0T/m)``,
-``c = (b0T/m) / (1 - a)`` (``"ideal"``, Florens et al. eq. (4); ``a = c = 1`` without
-friction). For a port tied to a ground by a spring_damper this gives exactly
-``z^(d+1) D(z) + N(z) (K z + (B/T)(z - 1)) = 0``, i.e. the poles of
-:func:`hapsim.analysis.loop.closed_loop_poles` (up to roots at ``z = 0``).
+virtual mass integrated by the scene's ``integrator``, linearised links) is one linear
+recursion ``s[n+1] = A s[n]``; its eigenvalues are the closed-loop poles of the scene as
+the hand feels it. The matrix is built by :func:`hapsim.analysis.network.closed_loop`
+(state layout, timing and the three integrators are described there); this module judges
+it: stability verdict, the rendered pair at the port and every mode.
 
 Linearisation: contacts are taken *engaged* (they act as spring_dampers), the stiffest
 case the scene can reach; links given as a felt ``target`` need their calibrated (K, B).
@@ -43,9 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.loop import zoh_state_space
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
-from hapsim.errors import ConfigError
+from hapsim.analysis.network import closed_loop
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL"]
 
@@ -91,6 +65,9 @@ class SceneCheck:
         Sample period ``T`` [s].
     calibrated : dict
         ``{link name: (K, B)}`` substituted for ``target`` links.
+    integrator : str
+        Scheme of the virtual masses the matrix was built with (``centred``,
+        ``symplectic_euler`` or ``exact``).
     """
 
     eigenvalues: np.ndarray
@@ -104,6 +81,7 @@ class SceneCheck:
     has_port: bool = False
     period: float = 1.0
     calibrated: dict = field(default_factory=dict)
+    integrator: str = "centred"
 
     def to_dict(self) -> dict:
         """JSON-ready dict (non-finite floats become ``None``).
@@ -112,7 +90,7 @@ class SceneCheck:
         -------
         dict
             Keys ``stable, marginal, spectral_radius, has_port, period, reference_mass,
-            rendered (dict or None), modes (list of dict), eigenvalues (list of
+            integrator, rendered (dict or None), modes (list of dict), eigenvalues (list of
             [re, im]), state_names, calibrated``.
         """
         def f(v):
@@ -125,6 +103,7 @@ class SceneCheck:
             "has_port": bool(self.has_port),
             "period": f(self.period),
             "reference_mass": f(self.reference_mass),
+            "integrator": self.integrator,
             "rendered": None if self.rendered is None else self.rendered.to_dict(),
             "modes": [md.to_dict() for md in self.modes],
             "eigenvalues": [[f(z.real), f(z.imag)] for z in self.eigenvalues],
@@ -133,38 +112,7 @@ class SceneCheck:
         }
 
 
-def _link_values(scene, calibrated) -> list[tuple]:
-    """(link, K, B) for every link, with calibrated values substituted."""
-    calibrated = dict(calibrated or {})
-    names = {lk.name for lk in scene.links}
-    unknown = sorted(set(calibrated) - names)
-    if unknown:
-        raise ConfigError(f"calibrated values for unknown links {unknown}; links are "
-                          f"{sorted(names)}", file=scene.path, key="links")
-    out = []
-    for lk in scene.links:
-        K, B = lk.stiffness, lk.damping
-        if lk.name in calibrated:
-            K, B = (float(v) for v in calibrated[lk.name])
-            if not (math.isfinite(K) and math.isfinite(B)):
-                raise ConfigError(f"calibrated (K, B) = ({K}, {B}) are not finite",
-                                  file=scene.path, line=lk.line or None,
-                                  key=f"links.{lk.name}")
-        elif not (math.isfinite(K) and math.isfinite(B)):
-            if lk.target is not None:
-                raise ConfigError(f"link {lk.name!r} is given as a felt target (k, b) = "
-                                  f"{tuple(lk.target)}: calibrate first (hapsim check does; "
-                                  "or pass calibrated={name: (K, B)})",
-                                  file=scene.path, line=lk.line or None,
-                                  key=f"links.{lk.name}")
-            raise ConfigError(f"link {lk.name!r} has non-finite stiffness/damping "
-                              f"({K}, {B})", file=scene.path, line=lk.line or None,
-                              key=f"links.{lk.name}")
-        out.append((lk, K, B))
-    return out
-
-
-def scene_state_matrix(scene, *, calibrated=None):
+def scene_state_matrix(scene, *, calibrated=None, integrator=None):
     """The closed-loop state matrix of a scene coupled to its device.
 
     Parameters
@@ -176,11 +124,13 @@ def scene_state_matrix(scene, *, calibrated=None):
     calibrated : mapping of str to (float, float), optional
         ``{link name: (K [N/m], B [N s/m])}`` overriding links, e.g. calibrated ``target``
         links.
+    integrator : {"centred", "symplectic_euler", "exact"}, optional
+        Scheme of the virtual masses; ``scene.integrator`` when None.
 
     Returns
     -------
     A : ndarray, shape (n, n)
-        ``s[n+1] = A s[n]`` (layout and timing: module docstring).
+        ``s[n+1] = A s[n]`` (layout and timing: :mod:`hapsim.analysis.network`).
     state_names : list of str, length n
         What each state is.
 
@@ -188,91 +138,13 @@ def scene_state_matrix(scene, *, calibrated=None):
     ------
     ConfigError
         When a ``target`` link has no calibrated (K, B) ("calibrate first"), a calibrated
-        value is not finite or names no link, or a port has no device section.
+        value is not finite or names no link, a port has no device section, or the
+        integrator is unknown.
     """
-    links = _link_values(scene, calibrated)
-    T = scene.period
-    port = scene.port
-    names: list[str] = []
-    slot: dict[str, tuple[int | None, int | None]] = {}  # mass -> (x[n] index, x[n-1] index)
-
-    dev = None
-    d = 0
-    if port is not None:
-        dev = scene.device
-        if dev is None:
-            raise ConfigError("a scene with a port needs a device section", file=scene.path,
-                              key="device")
-        d = int(dev.delay)
-        if dev.hold == "zoh":
-            names += [f"{port.name}.x[n] (device position)", "device.v[n]",
-                      f"{port.name}.x[n-1]"]
-            slot[port.name] = (0, 2)
-        elif dev.hold == "ideal":
-            names += [f"{port.name}.x[n] (device position)", f"{port.name}.x[n-1]"]
-            slot[port.name] = (0, 1)
-        else:
-            raise ConfigError(f"unknown hold {dev.hold!r}; valid: zoh, ideal",
-                              file=scene.path, key="device.hold")
-        delay0 = len(names)
-        names += [f"F[n-{i}] (port force, delay line)" for i in range(1, d + 1)]
-    for m in scene.masses:
-        if m.kind == "mass":
-            slot[m.name] = (len(names), len(names) + 1)
-            names += [f"{m.name}.x[n]", f"{m.name}.x[n-1]"]
-    n = len(names)
-    A = np.zeros((n, n))
-
-    def unit(i):
-        e = np.zeros(n)
-        if i is not None:
-            e[i] = 1.0
-        return e
-
-    def pos(name):
-        i, ip = slot.get(name, (None, None))  # ground: constant, no state
-        return unit(i), unit(ip)
-
-    force = {m.name: np.zeros(n) for m in scene.masses}
-    for lk, K, B in links:
-        x1, x1p = pos(lk.m1)
-        x2, x2p = pos(lk.m2)
-        g = K * (x1 - x2) + B * ((x1 - x2) - (x1p - x2p)) / T
-        force[lk.m1] = force[lk.m1] - g
-        force[lk.m2] = force[lk.m2] + g
-
-    for m in scene.masses:
-        if m.kind != "mass":
-            continue
-        i, ip = slot[m.name]
-        A[i] = 2.0 * unit(i) - unit(ip) + (T * T / m.mass) * force[m.name]
-        A[ip] = unit(i)
-
-    if port is not None:
-        fport = force[port.name]
-        if d == 0:
-            u = fport
-        else:
-            u = unit(delay0 + d - 1)
-            A[delay0] = fport
-            for j in range(1, d):
-                A[delay0 + j] = unit(delay0 + j - 1)
-        mass, b0 = float(dev.mass), float(dev.friction)
-        if dev.hold == "zoh":
-            Ad, Bd = zoh_state_space(mass, b0, T)
-            A[0] = Ad[0, 0] * unit(0) + Ad[0, 1] * unit(1) + Bd[0] * u
-            A[1] = Ad[1, 0] * unit(0) + Ad[1, 1] * unit(1) + Bd[1] * u
-            A[2] = unit(0)
-        else:
-            x = b0 * T / mass
-            a = math.exp(-x)
-            c = x / -math.expm1(-x) if x > 0 else 1.0
-            A[0] = (1.0 + a) * unit(0) - a * unit(1) + (T * T / (mass * c)) * u
-            A[1] = unit(0)
-    return A, names
+    return closed_loop(scene, integrator, calibrated=calibrated)
 
 
-def check_scene(scene, *, calibrated=None) -> SceneCheck:
+def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     """Closed-loop stability and rendered (k, b) of a whole scene felt through its device.
 
     Parameters
@@ -282,6 +154,9 @@ def check_scene(scene, *, calibrated=None) -> SceneCheck:
     calibrated : mapping of str to (float, float), optional
         ``{link name: (K [N/m], B [N s/m])}`` for ``target`` links (see
         :func:`hapsim.analysis.loop.calibrate`) or any override.
+    integrator : {"centred", "symplectic_euler", "exact"}, optional
+        Scheme of the virtual masses; ``scene.integrator`` when None (what the engine
+        runs).
 
     Returns
     -------
@@ -293,8 +168,8 @@ def check_scene(scene, *, calibrated=None) -> SceneCheck:
     Raises
     ------
     ConfigError
-        "calibrate first" for ``target`` links without calibrated values; see
-        :func:`scene_state_matrix`.
+        "calibrate first" for ``target`` links without calibrated values, an unknown
+        integrator; see :func:`scene_state_matrix`.
 
     Notes
     -----
@@ -302,7 +177,8 @@ def check_scene(scene, *, calibrated=None) -> SceneCheck:
     :func:`hapsim.analysis.loop.closed_loop_poles` ``(loop, K, B)`` up to roots at 0, and
     ``rendered`` equals the pair of :func:`hapsim.analysis.loop.render`.
     """
-    A, names = scene_state_matrix(scene, calibrated=calibrated)
+    integrator = integrator or getattr(scene, "integrator", None) or "centred"
+    A, names = scene_state_matrix(scene, calibrated=calibrated, integrator=integrator)
     cal = {k: (float(v[0]), float(v[1])) for k, v in dict(calibrated or {}).items()}
     has_port = scene.port is not None
     if has_port:
@@ -313,7 +189,7 @@ def check_scene(scene, *, calibrated=None) -> SceneCheck:
         return SceneCheck(eigenvalues=np.zeros(0, complex), spectral_radius=0.0, stable=True,
                           rendered=None, modes=[], state_names=names, reference_mass=ref,
                           marginal=False, has_port=has_port, period=scene.period,
-                          calibrated=cal)
+                          calibrated=cal, integrator=integrator)
     ev = np.linalg.eigvals(A).astype(complex)
     mod = np.abs(ev)
     radius = float(mod.max())
@@ -329,4 +205,4 @@ def check_scene(scene, *, calibrated=None) -> SceneCheck:
     return SceneCheck(eigenvalues=ev, spectral_radius=radius, stable=stable,
                       rendered=rendered, modes=modes, state_names=names, reference_mass=ref,
                       marginal=marginal, has_port=has_port, period=scene.period,
-                      calibrated=cal)
+                      calibrated=cal, integrator=integrator)

@@ -30,14 +30,15 @@ Urma, Sec. 6.2), whatever the integrator (no virtual mass is integrated).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.loop import zoh_state_space
-from hapsim.analysis.scene_check import RIGID_TOL, STABILITY_TOL, _link_values
-from hapsim.errors import ConfigError
-from hapsim.kernels.schemes import INTEGRATORS, exact_matrices, laplacians
+from hapsim.analysis.network import INTEGRATORS, check_integrator, closed_loop
+from hapsim.analysis.network import Network as _Net  # noqa: F401  (old private names,
+from hapsim.analysis.network import _link_arrays  # noqa: F401      kept for callers)
+from hapsim.analysis.network import network as _network
+from hapsim.analysis.network import virtual_blocks as _virtual_blocks
+from hapsim.analysis.scene_check import RIGID_TOL, STABILITY_TOL
 
 __all__ = ["INTEGRATORS", "COST_ORDER", "oscillator_poles", "oscillator_limits",
            "virtual_update_matrix", "closed_loop_matrix", "continuous_network_eigenvalues",
@@ -49,9 +50,7 @@ COST_ORDER = ("centred", "symplectic_euler", "exact")
 
 
 def _check_integrator(integrator: str) -> None:
-    if integrator not in INTEGRATORS:
-        raise ConfigError(f"unknown integrator {integrator!r}; valid choices: "
-                          f"{', '.join(INTEGRATORS)}", key="integrator")
+    check_integrator(integrator)
 
 
 # --------------------------------------------------------------------------- one oscillator
@@ -134,105 +133,6 @@ def oscillator_limits(integrator: str, mass: float, period: float, B: float = 0.
 
 # --------------------------------------------------------------------------- networks
 
-@dataclass(frozen=True)
-class _Net:
-    N: int
-    masses: np.ndarray          # (N,) [kg]
-    LK: np.ndarray              # full Laplacians (n, n)
-    LB: np.ndarray
-    mob: np.ndarray             # indices of moving masses
-    port: int                   # index of the port or -1
-    names: list
-
-
-def _network(scene, calibrated=None) -> _Net:
-    links = _link_values(scene, calibrated)
-    idx = {m.name: i for i, m in enumerate(scene.masses)}
-    i1 = [idx[lk.m1] for lk, _, _ in links]
-    i2 = [idx[lk.m2] for lk, _, _ in links]
-    LK, LB = laplacians(len(scene.masses), i1, i2, [K for _, K, _ in links],
-                        [B for _, _, B in links])
-    mob = np.array([i for i, m in enumerate(scene.masses) if m.kind == "mass"], dtype=np.int64)
-    masses = np.array([scene.masses[i].mass for i in mob], dtype=float)
-    port = scene.index(scene.port.name) if scene.port is not None else -1
-    return _Net(mob.size, masses, LK, LB, mob, port, [scene.masses[i].name for i in mob])
-
-
-def _virtual_blocks(net: _Net, integrator: str, T: float):
-    """Linear one-step map of the virtual network with the port as input.
-
-    Returns ``(Av, bp, bpp, cx, cp, cpp)``: ``X[n+1] = Av X + bp p[n] + bpp p[n-1]`` and the
-    force on the port ``F[n] = cx X + cp p[n] + cpp p[n-1]``, with ``X = [x; xp]`` (centred)
-    or ``[x; v]`` (others) of the moving masses.
-    """
-    N, mob, p = net.N, net.mob, net.port
-    Kmm = net.LK[np.ix_(mob, mob)]
-    Bmm = net.LB[np.ix_(mob, mob)]
-    Minv = 1.0 / net.masses if N else np.zeros(0)
-    if p >= 0:
-        Kmp = net.LK[mob, p]
-        Bmp = net.LB[mob, p]
-        Kpm, Bpm = net.LK[p, mob], net.LB[p, mob]
-        Kpp, Bpp = net.LK[p, p], net.LB[p, p]
-    else:
-        Kmp = Bmp = Kpm = Bpm = np.zeros(N)
-        Kpp = Bpp = 0.0
-    I = np.eye(N)
-    Z = np.zeros((N, N))
-    # forces on the moving masses: F = -Kmm x - Bmm vm - Kmp p - Bmp (p - pp)/T
-    if integrator == "centred":
-        # vm = (x - xp)/T ; x+ = 2x - xp + T^2 M^-1 F
-        G = T * T * Minv[:, None]
-        g = T * T * Minv
-        Ax = 2 * I - G * (Kmm + Bmm / T)
-        Axp = -I + G * (Bmm / T)
-        Av = np.block([[Ax, Axp], [I, Z]])
-        bp = np.concatenate([-g * (Kmp + Bmp / T), np.zeros(N)])
-        bpp = np.concatenate([g * (Bmp / T), np.zeros(N)])
-        cx = np.concatenate([-(Kpm + Bpm / T), Bpm / T])
-    elif integrator == "symplectic_euler":
-        D = np.diag(np.diag(Bmm))
-        H = T * np.linalg.inv(np.diag(net.masses) + T * D) if N else np.zeros((0, 0))
-        # v+ = v + H F ; x+ = x + T v+
-        Avv = I - H @ Bmm
-        Avx = -H @ Kmm
-        Av = np.block([[I + T * Avx, T * Avv], [Avx, Avv]])
-        hp = -H @ (Kmp + Bmp / T)
-        hpp = H @ (Bmp / T)
-        bp = np.concatenate([T * hp, hp])
-        bpp = np.concatenate([T * hpp, hpp])
-        cx = np.concatenate([-Kpm, -Bpm])
-    else:
-        fixed = [p] if p >= 0 else []
-        phi, gam, psi = exact_matrices(net.LK.shape[0], mob, net.masses, fixed,
-                                       *_link_arrays(net), T)
-        Av = phi
-        if p >= 0:
-            bp = gam[:, 0] + psi[:, 0]
-            bpp = -psi[:, 0]
-        else:
-            bp = bpp = np.zeros(2 * N)
-        cx = np.concatenate([-Kpm, -Bpm])
-    cp = -(Kpp + Bpp / T)
-    cpp = Bpp / T
-    return Av, np.asarray(bp, float), np.asarray(bpp, float), np.asarray(cx, float), cp, cpp
-
-
-def _link_arrays(net: _Net):
-    """Rebuild link arrays (i1, i2, k, b) from the Laplacians (upper triangle)."""
-    n = net.LK.shape[0]
-    i1, i2, k, b = [], [], [], []
-    for a in range(n):
-        for c in range(a + 1, n):
-            if net.LK[a, c] != 0.0 or net.LB[a, c] != 0.0:
-                i1.append(a)
-                i2.append(c)
-                k.append(-net.LK[a, c])
-                b.append(-net.LB[a, c])
-    return (np.array(i1, dtype=np.int64), np.array(i2, dtype=np.int64), np.array(k, float),
-            np.array(b, float))
-
-
 def virtual_update_matrix(scene, integrator: str | None = None, *, calibrated=None) -> np.ndarray:
     """One-step matrix of the virtual network alone (port and grounds held still).
 
@@ -305,67 +205,16 @@ def closed_loop_matrix(scene, integrator: str | None = None, *, calibrated=None,
     -------
     ndarray, shape (n, n)
         ``s[n+1] = A s[n]``; states: device (``"zoh"``: x, v, x_port[n-1]; ``"ideal"``: x,
-        x[n-1]), the delay line ``F[n-1..n-d]``, then the virtual states. Same timing as
-        :func:`hapsim.analysis.scene_check.scene_state_matrix` (which it equals, up to
-        state order, for ``"centred"``).
+        x[n-1]), the delay line ``F[n-1..n-d]``, then the virtual states: the matrix of
+        :func:`hapsim.analysis.network.closed_loop` (state names there), which
+        :func:`hapsim.analysis.scene_check.scene_state_matrix` also returns.
 
     Raises
     ------
     ConfigError
         Unknown integrator, uncalibrated targets, a port without device.
     """
-    integrator = integrator or getattr(scene, "integrator", "centred")
-    _check_integrator(integrator)
-    net = _network(scene, calibrated)
-    if gain != 1.0:
-        net = _Net(net.N, net.masses, net.LK * gain, net.LB * gain, net.mob, net.port, net.names)
-    T = scene.period
-    Av, bp, bpp, cx, cp, cpp = _virtual_blocks(net, integrator, T)
-    nv = Av.shape[0]
-    if net.port < 0:
-        return Av
-    dev = scene.device
-    if dev is None:
-        raise ConfigError("a scene with a port needs a device section", file=scene.path,
-                          key="device")
-    d = int(dev.delay)
-    nd = 3 if dev.hold == "zoh" else 2
-    n = nd + d + nv
-    A = np.zeros((n, n))
-    ip, ipp = 0, (2 if dev.hold == "zoh" else 1)
-    o = nd + d  # first virtual state
-    # port force row F[n]
-    Frow = np.zeros(n)
-    Frow[o:] = cx
-    Frow[ip] += cp
-    Frow[ipp] += cpp
-    if d == 0:
-        u = Frow
-    else:
-        u = np.zeros(n)
-        u[nd + d - 1] = 1.0
-        A[nd] = Frow
-        for j in range(1, d):
-            A[nd + j, nd + j - 1] = 1.0
-    mass, b0 = float(dev.mass), float(dev.friction)
-    if dev.hold == "zoh":
-        Ad, Bd = zoh_state_space(mass, b0, T)
-        A[0, 0], A[0, 1] = Ad[0, 0], Ad[0, 1]
-        A[1, 0], A[1, 1] = Ad[1, 0], Ad[1, 1]
-        A[0] += Bd[0] * u
-        A[1] += Bd[1] * u
-        A[2, 0] = 1.0
-    else:
-        x = b0 * T / mass
-        a = math.exp(-x)
-        c = x / -math.expm1(-x) if x > 0 else 1.0
-        A[0, 0], A[0, 1] = 1.0 + a, -a
-        A[0] += T * T / (mass * c) * u
-        A[1, 0] = 1.0
-    A[o:, o:] = Av
-    A[o:, ip] += bp
-    A[o:, ipp] += bpp
-    return A
+    return closed_loop(scene, integrator, calibrated=calibrated, gain=gain)[0]
 
 
 def continuous_loop_matrix(scene, *, calibrated=None) -> np.ndarray:
