@@ -14,7 +14,8 @@ Check a whole scene felt through its device, before touching the device.
 The scene and the device section are turned into ONE linear closed loop, sampled at the
 scene rate: the hand + handle mass m with its real friction b0 (integrated exactly over each
 period with the force held, or the paper's ideal sampled image with hold: ideal), the
-computation delay of d samples, every virtual mass, and every link. Contacts are taken as
+computation delay of d samples, every virtual mass (advanced by the scene's integrator:
+centred, symplectic_euler or exact, as the engine runs it), and every link. Contacts are taken as
 engaged (acting as spring-dampers, the usual stability-critical case); to check a scene
 with a contact released, check a copy without that contact. Its eigenvalues z are the
 closed-loop poles. The loop is stable when every |z| < 1 (the spectral radius); poles on
@@ -127,13 +128,14 @@ def run(args: argparse.Namespace) -> int:
         # No (K, B) at all: nothing to check the scene with.
         if args.json:
             print(json.dumps({"scene": args.scene, "stable": None, "verdict": "unrenderable",
+                              "integrator": scene.integrator,
                               "calibrations": [{"link": r["link"], **r["result"].to_dict()}
                                                for r in reports]}))
         else:
             for r in missing:
                 print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) "
                       f"cannot be calibrated: {r['result'].reason}")
-            print("verdict: UNRENDERABLE")
+            print(f"verdict: UNRENDERABLE (integrator {scene.integrator})")
         return 1
     chk = check_scene(scene, calibrated=calibrated)
     all_renderable = all(r["result"].renderable for r in reports)
@@ -154,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     T = scene.period
     print(f"scene {args.scene}: {scene.rate_hz:g} Hz (T = {T * 1e3:g} ms), "
           f"{sum(m.kind == 'mass' for m in scene.masses)} virtual masses, "
-          f"{len(scene.links)} links (contacts taken as engaged)")
+          f"{len(scene.links)} links (contacts taken as engaged), integrator "
+          f"{chk.integrator}")
     if chk.has_port:
         dv = scene.device
         print(f"device: m = {dv.mass:g} kg, b0 = {dv.friction:g} N s/m, delay d = {dv.delay}, "
@@ -166,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) -> "
               f"K = {res.K:.6g} N/m, B = {res.B:.6g} N s/m; "
               f"{'renderable' if res.renderable else 'NOT renderable: ' + res.reason}")
-    tag = verdict.upper()
+    tag = f"{verdict.upper()} with the {chk.integrator} integrator"
     if chk.stable and chk.marginal:
         tag += " (marginal: some poles sit on the unit circle and never decay)"
     print(f"verdict: {tag}")
