@@ -13,6 +13,7 @@ __all__ = [
     "ProtocolError",
     "DeviceError",
     "UnstableConfigError",
+    "UnrenderableTargetError",
 ]
 
 
@@ -76,3 +77,31 @@ class UnstableConfigError(HapsimError, ValueError):
         self.spectral_radius = spectral_radius
         self.stiffness_limit = stiffness_limit
         super().__init__(message)
+
+
+class UnrenderableTargetError(UnstableConfigError, ConfigError):
+    """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
+
+    A configuration error (exit code 2: the scene asks for the impossible) that is also an
+    :class:`UnstableConfigError` (what callers caught before). The message names the file,
+    the line and the key ``links.NAME.target``.
+
+    Parameters
+    ----------
+    message : str
+        Why the target is not renderable (the calibration's reason).
+    file : str, optional
+        Scene file.
+    line : int, optional
+        1-based line of the link.
+    key : str, optional
+        ``links.NAME.target``.
+    spectral_radius : float, optional
+        Spectral radius of the closest (K, B) found.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None, line: int | None = None,
+                 key: str | None = None, spectral_radius: float | None = None) -> None:
+        ConfigError.__init__(self, message, file=file, line=line, key=key)
+        self.spectral_radius = spectral_radius
+        self.stiffness_limit = None

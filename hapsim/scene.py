@@ -37,6 +37,14 @@ Format
       v0: 0.0                     # initial device velocity [m/s]
       impulse: {force: 1.0, start: 0.0, duration: 0.001}   # [N], [s], [s]
       profile: hand_force.csv     # recorded hand force: columns time [s], force [N]
+    safety:                       # limits of hapsim run (all optional)
+      position_limit: 0.1         # safety stop when |x| exceeds it [m], > 0
+                                  # (default max(0.1, 20 |excitation.x0|))
+      velocity_limit: 2.0         # safety stop when |v| exceeds it [m/s], > 0 (default none)
+      energy_limit: 1.0           # safety stop when the scene has given the hand this much
+                                  # energy [J], > 0 (passivity observer; default 1 J)
+      passivity_controller: false # add Hannaford & Ryu's adaptive damping (default false)
+      max_damping: 50             # its cap [N s/m], >= 0 (default 50)
 
 Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
 the positions of the first and second mass named in ``between``,
@@ -59,7 +67,7 @@ import yaml
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Scene",
+__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Scene",
            "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS"]
 
 #: Mass kinds a scene may use.
@@ -71,7 +79,7 @@ HOLDS = ("zoh", "ideal")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
 
-_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator")
+_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator", "safety")
 _MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
               "ground": ("name", "kind", "x0"),
               "port": ("name", "kind")}
@@ -80,6 +88,8 @@ _LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping
 _DEVICE_KEYS = ("mass", "friction", "delay", "hold", "force_limit",
                 "position_resolution", "coulomb", "noise")
 _EXCITATION_KEYS = ("x0", "v0", "impulse", "profile")
+_SAFETY_KEYS = ("position_limit", "velocity_limit", "energy_limit", "passivity_controller",
+                "max_damping")
 _IMPULSE_KEYS = ("force", "start", "duration")
 _TARGET_KEYS = ("k", "b")
 
@@ -218,6 +228,33 @@ class Excitation:
 
 
 @dataclass(frozen=True)
+class Safety:
+    """Limits ``hapsim run`` enforces on the device (scene section ``safety:``).
+
+    Parameters
+    ----------
+    position_limit : float or None
+        Safety stop when ``|x|`` exceeds it [m]; None: ``max(0.1, 20 |excitation.x0|)``.
+    velocity_limit : float
+        Safety stop when the backward-difference velocity ``|v|`` exceeds it [m/s];
+        ``inf``: none.
+    energy_limit : float
+        Safety stop when the passivity observer says the scene has given the hand this
+        much energy [J] (Hannaford & Ryu 2002; see :mod:`hapsim.daemon.loop`).
+    passivity_controller : bool
+        Add the adaptive damping ``alpha = E / (T v^2)`` while that energy is positive.
+    max_damping : float
+        Cap of the adaptive damping [N s/m].
+    """
+
+    position_limit: float | None = None
+    velocity_limit: float = math.inf
+    energy_limit: float = 1.0
+    passivity_controller: bool = False
+    max_damping: float = 50.0
+
+
+@dataclass(frozen=True)
 class Scene:
     """A validated scene. Build it with :func:`load_scene` or :func:`parse_scene`.
 
@@ -237,6 +274,8 @@ class Scene:
         File the scene came from (``"<string>"`` for text).
     integrator : {"centred", "symplectic_euler", "exact"}
         Integrator of the virtual masses (:mod:`hapsim.kernels.schemes`).
+    safety : Safety
+        Limits of ``hapsim run`` (section ``safety:``; defaults when absent).
     """
 
     rate_hz: float
@@ -246,6 +285,7 @@ class Scene:
     excitation: Excitation = field(default_factory=Excitation)
     path: str = "<string>"
     integrator: str = "centred"
+    safety: Safety = field(default_factory=Safety)
 
     @property
     def period(self) -> float:
@@ -573,8 +613,10 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
                                 "switches the network (use centred or symplectic_euler)",
                                 lk.line, f"links[{i}].kind")
 
+    safety = _parse_safety(ctx, doc) if "safety" in doc else Safety()
+
     return Scene(rate_hz=rate_hz, masses=tuple(masses), links=tuple(links), device=device,
-                 excitation=excitation, path=path, integrator=integrator)
+                 excitation=excitation, path=path, integrator=integrator, safety=safety)
 
 
 def _parse_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
@@ -701,3 +743,23 @@ def _parse_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:
                             "excitation.profile")
     return Excitation(ctx.number(d, "x0", "excitation", 0.0), ctx.number(d, "v0", "excitation", 0.0),
                       impulse, profile)
+
+
+def _parse_safety(ctx: _Ctx, doc: _LDict) -> Safety:
+    d = ctx.mapping(doc["safety"], "safety", ctx.line_of(doc, "safety"))
+    ctx.keys(d, _SAFETY_KEYS, "safety")
+    pc = d.get("passivity_controller", False)
+    if not isinstance(pc, bool):
+        raise ctx.error(f"must be true or false, got {_typename(pc)} {pc!r}",
+                        ctx.line_of(d, "passivity_controller"), "safety.passivity_controller")
+    pos = None
+    if "position_limit" in d:
+        pos = ctx.number(d, "position_limit", "safety", positive=True, allow_inf=True)
+    return Safety(
+        position_limit=pos,
+        velocity_limit=ctx.number(d, "velocity_limit", "safety", math.inf, positive=True,
+                                  allow_inf=True),
+        energy_limit=ctx.number(d, "energy_limit", "safety", 1.0, positive=True, allow_inf=True),
+        passivity_controller=pc,
+        max_damping=ctx.number(d, "max_damping", "safety", 50.0, minimum=0.0),
+    )

@@ -35,7 +35,17 @@ def register(sub) -> None:
             "  $ hapsim mock --scene configs/wall.yaml\n"
             "  PORT /dev/pts/7\n"
             "  $ hapsim run configs/wall.yaml --port /dev/pts/7\n"
-            "exit codes: 0 stopped by STOP or a signal; 2 bad arguments or scene."),
+            "faults (--faults SPEC, seeded by --fault-seed N; see hapsim.daemon.faults):\n"
+            "  NAME=RATE[:DUR]   at random, probability per frame (drop, corrupt, garbage,\n"
+            "                    dup, reorder, spike) or per tick (stall, reset, vanish)\n"
+            "  NAME@TICK[:DUR]   once at device tick TICK; nohello: never answer HELLO\n"
+            "  DUR: 5ms, 300us, 0.2s (spike 5 ms, stall 200 ms, vanish 300 ms by default)\n"
+            "  e.g. drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,\n"
+            "       spike=0.001:5ms,stall@500:200ms,reset@800,vanish@1200:300ms\n"
+            "  vanish closes the pty and opens a new one: give --link PATH (a symbolic link\n"
+            "  kept pointing at the current pty) and open PATH from the host. With faults,\n"
+            "  STOP does not end the mock (a host sends STOP when it loses the device).\n"
+            "exit codes: 0 stopped by STOP or a signal; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", metavar="SCENE", help="scene whose device/excitation to model")
     p.add_argument("--lockstep", action="store_true",
@@ -45,6 +55,12 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
     p.add_argument("--report", metavar="FILE",
                    help="write what the mock saw (ticks, late, last force, STOP) as JSON on exit")
+    p.add_argument("--faults", metavar="SPEC",
+                   help="inject seeded faults (see below), e.g. drop=0.01,reset@800")
+    p.add_argument("--fault-seed", type=int, default=0, metavar="N",
+                   help="seed of the fault generator (default 0)")
+    p.add_argument("--link", metavar="PATH",
+                   help="keep a symbolic link PATH to the current pty (needed by vanish)")
     p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
@@ -62,9 +78,40 @@ def _from_spec(text: str):
     return Device(**d), Excitation(**e), spec.get("base_dir")
 
 
+def _new_pty(link: str | None, announce: bool) -> tuple[int, int]:
+    """A raw pty (master, slave); points ``link`` at it atomically; prints ``PORT``."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    name = os.ttyname(slave)
+    if link:
+        tmp = f"{link}.new"
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        os.symlink(name, tmp)
+        os.replace(tmp, link)
+    if announce:
+        print(f"PORT {link or name}", flush=True)
+    return master, slave
+
+
 def run(args) -> int:
     """Run ``hapsim mock``; returns the exit code."""
+    from hapsim.daemon.faults import parse_faults
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
+
+    plan = parse_faults(args.faults, args.fault_seed) if args.faults else None
+    if plan is not None and plan.has_vanish and not args.link:
+        raise ConfigError("a vanish fault closes the pty and opens a new one: give --link "
+                          "PATH and open PATH from the host", key="--link")
+
+    def reopen() -> int:
+        # the new slave is closed at once: its raw settings stay with the pty; the mock
+        # ignores EIO until the host opens it
+        master, slave = _new_pty(args.link, announce=args.fd is None)
+        os.close(slave)
+        return master
 
     rate = 1000.0
     if args.spec:
@@ -86,22 +133,26 @@ def run(args) -> int:
     mock = MockDevice(device, excitation, native_rate_hz=rate, lockstep=args.lockstep,
                       seed=args.seed, base_dir=base_dir)
     if args.fd is not None:
-        # embedded in hapsim run: the host owns the terminal; end on STOP, EOF or SIGTERM
+        # embedded in hapsim run: the host owns the terminal; end on EOF/EIO or SIGTERM
         import signal
 
         from hapsim.daemon.loop import StopFlag
         flag = StopFlag()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
-        serve_fd(args.fd, mock, exit_on_stop=True, report_path=args.report, flag=flag,
-                 handle_signals=False)
+        # the host sends STOP when it loses the device and then reconnects: the embedded
+        # mock ends when the host closes the port (EIO), not on STOP
+        serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
+                 handle_signals=False, plan=plan, reopen=reopen)
         return 0
-    master, slave = pty.openpty()
-    tty.setraw(slave)
-    print(f"PORT {os.ttyname(slave)}", flush=True)
+    master, slave = _new_pty(args.link, announce=True)
     try:
-        serve_fd(master, mock, exit_on_stop=True, report_path=args.report)
+        serve_fd(master, mock, exit_on_stop=True, report_path=args.report, plan=plan,
+                 reopen=reopen)
     finally:
-        os.close(master)
-        os.close(slave)
+        for fd in (master, slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
     return 0

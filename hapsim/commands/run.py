@@ -45,17 +45,34 @@ timing: STATE n carries x(nT); FORCE n is computed from x[n], x[n-1] and applied
 safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM -> zero
   force, STOP, telemetry flushed, exit 0; an unstable scene is refused unless
   --allow-unstable, which runs it under safety stops (force at the limit in half of the
-  last 100 samples, position beyond bounds, non-finite values) that end with zero force.
+  last 100 samples, position beyond bounds, non-finite values) that end with zero force;
+  the scene's 'safety:' section adds position_limit [m], velocity_limit [m/s],
+  energy_limit [J] (passivity observer: energy the scene gave the hand) and an optional
+  passivity_controller with max_damping [N s/m].
+reliability: bad frames are counted and dropped; silence longer than --lost-timeout
+  (default 0.1 s; the device zeroes its force after its 50 ms watchdog), a port error or a
+  device reset -> zero force, STOP, then re-open, HELLO, CONFIG with backoff (at most
+  --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
+  state at the device's position, force ramped over 50 ms. --telemetry FILE.hst is a
+  chunked journal written every 50 ms (a killed daemon loses < 100 ms; load it with
+  hapsim.daemon.telemetry.load); with .npz/.csv the journal is FILE.hst until the end.
+faults (embedded mock): --faults SPEC --fault-seed N, SPEC items NAME=RATE[:DUR] (drop,
+  corrupt, garbage, dup, reorder, spike: per frame; stall, reset, vanish: per tick),
+  NAME@TICK[:DUR] (once at device tick TICK), nohello; DUR like 5ms, 0.3s. Example:
+  --faults drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
+           stall@500:200ms,reset@800,vanish@1200:300ms
 examples:
   hapsim run configs/wall.yaml
   hapsim run configs/felt_wall.yaml --lockstep --json
   hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
   hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
   hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
+  hapsim run configs/wall.yaml --faults drop=0.01,reset@800 --telemetry wall.hst
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
-  1  refused (unstable loop, target not renderable), safety stop, device fault/silence
-  2  bad arguments or invalid scene"""
+  1  refused (unstable loop), safety stop, latched device fault, device lost beyond
+     recovery (or silent with --no-reconnect)
+  2  bad arguments, invalid scene, unrenderable target, unknown fault name"""
 
 
 def register(sub) -> None:
@@ -87,6 +104,19 @@ def register(sub) -> None:
                         "the felt (k, b) within --tolerance (calibrating port links)")
     p.add_argument("--tolerance", type=float, default=0.01, metavar="REL",
                    help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
+    p.add_argument("--faults", metavar="SPEC",
+                   help="inject seeded faults in the embedded mock, e.g. "
+                        "drop=0.01,corrupt=0.005,stall@500:200ms,reset@800 (see below)")
+    p.add_argument("--fault-seed", type=int, default=0, metavar="N",
+                   help="seed of the fault generator (default 0)")
+    p.add_argument("--no-reconnect", action="store_true",
+                   help="a lost device ends the run (exit 1) instead of being recovered")
+    p.add_argument("--lost-timeout", type=float, metavar="S",
+                   help="silence after which the device is lost [s] (default 0.1)")
+    p.add_argument("--reconnect-attempts", type=int, default=8, metavar="N",
+                   help="most reconnect attempts per loss (default 8)")
+    p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
+                   help="most time spent recovering one loss [s] (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -113,6 +143,19 @@ def run(args) -> int:
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
+    if args.lost_timeout is not None and not (math.isfinite(args.lost_timeout)
+                                              and args.lost_timeout > 0):
+        raise ConfigError(f"must be a positive number [s], got {args.lost_timeout}",
+                          key="--lost-timeout")
+    if args.reconnect_attempts < 0:
+        raise ConfigError(f"must be >= 0, got {args.reconnect_attempts}",
+                          key="--reconnect-attempts")
+    if not (math.isfinite(args.reconnect_time) and args.reconnect_time >= 0):
+        raise ConfigError(f"must be a number of seconds >= 0, got {args.reconnect_time}",
+                          key="--reconnect-time")
+    if args.faults:
+        from hapsim.daemon.faults import parse_faults
+        parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
     scene = load_scene(args.scene)
     advice = None
     if args.auto:
@@ -130,7 +173,12 @@ def run(args) -> int:
     rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                    seed=args.seed, on_start=_announce)
+                    seed=args.seed, on_start=_announce, faults=args.faults,
+                    fault_seed=args.fault_seed,
+                    reconnect=False if args.no_reconnect else None,
+                    lost_timeout=args.lost_timeout,
+                    reconnect_attempts=args.reconnect_attempts,
+                    reconnect_time=args.reconnect_time)
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()

@@ -449,6 +449,8 @@ class MockDevice:
         self.configured = False
         self.physics: MockPhysics | None = None
         self.stats = MockStats()
+        self.history: list = []      # the MockStats of each earlier CONFIG (lifetime totals)
+        self.trace: list | None = None  # tests: (time_us, applied force [N]) per tick when a list
         self.rate_hz = self.native_rate_hz
         self.force_limit = float(device.force_limit)
         self.watchdog_us = 0
@@ -516,6 +518,7 @@ class MockDevice:
         self.force_limit = min(float(msg.force_limit), float(self.device.force_limit))
         self.physics = MockPhysics(self.device, self.rate_hz, self.excitation,
                                    seed=self.seed, base_dir=self.base_dir)
+        self.history.append(self.stats)
         self.stats = MockStats(last_host_message="Config")
         self._rs = [-1] * self._ring
         self._applied = 0.0
@@ -582,6 +585,8 @@ class MockDevice:
         self._applied_seq = seq
         self._u = f
         self.stats.last_applied = f
+        if self.trace is not None:
+            self.trace.append((now_us, f))
 
     def _emit(self, now_us: int) -> fp.State:
         """STATE of the current tick (choosing its force first when ``d >= 1``)."""
@@ -594,6 +599,21 @@ class MockDevice:
         status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
                         (ph.sample(),))
+
+    def totals(self) -> dict:
+        """Counters summed over every CONFIG since start (``stats`` holds the current one).
+
+        Returns
+        -------
+        dict
+            ``ticks``, ``forces_rx``, ``late``, ``watchdog_trips``, ``clamped``,
+            ``overruns``, ``unexpected``, ``configs`` (number of CONFIGs accepted).
+        """
+        keys = ("ticks", "forces_rx", "late", "watchdog_trips", "clamped", "overruns",
+                "unexpected")
+        out = {k: sum(getattr(s, k) for s in self.history + [self.stats]) for k in keys}
+        out["configs"] = len(self.history)
+        return out
 
     def tick(self, now_us: int) -> fp.State | None:
         """Real-time tick: apply the force due, emit STATE, advance the physics one period.
@@ -619,6 +639,8 @@ class MockDevice:
 
 def _write(fd: int, data: bytes) -> bool:
     """Write ``data`` to a non-blocking fd; False when the peer is gone or the buffer full."""
+    if not data:
+        return True
     try:
         os.write(fd, data)
         return True
@@ -628,7 +650,7 @@ def _write(fd: int, data: bytes) -> bool:
 
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
-             handle_signals: bool = True) -> dict:
+             handle_signals: bool = True, plan=None, reopen=None) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -646,11 +668,23 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         Polled each iteration; serving ends when its ``set`` becomes true.
     handle_signals : bool
         Install SIGTERM/SIGINT handlers that end serving cleanly (main thread only).
+    plan : FaultPlan, optional
+        Faults to inject (:mod:`hapsim.daemon.faults`): wire faults on every frame sent,
+        stall / reset / vanish at device ticks, no HELLO.
+    reopen : callable, optional
+        ``reopen() -> fd``: a new port after a ``vanish`` (the old ``fd`` is closed when
+        the port vanishes); required when the plan can make the port vanish.
 
     Returns
     -------
     dict
-        The final report (same content as the JSON file).
+        The final report (same content as the JSON file), with ``faults_injected`` and
+        ``fault_events`` when a plan was given, and ``totals`` over every CONFIG.
+
+    Raises
+    ------
+    ConfigError
+        A plan with ``vanish`` but no ``reopen``.
 
     Notes
     -----
@@ -663,41 +697,71 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     change it. The garbage collector is disabled while serving.
     Serving ends on EOF/EIO (host side closed), STOP (when ``exit_on_stop``), or the flag.
     """
+    from hapsim.daemon.faults import FaultyDevice
+
     flag = flag or StopFlag()
+    if plan is not None and plan.has_vanish and reopen is None:
+        raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
+                          key="--faults")
     if handle_signals:
         def _on_signal(signum, frame):
             flag.request(signum)
         for s in (signal.SIGTERM, signal.SIGINT):
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
-    dec = fp.StreamDecoder()
+    dev = FaultyDevice(mock, plan)
     t0 = time.monotonic_ns()
 
     def now_us() -> int:
         return (time.monotonic_ns() - t0) // 1000
 
-    _write(fd, fp.encode(mock.hello()))
+    dev.connect(now_us())
+    _write(fd, dev.pop_due(now_us()))
     gc_was = gc.isenabled()
     gc.disable()
     deadline = None            # monotonic ns of the next real-time tick
     period_ns = 0
     reason = "flag"
+    awaiting_host = False
     try:
         while not flag.set:
+            now_ns = time.monotonic_ns()
+            t_us = (now_ns - t0) // 1000
+            if dev.vanish_pending:               # the port disappears: close the master
+                dev.vanish_pending = False
+                if fd is not None:
+                    os.close(fd)
+                fd = None
+            if fd is None and not dev.vanished(t_us):
+                fd = reopen()
+                os.set_blocking(fd, False)
+                awaiting_host = True             # EIO until the host opens the new port
+                dev.poll(t_us)                   # 0x00 + HELLO on the new port
             if not mock.lockstep and mock.armed:
                 if deadline is None:
                     period_ns = int(round(1e9 / mock.rate_hz))
-                    deadline = time.monotonic_ns()
-                wait = (deadline - time.monotonic_ns() - 300_000) / 1e9
+                    deadline = now_ns
+                wait = (deadline - now_ns - 300_000) / 1e9
             else:
                 deadline = None
                 wait = 0.05
+            rel = dev.next_release_us()
+            if rel is not None:
+                wait = min(wait, max((rel - t_us) * 1e-6, 0.0))
+            down = fd is None or dev.link_down(t_us)
+            if down:
+                end = max(dev.stalled_until_us, dev.vanished_until_us)
+                wait = min(wait, max((end - t_us) * 1e-6, 0.0))
+            r = []
             if wait > 0:
                 try:
-                    r, _, _ = select.select([fd], [], [], min(wait, 0.05))
+                    if down:
+                        time.sleep(min(wait, 0.05))
+                    else:
+                        r, _, _ = select.select([fd], [], [], min(wait, 0.05))
                 except InterruptedError:
                     continue
-            else:
+            elif not down:
                 r = [fd]
             if r:
                 try:
@@ -705,19 +769,21 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 except BlockingIOError:
                     chunk = None
                 except OSError:            # EIO: every slave fd closed
-                    reason = "host closed"
-                    break
+                    if awaiting_host:
+                        time.sleep(0.001)
+                        chunk = None
+                    else:
+                        reason = "host closed"
+                        break
                 if chunk == b"":
                     reason = "host closed"
                     break
                 if chunk:
-                    stop_seen = False
-                    for msg in dec.feed(chunk):
-                        for reply in mock.handle(msg, now_us()):
-                            _write(fd, fp.encode(reply))
-                        if isinstance(msg, fp.Stop):
-                            stop_seen = True
-                    if stop_seen and exit_on_stop:
+                    awaiting_host = False
+                    msgs = dev.feed(chunk, now_us())
+                    if exit_on_stop and dev.plan.empty and any(
+                            isinstance(m, fp.Stop) for m in msgs):
+                        _write(fd, dev.pop_due(now_us()))
                         reason = "stop"
                         break
             if deadline is not None and mock.armed:
@@ -725,19 +791,27 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 if now >= deadline:
                     if now - deadline > period_ns // 2:
                         mock.stats.overruns += 1
-                    state = mock.tick(now_us())
-                    if state is not None:
-                        _write(fd, fp.encode(state))
+                    dev.tick(now_us())
                     # the host always gets at least half a period to answer: a mock
                     # scheduled late slips its schedule (counted) instead of compressing it
                     deadline = max(deadline + period_ns, now + period_ns // 2)
+            else:
+                dev.poll(now_us())
+            if fd is not None:
+                data = dev.pop_due(now_us())
+                if data:
+                    _write(fd, data)
     finally:
         if gc_was:
             gc.enable()
         mock.stop()
         report = mock.stats.to_dict()
         report["end"] = reason
-        report["decoder"] = dec.stats.as_dict()
+        report["decoder"] = dev.decoder.stats.as_dict()
+        report["totals"] = mock.totals()
+        if plan is not None:
+            report["faults_injected"] = dict(plan.to_dict()["injected"])
+            report["fault_events"] = dev.events
         if report_path:
             tmp = report_path + ".partial"
             with open(tmp, "w") as fh:

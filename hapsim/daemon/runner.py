@@ -30,8 +30,8 @@ import numpy as np
 from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
-from hapsim.daemon.telemetry import Telemetry
-from hapsim.errors import ConfigError, DeviceError, UnstableConfigError
+from hapsim.daemon.telemetry import ChunkWriter, Telemetry
+from hapsim.errors import ConfigError, DeviceError, UnrenderableTargetError, UnstableConfigError
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -98,8 +98,9 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None):
     ------
     ConfigError
         No port or device.
-    UnstableConfigError
-        A target is not renderable (message: the analysis's reason).
+    UnrenderableTargetError
+        A target is not renderable (message: file, line, ``links.NAME.target`` and the
+        analysis's reason); a ConfigError and an UnstableConfigError.
     """
     if rate_hz is not None:
         scene = scene.with_rate(rate_hz)
@@ -117,9 +118,10 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None):
                 "damping_ratio": b / (2 * math.sqrt(k * m))}
         targets.append(info)
         if not cal.renderable:
-            raise UnstableConfigError(
-                f"{scene.path}: link {lk.name!r}: target k = {k:g} N/m, b = {b:g} N s/m is not "
-                f"renderable with this device at {scene.rate_hz:g} Hz: {cal.reason}",
+            raise UnrenderableTargetError(
+                f"target k = {k:g} N/m, b = {b:g} N s/m is not renderable with this device at "
+                f"{scene.rate_hz:g} Hz: {cal.reason}",
+                file=scene.path, line=lk.line or None, key=f"links.{lk.name}.target",
                 spectral_radius=cal.spectral_radius if math.isfinite(cal.spectral_radius) else None)
         scene = scene.with_link(lk.name, stiffness=cal.K, damping=cal.B)
     return scene, targets
@@ -310,7 +312,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry: str | None = None, allow_unstable: bool = False,
               transport: str | None = None, seed: int = 0,
               stop: StopFlag | None = None, handle_signals: bool = True,
-              on_start=None) -> dict:
+              on_start=None, faults: str | None = None, fault_seed: int = 0,
+              reconnect: bool | None = None, lost_timeout: float | None = None,
+              reconnect_attempts: int = 8, reconnect_time: float = 10.0,
+              telemetry_interval: float = 0.05) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -331,12 +336,17 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Host's clock instead of the device's (with ``lockstep``: the host paces the
         lockstep device in real time).
     telemetry : str, optional
-        ``.npz`` / ``.csv`` path for the per-sample telemetry.
+        Per-sample telemetry file: ``.hst`` (chunked journal, appended every
+        ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
+        journal ``PATH.hst`` is written during the run, so a killed daemon leaves its rows
+        there, and removed once the export succeeded).
     allow_unstable : bool
         Run a loop the analysis finds unstable (safety stops end it).
-    transport : {"serial", "pty", "inprocess"}, optional
+    transport : {"serial", "pty", "inprocess", "sim"}, optional
         Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
-        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly.
+        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
+        ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
+        (:class:`~hapsim.daemon.transport.SimTransport`: fast, deterministic fault tests).
     seed : int
         Mock sensor-noise seed.
     stop : StopFlag, optional
@@ -347,6 +357,21 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Called as ``on_start(port, n_samples)`` once the port is open and the signal
         handlers are installed, just before the handshake (e.g. to tell the user that
         Ctrl-C now stops cleanly).
+    faults : str, optional
+        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
+    fault_seed : int
+        Seed of the fault generator.
+    reconnect : bool, optional
+        Recover a lost device (default: on in real time, off in lockstep).
+    lost_timeout : float, optional
+        Silence after which the device is lost [s] (default 0.1 s in real time: two
+        watchdog periods; the device zeroes its force after one).
+    reconnect_attempts : int
+        Most HELLO + CONFIG attempts per loss.
+    reconnect_time : float
+        Most time spent recovering one loss [s].
+    telemetry_interval : float
+        Time between two telemetry chunks [s].
 
     Returns
     -------
@@ -369,16 +394,29 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                           key="--duration")
     if transport is None:
         transport = "serial" if port else "pty"
-    if transport not in ("serial", "pty", "inprocess"):
-        raise ConfigError(f"unknown transport {transport!r}; valid: serial, pty, inprocess",
+    if transport not in ("serial", "pty", "inprocess", "sim"):
+        raise ConfigError(f"unknown transport {transport!r}; valid: serial, pty, inprocess, sim",
                           key="transport")
+    if transport == "sim" and lockstep:
+        raise ConfigError("the sim transport runs the real-time mock on a virtual clock; "
+                          "drop --lockstep", key="--lockstep")
+    if transport == "sim" and host_clocked:
+        raise ConfigError("the sim transport is device-clocked only", key="--host-clocked")
+    from hapsim.daemon.faults import parse_faults
+    plan = parse_faults(faults, fault_seed)
+    if not plan.empty and transport not in ("pty", "sim"):
+        raise ConfigError("faults are injected by the mock: use the embedded mock (no --port) "
+                          "or 'hapsim mock --faults' behind --port", key="--faults")
+    if reconnect is None:
+        reconnect = not lockstep
     if transport == "serial" and not port:
         raise ConfigError("transport 'serial' needs a port", key="--port")
     if transport == "inprocess" and not lockstep:
         raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
-    if telemetry is not None and os.path.splitext(telemetry)[1].lower() not in (".npz", ".csv"):
-        raise ConfigError(f"unknown telemetry format for {telemetry!r}; valid: .npz, .csv",
-                          key="--telemetry")
+    if telemetry is not None and os.path.splitext(telemetry)[1].lower() not in (
+            ".npz", ".csv", ".hst"):
+        raise ConfigError(f"unknown telemetry format for {telemetry!r}; valid: .hst (chunked "
+                          f"journal), .npz, .csv", key="--telemetry")
     scene, targets = prepare_scene(scene, rate_hz)
     dev = scene.device
     if dev.delay == 0 and not lockstep:
@@ -415,6 +453,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     engine = Engine(scene)
     tel = Telemetry(n_samples)
     x0 = abs(scene.excitation.x0)
+    sf = scene.safety
+    pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
     cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
                      force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
                      state_timeout=(0.5 if transport == "inprocess" else 10.0) if lockstep
@@ -422,7 +462,14 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                      # the embedded mock is a fresh Python process (imports take seconds
                      # on a loaded machine); hardware answers at once
                      hello_timeout=30.0 if transport == "pty" else 5.0,
-                     position_bound=max(0.1, 20.0 * x0))
+                     position_bound=pos_bound, velocity_limit=sf.velocity_limit,
+                     energy_limit=sf.energy_limit,
+                     passivity_controller=sf.passivity_controller,
+                     max_damping=sf.max_damping, reconnect=bool(reconnect),
+                     lost_timeout=(lost_timeout if lost_timeout is not None
+                                   else (None if transport == "sim" else 0.1)),
+                     reconnect_attempts=int(reconnect_attempts),
+                     reconnect_time=float(reconnect_time))
     stop = stop or StopFlag()
     embedded = None
     mock_report = None
@@ -431,10 +478,16 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                           seed=seed, base_dir=base_dir)
         tr = InProcessTransport(mock)
+    elif transport == "sim":
+        from hapsim.daemon.transport import SimTransport
+        mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
+                          seed=seed, base_dir=base_dir)
+        tr = SimTransport(mock, plan)
     elif transport == "pty":
         from hapsim.daemon.transport import EmbeddedMock, SerialTransport
         embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                seed=seed, base_dir=base_dir)
+                                seed=seed, base_dir=base_dir, faults=faults or None,
+                                fault_seed=fault_seed)
         try:
             tr = SerialTransport(embedded.port, baud)
         except Exception:
@@ -451,6 +504,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             stop.request(signum)
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, _on_signal)
+    writer = None
+    journal = None
+    if telemetry:
+        journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
+        writer = ChunkWriter(tel, journal, telemetry_interval).start()
     try:
         if on_start is not None:
             on_start(tr.info.get("port"), n_samples)
@@ -458,22 +516,34 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         try:
             res = loop.run()
         except DeviceError:
-            if telemetry and tel.n:
+            if writer is not None:
+                writer.close()
+                writer = None
+            if telemetry and tel.n and journal != telemetry:
                 tel.write(telemetry)      # what was logged helps diagnose the failure
+                _remove(journal)
             raise
     finally:
+        if writer is not None:
+            writer.close()
         for s, h in old.items():
             signal.signal(s, h)
         tr.close()
         if embedded is not None:
             mock_report = embedded.report()
             embedded.close()
-    if transport == "inprocess":
+    if transport in ("inprocess", "sim"):
         mock_report = mock.stats.to_dict()
+        mock_report["totals"] = mock.totals()
+        if transport == "sim":
+            mock_report["faults_injected"] = plan.to_dict()["injected"]
+            mock_report["fault_events"] = tr.device.events
 
     tel_info = None
     if telemetry:
-        tel.write(telemetry)
+        if journal != telemetry:
+            tel.write(telemetry)
+            _remove(journal)
         tel_info = {"path": telemetry, "samples": tel.n,
                     "columns": ["time [s]", "position [m]", "force [N]", "seq",
                                 "turnaround [us]"]}
@@ -523,17 +593,46 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "low_latency": bool(tr.info.get("low_latency")),
         "low_latency_note": tr.info.get("low_latency_note", ""),
         "stop_reason": res.stop_reason, "safety_stop": res.safety_stop,
-        "faults": res.faults, "decoder": res.decoder,
+        "decoder": res.decoder,
         "device": None if hello is None else {
             "device_id": hello.device_id, "force_limit": hello.force_limit,
             "native_rate_hz": hello.native_rate_hz},
         "mock": mock_report,
         "excitation_end_s": exc_end,
+        "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
+        "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
+        "lost": res.lost, "recovered": res.recovered,
+        "reconnect_attempts": res.reconnect_attempts, "events": res.events,
+        "energy_j": res.energy, "energy_max_j": res.energy_max,
+        "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
+        "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
+                   "energy_limit": cfg.energy_limit,
+                   "passivity_controller": cfg.passivity_controller,
+                   "max_damping": cfg.max_damping},
+        "faults": res.faults, "fault_plan": _fault_plan(plan, mock_report),
     }
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
             "telemetry": tel_info,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+
+
+def _fault_plan(plan, mock_report) -> dict | None:
+    """Spec, seed and the faults the mock injected (its own count when it is a child)."""
+    if plan.empty:
+        return None
+    out = plan.to_dict()
+    if mock_report and mock_report.get("faults_injected") is not None:
+        out["injected"] = mock_report["faults_injected"]
+    return out
+
+
+def _remove(path: str | None) -> None:
+    if path:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
 
 
 def _fmt(v, spec: str) -> str:
@@ -610,6 +709,20 @@ def format_report(rep: dict) -> str:
     lines.append(f"turnaround [us]: p50 {_fmt(ta.get('p50'), '.0f')}  p99 "
                  f"{_fmt(ta.get('p99'), '.0f')}  p99.9 {_fmt(ta.get('p999'), '.0f')}  max "
                  f"{_fmt(ta.get('max'), '.0f')}; low-latency mode {ll}")
+    if lp.get("lost") or lp.get("stale") or lp.get("bad_axes") or lp.get("device_faults") \
+            or lp.get("fault_plan"):
+        dec = lp.get("decoder") or {}
+        bad = sum(v for k, v in dec.items() if k != "frames_ok")
+        lines.append(f"faults: lost {lp['lost']}, recovered {lp['recovered']} "
+                     f"({lp['reconnect_attempts']} attempts), stale {lp['stale']}, bad frames "
+                     f"{bad}, wrong axes {lp['bad_axes']}, device faults "
+                     f"{lp['device_faults'] or 0}")
+        if lp.get("fault_plan"):
+            lines.append(f"injected: {lp['fault_plan']['injected']} "
+                         f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
+    lines.append(f"energy to the hand [J]: max {_fmt(lp.get('energy_max_j'), '.4g')}, end "
+                 f"{_fmt(lp.get('energy_j'), '.4g')} (limit {_fmt(lp['safety']['energy_limit'], 'g')}"
+                 f"{', passivity controller on' if lp['safety']['passivity_controller'] else ''})")
     mk = lp.get("mock")
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
