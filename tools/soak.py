@@ -1,0 +1,186 @@
+#!/usr/bin/env python3
+"""Soak test of the hapsim daemon: N minutes at 1 kHz over a pty with random faults.
+
+Not a test (no assertions): a program that runs ``run_scene`` on the embedded mock (a
+child process behind a real pseudo-terminal, real time) with a seeded random fault plan and
+a hand force that keeps the loop moving, and prints what happened:
+
+- faults injected (by the mock), losses and recoveries (by the host), reconnect attempts;
+- frames lost: STATEs the host never used (gaps, bad frames, stale), ticks the mock made
+  while the host had lost it;
+- the largest force sent, the energy the scene gave the hand;
+- memory: RSS (``VmRSS`` of ``/proc/PID/status``) of the host and of the mock child,
+  sampled every 10 s, growth from the first sample after one minute (warm-up) to the end;
+- turnaround percentiles.
+
+Usage::
+
+    PYTHONPATH=. python tools/soak.py --minutes 10 --seed 1 --json docs/soak.json
+
+Default fault SPEC (per frame / per tick at 1 kHz, so about one stall, reset or vanish a
+minute): see ``DEFAULT_FAULTS``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+#: Faults of the soak: wire faults per frame, device faults per tick (1 kHz).
+DEFAULT_FAULTS = ("drop=0.002,corrupt=0.001,garbage=0.0005,dup=0.0005,reorder=0.0005,"
+                  "spike=0.0005:5ms,stall=0.00002:200ms,reset=0.00002,vanish=0.00001:300ms")
+
+SCENE = """\
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground, x0: 0.0}
+links:
+  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000.0, damping: 1.5}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10.0}
+excitation:
+  x0: 0.005
+  profile: hand.csv
+safety: {position_limit: 0.1, velocity_limit: 5.0, energy_limit: 5.0}
+"""
+
+
+def rss_kb(pid: int | str = "self") -> int | None:
+    """``VmRSS`` of a process [kB] from ``/proc/PID/status`` (None when gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def mock_children() -> list[int]:
+    """PIDs of this process's children running ``hapsim mock``."""
+    me = os.getpid()
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+            if ppid != me:
+                continue
+            with open(f"/proc/{d}/cmdline", "rb") as fh:
+                if b"mock" in fh.read():
+                    out.append(int(d))
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--faults", default=DEFAULT_FAULTS)
+    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    ap.add_argument("--telemetry", metavar="FILE.hst", help="keep the telemetry journal")
+    args = ap.parse_args(argv)
+
+    from hapsim.daemon.runner import run_scene
+    from hapsim.daemon.telemetry import load
+    from hapsim.scene import load_scene
+
+    tmp = tempfile.mkdtemp(prefix="hapsim-soak-")
+    duration = args.minutes * 60.0
+    t = np.arange(0.0, duration + 1.0, 0.01)
+    hand = 0.3 * np.sin(2 * math.pi * 0.7 * t) + 0.2 * np.sin(2 * math.pi * 3.1 * t)
+    np.savetxt(os.path.join(tmp, "hand.csv"), np.column_stack([t, hand]), delimiter=",",
+               header="time,force", comments="")
+    with open(os.path.join(tmp, "soak.yaml"), "w") as fh:
+        fh.write(SCENE)
+    scene = load_scene(os.path.join(tmp, "soak.yaml"))
+    tel_path = args.telemetry or os.path.join(tmp, "soak.hst")
+
+    samples = []          # (t [s], host RSS [kB], mock RSS [kB])
+    done = threading.Event()
+    t0 = time.monotonic()
+
+    def sampler():
+        while not done.wait(10.0):
+            kids = mock_children()
+            samples.append((time.monotonic() - t0, rss_kb(),
+                            rss_kb(kids[0]) if kids else None))
+
+    th = threading.Thread(target=sampler, daemon=True)
+    th.start()
+    print(f"soak: {args.minutes:g} min at 1 kHz over a pty, faults {args.faults} "
+          f"(seed {args.seed})", file=sys.stderr, flush=True)
+    error = None
+    rep = None
+    try:
+        rep = run_scene(scene, duration=duration, faults=args.faults, fault_seed=args.seed,
+                        telemetry=tel_path, handle_signals=True, reconnect_attempts=20,
+                        reconnect_time=30.0)
+    except Exception as exc:  # the soak reports whatever ended it
+        error = f"{type(exc).__name__}: {exc}"
+    done.set()
+    wall = time.monotonic() - t0
+    info: dict = {}
+    cols = load(tel_path, info=info)
+    f = cols["force"]
+    out = {"minutes": args.minutes, "wall_s": round(wall, 1), "faults_spec": args.faults,
+           "seed": args.seed, "error": error, "telemetry_rows": int(cols["seq"].size),
+           "telemetry_chunks": info.get("chunks"),
+           "max_abs_force_logged_n": float(np.max(np.abs(f))) if f.size else None}
+    if rep is not None:
+        lp = rep["loop"]
+        mk = lp.get("mock") or {}
+        dec = lp.get("decoder") or {}
+        bad = sum(v for k, v in dec.items() if k != "frames_ok")
+        out.update({
+            "samples": lp["ticks"], "requested": lp["requested"],
+            "stop_reason": lp["stop_reason"],
+            "faults_injected": (lp.get("fault_plan") or {}).get("injected"),
+            "lost": lp["lost"], "recovered": lp["recovered"],
+            "reconnect_attempts": lp["reconnect_attempts"],
+            "missed_states": lp["missed"], "stale_states": lp["stale"],
+            "bad_frames": bad, "decoder": dec, "late": lp["late"],
+            "mock_ticks_total": (mk.get("totals") or {}).get("ticks"),
+            "mock_configs": (mk.get("totals") or {}).get("configs"),
+            "mock_watchdog_trips_total": (mk.get("totals") or {}).get("watchdog_trips"),
+            "max_force_n": lp["f_max"], "force_limit_n": scene.device.force_limit,
+            "energy_max_j": lp["energy_max_j"], "v_max": lp["v_max"],
+            "turnaround_us": lp["turnaround_us"],
+        })
+        if out["mock_ticks_total"] is not None:
+            out["frames_lost"] = int(out["mock_ticks_total"] - lp["ticks"])
+    warm = [s for s in samples if s[0] >= 60.0] or samples
+    if warm:
+        first, last = warm[0], samples[-1]
+        out["rss_host_kb"] = {"first_after_warmup": first[1], "end": last[1],
+                              "growth": (last[1] - first[1]) if first[1] and last[1] else None,
+                              "max": max(s[1] for s in samples if s[1])}
+        ms = [s for s in warm if s[2]]
+        if ms:
+            out["rss_mock_kb"] = {"first_after_warmup": ms[0][2], "end": ms[-1][2],
+                                  "growth": ms[-1][2] - ms[0][2],
+                                  "max": max(s[2] for s in ms)}
+    out["rss_samples"] = samples
+    text = json.dumps(out, indent=1)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+    return 0 if error is None else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
