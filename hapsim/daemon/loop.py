@@ -138,7 +138,8 @@ class LoopConfig:
         :class:`DeviceError` (device-clocked loop only).
     lost_timeout : float or None
         Silence after which the device is lost [s]; None: ``watchdog_us``. Without
-        ``reconnect`` the silence allowed is ``state_timeout``.
+        ``reconnect`` the silence allowed is ``state_timeout``; the first STATE after a
+        CONFIG may take up to ``state_timeout`` (a device restarting).
     reconnect_attempts : int
         Most HELLO + CONFIG attempts per loss.
     reconnect_time : float
@@ -609,8 +610,11 @@ class HostLoop:
                     raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
                 t_rx = perf()
                 if not msgs:
-                    if clock() - last_rx > silence:
-                        raise _Lost(f"no STATE from the device for {silence:g} s")
+                    quiet = clock() - last_rx
+                    # a device (re)starting after CONFIG gets state_timeout for its first STATE
+                    if quiet > silence and (not self._fresh or quiet > cfg.state_timeout):
+                        raise _Lost(f"no STATE from the device for "
+                                    f"{silence if not self._fresh else cfg.state_timeout:g} s")
                     continue
                 for msg in msgs:
                     tm = type(msg)

@@ -242,6 +242,8 @@ class MockPhysics:
         Seed of the sensor-noise generator (numpy ``default_rng``).
     base_dir : str, optional
         Directory relative profile paths are resolved against.
+    hand : ndarray, optional
+        Precomputed :func:`hand_force_samples` (a device restarted by CONFIG reuses it).
 
     Attributes
     ----------
@@ -261,7 +263,8 @@ class MockPhysics:
     """
 
     def __init__(self, device: Device, rate_hz: float, excitation: Excitation | None = None,
-                 *, seed: int = 0, base_dir: str | None = None) -> None:
+                 *, seed: int = 0, base_dir: str | None = None,
+                 hand: np.ndarray | None = None) -> None:
         exc = excitation or Excitation()
         self.device = device
         self.period = T = 1.0 / float(rate_hz)
@@ -277,7 +280,7 @@ class MockPhysics:
         self.v = float(exc.v0)
         self._xprev = self.x - self.v * T          # ideal hold: x[-1]
         self.n = 0
-        self.hand = hand_force_samples(exc, T, base_dir)
+        self.hand = hand if hand is not None else hand_force_samples(exc, T, base_dir)
         self._q = float(device.position_resolution or 0.0)
         self._coulomb = float(device.coulomb or 0.0)
         self._noise = float(device.noise or 0.0)
@@ -450,6 +453,7 @@ class MockDevice:
         self.physics: MockPhysics | None = None
         self.stats = MockStats()
         self.history: list = []      # the MockStats of each earlier CONFIG (lifetime totals)
+        self._hand_cache: dict = {}
         self.trace: list | None = None  # tests: (time_us, applied force [N]) per tick when a list
         self.rate_hz = self.native_rate_hz
         self.force_limit = float(device.force_limit)
@@ -516,8 +520,12 @@ class MockDevice:
         self.rate_hz = float(msg.rate_hz)
         self.watchdog_us = int(msg.watchdog_us)
         self.force_limit = min(float(msg.force_limit), float(self.device.force_limit))
+        hand = self._hand_cache.get(self.rate_hz)
+        if hand is None:      # reading a long profile takes time: once per rate, not per CONFIG
+            hand = self._hand_cache[self.rate_hz] = hand_force_samples(
+                self.excitation, 1.0 / self.rate_hz, self.base_dir)
         self.physics = MockPhysics(self.device, self.rate_hz, self.excitation,
-                                   seed=self.seed, base_dir=self.base_dir)
+                                   seed=self.seed, base_dir=self.base_dir, hand=hand)
         self.history.append(self.stats)
         self.stats = MockStats(last_host_message="Config")
         self._rs = [-1] * self._ring
