@@ -685,12 +685,14 @@ class HostLoop:
                     v = dx * rate
                     if k > 0:
                         energy += fh[(k - 1 - d) % fhl] * dx if k - 1 - d >= 0 else 0.0
-                    if pc_on and energy > 0.0 and v != 0.0:
-                        alpha = energy / (T * v * v)
-                        if alpha > bmax:
-                            alpha = bmax
-                        f -= alpha * v
-                        res.passivity_samples += 1
+                    if pc_on and energy > 0.0:
+                        tvv = T * v * v
+                        if tvv > 0.0:
+                            # alpha = E / (T v^2), capped (compared without dividing: no
+                            # overflow for a tiny v)
+                            alpha = energy / tvv if energy < bmax * tvv else bmax
+                            f -= alpha * v
+                            res.passivity_samples += 1
                     if self._ramp > 0:
                         f *= (ramp_n - self._ramp + 1) / ramp_n
                         self._ramp -= 1

@@ -1,0 +1,499 @@
+"""Reliability of the daemon under injected faults, in-process on a virtual clock.
+
+Every fault of :mod:`hapsim.daemon.faults` is injected by the mock (wire faults in its byte
+path, device faults in its state machine) and seen by the host through real frames and its
+own stream decoder (:class:`~hapsim.daemon.transport.SimTransport`): deterministic and fast.
+Each test checks what the device applied (the mock's per-tick trace: zero force within one
+watchdog period when the host falls silent), that the host recovered where it can, and that
+the counters say what happened. Faults about the port itself are also run over a real pty in
+``test_reliability_pty.py``.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import struct
+
+import numpy as np
+import pytest
+
+import firmware_protocol as fp
+from hapsim.cli import main
+from hapsim.daemon.faults import FAULT_NAMES, parse_faults
+from hapsim.daemon.loop import HostLoop, LoopConfig
+from hapsim.daemon.mock import MockDevice
+from hapsim.daemon.runner import run_scene
+from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.daemon.transport import SimTransport
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError, DeviceError
+from hapsim.scene import parse_scene
+
+WATCHDOG_US = 50_000
+PERIOD_US = 1000
+LIMIT = 10.0
+
+
+def wall(K=1000.0, B=1.5, safety=""):
+    return f"""
+rate_hz: 1000
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: wall, kind: ground, x0: 0.0}}
+links:
+  - {{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {K}, damping: {B}}}
+device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: {LIMIT}}}
+excitation: {{x0: 0.005}}
+{safety}
+"""
+
+
+class RecordingMock(MockDevice):
+    """The mock, recording the device time of every CONFIG it accepts."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.config_times = []
+        self.trace = []
+
+    def _on_config(self, msg, now_us):
+        out = super()._on_config(msg, now_us)
+        if self.configured and self.armed:
+            self.config_times.append(now_us)
+        return out
+
+
+def sim(spec="", n=2000, seed=1, text=None, **kw):
+    """Run the host loop against the faulty mock on a virtual clock."""
+    scene = parse_scene(text or wall())
+    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = SimTransport(mock, parse_faults(spec, seed))
+    tr.sent = []
+    tel = Telemetry(n)
+    cfg = dict(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT, reconnect=True,
+               watchdog_us=WATCHDOG_US, position_bound=0.1)
+    cfg.update(kw)
+    loop = HostLoop(Engine(scene), tr, LoopConfig(**cfg), tel)
+    res = loop.run()
+    return res, mock, tr, tel
+
+
+def forces_sent(tr):
+    return [m.force[0] for m in tr.sent if isinstance(m, fp.Force)]
+
+
+def assert_forces_safe(tr):
+    f = np.array(forces_sent(tr))
+    assert f.size and np.all(np.isfinite(f)) and np.all(np.abs(f) <= LIMIT)
+
+
+def assert_zero_within_watchdog(mock, t_fault_us):
+    """After the fault, the device applies zero within one watchdog period (+1 tick) and
+    holds it until the host's next CONFIG."""
+    t_next = min([t for t in mock.config_times if t > t_fault_us], default=math.inf)
+    after = [(t, f) for t, f in mock.trace
+             if t_fault_us + WATCHDOG_US + PERIOD_US < t < t_next]
+    assert after, "no device tick between the watchdog expiry and the recovery"
+    assert all(f == 0.0 for _, f in after)
+    before = [f for t, f in mock.trace if t < t_fault_us]
+    assert any(f != 0.0 for f in before)        # it was pushing before the fault
+
+
+def test_no_faults_baseline_counts_nothing():
+    res, mock, tr, tel = sim("")
+    assert res.samples == 2000 and res.stop_reason == "duration"
+    assert (res.missed, res.stale, res.lost, res.late) == (0, 0, 0, 0)
+    assert res.decoder["frames_ok"] > 2000 and sum(res.decoder.values()) == res.decoder["frames_ok"]
+    assert np.all(np.diff(tel.seq[:tel.n]) == 1)
+    assert mock.stats.saw_stop and mock.stats.last_applied == 0.0
+
+
+def test_dropped_frames_are_missed_not_guessed():
+    res, mock, tr, tel = sim("drop=0.05", seed=3)
+    inj = tr.device.plan.injected["drop"]
+    assert inj > 50
+    assert res.samples == 2000 and res.lost == 0
+    assert 0 < res.missed <= inj                 # every gap is a dropped STATE
+    seq = tel.seq[:tel.n]
+    assert np.all(np.diff(seq) >= 1) and np.sum(np.diff(seq) - 1) == res.missed
+    # the device held the previous force at the ticks whose FORCE never came
+    assert mock.totals()["late"] >= res.missed - 2
+    assert_forces_safe(tr)
+
+
+def test_corrupted_bytes_are_counted_and_never_acted_on():
+    res, mock, tr, tel = sim("corrupt=0.05", seed=4)
+    inj = tr.device.plan.injected["corrupt"]
+    dec = res.decoder
+    bad = dec["bad_crc"] + dec["bad_cobs"] + dec["malformed"] + dec["unknown_type"]
+    assert inj > 50 and bad >= inj               # a zero byte can split one into two
+    assert res.missed >= inj - 5 and res.lost == 0
+    seq = tel.seq[:tel.n]
+    assert np.all(np.diff(seq) >= 1)              # no corrupted STATE became a row
+    # every logged position is one the mock's physics produced: finite and small
+    assert np.all(np.abs(tel.position[:tel.n]) < 0.01)
+    assert_forces_safe(tr)
+
+
+def test_garbage_bursts_resynchronise():
+    res, mock, tr, tel = sim("garbage=0.05", seed=5)
+    inj = tr.device.plan.injected["garbage"]
+    assert inj > 50
+    dec = res.decoder
+    assert dec["bad_crc"] + dec["bad_cobs"] + dec["overlong"] + dec["malformed"] > 0
+    # a burst ahead of a frame may tear that one frame; the stream always resynchronises
+    assert res.samples == 2000 and res.lost == 0 and res.missed <= inj
+    assert_forces_safe(tr)
+
+
+def test_duplicated_frames_are_stale_and_used_once():
+    res, mock, tr, tel = sim("dup=0.05", seed=6)
+    inj = tr.device.plan.injected["dup"]
+    assert inj > 50 and res.stale >= inj - 5     # (a duplicated PONG is not a STATE)
+    seq = tel.seq[:tel.n]
+    assert np.unique(seq).size == seq.size and res.missed == 0
+    assert_forces_safe(tr)
+
+
+def test_reordered_frames_older_one_ignored():
+    res, mock, tr, tel = sim("reorder=0.05", seed=7)
+    inj = tr.device.plan.injected["reorder"]
+    assert inj > 50
+    seq = tel.seq[:tel.n]
+    assert np.all(np.diff(seq) >= 1)              # never stepped backwards
+    assert res.stale > 0 and res.stale == res.missed  # each overtaken STATE: gap, then stale
+    assert_forces_safe(tr)
+
+
+def test_delay_spike_shorter_than_watchdog_is_absorbed():
+    res, mock, tr, tel = sim("spike@500:20ms", seed=8)
+    assert tr.device.plan.injected["spike"] == 1
+    assert res.lost == 0 and res.samples == 2000
+    assert res.late > 0 or mock.totals()["late"] > 0   # the device held a force meanwhile
+
+
+def test_delay_spike_longer_than_watchdog_zeroes_force_and_recovers():
+    res, mock, tr, tel = sim("spike@300:120ms", seed=9)
+    assert tr.device.plan.injected["spike"] == 1
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    # the host's FORCEs stop with the STATEs: the device watchdog zeroes the force
+    assert_zero_within_watchdog(mock, 300 * PERIOD_US)
+    assert mock.totals()["watchdog_trips"] > 0
+
+
+def test_stalled_device_zeroes_force_and_recovers():
+    res, mock, tr, tel = sim("stall@400:200ms", seed=10)
+    ev = tr.device.events
+    assert [e["name"] for e in ev] == ["stall"]
+    t0 = ev[0]["t_us"]
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    assert_zero_within_watchdog(mock, t0)
+    assert mock.totals()["watchdog_trips"] > 0 and mock.totals()["configs"] == 2
+    assert any(e["event"] == "recovered" for e in res.events)
+    # after recovery the scene restarted at rest at the device position, force ramped up
+    i = int(np.flatnonzero(np.diff(tel.seq[:tel.n]) < 0)[0]) + 1
+    assert tel.seq[i] == 0 and abs(tel.force[i]) <= abs(tel.force[i + 49]) + 1e-12
+    assert_forces_safe(tr)
+
+
+def test_device_reset_mid_run_rehandshakes():
+    res, mock, tr, tel = sim("reset@800", seed=11)
+    ev = tr.device.events
+    assert [e["name"] for e in ev] == ["reset"]
+    t0 = ev[0]["t_us"]
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    assert res.hello_mid_run >= 1                 # the reset device said HELLO
+    # a reset device applies nothing until CONFIG: no tick between reset and recovery
+    t_next = min(t for t in mock.config_times if t > t0)
+    assert not [t for t, f in mock.trace if t0 < t < t_next]
+    assert mock.totals()["configs"] == 2
+    assert_forces_safe(tr)
+
+
+def test_port_vanishing_and_coming_back():
+    res, mock, tr, tel = sim("vanish@1200:300ms", seed=12)
+    ev = tr.device.events
+    t0 = ev[0]["t_us"]
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    assert res.reconnect_attempts >= 2 and tr.reopened == 1   # re-opened once it was back
+    assert_zero_within_watchdog(mock, t0)
+    lost = [e for e in res.events if e["event"] == "lost"][0]
+    assert "port failed" in lost["reason"]
+
+
+def test_port_gone_for_good_gives_up_within_bounds():
+    with pytest.raises(DeviceError, match="reconnect attempts") as ei:
+        sim("vanish@500:600s", seed=13, reconnect_attempts=4, reconnect_time=5.0)
+    assert "last frames" in str(ei.value)
+
+
+def test_device_that_never_answers_hello():
+    scene = parse_scene(wall())
+    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = SimTransport(mock, parse_faults("nohello"))
+    tr.sent = []
+    loop = HostLoop(Engine(scene), tr, LoopConfig(rate_hz=1000.0, n_samples=100, reconnect=True,
+                                                  hello_timeout=2.0), Telemetry(100))
+    with pytest.raises(DeviceError, match="no HELLO") as ei:
+        loop.run()
+    assert "none received" in str(ei.value)
+    kinds = {type(m).__name__ for m in tr.sent}
+    assert "HelloRequest" in kinds and "Config" not in kinds and not forces_sent(tr)[:-1]
+    assert not mock.armed and not mock.trace      # never armed, never pushed
+
+
+def test_device_watchdog_zeroes_force_by_itself_and_stays_armed():
+    """The mock's own watchdog, without the host's help (PROTOCOL.md §5.2)."""
+    scene = parse_scene(wall())
+    mock = MockDevice(scene.device, scene.excitation, lockstep=False)
+    mock.trace = []
+    mock.handle(fp.Config(1000.0, WATCHDOG_US, LIMIT), 0)
+    t = 0
+    for n in range(100):
+        st = mock.tick(t)
+        mock.handle(fp.Force(st.seq, (2.0,)), t + 10)
+        t += PERIOD_US
+    last_force = t - PERIOD_US + 10
+    for n in range(100):                          # the host falls silent
+        st = mock.tick(t)
+        t += PERIOD_US
+    applied = [(tt, f) for tt, f in mock.trace if tt > last_force + WATCHDOG_US]
+    assert applied and all(f == 0.0 for _, f in applied)
+    assert all(f == 2.0 for tt, f in mock.trace if 1000 < tt <= last_force + WATCHDOG_US - 1)
+    assert st.status & fp.STATUS_WATCHDOG_TRIPPED and st.status & fp.STATUS_ARMED
+    assert mock.stats.watchdog_trips > 0 and mock.armed
+    mock.handle(fp.Force(st.seq, (1.0,)), t)      # the next FORCE is applied again
+    st = mock.tick(t + 1)
+    st = mock.tick(t + PERIOD_US)
+    assert not st.status & fp.STATUS_WATCHDOG_TRIPPED
+
+
+def test_all_faults_together_run_to_the_end():
+    spec = ("drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,"
+            "stall@500:200ms,reset@1500,vanish@2500:300ms")
+    res, mock, tr, tel = sim(spec, n=4000, seed=14)
+    inj = tr.device.plan.injected
+    assert all(inj[k] > 0 for k in ("drop", "corrupt", "dup", "stall", "reset", "vanish"))
+    assert res.samples == 4000 and res.lost == 3 and res.recovered == 3
+    assert_forces_safe(tr)
+
+
+def test_run_scene_sim_reports_faults(tmp_path):
+    scene = parse_scene(wall(), str(tmp_path / "w.yaml"))
+    rep = run_scene(scene, transport="sim", duration=2.0, faults="drop=0.01,reset@700",
+                    fault_seed=2, handle_signals=False, telemetry=str(tmp_path / "t.npz"))
+    lp = rep["loop"]
+    assert lp["lost"] == 1 and lp["recovered"] == 1 and lp["ticks"] == 2000
+    assert lp["fault_plan"]["injected"]["reset"] == 1 and lp["fault_plan"]["injected"]["drop"] > 0
+    assert lp["mock"]["totals"]["configs"] == 2 and lp["mock"]["fault_events"][0]["name"] == "reset"
+    assert rep["exit_code"] == 0
+    assert not (tmp_path / "t.npz.hst").exists()   # journal removed after the export
+    assert load(str(tmp_path / "t.npz"))["seq"].size == 2000
+
+
+# --------------------------------------------------------------------------- SPEC
+
+
+def test_fault_spec_parses_rates_schedules_and_durations():
+    p = parse_faults("drop=0.01,spike=0.001:5ms,stall@500:200ms,reset@800,vanish@1200:0.3s,"
+                     "nohello", seed=3)
+    assert p.rates == {"drop": 0.01, "spike": 0.001} and p.durations["spike"] == 0.005
+    assert p.schedule == [(500, "stall", 0.2), (800, "reset", 0.0), (1200, "vanish", 0.3)]
+    assert p.nohello and p.has_vanish and not p.empty and parse_faults("").empty
+
+
+@pytest.mark.parametrize("spec, msg", [
+    ("drip=0.1", "valid faults: " + ", ".join(FAULT_NAMES)),
+    ("drop=2", "probability"), ("drop", "needs =RATE"), ("stall@x", "whole number"),
+    ("reset@5:1ms", "no duration"), ("stall@5:10", "bad duration"), ("nohello=1", "nohello"),
+])
+def test_fault_spec_errors(spec, msg):
+    with pytest.raises(ConfigError, match=msg.replace("(", r"\(")) as ei:
+        parse_faults(spec)
+    assert ei.value.key == "--faults"
+
+
+@pytest.mark.parametrize("cmd", ["run", "mock"])
+def test_cli_unknown_fault_exits_2_listing_valid(cmd, capsys, tmp_path):
+    argv = [cmd, "configs/wall.yaml"] if cmd == "run" else [cmd]
+    assert main(argv + ["--faults", "bogus=1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown fault 'bogus'" in err and "valid faults: drop, corrupt" in err
+
+
+def test_same_seed_same_faults():
+    a = sim("drop=0.02,dup=0.02,corrupt=0.01", seed=21, n=1000)
+    b = sim("drop=0.02,dup=0.02,corrupt=0.01", seed=21, n=1000)
+    assert a[2].device.plan.injected == b[2].device.plan.injected
+    assert np.array_equal(a[3].position, b[3].position)
+
+
+# --------------------------------------------------------------------------- energy, limits
+
+
+def test_passivity_observer_measures_the_work_done_on_the_hand():
+    """A passive wall starting 5 mm in: the energy given back is at most what was stored."""
+    res, *_ = sim("", n=3000)
+    stored = 0.5 * 1000.0 * 0.005 ** 2
+    assert 0.5 * stored < res.energy_max < 1.2 * stored
+    assert res.energy < res.energy_max               # the real friction dissipated some
+
+
+def test_energy_limit_stops_an_active_scene():
+    res, mock, tr, tel = sim("", n=5000, text=wall(K=1500.0, B=0.0), energy_limit=0.05,
+                             clamp_max=10_000)
+    assert res.safety_stop and "energy" in res.stop_reason
+    assert res.energy > 0.05 and mock.stats.last_applied == 0.0
+
+
+def test_passivity_controller_keeps_an_active_scene_bounded():
+    text = wall(K=1500.0, B=0.0)                     # beyond K_max: unstable without help
+    off = sim("", n=5000, text=text, energy_limit=0.05, clamp_max=10_000)[0]
+    on = sim("", n=5000, text=text, energy_limit=0.05, clamp_max=10_000,
+             passivity_controller=True, max_damping=20.0)[0]
+    assert off.safety_stop
+    assert not on.safety_stop and on.samples == 5000 and on.passivity_samples > 0
+    assert on.energy_max < 0.05
+
+
+def test_velocity_limit_stops():
+    res, *_ = sim("", n=2000, velocity_limit=0.05)
+    assert res.safety_stop and "velocity" in res.stop_reason and res.v_max > 0.05
+
+
+def test_scene_safety_section_reaches_the_loop(tmp_path):
+    text = wall(safety="safety: {position_limit: 0.002}")
+    rep = run_scene(parse_scene(text), transport="sim", duration=1.0, handle_signals=False)
+    lp = rep["loop"]
+    assert lp["safety_stop"] and "position" in lp["stop_reason"] and rep["exit_code"] == 1
+    assert lp["safety"]["position_limit"] == 0.002
+
+
+# --------------------------------------------------------------------------- fuzz
+
+
+class HostileTransport(SimTransport):
+    """Mixes random bytes and valid-but-hostile messages into what the host receives."""
+
+    def __init__(self, mock, rng, p=0.02):
+        super().__init__(mock)
+        self.rng = rng
+        self.p = p
+        self.fed = 0
+        self.sent = []
+
+    def _hostile(self):
+        r = self.rng
+        k = r.randrange(12)
+        seq = r.getrandbits(32)
+        if k == 0:
+            return [fp.State(seq, 0, fp.STATUS_ARMED, seq, (r.choice([1e6, -1e300, 1e-300]),))]
+        if k == 1:
+            return [fp.State(seq, 0, fp.STATUS_ARMED, 0, (r.choice([math.nan, math.inf]),))]
+        if k == 2:
+            return [fp.State(seq, 0, fp.STATUS_ARMED, 0, (0.001, 0.002))]
+        if k == 3:
+            return [fp.Fault(r.randrange(1, 12), r.getrandbits(32))]
+        if k == 4:
+            return [fp.Hello(1, r.randrange(1, 9), 7, 1e-6, 1e-3, 1e9, 1000.0)]
+        if k == 5:
+            return [fp.State(seq, 0, 0, 0, (0.001,))]              # unarmed
+        if k == 6:
+            return [fp.Pong(seq, 0, 0)]
+        if k == 7:
+            return [fp.State((self.mock.physics.n - r.randrange(1, 50)) & 0xFFFFFFFF
+                             if self.mock.physics else 0, 0, fp.STATUS_ARMED, 0, (0.003,))]
+        return None                                                    # random bytes
+
+    def receive(self, timeout=0.0):
+        msgs = super().receive(timeout)
+        r = self.rng
+        out = []
+        for m in msgs:
+            out.append(m)
+            self.fed += 1
+            if r.random() < self.p:
+                h = self._hostile()
+                if h is None:
+                    out.extend(self._dec.feed(bytes(r.getrandbits(8)
+                                                    for _ in range(r.randrange(1, 200)))))
+                else:
+                    # a hostile message goes through the encoder and decoder like any frame
+                    for x in h:
+                        out.extend(self._dec.feed(fp.encode(x)))
+                self.fed += 1
+        return out
+
+
+def test_fuzz_host_never_escapes_or_exceeds_the_force_limit():
+    scene = parse_scene(wall())
+    rng = random.Random(1234)
+    total = runs = 0
+    forces = []
+    reasons = {}
+    while total < 30_000:
+        mock = MockDevice(scene.device, scene.excitation, lockstep=False)
+        tr = HostileTransport(mock, rng)
+        cfg = LoopConfig(rate_hz=1000.0, n_samples=3000, delay=1, force_limit=LIMIT,
+                         reconnect=True, position_bound=0.1, reconnect_time=30.0,
+                         reconnect_attempts=50)
+        res = HostLoop(Engine(scene), tr, cfg, Telemetry(3000)).run()   # nothing escapes
+        total += tr.fed
+        runs += 1
+        forces += [m.force for m in tr.sent if isinstance(m, fp.Force)]
+        key = res.stop_reason.split(":")[0]
+        reasons[key] = reasons.get(key, 0) + 1
+    f = np.array([x for fs in forces for x in fs])
+    assert len(forces) > 10_000 and all(len(x) == 1 for x in forces)
+    assert np.all(np.isfinite(f)) and np.max(np.abs(f)) <= LIMIT
+    assert runs >= 2 and set(reasons) <= {"duration", "safety", "device"}
+    print(f"fuzz: {total} frames in {runs} runs, {len(forces)} FORCEs, max |f| "
+          f"{np.max(np.abs(f)):.6g} N, ends {reasons}")
+
+
+# --------------------------------------------------------------------------- telemetry
+
+
+def test_journal_ignores_a_torn_last_chunk(tmp_path):
+    tel = Telemetry(1000)
+    path = str(tmp_path / "t.hst")
+    w = ChunkWriter(tel, path, interval=10.0)
+    for i in range(1000):
+        tel.time[i], tel.position[i], tel.seq[i] = i * 1e-3, math.sin(i), i
+        tel.n = i + 1
+        if i % 250 == 249:
+            w.flush()
+    w.close()
+    data = open(path, "rb").read()
+    info = {}
+    assert load(path, info=info)["seq"].tolist() == list(range(1000))
+    assert info == {"chunks": 4, "rows": 1000, "torn_bytes": 0}
+    for cut in (3, 20, len(data) // 4 - 7):      # all inside the last of 4 equal chunks
+        torn = tmp_path / f"torn{cut}.hst"
+        torn.write_bytes(data[:-cut])
+        info = {}
+        cols = load(str(torn), info=info)
+        assert cols["seq"].tolist() == list(range(750)) and info["chunks"] == 3
+        assert cols["position"][-1] == math.sin(749)
+    bad = bytearray(data)
+    bad[-5] ^= 0xFF                                  # corrupted payload: CRC rejects it
+    (tmp_path / "bad.hst").write_bytes(bytes(bad) + b"garbage")
+    assert load(str(tmp_path / "bad.hst"))["seq"].size == 750
+    convert(path, str(tmp_path / "t.csv"))
+    assert load(str(tmp_path / "t.csv"))["seq"].tolist() == list(range(1000))
+
+
+def test_journal_header_is_self_describing(tmp_path):
+    import json
+    tel = Telemetry(10)
+    tel.n = 10
+    path = str(tmp_path / "t.hst")
+    w = ChunkWriter(tel, path)
+    w.close()
+    raw = open(path, "rb").read()
+    magic, version, hlen, plen, crc = struct.unpack_from("<4sHHII", raw)
+    head = json.loads(raw[16:16 + hlen])
+    assert magic == b"HSTC" and version == 1 and head["rows"] == 10
+    assert head["columns"] == ["time", "position", "force", "seq", "turnaround_us", "late"]
+    assert plen == 10 * (8 * 5 + 1)

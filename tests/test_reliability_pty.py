@@ -1,0 +1,124 @@
+"""Reliability over a real pseudo-terminal: the faults that are about the port, and kill -9.
+
+``hapsim run`` runs in a subprocess with the embedded mock (a child process on the master
+side of a pty) injecting faults with ``--faults``; the host opens the slave (through a
+symbolic link that the mock re-points when the port comes back after ``vanish``). Timing
+is real, so assertions are on counters and bounded timeouts only.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from hapsim.cli import main
+from hapsim.daemon.telemetry import load
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+WALL = os.path.join(ROOT, "configs", "wall.yaml")
+
+
+def hapsim(*args, env=None):
+    e = dict(os.environ)
+    e["PYTHONPATH"] = ROOT + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    if env:
+        e.update(env)
+    return subprocess.Popen([sys.executable, "-m", "hapsim", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=e)
+
+
+def run_json(*args):
+    p = hapsim("run", WALL, "--json", *args)
+    out, err = p.communicate(timeout=180)
+    assert p.returncode == 0, err
+    return json.loads(out)
+
+
+def test_port_vanishes_and_comes_back_over_a_pty():
+    rep = run_json("--duration", "1.5", "--faults", "vanish@400:300ms", "--fault-seed", "1")
+    lp = rep["loop"]
+    assert lp["lost"] >= 1 and lp["recovered"] == lp["lost"]
+    assert lp["ticks"] == lp["requested"] == 1500 and lp["stop_reason"] == "duration"
+    assert any("port failed" in e.get("reason", "") for e in lp["events"])
+    mk = lp["mock"]
+    assert [e["name"] for e in mk["fault_events"]] == ["vanish"]
+    # no FORCE reached the device while its port was gone: its watchdog zeroed the force
+    assert mk["totals"]["watchdog_trips"] > 0 and mk["totals"]["configs"] >= 2
+    assert mk["saw_stop"] and mk["last_applied"] == 0.0
+
+
+def test_stall_and_reset_over_a_pty():
+    rep = run_json("--duration", "2", "--faults", "stall@300:300ms,reset@1200",
+                   "--fault-seed", "2")
+    lp = rep["loop"]
+    mk = lp["mock"]
+    assert [e["name"] for e in mk["fault_events"]] == ["stall", "reset"]
+    assert lp["lost"] >= 2 and lp["recovered"] == lp["lost"]
+    assert lp["ticks"] == 2000 and mk["totals"]["watchdog_trips"] > 0
+    assert mk["saw_stop"] and mk["last_applied"] == 0.0
+
+
+def test_wire_faults_over_a_pty_are_counted():
+    rep = run_json("--duration", "1.5", "--faults",
+                   "drop=0.01,corrupt=0.01,garbage=0.005,dup=0.005,reorder=0.005,spike=0.002:5ms",
+                   "--fault-seed", "3")
+    lp = rep["loop"]
+    inj = lp["fault_plan"]["injected"]
+    dec = lp["decoder"]
+    assert inj["drop"] > 0 and inj["corrupt"] > 0
+    assert dec["bad_crc"] + dec["bad_cobs"] >= inj["corrupt"] // 2
+    assert lp["missed"] > 0 and lp["ticks"] == 1500
+
+
+def test_mock_vanish_needs_a_link(capsys):
+    assert main(["mock", "--faults", "vanish@10:10ms"]) == 2
+    assert "--link" in capsys.readouterr().err
+
+
+def test_kill_9_loses_at_most_100_ms_of_telemetry(tmp_path):
+    path = str(tmp_path / "t.hst")
+    p = hapsim("run", WALL, "--duration", "30", "--telemetry", path,
+               env={"TMPDIR": str(tmp_path)})
+    end = time.monotonic() + 90
+    rows = 0
+    while rows < 1500 and time.monotonic() < end and p.poll() is None:
+        time.sleep(0.1)
+        if os.path.exists(path):
+            rows = load(path)["seq"].size
+    assert rows >= 1500, p.stderr.read() if p.poll() is not None else "too slow"
+    p.send_signal(signal.SIGKILL)
+    p.wait(10)
+    # the mock child sees the port close (EIO) and reports how many STATEs it sent
+    report = None
+    end = time.monotonic() + 20
+    while report is None and time.monotonic() < end:
+        for f in glob.glob(str(tmp_path / "hapsim-mock-*.json")):
+            report = json.load(open(f))
+        time.sleep(0.1)
+    assert report is not None and report["end"] == "host closed"
+    info = {}
+    cols = load(path, info=info)
+    n = cols["seq"].size
+    assert n >= rows and info["chunks"] >= 1
+    assert (cols["seq"] == range(n)).all()      # every complete chunk, in order
+    # STATEs the mock sent that are not on disk: at most 100 ms at 1 kHz
+    lost = report["ticks"] - n
+    assert 0 <= lost <= 100, (report["ticks"], n)
+    print(f"kill -9: {report['ticks']} STATEs sent, {n} rows on disk, {lost} lost")
+    p.stdout.close()
+    p.stderr.close()
+
+
+@pytest.mark.parametrize("ext", [".npz", ".csv"])
+def test_journal_beside_npz_csv_removed_after_export(tmp_path, ext):
+    path = str(tmp_path / f"t{ext}")
+    rep = run_json("--duration", "0.5", "--telemetry", path)
+    assert rep["telemetry"]["samples"] == 500 and load(path)["seq"].size == 500
+    assert not os.path.exists(path + ".hst")
