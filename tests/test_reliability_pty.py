@@ -122,3 +122,24 @@ def test_journal_beside_npz_csv_removed_after_export(tmp_path, ext):
     rep = run_json("--duration", "0.5", "--telemetry", path)
     assert rep["telemetry"]["samples"] == 500 and load(path)["seq"].size == 500
     assert not os.path.exists(path + ".hst")
+
+
+def test_standalone_mock_with_faults_behind_a_link(tmp_path):
+    """``hapsim mock --faults ... --link PATH`` as a separate device; ``run --port PATH``."""
+    link = str(tmp_path / "port")
+    mock = hapsim("mock", "--faults", "vanish@300:300ms,drop=0.01", "--fault-seed", "4",
+                  "--link", link, "--report", str(tmp_path / "mock.json"))
+    try:
+        first = mock.stdout.readline()
+        assert first.strip() == f"PORT {link}" and os.path.islink(link)
+        rep = run_json("--port", link, "--duration", "1.5")
+        lp = rep["loop"]
+        assert lp["lost"] >= 1 and lp["recovered"] == lp["lost"] and lp["ticks"] == 1500
+        assert any(e["event"] == "lost" and "last frames" not in e and e["last_frames"]
+                   for e in lp["events"])
+    finally:
+        mock.send_signal(signal.SIGTERM)       # with faults, STOP does not end the mock
+        mock.communicate(timeout=20)
+    seen = json.load(open(tmp_path / "mock.json"))
+    assert [e["name"] for e in seen["fault_events"]] == ["vanish"]
+    assert seen["faults_injected"]["drop"] > 0 and seen["last_applied"] == 0.0

@@ -25,7 +25,9 @@ it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at m
 ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts from
 its initial state with the port at the device's position at rest, the force ramped up over
 ``ramp_samples``. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
-counted; latched ones end the run.
+counted; latched ones end the run. The host-clocked loop ignores stale and wrong-axis
+STATEs and applies the same safety limits, but does not reconnect (silence longer than
+``state_timeout`` raises :class:`DeviceError`).
 
 Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
 IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
@@ -488,13 +490,14 @@ class HostLoop:
         res = self.result
         clock = self._clock
         reason = str(lost)
+        frames = tr.last_frames() or "(none received)"      # CONVENTIONS §11
         if self._lost_since is None:
             self._lost_since = clock()
             self._attempts = 0
             res.lost += 1
-            self._event("lost", reason=reason)
+            self._event("lost", reason=reason, last_frames=frames)
         else:
-            self._event("lost again", reason=reason)
+            self._event("lost again", reason=reason, last_frames=frames)
         try:                                   # the device's own watchdog zeroes it anyway
             tr.send(fp.Force((self._last_seq + 1) & _U32, (0.0,)))
             tr.send(fp.Stop())
@@ -771,6 +774,18 @@ class HostLoop:
         n_max = min(cfg.n_samples, tel.capacity)
         lim = self.force_limit
         pos_bound = cfg.position_bound
+        vlim = cfg.velocity_limit
+        elim = cfg.energy_limit
+        pc_on = bool(cfg.passivity_controller)
+        bmax = float(cfg.max_damping)
+        rate = float(cfg.rate_hz)
+        T = 1.0 / rate
+        d = cfg.delay
+        fh = [0.0] * (d + 2)
+        fhl = len(fh)
+        energy = 0.0
+        x_prev = None
+        k = 0
         win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
         wlen = win.size
         wsum = 0
@@ -806,10 +821,12 @@ class HostLoop:
                 sleep((remaining - 400_000) * 1e-9)
             while mono_ns() < deadline:
                 for msg in receive(0.0):
-                    if type(msg) is State:
+                    if type(msg) is State and len(msg.position) == 1 and (
+                            (msg.seq - latest.seq) & _U32) < _HALF:
                         latest = msg
             for msg in receive(0.0):
-                if type(msg) is State:
+                if type(msg) is State and len(msg.position) == 1 and (
+                        (msg.seq - latest.seq) & _U32) < _HALF:
                     latest = msg
             t_rx = perf()
             if latest.seq == used_seq:
@@ -836,6 +853,17 @@ class HostLoop:
                 res.stop_reason = "safety: non-finite position or force"
                 res.safety_stop = True
                 break
+            # passivity observer and controller, as in the device-clocked loop
+            dx = 0.0 if x_prev is None else x - x_prev
+            x_prev = x
+            v = dx * rate
+            if k > d:
+                energy += fh[(k - 1 - d) % fhl] * dx
+            if pc_on and energy > 0.0:
+                tvv = T * v * v
+                if tvv > 0.0:
+                    f -= (energy / tvv if energy < bmax * tvv else bmax) * v
+                    res.passivity_samples += 1
             c = 0
             if f > lim:
                 f, c = lim, 1
@@ -844,6 +872,16 @@ class HostLoop:
             send(Force(seq, (f,)))
             t_tx = perf()
             self._last_seq = seq
+            fh[k % fhl] = f
+            k += 1
+            if energy > res.energy_max:
+                res.energy_max = energy
+            res.energy = energy
+            av = abs(v)
+            if av > res.v_max:
+                res.v_max = av
+            if abs(f) > res.f_max:
+                res.f_max = abs(f)
             j = i % wlen
             wsum += c - win[j]
             win[j] = c
@@ -863,6 +901,15 @@ class HostLoop:
                 break
             if x > pos_bound or x < -pos_bound:
                 res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
+                res.safety_stop = True
+                break
+            if av > vlim:
+                res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
+                res.safety_stop = True
+                break
+            if energy > elim:
+                res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
+                                   f"beyond the energy limit {elim:g} J")
                 res.safety_stop = True
                 break
             deadline += period_ns

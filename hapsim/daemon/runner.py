@@ -717,6 +717,11 @@ def format_report(rep: dict) -> str:
                      f"({lp['reconnect_attempts']} attempts), stale {lp['stale']}, bad frames "
                      f"{bad}, wrong axes {lp['bad_axes']}, device faults "
                      f"{lp['device_faults'] or 0}")
+        for ev in lp.get("events", []):
+            if ev["event"] in ("lost", "recovered"):
+                what = (f"lost ({ev['reason']})" if ev["event"] == "lost" else
+                        f"recovered after {ev['after_s']:.3g} s, {ev['attempts']} attempt(s)")
+                lines.append(f"  t = {ev['t']:.3f} s, sample {ev['sample']}: {what}")
         if lp.get("fault_plan"):
             lines.append(f"injected: {lp['fault_plan']['injected']} "
                          f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
