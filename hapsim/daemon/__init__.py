@@ -7,11 +7,18 @@ Modules
     ``MockDevice``) and its serving loops (lockstep / real-time) on a file descriptor.
 :mod:`hapsim.daemon.transport`
     Message transports seen from the host: in-process (no bytes), pyserial (pty or
-    hardware), and the embedded mock on a pseudo-terminal.
+    hardware), the embedded mock on a pseudo-terminal, and the real-time mock on a virtual
+    clock (``SimTransport``, for fault tests).
+:mod:`hapsim.daemon.faults`
+    Seeded fault injection for the mock (``FaultPlan``, ``parse_faults``, SPEC syntax):
+    dropped, corrupted, duplicated, reordered, delayed frames, garbage, stall, reset, port
+    vanishing, no HELLO.
 :mod:`hapsim.daemon.loop`
-    The host loop: handshake, device- or host-clocked fixed-rate loop, safety.
+    The host loop: handshake, device- or host-clocked fixed-rate loop, safety (limits,
+    passivity observer/controller), recovery of a lost device.
 :mod:`hapsim.daemon.telemetry`
-    Preallocated per-sample telemetry and its atomic writer.
+    Preallocated per-sample telemetry, its chunked journal (writer thread, ``load``) and
+    the atomic ``.npz``/``.csv`` export.
 :mod:`hapsim.daemon.runner`
     ``run_scene``: calibrate, check, close the THS, identify, report.
 
