@@ -168,7 +168,9 @@ class FaultPlan:
         Returns
         -------
         frames : list of bytes
-            What to send instead, in order (possibly empty).
+            What to send instead, in order (possibly empty); a first element
+            ``"REORDER"`` (a str marker) means: hold the frames that follow and send them
+            after the next frame (:class:`FaultyDevice` does).
         hold : float
             Hold every frame from now on for this long [s] (``spike``), else 0.0.
         """

@@ -725,9 +725,10 @@ def format_report(rep: dict) -> str:
         if lp.get("fault_plan"):
             lines.append(f"injected: {lp['fault_plan']['injected']} "
                          f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
+    sf = lp["safety"]
     lines.append(f"energy to the hand [J]: max {_fmt(lp.get('energy_max_j'), '.4g')}, end "
-                 f"{_fmt(lp.get('energy_j'), '.4g')} (limit {_fmt(lp['safety']['energy_limit'], 'g')}"
-                 f"{', passivity controller on' if lp['safety']['passivity_controller'] else ''})")
+                 f"{_fmt(lp.get('energy_j'), '.4g')} (limit {_fmt(sf['energy_limit'], 'g')}"
+                 f"{', passivity controller on' if sf['passivity_controller'] else ''})")
     mk = lp.get("mock")
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
