@@ -96,6 +96,12 @@ class Telemetry:
         self.seq = np.zeros(capacity, dtype=np.int64)
         self.turnaround_us = np.zeros(capacity)
         self.late = np.zeros(capacity, dtype=np.int8)
+        # np.zeros maps untouched zero pages: writing them once here moves the page
+        # faults (the kernel allocating memory) out of the hot loop (CONVENTIONS §4)
+        for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
+                  self.late):
+            a.fill(1)
+            a.fill(0)
         self.n = 0
 
     def columns(self) -> dict[str, np.ndarray]:
