@@ -463,8 +463,9 @@ device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh}}
     assert doc["rendered"]["k"] == pytest.approx(800, rel=1e-8)
     far = tmp_path / "far.yaml"
     far.write_text(TARGET % (2e6, 3))   # far beyond what this loop can render
-    assert main(["check", str(far)]) == 1
-    capsys.readouterr()
+    assert main(["check", str(far)]) == 2   # a configuration error, as in hapsim run
+    err = capsys.readouterr().err
+    assert f"{far}:" in err and "links.felt.target" in err and "not renderable" in err
 
 
 def test_cli_help_teaches(capsys):

@@ -3,8 +3,7 @@
 Each case is a whole scene file with one mistake (YAML syntax, unknown keys, wrong types,
 bad references, physically impossible values, an unrenderable target); the line the error
 must name is marked ``#<``. Every case goes through ``hapsim run`` and ``hapsim check``
-(``main(argv)``, no subprocess), except the unrenderable target, which only ``hapsim run``
-refuses as a configuration error (``hapsim check`` reports it as a verdict, exit 1).
+(``main(argv)``, no subprocess); the unrenderable target too, through both commands.
 """
 
 from __future__ import annotations
@@ -161,10 +160,11 @@ def test_malformed_scene_exit_2_one_line(tmp_path, capsys, cmd, name, text, key)
         check_error(err, path, line, key)
 
 
-def test_unrenderable_target_is_a_config_error_in_run(tmp_path, capsys):
+@pytest.mark.parametrize("command", [["run", "--lockstep"], ["check"]])
+def test_unrenderable_target_is_a_config_error(tmp_path, capsys, command):
     path = tmp_path / "unrenderable.yaml"
     path.write_text(UNRENDERABLE)
-    assert main(["run", str(path), "--lockstep"]) == 2
+    assert main([command[0], str(path), *command[1:]]) == 2
     msg = check_error(capsys.readouterr().err, path, marked_line(UNRENDERABLE),
                       "links.felt.target")
     assert "not renderable" in msg

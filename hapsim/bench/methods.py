@@ -296,13 +296,17 @@ def calibrate_targets(scene) -> tuple[dict, list[str]]:
     problems : list of str
         One line per target that is not renderable (with the reason).
     """
-    from hapsim.analysis.loop import LoopModel
-    from hapsim.analysis.ths import calibrate
+    from hapsim.analysis.targets import calibrate_targets as _calibrate
 
     cal, problems = {}, []
-    targets = scene.unresolved_targets
-    if not targets:
-        return cal, problems
+    for c in _calibrate(scene):
+        res = c.result
+        if not c.renderable:
+            problems.append(f"link {c.link!r}: target (k, b) = {(c.k, c.b)} not renderable at "
+                            f"{scene.rate_hz:g} Hz: {res.reason}")
+        if math.isfinite(res.K) and math.isfinite(res.B):
+            cal[c.link] = (res.K, res.B)
+    return cal, problems
     loop = LoopModel.from_device(scene.device, scene.rate_hz)
     for lk in targets:
         res = calibrate(loop, *lk.target)

@@ -37,9 +37,9 @@ examples:
   hapsim check configs/wall.yaml --json | python -m json.tool
 
 exit codes:
-  0  the closed loop is stable (and every target is renderable)
-  1  unstable, or a target (k, b) is not renderable with this device
-  2  bad scene file or option"""
+  0  the closed loop is stable
+  1  the closed loop is unstable
+  2  bad scene file or option, or a target (k, b) this device cannot render"""
 
 
 def register(sub) -> None:
@@ -62,35 +62,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _calibrate_targets(scene):
-    """Calibrate every uncalibrated ``target`` link; returns (calibrated dict, reports)."""
-    from hapsim.analysis.loop import LoopModel
-    from hapsim.analysis.ths import calibrate
-
-    calibrated, reports = {}, []
-    targets = scene.unresolved_targets
-    if not targets:
-        return calibrated, reports
-    port = scene.port
-    if port is None or scene.device is None:
-        raise ConfigError("target links need a port and a device section to be calibrated",
-                          file=scene.path, key="links")
-    loop = LoopModel.from_device(scene.device, scene.rate_hz)
-    kinds = {m.name: m.kind for m in scene.masses}
-    for lk in targets:
-        ends = {kinds.get(lk.m1), kinds.get(lk.m2)}
-        if lk.kind != "spring_damper" or ends != {"port", "ground"}:
-            raise ConfigError("a target (k, b) can only be calibrated on a spring_damper "
-                              "between the port and a ground", file=scene.path,
-                              line=lk.line or None, key=f"links.{lk.name}")
-        k, b = lk.target
-        res = calibrate(loop, k, b)
-        reports.append({"link": lk.name, "k": k, "b": b, "result": res})
-        if math.isfinite(res.K) and math.isfinite(res.B):
-            calibrated[lk.name] = (res.K, res.B)
-    return calibrated, reports
-
-
 def _fmt_mode(md) -> str:
     def g(v, spec):
         return "-" if not math.isfinite(v) else format(v, spec)
@@ -109,46 +80,34 @@ def run(args: argparse.Namespace) -> int:
     Returns
     -------
     int
-        0 stable (and every target renderable), 1 unstable or unrenderable target.
+        0 stable, 1 unstable.
 
     Raises
     ------
     ConfigError
-        Bad scene file or option (exit code 2, handled by :mod:`hapsim.cli`).
+        Bad scene file or option, or a target that is not renderable
+        (:class:`~hapsim.errors.UnrenderableTargetError`); exit code 2, handled by
+        :mod:`hapsim.cli`.
     """
     from hapsim.analysis.scene_check import check_scene
+    from hapsim.analysis.targets import apply_targets
     from hapsim.scene import load_scene
 
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
-    calibrated, reports = _calibrate_targets(scene)
-    missing = [r for r in reports if r["link"] not in calibrated]
-    if missing:
-        # No (K, B) at all: nothing to check the scene with.
-        if args.json:
-            print(json.dumps({"scene": args.scene, "stable": None, "verdict": "unrenderable",
-                              "integrator": scene.integrator,
-                              "calibrations": [{"link": r["link"], **r["result"].to_dict()}
-                                               for r in reports]}))
-        else:
-            for r in missing:
-                print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) "
-                      f"cannot be calibrated: {r['result'].reason}")
-            print(f"verdict: UNRENDERABLE (integrator {scene.integrator})")
-        return 1
-    chk = check_scene(scene, calibrated=calibrated)
-    all_renderable = all(r["result"].renderable for r in reports)
-    ok = chk.stable and all_renderable
-    verdict = ("stable" if chk.stable else "unstable") if all_renderable else (
-        "target not renderable" + ("" if chk.stable else ", unstable"))
+    # an unrenderable target raises UnrenderableTargetError: a configuration error, exit 2
+    scene, cals = apply_targets(scene)
+    chk = check_scene(scene)
+    ok = chk.stable
+    verdict = "stable" if chk.stable else "unstable"
 
     if args.json:
         out = {"scene": args.scene, "verdict": verdict, "rate_hz": scene.rate_hz,
                "device": None if scene.device is None else {
                    "mass": scene.device.mass, "friction": scene.device.friction,
                    "delay": scene.device.delay, "hold": scene.device.hold},
-               "calibrations": [{"link": r["link"], **r["result"].to_dict()} for r in reports],
+               "calibrations": [c.to_dict() for c in cals],
                **chk.to_dict()}
         print(json.dumps(out))
         return 0 if ok else 1
@@ -164,11 +123,9 @@ def run(args: argparse.Namespace) -> int:
               f"hold {dv.hold}")
     else:
         print("no port: the virtual network alone is checked (no device in the loop)")
-    for r in reports:
-        res = r["result"]
-        print(f"target {r['link']}: (k, b) = ({r['k']:g} N/m, {r['b']:g} N s/m) -> "
-              f"K = {res.K:.6g} N/m, B = {res.B:.6g} N s/m; "
-              f"{'renderable' if res.renderable else 'NOT renderable: ' + res.reason}")
+    for c in cals:
+        print(f"target {c.link}: (k, b) = ({c.k:g} N/m, {c.b:g} N s/m) -> "
+              f"K = {c.result.K:.6g} N/m, B = {c.result.B:.6g} N s/m; renderable")
     tag = f"{verdict.upper()} with the {chk.integrator} integrator"
     if chk.stable and chk.marginal:
         tag += " (marginal: some poles sit on the unit circle and never decay)"

@@ -27,11 +27,13 @@ import threading
 
 import numpy as np
 
+from hapsim.analysis.targets import apply_targets
 from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
+from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry
-from hapsim.errors import ConfigError, DeviceError, UnrenderableTargetError, UnstableConfigError
+from hapsim.errors import ConfigError, DeviceError, UnstableConfigError
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -104,27 +106,9 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None):
     """
     if rate_hz is not None:
         scene = scene.with_rate(rate_hz)
-    dev = _require_device(scene)
-    an = _analysis()
-    targets = []
-    for lk in scene.unresolved_targets:
-        k, b = lk.target
-        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
-        cal = an["calibrate"](loop, k, b)
-        m = dev.mass
-        info = {"link": lk.name, "k": float(k), "b": float(b), "K": float(cal.K),
-                "B": float(cal.B), "renderable": bool(cal.renderable), "reason": cal.reason,
-                "f0_hz": math.sqrt(k / m) / (2 * math.pi),
-                "damping_ratio": b / (2 * math.sqrt(k * m))}
-        targets.append(info)
-        if not cal.renderable:
-            raise UnrenderableTargetError(
-                f"target k = {k:g} N/m, b = {b:g} N s/m is not renderable with this device at "
-                f"{scene.rate_hz:g} Hz: {cal.reason}",
-                file=scene.path, line=lk.line or None, key=f"links.{lk.name}.target",
-                spectral_radius=cal.spectral_radius if math.isfinite(cal.spectral_radius) else None)
-        scene = scene.with_link(lk.name, stiffness=cal.K, damping=cal.B)
-    return scene, targets
+    _require_device(scene)
+    scene, cals = apply_targets(scene)
+    return scene, [c.to_dict() for c in cals]
 
 
 def predict(scene: Scene) -> dict:
@@ -163,20 +147,6 @@ def predict(scene: Scene) -> dict:
         out["stiffness_limit"] = None
     single = len(scene.links) == 1 and len(plinks) == 1 and all(
         m.kind != "mass" for m in scene.masses)
-    if scene.integrator != "centred" and any(m.kind == "mass" for m in scene.masses):
-        # virtual masses advanced by another scheme: that scheme's own closed-loop matrix
-        from hapsim.analysis.modes import modes_from_poles, rendered_pair
-        from hapsim.bench.methods import closed_loop_matrix, spectral_radius_of
-        A = closed_loop_matrix(scene, scene.integrator)
-        eig = np.linalg.eigvals(A)
-        rho, stable = spectral_radius_of(A)
-        out.update(source=f"closed_loop_matrix ({scene.integrator})", stable=bool(stable),
-                   spectral_radius=float(rho), order=int(np.sum(np.abs(eig) > _ZERO_POLE)))
-        md = rendered_pair(modes_from_poles(eig, dev.mass, scene.period))
-        if md is not None:
-            out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
-                       damping_ratio=float(md.damping_ratio))
-        return out
     if single:
         r = an["render"](loop, K_port, B_port)
         poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))
@@ -312,7 +282,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry: str | None = None, allow_unstable: bool = False,
               transport: str | None = None, seed: int = 0,
               stop: StopFlag | None = None, handle_signals: bool = True,
-              on_start=None, faults: str | None = None, fault_seed: int = 0,
+              on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
               reconnect: bool | None = None, lost_timeout: float | None = None,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05) -> dict:
@@ -353,6 +323,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         External stop flag; a new one otherwise.
     handle_signals : bool
         Install SIGINT/SIGTERM handlers that request a clean stop (main thread only).
+    rt_priority : int
+        ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
+        pty or a serial port, where the OS permits it; 0 for normal scheduling. Restored
+        after the run; the report's ``loop.scheduling`` says what was obtained.
     on_start : callable, optional
         Called as ``on_start(port, n_samples)`` once the port is open and the signal
         handlers are installed, just before the handshake (e.g. to tell the user that
@@ -473,6 +447,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     stop = stop or StopFlag()
     embedded = None
     mock_report = None
+    rt = RealtimePriority(rt_priority if transport in ("pty", "serial") else 0)
+    rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
     if transport == "inprocess":
         from hapsim.daemon.transport import InProcessTransport
         mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
@@ -492,11 +468,16 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             tr = SerialTransport(embedded.port, baud)
         except Exception:
             embedded.close()
+            rt.__exit__(None, None, None)
             raise
         embedded.release_slave()
     else:
         from hapsim.daemon.transport import SerialTransport
-        tr = SerialTransport(port, baud)
+        try:
+            tr = SerialTransport(port, baud)
+        except Exception:
+            rt.__exit__(None, None, None)
+            raise
 
     old = {}
     if handle_signals and threading.current_thread() is threading.main_thread():
@@ -524,6 +505,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                 _remove(journal)
             raise
     finally:
+        rt.__exit__(None, None, None)
         if writer is not None:
             writer.close()
         for s, h in old.items():
@@ -567,6 +549,12 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
+    late_in = measured.get("late_in_segment", 0)
+    if late_in:
+        notes.append(f"no stretch of 100 samples without late ticks: the identified record "
+                     f"holds {late_in} late ticks (the device held an older force), so the "
+                     f"measured pair is a disturbed loop, not the THS alone; rerun on a "
+                     f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
     if "k" in measured:
@@ -591,6 +579,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "clamped": res.clamped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
+        "scheduling": rt.note,
         "low_latency_note": tr.info.get("low_latency_note", ""),
         "stop_reason": res.stop_reason, "safety_stop": res.safety_stop,
         "decoder": res.decoder,
@@ -700,7 +689,7 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/{lp['requested']} ticks, "
                  f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
-                 f"stop: {lp['stop_reason']}")
+                 f"stop: {lp['stop_reason']}; scheduling {lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
