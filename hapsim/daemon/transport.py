@@ -301,17 +301,21 @@ class EmbeddedMock:
         try:
             self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            self.proc.terminate()
-            try:
-                self.proc.wait(2.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+            self._terminate()
         try:
             with open(self.report_path) as fh:
                 return json.load(fh)
         except (OSError, ValueError):
             return None
+
+    def _terminate(self) -> None:
+        """SIGTERM the child (the mock zeroes force and exits), SIGKILL after 2 s."""
+        self.proc.terminate()
+        try:
+            self.proc.wait(2.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
 
     def release_slave(self) -> None:
         """Close this object's slave fd (once the host has opened the port)."""
@@ -323,12 +327,7 @@ class EmbeddedMock:
         """Close the slave, stop the child if still running, remove the report file."""
         self.release_slave()
         if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(2.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+            self._terminate()
         try:
             os.unlink(self.report_path)
         except OSError:
