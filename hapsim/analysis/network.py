@@ -62,13 +62,10 @@ import numpy as np
 
 from hapsim.analysis.loop import zoh_state_space
 from hapsim.errors import ConfigError
+from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "virtual_blocks", "virtual_state_names", "closed_loop"]
-
-#: Integrators of the virtual masses (scene key ``integrator``; same tuple as
-#: :data:`hapsim.scene.INTEGRATORS` and :data:`hapsim.kernels.schemes.INTEGRATORS`).
-INTEGRATORS = ("centred", "symplectic_euler", "exact")
 
 
 def check_integrator(integrator: str, scene=None) -> None:
