@@ -30,6 +30,14 @@ Wire faults (device -> host bytes):
 ``reorder``  the frame is held back and sent after the next one.
 ``spike``    every frame is held for DURATION (default 5 ms), then sent in one burst.
 
+Host -> device wire faults: the same six names prefixed ``rx.`` (``rx.drop``,
+``rx.corrupt``, ``rx.garbage``, ``rx.dup``, ``rx.reorder``, ``rx.spike``) act on each
+frame the device *receives* (FORCE, CONFIG, PING, STOP, HELLO_REQUEST), after the port and
+before the device's decoder: ``rx.drop=0.01,rx.corrupt=0.005``. They draw from their own
+generator (seeded from the same seed), so adding them does not change which device -> host
+frames are faulted. ``rx.NAME@TICK`` faults the first host frame received from device tick
+TICK on.
+
 Device faults:
 
 ``stall``    the device's link stalls for DURATION (default 200 ms): no STATE goes out and
@@ -42,7 +50,8 @@ Device faults:
              comes back (then ``0x00`` + HELLO); the device keeps ticking (watchdog).
 
 Example: ``drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
-stall@500:200ms,reset@800,vanish@1200:300ms`` with ``--fault-seed 1``.
+stall@500:200ms,reset@800,vanish@1200:300ms,rx.drop=0.01,rx.corrupt=0.005`` with
+``--fault-seed 1``.
 """
 
 from __future__ import annotations
@@ -55,19 +64,21 @@ from dataclasses import dataclass, field
 import firmware_protocol as fp
 from hapsim.errors import ConfigError
 
-__all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "WIRE_FAULTS", "DEVICE_FAULTS",
-           "FAULT_NAMES", "DEFAULT_DURATIONS"]
+__all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "WIRE_FAULTS", "RX_WIRE_FAULTS",
+           "DEVICE_FAULTS", "FAULT_NAMES", "DEFAULT_DURATIONS"]
 
 #: Faults applied to each device -> host frame.
 WIRE_FAULTS = ("drop", "corrupt", "garbage", "dup", "reorder", "spike")
+#: Faults applied to each host -> device frame (what the device receives).
+RX_WIRE_FAULTS = tuple("rx." + n for n in WIRE_FAULTS)
 #: Faults of the device's state machine (per tick).
 DEVICE_FAULTS = ("stall", "reset", "vanish")
 #: Every fault name the SPEC accepts.
-FAULT_NAMES = WIRE_FAULTS + DEVICE_FAULTS + ("nohello",)
+FAULT_NAMES = WIRE_FAULTS + RX_WIRE_FAULTS + DEVICE_FAULTS + ("nohello",)
 #: Default DURATION [s] of the faults that have one.
-DEFAULT_DURATIONS = {"spike": 0.005, "stall": 0.2, "vanish": 0.3}
+DEFAULT_DURATIONS = {"spike": 0.005, "rx.spike": 0.005, "stall": 0.2, "vanish": 0.3}
 
-_ITEM = re.compile(r"^\s*([a-z]+)\s*(?:([=@])\s*([^:\s]+)\s*(?::\s*(\S+))?)?\s*$")
+_ITEM = re.compile(r"^\s*([a-z]+(?:\.[a-z]+)?)\s*(?:([=@])\s*([^:\s]+)\s*(?::\s*(\S+))?)?\s*$")
 _DUR = re.compile(r"^([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)(us|ms|s)$")
 _UNIT = {"us": 1e-6, "ms": 1e-3, "s": 1.0}
 
@@ -115,14 +126,27 @@ class FaultPlan:
 
     def __post_init__(self) -> None:
         self.rng = random.Random(self.seed)
+        # host -> device faults draw from their own generator: adding them leaves the
+        # device -> host faults of a given seed unchanged
+        self.rx_rng = random.Random(f"rx:{self.seed}")
         self.injected = {name: 0 for name in FAULT_NAMES}
-        self._wire = any(self.rates.get(n, 0.0) > 0 for n in WIRE_FAULTS) or any(
-            name in WIRE_FAULTS for _, name, _ in self.schedule)
+        self._wire = self._wire_active(WIRE_FAULTS)
+        self._rx_wire = self._wire_active(RX_WIRE_FAULTS)
         self._dev_rates = [(n, self.rates[n]) for n in DEVICE_FAULTS if self.rates.get(n, 0) > 0]
         self._by_tick: dict[int, list] = {}
         for tick, name, dur in self.schedule:
             self._by_tick.setdefault(int(tick), []).append((name, dur))
         self._armed_wire: list = []      # scheduled wire faults waiting for the next frame
+        self._armed_rx: list = []        # scheduled rx. faults waiting for the next host frame
+
+    def _wire_active(self, names: tuple) -> bool:
+        return any(self.rates.get(n, 0.0) > 0 for n in names) or any(
+            name in names for _, name, _ in self.schedule)
+
+    @property
+    def has_rx(self) -> bool:
+        """True when the plan faults host -> device frames (``rx.`` names)."""
+        return self._rx_wire
 
     @property
     def empty(self) -> bool:
@@ -153,6 +177,9 @@ class FaultPlan:
             if name in WIRE_FAULTS:
                 out.remove((name, dur))
                 self._armed_wire.append((name, dur))
+            elif name in RX_WIRE_FAULTS:
+                out.remove((name, dur))
+                self._armed_rx.append((name[3:], dur))
         for name, _ in out:
             self.injected[name] += 1
         return out
@@ -176,34 +203,59 @@ class FaultPlan:
         """
         if not self._wire:
             return [frame], 0.0
+        return self._apply(frame, "", self._armed_wire, self.rng)
+
+    def wire_rx(self, frame: bytes) -> tuple[list, float]:
+        """Apply the ``rx.`` wire faults to one host -> device frame.
+
+        Parameters
+        ----------
+        frame : bytes
+            One frame as the host wrote it (with its ``0x00`` delimiter).
+
+        Returns
+        -------
+        frames : list of bytes
+            What the device's receiver gets instead, in order (as :meth:`wire`, with the
+            same ``"REORDER"`` marker).
+        hold : float
+            Hold every received frame from now on for this long [s] (``rx.spike``).
+        """
+        if not self._rx_wire:
+            return [frame], 0.0
+        return self._apply(frame, "rx.", self._armed_rx, self.rx_rng)
+
+    def _apply(self, frame: bytes, prefix: str, armed: list, rng) -> tuple[list, float]:
+        """The six wire faults on one frame; ``prefix`` selects the rates and counters."""
         rates = self.rates
-        rnd = self.rng.random
-        fire = {name for name, _ in self._armed_wire}
-        spike_dur = next((d for n, d in self._armed_wire if n == "spike"), None)
-        self._armed_wire.clear()
+        inj = self.injected
+        rnd = rng.random
+        fire = {name for name, _ in armed}
+        spike_dur = next((d for n, d in armed if n == "spike"), None)
+        armed.clear()
         hold = 0.0
-        if "spike" in fire or rnd() < rates.get("spike", 0.0):
-            hold = spike_dur if spike_dur else self.durations.get("spike", 0.005)
-            self.injected["spike"] += 1
-        if "drop" in fire or rnd() < rates.get("drop", 0.0):
-            self.injected["drop"] += 1
+        if "spike" in fire or rnd() < rates.get(prefix + "spike", 0.0):
+            hold = spike_dur if spike_dur else self.durations.get(prefix + "spike", 0.005)
+            inj[prefix + "spike"] += 1
+        if "drop" in fire or rnd() < rates.get(prefix + "drop", 0.0):
+            inj[prefix + "drop"] += 1
             return [], hold
         out = [frame]
-        if "corrupt" in fire or rnd() < rates.get("corrupt", 0.0):
-            self.injected["corrupt"] += 1
+        if "corrupt" in fire or rnd() < rates.get(prefix + "corrupt", 0.0):
+            inj[prefix + "corrupt"] += 1
             b = bytearray(frame)
-            i = self.rng.randrange(len(b) - 1)
-            b[i] ^= self.rng.randrange(1, 256)
+            i = rng.randrange(len(b) - 1)
+            b[i] ^= rng.randrange(1, 256)
             out = [bytes(b)]
-        if "garbage" in fire or rnd() < rates.get("garbage", 0.0):
-            self.injected["garbage"] += 1
-            n = self.rng.randrange(1, 65)
-            out.insert(0, bytes(self.rng.getrandbits(8) for _ in range(n)))
-        if "dup" in fire or rnd() < rates.get("dup", 0.0):
-            self.injected["dup"] += 1
+        if "garbage" in fire or rnd() < rates.get(prefix + "garbage", 0.0):
+            inj[prefix + "garbage"] += 1
+            n = rng.randrange(1, 65)
+            out.insert(0, bytes(rng.getrandbits(8) for _ in range(n)))
+        if "dup" in fire or rnd() < rates.get(prefix + "dup", 0.0):
+            inj[prefix + "dup"] += 1
             out.append(out[-1])
-        if "reorder" in fire or rnd() < rates.get("reorder", 0.0):
-            self.injected["reorder"] += 1
+        if "reorder" in fire or rnd() < rates.get(prefix + "reorder", 0.0):
+            inj[prefix + "reorder"] += 1
             return ["REORDER"] + out, hold       # marker: hold these behind the next frame
         return out, hold
 
@@ -301,8 +353,11 @@ class FaultyDevice:
     Notes
     -----
     Use: :meth:`connect` when the port opens, :meth:`feed` with the host's bytes,
-    :meth:`tick` at each device tick (real-time), :meth:`pop_due` for the bytes to write by
-    now (in order), :meth:`next_release_us` for the next held frame.
+    :meth:`tick` at each device tick (real-time), :meth:`poll` between ticks, :meth:`pop_due`
+    for the bytes to write by now (in order), :meth:`next_release_us` for the next held
+    frame (either direction). With ``rx.`` faults the host's bytes are cut into frames at
+    their ``0x00`` delimiters, faulted one frame at a time and then handed to
+    :attr:`decoder` (at once, or when a held frame's time comes).
     """
 
     def __init__(self, mock, plan: FaultPlan | None = None) -> None:
@@ -318,6 +373,11 @@ class FaultyDevice:
         self._held: list = []           # frames held back by 'reorder'
         self.vanish_pending = False     # serve_fd: close the port now
         self.reconnect_pending = False  # the port came back: say HELLO
+        self._rx_on = self.plan.has_rx
+        self._rx_buf = b""              # host bytes not yet ending a frame (rx. faults)
+        self._in: list = []             # (release_us, bytes) for the receiver (rx. faults)
+        self._in_hold_until = 0
+        self._in_held: list = []        # host frames held back by 'rx.reorder'
 
     # ------------------------------------------------------------------ output
     def _send(self, msg, now_us: int) -> None:
@@ -356,8 +416,12 @@ class FaultyDevice:
         return data
 
     def next_release_us(self) -> int | None:
-        """Release time of the next held frame [us], or None."""
-        return self._out[0][0] if self._out else None
+        """Release time of the next held frame, either direction [us], or None."""
+        out = self._out[0][0] if self._out else None
+        if self._in:
+            rx = self._in[0][0]
+            return rx if out is None or rx < out else out
+        return out
 
     def link_down(self, now_us: int) -> bool:
         """True while the link is stalled or the port is gone."""
@@ -369,7 +433,65 @@ class FaultyDevice:
 
     # ------------------------------------------------------------------ input
     def feed(self, data: bytes, now_us: int) -> list:
-        """Bytes from the host (call only while the link is up); returns the messages seen."""
+        """Bytes from the host (call only while the link is up); returns the messages seen.
+
+        Parameters
+        ----------
+        data : bytes
+            Bytes the host wrote (any split: whole frames, parts, several frames).
+        now_us : int
+            Device clock [us].
+
+        Returns
+        -------
+        list
+            Messages the device's receiver decoded and acted on by now (with ``rx.``
+            faults, frames held back by ``rx.spike`` / ``rx.reorder`` are acted on later,
+            by :meth:`poll` or :meth:`tick`).
+        """
+        if not self._rx_on:
+            return self._receive(data, now_us)
+        buf = self._rx_buf + data
+        start = 0
+        plan = self.plan
+        while True:
+            end = buf.find(b"\x00", start)
+            if end < 0:
+                break
+            frames, hold = plan.wire_rx(buf[start:end + 1])
+            start = end + 1
+            if hold > 0:
+                self._in_hold_until = max(self._in_hold_until, now_us + int(hold * 1e6))
+            rel = max(now_us, self._in_hold_until)
+            if frames and frames[0] == "REORDER":
+                self._in_held.extend(frames[1:])
+                continue
+            for f in frames:
+                self._in.append((rel, f))
+            if self._in_held:
+                for f in self._in_held:
+                    self._in.append((rel, f))
+                self._in_held.clear()
+        self._rx_buf = buf[start:]
+        if len(self._rx_buf) > 2 * fp.MAX_FRAME:       # no delimiter: the receiver's problem
+            self._in.append((max(now_us, self._in_hold_until), self._rx_buf))
+            self._rx_buf = b""
+        return self._deliver(now_us)
+
+    def _deliver(self, now_us: int) -> list:
+        """Hand the received frames whose time has come to the device's receiver."""
+        inq = self._in
+        if not inq or inq[0][0] > now_us or self.link_down(now_us):
+            return []
+        i = 0
+        while i < len(inq) and inq[i][0] <= now_us:
+            i += 1
+        data = b"".join(f for _, f in inq[:i])
+        del inq[:i]
+        return self._receive(data, now_us)
+
+    def _receive(self, data: bytes, now_us: int) -> list:
+        """The device's receiver: decode (bad frames dropped and counted), then act."""
         msgs = self.decoder.feed(data)
         mock = self.mock
         for msg in msgs:
@@ -379,6 +501,12 @@ class FaultyDevice:
             for reply in mock.handle(msg, now_us):
                 self._send(reply, now_us)
         return msgs
+
+    def _clear_rx(self) -> None:
+        self._rx_buf = b""
+        self._in.clear()
+        self._in_held.clear()
+        self._in_hold_until = 0
 
     # ------------------------------------------------------------------ ticks
     def tick(self, now_us: int) -> None:
@@ -397,6 +525,7 @@ class FaultyDevice:
                     self.reconnect_pending = True
                     self._out.clear()
                     self._held.clear()
+                    self._clear_rx()
                 elif name == "reset":
                     self.reset(now_us)
         self.poll(now_us)
@@ -404,12 +533,23 @@ class FaultyDevice:
         if st is not None and not self.link_down(now_us):
             self._send(st, now_us)
 
-    def poll(self, now_us: int) -> None:
-        """Housekeeping between ticks: when a vanished port is back, say ``0x00`` + HELLO."""
+    def poll(self, now_us: int) -> list:
+        """Housekeeping between ticks: when a vanished port is back, say ``0x00`` + HELLO;
+        hand the host frames held by ``rx.`` faults whose time has come to the receiver.
+
+        Returns
+        -------
+        list
+            Messages the receiver decoded now (empty without ``rx.`` faults).
+        """
         if self.reconnect_pending and not self.vanished(now_us) and not self.vanish_pending:
             self.reconnect_pending = False
             self.decoder.reset()
+            self._clear_rx()
             self.connect(now_us)
+        if self._in:
+            return self._deliver(now_us)
+        return []
 
     def reset(self, now_us: int) -> None:
         """Device reset: zero force, disarmed, unconfigured, receiver cleared, HELLO."""
@@ -418,6 +558,7 @@ class FaultyDevice:
         mock.configured = False
         mock.physics = None
         self.decoder.reset()
+        self._clear_rx()
         self._out.clear()
         self._held.clear()
         self._hold_until = 0

@@ -366,6 +366,12 @@ class MockStats:
         Real-time ticks more than one period late (the mock's own scheduling).
     unexpected : int
         FORCE messages that were ignored (disarmed, or wrong seq in lockstep).
+    stale : int
+        Real-time FORCE messages ignored because their ``seq`` is outside
+        ``[n - d, n]`` (``n``: the next tick): too late to be applied (duplicated, reordered
+        or delayed: the tick they were due at has passed, a newer force may already be
+        applied) or answering a STATE not sent yet (a frame from before a CONFIG). They do
+        not feed the watchdog.
     saw_stop : bool
         A STOP was received.
     last_applied : float
@@ -383,6 +389,7 @@ class MockStats:
     clamped: int = 0
     overruns: int = 0
     unexpected: int = 0
+    stale: int = 0
     saw_stop: bool = False
     last_applied: float = 0.0
     last_host_message: str = ""
@@ -393,7 +400,7 @@ class MockStats:
         return {"ticks": self.ticks, "forces_rx": self.forces_rx, "late": self.late,
                 "watchdog_trips": self.watchdog_trips, "clamped": self.clamped,
                 "overruns": self.overruns, "unexpected": self.unexpected,
-                "saw_stop": self.saw_stop, "last_applied": self.last_applied,
+                "stale": self.stale, "saw_stop": self.saw_stop, "last_applied": self.last_applied,
                 "last_host_message": self.last_host_message, "faults": list(self.faults)}
 
 
@@ -426,7 +433,10 @@ class MockDevice:
     -----
     Host duties served (see ``firmware_protocol``): HELLO on connect (:meth:`hello`) and on
     HELLO_REQUEST; CONFIG (re)starts the physics from the excitation and arms; STATE each
-    tick; FORCE stored in a delay line and applied at tick ``seq + d``, clamped to
+    tick; FORCE stored in a delay line and applied at tick ``seq + d`` (real-time: only a
+    FORCE whose tick is still to come, ``seq`` in ``[n - d, n]``; older or newer ones are
+    counted ``stale`` and ignored, so a duplicated or reordered FORCE never replaces a
+    newer one), clamped to
     ``min(CONFIG.force_limit, device force limit)``; a non-finite FORCE zeroes the force,
     sends FAULT NON_FINITE_FORCE and disarms; PING -> PONG; STOP zeroes the force at once and
     disarms; watchdog (real-time): no FORCE for ``CONFIG.watchdog_us`` zeroes the force.
@@ -455,6 +465,10 @@ class MockDevice:
         self.history: list = []      # the MockStats of each earlier CONFIG (lifetime totals)
         self._hand_cache: dict = {}
         self.trace: list | None = None  # tests: (time_us, applied force [N]) per tick when a list
+        #: tests: when a ``collections.deque(maxlen=N)`` (bounded), one
+        #: ``(time_us, tick, force_seq, applied force [N], configs)`` per tick, ``configs``
+        #: counting the CONFIGs accepted before (the session the tick belongs to)
+        self.applied_log = None
         self.rate_hz = self.native_rate_hz
         self.force_limit = float(device.force_limit)
         self.watchdog_us = 0
@@ -548,13 +562,28 @@ class MockDevice:
             self.stop()
             st.faults.append("NON_FINITE_FORCE")
             return [fp.Fault(fp.FAULT_NON_FINITE_FORCE, msg.seq)]
+        if not self.lockstep:
+            # only a FORCE still to be applied is stored: seq in [n - d, n], n the next
+            # tick (its STATE not sent yet). Older: its tick has passed (a newer FORCE may
+            # be applied already; a duplicate or reordered frame must not replace it).
+            # Newer: answers a STATE this session never sent (a frame from before CONFIG).
+            lo = self.physics.n - self.delay
+            ahead = (msg.seq - lo) & 0xFFFFFFFF
+            if ahead > self.delay:
+                st.stale += 1
+                return []
+            seq = lo + ahead                  # unwrapped: the ring compares whole ticks
+            st.forces_rx += 1
+            self._last_force_us = now_us
+            i = seq % self._ring
+            self._rf[i] = f
+            self._rs[i] = seq
+            return []
         st.forces_rx += 1
         self._last_force_us = now_us
         i = msg.seq % self._ring
         self._rf[i] = f
         self._rs[i] = msg.seq
-        if not self.lockstep:
-            return []
         n = self.physics.n
         if msg.seq != n:
             st.unexpected += 1
@@ -595,6 +624,8 @@ class MockDevice:
         self.stats.last_applied = f
         if self.trace is not None:
             self.trace.append((now_us, f))
+        if self.applied_log is not None:
+            self.applied_log.append((now_us, n, seq, f, len(self.history)))
 
     def _emit(self, now_us: int) -> fp.State:
         """STATE of the current tick (choosing its force first when ``d >= 1``)."""
@@ -615,10 +646,10 @@ class MockDevice:
         -------
         dict
             ``ticks``, ``forces_rx``, ``late``, ``watchdog_trips``, ``clamped``,
-            ``overruns``, ``unexpected``, ``configs`` (number of CONFIGs accepted).
+            ``overruns``, ``unexpected``, ``stale``, ``configs`` (number of CONFIGs accepted).
         """
         keys = ("ticks", "forces_rx", "late", "watchdog_trips", "clamped", "overruns",
-                "unexpected")
+                "unexpected", "stale")
         out = {k: sum(getattr(s, k) for s in self.history + [self.stats]) for k in keys}
         out["configs"] = len(self.history)
         return out
@@ -677,8 +708,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     handle_signals : bool
         Install SIGTERM/SIGINT handlers that end serving cleanly (main thread only).
     plan : FaultPlan, optional
-        Faults to inject (:mod:`hapsim.daemon.faults`): wire faults on every frame sent,
-        stall / reset / vanish at device ticks, no HELLO.
+        Faults to inject (:mod:`hapsim.daemon.faults`): wire faults on every frame sent
+        and (``rx.`` names) on every frame received, stall / reset / vanish at device
+        ticks, no HELLO.
     reopen : callable, optional
         ``reopen() -> fd``: a new port after a ``vanish`` (the old ``fd`` is closed when
         the port vanishes); required when the plan can make the port vanish.
@@ -803,6 +835,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                     # the host always gets at least half a period to answer: a mock
                     # scheduled late slips its schedule (counted) instead of compressing it
                     deadline = max(deadline + period_ns, now + period_ns // 2)
+                else:
+                    dev.poll(now_us())           # host frames held by rx. faults
             else:
                 dev.poll(now_us())
             if fd is not None:

@@ -432,7 +432,7 @@ class SimTransport:
 
     def sleep(self, seconds: float) -> None:
         """Let ``seconds`` of virtual time pass."""
-        self._step_to(self.now_us + max(int(seconds * 1e6), 0))
+        self._step_to(self.now_us + max(int(round(seconds * 1e6)), 0))
 
     def send(self, msg) -> None:
         """Encode ``msg`` and hand the bytes to the device (queued while it is stalled).
