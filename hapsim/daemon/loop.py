@@ -16,7 +16,7 @@ last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
 ``velocity_limit``, or the energy the virtual environment gave the hand beyond
 ``energy_limit``. Every end sends a zero FORCE then STOP.
 
-Reliability (device-clocked loop): bad frames are dropped by the decoder and never acted on;
+Reliability (both loops): bad frames are dropped by the decoder and never acted on;
 a STATE older than the last one (duplicated, reordered) is ignored (``stale``), one with the
 wrong number of axes too (``bad_axes``); silence longer than ``lost_timeout`` (default: the
 watchdog), a port error, or an unarmed STATE after arming make the device *lost*: zero FORCE
@@ -25,9 +25,11 @@ it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at m
 ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts from
 its initial state with the port at the device's position at rest, the force ramped up over
 ``ramp_samples``. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
-counted; latched ones end the run. The host-clocked loop ignores stale and wrong-axis
-STATEs and applies the same safety limits, but does not reconnect (silence longer than
-``state_timeout`` raises :class:`DeviceError`).
+counted; latched ones end the run. The host-clocked loop uses the same machinery (one
+driver, :meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its
+losses; :meth:`HostLoop._resume` restarts the scene): it answers the latest STATE at each
+host deadline, and silence longer than ``lost_timeout`` is a loss like in the
+device-clocked loop. Without ``reconnect`` a loss raises :class:`DeviceError`.
 
 Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
 IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
@@ -137,7 +139,7 @@ class LoopConfig:
         Cap of that damping [N s/m].
     reconnect : bool
         Recover a lost device (re-open, HELLO, CONFIG) instead of raising
-        :class:`DeviceError` (device-clocked loop only).
+        :class:`DeviceError` (device- and host-clocked loops).
     lost_timeout : float or None
         Silence after which the device is lost [s]; None: ``watchdog_us``. Without
         ``reconnect`` the silence allowed is ``state_timeout``; the first STATE after a
@@ -434,9 +436,9 @@ class HostLoop:
             if hello is None:
                 pass
             elif self.config.host_clocked:
-                self._run_host_clocked()
+                self._run_stretches(self._host_clocked_stretch)
             else:
-                self._run_device_clocked()
+                self._run_stretches(self._device_clocked_stretch)
         finally:
             self._shutdown()
             if gc_was:
@@ -542,21 +544,71 @@ class HostLoop:
             delay = min(2 * delay, cfg.backoff_max)
         return False
 
-    # ------------------------------------------------------------------ device-clocked
-    def _run_device_clocked(self) -> None:
+    # ------------------------------------------------------------------ shared
+    def _run_stretches(self, stretch) -> None:
+        """Run ``stretch(n_max)`` until the end; after each loss, recover and run it again.
+
+        Both loops (device- and host-clocked) go through here: a stretch runs from the next
+        armed STATE after a CONFIG until the end, a stop, or a loss (:class:`_Lost`); the loss
+        is handled by :meth:`_recover` (zero FORCE, STOP, re-open, HELLO, CONFIG, backoff),
+        and the next stretch restarts the scene through :meth:`_resume`.
+        """
         res = self.result
         stop = self.stop
         n_max = min(self.config.n_samples, self.tel.capacity)
         self._energy = 0.0
         while self.tel.n < n_max and not stop.set:
             try:
-                self._device_clocked_stretch(n_max)
+                stretch(n_max)
             except _Lost as lost:
                 if not self._recover(lost):
                     break
         if stop.set and res.stop_reason == "duration" and stop.signal is not None:
             res.stop_reason = f"signal {_signame(stop.signal)}"
 
+    def _silence(self) -> float:
+        """Silence after which the device is lost [s]: ``lost_timeout`` (default: the
+        watchdog) when reconnecting, else ``state_timeout``."""
+        cfg = self.config
+        if cfg.reconnect:
+            return cfg.lost_timeout if cfg.lost_timeout is not None else cfg.watchdog_us * 1e-6
+        return cfg.state_timeout
+
+    def _resume(self, x: float):
+        """First armed STATE after a (re)CONFIG: restart the scene at rest at ``x`` [m].
+
+        After a loss the engine is rebuilt from the scene (its initial state), the force
+        ramp is armed and the recovery is recorded. Returns the engine to step.
+        """
+        if self._lost_since is not None:
+            self.engine = type(self.engine)(self.engine.scene)
+            self._ramp = max(int(self.config.ramp_samples), 1)
+            self.result.recovered += 1
+            self._event("recovered", attempts=self._attempts,
+                        after_s=round(self._clock() - self._lost_since, 6))
+            self._lost_since = None
+        self.engine.set_port_position(x, at_rest=True)
+        self._fresh = False
+        return self.engine
+
+    def _note_other(self, msg) -> bool:
+        """A message other than STATE during the loop: count non-latched FAULTs and HELLOs;
+        a latched FAULT ends the run (returns True, stop flag set)."""
+        res = self.result
+        tm = type(msg)
+        if tm is fp.Fault:
+            name = fp.FAULT_NAMES.get(msg.code, f"0x{msg.code:04X}")
+            if msg.code in LATCHED_FAULTS:
+                res.faults.append(name)
+                res.stop_reason = f"device: FAULT {name} (detail {msg.detail})"
+                self.stop.set = True
+                return True
+            res.device_faults[name] = res.device_faults.get(name, 0) + 1
+        elif tm is fp.Hello:
+            res.hello_mid_run += 1
+        return False
+
+    # ------------------------------------------------------------------ device-clocked
     def _device_clocked_stretch(self, n_max: int) -> None:
         """The hot loop, from the next armed STATE until the end, a stop, or a loss."""
         cfg = self.config
@@ -581,10 +633,9 @@ class HostLoop:
         clamp_max = cfg.clamp_max
         fh = [0.0] * (d + 2)                # forces sent, by local sample index
         fhl = len(fh)
-        State, Fault, Force, Hello = fp.State, fp.Fault, fp.Force, fp.Hello
+        State, Force = fp.State, fp.Force
         overrun_bit = fp.STATUS_OVERRUN
         armed_bit = fp.STATUS_ARMED
-        latched = LATCHED_FAULTS
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
@@ -598,10 +649,7 @@ class HostLoop:
         v_max = res.v_max
         f_max = res.f_max
         ramp_n = max(int(cfg.ramp_samples), 1)
-        if cfg.reconnect:
-            silence = cfg.lost_timeout if cfg.lost_timeout is not None else cfg.watchdog_us * 1e-6
-        else:
-            silence = cfg.state_timeout
+        silence = self._silence()
         poll = min(0.1, silence)
         i = tel.n
         last_rx = clock()
@@ -622,16 +670,8 @@ class HostLoop:
                 for msg in msgs:
                     tm = type(msg)
                     if tm is not State:
-                        if tm is Fault:
-                            name = fp.FAULT_NAMES.get(msg.code, f"0x{msg.code:04X}")
-                            if msg.code in latched:
-                                res.faults.append(name)
-                                res.stop_reason = f"device: FAULT {name} (detail {msg.detail})"
-                                stop.set = True
-                                break
-                            res.device_faults[name] = res.device_faults.get(name, 0) + 1
-                        elif tm is Hello:
-                            res.hello_mid_run += 1
+                        if self._note_other(msg):
+                            break
                         continue
                     if len(msg.position) != 1:
                         res.bad_axes += 1
@@ -648,15 +688,7 @@ class HostLoop:
                         if not isfinite(x):
                             x = math.nan          # handled below as a non-finite position
                         else:
-                            if self._lost_since is not None:
-                                eng = self.engine = type(eng)(eng.scene)
-                                self._ramp = ramp_n
-                                res.recovered += 1
-                                self._event("recovered", attempts=self._attempts,
-                                            after_s=round(clock() - self._lost_since, 6))
-                                self._lost_since = None
-                            eng.set_port_position(x, at_rest=True)
-                            self._fresh = False
+                            eng = self._resume(x)
                             expect = seq
                             k = 0
                             x_prev = x
@@ -764,14 +796,21 @@ class HostLoop:
             res.v_max = v_max
             res.f_max = f_max
 
-    def _run_host_clocked(self) -> None:
+    # ------------------------------------------------------------------ host-clocked
+    def _host_clocked_stretch(self, n_max: int) -> None:
+        """Host-clocked loop from the next armed STATE until the end, a stop, or a loss.
+
+        At each host deadline the latest STATE is answered; ticks without a new STATE are
+        skipped (``missed``). Silence longer than :meth:`_silence`, a port error or a
+        disarmed STATE after arming raise :class:`_Lost` (recovered by
+        :meth:`_run_stretches`, as in the device-clocked loop). On a virtual-clock transport
+        (``clock()``/``sleep()``) the deadlines are on that clock.
+        """
         cfg = self.config
         tr = self.transport
-        eng = self.engine
         tel = self.tel
         stop = self.stop
         res = self.result
-        n_max = min(cfg.n_samples, tel.capacity)
         lim = self.force_limit
         pos_bound = cfg.position_bound
         vlim = cfg.velocity_limit
@@ -783,142 +822,182 @@ class HostLoop:
         d = cfg.delay
         fh = [0.0] * (d + 2)
         fhl = len(fh)
-        energy = 0.0
+        energy = self._energy
+        ramp_n = max(int(cfg.ramp_samples), 1)
+        silence = self._silence()
         x_prev = None
         k = 0
         win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
         wlen = win.size
         wsum = 0
         State, Force = fp.State, fp.Force
+        armed_bit = fp.STATUS_ARMED
         isfinite = math.isfinite
-        mono_ns = time.monotonic_ns
         perf = time.perf_counter_ns
-        sleep = time.sleep
+        clock = self._clock
+        sleep = self._sleep
+        virtual = hasattr(tr, "clock")
+        if virtual:
+            def mono_ns() -> int:
+                return int(round(clock() * 1e9))
+        else:
+            mono_ns = time.monotonic_ns
         receive, send = tr.receive, tr.send
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
-        # wait for the first STATE, then tick on the host clock
-        end = time.monotonic() + cfg.state_timeout
-        while latest is None and not stop.set:
-            for msg in receive(0.05):
-                if type(msg) is State:
-                    latest = msg
-            if latest is None and time.monotonic() > end:
-                self._state_timeout()
-        if latest is None:
-            return
-        eng.set_port_position(latest.position[0], at_rest=True)
-        used_seq = -1
-        last_new = time.monotonic()
-        # a real-time device ticks on the same monotonic clock: tick a third of a period
-        # after its STATE arrives, so the STATE is in and the FORCE is back before its
-        # next tick (ticking in phase with the device would race it every period)
-        deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
-        i = 0
-        while i < n_max and not stop.set:
-            remaining = deadline - mono_ns()
-            if remaining > 600_000:
-                sleep((remaining - 400_000) * 1e-9)
-            while mono_ns() < deadline:
-                for msg in receive(0.0):
-                    if type(msg) is State and len(msg.position) == 1 and (
-                            (msg.seq - latest.seq) & _U32) < _HALF:
-                        latest = msg
-            for msg in receive(0.0):
-                if type(msg) is State and len(msg.position) == 1 and (
-                        (msg.seq - latest.seq) & _U32) < _HALF:
-                    latest = msg
-            t_rx = perf()
-            if latest.seq == used_seq:
-                # no new sample since the last tick: stepping the engine with a stale
-                # position would corrupt its velocity; skip this tick (counted)
-                res.missed += 1
-                if time.monotonic() - last_new > cfg.state_timeout:
-                    self._state_timeout()
+
+        def take(msgs) -> None:
+            """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted."""
+            nonlocal latest
+            for msg in msgs:
+                if type(msg) is not State:
+                    self._note_other(msg)
+                    continue
+                if len(msg.position) != 1:
+                    res.bad_axes += 1
+                    continue
+                if not msg.status & armed_bit:
+                    if latest is None:
+                        res.unarmed += 1
+                        continue
+                    raise _Lost("the device reports itself disarmed (reset?)")
+                if latest is not None and ((msg.seq - latest.seq) & _U32) >= _HALF:
+                    res.stale += 1                # duplicated or reordered: older
+                    continue
+                latest = msg
+
+        try:
+            # wait for the first armed STATE (a device (re)starting gets state_timeout)
+            end = clock() + cfg.state_timeout
+            while latest is None and not stop.set:
+                take(receive(0.05))
+                if latest is None and clock() > end:
+                    raise _Lost(f"no STATE from the device for {cfg.state_timeout:g} s")
+            if latest is None or stop.set:
+                return
+            eng = self._resume(latest.position[0])
+            used_seq = -1
+            last_new = clock()
+            # a real-time device ticks on the same clock: tick a third of a period after
+            # its STATE arrives, so the STATE is in and the FORCE is back before its next
+            # tick (ticking in phase with the device would race it every period)
+            deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
+            i = tel.n
+            while i < n_max and not stop.set:
+                remaining = deadline - mono_ns()
+                if virtual:
+                    while remaining > 0:
+                        sleep(max(remaining, 1000) * 1e-9)
+                        remaining = deadline - mono_ns()
+                else:
+                    if remaining > 600_000:
+                        sleep((remaining - 400_000) * 1e-9)
+                    while mono_ns() < deadline:
+                        take(receive(0.0))
+                take(receive(0.0))
+                if stop.set:
+                    break
+                t_rx = perf()
+                if latest.seq == used_seq:
+                    # no new sample since the last tick: stepping the engine with a stale
+                    # position would corrupt its velocity; skip this tick (counted)
+                    res.missed += 1
+                    if clock() - last_new > silence:
+                        raise _Lost(f"no STATE from the device for {silence:g} s")
+                    deadline += period_ns
+                    continue
+                last_new = clock()
+                x = latest.position[0]
+                seq = latest.seq
+                lt = 0
+                if seq >= d > 0 and ((seq - latest.force_seq) & _U32 != d
+                                     or latest.status & fp.STATUS_OVERRUN):
+                    lt = 1
+                    res.late += 1
+                used_seq = seq
+                f = eng.port_step(x) if isfinite(x) else math.nan
+                if not isfinite(f):
+                    send(Force(seq, (0.0,)))
+                    self._last_seq = seq
+                    res.stop_reason = "safety: non-finite position or force"
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                # passivity observer and controller, as in the device-clocked loop
+                dx = 0.0 if x_prev is None else x - x_prev
+                x_prev = x
+                v = dx * rate
+                if k > d:
+                    energy += fh[(k - 1 - d) % fhl] * dx
+                if pc_on and energy > 0.0:
+                    tvv = T * v * v
+                    if tvv > 0.0:
+                        f -= (energy / tvv if energy < bmax * tvv else bmax) * v
+                        res.passivity_samples += 1
+                if self._ramp > 0:
+                    f *= (ramp_n - self._ramp + 1) / ramp_n
+                    self._ramp -= 1
+                c = 0
+                if f > lim:
+                    f, c = lim, 1
+                elif f < -lim:
+                    f, c = -lim, 1
+                send(Force(seq, (f,)))
+                t_tx = perf()
+                self._last_seq = seq
+                fh[k % fhl] = f
+                k += 1
+                if energy > res.energy_max:
+                    res.energy_max = energy
+                av = abs(v)
+                if av > res.v_max:
+                    res.v_max = av
+                if abs(f) > res.f_max:
+                    res.f_max = abs(f)
+                j = i % wlen
+                wsum += c - win[j]
+                win[j] = c
+                res.clamped += c
+                tel.time[i] = latest.time_us * 1e-6
+                tel.position[i] = x
+                tel.force[i] = f
+                tel.seq[i] = seq
+                tel.turnaround_us[i] = (t_tx - t_rx) * 1e-3
+                tel.late[i] = lt
+                i += 1
+                tel.n = i
+                if wsum >= cfg.clamp_max:
+                    res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of the "
+                                       f"last {wlen} samples")
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                if x > pos_bound or x < -pos_bound:
+                    res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                if av > vlim:
+                    res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                if energy > elim:
+                    res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
+                                       f"beyond the energy limit {elim:g} J")
+                    res.safety_stop = True
+                    stop.set = True
+                    break
                 deadline += period_ns
-                continue
-            last_new = time.monotonic()
-            x = latest.position[0]
-            seq = latest.seq
-            lt = 0
-            if seq != used_seq and seq >= cfg.delay > 0 and (
-                    (seq - latest.force_seq) & _U32 != cfg.delay
-                    or latest.status & fp.STATUS_OVERRUN):
-                lt = 1
-                res.late += 1
-            used_seq = seq
-            f = eng.port_step(x) if isfinite(x) else math.nan
-            if not isfinite(f):
-                send(Force(seq, (0.0,)))
-                res.stop_reason = "safety: non-finite position or force"
-                res.safety_stop = True
-                break
-            # passivity observer and controller, as in the device-clocked loop
-            dx = 0.0 if x_prev is None else x - x_prev
-            x_prev = x
-            v = dx * rate
-            if k > d:
-                energy += fh[(k - 1 - d) % fhl] * dx
-            if pc_on and energy > 0.0:
-                tvv = T * v * v
-                if tvv > 0.0:
-                    f -= (energy / tvv if energy < bmax * tvv else bmax) * v
-                    res.passivity_samples += 1
-            c = 0
-            if f > lim:
-                f, c = lim, 1
-            elif f < -lim:
-                f, c = -lim, 1
-            send(Force(seq, (f,)))
-            t_tx = perf()
-            self._last_seq = seq
-            fh[k % fhl] = f
-            k += 1
-            if energy > res.energy_max:
-                res.energy_max = energy
+                now = mono_ns()
+                if now - deadline > period_ns:
+                    res.overruns += 1
+                    deadline = now
+        except DeviceError as exc:        # a read or write failed: the port is gone
+            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+        finally:
+            self._energy = energy
             res.energy = energy
-            av = abs(v)
-            if av > res.v_max:
-                res.v_max = av
-            if abs(f) > res.f_max:
-                res.f_max = abs(f)
-            j = i % wlen
-            wsum += c - win[j]
-            win[j] = c
-            res.clamped += c
-            tel.time[i] = latest.time_us * 1e-6
-            tel.position[i] = x
-            tel.force[i] = f
-            tel.seq[i] = seq
-            tel.turnaround_us[i] = (t_tx - t_rx) * 1e-3
-            tel.late[i] = lt
-            i += 1
-            tel.n = i
-            if wsum >= cfg.clamp_max:
-                res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of the "
-                                   f"last {wlen} samples")
-                res.safety_stop = True
-                break
-            if x > pos_bound or x < -pos_bound:
-                res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
-                res.safety_stop = True
-                break
-            if av > vlim:
-                res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
-                res.safety_stop = True
-                break
-            if energy > elim:
-                res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
-                                   f"beyond the energy limit {elim:g} J")
-                res.safety_stop = True
-                break
-            deadline += period_ns
-            now = mono_ns()
-            if now - deadline > period_ns:
-                res.overruns += 1
-                deadline = now
-        if stop.set and res.stop_reason == "duration" and stop.signal is not None:
-            res.stop_reason = f"signal {_signame(stop.signal)}"
 
 
 def _signame(signum: int) -> str:

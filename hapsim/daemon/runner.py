@@ -374,8 +374,6 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     if transport == "sim" and lockstep:
         raise ConfigError("the sim transport runs the real-time mock on a virtual clock; "
                           "drop --lockstep", key="--lockstep")
-    if transport == "sim" and host_clocked:
-        raise ConfigError("the sim transport is device-clocked only", key="--host-clocked")
     from hapsim.daemon.faults import parse_faults
     plan = parse_faults(faults, fault_seed)
     if not plan.empty and transport not in ("pty", "sim"):
