@@ -36,12 +36,19 @@ def register(sub) -> None:
             "  PORT /dev/pts/7\n"
             "  $ hapsim run configs/wall.yaml --port /dev/pts/7\n"
             "faults (--faults SPEC, seeded by --fault-seed N; see hapsim.daemon.faults):\n"
-            "  NAME=RATE[:DUR]   at random, probability per frame (drop, corrupt, garbage,\n"
-            "                    dup, reorder, spike) or per tick (stall, reset, vanish)\n"
+            "  NAME=RATE[:DUR]   at random, probability per frame sent (drop, corrupt,\n"
+            "                    garbage, dup, reorder, spike), per frame received from the\n"
+            "                    host (the same prefixed rx.: rx.drop, rx.corrupt,\n"
+            "                    rx.garbage, rx.dup, rx.reorder, rx.spike) or per tick\n"
+            "                    (stall, reset, vanish)\n"
             "  NAME@TICK[:DUR]   once at device tick TICK; nohello: never answer HELLO\n"
             "  DUR: 5ms, 300us, 0.2s (spike 5 ms, stall 200 ms, vanish 300 ms by default)\n"
             "  e.g. drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,\n"
-            "       spike=0.001:5ms,stall@500:200ms,reset@800,vanish@1200:300ms\n"
+            "       spike=0.001:5ms,stall@500:200ms,reset@800,vanish@1200:300ms,\n"
+            "       rx.drop=0.01,rx.corrupt=0.005\n"
+            "  a bad host frame is dropped and counted (report: decoder); a missing FORCE\n"
+            "  leaves the last force held (late), the watchdog zeroes it; a FORCE whose\n"
+            "  tick has passed (duplicated, reordered, delayed) is ignored (stale)\n"
             "  vanish closes the pty and opens a new one: give --link PATH (a symbolic link\n"
             "  kept pointing at the current pty) and open PATH from the host. With faults,\n"
             "  STOP does not end the mock (a host sends STOP when it loses the device).\n"
@@ -59,6 +66,10 @@ def register(sub) -> None:
                    help="inject seeded faults (see below), e.g. drop=0.01,reset@800")
     p.add_argument("--fault-seed", type=int, default=0, metavar="N",
                    help="seed of the fault generator (default 0)")
+    p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                   help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
+                        "normal scheduling; it is a test rig; 1..99). Embedded in 'hapsim "
+                        "run', the mock inherits the run's policy instead")
     p.add_argument("--link", metavar="PATH",
                    help="keep a symbolic link PATH to the current pty (needed by vanish)")
     p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
@@ -100,7 +111,9 @@ def run(args) -> int:
     """Run ``hapsim mock``; returns the exit code."""
     from hapsim.daemon.faults import parse_faults
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
+    from hapsim.daemon.realtime import RealtimePriority
 
+    rt = RealtimePriority(args.rt_priority)       # ConfigError (exit 2) when out of range
     plan = parse_faults(args.faults, args.fault_seed) if args.faults else None
     if plan is not None and plan.has_vanish and not args.link:
         raise ConfigError("a vanish fault closes the pty and opens a new one: give --link "
@@ -142,13 +155,18 @@ def run(args) -> int:
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
-        serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
-                 handle_signals=False, plan=plan, reopen=reopen)
+        with rt:
+            serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
+                     handle_signals=False, plan=plan, reopen=reopen)
         return 0
     master, slave = _new_pty(args.link, announce=True)
     try:
-        serve_fd(master, mock, exit_on_stop=True, report_path=args.report, plan=plan,
-                 reopen=reopen)
+        with rt:
+            if args.rt_priority and not rt.active:
+                import sys
+                print(f"hapsim mock: scheduling {rt.note}", file=sys.stderr, flush=True)
+            serve_fd(master, mock, exit_on_stop=True, report_path=args.report, plan=plan,
+                     reopen=reopen)
     finally:
         for fd in (master, slave):
             try:

@@ -57,10 +57,13 @@ reliability: bad frames are counted and dropped; silence longer than --lost-time
   chunked journal written every 50 ms (a killed daemon loses < 100 ms; load it with
   hapsim.daemon.telemetry.load); with .npz/.csv the journal is FILE.hst until the end.
 faults (embedded mock): --faults SPEC --fault-seed N, SPEC items NAME=RATE[:DUR] (drop,
-  corrupt, garbage, dup, reorder, spike: per frame; stall, reset, vanish: per tick),
-  NAME@TICK[:DUR] (once at device tick TICK), nohello; DUR like 5ms, 0.3s. Example:
+  corrupt, garbage, dup, reorder, spike: per device -> host frame; the same names prefixed
+  rx. (rx.drop, rx.corrupt, rx.garbage, rx.dup, rx.reorder, rx.spike): per host -> device
+  frame, i.e. FORCE, CONFIG, PING, STOP as the device receives them; stall, reset, vanish:
+  per tick), NAME@TICK[:DUR] (once at device tick TICK), nohello; DUR like 5ms, 0.3s.
+  The same loss/recovery applies with --host-clocked. Example:
   --faults drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
-           stall@500:200ms,reset@800,vanish@1200:300ms
+           stall@500:200ms,reset@800,vanish@1200:300ms,rx.drop=0.01,rx.corrupt=0.005
 examples:
   hapsim run configs/wall.yaml
   hapsim run configs/felt_wall.yaml --lockstep --json
