@@ -763,25 +763,10 @@ class HostLoop:
                     af = f if f >= 0.0 else -f
                     if af > f_max:
                         f_max = af
-                    if wsum >= clamp_max:
-                        res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of "
-                                           f"the last {wlen} samples")
-                        res.safety_stop = True
-                        stop.set = True
-                        break
-                    if x > pos_bound or x < -pos_bound:
-                        res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
-                        res.safety_stop = True
-                        stop.set = True
-                        break
-                    if av > vlim:
-                        res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
-                        res.safety_stop = True
-                        stop.set = True
-                        break
-                    if energy > elim:
-                        res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
-                                           f"beyond the energy limit {elim:g} J")
+                    if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
+                            or energy > elim):
+                        res.stop_reason = _safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
+                                                         v, vlim, energy, elim)
                         res.safety_stop = True
                         stop.set = True
                         break
@@ -966,25 +951,10 @@ class HostLoop:
                 tel.late[i] = lt
                 i += 1
                 tel.n = i
-                if wsum >= cfg.clamp_max:
-                    res.stop_reason = (f"safety: force at the limit {lim:g} N in {wsum} of the "
-                                       f"last {wlen} samples")
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                if x > pos_bound or x < -pos_bound:
-                    res.stop_reason = f"safety: position {x:.6g} m beyond +-{pos_bound:g} m"
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                if av > vlim:
-                    res.stop_reason = f"safety: velocity {v:.6g} m/s beyond +-{vlim:g} m/s"
-                    res.safety_stop = True
-                    stop.set = True
-                    break
-                if energy > elim:
-                    res.stop_reason = (f"safety: the scene gave the hand {energy:.6g} J, "
-                                       f"beyond the energy limit {elim:g} J")
+                if (wsum >= cfg.clamp_max or x > pos_bound or x < -pos_bound or av > vlim
+                        or energy > elim):
+                    res.stop_reason = _safety_reason(wsum, cfg.clamp_max, wlen, lim, x, pos_bound,
+                                                     v, vlim, energy, elim)
                     res.safety_stop = True
                     stop.set = True
                     break
@@ -1006,3 +976,37 @@ def _signame(signum: int) -> str:
         return signal.Signals(signum).name
     except ValueError:
         return str(signum)
+
+
+def _safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
+                   position_bound: float, v: float, velocity_limit: float, energy: float,
+                   energy_limit: float) -> str:
+    """Why a safety stop is due (called only once a bound is breached, off the fast path).
+
+    Parameters
+    ----------
+    wsum, clamp_max, wlen : int
+        Samples at the force limit in the last ``wlen``, and how many stop the run.
+    limit : float
+        Force limit [N].
+    x, position_bound : float
+        Device position and its bound [m].
+    v, velocity_limit : float
+        Device velocity and its bound [m/s].
+    energy, energy_limit : float
+        Energy given to the hand by the scene and its bound [J] (passivity observer,
+        Hannaford & Ryu 2002).
+
+    Returns
+    -------
+    str
+        The stop reason for the report, the first breached bound first.
+    """
+    if wsum >= clamp_max:
+        return f"safety: force at the limit {limit:g} N in {wsum} of the last {wlen} samples"
+    if x > position_bound or x < -position_bound:
+        return f"safety: position {x:.6g} m beyond +-{position_bound:g} m"
+    if abs(v) > velocity_limit:
+        return f"safety: velocity {v:.6g} m/s beyond +-{velocity_limit:g} m/s"
+    return (f"safety: the scene gave the hand {energy:.6g} J, beyond the energy limit "
+            f"{energy_limit:g} J")
