@@ -609,6 +609,14 @@ class HostLoop:
         return False
 
     # ------------------------------------------------------------------ device-clocked
+    def _non_finite_stop(self, seq: int) -> None:
+        """Safety stop on a non-finite position or force: zero force for ``seq``, then stop."""
+        self.transport.send(fp.Force(seq, (0.0,)))
+        self._last_seq = seq
+        self.result.stop_reason = "safety: non-finite position or force"
+        self.result.safety_stop = True
+        self.stop.set = True
+
     def _device_clocked_stretch(self, n_max: int) -> None:
         """The hot loop, from the next armed STATE until the end, a stop, or a loss."""
         cfg = self.config
@@ -708,11 +716,7 @@ class HostLoop:
                             res.late += 1
                     f = eng.port_step(x) if isfinite(x) else math.nan
                     if not isfinite(f):
-                        send(Force(seq, (0.0,)))
-                        self._last_seq = seq
-                        res.stop_reason = "safety: non-finite position or force"
-                        res.safety_stop = True
-                        stop.set = True
+                        self._non_finite_stop(seq)
                         break
                     # passivity observer: work of the force held over the last period
                     dx = x - x_prev
@@ -902,11 +906,7 @@ class HostLoop:
                 used_seq = seq
                 f = eng.port_step(x) if isfinite(x) else math.nan
                 if not isfinite(f):
-                    send(Force(seq, (0.0,)))
-                    self._last_seq = seq
-                    res.stop_reason = "safety: non-finite position or force"
-                    res.safety_stop = True
-                    stop.set = True
+                    self._non_finite_stop(seq)
                     break
                 # passivity observer and controller, as in the device-clocked loop
                 dx = 0.0 if x_prev is None else x - x_prev
