@@ -27,8 +27,9 @@ class Engine:
     Parameters
     ----------
     scene : Scene
-        A validated scene whose links all have numeric (K, B): calibrate ``target``
-        links first (:meth:`Scene.with_link`).
+        A scene whose links all have numeric (K, B): calibrate ``target`` links first
+        (:func:`hapsim.analysis.targets.apply_targets`). Every :class:`Scene` is validated
+        when it is constructed, from a file or in code, so only the type is checked here.
 
     Raises
     ------
@@ -106,11 +107,6 @@ class Engine:
             self._args = (self._x, self._xp, self._f, self._mobile, self._t2m,
                           self._fixed) + link_args
         else:  # hapsim.kernels.schemes: symplectic_euler, exact
-            if integrator == "exact" and "contact" in kinds:
-                lk = next(lk for lk in scene.links if lk.kind == "contact")
-                raise ConfigError("the exact integrator takes linear links only (no contacts)",
-                                  file=scene.path, line=lk.line or None,
-                                  key=f"links.{lk.name}.kind")
             self._kernel, self._args = schemes.build(
                 integrator, T, self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed,
                 sd=arrays("spring_damper") if "spring_damper" in kinds else None,

@@ -59,6 +59,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 import os
 from dataclasses import dataclass, field
 from typing import Any
@@ -146,7 +147,11 @@ class Link:
         Felt (k [N/m], b [N s/m]) the daemon calibrates (K, B) for; ``spring_damper``
         between the port and a ground only.
     line : int
-        Line of the entry in the scene file.
+        Line of the entry in the scene file (0 when built in code).
+    calibrated : bool
+        True when (K, B) were written by calibration (:meth:`Scene.with_link`): the
+        damping may then be negative, because the device's real friction b0 can exceed
+        the damping to be felt (DESIGN §4). A scene file cannot set it.
     """
 
     name: str
@@ -158,6 +163,7 @@ class Link:
     threshold: float = 0.0
     target: tuple[float, float] | None = None
     line: int = 0
+    calibrated: bool = False
 
 
 @dataclass(frozen=True)
@@ -256,7 +262,11 @@ class Safety:
 
 @dataclass(frozen=True)
 class Scene:
-    """A validated scene. Build it with :func:`load_scene` or :func:`parse_scene`.
+    """A validated scene: read it with :func:`load_scene` or :func:`parse_scene`, or build it.
+
+    Every scene is checked when it is constructed (in code, by :func:`dataclasses.replace`
+    or from a file), with the same rules as a scene file, so none reaches the engine or
+    the analysis unvalidated.
 
     Parameters
     ----------
@@ -276,6 +286,22 @@ class Scene:
         Integrator of the virtual masses (:mod:`hapsim.kernels.schemes`).
     safety : Safety
         Limits of ``hapsim run`` (section ``safety:``; defaults when absent).
+
+    Raises
+    ------
+    ConfigError
+        When a rule of the scene format is broken: the message names the key (e.g.
+        ``masses[2].mass``) and, for an entry read from a file, the file and the line.
+        Rules: ``rate_hz`` > 0; a known ``integrator``; a non-empty tuple of masses with
+        unique names and a known kind; ``mass`` > 0 for kind ``mass`` (0 otherwise);
+        finite ``x0``, ``v0`` (``v0`` = 0 unless kind ``mass``); at most one port, and a
+        ``device`` when there is one; links with unique names and a known kind between two
+        different existing masses; stiffness >= 0 and damping >= 0, finite (NaN only
+        while a ``target`` awaits calibration; negative damping only when ``calibrated``);
+        a finite threshold on a contact, 0 on a spring_damper; a ``target`` only on a
+        spring_damper between the port and a ground, with k > 0, b >= 0; no contact
+        with ``integrator: exact``; and the ranges given in :class:`Device`,
+        :class:`Excitation` (the ``profile`` file must exist) and :class:`Safety`.
     """
 
     rate_hz: float
@@ -286,6 +312,20 @@ class Scene:
     path: str = "<string>"
     integrator: str = "centred"
     safety: Safety = field(default_factory=Safety)
+
+    def __post_init__(self) -> None:
+        for name in ("masses", "links"):
+            value = getattr(self, name)
+            if isinstance(value, list):
+                object.__setattr__(self, name, tuple(value))
+        try:
+            _check_scene(self)
+        except _Invalid as bad:
+            line = _code_line(self, bad.where)
+            shown = self.path if (line is not None or self.path != "<string>") else None
+            err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
+            err._scene_where = bad.where  # lets parse_scene name the line of the key itself
+            raise err from None
 
     @property
     def period(self) -> float:
@@ -359,11 +399,9 @@ class Scene:
         ConfigError
             When the values are not finite or the stiffness is negative.
         """
-        old = self.link(name)
-        if not (math.isfinite(stiffness) and math.isfinite(damping)) or stiffness < 0:
-            raise ConfigError(f"invalid calibrated values K={stiffness}, B={damping}",
-                              file=self.path, line=old.line or None, key=f"links.{name}")
-        links = tuple(dataclasses.replace(lk, stiffness=float(stiffness), damping=float(damping))
+        self.link(name)
+        links = tuple(dataclasses.replace(lk, stiffness=_coerce(stiffness),
+                                          damping=_coerce(damping), calibrated=True)
                       if lk.name == name else lk for lk in self.links)
         return dataclasses.replace(self, links=links)
 
@@ -375,9 +413,7 @@ class Scene:
         ConfigError
             When ``rate_hz`` is not a positive finite number.
         """
-        if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
-            raise ConfigError(f"must be a positive number, got {rate_hz!r}", key="rate_hz")
-        return dataclasses.replace(self, rate_hz=float(rate_hz))
+        return dataclasses.replace(self, rate_hz=_coerce(rate_hz))
 
 
 # --------------------------------------------------------------------------- YAML with lines
@@ -428,7 +464,234 @@ _LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _con
 _LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
 
 
-# --------------------------------------------------------------------------- validation
+# --------------------------------------------------------------------------- the rules
+
+class _Invalid(Exception):
+    """One broken rule: the message, the key to name and where in the scene it lies.
+
+    ``where`` is the path of the offending value (``("masses", 2, "mass")``); it finds the
+    line, in the YAML document for a file, else on the Mass or Link entry.
+    """
+
+    def __init__(self, message: str, where: tuple, key: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.where = where
+        self.key = key if key is not None else _key_of(where)
+
+
+def _key_of(where: tuple) -> str:
+    out = ""
+    for step in where:
+        out += f"[{step}]" if isinstance(step, int) else (f".{step}" if out else str(step))
+    return out
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _coerce(v: Any) -> Any:
+    """``float(v)`` for a real number; anything else unchanged (the rules report it)."""
+    return float(v) if _is_number(v) else v
+
+
+def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
+            allow_inf: bool = False) -> None:
+    if not _is_number(v):
+        raise _Invalid(f"must be a number, got {_typename(v)} {v!r}", where)
+    v = float(v)
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise _Invalid(f"must be a finite number, got {v}", where)
+    if positive and not v > 0:
+        raise _Invalid(f"must be > 0, got {v:g}", where)
+    if minimum is not None and v < minimum:
+        raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
+
+
+def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
+    if not isinstance(v, str):
+        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+    if v not in choices:
+        raise _Invalid(f"unknown value {v!r}; valid choices: {', '.join(choices)}", where)
+
+
+def _string(v: Any, *where: Any) -> None:
+    if not isinstance(v, str):
+        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+
+
+def _first(line: int, where: tuple) -> str:
+    return f"first on line {line}" if line else f"first is {_key_of(where)}"
+
+
+def _check_scene(s: Scene) -> None:
+    """Every rule a scene obeys, whether it was read from YAML or built in code.
+
+    The YAML reader checks only what the dataclasses cannot express (syntax, structure,
+    unknown and missing keys); every value is checked here, once.
+
+    Raises
+    ------
+    _Invalid
+        On the first broken rule, in scene order.
+    """
+    _number(s.rate_hz, "rate_hz", positive=True)
+    _choice(s.integrator, INTEGRATORS, "integrator")
+    if not isinstance(s.path, str):
+        raise _Invalid(f"must be a string, got {_typename(s.path)}", ("path",))
+    if not isinstance(s.masses, tuple) or not s.masses:
+        raise _Invalid("must be a non-empty list of masses", ("masses",))
+    names: dict[str, int] = {}
+    ports: list[int] = []
+    for i, m in enumerate(s.masses):
+        if not isinstance(m, Mass):
+            raise _Invalid(f"must be a hapsim.scene.Mass, got {_typename(m)}", ("masses", i))
+        _choice(m.kind, MASS_KINDS, "masses", i, "kind")
+        _string(m.name, "masses", i, "name")
+        if m.name in names:
+            j = names[m.name]
+            raise _Invalid(f"duplicate mass name {m.name!r} "
+                           f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
+        names[m.name] = i
+        if m.kind == "mass":
+            _number(m.mass, "masses", i, "mass", positive=True)
+        elif m.mass != 0:
+            raise _Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
+                           f"got {m.mass!r}", ("masses", i, "mass"))
+        _number(m.x0, "masses", i, "x0")
+        _number(m.v0, "masses", i, "v0")
+        if m.kind != "mass" and m.v0 != 0:
+            raise _Invalid(f"must be 0 for a {m.kind} (it does not move by itself), "
+                           f"got {m.v0!r}", ("masses", i, "v0"))
+        if m.kind == "port":
+            ports.append(i)
+    if len(ports) > 1:
+        raise _Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
+                       + ", ".join(s.masses[p].name for p in ports), ("masses", ports[1]),
+                       key="masses")
+    _check_links(s, names)
+    if s.device is not None:
+        _check_device(s.device)
+    elif ports:
+        raise _Invalid("a scene with a port needs a device section "
+                       "(mass, friction, delay, hold, ...)", ("device",))
+    _check_excitation(s.excitation)
+    _check_safety(s.safety)
+
+
+def _check_links(s: Scene, names: dict[str, int]) -> None:
+    if not isinstance(s.links, tuple):
+        raise _Invalid(f"must be a list of links, got {_typename(s.links)}", ("links",))
+    seen: dict[str, int] = {}
+    for i, lk in enumerate(s.links):
+        if not isinstance(lk, Link):
+            raise _Invalid(f"must be a hapsim.scene.Link, got {_typename(lk)}", ("links", i))
+        _choice(lk.kind, LINK_KINDS, "links", i, "kind")
+        _string(lk.name, "links", i, "name")
+        if lk.name in seen:
+            j = seen[lk.name]
+            raise _Invalid(f"duplicate link name {lk.name!r} "
+                           f"({_first(s.links[j].line, ('links', j))})", ("links", i, "name"))
+        seen[lk.name] = i
+        for n in (lk.m1, lk.m2):
+            if n not in names:
+                shown = ", ".join(list(names)[:20]) + (", ..." if len(names) > 20 else "")
+                raise _Invalid(f"no mass named {n!r}; masses are: {shown}",
+                               ("links", i, "between"))
+        if lk.m1 == lk.m2:
+            raise _Invalid(f"a link cannot join mass {lk.m1!r} to itself", ("links", i, "between"))
+        if not isinstance(lk.calibrated, bool):
+            raise _Invalid(f"must be True or False, got {lk.calibrated!r}",
+                           ("links", i, "calibrated"))
+        awaiting = False
+        if lk.target is not None:
+            ends = {s.masses[names[lk.m1]].kind, s.masses[names[lk.m2]].kind}
+            if lk.kind != "spring_damper" or ends != {"port", "ground"}:
+                raise _Invalid("a felt target {k, b} can only be calibrated for a "
+                               "spring_damper between the port and a ground",
+                               ("links", i, "target"))
+            if not (isinstance(lk.target, tuple) and len(lk.target) == 2):
+                raise _Invalid(f"must be a pair (k, b), got {lk.target!r}", ("links", i, "target"))
+            _number(lk.target[0], "links", i, "target", "k", positive=True)
+            _number(lk.target[1], "links", i, "target", "b", minimum=0.0)
+            awaiting = not lk.calibrated
+        # NaN (K, B) mean "awaiting calibration" for a target link, nothing else.
+        if not (awaiting and _is_number(lk.stiffness) and math.isnan(lk.stiffness)):
+            _number(lk.stiffness, "links", i, "stiffness", minimum=0.0)
+        if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
+            # A calibrated B may be negative: the device's real friction b0 can exceed the
+            # felt damping (DESIGN §4); a scene file or a hand-built link may not.
+            _number(lk.damping, "links", i, "damping",
+                    minimum=None if lk.calibrated else 0.0)
+        if lk.kind == "contact":
+            _number(lk.threshold, "links", i, "threshold")
+            if s.integrator == "exact":
+                raise _Invalid("the exact integrator takes linear links only; a contact "
+                               "switches the network (use centred or symplectic_euler)",
+                               ("links", i, "kind"))
+        elif lk.threshold != 0:
+            raise _Invalid(f"only a contact has a threshold; must be 0 for a {lk.kind}, "
+                           f"got {lk.threshold!r}", ("links", i, "threshold"))
+
+
+def _check_device(d: Any) -> None:
+    if not isinstance(d, Device):
+        raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
+    _number(d.mass, "device", "mass", positive=True)
+    _number(d.friction, "device", "friction", minimum=0.0)
+    if not (isinstance(d.delay, numbers.Integral) and not isinstance(d.delay, bool)):
+        raise _Invalid(f"must be a whole number of samples, got {d.delay!r}", ("device", "delay"))
+    if d.delay < 0:
+        raise _Invalid(f"must be >= 0, got {d.delay}", ("device", "delay"))
+    _choice(d.hold, HOLDS, "device", "hold")
+    _number(d.force_limit, "device", "force_limit", positive=True, allow_inf=True)
+    _number(d.position_resolution, "device", "position_resolution", minimum=0.0)
+    _number(d.coulomb, "device", "coulomb", minimum=0.0)
+    _number(d.noise, "device", "noise", minimum=0.0)
+
+
+def _check_excitation(e: Any) -> None:
+    if not isinstance(e, Excitation):
+        raise _Invalid(f"must be a hapsim.scene.Excitation, got {_typename(e)}", ("excitation",))
+    _number(e.x0, "excitation", "x0")
+    _number(e.v0, "excitation", "v0")
+    if e.impulse is not None:
+        if not isinstance(e.impulse, Impulse):
+            raise _Invalid(f"must be a hapsim.scene.Impulse, got {_typename(e.impulse)}",
+                           ("excitation", "impulse"))
+        _number(e.impulse.force, "excitation", "impulse", "force")
+        _number(e.impulse.start, "excitation", "impulse", "start", minimum=0.0)
+        _number(e.impulse.duration, "excitation", "impulse", "duration", minimum=0.0)
+    if e.profile is not None:
+        _string(e.profile, "excitation", "profile")
+        if not os.path.exists(e.profile):
+            raise _Invalid(f"profile file not found: {e.profile}", ("excitation", "profile"))
+
+
+def _check_safety(f: Any) -> None:
+    if not isinstance(f, Safety):
+        raise _Invalid(f"must be a hapsim.scene.Safety, got {_typename(f)}", ("safety",))
+    if f.position_limit is not None:
+        _number(f.position_limit, "safety", "position_limit", positive=True, allow_inf=True)
+    _number(f.velocity_limit, "safety", "velocity_limit", positive=True, allow_inf=True)
+    _number(f.energy_limit, "safety", "energy_limit", positive=True, allow_inf=True)
+    if not isinstance(f.passivity_controller, bool):
+        raise _Invalid(f"must be true or false, got {_typename(f.passivity_controller)} "
+                       f"{f.passivity_controller!r}", ("safety", "passivity_controller"))
+    _number(f.max_damping, "safety", "max_damping", minimum=0.0)
+
+
+def _code_line(s: Scene, where: tuple) -> int | None:
+    """Line of the Mass or Link entry ``where`` points into (None when unknown)."""
+    if len(where) >= 2 and where[0] in ("masses", "links") and isinstance(where[1], int):
+        seq = getattr(s, where[0])
+        if isinstance(seq, tuple) and 0 <= where[1] < len(seq):
+            return getattr(seq[where[1]], "line", 0) or None
+    return None
+
+
+# --------------------------------------------------------------------------- YAML reading
 
 class _Ctx:
     """Where we are in the file, for error messages."""
@@ -461,41 +724,38 @@ class _Ctx:
                 raise self.error(f"missing required key {k!r}", getattr(d, "line", None),
                                  f"{key}.{k}" if key else k)
 
-    def number(self, d: _LDict, k: str, key: str, default: float | None = None, *,
-               minimum: float | None = None, positive: bool = False,
-               allow_inf: bool = False) -> float:
-        full = f"{key}.{k}" if key else k
-        if k not in d:
-            if default is None:
-                raise self.error(f"missing required key {k!r}", getattr(d, "line", None), full)
-            return default
-        v = d[k]
-        line = self.line_of(d, k)
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.error(f"must be a number, got {_typename(v)} {v!r}", line, full)
-        v = float(v)
-        if math.isnan(v) or (math.isinf(v) and not allow_inf):
-            raise self.error(f"must be a finite number, got {v}", line, full)
-        if positive and not v > 0:
-            raise self.error(f"must be > 0, got {v:g}", line, full)
-        if minimum is not None and v < minimum:
-            raise self.error(f"must be >= {minimum:g}, got {v:g}", line, full)
-        return v
+    def not_null(self, d: _LDict, k: str, key: str) -> None:
+        """Refuse ``k: null`` for a key whose absence means "none" (say what was meant)."""
+        if k in d and d[k] is None:
+            raise self.error(f"must be given a value, got {_typename(None)} (leave the key "
+                             "out for none)", self.line_of(d, k), f"{key}.{k}")
 
-    def string(self, d: _LDict, k: str, key: str, choices: tuple[str, ...] | None = None,
-               default: str | None = None) -> str:
-        full = f"{key}.{k}" if key else k
-        if k not in d:
-            if default is None:
-                raise self.error(f"missing required key {k!r}", getattr(d, "line", None), full)
-            return default
-        v = d[k]
-        line = self.line_of(d, k)
-        if not isinstance(v, str):
-            raise self.error(f"must be a string, got {_typename(v)} {v!r}", line, full)
-        if choices is not None and v not in choices:
-            raise self.error(f"unknown value {v!r}; valid choices: {', '.join(choices)}", line, full)
-        return v
+    def kind(self, d: _LDict, key: str, choices: tuple[str, ...]) -> str:
+        """The ``kind`` of an entry, checked now: it decides which keys the entry may have."""
+        if "kind" not in d:
+            raise self.error("missing required key 'kind'", getattr(d, "line", None),
+                             f"{key}.kind")
+        try:
+            _choice(d["kind"], choices, "kind")
+        except _Invalid as bad:
+            raise self.error(bad.message, self.line_of(d, "kind"), f"{key}.kind") from None
+        return d["kind"]
+
+    @staticmethod
+    def doc_line(doc: _LDict, where: tuple) -> int | None:
+        """Line of the value at path ``where`` in the document (or of its nearest parent)."""
+        node: Any = doc
+        line = getattr(doc, "line", None)
+        for step in where:
+            lines = getattr(node, "lines", None)
+            if not lines or step not in lines:
+                break
+            line = lines[step]
+            try:
+                node = node[step]
+            except (KeyError, IndexError, TypeError):
+                break
+        return line
 
 
 def _typename(v: Any) -> str:
@@ -562,6 +822,12 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
         ``rate_hz``, an unknown ``integrator`` (listing the choices), a contact link with
         ``integrator: exact``, a port without a device section, more than one port, or a
         ``target`` on a link that is not between the port and a ground.
+
+    Notes
+    -----
+    This reader checks what only a file has (syntax, structure, unknown and missing keys)
+    and builds the dataclasses; the values are checked by the same rules as a scene built
+    in code (:class:`Scene` validates itself), with the line of the offending key.
     """
     loader = _LineLoader(text)
     loader._hapsim_path = path  # type: ignore[attr-defined]
@@ -583,70 +849,40 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
     ctx.keys(doc, _TOP_KEYS, "", required=("rate_hz", "masses"))
-    rate_hz = ctx.number(doc, "rate_hz", "", positive=True)
-
-    masses = _parse_masses(ctx, doc)
-    names = {m.name: m for m in masses}
-    links = _parse_links(ctx, doc, names)
-
-    ports = [m for m in masses if m.kind == "port"]
-    if len(ports) > 1:
-        raise ctx.error(f"at most one port per scene (1-DoF device); found {len(ports)}: "
-                        + ", ".join(p.name for p in ports), ports[1].line, "masses")
-
-    device = None
-    if "device" in doc:
-        device = _parse_device(ctx, doc)
-    elif ports:
-        raise ctx.error("a scene with a port needs a device section "
-                        "(mass, friction, delay, hold, ...)", doc.line, "device")
-
-    excitation = Excitation()
-    if "excitation" in doc:
-        excitation = _parse_excitation(ctx, doc, path)
-
-    integrator = ctx.string(doc, "integrator", "", INTEGRATORS, default="centred")
-    if integrator == "exact":
-        for i, lk in enumerate(links):
-            if lk.kind == "contact":
-                raise ctx.error("the exact integrator takes linear links only; a contact "
-                                "switches the network (use centred or symplectic_euler)",
-                                lk.line, f"links[{i}].kind")
-
-    safety = _parse_safety(ctx, doc) if "safety" in doc else Safety()
-
-    return Scene(rate_hz=rate_hz, masses=tuple(masses), links=tuple(links), device=device,
-                 excitation=excitation, path=path, integrator=integrator, safety=safety)
+    masses = _read_masses(ctx, doc)
+    links = _read_links(ctx, doc, masses)
+    device = _read_device(ctx, doc) if "device" in doc else None
+    excitation = _read_excitation(ctx, doc, path) if "excitation" in doc else Excitation()
+    safety = _read_safety(ctx, doc) if "safety" in doc else Safety()
+    try:
+        return Scene(rate_hz=_coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
+                     device=device, excitation=excitation, path=path,
+                     integrator=doc.get("integrator", "centred"), safety=safety)
+    except ConfigError as exc:
+        where = getattr(exc, "_scene_where", None)
+        if where is None:
+            raise
+        raise ConfigError(exc.reason, file=path, line=ctx.doc_line(doc, where),
+                          key=exc.key) from None
 
 
-def _parse_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
+def _read_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
     seq = doc["masses"]
     if not isinstance(seq, list) or not seq:
         raise ctx.error("must be a non-empty list of masses", ctx.line_of(doc, "masses"), "masses")
     out: list[Mass] = []
-    seen: dict[str, int] = {}
     for i, item in enumerate(seq):
         key = f"masses[{i}]"
-        line = ctx.line_of(seq, i)
-        d = ctx.mapping(item, key, line)
-        kind = ctx.string(d, "kind", key, MASS_KINDS)
-        ctx.keys(d, _MASS_KEYS[kind], key, required=("name",))
-        name = ctx.string(d, "name", key)
-        if name in seen:
-            raise ctx.error(f"duplicate mass name {name!r} (first on line {seen[name]})",
-                            ctx.line_of(d, "name"), f"{key}.name")
-        seen[name] = d.line
-        if kind == "mass":
-            out.append(Mass(name, kind, ctx.number(d, "mass", key, positive=True),
-                            ctx.number(d, "x0", key, 0.0), ctx.number(d, "v0", key, 0.0), d.line))
-        elif kind == "ground":
-            out.append(Mass(name, kind, 0.0, ctx.number(d, "x0", key, 0.0), 0.0, d.line))
-        else:
-            out.append(Mass(name, kind, 0.0, 0.0, 0.0, d.line))
+        d = ctx.mapping(item, key, ctx.line_of(seq, i))
+        kind = ctx.kind(d, key, MASS_KINDS)
+        ctx.keys(d, _MASS_KEYS[kind], key,
+                 required=("name", "mass") if kind == "mass" else ("name",))
+        out.append(Mass(d["name"], kind, _coerce(d.get("mass", 0.0)), _coerce(d.get("x0", 0.0)),
+                        _coerce(d.get("v0", 0.0)), d.line))
     return out
 
 
-def _parse_links(ctx: _Ctx, doc: _LDict, masses: dict[str, Mass]) -> list[Link]:
+def _read_links(ctx: _Ctx, doc: _LDict, masses: list[Mass]) -> list[Link]:
     if "links" not in doc or doc["links"] is None:
         return []
     seq = doc["links"]
@@ -654,112 +890,74 @@ def _parse_links(ctx: _Ctx, doc: _LDict, masses: dict[str, Mass]) -> list[Link]:
         raise ctx.error(f"must be a list of links, got {_typename(seq)}",
                         ctx.line_of(doc, "links"), "links")
     out: list[Link] = []
-    seen: dict[str, int] = {}
     for i, item in enumerate(seq):
         key = f"links[{i}]"
         d = ctx.mapping(item, key, ctx.line_of(seq, i))
-        kind = ctx.string(d, "kind", key, LINK_KINDS)
+        kind = ctx.kind(d, key, LINK_KINDS)
         ctx.keys(d, _LINK_KEYS[kind], key, required=("between",))
-        name = ctx.string(d, "name", key, default=f"link{i}")
-        if name in seen:
-            raise ctx.error(f"duplicate link name {name!r} (first on line {seen[name]})",
-                            ctx.line_of(d, "name"), f"{key}.name")
-        seen[name] = d.line
         between = d["between"]
-        bline = ctx.line_of(d, "between")
         if not (isinstance(between, list) and len(between) == 2
                 and all(isinstance(n, str) for n in between)):
-            raise ctx.error("must be a list of two mass names, e.g. [hand, wall]", bline,
-                            f"{key}.between")
-        m1, m2 = between
-        for n in (m1, m2):
-            if n not in masses:
-                raise ctx.error(f"no mass named {n!r}; masses are: {', '.join(masses)}", bline,
-                                f"{key}.between")
-        if m1 == m2:
-            raise ctx.error(f"a link cannot join mass {m1!r} to itself", bline, f"{key}.between")
+            raise ctx.error("must be a list of two mass names, e.g. [hand, wall]",
+                            ctx.line_of(d, "between"), f"{key}.between")
         target = None
+        stiffness = _coerce(d.get("stiffness", 0.0))
+        damping = _coerce(d.get("damping", 0.0))
         if "target" in d:
             if "stiffness" in d or "damping" in d:
                 raise ctx.error("give either target {k, b} or stiffness/damping, not both",
                                 ctx.line_of(d, "target"), f"{key}.target")
-            kinds = {masses[m1].kind, masses[m2].kind}
-            if kinds != {"port", "ground"}:
-                raise ctx.error("a felt target {k, b} can only be calibrated for a "
-                                "spring_damper between the port and a ground",
-                                ctx.line_of(d, "target"), f"{key}.target")
             t = ctx.mapping(d["target"], f"{key}.target", ctx.line_of(d, "target"))
             ctx.keys(t, _TARGET_KEYS, f"{key}.target", required=_TARGET_KEYS)
-            target = (ctx.number(t, "k", f"{key}.target", positive=True),
-                      ctx.number(t, "b", f"{key}.target", minimum=0.0))
+            target = (_coerce(t["k"]), _coerce(t["b"]))
             stiffness = damping = math.nan
-        else:
-            stiffness = ctx.number(d, "stiffness", key, 0.0, minimum=0.0)
-            damping = ctx.number(d, "damping", key, 0.0, minimum=0.0)
-            if "stiffness" not in d and "damping" not in d:
-                raise ctx.error("a link needs stiffness and/or damping (or a target)",
-                                d.line, f"{key}.stiffness")
-        threshold = ctx.number(d, "threshold", key, 0.0) if kind == "contact" else 0.0
-        out.append(Link(name, kind, m1, m2, stiffness, damping, threshold, target, d.line))
+        elif "stiffness" not in d and "damping" not in d:
+            raise ctx.error("a link needs stiffness and/or damping (or a target)",
+                            d.line, f"{key}.stiffness")
+        out.append(Link(d.get("name", f"link{i}"), kind, between[0], between[1], stiffness,
+                        damping, _coerce(d.get("threshold", 0.0)), target, line=d.line))
     return out
 
 
-def _parse_device(ctx: _Ctx, doc: _LDict) -> Device:
+def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
     d = ctx.mapping(doc["device"], "device", ctx.line_of(doc, "device"))
     ctx.keys(d, _DEVICE_KEYS, "device", required=("mass",))
-    delay = ctx.number(d, "delay", "device", 1.0, minimum=0.0)
-    if delay != int(delay) or isinstance(d.get("delay"), float):
-        raise ctx.error(f"must be a whole number of samples, got {d.get('delay')!r}",
-                        ctx.line_of(d, "delay"), "device.delay")
     return Device(
-        mass=ctx.number(d, "mass", "device", positive=True),
-        friction=ctx.number(d, "friction", "device", 0.0, minimum=0.0),
-        delay=int(delay),
-        hold=ctx.string(d, "hold", "device", HOLDS, default="zoh"),
-        force_limit=ctx.number(d, "force_limit", "device", math.inf, positive=True, allow_inf=True),
-        position_resolution=ctx.number(d, "position_resolution", "device", 0.0, minimum=0.0),
-        coulomb=ctx.number(d, "coulomb", "device", 0.0, minimum=0.0),
-        noise=ctx.number(d, "noise", "device", 0.0, minimum=0.0),
+        mass=_coerce(d["mass"]),
+        friction=_coerce(d.get("friction", 0.0)),
+        delay=d.get("delay", 1),
+        hold=d.get("hold", "zoh"),
+        force_limit=_coerce(d.get("force_limit", math.inf)),
+        position_resolution=_coerce(d.get("position_resolution", 0.0)),
+        coulomb=_coerce(d.get("coulomb", 0.0)),
+        noise=_coerce(d.get("noise", 0.0)),
     )
 
 
-def _parse_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:
+def _read_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:
     d = ctx.mapping(doc["excitation"], "excitation", ctx.line_of(doc, "excitation"))
     ctx.keys(d, _EXCITATION_KEYS, "excitation")
+    ctx.not_null(d, "profile", "excitation")
     impulse = None
     if "impulse" in d:
         i = ctx.mapping(d["impulse"], "excitation.impulse", ctx.line_of(d, "impulse"))
         ctx.keys(i, _IMPULSE_KEYS, "excitation.impulse", required=("force",))
-        impulse = Impulse(ctx.number(i, "force", "excitation.impulse"),
-                          ctx.number(i, "start", "excitation.impulse", 0.0, minimum=0.0),
-                          ctx.number(i, "duration", "excitation.impulse", 0.0, minimum=0.0))
-    profile = None
-    if "profile" in d:
-        profile = ctx.string(d, "profile", "excitation")
-        if not os.path.isabs(profile) and path != "<string>":
-            profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
-        if not os.path.exists(profile):
-            raise ctx.error(f"profile file not found: {profile}", ctx.line_of(d, "profile"),
-                            "excitation.profile")
-    return Excitation(ctx.number(d, "x0", "excitation", 0.0), ctx.number(d, "v0", "excitation", 0.0),
-                      impulse, profile)
+        impulse = Impulse(_coerce(i["force"]), _coerce(i.get("start", 0.0)),
+                          _coerce(i.get("duration", 0.0)))
+    profile = d.get("profile")
+    if isinstance(profile, str) and not os.path.isabs(profile) and path != "<string>":
+        profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
+    return Excitation(_coerce(d.get("x0", 0.0)), _coerce(d.get("v0", 0.0)), impulse, profile)
 
 
-def _parse_safety(ctx: _Ctx, doc: _LDict) -> Safety:
+def _read_safety(ctx: _Ctx, doc: _LDict) -> Safety:
     d = ctx.mapping(doc["safety"], "safety", ctx.line_of(doc, "safety"))
     ctx.keys(d, _SAFETY_KEYS, "safety")
-    pc = d.get("passivity_controller", False)
-    if not isinstance(pc, bool):
-        raise ctx.error(f"must be true or false, got {_typename(pc)} {pc!r}",
-                        ctx.line_of(d, "passivity_controller"), "safety.passivity_controller")
-    pos = None
-    if "position_limit" in d:
-        pos = ctx.number(d, "position_limit", "safety", positive=True, allow_inf=True)
+    ctx.not_null(d, "position_limit", "safety")
     return Safety(
-        position_limit=pos,
-        velocity_limit=ctx.number(d, "velocity_limit", "safety", math.inf, positive=True,
-                                  allow_inf=True),
-        energy_limit=ctx.number(d, "energy_limit", "safety", 1.0, positive=True, allow_inf=True),
-        passivity_controller=pc,
-        max_damping=ctx.number(d, "max_damping", "safety", 50.0, minimum=0.0),
+        position_limit=_coerce(d.get("position_limit")),
+        velocity_limit=_coerce(d.get("velocity_limit", math.inf)),
+        energy_limit=_coerce(d.get("energy_limit", 1.0)),
+        passivity_controller=d.get("passivity_controller", False),
+        max_damping=_coerce(d.get("max_damping", 50.0)),
     )

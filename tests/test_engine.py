@@ -9,7 +9,7 @@ import pytest
 
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
-from hapsim.scene import Link, Mass, Scene, load_scene, parse_scene
+from hapsim.scene import Device, Link, Mass, Scene, load_scene, parse_scene
 
 RATE = 1000.0
 T = 1.0 / RATE
@@ -100,7 +100,8 @@ def random_network(rng: np.random.Generator, n_mass: int = 8, n_links: int = 14,
         kind = "contact" if j % 3 == 2 else "spring_damper"
         links.append(Link(f"l{j}", kind, names[a], names[b], float(rng.uniform(0, 500.0)),
                           float(rng.uniform(0, 0.5)), float(rng.normal(0, 0.005)) if kind == "contact" else 0.0))
-    return Scene(rate_hz=RATE, masses=tuple(masses), links=tuple(links))
+    return Scene(rate_hz=RATE, masses=tuple(masses), links=tuple(links),
+                 device=Device(mass=0.1) if with_fixed else None)
 
 
 def reference_run(scene: Scene, n: int, port_positions=None) -> np.ndarray:

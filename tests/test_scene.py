@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import textwrap
 
 import pytest
 
 from hapsim.cli import main
+from hapsim.engine import Engine
 from hapsim.errors import ConfigError, HapsimError
-from hapsim.scene import load_scene, parse_scene
+from hapsim.scene import Device, Link, Mass, Scene, load_scene, parse_scene
 
 GOOD = """\
 rate_hz: 1000
@@ -170,3 +172,158 @@ def test_target_scene_has_nan_until_calibrated():
     assert s.unresolved_targets == (lk,)
     s2 = s.with_link("felt", stiffness=900.0, damping=-0.2)
     assert s2.unresolved_targets == () and s2.link("felt").stiffness == 900.0
+
+
+# ---------------------------------------------------------------- scenes built in code
+# The same rules as a scene file: Scene validates itself when it is constructed, so a
+# scene built in code (or changed with dataclasses.replace) never reaches the engine
+# unvalidated either.
+
+def _osc(**changes):
+    """The oscillator of configs/oscillator.yaml built in code, with some fields changed."""
+    masses = [Mass("anchor", "ground"), Mass("bob", "mass", 0.1, 0.01)]
+    links = [Link("spring", "spring_damper", "bob", "anchor", 1000.0, 0.0)]
+    if "bob" in changes:
+        masses[1] = dataclasses.replace(masses[1], **changes.pop("bob"))
+    if "spring" in changes:
+        links[0] = dataclasses.replace(links[0], **changes.pop("spring"))
+    return Scene(**{"rate_hz": 1000.0, "masses": tuple(masses), "links": tuple(links),
+                    **changes})
+
+
+# (id, changes to the code-built oscillator, key, message fragment, the same mistake in YAML)
+CODE_CASES = [
+    ("negative rate", {"rate_hz": -5}, "rate_hz", "must be > 0, got -5", "rate_hz: -5"),
+    ("negative stiffness", {"spring": {"stiffness": -1.0}}, "links[0].stiffness",
+     "must be >= 0, got -1", "stiffness: -1.0"),
+    ("negative damping", {"spring": {"damping": -0.5}}, "links[0].damping",
+     "must be >= 0, got -0.5", "damping: -0.5"),
+    ("kind rock", {"bob": {"kind": "rock"}}, "masses[1].kind",
+     "unknown value 'rock'; valid choices: mass, ground, port", "kind: rock"),
+    ("zero mass", {"bob": {"mass": 0.0}}, "masses[1].mass", "must be > 0, got 0", "mass: 0.0"),
+    ("link to a missing mass", {"spring": {"m2": "ankor"}}, "links[0].between",
+     "no mass named 'ankor'; masses are: anchor, bob", "between: [bob, ankor]"),
+    ("link to itself", {"spring": {"m2": "bob"}}, "links[0].between",
+     "a link cannot join mass 'bob' to itself", "between: [bob, bob]"),
+    ("nan stiffness", {"spring": {"stiffness": math.nan}}, "links[0].stiffness",
+     "must be a finite number", "stiffness: .nan"),
+    ("unknown integrator", {"integrator": "rk4"}, "integrator",
+     "unknown value 'rk4'; valid choices: centred, symplectic_euler, exact", "integrator: rk4"),
+]
+
+OSC_YAML = """\
+rate_hz: 1000
+masses:
+  - {name: anchor, kind: ground}
+  - {name: bob, kind: mass, mass: 0.1, x0: 0.01}
+links:
+  - {name: spring, kind: spring_damper, between: [bob, anchor], stiffness: 1000.0, damping: 0.0}
+"""
+
+
+def _yaml_with(fragment):
+    """OSC_YAML with one value replaced by ``fragment`` (``key: value``)."""
+    key = fragment.split(":")[0]
+    if key == "integrator":
+        return OSC_YAML + fragment + "\n"
+    if key == "rate_hz":
+        return OSC_YAML.replace("rate_hz: 1000", fragment)
+    lines = OSC_YAML.splitlines(keepends=True)
+    row = 5 if key in ("stiffness", "damping", "between") else 3
+    import re
+    lines[row] = re.sub(rf"{key}: (\[[^\]]*\]|[^,}}]+)", fragment, lines[row], count=1)
+    assert fragment in lines[row]
+    return "".join(lines)
+
+
+@pytest.mark.parametrize("desc,changes,key,fragment,yaml_fragment", CODE_CASES,
+                         ids=[c[0] for c in CODE_CASES])
+def test_scene_built_in_code_is_validated_like_a_file(desc, changes, key, fragment,
+                                                     yaml_fragment):
+    with pytest.raises(ConfigError) as info:
+        _osc(**changes)
+    err = info.value
+    assert isinstance(err, ValueError) and isinstance(err, HapsimError)
+    assert err.key == key and fragment in err.reason, str(err)
+    assert err.file is None and err.line is None          # built in code: no file, no line
+    assert str(err) == f"{key}: {err.reason}"
+    # one set of rules: the same mistake in a file gives the same message, with its line
+    with pytest.raises(ConfigError) as from_file:
+        parse_scene(_yaml_with(yaml_fragment), "osc.yaml")
+    assert from_file.value.reason == err.reason and from_file.value.key == key
+    assert from_file.value.line is not None
+
+
+def test_engine_refuses_what_it_used_to_step():
+    """What the engine accepted before (and stepped, or crashed on) is now a ConfigError."""
+    good = _osc()
+    for bad in ({"rate_hz": -5}, {"spring": {"stiffness": -1.0}}, {"bob": {"kind": "rock"}},
+                {"bob": {"mass": 0.0}}, {"spring": {"m2": "nope"}}):
+        with pytest.raises(ConfigError):
+            Engine(_osc(**bad))
+    # ... and dataclasses.replace is no back door
+    with pytest.raises(ConfigError, match=r"masses\[1\]\.mass: must be > 0"):
+        dataclasses.replace(good, masses=(good.masses[0], dataclasses.replace(good.masses[1],
+                                                                              mass=-1.0)))
+    assert Engine(good).run(3)[1].shape == (4, 2)
+
+
+def test_code_change_to_a_file_scene_names_file_and_line():
+    """A scene read from a file and then broken in code names the file and the entry's line."""
+    s = load_scene("configs/oscillator.yaml")
+    text = open("configs/oscillator.yaml").read().splitlines()
+    bob_line = next(i + 1 for i, ln in enumerate(text) if "name: bob" in ln)
+    spring_line = next(i + 1 for i, ln in enumerate(text) if "name: spring" in ln)
+    with pytest.raises(ConfigError) as info:
+        dataclasses.replace(s, masses=(s.masses[0], dataclasses.replace(s.masses[1], mass=0)))
+    assert str(info.value) == (f"configs/oscillator.yaml:{bob_line}: masses[1].mass: "
+                               "must be > 0, got 0")
+    with pytest.raises(ConfigError) as info:
+        s.with_link("spring", stiffness=math.inf, damping=0.0)
+    assert str(info.value).startswith(f"configs/oscillator.yaml:{spring_line}: "
+                                      "links[0].stiffness: must be a finite number")
+    with pytest.raises(ConfigError, match=r"configs/oscillator.yaml: rate_hz: must be > 0"):
+        s.with_rate(0.0)
+
+
+def test_calibrated_links_may_have_negative_damping_hand_built_ones_may_not():
+    """B < 0 arises from calibration (real friction above the felt damping, DESIGN §4):
+    Scene.with_link marks the link calibrated; a file or a hand-built link cannot."""
+    s = load_scene("configs/felt_wall.yaml")
+    cal = s.with_link("wall", stiffness=900.0, damping=-0.2)
+    assert cal.link("wall").calibrated and cal.link("wall").damping == -0.2
+    assert Engine(cal).port_step(0.001) == pytest.approx(-0.9 + 0.2)
+    osc = _osc().with_link("spring", stiffness=1000.0, damping=-0.01)   # active element
+    assert osc.link("spring").damping == -0.01
+    with pytest.raises(ConfigError, match=r"links\[0\]\.damping: must be >= 0"):
+        _osc(spring={"damping": -0.01})
+    # calibration must write numbers: NaN means "awaiting calibration", nothing else
+    with pytest.raises(ConfigError, match=r"links\[0\]\.stiffness: must be a finite number"):
+        s.with_link("wall", stiffness=math.nan, damping=1.0)
+    with pytest.raises(ConfigError, match=r"links\[0\]\.damping: must be a finite number"):
+        _osc(spring={"damping": math.nan})                  # no target: NaN is just wrong
+    awaiting = dataclasses.replace(s, links=(dataclasses.replace(s.links[0], line=0),))
+    assert awaiting.unresolved_targets                       # a target link built in code
+
+
+def test_code_scene_structure_rules():
+    good = _osc()
+    with pytest.raises(ConfigError, match=r"^masses: must be a non-empty list"):
+        dataclasses.replace(good, masses=())
+    with pytest.raises(ConfigError, match=r"^masses\[1\]\.name: duplicate mass name 'anchor' "
+                                          r"\(first is masses\[0\]\)"):
+        _osc(bob={"name": "anchor"})
+    with pytest.raises(ConfigError, match=r"^links\[0\]\.threshold: only a contact"):
+        _osc(spring={"threshold": 0.001})
+    with pytest.raises(ConfigError, match=r"^links\[0\]\.kind: the exact integrator"):
+        _osc(spring={"kind": "contact"}, integrator="exact")
+    with pytest.raises(ConfigError, match=r"^device: a scene with a port needs a device"):
+        Scene(1000.0, (Mass("p", "port"), Mass("g", "ground")),
+              (Link("w", "spring_damper", "p", "g", 100.0),))
+    with pytest.raises(ConfigError, match=r"^device\.delay: must be a whole number"):
+        Scene(1000.0, (Mass("p", "port"),), (), device=Device(mass=0.1, delay=1.5))
+    with pytest.raises(ConfigError, match=r"^masses\[0\]\.mass: must be 0 for a ground"):
+        Scene(1000.0, (Mass("g", "ground", 2.0),), ())
+    # lists are accepted and frozen into tuples
+    sc = Scene(1000.0, [Mass("g", "ground")], [])
+    assert sc.masses == (Mass("g", "ground"),) and sc.links == ()
