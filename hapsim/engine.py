@@ -146,7 +146,16 @@ class Engine:
         -------
         float
             Force on the port computed from this sample [N] (to be sent to the device).
+
+        Raises
+        ------
+        ConfigError
+            When the scene has no port (nothing is advanced: without this check the index
+            -1 would overwrite the last mass).
         """
+        if self._port < 0:
+            raise ConfigError("the scene has no port to drive; port_step needs a mass of "
+                              "kind port", file=self.scene.path, key="masses")
         self._x[self._port] = position
         self._kernel(1, *self._args, _EMPTY_REC, _EMPTY_OUT, 0)
         self.sample += 1

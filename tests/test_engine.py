@@ -232,3 +232,16 @@ def test_kernel_chosen_by_link_kinds():
 def test_record_unknown_name_lists_masses():
     with pytest.raises(ConfigError, match="no mass named 'nope'; masses are: anchor, bob"):
         Engine(oscillator(10.0)).run(3, ["nope"])
+
+
+def test_port_step_without_port_is_an_error_and_changes_nothing():
+    """Without a port there is no device position to set: refuse, never write x[-1]."""
+    eng = Engine(oscillator(1000.0))
+    before = eng.positions
+    with pytest.raises(ConfigError, match=r"masses: the scene has no port"):
+        eng.port_step(0.5)
+    np.testing.assert_array_equal(eng.positions, before)   # the bob (last mass) untouched
+    assert eng.sample == 0
+    with pytest.raises(ConfigError, match="no port"):
+        eng.set_port_position(0.5)
+    assert eng.port_force == 0.0
