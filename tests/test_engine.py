@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -274,3 +276,96 @@ def test_port_step_without_port_is_an_error_and_changes_nothing():
     with pytest.raises(ConfigError, match="no port"):
         eng.set_port_position(0.5)
     assert eng.port_force == 0.0
+
+
+# ---------------------------------------------------------------- compile once, kernels apart
+
+def _exercise(eng: Engine) -> None:
+    """Every way the engine calls its kernel: step, run with and without a record, port_step."""
+    eng.step(3)
+    eng.run(5)
+    eng.run(4, [eng.names[-1]])
+    if eng.scene.port is not None:
+        eng.port_step(0.0005)
+
+
+@pytest.mark.parametrize("integrator", ["centred", "symplectic_euler", "exact"])
+def test_kernels_compile_once_per_set_of_link_kinds_not_per_scene(integrator):
+    """Two different scenes (sizes, values, topology, chain or not) with the same link kinds
+    share one compiled kernel: the numba dispatcher's signature count does not grow."""
+    import dataclasses
+
+    from hapsim.bench.cost import string_scene
+
+    def scheme(sc):
+        return dataclasses.replace(sc, integrator=integrator)
+
+    pairs = [(oscillator(1000.0), string_scene(n=37, K=1500.0))]        # spring_dampers only
+    if integrator != "exact":                                           # exact: no contacts
+        pairs.append((load_scene("configs/string.yaml"),                # springs + contacts
+                      random_network(np.random.default_rng(3))))
+        only = lambda sc: dataclasses.replace(                          # noqa: E731
+            sc, links=tuple(lk for lk in sc.links if lk.kind == "contact"))
+        pairs.append((only(load_scene("configs/string.yaml")),         # contacts only
+                      only(random_network(np.random.default_rng(4)))))
+    for first, second in pairs:
+        a, b = Engine(scheme(first)), Engine(scheme(second))
+        assert a.scene.kinds == b.scene.kinds and len(a.names) != len(b.names)
+        assert a._kernel is b._kernel
+        _exercise(a)                      # compiles (or loads from the cache) if needed
+        compiled = len(a._kernel.signatures)
+        assert compiled >= 1
+        _exercise(b)
+        assert len(b._kernel.signatures) == compiled, b._kernel.signatures
+
+
+KERNEL_DIR = Path(__file__).resolve().parents[1] / "hapsim" / "kernels"
+
+
+def imported_modules(source: str, module: str) -> set[str]:
+    """Absolute names of every module ``source`` (the module ``module``) imports, at any
+    depth (function-level imports included), relative imports resolved."""
+    package = module.rsplit(".", 1)[0]
+    out = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                stem = ".".join(base + ([node.module] if node.module else []))
+            else:
+                stem = node.module
+            out.add(stem)
+            out.update(f"{stem}.{alias.name}" for alias in node.names)
+    return out
+
+
+def _api_imports(names: set[str]) -> set[str]:
+    return {n for n in names if (n == "hapsim" or n.startswith("hapsim."))
+            and not (n == "hapsim.kernels" or n.startswith("hapsim.kernels."))}
+
+
+def test_import_contract_scanner_catches_api_imports():
+    """The scanner below would see a kernel importing the API layer, in any spelling."""
+    for bad in ("from hapsim.scene import Scene", "import hapsim.engine",
+                "from .. import engine", "from ..commands import simulate",
+                "def f():\n    from hapsim.daemon import loop\n", "import hapsim"):
+        assert _api_imports(imported_modules(bad, "hapsim.kernels.cordis")), bad
+    assert not _api_imports(imported_modules("from . import cordis\nimport numba",
+                                             "hapsim.kernels.schemes"))
+
+
+def test_kernels_import_nothing_from_the_api_layer():
+    """CONVENTIONS §3 (poliastro's core/ import contract): hapsim/kernels/* import only
+    the standard library, numpy, numba, scipy and each other, never hapsim.engine,
+    hapsim.scene, hapsim.commands, hapsim.daemon, hapsim.analysis, ..."""
+    files = sorted(KERNEL_DIR.glob("*.py"))
+    assert {f.name for f in files} >= {"__init__.py", "cordis.py", "schemes.py"}
+    for f in files:
+        module = "hapsim.kernels" + ("" if f.stem == "__init__" else f".{f.stem}")
+        if f.stem == "__init__":
+            module += ".__init__"
+        bad = _api_imports(imported_modules(f.read_text(), module))
+        assert not bad, f"{f.name} imports the API layer: {sorted(bad)}"
