@@ -253,9 +253,11 @@ class Engine:
         ConfigError
             When no mass has that name.
         """
-        return float(self._x[self._indices([name])[0]])
+        return float(self._x[self._indices([name], key="name")[0]])
 
-    def _indices(self, names: Sequence[str] | None) -> np.ndarray:
+    def _indices(self, names: Sequence[str] | None, key: str = "record") -> np.ndarray:
+        """Indices of ``names`` (all masses when None); ``key`` is the argument named in the
+        error (the names are an argument, not part of the scene file)."""
         if names is None:
             return np.arange(len(self.names), dtype=np.int64)
         lookup = {nm: i for i, nm in enumerate(self.names)}
@@ -263,8 +265,7 @@ class Engine:
         for nm in names:
             if nm not in lookup:
                 shown = ", ".join(self.names[:20]) + (", ..." if len(self.names) > 20 else "")
-                raise ConfigError(f"no mass named {nm!r}; masses are: {shown}",
-                                  file=self.scene.path, key="record")
+                raise ConfigError(f"no mass named {nm!r}; masses are: {shown}", key=key)
             out.append(lookup[nm])
         return np.array(out, dtype=np.int64)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -39,3 +41,57 @@ def test_csv_with_record_order(tmp_path, capsys):
 def test_unknown_extension_is_exit_2(tmp_path, capsys):
     assert main(["simulate", "configs/oscillator.yaml", "--steps", "10", "--out", str(tmp_path / "x.txt")]) == 2
     assert "valid: .npz, .csv" in capsys.readouterr().err
+
+
+def test_unknown_record_name_blames_the_option_not_the_scene(tmp_path, capsys):
+    out = tmp_path / "o.npz"
+    code = main(["simulate", "configs/oscillator.yaml", "--steps", "10", "--out", str(out),
+                 "--record", "bob", "bobb"])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("hapsim simulate: error: --record: no mass named 'bobb'; "
+                   "masses are: anchor, bob")
+    assert "oscillator.yaml" not in err
+    assert not out.exists()
+
+
+def test_felt_target_is_calibrated_like_the_daemon_and_reported(tmp_path, capsys):
+    """configs/felt_wall.yaml (wall given as felt k = 1000 N/m, b = 3 N s/m) used to exit 2
+    ('calibrate it first'); simulate now calibrates it and says which (K, B) it used."""
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import render
+
+    out = tmp_path / "felt.npz"
+    assert main(["simulate", "configs/felt_wall.yaml", "--steps", "20", "--out", str(out),
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    (cal,) = summary["calibrations"]
+    assert cal["link"] == "wall" and (cal["k"], cal["b"]) == (1000.0, 3.0)
+    K, B = cal["K"], cal["B"]
+    # independent check through the inverse map: these (K, B) render the felt target
+    scene = load_scene("configs/felt_wall.yaml")
+    felt = render(LoopModel.from_device(scene.device, scene.rate_hz), K, B)
+    assert felt.k == pytest.approx(1000.0, rel=1e-9) and felt.b == pytest.approx(3.0, rel=1e-9)
+    # ... and the virtual values differ from the felt ones (the THS is not transparent)
+    assert abs(K - 1000.0) > 10.0 and abs(B - 3.0) > 0.1
+    data = np.load(out)
+    assert data["position"].shape == (21, 2)
+    assert np.all(data["position"][:, 0] == 0.005)          # port held at excitation.x0
+
+    assert main(["simulate", "configs/felt_wall.yaml", "--steps", "5",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert (f"calibrated link wall: felt k = 1000 N/m, b = 3 N s/m -> virtual K = {K:.6g} N/m, "
+            f"B = {B:.6g} N s/m") in text
+
+
+def test_unrenderable_target_is_exit_2_naming_the_link(tmp_path, capsys):
+    path = tmp_path / "hard.yaml"
+    path.write_text(
+        "rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\n  - {name: wall, kind: ground}\n"
+        "links:\n  - {name: felt, kind: spring_damper, between: [hand, wall],"
+        " target: {k: 50000.0, b: 0.01}}\n"
+        "device: {mass: 0.1, friction: 0.0, delay: 2, hold: zoh, force_limit: 10.0}\n")
+    assert main(["simulate", str(path), "--steps", "5", "--out", str(tmp_path / "o.npz")]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:6: links.felt.target: " in err and "not renderable" in err

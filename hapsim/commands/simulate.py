@@ -23,7 +23,9 @@ def register(sub) -> None:
             "Run the mass-interaction scene offline with the CORDIS-ANIMA scheme and write "
             "the positions of the recorded masses. No device is involved: the port, if any, "
             "is held at the excitation's initial displacement x0 (so a plucking port starts "
-            "pressed into the string)."),
+            "pressed into the string). Links given as a felt target {k, b} are first "
+            "calibrated for the scene's device, as hapsim run does, and the (K, B) used are "
+            "printed."),
         epilog=(
             "output:\n"
             "  time [s] shape (N+1,), position [m] shape (N+1, R), names shape (R,);\n"
@@ -44,7 +46,30 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``hapsim simulate``; returns the exit code (0, or raises ConfigError)."""
+    """Run ``hapsim simulate``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options: ``scene`` (path), ``steps`` (N >= 0), ``out`` (``.npz`` or
+        ``.csv``), ``record`` (mass names or None for all), ``json`` (bool).
+
+    Returns
+    -------
+    int
+        0; the trajectory is written to ``args.out`` (time [s] shape (N+1,), position [m]
+        shape (N+1, R), names shape (R,)) and a summary printed (one JSON object with
+        ``--json``, including ``calibrations``: one dict per target link, see
+        :meth:`hapsim.analysis.targets.TargetCalibration.to_dict`).
+
+    Raises
+    ------
+    ConfigError
+        Unknown output extension (key ``--out``), negative ``--steps``, an unknown mass
+        in ``--record`` (key ``--record``, with the valid names), an invalid scene file
+        (file, line, key), or a target no (K, B) renders
+        (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
+    """
     ext = os.path.splitext(args.out)[1].lower()
     if ext not in (".npz", ".csv"):
         raise ConfigError(f"unknown output format {ext or '(none)'!r}; valid: .npz, .csv",
@@ -52,20 +77,35 @@ def run(args: argparse.Namespace) -> int:
     if args.steps < 0:
         raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
     scene = load_scene(args.scene)
+    calibrations = []
+    if scene.unresolved_targets:
+        # the one place that turns felt targets into (K, B), as hapsim run and check do
+        from hapsim.analysis.targets import apply_targets
+        scene, calibrations = apply_targets(scene)
     engine = Engine(scene)
     if scene.port is not None:
         engine.set_port_position(scene.excitation.x0, at_rest=True)
     names = list(args.record) if args.record else list(engine.names)
     t0 = time.perf_counter()
-    with Progress(args.steps, "simulate", unit="samples") as bar:
-        t, x = engine.run(args.steps, names, progress=bar.update)
+    try:
+        with Progress(args.steps, "simulate", unit="samples") as bar:
+            t, x = engine.run(args.steps, names, progress=bar.update)
+    except ConfigError as exc:
+        if exc.key != "record":
+            raise
+        # the names came from the command line, not from the scene file
+        raise ConfigError(exc.reason, key="--record") from None
     elapsed = time.perf_counter() - t0
     write_trajectory(args.out, t, x, names)
     summary = {"scene": args.scene, "out": args.out, "steps": args.steps,
-               "rate_hz": scene.rate_hz, "recorded": len(names), "seconds": elapsed}
+               "rate_hz": scene.rate_hz, "recorded": len(names), "seconds": elapsed,
+               "calibrations": [c.to_dict() for c in calibrations]}
     if args.json:
         print(json.dumps(summary))
     else:
+        for c in calibrations:
+            print(f"calibrated link {c.link}: felt k = {c.k:g} N/m, b = {c.b:g} N s/m -> "
+                  f"virtual K = {c.result.K:.6g} N/m, B = {c.result.B:.6g} N s/m")
         print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses "
               f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
     return 0
