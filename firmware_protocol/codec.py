@@ -27,7 +27,7 @@ __all__ = [
     "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_STATE", "MSG_FORCE",
     "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES",
     "STATUS_ARMED", "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FAULT",
-    "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED",
+    "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED", "STATUS_FORCE_APPLIED",
     "FAULT_WATCHDOG", "FAULT_BAD_CONFIG", "FAULT_SENSOR", "FAULT_AMPLIFIER",
     "FAULT_NON_FINITE_FORCE", "FAULT_AXES_MISMATCH", "FAULT_RX_ERRORS", "FAULT_OVERRUN",
     "FAULT_VERSION_MISMATCH", "FAULT_NAMES",
@@ -68,6 +68,10 @@ STATUS_FAULT = 0x0008
 STATUS_RX_ERROR = 0x0010
 STATUS_OVERRUN = 0x0020
 STATUS_CONFIGURED = 0x0040
+#: ``force_seq`` names a FORCE applied since the last CONFIG (clear: none yet, and
+#: ``force_seq`` = 0 means nothing). Added within version 1 (PROTOCOL.md §9): a device
+#: written before it never sets it.
+STATUS_FORCE_APPLIED = 0x0080
 
 #: FAULT.code values.
 FAULT_WATCHDOG = 0x0001
@@ -221,7 +225,8 @@ class State:
         OR of ``STATUS_*`` bits.
     force_seq : int, 0..2**32-1
         ``seq`` field of the last FORCE the device applied (the delay in ticks is
-        ``seq - force_seq``).
+        ``seq - force_seq``); meaningful only when ``status`` has
+        :data:`STATUS_FORCE_APPLIED` (0 before any FORCE, but 0 is also a valid FORCE seq).
     position : tuple of float, length n_axes (1..8)
         Position per axis [m] (or [rad] for a rotary axis), IEEE-754 binary64.
     """

@@ -98,10 +98,77 @@ def test_constants():
     assert len(set(ids)) == len(ids) and 0 not in ids
     assert sorted(fp.MESSAGE_TYPES) == sorted(ids)
     bits = [fp.STATUS_ARMED, fp.STATUS_WATCHDOG_TRIPPED, fp.STATUS_FORCE_CLAMPED,
-            fp.STATUS_FAULT, fp.STATUS_RX_ERROR, fp.STATUS_OVERRUN, fp.STATUS_CONFIGURED]
+            fp.STATUS_FAULT, fp.STATUS_RX_ERROR, fp.STATUS_OVERRUN, fp.STATUS_CONFIGURED,
+            fp.STATUS_FORCE_APPLIED]
     assert all(b and b & (b - 1) == 0 for b in bits) and len(set(bits)) == len(bits)
     assert len(fp.FAULT_NAMES) == 9
     assert issubclass(fp.FrameError, ValueError)
+
+
+def test_status_bits_agree_in_spec_python_and_c():
+    """The status table of PROTOCOL.md §4, the codec's STATUS_* and the C header's
+    HP_STATUS_* list the same bits with the same values (FORCE_APPLIED included)."""
+    import re
+    spec = {name: int(value, 16) for value, name in re.findall(
+        r"^\| (0x[0-9A-Fa-f]{4}) \| ([A-Z_]+)\s*\|", _status_table(), re.M)}
+    header = (PKG / "c" / "hproto.h").read_text()
+    c = {name: int(value, 16)
+         for name, value in re.findall(r"#define HP_STATUS_([A-Z_]+) (0x[0-9A-Fa-f]+)u", header)}
+    py = {name[len("STATUS_"):]: getattr(fp, name) for name in fp.__all__
+          if name.startswith("STATUS_")}
+    assert spec == c == py, (spec, c, py)
+    assert spec["FORCE_APPLIED"] == 0x0080 and len(spec) == 8
+
+
+def _status_table() -> str:
+    text = (PKG / "PROTOCOL.md").read_text()
+    start = text.index("### Status bits (STATE.status)")
+    return text[start:text.index("###", start + 3)]
+
+
+def test_force_applied_tells_force_seq_0_from_none_yet():
+    """PROTOCOL.md §4/§10: after CONFIG the mock's STATE seq starts at 0, so the FORCE
+    answering STATE 0 has seq 0 as well; FORCE_APPLIED tells the two force_seq = 0 apart."""
+    from hapsim.daemon.mock import MockDevice
+    from hapsim.scene import Device, Excitation
+
+    applied = fp.STATUS_FORCE_APPLIED
+
+    def mock(d, lockstep):
+        return MockDevice(Device(mass=0.1, friction=0.5, delay=d, force_limit=10.0),
+                          Excitation(x0=0.001), lockstep=lockstep)
+
+    # lockstep, d = 1: STATE 0 (nothing applied), FORCE 0 -> STATE 1 reports FORCE 0 applied
+    m = mock(1, True)
+    (s0,) = m.handle(fp.Config(1000.0, 5000, 10.0), 0)
+    assert (s0.seq, s0.force_seq) == (0, 0) and not s0.status & applied
+    (s1,) = m.handle(fp.Force(0, (1.0,)), 0)
+    assert (s1.seq, s1.force_seq) == (1, 0) and s1.status & applied
+    assert m.stats.last_applied == 1.0
+    # lockstep, d = 0: STATE n reports the FORCE applied over the previous period
+    m = mock(0, True)
+    (s0,) = m.handle(fp.Config(1000.0, 5000, 10.0), 0)
+    assert s0.force_seq == 0 and not s0.status & applied
+    (s1,) = m.handle(fp.Force(0, (1.0,)), 0)
+    assert (s1.seq, s1.force_seq) == (1, 0) and s1.status & applied
+    # ... and a new CONFIG restarts force_seq and clears the bit with it
+    (r0,) = m.handle(fp.Config(1000.0, 5000, 10.0), 0)
+    assert (r0.seq, r0.force_seq) == (0, 0) and not r0.status & applied
+    # real time, d = 1: the bit stays while a late tick holds the force, until CONFIG
+    m = mock(1, False)
+    m.handle(fp.Config(1000.0, 5000, 10.0), 0)
+    t0 = m.tick(0)
+    assert t0.seq == 0 and not t0.status & applied
+    m.handle(fp.Force(0, (2.0,)), 500)
+    t1 = m.tick(1000)                            # FORCE 0 applied from tick 1
+    assert t1.force_seq == 0 and t1.status & applied
+    t2 = m.tick(2000)                            # FORCE 1 missing: FORCE 0 held
+    assert t2.status & fp.STATUS_OVERRUN and t2.force_seq == 0 and t2.status & applied
+    m.handle(fp.Config(1000.0, 5000, 10.0), 3000)
+    t0 = m.tick(3000)
+    assert t0.seq == 0 and t0.force_seq == 0 and not t0.status & applied
+    t1 = m.tick(4000)                            # no FORCE since CONFIG: late, none applied
+    assert t1.status & fp.STATUS_OVERRUN and not t1.status & applied
 
 
 def test_crc_check_value():

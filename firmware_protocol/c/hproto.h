@@ -42,6 +42,9 @@ extern "C" {
 #define HP_STATUS_RX_ERROR 0x0010u
 #define HP_STATUS_OVERRUN 0x0020u
 #define HP_STATUS_CONFIGURED 0x0040u
+/* force_seq names a FORCE applied since the last CONFIG (clear: none yet, force_seq
+ * means nothing). Added within version 1 (PROTOCOL.md section 9). */
+#define HP_STATUS_FORCE_APPLIED 0x0080u
 
 /* FAULT.code values. */
 #define HP_FAULT_WATCHDOG 0x0001u

@@ -117,6 +117,10 @@ GOOD = [
     ("pong", "PONG", dict(nonce=42, host_time_us=1234567890, device_time_us=777)),
     ("fault_watchdog", "FAULT", dict(code=1, detail=5000)),
     ("stop", "STOP", {}),
+    # FORCE 0 applied (FORCE_APPLIED 0x0080, added within version 1): force_seq = 0 names
+    # it, not "none yet"
+    ("state_force_applied_seq0", "STATE", dict(seq=1, time_us=1000, status=0x00C1,
+                                               force_seq=0, position=[0.01])),
 ]
 
 

@@ -545,6 +545,7 @@ class MockDevice:
         self._rs = [-1] * self._ring
         self._applied = 0.0
         self._applied_seq = 0
+        self._status_extra = 0          # force_seq restarts: FORCE_APPLIED clear until one is
         self._u = 0.0
         self._last_force_us = now_us
         self.armed = self.configured = True
@@ -597,17 +598,21 @@ class MockDevice:
     def _apply_due(self, n: int, now_us: int) -> None:
         """Choose the force held over ``[nT, (n+1)T)``: FORCE ``n - d`` or the last one."""
         due = n - self.delay
+        # FORCE_APPLIED (PROTOCOL.md §4): force_seq names a FORCE applied since CONFIG
+        # (kept while a late tick holds it), so force_seq = 0 is not "none yet"
+        applied = self._status_extra & fp.STATUS_FORCE_APPLIED
         self._status_extra = 0
         if due < 0:
-            f, seq = 0.0, 0
+            f, seq, applied = 0.0, 0, 0
         else:
             i = due % self._ring
             if self._rs[i] == due:
-                f, seq = self._rf[i], due
+                f, seq, applied = self._rf[i], due, fp.STATUS_FORCE_APPLIED
             else:
                 self.stats.late += 1
                 self._status_extra |= fp.STATUS_OVERRUN
                 f, seq = self._applied, self._applied_seq
+        self._status_extra |= applied
         if (not self.lockstep and self.watchdog_us > 0
                 and now_us - self._last_force_us > self.watchdog_us):
             f = 0.0
