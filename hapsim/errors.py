@@ -52,7 +52,23 @@ class ConfigError(HapsimError, ValueError):
 
 
 class ProtocolError(HapsimError, ValueError):
-    """A frame or message violates the device protocol."""
+    """The device speaks the protocol in a way this host cannot work with.
+
+    Raised by the host (:mod:`hapsim.daemon.loop`) when the device's HELLO carries another
+    ``PROTOCOL_VERSION`` than ``firmware_protocol.PROTOCOL_VERSION``, or another number of
+    axes than the scene drives (PROTOCOL.md §1, host duties in §5): the host then sends
+    no CONFIG or FORCE. The message says what was expected and what was received, with
+    the decoder's last frames (CONVENTIONS §11).
+
+    Not raised for a corrupt frame (bad COBS or CRC, over-long, unknown type): the stream
+    decoder drops and counts those and the loop treats them like a missing frame
+    (PROTOCOL.md §5, §8). A device that is absent, silent or reset is a
+    :class:`DeviceError`.
+
+    A ``ValueError`` (the device's values are wrong, like ``firmware_protocol.FrameError``),
+    deliberately not a :class:`DeviceError` or ``OSError``: reconnecting does not cure it,
+    and the loop's recovery retries on DeviceError. ``hapsim`` exits 1 on it.
+    """
 
 
 class DeviceError(HapsimError, OSError):

@@ -502,3 +502,25 @@ def test_last_frames_diagnostics():
     text = dec.format_last_frames()
     assert text.splitlines()[-2].startswith("bad_crc: ")
     assert dec.stats.as_dict()["bad_crc"] == 2
+
+
+def test_protocol_error_family(monkeypatch, tmp_path, capsys):
+    """ProtocolError (protocol-version / axis mismatch, raised by the host loop): a
+    HapsimError and a ValueError, never a DeviceError/OSError (the loop's recovery retries
+    on DeviceError, and reconnecting cannot cure a mismatch); the CLI exits 1 on it."""
+    import hapsim.commands.simulate as sim
+    from hapsim.cli import main
+    from hapsim.errors import DeviceError, HapsimError, ProtocolError
+
+    assert issubclass(ProtocolError, HapsimError) and issubclass(ProtocolError, ValueError)
+    assert not issubclass(ProtocolError, (DeviceError, OSError))
+    assert "PROTOCOL_VERSION" in ProtocolError.__doc__ and "axes" in ProtocolError.__doc__
+
+    def mismatch(args):
+        raise ProtocolError("device speaks protocol 2, this host 1")
+
+    monkeypatch.setattr(sim, "run", mismatch)      # register() binds sim.run when called
+    out = tmp_path / "x.npz"
+    assert main(["simulate", "configs/oscillator.yaml", "--steps", "1", "--out", str(out)]) == 1
+    assert "ProtocolError: device speaks protocol 2" in capsys.readouterr().err
+    assert not out.exists()
