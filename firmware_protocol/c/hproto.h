@@ -3,7 +3,8 @@
  *
  * Specification: ../PROTOCOL.md. Golden vectors: ../vectors/vectors.json.
  *
- * Portable C99 for firmware: no malloc, no stdio, only <stdint.h>, <stddef.h>, <string.h>.
+ * Portable C99 for firmware: no malloc, no stdio, only <stdint.h> and <string.h> (which
+ * also defines size_t, C99 7.21.1).
  * Frame on the wire: COBS(type:u8 | body | crc16:u16 MSB first) followed by one 0x00.
  * Bodies are little-endian with no padding; positions and forces are IEEE-754 binary64.
  * Requires a 64-bit `double` (checked at compile time; AVR-GCC's 32-bit double is refused).
@@ -11,8 +12,8 @@
 #ifndef HPROTO_H
 #define HPROTO_H
 
-#include <stddef.h>
 #include <stdint.h>
+#include <string.h>
 
 #ifdef __cplusplus
 extern "C" {

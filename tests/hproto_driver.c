@@ -1,5 +1,7 @@
 /*
- * test_driver.c -- line-oriented driver of hproto.c for the Python test suite.
+ * hproto_driver.c -- line-oriented driver of firmware_protocol/c/hproto.c for the Python
+ * test suite (tests/test_protocol_c.py compiles it with -I firmware_protocol/c). Not part of
+ * the reference implementation: it uses stdio and stdlib, which the library must not.
  *
  * Commands on stdin, one per line; one or more JSON lines on stdout per command:
  *   D <hex>          decode one frame          -> message JSON or {"error": "..."}
