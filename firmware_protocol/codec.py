@@ -598,7 +598,15 @@ class DecoderStats:
         return self.bad_cobs + self.bad_crc + self.overlong + self.unknown_type + self.malformed
 
     def as_dict(self) -> dict[str, int]:
-        """Counters as a plain ``dict`` (for logs and ``--json`` output)."""
+        """Counters as a plain ``dict`` (for logs and ``--json`` output).
+
+        Returns
+        -------
+        dict of str to int
+            ``frames_ok``, ``bad_cobs``, ``bad_crc``, ``overlong``, ``unknown_type``,
+            ``malformed`` [frames] (PROTOCOL.md §8; :attr:`bad_frames` is their sum
+            without ``frames_ok``).
+        """
         return {"frames_ok": self.frames_ok, "bad_cobs": self.bad_cobs,
                 "bad_crc": self.bad_crc, "overlong": self.overlong,
                 "unknown_type": self.unknown_type, "malformed": self.malformed}
@@ -698,5 +706,13 @@ class StreamDecoder:
         return out
 
     def format_last_frames(self) -> str:
-        """The last frames as text lines ``outcome: hex`` for a log record (oldest first)."""
+        """The last frames as text for a log record (CONVENTIONS §11).
+
+        Returns
+        -------
+        str
+            One line per frame of :attr:`last_frames`, oldest first, ``outcome: hex``
+            (``outcome`` ``ok`` or the counter it fed, ``hex`` the COBS bytes as received
+            without the delimiter, space-separated); empty when no frame was seen.
+        """
         return "\n".join(f"{outcome}: {raw.hex(' ')}" for raw, outcome in self.last_frames)

@@ -246,12 +246,22 @@ class Engine:
         return self._xp.copy()
 
     def position(self, name: str) -> float:
-        """Current position of the mass ``name`` [m].
+        """Current position of one mass.
+
+        Parameters
+        ----------
+        name : str
+            Mass name.
+
+        Returns
+        -------
+        float
+            Its position at the current sample [m].
 
         Raises
         ------
         ConfigError
-            When no mass has that name.
+            When no mass has that name (key ``name``; the valid names are listed).
         """
         return float(self._x[self._indices([name], key="name")[0]])
 
@@ -279,6 +289,12 @@ class Engine:
         leapfrog/Verlet scheme, Hairer, Lubich & Wanner, *Geometric Numerical
         Integration*, §I.1.4). With ``integrator: exact`` it is the continuous energy
         (velocity state, ``K/2 (x1 - x2)^2``), which that scheme conserves.
+
+        Returns
+        -------
+        float
+            ``sum m v^2 / 2 + sum K/2 (x1 - x2 + thr)(x1p - x2p + thr)`` [J] at the current
+            sample (``thr`` = 0 except for engaged contacts; dampers store no energy).
         """
         T = self.period
         x, xp = self._x, self._xp

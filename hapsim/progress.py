@@ -41,7 +41,20 @@ class Progress:
         self._drawn = False
 
     def update(self, done: int, total: int | None = None) -> None:
-        """Report ``done`` units finished (of ``total`` when given)."""
+        """Report progress and redraw the bar (nothing before ``delay`` or off a terminal).
+
+        Parameters
+        ----------
+        done : int
+            Units of work finished so far (0..total).
+        total : int, optional
+            New total, when it changed (keeps the previous one when None).
+
+        Notes
+        -----
+        The estimated time left is ``elapsed (1 - f) / f`` [s], ``f = done / total``
+        (constant rate assumed).
+        """
         if total is not None:
             self.total = total
         if not self.enabled or time.monotonic() - self._t0 < self.delay:

@@ -203,7 +203,17 @@ class Device:
 
 @dataclass(frozen=True)
 class Impulse:
-    """A rectangular force pulse applied by the hand [N] from ``start`` for ``duration`` [s]."""
+    """A rectangular force pulse applied by the hand on the (mock) device.
+
+    Parameters
+    ----------
+    force : float
+        Pulse height [N], finite.
+    start : float
+        Time the pulse starts [s], >= 0.
+    duration : float
+        Pulse length [s], >= 0 (0: no pulse).
+    """
 
     force: float
     start: float = 0.0
@@ -343,6 +353,17 @@ class Scene:
     def index(self, name: str) -> int:
         """Index of the mass called ``name`` in :attr:`masses`.
 
+        Parameters
+        ----------
+        name : str
+            Mass name.
+
+        Returns
+        -------
+        int
+            0-based position in :attr:`masses` (the column of that mass in the engine's
+            arrays and in :meth:`hapsim.engine.Engine.positions`).
+
         Raises
         ------
         KeyError
@@ -356,6 +377,16 @@ class Scene:
 
     def link(self, name: str) -> Link:
         """The link called ``name``.
+
+        Parameters
+        ----------
+        name : str
+            Link name (``link<i>`` for an unnamed link of a scene file, i its index).
+
+        Returns
+        -------
+        Link
+            The link as stored (K [N/m], B [N s/m] NaN while a target awaits calibration).
 
         Raises
         ------
@@ -392,12 +423,20 @@ class Scene:
             New B [N s/m], finite (may be negative after calibration: the real friction
             can exceed the felt damping).
 
+        Returns
+        -------
+        Scene
+            A validated copy in which that link has the given (K, B) and
+            ``calibrated=True``; every other field is unchanged.
+
         Raises
         ------
         KeyError
             When no link has that name.
         ConfigError
-            When the values are not finite or the stiffness is negative.
+            When the values are not finite or the stiffness is negative (key
+            ``links[i].stiffness`` / ``links[i].damping``, with the file and the link's line
+            for a scene read from a file).
         """
         self.link(name)
         links = tuple(dataclasses.replace(lk, stiffness=_coerce(stiffness),
@@ -406,12 +445,23 @@ class Scene:
         return dataclasses.replace(self, links=links)
 
     def with_rate(self, rate_hz: float) -> "Scene":
-        """A copy of the scene at another sample rate [Hz] (> 0).
+        """A copy of the scene at another sample rate.
+
+        Parameters
+        ----------
+        rate_hz : float
+            New sample rate [Hz], finite and > 0.
+
+        Returns
+        -------
+        Scene
+            A validated copy with ``rate_hz`` replaced (period ``T = 1 / rate_hz`` [s]).
+            The links keep their (K, B): recalibrate target links for the new rate.
 
         Raises
         ------
         ConfigError
-            When ``rate_hz`` is not a positive finite number.
+            When ``rate_hz`` is not a positive finite number (key ``rate_hz``).
         """
         return dataclasses.replace(self, rate_hz=_coerce(rate_hz))
 

@@ -56,7 +56,20 @@ FAUST_MEM = 8 << 30
 
 
 def string_scene(n: int) -> Scene:
-    """The benchmark string as a hapsim scene (small N only: building it is Python-heavy)."""
+    """The benchmark string as a hapsim scene (small N only: building it is Python-heavy).
+
+    Parameters
+    ----------
+    n : int
+        Number of beads (>= 1) of BEAD [kg] joined by springs K [N/m], dampers B [N s/m].
+
+    Returns
+    -------
+    Scene
+        ``left`` ground, ``s1..sn``, ``right`` ground, ``hand`` port plucking the middle
+        bead through a contact (500 N/m, 0.05 N s/m); bead i starts with
+        ``v0 = 0.01 sin(0.7 i)`` [m/s].
+    """
     masses = [Mass("left", "ground")]
     masses += [Mass(f"s{i}", "mass", BEAD, 0.0, 0.01 * np.sin(0.7 * i)) for i in range(1, n + 1)]
     masses += [Mass("right", "ground"), Mass("hand", "port")]
@@ -72,6 +85,17 @@ def string_args(n: int) -> tuple:
 
     Same layout and values as ``Engine(string_scene(n))._args`` (checked in :func:`check`),
     without the per-name lookups that make building a 10^6-bead Scene slow.
+
+    Parameters
+    ----------
+    n : int
+        Number of beads.
+
+    Returns
+    -------
+    tuple of ndarray
+        ``(x, xp, f, mobile, t2m, fixed, i1, i2, k, z, c_i1, c_i2, c_k, c_z, c_thr)`` in the
+        layout of :mod:`hapsim.kernels.cordis` (``run_sd_contact``), SI units.
     """
     nm = n + 3                                  # left, s1..sn, right, hand
     x = np.zeros(nm)
@@ -108,7 +132,22 @@ def check() -> None:
 
 
 def hapsim_ns(n: int, budget: float, repeats: int) -> float:
-    """Median ns per mass-sample of the kernel on an n-bead string."""
+    """Median ns per mass-sample of the kernel on an n-bead string.
+
+    Parameters
+    ----------
+    n : int
+        Number of beads.
+    budget : float
+        Mass-samples per timed run (samples = max(20, budget / n)).
+    repeats : int
+        Timed runs; the median is kept.
+
+    Returns
+    -------
+    float
+        Thread CPU time per mass-sample [ns].
+    """
     args = string_args(n)
     kern = cordis.run_sd_contact
     kern(10, *args, _NOREC, _NOOUT, 0)          # compile / load from cache
@@ -123,7 +162,20 @@ def hapsim_ns(n: int, budget: float, repeats: int) -> float:
 
 
 def port_step_us(n: int, calls: int = 20000) -> float:
-    """Median µs per ``Engine.port_step`` call (one device sample from Python)."""
+    """Median µs per ``Engine.port_step`` call (one device sample from Python).
+
+    Parameters
+    ----------
+    n : int
+        Number of beads of the string.
+    calls : int
+        Calls per timed run (5 runs, median kept).
+
+    Returns
+    -------
+    float
+        Wall time per call [us].
+    """
     eng = Engine(string_scene(n))
     eng.port_step(0.0)
     times = []
@@ -136,7 +188,28 @@ def port_step_us(n: int, calls: int = 20000) -> float:
 
 
 def faust_ns(n: int, budget: float, repeats: int, workdir: str) -> tuple[float | None, float, str]:
-    """(ns per mass-sample or None, build time [s], note) of Faust mi.lib at n beads."""
+    """Faust ``mi.lib`` on the same string, compiled with g++ -O3 under a memory limit.
+
+    Parameters
+    ----------
+    n : int
+        Number of beads (capped at FAUST_MAX by the caller).
+    budget : float
+        Mass-samples per timed run (samples = max(640, budget / n)).
+    repeats : int
+        Timed runs of the compiled binary.
+    workdir : str
+        Directory for the generated sources and binary.
+
+    Returns
+    -------
+    ns : float or None
+        Time per mass-sample [ns]; None when the build failed or timed out.
+    build_s : float
+        Faust + C++ build time [s].
+    note : str
+        Why ``ns`` is None (empty otherwise).
+    """
     import faust_gen
     scene = string_scene(n)
     prog = faust_gen.faust_program(scene, outputs=[f"s{(n + 1) // 2}"])
@@ -171,7 +244,20 @@ print(t1 - t0, t2 - t1)
 
 
 def first_sample(cache_dir: str) -> tuple[float, float]:
-    """(import + load [s], Engine + first step [s]) in a fresh interpreter."""
+    """Time to the first sample in a fresh interpreter.
+
+    Parameters
+    ----------
+    cache_dir : str
+        ``NUMBA_CACHE_DIR`` of the child (empty: JIT compile; filled: cache load).
+
+    Returns
+    -------
+    load_s : float
+        Import + scene load [s].
+    first_s : float
+        Engine construction + first step [s].
+    """
     env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
     code = _FIRST.format(repo=str(REPO), scene=str(REPO / "configs" / "string.yaml"))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,

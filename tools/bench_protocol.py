@@ -24,12 +24,38 @@ import firmware_protocol as fp
 
 
 def best_us(stmt, number: int, repeat: int) -> float:
-    """Best time per call [us] over ``repeat`` runs of ``number`` calls."""
+    """Best time per call over ``repeat`` runs of ``number`` calls.
+
+    Parameters
+    ----------
+    stmt : callable
+        What to time (no arguments).
+    number : int
+        Calls per run.
+    repeat : int
+        Runs; the best is kept (least disturbed by other load).
+
+    Returns
+    -------
+    float
+        Time per call [us].
+    """
     return min(timeit.repeat(stmt, number=number, repeat=repeat)) / number * 1e6
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark and print the table; return 0."""
+    """Run the benchmark and print the table.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments (``sys.argv[1:]`` when None): ``--axes``, ``--repeat``, ``--number``.
+
+    Returns
+    -------
+    int
+        Exit code: 0.
+    """
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--axes", type=int, default=1, help="axes per STATE/FORCE (1..8)")
     ap.add_argument("--repeat", type=int, default=7, help="timing runs, best is kept")

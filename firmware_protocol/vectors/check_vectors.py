@@ -44,7 +44,18 @@ LAYOUT = {
 
 
 def crc16_ccitt_false(data: bytes) -> int:
-    """Bit-by-bit CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no xorout)."""
+    """Bit-by-bit CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no xorout).
+
+    Parameters
+    ----------
+    data : bytes
+        Bytes to check (PROTOCOL.md §1: type and body of a packet).
+
+    Returns
+    -------
+    int
+        CRC, 0..0xFFFF (check value of ``b"123456789"``: 0x29B1).
+    """
     crc = 0xFFFF
     for byte in data:
         crc ^= byte << 8
@@ -55,7 +66,19 @@ def crc16_ccitt_false(data: bytes) -> int:
 
 
 def cobs_encode(data: bytes) -> bytes:
-    """Textbook COBS (Cheshire & Baker 1999), without the delimiter."""
+    """Textbook COBS (Cheshire & Baker 1999), without the delimiter.
+
+    Parameters
+    ----------
+    data : bytes
+        Packet to stuff.
+
+    Returns
+    -------
+    bytes
+        The COBS encoding: no ``0x00`` byte, ``len(data) + 1`` bytes for packets shorter
+        than 254 bytes.
+    """
     out = bytearray([0])
     code_at, code = 0, 1
     for byte in data:
@@ -75,7 +98,20 @@ def cobs_encode(data: bytes) -> bytes:
 
 
 def packet_of(type_name: str, fields: dict) -> bytes:
-    """Packet ``type | body | crc`` of a message given by name and field dict."""
+    """Packet ``type | body | crc`` of a message given by name and field dict.
+
+    Parameters
+    ----------
+    type_name : str
+        A key of :data:`LAYOUT` (``"STATE"``, ...).
+    fields : dict
+        Field values by name, in PROTOCOL.md §4's units; array fields as lists.
+
+    Returns
+    -------
+    bytes
+        Type id, little-endian body, CRC-16 MSB first.
+    """
     type_id, layout = LAYOUT[type_name]
     body = bytearray([type_id])
     for name, fmt in layout:
@@ -89,7 +125,20 @@ def packet_of(type_name: str, fields: dict) -> bytes:
 
 
 def frame_of(type_name: str, fields: dict) -> bytes:
-    """Whole frame ``COBS(packet) + 00``."""
+    """Whole frame ``COBS(packet) + 00``.
+
+    Parameters
+    ----------
+    type_name : str
+        As :func:`packet_of`.
+    fields : dict
+        As :func:`packet_of`.
+
+    Returns
+    -------
+    bytes
+        The frame as sent on the wire, delimiter included.
+    """
     return cobs_encode(packet_of(type_name, fields)) + b"\x00"
 
 
@@ -125,7 +174,13 @@ GOOD = [
 
 
 def bad_vectors() -> list[dict]:
-    """Frames every decoder must drop, each with the counter it must feed."""
+    """Frames every decoder must drop, each with the counter it must feed.
+
+    Returns
+    -------
+    list of dict
+        ``{"name", "frame_hex", "error"}``, ``error`` a counter of PROTOCOL.md §8.
+    """
     force = frame_of("FORCE", dict(seq=1, force=[0.5]))
     flipped = bytearray(force)
     flipped[12] ^= 0x10  # one bit of the float 0.5 (not a COBS code byte): CRC mismatch
@@ -152,7 +207,14 @@ def bad_vectors() -> list[dict]:
 
 
 def build() -> dict:
-    """The whole vector file as a dict."""
+    """The whole vector file as a dict.
+
+    Returns
+    -------
+    dict
+        ``protocol_version``, ``max_frame``, ``crc`` (description), ``good`` (name, type,
+        fields, packet_hex, frame_hex) and ``bad`` (:func:`bad_vectors`).
+    """
     good = []
     for name, type_name, fields in GOOD:
         good.append({"name": name, "type": type_name, "fields": fields,
@@ -165,7 +227,18 @@ def build() -> dict:
 
 
 def check(data: dict) -> list[str]:
-    """Mismatches between ``data`` (a loaded vectors.json) and the oracle; empty if none."""
+    """Compare a loaded ``vectors.json`` with this oracle.
+
+    Parameters
+    ----------
+    data : dict
+        The parsed vector file.
+
+    Returns
+    -------
+    list of str
+        One line per mismatch; empty when the file agrees.
+    """
     errors = []
     assert crc16_ccitt_false(b"123456789") == 0x29B1
     assert cobs_encode(b"\x11\x22\x00\x33") == b"\x03\x11\x22\x02\x33"
@@ -188,7 +261,18 @@ def check(data: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Verify (default) or write (``--write``) vectors.json; return the exit code."""
+    """Verify (default) or write (``--write``) vectors.json.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments (``sys.argv[1:]`` when None).
+
+    Returns
+    -------
+    int
+        Exit code: 0 when the file agrees (or was written), 1 on a mismatch.
+    """
     argv = sys.argv[1:] if argv is None else argv
     if "--write" in argv:
         VECTORS.write_text(json.dumps(build(), indent=1) + "\n")

@@ -16,7 +16,14 @@ from hapsim.scene import load_scene
 
 
 def register(sub) -> None:
-    """Add the ``simulate`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``simulate`` sub-command.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers of the ``hapsim`` parser (:func:`hapsim.cli.build_parser`); the new
+        parser's ``func`` is :func:`run`.
+    """
     p = sub.add_parser(
         "simulate", help="run a scene offline (no device) and write positions to .npz or .csv",
         description=(
@@ -112,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names: list[str]) -> None:
-    """Write a trajectory atomically (temporary file, then rename).
+    """Write a trajectory atomically (``path.partial``, then renamed to ``path``).
 
     Parameters
     ----------
