@@ -59,6 +59,46 @@ def test_oscillator_eigenfrequency_eq2_fitted():
     assert abs(w_theory - math.sqrt(stiffness / mass)) > 1e-4 * w_theory
 
 
+def zero_crossings(y: np.ndarray) -> np.ndarray:
+    """Times of the sign changes of ``y`` [samples], each found as the root of the cubic
+    through the four samples around it (Lagrange interpolation, Newton from the linear
+    guess). Uses nothing of the scheme: only that the sampled curve is smooth."""
+    k = np.nonzero((y[1:-2] > 0) != (y[2:-1] > 0))[0] + 1     # change between k and k+1
+    p = np.stack([y[k - 1], y[k], y[k + 1], y[k + 2]])          # at u = -1, 0, 1, 2
+    nodes = np.array([-1.0, 0.0, 1.0, 2.0])
+    u = y[k] / (y[k] - y[k + 1])
+    for _ in range(8):
+        lag = np.ones((4, u.size))
+        dlag = np.zeros((4, u.size))
+        for i in range(4):
+            for j in range(4):
+                if j != i:
+                    term = (u - nodes[j]) / (nodes[i] - nodes[j])
+                    dlag[i] = dlag[i] * term + lag[i] / (nodes[i] - nodes[j])
+                    lag[i] = lag[i] * term
+        u = u - (lag * p).sum(0) / (dlag * p).sum(0)
+    assert np.all((u >= 0) & (u <= 1))
+    return k + u
+
+
+@pytest.mark.parametrize("stiffness", [300.0, 1000.0, 3000.0])
+def test_oscillator_eigenfrequency_eq2_from_zero_crossings(stiffness):
+    """An independent measurement: the half period is the mean spacing of the zero
+    crossings of the simulated trajectory (least-squares slope over ~10^4 of them), not a
+    re-fit of the recurrence; w = pi / (half period) must satisfy eq. 2 to 1e-9."""
+    mass, n = 0.1, 200_000
+    _, x = Engine(oscillator(stiffness, mass)).run(n, ["bob"])
+    tc = zero_crossings(x[:, 0])
+    assert tc.size > 1000
+    half_period = np.polyfit(np.arange(tc.size), tc, 1)[0] * T
+    w_measured = math.pi / half_period
+    w_eq2 = math.acos(1.0 - stiffness * T * T / (2.0 * mass)) / T
+    assert abs(w_measured - w_eq2) < 1e-9 * w_eq2
+    # the measurement resolves the scheme's warping: it is not the continuous sqrt(K/m)
+    w_cont = math.sqrt(stiffness / mass)
+    assert abs(w_measured - w_cont) > 1e3 * abs(w_measured - w_eq2)
+
+
 @pytest.mark.parametrize("factor,grows", [(0.999, False), (1.001, True)])
 def test_centred_difference_limit_4m_over_T2(factor, grows):
     mass, x0 = 0.1, 0.01

@@ -95,3 +95,45 @@ def test_unrenderable_target_is_exit_2_naming_the_link(tmp_path, capsys):
     assert main(["simulate", str(path), "--steps", "5", "--out", str(tmp_path / "o.npz")]) == 2
     err = capsys.readouterr().err
     assert f"{path}:6: links.felt.target: " in err and "not renderable" in err
+
+
+def test_progress_draws_on_a_terminal_only(tmp_path):
+    """The bar is drawn on a real terminal (a pty), not on a pipe or file, and not before
+    ``delay`` (0 here, and 10^9 s for the "not yet" case: no wall-clock assertion)."""
+    import io
+    import os
+    import pty
+    import select
+
+    from hapsim.progress import Progress
+
+    master, slave = pty.openpty()
+    try:
+        with os.fdopen(slave, "w", closefd=True) as tty:
+            assert tty.isatty()
+            with Progress(200, "simulate", unit="samples", stream=tty, delay=0.0) as bar:
+                assert bar.enabled
+                bar.update(100)
+                bar.update(200)
+            with Progress(200, "waiting", stream=tty, delay=1e9) as late:
+                late.update(100)                 # before its delay: nothing drawn
+            drawn = ""
+            while not drawn.endswith("\n"):      # the pty may pass the bytes on later
+                ready, _, _ = select.select([master], [], [], 10.0)
+                assert ready, f"nothing more from the pty after {drawn!r}"
+                drawn += os.read(master, 4096).decode()
+    finally:
+        os.close(master)
+    lines = drawn.replace("\r\n", "\n").split("\r")
+    assert lines[0] == ""
+    assert lines[1].startswith("simulate [" + "#" * 15 + "." * 15 + "]  50.0% 100/200 samples eta")
+    assert lines[2].startswith("simulate [" + "#" * 30 + "] 100.0% 200/200 samples eta")
+    assert lines[2].endswith("\n") and "waiting" not in drawn
+    # not a terminal: nothing, unless forced
+    pipe = io.StringIO()
+    with Progress(10, "quiet", stream=pipe, delay=0.0) as bar:
+        bar.update(5)
+    assert pipe.getvalue() == ""
+    with Progress(10, "forced", stream=pipe, delay=0.0, force=True) as bar:
+        bar.update(5)
+    assert pipe.getvalue().startswith("\rforced [" + "#" * 15) and pipe.getvalue().endswith("\n")
