@@ -519,3 +519,45 @@ def test_docs_table1_is_the_computed_table():
     with open("docs/table1.md", encoding="utf-8") as fh:
         doc = fh.read()
     assert table1_markdown(table1_experiment()) in doc
+
+
+# ============================================================================ marginal loops
+
+@pytest.mark.parametrize("K", list(np.linspace(0.05, 3.95, 27)) + [0.5, 1.0, 2.0, 3.999])
+def test_render_and_check_scene_agree_on_the_lossless_centred_difference_loop(K):
+    """Ideal hold, d = 0, b0 = B = 0 (m = T = 1): ``z^2 - (2 - K) z + 1 = 0`` has both roots
+    on the unit circle for 0 < K < 4 (product 1, complex pair): marginal, not a coin toss
+    of round-off. The felt k follows eq. (2): ``K = 2 - 2 cos(sqrt(k))``."""
+    loop = LoopModel(mass=1.0, friction=0.0, rate_hz=1.0, delay=0, hold="ideal")
+    r = render(loop, K, 0.0)
+    chk = check_scene(port_scene(K, 0.0, 0, "ideal", m=1.0, b0=0.0, rate=1.0))
+    assert abs(r.spectral_radius - 1.0) <= 1e-12
+    assert (r.stable, r.marginal) == (chk.stable, chk.marginal) == (True, True)
+    assert r.k == pytest.approx(math.acos(1.0 - K / 2.0) ** 2, rel=1e-9)
+    d = json.loads(json.dumps(r.to_dict()))
+    assert d["stable"] is True and d["marginal"] is True
+
+
+@pytest.mark.parametrize("K", [4.0 * (1 + 1e-9), 4.0 * (1 + 1e-6), 4.1])
+def test_just_above_the_centred_difference_limit_both_say_unstable(K):
+    """K > 4: real roots of ``z^2 + (K - 2) z + 1``, one below -1: |z| - 1 ~ sqrt(K - 4)."""
+    loop = LoopModel(mass=1.0, friction=0.0, rate_hz=1.0, delay=0, hold="ideal")
+    r = render(loop, K, 0.0)
+    chk = check_scene(port_scene(K, 0.0, 0, "ideal", m=1.0, b0=0.0, rate=1.0))
+    c = K - 2.0
+    zmax = (c + math.sqrt(c * c - 4.0)) / 2.0   # |more negative root|
+    assert r.spectral_radius == pytest.approx(zmax, rel=1e-9)
+    assert not r.stable and not r.marginal and not chk.stable
+
+
+def test_render_cli_says_marginal(capsys):
+    args = ["render", "--mass", "1", "--rate", "1", "--delay", "0", "--hold", "ideal"]
+    for K in ("0.5", "1", "2"):
+        assert main(args + ["--K", K]) == 0
+        assert "marginal" in capsys.readouterr().out
+        assert main(args + ["--K", K, "--json"]) == 0
+        d = json.loads(capsys.readouterr().out)
+        assert d["stable"] is True and d["marginal"] is True
+    assert main(args + ["--K", "4.000001", "--json"]) == 1
+    d = json.loads(capsys.readouterr().out)
+    assert d["stable"] is False and d["marginal"] is False

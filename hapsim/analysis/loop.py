@@ -25,10 +25,17 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["LoopModel", "HOLDS", "plant", "characteristic", "closed_loop_poles",
-           "zoh_state_space", "spectral_radius"]
+           "zoh_state_space", "spectral_radius", "STABILITY_TOL"]
 
 #: Valid values of :attr:`LoopModel.hold`.
 HOLDS = ("zoh", "ideal")
+
+#: Tolerance on the spectral radius shared by every stability verdict (``render``,
+#: ``check_scene``, the bench): ``max |z| <= 1 + STABILITY_TOL`` counts as stable and
+#: ``| max |z| - 1 | <= STABILITY_TOL`` as *marginal* (lossless modes of an undamped loop,
+#: e.g. the centred-difference oscillator, sit on the unit circle up to round-off, so the
+#: sign of ``|z| - 1`` there says nothing).
+STABILITY_TOL = 1e-9
 
 
 @dataclass(frozen=True)

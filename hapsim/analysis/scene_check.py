@@ -18,14 +18,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
 from hapsim.analysis.network import closed_loop
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL"]
 
-#: Spectral radius accepted as stable: ``max |z| <= 1 + STABILITY_TOL`` (lossless modes of an
-#: undamped virtual network sit on the unit circle up to round-off).
-STABILITY_TOL = 1e-9
+# STABILITY_TOL (re-exported): spectral radius accepted as stable, ``max |z| <= 1 +
+# STABILITY_TOL``; defined once in :mod:`hapsim.analysis.loop` and shared with ``render``.
 #: Eigenvalues within this distance of ``z = 1`` are free (rigid-body) drift modes; a
 #: defective double eigenvalue at 1 is computed as ``1 +- O(sqrt(eps))``, so such a cluster
 #: is not counted as unstable.

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from hapsim.analysis.loop import LoopModel, _char_w, _polish, _roots_w, _scaled
+from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_w, _polish, _roots_w, _scaled
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
@@ -67,9 +67,16 @@ class RenderResult:
     damping_ratio : float
         ``b / (2 sqrt(k m))`` [-]; nan if no complex pair.
     stable : bool
-        True iff every closed-loop pole has ``|z| < 1``.
+        True iff every closed-loop pole has ``|z| <= 1 + STABILITY_TOL``
+        (:data:`hapsim.analysis.loop.STABILITY_TOL`, the tolerance ``check_scene`` uses):
+        marginal loops count as stable.
     spectral_radius : float
         ``max |z|`` over the closed-loop poles [-].
+    marginal : bool
+        ``|spectral_radius - 1| <= STABILITY_TOL``: the least damped mode sits on the unit
+        circle up to round-off and never decays (a lossless loop, e.g. the paper's
+        centred-difference oscillator: ideal hold, ``d = 0``, ``b0 = B = 0``,
+        ``0 < K < 4 m / T^2``). Implies ``stable``.
     modes : list of Mode
         The parasitic modes: every mode except the rendered pair, least damped first.
     rendered : Mode or None
@@ -89,12 +96,14 @@ class RenderResult:
     modes: list = field(default_factory=list)
     rendered: Mode | None = None
     note: str = ""
+    marginal: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready dict (non-finite floats become ``None``)."""
         return {"K": _f(self.K), "B": _f(self.B), "k": _f(self.k), "b": _f(self.b),
                 "f0_hz": _f(self.f0_hz), "damping_ratio": _f(self.damping_ratio),
-                "stable": bool(self.stable), "spectral_radius": _f(self.spectral_radius),
+                "stable": bool(self.stable), "marginal": bool(self.marginal),
+                "spectral_radius": _f(self.spectral_radius),
                 "rendered": None if self.rendered is None else self.rendered.to_dict(),
                 "modes": [md.to_dict() for md in self.modes], "note": self.note}
 
@@ -131,17 +140,20 @@ def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
     modes = _modes_of(loop, w)
     pair = rendered_pair(modes)
     rho = float(np.max(np.abs(1.0 + w)))
-    stable = _log_rho(w) < 0.0
+    # Same verdict as check_scene: within STABILITY_TOL of the unit circle the sign of
+    # |z| - 1 is round-off, so such a loop is marginal and counted as stable.
+    stable = rho <= 1.0 + STABILITY_TOL
+    marginal = abs(rho - 1.0) <= STABILITY_TOL
     if pair is None:
         return RenderResult(K=float(K), B=float(B), k=math.nan, b=math.nan, f0_hz=math.nan,
                             damping_ratio=math.nan, stable=stable, spectral_radius=rho,
-                            modes=modes, rendered=None,
+                            modes=modes, rendered=None, marginal=marginal,
                             note="the closed loop has no complex pair: nothing oscillates, "
                                  "no (k, b) is rendered")
     others = [md for md in modes if md is not pair]
     return RenderResult(K=float(K), B=float(B), k=pair.k, b=pair.b, f0_hz=pair.f0_hz,
                         damping_ratio=pair.damping_ratio, stable=stable, spectral_radius=rho,
-                        modes=others, rendered=pair)
+                        modes=others, rendered=pair, marginal=marginal)
 
 
 # --------------------------------------------------------------------------- calibrate

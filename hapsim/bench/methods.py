@@ -38,7 +38,8 @@ from hapsim.analysis.network import Network as _Net  # noqa: F401  (old private 
 from hapsim.analysis.network import _link_arrays  # noqa: F401      kept for callers)
 from hapsim.analysis.network import network as _network
 from hapsim.analysis.network import virtual_blocks as _virtual_blocks
-from hapsim.analysis.scene_check import RIGID_TOL, STABILITY_TOL
+from hapsim.analysis.loop import STABILITY_TOL
+from hapsim.analysis.scene_check import RIGID_TOL
 
 __all__ = ["INTEGRATORS", "COST_ORDER", "oscillator_poles", "oscillator_limits",
            "virtual_update_matrix", "closed_loop_matrix", "continuous_network_eigenvalues",

@@ -17,7 +17,9 @@ def register(sub) -> None:
         description=para("Close the THS loop (real mass + friction, hold, delay, virtual spring K "
                     "and damper B) and report the oscillator the user feels: the least "
                     "damped closed-loop pole pair as k, b, f0, damping ratio; the other "
-                    "poles are listed as parasitic modes. Exit 1 when the loop is unstable."),
+                    "poles are listed as parasitic modes. A spectral radius within 1e-9 of 1 is "
+                    "reported as marginal and counted as stable (as 'hapsim check' does). "
+                    "Exit 1 when the loop is unstable."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim render --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --K 2000 --B 2\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -30,7 +32,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim render``; 0 if the loop is stable, 1 if not."""
+    """Run ``hapsim render``; 0 if the loop is stable (marginal included), 1 if not."""
     from hapsim.analysis.ths import render
     loop = loop_from_args(args)
     r = render(loop, args.K, args.B)
@@ -47,8 +49,9 @@ def run(args) -> int:
         print(f"  felt b        {fmt(r.b):>12} N s/m  (real + virtual)", file=out)
         print(f"  f0            {fmt(r.f0_hz):>12} Hz", file=out)
         print(f"  damping ratio {fmt(r.damping_ratio):>12}", file=out)
-        print(f"  spectral rad. {r.spectral_radius:>12.9f}  "
-              f"({'stable' if r.stable else 'UNSTABLE'})", file=out)
+        verdict = ("stable, marginal: a mode on the unit circle never decays" if r.marginal
+                   else "stable" if r.stable else "UNSTABLE")
+        print(f"  spectral rad. {r.spectral_radius:>12.9f}  ({verdict})", file=out)
         if r.note:
             print(f"  note: {r.note}", file=out)
         print("parasitic modes:", file=out)
