@@ -29,13 +29,6 @@ def _monic(p):
     return p / p[0]
 
 
-def _strip_z(p):
-    """Divide a polynomial by z, asserting the remainder is zero."""
-    q, r = np.polydiv(np.asarray(p, dtype=float), [1.0, 0.0])
-    assert np.allclose(r, 0.0, atol=1e-14)
-    return q
-
-
 def _brute_kmax(loop, B, k_hi):
     """Independent K_max: scan the spectral radius then bisect (no unit-circle algebra)."""
     ks = np.linspace(0, k_hi, 801)[1:]
@@ -115,20 +108,55 @@ def test_zoh_plant_matches_cont2discrete(b0):
 # ----------------------------------------------------------------------------- the paper
 
 def test_paper_eq2_eq3_eq4_polynomials():
+    """With m = T = 1 the ideal hold gives exactly the paper's polynomials (no factor z)."""
     z = np.array([1.0, 0.0])
     for d, R_paper in ((0, np.polymul([1, -1], [1, -1])),                     # eq. (2)
                        (1, np.polymul(z, np.polymul([1, -1], [1, -1])))):     # eq. (3)
         P, Q, R = characteristic(LoopModel(1.0, 0.0, 1.0, d, "ideal"))
-        # our P, Q, R = z times the paper's (common factor, same closed loop)
-        np.testing.assert_allclose(_strip_z(P), [1.0, 0.0], atol=1e-15)      # P = z
-        np.testing.assert_allclose(_strip_z(Q), [1.0, -1.0], atol=1e-15)     # Q = z - 1
-        np.testing.assert_allclose(_strip_z(R), R_paper, atol=1e-14)
-    b0 = 0.5                                                                  # eq. (4)
+        np.testing.assert_allclose(P, [1.0, 0.0], atol=1e-15)      # P = z
+        np.testing.assert_allclose(Q, [1.0, -1.0], atol=1e-15)     # Q = z - 1
+        np.testing.assert_allclose(R, R_paper, atol=1e-14)
+    b0 = 0.5                                                       # eq. (4)
     P, Q, R = characteristic(LoopModel(1.0, b0, 1.0, 1, "ideal"))
     R4 = np.polymul(np.polymul(z, [1.0, -1.0]), [1.0, -math.exp(-b0)]) * b0 / (1 - math.exp(-b0))
-    np.testing.assert_allclose(_strip_z(P), [1.0, 0.0], atol=1e-15)
-    np.testing.assert_allclose(_strip_z(Q), [1.0, -1.0], atol=1e-15)
-    np.testing.assert_allclose(_strip_z(R), R4, atol=1e-14)
+    np.testing.assert_allclose(P, [1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(Q, [1.0, -1.0], atol=1e-15)
+    np.testing.assert_allclose(R, R4, atol=1e-14)
+
+
+@pytest.mark.parametrize("d", [0, 1, 2])
+def test_ideal_loop_has_no_spurious_pole_at_zero(d, capsys):
+    """Eq. (1) at d = 0 is a quadratic: two poles, none at z = 0, and render lists no
+    parasitic mode; with delay d the order is d + 2 (ideal), d + 3 (ZOH)."""
+    ideal = closed_loop_poles(LoopModel(1.0, 0.0, 1.0, d, "ideal"), 0.5, 0.1)
+    zoh = closed_loop_poles(LoopModel(1.0, 0.0, 1.0, d, "zoh"), 0.05, 0.3)
+    assert ideal.size == d + 2 and zoh.size == d + 3
+    if d == 0:
+        assert np.min(np.abs(ideal)) > 0.5
+        assert main(["render", "--mass", "1", "--rate", "1", "--delay", "0", "--hold", "ideal",
+                     "--K", "0.5", "--B", "0.1", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["modes"] == []
+
+
+def test_zoh_characteristic_is_z_N_and_z_pow_d_plus_1_D():
+    """ZOH keeps the general form P = z N, Q = (z - 1) N / T, R = z^(d+1) D (no factor to
+    remove: N(0) = T^2/m phi0 != 0), with N, D from scipy's cont2discrete."""
+    for d in (0, 2):
+        loop = LoopModel(mass=0.1, friction=0.5, rate_hz=1000.0, delay=d, hold="zoh")
+        A = np.array([[0.0, 1.0], [0.0, -5.0]])
+        Ad, Bd, Cd, Dd, _ = scipy.signal.cont2discrete(
+            (A, np.array([[0.0], [10.0]]), [[1.0, 0.0]], [[0.0]]), loop.period, method="zoh")
+        num, den = scipy.signal.ss2tf(Ad, Bd, Cd, Dd)
+        N = np.trim_zeros(num[0], "f")
+        P, Q, R = characteristic(loop)
+        P_ref = np.polymul([1.0, 0.0], N)
+        Q_ref = np.polymul([1.0, -1.0], N) / loop.period
+        np.testing.assert_allclose(P, P_ref, rtol=1e-9, atol=1e-14 * np.max(np.abs(P_ref)))
+        np.testing.assert_allclose(Q, Q_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(Q_ref)))
+        zd1 = np.zeros(d + 2)
+        zd1[0] = 1.0
+        np.testing.assert_allclose(R, np.polymul(zd1, den), rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.parametrize("m, rate", [(1.0, 1.0), (0.1, 1000.0), (2.0, 20000.0)])

@@ -240,12 +240,21 @@ def _plant_w(loop: LoopModel):
 
 
 def _char_w(loop: LoopModel):
-    """``(P~, Q~, R~)`` in ``w``, dimensionless: ``kappa P~ + beta Q~ + R~ = 0``."""
+    """``(P~, Q~, R~)`` in ``w``, dimensionless: ``kappa P~ + beta Q~ + R~ = 0``.
+
+    For the ideal hold ``N = T^2/m z``, so ``z N``, ``(z - 1) N`` and ``z^(d+1) D`` share the
+    factor ``z``; it is removed (it only adds a spurious pole at ``z = 0``), which leaves
+    exactly Florens et al.'s eqs. (2)-(4): ``P~ = z``, ``Q~ = z - 1``, ``R~ = z^d D``. The
+    ZOH numerator ``phi1 z + phi0`` has ``phi0 > 0``: no common factor there.
+    """
     Nn, D = _plant_w(loop)
     z = np.array([1.0, 1.0])
+    d = loop.delay
+    if loop.hold == "ideal":
+        Nn, d = np.array([1.0]), d - 1    # (z N~, (z - 1) N~, z^(d+1) D) / z
     Pw = np.polymul(z, Nn)
     Qw = np.polymul(np.array([1.0, 0.0]), Nn)
-    Rw = _pmul(*([z] * (loop.delay + 1)), D)
+    Rw = _pmul(*([z] * (d + 1)), D)
     return Pw, Qw, Rw
 
 
@@ -296,16 +305,20 @@ def characteristic(loop: LoopModel):
     Returns
     -------
     P : ndarray
-        ``z N(z)`` [m/N], highest power first.
+        ``z N(z)`` [m/N], highest power first (``"ideal"``: ``T^2/m z``).
     Q : ndarray
-        ``(z - 1) N(z) / T`` [m/(N s)], highest power first.
+        ``(z - 1) N(z) / T`` [m/(N s)], highest power first (``"ideal"``: ``T/m (z - 1)``).
     R : ndarray
-        ``z^(d+1) D(z)`` [-], highest power first.
+        ``z^(d+1) D(z)`` [-], highest power first (``"ideal"``: ``z^d D(z)``).
 
     Notes
     -----
-    Florens et al. Sec. 6 eq. (1); with ``m = T = 1``, ``"ideal"``, ``b0 = 0``: ``z`` times
-    their eq. (2) (d = 0) and eq. (3) (d = 1); with ``b0 > 0``, ``z`` times eq. (4).
+    Florens et al. Sec. 6 eq. (1). For ``"ideal"`` the common factor ``z`` of
+    ``z N``, ``(z - 1) N`` and ``z^(d+1) D`` (``N = T^2/m z``) is removed, so with
+    ``m = T = 1`` and ``b0 = 0`` these are exactly their eq. (2) (``d = 0``: ``P = z``,
+    ``Q = z - 1``, ``R = (z - 1)^2``) and eq. (3) (``d = 1``: ``R = z (z - 1)^2``); with
+    ``b0 > 0``, ``d = 1``, exactly eq. (4) (``R = z (z - 1)(z - e^-b0) b0/(1 - e^-b0)``).
+    The closed loop then has ``d + 2`` poles (``"ideal"``) or ``d + 3`` (``"zoh"``).
     """
     Pw, Qw, Rw = _char_w(loop)
     T, m = loop.period, loop.mass
@@ -380,7 +393,7 @@ def closed_loop_poles(loop: LoopModel, K: float, B: float = 0.0) -> np.ndarray:
 
     Returns
     -------
-    ndarray of complex, shape (d + 3,)
+    ndarray of complex, shape (d + 3,) for ``"zoh"``, (d + 2,) for ``"ideal"``
         Roots of ``P K + Q B + R`` (see :func:`characteristic`), computed in ``w = z - 1``
         and Newton-polished; conjugate pairs are exact.
     """
