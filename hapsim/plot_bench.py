@@ -39,8 +39,11 @@ def plot_accuracy_vs_rate(data: dict):
     matplotlib.figure.Figure
         Log-log error [-] against rate [Hz]: naive curves solid (colour = delay d, circle =
         ZOH, square = ideal hold), calibrated dashed (at the round-off floor, clipped to
-        1e-16); a triangle on the rate axis marks each method's boundary rate (below it the
-        target is unstable / not renderable).
+        1e-16). On the rate axis, a filled triangle marks each naive loop's stability
+        boundary (spectral radius 1, unstable below) and an open one the rate below which
+        the calibrated target is not renderable. Rates where the naive loop is stable but
+        has no felt pair (its slowest mode is real) are gaps in the curve, marked by crosses
+        (ZOH) or pluses (ideal) in the top band, one row per curve.
 
     Raises
     ------
@@ -49,8 +52,10 @@ def plot_accuracy_vs_rate(data: dict):
     """
     plt = _mpl()
     tg = data["targets"]
-    fig, axes = plt.subplots(1, len(tg), figsize=(5.2 * len(tg), 5.0), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(1, len(tg), figsize=(5.2 * len(tg), 5.4), dpi=110, squeeze=False)
     rates = np.array(data["rates"])
+    band = {}  # (hold, delay) -> y of its "no felt pair" row
+    unstable_above = False
     for ax, t in zip(axes[0], tg):
         for c in t["curves"]:
             e = _arr(c["err"])
@@ -61,15 +66,30 @@ def plot_accuracy_vs_rate(data: dict):
             ax.plot(rates, y, ls="-" if naive else "--", marker=mk, ms=3.5, color=col,
                     lw=1.4 if naive else 0.9, alpha=1.0 if naive else 0.6,
                     mfc=col if c["hold"] == "zoh" else "white")
-            b = c["boundary_hz"]
-            if b is not None and b > rates[0] * 1.001:
-                ax.plot([b], [2e-17], marker="^" if naive else "v", ms=8, color=col,
-                        mfc=col if naive else "white", clip_on=False, zorder=5)
+            if naive:
+                for x in c.get("stability_boundary_hz", []):
+                    unstable_above |= not x["stable_above"]
+                    ax.plot([x["rate_hz"]], [2e-17], marker="^" if x["stable_above"] else "v",
+                            ms=8, color=col, clip_on=False, zorder=5)
+                gap = [r for r, st in zip(rates, c.get("status", [])) if st == "no felt pair"]
+                if gap:
+                    yb = band.setdefault((c["hold"], c["delay"]),
+                                         30.0 * 2.1 ** (c["delay"] + 3 * (c["hold"] != "zoh")))
+                    ax.plot(gap, [yb] * len(gap), ls="", marker="x" if c["hold"] == "zoh"
+                            else "+", ms=5, mew=1.3, color=col)
+            else:
+                b = c.get("works_from_hz")
+                if b is not None and b > rates[0] * 1.001:
+                    ax.plot([b], [2e-17], marker="v", ms=8, color=col, mfc="white",
+                            clip_on=False, zorder=5)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_ylim(1e-17, 30)
+        ax.set_ylim(1e-17, 5e3)
         ax.axhline(0.01, color="0.5", lw=0.8, ls=":")
+        ax.axhline(14.0, color="0.8", lw=0.6)
         ax.text(rates[0] * 1.05, 0.013, "1 %", color="0.4", fontsize=8)
+        ax.text(rates[-1] / 1.05, 12.0, "above: no felt pair", color="0.4", fontsize=7,
+                va="top", ha="right")
         ax.set_xlabel("sample rate [Hz]")
         ax.set_title(f"{t['name']}: k = {t['k']:g} N/m, b = {t['b']:g} N s/m", fontsize=10)
         ax.grid(True, which="major", alpha=0.3)
@@ -83,14 +103,20 @@ def plot_accuracy_vs_rate(data: dict):
           plt.Line2D([], [], color="k", ls="-", label="naive K = k, B = b - b0"),
           plt.Line2D([], [], color="k", ls="--", alpha=0.6,
                      label="calibrated (round-off, floor 1e-16)"),
-          plt.Line2D([], [], color="k", marker="^", ls="", label="naive: unstable below"),
+          plt.Line2D([], [], color="k", marker="^", ls="",
+                     label="naive: stability boundary, |z| = 1 (unstable below)"),
           plt.Line2D([], [], color="k", marker="v", mfc="white", ls="",
-                     label="calibrated: not renderable below")]
+                     label="calibrated: not renderable below"),
+          plt.Line2D([], [], color="k", marker="x", ls="",
+                     label="naive: stable, no felt pair (slowest mode real; ZOH x, ideal +)")]
+    if unstable_above:
+        h.append(plt.Line2D([], [], color="k", marker="v", ls="",
+                            label="naive: stability boundary (unstable above)"))
     dev = data["device"]
     fig.suptitle(f"Felt (k, b) error against sample rate - device m = {dev['mass']:g} kg, "
                  f"b0 = {dev['friction']:g} N s/m", fontsize=11)
-    fig.legend(handles=h, loc="lower center", ncol=5, fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.09, 1, 0.96))
+    fig.legend(handles=h, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.11, 1, 0.96))
     return fig
 
 

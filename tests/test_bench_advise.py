@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from hapsim.analysis import LoopModel, check_scene, render
+from hapsim.analysis import LoopModel, characteristic, check_scene, render
 from hapsim.bench.accuracy import accuracy_vs_rate
 from hapsim.bench.advise import advise_scene
 from hapsim.bench.cost import accuracy_vs_cost
@@ -39,12 +39,52 @@ def test_accuracy_boundary_is_the_stability_limit():
 
     d = accuracy_vs_rate((1000.0, 2000.0, 4000.0, 8000.0, 16000.0), {"stiff": (20000.0, 4.0)},
                          delays=(1,), holds=("zoh",), methods=("naive",))
-    bnd = d["targets"][0]["curves"][0]["boundary_hz"]
-    assert 4000.0 < bnd < 16000.0
-    # at the boundary rate the naive K = k sits on the exact stability limit
+    (x,) = d["targets"][0]["curves"][0]["stability_boundary_hz"]
+    bnd = x["rate_hz"]
+    assert 4000.0 < bnd < 16000.0 and x["stable_above"]
+    # at the boundary rate the naive K = k sits on the exact stability limit, computed by
+    # the unit-circle algebra of stability_limit (not by the root finder the bench uses)
+    loop = LoopModel(0.1, 0.5, bnd, 1, "zoh")
+    assert stability_limit(loop, 3.5) == pytest.approx(20000.0, rel=1e-8)
     for f, stable in ((1.02, True), (0.98, False)):
         loop = LoopModel(0.1, 0.5, bnd * f, 1, "zoh")
         assert (stability_limit(loop, 3.5) > 20000.0) == stable
+
+
+def test_damped_wall_stability_boundary_is_not_where_the_felt_pair_starts():
+    """Naive damped wall (k = 5000, b = 40), ZOH, d = 1: stable from ~650 Hz, but the felt
+    pair is lost between ~1 and ~2.8 kHz (the slowest mode is real), so the rate from which
+    the method works on the whole grid is far above the stability boundary."""
+    from hapsim.analysis import stability_limit
+    from hapsim.bench.accuracy import FULL_RATES
+
+    d = accuracy_vs_rate(FULL_RATES, {"damped": (5000.0, 40.0)}, delays=(1, 2),
+                         holds=("zoh",), methods=("naive",))
+    c1, c2 = d["targets"][0]["curves"]
+    (x,) = c1["stability_boundary_hz"]
+    assert 622.9 < x["rate_hz"] < 747.7 and x["stable_above"]
+    assert stability_limit(LoopModel(0.1, 0.5, x["rate_hz"], 1, "zoh"), 39.5) == \
+        pytest.approx(5000.0, rel=1e-8)
+    assert c1["works_from_hz"] > 4 * x["rate_hz"]
+    rates = d["rates"]
+    st = dict(zip(rates, c1["status"]))
+    assert st[747.7] == st[897.4] == "ok" and st[1862.9] == "no felt pair"
+    assert all(s in ("ok", "no felt pair") for r, s in st.items() if r > x["rate_hz"])
+    # d = 2 at 3.2 and 3.9 kHz: the only complex pair is a fast delay mode (k' ~ 1e7 N/m);
+    # checked on the roots of P K + Q B + R found by numpy alone
+    for c, r in ((c2, 3221.6), (c2, 3867.0)):
+        i = rates.index(r)
+        assert c["status"][i] == "no felt pair" and c["err"][i] is None
+        loop = LoopModel(0.1, 0.5, r, 2, "zoh")
+        P, Q, R = characteristic(loop)
+        z = np.roots(np.polyadd(np.polyadd(5000.0 * P, 39.5 * Q), R))
+        cplx = z[np.abs(z.imag) > 1e-9]
+        real = z[np.abs(z.imag) <= 1e-9].real
+        assert cplx.size == 2 and np.max(np.abs(cplx)) < 0.5 < np.max(real) < 1.0
+        s = np.log(cplx[0]) * r
+        assert 0.1 * abs(s) ** 2 > 1e6
+    # the chart never reports an error against such a pair: felt errors stay O(1)
+    assert max(e for c in (c1, c2) for e in c["err"] if e is not None) < 10.0
 
 
 def test_accuracy_vs_cost_structure_and_numbers():
@@ -144,3 +184,17 @@ def test_cli_bench_quick_and_advise_json(tmp_path, capsys):
     assert rc == 0 and d["ok"] is True
     assert d["links"][0]["link"] == "wall" and d["rate_hz"] in (250.0, 315.0, 400.0, 500.0)
     assert main(["advise", os.path.join(here, "configs", "wall.yaml"), "--tolerance", "-1"]) == 2
+
+
+def test_cli_bench_only_regenerates_one_chart(tmp_path, capsys):
+    out = tmp_path / "b"
+    out.mkdir()
+    (out / "loop_capacity.json").write_text('{"kept": true}')
+    assert main(["bench", "--only", "accuracy_vs_rate", "--quick", "--no-plot",
+                 "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["accuracy_vs_rate.json",
+                                                     "loop_capacity.json"]
+    assert json.loads((out / "loop_capacity.json").read_text()) == {"kept": True}
+    d = json.loads((out / "accuracy_vs_rate.json").read_text())
+    assert {"status", "stability_boundary_hz", "works_from_hz"} <= set(d["targets"][0]["curves"][0])
+    assert main(["bench", "--only", "nope", "--out", str(out)]) == 2

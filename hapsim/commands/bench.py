@@ -21,12 +21,17 @@ Measure and chart speed against accuracy. Writes into --out:
                               with the mock over a real pty at 1, 2, 5, 10 kHz, next to a
                               raw os.read/os.write pty echo (the machine's floor)
 
---quick uses a few rates and short timings (seconds, for tests)."""
+--quick uses a few rates and short timings (seconds, for tests). --only NAME (repeatable)
+regenerates just the named charts and leaves the others' files untouched."""
+
+#: Chart names, in the order they are computed (also the JSON / PNG file stems).
+CHARTS = ("accuracy_vs_rate", "accuracy_vs_cost", "loop_capacity")
 
 _EPILOG = """\
 examples:
   hapsim bench --out docs/bench
   hapsim bench --quick --out /tmp/bench
+  hapsim bench --only accuracy_vs_rate --out docs/bench
 
 exit codes: 0 written; 2 bad option or output directory"""
 
@@ -46,11 +51,24 @@ def register(sub) -> None:
     p.add_argument("--no-daemon", action="store_true",
                    help="skip the daemon run of the loop-capacity chart (echo floor only)")
     p.add_argument("--no-plot", action="store_true", help="JSON only")
+    p.add_argument("--only", action="append", choices=CHARTS, metavar="CHART",
+                   help="regenerate only this chart (repeatable; one of "
+                        f"{', '.join(CHARTS)}); default: all three")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Compute the three charts' data, write JSON and PNG; exit code 0.
+    """Compute the charts' data (all three, or those of ``--only``), write JSON and PNG.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``bench`` options (``out``, ``quick``, ``no_daemon``, ``no_plot``, ``only``).
+
+    Returns
+    -------
+    int
+        Exit code 0.
 
     Raises
     ------
@@ -77,7 +95,10 @@ def run(args) -> int:
     ]
     plots = {"accuracy_vs_rate": "plot_accuracy_vs_rate",
              "accuracy_vs_cost": "plot_accuracy_vs_cost", "loop_capacity": "plot_capacity"}
+    only = set(args.only or CHARTS)
     for name, fn in jobs:
+        if name not in only:
+            continue
         t0 = time.perf_counter()
         data = fn()
         data["generated_by"] = "hapsim bench" + (" --quick" if q else "")
