@@ -198,3 +198,38 @@ def test_cli_bench_only_regenerates_one_chart(tmp_path, capsys):
     d = json.loads((out / "accuracy_vs_rate.json").read_text())
     assert {"status", "stability_boundary_hz", "works_from_hz"} <= set(d["targets"][0]["curves"][0])
     assert main(["bench", "--only", "nope", "--out", str(out)]) == 2
+
+
+def test_capacity_ratios_include_p999_and_match_the_measured_rows():
+    from hapsim.bench.capacity import capacity_ratios
+    echo = [{"rate_hz": 1000.0, "missed_pct": 2.0,
+             "turnaround_us": {"p50": 10.0, "p99": 40.0, "p999": 100.0}},
+            {"rate_hz": 2000.0, "missed_pct": 0.0,
+             "turnaround_us": {"p50": 12.0, "p99": 50.0, "p999": 0.0}},
+            {"rate_hz": 5000.0, "missed_pct": 1.0, "turnaround_us": {"p50": 1.0}}]
+    daemon = [{"rate_hz": 2000.0, "missed_pct": 1.0,
+               "turnaround_us": {"p50": 36.0, "p99": 75.0, "p999": 300.0}},
+              {"rate_hz": 1000.0, "missed_pct": 1.0,
+               "turnaround_us": {"p50": 30.0, "p99": 60.0, "p999": 450.0}}]
+    r = capacity_ratios(echo, daemon)
+    assert r == [{"rate_hz": 1000.0, "turnaround_p50": 3.0, "turnaround_p99": 1.5,
+                  "turnaround_p999": 4.5, "missed": 0.5},
+                 {"rate_hz": 2000.0, "turnaround_p50": 3.0, "turnaround_p99": 1.5,
+                  "turnaround_p999": None, "missed": None}]   # echo 0: no ratio
+
+
+def test_cli_bench_from_json_rederives_capacity_ratios_without_measuring(tmp_path):
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    src = json.loads(open(os.path.join(here, "docs", "bench", "loop_capacity.json")).read())
+    for r in src["ratios"]:
+        r.pop("turnaround_p999", None)
+    (tmp_path / "loop_capacity.json").write_text(json.dumps(src))
+    assert main(["bench", "--only", "loop_capacity", "--from-json", "--no-plot",
+                 "--out", str(tmp_path)]) == 0
+    got = json.loads((tmp_path / "loop_capacity.json").read_text())
+    assert got["echo"] == src["echo"] and got["daemon"] == src["daemon"]   # not re-measured
+    for e, d, r in zip(src["echo"], src["daemon"], got["ratios"]):
+        for q in ("p50", "p99", "p999"):
+            assert r[f"turnaround_{q}"] == d["turnaround_us"][q] / e["turnaround_us"][q]
+    assert main(["bench", "--only", "loop_capacity", "--from-json",
+                 "--out", str(tmp_path / "missing")]) == 2

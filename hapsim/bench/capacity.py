@@ -12,8 +12,9 @@ Two measurements in the same run, at each rate:
 
 Both report the same two things: missed deadlines (echo: ticks at which the reply to the
 previous tick had not arrived; daemon: ``missed + late`` samples of its loop report) and the
-host turnaround (message read -> reply written). Ratios daemon / echo of the p50/p99
-turnaround and of the missed fraction are reported. The machine is shared: figures are medians of what one run saw, not guarantees.
+host turnaround (message read -> reply written). Ratios daemon / echo of the p50, p99 and
+p999 turnaround and of the missed fraction are reported (:func:`capacity_ratios`, which can
+also re-derive them from a saved JSON without measuring again). The machine is shared: figures are medians of what one run saw, not guarantees.
 """
 
 from __future__ import annotations
@@ -27,11 +28,14 @@ import time
 
 import numpy as np
 
-__all__ = ["RATES", "QUICK_RATES", "echo_floor", "daemon_run", "loop_capacity"]
+__all__ = ["RATES", "QUICK_RATES", "QUANTILES", "echo_floor", "daemon_run", "capacity_ratios",
+           "loop_capacity"]
 
 #: Rates of chart 3 [Hz].
 RATES = (1000.0, 2000.0, 5000.0, 10000.0)
 QUICK_RATES = (1000.0, 5000.0)
+#: Turnaround quantiles compared daemon / echo.
+QUANTILES = ("p50", "p99", "p999")
 
 _TICKER = r"""
 import json, os, sys, time
@@ -189,6 +193,42 @@ def daemon_run(rate_hz: float, duration: float = 1.0, scene_path: str | None = N
             "overruns": lp.get("overruns")}
 
 
+def capacity_ratios(echo, daemon) -> list:
+    """Daemon / echo ratios per rate, derived from the measured rows only.
+
+    Parameters
+    ----------
+    echo : list of dict
+        :func:`echo_floor` rows (``rate_hz``, ``missed_pct``, ``turnaround_us``).
+    daemon : list of dict
+        :func:`daemon_run` rows, matched to ``echo`` by ``rate_hz`` (a row with ``error``
+        gives None ratios).
+
+    Returns
+    -------
+    list of dict
+        One per echo row with a daemon row of the same rate: ``rate_hz`` [Hz],
+        ``turnaround_p50``, ``turnaround_p99``, ``turnaround_p999`` [-] (daemon turnaround
+        quantile / echo's), ``missed`` [-] (daemon missed % / echo's); None where either is
+        missing or the echo's is 0.
+    """
+    by_rate = {float(d["rate_hz"]): d for d in daemon or []}
+    out = []
+    for e in echo or []:
+        d = by_rate.get(float(e["rate_hz"]))
+        if d is None:
+            continue
+        ratio = {"rate_hz": float(e["rate_hz"])}
+        for q in QUANTILES:
+            a = (d.get("turnaround_us") or {}).get(q)
+            b = (e.get("turnaround_us") or {}).get(q)
+            ratio[f"turnaround_{q}"] = (a / b) if a and b else None
+        a, b = d.get("missed_pct"), e.get("missed_pct")
+        ratio["missed"] = (a / b) if a is not None and b else None
+        out.append(ratio)
+    return out
+
+
 def loop_capacity(rates=RATES, duration: float = 1.0, *, daemon: bool = True) -> dict:
     """Data of chart 3.
 
@@ -206,7 +246,8 @@ def loop_capacity(rates=RATES, duration: float = 1.0, *, daemon: bool = True) ->
     dict
         JSON-ready: ``rates``, ``echo`` (list of :func:`echo_floor`), ``daemon`` (list of
         :func:`daemon_run` or empty), ``daemon_note`` (why it is missing, else ""),
-        ``ratios`` (daemon / echo p50 and p99 per rate), ``machine``.
+        ``ratios`` (:func:`capacity_ratios`: daemon / echo p50, p99, p999 and missed per
+        rate), ``machine``.
     """
     out = {"rates": [float(r) for r in rates], "duration_s": duration, "echo": [],
            "daemon": [], "daemon_note": "", "ratios": [],
@@ -225,16 +266,8 @@ def loop_capacity(rates=RATES, duration: float = 1.0, *, daemon: bool = True) ->
         e = echo_floor(r, duration)
         out["echo"].append(e)
         if have:
-            d = daemon_run(r, duration)
-            out["daemon"].append(d)
-            ratio = {"rate_hz": float(r)}
-            for q in ("p50", "p99"):
-                a = (d.get("turnaround_us") or {}).get(q)
-                b = e["turnaround_us"].get(q)
-                ratio[f"turnaround_{q}"] = (a / b) if a and b else None
-            a, b = d.get("missed_pct"), e["missed_pct"]
-            ratio["missed"] = (a / b) if a is not None and b else None
-            out["ratios"].append(ratio)
+            out["daemon"].append(daemon_run(r, duration))
+    out["ratios"] = capacity_ratios(out["echo"], out["daemon"])
     if have and any("error" in d for d in out["daemon"]):
         out["daemon_note"] = "; ".join(f"{d['rate_hz']:g} Hz: {d['error']}"
                                        for d in out["daemon"] if "error" in d)

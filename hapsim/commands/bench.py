@@ -21,7 +21,9 @@ Measure and chart speed against accuracy. Writes into --out:
                               with the mock over a real pty at 1, 2, 5, 10 kHz, next to a
                               raw os.read/os.write pty echo (the machine's floor)
 
---quick uses a few rates and short timings (seconds, for tests). --only NAME (repeatable)
+--quick uses a few rates and short timings (seconds, for tests). --from-json re-reads the
+JSON already in --out and re-derives what is computed from the measurements (loop_capacity:
+the daemon/echo ratios) without measuring again. --only NAME (repeatable)
 regenerates just the named charts and leaves the others' files untouched."""
 
 #: Chart names, in the order they are computed (also the JSON / PNG file stems).
@@ -32,6 +34,7 @@ examples:
   hapsim bench --out docs/bench
   hapsim bench --quick --out /tmp/bench
   hapsim bench --only accuracy_vs_rate --out docs/bench
+  hapsim bench --only loop_capacity --from-json --no-plot --out docs/bench
 
 exit codes: 0 written; 2 bad option or output directory"""
 
@@ -51,6 +54,8 @@ def register(sub) -> None:
     p.add_argument("--no-daemon", action="store_true",
                    help="skip the daemon run of the loop-capacity chart (echo floor only)")
     p.add_argument("--no-plot", action="store_true", help="JSON only")
+    p.add_argument("--from-json", action="store_true",
+                   help="re-derive from the JSON in --out instead of measuring")
     p.add_argument("--only", action="append", choices=CHARTS, metavar="CHART",
                    help="regenerate only this chart (repeatable; one of "
                         f"{', '.join(CHARTS)}); default: all three")
@@ -73,7 +78,8 @@ def run(args) -> int:
     Raises
     ------
     hapsim.errors.ConfigError
-        When the output directory cannot be created.
+        When the output directory cannot be created, ``--from-json`` is combined with
+        ``--quick``, or a JSON to re-derive from is missing or unreadable.
     """
     from hapsim.bench import accuracy, capacity, cost
     from hapsim.errors import ConfigError
@@ -93,6 +99,9 @@ def run(args) -> int:
             capacity.QUICK_RATES if q else capacity.RATES, 0.2 if q else 1.0,
             daemon=not args.no_daemon)),
     ]
+    if args.from_json and args.quick:
+        raise ConfigError("--from-json re-reads data, it does not measure: drop --quick",
+                          key="--from-json")
     plots = {"accuracy_vs_rate": "plot_accuracy_vs_rate",
              "accuracy_vs_cost": "plot_accuracy_vs_cost", "loop_capacity": "plot_capacity"}
     only = set(args.only or CHARTS)
@@ -100,9 +109,12 @@ def run(args) -> int:
         if name not in only:
             continue
         t0 = time.perf_counter()
-        data = fn()
-        data["generated_by"] = "hapsim bench" + (" --quick" if q else "")
         path = os.path.join(args.out, name + ".json")
+        if args.from_json:
+            data = _rederive(name, path)
+        else:
+            data = fn()
+            data["generated_by"] = "hapsim bench" + (" --quick" if q else "")
         with open(path, "w", encoding="utf-8") as fh:
             json.dump(data, fh, indent=1, allow_nan=False)
         msg = f"{path} ({time.perf_counter() - t0:.1f} s)"
@@ -114,3 +126,36 @@ def run(args) -> int:
             msg += f", {png}"
         print(msg, file=sys.stderr)
     return 0
+
+
+def _rederive(name: str, path: str) -> dict:
+    """Load a chart's JSON and recompute the fields derived from its measurements.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`CHARTS`.
+    path : str
+        The chart's JSON file.
+
+    Returns
+    -------
+    dict
+        The data, with ``loop_capacity``'s ``ratios`` recomputed by
+        :func:`hapsim.bench.capacity.capacity_ratios` (other charts: as read).
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        When the file is missing or not JSON (key ``--from-json``).
+    """
+    from hapsim.bench import capacity
+    from hapsim.errors import ConfigError
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"cannot re-read {path}: {exc}", key="--from-json") from None
+    if name == "loop_capacity":
+        data["ratios"] = capacity.capacity_ratios(data.get("echo"), data.get("daemon"))
+    return data
