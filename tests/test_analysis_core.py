@@ -15,7 +15,7 @@ import scipy.linalg
 import scipy.signal
 
 from hapsim.analysis import (LoopModel, Mode, calibrate, characteristic, closed_loop_poles,
-                             grid, modes_from_poles, plant, published_limits, render,
+                             damping_limits, grid, modes_from_poles, plant, published_limits, render,
                              rendered_pair, spectral_radius, stability_boundary,
                              stability_limit, zoh_state_space)
 from hapsim.cli import main
@@ -318,6 +318,45 @@ def test_exact_boundary_against_brute_force():
         kmax = stability_limit(loop, B)
         ref = _brute_kmax(loop, B, 3 * kmax)
         assert kmax == pytest.approx(ref, rel=1e-7)
+
+
+def _rho_numpy(loop, K, B):
+    """Spectral radius from numpy's roots of K P + B Q + R alone (independent path)."""
+    P, Q, R = characteristic(loop)
+    return float(np.max(np.abs(np.roots(np.polyadd(np.polyadd(K * P, B * Q), R)))))
+
+
+def test_damping_limits_closed_form_centred_difference():
+    """Ideal hold, d = 0, b0 = 0 (m = T = 1): z^2 + (K + B - 2) z + 1 - B = 0; Jury:
+    stable iff 0 < B and K + 2 B < 4, i.e. B in (0, 2 - K/2)."""
+    loop = LoopModel(1.0, 0.0, 1.0, 0, "ideal")
+    for K in (0.1, 1.0, 3.0, 3.9):
+        ((lo, hi),) = damping_limits(loop, K)
+        assert abs(lo) < 1e-12 and hi == pytest.approx(2.0 - K / 2.0, rel=1e-12)
+    assert damping_limits(loop, 4.5) == []          # beyond 4 m/T^2 no damping helps
+    with pytest.raises(ConfigError):
+        damping_limits(loop, math.inf)
+
+
+@pytest.mark.parametrize("loop", [LoopModel(0.1, 0.5, 1000.0, 1, "zoh"),
+                                  LoopModel(0.1, 0.5, 1000.0, 2, "ideal"),
+                                  LoopModel(0.5, 2.0, 20000.0, 1, "zoh"),
+                                  LoopModel(1.0, 0.0, 1.0, 1, "ideal")])
+def test_damping_limits_against_brentq_on_numpy_roots(loop):
+    """Both ends of the stable B interval at fixed K equal an independent brentq solve of
+    max|roots| = 1 (numpy roots of K P + B Q + R) to 1e-9; the lens of Fig. 8 is closed on
+    both sides."""
+    from scipy.optimize import brentq
+    K = 0.5 * stability_limit(loop, 0.5 * loop.mass / loop.period * 0.5)
+    ((lo, hi),) = damping_limits(loop, K)
+    assert -math.inf < lo < hi < math.inf
+    mid = 0.5 * (lo + hi)
+    assert _rho_numpy(loop, K, mid) < 1.0
+    for edge, out in ((lo, lo - 0.5 * (hi - lo)), (hi, hi + 0.5 * (hi - lo))):
+        assert _rho_numpy(loop, K, out) > 1.0
+        ref = brentq(lambda B: _rho_numpy(loop, K, B) - 1.0, mid, out, xtol=1e-15,
+                     rtol=1e-14, maxiter=300)
+        assert edge == pytest.approx(ref, rel=1e-9, abs=1e-12 * loop.mass / loop.period)
 
 
 def test_passivity_is_sufficient():

@@ -1,6 +1,16 @@
 """Stability where methods fail: every predicted boundary probed at 0.99x and 1.01x by
 simulation (bounded inside, growing outside), the delayed THS loop closed on the daemon's
-mock physics (exact ZOH / ideal plant, in process)."""
+mock physics (exact ZOH / ideal plant, in process) and, once, through the daemon's real
+lockstep path (``run_scene``: protocol codec, host loop, MockDevice).
+
+Boundaries probed: the explicit schemes' stiffness limits and the centred scheme's damping
+limit; the exact scheme's (none); the THS loop's stiffness limit ``stability_limit`` at
+250 Hz, 1 kHz and 20 kHz, ZOH and ideal hold, d = 0, 1, 2, B = 0 and 1 N s/m; its upper
+damping limit ``damping_limits`` at fixed K; and the largest target stiffness ``calibrate``
+calls renderable (where an unstable pole appears, and where a parasitic pole starts to
+outlast the target). Predictions come from the analysis; the simulations are written here
+from the mock's physics and the engine, and the measured growth rates are compared with the
+predicted spectral radius."""
 
 from __future__ import annotations
 
@@ -10,7 +20,8 @@ import math
 import numpy as np
 import pytest
 
-from hapsim.analysis import LoopModel, spectral_radius, stability_limit
+from hapsim.analysis import (LoopModel, calibrate, closed_loop_poles, damping_limits,
+                             spectral_radius, stability_limit)
 from hapsim.bench.cost import oscillator_scene
 from hapsim.bench.methods import oscillator_limits, oscillator_poles, stability_margin
 from hapsim.engine import Engine
@@ -84,8 +95,11 @@ def _closed_loop(hold, d, K, B, rate, n, b0=0.5):
     dev = Device(mass=M, friction=b0, delay=d, hold=hold)
     sc = parse_scene(f"rate_hz: {rate}\nmasses: [{{name: hand, kind: port}}, "
                      f"{{name: wall, kind: ground}}]\nlinks: [{{name: w, kind: spring_damper, "
-                     f"between: [hand, wall], stiffness: {float(K)!r}, damping: {float(B)!r}}}]\n"
+                     f"between: [hand, wall], stiffness: 0, damping: 0}}]\n"
                      f"device: {{mass: {M}, friction: {b0}, delay: {d}, hold: {hold}}}\n")
+    # (K, B) set past the scene validator: a refused calibration may ask for K < 0
+    sc = dataclasses.replace(sc, links=tuple(dataclasses.replace(
+        lk, stiffness=float(K), damping=float(B)) for lk in sc.links))
     eng = Engine(sc)
     plant = MockPhysics(dev, rate, Excitation(x0=X0))
     eng.set_port_position(plant.sample(), at_rest=True)
@@ -102,27 +116,169 @@ def _closed_loop(hold, d, K, B, rate, n, b0=0.5):
     return xs
 
 
+def _log_growth(x: np.ndarray) -> float:
+    """Measured ``ln |z|`` per sample of the slowest mode: log-slope of the envelope (window
+    maxima) between the second and the last tenth of the record (the first tenth holds the
+    faster modes' transient)."""
+    q = max(20, x.size // 10)
+    a = np.max(np.abs(x[q:2 * q]))
+    b = np.max(np.abs(x[-q:]))
+    return float(np.log(b / a) / (x.size - 2 * q))
+
+
+def _probe(hold, d, rate, K_in, B_in, K_out, B_out, rho_in, rho_out, *, n=None):
+    """Simulate both sides of a boundary on the mock physics; check decay / growth and the
+    growth rates against the predicted spectral radii (5 %)."""
+    n = n or _n_for(max(rho_out, 1.0 + 1e-12), growth=6.0, cap=60_000)
+    inside = _closed_loop(hold, d, K_in, B_in, rate, n)
+    outside = _closed_loop(hold, d, K_out, B_out, rate, n)
+    assert inside.size == n and np.all(np.isfinite(inside))
+    assert np.max(np.abs(inside)) < 20 * X0
+    g_in = _log_growth(inside)
+    assert g_in < 0 and g_in == pytest.approx(math.log(rho_in), rel=0.05)
+    if outside.size == n:
+        assert _log_growth(outside) == pytest.approx(math.log(rho_out), rel=0.05)
+    else:                                   # left the 1 km bound: it grew
+        assert np.max(np.abs(outside)) > 1e3 * X0
+    return inside, outside
+
+
+@pytest.mark.parametrize("rate", [250.0, 1000.0, 20000.0])
 @pytest.mark.parametrize("hold,d", [("zoh", 0), ("zoh", 1), ("zoh", 2),
-                                    ("ideal", 1), ("ideal", 2)])
+                                    ("ideal", 0), ("ideal", 1), ("ideal", 2)])
 @pytest.mark.parametrize("B", [0.0, 1.0])
-def test_delayed_loop_boundary_closed_on_mock(hold, d, B):
-    rate = 1000.0
+def test_delayed_loop_boundary_closed_on_mock(hold, d, B, rate):
     loop = LoopModel(M, 0.5, rate, d, hold)
     Kmax = stability_limit(loop, B)
     assert 0 < Kmax < math.inf
     rho_out = spectral_radius(loop, 1.01 * Kmax, B)
     rho_in = spectral_radius(loop, 0.99 * Kmax, B)
     assert rho_in < 1.0 < rho_out
-    n = _n_for(rho_out, growth=6.0, cap=60_000)
-    inside = _closed_loop(hold, d, 0.99 * Kmax, B, rate, n)
-    outside = _closed_loop(hold, d, 1.01 * Kmax, B, rate, n)
-    assert _envelope_ratio(inside) < 1.0
-    assert _envelope_ratio(outside) > 1.0
-    # and the measured growth matches the predicted spectral radius to first order
-    if outside.size == n:
-        q = n // 10
-        growth = np.log(np.max(np.abs(outside[-q:])) / np.max(np.abs(outside[q:2 * q]))) / (n - 2 * q)
-        assert growth == pytest.approx(math.log(rho_out), rel=0.2)
+    _probe(hold, d, rate, 0.99 * Kmax, B, 1.01 * Kmax, B, rho_in, rho_out)
+
+
+@pytest.mark.parametrize("rate,hold,d", [(1000.0, "zoh", 0), (1000.0, "zoh", 1),
+                                         (1000.0, "zoh", 2), (1000.0, "ideal", 0),
+                                         (1000.0, "ideal", 1), (1000.0, "ideal", 2),
+                                         (250.0, "zoh", 1), (20000.0, "zoh", 1)])
+def test_delayed_loop_upper_damping_bound_closed_on_mock(rate, hold, d):
+    """At a fixed K (half the K_max of B = 1 N s/m) too much virtual damping is unstable as
+    well (the far side of the paper's Fig. 8 lens): the delayed backward-difference damper
+    lags by d + 1/2 samples (+ 1/2 for the ZOH), so at a fixed fraction of the rate its
+    force turns against the velocity and a large B pumps energy in. B_max from
+    damping_limits, probed at 0.99x / 1.01x; the growing oscillation's frequency is the
+    predicted unstable pole's (about rate / (4 (d + 1)) for ZOH, whatever the rate)."""
+    loop = LoopModel(M, 0.5, rate, d, hold)
+    K = 0.5 * stability_limit(loop, 1.0)
+    lims = damping_limits(loop, K)
+    assert len(lims) == 1
+    B_lo, B_max = lims[0]
+    assert B_lo < 1.0 < B_max < math.inf
+    rho_in = spectral_radius(loop, K, 0.99 * B_max)
+    rho_out = spectral_radius(loop, K, 1.01 * B_max)
+    assert rho_in < 1.0 < rho_out
+    # (a long record: inside, the slow low-frequency modes must die out first)
+    _, outside = _probe(hold, d, rate, K, 0.99 * B_max, K, 1.01 * B_max, rho_in, rho_out,
+                        n=20_000)
+    z = closed_loop_poles(loop, K, 1.01 * B_max)
+    z = z[np.argmax(np.abs(z))]
+    tail = outside[-400:]
+    crossings = np.mean(np.sign(tail[1:]) != np.sign(tail[:-1]))  # = |arg z| / pi
+    assert crossings == pytest.approx(abs(np.angle(z)) / math.pi, abs=0.02)
+
+
+def _largest_renderable_k(loop, b, k_lo, k_hi):
+    """Bisect calibrate()'s verdict: the largest renderable target k (relative 1e-12)."""
+    assert calibrate(loop, k_lo, b).renderable and not calibrate(loop, k_hi, b).renderable
+    for _ in range(60):
+        mid = math.sqrt(k_lo * k_hi)
+        if calibrate(loop, mid, b).renderable:
+            k_lo = mid
+        else:
+            k_hi = mid
+    return k_lo
+
+
+def test_largest_renderable_target_unstable_beyond_closed_on_mock():
+    """1 kHz, ZOH, d = 1, b = 1 N s/m: beyond the largest renderable k a real pole of the
+    calibrated loop leaves the unit circle: bounded inside (ringing at the target's decay),
+    growing outside."""
+    loop = LoopModel(M, 0.5, 1000.0, 1, "zoh")
+    kmax = _largest_renderable_k(loop, 1.0, 1e4, 1e5)
+    cin, cout = calibrate(loop, 0.99 * kmax, 1.0), calibrate(loop, 1.01 * kmax, 1.0)
+    assert cin.renderable and not cout.renderable and "unstable" in cout.reason
+    _probe("zoh", 1, 1000.0, cin.K, cin.B, cout.K, cout.B, cin.spectral_radius,
+           cout.spectral_radius, n=20_000)
+    # inside, the slowest mode is the target itself
+    assert cin.spectral_radius == pytest.approx(abs(cin.target.z), rel=1e-12)
+
+
+def test_largest_renderable_target_outlasted_beyond_closed_on_mock():
+    """1 kHz, ZOH, d = 1, b = 3 N s/m: beyond the largest renderable k the calibrated loop is
+    stable but a real parasitic pole decays more slowly than the target, so what the hand
+    feels last is that pole, not the target. Measured on the mock: inside the response dies
+    at the target's rate, outside at the parasitic pole's slower one."""
+    loop = LoopModel(M, 0.5, 1000.0, 1, "zoh")
+    kmax = _largest_renderable_k(loop, 3.0, 1e4, 1e5)
+    cin, cout = calibrate(loop, 0.99 * kmax, 3.0), calibrate(loop, 1.01 * kmax, 3.0)
+    assert cin.renderable and not cout.renderable and "less damped" in cout.reason
+    assert cout.spectral_radius < 1.0
+    zt = abs(cout.target.z)
+    zp = max(abs(md.z) for md in cout.modes)
+    assert zp > zt
+    n = 20_000       # long: the parasitic modes' initial amplitudes must have died out
+    inside = _closed_loop("zoh", 1, cin.K, cin.B, 1000.0, n)
+    outside = _closed_loop("zoh", 1, cout.K, cout.B, 1000.0, n)
+    assert _log_growth(inside) == pytest.approx(math.log(abs(cin.target.z)), rel=0.02)
+    g_out = _log_growth(outside)
+    assert g_out == pytest.approx(math.log(zp), rel=0.02)
+    assert g_out > math.log(zt) * 0.9          # clearly slower than the target
+
+
+def test_boundary_through_the_daemon_lockstep_path(tmp_path):
+    """The real lockstep path (run_scene: codec, host loop, in-process MockDevice) at 0.99x
+    and 1.01x K_max: refused beyond without allow_unstable; with it, decays inside and grows
+    outside, and the identified (k, b) equal the prediction (b < 0 outside)."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.daemon.telemetry import load_telemetry
+    from hapsim.errors import UnstableConfigError
+
+    loop = LoopModel(M, 0.5, 1000.0, 1, "zoh")
+    Kmax = stability_limit(loop, 1.0)
+
+    def scene(K):
+        return parse_scene(
+            f"rate_hz: 1000\nmasses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]"
+            f"\nlinks: [{{name: w, kind: spring_damper, between: [hand, wall], "
+            f"stiffness: {float(K)!r}, damping: 1.0}}]\n"
+            f"device: {{mass: {M}, friction: 0.5, delay: 1, hold: zoh}}\n"
+            f"excitation: {{x0: {X0}}}\n"
+            # the energy observer counts what the scene gives the hand: near the boundary an
+            # active, stable loop keeps giving what the real friction takes (1 J in ~6 s)
+            f"safety: {{energy_limit: 1000}}\n")
+
+    with pytest.raises(UnstableConfigError):
+        run_scene(scene(1.01 * Kmax), transport="inprocess", lockstep=True,
+                  handle_signals=False, duration=0.1)
+    out = {}
+    for f in (0.99, 1.01):
+        path = str(tmp_path / f"t{f}.npz")
+        rep = run_scene(scene(f * Kmax), transport="inprocess", lockstep=True,
+                        handle_signals=False, allow_unstable=True, duration=20.0,
+                        telemetry=path)
+        x = load_telemetry(path)["position"]
+        out[f] = (rep, x)
+        assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+        assert rep["measured"]["b"] == pytest.approx(rep["predicted"]["b"], rel=1e-6)
+    rep, x = out[0.99]
+    assert rep["predicted"]["stable"] and rep["exit_code"] == 0 and x.size == 20000
+    assert rep["measured"]["b"] > 0 and _log_growth(x) < 0
+    assert _log_growth(x) == pytest.approx(math.log(spectral_radius(loop, 0.99 * Kmax, 1.0)),
+                                          rel=0.05)
+    rep, x = out[1.01]
+    assert rep["predicted"]["stable"] is False and rep["measured"]["b"] < 0
+    assert x.size == 20000 and _log_growth(x) == pytest.approx(
+        math.log(spectral_radius(loop, 1.01 * Kmax, 1.0)), rel=0.05)
 
 
 def test_stability_margin_refuses_beyond_the_method_boundary():

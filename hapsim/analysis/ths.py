@@ -18,6 +18,7 @@ from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, render
 from hapsim.errors import ConfigError
 
 __all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "stability_limit",
+           "damping_limits",
            "stability_boundary", "published_limits"]
 
 
@@ -363,39 +364,40 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
     return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
 
 
-def _kappa_max(loop: LoopModel, beta: float) -> float:
-    """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
-    Pw, Qw, Rw = _char_w(loop)
+def _circle_values(A, C):
+    """Real ``x`` for which ``x A(w) + C(w)`` has a root on the unit circle.
 
+    ``A``, ``C``: polynomials in ``w = z - 1`` (highest first). On ``z = e^{i theta}`` the
+    root condition is ``x = -C/A``, real iff ``Im[C conj(A)] = 0``; that is solved for
+    ``theta`` in ``(0, pi]`` (dense scan, then Brent to ~1e-15). Returns ``(values,
+    lossless, x_pi)``: the candidate values (unsorted, finite), whether ``-C/A`` is real all
+    round the circle (a lossless loop: the scan finds no sign change), and ``-C/A`` at
+    ``z = -1`` (nan where ``A(-1) = 0``).
+    """
     def parts(theta):
         w = complex(-2.0 * math.sin(0.5 * theta) ** 2, math.sin(theta))  # e^{i theta} - 1
-        p = np.polyval(Pw, w)
-        num = beta * np.polyval(Qw, w) + np.polyval(Rw, w)
-        return p, num
+        return np.polyval(A, w), np.polyval(C, w)
 
     def g(theta):
-        p, num = parts(theta)
-        return (num * np.conj(p)).imag / max(abs(num) * abs(p), 1e-300)
+        a, c = parts(theta)
+        return (c * np.conj(a)).imag / max(abs(c) * abs(a), 1e-300)
 
     thetas = np.unique(np.concatenate([np.geomspace(1e-9, math.pi, 4000),
                                        np.linspace(0.0, math.pi, 4001)[1:]]))
     wv = -2.0 * np.sin(0.5 * thetas) ** 2 + 1j * np.sin(thetas)
-    pv = np.polyval(Pw, wv)
-    nv = beta * np.polyval(Qw, wv) + np.polyval(Rw, wv)
-    gv = (nv * np.conj(pv)).imag / np.maximum(np.abs(nv) * np.abs(pv), 1e-300)
+    av = np.polyval(A, wv)
+    cv = np.polyval(C, wv)
+    gv = (cv * np.conj(av)).imag / np.maximum(np.abs(cv) * np.abs(av), 1e-300)
+    a, c = parts(math.pi)
+    x_pi = (-(c / a)).real if abs(a) > 1e-14 * max(abs(c), 1.0) else math.nan
     if np.max(np.abs(gv[thetas >= 1e-3])) < 1e-9:  # (tiny theta: cancellation noise)
-        # Lossless loop (e.g. ideal hold, d = 0, B = -b0: the centred-difference
-        # oscillator): K(theta) is real all round the circle, the poles sit on it for small
-        # K (marginal stability) and leave it at z = -1.
-        p, num = parts(math.pi)
-        kpi = (-(num / p)).real if abs(p) > 0 else math.nan
-        return kpi if kpi > 0 else 0.0
-    cands = []
+        return [], True, x_pi
+    vals = []
     for i in range(thetas.size - 1):
-        a, c = gv[i], gv[i + 1]
-        if a == 0.0:
+        ga, gc = gv[i], gv[i + 1]
+        if ga == 0.0:
             th = thetas[i]
-        elif a * c < 0:
+        elif ga * gc < 0:
             try:
                 th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
                             maxiter=200)
@@ -403,13 +405,24 @@ def _kappa_max(loop: LoopModel, beta: float) -> float:
                 th = 0.5 * (thetas[i] + thetas[i + 1])
         else:
             continue
-        p, num = parts(th)
-        if abs(p) > 0:
-            cands.append((-(num / p)).real)
-    p, num = parts(math.pi)
-    if abs(p) > 1e-14 * max(abs(num), 1.0):
-        cands.append((-(num / p)).real)
-    cands = sorted({c for c in cands if c > 0 and math.isfinite(c)})
+        a, c = parts(th)
+        if abs(a) > 0:
+            vals.append((-(c / a)).real)
+    if math.isfinite(x_pi):
+        vals.append(x_pi)
+    return [v for v in vals if math.isfinite(v)], False, x_pi
+
+
+def _kappa_max(loop: LoopModel, beta: float) -> float:
+    """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
+    Pw, Qw, Rw = _char_w(loop)
+    vals, lossless, k_pi = _circle_values(Pw, _padd(beta * Qw, Rw))
+    if lossless:
+        # Lossless loop (e.g. ideal hold, d = 0, B = -b0: the centred-difference
+        # oscillator): K(theta) is real all round the circle, the poles sit on it for small
+        # K (marginal stability) and leave it at z = -1.
+        return k_pi if k_pi > 0 else 0.0
+    cands = sorted({c for c in vals if c > 0})
     # stability is constant between consecutive crossings: test each interval's middle
     edges = [0.0] + cands
     for i, lo in enumerate(edges):
@@ -418,6 +431,10 @@ def _kappa_max(loop: LoopModel, beta: float) -> float:
         if not _stable_at(loop, mid, beta):
             return lo
     return math.inf
+
+
+def _padd(a, b):
+    return np.polyadd(np.asarray(a, float), np.asarray(b, float))
 
 
 def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
@@ -454,6 +471,67 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
     T, m = loop.period, loop.mass
     beta = float(B) * T / m
     return _kappa_max(loop, beta) * m / (T * T)
+
+
+def damping_limits(loop: LoopModel, K: float) -> list:
+    """Exact range(s) of virtual damping ``B`` keeping the loop stable at a fixed ``K``.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    K : float
+        Virtual stiffness [N/m], finite.
+
+    Returns
+    -------
+    list of (float, float)
+        The maximal intervals ``(B_min, B_max)`` [N s/m] of ``B`` for which every closed-loop
+        pole has ``|z| < 1``, in increasing order; bounds may be ``-inf`` / ``inf``; empty
+        when no ``B`` stabilises this ``K``. For a delayed loop the set is bounded on both
+        sides: too little damping and too much (the delayed backward-difference damper
+        pumps energy near the Nyquist frequency) are both unstable, the lens of Florens
+        et al. Fig. 8. Ideal hold, ``d = 0``, ``b0 = 0``: ``(0, (4 m/T^2 - K) T/2)``.
+
+    Raises
+    ------
+    ConfigError
+        If ``K`` is not finite.
+
+    Notes
+    -----
+    Same method as :func:`stability_limit` with the roles of ``K`` and ``B`` exchanged: on
+    the boundary a pole is ``z = e^{i theta}`` and ``B(theta) = -(P K + R)/Q`` must be real;
+    each root of ``Im[(P K + R) conj(Q)] = 0`` in ``(0, pi]`` gives a candidate ``B``
+    (relative precision ~1e-15 in ``theta``); stability is constant between consecutive
+    candidates and is classified by the spectral radius at one interior point of each.
+    """
+    if not math.isfinite(float(K)):
+        raise ConfigError(f"must be finite, got {K!r}", key="K")
+    T, m = loop.period, loop.mass
+    kappa = float(K) * T * T / m
+    Pw, Qw, Rw = _char_w(loop)
+    vals, lossless, b_pi = _circle_values(Qw, _padd(kappa * Pw, Rw))
+    if lossless:
+        vals = [b_pi] if math.isfinite(b_pi) else []
+    cands = sorted(set(vals))
+    if not cands:
+        return [(-math.inf, math.inf)] if _stable_at(loop, kappa, 0.0) else []
+    edges = [-math.inf] + cands + [math.inf]
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        if math.isinf(lo):
+            mid = hi - max(1.0, abs(hi))
+        elif math.isinf(hi):
+            mid = lo + max(1.0, abs(lo))
+        else:
+            mid = 0.5 * (lo + hi)
+        if _stable_at(loop, kappa, mid):
+            if out and out[-1][1] == lo:
+                out[-1] = (out[-1][0], hi)
+            else:
+                out.append((lo, hi))
+    scale = m / T
+    return [(float(lo * scale), float(hi * scale)) for lo, hi in out]
 
 
 def stability_boundary(loop: LoopModel, B_values) -> np.ndarray:
