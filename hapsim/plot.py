@@ -5,12 +5,13 @@ Install the extra with ``pip install 'hapsim[plot]'``.
 
 from __future__ import annotations
 
+import os
 
 import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["plot_grid", "save_figure"]
+__all__ = ["plot_grid", "save_figure", "figure_formats", "check_figure_path", "check_output_path"]
 
 
 def _mpl():
@@ -118,6 +119,75 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     return fig
 
 
+def figure_formats() -> tuple:
+    """File extensions matplotlib can write here (without the dot).
+
+    Returns
+    -------
+    tuple of str
+        Sorted, e.g. ``("eps", "jpeg", ..., "png", "svg")``.
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    plt = _mpl()
+    fig = plt.figure()
+    try:
+        return tuple(sorted(fig.canvas.get_supported_filetypes()))
+    finally:
+        plt.close(fig)
+
+
+def check_figure_path(path: str, key: str = "--out") -> None:
+    """Refuse, before any work, a figure path that :func:`save_figure` could not write.
+
+    Parameters
+    ----------
+    path : str
+        Output file; its extension picks the format.
+    key : str, optional
+        Option or key named in the error.
+
+    Raises
+    ------
+    ConfigError
+        With ``key``: no or an unsupported extension (the message lists the supported
+        ones), a directory that does not exist, or a path that is a directory; or
+        matplotlib missing.
+    """
+    ext = os.path.splitext(path)[1].lower().lstrip(".")
+    fmts = figure_formats()
+    if ext not in fmts:
+        what = f"unsupported figure format '.{ext}'" if ext else "no file extension"
+        raise ConfigError(f"{what} in {path!r}; valid: {', '.join('.' + f for f in fmts)}",
+                          key=key)
+    check_output_path(path, key)
+
+
+def check_output_path(path: str, key: str) -> None:
+    """Refuse an output file whose directory does not exist or that is a directory.
+
+    Parameters
+    ----------
+    path : str
+        Output file.
+    key : str
+        Option or key named in the error.
+
+    Raises
+    ------
+    ConfigError
+        With ``key``.
+    """
+    if os.path.isdir(path):
+        raise ConfigError(f"{path!r} is a directory; give a file name", key=key)
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise ConfigError(f"directory {d!r} does not exist (create it first)", key=key)
+
+
 def save_figure(fig, path: str) -> None:
     """Write ``fig`` to ``path`` (format from the extension) and close it.
 
@@ -126,9 +196,19 @@ def save_figure(fig, path: str) -> None:
     fig : matplotlib.figure.Figure
     path : str
         Output file, e.g. ``docs/fig8_ideal.png``.
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing, or the file cannot be written (format or OS error; key
+        ``path``).
     """
     plt = _mpl()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        fig.savefig(path)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"cannot write figure {path!r}: {exc}", key="path") from None
+    finally:
+        plt.close(fig)
 
 

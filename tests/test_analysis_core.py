@@ -477,6 +477,35 @@ def test_cli_map_paper_preset(tmp_path, capsys):
     assert max(v for v in d["boundary_K"] if v is not None) == pytest.approx(0.25, rel=1e-3)
 
 
+@pytest.mark.parametrize("opt, name, expect", [
+    ("--out", "fig.foo", "unsupported figure format '.foo'"),
+    ("--out", "fig", "no file extension"),
+    ("--out", "missing/fig.png", "does not exist"),
+    ("--out", "adir.png", "is a directory"),
+    ("--data", "missing/grid.json", "does not exist"),
+    ("--data", ".", "is a directory"),
+])
+def test_cli_map_bad_output_paths_exit_2_naming_the_option(opt, name, expect, tmp_path,
+                                                           monkeypatch, capsys):
+    """A bad --out / --data is a one-line error naming the option (exit 2), found before
+    the grid is computed, and nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "adir.png").mkdir()
+    import sys
+    grid_mod = sys.modules["hapsim.analysis.grid"]   # (the package re-exports grid())
+
+    def no_grid(*a, **k):
+        raise AssertionError("the grid was computed before the paths were checked")
+    monkeypatch.setattr(grid_mod, "grid", no_grid)
+    assert main(["map", "--paper", "8", "--n", "3", "--samples", "4", opt, name]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"error: {opt}: " in err and expect in err
+    assert "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir.png"]
+    if expect.startswith(("unsupported", "no file")):
+        assert ".png" in err and ".svg" in err      # the valid choices are listed
+
+
 @pytest.mark.parametrize("argv, option", [
     (["render", "--mass", "0", "--rate", "1000", "--K", "1"], "--mass"),
     (["render", "--mass", "1", "--rate", "-1", "--K", "1"], "--rate"),

@@ -12,7 +12,12 @@ from hapsim.errors import ConfigError
 
 
 def register(sub) -> None:
-    """Add the ``map`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``map`` parser to ``sub`` (an argparse sub-parsers action).
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+    """
     p = sub.add_parser(
         "map", help="draw the felt (k, b) grid in the virtual (K, B) plane",
         description=para("Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
@@ -45,7 +50,26 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim map``; 0 on success."""
+    """Run ``hapsim map``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``map`` options.
+
+    Returns
+    -------
+    int
+        0 on success.
+
+    Raises
+    ------
+    ConfigError
+        Bad loop options or ranges; an ``--out`` with no or an unsupported extension; an
+        ``--out`` / ``--data`` in a directory that does not exist, or that is a directory
+        (all checked before any computation); a file that cannot be written. The CLI turns
+        these into a one-line error naming the option and exit code 2.
+    """
     from hapsim.analysis.grid import grid, paper_preset
     title = None
     if args.paper is not None:
@@ -67,6 +91,12 @@ def run(args) -> int:
         args.delay = 1 if args.delay is None else args.delay
         args.hold = "zoh" if args.hold is None else args.hold
     loop = loop_from_args(args)
+    if args.out:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.out, "--out")
+    if args.data:
+        from hapsim.plot import check_output_path
+        check_output_path(args.data, "--data")
     if args.n < 2:
         raise ConfigError(f"must be >= 2, got {args.n}", key="--n")
     k0, k1 = args.k_range
@@ -81,11 +111,18 @@ def run(args) -> int:
         title += f" ({loop.hold} hold)"
     if args.out:
         from hapsim.plot import plot_grid, save_figure
-        save_figure(plot_grid(g, title=title), args.out)
+        try:
+            save_figure(plot_grid(g, title=title), args.out)
+        except ConfigError as exc:
+            raise ConfigError(exc.reason, key="--out") from None
     data = g.to_dict()
     if args.data:
-        with open(args.data, "w", encoding="utf-8") as fh:
-            json.dump(data, fh)
+        try:
+            with open(args.data, "w", encoding="utf-8") as fh:
+                json.dump(data, fh)
+        except OSError as exc:
+            raise ConfigError(f"cannot write {args.data!r}: {exc.strerror or exc}",
+                              key="--data") from None
     if args.json:
         print(json.dumps(data))
     else:
