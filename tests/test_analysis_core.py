@@ -29,28 +29,20 @@ def _monic(p):
     return p / p[0]
 
 
-def _brute_kmax(loop, B, k_hi):
-    """Independent K_max: scan the spectral radius then bisect (no unit-circle algebra)."""
-    ks = np.linspace(0, k_hi, 801)[1:]
+def _brentq_kmax(loop, B, k_hi):
+    """Independent K_max: numpy's roots of K P + B Q + R, a scan for the first unstable K,
+    then brentq on max|z| - 1 (no unit-circle algebra, no polishing)."""
+    from scipy.optimize import brentq
     P, Q, R = characteristic(loop)
-    lo = None
-    for k in ks:
-        c = np.polyadd(np.polyadd(k * P, B * Q), R)
-        if np.max(np.abs(np.roots(c))) >= 1.0:
-            hi = k
-            break
-        lo = k
-    else:
-        return math.inf
-    lo = 0.0 if lo is None else lo
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        c = np.polyadd(np.polyadd(mid * P, B * Q), R)
-        if np.max(np.abs(np.roots(c))) >= 1.0:
-            hi = mid
-        else:
-            lo = mid
-    return 0.5 * (lo + hi)
+
+    def rho(k):
+        return float(np.max(np.abs(np.roots(np.polyadd(np.polyadd(k * P, B * Q), R)))))
+    ks = np.linspace(0, k_hi, 601)[1:]
+    for i, k in enumerate(ks):
+        if rho(k) >= 1.0:
+            lo = ks[i - 1] if i else 0.0
+            return brentq(lambda k: rho(k) - 1.0, lo, k, xtol=1e-300, rtol=1e-15, maxiter=500)
+    return math.inf
 
 
 # ----------------------------------------------------------------------------- loop model
@@ -268,6 +260,42 @@ def test_unrenderable_targets_say_why():
         calibrate(loop, -1.0, 1.0)
 
 
+def test_a_refused_calibration_is_truly_not_renderable():
+    """Each refusal naming a parasitic pole is checked on numpy's roots of K P + B Q + R
+    for the refused (K, B): the named pole is a root, the target's poles exp(s T) (from the
+    continuous target, closed form) are roots, and the named pole is on/outside the unit
+    circle ("unstable") or decays no faster than the target ("less damped")."""
+    import re
+    kinds = {"unstable": 0, "less damped": 0}
+    for loop in (LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), LoopModel(0.1, 0.5, 1000.0, 2, "ideal"),
+                 LoopModel(0.1, 0.5, 250.0, 1, "zoh"), LoopModel(1.0, 0.0, 1.0, 1, "ideal")):
+        m, T = loop.mass, loop.period
+        for k in np.geomspace(1e-3, 2.0, 12) * m / T ** 2:
+            for b in np.array([0.005, 0.03, 0.1, 0.3, 1.0]) * m / T:
+                c = calibrate(loop, k, b)
+                if c.renderable or "parasitic pole" not in c.reason:
+                    continue
+                kind = "unstable" if c.reason.startswith("unstable") else "less damped"
+                kinds[kind] += 1
+                re_, im_ = map(float, re.search(r"z = ([-+0-9.e]+)([-+][0-9.e]+)j",
+                                                c.reason).groups())
+                z_named = complex(re_, im_)
+                P, Q, R = characteristic(loop)
+                roots = np.roots(np.polyadd(np.polyadd(c.K * P, c.B * Q), R))
+                scale = max(1.0, np.max(np.abs(roots)))
+                assert np.min(np.abs(roots - z_named)) < 1e-6 * scale
+                s_t = np.roots([m, b, k])                          # continuous target
+                z_t = np.exp(s_t * T)
+                for zt in z_t:
+                    assert np.min(np.abs(roots - zt)) < 1e-6
+                if kind == "unstable":
+                    assert abs(z_named) >= 1.0 - 1e-9
+                else:
+                    assert abs(z_named) >= np.min(np.abs(z_t)) * (1 - 1e-9)
+                    assert abs(z_named) < 1.0
+    assert kinds["unstable"] >= 3 and kinds["less damped"] >= 3, kinds
+
+
 # ----------------------------------------------------------------------------- stability
 
 def test_centred_difference_limit():
@@ -311,13 +339,14 @@ def test_exact_boundary_is_where_spectral_radius_reaches_one(loop, B):
     assert rho_lo < 1.0 < rho_hi
 
 
-def test_exact_boundary_against_brute_force():
-    for loop, B in [(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 0.0),
-                    (LoopModel(1.0, 0.0, 1.0, 1, "ideal"), 0.3),
-                    (LoopModel(1.0, 0.5, 1.0, 2, "ideal"), 0.2)]:
-        kmax = stability_limit(loop, B)
-        ref = _brute_kmax(loop, B, 3 * kmax)
-        assert kmax == pytest.approx(ref, rel=1e-7)
+@pytest.mark.parametrize("loop, B", BOUNDARY_CASES + [
+    (LoopModel(1.0, 0.5, 1.0, 2, "ideal"), 0.2), (LoopModel(1.0, 0.0, 1.0, 1, "ideal"), 0.3)])
+def test_exact_boundary_against_brentq(loop, B):
+    """K_max to relative 1e-9 (issue 3) against an independent brentq solve of spectral
+    radius 1 on numpy's roots (they agree to ~1e-12 here; the reference's own round-off)."""
+    kmax = stability_limit(loop, B)
+    ref = _brentq_kmax(loop, B, 3 * kmax)
+    assert kmax == pytest.approx(ref, rel=1e-9)
 
 
 def _rho_numpy(loop, K, B):

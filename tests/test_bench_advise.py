@@ -158,13 +158,32 @@ links:
   - {between: [bob, g], kind: spring_damper, stiffness: 3000, damping: 0.001}
 device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
 """
-    adv = advise_scene(parse_scene(text), 0.5)
-    assert adv.ok
-    # bob: w = sqrt(3050/0.001) = 1746 rad/s; explicit schemes need w T < 2 -> rate > 873 Hz
-    if adv.integrator in ("centred", "symplectic_euler"):
-        assert adv.rate_hz > 873.0
     from hapsim.bench.methods import stability_margin
-    assert stability_margin(adv.apply(parse_scene(text))).ok
+
+    # bob (m = 1 g) sees K = 3050 N/m, B = 0.501 N s/m; with the 0.95 margin the advice
+    # needs K/0.95, B/0.95 inside each scheme's Jury limit (docs/bench.md table):
+    # centred K < 4m/T^2 - 2B/T, symplectic Euler K < 4m/T^2 + 2B/T, exact none.
+    m, K, B = 0.001, 3050.0 / 0.95, 0.501 / 0.95
+
+    def explicit_ok(scheme, rate):
+        sign = -1.0 if scheme == "centred" else 1.0
+        return K < 4 * m * rate ** 2 + sign * 2 * B * rate
+
+    expected = {}
+    for rate in (315.0, 800.0, 1250.0):
+        cheapest = [s for s in ("centred", "symplectic_euler") if explicit_ok(s, rate)]
+        expected[rate] = cheapest[0] if cheapest else "exact"
+    assert expected == {315.0: "exact", 800.0: "symplectic_euler", 1250.0: "centred"}
+    scene = parse_scene(text)
+    adv = advise_scene(scene, 0.5)
+    # 250 Hz is outside the tolerance (felt error 0.57), 315 Hz is the lowest rung within it
+    assert adv.ok and adv.rate_hz == 315.0
+    assert adv.integrator == expected[315.0]        # explicit schemes unstable there
+    assert stability_margin(adv.apply(scene)).ok
+    for rate in (800.0, 1250.0):                     # the cheapest one stable at that rate
+        a = advise_scene(scene, 0.5, rates=(rate,))
+        assert a.ok and a.integrator == expected[rate]
+        assert stability_margin(a.apply(scene)).ok
 
 
 def test_cli_bench_quick_and_advise_json(tmp_path, capsys):
