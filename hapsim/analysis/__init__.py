@@ -5,8 +5,8 @@ Compute functions here return plain data; drawing lives in :mod:`hapsim.plot`.
 """
 
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
-from hapsim.analysis.loop import (HOLDS, LoopModel, characteristic, closed_loop_poles, plant,
-                                  spectral_radius, zoh_state_space)
+from hapsim.analysis.loop import (HOLDS, STABILITY_TOL, LoopModel, characteristic,
+                                  closed_loop_poles, plant, spectral_radius, zoh_state_space)
 from hapsim.analysis.ths import (CalibrationResult, RenderResult, calibrate, damping_limits,
                                  published_limits, render, stability_boundary,
                                  stability_limit)
@@ -15,3 +15,16 @@ from hapsim.analysis.identify import fit_modes, fit_rendered, pencil_poles
 from hapsim.analysis.scene_check import SceneCheck, check_scene, scene_state_matrix
 from hapsim.analysis.table1 import table1_experiment
 from hapsim.analysis.network import closed_loop
+
+__all__ = [
+    "Mode", "modes_from_poles", "rendered_pair",
+    "HOLDS", "STABILITY_TOL", "LoopModel", "characteristic", "closed_loop_poles", "plant",
+    "spectral_radius", "zoh_state_space",
+    "CalibrationResult", "RenderResult", "calibrate", "damping_limits", "published_limits",
+    "render", "stability_boundary", "stability_limit",
+    "PAPER_PRESETS", "GridResult", "grid", "paper_preset",
+    "fit_modes", "fit_rendered", "pencil_poles",
+    "SceneCheck", "check_scene", "scene_state_matrix",
+    "table1_experiment",
+    "closed_loop",
+]

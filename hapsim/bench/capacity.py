@@ -19,7 +19,6 @@ also re-derive them from a saved JSON without measuring again). The machine is s
 
 from __future__ import annotations
 
-import math
 import os
 import platform
 import subprocess

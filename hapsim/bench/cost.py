@@ -17,7 +17,6 @@ product with the rate, the CPU time per simulated second (what a real-time loop 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 

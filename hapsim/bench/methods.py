@@ -308,17 +308,6 @@ def calibrate_targets(scene) -> tuple[dict, list[str]]:
         if math.isfinite(res.K) and math.isfinite(res.B):
             cal[c.link] = (res.K, res.B)
     return cal, problems
-    loop = LoopModel.from_device(scene.device, scene.rate_hz)
-    for lk in targets:
-        res = calibrate(loop, *lk.target)
-        if res.renderable:
-            cal[lk.name] = (res.K, res.B)
-        else:
-            problems.append(f"link {lk.name!r}: target (k, b) = {lk.target} not renderable at "
-                            f"{scene.rate_hz:g} Hz: {res.reason}")
-            if math.isfinite(res.K) and math.isfinite(res.B):
-                cal[lk.name] = (res.K, res.B)
-    return cal, problems
 
 
 class StabilityMargin(tuple):
