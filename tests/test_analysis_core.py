@@ -547,3 +547,26 @@ def test_cli_map_bad_output_paths_exit_2_naming_the_option(opt, name, expect, tm
 def test_cli_bad_arguments_exit_2(argv, option, capsys):
     assert main(argv) == 2
     assert option in capsys.readouterr().err
+
+
+def test_paper_preset_unknown_figure_is_a_config_error_listing_the_choices():
+    from hapsim.analysis import paper_preset
+    loop, k_range, b_range, title = paper_preset(9)
+    assert (loop.friction, loop.delay, loop.hold) == (0.5, 1, "ideal") and "Fig. 9" in title
+    for bad in (6, 10, "8", 8.5, None):
+        with pytest.raises(ConfigError) as ei:
+            paper_preset(bad)
+        assert ei.value.key == "number" and "7, 8, 9" in str(ei.value)
+        assert not isinstance(ei.value, KeyError)
+    with pytest.raises(ConfigError) as ei:
+        paper_preset(8, hold="foh")
+    assert ei.value.key == "hold"
+
+
+def test_grid_and_stability_limit_raise_config_error():
+    loop = LoopModel(1.0, 0.0, 1.0, 1, "ideal")
+    for kv, bv in (([0.0, 0.5], [0.1]), ([0.5], [math.nan]), ([math.inf], [0.1])):
+        with pytest.raises(ConfigError):
+            grid(loop, kv, bv)
+    with pytest.raises(ConfigError):
+        stability_limit(loop, math.nan)

@@ -94,7 +94,15 @@ class GridResult:
         return self.boundary_B + self.b_bias
 
     def to_dict(self) -> dict:
-        """JSON-ready dict; nan/inf become ``None``."""
+        """JSON-ready dict; nan/inf become ``None``.
+
+        Returns
+        -------
+        dict
+            Keys ``loop, convention, b_bias, k_values, b_values, K, B, rendered,
+            identity_K, identity_B, boundary_B, boundary_K`` (lists; 2-D arrays as lists of
+            rows, shape (nk, nb)), SI units as in the attributes.
+        """
         def lst(a):
             a = np.asarray(a, dtype=float)
             return [[v if math.isfinite(v) else None for v in row] for row in a.tolist()] \
@@ -161,10 +169,18 @@ def grid(loop: LoopModel, k_values, b_values, *, boundary_B=None, n_boundary: in
         the iso-b curve ``b_values[j]`` (over k). Targets that are not rendered (a
         parasitic pole dominates or is unstable, or above Nyquist) are nan.
 
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        If a ``k`` value is not finite or not > 0, or a ``b`` value is not finite
+        (key ``k_values``).
+
     Notes
     -----
     Damping-axis convention (Florens et al. Fig. 9): figures plot ``B + b0``; the identity
     grid is then ``K = k``, ``B + b0 = b`` (``identity_B = b - b0`` in virtual units).
+    Each point is the calibration of :func:`hapsim.analysis.calibrate` (Florens et al.
+    Sec. 5, Fig. 4: solve ``P K + Q B + R = 0`` at the target's poles ``z = e^(sT)``).
     Plotting is separate: :func:`hapsim.plot.plot_grid`.
     """
     kv = np.asarray(k_values, dtype=float).ravel()
@@ -235,8 +251,23 @@ def paper_preset(number: int, hold: str | None = None):
     b_range : tuple of float
         ``(b_min, b_max)`` [N s/m, normalised].
     title : str
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        For a figure number other than 7, 8 or 9 (key ``number``, the valid choices
+        listed), or an unknown ``hold`` (key ``hold``).
     """
-    p = PAPER_PRESETS[int(number)]
+    from hapsim.errors import ConfigError
+    try:
+        n = int(number)
+        if n != number:
+            raise ValueError
+        p = PAPER_PRESETS[n]
+    except (TypeError, ValueError, KeyError):
+        raise ConfigError(f"no preset for figure {number!r}; valid choices: "
+                          f"{', '.join(str(k) for k in sorted(PAPER_PRESETS))}",
+                          key="number") from None
     kw = dict(p["loop"])
     if hold is not None:
         kw["hold"] = hold

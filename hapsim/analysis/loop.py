@@ -142,7 +142,14 @@ class LoopModel:
                    hold=getattr(device, "hold", "zoh"))
 
     def to_dict(self) -> dict:
-        """JSON-ready dict of the fields (SI units)."""
+        """JSON-ready dict of the fields.
+
+        Returns
+        -------
+        dict
+            ``mass`` [kg], ``friction`` [N s/m], ``rate_hz`` [Hz], ``delay`` [samples],
+            ``hold``.
+        """
         return {"mass": self.mass, "friction": self.friction, "rate_hz": self.rate_hz,
                 "delay": self.delay, "hold": self.hold}
 
@@ -197,6 +204,11 @@ def zoh_state_space(mass: float, friction: float, period: float):
 
     (``b0 = 0``: ``Ad = [[1, T], [0, 1]]``, ``Bd = [T^2/(2m), T/m]``). Equal to
     ``expm([[A, b], [0, 0]] T)`` of the continuous system (tested against scipy).
+
+    Raises
+    ------
+    ConfigError
+        If ``mass <= 0``, ``friction < 0`` or ``period <= 0``.
     """
     m, b0, T = float(mass), float(friction), float(period)
     if m <= 0 or T <= 0 or b0 < 0:
@@ -402,5 +414,22 @@ def closed_loop_poles(loop: LoopModel, K: float, B: float = 0.0) -> np.ndarray:
 
 
 def spectral_radius(loop: LoopModel, K: float, B: float = 0.0) -> float:
-    """Largest closed-loop pole modulus ``max |z|`` [-] (``< 1``: asymptotically stable)."""
+    """Largest closed-loop pole modulus of the THS loop.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The configuration (mass, friction, rate, delay, hold).
+    K : float
+        Virtual stiffness [N/m].
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    float
+        ``max |z|`` [-] over the roots of ``P K + Q B + R`` (:func:`closed_loop_poles`,
+        Florens et al. Sec. 6 eq. (1)): ``< 1`` asymptotically stable, ``> 1`` unstable;
+        within :data:`STABILITY_TOL` of 1 the verdicts call the loop marginal.
+    """
     return float(np.max(np.abs(closed_loop_poles(loop, K, B))))

@@ -49,8 +49,15 @@ class TargetCalibration:
         return bool(self.result.renderable)
 
     def to_dict(self) -> dict:
-        """Plain-data form: link, k, b, K, B, renderable, reason, and the target's f0 [Hz]
-        and damping ratio ``b / (2 sqrt(k m))``."""
+        """Plain-data form of the calibration.
+
+        Returns
+        -------
+        dict
+            ``link``, ``k`` [N/m], ``b`` [N s/m], ``K`` [N/m], ``B`` [N s/m],
+            ``renderable``, ``reason``, and the target's ``f0_hz`` = ``sqrt(k/m)/(2 pi)``
+            [Hz] and ``damping_ratio`` = ``b / (2 sqrt(k m))`` [-] (``m``: device mass).
+        """
         res = self.result
         return {"link": self.link, "k": float(self.k), "b": float(self.b), "K": float(res.K),
                 "B": float(res.B), "renderable": bool(res.renderable), "reason": res.reason,

@@ -100,7 +100,15 @@ class RenderResult:
     marginal: bool = False
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (non-finite floats become ``None``)."""
+        """JSON-ready dict (non-finite floats become ``None``).
+
+        Returns
+        -------
+        dict
+            Keys ``K`` [N/m], ``B`` [N s/m], ``k`` [N/m], ``b`` [N s/m], ``f0_hz`` [Hz],
+            ``damping_ratio``, ``stable``, ``marginal``, ``spectral_radius``, ``rendered``
+            (:meth:`Mode.to_dict` or None), ``modes`` (list), ``note``.
+        """
         return {"K": _f(self.K), "B": _f(self.B), "k": _f(self.k), "b": _f(self.b),
                 "f0_hz": _f(self.f0_hz), "damping_ratio": _f(self.damping_ratio),
                 "stable": bool(self.stable), "marginal": bool(self.marginal),
@@ -194,7 +202,15 @@ class CalibrationResult:
     target: Mode | None = None
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (non-finite floats become ``None``)."""
+        """JSON-ready dict (non-finite floats become ``None``).
+
+        Returns
+        -------
+        dict
+            Keys ``k`` [N/m], ``b`` [N s/m], ``K`` [N/m], ``B`` [N s/m], ``renderable``,
+            ``reason``, ``spectral_radius``, ``target`` (:meth:`Mode.to_dict` or None),
+            ``modes`` (list).
+        """
         return {"k": _f(self.k), "b": _f(self.b), "K": _f(self.K), "B": _f(self.B),
                 "renderable": bool(self.renderable), "reason": self.reason,
                 "spectral_radius": _f(self.spectral_radius),
@@ -465,6 +481,11 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
     consecutive candidates stability cannot change, so each interval is classified by the
     spectral radius at one interior point. The boundary is the ``b = 0`` curve of the grid
     (Florens et al. Sec. 6.2).
+
+    Raises
+    ------
+    ConfigError
+        If ``B`` is not finite (key ``B``).
     """
     if not math.isfinite(float(B)):
         raise ConfigError(f"must be finite, got {B!r}", key="B")

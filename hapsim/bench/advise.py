@@ -104,7 +104,14 @@ class LinkAdvice:
     reason: str
 
     def to_dict(self) -> dict:
-        """JSON-ready dict."""
+        """JSON-ready dict (non-finite floats become ``None``).
+
+        Returns
+        -------
+        dict
+            ``link``, ``wanted`` (``{k [N/m], b [N s/m]}``), ``rate_hz`` [Hz], ``method``,
+            ``K`` [N/m], ``B`` [N s/m], ``error`` [-], ``reason``.
+        """
         f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
         return {"link": self.link, "wanted": {"k": self.wanted[0], "b": self.wanted[1]},
                 "rate_hz": self.rate_hz, "method": self.method, "K": f(self.K), "B": f(self.B),
@@ -173,7 +180,15 @@ class Advice:
         return out
 
     def to_dict(self) -> dict:
-        """JSON-ready dict."""
+        """JSON-ready dict (non-finite floats become ``None``).
+
+        Returns
+        -------
+        dict
+            ``ok``, ``rate_hz`` [Hz], ``integrator``, ``error`` [-], ``spectral_radius``
+            [-], ``reason``, ``tolerance``, ``margin``, and ``links`` (list of
+            :meth:`LinkAdvice.to_dict`).
+        """
         f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
         return {"ok": self.ok, "rate_hz": self.rate_hz, "integrator": self.integrator,
                 "error": f(self.error), "spectral_radius": f(self.spectral_radius),

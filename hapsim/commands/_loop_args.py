@@ -21,7 +21,17 @@ units: SI throughout. --mass 1 --rate 1 gives the paper's normalised units (m = 
 
 
 def para(text: str) -> str:
-    """Wrap a help paragraph to 78 columns (the raw formatter does not wrap)."""
+    """Wrap a help paragraph to 78 columns (the raw formatter does not wrap).
+
+    Parameters
+    ----------
+    text : str
+        Paragraph; runs of white space are collapsed.
+
+    Returns
+    -------
+    str
+    """
     return textwrap.fill(" ".join(text.split()), 78)
 
 
@@ -57,6 +67,16 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
 def loop_from_args(args) -> LoopModel:
     """Build the :class:`LoopModel` from parsed arguments.
 
+    Parameters
+    ----------
+    args : argparse.Namespace
+        With ``mass`` [kg], ``friction`` [N s/m], ``rate`` [Hz], ``delay`` [samples],
+        ``hold``.
+
+    Returns
+    -------
+    LoopModel
+
     Raises
     ------
     ConfigError
@@ -73,7 +93,18 @@ def loop_from_args(args) -> LoopModel:
 
 
 def fmt(v) -> str:
-    """Format a float for the human tables."""
+    """Format a float for the human tables.
+
+    Parameters
+    ----------
+    v : float, None or any
+        Value to show.
+
+    Returns
+    -------
+    str
+        ``"-"`` for None, 6 significant digits for a number, ``str(v)`` otherwise.
+    """
     if v is None:
         return "-"
     try:
@@ -83,7 +114,16 @@ def fmt(v) -> str:
 
 
 def print_modes(modes, out) -> None:
-    """Print a short table of parasitic modes."""
+    """Print a short table of parasitic modes.
+
+    Parameters
+    ----------
+    modes : list of hapsim.analysis.Mode
+        Modes to list (``kind``, ``|z|``, ``f0`` [Hz], damping ratio, ``k`` [N/m], ``b``
+        [N s/m] each).
+    out : file-like
+        Where to print.
+    """
     if not modes:
         print("  (no other modes)", file=out)
         return

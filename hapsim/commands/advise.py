@@ -48,7 +48,17 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Print the advice; exit code 0 when found, 1 otherwise.
+    """Print the advice of :func:`hapsim.bench.advise.advise_scene`.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``advise`` options (``scene``, ``tolerance``, ``margin``, ``json``).
+
+    Returns
+    -------
+    int
+        0 when an advice was found, 1 otherwise.
 
     Raises
     ------

@@ -11,7 +11,13 @@ from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fm
 
 
 def register(sub) -> None:
-    """Add the ``calibrate`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``calibrate`` parser to ``sub``.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-parsers.
+    """
     p = sub.add_parser(
         "calibrate", help="find the virtual K, B that render a target k, b",
         description=para("Place two closed-loop poles on those of the target oscillator "
@@ -31,7 +37,23 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim calibrate``; 0 if renderable, 1 if not."""
+    """Run ``hapsim calibrate``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``calibrate`` options.
+
+    Returns
+    -------
+    int
+        0 if the target is renderable, 1 if not.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        Bad loop option (key: the option), ``--k <= 0`` or a non-finite target.
+    """
     from hapsim.analysis.ths import calibrate
     loop = loop_from_args(args)
     c = calibrate(loop, args.k, args.b)

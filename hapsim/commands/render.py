@@ -11,7 +11,13 @@ from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fm
 
 
 def register(sub) -> None:
-    """Add the ``render`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``render`` parser to ``sub``.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-parsers.
+    """
     p = sub.add_parser(
         "render", help="predict the stiffness k and damping b felt for a virtual K, B",
         description=para("Close the THS loop (real mass + friction, hold, delay, virtual spring K "
@@ -32,7 +38,23 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim render``; 0 if the loop is stable (marginal included), 1 if not."""
+    """Run ``hapsim render``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``render`` options.
+
+    Returns
+    -------
+    int
+        0 if the loop is stable (marginal included), 1 if not.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        Bad loop option (key: the option) or a non-finite ``--K`` / ``--B``.
+    """
     from hapsim.analysis.ths import render
     loop = loop_from_args(args)
     r = render(loop, args.K, args.B)

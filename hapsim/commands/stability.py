@@ -11,7 +11,13 @@ from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, fmt
 
 
 def register(sub) -> None:
-    """Add the ``stability`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``stability`` parser to ``sub``.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-parsers.
+    """
     p = sub.add_parser(
         "stability", help="exact stiffness limit K_max for a virtual damping B",
         description=para("Compute the exact K_max(B) where the closed loop's spectral radius "
@@ -31,7 +37,23 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim stability``; 0 if some K > 0 is stable, 1 if none is."""
+    """Run ``hapsim stability``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed ``stability`` options.
+
+    Returns
+    -------
+    int
+        0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        Bad loop option (key: the option) or a non-finite ``--B``.
+    """
     from hapsim.analysis.loop import spectral_radius
     from hapsim.analysis.ths import published_limits, stability_limit
     loop = loop_from_args(args)
