@@ -89,27 +89,25 @@ def test_exact_scheme_has_no_stiffness_limit():
 
 
 def _closed_loop(hold, d, K, B, rate, n, b0=0.5):
-    """Wall scene closed on the daemon's mock physics with a d-sample force delay line."""
+    """Wall closed on the daemon's mock physics with a d-sample force delay line.
+
+    The virtual wall is the element's law written out here (DESIGN §3/§4,
+    ``F[n] = -K x[n] - B (x[n] - x[n-1]) / T``), not the engine: a refused calibration may
+    ask for K < 0, which no valid scene holds, and the engine in the loop is covered by
+    ``test_boundary_through_the_daemon_lockstep_path``."""
     from hapsim.daemon.mock import MockPhysics
 
     dev = Device(mass=M, friction=b0, delay=d, hold=hold)
-    sc = parse_scene(f"rate_hz: {rate}\nmasses: [{{name: hand, kind: port}}, "
-                     f"{{name: wall, kind: ground}}]\nlinks: [{{name: w, kind: spring_damper, "
-                     f"between: [hand, wall], stiffness: 0, damping: 0}}]\n"
-                     f"device: {{mass: {M}, friction: {b0}, delay: {d}, hold: {hold}}}\n")
-    # (K, B) set past the scene validator: a refused calibration may ask for K < 0
-    sc = dataclasses.replace(sc, links=tuple(dataclasses.replace(
-        lk, stiffness=float(K), damping=float(B)) for lk in sc.links))
-    eng = Engine(sc)
     plant = MockPhysics(dev, rate, Excitation(x0=X0))
-    eng.set_port_position(plant.sample(), at_rest=True)
+    K, BT = float(K), float(B) * rate
+    xp = plant.sample()                    # starts at rest
     line = [0.0] * d
     xs = np.empty(n)
     for i in range(n):
         x = plant.sample()
         xs[i] = x
-        f = eng.port_step(x)
-        line.append(f)
+        line.append(-K * x - BT * (x - xp))
+        xp = x
         plant.advance(line.pop(0))
         if abs(x) > 1e3:
             return xs[:i + 1]
