@@ -47,8 +47,9 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   --allow-unstable, which runs it under safety stops (force at the limit in half of the
   last 100 samples, position beyond bounds, non-finite values) that end with zero force;
   the scene's 'safety:' section adds position_limit [m], velocity_limit [m/s],
-  energy_limit [J] (passivity observer: energy the scene gave the hand) and an optional
-  passivity_controller with max_damping [N s/m].
+  energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
+  stored at its start; restarted at each recovery) and an optional passivity_controller
+  with max_damping [N s/m] that damps that excess.
 reliability: bad frames are counted and dropped; silence longer than --lost-timeout
   (default 0.1 s; the device zeroes its force after its 50 ms watchdog), a port error or a
   device reset -> zero force, STOP, then re-open, HELLO, CONFIG with backoff (at most

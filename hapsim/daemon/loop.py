@@ -36,12 +36,20 @@ IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))
 ``T sum f v`` with ``v`` the backward-difference velocity, where ``f_held(k)`` is the force
 the device held over ``[kT, (k+1)T)`` (the FORCE answering STATE ``k - d``). Sign convention:
 ``E`` is the energy that flowed **out of the virtual environment into the hand** (work done
-by the actuator on the hand); a passive environment that starts at rest keeps ``E <= 0``,
-one that starts with stored energy ``E0`` keeps ``E <= E0``. Hannaford & Ryu's ``E_obs`` (energy
-*into* the one-port) is ``-E``. The optional passivity controller adds the damping
-``alpha = E / (T v^2)`` (their ``alpha = -E_obs / (T v^2)``) when ``E > 0``, capped at
-``max_damping``: ``f <- f - alpha v``. With d samples of delay the damping acts d samples
-late; the observer still measures the work really done (the force held, not the force sent).
+by the actuator on the hand); Hannaford & Ryu's ``E_obs`` (energy *into* the one-port) is
+``-E``. A passive environment holding the energy ``E0`` when it starts can give at most
+``E0`` (their condition ``E_obs(n) + E0 >= 0``), so the observer's baseline is ``E0``, the
+scene's stored energy (:meth:`hapsim.engine.Engine.energy`) at each (re)start, with the port
+at rest at the device's position; ``E`` restarts from 0 at each (re)start (a recovery
+restarts the scene, whose stored energy is ``E0`` again). What the scene gave **beyond** it,
+the *excess* ``E - E0``, is what the energy safety stop (``excess > energy_limit``) and the
+optional passivity controller act on: the controller adds the damping
+``alpha = (E - E0) / (T v^2)`` (their ``alpha = -(E_obs + E0) / (T v^2)``) while the excess
+is positive, capped at ``max_damping``: ``f <- f - alpha v``. With d samples of delay the
+damping acts d samples late; the observer still measures the work really done (the force
+held, not the force sent). A sampled wall is not exactly passive (the hold and the delay
+lag its spring, Colgate & Schenkel 1997): when its damping B does not cover that lag the
+excess grows a little above 0 even though the loop is stable, and the controller acts.
 """
 
 from __future__ import annotations
@@ -132,9 +140,10 @@ class LoopConfig:
     velocity_limit : float
         Safety stop when the backward-difference velocity ``|v|`` exceeds it [m/s].
     energy_limit : float
-        Safety stop when the energy given to the hand ``E`` exceeds it [J] (module notes).
+        Safety stop when the energy the scene gave the hand beyond what it stored at its
+        (re)start, ``E - E0``, exceeds it [J] (module notes).
     passivity_controller : bool
-        Add the adaptive damping of Hannaford & Ryu when ``E > 0``.
+        Add the adaptive damping of Hannaford & Ryu while ``E - E0 > 0``.
     max_damping : float
         Cap of that damping [N s/m].
     reconnect : bool
@@ -238,9 +247,16 @@ class LoopResult:
         ``{"event": "lost"|"attempt"|"recovered", "t": [s since arming], "sample",
         ...}`` (off the hot path: only on faults).
     energy : float
-        Energy the virtual environment gave the hand at the end [J] (module notes).
+        Energy the virtual environment gave the hand since its last (re)start, ``E``, at
+        the end [J] (module notes).
     energy_max : float
-        Its largest value [J].
+        Largest ``E`` of any stretch [J].
+    energy_stored : float
+        The observer's baseline ``E0`` at the last (re)start: the scene's stored energy
+        with the port at rest at the device's position [J].
+    energy_excess_max : float
+        Largest ``E - E0`` over the run, 0.0 when the scene never gave more than it
+        stored [J]; what ``energy_limit`` and the passivity controller act on.
     passivity_samples : int
         Samples where the passivity controller added damping.
     v_max : float
@@ -272,6 +288,8 @@ class LoopResult:
     events: list = field(default_factory=list)
     energy: float = 0.0
     energy_max: float = 0.0
+    energy_stored: float = 0.0
+    energy_excess_max: float = 0.0
     passivity_samples: int = 0
     v_max: float = 0.0
     f_max: float = 0.0
@@ -321,6 +339,8 @@ class HostLoop:
         self._lost_since = None     # clock time of the current loss, None when healthy
         self._attempts = 0
         self._t0 = 0.0
+        self._energy = 0.0          # passivity observer E since the last (re)start [J]
+        self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
         self.force_limit = math.inf
 
     # ------------------------------------------------------------------ handshake
@@ -578,7 +598,18 @@ class HostLoop:
         """First armed STATE after a (re)CONFIG: restart the scene at rest at ``x`` [m].
 
         After a loss the engine is rebuilt from the scene (its initial state), the force
-        ramp is armed and the recovery is recorded. Returns the engine to step.
+        ramp is armed and the recovery is recorded. The passivity observer restarts: ``E``
+        from 0, its baseline ``E0`` the scene's stored energy now (module notes).
+
+        Parameters
+        ----------
+        x : float
+            Device position of the first armed STATE [m].
+
+        Returns
+        -------
+        Engine
+            The engine to step.
         """
         if self._lost_since is not None:
             self.engine = type(self.engine)(self.engine.scene)
@@ -588,6 +619,10 @@ class HostLoop:
                         after_s=round(self._clock() - self._lost_since, 6))
             self._lost_since = None
         self.engine.set_port_position(x, at_rest=True)
+        # passivity observer: the scene (re)starts holding E0; E counts from 0 again
+        self._e0 = _stored_energy(self.engine)
+        self._energy = 0.0
+        self.result.energy_stored = self._e0
         self._fresh = False
         return self.engine
 
@@ -653,7 +688,9 @@ class HostLoop:
         k = 0                               # samples since this stretch (re)started
         x_prev = 0.0
         energy = self._energy
+        e0 = self._e0
         e_max = res.energy_max
+        x_max = res.energy_excess_max
         v_max = res.v_max
         f_max = res.f_max
         ramp_n = max(int(cfg.ramp_samples), 1)
@@ -697,6 +734,8 @@ class HostLoop:
                             x = math.nan          # handled below as a non-finite position
                         else:
                             eng = self._resume(x)
+                            energy = 0.0
+                            e0 = self._e0
                             expect = seq
                             k = 0
                             x_prev = x
@@ -724,12 +763,13 @@ class HostLoop:
                     v = dx * rate
                     if k > 0:
                         energy += fh[(k - 1 - d) % fhl] * dx if k - 1 - d >= 0 else 0.0
-                    if pc_on and energy > 0.0:
+                    excess = energy - e0
+                    if pc_on and excess > 0.0:
                         tvv = T * v * v
                         if tvv > 0.0:
-                            # alpha = E / (T v^2), capped (compared without dividing: no
-                            # overflow for a tiny v)
-                            alpha = energy / tvv if energy < bmax * tvv else bmax
+                            # alpha = (E - E0) / (T v^2), capped (compared without
+                            # dividing: no overflow for a tiny v)
+                            alpha = excess / tvv if excess < bmax * tvv else bmax
                             f -= alpha * v
                             res.passivity_samples += 1
                     if self._ramp > 0:
@@ -761,6 +801,8 @@ class HostLoop:
                     tel.n = i
                     if energy > e_max:
                         e_max = energy
+                    if excess > x_max:
+                        x_max = excess
                     av = v if v >= 0.0 else -v
                     if av > v_max:
                         v_max = av
@@ -768,9 +810,9 @@ class HostLoop:
                     if af > f_max:
                         f_max = af
                     if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                            or energy > elim):
+                            or excess > elim):
                         res.stop_reason = _safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
-                                                         v, vlim, energy, elim)
+                                                         v, vlim, excess, elim, e0)
                         res.safety_stop = True
                         stop.set = True
                         break
@@ -782,6 +824,7 @@ class HostLoop:
             self._energy = energy
             res.energy = energy
             res.energy_max = e_max
+            res.energy_excess_max = x_max
             res.v_max = v_max
             res.f_max = f_max
 
@@ -865,6 +908,8 @@ class HostLoop:
             if latest is None or stop.set:
                 return
             eng = self._resume(latest.position[0])
+            energy = 0.0
+            e0 = self._e0
             used_seq = -1
             last_new = clock()
             # a real-time device ticks on the same clock: tick a third of a period after
@@ -914,10 +959,11 @@ class HostLoop:
                 v = dx * rate
                 if k > d:
                     energy += fh[(k - 1 - d) % fhl] * dx
-                if pc_on and energy > 0.0:
+                excess = energy - e0
+                if pc_on and excess > 0.0:
                     tvv = T * v * v
                     if tvv > 0.0:
-                        f -= (energy / tvv if energy < bmax * tvv else bmax) * v
+                        f -= (excess / tvv if excess < bmax * tvv else bmax) * v
                         res.passivity_samples += 1
                 if self._ramp > 0:
                     f *= (ramp_n - self._ramp + 1) / ramp_n
@@ -934,6 +980,8 @@ class HostLoop:
                 k += 1
                 if energy > res.energy_max:
                     res.energy_max = energy
+                if excess > res.energy_excess_max:
+                    res.energy_excess_max = excess
                 av = abs(v)
                 if av > res.v_max:
                     res.v_max = av
@@ -952,9 +1000,9 @@ class HostLoop:
                 i += 1
                 tel.n = i
                 if (wsum >= cfg.clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                        or energy > elim):
+                        or excess > elim):
                     res.stop_reason = _safety_reason(wsum, cfg.clamp_max, wlen, lim, x, pos_bound,
-                                                     v, vlim, energy, elim)
+                                                     v, vlim, excess, elim, e0)
                     res.safety_stop = True
                     stop.set = True
                     break
@@ -970,6 +1018,16 @@ class HostLoop:
             res.energy = energy
 
 
+def _stored_energy(engine) -> float:
+    """Energy the scene stores now [J] (:meth:`hapsim.engine.Engine.energy`); 0.0 for an
+    engine without that method or a non-finite value (the observer's baseline, module notes)."""
+    fn = getattr(engine, "energy", None)
+    if fn is None:
+        return 0.0
+    e = float(fn())
+    return e if math.isfinite(e) else 0.0
+
+
 def _signame(signum: int) -> str:
     import signal
     try:
@@ -979,8 +1037,8 @@ def _signame(signum: int) -> str:
 
 
 def _safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
-                   position_bound: float, v: float, velocity_limit: float, energy: float,
-                   energy_limit: float) -> str:
+                   position_bound: float, v: float, velocity_limit: float, excess: float,
+                   energy_limit: float, stored: float = 0.0) -> str:
     """Why a safety stop is due (called only once a bound is breached, off the fast path).
 
     Parameters
@@ -993,9 +1051,11 @@ def _safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
         Device position and its bound [m].
     v, velocity_limit : float
         Device velocity and its bound [m/s].
-    energy, energy_limit : float
-        Energy given to the hand by the scene and its bound [J] (passivity observer,
-        Hannaford & Ryu 2002).
+    excess, energy_limit : float
+        Energy given to the hand by the scene beyond what it stored at its (re)start, and
+        its bound [J] (passivity observer, Hannaford & Ryu 2002).
+    stored : float
+        The scene's stored energy at that (re)start, the observer's baseline [J].
 
     Returns
     -------
@@ -1008,5 +1068,5 @@ def _safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
         return f"safety: position {x:.6g} m beyond +-{position_bound:g} m"
     if abs(v) > velocity_limit:
         return f"safety: velocity {v:.6g} m/s beyond +-{velocity_limit:g} m/s"
-    return (f"safety: the scene gave the hand {energy:.6g} J, beyond the energy limit "
-            f"{energy_limit:g} J")
+    return (f"safety: the scene gave the hand {excess:.6g} J more than the {stored:.6g} J "
+            f"it stored at its start, beyond the energy limit {energy_limit:g} J")

@@ -591,6 +591,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "lost": res.lost, "recovered": res.recovered,
         "reconnect_attempts": res.reconnect_attempts, "events": res.events,
         "energy_j": res.energy, "energy_max_j": res.energy_max,
+        "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
@@ -714,7 +715,10 @@ def format_report(rep: dict) -> str:
                          f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
     sf = lp["safety"]
     lines.append(f"energy to the hand [J]: max {_fmt(lp.get('energy_max_j'), '.4g')}, end "
-                 f"{_fmt(lp.get('energy_j'), '.4g')} (limit {_fmt(sf['energy_limit'], 'g')}"
+                 f"{_fmt(lp.get('energy_j'), '.4g')}; stored at start "
+                 f"{_fmt(lp.get('energy_stored_j'), '.4g')}, excess max "
+                 f"{_fmt(lp.get('energy_excess_max_j'), '.4g')} (limit "
+                 f"{_fmt(sf['energy_limit'], 'g')}"
                  f"{', passivity controller on' if sf['passivity_controller'] else ''})")
     mk = lp.get("mock")
     if mk:
