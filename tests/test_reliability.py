@@ -55,7 +55,13 @@ class RecordingMock(MockDevice):
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self.config_times = []
+        self.stop_times = []
         self.trace = []
+
+    def handle(self, msg, now_us=0):
+        if isinstance(msg, fp.Stop):
+            self.stop_times.append(now_us)
+        return super().handle(msg, now_us)
 
     def _on_config(self, msg, now_us):
         out = super()._on_config(msg, now_us)
@@ -90,11 +96,13 @@ def assert_forces_safe(tr):
 
 def assert_zero_within_watchdog(mock, t_fault_us):
     """After the fault, the device applies zero within one watchdog period (+1 tick) and
-    holds it until the host's next CONFIG."""
+    holds it until the host's next CONFIG: its own watchdog zeroed the force (ticks at
+    zero), or the host's zero FORCE and STOP reached it by then (disarmed: no tick)."""
     t_next = min([t for t in mock.config_times if t > t_fault_us], default=math.inf)
-    after = [(t, f) for t, f in mock.trace
-             if t_fault_us + WATCHDOG_US + PERIOD_US < t < t_next]
-    assert after, "no device tick between the watchdog expiry and the recovery"
+    t_end = t_fault_us + WATCHDOG_US + PERIOD_US
+    after = [(t, f) for t, f in mock.trace if t_end < t < t_next]
+    stopped = [t for t in mock.stop_times if t_fault_us < t <= t_end]
+    assert after or stopped, "neither a tick at zero force nor a STOP by the watchdog expiry"
     assert all(f == 0.0 for _, f in after)
     before = [f for t, f in mock.trace if t < t_fault_us]
     assert any(f != 0.0 for f in before)        # it was pushing before the fault
@@ -177,9 +185,12 @@ def test_delay_spike_longer_than_watchdog_zeroes_force_and_recovers():
     res, mock, tr, tel = sim("spike@300:120ms", seed=9)
     assert tr.device.plan.injected["spike"] == 1
     assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
-    # the host's FORCEs stop with the STATEs: the device watchdog zeroes the force
+    # the host's FORCEs stop with the STATEs; the host's path to the device still works,
+    # so its zero FORCE and STOP, sent one watchdog period after its last FORCE, reach the
+    # device by the time the device's own watchdog would have zeroed the force
     assert_zero_within_watchdog(mock, 300 * PERIOD_US)
-    assert mock.totals()["watchdog_trips"] > 0
+    assert [t for t in mock.stop_times if 300 * PERIOD_US < t <= 300 * PERIOD_US + WATCHDOG_US
+            + PERIOD_US]
 
 
 def test_stalled_device_zeroes_force_and_recovers():
@@ -206,11 +217,98 @@ def test_device_reset_mid_run_rehandshakes():
     t0 = ev[0]["t_us"]
     assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
     assert res.hello_mid_run >= 1                 # the reset device said HELLO
-    # a reset device applies nothing until CONFIG: no tick between reset and recovery
-    t_next = min(t for t in mock.config_times if t > t0)
+    # a reset device applies nothing until CONFIG: no tick between reset and recovery (the
+    # host notices the reset at its HELLO: on the virtual clock, in the same microsecond)
+    t_next = min(t for t in mock.config_times if t >= t0)
     assert not [t for t, f in mock.trace if t0 < t < t_next]
     assert mock.totals()["configs"] == 2
     assert_forces_safe(tr)
+
+
+class TimedSim(SimTransport):
+    """SimTransport recording the virtual time [us] of every host send and STATE read."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.log = []           # (t_us, message sent)
+        self.states = []        # (t_us, seq) of the STATEs the host read
+
+    def send(self, msg):
+        self.log.append((self.now_us, msg))
+        super().send(msg)
+
+    def receive(self, timeout=0.0):
+        msgs = super().receive(timeout)
+        self.states.extend((self.now_us, m.seq) for m in msgs if isinstance(m, fp.State))
+        return msgs
+
+
+def timed_sim(spec, n=2000, seed=1, **kw):
+    scene = parse_scene(wall())
+    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = TimedSim(mock, parse_faults(spec, seed))
+    cfg = dict(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT, reconnect=True,
+               watchdog_us=WATCHDOG_US, position_bound=0.1)
+    cfg.update(kw)
+    loop = HostLoop(Engine(scene), tr, LoopConfig(**cfg), Telemetry(n))
+    return loop.run(), mock, tr, loop
+
+
+@pytest.mark.parametrize("host_clocked", [False, True])
+@pytest.mark.parametrize("spec", ["stall@400:200ms", "spike@400:120ms"])
+def test_silence_zero_force_and_stop_within_one_watchdog_period(spec, host_clocked):
+    """The device falls silent: the host's zero FORCE and STOP go out one watchdog period
+    (the default lost_timeout) after its last FORCE, when the device's own watchdog zeroes
+    the force, not later."""
+    res, mock, tr, loop = timed_sim(spec, host_clocked=host_clocked)
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    i_stop = next(i for i, (t, m) in enumerate(tr.log) if isinstance(m, fp.Stop))
+    before = tr.log[:i_stop + 1]
+    t_stop = before[-1][0]
+    assert isinstance(before[-2][1], fp.Force) and before[-2][1].force == (0.0,)
+    # the last FORCE answering a STATE before the silence: the device's watchdog starts
+    t_last = max(t for t, m in before[:-2] if isinstance(m, fp.Force))
+    t_state = max(t for t, _ in tr.states if t <= t_last)
+    assert 0.0 < (t_stop - t_last) * 1e-6 <= WATCHDOG_US * 1e-6
+    assert t_stop - t_state <= WATCHDOG_US + PERIOD_US
+    assert t_stop - t_last > WATCHDOG_US - PERIOD_US      # and not before the silence is one
+    lost = next(e for e in res.events if e["event"] == "lost")
+    assert lost["state"] == "lost" and "no STATE" in lost["reason"]
+    assert res.state == "armed" and loop.state == "stopped"
+
+
+@pytest.mark.parametrize("host_clocked", [False, True])
+def test_reset_is_a_loss_at_its_hello(host_clocked):
+    """A device reset says HELLO: the host declares the loss there, not after a silence."""
+    res, mock, tr, loop = timed_sim("reset@800", host_clocked=host_clocked)
+    t_reset = tr.device.events[0]["t_us"]
+    lost = next(e for e in res.events if e["event"] == "lost")
+    assert "HELLO" in lost["reason"] and lost["state"] == "lost"
+    t_lost = loop._t0 + lost["t"]
+    assert 0.0 <= t_lost - t_reset * 1e-6 < 0.5 * PERIOD_US * 1e-6
+    t_stop = next(t for t, m in tr.log if isinstance(m, fp.Stop) and t >= t_reset)
+    assert t_stop - t_reset < PERIOD_US
+    assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
+    assert res.hello_mid_run >= 1
+
+
+def test_hello_answering_a_retry_before_arming_is_not_a_reset():
+    """HELLOs that answer the handshake's requests may arrive after CONFIG: before the first
+    armed STATE they are counted, not taken for a reset."""
+    scene = parse_scene(wall())
+    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = SimTransport(mock)
+    loop = HostLoop(Engine(scene), tr, LoopConfig(rate_hz=1000.0, n_samples=500, delay=1,
+                                                  force_limit=LIMIT, reconnect=True),
+                    Telemetry(500))
+    orig = loop._send_config
+
+    def config_then_hello():
+        orig()
+        tr.device._send(mock.hello(), tr.now_us)    # a HELLO still on its way
+    loop._send_config = config_then_hello
+    res = loop.run()
+    assert res.hello_mid_run == 1 and res.lost == 0 and res.samples == 500
 
 
 def test_port_vanishing_and_coming_back():

@@ -50,9 +50,10 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller
   with max_damping [N s/m] that damps that excess.
-reliability: bad frames are counted and dropped; silence longer than --lost-timeout
-  (default 0.1 s; the device zeroes its force after its 50 ms watchdog), a port error or a
-  device reset -> zero force, STOP, then re-open, HELLO, CONFIG with backoff (at most
+reliability: bad frames are counted and dropped; silence for --lost-timeout (default:
+  the 50 ms watchdog period, when the device zeroes its force by itself), a port error or
+  a device reset (a HELLO after arming: noticed at once) -> zero force, STOP, state
+  'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
   state at the device's position, force ramped over 50 ms. --telemetry FILE.hst is a
   chunked journal written every 50 ms (a killed daemon loses < 100 ms; load it with
@@ -120,7 +121,8 @@ def register(sub) -> None:
     p.add_argument("--no-reconnect", action="store_true",
                    help="a lost device ends the run (exit 1) instead of being recovered")
     p.add_argument("--lost-timeout", type=float, metavar="S",
-                   help="silence after which the device is lost [s] (default 0.1)")
+                   help="silence after which the device is lost [s] (default: the watchdog "
+                        "period, 0.05)")
     p.add_argument("--reconnect-attempts", type=int, default=8, metavar="N",
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",

@@ -18,13 +18,16 @@ last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
 
 Reliability (both loops): bad frames are dropped by the decoder and never acted on;
 a STATE older than the last one (duplicated, reordered) is ignored (``stale``), one with the
-wrong number of axes too (``bad_axes``); silence longer than ``lost_timeout`` (default: the
-watchdog), a port error, or an unarmed STATE after arming make the device *lost*: zero FORCE
-and STOP are sent (best effort), then, when ``reconnect`` is on, the host re-opens the port if
-it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at most
-``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts from
-its initial state with the port at the device's position at rest, the force ramped up over
-``ramp_samples``. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
+wrong number of axes too (``bad_axes``); silence for ``lost_timeout`` (default: the
+watchdog period, so the host sends zero force and STOP when the device's own watchdog
+zeroes it), a port error, an unarmed STATE after arming, or a HELLO after the first armed
+STATE (the device reset: it says HELLO when it restarts) make the device *lost* at once:
+zero FORCE and STOP are sent (best effort), then, when ``reconnect`` is on, the host re-opens
+the port if it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at
+most ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts
+from its initial state with the port at the device's position at rest, the force ramped up
+over ``ramp_samples``. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
+``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
 counted; latched ones end the run. The host-clocked loop uses the same machinery (one
 driver, :meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its
 losses; :meth:`HostLoop._resume` restarts the scene): it answers the latest STATE at each
@@ -150,9 +153,15 @@ class LoopConfig:
         Recover a lost device (re-open, HELLO, CONFIG) instead of raising
         :class:`DeviceError` (device- and host-clocked loops).
     lost_timeout : float or None
-        Silence after which the device is lost [s]; None: ``watchdog_us``. Without
-        ``reconnect`` the silence allowed is ``state_timeout``; the first STATE after a
-        CONFIG may take up to ``state_timeout`` (a device restarting).
+        Silence after which the device is lost [s]; None: the watchdog period
+        ``watchdog_us``. After that long without a FORCE the device zeroes its force by
+        itself (PROTOCOL §5.2); the host sends zero force and STOP at the same moment, so
+        both sides agree the device is stopped, and starts recovering. A shorter timeout
+        would turn a delay spike that the device rides through (holding its force) into a
+        loss; a longer one only leaves the host believing it drives a device that has
+        already stopped. Without ``reconnect`` the silence allowed is ``state_timeout``;
+        the first STATE after a CONFIG may take up to ``state_timeout`` (a device
+        restarting).
     reconnect_attempts : int
         Most HELLO + CONFIG attempts per loss.
     reconnect_time : float
@@ -234,7 +243,9 @@ class LoopResult:
     unarmed : int
         STATEs without STATUS_ARMED (before the first armed one after CONFIG): ignored.
     hello_mid_run : int
-        HELLO messages received after the handshake (a reset, or answers to retries).
+        HELLO messages received after the handshake: before the first armed STATE after a
+        CONFIG they answer HELLO requests and are ignored; after it, the device reset and
+        is lost at once.
     device_faults : dict of str to int
         Non-latched FAULTs received, by name (the run goes on).
     lost : int
@@ -244,8 +255,14 @@ class LoopResult:
     reconnect_attempts : int
         HELLO + CONFIG attempts made in all.
     events : list of dict
-        ``{"event": "lost"|"attempt"|"recovered", "t": [s since arming], "sample",
-        ...}`` (off the hot path: only on faults).
+        ``{"event": "lost"|"lost again"|"attempt"|"recovered", "t": [s since arming],
+        "sample", "state", ...}`` (off the hot path: only on faults); ``state`` is the
+        loop's state once the event happened.
+    state : str
+        The loop's state when the run ended, before the final zero FORCE and STOP:
+        ``armed`` (ran to its end or was stopped while driving the device), ``lost`` or
+        ``recovering`` (stopped while recovering), ``handshake`` (stopped before the
+        device answered).
     energy : float
         Energy the virtual environment gave the hand since its last (re)start, ``E``, at
         the end [J] (module notes).
@@ -286,6 +303,7 @@ class LoopResult:
     recovered: int = 0
     reconnect_attempts: int = 0
     events: list = field(default_factory=list)
+    state: str = "idle"
     energy: float = 0.0
     energy_max: float = 0.0
     energy_stored: float = 0.0
@@ -321,6 +339,15 @@ class HostLoop:
         Preallocated buffer (capacity >= ``config.n_samples``).
     stop : StopFlag, optional
         Polled every sample.
+
+    Attributes
+    ----------
+    state : str
+        ``"idle"`` (not started), ``"handshake"`` (asking HELLO, sending CONFIG),
+        ``"armed"`` (CONFIG sent: driving the device, or waiting for its first STATE),
+        ``"lost"`` (silence, port error or reset seen: zero force and STOP sent),
+        ``"recovering"`` (re-opening, HELLO, CONFIG with backoff), ``"stopped"`` (zero
+        force and STOP sent at the end).
     """
 
     def __init__(self, engine, transport, config: LoopConfig, telemetry,
@@ -342,6 +369,7 @@ class HostLoop:
         self._energy = 0.0          # passivity observer E since the last (re)start [J]
         self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
         self.force_limit = math.inf
+        self.state = "idle"
 
     # ------------------------------------------------------------------ handshake
     def _ask_hello(self, timeout: float):
@@ -395,6 +423,7 @@ class HostLoop:
         """
         cfg = self.config
         tr = self.transport
+        self.state = "handshake"
         hello = self._ask_hello(cfg.hello_timeout)
         if hello is None:
             if self.stop.set:
@@ -405,6 +434,7 @@ class HostLoop:
         self._check_hello(hello)
         self._measure_ping()
         self._send_config()
+        self.state = "armed"
         self.result.hello = hello
         self._t0 = self._clock()
         return hello
@@ -460,7 +490,9 @@ class HostLoop:
             else:
                 self._run_stretches(self._device_clocked_stretch)
         finally:
+            self.result.state = self.state
             self._shutdown()
+            self.state = "stopped"
             if gc_was:
                 gc.enable()
         res = self.result
@@ -490,7 +522,7 @@ class HostLoop:
     # ------------------------------------------------------------------ recovery
     def _event(self, event: str, **kw) -> None:
         self.result.events.append({"event": event, "t": round(self._clock() - self._t0, 6),
-                                   "sample": self.tel.n, **kw})
+                                   "sample": self.tel.n, "state": self.state, **kw})
 
     def _recover(self, lost: _Lost) -> bool:
         """Zero force and STOP, then re-open / HELLO / CONFIG with backoff.
@@ -513,6 +545,7 @@ class HostLoop:
         clock = self._clock
         reason = str(lost)
         frames = tr.last_frames() or "(none received)"      # CONVENTIONS §11
+        self.state = "lost"
         if self._lost_since is None:
             self._lost_since = clock()
             self._attempts = 0
@@ -542,6 +575,7 @@ class HostLoop:
                     f"last frames:\n{tr.last_frames() or '(none received)'}")
             self._attempts += 1
             res.reconnect_attempts += 1
+            self.state = "recovering"
             self._event("attempt", n=self._attempts)
             try:
                 if port_error and hasattr(tr, "reopen"):
@@ -551,6 +585,7 @@ class HostLoop:
                 if hello is not None:
                     self._check_hello(hello)
                     self._send_config()
+                    self.state = "armed"
                     return True
                 last_err = f"no HELLO within {cfg.attempt_timeout:g} s"
             except DeviceError as exc:
@@ -627,8 +662,19 @@ class HostLoop:
         return self.engine
 
     def _note_other(self, msg) -> bool:
-        """A message other than STATE during the loop: count non-latched FAULTs and HELLOs;
-        a latched FAULT ends the run (returns True, stop flag set)."""
+        """A message other than STATE during the loop: count non-latched FAULTs and HELLOs.
+
+        A latched FAULT ends the run (returns True, stop flag set). A HELLO after the first
+        armed STATE since the last CONFIG means the device reset (it says HELLO when it
+        restarts): the device is lost at once (:class:`_Lost`) rather than after
+        ``lost_timeout`` of silence. Before that STATE a HELLO may answer one of the
+        handshake's HELLO requests and is only counted.
+
+        Raises
+        ------
+        _Lost
+            On a HELLO after arming.
+        """
         res = self.result
         tm = type(msg)
         if tm is fp.Fault:
@@ -641,6 +687,8 @@ class HostLoop:
             res.device_faults[name] = res.device_faults.get(name, 0) + 1
         elif tm is fp.Hello:
             res.hello_mid_run += 1
+            if not self._fresh:
+                raise _Lost("device reset: HELLO after arming")
         return False
 
     # ------------------------------------------------------------------ device-clocked
@@ -695,22 +743,25 @@ class HostLoop:
         f_max = res.f_max
         ramp_n = max(int(cfg.ramp_samples), 1)
         silence = self._silence()
+        # a device (re)starting after CONFIG gets state_timeout for its first STATE
+        first_wait = max(silence, cfg.state_timeout)
         poll = min(0.1, silence)
         i = tel.n
         last_rx = clock()
         try:
             while i < n_max and not stop.set:
+                # wait no longer than the silence still allowed: the loss is declared
+                # when it runs out (to 1 us), not a poll later
+                allowed = first_wait if self._fresh else silence
+                left = last_rx + allowed - clock()
                 try:
-                    msgs = receive(poll)
+                    msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
                 except DeviceError as exc:
                     raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
                 t_rx = perf()
                 if not msgs:
-                    quiet = clock() - last_rx
-                    # a device (re)starting after CONFIG gets state_timeout for its first STATE
-                    if quiet > silence and (not self._fresh or quiet > cfg.state_timeout):
-                        raise _Lost(f"no STATE from the device for "
-                                    f"{silence if not self._fresh else cfg.state_timeout:g} s")
+                    if clock() - last_rx >= allowed - 1e-6:
+                        raise _Lost(f"no STATE from the device for {allowed:g} s")
                     continue
                 for msg in msgs:
                     tm = type(msg)
@@ -936,7 +987,7 @@ class HostLoop:
                     # no new sample since the last tick: stepping the engine with a stale
                     # position would corrupt its velocity; skip this tick (counted)
                     res.missed += 1
-                    if clock() - last_new > silence:
+                    if clock() - last_new >= silence - 1e-6:
                         raise _Lost(f"no STATE from the device for {silence:g} s")
                     deadline += period_ns
                     continue

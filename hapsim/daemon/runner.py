@@ -338,8 +338,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     reconnect : bool, optional
         Recover a lost device (default: on in real time, off in lockstep).
     lost_timeout : float, optional
-        Silence after which the device is lost [s] (default 0.1 s in real time: two
-        watchdog periods; the device zeroes its force after one).
+        Silence after which the device is lost [s] (default: the watchdog period, 50 ms:
+        the device zeroes its force after one watchdog period without a FORCE, and the
+        host sends zero force and STOP then; see :class:`~hapsim.daemon.loop.LoopConfig`).
     reconnect_attempts : int
         Most HELLO + CONFIG attempts per loss.
     reconnect_time : float
@@ -438,8 +439,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                      energy_limit=sf.energy_limit,
                      passivity_controller=sf.passivity_controller,
                      max_damping=sf.max_damping, reconnect=bool(reconnect),
-                     lost_timeout=(lost_timeout if lost_timeout is not None
-                                   else (None if transport == "sim" else 0.1)),
+                     lost_timeout=lost_timeout,
                      reconnect_attempts=int(reconnect_attempts),
                      reconnect_time=float(reconnect_time))
     stop = stop or StopFlag()
@@ -579,7 +579,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "low_latency": bool(tr.info.get("low_latency")),
         "scheduling": rt.note,
         "low_latency_note": tr.info.get("low_latency_note", ""),
-        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop,
+        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop, "state": res.state,
+        "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
+        else cfg.watchdog_us * 1e-6,
         "decoder": res.decoder,
         "device": None if hello is None else {
             "device_id": hello.device_id, "force_limit": hello.force_limit,
@@ -688,7 +690,8 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/{lp['requested']} ticks, "
                  f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
-                 f"stop: {lp['stop_reason']}; scheduling {lp.get('scheduling', 'normal')}")
+                 f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
+                 f"{lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "

@@ -86,7 +86,10 @@ class SerialTransport:
     baud : int
         Baud rate (ignored by USB CDC-ACM devices and ptys).
     read_timeout : float
-        pyserial read timeout [s]: the longest a single blocking read waits.
+        pyserial read timeout [s]: the longest a single blocking read waits, hence the
+        resolution of :meth:`receive`'s ``timeout`` (the loop declares a silent device lost
+        after its watchdog period, 50 ms: 10 ms keeps that within a fifth of it; a read
+        returns as soon as a byte arrives, so it costs nothing while frames flow).
 
     Raises
     ------
@@ -100,7 +103,7 @@ class SerialTransport:
     recorded in :attr:`info` (``low_latency`` false with the reason).
     """
 
-    def __init__(self, port: str, baud: int = 115200, read_timeout: float = 0.05) -> None:
+    def __init__(self, port: str, baud: int = 115200, read_timeout: float = 0.01) -> None:
         import serial  # pyserial; imported here so in-process tests do not need it
 
         try:
