@@ -11,6 +11,7 @@ the counters say what happened. Faults about the port itself are also run over a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 import struct
@@ -27,7 +28,7 @@ from hapsim.daemon.runner import run_scene
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.daemon.transport import SimTransport
 from hapsim.engine import Engine
-from hapsim.errors import ConfigError, DeviceError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import parse_scene
 
 WATCHDOG_US = 50_000
@@ -309,6 +310,91 @@ def test_hello_answering_a_retry_before_arming_is_not_a_reset():
     loop._send_config = config_then_hello
     res = loop.run()
     assert res.hello_mid_run == 1 and res.lost == 0 and res.samples == 500
+
+
+class OtherDevice(RecordingMock):
+    """A mock whose HELLO announces another protocol version or axis count (from its
+    ``switch``-th HELLO on: 0 at once, 1 after a reset)."""
+
+    def __init__(self, *a, version=fp.PROTOCOL_VERSION, axes=1, switch=0, **kw):
+        super().__init__(*a, **kw)
+        self.other = (version, axes)
+        self.switch = switch
+        self.hellos = 0
+
+    def hello(self):
+        h = super().hello()
+        self.hellos += 1
+        if self.hellos > self.switch:
+            h = dataclasses.replace(h, protocol_version=self.other[0], n_axes=self.other[1])
+        return h
+
+
+@pytest.mark.parametrize("what, kw, match", [
+    ("version", {"version": fp.PROTOCOL_VERSION + 1}, "speaks protocol 2, hapsim speaks 1"),
+    ("axes", {"axes": 3}, "has 3 axes"),
+])
+def test_version_or_axes_mismatch_is_a_protocol_error(what, kw, match):
+    """At the handshake: ProtocolError (not DeviceError) with the last frames; never armed."""
+    scene = parse_scene(wall())
+    mock = OtherDevice(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False,
+                       **kw)
+    tr = SimTransport(mock)
+    tr.sent = []
+    loop = HostLoop(Engine(scene), tr, LoopConfig(rate_hz=1000.0, n_samples=100,
+                                                  reconnect=True), Telemetry(100))
+    with pytest.raises(ProtocolError, match=match) as ei:
+        loop.run()
+    assert not isinstance(ei.value, DeviceError) and "last frames" in str(ei.value)
+    assert "ok: " in str(ei.value)                  # the HELLO frame itself
+    assert not any(isinstance(m, (fp.Config, fp.Force)) for m in tr.sent) and not mock.trace
+
+
+@pytest.mark.parametrize("kw, match", [({"version": 7}, "speaks protocol 7"),
+                                       ({"axes": 2}, "has 2 axes")])
+def test_device_back_after_a_reset_as_another_device_is_a_protocol_error(kw, match, tmp_path):
+    """After a reset the device says HELLO as another device: the run ends with a
+    ProtocolError (no reconnect attempts spent), zero force and STOP were sent, and the
+    telemetry logged so far is kept."""
+    import hapsim.daemon.runner as runner_mod
+    scene = parse_scene(wall(), str(tmp_path / "w.yaml"))
+
+    made = []
+
+    class Mock(OtherDevice):
+        def __init__(self, *a, **k):
+            super().__init__(*a, switch=1, **kw, **k)
+            made.append(self)
+
+    path = str(tmp_path / "t.npz")
+    orig = runner_mod.MockDevice
+    runner_mod.MockDevice = Mock
+    try:
+        with pytest.raises(ProtocolError, match=match):
+            run_scene(scene, transport="sim", duration=2.0, faults="reset@500",
+                      handle_signals=False, telemetry=path)
+    finally:
+        runner_mod.MockDevice = orig
+    mock, = made
+    assert mock.stop_times and mock.stats.last_applied == 0.0 and not mock.armed
+    assert mock.stats.last_host_message == "Stop" and mock.config_times[-1] < 0.5e6
+    assert load(path)["seq"].size == 500           # the samples before the reset
+
+
+def test_protocol_error_exits_1_from_the_cli(tmp_path, capsys, monkeypatch):
+    import hapsim.daemon.runner as runner_mod
+    path = tmp_path / "w.yaml"
+    path.write_text(wall())
+
+    class Mock(OtherDevice):
+        def __init__(self, *a, **k):
+            super().__init__(*a, axes=2, **k)
+    monkeypatch.setattr(runner_mod, "MockDevice", Mock)
+    real = runner_mod.run_scene
+    monkeypatch.setattr(runner_mod, "run_scene",
+                        lambda *a, **k: real(*a, **{**k, "transport": "sim"}))
+    assert main(["run", str(path)]) == 1
+    assert "ProtocolError" in capsys.readouterr().err
 
 
 def test_port_vanishing_and_coming_back():

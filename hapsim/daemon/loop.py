@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.errors import DeviceError
+from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
            "LATCHED_FAULTS"]
@@ -392,12 +392,29 @@ class HostLoop:
                     return msg
 
     def _check_hello(self, hello) -> None:
+        """Check a HELLO and set the force limit from it.
+
+        Parameters
+        ----------
+        hello : firmware_protocol.Hello
+            The device's HELLO.
+
+        Raises
+        ------
+        ProtocolError
+            The device speaks another protocol version, or has another number of axes
+            than 1 (the message carries the last frames received, CONVENTIONS §11).
+        """
         cfg = self.config
         if hello.protocol_version != fp.PROTOCOL_VERSION:
-            raise DeviceError(f"device speaks protocol {hello.protocol_version}, "
-                              f"hapsim speaks {fp.PROTOCOL_VERSION}")
+            raise ProtocolError(f"device speaks protocol {hello.protocol_version}, "
+                                f"hapsim speaks {fp.PROTOCOL_VERSION} (port "
+                                f"{self.transport.info.get('port')}); last frames:\n"
+                                f"{self.transport.last_frames() or '(none received)'}")
         if hello.n_axes != 1:
-            raise DeviceError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF devices")
+            raise ProtocolError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF "
+                                f"devices (port {self.transport.info.get('port')}); last "
+                                f"frames:\n{self.transport.last_frames() or '(none received)'}")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
 
@@ -419,7 +436,9 @@ class HostLoop:
         Raises
         ------
         DeviceError
-            No HELLO within ``hello_timeout``, a protocol version mismatch, or not 1 axis.
+            No HELLO within ``hello_timeout``.
+        ProtocolError
+            A protocol version mismatch, or not 1 axis.
         """
         cfg = self.config
         tr = self.transport
@@ -470,8 +489,12 @@ class HostLoop:
         Raises
         ------
         DeviceError
-            Device silent or lost beyond recovery, port failure, or handshake failure
-            (zero force + STOP are still attempted).
+            Device silent or lost beyond recovery, port failure, or no HELLO (zero force +
+            STOP are still attempted).
+        ProtocolError
+            The device (at the handshake or when it came back after a loss) speaks another
+            protocol version or has another number of axes than 1 (zero force + STOP are
+            still attempted).
         """
         gc_was = gc.isenabled()
         gc.collect()             # before CONFIG arms the device: a real-time device ticks
@@ -536,8 +559,9 @@ class HostLoop:
         Raises
         ------
         DeviceError
-            ``reconnect`` is off, or the attempts / time allowed for this loss are used up,
-            or the device that answered is not one hapsim can drive.
+            ``reconnect`` is off, or the attempts / time allowed for this loss are used up.
+        ProtocolError
+            The device that answered is not one hapsim can drive (version, axes).
         """
         cfg = self.config
         tr = self.transport
@@ -588,9 +612,7 @@ class HostLoop:
                     self.state = "armed"
                     return True
                 last_err = f"no HELLO within {cfg.attempt_timeout:g} s"
-            except DeviceError as exc:
-                if "protocol" in str(exc) or "axes" in str(exc):
-                    raise
+            except DeviceError as exc:        # ProtocolError (not a DeviceError) ends it
                 last_err = str(exc).split("\n")[0]
                 port_error = True
             if self.stop.set:

@@ -33,7 +33,7 @@ from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry
-from hapsim.errors import ConfigError, DeviceError, UnstableConfigError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -363,6 +363,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Target not renderable, or unstable loop without ``allow_unstable``.
     DeviceError
         Port failure or silent device.
+    ProtocolError
+        The device speaks another protocol version or has another number of axes than 1.
     """
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
@@ -494,7 +496,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         loop = HostLoop(engine, tr, cfg, tel, stop)
         try:
             res = loop.run()
-        except DeviceError:
+        except (DeviceError, ProtocolError):
             if writer is not None:
                 writer.close()
                 writer = None
