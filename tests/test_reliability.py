@@ -145,6 +145,50 @@ def test_corrupted_bytes_are_counted_and_never_acted_on():
     assert_forces_safe(tr)
 
 
+def test_bad_frames_are_recorded_with_their_bytes_and_the_frames_before():
+    """CONVENTIONS §11: a bad frame that causes no loss leaves a record, not only a count."""
+    from hapsim.daemon.loop import BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS
+    res, mock, tr, tel = sim("corrupt=0.02,garbage=0.005", seed=4)
+    dec = res.decoder
+    seen = sum(v for k, v in dec.items() if k != "frames_ok")
+    assert res.lost == 0 and res.bad_frames_seen == seen > BAD_FRAME_RECORDS
+    recs = res.bad_frames
+    assert len(recs) == BAD_FRAME_RECORDS                 # bounded: the latest ones
+    assert [r["sample"] for r in recs] == sorted(r["sample"] for r in recs)
+    for r in recs:
+        assert r["outcome"] == "dropped" and 0 < r["sample"] <= 2000 and r["t"] > 0
+        assert 1 <= len(r["before"]) <= BAD_FRAME_CONTEXT
+        assert all(b.split(": ")[0] in set(dec) | {"ok"} for b in r["before"])
+        # the bytes recorded are the bad frame: decoded again they fail the same way
+        again = fp.StreamDecoder()
+        assert again.feed(bytes.fromhex(r["hex"].replace(" ", "")) + b"\x00") == []
+        assert getattr(again.stats, r["kind"]) == 1
+
+
+def test_bad_frame_before_a_loss_says_so():
+    res, mock, tr, tel = sim("corrupt@500,stall@501:200ms", n=1500)
+    assert res.bad_frames_seen == 1 and res.lost == 1
+    r, = res.bad_frames
+    assert r["sample"] == 500 and r["kind"] in ("bad_crc", "bad_cobs")
+    assert r["outcome"].startswith("dropped; then lost: no STATE")
+    assert len(r["before"]) == 8 and all(b.startswith("ok: ") for b in r["before"])
+
+
+def test_bad_frames_in_the_report(tmp_path):
+    from hapsim.daemon.runner import format_report
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=1.0, faults="corrupt=0.01",
+                    fault_seed=5, handle_signals=False)
+    lp = rep["loop"]
+    assert lp["bad_frames_seen"] > 0 and lp["bad_frames"]
+    assert lp["bad_frames"][0].keys() >= {"sample", "t", "kind", "hex", "before", "outcome"}
+    text = format_report(rep)
+    line = next(ln for ln in text.splitlines() if ln.startswith("bad frames:"))
+    assert f"{lp['bad_frames_seen']} dropped" in line and "loop.bad_frames" in line
+    # no bad frame: no record, no line
+    clean = run_scene(parse_scene(wall()), transport="sim", duration=0.2, handle_signals=False)
+    assert clean["loop"]["bad_frames"] == [] and "bad frames:" not in format_report(clean)
+
+
 def test_garbage_bursts_resynchronise():
     res, mock, tr, tel = sim("garbage=0.05", seed=5)
     inj = tr.device.plan.injected["garbage"]

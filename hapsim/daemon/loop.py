@@ -16,7 +16,11 @@ last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
 ``velocity_limit``, or the energy the virtual environment gave the hand beyond
 ``energy_limit``. Every end sends a zero FORCE then STOP.
 
-Reliability (both loops): bad frames are dropped by the decoder and never acted on;
+Reliability (both loops): bad frames are dropped by the decoder and never acted on, and
+each is recorded (CONVENTIONS §11: sample, time, what the decoder found, its bytes and the
+frames before it; the last ``BAD_FRAME_RECORDS``): the loop compares the decoder's bad-frame
+count after each read (five integer reads) and only when it changed copies the references
+of the decoder's last frames, formatted at the end of the run;
 a STATE older than the last one (duplicated, reordered) is ignored (``stale``), one with the
 wrong number of axes too (``bad_axes``); silence for ``lost_timeout`` (default: the
 watchdog period, so the host sends zero force and STOP when the device's own watchdog
@@ -60,6 +64,7 @@ from __future__ import annotations
 import gc
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,10 +73,15 @@ import firmware_protocol as fp
 from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
-           "LATCHED_FAULTS"]
+           "LATCHED_FAULTS", "BAD_FRAME_RECORDS"]
 
 _U32 = 0xFFFFFFFF
 _HALF = 0x80000000
+
+#: Bad-frame incidents kept in :attr:`LoopResult.bad_frames` (the latest ones).
+BAD_FRAME_RECORDS = 32
+#: Frames received before a bad one that its record shows (at most).
+BAD_FRAME_CONTEXT = 8
 
 #: Fault codes that latch on the device (PROTOCOL.md §4): they end the run.
 LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLIFIER,
@@ -233,6 +243,18 @@ class LoopResult:
         FAULT names received.
     decoder : dict
         Stream decoder counters (serial transports).
+    bad_frames : list of dict
+        The last :data:`BAD_FRAME_RECORDS` bad frames the decoder dropped, oldest first:
+        ``sample`` (rows logged before it), ``t`` [s since arming, when the loop read it],
+        ``kind`` (the decoder counter it fed: ``bad_crc``, ``bad_cobs``, ``overlong``,
+        ``unknown_type``, ``malformed``), ``hex`` (its COBS bytes), ``before`` (the frames
+        received before it, at most :data:`BAD_FRAME_CONTEXT`, ``"outcome: hex"``, oldest
+        first), ``outcome`` (``"dropped"``,
+        or ``"dropped; then lost: REASON"`` when the device was lost before another sample).
+        ``kind`` is ``"unrecorded"`` for frames that left the decoder's history before the
+        loop read it (more than its 16 frames in one read).
+    bad_frames_seen : int
+        Bad frames counted while the loop ran (all of them, recorded or not).
     ping_rtt_us : dict
         PING -> PONG round trip before arming [us]: ``p50``, ``p99``, ``p999``, ``max``,
         ``answered``, ``sent``.
@@ -293,6 +315,8 @@ class LoopResult:
     hello: object = None
     faults: list = field(default_factory=list)
     decoder: dict = field(default_factory=dict)
+    bad_frames: list = field(default_factory=list)
+    bad_frames_seen: int = 0
     ping_rtt_us: dict = field(default_factory=dict)
     stale: int = 0
     bad_axes: int = 0
@@ -370,6 +394,11 @@ class HostLoop:
         self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
         self.force_limit = math.inf
         self.state = "idle"
+        dec = getattr(transport, "decoder", None)
+        self._dstats = dec.stats if dec is not None else None
+        self._nbad = _bad_count(self._dstats) if dec is not None else 0
+        self._nbad0 = self._nbad
+        self._bad_snaps: deque = deque(maxlen=BAD_FRAME_RECORDS)
 
     # ------------------------------------------------------------------ handshake
     def _ask_hello(self, timeout: float):
@@ -526,7 +555,63 @@ class HostLoop:
         dec = getattr(self.transport, "decoder", None)
         if dec is not None:
             res.decoder = dec.stats.as_dict()
+            self._check_bad()
+            res.bad_frames_seen = self._nbad - self._nbad0
+            res.bad_frames = self._bad_frame_records()
         return res
+
+    # ------------------------------------------------------------------ bad frames
+    def _check_bad(self) -> None:
+        """Snapshot the decoder's last frames if its bad-frame count changed (rare: only
+        on a fault, so the copy is not paid per sample)."""
+        ds = self._dstats
+        if ds is None:
+            return
+        n = _bad_count(ds)
+        if n != self._nbad:
+            self._snap_bad(n)
+
+    def _snap_bad(self, n: int) -> int:
+        """Record that the bad-frame count is now ``n``: sample, time and the references of
+        the decoder's last frames (formatted later by :meth:`_bad_frame_records`).
+
+        Parameters
+        ----------
+        n : int
+            The decoder's bad-frame count now.
+
+        Returns
+        -------
+        int
+            ``n``.
+        """
+        delta = n - self._nbad
+        self._nbad = n
+        self._bad_snaps.append((self.tel.n, self._clock() - self._t0, delta,
+                                tuple(self.transport.decoder.last_frames)))
+        return n
+
+    def _bad_frame_records(self) -> list:
+        """The recorded bad frames as dicts (see :attr:`LoopResult.bad_frames`)."""
+        out = []
+        lost = {}
+        for ev in self.result.events:
+            if ev["event"] in ("lost", "lost again"):
+                lost.setdefault(ev["sample"], ev.get("reason", ""))
+        for sample, t, delta, frames in self._bad_snaps:
+            bad = [j for j, (_, oc) in enumerate(frames) if oc != "ok"][-delta:]
+            outcome = "dropped" if sample not in lost else f"dropped; then lost: {lost[sample]}"
+            for _ in range(delta - len(bad)):
+                out.append({"sample": sample, "t": round(t, 6), "kind": "unrecorded",
+                            "hex": "", "before": [], "outcome": outcome})
+            for j in bad:
+                raw, oc = frames[j]
+                out.append({"sample": sample, "t": round(t, 6), "kind": oc,
+                            "hex": raw.hex(" "),
+                            "before": [f"{o}: {r.hex(' ')}"
+                                       for r, o in frames[max(j - BAD_FRAME_CONTEXT, 0):j]],
+                            "outcome": outcome})
+        return out[-BAD_FRAME_RECORDS:]
 
     def _shutdown(self) -> None:
         tr = self.transport
@@ -569,6 +654,7 @@ class HostLoop:
         clock = self._clock
         reason = str(lost)
         frames = tr.last_frames() or "(none received)"      # CONVENTIONS §11
+        self._check_bad()
         self.state = "lost"
         if self._lost_since is None:
             self._lost_since = clock()
@@ -770,6 +856,8 @@ class HostLoop:
         poll = min(0.1, silence)
         i = tel.n
         last_rx = clock()
+        ds = self._dstats
+        nbad = self._nbad
         try:
             while i < n_max and not stop.set:
                 # wait no longer than the silence still allowed: the loss is declared
@@ -781,6 +869,10 @@ class HostLoop:
                 except DeviceError as exc:
                     raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
                 t_rx = perf()
+                if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
+                                       + ds.unknown_type) != nbad:
+                    nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
+                                          + ds.malformed + ds.unknown_type)
                 if not msgs:
                     if clock() - last_rx >= allowed - 1e-6:
                         raise _Lost(f"no STATE from the device for {allowed:g} s")
@@ -951,9 +1043,15 @@ class HostLoop:
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
 
+        ds = self._dstats
+
         def take(msgs) -> None:
-            """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted."""
+            """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted;
+            a change of the decoder's bad-frame count is recorded."""
             nonlocal latest
+            if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
+                                   + ds.unknown_type) != self._nbad:
+                self._snap_bad(_bad_count(ds))
             for msg in msgs:
                 if type(msg) is not State:
                     self._note_other(msg)
@@ -1089,6 +1187,11 @@ class HostLoop:
         finally:
             self._energy = energy
             res.energy = energy
+
+
+def _bad_count(ds) -> int:
+    """Frames a decoder dropped so far (its :class:`~firmware_protocol.DecoderStats`)."""
+    return ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed + ds.unknown_type
 
 
 def _stored_energy(engine) -> float:

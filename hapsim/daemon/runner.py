@@ -585,6 +585,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
         else cfg.watchdog_us * 1e-6,
         "decoder": res.decoder,
+        "bad_frames": res.bad_frames, "bad_frames_seen": res.bad_frames_seen,
         "device": None if hello is None else {
             "device_id": hello.device_id, "force_limit": hello.force_limit,
             "native_rate_hz": hello.native_rate_hz},
@@ -718,6 +719,17 @@ def format_report(rep: dict) -> str:
         if lp.get("fault_plan"):
             lines.append(f"injected: {lp['fault_plan']['injected']} "
                          f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
+    bf = lp.get("bad_frames") or []
+    if bf:
+        kinds: dict = {}
+        for r in bf:
+            kinds[r["kind"]] = kinds.get(r["kind"], 0) + 1
+        last = bf[-1]
+        shown = last["hex"] if len(last["hex"]) <= 48 else last["hex"][:45] + "..."
+        lines.append(f"bad frames: {lp.get('bad_frames_seen', len(bf))} dropped, last "
+                     f"{len(bf)} recorded ({', '.join(f'{k} {v}' for k, v in kinds.items())}); "
+                     f"last at sample {last['sample']}, t = {last['t']:.3f} s: {last['kind']} "
+                     f"{shown} ({last['outcome']}); all in --json loop.bad_frames")
     sf = lp["safety"]
     lines.append(f"energy to the hand [J]: max {_fmt(lp.get('energy_max_j'), '.4g')}, end "
                  f"{_fmt(lp.get('energy_j'), '.4g')}; stored at start "
