@@ -262,6 +262,11 @@ class LoopResult:
         STATEs older than the last one used (duplicated or reordered): ignored.
     bad_axes : int
         STATEs with another number of axes than HELLO's: ignored.
+    implausible : int
+        STATEs whose seq is further ahead of the last one used than the time since then
+        allows (more than ``(elapsed + lost_timeout) rate + 2``): forged, or corrupted
+        beyond what the CRC catches; ignored (accepting one would make every real STATE
+        after it look stale).
     unarmed : int
         STATEs without STATUS_ARMED (before the first armed one after CONFIG): ignored.
     hello_mid_run : int
@@ -320,6 +325,7 @@ class LoopResult:
     ping_rtt_us: dict = field(default_factory=dict)
     stale: int = 0
     bad_axes: int = 0
+    implausible: int = 0
     unarmed: int = 0
     hello_mid_run: int = 0
     device_faults: dict = field(default_factory=dict)
@@ -877,6 +883,7 @@ class HostLoop:
                     if clock() - last_rx >= allowed - 1e-6:
                         raise _Lost(f"no STATE from the device for {allowed:g} s")
                     continue
+                i_before = i
                 for msg in msgs:
                     tm = type(msg)
                     if tm is not State:
@@ -892,7 +899,6 @@ class HostLoop:
                             res.unarmed += 1
                             continue
                         raise _Lost("the device reports itself disarmed (reset?)")
-                    last_rx = clock()
                     x = msg.position[0]
                     if self._fresh:
                         if not isfinite(x):
@@ -911,7 +917,13 @@ class HostLoop:
                         if gap >= _HALF:
                             res.stale += 1            # duplicated or reordered: older
                             continue
+                        if gap and gap > (clock() - last_rx + silence) * rate + 2.0:
+                            res.implausible += 1      # further ahead than time allows
+                            continue
                         res.missed += gap
+                    # only a STATE used keeps the device alive: a host ignoring every
+                    # STATE (stale, implausible) is as good as deaf, and loses it
+                    last_rx = clock()
                     expect = (seq + 1) & _U32
                     lt = 0
                     if seq >= d and ((seq - msg.force_seq) & _U32 != d or msg.status & overrun_bit):
@@ -983,6 +995,11 @@ class HostLoop:
                         break
                     if i >= n_max:
                         break
+                if (i == i_before and not stop.set
+                        and clock() - last_rx >= (first_wait if self._fresh else silence) - 1e-6):
+                    # frames came, but no STATE the loop could use for the silence allowed
+                    raise _Lost(f"no usable STATE from the device for "
+                                f"{first_wait if self._fresh else silence:g} s")
         except DeviceError as exc:        # a write failed: the port is gone
             raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
         finally:
@@ -1042,13 +1059,14 @@ class HostLoop:
         receive, send = tr.receive, tr.send
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
+        t_latest = 0.0              # clock time the latest STATE was taken [s]
 
         ds = self._dstats
 
         def take(msgs) -> None:
             """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted;
             a change of the decoder's bad-frame count is recorded."""
-            nonlocal latest
+            nonlocal latest, t_latest
             if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
                                    + ds.unknown_type) != self._nbad:
                 self._snap_bad(_bad_count(ds))
@@ -1064,10 +1082,16 @@ class HostLoop:
                         res.unarmed += 1
                         continue
                     raise _Lost("the device reports itself disarmed (reset?)")
-                if latest is not None and ((msg.seq - latest.seq) & _U32) >= _HALF:
-                    res.stale += 1                # duplicated or reordered: older
-                    continue
+                if latest is not None:
+                    ahead = (msg.seq - latest.seq) & _U32
+                    if ahead >= _HALF:
+                        res.stale += 1            # duplicated or reordered: older
+                        continue
+                    if ahead > 1 and ahead > (clock() - t_latest + silence) * rate + 2.0:
+                        res.implausible += 1      # further ahead than time allows
+                        continue
                 latest = msg
+                t_latest = clock()
 
         try:
             # wait for the first armed STATE (a device (re)starting gets state_timeout)

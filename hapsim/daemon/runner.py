@@ -592,6 +592,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "mock": mock_report,
         "excitation_end_s": exc_end,
         "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
+        "implausible": res.implausible,
         "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
         "lost": res.lost, "recovered": res.recovered,
         "reconnect_attempts": res.reconnect_attempts, "events": res.events,
@@ -704,12 +705,13 @@ def format_report(rep: dict) -> str:
                  f"{_fmt(ta.get('p99'), '.0f')}  p99.9 {_fmt(ta.get('p999'), '.0f')}  max "
                  f"{_fmt(ta.get('max'), '.0f')}; low-latency mode {ll}")
     if lp.get("lost") or lp.get("stale") or lp.get("bad_axes") or lp.get("device_faults") \
-            or lp.get("fault_plan"):
+            or lp.get("fault_plan") or lp.get("implausible"):
         dec = lp.get("decoder") or {}
         bad = sum(v for k, v in dec.items() if k != "frames_ok")
         lines.append(f"faults: lost {lp['lost']}, recovered {lp['recovered']} "
                      f"({lp['reconnect_attempts']} attempts), stale {lp['stale']}, bad frames "
-                     f"{bad}, wrong axes {lp['bad_axes']}, device faults "
+                     f"{bad}, wrong axes {lp['bad_axes']}, implausible seq "
+                 f"{lp.get('implausible', 0)}, device faults "
                      f"{lp['device_faults'] or 0}")
         for ev in lp.get("events", []):
             if ev["event"] in ("lost", "recovered"):
