@@ -134,7 +134,10 @@ def test_cli_allow_unstable_safety_stop_zero_force(tmp_path, capsys):
     assert lp["mock"]["last_host_message"] == "Stop"
 
 
-def test_sigterm_mid_run_stops_device_and_flushes_telemetry(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig):
+    """SIGTERM (a service manager) and SIGINT (Ctrl-C) mid-run: zero force and STOP, the
+    telemetry complete and loadable, exit 0."""
     report = str(tmp_path / "mock.json")
     tel = str(tmp_path / "run.npz")
     mock, port = start_mock("--scene", WALL, "--report", report)
@@ -146,11 +149,11 @@ def test_sigterm_mid_run_stops_device_and_flushes_telemetry(tmp_path):
         assert "closing the loop" in line, line
         time.sleep(1.0)
         assert run.poll() is None, run.stderr.read()
-        run.send_signal(signal.SIGTERM)
+        run.send_signal(sig)
         out, err = run.communicate(timeout=30)
         assert run.returncode == 0, err
         rep = json.loads(out)
-        assert rep["loop"]["stop_reason"] == "signal SIGTERM"
+        assert rep["loop"]["stop_reason"] == f"signal {sig.name}"
         assert mock.wait(timeout=10) == 0
     finally:
         for p in (mock,):
@@ -165,6 +168,32 @@ def test_sigterm_mid_run_stops_device_and_flushes_telemetry(tmp_path):
         seen = json.load(fh)
     assert seen["saw_stop"] and seen["last_applied"] == 0.0
     assert seen["last_host_message"] == "Stop"
+
+
+@pytest.mark.parametrize("transport", ["sim", "pty"])
+def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, monkeypatch):
+    """Ctrl-C while numba warms up (or the embedded mock starts) is not a KeyboardInterrupt:
+    the handlers are in place, the run ends before CONFIG with no FORCE but the final zero
+    one, then STOP; report and (empty) telemetry are written, exit code 0."""
+    import hapsim.daemon.runner as runner_mod
+    from hapsim.daemon.runner import format_report
+    real = runner_mod._warm_up
+
+    def warm_up_then_ctrl_c(scene):
+        real(scene)
+        os.kill(os.getpid(), signal.SIGINT)
+    monkeypatch.setattr(runner_mod, "_warm_up", warm_up_then_ctrl_c)
+    before = signal.getsignal(signal.SIGINT)
+    tel = str(tmp_path / "t.npz")
+    rep = run_scene(load_scene(WALL), transport=transport, duration=5.0, telemetry=tel)
+    assert signal.getsignal(signal.SIGINT) is before          # restored
+    lp = rep["loop"]
+    assert lp["stop_reason"] == "signal SIGINT" and lp["ticks"] == 0 and rep["exit_code"] == 0
+    mk = lp["mock"]
+    assert mk["saw_stop"] and mk["last_applied"] == 0.0 and mk["ticks"] == 0
+    assert mk["totals"]["configs"] == 0 and mk["forces_rx"] == 0     # never armed, never pushed
+    assert load_telemetry(tel)["seq"].size == 0
+    assert "signal SIGINT" in format_report(rep)
 
 
 def test_real_time_embedded_wall_measures_roughly_the_prediction():

@@ -43,7 +43,8 @@ what the numbers mean:
 timing: STATE n carries x(nT); FORCE n is computed from x[n], x[n-1] and applied over
   [(n+d)T, (n+d+1)T) by the device's zero-order hold.
 safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM -> zero
-  force, STOP, telemetry flushed, exit 0; an unstable scene is refused unless
+  force, STOP, telemetry flushed, exit 0 (from the numba warm-up on: Ctrl-C during
+  start-up ends before the device is armed); an unstable scene is refused unless
   --allow-unstable, which runs it under safety stops (force at the limit in half of the
   last 100 samples, position beyond bounds, non-finite values) that end with zero force;
   the scene's 'safety:' section adds position_limit [m], velocity_limit [m/s],

@@ -31,8 +31,9 @@ the port if it failed, asks for HELLO and sends CONFIG again, with exponential b
 most ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts
 from its initial state with the port at the device's position at rest, the force ramped up
 over ``ramp_samples``. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
-``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are
-counted; latched ones end the run. The host-clocked loop uses the same machinery (one
+``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device
+FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are counted; latched ones end the
+run. The host-clocked loop uses the same machinery (one
 driver, :meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its
 losses; :meth:`HostLoop._resume` restarts the scene): it answers the latest STATE at each
 host deadline, and silence longer than ``lost_timeout`` is a loss like in the

@@ -322,7 +322,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     stop : StopFlag, optional
         External stop flag; a new one otherwise.
     handle_signals : bool
-        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only).
+        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only),
+        from before the numba warm-up and the start of the embedded mock: a signal during
+        start-up ends the run at once, before CONFIG (no FORCE but the final zero one,
+        then STOP), with exit code 0. Restored on return.
     rt_priority : int
         ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
         pty or a serial port, where the OS permits it; 0 for normal scheduling. Restored
@@ -423,74 +426,77 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     n_samples = max(int(round(duration * scene.rate_hz)), 1)
 
     from hapsim.engine import Engine
-    limit_blas_threads(1)
-    _warm_up(scene)
-    engine = Engine(scene)
-    tel = Telemetry(n_samples)
-    x0 = abs(scene.excitation.x0)
-    sf = scene.safety
-    pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
-    cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
-                     force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
-                     state_timeout=(0.5 if transport == "inprocess" else 10.0) if lockstep
-                     else 1.0,
-                     # the embedded mock is a fresh Python process (imports take seconds
-                     # on a loaded machine); hardware answers at once
-                     hello_timeout=30.0 if transport == "pty" else 5.0,
-                     position_bound=pos_bound, velocity_limit=sf.velocity_limit,
-                     energy_limit=sf.energy_limit,
-                     passivity_controller=sf.passivity_controller,
-                     max_damping=sf.max_damping, reconnect=bool(reconnect),
-                     lost_timeout=lost_timeout,
-                     reconnect_attempts=int(reconnect_attempts),
-                     reconnect_time=float(reconnect_time))
+    # Ctrl-C / SIGTERM from here on request a clean stop instead of raising: during the
+    # numba warm-up or while the embedded mock starts, the loop then ends at once (no
+    # FORCE but the final zero one, then STOP), with the report and the telemetry
     stop = stop or StopFlag()
-    embedded = None
-    mock_report = None
-    rt = RealtimePriority(rt_priority if transport in ("pty", "serial") else 0)
-    rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-    if transport == "inprocess":
-        from hapsim.daemon.transport import InProcessTransport
-        mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
-                          seed=seed, base_dir=base_dir)
-        tr = InProcessTransport(mock)
-    elif transport == "sim":
-        from hapsim.daemon.transport import SimTransport
-        mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
-                          seed=seed, base_dir=base_dir)
-        tr = SimTransport(mock, plan)
-    elif transport == "pty":
-        from hapsim.daemon.transport import EmbeddedMock, SerialTransport
-        embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                seed=seed, base_dir=base_dir, faults=faults or None,
-                                fault_seed=fault_seed)
-        try:
-            tr = SerialTransport(embedded.port, baud)
-        except Exception:
-            embedded.close()
-            rt.__exit__(None, None, None)
-            raise
-        embedded.release_slave()
-    else:
-        from hapsim.daemon.transport import SerialTransport
-        try:
-            tr = SerialTransport(port, baud)
-        except Exception:
-            rt.__exit__(None, None, None)
-            raise
-
     old = {}
     if handle_signals and threading.current_thread() is threading.main_thread():
         def _on_signal(signum, frame):
             stop.request(signum)
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, _on_signal)
+    embedded = None
+    mock_report = None
+    rt = None
+    try:
+        limit_blas_threads(1)
+        _warm_up(scene)
+        engine = Engine(scene)
+        tel = Telemetry(n_samples)
+        x0 = abs(scene.excitation.x0)
+        sf = scene.safety
+        pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
+        cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
+                         force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
+                         state_timeout=(0.5 if transport == "inprocess" else 10.0) if lockstep
+                         else 1.0,
+                         # the embedded mock is a fresh Python process (imports take seconds
+                         # on a loaded machine); hardware answers at once
+                         hello_timeout=30.0 if transport == "pty" else 5.0,
+                         position_bound=pos_bound, velocity_limit=sf.velocity_limit,
+                         energy_limit=sf.energy_limit,
+                         passivity_controller=sf.passivity_controller,
+                         max_damping=sf.max_damping, reconnect=bool(reconnect),
+                         lost_timeout=lost_timeout,
+                         reconnect_attempts=int(reconnect_attempts),
+                         reconnect_time=float(reconnect_time))
+        rt = RealtimePriority(rt_priority if transport in ("pty", "serial") else 0)
+        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
+        if transport == "inprocess":
+            from hapsim.daemon.transport import InProcessTransport
+            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
+                              seed=seed, base_dir=base_dir)
+            tr = InProcessTransport(mock)
+        elif transport == "sim":
+            from hapsim.daemon.transport import SimTransport
+            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
+                              seed=seed, base_dir=base_dir)
+            tr = SimTransport(mock, plan)
+        elif transport == "pty":
+            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
+            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
+                                    seed=seed, base_dir=base_dir, faults=faults or None,
+                                    fault_seed=fault_seed)
+            tr = SerialTransport(embedded.port, baud)
+            embedded.release_slave()
+        else:
+            from hapsim.daemon.transport import SerialTransport
+            tr = SerialTransport(port, baud)
+    except BaseException:
+        if rt is not None:
+            rt.__exit__(None, None, None)
+        if embedded is not None:
+            embedded.close()
+        _restore_signals(old)
+        raise
+
     writer = None
     journal = None
-    if telemetry:
-        journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
-        writer = ChunkWriter(tel, journal, telemetry_interval).start()
     try:
+        if telemetry:
+            journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
+            writer = ChunkWriter(tel, journal, telemetry_interval).start()
         if on_start is not None:
             on_start(tr.info.get("port"), n_samples)
         loop = HostLoop(engine, tr, cfg, tel, stop)
@@ -508,8 +514,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         rt.__exit__(None, None, None)
         if writer is not None:
             writer.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        _restore_signals(old)
         tr.close()
         if embedded is not None:
             mock_report = embedded.report()
@@ -609,6 +614,12 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
             "telemetry": tel_info,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+
+
+def _restore_signals(old: dict) -> None:
+    """Put back the signal handlers ``run_scene`` replaced (``{signum: handler}``)."""
+    for s, h in old.items():
+        signal.signal(s, h)
 
 
 def _fault_plan(plan, mock_report) -> dict | None:
