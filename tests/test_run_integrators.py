@@ -73,3 +73,67 @@ def test_refusal_follows_the_integrators_limit():
     # the exact integrator has no such limit for a passive network
     exact = stiff.replace("integrator: centred", "integrator: exact")
     assert stability_margin(parse_scene(exact)).ok
+
+
+def _bob(integrator, k_at_bob):
+    """BOB with the anchor set so that the links at 'bob' sum to ``k_at_bob`` [N/m]."""
+    return parse_scene((BOB % integrator).replace("stiffness: 200,",
+                                                  f"stiffness: {k_at_bob - 300.0!r},"),
+                       "bob.yaml")
+
+
+# closed-form limits at 'bob' (0.05 kg, B = 0.5 + 0.2 N s/m, 1 kHz): centred
+# 4 m/T^2 - 2 B/T = 198600 N/m, symplectic Euler 4 m/T^2 + 2 B/T = 201400 N/m; the whole
+# loop with the device agrees (bisection on the spectral radius: 198600.0035, 201400.0035)
+K_CENTRED, K_SYMPLECTIC = 198600.0, 201400.0
+
+
+def test_refusal_names_the_integrator_limit_not_the_port_link():
+    """1.01 K_max of the centred scheme at the virtual mass: refused, and the message
+    names the integrator, its limit and the ratio; the port link (K = 300 N/m, within its
+    limit) is not blamed and 'raise B' (which lowers the centred limit) is not advised."""
+    with pytest.raises(UnstableConfigError) as ei:
+        run_scene(_bob("centred", 1.01 * K_CENTRED), lockstep=True, transport="inprocess",
+                  duration=0.2, handle_signals=False)
+    msg = str(ei.value)
+    assert ei.value.stiffness_limit == pytest.approx(K_CENTRED, rel=1e-12)
+    assert ei.value.spectral_radius > 1
+    for part in ("integrator centred", "K < 4 m/T^2 - 2 B/T", "T^2 lambda_max(M^-1 K)/4",
+                 "Virtual mass 'bob'", "centred allows K < 198600 N/m", "K / K_max = 1.01",
+                 "Lower the stiffness at 'bob' below 198600 N/m", "symplectic_euler",
+                 "exact (no limit", "raise the rate above", "within their limit",
+                 "--allow-unstable"):
+        assert part in msg, part
+    assert "raise B" not in msg and "beyond the stiffness limit" not in msg
+
+
+def test_just_inside_the_integrator_limit_runs():
+    rep = run_scene(_bob("centred", 0.99 * K_CENTRED), lockstep=True, transport="inprocess",
+                    duration=0.2, handle_signals=False)
+    assert rep["predicted"]["stable"] is True and rep["loop"]["ticks"] == 200
+    assert rep["loop"]["stop_reason"] == "duration"
+
+
+def test_between_centred_and_symplectic_limits():
+    """K = 200000 N/m at 'bob': beyond the centred limit, within symplectic Euler's."""
+    k = 0.5 * (K_CENTRED + K_SYMPLECTIC)
+    with pytest.raises(UnstableConfigError, match=r"symplectic_euler \(K < 201400 N/m here: "
+                                                  r"enough\)"):
+        run_scene(_bob("centred", k), lockstep=True, transport="inprocess", duration=0.2,
+                  handle_signals=False)
+    rep = run_scene(_bob("symplectic_euler", k), lockstep=True, transport="inprocess",
+                    duration=0.2, handle_signals=False)
+    assert rep["predicted"]["stable"] is True and rep["loop"]["ticks"] == 200
+    with pytest.raises(UnstableConfigError, match="symplectic_euler allows K < 201400 N/m"):
+        run_scene(_bob("symplectic_euler", 1.01 * K_SYMPLECTIC), lockstep=True,
+                  transport="inprocess", duration=0.2, handle_signals=False)
+
+
+def test_port_link_refusal_advises_raising_b_only_where_it_helps():
+    from test_daemon import wall_text
+    with pytest.raises(UnstableConfigError) as ei:
+        run_scene(parse_scene(wall_text(3000.0, 1.5)), lockstep=True, transport="inprocess",
+                  handle_signals=False)
+    msg = str(ei.value)
+    assert "links at the port" in msg and "beyond the stiffness limit K_max = 1313" in msg
+    assert "Lower K, raise B or raise the rate" in msg     # here K_max grows with B

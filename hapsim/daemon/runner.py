@@ -258,6 +258,137 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     return out
 
 
+def _mass_limits(scene: Scene) -> list:
+    """Closed-form limit of the scene's integrator at each virtual mass (module table of
+    :mod:`hapsim.bench.methods`), the links at the mass summed (contacts engaged).
+
+    Parameters
+    ----------
+    scene : Scene
+        Calibrated scene.
+
+    Returns
+    -------
+    list of dict
+        One per virtual mass, worst first: ``mass`` (name), ``m`` [kg], ``K``, ``B`` (sums
+        over its links) [N/m, N s/m], ``K_max`` [N/m] (``oscillator_limits`` at ``B``; <= 0
+        when ``B`` alone is beyond the scheme), ``formula``, ``ratio`` (``K / K_max``; inf
+        when ``K_max <= 0``), ``rate_hz`` (the rate above which the closed form holds, None
+        when no rate does: exact integrator).
+    """
+    from hapsim.bench.methods import oscillator_limits
+    integ = getattr(scene, "integrator", "centred")
+    T = scene.period
+    out = []
+    for ms in scene.masses:
+        if ms.kind != "mass":
+            continue
+        links = [lk for lk in scene.links if ms.name in (lk.m1, lk.m2)]
+        K = sum(lk.stiffness for lk in links)
+        B = sum(lk.damping for lk in links)
+        lim = oscillator_limits(integ, ms.mass, T, B)
+        kmax = float(lim["K_max"])
+        ratio = (K / kmax if kmax > 0 else math.inf) if K > 0 or kmax <= 0 else 0.0
+        m = float(ms.mass)
+        root = math.sqrt(4 * B * B + 16 * m * K)
+        if integ == "centred":      # 4 m f^2 - 2 B f > K and B < 2 m f
+            rate = max((2 * B + root) / (8 * m), B / (2 * m))
+        elif integ == "symplectic_euler":   # 4 m f^2 + 2 B f > K
+            rate = (-2 * B + root) / (8 * m)
+        else:
+            rate = None
+        out.append({"mass": ms.name, "m": m, "K": K, "B": B, "K_max": kmax,
+                    "formula": lim["formula"], "ratio": ratio, "rate_hz": rate})
+    out.sort(key=lambda d: -d["ratio"])
+    return out
+
+
+def _refusal(scene: Scene, pred: dict) -> UnstableConfigError:
+    """The error refusing an unstable scene, naming what is beyond which limit.
+
+    Three cases: a virtual mass beyond its integrator's closed-form limit
+    (:func:`_mass_limits`; advice: lower the stiffness there, another integrator, a higher
+    rate), the links at the port beyond the THS limit ``stability_limit`` (advice: lower K,
+    a higher rate, and raise B only where that raises ``K_max``), or neither closed form
+    but the whole loop (:func:`hapsim.bench.methods.stability_margin`: coupled modes).
+
+    Parameters
+    ----------
+    scene : Scene
+        Calibrated scene the analysis found unstable.
+    pred : dict
+        Its :func:`predict` result.
+
+    Returns
+    -------
+    UnstableConfigError
+        With the spectral radius and the stiffness limit of the case found.
+    """
+    from hapsim.bench.methods import stability_margin
+    dev = scene.device
+    integ = getattr(scene, "integrator", "centred")
+    rho = pred["spectral_radius"]
+    head = (f"{scene.path}: the closed loop is unstable: spectral radius {rho:.9g} >= 1 "
+            f"(integrator {integ}; device m = {dev.mass:g} kg, b0 = {dev.friction:g} N s/m, "
+            f"d = {dev.delay}, {dev.hold}, {scene.rate_hz:g} Hz)")
+    tail = "; or pass --allow-unstable to run it under the safety stops"
+    at_port = _links_at_port(scene)
+    B = sum(lk.damping for lk in at_port)
+    K = sum(lk.stiffness for lk in at_port)
+    lim = pred["stiffness_limit"]
+    port_bad = lim is not None and K >= lim
+    masses = _mass_limits(scene)
+    worst = masses[0] if masses and masses[0]["ratio"] >= 1.0 else None
+    try:
+        margin = stability_margin(scene).limit_description
+    except Exception:  # the description is advice; the verdict is pred's
+        margin = None
+    if worst is not None:
+        w = worst
+        limit = (f"K < {w['K_max']:.6g} N/m" if w["K_max"] > 0
+                 else f"no K: B = {w['B']:g} N s/m is beyond its damping limit")
+        port = (f"the links at the port are within their limit (K = {K:g} N/m < K_max = "
+                f"{lim:.6g} N/m at B = {B:g} N s/m)" if lim is not None and not port_bad
+                else f"the links at the port are beyond their limit too (K = {K:g} N/m, "
+                     f"K_max = {_fmt(lim, '.6g')} N/m at B = {B:g} N s/m)")
+        alt = []
+        if integ == "centred":
+            from hapsim.bench.methods import oscillator_limits
+            kse = oscillator_limits("symplectic_euler", w["m"], scene.period, w["B"])["K_max"]
+            alt.append(f"symplectic_euler (K < {kse:.6g} N/m here: "
+                       f"{'enough' if w['K'] < kse else 'not enough'})")
+        if integ != "exact":
+            alt.append("exact (no limit for a passive network)")
+        rate = (f", or raise the rate above {w['rate_hz']:.6g} Hz (closed form)"
+                if w["rate_hz"] else "")
+        net = margin or f"integrator {integ}: {w['formula']}"
+        msg = (f"{head}. {port[0].upper() + port[1:]}; the virtual network is not: {net}. "
+               f"Virtual mass {w['mass']!r} ({w['m']:g} kg): its links sum to K = "
+               f"{w['K']:g} N/m, B = {w['B']:g} N s/m; {integ} allows {limit} "
+               f"(K / K_max = {w['ratio']:.4g}). Lower the stiffness at {w['mass']!r} below "
+               f"{max(w['K_max'], 0.0):.6g} N/m, use integrator {' or '.join(alt)}{rate}{tail}")
+        return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=w["K_max"])
+    if port_bad:
+        an = _analysis()
+        raise_b = False
+        try:
+            loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+            raise_b = float(an["stability_limit"](loop, 1.25 * B + 0.1)) > lim
+        except Exception:  # advice only
+            pass
+        msg = (f"{head}: the links at the port (contacts engaged: K = {K:g} N/m, B = {B:g} "
+               f"N s/m) are beyond the stiffness limit K_max = {lim:.6g} N/m at this B. "
+               f"Lower K{', raise B' if raise_b else ''} or raise the rate{tail}")
+        return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=lim)
+    msg = (f"{head}: no single link or mass is beyond its closed-form limit (links at the "
+           f"port K = {K:g} N/m < K_max = {_fmt(lim, '.6g')} N/m at B = {B:g} N s/m), the "
+           f"coupled modes are" + (f": {margin}" if margin else "") +
+           f". Lower the stiffnesses, use another integrator"
+           f"{' (symplectic_euler, exact)' if integ == 'centred' else ''} or raise the "
+           f"rate{tail}")
+    return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=lim)
+
+
 def _rel(a, b):
     if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b == 0:
         return None
@@ -403,19 +534,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                           file=scene.path, key="device.delay")
     pred = predict(scene)
     if pred["stable"] is False and not allow_unstable:
-        lim = pred["stiffness_limit"]
-        at_port = _links_at_port(scene)
-        B = sum(lk.damping for lk in at_port)
-        K = sum(lk.stiffness for lk in at_port)
-        raise UnstableConfigError(
-            f"{scene.path}: the closed loop is unstable: spectral radius "
-            f"{pred['spectral_radius']:.9g} >= 1 (links at the port, contacts engaged: "
-            f"K = {K:g} N/m, B = {B:g} N s/m, "
-            f"m = {dev.mass:g} kg, b0 = {dev.friction:g} N s/m, d = {dev.delay}, "
-            f"{dev.hold}, {scene.rate_hz:g} Hz); stiffness limit K_max = "
-            f"{lim:.6g} N/m at this B. Lower K, raise B or the rate, or pass "
-            f"--allow-unstable to run it under the safety stops",
-            spectral_radius=pred["spectral_radius"], stiffness_limit=lim)
+        raise _refusal(scene, pred)
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
