@@ -1,7 +1,8 @@
 """The daemon in-process: mock physics, the mock's protocol duties, the lockstep closed THS.
 
 Precision carried here (lockstep, no bytes): the measured (k, b) of the closed THS equal the
-analysis prediction ``render`` to 1e-6 relative over a grid of (m, b0, T, K, B, d, hold), and
+analysis prediction ``render`` to 1e-6 relative over the whole grid of (m, b0, T, K, B, d,
+hold) (144 cases), and
 calibrated targets are felt as asked to 1e-6. The mock's ZOH step is checked against an
 independent formula (scipy.linalg.expm of the augmented matrix) to 1e-12.
 """
@@ -207,8 +208,7 @@ def _grid():
                 continue
             K = 0.5 * min(kmax, 4e4)
             cases.append((m, b0, rate, d, hold, K, B))
-    # keep the test under a few seconds: every 2nd case (all m, b0, rate, d, hold covered)
-    return cases[::2]
+    return cases                # 144 cases, ~0.1 s each
 
 
 GRID = _grid()
@@ -218,19 +218,23 @@ GRID = _grid()
                          ids=[f"m{c[0]}-b{c[1]}-r{c[2]:g}-d{c[3]}-{c[4]}-K{c[5]:.0f}-B{c[6]}"
                               for c in GRID])
 def test_lockstep_measured_equals_render(m, b0, rate, d, hold, K, B):
-    """In-process lockstep: measured (k, b) == analysis.render (k, b) to 1e-6 relative."""
+    """In-process lockstep: measured (k, b) == analysis.render (k, b) to 1e-6 relative.
+
+    No absolute term on b: over the whole grid the worst relative error of b is 2.3e-11
+    (b = 0.25 N s/m, m = 0.5 kg, 4 kHz, ideal hold), far inside 1e-6."""
     rep = lockstep(wall_text(K, B, m=m, b0=b0, d=d, hold=hold, rate=rate, force_limit=1e6))
     r = render(LoopModel(m, b0, rate, d, hold), K, B)
     meas = rep["measured"]
     assert "k" in meas, meas
     assert meas["k"] == pytest.approx(r.k, rel=1e-6)
-    assert meas["b"] == pytest.approx(r.b, rel=1e-6, abs=1e-9 * m * rate)
+    assert meas["b"] == pytest.approx(r.b, rel=1e-6)
     assert rep["predicted"]["k"] == pytest.approx(r.k, rel=1e-12)
     assert rep["loop"]["late"] == 0 and rep["loop"]["missed"] == 0
     assert rep["loop"]["mock"]["saw_stop"] and rep["loop"]["mock"]["last_applied"] == 0.0
 
 
 def test_grid_covers_every_dimension():
+    assert len(GRID) == 144
     for i, values in enumerate(((0.1, 0.5), (0.0, 0.5, 2.0), (1000.0, 4000.0), (0, 1, 2),
                                 ("zoh", "ideal"))):
         assert {c[i] for c in GRID} == set(values)
@@ -246,6 +250,28 @@ def test_calibrated_target_is_felt_as_asked(k, b, d, hold):
     assert rep["virtual"]["K"] == pytest.approx(cal.K, rel=1e-12)
     assert rep["measured"]["k"] == pytest.approx(k, rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(b, rel=1e-6)
+
+
+def test_every_target_link_is_reported_with_its_verdict():
+    """Two target links: JSON ``targets`` has both (``target`` keeps the first), the text
+    report prints each with its renderability verdict."""
+    from hapsim.daemon.runner import format_report
+    text = wall_text(0, 0, target=(300.0, 2.0)) .replace(
+        "links:\n", "links:\n  - {name: firm, kind: spring_damper, between: [hand, wall], "
+        "target: {k: 200.0, b: 1.5}}\n")
+    rep = lockstep(text)
+    ts = rep["targets"]
+    assert [t["link"] for t in ts] == ["firm", "wall"] and rep["target"] == ts[0]
+    assert all(t["renderable"] and t["reason"] for t in ts)
+    assert "rel_err_target" not in rep["measured"]      # the felt pair is their sum
+    out = format_report(rep)
+    for t in ts:
+        assert f"link {t['link']}: renderable (" in out
+    assert out.count("  target ") == 2
+    # one target: the verdict is printed too, and the measurement compared with it
+    one = lockstep(wall_text(0, 0, target=(1000.0, 3.0)))
+    assert "link wall: renderable (every other pole" in format_report(one)
+    assert "rel_err_target" in one["measured"] and len(one["targets"]) == 1
 
 
 def test_felt_wall_config_is_felt_as_asked():

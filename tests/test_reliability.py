@@ -256,7 +256,28 @@ def test_stalled_device_zeroes_force_and_recovers():
 
 
 def test_device_reset_mid_run_rehandshakes():
-    res, mock, tr, tel = sim("reset@800", seed=11)
+    scene = parse_scene(wall())
+    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = SimTransport(mock, parse_faults("reset@800", 11))
+    tr.sent = []
+    seen = []
+    reset = tr.device.reset
+
+    def reset_and_look(now_us):
+        pushing = mock.stats.last_applied
+        reset(now_us)
+        seen.append((now_us, pushing, mock.stats.last_applied, mock._u, mock.armed))
+    tr.device.reset = reset_and_look
+    tel = Telemetry(2000)
+    res = HostLoop(Engine(scene), tr, LoopConfig(rate_hz=1000.0, n_samples=2000, delay=1,
+                                                 force_limit=LIMIT, reconnect=True,
+                                                 watchdog_us=WATCHDOG_US, position_bound=0.1),
+                   tel).run()
+    # right after the reset the device applies zero force (it was pushing before), disarmed
+    (t_r, pushing, applied, held, armed), = seen
+    assert pushing != 0.0 and applied == 0.0 and held == 0.0 and not armed
+    first_after = next(f for t, f in mock.trace if t >= t_r)
+    assert first_after == 0.0                     # the first tick after the re-CONFIG too
     ev = tr.device.events
     assert [e["name"] for e in ev] == ["reset"]
     t0 = ev[0]["t_us"]

@@ -29,7 +29,8 @@ hardware (or a 'hapsim mock' started elsewhere)."""
 
 _EPILOG = """\
 what the numbers mean:
-  target      the (k, b) the scene asked for, with its f0 and zeta
+  target      the (k, b) the scene asked for, with its f0 and zeta, and whether it is
+              renderable (one row per target link; --json: 'targets', 'target' = the first)
   virtual     the K [N/m], B [N s/m] simulated (calibrated when a target is given)
   predicted   the rendered (k, b): least damped closed-loop pole pair z, s = ln(z)/T,
               k = m |s|^2, b = -2 m Re(s) (b is the whole THS damping, b0 included)

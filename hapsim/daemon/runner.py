@@ -485,9 +485,12 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     Returns
     -------
     dict
-        Keys ``target``, ``virtual``, ``predicted``, ``measured``, ``loop``, ``telemetry``
-        (see ``hapsim run --help``) and ``exit_code`` (0, or 1 after a safety stop or a
-        device fault).
+        Keys ``target`` (the first target link, None without one), ``targets`` (every
+        target link: ``link``, ``k``, ``b``, ``K``, ``B``, ``renderable``, ``reason``, ``f0_hz``,
+        ``damping_ratio``), ``virtual``, ``predicted``, ``measured`` (``rel_err_target``
+        only with one target: with several the felt pair is their sum), ``loop``,
+        ``telemetry`` (see ``hapsim run --help``) and ``exit_code`` (0, or 1 after a
+        safety stop or a device fault).
 
     Raises
     ------
@@ -684,7 +687,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
-        if targets:
+        if len(targets) == 1:     # with several targets the felt pair is their sum
             t0 = targets[0]
             measured["rel_err_target"] = {q: _rel(measured[q], t0[q])
                                           for q in ("k", "b", "f0_hz", "damping_ratio")}
@@ -730,7 +733,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "faults": res.faults, "fault_plan": _fault_plan(plan, mock_report),
     }
     return {"scene": scene.path, "target": targets[0] if targets else None,
-            "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
+            "targets": targets, "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
             "telemetry": tel_info,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
@@ -791,9 +794,18 @@ def format_report(rep: dict) -> str:
         lines.append(f"  {name:<12} {_fmt(d.get('k'), '12.4f')} {_fmt(d.get('b'), '11.5f')} "
                      f"{_fmt(d.get('f0_hz'), '10.4f')} {_fmt(d.get('damping_ratio'), '9.5f')}")
 
-    t = rep["target"]
-    if t is not None:
+    targets = rep.get("targets")
+    if targets is None:
+        targets = [rep["target"]] if rep.get("target") is not None else []
+    for t in targets:
         row("target", t)
+        reason = str(t.get("reason") or "")
+        for word in ("renderable: ", "not renderable: "):
+            if reason.startswith(word):
+                reason = reason[len(word):]
+        lines.append(f"  {'':<12} link {t['link']}: "
+                     f"{'renderable' if t.get('renderable') else 'NOT renderable'}"
+                     + (f" ({reason})" if reason else ""))
     v = rep["virtual"]
     if "K" in v:
         lines.append(f"  {'virtual K,B':<12} {_fmt(v['K'], '12.4f')} {_fmt(v['B'], '11.5f')}"
