@@ -134,15 +134,17 @@ def test_cli_allow_unstable_safety_stop_zero_force(tmp_path, capsys):
     assert lp["mock"]["last_host_message"] == "Stop"
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig):
-    """SIGTERM (a service manager) and SIGINT (Ctrl-C) mid-run: zero force and STOP, the
-    telemetry complete and loadable, exit 0."""
+@pytest.mark.parametrize("sig, duration", [(signal.SIGTERM, "60"), (signal.SIGINT, "0")],
+                         ids=["SIGTERM", "SIGINT-open-ended"])
+def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig, duration):
+    """SIGTERM (a service manager) and SIGINT (Ctrl-C; here on an open-ended run,
+    --duration 0) mid-run: zero force and STOP, the telemetry complete and loadable, exit
+    0."""
     report = str(tmp_path / "mock.json")
     tel = str(tmp_path / "run.npz")
     mock, port = start_mock("--scene", WALL, "--report", report)
     try:
-        run = hapsim("run", WALL, "--port", port, "--duration", "60", "--telemetry", tel,
+        run = hapsim("run", WALL, "--port", port, "--duration", duration, "--telemetry", tel,
                      "--json")
         # the run announces on stderr once its signal handlers are installed
         line = run.stderr.readline()
@@ -154,6 +156,7 @@ def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig):
         assert run.returncode == 0, err
         rep = json.loads(out)
         assert rep["loop"]["stop_reason"] == f"signal {sig.name}"
+        assert rep["loop"]["open_ended"] is (duration == "0")
         assert mock.wait(timeout=10) == 0
     finally:
         for p in (mock,):

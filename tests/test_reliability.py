@@ -939,7 +939,7 @@ def test_journal_ignores_a_torn_last_chunk(tmp_path):
     data = open(path, "rb").read()
     info = {}
     assert load(path, info=info)["seq"].tolist() == list(range(1000))
-    assert info == {"chunks": 4, "rows": 1000, "torn_bytes": 0}
+    assert info == {"chunks": 4, "rows": 1000, "torn_bytes": 0, "events": [], "gaps": []}
     for cut in (3, 20, len(data) // 4 - 7):      # all inside the last of 4 equal chunks
         torn = tmp_path / f"torn{cut}.hst"
         torn.write_bytes(data[:-cut])
@@ -966,5 +966,141 @@ def test_journal_header_is_self_describing(tmp_path):
     magic, version, hlen, plen, crc = struct.unpack_from("<4sHHII", raw)
     head = json.loads(raw[16:16 + hlen])
     assert magic == b"HSTC" and version == 1 and head["rows"] == 10
-    assert head["columns"] == ["time", "position", "force", "seq", "turnaround_us", "late"]
-    assert plen == 10 * (8 * 5 + 1)
+    assert head["columns"] == ["time", "position", "force", "seq", "turnaround_us", "late",
+                               "flags"]
+    assert plen == 10 * (8 * 5 + 1 + 1)
+
+
+# --------------------------------------------------------------------------- ring, journal
+
+
+def test_long_run_goes_round_the_ring_and_the_journal_has_every_row(tmp_path):
+    """10 s at 1 kHz: memory holds the 1 s identification window and a 4 s ring, the
+    journal every row; the identification (on the window) is that of a 1 s run."""
+    from hapsim.daemon.runner import RING_SECONDS
+    path = str(tmp_path / "t.hst")
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=10.0, telemetry=path,
+                    handle_signals=False)
+    tl = rep["telemetry"]
+    assert tl["samples"] == 10_000 and tl["lost_rows"] == 0
+    assert tl["in_memory"] == 1000 + RING_SECONDS * 1000 and tl["ring"] == 4000
+    info = {}
+    cols = load(path, info=info)
+    assert np.array_equal(cols["seq"], np.arange(10_000)) and info["gaps"] == []
+    assert np.all(np.isfinite(cols["force"])) and rep["loop"]["turnaround_us"]["samples"] == 10_000
+    short = run_scene(parse_scene(wall()), transport="sim", duration=1.0, handle_signals=False)
+    assert rep["measured"]["k"] == short["measured"]["k"]
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+    # .npz of a run that went round the ring: exported from the journal, whole
+    npz = str(tmp_path / "t.npz")
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=6.0, telemetry=npz,
+                    handle_signals=False)
+    assert np.array_equal(load(npz)["seq"], np.arange(6000))
+    assert not (tmp_path / "t.npz.hst").exists()
+
+
+def test_a_writer_that_falls_behind_loses_rows_counted_never_blocks_the_loop(tmp_path,
+                                                                           monkeypatch):
+    """The writer thread stalls (an interval longer than the run) behind a loop treated as
+    real-time (no drain at each half lap, as over a pty): the loop runs on, goes round the
+    ring over undrained rows; the writer counts them, writes the rest, the report says so."""
+    import hapsim.daemon.runner as runner_mod
+    monkeypatch.setattr(runner_mod, "_sync_drain", lambda writer, tel: None)
+    path = str(tmp_path / "t.hst")
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=6.0, telemetry=path,
+                    handle_signals=False, telemetry_interval=3600.0)
+    tl = rep["telemetry"]
+    assert rep["loop"]["ticks"] == 6000 and rep["loop"]["stop_reason"] == "duration"
+    # kept: the 1000-row head and the ring's last 3999 rows (one row of margin)
+    assert tl["lost_rows"] == 6000 - 1000 - 3999
+    info = {}
+    seq = load(path, info=info)["seq"]
+    assert np.array_equal(seq, np.r_[0:1000, 2001:6000]) and info["gaps"] == [(1000, 2001)]
+    from hapsim.daemon.runner import format_report
+    assert "1001 rows LOST" in format_report(rep)
+
+
+def test_writer_drops_a_ring_row_overwritten_while_it_copies(tmp_path):
+    """The loop may overwrite a ring slot while the writer copies it: such rows are dropped
+    and counted, never written torn."""
+    tel = Telemetry(2, ring=4)
+    w = ChunkWriter(tel, str(tmp_path / "t.hst"))
+    real_columns = tel.columns
+
+    def columns_while_the_loop_runs(rows=None):
+        out = real_columns(rows)
+        while tel.n < 8:                          # the loop writes 3 rows meanwhile
+            i = tel.n
+            tel.seq[tel.slot(i)] = i
+            tel.n = i + 1
+        return out
+    for i in range(5):
+        tel.seq[tel.slot(i)] = i
+        tel.n = i + 1
+    tel.columns = columns_while_the_loop_runs
+    w.flush()
+    tel.columns = real_columns
+    w.close()
+    # rows 0-1 (head) are safe; rows 2-4 were in the ring, which rows 5-7 went round
+    # (n = 8 after the copy: only rows >= 8 - 4 + 1 = 5 may be trusted)
+    assert w.lost_rows == 3
+    assert load(str(tmp_path / "t.hst"))["seq"].tolist() == [0, 1, 5, 6, 7]
+
+
+def test_journal_keeps_the_fault_history_and_per_sample_flags(tmp_path):
+    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LATE, FLAG_LOST, FLAG_RAMP
+    path = str(tmp_path / "t.hst")
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=2.0, telemetry=path,
+                    faults="reset@700,stall@1400:200ms,drop=0.01", fault_seed=3,
+                    handle_signals=False)
+    lp = rep["loop"]
+    assert lp["lost"] == lp["recovered"] == 2
+    info = {}
+    cols = load(path, info=info)
+    # every event of the report is in the journal, in order, with its reason
+    assert [e["event"] for e in info["events"]] == [e["event"] for e in lp["events"]]
+    assert [e.get("reason") for e in info["events"]] == [e.get("reason") for e in lp["events"]]
+    assert rep["telemetry"]["events_journaled"] == len(lp["events"])
+    fl = cols["flags"]
+    restarts = np.flatnonzero(fl & FLAG_LOST)
+    assert restarts.tolist() == [e["sample"] for e in lp["events"] if e["event"] == "recovered"]
+    for r in restarts:                            # the ramp: 50 samples from the restart
+        assert np.all(fl[r:r + 50] & FLAG_RAMP) and not fl[r + 50] & FLAG_RAMP
+    assert np.count_nonzero(fl & FLAG_RAMP) == 100
+    assert np.array_equal((fl & FLAG_LATE) != 0, cols["late"] != 0) and cols["late"].any()
+    # clamped: a hand 20 mm into the wall is pushed with 20 N, clamped at 10 N
+    rep = run_scene(parse_scene(wall().replace("x0: 0.005", "x0: 0.02")), transport="sim",
+                    duration=0.1, telemetry=path, handle_signals=False)
+    cols = load(path)
+    assert np.array_equal((cols["flags"] & FLAG_CLAMPED) != 0, np.abs(cols["force"]) == LIMIT)
+    assert rep["loop"]["clamped"] == np.count_nonzero(cols["flags"] & FLAG_CLAMPED) > 0
+
+
+def test_open_ended_run_ends_on_a_stop_request(tmp_path, monkeypatch):
+    """duration 0: no sample count; here the stop is requested at device tick 7000 (as a
+    SIGINT handler would); the run reports, the journal has every row."""
+    import signal
+    import hapsim.daemon.runner as runner_mod
+    from hapsim.daemon.loop import StopFlag
+    flag = StopFlag()
+
+    class Mock(MockDevice):
+        def tick(self, now_us):
+            if self.physics is not None and self.physics.n == 7000:
+                flag.request(signal.SIGINT)
+            return super().tick(now_us)
+    monkeypatch.setattr(runner_mod, "MockDevice", Mock)
+    path = str(tmp_path / "t.hst")
+    rep = run_scene(parse_scene(wall()), transport="sim", duration=0, telemetry=path,
+                    stop=flag, handle_signals=False)
+    lp = rep["loop"]
+    assert lp["open_ended"] and lp["requested"] is None
+    assert lp["stop_reason"] == "signal SIGINT" and 6999 <= lp["ticks"] <= 7001
+    assert rep["exit_code"] == 0 and rep["telemetry"]["in_memory"] == 5000
+    assert np.array_equal(load(path)["seq"], np.arange(lp["ticks"]))
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+    assert lp["mock"]["saw_stop"] and lp["mock"]["last_applied"] == 0.0
+    with pytest.raises(ConfigError, match="open-ended"):
+        run_scene(parse_scene(wall()), transport="sim", duration=0, handle_signals=False)
+    with pytest.raises(ConfigError, match="duration"):
+        run_scene(parse_scene(wall()), transport="sim", duration=-1.0, handle_signals=False)

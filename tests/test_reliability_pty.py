@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from hapsim.cli import main
@@ -114,6 +115,38 @@ def test_kill_9_loses_at_most_100_ms_of_telemetry(tmp_path):
     print(f"kill -9: {report['ticks']} STATEs sent, {n} rows on disk, {lost} lost")
     p.stdout.close()
     p.stderr.close()
+
+
+def test_kill_9_keeps_the_fault_history(tmp_path):
+    """A reset and a stall, then kill -9: the journal holds the losses and recoveries (the
+    events, and the flagged restart rows), not only the samples."""
+    from hapsim.daemon.telemetry import FLAG_LOST
+    path = str(tmp_path / "t.hst")
+    p = hapsim("run", WALL, "--duration", "0", "--telemetry", path, "--faults",
+               "reset@300,stall@800:200ms", env={"TMPDIR": str(tmp_path)})
+    end = time.monotonic() + 90
+    info = {}
+    while time.monotonic() < end and p.poll() is None:
+        time.sleep(0.1)
+        if os.path.exists(path):
+            info = {}
+            rows = load(path, info=info)["seq"].size
+            if rows >= 1500 and sum(e["event"] == "recovered" for e in info["events"]) >= 2:
+                break
+    assert p.poll() is None, p.stderr.read()
+    p.send_signal(signal.SIGKILL)
+    p.wait(10)
+    p.stdout.close()
+    p.stderr.close()
+    info = {}
+    cols = load(path, info=info)
+    events = info["events"]
+    assert [e["event"] for e in events if e["event"] in ("lost", "recovered")][:4] == [
+        "lost", "recovered", "lost", "recovered"]
+    assert "HELLO" in events[0]["reason"] and "no STATE" in [
+        e for e in events if e["event"] == "lost"][1]["reason"]
+    restarts = np.flatnonzero(cols["flags"] & FLAG_LOST).tolist()
+    assert restarts[:2] == [e["sample"] for e in events if e["event"] == "recovered"][:2]
 
 
 @pytest.mark.parametrize("ext", [".npz", ".csv"])

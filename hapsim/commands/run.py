@@ -58,8 +58,12 @@ reliability: bad frames are counted and dropped; silence for --lost-timeout (def
   'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
   state at the device's position, force ramped over 50 ms. --telemetry FILE.hst is a
-  chunked journal written every 50 ms (a killed daemon loses < 100 ms; load it with
+  chunked journal written every 50 ms from a ring buffer by a writer thread (a killed
+  daemon loses < 100 ms, and the journal also holds the loss/recovery events and a
+  per-sample flags column: late, lost, ramp, clamped; load it with
   hapsim.daemon.telemetry.load); with .npz/.csv the journal is FILE.hst until the end.
+open-ended runs: --duration 0 runs until SIGINT/SIGTERM; memory holds the
+  identification window at the start and a 4 s ring, the journal holds every sample.
 faults (embedded mock): --faults SPEC --fault-seed N, SPEC items NAME=RATE[:DUR] (drop,
   corrupt, garbage, dup, reorder, spike: per device -> host frame; the same names prefixed
   rx. (rx.drop, rx.corrupt, rx.garbage, rx.dup, rx.reorder, rx.spike): per host -> device
@@ -75,6 +79,7 @@ examples:
   hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
   hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
   hapsim run configs/wall.yaml --faults drop=0.01,reset@800 --telemetry wall.hst
+  hapsim run configs/wall.yaml --duration 0 --telemetry session.hst   (Ctrl-C ends it)
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
   1  refused (unstable loop), safety stop, latched device fault, device lost beyond
@@ -94,7 +99,8 @@ def register(sub) -> None:
     p.add_argument("--baud", type=int, default=115200, metavar="B",
                    help="baud rate (default 115200; ignored by USB CDC and ptys)")
     p.add_argument("--duration", type=float, metavar="S",
-                   help="run length [s] (default 1 s, longer for slow oscillations)")
+                   help="run length [s] (default 1 s, longer for slow oscillations); 0: "
+                        "open-ended, until SIGINT/SIGTERM (or a safety stop)")
     p.add_argument("--rate", type=float, metavar="HZ", help="override the scene's rate [Hz]")
     p.add_argument("--lockstep", action="store_true",
                    help="lockstep mock: one period per FORCE, deterministic")
@@ -144,8 +150,18 @@ def _clean(obj):
 
 
 def _announce(port, n_samples) -> None:
+    """Tell the user on stderr that the loop starts and that Ctrl-C stops it cleanly.
+
+    Parameters
+    ----------
+    port : str or None
+        The port the loop drives (None: the in-process mock).
+    n_samples : int
+        Samples to run; 0 for an open-ended run.
+    """
+    length = f"{n_samples} samples" if n_samples else "an open-ended run"
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} for "
-          f"{n_samples} samples (SIGINT/SIGTERM stop cleanly)", file=sys.stderr, flush=True)
+          f"{length} (SIGINT/SIGTERM stop cleanly)", file=sys.stderr, flush=True)
 
 
 def run(args) -> int:

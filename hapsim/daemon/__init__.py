@@ -17,8 +17,9 @@ Modules
     The host loop: handshake, device- or host-clocked fixed-rate loop, safety (limits,
     passivity observer/controller), recovery of a lost device.
 :mod:`hapsim.daemon.telemetry`
-    Preallocated per-sample telemetry, its chunked journal (writer thread, ``load``) and
-    the atomic ``.npz``/``.csv`` export.
+    Preallocated per-sample telemetry (a head kept whole, then a ring: runs may be
+    open-ended), its chunked journal (writer thread draining the ring, loss/recovery events,
+    ``load``) and the atomic ``.npz``/``.csv`` export.
 :mod:`hapsim.daemon.runner`
     ``run_scene``: calibrate, check, close the THS, identify, report.
 

@@ -2,9 +2,10 @@
 
 Hot path (CONVENTIONS §4): per sample it decodes the STATE, steps the engine (numba), clamps,
 encodes and writes the FORCE and writes one telemetry row *by index* into preallocated
-arrays. No logging, no file I/O, no allocation beyond the protocol's message objects and
-byte strings (unavoidable in Python). Counters (late, missed, clamped, overruns) are kept as
-integers and reported at the end.
+arrays (a head kept whole, then a ring that a writer thread drains to the journal: the data
+leaves through a ring buffer, and a run can be open-ended). No logging, no file I/O, no
+allocation beyond the protocol's message objects and byte strings (unavoidable in Python).
+Counters (late, missed, clamped, overruns) are kept as integers and reported at the end.
 
 Timing convention: STATE ``n`` (``x(nT)``) is answered by FORCE ``seq = n`` computed from
 ``x[n]`` and ``x[n-1]``; the device applies it over ``[(n+d)T, (n+d+1)T)``.
@@ -71,12 +72,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import firmware_protocol as fp
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
 from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
            "LATCHED_FAULTS", "BAD_FRAME_RECORDS"]
 
 _U32 = 0xFFFFFFFF
+_OPEN_ENDED = 1 << 62       # rows of a run without a sample count (ended by a stop)
 _HALF = 0x80000000
 
 #: Bad-frame incidents kept in :attr:`LoopResult.bad_frames` (the latest ones).
@@ -127,7 +130,8 @@ class LoopConfig:
     rate_hz : float
         Loop rate [Hz] sent in CONFIG.
     n_samples : int
-        Samples to run (the telemetry capacity).
+        Samples to run; 0: open-ended (until a stop: signal, safety, device). A telemetry
+        buffer without a ring (:class:`~hapsim.daemon.telemetry.Telemetry`) also caps it.
     delay : int
         Expected device delay d [samples] (for the late count from ``force_seq``).
     force_limit : float
@@ -367,7 +371,9 @@ class HostLoop:
     config : LoopConfig
         Run parameters.
     telemetry : Telemetry
-        Preallocated buffer (capacity >= ``config.n_samples``).
+        Preallocated buffer: its head rows, then its ring (the loop writes row ``i`` in
+        slot ``i`` or ``head + (i - head) % ring``, then raises ``n``; a writer thread may
+        drain it); without a ring, at most ``head`` samples are run.
     stop : StopFlag, optional
         Polled every sample.
 
@@ -394,6 +400,7 @@ class HostLoop:
         self._sleep = getattr(transport, "sleep", time.sleep)
         self._fresh = True          # next armed STATE (re)starts the scene at rest
         self._ramp = 0              # samples left in the force ramp after a recovery
+        self._restart_flag = 0      # FLAG_LOST for the first row after a recovery
         self._lost_since = None     # clock time of the current loss, None when healthy
         self._attempts = 0
         self._t0 = 0.0
@@ -558,7 +565,9 @@ class HostLoop:
         if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
             res.stop_reason = f"signal {_signame(self.stop.signal)}"
         res.samples = self.tel.n
-        res.turnaround_us = percentiles_us(self.tel.turnaround_us[:self.tel.n])
+        ta = self.tel.columns()["turnaround_us"]       # the rows still in memory
+        res.turnaround_us = percentiles_us(ta)
+        res.turnaround_us["samples"] = int(ta.size)
         dec = getattr(self.transport, "decoder", None)
         if dec is not None:
             res.decoder = dec.stats.as_dict()
@@ -725,7 +734,9 @@ class HostLoop:
         """
         res = self.result
         stop = self.stop
-        n_max = min(self.config.n_samples, self.tel.capacity)
+        n_max = self.config.n_samples if self.config.n_samples > 0 else _OPEN_ENDED
+        if self.tel.max_rows is not None:
+            n_max = min(n_max, self.tel.max_rows)
         self._energy = 0.0
         while self.tel.n < n_max and not stop.set:
             try:
@@ -761,7 +772,9 @@ class HostLoop:
         Engine
             The engine to step.
         """
+        self._restart_flag = 0
         if self._lost_since is not None:
+            self._restart_flag = FLAG_LOST          # telemetry: the scene restarts here
             self.engine = type(self.engine)(self.engine.scene)
             self._ramp = max(int(self.config.ramp_samples), 1)
             self.result.recovered += 1
@@ -822,8 +835,13 @@ class HostLoop:
         tel = self.tel
         stop = self.stop
         res = self.result
-        t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr = (tel.time, tel.position, tel.force,
-                                                        tel.seq, tel.turnaround_us, tel.late)
+        t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+            tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late, tel.flags)
+        hl, rl = tel.head, tel.ring          # row i is in slot i, or hl + (i - hl) % rl
+        # a loop that is not real-time lets the journal writer catch up each half lap
+        drain = tel.drain if rl else None
+        lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
+        restart = 0
         lim = self.force_limit
         d = cfg.delay
         T = 1.0 / cfg.rate_hz
@@ -906,6 +924,7 @@ class HostLoop:
                             x = math.nan          # handled below as a non-finite position
                         else:
                             eng = self._resume(x)
+                            restart = self._restart_flag
                             energy = 0.0
                             e0 = self._e0
                             expect = seq
@@ -950,9 +969,11 @@ class HostLoop:
                             alpha = excess / tvv if excess < bmax * tvv else bmax
                             f -= alpha * v
                             res.passivity_samples += 1
+                    rf = 0
                     if self._ramp > 0:
                         f *= (ramp_n - self._ramp + 1) / ramp_n
                         self._ramp -= 1
+                        rf = FLAG_RAMP
                     c = 0
                     if f > lim:
                         f = lim
@@ -969,14 +990,19 @@ class HostLoop:
                     wsum += c - win[j]
                     win[j] = c
                     res.clamped += c
-                    t_arr[i] = msg.time_us * 1e-6
-                    x_arr[i] = x
-                    f_arr[i] = f
-                    s_arr[i] = seq
-                    ta_arr[i] = (t_tx - t_rx) * 1e-3
-                    late_arr[i] = lt
+                    sl = i if i < hl else hl + (i - hl) % rl
+                    t_arr[sl] = msg.time_us * 1e-6
+                    x_arr[sl] = x
+                    f_arr[sl] = f
+                    s_arr[sl] = seq
+                    ta_arr[sl] = (t_tx - t_rx) * 1e-3
+                    late_arr[sl] = lt
+                    fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
+                    restart = 0
                     i += 1
                     tel.n = i
+                    if sl == lap_a or sl == lap_b:
+                        drain()
                     if energy > e_max:
                         e_max = energy
                     if excess > x_max:
@@ -1104,6 +1130,13 @@ class HostLoop:
             if latest is None or stop.set:
                 return
             eng = self._resume(latest.position[0])
+            restart = self._restart_flag
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+                tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
+                tel.flags)
+            hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
+            drain = tel.drain if rl else None   # not real-time: the writer catches up
+            lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
             energy = 0.0
             e0 = self._e0
             used_seq = -1
@@ -1161,9 +1194,11 @@ class HostLoop:
                     if tvv > 0.0:
                         f -= (excess / tvv if excess < bmax * tvv else bmax) * v
                         res.passivity_samples += 1
+                rf = 0
                 if self._ramp > 0:
                     f *= (ramp_n - self._ramp + 1) / ramp_n
                     self._ramp -= 1
+                    rf = FLAG_RAMP
                 c = 0
                 if f > lim:
                     f, c = lim, 1
@@ -1187,14 +1222,19 @@ class HostLoop:
                 wsum += c - win[j]
                 win[j] = c
                 res.clamped += c
-                tel.time[i] = latest.time_us * 1e-6
-                tel.position[i] = x
-                tel.force[i] = f
-                tel.seq[i] = seq
-                tel.turnaround_us[i] = (t_tx - t_rx) * 1e-3
-                tel.late[i] = lt
+                sl = i if i < hl else hl + (i - hl) % rl
+                t_arr[sl] = latest.time_us * 1e-6
+                x_arr[sl] = x
+                f_arr[sl] = f
+                s_arr[sl] = seq
+                ta_arr[sl] = (t_tx - t_rx) * 1e-3
+                late_arr[sl] = lt
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
+                restart = 0
                 i += 1
                 tel.n = i
+                if sl == lap_a or sl == lap_b:
+                    drain()
                 if (wsum >= cfg.clamp_max or x > pos_bound or x < -pos_bound or av > vlim
                         or excess > elim):
                     res.stop_reason = _safety_reason(wsum, cfg.clamp_max, wlen, lim, x, pos_bound,

@@ -32,7 +32,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry
+from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
 
@@ -41,6 +41,9 @@ __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
 
 #: Default run length [s] (at least; longer when the predicted oscillation is slow).
 DEFAULT_DURATION = 1.0
+#: Telemetry ring [s]: rows after the identification window go round it (drained to the
+#: journal by the writer thread); a run no longer than window + ring is kept whole.
+RING_SECONDS = 4.0
 
 _ZERO_POLE = 1e-9
 
@@ -428,7 +431,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     baud : int
         Baud rate for ``port``.
     duration : float, optional
-        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops.
+        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops (the
+        identification window: excitation + 10 periods). 0: open-ended, until SIGINT /
+        SIGTERM (``handle_signals``), ``stop``, a safety stop or a device end. Telemetry
+        in memory is the identification window plus a ring of :data:`RING_SECONDS` (a run
+        that fits in both is kept whole); the rest is only in the journal.
     rate_hz : float, optional
         Rate override [Hz].
     lockstep : bool
@@ -503,9 +510,12 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     ProtocolError
         The device speaks another protocol version or has another number of axes than 1.
     """
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
-                          key="--duration")
+    if duration is not None and not (math.isfinite(duration) and duration >= 0):
+        raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
+                          f"got {duration!r}", key="--duration")
+    if duration == 0 and stop is None and not handle_signals:
+        raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "
+                          "handle_signals or a stop flag", key="--duration")
     if transport is None:
         transport = "serial" if port else "pty"
     if transport not in ("serial", "pty", "inprocess", "sim"):
@@ -541,11 +551,15 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
+    # identification window: the free response at the start (what the default run is)
+    window = DEFAULT_DURATION
+    if pred.get("f0_hz"):
+        window = max(window, exc_end + 10.0 / pred["f0_hz"])
     if duration is None:
-        duration = DEFAULT_DURATION
-        if pred.get("f0_hz"):
-            duration = max(duration, exc_end + 10.0 / pred["f0_hz"])
-    n_samples = max(int(round(duration * scene.rate_hz)), 1)
+        duration = window
+    n_samples = max(int(round(duration * scene.rate_hz)), 1) if duration > 0 else 0
+    n_window = max(int(round(window * scene.rate_hz)), 1)
+    n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
 
     from hapsim.engine import Engine
     # Ctrl-C / SIGTERM from here on request a clean stop instead of raising: during the
@@ -565,7 +579,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         limit_blas_threads(1)
         _warm_up(scene)
         engine = Engine(scene)
-        tel = Telemetry(n_samples)
+        if n_samples and n_samples <= n_window + n_ring:
+            tel = Telemetry(n_samples)                 # the whole run fits: kept whole
+        else:                                          # long or open-ended: head + ring
+            tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         x0 = abs(scene.excitation.x0)
         sf = scene.safety
         pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
@@ -614,14 +631,18 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         raise
 
     writer = None
+    writer_info = None
     journal = None
     try:
+        loop = HostLoop(engine, tr, cfg, tel, stop)
         if telemetry:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
-            writer = ChunkWriter(tel, journal, telemetry_interval).start()
+            writer = ChunkWriter(tel, journal, telemetry_interval,
+                                 events=loop.result.events).start()
+            if transport == "sim" or (lockstep and not host_clocked):
+                tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
         if on_start is not None:
             on_start(tr.info.get("port"), n_samples)
-        loop = HostLoop(engine, tr, cfg, tel, stop)
         try:
             res = loop.run()
         except (DeviceError, ProtocolError):
@@ -629,13 +650,16 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                 writer.close()
                 writer = None
             if telemetry and tel.n and journal != telemetry:
-                tel.write(telemetry)      # what was logged helps diagnose the failure
-                _remove(journal)
+                # what was logged helps diagnose the failure
+                _export(tel, journal, telemetry)
             raise
     finally:
         rt.__exit__(None, None, None)
         if writer is not None:
             writer.close()
+            writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
+                           "events": writer.events_written,
+                           "error": str(writer.error) if writer.error else None}
         _restore_signals(old)
         tr.close()
         if embedded is not None:
@@ -650,14 +674,24 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
 
     tel_info = None
     if telemetry:
+        if tel.wrapped:     # the whole run's turnaround, from the journal (off the loop)
+            from hapsim.daemon.loop import percentiles_us
+            ta = load(journal)["turnaround_us"]
+            res.turnaround_us = dict(percentiles_us(ta), samples=int(ta.size))
         if journal != telemetry:
-            tel.write(telemetry)
-            _remove(journal)
+            _export(tel, journal, telemetry)
         tel_info = {"path": telemetry, "samples": tel.n,
                     "columns": ["time [s]", "position [m]", "force [N]", "seq",
-                                "turnaround [us]"]}
+                                "turnaround [us]", "late", "flags"],
+                    "in_memory": tel.head + (tel.ring if tel.wrapped else 0)
+                    if tel.wrapped else tel.n,
+                    "ring": tel.ring, "lost_rows": (writer_info or {}).get("lost_rows", 0),
+                    "events_journaled": (writer_info or {}).get("events", 0),
+                    "writer_error": (writer_info or {}).get("error")}
 
-    cols = tel.columns()
+    # identification: the free response at the start (the whole record while it fits in
+    # memory; the head once the ring has gone round)
+    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
     if pred["order"]:
         start = int(math.ceil(exc_end / T - 1e-9)) + dev.delay + 3
@@ -701,7 +735,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         "mode": "host-clocked" if host_clocked else "device-clocked",
         "lockstep": bool(lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
-        "rate_hz": scene.rate_hz, "ticks": res.samples, "requested": n_samples,
+        "rate_hz": scene.rate_hz, "ticks": res.samples,
+        "requested": n_samples or None, "open_ended": not n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
         "clamped": res.clamped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
@@ -736,6 +771,28 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             "targets": targets, "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
             "telemetry": tel_info,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+
+
+def _sync_drain(writer: ChunkWriter, tel: Telemetry):
+    """``writer.flush`` for a loop that is not real-time to call (an OSError stops it and is
+    kept in ``writer.error``, as in the writer thread)."""
+    def drain() -> None:
+        try:
+            writer.flush()
+        except OSError as exc:
+            writer.error = exc
+            tel.drain = None
+    return drain
+
+
+def _export(tel: Telemetry, journal: str, path: str) -> None:
+    """Write the ``.npz`` / ``.csv`` telemetry: from memory while every row is there, else
+    from the journal (which has them all); then remove the journal."""
+    if tel.wrapped:
+        convert(journal, path)
+    else:
+        tel.write(path)
+    _remove(journal)
 
 
 def _restore_signals(old: dict) -> None:
@@ -834,7 +891,8 @@ def format_report(rep: dict) -> str:
                      f"{p['order']} from {m.get('samples_used', 0)} samples)")
     ta = lp["turnaround_us"]
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
-    lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/{lp['requested']} ticks, "
+    lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
+                 f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
                  f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
@@ -889,5 +947,13 @@ def format_report(rep: dict) -> str:
                      f"STOP {'seen' if mk['saw_stop'] else 'not seen'}")
     tl = rep["telemetry"]
     if tl:
-        lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples)")
+        extra = ""
+        if tl.get("lost_rows"):
+            extra += (f"; {tl['lost_rows']} rows LOST: the journal writer fell more than the "
+                      f"{tl['ring']}-row ring behind")
+        if tl.get("events_journaled"):
+            extra += f"; {tl['events_journaled']} events journaled"
+        if tl.get("writer_error"):
+            extra += f"; journal writer stopped: {tl['writer_error']}"
+        lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
     return "\n".join(lines)

@@ -1,12 +1,21 @@
-"""Per-sample telemetry of the host loop: preallocated arrays, written off the hot path.
+"""Per-sample telemetry of the host loop: a preallocated head and ring, drained off the hot path.
 
 The loop writes one row per sample *by index* into arrays allocated before it starts
-(CONVENTIONS §4: no allocation, no file I/O in the hot loop). Two ways to the disk:
+(CONVENTIONS §4: no allocation, no file I/O in the hot loop; data leaves through a ring
+buffer). The storage is a *head* of ``head`` rows, kept for the whole run (the free
+response that identification needs is at the start), followed by a *ring* of ``ring`` rows
+that the rows after the head go round (:meth:`Telemetry.slot`); ``ring = 0`` is a plain
+buffer of ``head`` rows, which is all a bounded run that fits in memory needs. So a run can
+be open-ended: memory holds the head and the last ``ring`` rows, the journal all of them.
 
-- :class:`ChunkWriter`, a writer thread that appends the rows recorded so far to a chunked
-  journal (``.hst``) every ``interval`` (50 ms): a ``kill -9`` of the daemon loses at most
-  the rows of the last interval plus the chunk being written, and the file stays readable
-  (:func:`load` reads every complete chunk and ignores a torn last one);
+- :class:`ChunkWriter`, a writer thread that drains the rows recorded so far from the head
+  and the ring to a chunked journal (``.hst``) every ``interval`` (50 ms): a ``kill -9`` of
+  the daemon loses at most the rows of the last interval plus the chunk being written, and
+  the file stays readable (:func:`load` reads every complete chunk and ignores a torn last
+  one). It also journals the loop's loss / recovery events as they happen, so a killed
+  run keeps its fault history. When it falls so far behind that the loop has gone round
+  the ring over rows it had not written, those rows are counted (``lost_rows``), never
+  waited for: the loop does not block.
 - :meth:`Telemetry.write`, the ``.npz`` / ``.csv`` export at the end of a run, atomic
   (temporary file, then ``os.replace``); :func:`convert` turns a journal into either.
 
@@ -20,6 +29,11 @@ Chunk format (version 1, little-endian), repeated::
     header hlen bytes of UTF-8 JSON: {"columns": [...], "dtypes": [...], "rows": n,
                                       "first": index of the chunk's first row}
     payload         the columns one after the other, each ``rows`` values of its dtype
+
+An *event chunk* has ``"rows": 0``, no payload and an ``"event"`` object in its header (the
+loop's event: ``lost``, ``attempt``, ``recovered``, ... with ``t``, ``sample``, ``state``,
+``reason``; :func:`load` returns them in ``info["events"]``); readers that do not know it
+read it as an empty chunk.
 
 Columns
 -------
@@ -36,6 +50,11 @@ Columns
 ``late`` [-]
     1 when the device reported holding an older force at this tick (its FORCE came too
     late: ``seq - force_seq != d`` or STATUS_OVERRUN), else 0 (int8).
+``flags`` [-]
+    Bits (uint8): :data:`FLAG_LATE` (as ``late``), :data:`FLAG_LOST` (first sample after
+    the device was lost and recovered: the scene restarted here), :data:`FLAG_RAMP` (force
+    scaled by the ramp after a recovery), :data:`FLAG_CLAMPED` (force clamped at the
+    limit). Files written before this column existed read as 0.
 """
 
 from __future__ import annotations
@@ -51,7 +70,8 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
-           "CHUNK_MAGIC", "CHUNK_VERSION"]
+           "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
+           "FLAG_CLAMPED"]
 
 #: Magic bytes that open each journal chunk.
 CHUNK_MAGIC = b"HSTC"
@@ -59,60 +79,159 @@ CHUNK_MAGIC = b"HSTC"
 CHUNK_VERSION = 1
 _HEAD = struct.Struct("<4sHHII")
 _DTYPES = {"time": "<f8", "position": "<f8", "force": "<f8", "seq": "<i8",
-           "turnaround_us": "<f8", "late": "|i1"}
+           "turnaround_us": "<f8", "late": "|i1", "flags": "|u1"}
 
 #: Column names, in file order.
-COLUMNS = ("time", "position", "force", "seq", "turnaround_us", "late")
+COLUMNS = ("time", "position", "force", "seq", "turnaround_us", "late", "flags")
+
+#: ``flags`` bit: the device held an older force at this tick (as the ``late`` column).
+FLAG_LATE = 1
+#: ``flags`` bit: first sample after the device was lost and recovered (scene restarted).
+FLAG_LOST = 2
+#: ``flags`` bit: the force was scaled by the ramp that follows a recovery.
+FLAG_RAMP = 4
+#: ``flags`` bit: the force was clamped at the force limit.
+FLAG_CLAMPED = 8
 
 
 class Telemetry:
-    """Preallocated telemetry buffer of a run.
+    """Preallocated telemetry buffer of a run: a head kept whole, then a ring.
 
     Parameters
     ----------
-    capacity : int
-        Largest number of samples recorded (>= 0); rows beyond it are not recorded.
+    head : int
+        Rows kept for the whole run (>= 0): rows ``0 .. head - 1``.
+    ring : int
+        Rows the later rows go round (>= 0): row ``r >= head`` is kept in slot
+        ``head + (r - head) % ring`` until row ``r + ring`` overwrites it. 0: no ring, at
+        most ``head`` rows are recorded (the loop stops there).
 
     Attributes
     ----------
-    time, position, force, turnaround_us : ndarray of float64, shape (capacity,)
-        Columns [s], [m], [N], [us]; only the first :attr:`n` rows are valid.
-    seq : ndarray of int64, shape (capacity,)
+    time, position, force, turnaround_us : ndarray of float64, shape (head + ring,)
+        Columns [s], [m], [N], [us], by slot (:meth:`slot`).
+    seq : ndarray of int64, shape (head + ring,)
         STATE sequence numbers.
-    late : ndarray of int8, shape (capacity,)
+    late : ndarray of int8, shape (head + ring,)
         1 where the device held an older force (late FORCE).
+    flags : ndarray of uint8, shape (head + ring,)
+        :data:`FLAG_LATE` | :data:`FLAG_LOST` | :data:`FLAG_RAMP` | :data:`FLAG_CLAMPED`.
     n : int
-        Rows recorded.
+        Rows recorded in all (the loop writes a row's slot, then raises ``n``).
+    capacity : int
+        ``head + ring`` slots.
+    drain : callable or None
+        When set (by the owner of a :class:`ChunkWriter`, for a loop that is not
+        real-time: virtual clock, lockstep), the loop calls it from its own thread each
+        half lap of the ring, so a loop faster than real time never outruns the writer. A
+        real-time loop leaves it None and never waits.
+
+    Raises
+    ------
+    ValueError
+        On a negative ``head`` or ``ring``.
     """
 
-    def __init__(self, capacity: int) -> None:
-        capacity = int(capacity)
-        if capacity < 0:
-            raise ValueError(f"capacity must be >= 0, got {capacity}")
-        self.capacity = capacity
+    def __init__(self, head: int, ring: int = 0) -> None:
+        head, ring = int(head), int(ring)
+        if head < 0 or ring < 0:
+            raise ValueError(f"head and ring must be >= 0, got {head}, {ring}")
+        self.head = head
+        self.ring = ring
+        self.capacity = capacity = head + ring
         self.time = np.zeros(capacity)
         self.position = np.zeros(capacity)
         self.force = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
         self.turnaround_us = np.zeros(capacity)
         self.late = np.zeros(capacity, dtype=np.int8)
+        self.flags = np.zeros(capacity, dtype=np.uint8)
         # np.zeros maps untouched zero pages: writing them once here moves the page
         # faults (the kernel allocating memory) out of the hot loop (CONVENTIONS §4)
         for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
-                  self.late):
+                  self.late, self.flags):
             a.fill(1)
             a.fill(0)
         self.n = 0
+        self.drain = None
 
-    def columns(self) -> dict[str, np.ndarray]:
-        """Views of the valid rows, by column name (shape (n,) each)."""
-        n = self.n
-        return {"time": self.time[:n], "position": self.position[:n], "force": self.force[:n],
-                "seq": self.seq[:n], "turnaround_us": self.turnaround_us[:n],
-                "late": self.late[:n]}
+    @property
+    def max_rows(self) -> int | None:
+        """Most rows the buffer can record: ``head`` without a ring, else None (any)."""
+        return None if self.ring else self.head
+
+    @property
+    def wrapped(self) -> bool:
+        """True once rows have been overwritten in memory (only the journal has them)."""
+        return self.n > self.capacity
+
+    def slot(self, row: int) -> int:
+        """Slot of row ``row`` (>= 0) in the arrays (the loop computes the same inline).
+
+        Parameters
+        ----------
+        row : int
+            Row index since the start of the run.
+
+        Returns
+        -------
+        int
+            ``row`` in the head, else ``head + (row - head) % ring``.
+
+        Raises
+        ------
+        IndexError
+            A row beyond the head of a buffer without a ring.
+        """
+        if row < self.head:
+            return row
+        if not self.ring:
+            raise IndexError(f"row {row} beyond the {self.head} rows of a buffer without ring")
+        return self.head + (row - self.head) % self.ring
+
+    def rows_in_memory(self) -> list[tuple[int, int]]:
+        """Row ranges ``[a, b)`` still in memory, in order (the head, then the ring's)."""
+        n, h = self.n, self.head
+        if n <= self.capacity:
+            return [(0, n)] if n else []
+        return [(0, h), (n - self.ring, n)] if h else [(n - self.ring, n)]
+
+    def columns(self, rows: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+        """The rows in memory by column name, in row order.
+
+        Parameters
+        ----------
+        rows : (int, int), optional
+            Only rows ``[a, b)`` (they must be in memory); default: every row in memory
+            (all ``n`` rows until the ring wraps; then the head and the last ``ring``).
+
+        Returns
+        -------
+        dict of str to ndarray
+            The columns of :data:`COLUMNS`, each shape (m,): views when the rows are
+            contiguous in memory, copies otherwise.
+        """
+        ranges = [rows] if rows is not None else self.rows_in_memory()
+        arrays = {c: getattr(self, c) for c in COLUMNS}
+        parts: dict[str, list] = {c: [] for c in COLUMNS}
+        for a, b in ranges:
+            if b <= a:
+                continue
+            sa = self.slot(a)
+            sb = self.slot(b - 1) + 1
+            for c in COLUMNS:
+                col = arrays[c]
+                parts[c].append(col[sa:sb] if sb > sa else
+                                np.concatenate([col[sa:self.capacity], col[self.head:sb]]))
+        out = {}
+        for c in COLUMNS:
+            ps = parts[c]
+            out[c] = ps[0] if len(ps) == 1 else (np.concatenate(ps) if ps else
+                                                 arrays[c][:0])
+        return out
 
     def write(self, path: str) -> str:
-        """Write the valid rows to ``path`` atomically.
+        """Write the rows in memory to ``path`` atomically.
 
         Parameters
         ----------
@@ -148,7 +267,7 @@ def _write_columns(cols: dict, path: str) -> str:
         else:
             data = np.column_stack([cols[c].astype(float) for c in COLUMNS])
             np.savetxt(tmp, data, delimiter=",", header=",".join(COLUMNS), comments="",
-                       fmt=["%.9f", "%.17g", "%.17g", "%d", "%.1f", "%d"])
+                       fmt=["%.9f", "%.17g", "%.17g", "%d", "%.1f", "%d", "%d"])
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -167,22 +286,27 @@ def load_telemetry(path: str) -> dict[str, np.ndarray]:
     Returns
     -------
     dict of str to ndarray
-        The columns of :data:`COLUMNS`, each shape (n,); ``seq`` as int64, ``late`` int8.
+        The columns of :data:`COLUMNS`, each shape (n,); ``seq`` as int64, ``late`` int8,
+        ``flags`` uint8 (zeros for a file written before that column existed).
     """
     if path.lower().endswith(".hst"):
         return load(path)
     if path.lower().endswith(".npz"):
         with np.load(path) as z:
-            return {c: np.asarray(z[c]) for c in COLUMNS}
+            n = z["seq"].size
+            return {c: (np.asarray(z[c]) if c in z.files else np.zeros(n, dtype=_DTYPES[c]))
+                    for c in COLUMNS}
+    with open(path) as fh:
+        names = fh.readline().strip().split(",")
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    out = {c: data[:, i] for i, c in enumerate(COLUMNS)}
-    out["seq"] = out["seq"].astype(np.int64)
-    out["late"] = out["late"].astype(np.int8)
+    n = data.shape[0]
+    out = {c: (data[:, names.index(c)] if c in names else np.zeros(n))
+           .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
     return out
 
 
 class ChunkWriter:
-    """Writer thread appending the recorded rows of a :class:`Telemetry` to a journal.
+    """Writer thread draining the recorded rows of a :class:`Telemetry` to a journal.
 
     Parameters
     ----------
@@ -192,14 +316,24 @@ class ChunkWriter:
     path : str
         Journal file (created or truncated); conventionally ``.hst``.
     interval : float
-        Time between two chunks [s] (> 0); 0.05 keeps a ``kill -9`` loss under 100 ms.
+        Time between two drains [s] (> 0); 0.05 keeps a ``kill -9`` loss under 100 ms.
+    events : list of dict, optional
+        The loop's event list (:attr:`hapsim.daemon.loop.LoopResult.events`), appended to
+        by the loop: each new event is journaled as an event chunk at the next drain.
 
     Attributes
     ----------
     rows_written : int
-        Rows on disk so far.
+        Rows drained so far (on disk, or counted in ``lost_rows``).
+    lost_rows : int
+        Rows the loop overwrote in the ring before this thread drained them (it fell more
+        than ``ring`` rows behind); counted, never waited for.
     chunks : int
-        Chunks written.
+        Chunks written (rows and events).
+    events_written : int
+        Events journaled.
+    error : OSError or None
+        The error that stopped the thread (disk full, ...), if any.
 
     Raises
     ------
@@ -212,25 +346,38 @@ class ChunkWriter:
     killed process leaves whole chunks plus at most one torn chunk, which :func:`load`
     ignores. Not ``fsync``-ed: a process kill keeps the page cache; a power cut may lose
     more. The thread copies rows out of the preallocated arrays (its allocations happen
-    off the hot loop).
+    off the hot loop). A ring slot being rewritten while it is copied is detected: after
+    the copy, rows the loop may have reached since (``r <= n_now - ring``, one row of
+    margin for the row being written) are dropped and counted in ``lost_rows``.
     """
 
-    def __init__(self, telemetry: "Telemetry", path: str, interval: float = 0.05) -> None:
+    def __init__(self, telemetry: "Telemetry", path: str, interval: float = 0.05,
+                 events: list | None = None) -> None:
         if not interval > 0:
             raise ValueError(f"interval must be > 0, got {interval!r}")
         self.tel = telemetry
         self.path = path
         self.interval = float(interval)
+        self.events = events
         self.rows_written = 0
+        self.lost_rows = 0
         self.chunks = 0
+        self.events_written = 0
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self._done = threading.Event()
+        self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="hapsim-telemetry",
                                         daemon=True)
         self.error = None
 
     def start(self) -> "ChunkWriter":
-        """Start the thread; returns self."""
+        """Start the thread.
+
+        Returns
+        -------
+        ChunkWriter
+            ``self``.
+        """
         self._thread.start()
         return self
 
@@ -242,26 +389,74 @@ class ChunkWriter:
                 self.error = exc
                 return
 
-    def flush(self) -> int:
-        """Append the rows recorded since the last chunk; returns how many."""
-        n = self.tel.n
-        a = self.rows_written
-        if n <= a:
-            return 0
-        cols = self.tel.columns()
-        parts = [np.ascontiguousarray(cols[c][a:n], dtype=_DTYPES[c]).tobytes() for c in COLUMNS]
-        payload = b"".join(parts)
-        header = json.dumps({"columns": list(COLUMNS), "dtypes": [_DTYPES[c] for c in COLUMNS],
-                             "rows": n - a, "first": a}, separators=(",", ":")).encode()
-        crc = zlib.crc32(payload, zlib.crc32(header))
-        os.write(self._fd, _HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(header), len(payload),
-                                      crc) + header + payload)
-        self.rows_written = n
+    def _chunk(self, header: dict, payload: bytes = b"") -> None:
+        head = json.dumps(header, separators=(",", ":")).encode()
+        crc = zlib.crc32(payload, zlib.crc32(head))
+        os.write(self._fd, _HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(head), len(payload),
+                                      crc) + head + payload)
         self.chunks += 1
-        return n - a
+
+    def flush(self) -> int:
+        """Drain the rows recorded since the last drain, then the new events.
+
+        Returns
+        -------
+        int
+            Rows written to the journal by this call (rows lost to the ring not counted).
+
+        Raises
+        ------
+        OSError
+            When the journal cannot be written.
+        """
+        with self._lock:
+            tel = self.tel
+            n = tel.n
+            a = self.rows_written
+            wrote = 0
+            if n > a:
+                head, ring = tel.head, tel.ring
+                pieces = []
+                if a < head:
+                    pieces.append((a, min(n, head)))
+                if n > head and ring:
+                    lo = max(a, head)
+                    floor = n - ring + 1          # below: overwritten, or being overwritten
+                    if lo < floor:
+                        self.lost_rows += floor - lo
+                        lo = floor
+                    if n > lo:
+                        pieces.append((lo, n))
+                copies = [(lo, hi, {c: np.array(v, copy=True)
+                                    for c, v in tel.columns((lo, hi)).items()})
+                          for lo, hi in pieces]
+                safe = tel.n - ring + 1 if ring else 0   # the loop went on meanwhile
+                for lo, hi, cols in copies:
+                    if lo >= head and lo < safe:
+                        cut = min(safe, hi)
+                        self.lost_rows += cut - lo
+                        cols = {c: v[cut - lo:] for c, v in cols.items()}
+                        lo = cut
+                    if hi <= lo:
+                        continue
+                    payload = b"".join(np.ascontiguousarray(cols[c], dtype=_DTYPES[c])
+                                       .tobytes() for c in COLUMNS)
+                    self._chunk({"columns": list(COLUMNS),
+                                 "dtypes": [_DTYPES[c] for c in COLUMNS],
+                                 "rows": hi - lo, "first": lo}, payload)
+                    wrote += hi - lo
+                self.rows_written = n
+            ev = self.events
+            if ev is not None:
+                while self.events_written < len(ev):
+                    e = ev[self.events_written]
+                    self._chunk({"columns": [], "dtypes": [], "rows": 0,
+                                 "first": int(e.get("sample", tel.n)), "event": e})
+                    self.events_written += 1
+            return wrote
 
     def close(self) -> None:
-        """Stop the thread, write the last rows, close the file (idempotent)."""
+        """Stop the thread, drain the last rows and events, close the file (idempotent)."""
         self._done.set()
         if self._thread.is_alive():
             self._thread.join()
@@ -283,7 +478,9 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         is incomplete (torn by a kill), fails its CRC, or does not start with the magic.
     info : dict, optional
         Filled with ``chunks`` (complete chunks read), ``rows``, ``torn_bytes`` (bytes
-        ignored at the end) for a journal.
+        ignored at the end), ``events`` (the loop's journaled events, list of dict) and
+        ``gaps`` (row ranges ``[a, b)`` missing between chunks: rows the writer lost to the
+        ring) for a journal.
 
     Returns
     -------
@@ -302,6 +499,9 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
     pos = 0
     parts: dict[str, list] = {c: [] for c in COLUMNS}
     chunks = rows = 0
+    events: list = []
+    gaps: list = []
+    expect = 0
     while pos + _HEAD.size <= len(data):
         magic, version, hlen, plen, crc = _HEAD.unpack_from(data, pos)
         if magic != CHUNK_MAGIC or version != CHUNK_VERSION:
@@ -316,6 +516,12 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         try:
             h = json.loads(header)
             n = int(h["rows"])
+            if "event" in h:
+                events.append(h["event"])
+            elif n and int(h.get("first", expect)) > expect:
+                gaps.append((expect, int(h["first"])))
+            if n:
+                expect = int(h.get("first", expect)) + n
             off = 0
             got = {}
             for c, dt in zip(h["columns"], h["dtypes"]):
@@ -330,7 +536,8 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         rows += n
         pos = b
     if info is not None:
-        info.update(chunks=chunks, rows=rows, torn_bytes=len(data) - pos)
+        info.update(chunks=chunks, rows=rows, torn_bytes=len(data) - pos, events=events,
+                    gaps=gaps)
     return {c: (np.concatenate(parts[c]) if parts[c] else np.zeros(0, dtype=_DTYPES[c]))
             .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
 
