@@ -54,7 +54,19 @@ safety: {position_limit: 0.1, velocity_limit: 5.0, energy_limit: 5.0}
 
 
 def rss_kb(pid: int | str = "self") -> int | None:
-    """``VmRSS`` of a process [kB] from ``/proc/PID/status`` (None when gone)."""
+    """Resident memory of a process.
+
+    Parameters
+    ----------
+    pid : int or str
+        Process id, or ``"self"``.
+
+    Returns
+    -------
+    int or None
+        ``VmRSS`` [kB] from ``/proc/PID/status``; None when the process is gone (or no
+        ``/proc``).
+    """
     try:
         with open(f"/proc/{pid}/status") as fh:
             for line in fh:
@@ -66,7 +78,14 @@ def rss_kb(pid: int | str = "self") -> int | None:
 
 
 def mock_children() -> list[int]:
-    """PIDs of this process's children running ``hapsim mock``."""
+    """The embedded mock devices this process started.
+
+    Returns
+    -------
+    list of int
+        PIDs of this process's children whose command line contains ``mock`` (from
+        ``/proc``; empty without it).
+    """
     me = os.getpid()
     out = []
     for d in os.listdir("/proc"):
@@ -86,6 +105,20 @@ def mock_children() -> list[int]:
 
 
 def main(argv=None) -> int:
+    """Run the soak and print (and optionally write) its figures as JSON.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments (default ``sys.argv[1:]``): ``--minutes``, ``--seed``,
+        ``--faults``, ``--json FILE``, ``--telemetry FILE.hst``.
+
+    Returns
+    -------
+    int
+        0 when the run ended without an exception, 1 otherwise (the figures are printed
+        either way).
+    """
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=1)

@@ -13,7 +13,13 @@ from hapsim.errors import ConfigError
 
 
 def register(sub) -> None:
-    """Add the ``mock`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``mock`` parser to the CLI.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers action of ``hapsim``'s parser; ``mock``'s ``func`` is :func:`run`.
+    """
     p = sub.add_parser(
         "mock", help="serve a mock device (exact THS physics) on a new pseudo-terminal",
         description=(
@@ -108,7 +114,27 @@ def _new_pty(link: str | None, announce: bool) -> tuple[int, int]:
 
 
 def run(args) -> int:
-    """Run ``hapsim mock``; returns the exit code."""
+    """Run ``hapsim mock``: serve a mock device on a new pty (or, embedded in ``hapsim run``,
+    on the pty master ``--fd``) until STOP, SIGINT/SIGTERM or the host closing the port.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options of :func:`register` (``scene``, ``lockstep``, ``rate``, ``seed``,
+        ``report``, ``faults``, ``fault_seed``, ``rt_priority``, ``link``, ``fd``, ``spec``).
+
+    Returns
+    -------
+    int
+        0 (the exit code).
+
+    Raises
+    ------
+    ConfigError
+        Bad ``--rt-priority``, ``--rate`` or ``--faults``, a ``vanish`` fault without
+        ``--link``, or a scene without a device section (exit 2 from
+        :func:`hapsim.cli.main`).
+    """
     from hapsim.daemon.faults import parse_faults
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
     from hapsim.daemon.realtime import RealtimePriority

@@ -88,7 +88,13 @@ exit codes:
 
 
 def register(sub) -> None:
-    """Add the ``run`` parser to ``sub`` (an argparse sub-parsers action)."""
+    """Add the ``run`` parser to the CLI.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers action of ``hapsim``'s parser; ``run``'s ``func`` is :func:`run`.
+    """
     p = sub.add_parser("run", help="close the THS on a device or the mock and measure the "
                                    "felt stiffness and damping",
                        description=_DESCRIPTION, epilog=_EPILOG,
@@ -165,7 +171,31 @@ def _announce(port, n_samples) -> None:
 
 
 def run(args) -> int:
-    """Run ``hapsim run``; returns the exit code (0, 1 after a safety stop or fault)."""
+    """Run ``hapsim run``: load the scene, close the loop, print the report.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options of :func:`register` (``scene``, ``port``, ``duration``, ``rate``,
+        ``lockstep``, ``telemetry``, ``faults``, ``lost_timeout``, ``json``, ...).
+
+    Returns
+    -------
+    int
+        Exit code: 0 (ran to the end, or stopped by SIGINT/SIGTERM), 1 (safety stop or a
+        latched device fault).
+
+    Raises
+    ------
+    ConfigError
+        Bad option values (``--rate``, ``--lost-timeout``, ``--reconnect-*``, ``--faults``,
+        ``--auto`` with ``--rate``), an invalid scene or unrenderable target (exit 2 from
+        :func:`hapsim.cli.main`).
+    UnstableConfigError
+        Unstable loop without ``--allow-unstable``, or ``--auto`` finding no rate (exit 1).
+    DeviceError, ProtocolError
+        Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
+    """
     from hapsim.daemon.runner import format_report, run_scene
     from hapsim.scene import load_scene
 

@@ -160,13 +160,36 @@ class FaultPlan:
         return self.rates.get("vanish", 0) > 0 or any(n == "vanish" for _, n, _ in self.schedule)
 
     def to_dict(self) -> dict:
-        """JSON-ready description: spec, seed, injected counts."""
+        """JSON-ready description of the plan.
+
+        Returns
+        -------
+        dict
+            ``spec`` (str), ``seed`` (int), ``injected`` (fault name to count, only the
+            faults injected at least once).
+        """
         return {"spec": self.spec, "seed": self.seed,
                 "injected": {k: v for k, v in self.injected.items() if v}}
 
     # ------------------------------------------------------------------ decisions
     def device_events(self, tick: int) -> list:
-        """Device faults firing at device tick ``tick``: list of ``(name, duration [s])``."""
+        """Device faults firing at a device tick (scheduled, then drawn at random).
+
+        Scheduled wire faults (``drop@TICK``, ``rx.drop@TICK``, ...) are armed here for the
+        next frame in their direction instead of being returned. Counts them in
+        :attr:`injected`.
+
+        Parameters
+        ----------
+        tick : int
+            Device tick, counted since the mock started (across CONFIGs and resets), >= 0.
+
+        Returns
+        -------
+        list of (str, float)
+            ``(name, duration [s])`` of the device faults (``stall``, ``reset``, ``vanish``)
+            to apply now, scheduled ones first; the duration is 0.0 for ``reset``.
+        """
         out = list(self._by_tick.get(tick, ()))
         if self._dev_rates:
             rnd = self.rng.random
@@ -396,13 +419,31 @@ class FaultyDevice:
             self._held.clear()
 
     def connect(self, now_us: int) -> None:
-        """The port (re)opened: ``0x00`` then HELLO (unless ``nohello``)."""
+        """The port (re)opened: queue ``0x00`` then HELLO (unless ``nohello``).
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us]; the bytes are due at once (HELLO through the wire faults).
+        """
         self._out.append((now_us, b"\x00"))
         if not self.plan.nohello:
             self._send(self.mock.hello(), now_us)
 
     def pop_due(self, now_us: int) -> bytes:
-        """Bytes whose release time has come (in order); empty while stalled or gone."""
+        """Take the bytes to write to the host by now.
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us].
+
+        Returns
+        -------
+        bytes
+            The queued frames whose release time is ``<= now_us``, in order, joined; empty
+            while the link is stalled or the port gone (they wait).
+        """
         if not self._out or self.link_down(now_us):
             return b""
         i = 0
@@ -416,7 +457,14 @@ class FaultyDevice:
         return data
 
     def next_release_us(self) -> int | None:
-        """Release time of the next held frame, either direction [us], or None."""
+        """When the next queued frame is due, in either direction.
+
+        Returns
+        -------
+        int or None
+            Release time [us] of the first frame queued for the host or for the device's
+            receiver, whichever is earlier; None when nothing is queued.
+        """
         out = self._out[0][0] if self._out else None
         if self._in:
             rx = self._in[0][0]
@@ -424,11 +472,33 @@ class FaultyDevice:
         return out
 
     def link_down(self, now_us: int) -> bool:
-        """True while the link is stalled or the port is gone."""
+        """Whether nothing passes the link now.
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us].
+
+        Returns
+        -------
+        bool
+            True while the link is stalled or the port is gone.
+        """
         return now_us < self.stalled_until_us or now_us < self.vanished_until_us
 
     def vanished(self, now_us: int) -> bool:
-        """True while the port is gone."""
+        """Whether the port is gone now.
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us].
+
+        Returns
+        -------
+        bool
+            True before ``vanished_until_us`` (a ``vanish`` fault's DURATION).
+        """
         return now_us < self.vanished_until_us
 
     # ------------------------------------------------------------------ input
@@ -510,7 +580,16 @@ class FaultyDevice:
 
     # ------------------------------------------------------------------ ticks
     def tick(self, now_us: int) -> None:
-        """One device tick: fire scheduled/random device faults, then tick the mock."""
+        """One device tick: fire scheduled/random device faults, then tick the mock.
+
+        The STATE of the tick is queued for the host (through the wire faults) unless the
+        link is down; a ``reset`` or ``vanish`` takes effect before the mock ticks.
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock at the tick [us].
+        """
         n = self.tick_count
         self.tick_count = n + 1
         if not self.plan.empty:
@@ -537,6 +616,11 @@ class FaultyDevice:
         """Housekeeping between ticks: when a vanished port is back, say ``0x00`` + HELLO;
         hand the host frames held by ``rx.`` faults whose time has come to the receiver.
 
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us].
+
         Returns
         -------
         list
@@ -552,7 +636,14 @@ class FaultyDevice:
         return []
 
     def reset(self, now_us: int) -> None:
-        """Device reset: zero force, disarmed, unconfigured, receiver cleared, HELLO."""
+        """Device reset: zero force, disarmed, unconfigured, receiver and queues cleared,
+        then ``0x00`` + HELLO (as a device that restarts says HELLO).
+
+        Parameters
+        ----------
+        now_us : int
+            Device clock [us].
+        """
         mock = self.mock
         mock.stop()
         mock.configured = False

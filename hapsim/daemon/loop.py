@@ -116,7 +116,14 @@ class StopFlag:
         self.signal = None
 
     def request(self, signum: int | None = None) -> None:
-        """Request a stop (safe to call from a signal handler)."""
+        """Request a stop (safe to call from a signal handler: two attribute stores).
+
+        Parameters
+        ----------
+        signum : int, optional
+            Number of the signal that asked (``signal.SIGINT``, ``signal.SIGTERM``); the
+            loop reports ``"signal NAME"`` as the stop reason. None: another caller.
+        """
         self.set = True
         self.signal = signum
 
@@ -349,7 +356,19 @@ class LoopResult:
 
 
 def percentiles_us(values: np.ndarray) -> dict:
-    """``p50``, ``p99``, ``p999`` and ``max`` of ``values`` [us] (None when empty)."""
+    """Percentiles of a set of durations, for the loop report.
+
+    Parameters
+    ----------
+    values : array_like of float, shape (n,)
+        Durations [us] (turnaround, ping round trips); any order, n >= 0.
+
+    Returns
+    -------
+    dict
+        ``p50``, ``p99``, ``p999`` (``numpy.percentile`` with linear interpolation) and
+        ``max`` [us], as floats; each None when ``values`` is empty.
+    """
     v = np.asarray(values, dtype=float)
     if v.size == 0:
         return {"p50": None, "p99": None, "p999": None, "max": None}

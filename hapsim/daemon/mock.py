@@ -292,7 +292,14 @@ class MockPhysics:
         return self.hand.size * self.period
 
     def sample(self) -> float:
-        """Position the encoder reports at the current tick [m] (noise, then quantisation)."""
+        """Position the encoder reports at the current tick.
+
+        Returns
+        -------
+        float
+            ``x`` [m] plus Gaussian noise of standard deviation ``device.noise`` (seeded),
+            then rounded to a multiple of ``device.position_resolution`` when > 0.
+        """
         y = self.x
         if self._rng is not None:
             y += self._noise * float(self._rng.standard_normal())
@@ -396,7 +403,13 @@ class MockStats:
     faults: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        """JSON-ready dict of the counters."""
+        """JSON-ready copy of the counters.
+
+        Returns
+        -------
+        dict
+            Every attribute of the class by name (``faults`` copied).
+        """
         return {"ticks": self.ticks, "forces_rx": self.forces_rx, "late": self.late,
                 "watchdog_trips": self.watchdog_trips, "clamped": self.clamped,
                 "overruns": self.overruns, "unexpected": self.unexpected,
@@ -480,7 +493,16 @@ class MockDevice:
 
     # ------------------------------------------------------------------ messages
     def hello(self) -> fp.Hello:
-        """HELLO message of this device (sent on connect and on HELLO_REQUEST)."""
+        """HELLO message of this device (sent on connect and on HELLO_REQUEST).
+
+        Returns
+        -------
+        firmware_protocol.Hello
+            Protocol version :data:`firmware_protocol.PROTOCOL_VERSION`, 1 axis, device id
+            :data:`MOCK_DEVICE_ID`, position scale ``device.position_resolution`` [m],
+            force scale 0, force limit ``device.force_limit`` [N] (1e300 when unlimited),
+            native rate [Hz].
+        """
         fl = self.device.force_limit
         return fp.Hello(fp.PROTOCOL_VERSION, 1, MOCK_DEVICE_ID,
                         float(self.device.position_resolution or 0.0), 0.0,

@@ -190,7 +190,14 @@ class Telemetry:
         return self.head + (row - self.head) % self.ring
 
     def rows_in_memory(self) -> list[tuple[int, int]]:
-        """Row ranges ``[a, b)`` still in memory, in order (the head, then the ring's)."""
+        """The rows still in memory.
+
+        Returns
+        -------
+        list of (int, int)
+            Row ranges ``[a, b)``, in order: all ``n`` rows until the ring has gone round,
+            then the head and the last ``ring`` rows.
+        """
         n, h = self.n, self.head
         if n <= self.capacity:
             return [(0, n)] if n else []

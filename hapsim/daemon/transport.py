@@ -59,11 +59,28 @@ class InProcessTransport:
                      "low_latency_note": "in-process: no port"}
 
     def send(self, msg) -> None:
-        """Hand ``msg`` to the mock; queue its replies."""
+        """Hand ``msg`` to the mock; queue its replies.
+
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            A host message (HELLO_REQUEST, CONFIG, FORCE, PING, STOP).
+        """
         self._q.extend(self.mock.handle(msg, 0))
 
     def receive(self, timeout: float = 0.0) -> list:
-        """Queued replies (never waits: the mock answers synchronously)."""
+        """Queued replies (never waits: the mock answers synchronously).
+
+        Parameters
+        ----------
+        timeout : float
+            Ignored [s] (kept for the transport interface).
+
+        Returns
+        -------
+        list of firmware_protocol messages
+            The mock's replies since the last call, in order (possibly empty).
+        """
         out = list(self._q)
         self._q.clear()
         return out
@@ -72,7 +89,13 @@ class InProcessTransport:
         """Nothing to release."""
 
     def last_frames(self) -> str:
-        """No frames in-process: empty string."""
+        """The last frames received, as text (CONVENTIONS §11).
+
+        Returns
+        -------
+        str
+            Always ``""``: in-process there are no frames.
+        """
         return ""
 
 
@@ -131,10 +154,15 @@ class SerialTransport:
     def send(self, msg) -> None:
         """Encode and write one message.
 
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            A host message; written as one COBS frame with its ``0x00`` delimiter.
+
         Raises
         ------
         DeviceError
-            When the write fails (port gone).
+            When the write fails (port gone); the message carries the last frames.
         """
         try:
             self._write(fp.encode(msg))
@@ -143,12 +171,24 @@ class SerialTransport:
                               f"last frames:\n{self.last_frames()}") from None
 
     def receive(self, timeout: float = 0.0) -> list:
-        """Messages received, waiting up to ``timeout`` [s] for at least one.
+        """Messages received, waiting up to ``timeout`` for at least one.
+
+        Parameters
+        ----------
+        timeout : float
+            Longest wait [s] for a first message, >= 0 (0: only what is waiting); honoured
+            to ``read_timeout`` (a blocking read returns at its first byte).
+
+        Returns
+        -------
+        list of firmware_protocol messages
+            Messages of the frames completed, in arrival order; empty after the timeout.
+            Bad frames are dropped and counted by :attr:`decoder`.
 
         Raises
         ------
         DeviceError
-            When the read fails (port gone).
+            When the read fails (port gone); the message carries the last frames.
         """
         ser = self._ser
         end = time.monotonic() + timeout
@@ -206,7 +246,14 @@ class SerialTransport:
         self.reopened = getattr(self, "reopened", 0) + 1
 
     def last_frames(self) -> str:
-        """The last frames received as text (CONVENTIONS §11)."""
+        """The last frames received as text (CONVENTIONS §11).
+
+        Returns
+        -------
+        str
+            One line ``outcome: hex`` per frame, oldest first (the decoder keeps 16);
+            ``""`` before any frame.
+        """
         return self._dec.format_last_frames()
 
 
@@ -300,7 +347,21 @@ class EmbeddedMock:
             os.close(master)
 
     def report(self, timeout: float = 3.0) -> dict | None:
-        """Wait for the child to exit and return its JSON report (None if it has none)."""
+        """Wait for the child to exit and return what it saw.
+
+        Parameters
+        ----------
+        timeout : float
+            Longest wait for the child to exit by itself [s] (it does when the host closes
+            the port); then it is terminated (SIGTERM, SIGKILL after 2 s).
+
+        Returns
+        -------
+        dict or None
+            The child's JSON report (:class:`~hapsim.daemon.mock.MockStats` fields, ``end``,
+            ``decoder``, ``totals``, and with faults ``faults_injected``,
+            ``fault_events``); None when it wrote none (killed, or crashed).
+        """
         try:
             self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -395,7 +456,13 @@ class SimTransport:
         return self._dec
 
     def clock(self) -> float:
-        """Virtual time [s]."""
+        """Virtual time.
+
+        Returns
+        -------
+        float
+            :attr:`now_us` in seconds [s].
+        """
         return self.now_us * 1e-6
 
     def _check_port(self) -> None:
@@ -434,11 +501,23 @@ class SimTransport:
             self._dead = True
 
     def sleep(self, seconds: float) -> None:
-        """Let ``seconds`` of virtual time pass."""
+        """Let virtual time pass, ticking the device meanwhile.
+
+        Parameters
+        ----------
+        seconds : float
+            Time to let pass [s] (rounded to 1 us; negative: none).
+        """
         self._step_to(self.now_us + max(int(round(seconds * 1e6)), 0))
 
     def send(self, msg) -> None:
         """Encode ``msg`` and hand the bytes to the device (queued while it is stalled).
+
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            A host message (recorded in :attr:`sent` when that is a list); takes
+            ``host_latency_us`` of virtual time.
 
         Raises
         ------
@@ -457,7 +536,20 @@ class SimTransport:
             self.device.feed(data, self.now_us)
 
     def receive(self, timeout: float = 0.0) -> list:
-        """Messages received, advancing virtual time up to ``timeout`` [s] for one.
+        """Messages received, advancing virtual time up to ``timeout`` for one.
+
+        Parameters
+        ----------
+        timeout : float
+            Longest virtual wait [s] for a first message (truncated to whole
+            microseconds; 0: only what is due now). Time advances tick by tick (or to the
+            next held frame), so the device's ticks, watchdog and faults happen on the way.
+
+        Returns
+        -------
+        list of firmware_protocol messages
+            Messages of the frames completed, in order; empty after the timeout. Bad frames
+            are dropped and counted by :attr:`decoder`.
 
         Raises
         ------
@@ -505,5 +597,12 @@ class SimTransport:
         """Nothing to release."""
 
     def last_frames(self) -> str:
-        """The last frames received as text (CONVENTIONS §11)."""
+        """The last frames received as text (CONVENTIONS §11).
+
+        Returns
+        -------
+        str
+            One line ``outcome: hex`` per frame, oldest first (the decoder keeps 16);
+            ``""`` before any frame.
+        """
         return self._dec.format_last_frames()
