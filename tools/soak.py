@@ -10,15 +10,19 @@ a hand force that keeps the loop moving, and prints what happened:
   while the host had lost it;
 - the largest force sent, the energy the scene gave the hand;
 - memory: RSS (``VmRSS`` of ``/proc/PID/status``) of the host and of the mock child,
-  sampled every 10 s, growth from the first sample after one minute (warm-up) to the end;
-- turnaround percentiles.
+  sampled every 10 s (a quarter of the run when shorter), growth from the first sample
+  after one minute (warm-up; the first sample in a shorter run) to the end;
+- turnaround percentiles; bad frames recorded, implausible STATEs, telemetry rows the
+  journal writer lost, events journaled;
+- the git commit (and whether the work tree had changes) it ran at.
 
 Usage::
 
     PYTHONPATH=. python tools/soak.py --minutes 10 --seed 1 --json docs/soak.json
+    PYTHONPATH=. python tools/soak.py --minutes 0.2 --json /tmp/smoke.json   # smoke run
 
 Default fault SPEC (per frame / per tick at 1 kHz, so about one stall, reset or vanish a
-minute): see ``DEFAULT_FAULTS``.
+minute; host -> device frames are faulted too, ``rx.*``): see ``DEFAULT_FAULTS``.
 """
 
 from __future__ import annotations
@@ -34,9 +38,13 @@ import time
 
 import numpy as np
 
-#: Faults of the soak: wire faults per frame, device faults per tick (1 kHz).
+#: Faults of the soak: wire faults per frame in both directions (device -> host, and
+#: host -> device as ``rx.*``), device faults per tick (1 kHz).
 DEFAULT_FAULTS = ("drop=0.002,corrupt=0.001,garbage=0.0005,dup=0.0005,reorder=0.0005,"
-                  "spike=0.0005:5ms,stall=0.00002:200ms,reset=0.00002,vanish=0.00001:300ms")
+                  "spike=0.0005:5ms,"
+                  "rx.drop=0.002,rx.corrupt=0.001,rx.garbage=0.0005,rx.dup=0.0005,"
+                  "rx.reorder=0.0005,rx.spike=0.0005:5ms,"
+                  "stall=0.00002:200ms,reset=0.00002,vanish=0.00001:300ms")
 
 SCENE = """\
 rate_hz: 1000
@@ -104,6 +112,28 @@ def mock_children() -> list[int]:
     return out
 
 
+def git_commit() -> dict:
+    """The git commit this tool runs at.
+
+    Returns
+    -------
+    dict
+        ``commit`` (40 hex digits, or None outside a git work tree / without git) and
+        ``dirty`` (True when tracked files differ from the commit; None when unknown).
+    """
+    import subprocess
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                                text=True, timeout=10, check=True).stdout.strip()
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                                    cwd=root, capture_output=True, text=True, timeout=10,
+                                    check=True).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+    return {"commit": commit, "dirty": dirty}
+
+
 def main(argv=None) -> int:
     """Run the soak and print (and optionally write) its figures as JSON.
 
@@ -146,16 +176,20 @@ def main(argv=None) -> int:
     done = threading.Event()
     t0 = time.monotonic()
 
+    every = min(10.0, max(duration / 4.0, 1.0))
+
     def sampler():
-        while not done.wait(10.0):
+        while not done.wait(every):
             kids = mock_children()
             samples.append((time.monotonic() - t0, rss_kb(),
                             rss_kb(kids[0]) if kids else None))
 
     th = threading.Thread(target=sampler, daemon=True)
     th.start()
+    rev = git_commit()
     print(f"soak: {args.minutes:g} min at 1 kHz over a pty, faults {args.faults} "
-          f"(seed {args.seed})", file=sys.stderr, flush=True)
+          f"(seed {args.seed}) at commit {rev['commit']}"
+          f"{' (with local changes)' if rev['dirty'] else ''}", file=sys.stderr, flush=True)
     error = None
     rep = None
     try:
@@ -169,9 +203,12 @@ def main(argv=None) -> int:
     info: dict = {}
     cols = load(tel_path, info=info)
     f = cols["force"]
-    out = {"minutes": args.minutes, "wall_s": round(wall, 1), "faults_spec": args.faults,
+    out = {"git_commit": rev["commit"], "git_dirty": rev["dirty"],
+           "minutes": args.minutes, "wall_s": round(wall, 1), "faults_spec": args.faults,
            "seed": args.seed, "error": error, "telemetry_rows": int(cols["seq"].size),
            "telemetry_chunks": info.get("chunks"),
+           "telemetry_events": len(info.get("events") or []),
+           "telemetry_gaps": info.get("gaps"),
            "max_abs_force_logged_n": float(np.max(np.abs(f))) if f.size else None}
     if rep is not None:
         lp = rep["loop"]
@@ -190,8 +227,14 @@ def main(argv=None) -> int:
             "mock_configs": (mk.get("totals") or {}).get("configs"),
             "mock_watchdog_trips_total": (mk.get("totals") or {}).get("watchdog_trips"),
             "max_force_n": lp["f_max"], "force_limit_n": scene.device.force_limit,
-            "energy_max_j": lp["energy_max_j"], "v_max": lp["v_max"],
+            "energy_max_j": lp["energy_max_j"],
+            "energy_excess_max_j": lp.get("energy_excess_max_j"), "v_max": lp["v_max"],
             "turnaround_us": lp["turnaround_us"],
+            "bad_frames_recorded": len(lp.get("bad_frames") or []),
+            "implausible_states": lp.get("implausible"),
+            "device_rx_decoder": mk.get("decoder"),
+            "telemetry_lost_rows": (rep.get("telemetry") or {}).get("lost_rows"),
+            "state_at_end": lp.get("state"),
         })
         if out["mock_ticks_total"] is not None:
             out["frames_lost"] = int(out["mock_ticks_total"] - lp["ticks"])
