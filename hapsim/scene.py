@@ -258,7 +258,8 @@ class Safety:
         Safety stop when the passivity observer says the scene has given the hand this
         much energy [J] (Hannaford & Ryu 2002; see :mod:`hapsim.daemon.loop`).
     passivity_controller : bool
-        Add the adaptive damping ``alpha = E / (T v^2)`` while that energy is positive.
+        Add the adaptive damping ``alpha = E / (T v^2)`` while ``E``, the energy given
+        to the hand beyond what the scene stored at its (re)start, is positive.
     max_damping : float
         Cap of the adaptive damping [N s/m].
     """

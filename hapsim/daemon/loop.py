@@ -425,6 +425,7 @@ class HostLoop:
         self._t0 = 0.0
         self._energy = 0.0          # passivity observer E since the last (re)start [J]
         self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
+        self._applied_seen = False  # the device sets STATUS_FORCE_APPLIED (PROTOCOL.md §4)
         self.force_limit = math.inf
         self.state = "idle"
         dec = getattr(transport, "decoder", None)
@@ -878,6 +879,8 @@ class HostLoop:
         fhl = len(fh)
         State, Force = fp.State, fp.Force
         overrun_bit = fp.STATUS_OVERRUN
+        applied_bit = fp.STATUS_FORCE_APPLIED
+        flags_applied = self._applied_seen
         armed_bit = fp.STATUS_ARMED
         isfinite = math.isfinite
         perf = time.perf_counter_ns
@@ -965,8 +968,12 @@ class HostLoop:
                     last_rx = clock()
                     expect = (seq + 1) & _U32
                     lt = 0
-                    if seq >= d and ((seq - msg.force_seq) & _U32 != d or msg.status & overrun_bit):
-                        if d > 0 or msg.status & overrun_bit:
+                    st = msg.status
+                    if st & applied_bit and not flags_applied:
+                        flags_applied = self._applied_seen = True
+                    if seq >= d and (st & overrun_bit or _force_seq_late(
+                            seq, msg.force_seq, st, d, flags_applied)):
+                        if d > 0 or st & overrun_bit:
                             lt = 1
                             res.late += 1
                     f = eng.port_step(x) if isfinite(x) else math.nan
@@ -1092,6 +1099,7 @@ class HostLoop:
         wsum = 0
         State, Force = fp.State, fp.Force
         armed_bit = fp.STATUS_ARMED
+        flags_applied = self._applied_seen
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
@@ -1192,8 +1200,11 @@ class HostLoop:
                 x = latest.position[0]
                 seq = latest.seq
                 lt = 0
-                if seq >= d > 0 and ((seq - latest.force_seq) & _U32 != d
-                                     or latest.status & fp.STATUS_OVERRUN):
+                st = latest.status
+                if st & fp.STATUS_FORCE_APPLIED and not flags_applied:
+                    flags_applied = self._applied_seen = True
+                if seq >= d > 0 and (st & fp.STATUS_OVERRUN or _force_seq_late(
+                        seq, latest.force_seq, st, d, flags_applied)):
                     lt = 1
                     res.late += 1
                 used_seq = seq
@@ -1271,6 +1282,36 @@ class HostLoop:
         finally:
             self._energy = energy
             res.energy = energy
+
+
+def _force_seq_late(seq: int, force_seq: int, status: int, d: int,
+                    flags_applied: bool) -> bool:
+    """Whether a STATE at or after tick ``d`` shows the device holding an older force.
+
+    PROTOCOL.md §4: ``force_seq`` names the FORCE applied only when ``STATUS_FORCE_APPLIED``
+    is set; a device known to set that bit (``flags_applied``) and not setting it now has
+    applied no FORCE although one was due (late). A device that never sets the bit (written
+    before it existed) is read as before: ``force_seq`` compared with ``seq - d``.
+
+    Parameters
+    ----------
+    seq, force_seq : int
+        STATE fields (u32).
+    status : int
+        STATE status bits.
+    d : int
+        Expected loop delay [samples], >= 0.
+    flags_applied : bool
+        The device has set ``STATUS_FORCE_APPLIED`` at least once.
+
+    Returns
+    -------
+    bool
+        True when the force held is not the FORCE answering STATE ``seq - d``.
+    """
+    if status & fp.STATUS_FORCE_APPLIED or not flags_applied:
+        return (seq - force_seq) & _U32 != d
+    return True
 
 
 def _bad_count(ds) -> int:
