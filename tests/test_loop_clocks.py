@@ -6,9 +6,8 @@ reaches the device-clocked loop at once: both answer every STATE, so the device 
 same way, and every per-sample result must be the same to the bit: the telemetry rows
 (time, position, force, seq, late, flags), the forces sent, the passivity observer and
 controller, the clamp, the force ramp after a recovery, the safety stops and the maxima.
-This pins the per-sample work the two loops share (``HostLoop._device_clocked_stretch`` and
-``HostLoop._host_clocked_stretch``): a change to one that is not made to the other shows
-here. What differs by design is not compared: ``missed`` (host ticks without a new STATE),
+This pins the per-sample work the two loops share (the device- and host-clocked stretches
+of ``HostLoop``): a change to one that is not made to the other shows here. What differs by design is not compared: ``missed`` (host ticks without a new STATE),
 ``stale``, the turnaround times and the recovery events' timing.
 """
 

@@ -34,10 +34,11 @@ from its initial state with the port at the device's position at rest, the force
 over ``ramp_samples``. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
 ``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device
 FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are counted; latched ones end the
-run. The host-clocked loop uses the same machinery (one
-driver, :meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its
-losses; :meth:`HostLoop._resume` restarts the scene): it answers the latest STATE at each
-host deadline, and silence longer than ``lost_timeout`` is a loss like in the
+run. The host-clocked loop uses the same machinery (one driver,
+:meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its losses;
+:meth:`HostLoop._resume` restarts the scene) and the same per-sample work
+(:meth:`HostLoop._drive`, fed by either clock's source of STATEs): it answers the latest
+STATE at each host deadline, and silence longer than ``lost_timeout`` is a loss like in the
 device-clocked loop. Without ``reconnect`` a loss raises :class:`DeviceError`.
 
 Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
@@ -68,6 +69,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
@@ -839,7 +841,7 @@ class HostLoop:
                 raise _Lost("device reset: HELLO after arming")
         return False
 
-    # ------------------------------------------------------------------ device-clocked
+    # ------------------------------------------------------------------ per sample (both)
     def _non_finite_stop(self, seq: int) -> None:
         """Safety stop on a non-finite position or force: zero force for ``seq``, then stop."""
         self.transport.send(fp.Force(seq, (0.0,)))
@@ -848,20 +850,36 @@ class HostLoop:
         self.result.safety_stop = True
         self.stop.set = True
 
-    def _device_clocked_stretch(self, n_max: int) -> None:
-        """The hot loop, from the next armed STATE until the end, a stop, or a loss."""
+    def _drive(self, n_max: int, states, late_at_d0: int) -> None:
+        """The hot loop of both clocks: answer each sample ``states`` yields, until it ends,
+        a stop, or a loss.
+
+        The per-sample work exists here only: late check, engine step (non-finite stop),
+        passivity observer and controller, force ramp after a recovery, clamp, FORCE,
+        clamp window, telemetry row (head + ring, drained at half laps), maxima, safety
+        bounds. The clocks differ only in which STATE is answered when, and that is the
+        source's business (:meth:`_device_states`, :meth:`_host_states`); the source is a
+        generator, so this loop keeps its state in local variables (no attribute access
+        per sample beyond what the two loops did before).
+
+        Parameters
+        ----------
+        n_max : int
+            Rows to reach (the sources stop there).
+        states : generator
+            Yields ``(msg, x, t_rx)`` per sample to answer: the STATE, its position [m]
+            and ``perf_counter_ns()`` when it was read. It (re)starts the scene
+            (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
+            at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
+        late_at_d0 : int
+            The status bits that make a STATE late when ``d == 0``: ``STATUS_OVERRUN``
+            device-clocked, 0 host-clocked (the one rule the clocks do not share; see
+            the call sites).
+        """
         cfg = self.config
-        tr = self.transport
         tel = self.tel
         stop = self.stop
         res = self.result
-        t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
-            tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late, tel.flags)
-        hl, rl = tel.head, tel.ring          # row i is in slot i, or hl + (i - hl) % rl
-        # a loop that is not real-time lets the journal writer catch up each half lap
-        drain = tel.drain if rl else None
-        lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
-        restart = 0
         lim = self.force_limit
         d = cfg.delay
         T = 1.0 / cfg.rate_hz
@@ -877,230 +895,276 @@ class HostLoop:
         clamp_max = cfg.clamp_max
         fh = [0.0] * (d + 2)                # forces sent, by local sample index
         fhl = len(fh)
-        State, Force = fp.State, fp.Force
+        Force = fp.Force
         overrun_bit = fp.STATUS_OVERRUN
         applied_bit = fp.STATUS_FORCE_APPLIED
         flags_applied = self._applied_seen
-        armed_bit = fp.STATUS_ARMED
         isfinite = math.isfinite
         perf = time.perf_counter_ns
-        clock = self._clock
-        receive, send = tr.receive, tr.send
-        eng = self.engine
-        expect = -1
-        k = 0                               # samples since this stretch (re)started
-        x_prev = 0.0
-        energy = self._energy
-        e0 = self._e0
+        send = self.transport.send
+        ramp_n = max(int(cfg.ramp_samples), 1)
         e_max = res.energy_max
         x_max = res.energy_excess_max
         v_max = res.v_max
         f_max = res.f_max
-        ramp_n = max(int(cfg.ramp_samples), 1)
+        first = None
+        try:
+            # the source (re)starts the scene (engine, observer baseline, restart flag)
+            # at its first usable STATE, before its first yield: device-clocked, that
+            # STATE is the one it yields; host-clocked, the latest STATE at its first
+            # deadline. Read what the restart set only now.
+            first = next(states, None)
+            if first is None:
+                return
+            eng = self.engine
+            restart = self._restart_flag
+            energy = self._energy
+            e0 = self._e0
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+                tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
+                tel.flags)
+            hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
+            # a loop that is not real-time lets the journal writer catch up each half lap
+            drain = tel.drain if rl else None
+            lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
+            # the scene restarts at rest at the first sample: dx = 0 there, for both clocks
+            # (device-clocked: at the STATE it resumed at; host-clocked: at the latest
+            # STATE at its first deadline, maybe newer than the one it resumed at)
+            x_prev = first[1]
+            k = 0                           # samples since this stretch (re)started
+            i = tel.n
+            for msg, x, t_rx in chain((first,), states):
+                seq = msg.seq
+                lt = 0
+                st = msg.status
+                if st & applied_bit and not flags_applied:
+                    flags_applied = self._applied_seen = True
+                # with d = 0 (lockstep only) force_seq names the force of the previous
+                # period (FORCE n is not known yet, mock notes), so it says nothing about
+                # lateness: only the status bits in late_at_d0 count there (the one place
+                # the clocks differ here: see their call sites)
+                if seq >= d and (st & overrun_bit or _force_seq_late(
+                        seq, msg.force_seq, st, d, flags_applied)):
+                    if d > 0 or st & late_at_d0:
+                        lt = 1
+                        res.late += 1
+                f = eng.port_step(x) if isfinite(x) else math.nan
+                if not isfinite(f):
+                    self._non_finite_stop(seq)
+                    break
+                # passivity observer: work of the force held over the last period
+                dx = x - x_prev
+                x_prev = x
+                v = dx * rate
+                if k > d:                   # held over the last period: FORCE k - 1 - d
+                    energy += fh[(k - 1 - d) % fhl] * dx
+                excess = energy - e0
+                if pc_on and excess > 0.0:
+                    tvv = T * v * v
+                    if tvv > 0.0:
+                        # alpha = (E - E0) / (T v^2), capped (compared without dividing:
+                        # no overflow for a tiny v)
+                        alpha = excess / tvv if excess < bmax * tvv else bmax
+                        f -= alpha * v
+                        res.passivity_samples += 1
+                rf = 0
+                if self._ramp > 0:
+                    f *= (ramp_n - self._ramp + 1) / ramp_n
+                    self._ramp -= 1
+                    rf = FLAG_RAMP
+                c = 0
+                if f > lim:
+                    f = lim
+                    c = 1
+                elif f < -lim:
+                    f = -lim
+                    c = 1
+                send(Force(seq, (f,)))
+                t_tx = perf()
+                self._last_seq = seq
+                fh[k % fhl] = f
+                k += 1
+                j = i % wlen
+                wsum += c - win[j]
+                win[j] = c
+                res.clamped += c
+                sl = i if i < hl else hl + (i - hl) % rl
+                t_arr[sl] = msg.time_us * 1e-6
+                x_arr[sl] = x
+                f_arr[sl] = f
+                s_arr[sl] = seq
+                ta_arr[sl] = (t_tx - t_rx) * 1e-3
+                late_arr[sl] = lt
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
+                restart = 0
+                i += 1
+                tel.n = i
+                if sl == lap_a or sl == lap_b:
+                    drain()
+                if energy > e_max:
+                    e_max = energy
+                if excess > x_max:
+                    x_max = excess
+                av = v if v >= 0.0 else -v
+                if av > v_max:
+                    v_max = av
+                af = f if f >= 0.0 else -f
+                if af > f_max:
+                    f_max = af
+                if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
+                        or excess > elim):
+                    res.stop_reason = _safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
+                                                     v, vlim, excess, elim, e0)
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+        except DeviceError as exc:        # a read or write failed: the port is gone
+            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+        finally:
+            if first is not None:
+                self._energy = energy
+                res.energy_max = e_max
+                res.energy_excess_max = x_max
+                res.v_max = v_max
+                res.f_max = f_max
+            # without a sample, E is what the source left: 0 when it (re)started the scene
+            res.energy = self._energy
+
+    # ------------------------------------------------------------------ device-clocked
+    def _device_clocked_stretch(self, n_max: int) -> None:
+        """The hot loop, from the next armed STATE until the end, a stop, or a loss: each
+        STATE is answered as it arrives (:meth:`_device_states`, :meth:`_drive`)."""
+        # d = 0: a STATE flagged STATUS_OVERRUN is still late (as since the first loop)
+        self._drive(n_max, self._device_states(n_max), fp.STATUS_OVERRUN)
+
+    def _device_states(self, n_max: int):
+        """The device-clocked source of :meth:`_drive`: every usable STATE, as it arrives.
+
+        Drops stale, implausible, wrong-axes and (before the first armed one) unarmed
+        STATEs, notes FAULTs and HELLOs, records bad frames, restarts the scene at the
+        first armed STATE after a CONFIG, and raises :class:`_Lost` on silence (no usable
+        STATE for :meth:`_silence`; ``state_timeout`` for the first after a CONFIG) or a
+        disarmed STATE after arming.
+
+        Yields
+        ------
+        (State, float, int)
+            The STATE, its position [m] (NaN for a non-finite first one), and
+            ``perf_counter_ns()`` when its frame was read.
+        """
+        cfg = self.config
+        tel = self.tel
+        stop = self.stop
+        res = self.result
+        rate = float(cfg.rate_hz)
+        State = fp.State
+        armed_bit = fp.STATUS_ARMED
+        isfinite = math.isfinite
+        perf = time.perf_counter_ns
+        clock = self._clock
+        receive = self.transport.receive
+        expect = -1
         silence = self._silence()
         # a device (re)starting after CONFIG gets state_timeout for its first STATE
         first_wait = max(silence, cfg.state_timeout)
         poll = min(0.1, silence)
-        i = tel.n
         last_rx = clock()
         ds = self._dstats
         nbad = self._nbad
-        try:
-            while i < n_max and not stop.set:
-                # wait no longer than the silence still allowed: the loss is declared
-                # when it runs out (to 1 us), not a poll later
-                allowed = first_wait if self._fresh else silence
-                left = last_rx + allowed - clock()
-                try:
-                    msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
-                except DeviceError as exc:
-                    raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
-                t_rx = perf()
-                if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
-                                       + ds.unknown_type) != nbad:
-                    nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
-                                          + ds.malformed + ds.unknown_type)
-                if not msgs:
-                    if clock() - last_rx >= allowed - 1e-6:
-                        raise _Lost(f"no STATE from the device for {allowed:g} s")
+        while tel.n < n_max and not stop.set:
+            # wait no longer than the silence still allowed: the loss is declared when it
+            # runs out (to 1 us), not a poll later
+            allowed = first_wait if self._fresh else silence
+            left = last_rx + allowed - clock()
+            msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
+            t_rx = perf()
+            if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
+                                   + ds.unknown_type) != nbad:
+                nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
+                                      + ds.malformed + ds.unknown_type)
+            if not msgs:
+                if clock() - last_rx >= allowed - 1e-6:
+                    raise _Lost(f"no STATE from the device for {allowed:g} s")
+                continue
+            used = False
+            for msg in msgs:
+                tm = type(msg)
+                if tm is not State:
+                    if self._note_other(msg):
+                        break
                     continue
-                i_before = i
-                for msg in msgs:
-                    tm = type(msg)
-                    if tm is not State:
-                        if self._note_other(msg):
-                            break
-                        continue
-                    if len(msg.position) != 1:
-                        res.bad_axes += 1
-                        continue
-                    seq = msg.seq
-                    if not msg.status & armed_bit:
-                        if self._fresh:
-                            res.unarmed += 1
-                            continue
-                        raise _Lost("the device reports itself disarmed (reset?)")
-                    x = msg.position[0]
+                if len(msg.position) != 1:
+                    res.bad_axes += 1
+                    continue
+                seq = msg.seq
+                if not msg.status & armed_bit:
                     if self._fresh:
-                        if not isfinite(x):
-                            x = math.nan          # handled below as a non-finite position
-                        else:
-                            eng = self._resume(x)
-                            restart = self._restart_flag
-                            energy = 0.0
-                            e0 = self._e0
-                            expect = seq
-                            k = 0
-                            x_prev = x
-                            for j in range(fhl):
-                                fh[j] = 0.0
-                    if expect >= 0:
-                        gap = (seq - expect) & _U32
-                        if gap >= _HALF:
-                            res.stale += 1            # duplicated or reordered: older
-                            continue
-                        if gap and gap > (clock() - last_rx + silence) * rate + 2.0:
-                            res.implausible += 1      # further ahead than time allows
-                            continue
-                        res.missed += gap
-                    # only a STATE used keeps the device alive: a host ignoring every
-                    # STATE (stale, implausible) is as good as deaf, and loses it
-                    last_rx = clock()
-                    expect = (seq + 1) & _U32
-                    lt = 0
-                    st = msg.status
-                    if st & applied_bit and not flags_applied:
-                        flags_applied = self._applied_seen = True
-                    if seq >= d and (st & overrun_bit or _force_seq_late(
-                            seq, msg.force_seq, st, d, flags_applied)):
-                        if d > 0 or st & overrun_bit:
-                            lt = 1
-                            res.late += 1
-                    f = eng.port_step(x) if isfinite(x) else math.nan
-                    if not isfinite(f):
-                        self._non_finite_stop(seq)
-                        break
-                    # passivity observer: work of the force held over the last period
-                    dx = x - x_prev
-                    x_prev = x
-                    v = dx * rate
-                    if k > 0:
-                        energy += fh[(k - 1 - d) % fhl] * dx if k - 1 - d >= 0 else 0.0
-                    excess = energy - e0
-                    if pc_on and excess > 0.0:
-                        tvv = T * v * v
-                        if tvv > 0.0:
-                            # alpha = (E - E0) / (T v^2), capped (compared without
-                            # dividing: no overflow for a tiny v)
-                            alpha = excess / tvv if excess < bmax * tvv else bmax
-                            f -= alpha * v
-                            res.passivity_samples += 1
-                    rf = 0
-                    if self._ramp > 0:
-                        f *= (ramp_n - self._ramp + 1) / ramp_n
-                        self._ramp -= 1
-                        rf = FLAG_RAMP
-                    c = 0
-                    if f > lim:
-                        f = lim
-                        c = 1
-                    elif f < -lim:
-                        f = -lim
-                        c = 1
-                    send(Force(seq, (f,)))
-                    t_tx = perf()
-                    self._last_seq = seq
-                    fh[k % fhl] = f
-                    k += 1
-                    j = i % wlen
-                    wsum += c - win[j]
-                    win[j] = c
-                    res.clamped += c
-                    sl = i if i < hl else hl + (i - hl) % rl
-                    t_arr[sl] = msg.time_us * 1e-6
-                    x_arr[sl] = x
-                    f_arr[sl] = f
-                    s_arr[sl] = seq
-                    ta_arr[sl] = (t_tx - t_rx) * 1e-3
-                    late_arr[sl] = lt
-                    fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
-                    restart = 0
-                    i += 1
-                    tel.n = i
-                    if sl == lap_a or sl == lap_b:
-                        drain()
-                    if energy > e_max:
-                        e_max = energy
-                    if excess > x_max:
-                        x_max = excess
-                    av = v if v >= 0.0 else -v
-                    if av > v_max:
-                        v_max = av
-                    af = f if f >= 0.0 else -f
-                    if af > f_max:
-                        f_max = af
-                    if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                            or excess > elim):
-                        res.stop_reason = _safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
-                                                         v, vlim, excess, elim, e0)
-                        res.safety_stop = True
-                        stop.set = True
-                        break
-                    if i >= n_max:
-                        break
-                if (i == i_before and not stop.set
-                        and clock() - last_rx >= (first_wait if self._fresh else silence) - 1e-6):
-                    # frames came, but no STATE the loop could use for the silence allowed
-                    raise _Lost(f"no usable STATE from the device for "
-                                f"{first_wait if self._fresh else silence:g} s")
-        except DeviceError as exc:        # a write failed: the port is gone
-            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
-        finally:
-            self._energy = energy
-            res.energy = energy
-            res.energy_max = e_max
-            res.energy_excess_max = x_max
-            res.v_max = v_max
-            res.f_max = f_max
+                        res.unarmed += 1
+                        continue
+                    raise _Lost("the device reports itself disarmed (reset?)")
+                x = msg.position[0]
+                if self._fresh:
+                    if not isfinite(x):
+                        x = math.nan          # _drive stops on it (non-finite position)
+                    else:
+                        self._resume(x)
+                        expect = seq
+                if expect >= 0:
+                    gap = (seq - expect) & _U32
+                    if gap >= _HALF:
+                        res.stale += 1            # duplicated or reordered: older
+                        continue
+                    if gap and gap > (clock() - last_rx + silence) * rate + 2.0:
+                        res.implausible += 1      # further ahead than time allows
+                        continue
+                    res.missed += gap
+                # only a STATE used keeps the device alive: a host ignoring every STATE
+                # (stale, implausible) is as good as deaf, and loses it
+                last_rx = clock()
+                expect = (seq + 1) & _U32
+                used = True
+                yield msg, x, t_rx            # _drive answers it (or stops: no resume)
+                if tel.n >= n_max:
+                    break
+            if (not used and not stop.set
+                    and clock() - last_rx >= (first_wait if self._fresh else silence) - 1e-6):
+                # frames came, but no STATE the loop could use for the silence allowed
+                raise _Lost(f"no usable STATE from the device for "
+                            f"{first_wait if self._fresh else silence:g} s")
 
     # ------------------------------------------------------------------ host-clocked
     def _host_clocked_stretch(self, n_max: int) -> None:
-        """Host-clocked loop from the next armed STATE until the end, a stop, or a loss.
+        """Host-clocked loop from the next armed STATE until the end, a stop, or a loss:
+        at each host deadline the latest STATE is answered (:meth:`_host_states`,
+        :meth:`_drive`)."""
+        # d = 0: never late, not even on STATUS_OVERRUN, unlike the device-clocked loop:
+        # kept as this loop has counted since it first counted late ticks (ad7e0bb,
+        # "seq >= d > 0"); no reason is recorded for the difference
+        self._drive(n_max, self._host_states(n_max), 0)
 
-        At each host deadline the latest STATE is answered; ticks without a new STATE are
-        skipped (``missed``). Silence longer than :meth:`_silence`, a port error or a
-        disarmed STATE after arming raise :class:`_Lost` (recovered by
-        :meth:`_run_stretches`, as in the device-clocked loop). On a virtual-clock transport
-        (``clock()``/``sleep()``) the deadlines are on that clock.
+    def _host_states(self, n_max: int):
+        """The host-clocked source of :meth:`_drive`: the latest STATE at each deadline.
+
+        Ticks without a new STATE are skipped (``missed``). Silence longer than
+        :meth:`_silence`, or a disarmed STATE after arming, raise :class:`_Lost`
+        (recovered by :meth:`_run_stretches`, as in the device-clocked loop). On a
+        virtual-clock transport (``clock()``/``sleep()``) the deadlines are on that clock;
+        deadlines missed by more than a period are counted (``overruns``).
+
+        Yields
+        ------
+        (State, float, int)
+            The STATE, its position [m], and ``perf_counter_ns()`` at the deadline.
         """
         cfg = self.config
         tr = self.transport
         tel = self.tel
         stop = self.stop
         res = self.result
-        lim = self.force_limit
-        pos_bound = cfg.position_bound
-        vlim = cfg.velocity_limit
-        elim = cfg.energy_limit
-        pc_on = bool(cfg.passivity_controller)
-        bmax = float(cfg.max_damping)
         rate = float(cfg.rate_hz)
-        T = 1.0 / rate
-        d = cfg.delay
-        fh = [0.0] * (d + 2)
-        fhl = len(fh)
-        energy = self._energy
-        ramp_n = max(int(cfg.ramp_samples), 1)
         silence = self._silence()
-        x_prev = None
-        k = 0
-        win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
-        wlen = win.size
-        wsum = 0
-        State, Force = fp.State, fp.Force
+        State = fp.State
         armed_bit = fp.STATUS_ARMED
-        flags_applied = self._applied_seen
-        isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
         sleep = self._sleep
@@ -1110,7 +1174,7 @@ class HostLoop:
                 return int(round(clock() * 1e9))
         else:
             mono_ns = time.monotonic_ns
-        receive, send = tr.receive, tr.send
+        receive = tr.receive
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -1147,141 +1211,52 @@ class HostLoop:
                 latest = msg
                 t_latest = clock()
 
-        try:
-            # wait for the first armed STATE (a device (re)starting gets state_timeout)
-            end = clock() + cfg.state_timeout
-            while latest is None and not stop.set:
-                take(receive(0.05))
-                if latest is None and clock() > end:
-                    raise _Lost(f"no STATE from the device for {cfg.state_timeout:g} s")
-            if latest is None or stop.set:
-                return
-            eng = self._resume(latest.position[0])
-            restart = self._restart_flag
-            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
-                tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                tel.flags)
-            hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
-            drain = tel.drain if rl else None   # not real-time: the writer catches up
-            lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
-            energy = 0.0
-            e0 = self._e0
-            used_seq = -1
-            last_new = clock()
-            # a real-time device ticks on the same clock: tick a third of a period after
-            # its STATE arrives, so the STATE is in and the FORCE is back before its next
-            # tick (ticking in phase with the device would race it every period)
-            deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
-            i = tel.n
-            while i < n_max and not stop.set:
-                remaining = deadline - mono_ns()
-                if virtual:
-                    while remaining > 0:
-                        sleep(max(remaining, 1000) * 1e-9)
-                        remaining = deadline - mono_ns()
-                else:
-                    if remaining > 600_000:
-                        sleep((remaining - 400_000) * 1e-9)
-                    while mono_ns() < deadline:
-                        take(receive(0.0))
-                take(receive(0.0))
-                if stop.set:
-                    break
-                t_rx = perf()
-                if latest.seq == used_seq:
-                    # no new sample since the last tick: stepping the engine with a stale
-                    # position would corrupt its velocity; skip this tick (counted)
-                    res.missed += 1
-                    if clock() - last_new >= silence - 1e-6:
-                        raise _Lost(f"no STATE from the device for {silence:g} s")
-                    deadline += period_ns
-                    continue
-                last_new = clock()
-                x = latest.position[0]
-                seq = latest.seq
-                lt = 0
-                st = latest.status
-                if st & fp.STATUS_FORCE_APPLIED and not flags_applied:
-                    flags_applied = self._applied_seen = True
-                if seq >= d > 0 and (st & fp.STATUS_OVERRUN or _force_seq_late(
-                        seq, latest.force_seq, st, d, flags_applied)):
-                    lt = 1
-                    res.late += 1
-                used_seq = seq
-                f = eng.port_step(x) if isfinite(x) else math.nan
-                if not isfinite(f):
-                    self._non_finite_stop(seq)
-                    break
-                # passivity observer and controller, as in the device-clocked loop
-                dx = 0.0 if x_prev is None else x - x_prev
-                x_prev = x
-                v = dx * rate
-                if k > d:
-                    energy += fh[(k - 1 - d) % fhl] * dx
-                excess = energy - e0
-                if pc_on and excess > 0.0:
-                    tvv = T * v * v
-                    if tvv > 0.0:
-                        f -= (excess / tvv if excess < bmax * tvv else bmax) * v
-                        res.passivity_samples += 1
-                rf = 0
-                if self._ramp > 0:
-                    f *= (ramp_n - self._ramp + 1) / ramp_n
-                    self._ramp -= 1
-                    rf = FLAG_RAMP
-                c = 0
-                if f > lim:
-                    f, c = lim, 1
-                elif f < -lim:
-                    f, c = -lim, 1
-                send(Force(seq, (f,)))
-                t_tx = perf()
-                self._last_seq = seq
-                fh[k % fhl] = f
-                k += 1
-                if energy > res.energy_max:
-                    res.energy_max = energy
-                if excess > res.energy_excess_max:
-                    res.energy_excess_max = excess
-                av = abs(v)
-                if av > res.v_max:
-                    res.v_max = av
-                if abs(f) > res.f_max:
-                    res.f_max = abs(f)
-                j = i % wlen
-                wsum += c - win[j]
-                win[j] = c
-                res.clamped += c
-                sl = i if i < hl else hl + (i - hl) % rl
-                t_arr[sl] = latest.time_us * 1e-6
-                x_arr[sl] = x
-                f_arr[sl] = f
-                s_arr[sl] = seq
-                ta_arr[sl] = (t_tx - t_rx) * 1e-3
-                late_arr[sl] = lt
-                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
-                restart = 0
-                i += 1
-                tel.n = i
-                if sl == lap_a or sl == lap_b:
-                    drain()
-                if (wsum >= cfg.clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                        or excess > elim):
-                    res.stop_reason = _safety_reason(wsum, cfg.clamp_max, wlen, lim, x, pos_bound,
-                                                     v, vlim, excess, elim, e0)
-                    res.safety_stop = True
-                    stop.set = True
-                    break
+        # wait for the first armed STATE (a device (re)starting gets state_timeout)
+        end = clock() + cfg.state_timeout
+        while latest is None and not stop.set:
+            take(receive(0.05))
+            if latest is None and clock() > end:
+                raise _Lost(f"no STATE from the device for {cfg.state_timeout:g} s")
+        if latest is None or stop.set:
+            return
+        self._resume(latest.position[0])
+        used_seq = -1
+        last_new = clock()
+        # a real-time device ticks on the same clock: tick a third of a period after its
+        # STATE arrives, so the STATE is in and the FORCE is back before its next tick
+        # (ticking in phase with the device would race it every period)
+        deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
+        while tel.n < n_max and not stop.set:
+            remaining = deadline - mono_ns()
+            if virtual:
+                while remaining > 0:
+                    sleep(max(remaining, 1000) * 1e-9)
+                    remaining = deadline - mono_ns()
+            else:
+                if remaining > 600_000:
+                    sleep((remaining - 400_000) * 1e-9)
+                while mono_ns() < deadline:
+                    take(receive(0.0))
+            take(receive(0.0))
+            if stop.set:
+                break
+            t_rx = perf()
+            if latest.seq == used_seq:
+                # no new sample since the last tick: stepping the engine with a stale
+                # position would corrupt its velocity; skip this tick (counted)
+                res.missed += 1
+                if clock() - last_new >= silence - 1e-6:
+                    raise _Lost(f"no STATE from the device for {silence:g} s")
                 deadline += period_ns
-                now = mono_ns()
-                if now - deadline > period_ns:
-                    res.overruns += 1
-                    deadline = now
-        except DeviceError as exc:        # a read or write failed: the port is gone
-            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
-        finally:
-            self._energy = energy
-            res.energy = energy
+                continue
+            last_new = clock()
+            used_seq = latest.seq
+            yield latest, latest.position[0], t_rx   # _drive answers it (or stops)
+            deadline += period_ns
+            now = mono_ns()
+            if now - deadline > period_ns:
+                res.overruns += 1
+                deadline = now
 
 
 def _force_seq_late(seq: int, force_seq: int, status: int, d: int,
