@@ -850,7 +850,7 @@ class HostLoop:
         self.result.safety_stop = True
         self.stop.set = True
 
-    def _drive(self, n_max: int, states, late_at_d0: int) -> None:
+    def _drive(self, n_max: int, states) -> None:
         """The hot loop of both clocks: answer each sample ``states`` yields, until it ends,
         a stop, or a loss.
 
@@ -871,10 +871,6 @@ class HostLoop:
             and ``perf_counter_ns()`` when it was read. It (re)starts the scene
             (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
             at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
-        late_at_d0 : int
-            The status bits that make a STATE late when ``d == 0``: ``STATUS_OVERRUN``
-            device-clocked, 0 host-clocked (the one rule the clocks do not share; see
-            the call sites).
         """
         cfg = self.config
         tel = self.tel
@@ -941,11 +937,10 @@ class HostLoop:
                     flags_applied = self._applied_seen = True
                 # with d = 0 (lockstep only) force_seq names the force of the previous
                 # period (FORCE n is not known yet, mock notes), so it says nothing about
-                # lateness: only the status bits in late_at_d0 count there (the one place
-                # the clocks differ here: see their call sites)
+                # lateness: only STATUS_OVERRUN (the device held an older force) counts
                 if seq >= d and (st & overrun_bit or _force_seq_late(
                         seq, msg.force_seq, st, d, flags_applied)):
-                    if d > 0 or st & late_at_d0:
+                    if d > 0 or st & overrun_bit:
                         lt = 1
                         res.late += 1
                 f = eng.port_step(x) if isfinite(x) else math.nan
@@ -1034,8 +1029,7 @@ class HostLoop:
     def _device_clocked_stretch(self, n_max: int) -> None:
         """The hot loop, from the next armed STATE until the end, a stop, or a loss: each
         STATE is answered as it arrives (:meth:`_device_states`, :meth:`_drive`)."""
-        # d = 0: a STATE flagged STATUS_OVERRUN is still late (as since the first loop)
-        self._drive(n_max, self._device_states(n_max), fp.STATUS_OVERRUN)
+        self._drive(n_max, self._device_states(n_max))
 
     def _device_states(self, n_max: int):
         """The device-clocked source of :meth:`_drive`: every usable STATE, as it arrives.
@@ -1137,10 +1131,7 @@ class HostLoop:
         """Host-clocked loop from the next armed STATE until the end, a stop, or a loss:
         at each host deadline the latest STATE is answered (:meth:`_host_states`,
         :meth:`_drive`)."""
-        # d = 0: never late, not even on STATUS_OVERRUN, unlike the device-clocked loop:
-        # kept as this loop has counted since it first counted late ticks (ad7e0bb,
-        # "seq >= d > 0"); no reason is recorded for the difference
-        self._drive(n_max, self._host_states(n_max), 0)
+        self._drive(n_max, self._host_states(n_max))
 
     def _host_states(self, n_max: int):
         """The host-clocked source of :meth:`_drive`: the latest STATE at each deadline.
