@@ -352,6 +352,57 @@ def parse_faults(spec: str | None, seed: int = 0) -> FaultPlan:
                      nohello=nohello, seed=int(seed), spec=text)
 
 
+class _Lane:
+    """One direction of the faulty wire: frames queued with their release time [us].
+
+    A delay spike holds every later frame until ``hold_until`` (frames stay in order); a
+    reorder holds its frames back (``held``) and releases them behind the next frames that
+    pass. Shared by the device -> host and the host -> device (``rx.``) directions.
+    """
+
+    __slots__ = ("q", "held", "hold_until")
+
+    def __init__(self) -> None:
+        self.q: list = []           # (release_us, bytes), release non-decreasing
+        self.held: list = []        # frames held back by a reorder
+        self.hold_until = 0
+
+    def push(self, frames: list, hold: float, now_us: int) -> None:
+        """Queue what :meth:`FaultPlan.wire` / ``wire_rx`` made of one frame.
+
+        Parameters
+        ----------
+        frames : list
+            Frames to send (bytes), or ``["REORDER", *frames]`` to hold them back.
+        hold : float
+            Delay spike starting now [s] (0: none).
+        now_us : int
+            Device clock [us].
+        """
+        if hold > 0:
+            self.hold_until = max(self.hold_until, now_us + int(hold * 1e6))
+        rel = max(now_us, self.hold_until)
+        if frames and frames[0] == "REORDER":
+            self.held.extend(frames[1:])
+            return
+        for f in frames:
+            self.q.append((rel, f))
+        if self.held:
+            for f in self.held:
+                self.q.append((rel, f))
+            self.held.clear()
+
+    def drop(self) -> None:
+        """Drop every queued and held frame (the port went away); a spike's hold stays."""
+        self.q.clear()
+        self.held.clear()
+
+    def clear(self) -> None:
+        """Drop every frame and end any hold (the receiver was reset)."""
+        self.drop()
+        self.hold_until = 0
+
+
 class FaultyDevice:
     """A :class:`~hapsim.daemon.mock.MockDevice` behind a fault plan, I/O-free.
 
@@ -391,32 +442,18 @@ class FaultyDevice:
         self.stalled_until_us = 0
         self.vanished_until_us = 0
         self.events: list = []
-        self._out: list = []            # (release_us, bytes), release non-decreasing
-        self._hold_until = 0
-        self._held: list = []           # frames held back by 'reorder'
+        self._tx = _Lane()              # device -> host
+        self._out = self._tx.q          # (release_us, bytes), release non-decreasing
         self.vanish_pending = False     # serve_fd: close the port now
         self.reconnect_pending = False  # the port came back: say HELLO
         self._rx_on = self.plan.has_rx
         self._rx_buf = b""              # host bytes not yet ending a frame (rx. faults)
-        self._in: list = []             # (release_us, bytes) for the receiver (rx. faults)
-        self._in_hold_until = 0
-        self._in_held: list = []        # host frames held back by 'rx.reorder'
+        self._rx = _Lane()              # host -> device (rx. faults)
+        self._in = self._rx.q           # (release_us, bytes) for the receiver
 
     # ------------------------------------------------------------------ output
     def _send(self, msg, now_us: int) -> None:
-        frames, hold = self.plan.wire(fp.encode(msg))
-        if hold > 0:
-            self._hold_until = max(self._hold_until, now_us + int(hold * 1e6))
-        rel = max(now_us, self._hold_until)
-        if frames and frames[0] == "REORDER":
-            self._held.extend(frames[1:])
-            return
-        for f in frames:
-            self._out.append((rel, f))
-        if self._held:
-            for f in self._held:
-                self._out.append((rel, f))
-            self._held.clear()
+        self._tx.push(*self.plan.wire(fp.encode(msg)), now_us)
 
     def connect(self, now_us: int) -> None:
         """The port (re)opened: queue ``0x00`` then HELLO (unless ``nohello``).
@@ -528,23 +565,11 @@ class FaultyDevice:
             end = buf.find(b"\x00", start)
             if end < 0:
                 break
-            frames, hold = plan.wire_rx(buf[start:end + 1])
+            self._rx.push(*plan.wire_rx(buf[start:end + 1]), now_us)
             start = end + 1
-            if hold > 0:
-                self._in_hold_until = max(self._in_hold_until, now_us + int(hold * 1e6))
-            rel = max(now_us, self._in_hold_until)
-            if frames and frames[0] == "REORDER":
-                self._in_held.extend(frames[1:])
-                continue
-            for f in frames:
-                self._in.append((rel, f))
-            if self._in_held:
-                for f in self._in_held:
-                    self._in.append((rel, f))
-                self._in_held.clear()
         self._rx_buf = buf[start:]
         if len(self._rx_buf) > 2 * fp.MAX_FRAME:       # no delimiter: the receiver's problem
-            self._in.append((max(now_us, self._in_hold_until), self._rx_buf))
+            self._in.append((max(now_us, self._rx.hold_until), self._rx_buf))
             self._rx_buf = b""
         return self._deliver(now_us)
 
@@ -574,9 +599,7 @@ class FaultyDevice:
 
     def _clear_rx(self) -> None:
         self._rx_buf = b""
-        self._in.clear()
-        self._in_held.clear()
-        self._in_hold_until = 0
+        self._rx.clear()
 
     # ------------------------------------------------------------------ ticks
     def tick(self, now_us: int) -> None:
@@ -602,8 +625,7 @@ class FaultyDevice:
                     self.vanished_until_us = now_us + int(dur * 1e6)
                     self.vanish_pending = True
                     self.reconnect_pending = True
-                    self._out.clear()
-                    self._held.clear()
+                    self._tx.drop()
                     self._clear_rx()
                 elif name == "reset":
                     self.reset(now_us)
@@ -650,9 +672,7 @@ class FaultyDevice:
         mock.physics = None
         self.decoder.reset()
         self._clear_rx()
-        self._out.clear()
-        self._held.clear()
-        self._hold_until = 0
+        self._tx.clear()
         self.connect(now_us)
 
     @property
