@@ -50,20 +50,10 @@ from hapsim.daemon.mock import MockDevice  # noqa: E402
 from hapsim.daemon.telemetry import Telemetry  # noqa: E402
 from hapsim.daemon.transport import SimTransport  # noqa: E402
 from hapsim.engine import Engine  # noqa: E402
-from hapsim.scene import parse_scene  # noqa: E402
+from hapsim.scene import load_scene  # noqa: E402
 
-LIMIT = 10.0
-#: The wall of tests/test_reliability.py (K = 1000 N/m, B = 1.5 N s/m, 1 kHz, d = 1).
-WALL = f"""
-rate_hz: 1000
-masses:
-  - {{name: hand, kind: port}}
-  - {{name: wall, kind: ground, x0: 0.0}}
-links:
-  - {{name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000.0, damping: 1.5}}
-device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: {LIMIT}}}
-excitation: {{x0: 0.005}}
-"""
+#: The shipped wall (K = 1000 N/m, B = 1.5 N s/m, 1 kHz, d = 1, 10 N force limit).
+WALL = REPO / "configs" / "wall.yaml"
 
 
 def load_ref(rev: str):
@@ -94,7 +84,7 @@ def time_loop(mod, scene, n: int, host_clocked: bool) -> float:
     """One run of ``mod.HostLoop`` for ``n`` samples; wall time per sample [us]."""
     mock = MockDevice(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = SimTransport(mock)
-    cfg = mod.LoopConfig(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT,
+    cfg = mod.LoopConfig(rate_hz=1000.0, n_samples=n, delay=1, force_limit=scene.device.force_limit,
                          reconnect=True, watchdog_us=50_000, position_bound=0.1,
                          host_clocked=host_clocked)
     tel = Telemetry(n)
@@ -117,7 +107,7 @@ def time_round_trip(scene, n: int) -> float:
     gc.disable()                   # as HostLoop.run
     try:
         t0 = time.perf_counter_ns()
-        tr.send(fp.Config(1000.0, 50_000, LIMIT))
+        tr.send(fp.Config(1000.0, 50_000, scene.device.force_limit))
         State, Force, receive, send = fp.State, fp.Force, tr.receive, tr.send
         i = 0
         while i < n:
@@ -159,7 +149,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.n < 100 or args.repeat < 1:
         ap.error("--n must be >= 100 and --repeat >= 1")
-    scene = parse_scene(WALL)
+    scene = load_scene(WALL)
     variants = {"current": loop_mod}
     if args.ref:
         variants[f"ref {args.ref}"] = load_ref(args.ref)
