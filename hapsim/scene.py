@@ -32,6 +32,17 @@ Format
       position_resolution: 0      # encoder quantum [m] (mock device only; 0 = none)
       coulomb: 0                  # Coulomb friction [N] (mock device only)
       noise: 0                    # position sensor noise, standard deviation [m]
+      hand:                       # the hand holding the handle (optional; then device.mass
+                                  # is the handle alone). Each value: a number or [lo, hi]
+        mass: [0.05, 0.5]         # hand mass [kg], > 0
+        damping: 1.0              # hand damping to ground [N s/m], >= 0 (default 0)
+        grip_stiffness: [300, 3000]   # grip spring hand-handle [N/m] > 0, or rigid (default)
+        grip_damping: 2.0         # grip damper [N s/m], >= 0 (default 0)
+      correction:                 # one correction of the virtual element (optional):
+        kind: velocity_filter     # velocity_sensor | velocity_filter (cutoff_hz) |
+        cutoff_hz: 100            # prediction (horizon, samples; default: delay) |
+                                  # inertia_compensation (mass [kg], < the moving mass) |
+                                  # virtual_coupling (stiffness [N/m], damping [N s/m])
     excitation:                   # how the mock device's hand starts the motion
       x0: 0.002                   # initial device displacement [m]
       v0: 0.0                     # initial device velocity [m/s]
@@ -68,7 +79,7 @@ import yaml
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Scene",
+__all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety", "Scene",
            "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS"]
 
 #: Mass kinds a scene may use.
@@ -87,7 +98,12 @@ _MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
 _LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "target"),
               "contact": ("name", "kind", "between", "stiffness", "damping", "threshold")}
 _DEVICE_KEYS = ("mass", "friction", "delay", "hold", "force_limit",
-                "position_resolution", "coulomb", "noise")
+                "position_resolution", "coulomb", "noise", "hand", "correction")
+_HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping")
+#: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
+CORRECTIONS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
+               "prediction": ("horizon",), "inertia_compensation": ("mass",),
+               "virtual_coupling": ("stiffness", "damping")}
 _EXCITATION_KEYS = ("x0", "v0", "impulse", "profile")
 _SAFETY_KEYS = ("position_limit", "velocity_limit", "energy_limit", "passivity_controller",
                 "max_damping")
@@ -189,6 +205,11 @@ class Device:
         Coulomb friction of the mock device [N]; 0 for none.
     noise : float
         Standard deviation of the mock device's position noise [m]; 0 for none.
+    hand : Hand, optional
+        The hand holding the handle; then ``mass`` and ``friction`` are the handle's alone.
+    correction : dict, optional
+        ``{"kind": name, param: value, ...}``, a correction of the virtual element
+        (:data:`CORRECTIONS`, :mod:`hapsim.analysis.corrections`).
     """
 
     mass: float
@@ -199,6 +220,38 @@ class Device:
     position_resolution: float = 0.0
     coulomb: float = 0.0
     noise: float = 0.0
+    hand: "Hand | None" = None
+    correction: dict | None = None
+
+
+@dataclass(frozen=True)
+class Hand:
+    """The hand on the handle: a mass tied to the handle by a grip spring-damper.
+
+    Each field is a number or a range ``(lo, hi)`` (a family of THS, Florens et al. Sec. 4).
+
+    Parameters
+    ----------
+    mass : float or (float, float)
+        Hand mass [kg], > 0.
+    damping : float or (float, float)
+        Hand damping to ground (the arm) [N s/m], >= 0.
+    grip_stiffness : float or (float, float)
+        Grip spring between hand and handle [N/m], > 0; ``inf`` for a rigid grip (then
+        the hand mass and damping add to the handle's).
+    grip_damping : float or (float, float)
+        Grip damper between hand and handle [N s/m], >= 0.
+    """
+
+    mass: Any
+    damping: Any = 0.0
+    grip_stiffness: Any = math.inf
+    grip_damping: Any = 0.0
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the grip is rigid (``grip_stiffness`` is ``inf``)."""
+        return isinstance(self.grip_stiffness, float) and math.isinf(self.grip_stiffness)
 
 
 @dataclass(frozen=True)
@@ -700,6 +753,54 @@ def _check_device(d: Any) -> None:
     _number(d.position_resolution, "device", "position_resolution", minimum=0.0)
     _number(d.coulomb, "device", "coulomb", minimum=0.0)
     _number(d.noise, "device", "noise", minimum=0.0)
+    if d.hand is not None:
+        _check_hand(d.hand, d.hold)
+    if d.correction is not None:
+        _check_correction(d.correction, d.hold)
+
+
+def _check_hand(h: Any, hold: str) -> None:
+    if not isinstance(h, Hand):
+        raise _Invalid(f"must be a hapsim.scene.Hand, got {_typename(h)}", ("device", "hand"))
+    for key, positive, inf in (("mass", True, False), ("damping", False, False),
+                               ("grip_stiffness", True, True), ("grip_damping", False, False)):
+        v = getattr(h, key)
+        where = ("device", "hand", key)
+        if isinstance(v, tuple):
+            if len(v) != 2:
+                raise _Invalid(f"a range is [lo, hi], got {list(v)!r}", where)
+            for x in v:
+                _number(x, *where, positive=positive, minimum=None if positive else 0.0)
+            if not v[0] <= v[1]:
+                raise _Invalid(f"a range [lo, hi] needs lo <= hi, got {list(v)!r}", where)
+        else:
+            _number(v, *where, positive=positive, minimum=None if positive else 0.0,
+                    allow_inf=inf)
+    if not h.rigid and hold != "zoh":
+        raise _Invalid("a compliant grip needs hold: zoh (the ideal hold models one mass); "
+                       "use grip_stiffness: rigid", ("device", "hand", "grip_stiffness"))
+
+
+def _check_correction(c: Any, hold: str) -> None:
+    where = ("device", "correction")
+    if not isinstance(c, dict) or "kind" not in c:
+        raise _Invalid("must be a mapping with a kind; valid kinds: "
+                       + ", ".join(CORRECTIONS), where)
+    _choice(c["kind"], tuple(CORRECTIONS), *where, "kind")
+    allowed = ("kind",) + CORRECTIONS[c["kind"]]
+    for k, v in c.items():
+        if k not in allowed:
+            raise _Invalid(f"unknown key {k!r} for {c['kind']}; valid keys: "
+                           + ", ".join(allowed), where + (k,))
+        if k != "kind":
+            _number(v, *where, k, minimum=0.0)
+    if c["kind"] == "velocity_filter":
+        if "cutoff_hz" not in c:
+            raise _Invalid("velocity_filter needs cutoff_hz [Hz]", where + ("cutoff_hz",))
+        _number(c["cutoff_hz"], *where, "cutoff_hz", positive=True)
+    if c["kind"] == "velocity_sensor" and hold != "zoh":
+        raise _Invalid("a velocity sensor needs hold: zoh (the ideal hold has no velocity)",
+                       where + ("kind",))
 
 
 def _check_excitation(e: Any) -> None:
@@ -982,7 +1083,26 @@ def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
         position_resolution=_coerce(d.get("position_resolution", 0.0)),
         coulomb=_coerce(d.get("coulomb", 0.0)),
         noise=_coerce(d.get("noise", 0.0)),
+        hand=_read_hand(ctx, d) if "hand" in d else None,
+        correction=(dict(ctx.mapping(d["correction"], "device.correction",
+                                     ctx.line_of(d, "correction")))
+                    if "correction" in d else None),
     )
+
+
+def _read_hand(ctx: _Ctx, dev: _LDict) -> Hand:
+    h = ctx.mapping(dev["hand"], "device.hand", ctx.line_of(dev, "hand"))
+    ctx.keys(h, _HAND_KEYS, "device.hand", required=("mass",))
+
+    def val(key, default):
+        v = h.get(key, default)
+        if key == "grip_stiffness" and v == "rigid":
+            return math.inf
+        if isinstance(v, list):
+            return tuple(_coerce(x) for x in v)
+        return _coerce(v)
+    return Hand(val("mass", None), val("damping", 0.0), val("grip_stiffness", math.inf),
+                val("grip_damping", 0.0))
 
 
 def _read_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:

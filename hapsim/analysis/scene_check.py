@@ -182,7 +182,8 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     cal = {k: (float(v[0]), float(v[1])) for k, v in dict(calibrated or {}).items()}
     has_port = scene.port is not None
     if has_port:
-        ref = float(scene.device.mass)
+        from hapsim.analysis.network import device_body
+        ref = device_body(scene.device)[0]
     else:
         ref = float(sum(m.mass for m in scene.masses if m.kind == "mass")) or 1.0
     if A.shape[0] == 0:

@@ -27,6 +27,7 @@ import threading
 
 import numpy as np
 
+from hapsim.analysis.network import device_body
 from hapsim.analysis.targets import apply_targets
 from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
@@ -698,7 +699,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         if cols["seq"].size:
             start += int(cols["seq"][0])
         offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
-        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
+        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+                            device_body(dev)[0], start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links):

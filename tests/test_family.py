@@ -1,0 +1,182 @@
+"""Families of THS (issue 14): the hand model, robust stability over a family, minimax
+calibration and the consistency of assembled links.
+
+Independent references used here: ``scipy.signal.cont2discrete`` of the 4-state handle +
+hand plant (not the analysis's phi1 series, not the mock's expm), a plain time-domain
+recursion of the sampled loop, and the lockstep daemon.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.signal
+
+from hapsim.analysis.family import family, family_matrices, family_members
+from hapsim.analysis.hand import hand_matrices, hand_zoh, members
+from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.network import closed_loop
+from hapsim.analysis.ths import render, stability_limit
+from hapsim.scene import Hand, parse_scene
+
+
+def scene_text(K=100.0, B=2.0, *, m=0.02, b0=1.0, d=1, mh="0.1", bh="1.0",
+               kg="[2000, 200000]", bg="0.0", x0=0.002, extra=""):
+    return f"""
+rate_hz: 1000
+masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
+links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {K},
+          damping: {B}}}]
+device: {{mass: {m}, friction: {b0}, delay: {d}, force_limit: 1000000.0{extra},
+          hand: {{mass: {mh}, damping: {bh}, grip_stiffness: {kg}, grip_damping: {bg}}}}}
+excitation: {{x0: {x0}}}
+"""
+
+
+def sampled_plant(mc, bc, member, T):
+    """Handle + hand under ZOH by scipy.signal.cont2discrete (independent of hand_zoh)."""
+    A, b = hand_matrices(mc, bc, member)
+    Ad, Bd, *_ = scipy.signal.cont2discrete((A, b[:, None], np.eye(4), np.zeros((4, 1))),
+                                            T, method="zoh")
+    return Ad, Bd[:, 0]
+
+
+def simulate_wall(mc, bc, member, T, d, K, B, n, x0=1e-3):
+    """Time-domain loop: F[n] = -K x[n] - B (x[n] - x[n-1]) / T applied at n + d."""
+    Ad, Bd = sampled_plant(mc, bc, member, T)
+    s = np.array([x0, 0.0, x0, 0.0])
+    line = [0.0] * d
+    xp = x0
+    out = np.empty(n)
+    for i in range(n):
+        x = s[0]
+        out[i] = x
+        F = -K * x - B * (x - xp) / T
+        xp = x
+        line.append(F)
+        s = Ad @ s + Bd * line.pop(0)
+    return out
+
+
+# --------------------------------------------------------------------------- hand model
+
+@pytest.mark.parametrize("member", [(0.1, 1.0, 2000.0, 0.5), (0.5, 0.0, 300.0, 0.0),
+                                    (0.05, 3.0, 3e5, 2.0)])
+def test_hand_zoh_matches_cont2discrete(member):
+    """phi1 scaling-and-squaring ZOH == scipy.signal.cont2discrete to 1e-12."""
+    Aw, Bd = hand_zoh(0.05, 0.3, member, 1e-3)
+    Ad_ref, Bd_ref = sampled_plant(0.05, 0.3, member, 1e-3)
+    np.testing.assert_allclose(Aw + np.eye(4), Ad_ref, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(Bd, Bd_ref, rtol=1e-11, atol=1e-13 * np.abs(Bd_ref).max())
+
+
+def test_stiff_grip_tends_to_the_rigid_hand():
+    """kg -> inf: every pole of the rigid body's loop is the limit of one of the compliant
+    loop's (the extra grip pair keeps |z| = e^(-bg T / 2 mu) and folds round the circle),
+    and the stiffness limit converges."""
+    rigid = LoopModel(0.15, 0.8, 1000.0, 1)
+    p0 = closed_loop_poles(rigid, 800.0, 1.5)
+    errs = []
+    for kg in (1e6, 1e7, 1e8):
+        L = LoopModel(0.15, 0.8, 1000.0, 1, hand_mass=0.1, hand_damping=0.5,
+                      grip_stiffness=kg, grip_damping=5.0)
+        p = closed_loop_poles(L, 800.0, 1.5)
+        errs.append(max(np.min(np.abs(p - q)) for q in p0))
+    assert errs[0] > errs[1] > errs[2] and errs[2] < 1e-4
+    assert stability_limit(L, 1.5) == pytest.approx(stability_limit(rigid, 1.5), rel=1e-4)
+
+
+def test_scene_matrix_poles_equal_the_loop_polynomial_with_a_hand():
+    """closed_loop(scene, member) eigenvalues == roots of P K + Q B + R of the same hand."""
+    sc = parse_scene(scene_text(K=700.0, B=1.5, kg="[500, 5000]", bg="0.5"))
+    for mem in members(sc.device.hand, 5, seed=1):
+        A, _ = closed_loop(sc, member=mem)
+        L = LoopModel.from_device(sc.device, sc.rate_hz, mem)
+        ev = np.sort_complex(np.linalg.eigvals(A))
+        po = np.sort_complex(closed_loop_poles(L, 700.0, 1.5))
+        ev = ev[np.abs(ev) > 1e-9]
+        po = po[np.abs(po) > 1e-9]
+        np.testing.assert_allclose(ev, po, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("K,B,kg,bg,d", [(800.0, 1.5, 2000.0, 1.0, 1), (300.0, 3.0, 600.0, 0.0, 2),
+                                         (1500.0, 0.5, 8000.0, 2.0, 0)])
+def test_lockstep_measured_equals_predicted_with_a_grip(K, B, kg, bg, d):
+    """The mock models the same hand: measured (k, b) == render(k, b) to 1e-6."""
+    from hapsim.daemon.runner import run_scene
+    sc = parse_scene(scene_text(K, B, m=0.05, b0=0.3, d=d, mh="0.2", bh="0.5",
+                                kg=str(kg), bg=str(bg), x0=0.005))
+    rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.0)
+    r = render(LoopModel.from_device(sc.device, sc.rate_hz), K, B)
+    assert r.stable
+    assert rep["measured"]["k"] == pytest.approx(r.k, rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
+
+
+def test_hand_keys_are_validated():
+    from hapsim.errors import ConfigError
+    with pytest.raises(ConfigError, match="device.hand.mass.*lo <= hi"):
+        parse_scene(scene_text(mh="[0.5, 0.05]"))
+    with pytest.raises(ConfigError, match="valid keys: mass, damping, grip_stiffness"):
+        parse_scene(scene_text().replace("grip_damping", "grip_dampnig"))
+    with pytest.raises(ConfigError, match="compliant grip needs hold: zoh"):
+        parse_scene(scene_text(extra=", hold: ideal"))
+    assert parse_scene(scene_text(kg="rigid")).device.hand.rigid
+
+
+# --------------------------------------------------------------------------- family
+
+def test_family_matrices_equal_closed_loop_per_member():
+    sc = parse_scene(scene_text(kg="[500, 5000]", mh="[0.05, 0.5]"))
+    mem = family_members(sc, 7)
+    A, names = family_matrices(sc, mem)
+    for i in range(mem.shape[0]):
+        Ai, ni = closed_loop(sc, member=mem[i])
+        assert ni == names
+        np.testing.assert_array_equal(A[i], Ai)
+
+
+def test_corners_stable_interior_unstable_is_found_and_confirmed_in_time():
+    """A grip resonance inside the range destabilises the loop; the corners are stable.
+
+    Handle 0.02 kg, b0 = 1 N s/m, d = 1, wall K = 100 N/m, B = 2 N s/m, hand 0.1 kg, grip
+    2e3 .. 2e5 N/m. The family reports the unstable member; an independent time-domain
+    simulation (cont2discrete plant) grows at that member and decays at both corners."""
+    sc = parse_scene(scene_text())
+    r = family(sc, grid=41)
+    rep = r.to_dict()
+    assert rep["corners_stable"] and not rep["robust"]
+    bad = rep["first_unstable"]
+    assert bad is not None and not bad["corner"]
+    assert 2000.0 < bad["grip_stiffness"] < 200000.0
+    worst = rep["worst"]
+    assert worst["spectral_radius"] > 1.0
+    T, n = 1e-3, 6000
+    for kg, grows in ((2000.0, False), (200000.0, False), (worst["grip_stiffness"], True)):
+        x = simulate_wall(0.02, 1.0, (0.1, 1.0, kg, 0.0), T, 1, 100.0, 2.0, n)
+        env0, env1 = np.abs(x[:1000]).max(), np.abs(x[-1000:]).max()
+        assert (env1 > 10 * env0) == grows, (kg, env0, env1)
+        if grows:                             # growth rate == the predicted spectral radius
+            rate = (np.log(np.abs(x[-1000:]).max()) - np.log(np.abs(x[-2000:-1000]).max())) / 1000
+            assert rate == pytest.approx(np.log(worst["spectral_radius"]), rel=2e-2)
+
+
+def test_family_cli_names_the_unstable_member(tmp_path, capsys):
+    """``hapsim family`` exits 1, says the corners hold, and JSON names the member."""
+    import json
+    from hapsim.cli import main
+    p = tmp_path / "grip.yaml"
+    p.write_text(scene_text())
+    assert main(["family", str(p), "--grid", "41"]) == 1
+    out = capsys.readouterr().out
+    assert "NOT ROBUSTLY STABLE" in out and "every corner is stable" in out
+    assert main(["family", str(p), "--samples", "10000", "--json"]) == 1
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["members"] == 10000 + 2 + 1 and not rep["robust"]
+    assert not rep["first_unstable"]["corner"]
+    assert main(["family", str(p), "--samples", "0"]) == 2
+    assert main(["family", "configs/hand_wall.yaml", "--json"]) == 0
