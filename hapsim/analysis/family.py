@@ -26,7 +26,8 @@ from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
 
-__all__ = ["FamilyResult", "family", "family_matrices", "felt_pairs", "felt_links",
+__all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "felt_pairs",
+           "felt_links", "family_error", "calibrate_family",
            "family_members"]
 
 
@@ -364,3 +365,185 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
                           "target": None if lk.target is None else tuple(lk.target)}
     return FamilyResult(members=mem, corners=corners, mass=mass, rho=rho, stable=stable,
                         k=k, b=b, links=links, calibrated=dict(calibrated), period=T)
+
+
+# --------------------------------------------------------------------------- minimax
+
+@dataclass(frozen=True)
+class FamilyCalibration:
+    """Virtual (K, B) of one link for a whole family: minimax against nominal.
+
+    Attributes
+    ----------
+    link : str
+        Link name.
+    k, b : float
+        Target felt stiffness [N/m] and damping [N s/m].
+    K, B : float
+        Minimax virtual stiffness [N/m] and damping [N s/m].
+    error : float
+        Worst relative error over the family at (K, B):
+        ``max_i max(|k_i - k| / k, |b_i - b| / b)`` [-] (``inf`` if a member is unstable).
+    limiting : int
+        Index of the member that sets ``error``.
+    nominal_K, nominal_B : float
+        Calibration on the nominal member alone (:func:`hapsim.analysis.calibrate`).
+    nominal_error : float
+        The same figure of merit at the nominal calibration.
+    stable : bool
+        Every member stable at (K, B).
+    members : ndarray, shape (n, 4)
+        The family.
+    """
+
+    link: str
+    k: float
+    b: float
+    K: float
+    B: float
+    error: float
+    limiting: int
+    nominal_K: float
+    nominal_B: float
+    nominal_error: float
+    stable: bool
+    members: np.ndarray
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of every attribute (``members`` as its count, ``limiting`` as
+        the member's ``{mass, damping, grip_stiffness, grip_damping, index}``)."""
+        lim = {f: _f(self.members[self.limiting, j]) for j, f in enumerate(HAND_FIELDS)}
+        lim["index"] = int(self.limiting)
+        return {"link": self.link, "k": self.k, "b": self.b, "K": _f(self.K), "B": _f(self.B),
+                "error": _f(self.error), "limiting": lim, "stable": bool(self.stable),
+                "nominal": {"K": _f(self.nominal_K), "B": _f(self.nominal_B),
+                            "error": _f(self.nominal_error)},
+                "members": int(self.members.shape[0])}
+
+
+def family_error(scene, link, k: float, b: float, mem: np.ndarray, K: float, B: float):
+    """Worst relative felt-(k, b) error of one link over a family, and where it is.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    link : hapsim.scene.Link
+        A spring_damper between the port and a ground.
+    k, b : float
+        Target [N/m], [N s/m].
+    mem : ndarray, shape (n, 4)
+        Members.
+    K, B : float
+        Virtual (K, B) of the link.
+
+    Returns
+    -------
+    (float, int, bool)
+        ``max_i max(|k_i - k|/k, |b_i - b|/b)`` (``inf`` when a member is unstable or rings
+        no pair), the index of the worst member, and whether every member is stable.
+    """
+    sub = _one_link_scene(scene, link)
+    A, _ = family_matrices(sub, mem, calibrated={link.name: (float(K), float(B))})
+    kk, bb, rho, stable = felt_pairs(np.linalg.eigvals(A),
+                                     float(scene.device.mass) + mem[:, 0], scene.period)
+    err = np.maximum(np.abs(kk - k) / k, np.abs(bb - b) / b)
+    err = np.where(stable & np.isfinite(err), err, np.inf)
+    i = int(np.argmax(np.where(np.isfinite(err), err, np.inf)))
+    if not np.all(stable):
+        i = int(np.argmax(rho))
+    return float(err[i]), i, bool(np.all(stable))
+
+
+def calibrate_family(scene, link_name: str, k: float | None = None, b: float | None = None,
+                     mem: np.ndarray | None = None, *, samples: int | None = None,
+                     grid: int = 5, seed: int = 0) -> FamilyCalibration:
+    """Minimax calibration: the (K, B) whose worst felt error over the family is least.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        With a port, a device (``device.hand`` gives the family) and the link.
+    link_name : str
+        A spring_damper between the port and a ground.
+    k, b : float, optional
+        Target; default the link's ``target``.
+    mem : ndarray, shape (n, 4), optional
+        The family (default :func:`family_members` with ``samples``/``grid``/``seed``).
+
+    Returns
+    -------
+    FamilyCalibration
+
+    Raises
+    ------
+    ConfigError
+        Unknown link, a link that is not port-ground, no target given.
+
+    Notes
+    -----
+    ``min_(K, B) max_i max(|k_i - k|/k, |b_i - b|/b)``: a non-smooth minimax, solved by
+    ``scipy.optimize.minimize`` (Nelder-Mead, in ``log K`` and ``B``) started from the
+    calibration (Florens et al. Sec. 5; :func:`hapsim.analysis.calibrate`) of the nominal
+    member and of every corner; the best end point is kept. The nominal calibration is one
+    of the starts, so the minimax error is never worse than the nominal one.
+    """
+    from scipy.optimize import minimize
+
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import calibrate
+
+    links = {lk.name: lk for lk, _, _ in felt_links(scene, {
+        lk.name: (0.0, 0.0) for lk in scene.links if lk.target is not None})}
+    if link_name not in links:
+        raise ConfigError(f"no spring_damper between the port and a ground named "
+                          f"{link_name!r}; valid: {', '.join(links) or '(none)'}",
+                          file=scene.path, key="links")
+    lk = links[link_name]
+    if k is None or b is None:
+        if lk.target is None:
+            raise ConfigError(f"link {link_name!r} has no target {{k, b}}", file=scene.path,
+                              key=f"links.{link_name}.target")
+        k, b = lk.target
+    k, b = float(k), float(b)
+    if mem is None:
+        mem = family_members(scene, samples, grid=grid, seed=seed)
+    mem = np.atleast_2d(np.asarray(mem, float))
+    hand = getattr(scene.device, "hand", None)
+    ncorner = 0
+    if hand is not None:
+        from hapsim.analysis.hand import nominal_member, ranged_fields
+        ncorner = 2 ** len(ranged_fields(hand))
+        nominal = nominal_member(hand)
+    else:
+        nominal = mem[0]
+    starts = []
+    for row in [nominal] + [mem[i] for i in range(min(ncorner, mem.shape[0]))]:
+        c = calibrate(LoopModel.from_device(scene.device, scene.rate_hz, row,
+                                            correction=False), k, b)
+        if math.isfinite(c.K) and math.isfinite(c.B) and c.K > 0:
+            starts.append((c.K, c.B))
+    if not starts:
+        raise ConfigError(f"target (k, b) = ({k:g}, {b:g}) has no calibration on any "
+                          "corner or the nominal member", file=scene.path,
+                          key=f"links.{link_name}.target")
+    nK, nB = starts[0]
+    n_err, _, _ = family_error(scene, lk, k, b, mem, nK, nB)
+
+    def cost(p):
+        e, _, _ = family_error(scene, lk, k, b, mem, math.exp(p[0]), p[1])
+        return e if math.isfinite(e) else 1e6
+
+    best = (n_err if math.isfinite(n_err) else 1e6, nK, nB)
+    for K0, B0 in starts:
+        r = minimize(cost, [math.log(K0), B0], method="Nelder-Mead",
+                     options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 400,
+                              "initial_simplex": [[math.log(K0), B0],
+                                                  [math.log(K0) + 0.1, B0],
+                                                  [math.log(K0), B0 + 0.1 * max(abs(B0), b)]]})
+        if r.fun < best[0]:
+            best = (float(r.fun), math.exp(r.x[0]), float(r.x[1]))
+    _, K, B = best
+    err, lim, stable = family_error(scene, lk, k, b, mem, K, B)
+    return FamilyCalibration(link=link_name, k=k, b=b, K=K, B=B, error=err, limiting=lim,
+                             nominal_K=nK, nominal_B=nB, nominal_error=n_err, stable=stable,
+                             members=mem)

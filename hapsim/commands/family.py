@@ -27,13 +27,17 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
 
-Target links {k, b} are calibrated on the nominal member first."""
+Target links {k, b} are calibrated on the nominal member first. With --calibrate, each
+target link is also calibrated for the whole family (minimax): the virtual (K, B) whose
+worst relative error max(|k_i - k|/k, |b_i - b|/b) over the members is least, with the
+member that limits it, next to the same figure for the nominal calibration."""
 
 _EPILOG = """\
 examples:
   hapsim family configs/hand_wall.yaml
   hapsim family configs/hand_wall.yaml --samples 10000 --json
   hapsim family configs/hand_wall.yaml --plot family.png
+  hapsim family my_target_scene.yaml --calibrate
 
 exit codes:
   0  every member of the family is stable
@@ -60,6 +64,10 @@ def register(sub) -> None:
                    help="grid points per ranged hand value (default 9)")
     p.add_argument("--seed", type=int, default=0, help="seed of --samples (default 0)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument("--calibrate", action="store_true",
+                   help="for every target link: the minimax (K, B) over the family (the "
+                        "least worst relative error of the felt k and b), against the "
+                        "nominal member's calibration")
     p.add_argument("--plot", metavar="FILE", default=None,
                    help="figure: felt (k, b) of every member, coloured by spectral radius")
     p.set_defaults(func=run)
@@ -110,6 +118,15 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     res = family(scene, args.samples, grid=args.grid, seed=args.seed)
     rep = res.to_dict()
+    cals = []
+    if args.calibrate:
+        from hapsim.analysis.family import calibrate_family
+        targets = [lk.name for lk in scene.links if lk.target is not None]
+        if not targets:
+            raise ConfigError("--calibrate needs a link given as target {k, b}",
+                              file=scene.path, key="links")
+        cals = [calibrate_family(scene, name, mem=res.members).to_dict() for name in targets]
+        rep["family_calibrations"] = cals
     if args.plot:
         from hapsim.plot_family import plot_family
         from hapsim.plot import save_figure
@@ -140,6 +157,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"link {name} alone (K = {d['K']:.6g}, B = {d['B']:.6g}): "
               f"k {_g(d['k']['min'])} .. {_g(d['k']['max'])} N/m, "
               f"b {_g(d['b']['min'])} .. {_g(d['b']['max'])} N s/m")
+    for c in cals:
+        lim = c["limiting"]
+        print(f"minimax calibration of {c['link']} for (k, b) = ({c['k']:g}, {c['b']:g}): "
+              f"K = {c['K']:.6g} N/m, B = {c['B']:.6g} N s/m, worst relative error "
+              f"{_g(c['error'], '.4g')} (limited by hand {lim['mass']:g} kg, grip "
+              f"{_g(lim['grip_stiffness'], 'g')} N/m); nominal calibration K = "
+              f"{c['nominal']['K']:.6g}, B = {c['nominal']['B']:.6g}: worst "
+              f"{_g(c['nominal']['error'], '.4g')}; "
+              + ("every member stable" if c["stable"] else "SOME MEMBER UNSTABLE"))
     if args.plot:
         print(f"figure: {args.plot}")
     return 0 if res.robust else 1
