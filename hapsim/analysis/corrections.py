@@ -43,7 +43,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Correction", "CORRECTION_KINDS", "correction_polynomials",
+__all__ = ["Correction", "CorrectionLaw", "CORRECTION_KINDS", "correction_polynomials",
            "passivity_bound", "filtered_passivity_bound"]
 
 #: Corrections and their parameters (mirrors :data:`hapsim.scene.CORRECTIONS`).
@@ -305,3 +305,75 @@ def filtered_passivity_bound(K: float, B: float, cutoff_hz: float, period: float
     x = 2.0 * math.pi * cutoff_hz * period
     a = math.exp(-x)
     return K * period / 2.0 + B * (-math.expm1(-x)) / (1.0 + a)
+
+
+class CorrectionLaw:
+    """The corrected virtual element run sample by sample (the loop's side of a correction).
+
+    One port-ground spring-damper ``(K, B)`` with the correction ``corr`` (module
+    docstring for each law). :func:`correction_polynomials` is its closed-loop analysis;
+    the lockstep daemon runs this class and the two must agree (tests).
+
+    Parameters
+    ----------
+    corr : Correction
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m] of the link.
+    period : float
+        ``T`` [s].
+    delay : int
+        ``d`` [samples] (the default prediction horizon).
+
+    Notes
+    -----
+    Allocation-free per sample (floats only). ``velocity_sensor`` needs the measured
+    velocity passed to :meth:`step`; the others ignore it.
+    """
+
+    def __init__(self, corr: Correction, K: float, B: float, period: float, delay: int):
+        self.corr = corr
+        self.K, self.B, self.T = float(K), float(B), float(period)
+        self.h = float(delay if corr.horizon is None else corr.horizon)
+        if corr.kind == "velocity_filter":
+            self.a, self.one_minus_a = corr.filter_pole(period)
+        self.reset(0.0)
+
+    def reset(self, x: float) -> None:
+        """Start at rest at position ``x`` [m] (histories filled with ``x``)."""
+        self.x1 = self.x2 = self.p1 = self.y1 = float(x)
+        self.vf = 0.0
+        if self.corr.kind == "virtual_coupling":
+            c = self.corr
+            self.y1 = float(x) * c.stiffness / (c.stiffness + self.K)
+
+    def step(self, x: float, v: float = 0.0) -> float:
+        """Force on the port for the position sample ``x`` [m] (and velocity ``v`` [m/s]).
+
+        Returns
+        -------
+        float
+            ``F[n]`` [N], to be applied ``d`` samples later.
+        """
+        K, B, T = self.K, self.B, self.T
+        kind = self.corr.kind
+        if kind == "velocity_sensor":
+            f = -K * x - B * v
+        elif kind == "velocity_filter":
+            self.vf = self.a * self.vf + self.one_minus_a * (x - self.x1) / T
+            f = -K * x - B * self.vf
+        elif kind == "prediction":
+            p = x + self.h * (x - self.x1)
+            f = -K * p - B * (p - self.p1) / T
+            self.p1 = p
+        elif kind == "inertia_compensation":
+            f = (-K * x - B * (x - self.x1) / T
+                 + self.corr.mass * (x - 2.0 * self.x1 + self.x2) / (T * T))
+        else:
+            Kc, Bc = self.corr.stiffness, self.corr.damping
+            y = ((Kc * x + Bc * (x - self.x1 + self.y1) / T + B * self.y1 / T)
+                 / (Kc + Bc / T + K + B / T))
+            f = -(K * y + B * (y - self.y1) / T)
+            self.y1 = y
+        self.x2 = self.x1
+        self.x1 = x
+        return f

@@ -580,6 +580,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         limit_blas_threads(1)
         _warm_up(scene)
         engine = Engine(scene)
+        corrected = getattr(dev, "correction", None) is not None
+        if corrected and dev.correction.get("kind") != "velocity_sensor":
+            from hapsim.daemon.correction import corrected_engine
+            engine = corrected_engine(scene)
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
         else:                                          # long or open-ended: head + ring
@@ -608,6 +612,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=seed, base_dir=base_dir)
             tr = InProcessTransport(mock)
+            if corrected and dev.correction.get("kind") == "velocity_sensor":
+                # the STATE frame has no velocity: read the lockstep mock's, in-process
+                from hapsim.daemon.correction import corrected_engine
+                engine = corrected_engine(scene, velocity=lambda m=mock: m.physics.v)
+        elif corrected and dev.correction.get("kind") == "velocity_sensor":
+            from hapsim.daemon.correction import corrected_engine
+            engine = corrected_engine(scene)          # raises: no velocity on the wire
         elif transport == "sim":
             from hapsim.daemon.transport import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
