@@ -189,3 +189,48 @@ def test_velocity_sensor_needs_the_inprocess_mock():
     sc = parse_scene(_text(400.0, 1.5, "{kind: velocity_sensor}"))
     with pytest.raises(ConfigError, match="STATE frame carries no velocity"):
         corrected_engine(sc)
+
+
+# --------------------------------------------------------------------------- comparison
+
+@pytest.mark.parametrize("d", [0, 1, 2])
+@pytest.mark.parametrize("hold,half", [("zoh", 0.5), ("ideal", 0.0)])
+def test_delay_tilts_the_grid_whatever_the_rate(d, hold, half):
+    """Normalised db/dK at low (K, B) is -(d + 1/2) (ZOH) or -d (ideal hold), at 1 kHz and
+    4 kHz alike: first order in b0 T/m (Diolaiti et al. 2006), so checked to 2e-2. Only the
+    undelayed ideal hold is tangent to the identity (paper's remark on Fig. 8)."""
+    from hapsim.analysis.compare import TANGENT_TOL, tangency
+    for rate in (1000.0, 4000.0):
+        J = tangency(LoopModel(M, B0, rate, d, hold))
+        assert J[1, 0] == pytest.approx(-(d + half), abs=2e-2)
+        assert J[0, 0] == pytest.approx(1.0, abs=1e-2) and J[1, 1] == pytest.approx(1.0, abs=2e-2)
+        assert (np.max(np.abs(J - np.eye(2))) < TANGENT_TOL) == (d == 0 and hold == "ideal")
+
+
+def test_prediction_by_d_plus_half_makes_the_zoh_grid_tangent():
+    from hapsim.analysis.compare import TANGENT_TOL, tangency
+    for d in (1, 2):
+        J = tangency(LoopModel(M, B0, RATE, d, correction=Correction("prediction",
+                                                                     horizon=d + 0.5)))
+        assert np.max(np.abs(J - np.eye(2))) < TANGENT_TOL
+
+
+def test_compare_corrections_cli(capsys):
+    """One table row per correction; prediction by d + 1/2 is the tangent one and has the
+    least distortion; the plain element's area ratio is 1."""
+    import json
+    from hapsim.cli import main
+    args = ["compare-corrections", "--mass", "0.1", "--friction", "0.5", "--rate", "1000",
+            "--n", "2", "--boundary-points", "5"]
+    assert main(args + ["--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    rows = {r["label"]: r for r in rep["rows"]}
+    assert len(rows) == 7 and rows["plain (backward difference)"]["stable_area_ratio"] == 1.0
+    tangent = [lab for lab, r in rows.items() if r["tangent"]]
+    assert tangent == ["prediction(h=1.5)"]
+    best = min(rows.values(), key=lambda r: r["worst_distortion"] if r["worst_distortion"]
+               is not None else math.inf)
+    assert best["label"] == "prediction(h=1.5)"
+    assert main(args) == 0
+    assert "| prediction(h=1.5) |" in capsys.readouterr().out
+    assert main(args[:-2] + ["--n", "1"]) == 2
