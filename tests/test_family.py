@@ -202,3 +202,49 @@ def test_minimax_calibration_beats_nominal_on_its_own_figure_of_merit():
         assert r.stable
         worst = max(worst, abs(r.k - 600.0) / 600.0, abs(r.b - 2.5) / 2.5)
     assert worst == pytest.approx(c.error, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- consistency
+
+def _parallel(K, extra=""):
+    return f"""
+rate_hz: 1
+masses: [{{name: h, kind: port}}, {{name: g, kind: ground}}]
+links:
+  - {{name: a, kind: spring_damper, between: [h, g], stiffness: {K}, damping: 0}}
+  - {{name: b, kind: spring_damper, between: [h, g], stiffness: {K}, damping: 0}}
+device: {{mass: 1.0, friction: 0.0, delay: 0, hold: ideal{extra}}}
+"""
+
+
+@pytest.mark.parametrize("k", [0.01, 0.1, 0.5, 1.0, 2.0])
+def test_consistency_pins_table1_as_a_special_case(k):
+    """Two virtual springs tuned by eq. (2) (ideal hold, d = 0, no damping): the felt
+    assembly over the assembled felt parts is Table 1's felt k IV / 2k (1e-12)."""
+    from hapsim.analysis.family import consistency
+    from hapsim.analysis.table1 import table1_experiment, tuned_stiffness
+    c = consistency(parse_scene(_parallel(tuned_stiffness(k))))
+    row = table1_experiment([k])[0]
+    assert c["k_sum"][0] == pytest.approx(2 * k, rel=1e-12)       # II rings like I
+    assert c["k"][0] / c["k_sum"][0] == pytest.approx(row["kfelt_IV"], rel=1e-12)
+    assert c["worst_k"] == pytest.approx(row["kfelt_IV"] - 1.0, rel=1e-9)
+
+
+def test_consistency_over_a_hand_family_in_the_cli(tmp_path, capsys):
+    """Two walls in parallel felt by the hand family of configs/hand_wall.yaml: the ratio
+    is reported per member and is 1 for no member of this compliant family (k / k_sum
+    0.60 .. 0.95); with a rigid hand and ideal hold it tends to 1 as K T^2/m -> 0."""
+    import json
+    from hapsim.cli import main
+    text = open("configs/hand_wall.yaml").read().replace(
+        "links:\n", "links:\n  - {name: second, kind: spring_damper, between: [hand, wall], "
+        "stiffness: 500.0, damping: 0.5}\n")
+    p = tmp_path / "two.yaml"
+    p.write_text(text)
+    assert main(["family", str(p), "--grid", "5", "--json"]) == 0
+    c = json.loads(capsys.readouterr().out)["consistency"]
+    assert c["links"] == ["second", "wall"]
+    assert 0.55 < c["k_ratio"]["min"] < c["k_ratio"]["max"] < 0.97
+    from hapsim.analysis.family import consistency
+    small = consistency(parse_scene(_parallel(1e-4, ", hand: {mass: [0.5, 1.5]}")))
+    assert small["worst_k"] < 1e-4

@@ -27,7 +27,7 @@ from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
 
 __all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "felt_pairs",
-           "felt_links", "family_error", "calibrate_family",
+           "felt_links", "family_error", "calibrate_family", "consistency",
            "family_members"]
 
 
@@ -547,3 +547,55 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
     return FamilyCalibration(link=link_name, k=k, b=b, K=K, B=B, error=err, limiting=lim,
                              nominal_K=nK, nominal_B=nB, nominal_error=n_err, stable=stable,
                              members=mem)
+
+
+# --------------------------------------------------------------------------- consistency
+
+def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
+                calibrated=None, mem: np.ndarray | None = None) -> dict:
+    """Table 1 generalised: is the felt assembly the assembly of the felt parts?
+
+    Florens, Voda & Urma Sec. 3 / Table 1: two virtual springs tuned to ring like a real
+    one each do not ring like two real springs together. Here, for a scene with two or
+    more spring_dampers between the port and a ground (links in parallel), for every
+    member of the hand family: the felt pair of the whole scene ``(k, b)`` against the
+    parallel assembly of the pairs each link gives alone, ``k_sum = sum k_i``,
+    ``b_sum = sum b_i - (n - 1) b_real`` (each ``b_i`` carries the real damping ``b_real``
+    = device friction + hand damping once; the assembly carries it once).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    samples, grid, seed, calibrated, mem
+        As :func:`family`.
+
+    Returns
+    -------
+    dict
+        ``links`` (names), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats
+        (``min``, ``max``, ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is
+        consistent), ``worst_k``, ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``,
+        ``b``, ``b_sum``: ndarrays, shape (n,), per member.
+
+    Raises
+    ------
+    ConfigError
+        Fewer than two port-ground spring_dampers.
+    """
+    res = family(scene, samples, grid=grid, seed=seed, calibrated=calibrated, mem=mem)
+    names = list(res.links)
+    if len(names) < 2:
+        raise ConfigError("consistency needs two or more spring_dampers between the port "
+                          "and a ground (links in parallel)", file=scene.path, key="links")
+    b_real = float(scene.device.friction) + res.members[:, 1]
+    k_sum = sum(res.links[n]["k"] for n in names)
+    b_sum = sum(res.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kr = res.k / k_sum
+        br = res.b / b_sum
+    nom = res.corners
+    return {"links": names, "members": int(res.members.shape[0]),
+            "k_ratio": _stats(kr, kr[nom]), "b_ratio": _stats(br, br[nom]),
+            "worst_k": float(np.nanmax(np.abs(kr - 1.0))),
+            "worst_b": float(np.nanmax(np.abs(br - 1.0))),
+            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum}

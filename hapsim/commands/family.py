@@ -27,6 +27,11 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
 
+A scene with two or more spring_dampers between the port and a ground (links in parallel)
+is also checked for consistency (Florens et al. Table 1 generalised): the felt pair of the
+links together against the sum of what each link alone makes felt (real damping counted
+once); 1 would be consistent.
+
 Target links {k, b} are calibrated on the nominal member first. With --calibrate, each
 target link is also calibrated for the whole family (minimax): the virtual (K, B) whose
 worst relative error max(|k_i - k|/k, |b_i - b|/b) over the members is least, with the
@@ -118,6 +123,12 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     res = family(scene, args.samples, grid=args.grid, seed=args.seed)
     rep = res.to_dict()
+    cons = None
+    if len(res.links) >= 2:
+        from hapsim.analysis.family import consistency
+        c = consistency(scene, mem=res.members, calibrated=res.calibrated)
+        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum")}
+        rep["consistency"] = cons
     cals = []
     if args.calibrate:
         from hapsim.analysis.family import calibrate_family
@@ -157,6 +168,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"link {name} alone (K = {d['K']:.6g}, B = {d['B']:.6g}): "
               f"k {_g(d['k']['min'])} .. {_g(d['k']['max'])} N/m, "
               f"b {_g(d['b']['min'])} .. {_g(d['b']['max'])} N s/m")
+    if cons is not None:
+        kr, br = cons["k_ratio"], cons["b_ratio"]
+        print(f"consistency (Table 1 generalised): links {', '.join(cons['links'])} together "
+              f"feel k / (sum of each alone) = {_g(kr['min'], '.4g')} .. "
+              f"{_g(kr['max'], '.4g')} (nominal {_g(kr['nominal'], '.4g')}), b / (sum) = "
+              f"{_g(br['min'], '.4g')} .. {_g(br['max'], '.4g')}; 1 would be consistent")
     for c in cals:
         lim = c["limiting"]
         print(f"minimax calibration of {c['link']} for (k, b) = ({c['k']:g}, {c['b']:g}): "
