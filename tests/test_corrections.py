@@ -234,3 +234,15 @@ def test_compare_corrections_cli(capsys):
     assert main(args) == 0
     assert "| prediction(h=1.5) |" in capsys.readouterr().out
     assert main(args[:-2] + ["--n", "1"]) == 2
+
+
+def test_check_scene_of_a_corrected_one_link_scene_is_the_loop_polynomial():
+    """hapsim check on a corrected one-link scene: the companion matrix's poles are the
+    corrected loop's, and the felt pair is render's."""
+    from hapsim.analysis.scene_check import check_scene
+    from hapsim.scene import parse_scene
+    sc = parse_scene(_text(400.0, 1.5, "{kind: velocity_filter, cutoff_hz: 80}"))
+    chk = check_scene(sc)
+    r = render(loop_of("velocity_filter", {"cutoff_hz": 80.0}), 400.0, 1.5)
+    assert chk.stable and chk.rendered.k == pytest.approx(r.k, rel=1e-9)
+    assert chk.rendered.b == pytest.approx(r.b, rel=1e-9)

@@ -42,14 +42,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.scene import CORRECTIONS
 
 __all__ = ["Correction", "CorrectionLaw", "CORRECTION_KINDS", "correction_polynomials",
            "passivity_bound", "filtered_passivity_bound"]
 
-#: Corrections and their parameters (mirrors :data:`hapsim.scene.CORRECTIONS`).
-CORRECTION_KINDS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
-                    "prediction": ("horizon",), "inertia_compensation": ("mass",),
-                    "virtual_coupling": ("stiffness", "damping")}
+#: Corrections and their parameters (the scene validator's table).
+CORRECTION_KINDS = CORRECTIONS
 
 
 @dataclass(frozen=True)
