@@ -140,7 +140,18 @@ def _span(v) -> tuple[float, float]:
 
 
 def ranged_fields(hand) -> list[str]:
-    """Names of the fields of a :class:`hapsim.scene.Hand` given as a true range (lo < hi)."""
+    """Names of the fields of a hand given as a true range (``lo < hi``).
+
+    Parameters
+    ----------
+    hand : hapsim.scene.Hand
+
+    Returns
+    -------
+    list of str
+        Among :data:`HAND_FIELDS`, in that order; ``2 ** len(...)`` is the number of
+        corners of the family.
+    """
     return [f for f in HAND_FIELDS if _span(getattr(hand, f))[0] < _span(getattr(hand, f))[1]]
 
 

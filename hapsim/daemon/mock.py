@@ -263,7 +263,8 @@ class MockPhysics:
         The member ``(mh, bh, kg, bg)`` of ``device.hand`` to simulate (default its nominal
         member, :func:`hapsim.analysis.hand.nominal_member`). A rigid grip adds the hand's
         mass and damping to the handle's; a compliant one makes the plant
-        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)``.
+        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)`` (Coulomb
+        friction is not modelled on that path; noise and quantisation are).
 
     Attributes
     ----------
