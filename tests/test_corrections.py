@@ -224,6 +224,13 @@ def test_compare_corrections_cli(capsys):
             "--n", "2", "--boundary-points", "5"]
     assert main(args + ["--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
+    # the passivity controller, time domain only: at 1.5 K_max the plain wall runs away
+    # (energy safety stop), the controlled one stays bounded for the whole run
+    td = rep["passivity_time_domain"]
+    assert not td["plain"]["bounded"] and "energy limit" in td["plain"]["stop_reason"]
+    assert td["passivity_controller"]["bounded"]
+    assert td["passivity_controller"]["passivity_samples"] > 0
+    assert td["passivity_controller"]["energy_excess_max_j"] < 0.1
     rows = {r["label"]: r for r in rep["rows"]}
     assert len(rows) == 7 and rows["plain (backward difference)"]["stable_area_ratio"] == 1.0
     tangent = [lab for lab, r in rows.items() if r["tangent"]]
@@ -231,7 +238,7 @@ def test_compare_corrections_cli(capsys):
     best = min(rows.values(), key=lambda r: r["worst_distortion"] if r["worst_distortion"]
                is not None else math.inf)
     assert best["label"] == "prediction(h=1.5)"
-    assert main(args) == 0
+    assert main(args + ["--no-time-domain"]) == 0
     assert "| prediction(h=1.5) |" in capsys.readouterr().out
     assert main(args[:-2] + ["--n", "1"]) == 2
 

@@ -32,6 +32,8 @@ Figures of merit per correction:
   worst distort.  over the usable region of targets (--k-range x --b-range), the worst
                   relative gap between calibrated (K, B + b0) and the target (k, b)
                   ('inf' when some target there cannot be rendered);
+  (the passivity controller, nonlinear, is compared in the time domain only: a lockstep run
+  at 1.5 times the plain stiffness limit with and without it)
   tangent         whether the grid is tangent to the identity at low (K, B): the Jacobian
                   d(k, b)/d(K, B) in normalised units is within 0.05 of the identity. The
                   delay tilts it (db/dK = -(d + 1/2) normalised, whatever the rate: raising
@@ -67,6 +69,8 @@ def register(sub) -> None:
     p.add_argument("--boundary-points", type=int, default=61, metavar="N",
                    help="points of the exact boundary K_max(B) for the stable area "
                         "(default 61)")
+    p.add_argument("--no-time-domain", action="store_true",
+                   help="skip the passivity controller's time-domain comparison")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE", default=None,
                    help="one page: the grid of every correction")
@@ -136,12 +140,19 @@ def run(args) -> int:
     with Progress(7, "comparing corrections", "corrections") as bar:
         data = compare_corrections(loop, k_range=args.k_range, b_range=args.b_range,
                                    n=args.n, n_boundary=args.boundary_points, progress=lambda i, n, lab: bar.update(i, n))
+    td = None
+    if not args.no_time_domain:
+        from hapsim.analysis.compare import passivity_time_domain
+        from hapsim.analysis.ths import stability_limit
+        B = 0.5 * sum(data["b_range"]) - data["b0"]
+        td = passivity_time_domain(loop, 1.5 * stability_limit(loop, B), B)
     if args.plot:
         from hapsim.plot import save_figure
         from hapsim.plot_family import plot_corrections
         save_figure(plot_corrections(data), args.plot)
     if args.json:
         out = {k: v for k, v in data.items() if k != "rows"}
+        out["passivity_time_domain"] = td
         out["rows"] = [{k: (None if isinstance(v, float) and math.isinf(v) else v)
                         for k, v in r.items() if k not in ("grid", "boundary")}
                        for r in data["rows"]]
@@ -155,6 +166,15 @@ def run(args) -> int:
           f"{data['n']} targets); stable-area window K <= {data['window'][0]:.4g} N/m, "
           f"B <= {data['window'][1]:.4g} N s/m")
     print(table(data))
+    if td is not None:
+        print(f"passivity controller (nonlinear: time domain only), wall K = {td['K']:.5g} N/m "
+              f"= 1.5 K_max, B = {td['B']:.4g} N s/m, {td['duration']:g} s lockstep:")
+        for key in ("plain", "passivity_controller"):
+            r = td[key]
+            print(f"  {key:21s} {'bounded' if r['bounded'] else 'NOT bounded'}: "
+                  f"{r['ticks']} ticks, energy excess max {r['energy_excess_max_j']:.4g} J, "
+                  f"controller active {r['passivity_samples']} samples, |v| max "
+                  f"{r['v_max']:.4g} m/s ({r['stop_reason']})")
     if args.plot:
         print(f"figure: {args.plot}")
     return 0
