@@ -253,3 +253,28 @@ def test_check_scene_of_a_corrected_one_link_scene_is_the_loop_polynomial():
     r = render(loop_of("velocity_filter", {"cutoff_hz": 80.0}), 400.0, 1.5)
     assert chk.stable and chk.rendered.k == pytest.approx(r.k, rel=1e-9)
     assert chk.rendered.b == pytest.approx(r.b, rel=1e-9)
+
+
+@pytest.mark.parametrize("kind,params", CASES, ids=IDS)
+def test_lockstep_with_a_grip_and_each_correction(kind, params):
+    """Hand behind a grip spring (0.2 kg, 2000 N/m) and each correction: the lockstep daemon
+    measures what render predicts for that loop (handle + hand plant, corrected law), 1e-6.
+    (Compensating 0.02 kg of a 0.05 kg handle behind a grip is already unstable: 0.005 kg.)"""
+    from hapsim.daemon.runner import run_scene
+    if kind == "inertia_compensation":
+        params = {"mass": 0.005}
+    from hapsim.scene import parse_scene
+    corr = "{" + ", ".join([f"kind: {kind}"] + [f"{a}: {v}" for a, v in params.items()]) + "}"
+    text = _text(300.0, 1.5, corr).replace(
+        f"mass: {M}, friction: {B0}",
+        "mass: 0.05, friction: 0.3, hand: {mass: 0.2, damping: 0.5, grip_stiffness: 2000, "
+        "grip_damping: 1.0}")
+    sc = parse_scene(text)
+    rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.0)
+    loop = LoopModel.from_device(sc.device, sc.rate_hz)
+    assert not loop.rigid and loop.correction.kind == kind
+    r = render(loop, 300.0, 1.5)
+    assert r.stable
+    assert rep["measured"]["k"] == pytest.approx(r.k, rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
