@@ -26,7 +26,8 @@ from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
 
-__all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "felt_pairs",
+__all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "family_poles",
+           "felt_pairs",
            "felt_links", "family_error", "calibrate_family", "consistency",
            "family_members"]
 
@@ -88,8 +89,8 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
                           file=scene.path, key="device")
     dev = scene.device
     if getattr(dev, "correction", None) is not None:
-        raise ConfigError("a family is analysed without device.correction (compare "
-                          "corrections with hapsim compare-corrections)", file=scene.path,
+        raise ConfigError("the scene state matrix has no correction states; use "
+                          "family_poles for a corrected one-link scene", file=scene.path,
                           key="device.correction")
     mem = np.atleast_2d(np.asarray(mem, float))
     finite = np.isfinite(mem[:, 2])
@@ -126,6 +127,51 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     A[:, :nplant, :nplant] = Ad
     A[:, :nplant, :] += Bd[:, :, None] * u[None, None, :]
     return A, names
+
+
+def family_poles(scene, mem: np.ndarray, *, calibrated=None) -> np.ndarray:
+    """Closed-loop poles of every member, shape (n, s).
+
+    Without a device correction: eigenvalues of :func:`family_matrices` (one batched call).
+    With one (a one-link scene only, as everywhere corrections are analysed): the roots of
+    each member's ``P K + Q B + R`` (:func:`hapsim.analysis.loop.closed_loop_poles` of
+    ``LoopModel.from_device(device, rate, member)``), one member at a time, padded with
+    zeros to a common length.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    mem : ndarray, shape (n, 4)
+    calibrated : mapping, optional
+        ``{link: (K, B)}``.
+
+    Returns
+    -------
+    ndarray of complex, shape (n, s)
+
+    Raises
+    ------
+    ConfigError
+        As :func:`family_matrices`; a corrected scene that is not one port-ground link.
+    """
+    dev = scene.device
+    if dev is None or getattr(dev, "correction", None) is None:
+        A, _ = family_matrices(scene, mem, calibrated=calibrated)
+        return np.linalg.eigvals(A)
+    from hapsim.analysis.loop import LoopModel, closed_loop_poles
+    from hapsim.analysis.network import link_values
+
+    links = felt_links(scene, calibrated)
+    if len(scene.links) != 1 or len(links) != 1 or any(
+            m.kind == "mass" for m in scene.masses):
+        raise ConfigError("a family with a device correction is analysed on a scene of one "
+                          "spring_damper between the port and a ground", file=scene.path,
+                          key="device.correction")
+    _, K, B = link_values(scene, calibrated)[0]
+    rows = [closed_loop_poles(LoopModel.from_device(dev, scene.rate_hz, m), K, B)
+            for m in np.atleast_2d(mem)]
+    n = max(r.size for r in rows)
+    return np.array([np.concatenate([r, np.zeros(n - r.size)]) for r in rows])
 
 
 def felt_pairs(ev: np.ndarray, mass, period: float):
@@ -350,8 +396,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     mem = np.atleast_2d(np.asarray(mem, float))
     T = scene.period
     mass = float(scene.device.mass) + mem[:, 0]
-    A, _ = family_matrices(scene, mem, calibrated=calibrated)
-    k, b, rho, stable = felt_pairs(np.linalg.eigvals(A), mass, T)
+    k, b, rho, stable = felt_pairs(family_poles(scene, mem, calibrated=calibrated), mass, T)
     links = {}
     for lk, K, B in felt_links(scene, calibrated):
         sub = _one_link_scene(scene, lk)
@@ -359,8 +404,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         if len(scene.links) == 1:
             lk_k, lk_b = k, b
         else:
-            A1, _ = family_matrices(sub, mem, calibrated=cal)
-            lk_k, lk_b, _, _ = felt_pairs(np.linalg.eigvals(A1), mass, T)
+            lk_k, lk_b, _, _ = felt_pairs(family_poles(sub, mem, calibrated=cal), mass, T)
         links[lk.name] = {"K": K, "B": B, "k": lk_k, "b": lk_b,
                           "target": None if lk.target is None else tuple(lk.target)}
     return FamilyResult(members=mem, corners=corners, mass=mass, rho=rho, stable=stable,
@@ -443,8 +487,8 @@ def family_error(scene, link, k: float, b: float, mem: np.ndarray, K: float, B: 
         no pair), the index of the worst member, and whether every member is stable.
     """
     sub = _one_link_scene(scene, link)
-    A, _ = family_matrices(sub, mem, calibrated={link.name: (float(K), float(B))})
-    kk, bb, rho, stable = felt_pairs(np.linalg.eigvals(A),
+    ev = family_poles(sub, mem, calibrated={link.name: (float(K), float(B))})
+    kk, bb, rho, stable = felt_pairs(ev,
                                      float(scene.device.mass) + mem[:, 0], scene.period)
     err = np.maximum(np.abs(kk - k) / k, np.abs(bb - b) / b)
     err = np.where(stable & np.isfinite(err), err, np.inf)
@@ -518,8 +562,7 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
         nominal = mem[0]
     starts = []
     for row in [nominal] + [mem[i] for i in range(min(ncorner, mem.shape[0]))]:
-        c = calibrate(LoopModel.from_device(scene.device, scene.rate_hz, row,
-                                            correction=False), k, b)
+        c = calibrate(LoopModel.from_device(scene.device, scene.rate_hz, row), k, b)
         if math.isfinite(c.K) and math.isfinite(c.B) and c.K > 0:
             starts.append((c.K, c.B))
     if not starts:
