@@ -146,8 +146,11 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"scene": args.scene, "verdict": "robustly stable" if res.robust
                           else "not robustly stable", **rep}))
         return 0 if res.robust else 1
-    print(f"family of {rep['members']} members ({rep['corners']} corners, nominal, "
-          + (f"{args.samples} samples" if args.samples else f"grid {args.grid}") + ")")
+    if getattr(scene.device, "hand", None) is None:
+        print("no device.hand section: the family is the device alone (one member)")
+    else:
+        print(f"family of {rep['members']} members ({rep['corners']} corners, nominal, "
+              + (f"{args.samples} samples" if args.samples else f"grid {args.grid}") + ")")
     for name, (K, B) in rep["calibrated"].items():
         print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
               f"B = {B:.6g} N s/m")
