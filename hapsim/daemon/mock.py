@@ -229,12 +229,12 @@ def hand_force_samples(excitation: Excitation, period: float,
 
 def _body(device: Device, member=None):
     """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
-    continuous 4x4 matrix of a compliant grip (None when rigid or without a hand)."""
-    from hapsim.analysis.hand import hand_matrices, nominal_member
-
+    continuous 4x4 matrix of a compliant grip (None when rigid or without a hand).
+    Without a hand nothing is imported: a mock restarted by CONFIG must answer at once."""
     hand = getattr(device, "hand", None)
     if hand is None and member is None:
         return float(device.mass), float(device.friction), None
+    from hapsim.analysis.hand import hand_matrices, nominal_member
     mem = np.asarray(member if member is not None else nominal_member(hand), float)
     if np.isfinite(mem[2]):
         A, _ = hand_matrices(float(device.mass), float(device.friction), mem)
