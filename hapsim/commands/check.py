@@ -65,8 +65,14 @@ def register(sub) -> None:
 def _fmt_mode(md) -> str:
     def g(v, spec):
         return "-" if not math.isfinite(v) else format(v, spec)
-    return (f"  {abs(md.z):<14.10f} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
-            f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind}")
+    row = (f"  {abs(md.z):<14.10f} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
+           f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind:<5}")
+    if md.participation is not None:  # weight at the port (residue, relative)
+        from hapsim.analysis.modes import OBSERVABLE_TOL
+        row += f" {md.participation:<9.2g}"
+        if not md.participation >= OBSERVABLE_TOL:
+            row += " not felt (mode of the object)"
+    return row.rstrip()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -144,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         label = "parasitic modes" if chk.has_port else "modes"
         print(f"{label} (least damped first; k, b with m = {chk.reference_mass:g} kg):")
         print(f"  {'|z|':<14} {'f0 [Hz]':<10} {'zeta':<11} {'k [N/m]':<12} "
-              f"{'b [N s/m]':<12} kind")
+              f"{'b [N s/m]':<12} kind" + ("  at port" if chk.has_port else ""))
         for md in others[:args.modes]:
             print(_fmt_mode(md))
         if len(others) > args.modes:

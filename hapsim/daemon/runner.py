@@ -160,10 +160,14 @@ def predict(scene: Scene) -> dict:
                        damping_ratio=float(r.damping_ratio))
         return out
     chk = an["check_scene"](scene)
-    eig = np.asarray(chk.eigenvalues)
+    # identification order: the non-zero poles the port shows (a mode the hand cannot see,
+    # participation below OBSERVABLE_TOL, is absent from the port's record)
+    from hapsim.analysis.modes import OBSERVABLE_TOL
+    order = sum(2 if md.kind == "pair" else 1 for md in chk.modes
+                if abs(md.z) > _ZERO_POLE
+                and (md.participation is None or md.participation >= OBSERVABLE_TOL))
     out.update(source="check_scene", stable=bool(chk.stable),
-               spectral_radius=float(chk.spectral_radius),
-               order=int(np.sum(np.abs(eig) > _ZERO_POLE)))
+               spectral_radius=float(chk.spectral_radius), order=int(order))
     md = chk.rendered
     if md is not None:
         out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
@@ -259,6 +263,28 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
                damping_ratio=float(md.damping_ratio))
     return out
+
+
+def _has_offset(scene: Scene) -> bool:
+    """Whether the port's free response settles away from 0 (identify with ``offset``).
+
+    Decided from the scene's static equilibrium
+    (:func:`hapsim.analysis.network.rest_position`: grounds' ``x0``, contact thresholds,
+    every link), not from a list of causes; Coulomb friction (the mock's) stops the port
+    anywhere in its dead band: an offset. A scene whose rest is not unique (a free part)
+    has a pole at ``z = 1`` among the predicted ones, which the identification order
+    counts and which carries the constant: no differencing then.
+    """
+    from hapsim.analysis.network import rest_position
+    dev = scene.device
+    if dev.coulomb > 0:
+        return True
+    x = rest_position(scene)
+    if x is None:
+        return False
+    scale = max([abs(m.x0) for m in scene.masses if m.kind == "ground"]
+                + [abs(lk.threshold) for lk in scene.links if lk.kind == "contact"] + [0.0])
+    return abs(x) > 1e-12 * scale
 
 
 def _mass_limits(scene: Scene) -> list:
@@ -697,7 +723,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         start = int(math.ceil(exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
-        offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
+        offset = _has_offset(scene)
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2)
     notes = []
