@@ -173,12 +173,12 @@ class Device:
     Parameters
     ----------
     mass : float
-        Moving mass m of hand + handle [kg], > 0.
+        Moving mass m of hand + handle [kg], in [1e-12, 1e12].
     friction : float
-        Real viscous friction b0 [N s/m], >= 0.
+        Real viscous friction b0 [N s/m], >= 0, with b0 T / m <= 1e6.
     delay : int
         Whole samples d between the position a force is computed from and the sample
-        the force is applied at, >= 0.
+        the force is applied at, 0 to 1000 (the analysis's cost: O(d^3)).
     hold : {"zoh", "ideal"}
         Zero-order hold of the force, or the paper's idealised sampled image.
     force_limit : float
@@ -303,8 +303,10 @@ class Scene:
     ConfigError
         When a rule of the scene format is broken: the message names the key (e.g.
         ``masses[2].mass``) and, for an entry read from a file, the file and the line.
-        Rules: ``rate_hz`` > 0; a known ``integrator``; a non-empty tuple of masses with
-        unique names and a known kind; ``mass`` > 0 for kind ``mass`` (0 otherwise);
+        Rules: ``rate_hz`` in [1e-6, 1e9] Hz; a known ``integrator``; a non-empty tuple of
+        masses with unique names and a known kind; ``mass`` in [1e-12, 1e12] kg for kind
+        ``mass`` (0 otherwise); ``device.delay`` <= 1000 samples (ranges and their reasons:
+        ``hapsim.analysis.loop.RATE_RANGE``, ``MASS_RANGE``, ``MAX_DELAY``);
         finite ``x0``, ``v0`` (``v0`` = 0 unless kind ``mass``); at most one port, and a
         ``device`` when there is one; links with unique names and a known kind between two
         different existing masses; stiffness >= 0 and damping >= 0, finite (NaN only
@@ -560,6 +562,14 @@ def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None =
         raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
 
 
+def _within(v: float, name: str, unit: str, *where: Any) -> None:
+    """Range rules shared with the analysis (``hapsim.analysis.loop.<name>``)."""
+    import hapsim.analysis.loop as lp
+    lo, hi = getattr(lp, name)
+    if not lo <= float(v) <= hi:
+        raise _Invalid(f"must be between {lo:g} and {hi:g} {unit}, got {float(v):g}", where)
+
+
 def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
     if not isinstance(v, str):
         raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
@@ -588,6 +598,7 @@ def _check_scene(s: Scene) -> None:
         On the first broken rule, in scene order.
     """
     _number(s.rate_hz, "rate_hz", positive=True)
+    _within(s.rate_hz, "RATE_RANGE", "Hz", "rate_hz")
     _choice(s.integrator, INTEGRATORS, "integrator")
     if not isinstance(s.path, str):
         raise _Invalid(f"must be a string, got {_typename(s.path)}", ("path",))
@@ -607,6 +618,7 @@ def _check_scene(s: Scene) -> None:
         names[m.name] = i
         if m.kind == "mass":
             _number(m.mass, "masses", i, "mass", positive=True)
+            _within(m.mass, "MASS_RANGE", "kg", "masses", i, "mass")
         elif m.mass != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
                            f"got {m.mass!r}", ("masses", i, "mass"))
@@ -690,11 +702,17 @@ def _check_device(d: Any) -> None:
     if not isinstance(d, Device):
         raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
     _number(d.mass, "device", "mass", positive=True)
+    _within(d.mass, "MASS_RANGE", "kg", "device", "mass")
     _number(d.friction, "device", "friction", minimum=0.0)
     if not (isinstance(d.delay, numbers.Integral) and not isinstance(d.delay, bool)):
         raise _Invalid(f"must be a whole number of samples, got {d.delay!r}", ("device", "delay"))
     if d.delay < 0:
         raise _Invalid(f"must be >= 0, got {d.delay}", ("device", "delay"))
+    from hapsim.analysis.loop import MAX_DELAY
+    if d.delay > MAX_DELAY:  # the analysis's limit and its cost: hapsim.analysis.loop
+        raise _Invalid(f"must be <= {MAX_DELAY} samples, got {d.delay}: the closed loop's "
+                       f"d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
+                       f"O(d^3), ~2 s at d = {MAX_DELAY}", ("device", "delay"))
     _choice(d.hold, HOLDS, "device", "hold")
     _number(d.force_limit, "device", "force_limit", positive=True, allow_inf=True)
     _number(d.position_resolution, "device", "position_resolution", minimum=0.0)

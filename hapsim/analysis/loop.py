@@ -24,7 +24,8 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "plant", "characteristic", "closed_loop_poles",
+__all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
+           "MASS_RANGE", "MAX_PRODUCT", "check_range", "check_product", "plant", "characteristic", "closed_loop_poles",
            "zoh_state_space", "spectral_radius", "STABILITY_TOL"]
 
 #: Valid values of :attr:`LoopModel.hold`.
@@ -43,6 +44,69 @@ STABILITY_TOL = 1e-9
 #: is 1 s at 1 kHz, 25 ms at 40 kHz: beyond any haptic loop (a 16 ms USB latency timer is
 #: 640 samples at 40 kHz).
 MAX_DELAY = 1000
+
+
+#: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
+#: or ``1/T^2`` leave the double range long before any product is formed.
+RATE_RANGE = (1e-6, 1e9)
+#: Valid masses [kg] (device and virtual): 1 ng to 1e12 kg; a subnormal mass turns every
+#: ``T^2 / m`` into inf.
+MASS_RANGE = (1e-12, 1e12)
+#: Largest magnitude of the dimensionless loop products ``K T^2 / m`` (the spring's
+#: ``(omega T)^2``), ``B T / m`` and ``b0 T / m`` (damping per sample). Beyond 1e6 the spring
+#: rings a thousand times per sample or the damper settles in a millionth of one: no sampled
+#: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
+#: characteristic coefficients would span more than the double range can resolve.
+MAX_PRODUCT = 1e6
+
+
+def check_range(value: float, lo: float, hi: float, key: str, unit: str) -> None:
+    """Refuse a value outside ``[lo, hi]`` (one line naming ``key`` and the range).
+
+    Parameters
+    ----------
+    value : float
+    lo, hi : float
+        Valid range, in ``unit``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit shown, e.g. ``"Hz"``.
+
+    Raises
+    ------
+    ConfigError
+        When ``value`` is outside the range.
+    """
+    if not lo <= value <= hi:
+        raise ConfigError(f"must be between {lo:g} and {hi:g} {unit}, got {value:g}", key=key)
+
+
+def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
+    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
+
+    Parameters
+    ----------
+    value : float
+        Physical value, e.g. ``K`` [N/m].
+    scale : float
+        Its factor to the dimensionless product, e.g. ``T^2 / m``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit of ``value``.
+    what : str
+        The product's formula, e.g. ``"K T^2/m"``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
+    """
+    if abs(value) * scale > MAX_PRODUCT:
+        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
+                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
+                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
 
 
 def check_delay(delay, key: str = "delay") -> None:
@@ -90,7 +154,9 @@ class LoopModel:
     ------
     ConfigError
         On a non-positive mass or rate, a negative friction, a negative or non-integer
-        delay, or an unknown hold; ``key`` names the field.
+        delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
+        :data:`RATE_RANGE`, ``b0 T / m > MAX_PRODUCT``, a delay above :data:`MAX_DELAY`;
+        ``key`` names the field.
 
     Notes
     -----
@@ -116,12 +182,15 @@ class LoopModel:
         m = num("mass", self.mass)
         if m <= 0:
             raise ConfigError(f"must be > 0 [kg], got {self.mass!r}", key="mass")
+        check_range(m, *MASS_RANGE, "mass", "kg")
         b0 = num("friction", self.friction)
         if b0 < 0:
             raise ConfigError(f"must be >= 0 [N s/m], got {self.friction!r}", key="friction")
         r = num("rate_hz", self.rate_hz)
         if r <= 0:
             raise ConfigError(f"must be > 0 [Hz], got {self.rate_hz!r}", key="rate_hz")
+        check_range(r, *RATE_RANGE, "rate_hz", "Hz")
+        check_product(b0, 1.0 / (r * m), "friction", "N s/m", "b0 T/m")
         d = self.delay
         if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
                 or not float(d).is_integer() or d < 0:
@@ -482,8 +551,11 @@ def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     return _pair_up(w)
 
 
-def _scaled(loop: LoopModel, K: float, B: float) -> tuple[float, float]:
+def _scaled(loop: LoopModel, K: float, B: float, keys=("K", "B")) -> tuple[float, float]:
+    """``(K T^2 / m, B T / m)``, refused beyond :data:`MAX_PRODUCT` (keys name K and B)."""
     T, m = loop.period, loop.mass
+    check_product(float(K), T * T / m, keys[0], "N/m", "K T^2/m")
+    check_product(float(B), T / m, keys[1], "N s/m", "B T/m")
     return float(K) * T * T / m, float(B) * T / m
 
 

@@ -60,13 +60,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.loop import zoh_state_space
+from hapsim.analysis.loop import MAX_PRODUCT, check_product, zoh_state_space
 from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "virtual_blocks", "virtual_state_names", "closed_loop", "port_io",
-           "rest_position"]
+           "rest_position", "MAX_STATES", "state_count", "check_size"]
+
+#: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
+#: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
+#: about 20 s (one core, loaded machine) and 64 MB at 2000 states, a string of ~1000
+#: beads; 3000 beads would take a minute, 10^5 masses 160 GB.
+MAX_STATES = 2000
 
 
 def check_integrator(integrator: str, scene=None) -> None:
@@ -358,11 +364,14 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     ConfigError
         Unknown integrator or hold, a ``target`` link without calibrated (K, B)
         ("calibrate first"), a calibrated value not finite or naming no link, a port
-        without a device section.
+        without a device section; more than :data:`MAX_STATES` states; a link or the
+        device beyond :data:`hapsim.analysis.loop.MAX_PRODUCT`.
     """
     integrator = integrator or getattr(scene, "integrator", None) or "centred"
     check_integrator(integrator, scene)
+    check_size(scene)
     net = network(scene, calibrated, gain=gain)
+    _check_products(scene, calibrated, gain)
     T = scene.period
     Av, bp, bpp, cx, cp, cpp = virtual_blocks(net, integrator, T)
     vnames = virtual_state_names(net, integrator)
@@ -546,3 +555,79 @@ def rest_position(scene, calibrated=None) -> float | None:
         if not changed:
             return float(xs[idx[scene.port.name]])
     return float(xs[idx[scene.port.name]])
+
+
+def state_count(scene) -> int:
+    """Size of the :func:`closed_loop` state, computed without building anything.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Returns
+    -------
+    int
+        ``2 N`` (N moving masses) plus, with a port and a device, ``3 + d`` (``"zoh"``) or
+        ``2 + d`` (``"ideal"``).
+    """
+    n = 2 * sum(1 for m in scene.masses if m.kind == "mass")
+    dev = getattr(scene, "device", None)
+    if scene.port is not None and dev is not None:
+        n += (3 if dev.hold == "zoh" else 2) + int(dev.delay)
+    return n
+
+
+def check_size(scene) -> None:
+    """Refuse, before any allocation, a scene whose closed loop exceeds :data:`MAX_STATES`.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        Naming ``masses`` (or ``device.delay``), the state count, the limit and the cost.
+    """
+    n = state_count(scene)
+    if n > MAX_STATES:
+        n_mass = sum(1 for m in scene.masses if m.kind == "mass")
+        raise ConfigError(f"the closed loop has {n} states ({n_mass} moving masses x 2"
+                          + (f" + device and {scene.device.delay} delay samples"
+                             if scene.port is not None and scene.device is not None else "")
+                          + f"); the analysis takes every eigenvalue of a dense {n}-square "
+                          f"matrix, O(n^3): at most {MAX_STATES} states (~20 s), about "
+                          f"{MAX_STATES // 2} moving masses", file=scene.path, key="masses")
+
+
+def _check_products(scene, calibrated, gain: float) -> None:
+    """Refuse a link or device friction whose dimensionless product exceeds MAX_PRODUCT.
+
+    ``|K| T^2 / m`` and ``|B| T / m`` with ``m`` the lightest moving end of the link (a
+    virtual mass, or the device mass at the port; grounds do not move), and ``b0 T / m``
+    of the device (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
+    """
+    T = scene.period
+    inertia = {m.name: m.mass for m in scene.masses if m.kind == "mass"}
+    dev = getattr(scene, "device", None)
+    if scene.port is not None and dev is not None:
+        inertia[scene.port.name] = float(dev.mass)
+        try:
+            check_product(float(dev.friction), T / float(dev.mass), "device.friction",
+                          "N s/m", "b0 T/m")
+        except ConfigError as exc:
+            raise ConfigError(exc.reason, file=scene.path, key="device.friction") from None
+    for lk, K, B in link_values(scene, calibrated):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for val, scale, what, unit, field in ((K * gain, T * T / m, "K T^2/m", "N/m",
+                                               "stiffness"),
+                                              (B * gain, T / m, "B T/m", "N s/m", "damping")):
+            if abs(val) * scale > MAX_PRODUCT:
+                try:
+                    check_product(val, scale, field, unit, what)
+                except ConfigError as exc:
+                    raise ConfigError(exc.reason, file=scene.path, line=lk.line or None,
+                                      key=f"links.{lk.name}.{field}") from None

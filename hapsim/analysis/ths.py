@@ -139,7 +139,8 @@ def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
     Raises
     ------
     ConfigError
-        If ``K`` or ``B`` is not finite.
+        If ``K`` or ``B`` is not finite, or ``|K| T^2/m`` or ``|B| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
     """
     for key, v in (("K", K), ("B", B)):
         if not math.isfinite(float(v)):
@@ -322,7 +323,8 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     Raises
     ------
     ConfigError
-        If ``k <= 0`` or ``k``, ``b`` are not finite.
+        If ``k <= 0`` or ``k``, ``b`` are not finite, or ``k T^2/m`` or ``|b| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
 
     Notes
     -----
@@ -343,6 +345,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
         raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
     m, T = loop.mass, loop.period
     nan = math.nan
+    _scaled(loop, k, b, keys=("k", "b"))
 
     def fail(reason, K=nan, B=nan, rho=nan, modes=(), target=None):
         return CalibrationResult(k=k, b=b, K=K, B=B, renderable=False, reason=reason,
@@ -505,12 +508,13 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
     Raises
     ------
     ConfigError
-        If ``B`` is not finite (key ``B``).
+        If ``B`` is not finite or ``|B| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT` (key ``B``).
     """
     if not math.isfinite(float(B)):
         raise ConfigError(f"must be finite, got {B!r}", key="B")
     T, m = loop.period, loop.mass
-    beta = float(B) * T / m
+    _, beta = _scaled(loop, 0.0, B)
     return _kappa_max(loop, beta) * m / (T * T)
 
 
@@ -536,7 +540,8 @@ def damping_limits(loop: LoopModel, K: float) -> list:
     Raises
     ------
     ConfigError
-        If ``K`` is not finite.
+        If ``K`` is not finite or ``|K| T^2/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
 
     Notes
     -----
@@ -549,7 +554,7 @@ def damping_limits(loop: LoopModel, K: float) -> list:
     if not math.isfinite(float(K)):
         raise ConfigError(f"must be finite, got {K!r}", key="K")
     T, m = loop.period, loop.mass
-    kappa = float(K) * T * T / m
+    kappa, _ = _scaled(loop, K, 0.0)
     P, Q, D, e = _char_parts(loop)
     vals, lossless, b_pi = _circle_values(
         lambda w: np.polyval(Q, w),
