@@ -51,14 +51,15 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
     d.update(defaults or {})
     g = parser.add_argument_group("loop (the real side of the THS)")
     g.add_argument("--mass", type=float, default=d["mass"], required=require and d["mass"] is None,
-                   metavar="M", help="moving mass m of hand + handle [kg], > 0")
+                   metavar="M", help="moving mass m of hand + handle [kg], 1e-12 to 1e12")
     g.add_argument("--friction", type=float, default=d["friction"], metavar="B0",
-                   help="real viscous friction b0 [N s/m], >= 0 (default: %(default)s)")
-    g.add_argument("--rate", type=float, default=d["rate"], required=require and d["rate"] is None,
-                   metavar="HZ", help="sample rate [Hz], > 0; period T = 1/rate")
-    g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
-                   help="whole samples between reading x and applying the force, >= 0 "
+                   help="real viscous friction b0 [N s/m], >= 0, b0 T/m <= 1e6 "
                         "(default: %(default)s)")
+    g.add_argument("--rate", type=float, default=d["rate"], required=require and d["rate"] is None,
+                   metavar="HZ", help="sample rate [Hz], 1e-6 to 1e9; period T = 1/rate")
+    g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
+                   help="whole samples between reading x and applying the force, 0 to "
+                        "1000 (the analysis is O(d^3)) (default: %(default)s)")
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],
                    help="zoh: exact zero-order hold of the force; ideal: the paper's "
                         "idealised sampled mass (default: %(default)s)")

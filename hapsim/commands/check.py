@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 from hapsim.errors import ConfigError
 
@@ -104,6 +105,13 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     # an unrenderable target raises UnrenderableTargetError: a configuration error, exit 2
     scene, cals = apply_targets(scene)
+    from hapsim.analysis.network import check_size, state_count
+    check_size(scene)
+    n_states = state_count(scene)
+    if n_states > 500:  # say what it costs before it starts (O(n^3), ~20 s at 2000)
+        print(f"hapsim check: {n_states} states: every eigenvalue of a dense "
+              f"{n_states}-square matrix, about {20 * (n_states / 2000) ** 3:.0f} s",
+              file=sys.stderr, flush=True)
     chk = check_scene(scene)
     ok = chk.stable
     verdict = "stable" if chk.stable else "unstable"
