@@ -178,7 +178,7 @@ class Device:
         Real viscous friction b0 [N s/m], >= 0, with b0 T / m <= 1e6.
     delay : int
         Whole samples d between the position a force is computed from and the sample
-        the force is applied at, 0 to 1000 (the analysis's cost: O(d^3)).
+        the force is applied at, 0 to 500 (the analysis's cost: O(d^3)).
     hold : {"zoh", "ideal"}
         Zero-order hold of the force, or the paper's idealised sampled image.
     force_limit : float
@@ -305,7 +305,7 @@ class Scene:
         ``masses[2].mass``) and, for an entry read from a file, the file and the line.
         Rules: ``rate_hz`` in [1e-6, 1e9] Hz; a known ``integrator``; a non-empty tuple of
         masses with unique names and a known kind; ``mass`` in [1e-12, 1e12] kg for kind
-        ``mass`` (0 otherwise); ``device.delay`` <= 1000 samples (ranges and their reasons:
+        ``mass`` (0 otherwise); ``device.delay`` <= 500 samples (ranges and their reasons:
         ``hapsim.analysis.loop.RATE_RANGE``, ``MASS_RANGE``, ``MAX_DELAY``);
         finite ``x0``, ``v0`` (``v0`` = 0 unless kind ``mass``); at most one port, and a
         ``device`` when there is one; links with unique names and a known kind between two
@@ -712,7 +712,7 @@ def _check_device(d: Any) -> None:
     if d.delay > MAX_DELAY:  # the analysis's limit and its cost: hapsim.analysis.loop
         raise _Invalid(f"must be <= {MAX_DELAY} samples, got {d.delay}: the closed loop's "
                        f"d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
-                       f"O(d^3), ~2 s at d = {MAX_DELAY}", ("device", "delay"))
+                       f"O(d^3), ~0.4 s at d = {MAX_DELAY}", ("device", "delay"))
     _choice(d.hold, HOLDS, "device", "hold")
     _number(d.force_limit, "device", "force_limit", positive=True, allow_inf=True)
     _number(d.position_resolution, "device", "position_resolution", minimum=0.0)

@@ -39,11 +39,12 @@ HOLDS = ("zoh", "ideal")
 STABILITY_TOL = 1e-9
 
 #: Largest delay [samples] the analysis accepts. The closed loop has ``d + 3`` poles, found
-#: as the eigenvalues of a dense ``(d + 3)``-square state matrix: ``O(d^3)`` time, about 2 s
-#: at ``d = 1000`` on one core, and a stability limit needs several of them. 1000 samples
-#: is 1 s at 1 kHz, 25 ms at 40 kHz: beyond any haptic loop (a 16 ms USB latency timer is
-#: 640 samples at 40 kHz).
-MAX_DELAY = 1000
+#: as the eigenvalues of a dense ``(d + 3)``-square companion (state) matrix: ``O(d^3)``
+#: time, about 0.4 s at ``d = 500`` on one idle core (1.7 s at 1000, several times more on a
+#: loaded machine), and a stability limit needs several of them. 500 samples is 0.5 s at
+#: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
+#: timer is 16 samples at 1 kHz, 80 at 5 kHz).
+MAX_DELAY = 500
 
 
 #: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
@@ -127,8 +128,9 @@ def check_delay(delay, key: str = "delay") -> None:
     if delay > MAX_DELAY:
         raise ConfigError(f"must be <= {MAX_DELAY} samples, got {delay}: the closed loop "
                           f"has d + 3 poles, found as eigenvalues of a (d + 3)-square matrix "
-                          f"(O(d^3): ~2 s at d = {MAX_DELAY}); {MAX_DELAY} samples is 1 s at "
-                          f"1 kHz", key=key)
+                          f"(O(d^3): ~0.4 s at d = {MAX_DELAY}, seconds for a stability "
+                          f"limit); {MAX_DELAY} samples is {MAX_DELAY / 1000:g} s at 1 kHz",
+                          key=key)
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
                    metavar="HZ", help="sample rate [Hz], 1e-6 to 1e9; period T = 1/rate")
     g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
                    help="whole samples between reading x and applying the force, 0 to "
-                        "1000 (the analysis is O(d^3)) (default: %(default)s)")
+                        "500 (the analysis is O(d^3)) (default: %(default)s)")
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],
                    help="zoh: exact zero-order hold of the force; ideal: the paper's "
                         "idealised sampled mass (default: %(default)s)")
