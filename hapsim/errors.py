@@ -14,6 +14,7 @@ __all__ = [
     "DeviceError",
     "UnstableConfigError",
     "UnrenderableTargetError",
+    "show",
 ]
 
 
@@ -121,3 +122,31 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
         ConfigError.__init__(self, message, file=file, line=line, key=key)
         self.spectral_radius = spectral_radius
         self.stiffness_limit = None
+
+
+def show(value: object, limit: int = 60) -> str:
+    """A value as a message may print it: its repr, on one line, at most ``limit`` chars.
+
+    Parameters
+    ----------
+    value : object
+        Anything (a scene value, a name, a command-line argument).
+    limit : int
+        Most characters returned (>= 8).
+
+    Returns
+    -------
+    str
+        ``repr(value)`` with line breaks escaped, cut to ``limit`` characters with ``...``.
+        Containers are walked at most 3 levels deep and 4 items wide (``reprlib``), so the
+        cost is bounded even for a document whose aliases make it huge.
+    """
+    import reprlib
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxtuple, r.maxdict, r.maxset = 3, 4, 4, 4, 4
+    r.maxstring = r.maxother = r.maxlong = max(limit, 8)
+    text = r.repr(value)
+    text = text.replace("\r", "\\r").replace("\n", "\\n")
+    if len(text) > limit:
+        text = text[:limit - 3] + "..."
+    return text

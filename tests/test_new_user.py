@@ -1,0 +1,167 @@
+"""What a new user hits (issue 10, "tracebacks and inconsistent answers"), through the CLI.
+
+Every case goes through ``hapsim.cli.main(argv)`` and asserts the one-line message on
+stderr and the exit code (0 ok, 1 negative verdict, 2 bad input; README's table).
+"""
+
+from __future__ import annotations
+
+import json
+import string
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from hapsim.cli import main
+from hapsim.errors import ConfigError
+from hapsim.scene import load_scene, parse_scene
+
+WALL = """\
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground}
+links:
+  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000, damping: 1.5}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10.0}
+excitation: {x0: 0.005}
+"""
+
+
+def one_line_error(capsys, argv, code=2):
+    """Run ``main(argv)``; assert the exit code and one line on stderr; return that line."""
+    got = main(argv)
+    err = capsys.readouterr().err
+    assert got == code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+# ----------------------------------------------------------------- 1. encodings
+
+@pytest.mark.parametrize("name, data, fragment", [
+    ("latin1", WALL.replace("wall]", "w\xe4ll]").encode("latin-1"), "0xe4"),
+    ("binary", bytes(range(256)) * 4, "not"),
+    ("nul", WALL.encode() + b"\0\0", "binary"),
+])
+def test_non_utf8_scene_is_one_line_exit_2(tmp_path, capsys, name, data, fragment):
+    path = tmp_path / f"{name}.yaml"
+    path.write_bytes(data)
+    msg = one_line_error(capsys, ["check", str(path)])
+    assert str(path) in msg and fragment in msg and "UTF-8" in msg
+
+
+@pytest.mark.parametrize("codec", ["utf-16", "utf-8-sig", "utf-32"])
+def test_text_with_a_byte_order_mark_is_read(tmp_path, capsys, codec):
+    path = tmp_path / "bom.yaml"
+    path.write_bytes(WALL.encode(codec))
+    assert main(["check", str(path)]) == 0, capsys.readouterr().err
+
+
+# ----------------------------------------------------------------- 2. hostile YAML
+
+def billion_laughs(levels=9):
+    out = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n'
+    for i in range(1, levels):
+        prev, cur = chr(ord("a") + i - 1), chr(ord("a") + i)
+        out += f"{cur}: &{cur} [" + ",".join(["*" + prev] * 9) + "]\n"
+    return out
+
+
+HOSTILE = [
+    ("deep-flow", "[" * 500 + "]" * 500, 1, "nested deeper"),
+    ("deep-unclosed", "rate_hz: " + "[" * 200000, 1, "nested deeper"),
+    ("deep-block", "".join(" " * i + "- \n" for i in range(0, 400, 2)), None, "nested deeper"),
+    ("list-key", "rate_hz: 1000\n? [a, b]\n: 3\n", 2, "a list cannot be a mapping key"),
+    ("map-key", "{{a: 1}: 2}\n", 1, "a mapping cannot be a mapping key"),
+    ("alias-bomb", billion_laughs() + "rate_hz: *i\n", None, "alias"),
+    ("alias-bomb-value", "rate_hz: [" + ", ".join(ln.split(": ", 1)[1] for ln in
+                                                 billion_laughs(5).splitlines()) + "]\n"
+     "masses: [{name: a, kind: ground}]\n", 1, "rate_hz: must be a number, got a list"),
+    ("recursive-alias", "rate_hz: &r [*r]\n", 1, "recursive alias *r"),
+    ("unknown-alias", "rate_hz: *nowhere\n", 1, "unknown alias *nowhere"),
+    ("python-tag", "rate_hz: !!python/object/apply:os.system [ls]\n", 1, "unsupported tag"),
+    ("two-documents", WALL + "---\nrate_hz: 5\n", 9, "more than one YAML document"),
+    ("newline-name", WALL.replace("{name: wall, kind: ground}",
+                                  '{name: "hand\\nx", kind: ground}\n  - {name: "hand\\nx", '
+                                  "kind: ground}"), 5, "duplicate mass name 'hand\\nx'"),
+    ("newline-key", WALL + '"x\\ny": 1\n', 9, "unknown key 'x\\ny'"),
+    ("huge-string", WALL.replace("rate_hz: 1000", "rate_hz: " + "9" * 400 + "x"), 1,
+     "must be a number"),
+    ("duplicate-key", WALL + "rate_hz: 10\n", 9, "duplicate key 'rate_hz' (first on line 1)"),
+    ("merge-not-mapping", "rate_hz: {<<: 3}\n", 1, "merge key"),
+]
+
+
+@pytest.mark.parametrize("name, text, line, fragment", HOSTILE, ids=[c[0] for c in HOSTILE])
+def test_hostile_yaml_is_one_short_line_exit_2(tmp_path, capsys, name, text, line, fragment):
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text)
+    msg = one_line_error(capsys, ["check", str(path)])
+    assert fragment in msg, msg
+    assert len(msg) < 300 + len(str(path)), msg        # a bounded message, whatever the value
+    if line is not None:
+        assert f"{path}:{line}:" in msg, msg
+
+
+def test_merge_key_is_honoured_not_a_duplicate(tmp_path, capsys):
+    text = ("rate_hz: 1000\nmasses:\n  - &s {name: s1, kind: mass, mass: 0.01, x0: 0.001}\n"
+            "  - {<<: *s, name: s2}\n  - {name: g, kind: ground}\nlinks:\n"
+            "  - {kind: spring_damper, between: [s1, g], stiffness: 10}\n"
+            "  - {kind: spring_damper, between: [s2, g], stiffness: 10}\n")
+    scene = parse_scene(text)
+    assert [(m.name, m.mass, m.x0) for m in scene.masses[:2]] == [("s1", 0.01, 0.001),
+                                                                   ("s2", 0.01, 0.001)]
+    path = tmp_path / "merge.yaml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 0, capsys.readouterr().err
+    # an explicit key given twice beside a merge is still a duplicate
+    with pytest.raises(ConfigError, match="duplicate key 'name'"):
+        parse_scene(text.replace("name: s2}", "name: s2, name: s3}"))
+
+
+YAMLISH = st.text(alphabet=string.ascii_letters[:6] + string.digits[:4] + " \n\t:-[]{},&*!?<>|'\"#.%@`\\",
+                  max_size=300)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(YAMLISH, YAMLISH.map(lambda t: WALL + t), YAMLISH.map(lambda t: t + WALL)))
+def test_fuzz_yamlish_text_loads_or_config_error(text):
+    try:
+        parse_scene(text, "fuzz.yaml")
+    except ConfigError as exc:
+        assert "\n" not in str(exc)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=400))
+def test_fuzz_bytes_load_or_config_error(tmp_path_factory, data):
+    path = tmp_path_factory.mktemp("fuzz") / "f.yaml"
+    path.write_bytes(data)
+    try:
+        load_scene(path)
+    except ConfigError as exc:
+        assert "\n" not in str(exc)
+
+
+# ----------------------------------------------------------------- 3. YAML 1.2 numbers
+
+@pytest.mark.parametrize("text, value", [("1e3", 1e3), ("2E3", 2e3), ("+1e3", 1e3),
+                                         ("1_000", 1000), ("1.0e+3", 1e3), ("1000", 1000)])
+def test_exponent_without_dot_is_a_number(text, value):
+    scene = parse_scene(WALL.replace("rate_hz: 1000", f"rate_hz: {text}"))
+    assert scene.rate_hz == value
+
+
+def test_yaml_12_floats_through_check(tmp_path, capsys):
+    path = tmp_path / "e.yaml"
+    path.write_text(WALL.replace("stiffness: 1000", "stiffness: 1e3").replace("rate_hz: 1000",
+                                                                              "rate_hz: 1e3"))
+    assert main(["check", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["verdict"] == "stable"
+    # a quoted number stays a string, as YAML says
+    path.write_text(WALL.replace("rate_hz: 1000", "rate_hz: '1e3'"))
+    assert "got a string '1e3'" in one_line_error(capsys, ["check", str(path)])
