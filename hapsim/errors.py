@@ -99,9 +99,10 @@ class UnstableConfigError(HapsimError, ValueError):
 class UnrenderableTargetError(UnstableConfigError, ConfigError):
     """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
 
-    A configuration error (exit code 2: the scene asks for the impossible) that is also an
-    :class:`UnstableConfigError` (what callers caught before). The message names the file,
-    the line and the key ``links.NAME.target``.
+    A negative verdict (exit code 1, as ``hapsim calibrate`` gives for the same target:
+    README's table) that is also a :class:`ConfigError`, so the message names the file,
+    the line and the key ``links.NAME.target``; :func:`hapsim.cli.main` tests for
+    :class:`UnstableConfigError` first.
 
     Parameters
     ----------

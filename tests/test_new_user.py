@@ -165,3 +165,159 @@ def test_yaml_12_floats_through_check(tmp_path, capsys):
     # a quoted number stays a string, as YAML says
     path.write_text(WALL.replace("rate_hz: 1000", "rate_hz: '1e3'"))
     assert "got a string '1e3'" in one_line_error(capsys, ["check", str(path)])
+
+
+# ----------------------------------------------------------------- 7. Ctrl-C at any time
+
+CONSOLE_SCRIPT = """\
+import re
+import sys
+from hapsim.cli import entry
+if __name__ == "__main__":
+    sys.argv[0] = re.sub(r"(-script\\.pyw|\\.exe)?$", "", sys.argv[0])
+    sys.exit(entry())
+"""
+
+
+def interrupted(argv, after, tmp_path, console=False):
+    """Start ``hapsim ARGV`` in a real process, SIGINT it ``after`` seconds later."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    if console:  # what pip writes for [project.scripts] hapsim = "hapsim.cli:entry"
+        script = tmp_path / "hapsim"
+        script.write_text(CONSOLE_SCRIPT)
+        cmd = [sys.executable, str(script), *argv]
+    else:
+        cmd = [sys.executable, "-m", "hapsim", *argv]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(after)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    return proc.returncode, out, err
+
+
+@pytest.mark.parametrize("after", [0.1, 0.5, 1.0])
+@pytest.mark.parametrize("argv", [["run", "configs/wall.yaml"],
+                                  ["render", "--mass", "0.1", "--rate", "1000", "--K", "1000"]],
+                         ids=["run", "render"])
+def test_ctrl_c_at_any_time_is_quiet(tmp_path, argv, after):
+    """README: Ctrl-C ends cleanly. run exits 0 once its own SIGINT handler is in place
+    (it stops the loop and reports); before that, and for every other command, exit 130
+    with one line; a command that already finished exits 0. Never a traceback."""
+    code, out, err = interrupted(argv, after, tmp_path)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert code in (0, 130), (code, err)
+    if code == 130:
+        assert err.strip().splitlines()[-1].endswith("interrupted"), err
+
+
+def test_ctrl_c_during_imports_of_the_console_script(tmp_path):
+    code, out, err = interrupted(["check", "configs/wall.yaml"], 0.1, tmp_path, console=True)
+    assert "Traceback" not in err, err
+    assert code in (0, 130), (code, err)
+
+
+def test_library_import_keeps_the_callers_excepthook():
+    import subprocess
+    import sys
+    got = subprocess.run([sys.executable, "-c", "import sys; h = sys.excepthook; import hapsim;"
+                          " print(sys.excepthook is h)"], capture_output=True, text=True,
+                         check=True)
+    assert got.stdout.strip() == "True"
+
+
+# ----------------------------------------------------------------- 8. one verdict, one code
+
+UNRENDERABLE = """\
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground}
+links:
+  - {name: felt, kind: spring_damper, between: [hand, wall], target: {k: 50000.0, b: 0.01}}
+device: {mass: 0.1, friction: 0.0, delay: 2, hold: zoh, force_limit: 10.0}
+excitation: {x0: 0.005}
+"""
+
+
+@pytest.mark.parametrize("argv", [
+    ["calibrate", "--mass", "0.1", "--friction", "0", "--rate", "1000", "--delay", "2",
+     "--k", "50000", "--b", "0.01"],
+    ["check", "{scene}"], ["run", "{scene}", "--lockstep"],
+    ["simulate", "{scene}", "--steps", "5", "--out", "{tmp}/o.npz"],
+], ids=lambda a: a[0])
+def test_not_renderable_is_exit_1_everywhere(tmp_path, capsys, argv):
+    scene = tmp_path / "hard.yaml"
+    scene.write_text(UNRENDERABLE)
+    argv = [a.format(scene=scene, tmp=tmp_path) for a in argv]
+    assert main(argv) == 1
+    text = capsys.readouterr()
+    assert "not renderable" in (text.out + text.err).replace("NO", "not renderable")
+    if argv[0] != "calibrate":
+        assert f"{scene}:6: links.felt.target: " in text.err
+
+
+# ----------------------------------------------------------------- 9. --json always JSON
+
+LOOP = ["--mass", "0.1", "--friction", "0.5", "--rate", "1000", "--delay", "1"]
+JSON_ERRORS = [
+    # (argv, exit code, error type)
+    (["render", *LOOP, "--K", "nan", "--json"], 2, "ConfigError"),
+    (["render", "--mass", "0.1", "--json"], 2, "usage"),
+    (["calibrate", *LOOP, "--k", "-5", "--b", "1", "--json"], 2, "ConfigError"),
+    (["stability", *LOOP[:-2], "--delay", "-1", "--json"], 2, "ConfigError"),
+    (["map", "--mass", "0.1", "--json"], 2, "ConfigError"),
+    (["check", "{bad}", "--json"], 2, "ConfigError"),
+    (["simulate", "{bad}", "--steps", "5", "--out", "{tmp}/o.npz", "--json"], 2, "ConfigError"),
+    (["advise", "{bad}", "--json"], 2, "ConfigError"),
+    (["run", "{bad}", "--json"], 2, "ConfigError"),
+    (["run", "{unstable}", "--lockstep", "--json"], 1, "UnstableConfigError"),
+    (["check", "{hard}", "--json"], 1, "UnrenderableTargetError"),
+    (["run", "{hard}", "--lockstep", "--json"], 1, "UnrenderableTargetError"),
+]
+
+
+@pytest.mark.parametrize("argv, code, kind", JSON_ERRORS,
+                         ids=[f"{a[0]}-{k}" for a, c, k in JSON_ERRORS])
+def test_json_commands_print_json_on_failure(tmp_path, capsys, argv, code, kind):
+    files = {"bad": WALL.replace("rate_hz: 1000", "rate_hz: -1"),
+             "unstable": WALL.replace("stiffness: 1000", "stiffness: 90000"),
+             "hard": UNRENDERABLE}
+    for name, text in files.items():
+        (tmp_path / f"{name}.yaml").write_text(text)
+    argv = [a.format(tmp=tmp_path, **{n: tmp_path / f"{n}.yaml" for n in files})
+            for a in argv]
+    assert main(argv) == code
+    text = capsys.readouterr()
+    lines = text.out.strip().splitlines()
+    assert len(lines) == 1, text.out
+    doc = json.loads(lines[0])
+    assert doc["exit"] == code and doc["error"]["type"] == kind, doc
+    assert doc["error"]["message"] in text.err.replace("error: ", "", 1) or \
+        doc["error"]["message"].split(": ", 1)[1] in text.err
+    assert set(doc["error"]) >= {"type", "message", "file", "line", "key"}
+    if kind == "ConfigError" and "{bad}" in argv:
+        assert doc["error"]["key"] == "rate_hz" and doc["error"]["line"] == 1
+
+
+# ----------------------------------------------------------------- 10. k/K, b/B hints
+
+@pytest.mark.parametrize("argv, hint", [
+    (["render", *LOOP, "--k", "1000"], "--k is the felt stiffness k [N/m] of 'hapsim calibrate'; "
+                                       "for the virtual stiffness simulated use --K"),
+    (["render", *LOOP, "--K", "1000", "--b", "1"], "--b is the felt damping"),
+    (["calibrate", *LOOP, "--K", "1000", "--b", "1"], "for the felt stiffness to render use --k"),
+    (["calibrate", *LOOP, "--k", "1000", "--B", "1"], "for the felt damping to render use --b"),
+    (["stability", *LOOP, "--k", "1"], "hapsim stability does not take it"),
+])
+def test_k_K_confusion_gets_a_hint(capsys, argv, hint):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert hint in err and "Traceback" not in err

@@ -38,8 +38,8 @@ examples:
 
 exit codes:
   0  the closed loop is stable
-  1  the closed loop is unstable
-  2  bad scene file or option, or a target (k, b) this device cannot render"""
+  1  the closed loop is unstable, or a target (k, b) this device cannot render
+  2  bad scene file or option"""
 
 
 def register(sub) -> None:
@@ -85,9 +85,9 @@ def run(args: argparse.Namespace) -> int:
     Raises
     ------
     ConfigError
-        Bad scene file or option, or a target that is not renderable
-        (:class:`~hapsim.errors.UnrenderableTargetError`); exit code 2, handled by
-        :mod:`hapsim.cli`.
+        Bad scene file or option (exit code 2, handled by :mod:`hapsim.cli`).
+    UnrenderableTargetError
+        A target that is not renderable (a negative verdict: exit code 1).
     """
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
-    # an unrenderable target raises UnrenderableTargetError: a configuration error, exit 2
+    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
     scene, cals = apply_targets(scene)
     chk = check_scene(scene)
     ok = chk.stable

@@ -82,9 +82,9 @@ examples:
   hapsim run configs/wall.yaml --duration 0 --telemetry session.hst   (Ctrl-C ends it)
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
-  1  refused (unstable loop), safety stop, latched device fault, device lost beyond
+  1  refused (unstable loop, unrenderable target), safety stop, latched device fault, device lost beyond
      recovery (or silent with --no-reconnect)
-  2  bad arguments, invalid scene, unrenderable target, unknown fault name"""
+  2  bad arguments, invalid scene, unknown fault name"""
 
 
 def register(sub) -> None:
@@ -189,7 +189,7 @@ def run(args) -> int:
     ------
     ConfigError
         Bad option values (``--rate``, ``--lost-timeout``, ``--reconnect-*``, ``--faults``,
-        ``--auto`` with ``--rate``), an invalid scene or unrenderable target (exit 2 from
+        ``--auto`` with ``--rate``), an invalid scene (exit 2 from
         :func:`hapsim.cli.main`).
     UnstableConfigError
         Unstable loop without ``--allow-unstable``, or ``--auto`` finding no rate (exit 1).
