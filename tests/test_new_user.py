@@ -321,3 +321,73 @@ def test_k_K_confusion_gets_a_hint(capsys, argv, hint):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert hint in err and "Traceback" not in err
+
+
+# ----------------------------------------------------------------- 5, 6. outputs and sizes
+
+DIVERGING = """\
+rate_hz: 1000
+masses:
+  - {name: g, kind: ground}
+  - {name: a, kind: mass, mass: 0.0001, x0: 0.01}
+  - {name: b, kind: mass, mass: 1.0}
+links:
+  - {kind: spring_damper, between: [g, a], stiffness: 1e9}
+  - {kind: spring_damper, between: [g, b], stiffness: 1}
+"""
+
+
+@pytest.mark.parametrize("record", [[], ["--record", "b", "a"], ["--record", "b"]])
+def test_simulate_stops_at_the_first_non_finite_position(tmp_path, capsys, record):
+    """Centred scheme, K T^2 / m = 1e4 > 4: |z| > 1, the position grows by ~1e4 a step
+    and overflows within ~80 steps. The finite rows are kept, the step and mass named."""
+    import numpy as np
+    scene, out = tmp_path / "div.yaml", tmp_path / "div.npz"
+    scene.write_text(DIVERGING)
+    assert main(["simulate", str(scene), "--steps", "100000", "--out", str(out),
+                 *record]) == 1
+    err = capsys.readouterr().err
+    assert "diverged" in err and "mass 'a'" in err, err
+    step = int(err.split(" step ")[1].split()[0])
+    data = np.load(out)
+    assert data["position"].shape[0] == step and np.isfinite(data["position"]).all()
+    if "a" in record or not record:
+        assert "at step" in err and 10 < step < 200
+    else:  # only known to the end of the engine's chunk
+        assert "mass 'a' (not recorded) is not finite by step" in err
+
+
+@pytest.mark.parametrize("out, fragment", [
+    ("/nonexistent/dir/s.npz", "the directory /nonexistent/dir does not exist"),
+    ("{tmp}", "it is a directory"),
+    ("{tmp}/file.txt/s.npz", "is not a directory"),
+])
+def test_simulate_checks_its_output_before_work(tmp_path, capsys, out, fragment):
+    (tmp_path / "file.txt").write_text("x")
+    scene = tmp_path / "wall.yaml"
+    scene.write_text(WALL)
+    out = out.format(tmp=tmp_path)
+    if not out.endswith(".npz"):
+        out = str(tmp_path)
+        (tmp_path / "d.npz").mkdir()
+        out = str(tmp_path / "d.npz")
+    msg = one_line_error(capsys, ["simulate", str(scene), "--steps", "10", "--out", out])
+    assert "--out: cannot write" in msg and fragment in msg
+
+
+def test_simulate_refuses_what_cannot_fit(tmp_path, capsys):
+    scene = tmp_path / "wall.yaml"
+    scene.write_text(WALL)
+    msg = one_line_error(capsys, ["simulate", str(scene), "--steps", "1e11",
+                                  "--out", str(tmp_path / "s.npz")])
+    assert "--steps: 100000000000 samples x 2 masses of positions need 2.18 TiB" in msg
+    assert "available" in msg
+    assert not (tmp_path / "s.npz").exists()
+
+
+def test_simulate_refuses_duplicate_record_columns(tmp_path, capsys):
+    scene = tmp_path / "wall.yaml"
+    scene.write_text(WALL)
+    msg = one_line_error(capsys, ["simulate", str(scene), "--steps", "5", "--out",
+                                  str(tmp_path / "s.npz"), "--record", "hand", "hand"])
+    assert "--record: names a mass twice: hand" in msg
