@@ -391,3 +391,29 @@ def test_simulate_refuses_duplicate_record_columns(tmp_path, capsys):
     msg = one_line_error(capsys, ["simulate", str(scene), "--steps", "5", "--out",
                                   str(tmp_path / "s.npz"), "--record", "hand", "hand"])
     assert "--record: names a mass twice: hand" in msg
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--telemetry", "/nonexistent/dir/t.npz"],
+     "--telemetry: cannot write /nonexistent/dir/t.npz: the directory /nonexistent/dir "
+     "does not exist"),
+    (["--telemetry", "{tmp}"], "--telemetry: cannot write"),
+    (["--duration", "1e300"], "--duration: 1e+300 s at 1000 Hz is 1e+303 samples"),
+    (["--rate", "1e12"], "--rate: "),
+], ids=["telemetry-missing-dir", "telemetry-is-dir", "duration", "rate"])
+def test_run_checks_outputs_and_sizes_before_start(tmp_path, capsys, argv, fragment):
+    scene = tmp_path / "wall.yaml"
+    scene.write_text(WALL)
+    (tmp_path / "t.npz").mkdir()
+    argv = [a.replace("{tmp}", str(tmp_path / "t.npz")) for a in argv]
+    msg = one_line_error(capsys, ["run", str(scene), "--lockstep", *argv])
+    assert fragment in msg
+    if "rate" in argv[0]:
+        assert "telemetry rows" in msg and "available" in msg
+
+
+def test_run_scene_rate_that_cannot_fit_names_the_file(tmp_path, capsys):
+    scene = tmp_path / "fast.yaml"
+    scene.write_text(WALL.replace("rate_hz: 1000", "rate_hz: 1.0e+12"))
+    msg = one_line_error(capsys, ["run", str(scene), "--lockstep"])
+    assert f"{scene}: rate_hz: " in msg and "TiB" in msg
