@@ -7,6 +7,8 @@ matching built-in, so callers may catch either (pattern of pyserial's
 
 from __future__ import annotations
 
+import re
+
 __all__ = [
     "HapsimError",
     "ConfigError",
@@ -15,6 +17,8 @@ __all__ = [
     "UnstableConfigError",
     "UnrenderableTargetError",
     "show",
+    "fixed",
+    "plural",
 ]
 
 
@@ -151,3 +155,34 @@ def show(value: object, limit: int = 60) -> str:
     if len(text) > limit:
         text = text[:limit - 3] + "..."
     return text
+
+
+def fixed(value: float, spec: str) -> str:
+    """``format(value, spec)`` for a fixed-point ``spec`` (``"12.9f"``), never 300 digits.
+
+    Parameters
+    ----------
+    value : float
+        The number.
+    spec : str
+        A format spec ending in ``f`` (width, alignment, sign and precision kept).
+
+    Returns
+    -------
+    str
+        The fixed-point text while it stays within the field (or 16 characters), else the
+        same field in ``g`` with the precision as significant digits (``1e+300``, not a
+        301-digit integer part).
+    """
+    text = format(value, spec)
+    m = re.fullmatch(r"(.*?)(\d*)(?:\.(\d+))?f", spec)
+    width = int(m.group(2)) if m and m.group(2) else 0
+    if len(text.strip()) <= max(width, 16) or not m:
+        return text
+    digits = int(m.group(3)) if m.group(3) else 6
+    return format(value, f"{m.group(1)}{m.group(2)}.{max(digits, 1)}g")
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """``"1 link"``, ``"3 links"``: a count with its noun in the right number."""
+    return f"{n} {word if n == 1 else (many or word + 's')}"

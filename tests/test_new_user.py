@@ -7,6 +7,7 @@ stderr and the exit code (0 ok, 1 negative verdict, 2 bad input; README's table)
 from __future__ import annotations
 
 import json
+import re
 import string
 
 import pytest
@@ -417,3 +418,52 @@ def test_run_scene_rate_that_cannot_fit_names_the_file(tmp_path, capsys):
     scene.write_text(WALL.replace("rate_hz: 1000", "rate_hz: 1.0e+12"))
     msg = one_line_error(capsys, ["run", str(scene), "--lockstep"])
     assert f"{scene}: rate_hz: " in msg and "TiB" in msg
+
+
+# ----------------------------------------------------------------- 11. tidy output
+
+def test_no_runtime_warnings_and_no_300_digit_numbers(capsys):
+    """An extreme loop (K = 1e300): the verdict is printed with significant digits, and
+    numpy's overflow warnings stay off stderr."""
+    import re
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)    # a warning would fail the command
+        assert main(["render", "--mass", "0.1", "--rate", "1000", "--K", "1e300"]) == 1
+    text = capsys.readouterr()
+    assert "RuntimeWarning" not in text.err
+    assert not re.search(r"\d{20}", text.out), text.out
+    assert "UNSTABLE" in text.out
+
+
+@pytest.mark.parametrize("value, spec, want", [
+    (0.997586016, ">12.9f", " 0.997586016"), (2.2360679e147, ">12.9f", "2.2360679e+147"),
+    (1e300, "<14.10f", "1e+300        "), (12.5, "12.4f", "     12.5000"),
+])
+def test_fixed_never_prints_hundreds_of_digits(value, spec, want):
+    from hapsim.errors import fixed
+    assert fixed(value, spec) == want
+
+
+def test_passivity_limit_says_none_when_B_exceeds_b0(capsys):
+    argv = ["stability", "--mass", "0.1", "--friction", "0.5", "--rate", "1000", "--B", "2"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "|B| >= b0: no K >= 0 is passive" in out and "-3000" not in out
+    assert main([*argv[:-1], "0.1"]) == 0   # b0 > |B|: K < 2 (b0 - |B|) / T = 800 N/m
+    assert re.search(r"passivity \(C&S 1997\)\s+800 N/m", capsys.readouterr().out)
+
+
+def test_help_texts_have_no_none_default_and_baud_metavar(capsys):
+    assert main(["map", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "default: None" not in out and "(default: the --paper preset, else 0.0)" in " ".join(
+        out.split())
+    assert main(["run", "--help"]) == 0
+    assert "--baud BAUD" in capsys.readouterr().out
+
+
+def test_check_counts_in_the_right_number(capsys):
+    assert main(["check", "configs/wall.yaml"]) == 0
+    out = capsys.readouterr().out
+    assert "0 virtual masses, 1 link (" in out

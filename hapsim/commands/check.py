@@ -6,7 +6,7 @@ import argparse
 import json
 import math
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, fixed, plural
 
 _DESCRIPTION = """\
 Check a whole scene felt through its device, before touching the device.
@@ -65,7 +65,7 @@ def register(sub) -> None:
 def _fmt_mode(md) -> str:
     def g(v, spec):
         return "-" if not math.isfinite(v) else format(v, spec)
-    return (f"  {abs(md.z):<14.10f} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
+    return (f"  {fixed(abs(md.z), '<14.10f')} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
             f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind}")
 
 
@@ -114,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
 
     T = scene.period
     print(f"scene {args.scene}: {scene.rate_hz:g} Hz (T = {T * 1e3:g} ms), "
-          f"{sum(m.kind == 'mass' for m in scene.masses)} virtual masses, "
-          f"{len(scene.links)} links (contacts taken as engaged), integrator "
+          f"{plural(sum(m.kind == 'mass' for m in scene.masses), 'virtual mass', 'virtual masses')}, "
+          f"{plural(len(scene.links), 'link')} (contacts taken as engaged), integrator "
           f"{chk.integrator}")
     if chk.has_port:
         dv = scene.device

@@ -102,7 +102,7 @@ def register(sub) -> None:
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
     p.add_argument("--port", metavar="PORT",
                    help="serial port of the device (default: embedded mock on a pty)")
-    p.add_argument("--baud", type=int, default=115200, metavar="B",
+    p.add_argument("--baud", type=int, default=115200, metavar="BAUD",
                    help="baud rate (default 115200; ignored by USB CDC and ptys)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="run length [s] (default 1 s, longer for slow oscillations); 0: "

@@ -1156,7 +1156,8 @@ def _remove(path: str | None) -> None:
 def _fmt(v, spec: str) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
-    return format(v, spec)
+    from hapsim.errors import fixed
+    return fixed(v, spec) if spec.endswith("f") else format(v, spec)
 
 
 def format_report(rep: dict) -> str:
