@@ -467,3 +467,56 @@ def test_check_counts_in_the_right_number(capsys):
     assert main(["check", "configs/wall.yaml"]) == 0
     out = capsys.readouterr().out
     assert "0 virtual masses, 1 link (" in out
+
+
+# ----------------------------------------------------------------- 12. figures
+
+@pytest.mark.parametrize("number", [7, 9])
+def test_grid_figure_labels_do_not_overlap_and_axes_say_normalised(number):
+    pytest.importorskip("matplotlib")
+    import numpy as np
+    from hapsim.analysis.grid import grid, paper_preset
+    from hapsim.plot import plot_grid
+    loop, k_range, b_range, title = paper_preset(number, "ideal")
+    g = grid(loop, np.linspace(*k_range, 9), np.linspace(*b_range, 9), samples=60)
+    fig = plot_grid(g, title=title)
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = [t.get_window_extent(renderer) for t in ax.texts]
+    assert len(boxes) >= 9                      # most curves keep a label
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert not a.overlaps(b), (a, b)
+    assert "normalised" in ax.get_xlabel() and "[N/m]" not in ax.get_xlabel()
+    assert "normalised" in ax.get_ylabel()
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
+
+def test_capacity_chart_legend_tells_quantiles_apart():
+    pytest.importorskip("matplotlib")
+    from hapsim.plot_bench import plot_capacity
+    row = {"turnaround_us": {"p50": 10, "p99": 20, "p999": 40}, "missed_pct": 0.1}
+    fig = plot_capacity({"rates": [1000, 2000], "echo": [row, row], "daemon": [row, row],
+                         "machine": "test"})
+    handles = fig.axes[0].get_legend().legend_handles
+    styles = {(h.get_linestyle(), h.get_marker()) for h in handles
+              if h.get_label() in ("p50", "p99", "p999")}
+    assert len(styles) == 3
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
+
+def test_accuracy_chart_axis_spans_the_naive_errors():
+    """The calibrated loops (round-off) sit on a 1e-7 floor, not 19 decades down."""
+    pytest.importorskip("matplotlib")
+    from pathlib import Path
+    from hapsim.plot_bench import plot_accuracy_vs_rate
+    data = json.loads((Path(__file__).resolve().parents[1] / "docs" / "bench"
+                       / "accuracy_vs_rate.json").read_text())
+    fig = plot_accuracy_vs_rate(data)
+    low, high = fig.axes[0].get_ylim()
+    assert 1e-9 < low < 1e-7 and high >= 1e3
+    import matplotlib.pyplot as plt
+    plt.close(fig)
