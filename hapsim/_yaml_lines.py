@@ -25,6 +25,7 @@ explicit stacks, so neither recurses on deep input.
 from __future__ import annotations
 
 import codecs
+import gc
 import re
 from typing import Any, Callable
 
@@ -174,6 +175,10 @@ def load_yaml(text: str, path: str = "<string>",
         unknown or unsafe tag, a recursive alias, more than one document.
     """
     loader = _Loader(text)
+    # the builder only allocates (no cycles to collect): the cyclic GC, which would walk
+    # every container made so far again and again, is paused while it runs
+    collecting = gc.isenabled()
+    gc.disable()
     try:
         return _Builder(loader, path, progress, len(text)).build()
     except ConfigError:
@@ -189,6 +194,8 @@ def load_yaml(text: str, path: str = "<string>",
         raise ConfigError(f"invalid YAML: nested deeper than {MAX_DEPTH} levels",
                           file=path) from None
     finally:
+        if collecting:
+            gc.enable()
         loader.dispose()
 
 

@@ -497,6 +497,8 @@ def _key_of(where: tuple) -> str:
 
 
 def _is_number(v: Any) -> bool:
+    if type(v) is float or type(v) is int:   # the common case, without the ABC check
+        return True
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 

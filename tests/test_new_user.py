@@ -520,3 +520,22 @@ def test_accuracy_chart_axis_spans_the_naive_errors():
     assert 1e-9 < low < 1e-7 and high >= 1e3
     import matplotlib.pyplot as plt
     plt.close(fig)
+
+
+# ----------------------------------------------------------------- 4. large scenes
+
+def test_large_scene_reports_progress_and_loads():
+    """A 2000-bead string (~40000 parser events): the reader reports characters read,
+    increasing, out of len(text); every mass and link arrives with its line."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from bench_scene_load import string_scene
+    text = string_scene(2000)
+    calls = []
+    scene = parse_scene(text, "big.yaml", progress=lambda done, total: calls.append((done, total)))
+    assert len(scene.masses) == 2003 and len(scene.links) == 2002
+    assert scene.masses[-2].line == 2004 and scene.links[0].line == 2008
+    assert calls and all(t == len(text) for _, t in calls)
+    done = [d for d, _ in calls]
+    assert done == sorted(done) and 0 < done[-1] <= len(text)
