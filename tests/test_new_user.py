@@ -535,7 +535,7 @@ def test_large_scene_reports_progress_and_loads():
     calls = []
     scene = parse_scene(text, "big.yaml", progress=lambda done, total: calls.append((done, total)))
     assert len(scene.masses) == 2003 and len(scene.links) == 2002
-    assert scene.masses[-2].line == 2004 and scene.links[0].line == 2008
+    assert scene.masses[-2].line == 2004 and scene.links[0].line == 2007
     assert calls and all(t == len(text) for _, t in calls)
     done = [d for d, _ in calls]
     assert done == sorted(done) and 0 < done[-1] <= len(text)
