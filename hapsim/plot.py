@@ -208,7 +208,7 @@ def check_figure_path(path: str, key: str = "--out") -> None:
 
 
 def check_output_path(path: str, key: str) -> None:
-    """Refuse an output file whose directory does not exist or that is a directory.
+    """Refuse an output file that cannot be written (:func:`hapsim.outputs.check_writable`).
 
     Parameters
     ----------
@@ -222,11 +222,8 @@ def check_output_path(path: str, key: str) -> None:
     ConfigError
         With ``key``.
     """
-    if os.path.isdir(path):
-        raise ConfigError(f"{path!r} is a directory; give a file name", key=key)
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise ConfigError(f"directory {d!r} does not exist (create it first)", key=key)
+    from hapsim.outputs import check_writable   # one check for every command's outputs
+    check_writable(path, key)
 
 
 def save_figure(fig, path: str) -> None:

@@ -236,16 +236,9 @@ def test_library_import_keeps_the_callers_excepthook():
 
 # ----------------------------------------------------------------- 8. one verdict, one code
 
-UNRENDERABLE = """\
-rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: wall, kind: ground}
-links:
-  - {name: felt, kind: spring_damper, between: [hand, wall], target: {k: 50000.0, b: 0.01}}
-device: {mass: 0.1, friction: 0.0, delay: 2, hold: zoh, force_limit: 10.0}
-excitation: {x0: 0.005}
-"""
+UNRENDERABLE = (WALL.replace("name: wall, kind: spring_damper", "name: felt, kind: spring_damper")
+                .replace("stiffness: 1000, damping: 1.5", "target: {k: 50000.0, b: 0.01}")
+                .replace("friction: 0.5, delay: 1", "friction: 0.0, delay: 2"))
 
 
 @pytest.mark.parametrize("argv", [
