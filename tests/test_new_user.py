@@ -204,6 +204,7 @@ def interrupted(argv, after, tmp_path, console=False):
         cmd = [sys.executable, str(script), *argv]
     else:  # python -m hapsim, with the marker written first
         boot = (f"import sys; sys.stderr.write({UP!r} + '\\n'); sys.stderr.flush(); "
+                "sys.argv[0] = '-m'; "  # what python -m shows while it imports the package
                 "import runpy; runpy.run_module('hapsim', run_name='__main__', alter_sys=True)")
         cmd = [sys.executable, "-c", boot, *argv]
     env = {**os.environ, "PYTHONPATH": str(root)}
