@@ -24,14 +24,14 @@ from cobs import cobs as _cobs
 
 __all__ = [
     "PROTOCOL_VERSION", "MAX_FRAME", "MAX_PACKET", "MAX_AXES", "CRC_INIT",
-    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_STATE", "MSG_FORCE",
+    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_LINK", "MSG_STATE", "MSG_FORCE",
     "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES",
     "STATUS_ARMED", "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FAULT",
     "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED", "STATUS_FORCE_APPLIED",
     "FAULT_WATCHDOG", "FAULT_BAD_CONFIG", "FAULT_SENSOR", "FAULT_AMPLIFIER",
     "FAULT_NON_FINITE_FORCE", "FAULT_AXES_MISMATCH", "FAULT_RX_ERRORS", "FAULT_OVERRUN",
     "FAULT_VERSION_MISMATCH", "FAULT_NAMES",
-    "Hello", "HelloRequest", "Config", "State", "Force", "Ping", "Pong", "Fault", "Stop",
+    "Hello", "HelloRequest", "Config", "Link", "State", "Force", "Ping", "Pong", "Fault", "Stop",
     "Message", "FrameError", "DecoderStats", "StreamDecoder",
     "encode", "encode_packet", "decode_frame", "decode_packet", "crc16",
 ]
@@ -53,6 +53,9 @@ CRC_INIT = 0xFFFF
 MSG_HELLO = 0x01
 MSG_HELLO_REQUEST = 0x02
 MSG_CONFIG = 0x03
+#: LINK, device -> host with HELLO: the device's serial line. Added within version 1
+#: (PROTOCOL.md §9): a host written before it counts it as an unknown type.
+MSG_LINK = 0x04
 MSG_STATE = 0x10
 MSG_FORCE = 0x11
 MSG_PING = 0x20
@@ -212,6 +215,26 @@ class Config:
 
 
 @dataclass(frozen=True, slots=True)
+class Link:
+    """LINK, device -> host, sent just before each HELLO: the device's serial line.
+
+    The host checks with it that a STATE and a FORCE frame fit one tick at the rate it is
+    about to CONFIGure (PROTOCOL.md §4, LINK).
+
+    Parameters
+    ----------
+    baud : int, 0..2**32-1
+        Line rate of the device's UART [bit/s]; 0: not a UART (USB, no limit announced).
+    bits_per_byte : int, 0..255
+        Bits on the line per byte: start + data + parity + stop (10 for 8N1).
+    """
+
+    TYPE: ClassVar[int] = MSG_LINK
+    baud: int
+    bits_per_byte: int = 10
+
+
+@dataclass(frozen=True, slots=True)
 class State:
     """STATE, device -> host, once per device tick.
 
@@ -317,10 +340,10 @@ class Stop:
     TYPE: ClassVar[int] = MSG_STOP
 
 
-Message = Union[Hello, HelloRequest, Config, State, Force, Ping, Pong, Fault, Stop]
+Message = Union[Hello, HelloRequest, Config, Link, State, Force, Ping, Pong, Fault, Stop]
 
 #: Message class by type id.
-MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, State, Force,
+MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, Link, State, Force,
                                            Ping, Pong, Fault, Stop)}
 
 # --------------------------------------------------------------------------- layouts
@@ -328,6 +351,7 @@ MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, State, F
 _HELLO = struct.Struct("<BBBI4d")
 _HELLO_REQUEST = struct.Struct("<BB")
 _CONFIG = struct.Struct("<BdId")
+_LINK = struct.Struct("<BIB")
 _PING = struct.Struct("<BIQ")
 _PONG = struct.Struct("<BIQQ")
 _FAULT = struct.Struct("<BHI")
@@ -373,6 +397,7 @@ _PACKERS = {
     Hello: _pack_hello,
     HelloRequest: lambda m: _HELLO_REQUEST.pack(MSG_HELLO_REQUEST, m.protocol_version),
     Config: lambda m: _CONFIG.pack(MSG_CONFIG, m.rate_hz, m.watchdog_us, m.force_limit),
+    Link: lambda m: _LINK.pack(MSG_LINK, m.baud, m.bits_per_byte),
     State: _pack_state,
     Force: _pack_force,
     Ping: lambda m: _PING.pack(MSG_PING, m.nonce, m.host_time_us),
@@ -484,6 +509,7 @@ _UNPACKERS = {
     MSG_HELLO: _unpack_hello,
     MSG_HELLO_REQUEST: _fixed(_HELLO_REQUEST, "HELLO_REQUEST", HelloRequest),
     MSG_CONFIG: _fixed(_CONFIG, "CONFIG", Config),
+    MSG_LINK: _fixed(_LINK, "LINK", Link),
     MSG_STATE: _unpack_state,
     MSG_FORCE: _unpack_force,
     MSG_PING: _fixed(_PING, "PING", Ping),

@@ -6,8 +6,10 @@
 
 #include <string.h>
 
-/* The wire carries IEEE-754 binary64; refuse to build where double is narrower (AVR). */
+/* The wire carries IEEE-754 binary64: as `double` where it is 64-bit, else as bit patterns. */
+#ifndef HP_F64_AS_BITS
 typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
+#endif
 
 #define HP_STATE_FIXED 19u /* type + seq + time_us + status + force_seq */
 #define HP_FORCE_FIXED 5u  /* type + seq */
@@ -16,17 +18,16 @@ typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
 
 uint16_t hp_crc16(uint16_t crc, const uint8_t *data, size_t len)
 {
+    /* Byte-wise form of the bit loop (poly 0x1021 = x^16 + x^12 + x^5 + 1): a dozen
+     * shifts and XORs per byte instead of eight conditional shifts, no table, so an
+     * 8-bit MCU checks a 31-byte frame in a few hundred cycles. */
     size_t i;
-    int bit;
     for (i = 0; i < len; i++) {
-        crc = (uint16_t)(crc ^ ((uint16_t)data[i] << 8));
-        for (bit = 0; bit < 8; bit++) {
-            if (crc & 0x8000u) {
-                crc = (uint16_t)((crc << 1) ^ 0x1021u);
-            } else {
-                crc = (uint16_t)(crc << 1);
-            }
-        }
+        crc = (uint16_t)((crc >> 8) | (crc << 8));
+        crc ^= data[i];
+        crc ^= (uint16_t)((crc & 0xFFu) >> 4);
+        crc ^= (uint16_t)(crc << 12);
+        crc ^= (uint16_t)((crc & 0xFFu) << 5);
     }
     return crc;
 }
@@ -104,18 +105,20 @@ static uint8_t *put_u32(uint8_t *p, uint32_t v)
 
 static uint8_t *put_u64(uint8_t *p, uint64_t v)
 {
-    int i;
-    for (i = 0; i < 8; i++) {
-        p[i] = (uint8_t)(v >> (8 * i));
-    }
-    return p + 8;
+    /* two 32-bit halves: 64-bit shifts by a variable count are library calls on AVR */
+    put_u32(p, (uint32_t)v);
+    return put_u32(p + 4, (uint32_t)(v >> 32));
 }
 
-static uint8_t *put_f64(uint8_t *p, double v)
+static uint8_t *put_f64(uint8_t *p, hp_f64_t v)
 {
+#ifdef HP_F64_AS_BITS
+    return put_u64(p, v);
+#else
     uint64_t bits;
     memcpy(&bits, &v, sizeof bits);
     return put_u64(p, bits);
+#endif
 }
 
 static uint16_t get_u16(const uint8_t *p)
@@ -134,12 +137,16 @@ static uint64_t get_u64(const uint8_t *p)
     return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);
 }
 
-static double get_f64(const uint8_t *p)
+static hp_f64_t get_f64(const uint8_t *p)
 {
+#ifdef HP_F64_AS_BITS
+    return get_u64(p);
+#else
     uint64_t bits = get_u64(p);
     double v;
     memcpy(&v, &bits, sizeof v);
     return v;
+#endif
 }
 
 /* ------------------------------------------------------------------ encoder */
@@ -191,6 +198,10 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
         for (i = 0; i < m->u.force.n_axes; i++) {
             p = put_f64(p, m->u.force.force[i]);
         }
+        break;
+    case HP_MSG_LINK:
+        p = put_u32(p, m->u.link.baud);
+        *p++ = m->u.link.bits_per_byte;
         break;
     case HP_MSG_PING:
         p = put_u32(p, m->u.ping.nonce);
@@ -285,6 +296,13 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
         m->u.config.rate_hz = get_f64(p);
         m->u.config.watchdog_us = get_u32(p + 8);
         m->u.config.force_limit = get_f64(p + 12);
+        return HP_OK;
+    case HP_MSG_LINK:
+        if (n != 6) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.link.baud = get_u32(p);
+        m->u.link.bits_per_byte = p[4];
         return HP_OK;
     case HP_MSG_STATE:
         if (n < HP_STATE_FIXED + 8u || n > HP_STATE_FIXED + 8u * HP_MAX_AXES ||
@@ -406,6 +424,7 @@ int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg)
 
 /* ------------------------------------------------------------------ device-side duties */
 
+#ifndef HP_F64_AS_BITS
 uint16_t hp_limit_force(double *force, uint8_t n, double limit)
 {
     uint16_t status = 0;
@@ -431,7 +450,84 @@ uint16_t hp_limit_force(double *force, uint8_t n, double limit)
     return status;
 }
 
+#endif
+
 int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeout_us)
 {
     return (uint64_t)(now_us - last_force_us) > (uint64_t)timeout_us;
+}
+
+/* ------------------------------------------------------------------ binary32 <-> binary64 */
+
+uint64_t hp_f64_bits_from_f32_bits(uint32_t f)
+{
+    uint64_t sign = (uint64_t)(f >> 31) << 63;
+    uint32_t e = (f >> 23) & 0xFFu;
+    uint32_t m = f & 0x7FFFFFu;
+    int32_t e64;
+    if (e == 0xFFu) { /* inf or NaN: payload kept in the top mantissa bits */
+        return sign | ((uint64_t)0x7FFu << 52) | ((uint64_t)m << 29);
+    }
+    if (e == 0) {
+        if (m == 0) {
+            return sign; /* +-0 */
+        }
+        /* subnormal m * 2^-149: normalise (every binary32 subnormal is binary64-normal) */
+        e64 = 1 - 127 + 1023;
+        while ((m & 0x800000u) == 0) {
+            m <<= 1;
+            e64--;
+        }
+        m &= 0x7FFFFFu;
+        return sign | ((uint64_t)e64 << 52) | ((uint64_t)m << 29);
+    }
+    e64 = (int32_t)e - 127 + 1023;
+    return sign | ((uint64_t)e64 << 52) | ((uint64_t)m << 29);
+}
+
+/* Shift `sig` right by `sh` (1..63) with round to nearest, ties to even. */
+static uint64_t shift_round(uint64_t sig, unsigned sh)
+{
+    uint64_t q = sig >> sh;
+    uint64_t rem = sig & (((uint64_t)1 << sh) - 1u);
+    uint64_t half = (uint64_t)1 << (sh - 1u);
+    if (rem > half || (rem == half && (q & 1u))) {
+        q++;
+    }
+    return q;
+}
+
+uint32_t hp_f32_bits_from_f64_bits(uint64_t d)
+{
+    uint32_t sign = (uint32_t)(d >> 63) << 31;
+    int32_t e = (int32_t)((d >> 52) & 0x7FFu);
+    uint64_t m = d & (((uint64_t)1 << 52) - 1u);
+    int32_t E;
+    if (e == 0x7FF) {
+        if (m == 0) {
+            return sign | 0x7F800000u; /* +-inf */
+        }
+        return sign | 0x7FC00000u | (uint32_t)(m >> 29); /* quiet NaN */
+    }
+    if (e == 0) {
+        return sign; /* binary64 subnormal: far below half the least binary32 subnormal */
+    }
+    E = e - 1023;
+    if (E > 127) {
+        return sign | 0x7F800000u; /* overflow: +-inf */
+    }
+    if (E >= -126) {
+        /* normal: exponent field and mantissa in one word, so a rounding carry moves into
+         * the exponent (and from the largest finite value to inf) by itself */
+        uint64_t word = ((uint64_t)(uint32_t)(E + 127) << 52) | m;
+        return sign | (uint32_t)shift_round(word, 29);
+    }
+    /* subnormal (or zero) in binary32: units of 2^-149, value = (2^52 + m) * 2^(E - 52) */
+    {
+        int32_t sh = -E - 97; /* 30 for E = -127 */
+        if (sh > 54) {
+            return sign; /* below a quarter of the least subnormal: +-0 */
+        }
+        return sign | (uint32_t)shift_round(((uint64_t)1 << 52) | m, (unsigned)sh);
+    }
 }

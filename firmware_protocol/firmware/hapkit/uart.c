@@ -1,0 +1,89 @@
+/* uart.c -- see uart.h. */
+#include "uart.h"
+
+#include <avr/interrupt.h>
+#include <avr/io.h>
+
+#define RX_SIZE 64u  /* power of two: one FORCE frame (17 bytes) and more */
+#define TX_SIZE 256u /* a STATE (31), a FAULT (11), a PONG (25), LINK + HELLO (10 + 43) */
+
+static volatile uint8_t rx_buf[RX_SIZE];
+static volatile uint8_t rx_head, rx_tail; /* head: written by the ISR */
+static volatile uint16_t rx_lost;
+static volatile uint8_t tx_buf[TX_SIZE];
+static volatile uint8_t tx_head, tx_tail; /* tail: read by the ISR; uint8_t wraps at 256 */
+
+void uart_init(void)
+{
+    uint16_t ubrr = (uint16_t)(F_CPU / (8UL * HK_BAUD) - 1UL);
+    UBRR0H = (uint8_t)(ubrr >> 8);
+    UBRR0L = (uint8_t)ubrr;
+    UCSR0A = (uint8_t)(1 << U2X0);
+    UCSR0C = (uint8_t)((1 << UCSZ01) | (1 << UCSZ00)); /* 8N1 */
+    UCSR0B = (uint8_t)((1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0));
+}
+
+ISR(USART_RX_vect)
+{
+    uint8_t b = UDR0;
+    uint8_t next = (uint8_t)((rx_head + 1u) & (RX_SIZE - 1u));
+    if (next == rx_tail) {
+        rx_lost++;
+        return;
+    }
+    rx_buf[rx_head] = b;
+    rx_head = next;
+}
+
+ISR(USART_UDRE_vect)
+{
+    if (tx_tail == tx_head) {
+        UCSR0B &= (uint8_t)~(1 << UDRIE0);
+        return;
+    }
+    UDR0 = tx_buf[tx_tail];
+    tx_tail = (uint8_t)(tx_tail + 1u);
+}
+
+uint8_t uart_get(uint8_t *b)
+{
+    uint8_t t = rx_tail;
+    if (t == rx_head) {
+        return 0;
+    }
+    *b = rx_buf[t];
+    rx_tail = (uint8_t)((t + 1u) & (RX_SIZE - 1u));
+    return 1;
+}
+
+uint8_t uart_rx_pending(void)
+{
+    return rx_tail != rx_head;
+}
+
+uint8_t uart_put(const uint8_t *p, size_t len)
+{
+    uint8_t head = tx_head;
+    uint8_t used = (uint8_t)(head - tx_tail);
+    size_t i;
+    if (len > (size_t)(TX_SIZE - 1u - used)) {
+        return 0;
+    }
+    for (i = 0; i < len; i++) {
+        tx_buf[head] = p[i];
+        head = (uint8_t)(head + 1u);
+    }
+    tx_head = head;
+    UCSR0B |= (uint8_t)(1 << UDRIE0);
+    return 1;
+}
+
+uint16_t uart_rx_lost(void)
+{
+    uint16_t n;
+    uint8_t s = SREG;
+    cli();
+    n = rx_lost;
+    SREG = s;
+    return n;
+}
