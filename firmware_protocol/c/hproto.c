@@ -18,16 +18,16 @@ typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
 
 uint16_t hp_crc16(uint16_t crc, const uint8_t *data, size_t len)
 {
-    /* Byte-wise form of the bit loop (poly 0x1021 = x^16 + x^12 + x^5 + 1): a dozen
-     * shifts and XORs per byte instead of eight conditional shifts, no table, so an
-     * 8-bit MCU checks a 31-byte frame in a few hundred cycles. */
+    /* Byte-wise form of the bit loop (poly 0x1021 = x^16 + x^12 + x^5 + 1): with
+     * x = (crc >> 8) ^ byte, x ^= x >> 4, the new register is
+     * (crc << 8) ^ (x << 12) ^ (x << 5) ^ x. No table, a few byte operations on an 8-bit
+     * MCU instead of eight conditional shifts. */
     size_t i;
     for (i = 0; i < len; i++) {
-        crc = (uint16_t)((crc >> 8) | (crc << 8));
-        crc ^= data[i];
-        crc ^= (uint16_t)((crc & 0xFFu) >> 4);
-        crc ^= (uint16_t)(crc << 12);
-        crc ^= (uint16_t)((crc & 0xFFu) << 5);
+        uint8_t x = (uint8_t)((uint8_t)(crc >> 8) ^ data[i]);
+        x ^= (uint8_t)(x >> 4);
+        crc = (uint16_t)((uint16_t)(crc << 8) ^ (uint16_t)((uint16_t)x << 12) ^
+                         (uint16_t)((uint16_t)x << 5) ^ (uint16_t)x);
     }
     return crc;
 }
@@ -96,10 +96,11 @@ static uint8_t *put_u16(uint8_t *p, uint16_t v)
 
 static uint8_t *put_u32(uint8_t *p, uint32_t v)
 {
-    int i;
-    for (i = 0; i < 4; i++) {
-        p[i] = (uint8_t)(v >> (8 * i));
-    }
+    /* constant shifts: byte moves on an 8-bit MCU (a variable shift is a bit loop) */
+    p[0] = (uint8_t)v;
+    p[1] = (uint8_t)(v >> 8);
+    p[2] = (uint8_t)(v >> 16);
+    p[3] = (uint8_t)(v >> 24);
     return p + 4;
 }
 
@@ -113,7 +114,8 @@ static uint8_t *put_u64(uint8_t *p, uint64_t v)
 static uint8_t *put_f64(uint8_t *p, hp_f64_t v)
 {
 #ifdef HP_F64_AS_BITS
-    return put_u64(p, v);
+    put_u32(p, v.lo);
+    return put_u32(p + 4, v.hi);
 #else
     uint64_t bits;
     memcpy(&bits, &v, sizeof bits);
@@ -140,7 +142,10 @@ static uint64_t get_u64(const uint8_t *p)
 static hp_f64_t get_f64(const uint8_t *p)
 {
 #ifdef HP_F64_AS_BITS
-    return get_u64(p);
+    hp_b64_t v;
+    v.lo = get_u32(p);
+    v.hi = get_u32(p + 4);
+    return v;
 #else
     uint64_t bits = get_u64(p);
     double v;
@@ -459,55 +464,48 @@ int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeou
 
 /* ------------------------------------------------------------------ binary32 <-> binary64 */
 
-uint64_t hp_f64_bits_from_f32_bits(uint32_t f)
+hp_b64_t hp_b64_from_f32_bits(uint32_t f)
 {
-    uint64_t sign = (uint64_t)(f >> 31) << 63;
+    hp_b64_t r;
+    uint32_t sign = f & 0x80000000u;
     uint32_t e = (f >> 23) & 0xFFu;
     uint32_t m = f & 0x7FFFFFu;
-    int32_t e64;
-    if (e == 0xFFu) { /* inf or NaN: payload kept in the top mantissa bits */
-        return sign | ((uint64_t)0x7FFu << 52) | ((uint64_t)m << 29);
-    }
-    if (e == 0) {
+    uint32_t e64;
+    if (e == 0xFFu) {
+        e64 = 0x7FFu; /* inf or NaN: the payload stays in the top mantissa bits */
+    } else if (e == 0) {
         if (m == 0) {
-            return sign; /* +-0 */
+            r.hi = sign; /* +-0 */
+            r.lo = 0;
+            return r;
         }
         /* subnormal m * 2^-149: normalise (every binary32 subnormal is binary64-normal) */
-        e64 = 1 - 127 + 1023;
+        e64 = 1u - 127u + 1023u;
         while ((m & 0x800000u) == 0) {
             m <<= 1;
             e64--;
         }
         m &= 0x7FFFFFu;
-        return sign | ((uint64_t)e64 << 52) | ((uint64_t)m << 29);
+    } else {
+        e64 = e - 127u + 1023u;
     }
-    e64 = (int32_t)e - 127 + 1023;
-    return sign | ((uint64_t)e64 << 52) | ((uint64_t)m << 29);
+    /* binary64 mantissa = m << 29: its top 20 bits in hi, the low 3 bits of m in lo */
+    r.hi = sign | (e64 << 20) | (m >> 3);
+    r.lo = m << 29;
+    return r;
 }
 
-/* Shift `sig` right by `sh` (1..63) with round to nearest, ties to even. */
-static uint64_t shift_round(uint64_t sig, unsigned sh)
+uint32_t hp_f32_bits_from_b64(hp_b64_t d)
 {
-    uint64_t q = sig >> sh;
-    uint64_t rem = sig & (((uint64_t)1 << sh) - 1u);
-    uint64_t half = (uint64_t)1 << (sh - 1u);
-    if (rem > half || (rem == half && (q & 1u))) {
-        q++;
-    }
-    return q;
-}
-
-uint32_t hp_f32_bits_from_f64_bits(uint64_t d)
-{
-    uint32_t sign = (uint32_t)(d >> 63) << 31;
-    int32_t e = (int32_t)((d >> 52) & 0x7FFu);
-    uint64_t m = d & (((uint64_t)1 << 52) - 1u);
+    uint32_t sign = d.hi & 0x80000000u;
+    int32_t e = (int32_t)((d.hi >> 20) & 0x7FFu);
+    uint32_t mhi = d.hi & 0xFFFFFu; /* mantissa bits 32..51 */
     int32_t E;
     if (e == 0x7FF) {
-        if (m == 0) {
+        if (mhi == 0 && d.lo == 0) {
             return sign | 0x7F800000u; /* +-inf */
         }
-        return sign | 0x7FC00000u | (uint32_t)(m >> 29); /* quiet NaN */
+        return sign | 0x7FC00000u | (mhi << 3) | (d.lo >> 29); /* quiet NaN */
     }
     if (e == 0) {
         return sign; /* binary64 subnormal: far below half the least binary32 subnormal */
@@ -517,17 +515,30 @@ uint32_t hp_f32_bits_from_f64_bits(uint64_t d)
         return sign | 0x7F800000u; /* overflow: +-inf */
     }
     if (E >= -126) {
-        /* normal: exponent field and mantissa in one word, so a rounding carry moves into
-         * the exponent (and from the largest finite value to inf) by itself */
-        uint64_t word = ((uint64_t)(uint32_t)(E + 127) << 52) | m;
-        return sign | (uint32_t)shift_round(word, 29);
+        /* normal: exponent field and top 23 mantissa bits in one word, so a rounding carry
+         * moves into the exponent (and from the largest finite value to inf) by itself */
+        uint32_t q = ((uint32_t)(E + 127) << 23) | (mhi << 3) | (d.lo >> 29);
+        uint32_t rem = d.lo & 0x1FFFFFFFu, half = 0x10000000u;
+        if (rem > half || (rem == half && (q & 1u))) {
+            q++;
+        }
+        return sign | q;
     }
-    /* subnormal (or zero) in binary32: units of 2^-149, value = (2^52 + m) * 2^(E - 52) */
+    /* subnormal (or zero) in binary32: units of 2^-149, value = (2^52 + m) * 2^(E - 52),
+     * so the result is (2^52 + m) >> (-E - 97), rounded to nearest, ties to even */
     {
-        int32_t sh = -E - 97; /* 30 for E = -127 */
-        if (sh > 54) {
+        uint32_t sh = (uint32_t)(-E - 97); /* 30 for E = -127 */
+        uint64_t sig = ((uint64_t)(mhi | 0x100000u) << 32) | d.lo;
+        uint64_t q, rem, half;
+        if (sh > 54u) {
             return sign; /* below a quarter of the least subnormal: +-0 */
         }
-        return sign | (uint32_t)shift_round(((uint64_t)1 << 52) | m, (unsigned)sh);
+        q = sig >> sh;
+        rem = sig & (((uint64_t)1 << sh) - 1u);
+        half = (uint64_t)1 << (sh - 1u);
+        if (rem > half || (rem == half && (q & 1u))) {
+            q++;
+        }
+        return sign | (uint32_t)q;
     }
 }

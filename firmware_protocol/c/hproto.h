@@ -10,9 +10,9 @@
  *
  * Where the compiler's `double` is 64-bit, f64 fields are `double` (hp_f64_t). Where it is
  * narrower (AVR-GCC: 32-bit double), or when HP_F64_AS_BITS is defined, f64 fields are
- * carried as their binary64 bit patterns (hp_f64_t = uint64_t), and the firmware converts
- * them exactly with hp_f64_bits_from_f32_bits / hp_f32_bits_from_f64_bits (integer code,
- * IEEE-754 round to nearest, ties to even). hp_limit_force needs a 64-bit double.
+ * carried as their binary64 bit patterns (hp_f64_t = hp_b64_t), and the firmware converts
+ * them exactly with hp_b64_from_f32_bits / hp_f32_bits_from_b64 (integer code, IEEE-754
+ * round to nearest, ties to even). hp_limit_force needs a 64-bit double.
  */
 #ifndef HPROTO_H
 #define HPROTO_H
@@ -32,8 +32,14 @@ extern "C" {
 #if !defined(HP_F64_AS_BITS) && defined(__SIZEOF_DOUBLE__) && __SIZEOF_DOUBLE__ != 8
 #define HP_F64_AS_BITS 1
 #endif
+/* An IEEE-754 binary64 bit pattern as two 32-bit halves (an 8-bit MCU handles 32-bit words
+ * inline but calls a library routine for every 64-bit shift). */
+typedef struct {
+    uint32_t lo; /* mantissa bits 0..31 */
+    uint32_t hi; /* sign, exponent, mantissa bits 32..51 */
+} hp_b64_t;
 #ifdef HP_F64_AS_BITS
-typedef uint64_t hp_f64_t; /* IEEE-754 binary64 bit pattern */
+typedef hp_b64_t hp_f64_t;
 #else
 typedef double hp_f64_t;
 #endif
@@ -215,12 +221,12 @@ uint16_t hp_limit_force(double *force, uint8_t n, double limit);
 
 /* Exact widening of an IEEE-754 binary32 bit pattern to binary64 (every float32 value,
  * subnormals, infinities and NaN payloads included, is representable). */
-uint64_t hp_f64_bits_from_f32_bits(uint32_t f);
+hp_b64_t hp_b64_from_f32_bits(uint32_t f);
 
 /* Narrowing of an IEEE-754 binary64 bit pattern to binary32, rounded to nearest with ties
  * to even as IEEE-754 requires (overflow gives +-inf, underflow subnormals or +-0; a NaN
  * stays a quiet NaN with its sign and the top of its payload). */
-uint32_t hp_f32_bits_from_f64_bits(uint64_t d);
+uint32_t hp_f32_bits_from_b64(hp_b64_t d);
 
 /* 1 when the watchdog has expired: more than `timeout_us` [us] elapsed between the last
  * valid FORCE (`last_force_us`) and `now_us`, on a free-running microsecond clock

@@ -135,29 +135,30 @@ ISR(TIMER1_COMPA_vect)
 
 /* ---------------------------------------------------------------- binary64 helpers */
 
-static uint64_t f64_of_float(float x)
+static hp_b64_t f64_of_float(float x)
 {
     uint32_t b;
     memcpy(&b, &x, sizeof b);
-    return hp_f64_bits_from_f32_bits(b);
+    return hp_b64_from_f32_bits(b);
 }
 
-static float float_of_f64(uint64_t d)
+static float float_of_f64(hp_b64_t d)
 {
-    uint32_t b = hp_f32_bits_from_f64_bits(d);
+    uint32_t b = hp_f32_bits_from_b64(d);
     float x;
     memcpy(&x, &b, sizeof x);
     return x;
 }
 
-static uint8_t f64_is_finite(uint64_t d)
+static uint8_t f64_is_finite(hp_b64_t d)
 {
-    return ((d >> 52) & 0x7FFu) != 0x7FFu;
+    return ((d.hi >> 20) & 0x7FFu) != 0x7FFu;
 }
 
-/* The value of binary64 `d` when it is a whole number in 0..2^32-1: 1, else 0. */
-static uint8_t f64_to_u32_exact(uint64_t d, uint32_t *out)
+/* The value of binary64 `b` when it is a whole number in 0..2^32-1: 1, else 0. */
+static uint8_t f64_to_u32_exact(hp_b64_t b, uint32_t *out)
 {
+    uint64_t d = ((uint64_t)b.hi << 32) | b.lo;
     int16_t e = (int16_t)((d >> 52) & 0x7FFu);
     uint64_t m = d & 0xFFFFFFFFFFFFFULL;
     int16_t sh;
@@ -215,6 +216,10 @@ static void send_hello(void)
     send(&m);
 }
 
+#if F_CPU != 16000000UL
+#error "now_us() assumes 16 MHz"
+#endif
+
 static uint64_t now_us(void)
 {
     uint64_t c;
@@ -222,7 +227,7 @@ static uint64_t now_us(void)
     cli();
     c = g_clock_cycles;
     SREG = s;
-    return c / (F_CPU / 1000000UL);
+    return c >> 4; /* 16 cycles per microsecond at 16 MHz */
 }
 
 /* ---------------------------------------------------------------- timers and ADC */
@@ -313,7 +318,7 @@ static void on_config(const hp_config_t *c)
     /* the watchdog holds a FORCE floor(W / T) - 1 >= 1 ticks: W >= 2 T */
     ok = ok && (uint64_t)c->watchdog_us * rate >= 2000000ULL &&
          (uint64_t)c->watchdog_us * rate / 1000000ULL <= 65535ULL;
-    ok = ok && f64_is_finite(c->force_limit) && !(c->force_limit >> 63);
+    ok = ok && f64_is_finite(c->force_limit) && !(c->force_limit.hi >> 31);
     if (!ok) {
         latch_fault(HP_FAULT_BAD_CONFIG, 0);
         return;
@@ -509,10 +514,13 @@ int main(void)
     (void)uart_put(&zero, 1); /* the receiver drops any partial frame */
     send_hello();
     for (;;) {
-        drain_rx(&dec);
+        /* test before calling: every transmit interrupt wakes this loop, and drain_rx's
+         * frame (a decoded message on the stack) costs dozens of cycles to enter */
+        if (uart_rx_pending()) {
+            drain_rx(&dec);
+        }
         if (g_tick_flag) {
             serve_tick();
-            drain_rx(&dec);
         }
         cli();
         if (!g_tick_flag && !uart_rx_pending()) {

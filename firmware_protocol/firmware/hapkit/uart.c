@@ -16,10 +16,12 @@ static volatile uint8_t tx_head, tx_tail; /* tail: read by the ISR; uint8_t wrap
 void uart_init(void)
 {
     uint16_t ubrr = (uint16_t)(F_CPU / (8UL * HK_BAUD) - 1UL);
-    UBRR0H = (uint8_t)(ubrr >> 8);
-    UBRR0L = (uint8_t)ubrr;
+    /* frame format and U2X first: the line rate is taken when UBRR0L is written (so on
+     * the chip, and so in simavr, which computes it at that write) */
     UCSR0A = (uint8_t)(1 << U2X0);
     UCSR0C = (uint8_t)((1 << UCSZ01) | (1 << UCSZ00)); /* 8N1 */
+    UBRR0H = (uint8_t)(ubrr >> 8);
+    UBRR0L = (uint8_t)ubrr;
     UCSR0B = (uint8_t)((1 << RXEN0) | (1 << TXEN0) | (1 << RXCIE0));
 }
 

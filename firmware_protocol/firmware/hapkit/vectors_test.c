@@ -9,8 +9,8 @@
  *     0x7E | result:i8 | hp_encode(decoded message), when result is HP_OK | crc
  * For a frame of the test-only type 0x7D (a request: 0x7D | k binary64 patterns | crc,
  * k <= 10), which the decoder counts as an unknown type, the answer is one frame 0x7D with,
- * for each pattern d, hp_f32_bits_from_f64_bits(d) (u32) and the binary64 of that
- * float32, hp_f64_bits_from_f32_bits (u64), little-endian.
+ * for each pattern d, hp_f32_bits_from_b64(d) (u32) and the binary64 of that float32,
+ * hp_b64_from_f32_bits (u64), little-endian.
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
@@ -41,18 +41,22 @@ static void convert(const uint8_t *pk, size_t n)
     size_t k = (n - 3u) / 8u, i, j, o = 1;
     out[0] = TEST_CONVERT;
     for (i = 0; i < k && i < 10u; i++) {
-        uint64_t d = 0, w;
+        hp_b64_t d = {0, 0}, w;
         uint32_t f;
-        for (j = 0; j < 8u; j++) {
-            d |= (uint64_t)pk[1u + 8u * i + j] << (8u * j);
+        for (j = 0; j < 4u; j++) {
+            d.lo |= (uint32_t)pk[1u + 8u * i + j] << (8u * j);
+            d.hi |= (uint32_t)pk[5u + 8u * i + j] << (8u * j);
         }
-        f = hp_f32_bits_from_f64_bits(d);
-        w = hp_f64_bits_from_f32_bits(f);
+        f = hp_f32_bits_from_b64(d);
+        w = hp_b64_from_f32_bits(f);
         for (j = 0; j < 4u; j++) {
             out[o++] = (uint8_t)(f >> (8u * j));
         }
-        for (j = 0; j < 8u; j++) {
-            out[o++] = (uint8_t)(w >> (8u * j));
+        for (j = 0; j < 4u; j++) {
+            out[o++] = (uint8_t)(w.lo >> (8u * j));
+        }
+        for (j = 0; j < 4u; j++) {
+            out[o++] = (uint8_t)(w.hi >> (8u * j));
         }
     }
     send_packet(out, o);
