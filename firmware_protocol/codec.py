@@ -14,6 +14,7 @@ no final XOR; check value 0x29B1), as computed by :func:`binascii.crc_hqx`.
 
 from __future__ import annotations
 
+import math
 import struct
 from binascii import crc_hqx
 from collections import deque
@@ -34,6 +35,7 @@ __all__ = [
     "Hello", "HelloRequest", "Config", "Link", "State", "Force", "Ping", "Pong", "Fault", "Stop",
     "Message", "FrameError", "DecoderStats", "StreamDecoder",
     "encode", "encode_packet", "decode_frame", "decode_packet", "crc16",
+    "state_frame_bytes", "force_frame_bytes", "LINK_LOAD", "link_max_rate",
 ]
 
 # --------------------------------------------------------------------------- constants
@@ -98,6 +100,59 @@ FAULT_NAMES = {
     FAULT_OVERRUN: "OVERRUN",
     FAULT_VERSION_MISMATCH: "VERSION_MISMATCH",
 }
+
+
+#: Largest share of the line the STATE frames may take (the rest: FAULT, PONG, tick jitter).
+LINK_LOAD = 0.8
+
+
+def state_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a STATE frame with ``n_axes`` axes (PROTOCOL.md §3).
+
+    Parameters
+    ----------
+    n_axes : int, 1..8
+
+    Returns
+    -------
+    int
+        ``5 + 18 + 8 n``: type, CRC, one COBS byte and the delimiter around the body
+        (COBS adds exactly one byte to a packet shorter than 255 bytes, §1).
+    """
+    return 5 + 18 + 8 * int(n_axes)
+
+
+def force_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a FORCE frame with ``n_axes`` axes: ``5 + 4 + 8 n`` (§3)."""
+    return 5 + 4 + 8 * int(n_axes)
+
+
+def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
+                  load: float = LINK_LOAD) -> float:
+    """Largest tick rate a serial line carries: one STATE up and one FORCE down per tick.
+
+    The line is full duplex, so the longer frame (STATE) decides: a rate is carried when
+    ``rate * state_frame_bytes(n) * bits_per_byte <= load * baud`` (PROTOCOL.md §4, LINK).
+
+    Parameters
+    ----------
+    baud : int
+        Line rate [bit/s]; 0 means "not a UART" (no limit).
+    bits_per_byte : int
+        Bits per byte on the line (10 for 8N1).
+    n_axes : int
+        Axes per STATE/FORCE.
+    load : float
+        Share of the line the STATE frames may take, 0 < load <= 1.
+
+    Returns
+    -------
+    float
+        The largest rate [Hz]; ``inf`` for ``baud == 0``.
+    """
+    if baud <= 0:
+        return math.inf
+    return load * baud / (bits_per_byte * state_frame_bytes(n_axes))
 
 
 def crc16(data: bytes, crc: int = CRC_INIT) -> int:

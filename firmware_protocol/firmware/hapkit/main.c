@@ -10,8 +10,8 @@
  * (a) applies the force decided for this tick -- the last valid FORCE received, or zero
  * when the watchdog has run out -- to the PWM, which holds it until the next tick (the
  * zero-order hold), and (b) starts the ADC conversion of the sensor. The main loop then
- * reads the ADC, unwraps the shaft angle (flip counting), sends STATE, and decodes what
- * the host sent (FORCE: converted, clamped and quantised to a PWM step, kept for the next
+ * reads the ADC, unwraps the shaft angle (flip counting), sends STATE, and decodes the
+ * frames the UART interrupt cut out of what the host sent (FORCE: converted, clamped and quantised to a PWM step, kept for the next
  * tick). With every FORCE answering STATE n received before tick n + 1, the force is
  * applied at tick n + 1: a loop delay d = 1.
  *
@@ -75,7 +75,7 @@ static volatile uint64_t g_clock_cycles; /* device clock at the last tick [cycle
 static uint8_t g_configured, g_fault_latched;
 static uint16_t g_limit_n;              /* largest PWM step within the force limit */
 static float g_limit_n_float;
-static uint32_t g_bad_frames, g_bad_reported;
+static uint32_t g_bad_frames, g_bad_reported; /* frames dropped (decoder + lost) */
 static uint16_t g_rx_lost_seen;
 static uint8_t g_rx_error;
 static int16_t g_last_raw;
@@ -234,7 +234,7 @@ static uint64_t now_us(void)
 
 static void timer1_start(uint32_t period_cycles)
 {
-    TCCR1B = 0; /* stop */
+    TCCR1B = (uint8_t)(1 << WGM12); /* CTC, clock stopped (OCR1A is written in CTC mode) */
     TCNT1 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     if (period_cycles <= 65536UL) {
@@ -425,18 +425,23 @@ static void on_message(const hp_msg_t *m)
     }
 }
 
-static void drain_rx(hp_decoder_t *dec)
+/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted. */
+static void take_frame(void)
 {
-    uint8_t b;
+    const uint8_t *frame;
     hp_msg_t m;
-    while (uart_get(&b)) {
-        int r = hp_decoder_feed(dec, b, &m);
-        if (r == HP_OK) {
-            on_message(&m);
-        } else if (r != HP_NONE) {
-            g_bad_frames++; /* dropped, counted, never acted on */
-            g_rx_error = 1;
-        }
+    uint8_t len = uart_frame(&frame);
+    int r;
+    if (!len) {
+        return;
+    }
+    r = len == UART_OVERLONG ? HP_ERR_OVERLONG : hp_decode_frame(frame, len, &m);
+    uart_frame_done();
+    if (r == HP_OK) {
+        on_message(&m);
+    } else {
+        g_bad_frames++; /* dropped, counted, never acted on */
+        g_rx_error = 1;
     }
 }
 
@@ -479,6 +484,7 @@ static void serve_tick(void)
     }
     lost = uart_rx_lost();
     if (lost != g_rx_lost_seen) {
+        g_bad_frames += (uint16_t)(lost - g_rx_lost_seen);
         g_rx_lost_seen = lost;
         g_rx_error = 1;
     }
@@ -504,9 +510,7 @@ static void serve_tick(void)
 
 int main(void)
 {
-    static hp_decoder_t dec; /* static: 150 bytes off the stack */
     const uint8_t zero = 0;
-    hp_decoder_init(&dec);
     hw_init();
     timer1_start(g_period_cycles); /* native rate, disarmed: STATE for the host to watch */
     set_sleep_mode(SLEEP_MODE_IDLE);
@@ -514,16 +518,16 @@ int main(void)
     (void)uart_put(&zero, 1); /* the receiver drops any partial frame */
     send_hello();
     for (;;) {
-        /* test before calling: every transmit interrupt wakes this loop, and drain_rx's
-         * frame (a decoded message on the stack) costs dozens of cycles to enter */
-        if (uart_rx_pending()) {
-            drain_rx(&dec);
+        /* every interrupt (a byte sent, a byte received) wakes this loop: two flag tests
+         * and back to sleep unless a frame or a tick waits */
+        if (uart_frame_ready()) {
+            take_frame();
         }
         if (g_tick_flag) {
             serve_tick();
         }
         cli();
-        if (!g_tick_flag && !uart_rx_pending()) {
+        if (!g_tick_flag && !uart_frame_ready()) {
             PORTB &= (uint8_t)~(1 << PB5); /* budget probe: idle */
             sleep_enable();
             sei();

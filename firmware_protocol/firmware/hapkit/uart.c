@@ -4,11 +4,13 @@
 #include <avr/interrupt.h>
 #include <avr/io.h>
 
-#define RX_SIZE 64u  /* power of two: one FORCE frame (17 bytes) and more */
 #define TX_SIZE 256u /* a STATE (31), a FAULT (11), a PONG (25), LINK + HELLO (10 + 43) */
 
-static volatile uint8_t rx_buf[RX_SIZE];
-static volatile uint8_t rx_head, rx_tail; /* head: written by the ISR */
+static volatile uint8_t rx_buf[2][UART_FRAME_MAX];
+static uint8_t rx_w;                /* buffer the ISR fills */
+static uint8_t rx_len;              /* its length so far; > UART_FRAME_MAX: over-long */
+static volatile uint8_t rx_ready;   /* 1 + index of the frame waiting for the main loop */
+static volatile uint8_t rx_ready_len;
 static volatile uint16_t rx_lost;
 static volatile uint8_t tx_buf[TX_SIZE];
 static volatile uint8_t tx_head, tx_tail; /* tail: read by the ISR; uint8_t wraps at 256 */
@@ -28,39 +30,57 @@ void uart_init(void)
 ISR(USART_RX_vect)
 {
     uint8_t b = UDR0;
-    uint8_t next = (uint8_t)((rx_head + 1u) & (RX_SIZE - 1u));
-    if (next == rx_tail) {
-        rx_lost++;
+    if (b != 0) {
+        if (rx_len < UART_FRAME_MAX) {
+            rx_buf[rx_w][rx_len] = b;
+        }
+        if (rx_len <= UART_FRAME_MAX) {
+            rx_len++; /* stops at UART_FRAME_MAX + 1: over-long */
+        }
         return;
     }
-    rx_buf[rx_head] = b;
-    rx_head = next;
+    if (rx_len == 0) {
+        return; /* idle fill */
+    }
+    if (rx_ready) {
+        rx_lost++; /* the main loop still holds the last frame */
+    } else {
+        rx_ready_len = rx_len > UART_FRAME_MAX ? UART_OVERLONG : rx_len;
+        rx_ready = (uint8_t)(1u + rx_w);
+        rx_w ^= 1u;
+    }
+    rx_len = 0;
 }
 
 ISR(USART_UDRE_vect)
 {
-    if (tx_tail == tx_head) {
+    uint8_t t = tx_tail;
+    if (t == tx_head) {
         UCSR0B &= (uint8_t)~(1 << UDRIE0);
         return;
     }
-    UDR0 = tx_buf[tx_tail];
-    tx_tail = (uint8_t)(tx_tail + 1u);
+    UDR0 = tx_buf[t];
+    tx_tail = (uint8_t)(t + 1u);
 }
 
-uint8_t uart_get(uint8_t *b)
+uint8_t uart_frame_ready(void)
 {
-    uint8_t t = rx_tail;
-    if (t == rx_head) {
+    return rx_ready;
+}
+
+uint8_t uart_frame(const uint8_t **frame)
+{
+    uint8_t r = rx_ready;
+    if (!r) {
         return 0;
     }
-    *b = rx_buf[t];
-    rx_tail = (uint8_t)((t + 1u) & (RX_SIZE - 1u));
-    return 1;
+    *frame = (const uint8_t *)rx_buf[r - 1u];
+    return rx_ready_len;
 }
 
-uint8_t uart_rx_pending(void)
+void uart_frame_done(void)
 {
-    return rx_tail != rx_head;
+    rx_ready = 0;
 }
 
 uint8_t uart_put(const uint8_t *p, size_t len)

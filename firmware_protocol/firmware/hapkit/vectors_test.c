@@ -4,8 +4,9 @@
  * decode and encode as the Python codec says, and that binary64 <-> binary32 conversion
  * is exact.
  *
- * Every frame received is fed byte by byte to hp_decoder_feed, as the firmware does. For
- * each frame that ends, the answer is one frame of the test-only type 0x7E:
+ * Every frame the UART interrupt cuts out (as in the firmware) is fed byte by byte to the
+ * stream decoder hp_decoder_feed. For each frame, the answer is one frame of the test-only
+ * type 0x7E:
  *     0x7E | result:i8 | hp_encode(decoded message), when result is HP_OK | crc
  * For a frame of the test-only type 0x7D (a request: 0x7D | k binary64 patterns | crc,
  * k <= 10), which the decoder counts as an unknown type, the answer is one frame 0x7D with,
@@ -67,35 +68,33 @@ int main(void)
     static hp_decoder_t dec;
     static uint8_t raw[HP_MAX_FRAME];
     static uint8_t out[HP_MAX_PACKET];
-    size_t raw_len = 0;
+    static const uint8_t ff = 0xFF;
     hp_msg_t m;
-    uint8_t b;
     hp_decoder_init(&dec);
     uart_init();
     sei();
     for (;;) {
-        int r;
-        if (!uart_get(&b)) {
+        const uint8_t *frame;
+        uint8_t len = uart_frame(&frame), i;
+        int r = HP_NONE;
+        if (!len) {
             continue;
         }
-        if (b != 0 && raw_len < sizeof raw) {
-            raw[raw_len++] = b;
+        /* the stream decoder, byte by byte as from the line (an over-long frame: 128 bytes) */
+        for (i = 0; len == UART_OVERLONG ? i < 128u : i < len; i++) {
+            (void)hp_decoder_feed(&dec, len == UART_OVERLONG ? ff : frame[i], &m);
         }
-        r = hp_decoder_feed(&dec, b, &m);
-        if (b != 0) {
-            continue;
+        if (len != UART_OVERLONG) {
+            memcpy(raw, frame, len);
         }
-        if (r == HP_ERR_UNKNOWN_TYPE && raw_len > 1 && raw[1] == TEST_CONVERT) {
-            size_t n = hp_cobs_decode(raw, raw_len, raw, sizeof raw);
-            raw_len = 0;
+        uart_frame_done();
+        r = hp_decoder_feed(&dec, 0, &m);
+        if (r == HP_ERR_UNKNOWN_TYPE && len > 1 && raw[1] == TEST_CONVERT) {
+            size_t n = hp_cobs_decode(raw, len, raw, sizeof raw);
             if (n != (size_t)-1 && n >= 3u) {
                 convert(raw, n);
             }
             continue;
-        }
-        raw_len = 0;
-        if (r == HP_NONE) {
-            continue; /* idle fill */
         }
         out[0] = TEST_ECHO;
         out[1] = (uint8_t)(int8_t)r;

@@ -537,7 +537,7 @@ int main(int argc, char **argv)
 {
     elf_firmware_t fw;
     uint32_t flags = 0;
-    int i, code = 0;
+    int i, code = 0, pace, paced = 0;
     uint64_t wall0, chunk = 1600; /* 100 us of emulated time between host polls */
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -608,6 +608,7 @@ int main(int argc, char **argv)
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
     master = open_pty();
+    link_.host_present = 0;
     wall0 = wall_ns();
     while (!stop_signal) {
         uint64_t end = avr->cycle + chunk;
@@ -645,14 +646,23 @@ int main(int argc, char **argv)
         }
         link_.await_host = 0;
         feed_uart();
-        if (opt.realtime) {
+        /* real time: always with --realtime; in fast mode while a host listens to a
+         * disarmed device (its STATEs would flood the host as fast as the host can read) */
+        pace = opt.realtime ||
+               (link_.host_present && !(link_.fw_status & HP_STATUS_ARMED));
+        if (pace) {
             uint64_t emu = (uint64_t)((double)avr->cycle * 1e9 / F_CPU_HZ);
-            uint64_t wall = wall_ns() - wall0;
+            uint64_t wall;
+            if (!paced) {
+                wall0 = wall_ns() - emu; /* lock from here on */
+            }
+            wall = wall_ns() - wall0;
             if (emu > wall + 200000u) {
                 struct timespec ts = {0, (long)(emu - wall)};
                 nanosleep(&ts, NULL);
             }
         }
+        paced = pace;
     }
 done:
     report(code);

@@ -1,0 +1,133 @@
+"""The emulated Hapkit 3 board: build the firmware and the simavr board program, start it.
+
+The reference firmware (``firmware_protocol/firmware/hapkit``, C99 + avr-libc, built with
+avr-gcc) runs cycle by cycle on simavr's ATmega328P inside ``hapkit_board``
+(``firmware_protocol/firmware/sim``, C on libsimavr), which wires the device's physics to
+the chip's pins and bridges its UART to a pseudo-terminal. Both are built with ``make``
+when missing or older than their sources.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+from hapsim.errors import DeviceError
+
+ROOT = Path(__file__).resolve().parents[2] / "firmware_protocol" / "firmware"
+FIRMWARE_DIR = ROOT / "hapkit"
+BOARD_DIR = ROOT / "sim"
+FIRMWARE_ELF = FIRMWARE_DIR / "hapkit.elf"
+VECTORS_ELF = FIRMWARE_DIR / "hapkit_vectors.elf"
+BOARD = BOARD_DIR / "hapkit_board"
+
+
+def missing_tools() -> str | None:
+    """What is missing to build and run the emulated board, or None.
+
+    Returns
+    -------
+    str or None
+        A sentence naming the missing programs/headers (the Debian packages gcc-avr,
+        avr-libc, simavr, libsimavr-dev provide them), or None when all are present.
+    """
+    missing = [t for t in ("make", "cc", "avr-gcc") if shutil.which(t) is None]
+    if not Path("/usr/include/simavr/sim_avr.h").exists() and not os.environ.get(
+            "SIMAVR_INCLUDE"):
+        missing.append("simavr headers (libsimavr-dev)")
+    if not any(Path(d, "avr", "io.h").exists() for d in ("/usr/lib/avr/include",
+                                                          "/usr/avr/include")):
+        missing.append("avr-libc")
+    if missing:
+        return ("not installed: " + ", ".join(missing) +
+                " (Debian packages gcc-avr, avr-libc, simavr, libsimavr-dev)")
+    return None
+
+
+def build(*, quiet: bool = True) -> dict:
+    """Build the firmware (``hapkit.elf``, ``hapkit_vectors.elf``) and ``hapkit_board``.
+
+    ``make`` rebuilds only what is missing or older than its sources; warnings are errors
+    (``-Wall -Wextra -Werror``). The UART runs at the Makefile's ``BAUD`` (2 Mbaud).
+
+    Parameters
+    ----------
+    quiet : bool
+        Capture make's output (it is in the error on failure) instead of printing it.
+
+    Returns
+    -------
+    dict
+        ``board``, ``elf``, ``vectors_elf`` (paths as str), ``output`` (make's output:
+        compiler lines and the ``avr-size`` table of flash and RAM use).
+
+    Raises
+    ------
+    DeviceError
+        A tool is missing (:func:`missing_tools`) or make failed (its output attached).
+    """
+    why = missing_tools()
+    if why:
+        raise DeviceError(f"cannot build the emulated Hapkit board: {why}")
+    out = []
+    for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")):
+        r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
+        out.append(r.stdout + r.stderr)
+        if r.returncode != 0:
+            raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
+        if not quiet:
+            print(out[-1], end="", flush=True)
+    return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
+            "output": "".join(out)}
+
+
+def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,
+                  report: str | None = None, link: str | None = None,
+                  wait_ms: float | None = None, duration: float | None = None) -> list[str]:
+    """The ``hapkit_board`` command line for a scene's device and excitation.
+
+    Parameters
+    ----------
+    device : hapsim.scene.Device
+        ``mass`` [kg], ``friction`` b0 [N s/m] and ``coulomb`` [N] become the handle's
+        physics (``delay``, ``hold`` and ``force_limit`` are the firmware's own).
+    excitation : hapsim.scene.Excitation
+        ``x0`` [m] and ``v0`` [m/s]: where the hand places the handle at each CONFIG; an
+        ``impulse`` (force [N], start [s], duration [s]) becomes the hand's push.
+    elf : str, optional
+        Firmware ELF (default: the built ``hapkit.elf``).
+    realtime : bool
+        Lock the emulated clock to the wall clock (default: as fast as the host answers).
+    report, link : str, optional
+        JSON report file written on exit; symbolic link kept to the pty.
+    wait_ms, duration : float, optional
+        Longest wait for the host per STATE [ms]; emulated time to run [s].
+
+    Returns
+    -------
+    list of str
+        argv of the board program.
+    """
+    cmd = [str(BOARD), elf or str(FIRMWARE_ELF),
+           "--mass", repr(float(device.mass)), "--friction", repr(float(device.friction)),
+           "--coulomb", repr(float(getattr(device, "coulomb", 0.0) or 0.0)),
+           "--x0", repr(float(excitation.x0 or 0.0)),
+           "--v0", repr(float(excitation.v0 or 0.0))]
+    imp = getattr(excitation, "impulse", None)
+    if imp is not None:
+        cmd += ["--hand-force", repr(float(imp.force)), "--hand-start", repr(float(imp.start)),
+                "--hand-duration", repr(float(imp.duration))]
+    if realtime:
+        cmd.append("--realtime")
+    if report:
+        cmd += ["--report", report]
+    if link:
+        cmd += ["--link", link]
+    if wait_ms is not None:
+        cmd += ["--wait-ms", repr(float(wait_ms))]
+    if duration is not None and math.isfinite(duration):
+        cmd += ["--duration", repr(float(duration))]
+    return cmd
