@@ -483,8 +483,7 @@ static void serve_tick(void)
         status |= HP_STATUS_CONFIGURED;
     }
     lost = uart_rx_lost();
-    if (lost != g_rx_lost_seen) {
-        g_bad_frames += (uint16_t)(lost - g_rx_lost_seen);
+    if (lost != g_rx_lost_seen) { /* bytes lost: their frames fail and are counted */
         g_rx_lost_seen = lost;
         g_rx_error = 1;
     }

@@ -6,12 +6,11 @@
 
 #define TX_SIZE 256u /* a STATE (31), a FAULT (11), a PONG (25), LINK + HELLO (10 + 43) */
 
-static volatile uint8_t rx_buf[2][UART_FRAME_MAX];
-static uint8_t rx_w;                /* buffer the ISR fills */
-static uint8_t rx_len;              /* its length so far; > UART_FRAME_MAX: over-long */
-static volatile uint8_t rx_ready;   /* 1 + index of the frame waiting for the main loop */
-static volatile uint8_t rx_ready_len;
+static volatile uint8_t rx_ring[256];  /* bytes as received, delimiters included */
+static volatile uint8_t rx_head, rx_tail; /* uint8_t: wraps at 256 */
+static volatile uint8_t rx_frames;        /* delimiters in the ring not yet taken */
 static volatile uint16_t rx_lost;
+static uint8_t rx_frame[UART_FRAME_MAX];  /* the frame handed to the main loop */
 static volatile uint8_t tx_buf[TX_SIZE];
 static volatile uint8_t tx_head, tx_tail; /* tail: read by the ISR; uint8_t wraps at 256 */
 
@@ -30,26 +29,17 @@ void uart_init(void)
 ISR(USART_RX_vect)
 {
     uint8_t b = UDR0;
-    if (b != 0) {
-        if (rx_len < UART_FRAME_MAX) {
-            rx_buf[rx_w][rx_len] = b;
-        }
-        if (rx_len <= UART_FRAME_MAX) {
-            rx_len++; /* stops at UART_FRAME_MAX + 1: over-long */
-        }
+    uint8_t h = rx_head;
+    uint8_t next = (uint8_t)(h + 1u);
+    if (next == rx_tail) {
+        rx_lost++; /* 255 bytes behind: the byte is lost, its frame fails its CRC */
         return;
     }
-    if (rx_len == 0) {
-        return; /* idle fill */
+    rx_ring[h] = b;
+    rx_head = next;
+    if (b == 0) {
+        rx_frames++; /* wake the main loop once per frame, not per byte */
     }
-    if (rx_ready) {
-        rx_lost++; /* the main loop still holds the last frame */
-    } else {
-        rx_ready_len = rx_len > UART_FRAME_MAX ? UART_OVERLONG : rx_len;
-        rx_ready = (uint8_t)(1u + rx_w);
-        rx_w ^= 1u;
-    }
-    rx_len = 0;
 }
 
 ISR(USART_UDRE_vect)
@@ -65,22 +55,43 @@ ISR(USART_UDRE_vect)
 
 uint8_t uart_frame_ready(void)
 {
-    return rx_ready;
+    return rx_frames;
 }
 
 uint8_t uart_frame(const uint8_t **frame)
 {
-    uint8_t r = rx_ready;
-    if (!r) {
-        return 0;
+    while (rx_frames) {
+        uint8_t t = rx_tail, len = 0, over = 0, b;
+        while ((b = rx_ring[t]) != 0) {
+            if (len < UART_FRAME_MAX) {
+                rx_frame[len++] = b;
+            } else {
+                over = 1;
+            }
+            t = (uint8_t)(t + 1u);
+        }
+        rx_tail = (uint8_t)(t + 1u); /* past the delimiter */
+        {
+            uint8_t s = SREG;
+            cli();
+            rx_frames--;
+            SREG = s;
+        }
+        if (over) {
+            *frame = rx_frame;
+            return UART_OVERLONG;
+        }
+        if (len) {
+            *frame = rx_frame;
+            return len;
+        }
+        /* an empty frame: idle fill, skipped */
     }
-    *frame = (const uint8_t *)rx_buf[r - 1u];
-    return rx_ready_len;
+    return 0;
 }
 
 void uart_frame_done(void)
 {
-    rx_ready = 0;
 }
 
 uint8_t uart_put(const uint8_t *p, size_t len)

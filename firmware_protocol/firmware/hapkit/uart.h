@@ -2,12 +2,12 @@
  * uart.h -- interrupt-driven USART0 for the Hapkit firmware (ATmega328P): fixed buffers, no
  * malloc.
  *
- * Receive: the RX interrupt cuts the byte stream at its 0x00 delimiters into frames, in two
- * alternating buffers, so the main loop is woken once per frame, not once per byte (at
- * 2 Mbaud a byte comes every 80 cycles). A frame longer than HP_MAX_FRAME - 1 bytes is
- * kept as "over-long" (length UART_OVERLONG) up to its delimiter; a frame completed while
- * the main loop still holds the previous one is lost and counted (uart_rx_lost), which the
- * host sees as a missing FORCE.
+ * Receive: the RX interrupt puts the bytes in a 256-byte ring and counts the 0x00
+ * delimiters, so the main loop is woken for a frame, not for each byte (at 2 Mbaud a byte
+ * comes every 80 cycles), and a backlog of frames (say garbage, then a FORCE) waits in
+ * the ring while the main loop works on a tick. A frame longer than HP_MAX_FRAME - 1 bytes
+ * is reported as over-long (length UART_OVERLONG); a byte arriving with the ring full is
+ * lost and counted (uart_rx_lost).
  * Transmit: a ring drained by the data-register-empty interrupt.
  */
 #ifndef HK_UART_H
@@ -33,7 +33,7 @@ uint8_t uart_frame(const uint8_t **frame);
 void uart_frame_done(void);
 /* Queue `len` bytes: 1, or 0 (nothing queued) when the ring has not room for all. */
 uint8_t uart_put(const uint8_t *p, size_t len);
-/* Frames lost because the main loop had not taken the one before. */
+/* Bytes lost because the ring was full (each spoils its frame, which fails its CRC). */
 uint16_t uart_rx_lost(void);
 
 #endif

@@ -14,7 +14,7 @@
  * force over a time window after it. Between two changes of the force the motion
  * m x'' + b0 x' = F is integrated exactly over the emulated time (with Coulomb friction:
  * 1 us steps). The magnetoresistive sensor turns the motor shaft angle
- *     theta_m = x / rh * (rs / rp) + pi / 2
+ *     theta_m = x / rh * (rs / rp) + pi * 460 / 921   (x = 0 on the centre of a count)
  * into the voltage of a ratiometric output spanning HK_SENSOR_SPAN_COUNTS ADC counts over
  * each half turn, rounded to the millivolt, fed to ADC2 when the firmware starts a
  * conversion (simavr then quantises it to 10 bits).
@@ -261,8 +261,9 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
         return;
     }
     advance_to(avr->cycle);
+    /* x = 0 at the middle of a half turn, on the centre of an ADC count (511) */
     theta = ph.x / HK_HANDLE_LENGTH_M * (HK_SECTOR_RADIUS_M / HK_CAPSTAN_RADIUS_M) +
-            HK_SENSOR_PERIOD_RAD / 2.0;
+            HK_SENSOR_PERIOD_RAD * (HK_SENSOR_SPAN_COUNTS / 2) / HK_SENSOR_SPAN_COUNTS;
     phi = fmod(theta, HK_SENSOR_PERIOD_RAD);
     if (phi < 0) {
         phi += HK_SENSOR_PERIOD_RAD;
@@ -320,16 +321,16 @@ static void uart_xon(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     (void)param;
-    (void)value;
-    link_.xon = 1;
+    if (value) {
+        link_.xon = 1; /* the UART's input FIFO has room */
+    }
 }
 
 static void uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     (void)param;
-    (void)value;
-    link_.xon = 0;
+    link_.xon = value ? 0 : 1; /* raised with 1 when the FIFO is full, 0 when not */
 }
 
 static void on_host_msg(const hp_msg_t *m)
@@ -593,7 +594,7 @@ int main(int argc, char **argv)
 
     hp_decoder_init(&link_.dec_host);
     hp_decoder_init(&link_.dec_fw);
-    link_.xon = 1;
+    link_.xon = 0; /* until the firmware enables its receiver (simavr signals XON then) */
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
     adc_irq = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, 0);
     avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
