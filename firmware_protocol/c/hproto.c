@@ -464,13 +464,16 @@ int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeou
 
 /* ------------------------------------------------------------------ binary32 <-> binary64 */
 
+/* The shifts below are split at byte boundaries (x << 20 as (x << 4) << 16, ...): an 8-bit
+ * MCU moves whole bytes for free and shifts bit by bit, so this is a few dozen cycles
+ * instead of hundreds. */
 hp_b64_t hp_b64_from_f32_bits(uint32_t f)
 {
     hp_b64_t r;
     uint32_t sign = f & 0x80000000u;
-    uint32_t e = (f >> 23) & 0xFFu;
+    uint16_t e = (uint16_t)((uint16_t)(f >> 16) >> 7) & 0xFFu;
     uint32_t m = f & 0x7FFFFFu;
-    uint32_t e64;
+    uint16_t e64;
     if (e == 0xFFu) {
         e64 = 0x7FFu; /* inf or NaN: the payload stays in the top mantissa bits */
     } else if (e == 0) {
@@ -487,20 +490,20 @@ hp_b64_t hp_b64_from_f32_bits(uint32_t f)
         }
         m &= 0x7FFFFFu;
     } else {
-        e64 = e - 127u + 1023u;
+        e64 = (uint16_t)(e - 127u + 1023u);
     }
     /* binary64 mantissa = m << 29: its top 20 bits in hi, the low 3 bits of m in lo */
-    r.hi = sign | (e64 << 20) | (m >> 3);
-    r.lo = m << 29;
+    r.hi = sign | ((uint32_t)(uint16_t)(e64 << 4) << 16) | (m >> 3);
+    r.lo = (uint32_t)(uint8_t)((uint8_t)m << 5) << 24;
     return r;
 }
 
 uint32_t hp_f32_bits_from_b64(hp_b64_t d)
 {
     uint32_t sign = d.hi & 0x80000000u;
-    int32_t e = (int32_t)((d.hi >> 20) & 0x7FFu);
+    int16_t e = (int16_t)(((uint16_t)(d.hi >> 16) >> 4) & 0x7FFu);
     uint32_t mhi = d.hi & 0xFFFFFu; /* mantissa bits 32..51 */
-    int32_t E;
+    int16_t E;
     if (e == 0x7FF) {
         if (mhi == 0 && d.lo == 0) {
             return sign | 0x7F800000u; /* +-inf */
@@ -510,16 +513,21 @@ uint32_t hp_f32_bits_from_b64(hp_b64_t d)
     if (e == 0) {
         return sign; /* binary64 subnormal: far below half the least binary32 subnormal */
     }
-    E = e - 1023;
+    E = (int16_t)(e - 1023);
     if (E > 127) {
         return sign | 0x7F800000u; /* overflow: +-inf */
     }
     if (E >= -126) {
         /* normal: exponent field and top 23 mantissa bits in one word, so a rounding carry
          * moves into the exponent (and from the largest finite value to inf) by itself */
-        uint32_t q = ((uint32_t)(E + 127) << 23) | (mhi << 3) | (d.lo >> 29);
-        uint32_t rem = d.lo & 0x1FFFFFFFu, half = 0x10000000u;
-        if (rem > half || (rem == half && (q & 1u))) {
+        uint8_t top = (uint8_t)(d.lo >> 24);
+        uint32_t q = ((uint32_t)(uint16_t)((uint16_t)(E + 127) << 7) << 16) | (mhi << 3) |
+                     (uint8_t)(top >> 5);
+        /* the 29 bits dropped, against half of the last bit kept (2^28) */
+        uint8_t r5 = top & 0x1Fu;
+        uint8_t above = r5 > 0x10u || (r5 == 0x10u && (d.lo & 0xFFFFFFu) != 0);
+        uint8_t tie = r5 == 0x10u && (d.lo & 0xFFFFFFu) == 0;
+        if (above || (tie && (q & 1u))) {
             q++;
         }
         return sign | q;
@@ -527,7 +535,7 @@ uint32_t hp_f32_bits_from_b64(hp_b64_t d)
     /* subnormal (or zero) in binary32: units of 2^-149, value = (2^52 + m) * 2^(E - 52),
      * so the result is (2^52 + m) >> (-E - 97), rounded to nearest, ties to even */
     {
-        uint32_t sh = (uint32_t)(-E - 97); /* 30 for E = -127 */
+        uint32_t sh = (uint32_t)(-(int32_t)E - 97); /* 30 for E = -127 */
         uint64_t sig = ((uint64_t)(mhi | 0x100000u) << 32) | d.lo;
         uint64_t q, rem, half;
         if (sh > 54u) {

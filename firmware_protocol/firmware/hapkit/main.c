@@ -43,8 +43,14 @@
  * FAULT, PONG and the jitter of the ticks). */
 #define HK_LINK_NUM 4UL
 #define HK_LINK_DEN 5UL
-#define HK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
-                                                 HK_STATE_FRAME_BYTES))
+#define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
+                                                      HK_STATE_FRAME_BYTES))
+/* The MCU's own limit: a tick with one STATE out and one FORCE in takes at most 11.3k
+ * cycles (tools/bench_firmware.py on the emulated chip), so 12800 cycles (1250 Hz) leave
+ * 12 % for PING/PONG and FAULTs; at 2 kHz the chip is saturated. */
+#define HK_CPU_MAX_RATE_HZ 1250UL
+#define HK_MAX_RATE_HZ (HK_LINK_MAX_RATE_HZ < HK_CPU_MAX_RATE_HZ ? HK_LINK_MAX_RATE_HZ : \
+                        HK_CPU_MAX_RATE_HZ)
 
 /* What the tick interrupt puts on the PWM: duty n / 256 (0 = off) and the direction. */
 typedef struct {

@@ -99,6 +99,7 @@ static struct {
 
 static struct {
     uint64_t ticks, busy_sum, busy_max, cycles_sum, window_busy, window_start;
+    uint64_t armed_cycles, armed_busy; /* every cycle while the firmware is armed */
     uint8_t probe;
     int counting;
     double rate_hz;
@@ -439,13 +440,17 @@ static void report(int code)
     fprintf(f, "{\"exit\": \"%s\", \"emulated_s\": %.9f, \"mode\": \"%s\",\n",
             code == 0 ? "ok" : "firmware stopped", (double)avr->cycle / F_CPU_HZ,
             opt.realtime ? "realtime" : "fast");
+    /* per tick: between rising edges of the D13 probe (none when the MCU never sleeps: it
+     * is saturated); over the whole armed run: the share of cycles not asleep */
     fprintf(f, " \"budget\": {\"rate_hz\": %.6g, \"period_cycles\": %.0f, \"ticks\": %llu, "
                "\"busy_mean_cycles\": %.1f, \"busy_max_cycles\": %llu, "
-               "\"idle_fraction\": %.6f},\n",
+               "\"idle_fraction\": %.6f, \"saturated\": %s},\n",
             budget.rate_hz, period, (unsigned long long)budget.ticks,
-            budget.ticks ? (double)budget.busy_sum / budget.ticks : 0.0,
+            budget.armed_cycles && period > 0
+                ? (double)budget.armed_busy / ((double)budget.armed_cycles / period) : 0.0,
             (unsigned long long)budget.busy_max,
-            budget.cycles_sum ? 1.0 - (double)budget.busy_sum / budget.cycles_sum : 0.0);
+            budget.armed_cycles ? 1.0 - (double)budget.armed_busy / budget.armed_cycles : 0.0,
+            budget.armed_cycles > 20 * period && budget.ticks < 2 ? "true" : "false");
     fprintf(f, " \"pin\": {\"max_abs_force_n\": %.9g, \"force_now_n\": %.9g, "
                "\"zero_since_us\": %.3f, \"last_nonzero_us\": %.3f, \"force_step_n\": %.9g, "
                "\"force_max_n\": %.9g},\n",
@@ -628,6 +633,12 @@ int main(int argc, char **argv)
             }
             if (running) {
                 budget.window_busy += avr->cycle - c0;
+            }
+            if (link_.fw_status & HP_STATUS_ARMED) {
+                budget.armed_cycles += avr->cycle - c0;
+                if (running) {
+                    budget.armed_busy += avr->cycle - c0;
+                }
             }
             sample_drive();
         }
