@@ -13,7 +13,6 @@ host the kill test kills: handshake, CONFIG, then a constant FORCE for every STA
 from __future__ import annotations
 
 import json
-import math
 import os
 import random
 import select
