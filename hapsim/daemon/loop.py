@@ -75,7 +75,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
-from hapsim.errors import DeviceError, ProtocolError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
            "LATCHED_FAULTS", "BAD_FRAME_RECORDS"]
@@ -453,6 +453,8 @@ class HostLoop:
                 tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
                 next_ask = now + 0.5
             for msg in tr.receive(min(0.05, max(end - now, 0.0))):
+                if isinstance(msg, fp.Link):
+                    self._link = msg  # the device sends it just before HELLO
                 if isinstance(msg, fp.Hello):
                     return msg
 
@@ -469,6 +471,10 @@ class HostLoop:
         ProtocolError
             The device speaks another protocol version, or has another number of axes
             than 1 (the message carries the last frames received, CONVENTIONS §11).
+        ConfigError
+            The device's LINK (sent with HELLO) shows that its serial line cannot carry a
+            STATE and a FORCE frame per tick at the configured rate
+            (:func:`firmware_protocol.link_max_rate`).
         """
         cfg = self.config
         if hello.protocol_version != fp.PROTOCOL_VERSION:
@@ -480,6 +486,17 @@ class HostLoop:
             raise ProtocolError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF "
                                 f"devices (port {self.transport.info.get('port')}); last "
                                 f"frames:\n{self.transport.last_frames() or '(none received)'}")
+        link = getattr(self, "_link", None)
+        if link is not None:
+            top = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes)
+            if cfg.rate_hz > top:
+                raise ConfigError(
+                    f"{cfg.rate_hz:g} Hz is more than the device's link carries: at "
+                    f"{link.baud} baud ({link.bits_per_byte} bits per byte) a "
+                    f"{fp.state_frame_bytes(hello.n_axes)}-byte STATE up and a "
+                    f"{fp.force_frame_bytes(hello.n_axes)}-byte FORCE down per tick fit "
+                    f"{top:.0f} Hz at most ({fp.LINK_LOAD:.0%} of the line); choose "
+                    f"rate_hz <= {int(top)}", key="rate_hz")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
 
