@@ -520,6 +520,9 @@ class RunOptions:
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
                               f"(chunked journal), .npz, .csv", key="--telemetry")
+        if self.telemetry is not None:   # before start-up, not when the loop first writes
+            from hapsim.outputs import check_writable
+            check_writable(self.telemetry, "--telemetry")
         return self
 
 
@@ -655,11 +658,45 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     if pred.get("f0_hz"):
         window = max(window, exc_end + 10.0 / pred["f0_hz"])
     duration = window if opts.duration is None else opts.duration
+    _check_size(scene, duration, window, opts.duration is not None, opts.rate_hz is not None)
     n_samples = max(int(round(duration * scene.rate_hz)), 1) if duration > 0 else 0
     n_window = max(int(round(window * scene.rate_hz)), 1)
     n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
     return PreparedRun(scene, targets, pred, exc_end, window, n_samples, n_window, n_ring,
                        base_dir)
+
+
+def _check_size(scene: Scene, duration: float, window: float, asked: bool,
+                rate_asked: bool = False) -> None:
+    """Refuse a run whose sample count or telemetry cannot fit, before anything starts.
+
+    The telemetry holds the whole run when it fits in the identification window plus the
+    ring, else the window plus a ring of :data:`RING_SECONDS`: 42 bytes a row (time,
+    position, force, turnaround [float64], seq [int64], late, flags [int8]).
+
+    Raises
+    ------
+    ConfigError
+        ``--duration`` (when given), ``--rate`` (when given) or ``rate_hz`` (file and key),
+        with the figures.
+    """
+    rate = scene.rate_hz
+    key = "--duration" if asked else "--rate" if rate_asked else "rate_hz"
+    where = {} if key != "rate_hz" else {"file": scene.path if scene.path != "<string>"
+                                          else None}
+    n = duration * rate
+    if not math.isfinite(n) or n > 2.0 ** 62:
+        raise ConfigError(f"{duration:.6g} s at {rate:.6g} Hz is {n:.3g} samples; a run "
+                          "counts at most 2^62 (use --duration 0 for an open-ended run)",
+                          key=key, **where)
+    window_rows, ring_rows = window * rate, RING_SECONDS * rate
+    rows = n if 0 < n <= window_rows + ring_rows else min(window_rows, n or window_rows) \
+        + ring_rows
+    try:
+        from hapsim.outputs import check_fits
+        check_fits(42.0 * rows, f"{rows:.3g} telemetry rows ({rate:.6g} Hz)", key)
+    except ConfigError as exc:
+        raise ConfigError(exc.reason, key=key, **where) from None
 
 
 def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
@@ -1145,7 +1182,8 @@ def _remove(path: str | None) -> None:
 def _fmt(v, spec: str) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
-    return format(v, spec)
+    from hapsim.errors import fixed
+    return fixed(v, spec) if spec.endswith("f") else format(v, spec)
 
 
 def format_report(rep: dict) -> str:
