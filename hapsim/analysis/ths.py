@@ -1,7 +1,9 @@
 """Rendered (k, b), calibration (k, b) -> (K, B) and the exact stability boundary.
 
 Florens, Voda & Urma, Secs. 5-6; DESIGN.md Sec. 4. All computations use the dimensionless
-polynomials of :mod:`hapsim.analysis.loop` in ``w = z - 1``.
+pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never expanded (the delay factor
+``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a quadratic by binary powering,
+or found through the companion matrix in ``z``): the same precision at every delay.
 """
 
 from __future__ import annotations
