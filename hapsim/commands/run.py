@@ -201,6 +201,9 @@ def run(args) -> int:
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
+    if args.rate is not None:  # the scene's rate range (hapsim.analysis.loop.RATE_RANGE)
+        from hapsim.analysis.loop import RATE_RANGE, check_range
+        check_range(args.rate, *RATE_RANGE, "--rate", "Hz")
     if args.lost_timeout is not None and not (math.isfinite(args.lost_timeout)
                                               and args.lost_timeout > 0):
         raise ConfigError(f"must be a positive number [s], got {args.lost_timeout}",
