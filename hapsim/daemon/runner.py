@@ -149,7 +149,7 @@ def predict(scene: Scene) -> dict:
     except Exception:  # the limit is advisory in the report
         out["stiffness_limit"] = None
     single = len(scene.links) == 1 and len(plinks) == 1 and all(
-        m.kind != "mass" for m in scene.masses)
+        m.kind != "mass" for m in scene.masses) and scene.audio is None  # multi-rate: matrix
     if single:
         r = an["render"](loop, K_port, B_port)
         poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))

@@ -1,0 +1,125 @@
+"""Multi-rate kernel: the virtual network at the audio rate, the port at the device rate.
+
+State layout as :mod:`hapsim.kernels.cordis` (``x``, ``xp``, ``f``, ``mobile``, ``t2m``,
+``fixed`` and the link arrays), with ``t2m = Ta^2 / m`` and ``z = B / Ta`` at the audio
+period ``Ta = T / N``. One device period is ``N`` audio sub-steps of the CORDIS-ANIMA
+scheme (the same helpers, in the same order, as ``run_sd_contact``); within device period
+``n`` the port position at sub-step ``j`` is
+
+* ``hold``:   ``q[j] = p[n]``,
+* ``linear``: ``q[j] = p[n-1] + (j + 1) / N (p[n] - p[n-1])`` (miPhysics smooths the haptic
+  input up to the audio rate this way),
+
+where ``p[n-1]`` is the port position the state holds on entry; the force sent to the
+device is the mean of the N sub-step port forces (a boxcar decimator) or the last one.
+The linear model of the same map is :func:`hapsim.analysis.network.multirate_blocks`.
+
+Listening points write one audio frame per sub-step: ``gain * x[i]`` (position),
+``gain * (x[i] - xp[i]) / Ta`` (velocity, after the sub-step's move) or ``gain * f[i]``
+(the force computed in that sub-step).
+
+No allocation, no Python objects: the kernel is called once per device sample by the
+haptic loop (``n = 1``), per block by the JACK process callback and once for a whole
+offline gesture.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from hapsim.kernels.cordis import (_advance, _chain_fused, _chain_start, _clear, _contacts,
+                                   _move_marked, _spring_dampers)
+
+__all__ = ["run_periods", "LISTEN_CODES"]
+
+#: Kernel code of each listened quantity (``hapsim.scene.LISTEN_QUANTITIES``).
+LISTEN_CODES = {"position": 0, "velocity": 1, "force": 2}
+
+_jit = nb.njit(cache=True, nogil=True, boundscheck=False)
+
+
+@_jit
+def run_periods(n, nsub, linear, last, port, pos, x, xp, f, mobile, t2m, fixed,
+                sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr,
+                l_idx, l_code, l_gain, inv_ta, audio, arow0, force, rec, out, row0):
+    """Advance ``n`` device periods of ``nsub`` audio sub-steps each.
+
+    Parameters
+    ----------
+    n : int
+        Device periods to advance, >= 0.
+    nsub : int
+        Audio sub-steps per device period N, >= 1.
+    linear : bool
+        Port position up to the audio rate by linear interpolation (else held).
+    last : bool
+        Port force down to the device rate: last sub-step's (else the mean).
+    port : int
+        Index of the port (-1 without one: ``pos`` is ignored).
+    pos : ndarray, shape (>= n,)
+        Port position of each device period [m].
+    x, xp, f, mobile, t2m, fixed
+        Engine state at the audio period (:mod:`hapsim.kernels.cordis`), in place.
+    sd_i1, sd_i2, sd_k, sd_z : ndarray, shape (n_sd,)
+        Spring-damper arrays (may be empty).
+    c_i1, c_i2, c_k, c_z, c_thr : ndarray, shape (n_c,)
+        Contact arrays (may be empty).
+    l_idx, l_code : ndarray of int64, shape (C,)
+        Listened mass and quantity code (:data:`LISTEN_CODES`) of each channel.
+    l_gain : ndarray, shape (C,)
+        Gain of each channel.
+    inv_ta : float
+        1 / Ta [1/s].
+    audio : ndarray, shape (>= arow0 + n * nsub, C)
+        Audio frames out; frame ``arow0 + i * nsub + j`` is sub-step j of period i.
+    arow0 : int
+        First frame of ``audio`` to write.
+    force : ndarray, shape (>= n,)
+        Port force of each period out [N] (0 without a port).
+    rec : ndarray of int64, shape (R,)
+        Masses to record once per device period (may be empty).
+    out : ndarray, shape (>= row0 + n, R)
+        Recorded positions; row ``row0 + i`` after period i.
+    row0 : int
+        First row of ``out`` to write.
+    """
+    chain = _chain_start(x, mobile, fixed, sd_i1, sd_i2)
+    inv_n = 1.0 / nsub
+    for i in range(n):
+        p1 = pos[i] if port >= 0 else 0.0
+        p0 = x[port] if port >= 0 else 0.0
+        acc = 0.0
+        fl = 0.0
+        for j in range(nsub):
+            if port >= 0:
+                if linear:
+                    x[port] = p0 + (j + 1) * inv_n * (p1 - p0)
+                else:
+                    x[port] = p1
+            if chain >= 0:
+                _chain_fused(x, xp, f, t2m, fixed, chain, sd_k, sd_z, c_i1, c_i2)
+                _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+                _move_marked(x, xp, f, t2m, fixed, chain, sd_k.size, c_i1, c_i2)
+            else:
+                _clear(f)
+                _spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
+                _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+                _advance(x, xp, f, mobile, t2m, fixed)
+            if port >= 0:
+                fl = f[port]
+                acc += fl
+            row = arow0 + i * nsub + j
+            for c in range(l_idx.size):
+                k = l_idx[c]
+                code = l_code[c]
+                if code == 0:
+                    v = x[k]
+                elif code == 1:
+                    v = (x[k] - xp[k]) * inv_ta
+                else:
+                    v = f[k]
+                audio[row, c] = l_gain[c] * v
+        force[i] = fl if last else acc * inv_n
+        for r in range(rec.size):
+            out[row0 + i, r] = x[rec[r]]
