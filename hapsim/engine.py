@@ -106,10 +106,14 @@ class Engine:
 
         kinds = scene.kinds
         link_args: tuple[np.ndarray, ...] = ()
-        if "spring_damper" in kinds:
-            link_args += arrays("spring_damper")
-        if "contact" in kinds:
-            link_args += arrays("contact")
+        #: name -> (stiffness array, damping-per-sample array, slot): live changes.
+        self._link_slot: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}
+        for kind in ("spring_damper", "contact"):
+            if kind in kinds:
+                arr = arrays(kind)
+                link_args += arr
+                names = [lk.name for lk in scene.links if lk.kind == kind]
+                self._link_slot.update({nm: (arr[2], arr[3], j) for j, nm in enumerate(names)})
         #: Velocity state [m/s] of the non-default integrators (None for centred).
         self._v = None
         integrator = getattr(scene, "integrator", "centred")
@@ -311,6 +315,57 @@ class Engine:
                 progress(done, n)
         self.sample += n
         return audio, force
+
+    # ------------------------------------------------------------------ live changes
+    def set_link(self, name: str, stiffness: float, damping: float) -> None:
+        """Change one link's (K, B) in place, between two samples (no allocation).
+
+        Parameters
+        ----------
+        name : str
+            Link name.
+        stiffness : float
+            K [N/m].
+        damping : float
+            B [N s/m].
+
+        Raises
+        ------
+        ConfigError
+            Unknown link (key ``link``; the valid names listed), or an integrator other
+            than ``centred`` (its matrices are built once).
+
+        Notes
+        -----
+        :attr:`scene` is not updated: the caller (:class:`hapsim.audio.control.Controller`)
+        keeps the scene that describes the engine and checks it before changing anything.
+        """
+        if self._v is not None:
+            raise ConfigError("live changes need integrator: centred", key="integrator")
+        try:
+            k, z, j = self._link_slot[name]
+        except KeyError:
+            raise ConfigError(f"no link named {name!r}; links are: "
+                              + ", ".join(self._link_slot), key="link") from None
+        k[j] = stiffness
+        z[j] = damping / self.sim_period
+
+    def set_mass(self, name: str, mass: float) -> None:
+        """Change one moving mass's inertia in place [kg], between two samples.
+
+        Raises
+        ------
+        ConfigError
+            No moving mass of that name (key ``mass``), or an integrator other than
+            ``centred``.
+        """
+        if self._v is not None:
+            raise ConfigError("live changes need integrator: centred", key="integrator")
+        i = self._indices([name], key="mass")[0]
+        hit = np.nonzero(self._mobile == i)[0]
+        if hit.size == 0:
+            raise ConfigError(f"{name!r} is not a moving mass (kind mass)", key="mass")
+        self._t2m[hit[0]] = self.sim_period ** 2 / mass
 
     # ------------------------------------------------------------------ state
     def set_port_position(self, position: float, at_rest: bool = False) -> None:
