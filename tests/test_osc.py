@@ -158,3 +158,39 @@ def test_pd_patch_sends_changes_over_osc(tmp_path):
     assert got == [("accepted", ["wall", 600.0]), ("refused", ["wall", 1e6])], got
     assert rep["felt"]["k"] == pytest.approx(felt_k(600.0, 1.0), rel=1e-9)
     assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
+
+
+def test_run_osc_changes_the_running_daemon():
+    """hapsim run --osc (real-time embedded mock on a pty): an accepted change is ramped
+    into the running engine and reported with its prediction, a refused one is not."""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
+                             "--duration", "2", "--rt-priority", "0", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
+                            text=True)
+    port = None
+    for _ in range(50):
+        line = proc.stderr.readline()
+        if "OSC on" in line:
+            port = int(line.strip().rsplit(":", 1)[1])
+            break
+        if not line:
+            break
+    if port is None:
+        proc.kill()
+        pytest.fail(f"run did not start its OSC server: {proc.stderr.read()}")
+    c = Client(port)
+    try:
+        assert c.ask("/hapsim/link/damping", "wall", 3.0)[0] == "/hapsim/ok"
+        addr, p = c.ask("/hapsim/link/kb", "wall", 5.0e5, 3.0)
+        assert addr == "/hapsim/refused" and "unstable" in p[1]
+        addr, p = c.ask("/hapsim/felt")
+        assert p[1] == pytest.approx(render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 400.0,
+                                            3.0).b, rel=1e-6)
+    finally:
+        rep = finish(proc)
+    osc = rep["osc"]
+    assert (osc["accepted"], osc["refused"]) == (1, 1)
+    assert osc["links"]["wall"] == [400.0, 3.0]
+    assert [e["event"] for e in osc["journal"] if e["event"].startswith("ramp")] == \
+        ["ramp_start", "ramp_end"]

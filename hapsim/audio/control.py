@@ -247,13 +247,27 @@ class Controller:
         raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
 
     # ------------------------------------------------------------ sample loop
-    def poll(self) -> None:
+    def poll(self, engine=None) -> None:
         """Between two samples: take new changes from the mailbox, advance the ramps.
 
         Call once per device sample from the loop's thread; it only touches the engine's
         arrays (:meth:`hapsim.engine.Engine.set_link`, :meth:`~hapsim.engine.Engine.set_mass`),
         the live gain and :attr:`force_scale`.
+
+        Parameters
+        ----------
+        engine : Engine, optional
+            The engine the loop steps now: when the loop rebuilt it (a recovery restarts
+            the scene from the file's values), the accepted values are set on it at once.
         """
+        if engine is not None and engine is not self.engine:
+            self.engine = engine
+            for lk in self.scene.links:
+                engine.set_link(lk.name, lk.stiffness, lk.damping)
+            for m in self.scene.masses:
+                if m.kind == "mass":
+                    engine.set_mass(m.name, m.mass)
+            self._ramps = []
         self.sample += 1
         if self._mail:
             while self._mail:
