@@ -164,8 +164,10 @@ def test_run_osc_changes_the_running_daemon():
     """hapsim run --osc (real-time embedded mock on a pty): an accepted change is ramped
     into the running engine and reported with its prediction, a refused one is not."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    hst = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"osc-{os.getpid()}.hst")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
-                             "--duration", "2", "--rt-priority", "0", "--json"],
+                             "--duration", "2", "--rt-priority", "0", "--json",
+                             "--telemetry", hst],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
     port = None
@@ -194,3 +196,11 @@ def test_run_osc_changes_the_running_daemon():
     assert osc["links"]["wall"] == [400.0, 3.0]
     assert [e["event"] for e in osc["journal"] if e["event"].startswith("ramp")] == \
         ["ramp_start", "ramp_end"]
+    from hapsim.daemon.telemetry import load
+    try:
+        info = {}
+        load(hst, info=info)
+        events = [e["event"] for e in info["events"] if e["event"].startswith("osc ")]
+    finally:
+        os.remove(hst)
+    assert events[:2] == ["osc request", "osc accepted"] and "osc refused" in events

@@ -128,15 +128,22 @@ class Controller:
         self._ramps: list[Change] = []
         self._lock = threading.Lock()          # serialises checks (one scene at a time)
         self._t0 = time.monotonic()
+        #: Where journal records are also appended (``hapsim run``: the loop's event list,
+        #: which the telemetry journal ``.hst`` writes), and the loop's sample counter.
+        self.events: list | None = None
+        self.sample_of = None
         from hapsim.daemon.runner import predict
         self._predict = predict
         self.felt = predict(scene)
 
     # ------------------------------------------------------------ any thread
     def _log(self, event: str, address: str, args, **extra) -> dict:
-        rec = {"t": time.monotonic() - self._t0, "sample": self.sample, "event": event,
+        sample = self.sample_of() if self.sample_of is not None else self.sample
+        rec = {"t": time.monotonic() - self._t0, "sample": sample, "event": event,
                "address": address, "args": list(args), **extra}
         self.journal.append(rec)
+        if self.events is not None:
+            self.events.append({**rec, "event": f"osc {event}"})
         return rec
 
     def _steps(self) -> int:

@@ -823,6 +823,8 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
     from hapsim.audio.control import Controller, serve_osc
 
     ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
+    ctl.events = loop.result.events             # journaled with the telemetry (.hst)
+    ctl.sample_of = lambda: conn.tel.n
     server, _ = serve_osc(ctl, opts.osc, status=lambda: {"xruns": 0, "underruns": 0})
     loop.poll = lambda: ctl.poll(loop.engine)
     host, port = server.server_address[:2]
