@@ -131,3 +131,35 @@ def test_live_jack_sound_equals_offline_rendering(jack_server):
     np.testing.assert_allclose(seg[:m], ref[r0:r0 + m, 0].astype(np.float32), rtol=0,
                                atol=2e-6 * np.max(np.abs(ref)))
     assert isinstance(out.xruns, int) and out.xruns >= 0
+
+
+def test_gain_ramps_without_a_step_and_pause_silences():
+    """A gain change reaches its target linearly over the ramp (no sample-to-sample jump
+    larger than one ramp step beyond the signal's own change); pause through the
+    Controller ramps the sound to silence and resume brings it back."""
+    from hapsim.audio.control import Controller
+    from hapsim.audio.live import LiveSound
+
+    scene = load_scene(SCENE)
+    eng = Engine(scene)
+    g = pluck_gesture(400)
+    eng.set_port_position(g[0], at_rest=True)
+    live = LiveSound(eng)
+    for x in g:
+        live.push(float(x))
+    live.render(48 * 160)                       # ringing after the release
+    live.set_gain(0.0, ramp_s=0.01)             # 480 frames
+    a = live.render(960)[:, 0].copy()
+    assert live.gain == 0.0 and np.all(a[480:] == 0.0) and np.any(a[:480] != 0.0)
+    env = np.abs(a[:480]) / np.max(np.abs(a[:480]))
+    assert env[-20:].max() < 0.2                # faded out, not cut
+    ctl = Controller(scene, eng, live, ramp_s=0.01)
+    assert ctl.request("/hapsim/gain", 0.5)[0]
+    ctl.poll()
+    assert live.gain_target == 0.5
+    assert ctl.request("/hapsim/pause")[0]
+    ctl.poll()
+    assert live.gain_target == 0.0
+    assert ctl.request("/hapsim/resume")[0]
+    ctl.poll()
+    assert live.gain_target == 0.5

@@ -125,6 +125,7 @@ class Controller:
         self.accepted = 0
         self.measured = (math.nan, math.nan)
         self._mail: collections.deque = collections.deque()
+        self._gain_before_pause = 1.0
         self._ramps: list[Change] = []
         self._lock = threading.Lock()          # serialises checks (one scene at a time)
         self._t0 = time.monotonic()
@@ -301,6 +302,11 @@ class Controller:
             else:
                 self.force_scale = v[0]
                 self.paused = r.kind == "pause"
+                if r.done == 1 and self.live is not None:   # the sound follows
+                    if self.paused:
+                        self._gain_before_pause = self.live.gain_target
+                    self.live.set_gain(0.0 if self.paused else self._gain_before_pause,
+                                       r.steps / self.scene.rate_hz)
             if a < 1.0:
                 keep.append(r)
             else:

@@ -112,6 +112,11 @@ class LiveSound:
         """Master gain now (during a ramp: where it is)."""
         return float(self._st[_S["gain"]])
 
+    @property
+    def gain_target(self) -> float:
+        """Master gain the current ramp ends at."""
+        return float(self._st[_S["gain_target"]])
+
     def stats(self) -> dict:
         """``pushed``, ``consumed`` device samples, ``underruns`` (periods that found no new
         position and held the last), ``periods`` completed."""

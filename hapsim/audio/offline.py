@@ -39,27 +39,9 @@ def load_gesture(path: str, rate_hz: float, steps: int | None = None) -> np.ndar
     ConfigError
         Unreadable file, non-finite or non-increasing time (key ``--gesture``).
     """
-    try:
-        if path.lower().endswith(".npz"):
-            with np.load(path) as z:
-                t = np.asarray(z["time"], float)
-                x = np.asarray(z["position"], float)
-                x = x[:, 0] if x.ndim == 2 else x
-        else:
-            data = np.genfromtxt(path, delimiter=",", comments="#")
-            if data.ndim == 2 and not np.all(np.isfinite(data[0])):
-                data = data[1:]
-            data = np.atleast_2d(data)
-            t, x = data[:, 0], data[:, 1]
-    except (OSError, KeyError, ValueError, IndexError) as exc:
-        raise ConfigError(f"cannot read the gesture {path}: {exc}; expected columns "
-                          "time [s], position [m] (.csv) or arrays time, position (.npz)",
-                          key="--gesture") from None
-    if t.size < 1 or t.shape != x.shape or not (np.all(np.isfinite(t)) and np.all(np.isfinite(x))):
-        raise ConfigError("the gesture needs finite columns time [s], position [m]",
-                          key="--gesture")
-    if np.any(np.diff(t) <= 0):
-        raise ConfigError("gesture times must increase strictly", key="--gesture")
+    from hapsim.daemon.mock import _load_profile
+
+    t, x = _load_profile(path, "position", "m", key="--gesture")
     n = steps if steps is not None else int(math.floor(t[-1] * rate_hz + 1e-9)) + 1
     return np.interp(np.arange(n) / rate_hz, t, x)
 

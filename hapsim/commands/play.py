@@ -36,6 +36,10 @@ OSC addresses (replies go to the sender's address and port):
   /hapsim/telemetry HOST PORT [RATE] -> /hapsim/tel t x f k b sent to HOST:PORT at RATE Hz
 measured (k, b): identified (matrix pencil) from each free response between plucks that no
   change disturbed; NaN until one has been.
+late: times the loop fell more than 20 ms behind the clock (it then resynchronises; the
+  mock device's physics stays sample-exact). sound: xruns (JACK's count, or PortAudio
+  underflows) and ring underruns (device periods the audio thread found no new position
+  for and held the last).
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
   hapsim play configs/audio_string.yaml --osc 9000 --duration 60
@@ -75,8 +79,6 @@ def register(sub) -> None:
                    help="write time [s], device position [m], port force [N] per sample")
     p.add_argument("--json", action="store_true", help="print one JSON report on stdout")
     p.set_defaults(func=run)
-    # report: late = times the loop fell more than 20 ms behind the clock (it then
-    # resynchronises; the mock device's physics stays sample-exact).
 
 
 def run(args: argparse.Namespace) -> int:
