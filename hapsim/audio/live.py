@@ -16,6 +16,7 @@ JACK server runs, PortAudio through ``sounddevice`` (output underflows counted a
 
 from __future__ import annotations
 
+import sys
 import threading
 
 import numpy as np
@@ -269,6 +270,10 @@ def open_output(live: LiveSound, backend: str = "auto", *, server: str | None = 
     if backend not in ("auto",) + BACKENDS:
         raise ConfigError(f"unknown sound backend {backend!r}; valid: auto, "
                           + ", ".join(BACKENDS), key="--sound")
+    # The callback enters Python once per block and needs the GIL: with the default switch
+    # interval (5 ms, the length of a 256-frame block at 48 kHz) a busy haptic thread can
+    # hold it past the deadline. 0.2 ms bounds that wait.
+    sys.setswitchinterval(min(sys.getswitchinterval(), 2e-4))
     errors = []
     for b in (BACKENDS if backend == "auto" else (backend,)):
         try:

@@ -77,6 +77,10 @@ def register(sub) -> None:
                    help="write the change journal (requests, verdicts, ramps) here")
     p.add_argument("--telemetry", metavar="FILE.npz",
                    help="write time [s], device position [m], port force [N] per sample")
+    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
+                   help="SCHED_FIFO priority of the haptic loop where permitted (default 10; "
+                        "0: normal): a descheduled haptic thread holding the GIL makes the "
+                        "sound callback wait")
     p.add_argument("--json", action="store_true", help="print one JSON report on stdout")
     p.set_defaults(func=run)
 
@@ -120,15 +124,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"hapsim play: the closed loop of {args.scene} is unstable (spectral radius "
               f"{ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
         return 1
-    if live is not None:
-        try:
-            out = open_output(live, args.sound, server=args.jack_server)
-        except DeviceError as exc:
-            if args.sound != "auto":
-                print(f"hapsim play: {exc}", file=sys.stderr)
-                return 1
-            print(f"hapsim play: no sound ({exc}); playing silently", file=sys.stderr)
-            live = ctl.live = None
     T = scene.period
     steps = int(round(args.duration * scene.rate_hz))
     dev = scene.device
@@ -143,22 +138,33 @@ def run(args: argparse.Namespace) -> int:
     server = tel = None
     status = (lambda: {"xruns": getattr(out, "xruns", 0),
                        "underruns": live.stats()["underruns"] if live else 0})
-    if args.osc is not None:
-        server, tel = serve_osc(ctl, args.osc, status=status)
-        host, port = server.server_address[:2]
-        print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
     xs = np.zeros(steps)
     fs = np.zeros(steps)
     line = deque([0.0] * int(dev.delay))
     lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
-    step = live.port_step if live is not None else engine.port_step
     from hapsim.daemon._blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
     _warm_up(scene)                                   # kernels loaded before the clock starts
     identify_window(np.cos(0.3 * np.arange(200)) * 0.99 ** np.arange(200), scene, 2)
+    if live is not None:    # the sound starts with the clock, not during warm-up
+        try:
+            out = open_output(live, args.sound, server=args.jack_server)
+        except DeviceError as exc:
+            if args.sound != "auto":
+                print(f"hapsim play: {exc}", file=sys.stderr)
+                return 1
+            print(f"hapsim play: no sound ({exc}); playing silently", file=sys.stderr)
+            live = ctl.live = None
+    if args.osc is not None:
+        server, tel = serve_osc(ctl, args.osc, status=status)
+        host, port = server.server_address[:2]
+        print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    step = live.port_step if live is not None else engine.port_step
     late = 0
     quiet_from = 0            # first sample after the last change's ramp ended
+    from hapsim.daemon.realtime import RealtimePriority
+    rt = RealtimePriority(args.rt_priority).__enter__()
     t0 = time.perf_counter()
     try:
         for n in range(steps):
@@ -186,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
                     late += 1
                     t0 -= ahead
     finally:
+        rt.__exit__(None, None, None)
         if server is not None:
             server.shutdown()
             server.server_close()
@@ -195,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
         ctl.measured = identify_window(xs[max(h.size, quiet_from):], ctl.scene,
                                        ctl.felt.get("order") or 2)
     report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
-              "late": late,  # times > 20 ms behind the clock (then resynchronised) "accepted": ctl.accepted, "refused": ctl.refused,
+              "late": late,  # times > 20 ms behind the clock (then resynchronised)
+              "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
               "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1]},
               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
               "sound": None if live is None else {
