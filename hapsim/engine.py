@@ -130,6 +130,8 @@ class Engine:
         #: Samples advanced since construction.
         self.sample = 0
         self._multi = None
+        #: Names of the listened channels (``"<mass>.<quantity>"``), empty without audio.
+        self.channels: tuple[str, ...] = ()
         if audio is not None:
             self._init_audio(audio, kinds, link_args)
 

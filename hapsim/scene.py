@@ -333,6 +333,10 @@ class Audio:
     port_position: str = "hold"
     port_force: str = "mean"
 
+    def __post_init__(self) -> None:
+        if isinstance(self.listen, list):
+            object.__setattr__(self, "listen", tuple(self.listen))
+
     @property
     def period(self) -> float:
         """Audio sample period Ta = 1 / rate_hz [s]."""

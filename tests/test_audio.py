@@ -202,3 +202,16 @@ def test_audio_needs_the_centred_integrator():
     text = chain_text([0.02], [300.0, 2000.0], [0.2, 2.0], 48) + "integrator: exact\n"
     with pytest.raises(ConfigError, match="centred"):
         parse_scene(text)
+
+
+@pytest.mark.parametrize("argv,key", [
+    (["configs/string.yaml", "--steps", "10", "--audio", "x.wav"], "audio"),
+    (["configs/audio_string.yaml", "--steps", "10", "--audio", "x.mp3"], "--audio"),
+    (["configs/audio_string.yaml", "--steps", "10", "--audio", "x.wav", "--gesture",
+      "missing.csv"], "--gesture"),
+])
+def test_simulate_audio_bad_input_exits_2(tmp_path, capsys, argv, key):
+    argv = [a if not a.startswith("x.") else str(tmp_path / a) for a in argv]
+    assert main(["simulate", *argv]) == 2
+    assert key in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
