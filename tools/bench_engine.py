@@ -346,6 +346,23 @@ def largest_realtime(repeats: int) -> tuple[int, list]:
     return lo, sorted(rows)
 
 
+def _empty_client_xruns(server: str, secs: float) -> int:
+    """xruns a JACK client whose process callback only zeroes its output sees in ``secs``
+    [s]: the machine's own share (scheduling, load), measured beside hapsim's."""
+    import jack
+
+    c = jack.Client("baseline", no_start_server=True, servername=server)
+    port = c.outports.register("out")
+    count = [0]
+    c.set_process_callback(lambda frames: port.get_array().fill(0.0))
+    c.set_xrun_callback(lambda usecs: count.__setitem__(0, count[0] + 1))
+    c.activate()
+    time.sleep(secs)
+    c.deactivate()
+    c.close()
+    return count[0]
+
+
 def audio_main(a) -> int:
     """``--audio``: the largest real-time string at 48 kHz (hapsim beside Faust) and 60 s of
     the shipped string scene live on a dummy JACK server."""
@@ -392,6 +409,10 @@ def audio_main(a) -> int:
         try:
             time.sleep(2.0)
             secs = 10.0 if a.quick else 60.0
+            base = _empty_client_xruns(name, secs)
+            print(f"baseline, same server, same load: an empty Python process callback for "
+                  f"{secs:g} s: {base} xruns")
+            out["baseline_xruns"] = base
             res = subprocess.run([sys.executable, "-m", "hapsim", "play",
                                   str(REPO / "configs" / "audio_string.yaml"), "--sound",
                                   "jack", "--jack-server", name, "--duration", str(secs),
