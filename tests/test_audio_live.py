@@ -65,11 +65,14 @@ class Recorder:
         self.client = jack.Client("rec", no_start_server=True, servername=server)
         self.buf = np.zeros(int(seconds * self.client.samplerate), dtype=np.float32)
         self.n = 0
+        self.armed = True          # recording (a test may arm it later)
         self.inp = self.client.inports.register("in")
         self.client.set_process_callback(self._process)
         self.client.activate()
 
     def _process(self, frames):
+        if not self.armed:
+            return
         k = min(frames, self.buf.size - self.n)
         if k > 0:
             self.buf[self.n:self.n + k] = self.inp.get_array()[:k]
@@ -163,3 +166,51 @@ def test_gain_ramps_without_a_step_and_pause_silences():
     assert ctl.request("/hapsim/resume")[0]
     ctl.poll()
     assert live.gain_target == 0.5
+
+
+def test_run_sound_plays_the_loop_frames_and_keeps_the_prediction(jack_server):
+    """run_scene(..., sound="jack") in lockstep: the multi-rate model stays in the loop
+    (measured (k, b) = predicted to 1e-6), its frames reach a JACK client of ours through
+    the ring, and the report counts xruns and ring underruns."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import parse_scene
+
+    text = """rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: bob, kind: mass, mass: 0.02}
+  - {name: wall, kind: ground}
+links:
+  - {name: a, kind: spring_damper, between: [hand, bob], stiffness: 300.0, damping: 0.2}
+  - {name: b, kind: spring_damper, between: [bob, wall], stiffness: 2000.0, damping: 2.0}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
+excitation: {x0: 0.001}
+audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
+"""
+    rec = Recorder(jack_server, seconds=3.0)
+    rec.armed = False
+    started = {}
+
+    def on_start(port, n):
+        import jack
+        c = jack.Client("wire", no_start_server=True, servername=jack_server)
+        src = [p.name for p in c.get_ports(is_output=True, is_audio=True)
+               if p.name.startswith("hapsim:")]
+        c.connect(src[0], rec.inp.name)
+        c.close()
+        started["ok"] = True
+        rec.armed = True
+
+    try:
+        rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
+                        host_clocked=True, handle_signals=False, duration=1.0,
+                        sound="jack", jack_server=jack_server, on_start=on_start)
+        time.sleep(0.3)
+    finally:
+        rec.close()
+    assert started
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+    snd = rep["sound"]
+    print(f"run --sound: {snd}")
+    assert snd["backend"] == "JackOutput" and snd["written"] == 1000 * 48
+    assert np.max(np.abs(rec.buf[:rec.n])) > 1e-3

@@ -25,7 +25,8 @@ from hapsim.engine import Engine
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.kernels import audio as audio_kernel
 
-__all__ = ["LiveSound", "JackOutput", "SoundDeviceOutput", "open_output", "BACKENDS"]
+__all__ = ["LiveSound", "FrameRing", "sounding_engine", "JackOutput", "SoundDeviceOutput",
+           "open_output", "BACKENDS"]
 
 #: Sound backends, in the order ``auto`` tries them.
 BACKENDS = ("jack", "sounddevice")
@@ -140,12 +141,77 @@ class LiveSound:
         return self.block[:nframes]
 
 
+class FrameRing:
+    """Frames computed by the haptic loop, played by a sound server (``hapsim run --sound``).
+
+    In ``hapsim run`` the multi-rate model stays in the haptic loop, so the force on the
+    device is exactly what the analysis models; each device sample's N frames
+    (:attr:`hapsim.engine.Engine.frames`) are appended here and the sound server's callback
+    copies them out (:func:`hapsim.kernels.audio.ring_read`: one compiled call per block,
+    silence counted on underrun, a jump counted when clock drift leaves the writer more
+    than half a ring ahead).
+
+    Parameters
+    ----------
+    rate_hz : float
+        Audio rate [Hz].
+    channels : tuple of str
+        Channel names.
+    ring : int
+        Frames the ring holds (default 8192: 170 ms at 48 kHz).
+    max_block : int
+        Largest block a callback may ask for [frames].
+    """
+
+    def __init__(self, rate_hz: float, channels, ring: int = 8192, max_block: int = 8192):
+        self.rate_hz = float(rate_hz)
+        self.channels = tuple(channels)
+        self._ring = np.zeros((ring, len(self.channels)), dtype=np.float32)
+        self._wr = np.zeros(1, dtype=np.int64)
+        self._st = np.zeros(3, dtype=np.int64)
+        self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
+        audio_kernel.ring_write(np.zeros((0, len(self.channels))), self._ring, self._wr)
+        self.render(0)
+
+    def push(self, frames: np.ndarray) -> None:
+        """Append one device sample's frames, shape (N, C) (haptic thread)."""
+        audio_kernel.ring_write(frames, self._ring, self._wr)
+
+    def render(self, nframes: int) -> np.ndarray:
+        """The next ``nframes`` frames into :attr:`block` (sound server's thread)."""
+        audio_kernel.ring_read(nframes, self._ring, self._wr, self._st, self.block)
+        return self.block[:nframes]
+
+    def stats(self) -> dict:
+        """``written``, ``read`` frames, ``missing`` (silence on underrun), ``skipped``."""
+        return {"written": int(self._wr[0]), "read": int(self._st[0]),
+                "missing": int(self._st[1]), "skipped": int(self._st[2])}
+
+
+def sounding_engine(ring: FrameRing) -> type:
+    """An :class:`~hapsim.engine.Engine` subclass whose :meth:`port_step` also hands its
+    frames to ``ring`` (the loop rebuilds it as ``type(engine)(scene)`` after a recovery,
+    so the ring is a class attribute)."""
+
+    class SoundingEngine(Engine):
+        __doc__ = f"Engine whose device samples also feed a {type(ring).__name__}."
+        frame_ring = ring
+
+        def port_step(self, position: float) -> float:
+            f = Engine.port_step(self, position)
+            self.frame_ring.push(self.frames)
+            return f
+
+    return SoundingEngine
+
+
 class JackOutput:
     """Play a :class:`LiveSound` through a JACK server, one output port per listening point.
 
     Parameters
     ----------
-    live : LiveSound
+    live : LiveSound or FrameRing
+        What renders the frames (``render(n)``, ``rate_hz``, ``channels``).
     name : str
         JACK client name.
     server : str, optional

@@ -146,6 +146,10 @@ def register(sub) -> None:
                         "addresses: hapsim play --help); each is checked, ramped, journaled")
     p.add_argument("--osc-ramp", type=float, default=0.05, metavar="S",
                    help="ramp time of every OSC change [s] (default 0.05)")
+    p.add_argument("--sound", choices=("auto", "jack", "sounddevice"),
+                   help="play the scene's audio section live (JACK, else PortAudio with "
+                        "auto); the model stays in the loop, the frames go to the server")
+    p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -242,7 +246,7 @@ def run(args) -> int:
                     lost_timeout=args.lost_timeout,
                     reconnect_attempts=args.reconnect_attempts,
                     reconnect_time=args.reconnect_time, osc=args.osc,
-                    osc_ramp=args.osc_ramp)
+                    osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server)
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()

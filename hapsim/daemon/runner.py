@@ -475,6 +475,8 @@ class RunOptions:
     telemetry_interval: float = 0.05
     osc: int | None = None
     osc_ramp: float = 0.05
+    sound: str | None = None
+    jack_server: str | None = None
     plan: object = None
 
     def check(self) -> "RunOptions":
@@ -621,6 +623,7 @@ class LoopRun:
     writer_info: dict | None
     journal: str | None
     control: object = None
+    sound: dict | None = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -832,7 +835,10 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     journal = None
     mock_report = None
     ctl = osc_server = None
+    ring = out = None
     try:
+        if opts.sound is not None:
+            ring, out = _start_sound(prep, conn, opts)
         loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
@@ -858,6 +864,8 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
+        if out is not None:
+            out.close()
         conn.rt.__exit__(None, None, None)
         if writer is not None:
             writer.close()
@@ -875,7 +883,25 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if opts.transport == "sim":
             mock_report["faults_injected"] = opts.plan.to_dict()["injected"]
             mock_report["fault_events"] = tr.device.events
-    return LoopRun(res, mock_report, writer_info, journal, ctl)
+    sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
+                                       **ring.stats()}
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound)
+
+
+def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
+    """``run --sound``: the engine also hands each device sample's audio frames to a
+    :class:`hapsim.audio.live.FrameRing` that a JACK (or PortAudio) callback plays; the
+    multi-rate model stays in the loop, so the force is exactly the analysed one."""
+    from hapsim.audio.live import FrameRing, open_output, sounding_engine
+
+    scene = prep.scene
+    if scene.audio is None:
+        raise ConfigError("the scene has no audio section to play; see "
+                          "configs/audio_string.yaml", file=scene.path, key="--sound")
+    ring = FrameRing(scene.audio.rate_hz, conn.engine.channels)
+    conn.engine = sounding_engine(ring)(scene)
+    out = open_output(ring, opts.sound, server=opts.jack_server)
+    return ring, out
 
 
 def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOptions):
@@ -1045,6 +1071,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
+            "sound": run.sound,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
@@ -1058,7 +1085,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               reconnect: bool | None = None, lost_timeout: float | None = None,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05, osc: int | None = None,
-              osc_ramp: float = 0.05) -> dict:
+              osc_ramp: float = 0.05, sound: str | None = None,
+              jack_server: str | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1133,6 +1161,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         ``osc``). The measured (k, b) are those of the scene at the start.
     osc_ramp : float
         Ramp time of every OSC change [s].
+    sound : {"auto", "jack", "sounddevice"}, optional
+        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
+        the sound server (report: ``sound`` with xruns and ring underruns).
+    jack_server : str, optional
+        JACK server name.
 
     Returns
     -------
@@ -1163,7 +1196,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp).check()
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)

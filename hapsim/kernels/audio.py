@@ -31,7 +31,7 @@ import numpy as np
 from hapsim.kernels.cordis import (_advance, _chain_fused, _chain_start, _clear, _contacts,
                                    _move_marked, _spring_dampers)
 
-__all__ = ["run_periods", "run_frames", "LISTEN_CODES", "LIVE_STATE"]
+__all__ = ["run_periods", "run_frames", "ring_write", "ring_read", "LISTEN_CODES", "LIVE_STATE"]
 
 #: Kernel code of each listened quantity (``hapsim.scene.LISTEN_QUANTITIES``).
 LISTEN_CODES = {"position": 0, "velocity": 1, "force": 2}
@@ -215,3 +215,42 @@ def run_frames(nframes, nsub, linear, last, port, ring, wr, st, fring,
             fring[w % R] = (f[port] if last else st[6] * inv_n) if port >= 0 else 0.0
             st[3] = w + 1
         st[0] = j
+
+
+@_jit
+def ring_write(frames, ring, wr):
+    """Append ``frames`` (shape (F, C)) to the frame ring (shape (R, C)); ``wr[0]`` counts
+    frames written (the producer publishes after copying)."""
+    R = ring.shape[0]
+    w = wr[0]
+    for i in range(frames.shape[0]):
+        for c in range(frames.shape[1]):
+            ring[(w + i) % R, c] = frames[i, c]
+    wr[0] = w + frames.shape[0]
+
+
+@_jit
+def ring_read(nframes, ring, wr, st, out):
+    """Copy the next ``nframes`` frames of the ring into ``out`` for the sound server.
+
+    ``st[0]`` frames read, ``st[1]`` frames missing (the ring was empty: silence written,
+    counted), ``st[2]`` frames skipped (the writer was more than half a ring ahead: the
+    reader jumps to a quarter ring behind it, so that clock drift between the device and
+    the sound card never grows the latency).
+    """
+    R = ring.shape[0]
+    rd = st[0]
+    w = wr[0]
+    if w - rd > R // 2:
+        st[2] += w - R // 4 - rd
+        rd = w - R // 4
+    for i in range(nframes):
+        if rd < w:
+            for c in range(out.shape[1]):
+                out[i, c] = ring[rd % R, c]
+            rd += 1
+        else:
+            for c in range(out.shape[1]):
+                out[i, c] = 0.0
+            st[1] += 1
+    st[0] = rd
