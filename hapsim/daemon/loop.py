@@ -411,6 +411,9 @@ class HostLoop:
     def __init__(self, engine, transport, config: LoopConfig, telemetry,
                  stop: StopFlag | None = None):
         self.engine = engine
+        #: Called between two samples, before the engine steps (live changes: the
+        #: mailbox of :class:`hapsim.audio.control.Controller`); None: nothing.
+        self.poll = None
         self.transport = transport
         self.config = config
         self.tel = telemetry
@@ -944,6 +947,7 @@ class HostLoop:
             # (device-clocked: at the STATE it resumed at; host-clocked: at the latest
             # STATE at its first deadline, maybe newer than the one it resumed at)
             x_prev = first[1]
+            poll = self.poll
             k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
@@ -960,6 +964,8 @@ class HostLoop:
                     if d > 0 or st & overrun_bit:
                         lt = 1
                         res.late += 1
+                if poll is not None:
+                    poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
                 if not isfinite(f):
                     self._non_finite_stop(seq)
