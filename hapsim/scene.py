@@ -529,20 +529,13 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
     """Check ``v`` against its row ``k`` of the scene table (types the table can check)."""
     if v is None and k.default is None:
         return                       # absent: none
-    lo = k.minimum
     if k.type == "number":
-        _number(v, *where, positive=k.strict and lo == 0.0,
-                minimum=None if (k.strict and lo == 0.0) else lo,
-                allow_inf=k.allow_inf, maximum=k.maximum)
-        if k.strict and lo not in (None, 0.0) and not float(v) > lo:
-            raise _Invalid(f"must be > {lo:g}, got {float(v):g}", where)
+        _number(v, *where, allow_inf=k.allow_inf)
+        _in_range(k, float(v), where)
     elif k.type == "integer":
         if not (isinstance(v, numbers.Integral) and not isinstance(v, bool)):
             raise _Invalid(f"must be a whole number of {k.unit or 'units'}, got {v!r}", where)
-        if lo is not None and (v < lo or (k.strict and v == lo)):
-            raise _Invalid(f"must be {'>' if k.strict else '>='} {lo:g}, got {v}", where)
-        if k.maximum is not None and v > k.maximum:
-            raise _Invalid(f"must be <= {k.maximum:g}, got {v}", where)
+        _in_range(k, v, where)
     elif k.type == "choice":
         _choice(v, k.choices, *where)
     elif k.type == "string":
@@ -550,6 +543,22 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
     elif k.type == "boolean":
         if not isinstance(v, bool):
             raise _Invalid(f"must be true or false, got {_typename(v)} {v!r}", where)
+
+
+def _in_range(k: Key, x: float, where: tuple) -> None:
+    """The row's ``minimum`` (``strict``: excluded) and ``maximum``, with its ``why``."""
+    lo, hi = k.minimum, k.maximum
+    below = lo is not None and (x < lo or (k.strict and x == lo))
+    if not (below or (hi is not None and x > hi)):
+        return
+    if lo is not None and hi is not None:
+        unit = f" {k.unit}" if k.unit else ""
+        msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
+    elif below:
+        msg = f"must be {'>' if k.strict else '>='} {lo:g}, got {x:g}"
+    else:
+        msg = f"must be <= {hi:g}, got {x:g}"
+    raise _Invalid(msg + (f": {k.why}" if k.why else ""), where)
 
 
 def _check_section(obj: Any, section: str, *where: Any) -> None:

@@ -121,7 +121,8 @@ def render_reference() -> str:
                 "| key | type | unit | default | allowed | meaning |",
                 "|---|---|---|---|---|---|"]
         for k in rows:
-            meaning = k.doc + (f" (kind {', '.join(k.kinds)} only)" if k.kinds else "")
+            meaning = (k.doc + (f" (kind {', '.join(k.kinds)} only)" if k.kinds else "")
+                       + (f" Range: {k.why}." if k.why else ""))
             out.append(f"| `{k.name}` | {k.type} | {_cell(k.unit) or '-'} | "
                        f"{_cell(k.default_text())} | {_cell(k.range_text()) or '-'} | "
                        f"{_cell(meaning)} |")

@@ -81,6 +81,9 @@ class Key:
         (mappings merged, list entries appended, an entry with the same name replaced).
     default_doc : str
         How the reference states the default when it is not a plain value.
+    why : str
+        Why the range is what it is (appended to an out-of-range message and shown in the
+        reference), e.g. what a larger value would cost.
     """
 
     path: str
@@ -96,6 +99,7 @@ class Key:
     doc: str = ""
     example: str = ""
     default_doc: str = ""
+    why: str = ""
 
     @property
     def section(self) -> str:
@@ -350,15 +354,15 @@ CROSS_RULES = (
 )
 
 #: The scene every key's example is merged into (a port held against a wall).
-BASE_SCENE = """\
+_WALL = """\
 rate_hz: 1000
 masses:
   - {name: hand, kind: port}
   - {name: wall, kind: ground}
 links:
   - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000, damping: 1.5}
-device: {mass: 0.1, friction: 0.5}
 """
+BASE_SCENE = _WALL + "device: {mass: 0.1, friction: 0.5}\n"
 
 SECTIONS: tuple[Section, ...] = (
     Section("", "Top level", "A scene file is a YAML mapping with these keys.", """\
@@ -409,13 +413,7 @@ device: {mass: 0.1, friction: 0.5}
             "(Florens, Voda & Urma's temporary hybrid system).", ""),
     Section("device", "device: the real side",
             "The hand + handle the scene is felt through, and the mock device's "
-            "imperfections.", """\
-rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: wall, kind: ground}
-links:
-  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000, damping: 1.5}
+            "imperfections.", _WALL + """\
 device:
   mass: 0.1
   friction: 0.5
@@ -428,13 +426,7 @@ device:
 """),
     Section("excitation", "excitation: how the hand starts the motion",
             "Used by the mock device (embedded in `hapsim run`, or `hapsim mock --scene`).",
-            """\
-rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: wall, kind: ground}
-links:
-  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000, damping: 1.5}
+            _WALL + """\
 device: {mass: 0.1, friction: 0.5}
 excitation:
   x0: 0.002
@@ -444,13 +436,7 @@ excitation:
     Section("excitation.impulse", "excitation.impulse: a force pulse",
             "A rectangular pulse of the hand's force on the device.", ""),
     Section("safety", "safety: the limits of hapsim run",
-            "Every limit ends the run with a zero force and STOP (exit 1).", """\
-rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: wall, kind: ground}
-links:
-  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000, damping: 1.5}
+            "Every limit ends the run with a zero force and STOP (exit 1).", _WALL + """\
 device: {mass: 0.1, friction: 0.5}
 safety:
   position_limit: 0.1

@@ -120,12 +120,15 @@ def test_entry_dataclasses_take_every_row():
 def _bad_values(k):
     """Values just outside the row's range (and of the wrong type), with what the error says."""
     out = []
+    both = k.minimum is not None and k.maximum is not None
     if k.type in ("number", "integer") and k.minimum is not None:
         lo = int(k.minimum) if k.type == "integer" else k.minimum
-        out.append((lo if k.strict else lo - 1, f"{'>' if k.strict else '>='} {lo:g}"))
+        says = f"{'>' if k.strict else '>='} {lo:g}"
+        out.append((lo if k.strict else lo - abs(lo) - 1,
+                    f"between {k.minimum:g} and {k.maximum:g}" if both else says))
     if k.type in ("number", "integer") and k.maximum is not None:
         hi = int(k.maximum) if k.type == "integer" else k.maximum
-        out.append((hi + 1, f"<= {k.maximum:g}"))
+        out.append((hi * 2 + 1, f"between {k.minimum:g} and" if both else f"<= {k.maximum:g}"))
     if k.type == "number":
         out.append(("soft", "must be a number"))
         if not k.allow_inf:

@@ -208,8 +208,9 @@ def run(args) -> int:
         if stats["ticks"] or stats["saw_stop"]:
             served.append(stats["ticks"])
             how = "after STOP" if stats["saw_stop"] else "without STOP (force zeroed)"
-            print(f"hapsim mock: host left {how} after {stats['ticks']} ticks; waiting for "
-                  "the next run (Ctrl-C ends the mock)", file=sys.stderr, flush=True)
+            print(f"hapsim mock: host left {how} ({stats['ticks']} ticks since its last "
+                  "CONFIG); waiting for the next run (Ctrl-C ends the mock)",
+                  file=sys.stderr, flush=True)
 
     try:
         with rt:
