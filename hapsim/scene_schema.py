@@ -223,7 +223,7 @@ _KEYS = [
         doc="Initial velocity of a `mass`.",
         example="masses: [{name: bob, kind: mass, mass: 0.01, v0: 0.1}]"),
     # ------------------------------------------------------------------ links[]
-    Key("links[].name", "string", default="", default_doc="link<i> (i its index)",
+    Key("links[].name", "string", default="", default_doc="link0, link1, ... (its index)",
         doc="Unique name of the link (`hapsim run` reports the port link by name).",
         example="links: [{name: w2, kind: spring_damper, between: [hand, wall], "
                 "stiffness: 10}]"),
