@@ -39,11 +39,10 @@ import math
 import numbers
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
-import yaml
-
-from hapsim.errors import ConfigError
+from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
+from hapsim.errors import ConfigError, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, MASS_KINDS, Key, key_names,
                                  section_keys)
 from hapsim.scene_schema import key as _key
@@ -136,12 +135,12 @@ class Device:
     Parameters
     ----------
     mass : float
-        Moving mass m of hand + handle [kg], > 0.
+        Moving mass m of hand + handle [kg], in [1e-12, 1e12].
     friction : float
-        Real viscous friction b0 [N s/m], >= 0.
+        Real viscous friction b0 [N s/m], >= 0, with b0 T / m <= 1e6.
     delay : int
         Whole samples d between the position a force is computed from and the sample
-        the force is applied at, >= 0.
+        the force is applied at, 0 to 500 (the analysis's cost: O(d^3)).
     hold : {"zoh", "ideal"}
         Zero-order hold of the force, or the paper's idealised sampled image.
     force_limit : float
@@ -266,8 +265,10 @@ class Scene:
     ConfigError
         When a rule of the scene format is broken: the message names the key (e.g.
         ``masses[2].mass``) and, for an entry read from a file, the file and the line.
-        Rules: ``rate_hz`` > 0; a known ``integrator``; a non-empty tuple of masses with
-        unique names and a known kind; ``mass`` > 0 for kind ``mass`` (0 otherwise);
+        Rules: ``rate_hz`` in [1e-6, 1e9] Hz; a known ``integrator``; a non-empty tuple of
+        masses with unique names and a known kind; ``mass`` in [1e-12, 1e12] kg for kind
+        ``mass`` (0 otherwise); ``device.delay`` <= 500 samples (ranges and their reasons:
+        ``hapsim.analysis.loop.RATE_RANGE``, ``MASS_RANGE``, ``MAX_DELAY``);
         finite ``x0``, ``v0`` (``v0`` = 0 unless kind ``mass``); at most one port, and a
         ``device`` when there is one; links with unique names and a known kind between two
         different existing masses; stiffness >= 0 and damping >= 0, finite (NaN only
@@ -431,51 +432,10 @@ class Scene:
 
 
 # --------------------------------------------------------------------------- YAML with lines
-
-class _Node:
-    """Mixin that records the line of a YAML mapping or sequence and of its items."""
-
-    line: int
-    lines: dict
-
-
-class _LDict(dict, _Node):
-    pass
-
-
-class _LList(list, _Node):
-    pass
-
-
-class _LineLoader(yaml.SafeLoader):
-    """SafeLoader that records 1-based lines and refuses duplicate keys."""
-
-
-def _construct_mapping(loader: _LineLoader, node: yaml.MappingNode) -> _LDict:
-    loader.flatten_mapping(node)
-    out = _LDict()
-    out.line = node.start_mark.line + 1
-    out.lines = {}
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if key in out:
-            raise ConfigError(f"duplicate key {key!r} (first on line {out.lines[key]})",
-                              file=getattr(loader, "_hapsim_path", None),
-                              line=key_node.start_mark.line + 1, key=str(key))
-        out[key] = loader.construct_object(value_node, deep=True)
-        out.lines[key] = key_node.start_mark.line + 1
-    return out
-
-
-def _construct_sequence(loader: _LineLoader, node: yaml.SequenceNode) -> _LList:
-    out = _LList(loader.construct_object(child, deep=True) for child in node.value)
-    out.line = node.start_mark.line + 1
-    out.lines = {i: child.start_mark.line + 1 for i, child in enumerate(node.value)}
-    return out
-
-
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+# The bounded reader (encodings, depth, alias size, merge keys, YAML 1.2 floats) lives in
+# hapsim._yaml_lines; these names keep the rest of this module unchanged.
+_LDict = LDict
+_LList = LList
 
 
 # --------------------------------------------------------------------------- the rules
@@ -502,6 +462,8 @@ def _key_of(where: tuple) -> str:
 
 
 def _is_number(v: Any) -> bool:
+    if type(v) is float or type(v) is int:   # the common case, without the ABC check
+        return True
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
@@ -513,7 +475,7 @@ def _coerce(v: Any) -> Any:
 def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
             allow_inf: bool = False, maximum: float | None = None) -> None:
     if not _is_number(v):
-        raise _Invalid(f"must be a number, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a number, got {_typename(v)} {show(v)}", where)
     v = float(v)
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
@@ -534,7 +496,8 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
         _in_range(k, float(v), where)
     elif k.type == "integer":
         if not (isinstance(v, numbers.Integral) and not isinstance(v, bool)):
-            raise _Invalid(f"must be a whole number of {k.unit or 'units'}, got {v!r}", where)
+            raise _Invalid(f"must be a whole number of {k.unit or 'units'}, got {show(v)}",
+                           where)
         _in_range(k, v, where)
     elif k.type == "choice":
         _choice(v, k.choices, *where)
@@ -542,23 +505,26 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
         _string(v, *where)
     elif k.type == "boolean":
         if not isinstance(v, bool):
-            raise _Invalid(f"must be true or false, got {_typename(v)} {v!r}", where)
+            raise _Invalid(f"must be true or false, got {_typename(v)} {show(v)}", where)
 
 
 def _in_range(k: Key, x: float, where: tuple) -> None:
-    """The row's ``minimum`` (``strict``: excluded) and ``maximum``, with its ``why``."""
-    lo, hi = k.minimum, k.maximum
-    below = lo is not None and (x < lo or (k.strict and x == lo))
-    if not (below or (hi is not None and x > hi)):
-        return
-    if lo is not None and hi is not None:
-        unit = f" {k.unit}" if k.unit else ""
-        msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
-    elif below:
-        msg = f"must be {'>' if k.strict else '>='} {lo:g}, got {x:g}"
-    else:
-        msg = f"must be <= {hi:g}, got {x:g}"
-    raise _Invalid(msg + (f": {k.why}" if k.why else ""), where)
+    """The row's ``minimum`` (``strict``: excluded) and ``maximum``, then the analysis's
+    limits it names (``limits_from``), with its ``why``."""
+    unit = f" {k.unit}" if k.unit else ""
+    checks = ((k.minimum, k.maximum, k.strict, not k.limits_from),
+              (*k.analysis_limits(), False, True))
+    for lo, hi, strict, explained in checks:
+        below = lo is not None and (x < lo or (strict and x == lo))
+        if not (below or (hi is not None and x > hi)):
+            continue
+        if lo is not None and hi is not None:
+            msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
+        elif below:
+            msg = f"must be {'>' if strict else '>='} {lo:g}, got {x:g}"
+        else:
+            msg = f"must be <= {hi:g}{unit}, got {x:g}"
+        raise _Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
 
 
 def _check_section(obj: Any, section: str, *where: Any) -> None:
@@ -569,14 +535,14 @@ def _check_section(obj: Any, section: str, *where: Any) -> None:
 
 def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
     if v not in choices:
-        raise _Invalid(f"unknown value {v!r}; valid choices: {', '.join(choices)}", where)
+        raise _Invalid(f"unknown value {show(v)}; valid choices: {', '.join(choices)}", where)
 
 
 def _string(v: Any, *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
 
 
 def _first(line: int, where: tuple) -> str:
@@ -609,24 +575,24 @@ def _check_scene(s: Scene) -> None:
         _check_key(_key("masses[].name"), m.name, "masses", i, "name")
         if m.name in names:
             j = names[m.name]
-            raise _Invalid(f"duplicate mass name {m.name!r} "
+            raise _Invalid(f"duplicate mass name {show(m.name)} "
                            f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
         names[m.name] = i
         if m.kind == "mass":
             _check_key(_key("masses[].mass"), m.mass, "masses", i, "mass")
         elif m.mass != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
-                           f"got {m.mass!r}", ("masses", i, "mass"))
+                           f"got {show(m.mass)}", ("masses", i, "mass"))
         _check_key(_key("masses[].x0"), m.x0, "masses", i, "x0")
         _check_key(_key("masses[].v0"), m.v0, "masses", i, "v0")
         if m.kind != "mass" and m.v0 != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (it does not move by itself), "
-                           f"got {m.v0!r}", ("masses", i, "v0"))
+                           f"got {show(m.v0)}", ("masses", i, "v0"))
         if m.kind == "port":
             ports.append(i)
     if len(ports) > 1:
         raise _Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
-                       + ", ".join(s.masses[p].name for p in ports), ("masses", ports[1]),
+                       + ", ".join(_bare(s.masses[p].name) for p in ports), ("masses", ports[1]),
                        key="masses")
     _check_links(s, names)
     if s.device is not None:
@@ -649,18 +615,19 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
         _check_key(_key("links[].name"), lk.name, "links", i, "name")
         if lk.name in seen:
             j = seen[lk.name]
-            raise _Invalid(f"duplicate link name {lk.name!r} "
+            raise _Invalid(f"duplicate link name {show(lk.name)} "
                            f"({_first(s.links[j].line, ('links', j))})", ("links", i, "name"))
         seen[lk.name] = i
         for n in (lk.m1, lk.m2):
             if n not in names:
-                shown = ", ".join(list(names)[:20]) + (", ..." if len(names) > 20 else "")
-                raise _Invalid(f"no mass named {n!r}; masses are: {shown}",
+                shown = ", ".join(_bare(k) for k in list(names)[:20])
+                shown += ", ..." if len(names) > 20 else ""
+                raise _Invalid(f"no mass named {show(n)}; masses are: {shown}",
                                ("links", i, "between"))
         if lk.m1 == lk.m2:
-            raise _Invalid(f"a link cannot join mass {lk.m1!r} to itself", ("links", i, "between"))
+            raise _Invalid(f"a link cannot join mass {show(lk.m1)} to itself", ("links", i, "between"))
         if not isinstance(lk.calibrated, bool):
-            raise _Invalid(f"must be True or False, got {lk.calibrated!r}",
+            raise _Invalid(f"must be True or False, got {show(lk.calibrated)}",
                            ("links", i, "calibrated"))
         awaiting = False
         if lk.target is not None:
@@ -670,7 +637,7 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
                                "spring_damper between the port and a ground",
                                ("links", i, "target"))
             if not (isinstance(lk.target, tuple) and len(lk.target) == 2):
-                raise _Invalid(f"must be a pair (k, b), got {lk.target!r}", ("links", i, "target"))
+                raise _Invalid(f"must be a pair (k, b), got {show(lk.target)}", ("links", i, "target"))
             _check_key(_key("links[].target.k"), lk.target[0], "links", i, "target", "k")
             _check_key(_key("links[].target.b"), lk.target[1], "links", i, "target", "b")
             awaiting = not lk.calibrated
@@ -692,7 +659,7 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
                                ("links", i, "kind"))
         elif lk.threshold != 0:
             raise _Invalid(f"only a contact has a threshold; must be 0 for a {lk.kind}, "
-                           f"got {lk.threshold!r}", ("links", i, "threshold"))
+                           f"got {show(lk.threshold)}", ("links", i, "threshold"))
 
 
 def _check_device(d: Any) -> None:
@@ -756,11 +723,11 @@ class _Ctx:
     def keys(self, d: _LDict, allowed: tuple[str, ...], key: str, required: tuple[str, ...] = ()) -> None:
         for k in d:
             if k not in allowed:
-                raise self.error(f"unknown key {k!r}; valid keys: {', '.join(allowed)}",
-                                 self.line_of(d, k), f"{key}.{k}" if key else str(k))
+                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
+                                 self.line_of(d, k), _key_name(key, k))
         for k in required:
             if k not in d:
-                raise self.error(f"missing required key {k!r}", getattr(d, "line", None),
+                raise self.error(f"missing required key {show(k)}", getattr(d, "line", None),
                                  f"{key}.{k}" if key else k)
 
     def not_null(self, d: _LDict, k: str, key: str) -> None:
@@ -797,6 +764,17 @@ class _Ctx:
         return line
 
 
+def _bare(k: Any) -> str:
+    """A name as a message prints it: bare when short and plain, else :func:`show`-n."""
+    plain = isinstance(k, str) and k.isprintable() and 0 < len(k) <= 40 and " " not in k
+    return k if plain else show(k, 40)
+
+
+def _key_name(parent: str, k: Any) -> str:
+    """Dotted key ``parent.k`` for a message (an odd key is :func:`show`-n)."""
+    return f"{parent}.{_bare(k)}" if parent else _bare(k)
+
+
 def _typename(v: Any) -> str:
     if v is None:
         return "nothing (null)"
@@ -830,14 +808,20 @@ def load_scene(path: str | os.PathLike) -> Scene:
     """
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read()
     except OSError as exc:
         raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return parse_scene(text, path)
+    text = decode_text(data, path)
+    if len(text) < 1_000_000:
+        return parse_scene(text, path)
+    from hapsim.progress import Progress
+    with Progress(len(text), f"reading {os.path.basename(path)}", unit="chars") as bar:
+        return parse_scene(text, path, progress=bar.update)
 
 
-def parse_scene(text: str, path: str = "<string>") -> Scene:
+def parse_scene(text: str, path: str = "<string>",
+                progress: Callable[[int, int], None] | None = None) -> Scene:
     """Parse and validate scene text.
 
     Parameters
@@ -846,6 +830,9 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
         YAML text of the scene.
     path : str
         Name used in error messages and to resolve relative ``excitation.profile`` paths.
+    progress : callable, optional
+        ``progress(done, total)`` [characters] while the YAML is read (see
+        :func:`hapsim._yaml_lines.load_yaml`).
 
     Returns
     -------
@@ -868,20 +855,7 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
     and builds the dataclasses; the values are checked by the same rules as a scene built
     in code (:class:`Scene` validates itself), with the line of the offending key.
     """
-    loader = _LineLoader(text)
-    loader._hapsim_path = path  # type: ignore[attr-defined]
-    try:
-        doc = loader.get_single_data()
-    except ConfigError:
-        raise
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line = mark.line + 1 if mark is not None else None
-        raise ConfigError(f"invalid YAML: {exc.problem or exc}", file=path, line=line) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"invalid YAML: {exc}", file=path) from exc
-    finally:
-        loader.dispose()
+    doc = load_yaml(text, path, progress)
 
     ctx = _Ctx(path)
     if doc is None:

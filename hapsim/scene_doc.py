@@ -122,7 +122,9 @@ def render_reference() -> str:
                 "|---|---|---|---|---|---|"]
         for k in rows:
             meaning = (k.doc + (f" (kind {', '.join(k.kinds)} only)" if k.kinds else "")
-                       + (f" Range: {k.why}." if k.why else ""))
+                       + (f" Range: {k.why_text()}." if k.why else "")
+                       + (f" (Limit `hapsim.analysis.loop.{k.limits_from}`.)"
+                          if k.limits_from else ""))
             out.append(f"| `{k.name}` | {k.type} | {_cell(k.unit) or '-'} | "
                        f"{_cell(k.default_text())} | {_cell(k.range_text()) or '-'} | "
                        f"{_cell(meaning)} |")

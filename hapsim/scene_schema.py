@@ -81,9 +81,14 @@ class Key:
         (mappings merged, list entries appended, an entry with the same name replaced).
     default_doc : str
         How the reference states the default when it is not a plain value.
+    limits_from : str
+        Name of a limit of :mod:`hapsim.analysis.loop` the value must also keep: a
+        ``(lo, hi)`` tuple (``RATE_RANGE``) or a largest value (``MAX_DELAY``); it lives
+        there, beside the analysis it protects, and is read when a scene is checked.
     why : str
-        Why the range is what it is (appended to an out-of-range message and shown in the
-        reference), e.g. what a larger value would cost.
+        Why the range is what it is (appended to an out-of-range message, for the
+        ``limits_from`` limit when there is one, and shown in the reference); ``{limit}``
+        stands for the largest value.
     """
 
     path: str
@@ -99,6 +104,7 @@ class Key:
     doc: str = ""
     example: str = ""
     default_doc: str = ""
+    limits_from: str = ""
     why: str = ""
 
     @property
@@ -116,6 +122,24 @@ class Key:
         """True when the key must be given."""
         return self.default is REQUIRED
 
+    def analysis_limits(self) -> tuple:
+        """``(lo, hi)`` of :attr:`limits_from` (``(None, None)`` without one).
+
+        Returns
+        -------
+        tuple
+            Smallest and largest value [the key's unit]; either may be None.
+        """
+        if not self.limits_from:
+            return (None, None)
+        import hapsim.analysis.loop as lp        # at check time: no import cycle
+        v = getattr(lp, self.limits_from)
+        return tuple(v) if isinstance(v, tuple) else (None, v)
+
+    def why_text(self) -> str:
+        """:attr:`why` with ``{limit}`` filled in."""
+        return self.why.format(limit=f"{self.analysis_limits()[1] or self.maximum:g}")
+
     def range_text(self) -> str:
         """The allowed values in words (``"> 0"``, ``">= 0, or .inf"``, ``"zoh | ideal"``)."""
         if self.type == "choice":
@@ -125,6 +149,11 @@ class Key:
             parts.append(f"{'>' if self.strict else '>='} {self.minimum:g}")
         if self.maximum is not None:
             parts.append(f"<= {self.maximum:g}")
+        lo, hi = self.analysis_limits()
+        if lo is not None and hi is not None:
+            parts.append(f"in [{lo:g}, {hi:g}]")
+        elif hi is not None:
+            parts.append(f"<= {hi:g}")
         if self.type == "integer":
             parts.append("whole number")
         elif self.type == "number":
@@ -180,7 +209,7 @@ class Section:
 _P = ("port",)
 _KEYS = [
     # ------------------------------------------------------------------ top level
-    Key("rate_hz", "number", "Hz", minimum=0.0, strict=True,
+    Key("rate_hz", "number", "Hz", minimum=0.0, strict=True, limits_from="RATE_RANGE",
         doc="Sample rate of the simulation and of the device loop; the period is "
             "T = 1 / rate_hz.",
         example="rate_hz: 2000"),
@@ -214,6 +243,7 @@ _KEYS = [
             "one).",
         example="masses: [{name: anchor, kind: ground, x0: 0.01}]"),
     Key("masses[].mass", "number", "kg", minimum=0.0, strict=True, kinds=("mass",),
+        limits_from="MASS_RANGE",
         doc="Inertia of a `mass`.",
         example="masses: [{name: bob, kind: mass, mass: 0.05}]"),
     Key("masses[].x0", "number", "m", default=0.0, kinds=("mass", "ground"),
@@ -260,13 +290,15 @@ _KEYS = [
         example="links: [{name: wall, kind: spring_damper, between: [hand, wall], "
                 "target: {k: 1000, b: 1}}]"),
     # ------------------------------------------------------------------ device
-    Key("device.mass", "number", "kg", minimum=0.0, strict=True,
+    Key("device.mass", "number", "kg", minimum=0.0, strict=True, limits_from="MASS_RANGE",
         doc="Moving mass m of hand + handle.",
         example="device: {mass: 0.25}"),
     Key("device.friction", "number", "N s/m", default=0.0, minimum=0.0,
         doc="Real viscous friction b0 of the device.",
         example="device: {mass: 0.1, friction: 0.5}"),
-    Key("device.delay", "integer", "samples", default=1, minimum=0.0,
+    Key("device.delay", "integer", "samples", default=1, minimum=0.0, limits_from="MAX_DELAY",
+        why="the closed loop's d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
+            "O(d^3), ~0.4 s at d = {limit}",
         doc="Whole samples d between the position a force is computed from and the "
             "sample the force is applied at.",
         example="device: {mass: 0.1, delay: 2}"),

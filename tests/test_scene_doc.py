@@ -129,6 +129,13 @@ def _bad_values(k):
     if k.type in ("number", "integer") and k.maximum is not None:
         hi = int(k.maximum) if k.type == "integer" else k.maximum
         out.append((hi * 2 + 1, f"between {k.minimum:g} and" if both else f"<= {k.maximum:g}"))
+    lo, hi = k.analysis_limits()             # the analysis's limits the row names
+    if lo is not None:
+        out.append((lo / 10, f"between {lo:g} and {hi:g} {k.unit}"))
+    if hi is not None:
+        out.append((hi * 10 if lo is not None else int(hi) + 1,
+                    f"between {lo:g} and {hi:g} {k.unit}" if lo is not None
+                    else f"<= {hi:g} {k.unit}"))
     if k.type == "number":
         out.append(("soft", "must be a number"))
         if not k.allow_inf:
