@@ -27,6 +27,8 @@ def test_json_report_of_a_run_that_lost_its_device(tmp_path, capsys):
     cap = capsys.readouterr()
     rep = json.loads(cap.out)
     lp = rep["loop"]
+    why = (lp["stop_reason"], lp["faults"], lp["safety_stop"], lp["events"][-3:])
+    assert "error" in rep, why
     assert rep["error"]["type"] == "DeviceError" and "device lost" in rep["error"]["message"]
     # (a loaded machine may add a loss it recovers from: the last one is for good)
     assert lp["lost"] >= 1 and lp["recovered"] == lp["lost"] - 1
