@@ -21,7 +21,7 @@ from typing import Any
 
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
            "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS",
-           "BASE_SCENE"]
+           "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
@@ -31,6 +31,12 @@ LINK_KINDS = ("spring_damper", "contact")
 HOLDS = ("zoh", "ideal")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
+#: What a listening point hears (``audio.listen[i].quantity``; first is the default).
+LISTEN_QUANTITIES = ("velocity", "position", "force")
+#: How the port position is brought up to the audio rate (first is the default).
+PORT_POSITION_MODES = ("hold", "linear")
+#: How the port force is brought down to the device rate (first is the default).
+PORT_FORCE_MODES = ("mean", "last")
 
 
 class _Required:
@@ -233,6 +239,9 @@ _KEYS = [
     Key("safety", "mapping", default=None, default_doc="the defaults below",
         doc="Limits `hapsim run` enforces; see `safety`.",
         example="safety: {velocity_limit: 1.0}"),
+    Key("audio", "mapping", default=None,
+        doc="The scene's sound: a multi-rate model and its listening points; see `audio`.",
+        example="audio: {rate_hz: 8000, listen: [{mass: hand}]}"),
     # ------------------------------------------------------------------ masses[]
     Key("masses[].name", "string",
         doc="Unique name of the mass (links refer to it).",
@@ -343,6 +352,34 @@ _KEYS = [
             "or `.npz` (arrays `time`, `force`), relative to the scene file; the file "
             "must exist (the example: a scene in configs/).",
         example="excitation: {profile: hand_force.csv}"),
+    # ------------------------------------------------------------------ audio
+    Key("audio.rate_hz", "number", "Hz", minimum=0.0, strict=True,
+        doc="Audio rate: every virtual mass runs at it; a whole multiple N of the scene's "
+            "`rate_hz` (N audio steps per device period).",
+        example="audio: {rate_hz: 48000, listen: [{mass: hand}]}"),
+    Key("audio.listen", "list",
+        doc="Listening points, one output channel each (non-empty); see `audio.listen[]`.",
+        example="audio: {rate_hz: 4000, listen: [{mass: hand}, {mass: wall}]}"),
+    Key("audio.port_position", "choice", default=PORT_POSITION_MODES[0],
+        choices=PORT_POSITION_MODES,
+        doc="Port position up to the audio rate: `hold` the device sample, or `linear` "
+            "from the previous one (no felt target with `linear`).",
+        example="audio: {rate_hz: 4000, listen: [{mass: hand}], port_position: hold}"),
+    Key("audio.port_force", "choice", default=PORT_FORCE_MODES[0], choices=PORT_FORCE_MODES,
+        doc="Port force down to the device rate: the `mean` of the N sub-step forces, or "
+            "the `last`.",
+        example="audio: {rate_hz: 4000, listen: [{mass: hand}], port_force: last}"),
+    Key("audio.listen[].mass", "string",
+        doc="Name of the mass listened to.",
+        example="audio: {rate_hz: 4000, listen: [{mass: wall}]}"),
+    Key("audio.listen[].quantity", "choice", default=LISTEN_QUANTITIES[0],
+        choices=LISTEN_QUANTITIES,
+        doc="What is heard at each audio sample: backward-difference velocity [m/s], "
+            "position [m] or the force on the mass [N].",
+        example="audio: {rate_hz: 4000, listen: [{mass: hand, quantity: force}]}"),
+    Key("audio.listen[].gain", "number", default=1.0,
+        doc="Factor from that quantity to the output sample (full scale 1.0).",
+        example="audio: {rate_hz: 4000, listen: [{mass: hand, gain: 200}]}"),
     # ------------------------------------------------------------------ safety
     Key("safety.position_limit", "number", "m", default=None, minimum=0.0, strict=True,
         allow_inf=True, default_doc="max(0.1, 20 |excitation.x0|)",
@@ -467,6 +504,22 @@ excitation:
 """),
     Section("excitation.impulse", "excitation.impulse: a force pulse",
             "A rectangular pulse of the hand's force on the device.", ""),
+    Section("audio", "audio: the scene's sound",
+            "A multi-rate model (`hapsim check` analyses exactly the coupled model; "
+            "`hapsim simulate --audio`, `hapsim run --sound`, `hapsim play`); "
+            "`configs/audio_string.yaml` is a full example. Needs `integrator: centred`.",
+            (_WALL + """\
+  - {name: bow, kind: spring_damper, between: [wall, bead], stiffness: 400, damping: 0.01}
+device: {mass: 0.1, friction: 0.5}
+audio:
+  rate_hz: 8000
+  listen: [{mass: bead, quantity: velocity, gain: 0.5}, {mass: hand, quantity: force}]
+  port_position: hold
+  port_force: mean
+""").replace("  - {name: wall, kind: ground}\n", "  - {name: wall, kind: ground}\n"
+            "  - {name: bead, kind: mass, mass: 0.001}\n")),
+    Section("audio.listen[]", "audio.listen[]: the listening points",
+            "Each entry is one output channel.", ""),
     Section("safety", "safety: the limits of hapsim run",
             "Every limit ends the run with a zero force and STOP (exit 1).", _WALL + """\
 device: {mass: 0.1, friction: 0.5}

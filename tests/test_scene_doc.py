@@ -13,7 +13,8 @@ import yaml
 
 from hapsim.cli import main
 from hapsim.errors import ConfigError
-from hapsim.scene import Device, Excitation, Impulse, Link, Mass, Safety, parse_scene
+from hapsim.scene import (Audio, Device, Excitation, Impulse, Link, Listen, Mass, Safety,
+                          parse_scene)
 from hapsim.scene_doc import default_path, example_scene, render_reference
 from hapsim.scene_doc import main as doc_main
 from hapsim.scene_schema import KEYS, REQUIRED, SECTIONS, section_keys
@@ -75,6 +76,9 @@ def _value(scene, k, frag):
         return getattr(obj, "mass" if parts[1] == "mass" else parts[1]), entry[parts[1]]
     obj, want = scene, frag
     for p in parts:
+        if p.endswith("[]"):                    # audio.listen[]: the last entry
+            want, obj = want[p[:-2]][-1], getattr(obj, p[:-2])[-1]
+            continue
         want = want[p]
         obj = getattr(obj, p)
     if isinstance(want, (dict, list)):
@@ -97,7 +101,8 @@ def test_every_key_example_loads_and_sets_that_key(path):
 
 @pytest.mark.parametrize("cls, section", [(Device, "device"), (Safety, "safety"),
                                           (Excitation, "excitation"),
-                                          (Impulse, "excitation.impulse")])
+                                          (Impulse, "excitation.impulse"),
+                                          (Audio, "audio"), (Listen, "audio.listen[]")])
 def test_dataclass_fields_are_the_table_rows_with_its_defaults(cls, section):
     fields = {f.name: f for f in dataclasses.fields(cls)}
     rows = section_keys(section)
