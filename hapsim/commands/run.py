@@ -205,7 +205,7 @@ def run(args) -> int:
     DeviceError, ProtocolError
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
-    from hapsim.daemon.runner import format_report, run_scene
+    from hapsim.daemon.runner import format_report
     from hapsim.scene import load_scene
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
@@ -240,16 +240,16 @@ def run(args) -> int:
         scene = advice.apply(scene)
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
-    rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
-                    rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                    telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                    seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
-                    faults=args.faults, fault_seed=args.fault_seed,
-                    reconnect=False if args.no_reconnect else None,
-                    lost_timeout=args.lost_timeout,
-                    reconnect_attempts=args.reconnect_attempts,
-                    reconnect_time=args.reconnect_time, osc=args.osc,
-                    osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server)
+    from hapsim.errors import DeviceError, ProtocolError
+    try:
+        rep = _run(scene, args)
+    except (DeviceError, ProtocolError) as exc:
+        rep = getattr(exc, "report", None)
+        if rep is None:                 # never started: nothing to report but the error
+            raise
+        lost = exc
+    else:
+        lost = None
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()
@@ -258,4 +258,21 @@ def run(args) -> int:
     else:
         print(format_report(rep))
     sys.stdout.flush()
+    if lost is not None:                # the report first, then why the run ended
+        print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
     return code
+
+
+def _run(scene, args) -> dict:
+    """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
+    from hapsim.daemon.runner import run_scene
+    return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
+                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                     seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
+                     faults=args.faults, fault_seed=args.fault_seed,
+                     reconnect=False if args.no_reconnect else None,
+                     lost_timeout=args.lost_timeout,
+                     reconnect_attempts=args.reconnect_attempts,
+                     reconnect_time=args.reconnect_time, osc=args.osc,
+                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server)
