@@ -113,6 +113,10 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
+    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
+                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
+                        "numba function that owns the port, without the GIL) or 'python' "
+                        "(the reference loop, e.g. to compare)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -236,7 +240,7 @@ def run(args) -> int:
                     reconnect=False if args.no_reconnect else None,
                     lost_timeout=args.lost_timeout,
                     reconnect_attempts=args.reconnect_attempts,
-                    reconnect_time=args.reconnect_time)
+                    reconnect_time=args.reconnect_time, loop=args.loop)
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()

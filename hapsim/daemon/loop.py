@@ -108,14 +108,26 @@ class StopFlag:
     Attributes
     ----------
     set : bool
-        True once a stop was requested.
+        True once a stop was requested (stored in :attr:`shared`).
     signal : int or None
         Number of the signal that set it, if any.
+    shared : ndarray of int64, shape (1,)
+        The flag itself (1: stop requested), read by the compiled loop
+        (:mod:`hapsim.daemon.fastloop`) while it runs without the GIL.
     """
 
     def __init__(self) -> None:
-        self.set = False
+        self.shared = np.zeros(1, dtype=np.int64)
         self.signal = None
+
+    @property
+    def set(self) -> bool:
+        """True once a stop was requested."""
+        return bool(self.shared[0])
+
+    @set.setter
+    def set(self, value: bool) -> None:
+        self.shared[0] = 1 if value else 0
 
     def request(self, signum: int | None = None) -> None:
         """Request a stop (safe to call from a signal handler: two attribute stores).
@@ -1031,6 +1043,12 @@ class HostLoop:
         STATE is answered as it arrives (:meth:`_device_states`, :meth:`_drive`)."""
         self._drive(n_max, self._device_states(n_max))
 
+    def _receive_hook(self):
+        """The ``receive(timeout)`` the device-clocked source reads messages with: the
+        transport's (a subclass may run samples before returning what is left,
+        :mod:`hapsim.daemon.fastloop`)."""
+        return self.transport.receive
+
     def _device_states(self, n_max: int):
         """The device-clocked source of :meth:`_drive`: every usable STATE, as it arrives.
 
@@ -1056,20 +1074,20 @@ class HostLoop:
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
-        receive = self.transport.receive
-        expect = -1
+        receive = self._receive_hook()
+        self._expect = -1
         silence = self._silence()
         # a device (re)starting after CONFIG gets state_timeout for its first STATE
         first_wait = max(silence, cfg.state_timeout)
         poll = min(0.1, silence)
-        last_rx = clock()
+        self._last_rx = clock()
         ds = self._dstats
         nbad = self._nbad
         while tel.n < n_max and not stop.set:
             # wait no longer than the silence still allowed: the loss is declared when it
             # runs out (to 1 us), not a poll later
             allowed = first_wait if self._fresh else silence
-            left = last_rx + allowed - clock()
+            left = self._last_rx + allowed - clock()
             msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
             t_rx = perf()
             if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
@@ -1077,7 +1095,7 @@ class HostLoop:
                 nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
                                       + ds.malformed + ds.unknown_type)
             if not msgs:
-                if clock() - last_rx >= allowed - 1e-6:
+                if clock() - self._last_rx >= allowed - 1e-6:
                     raise _Lost(f"no STATE from the device for {allowed:g} s")
                 continue
             used = False
@@ -1102,26 +1120,26 @@ class HostLoop:
                         x = math.nan          # _drive stops on it (non-finite position)
                     else:
                         self._resume(x)
-                        expect = seq
-                if expect >= 0:
-                    gap = (seq - expect) & _U32
+                        self._expect = seq
+                if self._expect >= 0:
+                    gap = (seq - self._expect) & _U32
                     if gap >= _HALF:
                         res.stale += 1            # duplicated or reordered: older
                         continue
-                    if gap and gap > (clock() - last_rx + silence) * rate + 2.0:
+                    if gap and gap > (clock() - self._last_rx + silence) * rate + 2.0:
                         res.implausible += 1      # further ahead than time allows
                         continue
                     res.missed += gap
                 # only a STATE used keeps the device alive: a host ignoring every STATE
                 # (stale, implausible) is as good as deaf, and loses it
-                last_rx = clock()
-                expect = (seq + 1) & _U32
+                self._last_rx = clock()
+                self._expect = (seq + 1) & _U32
                 used = True
                 yield msg, x, t_rx            # _drive answers it (or stops: no resume)
                 if tel.n >= n_max:
                     break
             if (not used and not stop.set
-                    and clock() - last_rx >= (first_wait if self._fresh else silence) - 1e-6):
+                    and clock() - self._last_rx >= (first_wait if self._fresh else silence) - 1e-6):
                 # frames came, but no STATE the loop could use for the silence allowed
                 raise _Lost(f"no usable STATE from the device for "
                             f"{first_wait if self._fresh else silence:g} s")

@@ -447,6 +447,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    loop: str = "compiled"
     plan: object = None
 
     def check(self) -> "RunOptions":
@@ -490,6 +491,9 @@ class RunOptions:
             raise ConfigError("transport 'serial' needs a port", key="--port")
         if tp == "inprocess" and not self.lockstep:
             raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+        if self.loop not in ("compiled", "python"):
+            raise ConfigError(f"unknown loop {self.loop!r}; valid: compiled, python",
+                              key="--loop")
         if self.telemetry is not None and os.path.splitext(self.telemetry)[1].lower() not in (
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
@@ -583,12 +587,15 @@ class LoopRun:
         Journal writer's ``lost_rows``, ``chunks``, ``events``, ``error``.
     journal : str or None
         Journal path (``.hst``).
+    loop : HostLoop or CompiledHostLoop
+        The loop that ran.
     """
 
     res: object
     mock_report: dict | None
     writer_info: dict | None
     journal: str | None
+    loop: object = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -660,6 +667,29 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       reconnect_time=float(opts.reconnect_time))
 
 
+class _CompileThread(threading.Thread):
+    """Compile the compiled loop (:func:`hapsim.daemon.fastloop.warm_up`) beside the
+    device's start-up; :meth:`finish` waits for it and re-raises its error."""
+
+    def __init__(self, engine) -> None:
+        super().__init__(name="hapsim-compile", daemon=True)
+        self.engine = engine
+        self.error: BaseException | None = None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            from hapsim.daemon.fastloop import warm_up
+            warm_up(self.engine)
+        except BaseException as exc:  # re-raised by finish() in the caller's thread
+            self.error = exc
+
+    def finish(self) -> None:
+        self.join()
+        if self.error is not None:
+            raise self.error
+
+
 def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     """Step 3: install the signal handlers, warm the kernels, open the device.
 
@@ -697,10 +727,14 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     rt = None
     mock = None
     transport, lockstep = opts.transport, opts.lockstep
+    warm = None
     try:
         limit_blas_threads(1)
         _warm_up(scene)
         engine = Engine(scene)
+        if opts.loop == "compiled" and transport in ("pty", "serial"):
+            # the compiled loop compiles while the device (the mock's child) starts
+            warm = _CompileThread(Engine(scene))
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -729,6 +763,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
+        if warm is not None:
+            warm.finish()
     except BaseException:
         if rt is not None:
             rt.__exit__(None, None, None)
@@ -766,7 +802,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     journal = None
     mock_report = None
     try:
-        loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        if opts.loop == "compiled":
+            from hapsim.daemon.fastloop import CompiledHostLoop
+            loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        else:
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         if telemetry:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
             writer = ChunkWriter(tel, journal, opts.telemetry_interval,
@@ -803,7 +843,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if opts.transport == "sim":
             mock_report["faults_injected"] = opts.plan.to_dict()["injected"]
             mock_report["fault_events"] = tr.device.events
-    return LoopRun(res, mock_report, writer_info, journal)
+    return LoopRun(res, mock_report, writer_info, journal, loop)
 
 
 def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | None:
@@ -913,6 +953,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     hello = res.hello
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
@@ -963,7 +1005,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
               reconnect: bool | None = None, lost_timeout: float | None = None,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
-              telemetry_interval: float = 0.05) -> dict:
+              telemetry_interval: float = 0.05, loop: str = "compiled") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1032,6 +1074,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked; elsewhere it is the Python loop) or the Python
+        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1061,7 +1107,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       rt_priority=rt_priority, faults=faults, fault_seed=fault_seed,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
-                      telemetry_interval=telemetry_interval).check()
+                      telemetry_interval=telemetry_interval, loop=loop).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
