@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import brentq
 
 from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_w, _polish, _roots_w, _scaled
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
@@ -415,6 +414,7 @@ def _circle_values(A, C):
             th = thetas[i]
         elif ga * gc < 0:
             try:
+                from scipy.optimize import brentq   # lazy: 0.5 s at start-up otherwise
                 th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
                             maxiter=200)
             except ValueError:  # scalar and vector rounding disagree on a tiny |g|

@@ -26,8 +26,9 @@ reference loop does (:meth:`HostLoop._device_states`, which reads through
 The per-sample body exists once, :func:`_sample`, used by the compiled stretch and by the
 samples Python hands over; it is the numba transcription of :meth:`HostLoop._drive`'s
 body, operation by operation, so forces and telemetry are bit-identical to the Python loop
-on the same device stream (``tests/test_compiled_loop.py``). Backlog: each STATE is
-answered in order, as in the Python loop.
+on the same device stream (``tests/test_compiled_loop.py``). Backlog
+(``LoopConfig.backlog``): with ``"newest"`` a clean STATE followed in the buffer by a newer
+one is skipped (counted, flagged on the next row), as the Python loop does within a read.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from numba import types
 
 import firmware_protocol as fp
 from hapsim.daemon.loop import HostLoop, _Lost, _safety_reason
-from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
@@ -63,16 +64,16 @@ _POLLIN, _POLLOUT, _POLLERR, _POLLHUP, _POLLNVAL = 0x1, 0x4, 0x8, 0x10, 0x20
 # iv: int64 state shared by Python and the compiled code
 I_K, I_N, I_WSUM, I_RAMP, I_RESTART, I_FAPPLIED, I_LATE, I_CLAMPED, I_PSAMPLES = range(9)
 I_LAST_SEQ, I_EXPECT, I_MISSED, I_FRAMES_OK, I_RB_LEN, I_NF_SEQ, I_NMAX, I_SYNC = range(9, 17)
-I_HIST, I_ERRNO, I_SAMPLES = 17, 18, 19
-N_IV = 20
+I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG = 17, 18, 19, 20, 21
+N_IV = 22
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
 N_FV = 11
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
- P_RL, P_SILENCE, P_POLL) = range(15)
-N_PV = 15
+ P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD) = range(17)
+N_PV = 17
 
 # return codes
 R_OK, R_NONFINITE, R_SAFETY, R_IOERR = 0, 1, 2, 3
@@ -108,6 +109,9 @@ def _crc_table() -> np.ndarray:
 _CRC = _crc_table()
 
 _jit = numba.njit(nogil=True, cache=True)
+# the functions that take the engine's kernel as an argument are compiled per kernel and
+# not cached: numba cannot load a cached function with a dispatcher-typed argument
+_jit_kernel = numba.njit(nogil=True)
 
 
 @_jit
@@ -203,7 +207,7 @@ def _write_all(fd, buf, n, pfd):
     return 0
 
 
-@_jit
+@_jit_kernel
 def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
             s_arr, ta_arr, late_arr, fl_arr, seq, time_us, status, force_seq, x, t_rx, fd,
             pkt, f8, u8, table, tx, pfd, ts):
@@ -291,8 +295,9 @@ def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x
     s_arr[sl] = seq
     ta_arr[sl] = (t_tx - t_rx) * 1e-3
     late_arr[sl] = lt
-    fl_arr[sl] = lt | rf | iv[I_RESTART] | (FLAG_CLAMPED if c else 0)
+    fl_arr[sl] = lt | rf | iv[I_RESTART] | (FLAG_CLAMPED if c else 0) | iv[I_SKIPFLAG]
     iv[I_RESTART] = 0
+    iv[I_SKIPFLAG] = 0
     iv[I_N] = i + 1
     if energy > fv[F_EMAX]:
         fv[F_EMAX] = energy
@@ -315,6 +320,28 @@ def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x
 
 
 @_jit
+def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
+    """Whether a complete frame in ``rb[a:n_rb]`` is an armed 1-axis STATE ahead of
+    ``seq`` by 1 .. ``ahead_max`` (:func:`hapsim.daemon.loop._newer_waiting`, on bytes)."""
+    b = a
+    for j in range(a, n_rb):
+        if rb[j] != 0:
+            continue
+        if j > b and j - b <= _MAX_FRAME - 1:
+            m = _cobs_decode(rb, b, j, scratch)
+            if (m == _STATE_PACKET and scratch[0] == 0x10 and _crc16(scratch, m, table) == 0
+                    and scratch[13] & 0x01):
+                s2 = np.int64(0)
+                for q in range(4):
+                    s2 |= np.int64(scratch[1 + q]) << (8 * q)
+                ahead = (s2 - seq) & _U32
+                if 0 < ahead < _HALF and ahead <= ahead_max:
+                    return True
+        b = j + 1
+    return False
+
+
+@_jit_kernel
 def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
              s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
              hist, hist_len):
@@ -327,6 +354,7 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
     poll_max = pv[P_POLL]
     rate = pv[P_RATE]
     sync_at = iv[I_N] + iv[I_SYNC]
+    t_read = _now_ns(ts)            # when the bytes in rb were read (the turnaround's start)
     while True:
         if stop[0] != 0:
             iv[I_RB_LEN] = n_rb
@@ -377,8 +405,8 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
             gap = (seq - expect) & _U32
             if gap >= _HALF:
                 break               # stale: Python counts it
-            t_rx = _now_ns(ts)
-            now = t_rx * 1e-9
+            t_rx = t_read
+            now = _now_ns(ts) * 1e-9
             if gap and gap > (now - fv[F_LAST_RX] + silence) * rate + 2.0:
                 break               # implausible: Python counts it
             iv[I_MISSED] += gap
@@ -392,6 +420,10 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
             iv[I_HIST] += 1
             a = z + 1
             handled = True
+            if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
+                iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
+                iv[I_SKIPFLAG] = FLAG_SKIPPED
+                continue
             code = _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, seq, tus, status,
                            fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts)
@@ -432,6 +464,7 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
             iv[I_RB_LEN] = n_rb
             return R_PORT
         got = _c_read(fd, rb.ctypes.data + n_rb, rb.size - n_rb)
+        t_read = _now_ns(ts)
         if got <= 0:
             iv[I_RB_LEN] = n_rb
             return R_PORT
@@ -521,6 +554,8 @@ class CompiledHostLoop(HostLoop):
         pv[P_RL] = tel.ring
         pv[P_SILENCE] = self._silence()
         pv[P_POLL] = min(0.1, pv[P_SILENCE])
+        pv[P_NEWEST] = 1.0 if cfg.backlog == "newest" else 0.0
+        pv[P_AHEAD] = pv[P_SILENCE] * float(cfg.rate_hz) + 2.0
         u8 = np.zeros(8, dtype=np.uint8)
         fd = self.transport._ser.fd if self.compiled else -1
         self._fast = {
@@ -553,7 +588,9 @@ class CompiledHostLoop(HostLoop):
         res.clamped += int(iv[I_CLAMPED])
         res.passivity_samples += int(iv[I_PSAMPLES])
         res.missed += int(iv[I_MISSED])
-        iv[I_LATE] = iv[I_CLAMPED] = iv[I_PSAMPLES] = iv[I_MISSED] = 0
+        res.skipped += int(iv[I_SKIPPED])
+        iv[I_LATE] = iv[I_CLAMPED] = iv[I_PSAMPLES] = iv[I_MISSED] = iv[I_SKIPPED] = 0
+        self._skip_flag = int(iv[I_SKIPFLAG])
         self._energy = float(fv[F_ENERGY])
         res.energy_max = float(fv[F_EMAX])
         res.energy_excess_max = float(fv[F_XMAX])
@@ -587,7 +624,7 @@ class CompiledHostLoop(HostLoop):
         fst = self._fast
         kernel, kargs, xs, fs, port, rec, out = fst["eng"]
         io = fst["io"]
-        fd = io[0]
+        fst["iv"][I_SKIPFLAG] = self._skip_flag
         return _sample(kernel, kargs, xs, fs, port, rec, out, fst["iv"], fst["fv"], fst["pv"],
                        fst["fh"], fst["win"], *fst["tel"], msg.seq, msg.time_us, msg.status,
                        msg.force_seq, float(x), t_rx, io[0], *io[1:])
@@ -663,6 +700,7 @@ class CompiledHostLoop(HostLoop):
                 dec._buf = b""
             kernel, kargs, xs, fs, port, rec, out = fst["eng"]
             while True:
+                iv[I_SKIPFLAG] = self._skip_flag
                 iv[I_EXPECT] = self._expect
                 fv[F_LAST_RX] = self._last_rx
                 code = _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, fst["pv"],

@@ -74,7 +74,8 @@ from itertools import chain
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
+from hapsim.daemon.realtime import sleep_until_ns
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
@@ -210,6 +211,12 @@ class LoopConfig:
         Wait for HELLO per attempt [s].
     ramp_samples : int
         After a recovery the force is scaled by ``k / ramp_samples`` for its first samples.
+    backlog : {"newest", "all"}
+        Device-clocked: when more than one STATE is waiting (a burst after a stall), answer
+        only the newest and count the others as ``skipped`` (``"newest"``, the default: the
+        device holds a fresh force at once instead of a queue of stale ones), or answer
+        every one in order (``"all"``). A STATE counts as newer when it is armed, has one
+        axis and is ahead by 1 .. ``silence * rate + 2`` samples.
     """
 
     rate_hz: float
@@ -236,6 +243,7 @@ class LoopConfig:
     backoff_max: float = 1.0
     attempt_timeout: float = 0.25
     ramp_samples: int = 50
+    backlog: str = "newest"
 
 
 @dataclass
@@ -261,6 +269,9 @@ class LoopResult:
         Host-clocked deadlines missed by more than one period.
     clamped : int
         Samples whose force the host clamped.
+    skipped : int
+        STATEs not answered because a newer one was waiting (backlog policy ``newest``);
+        the row answered after them has :data:`~hapsim.daemon.telemetry.FLAG_SKIPPED`.
     turnaround_us : dict
         ``p50``, ``p99``, ``p999``, ``max`` of STATE-read to FORCE-written [us].
     hello : Hello or None
@@ -342,6 +353,7 @@ class LoopResult:
     missed: int = 0
     overruns: int = 0
     clamped: int = 0
+    skipped: int = 0
     turnaround_us: dict = field(default_factory=dict)
     hello: object = None
     faults: list = field(default_factory=list)
@@ -434,6 +446,9 @@ class HostLoop:
         self._fresh = True          # next armed STATE (re)starts the scene at rest
         self._ramp = 0              # samples left in the force ramp after a recovery
         self._restart_flag = 0      # FLAG_LOST for the first row after a recovery
+        self._skip_flag = 0         # FLAG_SKIPPED for the next row (older STATEs skipped)
+        self._expect = -1           # next STATE seq expected (device-clocked source)
+        self._last_rx = 0.0         # clock time of the last STATE used [s]
         self._lost_since = None     # clock time of the current loss, None when healthy
         self._attempts = 0
         self._t0 = 0.0
@@ -1002,7 +1017,8 @@ class HostLoop:
                 s_arr[sl] = seq
                 ta_arr[sl] = (t_tx - t_rx) * 1e-3
                 late_arr[sl] = lt
-                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
+                self._skip_flag = 0
                 restart = 0
                 i += 1
                 tel.n = i
@@ -1080,6 +1096,8 @@ class HostLoop:
         # a device (re)starting after CONFIG gets state_timeout for its first STATE
         first_wait = max(silence, cfg.state_timeout)
         poll = min(0.1, silence)
+        newest = cfg.backlog == "newest"
+        ahead_max = silence * rate + 2.0
         self._last_rx = clock()
         ds = self._dstats
         nbad = self._nbad
@@ -1099,7 +1117,7 @@ class HostLoop:
                     raise _Lost(f"no STATE from the device for {allowed:g} s")
                 continue
             used = False
-            for msg in msgs:
+            for j, msg in enumerate(msgs):
                 tm = type(msg)
                 if tm is not State:
                     if self._note_other(msg):
@@ -1135,6 +1153,10 @@ class HostLoop:
                 self._last_rx = clock()
                 self._expect = (seq + 1) & _U32
                 used = True
+                if newest and not self._fresh and _newer_waiting(msgs, j, seq, ahead_max):
+                    res.skipped += 1              # backlog: a newer STATE is waiting
+                    self._skip_flag = FLAG_SKIPPED
+                    continue
                 yield msg, x, t_rx            # _drive answers it (or stops: no resume)
                 if tel.n >= n_max:
                     break
@@ -1241,11 +1263,10 @@ class HostLoop:
                 while remaining > 0:
                     sleep(max(remaining, 1000) * 1e-9)
                     remaining = deadline - mono_ns()
-            else:
-                if remaining > 600_000:
-                    sleep((remaining - 400_000) * 1e-9)
-                while mono_ns() < deadline:
-                    take(receive(0.0))
+            elif remaining > 0:
+                # an absolute-deadline sleep, no spin: a SCHED_FIFO thread spinning to each
+                # deadline is throttled by the kernel (sched_rt_runtime_us) under load
+                sleep_until_ns(deadline)
             take(receive(0.0))
             if stop.set:
                 break
@@ -1296,6 +1317,35 @@ def _force_seq_late(seq: int, force_seq: int, status: int, d: int,
     if status & fp.STATUS_FORCE_APPLIED or not flags_applied:
         return (seq - force_seq) & _U32 != d
     return True
+
+
+def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:
+    """Whether a STATE newer than ``seq`` waits after ``msgs[j]`` (the backlog policy).
+
+    Parameters
+    ----------
+    msgs : list
+        Messages of one read, in arrival order.
+    j : int
+        Index of the STATE ``seq`` in it.
+    seq : int
+        Its sequence number (u32).
+    ahead_max : float
+        Most samples a newer STATE may be ahead (``silence * rate + 2``: a STATE further
+        ahead is implausible and does not count).
+
+    Returns
+    -------
+    bool
+        True when a later armed 1-axis STATE is ahead by 1 .. ``ahead_max``.
+    """
+    State = fp.State
+    for m in msgs[j + 1:]:
+        if type(m) is State and len(m.position) == 1 and m.status & fp.STATUS_ARMED:
+            ahead = (m.seq - seq) & _U32
+            if 0 < ahead < _HALF and ahead <= ahead_max:
+                return True
+    return False
 
 
 def _bad_count(ds) -> int:

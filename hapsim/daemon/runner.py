@@ -955,12 +955,14 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
         "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
+        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
+        "armed_monotonic_s": getattr(run.loop, "_t0", None),
         "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
-        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
         "scheduling": conn.rt.note,
@@ -1236,7 +1238,8 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
                  f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
-                 f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
+                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
+                 f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}
