@@ -222,7 +222,7 @@ def pty_run(kind: str, rate: float, seconds: float, exe: str, tmp: Path) -> dict
         else:
             tr = SerialTransport(path)
             os.close(slave)
-            dev = subprocess.Popen([exe, "device", str(master), repr(rate), str(3 * n + 1000),
+            dev = subprocess.Popen([exe, "device", str(master), repr(rate), str(20 * n + 1000),
                                     str(rtt_file), "proto"], pass_fds=[master],
                                    stdout=subprocess.PIPE, text=True)
             os.close(master)
@@ -232,11 +232,21 @@ def pty_run(kind: str, rate: float, seconds: float, exe: str, tmp: Path) -> dict
                                       position_bound=0.1)
             cls = CompiledHostLoop if kind == "compiled" else loop_mod.HostLoop
             loop = cls(Engine(scene), tr, cfg, Telemetry(n))
+            error = None
             try:
                 res = loop.run()
+            except Exception as exc:          # a failed run is a figure, not a crash
+                error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+                res = loop.result
+                res.samples = loop.tel.n
             finally:
                 tr.close()
-            dout = dev.communicate(timeout=30)[0]
+            try:                              # the device ends at the loop's STOP
+                dout = dev.communicate(timeout=10)[0]
+            except subprocess.TimeoutExpired:
+                dev.terminate()
+                dout = dev.communicate(timeout=10)[0]
+            out["error"] = error
             out.update(samples=res.samples, skipped=res.skipped, host_late=res.late,
                        stop_reason=res.stop_reason, safety_stop=res.safety_stop,
                        compiled_samples=getattr(loop, "compiled_samples", 0),
@@ -244,8 +254,10 @@ def pty_run(kind: str, rate: float, seconds: float, exe: str, tmp: Path) -> dict
     finally:
         rt.__exit__(None, None, None)
     words = dout.split()
-    out["late"], out["ticks"] = int(words[1]), int(words[5])
-    out["round_trip_us"] = _pct(np.fromfile(rtt_file)[20:])
+    out["late"], out["ticks"] = (int(words[1]), int(words[5])) if len(words) > 5 else (0, 0)
+    print(f"  {kind} at {rate:g} Hz: {out['late']} late of {out['ticks']} ticks"
+          + (f"; {out['error']}" if out.get("error") else ""), file=sys.stderr, flush=True)
+    out["round_trip_us"] = _pct(np.fromfile(rtt_file)[20:] if rtt_file.exists() else [])
     out["scheduling"] = rt.note
     return out
 
@@ -271,8 +283,11 @@ def _x(a, b) -> str:
 
 def pty_main(args) -> int:
     """The floor / Python / compiled comparison (module notes)."""
+    from hapsim.daemon.fastloop import warm_up
+
     tmp = Path(tempfile.mkdtemp(prefix="bench_loop_"))
     exe = build_device(tmp)
+    warm_up(Engine(load_scene(WALL)))     # as hapsim run does before its loop
     kinds = ("floor", "python", "compiled")
     print("command: " + " ".join([sys.executable, *sys.argv]))
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs; device: C (cc -O2), "
@@ -302,6 +317,7 @@ def pty_main(args) -> int:
             c = f"{r['late']}/{r['ticks']}"
             if k != "floor":
                 c += f" ({r['skipped']}, {r['host_late']})" + (" STOP" if r["safety_stop"] else "")
+                c += " ERR" if r.get("error") else ""
             cells.append(f"{c:>24}")
         print(f"{rate:9g} " + " ".join(cells) + f" {_x(row['compiled']['late'], max(row['floor']['late'], 1)):>13}")
     if not args.no_startup:
