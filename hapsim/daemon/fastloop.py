@@ -319,6 +319,17 @@ def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x
     return R_OK
 
 
+@_jit_kernel
+def _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, x):
+    """A STATE the backlog policy skips: the scene steps with its position (the next
+    velocity spans one period), nothing is sent or logged (as :meth:`HostLoop._drive`)."""
+    if math.isfinite(x):
+        xs[port] = x
+        kernel(1, *kargs, rec, out, 0)
+        iv[I_SAMPLES] += 1
+        fv[F_XPREV] = x
+
+
 @_jit
 def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
     """Whether a complete frame in ``rb[a:n_rb]`` is an armed 1-axis STATE ahead of
@@ -423,6 +434,7 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
             if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
+                _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, x)
                 continue
             code = _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, seq, tus, status,
@@ -642,6 +654,13 @@ class CompiledHostLoop(HostLoop):
             self._setup(first[1])
             self._fast["iv"][I_NMAX] = n_max
             for msg, x, t_rx in _chain1(first, states):
+                if t_rx < 0:                # skipped (backlog): the scene steps only
+                    self._fast["iv"][I_SKIPFLAG] = self._skip_flag
+                    kernel, kargs, xs, fs, port, rec, out = self._fast["eng"]
+                    _skip_step(kernel, kargs, xs, port, rec, out, self._fast["iv"],
+                               self._fast["fv"], float(x))
+                    self._publish()
+                    continue
                 code = self._one(msg, x, t_rx)
                 self._publish()
                 if self._finish(code, msg.seq):
@@ -789,6 +808,8 @@ def warm_up(engine) -> float:
                  np.zeros(_HIST, dtype=np.int64))
         _sample(*eng, iv, fv, pv, np.zeros(3), np.zeros(4, dtype=np.int8), *tel, 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
+        kernel, kargs, xs, _, port, rec, out = eng
+        _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, 0.0)
     finally:
         os.close(r)
         os.close(w)

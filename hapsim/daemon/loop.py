@@ -895,7 +895,8 @@ class HostLoop:
             Rows to reach (the sources stop there).
         states : generator
             Yields ``(msg, x, t_rx)`` per sample to answer: the STATE, its position [m]
-            and ``perf_counter_ns()`` when it was read. It (re)starts the scene
+            and ``perf_counter_ns()`` when it was read; ``t_rx = -1`` for a STATE the
+            backlog policy skips (the engine steps with it, nothing is sent or logged). It (re)starts the scene
             (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
             at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
         """
@@ -957,6 +958,13 @@ class HostLoop:
             k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
+                if t_rx < 0:
+                    # a skipped STATE (backlog policy): not answered, but the scene takes
+                    # its position, so that the next velocity spans one period
+                    if isfinite(x):
+                        eng.port_step(x)
+                        x_prev = x
+                    continue
                 seq = msg.seq
                 lt = 0
                 st = msg.status
@@ -1133,6 +1141,7 @@ class HostLoop:
                         continue
                     raise _Lost("the device reports itself disarmed (reset?)")
                 x = msg.position[0]
+                resumes = self._fresh
                 if self._fresh:
                     if not isfinite(x):
                         x = math.nan          # _drive stops on it (non-finite position)
@@ -1153,9 +1162,10 @@ class HostLoop:
                 self._last_rx = clock()
                 self._expect = (seq + 1) & _U32
                 used = True
-                if newest and not self._fresh and _newer_waiting(msgs, j, seq, ahead_max):
+                if newest and not resumes and _newer_waiting(msgs, j, seq, ahead_max):
                     res.skipped += 1              # backlog: a newer STATE is waiting
                     self._skip_flag = FLAG_SKIPPED
+                    yield msg, x, -1              # not answered; the scene still steps
                     continue
                 yield msg, x, t_rx            # _drive answers it (or stops: no resume)
                 if tel.n >= n_max:
