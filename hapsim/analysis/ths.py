@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import brentq
 
 from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
@@ -440,7 +441,6 @@ def _circle_values(A, C, e: int):
             th = thetas[i]
         else:
             try:
-                from scipy.optimize import brentq   # lazy: 0.5 s at start-up otherwise
                 th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
                             maxiter=200)
             except ValueError:  # scalar and vector rounding disagree on a tiny |g|
