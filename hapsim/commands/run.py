@@ -145,6 +145,15 @@ def register(sub) -> None:
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
+    p.add_argument("--osc", type=int, metavar="PORT",
+                   help="take live changes over OSC on localhost:PORT (0: any free port; "
+                        "addresses: hapsim play --help); each is checked, ramped, journaled")
+    p.add_argument("--osc-ramp", type=float, default=0.05, metavar="S",
+                   help="ramp time of every OSC change [s] (default 0.05)")
+    p.add_argument("--sound", choices=("auto", "jack", "sounddevice"),
+                   help="play the scene's audio section live (JACK, else PortAudio with "
+                        "auto); the model stays in the loop, the frames go to the server")
+    p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -205,6 +214,9 @@ def run(args) -> int:
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
+    if args.rate is not None:  # the scene's rate range (hapsim.analysis.loop.RATE_RANGE)
+        from hapsim.analysis.loop import RATE_RANGE, check_range
+        check_range(args.rate, *RATE_RANGE, "--rate", "Hz")
     if args.lost_timeout is not None and not (math.isfinite(args.lost_timeout)
                                               and args.lost_timeout > 0):
         raise ConfigError(f"must be a positive number [s], got {args.lost_timeout}",
@@ -240,7 +252,9 @@ def run(args) -> int:
                     reconnect=False if args.no_reconnect else None,
                     lost_timeout=args.lost_timeout,
                     reconnect_attempts=args.reconnect_attempts,
-                    reconnect_time=args.reconnect_time, loop=args.loop)
+                    reconnect_time=args.reconnect_time, osc=args.osc,
+                    osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                    loop=args.loop)
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()

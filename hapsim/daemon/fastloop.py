@@ -642,6 +642,8 @@ class CompiledHostLoop(HostLoop):
                        msg.force_seq, float(x), t_rx, io[0], *io[1:])
 
     def _device_clocked_stretch(self, n_max: int) -> None:
+        if self.poll is not None:   # a per-sample Python hook (live changes): Python's loop
+            self.compiled = False
         if not self.compiled:
             return super()._device_clocked_stretch(n_max)
         states = self._device_states(n_max)
