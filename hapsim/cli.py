@@ -28,7 +28,7 @@ from hapsim.errors import ConfigError, HapsimError
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
-            "run", "mock", "bench", "advise")
+            "run", "mock", "bench", "advise", "identify")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -309,16 +309,18 @@ class _Model:
         return S
 
 
-def _fit_candidate(x, u, T, hold, start, seg):
+def _fit_candidate(x, u, T, hold, start, seg, nfev=200, start_p=None):
     from scipy.optimize import least_squares
     mod = _Model(x, u, T, hold, seg)
     m0, b0, fcp, fcn = start
     xs, vs = mod.start_states()
     p0 = np.concatenate([[math.log(m0), b0] + ([fcp, fcn] if mod.coulomb else []), xs, vs])
+    if start_p is not None:
+        p0 = np.asarray(start_p, float)
     try:
         r = least_squares(mod.residual, p0, method="trf", x_scale="jac",
                           jac_sparsity=mod.sparsity(), xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                          max_nfev=200)
+                          max_nfev=nfev)
     except (ValueError, FloatingPointError):
         return mod, None
     if not np.all(np.isfinite(r.fun)):
@@ -436,23 +438,27 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     cands = []
     d0, h0, m0 = _correlation(x, f, T, max_delay)
     inv = {v: k for k, v in _HOLDS.items()}
-    order = [("zoh", dd) for dd in range(max(d0 - 1, 0), min(d0 + 2, int(max_delay) + 1))]
-    order += [(h, d0) for h in holds if h != "zoh"]
-    for hname, d in order:
-        if hname not in holds:
-            continue
+    # every delay and hold briefly, then the two best to convergence
+    quick = []
+    for hname in holds:
+        for d in range(int(max_delay) + 1):
+            u = applied_force(f, d, late)
+            mod, res = _fit_candidate(x, u, T, _HOLDS[hname], (m0, 1.0, 0.05, 0.05), seg, 12)
+            if res is not None:
+                quick.append((float(res.cost), hname, d, res))
+    quick.sort(key=lambda c: c[0])
+    for _, hname, d, r0 in quick[:2]:
         u = applied_force(f, d, late)
-        best_c = None
-        for start in ((m0, 1.0, 0.05, 0.05),):
-            mod, res = _fit_candidate(x, u, T, _HOLDS[hname], start, seg)
-            if res is not None and (best_c is None or res.cost < best_c[1].cost):
-                best_c = (mod, res)
-        if best_c is not None:
-            cands.append({"hold": hname, "delay": d, "cost": float(best_c[1].cost),
-                          "_mod": best_c[0], "_res": best_c[1]})
+        mod, res = _fit_candidate(x, u, T, _HOLDS[hname], (m0, 1.0, 0.05, 0.05), seg,
+                                  start_p=r0.x)
+        if res is not None:
+            cands.append({"hold": hname, "delay": d, "cost": float(res.cost),
+                          "_mod": mod, "_res": res})
+    for c, hname, d, r0 in quick[2:]:
+        cands.append({"hold": hname, "delay": d, "cost": c, "_mod": None, "_res": r0})
     if not cands:
         raise ConfigError("no model could be fitted to the record", key="position")
-    best = min(cands, key=lambda c: c["cost"])
+    best = min((c for c in cands if c["_mod"] is not None), key=lambda c: c["cost"])
     crit = chi2.ppf(LEVEL, 1)
     s_best = max(best["cost"], 0.5 * n * POSITION_FLOOR ** 2)
 

@@ -228,7 +228,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     Returns
     -------
     dict
-        ``position``, ``force``, ``late``, ``time`` (arrays), ``period`` [s], ``loop``
+        ``position``, ``force``, ``late``, ``time``, ``seq`` (arrays), ``period`` [s], ``loop``
         (stop reason, safety stop, late, clamped, samples, transport).
 
     Raises
@@ -304,6 +304,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     cols = tel.columns()
     return {"position": cols["position"].copy(), "force": cols["force"].copy(),
             "late": cols["late"].astype(bool), "time": cols["time"].copy(),
+            "seq": cols["seq"].copy(),
             "period": 1.0 / rate_hz,
             "loop": {"samples": int(res.samples), "requested": n,
                      "stop_reason": res.stop_reason, "safety_stop": bool(res.safety_stop),
