@@ -23,7 +23,8 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
     fit : hapsim.analysis.device_fit.DeviceFit
         The identification.
     force_limit : float
-        Force limit to write [N].
+        The excitation's force limit [N] (named in a comment; the device's own limit is
+        not identified, so the file leaves it to the scene).
     hand : bool
         The record was taken with a hand on the handle (mass and friction are the THS's).
     source : str
@@ -55,7 +56,8 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         + (f"{d0}..{d1} fit as well" if d1 > d0 else "unambiguous"),
         f"  hold: {dev.hold}                    # "
         + ("the other hold fits worse" if fit.hold_certain else "the other hold fits as well"),
-        f"  force_limit: {_num(dev.force_limit)}",
+        f"  # force_limit: not identified (the excitation stayed within {_num(force_limit)} "
+        "N); 'hapsim run --device' keeps the scene's",
         f"  coulomb: {_num(dev.coulomb)}         # [N] {iv(fit.coulomb)}; +: "
         f"{fit.coulomb_pos.value:.4g} {iv(fit.coulomb_pos)}, -: {fit.coulomb_neg.value:.4g} "
         f"{iv(fit.coulomb_neg)}",

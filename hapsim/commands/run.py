@@ -141,6 +141,9 @@ def register(sub) -> None:
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
+    p.add_argument("--device", metavar="FILE.yaml",
+                   help="device section from a file (e.g. written by 'hapsim identify "
+                        "--out'); replaces the scene's")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -215,6 +218,14 @@ def run(args) -> int:
         from hapsim.daemon.faults import parse_faults
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
     scene = load_scene(args.scene)
+    if getattr(args, "device", None):
+        import dataclasses
+
+        from hapsim.device_file import load_device
+        dev = load_device(args.device)
+        if dev.force_limit == math.inf and scene.device is not None:   # not in the file
+            dev = dataclasses.replace(dev, force_limit=scene.device.force_limit)
+        scene = dataclasses.replace(scene, device=dev)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
