@@ -45,8 +45,9 @@ def _psi_phi1(y):
 
 
 @_jit
-def simulate_device(u, mass, friction, fc_pos, fc_neg, seg_len, xs, vs, period, hold, out):
-    """Positions of the device model driven by the applied forces ``u``.
+def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, period, hold,
+                    out):
+    """Positions of the device model driven by the applied forces ``u``, per stretch.
 
     Parameters
     ----------
@@ -55,23 +56,22 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, seg_len, xs, vs, period, 
     mass : float
         Moving mass m [kg], > 0.
     friction : float
-        Viscous friction b0 [N s/m], >= 0 (a negative value is integrated as given).
+        Viscous friction b0 [N s/m].
     fc_pos, fc_neg : float
         Coulomb friction [N] while moving in the + and - direction (zoh only).
-    seg_len : int > 0
-        The record is simulated in segments of this many samples (multiple shooting:
-        H. G. Bock & K. J. Plitt, IFAC 1984), segment ``j`` starting at sample
-        ``j seg_len`` from position ``xs[j]`` [m] and velocity ``vs[j]`` [m/s].
-    xs, vs : ndarray of float64, shape (ceil(n / seg_len),)
-        Segment initial states.
+    starts, ends : ndarray of int64, shape (s,)
+        Stretch ``j`` covers samples ``starts[j] <= k < ends[j]`` and starts from position
+        ``xs[j]`` [m] and velocity ``vs[j]`` [m/s] (multiple shooting: H. G. Bock &
+        K. J. Plitt, IFAC 1984).
+    xs, vs : ndarray of float64, shape (s,)
+        Stretch initial states.
     period : float
         Sample period T [s].
     hold : int
         0: zero-order hold (exact), 1: the paper's idealised sampled image.
     out : ndarray of float64, shape (n,)
-        Filled with ``x[k]`` [m], the position at sample ``k`` (before ``u[k]`` acts).
+        Filled with ``x[k]`` [m] on the stretches' samples (untouched elsewhere).
     """
-    n = u.shape[0]
     T = period
     m = mass
     y = friction * T / m
@@ -81,42 +81,98 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, seg_len, xs, vs, period, 
     cxu = T * T / m * phi1
     cvu = T / m * psi
     cu = T * T / m * psi
-    seg = seg_len
-    x = 0.0
-    v = 0.0
-    xp = 0.0
-    for k in range(n):
-        if k % seg == 0:
-            j = k // seg
-            x = xs[j]
-            v = vs[j]
-            xp = x - v * T
-        out[k] = x
-        f = u[k]
-        if hold == 0:
-            fc = 0.0
-            if v > 0.0:
-                fc = -fc_pos
-            elif v < 0.0:
-                fc = fc_neg
-            elif f > fc_pos:
-                fc = -fc_pos
-            elif f < -fc_neg:
-                fc = fc_neg
+    for j in range(starts.shape[0]):
+        x = xs[j]
+        v = vs[j]
+        xp = x - v * T
+        for k in range(starts[j], ends[j]):
+            out[k] = x
+            f = u[k]
+            if hold == 0:
+                fc = 0.0
+                if v > 0.0:
+                    fc = -fc_pos
+                elif v < 0.0:
+                    fc = fc_neg
+                elif f > fc_pos:
+                    fc = -fc_pos
+                elif f < -fc_neg:
+                    fc = fc_neg
+                else:
+                    continue                # stuck: the force cannot break it loose
+                ft = f + fc
+                vn = a * v + cvu * ft
+                xn = x + cxv * v + cxu * ft
+                if v != 0.0 and vn * v < 0.0:
+                    lim = fc_pos if v > 0.0 else fc_neg
+                    if abs(f) <= lim:
+                        vn = 0.0
+                x = xn
+                v = vn
             else:
-                continue                    # stuck: the force cannot break it loose
-            ft = f + fc
-            vn = a * v + cvu * ft
-            xn = x + cxv * v + cxu * ft
-            if v != 0.0 and vn * v < 0.0:
-                lim = fc_pos if v > 0.0 else fc_neg
-                if abs(f) <= lim:
-                    vn = 0.0
-            x = xn
-            v = vn
-        else:
-            xn = (1.0 + a) * x - a * xp + cu * f
-            xp = x
-            x = xn
+                xn = (1.0 + a) * x - a * xp + cu * f
+                xp = x
+                x = xn
 
 
+@_jit
+def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
+    """Responses of the linear device model restarted at the start of each stretch.
+
+    Within a stretch the device moves one way, so Coulomb friction is a constant force and
+    the model is linear: the position is ``yu + x_s + v_s g + F_c c`` with ``yu`` the
+    response to the applied forces from rest at 0, ``g`` the response to a unit initial
+    velocity [m per m/s], ``c`` the response to a unit constant force [m/N] (zero initial
+    state), each restarted at every stretch start.
+
+    Parameters
+    ----------
+    u : ndarray of float64, shape (n,)
+        Applied force per period [N].
+    starts, ends : ndarray of int64, shape (s,)
+        Stretch ``j`` covers samples ``starts[j] <= k < ends[j]``.
+    mass, friction, period : float
+        m [kg], b0 [N s/m], T [s].
+    hold : int
+        0 exact ZOH, 1 the idealised image (Florens et al. eq. (4)).
+    yu, g, c : ndarray of float64, shape (n,)
+        Filled on the stretches' samples (left untouched elsewhere).
+    """
+    T = period
+    m = mass
+    y = friction * T / m
+    a = math.exp(-y)
+    psi, phi1 = _psi_phi1(y)
+    cxv = T * psi
+    cxu = T * T / m * phi1
+    cvu = T / m * psi
+    cu = T * T / m * psi
+    for j in range(starts.shape[0]):
+        x1 = 0.0
+        v1 = 0.0
+        x2 = 0.0
+        v2 = 1.0
+        x3 = 0.0
+        v3 = 0.0
+        p1 = 0.0
+        p2 = -T
+        p3 = 0.0
+        for k in range(starts[j], ends[j]):
+            yu[k] = x1
+            g[k] = x2
+            c[k] = x3
+            f = u[k]
+            if hold == 0:
+                x1, v1 = x1 + cxv * v1 + cxu * f, a * v1 + cvu * f
+                x2, v2 = x2 + cxv * v2, a * v2
+                x3, v3 = x3 + cxv * v3 + cxu, a * v3 + cvu
+            else:
+                n1 = (1.0 + a) * x1 - a * p1 + cu * f
+                p1 = x1
+                x1 = n1
+                n2 = (1.0 + a) * x2 - a * p2
+                p2 = x2
+                x2 = n2
+                n3 = (1.0 + a) * x3 - a * p3 + cu
+                p3 = x3
+                x3 = n3
