@@ -36,7 +36,7 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         A YAML document with one key, ``device``, that any scene's device section can
         be replaced by (:func:`load_device`, ``hapsim run --device``).
     """
-    lv = int(round(fit.level * 100))
+    lv = f"{fit.level * 100:g}"
 
     def iv(e, scale=1.0, unit=""):
         return f"[{e.lo * scale:.4g}, {e.hi * scale:.4g}]{unit}"

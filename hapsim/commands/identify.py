@@ -13,7 +13,7 @@ _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
 on: the moving mass m [kg], the viscous friction b0 [N s/m], the Coulomb friction fc [N]
 (each direction), the delay d [samples], whether the force is held (zero-order hold) or
-not, the encoder quantum and the sensor noise -- each with a 99 % confidence interval, the
+not, the encoder quantum and the sensor noise -- each with a 99.9 % confidence interval, the
 fit's residual and a verdict on whether the mass-friction model explains the data.
 
 The excitation is a small force (a pseudo-random binary sequence plus slow constant-force
