@@ -419,7 +419,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
               reconnect: bool | None = None, lost_timeout: float | None = None,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
-              telemetry_interval: float = 0.05) -> dict:
+              telemetry_interval: float = 0.05, driver: str | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -488,6 +488,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
 
     Returns
     -------
@@ -529,6 +534,14 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     if not plan.empty and transport not in ("pty", "sim"):
         raise ConfigError("faults are injected by the mock: use the embedded mock (no --port) "
                           "or 'hapsim mock --faults' behind --port", key="--faults")
+    if driver not in (None, "framed"):
+        from hapsim.drivers import get_driver
+        get_driver(driver)                      # unknown name: ConfigError before any work
+        if not plan.empty:
+            raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                              "has none", key="--faults")
+        host_clocked = True                     # the protocols answer packets: no clock
+        lockstep = lockstep or port is None     # the driver mock is paced by the host
     if reconnect is None:
         reconnect = not lockstep
     if transport == "serial" and not port:
@@ -602,7 +615,19 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                          reconnect_time=float(reconnect_time))
         rt = RealtimePriority(rt_priority if transport in ("pty", "serial") else 0)
         rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if transport == "inprocess":
+        if driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(driver)
+            if port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(driver, dev, scene.excitation, scene.rate_hz,
+                                              seed=seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, port, delay=dev.delay)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=seed, base_dir=base_dir)

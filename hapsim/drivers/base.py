@@ -1,0 +1,49 @@
+"""The small interface every driver implements (see :mod:`hapsim.drivers`)."""
+
+from __future__ import annotations
+
+__all__ = ["Driver"]
+
+
+class Driver:
+    """Base class of the drivers: serial settings, units and codec of one device.
+
+    Attributes
+    ----------
+    name : str
+        ``--driver`` name.
+    baud : int
+        Baud rate.
+    rtscts : bool
+        Hardware flow control.
+    position_scale : float
+        Position resolution [m/count] (or [rad/count]).
+    force_scale : float
+        Force resolution [N/count] (or [N m/count]).
+    force_limit : float
+        Largest force the protocol can carry [N].
+    native_rate_hz : float
+        Rate the device is usually run at [Hz].
+    device_id : int
+        Reported as HELLO.device_id.
+    limits : str
+        What the protocol cannot do, for ``--help`` and the README.
+    """
+
+    name = ""
+    baud = 115200
+    rtscts = False
+    position_scale = 0.0
+    force_scale = 0.0
+    force_limit = 0.0
+    native_rate_hz = 1000.0
+    device_id = 0
+    limits = ""
+
+    def encode_force(self, force: float) -> bytes:
+        """Bytes commanding ``force`` [N] on the driven axis (zero on the others)."""
+        raise NotImplementedError
+
+    def decoder(self):
+        """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""
+        raise NotImplementedError

@@ -1,0 +1,167 @@
+"""Drivers: FireFader bytes (published layout), hostile streams, closed loop via its mock."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hapsim.drivers import get_driver
+from hapsim.drivers import firefader as ff
+from hapsim.drivers.mock import FireFaderDevice
+from hapsim.errors import ConfigError
+from hapsim.scene import Device, Excitation
+
+
+# ------------------------------------------------------------------ byte-exact layouts
+
+def test_firefader_host_packet_layout():
+    """[127, fA, fB], forces as two's-complement signed bytes clamped to -127..126."""
+    assert ff.encode_packet(10, -5) == bytes([127, 10, 251])
+    assert ff.encode_packet(126, -127) == bytes([127, 0x7E, 0x81])
+    assert ff.encode_packet(500, -500) == bytes([127, 126, 129])       # clamped
+    # the driver keeps to the symmetric limit: -126 counts at most
+    assert get_driver("firefader").encode_force(-100.0) == bytes([127, 130, 0])
+    drv = get_driver("firefader")
+    assert drv.encode_force(0.0) == bytes([127, 0, 0])
+    # 1.56 N is 127 counts, which the protocol clamps to 126; 0.78 N is 63.5 -> 64
+    assert drv.encode_force(1.56) == bytes([127, 126, 0])
+    assert drv.encode_force(-0.78) == bytes([127, (-64) & 0xFF, 0])
+    assert get_driver("firefader", axis=1).encode_force(0.1) == bytes([127, 0, 8])
+    for bad in (math.nan, math.inf, -math.inf):
+        assert drv.encode_force(bad) == bytes([127, 0, 0])
+
+
+def test_firefader_device_record_layout():
+    """[255, pA, pB, 4 more], values 0..254: pA is the driven fader, from the centre 127
+    at 0.39 mm per count."""
+    assert ff.encode_record(0, 254, (1, 2, 3, 4)) == bytes([255, 0, 254, 1, 2, 3, 4])
+    with pytest.raises(ValueError):
+        ff.encode_record(255, 0)
+    dec = get_driver("firefader").decoder()
+    xs = dec.feed(bytes([255, 127, 3, 0, 0, 0, 0, 255, 137, 3, 0, 0, 0, 0]))
+    assert xs == [0.0, pytest.approx(10 * 0.00039)]
+    dec_b = get_driver("firefader", axis=1).decoder()
+    assert dec_b.feed(bytes([255, 0, 117, 9, 9, 9, 9])) == [pytest.approx(-10 * 0.00039)]
+
+
+def test_unknown_driver_lists_choices():
+    with pytest.raises(ConfigError, match="firefader"):
+        get_driver("haply")
+
+
+# ------------------------------------------------------------------ hostile streams
+
+def _hostile(rng, good: list) -> tuple:
+    """Interleave good frames with garbage, truncated frames and lost start bytes;
+    return the stream and the frames left intact."""
+    out = bytearray()
+    intact = []
+    for fr in good:
+        r = rng.random()
+        if r < 0.2:
+            out += bytes(rng.integers(0, 256, rng.integers(1, 12)).astype(np.uint8))
+        if r < 0.1:
+            out += fr[:rng.integers(1, len(fr))]          # truncated
+        if 0.1 <= r < 0.15:
+            out += fr[1:]                                   # lost start byte
+            continue
+        out += fr
+        intact.append(fr)
+    return bytes(out), intact
+
+
+def test_record_decoder_hostile_stream_resyncs():
+    """Garbage, truncated records and lost start bytes: every value decoded is in
+    0..254, every position within the travel, and no intact record after a start byte is
+    lost (garbage may only add records, never drop a good one)."""
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        good = [ff.encode_record(*rng.integers(0, 255, 2), tuple(rng.integers(0, 255, 4)))
+                for _ in range(200)]
+        data, intact = _hostile(rng, good)
+        dec = ff.RecordDecoder()
+        recs = []
+        cuts = np.sort(rng.integers(0, len(data), 20))
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(data)]):   # split anywhere
+            recs += dec.feed(data[a:b])
+        assert all(0 <= v <= 254 for r in recs for v in r)
+        # each intact record appears, in order (its own start byte resynchronises)
+        it = iter(recs)
+        assert all(any(r == tuple(g[1:]) for r in it) for g in intact), trial
+        assert dec.stats["truncated"] > 0 and dec.stats["skipped"] > 0
+        drv = ff.FireFader()
+        xs = drv.decoder().feed(data)
+        assert all(abs(x) <= 127 * ff.METRES_PER_COUNT + 1e-12 for x in xs)
+
+
+def test_device_never_applies_a_force_over_its_limit():
+    """Random bytes, truncated and corrupted packets at the mock device: every packet
+    decoded is in -127..126 (a -128 byte is an error, a 127 a new packet) and every force
+    the device applies is within its limit."""
+    rng = np.random.default_rng(11)
+    dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.5)
+    mock = FireFaderDevice(dev, 500.0, Excitation())
+    good = [ff.encode_packet(*rng.integers(-127, 127, 2)) for _ in range(500)]
+    data, _ = _hostile(rng, good)
+    data += bytes([127, 5, 0x80, 1, 127, 3])            # a -128 force byte, a truncation
+    data += bytes(rng.integers(0, 256, 5000).astype(np.uint8))
+    out = mock.feed(data)
+    assert mock.decoder.stats["out_of_range"] > 0 and mock.decoder.stats["truncated"] > 0
+    assert max(abs(f) for f in mock.applied) <= 0.5
+    assert len(out) == 7 * len(mock.applied)
+    recs = ff.RecordDecoder().feed(out)
+    assert len(recs) == len(mock.applied) and all(0 <= r[0] <= 254 for r in recs)
+
+
+def test_host_force_bytes_never_leave_the_protocol_range():
+    """Whatever float the loop hands the driver (huge, tiny, NaN), the packet is 3 bytes
+    whose force bytes decode to -127..126: the device never sees a start byte or -128."""
+    drv = ff.FireFader(full_scale=1.0)
+    rng = np.random.default_rng(3)
+    vals = np.concatenate([rng.normal(0, 10, 2000), [np.nan, np.inf, -np.inf, 1e300, -1e300]])
+    dec = ff.PacketDecoder()
+    for v in vals:
+        pkt = drv.encode_force(float(v))
+        assert len(pkt) == 3 and pkt[0] == 127 and 127 not in pkt[1:] and 0x80 not in pkt[1:]
+        (a, b), = dec.feed(pkt)
+        assert -127 <= a <= 126 and b == 0
+        assert abs(a * drv.force_scale) <= drv.force_limit + 1e-12
+
+
+# ------------------------------------------------------------------ closed loop
+
+def test_firefader_closed_loop_through_its_mock(tmp_path):
+    """hapsim run --driver firefader on the FireFader mock (pty, bytes): the telemetry is
+    exactly the THS closed through the protocol's two quantisers (an independent
+    re-simulation from the forces sent), and the measured (k, b) equal the prediction to
+    the bound the quantisers allow (k 1 %, b 10 %: README)."""
+    from hapsim.daemon.mock import MockPhysics
+    from hapsim.daemon.runner import run_scene
+    from hapsim.daemon.telemetry import load
+    from hapsim.scene import load_scene
+    scene = load_scene("configs/firefader.yaml")
+    tel = str(tmp_path / "ff.npz")
+    rep = run_scene(scene, driver="firefader", telemetry=tel, handle_signals=False,
+                    rt_priority=0)
+    assert rep["loop"]["mode"] == "host-clocked"
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
+    assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
+    cols = load(tel)
+    x, f, seq = cols["position"], cols["force"], cols["seq"]
+    assert np.all(np.diff(seq) == 1) and seq[0] == 0
+    # re-simulate: packet 0 primes with zero force, packet j + 1 carries force j
+    dev = scene.device
+    ph = MockPhysics(dev, scene.rate_hz, scene.excitation)
+    fifo = [0.0] * dev.delay
+    counts = [0] + [ff.force_counts(v) for v in f]
+    trips = set(rep["loop"]["mock"]["watchdog_at"])     # a host stalled > 50 ms (loaded)
+    xs = []
+    for j, c in enumerate(counts[:len(x)]):
+        if j in trips:
+            fifo = [0.0] * dev.delay
+        fifo.append(c * ff.FULL_SCALE_N / 127)
+        ph.advance(fifo.pop(0))
+        xs.append((min(max(ff.CENTRE + round(ph.sample() / ff.METRES_PER_COUNT), 0), 254)
+                   - ff.CENTRE) * ff.METRES_PER_COUNT)
+    assert np.array_equal(np.asarray(xs), x)
