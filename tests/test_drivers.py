@@ -45,8 +45,8 @@ def test_firefader_device_record_layout():
 
 
 def test_unknown_driver_lists_choices():
-    with pytest.raises(ConfigError, match="firefader"):
-        get_driver("haply")
+    with pytest.raises(ConfigError, match="firefader, haply"):
+        get_driver("nodevice")
 
 
 # ------------------------------------------------------------------ hostile streams
@@ -165,3 +165,77 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
         xs.append((min(max(ff.CENTRE + round(ph.sample() / ff.METRES_PER_COUNT), 0), 254)
                    - ff.CENTRE) * ff.METRES_PER_COUNT)
     assert np.array_equal(np.asarray(xs), x)
+
+
+# ------------------------------------------------------------------ Haply M3 board
+
+def test_haply_layouts_from_the_firmware():
+    """setup [1][id][motor mask][dir][encoder mask][dir][n analog][n pwm][offset][res],
+    write [2][id][float32 torque], reply [id][float32 deg]; little-endian binary32."""
+    import struct
+
+    from hapsim.drivers import haply as hp
+    drv = get_driver("haply", device_id=7, resolution=4096.0)
+    s = drv.arm()
+    assert s[:8] == bytes([1, 7, 0b0001, 0, 0b0001, 0, 0, 0])
+    assert struct.unpack("<ff", s[8:16]) == (0.0, 4096.0)
+    assert s[16:] == bytes([2, 7]) + struct.pack("<f", 0.0)
+    assert drv.encode_force(0.05) == bytes([2, 7]) + struct.pack("<f", 0.05)
+    assert drv.encode_force(1.0) == bytes([2, 7]) + struct.pack("<f", hp.MAX_TORQUE)
+    assert drv.encode_force(math.nan) == bytes([2, 7]) + struct.pack("<f", 0.0)
+    dec = drv.decoder()
+    got = dec.feed(bytes([7]) + struct.pack("<f", 90.0) + bytes([7]) + struct.pack("<f", -45.0))
+    assert got == [pytest.approx(math.pi / 2), pytest.approx(-math.pi / 4)]
+    # the device side parses what the host sends, lengths set by the set-up
+    cd = hp.CommandDecoder()
+    cmds = cd.feed(s + drv.encode_force(-0.1) + bytes([0, 7]))
+    assert [c[0] for c in cmds] == ["setup", "write", "write", "reset"]
+    assert cmds[2][2] == [pytest.approx(-0.1)] and cd.resolution == 4096.0
+
+
+def test_haply_hostile_streams():
+    """Host side: garbage, lost and corrupted bytes never give an implausible angle and the
+    decoder realigns on the id; device side: random bytes never make the mock board apply
+    a torque over its limit."""
+    import struct
+
+    from hapsim.drivers import haply as hp
+    from hapsim.drivers.mock import HaplyDevice
+    rng = np.random.default_rng(5)
+    good = [hp.reply_packet(3, float(a)) for a in rng.uniform(-720, 720, 300)]
+    data, intact = _hostile(rng, good)
+    dec = hp.ReplyDecoder(3)
+    out = []
+    for k in range(0, len(data), 13):
+        out += dec.feed(data[k:k + 13])
+    assert all(math.isfinite(a) and abs(a) <= 3600 for a in out)
+    assert dec.stats["skipped"] > 0
+    # without a start byte, garbage can hide a reply next to it, but the decoder realigns:
+    # nearly every intact reply is decoded
+    seen = set(out)
+    assert sum(struct.unpack("<f", g[1:])[0] in seen for g in intact) >= 0.9 * len(intact)
+    dev = HaplyDevice(Device(mass=0.001, friction=0.001, delay=1, force_limit=0.1), 1000.0,
+                      Excitation())
+    drv = get_driver("haply", device_id=3)
+    # garbage can reconfigure the board (a random set-up): the host arms it again
+    stream = drv.arm() + bytes(rng.integers(0, 256, 20000).astype(np.uint8))
+    stream += drv.arm() * 40
+    for k in range(200):
+        stream += drv.encode_force(float(rng.normal(0, 1)))
+        stream += bytes([2, 3]) + struct.pack("<f", float(rng.choice([1e30, -1e30, np.inf])))
+        stream += bytes([2, 3]) + bytes([0xFF, 0xFF, 0xC0, 0x7F])          # a NaN torque
+    dev.feed(stream)
+    assert dev.applied and max(abs(t) for t in dev.applied) <= 0.1
+
+
+def test_haply_closed_loop_through_its_mock():
+    """hapsim run --driver haply (configs/haply.yaml, rotary units) on the board mock: the
+    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %)."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
+                    rt_priority=0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
+    assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
+    assert rep["loop"]["mock"]["decoder"]["writes"] >= rep["loop"]["ticks"]

@@ -46,7 +46,7 @@ examples:
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
   hapsim identify --port /dev/ttyACM0 --force-limit 1 --envelope 0.02 --out device.yaml"""
 
-DRIVERS = ("framed",)
+from hapsim.drivers import DRIVERS
 
 
 def register(sub) -> None:
@@ -103,7 +103,7 @@ def _clean(obj):
 
 def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=4, lockstep=False, seed=0,
-             transport=None, progress=True, handle_signals=True):
+             transport=None, progress=True, handle_signals=True, driver=None):
     """Excite, record and fit: the API behind ``hapsim identify``.
 
     Parameters
@@ -118,6 +118,8 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
         As :func:`hapsim.daemon.identify_run.record`.
     progress, handle_signals : bool
         Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
+    driver : str, optional
+        Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
 
     Returns
     -------
@@ -138,7 +140,7 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals)
+                 handle_signals=handle_signals, driver=driver)
     # one uniform record: the longest stretch without a missing STATE
     import numpy as np
     seq = rec["seq"]
@@ -213,7 +215,7 @@ def run(args) -> int:
     fit, rec = identify(port=args.port, baud=args.baud, device=device,
                         force_limit=args.force_limit, envelope=args.envelope,
                         duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
-                        lockstep=args.lockstep, seed=args.seed)
+                        lockstep=args.lockstep, seed=args.seed, driver=args.driver)
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
     text = device_yaml(fit, args.force_limit, hand=args.hand, source=source)

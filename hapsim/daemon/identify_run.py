@@ -189,7 +189,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
            rate_hz: float = 1000.0, duration: float = 4.0, force_limit: float = 2.0,
            envelope: float = 0.01, max_delay: int = 5, seed: int = 0, noise_seed: int = 0,
            transport: str | None = None, lockstep: bool = False, progress: bool = True,
-           handle_signals: bool = True, stop=None):
+           handle_signals: bool = True, stop=None, driver: str | None = None):
     """Run the excitation on a device (or the mock of ``device``) and return the record.
 
     Parameters
@@ -224,6 +224,9 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         SIGINT/SIGTERM end the excitation cleanly (zero force, STOP; main thread only).
     stop : StopFlag, optional
         External stop flag.
+    driver : str, optional
+        A protocol of :mod:`hapsim.drivers` (host-clocked; without ``port``, that
+        driver's mock of ``device``); None or ``"framed"``: hapsim's own.
 
     Returns
     -------
@@ -261,8 +264,22 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
     embedded = None
     lock = lockstep or transport == "inprocess"
+    use_driver = driver not in (None, "framed")
+    if use_driver:
+        from hapsim.drivers import get_driver
+        drv = get_driver(driver)
+        lock = lock or port is None
     try:
-        if transport == "inprocess":
+        if use_driver:
+            from hapsim.drivers.transport import DriverTransport
+            if port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, port, delay=1)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, Excitation(), native_rate_hz=rate_hz, lockstep=True,
                               seed=noise_seed)
@@ -277,7 +294,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             tr = SerialTransport(port, baud)
         d_expect = dev.delay if port is None else 1
         cfg = LoopConfig(rate_hz=rate_hz, n_samples=n, delay=d_expect, force_limit=force_limit,
-                         lockstep=lock,
+                         lockstep=lock, host_clocked=use_driver,
                          state_timeout=(0.5 if transport == "inprocess" else 10.0) if lock
                          else 1.0,
                          hello_timeout=30.0 if transport == "pty" else 5.0,
@@ -302,7 +319,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             embedded.report()
             embedded.close()
     cols = tel.columns()
-    return {"position": cols["position"].copy(), "force": cols["force"].copy(),
+    force = cols["force"].copy()
+    if use_driver:          # what the device was sent: the protocol's quantised force
+        force = np.array([drv.applied_force(v) for v in force])
+    return {"position": cols["position"].copy(), "force": force,
             "late": cols["late"].astype(bool), "time": cols["time"].copy(),
             "seq": cols["seq"].copy(),
             "period": 1.0 / rate_hz,

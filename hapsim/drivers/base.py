@@ -44,6 +44,16 @@ class Driver:
         """Bytes commanding ``force`` [N] on the driven axis (zero on the others)."""
         raise NotImplementedError
 
+    def arm(self) -> bytes:
+        """Bytes sent when the host arms the device (CONFIG): by default one zero-force
+        command, whose answer is the first record."""
+        return self.encode_force(0.0)
+
+    def applied_force(self, force: float) -> float:
+        """The force [N] the device receives for ``force`` (after the protocol's
+        quantisation and clamp): what identification must fit against."""
+        return float(force)
+
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""
         raise NotImplementedError

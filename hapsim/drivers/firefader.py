@@ -277,6 +277,10 @@ class FireFader(Driver):
         c = max(force_counts(force, self.full_scale), -FORCE_MAX)
         return encode_packet(c, 0) if self.axis == 0 else encode_packet(0, c)
 
+    def applied_force(self, force: float) -> float:
+        """The force the packet of ``force`` commands [N]: its count times the scale."""
+        return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
+
     def decoder(self):
         """A fresh host-side decoder returning the driven fader's position [m]."""
         return _PositionDecoder(self.axis)

@@ -22,47 +22,89 @@ from collections import deque
 
 from hapsim.daemon.mock import MockPhysics
 
-__all__ = ["FireFaderDevice", "serve", "EmbeddedDriverMock", "main"]
+__all__ = ["FireFaderDevice", "HaplyDevice", "serve", "EmbeddedDriverMock", "main"]
 
 
-class FireFaderDevice:
-    """A FireFader whose fader A is the mock device's moving mass.
+class _Actuated:
+    """The physics side shared by the driver mocks: delay queue, clamp, one period per
+    command.
 
     Parameters
     ----------
     device : hapsim.scene.Device
-        Mass, friction, delay and imperfections of fader A.
+        Mass (or inertia), friction, delay and imperfections of the driven axis.
     rate_hz : float
-        Period the host runs at [Hz] (one period per packet).
+        Period the host runs at [Hz] (one period per command).
     excitation : hapsim.scene.Excitation, optional
         Initial displacement / velocity / hand force.
-    full_scale : float
-        Force at 127 counts [N].
+    limit : float
+        The device's own force clamp [N] (or [N m]); the device section's is also applied.
     seed : int
         Sensor-noise seed.
 
     Attributes
     ----------
+    applied : list of float
+        Forces applied per command (for tests).
+    """
+
+    def __init__(self, device, rate_hz, excitation, limit, seed):
+        self.physics = MockPhysics(device, rate_hz, excitation, seed=seed)
+        self.delay = int(device.delay)
+        self.limit = min(float(device.force_limit), float(limit))
+        self._fifo: deque = deque([0.0] * self.delay)
+        self.applied: list = []
+        self.held = 0.0
+        self.clamped = 0
+        self.last_command = 0.0
+
+    def apply(self, force: float) -> None:
+        """Queue ``force``, apply the one due (``delay`` commands back), advance a period."""
+        self.last_command = force
+        if not math.isfinite(force):
+            force = 0.0                     # a corrupted float is no reason to push hard
+        self._fifo.append(force)
+        due = self._fifo.popleft()
+        if abs(due) > self.limit:
+            due = math.copysign(self.limit, due)
+            self.clamped += 1
+        self.held = due
+        self.applied.append(due)
+        self.physics.advance(due)
+
+    def commands(self) -> int:
+        """Force commands applied so far."""
+        return len(self.applied)
+
+    def watchdog(self) -> None:
+        """No command for too long: zero the force from now on (the queue too)."""
+        self._fifo = deque([0.0] * self.delay)
+        self.held = 0.0
+
+
+class FireFaderDevice(_Actuated):
+    """A FireFader whose fader A is the mock device's moving mass.
+
+    Parameters
+    ----------
+    device, rate_hz, excitation, seed
+        As :class:`_Actuated`.
+    full_scale : float
+        Force at 127 counts [N].
+
+    Attributes
+    ----------
     decoder : PacketDecoder
         Its counters are the device's view of bad bytes.
-    applied : list of float
-        Forces applied per packet [N] (for tests).
     """
 
     def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 1.56,
                  seed: int = 0) -> None:
         from hapsim.drivers import firefader as ff
         self._ff = ff
-        self.physics = MockPhysics(device, rate_hz, excitation, seed=seed)
-        self.delay = int(device.delay)
         self.full_scale = float(full_scale)
-        self.limit = min(float(device.force_limit), 126 * full_scale / 127)
-        self._fifo: deque = deque([0.0] * self.delay)
+        super().__init__(device, rate_hz, excitation, 126 * full_scale / 127, seed)
         self.decoder = ff.PacketDecoder()
-        self.applied: list = []
-        self.held = 0.0
-        self.clamped = 0
-        self.last_command = 0
 
     def position_count(self) -> int:
         """Fader A's reading: the sampled position in counts from the centre, 0..254."""
@@ -72,16 +114,7 @@ class FireFaderDevice:
 
     def step(self, count_a: int) -> bytes:
         """One packet: apply the force due, advance a period, answer with a record."""
-        self.last_command = count_a
-        f = count_a * self.full_scale / 127.0
-        self._fifo.append(f)
-        due = self._fifo.popleft()
-        if abs(due) > self.limit:
-            due = math.copysign(self.limit, due)
-            self.clamped += 1
-        self.held = due
-        self.applied.append(due)
-        self.physics.advance(due)
+        self.apply(count_a * self.full_scale / 127.0)
         return self._ff.encode_record(self.position_count(), self._ff.CENTRE)
 
     def feed(self, data: bytes) -> bytes:
@@ -91,10 +124,51 @@ class FireFaderDevice:
             out += self.step(a)
         return out
 
-    def watchdog(self) -> None:
-        """No packet for too long: zero the force from now on (the queue too)."""
-        self._fifo = deque([0.0] * self.delay)
-        self.held = 0.0
+
+class HaplyDevice(_Actuated):
+    """A Haply M3 board whose motor 1 / encoder 1 joint is the mock device's axis
+    (rotary: mass = inertia [kg m^2], force = torque [N m], position = angle [rad]).
+
+    Parameters
+    ----------
+    device, rate_hz, excitation, seed
+        As :class:`_Actuated`.
+    resolution : float
+        Encoder counts per revolution (the set-up's value replaces it).
+
+    Attributes
+    ----------
+    decoder : CommandDecoder
+    """
+
+    def __init__(self, device, rate_hz: float, excitation=None, *, resolution: float = 4880.0,
+                 seed: int = 0) -> None:
+        from hapsim.drivers import haply as hp
+        self._hp = hp
+        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed)
+        self.decoder = hp.CommandDecoder()
+        self.resolution = float(resolution)
+
+    def angle_deg(self) -> float:
+        """Encoder 1's reading [deg]: 360 counts / resolution (firmware ``read_encoder_value``)."""
+        counts = round(self.physics.sample() / (2 * math.pi) * self.resolution)
+        return 360.0 * counts / self.resolution
+
+    def feed(self, data: bytes) -> bytes:
+        """Bytes from the host in, the replies out (one per write)."""
+        out = b""
+        for cmd in self.decoder.feed(data):
+            if cmd[0] == "setup" and self.decoder.resolution:
+                self.resolution = self.decoder.resolution
+            if cmd[0] != "write":
+                continue
+            _, wid, tq = cmd
+            if wid != self.decoder.id or not tq:
+                out += bytes([wid])          # the firmware answers [id] and no values
+                continue
+            self.apply(tq[0])
+            out += self._hp.reply_packet(wid, self.angle_deg())
+        return out
 
 
 def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -> dict:
@@ -104,8 +178,8 @@ def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -
     ----------
     fd : int
         Master side of the pty.
-    dev : FireFaderDevice
-        The device.
+    dev : FireFaderDevice or HaplyDevice
+        The device (``feed(bytes) -> bytes``, ``decoder.stats``, ``watchdog()``).
     watchdog : float
         Silence after which the force is zeroed [s].
     stop : callable, optional
@@ -133,7 +207,7 @@ def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -
             if not tripped and time.monotonic() - last > watchdog:
                 dev.watchdog()
                 trips += 1
-                trip_at.append(dev.decoder.stats["packets"])
+                trip_at.append(dev.commands())
                 tripped = True
             continue
         try:
@@ -152,7 +226,7 @@ def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -
                 os.write(fd, out)
             except OSError:
                 break
-    n = dev.decoder.stats["packets"]
+    n = dev.commands()
     return {"packets": n, "decoder": dict(dev.decoder.stats), "watchdog_trips": trips,
             "watchdog_at": trip_at,
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
@@ -183,8 +257,11 @@ def main(argv=None) -> int:
         from hapsim.scene import Impulse
         exc["impulse"] = Impulse(**exc["impulse"])
     excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
-    dev = FireFaderDevice(device, a.rate, excitation, seed=a.seed,
-                          full_scale=float(spec.get("full_scale", 1.56)))
+    if spec.get("driver", "firefader") == "haply":
+        dev = HaplyDevice(device, a.rate, excitation, seed=a.seed)
+    else:
+        dev = FireFaderDevice(device, a.rate, excitation, seed=a.seed,
+                              full_scale=float(spec.get("full_scale", 1.56)))
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
@@ -228,8 +305,8 @@ class EmbeddedDriverMock:
 
         from hapsim.daemon.transport import _package_root
         from hapsim.errors import ConfigError
-        if driver != "firefader":
-            raise ConfigError(f"no mock for driver {driver!r}; valid: firefader",
+        if driver not in ("firefader", "haply"):
+            raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply",
                               key="--driver")
         master, slave = pty.openpty()
         tty.setraw(slave)
@@ -239,7 +316,7 @@ class EmbeddedDriverMock:
         os.close(fd)
         os.unlink(self.report_path)
         spec = {"device": dataclasses.asdict(device), "excitation": dataclasses.asdict(excitation),
-                "full_scale": full_scale}
+                "full_scale": full_scale, "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
         env = dict(os.environ)

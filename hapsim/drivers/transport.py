@@ -6,7 +6,8 @@
 
 - HELLO_REQUEST -> a HELLO made from the driver's facts (1 axis, its resolutions and
   force limit); PING -> a PONG at once (the driver has no round trip to measure);
-- CONFIG -> arms: one zero-force packet, whose answer is the first record;
+- CONFIG -> arms: the driver's set-up bytes and one zero-force command, whose answer is
+  the first record;
 - FORCE -> the driver's force packet; each record the device answers with becomes a STATE
   (``seq`` counted here, ``time_us`` the host clock when it was read, ``force_seq = seq - d``
   with ``d`` the delay the scene states: the protocol cannot tell it);
@@ -125,7 +126,7 @@ class DriverTransport:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, now))
         elif t is fp.Config:
             self._armed = True
-            self._write(dr.encode_force(0.0))
+            self._write(dr.arm())
         elif t is fp.Stop:
             self._armed = False
             self._write(dr.encode_force(0.0))
