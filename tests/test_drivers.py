@@ -45,7 +45,7 @@ def test_firefader_device_record_layout():
 
 
 def test_unknown_driver_lists_choices():
-    with pytest.raises(ConfigError, match="firefader, haply"):
+    with pytest.raises(ConfigError, match="firefader, haply, hapkit-serial"):
         get_driver("nodevice")
 
 
@@ -239,3 +239,64 @@ def test_haply_closed_loop_through_its_mock():
     assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
     assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
     assert rep["loop"]["mock"]["decoder"]["writes"] >= rep["loop"]["ticks"]
+
+
+# ------------------------------------------------------------------ Hapkit (WHC2017 sketch)
+
+def test_hapkit_serial_layouts():
+    """10-byte command [header][function][float32 a][float32 force], header = type << 4 |
+    motor mask as Board.format_header builds it for motor 1, type 1 (0x11); 9-byte reply
+    [function][float32 x][float32 force]; binary32 little-endian."""
+    import struct
+
+    from hapsim.drivers import hapkit_serial as hk
+    drv = get_driver("hapkit-serial")
+    assert hk.HEADER == 0x11
+    assert drv.encode_force(0.5) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.5)
+    assert drv.encode_force(9.0) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 2.0)
+    assert drv.encode_force(math.inf) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.0)
+    assert len(drv.encode_force(0.1)) == 10
+    rep = bytes([255]) + struct.pack("<ff", 0.0125, -0.3)
+    assert len(rep) == 9 and hk.reply_packet(255, 0.0125, -0.3) == rep
+    assert drv.decoder().feed(rep + rep[:4]) == [pytest.approx(0.0125)]
+
+
+def test_hapkit_serial_hostile_streams():
+    """Garbage, truncated and corrupted frames: the host decoder yields only plausible
+    positions and realigns; the mock applies no force over its limit, NaN as zero."""
+    import struct
+
+    from hapsim.drivers import hapkit_serial as hk
+    from hapsim.drivers.mock import HapkitSerialDevice
+    rng = np.random.default_rng(9)
+    good = [hk.reply_packet(255, float(x), float(f))
+            for x, f in zip(rng.uniform(-0.05, 0.05, 300), rng.uniform(-2, 2, 300))]
+    data, intact = _hostile(rng, good)
+    dec = hk.ReplyDecoder()
+    out = dec.feed(data)
+    assert all(abs(x) <= hk.MAX_POSITION and abs(f) <= hk.MAX_FORCE for x, f in out)
+    seen = set(out)
+    assert sum(struct.unpack("<ff", g[1:]) in seen for g in intact) >= 0.9 * len(intact)
+    mock = HapkitSerialDevice(Device(mass=0.1, friction=0.3, delay=1, force_limit=1.0), 250.0,
+                              Excitation(), force_limit=2.0)
+    drv = get_driver("hapkit-serial")
+    stream = bytes(rng.integers(0, 256, 5000).astype(np.uint8))
+    for v in rng.normal(0, 5, 300):
+        stream += drv.encode_force(float(v))
+        stream += hk.command_packet(float(rng.choice([1e9, -1e9])))      # a forged force
+        stream += bytes([0x11, 255]) + bytes(4) + bytes([0, 0, 0xC0, 0x7F])   # NaN
+    mock.feed(stream)
+    assert mock.decoder.stats["non_finite"] >= 300
+    assert max(abs(f) for f in mock.applied) <= 1.0
+
+
+def test_hapkit_serial_closed_loop_through_its_mock():
+    """hapsim run --driver hapkit-serial on the sketch mock: positions and forces are
+    binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
+                    handle_signals=False, rt_priority=0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
+    assert meas["b"] == pytest.approx(pred["b"], rel=1e-5)

@@ -20,7 +20,7 @@ from hapsim.errors import ConfigError
 __all__ = ["DRIVERS", "get_driver"]
 
 #: Driver names ``--driver`` accepts; ``framed`` is hapsim's own protocol (the default).
-DRIVERS = ("framed", "firefader", "haply")
+DRIVERS = ("framed", "firefader", "haply", "hapkit-serial")
 
 
 def get_driver(name: str, **options):
@@ -49,6 +49,9 @@ def get_driver(name: str, **options):
     if name == "haply":
         from hapsim.drivers.haply import HaplyM3
         return HaplyM3(**options)
+    if name == "hapkit-serial":
+        from hapsim.drivers.hapkit_serial import HapkitSerial
+        return HapkitSerial(**options)
     raise ConfigError(f"unknown driver {name!r}; valid: {', '.join(DRIVERS)}"
                       + (" (framed is the default transport, not a driver object)"
                          if name == "framed" else ""), key="--driver")

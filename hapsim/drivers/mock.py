@@ -22,7 +22,7 @@ from collections import deque
 
 from hapsim.daemon.mock import MockPhysics
 
-__all__ = ["FireFaderDevice", "HaplyDevice", "serve", "EmbeddedDriverMock", "main"]
+__all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "serve", "EmbeddedDriverMock", "main"]
 
 
 class _Actuated:
@@ -171,6 +171,39 @@ class HaplyDevice(_Actuated):
         return out
 
 
+class HapkitSerialDevice(_Actuated):
+    """A Hapkit running the WHC2017 sketch with the host-force function: its handle is the
+    mock device's moving mass.
+
+    Parameters
+    ----------
+    device, rate_hz, excitation, seed
+        As :class:`_Actuated`.
+    force_limit : float
+        The firmware's force clamp [N].
+
+    Attributes
+    ----------
+    decoder : CommandDecoder
+    """
+
+    def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
+                 seed: int = 0) -> None:
+        from hapsim.drivers import hapkit_serial as hk
+        self._hk = hk
+        super().__init__(device, rate_hz, excitation, force_limit, seed)
+        self.decoder = hk.CommandDecoder()
+
+    def feed(self, data: bytes) -> bytes:
+        """Bytes from the host in, one 9-byte reply per command out."""
+        out = b""
+        for f in self.decoder.feed(data):
+            self.apply(f)
+            out += self._hk.reply_packet(self.decoder.function, self.physics.sample(),
+                                         self.held)
+        return out
+
+
 def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -> dict:
     """Serve ``dev`` on a byte stream until EOF (host closed) or ``stop()`` is true.
 
@@ -259,6 +292,8 @@ def main(argv=None) -> int:
     excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
     if spec.get("driver", "firefader") == "haply":
         dev = HaplyDevice(device, a.rate, excitation, seed=a.seed)
+    elif spec.get("driver") == "hapkit-serial":
+        dev = HapkitSerialDevice(device, a.rate, excitation, seed=a.seed)
     else:
         dev = FireFaderDevice(device, a.rate, excitation, seed=a.seed,
                               full_scale=float(spec.get("full_scale", 1.56)))
@@ -305,8 +340,9 @@ class EmbeddedDriverMock:
 
         from hapsim.daemon.transport import _package_root
         from hapsim.errors import ConfigError
-        if driver not in ("firefader", "haply"):
-            raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply",
+        if driver not in ("firefader", "haply", "hapkit-serial"):
+            raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply, "
+                              "hapkit-serial",
                               key="--driver")
         master, slave = pty.openpty()
         tty.setraw(slave)
