@@ -2,8 +2,8 @@
 
 Compute only (plain data); figures are drawn by :mod:`hapsim.plot_bench`.
 
-- :mod:`hapsim.bench.methods`: integrators as linear maps, closed-form limits,
-  :func:`~hapsim.bench.methods.stability_margin` (for the daemon).
+- :mod:`hapsim.bench.methods`: the old name of :mod:`hapsim.analysis.integrators`
+  (integrators as linear maps, closed-form limits, ``stability_margin``).
 - :mod:`hapsim.bench.accuracy`: chart 1, felt (k, b) error against rate, naive and calibrated.
 - :mod:`hapsim.bench.cost`: chart 2, mode error against CPU cost per integrator.
 - :mod:`hapsim.bench.capacity`: chart 3, loop capacity over a real pty.
@@ -11,6 +11,6 @@ Compute only (plain data); figures are drawn by :mod:`hapsim.plot_bench`.
   cheapest scheme a scene needs.
 """
 
-from hapsim.bench.methods import StabilityMargin, stability_margin
+from hapsim.analysis.integrators import StabilityMargin, stability_margin
 
 __all__ = ["StabilityMargin", "stability_margin"]

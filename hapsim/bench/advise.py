@@ -37,7 +37,7 @@ import numpy as np
 
 from hapsim.analysis import LoopModel, calibrate, render, spectral_radius
 from hapsim.analysis.modes import modes_from_poles, rendered_pair
-from hapsim.bench.methods import (COST_ORDER, closed_loop_matrix, continuous_loop_matrix,
+from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continuous_loop_matrix,
                                   spectral_radius_of)
 from hapsim.errors import ConfigError, UnstableConfigError
 

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from hapsim.bench.methods import (INTEGRATORS, continuous_network_eigenvalues,
+from hapsim.analysis.integrators import (INTEGRATORS, continuous_network_eigenvalues,
                                   spectral_radius_of, virtual_update_matrix)
 from hapsim.scene import parse_scene
 

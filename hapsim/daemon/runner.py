@@ -1,6 +1,9 @@
 """``run_scene``: calibrate, check, close the THS on a device, identify it, report.
 
-Steps (DESIGN §4-§5):
+A pipeline of named steps, each returning a small result object (DESIGN §4-§5):
+:meth:`RunOptions.check` -> :func:`prepare_run` (prepare scene + predict:
+:class:`PreparedRun`) -> :func:`connect` (:class:`Connection`) -> :func:`run_loop`
+(:class:`LoopRun`) -> :func:`identify_run` -> :func:`build_report`.
 
 1. Links given as a felt ``target: {k, b}`` are calibrated with
    :func:`hapsim.analysis.calibrate` on ``LoopModel.from_device(scene.device, rate)``; a
@@ -24,6 +27,7 @@ import math
 import os
 import signal
 import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -37,6 +41,8 @@ from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfi
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
+           "RunOptions", "PreparedRun", "Connection", "LoopRun", "prepare_run", "connect",
+           "run_loop", "identify_run", "build_report",
            "DEFAULT_DURATION"]
 
 #: Default run length [s] (at least; longer when the predicted oscillation is slow).
@@ -263,7 +269,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
 
 def _mass_limits(scene: Scene) -> list:
     """Closed-form limit of the scene's integrator at each virtual mass (module table of
-    :mod:`hapsim.bench.methods`), the links at the mass summed (contacts engaged).
+    :mod:`hapsim.analysis.integrators`), the links at the mass summed (contacts engaged).
 
     Parameters
     ----------
@@ -279,7 +285,7 @@ def _mass_limits(scene: Scene) -> list:
         when ``K_max <= 0``), ``rate_hz`` (the rate above which the closed form holds, None
         when no rate does: exact integrator).
     """
-    from hapsim.bench.methods import oscillator_limits
+    from hapsim.analysis.integrators import oscillator_limits
     integ = getattr(scene, "integrator", "centred")
     T = scene.period
     out = []
@@ -313,7 +319,7 @@ def _refusal(scene: Scene, pred: dict) -> UnstableConfigError:
     (:func:`_mass_limits`; advice: lower the stiffness there, another integrator, a higher
     rate), the links at the port beyond the THS limit ``stability_limit`` (advice: lower K,
     a higher rate, and raise B only where that raises ``K_max``), or neither closed form
-    but the whole loop (:func:`hapsim.bench.methods.stability_margin`: coupled modes).
+    but the whole loop (:func:`hapsim.analysis.integrators.stability_margin`: coupled modes).
 
     Parameters
     ----------
@@ -327,7 +333,7 @@ def _refusal(scene: Scene, pred: dict) -> UnstableConfigError:
     UnstableConfigError
         With the spectral radius and the stiffness limit of the case found.
     """
-    from hapsim.bench.methods import stability_margin
+    from hapsim.analysis.integrators import stability_margin
     dev = scene.device
     integ = getattr(scene, "integrator", "centred")
     rho = pred["spectral_radius"]
@@ -356,7 +362,7 @@ def _refusal(scene: Scene, pred: dict) -> UnstableConfigError:
                      f"K_max = {_fmt(lim, '.6g')} N/m at B = {B:g} N s/m)")
         alt = []
         if integ == "centred":
-            from hapsim.bench.methods import oscillator_limits
+            from hapsim.analysis.integrators import oscillator_limits
             kse = oscillator_limits("symplectic_euler", w["m"], scene.period, w["B"])["K_max"]
             alt.append(f"symplectic_euler (K < {kse:.6g} N/m here: "
                        f"{'enough' if w['K'] < kse else 'not enough'})")
@@ -408,6 +414,565 @@ def _warm_up(scene: Scene) -> None:
             eng.port_step(0.0)
     else:
         eng.step(3)
+
+
+@dataclass
+class RunOptions:
+    """The options of one run (the keyword arguments of :func:`run_scene`, checked).
+
+    Attributes are those of :func:`run_scene` (same names, units and defaults), with
+    ``transport`` resolved (``"serial"``, ``"pty"``, ``"inprocess"`` or ``"sim"``),
+    ``reconnect`` resolved to a bool and ``plan`` the parsed
+    :class:`~hapsim.daemon.faults.FaultPlan`.
+    """
+
+    port: str | None = None
+    baud: int = 115200
+    duration: float | None = None
+    rate_hz: float | None = None
+    lockstep: bool = False
+    host_clocked: bool = False
+    telemetry: str | None = None
+    allow_unstable: bool = False
+    transport: str | None = None
+    seed: int = 0
+    stop: StopFlag | None = None
+    handle_signals: bool = True
+    on_start: object = None
+    rt_priority: int = 10
+    faults: str | None = None
+    fault_seed: int = 0
+    reconnect: bool | None = None
+    lost_timeout: float | None = None
+    reconnect_attempts: int = 8
+    reconnect_time: float = 10.0
+    telemetry_interval: float = 0.05
+    driver: str | None = None
+    plan: object = None
+
+    def check(self) -> "RunOptions":
+        """Validate and resolve the options in place.
+
+        Returns
+        -------
+        RunOptions
+            ``self``.
+
+        Raises
+        ------
+        ConfigError
+            A bad duration, transport, fault spec, port or telemetry format, naming the
+            option and the valid choices.
+        """
+        d = self.duration
+        if d is not None and not (math.isfinite(d) and d >= 0):
+            raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
+                              f"got {d!r}", key="--duration")
+        if d == 0 and self.stop is None and not self.handle_signals:
+            raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "
+                              "handle_signals or a stop flag", key="--duration")
+        if self.transport is None:
+            self.transport = "serial" if self.port else "pty"
+        tp = self.transport
+        if tp not in ("serial", "pty", "inprocess", "sim"):
+            raise ConfigError(f"unknown transport {tp!r}; valid: serial, pty, inprocess, sim",
+                              key="transport")
+        if tp == "sim" and self.lockstep:
+            raise ConfigError("the sim transport runs the real-time mock on a virtual clock; "
+                              "drop --lockstep", key="--lockstep")
+        from hapsim.daemon.faults import parse_faults
+        self.plan = parse_faults(self.faults, self.fault_seed)
+        if not self.plan.empty and tp not in ("pty", "sim"):
+            raise ConfigError("faults are injected by the mock: use the embedded mock (no "
+                              "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        if self.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            get_driver(self.driver)             # unknown name: ConfigError before any work
+            if not self.plan.empty:
+                raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                                  "has none", key="--faults")
+            self.host_clocked = True            # the protocols answer commands: no clock
+            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
+        if self.reconnect is None:
+            self.reconnect = not self.lockstep
+        if tp == "serial" and not self.port:
+            raise ConfigError("transport 'serial' needs a port", key="--port")
+        if tp == "inprocess" and not self.lockstep:
+            raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+        if self.telemetry is not None and os.path.splitext(self.telemetry)[1].lower() not in (
+                ".npz", ".csv", ".hst"):
+            raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
+                              f"(chunked journal), .npz, .csv", key="--telemetry")
+        return self
+
+
+@dataclass
+class PreparedRun:
+    """Step 1-2 of a run: the calibrated scene, its prediction and the run's sizes.
+
+    Attributes
+    ----------
+    scene : Scene
+        Calibrated scene (rate override applied).
+    targets : list of dict
+        :func:`prepare_scene`'s target links.
+    pred : dict
+        :func:`predict`'s closed loop.
+    exc_end : float
+        End of the excitation [s].
+    window : float
+        Identification window [s] (excitation + 10 periods of the predicted pair, >= 1 s).
+    n_samples : int
+        Samples to run (0: open-ended).
+    n_window, n_ring : int
+        Telemetry head (identification window) and ring [samples].
+    base_dir : str or None
+        Directory of the scene file (profiles are relative to it).
+    """
+
+    scene: Scene
+    targets: list
+    pred: dict
+    exc_end: float
+    window: float
+    n_samples: int
+    n_window: int
+    n_ring: int
+    base_dir: str | None
+
+
+@dataclass
+class Connection:
+    """Step 3: what :func:`connect` set up for the loop (closed by :func:`run_loop`).
+
+    Attributes
+    ----------
+    engine : Engine
+        Warmed-up engine of the scene.
+    tel : Telemetry
+        Preallocated telemetry (whole run, or head + ring).
+    cfg : LoopConfig
+        Loop configuration.
+    stop : StopFlag
+        Stop flag the signal handlers set.
+    tr : object
+        Transport (serial, in-process or sim).
+    rt : RealtimePriority
+        Entered real-time scheduling (left by :func:`run_loop`).
+    embedded : EmbeddedMock or None
+        Mock child on a pty.
+    mock : MockDevice or None
+        In-process mock (``inprocess`` and ``sim``).
+    old_signals : dict
+        ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+    """
+
+    engine: object
+    tel: Telemetry
+    cfg: LoopConfig
+    stop: StopFlag
+    tr: object
+    rt: RealtimePriority
+    embedded: object = None
+    mock: object = None
+    old_signals: dict = field(default_factory=dict)
+
+
+@dataclass
+class LoopRun:
+    """Step 4: the loop's result and what the run left behind.
+
+    Attributes
+    ----------
+    res : LoopResult
+        :meth:`HostLoop.run`'s result.
+    mock_report : dict or None
+        The mock's own counters.
+    writer_info : dict or None
+        Journal writer's ``lost_rows``, ``chunks``, ``events``, ``error``.
+    journal : str or None
+        Journal path (``.hst``).
+    """
+
+    res: object
+    mock_report: dict | None
+    writer_info: dict | None
+    journal: str | None
+
+
+def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
+    """Steps 1-2: calibrate the targets, predict the loop, refuse an unstable one, size the run.
+
+    Parameters
+    ----------
+    scene : Scene
+        Validated scene with a port and a device.
+    opts : RunOptions
+        Checked options (:meth:`RunOptions.check`).
+
+    Returns
+    -------
+    PreparedRun
+
+    Raises
+    ------
+    ConfigError
+        No port/device, or d = 0 outside lockstep.
+    UnstableConfigError
+        A target not renderable, or an unstable loop without ``allow_unstable``.
+    """
+    scene, targets = prepare_scene(scene, opts.rate_hz)
+    dev = scene.device
+    if dev.delay == 0 and not opts.lockstep:
+        raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
+                          "lockstep (--lockstep); a real-time device needs d >= 1",
+                          file=scene.path, key="device.delay")
+    pred = predict(scene)
+    if pred["stable"] is False and not opts.allow_unstable:
+        raise _refusal(scene, pred)
+    T = scene.period
+    base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
+    exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
+    # identification window: the free response at the start (what the default run is)
+    window = DEFAULT_DURATION
+    if pred.get("f0_hz"):
+        window = max(window, exc_end + 10.0 / pred["f0_hz"])
+    duration = window if opts.duration is None else opts.duration
+    n_samples = max(int(round(duration * scene.rate_hz)), 1) if duration > 0 else 0
+    n_window = max(int(round(window * scene.rate_hz)), 1)
+    n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
+    return PreparedRun(scene, targets, pred, exc_end, window, n_samples, n_window, n_ring,
+                       base_dir)
+
+
+def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
+    """The :class:`LoopConfig` of a prepared run (safety limits from the scene)."""
+    scene, dev = prep.scene, prep.scene.device
+    lockstep = opts.lockstep
+    x0 = abs(scene.excitation.x0)
+    sf = scene.safety
+    pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
+    return LoopConfig(rate_hz=scene.rate_hz, n_samples=prep.n_samples, delay=dev.delay,
+                      force_limit=dev.force_limit, lockstep=lockstep,
+                      host_clocked=opts.host_clocked,
+                      state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
+                      if lockstep else 1.0,
+                      # the embedded mock is a fresh Python process (imports take seconds
+                      # on a loaded machine); hardware answers at once
+                      hello_timeout=30.0 if opts.transport == "pty" else 5.0,
+                      position_bound=pos_bound, velocity_limit=sf.velocity_limit,
+                      energy_limit=sf.energy_limit,
+                      passivity_controller=sf.passivity_controller,
+                      max_damping=sf.max_damping, reconnect=bool(opts.reconnect),
+                      lost_timeout=opts.lost_timeout,
+                      reconnect_attempts=int(opts.reconnect_attempts),
+                      reconnect_time=float(opts.reconnect_time))
+
+
+def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
+    """Step 3: install the signal handlers, warm the kernels, open the device.
+
+    From here on Ctrl-C / SIGTERM request a clean stop instead of raising: during the numba
+    warm-up or while the embedded mock starts, the loop then ends at once (no FORCE but the
+    final zero one, then STOP), with the report and the telemetry.
+
+    Parameters
+    ----------
+    prep : PreparedRun
+        :func:`prepare_run`'s result.
+    opts : RunOptions
+        Checked options.
+
+    Returns
+    -------
+    Connection
+        Everything :func:`run_loop` needs; on an error everything is undone first.
+
+    Raises
+    ------
+    DeviceError
+        The port cannot be opened.
+    """
+    from hapsim.engine import Engine
+    scene, dev = prep.scene, prep.scene.device
+    stop = opts.stop or StopFlag()
+    old = {}
+    if opts.handle_signals and threading.current_thread() is threading.main_thread():
+        def _on_signal(signum, frame):
+            stop.request(signum)
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, _on_signal)
+    embedded = None
+    rt = None
+    mock = None
+    transport, lockstep = opts.transport, opts.lockstep
+    try:
+        limit_blas_threads(1)
+        _warm_up(scene)
+        engine = Engine(scene)
+        n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
+        if n_samples and n_samples <= n_window + n_ring:
+            tel = Telemetry(n_samples)                 # the whole run fits: kept whole
+        else:                                          # long or open-ended: head + ring
+            tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
+        cfg = _loop_config(prep, opts)
+        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
+        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
+        if opts.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(opts.driver)
+            if opts.port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
+                                              scene.rate_hz, seed=opts.seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+        elif transport == "inprocess":
+            from hapsim.daemon.transport import InProcessTransport
+            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
+                              seed=opts.seed, base_dir=prep.base_dir)
+            tr = InProcessTransport(mock)
+        elif transport == "sim":
+            from hapsim.daemon.transport import SimTransport
+            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
+                              seed=opts.seed, base_dir=prep.base_dir)
+            tr = SimTransport(mock, opts.plan)
+        elif transport == "pty":
+            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
+            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
+                                    seed=opts.seed, base_dir=prep.base_dir,
+                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+            tr = SerialTransport(embedded.port, opts.baud)
+            embedded.release_slave()
+        else:
+            from hapsim.daemon.transport import SerialTransport
+            tr = SerialTransport(opts.port, opts.baud)
+    except BaseException:
+        if rt is not None:
+            rt.__exit__(None, None, None)
+        if embedded is not None:
+            embedded.close()
+        _restore_signals(old)
+        raise
+    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old)
+
+
+def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
+    """Step 4: run the host loop with the journal writer, then close everything.
+
+    Parameters
+    ----------
+    prep : PreparedRun
+        :func:`prepare_run`'s result.
+    conn : Connection
+        :func:`connect`'s result (closed here, whatever happens).
+    opts : RunOptions
+        Checked options.
+
+    Returns
+    -------
+    LoopRun
+
+    Raises
+    ------
+    DeviceError, ProtocolError
+        From the loop (the telemetry logged so far is exported first).
+    """
+    tel, tr, telemetry = conn.tel, conn.tr, opts.telemetry
+    writer = None
+    writer_info = None
+    journal = None
+    mock_report = None
+    try:
+        loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        if telemetry:
+            journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
+            writer = ChunkWriter(tel, journal, opts.telemetry_interval,
+                                 events=loop.result.events).start()
+            if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
+                tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
+        if opts.on_start is not None:
+            opts.on_start(tr.info.get("port"), prep.n_samples)
+        try:
+            res = loop.run()
+        except (DeviceError, ProtocolError):
+            if writer is not None:
+                writer.close()
+                writer = None
+            if telemetry and tel.n and journal != telemetry:
+                # what was logged helps diagnose the failure
+                _export(tel, journal, telemetry)
+            raise
+    finally:
+        conn.rt.__exit__(None, None, None)
+        if writer is not None:
+            writer.close()
+            writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
+                           "events": writer.events_written,
+                           "error": str(writer.error) if writer.error else None}
+        _restore_signals(conn.old_signals)
+        tr.close()
+        if conn.embedded is not None:
+            mock_report = conn.embedded.report()
+            conn.embedded.close()
+    if opts.transport in ("inprocess", "sim"):
+        mock_report = conn.mock.stats.to_dict()
+        mock_report["totals"] = conn.mock.totals()
+        if opts.transport == "sim":
+            mock_report["faults_injected"] = opts.plan.to_dict()["injected"]
+            mock_report["fault_events"] = tr.device.events
+    return LoopRun(res, mock_report, writer_info, journal)
+
+
+def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | None:
+    """Export the telemetry file and describe it (None without ``--telemetry``); the
+    whole run's turnaround is read back from the journal once the ring went round."""
+    tel, telemetry, journal = conn.tel, opts.telemetry, run.journal
+    if not telemetry:
+        return None
+    if tel.wrapped:     # the whole run's turnaround, from the journal (off the loop)
+        from hapsim.daemon.loop import percentiles_us
+        ta = load(journal)["turnaround_us"]
+        run.res.turnaround_us = dict(percentiles_us(ta), samples=int(ta.size))
+    if journal != telemetry:
+        _export(tel, journal, telemetry)
+    wi = run.writer_info or {}
+    return {"path": telemetry, "samples": tel.n,
+            "columns": ["time [s]", "position [m]", "force [N]", "seq",
+                        "turnaround [us]", "late", "flags"],
+            "in_memory": tel.head + (tel.ring if tel.wrapped else 0)
+            if tel.wrapped else tel.n,
+            "ring": tel.ring, "lost_rows": wi.get("lost_rows", 0),
+            "events_journaled": wi.get("events", 0),
+            "writer_error": wi.get("error")}
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
+    """Step 5: identify the free response logged at the start and compare it.
+
+    The whole record while it fits in memory; the head once the ring has gone round.
+
+    Parameters
+    ----------
+    prep : PreparedRun
+        :func:`prepare_run`'s result.
+    tel : Telemetry
+        The run's telemetry.
+
+    Returns
+    -------
+    dict
+        :func:`identify`'s result with ``note`` (why prediction and measurement may differ),
+        ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
+    """
+    scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
+    T = scene.period
+    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
+    measured = {"error": "not identified"}
+    if pred["order"]:
+        start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
+        if cols["seq"].size:
+            start += int(cols["seq"][0])
+        offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
+        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
+                            offset=offset, late=cols["late"], skip=dev.delay + 2)
+    notes = []
+    if any(lk.kind == "contact" for lk in scene.links):
+        notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
+                     "them open, so the two agree only while every contact stays closed")
+    if any(m.kind == "mass" for m in scene.masses):
+        notes.append("virtual masses add modes: the identified pair is the least damped "
+                     "one seen at the port, which the excitation may barely excite")
+    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
+        notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
+                     "loop is not the linear THS exactly")
+    late_in = measured.get("late_in_segment", 0)
+    if late_in:
+        notes.append(f"no stretch of 100 samples without late ticks: the identified record "
+                     f"holds {late_in} late ticks (the device held an older force), so the "
+                     f"measured pair is a disturbed loop, not the THS alone; rerun on a "
+                     f"quieter machine, at a lower rate, or with --lockstep")
+    if notes:
+        measured["note"] = "; ".join(notes)
+    if "k" in measured:
+        measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
+                               for q in ("k", "b", "f0_hz", "damping_ratio")}
+        if len(targets) == 1:     # with several targets the felt pair is their sum
+            t0 = targets[0]
+            measured["rel_err_target"] = {q: _rel(measured[q], t0[q])
+                                          for q in ("k", "b", "f0_hz", "damping_ratio")}
+    return measured
+
+
+def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOptions,
+                 measured: dict, tel_info: dict | None) -> dict:
+    """Step 6: the report dict of :func:`run_scene` (see there for its keys).
+
+    Parameters
+    ----------
+    prep, conn, run, opts
+        The results of the earlier steps and the options.
+    measured : dict
+        :func:`identify_run`'s result.
+    tel_info : dict or None
+        The telemetry file's description.
+
+    Returns
+    -------
+    dict
+    """
+    scene, res, cfg, tr = prep.scene, run.res, conn.cfg, conn.tr
+    transport, mock_report = opts.transport, run.mock_report
+    plinks = _port_links(scene)
+    virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
+                         for lk in scene.links]}
+    if plinks:
+        virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
+    hello = res.hello
+    loop_info = {
+        "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
+        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
+        "rate_hz": scene.rate_hz, "ticks": res.samples,
+        "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
+        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "ping_rtt_us": res.ping_rtt_us,
+        "low_latency": bool(tr.info.get("low_latency")),
+        "scheduling": conn.rt.note,
+        "low_latency_note": tr.info.get("low_latency_note", ""),
+        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop, "state": res.state,
+        "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
+        else cfg.watchdog_us * 1e-6,
+        "decoder": res.decoder,
+        "bad_frames": res.bad_frames, "bad_frames_seen": res.bad_frames_seen,
+        "device": None if hello is None else {
+            "device_id": hello.device_id, "force_limit": hello.force_limit,
+            "native_rate_hz": hello.native_rate_hz},
+        "mock": mock_report,
+        "excitation_end_s": prep.exc_end,
+        "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
+        "implausible": res.implausible,
+        "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
+        "lost": res.lost, "recovered": res.recovered,
+        "reconnect_attempts": res.reconnect_attempts, "events": res.events,
+        "energy_j": res.energy, "energy_max_j": res.energy_max,
+        "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
+        "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
+        "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
+                   "energy_limit": cfg.energy_limit,
+                   "passivity_controller": cfg.passivity_controller,
+                   "max_damping": cfg.max_damping},
+        "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
+    }
+    targets = prep.targets
+    return {"scene": scene.path, "target": targets[0] if targets else None,
+            "targets": targets, "virtual": virtual, "predicted": prep.pred,
+            "measured": measured, "loop": loop_info, "telemetry": tel_info,
+            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
 def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
@@ -515,287 +1080,20 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     ProtocolError
         The device speaks another protocol version or has another number of axes than 1.
     """
-    if duration is not None and not (math.isfinite(duration) and duration >= 0):
-        raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
-                          f"got {duration!r}", key="--duration")
-    if duration == 0 and stop is None and not handle_signals:
-        raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "
-                          "handle_signals or a stop flag", key="--duration")
-    if transport is None:
-        transport = "serial" if port else "pty"
-    if transport not in ("serial", "pty", "inprocess", "sim"):
-        raise ConfigError(f"unknown transport {transport!r}; valid: serial, pty, inprocess, sim",
-                          key="transport")
-    if transport == "sim" and lockstep:
-        raise ConfigError("the sim transport runs the real-time mock on a virtual clock; "
-                          "drop --lockstep", key="--lockstep")
-    from hapsim.daemon.faults import parse_faults
-    plan = parse_faults(faults, fault_seed)
-    if not plan.empty and transport not in ("pty", "sim"):
-        raise ConfigError("faults are injected by the mock: use the embedded mock (no --port) "
-                          "or 'hapsim mock --faults' behind --port", key="--faults")
-    if driver not in (None, "framed"):
-        from hapsim.drivers import get_driver
-        get_driver(driver)                      # unknown name: ConfigError before any work
-        if not plan.empty:
-            raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
-                              "has none", key="--faults")
-        host_clocked = True                     # the protocols answer packets: no clock
-        lockstep = lockstep or port is None     # the driver mock is paced by the host
-    if reconnect is None:
-        reconnect = not lockstep
-    if transport == "serial" and not port:
-        raise ConfigError("transport 'serial' needs a port", key="--port")
-    if transport == "inprocess" and not lockstep:
-        raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
-    if telemetry is not None and os.path.splitext(telemetry)[1].lower() not in (
-            ".npz", ".csv", ".hst"):
-        raise ConfigError(f"unknown telemetry format for {telemetry!r}; valid: .hst (chunked "
-                          f"journal), .npz, .csv", key="--telemetry")
-    scene, targets = prepare_scene(scene, rate_hz)
-    dev = scene.device
-    if dev.delay == 0 and not lockstep:
-        raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
-                          "lockstep (--lockstep); a real-time device needs d >= 1",
-                          file=scene.path, key="device.delay")
-    pred = predict(scene)
-    if pred["stable"] is False and not allow_unstable:
-        raise _refusal(scene, pred)
-    T = scene.period
-    base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
-    exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
-    # identification window: the free response at the start (what the default run is)
-    window = DEFAULT_DURATION
-    if pred.get("f0_hz"):
-        window = max(window, exc_end + 10.0 / pred["f0_hz"])
-    if duration is None:
-        duration = window
-    n_samples = max(int(round(duration * scene.rate_hz)), 1) if duration > 0 else 0
-    n_window = max(int(round(window * scene.rate_hz)), 1)
-    n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
-
-    from hapsim.engine import Engine
-    # Ctrl-C / SIGTERM from here on request a clean stop instead of raising: during the
-    # numba warm-up or while the embedded mock starts, the loop then ends at once (no
-    # FORCE but the final zero one, then STOP), with the report and the telemetry
-    stop = stop or StopFlag()
-    old = {}
-    if handle_signals and threading.current_thread() is threading.main_thread():
-        def _on_signal(signum, frame):
-            stop.request(signum)
-        for s in (signal.SIGINT, signal.SIGTERM):
-            old[s] = signal.signal(s, _on_signal)
-    embedded = None
-    mock_report = None
-    rt = None
-    try:
-        limit_blas_threads(1)
-        _warm_up(scene)
-        engine = Engine(scene)
-        if n_samples and n_samples <= n_window + n_ring:
-            tel = Telemetry(n_samples)                 # the whole run fits: kept whole
-        else:                                          # long or open-ended: head + ring
-            tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
-        x0 = abs(scene.excitation.x0)
-        sf = scene.safety
-        pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
-        cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_samples, delay=dev.delay,
-                         force_limit=dev.force_limit, lockstep=lockstep, host_clocked=host_clocked,
-                         state_timeout=(0.5 if transport == "inprocess" else 10.0) if lockstep
-                         else 1.0,
-                         # the embedded mock is a fresh Python process (imports take seconds
-                         # on a loaded machine); hardware answers at once
-                         hello_timeout=30.0 if transport == "pty" else 5.0,
-                         position_bound=pos_bound, velocity_limit=sf.velocity_limit,
-                         energy_limit=sf.energy_limit,
-                         passivity_controller=sf.passivity_controller,
-                         max_damping=sf.max_damping, reconnect=bool(reconnect),
-                         lost_timeout=lost_timeout,
-                         reconnect_attempts=int(reconnect_attempts),
-                         reconnect_time=float(reconnect_time))
-        rt = RealtimePriority(rt_priority if transport in ("pty", "serial") else 0)
-        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if driver not in (None, "framed"):
-            from hapsim.drivers import get_driver
-            from hapsim.drivers.transport import DriverTransport
-            drv = get_driver(driver)
-            if port is None:
-                from hapsim.drivers.mock import EmbeddedDriverMock
-                embedded = EmbeddedDriverMock(driver, dev, scene.excitation, scene.rate_hz,
-                                              seed=seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
-                embedded.release_slave()
-            else:
-                tr = DriverTransport(drv, port, delay=dev.delay)
-        elif transport == "inprocess":
-            from hapsim.daemon.transport import InProcessTransport
-            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
-                              seed=seed, base_dir=base_dir)
-            tr = InProcessTransport(mock)
-        elif transport == "sim":
-            from hapsim.daemon.transport import SimTransport
-            mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
-                              seed=seed, base_dir=base_dir)
-            tr = SimTransport(mock, plan)
-        elif transport == "pty":
-            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
-            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                    seed=seed, base_dir=base_dir, faults=faults or None,
-                                    fault_seed=fault_seed)
-            tr = SerialTransport(embedded.port, baud)
-            embedded.release_slave()
-        else:
-            from hapsim.daemon.transport import SerialTransport
-            tr = SerialTransport(port, baud)
-    except BaseException:
-        if rt is not None:
-            rt.__exit__(None, None, None)
-        if embedded is not None:
-            embedded.close()
-        _restore_signals(old)
-        raise
-
-    writer = None
-    writer_info = None
-    journal = None
-    try:
-        loop = HostLoop(engine, tr, cfg, tel, stop)
-        if telemetry:
-            journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
-            writer = ChunkWriter(tel, journal, telemetry_interval,
-                                 events=loop.result.events).start()
-            if transport == "sim" or (lockstep and not host_clocked):
-                tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
-        if on_start is not None:
-            on_start(tr.info.get("port"), n_samples)
-        try:
-            res = loop.run()
-        except (DeviceError, ProtocolError):
-            if writer is not None:
-                writer.close()
-                writer = None
-            if telemetry and tel.n and journal != telemetry:
-                # what was logged helps diagnose the failure
-                _export(tel, journal, telemetry)
-            raise
-    finally:
-        rt.__exit__(None, None, None)
-        if writer is not None:
-            writer.close()
-            writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
-                           "events": writer.events_written,
-                           "error": str(writer.error) if writer.error else None}
-        _restore_signals(old)
-        tr.close()
-        if embedded is not None:
-            mock_report = embedded.report()
-            embedded.close()
-    if transport in ("inprocess", "sim"):
-        mock_report = mock.stats.to_dict()
-        mock_report["totals"] = mock.totals()
-        if transport == "sim":
-            mock_report["faults_injected"] = plan.to_dict()["injected"]
-            mock_report["fault_events"] = tr.device.events
-
-    tel_info = None
-    if telemetry:
-        if tel.wrapped:     # the whole run's turnaround, from the journal (off the loop)
-            from hapsim.daemon.loop import percentiles_us
-            ta = load(journal)["turnaround_us"]
-            res.turnaround_us = dict(percentiles_us(ta), samples=int(ta.size))
-        if journal != telemetry:
-            _export(tel, journal, telemetry)
-        tel_info = {"path": telemetry, "samples": tel.n,
-                    "columns": ["time [s]", "position [m]", "force [N]", "seq",
-                                "turnaround [us]", "late", "flags"],
-                    "in_memory": tel.head + (tel.ring if tel.wrapped else 0)
-                    if tel.wrapped else tel.n,
-                    "ring": tel.ring, "lost_rows": (writer_info or {}).get("lost_rows", 0),
-                    "events_journaled": (writer_info or {}).get("events", 0),
-                    "writer_error": (writer_info or {}).get("error")}
-
-    # identification: the free response at the start (the whole record while it fits in
-    # memory; the head once the ring has gone round)
-    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
-    measured = {"error": "not identified"}
-    if pred["order"]:
-        start = int(math.ceil(exc_end / T - 1e-9)) + dev.delay + 3
-        if cols["seq"].size:
-            start += int(cols["seq"][0])
-        offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
-        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2)
-    notes = []
-    if any(lk.kind == "contact" for lk in scene.links):
-        notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
-                     "them open, so the two agree only while every contact stays closed")
-    if any(m.kind == "mass" for m in scene.masses):
-        notes.append("virtual masses add modes: the identified pair is the least damped "
-                     "one seen at the port, which the excitation may barely excite")
-    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
-        notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
-                     "loop is not the linear THS exactly")
-    late_in = measured.get("late_in_segment", 0)
-    if late_in:
-        notes.append(f"no stretch of 100 samples without late ticks: the identified record "
-                     f"holds {late_in} late ticks (the device held an older force), so the "
-                     f"measured pair is a disturbed loop, not the THS alone; rerun on a "
-                     f"quieter machine, at a lower rate, or with --lockstep")
-    if notes:
-        measured["note"] = "; ".join(notes)
-    if "k" in measured:
-        measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
-                               for q in ("k", "b", "f0_hz", "damping_ratio")}
-        if len(targets) == 1:     # with several targets the felt pair is their sum
-            t0 = targets[0]
-            measured["rel_err_target"] = {q: _rel(measured[q], t0[q])
-                                          for q in ("k", "b", "f0_hz", "damping_ratio")}
-    plinks = _port_links(scene)
-    virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
-                         for lk in scene.links]}
-    if plinks:
-        virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
-    hello = res.hello
-    loop_info = {
-        "mode": "host-clocked" if host_clocked else "device-clocked",
-        "lockstep": bool(lockstep), "transport": transport if transport != "pty" else
-        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
-        "rate_hz": scene.rate_hz, "ticks": res.samples,
-        "requested": n_samples or None, "open_ended": not n_samples,
-        "late": res.late, "missed": res.missed, "overruns": res.overruns,
-        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
-        "ping_rtt_us": res.ping_rtt_us,
-        "low_latency": bool(tr.info.get("low_latency")),
-        "scheduling": rt.note,
-        "low_latency_note": tr.info.get("low_latency_note", ""),
-        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop, "state": res.state,
-        "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
-        else cfg.watchdog_us * 1e-6,
-        "decoder": res.decoder,
-        "bad_frames": res.bad_frames, "bad_frames_seen": res.bad_frames_seen,
-        "device": None if hello is None else {
-            "device_id": hello.device_id, "force_limit": hello.force_limit,
-            "native_rate_hz": hello.native_rate_hz},
-        "mock": mock_report,
-        "excitation_end_s": exc_end,
-        "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
-        "implausible": res.implausible,
-        "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
-        "lost": res.lost, "recovered": res.recovered,
-        "reconnect_attempts": res.reconnect_attempts, "events": res.events,
-        "energy_j": res.energy, "energy_max_j": res.energy_max,
-        "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
-        "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
-        "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
-                   "energy_limit": cfg.energy_limit,
-                   "passivity_controller": cfg.passivity_controller,
-                   "max_damping": cfg.max_damping},
-        "faults": res.faults, "fault_plan": _fault_plan(plan, mock_report),
-    }
-    return {"scene": scene.path, "target": targets[0] if targets else None,
-            "targets": targets, "virtual": virtual, "predicted": pred, "measured": measured, "loop": loop_info,
-            "telemetry": tel_info,
-            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+    opts = RunOptions(port=port, baud=baud, duration=duration, rate_hz=rate_hz,
+                      lockstep=lockstep, host_clocked=host_clocked, telemetry=telemetry,
+                      allow_unstable=allow_unstable, transport=transport, seed=seed, stop=stop,
+                      handle_signals=handle_signals, on_start=on_start,
+                      rt_priority=rt_priority, faults=faults, fault_seed=fault_seed,
+                      reconnect=reconnect, lost_timeout=lost_timeout,
+                      reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
+                      telemetry_interval=telemetry_interval, driver=driver).check()
+    prep = prepare_run(scene, opts)
+    conn = connect(prep, opts)
+    run = run_loop(prep, conn, opts)
+    tel_info = _telemetry_info(conn, run, opts)
+    measured = identify_run(prep, conn.tel)
+    return build_report(prep, conn, run, opts, measured, tel_info)
 
 
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):

@@ -204,7 +204,7 @@ class HapkitSerialDevice(_Actuated):
         return out
 
 
-def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -> dict:
+def serve(fd: int, dev, *, watchdog: float = 0.5, stop=None) -> dict:
     """Serve ``dev`` on a byte stream until EOF (host closed) or ``stop()`` is true.
 
     Parameters
@@ -214,7 +214,9 @@ def serve(fd: int, dev: FireFaderDevice, *, watchdog: float = 0.05, stop=None) -
     dev : FireFaderDevice or HaplyDevice
         The device (``feed(bytes) -> bytes``, ``decoder.stats``, ``watchdog()``).
     watchdog : float
-        Silence after which the force is zeroed [s].
+        Silence after which the force is zeroed [s] (like the FireFader host's serial
+        timeout). The mock is paced by the host's commands, so this only guards against a
+        host that went away; 0.5 s by default, longer than a loaded host ever stalls.
     stop : callable, optional
         Polled; serving ends when it returns True.
 
