@@ -7,6 +7,7 @@ import json
 import math
 import sys
 
+from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
 
 _DESCRIPTION = """\
@@ -46,7 +47,6 @@ examples:
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
   hapsim identify --port /dev/ttyACM0 --force-limit 1 --envelope 0.02 --out device.yaml"""
 
-from hapsim.drivers import DRIVERS
 
 
 def register(sub) -> None:
@@ -89,16 +89,6 @@ def register(sub) -> None:
                         "b0 = 0.5 N s/m, d = 1)")
     p.add_argument("--seed", type=int, default=0, help="excitation and mock-noise seed")
     p.set_defaults(func=run)
-
-
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
 
 
 def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
@@ -231,6 +221,7 @@ def run(args) -> int:
                "out": args.out, "plot": args.plot}
         if args.hand:
             out["note"] = ("mass and friction are the THS's: hand + handle, for this grip")
+        from hapsim.commands.run import _clean
         print(json.dumps(_clean(out)))
     else:
         if args.hand:

@@ -2,7 +2,29 @@
 
 from __future__ import annotations
 
-__all__ = ["Driver"]
+__all__ = ["Driver", "MappedDecoder"]
+
+
+class MappedDecoder:
+    """A frame decoder whose outputs are mapped to the axis position [m] or [rad].
+
+    Parameters
+    ----------
+    frames : object
+        A decoder with ``feed(bytes) -> list`` and a ``stats`` dict.
+    position : callable
+        Frame -> position.
+    """
+
+    def __init__(self, frames, position) -> None:
+        self.frames = frames
+        self.stats = frames.stats
+        self._position = position
+
+    def feed(self, data: bytes) -> list:
+        """Bytes in, the positions of the complete frames out."""
+        pos = self._position
+        return [pos(fr) for fr in self.frames.feed(data)]
 
 
 class Driver:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.drivers.base import Driver
+from hapsim.drivers.base import Driver, MappedDecoder
 
 __all__ = ["FireFader", "HOST_START", "DEVICE_START", "POSITION_MAX", "FORCE_MIN", "FORCE_MAX",
            "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
@@ -124,39 +124,27 @@ def encode_record(pos_a: int, pos_b: int, extra=(0, 0, 0, 0)) -> bytes:
     return bytes((DEVICE_START,) + vals)
 
 
-class RecordDecoder:
-    """Host side: device -> host bytes to records, resynchronising on the start byte.
+class _StartByteDecoder:
+    """Frames of ``length`` value bytes after a ``start`` byte, resynchronising on it.
 
-    Attributes
-    ----------
-    stats : dict
-        ``records`` (complete), ``skipped`` (bytes dropped while hunting for a start
-        byte), ``truncated`` (a start byte inside a record: the partial record dropped).
+    A start byte inside a frame drops the partial frame (``truncated``) and begins a new
+    one; bytes before a start byte are ``skipped``; ``value(b)`` returns None for a byte
+    out of range (the frame is dropped, ``out_of_range``) or the decoded value.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, start: int, length: int, value) -> None:
+        self._start, self._len, self._value = start, length, value
         self._buf: list = []
         self._hunting = True
-        self.stats = {"records": 0, "skipped": 0, "truncated": 0}
+        self.stats = {"frames": 0, "skipped": 0, "truncated": 0, "out_of_range": 0}
 
     def feed(self, data: bytes) -> list:
-        """Bytes in, complete records out.
-
-        Parameters
-        ----------
-        data : bytes
-            Any bytes from the port.
-
-        Returns
-        -------
-        list of tuple of 6 int
-            Each record's values (``pA, pB, b3..b6``), all in 0..254.
-        """
+        """Bytes in, complete frames (tuples of values) out."""
         out = []
         st = self.stats
         buf = self._buf
         for b in data:
-            if b == DEVICE_START:
+            if b == self._start:
                 if not self._hunting and buf:
                     st["truncated"] += 1
                 buf.clear()
@@ -165,71 +153,56 @@ class RecordDecoder:
             if self._hunting:
                 st["skipped"] += 1
                 continue
-            buf.append(b)
-            if len(buf) == RECORD_BYTES:
-                out.append(tuple(buf))
-                buf.clear()
-                st["records"] += 1
-                self._hunting = True
-        return out
-
-
-class PacketDecoder:
-    """Device side (the mock): host -> device bytes to force packets.
-
-    Attributes
-    ----------
-    stats : dict
-        ``packets``, ``skipped`` (bytes while hunting), ``truncated`` (a start byte inside
-        a packet), ``out_of_range`` (a force byte of -128, which no host sends: the packet
-        is dropped).
-    """
-
-    def __init__(self) -> None:
-        self._buf: list = []
-        self._hunting = True
-        self.stats = {"packets": 0, "skipped": 0, "truncated": 0, "out_of_range": 0}
-
-    def feed(self, data: bytes) -> list:
-        """Bytes in, complete packets out as ``(count_a, count_b)`` in -127..126."""
-        out = []
-        st = self.stats
-        buf = self._buf
-        for b in data:
-            if b == HOST_START:
-                if not self._hunting and buf:
-                    st["truncated"] += 1
-                buf.clear()
-                self._hunting = False
-                continue
-            if self._hunting:
-                st["skipped"] += 1
-                continue
-            if b == 0x80:
+            v = self._value(b)
+            if v is None:
                 st["out_of_range"] += 1
                 buf.clear()
                 self._hunting = True
                 continue
-            buf.append(b - 256 if b > 127 else b)
-            if len(buf) == 2:
-                out.append((buf[0], buf[1]))
+            buf.append(v)
+            if len(buf) == self._len:
+                out.append(tuple(buf))
                 buf.clear()
-                st["packets"] += 1
+                st["frames"] += 1
                 self._hunting = True
         return out
 
 
-class _PositionDecoder:
-    """A record decoder that returns fader A's position [m] from the centre."""
+class RecordDecoder(_StartByteDecoder):
+    """Host side: device -> host bytes to records ``(pA, pB, b3..b6)``, values 0..254.
 
-    def __init__(self, axis: int) -> None:
-        self.records = RecordDecoder()
-        self.stats = self.records.stats
-        self._axis = axis
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (complete records), ``skipped`` (bytes dropped while hunting for a
+        start byte), ``truncated`` (a start byte inside a record: the partial record
+        dropped), ``out_of_range`` (always 0: every byte but the start is a value).
+    """
 
-    def feed(self, data: bytes) -> list:
-        ax = self._axis
-        return [(r[ax] - CENTRE) * METRES_PER_COUNT for r in self.records.feed(data)]
+    def __init__(self) -> None:
+        super().__init__(DEVICE_START, RECORD_BYTES, int)
+
+
+def _signed_force(b: int):
+    """A force byte as -127..126 (two's complement); None for -128, which no host sends."""
+    if b == 0x80:
+        return None
+    return b - 256 if b > 127 else b
+
+
+class PacketDecoder(_StartByteDecoder):
+    """Device side (the mock): host -> device bytes to force packets ``(count_a, count_b)``.
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (packets), ``skipped`` (bytes while hunting), ``truncated`` (a start
+        byte inside a packet), ``out_of_range`` (a force byte of -128: the packet is
+        dropped).
+    """
+
+    def __init__(self) -> None:
+        super().__init__(HOST_START, 2, _signed_force)
 
 
 class FireFader(Driver):
@@ -283,4 +256,5 @@ class FireFader(Driver):
 
     def decoder(self):
         """A fresh host-side decoder returning the driven fader's position [m]."""
-        return _PositionDecoder(self.axis)
+        ax = self.axis
+        return MappedDecoder(RecordDecoder(), lambda r: (r[ax] - CENTRE) * METRES_PER_COUNT)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver
+from hapsim.drivers.base import Driver, MappedDecoder
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
            "ReplyDecoder", "CommandDecoder"]
@@ -178,13 +178,4 @@ class HapkitSerial(Driver):
 
     def decoder(self):
         """A fresh host decoder returning the handle position [m]."""
-        return _PositionDecoder(self.function)
-
-
-class _PositionDecoder:
-    def __init__(self, function: int) -> None:
-        self.replies = ReplyDecoder(function)
-        self.stats = self.replies.stats
-
-    def feed(self, data: bytes) -> list:
-        return [x for x, _f in self.replies.feed(data)]
+        return MappedDecoder(ReplyDecoder(self.function), lambda reply: reply[0])

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver
+from hapsim.drivers.base import Driver, MappedDecoder
 
 __all__ = ["HaplyM3", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
            "ReplyDecoder", "CommandDecoder"]
@@ -261,13 +261,4 @@ class HaplyM3(Driver):
 
     def decoder(self):
         """A fresh host decoder returning the joint angle [rad]."""
-        return _AngleDecoder(self.id)
-
-
-class _AngleDecoder:
-    def __init__(self, device_id: int) -> None:
-        self.replies = ReplyDecoder(device_id)
-        self.stats = self.replies.stats
-
-    def feed(self, data: bytes) -> list:
-        return [math.radians(a) for a in self.replies.feed(data)]
+        return MappedDecoder(ReplyDecoder(self.id), math.radians)

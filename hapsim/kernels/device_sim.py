@@ -1,8 +1,9 @@
 """Output simulation of the device model ``m x'' + b0 x' = u - Coulomb`` for identification.
 
-One kernel, :func:`simulate_device`, on plain arrays and floats (SI units): the position
-samples a 1-DoF device would report for a given sequence of *applied* forces, for the two
-holds of DESIGN.md Sec. 4:
+Two kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
+samples a 1-DoF device would report for a given sequence of *applied* forces, stretch by
+stretch, and :func:`stretch_basis`, the responses its linear part is a combination of; for
+the two holds of DESIGN.md Sec. 4:
 
 ``zoh`` (hold 0)
     The force is held over each period and the motion integrated exactly (closed form of
@@ -45,6 +46,15 @@ def _psi_phi1(y):
 
 
 @_jit
+def _coefficients(m, friction, T):
+    """Exact ZOH step ``x' = x + cxv v + cxu u``, ``v' = a v + cvu u`` and the idealised
+    image's ``cu = T^2/m psi`` (see :func:`hapsim.daemon.mock.zoh_step_coefficients`)."""
+    y = friction * T / m
+    psi, phi1 = _psi_phi1(y)
+    return math.exp(-y), T * psi, T * T / m * phi1, T / m * psi, T * T / m * psi
+
+
+@_jit
 def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, period, hold,
                     out):
     """Positions of the device model driven by the applied forces ``u``, per stretch.
@@ -73,14 +83,7 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, per
         Filled with ``x[k]`` [m] on the stretches' samples (untouched elsewhere).
     """
     T = period
-    m = mass
-    y = friction * T / m
-    a = math.exp(-y)
-    psi, phi1 = _psi_phi1(y)
-    cxv = T * psi
-    cxu = T * T / m * phi1
-    cvu = T / m * psi
-    cu = T * T / m * psi
+    a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
     for j in range(starts.shape[0]):
         x = xs[j]
         v = vs[j]
@@ -139,14 +142,7 @@ def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
         Filled on the stretches' samples (left untouched elsewhere).
     """
     T = period
-    m = mass
-    y = friction * T / m
-    a = math.exp(-y)
-    psi, phi1 = _psi_phi1(y)
-    cxv = T * psi
-    cxu = T * T / m * phi1
-    cvu = T / m * psi
-    cu = T * T / m * psi
+    a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
     for j in range(starts.shape[0]):
         x1 = 0.0
         v1 = 0.0
