@@ -2,7 +2,48 @@
 
 from __future__ import annotations
 
-__all__ = ["Driver", "MappedDecoder"]
+__all__ = ["Driver", "MappedDecoder", "AlignedDecoder"]
+
+
+class AlignedDecoder:
+    """Fixed-length frames without a start byte: a frame is taken where ``parse`` accepts
+    it (its fixed bytes match, its values are plausible), else one byte is dropped and
+    the next position tried.
+
+    Subclasses set ``length`` and define ``parse(buf) -> value or None`` (``buf`` holds at
+    least ``length`` bytes).
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (taken), ``skipped`` (bytes dropped realigning).
+    """
+
+    length = 1
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.stats = {"frames": 0, "skipped": 0}
+
+    def parse(self, buf):
+        raise NotImplementedError
+
+    def feed(self, data: bytes) -> list:
+        """Bytes in, the values of the frames taken out."""
+        buf = self._buf
+        buf += data
+        out = []
+        n = self.length
+        while len(buf) >= n:
+            v = self.parse(buf)
+            if v is not None:
+                out.append(v)
+                del buf[:n]
+                self.stats["frames"] += 1
+                continue
+            del buf[:1]
+            self.stats["skipped"] += 1
+        return out
 
 
 class MappedDecoder:

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver, MappedDecoder
+from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
            "ReplyDecoder", "CommandDecoder"]
@@ -68,72 +68,56 @@ def _plausible(x: float, lim: float) -> bool:
     return math.isfinite(x) and abs(x) <= lim
 
 
-class ReplyDecoder:
-    """Host side: 9-byte replies out of a byte stream (positions [m]).
+class ReplyDecoder(AlignedDecoder):
+    """Host side: 9-byte replies out of a byte stream, as ``(x [m], force [N])``.
 
     Attributes
     ----------
     stats : dict
-        ``replies``, ``skipped`` (bytes dropped realigning).
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning).
     """
+
+    length = 9
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION) -> None:
+        super().__init__()
         self.function = function & 0xFF
-        self._buf = bytearray()
-        self.stats = {"replies": 0, "skipped": 0}
 
-    def feed(self, data: bytes) -> list:
-        """Bytes in, ``(x [m], force [N])`` of the complete plausible replies out."""
-        buf = self._buf
-        buf += data
-        out = []
-        while len(buf) >= 9:
-            if buf[0] == self.function:
-                x, f = _FF.unpack_from(buf, 1)
-                if _plausible(x, MAX_POSITION) and _plausible(f, MAX_FORCE):
-                    out.append((x, f))
-                    del buf[:9]
-                    self.stats["replies"] += 1
-                    continue
-            del buf[:1]
-            self.stats["skipped"] += 1
-        return out
+    def parse(self, buf):
+        """``(x, force)`` of a plausible reply at the start of ``buf``, or None."""
+        if buf[0] != self.function:
+            return None
+        x, f = _FF.unpack_from(buf, 1)
+        return (x, f) if _plausible(x, MAX_POSITION) and _plausible(f, MAX_FORCE) else None
 
 
-class CommandDecoder:
-    """Device side (the mock): 10-byte commands whose header and function match.
+class CommandDecoder(AlignedDecoder):
+    """Device side (the mock): 10-byte commands whose header and function match, as the
+    commanded force [N] (a NaN or infinite one as 0.0, counted in ``non_finite``).
 
     Attributes
     ----------
     stats : dict
-        ``commands``, ``skipped`` (bytes dropped realigning), ``non_finite`` (commands
-        whose force float is NaN or infinite: applied as zero).
+        ``frames`` (commands), ``skipped`` (bytes dropped realigning), ``non_finite``.
     """
 
+    length = 10
+
     def __init__(self, function: int = HOST_FORCE_FUNCTION, header: int = HEADER) -> None:
+        super().__init__()
         self.function = function & 0xFF
         self.header = header & 0xFF
-        self._buf = bytearray()
-        self.stats = {"commands": 0, "skipped": 0, "non_finite": 0}
+        self.stats["non_finite"] = 0
 
-    def feed(self, data: bytes) -> list:
-        """Bytes in, the commanded forces [N] out (non-finite ones as 0.0)."""
-        buf = self._buf
-        buf += data
-        out = []
-        while len(buf) >= 10:
-            if buf[0] == self.header and buf[1] == self.function:
-                _, f = _FF.unpack_from(buf, 2)
-                if not math.isfinite(f):
-                    self.stats["non_finite"] += 1
-                    f = 0.0
-                out.append(f)
-                del buf[:10]
-                self.stats["commands"] += 1
-                continue
-            del buf[:1]
-            self.stats["skipped"] += 1
-        return out
+    def parse(self, buf):
+        """The force of a command at the start of ``buf``, or None."""
+        if buf[0] != self.header or buf[1] != self.function:
+            return None
+        f = _FF.unpack_from(buf, 2)[1]
+        if not math.isfinite(f):
+            self.stats["non_finite"] += 1
+            return 0.0
+        return f
 
 
 class HapkitSerial(Driver):

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver, MappedDecoder
+from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HaplyM3", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
            "ReplyDecoder", "CommandDecoder"]
@@ -87,7 +87,7 @@ def reply_packet(device_id: int, angle_deg: float) -> bytes:
     return bytes([device_id & 0xFF]) + _F.pack(angle_deg)
 
 
-class ReplyDecoder:
+class ReplyDecoder(AlignedDecoder):
     """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream.
 
     Parameters
@@ -99,31 +99,22 @@ class ReplyDecoder:
     Attributes
     ----------
     stats : dict
-        ``replies``, ``skipped`` (bytes dropped realigning).
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning).
     """
 
+    length = 5
+
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0) -> None:
+        super().__init__()
         self.id = device_id & 0xFF
         self.max = float(max_angle_deg)
-        self._buf = bytearray()
-        self.stats = {"replies": 0, "skipped": 0}
 
-    def feed(self, data: bytes) -> list:
-        """Bytes in, angles [deg] of the complete plausible replies out."""
-        buf = self._buf
-        buf += data
-        out = []
-        while len(buf) >= 5:
-            if buf[0] == self.id:
-                a = _F.unpack_from(buf, 1)[0]
-                if math.isfinite(a) and abs(a) <= self.max:
-                    out.append(a)
-                    del buf[:5]
-                    self.stats["replies"] += 1
-                    continue
-            del buf[:1]
-            self.stats["skipped"] += 1
-        return out
+    def parse(self, buf):
+        """The angle [deg] of a reply at the start of ``buf``, or None."""
+        if buf[0] != self.id:
+            return None
+        a = _F.unpack_from(buf, 1)[0]
+        return a if math.isfinite(a) and abs(a) <= self.max else None
 
 
 class CommandDecoder:
