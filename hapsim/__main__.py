@@ -1,7 +1,5 @@
 """``python -m hapsim`` runs the command line."""
 
-import sys
+from hapsim.cli import entry
 
-from hapsim.cli import main
-
-sys.exit(main())
+entry()

@@ -14,21 +14,116 @@ Exit codes (all commands)
 2
     Bad input: unknown option, invalid scene file, invalid argument value.
 130
-    Interrupted from the keyboard before any safe shutdown could be done.
+    Interrupted from the keyboard (Ctrl-C) before the command could finish; nothing is
+    printed but ``hapsim COMMAND: interrupted``, at any moment, imports included.
+    (``hapsim run`` catches SIGINT itself once its loop is armed and exits 0.)
+
+JSON (``--json``)
+-----------------
+A command given ``--json`` prints exactly one JSON object on stdout whatever the outcome.
+On success or a negative verdict it is the command's result (with its own ``verdict`` or
+``renderable`` field); when the command fails before it has a result (bad input, an
+unstable scene refused, a device fault, Ctrl-C) it is :func:`error_json`'s::
+
+    {"error": {"type": "ConfigError", "message": "...", "file": "s.yaml", "line": 3,
+               "key": "links[0].stiffness"}, "exit": 2}
+
+with ``type`` the exception class (``usage`` for a bad option, ``interrupted`` for
+Ctrl-C), ``file``/``line``/``key`` when known (else null), ``spectral_radius`` and
+``stiffness_limit`` for an unstable configuration, and ``exit`` the exit code. The same
+one-line message goes to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
+import math
 import sys
 
 from hapsim import __version__
-from hapsim.errors import ConfigError, HapsimError
+from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
             "run", "mock", "bench", "advise", "identify")
+
+
+#: Options people confuse: felt (k, b) of ``calibrate`` against virtual (K, B) of ``render``.
+#: option -> (what it is, where it belongs, the option it is mistaken for)
+_CASE_HINTS = {
+    "--k": ("the felt stiffness k [N/m] of 'hapsim calibrate'", "--K"),
+    "--b": ("the felt damping b [N s/m] of 'hapsim calibrate'", "--B"),
+    "--K": ("the virtual stiffness K [N/m] of 'hapsim render'", "--k"),
+    "--B": ("the virtual damping B [N s/m] of 'hapsim render' and 'stability'", "--b"),
+}
+_WHAT = {"--K": "the virtual stiffness simulated", "--B": "the virtual damping simulated",
+         "--k": "the felt stiffness to render", "--b": "the felt damping to render"}
+
+#: The argv being parsed (for the hints of :class:`HapsimArgumentParser`).
+_ARGV: list[str] = []
+
+
+class HapsimArgumentParser(argparse.ArgumentParser):
+    """ArgumentParser whose errors add a hint for k/K and b/B mix-ups and feed ``--json``.
+
+    Notes
+    -----
+    Sub-command parsers inherit the class (``add_subparsers`` uses the parent's class).
+    The message of the last error is kept in ``last_usage_error`` for :func:`main`.
+    """
+
+    last_usage_error: str | None = None
+
+    def error(self, message: str):  # noqa: D102 - argparse's contract: print and exit 2
+        given = {a.split("=", 1)[0] for a in _ARGV if a.startswith("--")}
+        parser: argparse.ArgumentParser = self
+        for action in self._actions:       # the top parser: ask the chosen sub-command's
+            if isinstance(action, argparse._SubParsersAction):
+                chosen = [action.choices[a] for a in _ARGV if a in action.choices]
+                parser = chosen[0] if chosen else parser
+        known = {o for a in parser._actions for o in a.option_strings}
+        hints = []
+        for opt, (what, other) in _CASE_HINTS.items():
+            if opt in given and opt not in known:
+                use = (f"for {_WHAT[other]} use {other}" if other in known
+                       else f"{parser.prog} does not take it")
+                hints.append(f"{opt} is {what}; {use}")
+        if hints:
+            message = f"{message} ({'; '.join(hints)})"
+        HapsimArgumentParser.last_usage_error = f"{self.prog}: {message}"
+        super().error(message)
+
+
+def error_json(exc: BaseException | None, code: int, message: str) -> str:
+    """The JSON object a ``--json`` command prints when it fails before having a result.
+
+    Parameters
+    ----------
+    exc : BaseException or None
+        The error (None for a usage error found by argparse).
+    code : int
+        The exit code (2 bad input, 1 negative verdict or device fault, 130 Ctrl-C).
+    message : str
+        The one-line message also printed on stderr.
+
+    Returns
+    -------
+    str
+        ``{"error": {"type", "message", "file", "line", "key", ...}, "exit": code}`` on one
+        line (shape in the module docstring).
+    """
+    err = {"type": "usage" if exc is None else
+           "interrupted" if isinstance(exc, KeyboardInterrupt) else type(exc).__name__,
+           "message": message,
+           "file": getattr(exc, "file", None), "line": getattr(exc, "line", None),
+           "key": getattr(exc, "key", None)}
+    for name in ("spectral_radius", "stiffness_limit"):
+        value = getattr(exc, name, None)
+        if isinstance(value, float) and math.isfinite(value):
+            err[name] = value
+    return json.dumps({"error": err, "exit": code})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     argparse.ArgumentParser
         The parser; ``parse_args`` yields a namespace whose ``func`` runs the command.
     """
-    parser = argparse.ArgumentParser(
+    parser = HapsimArgumentParser(
         prog="hapsim",
         description=(
             "Real-time haptic simulator for 1-DoF force-feedback devices. It runs a "
@@ -76,23 +171,76 @@ def main(argv: list[str] | None = None) -> int:
     int
         Exit code (see the module docstring).
     """
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    want_json = "--json" in argv
+    command = "hapsim"
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # argparse exits 2 on bad input, 0 on --help
-        return int(exc.code or 0)
-    try:
-        return int(args.func(args))
-    except ConfigError as exc:
-        print(f"hapsim {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except HapsimError as exc:
-        print(f"hapsim {args.command}: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"hapsim {args.command}: interrupted", file=sys.stderr)
-        return 130
+        _ARGV[:] = argv
+        HapsimArgumentParser.last_usage_error = None
+        parser = build_parser()           # imports every command: Ctrl-C may land here
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # argparse exits 2 on bad input, 0 on --help
+            code = int(exc.code or 0)
+            if code and want_json:
+                message = HapsimArgumentParser.last_usage_error or "bad arguments"
+                print(error_json(None, code, message), flush=True)
+            return code
+        command = f"hapsim {args.command}"
+        try:
+            import numpy as np
+            # overflow/invalid in the analysis of extreme loops shows up in the results
+            # (nan, inf, an unstable verdict); numpy's RuntimeWarnings on stderr only
+            # confuse (issue 10)
+            with np.errstate(all="ignore"):
+                return int(args.func(args))
+        except UnstableConfigError as exc:
+            # a negative verdict (unstable, not renderable), even when also a ConfigError
+            return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
+        except ConfigError as exc:
+            return _fail(command, exc, 2, f"error: {exc}", want_json)
+        except HapsimError as exc:
+            return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
+    except KeyboardInterrupt as exc:
+        try:
+            return _fail(command, exc, 130, "interrupted", want_json)
+        except KeyboardInterrupt:  # a second Ctrl-C while saying so
+            return 130
+
+
+def _fail(command: str, exc: BaseException, code: int, text: str, want_json: bool) -> int:
+    """Print ``command: text`` on stderr (and the JSON error); return ``code``.
+
+    Bad input (exit 2) is one line: a line break in the message is printed as ``\\n``.
+    """
+    line = f"{command}: {text}"
+    if code == 2:
+        line = line.replace("\r", "\\r").replace("\n", "\\n")
+    print(line, file=sys.stderr, flush=True)
+    if want_json:
+        print(error_json(exc, code, line), flush=True)
+    return code
+
+
+def entry() -> None:
+    """The ``hapsim`` console script and ``python -m hapsim``: exit with :func:`main`'s code.
+
+    After Ctrl-C (code 130) the process ends with ``os._exit(130)`` once stdout and stderr
+    are flushed: CPython would otherwise re-raise SIGINT at exit (exit status -2 rather
+    than 130) when the interrupt landed inside code run by ``PyRun_String`` during an
+    import, even though :func:`main` handled it.
+    """
+    code = main()
+    if code == 130:
+        import os
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, KeyboardInterrupt):
+                pass
+        os._exit(130)
+    sys.exit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

@@ -7,6 +7,8 @@ matching built-in, so callers may catch either (pattern of pyserial's
 
 from __future__ import annotations
 
+import re
+
 __all__ = [
     "HapsimError",
     "ConfigError",
@@ -14,6 +16,9 @@ __all__ = [
     "DeviceError",
     "UnstableConfigError",
     "UnrenderableTargetError",
+    "show",
+    "fixed",
+    "plural",
 ]
 
 
@@ -98,9 +103,10 @@ class UnstableConfigError(HapsimError, ValueError):
 class UnrenderableTargetError(UnstableConfigError, ConfigError):
     """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
 
-    A configuration error (exit code 2: the scene asks for the impossible) that is also an
-    :class:`UnstableConfigError` (what callers caught before). The message names the file,
-    the line and the key ``links.NAME.target``.
+    A negative verdict (exit code 1, as ``hapsim calibrate`` gives for the same target:
+    README's table) that is also a :class:`ConfigError`, so the message names the file,
+    the line and the key ``links.NAME.target``; :func:`hapsim.cli.main` tests for
+    :class:`UnstableConfigError` first.
 
     Parameters
     ----------
@@ -121,3 +127,62 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
         ConfigError.__init__(self, message, file=file, line=line, key=key)
         self.spectral_radius = spectral_radius
         self.stiffness_limit = None
+
+
+def show(value: object, limit: int = 60) -> str:
+    """A value as a message may print it: its repr, on one line, at most ``limit`` chars.
+
+    Parameters
+    ----------
+    value : object
+        Anything (a scene value, a name, a command-line argument).
+    limit : int
+        Most characters returned (>= 8).
+
+    Returns
+    -------
+    str
+        ``repr(value)`` with line breaks escaped, cut to ``limit`` characters with ``...``.
+        Containers are walked at most 3 levels deep and 4 items wide (``reprlib``), so the
+        cost is bounded even for a document whose aliases make it huge.
+    """
+    import reprlib
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxtuple, r.maxdict, r.maxset = 3, 4, 4, 4, 4
+    r.maxstring = r.maxother = r.maxlong = max(limit, 8)
+    text = r.repr(value)
+    text = text.replace("\r", "\\r").replace("\n", "\\n")
+    if len(text) > limit:
+        text = text[:limit - 3] + "..."
+    return text
+
+
+def fixed(value: float, spec: str) -> str:
+    """``format(value, spec)`` for a fixed-point ``spec`` (``"12.9f"``), never 300 digits.
+
+    Parameters
+    ----------
+    value : float
+        The number.
+    spec : str
+        A format spec ending in ``f`` (width, alignment, sign and precision kept).
+
+    Returns
+    -------
+    str
+        The fixed-point text while it stays within the field (or 16 characters), else the
+        same field in ``g`` with the precision as significant digits (``1e+300``, not a
+        301-digit integer part).
+    """
+    text = format(value, spec)
+    m = re.fullmatch(r"(.*?)(\d*)(?:\.(\d+))?f", spec)
+    width = int(m.group(2)) if m and m.group(2) else 0
+    if len(text.strip()) <= max(width, 16) or not m:
+        return text
+    digits = int(m.group(3)) if m.group(3) else 6
+    return format(value, f"{m.group(1)}{m.group(2)}.{max(digits, 1)}g")
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """``"1 link"``, ``"3 links"``: a count with its noun in the right number."""
+    return f"{n} {word if n == 1 else (many or word + 's')}"

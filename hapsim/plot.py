@@ -75,24 +75,17 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
         ikK, ikB = g.K, g.B + b0
         ibK, ibB = g.K.T, g.B.T + b0
 
-    def label_end(x, y, text, color, where):
-        ok = np.isfinite(x) & np.isfinite(y)
-        if not ok.any():
-            return
-        i = np.flatnonzero(ok)[where]
-        ax.annotate(text, (x[i], y[i]), color=color, fontsize=7, xytext=(2, 2),
-                    textcoords="offset points")
-
+    labels = []   # (x, y, text, colour, from_start), placed once the limits are known
     for i, k in enumerate(kv):
         ax.plot(ikK[i], ikB[i], color="tab:blue", lw=1.2, zorder=3,
                 label="iso-k (felt stiffness k)" if i == 0 else None)
         if i % label_every == 0:
-            label_end(ikK[i], ikB[i], f"k={k:.3g}", "tab:blue", 0)
+            labels.append((ikK[i], ikB[i], f"k={k:.3g}", "tab:blue", True))
     for j, b in enumerate(bv):
         ax.plot(ibK[j], ibB[j], color="tab:red", lw=1.2, zorder=3,
                 label="iso-b (felt damping b)" if j == 0 else None)
         if j % label_every == 0:
-            label_end(ibK[j], ibB[j], f"b={b:.3g}", "tab:red", -1)
+            labels.append((ibK[j], ibB[j], f"b={b:.3g}", "tab:red", False))
     ax.plot([], [], ls="--", color="0.6", lw=0.8, label="identity (K = k, B + b0 = b)")
     # boundary
     bK = np.where(np.isfinite(g.boundary_K), g.boundary_K, np.nan)
@@ -107,8 +100,14 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
         ax.set_xlim(min(0.0, xs.min()), xr * 1.12)
         yr = ys.max() - min(0.0, ys.min())
         ax.set_ylim(min(0.0, ys.min()) - 0.03 * yr, ys.max() + 0.08 * max(yr, 1e-12))
-    ax.set_xlabel("virtual stiffness K [N/m]")
-    ax.set_ylabel("virtual damping B + b0 [N s/m]" if b0 else "virtual damping B [N s/m]")
+    _place_labels(ax, labels)
+    if loop.mass == 1 and loop.rate_hz == 1:   # the paper's normalised units, m = T = 1
+        ax.set_xlabel("virtual stiffness K T²/m (normalised, m = T = 1)")
+        ax.set_ylabel("virtual damping (B + b0) T/m (normalised)" if b0
+                      else "virtual damping B T/m (normalised, m = T = 1)")
+    else:
+        ax.set_xlabel("virtual stiffness K [N/m]")
+        ax.set_ylabel("virtual damping B + b0 [N s/m]" if b0 else "virtual damping B [N s/m]")
     if title is None:
         title = (f"m = {loop.mass:g} kg, b0 = {loop.friction:g} N s/m, "
                  f"{loop.rate_hz:g} Hz, d = {loop.delay}, hold = {loop.hold}")
@@ -117,6 +116,48 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ax.legend(fontsize=7, loc="upper right", framealpha=0.9)
     fig.tight_layout()
     return fig
+
+
+def _place_labels(ax, labels, fontsize: float = 7.0) -> None:
+    """Write each curve's label where it overlaps no label already placed.
+
+    Each label is tried at its preferred end of its curve (iso-k: the start, iso-b: the
+    end), then at points moving along the curve, in display coordinates; a label that
+    finds no free place is left out rather than drawn over another.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        Axes whose limits are final.
+    labels : list of (x, y, text, colour, from_start)
+        Curve points (arrays, data units), the text, its colour and which end to prefer.
+    fontsize : float
+        Label size [pt].
+    """
+    fig = ax.figure
+    px = fig.dpi / 72.0 * fontsize          # one character's height [pixels]
+    taken = []                               # boxes (x0, y0, x1, y1) [pixels]
+    box = ax.get_window_extent()
+    for x, y, text, color, from_start in labels:
+        ok = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+        if not ok.size:
+            continue
+        order = ok if from_start else ok[::-1]
+        pts = ax.transData.transform(np.column_stack([x[order], y[order]]))
+        w, h = 0.62 * px * len(text) + 5.0, 1.15 * px + 1.0   # with a margin
+        step = max(1, len(order) // 40)
+        for n in range(0, len(order), step):
+            x0, y0 = pts[n] + 2.0
+            cand = (x0, y0, x0 + w, y0 + h)
+            inside = (box.x0 <= cand[0] and cand[2] <= box.x1 + 20 and box.y0 <= cand[1]
+                      and cand[3] <= box.y1)
+            if inside and not any(c[0] < t[2] and t[0] < c[2] and c[1] < t[3] and t[1] < c[3]
+                                  for c in (cand,) for t in taken):
+                taken.append(cand)
+                i = order[n]
+                ax.annotate(text, (x[i], y[i]), color=color, fontsize=fontsize,
+                            xytext=(2, 2), textcoords="offset points")
+                break
 
 
 def figure_formats() -> tuple:
@@ -167,7 +208,7 @@ def check_figure_path(path: str, key: str = "--out") -> None:
 
 
 def check_output_path(path: str, key: str) -> None:
-    """Refuse an output file whose directory does not exist or that is a directory.
+    """Refuse an output file that cannot be written (:func:`hapsim.outputs.check_writable`).
 
     Parameters
     ----------
@@ -181,11 +222,8 @@ def check_output_path(path: str, key: str) -> None:
     ConfigError
         With ``key``.
     """
-    if os.path.isdir(path):
-        raise ConfigError(f"{path!r} is a directory; give a file name", key=key)
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise ConfigError(f"directory {d!r} does not exist (create it first)", key=key)
+    from hapsim.outputs import check_writable   # one check for every command's outputs
+    check_writable(path, key)
 
 
 def save_figure(fig, path: str) -> None:

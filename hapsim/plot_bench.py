@@ -15,6 +15,9 @@ __all__ = ["plot_accuracy_vs_rate", "plot_accuracy_vs_cost", "plot_capacity"]
 _D_COLORS = {0: "tab:blue", 1: "tab:orange", 2: "tab:red"}
 _I_COLORS = {"centred": "tab:blue", "symplectic_euler": "tab:green", "exact": "tab:purple"}
 _FLOOR = 1e-16
+#: Floor of chart 1's error axis: the calibrated loops sit at round-off (~1e-15) and are
+#: drawn on it, so the axis spans the naive errors (1e-4 ... 1e3) instead of 19 decades.
+_RATE_FLOOR = 1e-7
 
 
 def _mpl():
@@ -38,8 +41,8 @@ def plot_accuracy_vs_rate(data: dict):
     -------
     matplotlib.figure.Figure
         Log-log error [-] against rate [Hz]: naive curves solid (colour = delay d, circle =
-        ZOH, square = ideal hold), calibrated dashed (at the round-off floor, clipped to
-        1e-16). On the rate axis, a filled triangle marks each naive loop's stability
+        ZOH, square = ideal hold), calibrated dashed (round-off, ~1e-15: drawn on the axis
+        floor 1e-7, so the axis spans the naive errors). On the rate axis, a filled triangle marks each naive loop's stability
         boundary (spectral radius 1, unstable below) and an open one the rate below which
         the calibrated target is not renderable. Rates where the naive loop is stable but
         has no felt pair (its slowest mode is real) are gaps in the curve, marked by crosses
@@ -62,14 +65,15 @@ def plot_accuracy_vs_rate(data: dict):
             naive = c["method"] == "naive"
             col = _D_COLORS.get(c["delay"], "k")
             mk = "o" if c["hold"] == "zoh" else "s"
-            y = np.maximum(e, _FLOOR) if not naive else e
+            y = np.maximum(e, _RATE_FLOOR) if not naive else e
             ax.plot(rates, y, ls="-" if naive else "--", marker=mk, ms=3.5, color=col,
                     lw=1.4 if naive else 0.9, alpha=1.0 if naive else 0.6,
                     mfc=col if c["hold"] == "zoh" else "white")
             if naive:
                 for x in c.get("stability_boundary_hz", []):
                     unstable_above |= not x["stable_above"]
-                    ax.plot([x["rate_hz"]], [2e-17], marker="^" if x["stable_above"] else "v",
+                    ax.plot([x["rate_hz"]], [_RATE_FLOOR / 3], marker="^" if x["stable_above"]
+                            else "v",
                             ms=8, color=col, clip_on=False, zorder=5)
                 gap = [r for r, st in zip(rates, c.get("status", [])) if st == "no felt pair"]
                 if gap:
@@ -80,11 +84,11 @@ def plot_accuracy_vs_rate(data: dict):
             else:
                 b = c.get("works_from_hz")
                 if b is not None and b > rates[0] * 1.001:
-                    ax.plot([b], [2e-17], marker="v", ms=8, color=col, mfc="white",
+                    ax.plot([b], [_RATE_FLOOR / 3], marker="v", ms=8, color=col, mfc="white",
                             clip_on=False, zorder=5)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_ylim(1e-17, 5e3)
+        ax.set_ylim(_RATE_FLOOR / 5, 5e3)
         ax.axhline(0.01, color="0.5", lw=0.8, ls=":")
         ax.axhline(14.0, color="0.8", lw=0.6)
         ax.text(rates[0] * 1.05, 0.013, "1 %", color="0.4", fontsize=8)
@@ -102,7 +106,7 @@ def plot_accuracy_vs_rate(data: dict):
           plt.Line2D([], [], color="k", marker="s", mfc="white", ls="", label="ideal hold"),
           plt.Line2D([], [], color="k", ls="-", label="naive K = k, B = b - b0"),
           plt.Line2D([], [], color="k", ls="--", alpha=0.6,
-                     label="calibrated (round-off, floor 1e-16)"),
+                     label=f"calibrated (round-off ~1e-15, drawn at {_RATE_FLOOR:.0e})"),
           plt.Line2D([], [], color="k", marker="^", ls="",
                      label="naive: stability boundary, |z| = 1 (unstable below)"),
           plt.Line2D([], [], color="k", marker="v", mfc="white", ls="",
@@ -205,19 +209,22 @@ def plot_capacity(data: dict):
     plt = _mpl()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12.5, 5.8), dpi=110)
     rates = np.array(data["rates"])
-    styles = {"p50": "-", "p99": "--", "p999": ":"}
+    sources = []
+    styles = {"p50": ("-", "o"), "p99": ("--", "s"), "p999": (":", "^")}
     for key, col, lab in (("echo", "tab:gray", "raw pty echo (floor)"),
                           ("daemon", "tab:blue", "hapsim daemon + mock")):
         rows = data.get(key) or []
         if not rows:
             continue
-        for q, ls in styles.items():
+        for q, (ls, mk) in styles.items():
             y = _arr([r.get("turnaround_us", {}).get(q) for r in rows])
-            a1.plot(rates[:len(y)], y, ls=ls, marker="o", ms=4, color=col,
-                    label=f"{lab} {q}")
+            a1.plot(rates[:len(y)], y, ls=ls, marker=mk, ms=4, color=col)
+        sources.append(plt.Line2D([], [], color=col, lw=2.5, label=lab))
         miss = _arr([r.get("missed_pct") for r in rows])
         a2.plot(rates[:len(miss)], np.maximum(miss, 1e-3), "-o", color=col, label=lab)
-    a1.plot(rates, 1e6 / rates, color="k", lw=1.2, label="period 1/rate")
+    a1.plot(rates, 1e6 / rates, color="k", lw=1.2)
+    quantiles = [plt.Line2D([], [], color="0.3", ls=ls, marker=mk, ms=5, lw=1.4, label=q)
+                 for q, (ls, mk) in styles.items()]
     if data.get("daemon_note"):
         a1.text(0.03, 0.03, data["daemon_note"], transform=a1.transAxes, fontsize=8,
                 color="tab:red", va="bottom", wrap=True)
@@ -227,7 +234,10 @@ def plot_capacity(data: dict):
     a1.set_ylabel("turnaround [us]")
     a1.set_title("host turnaround: message read -> reply written", fontsize=10)
     a1.grid(True, which="both", alpha=0.3)
-    a1.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.13))
+    a1.legend(handles=sources + quantiles + [plt.Line2D([], [], color="k", lw=1.2,
+                                                        label="period 1/rate")],
+              fontsize=7.5, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.13),
+              handlelength=4.5)
     a2.set_xscale("log")
     a2.set_yscale("log")
     a2.set_xlabel("loop rate [Hz]")

@@ -62,11 +62,10 @@ import math
 import numbers
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
-import yaml
-
-from hapsim.errors import ConfigError
+from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
+from hapsim.errors import ConfigError, show
 
 __all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Scene",
            "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS"]
@@ -173,12 +172,12 @@ class Device:
     Parameters
     ----------
     mass : float
-        Moving mass m of hand + handle [kg], > 0.
+        Moving mass m of hand + handle [kg], in [1e-12, 1e12].
     friction : float
-        Real viscous friction b0 [N s/m], >= 0.
+        Real viscous friction b0 [N s/m], >= 0, with b0 T / m <= 1e6.
     delay : int
         Whole samples d between the position a force is computed from and the sample
-        the force is applied at, >= 0.
+        the force is applied at, 0 to 500 (the analysis's cost: O(d^3)).
     hold : {"zoh", "ideal"}
         Zero-order hold of the force, or the paper's idealised sampled image.
     force_limit : float
@@ -303,8 +302,10 @@ class Scene:
     ConfigError
         When a rule of the scene format is broken: the message names the key (e.g.
         ``masses[2].mass``) and, for an entry read from a file, the file and the line.
-        Rules: ``rate_hz`` > 0; a known ``integrator``; a non-empty tuple of masses with
-        unique names and a known kind; ``mass`` > 0 for kind ``mass`` (0 otherwise);
+        Rules: ``rate_hz`` in [1e-6, 1e9] Hz; a known ``integrator``; a non-empty tuple of
+        masses with unique names and a known kind; ``mass`` in [1e-12, 1e12] kg for kind
+        ``mass`` (0 otherwise); ``device.delay`` <= 500 samples (ranges and their reasons:
+        ``hapsim.analysis.loop.RATE_RANGE``, ``MASS_RANGE``, ``MAX_DELAY``);
         finite ``x0``, ``v0`` (``v0`` = 0 unless kind ``mass``); at most one port, and a
         ``device`` when there is one; links with unique names and a known kind between two
         different existing masses; stiffness >= 0 and damping >= 0, finite (NaN only
@@ -468,51 +469,10 @@ class Scene:
 
 
 # --------------------------------------------------------------------------- YAML with lines
-
-class _Node:
-    """Mixin that records the line of a YAML mapping or sequence and of its items."""
-
-    line: int
-    lines: dict
-
-
-class _LDict(dict, _Node):
-    pass
-
-
-class _LList(list, _Node):
-    pass
-
-
-class _LineLoader(yaml.SafeLoader):
-    """SafeLoader that records 1-based lines and refuses duplicate keys."""
-
-
-def _construct_mapping(loader: _LineLoader, node: yaml.MappingNode) -> _LDict:
-    loader.flatten_mapping(node)
-    out = _LDict()
-    out.line = node.start_mark.line + 1
-    out.lines = {}
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if key in out:
-            raise ConfigError(f"duplicate key {key!r} (first on line {out.lines[key]})",
-                              file=getattr(loader, "_hapsim_path", None),
-                              line=key_node.start_mark.line + 1, key=str(key))
-        out[key] = loader.construct_object(value_node, deep=True)
-        out.lines[key] = key_node.start_mark.line + 1
-    return out
-
-
-def _construct_sequence(loader: _LineLoader, node: yaml.SequenceNode) -> _LList:
-    out = _LList(loader.construct_object(child, deep=True) for child in node.value)
-    out.line = node.start_mark.line + 1
-    out.lines = {i: child.start_mark.line + 1 for i, child in enumerate(node.value)}
-    return out
-
-
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+# The bounded reader (encodings, depth, alias size, merge keys, YAML 1.2 floats) lives in
+# hapsim._yaml_lines; these names keep the rest of this module unchanged.
+_LDict = LDict
+_LList = LList
 
 
 # --------------------------------------------------------------------------- the rules
@@ -539,6 +499,8 @@ def _key_of(where: tuple) -> str:
 
 
 def _is_number(v: Any) -> bool:
+    if type(v) is float or type(v) is int:   # the common case, without the ABC check
+        return True
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
@@ -550,7 +512,7 @@ def _coerce(v: Any) -> Any:
 def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
             allow_inf: bool = False) -> None:
     if not _is_number(v):
-        raise _Invalid(f"must be a number, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a number, got {_typename(v)} {show(v)}", where)
     v = float(v)
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
@@ -560,16 +522,24 @@ def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None =
         raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
 
 
+def _within(v: float, name: str, unit: str, *where: Any) -> None:
+    """Range rules shared with the analysis (``hapsim.analysis.loop.<name>``)."""
+    import hapsim.analysis.loop as lp
+    lo, hi = getattr(lp, name)
+    if not lo <= float(v) <= hi:
+        raise _Invalid(f"must be between {lo:g} and {hi:g} {unit}, got {float(v):g}", where)
+
+
 def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
     if v not in choices:
-        raise _Invalid(f"unknown value {v!r}; valid choices: {', '.join(choices)}", where)
+        raise _Invalid(f"unknown value {show(v)}; valid choices: {', '.join(choices)}", where)
 
 
 def _string(v: Any, *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {v!r}", where)
+        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
 
 
 def _first(line: int, where: tuple) -> str:
@@ -588,6 +558,7 @@ def _check_scene(s: Scene) -> None:
         On the first broken rule, in scene order.
     """
     _number(s.rate_hz, "rate_hz", positive=True)
+    _within(s.rate_hz, "RATE_RANGE", "Hz", "rate_hz")
     _choice(s.integrator, INTEGRATORS, "integrator")
     if not isinstance(s.path, str):
         raise _Invalid(f"must be a string, got {_typename(s.path)}", ("path",))
@@ -602,24 +573,25 @@ def _check_scene(s: Scene) -> None:
         _string(m.name, "masses", i, "name")
         if m.name in names:
             j = names[m.name]
-            raise _Invalid(f"duplicate mass name {m.name!r} "
+            raise _Invalid(f"duplicate mass name {show(m.name)} "
                            f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
         names[m.name] = i
         if m.kind == "mass":
             _number(m.mass, "masses", i, "mass", positive=True)
+            _within(m.mass, "MASS_RANGE", "kg", "masses", i, "mass")
         elif m.mass != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
-                           f"got {m.mass!r}", ("masses", i, "mass"))
+                           f"got {show(m.mass)}", ("masses", i, "mass"))
         _number(m.x0, "masses", i, "x0")
         _number(m.v0, "masses", i, "v0")
         if m.kind != "mass" and m.v0 != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (it does not move by itself), "
-                           f"got {m.v0!r}", ("masses", i, "v0"))
+                           f"got {show(m.v0)}", ("masses", i, "v0"))
         if m.kind == "port":
             ports.append(i)
     if len(ports) > 1:
         raise _Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
-                       + ", ".join(s.masses[p].name for p in ports), ("masses", ports[1]),
+                       + ", ".join(_bare(s.masses[p].name) for p in ports), ("masses", ports[1]),
                        key="masses")
     _check_links(s, names)
     if s.device is not None:
@@ -642,18 +614,19 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
         _string(lk.name, "links", i, "name")
         if lk.name in seen:
             j = seen[lk.name]
-            raise _Invalid(f"duplicate link name {lk.name!r} "
+            raise _Invalid(f"duplicate link name {show(lk.name)} "
                            f"({_first(s.links[j].line, ('links', j))})", ("links", i, "name"))
         seen[lk.name] = i
         for n in (lk.m1, lk.m2):
             if n not in names:
-                shown = ", ".join(list(names)[:20]) + (", ..." if len(names) > 20 else "")
-                raise _Invalid(f"no mass named {n!r}; masses are: {shown}",
+                shown = ", ".join(_bare(k) for k in list(names)[:20])
+                shown += ", ..." if len(names) > 20 else ""
+                raise _Invalid(f"no mass named {show(n)}; masses are: {shown}",
                                ("links", i, "between"))
         if lk.m1 == lk.m2:
-            raise _Invalid(f"a link cannot join mass {lk.m1!r} to itself", ("links", i, "between"))
+            raise _Invalid(f"a link cannot join mass {show(lk.m1)} to itself", ("links", i, "between"))
         if not isinstance(lk.calibrated, bool):
-            raise _Invalid(f"must be True or False, got {lk.calibrated!r}",
+            raise _Invalid(f"must be True or False, got {show(lk.calibrated)}",
                            ("links", i, "calibrated"))
         awaiting = False
         if lk.target is not None:
@@ -663,7 +636,7 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
                                "spring_damper between the port and a ground",
                                ("links", i, "target"))
             if not (isinstance(lk.target, tuple) and len(lk.target) == 2):
-                raise _Invalid(f"must be a pair (k, b), got {lk.target!r}", ("links", i, "target"))
+                raise _Invalid(f"must be a pair (k, b), got {show(lk.target)}", ("links", i, "target"))
             _number(lk.target[0], "links", i, "target", "k", positive=True)
             _number(lk.target[1], "links", i, "target", "b", minimum=0.0)
             awaiting = not lk.calibrated
@@ -683,18 +656,24 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
                                ("links", i, "kind"))
         elif lk.threshold != 0:
             raise _Invalid(f"only a contact has a threshold; must be 0 for a {lk.kind}, "
-                           f"got {lk.threshold!r}", ("links", i, "threshold"))
+                           f"got {show(lk.threshold)}", ("links", i, "threshold"))
 
 
 def _check_device(d: Any) -> None:
     if not isinstance(d, Device):
         raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
     _number(d.mass, "device", "mass", positive=True)
+    _within(d.mass, "MASS_RANGE", "kg", "device", "mass")
     _number(d.friction, "device", "friction", minimum=0.0)
     if not (isinstance(d.delay, numbers.Integral) and not isinstance(d.delay, bool)):
-        raise _Invalid(f"must be a whole number of samples, got {d.delay!r}", ("device", "delay"))
+        raise _Invalid(f"must be a whole number of samples, got {show(d.delay)}", ("device", "delay"))
     if d.delay < 0:
         raise _Invalid(f"must be >= 0, got {d.delay}", ("device", "delay"))
+    from hapsim.analysis.loop import MAX_DELAY
+    if d.delay > MAX_DELAY:  # the analysis's limit and its cost: hapsim.analysis.loop
+        raise _Invalid(f"must be <= {MAX_DELAY} samples, got {d.delay}: the closed loop's "
+                       f"d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
+                       f"O(d^3), ~0.4 s at d = {MAX_DELAY}", ("device", "delay"))
     _choice(d.hold, HOLDS, "device", "hold")
     _number(d.force_limit, "device", "force_limit", positive=True, allow_inf=True)
     _number(d.position_resolution, "device", "position_resolution", minimum=0.0)
@@ -729,7 +708,7 @@ def _check_safety(f: Any) -> None:
     _number(f.energy_limit, "safety", "energy_limit", positive=True, allow_inf=True)
     if not isinstance(f.passivity_controller, bool):
         raise _Invalid(f"must be true or false, got {_typename(f.passivity_controller)} "
-                       f"{f.passivity_controller!r}", ("safety", "passivity_controller"))
+                       f"{show(f.passivity_controller)}", ("safety", "passivity_controller"))
     _number(f.max_damping, "safety", "max_damping", minimum=0.0)
 
 
@@ -768,11 +747,11 @@ class _Ctx:
     def keys(self, d: _LDict, allowed: tuple[str, ...], key: str, required: tuple[str, ...] = ()) -> None:
         for k in d:
             if k not in allowed:
-                raise self.error(f"unknown key {k!r}; valid keys: {', '.join(allowed)}",
-                                 self.line_of(d, k), f"{key}.{k}" if key else str(k))
+                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
+                                 self.line_of(d, k), _key_name(key, k))
         for k in required:
             if k not in d:
-                raise self.error(f"missing required key {k!r}", getattr(d, "line", None),
+                raise self.error(f"missing required key {show(k)}", getattr(d, "line", None),
                                  f"{key}.{k}" if key else k)
 
     def not_null(self, d: _LDict, k: str, key: str) -> None:
@@ -809,6 +788,17 @@ class _Ctx:
         return line
 
 
+def _bare(k: Any) -> str:
+    """A name as a message prints it: bare when short and plain, else :func:`show`-n."""
+    plain = isinstance(k, str) and k.isprintable() and 0 < len(k) <= 40 and " " not in k
+    return k if plain else show(k, 40)
+
+
+def _key_name(parent: str, k: Any) -> str:
+    """Dotted key ``parent.k`` for a message (an odd key is :func:`show`-n)."""
+    return f"{parent}.{_bare(k)}" if parent else _bare(k)
+
+
 def _typename(v: Any) -> str:
     if v is None:
         return "nothing (null)"
@@ -842,14 +832,20 @@ def load_scene(path: str | os.PathLike) -> Scene:
     """
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
+        with open(path, "rb") as fh:
+            data = fh.read()
     except OSError as exc:
         raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return parse_scene(text, path)
+    text = decode_text(data, path)
+    if len(text) < 1_000_000:
+        return parse_scene(text, path)
+    from hapsim.progress import Progress
+    with Progress(len(text), f"reading {os.path.basename(path)}", unit="chars") as bar:
+        return parse_scene(text, path, progress=bar.update)
 
 
-def parse_scene(text: str, path: str = "<string>") -> Scene:
+def parse_scene(text: str, path: str = "<string>",
+                progress: Callable[[int, int], None] | None = None) -> Scene:
     """Parse and validate scene text.
 
     Parameters
@@ -858,6 +854,9 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
         YAML text of the scene.
     path : str
         Name used in error messages and to resolve relative ``excitation.profile`` paths.
+    progress : callable, optional
+        ``progress(done, total)`` [characters] while the YAML is read (see
+        :func:`hapsim._yaml_lines.load_yaml`).
 
     Returns
     -------
@@ -880,20 +879,7 @@ def parse_scene(text: str, path: str = "<string>") -> Scene:
     and builds the dataclasses; the values are checked by the same rules as a scene built
     in code (:class:`Scene` validates itself), with the line of the offending key.
     """
-    loader = _LineLoader(text)
-    loader._hapsim_path = path  # type: ignore[attr-defined]
-    try:
-        doc = loader.get_single_data()
-    except ConfigError:
-        raise
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line = mark.line + 1 if mark is not None else None
-        raise ConfigError(f"invalid YAML: {exc.problem or exc}", file=path, line=line) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"invalid YAML: {exc}", file=path) from exc
-    finally:
-        loader.dispose()
+    doc = load_yaml(text, path, progress)
 
     ctx = _Ctx(path)
     if doc is None:

@@ -161,10 +161,11 @@ def test_malformed_scene_exit_2_one_line(tmp_path, capsys, cmd, name, text, key)
 
 
 @pytest.mark.parametrize("command", [["run", "--lockstep"], ["check"]])
-def test_unrenderable_target_is_a_config_error(tmp_path, capsys, command):
+def test_unrenderable_target_is_a_negative_verdict(tmp_path, capsys, command):
+    """Not renderable is a verdict (exit 1, as calibrate says it), named like a bad key."""
     path = tmp_path / "unrenderable.yaml"
     path.write_text(UNRENDERABLE)
-    assert main([command[0], str(path), *command[1:]]) == 2
+    assert main([command[0], str(path), *command[1:]]) == 1
     msg = check_error(capsys.readouterr().err, path, marked_line(UNRENDERABLE),
                       "links.felt.target")
     assert "not renderable" in msg

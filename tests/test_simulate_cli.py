@@ -85,14 +85,14 @@ def test_felt_target_is_calibrated_like_the_daemon_and_reported(tmp_path, capsys
             f"B = {B:.6g} N s/m") in text
 
 
-def test_unrenderable_target_is_exit_2_naming_the_link(tmp_path, capsys):
+def test_unrenderable_target_is_exit_1_naming_the_link(tmp_path, capsys):
     path = tmp_path / "hard.yaml"
     path.write_text(
         "rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\n  - {name: wall, kind: ground}\n"
         "links:\n  - {name: felt, kind: spring_damper, between: [hand, wall],"
         " target: {k: 50000.0, b: 0.01}}\n"
         "device: {mass: 0.1, friction: 0.0, delay: 2, hold: zoh, force_limit: 10.0}\n")
-    assert main(["simulate", str(path), "--steps", "5", "--out", str(tmp_path / "o.npz")]) == 2
+    assert main(["simulate", str(path), "--steps", "5", "--out", str(tmp_path / "o.npz")]) == 1
     err = capsys.readouterr().err
     assert f"{path}:6: links.felt.target: " in err and "not renderable" in err
 

@@ -24,7 +24,8 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["LoopModel", "HOLDS", "plant", "characteristic", "closed_loop_poles",
+__all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
+           "MASS_RANGE", "MAX_PRODUCT", "check_range", "check_product", "plant", "characteristic", "closed_loop_poles",
            "zoh_state_space", "spectral_radius", "STABILITY_TOL"]
 
 #: Valid values of :attr:`LoopModel.hold`.
@@ -36,6 +37,100 @@ HOLDS = ("zoh", "ideal")
 #: e.g. the centred-difference oscillator, sit on the unit circle up to round-off, so the
 #: sign of ``|z| - 1`` there says nothing).
 STABILITY_TOL = 1e-9
+
+#: Largest delay [samples] the analysis accepts. The closed loop has ``d + 3`` poles, found
+#: as the eigenvalues of a dense ``(d + 3)``-square companion (state) matrix: ``O(d^3)``
+#: time, about 0.4 s at ``d = 500`` on one idle core (1.7 s at 1000, several times more on a
+#: loaded machine), and a stability limit needs several of them. 500 samples is 0.5 s at
+#: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
+#: timer is 16 samples at 1 kHz, 80 at 5 kHz).
+MAX_DELAY = 500
+
+
+#: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
+#: or ``1/T^2`` leave the double range long before any product is formed.
+RATE_RANGE = (1e-6, 1e9)
+#: Valid masses [kg] (device and virtual): 1 ng to 1e12 kg; a subnormal mass turns every
+#: ``T^2 / m`` into inf.
+MASS_RANGE = (1e-12, 1e12)
+#: Largest magnitude of the dimensionless loop products ``K T^2 / m`` (the spring's
+#: ``(omega T)^2``), ``B T / m`` and ``b0 T / m`` (damping per sample). Beyond 1e6 the spring
+#: rings a thousand times per sample or the damper settles in a millionth of one: no sampled
+#: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
+#: characteristic coefficients would span more than the double range can resolve.
+MAX_PRODUCT = 1e6
+
+
+def check_range(value: float, lo: float, hi: float, key: str, unit: str) -> None:
+    """Refuse a value outside ``[lo, hi]`` (one line naming ``key`` and the range).
+
+    Parameters
+    ----------
+    value : float
+    lo, hi : float
+        Valid range, in ``unit``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit shown, e.g. ``"Hz"``.
+
+    Raises
+    ------
+    ConfigError
+        When ``value`` is outside the range.
+    """
+    if not lo <= value <= hi:
+        raise ConfigError(f"must be between {lo:g} and {hi:g} {unit}, got {value:g}", key=key)
+
+
+def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
+    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
+
+    Parameters
+    ----------
+    value : float
+        Physical value, e.g. ``K`` [N/m].
+    scale : float
+        Its factor to the dimensionless product, e.g. ``T^2 / m``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit of ``value``.
+    what : str
+        The product's formula, e.g. ``"K T^2/m"``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
+    """
+    if abs(value) * scale > MAX_PRODUCT:
+        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
+                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
+                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
+
+
+def check_delay(delay, key: str = "delay") -> None:
+    """Refuse a delay the analysis cannot afford.
+
+    Parameters
+    ----------
+    delay : int
+        Delay [samples].
+    key : str, optional
+        Name of the option or scene key, for the message.
+
+    Raises
+    ------
+    ConfigError
+        When ``delay > MAX_DELAY`` (the message gives the limit and its cost).
+    """
+    if delay > MAX_DELAY:
+        raise ConfigError(f"must be <= {MAX_DELAY} samples, got {delay}: the closed loop "
+                          f"has d + 3 poles, found as eigenvalues of a (d + 3)-square matrix "
+                          f"(O(d^3): ~0.4 s at d = {MAX_DELAY}, seconds for a stability "
+                          f"limit); {MAX_DELAY} samples is {MAX_DELAY / 1000:g} s at 1 kHz",
+                          key=key)
 
 
 @dataclass(frozen=True)
@@ -61,7 +156,9 @@ class LoopModel:
     ------
     ConfigError
         On a non-positive mass or rate, a negative friction, a negative or non-integer
-        delay, or an unknown hold; ``key`` names the field.
+        delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
+        :data:`RATE_RANGE`, ``b0 T / m > MAX_PRODUCT``, a delay above :data:`MAX_DELAY`;
+        ``key`` names the field.
 
     Notes
     -----
@@ -87,17 +184,21 @@ class LoopModel:
         m = num("mass", self.mass)
         if m <= 0:
             raise ConfigError(f"must be > 0 [kg], got {self.mass!r}", key="mass")
+        check_range(m, *MASS_RANGE, "mass", "kg")
         b0 = num("friction", self.friction)
         if b0 < 0:
             raise ConfigError(f"must be >= 0 [N s/m], got {self.friction!r}", key="friction")
         r = num("rate_hz", self.rate_hz)
         if r <= 0:
             raise ConfigError(f"must be > 0 [Hz], got {self.rate_hz!r}", key="rate_hz")
+        check_range(r, *RATE_RANGE, "rate_hz", "Hz")
+        check_product(b0, 1.0 / (r * m), "friction", "N s/m", "b0 T/m")
         d = self.delay
         if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
                 or not float(d).is_integer() or d < 0:
             raise ConfigError(f"must be a whole number of samples >= 0, got {d!r}",
                               key="delay")
+        check_delay(int(d))
         if self.hold not in HOLDS:
             raise ConfigError(f"unknown hold {self.hold!r}; valid choices: "
                               f"{', '.join(HOLDS)}", key="hold")
@@ -222,20 +323,6 @@ def zoh_state_space(mass: float, friction: float, period: float):
     return Ad, Bd
 
 
-def _pmul(*polys):
-    out = np.array([1.0])
-    for p in polys:
-        out = np.polymul(out, p)
-    return out
-
-
-def _padd(*polys):
-    out = np.array([0.0])
-    for p in polys:
-        out = np.polyadd(out, p)
-    return out
-
-
 def _plant_w(loop: LoopModel):
     """Dimensionless plant in ``w = z - 1``: ``(N~, D)``, ``N~ = N m / T^2`` (highest first)."""
     x = loop.b0_T_over_m
@@ -249,25 +336,6 @@ def _plant_w(loop: LoopModel):
     else:
         Nn = np.array([phi1, phi1 + phi0])  # phi1 z + phi0
     return Nn, D
-
-
-def _char_w(loop: LoopModel):
-    """``(P~, Q~, R~)`` in ``w``, dimensionless: ``kappa P~ + beta Q~ + R~ = 0``.
-
-    For the ideal hold ``N = T^2/m z``, so ``z N``, ``(z - 1) N`` and ``z^(d+1) D`` share the
-    factor ``z``; it is removed (it only adds a spurious pole at ``z = 0``), which leaves
-    exactly Florens et al.'s eqs. (2)-(4): ``P~ = z``, ``Q~ = z - 1``, ``R~ = z^d D``. The
-    ZOH numerator ``phi1 z + phi0`` has ``phi0 > 0``: no common factor there.
-    """
-    Nn, D = _plant_w(loop)
-    z = np.array([1.0, 1.0])
-    d = loop.delay
-    if loop.hold == "ideal":
-        Nn, d = np.array([1.0]), d - 1    # (z N~, (z - 1) N~, z^(d+1) D) / z
-    Pw = np.polymul(z, Nn)
-    Qw = np.polymul(np.array([1.0, 0.0]), Nn)
-    Rw = _pmul(*([z] * (d + 1)), D)
-    return Pw, Qw, Rw
 
 
 def _w_to_z(p):
@@ -332,41 +400,118 @@ def characteristic(loop: LoopModel):
     ``b0 > 0``, ``d = 1``, exactly eq. (4) (``R = z (z - 1)(z - e^-b0) b0/(1 - e^-b0)``).
     The closed loop then has ``d + 2`` poles (``"ideal"``) or ``d + 3`` (``"zoh"``).
     """
-    Pw, Qw, Rw = _char_w(loop)
+    Pw, Qw, D, e = _char_parts(loop)
     T, m = loop.period, loop.mass
-    return _w_to_z(Pw) * (T * T / m), _w_to_z(Qw) * (T / m), _w_to_z(Rw)
+    return (_w_to_z(Pw) * (T * T / m), _w_to_z(Qw) * (T / m),
+            np.concatenate([_w_to_z(D), np.zeros(e)]))
 
 
-def _char_poly_w(loop: LoopModel, kappa: float, beta: float):
-    Pw, Qw, Rw = _char_w(loop)
-    return _padd(kappa * Pw, beta * Qw, Rw)
+def _char_parts(loop: LoopModel):
+    """Low-degree pieces of the characteristic function, never expanded.
+
+    Returns ``(P~, Q~, D, e)`` (polynomials in ``w = z - 1``, highest first, degree <= 2)
+    such that the closed loop is ``kappa P~(w) + beta Q~(w) + (1 + w)^e D(w) = 0``; ``e`` is
+    ``d + 1`` (``"zoh"``) or ``d`` (``"ideal"``). For the ideal hold ``N = T^2/m z``, so
+    ``z N``, ``(z - 1) N`` and ``z^(d+1) D`` share the factor ``z``; it is removed (it only
+    adds a spurious pole at ``z = 0``), which leaves exactly Florens et al.'s eqs. (2)-(4):
+    ``P~ = z``, ``Q~ = z - 1``, ``R~ = z^d D``. The ZOH numerator ``phi1 z + phi0`` has
+    ``phi0 > 0``: no common factor there. Evaluating ``(1 + w)^e`` as a power keeps full precision at every
+    delay, where the expanded polynomial (binomial coefficients up to ``C(e, e/2)``, 1e14 at
+    ``e = 50``) loses it all.
+    """
+    Nn, D = _plant_w(loop)
+    e = loop.delay + 1
+    if loop.hold == "ideal":
+        Nn, e = np.array([1.0]), e - 1
+    return np.polymul([1.0, 1.0], Nn), np.polymul([1.0, 0.0], Nn), D, e
 
 
-def _polish(c, roots, iters: int = 3):
-    """Newton-polish the roots of polynomial ``c`` (highest first); keep improvements only."""
-    dc = np.polyder(c)
-    out = np.array(roots, dtype=complex)
-    for i, r in enumerate(out):
-        best, fbest = r, abs(np.polyval(c, r))
-        x = r
-        for _ in range(iters):
-            d = np.polyval(dc, x)
-            if d == 0:
-                break
-            x = x - np.polyval(c, x) / d
-            fx = abs(np.polyval(c, x))
-            if fx < fbest and abs(x - r) < 1e-3 * max(1e-300, abs(r)) + 1e-300:
-                best, fbest = x, fx
-        out[i] = best
-    return out  # conjugate symmetry is re-imposed by the caller
+def char_eval(loop: LoopModel, kappa: float, beta: float, w, *, derivative: bool = False):
+    """Characteristic function ``kappa P~ + beta Q~ + (1 + w)^e D`` at ``w = z - 1``.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    kappa, beta : float
+        Dimensionless ``K T^2 / m`` and ``B T / m``.
+    w : complex or ndarray of complex
+        Points ``w = z - 1``.
+    derivative : bool, optional
+        Also return the derivative with respect to ``w``.
+
+    Returns
+    -------
+    f : complex or ndarray
+        Value (dimensionless), same shape as ``w``.
+    df : complex or ndarray
+        Derivative, when ``derivative``.
+
+    Notes
+    -----
+    Florens et al. Sec. 6 eq. (1) in the delta variable (module docstring); the delay factor
+    ``z^e`` is a power, so the relative error is ``O(e eps)`` at any delay.
+    """
+    P, Q, D, e = _char_parts(loop)
+    w = np.asarray(w, dtype=complex)
+    z = 1.0 + w
+    ze = z ** e
+    f = kappa * np.polyval(P, w) + beta * np.polyval(Q, w) + ze * np.polyval(D, w)
+    if not derivative:
+        return f
+    zem1 = z ** (e - 1) if e > 0 else np.zeros_like(z)
+    df = (kappa * np.polyval(np.polyder(P), w) + beta * np.polyval(np.polyder(Q), w)
+          + e * zem1 * np.polyval(D, w) + ze * np.polyval(np.polyder(D), w))
+    return f, df
 
 
-def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
-    """Closed-loop poles as ``w = z - 1`` (polished)."""
-    c = _char_poly_w(loop, kappa, beta)
-    r = np.roots(c)
-    r = _polish(c, r)
-    # re-impose exact conjugate pairs
+def _char_poly_z(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+    """The dimensionless characteristic polynomial in ``z`` (highest first).
+
+    ``z^e D(z)`` is ``D``'s three coefficients followed by ``e`` zeros: every coefficient is
+    O(1) whatever the delay, so its companion matrix (plant states + delay line) is well
+    conditioned, unlike the expanded polynomial in ``w``.
+    """
+    P, Q, D, e = _char_parts(loop)
+    low = np.polyadd(kappa * _w_to_z(P), beta * _w_to_z(Q))
+    R = np.concatenate([_w_to_z(D), np.zeros(e)])
+    return np.polyadd(R, low)
+
+
+def _polish_w(loop: LoopModel, kappa: float, beta: float, w: np.ndarray,
+              iters: int = 6) -> np.ndarray:
+    """Newton-polish roots ``w`` on :func:`char_eval` (structured, any delay).
+
+    A step is kept only while it lowers ``|f|`` and stays well inside the gap to the
+    nearest other root (so a root of a cluster never jumps onto its neighbour).
+    """
+    w = np.array(w, dtype=complex)
+    if w.size == 0:
+        return w
+    if w.size > 1:
+        gap = np.abs(w[:, None] - w[None, :])
+        np.fill_diagonal(gap, np.inf)
+        reach = 0.25 * gap.min(axis=1)
+    else:
+        reach = np.full(1, np.inf)
+    x0 = w.copy()
+    best = w.copy()
+    fbest = np.abs(char_eval(loop, kappa, beta, w))
+    x = w.copy()
+    for _ in range(iters):
+        f, df = char_eval(loop, kappa, beta, x, derivative=True)
+        ok = df != 0
+        step = np.where(ok, f / np.where(ok, df, 1.0), 0.0)
+        x = x - step
+        fx = np.abs(char_eval(loop, kappa, beta, x))
+        better = (fx < fbest) & (np.abs(x - x0) < reach) & np.isfinite(fx)
+        best = np.where(better, x, best)
+        fbest = np.where(better, fx, fbest)
+        x = np.where(better, x, best)
+    return best
+
+
+def _pair_up(r: np.ndarray) -> np.ndarray:
+    """Re-impose exact conjugate pairs on the roots of a real polynomial."""
     out = []
     used = np.zeros(r.size, bool)
     for i in range(r.size):
@@ -376,19 +521,43 @@ def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
         if abs(r[i].imag) <= 1e-14 * max(abs(r[i]), 1e-300):
             out.append(complex(r[i].real, 0.0))
             continue
-        cand = [j for j in range(r.size) if not used[j]]
-        if not cand:
+        cand = np.flatnonzero(~used)
+        if cand.size == 0:
             out.append(r[i])
             continue
-        j = min(cand, key=lambda j: abs(r[j] - np.conj(r[i])))
+        j = cand[np.argmin(np.abs(r[cand] - np.conj(r[i])))]
         used[j] = True
-        zr = complex(r[i].real, abs(r[i].imag))
+        zr = complex(0.5 * (r[i].real + r[j].real), 0.5 * (abs(r[i].imag) + abs(r[j].imag)))
         out.extend([zr, zr.conjugate()])
     return np.array(out, dtype=complex)
 
 
-def _scaled(loop: LoopModel, K: float, B: float) -> tuple[float, float]:
+def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+    """Closed-loop poles as ``w = z - 1``.
+
+    Eigenvalues of the companion matrix of the characteristic polynomial *in z* (its
+    coefficients are O(1) at any delay: the plant and the delay line as one state matrix),
+    then Newton-polished in ``w`` on the unexpanded characteristic function
+    (:func:`char_eval`), which restores the relative precision of the poles near ``z = 1``
+    lost by the subtraction ``w = z - 1``.
+    """
+    check_delay(loop.delay)
+    c = _char_poly_z(loop, kappa, beta)
+    c = np.trim_zeros(c, "f")
+    z = np.roots(c) if c.size > 1 else np.zeros(0, complex)
+    # roots np.roots drops (trailing zero coefficients) are exact poles at z = 0
+    nz = (loop.delay + (3 if loop.hold == "zoh" else 2)) - z.size
+    if nz > 0:
+        z = np.concatenate([z, np.zeros(nz, complex)])
+    w = _polish_w(loop, kappa, beta, z.astype(complex) - 1.0)
+    return _pair_up(w)
+
+
+def _scaled(loop: LoopModel, K: float, B: float, keys=("K", "B")) -> tuple[float, float]:
+    """``(K T^2 / m, B T / m)``, refused beyond :data:`MAX_PRODUCT` (keys name K and B)."""
     T, m = loop.period, loop.mass
+    check_product(float(K), T * T / m, keys[0], "N/m", "K T^2/m")
+    check_product(float(B), T / m, keys[1], "N s/m", "B T/m")
     return float(K) * T * T / m, float(B) * T / m
 
 

@@ -30,7 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Mode", "modes_from_poles", "rendered_pair", "log_abs", "log_z"]
+__all__ = ["Mode", "modes_from_poles", "rendered_pair", "log_abs", "log_z", "OBSERVABLE_TOL"]
+
+#: A mode whose :attr:`Mode.participation` at the port is below this is not felt: the hand
+#: cannot excite it nor see it (e.g. the antisymmetric mode of a string held at its centre,
+#: participation ~1e-16: round-off of an exact zero). Such modes are reported as modes of
+#: the object, never as the rendered pair.
+OBSERVABLE_TOL = 1e-8
 
 #: Poles with ``|Im z| <= _REAL_TOL * max(1, |z|)`` are treated as real.
 _REAL_TOL = 1e-12
@@ -105,6 +111,11 @@ class Mode:
         Equivalent damping ``-2 m Re(s)`` [N s/m] (whole THS damping, real + virtual).
     kind : str
         ``"pair"`` (complex-conjugate pair) or ``"real"`` (single real pole).
+    participation : float or None
+        How much the mode shows at the port: ``|residue|`` of the transfer from a force on
+        the device to the port position, relative to the largest one [-]
+        (:func:`hapsim.analysis.scene_check.check_scene`); None where not computed (a
+        single THS loop, where every pole is a pole of that transfer).
     """
 
     z: complex
@@ -114,6 +125,7 @@ class Mode:
     k: float
     b: float
     kind: str
+    participation: float | None = None
 
     @property
     def modulus(self) -> float:
@@ -131,7 +143,8 @@ class Mode:
         Returns
         -------
         dict
-            Keys ``z_re, z_im, abs_z, s_re, s_im, f0_hz, damping_ratio, k, b, kind``.
+            Keys ``z_re, z_im, abs_z, s_re, s_im, f0_hz, damping_ratio, k, b, kind,
+            participation``.
         """
         def f(v: float):
             v = float(v)
@@ -139,11 +152,13 @@ class Mode:
         return {"z_re": f(self.z.real), "z_im": f(self.z.imag), "abs_z": f(abs(self.z)),
                 "s_re": f(self.s.real), "s_im": f(self.s.imag), "f0_hz": f(self.f0_hz),
                 "damping_ratio": f(self.damping_ratio), "k": f(self.k), "b": f(self.b),
-                "kind": self.kind}
+                "kind": self.kind,
+                "participation": None if self.participation is None
+                else f(self.participation)}
 
 
 def mode_from_pole(z: complex, mass: float, period: float, kind: str,
-                   w: complex | None = None) -> Mode:
+                   w: complex | None = None, participation: float | None = None) -> Mode:
     """Build one :class:`Mode` from a discrete pole.
 
     Parameters
@@ -158,6 +173,8 @@ def mode_from_pole(z: complex, mass: float, period: float, kind: str,
         Mode kind.
     w : complex, optional
         ``z - 1`` computed more accurately than by subtraction.
+    participation : float, optional
+        :attr:`Mode.participation`.
 
     Returns
     -------
@@ -168,16 +185,17 @@ def mode_from_pole(z: complex, mass: float, period: float, kind: str,
     s = log_z(z, w) / period
     if z == 0:
         return Mode(z=z, s=complex(-math.inf, 0.0), f0_hz=math.inf, damping_ratio=1.0, k=math.inf, b=math.inf,
-                    kind=kind)
+                    kind=kind, participation=participation)
     wn = abs(s)
     k = mass * wn * wn
     b = -2.0 * mass * s.real
     zeta = -s.real / wn if wn > 0 else math.nan
     return Mode(z=z, s=s, f0_hz=wn / (2.0 * math.pi), damping_ratio=zeta, k=k, b=b,
-                kind=kind)
+                kind=kind, participation=participation)
 
 
-def modes_from_poles(poles, mass: float, period: float, *, w=None) -> list[Mode]:
+def modes_from_poles(poles, mass: float, period: float, *, w=None,
+                     participation=None) -> list[Mode]:
     """Group the poles of a real polynomial into modes.
 
     Parameters
@@ -191,6 +209,8 @@ def modes_from_poles(poles, mass: float, period: float, *, w=None) -> list[Mode]
     w : array_like of complex, shape (n,), optional
         ``poles - 1`` computed accurately (e.g. roots of the characteristic polynomial in
         ``w = z - 1``); improves ``s`` near ``z = 1``.
+    participation : array_like of float, shape (n,), optional
+        :attr:`Mode.participation` of each pole (a pair takes the larger of its two).
 
     Returns
     -------
@@ -221,13 +241,19 @@ def modes_from_poles(poles, mass: float, period: float, *, w=None) -> list[Mode]
         wi = None
         if ww is not None:
             wi = ww[i] if upper[i] else complex(ww[i].real, 0.0)
-        modes.append(mode_from_pole(zi, mass, period, kind, wi))
+        pi = None
+        if participation is not None:
+            pi = float(participation[i])
+            if upper[i]:
+                j = int(np.argmin(np.where(lower, np.abs(z - np.conj(z[i])), np.inf)))
+                pi = max(pi, float(participation[j]))
+        modes.append(mode_from_pole(zi, mass, period, kind, wi, pi))
     modes.sort(key=lambda md: (-abs(md.z), md.kind != "pair", md.f0_hz))
     return modes
 
 
 def rendered_pair(modes) -> Mode | None:
-    """The rendered oscillator: the least damped complex pair.
+    """The rendered oscillator: the least damped complex pair the hand can feel.
 
     Parameters
     ----------
@@ -238,10 +264,13 @@ def rendered_pair(modes) -> Mode | None:
     -------
     Mode or None
         The ``"pair"`` mode with the largest ``|z|`` (Florens et al. Sec. 5, DESIGN.md
-        Sec. 4), or None when the loop has no complex pair.
+        Sec. 4) among those observable at the port (participation None or at least
+        :data:`OBSERVABLE_TOL`), or None when there is no such pair.
     """
     best = None
     for md in modes:
+        if md.participation is not None and not md.participation >= OBSERVABLE_TOL:
+            continue
         if md.kind == "pair" and (best is None or abs(md.z) > abs(best.z)):
             best = md
     return best

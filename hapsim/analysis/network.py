@@ -60,12 +60,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.loop import zoh_state_space
+from hapsim.analysis.loop import MAX_PRODUCT, check_product, zoh_state_space
 from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
-           "virtual_blocks", "virtual_state_names", "closed_loop"]
+           "virtual_blocks", "virtual_state_names", "closed_loop", "port_io",
+           "rest_position", "MAX_STATES", "state_count", "check_size"]
+
+#: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
+#: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
+#: about 20 s (one core, loaded machine) and 64 MB at 2000 states, a string of ~1000
+#: beads; 3000 beads would take a minute, 10^5 masses 160 GB.
+MAX_STATES = 2000
 
 
 def check_integrator(integrator: str, scene=None) -> None:
@@ -357,11 +364,14 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     ConfigError
         Unknown integrator or hold, a ``target`` link without calibrated (K, B)
         ("calibrate first"), a calibrated value not finite or naming no link, a port
-        without a device section.
+        without a device section; more than :data:`MAX_STATES` states; a link or the
+        device beyond :data:`hapsim.analysis.loop.MAX_PRODUCT`.
     """
     integrator = integrator or getattr(scene, "integrator", None) or "centred"
     check_integrator(integrator, scene)
+    check_size(scene)
     net = network(scene, calibrated, gain=gain)
+    _check_products(scene, calibrated, gain)
     T = scene.period
     Av, bp, bpp, cx, cp, cpp = virtual_blocks(net, integrator, T)
     vnames = virtual_state_names(net, integrator)
@@ -419,3 +429,205 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     A[o:, ip] += bp
     A[o:, ipp] += bpp
     return A, names
+
+
+def port_io(scene, n: int):
+    """Input and output columns of the port in the :func:`closed_loop` state.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device.
+    n : int
+        Size of the closed-loop state.
+
+    Returns
+    -------
+    b : ndarray, shape (n,)
+        Response of the state to a unit force [N] on the device held over one period (the
+        hand's force: it enters like the device force, without the delay line): ``Bd`` of
+        :func:`hapsim.analysis.loop.zoh_state_space` (``"zoh"``) or ``T^2 / (m c)``
+        (``"ideal"``, Florens et al. eq. (4)) [m/N, m/(N s)].
+    c : ndarray, shape (n,)
+        Selects the port (device) position, state 0 [-].
+
+    Notes
+    -----
+    ``c (zI - A)^-1 b`` is the transfer from a force on the handle to the port position,
+    the impedance the hand feels; its residue at a pole weighs that mode at the port.
+    """
+    dev = scene.device
+    mass, b0, T = float(dev.mass), float(dev.friction), scene.period
+    b = np.zeros(n)
+    if dev.hold == "zoh":
+        _, Bd = zoh_state_space(mass, b0, T)
+        b[0], b[1] = Bd[0], Bd[1]
+    else:
+        x = b0 * T / mass
+        c = x / -math.expm1(-x) if x > 0 else 1.0
+        b[0] = T * T / (mass * c)
+    c = np.zeros(n)
+    c[0] = 1.0
+    return b, c
+
+
+def rest_position(scene, calibrated=None) -> float | None:
+    """Rest position of the port: the static equilibrium of the scene held by the device.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port.
+    calibrated : mapping, optional
+        ``{link: (K, B)}`` overrides, as :func:`link_values`.
+
+    Returns
+    -------
+    float or None
+        The port position [m] at which every moving mass and the port are at rest with no
+        hand force (the device's force is then zero), grounds at their ``x0``; each
+        contact counts where it is closed at that rest (its spring term
+        ``K (x1 - x2 + threshold)``, engine law; at the threshold itself that term is zero
+        and the contact counts as closed), found by an active-set iteration from all
+        engaged. None when the rest is not unique (a part of the scene floats freely)
+        or without a port.
+
+    Notes
+    -----
+    Static balance ``LK_ff x_f + LK_fg x_g + h = 0`` over the free points ``f`` (moving
+    masses and the port) with grounds ``g`` fixed, ``h`` the thresholds' constant forces;
+    a sparse solve (``O(n)`` for a string).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import MatrixRankWarning, spsolve
+    import warnings
+
+    if scene.port is None:
+        return None
+    links = link_values(scene, calibrated)
+    idx = {m.name: i for i, m in enumerate(scene.masses)}
+    n = len(scene.masses)
+    free = np.array([m.kind != "ground" for m in scene.masses])
+    x = np.array([m.x0 if m.kind == "ground" else 0.0 for m in scene.masses], dtype=float)
+    fi = np.flatnonzero(free)
+    pos = -np.ones(n, dtype=np.int64)
+    pos[fi] = np.arange(fi.size)
+    engaged = {id(lk): True for lk, _, _ in links if lk.kind == "contact"}
+    for _ in range(len(engaged) + 2):
+        rows, cols, vals = [], [], []
+        rhs = np.zeros(fi.size)
+        for lk, K, _ in links:
+            if lk.kind == "contact" and not engaged[id(lk)]:
+                continue
+            a, c = idx[lk.m1], idx[lk.m2]
+            off = lk.threshold if lk.kind == "contact" else 0.0
+            # force on a: -K (x_a - x_c + off); on c: the opposite
+            for i, j, sgn in ((a, a, 1.0), (a, c, -1.0), (c, c, 1.0), (c, a, -1.0)):
+                if free[i]:
+                    if free[j]:
+                        rows.append(pos[i])
+                        cols.append(pos[j])
+                        vals.append(sgn * K)
+                    else:
+                        rhs[pos[i]] -= sgn * K * x[j]
+            if free[a]:
+                rhs[pos[a]] -= K * off
+            if free[c]:
+                rhs[pos[c]] += K * off
+        M = coo_matrix((vals, (rows, cols)), shape=(fi.size, fi.size)).tocsc()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", MatrixRankWarning)
+            try:
+                xf = np.atleast_1d(spsolve(M, rhs)) if fi.size else np.zeros(0)
+            except (MatrixRankWarning, RuntimeError):
+                return None
+        if not np.all(np.isfinite(xf)):
+            return None
+        xs = x.copy()
+        xs[fi] = xf
+        changed = False
+        for lk, _, _ in links:
+            if lk.kind == "contact":
+                closed = xs[idx[lk.m2]] - xs[idx[lk.m1]] <= lk.threshold
+                if closed != engaged[id(lk)]:
+                    engaged[id(lk)] = closed
+                    changed = True
+        if not changed:
+            return float(xs[idx[scene.port.name]])
+    return float(xs[idx[scene.port.name]])
+
+
+def state_count(scene) -> int:
+    """Size of the :func:`closed_loop` state, computed without building anything.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Returns
+    -------
+    int
+        ``2 N`` (N moving masses) plus, with a port and a device, ``3 + d`` (``"zoh"``) or
+        ``2 + d`` (``"ideal"``).
+    """
+    n = 2 * sum(1 for m in scene.masses if m.kind == "mass")
+    dev = getattr(scene, "device", None)
+    if scene.port is not None and dev is not None:
+        n += (3 if dev.hold == "zoh" else 2) + int(dev.delay)
+    return n
+
+
+def check_size(scene) -> None:
+    """Refuse, before any allocation, a scene whose closed loop exceeds :data:`MAX_STATES`.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        Naming ``masses`` (or ``device.delay``), the state count, the limit and the cost.
+    """
+    n = state_count(scene)
+    if n > MAX_STATES:
+        n_mass = sum(1 for m in scene.masses if m.kind == "mass")
+        raise ConfigError(f"the closed loop has {n} states ({n_mass} moving masses x 2"
+                          + (f" + device and {scene.device.delay} delay samples"
+                             if scene.port is not None and scene.device is not None else "")
+                          + f"); the analysis takes every eigenvalue of a dense {n}-square "
+                          f"matrix, O(n^3): at most {MAX_STATES} states (~20 s), about "
+                          f"{MAX_STATES // 2} moving masses", file=scene.path, key="masses")
+
+
+def _check_products(scene, calibrated, gain: float) -> None:
+    """Refuse a link or device friction whose dimensionless product exceeds MAX_PRODUCT.
+
+    ``|K| T^2 / m`` and ``|B| T / m`` with ``m`` the lightest moving end of the link (a
+    virtual mass, or the device mass at the port; grounds do not move), and ``b0 T / m``
+    of the device (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
+    """
+    T = scene.period
+    inertia = {m.name: m.mass for m in scene.masses if m.kind == "mass"}
+    dev = getattr(scene, "device", None)
+    if scene.port is not None and dev is not None:
+        inertia[scene.port.name] = float(dev.mass)
+        try:
+            check_product(float(dev.friction), T / float(dev.mass), "device.friction",
+                          "N s/m", "b0 T/m")
+        except ConfigError as exc:
+            raise ConfigError(exc.reason, file=scene.path, key="device.friction") from None
+    for lk, K, B in link_values(scene, calibrated):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for val, scale, what, unit, field in ((K * gain, T * T / m, "K T^2/m", "N/m",
+                                               "stiffness"),
+                                              (B * gain, T / m, "B T/m", "N s/m", "damping")):
+            if abs(val) * scale > MAX_PRODUCT:
+                try:
+                    check_product(val, scale, field, unit, what)
+                except ConfigError as exc:
+                    raise ConfigError(exc.reason, file=scene.path, line=lk.line or None,
+                                      key=f"links.{lk.name}.{field}") from None

@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.analysis.loop import STABILITY_TOL
-from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
-from hapsim.analysis.network import closed_loop
+from hapsim.analysis.modes import OBSERVABLE_TOL, Mode, modes_from_poles, rendered_pair
+from hapsim.analysis.network import closed_loop, port_io
 
-__all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL"]
+__all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL",
+           "OBSERVABLE_TOL", "DEFECTIVE_COND"]
 
 # STABILITY_TOL (re-exported): spectral radius accepted as stable, ``max |z| <= 1 +
 # STABILITY_TOL``; defined once in :mod:`hapsim.analysis.loop` and shared with ``render``.
@@ -46,11 +47,14 @@ class SceneCheck:
         ``max |z| <= 1 + STABILITY_TOL``, eigenvalues within ``RIGID_TOL`` of ``z = 1`` (free
         drift, a double pole of a free mass) excepted.
     rendered : Mode or None
-        The felt oscillator at the port: least damped complex pair, with ``k``, ``b``
-        expressed with the device mass [kg]; None without a port or without a pair.
+        The felt oscillator at the port: least damped complex pair observable at the port
+        (participation >= :data:`hapsim.analysis.modes.OBSERVABLE_TOL`), with ``k``, ``b``
+        expressed with the device mass [kg]; None without a port or without such a pair.
     modes : list of Mode
         Every eigenvalue as a mode, least damped first (``k``, ``b`` with
-        ``reference_mass``).
+        ``reference_mass``), each with its participation at the port (with a port);
+        modes below :data:`hapsim.analysis.modes.OBSERVABLE_TOL` are modes of the object
+        the hand does not feel.
     state_names : list of str
         What each state is, in state-matrix order.
     reference_mass : float
@@ -112,6 +116,51 @@ class SceneCheck:
         }
 
 
+#: An eigenvalue whose condition number ``1 / |y^H x|`` (unit left/right eigenvectors) is
+#: above this belongs to a (nearly) defective cluster, whose residues are meaningless apart:
+#: it counts as fully observable and does not set the participation scale.
+DEFECTIVE_COND = 1e6
+
+
+def _port_participation(A: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Eigenvalues of ``A`` and each one's participation at the port.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+        Closed-loop state matrix.
+    b, c : ndarray, shape (n,)
+        Port input and output columns (:func:`hapsim.analysis.network.port_io`).
+
+    Returns
+    -------
+    ev : ndarray of complex, shape (n,)
+        Eigenvalues.
+    participation : ndarray of float, shape (n,)
+        ``|r_i| / max_j |r_j|`` with ``r_i = (c x_i)(y_i^H b) / (y_i^H x_i)`` the residue of
+        ``c (zI - A)^-1 b`` at ``z_i`` (``x_i``, ``y_i`` right and left eigenvectors; the
+        partial-fraction expansion of a diagonalisable system, e.g. Kailath, *Linear
+        Systems*, 1980, Sec. 6.2). The maximum is over the well-conditioned modes away
+        from ``z = 0`` and ``z = 1``; ill-conditioned ones (:data:`DEFECTIVE_COND`) get 1.
+    """
+    from scipy.linalg import eig
+    ev, yl, xr = eig(A, left=True, right=True)
+    ev = ev.astype(complex)
+    yb = yl.conj().T @ b
+    cx = c @ xr
+    yx = np.einsum("ij,ij->j", yl.conj(), xr)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = 1.0 / np.abs(yx)
+        r = np.abs(cx * yb) * cond
+    mod = np.abs(ev)
+    bad = ~(cond <= DEFECTIVE_COND) | ~np.isfinite(r)
+    scale_ok = ~bad & (np.abs(ev - 1.0) > RIGID_TOL) & (mod > 1e-12 * max(1.0, mod.max()))
+    scale = float(r[scale_ok].max()) if np.any(scale_ok) else float(np.nanmax(
+        np.where(bad, 0.0, r), initial=0.0))
+    part = np.where(bad, 1.0, r / scale if scale > 0 else 1.0)
+    return ev, np.minimum(part, 1.0)
+
+
 def scene_state_matrix(scene, *, calibrated=None, integrator=None):
     """The closed-loop state matrix of a scene coupled to its device.
 
@@ -162,7 +211,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     -------
     SceneCheck
         Eigenvalues of :func:`scene_state_matrix`, spectral radius, verdict, the rendered
-        pair at the port (least damped complex pair, ``k = m |s|^2``, ``b = -2 m Re s`` with
+        pair at the port (least damped complex pair observable at the port, ``k = m |s|^2``, ``b = -2 m Re s`` with
         ``m`` the device mass, DESIGN.md Sec. 4) and every mode.
 
     Raises
@@ -190,7 +239,11 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
                           rendered=None, modes=[], state_names=names, reference_mass=ref,
                           marginal=False, has_port=has_port, period=scene.period,
                           calibrated=cal, integrator=integrator)
-    ev = np.linalg.eigvals(A).astype(complex)
+    part = None
+    if has_port:
+        ev, part = _port_participation(A, *port_io(scene, A.shape[0]))
+    else:
+        ev = np.linalg.eigvals(A).astype(complex)
     mod = np.abs(ev)
     radius = float(mod.max())
     near_one = np.abs(ev - 1.0) <= RIGID_TOL
@@ -200,7 +253,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     # report them as z = 0 (both members of a conjugate pair alike).
     tiny = mod <= 1e-12 * max(1.0, radius)
     ev_r = np.where(tiny, 0.0, ev)
-    modes = modes_from_poles(ev_r, ref, scene.period)
+    modes = modes_from_poles(ev_r, ref, scene.period, participation=part)
     rendered = rendered_pair(modes) if has_port else None
     return SceneCheck(eigenvalues=ev, spectral_radius=radius, stable=stable,
                       rendered=rendered, modes=modes, state_names=names, reference_mass=ref,

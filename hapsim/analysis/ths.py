@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_w, _polish, _roots_w, _scaled
+from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
@@ -139,7 +139,8 @@ def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
     Raises
     ------
     ConfigError
-        If ``K`` or ``B`` is not finite.
+        If ``K`` or ``B`` is not finite, or ``|K| T^2/m`` or ``|B| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
     """
     for key, v in (("K", K), ("B", B)):
         if not math.isfinite(float(v)):
@@ -257,13 +258,35 @@ def _divmod_quadratic(p, c1: float, c0: float):
     return q, rem[-2], rem[-1]
 
 
+def _mulmod(a, b, c1: float, c0: float):
+    """``(a1 w + a0)(b1 w + b0)`` modulo ``w^2 + c1 w + c0``, as ``(r1, r0)``."""
+    hi = a[0] * b[0]
+    return a[0] * b[1] + a[1] * b[0] - hi * c1, a[1] * b[1] - hi * c0
+
+
+def _powmod(e: int, c1: float, c0: float):
+    """``(1 + w)^e`` modulo ``w^2 + c1 w + c0`` by binary powering, as ``(r1, r0)``.
+
+    The remainder interpolates ``z^e`` at the two roots, so it stays O(1) for poles inside
+    the unit circle whatever ``e`` (the expanded ``(1 + w)^e`` does not).
+    """
+    out, base = (0.0, 1.0), (1.0, 1.0)
+    while e:
+        if e & 1:
+            out = _mulmod(out, base, c1, c0)
+        base = _mulmod(base, base, c1, c0)
+        e >>= 1
+    return out
+
+
 def _calibrate_core(loop: LoopModel, k: float, b: float):
-    """Solve for ``(kappa, beta)`` and return the deflated other poles (in ``w``)."""
+    """Solve for ``(kappa, beta)`` and return the other poles (in ``w``)."""
     w_t, c1, c0, kind, s_t = _target_w(loop, k, b)
-    Pw, Qw, Rw = _char_w(loop)
-    qP, p1, p0 = _divmod_quadratic(Pw, c1, c0)
-    qQ, q1, q0 = _divmod_quadratic(Qw, c1, c0)
-    qR, r1, r0 = _divmod_quadratic(Rw, c1, c0)
+    P, Q, D, e = _char_parts(loop)
+    _, p1, p0 = _divmod_quadratic(P, c1, c0)
+    _, q1, q0 = _divmod_quadratic(Q, c1, c0)
+    _, d1, d0 = _divmod_quadratic(D, c1, c0)
+    r1, r0 = _mulmod(_powmod(e, c1, c0), (d1, d0), c1, c0)
     A = np.array([[p1, q1], [p0, q0]])
     rhs = -np.array([r1, r0])
     det = p1 * q0 - q1 * p0
@@ -271,12 +294,11 @@ def _calibrate_core(loop: LoopModel, k: float, b: float):
     if abs(det) <= 1e-13 * scale:
         return None
     kappa, beta = np.linalg.solve(A, rhs)
-    quot = np.polyadd(np.polyadd(kappa * qP, beta * qQ), qR)
-    quot = np.trim_zeros(quot, "f")
-    full = np.polyadd(np.polyadd(kappa * Pw, beta * Qw), Rw)
-    others = np.roots(quot) if quot.size > 1 else np.array([], dtype=complex)
-    others = _polish(full, others)
-    return float(kappa), float(beta), others, w_t, kind, s_t
+    others = list(_roots_w(loop, float(kappa), float(beta)))
+    for wt in w_t:  # the two target poles are among the closed-loop poles: take them out
+        if others:
+            others.pop(int(np.argmin([abs(w - wt) for w in others])))
+    return float(kappa), float(beta), np.array(others, dtype=complex), w_t, kind, s_t
 
 
 def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
@@ -301,7 +323,8 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     Raises
     ------
     ConfigError
-        If ``k <= 0`` or ``k``, ``b`` are not finite.
+        If ``k <= 0`` or ``k``, ``b`` are not finite, or ``k T^2/m`` or ``|b| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
 
     Notes
     -----
@@ -322,6 +345,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
         raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
     m, T = loop.mass, loop.period
     nan = math.nan
+    _scaled(loop, k, b, keys=("k", "b"))
 
     def fail(reason, K=nan, B=nan, rho=nan, modes=(), target=None):
         return CalibrationResult(k=k, b=b, K=K, B=B, renderable=False, reason=reason,
@@ -380,48 +404,49 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
     return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
 
 
-def _circle_values(A, C):
+def _circle_values(A, C, e: int):
     """Real ``x`` for which ``x A(w) + C(w)`` has a root on the unit circle.
 
-    ``A``, ``C``: polynomials in ``w = z - 1`` (highest first). On ``z = e^{i theta}`` the
-    root condition is ``x = -C/A``, real iff ``Im[C conj(A)] = 0``; that is solved for
-    ``theta`` in ``(0, pi]`` (dense scan, then Brent to ~1e-15). Returns ``(values,
+    ``A``, ``C``: vectorised functions of ``w = z - 1`` (evaluated unexpanded, see
+    :func:`hapsim.analysis.loop.char_eval`); ``e``: the delay exponent, which sets how fast
+    they turn round the circle. On ``z = e^{i theta}`` the root condition is ``x = -C/A``,
+    real iff ``Im[C conj(A)] = 0``; that is solved for ``theta`` in ``(0, pi]`` (dense scan
+    with at least 64 points per turn of ``z^e``, then Brent to ~1e-15). Returns ``(values,
     lossless, x_pi)``: the candidate values (unsorted, finite), whether ``-C/A`` is real all
     round the circle (a lossless loop: the scan finds no sign change), and ``-C/A`` at
     ``z = -1`` (nan where ``A(-1) = 0``).
     """
-    def parts(theta):
-        w = complex(-2.0 * math.sin(0.5 * theta) ** 2, math.sin(theta))  # e^{i theta} - 1
-        return np.polyval(A, w), np.polyval(C, w)
+    def wof(theta):
+        return -2.0 * np.sin(0.5 * theta) ** 2 + 1j * np.sin(theta)  # e^{i theta} - 1
 
     def g(theta):
-        a, c = parts(theta)
+        w = wof(theta)
+        a, c = complex(A(w)), complex(C(w))
         return (c * np.conj(a)).imag / max(abs(c) * abs(a), 1e-300)
 
+    n_lin = max(4000, 32 * (e + 1))
     thetas = np.unique(np.concatenate([np.geomspace(1e-9, math.pi, 4000),
-                                       np.linspace(0.0, math.pi, 4001)[1:]]))
-    wv = -2.0 * np.sin(0.5 * thetas) ** 2 + 1j * np.sin(thetas)
-    av = np.polyval(A, wv)
-    cv = np.polyval(C, wv)
+                                       np.linspace(0.0, math.pi, n_lin + 1)[1:]]))
+    wv = wof(thetas)
+    av = A(wv)
+    cv = C(wv)
     gv = (cv * np.conj(av)).imag / np.maximum(np.abs(cv) * np.abs(av), 1e-300)
-    a, c = parts(math.pi)
+    a, c = complex(A(-2.0 + 0j)), complex(C(-2.0 + 0j))
     x_pi = (-(c / a)).real if abs(a) > 1e-14 * max(abs(c), 1.0) else math.nan
     if np.max(np.abs(gv[thetas >= 1e-3])) < 1e-9:  # (tiny theta: cancellation noise)
         return [], True, x_pi
     vals = []
-    for i in range(thetas.size - 1):
-        ga, gc = gv[i], gv[i + 1]
-        if ga == 0.0:
+    for i in np.flatnonzero((gv[:-1] == 0.0) | (gv[:-1] * gv[1:] < 0)):
+        if gv[i] == 0.0:
             th = thetas[i]
-        elif ga * gc < 0:
+        else:
             try:
                 th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
                             maxiter=200)
             except ValueError:  # scalar and vector rounding disagree on a tiny |g|
                 th = 0.5 * (thetas[i] + thetas[i + 1])
-        else:
-            continue
-        a, c = parts(th)
+        w = wof(th)
+        a, c = complex(A(w)), complex(C(w))
         if abs(a) > 0:
             vals.append((-(c / a)).real)
     if math.isfinite(x_pi):
@@ -431,8 +456,10 @@ def _circle_values(A, C):
 
 def _kappa_max(loop: LoopModel, beta: float) -> float:
     """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
-    Pw, Qw, Rw = _char_w(loop)
-    vals, lossless, k_pi = _circle_values(Pw, _padd(beta * Qw, Rw))
+    P, Q, D, e = _char_parts(loop)
+    vals, lossless, k_pi = _circle_values(
+        lambda w: np.polyval(P, w),
+        lambda w: beta * np.polyval(Q, w) + (1.0 + w) ** e * np.polyval(D, w), e)
     if lossless:
         # Lossless loop (e.g. ideal hold, d = 0, B = -b0: the centred-difference
         # oscillator): K(theta) is real all round the circle, the poles sit on it for small
@@ -447,10 +474,6 @@ def _kappa_max(loop: LoopModel, beta: float) -> float:
         if not _stable_at(loop, mid, beta):
             return lo
     return math.inf
-
-
-def _padd(a, b):
-    return np.polyadd(np.asarray(a, float), np.asarray(b, float))
 
 
 def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
@@ -485,12 +508,13 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
     Raises
     ------
     ConfigError
-        If ``B`` is not finite (key ``B``).
+        If ``B`` is not finite or ``|B| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT` (key ``B``).
     """
     if not math.isfinite(float(B)):
         raise ConfigError(f"must be finite, got {B!r}", key="B")
     T, m = loop.period, loop.mass
-    beta = float(B) * T / m
+    _, beta = _scaled(loop, 0.0, B)
     return _kappa_max(loop, beta) * m / (T * T)
 
 
@@ -516,7 +540,8 @@ def damping_limits(loop: LoopModel, K: float) -> list:
     Raises
     ------
     ConfigError
-        If ``K`` is not finite.
+        If ``K`` is not finite or ``|K| T^2/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
 
     Notes
     -----
@@ -529,9 +554,11 @@ def damping_limits(loop: LoopModel, K: float) -> list:
     if not math.isfinite(float(K)):
         raise ConfigError(f"must be finite, got {K!r}", key="K")
     T, m = loop.period, loop.mass
-    kappa = float(K) * T * T / m
-    Pw, Qw, Rw = _char_w(loop)
-    vals, lossless, b_pi = _circle_values(Qw, _padd(kappa * Pw, Rw))
+    kappa, _ = _scaled(loop, K, 0.0)
+    P, Q, D, e = _char_parts(loop)
+    vals, lossless, b_pi = _circle_values(
+        lambda w: np.polyval(Q, w),
+        lambda w: kappa * np.polyval(P, w) + (1.0 + w) ** e * np.polyval(D, w), e)
     if lossless:
         vals = [b_pi] if math.isfinite(b_pi) else []
     cands = sorted(set(vals))

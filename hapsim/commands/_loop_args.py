@@ -6,6 +6,7 @@ import argparse
 import textwrap
 
 from hapsim.analysis.loop import HOLDS, LoopModel
+from hapsim.errors import fixed
 
 #: Text appended to each command's help: what k/b and K/B are, and the units.
 UNITS_HELP = """\
@@ -35,6 +36,14 @@ def para(text: str) -> str:
     return textwrap.fill(" ".join(text.split()), 78)
 
 
+def _default(value, usual) -> str:
+    """`` (default: VALUE)`` for a help text; for None (only ``hapsim map`` leaves loop
+    options unset, for its presets) `` (default: the --paper preset, else USUAL)``."""
+    if value is None:
+        return f" (default: the --paper preset, else {usual})"
+    return f" (default: {value})"
+
+
 def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None = None,
                        require: bool = True) -> None:
     """Add ``--mass --friction --rate --delay --hold`` to ``parser``.
@@ -47,21 +56,22 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
     require : bool, optional
         Make ``--mass`` and ``--rate`` required when their default is None.
     """
-    d = {"mass": None, "friction": 0.0, "rate": None, "delay": 1, "hold": "zoh"}
-    d.update(defaults or {})
+    usual = {"mass": None, "friction": 0.0, "rate": None, "delay": 1, "hold": "zoh"}
+    d = {**usual, **(defaults or {})}
     g = parser.add_argument_group("loop (the real side of the THS)")
     g.add_argument("--mass", type=float, default=d["mass"], required=require and d["mass"] is None,
-                   metavar="M", help="moving mass m of hand + handle [kg], > 0")
+                   metavar="M", help="moving mass m of hand + handle [kg], 1e-12 to 1e12")
     g.add_argument("--friction", type=float, default=d["friction"], metavar="B0",
-                   help="real viscous friction b0 [N s/m], >= 0 (default: %(default)s)")
+                   help="real viscous friction b0 [N s/m], >= 0, b0 T/m <= 1e6"
+                        + _default(d["friction"], usual["friction"]))
     g.add_argument("--rate", type=float, default=d["rate"], required=require and d["rate"] is None,
-                   metavar="HZ", help="sample rate [Hz], > 0; period T = 1/rate")
+                   metavar="HZ", help="sample rate [Hz], 1e-6 to 1e9; period T = 1/rate")
     g.add_argument("--delay", type=int, default=d["delay"], metavar="D",
-                   help="whole samples between reading x and applying the force, >= 0 "
-                        "(default: %(default)s)")
+                   help="whole samples between reading x and applying the force, 0 to "
+                        "500 (the analysis is O(d^3))" + _default(d["delay"], usual["delay"]))
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],
                    help="zoh: exact zero-order hold of the force; ideal: the paper's "
-                        "idealised sampled mass (default: %(default)s)")
+                        "idealised sampled mass" + _default(d["hold"], usual["hold"]))
 
 
 def loop_from_args(args) -> LoopModel:
@@ -130,5 +140,5 @@ def print_modes(modes, out) -> None:
     print(f"  {'kind':<5} {'|z|':>12} {'f0 [Hz]':>11} {'zeta':>9} {'k [N/m]':>11} "
           f"{'b [N s/m]':>11}", file=out)
     for md in modes:
-        print(f"  {md.kind:<5} {abs(md.z):>12.9f} {fmt(md.f0_hz):>11} "
+        print(f"  {md.kind:<5} {fixed(abs(md.z), '>12.9f')} {fmt(md.f0_hz):>11} "
               f"{fmt(md.damping_ratio):>9} {fmt(md.k):>11} {fmt(md.b):>11}", file=out)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, fixed, plural
 
 _DESCRIPTION = """\
 Check a whole scene felt through its device, before touching the device.
@@ -38,8 +39,8 @@ examples:
 
 exit codes:
   0  the closed loop is stable
-  1  the closed loop is unstable
-  2  bad scene file or option, or a target (k, b) this device cannot render"""
+  1  the closed loop is unstable, or a target (k, b) this device cannot render
+  2  bad scene file or option"""
 
 
 def register(sub) -> None:
@@ -65,8 +66,14 @@ def register(sub) -> None:
 def _fmt_mode(md) -> str:
     def g(v, spec):
         return "-" if not math.isfinite(v) else format(v, spec)
-    return (f"  {abs(md.z):<14.10f} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
-            f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind}")
+    row = (f"  {fixed(abs(md.z), '<14.10f')} {g(md.f0_hz, '<10.4g')} {g(md.damping_ratio, '<+11.4g')} "
+           f"{g(md.k, '<12.6g')} {g(md.b, '<+12.6g')} {md.kind:<5}")
+    if md.participation is not None:  # weight at the port (residue, relative)
+        from hapsim.analysis.modes import OBSERVABLE_TOL
+        row += f" {md.participation:<9.2g}"
+        if not md.participation >= OBSERVABLE_TOL:
+            row += " not felt (mode of the object)"
+    return row.rstrip()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,9 +92,9 @@ def run(args: argparse.Namespace) -> int:
     Raises
     ------
     ConfigError
-        Bad scene file or option, or a target that is not renderable
-        (:class:`~hapsim.errors.UnrenderableTargetError`); exit code 2, handled by
-        :mod:`hapsim.cli`.
+        Bad scene file or option (exit code 2, handled by :mod:`hapsim.cli`).
+    UnrenderableTargetError
+        A target that is not renderable (a negative verdict: exit code 1).
     """
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
@@ -96,8 +103,15 @@ def run(args: argparse.Namespace) -> int:
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
-    # an unrenderable target raises UnrenderableTargetError: a configuration error, exit 2
+    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
     scene, cals = apply_targets(scene)
+    from hapsim.analysis.network import check_size, state_count
+    check_size(scene)
+    n_states = state_count(scene)
+    if n_states > 500:  # say what it costs before it starts (O(n^3), ~20 s at 2000)
+        print(f"hapsim check: {n_states} states: every eigenvalue of a dense "
+              f"{n_states}-square matrix, about {20 * (n_states / 2000) ** 3:.0f} s",
+              file=sys.stderr, flush=True)
     chk = check_scene(scene)
     ok = chk.stable
     verdict = "stable" if chk.stable else "unstable"
@@ -114,8 +128,8 @@ def run(args: argparse.Namespace) -> int:
 
     T = scene.period
     print(f"scene {args.scene}: {scene.rate_hz:g} Hz (T = {T * 1e3:g} ms), "
-          f"{sum(m.kind == 'mass' for m in scene.masses)} virtual masses, "
-          f"{len(scene.links)} links (contacts taken as engaged), integrator "
+          f"{plural(sum(m.kind == 'mass' for m in scene.masses), 'virtual mass', 'virtual masses')}, "
+          f"{plural(len(scene.links), 'link')} (contacts taken as engaged), integrator "
           f"{chk.integrator}")
     if chk.has_port:
         dv = scene.device
@@ -144,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         label = "parasitic modes" if chk.has_port else "modes"
         print(f"{label} (least damped first; k, b with m = {chk.reference_mass:g} kg):")
         print(f"  {'|z|':<14} {'f0 [Hz]':<10} {'zeta':<11} {'k [N/m]':<12} "
-              f"{'b [N s/m]':<12} kind")
+              f"{'b [N s/m]':<12} kind" + ("  at port" if chk.has_port else ""))
         for md in others[:args.modes]:
             print(_fmt_mode(md))
         if len(others) > args.modes:

@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from hapsim.errors import fixed
+
 from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
                                         print_modes)
 
@@ -73,7 +75,7 @@ def run(args) -> int:
         print(f"  damping ratio {fmt(r.damping_ratio):>12}", file=out)
         verdict = ("stable, marginal: a mode on the unit circle never decays" if r.marginal
                    else "stable" if r.stable else "UNSTABLE")
-        print(f"  spectral rad. {r.spectral_radius:>12.9f}  ({verdict})", file=out)
+        print(f"  spectral rad. {fixed(r.spectral_radius, '>12.9f')}  ({verdict})", file=out)
         if r.note:
             print(f"  note: {r.note}", file=out)
         print("parasitic modes:", file=out)

@@ -86,9 +86,9 @@ examples:
   hapsim run configs/wall.yaml --duration 0 --telemetry session.hst   (Ctrl-C ends it)
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
-  1  refused (unstable loop), safety stop, latched device fault, device lost beyond
+  1  refused (unstable loop, unrenderable target), safety stop, latched device fault, device lost beyond
      recovery (or silent with --no-reconnect)
-  2  bad arguments, invalid scene, unrenderable target, unknown fault name"""
+  2  bad arguments, invalid scene, unknown fault name"""
 
 
 def register(sub) -> None:
@@ -109,7 +109,7 @@ def register(sub) -> None:
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
     p.add_argument("--port", metavar="PORT",
                    help="serial port of the device (default: embedded mock on a pty)")
-    p.add_argument("--baud", type=int, default=115200, metavar="B",
+    p.add_argument("--baud", type=int, default=115200, metavar="BAUD",
                    help="baud rate (default 115200; ignored by USB CDC and ptys)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="run length [s] (default 1 s, longer for slow oscillations); 0: "
@@ -202,7 +202,7 @@ def run(args) -> int:
     ------
     ConfigError
         Bad option values (``--rate``, ``--lost-timeout``, ``--reconnect-*``, ``--faults``,
-        ``--auto`` with ``--rate``), an invalid scene or unrenderable target (exit 2 from
+        ``--auto`` with ``--rate``), an invalid scene (exit 2 from
         :func:`hapsim.cli.main`).
     UnstableConfigError
         Unstable loop without ``--allow-unstable``, or ``--auto`` finding no rate (exit 1).

@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
 import numpy as np
 
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
+from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
 from hapsim.scene import load_scene
 
@@ -42,14 +44,29 @@ def register(sub) -> None:
             "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10"),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
-    p.add_argument("--steps", "-n", type=int, required=True, metavar="N",
-                   help="number of samples to simulate (>= 0)")
+    p.add_argument("--steps", "-n", type=_count, required=True, metavar="N",
+                   help="number of samples to simulate (>= 0; 2e4 is read as 20000)")
     p.add_argument("--out", "-o", required=True, metavar="FILE",
                    help="output file, .npz or .csv (format chosen by extension)")
     p.add_argument("--record", nargs="+", metavar="NAME",
                    help="masses to record, in this order (default: all)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.set_defaults(func=run)
+
+
+def _count(text: str) -> int:
+    """``--steps`` value: a whole number, also written as ``2e4`` (argparse type)."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not (value == value and abs(value) != float("inf") and value == int(value)):
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}")
+    return int(value)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
     Returns
     -------
     int
-        0; the trajectory is written to ``args.out`` (time [s] shape (N+1,), position [m]
+        0, or 1 when a position becomes NaN or infinite (the scene diverged): the rows
+        before it are written and the step and the mass are named; the trajectory is
+        written to ``args.out`` (time [s] shape (N+1,), position [m]
         shape (N+1, R), names shape (R,)) and a summary printed (one JSON object with
         ``--json``, including ``calibrations``: one dict per target link, see
         :meth:`hapsim.analysis.targets.TargetCalibration.to_dict`).
@@ -83,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
                           key="--out")
     if args.steps < 0:
         raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
+    check_writable(args.out, "--out")
     scene = load_scene(args.scene)
     calibrations = []
     if scene.unresolved_targets:
@@ -93,10 +113,17 @@ def run(args: argparse.Namespace) -> int:
     if scene.port is not None:
         engine.set_port_position(scene.excitation.x0, at_rest=True)
     names = list(args.record) if args.record else list(engine.names)
+    if len(set(names)) != len(names):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise ConfigError(f"names a mass twice: {', '.join(twice)}; each column once",
+                          key="--record")
+    # time and positions, (N+1) x (R+1) float64, plus the engine's chunk
+    check_fits(8.0 * (args.steps + 1) * (len(names) + 1),
+               f"{args.steps} samples x {len(names)} masses of positions", "--steps")
     t0 = time.perf_counter()
     try:
         with Progress(args.steps, "simulate", unit="samples") as bar:
-            t, x = engine.run(args.steps, names, progress=bar.update)
+            t, x, bad = _run_finite(engine, args.steps, names, bar.update)
     except ConfigError as exc:
         if exc.key != "record":
             raise
@@ -104,6 +131,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(exc.reason, key="--record") from None
     elapsed = time.perf_counter() - t0
     write_trajectory(args.out, t, x, names)
+    if bad is not None:
+        step, mass, recorded = bad
+        message = (f"hapsim simulate: the scene diverged: the position of mass {mass!r}"
+                   f"{'' if recorded else ' (not recorded)'} is not finite "
+                   f"{'at' if recorded else 'by'} step {step} (t = {step / scene.rate_hz:.6g} s); stopped "
+                   f"there and wrote the {step} rows before it (t < {step / scene.rate_hz:.6g} s) "
+                   f"to {args.out}")
+        print(message, file=sys.stderr)
+        if args.json:
+            summary = {"scene": args.scene, "out": args.out, "steps": step,
+                       "rate_hz": scene.rate_hz, "recorded": len(names),
+                       "diverged": {"step": step, "mass": mass}, "exit": 1}
+            print(json.dumps(summary))
+        return 1
     summary = {"scene": args.scene, "out": args.out, "steps": args.steps,
                "rate_hz": scene.rate_hz, "recorded": len(names), "seconds": elapsed,
                "calibrations": [c.to_dict() for c in calibrations]}
@@ -116,6 +157,59 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses "
               f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
     return 0
+
+
+def _run_finite(engine: Engine, steps: int, names: list[str], progress,
+                chunk: int = 65536) -> tuple[np.ndarray, np.ndarray, tuple[int, str, bool] | None]:
+    """Run ``steps`` samples in chunks, stopping at the first non-finite position.
+
+    Parameters
+    ----------
+    engine : Engine
+        The engine, at its initial state.
+    steps : int
+        Samples to run, >= 0.
+    names : list of str
+        Masses to record (R of them).
+    progress : callable
+        ``progress(done, steps)`` after each chunk.
+    chunk : int
+        Samples per engine call.
+
+    Returns
+    -------
+    time : ndarray, shape (M+1,)
+        Time [s]; M = steps, or the last finite step when the scene diverged.
+    position : ndarray, shape (M+1, R)
+        Positions [m], all finite.
+    bad : (int, str, bool) or None
+        ``(step, mass, recorded)`` of the first non-finite position (any mass of the scene;
+        for a mass not recorded the step is the end of the chunk it was found in), or None.
+    """
+    t = np.empty(steps + 1)
+    x = np.empty((steps + 1, len(names)))
+    t[0:1], x[0:1] = engine.run(0, names)
+    done = 0
+    all_names = list(engine.names)
+    while done < steps:
+        m = min(chunk, steps - done)
+        tc, xc = engine.run(m, names)
+        t[done + 1:done + m + 1], x[done + 1:done + m + 1] = tc[1:], xc[1:]
+        state = engine.positions
+        if not (np.isfinite(xc).all() and np.isfinite(state).all()):
+            rows = np.flatnonzero(~np.isfinite(xc[1:]).all(axis=1))
+            if rows.size:
+                step = done + 1 + int(rows[0])
+                col = int(np.flatnonzero(~np.isfinite(xc[1 + rows[0]]))[0])
+                mass = names[col]
+            else:  # an unrecorded mass went first: name it, at the chunk's end
+                step = done + m
+                mass = all_names[int(np.flatnonzero(~np.isfinite(state))[0])]
+                return t[:step], x[:step], (step, mass, False)
+            return t[:step], x[:step], (step, mass, True)
+        done += m
+        progress(done, steps)
+    return t, x, None
 
 
 def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names: list[str]) -> None:

@@ -70,8 +70,12 @@ def run(args) -> int:
               f"d={loop.delay}  hold={loop.hold}   virtual B={args.B:g} N s/m", file=out)
         print(f"  exact K_max            {fmt(kmax):>14} N/m  (spectral radius "
               f"{fmt(rho)} there)", file=out)
-        print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
-              "zoh, d = 0", file=out)
+        if d["passivity_K"] > 0:
+            print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
+                  "zoh, d = 0", file=out)
+        else:  # b0 > K T/2 + |B| holds for no K >= 0
+            print(f"  passivity (C&S 1997)   {'none':>14}      |B| >= b0: no K >= 0 is "
+                  "passive (b0 > K T/2 + |B|)", file=out)
         print(f"  Diolaiti et al. 2006   {fmt(d['diolaiti_K']):>14} N/m  first order in "
               "b0 T/m", file=out)
         print(f"  centred difference     {fmt(d['centred_difference_K']):>14} N/m  "

@@ -166,10 +166,14 @@ def predict(scene: Scene) -> dict:
                        damping_ratio=float(r.damping_ratio))
         return out
     chk = an["check_scene"](scene)
-    eig = np.asarray(chk.eigenvalues)
+    # identification order: the non-zero poles the port shows (a mode the hand cannot see,
+    # participation below OBSERVABLE_TOL, is absent from the port's record)
+    from hapsim.analysis.modes import OBSERVABLE_TOL
+    order = sum(2 if md.kind == "pair" else 1 for md in chk.modes
+                if abs(md.z) > _ZERO_POLE
+                and (md.participation is None or md.participation >= OBSERVABLE_TOL))
     out.update(source="check_scene", stable=bool(chk.stable),
-               spectral_radius=float(chk.spectral_radius),
-               order=int(np.sum(np.abs(eig) > _ZERO_POLE)))
+               spectral_radius=float(chk.spectral_radius), order=int(order))
     md = chk.rendered
     if md is not None:
         out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
@@ -265,6 +269,28 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
                damping_ratio=float(md.damping_ratio))
     return out
+
+
+def _has_offset(scene: Scene) -> bool:
+    """Whether the port's free response settles away from 0 (identify with ``offset``).
+
+    Decided from the scene's static equilibrium
+    (:func:`hapsim.analysis.network.rest_position`: grounds' ``x0``, contact thresholds,
+    every link), not from a list of causes; Coulomb friction (the mock's) stops the port
+    anywhere in its dead band: an offset. A scene whose rest is not unique (a free part)
+    has a pole at ``z = 1`` among the predicted ones, which the identification order
+    counts and which carries the constant: no differencing then.
+    """
+    from hapsim.analysis.network import rest_position
+    dev = scene.device
+    if dev.coulomb > 0:
+        return True
+    x = rest_position(scene)
+    if x is None:
+        return False
+    scale = max([abs(m.x0) for m in scene.masses if m.kind == "ground"]
+                + [abs(lk.threshold) for lk in scene.links if lk.kind == "contact"] + [0.0])
+    return abs(x) > 1e-12 * scale
 
 
 def _mass_limits(scene: Scene) -> list:
@@ -503,6 +529,9 @@ class RunOptions:
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
                               f"(chunked journal), .npz, .csv", key="--telemetry")
+        if self.telemetry is not None:   # before start-up, not when the loop first writes
+            from hapsim.outputs import check_writable
+            check_writable(self.telemetry, "--telemetry")
         return self
 
 
@@ -638,11 +667,45 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     if pred.get("f0_hz"):
         window = max(window, exc_end + 10.0 / pred["f0_hz"])
     duration = window if opts.duration is None else opts.duration
+    _check_size(scene, duration, window, opts.duration is not None, opts.rate_hz is not None)
     n_samples = max(int(round(duration * scene.rate_hz)), 1) if duration > 0 else 0
     n_window = max(int(round(window * scene.rate_hz)), 1)
     n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
     return PreparedRun(scene, targets, pred, exc_end, window, n_samples, n_window, n_ring,
                        base_dir)
+
+
+def _check_size(scene: Scene, duration: float, window: float, asked: bool,
+                rate_asked: bool = False) -> None:
+    """Refuse a run whose sample count or telemetry cannot fit, before anything starts.
+
+    The telemetry holds the whole run when it fits in the identification window plus the
+    ring, else the window plus a ring of :data:`RING_SECONDS`: 42 bytes a row (time,
+    position, force, turnaround [float64], seq [int64], late, flags [int8]).
+
+    Raises
+    ------
+    ConfigError
+        ``--duration`` (when given), ``--rate`` (when given) or ``rate_hz`` (file and key),
+        with the figures.
+    """
+    rate = scene.rate_hz
+    key = "--duration" if asked else "--rate" if rate_asked else "rate_hz"
+    where = {} if key != "rate_hz" else {"file": scene.path if scene.path != "<string>"
+                                          else None}
+    n = duration * rate
+    if not math.isfinite(n) or n > 2.0 ** 62:
+        raise ConfigError(f"{duration:.6g} s at {rate:.6g} Hz is {n:.3g} samples; a run "
+                          "counts at most 2^62 (use --duration 0 for an open-ended run)",
+                          key=key, **where)
+    window_rows, ring_rows = window * rate, RING_SECONDS * rate
+    rows = n if 0 < n <= window_rows + ring_rows else min(window_rows, n or window_rows) \
+        + ring_rows
+    try:
+        from hapsim.outputs import check_fits
+        check_fits(42.0 * rows, f"{rows:.3g} telemetry rows ({rate:.6g} Hz)", key)
+    except ConfigError as exc:
+        raise ConfigError(exc.reason, key=key, **where) from None
 
 
 def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
@@ -876,7 +939,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
-        offset = any(m.kind == "ground" and m.x0 != 0 for m in scene.masses) or dev.coulomb > 0
+        offset = _has_offset(scene)
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2)
     notes = []
@@ -1145,7 +1208,8 @@ def _remove(path: str | None) -> None:
 def _fmt(v, spec: str) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
-    return format(v, spec)
+    from hapsim.errors import fixed
+    return fixed(v, spec) if spec.endswith("f") else format(v, spec)
 
 
 def format_report(rep: dict) -> str:

@@ -1,0 +1,127 @@
+"""Checks a command makes before it starts work: can it write its outputs, will it fit.
+
+A command that writes a file or allocates a large array checks both up front, so a long
+simulation or a run on a device does not end in a traceback after minutes (issue 10).
+"""
+
+from __future__ import annotations
+
+import os
+
+from hapsim.errors import ConfigError
+
+__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes"]
+
+
+def check_writable(path: str, option: str) -> None:
+    """Make sure ``path`` can be written, by creating and removing ``path.partial``.
+
+    Parameters
+    ----------
+    path : str
+        The output file a command will write (its ``.partial`` sibling is the temporary
+        file hapsim writes before renaming).
+    option : str
+        The option that named it (``--out``, ``--telemetry``), for the message.
+
+    Raises
+    ------
+    ConfigError
+        When the directory does not exist, is not a directory, ``path`` is a directory,
+        or the file cannot be created (permission, read-only file system); key ``option``.
+
+    Notes
+    -----
+    A real write probe rather than ``os.access``, which says yes to root and ignores
+    read-only mounts.
+    """
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        what = "is not a directory" if os.path.exists(folder) else "does not exist"
+        raise ConfigError(f"cannot write {path}: the directory {folder} {what}", key=option)
+    if os.path.isdir(path):
+        raise ConfigError(f"cannot write {path}: it is a directory; give a file name",
+                          key=option)
+    probe = f"{path}.partial"
+    existed = os.path.exists(probe)
+    try:
+        with open(probe, "ab"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror or exc}", key=option) from None
+    if not existed:
+        try:
+            os.remove(probe)
+        except OSError:
+            pass
+
+
+def available_memory() -> int | None:
+    """Memory the system can give without swapping [bytes] (``MemAvailable``), or None.
+
+    Returns
+    -------
+    int or None
+        Linux ``/proc/meminfo`` ``MemAvailable``; else free physical pages times the page
+        size (``os.sysconf``); None when neither is known.
+    """
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes as a short figure with a binary unit (``1.5 GiB``).
+
+    Parameters
+    ----------
+    n : float
+        Bytes, >= 0.
+
+    Returns
+    -------
+    str
+        Three significant digits and B, KiB, MiB, GiB, TiB or PiB (EiB beyond).
+    """
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024:
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} EiB"
+
+
+def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> None:
+    """Refuse work whose arrays cannot fit in memory, with the figures.
+
+    Parameters
+    ----------
+    nbytes : float
+        Bytes the work will allocate (estimate).
+    what : str
+        What needs them, e.g. ``"10^11 samples x 3 masses of positions"``.
+    option : str
+        The option or key to name (``--steps``, ``--duration``, ``rate_hz``).
+    fraction : float
+        Share of the available memory the work may take.
+
+    Raises
+    ------
+    ConfigError
+        When ``nbytes`` exceeds ``fraction`` of :func:`available_memory` (or 2^48 bytes,
+        when the available memory is unknown).
+    """
+    avail = available_memory()
+    limit = fraction * avail if avail is not None else float(2 ** 48)
+    if nbytes > limit:
+        have = (f"{format_bytes(avail)} available" if avail is not None
+                else "more than this machine can address")
+        raise ConfigError(f"{what} need {format_bytes(nbytes)}; {have}: ask for less",
+                          key=option)
