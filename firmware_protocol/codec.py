@@ -14,6 +14,7 @@ no final XOR; check value 0x29B1), as computed by :func:`binascii.crc_hqx`.
 
 from __future__ import annotations
 
+import math
 import struct
 from binascii import crc_hqx
 from collections import deque
@@ -24,16 +25,17 @@ from cobs import cobs as _cobs
 
 __all__ = [
     "PROTOCOL_VERSION", "MAX_FRAME", "MAX_PACKET", "MAX_AXES", "CRC_INIT",
-    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_STATE", "MSG_FORCE",
+    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_LINK", "MSG_STATE", "MSG_FORCE",
     "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES",
     "STATUS_ARMED", "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FAULT",
     "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED", "STATUS_FORCE_APPLIED",
     "FAULT_WATCHDOG", "FAULT_BAD_CONFIG", "FAULT_SENSOR", "FAULT_AMPLIFIER",
     "FAULT_NON_FINITE_FORCE", "FAULT_AXES_MISMATCH", "FAULT_RX_ERRORS", "FAULT_OVERRUN",
     "FAULT_VERSION_MISMATCH", "FAULT_NAMES",
-    "Hello", "HelloRequest", "Config", "State", "Force", "Ping", "Pong", "Fault", "Stop",
+    "Hello", "HelloRequest", "Config", "Link", "State", "Force", "Ping", "Pong", "Fault", "Stop",
     "Message", "FrameError", "DecoderStats", "StreamDecoder",
     "encode", "encode_packet", "decode_frame", "decode_packet", "crc16",
+    "state_frame_bytes", "force_frame_bytes", "LINK_LOAD", "link_max_rate",
 ]
 
 # --------------------------------------------------------------------------- constants
@@ -53,6 +55,9 @@ CRC_INIT = 0xFFFF
 MSG_HELLO = 0x01
 MSG_HELLO_REQUEST = 0x02
 MSG_CONFIG = 0x03
+#: LINK, device -> host with HELLO: the device's serial line. Added within version 1
+#: (PROTOCOL.md §9): a host written before it counts it as an unknown type.
+MSG_LINK = 0x04
 MSG_STATE = 0x10
 MSG_FORCE = 0x11
 MSG_PING = 0x20
@@ -95,6 +100,59 @@ FAULT_NAMES = {
     FAULT_OVERRUN: "OVERRUN",
     FAULT_VERSION_MISMATCH: "VERSION_MISMATCH",
 }
+
+
+#: Largest share of the line the STATE frames may take (the rest: FAULT, PONG, tick jitter).
+LINK_LOAD = 0.8
+
+
+def state_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a STATE frame with ``n_axes`` axes (PROTOCOL.md §3).
+
+    Parameters
+    ----------
+    n_axes : int, 1..8
+
+    Returns
+    -------
+    int
+        ``5 + 18 + 8 n``: type, CRC, one COBS byte and the delimiter around the body
+        (COBS adds exactly one byte to a packet shorter than 255 bytes, §1).
+    """
+    return 5 + 18 + 8 * int(n_axes)
+
+
+def force_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a FORCE frame with ``n_axes`` axes: ``5 + 4 + 8 n`` (§3)."""
+    return 5 + 4 + 8 * int(n_axes)
+
+
+def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
+                  load: float = LINK_LOAD) -> float:
+    """Largest tick rate a serial line carries: one STATE up and one FORCE down per tick.
+
+    The line is full duplex, so the longer frame (STATE) decides: a rate is carried when
+    ``rate * state_frame_bytes(n) * bits_per_byte <= load * baud`` (PROTOCOL.md §4, LINK).
+
+    Parameters
+    ----------
+    baud : int
+        Line rate [bit/s]; 0 means "not a UART" (no limit).
+    bits_per_byte : int
+        Bits per byte on the line (10 for 8N1).
+    n_axes : int
+        Axes per STATE/FORCE.
+    load : float
+        Share of the line the STATE frames may take, 0 < load <= 1.
+
+    Returns
+    -------
+    float
+        The largest rate [Hz]; ``inf`` for ``baud == 0``.
+    """
+    if baud <= 0:
+        return math.inf
+    return load * baud / (bits_per_byte * state_frame_bytes(n_axes))
 
 
 def crc16(data: bytes, crc: int = CRC_INIT) -> int:
@@ -212,6 +270,26 @@ class Config:
 
 
 @dataclass(frozen=True, slots=True)
+class Link:
+    """LINK, device -> host, sent just before each HELLO: the device's serial line.
+
+    The host checks with it that a STATE and a FORCE frame fit one tick at the rate it is
+    about to CONFIGure (PROTOCOL.md §4, LINK).
+
+    Parameters
+    ----------
+    baud : int, 0..2**32-1
+        Line rate of the device's UART [bit/s]; 0: not a UART (USB, no limit announced).
+    bits_per_byte : int, 0..255
+        Bits on the line per byte: start + data + parity + stop (10 for 8N1).
+    """
+
+    TYPE: ClassVar[int] = MSG_LINK
+    baud: int
+    bits_per_byte: int = 10
+
+
+@dataclass(frozen=True, slots=True)
 class State:
     """STATE, device -> host, once per device tick.
 
@@ -317,10 +395,10 @@ class Stop:
     TYPE: ClassVar[int] = MSG_STOP
 
 
-Message = Union[Hello, HelloRequest, Config, State, Force, Ping, Pong, Fault, Stop]
+Message = Union[Hello, HelloRequest, Config, Link, State, Force, Ping, Pong, Fault, Stop]
 
 #: Message class by type id.
-MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, State, Force,
+MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, Link, State, Force,
                                            Ping, Pong, Fault, Stop)}
 
 # --------------------------------------------------------------------------- layouts
@@ -328,6 +406,7 @@ MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, State, F
 _HELLO = struct.Struct("<BBBI4d")
 _HELLO_REQUEST = struct.Struct("<BB")
 _CONFIG = struct.Struct("<BdId")
+_LINK = struct.Struct("<BIB")
 _PING = struct.Struct("<BIQ")
 _PONG = struct.Struct("<BIQQ")
 _FAULT = struct.Struct("<BHI")
@@ -373,6 +452,7 @@ _PACKERS = {
     Hello: _pack_hello,
     HelloRequest: lambda m: _HELLO_REQUEST.pack(MSG_HELLO_REQUEST, m.protocol_version),
     Config: lambda m: _CONFIG.pack(MSG_CONFIG, m.rate_hz, m.watchdog_us, m.force_limit),
+    Link: lambda m: _LINK.pack(MSG_LINK, m.baud, m.bits_per_byte),
     State: _pack_state,
     Force: _pack_force,
     Ping: lambda m: _PING.pack(MSG_PING, m.nonce, m.host_time_us),
@@ -484,6 +564,7 @@ _UNPACKERS = {
     MSG_HELLO: _unpack_hello,
     MSG_HELLO_REQUEST: _fixed(_HELLO_REQUEST, "HELLO_REQUEST", HelloRequest),
     MSG_CONFIG: _fixed(_CONFIG, "CONFIG", Config),
+    MSG_LINK: _fixed(_LINK, "LINK", Link),
     MSG_STATE: _unpack_state,
     MSG_FORCE: _unpack_force,
     MSG_PING: _fixed(_PING, "PING", Ping),

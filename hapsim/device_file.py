@@ -95,16 +95,8 @@ def load_device(path: str):
             text = fh.read()
     except OSError as exc:
         raise ConfigError(f"cannot read device file: {exc.strerror or exc}", file=path) from exc
-    loader = sc._LineLoader(text)
-    loader._hapsim_path = path  # type: ignore[attr-defined]
-    try:
-        doc = loader.get_single_data()
-    except ConfigError:
-        raise
-    except Exception as exc:  # yaml errors
-        raise ConfigError(f"invalid YAML: {exc}", file=path) from exc
-    finally:
-        loader.dispose()
+    from hapsim._yaml_lines import load_yaml
+    doc = load_yaml(text, path)
     ctx = sc._Ctx(path)
     if doc is None:
         raise ctx.error("the device file is empty; it needs a 'device:' section", 1, "device")

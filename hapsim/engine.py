@@ -12,8 +12,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes
-from hapsim.scene import Scene
+from hapsim.scene import Scene, audio_substeps
 
 __all__ = ["Engine"]
 
@@ -51,6 +52,12 @@ class Engine:
     ``scene.integrator`` (``symplectic_euler``, ``exact``) swaps the mass integrator for one
     of :mod:`hapsim.kernels.schemes` (stability limits there); ``centred`` is the above.
 
+    A scene with ``audio`` runs multi-rate (:class:`hapsim.scene.Audio`,
+    :mod:`hapsim.kernels.audio`): the masses at the audio period ``Ta = T / N``, every
+    device sample (:meth:`port_step`, :meth:`step`, :meth:`run`) being N audio sub-steps;
+    the sub-steps' listened frames are in :attr:`frames` after :meth:`port_step`, and
+    :meth:`play` renders a whole gesture offline.
+
     Examples
     --------
     >>> eng = Engine(load_scene("configs/oscillator.yaml"))   # doctest: +SKIP
@@ -68,7 +75,11 @@ class Engine:
         self.scene = scene
         self.period = scene.period
         self.names = tuple(m.name for m in scene.masses)
-        T = self.period
+        audio = scene.audio
+        #: Audio sub-steps per device sample N (1 without ``audio``).
+        self.substeps = audio_substeps(audio.rate_hz, scene.rate_hz) if audio else 1
+        #: Period the masses are integrated at [s]: the audio period with ``audio``.
+        self.sim_period = T = self.period / self.substeps
         n = len(scene.masses)
         self._x = np.array([m.x0 for m in scene.masses], dtype=np.float64)
         self._xp = np.array([m.x0 - (m.v0 * T if m.kind == "mass" else 0.0) for m in scene.masses],
@@ -95,10 +106,14 @@ class Engine:
 
         kinds = scene.kinds
         link_args: tuple[np.ndarray, ...] = ()
-        if "spring_damper" in kinds:
-            link_args += arrays("spring_damper")
-        if "contact" in kinds:
-            link_args += arrays("contact")
+        #: name -> (stiffness array, damping-per-sample array, slot): live changes.
+        self._link_slot: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}
+        for kind in ("spring_damper", "contact"):
+            if kind in kinds:
+                arr = arrays(kind)
+                link_args += arr
+                names = [lk.name for lk in scene.links if lk.kind == kind]
+                self._link_slot.update({nm: (arr[2], arr[3], j) for j, nm in enumerate(names)})
         #: Velocity state [m/s] of the non-default integrators (None for centred).
         self._v = None
         integrator = getattr(scene, "integrator", "centred")
@@ -114,6 +129,39 @@ class Engine:
             self._v = self._args[6]
         #: Samples advanced since construction.
         self.sample = 0
+        self._multi = None
+        #: Names of the listened channels (``"<mass>.<quantity>"``), empty without audio.
+        self.channels: tuple[str, ...] = ()
+        if audio is not None:
+            self._init_audio(audio, kinds, link_args)
+
+    def _init_audio(self, audio, kinds, link_args) -> None:
+        """Arguments of :func:`hapsim.kernels.audio.run_periods` (every link kind given,
+        empty when unused) and the one-period buffers :meth:`port_step` reuses."""
+        e = np.empty(0, dtype=np.float64)
+        ei = np.empty(0, dtype=np.int64)
+        sd = link_args[:4] if "spring_damper" in kinds else (ei, ei, e, e)
+        ct = link_args[-5:] if "contact" in kinds else (ei, ei, e, e, e)
+        ls = audio.listen
+        self.channels = tuple(f"{x.mass}.{x.quantity}" for x in ls)
+        self._l_idx = np.array([self.scene.index(x.mass) for x in ls], dtype=np.int64)
+        self._l_code = np.array([audio_kernel.LISTEN_CODES[x.quantity] for x in ls],
+                                dtype=np.int64)
+        self._l_gain = np.array([x.gain for x in ls], dtype=np.float64)
+        self._multi = ((self.substeps, audio.port_position == "linear",
+                        audio.port_force == "last", self._port),
+                       (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
+                       + tuple(sd) + tuple(ct)
+                       + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
+        self._pos1 = np.zeros(1)
+        self._force1 = np.zeros(1)
+        #: Audio frames of the last :meth:`port_step`, shape (N, C) (reused buffer).
+        self.frames = np.zeros((self.substeps, len(ls)))
+
+    def _periods(self, n, pos, audio, arow0, force, rec, out, row0) -> None:
+        """``n`` device periods of the multi-rate kernel (:mod:`hapsim.kernels.audio`)."""
+        head, state = self._multi
+        audio_kernel.run_periods(n, *head, pos, *state, audio, arow0, force, rec, out, row0)
 
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> None:
@@ -131,6 +179,9 @@ class Engine:
         """
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
+        if self._multi is not None:
+            self.run(n, [])
+            return
         self._kernel(n, *self._args, _EMPTY_REC, _EMPTY_OUT, 0)
         self.sample += n
 
@@ -156,6 +207,12 @@ class Engine:
         if self._port < 0:
             raise ConfigError("the scene has no port to drive; port_step needs a mass of "
                               "kind port", file=self.scene.path, key="masses")
+        if self._multi is not None:
+            self._pos1[0] = position
+            self._periods(1, self._pos1, self.frames, 0, self._force1, _EMPTY_REC,
+                          _EMPTY_OUT, 0)
+            self.sample += 1
+            return float(self._force1[0])
         self._x[self._port] = position
         self._kernel(1, *self._args, _EMPTY_REC, _EMPTY_OUT, 0)
         self.sample += 1
@@ -197,9 +254,17 @@ class Engine:
         out = np.empty((n + 1, rec.size), dtype=np.float64)
         out[0] = self._x[rec]
         done = 0
+        if self._multi is not None:   # port held where it is; the sound is dropped
+            chunk = max(1, min(chunk, 65536 // self.substeps))
+            pos = np.full(chunk, self._x[self._port] if self._port >= 0 else 0.0)
+            frames = np.empty((chunk * self.substeps, self._l_idx.size))
+            force = np.empty(chunk)
         while done < n:
             m = min(chunk, n - done)
-            self._kernel(m, *self._args, rec, out, 1 + done)
+            if self._multi is not None:
+                self._periods(m, pos, frames, 0, force, rec, out, 1 + done)
+            else:
+                self._kernel(m, *self._args, rec, out, 1 + done)
             done += m
             if progress is not None:
                 progress(done, n)
@@ -207,6 +272,102 @@ class Engine:
         self.sample += n
         time = t0 + np.arange(n + 1, dtype=np.float64) * self.period
         return time, out
+
+    def play(self, positions: np.ndarray,
+             progress: Callable[[int, int], None] | None = None,
+             chunk: int = 1000) -> tuple[np.ndarray, np.ndarray]:
+        """Render a port gesture offline: one device sample per position, with its sound.
+
+        Parameters
+        ----------
+        positions : ndarray, shape (n,)
+            Port position of each device sample [m] (a scripted or recorded gesture).
+        progress : callable, optional
+            Called as ``progress(done, n)`` after each chunk.
+        chunk : int
+            Device samples per kernel call between progress reports.
+
+        Returns
+        -------
+        audio : ndarray, shape (n * N, C)
+            Listened frames at the audio rate (N sub-steps per device sample, C listening
+            points in scene order).
+        force : ndarray, shape (n,)
+            Port force of each device sample [N].
+
+        Raises
+        ------
+        ConfigError
+            When the scene has no ``audio`` section or no port.
+        """
+        if self._multi is None or self._port < 0:
+            raise ConfigError("play needs a scene with an audio section and a port",
+                              file=self.scene.path, key="audio")
+        pos = np.ascontiguousarray(positions, dtype=np.float64).ravel()
+        n = pos.size
+        audio = np.zeros((n * self.substeps, self._l_idx.size))
+        force = np.zeros(n)
+        done = 0
+        while done < n:
+            m = min(chunk, n - done)
+            self._periods(m, pos[done:done + m], audio, done * self.substeps,
+                          force[done:], _EMPTY_REC, _EMPTY_OUT, 0)
+            done += m
+            if progress is not None:
+                progress(done, n)
+        self.sample += n
+        return audio, force
+
+    # ------------------------------------------------------------------ live changes
+    def set_link(self, name: str, stiffness: float, damping: float) -> None:
+        """Change one link's (K, B) in place, between two samples (no allocation).
+
+        Parameters
+        ----------
+        name : str
+            Link name.
+        stiffness : float
+            K [N/m].
+        damping : float
+            B [N s/m].
+
+        Raises
+        ------
+        ConfigError
+            Unknown link (key ``link``; the valid names listed), or an integrator other
+            than ``centred`` (its matrices are built once).
+
+        Notes
+        -----
+        :attr:`scene` is not updated: the caller (:class:`hapsim.audio.control.Controller`)
+        keeps the scene that describes the engine and checks it before changing anything.
+        """
+        if self._v is not None:
+            raise ConfigError("live changes need integrator: centred", key="integrator")
+        try:
+            k, z, j = self._link_slot[name]
+        except KeyError:
+            raise ConfigError(f"no link named {name!r}; links are: "
+                              + ", ".join(self._link_slot), key="link") from None
+        k[j] = stiffness
+        z[j] = damping / self.sim_period
+
+    def set_mass(self, name: str, mass: float) -> None:
+        """Change one moving mass's inertia in place [kg], between two samples.
+
+        Raises
+        ------
+        ConfigError
+            No moving mass of that name (key ``mass``), or an integrator other than
+            ``centred``.
+        """
+        if self._v is not None:
+            raise ConfigError("live changes need integrator: centred", key="integrator")
+        i = self._indices([name], key="mass")[0]
+        hit = np.nonzero(self._mobile == i)[0]
+        if hit.size == 0:
+            raise ConfigError(f"{name!r} is not a moving mass (kind mass)", key="mass")
+        self._t2m[hit[0]] = self.sim_period ** 2 / mass
 
     # ------------------------------------------------------------------ state
     def set_port_position(self, position: float, at_rest: bool = False) -> None:
@@ -296,7 +457,7 @@ class Engine:
             ``sum m v^2 / 2 + sum K/2 (x1 - x2 + thr)(x1p - x2p + thr)`` [J] at the current
             sample (``thr`` = 0 except for engaged contacts; dampers store no energy).
         """
-        T = self.period
+        T = self.sim_period
         x, xp = self._x, self._xp
         exact = getattr(self.scene, "integrator", "centred") == "exact"
         if exact:  # the exact scheme conserves the continuous energy: v state, K/2 d^2

@@ -67,8 +67,9 @@ from typing import Any, Callable
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, show
 
-__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Scene",
-           "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS"]
+__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Listen", "Audio",
+           "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
+           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
@@ -78,8 +79,17 @@ LINK_KINDS = ("spring_damper", "contact")
 HOLDS = ("zoh", "ideal")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
+#: What a listening point hears (``audio.listen[i].quantity``; first is the default).
+LISTEN_QUANTITIES = ("velocity", "position", "force")
+#: How the port position is brought up to the audio rate (first is the default).
+PORT_POSITION_MODES = ("hold", "linear")
+#: How the port force is brought down to the device rate (first is the default).
+PORT_FORCE_MODES = ("mean", "last")
 
-_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator", "safety")
+_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator", "safety",
+             "audio")
+_AUDIO_KEYS = ("rate_hz", "listen", "port_position", "port_force")
+_LISTEN_KEYS = ("mass", "quantity", "gain")
 _MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
               "ground": ("name", "kind", "x0"),
               "port": ("name", "kind")}
@@ -271,6 +281,68 @@ class Safety:
 
 
 @dataclass(frozen=True)
+class Listen:
+    """One listening point of a scene's sound (scene section ``audio.listen``).
+
+    Parameters
+    ----------
+    mass : str
+        Name of the mass listened to.
+    quantity : {"velocity", "position", "force"}
+        What is heard: its backward-difference velocity ``(x[k] - x[k-1]) / Ta`` [m/s], its
+        position [m] or the force on it [N], at every audio sample ``k``.
+    gain : float
+        Factor from that quantity to the output sample (full scale 1.0), finite.
+    """
+
+    mass: str
+    quantity: str = "velocity"
+    gain: float = 1.0
+
+
+@dataclass(frozen=True)
+class Audio:
+    """The sound of a scene (section ``audio:``): a multi-rate model.
+
+    Every virtual mass runs at the audio rate ``rate_hz`` (period ``Ta = 1 / rate_hz``);
+    the device couples at the scene's rate (period ``T = N Ta``, ``N`` a whole number).
+    Within device period ``n`` the port position at audio sub-step ``j = 0 .. N-1`` is
+    ``p[n]`` (``"hold"``, a zero-order hold of the device sample) or
+    ``p[n-1] + (j + 1) / N (p[n] - p[n-1])`` (``"linear"``, the miPhysics-style smoothing
+    of the haptic input); the force sent to the device is the mean of the N sub-step port
+    forces (``"mean"``, a boxcar decimator) or the last one (``"last"``). The closed-loop
+    analysis (:func:`hapsim.analysis.network.closed_loop`) composes these N audio steps into
+    one device-rate map, so ``check`` and the felt (k, b) stay exact for this model.
+
+    Parameters
+    ----------
+    rate_hz : float
+        Audio rate [Hz]: a whole multiple of the scene's ``rate_hz``.
+    listen : tuple of Listen
+        Listening points, one output channel each (non-empty).
+    port_position : {"hold", "linear"}
+        Port position up to the audio rate. With ``"hold"`` and ``"mean"`` a port-ground
+        link renders exactly as at the device rate (so felt targets calibrate as there).
+    port_force : {"mean", "last"}
+        Port force down to the device rate.
+    """
+
+    rate_hz: float
+    listen: tuple[Listen, ...]
+    port_position: str = "hold"
+    port_force: str = "mean"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.listen, list):
+            object.__setattr__(self, "listen", tuple(self.listen))
+
+    @property
+    def period(self) -> float:
+        """Audio sample period Ta = 1 / rate_hz [s]."""
+        return 1.0 / self.rate_hz
+
+
+@dataclass(frozen=True)
 class Scene:
     """A validated scene: read it with :func:`load_scene` or :func:`parse_scene`, or build it.
 
@@ -296,6 +368,8 @@ class Scene:
         Integrator of the virtual masses (:mod:`hapsim.kernels.schemes`).
     safety : Safety
         Limits of ``hapsim run`` (section ``safety:``; defaults when absent).
+    audio : Audio or None
+        The scene's sound (section ``audio:``): multi-rate model, listening points.
 
     Raises
     ------
@@ -324,6 +398,7 @@ class Scene:
     path: str = "<string>"
     integrator: str = "centred"
     safety: Safety = field(default_factory=Safety)
+    audio: Audio | None = None
 
     def __post_init__(self) -> None:
         for name in ("masses", "links"):
@@ -601,6 +676,70 @@ def _check_scene(s: Scene) -> None:
                        "(mass, friction, delay, hold, ...)", ("device",))
     _check_excitation(s.excitation)
     _check_safety(s.safety)
+    if s.audio is not None:
+        _check_audio(s, names)
+
+
+def audio_substeps(audio_rate: float, rate_hz: float) -> int:
+    """Audio sub-steps per device period, ``N = audio_rate / rate_hz``.
+
+    Parameters
+    ----------
+    audio_rate, rate_hz : float
+        Audio and device rates [Hz].
+
+    Returns
+    -------
+    int
+        N >= 1.
+
+    Raises
+    ------
+    ValueError
+        When the ratio is not a whole number >= 1 (to 1e-9 relative).
+    """
+    r = float(audio_rate) / float(rate_hz)
+    n = round(r)
+    if n < 1 or abs(r - n) > 1e-9 * r:
+        raise ValueError(f"the audio rate {audio_rate:g} Hz must be a whole multiple of "
+                         f"rate_hz {rate_hz:g} Hz (ratio {r:g})")
+    return int(n)
+
+
+def _check_audio(s: Scene, names: dict[str, int]) -> None:
+    a = s.audio
+    if not isinstance(a, Audio):
+        raise _Invalid(f"must be a hapsim.scene.Audio, got {_typename(a)}", ("audio",))
+    _number(a.rate_hz, "audio", "rate_hz", positive=True)
+    try:
+        audio_substeps(a.rate_hz, s.rate_hz)
+    except ValueError as exc:
+        raise _Invalid(str(exc), ("audio", "rate_hz")) from None
+    if s.integrator != "centred":
+        raise _Invalid(f"audio runs the centred scheme only; got integrator "
+                       f"{s.integrator!r}", ("integrator",))
+    _choice(a.port_position, PORT_POSITION_MODES, "audio", "port_position")
+    _choice(a.port_force, PORT_FORCE_MODES, "audio", "port_force")
+    if not isinstance(a.listen, tuple) or not a.listen:
+        raise _Invalid("must be a non-empty list of listening points {mass, quantity, gain}",
+                       ("audio", "listen"))
+    for i, ls in enumerate(a.listen):
+        if not isinstance(ls, Listen):
+            raise _Invalid(f"must be a hapsim.scene.Listen, got {_typename(ls)}",
+                           ("audio", "listen", i))
+        _string(ls.mass, "audio", "listen", i, "mass")
+        if ls.mass not in names:
+            raise _Invalid(f"no mass named {ls.mass!r}; masses are: "
+                           + ", ".join(list(names)[:20]), ("audio", "listen", i, "mass"))
+        _choice(ls.quantity, LISTEN_QUANTITIES, "audio", "listen", i, "quantity")
+        _number(ls.gain, "audio", "listen", i, "gain")
+    if a.port_position != "hold" and s.port is not None:
+        for i, lk in enumerate(s.links):
+            if lk.target is not None:
+                raise _Invalid("a felt target is calibrated for the device-rate link; with "
+                               "audio.port_position: linear the port link renders "
+                               "differently: use port_position: hold, or give (K, B)",
+                               ("links", i, "target"))
 
 
 def _check_links(s: Scene, names: dict[str, int]) -> None:
@@ -891,10 +1030,11 @@ def parse_scene(text: str, path: str = "<string>",
     device = _read_device(ctx, doc) if "device" in doc else None
     excitation = _read_excitation(ctx, doc, path) if "excitation" in doc else Excitation()
     safety = _read_safety(ctx, doc) if "safety" in doc else Safety()
+    audio = _read_audio(ctx, doc) if "audio" in doc else None
     try:
         return Scene(rate_hz=_coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
                      device=device, excitation=excitation, path=path,
-                     integrator=doc.get("integrator", "centred"), safety=safety)
+                     integrator=doc.get("integrator", "centred"), safety=safety, audio=audio)
     except ConfigError as exc:
         where = getattr(exc, "_scene_where", None)
         if where is None:
@@ -998,3 +1138,22 @@ def _read_safety(ctx: _Ctx, doc: _LDict) -> Safety:
         passivity_controller=d.get("passivity_controller", False),
         max_damping=_coerce(d.get("max_damping", 50.0)),
     )
+
+
+def _read_audio(ctx: _Ctx, doc: _LDict) -> Audio:
+    d = ctx.mapping(doc["audio"], "audio", ctx.line_of(doc, "audio"))
+    ctx.keys(d, _AUDIO_KEYS, "audio", required=("rate_hz", "listen"))
+    seq = d["listen"]
+    if not isinstance(seq, list) or not seq:
+        raise ctx.error("must be a non-empty list of listening points {mass, quantity, gain}",
+                        ctx.line_of(d, "listen"), "audio.listen")
+    listen = []
+    for i, item in enumerate(seq):
+        key = f"audio.listen[{i}]"
+        it = ctx.mapping(item, key, ctx.line_of(seq, i))
+        ctx.keys(it, _LISTEN_KEYS, key, required=("mass",))
+        listen.append(Listen(it["mass"], it.get("quantity", LISTEN_QUANTITIES[0]),
+                             _coerce(it.get("gain", 1.0))))
+    return Audio(_coerce(d["rate_hz"]), tuple(listen),
+                 d.get("port_position", PORT_POSITION_MODES[0]),
+                 d.get("port_force", PORT_FORCE_MODES[0]))

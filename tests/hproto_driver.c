@@ -106,6 +106,10 @@ static void print_msg(int r, const hp_msg_t *m)
         print_f64(m->u.config.force_limit);
         printf("}\n");
         break;
+    case HP_MSG_LINK:
+        printf("{\"type\": \"LINK\", \"baud\": %lu, \"bits_per_byte\": %u}\n",
+               (unsigned long)m->u.link.baud, m->u.link.bits_per_byte);
+        break;
     case HP_MSG_STATE:
         printf("{\"type\": \"STATE\", \"seq\": %lu, \"time_us\": %llu, \"status\": %u, "
                "\"force_seq\": %lu, \"position\": ",
@@ -204,6 +208,10 @@ static void do_encode(char *s)
         m.u.config.rate_hz = next_f(&s);
         m.u.config.watchdog_us = (uint32_t)next_u(&s);
         m.u.config.force_limit = next_f(&s);
+        break;
+    case HP_MSG_LINK:
+        m.u.link.baud = (uint32_t)next_u(&s);
+        m.u.link.bits_per_byte = (uint8_t)next_u(&s);
         break;
     case HP_MSG_STATE:
         m.u.state.seq = (uint32_t)next_u(&s);

@@ -290,6 +290,15 @@ def test_hapkit_serial_hostile_streams():
     assert max(abs(f) for f in mock.applied) <= 1.0
 
 
+def test_hapkit_serial_config_rate_figure():
+    """configs/hapkit_serial.yaml says 57600 baud allows at most ~300 Hz: 10 + 9 bytes of
+    10 bits each per sample (start, 8 data, stop)."""
+    from pathlib import Path
+    text = (Path(__file__).resolve().parent.parent / "configs" / "hapkit_serial.yaml").read_text()
+    assert "57600 baud (at most ~300 Hz)" in text
+    assert 290 < 57600 / ((10 + 9) * 10) < 310
+
+
 def test_hapkit_serial_closed_loop_through_its_mock():
     """hapsim run --driver hapkit-serial on the sketch mock: positions and forces are
     binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6."""

@@ -208,3 +208,19 @@ def test_check_refuses_a_scene_too_large_before_building_it(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     assert "masses: the closed loop has 2204 states" in err and "at most 2000 states" in err
+
+
+def test_argument_principle_counts_the_unstable_poles():
+    """The O(d) winding count used to classify the stability intervals equals the count of
+    eigenvalues outside the unit circle (seeded random loops, d up to 300)."""
+    from hapsim.analysis.ths import _roots_outside
+    from hapsim.analysis.loop import _roots_w
+    rng = np.random.default_rng(5)
+    for i in range(60):
+        d = int(rng.integers(0, 301))
+        loop = LoopModel(float(10 ** rng.uniform(-2, 0)), float(rng.choice([0.0, 1.0])),
+                         float(10 ** rng.uniform(2.5, 4.5)), d, ("zoh", "ideal")[i % 2])
+        kappa = float(10 ** rng.uniform(-8, 0.5))
+        beta = float(rng.uniform(-0.05, 0.3) * 10 ** rng.uniform(-3, 0))
+        want = int(np.sum(np.abs(1.0 + _roots_w(loop, kappa, beta)) > 1.0))
+        assert _roots_outside(loop, kappa, beta) == want, (d, kappa, beta)

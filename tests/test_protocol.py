@@ -25,7 +25,7 @@ import firmware_protocol as fp
 
 PKG = Path(fp.__file__).resolve().parent
 VECTORS = json.loads((PKG / "vectors" / "vectors.json").read_text())
-CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config,
+CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
            "STATE": fp.State, "FORCE": fp.Force, "PING": fp.Ping, "PONG": fp.Pong,
            "FAULT": fp.Fault, "STOP": fp.Stop}
 
@@ -93,8 +93,8 @@ def test_constants():
     assert fp.PROTOCOL_VERSION == VECTORS["protocol_version"] == 1
     assert fp.MAX_FRAME == VECTORS["max_frame"] == 128
     assert fp.MAX_PACKET == fp.MAX_FRAME - 2
-    ids = [fp.MSG_HELLO, fp.MSG_HELLO_REQUEST, fp.MSG_CONFIG, fp.MSG_STATE, fp.MSG_FORCE,
-           fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP]
+    ids = [fp.MSG_HELLO, fp.MSG_HELLO_REQUEST, fp.MSG_CONFIG, fp.MSG_LINK, fp.MSG_STATE,
+           fp.MSG_FORCE, fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP]
     assert len(set(ids)) == len(ids) and 0 not in ids
     assert sorted(fp.MESSAGE_TYPES) == sorted(ids)
     bits = [fp.STATUS_ARMED, fp.STATUS_WATCHDOG_TRIPPED, fp.STATUS_FORCE_CLAMPED,

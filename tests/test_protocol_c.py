@@ -38,6 +38,7 @@ WIRE = {
                    "force_scale", "force_limit", "native_rate_hz"],
     fp.MSG_HELLO_REQUEST: ["protocol_version"],
     fp.MSG_CONFIG: ["rate_hz", "watchdog_us", "force_limit"],
+    fp.MSG_LINK: ["baud", "bits_per_byte"],
     fp.MSG_STATE: ["seq", "time_us", "status", "force_seq", "position"],
     fp.MSG_FORCE: ["seq", "force"],
     fp.MSG_PING: ["nonce", "host_time_us"],
@@ -45,7 +46,7 @@ WIRE = {
     fp.MSG_FAULT: ["code", "detail"],
     fp.MSG_STOP: [],
 }
-CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config,
+CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
            "STATE": fp.State, "FORCE": fp.Force, "PING": fp.Ping, "PONG": fp.Pong,
            "FAULT": fp.Fault, "STOP": fp.Stop}
 

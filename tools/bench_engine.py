@@ -19,6 +19,18 @@ port touching the middle bead through a contact, as ``configs/string.yaml``) it 
 * time to the first sample in a fresh interpreter (import, scene, ``Engine``, one step),
   with an empty numba cache (cold) and again with the cache it left (warm).
 
+With ``--audio`` it measures the sound side instead (issue 15):
+
+* the largest string that runs at 48 kHz within the audio deadline on one core: thread CPU
+  time per 256-frame block of the live-sound kernel (:func:`hapsim.kernels.audio.run_frames`,
+  what the JACK process callback calls; one device period = 48 sub-steps, one listened
+  bead) for growing N, bisected to the largest N whose block takes at most 256/48000 s;
+  beside it Faust ``mi.lib``'s largest, from its ns per mass-sample at the largest string it
+  builds (300 beads; linear in N: extrapolated, and said so);
+* 60 s of the shipped ``configs/audio_string.yaml`` played live (``hapsim play``: the mock
+  hand plucking every second at 1 kHz, the sound in the JACK callback) on a private
+  ``jackd -d dummy -r 48000 -p 256``, with its xruns and ring underruns.
+
 The machine may be shared: every figure is a median of repeats, the steady-state figures
 are thread CPU time (``time.thread_time`` / ``CLOCK_THREAD_CPUTIME_ID``, so time spent
 descheduled is not counted; cache and SMT contention still are), and the ratios compare
@@ -265,6 +277,164 @@ def first_sample(cache_dir: str) -> tuple[float, float]:
     return float(out[0]), float(out[1])
 
 
+AUDIO_RATE = 48000.0
+BLOCK = 256
+
+
+def audio_block_s(n: int, repeats: int, blocks: int = 200) -> float:
+    """Median thread CPU time of one 256-frame block of the live-sound kernel [s].
+
+    Parameters
+    ----------
+    n : int
+        Beads of the benchmark string (:func:`string_args`, integrated at 48 kHz).
+    repeats : int
+        Timed runs of ``blocks`` blocks; the median is returned.
+    blocks : int
+        Blocks per timed run.
+    """
+    from hapsim.kernels.audio import LIVE_STATE, run_frames
+
+    args = list(string_args(n))
+    Ta = 1.0 / AUDIO_RATE
+    args[4] = np.full(n, Ta * Ta / BEAD)
+    args[9] = np.full(n + 1, B / Ta)
+    ring = np.zeros(4096)
+    wr = np.zeros(1, dtype=np.int64)
+    st = np.zeros(len(LIVE_STATE))
+    st[LIVE_STATE["gain"]] = st[LIVE_STATE["gain_target"]] = 1.0
+    fring = np.zeros(4096)
+    l_idx = np.array([(n + 1) // 2], dtype=np.int64)
+    l_code = np.array([1], dtype=np.int64)
+    l_gain = np.array([1.0])
+    out = np.zeros((BLOCK, 1), dtype=np.float32)
+    nsub = int(AUDIO_RATE / RATE)
+
+    def block():
+        run_frames(BLOCK, nsub, False, False, n + 2, ring, wr, st, fring, *args,
+                   l_idx, l_code, l_gain, AUDIO_RATE, out)
+
+    block()
+    times = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        for _ in range(blocks):
+            block()
+        times.append((time.thread_time() - t0) / blocks)
+    return statistics.median(times)
+
+
+def largest_realtime(repeats: int) -> tuple[int, list]:
+    """Largest N whose block fits the deadline (doubling, then bisection)."""
+    deadline = BLOCK / AUDIO_RATE
+    rows = []
+    n, lo, hi = 100, 0, None
+    while hi is None:
+        t = audio_block_s(n, repeats)
+        rows.append((n, t))
+        if t <= deadline:
+            lo, n = n, n * 2
+        else:
+            hi = n
+        if n > 4_000_000:
+            hi = n
+    while hi - lo > max(16, lo // 50):
+        mid = (lo + hi) // 2
+        t = audio_block_s(mid, repeats)
+        rows.append((mid, t))
+        lo, hi = (mid, hi) if t <= deadline else (lo, mid)
+    return lo, sorted(rows)
+
+
+def _empty_client_xruns(server: str, secs: float) -> int:
+    """xruns a JACK client whose process callback only zeroes its output sees in ``secs``
+    [s]: the machine's own share (scheduling, load), measured beside hapsim's."""
+    import jack
+
+    c = jack.Client("baseline", no_start_server=True, servername=server)
+    port = c.outports.register("out")
+    count = [0]
+    c.set_process_callback(lambda frames: port.get_array().fill(0.0))
+    c.set_xrun_callback(lambda usecs: count.__setitem__(0, count[0] + 1))
+    c.activate()
+    time.sleep(secs)
+    c.deactivate()
+    c.close()
+    return count[0]
+
+
+def audio_main(a) -> int:
+    """``--audio``: the largest real-time string at 48 kHz (hapsim beside Faust) and 60 s of
+    the shipped string scene live on a dummy JACK server."""
+    import uuid
+
+    repeats = 3 if a.quick else 5
+    deadline = BLOCK / AUDIO_RATE
+    print("command:", " ".join([Path(sys.executable).name, "tools/bench_engine.py"]
+                               + (a.argv or [])))
+    print(f"host: {os.cpu_count()} cpus, load {os.getloadavg()[0]:.2f} (shared machine: the "
+          f"figures are thread CPU time, medians of {repeats})")
+    nmax, rows = largest_realtime(repeats)
+    print(f"\nlive-sound kernel (run_frames), {BLOCK}-frame blocks at {AUDIO_RATE:g} Hz, "
+          f"deadline {deadline * 1e3:.3f} ms per block:")
+    for n, t in rows:
+        print(f"  {n:>8} beads: {t * 1e3:8.3f} ms per block ({t / deadline:6.1%} of the "
+              f"deadline, {t / BLOCK / n * 1e9:.3f} ns per mass-sample)")
+    out = {"hapsim_largest_beads": nmax, "rows": rows}
+    have_faust = shutil.which("faust") is not None and shutil.which("g++") is not None
+    if have_faust:
+        with tempfile.TemporaryDirectory(prefix="bench_audio_") as tmp:
+            ns, bs, note = faust_ns(FAUST_MAX, 1e7, repeats, tmp)
+        if ns:
+            fmax = int(deadline / BLOCK / (ns * 1e-9))
+            hns = audio_block_s(FAUST_MAX, repeats) / BLOCK / FAUST_MAX * 1e9
+            print(f"Faust mi.lib -O3 at {FAUST_MAX} beads: {ns:.3f} ns per mass-sample "
+                  f"(hapsim {hns:.3f} next to it) -> largest real-time string ~{fmax} beads "
+                  f"(extrapolated linearly: Faust does not build strings > {FAUST_MAX} beads)")
+            out.update(faust_ns=ns, faust_largest_beads_extrapolated=fmax, hapsim_ns_300=hns)
+        else:
+            print(f"Faust: {note}")
+    else:
+        print("Faust: faust/g++ not installed")
+    print(f"\nlargest string within the 48 kHz deadline on one core: hapsim {nmax} beads"
+          + (f", Faust mi.lib ~{out['faust_largest_beads_extrapolated']} (extrapolated)"
+             if "faust_largest_beads_extrapolated" in out else ""))
+    if shutil.which("jackd") is None:
+        print("60 s live run: jackd not installed")
+    else:
+        name = f"bench-{uuid.uuid4().hex[:8]}"
+        jack = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", "48000", "-p",
+                                 str(BLOCK)], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        try:
+            time.sleep(2.0)
+            secs = 10.0 if a.quick else 60.0
+            base = _empty_client_xruns(name, secs)
+            print(f"baseline, same server, same load: an empty Python process callback for "
+                  f"{secs:g} s: {base} xruns")
+            out["baseline_xruns"] = base
+            res = subprocess.run([sys.executable, "-m", "hapsim", "play",
+                                  str(REPO / "configs" / "audio_string.yaml"), "--sound",
+                                  "jack", "--jack-server", name, "--duration", str(secs),
+                                  "--pluck-every", "1", "--json"], cwd=REPO,
+                                 capture_output=True, text=True)
+            if res.returncode != 0:
+                print(f"live run failed: {res.stderr.strip()[-300:]}")
+            else:
+                rep = json.loads(res.stdout)
+                snd = rep["sound"]
+                print(f"{secs:g} s of configs/audio_string.yaml live on jackd dummy 48 kHz/"
+                      f"{BLOCK}: {snd['xruns']} xruns, {snd['underruns']} ring underruns of "
+                      f"{snd['periods']} device periods, haptic loop late {rep['late']} times")
+                out["live"] = {"seconds": secs, **snd, "late": rep["late"]}
+        finally:
+            jack.terminate()
+            jack.wait()
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=2))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print the table (and write JSON when asked).
 
@@ -282,7 +452,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="fewer repeats, smaller budgets, Faust at 100 beads only, no 10^6")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    ap.add_argument("--audio", action="store_true",
+                    help="the sound side instead: largest 48 kHz real-time string beside "
+                         "Faust's, and 60 s live on a dummy JACK server")
     a = ap.parse_args(argv)
+    a.argv = argv if argv is not None else sys.argv[1:]
+    if a.audio:
+        return audio_main(a)
     repeats = 3 if a.quick else 7
     budget = 1e7 if a.quick else 4e7           # mass-samples per repeat
     sizes = [10, 100, 300, 1000, 10_000, 100_000]

@@ -6,8 +6,10 @@
 
 #include <string.h>
 
-/* The wire carries IEEE-754 binary64; refuse to build where double is narrower (AVR). */
+/* The wire carries IEEE-754 binary64: as `double` where it is 64-bit, else as bit patterns. */
+#ifndef HP_F64_AS_BITS
 typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
+#endif
 
 #define HP_STATE_FIXED 19u /* type + seq + time_us + status + force_seq */
 #define HP_FORCE_FIXED 5u  /* type + seq */
@@ -16,17 +18,16 @@ typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
 
 uint16_t hp_crc16(uint16_t crc, const uint8_t *data, size_t len)
 {
+    /* Byte-wise form of the bit loop (poly 0x1021 = x^16 + x^12 + x^5 + 1): with
+     * x = (crc >> 8) ^ byte, x ^= x >> 4, the new register is
+     * (crc << 8) ^ (x << 12) ^ (x << 5) ^ x. No table, a few byte operations on an 8-bit
+     * MCU instead of eight conditional shifts. */
     size_t i;
-    int bit;
     for (i = 0; i < len; i++) {
-        crc = (uint16_t)(crc ^ ((uint16_t)data[i] << 8));
-        for (bit = 0; bit < 8; bit++) {
-            if (crc & 0x8000u) {
-                crc = (uint16_t)((crc << 1) ^ 0x1021u);
-            } else {
-                crc = (uint16_t)(crc << 1);
-            }
-        }
+        uint8_t x = (uint8_t)((uint8_t)(crc >> 8) ^ data[i]);
+        x ^= (uint8_t)(x >> 4);
+        crc = (uint16_t)((uint16_t)(crc << 8) ^ (uint16_t)((uint16_t)x << 12) ^
+                         (uint16_t)((uint16_t)x << 5) ^ (uint16_t)x);
     }
     return crc;
 }
@@ -95,27 +96,31 @@ static uint8_t *put_u16(uint8_t *p, uint16_t v)
 
 static uint8_t *put_u32(uint8_t *p, uint32_t v)
 {
-    int i;
-    for (i = 0; i < 4; i++) {
-        p[i] = (uint8_t)(v >> (8 * i));
-    }
+    /* constant shifts: byte moves on an 8-bit MCU (a variable shift is a bit loop) */
+    p[0] = (uint8_t)v;
+    p[1] = (uint8_t)(v >> 8);
+    p[2] = (uint8_t)(v >> 16);
+    p[3] = (uint8_t)(v >> 24);
     return p + 4;
 }
 
 static uint8_t *put_u64(uint8_t *p, uint64_t v)
 {
-    int i;
-    for (i = 0; i < 8; i++) {
-        p[i] = (uint8_t)(v >> (8 * i));
-    }
-    return p + 8;
+    /* two 32-bit halves: 64-bit shifts by a variable count are library calls on AVR */
+    put_u32(p, (uint32_t)v);
+    return put_u32(p + 4, (uint32_t)(v >> 32));
 }
 
-static uint8_t *put_f64(uint8_t *p, double v)
+static uint8_t *put_f64(uint8_t *p, hp_f64_t v)
 {
+#ifdef HP_F64_AS_BITS
+    put_u32(p, v.lo);
+    return put_u32(p + 4, v.hi);
+#else
     uint64_t bits;
     memcpy(&bits, &v, sizeof bits);
     return put_u64(p, bits);
+#endif
 }
 
 static uint16_t get_u16(const uint8_t *p)
@@ -134,12 +139,19 @@ static uint64_t get_u64(const uint8_t *p)
     return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);
 }
 
-static double get_f64(const uint8_t *p)
+static hp_f64_t get_f64(const uint8_t *p)
 {
+#ifdef HP_F64_AS_BITS
+    hp_b64_t v;
+    v.lo = get_u32(p);
+    v.hi = get_u32(p + 4);
+    return v;
+#else
     uint64_t bits = get_u64(p);
     double v;
     memcpy(&v, &bits, sizeof v);
     return v;
+#endif
 }
 
 /* ------------------------------------------------------------------ encoder */
@@ -191,6 +203,10 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
         for (i = 0; i < m->u.force.n_axes; i++) {
             p = put_f64(p, m->u.force.force[i]);
         }
+        break;
+    case HP_MSG_LINK:
+        p = put_u32(p, m->u.link.baud);
+        *p++ = m->u.link.bits_per_byte;
         break;
     case HP_MSG_PING:
         p = put_u32(p, m->u.ping.nonce);
@@ -285,6 +301,13 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
         m->u.config.rate_hz = get_f64(p);
         m->u.config.watchdog_us = get_u32(p + 8);
         m->u.config.force_limit = get_f64(p + 12);
+        return HP_OK;
+    case HP_MSG_LINK:
+        if (n != 6) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.link.baud = get_u32(p);
+        m->u.link.bits_per_byte = p[4];
         return HP_OK;
     case HP_MSG_STATE:
         if (n < HP_STATE_FIXED + 8u || n > HP_STATE_FIXED + 8u * HP_MAX_AXES ||
@@ -406,6 +429,7 @@ int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg)
 
 /* ------------------------------------------------------------------ device-side duties */
 
+#ifndef HP_F64_AS_BITS
 uint16_t hp_limit_force(double *force, uint8_t n, double limit)
 {
     uint16_t status = 0;
@@ -431,7 +455,98 @@ uint16_t hp_limit_force(double *force, uint8_t n, double limit)
     return status;
 }
 
+#endif
+
 int hp_watchdog_expired(uint64_t last_force_us, uint64_t now_us, uint32_t timeout_us)
 {
     return (uint64_t)(now_us - last_force_us) > (uint64_t)timeout_us;
+}
+
+/* ------------------------------------------------------------------ binary32 <-> binary64 */
+
+/* The shifts below are split at byte boundaries (x << 20 as (x << 4) << 16, ...): an 8-bit
+ * MCU moves whole bytes for free and shifts bit by bit, so this is a few dozen cycles
+ * instead of hundreds. */
+hp_b64_t hp_b64_from_f32_bits(uint32_t f)
+{
+    hp_b64_t r;
+    uint32_t sign = f & 0x80000000u;
+    uint16_t e = (uint16_t)((uint16_t)(f >> 16) >> 7) & 0xFFu;
+    uint32_t m = f & 0x7FFFFFu;
+    uint16_t e64;
+    if (e == 0xFFu) {
+        e64 = 0x7FFu; /* inf or NaN: the payload stays in the top mantissa bits */
+    } else if (e == 0) {
+        if (m == 0) {
+            r.hi = sign; /* +-0 */
+            r.lo = 0;
+            return r;
+        }
+        /* subnormal m * 2^-149: normalise (every binary32 subnormal is binary64-normal) */
+        e64 = 1u - 127u + 1023u;
+        while ((m & 0x800000u) == 0) {
+            m <<= 1;
+            e64--;
+        }
+        m &= 0x7FFFFFu;
+    } else {
+        e64 = (uint16_t)(e - 127u + 1023u);
+    }
+    /* binary64 mantissa = m << 29: its top 20 bits in hi, the low 3 bits of m in lo */
+    r.hi = sign | ((uint32_t)(uint16_t)(e64 << 4) << 16) | (m >> 3);
+    r.lo = (uint32_t)(uint8_t)((uint8_t)m << 5) << 24;
+    return r;
+}
+
+uint32_t hp_f32_bits_from_b64(hp_b64_t d)
+{
+    uint32_t sign = d.hi & 0x80000000u;
+    int16_t e = (int16_t)(((uint16_t)(d.hi >> 16) >> 4) & 0x7FFu);
+    uint32_t mhi = d.hi & 0xFFFFFu; /* mantissa bits 32..51 */
+    int16_t E;
+    if (e == 0x7FF) {
+        if (mhi == 0 && d.lo == 0) {
+            return sign | 0x7F800000u; /* +-inf */
+        }
+        return sign | 0x7FC00000u | (mhi << 3) | (d.lo >> 29); /* quiet NaN */
+    }
+    if (e == 0) {
+        return sign; /* binary64 subnormal: far below half the least binary32 subnormal */
+    }
+    E = (int16_t)(e - 1023);
+    if (E > 127) {
+        return sign | 0x7F800000u; /* overflow: +-inf */
+    }
+    if (E >= -126) {
+        /* normal: exponent field and top 23 mantissa bits in one word, so a rounding carry
+         * moves into the exponent (and from the largest finite value to inf) by itself */
+        uint8_t top = (uint8_t)(d.lo >> 24);
+        uint32_t q = ((uint32_t)(uint16_t)((uint16_t)(E + 127) << 7) << 16) | (mhi << 3) |
+                     (uint8_t)(top >> 5);
+        /* the 29 bits dropped, against half of the last bit kept (2^28) */
+        uint8_t r5 = top & 0x1Fu;
+        uint8_t above = r5 > 0x10u || (r5 == 0x10u && (d.lo & 0xFFFFFFu) != 0);
+        uint8_t tie = r5 == 0x10u && (d.lo & 0xFFFFFFu) == 0;
+        if (above || (tie && (q & 1u))) {
+            q++;
+        }
+        return sign | q;
+    }
+    /* subnormal (or zero) in binary32: units of 2^-149, value = (2^52 + m) * 2^(E - 52),
+     * so the result is (2^52 + m) >> (-E - 97), rounded to nearest, ties to even */
+    {
+        uint32_t sh = (uint32_t)(-(int32_t)E - 97); /* 30 for E = -127 */
+        uint64_t sig = ((uint64_t)(mhi | 0x100000u) << 32) | d.lo;
+        uint64_t q, rem, half;
+        if (sh > 54u) {
+            return sign; /* below a quarter of the least subnormal: +-0 */
+        }
+        q = sig >> sh;
+        rem = sig & (((uint64_t)1 << sh) - 1u);
+        half = (uint64_t)1 << (sh - 1u);
+        if (rem > half || (rem == half && (q & 1u))) {
+            q++;
+        }
+        return sign | (uint32_t)q;
+    }
 }

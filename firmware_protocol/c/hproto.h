@@ -7,7 +7,12 @@
  * also defines size_t, C99 7.21.1).
  * Frame on the wire: COBS(type:u8 | body | crc16:u16 MSB first) followed by one 0x00.
  * Bodies are little-endian with no padding; positions and forces are IEEE-754 binary64.
- * Requires a 64-bit `double` (checked at compile time; AVR-GCC's 32-bit double is refused).
+ *
+ * Where the compiler's `double` is 64-bit, f64 fields are `double` (hp_f64_t). Where it is
+ * narrower (AVR-GCC: 32-bit double), or when HP_F64_AS_BITS is defined, f64 fields are
+ * carried as their binary64 bit patterns (hp_f64_t = hp_b64_t), and the firmware converts
+ * them exactly with hp_b64_from_f32_bits / hp_f32_bits_from_b64 (integer code, IEEE-754
+ * round to nearest, ties to even). hp_limit_force needs a 64-bit double.
  */
 #ifndef HPROTO_H
 #define HPROTO_H
@@ -24,10 +29,26 @@ extern "C" {
 #define HP_MAX_PACKET 126u /* type + body + CRC, before COBS */
 #define HP_MAX_AXES 8u
 
+#if !defined(HP_F64_AS_BITS) && defined(__SIZEOF_DOUBLE__) && __SIZEOF_DOUBLE__ != 8
+#define HP_F64_AS_BITS 1
+#endif
+/* An IEEE-754 binary64 bit pattern as two 32-bit halves (an 8-bit MCU handles 32-bit words
+ * inline but calls a library routine for every 64-bit shift). */
+typedef struct {
+    uint32_t lo; /* mantissa bits 0..31 */
+    uint32_t hi; /* sign, exponent, mantissa bits 32..51 */
+} hp_b64_t;
+#ifdef HP_F64_AS_BITS
+typedef hp_b64_t hp_f64_t;
+#else
+typedef double hp_f64_t;
+#endif
+
 /* Message type ids. */
 #define HP_MSG_HELLO 0x01u
 #define HP_MSG_HELLO_REQUEST 0x02u
 #define HP_MSG_CONFIG 0x03u
+#define HP_MSG_LINK 0x04u /* added within version 1 (PROTOCOL.md section 9) */
 #define HP_MSG_STATE 0x10u
 #define HP_MSG_FORCE 0x11u
 #define HP_MSG_PING 0x20u
@@ -71,10 +92,10 @@ typedef struct {
     uint8_t protocol_version;
     uint8_t n_axes;          /* 1..8 */
     uint32_t device_id;
-    double position_scale;   /* [m/count] */
-    double force_scale;      /* [N/unit] */
-    double force_limit;      /* [N] */
-    double native_rate_hz;   /* [Hz] */
+    hp_f64_t position_scale;   /* [m/count] */
+    hp_f64_t force_scale;      /* [N/unit] */
+    hp_f64_t force_limit;      /* [N] */
+    hp_f64_t native_rate_hz;   /* [Hz] */
 } hp_hello_t;
 
 typedef struct {
@@ -82,9 +103,9 @@ typedef struct {
 } hp_hello_request_t;
 
 typedef struct {
-    double rate_hz;          /* [Hz] */
+    hp_f64_t rate_hz;          /* [Hz] */
     uint32_t watchdog_us;    /* [us] */
-    double force_limit;      /* [N] */
+    hp_f64_t force_limit;      /* [N] */
 } hp_config_t;
 
 typedef struct {
@@ -93,19 +114,26 @@ typedef struct {
     uint16_t status;         /* HP_STATUS_* bits */
     uint32_t force_seq;
     uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
-    double position[HP_MAX_AXES]; /* [m] */
+    hp_f64_t position[HP_MAX_AXES]; /* [m] */
 } hp_state_t;
 
 typedef struct {
     uint32_t seq;
     uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
-    double force[HP_MAX_AXES]; /* [N] */
+    hp_f64_t force[HP_MAX_AXES]; /* [N] */
 } hp_force_t;
 
 typedef struct {
     uint32_t nonce;
     uint64_t host_time_us;   /* [us] */
 } hp_ping_t;
+
+/* LINK: the device's serial line, sent with HELLO so the host can check that STATE and
+ * FORCE frames fit one tick at the rate it asks (PROTOCOL.md section 4). */
+typedef struct {
+    uint32_t baud;           /* [bit/s] */
+    uint8_t bits_per_byte;   /* start + data + parity + stop bits, e.g. 10 for 8N1 */
+} hp_link_t;
 
 typedef struct {
     uint32_t nonce;
@@ -125,6 +153,7 @@ typedef struct {
         hp_hello_t hello;
         hp_hello_request_t hello_request;
         hp_config_t config;
+        hp_link_t link;
         hp_state_t state;
         hp_force_t force;
         hp_ping_t ping;
@@ -186,7 +215,18 @@ int hp_decoder_feed(hp_decoder_t *dec, uint8_t byte, hp_msg_t *msg);
  * to [-limit, +limit] [N] and HP_STATUS_FORCE_CLAMPED is returned if any was; 0 if none.
  * `limit` is min(CONFIG.force_limit, HELLO.force_limit) >= 0. Needs IEEE semantics
  * (do not build with -ffast-math). */
+#ifndef HP_F64_AS_BITS
 uint16_t hp_limit_force(double *force, uint8_t n, double limit);
+#endif
+
+/* Exact widening of an IEEE-754 binary32 bit pattern to binary64 (every float32 value,
+ * subnormals, infinities and NaN payloads included, is representable). */
+hp_b64_t hp_b64_from_f32_bits(uint32_t f);
+
+/* Narrowing of an IEEE-754 binary64 bit pattern to binary32, rounded to nearest with ties
+ * to even as IEEE-754 requires (overflow gives +-inf, underflow subnormals or +-0; a NaN
+ * stays a quiet NaN with its sign and the top of its payload). */
+uint32_t hp_f32_bits_from_b64(hp_b64_t d);
 
 /* 1 when the watchdog has expired: more than `timeout_us` [us] elapsed between the last
  * valid FORCE (`last_force_us`) and `now_us`, on a free-running microsecond clock

@@ -33,6 +33,7 @@ LAYOUT = {
                      ("native_rate_hz", "d")]),
     "HELLO_REQUEST": (0x02, [("protocol_version", "B")]),
     "CONFIG": (0x03, [("rate_hz", "d"), ("watchdog_us", "I"), ("force_limit", "d")]),
+    "LINK": (0x04, [("baud", "I"), ("bits_per_byte", "B")]),
     "STATE": (0x10, [("seq", "I"), ("time_us", "Q"), ("status", "H"), ("force_seq", "I"),
                      ("position", "d*")]),
     "FORCE": (0x11, [("seq", "I"), ("force", "d*")]),
@@ -170,6 +171,8 @@ GOOD = [
     # it, not "none yet"
     ("state_force_applied_seq0", "STATE", dict(seq=1, time_us=1000, status=0x00C1,
                                                force_seq=0, position=[0.01])),
+    # LINK (0x04, added within version 1): a 1 Mbaud 8N1 UART
+    ("link", "LINK", dict(baud=1000000, bits_per_byte=10)),
 ]
 
 

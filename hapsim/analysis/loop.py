@@ -13,6 +13,14 @@ computation is done on dimensionless polynomials in ``w = z - 1`` (the delta ope
 ``kappa P~ + beta Q~ + R~ = 0`` with ``P~ = z N~``, ``Q~ = (z - 1) N~``, ``R~ = z^(d+1) D``,
 all with O(1) coefficients. ``1 - e^(-b0 T/m)`` and the hold coefficients are computed
 with ``expm1`` or series, so 20 kHz loops keep ~1e-12 relative precision.
+
+Long delays. ``R~ = (1 + w)^(d+1) D`` is never expanded: its coefficients in ``w`` are
+binomials (1e14 at ``d = 50``) and the expanded polynomial lost every digit from
+``d ~ 34``. The poles are the eigenvalues of the companion matrix *in z* (``z^(d+1) D(z)``
+is three O(1) coefficients and ``d + 1`` zeros: the plant and the delay line as one state
+matrix), Newton-polished in ``w`` on the unexpanded function (:func:`char_eval`);
+unit-circle scans evaluate ``z^(d+1)`` as a power. Delays above :data:`MAX_DELAY` are
+refused (cost).
 """
 
 from __future__ import annotations
@@ -575,8 +583,14 @@ def closed_loop_poles(loop: LoopModel, K: float, B: float = 0.0) -> np.ndarray:
     Returns
     -------
     ndarray of complex, shape (d + 3,) for ``"zoh"``, (d + 2,) for ``"ideal"``
-        Roots of ``P K + Q B + R`` (see :func:`characteristic`), computed in ``w = z - 1``
-        and Newton-polished; conjugate pairs are exact.
+        Roots of ``P K + Q B + R`` (see :func:`characteristic`): eigenvalues of its
+        companion matrix in ``z``, Newton-polished in ``w = z - 1`` on the unexpanded
+        characteristic function (module docstring); conjugate pairs are exact.
+
+    Raises
+    ------
+    ConfigError
+        When ``|K| T^2/m`` or ``|B| T/m`` exceeds :data:`MAX_PRODUCT`.
     """
     kappa, beta = _scaled(loop, K, B)
     return 1.0 + _roots_w(loop, kappa, beta)

@@ -49,6 +49,13 @@ Integrators (one-step maps of the virtual network; derivations and stability lim
     ``Phi = expm(A_c T)`` of the continuous network (port and grounds held over the period,
     Van Loan 1978).
 
+Multi-rate (a scene with ``audio``, :class:`hapsim.scene.Audio`): the virtual network is
+integrated at the audio period ``Ta = T / N``; one device period is the product of its N
+audio steps with the port position brought up to the audio rate (held or linearly
+interpolated between ``p[n-1]`` and ``p[n]``) and the port force brought down (mean or last
+of the N sub-step forces), :func:`multirate_blocks`. The result has the shape of the
+single-rate blocks, so the device side of the loop and the state names are unchanged.
+
 Linearisation: contacts are taken *engaged* (they act as spring_dampers), the stiffest
 case the scene can reach; links given as a felt ``target`` need their calibrated (K, B).
 """
@@ -65,8 +72,8 @@ from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
-           "virtual_blocks", "virtual_state_names", "closed_loop", "port_io",
-           "rest_position", "MAX_STATES", "state_count", "check_size"]
+           "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
+           "port_io", "rest_position", "MAX_STATES", "state_count", "check_size"]
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -315,6 +322,71 @@ def virtual_blocks(net: Network, integrator: str, T: float):
     return Av, np.asarray(bp, float), np.asarray(bpp, float), np.asarray(cx, float), cp, cpp
 
 
+def multirate_blocks(blocks, nsub: int, position: str = "hold", force: str = "mean"):
+    """Compose N audio-rate steps of the virtual network into one device-rate step.
+
+    Parameters
+    ----------
+    blocks : tuple
+        ``(Av, bp, bpp, cx, cp, cpp)`` of :func:`virtual_blocks` at the audio period
+        ``Ta = T / N``: ``X[j+1] = Av X[j] + bp q[j] + bpp q[j-1]``, sub-step port force
+        ``f[j] = cx X[j] + cp q[j] + cpp q[j-1]``.
+    nsub : int
+        N >= 1, audio sub-steps per device period.
+    position : {"hold", "linear"}
+        Port position at sub-step ``j = 0 .. N-1`` of period n: ``q[j] = p[n]`` or
+        ``q[j] = p[n-1] + (j + 1) / N (p[n] - p[n-1])``; ``q[-1] = p[n-1]`` in both (the
+        last sub-step of the period before).
+    force : {"mean", "last"}
+        Force to the device: ``F[n] = (1/N) sum_j f[j]`` or ``f[N-1]``.
+
+    Returns
+    -------
+    tuple
+        ``(Ad, bpd, bppd, cxd, cpd, cppd)``, the same shapes as ``blocks``:
+        ``X[n+1] = Ad X[n] + bpd p[n] + bppd p[n-1]``, ``F[n] = cxd X[n] + cpd p[n] +
+        cppd p[n-1]`` at the device period (``X[n]`` the state at the start of period n).
+
+    Raises
+    ------
+    ValueError
+        ``nsub`` < 1 or an unknown mode.
+
+    Notes
+    -----
+    Exact composition of the linear sub-step maps (state and the two port inputs carried as
+    ``X[j] = M[j] X + u[j] p[n] + w[j] p[n-1]``); it is what
+    :func:`hapsim.kernels.audio.run_periods` computes, so the closed loop's eigenvalues are
+    those of the multi-rate engine coupled to the device.
+    """
+    Av, bp, bpp, cx, cp, cpp = blocks
+    if nsub < 1 or position not in ("hold", "linear") or force not in ("mean", "last"):
+        raise ValueError(f"bad multi-rate coupling: nsub={nsub}, position={position!r}, "
+                         f"force={force!r}")
+    n = Av.shape[0]
+    M = np.eye(n)
+    u = np.zeros(n)
+    w = np.zeros(n)
+    fx = np.zeros(n)
+    fu = fw = 0.0
+    a_prev, b_prev = 0.0, 1.0           # q[-1] = p[n-1]
+    for j in range(nsub):
+        a = 1.0 if position == "hold" else (j + 1) / nsub
+        b = 1.0 - a
+        gx = cx @ M
+        gu = cx @ u + cp * a + cpp * a_prev
+        gw = cx @ w + cp * b + cpp * b_prev
+        if force == "mean":
+            fx, fu, fw = fx + gx / nsub, fu + gu / nsub, fw + gw / nsub
+        else:
+            fx, fu, fw = gx, gu, gw
+        M = Av @ M
+        u = Av @ u + bp * a + bpp * a_prev
+        w = Av @ w + bp * b + bpp * b_prev
+        a_prev, b_prev = a, b
+    return M, u, w, fx, float(fu), float(fw)
+
+
 def virtual_state_names(net: Network, integrator: str) -> list[str]:
     """Names of the states of :func:`virtual_blocks`, in order.
 
@@ -373,7 +445,16 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     net = network(scene, calibrated, gain=gain)
     _check_products(scene, calibrated, gain)
     T = scene.period
-    Av, bp, bpp, cx, cp, cpp = virtual_blocks(net, integrator, T)
+    audio = getattr(scene, "audio", None)
+    if audio is None:
+        Av, bp, bpp, cx, cp, cpp = virtual_blocks(net, integrator, T)
+    else:
+        from hapsim.scene import audio_substeps
+
+        nsub = audio_substeps(audio.rate_hz, scene.rate_hz)
+        Av, bp, bpp, cx, cp, cpp = multirate_blocks(
+            virtual_blocks(net, integrator, T / nsub), nsub, audio.port_position,
+            audio.port_force)
     vnames = virtual_state_names(net, integrator)
     if net.port < 0:
         return Av, vnames

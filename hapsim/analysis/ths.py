@@ -1,7 +1,9 @@
 """Rendered (k, b), calibration (k, b) -> (K, B) and the exact stability boundary.
 
 Florens, Voda & Urma, Secs. 5-6; DESIGN.md Sec. 4. All computations use the dimensionless
-polynomials of :mod:`hapsim.analysis.loop` in ``w = z - 1``.
+pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never expanded (the delay factor
+``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a quadratic by binary powering,
+or found through the companion matrix in ``z``): the same precision at every delay.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from hapsim.analysis.loop import STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled
+from hapsim.analysis.loop import (STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled,
+                                  char_eval)
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
@@ -400,7 +403,48 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
 
 # --------------------------------------------------------------------------- stability
 
+def _roots_outside(loop: LoopModel, kappa: float, beta: float) -> int | None:
+    """Number of closed-loop poles outside the unit circle by the argument principle.
+
+    The winding of ``f(e^{i theta})`` (:func:`hapsim.analysis.loop.char_eval`, unexpanded)
+    round the circle counts the poles inside; ``f`` has real coefficients, so half a turn
+    (``theta`` in ``[0, pi]``) gives half the count. O(d) evaluations (64 points per turn of
+    ``z^e`` plus a geometric grid down to 1e-9 for the poles near ``z = 1``; every step that
+    turns by more than pi/4 is bisected, up to 40 times), against O(d^3) for the
+    eigenvalues. Returns None when it cannot be trusted (a pole on or within ~1e-12 of the
+    circle: the caller then takes the eigenvalues).
+    """
+    _, _, _, e = _char_parts(loop)
+    n = max(2048, 64 * (e + 1))
+    th = np.unique(np.concatenate([[0.0], np.geomspace(1e-9, math.pi, n // 2),
+                                   np.linspace(0.0, math.pi, n + 1)]))
+
+    def ev(t):
+        return char_eval(loop, kappa, beta, -2.0 * np.sin(0.5 * t) ** 2 + 1j * np.sin(t))
+
+    f = ev(th)
+    for _ in range(40):
+        if not np.all(np.isfinite(f)) or np.any(f == 0):
+            return None
+        step = np.angle(f[1:] / f[:-1])
+        big = np.flatnonzero(np.abs(step) > 0.25 * math.pi)
+        if big.size == 0:
+            inside = float(np.sum(step)) / math.pi
+            k = round(inside)
+            return None if abs(inside - k) > 1e-6 else e + 2 - k
+        mid = 0.5 * (th[big] + th[big + 1])
+        if np.any(mid - th[big] < 1e-13):
+            return None
+        th = np.insert(th, big + 1, mid)
+        f = np.insert(f, big + 1, ev(mid))
+    return None
+
+
 def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
+    """Every pole strictly inside the unit circle (argument principle, else eigenvalues)."""
+    out = _roots_outside(loop, kappa, beta)
+    if out is not None:
+        return out == 0
     return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
 
 

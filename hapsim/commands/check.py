@@ -131,6 +131,11 @@ def run(args: argparse.Namespace) -> int:
           f"{plural(sum(m.kind == 'mass' for m in scene.masses), 'virtual mass', 'virtual masses')}, "
           f"{plural(len(scene.links), 'link')} (contacts taken as engaged), integrator "
           f"{chk.integrator}")
+    if scene.audio is not None:
+        a = scene.audio
+        print(f"multi-rate: masses at {a.rate_hz:g} Hz ({round(a.rate_hz / scene.rate_hz)} "
+              f"sub-steps per device sample), port position {a.port_position}, port force "
+              f"{a.port_force}; the matrix is their product over one device period")
     if chk.has_port:
         dv = scene.device
         print(f"device: m = {dv.mass:g} kg, b0 = {dv.friction:g} N s/m, delay d = {dv.delay}, "

@@ -58,7 +58,17 @@ def register(sub) -> None:
             "  vanish closes the pty and opens a new one: give --link PATH (a symbolic link\n"
             "  kept pointing at the current pty) and open PATH from the host. With faults,\n"
             "  STOP does not end the mock (a host sends STOP when it loses the device).\n"
-            "exit codes: 0 stopped by STOP or a signal; 2 bad arguments, scene or SPEC."),
+            "the real firmware (--firmware):\n"
+            "  builds (make: avr-gcc, host cc on libsimavr) what is missing, then runs the\n"
+            "  Hapkit 3 reference firmware (firmware_protocol/firmware/hapkit) cycle by cycle\n"
+            "  on simavr's ATmega328P with the scene's device as the handle's physics (m, b0,\n"
+            "  Coulomb; the hand places it at x0, v0 at each CONFIG) and prints\n"
+            "  'PORT /dev/pts/N'; real-time by default, --lockstep: as fast as the host\n"
+            "  answers (the emulated clock waits for each FORCE); on exit it writes --report\n"
+            "  (JSON: MCU cycles per tick, force on the pin, frames) or prints it\n"
+            "  $ hapsim mock --firmware --scene configs/hapkit.yaml\n"
+            "exit codes: 0 stopped by STOP or a signal; 1 the firmware stopped or could not\n"
+            "be built; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", metavar="SCENE", help="scene whose device/excitation to model")
     p.add_argument("--lockstep", action="store_true",
@@ -78,6 +88,9 @@ def register(sub) -> None:
                         "run', the mock inherits the run's policy instead")
     p.add_argument("--link", metavar="PATH",
                    help="keep a symbolic link PATH to the current pty (needed by vanish)")
+    p.add_argument("--firmware", action="store_true",
+                   help="run the Hapkit 3 reference firmware on the emulated board (simavr) "
+                        "instead of the Python mock (default scene: configs/hapkit.yaml)")
     p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
@@ -135,6 +148,8 @@ def run(args) -> int:
         ``--link``, or a scene without a device section (exit 2 from
         :func:`hapsim.cli.main`).
     """
+    if args.firmware:
+        return _run_firmware(args)
     from hapsim.daemon.faults import parse_faults
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
     from hapsim.daemon.realtime import RealtimePriority
@@ -200,3 +215,52 @@ def run(args) -> int:
             except OSError:
                 pass
     return 0
+
+
+def _run_firmware(args) -> int:
+    """``hapsim mock --firmware``: build what is missing and become the emulated board.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options (``scene``, ``lockstep``, ``report``, ``link``; the Python mock's
+        ``faults``, ``rate``, ``fd``, ``spec`` do not apply).
+
+    Returns
+    -------
+    int
+        Does not return on success (the process becomes ``hapkit_board``, which prints
+        ``PORT /dev/pts/N``); 1 when the board cannot be built.
+
+    Raises
+    ------
+    ConfigError
+        An option of the Python mock given with --firmware, or a scene without a device.
+    """
+    import sys
+
+    from hapsim.daemon import board
+    from hapsim.errors import DeviceError
+    from hapsim.scene import load_scene
+
+    for name, flag in (("faults", "--faults"), ("rate", "--rate"), ("fd", "--fd"),
+                       ("spec", "--spec")):
+        if getattr(args, name, None) is not None:
+            raise ConfigError("does not apply to --firmware (the firmware takes its rate from "
+                              "CONFIG and has no fault injection)", key=flag)
+    path = args.scene or str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
+    scene = load_scene(path)
+    if scene.device is None:
+        raise ConfigError("the scene has no device section", file=scene.path, key="device")
+    print("hapsim mock: building the firmware and the emulated board (make) ...",
+          file=sys.stderr, flush=True)
+    try:
+        board.build()
+    except DeviceError as exc:
+        print(f"hapsim mock: {exc}", file=sys.stderr)
+        return 1
+    cmd = board.board_command(scene.device, scene.excitation, realtime=not args.lockstep,
+                              report=args.report, link=args.link)
+    sys.stdout.flush()
+    os.execv(cmd[0], cmd)
+    return 1  # not reached

@@ -154,6 +154,15 @@ def register(sub) -> None:
     p.add_argument("--device", metavar="FILE.yaml",
                    help="device section from a file (e.g. written by 'hapsim identify "
                         "--out'); replaces the scene's")
+    p.add_argument("--osc", type=int, metavar="PORT",
+                   help="take live changes over OSC on localhost:PORT (0: any free port; "
+                        "addresses: hapsim play --help); each is checked, ramped, journaled")
+    p.add_argument("--osc-ramp", type=float, default=0.05, metavar="S",
+                   help="ramp time of every OSC change [s] (default 0.05)")
+    p.add_argument("--sound", choices=("auto", "jack", "sounddevice"),
+                   help="play the scene's audio section live (JACK, else PortAudio with "
+                        "auto); the model stays in the loop, the frames go to the server")
+    p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -214,6 +223,9 @@ def run(args) -> int:
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
+    if args.rate is not None:  # the scene's rate range (hapsim.analysis.loop.RATE_RANGE)
+        from hapsim.analysis.loop import RATE_RANGE, check_range
+        check_range(args.rate, *RATE_RANGE, "--rate", "Hz")
     if args.lost_timeout is not None and not (math.isfinite(args.lost_timeout)
                                               and args.lost_timeout > 0):
         raise ConfigError(f"must be a positive number [s], got {args.lost_timeout}",
@@ -257,7 +269,8 @@ def run(args) -> int:
                     reconnect=False if args.no_reconnect else None,
                     lost_timeout=args.lost_timeout,
                     reconnect_attempts=args.reconnect_attempts,
-                    reconnect_time=args.reconnect_time,
+                    reconnect_time=args.reconnect_time, osc=args.osc,
+                    osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
                     driver=None if args.driver == "framed" else args.driver)
     code = rep.pop("exit_code")
     if advice is not None:

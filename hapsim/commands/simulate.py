@@ -40,14 +40,27 @@ def register(sub) -> None:
             "  time [s] shape (N+1,), position [m] shape (N+1, R), names shape (R,);\n"
             "  row 0 is the initial state at t = 0, row i the state after i samples.\n"
             "  .npz holds the three arrays; .csv has a header 'time,<name>,...'.\n"
-            "example:\n"
-            "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10"),
+            "sound (a scene with an audio section):\n"
+            "  --audio FILE.wav renders the listening points (16-bit PCM, one channel each, at\n"
+            "  audio.rate_hz). --gesture excitation (default) plays the scene's excitation on\n"
+            "  the mock device closed on the scene (the hand's impulse/profile pushes the handle\n"
+            "  into the string, the contact throws it back); --gesture FILE drives the port\n"
+            "  along a recorded position profile (time [s], position [m]; .csv or .npz).\n"
+            "examples:\n"
+            "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10\n"
+            "  hapsim simulate configs/audio_string.yaml --steps 2000 --audio pluck.wav"),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
     p.add_argument("--steps", "-n", type=_count, required=True, metavar="N",
                    help="number of samples to simulate (>= 0; 2e4 is read as 20000)")
-    p.add_argument("--out", "-o", required=True, metavar="FILE",
-                   help="output file, .npz or .csv (format chosen by extension)")
+    p.add_argument("--out", "-o", metavar="FILE",
+                   help="output file, .npz or .csv (format chosen by extension); required "
+                        "unless --audio is given")
+    p.add_argument("--audio", metavar="FILE.wav",
+                   help="write the scene's sound (its audio.listen points) to this WAV file")
+    p.add_argument("--gesture", default="excitation", metavar="excitation|FILE",
+                   help="with --audio: the scene's excitation on the mock device (default) "
+                        "or a position profile file for the port (time [s], position [m])")
     p.add_argument("--record", nargs="+", metavar="NAME",
                    help="masses to record, in this order (default: all)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
@@ -96,6 +109,11 @@ def run(args: argparse.Namespace) -> int:
         (file, line, key), or a target no (K, B) renders
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
+    if args.audio is not None:
+        return _run_audio(args)
+    if args.out is None:
+        raise ConfigError("give an output file (--out FILE.npz|.csv) or --audio FILE.wav",
+                          key="--out")
     ext = os.path.splitext(args.out)[1].lower()
     if ext not in (".npz", ".csv"):
         raise ConfigError(f"unknown output format {ext or '(none)'!r}; valid: .npz, .csv",
@@ -156,6 +174,62 @@ def run(args: argparse.Namespace) -> int:
                   f"virtual K = {c.result.K:.6g} N/m, B = {c.result.B:.6g} N s/m")
         print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses "
               f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
+    return 0
+
+
+def _run_audio(args: argparse.Namespace) -> int:
+    """``simulate --audio``: render a gesture through the multi-rate scene to a WAV file
+    (and the device trajectory to ``--out`` when given). Exit 0, 1 when the sound
+    diverged (an unstable scene), 2 on bad input."""
+    from hapsim.audio.offline import (closed_loop_pluck, load_gesture, open_loop_gesture,
+                                      write_wav)
+
+    if not args.audio.lower().endswith(".wav"):
+        raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}", key="--audio")
+    if args.steps < 0:
+        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
+    if args.out is not None and os.path.splitext(args.out)[1].lower() not in (".npz", ".csv"):
+        raise ConfigError("unknown output format; valid: .npz, .csv", key="--out")
+    scene = load_scene(args.scene)
+    if scene.audio is None or scene.port is None:
+        raise ConfigError("the scene needs an audio section (rate_hz, listen) and a port to "
+                          "be heard; see configs/audio_string.yaml", file=scene.path,
+                          key="audio")
+    calibrations = []
+    if scene.unresolved_targets:
+        from hapsim.analysis.targets import apply_targets
+        scene, calibrations = apply_targets(scene)
+    engine = Engine(scene)
+    t0 = time.perf_counter()
+    with Progress(args.steps, "simulate", unit="samples") as bar:
+        if args.gesture == "excitation":
+            audio, xs, fs = closed_loop_pluck(engine, args.steps, progress=bar.update)
+        else:
+            xs = load_gesture(args.gesture, scene.rate_hz, args.steps)
+            audio, fs = open_loop_gesture(engine, xs, progress=bar.update)
+    elapsed = time.perf_counter() - t0
+    try:
+        info = write_wav(args.audio, audio, scene.audio.rate_hz)
+    except ValueError as exc:
+        print(f"hapsim simulate: {exc}; nothing written (hapsim check {args.scene})")
+        return 1
+    if args.out is not None:
+        T = scene.period
+        write_trajectory(args.out, np.arange(args.steps) * T,
+                         np.column_stack([xs, fs]), ["port.position", "port.force"])
+    summary = {"scene": args.scene, "audio": args.audio, "gesture": args.gesture,
+               "steps": args.steps, "rate_hz": scene.rate_hz, "substeps": engine.substeps,
+               "listen": list(engine.channels), "seconds": elapsed,
+               "audio_rate_hz": info["rate_hz"], "frames": info["frames"],
+               "peak": info["peak"], "clipped": info["clipped"],
+               "calibrations": [c.to_dict() for c in calibrations]}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.audio}: {info['frames']} frames x {info['channels']} channel(s) at "
+              f"{info['rate_hz']} Hz ({', '.join(engine.channels)}), peak {info['peak']:.3g}"
+              + (f", {info['clipped']} samples clipped: lower the gain" if info["clipped"] else "")
+              + f" ({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
     return 0
 
 

@@ -75,7 +75,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
-from hapsim.errors import DeviceError, ProtocolError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
            "LATCHED_FAULTS", "BAD_FRAME_RECORDS"]
@@ -411,6 +411,9 @@ class HostLoop:
     def __init__(self, engine, transport, config: LoopConfig, telemetry,
                  stop: StopFlag | None = None):
         self.engine = engine
+        #: Called between two samples, before the engine steps (live changes: the
+        #: mailbox of :class:`hapsim.audio.control.Controller`); None: nothing.
+        self.poll = None
         self.transport = transport
         self.config = config
         self.tel = telemetry
@@ -453,6 +456,8 @@ class HostLoop:
                 tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
                 next_ask = now + 0.5
             for msg in tr.receive(min(0.05, max(end - now, 0.0))):
+                if isinstance(msg, fp.Link):
+                    self._link = msg  # the device sends it just before HELLO
                 if isinstance(msg, fp.Hello):
                     return msg
 
@@ -469,6 +474,10 @@ class HostLoop:
         ProtocolError
             The device speaks another protocol version, or has another number of axes
             than 1 (the message carries the last frames received, CONVENTIONS §11).
+        ConfigError
+            The device's LINK (sent with HELLO) shows that its serial line cannot carry a
+            STATE and a FORCE frame per tick at the configured rate
+            (:func:`firmware_protocol.link_max_rate`).
         """
         cfg = self.config
         if hello.protocol_version != fp.PROTOCOL_VERSION:
@@ -480,6 +489,17 @@ class HostLoop:
             raise ProtocolError(f"device has {hello.n_axes} axes; hapsim run drives 1-DoF "
                                 f"devices (port {self.transport.info.get('port')}); last "
                                 f"frames:\n{self.transport.last_frames() or '(none received)'}")
+        link = getattr(self, "_link", None)
+        if link is not None:
+            top = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes)
+            if cfg.rate_hz > top:
+                raise ConfigError(
+                    f"{cfg.rate_hz:g} Hz is more than the device's link carries: at "
+                    f"{link.baud} baud ({link.bits_per_byte} bits per byte) a "
+                    f"{fp.state_frame_bytes(hello.n_axes)}-byte STATE up and a "
+                    f"{fp.force_frame_bytes(hello.n_axes)}-byte FORCE down per tick fit "
+                    f"{top:.0f} Hz at most ({fp.LINK_LOAD:.0%} of the line); choose "
+                    f"rate_hz <= {int(top)}", key="rate_hz")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
 
@@ -927,6 +947,7 @@ class HostLoop:
             # (device-clocked: at the STATE it resumed at; host-clocked: at the latest
             # STATE at its first deadline, maybe newer than the one it resumed at)
             x_prev = first[1]
+            poll = self.poll
             k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
@@ -943,6 +964,8 @@ class HostLoop:
                     if d > 0 or st & overrun_bit:
                         lt = 1
                         res.late += 1
+                if poll is not None:
+                    poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
                 if not isfinite(f):
                     self._non_finite_stop(seq)

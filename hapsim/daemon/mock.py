@@ -153,12 +153,16 @@ def ideal_step_coefficients(mass: float, friction: float, period: float):
     return math.exp(-y), T * T / m * psi
 
 
-def _load_profile(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Time [s] and force [N] columns of a ``.csv`` (header allowed) or ``.npz`` profile."""
+def _load_profile(path: str, column: str = "force", unit: str = "N",
+                  key: str = "excitation.profile") -> tuple[np.ndarray, np.ndarray]:
+    """Time [s] and ``column`` columns of a ``.csv`` (header allowed) or ``.npz`` profile
+    (a 2-D ``.npz`` array: its first column); errors name ``key``."""
+    what = f"time [s], {column} [{unit}]"
     try:
         if path.lower().endswith(".npz"):
             with np.load(path) as z:
-                t, f = np.asarray(z["time"], float), np.asarray(z["force"], float)
+                t, f = np.asarray(z["time"], float), np.asarray(z[column], float)
+            f = f[:, 0] if f.ndim == 2 else f
         else:
             data = np.genfromtxt(path, delimiter=",", comments="#")
             if data.ndim == 2 and not np.all(np.isfinite(data[0])):
@@ -166,13 +170,12 @@ def _load_profile(path: str) -> tuple[np.ndarray, np.ndarray]:
             data = np.atleast_2d(data)
             t, f = data[:, 0], data[:, 1]
     except (OSError, KeyError, ValueError, IndexError) as exc:
-        raise ConfigError(f"cannot read the hand-force profile: {exc}",
-                          key="excitation.profile") from None
+        raise ConfigError(f"cannot read the {column} profile {path}: {exc}; expected "
+                          f"columns {what}", key=key) from None
     if t.size < 1 or t.shape != f.shape or not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
-        raise ConfigError("profile needs finite columns time [s], force [N]",
-                          key="excitation.profile")
+        raise ConfigError(f"profile needs finite columns {what}", key=key)
     if np.any(np.diff(t) <= 0):
-        raise ConfigError("profile times must increase strictly", key="excitation.profile")
+        raise ConfigError("profile times must increase strictly", key=key)
     return t, f
 
 

@@ -155,7 +155,7 @@ def predict(scene: Scene) -> dict:
     except Exception:  # the limit is advisory in the report
         out["stiffness_limit"] = None
     single = len(scene.links) == 1 and len(plinks) == 1 and all(
-        m.kind != "mass" for m in scene.masses)
+        m.kind != "mass" for m in scene.masses) and scene.audio is None  # multi-rate: matrix
     if single:
         r = an["render"](loop, K_port, B_port)
         poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))
@@ -474,6 +474,10 @@ class RunOptions:
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
     driver: str | None = None
+    osc: int | None = None
+    osc_ramp: float = 0.05
+    sound: str | None = None
+    jack_server: str | None = None
     plan: object = None
 
     def check(self) -> "RunOptions":
@@ -627,6 +631,8 @@ class LoopRun:
     mock_report: dict | None
     writer_info: dict | None
     journal: str | None
+    control: object = None
+    sound: dict | None = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -849,8 +855,14 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     writer_info = None
     journal = None
     mock_report = None
+    ctl = osc_server = None
+    ring = out = None
     try:
+        if opts.sound is not None:
+            ring, out = _start_sound(prep, conn, opts)
         loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        if opts.osc is not None:
+            ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
             writer = ChunkWriter(tel, journal, opts.telemetry_interval,
@@ -870,6 +882,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                 _export(tel, journal, telemetry)
             raise
     finally:
+        if osc_server is not None:
+            osc_server.shutdown()
+            osc_server.server_close()
+        if out is not None:
+            out.close()
         conn.rt.__exit__(None, None, None)
         if writer is not None:
             writer.close()
@@ -887,7 +904,42 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if opts.transport == "sim":
             mock_report["faults_injected"] = opts.plan.to_dict()["injected"]
             mock_report["fault_events"] = tr.device.events
-    return LoopRun(res, mock_report, writer_info, journal)
+    sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
+                                       **ring.stats()}
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound)
+
+
+def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
+    """``run --sound``: the engine also hands each device sample's audio frames to a
+    :class:`hapsim.audio.live.FrameRing` that a JACK (or PortAudio) callback plays; the
+    multi-rate model stays in the loop, so the force is exactly the analysed one."""
+    from hapsim.audio.live import FrameRing, open_output, sounding_engine
+
+    scene = prep.scene
+    if scene.audio is None:
+        raise ConfigError("the scene has no audio section to play; see "
+                          "configs/audio_string.yaml", file=scene.path, key="--sound")
+    ring = FrameRing(scene.audio.rate_hz, conn.engine.channels)
+    conn.engine = sounding_engine(ring)(scene)
+    out = open_output(ring, opts.sound, server=opts.jack_server)
+    return ring, out
+
+
+def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOptions):
+    """``run --osc PORT``: a :class:`hapsim.audio.control.Controller` on the run's engine,
+    polled by the loop between samples, and its OSC server (address printed on stderr)."""
+    import sys
+
+    from hapsim.audio.control import Controller, serve_osc
+
+    ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
+    ctl.events = loop.result.events             # journaled with the telemetry (.hst)
+    ctl.sample_of = lambda: conn.tel.n
+    server, _ = serve_osc(ctl, opts.osc, status=lambda: {"xruns": 0, "underruns": 0})
+    loop.poll = lambda: ctl.poll(loop.engine)
+    host, port = server.server_address[:2]
+    print(f"hapsim run: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    return ctl, server
 
 
 def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | None:
@@ -1032,9 +1084,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
     }
     targets = prep.targets
+    ctl = run.control
+    osc = None if ctl is None else {
+        "accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+        "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+        "journal": ctl.journal}
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
-            "measured": measured, "loop": loop_info, "telemetry": tel_info,
+            "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
+            "sound": run.sound,
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
@@ -1047,7 +1105,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
               reconnect: bool | None = None, lost_timeout: float | None = None,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
-              telemetry_interval: float = 0.05, driver: str | None = None) -> dict:
+              telemetry_interval: float = 0.05, osc: int | None = None,
+              osc_ramp: float = 0.05, sound: str | None = None,
+              jack_server: str | None = None,
+              driver: str | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1121,6 +1182,17 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the loop is then host-clocked through a
         :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
         driver's mock (paced by the host) without a port.
+    osc : int, optional
+        Serve live changes over OSC on localhost:PORT (0: any free port, printed on
+        stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
+        ``osc``). The measured (k, b) are those of the scene at the start.
+    osc_ramp : float
+        Ramp time of every OSC change [s].
+    sound : {"auto", "jack", "sounddevice"}, optional
+        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
+        the sound server (report: ``sound`` with xruns and ring underruns).
+    jack_server : str, optional
+        JACK server name.
 
     Returns
     -------
@@ -1150,7 +1222,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       rt_priority=rt_priority, faults=faults, fault_seed=fault_seed,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
-                      telemetry_interval=telemetry_interval, driver=driver).check()
+                      telemetry_interval=telemetry_interval, osc=osc,
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
+                      driver=driver).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)

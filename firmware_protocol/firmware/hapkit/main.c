@@ -1,0 +1,547 @@
+/*
+ * main.c -- hapsim protocol version 1 firmware for the Hapkit 3 board (ATmega328P, 16 MHz).
+ *
+ * Specification: ../../PROTOCOL.md (device duties, section 5). Pins (Hapkit 3 as
+ * published): magnetoresistive sensor on A2 (ADC2), motor PWM on D5 (Timer0, OC0B, 8-bit
+ * fast PWM at 62.5 kHz), motor direction on D8 (PB0). D13 (PB5) is high while the MCU
+ * works on a tick (a probe for the cycle budget; the emulated board measures it).
+ *
+ * Timing. Timer1 in CTC mode interrupts at the CONFIG rate (device-clocked). The interrupt
+ * (a) applies the force decided for this tick -- the last valid FORCE received, or zero
+ * when the watchdog has run out -- to the PWM, which holds it until the next tick (the
+ * zero-order hold), and (b) starts the ADC conversion of the sensor. The main loop then
+ * reads the ADC, unwraps the shaft angle (flip counting), sends STATE, and decodes the
+ * frames the UART interrupt cut out of what the host sent (FORCE: converted, clamped and quantised to a PWM step, kept for the next
+ * tick). With every FORCE answering STATE n received before tick n + 1, the force is
+ * applied at tick n + 1: a loop delay d = 1.
+ *
+ * Numbers. avr-gcc's double is 32-bit: positions are computed in float32 and sent as the
+ * exact binary64 of that float32; forces arrive as binary64 and are rounded to float32
+ * (round to nearest, ties to even) in integer code (hp_f32_bits_from_f64_bits). A
+ * non-finite force is detected on the binary64 bits.
+ *
+ * Worst case of every path: no loop waits on the host; the receive and transmit rings are
+ * fixed; a tick's work is bounded by one ADC conversion, one STATE encode, at most one
+ * FAULT encode and the decoding of the bytes received (each frame at most 127 bytes).
+ * No malloc, no recursion.
+ */
+#include <avr/interrupt.h>
+#include <avr/io.h>
+#include <avr/sleep.h>
+#include <string.h>
+
+#include "../../c/hproto.h"
+#include "hapkit_geometry.h"
+#include "uart.h"
+
+#define HK_DEVICE_ID 0x33544B48UL  /* "HKT3" little-endian */
+#define HK_NATIVE_RATE_HZ 1000UL
+#define HK_MIN_RATE_HZ 31UL        /* Timer1 period fits 16 bits with prescaler 8 */
+#define HK_STATE_FRAME_BYTES 31UL  /* 1-axis STATE on the wire (PROTOCOL.md section 3) */
+#define HK_FORCE_FRAME_BYTES 17UL  /* 1-axis FORCE */
+/* A rate is carried when the STATE frames use at most 4/5 of the line (the rest for
+ * FAULT, PONG and the jitter of the ticks). */
+#define HK_LINK_NUM 4UL
+#define HK_LINK_DEN 5UL
+#define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
+                                                      HK_STATE_FRAME_BYTES))
+/* The MCU's own limit: a tick with one STATE out and one FORCE in takes at most 11.3k
+ * cycles (tools/bench_firmware.py on the emulated chip), so 12800 cycles (1250 Hz) leave
+ * 12 % for PING/PONG and FAULTs; at 2 kHz the chip is saturated. */
+#ifndef HK_CPU_MAX_RATE_HZ
+#define HK_CPU_MAX_RATE_HZ 1250UL /* make bench lifts it to measure 2 and 5 kHz */
+#endif
+#define HK_MAX_RATE_HZ (HK_LINK_MAX_RATE_HZ < HK_CPU_MAX_RATE_HZ ? HK_LINK_MAX_RATE_HZ : \
+                        HK_CPU_MAX_RATE_HZ)
+
+/* What the tick interrupt puts on the PWM: duty n / 256 (0 = off) and the direction. */
+typedef struct {
+    uint16_t n;
+    uint8_t dir;
+} drive_t;
+
+/* ---------------------------------------------------------------- shared with the ISR */
+static volatile drive_t g_pending;      /* from the last valid FORCE, applied next tick */
+static volatile uint8_t g_has_pending;
+static volatile uint32_t g_pending_seq;
+static volatile uint8_t g_pending_clamped;
+static volatile uint16_t g_wd_reload;   /* ticks a FORCE may be held (watchdog) */
+static volatile uint16_t g_wd_left;
+static volatile uint8_t g_armed;
+static volatile uint8_t g_tick_flag;    /* a tick happened, main loop has not served it */
+static volatile uint8_t g_overrun;      /* a tick came before the last one was served */
+static volatile uint32_t g_ticks;       /* ticks since CONFIG (the STATE seq) */
+static volatile uint8_t g_tripped;      /* the watchdog zeroed the force this period */
+static volatile uint8_t g_trip_event;   /* ... and the FAULT is still to be sent */
+static volatile uint32_t g_force_seq;
+static volatile uint8_t g_force_applied;
+static volatile uint8_t g_clamped_now;
+static volatile uint32_t g_period_cycles = F_CPU / HK_NATIVE_RATE_HZ;
+static volatile uint64_t g_clock_cycles; /* device clock at the last tick [cycles] */
+
+/* ---------------------------------------------------------------- main loop only */
+static uint8_t g_configured, g_fault_latched;
+static uint16_t g_limit_n;              /* largest PWM step within the force limit */
+static float g_limit_n_float;
+static uint32_t g_bad_frames, g_bad_reported; /* frames dropped (decoder + lost) */
+static uint16_t g_rx_lost_seen;
+static uint8_t g_rx_error;
+static int16_t g_last_raw;
+static int32_t g_turns;
+static int32_t g_zero;
+static uint8_t g_have_zero;
+
+static void pwm_write(uint16_t n, uint8_t dir)
+{
+    if (dir) {
+        PORTB |= (uint8_t)(1 << PB0);
+    } else {
+        PORTB &= (uint8_t)~(1 << PB0);
+    }
+    if (n == 0) {
+        TCCR0A &= (uint8_t)~(1 << COM0B1); /* OC0B off: the pin is PORTD5 = 0 */
+    } else {
+        OCR0B = (uint8_t)(n - 1u);
+        TCCR0A |= (uint8_t)(1 << COM0B1);
+    }
+}
+
+ISR(TIMER1_COMPA_vect)
+{
+    PORTB |= (uint8_t)(1 << PB5); /* budget probe: busy */
+    if (g_has_pending) {
+        g_has_pending = 0;
+        g_force_seq = g_pending_seq;
+        g_force_applied = 1;
+        g_clamped_now = g_pending_clamped;
+        pwm_write(g_pending.n, g_pending.dir);
+        g_wd_left = g_wd_reload;
+        g_tripped = 0;
+    }
+    if (g_armed) {
+        /* Watchdog: a FORCE received during tick l is held at ticks l+1 .. l+R, with
+         * R = floor(W / T) - 1, and zeroed at tick l + floor(W / T) <= its arrival + W. */
+        if (g_wd_left == 0) {
+            if (!g_tripped) {
+                g_tripped = 1;
+                g_trip_event = 1;
+            }
+            pwm_write(0, 0);
+            g_clamped_now = 0;
+        } else {
+            g_wd_left--;
+        }
+    }
+    ADCSRA |= (uint8_t)(1 << ADSC); /* sample the sensor now */
+    if (g_tick_flag) {
+        g_overrun = 1;
+    }
+    g_tick_flag = 1;
+    g_ticks++;
+    g_clock_cycles += g_period_cycles;
+}
+
+/* ---------------------------------------------------------------- binary64 helpers */
+
+static hp_b64_t f64_of_float(float x)
+{
+    uint32_t b;
+    memcpy(&b, &x, sizeof b);
+    return hp_b64_from_f32_bits(b);
+}
+
+static float float_of_f64(hp_b64_t d)
+{
+    uint32_t b = hp_f32_bits_from_b64(d);
+    float x;
+    memcpy(&x, &b, sizeof x);
+    return x;
+}
+
+static uint8_t f64_is_finite(hp_b64_t d)
+{
+    return ((d.hi >> 20) & 0x7FFu) != 0x7FFu;
+}
+
+/* The value of binary64 `b` when it is a whole number in 0..2^32-1: 1, else 0. */
+static uint8_t f64_to_u32_exact(hp_b64_t b, uint32_t *out)
+{
+    uint64_t d = ((uint64_t)b.hi << 32) | b.lo;
+    int16_t e = (int16_t)((d >> 52) & 0x7FFu);
+    uint64_t m = d & 0xFFFFFFFFFFFFFULL;
+    int16_t sh;
+    if (d == 0) {
+        *out = 0;
+        return 1;
+    }
+    if ((d >> 63) || e < 1023 || e > 1023 + 31) {
+        return 0;
+    }
+    m |= 1ULL << 52;
+    sh = (int16_t)(52 - (e - 1023));
+    if (m & ((1ULL << sh) - 1u)) {
+        return 0; /* a fraction */
+    }
+    *out = (uint32_t)(m >> sh);
+    return 1;
+}
+
+/* ---------------------------------------------------------------- sending */
+
+static void send(const hp_msg_t *m)
+{
+    uint8_t frame[HP_MAX_FRAME];
+    size_t n = hp_encode(m, frame, sizeof frame);
+    if (n) {
+        (void)uart_put(frame, n); /* a full ring drops the frame (the host sees a gap) */
+    }
+}
+
+static void send_fault(uint16_t code, uint32_t detail)
+{
+    hp_msg_t m;
+    m.type = HP_MSG_FAULT;
+    m.u.fault.code = code;
+    m.u.fault.detail = detail;
+    send(&m);
+}
+
+static void send_hello(void)
+{
+    hp_msg_t m;
+    m.type = HP_MSG_LINK;
+    m.u.link.baud = HK_BAUD;
+    m.u.link.bits_per_byte = HK_BITS_PER_BYTE;
+    send(&m);
+    m.type = HP_MSG_HELLO;
+    m.u.hello.protocol_version = HP_PROTOCOL_VERSION;
+    m.u.hello.n_axes = 1;
+    m.u.hello.device_id = HK_DEVICE_ID;
+    m.u.hello.position_scale = f64_of_float((float)HK_POSITION_SCALE_M);
+    m.u.hello.force_scale = f64_of_float((float)HK_FORCE_SCALE_N);
+    m.u.hello.force_limit = f64_of_float((float)(HK_FORCE_SCALE_N * HK_PWM_STEPS));
+    m.u.hello.native_rate_hz = f64_of_float((float)HK_NATIVE_RATE_HZ);
+    send(&m);
+}
+
+#if F_CPU != 16000000UL
+#error "now_us() assumes 16 MHz"
+#endif
+
+static uint64_t now_us(void)
+{
+    uint64_t c;
+    uint8_t s = SREG;
+    cli();
+    c = g_clock_cycles;
+    SREG = s;
+    return c >> 4; /* 16 cycles per microsecond at 16 MHz */
+}
+
+/* ---------------------------------------------------------------- timers and ADC */
+
+static void timer1_start(uint32_t period_cycles)
+{
+    TCCR1B = (uint8_t)(1 << WGM12); /* CTC, clock stopped (OCR1A is written in CTC mode) */
+    TCNT1 = 0;
+    TIFR1 = (uint8_t)(1 << OCF1A);
+    if (period_cycles <= 65536UL) {
+        OCR1A = (uint16_t)(period_cycles - 1u);
+        TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));            /* CTC, clk / 1 */
+    } else {
+        OCR1A = (uint16_t)(period_cycles / 8u - 1u);
+        TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS11));            /* CTC, clk / 8 */
+    }
+    TIMSK1 = (uint8_t)(1 << OCIE1A);
+}
+
+static void hw_init(void)
+{
+    DDRD |= (uint8_t)(1 << PD5);                    /* D5: PWM out */
+    PORTD &= (uint8_t)~(1 << PD5);
+    DDRB |= (uint8_t)((1 << PB0) | (1 << PB5));     /* D8: direction; D13: probe */
+    TCCR0A = (uint8_t)((1 << WGM01) | (1 << WGM00)); /* fast PWM 8-bit, OC0B off */
+    TCCR0B = (uint8_t)(1 << CS00);                  /* clk / 1: 62.5 kHz */
+    OCR0B = 0;
+    ADMUX = (uint8_t)((1 << REFS0) | 2u);           /* AVcc reference, ADC2 (A2) */
+    DIDR0 = (uint8_t)(1 << ADC2D);
+    ADCSRA = (uint8_t)((1 << ADEN) | (1 << ADPS2) | (1 << ADPS0)); /* clk / 32: 500 kHz */
+    uart_init();
+}
+
+/* ---------------------------------------------------------------- the sensor */
+
+static int32_t read_counts(void)
+{
+    uint16_t raw;
+    int16_t d;
+    while (ADCSRA & (1 << ADSC)) {
+    }
+    raw = ADCL;
+    raw |= (uint16_t)ADCH << 8;
+    if (!g_have_zero) {
+        g_last_raw = (int16_t)raw;
+        g_zero = (int32_t)raw;
+        g_have_zero = 1;
+    }
+    /* flip counting: a jump of more than half a span between two ticks is a wrap */
+    d = (int16_t)((int16_t)raw - g_last_raw);
+    if (d > (int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
+        g_turns--;
+    } else if (d < -(int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
+        g_turns++;
+    }
+    g_last_raw = (int16_t)raw;
+    return (int32_t)raw + g_turns * (int32_t)HK_SENSOR_SPAN_COUNTS - g_zero;
+}
+
+/* ---------------------------------------------------------------- protocol handling */
+
+static void zero_now(void)
+{
+    uint8_t s = SREG;
+    cli();
+    g_has_pending = 0;
+    pwm_write(0, 0);
+    g_clamped_now = 0;
+    SREG = s;
+}
+
+static void latch_fault(uint16_t code, uint32_t detail)
+{
+    g_armed = 0;
+    g_fault_latched = 1;
+    zero_now();
+    send_fault(code, detail);
+}
+
+static void on_config(const hp_config_t *c)
+{
+    uint32_t rate = 0, period;
+    float limit;
+    uint8_t ok = f64_to_u32_exact(c->rate_hz, &rate);
+    ok = ok && rate >= HK_MIN_RATE_HZ && rate <= HK_MAX_RATE_HZ && (F_CPU % rate) == 0;
+    period = ok ? F_CPU / rate : 0;
+    ok = ok && (period <= 65536UL || period % 8u == 0);
+    /* the watchdog holds a FORCE floor(W / T) - 1 >= 1 ticks: W >= 2 T */
+    ok = ok && (uint64_t)c->watchdog_us * rate >= 2000000ULL &&
+         (uint64_t)c->watchdog_us * rate / 1000000ULL <= 65535ULL;
+    ok = ok && f64_is_finite(c->force_limit) && !(c->force_limit.hi >> 31);
+    if (!ok) {
+        latch_fault(HP_FAULT_BAD_CONFIG, 0);
+        return;
+    }
+    limit = float_of_f64(c->force_limit);
+    if (limit > (float)HK_FORCE_MAX_N) {
+        limit = (float)HK_FORCE_MAX_N;
+    }
+    g_limit_n_float = limit * (float)(HK_PWM_STEPS / HK_FORCE_MAX_N);
+    g_limit_n = (uint16_t)g_limit_n_float; /* floor: the pin never exceeds the limit */
+    if (g_limit_n > HK_PWM_STEPS) {
+        g_limit_n = HK_PWM_STEPS;
+    }
+    cli();
+    g_period_cycles = period;
+    g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
+    g_wd_left = g_wd_reload;
+    g_has_pending = 0;
+    pwm_write(0, 0);
+    g_clamped_now = 0;
+    g_tripped = 0;
+    g_trip_event = 0;
+    g_force_seq = 0;
+    g_force_applied = 0;
+    g_ticks = 0;
+    g_tick_flag = 0;
+    g_overrun = 0;
+    g_armed = 1;
+    timer1_start(period);
+    sei();
+    g_configured = 1;
+    g_fault_latched = 0;
+}
+
+static void on_force(const hp_force_t *f)
+{
+    drive_t d;
+    uint8_t clamped = 0;
+    float x, ax;
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    if (!g_armed) {
+        return;
+    }
+    if (g_force_applied && (int32_t)(f->seq - g_force_seq) < 0) {
+        return; /* older than the force applied (PROTOCOL.md section 5, rule 4) */
+    }
+    if (!f64_is_finite(f->force[0])) {
+        latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
+        return;
+    }
+    x = float_of_f64(f->force[0]); /* +-inf when beyond float32: clamped below */
+    ax = x < 0 ? -x : x;
+    ax *= (float)(HK_PWM_STEPS / HK_FORCE_MAX_N); /* in PWM steps */
+    if (ax > g_limit_n_float) {
+        clamped = 1;
+    }
+    if (ax >= (float)g_limit_n) {
+        d.n = g_limit_n;
+    } else {
+        d.n = (uint16_t)(ax + 0.5f); /* nearest step, still <= g_limit_n */
+    }
+    d.dir = x > 0;
+    cli();
+    g_pending.n = d.n;
+    g_pending.dir = d.dir;
+    g_pending_seq = f->seq;
+    g_pending_clamped = clamped;
+    g_has_pending = 1;
+    sei();
+}
+
+static void on_message(const hp_msg_t *m)
+{
+    hp_msg_t r;
+    switch (m->type) {
+    case HP_MSG_HELLO_REQUEST:
+        send_hello();
+        if (m->u.hello_request.protocol_version != HP_PROTOCOL_VERSION) {
+            latch_fault(HP_FAULT_VERSION_MISMATCH, m->u.hello_request.protocol_version);
+        }
+        break;
+    case HP_MSG_CONFIG:
+        on_config(&m->u.config);
+        break;
+    case HP_MSG_FORCE:
+        on_force(&m->u.force);
+        break;
+    case HP_MSG_PING:
+        r.type = HP_MSG_PONG;
+        r.u.pong.nonce = m->u.ping.nonce;
+        r.u.pong.host_time_us = m->u.ping.host_time_us;
+        r.u.pong.device_time_us = now_us();
+        send(&r);
+        break;
+    case HP_MSG_STOP:
+        g_armed = 0;
+        zero_now();
+        break;
+    default:
+        break; /* device -> host types are ignored */
+    }
+}
+
+/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted. */
+static void take_frame(void)
+{
+    const uint8_t *frame;
+    hp_msg_t m;
+    uint8_t len = uart_frame(&frame);
+    int r;
+    if (!len) {
+        return;
+    }
+    r = len == UART_OVERLONG ? HP_ERR_OVERLONG : hp_decode_frame(frame, len, &m);
+    uart_frame_done();
+    if (r == HP_OK) {
+        on_message(&m);
+    } else {
+        g_bad_frames++; /* dropped, counted, never acted on */
+        g_rx_error = 1;
+    }
+}
+
+/* ---------------------------------------------------------------- one tick */
+
+static void serve_tick(void)
+{
+    hp_msg_t m;
+    int32_t counts;
+    uint16_t status = 0, lost;
+    uint8_t s;
+    counts = read_counts();
+    s = SREG;
+    cli();
+    g_tick_flag = 0;
+    m.u.state.seq = g_ticks - 1u;
+    m.u.state.force_seq = g_force_seq;
+    if (g_armed) {
+        status |= HP_STATUS_ARMED;
+    }
+    if (g_tripped) {
+        status |= HP_STATUS_WATCHDOG_TRIPPED;
+    }
+    if (g_clamped_now) {
+        status |= HP_STATUS_FORCE_CLAMPED;
+    }
+    if (g_force_applied) {
+        status |= HP_STATUS_FORCE_APPLIED;
+    }
+    if (g_overrun) {
+        status |= HP_STATUS_OVERRUN;
+        g_overrun = 0;
+    }
+    SREG = s;
+    if (g_fault_latched) {
+        status |= HP_STATUS_FAULT;
+    }
+    if (g_configured) {
+        status |= HP_STATUS_CONFIGURED;
+    }
+    lost = uart_rx_lost();
+    if (lost != g_rx_lost_seen) { /* bytes lost: their frames fail and are counted */
+        g_rx_lost_seen = lost;
+        g_rx_error = 1;
+    }
+    if (g_rx_error) {
+        status |= HP_STATUS_RX_ERROR;
+    }
+    m.type = HP_MSG_STATE;
+    m.u.state.time_us = now_us();
+    m.u.state.status = status;
+    m.u.state.n_axes = 1;
+    m.u.state.position[0] = f64_of_float((float)counts * (float)HK_POSITION_SCALE_M);
+    send(&m);
+    if (g_trip_event) {
+        g_trip_event = 0;
+        send_fault(HP_FAULT_WATCHDOG, 0);
+    }
+    if (g_bad_frames != g_bad_reported) {
+        g_bad_reported = g_bad_frames;
+        send_fault(HP_FAULT_RX_ERRORS, g_bad_frames);
+    }
+    g_rx_error = 0;
+}
+
+int main(void)
+{
+    const uint8_t zero = 0;
+    hw_init();
+    timer1_start(g_period_cycles); /* native rate, disarmed: STATE for the host to watch */
+    set_sleep_mode(SLEEP_MODE_IDLE);
+    sei();
+    (void)uart_put(&zero, 1); /* the receiver drops any partial frame */
+    send_hello();
+    for (;;) {
+        /* every interrupt (a byte sent, a byte received) wakes this loop: two flag tests
+         * and back to sleep unless a frame or a tick waits */
+        if (uart_frame_ready()) {
+            take_frame();
+        }
+        if (g_tick_flag) {
+            serve_tick();
+        }
+        cli();
+        if (!g_tick_flag && !uart_frame_ready()) {
+            PORTB &= (uint8_t)~(1 << PB5); /* budget probe: idle */
+            sleep_enable();
+            sei();
+            sleep_cpu();
+            sleep_disable();
+        } else {
+            sei();
+        }
+    }
+}

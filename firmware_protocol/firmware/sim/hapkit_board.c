@@ -1,0 +1,682 @@
+/*
+ * hapkit_board.c -- the Hapkit 3 board around an emulated ATmega328P (simavr), so the real
+ * firmware ELF runs cycle by cycle with the device's physics wired to its pins.
+ *
+ *   hapkit_board FIRMWARE.elf [options]      prints "PORT /dev/pts/N" on stdout
+ *
+ * Wiring (Hapkit 3 pinout): the handle's physics is driven by the motor PWM on D5 (Timer0
+ * OC0B: duty (OCR0B + 1) / 256 while the compare output drives the pin, else the PORTD5
+ * level) and the direction pin D8 (PB0, high = positive force); the force is
+ *     F = +-(duty) * T_max * (rs / rp) / rh            (hapkit_geometry.h)
+ * on a handle of mass m with viscous friction b0, optional Coulomb friction c, and an
+ * optional hand: it places the handle at x0 with velocity v0 whenever the host sends
+ * CONFIG (as the hapsim mock restarts its plant at CONFIG), and may push with a constant
+ * force over a time window after it. Between two changes of the force the motion
+ * m x'' + b0 x' = F is integrated exactly over the emulated time (with Coulomb friction:
+ * 1 us steps). The magnetoresistive sensor turns the motor shaft angle
+ *     theta_m = x / rh * (rs / rp) + pi * 460 / 921   (x = 0 on the centre of a count)
+ * into the voltage of a ratiometric output spanning HK_SENSOR_SPAN_COUNTS ADC counts over
+ * each half turn, rounded to the millivolt, fed to ADC2 when the firmware starts a
+ * conversion (simavr then quantises it to 10 bits).
+ *
+ * UART0 is bridged to a new pseudo-terminal on simavr's UART IRQs (input paced by the
+ * UART's own FIFO, with its XON/XOFF flow control). Time: --realtime locks the emulated
+ * clock to the wall clock; the default (fast) runs as fast as the host can answer: after
+ * each armed STATE the emulation waits (up to --wait-ms of wall time) for the host's next
+ * frame, so a slow host never makes a late FORCE, and a host that is gone (port closed)
+ * leaves the emulation free-running.
+ *
+ * On SIGINT/SIGTERM or after --duration emulated seconds it writes a JSON report (stdout,
+ * or --report FILE): the MCU budget (cycles per tick busy -- ISR + codec + main loop,
+ * everything not asleep between two rising edges of the D13 probe -- worst case, idle
+ * fraction), the force on the pin (largest magnitude after the first CONFIG, the emulated
+ * time it last went to zero), the last valid FORCE from the host, and what the host and the
+ * firmware sent (frames, bad frames, FAULT codes).
+ */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <math.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <termios.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "sim_avr.h"
+#include "sim_elf.h"
+#include "sim_io.h"
+#include "sim_irq.h"
+#include "avr_adc.h"
+#include "avr_uart.h"
+
+#include "../../c/hproto.h"
+#include "../hapkit/hapkit_geometry.h"
+
+/* ATmega328P data-space addresses (datasheet, register summary) */
+#define R_PORTB 0x25
+#define R_PORTD 0x2B
+#define R_TCCR0A 0x44
+#define R_OCR0B 0x48
+#define COM0B1_BIT 5
+
+#define F_CPU_HZ 16000000UL
+#define CYCLES_PER_US 16u
+
+/* ---------------------------------------------------------------- options */
+static struct {
+    const char *elf;
+    int realtime;
+    double mass, friction, coulomb, x0, v0;
+    double hand_force, hand_start, hand_duration;
+    double wait_ms, duration;
+    const char *report, *link;
+} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 50.0, 0.0, NULL, NULL};
+
+/* ---------------------------------------------------------------- the board */
+static avr_t *avr;
+static int master = -1;
+static volatile sig_atomic_t stop_signal;
+
+static struct {
+    double x, v;        /* handle [m], [m/s] */
+    double f_motor;     /* [N] */
+    uint64_t cyc;       /* emulated time of (x, v) [cycles] */
+    uint64_t config_cyc;
+    int configured;
+} ph;
+
+static struct {
+    uint16_t n;
+    uint8_t dir;
+    int init;
+} drive;
+
+static struct {
+    uint64_t ticks, busy_sum, busy_max, cycles_sum, window_busy, window_start;
+    uint64_t armed_cycles, armed_busy; /* every cycle while the firmware is armed */
+    uint8_t probe;
+    int counting;
+    double rate_hz;
+    uint32_t watchdog_us;
+} budget;
+
+static struct {
+    double max_abs_force;      /* after the first CONFIG [N] */
+    uint64_t last_nonzero_cyc; /* last emulated time the pin force was not zero */
+    uint64_t zero_since_cyc;   /* the pin force has been zero since (when zero_valid) */
+    int zero_valid;
+    double force_now;
+} pin;
+
+static struct {
+    hp_decoder_t dec_host, dec_fw;
+    uint64_t host_frames_ok, host_bad, fw_states, fw_faults[16], fw_bad;
+    uint64_t last_force_cyc;   /* last valid FORCE from the host, fully received */
+    int have_force;
+    double last_force_value;
+    uint64_t waits, wait_timeouts, tx_dropped;
+    uint8_t in_q[4096];
+    size_t in_head, in_tail;
+    int xon;
+    int await_host, host_present, host_frame_seen;
+    uint16_t fw_status;
+    uint64_t fw_status_rx_error, fw_overrun;
+    uint32_t fw_rx_errors_detail;
+} link_;
+
+static avr_irq_t *uart_irq, *adc_irq;
+
+static double hand_force_at(uint64_t cyc)
+{
+    double t;
+    if (!ph.configured || opt.hand_force == 0.0) {
+        return 0.0;
+    }
+    t = (double)(cyc - ph.config_cyc) / F_CPU_HZ;
+    return (t >= opt.hand_start && t < opt.hand_start + opt.hand_duration) ? opt.hand_force
+                                                                           : 0.0;
+}
+
+/* Exact motion of m x'' + b0 x' = f over dt [s] with f constant. */
+static void exact_step(double f, double dt)
+{
+    double m = opt.mass, b = opt.friction;
+    if (b > 0.0) {
+        double vinf = f / b, a = exp(-b * dt / m);
+        ph.x += vinf * dt + (ph.v - vinf) * (m / b) * (1.0 - a);
+        ph.v = vinf + (ph.v - vinf) * a;
+    } else {
+        ph.x += ph.v * dt + 0.5 * f / m * dt * dt;
+        ph.v += f / m * dt;
+    }
+}
+
+static void advance_to(uint64_t cyc)
+{
+    while (ph.cyc < cyc) {
+        uint64_t next = cyc;
+        double f;
+        if (opt.hand_force != 0.0 && ph.configured) {
+            /* split at the hand's switching times */
+            uint64_t on = ph.config_cyc + (uint64_t)(opt.hand_start * F_CPU_HZ);
+            uint64_t off = ph.config_cyc +
+                           (uint64_t)((opt.hand_start + opt.hand_duration) * F_CPU_HZ);
+            if (ph.cyc < on && on < next) {
+                next = on;
+            }
+            if (ph.cyc < off && off < next) {
+                next = off;
+            }
+        }
+        if (opt.coulomb > 0.0 && next - ph.cyc > CYCLES_PER_US) {
+            next = ph.cyc + CYCLES_PER_US;
+        }
+        f = ph.f_motor + hand_force_at(ph.cyc);
+        if (opt.coulomb > 0.0) {
+            if (ph.v == 0.0 && fabs(f) <= opt.coulomb) {
+                ph.cyc = next; /* sticking */
+                continue;
+            }
+            {
+                double v0 = ph.v, fc = (ph.v != 0.0 ? (ph.v > 0 ? -1.0 : 1.0)
+                                                    : (f > 0 ? -1.0 : 1.0)) * opt.coulomb;
+                exact_step(f + fc, (double)(next - ph.cyc) / F_CPU_HZ);
+                if ((v0 > 0 && ph.v < 0) || (v0 < 0 && ph.v > 0)) {
+                    ph.v = 0.0; /* friction stops the handle within the step */
+                }
+            }
+        } else {
+            exact_step(f, (double)(next - ph.cyc) / F_CPU_HZ);
+        }
+        ph.cyc = next;
+    }
+}
+
+static void sample_drive(void)
+{
+    uint8_t tccr0a = avr->data[R_TCCR0A], portd = avr->data[R_PORTD];
+    uint8_t portb = avr->data[R_PORTB];
+    uint16_t n;
+    uint8_t dir = portb & 1u, probe = (portb >> 5) & 1u;
+    if (tccr0a & (1u << COM0B1_BIT)) {
+        n = (uint16_t)(avr->data[R_OCR0B] + 1u);
+    } else {
+        n = (portd & (1u << 5)) ? HK_PWM_STEPS : 0u;
+    }
+    if (!drive.init || n != drive.n || dir != drive.dir) {
+        double f = (dir ? 1.0 : -1.0) * (double)n * HK_FORCE_MAX_N / HK_PWM_STEPS;
+        advance_to(avr->cycle);
+        drive.init = 1;
+        drive.n = n;
+        drive.dir = dir;
+        ph.f_motor = f;
+        pin.force_now = f;
+        if (n != 0) {
+            pin.zero_valid = 0;
+        } else if (!pin.zero_valid) {
+            pin.zero_since_cyc = avr->cycle;
+            pin.zero_valid = 1;
+        }
+        if (ph.configured && fabs(f) > pin.max_abs_force) {
+            pin.max_abs_force = fabs(f);
+        }
+    }
+    if (n != 0) {
+        pin.last_nonzero_cyc = avr->cycle;
+    }
+    if (probe && !budget.probe) { /* a tick starts: close the last window */
+        if (budget.counting) {
+            uint64_t len = avr->cycle - budget.window_start;
+            budget.ticks++;
+            budget.busy_sum += budget.window_busy;
+            budget.cycles_sum += len;
+            if (budget.window_busy > budget.busy_max) {
+                budget.busy_max = budget.window_busy;
+            }
+        }
+        budget.counting = (link_.fw_status & HP_STATUS_ARMED) != 0;
+        budget.window_start = avr->cycle;
+        budget.window_busy = 0;
+    }
+    budget.probe = probe;
+}
+
+/* ---------------------------------------------------------------- sensor */
+
+static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    union {
+        avr_adc_mux_t mux;
+        uint32_t v;
+    } e = {.v = value};
+    double theta, phi, counts, mv;
+    (void)irq;
+    (void)param;
+    if (e.mux.kind != ADC_MUX_SINGLE || e.mux.src != 2) {
+        return;
+    }
+    advance_to(avr->cycle);
+    /* x = 0 at the middle of a half turn, on the centre of an ADC count (511) */
+    theta = ph.x / HK_HANDLE_LENGTH_M * (HK_SECTOR_RADIUS_M / HK_CAPSTAN_RADIUS_M) +
+            HK_SENSOR_PERIOD_RAD * (HK_SENSOR_SPAN_COUNTS / 2) / HK_SENSOR_SPAN_COUNTS;
+    phi = fmod(theta, HK_SENSOR_PERIOD_RAD);
+    if (phi < 0) {
+        phi += HK_SENSOR_PERIOD_RAD;
+    }
+    counts = HK_SENSOR_LO_COUNTS + HK_SENSOR_SPAN_COUNTS * phi / HK_SENSOR_PERIOD_RAD;
+    /* the ADC reads floor(mV * 1023 / 5000): centre each count on its voltage */
+    mv = floor((counts + 0.5) * HK_ADC_VREF_MV / HK_ADC_MAX + 0.5);
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC2, (uint32_t)mv);
+}
+
+/* ---------------------------------------------------------------- UART <-> pty */
+
+static void on_fw_msg(const hp_msg_t *m)
+{
+    if (m->type == HP_MSG_STATE) {
+        link_.fw_states++;
+        link_.fw_status = m->u.state.status;
+        if (m->u.state.status & HP_STATUS_RX_ERROR) {
+            link_.fw_status_rx_error++;
+        }
+        if (m->u.state.status & HP_STATUS_OVERRUN) {
+            link_.fw_overrun++;
+        }
+        if ((m->u.state.status & HP_STATUS_ARMED) && link_.host_present) {
+            link_.await_host = 1; /* fast mode: let the host answer this STATE */
+            link_.host_frame_seen = 0;
+        }
+    } else if (m->type == HP_MSG_FAULT) {
+        link_.fw_faults[m->u.fault.code & 15u]++;
+        if (m->u.fault.code == HP_FAULT_RX_ERRORS) {
+            link_.fw_rx_errors_detail = m->u.fault.detail;
+        }
+    }
+}
+
+static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    uint8_t b = (uint8_t)value;
+    hp_msg_t m;
+    int r;
+    (void)irq;
+    (void)param;
+    if (master >= 0 && write(master, &b, 1) != 1) {
+        link_.tx_dropped++;
+    }
+    r = hp_decoder_feed(&link_.dec_fw, b, &m);
+    if (r == HP_OK) {
+        on_fw_msg(&m);
+    } else if (r != HP_NONE) {
+        link_.fw_bad++;
+    }
+}
+
+static void uart_xon(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value) {
+        link_.xon = 1; /* the UART's input FIFO has room */
+    }
+}
+
+static void uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    link_.xon = value ? 0 : 1; /* raised with 1 when the FIFO is full, 0 when not */
+}
+
+static void on_host_msg(const hp_msg_t *m)
+{
+    link_.host_frames_ok++;
+    if (m->type == HP_MSG_CONFIG) {
+        /* the hand places the handle and lets go (the mock's plant restarts at CONFIG) */
+        advance_to(avr->cycle);
+        ph.x = opt.x0;
+        ph.v = opt.v0;
+        ph.configured = 1;
+        ph.config_cyc = avr->cycle;
+        budget.rate_hz = m->u.config.rate_hz;
+        budget.watchdog_us = m->u.config.watchdog_us;
+    } else if (m->type == HP_MSG_FORCE) {
+        link_.last_force_cyc = avr->cycle;
+        link_.have_force = 1;
+        link_.last_force_value = m->u.force.force[0];
+    }
+}
+
+/* Hand the queued host bytes to the UART while its FIFO has room. */
+static void feed_uart(void)
+{
+    while (link_.xon && link_.in_tail != link_.in_head) {
+        uint8_t b = link_.in_q[link_.in_tail];
+        hp_msg_t m;
+        int r;
+        link_.in_tail = (link_.in_tail + 1u) % sizeof link_.in_q;
+        avr_raise_irq(uart_irq + UART_IRQ_INPUT, b);
+        r = hp_decoder_feed(&link_.dec_host, b, &m);
+        if (r == HP_OK) {
+            on_host_msg(&m);
+        } else if (r != HP_NONE) {
+            link_.host_bad++;
+        }
+    }
+}
+
+/* Read what the host wrote; wait up to `timeout_ms` for something. */
+static void read_host(int timeout_ms)
+{
+    struct pollfd pfd = {master, POLLIN, 0};
+    int r = poll(&pfd, 1, timeout_ms);
+    link_.host_present = !(pfd.revents & POLLHUP);
+    if (r > 0 && (pfd.revents & POLLIN)) {
+        uint8_t buf[256];
+        ssize_t n = read(master, buf, sizeof buf);
+        ssize_t i;
+        for (i = 0; i < n; i++) {
+            size_t next = (link_.in_head + 1u) % sizeof link_.in_q;
+            if (next == link_.in_tail) {
+                break; /* host far ahead of the emulated UART: keep it in the pty */
+            }
+            link_.in_q[link_.in_head] = buf[i];
+            link_.in_head = next;
+            if (buf[i] == 0) {
+                link_.host_frame_seen = 1;
+            }
+        }
+    }
+}
+
+static int open_pty(void)
+{
+    int fd = posix_openpt(O_RDWR | O_NOCTTY);
+    int slave;
+    struct termios t;
+    char *name;
+    if (fd < 0 || grantpt(fd) || unlockpt(fd) || !(name = ptsname(fd))) {
+        perror("hapkit_board: pty");
+        exit(1);
+    }
+    slave = open(name, O_RDWR | O_NOCTTY);
+    if (slave >= 0) {
+        tcgetattr(slave, &t);
+        cfmakeraw(&t);
+        tcsetattr(slave, TCSANOW, &t);
+        close(slave); /* the raw settings stay with the pty */
+    }
+    fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
+    if (opt.link) {
+        char tmp[4096];
+        snprintf(tmp, sizeof tmp, "%s.new", opt.link);
+        unlink(tmp);
+        if (symlink(name, tmp) == 0) {
+            rename(tmp, opt.link);
+        }
+    }
+    printf("PORT %s\n", opt.link ? opt.link : name);
+    fflush(stdout);
+    return fd;
+}
+
+/* ---------------------------------------------------------------- report */
+
+static void report(int code)
+{
+    FILE *f = opt.report ? fopen(opt.report, "w") : stdout;
+    double us = 1.0 / CYCLES_PER_US;
+    double period = budget.rate_hz > 0 ? F_CPU_HZ / budget.rate_hz : 0;
+    if (!f) {
+        f = stdout;
+    }
+    advance_to(avr->cycle);
+    fprintf(f, "{\"exit\": \"%s\", \"emulated_s\": %.9f, \"mode\": \"%s\",\n",
+            code == 0 ? "ok" : "firmware stopped", (double)avr->cycle / F_CPU_HZ,
+            opt.realtime ? "realtime" : "fast");
+    /* per tick: between rising edges of the D13 probe (none when the MCU never sleeps: it
+     * is saturated); over the whole armed run: the share of cycles not asleep */
+    fprintf(f, " \"budget\": {\"rate_hz\": %.6g, \"period_cycles\": %.0f, \"ticks\": %llu, "
+               "\"busy_mean_cycles\": %.1f, \"busy_max_cycles\": %llu, "
+               "\"idle_fraction\": %.6f, \"saturated\": %s},\n",
+            budget.rate_hz, period, (unsigned long long)budget.ticks,
+            budget.armed_cycles && period > 0
+                ? (double)budget.armed_busy / ((double)budget.armed_cycles / period) : 0.0,
+            (unsigned long long)budget.busy_max,
+            budget.armed_cycles ? 1.0 - (double)budget.armed_busy / budget.armed_cycles : 0.0,
+            budget.armed_cycles > 20 * period && budget.ticks < 2 ? "true" : "false");
+    fprintf(f, " \"pin\": {\"max_abs_force_n\": %.9g, \"force_now_n\": %.9g, "
+               "\"zero_since_us\": %.3f, \"last_nonzero_us\": %.3f, \"force_step_n\": %.9g, "
+               "\"force_max_n\": %.9g},\n",
+            pin.max_abs_force, pin.force_now,
+            pin.force_now == 0 ? (double)pin.zero_since_cyc * us : -1.0,
+            (double)pin.last_nonzero_cyc * us, HK_FORCE_MAX_N / HK_PWM_STEPS, HK_FORCE_MAX_N);
+    fprintf(f, " \"host\": {\"frames_ok\": %llu, \"bad_frames\": %llu, \"watchdog_us\": %u, "
+               "\"last_force_us\": %.3f, \"last_force_n\": %.17g, \"waits\": %llu, "
+               "\"wait_timeouts\": %llu},\n",
+            (unsigned long long)link_.host_frames_ok, (unsigned long long)link_.host_bad,
+            budget.watchdog_us, link_.have_force ? (double)link_.last_force_cyc * us : -1.0,
+            link_.last_force_value, (unsigned long long)link_.waits,
+            (unsigned long long)link_.wait_timeouts);
+    fprintf(f, " \"firmware\": {\"states\": %llu, \"bad_frames\": %llu, "
+               "\"states_rx_error\": %llu, \"states_overrun\": %llu, "
+               "\"fault_rx_errors_detail\": %u, \"faults\": {",
+            (unsigned long long)link_.fw_states, (unsigned long long)link_.fw_bad,
+            (unsigned long long)link_.fw_status_rx_error,
+            (unsigned long long)link_.fw_overrun, link_.fw_rx_errors_detail);
+    {
+        int i, first = 1;
+        for (i = 0; i < 16; i++) {
+            if (link_.fw_faults[i]) {
+                fprintf(f, "%s\"%d\": %llu", first ? "" : ", ", i,
+                        (unsigned long long)link_.fw_faults[i]);
+                first = 0;
+            }
+        }
+    }
+    fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
+    fprintf(f, " \"handle\": {\"x_m\": %.9g, \"v_m_s\": %.9g, \"mass_kg\": %.9g, "
+               "\"friction_n_s_m\": %.9g, \"coulomb_n\": %.9g}}\n",
+            ph.x, ph.v, opt.mass, opt.friction, opt.coulomb);
+    if (f != stdout) {
+        fclose(f);
+    }
+}
+
+/* ---------------------------------------------------------------- main */
+
+static void on_signal(int s)
+{
+    stop_signal = s;
+}
+
+static void noop_sleep(avr_t *a, avr_cycle_count_t how_long)
+{
+    (void)a;
+    (void)how_long;
+}
+
+static double num(const char *s, const char *name)
+{
+    char *end;
+    double v = strtod(s, &end);
+    if (*s == 0 || *end != 0 || !isfinite(v)) {
+        fprintf(stderr, "hapkit_board: %s: not a number: %s\n", name, s);
+        exit(2);
+    }
+    return v;
+}
+
+static void usage(void)
+{
+    fprintf(stderr,
+            "usage: hapkit_board FIRMWARE.elf [--realtime] [--mass KG] [--friction NS_M]\n"
+            "         [--coulomb N] [--x0 M] [--v0 M_S] [--hand-force N --hand-start S\n"
+            "         --hand-duration S] [--wait-ms MS] [--duration S] [--report FILE]\n"
+            "         [--link PATH]\n");
+    exit(2);
+}
+
+/* simavr's messages go to stderr: stdout carries only the PORT line (and the report). */
+static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
+{
+    (void)a;
+    if (level <= LOG_WARNING) {
+        vfprintf(stderr, format, ap);
+    }
+}
+
+static uint64_t wall_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+}
+
+int main(int argc, char **argv)
+{
+    elf_firmware_t fw;
+    uint32_t flags = 0;
+    int i, code = 0, pace, paced = 0;
+    uint64_t wall0, chunk = 1600; /* 100 us of emulated time between host polls */
+    for (i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
+        if (!strcmp(a, "--realtime")) {
+            opt.realtime = 1;
+            continue;
+        }
+        if (a[0] != '-') {
+            opt.elf = a;
+            continue;
+        }
+        if (!v) {
+            usage();
+        }
+        i++;
+        if (!strcmp(a, "--mass")) opt.mass = num(v, a);
+        else if (!strcmp(a, "--friction")) opt.friction = num(v, a);
+        else if (!strcmp(a, "--coulomb")) opt.coulomb = num(v, a);
+        else if (!strcmp(a, "--x0")) opt.x0 = num(v, a);
+        else if (!strcmp(a, "--v0")) opt.v0 = num(v, a);
+        else if (!strcmp(a, "--hand-force")) opt.hand_force = num(v, a);
+        else if (!strcmp(a, "--hand-start")) opt.hand_start = num(v, a);
+        else if (!strcmp(a, "--hand-duration")) opt.hand_duration = num(v, a);
+        else if (!strcmp(a, "--wait-ms")) opt.wait_ms = num(v, a);
+        else if (!strcmp(a, "--duration")) opt.duration = num(v, a);
+        else if (!strcmp(a, "--report")) opt.report = v;
+        else if (!strcmp(a, "--link")) opt.link = v;
+        else usage();
+    }
+    if (!opt.elf || !(opt.mass > 0) || opt.friction < 0 || opt.coulomb < 0) {
+        usage();
+    }
+    avr_global_logger_set(log_stderr);
+    memset(&fw, 0, sizeof fw);
+    if (elf_read_firmware(opt.elf, &fw)) {
+        fprintf(stderr, "hapkit_board: cannot read %s\n", opt.elf);
+        return 2;
+    }
+    avr = avr_make_mcu_by_name("atmega328p");
+    if (!avr) {
+        fprintf(stderr, "hapkit_board: simavr has no atmega328p core\n");
+        return 1;
+    }
+    avr_init(avr);
+    avr->log = 0;
+    avr->frequency = F_CPU_HZ;
+    avr->vcc = avr->avcc = avr->aref = HK_ADC_VREF_MV;
+    avr_load_firmware(avr, &fw);
+    avr->frequency = F_CPU_HZ;
+    avr->vcc = avr->avcc = avr->aref = HK_ADC_VREF_MV;
+    avr->sleep = noop_sleep; /* the board keeps time itself (fast or real-time) */
+
+    hp_decoder_init(&link_.dec_host);
+    hp_decoder_init(&link_.dec_fw);
+    link_.xon = 0; /* until the firmware enables its receiver (simavr signals XON then) */
+    uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
+    adc_irq = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, 0);
+    avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
+    flags &= ~(uint32_t)(AVR_UART_FLAG_STDIO | AVR_UART_FLAG_POLL_SLEEP);
+    avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUTPUT, uart_out, NULL);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XON, uart_xon, NULL);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XOFF, uart_xoff, NULL);
+    avr_irq_register_notify(adc_irq + ADC_IRQ_OUT_TRIGGER, adc_trigger, NULL);
+
+    signal(SIGINT, on_signal);
+    signal(SIGTERM, on_signal);
+    signal(SIGPIPE, SIG_IGN);
+    master = open_pty();
+    link_.host_present = 0;
+    wall0 = wall_ns();
+    while (!stop_signal) {
+        uint64_t end = avr->cycle + chunk;
+        if (opt.duration > 0 && (double)avr->cycle >= opt.duration * F_CPU_HZ) {
+            break;
+        }
+        while (avr->cycle < end && !link_.await_host) {
+            int running = avr->state == cpu_Running;
+            uint64_t c0 = avr->cycle;
+            int st = avr_run(avr);
+            if (st == cpu_Done || st == cpu_Crashed) {
+                fprintf(stderr, "hapkit_board: firmware stopped (state %d) at %.6f s\n", st,
+                        (double)avr->cycle / F_CPU_HZ);
+                code = 1;
+                goto done;
+            }
+            if (running) {
+                budget.window_busy += avr->cycle - c0;
+            }
+            if (link_.fw_status & HP_STATUS_ARMED) {
+                budget.armed_cycles += avr->cycle - c0;
+                if (running) {
+                    budget.armed_busy += avr->cycle - c0;
+                }
+            }
+            sample_drive();
+        }
+        read_host(0);
+        if (link_.await_host && !opt.realtime) {
+            /* fast mode: wait (wall time) for the host's answer to this STATE */
+            uint64_t w0 = wall_ns();
+            link_.waits++;
+            while (!link_.host_frame_seen && link_.host_present && !stop_signal) {
+                uint64_t el = (wall_ns() - w0) / 1000000u;
+                if ((double)el >= opt.wait_ms) {
+                    link_.wait_timeouts++;
+                    break;
+                }
+                read_host((int)(opt.wait_ms - (double)el) + 1);
+            }
+        }
+        link_.await_host = 0;
+        feed_uart();
+        /* real time: always with --realtime; in fast mode while a host listens to a
+         * disarmed device (its STATEs would flood the host as fast as the host can read) */
+        pace = opt.realtime ||
+               (link_.host_present && !(link_.fw_status & HP_STATUS_ARMED));
+        if (pace) {
+            uint64_t emu = (uint64_t)((double)avr->cycle * 1e9 / F_CPU_HZ);
+            uint64_t wall;
+            if (!paced) {
+                wall0 = wall_ns() - emu; /* lock from here on */
+            }
+            wall = wall_ns() - wall0;
+            if (emu > wall + 200000u) {
+                struct timespec ts = {0, (long)(emu - wall)};
+                nanosleep(&ts, NULL);
+            }
+        }
+        paced = pace;
+    }
+done:
+    report(code);
+    return code;
+}

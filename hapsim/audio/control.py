@@ -1,0 +1,471 @@
+"""Live control of a running scene: checked, ramped, journaled changes (OSC front end).
+
+A change (a link's stiffness or damping, a felt target {k, b}, a mass's inertia, the sound
+gain, pause/resume) arrives on any thread (the OSC server's). It is checked there, before
+anything moves: the changed scene's closed loop must be stable, by the check ``hapsim run``
+makes (:func:`hapsim.daemon.runner.predict`, i.e. :func:`hapsim.analysis.check_scene` of the
+whole scene coupled to its device, multi-rate included), at the new values and at three
+points of the ramp toward them; a felt target is calibrated first
+(:func:`hapsim.analysis.targets.apply_targets`) and refused when no (K, B) renders it. A
+refused change is answered with its reason and leaves everything as it was. An accepted
+change is posted to a mailbox (a ``collections.deque``: atomic append/popleft) that the
+sample loop polls between samples (:meth:`Controller.poll`, a few float operations per
+sample while a ramp runs, one emptiness test otherwise); it is ramped linearly over
+``ramp_s`` so the hand feels no step and the sound does not click. Every request, verdict,
+ramp start and ramp end is journaled with the sample index.
+
+OSC addresses (:data:`ADDRESSES`; replies go to the sender's address and port):
+
+==============================  ==============================  =========================
+address                         arguments                       reply
+==============================  ==============================  =========================
+/hapsim/link/stiffness          link K[N/m]                     /hapsim/ok or /refused
+/hapsim/link/damping            link B[N s/m]                   /hapsim/ok or /refused
+/hapsim/link/kb                 link K B                        /hapsim/ok or /refused
+/hapsim/link/target             link k[N/m] b[N s/m] (felt)     /hapsim/ok or /refused
+/hapsim/mass                    mass m[kg]                      /hapsim/ok or /refused
+/hapsim/gain                    g (sound master gain)           /hapsim/ok or /refused
+/hapsim/pause, /hapsim/resume   (none)                          /hapsim/ok
+/hapsim/felt                    (none)                          /hapsim/felt k b f0 zeta
+                                                                k_meas b_meas
+/hapsim/loop                    (none)                          /hapsim/loop sample
+                                                                spectral_radius stable
+                                                                changes refused xruns
+                                                                underruns
+/hapsim/telemetry               host port [rate_hz]             /hapsim/ok; then
+                                                                /hapsim/tel t x f ...
+==============================  ==============================  =========================
+
+``/hapsim/ok`` carries the request address, the ramp time [s] and the new felt k, b;
+``/hapsim/refused`` carries the request address and the reason. Measured values are NaN
+until a free response has been identified after the last change.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import threading
+import time
+
+import numpy as np
+
+from hapsim.errors import ConfigError, HapsimError
+
+__all__ = ["Controller", "Change", "ADDRESSES", "serve_osc"]
+
+#: The OSC addresses the server maps (module docstring).
+ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
+             "/hapsim/link/target", "/hapsim/mass", "/hapsim/gain", "/hapsim/pause",
+             "/hapsim/resume", "/hapsim/felt", "/hapsim/loop", "/hapsim/telemetry")
+
+
+@dataclasses.dataclass
+class Change:
+    """An accepted change on its way to the sample loop.
+
+    Attributes
+    ----------
+    kind : {"link", "mass", "gain", "pause", "resume"}
+    name : str
+        Link or mass name ("" otherwise).
+    start, end : tuple of float
+        Values at the start and end of the ramp: (K, B) [N/m, N s/m], (m,) [kg], (g,).
+    steps : int
+        Device samples the ramp lasts (>= 1).
+    done : int
+        Samples of the ramp applied so far.
+    """
+
+    kind: str
+    name: str
+    start: tuple
+    end: tuple
+    steps: int
+    done: int = 0
+
+
+class Controller:
+    """Checks, ramps and journals live changes to a running scene.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The calibrated scene the engine runs.
+    engine : hapsim.engine.Engine
+        Its engine (changed in place by :meth:`poll`, on the sample loop's thread).
+    live : hapsim.audio.live.LiveSound, optional
+        Its live sound (gain).
+    ramp_s : float
+        Ramp time of every change [s] (default 50 ms).
+
+    Attributes
+    ----------
+    scene : Scene
+        The scene as accepted so far (what the engine reaches at the end of the ramps).
+    journal : list of dict
+        Every request and event: ``t`` [s since start], ``sample``, ``event`` (request,
+        accepted, refused, ramp_end), ``address``, ``args``, ``reason`` / ``felt``.
+    force_scale : float
+        Factor on the port force (ramped to 0 by pause, back to 1 by resume).
+    paused : bool
+    """
+
+    def __init__(self, scene, engine, live=None, ramp_s: float = 0.05) -> None:
+        self.scene = scene
+        self.engine = engine
+        self.live = live
+        self.ramp_s = float(ramp_s)
+        self.journal: list[dict] = []
+        self.force_scale = 1.0
+        self.paused = False
+        self.sample = 0
+        self.refused = 0
+        self.accepted = 0
+        self.measured = (math.nan, math.nan)
+        self._mail: collections.deque = collections.deque()
+        self._gain_before_pause = 1.0
+        self._ramps: list[Change] = []
+        self._lock = threading.Lock()          # serialises checks (one scene at a time)
+        self._t0 = time.monotonic()
+        #: Where journal records are also appended (``hapsim run``: the loop's event list,
+        #: which the telemetry journal ``.hst`` writes), and the loop's sample counter.
+        self.events: list | None = None
+        self.sample_of = None
+        from hapsim.daemon.runner import predict
+        self._predict = predict
+        self.felt = predict(scene)
+
+    # ------------------------------------------------------------ any thread
+    def _log(self, event: str, address: str, args, **extra) -> dict:
+        sample = self.sample_of() if self.sample_of is not None else self.sample
+        rec = {"t": time.monotonic() - self._t0, "sample": sample, "event": event,
+               "address": address, "args": list(args), **extra}
+        self.journal.append(rec)
+        if self.events is not None:
+            self.events.append({**rec, "event": f"osc {event}"})
+        return rec
+
+    def _steps(self) -> int:
+        return max(1, int(round(self.ramp_s * self.scene.rate_hz)))
+
+    def _check(self, new_scene, old_scene) -> dict:
+        """Stability of the new scene and of three points of the ramp toward it
+        (:func:`hapsim.daemon.runner.predict`); the prediction of the new scene."""
+        pred = self._predict(new_scene)
+        if not pred["stable"]:
+            raise _Refused(f"the closed loop would be unstable (spectral radius "
+                           f"{pred['spectral_radius']:.6g} > 1)")
+        for a in (0.25, 0.5, 0.75):
+            mid = _blend(old_scene, new_scene, a)
+            p = self._predict(mid)
+            if not p["stable"]:
+                raise _Refused(f"the ramp passes through an unstable loop at {a:.0%} "
+                               f"(spectral radius {p['spectral_radius']:.6g})")
+        return pred
+
+    def request(self, address: str, *args) -> tuple[bool, str | tuple]:
+        """Check a change and, when accepted, post it to the sample loop.
+
+        Parameters
+        ----------
+        address : str
+            One of :data:`ADDRESSES` that changes something.
+        *args
+            Its OSC arguments.
+
+        Returns
+        -------
+        (bool, reason or (ramp_s, k, b))
+            ``(False, reason)`` when refused (nothing changes), ``(True, (ramp time [s],
+            felt k [N/m], felt b [N s/m]))`` when accepted.
+        """
+        self._log("request", address, args)
+        try:
+            with self._lock:
+                change, pred = self._plan(address, args)
+                if pred is not None:
+                    self.felt = pred
+                    self.measured = (math.nan, math.nan)
+            self._mail.append(change)
+        except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
+            reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+            self.refused += 1
+            self._log("refused", address, args, reason=reason)
+            return False, reason
+        self.accepted += 1
+        k, b = self.felt.get("k"), self.felt.get("b")
+        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz)
+        return True, (change.steps / self.scene.rate_hz, _num(k), _num(b))
+
+    def _plan(self, address: str, args):
+        steps = self._steps()
+        sc = self.scene
+        if address in ("/hapsim/pause", "/hapsim/resume"):
+            kind = address.rsplit("/", 1)[1]
+            return Change(kind, "", (self.force_scale,), (0.0 if kind == "pause" else 1.0,),
+                          steps), None
+        if address == "/hapsim/gain":
+            (g,) = _floats(args, 1, "gain")
+            if self.live is None:
+                raise _Refused("no live sound in this run (--sound)")
+            return Change("gain", "", (self.live.gain,), (g,), steps), None
+        if address == "/hapsim/mass":
+            name, m = _name(args), _floats(args[1:], 1, "mass")[0]
+            if not m > 0:
+                raise _Refused(f"mass must be > 0, got {m:g}")
+            i = sc.index(name)
+            old = sc.masses[i]
+            if old.kind != "mass":
+                raise _Refused(f"{name!r} is a {old.kind}, not a moving mass")
+            new = dataclasses.replace(sc, masses=tuple(
+                dataclasses.replace(mm, mass=float(m)) if j == i else mm
+                for j, mm in enumerate(sc.masses)))
+            pred = self._check(new, sc)
+            self.scene = new
+            return Change("mass", name, (old.mass,), (float(m),), steps), pred
+        if address.startswith("/hapsim/link/"):
+            name = _name(args)
+            lk = sc.link(name)
+            what = address.rsplit("/", 1)[1]
+            if what == "target":
+                k, b = _floats(args[1:], 2, "k b")
+                from hapsim.analysis.targets import apply_targets
+                tl = dataclasses.replace(lk, target=(k, b), stiffness=math.nan,
+                                         damping=math.nan, calibrated=False)
+                new = dataclasses.replace(sc, links=tuple(tl if x.name == name else x
+                                                          for x in sc.links))
+                new, _ = apply_targets(new)
+            else:
+                if what == "stiffness":
+                    K, B = _floats(args[1:], 1, "K")[0], lk.damping
+                elif what == "damping":
+                    K, B = lk.stiffness, _floats(args[1:], 1, "B")[0]
+                elif what == "kb":
+                    K, B = _floats(args[1:], 2, "K B")
+                else:
+                    raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+                new = sc.with_link(name, stiffness=K, damping=B)
+            nl = new.link(name)
+            pred = self._check(new, sc)
+            self.scene = new
+            return Change("link", name, (lk.stiffness, lk.damping),
+                          (nl.stiffness, nl.damping), steps), pred
+        raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+
+    # ------------------------------------------------------------ sample loop
+    def poll(self, engine=None) -> None:
+        """Between two samples: take new changes from the mailbox, advance the ramps.
+
+        Call once per device sample from the loop's thread; it only touches the engine's
+        arrays (:meth:`hapsim.engine.Engine.set_link`, :meth:`~hapsim.engine.Engine.set_mass`),
+        the live gain and :attr:`force_scale`.
+
+        Parameters
+        ----------
+        engine : Engine, optional
+            The engine the loop steps now: when the loop rebuilt it (a recovery restarts
+            the scene from the file's values), the accepted values are set on it at once.
+        """
+        if engine is not None and engine is not self.engine:
+            self.engine = engine
+            for lk in self.scene.links:
+                engine.set_link(lk.name, lk.stiffness, lk.damping)
+            for m in self.scene.masses:
+                if m.kind == "mass":
+                    engine.set_mass(m.name, m.mass)
+            self._ramps = []
+        self.sample += 1
+        if self._mail:
+            while self._mail:
+                ch = self._mail.popleft()
+                # a new change of the same thing restarts from where its ramp is now
+                self._ramps = [r for r in self._ramps if (r.kind, r.name) != (ch.kind, ch.name)
+                               or not _replace_start(ch, r)]
+                self._ramps.append(ch)
+                self._log("ramp_start", ch.kind, [ch.name, *ch.end])
+        if not self._ramps:
+            return
+        keep = []
+        for r in self._ramps:
+            r.done += 1
+            a = min(1.0, r.done / r.steps)
+            v = tuple(s + a * (e - s) for s, e in zip(r.start, r.end))
+            if r.kind == "link":
+                self.engine.set_link(r.name, v[0], v[1])
+            elif r.kind == "mass":
+                self.engine.set_mass(r.name, v[0])
+            elif r.kind == "gain":
+                if r.done == 1:
+                    self.live.set_gain(r.end[0], r.steps / self.scene.rate_hz)
+            else:
+                self.force_scale = v[0]
+                self.paused = r.kind == "pause"
+                if r.done == 1 and self.live is not None:   # the sound follows
+                    if self.paused:
+                        self._gain_before_pause = self.live.gain_target
+                    self.live.set_gain(0.0 if self.paused else self._gain_before_pause,
+                                       r.steps / self.scene.rate_hz)
+            if a < 1.0:
+                keep.append(r)
+            else:
+                self._log("ramp_end", r.kind, [r.name, *r.end])
+        self._ramps = keep
+
+    @property
+    def ramping(self) -> bool:
+        """Whether a change is still being ramped (or waits in the mailbox)."""
+        return bool(self._ramps or self._mail)
+
+
+class _Refused(Exception):
+    """A change refused, with the reason sent back."""
+
+
+def _replace_start(new: Change, old: Change) -> bool:
+    """Start ``new`` where the ramp ``old`` of the same thing is now; True (drop ``old``)."""
+    a = min(1.0, old.done / old.steps)
+    new.start = tuple(s + a * (e - s) for s, e in zip(old.start, old.end))
+    return True
+
+
+def _blend(a, b, w):
+    """Scene ``a`` moved the fraction ``w`` toward ``b`` (links' K, B and masses linearly)."""
+    links = tuple(dataclasses.replace(la, stiffness=la.stiffness + w * (lb.stiffness - la.stiffness),
+                                      damping=la.damping + w * (lb.damping - la.damping))
+                  if (la.stiffness, la.damping) != (lb.stiffness, lb.damping) else la
+                  for la, lb in zip(a.links, b.links))
+    masses = tuple(dataclasses.replace(ma, mass=ma.mass + w * (mb.mass - ma.mass))
+                   if ma.mass != mb.mass else ma for ma, mb in zip(a.masses, b.masses))
+    return dataclasses.replace(a, links=links, masses=masses)
+
+
+def _name(args) -> str:
+    if not args or not isinstance(args[0], str):
+        raise _Refused("the first argument must be a name (string)")
+    return args[0]
+
+
+def _floats(args, n: int, what: str) -> tuple:
+    if len(args) < n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                for v in args[:n]):
+        raise _Refused(f"expected {n} number(s): {what}")
+    vals = tuple(float(v) for v in args[:n])
+    if not all(math.isfinite(v) for v in vals):
+        raise _Refused(f"{what} must be finite")
+    return vals
+
+
+def _num(v) -> float:
+    return float(v) if v is not None else math.nan
+
+
+def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
+    """Start the OSC server of a :class:`Controller` on a thread.
+
+    Parameters
+    ----------
+    ctl : Controller
+    port : int
+        UDP port (0: any free port; the server's ``server_address`` says which).
+    host : str
+        Address to listen on (localhost by default).
+    status : callable, optional
+        ``status() -> dict`` with ``xruns`` and ``underruns`` for ``/hapsim/loop``.
+
+    Returns
+    -------
+    server : pythonosc.osc_server.ThreadingOSCUDPServer
+        Running (``server.shutdown()`` stops it).
+    telemetry : dict
+        ``{"client": SimpleUDPClient or None, "every": samples}``: where and how often the
+        sample loop sends ``/hapsim/tel`` (set by ``/hapsim/telemetry``).
+    """
+    from pythonosc import dispatcher as osc_dispatcher
+    from pythonosc import osc_server, udp_client
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    tel = {"client": None, "every": 20}
+    sock_holder = {}
+
+    def reply(addr, address, *values):
+        b = OscMessageBuilder(address=address)
+        for v in values:
+            b.add_arg(v)
+        sock_holder["server"].socket.sendto(b.build().dgram, addr)
+
+    def on_change(client, address, *args):
+        ok, info = ctl.request(address, *args)
+        if ok:
+            reply(client, "/hapsim/ok", address, *info)
+        else:
+            reply(client, "/hapsim/refused", address, info)
+
+    def on_felt(client, address, *args):
+        f = ctl.felt
+        reply(client, "/hapsim/felt", _num(f.get("k")), _num(f.get("b")), _num(f.get("f0_hz")),
+              _num(f.get("damping_ratio")), float(ctl.measured[0]), float(ctl.measured[1]))
+
+    def on_loop(client, address, *args):
+        st = status() if status is not None else {}
+        reply(client, "/hapsim/loop", int(ctl.sample), _num(ctl.felt.get("spectral_radius")),
+              int(bool(ctl.felt.get("stable"))), int(ctl.accepted), int(ctl.refused),
+              int(st.get("xruns", 0)), int(st.get("underruns", 0)))
+
+    def on_telemetry(client, address, *args):
+        try:
+            host_, port_ = str(args[0]), int(args[1])
+            rate = float(args[2]) if len(args) > 2 else 50.0
+            tel["every"] = max(1, int(round(ctl.scene.rate_hz / rate)))
+            tel["client"] = udp_client.SimpleUDPClient(host_, port_)
+        except (IndexError, ValueError, TypeError) as exc:
+            reply(client, "/hapsim/refused", address, f"expected host port [rate_hz]: {exc}")
+            return
+        ctl._log("telemetry", address, args)
+        reply(client, "/hapsim/ok", address, 0.0, math.nan, math.nan)
+
+    d = osc_dispatcher.Dispatcher()
+    for a in ADDRESSES:
+        if a == "/hapsim/felt":
+            d.map(a, on_felt, needs_reply_address=True)
+        elif a == "/hapsim/loop":
+            d.map(a, on_loop, needs_reply_address=True)
+        elif a == "/hapsim/telemetry":
+            d.map(a, on_telemetry, needs_reply_address=True)
+        else:
+            d.map(a, on_change, needs_reply_address=True)
+    d.set_default_handler(lambda client, address, *args: (
+        ctl._log("refused", address, args, reason="unknown address"),
+        reply(client, "/hapsim/refused", address,
+              f"unknown address; valid: {', '.join(ADDRESSES)}")), needs_reply_address=True)
+    server = osc_server.ThreadingOSCUDPServer((host, port), d)
+    sock_holder["server"] = server
+    threading.Thread(target=server.serve_forever, name="hapsim-osc", daemon=True).start()
+    return server, tel
+
+
+def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> None:
+    """Send one ``/hapsim/tel t x f k b`` message when a telemetry client is set
+    (called by the sample loop every ``tel["every"]`` samples; UDP, never blocks long)."""
+    c = tel.get("client")
+    if c is not None:
+        try:
+            c.send_message("/hapsim/tel", [float(t), float(x), float(f),
+                                           _num(ctl.felt.get("k")), _num(ctl.felt.get("b"))])
+        except OSError:
+            pass
+
+
+def identify_window(x: np.ndarray, scene, order: int) -> tuple[float, float]:
+    """Felt (k, b) of a free response window (matrix pencil, the pair with the largest |z|).
+
+    Returns (nan, nan) when no pair is found.
+    """
+    from hapsim.analysis.identify import fit_rendered
+
+    try:
+        md = fit_rendered(np.asarray(x, float), scene.period, order, float(scene.device.mass))
+        return float(md.k), float(md.b)
+    except (ConfigError, ValueError, np.linalg.LinAlgError):
+        return math.nan, math.nan

@@ -1,0 +1,351 @@
+"""Live sound: the audio part of a multi-rate scene computed in a sound server's callback.
+
+The haptic side (device loop, or the mock hand of ``hapsim play``) pushes one port position
+per device sample into a ring (:meth:`LiveSound.push`) and reads back the latest port force
+(:meth:`LiveSound.force`); the sound server's process callback calls one compiled function,
+:func:`hapsim.kernels.audio.run_frames`, on preallocated buffers: it runs the N audio
+sub-steps of each device period, takes the next port position from the ring at each period
+start (holding the last one, counted as an underrun, when none has arrived) and writes the
+period's port force back. The callback itself does per block only what the server's Python
+binding needs (fetch the port buffers, one copy per channel): no per-sample Python, no
+allocation by hapsim, the GIL released inside the compiled function (``nogil``).
+
+Backends: JACK (``JACK-Client``; xruns counted by the server's xrun callback) and, where no
+JACK server runs, PortAudio through ``sounddevice`` (output underflows counted as xruns).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+import numpy as np
+
+from hapsim.engine import Engine
+from hapsim.errors import ConfigError, DeviceError
+from hapsim.kernels import audio as audio_kernel
+
+__all__ = ["LiveSound", "FrameRing", "sounding_engine", "JackOutput", "SoundDeviceOutput",
+           "open_output", "BACKENDS"]
+
+#: Sound backends, in the order ``auto`` tries them.
+BACKENDS = ("jack", "sounddevice")
+_S = audio_kernel.LIVE_STATE
+
+
+class LiveSound:
+    """A multi-rate engine driven by a haptic-rate position ring, rendered block by block.
+
+    Parameters
+    ----------
+    engine : Engine
+        Engine of a scene with ``audio`` (its state is advanced here from now on: do not
+        call its :meth:`~Engine.port_step` as well).
+    ring : int
+        Ring length in device samples (positions and forces), a power of two >= 16.
+    max_block : int
+        Largest block a callback may ask for [frames].
+
+    Raises
+    ------
+    ConfigError
+        When the scene has no ``audio`` section.
+    """
+
+    def __init__(self, engine: Engine, ring: int = 4096, max_block: int = 8192) -> None:
+        if getattr(engine, "_multi", None) is None:
+            raise ConfigError("live sound needs a scene with an audio section",
+                              file=engine.scene.path, key="audio")
+        self.engine = engine
+        self.rate_hz = float(engine.scene.audio.rate_hz)
+        self.channels = engine.channels
+        self._ring = np.zeros(ring)
+        self._fring = np.zeros(ring)
+        self._wr = np.zeros(1, dtype=np.int64)
+        self._st = np.zeros(len(_S))
+        self._st[_S["gain"]] = self._st[_S["gain_target"]] = 1.0
+        p = engine._port
+        x0 = float(engine._x[p]) if p >= 0 else 0.0
+        self._st[_S["p0"]] = self._st[_S["p1"]] = x0
+        self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
+        (self._nsub, self._lin, self._last, self._port), self._state = engine._multi
+        self._lock = threading.Lock()
+        self.render(0)       # compile (or load from cache) now, not in the first callback
+
+    # -------------------------------------------------------------- haptic thread
+    def push(self, position: float) -> None:
+        """Hand the audio thread the port position of the next device sample [m].
+
+        Single producer: the value is written before the count that publishes it.
+        """
+        w = int(self._wr[0])
+        self._ring[w % self._ring.size] = position
+        self._wr[0] = w + 1
+
+    def force(self) -> float:
+        """The port force of the last device period the audio thread finished [N]
+        (0.0 before the first)."""
+        w = int(self._st[_S["written"]])
+        return float(self._fring[(w - 1) % self._fring.size]) if w > 0 else 0.0
+
+    def port_step(self, position: float) -> float:
+        """Haptic-loop form: :meth:`push` the position, return :meth:`force`."""
+        self.push(position)
+        return self.force()
+
+    def set_gain(self, gain: float, ramp_s: float = 0.05) -> None:
+        """Ramp the master gain linearly to ``gain`` over ``ramp_s`` [s] (no click).
+
+        Raises
+        ------
+        ValueError
+            Non-finite gain or negative ramp.
+        """
+        if not np.isfinite(gain) or not ramp_s >= 0:
+            raise ValueError(f"gain must be finite and ramp >= 0, got {gain}, {ramp_s}")
+        with self._lock:
+            g0 = self._st[_S["gain"]]
+            steps = max(1.0, ramp_s * self.rate_hz)
+            self._st[_S["gain_step"]] = (gain - g0) / steps
+            self._st[_S["gain_target"]] = gain
+
+    @property
+    def gain(self) -> float:
+        """Master gain now (during a ramp: where it is)."""
+        return float(self._st[_S["gain"]])
+
+    @property
+    def gain_target(self) -> float:
+        """Master gain the current ramp ends at."""
+        return float(self._st[_S["gain_target"]])
+
+    def stats(self) -> dict:
+        """``pushed``, ``consumed`` device samples, ``underruns`` (periods that found no new
+        position and held the last), ``periods`` completed."""
+        return {"pushed": int(self._wr[0]), "consumed": int(self._st[_S["read"]]),
+                "underruns": int(self._st[_S["underruns"]]),
+                "periods": int(self._st[_S["written"]])}
+
+    # -------------------------------------------------------------- audio thread
+    def render(self, nframes: int) -> np.ndarray:
+        """Compute the next ``nframes`` frames into :attr:`block` (one compiled call).
+
+        Returns
+        -------
+        ndarray, shape (nframes, C), float32
+            A view of the preallocated block.
+        """
+        audio_kernel.run_frames(nframes, self._nsub, self._lin, self._last, self._port,
+                                self._ring, self._wr, self._st, self._fring, *self._state,
+                                self.block)
+        return self.block[:nframes]
+
+
+class FrameRing:
+    """Frames computed by the haptic loop, played by a sound server (``hapsim run --sound``).
+
+    In ``hapsim run`` the multi-rate model stays in the haptic loop, so the force on the
+    device is exactly what the analysis models; each device sample's N frames
+    (:attr:`hapsim.engine.Engine.frames`) are appended here and the sound server's callback
+    copies them out (:func:`hapsim.kernels.audio.ring_read`: one compiled call per block,
+    silence counted on underrun, a jump counted when clock drift leaves the writer more
+    than half a ring ahead).
+
+    Parameters
+    ----------
+    rate_hz : float
+        Audio rate [Hz].
+    channels : tuple of str
+        Channel names.
+    ring : int
+        Frames the ring holds (default 8192: 170 ms at 48 kHz).
+    max_block : int
+        Largest block a callback may ask for [frames].
+    """
+
+    def __init__(self, rate_hz: float, channels, ring: int = 8192, max_block: int = 8192):
+        self.rate_hz = float(rate_hz)
+        self.channels = tuple(channels)
+        self._ring = np.zeros((ring, len(self.channels)), dtype=np.float32)
+        self._wr = np.zeros(1, dtype=np.int64)
+        self._st = np.zeros(3, dtype=np.int64)
+        self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
+        audio_kernel.ring_write(np.zeros((0, len(self.channels))), self._ring, self._wr)
+        self.render(0)
+
+    def push(self, frames: np.ndarray) -> None:
+        """Append one device sample's frames, shape (N, C) (haptic thread)."""
+        audio_kernel.ring_write(frames, self._ring, self._wr)
+
+    def render(self, nframes: int) -> np.ndarray:
+        """The next ``nframes`` frames into :attr:`block` (sound server's thread)."""
+        audio_kernel.ring_read(nframes, self._ring, self._wr, self._st, self.block)
+        return self.block[:nframes]
+
+    def stats(self) -> dict:
+        """``written``, ``read`` frames, ``missing`` (silence on underrun), ``skipped``."""
+        return {"written": int(self._wr[0]), "read": int(self._st[0]),
+                "missing": int(self._st[1]), "skipped": int(self._st[2])}
+
+
+def sounding_engine(ring: FrameRing) -> type:
+    """An :class:`~hapsim.engine.Engine` subclass whose :meth:`port_step` also hands its
+    frames to ``ring`` (the loop rebuilds it as ``type(engine)(scene)`` after a recovery,
+    so the ring is a class attribute)."""
+
+    class SoundingEngine(Engine):
+        __doc__ = f"Engine whose device samples also feed a {type(ring).__name__}."
+        frame_ring = ring
+
+        def port_step(self, position: float) -> float:
+            f = Engine.port_step(self, position)
+            self.frame_ring.push(self.frames)
+            return f
+
+    return SoundingEngine
+
+
+class JackOutput:
+    """Play a :class:`LiveSound` through a JACK server, one output port per listening point.
+
+    Parameters
+    ----------
+    live : LiveSound or FrameRing
+        What renders the frames (``render(n)``, ``rate_hz``, ``channels``).
+    name : str
+        JACK client name.
+    server : str, optional
+        JACK server name (``jackd -n NAME``); the default server when None.
+    connect : bool
+        Connect the outputs to the server's physical playback ports (if any).
+
+    Attributes
+    ----------
+    xruns : int
+        xruns the server reported while this client was active.
+
+    Raises
+    ------
+    DeviceError
+        No JACK server (the server is never started by this class), or its rate is not
+        the scene's audio rate.
+    """
+
+    def __init__(self, live: LiveSound, name: str = "hapsim", server: str | None = None,
+                 connect: bool = False) -> None:
+        import jack
+
+        try:
+            self.client = jack.Client(name, no_start_server=True, servername=server)
+        except jack.JackOpenError as exc:
+            raise DeviceError(f"no JACK server{' ' + repr(server) if server else ''} "
+                              f"running ({exc})") from None
+        if self.client.samplerate != int(round(live.rate_hz)):
+            rate = self.client.samplerate
+            self.client.close()
+            raise DeviceError(f"the JACK server runs at {rate} Hz, the scene's audio at "
+                              f"{live.rate_hz:g} Hz: start jackd -r {live.rate_hz:g}")
+        self.live = live
+        self.xruns = 0
+        self.ports = [self.client.outports.register(f"out_{c.replace('.', '_')}")
+                      for c in live.channels]
+        self._arrays = None
+        self.client.set_process_callback(self._process)
+        self.client.set_xrun_callback(self._xrun)
+        self.client.activate()
+        if connect:
+            targets = self.client.get_ports(is_physical=True, is_input=True, is_audio=True)
+            for p, t in zip(self.ports, targets):
+                self.client.connect(p, t)
+
+    def _process(self, frames: int) -> None:
+        block = self.live.render(frames)
+        for c, p in enumerate(self.ports):
+            p.get_array()[:] = block[:, c]
+
+    def _xrun(self, delay_usecs: float) -> None:
+        self.xruns += 1
+
+    @property
+    def out_names(self) -> list[str]:
+        """Full JACK names of the output ports (``client:port``)."""
+        return [p.name for p in self.ports]
+
+    def close(self) -> None:
+        """Deactivate and close the client."""
+        self.client.deactivate()
+        self.client.close()
+
+
+class SoundDeviceOutput:
+    """Play a :class:`LiveSound` through PortAudio (``sounddevice``), the fallback.
+
+    Attributes
+    ----------
+    xruns : int
+        Callbacks that reported an output underflow.
+    """
+
+    def __init__(self, live: LiveSound, device=None) -> None:
+        import sounddevice as sd
+
+        self.live = live
+        self.xruns = 0
+
+        def callback(outdata, frames, time, status):
+            if status.output_underflow:
+                self.xruns += 1
+            outdata[:] = live.render(frames)
+
+        try:
+            self.stream = sd.OutputStream(samplerate=live.rate_hz, channels=len(live.channels),
+                                          dtype="float32", callback=callback, device=device)
+            self.stream.start()
+        except Exception as exc:  # PortAudio raises its own error types
+            raise DeviceError(f"no audio output through PortAudio: {exc}") from None
+
+    def close(self) -> None:
+        """Stop and close the stream."""
+        self.stream.stop()
+        self.stream.close()
+
+
+def open_output(live: LiveSound, backend: str = "auto", *, server: str | None = None,
+                connect: bool = True):
+    """Open a sound output for ``live``: JACK, else sounddevice.
+
+    Parameters
+    ----------
+    backend : {"auto", "jack", "sounddevice"}
+    server : str, optional
+        JACK server name.
+    connect : bool
+        JACK: connect to the physical playback ports.
+
+    Returns
+    -------
+    JackOutput or SoundDeviceOutput
+
+    Raises
+    ------
+    ConfigError
+        Unknown backend (key ``--sound``).
+    DeviceError
+        The backend asked for (or every one, with ``auto``) cannot play.
+    """
+    if backend not in ("auto",) + BACKENDS:
+        raise ConfigError(f"unknown sound backend {backend!r}; valid: auto, "
+                          + ", ".join(BACKENDS), key="--sound")
+    # The callback enters Python once per block and needs the GIL: with the default switch
+    # interval (5 ms, the length of a 256-frame block at 48 kHz) a busy haptic thread can
+    # hold it past the deadline. 0.2 ms bounds that wait.
+    sys.setswitchinterval(min(sys.getswitchinterval(), 2e-4))
+    errors = []
+    for b in (BACKENDS if backend == "auto" else (backend,)):
+        try:
+            if b == "jack":
+                return JackOutput(live, server=server, connect=connect)
+            return SoundDeviceOutput(live)
+        except (DeviceError, ImportError, OSError) as exc:
+            errors.append(f"{b}: {exc}")
+    raise DeviceError("no sound output: " + "; ".join(errors))

@@ -1,0 +1,247 @@
+"""``hapsim play``: play a scene live: sound out, changes in over OSC, the mock hand plucking."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+_DESCRIPTION = """\
+Play a scene live, as an instrument: the embedded mock device (the scene's device section)
+is closed on the scene at the device rate in real time, its hand plucking with the scene's
+excitation (again every --pluck-every seconds); the sound of the scene's audio section goes
+out through JACK (or PortAudio); an OSC server (--osc PORT, localhost) takes changes from
+Pd, Max or SuperCollider while it plays. Every change is checked before it is applied (the
+changed scene's closed loop must be stable, the check hapsim run makes, also at three points
+of the ramp) or refused with the reason sent back; accepted changes are ramped over --ramp
+seconds (no step felt, no click) and journaled."""
+
+_EPILOG = """\
+OSC addresses (replies go to the sender's address and port):
+  /hapsim/link/stiffness LINK K        /hapsim/link/damping LINK B
+  /hapsim/link/kb LINK K B             /hapsim/link/target LINK k b   (felt, calibrated)
+  /hapsim/mass MASS m                  /hapsim/gain G                 (sound master gain)
+  /hapsim/pause, /hapsim/resume        (force and sound ramped to 0 and back)
+      -> /hapsim/ok ADDRESS ramp_s k b   or   /hapsim/refused ADDRESS REASON
+  /hapsim/felt  -> /hapsim/felt k b f0 zeta k_measured b_measured
+  /hapsim/loop  -> /hapsim/loop sample spectral_radius stable accepted refused xruns underruns
+  /hapsim/telemetry HOST PORT [RATE] -> /hapsim/tel t x f k b sent to HOST:PORT at RATE Hz
+measured (k, b): identified (matrix pencil) from each free response between plucks that no
+  change disturbed; NaN until one has been.
+late: times the loop fell more than 20 ms behind the clock (it then resynchronises; the
+  mock device's physics stays sample-exact). sound: xruns (JACK's count, or PortAudio
+  underflows) and ring underruns (device periods the audio thread found no new position
+  for and held the last).
+examples:
+  jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
+  hapsim play configs/audio_string.yaml --osc 9000 --duration 60
+  hapsim play configs/wall.yaml --osc 9000 --sound none --pluck-every 0.5 --json"""
+
+
+def register(sub) -> None:
+    """Add the ``play`` sub-command.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers of the ``hapsim`` parser; the new parser's ``func`` is :func:`run`.
+    """
+    p = sub.add_parser("play", help="play a scene live: sound out (JACK), changes in (OSC)",
+                       description=_DESCRIPTION, epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
+    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+                   help="play this long [s] (default 10)")
+    p.add_argument("--osc", type=int, metavar="PORT",
+                   help="serve OSC changes and queries on localhost:PORT (0: any free port)")
+    p.add_argument("--sound", default="auto", choices=("auto", "jack", "sounddevice", "none"),
+                   help="sound output (default auto: JACK, else PortAudio; scenes without "
+                        "an audio section play silently)")
+    p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
+    p.add_argument("--ramp", type=float, default=0.05, metavar="S",
+                   help="ramp time of every change [s] (default 0.05)")
+    p.add_argument("--pluck-every", type=float, default=0.0, metavar="S",
+                   help="repeat the scene's excitation (hand impulse/profile) every S seconds "
+                        "(default 0: once)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="run as fast as possible instead of in real time (no OSC timing)")
+    p.add_argument("--journal", metavar="FILE.json",
+                   help="write the change journal (requests, verdicts, ramps) here")
+    p.add_argument("--telemetry", metavar="FILE.npz",
+                   help="write time [s], device position [m], port force [N] per sample")
+    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
+                   help="SCHED_FIFO priority of the haptic loop where permitted (default 10; "
+                        "0: normal): a descheduled haptic thread holding the GIL makes the "
+                        "sound callback wait")
+    p.add_argument("--json", action="store_true", help="print one JSON report on stdout")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hapsim play``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options (see :func:`register`).
+
+    Returns
+    -------
+    int
+        0 after the run; 1 when the scene's closed loop is unstable (refused before
+        playing) or no sound output could be opened for ``--sound jack|sounddevice``;
+        2 on bad input (raised as ConfigError).
+    """
+    from hapsim.audio.control import Controller, identify_window, send_telemetry, serve_osc
+    from hapsim.daemon.mock import MockPhysics, hand_force_samples
+    from hapsim.daemon.runner import _warm_up, prepare_scene
+    from hapsim.engine import Engine
+    from hapsim.errors import DeviceError
+    from hapsim.scene import load_scene
+
+    if not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ConfigError(f"must be > 0, got {args.duration}", key="--duration")
+    if not args.ramp >= 0:
+        raise ConfigError(f"must be >= 0, got {args.ramp}", key="--ramp")
+    if not args.pluck_every >= 0:
+        raise ConfigError(f"must be >= 0, got {args.pluck_every}", key="--pluck-every")
+    scene, _ = prepare_scene(load_scene(args.scene))
+    engine = Engine(scene)
+    live = out = None
+    if args.sound != "none" and scene.audio is not None:
+        from hapsim.audio.live import LiveSound, open_output
+        live = LiveSound(engine)
+    ctl = Controller(scene, engine, live, ramp_s=args.ramp)
+    if not ctl.felt["stable"]:
+        print(f"hapsim play: the closed loop of {args.scene} is unstable (spectral radius "
+              f"{ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
+        return 1
+    T = scene.period
+    steps = int(round(args.duration * scene.rate_hz))
+    dev = scene.device
+    base = os.path.dirname(os.path.abspath(scene.path))
+    h = hand_force_samples(scene.excitation, T, base)
+    P = int(round(args.pluck_every * scene.rate_hz)) if args.pluck_every > 0 else steps + 1
+    hand = np.zeros(steps + 1)
+    for s0 in range(0, steps, max(P, 1)):
+        n = min(h.size, steps - s0)
+        hand[s0:s0 + n] = h[:n]
+    phys = MockPhysics(dev, scene.rate_hz, scene.excitation, hand=hand, base_dir=base)
+    server = tel = None
+    status = (lambda: {"xruns": getattr(out, "xruns", 0),
+                       "underruns": live.stats()["underruns"] if live else 0})
+    xs = np.zeros(steps)
+    fs = np.zeros(steps)
+    line = deque([0.0] * int(dev.delay))
+    lim = float(dev.force_limit)
+    engine.set_port_position(phys.sample(), at_rest=True)
+    from hapsim.daemon._blas import limit_blas_threads
+    limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
+    _warm_up(scene)                                   # kernels loaded before the clock starts
+    identify_window(np.cos(0.3 * np.arange(200)) * 0.99 ** np.arange(200), scene, 2)
+    if live is not None:    # the sound starts with the clock, not during warm-up
+        try:
+            out = open_output(live, args.sound, server=args.jack_server)
+        except DeviceError as exc:
+            if args.sound != "auto":
+                print(f"hapsim play: {exc}", file=sys.stderr)
+                return 1
+            print(f"hapsim play: no sound ({exc}); playing silently", file=sys.stderr)
+            live = ctl.live = None
+    if args.osc is not None:
+        server, tel = serve_osc(ctl, args.osc, status=status)
+        host, port = server.server_address[:2]
+        print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    step = live.port_step if live is not None else engine.port_step
+    late = 0
+    quiet_from = 0            # first sample after the last change's ramp ended
+    from hapsim.daemon.realtime import RealtimePriority
+    rt = RealtimePriority(args.rt_priority).__enter__()
+    t0 = time.perf_counter()
+    try:
+        for n in range(steps):
+            ctl.poll()
+            if ctl.ramping:
+                quiet_from = n + 1
+            x = phys.sample()
+            f = step(x) * ctl.force_scale
+            xs[n], fs[n] = x, f
+            line.append(f)
+            u = line.popleft()
+            phys.advance(min(lim, max(-lim, u)))
+            if tel is not None and n % tel["every"] == 0:
+                send_telemetry(tel, n * T, x, f, ctl)
+            if P <= steps and (n + 1) % P == 0 and h.size:
+                # end of a free response: identify it when no change disturbed it
+                a = max(n + 1 - P + h.size, quiet_from)
+                if n + 1 - a >= 50 and ctl.felt.get("order"):
+                    ctl.measured = identify_window(xs[a:n + 1], ctl.scene, ctl.felt["order"])
+            if not args.lockstep:
+                ahead = t0 + (n + 1) * T - time.perf_counter()
+                if ahead > 0:
+                    time.sleep(ahead)
+                elif ahead < -0.02:       # more than 20 ms behind: count, resynchronise
+                    late += 1
+                    t0 -= ahead
+    finally:
+        rt.__exit__(None, None, None)
+        if server is not None:
+            server.shutdown()
+            server.server_close()
+        if out is not None:
+            out.close()
+    if P > steps and h.size and quiet_from < steps - 50:
+        ctl.measured = identify_window(xs[max(h.size, quiet_from):], ctl.scene,
+                                       ctl.felt.get("order") or 2)
+    report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
+              "late": late,  # times > 20 ms behind the clock (then resynchronised)
+              "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
+              "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1]},
+              "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+              "sound": None if live is None else {
+                  "backend": type(out).__name__, "xruns": out.xruns, **live.stats()},
+              "journal": ctl.journal}
+    if args.journal:
+        _dump(args.journal, ctl.journal)
+    if args.telemetry:
+        tmp = args.telemetry + ".partial"
+        with open(tmp, "wb") as fh:
+            np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
+        os.replace(tmp, args.telemetry)
+    if args.json:
+        print(json.dumps(_finite(report)))
+    else:
+        felt = ctl.felt
+        print(f"played {args.scene} for {steps * T:g} s ({steps} samples, {late} late); "
+              f"{ctl.accepted} changes accepted, {ctl.refused} refused")
+        print(f"felt now: k = {felt.get('k')} N/m, b = {felt.get('b')} N s/m predicted; "
+              f"measured k = {ctl.measured[0]:.6g}, b = {ctl.measured[1]:.6g}")
+        if report["sound"]:
+            print(f"sound: {report['sound']}")
+    return 0
+
+
+def _finite(v):
+    """JSON-safe copy: non-finite floats become None."""
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    return v
+
+
+def _dump(path: str, journal: list) -> None:
+    tmp = path + ".partial"
+    with open(tmp, "w") as fh:
+        json.dump(_finite(journal), fh, indent=1)
+    os.replace(tmp, path)

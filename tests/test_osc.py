@@ -1,0 +1,206 @@
+"""Live control over OSC: ``hapsim play --osc`` driven by a python-osc client and by Pd.
+
+Each test starts the daemon as a child process (real time, no sound), sends changes (one of
+them unstable) and checks: the accepted ones are applied (the scene's links at the end, and
+the felt k measured from the free responses after the change equals the prediction for the
+new (K, B) to 1e-6 relative), the refused one is not (answer /hapsim/refused with the
+reason), everything is journaled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.ths import render
+
+SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def start_daemon(duration, extra=()):
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", SCENE, "--osc", "0",
+                             "--sound", "none", "--duration", str(duration),
+                             "--pluck-every", "0.4", "--json", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
+                            text=True)
+    line = proc.stderr.readline()
+    if "OSC on" not in line:
+        proc.kill()
+        pytest.fail(f"daemon did not start: {line}{proc.stderr.read()}")
+    port = int(line.strip().rsplit(":", 1)[1])
+    return proc, port
+
+
+def finish(proc):
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    return json.loads(out)
+
+
+def felt_k(K, B):
+    return render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), K, B).k
+
+
+class Client:
+    """A python-osc client that sends from one UDP socket and reads the replies on it."""
+
+    def __init__(self, port):
+        self.addr = ("127.0.0.1", port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(10.0)
+
+    def ask(self, address, *args):
+        from pythonosc.osc_message import OscMessage
+        from pythonosc.osc_message_builder import OscMessageBuilder
+
+        b = OscMessageBuilder(address=address)
+        for a in args:
+            b.add_arg(a)
+        self.sock.sendto(b.build().dgram, self.addr)
+        data, _ = self.sock.recvfrom(65536)
+        msg = OscMessage(data)
+        return msg.address, list(msg.params)
+
+
+def test_python_osc_client_changes_are_checked_ramped_and_felt():
+    proc, port = start_daemon(2.6)
+    c = Client(port)
+    try:
+        addr, p = c.ask("/hapsim/link/stiffness", "wall", 700.0)
+        assert addr == "/hapsim/ok" and p[0] == "/hapsim/link/stiffness"
+        # OSC floats are float32 (what Pd reads): compare to 1e-6 relative
+        assert p[1] == pytest.approx(0.05, rel=1e-6)
+        assert p[2] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
+        addr, p = c.ask("/hapsim/link/stiffness", "wall", 1.0e6)      # unstable at d = 1
+        assert addr == "/hapsim/refused" and "unstable" in p[1]
+        addr, p = c.ask("/hapsim/link/stiffness", "nowhere", 10.0)
+        assert addr == "/hapsim/refused" and "nowhere" in p[1]
+        addr, p = c.ask("/hapsim/mass", "wall", 1.0)                  # a ground
+        assert addr == "/hapsim/refused"
+        deadline = time.monotonic() + 20.0   # a pluck after the ramp: a free response
+        while True:
+            addr, p = c.ask("/hapsim/felt")
+            if p[4] == p[4] or time.monotonic() > deadline:     # measured (not NaN)
+                break
+            time.sleep(0.1)
+        assert addr == "/hapsim/felt"
+        assert p[0] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
+        assert p[4] == pytest.approx(p[0], rel=1e-6)                  # measured = predicted
+        addr, p = c.ask("/hapsim/loop")
+        assert addr == "/hapsim/loop" and p[2] == 1 and p[3] == 1 and p[4] == 3
+    finally:
+        rep = finish(proc)
+    assert rep["links"]["wall"] == [700.0, 1.0]
+    assert rep["measured"]["k"] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
+    events = [(e["event"], e["address"]) for e in rep["journal"]]
+    assert ("accepted", "/hapsim/link/stiffness") in events
+    assert ("ramp_end", "link") in events
+    assert sum(e == "refused" for e, _ in events) == 3
+
+
+PATCH = """#N canvas 0 50 600 400 12;
+#X obj 10 10 loadbang;
+#X msg 10 40 connect 127.0.0.1 {port};
+#X obj 10 330 netsend -u -b;
+#X obj 10 70 delay 100;
+#X msg 10 100 list wall 600;
+#X obj 10 200 oscformat hapsim link stiffness;
+#X obj 10 240 list prepend send;
+#X obj 10 270 list trim;
+#X obj 200 70 delay 300;
+#X msg 200 100 list wall 1e+06;
+#X obj 400 70 delay 600;
+#X msg 400 100 \\; pd quit;
+#X connect 0 0 1 0;
+#X connect 1 0 2 0;
+#X connect 0 0 3 0;
+#X connect 3 0 4 0;
+#X connect 4 0 5 0;
+#X connect 5 0 6 0;
+#X connect 6 0 7 0;
+#X connect 7 0 2 0;
+#X connect 0 0 8 0;
+#X connect 8 0 9 0;
+#X connect 9 0 5 0;
+#X connect 0 0 10 0;
+#X connect 10 0 11 0;
+"""
+
+
+def test_pd_patch_sends_changes_over_osc(tmp_path):
+    """A Pd patch run headless (pd -nogui -nosound) sends, with [oscformat] into
+    [netsend -u -b], K = 600 (stable: applied, then felt) and K = 1e6 (unstable: refused),
+    and quits from inside the patch."""
+    if shutil.which("pd") is None:
+        pytest.skip("pd not installed: apt-get install puredata")
+    proc, port = start_daemon(2.4)
+    patch = tmp_path / "send.pd"
+    patch.write_text(PATCH.format(port=port))
+    try:
+        pd = subprocess.run(["pd", "-nogui", "-nosound", "-open", str(patch)],
+                            capture_output=True, text=True, timeout=30)
+        assert pd.returncode == 0, pd.stderr
+    finally:
+        rep = finish(proc)
+    assert rep["links"]["wall"] == [600.0, 1.0]
+    got = [(e["event"], e["args"]) for e in rep["journal"] if e["event"] in ("accepted", "refused")]
+    assert got == [("accepted", ["wall", 600.0]), ("refused", ["wall", 1e6])], got
+    assert rep["felt"]["k"] == pytest.approx(felt_k(600.0, 1.0), rel=1e-9)
+    assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
+
+
+def test_run_osc_changes_the_running_daemon():
+    """hapsim run --osc (real-time embedded mock on a pty): an accepted change is ramped
+    into the running engine and reported with its prediction, a refused one is not."""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    hst = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"osc-{os.getpid()}.hst")
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
+                             "--duration", "2", "--rt-priority", "0", "--json",
+                             "--telemetry", hst],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
+                            text=True)
+    port = None
+    for _ in range(50):
+        line = proc.stderr.readline()
+        if "OSC on" in line:
+            port = int(line.strip().rsplit(":", 1)[1])
+            break
+        if not line:
+            break
+    if port is None:
+        proc.kill()
+        pytest.fail(f"run did not start its OSC server: {proc.stderr.read()}")
+    c = Client(port)
+    try:
+        assert c.ask("/hapsim/link/damping", "wall", 3.0)[0] == "/hapsim/ok"
+        addr, p = c.ask("/hapsim/link/kb", "wall", 5.0e5, 3.0)
+        assert addr == "/hapsim/refused" and "unstable" in p[1]
+        addr, p = c.ask("/hapsim/felt")
+        assert p[1] == pytest.approx(render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 400.0,
+                                            3.0).b, rel=1e-6)
+    finally:
+        rep = finish(proc)
+    osc = rep["osc"]
+    assert (osc["accepted"], osc["refused"]) == (1, 1)
+    assert osc["links"]["wall"] == [400.0, 3.0]
+    assert [e["event"] for e in osc["journal"] if e["event"].startswith("ramp")] == \
+        ["ramp_start", "ramp_end"]
+    from hapsim.daemon.telemetry import load
+    try:
+        info = {}
+        load(hst, info=info)
+        events = [e["event"] for e in info["events"] if e["event"].startswith("osc ")]
+    finally:
+        os.remove(hst)
+    assert events[:2] == ["osc request", "osc accepted"] and "osc refused" in events
