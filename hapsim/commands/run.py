@@ -149,8 +149,8 @@ def register(sub) -> None:
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
     p.add_argument("--driver", default="framed", metavar="NAME",
-                   help="device protocol: framed (hapsim's own, default) or firefader; "
-                        "a driver runs host-clocked (see 'drivers' below)")
+                   help=f"device protocol, one of {', '.join(DRIVERS)} (default framed, "
+                        "hapsim's own); a driver runs host-clocked (see 'drivers' below)")
     p.add_argument("--device", metavar="FILE.yaml",
                    help="device section from a file (e.g. written by 'hapsim identify "
                         "--out'); replaces the scene's")
@@ -218,7 +218,7 @@ def run(args) -> int:
     DeviceError, ProtocolError
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
-    from hapsim.daemon.runner import format_report, run_scene
+    from hapsim.daemon.runner import format_report
     from hapsim.scene import load_scene
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
@@ -261,17 +261,16 @@ def run(args) -> int:
         scene = advice.apply(scene)
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
-    rep = run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
-                    rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                    telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                    seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
-                    faults=args.faults, fault_seed=args.fault_seed,
-                    reconnect=False if args.no_reconnect else None,
-                    lost_timeout=args.lost_timeout,
-                    reconnect_attempts=args.reconnect_attempts,
-                    reconnect_time=args.reconnect_time, osc=args.osc,
-                    osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                    driver=None if args.driver == "framed" else args.driver)
+    from hapsim.errors import DeviceError, ProtocolError
+    try:
+        rep = _run(scene, args)
+    except (DeviceError, ProtocolError) as exc:
+        rep = getattr(exc, "report", None)
+        if rep is None:                 # never started: nothing to report but the error
+            raise
+        lost = exc
+    else:
+        lost = None
     code = rep.pop("exit_code")
     if advice is not None:
         rep["advice"] = advice.to_dict()
@@ -280,4 +279,22 @@ def run(args) -> int:
     else:
         print(format_report(rep))
     sys.stdout.flush()
+    if lost is not None:                # the report first, then why the run ended
+        print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
     return code
+
+
+def _run(scene, args) -> dict:
+    """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
+    from hapsim.daemon.runner import run_scene
+    return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
+                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                     seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
+                     faults=args.faults, fault_seed=args.fault_seed,
+                     reconnect=False if args.no_reconnect else None,
+                     lost_timeout=args.lost_timeout,
+                     reconnect_attempts=args.reconnect_attempts,
+                     reconnect_time=args.reconnect_time, osc=args.osc,
+                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                     driver=None if args.driver == "framed" else args.driver)

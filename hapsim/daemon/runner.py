@@ -625,6 +625,9 @@ class LoopRun:
         Journal writer's ``lost_rows``, ``chunks``, ``events``, ``error``.
     journal : str or None
         Journal path (``.hst``).
+    error : DeviceError or ProtocolError or None
+        What ended the loop when the device was lost beyond recovery (``res`` then holds
+        the run up to the loss); :func:`run_scene` raises it with the report attached.
     """
 
     res: object
@@ -633,6 +636,7 @@ class LoopRun:
     journal: str | None
     control: object = None
     sound: dict | None = None
+    error: Exception | None = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -845,16 +849,18 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     -------
     LoopRun
 
-    Raises
-    ------
-    DeviceError, ProtocolError
-        From the loop (the telemetry logged so far is exported first).
+    Notes
+    -----
+    A DeviceError or ProtocolError from the loop (device lost beyond recovery) is not
+    raised here: the result holds the run up to the loss and the error
+    (:attr:`LoopRun.error`), so the report is still made.
     """
     tel, tr, telemetry = conn.tel, conn.tr, opts.telemetry
     writer = None
     writer_info = None
     journal = None
     mock_report = None
+    error = None
     ctl = osc_server = None
     ring = out = None
     try:
@@ -873,14 +879,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             opts.on_start(tr.info.get("port"), prep.n_samples)
         try:
             res = loop.run()
-        except (DeviceError, ProtocolError):
-            if writer is not None:
-                writer.close()
-                writer = None
-            if telemetry and tel.n and journal != telemetry:
-                # what was logged helps diagnose the failure
-                _export(tel, journal, telemetry)
-            raise
+        except (DeviceError, ProtocolError) as exc:
+            # the run up to the loss is reported (and its telemetry exported) as any other
+            error = exc
+            res = loop.finish()
+            res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
         if osc_server is not None:
             osc_server.shutdown()
@@ -906,7 +909,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             mock_report["fault_events"] = tr.device.events
     sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
                                        **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
@@ -1211,9 +1214,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     UnstableConfigError
         Target not renderable, or unstable loop without ``allow_unstable``.
     DeviceError
-        Port failure or silent device.
+        Port failure or silent device. Once the loop has started (device lost beyond
+        recovery), the exception's ``report`` attribute holds the report of the run up to
+        the loss (``exit_code`` 1, ``error``: ``type`` and ``message``, ``loop.stop_reason``
+        naming the error).
     ProtocolError
-        The device speaks another protocol version or has another number of axes than 1.
+        The device speaks another protocol version or has another number of axes than 1
+        (with ``report`` as for DeviceError when the loop had started).
     """
     opts = RunOptions(port=port, baud=baud, duration=duration, rate_hz=rate_hz,
                       lockstep=lockstep, host_clocked=host_clocked, telemetry=telemetry,
@@ -1230,7 +1237,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
     measured = identify_run(prep, conn.tel)
-    return build_report(prep, conn, run, opts, measured, tel_info)
+    rep = build_report(prep, conn, run, opts, measured, tel_info)
+    if run.error is not None:          # device lost beyond recovery: the report goes with it
+        rep["exit_code"] = 1
+        rep["error"] = {"type": type(run.error).__name__, "message": str(run.error)}
+        run.error.report = rep
+        raise run.error
+    return rep
 
 
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):
