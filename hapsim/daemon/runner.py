@@ -474,6 +474,8 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    loop: str = "compiled"
+    driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -515,12 +517,23 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        if self.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            get_driver(self.driver)             # unknown name: ConfigError before any work
+            if not self.plan.empty:
+                raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                                  "has none", key="--faults")
+            self.host_clocked = True            # the protocols answer commands: no clock
+            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:
             raise ConfigError("transport 'serial' needs a port", key="--port")
         if tp == "inprocess" and not self.lockstep:
             raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+        if self.loop not in ("compiled", "python"):
+            raise ConfigError(f"unknown loop {self.loop!r}; valid: compiled, python",
+                              key="--loop")
         if self.telemetry is not None and os.path.splitext(self.telemetry)[1].lower() not in (
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
@@ -620,6 +633,8 @@ class LoopRun:
     error : DeviceError or ProtocolError or None
         What ended the loop when the device was lost beyond recovery (``res`` then holds
         the run up to the loss); :func:`run_scene` raises it with the report attached.
+    loop : HostLoop or CompiledHostLoop
+        The loop that ran.
     """
 
     res: object
@@ -629,6 +644,7 @@ class LoopRun:
     control: object = None
     sound: dict | None = None
     error: Exception | None = None
+    loop: object = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -734,6 +750,29 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       reconnect_time=float(opts.reconnect_time))
 
 
+class _CompileThread(threading.Thread):
+    """Compile the compiled loop (:func:`hapsim.daemon.fastloop.warm_up`) beside the
+    device's start-up; :meth:`finish` waits for it and re-raises its error."""
+
+    def __init__(self, engine) -> None:
+        super().__init__(name="hapsim-compile", daemon=True)
+        self.engine = engine
+        self.error: BaseException | None = None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            from hapsim.daemon.fastloop import warm_up
+            warm_up(self.engine)
+        except BaseException as exc:  # re-raised by finish() in the caller's thread
+            self.error = exc
+
+    def finish(self) -> None:
+        self.join()
+        if self.error is not None:
+            raise self.error
+
+
 def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     """Step 3: install the signal handlers, warm the kernels, open the device.
 
@@ -771,6 +810,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     rt = None
     mock = None
     transport, lockstep = opts.transport, opts.lockstep
+    warm = None
     try:
         limit_blas_threads(1)
         _warm_up(scene)
@@ -783,6 +823,9 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             from hapsim.daemon.correction import corrected_engine
             if not sensor or transport != "inprocess":
                 engine = corrected_engine(scene)       # raises for a sensor on a wire
+        if opts.loop == "compiled" and transport in ("pty", "serial") and corr is None:
+            # the compiled loop compiles while the device (the mock's child) starts
+            warm = _CompileThread(Engine(scene))
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -791,7 +834,19 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         cfg = _loop_config(prep, opts)
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
         rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if transport == "inprocess":
+        if opts.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(opts.driver)
+            if opts.port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
+                                              scene.rate_hz, seed=opts.seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
@@ -813,6 +868,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
+        if warm is not None:
+            warm.finish()
     except BaseException:
         if rt is not None:
             rt.__exit__(None, None, None)
@@ -856,7 +913,17 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        corrected = getattr(prep.scene.device, "correction", None) is not None
+        if (opts.loop == "compiled" and opts.sound is None and opts.osc is None
+                and not corrected):
+            # the compiled loop steps the kernel itself: live OSC changes and the sounding
+            # engine run per sample in Python, so they keep the Python loop; so does a
+            # device correction (its law runs in the engine's port_step, see
+            # hapsim.daemon.correction)
+            from hapsim.daemon.fastloop import CompiledHostLoop
+            loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        else:
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -899,7 +966,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             mock_report["fault_events"] = tr.device.events
     sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
                                        **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
@@ -1043,12 +1110,16 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     hello = res.hello
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
+        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
+        "armed_monotonic_s": getattr(run.loop, "_t0", None),
         "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
-        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
         "scheduling": conn.rt.note,
@@ -1101,7 +1172,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None) -> dict:
+              jack_server: str | None = None,
+              driver: str | None = None, loop: str = "compiled") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1170,6 +1242,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -1181,6 +1258,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
+        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1215,7 +1296,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server).check()
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
+                      driver=driver, loop=loop).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
@@ -1351,7 +1433,8 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
                  f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
-                 f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
+                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
+                 f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}
