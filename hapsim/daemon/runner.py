@@ -183,7 +183,8 @@ def predict(scene: Scene) -> dict:
 
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
-             skip: int = 3) -> dict:
+             skip: int = 3, predicted=None, felt: complex | None = None,
+             quantum: float = 0.0, noise: float = 0.0) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -213,13 +214,22 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
+    predicted : array_like of complex, optional
+        Predicted non-zero closed-loop poles seen at the port; with ``felt`` (the predicted
+        felt pole) the measurement is :func:`hapsim.analysis.identify.measure_felt`
+        (robust to a quantised or noisy sensor, with standard errors); without, the full
+        order matrix pencil alone.
+    quantum, noise : float
+        Position sensor step [m] and noise standard deviation [m] (0: none).
 
     Returns
     -------
     dict
         ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; or ``error`` (str) when nothing can be
-        identified.
+        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
+        :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
+        be identified or the record cannot support a measurement.
     """
     from hapsim.analysis.identify import fit_rendered
 
@@ -258,6 +268,19 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     n_use = y.size - (1 if offset else 0)
     pencil = min(max(int(order), n_use // 3), max(10 * int(order), 60))
     out["pencil"] = pencil
+    if predicted is not None and felt is not None and y.size:
+        from hapsim.analysis.identify import measure_felt
+        try:
+            res = measure_felt(y, period, mass, predicted, felt, offset=offset,
+                               quantum=quantum, noise=noise, order=int(order), pencil=pencil)
+        except ConfigError as exc:
+            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+            return out
+        out.update(res)
+        if "error" in res:
+            for q in ("k", "b", "f0_hz", "damping_ratio"):
+                out.pop(q, None)
+        return out
     try:
         md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
     except ConfigError as exc:
@@ -944,7 +967,79 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
+def _predicted_poles(scene: Scene):
+    """Predicted non-zero closed-loop poles seen at the port and the felt one (or None).
+
+    The same models as :func:`predict`: the THS map for one port link, ``check_scene``
+    (observable modes, conjugates added) otherwise.
+    """
+    an = _analysis()
+    dev = scene.device
+    plinks = _port_links(scene)
+    single = len(scene.links) == 1 and len(plinks) == 1 and all(
+        m.kind != "mass" for m in scene.masses) and scene.audio is None
+    if single:
+        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+        K = sum(lk.stiffness for lk in plinks)
+        B = sum(lk.damping for lk in _links_at_port(scene))
+        r = an["render"](loop, K, B)
+        z = np.asarray(an["closed_loop_poles"](loop, K, B), dtype=complex)
+        felt = None if r.rendered is None else complex(r.rendered.z)
+        return z[np.abs(z) > _ZERO_POLE], felt
+    from hapsim.analysis.modes import OBSERVABLE_TOL
+    chk = an["check_scene"](scene)
+    z = []
+    for md in chk.modes:
+        if abs(md.z) > _ZERO_POLE and (md.participation is None
+                                       or md.participation >= OBSERVABLE_TOL):
+            z += [md.z, complex(md.z).conjugate()] if md.kind == "pair" else [md.z]
+    felt = None if chk.rendered is None else complex(chk.rendered.z)
+    return np.asarray(z, dtype=complex), felt
+
+
+def _verdict(prep: PreparedRun, measured: dict, quantum: float) -> None:
+    """Add ``k_interval``, ``b_interval`` (the stated half-widths) and ``verdict``.
+
+    The interval is the fit's (:data:`hapsim.analysis.identify.COVERAGE` standard errors,
+    the residual's or the sensor's, the larger) plus, for one port link on a quantised
+    sensor, what the quantiser's loop gain may move the felt pair over the amplitudes of
+    the record (:func:`hapsim.analysis.identify.quantiser_gain_bound`); never below
+    1e-9 relative (round-off of the exact record).
+    """
+    pred, scene = prep.pred, prep.scene
+    if "k_unc" not in measured or pred.get("k") is None:
+        return
+    dk, db = measured["k_unc"], measured["b_unc"]
+    if quantum > 0 and pred.get("source") == "render":
+        from hapsim.analysis.identify import quantiser_gain_bound
+        an = _analysis()
+        loop = an["LoopModel"].from_device(scene.device, scene.rate_hz)
+        plinks = _port_links(scene)
+        K = sum(lk.stiffness for lk in plinks)
+        B = sum(lk.damping for lk in _links_at_port(scene))
+        a0 = measured.get("amplitude", 0.0)
+        a1 = a0 * math.exp(-pred["b"] / (2 * scene.device.mass)
+                           * measured.get("samples_used", 0) * scene.period)
+        gb = quantiser_gain_bound(loop, K, B, a0, max(a1, 5.0 * quantum), quantum, 0.0)
+        dk, db = dk + gb["dk"], db + gb["db"]
+        gain = " + the quantiser's loop gain"
+    else:
+        gain = ""
+    dk = max(dk, 1e-9 * abs(pred["k"]))
+    db = max(db, 1e-9 * abs(pred["b"]))
+    measured["k_interval"], measured["b_interval"] = dk, db
+    if measured.get("method") == "varpro":
+        from hapsim.analysis.identify import COVERAGE
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit (residual or sensor, the larger){gain}")
+    ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
+    measured["within"] = bool(ok)
+    measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
+                           "measured differs from predicted by more than the stated "
+                           "uncertainty")
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -955,24 +1050,33 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
         :func:`prepare_run`'s result.
     tel : Telemetry
         The run's telemetry.
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO: its ``position_scale`` is the sensor step when the scene's
+        ``device.position_resolution`` does not give one.
 
     Returns
     -------
     dict
-        :func:`identify`'s result with ``note`` (why prediction and measurement may differ),
+        :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
+        ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
         ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    quantum = float(dev.position_resolution or 0.0)
+    if not quantum and hello is not None and math.isfinite(hello.position_scale):
+        quantum = max(float(hello.position_scale), 0.0)
     if pred["order"]:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
         offset = _has_offset(scene)
+        poles, felt = _predicted_poles(scene)
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2)
+                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links):
         notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
@@ -991,6 +1095,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
                      f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
+    _verdict(prep, measured, quantum)
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
@@ -1201,7 +1306,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel)
+    measured = identify_run(prep, conn.tel, run.res.hello)
     return build_report(prep, conn, run, opts, measured, tel_info)
 
 
@@ -1308,6 +1413,11 @@ def format_report(rep: dict) -> str:
         re = m["rel_err"]
         lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
                      f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
+        if m.get("interval_note"):
+            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4f')} "
+                         f"{_fmt(m['b_interval'], '11.5f')}   ({m['interval_note']})")
+        if m.get("verdict"):
+            lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
             rt = m["rel_err_target"]
             lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
