@@ -1007,7 +1007,7 @@ def _verdict(prep: PreparedRun, measured: dict, quantum: float) -> None:
     1e-9 relative (round-off of the exact record).
     """
     pred, scene = prep.pred, prep.scene
-    if "k_unc" not in measured or pred.get("k") is None:
+    if "k" not in measured or "k_unc" not in measured or pred.get("k") is None:
         return
     dk, db = measured["k_unc"], measured["b_unc"]
     if quantum > 0 and pred.get("source") == "render":
