@@ -37,7 +37,8 @@ from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, render
 from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
-           "fit_free_response", "quantiser_gain", "quantisation_bound"]
+           "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
+           "quantisation_bound", "sensor_error_response"]
 
 
 def _validate(y, period: float, order: int, offset: bool, pencil: int | None):
@@ -314,9 +315,11 @@ def _varpro(spec, y, offset):
     return out, cost
 
 
-def _covariance(spec, y, offset):
-    """Residual rms, unit covariance (J^T J)^-1 of the nonlinear parameters (J over all
-    parameters, linear ones included) and the fitted linear coefficients."""
+def _covariance(spec, y, offset, response=None):
+    """Residual rms, unit covariances of the nonlinear parameters and the fitted linear
+    coefficients. The covariances: ``(white, coloured)``; white = ``(J^T J)^-1`` (J over
+    all parameters, linear ones included), coloured = the sandwich with the filter
+    ``response`` (None: the white one)."""
     theta = _theta(spec)
     phi, dcols, c, r = _solve(spec, theta, y, offset)
     J = np.empty((y.size, theta.size + phi.shape[1]))
@@ -325,7 +328,15 @@ def _covariance(spec, y, offset):
     J[:, theta.size:] = phi
     inv = np.linalg.pinv(J.T @ J)
     dof = max(y.size - J.shape[1], 1)
-    return float(np.sqrt(np.sum(r * r) / dof)), inv[:theta.size, :theta.size], c
+    p = theta.size
+    col = inv
+    if response is not None:
+        from scipy.signal import fftconvolve
+        h = np.asarray(response, dtype=float)[:y.size]
+        FtJ = fftconvolve(J[::-1], h[:, None], axes=0)[:y.size][::-1]   # F^T J
+        M = FtJ @ inv
+        col = M.T @ M
+    return (float(np.sqrt(np.sum(r * r) / dof)), (inv[:p, :p], col[:p, :p]), c)
 
 
 def _mode_of(spec_item, mass, period):
@@ -336,7 +347,7 @@ def _mode_of(spec_item, mass, period):
 
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
-                 pencil: int | None = None) -> dict:
+                 pencil: int | None = None, sensor_response=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor.
 
@@ -368,6 +379,13 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         Sensor step q [m] and Gaussian noise standard deviation [m] (:func:`sensor_sd`).
     order, pencil : int, optional
         Order and pencil parameter of the exact path (default ``len(predicted)``).
+    sensor_response : array_like of float, shape (n_h,), optional
+        Impulse response from the sensor error to the logged position (``[1, 0, ...]``
+        when the error is only observed; :func:`sensor_error_response` when the loop also
+        feeds it back through the virtual (K, B)). The sensor's share of the covariance is
+        then ``sigma_e^2 (J^T J)^-1 J^T F F^T J (J^T J)^-1`` with F the (lower triangular
+        Toeplitz) filter matrix: the least-squares covariance under coloured noise
+        (Seber & Wild 1989, Sec. 2.1.4). Default: white (observed only).
 
     Returns
     -------
@@ -465,7 +483,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         if all(np.isfinite(_theta(sp))) and (best is None or cost < best[1]):
             best = (sp, cost)
     spec = best[0]
-    rms, cov, c = _covariance(spec, yw, offset)
+    rms, cov, c = _covariance(spec, yw, offset, sensor_response)
     return _result(spec, fi, cov, rms, floor, mass, period, yw, offset, method="varpro",
                    skipped=skip)
 
@@ -476,16 +494,20 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     a, w = spec[fi][1], spec[fi][2]
     sig, om = a / period, w / period
-    g_k = np.zeros(cov.shape[0])
-    g_b = np.zeros(cov.shape[0])
+    g_k = np.zeros(cov[0].shape[0])
+    g_b = np.zeros(cov[0].shape[0])
     g_k[i], g_k[i + 1] = 2 * mass * sig / period, 2 * mass * om / period
     g_b[i] = 2 * mass / period
-    uk, ub = float(np.sqrt(max(g_k @ cov @ g_k, 0.0))), float(np.sqrt(max(g_b @ cov @ g_b, 0.0)))
+    white, coloured = cov
+
+    def sd(g, c):
+        return float(np.sqrt(max(g @ c @ g, 0.0)))
     _, _, c = _covariance(spec, y, offset)
     amp = float(math.hypot(c[i], c[i + 1]))   # a pair has 2 nonlinear and 2 linear parameters
     out = {"k": float(md.k), "b": float(md.b), "f0_hz": float(md.f0_hz),
-           "damping_ratio": float(md.damping_ratio), "k_sd": rms * uk, "b_sd": rms * ub,
-           "k_sd_sensor": floor * uk, "b_sd_sensor": floor * ub,
+           "damping_ratio": float(md.damping_ratio), "k_sd": rms * sd(g_k, white),
+           "b_sd": rms * sd(g_b, white), "k_sd_sensor": floor * sd(g_k, coloured),
+           "b_sd_sensor": floor * sd(g_b, coloured),
            "method": method, "skipped": int(skipped),
            "model_order": sum(2 if s[0] == "pair" else 1 for s in spec),
            "rms_residual": rms, "amplitude": amp}
@@ -695,4 +717,47 @@ def fit_free_response(position, period: float, mass: float, k_guess: float,
     z = complex(np.exp(complex(-sig, math.sqrt(om2)) * period))
     out = measure_felt(position, period, mass, [z, z.conjugate()], z, offset=True)
     out["samples"] = int(np.asarray(position).size)
+    return out
+
+
+def sensor_error_response(scene, n: int) -> np.ndarray:
+    """Impulse response from the position sensor's error to the logged position.
+
+    The host reads ``x[n] + e[n]``: the error is logged (direct term 1) and, through the
+    virtual links, fed back as a force, so that it also moves the handle. With the
+    closed-loop state ``s[n+1] = A s[n]`` of :func:`hapsim.analysis.network.closed_loop`,
+    the error enters where the measured positions ``x[n]`` and ``x[n-1]`` do: the columns
+    ``g``, ``h`` of those two states that the links contribute (``A`` minus the same loop
+    with every link at zero gain). Then ``s[n+1] = A s[n] + g e[n] + h e[n-1]`` and the
+    response is ``1, c g, c (A g + h), c A (A g + h), ...``.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device (calibrated: no ``target`` links).
+    n : int
+        Length of the response.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Logged-position response to a unit sensor error at sample 0 [m/m].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from hapsim.analysis.network import closed_loop
+
+    A, names = closed_loop(scene)
+    A0, _ = closed_loop(scene, gain=0.0)
+    ipp = 2 if scene.device.hold == "zoh" else 1
+    g, h = A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
+    out = np.zeros(n)
+    out[0] = 1.0
+    s = g.copy()
+    for i in range(1, n):
+        out[i] = s[0]
+        s = A @ s + (h if i == 1 else 0.0)
     return out

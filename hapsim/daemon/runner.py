@@ -184,7 +184,7 @@ def predict(scene: Scene) -> dict:
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
-             quantum: float = 0.0, noise: float = 0.0) -> dict:
+             quantum: float = 0.0, noise: float = 0.0, sensor_response=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -221,6 +221,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         order matrix pencil alone.
     quantum, noise : float
         Position sensor step [m] and noise standard deviation [m] (0: none).
+    sensor_response : ndarray, optional
+        Impulse response of the sensor error to the logged position
+        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
 
     Returns
     -------
@@ -272,7 +275,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         from hapsim.analysis.identify import measure_felt
         try:
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
-                               quantum=quantum, noise=noise, order=int(order), pencil=pencil)
+                               quantum=quantum, noise=noise, order=int(order), pencil=pencil,
+                               sensor_response=sensor_response)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -1074,9 +1078,17 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             start += int(cols["seq"][0])
         offset = _has_offset(scene)
         poles, felt = _predicted_poles(scene)
+        response = None
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.identify import sensor_error_response
+            try:
+                response = sensor_error_response(scene, int(cols["seq"].size))
+            except ConfigError:
+                response = None
         measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2,
-                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise)
+                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
+                            sensor_response=response)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links):
         notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
