@@ -12,6 +12,7 @@ predicted 507 on a 17.6 um encoder, 3 s).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render, stability_limit
@@ -84,3 +85,66 @@ def test_interval_contains_prediction_over_random_quantised_loops():
           f"noise-free error {worst_exact:.2e}")
     assert measured >= 0.8 * CASES
     assert hits >= 0.95 * measured
+
+
+def test_standard_error_matches_the_scatter_of_white_noise_fits():
+    """measure_felt on a damped sinusoid + offset + white Gaussian noise (observed only):
+    over 100 seeds the errors divided by the stated standard errors have an rms of 1
+    (least-squares theory, Seber & Wild 1989 Sec. 2.1) within the sampling scatter, and
+    the noise-free record is measured to round-off by the pencil."""
+    from hapsim.analysis.identify import measure_felt
+    m, T, k, b = 0.2, 1e-3, 800.0, 0.6
+    sig = b / (2 * m)
+    s = complex(-sig, np.sqrt(k / m - sig * sig))
+    z = np.exp(s * T)
+    n = np.arange(1500)
+    y = 0.004 * np.exp(-sig * n * T) * np.cos(s.imag * n * T + 0.3) + 1e-3
+    exact = measure_felt(y, T, m, [z, z.conjugate()], z, offset=True)
+    assert exact["method"] == "pencil"
+    assert abs(exact["k"] / k - 1) < 1e-11 and abs(exact["b"] / b - 1) < 1e-10, exact
+    rng = np.random.default_rng(5)
+    zk, zb = [], []
+    for _ in range(100):
+        yn = y + 20e-6 * rng.standard_normal(y.size)
+        r = measure_felt(yn, T, m, [z, z.conjugate()], z, offset=True, noise=20e-6)
+        assert r["method"] == "varpro" and "error" not in r
+        zk.append((r["k"] - k) / r["k_sd_sensor"])
+        zb.append((r["b"] - b) / r["b_sd_sensor"])
+        assert r["k_sd"] == pytest.approx(r["k_sd_sensor"], rel=0.15)   # residual ~ sensor
+    rk, rb = np.sqrt(np.mean(np.square(zk))), np.sqrt(np.mean(np.square(zb)))
+    print(f"rms of error / standard error: k {rk:.3f}, b {rb:.3f}")
+    assert 0.8 < rk < 1.2 and 0.8 < rb < 1.2
+
+
+def test_hapkit_mock_with_a_17_6_um_encoder_is_measured_not_a_spurious_pair():
+    """The firmware engineer's case: configs/hapkit.yaml on the mock with
+    position_resolution 17.6 um, 3 s. The full-order pencil reported k = 3654 N/m for a
+    predicted 507; now the felt pair, its interval holding the prediction, and the
+    report says so."""
+    from pathlib import Path
+
+    from hapsim.daemon.runner import format_report
+    text = (Path(__file__).resolve().parents[1] / "configs" / "hapkit.yaml").read_text()
+    text = text.replace("device:\n", "device:\n  position_resolution: 17.6e-6\n", 1)
+    rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
+                    handle_signals=False, duration=3.0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert abs(meas["k"] - pred["k"]) < 1.0 and abs(meas["b"] - pred["b"]) < 0.01, meas
+    assert meas["within"] and meas["k_interval"] < 0.01 * pred["k"], meas
+    out = format_report(rep)
+    assert "measured = predicted within the stated uncertainty" in out
+    assert "stated uncertainty: 3.5 standard errors" in out
+
+
+@pytest.mark.parametrize("q,x0,B,why", [(1e-3, 3e-3, 0.5, "below"),
+                                        (20e-6, 5e-3, 10.0, "cycles")])
+def test_a_record_that_cannot_support_a_measurement_gives_no_number(q, x0, B, why):
+    """An oscillation of under 5 quanta, or a loop damped to less than 1.5 cycles above the
+    floor: the report says why instead of printing a (k, b)."""
+    from hapsim.daemon.runner import format_report
+    rep = run_scene(_scene(0.1, 0.5, 500.0, B, 1, 1000.0, q, 0.0, x0), transport="inprocess",
+                    lockstep=True, handle_signals=False, duration=1.0)
+    meas = rep["measured"]
+    assert "k" not in meas and why in meas["error"], meas
+    assert "verdict" not in meas
+    assert f"not identified: {meas['error']}" in format_report(rep)

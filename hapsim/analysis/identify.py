@@ -71,6 +71,29 @@ def _validate(y, period: float, order: int, offset: bool, pencil: int | None):
     return y, int(pencil)
 
 
+def thin_pencil(order: int, n: int) -> int:
+    """Pencil parameter for long records: ``min(max(order, n // 3), max(10 order, 60))``.
+
+    Hua & Sarkar's ``N/3`` is the low-variance choice for noisy data but makes the Hankel
+    matrix square-ish (an SVD of seconds on a loaded machine for ``N = 1000``); a thin
+    Hankel with ``max(10 order, 60)`` columns is exact on noise-free data and cheap, and
+    the noisy case is refined by least squares (:func:`measure_felt`) anyway.
+
+    Parameters
+    ----------
+    order : int
+        Model order.
+    n : int
+        Usable samples (after differencing).
+
+    Returns
+    -------
+    int
+        The pencil parameter L.
+    """
+    return min(max(int(order), n // 3), max(10 * int(order), 60))
+
+
 def pencil_poles(y, order: int, *, offset: bool = False, pencil: int | None = None,
                  period: float = 1.0) -> np.ndarray:
     """Discrete poles of a sampled signal by the matrix pencil method (Hua & Sarkar 1990).
@@ -207,11 +230,15 @@ def fit_rendered(y, period: float, order: int, mass: float, *, offset: bool = Fa
 #: Rounding-level residual (relative to the record's amplitude) under which a full-order
 #: pencil is taken as exact: a noise-free linear record is reproduced to ~1e-13.
 EXACT_RESIDUAL = 1e-9
-#: Coverage factor of the stated interval: +- COVERAGE standard deviations.
-COVERAGE = 3.0
+#: Coverage factor of the stated interval: +- COVERAGE standard errors. Over random
+#: quantised / noisy loops (tests/test_identify_quantised.py) the errors divided by the
+#: standard errors have an rms of about 1.1 (k) and 1.2 (b): the quantiser's error is not
+#: white at amplitudes of a few steps, so 3.5 rather than the Gaussian 3.
+COVERAGE = 3.5
 #: Least number of oscillation cycles above the floor for a measurement.
 MIN_CYCLES = 1.5
-#: Least initial amplitude of the felt oscillation, in sensor floors (quanta or noise sd).
+#: Least initial amplitude of the felt oscillation, in sensor steps (the quantum, or the
+#: noise / residual standard deviation when larger).
 MIN_QUANTA = 5.0
 
 
@@ -398,7 +425,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         start), ``model_order``, ``rms_residual`` [m], ``amplitude`` [m] (felt oscillation
         at the window start), ``cycles`` (oscillation cycles above the floor). Or
         ``error`` (str) when the record cannot support a measurement: the oscillation
-        below :data:`MIN_QUANTA` floors, or fewer than :data:`MIN_CYCLES` cycles above it.
+        below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
+        that level.
 
     Raises
     ------
@@ -415,7 +443,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     if floor == 0.0:
         md = None
         try:
-            z = pencil_poles(y, order, offset=offset, pencil=pencil, period=period)
+            z = pencil_poles(y, order, offset=offset, period=period,
+                             pencil=pencil or thin_pencil(order, y.size - int(offset)))
         except ConfigError:
             z = None
         if z is not None and np.all(np.isfinite(z)):
@@ -451,7 +480,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
              key=lambda i: abs(_mode_of(spec0[i], mass, period).z - felt))
     starts = [spec0]
     try:        # the pencil of the kept order on the window, matched to the prediction
-        zp = pencil_poles(yw, len(keep), offset=offset, period=period)
+        zp = pencil_poles(yw, len(keep), offset=offset, period=period,
+                          pencil=thin_pencil(len(keep), yw.size - int(offset)))
         sp = _spec(zp)
         if [s[0] for s in sorted(sp)] == [s[0] for s in sorted(spec0)]:
             pairs = [s for s in sp if s[0] == "pair"]
@@ -485,19 +515,28 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     spec = best[0]
     rms, cov, c = _covariance(spec, yw, offset, sensor_response)
     return _result(spec, fi, cov, rms, floor, mass, period, yw, offset, method="varpro",
-                   skipped=skip)
+                   skipped=skip, step=max(float(quantum), floor))
 
 
-def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped):
+def _kb_gradients(spec, fi, i, *, mass, period):
+    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma`` (DESIGN.md Sec. 4;
+    ``sigma = a / T``, ``omega = w / T``) over the nonlinear parameters of ``spec``; the
+    pair ``spec[fi]`` has its ``(a, w)`` at index ``i``."""
+    n = sum(2 if s[0] == "pair" else 1 for s in spec)
+    sig, om = spec[fi][1] / period, spec[fi][2] / period
+    g_k, g_b = np.zeros(n), np.zeros(n)
+    g_k[i], g_k[i + 1] = 2 * mass * sig / period, 2 * mass * om / period
+    g_b[i] = 2 * mass / period
+    return g_k, g_b
+
+
+def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
+            step=0.0):
     """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]``."""
     md = _mode_of(spec[fi], mass, period)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
-    a, w = spec[fi][1], spec[fi][2]
-    sig, om = a / period, w / period
-    g_k = np.zeros(cov[0].shape[0])
-    g_b = np.zeros(cov[0].shape[0])
-    g_k[i], g_k[i + 1] = 2 * mass * sig / period, 2 * mass * om / period
-    g_b[i] = 2 * mass / period
+    sig = spec[fi][1] / period
+    g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
     white, coloured = cov
 
     def sd(g, c):
@@ -513,7 +552,7 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
            "rms_residual": rms, "amplitude": amp}
     out["k_unc"] = COVERAGE * max(out["k_sd"], out["k_sd_sensor"])
     out["b_unc"] = COVERAGE * max(out["b_sd"], out["b_sd_sensor"])
-    fl = max(floor, rms) if method == "varpro" else 0.0
+    fl = max(step, rms) if method == "varpro" else 0.0
     if fl > 0:
         t_above = math.log(amp / (MIN_QUANTA * fl)) / sig if amp > MIN_QUANTA * fl and sig > 0 \
             else (math.inf if amp > MIN_QUANTA * fl else 0.0)
@@ -521,10 +560,11 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
         out["cycles"] = float(md.f0_hz * t_above * math.sqrt(max(1 - md.damping_ratio ** 2, 0)))
         if amp < MIN_QUANTA * fl:
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
-                            f"{MIN_QUANTA:g} sensor floors ({fl:.3g} m): no measurement")
+                            f"{MIN_QUANTA:g} sensor steps ({fl:.3g} m, the quantum or the "
+                            f"noise): no measurement")
         elif out["cycles"] < MIN_CYCLES:
             out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above {MIN_QUANTA:g} "
-                            f"sensor floors ({fl:.3g} m): too few for a measurement")
+                            f"sensor steps ({fl:.3g} m): too few for a measurement")
     else:
         out["cycles"] = float(md.f0_hz * y.size * period)
     return out
@@ -663,19 +703,15 @@ def quantisation_bound(loop, K: float, B: float, x0: float, t_fit: float, q_x: f
     a_min = x0 * math.exp(-sig * t_fit)
     g = quantiser_gain_bound(loop, K, B, x0, a_min, q_x, q_f)
     eps, d_x, d_f, dk_gain, db_gain = g["eps"], g["d_x"], g["d_f"], g["dk"], g["db"]
-    # observation noise through the least-squares fit
-    t = np.arange(n_samples) / loop.rate_hz
-    e = np.exp(-sig * t)
-    J = np.column_stack([e * np.cos(om * t),                  # d/dA at A = x0, phi = 0
-                         -x0 * e * np.sin(om * t),            # d/dphi
-                         -x0 * t * e * np.cos(om * t),        # d/dsigma
-                         -x0 * t * e * np.sin(om * t),        # d/domega
-                         np.ones_like(t)])                    # d/dc
-    cov = (q_x * q_x / 12.0) * np.linalg.inv(J.T @ J)
-    gk = np.array([0, 0, 2 * m * sig, 2 * m * om, 0])          # k = m (om^2 + sig^2)
-    gb = np.array([0, 0, 2 * m, 0, 0])                         # b = 2 m sig
-    k_sd = float(math.sqrt(gk @ cov @ gk))
-    b_sd = float(math.sqrt(gb @ cov @ gb))
+    # observation noise through the least-squares fit (the sensitivity of measure_felt's)
+    T = loop.period
+    spec = [["pair", sig * T, om * T]]
+    y = x0 * np.exp(-sig * T * np.arange(n_samples)) * np.cos(om * T * np.arange(n_samples))
+    _, (white, _), _ = _covariance(spec, y, True)
+    g_k, g_b = _kb_gradients(spec, 0, 0, mass=m, period=T)
+    q_sd = q_x / math.sqrt(12.0)
+    k_sd = q_sd * float(np.sqrt(g_k @ white @ g_k))
+    b_sd = q_sd * float(np.sqrt(g_b @ white @ g_b))
     return {"k": float(pred.k), "b": float(pred.b), "dk": dk_gain + sigmas * k_sd,
             "db": db_gain + sigmas * b_sd, "eps": eps, "d_x": d_x, "d_f": d_f,
             "a_min": a_min, "k_noise_sd": k_sd, "b_noise_sd": b_sd}
