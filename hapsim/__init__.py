@@ -7,12 +7,30 @@ temporary hybrid system (THS) analysis of Florens, Voda & Urma.
 
 
 
-def _quiet_interrupt_at_start() -> None:
+_QUIET_INTERRUPT = False
+
+
+def _run_by_runpy() -> bool:
+    """True while ``runpy`` imports this package to run ``hapsim/__main__.py`` (``python -m
+    hapsim`` or ``runpy.run_module("hapsim")``): a runpy frame with ``mod_name`` hapsim."""
+    import sys
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_code.co_filename.endswith("runpy>") or \
+                frame.f_code.co_filename.endswith("runpy.py"):
+            if frame.f_locals.get("mod_name") in ("hapsim", "hapsim.__main__"):
+                return True
+        frame = frame.f_back
+    return False
+
+
+def _quiet_interrupt_at_start(force: bool = False) -> None:
     """Let Ctrl-C end the ``hapsim`` command quietly (exit 130) at any moment, imports included.
 
     Only when this package is imported as the command line (the ``hapsim`` console script,
-    or ``python -m hapsim``); a program that imports hapsim as a library keeps its own
-    SIGINT handler and ``sys.excepthook``.
+    or ``python -m hapsim``), or with ``force`` (``hapsim/__main__.py``, however it is run,
+    e.g. by ``runpy``); a program that imports hapsim as a library keeps its own SIGINT
+    handler and ``sys.excepthook``. Installed once.
 
     Two holes are closed. A KeyboardInterrupt raised inside an import can come out as
     another exception (numpy turns it into an ``ImportError`` with a long message), so while
@@ -26,9 +44,12 @@ def _quiet_interrupt_at_start() -> None:
     import os
     import signal
     import sys
+    global _QUIET_INTERRUPT
     argv0 = sys.argv[0] if sys.argv else ""
-    if argv0 != "-m" and os.path.basename(argv0) not in ("hapsim", "hapsim.exe"):
+    if _QUIET_INTERRUPT or not (force or argv0 == "-m" or _run_by_runpy()
+                                or os.path.basename(argv0) in ("hapsim", "hapsim.exe")):
         return
+    _QUIET_INTERRUPT = True
 
     def leave() -> None:
         try:

@@ -48,7 +48,7 @@ from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
             "run", "mock", "bench", "advise",
-            "play")
+            "play", "telemetry", "identify")
 
 
 #: Options people confuse: felt (k, b) of ``calibrate`` against virtual (K, B) of ``render``.
@@ -226,12 +226,18 @@ def _fail(command: str, exc: BaseException, code: int, text: str, want_json: boo
 def entry() -> None:
     """The ``hapsim`` console script and ``python -m hapsim``: exit with :func:`main`'s code.
 
-    After Ctrl-C (code 130) the process ends with ``os._exit(130)`` once stdout and stderr
-    are flushed: CPython would otherwise re-raise SIGINT at exit (exit status -2 rather
+    Once :func:`main` has returned, SIGINT is ignored (the command is over; a late Ctrl-C
+    must not change its exit code). After Ctrl-C (code 130) the process ends with
+    ``os._exit(130)`` once stdout and stderr are flushed: CPython would otherwise re-raise SIGINT at exit (exit status -2 rather
     than 130) when the interrupt landed inside code run by ``PyRun_String`` during an
     import, even though :func:`main` handled it.
     """
     code = main()
+    try:  # the work is done: a Ctrl-C from now on (flush, interpreter shut-down) changes
+        import signal  # nothing, and must not turn the exit code into 1 or -SIGINT
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except (ValueError, OSError):  # not the main thread
+        pass
     if code == 130:
         import os
         for stream in (sys.stdout, sys.stderr):

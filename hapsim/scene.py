@@ -7,44 +7,21 @@ analysis without passing :func:`parse_scene`, which reports every problem as a
 
 Format
 ------
+Every key, unit, default and limit is one row of :data:`hapsim.scene_schema.KEYS`, the
+table this module reads and checks with; ``docs/scenes.md`` (the reference, with an example
+for each key) is written from it by ``python -m hapsim.scene_doc``. A small scene:
+
 .. code-block:: yaml
 
-    rate_hz: 1000                 # sample rate [Hz], > 0 (required)
-    integrator: centred           # centred | symplectic_euler | exact (default centred;
-                                  # hapsim.kernels.schemes; exact: no contact links)
-    masses:                       # list; names unique
+    rate_hz: 1000                 # sample rate [Hz]
+    masses:
       - {name: hand, kind: port}                    # driven by the device position
       - {name: wall, kind: ground, x0: 0.0}         # fixed point [m]
-      - {name: bob, kind: mass, mass: 0.01, x0: 0.0, v0: 0.0}   # [kg], [m], [m/s]
-    links:                        # list; names unique (default link0, link1, ...)
+    links:
       - {name: wall, kind: spring_damper, between: [hand, wall],
-         stiffness: 2000, damping: 2}               # K [N/m], B [N s/m]
-      - {kind: contact, between: [hand, bob], stiffness: 500, damping: 0.1,
-         threshold: 0.0}                            # acts while x2 - x1 < threshold [m]
-      - {name: felt, kind: spring_damper, between: [hand, wall],
-         target: {k: 2000, b: 3}}                   # felt (k, b): calibrated by the daemon
-    device:                       # required when the scene has a port
-      mass: 0.1                   # hand + handle moving mass m [kg], > 0
-      friction: 0.5               # real viscous friction b0 [N s/m], >= 0
-      delay: 1                    # whole samples between position read and force applied
-      hold: zoh                   # zoh | ideal
-      force_limit: 10             # [N], > 0 (default: none)
-      position_resolution: 0      # encoder quantum [m] (mock device only; 0 = none)
-      coulomb: 0                  # Coulomb friction [N] (mock device only)
-      noise: 0                    # position sensor noise, standard deviation [m]
-    excitation:                   # how the mock device's hand starts the motion
-      x0: 0.002                   # initial device displacement [m]
-      v0: 0.0                     # initial device velocity [m/s]
-      impulse: {force: 1.0, start: 0.0, duration: 0.001}   # [N], [s], [s]
-      profile: hand_force.csv     # recorded hand force: columns time [s], force [N]
-    safety:                       # limits of hapsim run (all optional)
-      position_limit: 0.1         # safety stop when |x| exceeds it [m], > 0
-                                  # (default max(0.1, 20 |excitation.x0|))
-      velocity_limit: 2.0         # safety stop when |v| exceeds it [m/s], > 0 (default none)
-      energy_limit: 1.0           # safety stop when the scene has given the hand this much
-                                  # energy [J], > 0 (passivity observer; default 1 J)
-      passivity_controller: false # add Hannaford & Ryu's adaptive damping (default false)
-      max_damping: 50             # its cap [N s/m], >= 0 (default 50)
+         stiffness: 1000, damping: 1.5}             # K [N/m], B [N s/m]
+    device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10}
+    excitation: {x0: 0.005}       # the hand starts 5 mm into the wall [m]
 
 Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
 the positions of the first and second mass named in ``between``,
@@ -66,42 +43,20 @@ from typing import Any, Callable
 
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, show
+from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
+                                 PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
+                                 section_keys)
+from hapsim.scene_schema import key as _key
 
 __all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Listen", "Audio",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
            "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
 
-#: Mass kinds a scene may use.
-MASS_KINDS = ("mass", "ground", "port")
-#: Link kinds a scene may use.
-LINK_KINDS = ("spring_damper", "contact")
-#: Output holds a device may use (DESIGN §4).
-HOLDS = ("zoh", "ideal")
-#: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
-INTEGRATORS = ("centred", "symplectic_euler", "exact")
-#: What a listening point hears (``audio.listen[i].quantity``; first is the default).
-LISTEN_QUANTITIES = ("velocity", "position", "force")
-#: How the port position is brought up to the audio rate (first is the default).
-PORT_POSITION_MODES = ("hold", "linear")
-#: How the port force is brought down to the device rate (first is the default).
-PORT_FORCE_MODES = ("mean", "last")
-
-_TOP_KEYS = ("rate_hz", "masses", "links", "device", "excitation", "integrator", "safety",
-             "audio")
-_AUDIO_KEYS = ("rate_hz", "listen", "port_position", "port_force")
-_LISTEN_KEYS = ("mass", "quantity", "gain")
-_MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
-              "ground": ("name", "kind", "x0"),
-              "port": ("name", "kind")}
-_LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "target"),
-              "contact": ("name", "kind", "between", "stiffness", "damping", "threshold")}
-_DEVICE_KEYS = ("mass", "friction", "delay", "hold", "force_limit",
-                "position_resolution", "coulomb", "noise")
-_EXCITATION_KEYS = ("x0", "v0", "impulse", "profile")
-_SAFETY_KEYS = ("position_limit", "velocity_limit", "energy_limit", "passivity_controller",
-                "max_damping")
-_IMPULSE_KEYS = ("force", "start", "duration")
-_TARGET_KEYS = ("k", "b")
+# Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
+# written from it by hapsim.scene_doc). Add a key there, not here.
+_TOP_KEYS = key_names("")
+_LINK_KEYS = {kind: key_names("links[]", kind) for kind in LINK_KINDS}
+_TARGET_KEYS = key_names("links[].target")
 
 
 @dataclass(frozen=True)
@@ -585,7 +540,7 @@ def _coerce(v: Any) -> Any:
 
 
 def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
-            allow_inf: bool = False) -> None:
+            allow_inf: bool = False, maximum: float | None = None) -> None:
     if not _is_number(v):
         raise _Invalid(f"must be a number, got {_typename(v)} {show(v)}", where)
     v = float(v)
@@ -595,14 +550,54 @@ def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None =
         raise _Invalid(f"must be > 0, got {v:g}", where)
     if minimum is not None and v < minimum:
         raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
+    if maximum is not None and v > maximum:
+        raise _Invalid(f"must be <= {maximum:g}, got {v:g}", where)
 
 
-def _within(v: float, name: str, unit: str, *where: Any) -> None:
-    """Range rules shared with the analysis (``hapsim.analysis.loop.<name>``)."""
-    import hapsim.analysis.loop as lp
-    lo, hi = getattr(lp, name)
-    if not lo <= float(v) <= hi:
-        raise _Invalid(f"must be between {lo:g} and {hi:g} {unit}, got {float(v):g}", where)
+def _check_key(k: Key, v: Any, *where: Any) -> None:
+    """Check ``v`` against its row ``k`` of the scene table (types the table can check)."""
+    if v is None and k.default is None:
+        return                       # absent: none
+    if k.type == "number":
+        _number(v, *where, allow_inf=k.allow_inf)
+        _in_range(k, float(v), where)
+    elif k.type == "integer":
+        if not (isinstance(v, numbers.Integral) and not isinstance(v, bool)):
+            raise _Invalid(f"must be a whole number of {k.unit or 'units'}, got {show(v)}",
+                           where)
+        _in_range(k, v, where)
+    elif k.type == "choice":
+        _choice(v, k.choices, *where)
+    elif k.type == "string":
+        _string(v, *where)
+    elif k.type == "boolean":
+        if not isinstance(v, bool):
+            raise _Invalid(f"must be true or false, got {_typename(v)} {show(v)}", where)
+
+
+def _in_range(k: Key, x: float, where: tuple) -> None:
+    """The row's ``minimum`` (``strict``: excluded) and ``maximum``, then the analysis's
+    limits it names (``limits_from``), with its ``why``."""
+    unit = f" {k.unit}" if k.unit else ""
+    checks = ((k.minimum, k.maximum, k.strict, not k.limits_from),
+              (*k.analysis_limits(), False, True))
+    for lo, hi, strict, explained in checks:
+        below = lo is not None and (x < lo or (strict and x == lo))
+        if not (below or (hi is not None and x > hi)):
+            continue
+        if lo is not None and hi is not None:
+            msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
+        elif below:
+            msg = f"must be {'>' if strict else '>='} {lo:g}, got {x:g}"
+        else:
+            msg = f"must be <= {hi:g}{unit}, got {x:g}"
+        raise _Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
+
+
+def _check_section(obj: Any, section: str, *where: Any) -> None:
+    """Check every field of a dataclass section against the table, in table order."""
+    for k in section_keys(section):
+        _check_key(k, getattr(obj, k.name), *where, k.name)
 
 
 def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
@@ -632,9 +627,8 @@ def _check_scene(s: Scene) -> None:
     _Invalid
         On the first broken rule, in scene order.
     """
-    _number(s.rate_hz, "rate_hz", positive=True)
-    _within(s.rate_hz, "RATE_RANGE", "Hz", "rate_hz")
-    _choice(s.integrator, INTEGRATORS, "integrator")
+    _check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
+    _check_key(_key("integrator"), s.integrator, "integrator")
     if not isinstance(s.path, str):
         raise _Invalid(f"must be a string, got {_typename(s.path)}", ("path",))
     if not isinstance(s.masses, tuple) or not s.masses:
@@ -644,21 +638,20 @@ def _check_scene(s: Scene) -> None:
     for i, m in enumerate(s.masses):
         if not isinstance(m, Mass):
             raise _Invalid(f"must be a hapsim.scene.Mass, got {_typename(m)}", ("masses", i))
-        _choice(m.kind, MASS_KINDS, "masses", i, "kind")
-        _string(m.name, "masses", i, "name")
+        _check_key(_key("masses[].kind"), m.kind, "masses", i, "kind")
+        _check_key(_key("masses[].name"), m.name, "masses", i, "name")
         if m.name in names:
             j = names[m.name]
             raise _Invalid(f"duplicate mass name {show(m.name)} "
                            f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
         names[m.name] = i
         if m.kind == "mass":
-            _number(m.mass, "masses", i, "mass", positive=True)
-            _within(m.mass, "MASS_RANGE", "kg", "masses", i, "mass")
+            _check_key(_key("masses[].mass"), m.mass, "masses", i, "mass")
         elif m.mass != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
                            f"got {show(m.mass)}", ("masses", i, "mass"))
-        _number(m.x0, "masses", i, "x0")
-        _number(m.v0, "masses", i, "v0")
+        _check_key(_key("masses[].x0"), m.x0, "masses", i, "x0")
+        _check_key(_key("masses[].v0"), m.v0, "masses", i, "v0")
         if m.kind != "mass" and m.v0 != 0:
             raise _Invalid(f"must be 0 for a {m.kind} (it does not move by itself), "
                            f"got {show(m.v0)}", ("masses", i, "v0"))
@@ -710,7 +703,7 @@ def _check_audio(s: Scene, names: dict[str, int]) -> None:
     a = s.audio
     if not isinstance(a, Audio):
         raise _Invalid(f"must be a hapsim.scene.Audio, got {_typename(a)}", ("audio",))
-    _number(a.rate_hz, "audio", "rate_hz", positive=True)
+    _check_key(_key("audio.rate_hz"), a.rate_hz, "audio", "rate_hz")
     try:
         audio_substeps(a.rate_hz, s.rate_hz)
     except ValueError as exc:
@@ -718,8 +711,8 @@ def _check_audio(s: Scene, names: dict[str, int]) -> None:
     if s.integrator != "centred":
         raise _Invalid(f"audio runs the centred scheme only; got integrator "
                        f"{s.integrator!r}", ("integrator",))
-    _choice(a.port_position, PORT_POSITION_MODES, "audio", "port_position")
-    _choice(a.port_force, PORT_FORCE_MODES, "audio", "port_force")
+    _check_key(_key("audio.port_position"), a.port_position, "audio", "port_position")
+    _check_key(_key("audio.port_force"), a.port_force, "audio", "port_force")
     if not isinstance(a.listen, tuple) or not a.listen:
         raise _Invalid("must be a non-empty list of listening points {mass, quantity, gain}",
                        ("audio", "listen"))
@@ -727,12 +720,13 @@ def _check_audio(s: Scene, names: dict[str, int]) -> None:
         if not isinstance(ls, Listen):
             raise _Invalid(f"must be a hapsim.scene.Listen, got {_typename(ls)}",
                            ("audio", "listen", i))
-        _string(ls.mass, "audio", "listen", i, "mass")
+        _check_key(_key("audio.listen[].mass"), ls.mass, "audio", "listen", i, "mass")
         if ls.mass not in names:
             raise _Invalid(f"no mass named {ls.mass!r}; masses are: "
                            + ", ".join(list(names)[:20]), ("audio", "listen", i, "mass"))
-        _choice(ls.quantity, LISTEN_QUANTITIES, "audio", "listen", i, "quantity")
-        _number(ls.gain, "audio", "listen", i, "gain")
+        _check_key(_key("audio.listen[].quantity"), ls.quantity, "audio", "listen", i,
+                   "quantity")
+        _check_key(_key("audio.listen[].gain"), ls.gain, "audio", "listen", i, "gain")
     if a.port_position != "hold" and s.port is not None:
         for i, lk in enumerate(s.links):
             if lk.target is not None:
@@ -749,8 +743,8 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
     for i, lk in enumerate(s.links):
         if not isinstance(lk, Link):
             raise _Invalid(f"must be a hapsim.scene.Link, got {_typename(lk)}", ("links", i))
-        _choice(lk.kind, LINK_KINDS, "links", i, "kind")
-        _string(lk.name, "links", i, "name")
+        _check_key(_key("links[].kind"), lk.kind, "links", i, "kind")
+        _check_key(_key("links[].name"), lk.name, "links", i, "name")
         if lk.name in seen:
             j = seen[lk.name]
             raise _Invalid(f"duplicate link name {show(lk.name)} "
@@ -776,19 +770,21 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
                                ("links", i, "target"))
             if not (isinstance(lk.target, tuple) and len(lk.target) == 2):
                 raise _Invalid(f"must be a pair (k, b), got {show(lk.target)}", ("links", i, "target"))
-            _number(lk.target[0], "links", i, "target", "k", positive=True)
-            _number(lk.target[1], "links", i, "target", "b", minimum=0.0)
+            _check_key(_key("links[].target.k"), lk.target[0], "links", i, "target", "k")
+            _check_key(_key("links[].target.b"), lk.target[1], "links", i, "target", "b")
             awaiting = not lk.calibrated
         # NaN (K, B) mean "awaiting calibration" for a target link, nothing else.
         if not (awaiting and _is_number(lk.stiffness) and math.isnan(lk.stiffness)):
-            _number(lk.stiffness, "links", i, "stiffness", minimum=0.0)
+            _check_key(_key("links[].stiffness"), lk.stiffness, "links", i, "stiffness")
         if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
             # A calibrated B may be negative: the device's real friction b0 can exceed the
             # felt damping (DESIGN §4); a scene file or a hand-built link may not.
-            _number(lk.damping, "links", i, "damping",
-                    minimum=None if lk.calibrated else 0.0)
+            if lk.calibrated:
+                _number(lk.damping, "links", i, "damping")
+            else:
+                _check_key(_key("links[].damping"), lk.damping, "links", i, "damping")
         if lk.kind == "contact":
-            _number(lk.threshold, "links", i, "threshold")
+            _check_key(_key("links[].threshold"), lk.threshold, "links", i, "threshold")
             if s.integrator == "exact":
                 raise _Invalid("the exact integrator takes linear links only; a contact "
                                "switches the network (use centred or symplectic_euler)",
@@ -801,39 +797,19 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
 def _check_device(d: Any) -> None:
     if not isinstance(d, Device):
         raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
-    _number(d.mass, "device", "mass", positive=True)
-    _within(d.mass, "MASS_RANGE", "kg", "device", "mass")
-    _number(d.friction, "device", "friction", minimum=0.0)
-    if not (isinstance(d.delay, numbers.Integral) and not isinstance(d.delay, bool)):
-        raise _Invalid(f"must be a whole number of samples, got {show(d.delay)}", ("device", "delay"))
-    if d.delay < 0:
-        raise _Invalid(f"must be >= 0, got {d.delay}", ("device", "delay"))
-    from hapsim.analysis.loop import MAX_DELAY
-    if d.delay > MAX_DELAY:  # the analysis's limit and its cost: hapsim.analysis.loop
-        raise _Invalid(f"must be <= {MAX_DELAY} samples, got {d.delay}: the closed loop's "
-                       f"d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
-                       f"O(d^3), ~0.4 s at d = {MAX_DELAY}", ("device", "delay"))
-    _choice(d.hold, HOLDS, "device", "hold")
-    _number(d.force_limit, "device", "force_limit", positive=True, allow_inf=True)
-    _number(d.position_resolution, "device", "position_resolution", minimum=0.0)
-    _number(d.coulomb, "device", "coulomb", minimum=0.0)
-    _number(d.noise, "device", "noise", minimum=0.0)
+    _check_section(d, "device", "device")
 
 
 def _check_excitation(e: Any) -> None:
     if not isinstance(e, Excitation):
         raise _Invalid(f"must be a hapsim.scene.Excitation, got {_typename(e)}", ("excitation",))
-    _number(e.x0, "excitation", "x0")
-    _number(e.v0, "excitation", "v0")
+    if e.impulse is not None and not isinstance(e.impulse, Impulse):
+        raise _Invalid(f"must be a hapsim.scene.Impulse, got {_typename(e.impulse)}",
+                       ("excitation", "impulse"))
+    _check_section(e, "excitation", "excitation")
     if e.impulse is not None:
-        if not isinstance(e.impulse, Impulse):
-            raise _Invalid(f"must be a hapsim.scene.Impulse, got {_typename(e.impulse)}",
-                           ("excitation", "impulse"))
-        _number(e.impulse.force, "excitation", "impulse", "force")
-        _number(e.impulse.start, "excitation", "impulse", "start", minimum=0.0)
-        _number(e.impulse.duration, "excitation", "impulse", "duration", minimum=0.0)
+        _check_section(e.impulse, "excitation.impulse", "excitation", "impulse")
     if e.profile is not None:
-        _string(e.profile, "excitation", "profile")
         if not os.path.exists(e.profile):
             raise _Invalid(f"profile file not found: {e.profile}", ("excitation", "profile"))
 
@@ -841,14 +817,7 @@ def _check_excitation(e: Any) -> None:
 def _check_safety(f: Any) -> None:
     if not isinstance(f, Safety):
         raise _Invalid(f"must be a hapsim.scene.Safety, got {_typename(f)}", ("safety",))
-    if f.position_limit is not None:
-        _number(f.position_limit, "safety", "position_limit", positive=True, allow_inf=True)
-    _number(f.velocity_limit, "safety", "velocity_limit", positive=True, allow_inf=True)
-    _number(f.energy_limit, "safety", "energy_limit", positive=True, allow_inf=True)
-    if not isinstance(f.passivity_controller, bool):
-        raise _Invalid(f"must be true or false, got {_typename(f.passivity_controller)} "
-                       f"{show(f.passivity_controller)}", ("safety", "passivity_controller"))
-    _number(f.max_damping, "safety", "max_damping", minimum=0.0)
+    _check_section(f, "safety", "safety")
 
 
 def _code_line(s: Scene, where: tuple) -> int | None:
@@ -1024,7 +993,7 @@ def parse_scene(text: str, path: str = "<string>",
     if doc is None:
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
-    ctx.keys(doc, _TOP_KEYS, "", required=("rate_hz", "masses"))
+    ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
     device = _read_device(ctx, doc) if "device" in doc else None
@@ -1034,13 +1003,32 @@ def parse_scene(text: str, path: str = "<string>",
     try:
         return Scene(rate_hz=_coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
                      device=device, excitation=excitation, path=path,
-                     integrator=doc.get("integrator", "centred"), safety=safety, audio=audio)
+                     integrator=doc.get("integrator", _key("integrator").default), safety=safety,
+                     audio=audio)
     except ConfigError as exc:
         where = getattr(exc, "_scene_where", None)
         if where is None:
             raise
         raise ConfigError(exc.reason, file=path, line=ctx.doc_line(doc, where),
                           key=exc.key) from None
+
+
+def _read_values(ctx: _Ctx, d: _LDict, section: str, key: str,
+                 kind: str | None = None) -> dict:
+    """The keys of ``section`` the table checks by value, read from mapping ``d`` with the
+    table's defaults (unknown and missing keys refused first, naming ``key``)."""
+    rows = section_keys(section, kind)
+    ctx.keys(d, tuple(k.name for k in rows), key,
+             required=tuple(k.name for k in rows if k.required))
+    out = {}
+    for k in rows:
+        if k.type in ("list", "mapping", "pair"):
+            continue                                 # read by the section's own code
+        if k.default is None:
+            ctx.not_null(d, k.name, key)
+        v = d.get(k.name, k.default)
+        out[k.name] = _coerce(v) if k.type == "number" else v
+    return out
 
 
 def _read_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
@@ -1052,10 +1040,7 @@ def _read_masses(ctx: _Ctx, doc: _LDict) -> list[Mass]:
         key = f"masses[{i}]"
         d = ctx.mapping(item, key, ctx.line_of(seq, i))
         kind = ctx.kind(d, key, MASS_KINDS)
-        ctx.keys(d, _MASS_KEYS[kind], key,
-                 required=("name", "mass") if kind == "mass" else ("name",))
-        out.append(Mass(d["name"], kind, _coerce(d.get("mass", 0.0)), _coerce(d.get("x0", 0.0)),
-                        _coerce(d.get("v0", 0.0)), d.line))
+        out.append(Mass(**_read_values(ctx, d, "masses[]", key, kind), line=d.line))
     return out
 
 
@@ -1078,8 +1063,8 @@ def _read_links(ctx: _Ctx, doc: _LDict, masses: list[Mass]) -> list[Link]:
             raise ctx.error("must be a list of two mass names, e.g. [hand, wall]",
                             ctx.line_of(d, "between"), f"{key}.between")
         target = None
-        stiffness = _coerce(d.get("stiffness", 0.0))
-        damping = _coerce(d.get("damping", 0.0))
+        stiffness = _coerce(d.get("stiffness", _key("links[].stiffness").default))
+        damping = _coerce(d.get("damping", _key("links[].damping").default))
         if "target" in d:
             if "stiffness" in d or "damping" in d:
                 raise ctx.error("give either target {k, b} or stiffness/damping, not both",
@@ -1092,57 +1077,37 @@ def _read_links(ctx: _Ctx, doc: _LDict, masses: list[Mass]) -> list[Link]:
             raise ctx.error("a link needs stiffness and/or damping (or a target)",
                             d.line, f"{key}.stiffness")
         out.append(Link(d.get("name", f"link{i}"), kind, between[0], between[1], stiffness,
-                        damping, _coerce(d.get("threshold", 0.0)), target, line=d.line))
+                        damping, _coerce(d.get("threshold", _key("links[].threshold").default)),
+                        target, line=d.line))
     return out
 
 
 def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
     d = ctx.mapping(doc["device"], "device", ctx.line_of(doc, "device"))
-    ctx.keys(d, _DEVICE_KEYS, "device", required=("mass",))
-    return Device(
-        mass=_coerce(d["mass"]),
-        friction=_coerce(d.get("friction", 0.0)),
-        delay=d.get("delay", 1),
-        hold=d.get("hold", "zoh"),
-        force_limit=_coerce(d.get("force_limit", math.inf)),
-        position_resolution=_coerce(d.get("position_resolution", 0.0)),
-        coulomb=_coerce(d.get("coulomb", 0.0)),
-        noise=_coerce(d.get("noise", 0.0)),
-    )
+    return Device(**_read_values(ctx, d, "device", "device"))
 
 
 def _read_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:
     d = ctx.mapping(doc["excitation"], "excitation", ctx.line_of(doc, "excitation"))
-    ctx.keys(d, _EXCITATION_KEYS, "excitation")
-    ctx.not_null(d, "profile", "excitation")
-    impulse = None
+    values = _read_values(ctx, d, "excitation", "excitation")
     if "impulse" in d:
         i = ctx.mapping(d["impulse"], "excitation.impulse", ctx.line_of(d, "impulse"))
-        ctx.keys(i, _IMPULSE_KEYS, "excitation.impulse", required=("force",))
-        impulse = Impulse(_coerce(i["force"]), _coerce(i.get("start", 0.0)),
-                          _coerce(i.get("duration", 0.0)))
-    profile = d.get("profile")
+        values["impulse"] = Impulse(**_read_values(ctx, i, "excitation.impulse",
+                                                   "excitation.impulse"))
+    profile = values["profile"]
     if isinstance(profile, str) and not os.path.isabs(profile) and path != "<string>":
-        profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
-    return Excitation(_coerce(d.get("x0", 0.0)), _coerce(d.get("v0", 0.0)), impulse, profile)
+        values["profile"] = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
+    return Excitation(**values)
 
 
 def _read_safety(ctx: _Ctx, doc: _LDict) -> Safety:
     d = ctx.mapping(doc["safety"], "safety", ctx.line_of(doc, "safety"))
-    ctx.keys(d, _SAFETY_KEYS, "safety")
-    ctx.not_null(d, "position_limit", "safety")
-    return Safety(
-        position_limit=_coerce(d.get("position_limit")),
-        velocity_limit=_coerce(d.get("velocity_limit", math.inf)),
-        energy_limit=_coerce(d.get("energy_limit", 1.0)),
-        passivity_controller=d.get("passivity_controller", False),
-        max_damping=_coerce(d.get("max_damping", 50.0)),
-    )
+    return Safety(**_read_values(ctx, d, "safety", "safety"))
 
 
 def _read_audio(ctx: _Ctx, doc: _LDict) -> Audio:
     d = ctx.mapping(doc["audio"], "audio", ctx.line_of(doc, "audio"))
-    ctx.keys(d, _AUDIO_KEYS, "audio", required=("rate_hz", "listen"))
+    values = _read_values(ctx, d, "audio", "audio")
     seq = d["listen"]
     if not isinstance(seq, list) or not seq:
         raise ctx.error("must be a non-empty list of listening points {mass, quantity, gain}",
@@ -1151,9 +1116,5 @@ def _read_audio(ctx: _Ctx, doc: _LDict) -> Audio:
     for i, item in enumerate(seq):
         key = f"audio.listen[{i}]"
         it = ctx.mapping(item, key, ctx.line_of(seq, i))
-        ctx.keys(it, _LISTEN_KEYS, key, required=("mass",))
-        listen.append(Listen(it["mass"], it.get("quantity", LISTEN_QUANTITIES[0]),
-                             _coerce(it.get("gain", 1.0))))
-    return Audio(_coerce(d["rate_hz"]), tuple(listen),
-                 d.get("port_position", PORT_POSITION_MODES[0]),
-                 d.get("port_force", PORT_FORCE_MODES[0]))
+        listen.append(Listen(**_read_values(ctx, it, "audio.listen[]", key)))
+    return Audio(listen=tuple(listen), **values)

@@ -79,7 +79,7 @@ def test_felt_wall_over_pty_is_felt_as_asked():
 
 def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
     report = str(tmp_path / "mock.json")
-    mock, port = start_mock("--scene", WALL, "--lockstep", "--report", report)
+    mock, port = start_mock("--scene", WALL, "--lockstep", "--report", report, "--once")
     try:
         run = hapsim("run", WALL, "--port", port, "--lockstep", "--json")
         out, err = run.communicate(timeout=90)
@@ -88,7 +88,7 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
         assert set(rep) >= {"target", "virtual", "predicted", "measured", "loop", "telemetry"}
         assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
         assert rep["loop"]["transport"] == "serial" and rep["loop"]["port"] == port
-        assert mock.wait(timeout=10) == 0          # STOP ends the standalone mock
+        assert mock.wait(timeout=10) == 0          # STOP ends the --once mock
     finally:
         if mock.poll() is None:
             mock.kill()
@@ -99,7 +99,7 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
 
 
 def test_mock_and_run_port_real_time_complete_and_report():
-    mock, port = start_mock("--scene", WALL)
+    mock, port = start_mock("--scene", WALL, "--once")
     try:
         run = hapsim("run", WALL, "--port", port, "--duration", "0.5")
         out, err = run.communicate(timeout=90)
@@ -142,7 +142,7 @@ def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig, durati
     0."""
     report = str(tmp_path / "mock.json")
     tel = str(tmp_path / "run.npz")
-    mock, port = start_mock("--scene", WALL, "--report", report)
+    mock, port = start_mock("--scene", WALL, "--report", report, "--once")
     try:
         run = hapsim("run", WALL, "--port", port, "--duration", duration, "--telemetry", tel,
                      "--json")

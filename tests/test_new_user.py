@@ -410,7 +410,10 @@ def test_simulate_refuses_duplicate_record_columns(tmp_path, capsys):
     (["--rate", "1e12"], "--rate: must be between 1e-06 and 1e+09 Hz"),  # RATE_RANGE
     (["--rate", "1e9", "--duration", "1000"], "telemetry rows (1e+09 Hz)"),
 ], ids=["telemetry-missing-dir", "telemetry-is-dir", "duration", "rate", "rate-rows"])
-def test_run_checks_outputs_and_sizes_before_start(tmp_path, capsys, argv, fragment):
+def test_run_checks_outputs_and_sizes_before_start(tmp_path, capsys, monkeypatch, argv,
+                                                   fragment):
+    # the machine is given 1 GiB, so that the test does not depend on the one it runs on
+    monkeypatch.setattr("hapsim.outputs.available_memory", lambda: 2 ** 30)
     scene = tmp_path / "wall.yaml"
     scene.write_text(WALL)
     (tmp_path / "t.npz").mkdir()
@@ -425,7 +428,9 @@ def test_run_checks_outputs_and_sizes_before_start(tmp_path, capsys, argv, fragm
     ("1.0e+9", "rate_hz: 1e+09 telemetry rows"),                 # fits the range, not the memory
     ("1.0e+12", "rate_hz: must be between 1e-06 and 1e+09 Hz"),  # outside the analysis's range
 ])
-def test_run_scene_rate_that_cannot_fit_names_the_file(tmp_path, capsys, rate, fragment):
+def test_run_scene_rate_that_cannot_fit_names_the_file(tmp_path, capsys, monkeypatch, rate,
+                                                       fragment):
+    monkeypatch.setattr("hapsim.outputs.available_memory", lambda: 2 ** 30)
     scene = tmp_path / "fast.yaml"
     scene.write_text(WALL.replace("rate_hz: 1000", f"rate_hz: {rate}"))
     msg = one_line_error(capsys, ["run", str(scene), "--lockstep"])

@@ -940,7 +940,8 @@ def test_journal_ignores_a_torn_last_chunk(tmp_path):
     data = open(path, "rb").read()
     info = {}
     assert load(path, info=info)["seq"].tolist() == list(range(1000))
-    assert info == {"chunks": 4, "rows": 1000, "torn_bytes": 0, "events": [], "gaps": []}
+    assert info == {"chunks": 4, "rows": 1000, "torn_bytes": 0, "events": [], "gaps": [],
+                    "torn_rows": None}
     for cut in (3, 20, len(data) // 4 - 7):      # all inside the last of 4 equal chunks
         torn = tmp_path / f"torn{cut}.hst"
         torn.write_bytes(data[:-cut])

@@ -31,7 +31,10 @@ def register(sub) -> None:
             "FORCE answering STATE n at tick n + d. Its device and excitation come from the "
             "scene's 'device' and 'excitation' sections (default: the device of "
             "configs/wall.yaml, m = 0.1 kg, b0 = 0.5 N s/m, d = 1, 10 N, with x0 = 5 mm). "
-            "It serves until SIGINT/SIGTERM or until the host sends STOP."),
+            "It serves host after host until SIGINT/SIGTERM (Ctrl-C): a run that ends "
+            "(STOP), is killed, or closes and reopens the port leaves it disarmed with zero "
+            "force, waiting for the next run on the same PORT. --once restores the one-run "
+            "device that exits at the first STOP."),
         epilog=(
             "modes:\n"
             "  real-time (default)  ticks on the monotonic clock at the host's CONFIG rate;\n"
@@ -40,7 +43,7 @@ def register(sub) -> None:
             "example (two terminals):\n"
             "  $ hapsim mock --scene configs/wall.yaml\n"
             "  PORT /dev/pts/7\n"
-            "  $ hapsim run configs/wall.yaml --port /dev/pts/7\n"
+            "  $ hapsim run configs/wall.yaml --port /dev/pts/7     # again and again\n"
             "faults (--faults SPEC, seeded by --fault-seed N; see hapsim.daemon.faults):\n"
             "  NAME=RATE[:DUR]   at random, probability per frame sent (drop, corrupt,\n"
             "                    garbage, dup, reorder, spike), per frame received from the\n"
@@ -67,8 +70,8 @@ def register(sub) -> None:
             "  answers (the emulated clock waits for each FORCE); on exit it writes --report\n"
             "  (JSON: MCU cycles per tick, force on the pin, frames) or prints it\n"
             "  $ hapsim mock --firmware --scene configs/hapkit.yaml\n"
-            "exit codes: 0 stopped by STOP or a signal; 1 the firmware stopped or could not\n"
-            "be built; 2 bad arguments, scene or SPEC."),
+            "exit codes: 0 stopped by a signal (or, with --once, by STOP); 1 the firmware\n"
+            "stopped or could not be built; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", metavar="SCENE", help="scene whose device/excitation to model")
     p.add_argument("--lockstep", action="store_true",
@@ -86,6 +89,9 @@ def register(sub) -> None:
                    help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
                         "normal scheduling; it is a test rig; 1..99). Embedded in 'hapsim "
                         "run', the mock inherits the run's policy instead")
+    p.add_argument("--once", action="store_true",
+                   help="serve one run only: exit at the host's STOP (without faults) or when "
+                        "it closes the port (default: serve run after run until a signal)")
     p.add_argument("--link", metavar="PATH",
                    help="keep a symbolic link PATH to the current pty (needed by vanish)")
     p.add_argument("--firmware", action="store_true",
@@ -134,7 +140,8 @@ def run(args) -> int:
     ----------
     args : argparse.Namespace
         Parsed options of :func:`register` (``scene``, ``lockstep``, ``rate``, ``seed``,
-        ``report``, ``faults``, ``fault_seed``, ``rt_priority``, ``link``, ``fd``, ``spec``).
+        ``report``, ``faults``, ``fault_seed``, ``rt_priority``, ``once``, ``link``, ``fd``,
+        ``spec``).
 
     Returns
     -------
@@ -200,18 +207,40 @@ def run(args) -> int:
             serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
                      handle_signals=False, plan=plan, reopen=reopen)
         return 0
+    import sys
     master, slave = _new_pty(args.link, announce=True)
+    persistent = not getattr(args, "once", False)
+    if persistent:
+        # the raw settings stay with the pty; with no slave fd of its own the mock sees
+        # EIO when a host closes the port (or dies), and then waits for the next one
+        os.close(slave)
+        slave = None
+
+    served = []
+
+    def host_gone(stats: dict) -> None:
+        if stats["ticks"] or stats["saw_stop"]:
+            served.append(stats["ticks"])
+            how = "after STOP" if stats["saw_stop"] else "without STOP (force zeroed)"
+            print(f"hapsim mock: host left {how} ({stats['ticks']} ticks since its last "
+                  "CONFIG); waiting for the next run (Ctrl-C ends the mock)",
+                  file=sys.stderr, flush=True)
+
     try:
         with rt:
             if args.rt_priority and not rt.active:
-                import sys
                 print(f"hapsim mock: scheduling {rt.note}", file=sys.stderr, flush=True)
-            serve_fd(master, mock, exit_on_stop=True, report_path=args.report, plan=plan,
-                     reopen=reopen)
+            report = serve_fd(master, mock, exit_on_stop=not persistent,
+                              report_path=args.report, plan=plan, reopen=reopen,
+                              persistent=persistent, on_host_gone=host_gone)
+        if persistent:
+            print(f"hapsim mock: stopped ({report['end']}); {len(served)} host(s) served "
+                  f"and gone", file=sys.stderr, flush=True)
     finally:
         for fd in (master, slave):
             try:
-                os.close(fd)
+                if fd is not None:
+                    os.close(fd)
             except OSError:
                 pass
     return 0

@@ -603,6 +603,19 @@ class HostLoop:
             self.state = "stopped"
             if gc_was:
                 gc.enable()
+        return self.finish()
+
+    def finish(self) -> LoopResult:
+        """Fill the result from what was recorded: samples, turnaround, decoder counters.
+
+        :meth:`run` ends with it; a caller that caught :meth:`run`'s DeviceError or
+        ProtocolError calls it to report the run up to the loss.
+
+        Returns
+        -------
+        LoopResult
+            :attr:`result`, completed.
+        """
         res = self.result
         if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
             res.stop_reason = f"signal {_signame(self.stop.signal)}"

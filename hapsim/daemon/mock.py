@@ -715,11 +715,14 @@ def _write(fd: int, data: bytes) -> bool:
         return True
     except BlockingIOError:
         return False
+    except OSError:        # EIO: no host has the port open; the next read says so
+        return False
 
 
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
-             handle_signals: bool = True, plan=None, reopen=None) -> dict:
+             handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
+             on_host_gone=None) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -744,6 +747,14 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     reopen : callable, optional
         ``reopen() -> fd``: a new port after a ``vanish`` (the old ``fd`` is closed when
         the port vanishes); required when the plan can make the port vanish.
+    persistent : bool
+        Outlive hosts: when the host closes the port (EIO: no slave fd open, e.g. a run
+        that ended or was killed) the device zeroes its force, disarms and waits for the
+        next host to open the port, instead of returning; waiting also at the start (the
+        caller may close its own slave fd). Use with ``exit_on_stop=False``.
+    on_host_gone : callable, optional
+        ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
+        called (outside any tick) each time a persistent device loses its host.
 
     Returns
     -------
@@ -765,7 +776,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     later (the schedule slips rather than compressing the host's time to answer, so ``late``
     counts the host's lateness, not the mock's). The physics is per tick, so slips do not
     change it. The garbage collector is disabled while serving.
-    Serving ends on EOF/EIO (host side closed), STOP (when ``exit_on_stop``), or the flag.
+    Serving ends on EOF/EIO (host side closed; not when ``persistent``), STOP (when
+    ``exit_on_stop``), or the flag.
     """
     from hapsim.daemon.faults import FaultyDevice
 
@@ -792,7 +804,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     deadline = None            # monotonic ns of the next real-time tick
     period_ns = 0
     reason = "flag"
-    awaiting_host = False
+    awaiting_host = persistent      # a persistent device starts with no host (EIO) too
     try:
         while not flag.set:
             now_ns = time.monotonic_ns()
@@ -839,13 +851,18 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 except BlockingIOError:
                     chunk = None
                 except OSError:            # EIO: every slave fd closed
-                    if awaiting_host:
-                        time.sleep(0.001)
-                        chunk = None
-                    else:
-                        reason = "host closed"
-                        break
-                if chunk == b"":
+                    chunk = b""
+                if chunk == b"" and awaiting_host:
+                    time.sleep(0.001 if dev.vanished_until_us else 0.005)
+                    chunk = None
+                elif chunk == b"" and persistent:      # the host went away: wait for the next
+                    mock.stop()
+                    dev.decoder.reset()
+                    awaiting_host = True
+                    if on_host_gone is not None:
+                        on_host_gone(mock.stats.to_dict())
+                    continue
+                elif chunk == b"":
                     reason = "host closed"
                     break
                 if chunk:
@@ -878,6 +895,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             gc.enable()
         mock.stop()
         report = mock.stats.to_dict()
+        if reason == "flag" and flag.signal is not None:
+            reason = f"signal {signal.Signals(flag.signal).name}"
         report["end"] = reason
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()

@@ -16,9 +16,12 @@ A pipeline of named steps, each returning a small result object (DESIGN §4-§5)
    transport opened (in-process mock, embedded mock on a pty, or a given port), and the host
    loop run (:class:`~hapsim.daemon.loop.HostLoop`).
 4. The logged positions after the excitation has ended are identified with
-   :func:`hapsim.analysis.fit_rendered` (matrix pencil, model order = number of non-zero
-   predicted closed-loop poles, i.e. plant order 2 + d + 1 for a wall with damping) and
-   compared with the prediction.
+   :func:`hapsim.analysis.identify.measure_felt`: the full-order matrix pencil when the
+   record is exact (noise-free, reproduced to round-off), otherwise a least-squares fit of
+   the felt pair, the slow modes and the offset, robust to a quantised or noisy sensor
+   (step from ``device.position_resolution`` or HELLO's ``position_scale``), with standard
+   errors; the report states the interval and whether it holds the prediction, or why the
+   record supports no measurement.
 """
 
 from __future__ import annotations
@@ -497,6 +500,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -538,6 +542,14 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        if self.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            get_driver(self.driver)             # unknown name: ConfigError before any work
+            if not self.plan.empty:
+                raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                                  "has none", key="--faults")
+            self.host_clocked = True            # the protocols answer commands: no clock
+            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:
@@ -640,6 +652,9 @@ class LoopRun:
         Journal writer's ``lost_rows``, ``chunks``, ``events``, ``error``.
     journal : str or None
         Journal path (``.hst``).
+    error : DeviceError or ProtocolError or None
+        What ended the loop when the device was lost beyond recovery (``res`` then holds
+        the run up to the loss); :func:`run_scene` raises it with the report attached.
     """
 
     res: object
@@ -648,6 +663,7 @@ class LoopRun:
     journal: str | None
     control: object = None
     sound: dict | None = None
+    error: Exception | None = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -802,7 +818,19 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         cfg = _loop_config(prep, opts)
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
         rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if transport == "inprocess":
+        if opts.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(opts.driver)
+            if opts.port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
+                                              scene.rate_hz, seed=opts.seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
@@ -848,16 +876,18 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     -------
     LoopRun
 
-    Raises
-    ------
-    DeviceError, ProtocolError
-        From the loop (the telemetry logged so far is exported first).
+    Notes
+    -----
+    A DeviceError or ProtocolError from the loop (device lost beyond recovery) is not
+    raised here: the result holds the run up to the loss and the error
+    (:attr:`LoopRun.error`), so the report is still made.
     """
     tel, tr, telemetry = conn.tel, conn.tr, opts.telemetry
     writer = None
     writer_info = None
     journal = None
     mock_report = None
+    error = None
     ctl = osc_server = None
     ring = out = None
     try:
@@ -876,14 +906,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             opts.on_start(tr.info.get("port"), prep.n_samples)
         try:
             res = loop.run()
-        except (DeviceError, ProtocolError):
-            if writer is not None:
-                writer.close()
-                writer = None
-            if telemetry and tel.n and journal != telemetry:
-                # what was logged helps diagnose the failure
-                _export(tel, journal, telemetry)
-            raise
+        except (DeviceError, ProtocolError) as exc:
+            # the run up to the loss is reported (and its telemetry exported) as any other
+            error = exc
+            res = loop.finish()
+            res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
         if osc_server is not None:
             osc_server.shutdown()
@@ -909,7 +936,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             mock_report["fault_events"] = tr.device.events
     sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
                                        **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
@@ -1187,7 +1214,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None) -> dict:
+              jack_server: str | None = None,
+              driver: str | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1256,6 +1284,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -1285,9 +1318,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     UnstableConfigError
         Target not renderable, or unstable loop without ``allow_unstable``.
     DeviceError
-        Port failure or silent device.
+        Port failure or silent device. Once the loop has started (device lost beyond
+        recovery), the exception's ``report`` attribute holds the report of the run up to
+        the loss (``exit_code`` 1, ``error``: ``type`` and ``message``, ``loop.stop_reason``
+        naming the error).
     ProtocolError
-        The device speaks another protocol version or has another number of axes than 1.
+        The device speaks another protocol version or has another number of axes than 1
+        (with ``report`` as for DeviceError when the loop had started).
     """
     opts = RunOptions(port=port, baud=baud, duration=duration, rate_hz=rate_hz,
                       lockstep=lockstep, host_clocked=host_clocked, telemetry=telemetry,
@@ -1297,13 +1334,20 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server).check()
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
+                      driver=driver).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
     measured = identify_run(prep, conn.tel, run.res.hello)
-    return build_report(prep, conn, run, opts, measured, tel_info)
+    rep = build_report(prep, conn, run, opts, measured, tel_info)
+    if run.error is not None:          # device lost beyond recovery: the report goes with it
+        rep["exit_code"] = 1
+        rep["error"] = {"type": type(run.error).__name__, "message": str(run.error)}
+        run.error.report = rep
+        raise run.error
+    return rep
 
 
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):

@@ -70,6 +70,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
+           "write_journal", "save_columns",
            "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
            "FLAG_CLAMPED"]
 
@@ -260,21 +261,25 @@ class Telemetry:
         return _write_columns(self.columns(), path)
 
 
-def _write_columns(cols: dict, path: str) -> str:
-    """Write columns to ``.npz`` / ``.csv`` atomically (see :meth:`Telemetry.write`)."""
+def _write_columns(cols: dict, path: str, events: list | None = None,
+                   key: str = "--telemetry") -> str:
+    """Write columns to ``.npz`` / ``.csv`` atomically (see :meth:`Telemetry.write`); an
+    ``.npz`` also keeps ``events`` (JSON text in the array ``events``) when given."""
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".npz", ".csv"):
         raise ConfigError(f"unknown telemetry format {ext or '(none)'!r}; valid: .npz, .csv",
-                          key="--telemetry")
+                          key=key)
     tmp = f"{path}.partial"
     try:
         if ext == ".npz":
+            extra = {"events": np.array(json.dumps(events))} if events else {}
             with open(tmp, "wb") as fh:
-                np.savez(fh, **cols)
+                np.savez(fh, **cols, **extra)
         else:
+            # %.17g round-trips every float64 exactly (seq, late, flags are integers)
             data = np.column_stack([cols[c].astype(float) for c in COLUMNS])
             np.savetxt(tmp, data, delimiter=",", header=",".join(COLUMNS), comments="",
-                       fmt=["%.9f", "%.17g", "%.17g", "%d", "%.1f", "%d", "%d"])
+                       fmt=["%.17g", "%.17g", "%.17g", "%d", "%.17g", "%d", "%d"])
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -397,10 +402,7 @@ class ChunkWriter:
                 return
 
     def _chunk(self, header: dict, payload: bytes = b"") -> None:
-        head = json.dumps(header, separators=(",", ":")).encode()
-        crc = zlib.crc32(payload, zlib.crc32(head))
-        os.write(self._fd, _HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(head), len(payload),
-                                      crc) + head + payload)
+        os.write(self._fd, _chunk_bytes(header, payload))
         self.chunks += 1
 
     def flush(self) -> int:
@@ -446,19 +448,14 @@ class ChunkWriter:
                         lo = cut
                     if hi <= lo:
                         continue
-                    payload = b"".join(np.ascontiguousarray(cols[c], dtype=_DTYPES[c])
-                                       .tobytes() for c in COLUMNS)
-                    self._chunk({"columns": list(COLUMNS),
-                                 "dtypes": [_DTYPES[c] for c in COLUMNS],
-                                 "rows": hi - lo, "first": lo}, payload)
+                    self._chunk(*_rows_chunk(cols, lo, hi - lo))
                     wrote += hi - lo
                 self.rows_written = n
             ev = self.events
             if ev is not None:
                 while self.events_written < len(ev):
                     e = ev[self.events_written]
-                    self._chunk({"columns": [], "dtypes": [], "rows": 0,
-                                 "first": int(e.get("sample", tel.n)), "event": e})
+                    self._chunk(_event_header(e, tel.n))
                     self.events_written += 1
             return wrote
 
@@ -475,6 +472,107 @@ class ChunkWriter:
                 self._fd = None
 
 
+def _chunk_bytes(header: dict, payload: bytes = b"") -> bytes:
+    """One journal chunk: fixed head, JSON header, payload (module docstring)."""
+    head = json.dumps(header, separators=(",", ":")).encode()
+    crc = zlib.crc32(payload, zlib.crc32(head))
+    return _HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(head), len(payload), crc) + head + payload
+
+
+def _rows_chunk(cols: dict, first: int, rows: int) -> tuple[dict, bytes]:
+    """Header and payload of a rows chunk holding ``cols`` (rows ``first ..``)."""
+    payload = b"".join(np.ascontiguousarray(cols[c], dtype=_DTYPES[c]).tobytes()
+                       for c in COLUMNS)
+    return ({"columns": list(COLUMNS), "dtypes": [_DTYPES[c] for c in COLUMNS],
+             "rows": rows, "first": first}, payload)
+
+
+def _event_header(event: dict, n: int) -> dict:
+    """Header of an event chunk (placed at the event's sample, else at row ``n``)."""
+    return {"columns": [], "dtypes": [], "rows": 0, "first": int(event.get("sample", n)),
+            "event": event}
+
+
+def write_journal(cols: dict, path: str, events: list | None = None,
+                  chunk_rows: int = 65536) -> str:
+    """Write columns (and events) as a chunked journal ``.hst``, atomically.
+
+    Parameters
+    ----------
+    cols : dict of str to ndarray
+        The columns of :data:`COLUMNS`, each shape (n,) (cast to the journal's dtypes).
+    path : str
+        Output file (conventionally ``.hst``).
+    events : list of dict, optional
+        Loop events (``event``, ``sample``, ...), written as event chunks after the rows.
+    chunk_rows : int
+        Rows per chunk (> 0).
+
+    Returns
+    -------
+    str
+        ``path``; :func:`load` reads the same columns back bit for bit.
+
+    Raises
+    ------
+    OSError
+        When the file cannot be written (the temporary file is removed).
+    """
+    n = int(np.asarray(cols["seq"]).size)
+    tmp = f"{path}.partial"
+    try:
+        with open(tmp, "wb") as fh:
+            for a in range(0, n, chunk_rows):
+                b = min(n, a + chunk_rows)
+                fh.write(_chunk_bytes(*_rows_chunk({c: np.asarray(cols[c])[a:b]
+                                                    for c in COLUMNS}, a, b - a)))
+            for e in events or ():
+                fh.write(_chunk_bytes(_event_header(e, n)))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def save_columns(cols: dict, path: str, events: list | None = None,
+                 key: str = "--out") -> str:
+    """Write telemetry columns in the format of ``path``'s extension.
+
+    Parameters
+    ----------
+    cols : dict of str to ndarray
+        The columns of :data:`COLUMNS`, each shape (n,).
+    path : str
+        ``.hst`` (journal, with the events), ``.npz`` (with the events) or ``.csv``
+        (columns only; floats as ``%.17g``, so every value reads back exactly).
+    events : list of dict, optional
+        Loop events to keep (``.hst``, ``.npz``).
+    key : str
+        Option named in an error.
+
+    Returns
+    -------
+    str
+        ``path``.
+
+    Raises
+    ------
+    ConfigError
+        On an unknown extension (key ``key``; valid: .hst, .npz, .csv).
+    OSError
+        When the file cannot be written.
+    """
+    if path.lower().endswith(".hst"):
+        return write_journal(cols, path, events)
+    try:
+        return _write_columns(cols, path, events, key=key)
+    except ConfigError:
+        ext = os.path.splitext(path)[1].lower() or "(none)"
+        raise ConfigError(f"unknown telemetry format {ext!r}; valid: .hst, .npz, .csv",
+                          key=key) from None
+
+
 def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
     """Read a telemetry file: a chunked journal (``.hst``), ``.npz`` or ``.csv``.
 
@@ -485,9 +583,10 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         is incomplete (torn by a kill), fails its CRC, or does not start with the magic.
     info : dict, optional
         Filled with ``chunks`` (complete chunks read), ``rows``, ``torn_bytes`` (bytes
-        ignored at the end), ``events`` (the loop's journaled events, list of dict) and
-        ``gaps`` (row ranges ``[a, b)`` missing between chunks: rows the writer lost to the
-        ring) for a journal.
+        ignored at the end), ``torn_rows`` (rows ``[a, b)`` of a torn last chunk whose
+        header survived, else None), ``events`` (the loop's journaled events, list of dict)
+        and ``gaps`` (row ranges ``[a, b)`` missing between chunks: rows the writer lost to
+        the ring) for a journal.
 
     Returns
     -------
@@ -544,9 +643,25 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         pos = b
     if info is not None:
         info.update(chunks=chunks, rows=rows, torn_bytes=len(data) - pos, events=events,
-                    gaps=gaps)
+                    gaps=gaps, torn_rows=_torn_rows(data, pos))
     return {c: (np.concatenate(parts[c]) if parts[c] else np.zeros(0, dtype=_DTYPES[c]))
             .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
+
+
+def _torn_rows(data: bytes, pos: int) -> tuple[int, int] | None:
+    """Rows ``[a, b)`` announced by the torn chunk at ``pos`` when its header is whole."""
+    if pos + _HEAD.size > len(data):
+        return None
+    magic, version, hlen, _, _ = _HEAD.unpack_from(data, pos)
+    a = pos + _HEAD.size
+    if magic != CHUNK_MAGIC or a + hlen > len(data):
+        return None
+    try:
+        h = json.loads(data[a:a + hlen])
+        first, rows = int(h["first"]), int(h["rows"])
+    except (ValueError, KeyError, TypeError):
+        return None
+    return (first, first + rows) if rows else None
 
 
 def convert(src: str, dst: str) -> str:

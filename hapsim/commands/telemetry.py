@@ -1,0 +1,361 @@
+"""``hapsim telemetry FILE``: summarise, convert and plot a run's telemetry."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import zipfile
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["register", "run", "read", "summarize", "felt_energy", "format_summary"]
+
+_FORMATS = (".hst", ".npz", ".csv")
+
+
+def register(sub) -> None:
+    """Add the ``telemetry`` sub-command.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The sub-parsers of the ``hapsim`` parser; the new parser's ``func`` is :func:`run`.
+    """
+    p = sub.add_parser(
+        "telemetry", help="summarise, convert (.hst/.npz/.csv) and plot a run's telemetry",
+        description=(
+            "Read the telemetry of a 'hapsim run --telemetry FILE' (the .hst journal, even "
+            "one cut short by kill -9, or its .npz/.csv export) and print what happened: "
+            "samples, rate and duration, late ticks, device losses and recoveries, the "
+            "position, force and turnaround ranges, and the energy the scene gave the hand. "
+            "A journal cut by a kill is read up to its last intact chunk and the summary "
+            "says what was lost."),
+        epilog=(
+            "columns: time [s], position [m], force [N], seq, turnaround_us [us], late,\n"
+            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped)\n"
+            "felt energy: E(n) = sum_k f(k - d) (x(k+1) - x(k)) [J], the work the held force\n"
+            "  did on the hand (the run's passivity observer), restarted at each recovery\n"
+            "examples:\n"
+            "  hapsim run configs/wall.yaml --telemetry wall.hst --faults drop=0.01,reset@800\n"
+            "  hapsim telemetry wall.hst\n"
+            "  hapsim telemetry wall.hst --out wall.csv          # or .npz; and back to .hst\n"
+            "  hapsim telemetry wall.hst --plot wall.png --json\n"
+            "exit codes: 0 read (a truncated journal included); 2 not a telemetry file,\n"
+            "  bad option."),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("file", metavar="FILE", help="telemetry file: .hst, .npz or .csv")
+    p.add_argument("--out", metavar="FILE",
+                   help="write the telemetry to FILE in the format of its extension "
+                        "(.hst, .npz, .csv; events are kept in .hst and .npz)")
+    p.add_argument("--plot", metavar="FIG",
+                   help="draw position, force, felt energy and flags over time to FIG (.png, "
+                        ".svg, ...; needs matplotlib)")
+    p.add_argument("--delay", type=int, default=1, metavar="D",
+                   help="samples d between a position and the force answering it, for the "
+                        "felt energy (the scene's device.delay; default 1)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def read(path: str) -> tuple[dict, dict]:
+    """Read a telemetry file and what is known about its integrity.
+
+    Parameters
+    ----------
+    path : str
+        ``.hst`` journal, ``.npz`` or ``.csv`` (:mod:`hapsim.daemon.telemetry`).
+
+    Returns
+    -------
+    cols : dict of str to ndarray
+        The columns of :data:`hapsim.daemon.telemetry.COLUMNS`, each shape (n,).
+    info : dict
+        ``format``; ``events`` (list of dict; empty for a ``.csv``); for a journal also
+        ``chunks``, ``torn_bytes``, ``torn_rows``, ``gaps`` (:func:`~hapsim.daemon.telemetry.load`).
+
+    Raises
+    ------
+    ConfigError
+        (key ``FILE``) When the file is missing or unreadable, has another extension, or is
+        not telemetry: a non-empty journal without one intact chunk, an ``.npz`` without
+        the columns, a ``.csv`` without the header or with non-numbers.
+    """
+    from hapsim.daemon.telemetry import COLUMNS, load
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in _FORMATS:
+        raise ConfigError(f"unknown telemetry format {ext or '(none)'!r}; valid: "
+                          f"{', '.join(_FORMATS)}", file=path, key="FILE")
+    if not os.path.isfile(path):
+        raise ConfigError("no such file", file=path, key="FILE")
+    info: dict = {"format": ext[1:], "events": []}
+    try:
+        if ext == ".hst":
+            cols = load(path, info=info)
+            if info["chunks"] == 0 and info["torn_bytes"] > 0 and info["torn_rows"] is None:
+                raise ConfigError("not a hapsim telemetry journal (no intact chunk; a "
+                                  "journal starts with b'HSTC')", file=path, key="FILE")
+        elif ext == ".npz":
+            with np.load(path) as z:
+                missing = [c for c in ("time", "position", "force", "seq") if c not in z.files]
+                if missing:
+                    raise ConfigError(f"not hapsim telemetry: no column {missing[0]!r} "
+                                      f"(has: {', '.join(z.files[:10]) or 'nothing'})",
+                                      file=path, key="FILE")
+                if "events" in z.files:
+                    info["events"] = json.loads(str(z["events"]))
+            cols = load(path)
+        else:
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                header = fh.readline().strip().split(",")
+            if header[:3] != list(COLUMNS[:3]):
+                raise ConfigError(f"not hapsim telemetry: the first line must be the header "
+                                  f"{','.join(COLUMNS)}", file=path, key="FILE")
+            cols = load(path)
+    except ConfigError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+        raise ConfigError(f"cannot read telemetry: {msg}", file=path, key="FILE") from None
+    if not all(np.asarray(cols[c]).ndim == 1 and cols[c].size == cols["seq"].size
+               for c in COLUMNS):
+        raise ConfigError("not hapsim telemetry: columns of different lengths", file=path,
+                          key="FILE")
+    return cols, info
+
+
+def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
+                delay: int) -> np.ndarray:
+    """The energy the held force gave the hand, sample by sample (passivity observer).
+
+    Parameters
+    ----------
+    position : ndarray, shape (n,)
+        Device positions [m].
+    force : ndarray, shape (n,)
+        Forces sent [N]; the force answering sample ``k`` is held over period ``k + d``.
+    flags : ndarray, shape (n,)
+        Telemetry flags; a sample with :data:`~hapsim.daemon.telemetry.FLAG_LOST` restarts
+        the sum (the scene restarted there after a recovery).
+    delay : int
+        d [samples], >= 0.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``E[n] = sum_{k = r + d}^{n - 1} f(k - d) (x(k + 1) - x(k))`` [J], ``r`` the last
+        restart at or before ``n`` (Hannaford & Ryu 2002, with the sign of
+        :mod:`hapsim.daemon.loop`: energy out of the scene into the hand).
+    """
+    from hapsim.daemon.telemetry import FLAG_LOST
+
+    x = np.asarray(position, float)
+    f = np.asarray(force, float)
+    n = x.size
+    e = np.zeros(n)
+    starts = [0] + [int(i) for i in np.flatnonzero(np.asarray(flags) & FLAG_LOST) if i > 0]
+    for a, b in zip(starts, starts[1:] + [n]):
+        if b - a <= delay + 1:
+            continue
+        inc = f[a:b - 1 - delay] * np.diff(x[a + delay:b])     # k = a + d .. b - 2
+        e[a + delay + 1:b] = np.cumsum(inc)
+    return e
+
+
+def _finite(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _range(a: np.ndarray) -> dict:
+    a = a[np.isfinite(a)]
+    return {"min": float(a.min()), "max": float(a.max())} if a.size else {"min": None,
+                                                                          "max": None}
+
+
+def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
+    """What a run's telemetry says.
+
+    Parameters
+    ----------
+    cols : dict of str to ndarray
+        Columns as returned by :func:`read`.
+    info : dict
+        Integrity facts from :func:`read`.
+    delay : int
+        d [samples] for the felt energy.
+
+    Returns
+    -------
+    dict
+        ``samples``; ``duration_s`` (last minus first device time [s]); ``rate_hz`` (the
+        inverse of the median time step); ``seq`` (``first``, ``last``, ``jumps``: forward
+        steps > 1, ``missing``: sequence numbers they skip); ``late`` (late ticks);
+        ``events`` (count per event name: ``lost``, ``recovered``, ...); ``restarts``
+        (samples flagged as a restart after a recovery), ``ramped``, ``clamped``;
+        ``position_m``, ``force_n``, ``turnaround_us`` (``min``/``max``; turnaround also
+        ``p50``/``p99``); ``felt_energy_j`` (``max``, ``end``, ``delay``); ``integrity``
+        (``format``, ``intact``, and for a journal ``chunks``, ``torn_bytes``,
+        ``lost_rows``: ranges ``[a, b)`` lost to a torn last chunk or to the writer).
+    """
+    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
+
+    t, seq = cols["time"], cols["seq"].astype(np.int64)
+    flags = cols["flags"]
+    n = int(seq.size)
+    dt = np.diff(t)
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    step = np.diff(seq)
+    jumps = step[step > 1]
+    events: dict[str, int] = {}
+    for ev in info.get("events", []):
+        name = str(ev.get("event", "?"))
+        events[name] = events.get(name, 0) + 1
+    e = felt_energy(cols["position"], cols["force"], flags, delay) if n else np.zeros(0)
+    ta = cols["turnaround_us"][np.isfinite(cols["turnaround_us"])]
+    lost_rows = [list(map(int, g)) for g in info.get("gaps", [])]
+    if info.get("torn_rows"):
+        lost_rows.append(list(map(int, info["torn_rows"])))
+    integrity = {"format": info.get("format"),
+                 "intact": not info.get("torn_bytes") and not lost_rows}
+    if info.get("format") == "hst":
+        integrity.update(chunks=int(info["chunks"]), torn_bytes=int(info["torn_bytes"]),
+                         lost_rows=lost_rows)
+    return {
+        "samples": n,
+        "duration_s": (_finite(t[-1] - t[0]) or 0.0) if n else 0.0,
+        "rate_hz": float(1.0 / np.median(dt)) if dt.size else None,
+        "seq": {"first": int(seq[0]) if n else None, "last": int(seq[-1]) if n else None,
+                "jumps": int(jumps.size), "missing": int((jumps - 1).sum())},
+        "late": int(np.count_nonzero(cols["late"])),
+        "events": events,
+        "restarts": int(np.count_nonzero(flags & FLAG_LOST)),
+        "ramped": int(np.count_nonzero(flags & FLAG_RAMP)),
+        "clamped": int(np.count_nonzero(flags & FLAG_CLAMPED)),
+        "position_m": _range(cols["position"]),
+        "force_n": _range(cols["force"]),
+        "turnaround_us": {**_range(ta), "p50": float(np.percentile(ta, 50)) if ta.size else None,
+                          "p99": float(np.percentile(ta, 99)) if ta.size else None},
+        "felt_energy_j": {"max": _finite(np.nanmax(e)) if n else None,
+                          "end": _finite(e[-1]) if n else None, "delay": int(delay)},
+        "integrity": integrity,
+    }
+
+
+def _g(v, spec: str = ".6g") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def format_summary(path: str, s: dict) -> str:
+    """The summary as text, one fact per line.
+
+    Parameters
+    ----------
+    path : str
+        File name shown.
+    s : dict
+        Output of :func:`summarize`.
+
+    Returns
+    -------
+    str
+        Lines without a trailing newline.
+    """
+    sq, ev, ig = s["seq"], s["events"], s["integrity"]
+    rate = f"{s['rate_hz']:.6g} Hz" if s["rate_hz"] else "rate unknown"
+    lines = [f"{path}: {ig['format']}, {s['samples']} samples over {s['duration_s']:.6g} s "
+             f"at {rate} (seq {_g(sq['first'], 'd')}..{_g(sq['last'], 'd')})"]
+    other = ", ".join(f"{k} {v}" for k, v in sorted(ev.items())
+                      if k not in ("lost", "recovered"))
+    lines.append(f"events: lost {ev.get('lost', 0)}, recovered {ev.get('recovered', 0)}"
+                 + (f"; {other}" if other else ""))
+    lines.append(f"ticks: late {s['late']}, seq jumps {sq['jumps']} ({sq['missing']} missing), "
+                 f"restarts {s['restarts']}, ramped {s['ramped']}, clamped {s['clamped']}")
+    p, f, ta, e = s["position_m"], s["force_n"], s["turnaround_us"], s["felt_energy_j"]
+    lines.append(f"position [m]: {_g(p['min'])} .. {_g(p['max'])}")
+    lines.append(f"force [N]: {_g(f['min'])} .. {_g(f['max'])}")
+    lines.append(f"turnaround [us]: p50 {_g(ta['p50'], '.0f')}  p99 {_g(ta['p99'], '.0f')}  "
+                 f"max {_g(ta['max'], '.0f')}")
+    lines.append(f"felt energy [J] (d = {e['delay']}): max {_g(e['max'])}, end {_g(e['end'])}")
+    if ig["format"] == "hst":
+        if ig["intact"]:
+            lines.append(f"journal: {ig['chunks']} chunks, intact")
+        else:
+            lost = ", ".join(f"rows {a}..{b - 1}" for a, b in ig["lost_rows"])
+            torn = (f"; the last {ig['torn_bytes']} bytes are a chunk cut short (a kill "
+                    "mid-write), ignored" if ig["torn_bytes"] else "")
+            lines.append(f"journal: {ig['chunks']} intact chunks read{torn}; lost: "
+                         f"{lost or 'rows of the cut chunk (count unknown)'}")
+    elif ig["format"] == "csv":
+        lines.append("csv: columns only (the loss/recovery events are kept in .hst and .npz)")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hapsim telemetry``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``file``, ``out``, ``plot``, ``delay``, ``json``.
+
+    Returns
+    -------
+    int
+        0 (a truncated journal included: the summary says what was lost).
+
+    Raises
+    ------
+    ConfigError
+        Not a telemetry file (key ``FILE``), a negative ``--delay``, an ``--out`` with
+        another extension or in a missing directory, an unwritable ``--plot`` (exit 2).
+    """
+    from hapsim.daemon.telemetry import save_columns
+    from hapsim.plot import check_output_path
+
+    if args.delay < 0:
+        raise ConfigError(f"must be >= 0 samples, got {args.delay}", key="--delay")
+    if args.out:
+        if os.path.splitext(args.out)[1].lower() not in _FORMATS:
+            raise ConfigError(f"unknown telemetry format in {args.out!r}; valid: "
+                              f"{', '.join(_FORMATS)}", key="--out")
+        check_output_path(args.out, "--out")
+        if os.path.abspath(args.out) == os.path.abspath(args.file):
+            raise ConfigError("--out is the file being read; give another name", key="--out")
+    if args.plot:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.plot, "--plot")
+    cols, info = read(args.file)
+    s = summarize(cols, info, args.delay)
+    s["file"] = args.file
+    if args.out:
+        save_columns(cols, args.out, info.get("events"), key="--out")
+        s["out"] = args.out
+    if args.plot:
+        from hapsim.plot_telemetry import plot_telemetry
+        from hapsim.plot import save_figure
+        e = felt_energy(cols["position"], cols["force"], cols["flags"], args.delay)
+        save_figure(plot_telemetry(cols, e, info.get("events", []),
+                                   title=os.path.basename(args.file)), args.plot)
+        s["plot"] = args.plot
+    if args.json:
+        print(json.dumps(s, allow_nan=False, default=_json_default))
+    else:
+        print(format_summary(args.file, s))
+        if args.out:
+            print(f"wrote {args.out}")
+        if args.plot:
+            print(f"wrote {args.plot}")
+    return 0
+
+
+def _json_default(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return None if not math.isfinite(v) else float(v)
+    raise TypeError(type(v).__name__)

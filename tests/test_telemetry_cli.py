@@ -1,0 +1,195 @@
+"""``hapsim telemetry FILE``: the summary agrees with the run that wrote the file (seeded
+faults), conversions are bit-exact both ways, a journal cut by a kill is read up to what is
+intact and says what was lost, and a file that is not telemetry is one line and exit 2."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import struct
+
+import numpy as np
+import pytest
+
+from hapsim.cli import main
+from hapsim.commands.telemetry import felt_energy
+from hapsim.daemon.telemetry import COLUMNS, FLAG_LOST, load, write_journal
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+WALL = os.path.join(ROOT, "configs", "wall.yaml")
+
+
+@pytest.fixture(scope="module")
+def faulted(tmp_path_factory):
+    """One real-time run on the embedded mock with seeded faults: its journal and report."""
+    d = tmp_path_factory.mktemp("tel")
+    hst = str(d / "run.hst")
+    cap = d / "report.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["run", WALL, "--faults", "drop=0.01,reset@700", "--fault-seed", "3",
+                     "--duration", "1.5", "--telemetry", hst, "--json"])
+    assert code == 0
+    cap.write_text(out.getvalue())
+    return hst, json.loads(out.getvalue())
+
+
+def tel_json(capsys, *args):
+    code = main(["telemetry", *args, "--json"])
+    out = capsys.readouterr().out
+    return code, json.loads(out)
+
+
+def test_summary_counts_are_the_runs_own(faulted, capsys):
+    hst, rep = faulted
+    code, s = tel_json(capsys, hst)
+    assert code == 0
+    lp = rep["loop"]
+    assert s["samples"] == rep["telemetry"]["samples"] == lp["ticks"]
+    assert s["late"] == lp["late"] and s["seq"]["missing"] == lp["missed"]
+    assert s["events"]["lost"] == lp["lost"] >= 1
+    assert s["events"]["recovered"] == lp["recovered"] == lp["lost"]
+    assert s["restarts"] == lp["recovered"]
+    assert s["rate_hz"] == pytest.approx(1000.0, rel=1e-6)
+    # the felt energy is the run's own passivity observer, recomputed from the journal
+    assert s["felt_energy_j"]["max"] == pytest.approx(lp["energy_max_j"], rel=1e-9)
+    assert s["felt_energy_j"]["end"] == pytest.approx(lp["energy_j"], rel=1e-9, abs=1e-15)
+    assert s["integrity"] == {"format": "hst", "intact": True, "chunks": s["integrity"]["chunks"],
+                              "torn_bytes": 0, "lost_rows": []}
+    cols = load(hst)
+    assert s["force_n"] == {"min": cols["force"].min(), "max": cols["force"].max()}
+    assert s["position_m"]["max"] == cols["position"].max()
+    # the text says the same
+    assert main(["telemetry", hst]) == 0
+    text = capsys.readouterr().out
+    assert f"lost {lp['lost']}, recovered {lp['recovered']}" in text
+    assert f"late {lp['late']}" in text and "intact" in text
+
+
+def test_felt_energy_restarts_at_a_recovery_and_matches_a_loop():
+    rng = np.random.default_rng(5)
+    x, f = rng.normal(size=40), rng.normal(size=40)
+    flags = np.zeros(40, np.uint8)
+    flags[25] = FLAG_LOST
+    d = 2
+    e = felt_energy(x, f, flags, d)
+    want = np.zeros(40)
+    for start, stop in ((0, 25), (25, 40)):
+        acc = 0.0
+        for k in range(start, stop):           # the loop's own order: E += f[k-1-d] dx
+            j = k - start
+            if j > d:
+                acc += f[k - 1 - d] * (x[k] - x[k - 1])
+            want[k] = acc
+    np.testing.assert_allclose(e, want, rtol=1e-12, atol=1e-15)
+
+
+def _same(a, b):
+    for c in COLUMNS:
+        assert a[c].dtype == b[c].dtype, c
+        assert a[c].tobytes() == b[c].tobytes(), c
+
+
+def test_conversions_round_trip_bit_exact(faulted, tmp_path, capsys):
+    hst, _ = faulted
+    info0: dict = {}
+    orig = load(hst, info=info0)
+    chain = [hst, str(tmp_path / "a.npz"), str(tmp_path / "b.csv"), str(tmp_path / "c.hst"),
+             str(tmp_path / "d.csv"), str(tmp_path / "e.npz"), str(tmp_path / "f.hst")]
+    for src, dst in zip(chain, chain[1:]):
+        assert main(["telemetry", src, "--out", dst]) == 0
+        assert f"wrote {dst}" in capsys.readouterr().out
+        _same(orig, load(dst))
+    # the events survive .hst -> .npz -> .hst (a .csv carries columns only)
+    assert main(["telemetry", chain[0], "--out", chain[1]]) == 0
+    assert main(["telemetry", chain[1], "--out", chain[3]]) == 0
+    info: dict = {}
+    load(chain[3], info=info)
+    assert info["events"] == info0["events"] and info0["events"]
+    capsys.readouterr()
+
+
+def test_a_journal_cut_by_a_kill_reads_what_is_intact_and_says_what_was_lost(tmp_path,
+                                                                             capsys):
+    n = 1000
+    rng = np.random.default_rng(1)
+    cols = {"time": np.arange(n) * 1e-3, "position": rng.normal(size=n),
+            "force": rng.normal(size=n), "seq": np.arange(n, dtype=np.int64),
+            "turnaround_us": rng.uniform(10, 90, n), "late": np.zeros(n, np.int8),
+            "flags": np.zeros(n, np.uint8)}
+    whole = str(tmp_path / "whole.hst")
+    write_journal(cols, whole, [{"event": "lost", "sample": 400}], chunk_rows=300)
+    data = open(whole, "rb").read()
+    cut = str(tmp_path / "cut.hst")
+    # chunks: rows 0-299, 300-599, 600-899, 900-999, then the event; cut inside rows 600-899
+    ends = []
+    pos = 0
+    while pos < len(data):
+        _, _, hlen, plen, _ = struct.unpack_from("<4sHHII", data, pos)
+        pos += 16 + hlen + plen
+        ends.append(pos)
+    hlen = struct.unpack_from("<4sHHII", data, ends[1])[2]
+    torn = 16 + hlen + 100                     # its header whole, its payload cut
+    open(cut, "wb").write(data[:ends[1] + torn])
+    code, s = tel_json(capsys, cut)
+    assert code == 0 and s["samples"] == 600
+    ig = s["integrity"]
+    assert ig["intact"] is False and ig["chunks"] == 2 and ig["lost_rows"] == [[600, 900]]
+    assert ig["torn_bytes"] == torn
+    assert main(["telemetry", cut]) == 0
+    text = capsys.readouterr().out
+    assert "cut short" in text and "rows 600..899" in text
+    # cut inside a chunk's fixed head: the rows it held are unknown, and said so
+    open(cut, "wb").write(data[:ends[0] + 7])
+    code, s = tel_json(capsys, cut)
+    assert code == 0 and s["samples"] == 300 and s["integrity"]["torn_bytes"] == 7
+    assert main(["telemetry", cut]) == 0
+    assert "count unknown" in capsys.readouterr().out
+    # an empty journal (killed before its first chunk) is a run of 0 samples, not an error
+    open(cut, "wb").close()
+    code, s = tel_json(capsys, cut)
+    assert code == 0 and s["samples"] == 0
+
+
+@pytest.mark.parametrize("name, content, says", [
+    ("x.hst", b"this is not a journal\n", "not a hapsim telemetry journal"),
+    ("x.npz", b"PK\x03\x04 garbage", "cannot read telemetry"),
+    ("x.csv", b"a,b,c\n1,2,3\n", "the first line must be the header"),
+    ("x.csv", b"time,position,force,seq,turnaround_us,late,flags\n1,x,3,4,5,6,7\n",
+     "cannot read telemetry"),
+    ("x.txt", b"", "unknown telemetry format '.txt'; valid: .hst, .npz, .csv"),
+    (None, None, "no such file"),
+])
+def test_a_file_that_is_not_telemetry_is_one_line_and_exit_2(tmp_path, capsys, name, content,
+                                                             says):
+    path = tmp_path / (name or "missing.hst")
+    if content is not None:
+        path.write_bytes(content)
+    assert main(["telemetry", str(path)]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip()
+    assert len(err.splitlines()) == 1 and str(path) in err and says in err, err
+    assert cap.out == ""
+
+
+def test_bad_options_are_one_line_and_exit_2(faulted, tmp_path, capsys):
+    hst, _ = faulted
+    for args, says in ((["--out", str(tmp_path / "x.parquet")], "valid: .hst, .npz, .csv"),
+                       (["--out", str(tmp_path / "no" / "x.npz")], "does not exist"),
+                       (["--out", hst], "the file being read"),
+                       (["--plot", str(tmp_path / "x.nope")], "--plot"),
+                       (["--delay", "-1"], "--delay")):
+        assert main(["telemetry", hst, *args]) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and says in err, (args, err)
+
+
+def test_plot_is_written(faulted, tmp_path, capsys):
+    hst, _ = faulted
+    png = tmp_path / "run.png"
+    code, s = tel_json(capsys, hst, "--plot", str(png))
+    assert code == 0 and s["plot"] == str(png)
+    with open(png, "rb") as fh:
+        assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
