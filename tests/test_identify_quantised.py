@@ -18,22 +18,14 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render, stability_limit
 from hapsim.daemon.runner import run_scene
 from hapsim.scene import parse_scene
+from test_daemon import wall_text  # same directory (pytest prepend import mode)
 
 CASES = 40
 
 
 def _scene(m, b0, K, B, d, rate, q, noise, x0):
-    return parse_scene(f"""
-rate_hz: {rate}
-masses:
-  - {{name: hand, kind: port}}
-  - {{name: wall, kind: ground, x0: 0.0}}
-links:
-  - {{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {K}, damping: {B}}}
-device: {{mass: {m}, friction: {b0}, delay: {d}, hold: zoh, force_limit: 1000.0,
-          position_resolution: {q}, noise: {noise}}}
-excitation: {{x0: {x0}}}
-""")
+    return parse_scene(wall_text(K, B, m=m, b0=b0, d=d, rate=rate, x0=x0, force_limit=1000.0,
+                                 extra_dev=f", position_resolution: {q}, noise: {noise}"))
 
 
 def _random_loop(rng):
