@@ -289,7 +289,19 @@ JSON_ERRORS = [
     (["run", "{unstable}", "--lockstep", "--json"], 1, "UnstableConfigError"),
     (["check", "{hard}", "--json"], 1, "UnrenderableTargetError"),
     (["run", "{hard}", "--lockstep", "--json"], 1, "UnrenderableTargetError"),
+    (["play", "{bad}", "--json"], 2, "ConfigError"),
+    (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
 ]
+
+
+def test_json_error_cases_cover_every_command_with_json():
+    """A command that gains --json is listed in JSON_ERRORS (read from the parsers)."""
+    import argparse
+    from hapsim.cli import build_parser
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    with_json = {name for name, p in sub.choices.items()
+                 if any("--json" in a.option_strings for a in p._actions)}
+    assert with_json == {argv[0] for argv, _, _ in JSON_ERRORS}
 
 
 @pytest.mark.parametrize("argv, code, kind", JSON_ERRORS,
