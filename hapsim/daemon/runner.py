@@ -473,6 +473,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -514,6 +515,14 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        if self.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            get_driver(self.driver)             # unknown name: ConfigError before any work
+            if not self.plan.empty:
+                raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                                  "has none", key="--faults")
+            self.host_clocked = True            # the protocols answer commands: no clock
+            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:
@@ -782,7 +791,19 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         cfg = _loop_config(prep, opts)
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
         rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if transport == "inprocess":
+        if opts.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(opts.driver)
+            if opts.port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
+                                              scene.rate_hz, seed=opts.seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
@@ -1089,7 +1110,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None) -> dict:
+              jack_server: str | None = None,
+              driver: str | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1158,6 +1180,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -1203,7 +1230,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server).check()
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
+                      driver=driver).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
