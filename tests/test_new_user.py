@@ -291,6 +291,7 @@ JSON_ERRORS = [
     (["run", "{hard}", "--lockstep", "--json"], 1, "UnrenderableTargetError"),
     (["play", "{bad}", "--json"], 2, "ConfigError"),
     (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
+    (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
 ]
 
 
