@@ -490,8 +490,9 @@ def test_help_texts_have_no_none_default_and_baud_metavar(capsys):
     out = capsys.readouterr().out
     assert "default: None" not in out and "(default: the --paper preset, else 0.0)" in " ".join(
         out.split())
-    assert main(["run", "--help"]) == 0
-    assert "--baud BAUD" in capsys.readouterr().out
+    for command in ("run", "identify"):    # B is the virtual damping, not a baud rate
+        assert main([command, "--help"]) == 0
+        assert "--baud BAUD" in capsys.readouterr().out
 
 
 def test_check_counts_in_the_right_number(capsys):
