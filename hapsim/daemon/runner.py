@@ -500,6 +500,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    loop: str = "compiled"
     driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
@@ -556,6 +557,9 @@ class RunOptions:
             raise ConfigError("transport 'serial' needs a port", key="--port")
         if tp == "inprocess" and not self.lockstep:
             raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+        if self.loop not in ("compiled", "python"):
+            raise ConfigError(f"unknown loop {self.loop!r}; valid: compiled, python",
+                              key="--loop")
         if self.telemetry is not None and os.path.splitext(self.telemetry)[1].lower() not in (
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
@@ -655,6 +659,8 @@ class LoopRun:
     error : DeviceError or ProtocolError or None
         What ended the loop when the device was lost beyond recovery (``res`` then holds
         the run up to the loss); :func:`run_scene` raises it with the report attached.
+    loop : HostLoop or CompiledHostLoop
+        The loop that ran.
     """
 
     res: object
@@ -664,6 +670,7 @@ class LoopRun:
     control: object = None
     sound: dict | None = None
     error: Exception | None = None
+    loop: object = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -769,6 +776,29 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       reconnect_time=float(opts.reconnect_time))
 
 
+class _CompileThread(threading.Thread):
+    """Compile the compiled loop (:func:`hapsim.daemon.fastloop.warm_up`) beside the
+    device's start-up; :meth:`finish` waits for it and re-raises its error."""
+
+    def __init__(self, engine) -> None:
+        super().__init__(name="hapsim-compile", daemon=True)
+        self.engine = engine
+        self.error: BaseException | None = None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            from hapsim.daemon.fastloop import warm_up
+            warm_up(self.engine)
+        except BaseException as exc:  # re-raised by finish() in the caller's thread
+            self.error = exc
+
+    def finish(self) -> None:
+        self.join()
+        if self.error is not None:
+            raise self.error
+
+
 def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     """Step 3: install the signal handlers, warm the kernels, open the device.
 
@@ -806,10 +836,14 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     rt = None
     mock = None
     transport, lockstep = opts.transport, opts.lockstep
+    warm = None
     try:
         limit_blas_threads(1)
         _warm_up(scene)
         engine = Engine(scene)
+        if opts.loop == "compiled" and transport in ("pty", "serial"):
+            # the compiled loop compiles while the device (the mock's child) starts
+            warm = _CompileThread(Engine(scene))
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -850,6 +884,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
+        if warm is not None:
+            warm.finish()
     except BaseException:
         if rt is not None:
             rt.__exit__(None, None, None)
@@ -893,7 +929,13 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        if opts.loop == "compiled" and opts.sound is None and opts.osc is None:
+            # the compiled loop steps the kernel itself: live OSC changes and the sounding
+            # engine run per sample in Python, so they keep the Python loop
+            from hapsim.daemon.fastloop import CompiledHostLoop
+            loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        else:
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -936,7 +978,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             mock_report["fault_events"] = tr.device.events
     sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
                                        **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
@@ -1156,12 +1198,16 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     hello = res.hello
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
+        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
+        "armed_monotonic_s": getattr(run.loop, "_t0", None),
         "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
-        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
         "scheduling": conn.rt.note,
@@ -1215,7 +1261,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None) -> dict:
+              driver: str | None = None, loop: str = "compiled") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1300,6 +1346,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
+        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1335,7 +1385,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
                       osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver).check()
+                      driver=driver, loop=loop).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
@@ -1476,7 +1526,8 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
                  f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
-                 f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
+                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
+                 f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}
