@@ -160,6 +160,9 @@ def measure(rate: float, ticks: int, profile: bool = False) -> dict:
                 if not r:
                     continue
                 for m in dec.feed(os.read(fd, 65536)):
+                    if isinstance(m, fp.Fault) and m.code == fp.FAULT_BAD_CONFIG:
+                        raise SystemExit(f"the firmware refused CONFIG at {rate} Hz "
+                                         "(a rate must divide 16 MHz)")
                     if isinstance(m, fp.State) and m.status & fp.STATUS_ARMED:
                         if m.seq >= 2 and (m.seq - m.force_seq) & 0xFFFFFFFF != 1:
                             late += 1
@@ -187,6 +190,8 @@ def main(argv=None) -> int:
     """Print the budget table (and write it as JSON with ``--json``)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=1000)
+    ap.add_argument("--rates", type=float, nargs="+", default=[1000.0, 1600.0, 2000.0, 5000.0],
+                    metavar="HZ", help="tick rates to measure (default 1000 1600 2000 5000; each must divide 16 MHz)")
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--profile", action="store_true",
                     help="also the cycles per tick by path (ISR, ADC, codec, UART, ...)")
@@ -196,7 +201,7 @@ def main(argv=None) -> int:
                    stdout=subprocess.DEVNULL)
     rows = []
     print("rate [Hz]  period [cycles]  busy mean  busy worst  idle    late  overrun")
-    for rate in (1000.0, 2000.0, 5000.0):
+    for rate in args.rates:
         t0 = time.monotonic()
         r = measure(rate, args.ticks, args.profile)
         rows.append(r)

@@ -45,9 +45,13 @@
 #define HK_LINK_DEN 5UL
 #define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
                                                       HK_STATE_FRAME_BYTES))
-/* The MCU's own limit: a tick with one STATE out and one FORCE in takes at most 11.3k
- * cycles (tools/bench_firmware.py on the emulated chip), so 12800 cycles (1250 Hz) leave
- * 12 % for PING/PONG and FAULTs; at 2 kHz the chip is saturated. */
+/* The MCU's own limit: a tick with one STATE out and one FORCE in keeps the chip busy
+ * 9.3k cycles at most (tools/bench_firmware.py on the emulated chip: 73 % of 12800 at
+ * 1250 Hz, no late tick). The next rate dividing 16 MHz, 1600 Hz, is late at every tick:
+ * the FORCE answering STATE n misses tick n + 1, because the round trip -- the ADC (416
+ * cycles), encoding STATE, 31 + 17 bytes on the wire (80 cycles each at 2 Mbaud), the
+ * host, decoding FORCE -- takes longer than the 10000-cycle period; at 2 kHz the wire
+ * alone takes 48 % of the period and the chip is saturated. */
 #ifndef HK_CPU_MAX_RATE_HZ
 #define HK_CPU_MAX_RATE_HZ 1250UL /* make bench lifts it to measure 2 and 5 kHz */
 #endif
