@@ -63,7 +63,7 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--port", metavar="PORT",
                    help="serial port of the device (default: the embedded mock on a pty)")
-    p.add_argument("--baud", type=int, default=115200, metavar="B", help="baud rate")
+    p.add_argument("--baud", type=int, default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
     p.add_argument("--out", metavar="FILE.yaml", help="write the device section there")

@@ -120,6 +120,10 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
+    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
+                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
+                        "numba function that owns the port, without the GIL) or 'python' "
+                        "(the reference loop, e.g. to compare)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -297,4 +301,5 @@ def _run(scene, args) -> dict:
                      reconnect_attempts=args.reconnect_attempts,
                      reconnect_time=args.reconnect_time, osc=args.osc,
                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                     driver=None if args.driver == "framed" else args.driver)
+                     driver=None if args.driver == "framed" else args.driver,
+                     loop=args.loop)

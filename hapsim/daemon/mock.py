@@ -60,6 +60,11 @@ MOCK_DEVICE_ID = 0x4D4F434B
 DEFAULT_DEVICE = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=10.0)
 #: Excitation used by ``hapsim mock`` without ``--scene``: 5 mm initial displacement.
 DEFAULT_EXCITATION = Excitation(x0=0.005)
+#: Real-time ticks: the mock waits in ``select`` until this long before each deadline and
+#: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
+#: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
+#: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
+MOCK_SPIN_NS = 0
 
 
 # --------------------------------------------------------------------------- physics
@@ -769,8 +774,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
 
     Notes
     -----
-    Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until 300 us before the
-    deadline and a short spin reads the host's bytes until it. The mock is a process on a
+    Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until the absolute
+    deadline (waking for the host's bytes meanwhile), then the tick; no spin (a
+    ``SCHED_FIFO`` process spinning to each deadline is throttled under load;
+    :data:`MOCK_SPIN_NS` before it, 0 by default). The mock is a process on a
     shared machine, not a microcontroller: when the OS schedules it more than half a period
     late, the tick is counted in ``overruns`` and the next tick is put at least half a period
     later (the schedule slips rather than compressing the host's time to answer, so ``late``
@@ -823,7 +830,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 if deadline is None:
                     period_ns = int(round(1e9 / mock.rate_hz))
                     deadline = now_ns
-                wait = (deadline - now_ns - 300_000) / 1e9
+                wait = (deadline - now_ns - MOCK_SPIN_NS) / 1e9
             else:
                 deadline = None
                 wait = 0.05
