@@ -298,6 +298,53 @@ def _scales():
     return qx, qf
 
 
+# ---------------------------------------------------------------------------- identify
+
+def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
+    """``hapsim identify`` over the emulated board's pty (the firmware's own UART, its
+    10-bit ADC with flip counting, float32 positions, the PWM's 22.7 mN steps): the board
+    model's mass, viscous friction and Coulomb friction (configs/hapkit.yaml's device with
+    fc = 0.1 N added) lie inside the reported 99.9 % intervals; the delay is the
+    firmware's one sample with its zero-order hold; the encoder quantum found is the
+    firmware's float32 position scale (one ADC count), although the float32 rounding
+    makes the steps between far positions differ from it; and the model explains the
+    data."""
+    _require()
+    import dataclasses
+
+    from hapsim.commands.identify import identify
+    from hapsim.daemon import board
+    from hapsim.scene import load_scene
+
+    scene = load_scene(str(ROOT / "configs/hapkit.yaml"))
+    dev = dataclasses.replace(scene.device, coulomb=0.1)
+    exc = dataclasses.replace(scene.excitation, x0=0.0)
+    # the emulated clock waits up to 2 s for each FORCE: a loaded host makes no late tick
+    cmd = board.board_command(dev, exc, wait_ms=2000.0)[2:]
+    with _board(tmp_path, None, *cmd) as (proc, port, report):
+        fit, rec = identify(port=port, baud=2000000, driver="framed", rate_hz=RATE,
+                            force_limit=1.0, envelope=0.02, duration=2.5, max_delay=3,
+                            progress=False, handle_signals=False)
+    print(fit.verdict, rec["loop"])
+    for name in ("mass", "friction", "coulomb", "coulomb_pos", "coulomb_neg",
+                 "position_resolution", "noise"):
+        e = getattr(fit, name)
+        print(f"{name}: {e.value:.6g} [{e.lo:.6g}, {e.hi:.6g}] {e.unit}")
+    assert rec["loop"]["late"] == 0 and not rec["loop"]["faults"], rec["loop"]
+    assert rec["loop"]["stop_reason"] == "duration", rec["loop"]
+    assert fit.mass.contains(dev.mass), fit.mass
+    assert fit.friction.contains(dev.friction), fit.friction
+    for e in (fit.coulomb, fit.coulomb_pos, fit.coulomb_neg):
+        assert e.contains(0.1), e
+    assert fit.delay == 1 and fit.delay_range == (1, 1) and fit.hold == "zoh"
+    qx, _ = _scales()
+    assert fit.position_resolution.contains(qx), (fit.position_resolution, qx)
+    assert fit.explained, fit.verdict
+    # informative, not merely wide: a few percent on m and b0
+    assert fit.mass.hi - fit.mass.lo < 0.05 * dev.mass, fit.mass
+    assert fit.friction.hi - fit.friction.lo < 0.1 * dev.friction, fit.friction
+
+
 # ---------------------------------------------------------------------------- board physics
 
 def _step_response(tmp_path, force: float, ticks: int, *extra) -> list:

@@ -141,3 +141,27 @@ def test_blind_identification_50_random_devices():
             assert abs(fit.mass.value / m - 1) < 0.02, (i, dev, fit.mass)
             assert abs(fit.friction.value - b) < 0.02 * b, (i, dev, fit.friction)
     assert all(v <= 0.05 * n for v in misses.values()), misses
+
+
+def test_quantum_found_on_float32_rounded_grids():
+    """Seeded random grids (quantum 0.1-50 um, positions up to 2000 counts from zero),
+    sent as binary64 (the Python mock) or rounded to float32 (an 8-bit MCU's
+    ``counts * scale``, whose far steps differ from the quantum by the rounding): the
+    quantum's interval holds the true step every time; positions off any grid give 0
+    with an interval up to the smallest step."""
+    from hapsim.analysis.device_fit import _quantum
+    rng = np.random.default_rng(12)
+    for _ in range(200):
+        q = float(np.exp(rng.uniform(math.log(1e-7), math.log(5e-5))))
+        if rng.integers(2):
+            q = float(np.float32(q))          # the device's own scale is a float32
+        k = np.round(np.cumsum(rng.normal(0, rng.uniform(0.5, 40), 3000)))
+        k = np.clip(k, -2000, 2000)
+        y = k * q
+        if rng.integers(2):
+            y = (k.astype(np.float32) * np.float32(q)).astype(float)
+        e = _quantum(y)
+        assert e.contains(q), (q, e)
+        assert e.hi - e.lo <= 1e-5 * q
+    off = _quantum(rng.normal(0.0, 1e-3, 500))
+    assert off.value == 0.0 and off.lo == 0.0 and 0 < off.hi < 1e-4

@@ -34,14 +34,113 @@ from hapsim.daemon import board  # noqa: E402
 BENCH_ELF = board.FIRMWARE_DIR / "hapkit_bench.elf"  # without the firmware's 1250 Hz limit
 
 
-def measure(rate: float, ticks: int) -> dict:
-    """Run ``ticks`` armed ticks at ``rate`` [Hz]; the board's report plus late/overrun."""
+def _functions(path: str) -> list:
+    """(first line, name) of each function defined in a C file (definitions start in
+    column 0; ``ISR(X_vect)`` is named ``X_vect``)."""
+    import re
+    out = []
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError:
+        return out
+    for i, ln in enumerate(lines, 1):
+        m = re.match(r"ISR\((\w+)\)", ln) or re.match(
+            r"(?:static\s+)?(?:inline\s+)?[A-Za-z_][\w\s\*]*?\b(\w+)\(", ln)
+        if m and not ln.rstrip().endswith(";") and not ln.startswith(("typedef", "#")):
+            out.append((i, m.group(1)))
+    return out
+
+
+def profile_paths(elf: Path, prof: Path) -> dict:
+    """Cycles per path from the board's ``--profile`` dump (cycles at each flash address).
+
+    Each address is mapped by ``avr-addr2line`` to its source line (the ELF carries -g;
+    with -flto the functions are inlined, so the line, not the symbol, tells where the
+    cycles go), the line to the C function around it, the function to a path of
+    :data:`PATHS`; avr-libc's routines (no source here) by their symbol.
+    Returns ``{path: cycles}`` summed over the run.
+    """
+    rows = [ln.split() for ln in prof.read_text().splitlines() if ln.strip()]
+    if not rows:
+        return {}
+    out = subprocess.run(["avr-addr2line", "-a", "-f", "-e", str(elf), *[a for a, _ in rows]],
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    # -a: each answer is "0xADDR", the function, "file:line"
+    where = {}
+    for i in range(0, len(out) - 2, 3):
+        where[int(out[i], 16)] = (out[i + 1], out[i + 2])
+    # avr-libc's routines carry no line information: named by the symbol at or before
+    nm = subprocess.run(["avr-nm", "-n", str(elf)], capture_output=True, text=True,
+                        check=True).stdout.split("\n")
+    syms = sorted((int(f[0], 16), f[2]) for f in (ln.split() for ln in nm)
+                  if len(f) == 3 and f[1] in "tT")
+    import bisect
+    starts = [a for a, _ in syms]
+    funcs_of: dict = {}
+    paths: dict = {}
+    for a, cyc in rows:
+        i = bisect.bisect_right(starts, int(a, 16)) - 1
+        lib = syms[i][1] if i >= 0 else "??"
+        if lib.startswith("__") and not lib.startswith("__vector"):
+            key = next((name for name, pre in LIBRARY if any(p in lib for p in pre)),
+                       f"other ({lib})")
+            paths[key] = paths.get(key, 0) + int(cyc)
+            continue
+        sym, loc = where.get(int(a, 16), ("??", "??:0"))
+        file, _, line = loc.rpartition(":")
+        fn = sym
+        if file and file != "??" and line.split()[0].isdigit():
+            if file not in funcs_of:
+                funcs_of[file] = _functions(file)
+            n = int(line.split()[0])
+            before = [name for first, name in funcs_of[file] if first <= n]
+            if before:
+                fn = before[-1]
+        key = next((name for name, fns in PATHS if fn in fns), f"other ({fn})")
+        paths[key] = paths.get(key, 0) + int(cyc)
+    return paths
+
+
+#: avr-libc / libgcc routines by path (a part of the symbol's name).
+LIBRARY = [
+    ("soft float (float32 arithmetic, libgcc/avr-libc)", ("sf", "__fp_", "sisf", "sfsi")),
+    ("64-bit integer arithmetic (libgcc)", ("di3", "udivmod64", "di2")),
+    ("32-bit multiply/divide (libgcc)", ("si4", "hisi3", "__tablejump")),
+]
+
+#: Functions by path of the firmware's work per tick.
+PATHS = [
+    ("tick ISR (Timer1: PWM, watchdog, ADC start)", {"TIMER1_COMPA_vect", "pwm_write"}),
+    ("ADC ISR + read + flip counting", {"read_counts", "ADC_vect"}),
+    ("UART RX ISR", {"USART_RX_vect"}),
+    ("UART TX ISR (UDRE)", {"USART_UDRE_vect"}),
+    ("UART ring in main loop", {"uart_frame", "uart_put", "uart_frame_ready", "uart_rx_lost",
+                                "uart_frame_done"}),
+    ("CRC-16", {"hp_crc16"}),
+    ("COBS encode/decode", {"hp_cobs_encode", "hp_cobs_decode"}),
+    ("pack/unpack fields", {"pack", "hp_encode", "hp_decode_packet", "hp_decode_frame",
+                            "put_u16", "put_u32", "put_u64", "put_f64", "get_u16", "get_u32",
+                            "get_u64", "get_f64", "fixed_len"}),
+    ("f32 <-> f64 bit conversion", {"hp_b64_from_f32_bits", "hp_f32_bits_from_b64",
+                                   "f64_of_float", "float_of_f64", "f64_is_finite"}),
+    ("STATE / FORCE handling", {"serve_tick", "on_force", "on_message", "take_frame",
+                                "send", "send_fault", "now_us", "latch_fault", "zero_now"}),
+    ("main loop + sleep", {"main", "__vectors", "__bad_interrupt"}),
+    ("memcpy/memset", {"memcpy", "memset"}),
+]
+
+
+def measure(rate: float, ticks: int, profile: bool = False) -> dict:
+    """Run ``ticks`` armed ticks at ``rate`` [Hz]; the board's report plus late/overrun
+    (and, with ``profile``, the cycles per path: :func:`profile_paths`)."""
     import select
     with tempfile.TemporaryDirectory() as d:
         rep = Path(d, "board.json")
+        prof = Path(d, "profile.txt")
+        extra = ["--profile", str(prof)] if profile else []
         proc = subprocess.Popen([str(board.BOARD), str(BENCH_ELF), "--report",
-                                 str(rep)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                text=True)
+                                 str(rep), *extra], stdout=subprocess.PIPE,
+                                stderr=subprocess.DEVNULL, text=True)
         try:
             port = proc.stdout.readline().split()[1]
             fd = os.open(port, os.O_RDWR | os.O_NOCTTY)
@@ -61,6 +160,9 @@ def measure(rate: float, ticks: int) -> dict:
                 if not r:
                     continue
                 for m in dec.feed(os.read(fd, 65536)):
+                    if isinstance(m, fp.Fault) and m.code == fp.FAULT_BAD_CONFIG:
+                        raise SystemExit(f"the firmware refused CONFIG at {rate} Hz "
+                                         "(a rate must divide 16 MHz)")
                     if isinstance(m, fp.State) and m.status & fp.STATUS_ARMED:
                         if m.seq >= 2 and (m.seq - m.force_seq) & 0xFFFFFFFF != 1:
                             late += 1
@@ -72,32 +174,46 @@ def measure(rate: float, ticks: int) -> dict:
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=20)
         out = json.loads(rep.read_text())
+        paths = profile_paths(BENCH_ELF, prof) if profile else None
     b = out["budget"]
-    return {"rate_hz": rate, "period_cycles": b["period_cycles"], "ticks": n,
+    res = {"rate_hz": rate, "period_cycles": b["period_cycles"], "ticks": n,
             "busy_mean_cycles": b["busy_mean_cycles"], "busy_max_cycles": b["busy_max_cycles"],
             "idle_fraction": b["idle_fraction"], "saturated": b["saturated"], "late": late,
             "overrun_states": overrun}
+    if paths is not None:
+        res["cycles_per_tick_by_path"] = {k: v / max(n, 1) for k, v in
+                                          sorted(paths.items(), key=lambda kv: -kv[1])}
+    return res
 
 
 def main(argv=None) -> int:
     """Print the budget table (and write it as JSON with ``--json``)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=1000)
+    ap.add_argument("--rates", type=float, nargs="+", default=[1000.0, 1600.0, 2000.0, 5000.0],
+                    metavar="HZ", help="tick rates to measure (default 1000 1600 2000 5000; each must divide 16 MHz)")
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--profile", action="store_true",
+                    help="also the cycles per tick by path (ISR, ADC, codec, UART, ...)")
     args = ap.parse_args(argv)
     board.build()
     subprocess.run(["make", "-s", "-C", str(board.FIRMWARE_DIR), "bench"], check=True,
                    stdout=subprocess.DEVNULL)
     rows = []
     print("rate [Hz]  period [cycles]  busy mean  busy worst  idle    late  overrun")
-    for rate in (1000.0, 2000.0, 5000.0):
+    for rate in args.rates:
         t0 = time.monotonic()
-        r = measure(rate, args.ticks)
+        r = measure(rate, args.ticks, args.profile)
         rows.append(r)
         worst = "saturated" if r["saturated"] else f"{r['busy_max_cycles']:d}"
         print(f"{rate:9.0f}  {r['period_cycles']:15.0f}  {r['busy_mean_cycles']:9.0f}  "
               f"{worst:>10s}  {r['idle_fraction']:5.1%}  {r['late']:5d}  "
               f"{r['overrun_states']:7d}   ({time.monotonic() - t0:.1f} s)", flush=True)
+    for r in rows:
+        if "cycles_per_tick_by_path" in r:
+            print(f"\ncycles per tick by path at {r['rate_hz']:.0f} Hz:")
+            for k, v in r["cycles_per_tick_by_path"].items():
+                print(f"  {v:8.0f}  {k}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0

@@ -222,20 +222,44 @@ def applied_force(force, delay: int, late=None) -> np.ndarray:
 
 
 def _quantum(y: np.ndarray) -> Estimate:
-    """Encoder quantum: the smallest step between distinct positions, if they lie on it."""
+    """Encoder quantum ``q`` [m]: the grid the positions lie on, if they lie on one.
+
+    A device sends ``k q`` rounded to its own number format (float32 on an 8-bit MCU:
+    a relative error of 2^-24 of the value), so the step between two neighbouring values
+    far from zero differs from ``q`` by that rounding, and the smallest step is not ``q``.
+    The grid step is therefore estimated from all values: ``q1``, the median of the steps
+    near the smallest, gives each value its whole count ``k = round(y / q1)``; then ``q``
+    is the least-squares slope of ``y`` on ``k`` (every value's rounding averages out).
+    The values lie on the grid when every ``|y / q - k| < 1e-3``. The interval is the
+    larger of ``1e-6 q`` and three times the largest residual ``|y - k q|`` over the
+    largest ``|k|`` (the error of the slope through the farthest value).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n,)
+        Positions [m].
+
+    Returns
+    -------
+    Estimate
+        ``q`` with its interval, or ``0`` with the interval ``[0, smallest step]`` when
+        the positions are not on a grid (``[0, inf]`` when they never change).
+    """
     vals = np.unique(y)
     steps = np.diff(vals)
     steps = steps[steps > 0]
     if steps.size == 0:
         return Estimate(0.0, 0.0, math.inf, "m")
-    q = float(steps.min())
-    if q > 1e-9:
-        k = y / q
-        if np.max(np.abs(k - np.round(k))) < 1e-3:
-            # all on the grid; the grid step is q to the values' float resolution
-            tol = 1e-6 * q
+    q0 = float(steps.min())
+    if q0 > 1e-9:
+        q1 = float(np.median(steps[steps < 1.5 * q0]))
+        k = np.round(vals / q1)
+        q = float(np.dot(k, vals) / np.dot(k, k)) if np.any(k) else q1
+        if np.max(np.abs(vals / q - k)) < 1e-3:
+            kmax = float(np.max(np.abs(k)))
+            tol = max(1e-6 * q, 3.0 * float(np.max(np.abs(vals - k * q))) / kmax)
             return Estimate(q, q - tol, q + tol, "m")
-    return Estimate(0.0, 0.0, q, "m")
+    return Estimate(0.0, 0.0, q0, "m")
 
 
 def _correlation(x, f, T, max_delay):

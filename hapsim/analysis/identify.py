@@ -790,7 +790,9 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     A0, _ = closed_loop(scene, gain=0.0)
     ipp = 2 if scene.device.hold == "zoh" else 1
     g, h = A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
-    out = np.zeros(n)
+    out = np.zeros(max(n, 0))
+    if n <= 0:        # an empty record (a run refused before its first STATE)
+        return out
     out[0] = 1.0
     s = g.copy()
     for i in range(1, n):

@@ -232,7 +232,12 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     -------
     dict
         ``position``, ``force``, ``late``, ``time``, ``seq`` (arrays), ``period`` [s], ``loop``
-        (stop reason, safety stop, late, clamped, samples, transport).
+        (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``).
+        ``force`` is the force the device applied for each sample: what the host sent,
+        on the actuator's grid when the device reports one (a driver's protocol
+        resolution, or a framed device's ``HELLO.force_scale`` > 0 [N], the nearest
+        step: a PWM of 256 steps rounds every force, and a fit of the force sent would
+        see that rounding's gain on the excitation as a wrong mass).
 
     Raises
     ------
@@ -320,8 +325,16 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             embedded.close()
     cols = tel.columns()
     force = cols["force"].copy()
+    fs = 0.0
     if use_driver:          # what the device was sent: the protocol's quantised force
         force = np.array([drv.applied_force(v) for v in force])
+    else:                   # a framed device's actuator grid, as its HELLO reports it
+        hello = getattr(res, "hello", None)
+        fs = float(getattr(hello, "force_scale", 0.0) or 0.0)
+        if math.isfinite(fs) and fs > 0:
+            force = np.round(force / fs) * fs
+        else:
+            fs = 0.0
     return {"position": cols["position"].copy(), "force": force,
             "late": cols["late"].astype(bool), "time": cols["time"].copy(),
             "seq": cols["seq"].copy(),
@@ -332,4 +345,4 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "transport": transport, "lockstep": bool(lock),
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
-                     "centring": {"K": plan.kc, "B": plan.bc}}}
+                     "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs}}

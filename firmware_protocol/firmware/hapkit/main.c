@@ -45,9 +45,13 @@
 #define HK_LINK_DEN 5UL
 #define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
                                                       HK_STATE_FRAME_BYTES))
-/* The MCU's own limit: a tick with one STATE out and one FORCE in takes at most 11.3k
- * cycles (tools/bench_firmware.py on the emulated chip), so 12800 cycles (1250 Hz) leave
- * 12 % for PING/PONG and FAULTs; at 2 kHz the chip is saturated. */
+/* The MCU's own limit: a tick with one STATE out and one FORCE in keeps the chip busy
+ * 9.3k cycles at most (tools/bench_firmware.py on the emulated chip: 73 % of 12800 at
+ * 1250 Hz, no late tick). The next rate dividing 16 MHz, 1600 Hz, is late at every tick:
+ * the FORCE answering STATE n misses tick n + 1, because the round trip -- the ADC (416
+ * cycles), encoding STATE, 31 + 17 bytes on the wire (80 cycles each at 2 Mbaud), the
+ * host, decoding FORCE -- takes longer than the 10000-cycle period; at 2 kHz the wire
+ * alone takes 48 % of the period and the chip is saturated. */
 #ifndef HK_CPU_MAX_RATE_HZ
 #define HK_CPU_MAX_RATE_HZ 1250UL /* make bench lifts it to measure 2 and 5 kHz */
 #endif
@@ -68,7 +72,9 @@ static volatile uint8_t g_pending_clamped;
 static volatile uint16_t g_wd_reload;   /* ticks a FORCE may be held (watchdog) */
 static volatile uint16_t g_wd_left;
 static volatile uint8_t g_armed;
-static volatile uint8_t g_tick_flag;    /* a tick happened, main loop has not served it */
+static volatile uint8_t g_tick_flag;    /* a tick's sample is in, main loop has not served it */
+static volatile uint8_t g_adc_busy;     /* the tick's conversion runs (its ISR ends the tick) */
+static volatile uint16_t g_adc_raw;     /* the sample of the last tick [ADC counts] */
 static volatile uint8_t g_overrun;      /* a tick came before the last one was served */
 static volatile uint32_t g_ticks;       /* ticks since CONFIG (the STATE seq) */
 static volatile uint8_t g_tripped;      /* the watchdog zeroed the force this period */
@@ -132,13 +138,24 @@ ISR(TIMER1_COMPA_vect)
             g_wd_left--;
         }
     }
-    ADCSRA |= (uint8_t)(1 << ADSC); /* sample the sensor now */
-    if (g_tick_flag) {
+    ADCSRA |= (uint8_t)(1 << ADSC); /* sample the sensor now; ADC_vect latches it */
+    if (g_tick_flag | g_adc_busy) {
         g_overrun = 1;
     }
-    g_tick_flag = 1;
+    g_adc_busy = 1;
     g_ticks++;
     g_clock_cycles += g_period_cycles;
+}
+
+/* The conversion started by the tick is done (13 ADC clocks = 416 cycles later, which
+ * the MCU sleeps through instead of polling ADSC): latch it and wake the main loop. */
+ISR(ADC_vect)
+{
+    if (g_adc_busy) { /* not a conversion a CONFIG restarted the ticks under */
+        g_adc_raw = ADC;
+        g_adc_busy = 0;
+        g_tick_flag = 1;
+    }
 }
 
 /* ---------------------------------------------------------------- binary64 helpers */
@@ -265,20 +282,15 @@ static void hw_init(void)
     OCR0B = 0;
     ADMUX = (uint8_t)((1 << REFS0) | 2u);           /* AVcc reference, ADC2 (A2) */
     DIDR0 = (uint8_t)(1 << ADC2D);
-    ADCSRA = (uint8_t)((1 << ADEN) | (1 << ADPS2) | (1 << ADPS0)); /* clk / 32: 500 kHz */
+    ADCSRA = (uint8_t)((1 << ADEN) | (1 << ADIE) | (1 << ADPS2) | (1 << ADPS0)); /* clk/32 */
     uart_init();
 }
 
 /* ---------------------------------------------------------------- the sensor */
 
-static int32_t read_counts(void)
+static int32_t read_counts(uint16_t raw)
 {
-    uint16_t raw;
     int16_t d;
-    while (ADCSRA & (1 << ADSC)) {
-    }
-    raw = ADCL;
-    raw |= (uint16_t)ADCH << 8;
     if (!g_have_zero) {
         g_last_raw = (int16_t)raw;
         g_zero = (int32_t)raw;
@@ -353,6 +365,7 @@ static void on_config(const hp_config_t *c)
     g_force_applied = 0;
     g_ticks = 0;
     g_tick_flag = 0;
+    g_adc_busy = 0;
     g_overrun = 0;
     g_armed = 1;
     timer1_start(period);
@@ -459,13 +472,16 @@ static void serve_tick(void)
 {
     hp_msg_t m;
     int32_t counts;
-    uint16_t status = 0, lost;
+    uint16_t status = 0, lost, raw;
     uint8_t s;
-    counts = read_counts();
     s = SREG;
     cli();
+    raw = g_adc_raw;
     g_tick_flag = 0;
     m.u.state.seq = g_ticks - 1u;
+    SREG = s;
+    counts = read_counts(raw);
+    cli();
     m.u.state.force_seq = g_force_seq;
     if (g_armed) {
         status |= HP_STATUS_ARMED;
@@ -524,24 +540,25 @@ int main(void)
     sei();
     (void)uart_put(&zero, 1); /* the receiver drops any partial frame */
     send_hello();
+    sleep_enable(); /* once: SLEEP is executed only below, so SE may stay set */
     for (;;) {
-        /* every interrupt (a byte sent, a byte received) wakes this loop: two flag tests
-         * and back to sleep unless a frame or a tick waits */
-        if (uart_frame_ready()) {
-            take_frame();
-        }
-        if (g_tick_flag) {
-            serve_tick();
-        }
+        /* Every interrupt (a byte sent, a byte received) wakes this loop, ~48 times a
+         * tick: the path back to sleep is a few instructions (two flag loads, the probe,
+         * sei; sleep -- the instruction after sei runs before any interrupt, so no wake-up
+         * is lost between the test and the sleep). */
         cli();
-        if (!g_tick_flag && !uart_frame_ready()) {
-            PORTB &= (uint8_t)~(1 << PB5); /* budget probe: idle */
-            sleep_enable();
+        if (g_tick_flag | uart_frame_ready()) {
             sei();
-            sleep_cpu();
-            sleep_disable();
-        } else {
-            sei();
+            if (uart_frame_ready()) {
+                take_frame();
+            }
+            if (g_tick_flag) {
+                serve_tick();
+            }
+            continue;
         }
+        PORTB &= (uint8_t)~(1 << PB5); /* budget probe: idle */
+        sei();
+        sleep_cpu();
     }
 }

@@ -75,8 +75,13 @@ static struct {
     double mass, friction, coulomb, x0, v0;
     double hand_force, hand_start, hand_duration;
     double wait_ms, duration;
-    const char *report, *link;
-} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 50.0, 0.0, NULL, NULL};
+    const char *report, *link, *profile;
+} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 50.0, 0.0, NULL, NULL, NULL};
+
+/* --profile: cycles spent at each flash word while armed and awake (the MCU budget by
+ * instruction; tools/bench_firmware.py --profile maps them to functions and lines) */
+#define PROFILE_WORDS 16384u /* 32 KiB of flash */
+static uint64_t profile_cycles[PROFILE_WORDS];
 
 /* ---------------------------------------------------------------- the board */
 static avr_t *avr;
@@ -496,10 +501,16 @@ static void on_signal(int s)
     stop_signal = s;
 }
 
+/* Cycles the MCU spent asleep. simavr runs a SLEEP instruction and the sleep after it in
+ * one avr_run call (cycle += 1 + how_long after the instruction's own cycle), and a call
+ * that starts asleep may end in an interrupt's entry: so the busy cycles of a call are
+ * its cycles minus what this hook saw slept, not "the call started running". */
+static uint64_t slept_cycles;
+
 static void noop_sleep(avr_t *a, avr_cycle_count_t how_long)
 {
     (void)a;
-    (void)how_long;
+    slept_cycles += 1u + how_long;
 }
 
 static double num(const char *s, const char *name)
@@ -519,7 +530,7 @@ static void usage(void)
             "usage: hapkit_board FIRMWARE.elf [--realtime] [--mass KG] [--friction NS_M]\n"
             "         [--coulomb N] [--x0 M] [--v0 M_S] [--hand-force N --hand-start S\n"
             "         --hand-duration S] [--wait-ms MS] [--duration S] [--report FILE]\n"
-            "         [--link PATH]\n");
+            "         [--link PATH] [--profile FILE]\n");
     exit(2);
 }
 
@@ -572,6 +583,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--duration")) opt.duration = num(v, a);
         else if (!strcmp(a, "--report")) opt.report = v;
         else if (!strcmp(a, "--link")) opt.link = v;
+        else if (!strcmp(a, "--profile")) opt.profile = v;
         else usage();
     }
     if (!opt.elf || !(opt.mass > 0) || opt.friction < 0 || opt.coulomb < 0) {
@@ -622,8 +634,8 @@ int main(int argc, char **argv)
             break;
         }
         while (avr->cycle < end && !link_.await_host) {
-            int running = avr->state == cpu_Running;
-            uint64_t c0 = avr->cycle;
+            uint64_t c0 = avr->cycle, s0 = slept_cycles, busy;
+            uint32_t pc0 = (uint32_t)avr->pc;
             int st = avr_run(avr);
             if (st == cpu_Done || st == cpu_Crashed) {
                 fprintf(stderr, "hapkit_board: firmware stopped (state %d) at %.6f s\n", st,
@@ -631,13 +643,13 @@ int main(int argc, char **argv)
                 code = 1;
                 goto done;
             }
-            if (running) {
-                budget.window_busy += avr->cycle - c0;
-            }
+            busy = (avr->cycle - c0) - (slept_cycles - s0);
+            budget.window_busy += busy;
             if (link_.fw_status & HP_STATUS_ARMED) {
                 budget.armed_cycles += avr->cycle - c0;
-                if (running) {
-                    budget.armed_busy += avr->cycle - c0;
+                budget.armed_busy += busy;
+                if (opt.profile && busy) {
+                    profile_cycles[(pc0 >> 1) % PROFILE_WORDS] += busy;
                 }
             }
             sample_drive();
@@ -678,5 +690,17 @@ int main(int argc, char **argv)
     }
 done:
     report(code);
+    if (opt.profile) {
+        FILE *pf = fopen(opt.profile, "w");
+        unsigned w;
+        if (pf) {
+            for (w = 0; w < PROFILE_WORDS; w++) {
+                if (profile_cycles[w]) {
+                    fprintf(pf, "%#x %llu\n", 2u * w, (unsigned long long)profile_cycles[w]);
+                }
+            }
+            fclose(pf);
+        }
+    }
     return code;
 }
