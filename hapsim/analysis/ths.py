@@ -447,70 +447,6 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
     return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
 
 
-def _root_bracketed(g, a: float, b: float) -> float:
-    """A root of ``g`` in ``[a, b]`` to the last bit (the bracket no longer shrinks).
-
-    Illinois regula falsi (Dowell & Jarratt, BIT 11, 1971) with a bisection step whenever
-    the bracket did not halve, so it converges superlinearly and never slower than
-    bisection; here instead of :func:`scipy.optimize.brentq`, whose import (0.6 s) every
-    ``hapsim run`` paid in its stability prediction.
-
-    Parameters
-    ----------
-    g : callable
-        ``g(float) -> float``.
-    a, b : float
-        The bracket, ``a < b``.
-
-    Returns
-    -------
-    float
-        The root; the bracket's midpoint when ``g(a)`` and ``g(b)`` have the same sign (the
-        scalar and the vectorised evaluation disagree on a tiny ``|g|``).
-    """
-    ga, gb = g(a), g(b)
-    if ga == 0.0:
-        return a
-    if gb == 0.0:
-        return b
-    if (ga > 0.0) == (gb > 0.0):
-        return 0.5 * (a + b)
-    side = 0
-    for _ in range(400):
-        width = b - a
-        x = (a * gb - b * ga) / (gb - ga)
-        if not a < x < b:
-            x = 0.5 * (a + b)
-        if x <= a or x >= b:        # a and b adjacent floats
-            break
-        gx = g(x)
-        if gx == 0.0:
-            return x
-        if (gx > 0.0) == (ga > 0.0):
-            a, ga = x, gx
-            if side == -1:
-                gb *= 0.5
-            side = -1
-        else:
-            b, gb = x, gx
-            if side == 1:
-                ga *= 0.5
-            side = 1
-        if b - a > 0.5 * width:     # no halving: bisect once
-            m = 0.5 * (a + b)
-            if m <= a or m >= b:
-                break
-            gm = g(m)
-            if gm == 0.0:
-                return m
-            if (gm > 0.0) == (ga > 0.0):
-                a, ga = m, gm
-            else:
-                b, gb = m, gm
-            side = 0
-    return a if abs(ga) <= abs(gb) else b
-
-
 def _circle_values(A, C, e: int):
     """Real ``x`` for which ``x A(w) + C(w)`` has a root on the unit circle.
 
@@ -518,7 +454,7 @@ def _circle_values(A, C, e: int):
     :func:`hapsim.analysis.loop.char_eval`); ``e``: the delay exponent, which sets how fast
     they turn round the circle. On ``z = e^{i theta}`` the root condition is ``x = -C/A``,
     real iff ``Im[C conj(A)] = 0``; that is solved for ``theta`` in ``(0, pi]`` (dense scan
-    with at least 64 points per turn of ``z^e``, then :func:`_root_bracketed` to the last bit). Returns ``(values,
+    with at least 64 points per turn of ``z^e``, then Brent to ~1e-15). Returns ``(values,
     lossless, x_pi)``: the candidate values (unsorted, finite), whether ``-C/A`` is real all
     round the circle (a lossless loop: the scan finds no sign change), and ``-C/A`` at
     ``z = -1`` (nan where ``A(-1) = 0``).
@@ -547,7 +483,12 @@ def _circle_values(A, C, e: int):
         if gv[i] == 0.0:
             th = thetas[i]
         else:
-            th = _root_bracketed(g, thetas[i], thetas[i + 1])
+            from scipy.optimize import brentq  # here: `import hapsim.analysis` stays light
+            try:
+                th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
+                            maxiter=200)
+            except ValueError:  # scalar and vector rounding disagree on a tiny |g|
+                th = 0.5 * (thetas[i] + thetas[i + 1])
         w = wof(th)
         a, c = complex(A(w)), complex(C(w))
         if abs(a) > 0:

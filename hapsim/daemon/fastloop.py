@@ -532,15 +532,16 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
         if z >= 0 or n_rb > _MAX_FRAME:
             iv[I_RB_LEN] = n_rb
             return R_HANDOFF
-        # wait for bytes no longer than the silence still allowed (as the Python loop)
+        # wait for bytes no longer than the silence still allowed (as the Python loop); once
+        # it has run out, still take what is waiting (poll 0 ms), as the Python loop's
+        # receive(0) does: after a stall of this thread (a return to Python that waited for
+        # the GIL) the device's STATEs are in the port's buffer, the device is not lost
         left = fv[F_LAST_RX] + silence - _now_ns(ts) * 1e-9
         wait = poll_max if left > poll_max else left
-        if wait <= 1e-6:
-            iv[I_RB_LEN] = n_rb
-            return R_IDLE
         pfd[0] = fd
         pfd[1] = _POLLIN
-        r = _c_poll(pfd.ctypes.data, 1, np.int32(math.ceil(wait * 1000.0)))
+        ms = np.int32(math.ceil(wait * 1000.0)) if wait > 1e-6 else np.int32(0)
+        r = _c_poll(pfd.ctypes.data, 1, ms)
         if r < 0:
             iv[I_RB_LEN] = n_rb
             return R_INTR           # a signal: Python runs its handler
@@ -834,6 +835,43 @@ _REC = np.zeros(0, dtype=np.int64)
 _OUT = np.zeros((0, 0), dtype=np.float64)
 
 
+def _scratch(engine, fd: int) -> dict:
+    """The compiled stretch's arrays for a throw-away run on ``fd`` (1 kHz, delay 1, no
+    bounds, silence 0): :func:`warm_up` and the tests."""
+    iv = np.zeros(N_IV, dtype=np.int64)
+    fv = np.zeros(N_FV)
+    pv = np.zeros(N_PV)
+    pv[P_LIM] = 1.0
+    pv[P_D] = 1
+    pv[P_RATE] = 1000.0
+    pv[P_T] = 1e-3
+    pv[P_POS] = pv[P_VLIM] = pv[P_ELIM] = math.inf
+    pv[P_RAMP_N] = 1
+    pv[P_HL] = 4
+    pv[P_SILENCE] = pv[P_POLL] = 0.0
+    iv[I_NMAX] = 4
+    iv[I_SYNC] = 4
+    iv[I_EXPECT] = 0
+    tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
+                                                  np.int64, np.float64, np.int8, np.uint8))
+    u8 = np.zeros(8, dtype=np.uint8)
+    io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
+          np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))
+    eng = (*kernel_pack(engine), engine._x, engine._f, max(engine._port, 0), _REC, _OUT)
+    return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
+            "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
+            "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
+            "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
+            "hist_len": np.zeros(_HIST, dtype=np.int64)}
+
+
+def _run_stretch(sc: dict) -> int:
+    """:func:`_stretch` on the arrays of :func:`_scratch`; its return code."""
+    io = sc["io"]
+    return _stretch(*sc["eng"], sc["iv"], sc["fv"], sc["pv"], sc["fh"], sc["win"], *sc["tel"],
+                    io[0], sc["rb"], sc["stop"], *io[1:], sc["hist"], sc["hist_len"])
+
+
 def warm_up(engine) -> float:
     """Compile (or load from numba's cache) the compiled loop for this engine's kernel,
     on a pipe, before the real-time loop; returns the seconds it took.
@@ -852,39 +890,16 @@ def warm_up(engine) -> float:
     t0 = time.perf_counter()
     r, w = os.pipe()
     try:
-        iv = np.zeros(N_IV, dtype=np.int64)
-        fv = np.zeros(N_FV)
-        pv = np.zeros(N_PV)
-        pv[P_LIM] = 1.0
-        pv[P_D] = 1
-        pv[P_RATE] = 1000.0
-        pv[P_T] = 1e-3
-        pv[P_POS] = pv[P_VLIM] = pv[P_ELIM] = math.inf
-        pv[P_RAMP_N] = 1
-        pv[P_HL] = 4
-        pv[P_SILENCE] = pv[P_POLL] = 0.0
-        iv[I_NMAX] = 4
-        iv[I_SYNC] = 4
-        iv[I_EXPECT] = 0
-        tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
-                                                      np.int64, np.float64, np.int8, np.uint8))
-        u8 = np.zeros(8, dtype=np.uint8)
-        io = (w, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
-              np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32),
-              np.zeros(2, dtype=np.int64))
-        eng = (*kernel_pack(engine), engine._x, engine._f, max(engine._port, 0), _REC, _OUT)
-        stop = np.zeros(1, dtype=np.int64)
-        rb = np.zeros(256, dtype=np.uint8)
+        sc = _scratch(engine, w)
         frame = np.frombuffer(fp.encode(fp.State(0, 0, fp.STATUS_ARMED, 0, (0.0,))),
                               dtype=np.uint8)
-        rb[:frame.size] = frame
-        iv[I_RB_LEN] = frame.size
-        _stretch(*eng, iv, fv, pv, np.zeros(3), np.zeros(4, dtype=np.int8), *tel, w, rb, stop,
-                 *io[1:], np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
-                 np.zeros(_HIST, dtype=np.int64))
-        _sample(*eng, iv, fv, pv, np.zeros(3), np.zeros(4, dtype=np.int8), *tel, 1, 0,
+        sc["rb"][:frame.size] = frame
+        sc["iv"][I_RB_LEN] = frame.size
+        _run_stretch(sc)
+        iv, fv, pv, io = sc["iv"], sc["fv"], sc["pv"], sc["io"]
+        _sample(*sc["eng"], iv, fv, pv, sc["fh"], sc["win"], *sc["tel"], 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
-        kind, kargs, xs, _, port, rec, out = eng
+        kind, kargs, xs, _, port, rec, out = sc["eng"]
         _skip_step(kind, kargs, xs, port, rec, out, iv, fv, 0.0)
     finally:
         os.close(r)

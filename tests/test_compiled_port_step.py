@@ -1,29 +1,28 @@
-"""Start-up paths: the compiled loop's cacheable port step and the lazy scipy import.
+"""The compiled loop's port step (cacheable) and its silence rule, on the bare stretch.
 
 The compiled loop calls the engine's kernel through :func:`hapsim.daemon.fastloop._port_step`
 (a kernel chosen by an integer, so that numba loads the loop from its disk cache); each of
-the kernels of ``hapsim.kernels`` must step exactly as the engine's own call does. The
-stability prediction finds its unit-circle roots without scipy (its import cost 0.6 s of
-every ``hapsim run``): the root finder is checked against closed-form roots.
+the kernels of ``hapsim.kernels`` must step exactly as the engine's own call does.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
 import os
-import subprocess
-import sys
+import socket
+import time
 
 import numpy as np
 import pytest
 
-from hapsim.analysis.ths import _root_bracketed
+import firmware_protocol as fp
 from hapsim.daemon import fastloop
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STRING = os.path.join(ROOT, "configs", "string.yaml")
+WALL = os.path.join(ROOT, "configs", "wall.yaml")
 
 
 def _scenes():
@@ -68,29 +67,30 @@ def test_port_step_equals_the_engine_kernel_for_every_kernel():
                     fastloop.K_SYMPLECTIC, fastloop.K_EXACT}
 
 
-def test_root_finder_hits_closed_form_roots():
-    rng = np.random.default_rng(3)
-    for _ in range(300):
-        r = rng.uniform(-5.0, 5.0)
-        s = 10.0 ** rng.uniform(-9.0, 1.0)            # bracket widths over 10 decades
-        lo, hi = r - s * rng.uniform(0.01, 1.0), r + s * rng.uniform(0.01, 1.0)
-        p = int(rng.integers(1, 4))                    # simple or triple root, any slope
-        c = 10.0 ** rng.uniform(-6.0, 6.0)
-        sign = -1.0 if rng.random() < 0.5 else 1.0
-        x = _root_bracketed(lambda t: sign * c * (t - r) ** (2 * p - 1)
-                            + sign * c * 1e-3 * (t - r) * (1.0 + 0.5 * math.sin(t)), lo, hi)
-        assert abs(x - r) <= 8.0 * math.ulp(max(abs(r), s)) + 1e-300, (r, lo, hi, p, x)
-    # g(a) and g(b) of the same sign: the midpoint (the documented fallback)
-    assert _root_bracketed(lambda t: 1.0 + t * t, 0.0, 2.0) == 1.0
-
-
-def test_a_run_imports_no_scipy_optimize_before_its_first_sample():
-    code = ("import sys\n"
-            "from hapsim.scene import load_scene\n"
-            "from hapsim.daemon.runner import predict, prepare_scene\n"
-            f"predict(prepare_scene(load_scene({STRING!r}))[0])\n"
-            "print(sorted(m for m in sys.modules if m.startswith('scipy.optimize')))\n")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       env=dict(os.environ, PYTHONPATH=ROOT), cwd=ROOT, timeout=120)
-    assert p.returncode == 0, p.stderr[-800:]
-    assert p.stdout.strip() == "[]"
+@pytest.mark.parametrize("waiting", [True, False])
+def test_silence_run_out_still_takes_the_states_waiting_in_the_port(waiting):
+    """After a stall of the compiled thread past the silence (a return to Python that waited
+    for the GIL), a STATE already in the port's buffer is answered, as the Python loop's
+    ``receive(0)`` reads it; only an empty port is silence (``R_IDLE``: Python declares the
+    loss)."""
+    a, b = socket.socketpair()
+    try:
+        sc = fastloop._scratch(Engine(load_scene(WALL)), a.fileno())
+        sc["iv"][fastloop.I_NMAX] = 1
+        sc["pv"][fastloop.P_SILENCE] = sc["pv"][fastloop.P_POLL] = 0.05
+        sc["pv"][fastloop.P_CLAMP_MAX] = 1e9                     # no safety stop
+        sc["fv"][fastloop.F_LAST_RX] = time.monotonic() - 1.0     # 1 s ago: run out
+        if waiting:
+            b.sendall(fp.encode(fp.State(0, 0, fp.STATUS_ARMED, 0, (0.001,))))
+            time.sleep(0.01)
+        code = fastloop._run_stretch(sc)
+        if waiting:
+            assert code == fastloop.R_DONE and sc["iv"][fastloop.I_N] == 1
+            b.settimeout(5.0)
+            msgs = fp.StreamDecoder().feed(b.recv(64))
+            assert [type(m).__name__ for m in msgs] == ["Force"] and msgs[0].seq == 0
+        else:
+            assert code == fastloop.R_IDLE and sc["iv"][fastloop.I_N] == 0
+    finally:
+        a.close()
+        b.close()
