@@ -34,7 +34,8 @@ def _with_link(name: str, link: str, stiffness: float):
 def test_every_config_comment_with_a_figure_is_pinned():
     """A config whose comments state a figure must appear below (by name)."""
     pinned = {"string.yaml", "oscillator.yaml", "felt_wall.yaml", "wall.yaml", "audio_string.yaml",
-              "hapkit_serial.yaml"}      # its figure: tests/test_drivers.py
+              "hapkit_serial.yaml",      # its figure: tests/test_drivers.py
+              "hand_wall.yaml"}
     for f in sorted(CONFIGS.glob("*.yaml")):
         if re.search(r"\d\s*(N/m|N s/m|Hz|1/s)", _comments(f.name)):
             assert f.name in pinned, f"{f.name}: its comments state figures; pin them here"
@@ -81,6 +82,22 @@ def test_wall_comments_match_the_keys():
     sc = load_scene(CONFIGS / "wall.yaml")
     assert "hand + handle moving mass [kg]" in c and sc.device.mass == 0.1
     assert "starts 5 mm into the wall" in c and sc.excitation.x0 == 0.005
+
+
+def test_hand_wall_family_figures():
+    """configs/hand_wall.yaml: the ranges its comments state, its nominal member, and that
+    the whole family is stable (what `hapsim family` reports)."""
+    from hapsim.analysis.family import family
+    from hapsim.analysis.hand import nominal_member
+    c = _comments("hand_wall.yaml")
+    assert "0.05-0.5 kg" in c and "300-3000 N/m" in c and "alone is 0.05 kg" in c
+    assert "hand 0.275 kg, grip sqrt(300 * 3000) = 949 N/m" in c
+    sc = load_scene(CONFIGS / "hand_wall.yaml")
+    h = sc.device.hand
+    assert sc.device.mass == 0.05 and h.mass == (0.05, 0.5) and h.grip_stiffness == (300, 3000)
+    nom = nominal_member(h)
+    assert nom[0] == pytest.approx(0.275) and round(nom[2]) == 949
+    assert family(sc, grid=5).robust
 
 
 def test_audio_string_partials_as_stated():

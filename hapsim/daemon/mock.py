@@ -235,6 +235,21 @@ def hand_force_samples(excitation: Excitation, period: float,
     return out
 
 
+def _body(device: Device, member=None):
+    """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
+    continuous 4x4 matrix of a compliant grip (None when rigid or without a hand).
+    Without a hand nothing is imported: a mock restarted by CONFIG must answer at once."""
+    hand = getattr(device, "hand", None)
+    if hand is None and member is None:
+        return float(device.mass), float(device.friction), None
+    from hapsim.analysis.hand import hand_matrices, nominal_member
+    mem = np.asarray(member if member is not None else nominal_member(hand), float)
+    if np.isfinite(mem[2]):
+        A, _ = hand_matrices(float(device.mass), float(device.friction), mem)
+        return float(device.mass), float(device.friction), A
+    return float(device.mass + mem[0]), float(device.friction + mem[1]), None
+
+
 class MockPhysics:
     """The real side of the THS, advanced one period at a time.
 
@@ -252,6 +267,12 @@ class MockPhysics:
         Directory relative profile paths are resolved against.
     hand : ndarray, optional
         Precomputed :func:`hand_force_samples` (a device restarted by CONFIG reuses it).
+    member : array_like, shape (4,), optional
+        The member ``(mh, bh, kg, bg)`` of ``device.hand`` to simulate (default its nominal
+        member, :func:`hapsim.analysis.hand.nominal_member`). A rigid grip adds the hand's
+        mass and damping to the handle's; a compliant one makes the plant
+        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)`` (Coulomb
+        friction is not modelled on that path; noise and quantisation are).
 
     Attributes
     ----------
@@ -272,16 +293,24 @@ class MockPhysics:
 
     def __init__(self, device: Device, rate_hz: float, excitation: Excitation | None = None,
                  *, seed: int = 0, base_dir: str | None = None,
-                 hand: np.ndarray | None = None) -> None:
+                 hand: np.ndarray | None = None, member=None) -> None:
         exc = excitation or Excitation()
         self.device = device
         self.period = T = 1.0 / float(rate_hz)
         self.hold = device.hold
+        mass, friction, self._grip = _body(device, member)
+        if self._grip is not None:                  # compliant grip: 4-state plant
+            import scipy.linalg
+            A = np.zeros((5, 5))
+            A[:4, :4], A[1, 4] = self._grip, 1.0 / float(device.mass)
+            E = scipy.linalg.expm(A * T)
+            self._Ad, self._Bd = E[:4, :4], E[:4, 4]
+            self._s = np.array([exc.x0, exc.v0, exc.x0, exc.v0], dtype=float)
         if self.hold == "zoh":
             self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
-                device.mass, device.friction, T)
+                mass, friction, T)
         elif self.hold == "ideal":
-            self._a, self._cu = ideal_step_coefficients(device.mass, device.friction, T)
+            self._a, self._cu = ideal_step_coefficients(mass, friction, T)
         else:
             raise ConfigError(f"unknown hold {device.hold!r}; valid: zoh, ideal", key="device.hold")
         self.x = float(exc.x0)
@@ -332,7 +361,11 @@ class MockPhysics:
         """
         n = self.n
         f = u + (self.hand[n] if n < self.hand.size else 0.0)
-        if self.hold == "zoh":
+        if self._grip is not None:
+            s = self._Ad @ self._s + self._Bd * f
+            self._s = s
+            self.x, self.v = float(s[0]), float(s[1])
+        elif self.hold == "zoh":
             x, v = self.x, self.v
             fc = 0.0
             if self._coulomb > 0:

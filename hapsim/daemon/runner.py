@@ -16,9 +16,12 @@ A pipeline of named steps, each returning a small result object (DESIGN §4-§5)
    transport opened (in-process mock, embedded mock on a pty, or a given port), and the host
    loop run (:class:`~hapsim.daemon.loop.HostLoop`).
 4. The logged positions after the excitation has ended are identified with
-   :func:`hapsim.analysis.fit_rendered` (matrix pencil, model order = number of non-zero
-   predicted closed-loop poles, i.e. plant order 2 + d + 1 for a wall with damping) and
-   compared with the prediction.
+   :func:`hapsim.analysis.identify.measure_felt`: the full-order matrix pencil when the
+   record is exact (noise-free, reproduced to round-off), otherwise a least-squares fit of
+   the felt pair, the slow modes and the offset, robust to a quantised or noisy sensor
+   (step from ``device.position_resolution`` or HELLO's ``position_scale``), with standard
+   errors; the report states the interval and whether it holds the prediction, or why the
+   record supports no measurement.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hapsim.analysis.network import device_body
 from hapsim.analysis.targets import apply_targets
 from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
@@ -183,7 +187,8 @@ def predict(scene: Scene) -> dict:
 
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
-             skip: int = 3) -> dict:
+             skip: int = 3, predicted=None, felt: complex | None = None,
+             quantum: float = 0.0, noise: float = 0.0, sensor_response=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -213,13 +218,25 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
+    predicted : array_like of complex, optional
+        Predicted non-zero closed-loop poles seen at the port; with ``felt`` (the predicted
+        felt pole) the measurement is :func:`hapsim.analysis.identify.measure_felt`
+        (robust to a quantised or noisy sensor, with standard errors); without, the full
+        order matrix pencil alone.
+    quantum, noise : float
+        Position sensor step [m] and noise standard deviation [m] (0: none).
+    sensor_response : ndarray, optional
+        Impulse response of the sensor error to the logged position
+        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
 
     Returns
     -------
     dict
         ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; or ``error`` (str) when nothing can be
-        identified.
+        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
+        :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
+        be identified or the record cannot support a measurement.
     """
     from hapsim.analysis.identify import fit_rendered
 
@@ -252,12 +269,23 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     y, s = y[a:b], s[a:b]
     out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
            "order": int(order), "late_in_segment": late_in}
-    # pencil parameter: Hua & Sarkar's N/3 is the low-variance choice but makes the Hankel
-    # matrix square-ish (an SVD of seconds on a loaded machine for N = 1000); a thin
-    # Hankel with L = max(10 order, 60) columns is exact on noise-free data and cheap.
-    n_use = y.size - (1 if offset else 0)
-    pencil = min(max(int(order), n_use // 3), max(10 * int(order), 60))
+    from hapsim.analysis.identify import thin_pencil
+    pencil = thin_pencil(order, y.size - (1 if offset else 0))
     out["pencil"] = pencil
+    if predicted is not None and felt is not None and y.size:
+        from hapsim.analysis.identify import measure_felt
+        try:
+            res = measure_felt(y, period, mass, predicted, felt, offset=offset,
+                               quantum=quantum, noise=noise, order=int(order), pencil=pencil,
+                               sensor_response=sensor_response)
+        except ConfigError as exc:
+            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+            return out
+        out.update(res)
+        if "error" in res:
+            for q in ("k", "b", "f0_hz", "damping_ratio"):
+                out.pop(q, None)
+        return out
     try:
         md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
     except ConfigError as exc:
@@ -817,9 +845,18 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     warm = None
     try:
         limit_blas_threads(1)
+        corr = getattr(dev, "correction", None)
+        sensor = corr is not None and corr.get("kind") == "velocity_sensor"
         # the kernels (and the compiled loop) load while the device (the mock's child) starts
-        warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial"))
+        warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
+                              and corr is None)
         engine = Engine(scene)
+        if corr is not None:
+            # a device correction: the engine's port force follows its law (one-link
+            # scene); a velocity sensor reads the lockstep mock in-process (below)
+            from hapsim.daemon.correction import corrected_engine
+            if not sensor or transport != "inprocess":
+                engine = corrected_engine(scene)       # raises for a sensor on a wire
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -845,6 +882,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = InProcessTransport(mock)
+            if sensor:
+                engine = corrected_engine(scene, velocity=lambda m=mock: m.physics.v)
         elif transport == "sim":
             from hapsim.daemon.transport import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
@@ -905,9 +944,13 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        if opts.loop == "compiled" and opts.sound is None and opts.osc is None:
+        corrected = getattr(prep.scene.device, "correction", None) is not None
+        if (opts.loop == "compiled" and opts.sound is None and opts.osc is None
+                and not corrected):
             # the compiled loop steps the kernel itself: live OSC changes and the sounding
-            # engine run per sample in Python, so they keep the Python loop
+            # engine run per sample in Python, so they keep the Python loop; so does a
+            # device correction (its law runs in the engine's port_step, see
+            # hapsim.daemon.correction)
             from hapsim.daemon.fastloop import CompiledHostLoop
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         else:
@@ -1013,7 +1056,66 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
+def _predicted_poles(scene: Scene):
+    """Predicted non-zero closed-loop poles seen at the port and the felt one (or None).
+
+    The same models as :func:`predict`: the THS map for one port link, ``check_scene``
+    (observable modes, conjugates added) otherwise.
+    """
+    an = _analysis()
+    dev = scene.device
+    plinks = _port_links(scene)
+    single = len(scene.links) == 1 and len(plinks) == 1 and all(
+        m.kind != "mass" for m in scene.masses) and scene.audio is None
+    if single:
+        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+        K = sum(lk.stiffness for lk in plinks)
+        B = sum(lk.damping for lk in _links_at_port(scene))
+        r = an["render"](loop, K, B)
+        z = np.asarray(an["closed_loop_poles"](loop, K, B), dtype=complex)
+        felt = None if r.rendered is None else complex(r.rendered.z)
+        return z[np.abs(z) > _ZERO_POLE], felt
+    from hapsim.analysis.modes import OBSERVABLE_TOL
+    chk = an["check_scene"](scene)
+    z = []
+    for md in chk.modes:
+        if abs(md.z) > _ZERO_POLE and (md.participation is None
+                                       or md.participation >= OBSERVABLE_TOL):
+            z += [md.z, complex(md.z).conjugate()] if md.kind == "pair" else [md.z]
+    felt = None if chk.rendered is None else complex(chk.rendered.z)
+    return np.asarray(z, dtype=complex), felt
+
+
+def _verdict(prep: PreparedRun, measured: dict) -> None:
+    """Add ``k_interval``, ``b_interval`` (the stated half-widths), ``within`` and
+    ``verdict`` to an identification result.
+
+    The interval is the fit's: :data:`hapsim.analysis.identify.COVERAGE` standard errors,
+    the residual's or the sensor's (its error fed back through the loop), the larger; never
+    below 1e-9 relative (round-off of an exact record). The quantiser's loop gain
+    (describing function, :func:`hapsim.analysis.identify.quantiser_gain_bound`) is left
+    out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
+    errors observed over random loops (tests/test_identify_quantised.py).
+    """
+    pred = prep.pred
+    if "k" not in measured or "k_unc" not in measured or pred.get("k") is None:
+        return
+    dk, db = measured["k_unc"], measured["b_unc"]
+    dk = max(dk, 1e-9 * abs(pred["k"]))
+    db = max(db, 1e-9 * abs(pred["b"]))
+    measured["k_interval"], measured["b_interval"] = dk, db
+    if measured.get("method") == "varpro":
+        from hapsim.analysis.identify import COVERAGE
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual or sensor, the larger")
+    ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
+    measured["within"] = bool(ok)
+    measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
+                           "measured differs from predicted by more than the stated "
+                           "uncertainty")
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -1024,24 +1126,42 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
         :func:`prepare_run`'s result.
     tel : Telemetry
         The run's telemetry.
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO: its ``position_scale`` is the sensor step when the scene's
+        ``device.position_resolution`` does not give one.
 
     Returns
     -------
     dict
-        :func:`identify`'s result with ``note`` (why prediction and measurement may differ),
+        :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
+        ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
         ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    quantum = float(dev.position_resolution or 0.0)
+    if not quantum and hello is not None and math.isfinite(hello.position_scale):
+        quantum = max(float(hello.position_scale), 0.0)
     if pred["order"]:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
         offset = _has_offset(scene)
-        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2)
+        poles, felt = _predicted_poles(scene)
+        response = None
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.identify import sensor_error_response
+            try:
+                response = sensor_error_response(scene, int(cols["seq"].size))
+            except ConfigError:
+                response = None
+        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+                            device_body(dev)[0], start,
+                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
+                            sensor_response=response)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links):
         notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
@@ -1060,6 +1180,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
                      f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
+    _verdict(prep, measured)
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
@@ -1289,7 +1410,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel)
+    measured = identify_run(prep, conn.tel, run.res.hello)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
@@ -1402,6 +1523,11 @@ def format_report(rep: dict) -> str:
         re = m["rel_err"]
         lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
                      f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
+        if m.get("interval_note"):
+            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4f')} "
+                         f"{_fmt(m['b_interval'], '11.5f')}   ({m['interval_note']})")
+        if m.get("verdict"):
+            lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
             rt = m["rel_err_target"]
             lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
