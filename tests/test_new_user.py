@@ -225,10 +225,14 @@ def interrupted(argv, after, tmp_path, console=False):
 def test_ctrl_c_at_any_time_is_quiet(tmp_path, argv, after):
     """README: Ctrl-C ends cleanly. run exits 0 once its own SIGINT handler is in place
     (it stops the loop and reports); before that, and for every other command, exit 130
-    with one line; a command that already finished exits 0. Never a traceback."""
+    with one line; a command that already finished exits with its own verdict (the code it
+    has without Ctrl-C: render's example is unstable, 1). Never a traceback."""
     code, out, err = interrupted(argv, after, tmp_path)
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
-    assert code in (0, 130), (code, err)
+    if code not in (0, 130) and argv[0] != "run":   # finished before the signal: its verdict
+        from hapsim.cli import main
+        assert code == main(list(argv)), (code, err)
+        return
     if code == 130:
         assert err.strip().splitlines()[-1].endswith("interrupted"), err
 

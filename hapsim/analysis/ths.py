@@ -13,7 +13,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import brentq
 
 from hapsim.analysis.loop import (STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled,
                                   char_eval)
@@ -489,6 +488,7 @@ def _circle_values(A, C, e: int):
         if gv[i] == 0.0:
             th = thetas[i]
         else:
+            from scipy.optimize import brentq  # here: `import hapsim.analysis` stays light
             try:
                 th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
                             maxiter=200)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import numba
 import numpy as np
@@ -45,6 +44,7 @@ import firmware_protocol as fp
 from hapsim.daemon.loop import HostLoop, _Lost, _safety_reason
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
+from hapsim.kernels import cordis, schemes
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -79,11 +79,6 @@ N_PV = 17
 R_OK, R_NONFINITE, R_SAFETY, R_IOERR = 0, 1, 2, 3
 R_DONE, R_STOP, R_HANDOFF, R_IDLE, R_INTR, R_SYNC, R_PORT = 4, 5, 6, 7, 8, 9, 10
 
-# the engine's kernel is passed to the compiled loop as an argument (numba calls that a
-# first-class function, "experimental"): the warning would reach the user's stderr
-warnings.filterwarnings("ignore", message="First-class function type feature is experimental",
-                        category=numba.NumbaExperimentalFeatureWarning)
-
 _U32 = 0xFFFFFFFF
 _HALF = 0x80000000
 _STATE_PACKET = 29          # type + 1-axis STATE body + CRC [bytes]
@@ -109,9 +104,89 @@ def _crc_table() -> np.ndarray:
 _CRC = _crc_table()
 
 _jit = numba.njit(nogil=True, cache=True)
-# the functions that take the engine's kernel as an argument are compiled per kernel and
-# not cached: numba cannot load a cached function with a dispatcher-typed argument
-_jit_kernel = numba.njit(nogil=True)
+
+# ----------------------------------------------------------------------------- port step
+# The engine's kernel is chosen by an integer among the module-level kernels of
+# hapsim.kernels, with its arrays in one tuple of fixed types (unused slots empty): numba
+# loads a function from its on-disk cache only when no argument is a dispatcher (a
+# first-class function argument made the loop compile again at every start, ~8 s).
+K_MASSES, K_SD, K_CONTACT, K_SD_CONTACT, K_SYMPLECTIC, K_EXACT = range(6)
+_KINDS = {cordis.run_masses: K_MASSES, cordis.run_sd: K_SD, cordis.run_contact: K_CONTACT,
+          cordis.run_sd_contact: K_SD_CONTACT, schemes.run_symplectic_euler: K_SYMPLECTIC,
+          schemes.run_exact: K_EXACT}
+_EI = np.empty(0, dtype=np.int64)
+_EF = np.empty(0, dtype=np.float64)
+_EF2 = np.empty((0, 0), dtype=np.float64)
+
+
+def kernel_pack(engine) -> tuple[int, tuple]:
+    """The engine's kernel as ``(kind, pack)`` for :func:`_port_step`.
+
+    Parameters
+    ----------
+    engine : hapsim.engine.Engine
+        Its ``_kernel`` and ``_args`` (the arrays are shared, not copied: the kernel
+        updates the engine's state in place).
+
+    Returns
+    -------
+    kind : int
+        One of ``K_MASSES`` .. ``K_EXACT``.
+    pack : tuple
+        ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+        c_thr, v, c, T, phi, gam, psi, snew, sold, uold)``; the slots the kernel does not
+        take are empty arrays (``T`` 0.0).
+
+    Raises
+    ------
+    KeyError
+        A kernel outside :mod:`hapsim.kernels.cordis` / :mod:`hapsim.kernels.schemes`.
+    """
+    kind = _KINDS[engine._kernel]
+    a = engine._args
+    sd = (_EI, _EI, _EF, _EF)
+    ct = (_EI, _EI, _EF, _EF, _EF)
+    v = c = snew = sold = uold = _EF
+    phi = gam = psi = _EF2
+    T = 0.0
+    if kind == K_SD:
+        sd = a[6:10]
+    elif kind == K_CONTACT:
+        ct = a[6:11]
+    elif kind == K_SD_CONTACT:
+        sd, ct = a[6:10], a[10:15]
+    elif kind == K_SYMPLECTIC:
+        v, c, T = a[6], a[7], a[8]
+        sd, ct = a[9:13], a[13:18]
+    elif kind == K_EXACT:
+        v, T, phi, gam, psi, snew, sold, uold = a[6:14]
+        sd = a[14:18]
+    return kind, tuple(a[:6]) + tuple(sd) + tuple(ct) + (v, c, float(T), phi, gam, psi,
+                                                         snew, sold, uold)
+
+
+@_jit
+def _port_step(kind, ka, rec, out):
+    """One sample of the engine's kernel ``kind`` on the arrays of ``ka``
+    (:func:`kernel_pack`)."""
+    (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr,
+     v, c, T, phi, gam, psi, snew, sold, uold) = ka
+    if kind == K_MASSES:
+        cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
+    elif kind == K_SD:
+        cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+    elif kind == K_CONTACT:
+        cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr, rec,
+                           out, 0)
+    elif kind == K_SD_CONTACT:
+        cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
+                              c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
+    elif kind == K_SYMPLECTIC:
+        schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1, sd_i2,
+                                     sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
+    else:
+        schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold,
+                          uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
 
 
 @_jit
@@ -207,8 +282,8 @@ def _write_all(fd, buf, n, pfd):
     return 0
 
 
-@_jit_kernel
-def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
+@_jit
+def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
             s_arr, ta_arr, late_arr, fl_arr, seq, time_us, status, force_seq, x, t_rx, fd,
             pkt, f8, u8, table, tx, pfd, ts):
     """One sample of :meth:`HostLoop._drive`, transcribed: late check, port step, observer,
@@ -232,7 +307,7 @@ def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x
             iv[I_LATE] += 1
     if math.isfinite(x):
         xs[port] = x
-        kernel(1, *kargs, rec, out, 0)
+        _port_step(kind, kargs, rec, out)
         iv[I_SAMPLES] += 1
         f = fs[port]
     else:
@@ -319,13 +394,13 @@ def _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x
     return R_OK
 
 
-@_jit_kernel
-def _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, x):
+@_jit
+def _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x):
     """A STATE the backlog policy skips: the scene steps with its position (the next
     velocity spans one period), nothing is sent or logged (as :meth:`HostLoop._drive`)."""
     if math.isfinite(x):
         xs[port] = x
-        kernel(1, *kargs, rec, out, 0)
+        _port_step(kind, kargs, rec, out)
         iv[I_SAMPLES] += 1
         fv[F_XPREV] = x
 
@@ -352,8 +427,8 @@ def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
     return False
 
 
-@_jit_kernel
-def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
+@_jit
+def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
              s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
              hist, hist_len):
     """Answer clean STATEs on ``fd`` until something needs Python (module notes).
@@ -434,9 +509,9 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
             if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
-                _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, x)
+                _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x)
                 continue
-            code = _sample(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
+            code = _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, seq, tus, status,
                            fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts)
             if code != R_OK or iv[I_N] >= iv[I_NMAX] or stop[0] != 0 or iv[I_N] >= sync_at:
@@ -457,15 +532,16 @@ def _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, 
         if z >= 0 or n_rb > _MAX_FRAME:
             iv[I_RB_LEN] = n_rb
             return R_HANDOFF
-        # wait for bytes no longer than the silence still allowed (as the Python loop)
+        # wait for bytes no longer than the silence still allowed (as the Python loop); once
+        # it has run out, still take what is waiting (poll 0 ms), as the Python loop's
+        # receive(0) does: after a stall of this thread (a return to Python that waited for
+        # the GIL) the device's STATEs are in the port's buffer, the device is not lost
         left = fv[F_LAST_RX] + silence - _now_ns(ts) * 1e-9
         wait = poll_max if left > poll_max else left
-        if wait <= 1e-6:
-            iv[I_RB_LEN] = n_rb
-            return R_IDLE
         pfd[0] = fd
         pfd[1] = _POLLIN
-        r = _c_poll(pfd.ctypes.data, 1, np.int32(math.ceil(wait * 1000.0)))
+        ms = np.int32(math.ceil(wait * 1000.0)) if wait > 1e-6 else np.int32(0)
+        r = _c_poll(pfd.ctypes.data, 1, ms)
         if r < 0:
             iv[I_RB_LEN] = n_rb
             return R_INTR           # a signal: Python runs its handler
@@ -574,7 +650,7 @@ class CompiledHostLoop(HostLoop):
             "iv": iv, "fv": fv, "pv": pv,
             "fh": np.zeros(d + 2, dtype=np.float64),
             "win": np.zeros(max(cfg.clamp_window, 1), dtype=np.int8),
-            "eng": (eng._kernel, eng._args, eng._x, eng._f, eng._port, _REC, _OUT),
+            "eng": (*kernel_pack(eng), eng._x, eng._f, eng._port, _REC, _OUT),
             "tel": (tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
                     tel.flags),
             "io": (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
@@ -634,10 +710,10 @@ class CompiledHostLoop(HostLoop):
     def _one(self, msg, x: float, t_rx: int) -> int:
         """A sample Python's source yielded, through the compiled body."""
         fst = self._fast
-        kernel, kargs, xs, fs, port, rec, out = fst["eng"]
+        kind, kargs, xs, fs, port, rec, out = fst["eng"]
         io = fst["io"]
         fst["iv"][I_SKIPFLAG] = self._skip_flag
-        return _sample(kernel, kargs, xs, fs, port, rec, out, fst["iv"], fst["fv"], fst["pv"],
+        return _sample(kind, kargs, xs, fs, port, rec, out, fst["iv"], fst["fv"], fst["pv"],
                        fst["fh"], fst["win"], *fst["tel"], msg.seq, msg.time_us, msg.status,
                        msg.force_seq, float(x), t_rx, io[0], *io[1:])
 
@@ -658,8 +734,8 @@ class CompiledHostLoop(HostLoop):
             for msg, x, t_rx in _chain1(first, states):
                 if t_rx < 0:                # skipped (backlog): the scene steps only
                     self._fast["iv"][I_SKIPFLAG] = self._skip_flag
-                    kernel, kargs, xs, fs, port, rec, out = self._fast["eng"]
-                    _skip_step(kernel, kargs, xs, port, rec, out, self._fast["iv"],
+                    kind, kargs, xs, fs, port, rec, out = self._fast["eng"]
+                    _skip_step(kind, kargs, xs, port, rec, out, self._fast["iv"],
                                self._fast["fv"], float(x))
                     self._publish()
                     continue
@@ -719,12 +795,12 @@ class CompiledHostLoop(HostLoop):
                 rb[n0:n0 + len(pre)] = np.frombuffer(pre, dtype=np.uint8)
                 iv[I_RB_LEN] = n0 + len(pre)
                 dec._buf = b""
-            kernel, kargs, xs, fs, port, rec, out = fst["eng"]
+            kind, kargs, xs, fs, port, rec, out = fst["eng"]
             while True:
                 iv[I_SKIPFLAG] = self._skip_flag
                 iv[I_EXPECT] = self._expect
                 fv[F_LAST_RX] = self._last_rx
-                code = _stretch(kernel, kargs, xs, fs, port, rec, out, iv, fv, fst["pv"],
+                code = _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, fst["pv"],
                                 fst["fh"], fst["win"], *fst["tel"], fst["io"][0], rb,
                                 self.stop.shared, *fst["io"][1:], fst["hist"],
                                 fst["hist_len"])
@@ -759,6 +835,43 @@ _REC = np.zeros(0, dtype=np.int64)
 _OUT = np.zeros((0, 0), dtype=np.float64)
 
 
+def _scratch(engine, fd: int) -> dict:
+    """The compiled stretch's arrays for a throw-away run on ``fd`` (1 kHz, delay 1, no
+    bounds, silence 0): :func:`warm_up` and the tests."""
+    iv = np.zeros(N_IV, dtype=np.int64)
+    fv = np.zeros(N_FV)
+    pv = np.zeros(N_PV)
+    pv[P_LIM] = 1.0
+    pv[P_D] = 1
+    pv[P_RATE] = 1000.0
+    pv[P_T] = 1e-3
+    pv[P_POS] = pv[P_VLIM] = pv[P_ELIM] = math.inf
+    pv[P_RAMP_N] = 1
+    pv[P_HL] = 4
+    pv[P_SILENCE] = pv[P_POLL] = 0.0
+    iv[I_NMAX] = 4
+    iv[I_SYNC] = 4
+    iv[I_EXPECT] = 0
+    tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
+                                                  np.int64, np.float64, np.int8, np.uint8))
+    u8 = np.zeros(8, dtype=np.uint8)
+    io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
+          np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))
+    eng = (*kernel_pack(engine), engine._x, engine._f, max(engine._port, 0), _REC, _OUT)
+    return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
+            "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
+            "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
+            "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
+            "hist_len": np.zeros(_HIST, dtype=np.int64)}
+
+
+def _run_stretch(sc: dict) -> int:
+    """:func:`_stretch` on the arrays of :func:`_scratch`; its return code."""
+    io = sc["io"]
+    return _stretch(*sc["eng"], sc["iv"], sc["fv"], sc["pv"], sc["fh"], sc["win"], *sc["tel"],
+                    io[0], sc["rb"], sc["stop"], *io[1:], sc["hist"], sc["hist_len"])
+
+
 def warm_up(engine) -> float:
     """Compile (or load from numba's cache) the compiled loop for this engine's kernel,
     on a pipe, before the real-time loop; returns the seconds it took.
@@ -777,41 +890,17 @@ def warm_up(engine) -> float:
     t0 = time.perf_counter()
     r, w = os.pipe()
     try:
-        iv = np.zeros(N_IV, dtype=np.int64)
-        fv = np.zeros(N_FV)
-        pv = np.zeros(N_PV)
-        pv[P_LIM] = 1.0
-        pv[P_D] = 1
-        pv[P_RATE] = 1000.0
-        pv[P_T] = 1e-3
-        pv[P_POS] = pv[P_VLIM] = pv[P_ELIM] = math.inf
-        pv[P_RAMP_N] = 1
-        pv[P_HL] = 4
-        pv[P_SILENCE] = pv[P_POLL] = 0.0
-        iv[I_NMAX] = 4
-        iv[I_SYNC] = 4
-        iv[I_EXPECT] = 0
-        tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
-                                                      np.int64, np.float64, np.int8, np.uint8))
-        u8 = np.zeros(8, dtype=np.uint8)
-        io = (w, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
-              np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32),
-              np.zeros(2, dtype=np.int64))
-        eng = (engine._kernel, engine._args, engine._x, engine._f, max(engine._port, 0),
-               _REC, _OUT)
-        stop = np.zeros(1, dtype=np.int64)
-        rb = np.zeros(256, dtype=np.uint8)
+        sc = _scratch(engine, w)
         frame = np.frombuffer(fp.encode(fp.State(0, 0, fp.STATUS_ARMED, 0, (0.0,))),
                               dtype=np.uint8)
-        rb[:frame.size] = frame
-        iv[I_RB_LEN] = frame.size
-        _stretch(*eng, iv, fv, pv, np.zeros(3), np.zeros(4, dtype=np.int8), *tel, w, rb, stop,
-                 *io[1:], np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
-                 np.zeros(_HIST, dtype=np.int64))
-        _sample(*eng, iv, fv, pv, np.zeros(3), np.zeros(4, dtype=np.int8), *tel, 1, 0,
+        sc["rb"][:frame.size] = frame
+        sc["iv"][I_RB_LEN] = frame.size
+        _run_stretch(sc)
+        iv, fv, pv, io = sc["iv"], sc["fv"], sc["pv"], sc["io"]
+        _sample(*sc["eng"], iv, fv, pv, sc["fh"], sc["win"], *sc["tel"], 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
-        kernel, kargs, xs, _, port, rec, out = eng
-        _skip_step(kernel, kargs, xs, port, rec, out, iv, fv, 0.0)
+        kind, kargs, xs, _, port, rec, out = sc["eng"]
+        _skip_step(kind, kargs, xs, port, rec, out, iv, fv, 0.0)
     finally:
         os.close(r)
         os.close(w)

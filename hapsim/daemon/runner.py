@@ -778,19 +778,24 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
 
 
 class _CompileThread(threading.Thread):
-    """Compile the compiled loop (:func:`hapsim.daemon.fastloop.warm_up`) beside the
-    device's start-up; :meth:`finish` waits for it and re-raises its error."""
+    """Load the scene's kernels (:func:`_warm_up`) and, for the compiled loop, the loop
+    itself (:func:`hapsim.daemon.fastloop.warm_up`) from numba's cache (or compile them)
+    beside the device's start-up; :meth:`finish` waits for it and re-raises its error."""
 
-    def __init__(self, engine) -> None:
+    def __init__(self, scene: Scene, compiled: bool) -> None:
         super().__init__(name="hapsim-compile", daemon=True)
-        self.engine = engine
+        self.scene = scene
+        self.compiled = compiled
         self.error: BaseException | None = None
         self.start()
 
     def run(self) -> None:
         try:
-            from hapsim.daemon.fastloop import warm_up
-            warm_up(self.engine)
+            _warm_up(self.scene)
+            if self.compiled:
+                from hapsim.daemon.fastloop import warm_up
+                from hapsim.engine import Engine
+                warm_up(Engine(self.scene))
         except BaseException as exc:  # re-raised by finish() in the caller's thread
             self.error = exc
 
@@ -840,19 +845,18 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     warm = None
     try:
         limit_blas_threads(1)
-        _warm_up(scene)
-        engine = Engine(scene)
         corr = getattr(dev, "correction", None)
         sensor = corr is not None and corr.get("kind") == "velocity_sensor"
+        # the kernels (and the compiled loop) load while the device (the mock's child) starts
+        warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
+                              and corr is None)
+        engine = Engine(scene)
         if corr is not None:
             # a device correction: the engine's port force follows its law (one-link
             # scene); a velocity sensor reads the lockstep mock in-process (below)
             from hapsim.daemon.correction import corrected_engine
             if not sensor or transport != "inprocess":
                 engine = corrected_engine(scene)       # raises for a sensor on a wire
-        if opts.loop == "compiled" and transport in ("pty", "serial") and corr is None:
-            # the compiled loop compiles while the device (the mock's child) starts
-            warm = _CompileThread(Engine(scene))
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
