@@ -501,7 +501,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
-    loop: str = "compiled"
+    loop: str = "python"
     driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
@@ -1281,7 +1281,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "compiled") -> dict:
+              driver: str | None = None, loop: str = "python") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
