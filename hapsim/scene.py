@@ -48,7 +48,8 @@ from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITI
                                  section_keys)
 from hapsim.scene_schema import key as _key
 
-__all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Listen", "Audio",
+__all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
+           "Listen", "Audio",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
            "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
 
@@ -57,6 +58,11 @@ __all__ = ["Mass", "Link", "Device", "Impulse", "Excitation", "Safety", "Listen"
 _TOP_KEYS = key_names("")
 _LINK_KEYS = {kind: key_names("links[]", kind) for kind in LINK_KINDS}
 _TARGET_KEYS = key_names("links[].target")
+_HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping")
+#: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
+CORRECTIONS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
+               "prediction": ("horizon",), "inertia_compensation": ("mass",),
+               "virtual_coupling": ("stiffness", "damping")}
 
 
 @dataclass(frozen=True)
@@ -153,6 +159,11 @@ class Device:
         Coulomb friction of the mock device [N]; 0 for none.
     noise : float
         Standard deviation of the mock device's position noise [m]; 0 for none.
+    hand : Hand, optional
+        The hand holding the handle; then ``mass`` and ``friction`` are the handle's alone.
+    correction : dict, optional
+        ``{"kind": name, param: value, ...}``, a correction of the virtual element
+        (:data:`CORRECTIONS`, :mod:`hapsim.analysis.corrections`).
     """
 
     mass: float
@@ -163,6 +174,38 @@ class Device:
     position_resolution: float = 0.0
     coulomb: float = 0.0
     noise: float = 0.0
+    hand: "Hand | None" = None
+    correction: dict | None = None
+
+
+@dataclass(frozen=True)
+class Hand:
+    """The hand on the handle: a mass tied to the handle by a grip spring-damper.
+
+    Each field is a number or a range ``(lo, hi)`` (a family of THS, Florens et al. Sec. 4).
+
+    Parameters
+    ----------
+    mass : float or (float, float)
+        Hand mass [kg], > 0.
+    damping : float or (float, float)
+        Hand damping to ground (the arm) [N s/m], >= 0.
+    grip_stiffness : float or (float, float)
+        Grip spring between hand and handle [N/m], > 0; ``inf`` for a rigid grip (then
+        the hand mass and damping add to the handle's).
+    grip_damping : float or (float, float)
+        Grip damper between hand and handle [N s/m], >= 0.
+    """
+
+    mass: Any
+    damping: Any = 0.0
+    grip_stiffness: Any = math.inf
+    grip_damping: Any = 0.0
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the grip is rigid (``grip_stiffness`` is ``inf``)."""
+        return isinstance(self.grip_stiffness, float) and math.isinf(self.grip_stiffness)
 
 
 @dataclass(frozen=True)
@@ -798,6 +841,54 @@ def _check_device(d: Any) -> None:
     if not isinstance(d, Device):
         raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
     _check_section(d, "device", "device")
+    if d.hand is not None:
+        _check_hand(d.hand, d.hold)
+    if d.correction is not None:
+        _check_correction(d.correction, d.hold)
+
+
+def _check_hand(h: Any, hold: str) -> None:
+    if not isinstance(h, Hand):
+        raise _Invalid(f"must be a hapsim.scene.Hand, got {_typename(h)}", ("device", "hand"))
+    for key, positive, inf in (("mass", True, False), ("damping", False, False),
+                               ("grip_stiffness", True, True), ("grip_damping", False, False)):
+        v = getattr(h, key)
+        where = ("device", "hand", key)
+        if isinstance(v, tuple):
+            if len(v) != 2:
+                raise _Invalid(f"a range is [lo, hi], got {list(v)!r}", where)
+            for x in v:
+                _number(x, *where, positive=positive, minimum=None if positive else 0.0)
+            if not v[0] <= v[1]:
+                raise _Invalid(f"a range [lo, hi] needs lo <= hi, got {list(v)!r}", where)
+        else:
+            _number(v, *where, positive=positive, minimum=None if positive else 0.0,
+                    allow_inf=inf)
+    if not h.rigid and hold != "zoh":
+        raise _Invalid("a compliant grip needs hold: zoh (the ideal hold models one mass); "
+                       "use grip_stiffness: rigid", ("device", "hand", "grip_stiffness"))
+
+
+def _check_correction(c: Any, hold: str) -> None:
+    where = ("device", "correction")
+    if not isinstance(c, dict) or "kind" not in c:
+        raise _Invalid("must be a mapping with a kind; valid kinds: "
+                       + ", ".join(CORRECTIONS), where)
+    _choice(c["kind"], tuple(CORRECTIONS), *where, "kind")
+    allowed = ("kind",) + CORRECTIONS[c["kind"]]
+    for k, v in c.items():
+        if k not in allowed:
+            raise _Invalid(f"unknown key {k!r} for {c['kind']}; valid keys: "
+                           + ", ".join(allowed), where + (k,))
+        if k != "kind":
+            _number(v, *where, k, minimum=0.0)
+    if c["kind"] == "velocity_filter":
+        if "cutoff_hz" not in c:
+            raise _Invalid("velocity_filter needs cutoff_hz [Hz]", where + ("cutoff_hz",))
+        _number(c["cutoff_hz"], *where, "cutoff_hz", positive=True)
+    if c["kind"] == "velocity_sensor" and hold != "zoh":
+        raise _Invalid("a velocity sensor needs hold: zoh (the ideal hold has no velocity)",
+                       where + ("kind",))
 
 
 def _check_excitation(e: Any) -> None:
@@ -1084,7 +1175,27 @@ def _read_links(ctx: _Ctx, doc: _LDict, masses: list[Mass]) -> list[Link]:
 
 def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
     d = ctx.mapping(doc["device"], "device", ctx.line_of(doc, "device"))
-    return Device(**_read_values(ctx, d, "device", "device"))
+    vals = _read_values(ctx, d, "device", "device")
+    vals["hand"] = _read_hand(ctx, d) if "hand" in d else None
+    vals["correction"] = (dict(ctx.mapping(d["correction"], "device.correction",
+                                           ctx.line_of(d, "correction")))
+                          if "correction" in d else None)
+    return Device(**vals)
+
+
+def _read_hand(ctx: _Ctx, dev: _LDict) -> Hand:
+    h = ctx.mapping(dev["hand"], "device.hand", ctx.line_of(dev, "hand"))
+    ctx.keys(h, _HAND_KEYS, "device.hand", required=("mass",))
+
+    def val(key, default):
+        v = h.get(key, default)
+        if key == "grip_stiffness" and v == "rigid":
+            return math.inf
+        if isinstance(v, list):
+            return tuple(_coerce(x) for x in v)
+        return _coerce(v)
+    return Hand(val("mass", None), val("damping", 0.0), val("grip_stiffness", math.inf),
+                val("grip_damping", 0.0))
 
 
 def _read_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:

@@ -328,6 +328,20 @@ _KEYS = [
     Key("device.noise", "number", "m", default=0.0, minimum=0.0,
         doc="Standard deviation of the mock device's position noise (0: none; seeded).",
         example="device: {mass: 0.1, noise: 1.0e-7}"),
+    Key("device.hand", "mapping", default=None,
+        doc="The hand holding the handle (then `device.mass` and `device.friction` are the "
+            "handle's alone): `mass` [kg] > 0 (required), `damping` to ground [N s/m] "
+            ">= 0, `grip_stiffness` [N/m] > 0 or `rigid` (default), `grip_damping` "
+            "[N s/m] >= 0; each a number or a range `[lo, hi]` (a family of hands: "
+            "`hapsim family`). A compliant grip needs `hold: zoh`.",
+        example="device: {mass: 0.05, hand: {mass: [0.05, 0.5], grip_stiffness: [300, 3000]}}"),
+    Key("device.correction", "mapping", default=None,
+        doc="One correction of the virtual element (one-link scenes): `kind` "
+            "`velocity_sensor` | `velocity_filter` (`cutoff_hz`) | `prediction` "
+            "(`horizon` samples, default the delay) | `inertia_compensation` (`mass` [kg], "
+            "below the moving mass) | `virtual_coupling` (`stiffness` [N/m], `damping` "
+            "[N s/m]); see `hapsim compare-corrections`.",
+        example="device: {mass: 0.1, correction: {kind: velocity_filter, cutoff_hz: 100}}"),
     # ------------------------------------------------------------------ excitation
     Key("excitation.x0", "number", "m", default=0.0,
         doc="Initial device displacement.",

@@ -33,7 +33,9 @@ def _with_link(name: str, link: str, stiffness: float):
 
 def test_every_config_comment_with_a_figure_is_pinned():
     """A config whose comments state a figure must appear below (by name)."""
-    pinned = {"string.yaml", "oscillator.yaml", "felt_wall.yaml", "wall.yaml"}
+    pinned = {"string.yaml", "oscillator.yaml", "felt_wall.yaml", "wall.yaml", "audio_string.yaml",
+              "hapkit_serial.yaml",      # its figure: tests/test_drivers.py
+              "hand_wall.yaml"}
     for f in sorted(CONFIGS.glob("*.yaml")):
         if re.search(r"\d\s*(N/m|N s/m|Hz|1/s)", _comments(f.name)):
             assert f.name in pinned, f"{f.name}: its comments state figures; pin them here"
@@ -80,3 +82,42 @@ def test_wall_comments_match_the_keys():
     sc = load_scene(CONFIGS / "wall.yaml")
     assert "hand + handle moving mass [kg]" in c and sc.device.mass == 0.1
     assert "starts 5 mm into the wall" in c and sc.excitation.x0 == 0.005
+
+
+def test_hand_wall_family_figures():
+    """configs/hand_wall.yaml: the ranges its comments state, its nominal member, and that
+    the whole family is stable (what `hapsim family` reports)."""
+    from hapsim.analysis.family import family
+    from hapsim.analysis.hand import nominal_member
+    c = _comments("hand_wall.yaml")
+    assert "0.05-0.5 kg" in c and "300-3000 N/m" in c and "alone is 0.05 kg" in c
+    assert "hand 0.275 kg, grip sqrt(300 * 3000) = 949 N/m" in c
+    sc = load_scene(CONFIGS / "hand_wall.yaml")
+    h = sc.device.hand
+    assert sc.device.mass == 0.05 and h.mass == (0.05, 0.5) and h.grip_stiffness == (300, 3000)
+    nom = nominal_member(h)
+    assert nom[0] == pytest.approx(0.275) and round(nom[2]) == 949
+    assert family(sc, grid=5).robust
+
+
+def test_audio_string_partials_as_stated():
+    """configs/audio_string.yaml: f_1 = 197.5 Hz, f_2 = 394.4 Hz, f_3 = 590.5 Hz, f_30 = 3.94 kHz,
+    from the closed form of the centred-difference bead string at the audio rate
+    f_n = (2/Ta)/(2 pi) asin(Ta sqrt(K/m) sin(n pi / (2 (N+1))))."""
+    import math
+    text = _comments("audio_string.yaml")
+    for stated in ("f_1 = 197.5 Hz", "f_2 = 394.4 Hz", "f_3 = 590.5 Hz", "f_30 = 3.94 kHz"):
+        assert stated in text, stated
+    scene = load_scene(CONFIGS / "audio_string.yaml")
+    beads = [m for m in scene.masses if m.kind == "mass"]
+    seg = next(lk for lk in scene.links if lk.name == "seg1")
+    n_beads, m, K = len(beads), beads[0].mass, seg.stiffness
+    ta = 1.0 / scene.audio.rate_hz
+
+    def f(n):
+        return (2 / ta) / (2 * math.pi) * math.asin(
+            ta * math.sqrt(K / m) * math.sin(n * math.pi / (2 * (n_beads + 1))))
+
+    assert n_beads == 30
+    assert (round(f(1), 1), round(f(2), 1), round(f(3), 1)) == (197.5, 394.4, 590.5)
+    assert round(f(30) / 1000, 2) == 3.94

@@ -229,10 +229,13 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     """``hapsim run configs/hapkit.yaml --port <emulated board>``: the felt (k, b) of the
     free response logged through the firmware's UART equal the THS prediction (m, b0 of the
     board, delay 1, zero-order hold) within the bound the ADC and PWM quantisation allow
-    (:func:`hapsim.daemon.board.quantisation_bound`: describing-function gains of the two
+    (:func:`hapsim.analysis.identify.quantisation_bound`: describing-function gains of the two
     quantisers over the window's amplitudes through the THS map, plus 4 standard
-    deviations of the quantisation noise through the fit). No tick is late."""
+    deviations of the quantisation noise through the fit). No tick is late. The report's
+    own measurement (:func:`hapsim.analysis.identify.measure_felt`, the position step from
+    HELLO) agrees with the prediction within its stated interval."""
     _require()
+    from hapsim.analysis import identify
     from hapsim.analysis.loop import LoopModel
     from hapsim.daemon import board
     from hapsim.daemon.telemetry import load
@@ -259,15 +262,19 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
                      delay=dev.delay, hold=dev.hold)
     link = scene.links[0]
     qx, qf = _scales()
-    bound = board.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
+    bound = identify.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
                                      window / RATE, qx, qf, window)
-    meas = board.fit_free_response(x, 1.0 / RATE, dev.mass, bound["k"], bound["b"])
+    meas = identify.fit_free_response(x, 1.0 / RATE, dev.mass, bound["k"], bound["b"])
     print(f"predicted k {bound['k']:.3f} b {bound['b']:.5f}; measured k {meas['k']:.3f} "
           f"b {meas['b']:.5f}; bound dk {bound['dk']:.3f} db {bound['db']:.5f} "
           f"(eps {bound['eps']:.4f}: d_x {bound['d_x']:.4f}, d_f {bound['d_f']:.4f})")
     assert rep["predicted"]["k"] == pytest_approx(bound["k"])
     assert abs(meas["k"] - bound["k"]) <= bound["dk"], (meas, bound)
     assert abs(meas["b"] - bound["b"]) <= bound["db"], (meas, bound)
+    m = rep["measured"]
+    print(f"run's report: k {m.get('k')} +- {m.get('k_interval')}, b {m.get('b')} +- "
+          f"{m.get('b_interval')}: {m.get('verdict')}")
+    assert abs(m["k"] - bound["k"]) <= bound["dk"] and abs(m["b"] - bound["b"]) <= bound["db"], m
     # the bound is a statement about this device, not a blanket: a few percent
     assert bound["dk"] < 0.05 * bound["k"] and bound["db"] < 0.1 * bound["b"], bound
 

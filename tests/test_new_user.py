@@ -289,7 +289,20 @@ JSON_ERRORS = [
     (["run", "{unstable}", "--lockstep", "--json"], 1, "UnstableConfigError"),
     (["check", "{hard}", "--json"], 1, "UnrenderableTargetError"),
     (["run", "{hard}", "--lockstep", "--json"], 1, "UnrenderableTargetError"),
+    (["play", "{bad}", "--json"], 2, "ConfigError"),
+    (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
+    (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
 ]
+
+
+def test_json_error_cases_cover_every_command_with_json():
+    """A command that gains --json is listed in JSON_ERRORS (read from the parsers)."""
+    import argparse
+    from hapsim.cli import build_parser
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    with_json = {name for name, p in sub.choices.items()
+                 if any("--json" in a.option_strings for a in p._actions)}
+    assert with_json == {argv[0] for argv, _, _ in JSON_ERRORS}
 
 
 @pytest.mark.parametrize("argv, code, kind", JSON_ERRORS,
@@ -477,8 +490,9 @@ def test_help_texts_have_no_none_default_and_baud_metavar(capsys):
     out = capsys.readouterr().out
     assert "default: None" not in out and "(default: the --paper preset, else 0.0)" in " ".join(
         out.split())
-    assert main(["run", "--help"]) == 0
-    assert "--baud BAUD" in capsys.readouterr().out
+    for command in ("run", "identify"):    # B is the virtual damping, not a baud rate
+        assert main([command, "--help"]) == 0
+        assert "--baud BAUD" in capsys.readouterr().out
 
 
 def test_check_counts_in_the_right_number(capsys):

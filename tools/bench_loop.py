@@ -1,5 +1,27 @@
 #!/usr/bin/env python3
-"""Benchmark of the host loop's per-sample cost, both clocks (a program, not a test).
+"""Benchmark of the host loop over a real pty: floor, Python loop, compiled loop (a program,
+not a test).
+
+Default (``--pty``): in one run on this machine, against one device, a C program compiled
+in the run with ``cc`` (``tools/bench_loop_dev.c``: ticks on absolute deadlines, sends
+STATEs on a pty master, timestamps every answer; the device-side round trip and the late
+ticks are its own measurements):
+
+* **floor**: a C echo on the slave (read -> write back the same bytes);
+* **python**: :class:`hapsim.daemon.loop.HostLoop` (the reference loop);
+* **compiled**: :class:`hapsim.daemon.fastloop.CompiledHostLoop`.
+
+Printed: host turnaround p50/p99 (read returned -> write returned) and device-side round
+trip p50/p99 at 1 kHz, with the ratios to the floor (targets: turnaround within 2x,
+round trip p50 1.2x, p99 1.5x); then rate capacity at 1, 2, 5, 10, 20 kHz: late ticks
+(device side), skipped STATEs (backlog policy) and the host's late count per rate, beside
+the floor; the start-up of ``hapsim run`` to its first sample, warm and cold (empty numba
+cache); chart 3 of ``hapsim bench`` redrawn from these figures (``--chart FILE``).
+All three share the machine with whatever else runs: say "loaded machine" beside figures
+measured while others work.
+
+``--sim``: the older per-sample cost on the in-process virtual clock (below).
+Benchmark of the host loop's per-sample cost, both clocks (a program, not a test).
 
 Runs :class:`hapsim.daemon.loop.HostLoop` on the in-process virtual-clock transport
 (:class:`~hapsim.daemon.transport.SimTransport` around the real-time mock, no faults) for
@@ -24,10 +46,12 @@ CONFIG) is inside the timed ``run()``; it is under 0.5 % of N = 20000 samples.
 
 Usage::
 
-    python tools/bench_loop.py [--n N] [--repeat R] [--ref REV] [--json FILE]
+    python tools/bench_loop.py [--seconds S] [--rates 1000,2000,...] [--chart FILE] [--json FILE]
+    python tools/bench_loop.py --sim [--n N] [--repeat R] [--ref REV] [--json FILE]
 
 Exit code 0, or 2 on bad arguments.
 """
+
 
 from __future__ import annotations
 
@@ -35,11 +59,15 @@ import argparse
 import gc
 import importlib.util
 import json
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -140,13 +168,220 @@ def time_port_step(scene, n: int) -> float:
     return dt * 1e-3 / n
 
 
+def build_device(tmp: Path) -> str:
+    """Compile ``tools/bench_loop_dev.c`` with ``cc -O2``; the executable's path."""
+    exe = tmp / "bench_loop_dev"
+    subprocess.run(["cc", "-O2", "-o", str(exe), str(REPO / "tools" / "bench_loop_dev.c"), "-lm"],
+                   check=True)
+    return str(exe)
+
+
+def _pct(v) -> dict:
+    v = np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"p50": None, "p99": None}
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99))}
+
+
+def pty_run(kind: str, rate: float, seconds: float, exe: str, tmp: Path) -> dict:
+    """One measurement over a fresh pty: ``kind`` "floor", "python" or "compiled".
+
+    Returns
+    -------
+    dict
+        ``kind``, ``rate_hz``, ``ticks`` (device), ``late`` (device side: ticks without the
+        answer to the previous one), ``turnaround_us`` and ``round_trip_us`` (``p50``,
+        ``p99``), and for the hapsim loops ``samples``, ``skipped``, ``host_late``,
+        ``stop_reason``, ``safety_stop``, ``compiled_samples``.
+    """
+    from hapsim.daemon.fastloop import CompiledHostLoop
+    from hapsim.daemon.realtime import RealtimePriority
+    from hapsim.daemon.transport import SerialTransport
+
+    n = max(int(rate * seconds), 50)
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    rtt_file, turn_file = tmp / f"rtt_{kind}_{rate:g}", tmp / f"turn_{kind}_{rate:g}"
+    out = {"kind": kind, "rate_hz": rate}
+    rt = RealtimePriority(10)
+    rt.__enter__()              # the device child inherits it (as the embedded mock)
+    try:
+        if kind == "floor":
+            echo = subprocess.Popen([exe, "echo", path, str(10 * n), str(turn_file)],
+                                    stdout=subprocess.PIPE, text=True)
+            echo.stdout.readline()                    # raw mode set
+            dev = subprocess.Popen([exe, "device", str(master), repr(rate), str(n),
+                                    str(rtt_file), "raw"], pass_fds=[master],
+                                   stdout=subprocess.PIPE, text=True)
+            os.close(master)
+            dout = dev.communicate(timeout=60 + 3 * seconds)[0]
+            os.close(slave)
+            echo.wait(timeout=10)
+            out["turnaround_us"] = _pct(np.fromfile(turn_file))
+        else:
+            tr = SerialTransport(path)
+            os.close(slave)
+            dev = subprocess.Popen([exe, "device", str(master), repr(rate), str(20 * n + 1000),
+                                    str(rtt_file), "proto"], pass_fds=[master],
+                                   stdout=subprocess.PIPE, text=True)
+            os.close(master)
+            scene = load_scene(WALL)
+            cfg = loop_mod.LoopConfig(rate_hz=rate, n_samples=n, delay=1, force_limit=10.0,
+                                      reconnect=False, state_timeout=5.0, hello_timeout=10.0,
+                                      position_bound=0.1)
+            cls = CompiledHostLoop if kind == "compiled" else loop_mod.HostLoop
+            loop = cls(Engine(scene), tr, cfg, Telemetry(n))
+            error = None
+            try:
+                res = loop.run()
+            except Exception as exc:          # a failed run is a figure, not a crash
+                error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+                res = loop.result
+                res.samples = loop.tel.n
+            finally:
+                tr.close()
+            try:                              # the device ends at the loop's STOP
+                dout = dev.communicate(timeout=10)[0]
+            except subprocess.TimeoutExpired:
+                dev.terminate()
+                dout = dev.communicate(timeout=10)[0]
+            out["error"] = error
+            out.update(samples=res.samples, skipped=res.skipped, host_late=res.late,
+                       stop_reason=res.stop_reason, safety_stop=res.safety_stop,
+                       compiled_samples=getattr(loop, "compiled_samples", 0),
+                       turnaround_us=_pct(loop.tel.columns()["turnaround_us"][20:]))
+    finally:
+        rt.__exit__(None, None, None)
+    words = dout.split()
+    out["late"], out["ticks"] = (int(words[1]), int(words[5])) if len(words) > 5 else (0, 0)
+    print(f"  {kind} at {rate:g} Hz: {out['late']} late of {out['ticks']} ticks"
+          + (f"; {out['error']}" if out.get("error") else ""), file=sys.stderr, flush=True)
+    out["round_trip_us"] = _pct(np.fromfile(rtt_file)[20:] if rtt_file.exists() else [])
+    out["scheduling"] = rt.note
+    return out
+
+
+def startup(cold: bool, tmp: Path) -> float:
+    """Seconds from starting ``hapsim run configs/wall.yaml`` to its first sample (CONFIG
+    sent: the report's ``loop.armed_monotonic_s``), with the numba cache of a fresh
+    directory (cold) or of a previous run (warm)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), NUMBA_CACHE_DIR=str(tmp / "numba-cache"))
+    if cold:
+        shutil.rmtree(tmp / "numba-cache", ignore_errors=True)
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-m", "hapsim", "run", str(WALL), "--duration", "0.2",
+                        "--json"], env=env, capture_output=True, text=True, cwd=str(REPO))
+    if p.returncode != 0:
+        raise SystemExit(f"hapsim run failed: {p.stderr[-500:]}")
+    return json.loads(p.stdout)["loop"]["armed_monotonic_s"] - t0
+
+
+def _x(a, b) -> str:
+    return f"{a / b:6.2f}" if a is not None and b else "     -"
+
+
+def pty_main(args) -> int:
+    """The floor / Python / compiled comparison (module notes)."""
+    from hapsim.daemon.fastloop import warm_up
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_loop_"))
+    exe = build_device(tmp)
+    warm_up(Engine(load_scene(WALL)))     # as hapsim run does before its loop
+    kinds = ("floor", "python", "compiled")
+    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs; device: C (cc -O2), "
+          f"{args.seconds:g} s per run and loop")
+    res = {"seconds": args.seconds, "rates": {}, "startup_s": {}}
+    for rate in args.rates:
+        row = res["rates"][rate] = {k: pty_run(k, rate, args.seconds, exe, tmp) for k in kinds}
+        if rate == args.rates[0]:
+            fl = row["floor"]
+            print(f"\nat {rate:g} Hz ({fl['scheduling']}): turnaround and device round trip [us]")
+            print(f"{'':10} {'turn p50':>9} {'p99':>8} {'x floor':>14} {'rtt p50':>9} "
+                  f"{'p99':>8} {'x floor':>14}")
+            for k in kinds:
+                ta, rr = row[k]["turnaround_us"], row[k]["round_trip_us"]
+                ft, fr = fl["turnaround_us"], fl["round_trip_us"]
+                print(f"{k:10} {ta['p50']:9.1f} {ta['p99']:8.1f} {_x(ta['p50'], ft['p50'])} "
+                      f"{_x(ta['p99'], ft['p99'])}  {rr['p50']:9.1f} {rr['p99']:8.1f} "
+                      f"{_x(rr['p50'], fr['p50'])} {_x(rr['p99'], fr['p99'])}")
+            print("targets, compiled / floor: turnaround p50, p99 <= 2; round trip p50 <= 1.2, "
+                  "p99 <= 1.5")
+    print("\nrate capacity: device-side late ticks / ticks (hapsim loops: skipped, host-late)")
+    print(f"{'rate [Hz]':>9} " + " ".join(f"{k:>24}" for k in kinds) + f" {'late x floor':>13}")
+    for rate, row in res["rates"].items():
+        cells = []
+        for k in kinds:
+            r = row[k]
+            c = f"{r['late']}/{r['ticks']}"
+            if k != "floor":
+                c += f" ({r['skipped']}, {r['host_late']})" + (" STOP" if r["safety_stop"] else "")
+                c += " ERR" if r.get("error") else ""
+            cells.append(f"{c:>24}")
+        print(f"{rate:9g} " + " ".join(cells) + f" {_x(row['compiled']['late'], max(row['floor']['late'], 1)):>13}")
+    if not args.no_startup:
+        res["startup_s"]["cold"] = startup(True, tmp)
+        startup(False, tmp)
+        res["startup_s"]["warm"] = startup(False, tmp)
+        print(f"\nstart-up of 'hapsim run configs/wall.yaml' to its first sample: cold "
+              f"{res['startup_s']['cold']:.2f} s, warm {res['startup_s']['warm']:.2f} s")
+    if args.chart:
+        chart3(res, args.chart)
+        print(f"chart 3: {args.chart}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1, default=str) + "\n")
+    return 0
+
+
+def chart3(res: dict, path: str) -> None:
+    """Chart 3 of ``hapsim bench`` (:func:`hapsim.plot_bench.plot_capacity`) redrawn from
+    these figures: the C floor in the place of the echo, the compiled loop as the daemon."""
+    import platform
+
+    from hapsim.bench.capacity import capacity_ratios
+    from hapsim.plot_bench import plot_capacity
+
+    def rows(kind):
+        out = []
+        for rate, row in res["rates"].items():
+            r = row[kind]
+            ta = dict(r["turnaround_us"], p999=r["turnaround_us"]["p99"])
+            out.append({"rate_hz": float(rate), "samples": r["ticks"], "missed": r["late"],
+                        "missed_pct": 100.0 * r["late"] / max(r["ticks"], 1),
+                        "turnaround_us": ta})
+        return out
+
+    data = {"rates": [float(r) for r in res["rates"]], "echo": rows("floor"),
+            "daemon": rows("compiled"), "daemon_note": "", "duration_s": res["seconds"],
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, C floor vs compiled loop"}
+    data["ratios"] = capacity_ratios(data["echo"], data["daemon"])
+    plot_capacity(data).savefig(path, dpi=110)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sim", action="store_true",
+                    help="the per-sample cost on the in-process virtual clock instead")
+    ap.add_argument("--seconds", type=float, default=30.0,
+                    help="seconds per rate and loop (default 30; shorter for a smoke run)")
+    ap.add_argument("--rates", default="1000,2000,5000,10000,20000",
+                    help="rates [Hz], comma-separated (the first one gives the latency table)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the start-up timing")
+    ap.add_argument("--chart", help="redraw chart 3 into this PNG")
     ap.add_argument("--n", type=int, default=20_000, help="samples per run (default 20000)")
     ap.add_argument("--repeat", type=int, default=5, help="runs, best kept (default 5)")
     ap.add_argument("--ref", help="git revision whose loop.py is timed alongside")
     ap.add_argument("--json", help="also write the figures to this file")
     args = ap.parse_args(argv)
+    if not args.sim:
+        try:
+            args.rates = [float(r) for r in args.rates.split(",")]
+        except ValueError:
+            ap.error(f"--rates: comma-separated numbers [Hz], got {args.rates!r}")
+        if not args.rates or min(args.rates) <= 0 or args.seconds <= 0:
+            ap.error("--rates must be > 0 and --seconds > 0")
+        return pty_main(args)
     if args.n < 100 or args.repeat < 1:
         ap.error("--n must be >= 100 and --repeat >= 1")
     scene = load_scene(WALL)

@@ -20,6 +20,10 @@ Usage::
 
     PYTHONPATH=. python tools/soak.py --minutes 10 --seed 1 --json docs/soak.json
     PYTHONPATH=. python tools/soak.py --minutes 0.2 --json /tmp/smoke.json   # smoke run
+    # issue 13: 30 min of configs/wall.yaml beside two CPU-bound processes, no faults, then
+    # the same with the faults (--loop python for the reference loop)
+    PYTHONPATH=. python tools/soak.py --minutes 30 --stress 2 --faults none
+    PYTHONPATH=. python tools/soak.py --minutes 30 --stress 2
 
 Default fault SPEC (per frame / per tick at 1 kHz, so about one stall, reset or vanish a
 minute; host -> device frames are faulted too, ``rx.*``): see ``DEFAULT_FAULTS``.
@@ -134,6 +138,19 @@ def git_commit() -> dict:
     return {"commit": commit, "dirty": dirty}
 
 
+def start_stress(n: int, seconds: float) -> list:
+    """Start ``n`` CPU-bound processes (``stress-ng --cpu n``, else ``n`` Python busy
+    loops) for at most ``seconds``; their ``Popen`` objects (terminated by the caller)."""
+    import shutil
+    import subprocess
+    if n <= 0:
+        return []
+    if shutil.which("stress-ng"):
+        return [subprocess.Popen(["stress-ng", "--cpu", str(n), "--timeout", f"{int(seconds)}s",
+                                  "--quiet"])]
+    return [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(n)]
+
+
 def main(argv=None) -> int:
     """Run the soak and print (and optionally write) its figures as JSON.
 
@@ -155,7 +172,14 @@ def main(argv=None) -> int:
     ap.add_argument("--faults", default=DEFAULT_FAULTS)
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     ap.add_argument("--telemetry", metavar="FILE.hst", help="keep the telemetry journal")
+    ap.add_argument("--stress", type=int, default=0, metavar="N",
+                    help="run N CPU-bound processes beside it (stress-ng --cpu N, else "
+                         "python busy loops)")
+    ap.add_argument("--loop", choices=("compiled", "python"), default="compiled",
+                    help="host loop (default compiled)")
     args = ap.parse_args(argv)
+    if args.faults in ("none", ""):
+        args.faults = None
 
     from hapsim.daemon.runner import run_scene
     from hapsim.daemon.telemetry import load
@@ -192,12 +216,17 @@ def main(argv=None) -> int:
           f"{' (with local changes)' if rev['dirty'] else ''}", file=sys.stderr, flush=True)
     error = None
     rep = None
+    hogs = start_stress(args.stress, duration + 120.0)
     try:
         rep = run_scene(scene, duration=duration, faults=args.faults, fault_seed=args.seed,
                         telemetry=tel_path, handle_signals=True, reconnect_attempts=20,
-                        reconnect_time=30.0)
+                        reconnect_time=30.0, loop=args.loop)
     except Exception as exc:  # the soak reports whatever ended it
         error = f"{type(exc).__name__}: {exc}"
+    finally:
+        for h in hogs:
+            h.terminate()
+            h.wait()
     done.set()
     wall = time.monotonic() - t0
     info: dict = {}
@@ -206,6 +235,7 @@ def main(argv=None) -> int:
     out = {"git_commit": rev["commit"], "git_dirty": rev["dirty"],
            "minutes": args.minutes, "wall_s": round(wall, 1), "faults_spec": args.faults,
            "seed": args.seed, "error": error, "telemetry_rows": int(cols["seq"].size),
+           "stress_processes": args.stress, "loop": args.loop,
            "telemetry_chunks": info.get("chunks"),
            "telemetry_events": len(info.get("events") or []),
            "telemetry_gaps": info.get("gaps"),
@@ -223,6 +253,9 @@ def main(argv=None) -> int:
             "reconnect_attempts": lp["reconnect_attempts"],
             "missed_states": lp["missed"], "stale_states": lp["stale"],
             "bad_frames": bad, "decoder": dec, "late": lp["late"],
+            "skipped": lp.get("skipped"), "safety_stop": lp.get("safety_stop"),
+            "compiled_samples": lp.get("compiled_samples"),
+            "late_rows_logged": int(np.count_nonzero(cols["late"])) if "late" in cols else None,
             "mock_ticks_total": (mk.get("totals") or {}).get("ticks"),
             "mock_configs": (mk.get("totals") or {}).get("configs"),
             "mock_watchdog_trips_total": (mk.get("totals") or {}).get("watchdog_trips"),

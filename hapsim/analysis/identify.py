@@ -29,12 +29,16 @@ would remain as a spurious pole), which is why it is not used. A genuine mode at
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
+from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
-__all__ = ["pencil_poles", "fit_modes", "fit_rendered", "RANK_TOL"]
+__all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
+           "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
+           "quantisation_bound", "sensor_error_response", "RANK_TOL"]
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
 #: the model order is cut to the numerical rank (Sarkar & Pereira, "Using the matrix pencil
@@ -75,6 +79,29 @@ def _validate(y, period: float, order: int, offset: bool, pencil: int | None):
     if not np.any(y):
         raise ConfigError("the signal is identically zero (nothing to identify)", key="y")
     return y, int(pencil)
+
+
+def thin_pencil(order: int, n: int) -> int:
+    """Pencil parameter for long records: ``min(max(order, n // 3), max(10 order, 60))``.
+
+    Hua & Sarkar's ``N/3`` is the low-variance choice for noisy data but makes the Hankel
+    matrix square-ish (an SVD of seconds on a loaded machine for ``N = 1000``); a thin
+    Hankel with ``max(10 order, 60)`` columns is exact on noise-free data and cheap, and
+    the noisy case is refined by least squares (:func:`measure_felt`) anyway.
+
+    Parameters
+    ----------
+    order : int
+        Model order.
+    n : int
+        Usable samples (after differencing).
+
+    Returns
+    -------
+    int
+        The pencil parameter L.
+    """
+    return min(max(int(order), n // 3), max(10 * int(order), 60))
 
 
 def pencil_poles(y, order: int, *, offset: bool = False, pencil: int | None = None,
@@ -193,3 +220,593 @@ def fit_rendered(y, period: float, order: int, mass: float, *, offset: bool = Fa
                           "poles: the response is over-damped or the order is too small",
                           key="y")
     return best
+
+
+# ------------------------------------------------------------------ noisy / quantised records
+#
+# A quantised or noisy record defeats a matrix pencil of the full order: the fast modes of
+# the delay line and the hold are below the sensor's floor after a few samples, the SVD
+# truncation keeps noise directions instead, and the "least damped pair" among the poles
+# returned is then a spurious one (k = 2124 N/m for a predicted 507 on the mock with a
+# 17.6 um encoder, issue of the firmware engineer). The measurement below fits only the
+# modes that stand above the floor (the felt pair and any slow mode of the scene), plus the
+# offset, by variable projection (Golub & Pereyra, "The differentiation of pseudo-inverses
+# and nonlinear least squares problems whose variables separate", SIAM J. Numer. Anal.
+# 10(2), 1973): the poles are the nonlinear parameters, the amplitudes and the offset are
+# eliminated by linear least squares at every step. The standard errors are those of
+# nonlinear least squares (residual variance times (J^T J)^-1, J the Jacobian of the
+# model in all its parameters at the solution; Seber & Wild, *Nonlinear Regression*, 1989,
+# Sec. 2.1), and the floor that the sensor implies is the same sensitivity times the
+# sensor's variance: q^2 / 12 for a uniform quantiser of step q (Widrow & Kollar,
+# *Quantization Noise*, 2008, ch. 4) plus the Gaussian noise variance.
+
+#: Rounding-level residual (relative to the record's amplitude) under which a full-order
+#: pencil is taken as exact: a noise-free linear record is reproduced to ~1e-13.
+EXACT_RESIDUAL = 1e-9
+#: Coverage factor of the stated interval: +- COVERAGE standard errors. Over random
+#: quantised / noisy loops (tests/test_identify_quantised.py) the errors divided by the
+#: standard errors have an rms of about 1.1 (k) and 1.2 (b): the quantiser's error is not
+#: white at amplitudes of a few steps, so 3.5 rather than the Gaussian 3.
+COVERAGE = 3.5
+#: Least number of oscillation cycles above the floor for a measurement.
+MIN_CYCLES = 1.5
+#: Least initial amplitude of the felt oscillation, in sensor steps (the quantum, or the
+#: noise / residual standard deviation when larger).
+MIN_QUANTA = 5.0
+
+
+def sensor_sd(quantum: float = 0.0, noise: float = 0.0) -> float:
+    """Standard deviation of a position sensor's error [m].
+
+    Parameters
+    ----------
+    quantum : float >= 0
+        Quantisation step q [m] (0: none).
+    noise : float >= 0
+        Standard deviation of additive Gaussian noise [m].
+
+    Returns
+    -------
+    float
+        ``sqrt(q^2 / 12 + noise^2)``: a rounding quantiser's error is uniform over one step
+        (Widrow & Kollar, *Quantization Noise*, 2008, ch. 4), independent of the noise.
+    """
+    return math.sqrt(float(quantum) ** 2 / 12.0 + float(noise) ** 2)
+
+
+def _spec(poles) -> list:
+    """Nonlinear parameters of a pole set: ``("pair", a, w)`` with ``z = exp(-a + i w)``,
+    ``w > 0``, one per conjugate pair; ``("real", p)`` with ``z = p``."""
+    out = []
+    for z in poles:
+        z = complex(z)
+        if abs(z.imag) > 1e-12 * max(abs(z), 1e-300):
+            if z.imag > 0:
+                out.append(["pair", -math.log(abs(z)), math.atan2(z.imag, z.real)])
+        else:
+            out.append(["real", z.real])
+    return out
+
+
+def _basis(spec, theta, n, offset: bool):
+    """Model columns Phi (n, p) and their derivatives per nonlinear parameter."""
+    t = np.arange(n, dtype=float)
+    cols, dcols, i = [], [], 0
+    for kind, *_ in spec:
+        if kind == "pair":
+            a, w = theta[i], theta[i + 1]
+            e = np.exp(-a * t)
+            c, s = e * np.cos(w * t), e * np.sin(w * t)
+            cols += [c, s]
+            # d/da and d/dw of c and s
+            dcols.append(((len(cols) - 2, -t * c), (len(cols) - 1, -t * s)))
+            dcols.append(((len(cols) - 2, -t * s), (len(cols) - 1, t * c)))
+            i += 2
+        else:
+            p = theta[i]
+            col = np.power(p, t)
+            cols.append(col)
+            dp = np.zeros(n)
+            if p != 0:
+                dp[1:] = t[1:] * np.power(p, t[1:] - 1)
+            dcols.append(((len(cols) - 1, dp),))
+            i += 1
+    if offset:
+        cols.append(np.ones(n))
+    return np.column_stack(cols), dcols
+
+
+def _theta(spec) -> np.ndarray:
+    return np.array([v for s in spec for v in s[1:]], dtype=float)
+
+
+def _solve(spec, theta, y, offset):
+    phi, dcols = _basis(spec, theta, y.size, offset)
+    c, *_ = np.linalg.lstsq(phi, y, rcond=None)
+    return phi, dcols, c, phi @ c - y
+
+
+def _varpro(spec, y, offset):
+    """Refine the poles of ``spec`` on ``y`` by variable projection; (spec, cost)."""
+    from scipy.optimize import least_squares
+
+    theta0 = _theta(spec)
+    scale = float(np.max(np.abs(y))) or 1.0
+    ys = y / scale
+
+    def res(th):
+        return _solve(spec, th, ys, offset)[3]
+
+    try:
+        sol = least_squares(res, theta0, method="lm", x_scale="jac", xtol=1e-14,
+                            ftol=1e-14, gtol=1e-14, max_nfev=200 * (theta0.size + 1))
+        th = sol.x
+    except (ValueError, np.linalg.LinAlgError):
+        th = theta0
+    out, i = [], 0
+    for kind, *_ in spec:
+        if kind == "pair":
+            out.append(["pair", th[i], abs(th[i + 1])])
+            i += 2
+        else:
+            out.append(["real", th[i]])
+            i += 1
+    cost = float(np.sum(res(_theta(out)) ** 2)) * scale * scale
+    return out, cost
+
+
+def _covariance(spec, y, offset, response=None):
+    """Residual rms, unit covariances of the nonlinear parameters and the fitted linear
+    coefficients. The covariances: ``(white, coloured)``; white = ``(J^T J)^-1`` (J over
+    all parameters, linear ones included), coloured = the sandwich with the filter
+    ``response`` (None: the white one)."""
+    theta = _theta(spec)
+    phi, dcols, c, r = _solve(spec, theta, y, offset)
+    J = np.empty((y.size, theta.size + phi.shape[1]))
+    for j, parts in enumerate(dcols):
+        J[:, j] = sum(c[col] * d for col, d in parts)
+    J[:, theta.size:] = phi
+    inv = np.linalg.pinv(J.T @ J)
+    dof = max(y.size - J.shape[1], 1)
+    p = theta.size
+    col = inv
+    if response is not None:
+        from scipy.signal import fftconvolve
+        h = np.asarray(response, dtype=float)[:y.size]
+        FtJ = fftconvolve(J[::-1], h[:, None], axes=0)[:y.size][::-1]   # F^T J
+        M = FtJ @ inv
+        col = M.T @ M
+    return (float(np.sqrt(np.sum(r * r) / dof)), (inv[:p, :p], col[:p, :p]), c)
+
+
+def _mode_of(spec_item, mass, period):
+    kind, a, w = spec_item
+    return mode_from_pole(complex(math.exp(-a) * math.cos(w), math.exp(-a) * math.sin(w)),
+                          mass, period, "pair")
+
+
+def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
+                 quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
+                 pencil: int | None = None, sensor_response=None) -> dict:
+    """Felt (k, b) of a logged free response with its standard error, robust to a
+    quantised or noisy position sensor.
+
+    1. **Exact record** (no sensor error declared): the matrix pencil of the full order
+       (:func:`pencil_poles`); if its modes reproduce the record to :data:`EXACT_RESIDUAL`
+       of its amplitude, that is the measurement (round-off accurate).
+    2. **Otherwise**: the predicted modes that fall below the sensor floor within a fifth of
+       the record are dropped together with the samples they live in; the felt pair, any
+       slower mode and the offset are fitted by variable projection (module notes above),
+       started from the prediction, from a matrix pencil of that low order on the kept
+       window and from the spectrum's peak; the start of lowest residual wins. The felt
+       pair is the one that started at the predicted felt pole.
+
+    Parameters
+    ----------
+    y : array_like of float, shape (n,)
+        Positions [m], one per sample period, from the start of the free response.
+    period : float > 0
+        Sample period T [s].
+    mass : float > 0
+        Real mass m [kg] (``k = m |s|^2``, ``b = -2 m Re s``, DESIGN.md Sec. 4).
+    predicted : array_like of complex, shape (M,)
+        Predicted non-zero closed-loop poles seen at the port (conjugates included).
+    felt : complex
+        The predicted felt pole (upper half plane), one of ``predicted``.
+    offset : bool
+        The response settles away from 0 (a constant is fitted / differenced out).
+    quantum, noise : float >= 0
+        Sensor step q [m] and Gaussian noise standard deviation [m] (:func:`sensor_sd`).
+    order, pencil : int, optional
+        Order and pencil parameter of the exact path (default ``len(predicted)``).
+    sensor_response : array_like of float, shape (n_h,), optional
+        Impulse response from the sensor error to the logged position (``[1, 0, ...]``
+        when the error is only observed; :func:`sensor_error_response` when the loop also
+        feeds it back through the virtual (K, B)). The sensor's share of the covariance is
+        then ``sigma_e^2 (J^T J)^-1 J^T F F^T J (J^T J)^-1`` with F the (lower triangular
+        Toeplitz) filter matrix: the least-squares covariance under coloured noise
+        (Seber & Wild 1989, Sec. 2.1.4). Default: white (observed only).
+
+    Returns
+    -------
+    dict
+        ``k`` [N/m], ``b`` [N s/m], ``f0_hz``, ``damping_ratio``; ``k_sd``, ``b_sd``: the
+        standard errors from the residual covariance; ``k_sd_sensor``, ``b_sd_sensor``:
+        those the sensor's variance implies through the same sensitivity; ``k_unc``,
+        ``b_unc``: the stated half-interval, :data:`COVERAGE` times the larger of the two;
+        ``method`` (``"pencil"`` or ``"varpro"``), ``skipped`` (samples dropped at the
+        start), ``model_order``, ``rms_residual`` [m], ``amplitude`` [m] (felt oscillation
+        at the window start), ``cycles`` (oscillation cycles above the floor). Or
+        ``error`` (str) when the record cannot support a measurement: the oscillation
+        below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
+        that level.
+
+    Raises
+    ------
+    ConfigError
+        Invalid ``period``, ``mass``, a non-finite or too short signal.
+    """
+    if not (np.isfinite(mass) and mass > 0):
+        raise ConfigError(f"must be a positive number [kg], got {mass!r}", key="mass")
+    y = np.asarray(y, dtype=float)
+    predicted = np.asarray(predicted, dtype=complex)
+    floor = sensor_sd(quantum, noise)
+    order = int(order if order is not None else predicted.size)
+    amp0 = float(np.max(np.abs(y - (np.median(y[-max(y.size // 10, 1):]) if offset else 0.0))))
+    if floor == 0.0:
+        md = None
+        try:
+            z = pencil_poles(y, order, offset=offset, period=period,
+                             pencil=pencil or thin_pencil(order, y.size - int(offset)))
+        except ConfigError:
+            z = None
+        if z is not None and np.all(np.isfinite(z)):
+            spec = _spec(z[np.abs(z) > 0])
+            rms, cov, _ = _covariance(spec, y, offset)
+            md = rendered_pair(modes_from_poles(z, mass, period))
+            if md is not None and rms <= EXACT_RESIDUAL * amp0:
+                fi = min((i for i, s in enumerate(spec) if s[0] == "pair"),
+                         key=lambda i: abs(_mode_of(spec[i], mass, period).z - md.z))
+                return _result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
+                               method="pencil", skipped=0)
+    # ---- robust path
+    felt = complex(felt)
+    if felt.imag < 0:
+        felt = felt.conjugate()
+    n = y.size
+    rho = max(floor, 1e-12 * amp0) / max(amp0, 1e-300) / 10.0
+    skip, keep = 0, []
+    for z in predicted:
+        az = abs(z)
+        if abs(z - felt) <= 1e-12 * abs(felt) or abs(z - felt.conjugate()) <= 1e-12 * abs(felt):
+            keep.append(z)
+            continue
+        if az < abs(felt) and az > 0:
+            nz = math.log(rho) / math.log(az) if az < 1 else math.inf
+            if nz <= n / 5:
+                skip = max(skip, int(math.ceil(nz)))
+                continue
+        keep.append(z)
+    yw = y[skip:]
+    spec0 = _spec(keep)
+    fi = min((i for i, s in enumerate(spec0) if s[0] == "pair"),
+             key=lambda i: abs(_mode_of(spec0[i], mass, period).z - felt))
+    starts = [spec0]
+    try:        # the pencil of the kept order on the window, matched to the prediction
+        zp = pencil_poles(yw, len(keep), offset=offset, period=period,
+                          pencil=thin_pencil(len(keep), yw.size - int(offset)))
+        sp = _spec(zp)
+        if [s[0] for s in sorted(sp)] == [s[0] for s in sorted(spec0)]:
+            pairs = [s for s in sp if s[0] == "pair"]
+            reals = sorted((s for s in sp if s[0] == "real"), key=lambda s: s[1])
+            cand, used = [], set()
+            for s in spec0:
+                if s[0] == "pair":
+                    j = min((j for j in range(len(pairs)) if j not in used),
+                            key=lambda j: abs(pairs[j][2] - s[2]) + abs(pairs[j][1] - s[1]))
+                    used.add(j)
+                    cand.append(list(pairs[j]))
+                else:
+                    cand.append(list(reals.pop(0)))
+            starts.append(cand)
+    except ConfigError:
+        pass
+    yc = yw - np.mean(yw)          # the spectrum's peak: frequency of the felt pair
+    nfft = 1 << int(math.ceil(math.log2(max(8 * yc.size, 64))))
+    spec_mag = np.abs(np.fft.rfft(yc, nfft))
+    spec_mag[0] = 0.0
+    wpk = 2 * math.pi * int(np.argmax(spec_mag)) / nfft
+    if wpk > 0:
+        alt = [list(s) for s in spec0]
+        alt[fi][2] = wpk
+        starts.append(alt)
+    best = None
+    for st in starts:
+        sp, cost = _varpro(st, yw, offset)
+        if all(np.isfinite(_theta(sp))) and (best is None or cost < best[1]):
+            best = (sp, cost)
+    spec = best[0]
+    rms, cov, c = _covariance(spec, yw, offset, sensor_response)
+    return _result(spec, fi, cov, rms, floor, mass, period, yw, offset, method="varpro",
+                   skipped=skip, step=max(float(quantum), floor))
+
+
+def _kb_gradients(spec, fi, i, *, mass, period):
+    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma`` (DESIGN.md Sec. 4;
+    ``sigma = a / T``, ``omega = w / T``) over the nonlinear parameters of ``spec``; the
+    pair ``spec[fi]`` has its ``(a, w)`` at index ``i``."""
+    n = sum(2 if s[0] == "pair" else 1 for s in spec)
+    sig, om = spec[fi][1] / period, spec[fi][2] / period
+    g_k, g_b = np.zeros(n), np.zeros(n)
+    g_k[i], g_k[i + 1] = 2 * mass * sig / period, 2 * mass * om / period
+    g_b[i] = 2 * mass / period
+    return g_k, g_b
+
+
+def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
+            step=0.0):
+    """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]``."""
+    md = _mode_of(spec[fi], mass, period)
+    i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
+    sig = spec[fi][1] / period
+    g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    white, coloured = cov
+
+    def sd(g, c):
+        return float(np.sqrt(max(g @ c @ g, 0.0)))
+    _, _, c = _covariance(spec, y, offset)
+    amp = float(math.hypot(c[i], c[i + 1]))   # a pair has 2 nonlinear and 2 linear parameters
+    out = {"k": float(md.k), "b": float(md.b), "f0_hz": float(md.f0_hz),
+           "damping_ratio": float(md.damping_ratio), "k_sd": rms * sd(g_k, white),
+           "b_sd": rms * sd(g_b, white), "k_sd_sensor": floor * sd(g_k, coloured),
+           "b_sd_sensor": floor * sd(g_b, coloured),
+           "method": method, "skipped": int(skipped),
+           "model_order": sum(2 if s[0] == "pair" else 1 for s in spec),
+           "rms_residual": rms, "amplitude": amp}
+    out["k_unc"] = COVERAGE * max(out["k_sd"], out["k_sd_sensor"])
+    out["b_unc"] = COVERAGE * max(out["b_sd"], out["b_sd_sensor"])
+    fl = max(step, rms) if method == "varpro" else 0.0
+    if fl > 0:
+        t_above = math.log(amp / (MIN_QUANTA * fl)) / sig if amp > MIN_QUANTA * fl and sig > 0 \
+            else (math.inf if amp > MIN_QUANTA * fl else 0.0)
+        t_above = min(t_above, y.size * period)
+        out["cycles"] = float(md.f0_hz * t_above * math.sqrt(max(1 - md.damping_ratio ** 2, 0)))
+        if amp < MIN_QUANTA * fl:
+            out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
+                            f"{MIN_QUANTA:g} sensor steps ({fl:.3g} m, the quantum or the "
+                            f"noise): no measurement")
+        elif out["cycles"] < MIN_CYCLES:
+            out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above {MIN_QUANTA:g} "
+                            f"sensor steps ({fl:.3g} m): too few for a measurement")
+    else:
+        out["cycles"] = float(md.f0_hz * y.size * period)
+    return out
+
+
+# ------------------------------------------------------------------ the quantisation bound
+
+
+def quantiser_gain(a: float) -> float:
+    """Describing function of a mid-tread (round-to-nearest) quantiser of unit step.
+
+    For an input ``a sin(wt)`` the first harmonic of the output is ``N(a) a sin(wt)`` with
+    ``N(a) = 4 / (pi a) * sum_{i=1..n} sqrt(1 - ((2 i - 1) / (2 a))^2)``,
+    ``n = floor(a + 1/2)`` (0 below half a step): Gelb & Vander Velde, *Multiple-Input
+    Describing Functions and Nonlinear System Design* (1968), the quantiser entry of their
+    table of describing functions.
+
+    Parameters
+    ----------
+    a : float
+        Input amplitude in quantiser steps, >= 0.
+
+    Returns
+    -------
+    float
+        N(a), -> 1 as a grows.
+    """
+    n = int(math.floor(a + 0.5))
+    if n <= 0:
+        return 0.0
+    s = 0.0
+    for i in range(1, n + 1):
+        u = (2 * i - 1) / (2.0 * a)
+        s += math.sqrt(max(0.0, 1.0 - u * u))
+    return 4.0 / (math.pi * a) * s
+
+
+def _max_gain_error(lo: float, hi: float, points: int = 4000) -> float:
+    """max |N(a) - 1| over amplitudes a in [lo, hi] steps (dense grid)."""
+    return max(abs(quantiser_gain(float(a)) - 1.0) for a in np.linspace(lo, hi, points))
+
+
+def quantiser_gain_bound(loop, K: float, B: float, a_max: float, a_min: float, q_x: float,
+                         q_f: float = 0.0) -> dict:
+    """How far the quantisers' loop gain may move the felt (k, b): part 1 of
+    :func:`quantisation_bound`.
+
+    The position quantiser (step ``q_x``) passes an oscillation of amplitude A with the
+    describing-function gain N(A / q_x), the force quantiser (step ``q_f``, 0: none) the
+    force's with N(K A / q_f) (:func:`quantiser_gain`; Gelb & Vander Velde 1968); over the
+    amplitudes ``[a_min, a_max]`` of a record the virtual (K, B) act within
+    ``(1 +- eps)``, ``eps = (1 + d_x)(1 + d_f) - 1``, ``d`` the largest ``|N - 1|``, and
+    the felt (k, b) within the THS map (:func:`hapsim.analysis.ths.render`) of the four
+    corners.
+
+    Parameters
+    ----------
+    loop : hapsim.analysis.loop.LoopModel
+        The device side of the THS.
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m].
+    a_max, a_min : float
+        Largest and smallest oscillation amplitude of the record [m].
+    q_x, q_f : float
+        Position step [m] and force step [N] (0: that quantiser is absent).
+
+    Returns
+    -------
+    dict
+        ``dk`` [N/m], ``db`` [N s/m], ``eps``, ``d_x``, ``d_f``.
+    """
+    from hapsim.analysis.ths import render
+
+    pred = render(loop, K, B)
+    d_x = _max_gain_error(a_min / q_x, a_max / q_x) if q_x > 0 else 0.0
+    d_f = _max_gain_error(K * a_min / q_f, K * a_max / q_f) if q_f > 0 else 0.0
+    eps = (1.0 + d_x) * (1.0 + d_f) - 1.0
+    if eps == 0.0:
+        return {"dk": 0.0, "db": 0.0, "eps": 0.0, "d_x": d_x, "d_f": d_f}
+    corners = [render(loop, K * (1 + u), B * (1 + v)) for u in (-eps, eps) for v in (-eps, eps)]
+    return {"dk": max(abs(c.k - pred.k) for c in corners),
+            "db": max(abs(c.b - pred.b) for c in corners), "eps": eps, "d_x": d_x, "d_f": d_f}
+
+
+def quantisation_bound(loop, K: float, B: float, x0: float, t_fit: float, q_x: float,
+                       q_f: float, n_samples: int, sigmas: float = 4.0) -> dict:
+    """How far the ADC and PWM quantisation may move the felt (k, b) from the THS
+    prediction, derived from the two quantisers (nothing fitted).
+
+    Two effects, added:
+
+    1. **Loop gain.** Over the fit window the free response is a decaying sinusoid of
+       amplitude A from ``x0`` down to ``A_min = x0 exp(-sigma t_fit)`` (sigma = b / 2m of
+       the prediction). The position quantiser (step ``q_x``) passes its first harmonic
+       with the gain N(A / q_x), the PWM quantiser (step ``q_f``) the force's with
+       N(F / q_f), F >= K A (:func:`quantiser_gain`). So the virtual spring and damper act
+       with K', B' in ``[K, B] (1 +- eps)``, ``eps = (1 + d_x)(1 + d_f) - 1``, ``d`` the
+       largest |N - 1| over the window; the felt (k, b) lie within the THS map
+       (:func:`hapsim.analysis.ths.render`) of the four corners (K (1 +- eps), B (1 +- eps)).
+    2. **Observation.** The logged positions carry the quantisation error, uniform over one
+       step: white noise of variance ``q_x^2 / 12`` (Widrow & Kollar, *Quantization Noise*,
+       2008, ch. 4). A least-squares fit of ``A exp(-sigma t) cos(omega t + phi) + c`` to
+       ``n_samples`` such samples has the covariance ``q_x^2 / 12 (J^T J)^-1`` (J: the
+       model's Jacobian at the predicted parameters); ``sigmas`` standard deviations of
+       k = m (omega^2 + sigma^2) and b = 2 m sigma are added.
+
+    Parameters
+    ----------
+    loop : hapsim.analysis.loop.LoopModel
+        The device side of the THS (m, b0, rate, delay, hold).
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m].
+    x0 : float
+        Initial amplitude of the free response [m].
+    t_fit : float
+        Length of the fit window [s].
+    q_x, q_f : float
+        Position step [m] (HELLO.position_scale) and force step [N] (HELLO.force_scale).
+    n_samples : int
+        Samples in the fit window.
+    sigmas : float
+        Standard deviations of the observation noise term.
+
+    Returns
+    -------
+    dict
+        ``k``, ``b`` (predicted), ``dk``, ``db`` (the bounds), ``eps``, ``d_x``, ``d_f``,
+        ``a_min`` [m], ``k_noise_sd``, ``b_noise_sd``.
+    """
+    from hapsim.analysis.ths import render
+
+    pred = render(loop, K, B)
+    m = loop.mass
+    sig = pred.b / (2.0 * m)
+    om = math.sqrt(max(pred.k / m - sig * sig, 0.0))
+    a_min = x0 * math.exp(-sig * t_fit)
+    g = quantiser_gain_bound(loop, K, B, x0, a_min, q_x, q_f)
+    eps, d_x, d_f, dk_gain, db_gain = g["eps"], g["d_x"], g["d_f"], g["dk"], g["db"]
+    # observation noise through the least-squares fit (the sensitivity of measure_felt's)
+    T = loop.period
+    spec = [["pair", sig * T, om * T]]
+    y = x0 * np.exp(-sig * T * np.arange(n_samples)) * np.cos(om * T * np.arange(n_samples))
+    _, (white, _), _ = _covariance(spec, y, True)
+    g_k, g_b = _kb_gradients(spec, 0, 0, mass=m, period=T)
+    q_sd = q_x / math.sqrt(12.0)
+    k_sd = q_sd * float(np.sqrt(g_k @ white @ g_k))
+    b_sd = q_sd * float(np.sqrt(g_b @ white @ g_b))
+    return {"k": float(pred.k), "b": float(pred.b), "dk": dk_gain + sigmas * k_sd,
+            "db": db_gain + sigmas * b_sd, "eps": eps, "d_x": d_x, "d_f": d_f,
+            "a_min": a_min, "k_noise_sd": k_sd, "b_noise_sd": b_sd}
+
+
+def fit_free_response(position, period: float, mass: float, k_guess: float,
+                      b_guess: float) -> dict:
+    """Felt (k, b) of a logged free response with an offset: :func:`measure_felt` on its
+    dominant pair, started from a guess.
+
+    Parameters
+    ----------
+    position : ndarray, shape (n,)
+        Positions [m], one per period, from the start of the free response (the loop's
+        fast modes already decayed: this model has only the pair and the offset).
+    period : float
+        Sample period T [s].
+    mass : float
+        m [kg].
+    k_guess, b_guess : float
+        Starting point [N/m], [N s/m] (the prediction).
+
+    Returns
+    -------
+    dict
+        :func:`measure_felt`'s result plus ``samples``; ``rms_residual`` [m].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`measure_felt`; also when the guess is not an oscillation
+        (``k_guess / m <= (b_guess / 2 m)^2``).
+    """
+    sig = b_guess / (2.0 * mass)
+    om2 = k_guess / mass - sig * sig
+    if not om2 > 0:
+        raise ConfigError(f"the guess (k, b) = ({k_guess!r}, {b_guess!r}) is not an "
+                          "oscillation", key="k_guess")
+    z = complex(np.exp(complex(-sig, math.sqrt(om2)) * period))
+    out = measure_felt(position, period, mass, [z, z.conjugate()], z, offset=True)
+    out["samples"] = int(np.asarray(position).size)
+    return out
+
+
+def sensor_error_response(scene, n: int) -> np.ndarray:
+    """Impulse response from the position sensor's error to the logged position.
+
+    The host reads ``x[n] + e[n]``: the error is logged (direct term 1) and, through the
+    virtual links, fed back as a force, so that it also moves the handle. With the
+    closed-loop state ``s[n+1] = A s[n]`` of :func:`hapsim.analysis.network.closed_loop`,
+    the error enters where the measured positions ``x[n]`` and ``x[n-1]`` do: the columns
+    ``g``, ``h`` of those two states that the links contribute (``A`` minus the same loop
+    with every link at zero gain). Then ``s[n+1] = A s[n] + g e[n] + h e[n-1]`` and the
+    response is ``1, c g, c (A g + h), c A (A g + h), ...``.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device (calibrated: no ``target`` links).
+    n : int
+        Length of the response.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Logged-position response to a unit sensor error at sample 0 [m/m].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from hapsim.analysis.network import closed_loop
+
+    A, names = closed_loop(scene)
+    A0, _ = closed_loop(scene, gain=0.0)
+    ipp = 2 if scene.device.hold == "zoh" else 1
+    g, h = A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
+    out = np.zeros(n)
+    out[0] = 1.0
+    s = g.copy()
+    for i in range(1, n):
+        out[i] = s[0]
+        s = A @ s + (h if i == 1 else 0.0)
+    return out

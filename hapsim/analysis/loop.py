@@ -159,6 +159,14 @@ class LoopModel:
     hold : {"zoh", "ideal"}
         ``"zoh"``: exact zero-order hold of ``m x'' + b0 x' = f``. ``"ideal"``: the paper's
         idealised sampled image, a centred-difference mass (Florens et al. eqs. (2)-(4)).
+    hand_mass, hand_damping : float, optional
+        Part of ``mass`` [kg] and of ``friction`` [N s/m] that is the hand's, behind the grip
+        (:mod:`hapsim.analysis.hand`); only used with a finite ``grip_stiffness``.
+    grip_stiffness, grip_damping : float, optional
+        Grip spring [N/m] (``inf``: rigid, the default; then ``mass`` and ``friction`` are
+        one body) and damper [N s/m] between hand and handle.
+    correction : Correction, optional
+        Correction of the virtual element (:mod:`hapsim.analysis.corrections`).
 
     Raises
     ------
@@ -166,7 +174,8 @@ class LoopModel:
         On a non-positive mass or rate, a negative friction, a negative or non-integer
         delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
         :data:`RATE_RANGE`, ``b0 T / m > MAX_PRODUCT``, a delay above :data:`MAX_DELAY`;
-        ``key`` names the field.
+        a hand part not inside the whole, a compliant grip with the ideal hold; ``key``
+        names the field.
 
     Notes
     -----
@@ -179,6 +188,11 @@ class LoopModel:
     rate_hz: float = 1000.0
     delay: int = 1
     hold: str = "zoh"
+    hand_mass: float = 0.0
+    hand_damping: float = 0.0
+    grip_stiffness: float = math.inf
+    grip_damping: float = 0.0
+    correction: object = None
 
     def __post_init__(self) -> None:
         def num(key, value):
@@ -214,6 +228,25 @@ class LoopModel:
         object.__setattr__(self, "friction", b0)
         object.__setattr__(self, "rate_hz", r)
         object.__setattr__(self, "delay", int(d))
+        if not self.rigid:
+            mh, bh = float(self.hand_mass), float(self.hand_damping)
+            if not (0 < mh < m) or not (0 <= bh <= b0) or not (self.grip_stiffness > 0) \
+                    or not (self.grip_damping >= 0):
+                raise ConfigError("a compliant grip needs 0 < hand_mass < mass, 0 <= "
+                                  "hand_damping <= friction, grip_stiffness > 0, "
+                                  "grip_damping >= 0", key="hand")
+            if self.hold != "zoh":
+                raise ConfigError("a compliant grip needs the zoh hold", key="hold")
+
+    @property
+    def rigid(self) -> bool:
+        """Whether the hand is rigidly attached (or absent): one moving body."""
+        return not math.isfinite(float(self.grip_stiffness))
+
+    @property
+    def generic(self) -> bool:
+        """Whether the loop needs the general plant/controller path (hand or correction)."""
+        return self.correction is not None or not self.rigid
 
     @property
     def period(self) -> float:
@@ -226,16 +259,22 @@ class LoopModel:
         return self.friction * self.period / self.mass
 
     @classmethod
-    def from_device(cls, device, rate_hz: float) -> "LoopModel":
+    def from_device(cls, device, rate_hz: float, member=None, *,
+                    correction=True) -> "LoopModel":
         """Loop model of a scene's device.
 
         Parameters
         ----------
         device : hapsim.scene.Device
             Anything with ``mass`` [kg], ``friction`` [N s/m], ``delay`` [samples] and
-            ``hold`` attributes.
+            ``hold`` attributes; optionally ``hand`` and ``correction``.
         rate_hz : float > 0
             Sample rate [Hz].
+        member : array_like, shape (4,), optional
+            ``(mh, bh, kg, bg)`` of the hand family (:mod:`hapsim.analysis.hand`); default
+            its nominal member. The loop's ``mass``/``friction`` are then handle + hand.
+        correction : bool or Correction, optional
+            True: the device's own correction; False: none; or the correction to use.
 
         Returns
         -------
@@ -246,9 +285,25 @@ class LoopModel:
         ConfigError
             As for the constructor.
         """
-        return cls(mass=device.mass, friction=getattr(device, "friction", 0.0),
-                   rate_hz=rate_hz, delay=getattr(device, "delay", 1),
-                   hold=getattr(device, "hold", "zoh"))
+        from hapsim.analysis.corrections import Correction
+        from hapsim.analysis.hand import nominal_member
+
+        m, b0 = float(device.mass), float(getattr(device, "friction", 0.0))
+        hand = getattr(device, "hand", None)
+        kw = {}
+        if hand is not None or member is not None:
+            mh, bh, kg, bg = (np.asarray(member, float) if member is not None
+                              else nominal_member(hand))
+            m, b0 = m + mh, b0 + bh
+            if math.isfinite(kg):
+                kw = dict(hand_mass=float(mh), hand_damping=float(bh),
+                          grip_stiffness=float(kg), grip_damping=float(bg))
+        if correction is True:
+            corr = Correction.from_dict(getattr(device, "correction", None))
+        else:
+            corr = correction or None
+        return cls(mass=m, friction=b0, rate_hz=rate_hz, delay=getattr(device, "delay", 1),
+                   hold=getattr(device, "hold", "zoh"), correction=corr, **kw)
 
     def to_dict(self) -> dict:
         """JSON-ready dict of the fields.
@@ -259,8 +314,14 @@ class LoopModel:
             ``mass`` [kg], ``friction`` [N s/m], ``rate_hz`` [Hz], ``delay`` [samples],
             ``hold``.
         """
-        return {"mass": self.mass, "friction": self.friction, "rate_hz": self.rate_hz,
-                "delay": self.delay, "hold": self.hold}
+        out = {"mass": self.mass, "friction": self.friction, "rate_hz": self.rate_hz,
+               "delay": self.delay, "hold": self.hold}
+        if not self.rigid:
+            out.update(hand_mass=self.hand_mass, hand_damping=self.hand_damping,
+                       grip_stiffness=self.grip_stiffness, grip_damping=self.grip_damping)
+        if self.correction is not None:
+            out["correction"] = self.correction.to_dict()
+        return out
 
 
 # --------------------------------------------------------------------------- helpers
@@ -346,6 +407,37 @@ def _plant_w(loop: LoopModel):
     return Nn, D
 
 
+def _compliant_plant_w(loop: LoopModel):
+    """Handle + hand plant in ``w``: ``(Nn, D, Nvn)``, scaled by the total mass.
+
+    ``x = (T^2/m) Nn/D u`` and ``v = (T/m) Nvn/D u`` (handle position and velocity); from
+    the delta-operator matrix ``Aw = Ad - I`` of :func:`hapsim.analysis.hand.hand_zoh`:
+    ``D = det(w I - Aw)``, ``c (w I - Aw)^-1 Bd = [det(w I - Aw + Bd c) - D] / D``.
+    """
+    from hapsim.analysis.hand import hand_zoh
+
+    m, T = loop.mass, loop.period
+    member = (loop.hand_mass, loop.hand_damping, loop.grip_stiffness, loop.grip_damping)
+    Aw, Bd = hand_zoh(m - loop.hand_mass, loop.friction - loop.hand_damping, member, T)
+    D = np.poly(Aw)
+
+    def num(i):
+        c = np.zeros(4)
+        c[i] = 1.0
+        return (np.poly(Aw - np.outer(Bd, c)) - D)[1:]
+    return num(0) * (m / (T * T)), D, num(1) * (m / T)
+
+
+def _plant_vel_w(loop: LoopModel):
+    """Handle velocity numerator ``Nvn`` in ``w`` of the rigid ``"zoh"`` plant (None for
+    ``"ideal"``): ``v = (T/m) psi (z - 1) / D u``, i.e. ``Nvn = psi w``."""
+    if loop.hold != "zoh":
+        return None
+    psi, _, _ = _phi(loop.b0_T_over_m)
+    return np.array([psi, 0.0])
+
+
+
 def _w_to_z(p):
     """Re-express a polynomial in ``w = z - 1`` as one in ``z`` (highest power first)."""
     out = np.array([0.0])
@@ -378,7 +470,7 @@ def plant(loop: LoopModel):
     ``phi1 = (e^-x - 1 + x)/x^2``, ``phi0 = (1 - e^-x - x e^-x)/x^2``, ``x = b0T/m``
     (``b0 = 0``: ``N = T^2/(2m) (z + 1)``). Equal to ``scipy.signal.cont2discrete``.
     """
-    Nn, D = _plant_w(loop)
+    Nn, D = _plant_w(loop) if loop.rigid else _compliant_plant_w(loop)[:2]
     T = loop.period
     return _w_to_z(Nn) * (T * T / loop.mass), _w_to_z(D)
 
@@ -427,6 +519,18 @@ def _char_parts(loop: LoopModel):
     delay, where the expanded polynomial (binomial coefficients up to ``C(e, e/2)``, 1e14 at
     ``e = 50``) loses it all.
     """
+    if loop.generic:
+        # a hand behind a grip or a correction: (P~, Q~, R~) expanded, e = 0
+        # (hapsim.analysis.corrections.correction_polynomials)
+        from hapsim.analysis.corrections import correction_polynomials
+        if loop.rigid:
+            Nn, D = _plant_w(loop)
+            Nvn = _plant_vel_w(loop)
+        else:
+            Nn, D, Nvn = _compliant_plant_w(loop)
+        P, Q, R = correction_polynomials(loop.correction, Nn, D, Nvn, delay=loop.delay,
+                                         mass=loop.mass, period=loop.period)
+        return P, Q, R, 0
     Nn, D = _plant_w(loop)
     e = loop.delay + 1
     if loop.hold == "ideal":
@@ -554,7 +658,10 @@ def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     c = np.trim_zeros(c, "f")
     z = np.roots(c) if c.size > 1 else np.zeros(0, complex)
     # roots np.roots drops (trailing zero coefficients) are exact poles at z = 0
-    nz = (loop.delay + (3 if loop.hold == "zoh" else 2)) - z.size
+    if loop.generic:
+        nz = c.size - 1 - z.size
+    else:
+        nz = (loop.delay + (3 if loop.hold == "zoh" else 2)) - z.size
     if nz > 0:
         z = np.concatenate([z, np.zeros(nz, complex)])
     w = _polish_w(loop, kappa, beta, z.astype(complex) - 1.0)

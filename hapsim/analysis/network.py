@@ -72,6 +72,7 @@ from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
+           "device_body", "plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
            "port_io", "rest_position", "MAX_STATES", "state_count", "check_size"]
 
@@ -406,7 +407,7 @@ def virtual_state_names(net: Network, integrator: str) -> list[str]:
 
 
 def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
-                gain: float = 1.0) -> tuple[np.ndarray, list[str]]:
+                gain: float = 1.0, member=None) -> tuple[np.ndarray, list[str]]:
     """Closed-loop state matrix of a scene, integrated by ``integrator``, felt through its device.
 
     Parameters
@@ -421,11 +422,15 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         ``{link name: (K [N/m], B [N s/m])}`` overrides (required for ``target`` links).
     gain : float, optional
         Every link's (K, B) multiplied by this (a gain-margin probe).
+    member : array_like, shape (4,), optional
+        Hand member ``(mh, bh, kg, bg)`` (:mod:`hapsim.analysis.hand`); default the nominal
+        member of ``device.hand``. A compliant grip adds the hand's position and velocity
+        after the device velocity (states ``[xh, vh, xm, vm]``).
 
     Returns
     -------
     A : ndarray, shape (n, n)
-        ``s[n+1] = A s[n]``, ``n = (3 | 2) + d + 2N`` with a port (``"zoh"`` | ``"ideal"``
+        ``s[n+1] = A s[n]``, ``n = (3 | 2) + d + 2N`` (``+ 2`` for a compliant grip) with a port (``"zoh"`` | ``"ideal"``
         hold, ``d`` samples of delay, N moving masses), ``2N`` without. Layout and timing:
         module docstring.
     state_names : list of str, length n
@@ -463,8 +468,102 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     if dev is None:
         raise ConfigError("a scene with a port needs a device section", file=scene.path,
                           key="device")
+    if getattr(dev, "correction", None) is not None:
+        raise ConfigError("a device correction is analysed on the one-link loop "
+                          "(hapsim compare-corrections, LoopModel(correction=...)), not in "
+                          "the scene state matrix", file=scene.path, key="device.correction")
+    A, u, nplant, names = _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member)
+    pr = plant_rows(dev, T, member)
+    if pr is None:                       # ideal hold
+        mass, b0 = device_body(dev, member)
+        x = b0 * T / mass
+        a = math.exp(-x)
+        c = x / -math.expm1(-x) if x > 0 else 1.0
+        A[0, 0], A[0, 1] = 1.0 + a, -a
+        A[0] += T * T / (mass * c) * u
+    else:
+        Ad, Bd = pr
+        A[:nplant, :nplant] = Ad
+        A[:nplant] += np.outer(Bd, u)
+    return A, names
+
+
+def device_body(dev, member=None) -> tuple[float, float]:
+    """Total moving mass [kg] and friction [N s/m] of a device (handle + hand).
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+    member : array_like, shape (4,), optional
+        Hand member ``(mh, bh, kg, bg)``; default the nominal member of ``dev.hand``.
+
+    Returns
+    -------
+    (float, float)
+        ``(m + mh, b0 + bh)`` (``(m, b0)`` without a hand): the mass the felt
+        ``k = m |s|^2``, ``b = -2 m Re s`` are expressed with.
+    """
+    from hapsim.analysis.hand import nominal_member
+
+    m, b0 = float(dev.mass), float(dev.friction)
+    hand = getattr(dev, "hand", None)
+    if member is None and hand is None:
+        return m, b0
+    mh, bh = (member if member is not None else nominal_member(hand))[:2]
+    return m + float(mh), b0 + float(bh)
+
+
+def _compliant(dev, member) -> bool:
+    hand = getattr(dev, "hand", None)
+    if member is not None:
+        return math.isfinite(float(member[2]))
+    return hand is not None and not hand.rigid
+
+
+def plant_rows(dev, T: float, member=None):
+    """ZOH of the device plant: ``(Ad, Bd)``, position first; None for the ideal hold.
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+    T : float
+        Period [s].
+    member : array_like, shape (4,), optional
+        Hand member (default: nominal of ``dev.hand``).
+
+    Returns
+    -------
+    (ndarray (p, p), ndarray (p,)) or None
+        ``p = 2`` (``[x, v]``, rigid body, :func:`hapsim.analysis.loop.zoh_state_space`)
+        or ``p = 4`` (``[xh, vh, xm, vm]``, compliant grip,
+        :func:`hapsim.analysis.hand.hand_zoh`).
+    """
+    from hapsim.analysis.hand import hand_zoh, nominal_member
+
+    if dev.hold != "zoh":
+        return None
+    if _compliant(dev, member):
+        mem = np.asarray(member if member is not None else nominal_member(dev.hand), float)
+        Aw, Bd = hand_zoh(float(dev.mass), float(dev.friction), mem, T)
+        return Aw + np.eye(4), Bd
+    return zoh_state_space(*device_body(dev, member), T)
+
+
+def _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None):
+    """Closed-loop matrix without the plant rows: ``(A, u, nplant, names)``.
+
+    ``u`` is the row giving the force held over the coming period from the state; the
+    plant rows ``0 .. nplant-1`` are left zero (except the ideal hold's shift row) for the
+    caller (:func:`closed_loop`, or a family stacking many plants).
+    """
+    T = scene.period
     if dev.hold == "zoh":
-        names = [f"{port}.x[n] (device position)", "device.v[n]", f"{port}.x[n-1]"]
+        if _compliant(dev, member):
+            names = [f"{port}.x[n] (handle position)", "device.v[n]", "hand.x[n]",
+                     "hand.v[n]"]
+        else:
+            names = [f"{port}.x[n] (device position)", "device.v[n]"]
+        names.append(f"{port}.x[n-1]")
     elif dev.hold == "ideal":
         names = [f"{port}.x[n] (device position)", f"{port}.x[n-1]"]
     else:
@@ -472,6 +571,7 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
                           file=scene.path, key="device.hold")
     d = int(dev.delay)
     nd = len(names)
+    nplant = nd - 1
     names += [f"F[n-{i}] (port force, delay line)" for i in range(1, d + 1)]
     names += vnames
     n = len(names)
@@ -491,25 +591,11 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         A[nd] = Frow
         for j in range(1, d):
             A[nd + j, nd + j - 1] = 1.0
-    mass, b0 = float(dev.mass), float(dev.friction)
-    if dev.hold == "zoh":
-        Ad, Bd = zoh_state_space(mass, b0, T)
-        A[0, 0], A[0, 1] = Ad[0, 0], Ad[0, 1]
-        A[1, 0], A[1, 1] = Ad[1, 0], Ad[1, 1]
-        A[0] += Bd[0] * u
-        A[1] += Bd[1] * u
-        A[2, 0] = 1.0
-    else:
-        x = b0 * T / mass
-        a = math.exp(-x)
-        c = x / -math.expm1(-x) if x > 0 else 1.0
-        A[0, 0], A[0, 1] = 1.0 + a, -a
-        A[0] += T * T / (mass * c) * u
-        A[1, 0] = 1.0
+    A[ipp, 0] = 1.0
     A[o:, o:] = Av
     A[o:, ip] += bp
     A[o:, ipp] += bpp
-    return A, names
+    return A, u, nplant, names
 
 
 def port_io(scene, n: int):
@@ -538,11 +624,12 @@ def port_io(scene, n: int):
     the impedance the hand feels; its residue at a pole weighs that mode at the port.
     """
     dev = scene.device
-    mass, b0, T = float(dev.mass), float(dev.friction), scene.period
+    mass, b0 = device_body(dev)
+    T = scene.period
     b = np.zeros(n)
     if dev.hold == "zoh":
-        _, Bd = zoh_state_space(mass, b0, T)
-        b[0], b[1] = Bd[0], Bd[1]
+        _, Bd = plant_rows(dev, T)          # handle + hand when the device has a hand
+        b[:Bd.size] = Bd
     else:
         x = b0 * T / mass
         c = x / -math.expm1(-x) if x > 0 else 1.0
@@ -655,6 +742,8 @@ def state_count(scene) -> int:
     dev = getattr(scene, "device", None)
     if scene.port is not None and dev is not None:
         n += (3 if dev.hold == "zoh" else 2) + int(dev.delay)
+        if _compliant(dev, None):
+            n += 2                          # the hand's position and velocity
     return n
 
 

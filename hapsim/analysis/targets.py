@@ -98,7 +98,7 @@ def calibrate_targets(scene) -> list[TargetCalibration]:
                           file=scene.path, key="device")
     loop = LoopModel.from_device(scene.device, scene.rate_hz)
     return [TargetCalibration(lk.name, lk.line, float(lk.target[0]), float(lk.target[1]),
-                              float(scene.device.mass), calibrate(loop, *lk.target))
+                              float(loop.mass), calibrate(loop, *lk.target))
             for lk in targets]
 
 

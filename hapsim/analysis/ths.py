@@ -414,7 +414,12 @@ def _roots_outside(loop: LoopModel, kappa: float, beta: float) -> int | None:
     eigenvalues. Returns None when it cannot be trusted (a pole on or within ~1e-12 of the
     circle: the caller then takes the eigenvalues).
     """
-    _, _, _, e = _char_parts(loop)
+    P, Q, D, e = _char_parts(loop)
+    # degree of the characteristic polynomial: e + 2 for the plain loop, deg R for a
+    # hand or a correction (e = 0 there, R expanded)
+    deg = max(len(np.trim_zeros(np.asarray(D, float), "f")) - 1 + e,
+              len(np.trim_zeros(np.asarray(P, float), "f")) - 1,
+              len(np.trim_zeros(np.asarray(Q, float), "f")) - 1)
     n = max(2048, 64 * (e + 1))
     th = np.unique(np.concatenate([[0.0], np.geomspace(1e-9, math.pi, n // 2),
                                    np.linspace(0.0, math.pi, n + 1)]))
@@ -431,7 +436,7 @@ def _roots_outside(loop: LoopModel, kappa: float, beta: float) -> int | None:
         if big.size == 0:
             inside = float(np.sum(step)) / math.pi
             k = round(inside)
-            return None if abs(inside - k) > 1e-6 else e + 2 - k
+            return None if abs(inside - k) > 1e-6 else deg - k
         mid = 0.5 * (th[big] + th[big + 1])
         if np.any(mid - th[big] < 1e-13):
             return None

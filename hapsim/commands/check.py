@@ -120,7 +120,8 @@ def run(args: argparse.Namespace) -> int:
         out = {"scene": args.scene, "verdict": verdict, "rate_hz": scene.rate_hz,
                "device": None if scene.device is None else {
                    "mass": scene.device.mass, "friction": scene.device.friction,
-                   "delay": scene.device.delay, "hold": scene.device.hold},
+                   "delay": scene.device.delay, "hold": scene.device.hold,
+                   "correction": getattr(scene.device, "correction", None)},
                "calibrations": [c.to_dict() for c in cals],
                **chk.to_dict()}
         print(json.dumps(out))
@@ -140,6 +141,13 @@ def run(args: argparse.Namespace) -> int:
         dv = scene.device
         print(f"device: m = {dv.mass:g} kg, b0 = {dv.friction:g} N s/m, delay d = {dv.delay}, "
               f"hold {dv.hold}")
+        if getattr(dv, "hand", None) is not None:
+            h = dv.hand
+            print(f"hand (nominal member of the family; hapsim family for all of it): mass "
+                  f"{h.mass}, damping {h.damping}, grip "
+                  f"{'rigid' if h.rigid else h.grip_stiffness} / {h.grip_damping}")
+        if getattr(dv, "correction", None) is not None:
+            print(f"correction: {dv.correction}")
     else:
         print("no port: the virtual network alone is checked (no device in the loop)")
     for c in cals:

@@ -72,8 +72,12 @@ faults (embedded mock): --faults SPEC --fault-seed N, SPEC items NAME=RATE[:DUR]
   The same loss/recovery applies with --host-clocked. Example:
   --faults drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
            stall@500:200ms,reset@800,vanish@1200:300ms,rx.drop=0.01,rx.corrupt=0.005
+drivers (--driver NAME; without --port: a mock speaking that protocol byte for byte):
+  framed     hapsim's own protocol (COBS frames, CRC, sequence numbers, watchdog)
+{drivers}
 examples:
   hapsim run configs/wall.yaml
+  hapsim run configs/firefader.yaml --driver firefader
   hapsim run configs/felt_wall.yaml --lockstep --json
   hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
   hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
@@ -95,9 +99,12 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The sub-parsers action of ``hapsim``'s parser; ``run``'s ``func`` is :func:`run`.
     """
+    from hapsim.drivers import DRIVERS, get_driver
+    limits = "\n".join("  " + line for name in DRIVERS if name != "framed"
+                       for line in get_driver(name).limits.splitlines())
     p = sub.add_parser("run", help="close the THS on a device or the mock and measure the "
                                    "felt stiffness and damping",
-                       description=_DESCRIPTION, epilog=_EPILOG,
+                       description=_DESCRIPTION, epilog=_EPILOG.replace("{drivers}", limits),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
     p.add_argument("--port", metavar="PORT",
@@ -113,6 +120,10 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
+    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
+                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
+                        "numba function that owns the port, without the GIL) or 'python' "
+                        "(the reference loop, e.g. to compare)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -141,6 +152,12 @@ def register(sub) -> None:
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
+    p.add_argument("--driver", default="framed", metavar="NAME",
+                   help=f"device protocol, one of {', '.join(DRIVERS)} (default framed, "
+                        "hapsim's own); a driver runs host-clocked (see 'drivers' below)")
+    p.add_argument("--device", metavar="FILE.yaml",
+                   help="device section from a file (e.g. written by 'hapsim identify "
+                        "--out'); replaces the scene's")
     p.add_argument("--osc", type=int, metavar="PORT",
                    help="take live changes over OSC on localhost:PORT (0: any free port; "
                         "addresses: hapsim play --help); each is checked, ramped, journaled")
@@ -227,6 +244,14 @@ def run(args) -> int:
         from hapsim.daemon.faults import parse_faults
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
     scene = load_scene(args.scene)
+    if getattr(args, "device", None):
+        import dataclasses
+
+        from hapsim.device_file import load_device
+        dev = load_device(args.device)
+        if dev.force_limit == math.inf and scene.device is not None:   # not in the file
+            dev = dataclasses.replace(dev, force_limit=scene.device.force_limit)
+        scene = dataclasses.replace(scene, device=dev)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -275,4 +300,6 @@ def _run(scene, args) -> dict:
                      lost_timeout=args.lost_timeout,
                      reconnect_attempts=args.reconnect_attempts,
                      reconnect_time=args.reconnect_time, osc=args.osc,
-                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server)
+                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                     driver=None if args.driver == "framed" else args.driver,
+                     loop=args.loop)

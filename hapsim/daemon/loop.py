@@ -74,7 +74,8 @@ from itertools import chain
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
+from hapsim.daemon.realtime import sleep_until_ns
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
@@ -108,14 +109,26 @@ class StopFlag:
     Attributes
     ----------
     set : bool
-        True once a stop was requested.
+        True once a stop was requested (stored in :attr:`shared`).
     signal : int or None
         Number of the signal that set it, if any.
+    shared : ndarray of int64, shape (1,)
+        The flag itself (1: stop requested), read by the compiled loop
+        (:mod:`hapsim.daemon.fastloop`) while it runs without the GIL.
     """
 
     def __init__(self) -> None:
-        self.set = False
+        self.shared = np.zeros(1, dtype=np.int64)
         self.signal = None
+
+    @property
+    def set(self) -> bool:
+        """True once a stop was requested."""
+        return bool(self.shared[0])
+
+    @set.setter
+    def set(self, value: bool) -> None:
+        self.shared[0] = 1 if value else 0
 
     def request(self, signum: int | None = None) -> None:
         """Request a stop (safe to call from a signal handler: two attribute stores).
@@ -198,6 +211,12 @@ class LoopConfig:
         Wait for HELLO per attempt [s].
     ramp_samples : int
         After a recovery the force is scaled by ``k / ramp_samples`` for its first samples.
+    backlog : {"newest", "all"}
+        Device-clocked: when more than one STATE is waiting (a burst after a stall), answer
+        only the newest and count the others as ``skipped`` (``"newest"``, the default: the
+        device holds a fresh force at once instead of a queue of stale ones), or answer
+        every one in order (``"all"``). A STATE counts as newer when it is armed, has one
+        axis and is ahead by 1 .. ``silence * rate + 2`` samples.
     """
 
     rate_hz: float
@@ -224,6 +243,7 @@ class LoopConfig:
     backoff_max: float = 1.0
     attempt_timeout: float = 0.25
     ramp_samples: int = 50
+    backlog: str = "newest"
 
 
 @dataclass
@@ -249,6 +269,9 @@ class LoopResult:
         Host-clocked deadlines missed by more than one period.
     clamped : int
         Samples whose force the host clamped.
+    skipped : int
+        STATEs not answered because a newer one was waiting (backlog policy ``newest``);
+        the row answered after them has :data:`~hapsim.daemon.telemetry.FLAG_SKIPPED`.
     turnaround_us : dict
         ``p50``, ``p99``, ``p999``, ``max`` of STATE-read to FORCE-written [us].
     hello : Hello or None
@@ -330,6 +353,7 @@ class LoopResult:
     missed: int = 0
     overruns: int = 0
     clamped: int = 0
+    skipped: int = 0
     turnaround_us: dict = field(default_factory=dict)
     hello: object = None
     faults: list = field(default_factory=list)
@@ -425,6 +449,9 @@ class HostLoop:
         self._fresh = True          # next armed STATE (re)starts the scene at rest
         self._ramp = 0              # samples left in the force ramp after a recovery
         self._restart_flag = 0      # FLAG_LOST for the first row after a recovery
+        self._skip_flag = 0         # FLAG_SKIPPED for the next row (older STATEs skipped)
+        self._expect = -1           # next STATE seq expected (device-clocked source)
+        self._last_rx = 0.0         # clock time of the last STATE used [s]
         self._lost_since = None     # clock time of the current loss, None when healthy
         self._attempts = 0
         self._t0 = 0.0
@@ -901,7 +928,8 @@ class HostLoop:
             Rows to reach (the sources stop there).
         states : generator
             Yields ``(msg, x, t_rx)`` per sample to answer: the STATE, its position [m]
-            and ``perf_counter_ns()`` when it was read. It (re)starts the scene
+            and ``perf_counter_ns()`` when it was read; ``t_rx = -1`` for a STATE the
+            backlog policy skips (the engine steps with it, nothing is sent or logged). It (re)starts the scene
             (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
             at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
         """
@@ -964,6 +992,13 @@ class HostLoop:
             k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
+                if t_rx < 0:
+                    # a skipped STATE (backlog policy): not answered, but the scene takes
+                    # its position, so that the next velocity spans one period
+                    if isfinite(x):
+                        eng.port_step(x)
+                        x_prev = x
+                    continue
                 seq = msg.seq
                 lt = 0
                 st = msg.status
@@ -1026,7 +1061,8 @@ class HostLoop:
                 s_arr[sl] = seq
                 ta_arr[sl] = (t_tx - t_rx) * 1e-3
                 late_arr[sl] = lt
-                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0)
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
+                self._skip_flag = 0
                 restart = 0
                 i += 1
                 tel.n = i
@@ -1067,6 +1103,12 @@ class HostLoop:
         STATE is answered as it arrives (:meth:`_device_states`, :meth:`_drive`)."""
         self._drive(n_max, self._device_states(n_max))
 
+    def _receive_hook(self):
+        """The ``receive(timeout)`` the device-clocked source reads messages with: the
+        transport's (a subclass may run samples before returning what is left,
+        :mod:`hapsim.daemon.fastloop`)."""
+        return self.transport.receive
+
     def _device_states(self, n_max: int):
         """The device-clocked source of :meth:`_drive`: every usable STATE, as it arrives.
 
@@ -1092,20 +1134,22 @@ class HostLoop:
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
-        receive = self.transport.receive
-        expect = -1
+        receive = self._receive_hook()
+        self._expect = -1
         silence = self._silence()
         # a device (re)starting after CONFIG gets state_timeout for its first STATE
         first_wait = max(silence, cfg.state_timeout)
         poll = min(0.1, silence)
-        last_rx = clock()
+        newest = cfg.backlog == "newest"
+        ahead_max = silence * rate + 2.0
+        self._last_rx = clock()
         ds = self._dstats
         nbad = self._nbad
         while tel.n < n_max and not stop.set:
             # wait no longer than the silence still allowed: the loss is declared when it
             # runs out (to 1 us), not a poll later
             allowed = first_wait if self._fresh else silence
-            left = last_rx + allowed - clock()
+            left = self._last_rx + allowed - clock()
             msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
             t_rx = perf()
             if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
@@ -1113,11 +1157,11 @@ class HostLoop:
                 nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
                                       + ds.malformed + ds.unknown_type)
             if not msgs:
-                if clock() - last_rx >= allowed - 1e-6:
+                if clock() - self._last_rx >= allowed - 1e-6:
                     raise _Lost(f"no STATE from the device for {allowed:g} s")
                 continue
             used = False
-            for msg in msgs:
+            for j, msg in enumerate(msgs):
                 tm = type(msg)
                 if tm is not State:
                     if self._note_other(msg):
@@ -1133,31 +1177,37 @@ class HostLoop:
                         continue
                     raise _Lost("the device reports itself disarmed (reset?)")
                 x = msg.position[0]
+                resumes = self._fresh
                 if self._fresh:
                     if not isfinite(x):
                         x = math.nan          # _drive stops on it (non-finite position)
                     else:
                         self._resume(x)
-                        expect = seq
-                if expect >= 0:
-                    gap = (seq - expect) & _U32
+                        self._expect = seq
+                if self._expect >= 0:
+                    gap = (seq - self._expect) & _U32
                     if gap >= _HALF:
                         res.stale += 1            # duplicated or reordered: older
                         continue
-                    if gap and gap > (clock() - last_rx + silence) * rate + 2.0:
+                    if gap and gap > (clock() - self._last_rx + silence) * rate + 2.0:
                         res.implausible += 1      # further ahead than time allows
                         continue
                     res.missed += gap
                 # only a STATE used keeps the device alive: a host ignoring every STATE
                 # (stale, implausible) is as good as deaf, and loses it
-                last_rx = clock()
-                expect = (seq + 1) & _U32
+                self._last_rx = clock()
+                self._expect = (seq + 1) & _U32
                 used = True
+                if newest and not resumes and _newer_waiting(msgs, j, seq, ahead_max):
+                    res.skipped += 1              # backlog: a newer STATE is waiting
+                    self._skip_flag = FLAG_SKIPPED
+                    yield msg, x, -1              # not answered; the scene still steps
+                    continue
                 yield msg, x, t_rx            # _drive answers it (or stops: no resume)
                 if tel.n >= n_max:
                     break
             if (not used and not stop.set
-                    and clock() - last_rx >= (first_wait if self._fresh else silence) - 1e-6):
+                    and clock() - self._last_rx >= (first_wait if self._fresh else silence) - 1e-6):
                 # frames came, but no STATE the loop could use for the silence allowed
                 raise _Lost(f"no usable STATE from the device for "
                             f"{first_wait if self._fresh else silence:g} s")
@@ -1259,11 +1309,10 @@ class HostLoop:
                 while remaining > 0:
                     sleep(max(remaining, 1000) * 1e-9)
                     remaining = deadline - mono_ns()
-            else:
-                if remaining > 600_000:
-                    sleep((remaining - 400_000) * 1e-9)
-                while mono_ns() < deadline:
-                    take(receive(0.0))
+            elif remaining > 0:
+                # an absolute-deadline sleep, no spin: a SCHED_FIFO thread spinning to each
+                # deadline is throttled by the kernel (sched_rt_runtime_us) under load
+                sleep_until_ns(deadline)
             take(receive(0.0))
             if stop.set:
                 break
@@ -1314,6 +1363,35 @@ def _force_seq_late(seq: int, force_seq: int, status: int, d: int,
     if status & fp.STATUS_FORCE_APPLIED or not flags_applied:
         return (seq - force_seq) & _U32 != d
     return True
+
+
+def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:
+    """Whether a STATE newer than ``seq`` waits after ``msgs[j]`` (the backlog policy).
+
+    Parameters
+    ----------
+    msgs : list
+        Messages of one read, in arrival order.
+    j : int
+        Index of the STATE ``seq`` in it.
+    seq : int
+        Its sequence number (u32).
+    ahead_max : float
+        Most samples a newer STATE may be ahead (``silence * rate + 2``: a STATE further
+        ahead is implausible and does not count).
+
+    Returns
+    -------
+    bool
+        True when a later armed 1-axis STATE is ahead by 1 .. ``ahead_max``.
+    """
+    State = fp.State
+    for m in msgs[j + 1:]:
+        if type(m) is State and len(m.position) == 1 and m.status & fp.STATUS_ARMED:
+            ahead = (m.seq - seq) & _U32
+            if 0 < ahead < _HALF and ahead <= ahead_max:
+                return True
+    return False
 
 
 def _bad_count(ds) -> int:

@@ -60,6 +60,11 @@ MOCK_DEVICE_ID = 0x4D4F434B
 DEFAULT_DEVICE = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=10.0)
 #: Excitation used by ``hapsim mock`` without ``--scene``: 5 mm initial displacement.
 DEFAULT_EXCITATION = Excitation(x0=0.005)
+#: Real-time ticks: the mock waits in ``select`` until this long before each deadline and
+#: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
+#: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
+#: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
+MOCK_SPIN_NS = 0
 
 
 # --------------------------------------------------------------------------- physics
@@ -230,6 +235,21 @@ def hand_force_samples(excitation: Excitation, period: float,
     return out
 
 
+def _body(device: Device, member=None):
+    """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
+    continuous 4x4 matrix of a compliant grip (None when rigid or without a hand).
+    Without a hand nothing is imported: a mock restarted by CONFIG must answer at once."""
+    hand = getattr(device, "hand", None)
+    if hand is None and member is None:
+        return float(device.mass), float(device.friction), None
+    from hapsim.analysis.hand import hand_matrices, nominal_member
+    mem = np.asarray(member if member is not None else nominal_member(hand), float)
+    if np.isfinite(mem[2]):
+        A, _ = hand_matrices(float(device.mass), float(device.friction), mem)
+        return float(device.mass), float(device.friction), A
+    return float(device.mass + mem[0]), float(device.friction + mem[1]), None
+
+
 class MockPhysics:
     """The real side of the THS, advanced one period at a time.
 
@@ -247,6 +267,12 @@ class MockPhysics:
         Directory relative profile paths are resolved against.
     hand : ndarray, optional
         Precomputed :func:`hand_force_samples` (a device restarted by CONFIG reuses it).
+    member : array_like, shape (4,), optional
+        The member ``(mh, bh, kg, bg)`` of ``device.hand`` to simulate (default its nominal
+        member, :func:`hapsim.analysis.hand.nominal_member`). A rigid grip adds the hand's
+        mass and damping to the handle's; a compliant one makes the plant
+        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)`` (Coulomb
+        friction is not modelled on that path; noise and quantisation are).
 
     Attributes
     ----------
@@ -267,16 +293,24 @@ class MockPhysics:
 
     def __init__(self, device: Device, rate_hz: float, excitation: Excitation | None = None,
                  *, seed: int = 0, base_dir: str | None = None,
-                 hand: np.ndarray | None = None) -> None:
+                 hand: np.ndarray | None = None, member=None) -> None:
         exc = excitation or Excitation()
         self.device = device
         self.period = T = 1.0 / float(rate_hz)
         self.hold = device.hold
+        mass, friction, self._grip = _body(device, member)
+        if self._grip is not None:                  # compliant grip: 4-state plant
+            import scipy.linalg
+            A = np.zeros((5, 5))
+            A[:4, :4], A[1, 4] = self._grip, 1.0 / float(device.mass)
+            E = scipy.linalg.expm(A * T)
+            self._Ad, self._Bd = E[:4, :4], E[:4, 4]
+            self._s = np.array([exc.x0, exc.v0, exc.x0, exc.v0], dtype=float)
         if self.hold == "zoh":
             self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
-                device.mass, device.friction, T)
+                mass, friction, T)
         elif self.hold == "ideal":
-            self._a, self._cu = ideal_step_coefficients(device.mass, device.friction, T)
+            self._a, self._cu = ideal_step_coefficients(mass, friction, T)
         else:
             raise ConfigError(f"unknown hold {device.hold!r}; valid: zoh, ideal", key="device.hold")
         self.x = float(exc.x0)
@@ -327,7 +361,11 @@ class MockPhysics:
         """
         n = self.n
         f = u + (self.hand[n] if n < self.hand.size else 0.0)
-        if self.hold == "zoh":
+        if self._grip is not None:
+            s = self._Ad @ self._s + self._Bd * f
+            self._s = s
+            self.x, self.v = float(s[0]), float(s[1])
+        elif self.hold == "zoh":
             x, v = self.x, self.v
             fc = 0.0
             if self._coulomb > 0:
@@ -769,8 +807,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
 
     Notes
     -----
-    Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until 300 us before the
-    deadline and a short spin reads the host's bytes until it. The mock is a process on a
+    Real-time ticks run on ``time.monotonic_ns``: ``select`` sleeps until the absolute
+    deadline (waking for the host's bytes meanwhile), then the tick; no spin (a
+    ``SCHED_FIFO`` process spinning to each deadline is throttled under load;
+    :data:`MOCK_SPIN_NS` before it, 0 by default). The mock is a process on a
     shared machine, not a microcontroller: when the OS schedules it more than half a period
     late, the tick is counted in ``overruns`` and the next tick is put at least half a period
     later (the schedule slips rather than compressing the host's time to answer, so ``late``
@@ -823,7 +863,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 if deadline is None:
                     period_ns = int(round(1e9 / mock.rate_hz))
                     deadline = now_ns
-                wait = (deadline - now_ns - 300_000) / 1e9
+                wait = (deadline - now_ns - MOCK_SPIN_NS) / 1e9
             else:
                 deadline = None
                 wait = 0.05

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["RealtimePriority"]
+__all__ = ["RealtimePriority", "sleep_until_ns"]
 
 
 class RealtimePriority:
@@ -71,3 +71,49 @@ class RealtimePriority:
             except OSError:  # pragma: no cover - lowering priority is always permitted
                 pass
             self._saved = None
+
+
+def _libc_clock_nanosleep():
+    """libc's ``clock_nanosleep`` through ctypes (the call releases the GIL), or None."""
+    import ctypes
+    import ctypes.util
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        fn = libc.clock_nanosleep
+    except (OSError, AttributeError):  # pragma: no cover - not Linux / glibc
+        return None
+    fn.argtypes = (ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
+    fn.restype = ctypes.c_int
+    return fn
+
+
+_CLOCK_NANOSLEEP = _libc_clock_nanosleep()
+_CLOCK_MONOTONIC = 1
+_TIMER_ABSTIME = 1
+
+
+def sleep_until_ns(deadline_ns: int) -> None:
+    """Sleep until ``time.monotonic_ns()`` reaches ``deadline_ns``, without spinning.
+
+    An absolute-deadline sleep (POSIX ``clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)``):
+    no drift from computing a relative duration late, restarted after a signal; under
+    ``SCHED_FIFO`` the kernel's timer slack is 0, so the wake-up is as early as the timer
+    allows and a real-time thread leaves its core to others meanwhile (a spin would be
+    throttled by ``sched_rt_runtime_us``). Falls back on ``time.sleep``.
+
+    Parameters
+    ----------
+    deadline_ns : int
+        Deadline on ``time.monotonic_ns`` (CLOCK_MONOTONIC) [ns]; in the past: no sleep.
+    """
+    import ctypes
+    import time
+
+    if _CLOCK_NANOSLEEP is None:  # pragma: no cover - not Linux / glibc
+        rem = deadline_ns - time.monotonic_ns()
+        if rem > 0:
+            time.sleep(rem * 1e-9)
+        return
+    ts = (ctypes.c_long * 2)(deadline_ns // 1_000_000_000, deadline_ns % 1_000_000_000)
+    while _CLOCK_NANOSLEEP(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ctypes.byref(ts), None) == 4:
+        pass    # EINTR: a signal (its Python handler runs after the return); sleep on

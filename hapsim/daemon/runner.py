@@ -16,9 +16,12 @@ A pipeline of named steps, each returning a small result object (DESIGN §4-§5)
    transport opened (in-process mock, embedded mock on a pty, or a given port), and the host
    loop run (:class:`~hapsim.daemon.loop.HostLoop`).
 4. The logged positions after the excitation has ended are identified with
-   :func:`hapsim.analysis.fit_rendered` (matrix pencil, model order = number of non-zero
-   predicted closed-loop poles, i.e. plant order 2 + d + 1 for a wall with damping) and
-   compared with the prediction.
+   :func:`hapsim.analysis.identify.measure_felt`: the full-order matrix pencil when the
+   record is exact (noise-free, reproduced to round-off), otherwise a least-squares fit of
+   the felt pair, the slow modes and the offset, robust to a quantised or noisy sensor
+   (step from ``device.position_resolution`` or HELLO's ``position_scale``), with standard
+   errors; the report states the interval and whether it holds the prediction, or why the
+   record supports no measurement.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hapsim.analysis.network import device_body
 from hapsim.analysis.targets import apply_targets
 from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
@@ -183,7 +187,8 @@ def predict(scene: Scene) -> dict:
 
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
-             skip: int = 3) -> dict:
+             skip: int = 3, predicted=None, felt: complex | None = None,
+             quantum: float = 0.0, noise: float = 0.0, sensor_response=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -213,13 +218,25 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
+    predicted : array_like of complex, optional
+        Predicted non-zero closed-loop poles seen at the port; with ``felt`` (the predicted
+        felt pole) the measurement is :func:`hapsim.analysis.identify.measure_felt`
+        (robust to a quantised or noisy sensor, with standard errors); without, the full
+        order matrix pencil alone.
+    quantum, noise : float
+        Position sensor step [m] and noise standard deviation [m] (0: none).
+    sensor_response : ndarray, optional
+        Impulse response of the sensor error to the logged position
+        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
 
     Returns
     -------
     dict
         ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; or ``error`` (str) when nothing can be
-        identified.
+        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
+        :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
+        be identified or the record cannot support a measurement.
     """
     from hapsim.analysis.identify import fit_rendered
 
@@ -252,12 +269,23 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     y, s = y[a:b], s[a:b]
     out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
            "order": int(order), "late_in_segment": late_in}
-    # pencil parameter: Hua & Sarkar's N/3 is the low-variance choice but makes the Hankel
-    # matrix square-ish (an SVD of seconds on a loaded machine for N = 1000); a thin
-    # Hankel with L = max(10 order, 60) columns is exact on noise-free data and cheap.
-    n_use = y.size - (1 if offset else 0)
-    pencil = min(max(int(order), n_use // 3), max(10 * int(order), 60))
+    from hapsim.analysis.identify import thin_pencil
+    pencil = thin_pencil(order, y.size - (1 if offset else 0))
     out["pencil"] = pencil
+    if predicted is not None and felt is not None and y.size:
+        from hapsim.analysis.identify import measure_felt
+        try:
+            res = measure_felt(y, period, mass, predicted, felt, offset=offset,
+                               quantum=quantum, noise=noise, order=int(order), pencil=pencil,
+                               sensor_response=sensor_response)
+        except ConfigError as exc:
+            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+            return out
+        out.update(res)
+        if "error" in res:
+            for q in ("k", "b", "f0_hz", "damping_ratio"):
+                out.pop(q, None)
+        return out
     try:
         md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
     except ConfigError as exc:
@@ -473,6 +501,8 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
+    loop: str = "compiled"
+    driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -514,12 +544,23 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        if self.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            get_driver(self.driver)             # unknown name: ConfigError before any work
+            if not self.plan.empty:
+                raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
+                                  "has none", key="--faults")
+            self.host_clocked = True            # the protocols answer commands: no clock
+            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:
             raise ConfigError("transport 'serial' needs a port", key="--port")
         if tp == "inprocess" and not self.lockstep:
             raise ConfigError("the in-process mock is lockstep only", key="--lockstep")
+        if self.loop not in ("compiled", "python"):
+            raise ConfigError(f"unknown loop {self.loop!r}; valid: compiled, python",
+                              key="--loop")
         if self.telemetry is not None and os.path.splitext(self.telemetry)[1].lower() not in (
                 ".npz", ".csv", ".hst"):
             raise ConfigError(f"unknown telemetry format for {self.telemetry!r}; valid: .hst "
@@ -619,6 +660,8 @@ class LoopRun:
     error : DeviceError or ProtocolError or None
         What ended the loop when the device was lost beyond recovery (``res`` then holds
         the run up to the loss); :func:`run_scene` raises it with the report attached.
+    loop : HostLoop or CompiledHostLoop
+        The loop that ran.
     """
 
     res: object
@@ -628,6 +671,7 @@ class LoopRun:
     control: object = None
     sound: dict | None = None
     error: Exception | None = None
+    loop: object = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -733,6 +777,29 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       reconnect_time=float(opts.reconnect_time))
 
 
+class _CompileThread(threading.Thread):
+    """Compile the compiled loop (:func:`hapsim.daemon.fastloop.warm_up`) beside the
+    device's start-up; :meth:`finish` waits for it and re-raises its error."""
+
+    def __init__(self, engine) -> None:
+        super().__init__(name="hapsim-compile", daemon=True)
+        self.engine = engine
+        self.error: BaseException | None = None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            from hapsim.daemon.fastloop import warm_up
+            warm_up(self.engine)
+        except BaseException as exc:  # re-raised by finish() in the caller's thread
+            self.error = exc
+
+    def finish(self) -> None:
+        self.join()
+        if self.error is not None:
+            raise self.error
+
+
 def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     """Step 3: install the signal handlers, warm the kernels, open the device.
 
@@ -770,10 +837,22 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     rt = None
     mock = None
     transport, lockstep = opts.transport, opts.lockstep
+    warm = None
     try:
         limit_blas_threads(1)
         _warm_up(scene)
         engine = Engine(scene)
+        corr = getattr(dev, "correction", None)
+        sensor = corr is not None and corr.get("kind") == "velocity_sensor"
+        if corr is not None:
+            # a device correction: the engine's port force follows its law (one-link
+            # scene); a velocity sensor reads the lockstep mock in-process (below)
+            from hapsim.daemon.correction import corrected_engine
+            if not sensor or transport != "inprocess":
+                engine = corrected_engine(scene)       # raises for a sensor on a wire
+        if opts.loop == "compiled" and transport in ("pty", "serial") and corr is None:
+            # the compiled loop compiles while the device (the mock's child) starts
+            warm = _CompileThread(Engine(scene))
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -782,11 +861,25 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         cfg = _loop_config(prep, opts)
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
         rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
-        if transport == "inprocess":
+        if opts.driver not in (None, "framed"):
+            from hapsim.drivers import get_driver
+            from hapsim.drivers.transport import DriverTransport
+            drv = get_driver(opts.driver)
+            if opts.port is None:
+                from hapsim.drivers.mock import EmbeddedDriverMock
+                embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
+                                              scene.rate_hz, seed=opts.seed)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded.release_slave()
+            else:
+                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+        elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = InProcessTransport(mock)
+            if sensor:
+                engine = corrected_engine(scene, velocity=lambda m=mock: m.physics.v)
         elif transport == "sim":
             from hapsim.daemon.transport import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
@@ -802,6 +895,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
+        if warm is not None:
+            warm.finish()
     except BaseException:
         if rt is not None:
             rt.__exit__(None, None, None)
@@ -845,7 +940,17 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        corrected = getattr(prep.scene.device, "correction", None) is not None
+        if (opts.loop == "compiled" and opts.sound is None and opts.osc is None
+                and not corrected):
+            # the compiled loop steps the kernel itself: live OSC changes and the sounding
+            # engine run per sample in Python, so they keep the Python loop; so does a
+            # device correction (its law runs in the engine's port_step, see
+            # hapsim.daemon.correction)
+            from hapsim.daemon.fastloop import CompiledHostLoop
+            loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        else:
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -888,7 +993,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             mock_report["fault_events"] = tr.device.events
     sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
                                        **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):
@@ -947,7 +1052,66 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
+def _predicted_poles(scene: Scene):
+    """Predicted non-zero closed-loop poles seen at the port and the felt one (or None).
+
+    The same models as :func:`predict`: the THS map for one port link, ``check_scene``
+    (observable modes, conjugates added) otherwise.
+    """
+    an = _analysis()
+    dev = scene.device
+    plinks = _port_links(scene)
+    single = len(scene.links) == 1 and len(plinks) == 1 and all(
+        m.kind != "mass" for m in scene.masses) and scene.audio is None
+    if single:
+        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
+        K = sum(lk.stiffness for lk in plinks)
+        B = sum(lk.damping for lk in _links_at_port(scene))
+        r = an["render"](loop, K, B)
+        z = np.asarray(an["closed_loop_poles"](loop, K, B), dtype=complex)
+        felt = None if r.rendered is None else complex(r.rendered.z)
+        return z[np.abs(z) > _ZERO_POLE], felt
+    from hapsim.analysis.modes import OBSERVABLE_TOL
+    chk = an["check_scene"](scene)
+    z = []
+    for md in chk.modes:
+        if abs(md.z) > _ZERO_POLE and (md.participation is None
+                                       or md.participation >= OBSERVABLE_TOL):
+            z += [md.z, complex(md.z).conjugate()] if md.kind == "pair" else [md.z]
+    felt = None if chk.rendered is None else complex(chk.rendered.z)
+    return np.asarray(z, dtype=complex), felt
+
+
+def _verdict(prep: PreparedRun, measured: dict) -> None:
+    """Add ``k_interval``, ``b_interval`` (the stated half-widths), ``within`` and
+    ``verdict`` to an identification result.
+
+    The interval is the fit's: :data:`hapsim.analysis.identify.COVERAGE` standard errors,
+    the residual's or the sensor's (its error fed back through the loop), the larger; never
+    below 1e-9 relative (round-off of an exact record). The quantiser's loop gain
+    (describing function, :func:`hapsim.analysis.identify.quantiser_gain_bound`) is left
+    out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
+    errors observed over random loops (tests/test_identify_quantised.py).
+    """
+    pred = prep.pred
+    if "k" not in measured or "k_unc" not in measured or pred.get("k") is None:
+        return
+    dk, db = measured["k_unc"], measured["b_unc"]
+    dk = max(dk, 1e-9 * abs(pred["k"]))
+    db = max(db, 1e-9 * abs(pred["b"]))
+    measured["k_interval"], measured["b_interval"] = dk, db
+    if measured.get("method") == "varpro":
+        from hapsim.analysis.identify import COVERAGE
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual or sensor, the larger")
+    ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
+    measured["within"] = bool(ok)
+    measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
+                           "measured differs from predicted by more than the stated "
+                           "uncertainty")
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -958,24 +1122,42 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
         :func:`prepare_run`'s result.
     tel : Telemetry
         The run's telemetry.
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO: its ``position_scale`` is the sensor step when the scene's
+        ``device.position_resolution`` does not give one.
 
     Returns
     -------
     dict
-        :func:`identify`'s result with ``note`` (why prediction and measurement may differ),
+        :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
+        ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
         ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    quantum = float(dev.position_resolution or 0.0)
+    if not quantum and hello is not None and math.isfinite(hello.position_scale):
+        quantum = max(float(hello.position_scale), 0.0)
     if pred["order"]:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
         offset = _has_offset(scene)
-        measured = identify(cols["position"], cols["seq"], T, pred["order"], dev.mass, start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2)
+        poles, felt = _predicted_poles(scene)
+        response = None
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.identify import sensor_error_response
+            try:
+                response = sensor_error_response(scene, int(cols["seq"].size))
+            except ConfigError:
+                response = None
+        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+                            device_body(dev)[0], start,
+                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
+                            sensor_response=response)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links):
         notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
@@ -994,6 +1176,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry) -> dict:
                      f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
+    _verdict(prep, measured)
     if "k" in measured:
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
@@ -1031,12 +1214,16 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     hello = res.hello
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
+        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
+        "armed_monotonic_s": getattr(run.loop, "_t0", None),
         "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
         "late": res.late, "missed": res.missed, "overruns": res.overruns,
-        "clamped": res.clamped, "turnaround_us": res.turnaround_us,
+        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
         "scheduling": conn.rt.note,
@@ -1089,7 +1276,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               reconnect_attempts: int = 8, reconnect_time: float = 10.0,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None) -> dict:
+              jack_server: str | None = None,
+              driver: str | None = None, loop: str = "compiled") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1158,6 +1346,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         Most time spent recovering one loss [s].
     telemetry_interval : float
         Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -1169,6 +1362,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
+        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1203,12 +1400,13 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect=reconnect, lost_timeout=lost_timeout,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server).check()
+                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
+                      driver=driver, loop=loop).check()
     prep = prepare_run(scene, opts)
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel)
+    measured = identify_run(prep, conn.tel, run.res.hello)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
@@ -1321,6 +1519,11 @@ def format_report(rep: dict) -> str:
         re = m["rel_err"]
         lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
                      f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
+        if m.get("interval_note"):
+            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4f')} "
+                         f"{_fmt(m['b_interval'], '11.5f')}   ({m['interval_note']})")
+        if m.get("verdict"):
+            lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
             rt = m["rel_err_target"]
             lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
@@ -1339,7 +1542,8 @@ def format_report(rep: dict) -> str:
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
                  f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
-                 f"late {lp['late']}, missed {lp['missed']}, clamped {lp['clamped']}; "
+                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
+                 f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
     pr = lp.get("ping_rtt_us") or {}

@@ -54,7 +54,8 @@ Columns
     Bits (uint8): :data:`FLAG_LATE` (as ``late``), :data:`FLAG_LOST` (first sample after
     the device was lost and recovered: the scene restarted here), :data:`FLAG_RAMP` (force
     scaled by the ramp after a recovery), :data:`FLAG_CLAMPED` (force clamped at the
-    limit). Files written before this column existed read as 0.
+    limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped). Files
+    written before this column existed read as 0.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ from hapsim.errors import ConfigError
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
            "write_journal", "save_columns",
            "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
-           "FLAG_CLAMPED"]
+           "FLAG_CLAMPED", "FLAG_SKIPPED"]
 
 #: Magic bytes that open each journal chunk.
 CHUNK_MAGIC = b"HSTC"
@@ -93,6 +94,9 @@ FLAG_LOST = 2
 FLAG_RAMP = 4
 #: ``flags`` bit: the force was clamped at the force limit.
 FLAG_CLAMPED = 8
+#: ``flags`` bit: older STATEs were waiting with this one and were skipped (the backlog
+#: policy answers the newest; :attr:`hapsim.daemon.loop.LoopResult.skipped`).
+FLAG_SKIPPED = 16
 
 
 class Telemetry:

@@ -1,0 +1,242 @@
+"""Correction means compared on the paper's grid (Florens, Voda & Urma Figs. 7-9, Sec. 7).
+
+For one device (mass, friction, rate, delay, hold) and each correction of
+:mod:`hapsim.analysis.corrections` (and the plain element), three figures say which
+correction is best:
+
+stable area
+    ``int_0^Bw min(K_max(B), Kw) dB`` over a window ``[0, Kw] x [0, Bw]`` of the virtual
+    (K, B) plane, with the exact boundary ``K_max(B)`` (:func:`hapsim.analysis.stability_limit`),
+    reported as a ratio to the plain element's area.
+worst distortion
+    Over a stated usable region of targets ``k in [k_lo, k_hi]``, ``b in [b_lo, b_hi]``
+    (a ``n x n`` grid), the worst ``max(|K - k| / k, |B + b0 - b| / b)`` of the calibrated
+    ``(K, B)`` (:func:`hapsim.analysis.calibrate`): 0 for a simulator that renders what it
+    simulates; ``inf`` when some target of the region is not renderable.
+tangency at low (K, B)
+    The Jacobian ``J = d(k, b)/d(K, B)`` of the felt pair in the paper's normalised units
+    (``K T^2/m``, ``B T/m``) at a small ``(K, B)``; the grid is tangent to the identity when
+    ``max |J - I| < TANGENT_TOL``. The delay makes it not tangent (paper's remark on Fig.
+    8): ``db/dK = -(d + 1/2) T`` (ZOH), i.e. ``-(d + 1/2)`` in normalised units whatever
+    the rate, so raising the rate does not help.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapsim.analysis.corrections import Correction
+from hapsim.analysis.grid import grid
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.ths import calibrate, render, stability_limit
+
+__all__ = ["compare_corrections", "default_corrections", "tangency", "TANGENT_TOL",
+           "passivity_time_domain"]
+
+#: ``max |J - I|`` below which the grid counts as tangent to the identity at the origin.
+TANGENT_TOL = 0.05
+
+
+def default_corrections(loop: LoopModel) -> list:
+    """The corrections compared by default, with parameters scaled to the loop.
+
+    Parameters
+    ----------
+    loop : LoopModel
+
+    Returns
+    -------
+    list of (Correction or None)
+        None (the plain element), velocity sensor, velocity filter at a tenth of the rate,
+        prediction ``d`` and ``d + 1/2`` samples ahead (the hold's half sample),
+        inertia compensation of half the mass, virtual coupling ``Kc = 0.9 x 2 (b0 + ...)``
+        at Colgate's passivity bound ``Kc = 2 (b0 - Bc) / T`` (``Bc = 0``; a stiffer
+        coupling if ``b0 = 0``: ``m / T^2``).
+    """
+    T = loop.period
+    kc = 0.9 * 2.0 * loop.friction / T if loop.friction > 0 else loop.mass / (T * T)
+    return [None, Correction("velocity_sensor"),
+            Correction("velocity_filter", cutoff_hz=0.1 * loop.rate_hz),
+            Correction("prediction"), Correction("prediction", horizon=loop.delay + 0.5),
+            Correction("inertia_compensation", mass=0.5 * loop.mass),
+            Correction("virtual_coupling", stiffness=kc, damping=0.0)]
+
+
+def _with(loop: LoopModel, corr) -> LoopModel:
+    d = loop.to_dict()
+    d.pop("correction", None)
+    return LoopModel(**d, correction=corr)
+
+
+def tangency(loop: LoopModel, *, at: float = 1e-3, step: float = 1e-6) -> np.ndarray:
+    """Jacobian of the felt (k, b) against the virtual (K, B) near the origin, normalised.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    at : float, optional
+        Normalised point ``K T^2/m = at``, ``B T/m = at`` (small: the low (K, B) corner).
+    step : float, optional
+        Central-difference step in normalised units.
+
+    Returns
+    -------
+    ndarray, shape (2, 2)
+        ``[[dk/dK, dk/dB], [db/dK, db/dB]]`` in normalised units (identity for a perfect
+        simulator); nan where no pair is rendered.
+    """
+    T, m = loop.period, loop.mass
+    sK, sB = m / (T * T), m / T
+
+    def felt(kn, bn):
+        r = render(loop, kn * sK, bn * sB)
+        return np.array([r.k / sK, r.b / sB])
+    J = np.empty((2, 2))
+    for j, (dk, db) in enumerate(((step, 0.0), (0.0, step))):
+        J[:, j] = (felt(at + dk, at + db) - felt(at - dk, at - db)) / (2 * step)
+    return J
+
+
+def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_range=None,
+                        n: int = 6, window=None, n_boundary: int = 61,
+                        progress=None) -> dict:
+    """Grid, stable area, worst distortion and tangency for each correction.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The device (its own ``correction`` is ignored).
+    corrections : list of (Correction or None), optional
+        Default :func:`default_corrections`.
+    k_range, b_range : (float, float), optional
+        Usable region of targets [N/m], [N s/m]. Default ``k`` from 5 % to 50 % of the
+        plain loop's ``K_max`` at ``B = 2 b0`` (at least 1 % of ``m/T^2`` if that is 0),
+        ``b`` from ``b0 + 0.5 sqrt(k_lo m) ...`` i.e. damping ratios 0.05 .. 0.5 at the
+        middle ``k``.
+    n : int, optional
+        Points per axis of the usable region (and of the drawn grid).
+    window : (float, float), optional
+        ``(Kw, Bw)`` of the stable-area window; default 10 ``k_hi`` and 3 ``b_hi``.
+    n_boundary : int, optional
+        Points of the boundary ``K_max(B)`` over ``[0, Bw]``.
+    progress : callable, optional
+        ``progress(i, total, label)`` after each correction.
+
+    Returns
+    -------
+    dict
+        ``loop`` (dict), ``k_range``, ``b_range``, ``window``, ``b0``, ``tangent_tol``,
+        ``rows``: per correction ``label``, ``correction`` (dict or None), ``grid``
+        (:class:`GridResult`), ``boundary`` ((B, K_max) arrays), ``stable_area``
+        [N^2 s/m^2], ``stable_area_ratio`` (to the plain element), ``worst_distortion``,
+        ``unrenderable`` (count in the usable region), ``jacobian`` (2x2 list),
+        ``off_identity`` (``max |J - I|``), ``tangent`` (bool).
+    """
+    base = _with(loop, None)
+    T, m, b0 = base.period, base.mass, base.friction
+    if corrections is None:
+        corrections = default_corrections(base)
+    if k_range is None:
+        kp = stability_limit(base, 2.0 * b0)
+        if not (kp > 0 and math.isfinite(kp)):
+            kp = 0.02 * m / (T * T)
+        k_range = (0.05 * kp, 0.5 * kp)
+    k_lo, k_hi = (float(v) for v in k_range)
+    if b_range is None:
+        kmid = math.sqrt(k_lo * k_hi)
+        crit = 2.0 * math.sqrt(kmid * m)
+        b_range = (max(b0 * 1.2, 0.05 * crit), max(b0 * 1.5, 0.5 * crit))
+    b_lo, b_hi = (float(v) for v in b_range)
+    Kw, Bw = window if window is not None else (10.0 * k_hi, 3.0 * b_hi)
+    ks = np.linspace(k_lo, k_hi, n)
+    bs = np.linspace(b_lo, b_hi, n)
+    Bgrid = np.linspace(0.0, Bw, n_boundary)
+    rows = []
+    total = len(corrections)
+    for i, corr in enumerate(corrections):
+        lp = _with(base, corr)
+        label = "plain (backward difference)" if corr is None else corr.label()
+        Kmax = np.array([stability_limit(lp, B) for B in Bgrid])
+        area = float(np.trapezoid(np.minimum(Kmax, Kw), Bgrid))
+        worst, bad = 0.0, 0
+        for k in ks:
+            for b in bs:
+                c = calibrate(lp, k, b)
+                if not c.renderable:
+                    bad += 1
+                    continue
+                worst = max(worst, abs(c.K - k) / k, abs(c.B + b0 - b) / b)
+        g = grid(lp, ks, bs, boundary_B=Bgrid)
+        J = tangency(lp)
+        off = float(np.max(np.abs(J - np.eye(2))))
+        rows.append({"label": label, "correction": None if corr is None else corr.to_dict(),
+                     "grid": g, "boundary": (Bgrid, Kmax), "stable_area": area,
+                     "worst_distortion": math.inf if bad else worst,
+                     "worst_distortion_renderable": worst, "unrenderable": bad,
+                     "jacobian": J.tolist(), "off_identity": off,
+                     "tangent": bool(off < TANGENT_TOL)})
+        if progress is not None:
+            progress(i + 1, total, label)
+    a0 = rows[0]["stable_area"] if corrections[0] is None else None
+    for r in rows:
+        r["stable_area_ratio"] = (r["stable_area"] / a0) if a0 else None
+    return {"loop": base.to_dict(), "k_range": (k_lo, k_hi), "b_range": (b_lo, b_hi),
+            "window": (float(Kw), float(Bw)), "b0": b0, "tangent_tol": TANGENT_TOL,
+            "n": n, "rows": rows}
+
+
+def passivity_time_domain(loop: LoopModel, K: float, B: float, *, duration: float = 2.0,
+                          x0: float = 0.005) -> dict:
+    """The passivity controller beside the plain element, in the time domain only.
+
+    Hannaford & Ryu's passivity observer/controller (``safety.passivity_controller`` of
+    ``hapsim run``) is nonlinear: it has no P, Q, R and no grid. It is compared by running
+    the lockstep daemon on a one-link wall ``(K, B)`` with and without it (energy limit
+    raised to 100 J, position limit 10 m, so that only the loop decides).
+
+    Parameters
+    ----------
+    loop : LoopModel
+        Rigid device without correction (mass, friction, rate, delay, hold).
+    K, B : float
+        Virtual wall [N/m], [N s/m]; typically beyond the plain ``K_max(B)``.
+    duration : float, optional
+        Run length [s].
+    x0 : float, optional
+        Initial displacement into the wall [m].
+
+    Returns
+    -------
+    dict
+        ``{"plain": run, "passivity_controller": run}``, each with ``bounded`` (the run
+        lasted its duration with no safety stop), ``ticks``, ``stop_reason``,
+        ``energy_excess_max_j`` [J], ``passivity_samples`` (samples where the controller
+        damped), ``v_max`` [m/s], ``f_max`` [N] and the equivalent felt ``k``, ``b`` of a
+        linear fit (for the nonlinear run only an indication; None when not identified).
+    """
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import parse_scene
+
+    out = {}
+    for key, pc in (("plain", "false"), ("passivity_controller", "true")):
+        text = f"""
+rate_hz: {loop.rate_hz!r}
+masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
+links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {float(K)!r},
+          damping: {float(B)!r}}}]
+device: {{mass: {loop.mass!r}, friction: {loop.friction!r}, delay: {loop.delay},
+          hold: {loop.hold}, force_limit: 1000000.0}}
+excitation: {{x0: {float(x0)!r}}}
+safety: {{passivity_controller: {pc}, energy_limit: 100.0, position_limit: 10.0}}
+"""
+        rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
+                        handle_signals=False, duration=duration, allow_unstable=True)
+        lp, ms = rep["loop"], rep["measured"]
+        out[key] = {"bounded": not lp["safety_stop"] and lp["ticks"] >= lp["requested"],
+                    "ticks": lp["ticks"], "stop_reason": lp["stop_reason"],
+                    "energy_excess_max_j": lp["energy_excess_max_j"],
+                    "passivity_samples": lp["passivity_samples"], "v_max": lp["v_max"],
+                    "f_max": lp["f_max"], "k": ms.get("k"), "b": ms.get("b")}
+    return {"K": float(K), "B": float(B), "duration": float(duration), **out}

@@ -1,0 +1,644 @@
+"""Families of THS: the hand varies, what is felt and whether every member is stable.
+
+Florens, Voda & Urma Sec. 4: the simulator must be judged over "the whole family of
+possible parameter sets that the THS may get along its variations". The family here is
+the hand of the device section (:class:`hapsim.scene.Hand`, each field a value or a range):
+its members are the range corners, the nominal member and a grid or seeded samples
+(:func:`hapsim.analysis.hand.members`).
+
+For every member the closed-loop state matrix of the whole scene
+(:func:`hapsim.analysis.network.closed_loop`) differs only in its plant rows, so the
+family is one stack of matrices and one batched ``numpy.linalg.eigvals`` call. The felt
+pair is the least damped complex pair, ``k = m |s|^2``, ``b = -2 m Re s`` with ``m`` the
+member's total moving mass (handle + hand), ``s = ln(z)/T`` (DESIGN.md Sec. 4).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hapsim.analysis.hand import HAND_FIELDS, hand_zoh, members as hand_members
+from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
+from hapsim.analysis.scene_check import RIGID_TOL
+from hapsim.errors import ConfigError
+
+__all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "family_poles",
+           "felt_pairs",
+           "felt_links", "family_error", "calibrate_family", "consistency",
+           "family_members"]
+
+
+def family_members(scene, samples: int | None = None, *, grid: int = 9,
+                   seed: int = 0) -> np.ndarray:
+    """The members of a scene's hand family (one row, the rigid no-hand body, without one).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        With a port and a device.
+    samples, grid, seed
+        As :func:`hapsim.analysis.hand.members`.
+
+    Returns
+    -------
+    ndarray, shape (n, 4)
+        ``(mh, bh, kg, bg)`` per member; without a hand, ``[[0, 0, inf, 0]]``.
+    """
+    hand = getattr(scene.device, "hand", None)
+    if hand is None:
+        return np.array([[0.0, 0.0, math.inf, 0.0]])
+    return hand_members(hand, samples, grid=grid, seed=seed)
+
+
+def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
+    """Closed-loop state matrices of a scene for every member of its hand family.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device (no correction).
+    mem : ndarray, shape (n, 4)
+        Members ``(mh, bh, kg, bg)``; the grip is rigid (``kg = inf``) for all or none.
+    calibrated : mapping, optional
+        ``{link: (K, B)}`` overrides (target links).
+    integrator : str, optional
+        Scheme of the virtual masses (default the scene's).
+
+    Returns
+    -------
+    A : ndarray, shape (n, s, s)
+        ``A[i]`` equals :func:`hapsim.analysis.network.closed_loop` ``(scene,
+        member=mem[i])`` (same layout), built from one frame and the stacked plants.
+    names : list of str
+        State names.
+
+    Raises
+    ------
+    ConfigError
+        A scene without a port or device, rigid and compliant members mixed.
+    """
+    from hapsim.analysis.network import (_frame, check_integrator, network, virtual_blocks,
+                                         virtual_state_names)
+
+    if scene.port is None or scene.device is None:
+        raise ConfigError("a family needs a scene with a port and a device section",
+                          file=scene.path, key="device")
+    dev = scene.device
+    if getattr(dev, "correction", None) is not None:
+        raise ConfigError("the scene state matrix has no correction states; use "
+                          "family_poles for a corrected one-link scene", file=scene.path,
+                          key="device.correction")
+    mem = np.atleast_2d(np.asarray(mem, float))
+    finite = np.isfinite(mem[:, 2])
+    if finite.any() and not finite.all():
+        raise ConfigError("members mix rigid and compliant grips", key="device.hand")
+    integrator = integrator or getattr(scene, "integrator", None) or "centred"
+    check_integrator(integrator, scene)
+    net = network(scene, calibrated)
+    T = scene.period
+    blocks = virtual_blocks(net, integrator, T)
+    A0, u, nplant, names = _frame(scene, dev, scene.port.name, *blocks,
+                                  virtual_state_names(net, integrator), mem[0])
+    n = mem.shape[0]
+    A = np.repeat(A0[None], n, axis=0)
+    m, b0 = float(dev.mass), float(dev.friction)
+    if finite.all():
+        Aw, Bd = hand_zoh(m, b0, mem, T)
+        Ad = Aw + np.eye(4)
+    elif dev.hold == "zoh":
+        Ad = np.empty((n, 2, 2))
+        Bd = np.empty((n, 2))
+        for i in range(n):
+            Ad[i], Bd[i] = zoh_state_space(m + mem[i, 0], b0 + mem[i, 1], T)
+    else:
+        mass = m + mem[:, 0]
+        x = (b0 + mem[:, 1]) * T / mass
+        a = np.exp(-x)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = np.where(x > 0, x / -np.expm1(-x), 1.0)
+        A[:, 0, 0] = 1.0 + a
+        A[:, 0, 1] = -a
+        A[:, 0, :] += (T * T / (mass * c))[:, None] * u[None, :]
+        return A, names
+    A[:, :nplant, :nplant] = Ad
+    A[:, :nplant, :] += Bd[:, :, None] * u[None, None, :]
+    return A, names
+
+
+def family_poles(scene, mem: np.ndarray, *, calibrated=None) -> np.ndarray:
+    """Closed-loop poles of every member, shape (n, s).
+
+    Without a device correction: eigenvalues of :func:`family_matrices` (one batched call).
+    With one (a one-link scene only, as everywhere corrections are analysed): the roots of
+    each member's ``P K + Q B + R`` (:func:`hapsim.analysis.loop.closed_loop_poles` of
+    ``LoopModel.from_device(device, rate, member)``), one member at a time, padded with
+    zeros to a common length.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    mem : ndarray, shape (n, 4)
+    calibrated : mapping, optional
+        ``{link: (K, B)}``.
+
+    Returns
+    -------
+    ndarray of complex, shape (n, s)
+
+    Raises
+    ------
+    ConfigError
+        As :func:`family_matrices`; a corrected scene that is not one port-ground link.
+    """
+    dev = scene.device
+    if dev is None or getattr(dev, "correction", None) is None:
+        A, _ = family_matrices(scene, mem, calibrated=calibrated)
+        return np.linalg.eigvals(A)
+    from hapsim.analysis.loop import LoopModel, closed_loop_poles
+    from hapsim.analysis.network import link_values
+
+    links = felt_links(scene, calibrated)
+    if len(scene.links) != 1 or len(links) != 1 or any(
+            m.kind == "mass" for m in scene.masses):
+        raise ConfigError("a family with a device correction is analysed on a scene of one "
+                          "spring_damper between the port and a ground", file=scene.path,
+                          key="device.correction")
+    _, K, B = link_values(scene, calibrated)[0]
+    rows = [closed_loop_poles(LoopModel.from_device(dev, scene.rate_hz, m), K, B)
+            for m in np.atleast_2d(mem)]
+    n = max(r.size for r in rows)
+    return np.array([np.concatenate([r, np.zeros(n - r.size)]) for r in rows])
+
+
+def felt_pairs(ev: np.ndarray, mass, period: float):
+    """Felt ``(k, b)`` and spectral radius of every row of eigenvalues (vectorised).
+
+    Parameters
+    ----------
+    ev : ndarray of complex, shape (n, s)
+        Closed-loop poles per member.
+    mass : float or ndarray, shape (n,)
+        Reference mass per member [kg].
+    period : float
+        ``T`` [s].
+
+    Returns
+    -------
+    k, b : ndarray, shape (n,)
+        ``m |s|^2`` [N/m] and ``-2 m Re s`` [N s/m] of the least damped complex pair
+        (largest ``|z|`` among poles with ``Im z > 0``); nan when a member has none.
+    rho : ndarray, shape (n,)
+        Spectral radius ``max |z|``.
+    stable : ndarray of bool, shape (n,)
+        ``rho <= 1 + STABILITY_TOL``, poles within ``RIGID_TOL`` of ``z = 1`` excepted
+        (as :func:`hapsim.analysis.check_scene`).
+    """
+    mod = np.abs(ev)
+    rho = mod.max(axis=1)
+    near_one = np.abs(ev - 1.0) <= RIGID_TOL
+    stable = np.all((mod <= 1.0 + STABILITY_TOL) | near_one, axis=1)
+    cplx = ev.imag > 1e-12 * np.maximum(mod, 1e-300)
+    score = np.where(cplx, mod, -1.0)
+    j = np.argmax(score, axis=1)
+    z = ev[np.arange(ev.shape[0]), j]
+    has = score[np.arange(ev.shape[0]), j] > 0
+    s = np.log(np.where(has, z, 1.0)) / period
+    m = np.broadcast_to(np.asarray(mass, float), rho.shape)
+    k = np.where(has, m * np.abs(s) ** 2, np.nan)
+    b = np.where(has, -2.0 * m * s.real, np.nan)
+    return k, b, rho, stable
+
+
+def _one_link_scene(scene, lk):
+    """The scene reduced to the port, one ground and one link between them."""
+    keep = {lk.m1, lk.m2}
+    masses = tuple(m for m in scene.masses if m.name in keep)
+    return dataclasses.replace(scene, masses=masses, links=(lk,))
+
+
+def felt_links(scene, calibrated=None) -> list:
+    """The links whose felt ``(k, b)`` a family reports: every spring_damper between the
+    port and a ground (targets first, in file order).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    calibrated : mapping, optional
+        ``{link: (K, B)}`` for target links.
+
+    Returns
+    -------
+    list of (Link, float, float)
+        ``(link, K [N/m], B [N s/m])``.
+    """
+    if scene.port is None:
+        return []
+    kinds = {m.name: m.kind for m in scene.masses}
+    cal = dict(calibrated or {})
+    out = []
+    for lk in scene.links:
+        ends = {kinds[lk.m1], kinds[lk.m2]}
+        if lk.kind == "spring_damper" and ends == {"port", "ground"}:
+            K, B = cal.get(lk.name, (lk.stiffness, lk.damping))
+            out.append((lk, float(K), float(B)))
+    out.sort(key=lambda t: t[0].target is None)
+    return out
+
+
+def _stats(v: np.ndarray, nominal: float) -> dict:
+    ok = np.isfinite(v)
+    if not ok.any():
+        return {"min": None, "max": None, "nominal": None, "spread": None}
+    lo, hi = float(v[ok].min()), float(v[ok].max())
+    return {"min": lo, "max": hi, "nominal": _f(nominal),
+            "spread": (hi - lo) / abs(nominal) if math.isfinite(nominal) and nominal else None}
+
+
+def _f(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class FamilyResult:
+    """What a family of THS feels, and whether all of it is stable.
+
+    Attributes
+    ----------
+    members : ndarray, shape (n, 4)
+        ``(mh, bh, kg, bg)`` per member (:data:`hapsim.analysis.hand.HAND_FIELDS`); rows
+        ``0 .. corners-1`` are the range corners, row ``corners`` the nominal member.
+    corners : int
+        Number of corner members.
+    mass : ndarray, shape (n,)
+        Total moving mass (handle + hand) per member [kg].
+    rho : ndarray, shape (n,)
+        Spectral radius of the whole scene per member.
+    stable : ndarray of bool, shape (n,)
+        Verdict per member.
+    k, b : ndarray, shape (n,)
+        Felt pair at the port of the whole scene per member [N/m, N s/m].
+    links : dict
+        ``{link name: {"K", "B", "k": ndarray (n,), "b": ndarray (n,)}}``: the felt pair of
+        each port-ground spring_damper alone (:func:`felt_links`).
+    calibrated : dict
+        ``{link: (K, B)}`` used for target links (calibrated on the nominal member).
+    period : float
+        ``T`` [s].
+    """
+
+    members: np.ndarray
+    corners: int
+    mass: np.ndarray
+    rho: np.ndarray
+    stable: np.ndarray
+    k: np.ndarray
+    b: np.ndarray
+    links: dict = field(default_factory=dict)
+    calibrated: dict = field(default_factory=dict)
+    period: float = 1e-3
+
+    @property
+    def robust(self) -> bool:
+        """Whether every member is stable (robust stability over the family)."""
+        return bool(np.all(self.stable))
+
+    @property
+    def worst(self) -> int:
+        """Index of the member with the largest spectral radius."""
+        return int(np.argmax(self.rho))
+
+    def member_dict(self, i: int) -> dict:
+        """Member ``i`` as ``{field: value}`` plus its verdict, spectral radius and felt pair."""
+        out = {f: _f(self.members[i, j]) for j, f in enumerate(HAND_FIELDS)}
+        out["grip_stiffness"] = ("rigid" if not math.isfinite(self.members[i, 2])
+                                 else float(self.members[i, 2]))
+        out.update(index=int(i), corner=bool(i < self.corners), stable=bool(self.stable[i]),
+                   spectral_radius=_f(self.rho[i]), k=_f(self.k[i]), b=_f(self.b[i]))
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary.
+
+        Returns
+        -------
+        dict
+            ``members`` (count), ``corners``, ``robust``, ``worst`` (:meth:`member_dict`),
+            ``unstable`` (count), ``first_unstable`` (member dict or None),
+            ``corners_stable``, ``felt`` (``k``, ``b`` stats: min, max, nominal, spread =
+            (max - min) / nominal), ``links`` (per link: K, B and the same stats),
+            ``calibrated``.
+        """
+        nom = self.corners
+        bad = np.flatnonzero(~self.stable)
+        links = {}
+        for name, d in self.links.items():
+            links[name] = {"K": d["K"], "B": d["B"], "k": _stats(d["k"], d["k"][nom]),
+                           "b": _stats(d["b"], d["b"][nom])}
+        return {"members": int(self.members.shape[0]), "corners": int(self.corners),
+                "robust": self.robust, "unstable": int(bad.size),
+                "corners_stable": bool(np.all(self.stable[:self.corners])),
+                "worst": self.member_dict(self.worst),
+                "first_unstable": self.member_dict(int(bad[0])) if bad.size else None,
+                "felt": {"k": _stats(self.k, self.k[nom]), "b": _stats(self.b, self.b[nom])},
+                "links": links,
+                "calibrated": {k: [float(v[0]), float(v[1])] for k, v in
+                               self.calibrated.items()}}
+
+
+def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
+           calibrated=None, mem: np.ndarray | None = None) -> FamilyResult:
+    """Felt (k, b), spectral radius and verdict of every member of a scene's hand family.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device section (``device.hand`` optional).
+    samples : int, optional
+        Seeded random members after the corners (default: a grid of ``grid`` points per
+        ranged field).
+    grid : int, optional
+        Grid points per ranged field.
+    seed : int, optional
+        Sampling seed.
+    calibrated : mapping, optional
+        ``{link: (K, B)}``; default: every target link calibrated on the nominal member
+        (:func:`hapsim.analysis.targets.apply_targets`).
+    mem : ndarray, shape (n, 4), optional
+        Explicit members (overrides ``samples``/``grid``; no corners then: ``corners = 0``
+        and row 0 is taken as nominal).
+
+    Returns
+    -------
+    FamilyResult
+
+    Raises
+    ------
+    ConfigError
+        No port/device, a correction on the device, an unrenderable target.
+    """
+    from hapsim.analysis.targets import apply_targets
+
+    if calibrated is None:
+        sc, cals = apply_targets(scene)
+        calibrated = {c.link: (c.result.K, c.result.B) for c in cals}
+    corners = 0
+    if mem is None:
+        mem = family_members(scene, samples, grid=grid, seed=seed)
+        hand = getattr(scene.device, "hand", None)
+        if hand is not None:
+            from hapsim.analysis.hand import ranged_fields
+            corners = 2 ** len(ranged_fields(hand))
+    mem = np.atleast_2d(np.asarray(mem, float))
+    T = scene.period
+    mass = float(scene.device.mass) + mem[:, 0]
+    k, b, rho, stable = felt_pairs(family_poles(scene, mem, calibrated=calibrated), mass, T)
+    links = {}
+    for lk, K, B in felt_links(scene, calibrated):
+        sub = _one_link_scene(scene, lk)
+        cal = {lk.name: (K, B)} if lk.name in calibrated else None
+        if len(scene.links) == 1:
+            lk_k, lk_b = k, b
+        else:
+            lk_k, lk_b, _, _ = felt_pairs(family_poles(sub, mem, calibrated=cal), mass, T)
+        links[lk.name] = {"K": K, "B": B, "k": lk_k, "b": lk_b,
+                          "target": None if lk.target is None else tuple(lk.target)}
+    return FamilyResult(members=mem, corners=corners, mass=mass, rho=rho, stable=stable,
+                        k=k, b=b, links=links, calibrated=dict(calibrated), period=T)
+
+
+# --------------------------------------------------------------------------- minimax
+
+@dataclass(frozen=True)
+class FamilyCalibration:
+    """Virtual (K, B) of one link for a whole family: minimax against nominal.
+
+    Attributes
+    ----------
+    link : str
+        Link name.
+    k, b : float
+        Target felt stiffness [N/m] and damping [N s/m].
+    K, B : float
+        Minimax virtual stiffness [N/m] and damping [N s/m].
+    error : float
+        Worst relative error over the family at (K, B):
+        ``max_i max(|k_i - k| / k, |b_i - b| / b)`` [-] (``inf`` if a member is unstable).
+    limiting : int
+        Index of the member that sets ``error``.
+    nominal_K, nominal_B : float
+        Calibration on the nominal member alone (:func:`hapsim.analysis.calibrate`).
+    nominal_error : float
+        The same figure of merit at the nominal calibration.
+    stable : bool
+        Every member stable at (K, B).
+    members : ndarray, shape (n, 4)
+        The family.
+    """
+
+    link: str
+    k: float
+    b: float
+    K: float
+    B: float
+    error: float
+    limiting: int
+    nominal_K: float
+    nominal_B: float
+    nominal_error: float
+    stable: bool
+    members: np.ndarray
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of every attribute (``members`` as its count, ``limiting`` as
+        the member's ``{mass, damping, grip_stiffness, grip_damping, index}``)."""
+        lim = {f: _f(self.members[self.limiting, j]) for j, f in enumerate(HAND_FIELDS)}
+        lim["index"] = int(self.limiting)
+        return {"link": self.link, "k": self.k, "b": self.b, "K": _f(self.K), "B": _f(self.B),
+                "error": _f(self.error), "limiting": lim, "stable": bool(self.stable),
+                "nominal": {"K": _f(self.nominal_K), "B": _f(self.nominal_B),
+                            "error": _f(self.nominal_error)},
+                "members": int(self.members.shape[0])}
+
+
+def family_error(scene, link, k: float, b: float, mem: np.ndarray, K: float, B: float):
+    """Worst relative felt-(k, b) error of one link over a family, and where it is.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    link : hapsim.scene.Link
+        A spring_damper between the port and a ground.
+    k, b : float
+        Target [N/m], [N s/m].
+    mem : ndarray, shape (n, 4)
+        Members.
+    K, B : float
+        Virtual (K, B) of the link.
+
+    Returns
+    -------
+    (float, int, bool)
+        ``max_i max(|k_i - k|/k, |b_i - b|/b)`` (``inf`` when a member is unstable or rings
+        no pair), the index of the worst member, and whether every member is stable.
+    """
+    sub = _one_link_scene(scene, link)
+    ev = family_poles(sub, mem, calibrated={link.name: (float(K), float(B))})
+    kk, bb, rho, stable = felt_pairs(ev,
+                                     float(scene.device.mass) + mem[:, 0], scene.period)
+    err = np.maximum(np.abs(kk - k) / k, np.abs(bb - b) / b)
+    err = np.where(stable & np.isfinite(err), err, np.inf)
+    i = int(np.argmax(np.where(np.isfinite(err), err, np.inf)))
+    if not np.all(stable):
+        i = int(np.argmax(rho))
+    return float(err[i]), i, bool(np.all(stable))
+
+
+def calibrate_family(scene, link_name: str, k: float | None = None, b: float | None = None,
+                     mem: np.ndarray | None = None, *, samples: int | None = None,
+                     grid: int = 5, seed: int = 0) -> FamilyCalibration:
+    """Minimax calibration: the (K, B) whose worst felt error over the family is least.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        With a port, a device (``device.hand`` gives the family) and the link.
+    link_name : str
+        A spring_damper between the port and a ground.
+    k, b : float, optional
+        Target; default the link's ``target``.
+    mem : ndarray, shape (n, 4), optional
+        The family (default :func:`family_members` with ``samples``/``grid``/``seed``).
+
+    Returns
+    -------
+    FamilyCalibration
+
+    Raises
+    ------
+    ConfigError
+        Unknown link, a link that is not port-ground, no target given.
+
+    Notes
+    -----
+    ``min_(K, B) max_i max(|k_i - k|/k, |b_i - b|/b)``: a non-smooth minimax, solved by
+    ``scipy.optimize.minimize`` (Nelder-Mead, in ``log K`` and ``B``) started from the
+    calibration (Florens et al. Sec. 5; :func:`hapsim.analysis.calibrate`) of the nominal
+    member and of every corner; the best end point is kept. The nominal calibration is one
+    of the starts, so the minimax error is never worse than the nominal one.
+    """
+    from scipy.optimize import minimize
+
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import calibrate
+
+    links = {lk.name: lk for lk, _, _ in felt_links(scene, {
+        lk.name: (0.0, 0.0) for lk in scene.links if lk.target is not None})}
+    if link_name not in links:
+        raise ConfigError(f"no spring_damper between the port and a ground named "
+                          f"{link_name!r}; valid: {', '.join(links) or '(none)'}",
+                          file=scene.path, key="links")
+    lk = links[link_name]
+    if k is None or b is None:
+        if lk.target is None:
+            raise ConfigError(f"link {link_name!r} has no target {{k, b}}", file=scene.path,
+                              key=f"links.{link_name}.target")
+        k, b = lk.target
+    k, b = float(k), float(b)
+    if mem is None:
+        mem = family_members(scene, samples, grid=grid, seed=seed)
+    mem = np.atleast_2d(np.asarray(mem, float))
+    hand = getattr(scene.device, "hand", None)
+    ncorner = 0
+    if hand is not None:
+        from hapsim.analysis.hand import nominal_member, ranged_fields
+        ncorner = 2 ** len(ranged_fields(hand))
+        nominal = nominal_member(hand)
+    else:
+        nominal = mem[0]
+    starts = []
+    for row in [nominal] + [mem[i] for i in range(min(ncorner, mem.shape[0]))]:
+        c = calibrate(LoopModel.from_device(scene.device, scene.rate_hz, row), k, b)
+        if math.isfinite(c.K) and math.isfinite(c.B) and c.K > 0:
+            starts.append((c.K, c.B))
+    if not starts:
+        raise ConfigError(f"target (k, b) = ({k:g}, {b:g}) has no calibration on any "
+                          "corner or the nominal member", file=scene.path,
+                          key=f"links.{link_name}.target")
+    nK, nB = starts[0]
+    n_err, _, _ = family_error(scene, lk, k, b, mem, nK, nB)
+
+    def cost(p):
+        e, _, _ = family_error(scene, lk, k, b, mem, math.exp(p[0]), p[1])
+        return e if math.isfinite(e) else 1e6
+
+    best = (n_err if math.isfinite(n_err) else 1e6, nK, nB)
+    for K0, B0 in starts:
+        r = minimize(cost, [math.log(K0), B0], method="Nelder-Mead",
+                     options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 400,
+                              "initial_simplex": [[math.log(K0), B0],
+                                                  [math.log(K0) + 0.1, B0],
+                                                  [math.log(K0), B0 + 0.1 * max(abs(B0), b)]]})
+        if r.fun < best[0]:
+            best = (float(r.fun), math.exp(r.x[0]), float(r.x[1]))
+    _, K, B = best
+    err, lim, stable = family_error(scene, lk, k, b, mem, K, B)
+    return FamilyCalibration(link=link_name, k=k, b=b, K=K, B=B, error=err, limiting=lim,
+                             nominal_K=nK, nominal_B=nB, nominal_error=n_err, stable=stable,
+                             members=mem)
+
+
+# --------------------------------------------------------------------------- consistency
+
+def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
+                calibrated=None, mem: np.ndarray | None = None) -> dict:
+    """Table 1 generalised: is the felt assembly the assembly of the felt parts?
+
+    Florens, Voda & Urma Sec. 3 / Table 1: two virtual springs tuned to ring like a real
+    one each do not ring like two real springs together. Here, for a scene with two or
+    more spring_dampers between the port and a ground (links in parallel), for every
+    member of the hand family: the felt pair of the whole scene ``(k, b)`` against the
+    parallel assembly of the pairs each link gives alone, ``k_sum = sum k_i``,
+    ``b_sum = sum b_i - (n - 1) b_real`` (each ``b_i`` carries the real damping ``b_real``
+    = device friction + hand damping once; the assembly carries it once).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    samples, grid, seed, calibrated, mem
+        As :func:`family`.
+
+    Returns
+    -------
+    dict
+        ``links`` (names), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats
+        (``min``, ``max``, ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is
+        consistent), ``worst_k``, ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``,
+        ``b``, ``b_sum``: ndarrays, shape (n,), per member.
+
+    Raises
+    ------
+    ConfigError
+        Fewer than two port-ground spring_dampers.
+    """
+    res = family(scene, samples, grid=grid, seed=seed, calibrated=calibrated, mem=mem)
+    names = list(res.links)
+    if len(names) < 2:
+        raise ConfigError("consistency needs two or more spring_dampers between the port "
+                          "and a ground (links in parallel)", file=scene.path, key="links")
+    b_real = float(scene.device.friction) + res.members[:, 1]
+    k_sum = sum(res.links[n]["k"] for n in names)
+    b_sum = sum(res.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kr = res.k / k_sum
+        br = res.b / b_sum
+    nom = res.corners
+    return {"links": names, "members": int(res.members.shape[0]),
+            "k_ratio": _stats(kr, kr[nom]), "b_ratio": _stats(br, br[nom]),
+            "worst_k": float(np.nanmax(np.abs(kr - 1.0))),
+            "worst_b": float(np.nanmax(np.abs(br - 1.0))),
+            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum}

@@ -1,0 +1,191 @@
+"""``hapsim family``: what a whole family of hands feels, and whether all of it is stable."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+from hapsim.errors import ConfigError
+
+_DESCRIPTION = """\
+Judge a scene over the whole family of hands that may hold the device (Florens, Voda &
+Urma Sec. 4: "the whole family of possible parameter sets that the THS may get along its
+variations").
+
+The device section's hand: block gives the hand mass, its damping, the grip stiffness and
+the grip damping, each a value or a range [lo, hi]. The family is every corner of the
+ranges, the nominal member (the middle of every range; geometric for the grip stiffness),
+and a grid (--grid points per ranged value) or --samples seeded random members. For each
+member the whole scene's closed-loop state matrix is built (handle and hand states under
+zero-order hold, delay line, virtual network) and its eigenvalues give:
+
+  - the spectral radius: the family is ROBUSTLY STABLE when every member is stable; else
+    the member that is not is named (an interior member may fail while every corner holds:
+    a grip resonance inside the range);
+  - the felt (k, b) at the port (least damped pair, with m = handle + hand mass), and of
+    every spring_damper between the port and a ground alone, with their spread
+    (max - min) / nominal over the family.
+
+A scene with two or more spring_dampers between the port and a ground (links in parallel)
+is also checked for consistency (Florens et al. Table 1 generalised): the felt pair of the
+links together against the sum of what each link alone makes felt (real damping counted
+once); 1 would be consistent.
+
+Target links {k, b} are calibrated on the nominal member first. With --calibrate, each
+target link is also calibrated for the whole family (minimax): the virtual (K, B) whose
+worst relative error max(|k_i - k|/k, |b_i - b|/b) over the members is least, with the
+member that limits it, next to the same figure for the nominal calibration."""
+
+_EPILOG = """\
+examples:
+  hapsim family configs/hand_wall.yaml
+  hapsim family configs/hand_wall.yaml --samples 10000 --json
+  hapsim family configs/hand_wall.yaml --plot family.png
+  hapsim family my_target_scene.yaml --calibrate
+
+exit codes:
+  0  every member of the family is stable
+  1  some member is unstable (named in the report)
+  2  bad scene file or option"""
+
+
+def register(sub) -> None:
+    """Add the ``family`` parser to ``sub`` (an argparse sub-parsers action).
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-command registry.
+    """
+    p = sub.add_parser(
+        "family", help="a family of hands: robust stability and the spread of what is felt",
+        description=_DESCRIPTION, epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="YAML scene file (device.hand with ranges)")
+    p.add_argument("--samples", type=int, default=None, metavar="N",
+                   help="N seeded random members instead of the grid")
+    p.add_argument("--grid", type=int, default=9, metavar="G",
+                   help="grid points per ranged hand value (default 9)")
+    p.add_argument("--seed", type=int, default=0, help="seed of --samples (default 0)")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument("--calibrate", action="store_true",
+                   help="for every target link: the minimax (K, B) over the family (the "
+                        "least worst relative error of the felt k and b), against the "
+                        "nominal member's calibration")
+    p.add_argument("--plot", metavar="FILE", default=None,
+                   help="figure: felt (k, b) of every member, coloured by spectral radius")
+    p.set_defaults(func=run)
+
+
+def _g(v, spec=".6g"):
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) \
+        else format(v, spec)
+
+
+def _member_line(md: dict) -> str:
+    kg = md["grip_stiffness"]
+    return (f"hand {_g(md['mass'], 'g')} kg, damping {_g(md['damping'], 'g')} N s/m, grip "
+            f"{kg if isinstance(kg, str) else _g(kg, '.6g')} N/m / "
+            f"{_g(md['grip_damping'], 'g')} N s/m"
+            f"{' (a corner)' if md['corner'] else ''}: spectral radius "
+            f"{_g(md['spectral_radius'], '.9g')}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hapsim family``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``samples``, ``grid``, ``seed``, ``json``, ``plot``.
+
+    Returns
+    -------
+    int
+        0 robustly stable, 1 some member unstable.
+
+    Raises
+    ------
+    ConfigError
+        Bad scene or option (exit 2 via :mod:`hapsim.cli`).
+    """
+    from hapsim.analysis.family import family
+    from hapsim.scene import load_scene
+
+    if args.samples is not None and args.samples < 1:
+        raise ConfigError(f"must be >= 1, got {args.samples}", key="--samples")
+    if args.grid < 2:
+        raise ConfigError(f"must be >= 2, got {args.grid}", key="--grid")
+    if args.plot:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.plot, "--plot")
+    scene = load_scene(args.scene)
+    res = family(scene, args.samples, grid=args.grid, seed=args.seed)
+    rep = res.to_dict()
+    cons = None
+    if len(res.links) >= 2:
+        from hapsim.analysis.family import consistency
+        c = consistency(scene, mem=res.members, calibrated=res.calibrated)
+        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum")}
+        rep["consistency"] = cons
+    cals = []
+    if args.calibrate:
+        from hapsim.analysis.family import calibrate_family
+        targets = [lk.name for lk in scene.links if lk.target is not None]
+        if not targets:
+            raise ConfigError("--calibrate needs a link given as target {k, b}",
+                              file=scene.path, key="links")
+        cals = [calibrate_family(scene, name, mem=res.members).to_dict() for name in targets]
+        rep["family_calibrations"] = cals
+    if args.plot:
+        from hapsim.plot_family import plot_family
+        from hapsim.plot import save_figure
+        save_figure(plot_family(res, title=args.scene), args.plot)
+    if args.json:
+        print(json.dumps({"scene": args.scene, "verdict": "robustly stable" if res.robust
+                          else "not robustly stable", **rep}))
+        return 0 if res.robust else 1
+    if getattr(scene.device, "hand", None) is None:
+        print("no device.hand section: the family is the device alone (one member)")
+    else:
+        print(f"family of {rep['members']} members ({rep['corners']} corners, nominal, "
+              + (f"{args.samples} samples" if args.samples else f"grid {args.grid}") + ")")
+    for name, (K, B) in rep["calibrated"].items():
+        print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
+              f"B = {B:.6g} N s/m")
+    if res.robust:
+        print("verdict: ROBUSTLY STABLE (every member)")
+    else:
+        print(f"verdict: NOT ROBUSTLY STABLE: {rep['unstable']} of {rep['members']} members "
+              f"unstable" + ("" if not rep["corners_stable"] else
+                             " (every corner is stable: the failure is inside the range)"))
+        print("  first unstable member: " + _member_line(rep["first_unstable"]))
+    print("  worst member: " + _member_line(rep["worst"]))
+    print("felt at the port over the family (m = handle + hand of each member):")
+    for q, unit in (("k", "N/m"), ("b", "N s/m")):
+        st = rep["felt"][q]
+        print(f"  {q}: {_g(st['min'])} .. {_g(st['max'])} {unit} (nominal {_g(st['nominal'])}, "
+              f"spread {_g(st['spread'], '.3g')})")
+    for name, d in rep["links"].items():
+        print(f"link {name} alone (K = {d['K']:.6g}, B = {d['B']:.6g}): "
+              f"k {_g(d['k']['min'])} .. {_g(d['k']['max'])} N/m, "
+              f"b {_g(d['b']['min'])} .. {_g(d['b']['max'])} N s/m")
+    if cons is not None:
+        kr, br = cons["k_ratio"], cons["b_ratio"]
+        print(f"consistency (Table 1 generalised): links {', '.join(cons['links'])} together "
+              f"feel k / (sum of each alone) = {_g(kr['min'], '.4g')} .. "
+              f"{_g(kr['max'], '.4g')} (nominal {_g(kr['nominal'], '.4g')}), b / (sum) = "
+              f"{_g(br['min'], '.4g')} .. {_g(br['max'], '.4g')}; 1 would be consistent")
+    for c in cals:
+        lim = c["limiting"]
+        print(f"minimax calibration of {c['link']} for (k, b) = ({c['k']:g}, {c['b']:g}): "
+              f"K = {c['K']:.6g} N/m, B = {c['B']:.6g} N s/m, worst relative error "
+              f"{_g(c['error'], '.4g')} (limited by hand {lim['mass']:g} kg, grip "
+              f"{_g(lim['grip_stiffness'], 'g')} N/m); nominal calibration K = "
+              f"{c['nominal']['K']:.6g}, B = {c['nominal']['B']:.6g}: worst "
+              f"{_g(c['nominal']['error'], '.4g')}; "
+              + ("every member stable" if c["stable"] else "SOME MEMBER UNSTABLE"))
+    if args.plot:
+        print(f"figure: {args.plot}")
+    return 0 if res.robust else 1

@@ -1,0 +1,110 @@
+"""The ``device:`` section as a file of its own: written by ``hapsim identify``, read by
+``hapsim run --device``."""
+
+from __future__ import annotations
+
+import math
+import os
+
+from hapsim.errors import ConfigError
+
+__all__ = ["device_yaml", "load_device"]
+
+
+def _num(v: float) -> str:
+    return "inf" if v == math.inf else f"{v:.6g}"
+
+
+def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = "") -> str:
+    """YAML text of the identified ``device:`` section, its intervals as comments.
+
+    Parameters
+    ----------
+    fit : hapsim.analysis.device_fit.DeviceFit
+        The identification.
+    force_limit : float
+        The excitation's force limit [N] (named in a comment; the device's own limit is
+        not identified, so the file leaves it to the scene).
+    hand : bool
+        The record was taken with a hand on the handle (mass and friction are the THS's).
+    source : str
+        What was identified (port or mock), for the header comment.
+
+    Returns
+    -------
+    str
+        A YAML document with one key, ``device``, that any scene's device section can
+        be replaced by (:func:`load_device`, ``hapsim run --device``).
+    """
+    lv = f"{fit.level * 100:g}"
+
+    def iv(e, scale=1.0, unit=""):
+        return f"[{e.lo * scale:.4g}, {e.hi * scale:.4g}]{unit}"
+    dev = fit.device(force_limit)
+    lines = [f"# identified by hapsim identify{' on ' + source if source else ''}; "
+             f"{lv} % intervals in the comments",
+             f"# {fit.verdict}"]
+    if hand:
+        lines.append("# measured with a hand on the handle: mass and friction are the "
+                     "THS's (hand + handle), valid for this grip only")
+    d0, d1 = fit.delay_range
+    lines += [
+        "device:",
+        f"  mass: {_num(dev.mass)}              # [kg] {iv(fit.mass)}",
+        f"  friction: {_num(dev.friction)}      # b0 [N s/m] {iv(fit.friction)}",
+        f"  delay: {dev.delay}                  # [samples] "
+        + (f"{d0}..{d1} fit as well" if d1 > d0 else "unambiguous"),
+        f"  hold: {dev.hold}                    # "
+        + ("the other hold fits worse" if fit.hold_certain else "the other hold fits as well"),
+        f"  # force_limit: not identified (the excitation stayed within {_num(force_limit)} "
+        "N); 'hapsim run --device' keeps the scene's",
+        f"  coulomb: {_num(dev.coulomb)}         # [N] {iv(fit.coulomb)}; +: "
+        f"{fit.coulomb_pos.value:.4g} {iv(fit.coulomb_pos)}, -: {fit.coulomb_neg.value:.4g} "
+        f"{iv(fit.coulomb_neg)}",
+        f"  position_resolution: {_num(dev.position_resolution)}   # [m] "
+        f"{iv(fit.position_resolution)}",
+        f"  noise: {_num(dev.noise)}            # [m] {iv(fit.noise)}",
+        f"# residual RMS {fit.rms_residual:.4g} m over {fit.n_samples} samples at "
+        f"{1.0 / fit.period:g} Hz",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def load_device(path: str):
+    """Read a device file (a YAML document whose only key is ``device``).
+
+    Parameters
+    ----------
+    path : str
+        File written by ``hapsim identify --out`` (or by hand).
+
+    Returns
+    -------
+    hapsim.scene.Device
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, invalid YAML, other top-level keys than ``device``, or an invalid
+        device section (file, line and key named, as for scenes).
+    """
+    from hapsim import scene as sc
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"cannot read device file: {exc.strerror or exc}", file=path) from exc
+    from hapsim._yaml_lines import load_yaml
+    doc = load_yaml(text, path)
+    ctx = sc._Ctx(path)
+    if doc is None:
+        raise ctx.error("the device file is empty; it needs a 'device:' section", 1, "device")
+    doc = ctx.mapping(doc, "", 1)
+    ctx.keys(doc, ("device",), "", required=("device",))
+    dev = sc._read_device(ctx, doc)
+    try:
+        sc._check_device(dev)
+    except sc._Invalid as exc:
+        raise ConfigError(exc.message, file=path, key=exc.key) from None
+    return dev

@@ -1,0 +1,165 @@
+"""Hapkit over serial, in the host-protocol variant of the WHC2017 Hapkit sketch.
+
+Layout, as that sketch (S. Ding and C. Gallacher's rework of the Stanford Hapkit code for
+the World Haptics 2017 student challenge, ``Hapkit_arduino.ino``) and its Processing host
+(``Board.java``) exchange it at 57600 baud, binary32 little-endian:
+
+host -> device, 10 bytes ::
+
+    [header][function][float32 a][float32 b]
+    header = type << 4 | motor mask (this driver: type 1, motor 1 -> 0x11)
+
+device -> host, 9 bytes, one per command (on the sketch's next 1 kHz tick) ::
+
+    [function][float32 x: handle position, m][float32 force the device applied, N]
+
+The published sketch renders its own virtual environments (``function`` picks one, the
+floats are its parameters). To close the THS on the host, the firmware must apply the
+second float as the handle force for one function code: this driver sends its force there
+with ``function`` = :data:`HOST_FORCE_FUNCTION` (255 by default, an unused code; add that
+case to the sketch's ``renderingAlgorithm``). Neither direction has a start byte, sequence
+number or checksum; both decoders take a frame only when its fixed bytes match and its
+floats are finite and plausible, and otherwise drop one byte and look again (counted).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
+
+__all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
+           "ReplyDecoder", "CommandDecoder"]
+
+HOST_FORCE_FUNCTION = 255
+#: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
+HEADER = (1 << 4) | 0x01
+_FF = struct.Struct("<ff")
+#: Largest plausible handle position [m] (the paddle travels a few centimetres).
+MAX_POSITION = 0.5
+#: Largest plausible force in a reply [N].
+MAX_FORCE = 100.0
+
+LIMITS = """\
+Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch framing):
+  host-clocked only: the sketch answers each 10-byte command with one 9-byte reply on
+    its next 1 kHz tick and has no sequence numbers: the loop runs on the host's clock
+    and the delay d cannot be measured (the scene's device.delay is taken as given)
+  no start byte, no checksum: the decoders realign on the fixed bytes and plausible
+    floats; a corrupted float byte is a wrong force or position
+  the stock sketch renders its own environments: the firmware must apply the second
+    float as the handle force for function code 255 (see the README)
+  57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz"""
+
+
+def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
+                   header: int = HEADER, a: float = 0.0) -> bytes:
+    """The 10-byte command ``[header][function][float32 a][float32 force]``."""
+    return bytes([header & 0xFF, function & 0xFF]) + _FF.pack(a, force)
+
+
+def reply_packet(function: int, x: float, force: float) -> bytes:
+    """The 9-byte reply ``[function][float32 x][float32 force]``."""
+    return bytes([function & 0xFF]) + _FF.pack(x, force)
+
+
+def _plausible(x: float, lim: float) -> bool:
+    return math.isfinite(x) and abs(x) <= lim
+
+
+class ReplyDecoder(AlignedDecoder):
+    """Host side: 9-byte replies out of a byte stream, as ``(x [m], force [N])``.
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning).
+    """
+
+    length = 9
+
+    def __init__(self, function: int = HOST_FORCE_FUNCTION) -> None:
+        super().__init__()
+        self.function = function & 0xFF
+
+    def parse(self, buf):
+        """``(x, force)`` of a plausible reply at the start of ``buf``, or None."""
+        if buf[0] != self.function:
+            return None
+        x, f = _FF.unpack_from(buf, 1)
+        return (x, f) if _plausible(x, MAX_POSITION) and _plausible(f, MAX_FORCE) else None
+
+
+class CommandDecoder(AlignedDecoder):
+    """Device side (the mock): 10-byte commands whose header and function match, as the
+    commanded force [N] (a NaN or infinite one as 0.0, counted in ``non_finite``).
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (commands), ``skipped`` (bytes dropped realigning), ``non_finite``.
+    """
+
+    length = 10
+
+    def __init__(self, function: int = HOST_FORCE_FUNCTION, header: int = HEADER) -> None:
+        super().__init__()
+        self.function = function & 0xFF
+        self.header = header & 0xFF
+        self.stats["non_finite"] = 0
+
+    def parse(self, buf):
+        """The force of a command at the start of ``buf``, or None."""
+        if buf[0] != self.header or buf[1] != self.function:
+            return None
+        f = _FF.unpack_from(buf, 2)[1]
+        if not math.isfinite(f):
+            self.stats["non_finite"] += 1
+            return 0.0
+        return f
+
+
+class HapkitSerial(Driver):
+    """A Hapkit running the WHC2017 sketch with a host-force function (module notes).
+
+    Parameters
+    ----------
+    function : int, 0..255
+        The function code the firmware applies the host's force for.
+    force_limit : float > 0
+        Largest force sent [N] (the Hapkit 3 paddle: about 2 N at the handle).
+    """
+
+    name = "hapkit-serial"
+    baud = 57600
+    rtscts = False
+    native_rate_hz = 300.0
+    device_id = 0x48415053           # "HAPS"
+    position_scale = 0.0             # float32 on the wire: the firmware's resolution
+    force_scale = 0.0
+    limits = LIMITS
+
+    def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0) -> None:
+        from hapsim.errors import ConfigError
+        if not 0 <= int(function) <= 255:
+            raise ConfigError(f"function code must be 0..255, got {function!r}",
+                              key="function")
+        if not (math.isfinite(force_limit) and force_limit > 0):
+            raise ConfigError(f"must be a positive force [N], got {force_limit!r}",
+                              key="force_limit")
+        self.function = int(function)
+        self.force_limit = float(force_limit)
+
+    def encode_force(self, force: float) -> bytes:
+        """The command for ``force`` [N], clamped to the limit (NaN/inf: 0)."""
+        f = float(force) if math.isfinite(force) else 0.0
+        return command_packet(max(-self.force_limit, min(self.force_limit, f)), self.function)
+
+    def applied_force(self, force: float) -> float:
+        """The force the command carries [N]: clamped, rounded to binary32."""
+        return _FF.unpack(self.encode_force(force)[2:])[1]
+
+    def decoder(self):
+        """A fresh host decoder returning the handle position [m]."""
+        return MappedDecoder(ReplyDecoder(self.function), lambda reply: reply[0])

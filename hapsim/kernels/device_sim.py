@@ -1,0 +1,174 @@
+"""Output simulation of the device model ``m x'' + b0 x' = u - Coulomb`` for identification.
+
+Two kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
+samples a 1-DoF device would report for a given sequence of *applied* forces, stretch by
+stretch, and :func:`stretch_basis`, the responses its linear part is a combination of; for
+the two holds of DESIGN.md Sec. 4:
+
+``zoh`` (hold 0)
+    The force is held over each period and the motion integrated exactly (closed form of
+    the matrix exponential of the 2x2 system, variation of constants), with Coulomb
+    friction as a held force ``-fc sign(v)``: ``fc_pos`` while ``v > 0``, ``fc_neg`` while
+    ``v < 0``; from rest the force must exceed the friction in its direction to move; a
+    velocity that would change sign within the period while the force cannot overcome the
+    friction sticks (``v = 0``). This is the same first-order friction model as the mock
+    device (:class:`hapsim.daemon.mock.MockPhysics`), written again here from its
+    description.
+``ideal`` (hold 1)
+    Florens, Voda & Urma eq. (4): ``x[n+1] = (1 + a) x[n] - a x[n-1] + T^2/m psi u[n]``,
+    ``a = e^(-b0 T/m)``, ``psi = (1 - a)/(b0 T/m)``; no Coulomb friction.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_jit = nb.njit(cache=True, nogil=True)
+
+
+@_jit
+def _psi_phi1(y):
+    """``(1 - e^-y)/y`` and ``(e^-y - 1 + y)/y^2``, by series for small ``y``."""
+    if abs(y) < 1e-2:
+        psi = 0.0
+        phi1 = 0.0
+        term = 1.0
+        for j in range(30):
+            psi += term / (j + 1)
+            phi1 += term / ((j + 1) * (j + 2))
+            term *= -y / (j + 1)
+        return psi, phi1
+    em1 = math.expm1(-y)
+    return -em1 / y, (em1 + y) / (y * y)
+
+
+@_jit
+def _coefficients(m, friction, T):
+    """Exact ZOH step ``x' = x + cxv v + cxu u``, ``v' = a v + cvu u`` and the idealised
+    image's ``cu = T^2/m psi`` (see :func:`hapsim.daemon.mock.zoh_step_coefficients`)."""
+    y = friction * T / m
+    psi, phi1 = _psi_phi1(y)
+    return math.exp(-y), T * psi, T * T / m * phi1, T / m * psi, T * T / m * psi
+
+
+@_jit
+def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, period, hold,
+                    out):
+    """Positions of the device model driven by the applied forces ``u``, per stretch.
+
+    Parameters
+    ----------
+    u : ndarray of float64, shape (n,)
+        Force applied (held) over ``[kT, (k+1)T)`` [N].
+    mass : float
+        Moving mass m [kg], > 0.
+    friction : float
+        Viscous friction b0 [N s/m].
+    fc_pos, fc_neg : float
+        Coulomb friction [N] while moving in the + and - direction (zoh only).
+    starts, ends : ndarray of int64, shape (s,)
+        Stretch ``j`` covers samples ``starts[j] <= k < ends[j]`` and starts from position
+        ``xs[j]`` [m] and velocity ``vs[j]`` [m/s] (multiple shooting: H. G. Bock &
+        K. J. Plitt, IFAC 1984).
+    xs, vs : ndarray of float64, shape (s,)
+        Stretch initial states.
+    period : float
+        Sample period T [s].
+    hold : int
+        0: zero-order hold (exact), 1: the paper's idealised sampled image.
+    out : ndarray of float64, shape (n,)
+        Filled with ``x[k]`` [m] on the stretches' samples (untouched elsewhere).
+    """
+    T = period
+    a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
+    for j in range(starts.shape[0]):
+        x = xs[j]
+        v = vs[j]
+        xp = x - v * T
+        for k in range(starts[j], ends[j]):
+            out[k] = x
+            f = u[k]
+            if hold == 0:
+                fc = 0.0
+                if v > 0.0:
+                    fc = -fc_pos
+                elif v < 0.0:
+                    fc = fc_neg
+                elif f > fc_pos:
+                    fc = -fc_pos
+                elif f < -fc_neg:
+                    fc = fc_neg
+                else:
+                    continue                # stuck: the force cannot break it loose
+                ft = f + fc
+                vn = a * v + cvu * ft
+                xn = x + cxv * v + cxu * ft
+                if v != 0.0 and vn * v < 0.0:
+                    lim = fc_pos if v > 0.0 else fc_neg
+                    if abs(f) <= lim:
+                        vn = 0.0
+                x = xn
+                v = vn
+            else:
+                xn = (1.0 + a) * x - a * xp + cu * f
+                xp = x
+                x = xn
+
+
+@_jit
+def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
+    """Responses of the linear device model restarted at the start of each stretch.
+
+    Within a stretch the device moves one way, so Coulomb friction is a constant force and
+    the model is linear: the position is ``yu + x_s + v_s g + F_c c`` with ``yu`` the
+    response to the applied forces from rest at 0, ``g`` the response to a unit initial
+    velocity [m per m/s], ``c`` the response to a unit constant force [m/N] (zero initial
+    state), each restarted at every stretch start.
+
+    Parameters
+    ----------
+    u : ndarray of float64, shape (n,)
+        Applied force per period [N].
+    starts, ends : ndarray of int64, shape (s,)
+        Stretch ``j`` covers samples ``starts[j] <= k < ends[j]``.
+    mass, friction, period : float
+        m [kg], b0 [N s/m], T [s].
+    hold : int
+        0 exact ZOH, 1 the idealised image (Florens et al. eq. (4)).
+    yu, g, c : ndarray of float64, shape (n,)
+        Filled on the stretches' samples (left untouched elsewhere).
+    """
+    T = period
+    a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
+    for j in range(starts.shape[0]):
+        x1 = 0.0
+        v1 = 0.0
+        x2 = 0.0
+        v2 = 1.0
+        x3 = 0.0
+        v3 = 0.0
+        p1 = 0.0
+        p2 = -T
+        p3 = 0.0
+        for k in range(starts[j], ends[j]):
+            yu[k] = x1
+            g[k] = x2
+            c[k] = x3
+            f = u[k]
+            if hold == 0:
+                x1, v1 = x1 + cxv * v1 + cxu * f, a * v1 + cvu * f
+                x2, v2 = x2 + cxv * v2, a * v2
+                x3, v3 = x3 + cxv * v3 + cxu, a * v3 + cvu
+            else:
+                n1 = (1.0 + a) * x1 - a * p1 + cu * f
+                p1 = x1
+                x1 = n1
+                n2 = (1.0 + a) * x2 - a * p2
+                p2 = x2
+                x2 = n2
+                n3 = (1.0 + a) * x3 - a * p3 + cu
+                p3 = x3
+                x3 = n3

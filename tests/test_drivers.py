@@ -1,0 +1,311 @@
+"""Drivers: FireFader bytes (published layout), hostile streams, closed loop via its mock."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hapsim.drivers import get_driver
+from hapsim.drivers import firefader as ff
+from hapsim.drivers.mock import FireFaderDevice
+from hapsim.errors import ConfigError
+from hapsim.scene import Device, Excitation
+
+
+# ------------------------------------------------------------------ byte-exact layouts
+
+def test_firefader_host_packet_layout():
+    """[127, fA, fB], forces as two's-complement signed bytes clamped to -127..126."""
+    assert ff.encode_packet(10, -5) == bytes([127, 10, 251])
+    assert ff.encode_packet(126, -127) == bytes([127, 0x7E, 0x81])
+    assert ff.encode_packet(500, -500) == bytes([127, 126, 129])       # clamped
+    # the driver keeps to the symmetric limit: -126 counts at most
+    assert get_driver("firefader").encode_force(-100.0) == bytes([127, 130, 0])
+    drv = get_driver("firefader")
+    assert drv.encode_force(0.0) == bytes([127, 0, 0])
+    # 1.56 N is 127 counts, which the protocol clamps to 126; 0.78 N is 63.5 -> 64
+    assert drv.encode_force(1.56) == bytes([127, 126, 0])
+    assert drv.encode_force(-0.78) == bytes([127, (-64) & 0xFF, 0])
+    assert get_driver("firefader", axis=1).encode_force(0.1) == bytes([127, 0, 8])
+    for bad in (math.nan, math.inf, -math.inf):
+        assert drv.encode_force(bad) == bytes([127, 0, 0])
+
+
+def test_firefader_device_record_layout():
+    """[255, pA, pB, 4 more], values 0..254: pA is the driven fader, from the centre 127
+    at 0.39 mm per count."""
+    assert ff.encode_record(0, 254, (1, 2, 3, 4)) == bytes([255, 0, 254, 1, 2, 3, 4])
+    with pytest.raises(ValueError):
+        ff.encode_record(255, 0)
+    dec = get_driver("firefader").decoder()
+    xs = dec.feed(bytes([255, 127, 3, 0, 0, 0, 0, 255, 137, 3, 0, 0, 0, 0]))
+    assert xs == [0.0, pytest.approx(10 * 0.00039)]
+    dec_b = get_driver("firefader", axis=1).decoder()
+    assert dec_b.feed(bytes([255, 0, 117, 9, 9, 9, 9])) == [pytest.approx(-10 * 0.00039)]
+
+
+def test_unknown_driver_lists_choices():
+    with pytest.raises(ConfigError, match="firefader, haply, hapkit-serial"):
+        get_driver("nodevice")
+
+
+# ------------------------------------------------------------------ hostile streams
+
+def _hostile(rng, good: list) -> tuple:
+    """Interleave good frames with garbage, truncated frames and lost start bytes;
+    return the stream and the frames left intact."""
+    out = bytearray()
+    intact = []
+    for fr in good:
+        r = rng.random()
+        if r < 0.2:
+            out += bytes(rng.integers(0, 256, rng.integers(1, 12)).astype(np.uint8))
+        if r < 0.1:
+            out += fr[:rng.integers(1, len(fr))]          # truncated
+        if 0.1 <= r < 0.15:
+            out += fr[1:]                                   # lost start byte
+            continue
+        out += fr
+        intact.append(fr)
+    return bytes(out), intact
+
+
+def test_record_decoder_hostile_stream_resyncs():
+    """Garbage, truncated records and lost start bytes: every value decoded is in
+    0..254, every position within the travel, and no intact record after a start byte is
+    lost (garbage may only add records, never drop a good one)."""
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        good = [ff.encode_record(*rng.integers(0, 255, 2), tuple(rng.integers(0, 255, 4)))
+                for _ in range(200)]
+        data, intact = _hostile(rng, good)
+        dec = ff.RecordDecoder()
+        recs = []
+        cuts = np.sort(rng.integers(0, len(data), 20))
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(data)]):   # split anywhere
+            recs += dec.feed(data[a:b])
+        assert all(0 <= v <= 254 for r in recs for v in r)
+        # each intact record appears, in order (its own start byte resynchronises)
+        it = iter(recs)
+        assert all(any(r == tuple(g[1:]) for r in it) for g in intact), trial
+        assert dec.stats["truncated"] > 0 and dec.stats["skipped"] > 0
+        drv = ff.FireFader()
+        xs = drv.decoder().feed(data)
+        assert all(abs(x) <= 127 * ff.METRES_PER_COUNT + 1e-12 for x in xs)
+
+
+def test_device_never_applies_a_force_over_its_limit():
+    """Random bytes, truncated and corrupted packets at the mock device: every packet
+    decoded is in -127..126 (a -128 byte is an error, a 127 a new packet) and every force
+    the device applies is within its limit."""
+    rng = np.random.default_rng(11)
+    dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.5)
+    mock = FireFaderDevice(dev, 500.0, Excitation())
+    good = [ff.encode_packet(*rng.integers(-127, 127, 2)) for _ in range(500)]
+    data, _ = _hostile(rng, good)
+    data += bytes([127, 5, 0x80, 1, 127, 3])            # a -128 force byte, a truncation
+    data += bytes(rng.integers(0, 256, 5000).astype(np.uint8))
+    out = mock.feed(data)
+    assert mock.decoder.stats["out_of_range"] > 0 and mock.decoder.stats["truncated"] > 0
+    assert max(abs(f) for f in mock.applied) <= 0.5
+    assert len(out) == 7 * len(mock.applied)
+    recs = ff.RecordDecoder().feed(out)
+    assert len(recs) == len(mock.applied) and all(0 <= r[0] <= 254 for r in recs)
+
+
+def test_host_force_bytes_never_leave_the_protocol_range():
+    """Whatever float the loop hands the driver (huge, tiny, NaN), the packet is 3 bytes
+    whose force bytes decode to -127..126: the device never sees a start byte or -128."""
+    drv = ff.FireFader(full_scale=1.0)
+    rng = np.random.default_rng(3)
+    vals = np.concatenate([rng.normal(0, 10, 2000), [np.nan, np.inf, -np.inf, 1e300, -1e300]])
+    dec = ff.PacketDecoder()
+    for v in vals:
+        pkt = drv.encode_force(float(v))
+        assert len(pkt) == 3 and pkt[0] == 127 and 127 not in pkt[1:] and 0x80 not in pkt[1:]
+        (a, b), = dec.feed(pkt)
+        assert -127 <= a <= 126 and b == 0
+        assert abs(a * drv.force_scale) <= drv.force_limit + 1e-12
+
+
+# ------------------------------------------------------------------ closed loop
+
+def test_firefader_closed_loop_through_its_mock(tmp_path):
+    """hapsim run --driver firefader on the FireFader mock (pty, bytes): the telemetry is
+    exactly the THS closed through the protocol's two quantisers (an independent
+    re-simulation from the forces sent), and the measured (k, b) equal the prediction to
+    the bound the quantisers allow (k 1 %, b 10 %: README)."""
+    from hapsim.daemon.mock import MockPhysics
+    from hapsim.daemon.runner import run_scene
+    from hapsim.daemon.telemetry import load
+    from hapsim.scene import load_scene
+    scene = load_scene("configs/firefader.yaml")
+    tel = str(tmp_path / "ff.npz")
+    rep = run_scene(scene, driver="firefader", telemetry=tel, handle_signals=False,
+                    rt_priority=0)
+    assert rep["loop"]["mode"] == "host-clocked"
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
+    assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
+    cols = load(tel)
+    x, f, seq = cols["position"], cols["force"], cols["seq"]
+    assert np.all(np.diff(seq) == 1) and seq[0] == 0
+    # re-simulate: packet 0 primes with zero force, packet j + 1 carries force j
+    dev = scene.device
+    ph = MockPhysics(dev, scene.rate_hz, scene.excitation)
+    fifo = [0.0] * dev.delay
+    counts = [0] + [ff.force_counts(v) for v in f]
+    trips = set(rep["loop"]["mock"]["watchdog_at"])     # a host stalled > 0.5 s
+    xs = []
+    for j, c in enumerate(counts[:len(x)]):
+        if j in trips:
+            fifo = [0.0] * dev.delay
+        fifo.append(c * ff.FULL_SCALE_N / 127)
+        ph.advance(fifo.pop(0))
+        xs.append((min(max(ff.CENTRE + round(ph.sample() / ff.METRES_PER_COUNT), 0), 254)
+                   - ff.CENTRE) * ff.METRES_PER_COUNT)
+    assert np.array_equal(np.asarray(xs), x)
+
+
+# ------------------------------------------------------------------ Haply M3 board
+
+def test_haply_layouts_from_the_firmware():
+    """setup [1][id][motor mask][dir][encoder mask][dir][n analog][n pwm][offset][res],
+    write [2][id][float32 torque], reply [id][float32 deg]; little-endian binary32."""
+    import struct
+
+    from hapsim.drivers import haply as hp
+    drv = get_driver("haply", device_id=7, resolution=4096.0)
+    s = drv.arm()
+    assert s[:8] == bytes([1, 7, 0b0001, 0, 0b0001, 0, 0, 0])
+    assert struct.unpack("<ff", s[8:16]) == (0.0, 4096.0)
+    assert s[16:] == bytes([2, 7]) + struct.pack("<f", 0.0)
+    assert drv.encode_force(0.05) == bytes([2, 7]) + struct.pack("<f", 0.05)
+    assert drv.encode_force(1.0) == bytes([2, 7]) + struct.pack("<f", hp.MAX_TORQUE)
+    assert drv.encode_force(math.nan) == bytes([2, 7]) + struct.pack("<f", 0.0)
+    dec = drv.decoder()
+    got = dec.feed(bytes([7]) + struct.pack("<f", 90.0) + bytes([7]) + struct.pack("<f", -45.0))
+    assert got == [pytest.approx(math.pi / 2), pytest.approx(-math.pi / 4)]
+    # the device side parses what the host sends, lengths set by the set-up
+    cd = hp.CommandDecoder()
+    cmds = cd.feed(s + drv.encode_force(-0.1) + bytes([0, 7]))
+    assert [c[0] for c in cmds] == ["setup", "write", "write", "reset"]
+    assert cmds[2][2] == [pytest.approx(-0.1)] and cd.resolution == 4096.0
+
+
+def test_haply_hostile_streams():
+    """Host side: garbage, lost and corrupted bytes never give an implausible angle and the
+    decoder realigns on the id; device side: random bytes never make the mock board apply
+    a torque over its limit."""
+    import struct
+
+    from hapsim.drivers import haply as hp
+    from hapsim.drivers.mock import HaplyDevice
+    rng = np.random.default_rng(5)
+    good = [hp.reply_packet(3, float(a)) for a in rng.uniform(-720, 720, 300)]
+    data, intact = _hostile(rng, good)
+    dec = hp.ReplyDecoder(3)
+    out = []
+    for k in range(0, len(data), 13):
+        out += dec.feed(data[k:k + 13])
+    assert all(math.isfinite(a) and abs(a) <= 3600 for a in out)
+    assert dec.stats["skipped"] > 0
+    # without a start byte, garbage can hide a reply next to it, but the decoder realigns:
+    # nearly every intact reply is decoded
+    seen = set(out)
+    assert sum(struct.unpack("<f", g[1:])[0] in seen for g in intact) >= 0.9 * len(intact)
+    dev = HaplyDevice(Device(mass=0.001, friction=0.001, delay=1, force_limit=0.1), 1000.0,
+                      Excitation())
+    drv = get_driver("haply", device_id=3)
+    # garbage can reconfigure the board (a random set-up): the host arms it again
+    stream = drv.arm() + bytes(rng.integers(0, 256, 20000).astype(np.uint8))
+    stream += drv.arm() * 40
+    for k in range(200):
+        stream += drv.encode_force(float(rng.normal(0, 1)))
+        stream += bytes([2, 3]) + struct.pack("<f", float(rng.choice([1e30, -1e30, np.inf])))
+        stream += bytes([2, 3]) + bytes([0xFF, 0xFF, 0xC0, 0x7F])          # a NaN torque
+    dev.feed(stream)
+    assert dev.applied and max(abs(t) for t in dev.applied) <= 0.1
+
+
+def test_haply_closed_loop_through_its_mock():
+    """hapsim run --driver haply (configs/haply.yaml, rotary units) on the board mock: the
+    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %)."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
+                    rt_priority=0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
+    assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
+    assert rep["loop"]["mock"]["decoder"]["writes"] >= rep["loop"]["ticks"]
+
+
+# ------------------------------------------------------------------ Hapkit (WHC2017 sketch)
+
+def test_hapkit_serial_layouts():
+    """10-byte command [header][function][float32 a][float32 force], header = type << 4 |
+    motor mask as Board.format_header builds it for motor 1, type 1 (0x11); 9-byte reply
+    [function][float32 x][float32 force]; binary32 little-endian."""
+    import struct
+
+    from hapsim.drivers import hapkit_serial as hk
+    drv = get_driver("hapkit-serial")
+    assert hk.HEADER == 0x11
+    assert drv.encode_force(0.5) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.5)
+    assert drv.encode_force(9.0) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 2.0)
+    assert drv.encode_force(math.inf) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.0)
+    assert len(drv.encode_force(0.1)) == 10
+    rep = bytes([255]) + struct.pack("<ff", 0.0125, -0.3)
+    assert len(rep) == 9 and hk.reply_packet(255, 0.0125, -0.3) == rep
+    assert drv.decoder().feed(rep + rep[:4]) == [pytest.approx(0.0125)]
+
+
+def test_hapkit_serial_hostile_streams():
+    """Garbage, truncated and corrupted frames: the host decoder yields only plausible
+    positions and realigns; the mock applies no force over its limit, NaN as zero."""
+    import struct
+
+    from hapsim.drivers import hapkit_serial as hk
+    from hapsim.drivers.mock import HapkitSerialDevice
+    rng = np.random.default_rng(9)
+    good = [hk.reply_packet(255, float(x), float(f))
+            for x, f in zip(rng.uniform(-0.05, 0.05, 300), rng.uniform(-2, 2, 300))]
+    data, intact = _hostile(rng, good)
+    dec = hk.ReplyDecoder()
+    out = dec.feed(data)
+    assert all(abs(x) <= hk.MAX_POSITION and abs(f) <= hk.MAX_FORCE for x, f in out)
+    seen = set(out)
+    assert sum(struct.unpack("<ff", g[1:]) in seen for g in intact) >= 0.9 * len(intact)
+    mock = HapkitSerialDevice(Device(mass=0.1, friction=0.3, delay=1, force_limit=1.0), 250.0,
+                              Excitation(), force_limit=2.0)
+    drv = get_driver("hapkit-serial")
+    stream = bytes(rng.integers(0, 256, 5000).astype(np.uint8))
+    for v in rng.normal(0, 5, 300):
+        stream += drv.encode_force(float(v))
+        stream += hk.command_packet(float(rng.choice([1e9, -1e9])))      # a forged force
+        stream += bytes([0x11, 255]) + bytes(4) + bytes([0, 0, 0xC0, 0x7F])   # NaN
+    mock.feed(stream)
+    assert mock.decoder.stats["non_finite"] >= 300
+    assert max(abs(f) for f in mock.applied) <= 1.0
+
+
+def test_hapkit_serial_config_rate_figure():
+    """configs/hapkit_serial.yaml says 57600 baud allows at most ~300 Hz: 10 + 9 bytes of
+    10 bits each per sample (start, 8 data, stop)."""
+    from pathlib import Path
+    text = (Path(__file__).resolve().parent.parent / "configs" / "hapkit_serial.yaml").read_text()
+    assert "57600 baud (at most ~300 Hz)" in text
+    assert 290 < 57600 / ((10 + 9) * 10) < 310
+
+
+def test_hapkit_serial_closed_loop_through_its_mock():
+    """hapsim run --driver hapkit-serial on the sketch mock: positions and forces are
+    binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
+                    handle_signals=False, rt_priority=0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
+    assert meas["b"] == pytest.approx(pred["b"], rel=1e-5)
