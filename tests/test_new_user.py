@@ -292,6 +292,8 @@ JSON_ERRORS = [
     (["play", "{bad}", "--json"], 2, "ConfigError"),
     (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
     (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
+    (["compare-corrections", *LOOP, "--delay", "-1", "--json"], 2, "ConfigError"),
+    (["family", "{bad}", "--json"], 2, "ConfigError"),
 ]
 
 
