@@ -194,7 +194,9 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     dict
         ``samples``; ``duration_s`` (last minus first device time [s]); ``rate_hz`` (the
         inverse of the median time step); ``seq`` (``first``, ``last``, ``jumps``: forward
-        steps > 1, ``missing``: sequence numbers they skip); ``late`` (late ticks);
+        steps > 1, ``missing``: sequence numbers they skip that never reached the host,
+        ``skipped``: those it received but did not answer, the backlog policy's, counted
+        at rows flagged ``FLAG_SKIPPED``); ``late`` (late ticks);
         ``events`` (count per event name: ``lost``, ``recovered``, ...); ``restarts``
         (samples flagged as a restart after a recovery), ``ramped``, ``clamped``;
         ``position_m``, ``force_n``, ``turnaround_us`` (``min``/``max``; turnaround also
@@ -202,7 +204,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         (``format``, ``intact``, and for a journal ``chunks``, ``torn_bytes``,
         ``lost_rows``: ranges ``[a, b)`` lost to a torn last chunk or to the writer).
     """
-    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP
+    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
     t, seq = cols["time"], cols["seq"].astype(np.int64)
     flags = cols["flags"]
@@ -211,6 +213,10 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     dt = dt[np.isfinite(dt) & (dt > 0)]
     step = np.diff(seq)
     jumps = step[step > 1]
+    # a row flagged FLAG_SKIPPED answered the newest of several waiting STATEs: the jump
+    # before it is the backlog policy's, not the wire's
+    at_skip = (flags[1:] & FLAG_SKIPPED) != 0 if n > 1 else np.zeros(0, bool)
+    skipped = int((step[at_skip & (step > 1)] - 1).sum())
     events: dict[str, int] = {}
     for ev in info.get("events", []):
         name = str(ev.get("event", "?"))
@@ -230,7 +236,8 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         "duration_s": (_finite(t[-1] - t[0]) or 0.0) if n else 0.0,
         "rate_hz": float(1.0 / np.median(dt)) if dt.size else None,
         "seq": {"first": int(seq[0]) if n else None, "last": int(seq[-1]) if n else None,
-                "jumps": int(jumps.size), "missing": int((jumps - 1).sum())},
+                "jumps": int(jumps.size), "missing": int((jumps - 1).sum()) - skipped,
+                "skipped": skipped},
         "late": int(np.count_nonzero(cols["late"])),
         "events": events,
         "restarts": int(np.count_nonzero(flags & FLAG_LOST)),
@@ -273,7 +280,7 @@ def format_summary(path: str, s: dict) -> str:
                       if k not in ("lost", "recovered"))
     lines.append(f"events: lost {ev.get('lost', 0)}, recovered {ev.get('recovered', 0)}"
                  + (f"; {other}" if other else ""))
-    lines.append(f"ticks: late {s['late']}, seq jumps {sq['jumps']} ({sq['missing']} missing), "
+    lines.append(f"ticks: late {s['late']}, seq jumps {sq['jumps']} ({sq['missing']} missing, {sq['skipped']} skipped), "
                  f"restarts {s['restarts']}, ramped {s['ramped']}, clamped {s['clamped']}")
     p, f, ta, e = s["position_m"], s["force_n"], s["turnaround_us"], s["felt_energy_j"]
     lines.append(f"position [m]: {_g(p['min'])} .. {_g(p['max'])}")
