@@ -338,7 +338,12 @@ class _Builder:
                 raise self.error(f"unsupported tag {_show_name(tag)} (a scene uses plain "
                                  "mappings, lists and scalars)", ev.start_mark)
             node = yaml.ScalarNode(tag, ev.value, ev.start_mark, ev.end_mark, ev.style)
-            value = ctor(self.loader, node)
+            try:
+                value = ctor(self.loader, node)
+            except (ValueError, TypeError, OverflowError, ArithmeticError):
+                # an explicit tag on text it cannot read: '!!float abc', '!!int 1.5x'
+                raise self.error(f"{_show_name(tag)} cannot read "
+                                 f"{_show_name(ev.value)}", ev.start_mark) from None
         if key is not None and len(self.scalar_cache) < 65536 and len(ev.value) < 64:
             self.scalar_cache[key] = value
         return value

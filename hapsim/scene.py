@@ -577,16 +577,25 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
+def _float(v: Any) -> float:
+    """``float(v)``; an integer beyond the double range (YAML reads 400 digits as one) is
+    ``+-inf``, which the rules refuse as not finite, instead of an ``OverflowError``."""
+    try:
+        return float(v)
+    except OverflowError:
+        return math.inf if v > 0 else -math.inf
+
+
 def _coerce(v: Any) -> Any:
     """``float(v)`` for a real number; anything else unchanged (the rules report it)."""
-    return float(v) if _is_number(v) else v
+    return _float(v) if _is_number(v) else v
 
 
 def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
             allow_inf: bool = False, maximum: float | None = None) -> None:
     if not _is_number(v):
         raise _Invalid(f"must be a number, got {_typename(v)} {show(v)}", where)
-    v = float(v)
+    v = _float(v)
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
     if positive and not v > 0:
@@ -603,7 +612,7 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
         return                       # absent: none
     if k.type == "number":
         _number(v, *where, allow_inf=k.allow_inf)
-        _in_range(k, float(v), where)
+        _in_range(k, _float(v), where)
     elif k.type == "integer":
         if not (isinstance(v, numbers.Integral) and not isinstance(v, bool)):
             raise _Invalid(f"must be a whole number of {k.unit or 'units'}, got {show(v)}",

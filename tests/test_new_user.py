@@ -220,7 +220,10 @@ def interrupted(argv, after, tmp_path, console=False):
 
 @pytest.mark.parametrize("after", [0.1, 0.5, 1.0])
 @pytest.mark.parametrize("argv", [["run", "configs/wall.yaml"],
-                                  ["render", "--mass", "0.1", "--rate", "1000", "--K", "1000"]],
+                                  # a stable loop: finished, render exits 0 (an unstable one
+                                  # exits 1 when it beats the Ctrl-C on a quiet machine)
+                                  ["render", "--mass", "0.1", "--friction", "0.5", "--rate",
+                                   "1000", "--K", "1000", "--B", "1.5"]],
                          ids=["run", "render"])
 def test_ctrl_c_at_any_time_is_quiet(tmp_path, argv, after):
     """README: Ctrl-C ends cleanly. run exits 0 once its own SIGINT handler is in place
@@ -296,6 +299,8 @@ JSON_ERRORS = [
     (["play", "{bad}", "--json"], 2, "ConfigError"),
     (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
     (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
+    (["compare-corrections", *LOOP, "--delay", "-1", "--json"], 2, "ConfigError"),
+    (["family", "{bad}", "--json"], 2, "ConfigError"),
 ]
 
 

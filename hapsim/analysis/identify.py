@@ -38,7 +38,17 @@ from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
            "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
-           "quantisation_bound", "sensor_error_response"]
+           "quantisation_bound", "sensor_error_response", "RANK_TOL"]
+
+#: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
+#: the model order is cut to the numerical rank (Sarkar & Pereira, "Using the matrix pencil
+#: method to estimate the parameters of a sum of complex exponentials", IEEE Antennas Prop.
+#: Mag. 37(1), 1995: keep the singular values above ``10^-p`` of the largest, ``p`` the
+#: significant digits of the data; double-precision records hold ~15). A long record of a
+#: slow mode whose fast companions died out in its first samples has rank 2, not the loop's
+#: ``d + 3``: the extra singular vectors are noise and their pencil eigenvalues spurious
+#: poles, some outside the unit circle, taken for the least damped pair.
+RANK_TOL = 1e-12
 
 
 def _validate(y, period: float, order: int, offset: bool, pencil: int | None):
@@ -115,8 +125,10 @@ def pencil_poles(y, order: int, *, offset: bool = False, pencil: int | None = No
 
     Returns
     -------
-    ndarray of complex, shape (order,)
-        The identified poles ``z_i`` (closed under conjugation: the pencil matrix is real).
+    ndarray of complex, shape (M,)
+        The identified poles ``z_i`` (closed under conjugation: the pencil matrix is real),
+        ``M = min(order, numerical rank)``: singular values below :data:`RANK_TOL` of the
+        largest do not count (modes the record holds only at round-off).
 
     Raises
     ------
@@ -129,7 +141,8 @@ def pencil_poles(y, order: int, *, offset: bool = False, pencil: int | None = No
     # Hankel matrix, (n - L) x (L + 1): row r is y[r : r + L + 1].
     idx = np.arange(n - L)[:, None] + np.arange(L + 1)[None, :]
     Y = y[idx]
-    _, _, vh = np.linalg.svd(Y, full_matrices=False)
+    _, sv, vh = np.linalg.svd(Y, full_matrices=False)
+    order = max(1, min(int(order), int(np.count_nonzero(sv > RANK_TOL * sv[0]))))
     V = vh[:order, :].T                     # (L + 1) x M, dominant right singular vectors
     V1, V2 = V[:-1, :], V[1:, :]
     A = np.linalg.lstsq(V1, V2, rcond=None)[0]   # pinv(V1) @ V2, M x M, real
