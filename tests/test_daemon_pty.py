@@ -88,6 +88,7 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
         assert set(rep) >= {"target", "virtual", "predicted", "measured", "loop", "telemetry"}
         assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
         assert rep["loop"]["transport"] == "serial" and rep["loop"]["port"] == port
+        assert rep["loop"]["pace"] == "lockstep"
         assert mock.wait(timeout=10) == 0          # STOP ends the --once mock
     finally:
         if mock.poll() is None:
@@ -105,6 +106,8 @@ def test_mock_and_run_port_real_time_complete_and_report():
         out, err = run.communicate(timeout=90)
         assert run.returncode == 0, err
         assert "measured" in out and "turnaround [us]" in out and "late" in out
+        # a device on a port sets the pace: the host does not claim it was real time
+        assert "(device-clocked, device-paced)" in out.splitlines()[0], out
         assert mock.wait(timeout=10) == 0
     finally:
         if mock.poll() is None:

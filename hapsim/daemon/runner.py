@@ -1222,7 +1222,14 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
         "armed_monotonic_s": getattr(run.loop, "_t0", None),
-        "lockstep": bool(opts.lockstep), "transport": transport if transport != "pty" else
+        "lockstep": bool(opts.lockstep),
+        # what the host knows of the clock: its own (host-clocked), the embedded mock's
+        # (real time), or a device on a port that sets the pace, real time or not (a
+        # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
+        "pace": ("lockstep" if opts.lockstep else "real-time"
+                 if opts.host_clocked or transport != "serial" or opts.port is None
+                 else "device-paced"),
+        "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
@@ -1488,7 +1495,7 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else ", real-time")
+    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
