@@ -864,8 +864,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
-        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
         if opts.driver not in (None, "framed"):
+            rt.__enter__()  # the driver's embedded mock inherits the policy
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
             drv = get_driver(opts.driver)
@@ -891,9 +891,13 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             tr = SimTransport(mock, opts.plan)
         elif transport == "pty":
             from hapsim.daemon.transport import EmbeddedMock, SerialTransport
+            # the child starts under normal scheduling and takes SCHED_FIFO itself once its
+            # imports are done: a start-up (~0.5 s of CPU) under SCHED_FIFO starved every
+            # other real-time loop of the machine (a concurrent run: 40-170 ms stalls)
             embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
                                     seed=opts.seed, base_dir=prep.base_dir,
-                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+                                    faults=opts.faults or None, fault_seed=opts.fault_seed,
+                                    rt_priority=rt.priority)
             tr = SerialTransport(embedded.port, opts.baud)
             embedded.release_slave()
         else:
@@ -901,6 +905,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             tr = SerialTransport(opts.port, opts.baud)
         if warm is not None:
             warm.finish()
+        if not rt.active:
+            rt.__enter__()  # the loop's thread only, once the start-up work is done
     except BaseException:
         if rt is not None:
             rt.__exit__(None, None, None)

@@ -283,6 +283,12 @@ class EmbeddedMock:
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); validated here first.
     fault_seed : int
         Seed of the fault generator.
+    rt_priority : int
+        ``SCHED_FIFO`` priority the child takes once started, after its imports
+        (``hapsim mock --rt-priority``); 0: the caller's scheduling. Start it from a thread
+        under normal scheduling: a child inherits ``SCHED_FIFO``, and its start-up (~0.5 s
+        of CPU) would then run as a real-time process and starve every other real-time
+        loop of the machine.
 
     Attributes
     ----------
@@ -304,7 +310,7 @@ class EmbeddedMock:
 
     def __init__(self, device, excitation, rate_hz: float, *, lockstep: bool = False,
                  seed: int = 0, base_dir: str | None = None, faults: str | None = None,
-                 fault_seed: int = 0) -> None:
+                 fault_seed: int = 0, rt_priority: int = 0) -> None:
         import dataclasses
         import tempfile
 
@@ -337,6 +343,8 @@ class EmbeddedMock:
             cmd += ["--faults", faults, "--fault-seed", str(int(fault_seed))]
         if self._linkdir:
             cmd += ["--link", self.port]
+        if rt_priority:
+            cmd += ["--rt-priority", str(int(rt_priority))]
         env = dict(os.environ)
         root = _package_root()
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
