@@ -270,12 +270,13 @@ def test_a_stop_request_ends_the_compiled_stretch_within_one_sample():
     assert res.samples == tel.n < S
 
 
-def bursts(rng, n_bursts, seq0=0):
-    """Bursts of 1-5 STATEs, each written at once after the answer to the previous burst
-    (an int in the script: wait for the FORCE of that seq); (script, sizes)."""
+def bursts(rng, n_bursts, seq0=0, kmax=5):
+    """Bursts of 1-``kmax`` STATEs (stalls of the device's stream), each written at once
+    after the answer to the previous burst (an int in the script: wait for the FORCE of that
+    seq); (script, sizes)."""
     script, sizes, seq = [], [], seq0
     for b in range(n_bursts):
-        k = int(rng.integers(1, 6)) if b else 1     # the scene resumes on a lone STATE
+        k = int(rng.integers(1, kmax + 1)) if b else 1     # the scene resumes on a lone STATE
         frames = b"".join(state(seq + q, 0.002 * math.sin((seq + q) / 25.0)) for q in range(k))
         script += [(set(range(seq, seq + k)), frames), seq + k - 1]
         sizes.append(k)
@@ -307,3 +308,30 @@ def test_backlog_policy_on_bursts(backlog):
         assert res.skipped == 0
         np.testing.assert_array_equal(cols["seq"], np.arange(sum(sizes)))
         assert not np.any(cols["flags"] & 16)
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_skipped_states_feed_the_scene_not_the_velocity(seed):
+    """Random stall lengths (bursts of 1-40 STATEs of a moving hand), backlog "newest": the
+    two loops agree bit for bit; every answered STATE gets the force the scene gives when
+    every STATE is answered (backlog "all" on the same stream: an independent run), since a
+    skipped STATE still steps the scene; and no skip feeds a velocity across the stall (a
+    backward difference over k samples would be up to k times the hand's speed): the
+    velocity maximum is that of the "all" run, under a velocity limit 25 % above it, and
+    no safety stop ends either run."""
+    rng = np.random.default_rng(seed)
+    script, sizes = bursts(rng, 60, kmax=40)
+    ends = np.cumsum(sizes) - 1
+    vlim = 1.25 * 0.002 / 25.0 * 1000.0        # the hand's top speed 0.08 m/s, + 25 %
+    new = both([script], len(sizes), backlog="newest", velocity_limit=vlim)
+    assert_same(*new)
+    ref = run_loop(CompiledHostLoop, [script], int(sum(sizes)), backlog="all",
+                   velocity_limit=vlim)
+    res, tel = new[1][0], new[1][1]
+    assert not res.safety_stop and not ref[0].safety_stop
+    assert res.samples == len(sizes) and res.skipped == sum(sizes) - len(sizes)
+    cols, rcols = tel.columns(), ref[1].columns()
+    np.testing.assert_array_equal(cols["seq"], ends)
+    ramp = (cols["flags"] & 4) != 0                # the force ramp counts answered rows
+    np.testing.assert_array_equal(cols["force"][~ramp], rcols["force"][ends][~ramp])
+    assert res.v_max <= ref[0].v_max

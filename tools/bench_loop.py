@@ -46,7 +46,8 @@ CONFIG) is inside the timed ``run()``; it is under 0.5 % of N = 20000 samples.
 
 Usage::
 
-    python tools/bench_loop.py [--seconds S] [--rates 1000,2000,...] [--chart FILE] [--json FILE]
+    python tools/bench_loop.py [--quick] [--seconds S] [--rates 1000,2000,...] [--chart FILE]
+                               [--bench-out docs/bench] [--json FILE]
     python tools/bench_loop.py --sim [--n N] [--repeat R] [--ref REV] [--json FILE]
 
 Exit code 0, or 2 on bad arguments.
@@ -321,11 +322,24 @@ def pty_main(args) -> int:
             cells.append(f"{c:>24}")
         print(f"{rate:9g} " + " ".join(cells) + f" {_x(row['compiled']['late'], max(row['floor']['late'], 1)):>13}")
     if not args.no_startup:
-        res["startup_s"]["cold"] = startup(True, tmp)
+        if not args.quick:
+            res["startup_s"]["cold"] = startup(True, tmp)
         startup(False, tmp)
         res["startup_s"]["warm"] = startup(False, tmp)
+        cold = res["startup_s"].get("cold")
         print(f"\nstart-up of 'hapsim run configs/wall.yaml' to its first sample: cold "
-              f"{res['startup_s']['cold']:.2f} s, warm {res['startup_s']['warm']:.2f} s")
+              f"{'-' if cold is None else f'{cold:.2f}'} s, warm {res['startup_s']['warm']:.2f} s")
+    res["verdict"] = verdict(res)
+    if args.bench_out:
+        out = Path(args.bench_out)
+        out.mkdir(parents=True, exist_ok=True)
+        data = chart3_data(res)
+        (out / "loop_capacity.json").write_text(json.dumps(data, indent=1, allow_nan=False)
+                                                + "\n")
+        print(f"chart 3 data: {out / 'loop_capacity.json'} (redraw: hapsim bench --only "
+              f"loop_capacity --from-json --out {out})")
+        if not args.chart:
+            args.chart = str(out / "loop_capacity.png")
     if args.chart:
         chart3(res, args.chart)
         print(f"chart 3: {args.chart}")
@@ -334,13 +348,62 @@ def pty_main(args) -> int:
     return 0
 
 
-def chart3(res: dict, path: str) -> None:
-    """Chart 3 of ``hapsim bench`` (:func:`hapsim.plot_bench.plot_capacity`) redrawn from
-    these figures: the C floor in the place of the echo, the compiled loop as the daemon."""
+#: The issue's targets for the compiled loop against the floor measured in the same run:
+#: (what, table, key, percentile, most x floor).
+TARGETS = (("host turnaround p50", "turnaround_us", "p50", 2.0),
+           ("host turnaround p99", "turnaround_us", "p99", 2.0),
+           ("device round trip p50", "round_trip_us", "p50", 1.2),
+           ("device round trip p99", "round_trip_us", "p99", 1.5))
+
+
+def verdict(res: dict) -> list:
+    """Print and return the compiled loop's figures against the issue's targets.
+
+    Parameters
+    ----------
+    res : dict
+        :func:`pty_main`'s figures (``rates`` -> kind -> :func:`pty_run` result).
+
+    Returns
+    -------
+    list of dict
+        ``what``, ``ratio`` (compiled / floor, None when not measured), ``target`` and
+        ``met`` per target: turnaround and round trip at the first rate; at 5 kHz (when
+        measured) no safety stop in either loop and late ticks within 2x the floor's.
+    """
+    rates = list(res["rates"])
+    out = []
+    first = res["rates"][rates[0]]
+    for what, table, q, most in TARGETS:
+        a, b = first["compiled"][table][q], first["floor"][table][q]
+        ratio = a / b if a is not None and b else None
+        out.append({"what": f"{what} at {rates[0]:g} Hz", "ratio": ratio,
+                    "target": f"<= {most:g}x floor",
+                    "met": ratio is not None and ratio <= most})
+    row5 = res["rates"].get(5000.0)
+    if row5 is not None:
+        stops = [k for k in ("python", "compiled") if row5[k].get("safety_stop")]
+        out.append({"what": "safety stops at 5 kHz", "ratio": None, "target": "none",
+                    "met": not stops, "loops": stops})
+        ratio = row5["compiled"]["late"] / max(row5["floor"]["late"], 1)
+        out.append({"what": "late ticks at 5 kHz", "ratio": ratio, "target": "<= 2x floor",
+                    "met": ratio <= 2.0})
+    print("\ncompiled loop against the issue's targets (floor measured in the same run):")
+    for v in out:
+        fig = f"{v['ratio']:.2f}x" if v["ratio"] is not None else ", ".join(v.get("loops", []))
+        print(f"  {v['what']:34} {fig or '-':>8}  target {v['target']:14} "
+              f"{'met' if v['met'] else 'NOT MET'}")
+    return out
+
+
+def chart3_data(res: dict) -> dict:
+    """Chart 3 of ``hapsim bench`` (``loop_capacity.json``) from these figures: the C floor
+    in the place of the echo, the compiled loop as the daemon (the Python loop's late ticks
+    in ``python``), ratios by :func:`hapsim.bench.capacity.capacity_ratios`; ``hapsim
+    bench --only loop_capacity --from-json --out DIR`` redraws it."""
     import platform
 
     from hapsim.bench.capacity import capacity_ratios
-    from hapsim.plot_bench import plot_capacity
 
     def rows(kind):
         out = []
@@ -353,18 +416,40 @@ def chart3(res: dict, path: str) -> None:
         return out
 
     data = {"rates": [float(r) for r in res["rates"]], "echo": rows("floor"),
-            "daemon": rows("compiled"), "daemon_note": "", "duration_s": res["seconds"],
-            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, C floor vs compiled loop"}
+            "daemon": rows("compiled"), "python": rows("python"),
+            "daemon_note": "echo: C floor; daemon: compiled loop (tools/bench_loop.py)",
+            "duration_s": res["seconds"],
+            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, C floor vs compiled loop",
+            "generated_by": "tools/bench_loop.py"}
+    for kind in ("daemon", "python"):
+        src = "compiled" if kind == "daemon" else "python"
+        for r, rate in zip(data[kind], res["rates"]):
+            x = res["rates"][rate][src]
+            r.update(skipped=x.get("skipped"), host_late=x.get("host_late"),
+                     safety_stop=x.get("safety_stop"), stop_reason=x.get("stop_reason"))
     data["ratios"] = capacity_ratios(data["echo"], data["daemon"])
-    plot_capacity(data).savefig(path, dpi=110)
+    return data
+
+
+def chart3(res: dict, path: str) -> None:
+    """Chart 3 of ``hapsim bench`` (:func:`hapsim.plot_bench.plot_capacity`) redrawn from
+    these figures (:func:`chart3_data`) into the PNG ``path``."""
+    from hapsim.plot_bench import plot_capacity
+
+    plot_capacity(chart3_data(res)).savefig(path, dpi=110)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sim", action="store_true",
                     help="the per-sample cost on the in-process virtual clock instead")
-    ap.add_argument("--seconds", type=float, default=30.0,
-                    help="seconds per rate and loop (default 30; shorter for a smoke run)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="seconds per rate and loop (default 30; --quick: 3)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a short run: 3 s per rate and loop, warm start-up only")
+    ap.add_argument("--bench-out", metavar="DIR",
+                    help="write chart 3 of 'hapsim bench' there (loop_capacity.json + .png, "
+                         "e.g. docs/bench)")
     ap.add_argument("--rates", default="1000,2000,5000,10000,20000",
                     help="rates [Hz], comma-separated (the first one gives the latency table)")
     ap.add_argument("--no-startup", action="store_true", help="skip the start-up timing")
@@ -374,6 +459,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ref", help="git revision whose loop.py is timed alongside")
     ap.add_argument("--json", help="also write the figures to this file")
     args = ap.parse_args(argv)
+    if args.seconds is None:
+        args.seconds = 3.0 if args.quick else 30.0
     if not args.sim:
         try:
             args.rates = [float(r) for r in args.rates.split(",")]
