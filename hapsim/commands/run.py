@@ -120,11 +120,11 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
-    p.add_argument("--loop", choices=("compiled", "python"), default="python",
-                   help="host loop: 'python' (default: the reference loop) or 'compiled' "
-                        "(the device-clocked hot path in one numba function that owns the "
-                        "port, without the GIL; opt-in for now: under CPU load it skips "
-                        "more STATEs than the Python loop and can end in a safety stop)")
+    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
+                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
+                        "numba function that owns the port, without the GIL; a live --osc, "
+                        "--sound or a device correction keep the Python loop) or 'python' "
+                        "(the reference loop: the same FORCEs bit for bit, to compare)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",

@@ -501,7 +501,7 @@ class RunOptions:
     reconnect_attempts: int = 8
     reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
-    loop: str = "python"
+    loop: str = "compiled"
     driver: str | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
@@ -1294,7 +1294,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "python") -> dict:
+              driver: str | None = None, loop: str = "compiled") -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1562,7 +1562,7 @@ def format_report(rep: dict) -> str:
                  f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
                  f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
-                 f"{lp.get('scheduling', 'normal')}")
+                 f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
