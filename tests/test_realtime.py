@@ -57,3 +57,46 @@ def test_run_reports_scheduling_and_restores_it():
     assert os.sched_getscheduler(0) == before
     expected = "SCHED_FIFO 5" if _fifo_permitted() else "normal"
     assert rep["loop"]["scheduling"].startswith(expected)
+
+
+def _policy(pid: int) -> int:
+    """Scheduling policy of a process's main thread (field 41 of /proc/PID/stat)."""
+    with open(f"/proc/{pid}/stat") as fh:
+        return int(fh.read().rsplit(")", 1)[1].split()[38])
+
+
+@linux
+@pytest.mark.parametrize("loop", ["compiled", "python"])
+def test_the_mock_starts_under_normal_scheduling_and_takes_fifo_itself(monkeypatch, loop):
+    """The embedded mock is spawned from a thread under normal scheduling (its start-up,
+    ~0.5 s of CPU, would otherwise run as a real-time process that no real-time loop of
+    the same priority can preempt), is asked for the priority on its command line, and
+    runs its tick loop under SCHED_FIFO; the host loop runs under SCHED_FIFO."""
+    if not _fifo_permitted():
+        pytest.skip("SCHED_FIFO not permitted here: nothing to check")
+    from hapsim.daemon import loop as loop_mod
+    from hapsim.daemon import transport
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    seen = {}
+    init = transport.EmbeddedMock.__init__
+
+    def spawn(self, *a, **kw):
+        seen["spawned_under"] = os.sched_getscheduler(0)
+        init(self, *a, **kw)
+        seen["pid"], seen["cmd"] = self.proc.pid, self.proc.args
+
+    states = loop_mod.HostLoop._device_states       # the source of both loops
+
+    def running(self, n_max):
+        seen.setdefault("loop_under", os.sched_getscheduler(0))
+        seen.setdefault("mock_under", _policy(seen["pid"]))    # it answered: it serves
+        return states(self, n_max)
+
+    monkeypatch.setattr(transport.EmbeddedMock, "__init__", spawn)
+    monkeypatch.setattr(loop_mod.HostLoop, "_device_states", running)
+    run_scene(load_scene("configs/wall.yaml"), transport="pty", duration=0.2,
+              handle_signals=False, rt_priority=7, loop=loop)
+    assert seen["spawned_under"] == os.SCHED_OTHER
+    assert seen["cmd"][seen["cmd"].index("--rt-priority") + 1] == "7"
+    assert seen["loop_under"] == os.SCHED_FIFO and seen["mock_under"] == os.SCHED_FIFO
