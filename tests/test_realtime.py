@@ -52,11 +52,24 @@ def test_run_reports_scheduling_and_restores_it():
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     before = os.sched_getscheduler(0)
-    rep = run_scene(load_scene("configs/wall.yaml"), transport="pty", lockstep=True,
-                    duration=0.2, handle_signals=False, rt_priority=5)
+    rep = run_scene(load_scene("configs/wall.yaml"), transport="pty", duration=0.2,
+                    handle_signals=False, rt_priority=5)
     assert os.sched_getscheduler(0) == before
     expected = "SCHED_FIFO 5" if _fifo_permitted() else "normal"
     assert rep["loop"]["scheduling"].startswith(expected)
+
+
+@linux
+def test_a_lockstep_run_is_not_real_time():
+    """A lockstep mock waits for each FORCE: host and mock ping-pong as fast as they can, so
+    under SCHED_FIFO they would own the cores at the priority of every real-time loop of the
+    machine. Neither takes it; the report says why."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/wall.yaml"), transport="pty", lockstep=True,
+                    duration=0.2, handle_signals=False, rt_priority=5)
+    assert rep["loop"]["scheduling"] == ("normal (lockstep: paced by the device's answers, "
+                                         "not by the clock)")
 
 
 def _policy(pid: int) -> int:

@@ -131,7 +131,8 @@ def register(sub) -> None:
                    help="run a loop the analysis finds unstable, under the safety stops")
     p.add_argument("--rt-priority", type=int, default=10, metavar="N",
                    help="SCHED_FIFO priority of the loop and the embedded mock where the OS "
-                        "permits it (default 10; 0: normal scheduling). Under load it keeps "
+                        "permits it (default 10; 0: normal scheduling; not with --lockstep, "
+                        "which is paced by the answers, not the clock). Under load it keeps "
                         "late ticks rare; the report says what was obtained")
     p.add_argument("--seed", type=int, default=0, help="mock sensor-noise seed (default 0)")
     p.add_argument("--auto", action="store_true",

@@ -863,7 +863,14 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:                                          # long or open-ended: head + ring
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
-        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
+        # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
+        # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
+        # small machine at the priority of every real-time loop on it
+        paced = lockstep and not opts.host_clocked and opts.port is None
+        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") and not paced
+                              else 0)
+        if paced and opts.rt_priority:
+            rt.note = "normal (lockstep: paced by the device's answers, not by the clock)"
         if opts.driver not in (None, "framed"):
             rt.__enter__()  # the driver's embedded mock inherits the policy
             from hapsim.drivers import get_driver
@@ -1341,8 +1348,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         then STOP), with exit code 0. Restored on return.
     rt_priority : int
         ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
-        pty or a serial port, where the OS permits it; 0 for normal scheduling. Restored
-        after the run; the report's ``loop.scheduling`` says what was obtained.
+        pty or a serial port, where the OS permits it; 0 for normal scheduling. Not for a
+        lockstep embedded mock (paced by the answers, not the clock). The mock takes it
+        after its start-up, the host once its own start-up is done. Restored after the run;
+        the report's ``loop.scheduling`` says what was obtained.
     on_start : callable, optional
         Called as ``on_start(port, n_samples)`` once the port is open and the signal
         handlers are installed, just before the handshake (e.g. to tell the user that
