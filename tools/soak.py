@@ -177,6 +177,10 @@ def main(argv=None) -> int:
                          "python busy loops)")
     ap.add_argument("--loop", choices=("compiled", "python"), default="compiled",
                     help="host loop (default compiled)")
+    ap.add_argument("--keep-going", action="store_true",
+                    help="after a safety stop or an error, start the next run for the time "
+                         "left, and report every run and the totals (the figures of a whole "
+                         "soak on a loaded machine)")
     ap.add_argument("--scene", metavar="FILE.yaml",
                     help="run this scene (e.g. configs/wall.yaml) instead of the built-in wall "
                          "with a moving hand")
@@ -198,6 +202,7 @@ def main(argv=None) -> int:
         fh.write(SCENE)
     scene = load_scene(args.scene or os.path.join(tmp, "soak.yaml"))
     tel_path = args.telemetry or os.path.join(tmp, "soak.hst")
+    tel_base = tel_path[:-4] if tel_path.endswith(".hst") else tel_path
 
     samples = []          # (t [s], host RSS [kB], mock RSS [kB])
     done = threading.Event()
@@ -219,13 +224,31 @@ def main(argv=None) -> int:
           f"{' (with local changes)' if rev['dirty'] else ''}", file=sys.stderr, flush=True)
     error = None
     rep = None
+    segments = []           # --keep-going: one entry per run
     hogs = start_stress(args.stress, duration + 120.0)
     try:
-        rep = run_scene(scene, duration=duration, faults=args.faults, fault_seed=args.seed,
-                        telemetry=tel_path, handle_signals=True, reconnect_attempts=20,
-                        reconnect_time=30.0, loop=args.loop)
-    except Exception as exc:  # the soak reports whatever ended it
-        error = f"{type(exc).__name__}: {exc}"
+        while True:
+            left = duration - (time.monotonic() - t0)
+            if segments:
+                tel_path = f"{tel_base}.{len(segments)}.hst"
+            error, rep = None, None
+            try:
+                rep = run_scene(scene, duration=left, faults=args.faults,
+                                fault_seed=args.seed + len(segments), telemetry=tel_path,
+                                handle_signals=True, reconnect_attempts=20,
+                                reconnect_time=30.0, loop=args.loop)
+            except Exception as exc:  # the soak reports whatever ended it
+                error = f"{type(exc).__name__}: {exc}"
+            lp = (rep or {}).get("loop") or {}
+            segments.append({"at_s": round(time.monotonic() - t0, 1),
+                             "samples": lp.get("ticks"), "stop_reason": lp.get("stop_reason",
+                                                                                error),
+                             "lost": lp.get("lost"), "recovered": lp.get("recovered"),
+                             "late": lp.get("late"), "skipped": lp.get("skipped"),
+                             "telemetry": tel_path})
+            if not args.keep_going or lp.get("stop_reason") == "duration" \
+                    or duration - (time.monotonic() - t0) < 10.0:
+                break
     finally:
         for h in hogs:
             h.terminate()
@@ -295,6 +318,14 @@ def main(argv=None) -> int:
                                   "growth": ms[-1][2] - ms[0][2],
                                   "max": max(s[2] for s in ms)}
     out["rss_samples"] = samples
+    if args.keep_going:
+        # every run of the soak (a safety stop or an error ends one; the next one starts)
+        out["runs"] = segments
+        out["totals"] = {k: sum(g[k] or 0 for g in segments)
+                         for k in ("samples", "lost", "recovered", "late", "skipped")}
+        out["totals"]["runs"] = len(segments)
+        out["totals"]["safety_stops"] = sum(1 for g in segments
+                                            if str(g["stop_reason"]).startswith("safety"))
     text = json.dumps(out, indent=1)
     print(text)
     if args.json:
