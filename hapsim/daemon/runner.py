@@ -40,6 +40,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
+from hapsim.daemon.startup import preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -630,6 +631,9 @@ class Connection:
         In-process mock (``inprocess`` and ``sim``).
     old_signals : dict
         ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+    warm : thread or None
+        The numba warm-up, still running: :func:`run_loop` waits for it
+        (``finish()``) after the device's HELLO, before CONFIG arms it.
     """
 
     engine: object
@@ -641,6 +645,7 @@ class Connection:
     embedded: object = None
     mock: object = None
     old_signals: dict = field(default_factory=dict)
+    warm: object = None
 
 
 @dataclass
@@ -791,6 +796,7 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
@@ -829,7 +835,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     DeviceError
         The port cannot be opened.
     """
-    from hapsim.engine import Engine
     scene, dev = prep.scene, prep.scene.device
     stop = opts.stop or StopFlag()
     old = {}
@@ -847,9 +852,20 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         limit_blas_threads(1)
         corr = getattr(dev, "correction", None)
         sensor = corr is not None and corr.get("kind") == "velocity_sensor"
-        # the kernels (and the compiled loop) load while the device (the mock's child) starts
+        # the kernels (and the compiled loop) load while the device (the mock's child)
+        # starts and says HELLO: the loop waits for them just before it arms the device
+        # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
                               and corr is None)
+        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
+        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
+        if transport == "pty" and opts.driver in (None, "framed"):
+            # first: the child's interpreter and imports run beside everything below
+            from hapsim.daemon.transport import EmbeddedMock
+            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
+                                    seed=opts.seed, base_dir=prep.base_dir,
+                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+        from hapsim.engine import Engine
         engine = Engine(scene)
         if corr is not None:
             # a device correction: the engine's port force follows its law (one-link
@@ -863,8 +879,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:                                          # long or open-ended: head + ring
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
-        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
-        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
@@ -890,25 +904,22 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = SimTransport(mock, opts.plan)
         elif transport == "pty":
-            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
-            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                    seed=opts.seed, base_dir=prep.base_dir,
-                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+            from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(embedded.port, opts.baud)
             embedded.release_slave()
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
-        if warm is not None:
-            warm.finish()
     except BaseException:
+        if warm is not None:
+            warm.join()                 # numba's loading is not left half done
         if rt is not None:
             rt.__exit__(None, None, None)
         if embedded is not None:
             embedded.close()
         _restore_signals(old)
         raise
-    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old)
+    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old, warm)
 
 
 def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
@@ -955,6 +966,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         else:
             loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        loop.before_arm = lambda: _finish_warm(conn)
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -973,6 +985,8 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
+        if conn.warm is not None:       # the loop ended before it armed the device
+            conn.warm.join()
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
@@ -1222,6 +1236,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
         "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        # start-up: the first armed STATE, seconds after this process started
+        "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
@@ -1427,6 +1443,21 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     return rep
 
 
+def _since_start(t, opts: RunOptions):
+    """``t`` (time.monotonic [s]) in seconds since the process started; None when ``t`` is
+    None or the loop's clock is not the wall's (a virtual-clock transport)."""
+    if t is None or opts.transport == "sim":
+        return None
+    return round(t - process_start(), 4)
+
+
+def _finish_warm(conn: Connection) -> None:
+    """Wait for the numba warm-up (:class:`_CompileThread`) once; re-raise its error."""
+    warm, conn.warm = conn.warm, None
+    if warm is not None:
+        warm.finish()
+
+
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):
     """``writer.flush`` for a loop that is not real-time to call (an OSError stops it and is
     kept in ``writer.error``, as in the writer thread)."""
@@ -1557,6 +1588,9 @@ def format_report(rep: dict) -> str:
                  f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
+    if lp.get("first_sample_s") is not None:
+        lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
+                     f"started")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
