@@ -760,7 +760,7 @@ def _write(fd: int, data: bytes) -> bool:
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None) -> dict:
+             on_host_gone=None, tick: str = "compiled") -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -793,6 +793,12 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     on_host_gone : callable, optional
         ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
         called (outside any tick) each time a persistent device loses its host.
+    tick : {"compiled", "python"}
+        ``"compiled"`` (default): while armed in real time, the ticks run in numba
+        (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
+        sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
+        lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
+        ``"python"``: this function's Python loop throughout (the reference).
 
     Returns
     -------
@@ -803,7 +809,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     Raises
     ------
     ConfigError
-        A plan with ``vanish`` but no ``reopen``.
+        A plan with ``vanish`` but no ``reopen``, or an unknown ``tick``.
 
     Notes
     -----
@@ -822,6 +828,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     from hapsim.daemon.faults import FaultyDevice
 
     flag = flag or StopFlag()
+    if tick not in ("compiled", "python"):
+        raise ConfigError(f"unknown tick {tick!r}; valid: compiled, python", key="--tick")
     if plan is not None and plan.has_vanish and reopen is None:
         raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
                           key="--faults")
@@ -832,6 +840,12 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
     dev = FaultyDevice(mock, plan)
+    fast = None
+    if tick == "compiled" and not mock.lockstep and (plan is None or plan.empty):
+        from hapsim.daemon import fastmock
+        fastmock.warm_up_mock()          # loaded before HELLO: the first tick is compiled
+        fast = fastmock.CompiledMock(dev)
+    python_once = False              # the compiled stretch saw the port hang up: Python reads
     t0 = time.monotonic_ns()
 
     def now_us() -> int:
@@ -874,8 +888,19 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             if down:
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
+            pending = None           # host bytes the compiled stretch handed over
+            if (fast is not None and deadline is not None and not down and not python_once
+                    and not awaiting_host and not dev._out and not dev.decoder._overflow
+                    and fast.reason() is None):
+                code, deadline, pending = fast.serve(fd, t0, deadline, period_ns, flag)
+                if code != fastmock.R_HANDOFF:
+                    python_once = code == fastmock.R_PORT
+                    continue
+            python_once = False
             r = []
-            if wait > 0:
+            if pending is not None:
+                r = [fd]
+            elif wait > 0:
                 try:
                     if down:
                         time.sleep(min(wait, 0.05))
@@ -887,7 +912,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 r = [fd]
             if r:
                 try:
-                    chunk = os.read(fd, 4096)
+                    chunk = pending if pending is not None else os.read(fd, 4096)
                 except BlockingIOError:
                     chunk = None
                 except OSError:            # EIO: every slave fd closed
@@ -940,6 +965,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         report["end"] = reason
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()
+        report["compiled_ticks"] = fast.ticks if fast is not None else 0
         if plan is not None:
             report["faults_injected"] = dict(plan.to_dict()["injected"])
             report["fault_events"] = dev.events

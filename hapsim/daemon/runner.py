@@ -509,6 +509,7 @@ class RunOptions:
     sound: str | None = None
     jack_server: str | None = None
     plan: object = None
+    embedded: object = None
 
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
@@ -862,9 +863,10 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if transport == "pty" and opts.driver in (None, "framed"):
             # first: the child's interpreter and imports run beside everything below
             from hapsim.daemon.transport import EmbeddedMock
-            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                    seed=opts.seed, base_dir=prep.base_dir,
-                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+            embedded = opts.embedded or EmbeddedMock(
+                dev, scene.excitation, scene.rate_hz, lockstep=lockstep, seed=opts.seed,
+                base_dir=prep.base_dir, faults=opts.faults or None,
+                fault_seed=opts.fault_seed)
         from hapsim.engine import Engine
         engine = Engine(scene)
         if corr is not None:
@@ -1304,7 +1306,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "python") -> dict:
+              driver: str | None = None, loop: str = "python", embedded=None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1389,6 +1391,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run
+        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
+        closed here whatever happens. Default: started by :func:`connect`.
     loop : {"compiled", "python"}
         Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
         serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
@@ -1428,8 +1434,18 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
                       osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop).check()
-    prep = prepare_run(scene, opts)
+                      driver=driver, loop=loop, embedded=embedded)
+    try:
+        opts.check()
+        if embedded is not None and (opts.transport != "pty"
+                                     or opts.driver not in (None, "framed")):
+            opts.embedded = None            # not this run's device
+            embedded.close()
+        prep = prepare_run(scene, opts)
+    except BaseException:
+        if embedded is not None:
+            embedded.close()
+        raise
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)

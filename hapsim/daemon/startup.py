@@ -17,7 +17,7 @@ import os
 import sys
 import time
 
-__all__ = ["process_start", "preload_numba_blas"]
+__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock"]
 
 
 def process_start() -> float:
@@ -95,3 +95,48 @@ def _import_real(name: str) -> bool:
         return True
     except ImportError:
         return False
+
+
+def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool = False,
+                        seed: int = 0, faults: str | None = None, fault_seed: int = 0,
+                        rt_priority: int = 0, tick: str = "compiled"):
+    """Start ``hapsim run``'s embedded mock device before the rest of the run's imports.
+
+    The mock's child process (its interpreter, numpy, numba and the compiled tick: about
+    half a second) then starts beside the host's own imports, prediction and numba warm-up
+    instead of after them. :func:`hapsim.daemon.runner.run_scene` takes it
+    (``embedded=``) as :func:`~hapsim.daemon.runner.connect` would have started it.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run (its device, excitation, rate and file).
+    rate_hz : float, optional
+        ``--rate`` (the native rate the mock announces); default the scene's.
+    lockstep, seed, faults, fault_seed
+        As :class:`hapsim.daemon.transport.EmbeddedMock`.
+    rt_priority : int
+        ``SCHED_FIFO`` priority given to the child at once (0: none).
+    tick : {"compiled", "python"}
+        The mock's real-time ticks.
+
+    Returns
+    -------
+    EmbeddedMock or None
+        None when the run would refuse the scene before starting a device (no port or
+        device section, or a delay of 0 outside lockstep): the run then says why.
+
+    Raises
+    ------
+    ConfigError
+        A bad fault SPEC.
+    """
+    dev = scene.device
+    if dev is None or scene.port is None or (dev.delay == 0 and not lockstep):
+        return None
+    from hapsim.daemon.transport import EmbeddedMock
+    base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" \
+        else None
+    return EmbeddedMock(dev, scene.excitation, float(rate_hz or scene.rate_hz),
+                        lockstep=lockstep, seed=seed, base_dir=base_dir, faults=faults,
+                        fault_seed=fault_seed, rt_priority=rt_priority, tick=tick)
