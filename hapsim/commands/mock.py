@@ -209,8 +209,11 @@ def run(args) -> int:
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
         with rt:
+            # no HELLO before asked: the host opens the port after this child started,
+            # and pyserial's open flushes what is waiting (half a HELLO: a bad frame)
             serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
-                     handle_signals=False, plan=plan, reopen=reopen, tick=args.tick)
+                     handle_signals=False, plan=plan, reopen=reopen, tick=args.tick,
+                     hello=False)
         return 0
     import sys
     master, slave = _new_pty(args.link, announce=True)

@@ -760,7 +760,7 @@ def _write(fd: int, data: bytes) -> bool:
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None, tick: str = "compiled") -> dict:
+             on_host_gone=None, tick: str = "compiled", hello: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -799,6 +799,11 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
         lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
         ``"python"``: this function's Python loop throughout (the reference).
+    hello : bool
+        Say ``0x00`` + HELLO at once, as a device does when its port opens (default). False:
+        only when asked (HELLO_REQUEST), for a port the host opens *after* this starts
+        (``hapsim run``'s embedded mock): pyserial's open flushes the input and could cut
+        an early HELLO in half (a bad frame); the host always asks.
 
     Returns
     -------
@@ -851,8 +856,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     def now_us() -> int:
         return (time.monotonic_ns() - t0) // 1000
 
-    dev.connect(now_us())
-    _write(fd, dev.pop_due(now_us()))
+    if hello:
+        dev.connect(now_us())
+        _write(fd, dev.pop_due(now_us()))
     gc_was = gc.isenabled()
     gc.disable()
     deadline = None            # monotonic ns of the next real-time tick

@@ -968,7 +968,12 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
         else:
             loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
-        loop.before_arm = lambda: _finish_warm(conn)
+        def before_arm() -> None:
+            _finish_warm(conn)
+            if opts.on_start is not None:
+                opts.on_start(tr.info.get("port"), prep.n_samples)
+
+        loop.before_arm = before_arm
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -977,8 +982,6 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                                  events=loop.result.events).start()
             if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
                 tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
-        if opts.on_start is not None:
-            opts.on_start(tr.info.get("port"), prep.n_samples)
         try:
             res = loop.run()
         except (DeviceError, ProtocolError) as exc:
@@ -1356,9 +1359,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         pty or a serial port, where the OS permits it; 0 for normal scheduling. Restored
         after the run; the report's ``loop.scheduling`` says what was obtained.
     on_start : callable, optional
-        Called as ``on_start(port, n_samples)`` once the port is open and the signal
-        handlers are installed, just before the handshake (e.g. to tell the user that
-        Ctrl-C now stops cleanly).
+        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
+        the device has said HELLO and the numba warm-up is done, just before the device is
+        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
     faults : str, optional
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
     fault_seed : int
