@@ -372,6 +372,8 @@ class CompiledMock:
         self.ticks = 0
         self._plan = dev.plan
 
+    R_HANDOFF, R_PORT = R_HANDOFF, R_PORT       # the codes serve_fd acts on
+
     def reason(self) -> str | None:
         """:func:`compiled_reason` for this device now."""
         return compiled_reason(self.dev.mock, self._plan)

@@ -40,6 +40,7 @@ import math
 import os
 import select
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -757,6 +758,38 @@ def _write(fd: int, data: bytes) -> bool:
         return False
 
 
+class _TickLoader(threading.Thread):
+    """Load numba and the compiled tick (:mod:`hapsim.daemon.fastmock`) beside the
+    serving loop; ``fast`` is the :class:`~hapsim.daemon.fastmock.CompiledMock` once done
+    (None on an error, kept in ``error``: the Python tick goes on).
+
+    While it runs, the interpreter's switch interval is 0.1 ms, so that the serving
+    thread, woken by the host's bytes or its deadline, gets the GIL at once.
+    """
+
+    def __init__(self, dev) -> None:
+        super().__init__(name="hapsim-mock-tick-loader", daemon=True)
+        self.dev = dev
+        self.fast = None
+        self.error = None
+        self.start()
+
+    def run(self) -> None:
+        import sys
+        was = sys.getswitchinterval()
+        sys.setswitchinterval(1e-4)
+        try:
+            from hapsim.daemon import fastmock
+            from hapsim.daemon.startup import preload_numba_blas
+            preload_numba_blas()
+            fastmock.warm_up_mock()
+            self.fast = fastmock.CompiledMock(self.dev)
+        except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            sys.setswitchinterval(was)
+
+
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
@@ -845,11 +878,11 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
     dev = FaultyDevice(mock, plan)
-    fast = None
+    fast = loader = load_error = None
     if tick == "compiled" and not mock.lockstep and (plan is None or plan.empty):
-        from hapsim.daemon import fastmock
-        fastmock.warm_up_mock()          # loaded before HELLO: the first tick is compiled
-        fast = fastmock.CompiledMock(dev)
+        # numba and the compiled tick load in a thread: HELLO, PING and the first ticks
+        # are answered in Python meanwhile (the host does not wait for the mock's loading)
+        loader = _TickLoader(dev)
     python_once = False              # the compiled stretch saw the port hang up: Python reads
     t0 = time.monotonic_ns()
 
@@ -895,12 +928,14 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
             pending = None           # host bytes the compiled stretch handed over
+            if loader is not None and not loader.is_alive():
+                fast, load_error, loader = loader.fast, loader.error, None
             if (fast is not None and deadline is not None and not down and not python_once
                     and not awaiting_host and not dev._out and not dev.decoder._overflow
                     and fast.reason() is None):
                 code, deadline, pending = fast.serve(fd, t0, deadline, period_ns, flag)
-                if code != fastmock.R_HANDOFF:
-                    python_once = code == fastmock.R_PORT
+                if code != fast.R_HANDOFF:
+                    python_once = code == fast.R_PORT
                     continue
             python_once = False
             r = []
@@ -972,6 +1007,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()
         report["compiled_ticks"] = fast.ticks if fast is not None else 0
+        if loader is not None:
+            report["compiled_note"] = "the compiled tick was still loading"
+        elif load_error is not None:
+            report["compiled_note"] = f"compiled tick unavailable: {load_error}"
         if plan is not None:
             report["faults_injected"] = dict(plan.to_dict()["injected"])
             report["fault_events"] = dev.events
