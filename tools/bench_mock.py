@@ -80,8 +80,9 @@ def _answer_states(fd, n_states, timeout_ms, rb, pkt, f8, u8, table, tx, pfd, se
     return 0
 
 
-def run_one(tick: str, rate: float, seconds: float) -> dict:
-    """One run of the mock (``tick``: "python" or "compiled") at ``rate`` [Hz]."""
+def run_one(tick: str, rate: float, seconds: float, settle: float = 2.0) -> dict:
+    """One run of the mock (``tick``: "python" or "compiled") at ``rate`` [Hz], CONFIG
+    sent ``settle`` seconds after HELLO (the compiled tick is loaded by then)."""
     dev = Device(mass=0.1, friction=0.5, delay=1, force_limit=10.0)
     rt = RealtimePriority(10)
     rt.__enter__()
@@ -96,6 +97,7 @@ def run_one(tick: str, rate: float, seconds: float) -> dict:
             if select.select([fd], [], [], 0.2)[0] and any(
                     isinstance(m, fp.Hello) for m in dec.feed(os.read(fd, 4096))):
                 break
+        time.sleep(settle)         # the compiled tick loads in the child meanwhile
         os.write(fd, fp.encode(fp.Config(rate, 50_000, 10.0)))
         n = int(rate * seconds)
         u8 = np.zeros(8, dtype=np.uint8)
@@ -122,6 +124,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=5.0, help="seconds per run (default 5)")
     ap.add_argument("--rates", type=float, nargs="+",
                     default=[1000.0, 2000.0, 5000.0, 10000.0, 20000.0])
+    ap.add_argument("--settle", type=float, default=2.0,
+                    help="seconds between the mock's HELLO and CONFIG (default 2; 0: as "
+                         "hapsim run, the compiled tick may still be loading)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     args = ap.parse_args(argv)
     from hapsim.daemon.fastmock import warm_up_mock
@@ -132,12 +137,13 @@ def main(argv=None) -> int:
                    np.zeros(2, dtype=np.int64))
     print("command: " + " ".join([sys.executable, *sys.argv]))
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, load average "
-          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.seconds:g} s per run")
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.seconds:g} s per run, "
+          f"CONFIG {args.settle:g} s after HELLO")
     rows = []
     print(f"{'rate [Hz]':>9} {'mock':>9} {'ticks/asked':>13} {'rate got':>9} {'overruns':>9} "
           f"{'late':>7} {'gaps':>6} {'py/compiled overruns':>21}")
     for rate in args.rates:
-        pair = {t: run_one(t, rate, args.seconds) for t in ("python", "compiled")}
+        pair = {t: run_one(t, rate, args.seconds, args.settle) for t in ("python", "compiled")}
         rows += pair.values()
         for t, r in pair.items():
             ratio = ""

@@ -66,6 +66,9 @@ DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
 #: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
 MOCK_SPIN_NS = 0
+#: A mock armed while its compiled tick is still loading waits this long for it [s] before
+#: it ticks in Python beside the loading thread.
+LOADER_WAIT_S = 0.25
 
 
 # --------------------------------------------------------------------------- physics
@@ -772,6 +775,7 @@ class _TickLoader(threading.Thread):
         self.dev = dev
         self.fast = None
         self.error = None
+        self.waited = False
         self.start()
 
     def run(self) -> None:
@@ -928,6 +932,11 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
             pending = None           # host bytes the compiled stretch handed over
+            if loader is not None and mock.armed and not loader.waited:
+                # armed while still loading: a short wait, then Python ticks (a cold cache
+                # compiles for seconds) beside the loading thread
+                loader.waited = True
+                loader.join(LOADER_WAIT_S)
             if loader is not None and not loader.is_alive():
                 fast, load_error, loader = loader.fast, loader.error, None
             if (fast is not None and deadline is not None and not down and not python_once
