@@ -40,7 +40,6 @@ import math
 import os
 import select
 import signal
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -66,9 +65,6 @@ DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
 #: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
 MOCK_SPIN_NS = 0
-#: A mock armed while its compiled tick is still loading waits this long for it [s] before
-#: it ticks in Python beside the loading thread.
-LOADER_WAIT_S = 0.25
 
 
 # --------------------------------------------------------------------------- physics
@@ -761,37 +757,19 @@ def _write(fd: int, data: bytes) -> bool:
         return False
 
 
-class _TickLoader(threading.Thread):
-    """Load numba and the compiled tick (:mod:`hapsim.daemon.fastmock`) beside the
-    serving loop; ``fast`` is the :class:`~hapsim.daemon.fastmock.CompiledMock` once done
-    (None on an error, kept in ``error``: the Python tick goes on).
-
-    While it runs, the interpreter's switch interval is 0.1 ms, so that the serving
-    thread, woken by the host's bytes or its deadline, gets the GIL at once.
-    """
-
-    def __init__(self, dev) -> None:
-        super().__init__(name="hapsim-mock-tick-loader", daemon=True)
-        self.dev = dev
-        self.fast = None
-        self.error = None
-        self.waited = False
-        self.start()
-
-    def run(self) -> None:
-        import sys
-        was = sys.getswitchinterval()
-        sys.setswitchinterval(1e-4)
-        try:
-            from hapsim.daemon import fastmock
-            from hapsim.daemon.startup import preload_numba_blas
-            preload_numba_blas()
-            fastmock.warm_up_mock()
-            self.fast = fastmock.CompiledMock(self.dev)
-        except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
-            self.error = f"{type(exc).__name__}: {exc}"
-        finally:
-            sys.setswitchinterval(was)
+def _load_tick(dev):
+    """The compiled tick for ``dev`` (numba's cache loaded, or compiled once), before any
+    tick; ``(CompiledMock, None)``, or ``(None, reason)`` when it cannot load (the Python
+    tick serves). Not in a thread beside the serving loop: a loading thread holding the GIL
+    while the scheduler preempts it stalled the serving thread (late ticks, losses)."""
+    try:
+        from hapsim.daemon import fastmock
+        from hapsim.daemon.startup import preload_numba_blas
+        preload_numba_blas()
+        fastmock.warm_up_mock()
+        return fastmock.CompiledMock(dev), None
+    except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
+        return None, f"{type(exc).__name__}: {exc}"
 
 
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
@@ -882,11 +860,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
     dev = FaultyDevice(mock, plan)
-    fast = loader = load_error = None
+    fast = load_error = None
     if tick == "compiled" and not mock.lockstep and (plan is None or plan.empty):
-        # numba and the compiled tick load in a thread: HELLO, PING and the first ticks
-        # are answered in Python meanwhile (the host does not wait for the mock's loading)
-        loader = _TickLoader(dev)
+        fast, load_error = _load_tick(dev)       # before HELLO: every tick is compiled
     python_once = False              # the compiled stretch saw the port hang up: Python reads
     t0 = time.monotonic_ns()
 
@@ -932,13 +908,6 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
             pending = None           # host bytes the compiled stretch handed over
-            if loader is not None and mock.armed and not loader.waited:
-                # armed while still loading: a short wait, then Python ticks (a cold cache
-                # compiles for seconds) beside the loading thread
-                loader.waited = True
-                loader.join(LOADER_WAIT_S)
-            if loader is not None and not loader.is_alive():
-                fast, load_error, loader = loader.fast, loader.error, None
             if (fast is not None and deadline is not None and not down and not python_once
                     and not awaiting_host and not dev._out and not dev.decoder._overflow
                     and fast.reason() is None):
@@ -1016,9 +985,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()
         report["compiled_ticks"] = fast.ticks if fast is not None else 0
-        if loader is not None:
-            report["compiled_note"] = "the compiled tick was still loading"
-        elif load_error is not None:
+        if load_error is not None:
             report["compiled_note"] = f"compiled tick unavailable: {load_error}"
         if plan is not None:
             report["faults_injected"] = dict(plan.to_dict()["injected"])
