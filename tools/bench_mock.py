@@ -80,9 +80,9 @@ def _answer_states(fd, n_states, timeout_ms, rb, pkt, f8, u8, table, tx, pfd, se
     return 0
 
 
-def run_one(tick: str, rate: float, seconds: float, settle: float = 2.0) -> dict:
+def run_one(tick: str, rate: float, seconds: float, settle: float = 0.0) -> dict:
     """One run of the mock (``tick``: "python" or "compiled") at ``rate`` [Hz], CONFIG
-    sent ``settle`` seconds after HELLO (the compiled tick is loaded by then)."""
+    sent ``settle`` seconds after HELLO."""
     dev = Device(mass=0.1, friction=0.5, delay=1, force_limit=10.0)
     rt = RealtimePriority(10)
     rt.__enter__()
@@ -97,7 +97,7 @@ def run_one(tick: str, rate: float, seconds: float, settle: float = 2.0) -> dict
             if select.select([fd], [], [], 0.2)[0] and any(
                     isinstance(m, fp.Hello) for m in dec.feed(os.read(fd, 4096))):
                 break
-        time.sleep(settle)         # the compiled tick loads in the child meanwhile
+        time.sleep(settle)
         os.write(fd, fp.encode(fp.Config(rate, 50_000, 10.0)))
         n = int(rate * seconds)
         u8 = np.zeros(8, dtype=np.uint8)
@@ -124,9 +124,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=5.0, help="seconds per run (default 5)")
     ap.add_argument("--rates", type=float, nargs="+",
                     default=[1000.0, 2000.0, 5000.0, 10000.0, 20000.0])
-    ap.add_argument("--settle", type=float, default=2.0,
-                    help="seconds between the mock's HELLO and CONFIG (default 2; 0: as "
-                         "hapsim run, the compiled tick may still be loading)")
+    ap.add_argument("--settle", type=float, default=0.0,
+                    help="seconds between the mock's HELLO and CONFIG (default 0: at once, "
+                         "as hapsim run; the compiled tick loads before HELLO)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     args = ap.parse_args(argv)
     from hapsim.daemon.fastmock import warm_up_mock
