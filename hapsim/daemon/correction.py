@@ -32,16 +32,17 @@ __all__ = ["corrected_engine"]
 
 
 def _port_links(scene):
-    """``(name, other end index)`` of every link at the port; ConfigError for a contact."""
+    """``(name, other end index, sign, threshold or None)`` of every link at the port.
+
+    ``sign`` is +1 when the port is the link's first end (the kernels' ``d = x1 - x2``).
+    """
     port = scene.port.name
     out = []
     for lk in scene.links:
         if port in (lk.m1, lk.m2):
-            if lk.kind != "spring_damper":
-                raise ConfigError(f"virtual_coupling needs spring_dampers at the port; link "
-                                  f"{lk.name!r} is a {lk.kind}", file=scene.path,
-                                  line=lk.line or None, key=f"links.{lk.name}")
-            out.append((lk.name, scene.index(lk.m2 if lk.m1 == port else lk.m1)))
+            first = lk.m1 == port
+            out.append((lk.name, scene.index(lk.m2 if first else lk.m1), 1.0 if first else -1.0,
+                        float(lk.threshold) if lk.kind == "contact" else None))
     return out
 
 
@@ -52,8 +53,8 @@ def corrected_engine(scene, velocity=None):
     ----------
     scene : hapsim.scene.Scene
         Calibrated scene with a port and a device with a ``correction``; any network
-        (virtual masses, several links, any integrator). ``virtual_coupling`` needs the
-        links at the port to be spring_dampers and no ``audio`` section.
+        (virtual masses, several links, contacts, any integrator). ``virtual_coupling``
+        needs a single-rate scene (no ``audio`` section).
     velocity : callable, optional
         ``velocity() -> float``, the handle velocity at the current STATE [m/s]; required
         for ``velocity_sensor``.
@@ -68,7 +69,16 @@ def corrected_engine(scene, velocity=None):
     ------
     ConfigError
         No port, a velocity sensor without a velocity source, a virtual coupling on a
-        contact at the port or on a multi-rate (audio) scene.
+        multi-rate (audio) scene.
+
+    Notes
+    -----
+    The coupling proxy ``y`` solves ``Kc (x - y) + Bc (Dx - Dy) + F_port(y) = 0`` with the
+    port force of the engine's own link laws (``cordis``/``schemes`` kernels): a spring_damper
+    ``-k (y - o) - z (y - y[n-1] - T v_o)``, a contact the same plus ``-s k thr`` while
+    engaged (``-s (y - o) < thr``). A contact makes ``F_port`` piecewise linear; the
+    engaged set is found by fixed-point iteration from the one at ``y[n-1]`` (at most one
+    pass per contact, the force being monotone in ``y``).
     """
     from hapsim.analysis.corrections import Correction
     from hapsim.engine import Engine
@@ -100,7 +110,7 @@ def corrected_engine(scene, velocity=None):
         def __init__(self, sc):
             super().__init__(sc)
             # (stiffness array, damping/T array, slot, other end) of the links at the port
-            self._plinks = [self._link_slot[nm] + (o,) for nm, o in plinks]
+            self._plinks = [self._link_slot[nm] + (o, sgn, thr) for nm, o, sgn, thr in plinks]
             self._mobile_set = frozenset(int(i) for i in self._mobile)
             self._fresh = True
 
@@ -108,21 +118,31 @@ def corrected_engine(scene, velocity=None):
             self._x1 = self._x2 = self._q1 = float(x)
             self._vf = 0.0
             self._y1 = float(x)
-            if kind == "virtual_coupling":
-                f0, cp, cpp = self._port_terms()     # at rest: y[n] = y[n-1]
-                self._y1 = (Kc * x + f0) / (Kc - cp - cpp)
+            if kind == "virtual_coupling":        # at rest: y[n] = y[n-1]
+                self._y1 = self._proxy(float(x), float(x), float(x), 0.0, rest=True)
 
-        def _port_terms(self):
-            """``(F0, cp, cpp)``: the port force is ``F0 + cp y + cpp y[n-1]`` [N]."""
-            f0 = cp = cpp = 0.0
-            x, xp, v = self._x, self._xp, self._v
-            for k_arr, z_arr, j, o in self._plinks:
-                k, z = k_arr[j], z_arr[j]
-                tvo = v[o] * T if v is not None and o in self._mobile_set else x[o] - xp[o]
-                f0 += k * x[o] + z * tvo
-                cp -= k + z
-                cpp += z
-            return f0, cp, cpp
+        def _proxy(self, x: float, x1: float, y1: float, bc_t: float, rest=False) -> float:
+            """Coupling proxy ``y[n]`` (Notes of :func:`corrected_engine`)."""
+            xs, xps, v = self._x, self._xp, self._v
+            y = y1
+            for _ in range(len(self._plinks) + 1):
+                num = Kc * x + bc_t * (x - x1 + y1)
+                den = Kc + bc_t
+                for k_arr, z_arr, j, o, sgn, thr in self._plinks:
+                    k, z = k_arr[j], z_arr[j]
+                    if thr is not None and not (-sgn * (y - xs[o]) < thr):
+                        continue                   # contact open at this y
+                    tvo = v[o] * T if v is not None and o in self._mobile_set \
+                        else xs[o] - xps[o]
+                    num += k * xs[o] + z * tvo + (0.0 if rest else z * y1)
+                    if thr is not None:
+                        num -= sgn * k * thr
+                    den += k + (0.0 if rest else z)
+                y_new = num / den
+                if y_new == y:
+                    break
+                y = y_new
+            return y
 
         def set_port_position(self, position, at_rest=False):
             super().set_port_position(position, at_rest=at_rest)
@@ -147,9 +167,7 @@ def corrected_engine(scene, velocity=None):
                 q, qq = x, self._x1
                 extra = Mc_T2 * (x - 2.0 * self._x1 + self._x2)
             else:
-                f0, cp, cpp = self._port_terms()
-                q = ((Kc + Bc_T) * x - Bc_T * self._x1 + (Bc_T + cpp) * self._y1 + f0) \
-                    / (Kc + Bc_T - cp)
+                q = self._proxy(x, self._x1, self._y1, Bc_T)
                 qq = self._y1
                 self._y1 = q
             p = self._port

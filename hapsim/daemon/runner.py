@@ -852,7 +852,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                               and corr is None)
         engine = Engine(scene)
         if corr is not None:
-            # a device correction: the engine's port force follows its law (one-link
+            # a device correction: the engine is fed the corrected port signals (any
             # scene); a velocity sensor reads the lockstep mock in-process (below)
             from hapsim.daemon.correction import corrected_engine
             if not sensor or transport != "inprocess":
