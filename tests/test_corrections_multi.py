@@ -265,3 +265,32 @@ def test_multi_link_stability_limit_against_a_time_domain_simulation(kind, param
         x = np.abs(simulate(kind, params, f * Kmax, n, grip=grip))
         early, late = x[500:1500].max(), x[-1000:].max()
         assert (late > early) == grows, (f, Kmax, early, late)
+
+
+# --------------------------------------------------------------------------- compiled loop
+
+def test_compiled_loop_asked_for_a_corrected_scene_says_the_python_loop_ran():
+    """--loop compiled with a device correction: the Python loop runs the law (measured ==
+    predicted still) and the report says so and why; never silently."""
+    from hapsim.daemon.runner import format_report, run_scene
+    text = f"""
+rate_hz: 1000
+masses: [{{name: p, kind: port}}, {{name: g, kind: ground}}]
+links: [{{name: w, kind: spring_damper, between: [p, g], stiffness: 400, damping: 1.5}}]
+device: {{mass: 0.1, friction: 0.5, delay: 1, correction: {corr_text(*CASES[1])}}}
+excitation: {{x0: 0.005}}
+"""
+    sc = parse_scene(text)
+    rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.0, loop="compiled")
+    assert rep["loop"]["loop"] == "python"
+    assert rep["loop"]["python_reason"].startswith("device.correction (velocity_filter)")
+    assert "the Python loop ran: device.correction" in format_report(rep)
+    assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
+    plain = parse_scene(text.replace(f", correction: {corr_text(*CASES[1])}", ""))
+    rep = run_scene(plain, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.0, loop="compiled")
+    assert "no file descriptor" in rep["loop"]["python_reason"]
+    rep = run_scene(plain, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.0)
+    assert rep["loop"]["python_reason"] is None
