@@ -269,3 +269,56 @@ def test_consistency_over_a_hand_family_in_the_cli(tmp_path, capsys):
     from hapsim.analysis.family import consistency
     small = consistency(parse_scene(_parallel(1e-4, ", hand: {mass: [0.5, 1.5]}")))
     assert small["worst_k"] < 1e-4
+
+
+# --------------------------------------------------------------------------- corrections
+
+FAMILY_CORRECTIONS = [{"kind": "velocity_sensor"},
+                      {"kind": "velocity_filter", "cutoff_hz": 100.0},
+                      {"kind": "prediction", "horizon": 0.5},
+                      {"kind": "inertia_compensation", "mass": 0.02},
+                      {"kind": "virtual_coupling", "stiffness": 3000.0, "damping": 1.0}]
+
+
+@pytest.mark.parametrize("corr", FAMILY_CORRECTIONS, ids=[c["kind"] for c in FAMILY_CORRECTIONS])
+def test_corrected_family_verdicts_equal_the_scalar_analysis_per_member(corr):
+    """configs/hand_wall.yaml with each correction, 16 seeded members + corners: the batched
+    family (stacked state matrices with the correction's state) gives each member the
+    verdict, and the poles, of the per-member scalar analysis (roots of P K + Q B + R of
+    that member's LoopModel); inertia compensation of 0.02 kg makes part of it unstable,
+    so both verdicts are exercised."""
+    import dataclasses
+    from hapsim.analysis.loop import STABILITY_TOL
+    sc = parse_scene(open("configs/hand_wall.yaml").read())
+    sc = dataclasses.replace(sc, device=dataclasses.replace(sc.device, correction=corr))
+    res = family(sc, 16, seed=14)
+    ev = np.linalg.eigvals(family_matrices(sc, res.members)[0])
+    for i, mem in enumerate(res.members):
+        p = closed_loop_poles(LoopModel.from_device(sc.device, sc.rate_hz, mem), 1000.0, 1.5)
+        assert res.stable[i] == (np.abs(p).max() <= 1.0 + STABILITY_TOL), i
+        a = np.sort_complex(ev[i][np.abs(ev[i]) > 1e-7])
+        b = np.sort_complex(p[np.abs(p) > 1e-7])
+        assert a.size == b.size and np.abs(a - b).max() < 1e-8, i
+    assert res.robust == (corr["kind"] != "inertia_compensation")
+
+
+def test_family_cli_correction_option(capsys):
+    """--correction replaces the scene's correction (or removes it: none); a bad spec is
+    one line naming the option and the valid choices, exit 2."""
+    import json
+    from hapsim.cli import main
+    hw = "configs/hand_wall.yaml"
+    assert main(["family", hw, "--correction", "inertia_compensation:mass=0.02",
+                 "--samples", "50", "--json"]) == 1
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["correction"] == {"kind": "inertia_compensation", "mass": 0.02}
+    assert rep["unstable"] > 0
+    assert main(["family", hw, "--correction", "velocity_filter:cutoff_hz=100"]) == 0
+    assert "correction: velocity_filter(fc=100 Hz)" in capsys.readouterr().out
+    for bad, words in (("foo", "valid: none, velocity_sensor"),
+                       ("velocity_filter:fc=3", "valid: cutoff_hz=VALUE"),
+                       ("velocity_filter:cutoff_hz=x", "must be a number"),
+                       ("virtual_coupling:stiffness=-1", "must be > 0")):
+        assert main(["family", hw, "--correction", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--correction" in err and words in err, err
