@@ -320,3 +320,22 @@ def test_virtual_coupling_bound_of_the_running_law(Kc, Bc):
         assert pb <= bound * (1 + 1e-9)
         if K == 1e14:
             assert pb == pytest.approx(bound, rel=1e-9)
+
+
+def test_readme_correction_table_is_what_compare_corrections_prints(capsys):
+    """The README's table of correction means is the command's own output, row for row
+    (the command named above the table, without the time-domain part)."""
+    import pathlib
+    import re
+    from hapsim.cli import main
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    m = re.search(r"`hapsim compare-corrections (--mass [^`]*)`", readme)
+    cmd = m.group(1).split()
+    after = readme[m.end():].splitlines()
+    start = next(i for i, ln in enumerate(after) if ln.startswith("|"))
+    rows = [ln for ln in after[start:][:next(i for i, ln in enumerate(after[start:])
+                                              if not ln.startswith("|"))]]
+    assert main(["compare-corrections", *cmd, "--no-time-domain"]) == 0
+    out = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("|")]
+    assert len(out) == 9                      # header, rule, the plain element and 6
+    assert rows == out
