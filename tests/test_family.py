@@ -322,3 +322,18 @@ def test_family_cli_correction_option(capsys):
         assert main(["family", hw, "--correction", bad]) == 2
         err = capsys.readouterr().err
         assert "--correction" in err and words in err, err
+
+
+def test_family_plot_is_written_and_a_bad_path_is_refused(tmp_path, capsys):
+    """--plot FILE writes the figure (a PNG, read back); an unknown extension is exit 2
+    naming --plot, before any work."""
+    import matplotlib.image
+    from hapsim.cli import main
+    png = tmp_path / "family.png"
+    assert main(["family", "configs/hand_wall.yaml", "--samples", "50", "--plot",
+                 str(png)]) == 0
+    assert f"figure: {png}" in capsys.readouterr().out
+    img = matplotlib.image.imread(str(png))
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
+    assert main(["family", "configs/hand_wall.yaml", "--plot", str(tmp_path / "x.nope")]) == 2
+    assert "--plot" in capsys.readouterr().err
