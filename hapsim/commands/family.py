@@ -32,6 +32,10 @@ is also checked for consistency (Florens et al. Table 1 generalised): the felt p
 links together against the sum of what each link alone makes felt (real damping counted
 once); 1 would be consistent.
 
+A correction of the virtual element (the scene's device.correction, or --correction) acts
+at the port of every member: its state joins the stacked matrices, so the family stays one
+batched eigenvalue call (same verdicts as the per-member loop polynomial).
+
 Target links {k, b} are calibrated on the nominal member first. With --calibrate, each
 target link is also calibrated for the whole family (minimax): the virtual (K, B) whose
 worst relative error max(|k_i - k|/k, |b_i - b|/b) over the members is least, with the
