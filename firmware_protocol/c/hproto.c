@@ -251,6 +251,22 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
         p = put_u32(p, m->u.link.baud);
         *p++ = m->u.link.bits_per_byte;
         break;
+    case HP_MSG_SENSORS_REQUEST:
+        p = put_u16(p, m->u.sensors_request.sensors);
+        break;
+    case HP_MSG_SENSORS:
+        p = put_u16(p, m->u.sensors.offered);
+        p = put_u16(p, m->u.sensors.enabled);
+        break;
+    case HP_MSG_VELOCITY:
+        if (m->u.velocity.n_axes < 1 || m->u.velocity.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        p = put_u32(p, m->u.velocity.seq);
+        for (i = 0; i < m->u.velocity.n_axes; i++) {
+            p = put_f64(p, m->u.velocity.velocity[i]);
+        }
+        break;
     case HP_MSG_PING:
         p = put_u32(p, m->u.ping.nonce);
         p = put_u64(p, m->u.ping.host_time_us);
@@ -351,6 +367,30 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
         }
         m->u.link.baud = get_u32(p);
         m->u.link.bits_per_byte = p[4];
+        return HP_OK;
+    case HP_MSG_SENSORS_REQUEST:
+        if (n != 3) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.sensors_request.sensors = get_u16(p);
+        return HP_OK;
+    case HP_MSG_SENSORS:
+        if (n != 5) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.sensors.offered = get_u16(p);
+        m->u.sensors.enabled = get_u16(p + 2);
+        return HP_OK;
+    case HP_MSG_VELOCITY: /* FORCE's layout: seq, f64[n] */
+        if (n < HP_FORCE_FIXED + 8u || n > HP_FORCE_FIXED + 8u * HP_MAX_AXES ||
+            (n - HP_FORCE_FIXED) % 8u != 0) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.velocity.seq = get_u32(p);
+        m->u.velocity.n_axes = (uint8_t)((n - HP_FORCE_FIXED) / 8u);
+        for (i = 0; i < m->u.velocity.n_axes; i++) {
+            m->u.velocity.velocity[i] = get_f64(p + 4 + 8 * i);
+        }
         return HP_OK;
     case HP_MSG_STATE:
         if (n < HP_STATE_FIXED + 8u || n > HP_STATE_FIXED + 8u * HP_MAX_AXES ||
