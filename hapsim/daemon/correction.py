@@ -5,8 +5,8 @@ link is a spring_damper between the port and a ground, :func:`corrected_engine` 
 engine whose ``port_step`` runs :class:`hapsim.analysis.corrections.CorrectionLaw` instead
 (the engine itself still advances, so its energy and restart behave as before). What the
 loop needs per sample is therefore only the position of the STATE (and, for
-``velocity_sensor``, a measured velocity: the protocol's STATE carries none, so it is
-read in-process from the lockstep mock's physics -- in-process transport only).
+``velocity_sensor``, the measured velocity: the device's VELOCITY frame of that STATE,
+PROTOCOL.md §4, kept by :class:`hapsim.daemon.loop.MeasuredVelocity`).
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ def corrected_engine(scene, velocity=None):
         Calibrated scene: one spring_damper link between its port and a ground, no virtual
         mass, a device with a ``correction``.
     velocity : callable, optional
-        ``velocity() -> float``, the handle velocity at the current STATE [m/s]; required
-        for ``velocity_sensor``.
+        ``velocity() -> float``, the handle velocity at the current STATE [m/s] (the
+        loop's :class:`~hapsim.daemon.loop.MeasuredVelocity`); required for
+        ``velocity_sensor``.
 
     Returns
     -------
@@ -53,9 +54,9 @@ def corrected_engine(scene, velocity=None):
                           "the port and a ground (the analysed loop)", file=scene.path,
                           key="device.correction")
     if corr.kind == "velocity_sensor" and velocity is None:
-        raise ConfigError("velocity_sensor: the STATE frame carries no velocity; it runs with "
-                          "the in-process mock only (--transport inprocess)",
-                          file=scene.path, key="device.correction.kind")
+        raise ConfigError("velocity_sensor needs the device's measured velocity (its "
+                          "VELOCITY frames); none was given", file=scene.path,
+                          key="device.correction.kind")
     lk = links[0]
     K, B, T, d = float(lk.stiffness), float(lk.damping), scene.period, int(dev.delay)
     vel = velocity if velocity is not None else (lambda: 0.0)
