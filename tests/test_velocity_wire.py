@@ -74,6 +74,38 @@ def test_mock_offers_velocity_and_sends_it_before_each_state_with_its_seq():
     assert ideal.handle(fp.SensorsRequest(fp.SENSOR_VELOCITY), 0) == [fp.Sensors(0, 0)]
 
 
+def test_mock_velocity_sensor_model_quantum_and_noise():
+    """``device.velocity_resolution`` rounds the sent velocity to its multiples (within half
+    a quantum of the physics); ``device.velocity_noise`` adds seeded Gaussian noise of that
+    standard deviation (sample std within 10 % over 4000 ticks), drawn apart from the
+    position noise: the positions of a seed are the same with or without it."""
+    def run(**kw):
+        dev = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=100.0,
+                     noise=1e-6, **kw)
+        m = MockDevice(dev, Excitation(x0=0.004, v0=0.2), lockstep=False, seed=3)
+        m.handle(fp.Config(1000.0, 5000, 10.0), 0)
+        m.handle(fp.SensorsRequest(fp.SENSOR_VELOCITY), 0)
+        xs, vs, true = [], [], []
+        for n in range(4000):
+            true.append(m.physics.v)
+            st = m.tick(1000 * n)
+            vel, _ = m.frames(st)
+            xs.append(st.position[0])
+            vs.append(vel.velocity[0])
+            m.handle(fp.Force(st.seq, (-30.0 * st.position[0],)), 1000 * n + 100)
+        return np.array(xs), np.array(vs), np.array(true)
+    x0, v0, t0 = run()
+    assert np.array_equal(v0, t0)                       # exact by default
+    q = 1e-3
+    xq, vq, tq = run(velocity_resolution=q)
+    assert np.array_equal(xq, x0)
+    assert np.all(np.abs(vq - tq) <= q / 2 + 1e-15)
+    assert np.allclose(vq / q, np.round(vq / q), rtol=0, atol=1e-9) and np.any(vq != tq)
+    xn, vn, tn = run(velocity_noise=2e-3)
+    assert np.array_equal(xn, x0)                       # position noise stream untouched
+    assert np.std(vn - tn) == pytest.approx(2e-3, rel=0.1)
+
+
 def test_a_reset_device_forgets_the_request():
     from hapsim.daemon.faults import FaultPlan, FaultyDevice
     dev = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=100.0)

@@ -27,7 +27,9 @@ the force applied from tick ``n`` on (``seq - force_seq = d`` when on time); wit
 it is the one applied over the previous period (FORCE ``n`` is not known yet).
 
 Only what a scene asks for is added: encoder quantisation (``position_resolution``),
-Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the force clamp
+Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the velocity
+sensor's quantum and noise (``velocity_resolution``, ``velocity_noise``: VELOCITY frames,
+sent only when the host asks, PROTOCOL.md §4), the force clamp
 (``force_limit``) and the excitation (``x0``, ``v0``, a force ``impulse``, a recorded hand
 force ``profile``).
 """
@@ -322,6 +324,10 @@ class MockPhysics:
         self._coulomb = float(device.coulomb or 0.0)
         self._noise = float(device.noise or 0.0)
         self._rng = np.random.default_rng(seed) if self._noise > 0 else None
+        self._vq = float(getattr(device, "velocity_resolution", 0.0) or 0.0)
+        self._vnoise = float(getattr(device, "velocity_noise", 0.0) or 0.0)
+        # its own stream: the position noise of a seed is the same with or without it
+        self._vrng = (np.random.default_rng([seed, 1]) if self._vnoise > 0 else None)
 
     @property
     def excitation_end(self) -> float:
@@ -342,6 +348,24 @@ class MockPhysics:
             y += self._noise * float(self._rng.standard_normal())
         if self._q > 0:
             y = self._q * round(y / self._q)
+        return y
+
+    def sample_velocity(self) -> float:
+        """Velocity the velocity sensor reports at the current tick (VELOCITY frames).
+
+        Returns
+        -------
+        float
+            ``v``, the exact velocity at the sample instant [m/s] (the handle's with a
+            compliant grip), plus Gaussian noise of standard deviation
+            ``device.velocity_noise`` (seeded, its own stream), then rounded to a multiple
+            of ``device.velocity_resolution`` when > 0.
+        """
+        y = self.v
+        if self._vrng is not None:
+            y += self._vnoise * float(self._vrng.standard_normal())
+        if self._vq > 0:
+            y = self._vq * round(y / self._vq)
         return y
 
     def advance(self, u: float) -> None:
@@ -737,7 +761,7 @@ class MockDevice:
         time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
         status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
         # the velocity sensor reads the same instant as the encoder: v(nT), exact
-        self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.v,))
+        self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.sample_velocity(),))
                              if self.sensors & fp.SENSOR_VELOCITY else None)
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
                         (ph.sample(),))

@@ -1179,7 +1179,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     if any(m.kind == "mass" for m in scene.masses):
         notes.append("virtual masses add modes: the identified pair is the least damped "
                      "one seen at the port, which the excitation may barely excite")
-    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
+    sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
+    if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
+            or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
     late_in = measured.get("late_in_segment", 0)
