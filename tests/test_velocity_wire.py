@@ -176,6 +176,20 @@ def test_real_time_pty_run_reads_the_velocity_frames():
     assert lp["decoder"]["unknown_type"] == 0
 
 
+def test_a_reset_device_is_asked_again_when_the_loop_recovers():
+    """A device reset mid-run (virtual clock, fault ``reset@400``) forgets the request; the
+    loop's recovery asks again before CONFIG, so every STATE answered after it has its
+    VELOCITY too (none missing) and the run goes to its end."""
+    from hapsim.daemon.runner import run_scene
+    sc = parse_scene(scene_text(RIGID))
+    rep = run_scene(sc, transport="sim", lockstep=False, handle_signals=False, duration=1.0,
+                    faults="reset@400")
+    lp = rep["loop"]
+    assert lp["lost"] == lp["recovered"] == 1 and lp["ticks"] == 1000
+    assert lp["velocity_sensor"]["missing"] == 0
+    assert lp["velocity_sensor"]["frames"] >= lp["ticks"]
+
+
 class _OldDevice(threading.Thread):
     """A device on a pty master that answers HELLO_REQUEST and PING only (written before
     SENSORS_REQUEST), or, with ``answer``, also SENSORS(offered=0, enabled=0)."""
