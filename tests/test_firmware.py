@@ -531,7 +531,8 @@ def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_wo
             host.send(fp.encode(fp.Stop()))
             assert set(applied) == {1}                    # delay 1: FORCE n applied at n + 1
             assert not any(isinstance(m, fp.Velocity) for m in host.others)
-            assert host.dec.stats.unknown_type == 0 and host.dec.stats.bad_frames == 0
+            # (a partial frame from before the port was opened may count as bad_crc)
+            assert host.dec.stats.unknown_type == 0 and host.dec.stats.malformed == 0
         finally:
             host.close()
         r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(scene), "--port", port,

@@ -432,6 +432,17 @@ def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
 
 
 @_jit
+def _keep_frame(rb, a, z, hist, hist_len, iv):
+    """A good frame ``rb[a:z]`` the stretch took: into the history ring (the Python
+    decoder's ``last_frames`` and ``frames_ok`` get it from there)."""
+    h = iv[I_HIST] % hist.shape[0]
+    for j in range(z - a):
+        hist[h, j] = rb[a + j]
+    hist_len[h] = z - a
+    iv[I_HIST] += 1
+
+
+@_jit
 def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
              s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
              hist, hist_len):
@@ -477,11 +488,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
                 # kept in the history as Python's decoder does) and not used: the compiled
                 # loop runs no correction (velocity_sensor runs in the Python loop), as
                 # the Python loop without one ignores it
-                h = iv[I_HIST] % hist.shape[0]
-                for j in range(z - a):
-                    hist[h, j] = rb[a + j]
-                hist_len[h] = z - a
-                iv[I_HIST] += 1
+                _keep_frame(rb, a, z, hist, hist_len, iv)
                 a = z + 1
                 continue
             if m != _STATE_PACKET or pkt[0] != 0x10 or _crc16(pkt, m, table) != 0:
@@ -515,11 +522,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             fv[F_LAST_RX] = now
             iv[I_EXPECT] = (seq + 1) & _U32
             iv[I_FRAMES_OK] += 1
-            h = iv[I_HIST] % hist.shape[0]
-            for j in range(z - a):
-                hist[h, j] = rb[a + j]
-            hist_len[h] = z - a
-            iv[I_HIST] += 1
+            _keep_frame(rb, a, z, hist, hist_len, iv)
             a = z + 1
             handled = True
             if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
