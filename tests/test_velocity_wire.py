@@ -190,6 +190,29 @@ def test_a_reset_device_is_asked_again_when_the_loop_recovers():
     assert lp["velocity_sensor"]["frames"] >= lp["ticks"]
 
 
+def test_link_check_counts_the_velocity_frame():
+    """LINK rule with VELOCITY enabled: a STATE (31 bytes) and a VELOCITY (17 bytes) go up
+    each tick, so at 115200 baud 8N1 250 Hz (under the 297 Hz of STATE alone) is refused for
+    a velocity_sensor loop, naming the 48 bytes and 192 Hz, and accepted for a plain one."""
+    from hapsim.daemon.loop import HostLoop, LoopConfig, MeasuredVelocity
+    from hapsim.errors import ConfigError
+
+    class _Tr:
+        info = {"port": "/dev/null"}
+
+    hello = fp.Hello(1, 1, 9, 1e-6, 1e-3, 10.0, 1000.0)
+    for measured in (None, MeasuredVelocity()):
+        loop = HostLoop(None, _Tr(), LoopConfig(rate_hz=250.0, n_samples=10), None, measured=measured)
+        loop._link = fp.Link(115200, 10)
+        if measured is None:
+            loop._check_hello(hello)
+            continue
+        with pytest.raises(ConfigError) as info:
+            loop._check_hello(hello)
+        msg = str(info.value)
+        assert "48-byte STATE + VELOCITY" in msg and "192 Hz" in msg and "115200 baud" in msg
+
+
 class _OldDevice(threading.Thread):
     """A device on a pty master that answers HELLO_REQUEST and PING only (written before
     SENSORS_REQUEST), or, with ``answer``, also SENSORS(offered=0, enabled=0)."""
