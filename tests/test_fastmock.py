@@ -78,6 +78,10 @@ def _script(rng, rate: float, n_ticks: int, d: int) -> list:
             frames.append(_force(seq, float(rng.uniform(-40, 40))))
         else:
             frames.append(_force(seq, float(rng.normal(0, scale))))
+        if n == n_ticks // 3:                   # VELOCITY frames on (ZOH): Python ticks
+            frames.append(fp.encode(fp.SensorsRequest(fp.SENSOR_VELOCITY)))
+        if n == n_ticks // 3 + 20:              # and off again: compiled
+            frames.append(fp.encode(fp.SensorsRequest(0)))
         if n == n_ticks // 2:
             frames.append(cfg)                  # re-CONFIG: the physics restarts
         if n == n_ticks - 20:
@@ -142,7 +146,7 @@ def test_compiled_tick_is_byte_identical_to_the_python_mock(seed):
     events = _script(rng, rate, 400, dev.delay)
     want, mp, fp_ = _python_stream(dev, exc, rate, events)
     got, mc, fc, compiled = _compiled_stream(dev, exc, rate, events)
-    assert compiled > 300                        # the compiled path did the ticks
+    assert compiled > 280                        # the compiled path did the ticks
     assert got == want
     assert mc.totals() == mp.totals()
     assert mc.stats.to_dict() == mp.stats.to_dict()
@@ -181,6 +185,9 @@ def test_what_stays_in_python():
     assert compiled_reason(armed(lockstep=False, device=Device(
         mass=0.1, friction=0.5, delay=1, hand=Hand(mass=0.2, damping=1.0, grip_stiffness=500.0,
                                                    grip_damping=2.0)))) == "hand grip"
+    m = armed(lockstep=False)
+    m.handle(fp.SensorsRequest(fp.SENSOR_VELOCITY))
+    assert compiled_reason(m) == "velocity sensor"
     m = armed(lockstep=False)
     m.trace = []
     assert compiled_reason(m) == "trace"

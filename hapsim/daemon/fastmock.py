@@ -24,7 +24,8 @@ wakes on each host frame and stamps it (watchdog) on arrival, the compiled one r
 arrived when it wakes for the tick and stamps it with the tick's time.
 
 Not compiled (the Python mock serves; :func:`compiled_reason` says why): lockstep (paced by
-the FORCEs, not by a clock), a fault plan (the faults are Python), sensor noise (numpy's
+the FORCEs, not by a clock), a fault plan (the faults are Python), VELOCITY frames enabled
+by the host (a velocity-sensor correction), sensor noise (numpy's
 generator), a compliant hand grip (4-state plant), a subclass of the mock (tests), and the
 per-tick ``trace`` / ``applied_log`` of the tests.
 """
@@ -319,8 +320,9 @@ def compiled_reason(mock, plan=None) -> str | None:
     Returns
     -------
     str or None
-        ``"lockstep"``, ``"faults"``, ``"noise"``, ``"hand grip"``, ``"hold"``,
-        ``"subclass"``, ``"trace"`` or ``"not configured"``; None: compiled.
+        ``"lockstep"``, ``"faults"``, ``"velocity sensor"`` (VELOCITY frames enabled by
+        the host), ``"noise"``, ``"hand grip"``, ``"hold"``, ``"subclass"``, ``"trace"`` or
+        ``"not configured"``; None: compiled.
     """
     from hapsim.daemon.mock import MockDevice, MockPhysics
     if type(mock) is not MockDevice:
@@ -329,6 +331,8 @@ def compiled_reason(mock, plan=None) -> str | None:
         return "lockstep"
     if plan is not None and not plan.empty:
         return "faults"
+    if getattr(mock, "sensors", 0):
+        return "velocity sensor"        # VELOCITY frames before each STATE: Python's
     if mock.trace is not None or mock.applied_log is not None:
         return "trace"
     ph = mock.physics
@@ -431,6 +435,7 @@ class CompiledMock:
         mock._last_force_us = int(iv[I_LAST_FORCE_US])
         mock._applied = mock.stats.last_applied = float(fv[F_APPLIED])
         mock._u = float(fv[F_U])
+        mock.velocity_out = None            # no VELOCITY while compiled (compiled_reason)
         mock._rf = self.rf.tolist()
         mock._rs = self.rs.tolist()
         st = mock.stats
