@@ -27,7 +27,9 @@ the force applied from tick ``n`` on (``seq - force_seq = d`` when on time); wit
 it is the one applied over the previous period (FORCE ``n`` is not known yet).
 
 Only what a scene asks for is added: encoder quantisation (``position_resolution``),
-Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the force clamp
+Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the velocity
+sensor's quantum and noise (``velocity_resolution``, ``velocity_noise``: VELOCITY frames,
+sent only when the host asks, PROTOCOL.md §4), the force clamp
 (``force_limit``) and the excitation (``x0``, ``v0``, a force ``impulse``, a recorded hand
 force ``profile``).
 """
@@ -322,6 +324,10 @@ class MockPhysics:
         self._coulomb = float(device.coulomb or 0.0)
         self._noise = float(device.noise or 0.0)
         self._rng = np.random.default_rng(seed) if self._noise > 0 else None
+        self._vq = float(getattr(device, "velocity_resolution", 0.0) or 0.0)
+        self._vnoise = float(getattr(device, "velocity_noise", 0.0) or 0.0)
+        # its own stream: the position noise of a seed is the same with or without it
+        self._vrng = (np.random.default_rng([seed, 1]) if self._vnoise > 0 else None)
 
     @property
     def excitation_end(self) -> float:
@@ -342,6 +348,24 @@ class MockPhysics:
             y += self._noise * float(self._rng.standard_normal())
         if self._q > 0:
             y = self._q * round(y / self._q)
+        return y
+
+    def sample_velocity(self) -> float:
+        """Velocity the velocity sensor reports at the current tick (VELOCITY frames).
+
+        Returns
+        -------
+        float
+            ``v``, the exact velocity at the sample instant [m/s] (the handle's with a
+            compliant grip), plus Gaussian noise of standard deviation
+            ``device.velocity_noise`` (seeded, its own stream), then rounded to a multiple
+            of ``device.velocity_resolution`` when > 0.
+        """
+        y = self.v
+        if self._vrng is not None:
+            y += self._vnoise * float(self._vrng.standard_normal())
+        if self._vq > 0:
+            y = self._vq * round(y / self._vq)
         return y
 
     def advance(self, u: float) -> None:
@@ -531,6 +555,11 @@ class MockDevice:
         self._status_extra = 0
         self._last_force_us = 0
         self._u = 0.0
+        #: sensor messages enabled by the host's SENSORS_REQUEST (PROTOCOL.md §4): kept
+        #: across CONFIG and STOP, cleared by a reset
+        self.sensors = 0
+        #: the VELOCITY of the last STATE emitted (None while VELOCITY is not enabled)
+        self.velocity_out = None
 
     # ------------------------------------------------------------------ messages
     def hello(self) -> fp.Hello:
@@ -572,6 +601,10 @@ class MockDevice:
             return [self.hello()]
         if isinstance(msg, fp.Ping):
             return [fp.Pong(msg.nonce, msg.host_time_us, now_us)]
+        if isinstance(msg, fp.SensorsRequest):
+            offered = self.sensors_offered
+            self.sensors = msg.sensors & offered
+            return [fp.Sensors(offered, self.sensors)]
         if isinstance(msg, fp.Config):
             return self._on_config(msg, now_us)
         if isinstance(msg, fp.Stop):
@@ -579,6 +612,29 @@ class MockDevice:
             st.saw_stop = True
             return []
         return []
+
+    @property
+    def sensors_offered(self) -> int:
+        """Sensor bits this mock can send (SENSORS.offered): VELOCITY with the ZOH hold
+        (its physics has a velocity state), none with the ideal hold (a centred-difference
+        mass has no velocity at the sample instant)."""
+        return fp.SENSOR_VELOCITY if self.device.hold == "zoh" else 0
+
+    def frames(self, state) -> list:
+        """The messages of one tick in wire order: VELOCITY (when enabled), then STATE.
+
+        Parameters
+        ----------
+        state : firmware_protocol.State
+            The STATE :meth:`tick` (or the lockstep answer) just produced.
+
+        Returns
+        -------
+        list of messages
+            ``[Velocity, State]`` while VELOCITY is enabled, else ``[State]``.
+        """
+        vo = self.velocity_out
+        return [state] if vo is None else [vo, state]
 
     def stop(self) -> None:
         """Zero the force at once and disarm (STOP, or the mock shutting down)."""
@@ -613,7 +669,7 @@ class MockDevice:
         self._last_force_us = now_us
         self.armed = self.configured = True
         if self.lockstep:
-            return [self._emit(now_us)]
+            return self.frames(self._emit(now_us))
         return []
 
     def _on_force(self, msg: fp.Force, now_us: int) -> list:
@@ -655,7 +711,7 @@ class MockDevice:
         if self.delay == 0:
             self._apply_due(n, now_us)
         self.physics.advance(self._u)
-        return [self._emit(now_us)]
+        return self.frames(self._emit(now_us))
 
     # ------------------------------------------------------------------ ticks
     def _apply_due(self, n: int, now_us: int) -> None:
@@ -704,6 +760,9 @@ class MockDevice:
         self.stats.ticks += 1
         time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
         status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
+        # the velocity sensor reads the same instant as the encoder: v(nT), exact
+        self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.sample_velocity(),))
+                             if self.sensors & fp.SENSOR_VELOCITY else None)
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
                         (ph.sample(),))
 
@@ -757,10 +816,25 @@ def _write(fd: int, data: bytes) -> bool:
         return False
 
 
+def _load_tick(dev):
+    """The compiled tick for ``dev`` (numba's cache loaded, or compiled once), before any
+    tick; ``(CompiledMock, None)``, or ``(None, reason)`` when it cannot load (the Python
+    tick serves). Not in a thread beside the serving loop: a loading thread holding the GIL
+    while the scheduler preempts it stalled the serving thread (late ticks, losses)."""
+    try:
+        from hapsim.daemon import fastmock
+        from hapsim.daemon.startup import preload_numba_blas
+        preload_numba_blas()
+        fastmock.warm_up_mock()
+        return fastmock.CompiledMock(dev), None
+    except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
+        return None, f"{type(exc).__name__}: {exc}"
+
+
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None) -> dict:
+             on_host_gone=None, tick: str = "compiled", hello: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -793,6 +867,17 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     on_host_gone : callable, optional
         ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
         called (outside any tick) each time a persistent device loses its host.
+    tick : {"compiled", "python"}
+        ``"compiled"`` (default): while armed in real time, the ticks run in numba
+        (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
+        sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
+        lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
+        ``"python"``: this function's Python loop throughout (the reference).
+    hello : bool
+        Say ``0x00`` + HELLO at once, as a device does when its port opens (default). False:
+        only when asked (HELLO_REQUEST), for a port the host opens *after* this starts
+        (``hapsim run``'s embedded mock): pyserial's open flushes the input and could cut
+        an early HELLO in half (a bad frame); the host always asks.
 
     Returns
     -------
@@ -803,7 +888,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     Raises
     ------
     ConfigError
-        A plan with ``vanish`` but no ``reopen``.
+        A plan with ``vanish`` but no ``reopen``, or an unknown ``tick``.
 
     Notes
     -----
@@ -822,6 +907,8 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     from hapsim.daemon.faults import FaultyDevice
 
     flag = flag or StopFlag()
+    if tick not in ("compiled", "python"):
+        raise ConfigError(f"unknown tick {tick!r}; valid: compiled, python", key="--tick")
     if plan is not None and plan.has_vanish and reopen is None:
         raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
                           key="--faults")
@@ -832,13 +919,18 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
     dev = FaultyDevice(mock, plan)
+    fast = load_error = None
+    if tick == "compiled" and not mock.lockstep and (plan is None or plan.empty):
+        fast, load_error = _load_tick(dev)       # before HELLO: every tick is compiled
+    python_once = False              # the compiled stretch saw the port hang up: Python reads
     t0 = time.monotonic_ns()
 
     def now_us() -> int:
         return (time.monotonic_ns() - t0) // 1000
 
-    dev.connect(now_us())
-    _write(fd, dev.pop_due(now_us()))
+    if hello:
+        dev.connect(now_us())
+        _write(fd, dev.pop_due(now_us()))
     gc_was = gc.isenabled()
     gc.disable()
     deadline = None            # monotonic ns of the next real-time tick
@@ -874,8 +966,19 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             if down:
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
+            pending = None           # host bytes the compiled stretch handed over
+            if (fast is not None and deadline is not None and not down and not python_once
+                    and not awaiting_host and not dev._out and not dev.decoder._overflow
+                    and fast.reason() is None):
+                code, deadline, pending = fast.serve(fd, t0, deadline, period_ns, flag)
+                if code != fast.R_HANDOFF:
+                    python_once = code == fast.R_PORT
+                    continue
+            python_once = False
             r = []
-            if wait > 0:
+            if pending is not None:
+                r = [fd]
+            elif wait > 0:
                 try:
                     if down:
                         time.sleep(min(wait, 0.05))
@@ -887,7 +990,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 r = [fd]
             if r:
                 try:
-                    chunk = os.read(fd, 4096)
+                    chunk = pending if pending is not None else os.read(fd, 4096)
                 except BlockingIOError:
                     chunk = None
                 except OSError:            # EIO: every slave fd closed
@@ -940,6 +1043,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         report["end"] = reason
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()
+        report["compiled_ticks"] = fast.ticks if fast is not None else 0
+        if load_error is not None:
+            report["compiled_note"] = f"compiled tick unavailable: {load_error}"
         if plan is not None:
             report["faults_injected"] = dict(plan.to_dict()["injected"])
             report["fault_events"] = dev.events

@@ -40,6 +40,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
+from hapsim.daemon.startup import preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -508,6 +509,7 @@ class RunOptions:
     sound: str | None = None
     jack_server: str | None = None
     plan: object = None
+    embedded: object = None
 
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
@@ -630,6 +632,12 @@ class Connection:
         In-process mock (``inprocess`` and ``sim``).
     old_signals : dict
         ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+    measured : MeasuredVelocity or None
+        The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
+        correction: the loop asks the device for it and the engine reads it.
+    warm : thread or None
+        The numba warm-up, still running: :func:`run_loop` waits for it
+        (``finish()``) after the device's HELLO, before CONFIG arms it.
     """
 
     engine: object
@@ -641,6 +649,8 @@ class Connection:
     embedded: object = None
     mock: object = None
     old_signals: dict = field(default_factory=dict)
+    measured: object = None
+    warm: object = None
 
 
 @dataclass
@@ -791,6 +801,7 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
@@ -829,7 +840,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     DeviceError
         The port cannot be opened.
     """
-    from hapsim.engine import Engine
     scene, dev = prep.scene, prep.scene.device
     stop = opts.stop or StopFlag()
     old = {}
@@ -847,22 +857,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         limit_blas_threads(1)
         corr = getattr(dev, "correction", None)
         sensor = corr is not None and corr.get("kind") == "velocity_sensor"
-        # the kernels (and the compiled loop) load while the device (the mock's child) starts
+        # the kernels (and the compiled loop) load while the device (the mock's child)
+        # starts and says HELLO: the loop waits for them just before it arms the device
+        # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
                               and corr is None)
-        engine = Engine(scene)
-        if corr is not None:
-            # a device correction: the engine's port force follows its law (one-link
-            # scene); a velocity sensor reads the lockstep mock in-process (below)
-            from hapsim.daemon.correction import corrected_engine
-            if not sensor or transport != "inprocess":
-                engine = corrected_engine(scene)       # raises for a sensor on a wire
-        n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
-        if n_samples and n_samples <= n_window + n_ring:
-            tel = Telemetry(n_samples)                 # the whole run fits: kept whole
-        else:                                          # long or open-ended: head + ring
-            tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
-        cfg = _loop_config(prep, opts)
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it
@@ -873,6 +872,39 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             rt.note = "normal (lockstep: paced by the device's answers, not by the clock)"
         if opts.driver not in (None, "framed"):
             rt.__enter__()  # the driver's embedded mock inherits the policy
+        if transport == "pty" and opts.driver in (None, "framed"):
+            # first: the child's interpreter and imports run beside everything below; it
+            # starts under normal scheduling and takes SCHED_FIFO itself once its imports
+            # are done: a start-up (~0.5 s of CPU) under SCHED_FIFO starved every other
+            # real-time loop of the machine (a concurrent run: 40-235 ms stalls)
+            from hapsim.daemon.transport import EmbeddedMock
+            embedded = opts.embedded or EmbeddedMock(
+                dev, scene.excitation, scene.rate_hz, lockstep=lockstep, seed=opts.seed,
+                base_dir=prep.base_dir, faults=opts.faults or None,
+                fault_seed=opts.fault_seed, rt_priority=rt.priority)
+        from hapsim.engine import Engine
+        engine = Engine(scene)
+        measured = None
+        if corr is not None:
+            # a device correction: the engine is fed the corrected port signals (any
+            # scene); a velocity sensor reads the device's VELOCITY frames, which the loop
+            # asks for (PROTOCOL.md §4: refused when the device offers none)
+            from hapsim.daemon.correction import corrected_engine
+            from hapsim.daemon.loop import MeasuredVelocity
+            if sensor:
+                if opts.driver not in (None, "framed"):
+                    raise ConfigError(f"velocity_sensor: the {opts.driver} driver's wire "
+                                      f"carries no velocity; use the framed protocol",
+                                      key="--driver")
+                measured = MeasuredVelocity()
+            engine = corrected_engine(scene, velocity=measured)
+        n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
+        if n_samples and n_samples <= n_window + n_ring:
+            tel = Telemetry(n_samples)                 # the whole run fits: kept whole
+        else:                                          # long or open-ended: head + ring
+            tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
+        cfg = _loop_config(prep, opts)
+        if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
             drv = get_driver(opts.driver)
@@ -889,39 +921,30 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = InProcessTransport(mock)
-            if sensor:
-                engine = corrected_engine(scene, velocity=lambda m=mock: m.physics.v)
         elif transport == "sim":
             from hapsim.daemon.transport import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = SimTransport(mock, opts.plan)
         elif transport == "pty":
-            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
-            # the child starts under normal scheduling and takes SCHED_FIFO itself once its
-            # imports are done: a start-up (~0.5 s of CPU) under SCHED_FIFO starved every
-            # other real-time loop of the machine (a concurrent run: 40-170 ms stalls)
-            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                    seed=opts.seed, base_dir=prep.base_dir,
-                                    faults=opts.faults or None, fault_seed=opts.fault_seed,
-                                    rt_priority=rt.priority)
+            from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(embedded.port, opts.baud)
             embedded.release_slave()
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
-        if warm is not None:
-            warm.finish()
         if not rt.active:
             rt.__enter__()  # the loop's thread only, once the start-up work is done
     except BaseException:
+        if warm is not None:
+            warm.join()                 # numba's loading is not left half done
         if rt is not None:
             rt.__exit__(None, None, None)
         if embedded is not None:
             embedded.close()
         _restore_signals(old)
         raise
-    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old)
+    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old, measured, warm)
 
 
 def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
@@ -957,17 +980,33 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        corrected = getattr(prep.scene.device, "correction", None) is not None
-        if (opts.loop == "compiled" and opts.sound is None and opts.osc is None
-                and not corrected):
-            # the compiled loop steps the kernel itself: live OSC changes and the sounding
-            # engine run per sample in Python, so they keep the Python loop; so does a
-            # device correction (its law runs in the engine's port_step, see
-            # hapsim.daemon.correction)
-            from hapsim.daemon.fastloop import CompiledHostLoop
+        corr = getattr(prep.scene.device, "correction", None)
+        # the compiled loop steps the kernel itself: live OSC changes and the sounding
+        # engine run per sample in Python, so they keep the Python loop; so does a device
+        # correction (its law runs in the engine's port_step, hapsim.daemon.correction).
+        # The report says why (python_reason), never silently.
+        why = ("--sound: the sounding engine runs per sample in Python" if opts.sound
+               else "--osc: live changes run per sample in Python" if opts.osc is not None
+               else f"device.correction ({corr.get('kind')}): its law runs in the engine's "
+               "port_step in Python" if corr is not None else None)
+        if opts.loop == "compiled" and why is None:
+            from hapsim.daemon.fastloop import CompiledHostLoop, compiled_available
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+            if not loop.compiled:
+                why = ("host-clocked" if conn.cfg.host_clocked else
+                       "the transport has no file descriptor (in-process, virtual clock or "
+                       "a driver)" if not compiled_available(tr) else
+                       "a lockstep journal drained by the loop itself")
         else:
-            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop, measured=conn.measured)
+        loop.python_reason = why if opts.loop == "compiled" else None
+
+        def before_arm() -> None:
+            _finish_warm(conn)
+            if opts.on_start is not None:
+                opts.on_start(tr.info.get("port"), prep.n_samples)
+
+        loop.before_arm = before_arm
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -976,8 +1015,6 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                                  events=loop.result.events).start()
             if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
                 tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
-        if opts.on_start is not None:
-            opts.on_start(tr.info.get("port"), prep.n_samples)
         try:
             res = loop.run()
         except (DeviceError, ProtocolError) as exc:
@@ -986,6 +1023,8 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
+        if conn.warm is not None:       # the loop ended before it armed the device
+            conn.warm.join()
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
@@ -1182,7 +1221,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     if any(m.kind == "mass" for m in scene.masses):
         notes.append("virtual masses add modes: the identified pair is the least damped "
                      "one seen at the port, which the excitation may barely excite")
-    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
+    sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
+    if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
+            or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
     late_in = measured.get("late_in_segment", 0)
@@ -1232,9 +1273,13 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
         "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        # --loop compiled asked but the Python loop ran: why (None otherwise)
+        "python_reason": getattr(run.loop, "python_reason", None),
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
         "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        # start-up: the first armed STATE, seconds after this process started
+        "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
@@ -1270,6 +1315,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "energy_j": res.energy, "energy_max_j": res.energy_max,
         "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
+        "velocity_sensor": res.velocity or None,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
@@ -1301,7 +1347,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "compiled") -> dict:
+              driver: str | None = None, loop: str = "compiled", embedded=None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1353,9 +1399,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         after its start-up, the host once its own start-up is done. Restored after the run;
         the report's ``loop.scheduling`` says what was obtained.
     on_start : callable, optional
-        Called as ``on_start(port, n_samples)`` once the port is open and the signal
-        handlers are installed, just before the handshake (e.g. to tell the user that
-        Ctrl-C now stops cleanly).
+        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
+        the device has said HELLO and the numba warm-up is done, just before the device is
+        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
     faults : str, optional
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
     fault_seed : int
@@ -1388,10 +1434,15 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run
+        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
+        closed here whatever happens. Default: started by :func:`connect`.
     loop : {"compiled", "python"}
         Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
-        serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
-        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
+        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
+        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1427,8 +1478,18 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
                       osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop).check()
-    prep = prepare_run(scene, opts)
+                      driver=driver, loop=loop, embedded=embedded)
+    try:
+        opts.check()
+        if embedded is not None and (opts.transport != "pty"
+                                     or opts.driver not in (None, "framed")):
+            opts.embedded = None            # not this run's device
+            embedded.close()
+        prep = prepare_run(scene, opts)
+    except BaseException:
+        if embedded is not None:
+            embedded.close()
+        raise
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
@@ -1440,6 +1501,21 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         run.error.report = rep
         raise run.error
     return rep
+
+
+def _since_start(t, opts: RunOptions):
+    """``t`` (time.monotonic [s]) in seconds since the process started; None when ``t`` is
+    None or the loop's clock is not the wall's (a virtual-clock transport)."""
+    if t is None or opts.transport == "sim":
+        return None
+    return round(t - process_start(), 4)
+
+
+def _finish_warm(conn: Connection) -> None:
+    """Wait for the numba warm-up (:class:`_CompileThread`) once; re-raise its error."""
+    warm, conn.warm = conn.warm, None
+    if warm is not None:
+        warm.finish()
 
 
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):
@@ -1572,6 +1648,11 @@ def format_report(rep: dict) -> str:
                  f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
+    if lp.get("python_reason"):
+        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+    if lp.get("first_sample_s") is not None:
+        lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
+                     f"started")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
