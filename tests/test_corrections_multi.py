@@ -292,8 +292,8 @@ excitation: {{x0: 0.005}}
                     duration=1.0, loop="compiled")
     assert "no file descriptor" in rep["loop"]["python_reason"]
     rep = run_scene(plain, transport="inprocess", lockstep=True, handle_signals=False,
-                    duration=1.0)
-    assert rep["loop"]["python_reason"] is None
+                    duration=1.0, loop="python")
+    assert rep["loop"]["python_reason"] is None       # the Python loop asked: no reason
 
 
 @pytest.mark.parametrize("position", ["hold", "linear"])
