@@ -1,0 +1,209 @@
+"""Which samples of a run had every contact engaged: the scene replayed from its telemetry.
+
+The prediction of a scene with contacts (:func:`hapsim.analysis.check_scene`) takes every
+contact engaged; the run lets them open. The engine is deterministic given the port
+positions, so replaying the logged positions through a fresh engine, as the host loop
+stepped it (:meth:`hapsim.daemon.loop.HostLoop._drive`), gives each contact's state at every
+sample exactly, offline, after the run: the real-time loop does no extra work.
+
+Replay rules (the loop's):
+
+* row 0 and every row flagged ``FLAG_LOST`` (a recovery) restart the scene: a fresh
+  engine (``type(engine)(scene)``) with the port set at rest at that row's position, then
+  ``port_step(x)`` of the row;
+* every other row is one ``port_step(x)``;
+* a row flagged ``FLAG_SKIPPED`` follows STATEs the loop stepped the scene with but did not
+  log: their positions are unknown, so the states are unknown from that row to the next
+  restart.
+
+A contact ``(m1, m2, threshold)`` is engaged at a step when ``x2 - x1 < threshold`` on the
+positions the step evaluates (:mod:`hapsim.kernels.cordis`, ``_contacts``); after the step
+those are the engine's previous positions (every kernel moves ``x`` to ``xp``). A scene
+with ``audio`` is replayed sub-step by sub-step (:func:`hapsim.kernels.audio.run_periods`
+with one sub-step, the port placed as the multi-rate kernel places it), so a contact that
+opens between two device samples is seen.
+
+The replay is checked against the telemetry's force column (the force the loop sent): it
+equals the replayed port force bit for bit on every row whose force the loop did not
+change afterwards (ramp, clamp, passivity controller). The first row where it does not (a
+live OSC change, a sounding engine, a correction reading the handle's velocity) ends what
+the replay knows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
+
+__all__ = ["ContactReplay", "replay_contacts", "contact_links"]
+
+
+def contact_links(scene) -> list:
+    """The scene's contact links, in scene order (empty when it has none)."""
+    return [lk for lk in scene.links if lk.kind == "contact"]
+
+
+@dataclass
+class ContactReplay:
+    """Contact states of every telemetry row.
+
+    Attributes
+    ----------
+    closed : ndarray of bool, shape (n,)
+        Every contact engaged at every (sub-)step of the row, and the replay known there.
+    known : ndarray of bool, shape (n,)
+        The replay knows the scene's state at the row (False after a skipped STATE until
+        the next restart, and from the first force mismatch on).
+    open_link : list of (str or None)
+        Per row, the name of the first contact open at the row (None when all closed or
+        unknown).
+    mismatch_row : int or None
+        First row whose logged force differs from the replayed one (None: none).
+    reason : str or None
+        Why the replay stops knowing (a skipped STATE, a force mismatch, a correction that
+        reads the handle's velocity), or None.
+    """
+
+    closed: np.ndarray
+    known: np.ndarray
+    open_link: list
+    mismatch_row: int | None = None
+    reason: str | None = None
+
+
+def _replay_engine(scene):
+    """A fresh engine that steps the scene as the run's did, or None when the run's law
+    needs signals the telemetry does not hold (a velocity sensor)."""
+    from hapsim.engine import Engine
+    corr = getattr(scene.device, "correction", None) if scene.device is not None else None
+    if corr is None:
+        return Engine(scene)
+    if corr.get("kind") == "velocity_sensor":
+        return None
+    from hapsim.daemon.correction import corrected_engine
+    return corrected_engine(scene)
+
+
+def _audio_step(eng, x: float, acc_state: list, ends, thr, engaged_all) -> float:
+    """One device sample of a multi-rate engine, sub-step by sub-step (module notes).
+
+    Returns the port force as :func:`hapsim.kernels.audio.run_periods` computes it and
+    writes, in ``engaged_all[0]``, whether every contact was engaged at every sub-step and,
+    in ``engaged_all[1]``, the index of the first contact found open (-1 when none).
+    """
+    from hapsim.kernels import audio as audio_kernel
+    (nsub, linear, last, port), state = eng._multi
+    inv_n = 1.0 / nsub
+    p0 = eng._x[port]
+    acc = 0.0
+    fl = 0.0
+    pos = acc_state[0]
+    force = acc_state[1]
+    frames = acc_state[2]
+    rec = np.empty(0, dtype=np.int64)
+    out = np.empty((0, 0))
+    engaged_all[0] = True
+    engaged_all[1] = -1
+    for j in range(nsub):
+        pos[0] = p0 + (j + 1) * inv_n * (x - p0) if linear else x
+        audio_kernel.run_periods(1, 1, False, last, port, pos, *state, frames, 0, force,
+                                 rec, out, 0)
+        fl = eng._f[port]
+        acc += fl
+        xp = eng._xp
+        op = ~(xp[ends[1]] - xp[ends[0]] < thr)
+        if op.any() and engaged_all[0]:
+            engaged_all[0] = False
+            engaged_all[1] = int(np.argmax(op))
+    eng.sample += 1
+    return fl if last else acc * inv_n
+
+
+def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay:
+    """Replay a run's logged port positions through a fresh engine; contact states per row.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The calibrated scene the run stepped (with a port and at least one contact).
+    cols : dict of ndarray
+        Telemetry columns (:meth:`hapsim.daemon.telemetry.Telemetry.columns`) from the
+        run's first row: ``position`` [m], ``force`` [N], ``flags``, each shape (n,).
+    passivity : bool
+        The passivity controller was on (it changes the force sent without a flag: the
+        force check is then skipped; the scene's states do not depend on the force sent).
+
+    Returns
+    -------
+    ContactReplay
+        Per-row contact states (module notes give the replay rules and their source, the
+        host loop's ``_drive``).
+    """
+    contacts = contact_links(scene)
+    x_log = np.asarray(cols["position"], dtype=float)
+    f_log = np.asarray(cols["force"], dtype=float)
+    flags = np.asarray(cols["flags"]).astype(np.int64)
+    n = x_log.size
+    closed = np.zeros(n, dtype=bool)
+    known = np.zeros(n, dtype=bool)
+    open_link: list = [None] * n
+    names = [lk.name for lk in contacts]
+    ends = (np.array([scene.index(lk.m1) for lk in contacts], dtype=np.int64),
+            np.array([scene.index(lk.m2) for lk in contacts], dtype=np.int64))
+    thr = np.array([lk.threshold for lk in contacts], dtype=float)
+    eng = _replay_engine(scene)
+    if eng is None:
+        return ContactReplay(closed, known, open_link, None,
+                             "the run's correction (velocity_sensor) steps the scene with "
+                             "the handle's measured velocity, which the telemetry does not "
+                             "hold: the contact states cannot be replayed")
+    multi = eng._multi is not None and not hasattr(eng, "_reset_law")
+    if eng._multi is not None and not multi:
+        return ContactReplay(closed, known, open_link, None,
+                             "a corrected multi-rate scene cannot be replayed sub-step by "
+                             "sub-step: the contact states are unknown")
+    bufs = [np.zeros(1), np.zeros(1),
+            np.zeros((1, eng._l_idx.size)) if multi else None]
+    flag = [True, -1]
+    alive = True
+    mismatch = None
+    reason = None
+    for i in range(n):
+        fl = int(flags[i])
+        if i == 0 or fl & FLAG_LOST:
+            if i:
+                eng = type(eng)(eng.scene)        # the loop's restart (HostLoop._resume)
+            eng.set_port_position(float(x_log[i]), at_rest=True)
+            alive = mismatch is None
+        elif fl & FLAG_SKIPPED and alive:
+            alive = False
+            reason = reason or (f"STATEs before row {i} were skipped (a backlog): the scene "
+                                f"took positions the telemetry does not hold")
+        x = float(x_log[i])
+        if multi:
+            f = _audio_step(eng, x, bufs, ends, thr, flag)
+            ok, first = flag[0], flag[1]
+        else:
+            f = eng.port_step(x)
+            xp = eng._xp
+            op = ~(xp[ends[1]] - xp[ends[0]] < thr)
+            ok = not op.any()
+            first = int(np.argmax(op)) if not ok else -1
+        if not alive:
+            continue
+        if (not passivity and not fl & (FLAG_RAMP | FLAG_CLAMPED)
+                and not (f == f_log[i] or (np.isnan(f) and np.isnan(f_log[i])))):
+            mismatch = i
+            alive = False
+            reason = (f"the replayed force differs from the logged one from row {i} on "
+                      f"({f!r} N against {float(f_log[i])!r} N): the scene was changed "
+                      f"during the run or stepped by another engine")
+            continue
+        known[i] = True
+        closed[i] = ok
+        if not ok:
+            open_link[i] = names[first]
+    return ContactReplay(closed, known, open_link, mismatch, reason)
