@@ -68,46 +68,56 @@ def _random_scene(rng) -> tuple[str, dict]:
     return text, {"masses": masses, "links": links}
 
 
-def _plain_replay(desc: dict, x_log: np.ndarray, T: float):
+def _plain_replay(desc: dict, x_log: np.ndarray, T: float, nsub: int = 1,
+                  linear: bool = False, restarts=()):
     """Independent replay: port forces and, per row, the first open contact (or None).
 
-    Centred differences, the port placed at each logged position (at rest at row 0); a
-    contact between (a, b) acts while ``x_b - x_a < threshold`` with the force
-    ``K (x_a - x_b + threshold) + B/T ((x_a - x_b) - (xp_a - xp_b))`` (-F on a, +F on b).
+    Centred differences at ``Ta = T / nsub`` (``nsub`` audio sub-steps per device sample,
+    the port held at the sample's position or interpolated linearly from the previous
+    one, the force the mean over the sub-steps: :mod:`hapsim.kernels.audio`'s model), the
+    port placed at each logged position (at rest at row 0 and at each row of
+    ``restarts``, where the scene starts again from its initial state); a contact between
+    (a, b) acts while ``x_b - x_a < threshold`` with the force
+    ``K (x_a - x_b + threshold) + B/Ta ((x_a - x_b) - (xp_a - xp_b))`` (-F on a, +F on b).
     """
     names = [m[0] for m in desc["masses"]]
     idx = {nm: i for i, nm in enumerate(names)}
     kinds = [m[1] for m in desc["masses"]]
     mass = [m[2] for m in desc["masses"]]
-    x = [0.0] * len(names)
-    xp = [0.0] * len(names)
     port = idx["hand"]
+    Ta = T / nsub
     forces, open_at = [], []
     for i, pos in enumerate(x_log):
-        x[port] = float(pos)
-        if i == 0:
-            xp[port] = float(pos)
-        f = [0.0] * len(names)
+        if i == 0 or i in restarts:
+            x = [0.0] * len(names)
+            xp = [0.0] * len(names)
+            x[port] = xp[port] = float(pos)
+        p0 = x[port]
+        acc = 0.0
         first_open = None
-        for nm, kd, a, b, K, B, th in desc["links"]:
-            ia, ib = idx[a], idx[b]
-            d = x[ia] - x[ib]
-            if kd == "contact":
-                if not (x[ib] - x[ia] < th):
-                    first_open = first_open or nm
-                    continue
-                F = K * (d + th) + B / T * (d - (xp[ia] - xp[ib]))
-            else:
-                F = K * d + B / T * (d - (xp[ia] - xp[ib]))
-            f[ia] -= F
-            f[ib] += F
-        for j in range(len(names)):
-            if kinds[j] == "mass":
-                xn = 2 * x[j] - xp[j] + T * T / mass[j] * f[j]
-                xp[j], x[j] = x[j], xn
-            else:
-                xp[j] = x[j]
-        forces.append(f[port])
+        for j in range(nsub):
+            x[port] = p0 + (j + 1) / nsub * (float(pos) - p0) if linear else float(pos)
+            f = [0.0] * len(names)
+            for nm, kd, a, b, K, B, th in desc["links"]:
+                ia, ib = idx[a], idx[b]
+                d = x[ia] - x[ib]
+                if kd == "contact":
+                    if not (x[ib] - x[ia] < th):
+                        first_open = first_open or nm
+                        continue
+                    F = K * (d + th) + B / Ta * (d - (xp[ia] - xp[ib]))
+                else:
+                    F = K * d + B / Ta * (d - (xp[ia] - xp[ib]))
+                f[ia] -= F
+                f[ib] += F
+            for k in range(len(names)):
+                if kinds[k] == "mass":
+                    xn = 2 * x[k] - xp[k] + Ta * Ta / mass[k] * f[k]
+                    xp[k], x[k] = x[k], xn
+                else:
+                    xp[k] = x[k]
+            acc += f[port]
+        forces.append(acc / nsub)
         open_at.append(first_open)
     return np.array(forces), open_at
 
@@ -229,3 +239,53 @@ def test_exact_fit_measures_the_predicted_felt_pole_not_the_least_damped():
     assert res["method"] == "pencil"
     assert res["k"] == pytest.approx(m * abs(s_felt) ** 2, rel=1e-9)
     assert res["b"] == pytest.approx(-2 * m * s_felt.real, rel=1e-9)
+
+
+@pytest.mark.parametrize("audio", [None, "hold", "linear"])
+def test_replay_contact_states_equal_an_independent_replay(audio):
+    """Property: random scenes (single-rate, or multi-rate with 2-6 sub-steps, held or
+    interpolated port) driven by a random gesture, with a recovery (FLAG_LOST: the scene
+    restarts) and skipped STATEs (FLAG_SKIPPED: unknown until the restart): the replay's
+    per-row contact states equal the independent plain-Python replay's, sub-steps
+    included, and its forces reproduce the engine's bit for bit (no mismatch)."""
+    from hapsim.daemon.contact_replay import replay_contacts
+    from hapsim.daemon.telemetry import FLAG_LOST, FLAG_SKIPPED
+    from hapsim.engine import Engine
+    rng = np.random.default_rng({None: 11, "hold": 12, "linear": 13}[audio])
+    opened = 0
+    for _ in range(6):
+        text, desc = _random_scene(rng)
+        nsub = 1
+        if audio:
+            nsub = int(rng.integers(2, 7))
+            text += (f"audio: {{rate_hz: {1000 * nsub}, port_position: {audio}, "
+                     f"listen: [{{mass: m1, quantity: position}}]}}\n")
+        scene, _ = prepare_scene(parse_scene(text))
+        n = 400
+        t = np.arange(n) * 1e-3
+        x = (float(rng.uniform(0.0005, 0.004)) * np.sin(2 * np.pi * rng.uniform(2, 15) * t
+                                                         + rng.uniform(0, 6))
+             + float(rng.uniform(-0.001, 0.001)))
+        lost, skip = int(rng.integers(250, 350)), int(rng.integers(100, 200))
+        eng = Engine(scene)
+        forces = np.empty(n)
+        for i in range(n):
+            if i in (0, lost):
+                eng = Engine(scene)
+                eng.set_port_position(float(x[i]), at_rest=True)
+            forces[i] = eng.port_step(float(x[i]))
+        flags = np.zeros(n, dtype=np.int8)
+        flags[lost] = FLAG_LOST
+        flags[skip] = FLAG_SKIPPED
+        rep = replay_contacts(scene, {"position": x, "force": forces, "flags": flags})
+        f_ref, open_at = _plain_replay(desc, x, 1e-3, nsub, audio == "linear", (lost,))
+        np.testing.assert_allclose(forces, f_ref, rtol=1e-9, atol=1e-12)
+        assert rep.mismatch_row is None
+        known = np.ones(n, dtype=bool)
+        known[skip:lost] = False
+        np.testing.assert_array_equal(rep.known, known)
+        ref_closed = np.array([o is None for o in open_at]) & known
+        np.testing.assert_array_equal(rep.closed, ref_closed)
+        assert [o if k else None for o, k in zip(open_at, known)] == rep.open_link
+        opened += int(np.count_nonzero(~ref_closed & known))
+    assert opened > 0

@@ -19,9 +19,8 @@ Replay rules (the loop's):
 A contact ``(m1, m2, threshold)`` is engaged at a step when ``x2 - x1 < threshold`` on the
 positions the step evaluates (:mod:`hapsim.kernels.cordis`, ``_contacts``); after the step
 those are the engine's previous positions (every kernel moves ``x`` to ``xp``). A scene
-with ``audio`` is replayed sub-step by sub-step (:func:`hapsim.kernels.audio.run_periods`
-with one sub-step, the port placed as the multi-rate kernel places it), so a contact that
-opens between two device samples is seen.
+with ``audio`` is replayed with every sub-step's positions of the contacts' ends
+(:class:`_AudioStepper`), so a contact that opens between two device samples is seen.
 
 The replay is checked against the telemetry's force column (the force the loop sent): it
 equals the replayed port force bit for bit on every row whose force the loop did not
@@ -87,39 +86,51 @@ def _replay_engine(scene):
     return corrected_engine(scene)
 
 
-def _audio_step(eng, x: float, acc_state: list, ends, thr, engaged_all) -> float:
-    """One device sample of a multi-rate engine, sub-step by sub-step (module notes).
+class _AudioStepper:
+    """Device samples of a multi-rate engine with each sub-step's contact states.
 
-    Returns the port force as :func:`hapsim.kernels.audio.run_periods` computes it and
-    writes, in ``engaged_all[0]``, whether every contact was engaged at every sub-step and,
-    in ``engaged_all[1]``, the index of the first contact found open (-1 when none).
+    One :func:`hapsim.kernels.audio.run_periods` call per device sample (so the port force
+    is the kernel's own, bit for bit) whose listening channels are replaced by the
+    positions of the contacts' ends (code 0, gain 1: ``x`` exactly): the positions a
+    sub-step evaluates are those after the previous sub-step (before the period for the
+    first), except the port's, which the kernel places at the start of each sub-step
+    (held, or interpolated: the frame of that sub-step holds it).
     """
-    from hapsim.kernels import audio as audio_kernel
-    (nsub, linear, last, port), state = eng._multi
-    inv_n = 1.0 / nsub
-    p0 = eng._x[port]
-    acc = 0.0
-    fl = 0.0
-    pos = acc_state[0]
-    force = acc_state[1]
-    frames = acc_state[2]
-    rec = np.empty(0, dtype=np.int64)
-    out = np.empty((0, 0))
-    engaged_all[0] = True
-    engaged_all[1] = -1
-    for j in range(nsub):
-        pos[0] = p0 + (j + 1) * inv_n * (x - p0) if linear else x
-        audio_kernel.run_periods(1, 1, False, last, port, pos, *state, frames, 0, force,
-                                 rec, out, 0)
-        fl = eng._f[port]
-        acc += fl
-        xp = eng._xp
-        op = ~(xp[ends[1]] - xp[ends[0]] < thr)
-        if op.any() and engaged_all[0]:
-            engaged_all[0] = False
-            engaged_all[1] = int(np.argmax(op))
-    eng.sample += 1
-    return fl if last else acc * inv_n
+
+    def __init__(self, eng, ends) -> None:
+        head, state = eng._multi
+        self.eng, self.head = eng, head
+        nsub, port = head[0], head[3]
+        self.uniq = np.unique(np.concatenate(ends))
+        col = {int(m): j for j, m in enumerate(self.uniq)}
+        self.c1 = np.array([col[int(m)] for m in ends[0]], dtype=np.int64)
+        self.c2 = np.array([col[int(m)] for m in ends[1]], dtype=np.int64)
+        self.is_port = self.uniq == port
+        self.state = state[:15] + (self.uniq, np.zeros(self.uniq.size, dtype=np.int64),
+                                   np.ones(self.uniq.size), state[18])
+        self.frames = np.zeros((nsub, self.uniq.size))
+        self.pos = np.zeros(1)
+        self.force = np.zeros(1)
+        self.rec = np.empty(0, dtype=np.int64)
+        self.out = np.empty((0, 0))
+
+    def step(self, x: float, thr: np.ndarray):
+        """One device sample at port position ``x`` [m]: (force [N], open mask of shape
+        (n_contacts,): open at any sub-step, index of the first contact open at the first
+        sub-step with one (-1 when none))."""
+        from hapsim.kernels import audio as audio_kernel
+        eng = self.eng
+        before = eng._x[self.uniq].copy()
+        self.pos[0] = x
+        audio_kernel.run_periods(1, *self.head, self.pos, *self.state, self.frames, 0,
+                                 self.force, self.rec, self.out, 0)
+        eng.sample += 1
+        ev = np.vstack([before[None, :], self.frames[:-1]])   # sub-step j evaluates row j
+        ev[:, self.is_port] = self.frames[:, self.is_port]
+        op = ~(ev[:, self.c2] - ev[:, self.c1] < thr)          # (nsub, n_contacts)
+        rows = np.flatnonzero(op.any(axis=1))
+        first = int(np.argmax(op[rows[0]])) if rows.size else -1
+        return float(self.force[0]), first
 
 
 def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay:
@@ -165,9 +176,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
         return ContactReplay(closed, known, open_link, None,
                              "a corrected multi-rate scene cannot be replayed sub-step by "
                              "sub-step: the contact states are unknown")
-    bufs = [np.zeros(1), np.zeros(1),
-            np.zeros((1, eng._l_idx.size)) if multi else None]
-    flag = [True, -1]
+    stepper = _AudioStepper(eng, ends) if multi else None
     alive = True
     mismatch = None
     reason = None
@@ -176,6 +185,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
         if i == 0 or fl & FLAG_LOST:
             if i:
                 eng = type(eng)(eng.scene)        # the loop's restart (HostLoop._resume)
+                stepper = _AudioStepper(eng, ends) if multi else None
             eng.set_port_position(float(x_log[i]), at_rest=True)
             alive = mismatch is None
         elif fl & FLAG_SKIPPED and alive:
@@ -184,8 +194,8 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
                                 f"took positions the telemetry does not hold")
         x = float(x_log[i])
         if multi:
-            f = _audio_step(eng, x, bufs, ends, thr, flag)
-            ok, first = flag[0], flag[1]
+            f, first = stepper.step(x, thr)
+            ok = first < 0
         else:
             f = eng.port_step(x)
             xp = eng._xp
