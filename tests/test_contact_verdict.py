@@ -289,3 +289,16 @@ def test_replay_contact_states_equal_an_independent_replay(audio):
         assert [o if k else None for o, k in zip(open_at, known)] == rep.open_link
         opened += int(np.count_nonzero(~ref_closed & known))
     assert opened > 0
+
+
+def test_multi_rate_scene_keeps_the_python_loop(capsys):
+    """The compiled loop steps the single-rate kernel; a multi-rate (audio) scene asked to
+    run compiled keeps the Python loop and says why, so the replay reproduces every logged
+    force (before the guard: the logged forces differed from sample 21 on)."""
+    code = main(["run", str(CONFIGS / "audio_string.yaml"), "--lockstep", "--loop",
+                 "compiled", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert out["loop"]["loop"] == "python"
+    assert out["loop"]["python_reason"].startswith("audio:")
+    assert out["measured"]["reason"].startswith("contact 'pluck' opened at sample 93")

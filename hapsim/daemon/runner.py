@@ -976,7 +976,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         why = ("--sound: the sounding engine runs per sample in Python" if opts.sound
                else "--osc: live changes run per sample in Python" if opts.osc is not None
                else f"device.correction ({corr.get('kind')}): its law runs in the engine's "
-               "port_step in Python" if corr is not None else None)
+               "port_step in Python" if corr is not None
+               # the compiled loop steps the single-rate kernel: one audio sub-step per
+               # device sample would be another loop (the contact replay found it)
+               else "audio: the multi-rate kernel (sub-steps per device sample) runs in the "
+               "engine's port_step in Python" if prep.scene.audio is not None else None)
         if opts.loop == "compiled" and why is None:
             from hapsim.daemon.fastloop import CompiledHostLoop, compiled_available
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
