@@ -1216,7 +1216,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     dict
         :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
         ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
-        ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
+        ``rel_err`` against the prediction and ``rel_err_target`` (one target only);
+        ``comparable`` (True with a measurement; False, with ``reason``,
+        ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
+        scene's contacts leave no closed stretch long enough: :func:`_contact_verdict`).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
@@ -1268,6 +1271,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
         measured["note"] = "; ".join(notes)
     _verdict(prep, measured)
     if "k" in measured:
+        measured.setdefault("comparable", True)
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
         if len(targets) == 1:     # with several targets the felt pair is their sum
