@@ -14,7 +14,10 @@ Replay rules (the loop's):
 * every other row is one ``port_step(x)``;
 * a row flagged ``FLAG_SKIPPED`` follows STATEs the loop stepped the scene with but did not
   log: their positions are unknown, so the states are unknown from that row to the next
-  restart.
+  restart;
+* with a ``velocity_sensor`` correction the scene moves with a velocity the telemetry does
+  not hold: only contacts between the port and grounds are known (from the logged port
+  position, where the correction places the port).
 
 A contact ``(m1, m2, threshold)`` is engaged at a step when ``x2 - x1 < threshold`` on the
 positions the step evaluates (:mod:`hapsim.kernels.cordis`, ``_contacts``); after the step
@@ -133,6 +136,33 @@ class _AudioStepper:
         return float(self.force[0]), first
 
 
+def _fixed_contacts(scene, x_log, names, ends, thr) -> ContactReplay:
+    """Contact states without a replay (a velocity sensor: the scene's masses move with a
+    velocity the telemetry does not hold). A contact between the port and grounds is known
+    from the logged port position alone (the sensor's correction places the port at the
+    position read); one touching a virtual mass is not."""
+    n = x_log.size
+    known = np.zeros(n, dtype=bool)
+    closed = np.zeros(n, dtype=bool)
+    open_link: list = [None] * n
+    moving = {scene.index(m.name) for m in scene.masses if m.kind == "mass"}
+    if any(int(a) in moving or int(b) in moving for a, b in zip(*ends)):
+        return ContactReplay(closed, known, open_link, None,
+                             "the run's correction (velocity_sensor) steps the scene with "
+                             "the handle's measured velocity, which the telemetry does not "
+                             "hold: the states of contacts at virtual masses cannot be "
+                             "replayed")
+    x0 = np.array([m.x0 for m in scene.masses], dtype=float)
+    pos = np.repeat(x0[None, :], n, axis=0)
+    pos[:, scene.index(scene.port.name)] = x_log
+    op = ~(pos[:, ends[1]] - pos[:, ends[0]] < thr)            # (n, n_contacts)
+    known[:] = True
+    closed[:] = ~op.any(axis=1)
+    for i in np.flatnonzero(~closed):
+        open_link[i] = names[int(np.argmax(op[i]))]
+    return ContactReplay(closed, known, open_link, None, None)
+
+
 def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay:
     """Replay a run's logged port positions through a fresh engine; contact states per row.
 
@@ -167,10 +197,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
     thr = np.array([lk.threshold for lk in contacts], dtype=float)
     eng = _replay_engine(scene)
     if eng is None:
-        return ContactReplay(closed, known, open_link, None,
-                             "the run's correction (velocity_sensor) steps the scene with "
-                             "the handle's measured velocity, which the telemetry does not "
-                             "hold: the contact states cannot be replayed")
+        return _fixed_contacts(scene, x_log, names, ends, thr)
     multi = eng._multi is not None and not hasattr(eng, "_reset_law")
     if eng._multi is not None and not multi:
         return ContactReplay(closed, known, open_link, None,
