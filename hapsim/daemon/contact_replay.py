@@ -44,7 +44,19 @@ __all__ = ["ContactReplay", "replay_contacts", "contact_links"]
 
 
 def contact_links(scene) -> list:
-    """The scene's contact links, in scene order (empty when it has none)."""
+    """The scene's contact links.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A validated scene.
+
+    Returns
+    -------
+    list of hapsim.scene.Link
+        Its links of kind ``contact``, in scene order (the kernels' order,
+        :class:`hapsim.engine.Engine`); empty when it has none.
+    """
     return [lk for lk in scene.links if lk.kind == "contact"]
 
 
