@@ -124,6 +124,10 @@ class Controller:
         self.refused = 0
         self.accepted = 0
         self.measured = (math.nan, math.nan)
+        #: The last measurement's full result (:func:`identify_window`), or None.
+        self.measurement: dict | None = None
+        self._gen = 0                          # accepted scene changes so far
+        self._worker: threading.Thread | None = None
         self._mail: collections.deque = collections.deque()
         self._gain_before_pause = 1.0
         self._ramps: list[Change] = []
@@ -188,6 +192,8 @@ class Controller:
                 if pred is not None:
                     self.felt = pred
                     self.measured = (math.nan, math.nan)
+                    self.measurement = None
+                    self._gen += 1
             self._mail.append(change)
         except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
             reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
@@ -253,6 +259,39 @@ class Controller:
             return Change("link", name, (lk.stiffness, lk.damping),
                           (nl.stiffness, nl.damping), steps), pred
         raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+
+    def measure(self, x, wait: bool = False) -> None:
+        """Measure the felt (k, b) of a free response window on a worker thread.
+
+        :func:`identify_window` on the scene as accepted now; :attr:`measured` and
+        :attr:`measurement` are set when it ends, unless a change was accepted meanwhile
+        (the window then shows a loop that is no longer the one predicted). A window
+        handed in while the previous one is still being measured is dropped, unless
+        ``wait``.
+
+        Parameters
+        ----------
+        x : array_like, shape (n,)
+            Device positions [m] from the start of a free response (copied).
+        wait : bool
+            Wait for the previous measurement and for this one (end of a run).
+        """
+        if self._worker is not None and self._worker.is_alive():
+            if not wait:
+                return
+            self._worker.join()
+        gen, scene, x = self._gen, self.scene, np.array(x, dtype=float)
+
+        def work():
+            res = identify_window(x, scene)
+            if "k" in res and self._gen == gen:
+                self.measurement = res
+                self.measured = (float(res["k"]), float(res["b"]))
+
+        self._worker = threading.Thread(target=work, name="hapsim-identify", daemon=True)
+        self._worker.start()
+        if wait:
+            self._worker.join()
 
     # ------------------------------------------------------------ sample loop
     def poll(self, engine=None) -> None:
@@ -457,15 +496,48 @@ def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> 
             pass
 
 
-def identify_window(x: np.ndarray, scene, order: int) -> tuple[float, float]:
-    """Felt (k, b) of a free response window (matrix pencil, the pair with the largest |z|).
+def identify_window(x: np.ndarray, scene) -> dict:
+    """Felt (k, b) of a free response window, measured as ``hapsim run`` measures it.
 
-    Returns (nan, nan) when no pair is found.
+    :func:`hapsim.daemon.runner.identify` with the run's arguments: the predicted non-zero
+    closed-loop poles seen at the port and the predicted felt pole
+    (:func:`hapsim.daemon.runner._predicted_poles`), the equilibrium offset
+    (:func:`hapsim.daemon.runner._has_offset`), the device's sensor step and noise, so the
+    answer is :func:`hapsim.analysis.identify.measure_felt` (exact matrix pencil for an
+    exact record, variable projection started from the prediction otherwise).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Device positions [m], one per device sample, from the start of a free response.
+    scene : hapsim.scene.Scene
+        The calibrated scene of the loop that produced them (device delay included).
+
+    Returns
+    -------
+    dict
+        :func:`~hapsim.daemon.runner.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
+        ``k_unc``, ``b_unc`` ... or ``error`` (str) when the window cannot carry a
+        measurement.
     """
-    from hapsim.analysis.identify import fit_rendered
+    from hapsim.analysis.network import device_body
+    from hapsim.daemon.runner import _has_offset, _predicted_poles, identify
 
+    x = np.asarray(x, dtype=float)
+    dev = scene.device
     try:
-        md = fit_rendered(np.asarray(x, float), scene.period, order, float(scene.device.mass))
-        return float(md.k), float(md.b)
-    except (ConfigError, ValueError, np.linalg.LinAlgError):
-        return math.nan, math.nan
+        poles, felt = _predicted_poles(scene)
+        order = int(poles.size)
+        if not order:
+            return {"error": "the loop has no oscillation to measure"}
+        response = None
+        quantum = float(dev.position_resolution or 0.0)
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.identify import sensor_error_response
+            response = sensor_error_response(scene, int(x.size))
+        return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
+                        offset=_has_offset(scene), skip=int(dev.delay) + 2,
+                        predicted=poles, felt=felt, quantum=quantum, noise=float(dev.noise),
+                        sensor_response=response)
+    except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"error": str(exc)}
