@@ -344,3 +344,38 @@ def test_play_refuses_a_loop_the_block_delay_makes_unstable(jack_server, tmp_pat
     assert code == 1 and "256-frame block" in err and "unstable" in err, err
     assert main(["check", str(path)]) == 0
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_osc_felt_is_measured_as_run_measures_it(seed, tmp_path):
+    """The felt (k, b) play and /hapsim/felt answer (Controller.measure, identify_window)
+    is run's measurement (runner.identify -> measure_felt with the predicted poles, the
+    offset, the sensor's step and noise), not a full-order fit of its own: over random
+    quantised, noisy wall loops the same free response gives run's k, b and stated
+    intervals. (The old full-order pencil answered differently on such records.)"""
+    from hapsim.audio.control import Controller
+    from hapsim.daemon.runner import prepare_scene, run_scene
+    from hapsim.daemon.telemetry import load_telemetry
+    from test_identify_quantised import _random_loop, _scene
+
+    rng = np.random.default_rng(700 + seed)
+    m, b0, K, B, d, rate, _ = _random_loop(rng)
+    q = float(rng.uniform(0.5e-6, 3e-6))
+    noise = float(rng.uniform(0.0, 2e-6))
+    scene = _scene(m, b0, K, B, d, rate, q, noise, 0.004)
+    tel = str(tmp_path / "t.npz")
+    rep = run_scene(scene, transport="inprocess", lockstep=True, handle_signals=False,
+                    duration=1.5, telemetry=tel)
+    meas = rep["measured"]
+    cols = load_telemetry(tel)
+    x = cols["position"][cols["seq"] >= meas["first_seq"]]
+    sc = prepare_scene(scene)[0]
+    ctl = Controller(sc, Engine(sc))
+    ctl.measure(x, wait=60.0)          # in the analysis process
+    ctl.close()
+    got = ctl.measurement
+    assert got is not None and "k" in meas, (got, meas)
+    assert got["k"] == pytest.approx(meas["k"], rel=1e-9)
+    assert got["b"] == pytest.approx(meas["b"], rel=1e-9)
+    assert got["method"] == meas["method"]
+    assert ctl.measured == (got["k"], got["b"])

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         stopped calling back (the report then covers what was played);
         2 on bad input (raised as ConfigError).
     """
-    from hapsim.audio.control import Controller, identify_window, send_telemetry, serve_osc
+    from hapsim.audio.control import Controller, send_telemetry, serve_osc
     from hapsim.daemon.mock import MockPhysics, hand_force_samples
     from hapsim.daemon.runner import _warm_up, prepare_scene
     from hapsim.engine import Engine
@@ -146,7 +146,6 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.daemon._blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
     _warm_up(scene)                                   # kernels loaded before the clock starts
-    identify_window(np.cos(0.3 * np.arange(200)) * 0.99 ** np.arange(200), scene)
     if live is not None:    # the sound starts after the warm-up (silence until the loop does)
         try:
             out = open_output(live, args.sound, server=args.jack_server)
@@ -169,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
               f"radius {ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
         if out is not None:
             out.close()
+        ctl.close()
         return 1
     server = tel = None
     status = (lambda: {"xruns": getattr(out, "xruns", 0),
@@ -230,10 +230,13 @@ def run(args: argparse.Namespace) -> int:
             server.server_close()
         if out is not None:
             out.close()
-    if P > steps and max(h.size, quiet_from) < steps - 50:   # one free response: at the end
-        ctl.measure(xs[max(h.size, quiet_from):], wait=True)
-    elif ctl._worker is not None:
-        ctl._worker.join()
+    if P > steps and max(h.size, quiet_from) < steps - 50:   # one free response: now
+        ctl.measure(xs[max(h.size, quiet_from):], wait=10.0)
+    if not ctl.finish(10.0):
+        note = "the last identification ran past 10 s after the run: dropped"
+    else:
+        note = None
+    ctl.close()
     report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
               "late": late,  # times > 20 ms behind the clock (then resynchronised)
               "paced_by": "sound" if live is not None else ("clock" if clocked else "none"),
@@ -243,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
                                              **({} if ctl.measurement is None else {
                                                  q: ctl.measurement.get(q) for q in
                                                  ("k_unc", "b_unc", "method", "samples_used")})},
-              "error": error,
+              "error": error, "note": note,
               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
               "sound": None if live is None else {
                   "backend": type(out).__name__, "xruns": out.xruns, "block": out.blocksize,
