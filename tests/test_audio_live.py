@@ -379,3 +379,40 @@ def test_osc_felt_is_measured_as_run_measures_it(seed, tmp_path):
     assert got["b"] == pytest.approx(meas["b"], rel=1e-9)
     assert got["method"] == meas["method"]
     assert ctl.measured == (got["k"], got["b"])
+
+
+def test_play_falls_back_to_portaudio_where_no_jack_server_runs(tmp_path):
+    """No JACK server (JACK_DEFAULT_SERVER names none): hapsim play --sound auto plays
+    through PortAudio (python-sounddevice), here on an ALSA null device (a HOME whose
+    .asoundrc makes it the default; it takes frames as fast as they come, so the loop runs
+    unpaced), with the same exact coupling as through JACK: the fixed 256-frame block gives
+    lead 6, the report's delay is 7 and measured (k, b) = predicted to 1e-6."""
+    import subprocess
+    import sys
+
+    try:
+        import sounddevice  # noqa: F401
+    except ImportError:
+        pytest.skip("sounddevice not installed: pip install sounddevice")
+    except OSError as exc:
+        pytest.skip(f"PortAudio not installed: apt-get install libportaudio2 ({exc})")
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / ".asoundrc").write_text("pcm.!default {\n  type null\n}\n")
+    scene = tmp_path / "linear.yaml"
+    scene.write_text(LINEAR)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, HOME=str(home), JACK_DEFAULT_SERVER=f"none-{uuid.uuid4().hex[:8]}",
+               PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    res = subprocess.run([sys.executable, "-m", "hapsim", "play", str(scene), "--sound", "auto",
+                          "--duration", "1.5", "--json"], capture_output=True, text=True,
+                         env=env, cwd=root, timeout=120)
+    assert res.returncode == 0, res.stderr[-800:]
+    rep = json.loads(res.stdout)
+    snd = rep["sound"]
+    print(f"play through PortAudio: {snd}")
+    assert snd["backend"] == "SoundDeviceOutput"
+    assert (snd["block"], snd["lead"], rep["delay"]) == (256, 6, 7)
+    assert snd["pushed"] == snd["consumed"] == 1500
+    assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(rep["felt"]["b"], rel=1e-6)

@@ -229,7 +229,7 @@ def _play_string(jack_server, duration):
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", STRING, "--osc", "0",
                              "--sound", "jack", "--jack-server", jack_server,
-                             "--duration", str(duration), "--pluck-every", "1", "--json"],
+                             "--duration", str(duration), "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
     seen = []
@@ -252,7 +252,7 @@ def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
         pytest.skip("pd not installed: apt-get install puredata")
     patch_text = _readme_block("pd")
     assert "connect 127.0.0.1 9000;" in patch_text
-    proc, port = _play_string(jack_server, 5.0)
+    proc, port = _play_string(jack_server, 3.0)
     patch = tmp_path / "readme.pd"
     patch.write_text(patch_text.replace("connect 127.0.0.1 9000;", f"connect 127.0.0.1 {port};"))
     pd = subprocess.Popen(["pd", "-nogui", "-nosound", "-open", str(patch)],
@@ -279,7 +279,7 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
 
     lines = [ln for ln in _readme_block("supercollider").splitlines() if "sendMsg" in ln]
     assert len(lines) >= 4
-    proc, port = _play_string(jack_server, 6.0)
+    proc, port = _play_string(jack_server, 5.0)
     c = Client(port)
     try:
         for ln in lines:

@@ -146,9 +146,6 @@ class Controller:
         self.sample_of = None
         self.analyst = Analyst(background)
         self.felt = self._predict(scene)
-        if background:      # the identification's code loaded in the child before it counts
-            self.analyst.submit(identify_window, (np.cos(0.3 * np.arange(200))
-                                                  * 0.99 ** np.arange(200), scene))
 
     def _predict(self, scene) -> dict:
         from hapsim.daemon.runner import predict
@@ -284,18 +281,15 @@ class Controller:
         :attr:`measured` and :attr:`measurement` are set when it ends, unless a change was
         accepted meanwhile (the window then shows a loop that is no longer the one
         predicted). A window handed in while the previous one is still being measured is
-        dropped.
+        dropped (:meth:`finish` waits for that one).
 
         Parameters
         ----------
         x : array_like, shape (n,)
             Device positions [m] from the start of a free response (copied).
         wait : float
-            Wait up to this long [s] for the previous measurement and then for this one
-            (end of a run; 0: return at once).
+            Wait up to this long [s] for this one (end of a run; 0: return at once).
         """
-        if wait > 0:
-            self.finish(wait)
         if self._pending is not None and not self._pending.ready():
             return
         gen, scene, x = self._gen, self.scene, np.array(x, dtype=float)
@@ -477,6 +471,7 @@ def _background() -> None:
         pass
     from hapsim.daemon._blas import limit_blas_threads
     limit_blas_threads(1)
+    import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
 
 class _Refused(Exception):
