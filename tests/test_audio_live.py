@@ -21,6 +21,20 @@ from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
 SCENE = "configs/audio_string.yaml"
+#: A port - bob - wall chain heard at 48 kHz, linear (no contact), stable with the lead of
+#: a 256-frame block (6 device samples) added to its device delay.
+LINEAR = """rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: bob, kind: mass, mass: 0.02}
+  - {name: wall, kind: ground}
+links:
+  - {name: a, kind: spring_damper, between: [hand, bob], stiffness: 100.0, damping: 1.0}
+  - {name: b, kind: spring_damper, between: [bob, wall], stiffness: 2000.0, damping: 2.0}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
+excitation: {x0: 0.001}
+audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
+"""
 
 
 @pytest.fixture(scope="module")
@@ -176,18 +190,6 @@ def test_run_sound_plays_the_loop_frames_and_keeps_the_prediction(jack_server):
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import parse_scene
 
-    text = """rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: bob, kind: mass, mass: 0.02}
-  - {name: wall, kind: ground}
-links:
-  - {name: a, kind: spring_damper, between: [hand, bob], stiffness: 300.0, damping: 0.2}
-  - {name: b, kind: spring_damper, between: [bob, wall], stiffness: 2000.0, damping: 2.0}
-device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
-excitation: {x0: 0.001}
-audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
-"""
     rec = Recorder(jack_server, seconds=3.0)
     rec.armed = False
     started = {}
@@ -203,7 +205,7 @@ audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
         rec.armed = True
 
     try:
-        rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
+        rep = run_scene(parse_scene(LINEAR), transport="inprocess", lockstep=True,
                         host_clocked=True, handle_signals=False, duration=1.0,
                         sound="jack", jack_server=jack_server, on_start=on_start)
         time.sleep(0.3)
@@ -287,18 +289,7 @@ def test_live_coupling_is_the_modelled_delay_whatever_the_block_and_timing(seed)
     assert live.stats()["pushed"] == steps
 
 
-LINEAR = """rate_hz: 1000
-masses:
-  - {name: hand, kind: port}
-  - {name: bob, kind: mass, mass: 0.02}
-  - {name: wall, kind: ground}
-links:
-  - {name: a, kind: spring_damper, between: [hand, bob], stiffness: 100.0, damping: 1.0}
-  - {name: b, kind: spring_damper, between: [bob, wall], stiffness: 2000.0, damping: 2.0}
-device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
-excitation: {x0: 0.001}
-audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
-"""
+
 
 
 def test_play_with_live_sound_measured_equals_predicted_with_the_lead(jack_server, tmp_path,

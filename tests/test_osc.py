@@ -77,10 +77,19 @@ class Client:
         return msg.address, list(msg.params)
 
 
-def test_python_osc_client_changes_are_checked_ramped_and_felt():
-    proc, port = start_daemon(2.6)
+def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
+    """Changes (accepted, refused: unstable, unknown link, a ground's mass), the felt and
+    loop queries, and the telemetry stream: every /hapsim/tel t x f k b carries the device
+    position the run logged at sample t * rate (its --telemetry file) and the felt k of
+    the scene in force."""
+    tel_file = str(tmp_path / "tel.npz")
+    proc, port = start_daemon(2.6, extra=("--telemetry", tel_file))
     c = Client(port)
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
     try:
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        assert addr == "/hapsim/ok" and p[0] == "/hapsim/telemetry"
         addr, p = c.ask("/hapsim/link/stiffness", "wall", 700.0)
         assert addr == "/hapsim/ok" and p[0] == "/hapsim/link/stiffness"
         # OSC floats are float32 (what Pd reads): compare to 1e-6 relative
@@ -107,10 +116,35 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt():
         rep = finish(proc)
     assert rep["links"]["wall"] == [700.0, 1.0]
     assert rep["measured"]["k"] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
+    _check_telemetry_stream(sink, tel_file, rep["rate_hz"])
     events = [(e["event"], e["address"]) for e in rep["journal"]]
     assert ("accepted", "/hapsim/link/stiffness") in events
     assert ("ramp_end", "link") in events
     assert sum(e == "refused" for e, _ in events) == 3
+
+
+def _check_telemetry_stream(sink, tel_file, rate):
+    """The /hapsim/tel messages that reached ``sink`` against the run's telemetry file."""
+    import numpy as np
+    from pythonosc.osc_message import OscMessage
+
+    sink.settimeout(0.2)
+    msgs = []
+    try:
+        while True:
+            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
+    except (socket.timeout, TimeoutError):
+        pass
+    sink.close()
+    with np.load(tel_file) as z:
+        pos = z["position"]
+    tel = [m.params for m in msgs if m.address == "/hapsim/tel"]
+    assert len(tel) > 50, len(tel)               # 100 Hz over ~2.6 s
+    n = np.array([round(t * rate) for t, *_ in tel])
+    x = np.array([p[1] for p in tel])
+    np.testing.assert_allclose(x, pos[n].astype(np.float32), rtol=1e-6, atol=1e-12)
+    k_new = felt_k(700.0, 1.0)
+    assert any(abs(p[3] - k_new) < 1e-6 * k_new for p in tel)    # the change's felt k
 
 
 PATCH = """#N canvas 0 50 600 400 12;

@@ -87,11 +87,12 @@ def register(sub) -> None:
                    help="write the change journal (requests, verdicts, ramps) here")
     p.add_argument("--telemetry", metavar="FILE.npz",
                    help="write time [s], device position [m], port force [N] per sample")
-    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
-                   help="SCHED_FIFO priority of the haptic loop where permitted (default 10; "
-                        "0: normal), capped one below the sound callback's thread: a "
-                        "descheduled haptic thread holding the GIL makes the callback wait, "
-                        "one at the callback's priority delays it")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                   help="SCHED_FIFO priority of the haptic loop where permitted (0: normal). "
+                        "Default: with live sound one below the sound callback's thread (the "
+                        "loop feeds it: a haptic thread behind other real-time work starves "
+                        "the sound), else 10; never at or above the callback's (it would "
+                        "delay it past its deadline, holding the CPU or the GIL)")
     p.add_argument("--json", action="store_true", help="print one JSON report on stdout")
     p.set_defaults(func=run)
 
@@ -126,6 +127,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"must be >= 0, got {args.ramp}", key="--ramp")
     if not args.pluck_every >= 0:
         raise ConfigError(f"must be >= 0, got {args.pluck_every}", key="--pluck-every")
+    if args.rt_priority is not None and not 0 <= args.rt_priority <= 99:
+        raise ConfigError(f"must be 0 (normal) or a SCHED_FIFO priority 1..99, got "
+                          f"{args.rt_priority}", key="--rt-priority")
     scene, _ = prepare_scene(load_scene(args.scene))
     engine = Engine(scene)
     live = out = None
@@ -188,14 +192,15 @@ def run(args: argparse.Namespace) -> int:
     quiet_from = 0            # first sample after the last change's ramp ended
     error = None
     from hapsim.daemon.realtime import RealtimePriority
-    prio = args.rt_priority
+    prio = 10 if args.rt_priority is None else args.rt_priority
     if out is not None:
-        # below the sound callback's thread: at its priority or above, the haptic thread
-        # (and the GIL it holds) delays the callback past its deadline
+        # just below the sound callback's thread: at its priority or above, the haptic
+        # thread (and the GIL it holds) delays the callback past its deadline; far below,
+        # other real-time work delays the positions the callback needs
         from hapsim.audio.live import wait_priority
         ap = wait_priority(out)
         if ap:
-            prio = max(0, min(prio, ap - 1))
+            prio = max(0, ap - 1 if args.rt_priority is None else min(prio, ap - 1))
     rt = RealtimePriority(prio).__enter__()
     t0 = time.perf_counter()
     try:
