@@ -336,7 +336,7 @@ _KEYS = [
             "`hapsim family`). A compliant grip needs `hold: zoh`.",
         example="device: {mass: 0.05, hand: {mass: [0.05, 0.5], grip_stiffness: [300, 3000]}}"),
     Key("device.correction", "mapping", default=None,
-        doc="One correction of the virtual element (one-link scenes): `kind` "
+        doc="One correction of the virtual element, acting at the port (any scene): `kind` "
             "`velocity_sensor` | `velocity_filter` (`cutoff_hz`) | `prediction` "
             "(`horizon` samples, default the delay) | `inertia_compensation` (`mass` [kg], "
             "below the moving mass) | `virtual_coupling` (`stiffness` [N/m], `damping` "

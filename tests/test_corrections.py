@@ -283,3 +283,59 @@ def test_lockstep_with_a_grip_and_each_correction(kind, params):
     assert r.stable
     assert rep["measured"]["k"] == pytest.approx(r.k, rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
+
+
+def _law_controller(kind, params, K, B, period, n):
+    """``C(z) = -F/x`` of :class:`CorrectionLaw` from its impulse response (n samples)."""
+    from hapsim.analysis.corrections import CorrectionLaw
+    law = CorrectionLaw(Correction(kind, **params), K, B, period, 0)
+    law.reset(0.0)
+    h = -np.array([law.step(1.0 if i == 0 else 0.0) for i in range(n)])
+    assert abs(h[-1]) < 1e-14 * np.abs(h).max()            # the response has died out
+    return lambda z: np.polyval(h[::-1], 1.0 / np.asarray(z))
+
+
+@pytest.mark.parametrize("K,B,fc,period", [(1000.0, 2.0, 50.0, 1e-3), (2e4, 4.0, 30.0, 2.5e-4)])
+def test_filtered_velocity_bound_of_the_running_law(K, B, fc, period):
+    """The velocity filter the daemon runs (CorrectionLaw, impulse response) needs exactly
+    the closed-form real damping K T/2 + B (1 - a)/(1 + a) to be passive (1e-9)."""
+    C = _law_controller("velocity_filter", {"cutoff_hz": fc}, K, B, period, 4000)
+    assert passivity_bound(C, period) == pytest.approx(
+        filtered_passivity_bound(K, B, fc, period), rel=1e-9)
+
+
+@pytest.mark.parametrize("Kc,Bc", [(1500.0, 0.2), (400.0, 0.0), (800.0, 0.3)])
+def test_virtual_coupling_bound_of_the_running_law(Kc, Bc):
+    """Colgate, Stanley & Brown (1995): whatever passive environment (K, B) sits behind
+    the coupling, the device sees a controller that needs no more real damping than the
+    coupling's own Kc T/2 + Bc (Colgate & Schenkel 1997), and that bound is reached as
+    K -> inf: within 1e-9 at K = 1e14. Controller of the running law (CorrectionLaw)."""
+    bound = Kc * T / 2 + Bc
+    rng = np.random.default_rng(7)
+    for K, B in [(1e14, 0.0)] + [(10 ** rng.uniform(2, 7), rng.uniform(0, 5))
+                                 for _ in range(6)]:
+        C = _law_controller("virtual_coupling", {"stiffness": Kc, "damping": Bc}, K, B, T,
+                            400)
+        pb = passivity_bound(C, T)
+        assert pb <= bound * (1 + 1e-9)
+        if K == 1e14:
+            assert pb == pytest.approx(bound, rel=1e-9)
+
+
+def test_readme_correction_table_is_what_compare_corrections_prints(capsys):
+    """The README's table of correction means is the command's own output, row for row
+    (the command named above the table, without the time-domain part)."""
+    import pathlib
+    import re
+    from hapsim.cli import main
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    m = re.search(r"`hapsim compare-corrections (--mass [^`]*)`", readme)
+    cmd = m.group(1).split()
+    after = readme[m.end():].splitlines()
+    start = next(i for i, ln in enumerate(after) if ln.startswith("|"))
+    rows = [ln for ln in after[start:][:next(i for i, ln in enumerate(after[start:])
+                                              if not ln.startswith("|"))]]
+    assert main(["compare-corrections", *cmd, "--no-time-domain"]) == 0
+    out = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("|")]
+    assert len(out) == 9                      # header, rule, the plain element and 6
+    assert rows == out

@@ -580,3 +580,29 @@ def test_large_scene_reports_progress_and_loads():
     assert calls and all(t == len(text) for _, t in calls)
     done = [d for d, _ in calls]
     assert done == sorted(done) and 0 < done[-1] <= len(text)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(K=st.sampled_from([0.0, 1.0, 100.0, 500.0]), B=st.sampled_from([0.0, 0.1, 1.0]),
+       d=st.integers(0, 4), hold=st.sampled_from(["zoh", "ideal"]),
+       cmd=st.sampled_from(["render", "calibrate"]))
+def test_mode_tables_never_print_inf_or_nan(capsys, K, B, d, hold, cmd):
+    """Delay poles at z = 0 (no ln 0) and free modes at z = 1 (no damping ratio) are the class
+    of mode a table once printed as 'inf' / 'nan' / '-0'. Over random loops, render's and
+    calibrate's mode tables hold only finite figures or '-', and dead-beat modes are counted
+    on their own line. The count is checked against the closed loop's poles at z = 0."""
+    from hapsim.analysis import render as render_loop
+    from hapsim.analysis import LoopModel
+    args = ["--mass", "0.1", "--rate", "1000", "--delay", str(d), "--hold", hold]
+    if cmd == "render":
+        argv = ["render", *args, "--K", str(K), "--B", str(B)]
+    else:
+        argv = ["calibrate", *args, "--k", str(max(K, 1.0)), "--b", str(max(B, 0.1))]
+    main(argv)
+    out = capsys.readouterr().out
+    table = out.split("modes:", 1)[1] if "modes:" in out else ""
+    assert not re.search(r"\b(inf|nan)\b|(?<![\w.])-0(?![\w.])", table), out
+    if cmd == "render":
+        r = render_loop(LoopModel(mass=0.1, rate_hz=1000.0, delay=d, hold=hold), K, B)
+        n0 = sum(1 for md in r.modes if md.z == 0)
+        assert (f"{n0} dead-beat" in table) == (n0 > 0), out

@@ -376,3 +376,154 @@ class CorrectionLaw:
         self.x2 = self.x1
         self.x1 = x
         return f
+
+
+# --------------------------------------------------------------------------- any scene
+
+#: Extra closed-loop state a correction adds after the virtual states (name suffix).
+_EXTRA_STATE = {"velocity_sensor": None, "velocity_filter": "vf[n-1] (filtered velocity)",
+                "prediction": "x[n-2]", "inertia_compensation": "x[n-2]",
+                "virtual_coupling": "y[n-1] (coupling proxy)"}
+
+
+def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None,
+                    corr=None):
+    """Closed-loop matrix without the plant rows, for any scene with a port and a correction.
+
+    The correction acts at the port: the virtual network's one-step map
+    ``X[n+1] = Av X + bp q[n] + bpp qq[n]``, ``F[n] = cx X + cp q[n] + cpp qq[n]``
+    (:func:`hapsim.analysis.network.virtual_blocks`) takes as its port position ``q`` and
+    as the previous one ``qq`` (so ``(q - qq)/T`` is the velocity estimate the dampers at
+    the port see) the corrected signals of the handle samples ``x``:
+
+    =========================  ==============================================================
+    kind                       ``q[n]``, ``qq[n]``, force
+    =========================  ==============================================================
+    none                       ``x[n]``, ``x[n-1]``
+    ``velocity_sensor``        ``x[n]``, ``x[n] - T v[n]`` (measured handle velocity)
+    ``velocity_filter``        ``x[n]``, ``x[n] - T vf[n]``,
+                               ``vf[n] = a vf[n-1] + (1 - a)(x[n] - x[n-1])/T``
+    ``prediction``             ``xp[n]``, ``xp[n-1]``, ``xp[n] = x[n] + h (x[n] - x[n-1])``
+    ``inertia_compensation``   ``x[n]``, ``x[n-1]``; ``F += Mc (x[n] - 2x[n-1] + x[n-2])/T^2``
+    ``virtual_coupling``       ``y[n]``, ``y[n-1]``: the port is a massless proxy tied to the
+                               handle by ``(Kc, Bc)``, balanced each sample:
+                               ``Kc (x - y) + Bc (Dx - Dy) + F_net(y) = 0``, ``F = F_net(y)``
+    =========================  ==============================================================
+
+    For a port tied to a ground by one spring_damper these are the laws of
+    :class:`CorrectionLaw` (module docstring), so the poles are those of
+    :func:`correction_polynomials` (up to roots at 0).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        For the error messages (its path) and the period ``T`` [s].
+    dev : hapsim.scene.Device
+        Device (hold, delay; the moving mass for the inertia limit).
+    port : str
+        Port name (state names).
+    Av, bp, bpp, cx, cp, cpp
+        Blocks of :func:`hapsim.analysis.network.virtual_blocks` (or
+        :func:`~hapsim.analysis.network.multirate_blocks`), shapes (2N, 2N), (2N,), (2N,),
+        (2N,), float, float.
+    vnames : list of str
+        Names of the 2N virtual states.
+    member : array_like, shape (4,), optional
+        Hand member (plant layout: a compliant grip has 4 plant states).
+    corr : Correction or None
+        None gives the plain frame.
+
+    Returns
+    -------
+    A : ndarray, shape (n, n)
+        Closed-loop matrix with the plant rows ``0 .. nplant-1`` left zero (the ideal
+        hold's are completed by the caller), state order: plant, ``x_port[n-1]``, delay
+        line (d), virtual (2N), the correction's state (0 or 1).
+    u : ndarray, shape (n,)
+        Row giving the force held over the coming period.
+    nplant : int
+        Plant states (2 or 4 for ``"zoh"``, 1 for ``"ideal"``).
+    names : list of str
+
+    Raises
+    ------
+    ConfigError
+        Unknown hold; ``velocity_sensor`` with the ideal hold; ``inertia_compensation``
+        with ``Mc`` not below the moving mass (handle + hand).
+    """
+    from hapsim.analysis.network import _compliant, device_body
+
+    T = float(scene.period)
+    if dev.hold == "zoh":
+        if _compliant(dev, member):
+            names = [f"{port}.x[n] (handle position)", "device.v[n]", "hand.x[n]",
+                     "hand.v[n]"]
+        else:
+            names = [f"{port}.x[n] (device position)", "device.v[n]"]
+        names.append(f"{port}.x[n-1]")
+    elif dev.hold == "ideal":
+        names = [f"{port}.x[n] (device position)", f"{port}.x[n-1]"]
+    else:
+        raise ConfigError(f"unknown hold {dev.hold!r}; valid: zoh, ideal",
+                          file=scene.path, key="device.hold")
+    kind = None if corr is None else corr.kind
+    if kind == "velocity_sensor" and dev.hold != "zoh":
+        raise ConfigError("a velocity sensor needs hold: zoh (the ideal hold has no "
+                          "velocity)", file=scene.path, key="device.correction.kind")
+    d = int(dev.delay)
+    nd = len(names)
+    nplant = nd - 1
+    names += [f"F[n-{i}] (port force, delay line)" for i in range(1, d + 1)]
+    names += list(vnames)
+    o = nd + d
+    nv = len(vnames)
+    extra = None if kind is None else _EXTRA_STATE[kind]
+    if extra is not None:
+        names.append(f"{port}.{extra}")
+    n = len(names)
+    ic = n - 1                                 # the correction's state (when it has one)
+    ip, ipp = 0, nd - 1
+    e = np.eye(n)
+    X = np.zeros(n)
+    X[o:o + nv] = cx                           # network force without the port terms
+    q, qq, fx = e[ip], e[ipp], np.zeros(n)
+    A = np.zeros((n, n))
+    if kind == "velocity_sensor":
+        qq = e[ip] - T * e[1]
+    elif kind == "velocity_filter":
+        a, eps = corr.filter_pole(T)
+        vf = a * e[ic] + eps * (e[ip] - e[ipp]) / T
+        qq = e[ip] - T * vf
+        A[ic] = vf
+    elif kind == "prediction":
+        h = float(d if corr.horizon is None else corr.horizon)
+        q = (1.0 + h) * e[ip] - h * e[ipp]
+        qq = (1.0 + h) * e[ipp] - h * e[ic]
+        A[ic] = e[ipp]
+    elif kind == "inertia_compensation":
+        mass = device_body(dev, member)[0]
+        if not corr.mass < mass:
+            raise ConfigError(f"compensated mass {corr.mass:g} kg must stay below the moving "
+                              f"mass {mass:g} kg", file=scene.path,
+                              key="device.correction.mass")
+        fx = corr.mass / (T * T) * (e[ip] - 2.0 * e[ipp] + e[ic])
+        A[ic] = e[ipp]
+    elif kind == "virtual_coupling":
+        Kc, Bc = corr.stiffness, corr.damping
+        y = ((Kc + Bc / T) * e[ip] - Bc / T * e[ipp] + (Bc / T + cpp) * e[ic] + X) \
+            / (Kc + Bc / T - cp)
+        q, qq = y, e[ic]
+        A[ic] = y
+    Frow = X + cp * q + cpp * qq + fx
+    if d == 0:
+        u = Frow
+    else:
+        u = np.zeros(n)
+        u[nd + d - 1] = 1.0
+        A[nd] = Frow
+        for j in range(1, d):
+            A[nd + j, nd + j - 1] = 1.0
+    A[ipp, ip] = 1.0
+    A[o:o + nv, o:o + nv] = Av
+    A[o:o + nv] += np.outer(bp, q) + np.outer(bpp, qq)
+    return A, u, nplant, names

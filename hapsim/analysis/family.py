@@ -60,7 +60,8 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     Parameters
     ----------
     scene : hapsim.scene.Scene
-        Validated scene with a port and a device (no correction).
+        Validated scene with a port and a device (a device correction adds its state,
+        :func:`hapsim.analysis.corrections.corrected_frame`).
     mem : ndarray, shape (n, 4)
         Members ``(mh, bh, kg, bg)``; the grip is rigid (``kg = inf``) for all or none.
     calibrated : mapping, optional
@@ -88,10 +89,6 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
         raise ConfigError("a family needs a scene with a port and a device section",
                           file=scene.path, key="device")
     dev = scene.device
-    if getattr(dev, "correction", None) is not None:
-        raise ConfigError("the scene state matrix has no correction states; use "
-                          "family_poles for a corrected one-link scene", file=scene.path,
-                          key="device.correction")
     mem = np.atleast_2d(np.asarray(mem, float))
     finite = np.isfinite(mem[:, 2])
     if finite.any() and not finite.all():
@@ -101,8 +98,15 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     net = network(scene, calibrated)
     T = scene.period
     blocks = virtual_blocks(net, integrator, T)
+    corr = getattr(dev, "correction", None)
+    if corr is not None and corr.get("kind") == "inertia_compensation" and not (
+            float(corr.get("mass", 0.0)) < float(dev.mass) + mem[:, 0].min()):
+        raise ConfigError(f"compensated mass {corr.get('mass')} kg must stay below the "
+                          f"moving mass of every member (least {float(dev.mass) + mem[:, 0].min():g}"
+                          " kg)", file=scene.path, key="device.correction.mass")
     A0, u, nplant, names = _frame(scene, dev, scene.port.name, *blocks,
-                                  virtual_state_names(net, integrator), mem[0])
+                                  virtual_state_names(net, integrator), mem[0],
+                                  correction=corr)
     n = mem.shape[0]
     A = np.repeat(A0[None], n, axis=0)
     m, b0 = float(dev.mass), float(dev.friction)
@@ -132,11 +136,8 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
 def family_poles(scene, mem: np.ndarray, *, calibrated=None) -> np.ndarray:
     """Closed-loop poles of every member, shape (n, s).
 
-    Without a device correction: eigenvalues of :func:`family_matrices` (one batched call).
-    With one (a one-link scene only, as everywhere corrections are analysed): the roots of
-    each member's ``P K + Q B + R`` (:func:`hapsim.analysis.loop.closed_loop_poles` of
-    ``LoopModel.from_device(device, rate, member)``), one member at a time, padded with
-    zeros to a common length.
+    Eigenvalues of :func:`family_matrices` (one batched ``numpy.linalg.eigvals`` call),
+    with or without a device correction, for any scene with a port.
 
     Parameters
     ----------
@@ -152,26 +153,10 @@ def family_poles(scene, mem: np.ndarray, *, calibrated=None) -> np.ndarray:
     Raises
     ------
     ConfigError
-        As :func:`family_matrices`; a corrected scene that is not one port-ground link.
+        As :func:`family_matrices`.
     """
-    dev = scene.device
-    if dev is None or getattr(dev, "correction", None) is None:
-        A, _ = family_matrices(scene, mem, calibrated=calibrated)
-        return np.linalg.eigvals(A)
-    from hapsim.analysis.loop import LoopModel, closed_loop_poles
-    from hapsim.analysis.network import link_values
-
-    links = felt_links(scene, calibrated)
-    if len(scene.links) != 1 or len(links) != 1 or any(
-            m.kind == "mass" for m in scene.masses):
-        raise ConfigError("a family with a device correction is analysed on a scene of one "
-                          "spring_damper between the port and a ground", file=scene.path,
-                          key="device.correction")
-    _, K, B = link_values(scene, calibrated)[0]
-    rows = [closed_loop_poles(LoopModel.from_device(dev, scene.rate_hz, m), K, B)
-            for m in np.atleast_2d(mem)]
-    n = max(r.size for r in rows)
-    return np.array([np.concatenate([r, np.zeros(n - r.size)]) for r in rows])
+    A, _ = family_matrices(scene, mem, calibrated=calibrated)
+    return np.linalg.eigvals(A)
 
 
 def felt_pairs(ev: np.ndarray, mass, period: float):

@@ -468,11 +468,8 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     if dev is None:
         raise ConfigError("a scene with a port needs a device section", file=scene.path,
                           key="device")
-    if getattr(dev, "correction", None) is not None:
-        raise ConfigError("a device correction is analysed on the one-link loop "
-                          "(hapsim compare-corrections, LoopModel(correction=...)), not in "
-                          "the scene state matrix", file=scene.path, key="device.correction")
-    A, u, nplant, names = _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member)
+    A, u, nplant, names = _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member,
+                                 correction=getattr(dev, "correction", None))
     pr = plant_rows(dev, T, member)
     if pr is None:                       # ideal hold
         mass, b0 = device_body(dev, member)
@@ -549,53 +546,20 @@ def plant_rows(dev, T: float, member=None):
     return zoh_state_space(*device_body(dev, member), T)
 
 
-def _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None):
+def _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None, correction=None):
     """Closed-loop matrix without the plant rows: ``(A, u, nplant, names)``.
 
     ``u`` is the row giving the force held over the coming period from the state; the
     plant rows ``0 .. nplant-1`` are left zero (except the ideal hold's shift row) for the
-    caller (:func:`closed_loop`, or a family stacking many plants).
+    caller (:func:`closed_loop`, or a family stacking many plants). A device
+    ``correction`` (mapping or :class:`hapsim.analysis.corrections.Correction`) acts at the
+    port and adds at most one state after the virtual ones
+    (:func:`hapsim.analysis.corrections.corrected_frame`).
     """
-    T = scene.period
-    if dev.hold == "zoh":
-        if _compliant(dev, member):
-            names = [f"{port}.x[n] (handle position)", "device.v[n]", "hand.x[n]",
-                     "hand.v[n]"]
-        else:
-            names = [f"{port}.x[n] (device position)", "device.v[n]"]
-        names.append(f"{port}.x[n-1]")
-    elif dev.hold == "ideal":
-        names = [f"{port}.x[n] (device position)", f"{port}.x[n-1]"]
-    else:
-        raise ConfigError(f"unknown hold {dev.hold!r}; valid: zoh, ideal",
-                          file=scene.path, key="device.hold")
-    d = int(dev.delay)
-    nd = len(names)
-    nplant = nd - 1
-    names += [f"F[n-{i}] (port force, delay line)" for i in range(1, d + 1)]
-    names += vnames
-    n = len(names)
-    A = np.zeros((n, n))
-    ip, ipp = 0, nd - 1        # port position at n and n - 1
-    o = nd + d                 # first virtual state
-    # port force row F[n]
-    Frow = np.zeros(n)
-    Frow[o:] = cx
-    Frow[ip] += cp
-    Frow[ipp] += cpp
-    if d == 0:
-        u = Frow
-    else:
-        u = np.zeros(n)
-        u[nd + d - 1] = 1.0
-        A[nd] = Frow
-        for j in range(1, d):
-            A[nd + j, nd + j - 1] = 1.0
-    A[ipp, 0] = 1.0
-    A[o:, o:] = Av
-    A[o:, ip] += bp
-    A[o:, ipp] += bpp
-    return A, u, nplant, names
+    from hapsim.analysis.corrections import Correction, corrected_frame
+
+    corr = Correction.from_dict(correction) if correction is not None else None
+    return corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member, corr)
 
 
 def port_io(scene, n: int):

@@ -193,32 +193,6 @@ def scene_state_matrix(scene, *, calibrated=None, integrator=None):
     return closed_loop(scene, integrator, calibrated=calibrated)
 
 
-def _corrected_companion(scene, calibrated=None):
-    """Companion matrix of ``P K + Q B + R`` for a one-link scene whose device has a
-    correction (:mod:`hapsim.analysis.corrections`); the scene state matrix has no
-    correction states."""
-    from hapsim.analysis.loop import LoopModel, characteristic
-    from hapsim.analysis.network import link_values
-    from hapsim.errors import ConfigError
-
-    links = link_values(scene, calibrated)
-    kinds = {m.name: m.kind for m in scene.masses}
-    if len(links) != 1 or any(k == "mass" for k in kinds.values()) or \
-            {kinds[links[0][0].m1], kinds[links[0][0].m2]} != {"port", "ground"}:
-        raise ConfigError("a device correction is analysed on a scene of one spring_damper "
-                          "between the port and a ground", file=scene.path,
-                          key="device.correction")
-    _, K, B = links[0]
-    P, Q, R = characteristic(LoopModel.from_device(scene.device, scene.rate_hz))
-    c = np.polyadd(np.polyadd(K * np.asarray(P), B * np.asarray(Q)), R)
-    c = np.trim_zeros(c, "f")
-    n = c.size - 1
-    A = np.zeros((n, n))
-    A[0] = -c[1:] / c[0]
-    A[1:, :-1] = np.eye(n - 1)
-    return A, [f"z^{n - 1 - i} (companion of P K + Q B + R)" for i in range(n)]
-
-
 def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     """Closed-loop stability and rendered (k, b) of a whole scene felt through its device.
 
@@ -253,12 +227,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     ``rendered`` equals the pair of :func:`hapsim.analysis.loop.render`.
     """
     integrator = integrator or getattr(scene, "integrator", None) or "centred"
-    corrected = (scene.device is not None
-                 and getattr(scene.device, "correction", None) is not None)
-    if corrected:
-        A, names = _corrected_companion(scene, calibrated)
-    else:
-        A, names = scene_state_matrix(scene, calibrated=calibrated, integrator=integrator)
+    A, names = scene_state_matrix(scene, calibrated=calibrated, integrator=integrator)
     cal = {k: (float(v[0]), float(v[1])) for k, v in dict(calibrated or {}).items()}
     has_port = scene.port is not None
     if has_port:
@@ -272,7 +241,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
                           marginal=False, has_port=has_port, period=scene.period,
                           calibrated=cal, integrator=integrator)
     part = None
-    if has_port and not corrected:
+    if has_port:
         ev, part = _port_participation(A, *port_io(scene, A.shape[0]))
     else:
         ev = np.linalg.eigvals(A).astype(complex)

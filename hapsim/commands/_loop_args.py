@@ -113,14 +113,18 @@ def fmt(v) -> str:
     Returns
     -------
     str
-        ``"-"`` for None, 6 significant digits for a number, ``str(v)`` otherwise.
+        ``"-"`` for None or NaN, 6 significant digits for a number (a negative zero printed
+        as ``0``), ``str(v)`` otherwise.
     """
     if v is None:
         return "-"
     try:
-        return f"{float(v):.6g}"
+        x = float(v)
     except (TypeError, ValueError):
         return str(v)
+    if x != x:
+        return "-"
+    return f"{x + 0.0:.6g}"
 
 
 def print_modes(modes, out) -> None:
@@ -130,12 +134,21 @@ def print_modes(modes, out) -> None:
     ----------
     modes : list of hapsim.analysis.Mode
         Modes to list (``kind``, ``|z|``, ``f0`` [Hz], damping ratio, ``k`` [N/m], ``b``
-        [N s/m] each).
+        [N s/m] each). Poles at ``z = 0`` (the delay line's dead-beat modes, which have no
+        continuous-time equivalent: ``ln 0``) are counted on one line, as ``hapsim check``
+        does, not listed with infinite figures.
     out : file-like
         Where to print.
     """
-    if not modes:
+    deadbeat = sum(1 for md in modes if md.z == 0)
+    modes = [md for md in modes if md.z != 0]
+    if not modes and not deadbeat:
         print("  (no other modes)", file=out)
+        return
+    if deadbeat:
+        print(f"  {deadbeat} dead-beat mode(s) at z = 0 (delay line: settled after one sample)",
+              file=out)
+    if not modes:
         return
     print(f"  {'kind':<5} {'|z|':>12} {'f0 [Hz]':>11} {'zeta':>9} {'k [N/m]':>11} "
           f"{'b [N s/m]':>11}", file=out)

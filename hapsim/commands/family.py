@@ -32,6 +32,10 @@ is also checked for consistency (Florens et al. Table 1 generalised): the felt p
 links together against the sum of what each link alone makes felt (real damping counted
 once); 1 would be consistent.
 
+A correction of the virtual element (the scene's device.correction, or --correction) acts
+at the port of every member: its state joins the stacked matrices, so the family stays one
+batched eigenvalue call (same verdicts as the per-member loop polynomial).
+
 Target links {k, b} are calibrated on the nominal member first. With --calibrate, each
 target link is also calibrated for the whole family (minimax): the virtual (K, B) whose
 worst relative error max(|k_i - k|/k, |b_i - b|/b) over the members is least, with the
@@ -43,6 +47,7 @@ examples:
   hapsim family configs/hand_wall.yaml --samples 10000 --json
   hapsim family configs/hand_wall.yaml --plot family.png
   hapsim family my_target_scene.yaml --calibrate
+  hapsim family configs/hand_wall.yaml --correction velocity_filter:cutoff_hz=100
 
 exit codes:
   0  every member of the family is stable
@@ -75,7 +80,62 @@ def register(sub) -> None:
                         "nominal member's calibration")
     p.add_argument("--plot", metavar="FILE", default=None,
                    help="figure: felt (k, b) of every member, coloured by spectral radius")
+    p.add_argument("--correction", metavar="SPEC", default=None,
+                   help="a correction of the virtual element for the whole family, instead "
+                        "of the scene's device.correction: KIND or KIND:PARAM=VALUE,... "
+                        "(velocity_sensor | velocity_filter:cutoff_hz=HZ | "
+                        "prediction[:horizon=SAMPLES] | inertia_compensation:mass=KG | "
+                        "virtual_coupling:stiffness=N_PER_M,damping=NS_PER_M), or none")
     p.set_defaults(func=run)
+
+
+def parse_correction(spec: str) -> dict | None:
+    """A ``--correction`` option as a ``device.correction`` mapping.
+
+    Parameters
+    ----------
+    spec : str
+        ``KIND`` or ``KIND:PARAM=VALUE,...`` (:data:`hapsim.scene.CORRECTIONS`), or
+        ``none``.
+
+    Returns
+    -------
+    dict or None
+        ``{"kind": KIND, PARAM: float}``; None for ``none``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown kind or parameter, a value that is not a number or out of range (key
+        ``--correction``, with the valid choices).
+    """
+    from hapsim.analysis.corrections import Correction
+    from hapsim.scene import CORRECTIONS
+
+    if spec.strip().lower() == "none":
+        return None
+    kind, _, rest = spec.partition(":")
+    kind = kind.strip()
+    if kind not in CORRECTIONS:
+        raise ConfigError(f"unknown correction {kind!r}; valid: none, "
+                          + ", ".join(CORRECTIONS), key="--correction")
+    out: dict = {"kind": kind}
+    for item in filter(None, (t.strip() for t in rest.split(","))):
+        name, eq, value = item.partition("=")
+        if not eq or name.strip() not in CORRECTIONS[kind]:
+            raise ConfigError(f"bad parameter {item!r} for {kind}; valid: "
+                              + (", ".join(f"{q}=VALUE" for q in CORRECTIONS[kind])
+                                 or "none"), key="--correction")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise ConfigError(f"{name.strip()} must be a number, got {value!r}",
+                              key="--correction") from None
+    try:
+        Correction.from_dict(out)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc.reason} ({exc.key})", key="--correction") from None
+    return out
 
 
 def _g(v, spec=".6g"):
@@ -98,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene``, ``samples``, ``grid``, ``seed``, ``json``, ``plot``.
+        ``scene``, ``samples``, ``grid``, ``seed``, ``json``, ``plot``, ``calibrate``,
+        ``correction``.
 
     Returns
     -------
@@ -121,6 +182,11 @@ def run(args: argparse.Namespace) -> int:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
     scene = load_scene(args.scene)
+    if args.correction is not None:
+        import dataclasses
+        corr = parse_correction(args.correction)
+        scene = dataclasses.replace(scene, device=dataclasses.replace(scene.device,
+                                                                      correction=corr))
     res = family(scene, args.samples, grid=args.grid, seed=args.seed)
     rep = res.to_dict()
     cons = None
@@ -144,13 +210,17 @@ def run(args: argparse.Namespace) -> int:
         save_figure(plot_family(res, title=args.scene), args.plot)
     if args.json:
         print(json.dumps({"scene": args.scene, "verdict": "robustly stable" if res.robust
-                          else "not robustly stable", **rep}))
+                          else "not robustly stable",
+                          "correction": getattr(scene.device, "correction", None), **rep}))
         return 0 if res.robust else 1
     if getattr(scene.device, "hand", None) is None:
         print("no device.hand section: the family is the device alone (one member)")
     else:
         print(f"family of {rep['members']} members ({rep['corners']} corners, nominal, "
               + (f"{args.samples} samples" if args.samples else f"grid {args.grid}") + ")")
+    if getattr(scene.device, "correction", None) is not None:
+        from hapsim.analysis.corrections import Correction
+        print("correction: " + Correction.from_dict(scene.device.correction).label())
     for name, (K, B) in rep["calibrated"].items():
         print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
               f"B = {B:.6g} N s/m")

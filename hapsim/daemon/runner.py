@@ -852,7 +852,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                               and corr is None)
         engine = Engine(scene)
         if corr is not None:
-            # a device correction: the engine's port force follows its law (one-link
+            # a device correction: the engine is fed the corrected port signals (any
             # scene); a velocity sensor reads the lockstep mock in-process (below)
             from hapsim.daemon.correction import corrected_engine
             if not sensor or transport != "inprocess":
@@ -944,17 +944,26 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     try:
         if opts.sound is not None:
             ring, out = _start_sound(prep, conn, opts)
-        corrected = getattr(prep.scene.device, "correction", None) is not None
-        if (opts.loop == "compiled" and opts.sound is None and opts.osc is None
-                and not corrected):
-            # the compiled loop steps the kernel itself: live OSC changes and the sounding
-            # engine run per sample in Python, so they keep the Python loop; so does a
-            # device correction (its law runs in the engine's port_step, see
-            # hapsim.daemon.correction)
-            from hapsim.daemon.fastloop import CompiledHostLoop
+        corr = getattr(prep.scene.device, "correction", None)
+        # the compiled loop steps the kernel itself: live OSC changes and the sounding
+        # engine run per sample in Python, so they keep the Python loop; so does a device
+        # correction (its law runs in the engine's port_step, hapsim.daemon.correction).
+        # The report says why (python_reason), never silently.
+        why = ("--sound: the sounding engine runs per sample in Python" if opts.sound
+               else "--osc: live changes run per sample in Python" if opts.osc is not None
+               else f"device.correction ({corr.get('kind')}): its law runs in the engine's "
+               "port_step in Python" if corr is not None else None)
+        if opts.loop == "compiled" and why is None:
+            from hapsim.daemon.fastloop import CompiledHostLoop, compiled_available
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+            if not loop.compiled:
+                why = ("host-clocked" if conn.cfg.host_clocked else
+                       "the transport has no file descriptor (in-process, virtual clock or "
+                       "a driver)" if not compiled_available(tr) else
+                       "a lockstep journal drained by the loop itself")
         else:
             loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+        loop.python_reason = why if opts.loop == "compiled" else None
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -1220,6 +1229,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
         "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        # --loop compiled asked but the Python loop ran: why (None otherwise)
+        "python_reason": getattr(run.loop, "python_reason", None),
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
         "armed_monotonic_s": getattr(run.loop, "_t0", None),
@@ -1376,8 +1387,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         JACK server name.
     loop : {"compiled", "python"}
         Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
-        serial port, device-clocked, without ``osc``/``sound``; elsewhere the Python loop) or the Python
-        reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
+        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
+        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
 
     Returns
     -------
@@ -1558,6 +1570,8 @@ def format_report(rep: dict) -> str:
                  f"clamped {lp['clamped']}; "
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}")
+    if lp.get("python_reason"):
+        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
