@@ -8,6 +8,7 @@ client of the test's own connected to hapsim's output port.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -407,3 +408,17 @@ def test_play_falls_back_to_portaudio_where_no_jack_server_runs(tmp_path):
     assert snd["pushed"] == snd["consumed"] == 1500
     assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(rep["felt"]["b"], rel=1e-6)
+
+
+@pytest.mark.parametrize("a", [-800.0, -1e4, math.inf, math.nan])
+def test_a_diverging_varpro_trial_prints_nothing_on_stdout(a, capfd):
+    """A trial pole past the float range (what the varpro of a nonlinear record, e.g. the
+    string's opening contact, tries) raises LinAlgError as lstsq did, without LAPACK's
+    'illegal value' lines on fd 1, which landed inside play's and run's --json reports."""
+    from hapsim.analysis.identify import _solve
+
+    y = np.cos(0.3 * np.arange(2000))
+    with pytest.raises(np.linalg.LinAlgError):
+        _solve([["pair", a, 0.3]], np.array([a, 0.3]), y, False)
+    out, _ = capfd.readouterr()
+    assert out == ""

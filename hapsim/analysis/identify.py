@@ -323,11 +323,10 @@ def _theta(spec) -> np.ndarray:
 def _solve(spec, theta, y, offset):
     with np.errstate(over="ignore", invalid="ignore"):
         phi, dcols = _basis(spec, theta, y.size, offset)
-    if not np.all(np.isfinite(phi)):
-        # a trial pole growing past the float range: no fit there, a residual the
-        # optimiser rejects (LAPACK given inf/NaN prints its complaint on stdout, into a
-        # --json report)
-        return phi, dcols, np.full(phi.shape[1], np.nan), np.full(y.size, 1e100)
+    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
+        # a trial pole growing past the float range: what lstsq raises on it, without
+        # LAPACK first printing its complaint on stdout (into a --json report)
+        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
     c, *_ = np.linalg.lstsq(phi, y, rcond=None)
     return phi, dcols, c, phi @ c - y
 
@@ -368,9 +367,6 @@ def _covariance(spec, y, offset, response=None):
     ``response`` (None: the white one)."""
     theta = _theta(spec)
     phi, dcols, c, r = _solve(spec, theta, y, offset)
-    if not np.all(np.isfinite(c)):
-        nan = np.full((theta.size, theta.size), np.nan)
-        return math.nan, (nan, nan), c
     J = np.empty((y.size, theta.size + phi.shape[1]))
     for j, parts in enumerate(dcols):
         J[:, j] = sum(c[col] * d for col, d in parts)
