@@ -25,17 +25,20 @@ from cobs import cobs as _cobs
 
 __all__ = [
     "PROTOCOL_VERSION", "MAX_FRAME", "MAX_PACKET", "MAX_AXES", "CRC_INIT",
-    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_LINK", "MSG_STATE", "MSG_FORCE",
-    "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES",
+    "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_LINK", "MSG_SENSORS_REQUEST",
+    "MSG_SENSORS", "MSG_STATE", "MSG_FORCE", "MSG_VELOCITY",
+    "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES", "SENSOR_VELOCITY",
     "STATUS_ARMED", "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FAULT",
     "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED", "STATUS_FORCE_APPLIED",
     "FAULT_WATCHDOG", "FAULT_BAD_CONFIG", "FAULT_SENSOR", "FAULT_AMPLIFIER",
     "FAULT_NON_FINITE_FORCE", "FAULT_AXES_MISMATCH", "FAULT_RX_ERRORS", "FAULT_OVERRUN",
     "FAULT_VERSION_MISMATCH", "FAULT_NAMES",
-    "Hello", "HelloRequest", "Config", "Link", "State", "Force", "Ping", "Pong", "Fault", "Stop",
+    "Hello", "HelloRequest", "Config", "Link", "SensorsRequest", "Sensors", "State", "Force",
+    "Velocity", "Ping", "Pong", "Fault", "Stop",
     "Message", "FrameError", "DecoderStats", "StreamDecoder",
     "encode", "encode_packet", "decode_frame", "decode_packet", "crc16",
-    "state_frame_bytes", "force_frame_bytes", "LINK_LOAD", "link_max_rate",
+    "state_frame_bytes", "force_frame_bytes", "velocity_frame_bytes", "LINK_LOAD",
+    "link_max_rate",
 ]
 
 # --------------------------------------------------------------------------- constants
@@ -58,8 +61,16 @@ MSG_CONFIG = 0x03
 #: LINK, device -> host with HELLO: the device's serial line. Added within version 1
 #: (PROTOCOL.md §9): a host written before it counts it as an unknown type.
 MSG_LINK = 0x04
+#: SENSORS_REQUEST, host -> device, and SENSORS, device -> host (its answer): the host asks
+#: for extra sensor messages (VELOCITY). Added within version 1 (PROTOCOL.md §4, §9): a
+#: device written before them drops the request (unknown type) and never answers.
+MSG_SENSORS_REQUEST = 0x05
+MSG_SENSORS = 0x06
 MSG_STATE = 0x10
 MSG_FORCE = 0x11
+#: VELOCITY, device -> host, just before the STATE of the same ``seq``, only while the host
+#: enabled it by SENSORS_REQUEST. Added within version 1 (PROTOCOL.md §9).
+MSG_VELOCITY = 0x12
 MSG_PING = 0x20
 MSG_PONG = 0x21
 MSG_FAULT = 0x30
@@ -77,6 +88,9 @@ STATUS_CONFIGURED = 0x0040
 #: ``force_seq`` = 0 means nothing). Added within version 1 (PROTOCOL.md §9): a device
 #: written before it never sets it.
 STATUS_FORCE_APPLIED = 0x0080
+
+#: Sensor bits of SENSORS_REQUEST.sensors and SENSORS.offered / SENSORS.enabled.
+SENSOR_VELOCITY = 0x0001
 
 #: FAULT.code values.
 FAULT_WATCHDOG = 0x0001
@@ -127,12 +141,19 @@ def force_frame_bytes(n_axes: int = 1) -> int:
     return 5 + 4 + 8 * int(n_axes)
 
 
+def velocity_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a VELOCITY frame with ``n_axes`` axes: ``5 + 4 + 8 n`` (§3)."""
+    return 5 + 4 + 8 * int(n_axes)
+
+
 def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
-                  load: float = LINK_LOAD) -> float:
+                  load: float = LINK_LOAD, velocity: bool = False) -> float:
     """Largest tick rate a serial line carries: one STATE up and one FORCE down per tick.
 
-    The line is full duplex, so the longer frame (STATE) decides: a rate is carried when
-    ``rate * state_frame_bytes(n) * bits_per_byte <= load * baud`` (PROTOCOL.md §4, LINK).
+    The line is full duplex, so the longer direction (device -> host: STATE, and VELOCITY
+    when enabled) decides: a rate is carried when ``rate * up_bytes * bits_per_byte <= load
+    * baud`` with ``up_bytes = state_frame_bytes(n) (+ velocity_frame_bytes(n))``
+    (PROTOCOL.md §4, LINK).
 
     Parameters
     ----------
@@ -144,6 +165,8 @@ def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
         Axes per STATE/FORCE.
     load : float
         Share of the line the STATE frames may take, 0 < load <= 1.
+    velocity : bool
+        A VELOCITY frame goes up with every STATE (the host enabled it, §4 SENSORS).
 
     Returns
     -------
@@ -152,7 +175,8 @@ def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
     """
     if baud <= 0:
         return math.inf
-    return load * baud / (bits_per_byte * state_frame_bytes(n_axes))
+    up = state_frame_bytes(n_axes) + (velocity_frame_bytes(n_axes) if velocity else 0)
+    return load * baud / (bits_per_byte * up)
 
 
 def crc16(data: bytes, crc: int = CRC_INIT) -> int:
@@ -290,6 +314,45 @@ class Link:
 
 
 @dataclass(frozen=True, slots=True)
+class SensorsRequest:
+    """SENSORS_REQUEST, host -> device: which extra sensor messages to send (PROTOCOL.md §4).
+
+    The device answers :class:`Sensors` at once and keeps the setting until the next
+    SENSORS_REQUEST or a reset (not cleared by CONFIG or STOP).
+
+    Parameters
+    ----------
+    sensors : int, 0..0xFFFF
+        OR of ``SENSOR_*`` bits the host asks for (:data:`SENSOR_VELOCITY`: a
+        :class:`Velocity` before every STATE); 0 turns them all off.
+    """
+
+    TYPE: ClassVar[int] = MSG_SENSORS_REQUEST
+    sensors: int
+
+
+@dataclass(frozen=True, slots=True)
+class Sensors:
+    """SENSORS, device -> host: the answer to each SENSORS_REQUEST.
+
+    A device that has no sensor beyond position answers ``offered = enabled = 0``; a device
+    written before this message does not answer at all (the host waits a bounded time and
+    takes silence as "nothing offered").
+
+    Parameters
+    ----------
+    offered : int, 0..0xFFFF
+        OR of the ``SENSOR_*`` bits the device can send.
+    enabled : int, 0..0xFFFF
+        The bits it sends from now on: ``requested & offered``.
+    """
+
+    TYPE: ClassVar[int] = MSG_SENSORS
+    offered: int
+    enabled: int
+
+
+@dataclass(frozen=True, slots=True)
 class State:
     """STATE, device -> host, once per device tick.
 
@@ -332,6 +395,24 @@ class Force:
     TYPE: ClassVar[int] = MSG_FORCE
     seq: int
     force: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Velocity:
+    """VELOCITY, device -> host, just before the STATE with the same ``seq``, while enabled.
+
+    Parameters
+    ----------
+    seq : int, 0..2**32-1
+        ``seq`` of the STATE it belongs to (the velocity is measured at that STATE's
+        position sample, ``time_us``).
+    velocity : tuple of float, length n_axes (1..8)
+        Measured velocity per axis [m/s] (or [rad/s] for a rotary axis), IEEE-754 binary64.
+    """
+
+    TYPE: ClassVar[int] = MSG_VELOCITY
+    seq: int
+    velocity: tuple[float, ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -395,11 +476,13 @@ class Stop:
     TYPE: ClassVar[int] = MSG_STOP
 
 
-Message = Union[Hello, HelloRequest, Config, Link, State, Force, Ping, Pong, Fault, Stop]
+Message = Union[Hello, HelloRequest, Config, Link, SensorsRequest, Sensors, State, Force,
+                Velocity, Ping, Pong, Fault, Stop]
 
 #: Message class by type id.
-MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, Link, State, Force,
-                                           Ping, Pong, Fault, Stop)}
+MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, Link, SensorsRequest,
+                                           Sensors, State, Force, Velocity, Ping, Pong, Fault,
+                                           Stop)}
 
 # --------------------------------------------------------------------------- layouts
 
@@ -407,6 +490,8 @@ _HELLO = struct.Struct("<BBBI4d")
 _HELLO_REQUEST = struct.Struct("<BB")
 _CONFIG = struct.Struct("<BdId")
 _LINK = struct.Struct("<BIB")
+_SENSORS_REQUEST = struct.Struct("<BH")
+_SENSORS = struct.Struct("<BHH")
 _PING = struct.Struct("<BIQ")
 _PONG = struct.Struct("<BIQQ")
 _FAULT = struct.Struct("<BHI")
@@ -419,6 +504,8 @@ _FORCE = (None,) + tuple(struct.Struct(f"{_FORCE_HEAD}{n}d") for n in range(1, M
 # Packet length (type + body, without CRC) -> (Struct, n_axes).
 _STATE_BY_LEN = {s.size: (s, n) for n, s in enumerate(_STATE) if s is not None}
 _FORCE_BY_LEN = {s.size: (s, n) for n, s in enumerate(_FORCE) if s is not None}
+# VELOCITY has FORCE's layout (seq, f64[n]) under its own type id.
+_VELOCITY_BY_LEN = _FORCE_BY_LEN
 _CRC = struct.Struct(">H")
 
 assert max(_STATE[MAX_AXES].size, _HELLO.size) + 2 <= MAX_PACKET
@@ -448,13 +535,23 @@ def _pack_force(m: Force) -> bytes:
     return _FORCE[n].pack(MSG_FORCE, m.seq, *m.force)
 
 
+def _pack_velocity(m: Velocity) -> bytes:
+    n = len(m.velocity)
+    if not 1 <= n <= MAX_AXES:
+        raise ValueError(f"Velocity.velocity must have 1..{MAX_AXES} axes, got {n}")
+    return _FORCE[n].pack(MSG_VELOCITY, m.seq, *m.velocity)
+
+
 _PACKERS = {
     Hello: _pack_hello,
     HelloRequest: lambda m: _HELLO_REQUEST.pack(MSG_HELLO_REQUEST, m.protocol_version),
     Config: lambda m: _CONFIG.pack(MSG_CONFIG, m.rate_hz, m.watchdog_us, m.force_limit),
     Link: lambda m: _LINK.pack(MSG_LINK, m.baud, m.bits_per_byte),
+    SensorsRequest: lambda m: _SENSORS_REQUEST.pack(MSG_SENSORS_REQUEST, m.sensors),
+    Sensors: lambda m: _SENSORS.pack(MSG_SENSORS, m.offered, m.enabled),
     State: _pack_state,
     Force: _pack_force,
+    Velocity: _pack_velocity,
     Ping: lambda m: _PING.pack(MSG_PING, m.nonce, m.host_time_us),
     Pong: lambda m: _PONG.pack(MSG_PONG, m.nonce, m.host_time_us, m.device_time_us),
     Fault: lambda m: _FAULT.pack(MSG_FAULT, m.code, m.detail),
@@ -467,8 +564,8 @@ def encode_packet(message: Message) -> bytes:
 
     Parameters
     ----------
-    message : Hello, HelloRequest, Config, State, Force, Ping, Pong, Fault or Stop
-        Message to encode.
+    message : Message
+        Any message class of this module (Hello .. Stop).
 
     Returns
     -------
@@ -498,8 +595,8 @@ def encode(message: Message) -> bytes:
 
     Parameters
     ----------
-    message : Hello, HelloRequest, Config, State, Force, Ping, Pong, Fault or Stop
-        Message to encode.
+    message : Message
+        Any message class of this module (Hello .. Stop).
 
     Returns
     -------
@@ -549,6 +646,16 @@ def _unpack_force(p: bytes):
     return Force(v[1], v[2:])
 
 
+def _unpack_velocity(p: bytes):
+    try:
+        s, _n = _VELOCITY_BY_LEN[len(p)]
+    except KeyError:
+        raise FrameError(f"VELOCITY packet of {len(p)} bytes is not 5 + 8 n, n in "
+                         f"1..{MAX_AXES}", "malformed") from None
+    v = s.unpack(p)
+    return Velocity(v[1], v[2:])
+
+
 def _fixed(s: struct.Struct, name: str, build):
     size = s.size
     unpack = s.unpack
@@ -565,8 +672,11 @@ _UNPACKERS = {
     MSG_HELLO_REQUEST: _fixed(_HELLO_REQUEST, "HELLO_REQUEST", HelloRequest),
     MSG_CONFIG: _fixed(_CONFIG, "CONFIG", Config),
     MSG_LINK: _fixed(_LINK, "LINK", Link),
+    MSG_SENSORS_REQUEST: _fixed(_SENSORS_REQUEST, "SENSORS_REQUEST", SensorsRequest),
+    MSG_SENSORS: _fixed(_SENSORS, "SENSORS", Sensors),
     MSG_STATE: _unpack_state,
     MSG_FORCE: _unpack_force,
+    MSG_VELOCITY: _unpack_velocity,
     MSG_PING: _fixed(_PING, "PING", Ping),
     MSG_PONG: _fixed(_PONG, "PONG", Pong),
     MSG_FAULT: _fixed(_FAULT, "FAULT", Fault),

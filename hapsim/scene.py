@@ -159,6 +159,10 @@ class Device:
         Coulomb friction of the mock device [N]; 0 for none.
     noise : float
         Standard deviation of the mock device's position noise [m]; 0 for none.
+    velocity_resolution : float
+        Quantum of the mock device's velocity sensor (VELOCITY frames) [m/s]; 0 for none.
+    velocity_noise : float
+        Standard deviation of the mock device's velocity-sensor noise [m/s]; 0 for none.
     hand : Hand, optional
         The hand holding the handle; then ``mass`` and ``friction`` are the handle's alone.
     correction : dict, optional
@@ -174,6 +178,8 @@ class Device:
     position_resolution: float = 0.0
     coulomb: float = 0.0
     noise: float = 0.0
+    velocity_resolution: float = 0.0
+    velocity_noise: float = 0.0
     hand: "Hand | None" = None
     correction: dict | None = None
 

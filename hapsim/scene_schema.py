@@ -328,6 +328,14 @@ _KEYS = [
     Key("device.noise", "number", "m", default=0.0, minimum=0.0,
         doc="Standard deviation of the mock device's position noise (0: none; seeded).",
         example="device: {mass: 0.1, noise: 1.0e-7}"),
+    Key("device.velocity_resolution", "number", "m/s", default=0.0, minimum=0.0,
+        doc="Quantum of the mock device's velocity sensor, the VELOCITY frames a "
+            "`velocity_sensor` correction reads (0: none).",
+        example="device: {mass: 0.1, velocity_resolution: 1.0e-4}"),
+    Key("device.velocity_noise", "number", "m/s", default=0.0, minimum=0.0,
+        doc="Standard deviation of the mock device's velocity-sensor noise (0: none; "
+            "seeded, apart from the position noise).",
+        example="device: {mass: 0.1, velocity_noise: 1.0e-4}"),
     Key("device.hand", "mapping", default=None,
         doc="The hand holding the handle (then `device.mass` and `device.friction` are the "
             "handle's alone): `mass` [kg] > 0 (required), `damping` to ground [N s/m] "

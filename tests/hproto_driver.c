@@ -110,6 +110,20 @@ static void print_msg(int r, const hp_msg_t *m)
         printf("{\"type\": \"LINK\", \"baud\": %lu, \"bits_per_byte\": %u}\n",
                (unsigned long)m->u.link.baud, m->u.link.bits_per_byte);
         break;
+    case HP_MSG_SENSORS_REQUEST:
+        printf("{\"type\": \"SENSORS_REQUEST\", \"sensors\": %u}\n",
+               (unsigned)m->u.sensors_request.sensors);
+        break;
+    case HP_MSG_SENSORS:
+        printf("{\"type\": \"SENSORS\", \"offered\": %u, \"enabled\": %u}\n",
+               (unsigned)m->u.sensors.offered, (unsigned)m->u.sensors.enabled);
+        break;
+    case HP_MSG_VELOCITY:
+        printf("{\"type\": \"VELOCITY\", \"seq\": %lu, \"velocity\": ",
+               (unsigned long)m->u.velocity.seq);
+        print_f64s(m->u.velocity.velocity, m->u.velocity.n_axes);
+        printf("}\n");
+        break;
     case HP_MSG_STATE:
         printf("{\"type\": \"STATE\", \"seq\": %lu, \"time_us\": %llu, \"status\": %u, "
                "\"force_seq\": %lu, \"position\": ",
@@ -212,6 +226,17 @@ static void do_encode(char *s)
     case HP_MSG_LINK:
         m.u.link.baud = (uint32_t)next_u(&s);
         m.u.link.bits_per_byte = (uint8_t)next_u(&s);
+        break;
+    case HP_MSG_SENSORS_REQUEST:
+        m.u.sensors_request.sensors = (uint16_t)next_u(&s);
+        break;
+    case HP_MSG_SENSORS:
+        m.u.sensors.offered = (uint16_t)next_u(&s);
+        m.u.sensors.enabled = (uint16_t)next_u(&s);
+        break;
+    case HP_MSG_VELOCITY:
+        m.u.velocity.seq = (uint32_t)next_u(&s);
+        m.u.velocity.n_axes = next_fs(&s, m.u.velocity.velocity);
         break;
     case HP_MSG_STATE:
         m.u.state.seq = (uint32_t)next_u(&s);

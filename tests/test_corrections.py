@@ -188,11 +188,11 @@ def test_lockstep_measured_equals_predicted_for_each_correction(kind, params):
     assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
 
 
-def test_velocity_sensor_needs_the_inprocess_mock():
+def test_velocity_sensor_needs_a_measured_velocity():
     from hapsim.daemon.correction import corrected_engine
     from hapsim.scene import parse_scene
     sc = parse_scene(_text(400.0, 1.5, "{kind: velocity_sensor}"))
-    with pytest.raises(ConfigError, match="STATE frame carries no velocity"):
+    with pytest.raises(ConfigError, match="needs the device's measured velocity"):
         corrected_engine(sc)
 
 

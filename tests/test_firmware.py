@@ -502,6 +502,48 @@ def test_a_rate_the_link_cannot_carry_is_refused_naming_baud_and_frame_bytes(tmp
     assert _report(report)["budget"]["rate_hz"] == 0          # ... and never sent CONFIG
 
 
+
+def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_works(tmp_path):
+    """The Hapkit 3 measures position only: SENSORS_REQUEST(VELOCITY) is answered
+    SENSORS(offered 0, enabled 0) and no VELOCITY frame is ever sent; the session goes on
+    as before (CONFIG arms it, FORCEs are applied: force_seq follows). ``hapsim run`` with a
+    velocity_sensor correction against the board is refused before CONFIG, exit 2, in one
+    line saying the device offers no velocity sensor."""
+    _require()
+    scene = tmp_path / "hapkit_vsensor.yaml"
+    scene.write_text((ROOT / "configs/hapkit.yaml").read_text().replace(
+        "  force_limit: 5.0", "  correction: {kind: velocity_sensor}\n  force_limit: 5.0"))
+    with _board(tmp_path) as (proc, port, report):
+        host = _Host(port)
+        try:
+            host.send(b"\x00" + fp.encode(fp.HelloRequest(fp.PROTOCOL_VERSION)))
+            host.wait_for(fp.Hello)
+            host.send(fp.encode(fp.SensorsRequest(fp.SENSOR_VELOCITY)))
+            assert host.wait_for(fp.Sensors) == fp.Sensors(0, 0)
+            host.send(fp.encode(fp.Config(RATE, WATCHDOG_US, 5.0)))
+            applied = []
+            for st in host.armed_states():
+                host.send(fp.encode(fp.Force(st.seq, (0.1,))))
+                if st.status & fp.STATUS_FORCE_APPLIED:
+                    applied.append(st.seq - st.force_seq)
+                if len(applied) >= 50:
+                    break
+            host.send(fp.encode(fp.Stop()))
+            assert set(applied) == {1}                    # delay 1: FORCE n applied at n + 1
+            assert not any(isinstance(m, fp.Velocity) for m in host.others)
+            # (a partial frame from before the port was opened may count as bad_crc)
+            assert host.dec.stats.unknown_type == 0 and host.dec.stats.malformed == 0
+        finally:
+            host.close()
+        r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(scene), "--port", port,
+                            "--duration", "0.2"], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    errors = [ln for ln in r.stderr.splitlines() if "error" in ln]   # after the progress line
+    assert len(errors) == 1 and "does not offer a velocity sensor" in errors[0], r.stderr
+    assert "offered=0x0000" in errors[0] and "device.correction.kind" in errors[0]
+
+
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "--host":
         _host_main(sys.argv[2], float(sys.argv[3]))

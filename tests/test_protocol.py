@@ -26,7 +26,8 @@ import firmware_protocol as fp
 PKG = Path(fp.__file__).resolve().parent
 VECTORS = json.loads((PKG / "vectors" / "vectors.json").read_text())
 CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
-           "STATE": fp.State, "FORCE": fp.Force, "PING": fp.Ping, "PONG": fp.Pong,
+           "SENSORS_REQUEST": fp.SensorsRequest, "SENSORS": fp.Sensors, "STATE": fp.State,
+           "FORCE": fp.Force, "VELOCITY": fp.Velocity, "PING": fp.Ping, "PONG": fp.Pong,
            "FAULT": fp.Fault, "STOP": fp.Stop}
 
 
@@ -93,8 +94,9 @@ def test_constants():
     assert fp.PROTOCOL_VERSION == VECTORS["protocol_version"] == 1
     assert fp.MAX_FRAME == VECTORS["max_frame"] == 128
     assert fp.MAX_PACKET == fp.MAX_FRAME - 2
-    ids = [fp.MSG_HELLO, fp.MSG_HELLO_REQUEST, fp.MSG_CONFIG, fp.MSG_LINK, fp.MSG_STATE,
-           fp.MSG_FORCE, fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP]
+    ids = [fp.MSG_HELLO, fp.MSG_HELLO_REQUEST, fp.MSG_CONFIG, fp.MSG_LINK,
+           fp.MSG_SENSORS_REQUEST, fp.MSG_SENSORS, fp.MSG_STATE, fp.MSG_FORCE, fp.MSG_VELOCITY,
+           fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP]
     assert len(set(ids)) == len(ids) and 0 not in ids
     assert sorted(fp.MESSAGE_TYPES) == sorted(ids)
     bits = [fp.STATUS_ARMED, fp.STATUS_WATCHDOG_TRIPPED, fp.STATUS_FORCE_CLAMPED,
@@ -215,6 +217,35 @@ def test_byte_level_examples_of_protocol_md():
     text = (PKG / "PROTOCOL.md").read_text()
     assert "04 31 C7 82 00" in text
     assert "03 11 01 01 01 01 01 01 01 01 01 05 E0 3F AF A0 00" in text
+    # the velocity sensor on the wire (SENSORS_REQUEST, VELOCITY: added within version 1)
+    for msg, shown in ((fp.SensorsRequest(fp.SENSOR_VELOCITY), "03 05 01 03 14 5D 00"),
+                       (fp.Velocity(1, (-0.125,)),
+                        "03 12 01 01 01 01 01 01 01 01 01 05 C0 BF F7 6B 00")):
+        assert fp.encode(msg).hex(" ").upper() == shown and shown in text
+
+
+def test_velocity_on_the_wire_stays_within_version_1():
+    """PROTOCOL.md §9: the velocity sensor adds message types only. STATE, FORCE and HELLO
+    keep their layouts (an old receiver decodes every frame it was written for), and each
+    new type is one an old decoder counts as unknown_type and drops without acting."""
+    old_types = {0x01, 0x02, 0x03, 0x04, 0x10, 0x11, 0x20, 0x21, 0x30, 0x31}
+    new = {fp.MSG_SENSORS_REQUEST, fp.MSG_SENSORS, fp.MSG_VELOCITY}
+    assert not new & old_types and set(fp.MESSAGE_TYPES) == old_types | new
+    assert fp.PROTOCOL_VERSION == 1
+    assert len(fp.encode(fp.State(0, 0, 0, 0, (0.0,)))) == fp.state_frame_bytes(1) == 31
+    assert len(fp.encode(fp.Velocity(0, (0.0,) * 3))) == fp.velocity_frame_bytes(3) == 33
+    # an old decoder: the same codec without the three new types
+    old = fp.StreamDecoder()
+    saved = {t: fp.codec._UNPACKERS.pop(t) for t in new}
+    try:
+        stream = b"".join(fp.encode(m) for m in (
+            fp.Sensors(1, 1), fp.Velocity(5, (0.25,)), fp.State(5, 0, 0x41, 4, (0.01,))))
+        assert old.feed(stream) == [fp.State(5, 0, 0x41, 4, (0.01,))]
+    finally:
+        fp.codec._UNPACKERS.update(saved)
+    assert old.stats.unknown_type == 2 and old.stats.frames_ok == 1
+    # the LINK rule counts the VELOCITY frame going up with each STATE
+    assert fp.link_max_rate(115200, velocity=True) == pytest.approx(0.8 * 115200 / 480)
 
 
 # --------------------------------------------------------------------------- round trips
@@ -232,6 +263,9 @@ MESSAGES = st.one_of(
     st.builds(fp.Config, f64, u32, f64),
     st.builds(fp.State, u32, u64, u16, u32, axes),
     st.builds(fp.Force, u32, axes),
+    st.builds(fp.Velocity, u32, axes),
+    st.builds(fp.SensorsRequest, u16),
+    st.builds(fp.Sensors, u16, u16),
     st.builds(fp.Ping, u32, u64),
     st.builds(fp.Pong, u32, u64, u64),
     st.builds(fp.Fault, u16, u32),
@@ -281,6 +315,10 @@ def test_nan_and_signed_zero_bits_survive():
     (fp.Hello(256, 1, 0, 1.0, 1.0, 1.0, 1.0), ValueError),
     (fp.Ping(0, 2**64), ValueError),
     (fp.Fault(0x10000, 0), ValueError),
+    (fp.Velocity(0, ()), ValueError),
+    (fp.Velocity(0, (0.0,) * 9), ValueError),
+    (fp.SensorsRequest(0x10000), ValueError),
+    (fp.Sensors(0, -1), ValueError),
     (b"\x00", TypeError),
     ("STOP", TypeError),
 ], ids=lambda p: repr(p)[:40])
@@ -306,6 +344,10 @@ def _frame_of_packet(raw: bytes) -> bytes:
     (bytes([fp.MSG_CONFIG]) + bytes(19), "malformed"),
     (bytes([fp.MSG_FAULT]) + bytes(5), "malformed"),
     (bytes([fp.MSG_HELLO_REQUEST]), "malformed"),
+    (bytes([fp.MSG_VELOCITY]) + bytes(4), "malformed"),            # VELOCITY, 0 axes
+    (bytes([fp.MSG_VELOCITY]) + bytes(4 + 8 * 9), "malformed"),    # VELOCITY, 9 axes
+    (bytes([fp.MSG_SENSORS_REQUEST]) + bytes(1), "malformed"),     # SENSORS_REQUEST short
+    (bytes([fp.MSG_SENSORS]) + bytes(5), "malformed"),             # SENSORS one long
     (bytes([fp.MSG_HELLO, 1, 9]) + bytes(36), "malformed"),        # HELLO, 9 axes
     (bytes([0x00]), "unknown_type"),
     (bytes([0xFF]) + bytes(10), "unknown_type"),

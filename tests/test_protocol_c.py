@@ -39,6 +39,9 @@ WIRE = {
     fp.MSG_HELLO_REQUEST: ["protocol_version"],
     fp.MSG_CONFIG: ["rate_hz", "watchdog_us", "force_limit"],
     fp.MSG_LINK: ["baud", "bits_per_byte"],
+    fp.MSG_SENSORS_REQUEST: ["sensors"],
+    fp.MSG_SENSORS: ["offered", "enabled"],
+    fp.MSG_VELOCITY: ["seq", "velocity"],
     fp.MSG_STATE: ["seq", "time_us", "status", "force_seq", "position"],
     fp.MSG_FORCE: ["seq", "force"],
     fp.MSG_PING: ["nonce", "host_time_us"],
@@ -47,7 +50,8 @@ WIRE = {
     fp.MSG_STOP: [],
 }
 CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
-           "STATE": fp.State, "FORCE": fp.Force, "PING": fp.Ping, "PONG": fp.Pong,
+           "SENSORS_REQUEST": fp.SensorsRequest, "SENSORS": fp.Sensors, "STATE": fp.State,
+           "FORCE": fp.Force, "VELOCITY": fp.Velocity, "PING": fp.Ping, "PONG": fp.Pong,
            "FAULT": fp.Fault, "STOP": fp.Stop}
 
 
@@ -150,8 +154,9 @@ def test_c_rejects_bad_vectors_with_the_same_reason(driver):
 
 def test_c_refuses_to_encode_bad_axis_counts(driver):
     out = driver([f"E {fp.MSG_FORCE} 1", f"E {fp.MSG_STATE} 1 2 3 4 " + " ".join(["0x0"] * 9),
-                  f"E {fp.MSG_HELLO} 1 0 7 0x0 0x0 0x0 0x0", "E 127"])
-    assert out == [{"error": "encode"}] * 4
+                  f"E {fp.MSG_HELLO} 1 0 7 0x0 0x0 0x0 0x0", "E 127", f"E {fp.MSG_VELOCITY} 1",
+                  f"E {fp.MSG_VELOCITY} 1 " + " ".join(["0x0"] * 9)])
+    assert out == [{"error": "encode"}] * 6
 
 
 def random_message(rng: random.Random):
@@ -168,6 +173,9 @@ def random_message(rng: random.Random):
         lambda: fp.Config(f(), u32(), f()),
         lambda: fp.State(u32(), u64(), rng.getrandbits(16), u32(), ax()),
         lambda: fp.Force(u32(), ax()),
+        lambda: fp.Velocity(u32(), ax()),
+        lambda: fp.SensorsRequest(rng.getrandbits(16)),
+        lambda: fp.Sensors(rng.getrandbits(16), rng.getrandbits(16)),
         lambda: fp.Ping(u32(), u64()),
         lambda: fp.Pong(u32(), u64(), u64()),
         lambda: fp.Fault(rng.getrandbits(16), u32()),

@@ -199,6 +199,37 @@ static hp_f64_t get_f64(const uint8_t *p)
 
 /* ------------------------------------------------------------------ encoder */
 
+/* seq then n f64 (FORCE, VELOCITY); NULL when n is not 1..8. */
+static uint8_t *put_seq_axes(uint8_t *p, uint32_t seq, uint8_t n, const hp_f64_t *v)
+{
+    uint8_t i;
+    if (n < 1 || n > HP_MAX_AXES) {
+        return 0;
+    }
+    p = put_u32(p, seq);
+    for (i = 0; i < n; i++) {
+        p = put_f64(p, v[i]);
+    }
+    return p;
+}
+
+/* seq then the f64 filling the rest of a packet of n bytes (type + body, FORCE and
+ * VELOCITY); the axis count, 0 when the length is not 5 + 8 k with k in 1..8. */
+static uint8_t get_seq_axes(const uint8_t *p, size_t n, uint32_t *seq, hp_f64_t *v)
+{
+    uint8_t i, k;
+    if (n < HP_FORCE_FIXED + 8u || n > HP_FORCE_FIXED + 8u * HP_MAX_AXES ||
+        (n - HP_FORCE_FIXED) % 8u != 0) {
+        return 0;
+    }
+    *seq = get_u32(p);
+    k = (uint8_t)((n - HP_FORCE_FIXED) / 8u);
+    for (i = 0; i < k; i++) {
+        v[i] = get_f64(p + 4 + 8 * i);
+    }
+    return k;
+}
+
 /* Packet body without CRC; returns its length or 0 on an invalid message. */
 static size_t pack(const hp_msg_t *m, uint8_t *p0)
 {
@@ -239,17 +270,21 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
         }
         break;
     case HP_MSG_FORCE:
-        if (m->u.force.n_axes < 1 || m->u.force.n_axes > HP_MAX_AXES) {
-            return 0;
-        }
-        p = put_u32(p, m->u.force.seq);
-        for (i = 0; i < m->u.force.n_axes; i++) {
-            p = put_f64(p, m->u.force.force[i]);
-        }
+        p = put_seq_axes(p, m->u.force.seq, m->u.force.n_axes, m->u.force.force);
         break;
     case HP_MSG_LINK:
         p = put_u32(p, m->u.link.baud);
         *p++ = m->u.link.bits_per_byte;
+        break;
+    case HP_MSG_SENSORS_REQUEST:
+        p = put_u16(p, m->u.sensors_request.sensors);
+        break;
+    case HP_MSG_SENSORS:
+        p = put_u16(p, m->u.sensors.offered);
+        p = put_u16(p, m->u.sensors.enabled);
+        break;
+    case HP_MSG_VELOCITY: /* FORCE's layout */
+        p = put_seq_axes(p, m->u.velocity.seq, m->u.velocity.n_axes, m->u.velocity.velocity);
         break;
     case HP_MSG_PING:
         p = put_u32(p, m->u.ping.nonce);
@@ -269,7 +304,7 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
     default:
         return 0;
     }
-    return (size_t)(p - p0);
+    return p ? (size_t)(p - p0) : 0; /* NULL: an axis count not 1..8 */
 }
 
 size_t hp_encode(const hp_msg_t *msg, uint8_t *out, size_t out_size)
@@ -352,6 +387,22 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
         m->u.link.baud = get_u32(p);
         m->u.link.bits_per_byte = p[4];
         return HP_OK;
+    case HP_MSG_SENSORS_REQUEST:
+        if (n != 3) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.sensors_request.sensors = get_u16(p);
+        return HP_OK;
+    case HP_MSG_SENSORS:
+        if (n != 5) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.sensors.offered = get_u16(p);
+        m->u.sensors.enabled = get_u16(p + 2);
+        return HP_OK;
+    case HP_MSG_VELOCITY: /* FORCE's layout: seq, f64[n] */
+        m->u.velocity.n_axes = get_seq_axes(p, n, &m->u.velocity.seq, m->u.velocity.velocity);
+        return m->u.velocity.n_axes ? HP_OK : HP_ERR_MALFORMED;
     case HP_MSG_STATE:
         if (n < HP_STATE_FIXED + 8u || n > HP_STATE_FIXED + 8u * HP_MAX_AXES ||
             (n - HP_STATE_FIXED) % 8u != 0) {
@@ -367,16 +418,8 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
         }
         return HP_OK;
     case HP_MSG_FORCE:
-        if (n < HP_FORCE_FIXED + 8u || n > HP_FORCE_FIXED + 8u * HP_MAX_AXES ||
-            (n - HP_FORCE_FIXED) % 8u != 0) {
-            return HP_ERR_MALFORMED;
-        }
-        m->u.force.seq = get_u32(p);
-        m->u.force.n_axes = (uint8_t)((n - HP_FORCE_FIXED) / 8u);
-        for (i = 0; i < m->u.force.n_axes; i++) {
-            m->u.force.force[i] = get_f64(p + 4 + 8 * i);
-        }
-        return HP_OK;
+        m->u.force.n_axes = get_seq_axes(p, n, &m->u.force.seq, m->u.force.force);
+        return m->u.force.n_axes ? HP_OK : HP_ERR_MALFORMED;
     case HP_MSG_PING:
         if (n != 13) {
             return HP_ERR_MALFORMED;

@@ -49,8 +49,11 @@ typedef double hp_f64_t;
 #define HP_MSG_HELLO_REQUEST 0x02u
 #define HP_MSG_CONFIG 0x03u
 #define HP_MSG_LINK 0x04u /* added within version 1 (PROTOCOL.md section 9) */
+#define HP_MSG_SENSORS_REQUEST 0x05u /* added within version 1 */
+#define HP_MSG_SENSORS 0x06u         /* added within version 1 */
 #define HP_MSG_STATE 0x10u
 #define HP_MSG_FORCE 0x11u
+#define HP_MSG_VELOCITY 0x12u        /* added within version 1 */
 #define HP_MSG_PING 0x20u
 #define HP_MSG_PONG 0x21u
 #define HP_MSG_FAULT 0x30u
@@ -67,6 +70,9 @@ typedef double hp_f64_t;
 /* force_seq names a FORCE applied since the last CONFIG (clear: none yet, force_seq
  * means nothing). Added within version 1 (PROTOCOL.md section 9). */
 #define HP_STATUS_FORCE_APPLIED 0x0080u
+
+/* Sensor bits of SENSORS_REQUEST.sensors, SENSORS.offered and SENSORS.enabled. */
+#define HP_SENSOR_VELOCITY 0x0001u
 
 /* FAULT.code values. */
 #define HP_FAULT_WATCHDOG 0x0001u
@@ -141,6 +147,25 @@ typedef struct {
     uint64_t device_time_us; /* [us] */
 } hp_pong_t;
 
+/* SENSORS_REQUEST: the extra sensor messages the host asks for (HP_SENSOR_* bits; 0: none).
+ * The device answers SENSORS at once (PROTOCOL.md section 4). */
+typedef struct {
+    uint16_t sensors;
+} hp_sensors_request_t;
+
+/* SENSORS: what the device can send and what it sends from now on (requested & offered). */
+typedef struct {
+    uint16_t offered;
+    uint16_t enabled;
+} hp_sensors_t;
+
+/* VELOCITY: the measured velocity at the STATE with the same seq, sent just before it. */
+typedef struct {
+    uint32_t seq;
+    uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
+    hp_f64_t velocity[HP_MAX_AXES]; /* [m/s] */
+} hp_velocity_t;
+
 typedef struct {
     uint16_t code;           /* HP_FAULT_* */
     uint32_t detail;
@@ -159,6 +184,9 @@ typedef struct {
         hp_ping_t ping;
         hp_pong_t pong;
         hp_fault_t fault;
+        hp_sensors_request_t sensors_request;
+        hp_sensors_t sensors;
+        hp_velocity_t velocity;
     } u;
 } hp_msg_t;
 

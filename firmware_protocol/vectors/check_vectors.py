@@ -34,9 +34,12 @@ LAYOUT = {
     "HELLO_REQUEST": (0x02, [("protocol_version", "B")]),
     "CONFIG": (0x03, [("rate_hz", "d"), ("watchdog_us", "I"), ("force_limit", "d")]),
     "LINK": (0x04, [("baud", "I"), ("bits_per_byte", "B")]),
+    "SENSORS_REQUEST": (0x05, [("sensors", "H")]),
+    "SENSORS": (0x06, [("offered", "H"), ("enabled", "H")]),
     "STATE": (0x10, [("seq", "I"), ("time_us", "Q"), ("status", "H"), ("force_seq", "I"),
                      ("position", "d*")]),
     "FORCE": (0x11, [("seq", "I"), ("force", "d*")]),
+    "VELOCITY": (0x12, [("seq", "I"), ("velocity", "d*")]),
     "PING": (0x20, [("nonce", "I"), ("host_time_us", "Q")]),
     "PONG": (0x21, [("nonce", "I"), ("host_time_us", "Q"), ("device_time_us", "Q")]),
     "FAULT": (0x30, [("code", "H"), ("detail", "I")]),
@@ -173,6 +176,14 @@ GOOD = [
                                                force_seq=0, position=[0.01])),
     # LINK (0x04, added within version 1): a 1 Mbaud 8N1 UART
     ("link", "LINK", dict(baud=1000000, bits_per_byte=10)),
+    # SENSORS_REQUEST / SENSORS / VELOCITY (0x05, 0x06, 0x12, added within version 1): the
+    # host asks for the velocity sensor; a device that has it enables it, one that has none
+    # answers 0, 0; then VELOCITY precedes each STATE with the same seq
+    ("sensors_request_velocity", "SENSORS_REQUEST", dict(sensors=0x0001)),
+    ("sensors_velocity_enabled", "SENSORS", dict(offered=0x0001, enabled=0x0001)),
+    ("sensors_none_offered", "SENSORS", dict(offered=0, enabled=0)),
+    ("velocity_1axis", "VELOCITY", dict(seq=1, velocity=[-0.125])),
+    ("velocity_3axes", "VELOCITY", dict(seq=0xFFFFFFFF, velocity=[0.0, 2.5e-3, -1e300])),
 ]
 
 
@@ -196,6 +207,9 @@ def bad_vectors() -> list[dict]:
     hello0[2] = 0  # n_axes = 0
     c = crc16_ccitt_false(bytes(hello0))
     malformed_hello = cobs_encode(bytes(hello0) + bytes([c >> 8, c & 0xFF])) + b"\x00"
+    vel_short = b"\x12\x01\x00\x00\x00"  # VELOCITY with no axis
+    c = crc16_ccitt_false(vel_short)
+    malformed_velocity = cobs_encode(vel_short + bytes([c >> 8, c & 0xFF])) + b"\x00"
     return [
         {"name": "bad_crc_bitflip", "frame_hex": bytes(flipped).hex(), "error": "bad_crc"},
         {"name": "bad_crc_runt", "frame_hex": cobs_encode(b"\x31\xc7").hex() + "00",
@@ -206,6 +220,8 @@ def bad_vectors() -> list[dict]:
         {"name": "malformed_hello_zero_axes", "frame_hex": malformed_hello.hex(),
          "error": "malformed"},
         {"name": "overlong", "frame_hex": "ff" * 128 + "00", "error": "overlong"},
+        {"name": "malformed_velocity_no_axis", "frame_hex": malformed_velocity.hex(),
+         "error": "malformed"},
     ]
 
 

@@ -103,11 +103,14 @@ def register(sub) -> None:
 
 
 def _from_spec(text: str):
-    from hapsim.scene import Device, Excitation, Impulse
+    from hapsim.scene import Device, Excitation, Hand, Impulse
     spec = json.loads(text)
     d = dict(spec["device"])
     if d.get("force_limit") is None:
         d["force_limit"] = math.inf
+    if d.get("hand") is not None:           # a dict in JSON; ranges as lists
+        d["hand"] = Hand(**{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in d["hand"].items()})
     e = dict(spec["excitation"])
     if e.get("impulse") is not None:
         e["impulse"] = Impulse(**e["impulse"])

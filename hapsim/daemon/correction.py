@@ -18,8 +18,9 @@ kind                       ``q[n]``, ``qq[n]``, force to the device
 =========================  ==============================================================
 
 The engine itself advances as before, so its energy and restart behave as before. For
-``velocity_sensor`` the measured velocity comes from the ``velocity`` callable (the
-lockstep mock's physics in-process).
+``velocity_sensor`` the measured velocity comes from the ``velocity`` callable: the
+device's VELOCITY frame of that STATE (PROTOCOL.md §4), kept by
+:class:`hapsim.daemon.loop.MeasuredVelocity`.
 """
 
 from __future__ import annotations
@@ -56,8 +57,9 @@ def corrected_engine(scene, velocity=None):
         (virtual masses, several links, contacts, any integrator). ``virtual_coupling``
         needs a single-rate scene (no ``audio`` section).
     velocity : callable, optional
-        ``velocity() -> float``, the handle velocity at the current STATE [m/s]; required
-        for ``velocity_sensor``.
+        ``velocity() -> float``, the handle velocity at the current STATE [m/s] (the
+        loop's :class:`~hapsim.daemon.loop.MeasuredVelocity`); required for
+        ``velocity_sensor``.
 
     Returns
     -------
@@ -89,9 +91,9 @@ def corrected_engine(scene, velocity=None):
     corr = Correction.from_dict(scene.device.correction)
     kind = corr.kind
     if kind == "velocity_sensor" and velocity is None:
-        raise ConfigError("velocity_sensor: the STATE frame carries no velocity; it runs with "
-                          "the in-process mock only (--transport inprocess)",
-                          file=scene.path, key="device.correction.kind")
+        raise ConfigError("velocity_sensor needs the device's measured velocity (its "
+                          "VELOCITY frames); none was given", file=scene.path,
+                          key="device.correction.kind")
     if kind == "virtual_coupling" and scene.audio is not None:
         raise ConfigError("virtual_coupling runs on single-rate scenes (no audio section)",
                           file=scene.path, key="device.correction")

@@ -13,8 +13,11 @@ reference loop does (:meth:`HostLoop._device_states`, which reads through
 :meth:`CompiledHostLoop._receive_hook`):
 
 - a frame it does not take: anything but a clean, armed, 1-axis STATE in sequence order
-  (bad frames, FAULT, HELLO, stale / implausible / unarmed STATEs): the bytes from that
-  frame on are fed to the transport's Python decoder and the reference code handles them;
+  or a clean 1-axis VELOCITY (bad frames, FAULT, HELLO, stale / implausible / unarmed
+  STATEs): the bytes from that frame on are fed to the transport's Python decoder and the
+  reference code handles them. A VELOCITY it takes is counted and kept in the decoder's
+  history, and not used, as the Python loop does without a velocity_sensor correction
+  (corrections, the only readers of the measured velocity, run in the Python loop);
 - silence (no byte within what the reference loop would wait) or a port error: the
   reference code declares the loss;
 - a stop request (:attr:`StopFlag.shared`, set by the signal handler; a signal interrupting
@@ -82,6 +85,7 @@ R_DONE, R_STOP, R_HANDOFF, R_IDLE, R_INTR, R_SYNC, R_PORT = 4, 5, 6, 7, 8, 9, 10
 _U32 = 0xFFFFFFFF
 _HALF = 0x80000000
 _STATE_PACKET = 29          # type + 1-axis STATE body + CRC [bytes]
+_VELOCITY_PACKET = 15       # type + 1-axis VELOCITY body + CRC [bytes]
 _MAX_FRAME = fp.MAX_FRAME
 _RB_SIZE = 1 << 16
 #: The compiled stretch returns to Python at least this often [s of samples] to publish
@@ -428,6 +432,17 @@ def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
 
 
 @_jit
+def _keep_frame(rb, a, z, hist, hist_len, iv):
+    """A good frame ``rb[a:z]`` the stretch took: into the history ring (the Python
+    decoder's ``last_frames`` and ``frames_ok`` get it from there)."""
+    h = iv[I_HIST] % hist.shape[0]
+    for j in range(z - a):
+        hist[h, j] = rb[a + j]
+    hist_len[h] = z - a
+    iv[I_HIST] += 1
+
+
+@_jit
 def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
              s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
              hist, hist_len):
@@ -468,6 +483,14 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             if z - a > _MAX_FRAME - 1:
                 break               # overlong: Python counts it
             m = _cobs_decode(rb, a, z, pkt)
+            if m == _VELOCITY_PACKET and pkt[0] == 0x12 and _crc16(pkt, m, table) == 0:
+                # a clean 1-axis VELOCITY (PROTOCOL.md §4): a good frame, taken (counted and
+                # kept in the history as Python's decoder does) and not used: the compiled
+                # loop runs no correction (velocity_sensor runs in the Python loop), as
+                # the Python loop without one ignores it
+                _keep_frame(rb, a, z, hist, hist_len, iv)
+                a = z + 1
+                continue
             if m != _STATE_PACKET or pkt[0] != 0x10 or _crc16(pkt, m, table) != 0:
                 break               # not a clean 1-axis STATE: Python's
             seq = np.int64(0)
@@ -499,11 +522,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             fv[F_LAST_RX] = now
             iv[I_EXPECT] = (seq + 1) & _U32
             iv[I_FRAMES_OK] += 1
-            h = iv[I_HIST] % hist.shape[0]
-            for j in range(z - a):
-                hist[h, j] = rb[a + j]
-            hist_len[h] = z - a
-            iv[I_HIST] += 1
+            _keep_frame(rb, a, z, hist, hist_len, iv)
             a = z + 1
             handled = True
             if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
@@ -659,7 +678,7 @@ class CompiledHostLoop(HostLoop):
             "rb": np.zeros(_RB_SIZE, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
-            "hist_seen": 0, "samples_seen": 0,
+            "hist_seen": 0, "samples_seen": 0, "states_seen": 0,
         }
 
     def _publish(self) -> None:
@@ -699,7 +718,9 @@ class CompiledHostLoop(HostLoop):
         if new <= 0:
             return
         dec.stats.frames_ok += new
-        self.compiled_samples += new
+        states = int(iv[I_FRAMES_OK])       # of which STATEs (the others: VELOCITY)
+        self.compiled_samples += states - fst["states_seen"]
+        fst["states_seen"] = states
         hist, hl = fst["hist"], fst["hist_len"]
         for j in range(max(total - min(new, _HIST), 0), total):
             h = j % _HIST

@@ -632,7 +632,8 @@ class FaultyDevice:
         self.poll(now_us)
         st = self.mock.tick(now_us)
         if st is not None and not self.link_down(now_us):
-            self._send(st, now_us)
+            for msg in self.mock.frames(st):       # VELOCITY (when enabled), then STATE
+                self._send(msg, now_us)
 
     def poll(self, now_us: int) -> list:
         """Housekeeping between ticks: when a vanished port is back, say ``0x00`` + HELLO;
@@ -670,6 +671,7 @@ class FaultyDevice:
         mock.stop()
         mock.configured = False
         mock.physics = None
+        mock.sensors = 0                 # a reset device sends no VELOCITY until asked
         self.decoder.reset()
         self._clear_rx()
         self._tx.clear()

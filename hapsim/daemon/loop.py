@@ -78,8 +78,9 @@ from hapsim.daemon.realtime import sleep_until_ns
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
-__all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "percentiles_us",
-           "LATCHED_FAULTS", "BAD_FRAME_RECORDS"]
+__all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
+           "percentiles_us", "LATCHED_FAULTS", "BAD_FRAME_RECORDS", "SENSORS_TRIES",
+           "SENSORS_WAIT"]
 
 _U32 = 0xFFFFFFFF
 _OPEN_ENDED = 1 << 62       # rows of a run without a sample count (ended by a stop)
@@ -89,6 +90,11 @@ _HALF = 0x80000000
 BAD_FRAME_RECORDS = 32
 #: Frames received before a bad one that its record shows (at most).
 BAD_FRAME_CONTEXT = 8
+
+#: SENSORS_REQUEST attempts before a device is taken to offer no sensor (it was written
+#: before the message and drops it, PROTOCOL.md §4), and the wait after each [s].
+SENSORS_TRIES = 3
+SENSORS_WAIT = 0.1
 
 #: Fault codes that latch on the device (PROTOCOL.md §4): they end the run.
 LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLIFIER,
@@ -101,6 +107,68 @@ class _Lost(Exception):
     def __init__(self, reason: str, port_error: bool = False) -> None:
         super().__init__(reason)
         self.port_error = port_error
+
+
+class MeasuredVelocity:
+    """The device's measured velocity over the wire (VELOCITY frames, PROTOCOL.md §4).
+
+    The loop keeps the last VELOCITY received (:meth:`put`) and, for each STATE it
+    answers, :meth:`take` makes :attr:`value` that STATE's velocity: the VELOCITY with the
+    same ``seq`` (the device sends it just before the STATE), or, when it was lost, the
+    last value held (counted in :attr:`missing`). An engine that uses the measured velocity
+    (:func:`hapsim.daemon.correction.corrected_engine`) calls the object.
+
+    Attributes
+    ----------
+    value : float
+        Velocity of the STATE being answered [m/s] (0.0 before any).
+    frames : int
+        VELOCITY messages received with one axis.
+    missing : int
+        STATEs taken without their VELOCITY (the last value held).
+    """
+
+    __slots__ = ("value", "frames", "missing", "_seq", "_v")
+
+    def __init__(self) -> None:
+        self.value = 0.0
+        self.frames = 0
+        self.missing = 0
+        self._seq = -1
+        self._v = 0.0
+
+    def __call__(self) -> float:
+        """The measured velocity of the STATE being answered [m/s]."""
+        return self.value
+
+    def put(self, msg) -> None:
+        """Keep a VELOCITY message (one axis; others are ignored).
+
+        Parameters
+        ----------
+        msg : firmware_protocol.Velocity
+        """
+        if len(msg.velocity) == 1:
+            self.frames += 1
+            self._seq = msg.seq
+            self._v = msg.velocity[0]
+
+    def take(self, seq: int) -> None:
+        """A STATE with ``seq`` is answered next: its velocity becomes :attr:`value`.
+
+        Parameters
+        ----------
+        seq : int
+            The STATE's ``seq``.
+        """
+        if self._seq == seq:
+            self.value = self._v
+        else:
+            self.missing += 1
+
+    def as_dict(self) -> dict:
+        """``frames`` and ``missing`` as a dict (the run's report)."""
+        return {"frames": self.frames, "missing": self.missing}
 
 
 class StopFlag:
@@ -344,6 +412,10 @@ class LoopResult:
         Largest ``|v|`` seen [m/s].
     f_max : float
         Largest ``|f|`` sent [N].
+    velocity : dict
+        The device's velocity sensor over the wire, when the loop asked for it
+        (:class:`MeasuredVelocity`): ``frames`` VELOCITY received, ``missing`` STATEs
+        answered without theirs (last value held); empty otherwise.
     """
 
     samples: int = 0
@@ -379,6 +451,7 @@ class LoopResult:
     passivity_samples: int = 0
     v_max: float = 0.0
     f_max: float = 0.0
+    velocity: dict = field(default_factory=dict)
 
 
 def percentiles_us(values: np.ndarray) -> dict:
@@ -421,6 +494,10 @@ class HostLoop:
         drain it); without a ring, at most ``head`` samples are run.
     stop : StopFlag, optional
         Polled every sample.
+    measured : MeasuredVelocity, optional
+        Ask the device for its velocity sensor (SENSORS_REQUEST before CONFIG, refused with
+        :class:`~hapsim.errors.ConfigError` when it offers none) and keep each STATE's
+        VELOCITY there, for an engine that reads it.
 
     Attributes
     ----------
@@ -433,8 +510,9 @@ class HostLoop:
     """
 
     def __init__(self, engine, transport, config: LoopConfig, telemetry,
-                 stop: StopFlag | None = None):
+                 stop: StopFlag | None = None, measured: MeasuredVelocity | None = None):
         self.engine = engine
+        self.measured = measured
         #: Called between two samples, before the engine steps (live changes: the
         #: mailbox of :class:`hapsim.audio.control.Controller`); None: nothing.
         self.poll = None
@@ -518,17 +596,59 @@ class HostLoop:
                                 f"frames:\n{self.transport.last_frames() or '(none received)'}")
         link = getattr(self, "_link", None)
         if link is not None:
-            top = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes)
+            vel = self.measured is not None
+            top = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes,
+                                   velocity=vel)
             if cfg.rate_hz > top:
+                up = fp.state_frame_bytes(hello.n_axes) + (
+                    fp.velocity_frame_bytes(hello.n_axes) if vel else 0)
                 raise ConfigError(
                     f"{cfg.rate_hz:g} Hz is more than the device's link carries: at "
                     f"{link.baud} baud ({link.bits_per_byte} bits per byte) a "
-                    f"{fp.state_frame_bytes(hello.n_axes)}-byte STATE up and a "
+                    f"{up}-byte STATE{' + VELOCITY' if vel else ''} up and a "
                     f"{fp.force_frame_bytes(hello.n_axes)}-byte FORCE down per tick fit "
                     f"{top:.0f} Hz at most ({fp.LINK_LOAD:.0%} of the line); choose "
                     f"rate_hz <= {int(top)}", key="rate_hz")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
+
+    def _ask_sensors(self) -> None:
+        """Enable the device's velocity sensor (SENSORS_REQUEST, PROTOCOL.md §4), when the
+        loop has a :attr:`measured` velocity to fill; nothing otherwise.
+
+        Raises
+        ------
+        ConfigError
+            The device answers that it has no velocity sensor, or does not answer
+            (written before SENSORS_REQUEST) within ``SENSORS_TRIES * SENSORS_WAIT``.
+        """
+        if self.measured is None:
+            return
+        tr = self.transport
+        clock = self._clock
+        answer = None
+        for _ in range(SENSORS_TRIES):
+            tr.send(fp.SensorsRequest(fp.SENSOR_VELOCITY))
+            end = clock() + SENSORS_WAIT
+            while answer is None and clock() < end and not self.stop.set:
+                for msg in tr.receive(0.02):
+                    if type(msg) is fp.Sensors:
+                        answer = msg
+            if answer is not None or self.stop.set:
+                break
+        if answer is not None and answer.enabled & fp.SENSOR_VELOCITY:
+            self.result.velocity = self.measured.as_dict()
+            return
+        if self.stop.set:
+            return
+        why = (f"it answers SENSORS offered=0x{answer.offered:04X}" if answer is not None
+               else f"no SENSORS answer to {SENSORS_TRIES} requests: a device written "
+                    f"before the velocity message")
+        where = tr.info.get("port") or tr.info.get("kind", "the transport")
+        raise ConfigError(f"velocity_sensor: the device on {where} does not offer a "
+                          f"velocity sensor ({why}); choose "
+                          f"another correction, or a device that measures its velocity",
+                          key="device.correction.kind")
 
     def _send_config(self) -> None:
         cfg = self.config
@@ -563,6 +683,7 @@ class HostLoop:
                               f"(port {tr.info.get('port')}); last frames:\n"
                               f"{tr.last_frames() or '(none received)'}")
         self._check_hello(hello)
+        self._ask_sensors()
         self._measure_ping()
         self._send_config()
         self.state = "armed"
@@ -647,6 +768,8 @@ class HostLoop:
         if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
             res.stop_reason = f"signal {_signame(self.stop.signal)}"
         res.samples = self.tel.n
+        if self.measured is not None and res.velocity:
+            res.velocity = self.measured.as_dict()
         ta = self.tel.columns()["turnaround_us"]       # the rows still in memory
         res.turnaround_us = percentiles_us(ta)
         res.turnaround_us["samples"] = int(ta.size)
@@ -792,6 +915,7 @@ class HostLoop:
                 hello = self._ask_hello(cfg.attempt_timeout)
                 if hello is not None:
                     self._check_hello(hello)
+                    self._ask_sensors()        # a reset device forgot the request
                     self._send_config()
                     self.state = "armed"
                     return True
@@ -895,6 +1019,9 @@ class HostLoop:
                 self.stop.set = True
                 return True
             res.device_faults[name] = res.device_faults.get(name, 0) + 1
+        elif tm is fp.Velocity:
+            if self.measured is not None:
+                self.measured.put(msg)
         elif tm is fp.Hello:
             res.hello_mid_run += 1
             if not self._fresh:
@@ -1145,6 +1272,7 @@ class HostLoop:
         self._last_rx = clock()
         ds = self._dstats
         nbad = self._nbad
+        mv = self.measured
         while tel.n < n_max and not stop.set:
             # wait no longer than the silence still allowed: the loss is declared when it
             # runs out (to 1 us), not a poll later
@@ -1198,6 +1326,8 @@ class HostLoop:
                 self._last_rx = clock()
                 self._expect = (seq + 1) & _U32
                 used = True
+                if mv is not None:
+                    mv.take(seq)                  # its VELOCITY came just before it
                 if newest and not resumes and _newer_waiting(msgs, j, seq, ahead_max):
                     res.skipped += 1              # backlog: a newer STATE is waiting
                     self._skip_flag = FLAG_SKIPPED
@@ -1257,6 +1387,7 @@ class HostLoop:
         t_latest = 0.0              # clock time the latest STATE was taken [s]
 
         ds = self._dstats
+        mv = self.measured
 
         def take(msgs) -> None:
             """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted;
@@ -1287,6 +1418,8 @@ class HostLoop:
                         continue
                 latest = msg
                 t_latest = clock()
+                if mv is not None:
+                    mv.take(msg.seq)              # its VELOCITY came just before it
 
         # wait for the first armed STATE (a device (re)starting gets state_timeout)
         end = clock() + cfg.state_timeout

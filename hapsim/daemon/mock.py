@@ -27,7 +27,9 @@ the force applied from tick ``n`` on (``seq - force_seq = d`` when on time); wit
 it is the one applied over the previous period (FORCE ``n`` is not known yet).
 
 Only what a scene asks for is added: encoder quantisation (``position_resolution``),
-Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the force clamp
+Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the velocity
+sensor's quantum and noise (``velocity_resolution``, ``velocity_noise``: VELOCITY frames,
+sent only when the host asks, PROTOCOL.md §4), the force clamp
 (``force_limit``) and the excitation (``x0``, ``v0``, a force ``impulse``, a recorded hand
 force ``profile``).
 """
@@ -322,6 +324,10 @@ class MockPhysics:
         self._coulomb = float(device.coulomb or 0.0)
         self._noise = float(device.noise or 0.0)
         self._rng = np.random.default_rng(seed) if self._noise > 0 else None
+        self._vq = float(getattr(device, "velocity_resolution", 0.0) or 0.0)
+        self._vnoise = float(getattr(device, "velocity_noise", 0.0) or 0.0)
+        # its own stream: the position noise of a seed is the same with or without it
+        self._vrng = (np.random.default_rng([seed, 1]) if self._vnoise > 0 else None)
 
     @property
     def excitation_end(self) -> float:
@@ -342,6 +348,24 @@ class MockPhysics:
             y += self._noise * float(self._rng.standard_normal())
         if self._q > 0:
             y = self._q * round(y / self._q)
+        return y
+
+    def sample_velocity(self) -> float:
+        """Velocity the velocity sensor reports at the current tick (VELOCITY frames).
+
+        Returns
+        -------
+        float
+            ``v``, the exact velocity at the sample instant [m/s] (the handle's with a
+            compliant grip), plus Gaussian noise of standard deviation
+            ``device.velocity_noise`` (seeded, its own stream), then rounded to a multiple
+            of ``device.velocity_resolution`` when > 0.
+        """
+        y = self.v
+        if self._vrng is not None:
+            y += self._vnoise * float(self._vrng.standard_normal())
+        if self._vq > 0:
+            y = self._vq * round(y / self._vq)
         return y
 
     def advance(self, u: float) -> None:
@@ -531,6 +555,11 @@ class MockDevice:
         self._status_extra = 0
         self._last_force_us = 0
         self._u = 0.0
+        #: sensor messages enabled by the host's SENSORS_REQUEST (PROTOCOL.md §4): kept
+        #: across CONFIG and STOP, cleared by a reset
+        self.sensors = 0
+        #: the VELOCITY of the last STATE emitted (None while VELOCITY is not enabled)
+        self.velocity_out = None
 
     # ------------------------------------------------------------------ messages
     def hello(self) -> fp.Hello:
@@ -572,6 +601,10 @@ class MockDevice:
             return [self.hello()]
         if isinstance(msg, fp.Ping):
             return [fp.Pong(msg.nonce, msg.host_time_us, now_us)]
+        if isinstance(msg, fp.SensorsRequest):
+            offered = self.sensors_offered
+            self.sensors = msg.sensors & offered
+            return [fp.Sensors(offered, self.sensors)]
         if isinstance(msg, fp.Config):
             return self._on_config(msg, now_us)
         if isinstance(msg, fp.Stop):
@@ -579,6 +612,29 @@ class MockDevice:
             st.saw_stop = True
             return []
         return []
+
+    @property
+    def sensors_offered(self) -> int:
+        """Sensor bits this mock can send (SENSORS.offered): VELOCITY with the ZOH hold
+        (its physics has a velocity state), none with the ideal hold (a centred-difference
+        mass has no velocity at the sample instant)."""
+        return fp.SENSOR_VELOCITY if self.device.hold == "zoh" else 0
+
+    def frames(self, state) -> list:
+        """The messages of one tick in wire order: VELOCITY (when enabled), then STATE.
+
+        Parameters
+        ----------
+        state : firmware_protocol.State
+            The STATE :meth:`tick` (or the lockstep answer) just produced.
+
+        Returns
+        -------
+        list of messages
+            ``[Velocity, State]`` while VELOCITY is enabled, else ``[State]``.
+        """
+        vo = self.velocity_out
+        return [state] if vo is None else [vo, state]
 
     def stop(self) -> None:
         """Zero the force at once and disarm (STOP, or the mock shutting down)."""
@@ -613,7 +669,7 @@ class MockDevice:
         self._last_force_us = now_us
         self.armed = self.configured = True
         if self.lockstep:
-            return [self._emit(now_us)]
+            return self.frames(self._emit(now_us))
         return []
 
     def _on_force(self, msg: fp.Force, now_us: int) -> list:
@@ -655,7 +711,7 @@ class MockDevice:
         if self.delay == 0:
             self._apply_due(n, now_us)
         self.physics.advance(self._u)
-        return [self._emit(now_us)]
+        return self.frames(self._emit(now_us))
 
     # ------------------------------------------------------------------ ticks
     def _apply_due(self, n: int, now_us: int) -> None:
@@ -704,6 +760,9 @@ class MockDevice:
         self.stats.ticks += 1
         time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
         status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
+        # the velocity sensor reads the same instant as the encoder: v(nT), exact
+        self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.sample_velocity(),))
+                             if self.sensors & fp.SENSOR_VELOCITY else None)
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
                         (ph.sample(),))
 

@@ -630,6 +630,9 @@ class Connection:
         In-process mock (``inprocess`` and ``sim``).
     old_signals : dict
         ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+    measured : MeasuredVelocity or None
+        The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
+        correction: the loop asks the device for it and the engine reads it.
     """
 
     engine: object
@@ -641,6 +644,7 @@ class Connection:
     embedded: object = None
     mock: object = None
     old_signals: dict = field(default_factory=dict)
+    measured: object = None
 
 
 @dataclass
@@ -851,12 +855,20 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
                               and corr is None)
         engine = Engine(scene)
+        measured = None
         if corr is not None:
             # a device correction: the engine is fed the corrected port signals (any
-            # scene); a velocity sensor reads the lockstep mock in-process (below)
+            # scene); a velocity sensor reads the device's VELOCITY frames, which the loop
+            # asks for (PROTOCOL.md §4: refused when the device offers none)
             from hapsim.daemon.correction import corrected_engine
-            if not sensor or transport != "inprocess":
-                engine = corrected_engine(scene)       # raises for a sensor on a wire
+            from hapsim.daemon.loop import MeasuredVelocity
+            if sensor:
+                if opts.driver not in (None, "framed"):
+                    raise ConfigError(f"velocity_sensor: the {opts.driver} driver's wire "
+                                      f"carries no velocity; use the framed protocol",
+                                      key="--driver")
+                measured = MeasuredVelocity()
+            engine = corrected_engine(scene, velocity=measured)
         n_samples, n_window, n_ring = prep.n_samples, prep.n_window, prep.n_ring
         if n_samples and n_samples <= n_window + n_ring:
             tel = Telemetry(n_samples)                 # the whole run fits: kept whole
@@ -882,8 +894,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = InProcessTransport(mock)
-            if sensor:
-                engine = corrected_engine(scene, velocity=lambda m=mock: m.physics.v)
         elif transport == "sim":
             from hapsim.daemon.transport import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
@@ -908,7 +918,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             embedded.close()
         _restore_signals(old)
         raise
-    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old)
+    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old, measured)
 
 
 def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
@@ -962,7 +972,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                        "a driver)" if not compiled_available(tr) else
                        "a lockstep journal drained by the loop itself")
         else:
-            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
+            loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop, measured=conn.measured)
         loop.python_reason = why if opts.loop == "compiled" else None
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
@@ -1179,7 +1189,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     if any(m.kind == "mass" for m in scene.masses):
         notes.append("virtual masses add modes: the identified pair is the least damped "
                      "one seen at the port, which the excitation may barely excite")
-    if dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0:
+    sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
+    if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
+            or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
     late_in = measured.get("late_in_segment", 0)
@@ -1269,6 +1281,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "energy_j": res.energy, "energy_max_j": res.energy_max,
         "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
+        "velocity_sensor": res.velocity or None,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,

@@ -441,6 +441,14 @@ static void on_message(const hp_msg_t *m)
         g_armed = 0;
         zero_now();
         break;
+    case HP_MSG_SENSORS_REQUEST:
+        /* The Hapkit 3 measures position only (the MR sensor on the capstan; no
+         * tachometer): nothing offered, nothing enabled (PROTOCOL.md section 4). */
+        r.type = HP_MSG_SENSORS;
+        r.u.sensors.offered = 0;
+        r.u.sensors.enabled = 0;
+        send(&r);
+        break;
     default:
         break; /* device -> host types are ignored */
     }
