@@ -1043,6 +1043,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
+            ctl.close()                 # its analysis process
         if out is not None:
             out.close()
         conn.rt.__exit__(None, None, None)
