@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.hand import HAND_FIELDS, hand_zoh, members as hand_members
+from hapsim.analysis.hand import (HAND_FIELDS, body_zoh, hand_stiffness, ideal_rows,
+                                  members as hand_members)
 from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
@@ -45,13 +46,22 @@ def family_members(scene, samples: int | None = None, *, grid: int = 9,
 
     Returns
     -------
-    ndarray, shape (n, 4)
-        ``(mh, bh, kg, bg)`` per member; without a hand, ``[[0, 0, inf, 0]]``.
+    ndarray, shape (n, 5)
+        ``(mh, bh, kg, bg, kh)`` per member; without a hand, ``[[0, 0, inf, 0, 0]]``.
     """
     hand = getattr(scene.device, "hand", None)
     if hand is None:
-        return np.array([[0.0, 0.0, math.inf, 0.0]])
+        return np.array([[0.0, 0.0, math.inf, 0.0, 0.0]])
     return hand_members(hand, samples, grid=grid, seed=seed)
+
+
+def _full(mem) -> np.ndarray:
+    """Members as rows of every :data:`HAND_FIELDS` (a 4-column member has ``kh = 0``)."""
+    mem = np.atleast_2d(np.asarray(mem, float))
+    if mem.shape[1] < len(HAND_FIELDS):
+        mem = np.concatenate([mem, np.zeros((mem.shape[0], len(HAND_FIELDS) - mem.shape[1]))],
+                             axis=1)
+    return mem
 
 
 def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
@@ -110,9 +120,10 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     n = mem.shape[0]
     A = np.repeat(A0[None], n, axis=0)
     m, b0 = float(dev.mass), float(dev.friction)
-    if finite.all():
-        Aw, Bd = hand_zoh(m, b0, mem, T)
-        Ad = Aw + np.eye(4)
+    kh = hand_stiffness(mem)
+    if finite.all() or (dev.hold == "zoh" and np.any(kh > 0)):
+        Aw, Bd = body_zoh(m, b0, mem, T)
+        Ad = Aw + np.eye(Aw.shape[-1])
     elif dev.hold == "zoh":
         Ad = np.empty((n, 2, 2))
         Bd = np.empty((n, 2))
@@ -124,9 +135,12 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
         a = np.exp(-x)
         with np.errstate(invalid="ignore", divide="ignore"):
             c = np.where(x > 0, x / -np.expm1(-x), 1.0)
-        A[:, 0, 0] = 1.0 + a
-        A[:, 0, 1] = -a
-        A[:, 0, :] += (T * T / (mass * c))[:, None] * u[None, :]
+        tr, det, g = 1.0 + a, a, T * T / (mass * c)
+        if np.any(kh > 0):            # the arm's real spring: impulse-invariant image
+            tr, det, g = ideal_rows(mass, b0 + mem[:, 1], kh, T)
+        A[:, 0, 0] = tr
+        A[:, 0, 1] = -det
+        A[:, 0, :] += g[:, None] * u[None, :]
         return A, names
     A[:, :nplant, :nplant] = Ad
     A[:, :nplant, :] += Bd[:, :, None] * u[None, None, :]
@@ -378,7 +392,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         if hand is not None:
             from hapsim.analysis.hand import ranged_fields
             corners = 2 ** len(ranged_fields(hand))
-    mem = np.atleast_2d(np.asarray(mem, float))
+    mem = _full(mem)
     T = scene.period
     mass = float(scene.device.mass) + mem[:, 0]
     k, b, rho, stable = felt_pairs(family_poles(scene, mem, calibrated=calibrated), mass, T)
@@ -536,7 +550,7 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
     k, b = float(k), float(b)
     if mem is None:
         mem = family_members(scene, samples, grid=grid, seed=seed)
-    mem = np.atleast_2d(np.asarray(mem, float))
+    mem = _full(mem)
     hand = getattr(scene.device, "hand", None)
     ncorner = 0
     if hand is not None:
