@@ -598,12 +598,19 @@ def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int =
     """Table 1 generalised: is the felt assembly the assembly of the felt parts?
 
     Florens, Voda & Urma Sec. 3 / Table 1: two virtual springs tuned to ring like a real
-    one each do not ring like two real springs together. Here, for a scene with two or
-    more spring_dampers between the port and a ground (links in parallel), for every
-    member of the hand family: the felt pair of the whole scene ``(k, b)`` against the
-    parallel assembly of the pairs each link gives alone, ``k_sum = sum k_i``,
-    ``b_sum = sum b_i - (n - 1) b_real`` (each ``b_i`` carries the real damping ``b_real``
-    = device friction + hand damping once; the assembly carries it once).
+    one each do not ring like two real springs together (case IV), nor does a virtual
+    spring with a real one (case V). Here, for every member of the hand family, the felt
+    pair of the whole scene ``(k, b)`` is set against the parallel assembly of the felt
+    parts, where the parts are every spring_damper between the port and a ground and, when
+    the hand has a stiffness to ground ``kh`` (``device.hand.stiffness``), that real
+    spring:
+
+    - a virtual link's part is the pair it makes felt alone, on the member *without* the
+      real spring (``kh = 0``);
+    - the real spring's part is itself, ``kh`` (a real spring is felt as it is);
+    - ``k_sum = kh + sum k_i``, ``b_sum = sum b_i - (n - 1) b_real`` over the ``n``
+      virtual links (each ``b_i`` carries the real damping ``b_real`` = device friction +
+      hand damping once; the assembly carries it once).
 
     Parameters
     ----------
@@ -614,30 +621,48 @@ def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int =
     Returns
     -------
     dict
-        ``links`` (names), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats
-        (``min``, ``max``, ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is
-        consistent), ``worst_k``, ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``,
-        ``b``, ``b_sum``: ndarrays, shape (n,), per member.
+        ``links`` (names of the virtual parts), ``real_spring`` (bool: ``kh > 0`` in some
+        member), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats (``min``, ``max``,
+        ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is consistent), ``worst_k``,
+        ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``, ``b``, ``b_sum``,
+        ``k_real``: ndarrays, shape (n,), per member.
 
     Raises
     ------
     ConfigError
-        Fewer than two port-ground spring_dampers.
+        Fewer than two parts (two port-ground spring_dampers, or one and the hand's
+        stiffness).
+
+    Notes
+    -----
+    With ``m = T = 1``, ``d = 0``, the ideal hold, no damping, one virtual link tuned by
+    eq. (2) and ``kh = k``, ``k / k_sum`` is Table 1's felt k V / 2k
+    (:func:`hapsim.analysis.table1.table1_experiment`, tested to 1e-9); with two virtual
+    links and no ``kh``, felt k IV / 2k.
     """
     res = family(scene, samples, grid=grid, seed=seed, calibrated=calibrated, mem=mem)
     names = list(res.links)
-    if len(names) < 2:
-        raise ConfigError("consistency needs two or more spring_dampers between the port "
-                          "and a ground (links in parallel)", file=scene.path, key="links")
+    k_real = hand_stiffness(res.members)
+    real = bool(np.any(k_real > 0))
+    if len(names) + real < 2:
+        raise ConfigError("consistency needs two or more parts between the port and a "
+                          "ground: spring_dampers in parallel, or one and the hand's "
+                          "stiffness (device.hand.stiffness)", file=scene.path, key="links")
+    parts = res
+    if real:                 # each virtual part felt without the real spring
+        mem0 = res.members.copy()
+        mem0[:, 4] = 0.0
+        parts = family(scene, calibrated=res.calibrated, mem=mem0)
     b_real = float(scene.device.friction) + res.members[:, 1]
-    k_sum = sum(res.links[n]["k"] for n in names)
-    b_sum = sum(res.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+    k_sum = k_real + sum(parts.links[n]["k"] for n in names)
+    b_sum = (sum(parts.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+             if names else b_real)
     with np.errstate(invalid="ignore", divide="ignore"):
         kr = res.k / k_sum
         br = res.b / b_sum
     nom = res.corners
-    return {"links": names, "members": int(res.members.shape[0]),
+    return {"links": names, "real_spring": real, "members": int(res.members.shape[0]),
             "k_ratio": _stats(kr, kr[nom]), "b_ratio": _stats(br, br[nom]),
             "worst_k": float(np.nanmax(np.abs(kr - 1.0))),
             "worst_b": float(np.nanmax(np.abs(br - 1.0))),
-            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum}
+            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum, "k_real": k_real}
