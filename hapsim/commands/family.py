@@ -150,7 +150,8 @@ def _member_line(md: dict) -> str:
     return (f"hand {_g(md['mass'], 'g')} kg, damping {_g(md['damping'], 'g')} N s/m, grip "
             f"{kg if isinstance(kg, str) else _g(kg, '.6g')} N/m / "
             f"{_g(md['grip_damping'], 'g')} N s/m"
-            f"{' (a corner)' if md['corner'] else ''}: spectral radius "
+            + (f", arm stiffness {_g(md['stiffness'], 'g')} N/m" if md.get("stiffness") else "")
+            + f"{' (a corner)' if md['corner'] else ''}: spectral radius "
             f"{_g(md['spectral_radius'], '.9g')}")
 
 
