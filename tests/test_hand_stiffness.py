@@ -207,3 +207,17 @@ def test_consistency_of_a_real_and_a_virtual_spring_over_a_family_in_the_cli(cap
         "{name: wall, kind: ground}", "{name: wall, kind: mass, mass: 0.1}"))
     with pytest.raises(ConfigError, match="two or more parts"):
         consistency(no_link)
+
+
+def test_bad_hand_stiffness_is_refused_naming_the_key():
+    """A negative stiffness is a scene error; one beyond MAX_PRODUCT (kh T^2/mh > 1e6) is
+    refused by the analysis naming device.hand.stiffness, as LoopModel refuses it."""
+    from hapsim.errors import ConfigError
+    with pytest.raises(ConfigError, match="device.hand.stiffness"):
+        parse_scene(scene_text(kh="-1.0"))
+    with pytest.raises(ConfigError, match="device.hand.stiffness"):
+        closed_loop(parse_scene(scene_text(kh="[1, 1e12]")))
+    with pytest.raises(ConfigError, match="stiffness"):
+        LoopModel(mass=0.1, rate_hz=1000.0, stiffness=-1.0)
+    with pytest.raises(ConfigError, match="kh T\\^2/m"):
+        LoopModel(mass=0.1, rate_hz=1000.0, stiffness=1e12)

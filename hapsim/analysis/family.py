@@ -283,7 +283,8 @@ class FamilyResult:
         Felt pair at the port of the whole scene per member [N/m, N s/m].
     links : dict
         ``{link name: {"K", "B", "k": ndarray (n,), "b": ndarray (n,)}}``: the felt pair of
-        each port-ground spring_damper alone (:func:`felt_links`).
+        each port-ground spring_damper alone (:func:`felt_links`) on the member (with the
+        hand's stiffness to ground, when it has one: :func:`consistency` separates them).
     calibrated : dict
         ``{link: (K, B)}`` used for target links (calibrated on the nominal member).
     period : float

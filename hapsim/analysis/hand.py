@@ -134,13 +134,19 @@ def hand_zoh(mc: float, bc: float, member, period: float):
     return _zoh(A, b, float(period))
 
 
-def _zoh(A: np.ndarray, b: np.ndarray, T: float):
-    """``(A Gamma, Gamma b)`` of a stack of ``[x, v, ...]`` systems (:func:`hand_zoh`)."""
-    # Gamma = T phi1(A T), computed on the balanced [x, v T] coordinates (O(1) entries:
-    # (w T)^2 and damping x T / m) and mapped back: phi1(S X S^-1) = S phi1(X) S^-1.
+def _phi1_balanced(A: np.ndarray, T: float) -> np.ndarray:
+    """``phi1(A T)`` of a stack of ``[x, v, ...]`` systems, computed on the balanced
+    ``[x, v T]`` coordinates (O(1) entries: ``(w T)^2`` and damping ``x T / m``) and mapped
+    back: ``phi1(S X S^-1) = S phi1(X) S^-1``."""
     S = np.tile([1.0, T], A.shape[-1] // 2)
-    F = _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
-    return (A * T) @ F, (F @ b) * T
+    return _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
+
+
+def _zoh(A: np.ndarray, b: np.ndarray, T: float):
+    """``(A Gamma, Gamma b)`` of a stack of ``[x, v, ...]`` systems (:func:`hand_zoh`);
+    ``Gamma = T phi1(A T)``; ``b`` one column or a stack of them."""
+    F = _phi1_balanced(A, T)
+    return (A * T) @ F, np.matmul(F, b[..., None])[..., 0] * T
 
 
 def _rigid_matrices(mass, friction, stiffness):
@@ -186,10 +192,7 @@ def body_zoh(mc: float, bc: float, member, period: float):
     if np.all(np.isfinite(p[..., 2])):
         return hand_zoh(mc, bc, p, period)
     A, b = _rigid_matrices(mc + p[..., 0], bc + p[..., 1], hand_stiffness(p))
-    T = float(period)
-    S = np.array([1.0, T])
-    F = _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
-    return (A * T) @ F, np.einsum("...ij,...j->...i", F, b) * T
+    return _zoh(A, b, float(period))
 
 
 def ideal_rows(mass, friction, stiffness, period: float):
@@ -219,10 +222,7 @@ def ideal_rows(mass, friction, stiffness, period: float):
     """
     A, b = _rigid_matrices(mass, friction, stiffness)
     T = float(period)
-    S = np.array([1.0, T])
-    X = A * T
-    F = _phi1(X * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
-    W = X @ F                                   # e^(AT) - I
+    W = (A * T) @ _phi1_balanced(A, T)          # e^(AT) - I
     tr = 2.0 + W[..., 0, 0] + W[..., 1, 1]
     det = np.exp(-np.asarray(friction, float) * T / np.asarray(mass, float))
     g = T * W[..., 0, 1] * b[..., 1]            # e^(AT)[0, 1] / m

@@ -178,7 +178,8 @@ class LoopModel:
     ConfigError
         On a non-positive mass or rate, a negative friction, a negative or non-integer
         delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
-        :data:`RATE_RANGE`, ``b0 T / m > MAX_PRODUCT``, a delay above :data:`MAX_DELAY`;
+        :data:`RATE_RANGE`, ``b0 T / m`` or ``kh T^2 / m > MAX_PRODUCT``, a delay above
+        :data:`MAX_DELAY`, a negative ``stiffness``;
         a hand part not inside the whole, a compliant grip with the ideal hold; ``key``
         names the field.
 
@@ -237,6 +238,7 @@ class LoopModel:
         kh = num("stiffness", self.stiffness)
         if kh < 0:
             raise ConfigError(f"must be >= 0 [N/m], got {self.stiffness!r}", key="stiffness")
+        check_product(kh, 1.0 / (r * r * m), "stiffness", "N/m", "kh T^2/m")
         object.__setattr__(self, "stiffness", kh)
         if not self.rigid:
             mh, bh = float(self.hand_mass), float(self.hand_damping)

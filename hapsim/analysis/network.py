@@ -769,8 +769,9 @@ def _check_products(scene, calibrated, gain: float) -> None:
     """Refuse a link or device friction whose dimensionless product exceeds MAX_PRODUCT.
 
     ``|K| T^2 / m`` and ``|B| T / m`` with ``m`` the lightest moving end of the link (a
-    virtual mass, or the device mass at the port; grounds do not move), and ``b0 T / m``
-    of the device (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
+    virtual mass, or the device mass at the port; grounds do not move), ``b0 T / m``
+    of the device and ``kh T^2 / mh`` of the hand's stiffness (largest stiffness, lightest
+    hand of a range) (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
     """
     T = scene.period
     inertia = {m.name: m.mass for m in scene.masses if m.kind == "mass"}
@@ -782,6 +783,15 @@ def _check_products(scene, calibrated, gain: float) -> None:
                           "N s/m", "b0 T/m")
         except ConfigError as exc:
             raise ConfigError(exc.reason, file=scene.path, key="device.friction") from None
+        hand = getattr(dev, "hand", None)
+        if hand is not None:       # the arm's spring acts on the hand (+ handle) mass
+            from hapsim.analysis.hand import _span
+            kh, mh = _span(hand.stiffness)[1], _span(hand.mass)[0]
+            try:
+                check_product(kh, T * T / mh, "device.hand.stiffness", "N/m", "kh T^2/m")
+            except ConfigError as exc:
+                raise ConfigError(exc.reason, file=scene.path,
+                                  key="device.hand.stiffness") from None
     for lk, K, B in link_values(scene, calibrated):
         ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
         if not ends:
