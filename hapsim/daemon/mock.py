@@ -66,6 +66,9 @@ DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
 #: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
+#: Above this native rate [Hz] ``serve_fd(tick="auto")`` ticks in numba; at and below it in
+#: Python (the compiled tick's loading delays the HELLO by 0.5-1 s; 1 kHz runs do not need it).
+AUTO_COMPILED_HZ = 2000.0
 MOCK_SPIN_NS = 0
 
 
@@ -834,7 +837,7 @@ def _load_tick(dev):
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None, tick: str = "compiled", hello: bool = True) -> dict:
+             on_host_gone=None, tick: str = "auto", hello: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -867,8 +870,12 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     on_host_gone : callable, optional
         ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
         called (outside any tick) each time a persistent device loses its host.
-    tick : {"compiled", "python"}
-        ``"compiled"`` (default): while armed in real time, the ticks run in numba
+    tick : {"auto", "compiled", "python"}
+        ``"auto"`` (default): ``"compiled"`` when the device's native rate is above
+        :data:`AUTO_COMPILED_HZ`, else ``"python"`` -- loading numba and the compiled tick
+        costs the child about 0.5-1 s before its HELLO (``tools/bench_startup.py``), which a
+        1 kHz run does not need: the Python tick keeps 1 kHz (``tools/bench_mock.py``).
+        ``"compiled"``: while armed in real time, the ticks run in numba
         (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
         sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
         lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
@@ -907,8 +914,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     from hapsim.daemon.faults import FaultyDevice
 
     flag = flag or StopFlag()
-    if tick not in ("compiled", "python"):
-        raise ConfigError(f"unknown tick {tick!r}; valid: compiled, python", key="--tick")
+    if tick not in ("auto", "compiled", "python"):
+        raise ConfigError(f"unknown tick {tick!r}; valid: auto, compiled, python", key="--tick")
+    if tick == "auto":
+        tick = "compiled" if mock.native_rate_hz > AUTO_COMPILED_HZ else "python"
     if plan is not None and plan.has_vanish and reopen is None:
         raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
                           key="--faults")
