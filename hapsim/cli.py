@@ -127,8 +127,14 @@ def error_json(exc: BaseException | None, code: int, message: str) -> str:
     return json.dumps({"error": err, "exit": code})
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """Build the top-level argument parser with every sub-command registered.
+
+    Parameters
+    ----------
+    only : str, optional
+        Register this command only (one of :data:`COMMANDS`): ``hapsim run`` then imports
+        none of the other commands' modules (start-up time). Default: all of them.
 
     Returns
     -------
@@ -153,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"hapsim {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
+    for name in (only,) if only in COMMANDS else COMMANDS:
         module = importlib.import_module(f"hapsim.commands.{name}")
         module.register(sub)
     return parser
@@ -178,7 +184,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _ARGV[:] = argv
         HapsimArgumentParser.last_usage_error = None
-        parser = build_parser()           # imports every command: Ctrl-C may land here
+        # the command named first: only its module is imported (the others' imports cost
+        # start-up time); no command, or an unknown one: all, for the listing and the error
+        first = next((a for a in argv if not a.startswith("-")), None)
+        parser = build_parser(first)      # imports the command(s): Ctrl-C may land here
         try:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # argparse exits 2 on bad input, 0 on --help

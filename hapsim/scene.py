@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
-from hapsim.errors import ConfigError, show
+from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
                                  section_keys)
@@ -609,11 +609,11 @@ def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None =
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
     if positive and not v > 0:
-        raise _Invalid(f"must be > 0, got {v:g}", where)
+        raise _Invalid(f"must be > 0, got {num(v)}", where)
     if minimum is not None and v < minimum:
-        raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
+        raise _Invalid(f"must be >= {minimum:g}, got {num(v)}", where)
     if maximum is not None and v > maximum:
-        raise _Invalid(f"must be <= {maximum:g}, got {v:g}", where)
+        raise _Invalid(f"must be <= {maximum:g}, got {num(v)}", where)
 
 
 def _check_key(k: Key, v: Any, *where: Any) -> None:
@@ -648,11 +648,11 @@ def _in_range(k: Key, x: float, where: tuple) -> None:
         if not (below or (hi is not None and x > hi)):
             continue
         if lo is not None and hi is not None:
-            msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
+            msg = f"must be between {lo:g} and {hi:g}{unit}, got {num(x)}"
         elif below:
-            msg = f"must be {'>' if strict else '>='} {lo:g}, got {x:g}"
+            msg = f"must be {'>' if strict else '>='} {lo:g}, got {num(x)}"
         else:
-            msg = f"must be <= {hi:g}{unit}, got {x:g}"
+            msg = f"must be <= {hi:g}{unit}, got {num(x)}"
         raise _Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
 
 

@@ -321,7 +321,12 @@ def _theta(spec) -> np.ndarray:
 
 
 def _solve(spec, theta, y, offset):
-    phi, dcols = _basis(spec, theta, y.size, offset)
+    with np.errstate(over="ignore", invalid="ignore"):
+        phi, dcols = _basis(spec, theta, y.size, offset)
+    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
+        # a trial pole growing past the float range: what lstsq raises on it, without
+        # LAPACK first printing its complaint on stdout (into a --json report)
+        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
     c, *_ = np.linalg.lstsq(phi, y, rcond=None)
     return phi, dcols, c, phi @ c - y
 

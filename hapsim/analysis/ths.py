@@ -452,6 +452,87 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
     return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
 
 
+def brent_root(f, a: float, b: float, *, xtol: float = 1e-12, rtol: float = 1e-15,
+               maxiter: int = 200) -> float:
+    """A root of ``f`` in ``[a, b]`` by Brent's method (bisection, secant and inverse
+    quadratic interpolation).
+
+    Written here so that the stability limit, which every ``hapsim run`` reports, needs no
+    ``scipy.optimize`` (its import costs ~0.3 s of start-up).
+
+    Parameters
+    ----------
+    f : callable
+        ``f(x) -> float``, continuous on ``[a, b]``.
+    a, b : float
+        Bracket; ``f(a)`` and ``f(b)`` of opposite signs (or one of them 0).
+    xtol, rtol : float
+        The root is returned once the bracket is below ``xtol + rtol |x|`` [units of x].
+    maxiter : int
+        Most evaluations of ``f`` after the two at the ends.
+
+    Returns
+    -------
+    float
+        ``x`` in ``[a, b]`` with ``f(x) = 0`` or within the tolerance of a sign change.
+
+    Raises
+    ------
+    ValueError
+        ``f(a)`` and ``f(b)`` have the same sign (no bracket).
+    RuntimeError
+        Not converged within ``maxiter`` evaluations.
+
+    Notes
+    -----
+    R. P. Brent, *Algorithms for Minimization without Derivatives* (Prentice-Hall, 1973),
+    ch. 4 (procedure *zero*): each step takes the interpolated point when it falls inside
+    the bracket and shrinks the step faster than bisection would, else bisects; the
+    bracket always holds the sign change.
+    """
+    fa, fb = float(f(a)), float(f(b))
+    if fa == 0.0:
+        return float(a)
+    if fb == 0.0:
+        return float(b)
+    if (fa > 0.0) == (fb > 0.0):
+        raise ValueError("f(a) and f(b) must have opposite signs")
+    c, fc = a, fa
+    d = e = b - a
+    for _ in range(int(maxiter)):
+        if (fb > 0.0) == (fc > 0.0):          # keep the sign change between b and c
+            c, fc = a, fa
+            d = e = b - a
+        if abs(fc) < abs(fb):                 # b: the best estimate so far
+            a, b, c = b, c, b
+            fa, fb, fc = fb, fc, fb
+        tol = 0.5 * (xtol + rtol * abs(b))
+        xm = 0.5 * (c - b)
+        if abs(xm) <= tol or fb == 0.0:
+            return float(b)
+        if abs(e) >= tol and abs(fa) > abs(fb):
+            s = fb / fa
+            if a == c:                        # secant
+                p, q = 2.0 * xm * s, 1.0 - s
+            else:                             # inverse quadratic interpolation
+                q, r = fa / fc, fb / fc
+                p = s * (2.0 * xm * q * (q - r) - (b - a) * (r - 1.0))
+                q = (q - 1.0) * (r - 1.0) * (s - 1.0)
+            if p > 0.0:
+                q = -q
+            p = abs(p)
+            if 2.0 * p < min(3.0 * xm * q - abs(tol * q), abs(e * q)):
+                e, d = d, p / q               # interpolation accepted
+            else:
+                d = e = xm                    # bisection
+        else:
+            d = e = xm
+        a, fa = b, fb
+        b += d if abs(d) > tol else math.copysign(tol, xm)
+        fb = float(f(b))
+    raise RuntimeError(f"Brent's method did not converge in {maxiter} evaluations")
+
+
 def _circle_values(A, C, e: int):
     """Real ``x`` for which ``x A(w) + C(w)`` has a root on the unit circle.
 
@@ -488,10 +569,9 @@ def _circle_values(A, C, e: int):
         if gv[i] == 0.0:
             th = thetas[i]
         else:
-            from scipy.optimize import brentq  # here: `import hapsim.analysis` stays light
             try:
-                th = brentq(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
-                            maxiter=200)
+                th = brent_root(g, thetas[i], thetas[i + 1], xtol=1e-300, rtol=1e-15,
+                                maxiter=200)
             except ValueError:  # scalar and vector rounding disagree on a tiny |g|
                 th = 0.5 * (thetas[i] + thetas[i + 1])
         w = wof(th)

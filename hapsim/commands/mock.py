@@ -97,6 +97,13 @@ def register(sub) -> None:
     p.add_argument("--firmware", action="store_true",
                    help="run the Hapkit 3 reference firmware on the emulated board (simavr) "
                         "instead of the Python mock (default scene: configs/hapkit.yaml)")
+    p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
+                   help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
+                        "(loading the compiled tick delays the HELLO by 0.5-1 s). "
+                        "Real-time ticks in numba ('compiled': same bytes as the "
+                        "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
+                        "sensor noise and a compliant grip stay in Python) or in Python "
+                        "('python', the reference)")
     p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
@@ -207,8 +214,11 @@ def run(args) -> int:
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
         with rt:
+            # no HELLO before asked: the host opens the port after this child started,
+            # and pyserial's open flushes what is waiting (half a HELLO: a bad frame)
             serve_fd(args.fd, mock, exit_on_stop=False, report_path=args.report, flag=flag,
-                     handle_signals=False, plan=plan, reopen=reopen)
+                     handle_signals=False, plan=plan, reopen=reopen, tick=args.tick,
+                     hello=False)
         return 0
     import sys
     master, slave = _new_pty(args.link, announce=True)
@@ -235,7 +245,8 @@ def run(args) -> int:
                 print(f"hapsim mock: scheduling {rt.note}", file=sys.stderr, flush=True)
             report = serve_fd(master, mock, exit_on_stop=not persistent,
                               report_path=args.report, plan=plan, reopen=reopen,
-                              persistent=persistent, on_host_gone=host_gone)
+                              persistent=persistent, on_host_gone=host_gone,
+                              tick=args.tick)
         if persistent:
             print(f"hapsim mock: stopped ({report['end']}); {len(served)} host(s) served "
                   f"and gone", file=sys.stderr, flush=True)

@@ -223,7 +223,6 @@ def run(args) -> int:
     DeviceError, ProtocolError
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
-    from hapsim.daemon.runner import format_report
     from hapsim.scene import load_scene
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
@@ -267,8 +266,17 @@ def run(args) -> int:
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
+    embedded = None
+    if args.port is None and args.driver == "framed":
+        # the mock's child starts now, beside the imports and the warm-up that follow
+        from hapsim.daemon.startup import start_embedded_mock
+        embedded = start_embedded_mock(scene, rate_hz=args.rate, lockstep=args.lockstep,
+                                       seed=args.seed, faults=args.faults,
+                                       fault_seed=args.fault_seed,
+                                       rt_priority=max(args.rt_priority, 0))
+    from hapsim.daemon.runner import format_report
     try:
-        rep = _run(scene, args)
+        rep = _run(scene, args, embedded)
     except (DeviceError, ProtocolError) as exc:
         rep = getattr(exc, "report", None)
         if rep is None:                 # never started: nothing to report but the error
@@ -289,7 +297,7 @@ def run(args) -> int:
     return code
 
 
-def _run(scene, args) -> dict:
+def _run(scene, args, embedded=None) -> dict:
     """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
     from hapsim.daemon.runner import run_scene
     return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
@@ -303,4 +311,4 @@ def _run(scene, args) -> dict:
                      reconnect_time=args.reconnect_time, osc=args.osc,
                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
                      driver=None if args.driver == "framed" else args.driver,
-                     loop=args.loop)
+                     loop=args.loop, embedded=embedded)

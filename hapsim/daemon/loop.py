@@ -516,6 +516,12 @@ class HostLoop:
         #: Called between two samples, before the engine steps (live changes: the
         #: mailbox of :class:`hapsim.audio.control.Controller`); None: nothing.
         self.poll = None
+        #: Called once the device's HELLO is checked, before PING and CONFIG (``hapsim
+        #: run``: waits for the numba warm-up that ran while the device started); None:
+        #: nothing.
+        self.before_arm = None
+        #: :attr:`_clock` time of the first armed STATE (start-up figure); None before.
+        self.first_state_at = None
         self.transport = transport
         self.config = config
         self.tel = telemetry
@@ -683,6 +689,10 @@ class HostLoop:
                               f"(port {tr.info.get('port')}); last frames:\n"
                               f"{tr.last_frames() or '(none received)'}")
         self._check_hello(hello)
+        if self.before_arm is not None:
+            self.before_arm()
+            if self.stop.set:       # a signal during the warm-up: the device is not armed
+                return None
         self._ask_sensors()
         self._measure_ping()
         self._send_config()
@@ -979,6 +989,8 @@ class HostLoop:
             The engine to step.
         """
         self._restart_flag = 0
+        if self.first_state_at is None:
+            self.first_state_at = self._clock()
         if self._lost_since is not None:
             self._restart_flag = FLAG_LOST          # telemetry: the scene restarts here
             self.engine = type(self.engine)(self.engine.scene)

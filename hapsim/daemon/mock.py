@@ -66,6 +66,9 @@ DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
 #: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
+#: Above this native rate [Hz] ``serve_fd(tick="auto")`` ticks in numba; at and below it in
+#: Python (the compiled tick's loading delays the HELLO by 0.5-1 s; 1 kHz runs do not need it).
+AUTO_COMPILED_HZ = 2000.0
 MOCK_SPIN_NS = 0
 
 
@@ -828,10 +831,25 @@ def _write(fd: int, data: bytes) -> bool:
         return False
 
 
+def _load_tick(dev):
+    """The compiled tick for ``dev`` (numba's cache loaded, or compiled once), before any
+    tick; ``(CompiledMock, None)``, or ``(None, reason)`` when it cannot load (the Python
+    tick serves). Not in a thread beside the serving loop: a loading thread holding the GIL
+    while the scheduler preempts it stalled the serving thread (late ticks, losses)."""
+    try:
+        from hapsim.daemon import fastmock
+        from hapsim.daemon.startup import preload_numba_blas
+        preload_numba_blas()
+        fastmock.warm_up_mock()
+        return fastmock.CompiledMock(dev), None
+    except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
+        return None, f"{type(exc).__name__}: {exc}"
+
+
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None) -> dict:
+             on_host_gone=None, tick: str = "auto", hello: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -864,6 +882,21 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     on_host_gone : callable, optional
         ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
         called (outside any tick) each time a persistent device loses its host.
+    tick : {"auto", "compiled", "python"}
+        ``"auto"`` (default): ``"compiled"`` when the device's native rate is above
+        :data:`AUTO_COMPILED_HZ`, else ``"python"`` -- loading numba and the compiled tick
+        costs the child about 0.5-1 s before its HELLO (``tools/bench_startup.py``), which a
+        1 kHz run does not need: the Python tick keeps 1 kHz (``tools/bench_mock.py``).
+        ``"compiled"``: while armed in real time, the ticks run in numba
+        (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
+        sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
+        lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
+        ``"python"``: this function's Python loop throughout (the reference).
+    hello : bool
+        Say ``0x00`` + HELLO at once, as a device does when its port opens (default). False:
+        only when asked (HELLO_REQUEST), for a port the host opens *after* this starts
+        (``hapsim run``'s embedded mock): pyserial's open flushes the input and could cut
+        an early HELLO in half (a bad frame); the host always asks.
 
     Returns
     -------
@@ -874,7 +907,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     Raises
     ------
     ConfigError
-        A plan with ``vanish`` but no ``reopen``.
+        A plan with ``vanish`` but no ``reopen``, or an unknown ``tick``.
 
     Notes
     -----
@@ -893,6 +926,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     from hapsim.daemon.faults import FaultyDevice
 
     flag = flag or StopFlag()
+    if tick not in ("auto", "compiled", "python"):
+        raise ConfigError(f"unknown tick {tick!r}; valid: auto, compiled, python", key="--tick")
+    if tick == "auto":
+        tick = "compiled" if mock.native_rate_hz > AUTO_COMPILED_HZ else "python"
     if plan is not None and plan.has_vanish and reopen is None:
         raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
                           key="--faults")
@@ -903,13 +940,18 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             signal.signal(s, _on_signal)
     os.set_blocking(fd, False)
     dev = FaultyDevice(mock, plan)
+    fast = load_error = None
+    if tick == "compiled" and not mock.lockstep and (plan is None or plan.empty):
+        fast, load_error = _load_tick(dev)       # before HELLO: every tick is compiled
+    python_once = False              # the compiled stretch saw the port hang up: Python reads
     t0 = time.monotonic_ns()
 
     def now_us() -> int:
         return (time.monotonic_ns() - t0) // 1000
 
-    dev.connect(now_us())
-    _write(fd, dev.pop_due(now_us()))
+    if hello:
+        dev.connect(now_us())
+        _write(fd, dev.pop_due(now_us()))
     gc_was = gc.isenabled()
     gc.disable()
     deadline = None            # monotonic ns of the next real-time tick
@@ -945,8 +987,19 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             if down:
                 end = max(dev.stalled_until_us, dev.vanished_until_us)
                 wait = min(wait, max((end - t_us) * 1e-6, 0.0))
+            pending = None           # host bytes the compiled stretch handed over
+            if (fast is not None and deadline is not None and not down and not python_once
+                    and not awaiting_host and not dev._out and not dev.decoder._overflow
+                    and fast.reason() is None):
+                code, deadline, pending = fast.serve(fd, t0, deadline, period_ns, flag)
+                if code != fast.R_HANDOFF:
+                    python_once = code == fast.R_PORT
+                    continue
+            python_once = False
             r = []
-            if wait > 0:
+            if pending is not None:
+                r = [fd]
+            elif wait > 0:
                 try:
                     if down:
                         time.sleep(min(wait, 0.05))
@@ -958,7 +1011,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 r = [fd]
             if r:
                 try:
-                    chunk = os.read(fd, 4096)
+                    chunk = pending if pending is not None else os.read(fd, 4096)
                 except BlockingIOError:
                     chunk = None
                 except OSError:            # EIO: every slave fd closed
@@ -1011,6 +1064,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         report["end"] = reason
         report["decoder"] = dev.decoder.stats.as_dict()
         report["totals"] = mock.totals()
+        report["compiled_ticks"] = fast.ticks if fast is not None else 0
+        if load_error is not None:
+            report["compiled_note"] = f"compiled tick unavailable: {load_error}"
         if plan is not None:
             report["faults_injected"] = dict(plan.to_dict()["injected"])
             report["fault_events"] = dev.events

@@ -40,6 +40,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
+from hapsim.daemon.startup import preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -508,6 +509,7 @@ class RunOptions:
     sound: str | None = None
     jack_server: str | None = None
     plan: object = None
+    embedded: object = None
 
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
@@ -633,6 +635,9 @@ class Connection:
     measured : MeasuredVelocity or None
         The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
         correction: the loop asks the device for it and the engine reads it.
+    warm : thread or None
+        The numba warm-up, still running: :func:`run_loop` waits for it
+        (``finish()``) after the device's HELLO, before CONFIG arms it.
     """
 
     engine: object
@@ -645,6 +650,7 @@ class Connection:
     mock: object = None
     old_signals: dict = field(default_factory=dict)
     measured: object = None
+    warm: object = None
 
 
 @dataclass
@@ -795,6 +801,7 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
@@ -833,7 +840,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
     DeviceError
         The port cannot be opened.
     """
-    from hapsim.engine import Engine
     scene, dev = prep.scene, prep.scene.device
     stop = opts.stop or StopFlag()
     old = {}
@@ -851,9 +857,21 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         limit_blas_threads(1)
         corr = getattr(dev, "correction", None)
         sensor = corr is not None and corr.get("kind") == "velocity_sensor"
-        # the kernels (and the compiled loop) load while the device (the mock's child) starts
+        # the kernels (and the compiled loop) load while the device (the mock's child)
+        # starts and says HELLO: the loop waits for them just before it arms the device
+        # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
                               and corr is None)
+        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
+        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
+        if transport == "pty" and opts.driver in (None, "framed"):
+            # first: the child's interpreter and imports run beside everything below
+            from hapsim.daemon.transport import EmbeddedMock
+            embedded = opts.embedded or EmbeddedMock(
+                dev, scene.excitation, scene.rate_hz, lockstep=lockstep, seed=opts.seed,
+                base_dir=prep.base_dir, faults=opts.faults or None,
+                fault_seed=opts.fault_seed)
+        from hapsim.engine import Engine
         engine = Engine(scene)
         measured = None
         if corr is not None:
@@ -875,8 +893,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:                                          # long or open-ended: head + ring
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
-        rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") else 0)
-        rt.__enter__()  # before the embedded mock starts, so that it inherits the policy
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
@@ -900,25 +916,22 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = SimTransport(mock, opts.plan)
         elif transport == "pty":
-            from hapsim.daemon.transport import EmbeddedMock, SerialTransport
-            embedded = EmbeddedMock(dev, scene.excitation, scene.rate_hz, lockstep=lockstep,
-                                    seed=opts.seed, base_dir=prep.base_dir,
-                                    faults=opts.faults or None, fault_seed=opts.fault_seed)
+            from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(embedded.port, opts.baud)
             embedded.release_slave()
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(opts.port, opts.baud)
-        if warm is not None:
-            warm.finish()
     except BaseException:
+        if warm is not None:
+            warm.join()                 # numba's loading is not left half done
         if rt is not None:
             rt.__exit__(None, None, None)
         if embedded is not None:
             embedded.close()
         _restore_signals(old)
         raise
-    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old, measured)
+    return Connection(engine, tel, cfg, stop, tr, rt, embedded, mock, old, measured, warm)
 
 
 def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
@@ -974,6 +987,13 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         else:
             loop = HostLoop(conn.engine, tr, conn.cfg, tel, conn.stop, measured=conn.measured)
         loop.python_reason = why if opts.loop == "compiled" else None
+
+        def before_arm() -> None:
+            _finish_warm(conn)
+            if opts.on_start is not None:
+                opts.on_start(tr.info.get("port"), prep.n_samples)
+
+        loop.before_arm = before_arm
         if opts.osc is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
         if telemetry:
@@ -982,8 +1002,6 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                                  events=loop.result.events).start()
             if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
                 tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
-        if opts.on_start is not None:
-            opts.on_start(tr.info.get("port"), prep.n_samples)
         try:
             res = loop.run()
         except (DeviceError, ProtocolError) as exc:
@@ -992,9 +1010,12 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
+        if conn.warm is not None:       # the loop ended before it armed the device
+            conn.warm.join()
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
+            ctl.close()                 # its analysis process
         if out is not None:
             out.close()
         conn.rt.__exit__(None, None, None)
@@ -1245,6 +1266,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
         "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        # start-up: the first armed STATE, seconds after this process started
+        "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
@@ -1312,7 +1335,7 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "python") -> dict:
+              driver: str | None = None, loop: str = "python", embedded=None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1362,9 +1385,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         pty or a serial port, where the OS permits it; 0 for normal scheduling. Restored
         after the run; the report's ``loop.scheduling`` says what was obtained.
     on_start : callable, optional
-        Called as ``on_start(port, n_samples)`` once the port is open and the signal
-        handlers are installed, just before the handshake (e.g. to tell the user that
-        Ctrl-C now stops cleanly).
+        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
+        the device has said HELLO and the numba warm-up is done, just before the device is
+        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
     faults : str, optional
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
     fault_seed : int
@@ -1397,6 +1420,10 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the sound server (report: ``sound`` with xruns and ring underruns).
     jack_server : str, optional
         JACK server name.
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run
+        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
+        closed here whatever happens. Default: started by :func:`connect`.
     loop : {"compiled", "python"}
         Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
         serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
@@ -1437,8 +1464,18 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
                       osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop).check()
-    prep = prepare_run(scene, opts)
+                      driver=driver, loop=loop, embedded=embedded)
+    try:
+        opts.check()
+        if embedded is not None and (opts.transport != "pty"
+                                     or opts.driver not in (None, "framed")):
+            opts.embedded = None            # not this run's device
+            embedded.close()
+        prep = prepare_run(scene, opts)
+    except BaseException:
+        if embedded is not None:
+            embedded.close()
+        raise
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
@@ -1450,6 +1487,21 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         run.error.report = rep
         raise run.error
     return rep
+
+
+def _since_start(t, opts: RunOptions):
+    """``t`` (time.monotonic [s]) in seconds since the process started; None when ``t`` is
+    None or the loop's clock is not the wall's (a virtual-clock transport)."""
+    if t is None or opts.transport == "sim":
+        return None
+    return round(t - process_start(), 4)
+
+
+def _finish_warm(conn: Connection) -> None:
+    """Wait for the numba warm-up (:class:`_CompileThread`) once; re-raise its error."""
+    warm, conn.warm = conn.warm, None
+    if warm is not None:
+        warm.finish()
 
 
 def _sync_drain(writer: ChunkWriter, tel: Telemetry):
@@ -1584,6 +1636,9 @@ def format_report(rep: dict) -> str:
                  f"{lp.get('scheduling', 'normal')}")
     if lp.get("python_reason"):
         lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+    if lp.get("first_sample_s") is not None:
+        lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
+                     f"started")
     pr = lp.get("ping_rtt_us") or {}
     if pr.get("p50") is not None:
         lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "

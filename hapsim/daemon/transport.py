@@ -283,6 +283,11 @@ class EmbeddedMock:
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); validated here first.
     fault_seed : int
         Seed of the fault generator.
+    rt_priority : int
+        When > 0, the child is put under ``SCHED_FIFO`` at this priority as soon as it
+        exists (where the OS permits it; otherwise it keeps the policy it inherited).
+    tick : {"auto", "compiled", "python"}
+        The mock's real-time ticks (``hapsim mock --tick``).
 
     Attributes
     ----------
@@ -304,7 +309,7 @@ class EmbeddedMock:
 
     def __init__(self, device, excitation, rate_hz: float, *, lockstep: bool = False,
                  seed: int = 0, base_dir: str | None = None, faults: str | None = None,
-                 fault_seed: int = 0) -> None:
+                 fault_seed: int = 0, rt_priority: int = 0, tick: str = "auto") -> None:
         import dataclasses
         import tempfile
 
@@ -330,7 +335,7 @@ class EmbeddedMock:
             spec["device"]["force_limit"] = None
         cmd = [sys.executable, "-m", "hapsim", "mock", "--fd", str(master),
                "--spec", json.dumps(spec), "--rate", repr(float(rate_hz)),
-               "--report", self.report_path, "--seed", str(seed)]
+               "--report", self.report_path, "--seed", str(seed), "--tick", tick]
         if lockstep:
             cmd.append("--lockstep")
         if faults:
@@ -345,6 +350,12 @@ class EmbeddedMock:
                                          stdin=subprocess.DEVNULL, start_new_session=True)
         finally:
             os.close(master)
+        if rt_priority > 0 and hasattr(os, "sched_setscheduler"):
+            try:        # as the host's policy, from the child's first import on
+                os.sched_setscheduler(self.proc.pid, os.SCHED_FIFO,
+                                      os.sched_param(int(rt_priority)))
+            except (OSError, ValueError):
+                pass    # not permitted: the child keeps the policy it inherited
 
     def report(self, timeout: float = 3.0) -> dict | None:
         """Wait for the child to exit and return what it saw.

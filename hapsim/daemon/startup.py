@@ -1,0 +1,142 @@
+"""Start-up of ``hapsim run``: what it costs, and the one import it can skip.
+
+``hapsim run`` reaches its first sample after: the interpreter, the command's imports,
+the scene, the prediction, the device (the embedded mock's child process starts first)
+and the numba warm-up (kernels loaded from numba's on-disk cache, in a thread while the
+device starts and says HELLO). Measured with ``python -X importtime`` (issue 13), two
+things cost more than the rest: ``scipy.optimize`` (the stability limit's root finder,
+now :func:`hapsim.analysis.ths.brent_root`) and ``scipy.linalg``, which numba imports the
+first time it sets up its compiler, even to load a cached function, only to check that
+its BLAS bindings (``scipy.linalg.cython_blas``) exist. :func:`preload_numba_blas` loads
+that one extension module by itself, so that numba's check passes without the package.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock"]
+
+
+def process_start() -> float:
+    """When this process started, on the clock of :func:`time.monotonic` [s].
+
+    Returns
+    -------
+    float
+        Start time [s] (Linux: the start time in ``/proc/self/stat``, 10 ms resolution,
+        carried from ``CLOCK_BOOTTIME`` to ``CLOCK_MONOTONIC``); elsewhere the time this
+        module was imported.
+    """
+    try:
+        with open("/proc/self/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        started_boot = int(fields[19]) / os.sysconf("SC_CLK_TCK")   # starttime (field 22)
+        now_mono = time.monotonic()
+        now_boot = time.clock_gettime(time.CLOCK_BOOTTIME)
+        return now_mono - (now_boot - started_boot)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return _IMPORTED
+
+
+_IMPORTED = time.monotonic()
+
+
+def preload_numba_blas() -> bool:
+    """Load ``scipy.linalg.cython_blas`` without importing the ``scipy.linalg`` package.
+
+    numba imports ``scipy.linalg.cython_blas`` when it first sets up its compiler (its
+    ``np.dot`` / ``np.linalg`` support checks that the BLAS bindings exist; numba
+    0.5x-0.6x, ``numba.np.arraymath._check_blas``); importing it runs ``scipy.linalg``'s
+    ``__init__``, ~0.15-0.3 s of the warm-up. With the extension module already in
+    ``sys.modules`` under its full name that import finds it and nothing else is loaded;
+    numba's BLAS calls at run time look the module up there too. A later
+    ``import scipy.linalg`` works as usual and finds the same extension module.
+
+    Returns
+    -------
+    bool
+        True when the module is (now) in ``sys.modules``; False when scipy is not
+        installed or the module could not be loaded (numba then imports it its own way).
+
+    Notes
+    -----
+    Call it before the first numba compilation or cache load of the process. After it,
+    ``scipy.linalg.cython_blas`` as an *attribute* of ``scipy.linalg`` exists only once
+    something imports it as a submodule again (``import scipy.linalg.cython_blas``).
+    """
+    name = "scipy.linalg.cython_blas"
+    if name in sys.modules or "scipy.linalg" in sys.modules:
+        return name in sys.modules or _import_real(name)
+    try:
+        import importlib.machinery
+        import importlib.util
+
+        import scipy
+        folder = os.path.join(os.path.dirname(scipy.__file__), "linalg")
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+            path = os.path.join(folder, "cython_blas" + suffix)
+            if os.path.exists(path):
+                spec = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                sys.modules[name] = module
+                return True
+    except Exception:   # noqa: BLE001 - any failure: numba imports scipy.linalg itself
+        return False
+    return False
+
+
+def _import_real(name: str) -> bool:
+    try:
+        __import__(name)
+        return True
+    except ImportError:
+        return False
+
+
+def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool = False,
+                        seed: int = 0, faults: str | None = None, fault_seed: int = 0,
+                        rt_priority: int = 0, tick: str = "auto"):
+    """Start ``hapsim run``'s embedded mock device before the rest of the run's imports.
+
+    The mock's child process (its interpreter, numpy, numba and the compiled tick: about
+    half a second) then starts beside the host's own imports, prediction and numba warm-up
+    instead of after them. :func:`hapsim.daemon.runner.run_scene` takes it
+    (``embedded=``) as :func:`~hapsim.daemon.runner.connect` would have started it.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run (its device, excitation, rate and file).
+    rate_hz : float, optional
+        ``--rate`` (the native rate the mock announces); default the scene's.
+    lockstep, seed, faults, fault_seed
+        As :class:`hapsim.daemon.transport.EmbeddedMock`.
+    rt_priority : int
+        ``SCHED_FIFO`` priority given to the child at once (0: none).
+    tick : {"auto", "compiled", "python"}
+        The mock's real-time ticks.
+
+    Returns
+    -------
+    EmbeddedMock or None
+        None when the run would refuse the scene before starting a device (no port or
+        device section, or a delay of 0 outside lockstep): the run then says why.
+
+    Raises
+    ------
+    ConfigError
+        A bad fault SPEC.
+    """
+    dev = scene.device
+    if dev is None or scene.port is None or (dev.delay == 0 and not lockstep):
+        return None
+    from hapsim.daemon.transport import EmbeddedMock
+    base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" \
+        else None
+    return EmbeddedMock(dev, scene.excitation, float(rate_hz or scene.rate_hz),
+                        lockstep=lockstep, seed=seed, base_dir=base_dir, faults=faults,
+                        fault_seed=fault_seed, rt_priority=rt_priority, tick=tick)

@@ -1,0 +1,173 @@
+"""Start-up of ``hapsim run`` (issue 13): what its path imports, the root finder that
+replaced ``scipy.optimize``'s, the warm-up waited for between HELLO and CONFIG.
+
+No timing is asserted here: ``tools/bench_startup.py`` measures the seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from hapsim.analysis.ths import brent_root
+from hapsim.daemon.loop import HostLoop, LoopConfig
+from hapsim.daemon.mock import MockDevice
+from hapsim.daemon.telemetry import Telemetry
+from hapsim.daemon.transport import InProcessTransport
+from hapsim.engine import Engine
+from hapsim.scene import load_scene
+
+REPO = Path(__file__).resolve().parents[1]
+WALL = str(REPO / "configs" / "wall.yaml")
+
+
+def _python(code: str) -> dict:
+    """Run ``code`` in a fresh interpreter (the repository on its path); its last stdout
+    line as JSON."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, cwd=str(REPO), timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def test_run_path_imports_neither_scipy_optimize_nor_other_commands():
+    """The command line of ``hapsim run`` up to the prediction (what runs before the
+    first sample, but the numba warm-up) loads no scipy.optimize / scipy.linalg, and no
+    command module but ``run``'s."""
+    got = _python(f"""
+import json, sys
+from hapsim.cli import build_parser
+args = build_parser("run").parse_args(["run", {WALL!r}])
+from hapsim.daemon.runner import RunOptions, prepare_run
+from hapsim.scene import load_scene
+prep = prepare_run(load_scene(args.scene), RunOptions().check())
+print(json.dumps({{"stiffness_limit": prep.pred["stiffness_limit"],
+                  "mods": sorted(m for m in sys.modules
+                                 if m.startswith(("scipy.", "hapsim.commands.")))}}))
+""")
+    mods = got["mods"]
+    assert not [m for m in mods if m.startswith(("scipy.optimize", "scipy.linalg"))], mods
+    assert [m for m in mods if m.startswith("hapsim.commands.")] == ["hapsim.commands.run"]
+    assert got["stiffness_limit"] > 0        # computed, by brent_root
+
+
+def test_warm_up_loads_numba_without_scipy_linalg_and_blas_still_works():
+    """With :func:`preload_numba_blas` first, loading the kernels (numba's compiler set-up
+    included) imports only scipy.linalg's BLAS extension; numba's np.dot (BLAS) still
+    compiles and runs, and scipy.linalg imports as usual afterwards."""
+    got = _python(f"""
+import json, sys
+import numpy as np
+from hapsim.daemon.startup import preload_numba_blas
+from hapsim.daemon.runner import _warm_up
+from hapsim.scene import load_scene
+ok = preload_numba_blas()
+_warm_up(load_scene({WALL!r}))
+pkg = "scipy.linalg" in sys.modules
+import numba
+@numba.njit(cache=False)
+def mv(a, b):
+    return np.dot(a, b)
+a = np.arange(9.0).reshape(3, 3)
+dot = mv(a, np.array([1.0, 2.0, 3.0])).tolist()
+import scipy.linalg
+e = float(scipy.linalg.expm(np.zeros((2, 2)))[0, 0])
+print(json.dumps({{"ok": ok, "pkg": pkg, "dot": dot, "expm": e,
+                  "blas": "scipy.linalg.cython_blas" in sys.modules}}))
+""")
+    assert got["ok"] and got["blas"]
+    assert got["pkg"] is False
+    assert got["dot"] == [8.0, 26.0, 44.0]
+    assert got["expm"] == 1.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_brent_root_agrees_with_scipy_brentq(seed):
+    """An independent implementation: scipy's brentq, on seeded random brackets of
+    polynomials, sines and steep exponentials (root to the same tolerance)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        kind = rng.integers(3)
+        if kind == 0:
+            c = rng.normal(size=rng.integers(2, 7))
+            f = np.poly1d(c)
+            xs = np.linspace(-3, 3, 400)
+        elif kind == 1:
+            w, ph = rng.uniform(0.5, 20), rng.uniform(0, math.pi)
+            f = (lambda w, ph: lambda x: math.sin(w * x + ph))(w, ph)
+            xs = np.linspace(0, 3, 400)
+        else:
+            k, s = rng.uniform(1, 40), rng.uniform(0.1, 2)
+            f = (lambda k, s: lambda x: math.expm1(k * (x - s)))(k, s)
+            xs = np.linspace(0, 3, 400)
+        ys = np.array([f(x) for x in xs])
+        for i in np.flatnonzero(ys[:-1] * ys[1:] < 0)[:3]:
+            a, b = xs[i], xs[i + 1]
+            mine = brent_root(f, a, b, xtol=1e-300, rtol=1e-15)
+            ref = brentq(f, a, b, xtol=1e-300, rtol=1e-15, maxiter=200)
+            assert a <= mine <= b
+            assert abs(mine - ref) <= 4e-15 * max(abs(ref), 1e-300) + 1e-300, (mine, ref)
+
+
+def test_brent_root_needs_a_bracket():
+    with pytest.raises(ValueError, match="opposite signs"):
+        brent_root(lambda x: x * x + 1.0, -1.0, 1.0)
+    assert brent_root(lambda x: x - 0.25, 0.25, 1.0) == 0.25   # a root at an end
+
+
+class _Spy(InProcessTransport):
+    def __init__(self, mock):
+        super().__init__(mock)
+        self.sent = []
+
+    def send(self, msg):
+        self.sent.append(type(msg).__name__)
+        super().send(msg)
+
+
+@pytest.mark.parametrize("stop_during_warm_up", [False, True])
+def test_before_arm_runs_after_hello_before_ping_and_config(stop_during_warm_up):
+    """The warm-up is waited for after the device's HELLO and before PING / CONFIG; a stop
+    requested meanwhile ends the run without arming the device."""
+    scene = load_scene(WALL)
+    mock = MockDevice(scene.device, scene.excitation, lockstep=True)
+    tr = _Spy(mock)
+    loop = HostLoop(Engine(scene), tr, LoopConfig(1000.0, 50, force_limit=10.0),
+                    Telemetry(50))
+    seen = []
+
+    def before_arm():
+        seen.append((list(tr.sent), mock.armed))
+        if stop_during_warm_up:
+            loop.stop.request()
+
+    loop.before_arm = before_arm
+    res = loop.run()
+    assert seen == [(["HelloRequest"], False)]
+    if stop_during_warm_up:
+        assert "Config" not in tr.sent and "Ping" not in tr.sent
+        assert res.samples == 0 and not mock.configured
+    else:
+        assert tr.sent.index("Ping") < tr.sent.index("Config")
+        assert res.samples == 50 and loop.first_state_at is not None
+
+
+def test_first_sample_reported_after_process_start():
+    """``loop.first_sample_s`` is the first armed STATE on the process's clock: after the
+    process started and no later than now."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.daemon.startup import process_start
+    rep = run_scene(load_scene(WALL), lockstep=True, transport="inprocess", duration=0.05,
+                    handle_signals=False)
+    age = time.monotonic() - process_start()
+    assert 0 < rep["loop"]["first_sample_s"] <= age
