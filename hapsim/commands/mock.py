@@ -97,8 +97,10 @@ def register(sub) -> None:
     p.add_argument("--firmware", action="store_true",
                    help="run the Hapkit 3 reference firmware on the emulated board (simavr) "
                         "instead of the Python mock (default scene: configs/hapkit.yaml)")
-    p.add_argument("--tick", choices=("compiled", "python"), default="compiled",
-                   help="real-time ticks in numba ('compiled', default: same bytes as the "
+    p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
+                   help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
+                        "(loading the compiled tick delays the HELLO by 0.5-1 s). "
+                        "Real-time ticks in numba ('compiled': same bytes as the "
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
                         "sensor noise and a compliant grip stay in Python) or in Python "
                         "('python', the reference)")

@@ -286,7 +286,7 @@ class EmbeddedMock:
     rt_priority : int
         When > 0, the child is put under ``SCHED_FIFO`` at this priority as soon as it
         exists (where the OS permits it; otherwise it keeps the policy it inherited).
-    tick : {"compiled", "python"}
+    tick : {"auto", "compiled", "python"}
         The mock's real-time ticks (``hapsim mock --tick``).
 
     Attributes
@@ -309,7 +309,7 @@ class EmbeddedMock:
 
     def __init__(self, device, excitation, rate_hz: float, *, lockstep: bool = False,
                  seed: int = 0, base_dir: str | None = None, faults: str | None = None,
-                 fault_seed: int = 0, rt_priority: int = 0, tick: str = "compiled") -> None:
+                 fault_seed: int = 0, rt_priority: int = 0, tick: str = "auto") -> None:
         import dataclasses
         import tempfile
 
