@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 
 __all__ = [
+    "num",
     "HapsimError",
     "ConfigError",
     "ProtocolError",
@@ -147,6 +148,9 @@ def show(value: object, limit: int = 60) -> str:
         cost is bounded even for a document whose aliases make it huge.
     """
     import reprlib
+    if isinstance(value, int) and value.bit_length() > 200:     # ~60 digits and more:
+        digits = int(value.bit_length() * 0.30103) + 1          # no decimal conversion,
+        return f"{'-' if value < 0 else ''}<a whole number of about {digits} digits>"  # cost O(1)
     r = reprlib.Repr()
     r.maxlevel, r.maxlist, r.maxtuple, r.maxdict, r.maxset = 3, 4, 4, 4, 4
     r.maxstring = r.maxother = r.maxlong = max(limit, 8)
@@ -155,6 +159,26 @@ def show(value: object, limit: int = 60) -> str:
     if len(text) > limit:
         text = text[:limit - 3] + "..."
     return text
+
+
+def num(value) -> str:
+    """A number as a message prints it: ``format(value, "g")``, or :func:`show` where a
+    whole number is beyond the float range (a 400-digit integer from a scene file).
+
+    Parameters
+    ----------
+    value : int or float
+        The number.
+
+    Returns
+    -------
+    str
+        Six significant digits, or a bounded description of a huge whole number.
+    """
+    try:
+        return f"{value:g}"
+    except (OverflowError, ValueError):
+        return show(value)
 
 
 def fixed(value: float, spec: str) -> str:

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
-from hapsim.errors import ConfigError, show
+from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
                                  section_keys)
@@ -58,7 +58,7 @@ __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitati
 _TOP_KEYS = key_names("")
 _LINK_KEYS = {kind: key_names("links[]", kind) for kind in LINK_KINDS}
 _TARGET_KEYS = key_names("links[].target")
-_HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping")
+_HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping", "stiffness")
 #: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
 CORRECTIONS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
                "prediction": ("horizon",), "inertia_compensation": ("mass",),
@@ -201,12 +201,16 @@ class Hand:
         the hand mass and damping add to the handle's).
     grip_damping : float or (float, float)
         Grip damper between hand and handle [N s/m], >= 0.
+    stiffness : float or (float, float)
+        Hand (arm) stiffness to ground [N/m], >= 0 (Hogan's arm impedance: mass, damping,
+        stiffness): a real spring in the THS (:mod:`hapsim.analysis.hand`).
     """
 
     mass: Any
     damping: Any = 0.0
     grip_stiffness: Any = math.inf
     grip_damping: Any = 0.0
+    stiffness: Any = 0.0
 
     @property
     def rigid(self) -> bool:
@@ -605,11 +609,11 @@ def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None =
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
     if positive and not v > 0:
-        raise _Invalid(f"must be > 0, got {v:g}", where)
+        raise _Invalid(f"must be > 0, got {num(v)}", where)
     if minimum is not None and v < minimum:
-        raise _Invalid(f"must be >= {minimum:g}, got {v:g}", where)
+        raise _Invalid(f"must be >= {minimum:g}, got {num(v)}", where)
     if maximum is not None and v > maximum:
-        raise _Invalid(f"must be <= {maximum:g}, got {v:g}", where)
+        raise _Invalid(f"must be <= {maximum:g}, got {num(v)}", where)
 
 
 def _check_key(k: Key, v: Any, *where: Any) -> None:
@@ -644,11 +648,11 @@ def _in_range(k: Key, x: float, where: tuple) -> None:
         if not (below or (hi is not None and x > hi)):
             continue
         if lo is not None and hi is not None:
-            msg = f"must be between {lo:g} and {hi:g}{unit}, got {x:g}"
+            msg = f"must be between {lo:g} and {hi:g}{unit}, got {num(x)}"
         elif below:
-            msg = f"must be {'>' if strict else '>='} {lo:g}, got {x:g}"
+            msg = f"must be {'>' if strict else '>='} {lo:g}, got {num(x)}"
         else:
-            msg = f"must be <= {hi:g}{unit}, got {x:g}"
+            msg = f"must be <= {hi:g}{unit}, got {num(x)}"
         raise _Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
 
 
@@ -866,7 +870,8 @@ def _check_hand(h: Any, hold: str) -> None:
     if not isinstance(h, Hand):
         raise _Invalid(f"must be a hapsim.scene.Hand, got {_typename(h)}", ("device", "hand"))
     for key, positive, inf in (("mass", True, False), ("damping", False, False),
-                               ("grip_stiffness", True, True), ("grip_damping", False, False)):
+                               ("grip_stiffness", True, True), ("grip_damping", False, False),
+                               ("stiffness", False, False)):
         v = getattr(h, key)
         where = ("device", "hand", key)
         if isinstance(v, tuple):
@@ -1210,7 +1215,7 @@ def _read_hand(ctx: _Ctx, dev: _LDict) -> Hand:
             return tuple(_coerce(x) for x in v)
         return _coerce(v)
     return Hand(val("mass", None), val("damping", 0.0), val("grip_stiffness", math.inf),
-                val("grip_damping", 0.0))
+                val("grip_damping", 0.0), val("stiffness", 0.0))
 
 
 def _read_excitation(ctx: _Ctx, doc: _LDict, path: str) -> Excitation:

@@ -340,8 +340,10 @@ _KEYS = [
         doc="The hand holding the handle (then `device.mass` and `device.friction` are the "
             "handle's alone): `mass` [kg] > 0 (required), `damping` to ground [N s/m] "
             ">= 0, `grip_stiffness` [N/m] > 0 or `rigid` (default), `grip_damping` "
-            "[N s/m] >= 0; each a number or a range `[lo, hi]` (a family of hands: "
-            "`hapsim family`). A compliant grip needs `hold: zoh`.",
+            "[N s/m] >= 0, `stiffness` to ground [N/m] >= 0 (the arm's: a real spring, "
+            "default 0); each a number or a range `[lo, hi]` (a family of hands: "
+            "`hapsim family`; `--consistency` compares a real and a virtual spring). A "
+            "compliant grip needs `hold: zoh`.",
         example="device: {mass: 0.05, hand: {mass: [0.05, 0.5], grip_stiffness: [300, 3000]}}"),
     Key("device.correction", "mapping", default=None,
         doc="One correction of the virtual element, acting at the port (any scene): `kind` "

@@ -184,7 +184,7 @@ def test_what_stays_in_python():
         mass=0.1, friction=0.5, delay=1, noise=1e-6))) == "noise"
     assert compiled_reason(armed(lockstep=False, device=Device(
         mass=0.1, friction=0.5, delay=1, hand=Hand(mass=0.2, damping=1.0, grip_stiffness=500.0,
-                                                   grip_damping=2.0)))) == "hand grip"
+                                                   grip_damping=2.0)))) == "hand grip or arm stiffness (state-space plant)"
     m = armed(lockstep=False)
     m.handle(fp.SensorsRequest(fp.SENSOR_VELOCITY))
     assert compiled_reason(m) == "velocity sensor"

@@ -21,6 +21,7 @@ import pytest
 
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
+from test_audio_live import jack_server  # noqa: F401  (the private JACK server fixture)
 
 SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -44,7 +45,10 @@ def start_daemon(duration, extra=()):
 def finish(proc):
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
-    return json.loads(out)
+    try:
+        return json.loads(out)
+    except ValueError:
+        pytest.fail(f"not one JSON report on stdout: {out[:300]!r}; stderr: {err[-500:]}")
 
 
 def felt_k(K, B):
@@ -73,10 +77,19 @@ class Client:
         return msg.address, list(msg.params)
 
 
-def test_python_osc_client_changes_are_checked_ramped_and_felt():
-    proc, port = start_daemon(2.6)
+def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
+    """Changes (accepted, refused: unstable, unknown link, a ground's mass), the felt and
+    loop queries, and the telemetry stream: every /hapsim/tel t x f k b carries the device
+    position the run logged at sample t * rate (its --telemetry file) and the felt k of
+    the scene in force."""
+    tel_file = str(tmp_path / "tel.npz")
+    proc, port = start_daemon(2.6, extra=("--telemetry", tel_file))
     c = Client(port)
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
     try:
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        assert addr == "/hapsim/ok" and p[0] == "/hapsim/telemetry"
         addr, p = c.ask("/hapsim/link/stiffness", "wall", 700.0)
         assert addr == "/hapsim/ok" and p[0] == "/hapsim/link/stiffness"
         # OSC floats are float32 (what Pd reads): compare to 1e-6 relative
@@ -103,10 +116,35 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt():
         rep = finish(proc)
     assert rep["links"]["wall"] == [700.0, 1.0]
     assert rep["measured"]["k"] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
+    _check_telemetry_stream(sink, tel_file, rep["rate_hz"])
     events = [(e["event"], e["address"]) for e in rep["journal"]]
     assert ("accepted", "/hapsim/link/stiffness") in events
     assert ("ramp_end", "link") in events
     assert sum(e == "refused" for e, _ in events) == 3
+
+
+def _check_telemetry_stream(sink, tel_file, rate):
+    """The /hapsim/tel messages that reached ``sink`` against the run's telemetry file."""
+    import numpy as np
+    from pythonosc.osc_message import OscMessage
+
+    sink.settimeout(0.2)
+    msgs = []
+    try:
+        while True:
+            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
+    except (socket.timeout, TimeoutError):
+        pass
+    sink.close()
+    with np.load(tel_file) as z:
+        pos = z["position"]
+    tel = [m.params for m in msgs if m.address == "/hapsim/tel"]
+    assert len(tel) > 50, len(tel)               # 100 Hz over ~2.6 s
+    n = np.array([round(t * rate) for t, *_ in tel])
+    x = np.array([p[1] for p in tel])
+    np.testing.assert_allclose(x, pos[n].astype(np.float32), rtol=1e-6, atol=1e-12)
+    k_new = felt_k(700.0, 1.0)
+    assert any(abs(p[3] - k_new) < 1e-6 * k_new for p in tel)    # the change's felt k
 
 
 PATCH = """#N canvas 0 50 600 400 12;
@@ -204,3 +242,91 @@ def test_run_osc_changes_the_running_daemon():
     finally:
         os.remove(hst)
     assert events[:2] == ["osc request", "osc accepted"] and "osc refused" in events
+
+
+README = os.path.join(ROOT, "README.md")
+STRING = os.path.join(ROOT, "configs", "audio_string.yaml")
+
+
+def _readme_block(lang):
+    """The README's fenced code block of ``lang`` in its 'Sound and live control' section."""
+    import re
+    text = open(README).read()
+    sec = text[text.index("## Sound and live control"):]
+    m = re.search(r"```" + lang + r"\n(.*?)```", sec, re.S)
+    assert m, f"README: no ```{lang} block in 'Sound and live control'"
+    return m.group(1)
+
+
+def _play_string(jack_server, duration):
+    """hapsim play on the shipped string, sound through the test's JACK server, OSC on."""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", STRING, "--osc", "0",
+                             "--sound", "jack", "--jack-server", jack_server,
+                             "--duration", str(duration), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
+                            text=True)
+    seen = []
+    for _ in range(50):
+        line = proc.stderr.readline()
+        seen.append(line)
+        if "OSC on" in line:
+            return proc, int(line.strip().rsplit(":", 1)[1])
+        if not line:
+            break
+    proc.kill()
+    pytest.fail(f"play did not start its OSC server: {''.join(seen)}{proc.stderr.read()}")
+
+
+def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
+    """The README's Pd patch, as printed (only its port changed), opened headless by pd
+    against hapsim play on configs/audio_string.yaml: its changes arrive, are accepted and
+    applied (the pluck's (K, B) at the end, the gain's ramp journaled)."""
+    if shutil.which("pd") is None:
+        pytest.skip("pd not installed: apt-get install puredata")
+    patch_text = _readme_block("pd")
+    assert "connect 127.0.0.1 9000;" in patch_text
+    proc, port = _play_string(jack_server, 3.0)
+    patch = tmp_path / "readme.pd"
+    patch.write_text(patch_text.replace("connect 127.0.0.1 9000;", f"connect 127.0.0.1 {port};"))
+    pd = subprocess.Popen(["pd", "-nogui", "-nosound", "-open", str(patch)],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        rep = finish(proc)
+    finally:
+        pd.kill()
+        pd_err = pd.communicate()[1]
+    got = [(e["event"], e["address"], e["args"]) for e in rep["journal"]
+           if e["event"] in ("accepted", "refused")]
+    assert got == [("accepted", "/hapsim/link/kb", ["pluck", 150.0, 2.0]),
+                   ("accepted", "/hapsim/gain", [0.5])], (got, pd_err[-500:])
+    assert rep["links"]["pluck"] == [150.0, 2.0]
+    assert ("ramp_end", "gain") in [(e["event"], e["address"]) for e in rep["journal"]]
+    assert rep["sound"]["backend"] == "JackOutput"
+
+
+def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
+    """Each ``n.sendMsg`` line of the README's SuperCollider snippet, replayed by a
+    python-osc client against hapsim play on configs/audio_string.yaml, gets the answer its
+    comment states (ok, refused: unstable, felt), and the accepted values are applied."""
+    import re
+
+    lines = [ln for ln in _readme_block("supercollider").splitlines() if "sendMsg" in ln]
+    assert len(lines) >= 4
+    proc, port = _play_string(jack_server, 5.0)
+    c = Client(port)
+    try:
+        for ln in lines:
+            call, comment = (ln.split("//", 1) + [""])[:2]
+            args = [a.strip() for a in re.search(r"sendMsg\((.*)\)", call).group(1).split(",")]
+            args = [a.strip('"') if a.startswith('"') else float(a) for a in args]
+            addr, p = c.ask(*args)
+            want = ("/hapsim/refused" if "refused" in comment else
+                    "/hapsim/felt" if "/hapsim/felt" in comment else "/hapsim/ok")
+            assert addr == want, (ln, addr, p)
+            if want == "/hapsim/refused":
+                assert "unstable" in p[1], p
+    finally:
+        rep = finish(proc)
+    assert rep["links"]["pluck"] == [150.0, 2.0]
+    assert rep["accepted"] == 3 and rep["refused"] == 1

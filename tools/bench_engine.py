@@ -29,7 +29,11 @@ With ``--audio`` it measures the sound side instead (issue 15):
   builds (300 beads; linear in N: extrapolated, and said so);
 * 60 s of the shipped ``configs/audio_string.yaml`` played live (``hapsim play``: the mock
   hand plucking every second at 1 kHz, the sound in the JACK callback) on a private
-  ``jackd -d dummy -r 48000 -p 256``, with its xruns and ring underruns.
+  ``jackd -d dummy -r 48000 -p 256 -P PRIO`` for each ``--jack-priority`` (default 10, the
+  jackd2 default, and 70, a usual audio set-up), with its xruns and starved frames, after
+  the baseline: an empty Python client alone on the same server for as long. The server's
+  own log attributes each xrun: the dummy driver's timer late (``JackTimedDriver``) or a
+  client not finished in time (``was not finished``).
 
 The machine may be shared: every figure is a median of repeats, the steady-state figures
 are thread CPU time (``time.thread_time`` / ``CLOCK_THREAD_CPUTIME_ID``, so time spent
@@ -363,11 +367,62 @@ def _empty_client_xruns(server: str, secs: float) -> int:
     return count[0]
 
 
+def _log_xruns(path: Path) -> tuple[int, int]:
+    """(driver timer xruns, clients not finished) in a jackd log so far."""
+    text = path.read_text(errors="replace") if path.exists() else ""
+    return text.count("JackTimedDriver::Process XRun"), text.count("was not finished")
+
+
+def _live_run(prio: int, secs: float) -> dict:
+    """Baseline then ``hapsim play`` of the shipped string, each ``secs`` [s], on a private
+    dummy JACK server at real-time priority ``prio``."""
+    import uuid
+
+    name = f"bench-{uuid.uuid4().hex[:8]}"
+    res_out = {"jack_priority": prio, "seconds": secs}
+    with tempfile.TemporaryDirectory(prefix="bench_jack_") as tmp:
+        log = Path(tmp) / "jackd.log"
+        with open(log, "w") as fh:
+            jack = subprocess.Popen(["jackd", "-n", name, "-P", str(prio), "-d", "dummy", "-r",
+                                     "48000", "-p", str(BLOCK)], stdout=fh, stderr=fh,
+                                    env=dict(os.environ, JACK_NO_AUDIO_RESERVATION="1"))
+        try:
+            time.sleep(2.0)
+            d0, c0 = _log_xruns(log)
+            base = _empty_client_xruns(name, secs)
+            d1, c1 = _log_xruns(log)
+            print(f"\njackd -P {prio}: baseline, an empty Python process callback alone for "
+                  f"{secs:g} s: {base} xruns (driver timer late {d1 - d0}, client late "
+                  f"{c1 - c0}); load {os.getloadavg()[0]:.2f}")
+            res_out["baseline"] = {"xruns": base, "driver": d1 - d0, "client": c1 - c0}
+            res = subprocess.run([sys.executable, "-m", "hapsim", "play",
+                                  str(REPO / "configs" / "audio_string.yaml"), "--sound",
+                                  "jack", "--jack-server", name, "--duration", str(secs),
+                                  "--pluck-every", "1", "--json"], cwd=REPO,
+                                 capture_output=True, text=True)
+            d2, c2 = _log_xruns(log)
+            if res.returncode != 0:
+                print(f"live run failed: {res.stderr.strip()[-300:]}")
+                res_out["error"] = res.stderr.strip()[-300:]
+            else:
+                rep = json.loads(res.stdout)
+                snd = rep["sound"]
+                print(f"jackd -P {prio}: {secs:g} s of configs/audio_string.yaml live, "
+                      f"48 kHz/{BLOCK}: {snd['xruns']} xruns (driver timer late {d2 - d1}, "
+                      f"client late {c2 - c1}), {snd['underruns']} starved frames of "
+                      f"{snd['periods'] * 48}, haptic thread {rep['scheduling']}; load "
+                      f"{os.getloadavg()[0]:.2f}")
+                res_out["hapsim"] = {**snd, "driver": d2 - d1, "client": c2 - c1,
+                                     "scheduling": rep["scheduling"]}
+        finally:
+            jack.terminate()
+            jack.wait()
+    return res_out
+
+
 def audio_main(a) -> int:
     """``--audio``: the largest real-time string at 48 kHz (hapsim beside Faust) and 60 s of
     the shipped string scene live on a dummy JACK server."""
-    import uuid
-
     repeats = 3 if a.quick else 5
     deadline = BLOCK / AUDIO_RATE
     print("command:", " ".join([Path(sys.executable).name, "tools/bench_engine.py"]
@@ -402,34 +457,11 @@ def audio_main(a) -> int:
     if shutil.which("jackd") is None:
         print("60 s live run: jackd not installed")
     else:
-        name = f"bench-{uuid.uuid4().hex[:8]}"
-        jack = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", "48000", "-p",
-                                 str(BLOCK)], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
-        try:
-            time.sleep(2.0)
-            secs = 10.0 if a.quick else 60.0
-            base = _empty_client_xruns(name, secs)
-            print(f"baseline, same server, same load: an empty Python process callback for "
-                  f"{secs:g} s: {base} xruns")
-            out["baseline_xruns"] = base
-            res = subprocess.run([sys.executable, "-m", "hapsim", "play",
-                                  str(REPO / "configs" / "audio_string.yaml"), "--sound",
-                                  "jack", "--jack-server", name, "--duration", str(secs),
-                                  "--pluck-every", "1", "--json"], cwd=REPO,
-                                 capture_output=True, text=True)
-            if res.returncode != 0:
-                print(f"live run failed: {res.stderr.strip()[-300:]}")
-            else:
-                rep = json.loads(res.stdout)
-                snd = rep["sound"]
-                print(f"{secs:g} s of configs/audio_string.yaml live on jackd dummy 48 kHz/"
-                      f"{BLOCK}: {snd['xruns']} xruns, {snd['underruns']} ring underruns of "
-                      f"{snd['periods']} device periods, haptic loop late {rep['late']} times")
-                out["live"] = {"seconds": secs, **snd, "late": rep["late"]}
-        finally:
-            jack.terminate()
-            jack.wait()
+        secs = 10.0 if a.quick else 60.0
+        out["live"] = {}
+        for prio in a.jack_priority:
+            out["live"][str(prio)] = _live_run(prio, secs)
+    print(f"load average now {os.getloadavg()[0]:.2f}")
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=2))
     return 0
@@ -452,6 +484,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="fewer repeats, smaller budgets, Faust at 100 beads only, no 10^6")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    ap.add_argument("--jack-priority", type=lambda v: [int(x) for x in v.split(",")],
+                    default=[10, 70], metavar="P[,P...]",
+                    help="--audio: jackd real-time priorities of the live runs (default 10,70)")
     ap.add_argument("--audio", action="store_true",
                     help="the sound side instead: largest 48 kHz real-time string beside "
                          "Faust's, and 60 s live on a dummy JACK server")

@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.hand import HAND_FIELDS, hand_zoh, members as hand_members
+from hapsim.analysis.hand import (HAND_FIELDS, body_zoh, hand_stiffness, ideal_rows,
+                                  members as hand_members)
 from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
@@ -45,13 +46,22 @@ def family_members(scene, samples: int | None = None, *, grid: int = 9,
 
     Returns
     -------
-    ndarray, shape (n, 4)
-        ``(mh, bh, kg, bg)`` per member; without a hand, ``[[0, 0, inf, 0]]``.
+    ndarray, shape (n, 5)
+        ``(mh, bh, kg, bg, kh)`` per member; without a hand, ``[[0, 0, inf, 0, 0]]``.
     """
     hand = getattr(scene.device, "hand", None)
     if hand is None:
-        return np.array([[0.0, 0.0, math.inf, 0.0]])
+        return np.array([[0.0, 0.0, math.inf, 0.0, 0.0]])
     return hand_members(hand, samples, grid=grid, seed=seed)
+
+
+def _full(mem) -> np.ndarray:
+    """Members as rows of every :data:`HAND_FIELDS` (a 4-column member has ``kh = 0``)."""
+    mem = np.atleast_2d(np.asarray(mem, float))
+    if mem.shape[1] < len(HAND_FIELDS):
+        mem = np.concatenate([mem, np.zeros((mem.shape[0], len(HAND_FIELDS) - mem.shape[1]))],
+                             axis=1)
+    return mem
 
 
 def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
@@ -110,9 +120,10 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     n = mem.shape[0]
     A = np.repeat(A0[None], n, axis=0)
     m, b0 = float(dev.mass), float(dev.friction)
-    if finite.all():
-        Aw, Bd = hand_zoh(m, b0, mem, T)
-        Ad = Aw + np.eye(4)
+    kh = hand_stiffness(mem)
+    if finite.all() or (dev.hold == "zoh" and np.any(kh > 0)):
+        Aw, Bd = body_zoh(m, b0, mem, T)
+        Ad = Aw + np.eye(Aw.shape[-1])
     elif dev.hold == "zoh":
         Ad = np.empty((n, 2, 2))
         Bd = np.empty((n, 2))
@@ -124,9 +135,12 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
         a = np.exp(-x)
         with np.errstate(invalid="ignore", divide="ignore"):
             c = np.where(x > 0, x / -np.expm1(-x), 1.0)
-        A[:, 0, 0] = 1.0 + a
-        A[:, 0, 1] = -a
-        A[:, 0, :] += (T * T / (mass * c))[:, None] * u[None, :]
+        tr, det, g = 1.0 + a, a, T * T / (mass * c)
+        if np.any(kh > 0):            # the arm's real spring: impulse-invariant image
+            tr, det, g = ideal_rows(mass, b0 + mem[:, 1], kh, T)
+        A[:, 0, 0] = tr
+        A[:, 0, 1] = -det
+        A[:, 0, :] += g[:, None] * u[None, :]
         return A, names
     A[:, :nplant, :nplant] = Ad
     A[:, :nplant, :] += Bd[:, :, None] * u[None, None, :]
@@ -269,7 +283,8 @@ class FamilyResult:
         Felt pair at the port of the whole scene per member [N/m, N s/m].
     links : dict
         ``{link name: {"K", "B", "k": ndarray (n,), "b": ndarray (n,)}}``: the felt pair of
-        each port-ground spring_damper alone (:func:`felt_links`).
+        each port-ground spring_damper alone (:func:`felt_links`) on the member (with the
+        hand's stiffness to ground, when it has one: :func:`consistency` separates them).
     calibrated : dict
         ``{link: (K, B)}`` used for target links (calibrated on the nominal member).
     period : float
@@ -378,7 +393,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         if hand is not None:
             from hapsim.analysis.hand import ranged_fields
             corners = 2 ** len(ranged_fields(hand))
-    mem = np.atleast_2d(np.asarray(mem, float))
+    mem = _full(mem)
     T = scene.period
     mass = float(scene.device.mass) + mem[:, 0]
     k, b, rho, stable = felt_pairs(family_poles(scene, mem, calibrated=calibrated), mass, T)
@@ -536,7 +551,7 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
     k, b = float(k), float(b)
     if mem is None:
         mem = family_members(scene, samples, grid=grid, seed=seed)
-    mem = np.atleast_2d(np.asarray(mem, float))
+    mem = _full(mem)
     hand = getattr(scene.device, "hand", None)
     ncorner = 0
     if hand is not None:
@@ -584,12 +599,19 @@ def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int =
     """Table 1 generalised: is the felt assembly the assembly of the felt parts?
 
     Florens, Voda & Urma Sec. 3 / Table 1: two virtual springs tuned to ring like a real
-    one each do not ring like two real springs together. Here, for a scene with two or
-    more spring_dampers between the port and a ground (links in parallel), for every
-    member of the hand family: the felt pair of the whole scene ``(k, b)`` against the
-    parallel assembly of the pairs each link gives alone, ``k_sum = sum k_i``,
-    ``b_sum = sum b_i - (n - 1) b_real`` (each ``b_i`` carries the real damping ``b_real``
-    = device friction + hand damping once; the assembly carries it once).
+    one each do not ring like two real springs together (case IV), nor does a virtual
+    spring with a real one (case V). Here, for every member of the hand family, the felt
+    pair of the whole scene ``(k, b)`` is set against the parallel assembly of the felt
+    parts, where the parts are every spring_damper between the port and a ground and, when
+    the hand has a stiffness to ground ``kh`` (``device.hand.stiffness``), that real
+    spring:
+
+    - a virtual link's part is the pair it makes felt alone, on the member *without* the
+      real spring (``kh = 0``);
+    - the real spring's part is itself, ``kh`` (a real spring is felt as it is);
+    - ``k_sum = kh + sum k_i``, ``b_sum = sum b_i - (n - 1) b_real`` over the ``n``
+      virtual links (each ``b_i`` carries the real damping ``b_real`` = device friction +
+      hand damping once; the assembly carries it once).
 
     Parameters
     ----------
@@ -600,30 +622,48 @@ def consistency(scene, samples: int | None = None, *, grid: int = 9, seed: int =
     Returns
     -------
     dict
-        ``links`` (names), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats
-        (``min``, ``max``, ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is
-        consistent), ``worst_k``, ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``,
-        ``b``, ``b_sum``: ndarrays, shape (n,), per member.
+        ``links`` (names of the virtual parts), ``real_spring`` (bool: ``kh > 0`` in some
+        member), ``members`` (count), ``k_ratio`` / ``b_ratio``: stats (``min``, ``max``,
+        ``nominal``) of ``k / k_sum`` and ``b / b_sum`` (1 is consistent), ``worst_k``,
+        ``worst_b``: largest ``|ratio - 1|``; ``k``, ``k_sum``, ``b``, ``b_sum``,
+        ``k_real``: ndarrays, shape (n,), per member.
 
     Raises
     ------
     ConfigError
-        Fewer than two port-ground spring_dampers.
+        Fewer than two parts (two port-ground spring_dampers, or one and the hand's
+        stiffness).
+
+    Notes
+    -----
+    With ``m = T = 1``, ``d = 0``, the ideal hold, no damping, one virtual link tuned by
+    eq. (2) and ``kh = k``, ``k / k_sum`` is Table 1's felt k V / 2k
+    (:func:`hapsim.analysis.table1.table1_experiment`, tested to 1e-9); with two virtual
+    links and no ``kh``, felt k IV / 2k.
     """
     res = family(scene, samples, grid=grid, seed=seed, calibrated=calibrated, mem=mem)
     names = list(res.links)
-    if len(names) < 2:
-        raise ConfigError("consistency needs two or more spring_dampers between the port "
-                          "and a ground (links in parallel)", file=scene.path, key="links")
+    k_real = hand_stiffness(res.members)
+    real = bool(np.any(k_real > 0))
+    if len(names) + real < 2:
+        raise ConfigError("consistency needs two or more parts between the port and a "
+                          "ground: spring_dampers in parallel, or one and the hand's "
+                          "stiffness (device.hand.stiffness)", file=scene.path, key="links")
+    parts = res
+    if real:                 # each virtual part felt without the real spring
+        mem0 = res.members.copy()
+        mem0[:, 4] = 0.0
+        parts = family(scene, calibrated=res.calibrated, mem=mem0)
     b_real = float(scene.device.friction) + res.members[:, 1]
-    k_sum = sum(res.links[n]["k"] for n in names)
-    b_sum = sum(res.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+    k_sum = k_real + sum(parts.links[n]["k"] for n in names)
+    b_sum = (sum(parts.links[n]["b"] for n in names) - (len(names) - 1) * b_real
+             if names else b_real)
     with np.errstate(invalid="ignore", divide="ignore"):
         kr = res.k / k_sum
         br = res.b / b_sum
     nom = res.corners
-    return {"links": names, "members": int(res.members.shape[0]),
+    return {"links": names, "real_spring": real, "members": int(res.members.shape[0]),
             "k_ratio": _stats(kr, kr[nom]), "b_ratio": _stats(br, br[nom]),
             "worst_k": float(np.nanmax(np.abs(kr - 1.0))),
             "worst_b": float(np.nanmax(np.abs(br - 1.0))),
-            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum}
+            "k": res.k, "k_sum": k_sum, "b": res.b, "b_sum": b_sum, "k_real": k_real}

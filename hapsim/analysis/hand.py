@@ -2,15 +2,23 @@
 
 Florens, Voda & Urma Sec. 4 judge a THS over "the whole family of possible parameter sets
 that the THS may get along its variations"; the largest variation is the hand. Here the
-hand is a mass ``mh`` with damping ``bh`` to ground (the arm), tied to the handle (mass
-``mc``, friction ``bc``) by a grip spring ``kg`` and damper ``bg``::
+hand is a mass ``mh`` with damping ``bh`` and stiffness ``kh`` to ground (the arm's
+impedance: mass, damping, stiffness, Hogan 1985), tied to the handle (mass ``mc``, friction
+``bc``) by a grip spring ``kg`` and damper ``bg``::
 
     mc xh'' = f - bc xh' - kg (xh - xm) - bg (xh' - xm')
-    mh xm'' =   - bh xm' - kg (xm - xh) - bg (xm' - xh')
+    mh xm'' =   - bh xm' - kh xm - kg (xm - xh) - bg (xm' - xh')
 
 State ``[xh, vh, xm, vm]`` (handle position, velocity, hand position, velocity) [m, m/s];
 input the force ``f`` on the handle [N], held over each period (zero-order hold). A rigid
-grip (``kg = inf``) is one mass ``mc + mh`` with friction ``bc + bh``.
+grip (``kg = inf``) is one mass ``mc + mh`` with friction ``bc + bh`` and the real spring
+``kh`` to ground: state ``[x, v]`` (:func:`body_zoh`). The arm's ``kh`` is the *real
+spring* of the THS: with a virtual spring at the port it is the paper's Table 1 case V.
+
+The ideal hold (Florens et al. eqs. (2)-(4)) is the impulse-invariant image: the force
+sample acts as an impulse of area ``T f[n]`` at ``t = nT``, so ``Ad = e^(AT)`` and
+``Bd = T e^(AT) b``; the position transfer is then ``T h(T) z / det(zI - Ad)`` with ``h``
+the impulse response (:func:`ideal_rows`; for ``kh = 0`` exactly eq. (4)).
 
 The exact ZOH uses ``Gamma = int_0^T e^(A s) ds = T phi1(A T)`` (the top-right block of the
 exponential of ``[[A, I], [0, 0]] T``, Van Loan 1978): ``Ad = I + A Gamma``, ``Bd = Gamma b``; ``A Gamma``
@@ -26,12 +34,31 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["HAND_FIELDS", "hand_matrices", "hand_zoh", "nominal_member", "members",
-           "ranged_fields"]
+__all__ = ["HAND_FIELDS", "hand_matrices", "hand_zoh", "body_zoh", "ideal_rows",
+           "hand_stiffness", "nominal_member", "members", "ranged_fields"]
 
 #: Order of the columns of a member array: hand mass [kg], hand damping [N s/m], grip
-#: stiffness [N/m] (``inf``: rigid), grip damping [N s/m].
-HAND_FIELDS = ("mass", "damping", "grip_stiffness", "grip_damping")
+#: stiffness [N/m] (``inf``: rigid), grip damping [N s/m], hand (arm) stiffness to ground
+#: [N/m]. Functions taking members also accept 4 columns (then ``kh = 0``).
+HAND_FIELDS = ("mass", "damping", "grip_stiffness", "grip_damping", "stiffness")
+
+#: Fields whose ranges span decades: geometric nominal and log-uniform samples (lo > 0).
+_LOG_FIELDS = ("grip_stiffness", "stiffness")
+
+
+def hand_stiffness(member) -> np.ndarray:
+    """The hand's stiffness to ground ``kh`` [N/m] of a member (0 for a 4-column member).
+
+    Parameters
+    ----------
+    member : array_like, shape (..., 4) or (..., 5)
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    p = np.asarray(member, dtype=float)
+    return p[..., 4] if p.shape[-1] > 4 else np.zeros(p.shape[:-1])
 
 
 def hand_matrices(mc: float, bc: float, member) -> tuple[np.ndarray, np.ndarray]:
@@ -43,8 +70,8 @@ def hand_matrices(mc: float, bc: float, member) -> tuple[np.ndarray, np.ndarray]
         Handle mass [kg].
     bc : float >= 0
         Handle friction [N s/m].
-    member : array_like, shape (..., 4)
-        ``(mh, bh, kg, bg)`` per member (:data:`HAND_FIELDS`), finite ``kg``.
+    member : array_like, shape (..., 4) or (..., 5)
+        ``(mh, bh, kg, bg[, kh])`` per member (:data:`HAND_FIELDS`), finite ``kg``.
 
     Returns
     -------
@@ -72,7 +99,7 @@ def hand_matrices(mc: float, bc: float, member) -> tuple[np.ndarray, np.ndarray]
     A[..., 2, 3] = 1.0
     A[..., 3, 0] = kg / mh
     A[..., 3, 1] = bg / mh
-    A[..., 3, 2] = -kg / mh
+    A[..., 3, 2] = -(kg + hand_stiffness(p)) / mh
     A[..., 3, 3] = -(bh + bg) / mh
     b = np.array([0.0, 1.0 / mc, 0.0, 0.0])
     return A, b
@@ -85,8 +112,8 @@ def hand_zoh(mc: float, bc: float, member, period: float):
     ----------
     mc, bc : float
         Handle mass [kg] and friction [N s/m].
-    member : array_like, shape (..., 4)
-        ``(mh, bh, kg, bg)`` (:data:`HAND_FIELDS`), finite grip stiffness.
+    member : array_like, shape (..., 4) or (..., 5)
+        ``(mh, bh, kg, bg[, kh])`` (:data:`HAND_FIELDS`), finite grip stiffness.
     period : float > 0
         Hold period ``T`` [s].
 
@@ -104,12 +131,102 @@ def hand_zoh(mc: float, bc: float, member, period: float):
     ``phi1`` by scaling and squaring on the whole stack at once (:func:`_phi1`).
     """
     A, b = hand_matrices(mc, bc, member)
+    return _zoh(A, b, float(period))
+
+
+def _phi1_balanced(A: np.ndarray, T: float) -> np.ndarray:
+    """``phi1(A T)`` of a stack of ``[x, v, ...]`` systems, computed on the balanced
+    ``[x, v T]`` coordinates (O(1) entries: ``(w T)^2`` and damping ``x T / m``) and mapped
+    back: ``phi1(S X S^-1) = S phi1(X) S^-1``."""
+    S = np.tile([1.0, T], A.shape[-1] // 2)
+    return _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
+
+
+def _zoh(A: np.ndarray, b: np.ndarray, T: float):
+    """``(A Gamma, Gamma b)`` of a stack of ``[x, v, ...]`` systems (:func:`hand_zoh`);
+    ``Gamma = T phi1(A T)``; ``b`` one column or a stack of them."""
+    F = _phi1_balanced(A, T)
+    return (A * T) @ F, np.matmul(F, b[..., None])[..., 0] * T
+
+
+def _rigid_matrices(mass, friction, stiffness):
+    """``A`` (stack, 2x2) and ``b`` of ``m x'' + b x' + k x = f``, state ``[x, v]``."""
+    m, c, k = np.broadcast_arrays(*(np.asarray(v, float) for v in (mass, friction, stiffness)))
+    A = np.zeros(m.shape + (2, 2))
+    A[..., 0, 1] = 1.0
+    A[..., 1, 0] = -k / m
+    A[..., 1, 1] = -c / m
+    return A, np.stack([np.zeros(m.shape), 1.0 / m], axis=-1)
+
+
+def body_zoh(mc: float, bc: float, member, period: float):
+    """Exact ZOH of handle + hand, rigid grip or not, with the arm's stiffness ``kh``.
+
+    Parameters
+    ----------
+    mc, bc : float
+        Handle mass [kg] and friction [N s/m].
+    member : array_like, shape (..., 4) or (..., 5)
+        ``(mh, bh, kg, bg[, kh])``; rigid (``kg = inf``) for all or none of a stack.
+    period : float > 0
+        ``T`` [s].
+
+    Returns
+    -------
+    Aw : ndarray, shape (..., p, p)
+        ``Ad - I``; ``p = 2`` (rigid: ``[x, v]`` of ``(mc + mh) x'' + (bc + bh) x' + kh x
+        = f``) or 4 (:func:`hand_zoh`).
+    Bd : ndarray, shape (..., p)
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hand_matrices`.
+
+    Notes
+    -----
+    Van Loan (1978), as :func:`hand_zoh`; for ``kh = 0`` the rigid case equals
+    :func:`hapsim.analysis.loop.zoh_state_space` (tested).
+    """
+    p = np.asarray(member, dtype=float)
+    if np.all(np.isfinite(p[..., 2])):
+        return hand_zoh(mc, bc, p, period)
+    A, b = _rigid_matrices(mc + p[..., 0], bc + p[..., 1], hand_stiffness(p))
+    return _zoh(A, b, float(period))
+
+
+def ideal_rows(mass, friction, stiffness, period: float):
+    """Ideal-hold (impulse-invariant) image of ``m x'' + b x' + k x = f``, vectorised.
+
+    Parameters
+    ----------
+    mass, friction, stiffness : float or ndarray
+        ``m`` [kg] > 0, ``b`` [N s/m] >= 0, ``k`` [N/m] >= 0 (broadcast together).
+    period : float > 0
+        ``T`` [s].
+
+    Returns
+    -------
+    tr, det, g : ndarray
+        ``x[n+1] = tr x[n] - det x[n-1] + g f[n]``: ``tr``, ``det`` the trace and
+        determinant of ``Ad = e^(AT)`` [-], ``g = T h(T)`` [m/N] (``h`` the position's
+        impulse response, ``e^(AT)[0, 1] / m``).
+
+    Notes
+    -----
+    Florens et al. eq. (4) for ``k = 0`` (``tr = 1 + a``, ``det = a``, ``g = T (1 - a) /
+    b``, ``a = e^(-bT/m)``); for ``b = 0`` their Table 1 case V (our
+    :mod:`hapsim.analysis.table1`): ``tr = 2 cos(w0 T)``, ``det = 1``,
+    ``g = T sin(w0 T) / (m w0)``. The response to impulses ``T f[n]`` at ``nT`` has a
+    numerator ``z`` only since ``h(0) = 0``.
+    """
+    A, b = _rigid_matrices(mass, friction, stiffness)
     T = float(period)
-    # Gamma = T phi1(A T), computed on the balanced [x, v T] coordinates (O(1) entries:
-    # (w T)^2 and damping x T / m) and mapped back: phi1(S X S^-1) = S phi1(X) S^-1.
-    S = np.array([1.0, T, 1.0, T])
-    F = _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
-    return (A * T) @ F, (F @ b) * T
+    W = (A * T) @ _phi1_balanced(A, T)          # e^(AT) - I
+    tr = 2.0 + W[..., 0, 0] + W[..., 1, 1]
+    det = np.exp(-np.asarray(friction, float) * T / np.asarray(mass, float))
+    g = T * W[..., 0, 1] * b[..., 1]            # e^(AT)[0, 1] / m
+    return tr, det, g
 
 
 def _phi1(X: np.ndarray) -> np.ndarray:
@@ -135,6 +252,11 @@ def _phi1(X: np.ndarray) -> np.ndarray:
     return F
 
 
+def _field(hand, f):
+    """A hand field; a hand object without ``stiffness`` (older callers) has none: 0."""
+    return getattr(hand, f, 0.0)
+
+
 def _span(v) -> tuple[float, float]:
     return (float(v[0]), float(v[1])) if isinstance(v, tuple) else (float(v), float(v))
 
@@ -152,7 +274,7 @@ def ranged_fields(hand) -> list[str]:
         Among :data:`HAND_FIELDS`, in that order; ``2 ** len(...)`` is the number of
         corners of the family.
     """
-    return [f for f in HAND_FIELDS if _span(getattr(hand, f))[0] < _span(getattr(hand, f))[1]]
+    return [f for f in HAND_FIELDS if _span(_field(hand, f))[0] < _span(_field(hand, f))[1]]
 
 
 def nominal_member(hand) -> np.ndarray:
@@ -164,14 +286,14 @@ def nominal_member(hand) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (4,)
-        ``(mh, bh, kg, bg)``; for a stiffness range the geometric middle ``sqrt(lo hi)``
-        (stiffness ranges span decades), arithmetic otherwise.
+    ndarray, shape (5,)
+        ``(mh, bh, kg, bg, kh)``; for a stiffness range the geometric middle ``sqrt(lo hi)``
+        (stiffness ranges span decades; arithmetic from 0), arithmetic otherwise.
     """
     out = []
     for f in HAND_FIELDS:
-        lo, hi = _span(getattr(hand, f))
-        out.append(math.sqrt(lo * hi) if f == "grip_stiffness" else 0.5 * (lo + hi))
+        lo, hi = _span(_field(hand, f))
+        out.append(math.sqrt(lo * hi) if f in _LOG_FIELDS and lo > 0 else 0.5 * (lo + hi))
     return np.array(out)
 
 
@@ -182,7 +304,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     ----------
     hand : hapsim.scene.Hand
     samples : int, optional
-        Number of seeded uniform random members (log-uniform for the grip stiffness) added
+        Number of seeded uniform random members (log-uniform for a stiffness range from lo > 0) added
         after the corners; None: a full grid of ``grid`` points per ranged field instead.
     grid : int, optional
         Points per ranged field for the grid (>= 2).
@@ -191,8 +313,8 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
 
     Returns
     -------
-    ndarray, shape (n, 4)
-        ``(mh, bh, kg, bg)`` per member; the first ``2^r`` rows are the corners (``r``
+    ndarray, shape (n, 5)
+        ``(mh, bh, kg, bg, kh)`` per member; the first ``2^r`` rows are the corners (``r``
         ranged fields), the nominal member (:func:`nominal_member`) follows them.
 
     Raises
@@ -200,7 +322,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     ConfigError
         ``samples < 1`` or ``grid < 2``.
     """
-    spans = [_span(getattr(hand, f)) for f in HAND_FIELDS]
+    spans = [_span(_field(hand, f)) for f in HAND_FIELDS]
     ranged = [i for i, (lo, hi) in enumerate(spans) if lo < hi]
     base = np.array([lo for lo, _ in spans])
     corners = np.repeat(base[None, :], 2 ** len(ranged), axis=0)
@@ -216,7 +338,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
         for i in ranged:
             lo, hi = spans[i]
             u = rng.random(int(samples))
-            s[:, i] = (lo * (hi / lo) ** u if HAND_FIELDS[i] == "grip_stiffness" and lo > 0
+            s[:, i] = (lo * (hi / lo) ** u if HAND_FIELDS[i] in _LOG_FIELDS and lo > 0
                        else lo + (hi - lo) * u)
         rows.append(s)
     elif ranged:
@@ -225,7 +347,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
         axes = []
         for i in ranged:
             lo, hi = spans[i]
-            axes.append(np.geomspace(lo, hi, grid) if HAND_FIELDS[i] == "grip_stiffness"
+            axes.append(np.geomspace(lo, hi, grid) if HAND_FIELDS[i] in _LOG_FIELDS
                         and lo > 0 else np.linspace(lo, hi, grid))
         mesh = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(ranged))
         g = np.repeat(base[None, :], mesh.shape[0], axis=0)

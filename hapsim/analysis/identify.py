@@ -321,7 +321,12 @@ def _theta(spec) -> np.ndarray:
 
 
 def _solve(spec, theta, y, offset):
-    phi, dcols = _basis(spec, theta, y.size, offset)
+    with np.errstate(over="ignore", invalid="ignore"):
+        phi, dcols = _basis(spec, theta, y.size, offset)
+    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
+        # a trial pole growing past the float range: what lstsq raises on it, without
+        # LAPACK first printing its complaint on stdout (into a --json report)
+        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
     c, *_ = np.linalg.lstsq(phi, y, rcond=None)
     return phi, dcols, c, phi @ c - y
 
@@ -393,7 +398,9 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
 
     1. **Exact record** (no sensor error declared): the matrix pencil of the full order
        (:func:`pencil_poles`); if its modes reproduce the record to :data:`EXACT_RESIDUAL`
-       of its amplitude, that is the measurement (round-off accurate).
+       of its amplitude, its pair nearest the predicted felt pole ``felt`` is the
+       measurement (round-off accurate), not its least damped pair (a virtual mass may add
+       a less damped pair with a small residue at the port).
     2. **Otherwise**: the predicted modes that fall below the sensor floor within a fifth of
        the record are dropped together with the samples they live in; the felt pair, any
        slower mode and the offset are fitted by variable projection (module notes above),
@@ -465,8 +472,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
             rms, cov, _ = _covariance(spec, y, offset)
             md = rendered_pair(modes_from_poles(z, mass, period))
             if md is not None and rms <= EXACT_RESIDUAL * amp0:
+                # the identified pair at the predicted felt pole, not the least damped one:
+                # a virtual mass adds pairs the hand barely feels (they have a small
+                # residue at the port) and one of them may be less damped
+                zf = complex(felt) if complex(felt).imag >= 0 else complex(felt).conjugate()
                 fi = min((i for i, s in enumerate(spec) if s[0] == "pair"),
-                         key=lambda i: abs(_mode_of(spec[i], mass, period).z - md.z))
+                         key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
                 return _result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
                                method="pencil", skipped=0)
     # ---- robust path

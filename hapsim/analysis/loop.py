@@ -165,6 +165,11 @@ class LoopModel:
     grip_stiffness, grip_damping : float, optional
         Grip spring [N/m] (``inf``: rigid, the default; then ``mass`` and ``friction`` are
         one body) and damper [N s/m] between hand and handle.
+    stiffness : float, optional
+        Real stiffness to ground [N/m] >= 0 (the hand's arm, on the hand mass behind a
+        compliant grip, on the one body when rigid; :mod:`hapsim.analysis.hand`): the real
+        spring of Florens et al. Table 1 case V. The plant is then the exact ZOH (or the
+        ideal hold's impulse-invariant image) of the state-space model.
     correction : Correction, optional
         Correction of the virtual element (:mod:`hapsim.analysis.corrections`).
 
@@ -173,7 +178,8 @@ class LoopModel:
     ConfigError
         On a non-positive mass or rate, a negative friction, a negative or non-integer
         delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
-        :data:`RATE_RANGE`, ``b0 T / m > MAX_PRODUCT``, a delay above :data:`MAX_DELAY`;
+        :data:`RATE_RANGE`, ``b0 T / m`` or ``kh T^2 / m > MAX_PRODUCT``, a delay above
+        :data:`MAX_DELAY`, a negative ``stiffness``;
         a hand part not inside the whole, a compliant grip with the ideal hold; ``key``
         names the field.
 
@@ -193,6 +199,7 @@ class LoopModel:
     grip_stiffness: float = math.inf
     grip_damping: float = 0.0
     correction: object = None
+    stiffness: float = 0.0
 
     def __post_init__(self) -> None:
         def num(key, value):
@@ -228,6 +235,11 @@ class LoopModel:
         object.__setattr__(self, "friction", b0)
         object.__setattr__(self, "rate_hz", r)
         object.__setattr__(self, "delay", int(d))
+        kh = num("stiffness", self.stiffness)
+        if kh < 0:
+            raise ConfigError(f"must be >= 0 [N/m], got {self.stiffness!r}", key="stiffness")
+        check_product(kh, 1.0 / (r * r * m), "stiffness", "N/m", "kh T^2/m")
+        object.__setattr__(self, "stiffness", kh)
         if not self.rigid:
             mh, bh = float(self.hand_mass), float(self.hand_damping)
             if not (0 < mh < m) or not (0 <= bh <= b0) or not (self.grip_stiffness > 0) \
@@ -245,8 +257,9 @@ class LoopModel:
 
     @property
     def generic(self) -> bool:
-        """Whether the loop needs the general plant/controller path (hand or correction)."""
-        return self.correction is not None or not self.rigid
+        """Whether the loop needs the general plant/controller path (hand, real spring or
+        correction)."""
+        return self.correction is not None or not self.rigid or self.stiffness > 0
 
     @property
     def period(self) -> float:
@@ -292,11 +305,14 @@ class LoopModel:
         hand = getattr(device, "hand", None)
         kw = {}
         if hand is not None or member is not None:
-            mh, bh, kg, bg = (np.asarray(member, float) if member is not None
-                              else nominal_member(hand))
+            row = (np.asarray(member, float) if member is not None
+                   else nominal_member(hand))
+            mh, bh, kg, bg = row[:4]
             m, b0 = m + mh, b0 + bh
+            if row.size > 4 and row[4] > 0:
+                kw["stiffness"] = float(row[4])
             if math.isfinite(kg):
-                kw = dict(hand_mass=float(mh), hand_damping=float(bh),
+                kw.update(hand_mass=float(mh), hand_damping=float(bh),
                           grip_stiffness=float(kg), grip_damping=float(bg))
         if correction is True:
             corr = Correction.from_dict(getattr(device, "correction", None))
@@ -319,6 +335,8 @@ class LoopModel:
         if not self.rigid:
             out.update(hand_mass=self.hand_mass, hand_damping=self.hand_damping,
                        grip_stiffness=self.grip_stiffness, grip_damping=self.grip_damping)
+        if self.stiffness > 0:
+            out["stiffness"] = self.stiffness
         if self.correction is not None:
             out["correction"] = self.correction.to_dict()
         return out
@@ -408,21 +426,30 @@ def _plant_w(loop: LoopModel):
 
 
 def _compliant_plant_w(loop: LoopModel):
-    """Handle + hand plant in ``w``: ``(Nn, D, Nvn)``, scaled by the total mass.
+    """State-space plant in ``w`` (compliant grip and/or real stiffness): ``(Nn, D, Nvn)``,
+    scaled by the total mass.
 
     ``x = (T^2/m) Nn/D u`` and ``v = (T/m) Nvn/D u`` (handle position and velocity); from
-    the delta-operator matrix ``Aw = Ad - I`` of :func:`hapsim.analysis.hand.hand_zoh`:
-    ``D = det(w I - Aw)``, ``c (w I - Aw)^-1 Bd = [det(w I - Aw + Bd c) - D] / D``.
+    the delta-operator matrix ``Aw = Ad - I`` of :func:`hapsim.analysis.hand.body_zoh`:
+    ``D = det(w I - Aw)``, ``c (w I - Aw)^-1 Bd = [det(w I - Aw + Bd c) - D] / D``. The
+    ideal hold (rigid only) is the impulse-invariant image ``Ad = e^(AT)``,
+    ``Bd = T Ad b`` (:func:`hapsim.analysis.hand.ideal_rows`); it has no velocity output.
     """
-    from hapsim.analysis.hand import hand_zoh
+    from hapsim.analysis.hand import body_zoh, ideal_rows
 
     m, T = loop.mass, loop.period
-    member = (loop.hand_mass, loop.hand_damping, loop.grip_stiffness, loop.grip_damping)
-    Aw, Bd = hand_zoh(m - loop.hand_mass, loop.friction - loop.hand_damping, member, T)
+    if loop.hold == "ideal":
+        tr, det, g = (float(v) for v in ideal_rows(m, loop.friction, loop.stiffness, T))
+        # x[n+1] = tr x[n] - det x[n-1] + g u: D = z^2 - tr z + det, N = g z (in w)
+        return (np.array([1.0, 1.0]) * g * (m / (T * T)),
+                np.array([1.0, 2.0 - tr, 1.0 - tr + det]), None)
+    member = (loop.hand_mass, loop.hand_damping, loop.grip_stiffness, loop.grip_damping,
+              loop.stiffness)
+    Aw, Bd = body_zoh(m - loop.hand_mass, loop.friction - loop.hand_damping, member, T)
     D = np.poly(Aw)
 
     def num(i):
-        c = np.zeros(4)
+        c = np.zeros(Aw.shape[0])
         c[i] = 1.0
         return (np.poly(Aw - np.outer(Bd, c)) - D)[1:]
     return num(0) * (m / (T * T)), D, num(1) * (m / T)
@@ -470,7 +497,8 @@ def plant(loop: LoopModel):
     ``phi1 = (e^-x - 1 + x)/x^2``, ``phi0 = (1 - e^-x - x e^-x)/x^2``, ``x = b0T/m``
     (``b0 = 0``: ``N = T^2/(2m) (z + 1)``). Equal to ``scipy.signal.cont2discrete``.
     """
-    Nn, D = _plant_w(loop) if loop.rigid else _compliant_plant_w(loop)[:2]
+    Nn, D = (_plant_w(loop) if loop.rigid and not loop.stiffness > 0
+             else _compliant_plant_w(loop)[:2])
     T = loop.period
     return _w_to_z(Nn) * (T * T / loop.mass), _w_to_z(D)
 
@@ -523,7 +551,7 @@ def _char_parts(loop: LoopModel):
         # a hand behind a grip or a correction: (P~, Q~, R~) expanded, e = 0
         # (hapsim.analysis.corrections.correction_polynomials)
         from hapsim.analysis.corrections import correction_polynomials
-        if loop.rigid:
+        if loop.rigid and not loop.stiffness > 0:
             Nn, D = _plant_w(loop)
             Nvn = _plant_vel_w(loop)
         else:

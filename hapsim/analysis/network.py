@@ -72,7 +72,7 @@ from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
-           "device_body", "plant_rows",
+           "device_body", "body_stiffness", "plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
            "port_io", "rest_position", "MAX_STATES", "state_count", "check_size"]
 
@@ -472,12 +472,9 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
                                  correction=getattr(dev, "correction", None))
     pr = plant_rows(dev, T, member)
     if pr is None:                       # ideal hold
-        mass, b0 = device_body(dev, member)
-        x = b0 * T / mass
-        a = math.exp(-x)
-        c = x / -math.expm1(-x) if x > 0 else 1.0
-        A[0, 0], A[0, 1] = 1.0 + a, -a
-        A[0] += T * T / (mass * c) * u
+        tr, det, g = _ideal_shift(dev, T, member)
+        A[0, 0], A[0, 1] = tr, -det
+        A[0] += g * u
     else:
         Ad, Bd = pr
         A[:nplant, :nplant] = Ad
@@ -510,6 +507,43 @@ def device_body(dev, member=None) -> tuple[float, float]:
     return m + float(mh), b0 + float(bh)
 
 
+def body_stiffness(dev, member=None) -> float:
+    """Real stiffness to ground of a device's hand (``device.hand.stiffness``) [N/m].
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+    member : array_like, shape (4,) or (5,), optional
+        Hand member; default the nominal member of ``dev.hand``.
+
+    Returns
+    -------
+    float
+        ``kh`` (0 without a hand or for a 4-column member).
+    """
+    from hapsim.analysis.hand import hand_stiffness, nominal_member
+
+    hand = getattr(dev, "hand", None)
+    if member is None and hand is None:
+        return 0.0
+    return float(hand_stiffness(member if member is not None else nominal_member(hand)))
+
+
+def _ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
+    """``(tr, det, g)`` of the ideal hold's ``x[n+1] = tr x[n] - det x[n-1] + g f[n]``
+    (Florens et al. eq. (4); with the hand's stiffness the impulse-invariant image,
+    :func:`hapsim.analysis.hand.ideal_rows`)."""
+    mass, b0 = device_body(dev, member)
+    kh = body_stiffness(dev, member)
+    if kh > 0:
+        from hapsim.analysis.hand import ideal_rows
+        return tuple(float(v) for v in ideal_rows(mass, b0, kh, T))
+    x = b0 * T / mass
+    a = math.exp(-x)
+    c = x / -math.expm1(-x) if x > 0 else 1.0
+    return 1.0 + a, a, T * T / (mass * c)
+
+
 def _compliant(dev, member) -> bool:
     hand = getattr(dev, "hand", None)
     if member is not None:
@@ -531,18 +565,18 @@ def plant_rows(dev, T: float, member=None):
     Returns
     -------
     (ndarray (p, p), ndarray (p,)) or None
-        ``p = 2`` (``[x, v]``, rigid body, :func:`hapsim.analysis.loop.zoh_state_space`)
-        or ``p = 4`` (``[xh, vh, xm, vm]``, compliant grip,
-        :func:`hapsim.analysis.hand.hand_zoh`).
+        ``p = 2`` (``[x, v]``, rigid body, :func:`hapsim.analysis.loop.zoh_state_space`;
+        with the hand's stiffness :func:`hapsim.analysis.hand.body_zoh`) or ``p = 4``
+        (``[xh, vh, xm, vm]``, compliant grip, :func:`hapsim.analysis.hand.hand_zoh`).
     """
-    from hapsim.analysis.hand import hand_zoh, nominal_member
+    from hapsim.analysis.hand import body_zoh, nominal_member
 
     if dev.hold != "zoh":
         return None
-    if _compliant(dev, member):
+    if _compliant(dev, member) or body_stiffness(dev, member) > 0:
         mem = np.asarray(member if member is not None else nominal_member(dev.hand), float)
-        Aw, Bd = hand_zoh(float(dev.mass), float(dev.friction), mem, T)
-        return Aw + np.eye(4), Bd
+        Aw, Bd = body_zoh(float(dev.mass), float(dev.friction), mem, T)
+        return Aw + np.eye(Aw.shape[-1]), Bd
     return zoh_state_space(*device_body(dev, member), T)
 
 
@@ -588,16 +622,13 @@ def port_io(scene, n: int):
     the impedance the hand feels; its residue at a pole weighs that mode at the port.
     """
     dev = scene.device
-    mass, b0 = device_body(dev)
     T = scene.period
     b = np.zeros(n)
     if dev.hold == "zoh":
         _, Bd = plant_rows(dev, T)          # handle + hand when the device has a hand
         b[:Bd.size] = Bd
     else:
-        x = b0 * T / mass
-        c = x / -math.expm1(-x) if x > 0 else 1.0
-        b[0] = T * T / (mass * c)
+        b[0] = _ideal_shift(dev, T)[2]
     c = np.zeros(n)
     c[0] = 1.0
     return b, c
@@ -738,8 +769,9 @@ def _check_products(scene, calibrated, gain: float) -> None:
     """Refuse a link or device friction whose dimensionless product exceeds MAX_PRODUCT.
 
     ``|K| T^2 / m`` and ``|B| T / m`` with ``m`` the lightest moving end of the link (a
-    virtual mass, or the device mass at the port; grounds do not move), and ``b0 T / m``
-    of the device (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
+    virtual mass, or the device mass at the port; grounds do not move), ``b0 T / m``
+    of the device and ``kh T^2 / mh`` of the hand's stiffness (largest stiffness, lightest
+    hand of a range) (:data:`hapsim.analysis.loop.MAX_PRODUCT`, and its reason there).
     """
     T = scene.period
     inertia = {m.name: m.mass for m in scene.masses if m.kind == "mass"}
@@ -751,6 +783,15 @@ def _check_products(scene, calibrated, gain: float) -> None:
                           "N s/m", "b0 T/m")
         except ConfigError as exc:
             raise ConfigError(exc.reason, file=scene.path, key="device.friction") from None
+        hand = getattr(dev, "hand", None)
+        if hand is not None:       # the arm's spring acts on the hand (+ handle) mass
+            from hapsim.analysis.hand import _span
+            kh, mh = _span(hand.stiffness)[1], _span(hand.mass)[0]
+            try:
+                check_product(kh, T * T / mh, "device.hand.stiffness", "N/m", "kh T^2/m")
+            except ConfigError as exc:
+                raise ConfigError(exc.reason, file=scene.path,
+                                  key="device.hand.stiffness") from None
     for lk, K, B in link_values(scene, calibrated):
         ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
         if not ends:

@@ -53,7 +53,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError
 
-__all__ = ["Controller", "Change", "ADDRESSES", "serve_osc"]
+__all__ = ["Controller", "Change", "Analyst", "ADDRESSES", "serve_osc", "identify_window"]
 
 #: The OSC addresses the server maps (module docstring).
 ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
@@ -99,6 +99,12 @@ class Controller:
         Its live sound (gain).
     ramp_s : float
         Ramp time of every change [s] (default 50 ms).
+    background : bool
+        Run the checks and the identifications in a child process (default): they are
+        seconds of Python on a large scene, and in a thread of this process they hold the
+        GIL against the haptic loop and the sound callback (a descheduled holder stalled
+        both: hundreds of starved frames, the sound server dropping the client). False:
+        in the calling thread (tests, small scenes).
 
     Attributes
     ----------
@@ -112,7 +118,8 @@ class Controller:
     paused : bool
     """
 
-    def __init__(self, scene, engine, live=None, ramp_s: float = 0.05) -> None:
+    def __init__(self, scene, engine, live=None, ramp_s: float = 0.05,
+                 background: bool = True) -> None:
         self.scene = scene
         self.engine = engine
         self.live = live
@@ -124,6 +131,10 @@ class Controller:
         self.refused = 0
         self.accepted = 0
         self.measured = (math.nan, math.nan)
+        #: The last measurement's full result (:func:`identify_window`), or None.
+        self.measurement: dict | None = None
+        self._gen = 0                          # accepted scene changes so far
+        self._pending = None                   # the identification under way (a Future)
         self._mail: collections.deque = collections.deque()
         self._gain_before_pause = 1.0
         self._ramps: list[Change] = []
@@ -133,9 +144,16 @@ class Controller:
         #: which the telemetry journal ``.hst`` writes), and the loop's sample counter.
         self.events: list | None = None
         self.sample_of = None
+        self.analyst = Analyst(background)
+        self.felt = self._predict(scene)
+
+    def _predict(self, scene) -> dict:
         from hapsim.daemon.runner import predict
-        self._predict = predict
-        self.felt = predict(scene)
+        return self.analyst.call(predict, scene)
+
+    def close(self) -> None:
+        """Stop the analysis process (pending work is dropped)."""
+        self.analyst.close()
 
     # ------------------------------------------------------------ any thread
     def _log(self, event: str, address: str, args, **extra) -> dict:
@@ -188,6 +206,8 @@ class Controller:
                 if pred is not None:
                     self.felt = pred
                     self.measured = (math.nan, math.nan)
+                    self.measurement = None
+                    self._gen += 1
             self._mail.append(change)
         except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
             reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
@@ -254,6 +274,43 @@ class Controller:
                           (nl.stiffness, nl.damping), steps), pred
         raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
 
+    def measure(self, x, wait: float = 0.0) -> None:
+        """Measure the felt (k, b) of a free response window in the background.
+
+        :func:`identify_window` on the scene as accepted now (in the analysis process);
+        :attr:`measured` and :attr:`measurement` are set when it ends, unless a change was
+        accepted meanwhile (the window then shows a loop that is no longer the one
+        predicted). A window handed in while the previous one is still being measured is
+        dropped (:meth:`finish` waits for that one).
+
+        Parameters
+        ----------
+        x : array_like, shape (n,)
+            Device positions [m] from the start of a free response (copied).
+        wait : float
+            Wait up to this long [s] for this one (end of a run; 0: return at once).
+        """
+        if self._pending is not None and not self._pending.ready():
+            return
+        gen, scene, x = self._gen, self.scene, np.array(x, dtype=float)
+
+        def done(res):
+            if "k" in res and self._gen == gen:
+                self.measurement = res
+                self.measured = (float(res["k"]), float(res["b"]))
+
+        self._pending = self.analyst.submit(identify_window, (x, scene), done)
+        if wait > 0:
+            self.finish(wait)
+
+    def finish(self, timeout_s: float = 10.0) -> bool:
+        """Wait up to ``timeout_s`` [s] for the identification under way; whether none is
+        left running."""
+        if self._pending is None:
+            return True
+        self._pending.wait(timeout_s)
+        return self._pending.ready()
+
     # ------------------------------------------------------------ sample loop
     def poll(self, engine=None) -> None:
         """Between two samples: take new changes from the mailbox, advance the ramps.
@@ -317,6 +374,104 @@ class Controller:
     def ramping(self) -> bool:
         """Whether a change is still being ramped (or waits in the mailbox)."""
         return bool(self._ramps or self._mail)
+
+
+class Analyst:
+    """Where a :class:`Controller` runs its heavy analysis: a child process, or here.
+
+    The child (a ``spawn`` :class:`multiprocessing.pool.Pool` of one worker, ``SCHED_OTHER``
+    at nice 10, its stdout sent to stderr so nothing lands in a ``--json`` report) is
+    started at once and kept; a call waits for its answer without holding the GIL, so the
+    haptic loop and the sound callback of this process keep running. :meth:`close`
+    terminates it, work under way included.
+
+    Parameters
+    ----------
+    background : bool
+        Use a child process (False: call in the calling thread).
+    timeout_s : float
+        Longest wait of :meth:`call` [s]; then :class:`hapsim.errors.HapsimError`.
+    """
+
+    def __init__(self, background: bool = True, timeout_s: float = 120.0) -> None:
+        self._pool = None
+        self.timeout_s = float(timeout_s)
+        if background:
+            import multiprocessing
+            self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=_background)
+
+    def submit(self, fn, args: tuple, done=None):
+        """Start ``fn(*args)``; ``done(result)`` when it ends (``done({"error": ...})`` if
+        it raised). Returns a handle with ``ready()`` and ``wait(timeout)``."""
+        def failed(exc):
+            if done is not None:
+                done({"error": f"{type(exc).__name__}: {exc}"})
+
+        if self._pool is not None:
+            return self._pool.apply_async(fn, args, callback=done, error_callback=failed)
+        h = _Done()
+        try:
+            res = fn(*args)
+        except Exception as exc:
+            failed(exc)
+            return h
+        if done is not None:
+            done(res)
+        return h
+
+    def call(self, fn, *args):
+        """``fn(*args)``, in the child when there is one (its exception re-raised).
+
+        Raises
+        ------
+        HapsimError
+            No answer within :attr:`timeout_s`.
+        """
+        if self._pool is None:
+            return fn(*args)
+        import multiprocessing
+        try:
+            return self._pool.apply_async(fn, args).get(self.timeout_s)
+        except multiprocessing.TimeoutError:
+            raise HapsimError(f"the analysis took longer than {self.timeout_s:g} s") from None
+
+    def close(self) -> None:
+        """Terminate the child (work under way is dropped)."""
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+
+class _Done:
+    """The handle of work done in-process (already finished)."""
+
+    def ready(self) -> bool:
+        return True
+
+    def wait(self, timeout=None) -> None:
+        return None
+
+
+def _background() -> None:
+    """Analysis process initialiser: normal scheduling, low priority (it must never
+    compete with the haptic loop or the sound callback that started it)."""
+    import os
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.nice(10)
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.dup2(2, 1)         # LAPACK and friends print on fd 1: keep it off the report
+    except OSError:
+        pass
+    from hapsim.daemon._blas import limit_blas_threads
+    limit_blas_threads(1)
+    import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
 
 class _Refused(Exception):
@@ -457,15 +612,48 @@ def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> 
             pass
 
 
-def identify_window(x: np.ndarray, scene, order: int) -> tuple[float, float]:
-    """Felt (k, b) of a free response window (matrix pencil, the pair with the largest |z|).
+def identify_window(x: np.ndarray, scene) -> dict:
+    """Felt (k, b) of a free response window, measured as ``hapsim run`` measures it.
 
-    Returns (nan, nan) when no pair is found.
+    :func:`hapsim.daemon.runner.identify` with the run's arguments: the predicted non-zero
+    closed-loop poles seen at the port and the predicted felt pole
+    (:func:`hapsim.daemon.runner._predicted_poles`), the equilibrium offset
+    (:func:`hapsim.daemon.runner._has_offset`), the device's sensor step and noise, so the
+    answer is :func:`hapsim.analysis.identify.measure_felt` (exact matrix pencil for an
+    exact record, variable projection started from the prediction otherwise).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Device positions [m], one per device sample, from the start of a free response.
+    scene : hapsim.scene.Scene
+        The calibrated scene of the loop that produced them (device delay included).
+
+    Returns
+    -------
+    dict
+        :func:`~hapsim.daemon.runner.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
+        ``k_unc``, ``b_unc`` ... or ``error`` (str) when the window cannot carry a
+        measurement.
     """
-    from hapsim.analysis.identify import fit_rendered
+    from hapsim.analysis.network import device_body
+    from hapsim.daemon.runner import _has_offset, _predicted_poles, identify
 
+    x = np.asarray(x, dtype=float)
+    dev = scene.device
     try:
-        md = fit_rendered(np.asarray(x, float), scene.period, order, float(scene.device.mass))
-        return float(md.k), float(md.b)
-    except (ConfigError, ValueError, np.linalg.LinAlgError):
-        return math.nan, math.nan
+        poles, felt = _predicted_poles(scene)
+        order = int(poles.size)
+        if not order:
+            return {"error": "the loop has no oscillation to measure"}
+        response = None
+        quantum = float(dev.position_resolution or 0.0)
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.identify import sensor_error_response
+            response = sensor_error_response(scene, int(x.size))
+        return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
+                        offset=_has_offset(scene), skip=int(dev.delay) + 2,
+                        predicted=poles, felt=felt, quantum=quantum, noise=float(dev.noise),
+                        sensor_response=response)
+    except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"error": str(exc)}

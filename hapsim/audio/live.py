@@ -1,14 +1,21 @@
 """Live sound: the audio part of a multi-rate scene computed in a sound server's callback.
 
-The haptic side (device loop, or the mock hand of ``hapsim play``) pushes one port position
-per device sample into a ring (:meth:`LiveSound.push`) and reads back the latest port force
-(:meth:`LiveSound.force`); the sound server's process callback calls one compiled function,
-:func:`hapsim.kernels.audio.run_frames`, on preallocated buffers: it runs the N audio
-sub-steps of each device period, takes the next port position from the ring at each period
-start (holding the last one, counted as an underrun, when none has arrived) and writes the
-period's port force back. The callback itself does per block only what the server's Python
-binding needs (fetch the port buffers, one copy per channel): no per-sample Python, no
-allocation by hapsim, the GIL released inside the compiled function (``nogil``).
+The haptic side (the mock hand of ``hapsim play``) pushes one port position per device
+sample into a ring and reads back the port force of the device period ``lead`` samples
+earlier (:meth:`LiveSound.port_step`); the sound server's process callback calls one
+compiled function, :func:`hapsim.kernels.audio.run_frames`, on preallocated buffers: it
+runs the N audio sub-steps of each device period, takes the next port position from the
+ring at each period start and writes the period's port force back. When a period's position
+has not arrived the model waits (silence, counted as starved frames) rather than hold the
+last one, and the haptic side waits for the force it needs: so device period n always runs
+on the n-th position and the n-th force reaches the device ``lead`` samples later, whatever
+the block size and the threads' timing. The coupling is then a pure delay of ``lead``
+device samples, which the analysis models by adding it to the device's delay
+(:meth:`LiveSound.coupled_scene`); ``lead = ceil(block / N)`` is the least that lets one
+callback find the positions of every period it starts. The callback itself does per block
+only what the server's Python binding needs (fetch the port buffers, one copy per channel):
+no per-sample Python, no allocation by hapsim, the GIL released inside the compiled
+function (``nogil``).
 
 Backends: JACK (``JACK-Client``; xruns counted by the server's xrun callback) and, where no
 JACK server runs, PortAudio through ``sounddevice`` (output underflows counted as xruns).
@@ -16,8 +23,12 @@ JACK server runs, PortAudio through ``sounddevice`` (output underflows counted a
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import os
 import sys
 import threading
+import time
 
 import numpy as np
 
@@ -26,7 +37,7 @@ from hapsim.errors import ConfigError, DeviceError
 from hapsim.kernels import audio as audio_kernel
 
 __all__ = ["LiveSound", "FrameRing", "sounding_engine", "JackOutput", "SoundDeviceOutput",
-           "open_output", "BACKENDS"]
+           "open_output", "wait_priority", "BACKENDS"]
 
 #: Sound backends, in the order ``auto`` tries them.
 BACKENDS = ("jack", "sounddevice")
@@ -70,7 +81,36 @@ class LiveSound:
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
         (self._nsub, self._lin, self._last, self._port), self._state = engine._multi
         self._lock = threading.Lock()
+        #: Device samples between a position and the force computed from it (set by
+        #: :meth:`set_block` from the server's block size).
+        self.lead = 0
+        #: How long :meth:`port_step` waits for a force before giving up [s].
+        self.timeout_s = 2.0
+        #: Times :meth:`port_step` had to wait for the audio thread.
+        self.waits = 0
         self.render(0)       # compile (or load from cache) now, not in the first callback
+
+    @staticmethod
+    def lead_for(block: int, nsub: int) -> int:
+        """The least lead [device samples] for callbacks of ``block`` frames and ``nsub``
+        audio sub-steps per device period: ``ceil(block / nsub)``.
+
+        A callback starts at most ``ceil(block / nsub)`` periods, the last one's position
+        being ``ceil(block / nsub)`` samples past the last finished period; the haptic
+        side, blocked on the force ``lead`` periods back, has pushed exactly that far.
+        """
+        return int(math.ceil(int(block) / int(nsub)))
+
+    def set_block(self, block: int) -> int:
+        """Set :attr:`lead` for the server's block size [frames]; return it."""
+        self.lead = self.lead_for(block, self._nsub)
+        return self.lead
+
+    def coupled_scene(self, scene):
+        """``scene`` with its device delay increased by :attr:`lead`: the loop this live
+        sound closes (period n's force reaches the device ``lead`` samples later)."""
+        return dataclasses.replace(scene, device=dataclasses.replace(
+            scene.device, delay=int(scene.device.delay) + int(self.lead)))
 
     # -------------------------------------------------------------- haptic thread
     def push(self, position: float) -> None:
@@ -89,9 +129,31 @@ class LiveSound:
         return float(self._fring[(w - 1) % self._fring.size]) if w > 0 else 0.0
 
     def port_step(self, position: float) -> float:
-        """Haptic-loop form: :meth:`push` the position, return :meth:`force`."""
+        """Haptic-loop form: push the position of device sample n, return the port force of
+        period ``n - lead`` (0.0 for n < lead), waiting for the audio thread to finish it.
+
+        Raises
+        ------
+        DeviceError
+            The audio thread finished no period for :attr:`timeout_s` (the sound server
+            stopped calling back).
+        """
+        n = int(self._wr[0])
         self.push(position)
-        return self.force()
+        m = n - self.lead
+        if m < 0:
+            return 0.0
+        if self._st[_S["written"]] <= m:
+            self.waits += 1
+            last, t_last = self._st[_S["written"]], time.monotonic()
+            while self._st[_S["written"]] <= m:
+                time.sleep(2e-4)
+                if self._st[_S["written"]] != last:
+                    last, t_last = self._st[_S["written"]], time.monotonic()
+                elif time.monotonic() - t_last > self.timeout_s:
+                    raise DeviceError(f"the sound server stopped calling back: no audio "
+                                      f"period finished for {self.timeout_s:g} s")
+        return float(self._fring[m % self._fring.size])
 
     def set_gain(self, gain: float, ramp_s: float = 0.05) -> None:
         """Ramp the master gain linearly to ``gain`` over ``ramp_s`` [s] (no click).
@@ -120,11 +182,14 @@ class LiveSound:
         return float(self._st[_S["gain_target"]])
 
     def stats(self) -> dict:
-        """``pushed``, ``consumed`` device samples, ``underruns`` (periods that found no new
-        position and held the last), ``periods`` completed."""
+        """``pushed``, ``consumed`` device samples, ``periods`` completed, ``underruns``
+        (frames of silence because the next period's position had not arrived: the model
+        waited), ``lead`` [device samples] and ``waits`` (haptic samples that waited for
+        the audio thread)."""
         return {"pushed": int(self._wr[0]), "consumed": int(self._st[_S["read"]]),
-                "underruns": int(self._st[_S["underruns"]]),
-                "periods": int(self._st[_S["written"]])}
+                "underruns": int(self._st[_S["starved"]]),
+                "periods": int(self._st[_S["written"]]), "lead": int(self.lead),
+                "waits": int(self.waits)}
 
     # -------------------------------------------------------------- audio thread
     def render(self, nframes: int) -> np.ndarray:
@@ -223,6 +288,13 @@ class JackOutput:
     ----------
     xruns : int
         xruns the server reported while this client was active.
+    blocksize : int
+        Frames per process callback (the server's period; a :class:`LiveSound`'s lead is
+        set from it).
+    callback_priority : int or None
+        ``SCHED_FIFO`` priority of the process callback's thread (0: not real-time), read
+        in its first call (None before): a haptic thread must run below it, or it
+        delays the callback past its deadline (:func:`wait_priority`).
 
     Raises
     ------
@@ -247,6 +319,10 @@ class JackOutput:
                               f"{live.rate_hz:g} Hz: start jackd -r {live.rate_hz:g}")
         self.live = live
         self.xruns = 0
+        self.callback_priority = None
+        self.blocksize = int(self.client.blocksize)
+        if hasattr(live, "set_block"):
+            live.set_block(self.blocksize)
         self.ports = [self.client.outports.register(f"out_{c.replace('.', '_')}")
                       for c in live.channels]
         self._arrays = None
@@ -259,6 +335,12 @@ class JackOutput:
                 self.client.connect(p, t)
 
     def _process(self, frames: int) -> None:
+        if self.callback_priority is None:   # once: the thread's SCHED_FIFO priority
+            self.callback_priority = _thread_priority()
+        if frames != self.blocksize:     # the server changed its period: keep it exact
+            self.blocksize = frames
+            if hasattr(self.live, "set_block"):
+                self.live.set_block(frames)
         block = self.live.render(frames)
         for c, p in enumerate(self.ports):
             p.get_array()[:] = block[:, c]
@@ -280,26 +362,50 @@ class JackOutput:
 class SoundDeviceOutput:
     """Play a :class:`LiveSound` through PortAudio (``sounddevice``), the fallback.
 
+    Parameters
+    ----------
+    live : LiveSound or FrameRing
+        What renders the frames.
+    device : int or str, optional
+        PortAudio output device (default: the host's default output).
+    blocksize : int
+        Frames per callback, fixed (PortAudio adapts the device's buffers to it), so a
+        :class:`LiveSound`'s lead is exact.
+
     Attributes
     ----------
     xruns : int
         Callbacks that reported an output underflow.
+    blocksize : int
+
+    Raises
+    ------
+    DeviceError
+        PortAudio found no output it can open.
     """
 
-    def __init__(self, live: LiveSound, device=None) -> None:
+    def __init__(self, live: LiveSound, device=None, blocksize: int = 256) -> None:
         import sounddevice as sd
 
         self.live = live
         self.xruns = 0
+        self.blocksize = int(blocksize)
+        if hasattr(live, "set_block"):
+            live.set_block(self.blocksize)
+
+        self.callback_priority = None
 
         def callback(outdata, frames, time, status):
+            if self.callback_priority is None:
+                self.callback_priority = _thread_priority()
             if status.output_underflow:
                 self.xruns += 1
             outdata[:] = live.render(frames)
 
         try:
             self.stream = sd.OutputStream(samplerate=live.rate_hz, channels=len(live.channels),
-                                          dtype="float32", callback=callback, device=device)
+                                          dtype="float32", callback=callback, device=device,
+                                          blocksize=self.blocksize)
             self.stream.start()
         except Exception as exc:  # PortAudio raises its own error types
             raise DeviceError(f"no audio output through PortAudio: {exc}") from None
@@ -308,6 +414,25 @@ class SoundDeviceOutput:
         """Stop and close the stream."""
         self.stream.stop()
         self.stream.close()
+
+
+def _thread_priority() -> int:
+    """``SCHED_FIFO``/``SCHED_RR`` priority of the calling thread (0 otherwise)."""
+    try:
+        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+            return int(os.sched_getparam(0).sched_priority)
+    except (AttributeError, OSError):
+        pass
+    return 0
+
+
+def wait_priority(out, timeout_s: float = 1.0) -> int | None:
+    """The real-time priority of ``out``'s callback thread once it has run (None when it
+    did not run within ``timeout_s`` [s] or the backend does not say)."""
+    t_end = time.monotonic() + timeout_s
+    while getattr(out, "callback_priority", None) is None and time.monotonic() < t_end:
+        time.sleep(0.005)
+    return getattr(out, "callback_priority", None)
 
 
 def open_output(live: LiveSound, backend: str = "auto", *, server: str | None = None,

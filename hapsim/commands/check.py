@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
             h = dv.hand
             print(f"hand (nominal member of the family; hapsim family for all of it): mass "
                   f"{h.mass}, damping {h.damping}, grip "
-                  f"{'rigid' if h.rigid else h.grip_stiffness} / {h.grip_damping}")
+                  f"{'rigid' if h.rigid else h.grip_stiffness} / {h.grip_damping}"
+                  + (f", stiffness to ground {h.stiffness}" if h.stiffness else ""))
         if getattr(dv, "correction", None) is not None:
             print(f"correction: {dv.correction}")
     else:

@@ -27,10 +27,12 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
 
-A scene with two or more spring_dampers between the port and a ground (links in parallel)
-is also checked for consistency (Florens et al. Table 1 generalised): the felt pair of the
-links together against the sum of what each link alone makes felt (real damping counted
-once); 1 would be consistent.
+A scene with two or more spring_dampers between the port and a ground (links in parallel),
+or one and the hand's stiffness to ground (device.hand.stiffness: a real spring), is also
+checked for consistency (Florens et al. Table 1 generalised, cases IV and V): the felt pair
+of the parts together against the sum of what each part alone makes felt (a link on the
+member without the real spring; the real spring as it is; real damping counted once); 1
+would be consistent.
 
 A correction of the virtual element (the scene's device.correction, or --correction) acts
 at the port of every member: its state joins the stacked matrices, so the family stays one
@@ -148,7 +150,8 @@ def _member_line(md: dict) -> str:
     return (f"hand {_g(md['mass'], 'g')} kg, damping {_g(md['damping'], 'g')} N s/m, grip "
             f"{kg if isinstance(kg, str) else _g(kg, '.6g')} N/m / "
             f"{_g(md['grip_damping'], 'g')} N s/m"
-            f"{' (a corner)' if md['corner'] else ''}: spectral radius "
+            + (f", arm stiffness {_g(md['stiffness'], 'g')} N/m" if md.get("stiffness") else "")
+            + f"{' (a corner)' if md['corner'] else ''}: spectral radius "
             f"{_g(md['spectral_radius'], '.9g')}")
 
 
@@ -190,10 +193,12 @@ def run(args: argparse.Namespace) -> int:
     res = family(scene, args.samples, grid=args.grid, seed=args.seed)
     rep = res.to_dict()
     cons = None
-    if len(res.links) >= 2:
+    from hapsim.analysis.hand import hand_stiffness
+    if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
         from hapsim.analysis.family import consistency
         c = consistency(scene, mem=res.members, calibrated=res.calibrated)
-        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum")}
+        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum",
+                                                       "k_real")}
         rep["consistency"] = cons
     cals = []
     if args.calibrate:
@@ -243,8 +248,11 @@ def run(args: argparse.Namespace) -> int:
               f"b {_g(d['b']['min'])} .. {_g(d['b']['max'])} N s/m")
     if cons is not None:
         kr, br = cons["k_ratio"], cons["b_ratio"]
-        print(f"consistency (Table 1 generalised): links {', '.join(cons['links'])} together "
-              f"feel k / (sum of each alone) = {_g(kr['min'], '.4g')} .. "
+        parts = (f"links {', '.join(cons['links'])}"
+                 + (" and the hand's real spring (device.hand.stiffness)"
+                    if cons["real_spring"] else ""))
+        print(f"consistency (Table 1 generalised): {parts} together feel "
+              f"k / (sum of the parts) = {_g(kr['min'], '.4g')} .. "
               f"{_g(kr['max'], '.4g')} (nominal {_g(kr['nominal'], '.4g')}), b / (sum) = "
               f"{_g(br['min'], '.4g')} .. {_g(br['max'], '.4g')}; 1 would be consistent")
     for c in cals:

@@ -97,8 +97,10 @@ def register(sub) -> None:
     p.add_argument("--firmware", action="store_true",
                    help="run the Hapkit 3 reference firmware on the emulated board (simavr) "
                         "instead of the Python mock (default scene: configs/hapkit.yaml)")
-    p.add_argument("--tick", choices=("compiled", "python"), default="compiled",
-                   help="real-time ticks in numba ('compiled', default: same bytes as the "
+    p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
+                   help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
+                        "(loading the compiled tick delays the HELLO by 0.5-1 s). "
+                        "Real-time ticks in numba ('compiled': same bytes as the "
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
                         "sensor noise and a compliant grip stay in Python) or in Python "
                         "('python', the reference)")
@@ -211,7 +213,10 @@ def run(args) -> int:
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
-        if args.tick == "compiled" and not args.lockstep and plan is None:
+        from hapsim.daemon.mock import AUTO_COMPILED_HZ
+        compiled = args.tick == "compiled" or (args.tick == "auto"
+                                               and mock.native_rate_hz > AUTO_COMPILED_HZ)
+        if compiled and not args.lockstep and plan is None:
             # numba's loading (hundreds of ms of CPU) before SCHED_FIFO, not under it: a
             # real-time start-up starves every other real-time loop of the machine
             try:

@@ -37,13 +37,22 @@ OSC addresses (replies go to the sender's address and port):
 measured (k, b): identified (matrix pencil) from each free response between plucks that no
   change disturbed; NaN until one has been.
 late: times the loop fell more than 20 ms behind the clock (it then resynchronises; the
-  mock device's physics stays sample-exact). sound: xruns (JACK's count, or PortAudio
-  underflows) and ring underruns (device periods the audio thread found no new position
-  for and held the last).
+  mock device's physics stays sample-exact).
+sound: computed in the sound server's callback, one block ahead of the hand: the force of
+  device period n reaches the device lead = ceil(block / N) samples later (N audio
+  sub-steps per device period), a pure delay the prediction includes (report: delay =
+  device delay + lead), and the loop is paced by the sound card's clock. xruns (JACK's
+  count, or PortAudio underflows); underruns: frames of silence because the next period's
+  position had not arrived (the model waits; the loop stays the predicted one).
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
   hapsim play configs/audio_string.yaml --osc 9000 --duration 60
   hapsim play configs/wall.yaml --osc 9000 --sound none --pluck-every 0.5 --json"""
+
+
+#: Longest wait for the last identification after the run [s] (a large scene's fit of a
+#: record its contacts made nonlinear can take minutes; it is then dropped).
+END_WAIT_S = 3.0
 
 
 def register(sub) -> None:
@@ -72,15 +81,18 @@ def register(sub) -> None:
                    help="repeat the scene's excitation (hand impulse/profile) every S seconds "
                         "(default 0: once)")
     p.add_argument("--lockstep", action="store_true",
-                   help="run as fast as possible instead of in real time (no OSC timing)")
+                   help="run as fast as possible instead of in real time (no OSC timing; "
+                        "with live sound the sound card sets the pace anyway)")
     p.add_argument("--journal", metavar="FILE.json",
                    help="write the change journal (requests, verdicts, ramps) here")
     p.add_argument("--telemetry", metavar="FILE.npz",
                    help="write time [s], device position [m], port force [N] per sample")
-    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
-                   help="SCHED_FIFO priority of the haptic loop where permitted (default 10; "
-                        "0: normal): a descheduled haptic thread holding the GIL makes the "
-                        "sound callback wait")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                   help="SCHED_FIFO priority of the haptic loop where permitted (0: normal). "
+                        "Default: with live sound one below the sound callback's thread (the "
+                        "loop feeds it: a haptic thread behind other real-time work starves "
+                        "the sound), else 10; never at or above the callback's (it would "
+                        "delay it past its deadline, holding the CPU or the GIL)")
     p.add_argument("--json", action="store_true", help="print one JSON report on stdout")
     p.set_defaults(func=run)
 
@@ -96,11 +108,13 @@ def run(args: argparse.Namespace) -> int:
     Returns
     -------
     int
-        0 after the run; 1 when the scene's closed loop is unstable (refused before
-        playing) or no sound output could be opened for ``--sound jack|sounddevice``;
+        0 after the run; 1 when the scene's closed loop (with live sound: its callback's
+        lead added to the device delay) is unstable (refused before playing), no sound
+        output could be opened for ``--sound jack|sounddevice``, or the sound server
+        stopped calling back (the report then covers what was played);
         2 on bad input (raised as ConfigError).
     """
-    from hapsim.audio.control import Controller, identify_window, send_telemetry, serve_osc
+    from hapsim.audio.control import Controller, send_telemetry, serve_osc
     from hapsim.daemon.mock import MockPhysics, hand_force_samples
     from hapsim.daemon.runner import _warm_up, prepare_scene
     from hapsim.engine import Engine
@@ -113,17 +127,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"must be >= 0, got {args.ramp}", key="--ramp")
     if not args.pluck_every >= 0:
         raise ConfigError(f"must be >= 0, got {args.pluck_every}", key="--pluck-every")
+    if args.rt_priority is not None and not 0 <= args.rt_priority <= 99:
+        raise ConfigError(f"must be 0 (normal) or a SCHED_FIFO priority 1..99, got "
+                          f"{args.rt_priority}", key="--rt-priority")
     scene, _ = prepare_scene(load_scene(args.scene))
     engine = Engine(scene)
     live = out = None
     if args.sound != "none" and scene.audio is not None:
         from hapsim.audio.live import LiveSound, open_output
         live = LiveSound(engine)
-    ctl = Controller(scene, engine, live, ramp_s=args.ramp)
-    if not ctl.felt["stable"]:
-        print(f"hapsim play: the closed loop of {args.scene} is unstable (spectral radius "
-              f"{ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
-        return 1
     T = scene.period
     steps = int(round(args.duration * scene.rate_hz))
     dev = scene.device
@@ -135,9 +147,6 @@ def run(args: argparse.Namespace) -> int:
         n = min(h.size, steps - s0)
         hand[s0:s0 + n] = h[:n]
     phys = MockPhysics(dev, scene.rate_hz, scene.excitation, hand=hand, base_dir=base)
-    server = tel = None
-    status = (lambda: {"xruns": getattr(out, "xruns", 0),
-                       "underruns": live.stats()["underruns"] if live else 0})
     xs = np.zeros(steps)
     fs = np.zeros(steps)
     line = deque([0.0] * int(dev.delay))
@@ -146,8 +155,7 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.daemon._blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
     _warm_up(scene)                                   # kernels loaded before the clock starts
-    identify_window(np.cos(0.3 * np.arange(200)) * 0.99 ** np.arange(200), scene, 2)
-    if live is not None:    # the sound starts with the clock, not during warm-up
+    if live is not None:    # the sound starts after the warm-up (silence until the loop does)
         try:
             out = open_output(live, args.sound, server=args.jack_server)
         except DeviceError as exc:
@@ -155,16 +163,45 @@ def run(args: argparse.Namespace) -> int:
                 print(f"hapsim play: {exc}", file=sys.stderr)
                 return 1
             print(f"hapsim play: no sound ({exc}); playing silently", file=sys.stderr)
-            live = ctl.live = None
+            live = None
+    # the loop played: the device's delay plus, with live sound, the callback's lead
+    # (period n's force, computed in the sound server's callback, reaches the device
+    # ``lead`` samples after its position left: a pure delay, hapsim.audio.live)
+    played = live.coupled_scene(scene) if live is not None else scene
+    ctl = Controller(played, engine, live, ramp_s=args.ramp)
+    if not ctl.felt["stable"]:
+        extra = (f" with the sound server's {out.blocksize}-frame block ({live.lead} device "
+                 f"samples of delay added to the device's {dev.delay}; a smaller block, "
+                 f"jackd -p, or --sound none may render it)" if live is not None else "")
+        print(f"hapsim play: the closed loop of {args.scene}{extra} is unstable (spectral "
+              f"radius {ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
+        if out is not None:
+            out.close()
+        ctl.close()
+        return 1
+    server = tel = None
+    status = (lambda: {"xruns": getattr(out, "xruns", 0),
+                       "underruns": live.stats()["underruns"] if live else 0})
     if args.osc is not None:
         server, tel = serve_osc(ctl, args.osc, status=status)
         host, port = server.server_address[:2]
         print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
     step = live.port_step if live is not None else engine.port_step
+    clocked = live is None and not args.lockstep     # live sound: the sound card's clock
     late = 0
     quiet_from = 0            # first sample after the last change's ramp ended
+    error = None
     from hapsim.daemon.realtime import RealtimePriority
-    rt = RealtimePriority(args.rt_priority).__enter__()
+    prio = 10 if args.rt_priority is None else args.rt_priority
+    if out is not None:
+        # just below the sound callback's thread: at its priority or above, the haptic
+        # thread (and the GIL it holds) delays the callback past its deadline; far below,
+        # other real-time work delays the positions the callback needs
+        from hapsim.audio.live import wait_priority
+        ap = wait_priority(out)
+        if ap:
+            prio = max(0, ap - 1 if args.rt_priority is None else min(prio, ap - 1))
+    rt = RealtimePriority(prio).__enter__()
     t0 = time.perf_counter()
     try:
         for n in range(steps):
@@ -180,17 +217,22 @@ def run(args: argparse.Namespace) -> int:
             if tel is not None and n % tel["every"] == 0:
                 send_telemetry(tel, n * T, x, f, ctl)
             if P <= steps and (n + 1) % P == 0 and h.size:
-                # end of a free response: identify it when no change disturbed it
+                # end of a free response: measured (on a worker thread) when no change
+                # disturbed it
                 a = max(n + 1 - P + h.size, quiet_from)
-                if n + 1 - a >= 50 and ctl.felt.get("order"):
-                    ctl.measured = identify_window(xs[a:n + 1], ctl.scene, ctl.felt["order"])
-            if not args.lockstep:
+                if n + 1 - a >= 50:
+                    ctl.measure(xs[a:n + 1])
+            if clocked:
                 ahead = t0 + (n + 1) * T - time.perf_counter()
                 if ahead > 0:
                     time.sleep(ahead)
                 elif ahead < -0.02:       # more than 20 ms behind: count, resynchronise
                     late += 1
                     t0 -= ahead
+    except DeviceError as exc:            # the sound server stopped: report what was played
+        error = str(exc)
+        steps = n
+        xs, fs = xs[:steps], fs[:steps]
     finally:
         rt.__exit__(None, None, None)
         if server is not None:
@@ -198,16 +240,27 @@ def run(args: argparse.Namespace) -> int:
             server.server_close()
         if out is not None:
             out.close()
-    if P > steps and h.size and quiet_from < steps - 50:
-        ctl.measured = identify_window(xs[max(h.size, quiet_from):], ctl.scene,
-                                       ctl.felt.get("order") or 2)
+    if P > steps and max(h.size, quiet_from) < steps - 50:   # one free response: now
+        ctl.measure(xs[max(h.size, quiet_from):], wait=END_WAIT_S)
+    else:
+        ctl.finish(END_WAIT_S)
+    note = None if ctl.finish(0.0) else (
+        f"the last identification ran past {END_WAIT_S:g} s after the run: dropped")
+    ctl.close()
     report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
               "late": late,  # times > 20 ms behind the clock (then resynchronised)
+              "paced_by": "sound" if live is not None else ("clock" if clocked else "none"),
+              "delay": int(ctl.scene.device.delay),   # device samples, lead included
               "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
-              "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1]},
+              "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1],
+                                             **({} if ctl.measurement is None else {
+                                                 q: ctl.measurement.get(q) for q in
+                                                 ("k_unc", "b_unc", "method", "samples_used")})},
+              "error": error, "note": note,
               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
               "sound": None if live is None else {
-                  "backend": type(out).__name__, "xruns": out.xruns, **live.stats()},
+                  "backend": type(out).__name__, "xruns": out.xruns, "block": out.blocksize,
+                  **live.stats()},
               "journal": ctl.journal}
     if args.journal:
         _dump(args.journal, ctl.journal)
@@ -226,6 +279,9 @@ def run(args: argparse.Namespace) -> int:
               f"measured k = {ctl.measured[0]:.6g}, b = {ctl.measured[1]:.6g}")
         if report["sound"]:
             print(f"sound: {report['sound']}")
+    if error:
+        print(f"hapsim play: {error}", file=sys.stderr)
+        return 1
     return 0
 
 

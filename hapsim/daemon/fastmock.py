@@ -321,7 +321,8 @@ def compiled_reason(mock, plan=None) -> str | None:
     -------
     str or None
         ``"lockstep"``, ``"faults"``, ``"velocity sensor"`` (VELOCITY frames enabled by
-        the host), ``"noise"``, ``"hand grip"``, ``"hold"``, ``"subclass"``, ``"trace"`` or
+        the host), ``"noise"``, ``"hand grip or arm stiffness (state-space plant)"``,
+        ``"hold"``, ``"subclass"``, ``"trace"`` or
         ``"not configured"``; None: compiled.
     """
     from hapsim.daemon.mock import MockDevice, MockPhysics
@@ -343,7 +344,7 @@ def compiled_reason(mock, plan=None) -> str | None:
     if ph._rng is not None:
         return "noise"
     if ph._grip is not None:
-        return "hand grip"
+        return "hand grip or arm stiffness (state-space plant)"
     if ph.hold not in ("zoh", "ideal"):
         return "hold"
     return None

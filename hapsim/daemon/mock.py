@@ -66,6 +66,9 @@ DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
 #: 0). A spin to each deadline made the mock, a SCHED_FIFO process, throttled under load.
+#: Above this native rate [Hz] ``serve_fd(tick="auto")`` ticks in numba; at and below it in
+#: Python (the compiled tick's loading delays the HELLO by 0.5-1 s; 1 kHz runs do not need it).
+AUTO_COMPILED_HZ = 2000.0
 MOCK_SPIN_NS = 0
 
 
@@ -239,17 +242,23 @@ def hand_force_samples(excitation: Excitation, period: float,
 
 def _body(device: Device, member=None):
     """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
-    continuous 4x4 matrix of a compliant grip (None when rigid or without a hand).
-    Without a hand nothing is imported: a mock restarted by CONFIG must answer at once."""
+    continuous matrix of a compliant grip (4x4) or of the one body with the hand's
+    stiffness to ground (2x2, ``[x, v]``); None when neither. ``mass`` is the body the
+    force acts on (the handle alone behind a compliant grip). Without a hand nothing is
+    imported: a mock restarted by CONFIG must answer at once."""
     hand = getattr(device, "hand", None)
     if hand is None and member is None:
         return float(device.mass), float(device.friction), None
-    from hapsim.analysis.hand import hand_matrices, nominal_member
+    from hapsim.analysis.hand import hand_matrices, hand_stiffness, nominal_member
     mem = np.asarray(member if member is not None else nominal_member(hand), float)
     if np.isfinite(mem[2]):
         A, _ = hand_matrices(float(device.mass), float(device.friction), mem)
         return float(device.mass), float(device.friction), A
-    return float(device.mass + mem[0]), float(device.friction + mem[1]), None
+    m, b = float(device.mass + mem[0]), float(device.friction + mem[1])
+    kh = float(hand_stiffness(mem))
+    if kh > 0:                                  # m x'' + b x' + kh x = f
+        return m, b, np.array([[0.0, 1.0], [-kh / m, -b / m]])
+    return m, b, None
 
 
 class MockPhysics:
@@ -270,11 +279,14 @@ class MockPhysics:
     hand : ndarray, optional
         Precomputed :func:`hand_force_samples` (a device restarted by CONFIG reuses it).
     member : array_like, shape (4,), optional
-        The member ``(mh, bh, kg, bg)`` of ``device.hand`` to simulate (default its nominal
+        The member ``(mh, bh, kg, bg[, kh])`` of ``device.hand`` to simulate (default its nominal
         member, :func:`hapsim.analysis.hand.nominal_member`). A rigid grip adds the hand's
         mass and damping to the handle's; a compliant one makes the plant
-        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)`` (Coulomb
-        friction is not modelled on that path; noise and quantisation are).
+        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)``; the hand's
+        stiffness to ground (``kh``) puts a real spring on the hand (on the one body when
+        rigid: ``[x, v]`` by the same exponential, or ``e^(AT)`` and ``T e^(AT) b`` for
+        the ideal hold). Coulomb friction is not modelled on those paths; noise and
+        quantisation are.
 
     Attributes
     ----------
@@ -301,13 +313,16 @@ class MockPhysics:
         self.period = T = 1.0 / float(rate_hz)
         self.hold = device.hold
         mass, friction, self._grip = _body(device, member)
-        if self._grip is not None:                  # compliant grip: 4-state plant
+        if self._grip is not None:         # compliant grip or the arm's spring: state space
             import scipy.linalg
-            A = np.zeros((5, 5))
-            A[:4, :4], A[1, 4] = self._grip, 1.0 / float(device.mass)
+            p = self._grip.shape[0]
+            A = np.zeros((p + 1, p + 1))
+            A[:p, :p], A[1, p] = self._grip, 1.0 / mass
             E = scipy.linalg.expm(A * T)
-            self._Ad, self._Bd = E[:4, :4], E[:4, 4]
-            self._s = np.array([exc.x0, exc.v0, exc.x0, exc.v0], dtype=float)
+            self._Ad, self._Bd = E[:p, :p], E[:p, p]
+            if self.hold == "ideal":       # impulses T f at nT: Bd = T e^(AT) b
+                self._Bd = T * self._Ad[:, 1] / mass
+            self._s = np.tile(np.array([exc.x0, exc.v0], dtype=float), p // 2)
         if self.hold == "zoh":
             self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
                 mass, friction, T)
@@ -834,7 +849,7 @@ def _load_tick(dev):
 def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
              report_path: str | None = None, flag: StopFlag | None = None,
              handle_signals: bool = True, plan=None, reopen=None, persistent: bool = False,
-             on_host_gone=None, tick: str = "compiled", hello: bool = True) -> dict:
+             on_host_gone=None, tick: str = "auto", hello: bool = True) -> dict:
     """Serve the mock device on a byte stream (the master side of a pty).
 
     Parameters
@@ -867,8 +882,12 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     on_host_gone : callable, optional
         ``on_host_gone(stats)`` with :meth:`MockStats.to_dict` of the session that ended,
         called (outside any tick) each time a persistent device loses its host.
-    tick : {"compiled", "python"}
-        ``"compiled"`` (default): while armed in real time, the ticks run in numba
+    tick : {"auto", "compiled", "python"}
+        ``"auto"`` (default): ``"compiled"`` when the device's native rate is above
+        :data:`AUTO_COMPILED_HZ`, else ``"python"`` -- loading numba and the compiled tick
+        costs the child about 0.5-1 s before its HELLO (``tools/bench_startup.py``), which a
+        1 kHz run does not need: the Python tick keeps 1 kHz (``tools/bench_mock.py``).
+        ``"compiled"``: while armed in real time, the ticks run in numba
         (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
         sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
         lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
@@ -907,8 +926,10 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
     from hapsim.daemon.faults import FaultyDevice
 
     flag = flag or StopFlag()
-    if tick not in ("compiled", "python"):
-        raise ConfigError(f"unknown tick {tick!r}; valid: compiled, python", key="--tick")
+    if tick not in ("auto", "compiled", "python"):
+        raise ConfigError(f"unknown tick {tick!r}; valid: auto, compiled, python", key="--tick")
+    if tick == "auto":
+        tick = "compiled" if mock.native_rate_hz > AUTO_COMPILED_HZ else "python"
     if plan is not None and plan.has_vanish and reopen is None:
         raise ConfigError("a vanish fault needs a port that can come back (--link PATH)",
                           key="--faults")

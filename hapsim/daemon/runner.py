@@ -139,7 +139,9 @@ def predict(scene: Scene) -> dict:
         ``k``, ``b`` [N/m, N s/m], ``f0_hz``, ``damping_ratio`` of the rendered pair (None
         when no pair), ``stable``, ``spectral_radius``, ``order`` (number of non-zero
         closed-loop poles, the identification order), ``stiffness_limit`` [N/m] of a
-        port-ground spring at the summed B of the links at the port, ``source``
+        port-ground spring at the summed B of the links at the port (the limit of those
+        links alone, not of the felt k of a scene with virtual masses), ``port_K``,
+        ``port_B`` [N/m, N s/m] (the links at the port, summed), ``source``
         (``"render"`` or ``"check_scene"``).
 
     Raises
@@ -154,7 +156,9 @@ def predict(scene: Scene) -> dict:
     B_port = sum(lk.damping for lk in _links_at_port(scene))
     K_port = sum(lk.stiffness for lk in plinks) if plinks else 0.0
     out = {"k": None, "b": None, "f0_hz": None, "damping_ratio": None, "stable": None,
-           "spectral_radius": None, "order": None, "stiffness_limit": None, "source": None}
+           "spectral_radius": None, "order": None, "stiffness_limit": None, "source": None,
+           "port_K": float(sum(lk.stiffness for lk in _links_at_port(scene))),
+           "port_B": float(B_port)}
     try:
         out["stiffness_limit"] = float(an["stability_limit"](loop, B_port))
     except Exception:  # the limit is advisory in the report
@@ -189,7 +193,8 @@ def predict(scene: Scene) -> dict:
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
-             quantum: float = 0.0, noise: float = 0.0, sensor_response=None) -> dict:
+             quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
+             closed: np.ndarray | None = None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -229,6 +234,12 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     sensor_response : ndarray, optional
         Impulse response of the sensor error to the logged position
         (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
+    closed : ndarray of bool, shape (n,), optional
+        Per row: every contact engaged (the state the prediction assumes;
+        :func:`hapsim.daemon.contact_replay.replay_contacts`). Rows that are not are cut out
+        as late ticks are, and only a stretch of closed rows is identified: when the
+        longest is shorter than the fit needs, the result has ``comparable`` False,
+        ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
 
     Returns
     -------
@@ -246,18 +257,24 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     lt = np.zeros(seq.size, dtype=bool) if late is None else np.asarray(late).astype(bool)
     sel = seq >= start
     y, s, lt = pos[sel], seq[sel], lt[sel]
+    cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
 
     def segments(cut_late: bool):
-        """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks."""
+        """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks and
+        at rows with a contact open (those rows left out)."""
         cut = np.diff(s) != 1
         if cut_late:
             cut = cut | lt[1:]
+        if cl is not None:
+            cut = cut | (cl[1:] != cl[:-1])
         edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [y.size]])
         out = []
         for a, b in zip(edges[:-1], edges[1:]):
+            if cl is not None and not cl[a]:
+                continue
             a2 = a if a == 0 else min(a + skip, b)
             out.append((a2, b))
-        return out
+        return out or [(0, 0)]
 
     need = max(4 * int(order) + 10, 100)
     a = b = 0
@@ -270,6 +287,13 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     y, s = y[a:b], s[a:b]
     out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
            "order": int(order), "late_in_segment": late_in}
+    if cl is not None:
+        out["comparable"] = bool(b - a >= need)
+        if not out["comparable"]:
+            out.update(closed_samples=int(b - a), needed=int(need),
+                       error=f"the longest stretch with every contact closed is {b - a} "
+                             f"samples, fewer than the {need} the fit needs")
+            return out
     from hapsim.analysis.identify import thin_pencil
     pencil = thin_pencil(order, y.size - (1 if offset else 0))
     out["pencil"] = pencil
@@ -988,7 +1012,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         why = ("--sound: the sounding engine runs per sample in Python" if opts.sound
                else "--osc: live changes run per sample in Python" if opts.osc is not None
                else f"device.correction ({corr.get('kind')}): its law runs in the engine's "
-               "port_step in Python" if corr is not None else None)
+               "port_step in Python" if corr is not None
+               # the compiled loop steps the single-rate kernel: one audio sub-step per
+               # device sample would be another loop (the contact replay found it)
+               else "audio: the multi-rate kernel (sub-steps per device sample) runs in the "
+               "engine's port_step in Python" if prep.scene.audio is not None else None)
         if opts.loop == "compiled" and why is None:
             from hapsim.daemon.fastloop import CompiledHostLoop, compiled_available
             loop = CompiledHostLoop(conn.engine, tr, conn.cfg, tel, conn.stop)
@@ -1028,6 +1056,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
+            ctl.close()                 # its analysis process
         if out is not None:
             out.close()
         conn.rt.__exit__(None, None, None)
@@ -1167,6 +1196,50 @@ def _verdict(prep: PreparedRun, measured: dict) -> None:
                            "uncertainty")
 
 
+def _contact_replay(scene: Scene, cols: dict):
+    """Contact states of the run's rows (:mod:`hapsim.daemon.contact_replay`), or None
+    for a scene without contacts."""
+    from hapsim.daemon.contact_replay import contact_links, replay_contacts
+    if not contact_links(scene) or scene.port is None:
+        return None
+    return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
+
+
+def _contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: float) -> None:
+    """Say why a run with contacts is not comparable with the prediction (in place).
+
+    ``measured`` is :func:`identify`'s result with ``comparable``; when False, ``reason``
+    and ``verdict`` name the first row of the free response (sequence number >= ``start``)
+    with a contact open (``first_open_sample``, the telemetry row, and ``open_contact``), or
+    why the replay stops knowing, and the longest closed stretch against the samples the
+    fit needs. Not comparable is no device fault: the run's exit code is unchanged.
+    """
+    if measured.get("comparable", True):
+        return
+    seq = np.asarray(seq, dtype=np.int64)
+    rows = np.flatnonzero(seq >= start)
+    bad = rows[~replay.closed[rows]] if rows.size else rows
+    measured["first_open_sample"] = measured["open_contact"] = None
+    if bad.size == 0:
+        what = "the free response is too short"
+    else:
+        i = int(bad[0])
+        measured["first_open_sample"] = i
+        measured["open_contact"] = replay.open_link[i]
+        if replay.known[i]:
+            verb = "is open at" if i == int(rows[0]) else "opened at"
+            what = (f"contact {replay.open_link[i]!r} {verb} sample {i} / t = {i * T:.6g} s")
+        else:
+            what = replay.reason or f"the contact states are unknown from sample {i}"
+    reason = (f"{what}; the prediction holds while every contact is closed; the longest "
+              f"closed stretch is {measured['closed_samples']} samples, fewer than the "
+              f"{measured['needed']} the fit needs")
+    measured["reason"] = reason
+    measured["error"] = "not comparable: " + reason
+    measured["verdict"] = "not comparable: " + reason
+    measured["within"] = None
+
+
 def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
@@ -1187,7 +1260,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     dict
         :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
         ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
-        ``rel_err`` against the prediction and ``rel_err_target`` (one target only).
+        ``rel_err`` against the prediction and ``rel_err_target`` (one target only);
+        ``comparable`` (True with a measurement; False, with ``reason``,
+        ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
+        scene's contacts leave no closed stretch long enough: :func:`_contact_verdict`).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
@@ -1209,18 +1285,23 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
                 response = sensor_error_response(scene, int(cols["seq"].size))
             except ConfigError:
                 response = None
+        replay = _contact_replay(scene, cols)
         measured = identify(cols["position"], cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=cols["late"], skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
-                            sensor_response=response)
+                            sensor_response=response,
+                            closed=None if replay is None else replay.closed)
+        if replay is not None:
+            _contact_verdict(measured, replay, cols["seq"], start, T)
     notes = []
-    if any(lk.kind == "contact" for lk in scene.links):
-        notes.append("the scene has contacts: the prediction takes them engaged, the run lets "
-                     "them open, so the two agree only while every contact stays closed")
-    if any(m.kind == "mass" for m in scene.masses):
-        notes.append("virtual masses add modes: the identified pair is the least damped "
-                     "one seen at the port, which the excitation may barely excite")
+    if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
+        notes.append("the scene has contacts: the prediction takes them engaged, so only the "
+                     "longest stretch with every contact closed (replayed from the "
+                     "telemetry) is identified")
+    if any(m.kind == "mass" for m in scene.masses) and "k" in measured:
+        notes.append("virtual masses add modes: the identified pair is the one at the "
+                     "predicted felt pole, which the excitation may barely excite")
     sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
     if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
             or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
@@ -1236,6 +1317,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
         measured["note"] = "; ".join(notes)
     _verdict(prep, measured)
     if "k" in measured:
+        measured.setdefault("comparable", True)
         measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
         if len(targets) == 1:     # with several targets the felt pair is their sum
@@ -1631,15 +1713,25 @@ def format_report(rep: dict) -> str:
             lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
                          f"{_fmt(rt['b'], '+11.2e')} {_fmt(rt['f0_hz'], '+10.2e')} "
                          f"{_fmt(rt['damping_ratio'], '+9.2e')}")
+    elif m.get("comparable") is False:
+        lines.append(f"  {'measured':<12} not comparable (see verdict)")
+        lines.append(f"  verdict: {m['verdict']}")
     else:
         lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
     if m.get("note"):
         lines.append(f"  note: {m['note']}")
     if p.get("stable") is not None:
+        # K_max is the limit of the links at the port as one port-ground spring: the felt
+        # k of a scene with virtual masses is another quantity, so say which it is there
+        kmax = f"K_max {_fmt(p['stiffness_limit'], '.6g')} N/m"
+        if p.get("source") == "check_scene" and p.get("port_K") is not None:
+            kmax += (f" of the links at the port as a port-ground spring (K = "
+                     f"{p['port_K']:g} N/m, B = {p['port_B']:g} N s/m), not of the felt k")
+        used = (": not comparable" if m.get("comparable") is False
+                else f" from {m.get('samples_used', 0)} samples")
         lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
-                     f"{_fmt(p['spectral_radius'], '.9f')}, K_max "
-                     f"{_fmt(p['stiffness_limit'], '.6g')} N/m; identification order "
-                     f"{p['order']} from {m.get('samples_used', 0)} samples)")
+                     f"{_fmt(p['spectral_radius'], '.9f')}, {kmax}; identification order "
+                     f"{p['order']}{used})")
     ta = lp["turnaround_us"]
     ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
     lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"

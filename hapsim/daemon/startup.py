@@ -99,7 +99,7 @@ def _import_real(name: str) -> bool:
 
 def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool = False,
                         seed: int = 0, faults: str | None = None, fault_seed: int = 0,
-                        rt_priority: int = 0, tick: str = "compiled"):
+                        rt_priority: int = 0, tick: str = "auto"):
     """Start ``hapsim run``'s embedded mock device before the rest of the run's imports.
 
     The mock's child process (its interpreter, numpy, numba and the compiled tick: about
@@ -118,7 +118,7 @@ def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool =
     rt_priority : int
         ``SCHED_FIFO`` priority the child takes once its start-up is done (0: none; not
         for a lockstep mock, paced by the answers).
-    tick : {"compiled", "python"}
+    tick : {"auto", "compiled", "python"}
         The mock's real-time ticks.
 
     Returns

@@ -289,7 +289,7 @@ class EmbeddedMock:
         under normal scheduling: a child inherits ``SCHED_FIFO``, and its start-up (~0.5 s
         of CPU) would then run as a real-time process and starve every other real-time
         loop of the machine.
-    tick : {"compiled", "python"}
+    tick : {"auto", "compiled", "python"}
         The mock's real-time ticks (``hapsim mock --tick``).
 
     Attributes
@@ -312,7 +312,7 @@ class EmbeddedMock:
 
     def __init__(self, device, excitation, rate_hz: float, *, lockstep: bool = False,
                  seed: int = 0, base_dir: str | None = None, faults: str | None = None,
-                 fault_seed: int = 0, rt_priority: int = 0, tick: str = "compiled") -> None:
+                 fault_seed: int = 0, rt_priority: int = 0, tick: str = "auto") -> None:
         import dataclasses
         import tempfile
 

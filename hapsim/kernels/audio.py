@@ -135,10 +135,11 @@ def run_periods(n, nsub, linear, last, port, pos, x, xp, f, mobile, t2m, fixed,
 
 
 #: Slots of the live state array ``st`` of :func:`run_frames` (int64 counters kept as
-#: float64 whole numbers, exact below 2^53): sub-step phase j, positions read, positions
-#: missing (the audio thread found no new device sample and held the last), forces
-#: written, the period's start and end port positions, the force accumulator, the gain.
-LIVE_STATE = {"phase": 0, "read": 1, "underruns": 2, "written": 3, "p0": 4, "p1": 5,
+#: float64 whole numbers, exact below 2^53): sub-step phase j, positions read, frames
+#: starved (silence: no position for the next device period yet; counted once the first
+#: has arrived), forces written, the period's start and end port positions, the force
+#: accumulator, the gain.
+LIVE_STATE = {"phase": 0, "read": 1, "starved": 2, "written": 3, "p0": 4, "p1": 5,
               "acc": 6, "gain": 7, "gain_target": 8, "gain_step": 9}
 
 
@@ -151,8 +152,12 @@ def run_frames(nframes, nsub, linear, last, port, ring, wr, st, fring,
     The same sub-step as :func:`run_periods`; the device period boundaries fall wherever
     they fall in the block (``st`` carries the phase across calls). At the start of each
     device period the next port position is taken from the ring the haptic thread fills
-    (``ring[read % R]`` while ``read < wr[0]``); when none has arrived the last one is held
-    and the miss counted. At the end of each period the port force (mean or last) is
+    (``ring[read % R]`` while ``read < wr[0]``); when none has arrived the model does not
+    advance: the frame is silence and, once the first position has arrived, counted as
+    starved (``st[2]``), and the period starts at the first frame that finds its position.
+    Period n therefore always runs on the haptic thread's n-th position, whatever the block
+    size and the threads' timing: the coupling is a pure delay, which the analysis models
+    (:class:`hapsim.audio.live.LiveSound`). At the end of each period the port force (mean or last) is
     written to ``fring[written % R]`` for the haptic thread. A master gain ramps linearly
     toward its target (no click on a gain change).
 
@@ -182,14 +187,18 @@ def run_frames(nframes, nsub, linear, last, port, ring, wr, st, fring,
         j = int(st[0])
         if j == 0:
             if port >= 0:
-                st[4] = x[port]
                 rd = int(st[1])
-                if rd < wr[0]:
-                    st[5] = ring[rd % R]
-                    st[1] = rd + 1
-                else:
-                    st[5] = x[port]
-                    st[2] += 1
+                if rd >= wr[0]:
+                    # no position for this period yet: the model waits (silence out), so
+                    # period n always runs on p[n] and the loop stays the analysed one
+                    for c in range(l_idx.size):
+                        audio[r, c] = 0.0
+                    if rd > 0:
+                        st[2] += 1
+                    continue
+                st[4] = x[port]
+                st[5] = ring[rd % R]
+                st[1] = rd + 1
             st[6] = 0.0
         if port >= 0:
             if linear:
