@@ -531,8 +531,13 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
 
     Returns
     -------
-    server : pythonosc.osc_server.ThreadingOSCUDPServer
-        Running (``server.shutdown()`` stops it).
+    server : pythonosc.osc_server.BlockingOSCUDPServer
+        Running (``server.shutdown()`` stops it). One thread serves the datagrams in the
+        order they arrive, so a sender's changes are checked, applied, journaled and
+        answered in the order it sent them (a thread per datagram, as
+        ``ThreadingOSCUDPServer`` does, let a quick ``/hapsim/gain`` overtake a
+        ``/hapsim/link/kb`` still being checked, and two changes of one link end in
+        either order).
     telemetry : dict
         ``{"client": SimpleUDPClient or None, "every": samples}``: where and how often the
         sample loop sends ``/hapsim/tel`` (set by ``/hapsim/telemetry``).
@@ -594,7 +599,7 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
         ctl._log("refused", address, args, reason="unknown address"),
         reply(client, "/hapsim/refused", address,
               f"unknown address; valid: {', '.join(ADDRESSES)}")), needs_reply_address=True)
-    server = osc_server.ThreadingOSCUDPServer((host, port), d)
+    server = osc_server.BlockingOSCUDPServer((host, port), d)
     sock_holder["server"] = server
     threading.Thread(target=server.serve_forever, name="hapsim-osc", daemon=True).start()
     return server, tel
