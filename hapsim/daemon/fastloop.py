@@ -208,6 +208,26 @@ def _crc16(buf, n, table):
 
 
 @_jit
+def _next_frame(rb, a, n_rb):
+    """The next frame in ``rb[a:n_rb]``: ``(a, z)`` with ``rb[a:z]`` the frame's COBS
+    bytes and ``rb[z]`` its 0x00 delimiter, idle fill (empty frames) skipped; ``z = -1``
+    when no delimiter has arrived yet (``rb[a:n_rb]`` is a partial frame).
+
+    PROTOCOL.md §2 (framing); shared by the compiled host loop (:func:`_stretch`) and the
+    compiled mock tick (:func:`hapsim.daemon.fastmock._feed`), which each apply their own
+    overlong rule to ``z - a``."""
+    while True:
+        z = -1
+        for j in range(a, n_rb):
+            if rb[j] == 0:
+                z = j
+                break
+        if z != a:
+            return a, z
+        a = z + 1                   # idle fill between frames
+
+
+@_jit
 def _cobs_decode(src, a, b, dst):
     """COBS-decode ``src[a:b]`` (no 0x00 in it) into ``dst``; its length, -1 when bad
     (Cheshire & Baker 1999, as the ``cobs`` package decodes)."""
@@ -470,16 +490,9 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
         a = 0
         handled = False
         while True:
-            z = -1
-            for j in range(a, n_rb):
-                if rb[j] == 0:
-                    z = j
-                    break
+            a, z = _next_frame(rb, a, n_rb)
             if z < 0:
                 break
-            if z == a:              # idle fill between frames
-                a = z + 1
-                continue
             if z - a > _MAX_FRAME - 1:
                 break               # overlong: Python counts it
             m = _cobs_decode(rb, a, z, pkt)

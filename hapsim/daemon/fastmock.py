@@ -42,7 +42,7 @@ from numba import types
 import firmware_protocol as fp
 from hapsim.daemon.fastloop import (_CRC, _POLLERR, _POLLHUP, _POLLIN, _POLLNVAL,
                                     _c_poll, _c_read, _c_write, _cobs_decode, _cobs_encode,
-                                    _crc16, _jit, _now_ns)
+                                    _crc16, _jit, _next_frame, _now_ns)
 
 __all__ = ["CompiledMock", "compiled_reason", "warm_up_mock"]
 
@@ -229,18 +229,11 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
     a = 0
     code = R_FED
     while True:
-        z = -1
-        for j in range(a, n_rb):
-            if rb[j] == 0:
-                z = j
-                break
+        a, z = _next_frame(rb, a, n_rb)
         if z < 0:
             if n_rb - a > _MAX_FRAME - 1:
                 code = R_HANDOFF       # overlong: the Python receiver counts it
             break
-        if z == a:                     # idle fill between frames
-            a = z + 1
-            continue
         if z - a > _MAX_FRAME - 1:
             code = R_HANDOFF
             break
