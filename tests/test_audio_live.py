@@ -107,12 +107,19 @@ def pluck_gesture(n=600):
                     np.where(t < 0.15, -0.001 + 0.03 * (t - 0.05), -0.003))
 
 
-def test_live_jack_sound_equals_offline_rendering(jack_server):
+@pytest.mark.parametrize("callback", ["native", "python"])
+def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeypatch):
     """The JACK callback's frames (recorded by a client of ours through a real connection)
     are the offline engine's frames for the same gesture, to float32 round-off: the live
-    audio part is the same multi-rate model. xruns are counted (printed; the machine is
-    shared, so their number is not asserted)."""
+    audio part is the same multi-rate model. Both callbacks: the native one (a numba
+    cfunc, no GIL: the default) and JACK-Client's Python one (HAPSIM_JACK_PYTHON_CALLBACK).
+    xruns are counted (printed; the machine is shared, so their number is not asserted)."""
     from hapsim.audio.live import JackOutput, LiveSound
+
+    if callback == "python":
+        monkeypatch.setenv("HAPSIM_JACK_PYTHON_CALLBACK", "1")
+    else:
+        monkeypatch.delenv("HAPSIM_JACK_PYTHON_CALLBACK", raising=False)
 
     scene = load_scene(SCENE)
     g = pluck_gesture()
@@ -138,7 +145,13 @@ def test_live_jack_sound_equals_offline_rendering(jack_server):
         out.close()
         rec.close()
     st = live.stats()
-    print(f"live JACK run: {st}, xruns {out.xruns}")
+    print(f"live JACK run ({callback} callback): {st}, xruns {out.xruns}")
+    if callback == "native":
+        assert out.native is not None and out.python_reason is None
+        assert out.native.calls > 0 and out.native.too_big == 0
+        assert out.callback_priority is not None
+    else:
+        assert out.native is None and "HAPSIM_JACK_PYTHON_CALLBACK" in out.python_reason
     assert st["consumed"] == g.size == st["pushed"]
     got = rec.buf[:rec.n]
     nz = np.nonzero(np.abs(got) > 0)[0]

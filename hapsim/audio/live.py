@@ -295,6 +295,16 @@ class JackOutput:
         ``SCHED_FIFO`` priority of the process callback's thread (0: not real-time), read
         in its first call (None before): a haptic thread must run below it, or it
         delays the callback past its deadline (:func:`wait_priority`).
+    native : hapsim.audio.jack_native.NativeProcess or None
+        The native process callback (a numba ``cfunc`` that never takes the GIL), used for
+        a :class:`LiveSound`; None when JACK-Client's Python callback runs instead.
+    python_reason : str or None
+        Why the Python callback runs (a :class:`FrameRing`, ``HAPSIM_JACK_PYTHON_CALLBACK``
+        set, the native one could not be built).
+    callback : str
+        ``"native"`` or ``"python (reason)"``, as the reports print it.
+    xrun_at : list of float
+        When each xrun was reported [s after activation] (the first 1000).
 
     Raises
     ------
@@ -326,13 +336,70 @@ class JackOutput:
         self.ports = [self.client.outports.register(f"out_{c.replace('.', '_')}")
                       for c in live.channels]
         self._arrays = None
-        self.client.set_process_callback(self._process)
+        #: The native process callback (:class:`hapsim.audio.jack_native.NativeProcess`)
+        #: when the live sound can use it, else None (the Python callback).
+        self.native = None
+        #: Why the Python callback is used (None when native).
+        self.python_reason = None
+        self._rt_priority = None
+        self._native_setup(live, jack)
+        if self.native is None:
+            self.client.set_process_callback(self._process)
         self.client.set_xrun_callback(self._xrun)
+        self.client.set_blocksize_callback(self._blocksize)
+        #: When each xrun was reported [s after activation] (the first 1000).
+        self.xrun_at: list[float] = []
+        #: ``time.monotonic()`` at activation (what :attr:`xrun_at` counts from).
+        self.t_active = time.monotonic()
         self.client.activate()
         if connect:
             targets = self.client.get_ports(is_physical=True, is_input=True, is_audio=True)
             for p, t in zip(self.ports, targets):
                 self.client.connect(p, t)
+
+    def _native_setup(self, live, jack) -> None:
+        """Install the native callback (no GIL, :mod:`hapsim.audio.jack_native`) where
+        ``live`` allows it, else note why not."""
+        try:
+            from hapsim.audio import jack_native
+        except Exception as exc:  # numba/llvmlite could not link libjack: Python's callback
+            self.python_reason = f"the native callback could not be built: {exc}"
+            return
+        why = jack_native.native_available(live)
+        if why is None and os.environ.get("HAPSIM_JACK_PYTHON_CALLBACK"):
+            why = "HAPSIM_JACK_PYTHON_CALLBACK is set"
+        if why is not None:
+            self.python_reason = why
+            return
+        ffi, lib = jack._ffi, jack._lib
+        ptrs = [int(ffi.cast("uintptr_t", p._ptr)) for p in self.ports]
+        self.native = jack_native.NativeProcess(live, ptrs)
+        err = lib.jack_set_process_callback(
+            self.client._ptr, ffi.cast("JackProcessCallback", self.native.address),
+            ffi.cast("void *", self.native.ctx.ctypes.data))
+        if err:
+            self.native = None
+            self.python_reason = f"jack_set_process_callback failed ({err})"
+            return
+        self._rt_priority = jack_native.client_rt_priority(self.client)
+
+    @property
+    def callback_priority(self) -> int | None:
+        """``SCHED_FIFO`` priority of the process callback's thread (0: not real-time),
+        known once the callback has run (None before)."""
+        if self.native is not None:
+            return self._rt_priority if self.native.calls > 0 else None
+        return self._callback_priority
+
+    @callback_priority.setter
+    def callback_priority(self, v) -> None:
+        self._callback_priority = v
+
+    def _blocksize(self, blocksize: int) -> None:
+        # JACK's non-real-time thread, before the first block of the new size
+        self.blocksize = int(blocksize)
+        if hasattr(self.live, "set_block"):
+            self.live.set_block(self.blocksize)
 
     def _process(self, frames: int) -> None:
         if self.callback_priority is None:   # once: the thread's SCHED_FIFO priority
@@ -347,6 +414,13 @@ class JackOutput:
 
     def _xrun(self, delay_usecs: float) -> None:
         self.xruns += 1
+        if len(self.xrun_at) < 1000:
+            self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
+
+    @property
+    def callback(self) -> str:
+        """Which process callback runs: ``"native"`` (no GIL) or ``"python (why)"``."""
+        return "native" if self.native is not None else f"python ({self.python_reason})"
 
     @property
     def out_names(self) -> list[str]:
@@ -389,6 +463,10 @@ class SoundDeviceOutput:
 
         self.live = live
         self.xruns = 0
+        self.xrun_at: list[float] = []
+        self.t_active = time.monotonic()
+        #: Which callback runs (PortAudio's callback is always Python here).
+        self.callback = "python (sounddevice calls a Python function)"
         self.blocksize = int(blocksize)
         if hasattr(live, "set_block"):
             live.set_block(self.blocksize)

@@ -41,8 +41,10 @@ late: times the loop fell more than 20 ms behind the clock (it then resynchronis
 sound: computed in the sound server's callback, one block ahead of the hand: the force of
   device period n reaches the device lead = ceil(block / N) samples later (N audio
   sub-steps per device period), a pure delay the prediction includes (report: delay =
-  device delay + lead), and the loop is paced by the sound card's clock. xruns (JACK's
-  count, or PortAudio underflows); underruns: frames of silence because the next period's
+  device delay + lead), and the loop is paced by the sound card's clock. Through JACK the
+  callback is native code (report: callback native): it never takes Python's lock, so
+  nothing else in the process can make it late. xruns (JACK's count, with when: xrun_at_s,
+  or PortAudio underflows); underruns: frames of silence because the next period's
   position had not arrived (the model waits; the loop stays the predicted one).
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
@@ -259,7 +261,9 @@ def run(args: argparse.Namespace) -> int:
               "error": error, "note": note,
               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
               "sound": None if live is None else {
-                  "backend": type(out).__name__, "xruns": out.xruns, "block": out.blocksize,
+                  "backend": type(out).__name__, "callback": out.callback,
+                  "xruns": out.xruns, "xrun_at_s": list(out.xrun_at),
+                  "active_monotonic_s": out.t_active, "block": out.blocksize,
                   **live.stats()},
               "journal": ctl.journal}
     if args.journal:

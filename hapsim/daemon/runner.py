@@ -1076,8 +1076,9 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if opts.transport == "sim":
             mock_report["faults_injected"] = opts.plan.to_dict()["injected"]
             mock_report["fault_events"] = tr.device.events
-    sound = None if ring is None else {"backend": type(out).__name__, "xruns": out.xruns,
-                                       **ring.stats()}
+    sound = None if ring is None else {"backend": type(out).__name__,
+                                       "callback": out.callback, "xruns": out.xruns,
+                                       "xrun_at_s": list(out.xrun_at), **ring.stats()}
     return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
 
 

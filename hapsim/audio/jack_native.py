@@ -1,0 +1,241 @@
+"""A JACK process callback that never enters Python: a numba ``cfunc`` over LiveSound's arrays.
+
+JACK-Client's process callback is a Python function: every block, the server's real-time
+thread takes the GIL, runs a few Python lines and calls the compiled model. Whenever another
+thread of the process holds the GIL (the haptic loop, the OSC server, the telemetry writer,
+the garbage collector) the callback waits for it, and a wait of one block (5.3 ms at
+256 frames, 48 kHz) is an xrun. The callback here is C-callable machine code compiled by
+numba (:func:`numba.cfunc`): it reads a table of addresses (this module's *context*, an
+``int64`` array handed to JACK as the callback's ``void *arg``), views LiveSound's arrays
+through :func:`numba.carray`, calls :func:`hapsim.kernels.audio.run_frames` and copies each
+channel into the port buffer ``jack_port_get_buffer`` returns. No Python object is touched
+and the GIL is never taken, so nothing that the rest of the process does in Python can
+delay a block (JACK API: ``jack_set_process_callback``; the buffer pointer must be fetched
+in every cycle, ``jack_port_get_buffer``).
+
+Context layout (:data:`CTX`): the scalars ``nsub``, ``linear``, ``last``, ``port``, the
+channel count, the block capacity (rows of ``audio``), a callback counter, a counter of
+blocks larger than the capacity (silence out), then the addresses and sizes of the arrays
+in :func:`run_frames`'s order, and the JACK port pointers (one per channel, at most
+:data:`MAX_CHANNELS`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+import numba as nb
+import numpy as np
+from numba import types
+from numba.extending import intrinsic
+
+from hapsim.kernels import audio as audio_kernel
+
+__all__ = ["NativeProcess", "native_available", "client_rt_priority", "process",
+           "MAX_CHANNELS", "CTX"]
+
+#: Channels (JACK output ports) the native callback serves.
+MAX_CHANNELS = 16
+
+# run_frames' array arguments after ``port``, with their dtype: (ring, wr, st, fring),
+# then the engine's multi-rate state (Engine._multi[1] without the trailing inv_ta).
+_F8, _I8 = 0, 1
+_ARRAYS = (_F8, _I8, _F8, _F8,                      # ring, wr, st, fring
+           _F8, _F8, _F8, _I8, _F8, _I8,            # x, xp, f, mobile, t2m, fixed
+           _I8, _I8, _F8, _F8,                      # sd_i1, sd_i2, sd_k, sd_z
+           _I8, _I8, _F8, _F8, _F8,                 # c_i1, c_i2, c_k, c_z, c_thr
+           _I8, _I8, _F8)                           # l_idx, l_code, l_gain
+_NA = len(_ARRAYS)
+#: Context indices.
+CTX = {"nsub": 0, "linear": 1, "last": 2, "port": 3, "channels": 4, "rows": 5,
+       "calls": 6, "too_big": 7, "inv_ta": 8, "audio": 9, "arrays": 10,
+       "ports": 10 + 2 * _NA}
+_CTX_N = CTX["ports"] + MAX_CHANNELS
+
+
+@intrinsic
+def _voidptr(typingctx, addr):
+    """An integer address as a ``void *`` (for :func:`numba.carray`)."""
+    sig = types.voidptr(types.int64)
+
+    def codegen(context, builder, sig, args):
+        return builder.inttoptr(args[0], context.get_value_type(types.voidptr))
+    return sig, codegen
+
+
+def _load_libjack() -> None:
+    """Make libjack's symbols visible to numba's linker (``jack_port_get_buffer`` is an
+    external function of the compiled callback, resolved when it is compiled or loaded
+    from numba's cache)."""
+    import jack
+    import llvmlite.binding as llvm
+
+    path = ctypes.util.find_library("jack") or jack._libname
+    llvm.load_library_permanently(path)
+
+
+_load_libjack()
+CTX_PORTS = CTX["ports"]
+_A = CTX["arrays"]
+_get_buffer = types.ExternalFunction("jack_port_get_buffer",
+                                     types.voidptr(types.voidptr, types.uint32))
+
+
+@nb.njit(inline="always", cache=True)
+def _f8(c, i):
+    return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.float64)
+
+
+@nb.njit(inline="always", cache=True)
+def _i8(c, i):
+    return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
+
+
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+def process(nframes, arg):
+    """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
+    c = nb.carray(arg, (_CTX_N,), np.int64)
+    c[6] += 1
+    nch = c[4]
+    n = np.int64(nframes)
+    if n > c[5]:                       # a block larger than the buffers: silence
+        c[7] += 1
+        for ch in range(nch):
+            out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
+                            np.float32)
+            for r in range(n):
+                out[r] = 0.0
+        return 0
+    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
+    inv_ta = nb.carray(_voidptr(c[8]), (1,), np.float64)[0]
+    audio_kernel.run_frames(n, c[0], c[1] != 0, c[2] != 0, c[3],
+                            _f8(c, 0), _i8(c, 1), _f8(c, 2), _f8(c, 3),
+                            _f8(c, 4), _f8(c, 5), _f8(c, 6), _i8(c, 7), _f8(c, 8), _i8(c, 9),
+                            _i8(c, 10), _i8(c, 11), _f8(c, 12), _f8(c, 13),
+                            _i8(c, 14), _i8(c, 15), _f8(c, 16), _f8(c, 17), _f8(c, 18),
+                            _i8(c, 19), _i8(c, 20), _f8(c, 21), inv_ta, audio)
+    for ch in range(nch):
+        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
+                        np.float32)
+        for r in range(n):
+            out[r] = audio[r, ch]
+    return 0
+
+
+
+
+def native_available(live) -> str | None:
+    """Why ``live`` cannot use the native callback (None when it can).
+
+    Parameters
+    ----------
+    live : object
+        What a :class:`hapsim.audio.live.JackOutput` plays.
+
+    Returns
+    -------
+    str or None
+        The reason (not a :class:`~hapsim.audio.live.LiveSound`, an array of another dtype
+        than the callback was compiled for, too many channels), or None.
+    """
+    from hapsim.audio.live import LiveSound
+
+    if not isinstance(live, LiveSound):
+        return f"{type(live).__name__} renders in Python"
+    arrays = _arrays(live)
+    if len(arrays) != _NA:
+        return f"{len(arrays)} state arrays, the callback takes {_NA}"
+    for a, kind in zip(arrays, _ARRAYS):
+        want = np.float64 if kind == _F8 else np.int64
+        if not (isinstance(a, np.ndarray) and a.dtype == want and a.ndim == 1
+                and a.flags.c_contiguous):
+            return "a state array of another dtype or layout than the callback's"
+    if live.block.dtype != np.float32 or not live.block.flags.c_contiguous:
+        return "the block is not C-contiguous float32"
+    if len(live.channels) > MAX_CHANNELS:
+        return f"{len(live.channels)} channels (at most {MAX_CHANNELS})"
+    return None
+
+
+def _arrays(live) -> tuple:
+    return (live._ring, live._wr, live._st, live._fring) + tuple(live._state[:-1])
+
+
+class NativeProcess:
+    """The native process callback of one JACK client over one LiveSound.
+
+    Parameters
+    ----------
+    live : hapsim.audio.live.LiveSound
+        What it renders (its arrays are read and written in place, from JACK's thread).
+    port_ptrs : sequence of int
+        ``jack_port_t *`` of the output ports, one per channel, as integers.
+
+    Attributes
+    ----------
+    ctx : ndarray of int64, shape (N,)
+        The context (see the module's docstring); ``ctx[CTX["calls"]]`` counts callbacks.
+    address : int
+        The callback's address (``int (*)(jack_nframes_t, void *)``).
+
+    Raises
+    ------
+    ValueError
+        ``live`` cannot use it (:func:`native_available` says why).
+    """
+
+    def __init__(self, live, port_ptrs) -> None:
+        why = native_available(live)
+        if why is not None:
+            raise ValueError(why)
+        self.live = live
+        (nsub, lin, last, port) = (live._nsub, live._lin, live._last, live._port)
+        self._inv_ta = np.array([float(live._state[-1])])
+        self._keep = _arrays(live) + (live.block, self._inv_ta)
+        c = np.zeros(_CTX_N, dtype=np.int64)
+        c[CTX["nsub"]], c[CTX["linear"]], c[CTX["last"]], c[CTX["port"]] = \
+            int(nsub), int(bool(lin)), int(bool(last)), int(port)
+        c[CTX["channels"]] = len(live.channels)
+        c[CTX["rows"]] = live.block.shape[0]
+        c[CTX["inv_ta"]] = self._inv_ta.ctypes.data
+        c[CTX["audio"]] = live.block.ctypes.data
+        for i, a in enumerate(_arrays(live)):
+            c[CTX["arrays"] + 2 * i] = a.ctypes.data
+            c[CTX["arrays"] + 2 * i + 1] = a.size
+        for i, p in enumerate(port_ptrs):
+            c[CTX_PORTS + i] = int(p)
+        self.ctx = c
+        self.cfunc = process
+        self.address = process.address
+
+    @property
+    def calls(self) -> int:
+        """Callbacks run so far."""
+        return int(self.ctx[CTX["calls"]])
+
+    @property
+    def too_big(self) -> int:
+        """Blocks larger than the buffers (played as silence)."""
+        return int(self.ctx[CTX["too_big"]])
+
+
+def client_rt_priority(client) -> int:
+    """The real-time priority of a JACK client's process thread (0 when not real-time).
+
+    Parameters
+    ----------
+    client : jack.Client
+
+    Returns
+    -------
+    int
+        ``jack_client_real_time_priority`` (JACK API), 0 when it returns -1.
+    """
+    import jack
+    lib = ctypes.CDLL(jack._libname)
+    f = lib.jack_client_real_time_priority
+    f.argtypes = [ctypes.c_void_p]
+    f.restype = ctypes.c_int
+    p = f(int(jack._ffi.cast("uintptr_t", client._ptr)))
+    return max(0, int(p))
