@@ -31,9 +31,15 @@ With ``--audio`` it measures the sound side instead (issue 15):
   hand plucking every second at 1 kHz, the sound in the JACK callback) on a private
   ``jackd -d dummy -r 48000 -p 256 -P PRIO`` for each ``--jack-priority`` (default 10, the
   jackd2 default, and 70, a usual audio set-up), with its xruns and starved frames, after
-  the baseline: an empty Python client alone on the same server for as long. The server's
+  two baselines, each alone on the same server for as long: an empty Python client and an
+  empty native one (a numba ``cfunc`` returning at once, as hapsim's callback is native). The server's
   own log attributes each xrun: the dummy driver's timer late (``JackTimedDriver``) or a
-  client not finished in time (``was not finished``).
+  client not finished in time (``was not finished``). Beside both runs a stall probe
+  (``tools/stall_probe.c``, built with ``cc``): on each CPU a lone thread at the server's
+  priority sleeping to each period's start, as the dummy driver's timer does, that logs
+  every wake-up later than half a period. Each xrun of hapsim's run is matched to the probe's
+  stalls (within 50 ms): an xrun at a stall is the machine's (no client can prevent a
+  timer that wakes a period late), one without is counted as hapsim's.
 
 The machine may be shared: every figure is a median of repeats, the steady-state figures
 are thread CPU time (``time.thread_time`` / ``CLOCK_THREAD_CPUTIME_ID``, so time spent
@@ -357,15 +363,28 @@ def largest_realtime(repeats: int) -> tuple[int, list]:
     return lo, sorted(rows)
 
 
-def _empty_client_xruns(server: str, secs: float) -> int:
+def _empty_client_xruns(server: str, secs: float, native: bool = False) -> int:
     """xruns a JACK client whose process callback only zeroes its output sees in ``secs``
-    [s]: the machine's own share (scheduling, load), measured beside hapsim's."""
+    [s]: the machine's own share (scheduling, load), measured beside hapsim's. ``native``:
+    the callback is a numba ``cfunc`` that returns at once (no Python, no GIL), as
+    hapsim's own callback is (:mod:`hapsim.audio.jack_native`)."""
     import jack
 
     c = jack.Client("baseline", no_start_server=True, servername=server)
     port = c.outports.register("out")
     count = [0]
-    c.set_process_callback(lambda frames: port.get_array().fill(0.0))
+    if native:
+        import numba as nb
+        from numba import types
+
+        @nb.cfunc(types.int32(types.uint32, types.voidptr))
+        def empty(nframes, arg):
+            return 0
+        keep = empty           # noqa: F841  (alive while the client runs)
+        jack._lib.jack_set_process_callback(c._ptr, jack._ffi.cast("JackProcessCallback",
+                                                                   empty.address), jack._ffi.NULL)
+    else:
+        c.set_process_callback(lambda frames: port.get_array().fill(0.0))
     c.set_xrun_callback(lambda usecs: count.__setitem__(0, count[0] + 1))
     c.activate()
     time.sleep(secs)
@@ -380,9 +399,54 @@ def _log_xruns(path: Path) -> tuple[int, int]:
     return text.count("JackTimedDriver::Process XRun"), text.count("was not finished")
 
 
+def _probe(tmp: str, prio: int, secs: float):
+    """Start ``tools/stall_probe.c`` (built into ``tmp``) at ``prio`` for ``secs`` [s],
+    threshold half a period, one pinned to each CPU; the Popens, or None without ``cc``."""
+    exe = Path(tmp) / "stall_probe"
+    if not exe.exists():
+        if shutil.which("cc") is None:
+            return None
+        subprocess.run(["cc", "-O2", "-o", str(exe), str(REPO / "tools" / "stall_probe.c")],
+                       check=True)
+    period_us = BLOCK / AUDIO_RATE * 1e6
+    return [subprocess.Popen([str(exe), str(prio), f"{period_us:.3f}", f"{secs:g}",
+                              f"{period_us / 2:.0f}", str(cpu)], stdout=subprocess.PIPE,
+                             text=True) for cpu in sorted(os.sched_getaffinity(0))]
+
+
+def _stalls(procs) -> dict | None:
+    """The probes' result, merged: ``{"at": [monotonic s], "late_us": [...], "max_us",
+    "n"}`` (``n``: wake-ups of each probe)."""
+    if procs is None:
+        return None
+    rows, mx, n = [], 0, None
+    for proc in procs:
+        for ln in proc.communicate()[0].split("\n"):
+            f = ln.split()
+            if len(f) == 4 and f[0] == "max":
+                mx, n = max(mx, int(f[1])), int(f[3])
+            elif len(f) == 2:
+                rows.append((float(f[0]), int(f[1])))
+    rows.sort()
+    return {"at": [a for a, _ in rows], "late_us": [u for _, u in rows], "max_us": mx, "n": n}
+
+
+def _attribute(xrun_abs: list, stalls: dict | None, window: float = 0.05) -> list:
+    """For each xrun time [monotonic s], the probe's nearest stall within ``window`` [s]
+    (its lateness [us]) or None."""
+    if stalls is None:
+        return [None] * len(xrun_abs)
+    res = []
+    for t in xrun_abs:
+        near = [(abs(a - t), u) for a, u in zip(stalls["at"], stalls["late_us"])
+                if abs(a - t) <= window]
+        res.append(min(near)[1] if near else None)
+    return res
+
+
 def _live_run(prio: int, secs: float) -> dict:
     """Baseline then ``hapsim play`` of the shipped string, each ``secs`` [s], on a private
-    dummy JACK server at real-time priority ``prio``."""
+    dummy JACK server at real-time priority ``prio``, each beside the stall probe."""
     import uuid
 
     name = f"bench-{uuid.uuid4().hex[:8]}"
@@ -395,18 +459,28 @@ def _live_run(prio: int, secs: float) -> dict:
                                     env=dict(os.environ, JACK_NO_AUDIO_RESERVATION="1"))
         try:
             time.sleep(2.0)
-            d0, c0 = _log_xruns(log)
-            base = _empty_client_xruns(name, secs)
+            print()
+            for kind in ("python", "native"):
+                d0, c0 = _log_xruns(log)
+                probe = _probe(tmp, prio, secs + 1.0)
+                base = _empty_client_xruns(name, secs, native=kind == "native")
+                st0 = _stalls(probe)
+                d1, c1 = _log_xruns(log)
+                print(f"jackd -P {prio}: baseline, an empty {kind} process callback alone for "
+                      f"{secs:g} s: {base} xruns (driver timer late {d1 - d0}, client late "
+                      f"{c1 - c0}); load {os.getloadavg()[0]:.2f}"
+                      + ("" if st0 is None else f"; stall probe: {len(st0['at'])} wake-ups "
+                         f"later than half a period, worst {st0['max_us']} us"))
+                res_out["baseline" if kind == "python" else "baseline_native"] = {
+                    "xruns": base, "driver": d1 - d0, "client": c1 - c0, "probe": st0}
             d1, c1 = _log_xruns(log)
-            print(f"\njackd -P {prio}: baseline, an empty Python process callback alone for "
-                  f"{secs:g} s: {base} xruns (driver timer late {d1 - d0}, client late "
-                  f"{c1 - c0}); load {os.getloadavg()[0]:.2f}")
-            res_out["baseline"] = {"xruns": base, "driver": d1 - d0, "client": c1 - c0}
+            probe = _probe(tmp, prio, secs + 4.0)
             res = subprocess.run([sys.executable, "-m", "hapsim", "play",
                                   str(REPO / "configs" / "audio_string.yaml"), "--sound",
                                   "jack", "--jack-server", name, "--duration", str(secs),
                                   "--pluck-every", "1", "--json"], cwd=REPO,
                                  capture_output=True, text=True)
+            st1 = _stalls(probe)
             d2, c2 = _log_xruns(log)
             if res.returncode != 0:
                 print(f"live run failed: {res.stderr.strip()[-300:]}")
@@ -419,8 +493,19 @@ def _live_run(prio: int, secs: float) -> dict:
                       f"client late {c2 - c1}), {snd['underruns']} starved frames of "
                       f"{snd['periods'] * 48}, haptic thread {rep['scheduling']}; load "
                       f"{os.getloadavg()[0]:.2f}")
+                at = [snd["active_monotonic_s"] + x for x in snd.get("xrun_at_s", [])]
+                match = _attribute(at, st1)
+                own = sum(m is None for m in match) if st1 is not None else None
+                if st1 is not None:
+                    print(f"  stall probe beside it: {len(st1['at'])} wake-ups later than half "
+                          f"a period, worst {st1['max_us']} us; xruns at "
+                          + (", ".join(f"{x:.3f} s ({'probe late ' + str(m) + ' us' if m else 'no stall'})"
+                                       for x, m in zip(snd.get('xrun_at_s', []), match))
+                             or "-")
+                          + f" -> xruns not at a machine stall (hapsim's): {own}")
                 res_out["hapsim"] = {**snd, "driver": d2 - d1, "client": c2 - c1,
-                                     "scheduling": rep["scheduling"]}
+                                     "scheduling": rep["scheduling"], "probe": st1,
+                                     "xrun_probe_late_us": match, "xruns_own": own}
         finally:
             jack.terminate()
             jack.wait()
