@@ -435,3 +435,31 @@ def test_a_diverging_varpro_trial_prints_nothing_on_stdout(a, capfd):
         _solve([["pair", a, 0.3]], np.array([a, 0.3]), y, False)
     out, _ = capfd.readouterr()
     assert out == ""
+
+
+def test_native_callback_follows_a_server_block_size_change(jack_server):
+    """The server's period changed while the native callback runs (``jack_set_buffer_size``):
+    JACK's buffer-size callback updates the output's block and the live sound's lead
+    (ceil(block / N)), and the callback keeps running with the new block."""
+    from hapsim.audio.live import JackOutput, LiveSound
+
+    scene = load_scene(SCENE)
+    eng = Engine(scene)
+    eng.set_port_position(-0.001, at_rest=True)
+    live = LiveSound(eng)
+    out = JackOutput(live, server=jack_server)
+    try:
+        assert out.native is not None
+        n = live._nsub
+        assert out.blocksize == 256 and live.lead == -(-256 // n)
+        out.client.blocksize = 512
+        deadline = time.monotonic() + 5.0
+        while out.blocksize != 512 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        calls = out.native.calls
+        time.sleep(0.2)
+        assert out.blocksize == 512 and live.lead == -(-512 // n)
+        assert out.native.calls > calls and out.native.too_big == 0
+    finally:
+        out.client.blocksize = 256
+        out.close()
