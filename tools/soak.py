@@ -205,16 +205,23 @@ def main(argv=None) -> int:
     tel_base = tel_path[:-4] if tel_path.endswith(".hst") else tel_path
 
     samples = []          # (t [s], host RSS [kB], mock RSS [kB])
+    segments = []         # --keep-going: one entry per run
     done = threading.Event()
     t0 = time.monotonic()
 
     every = min(10.0, max(duration / 4.0, 1.0))
 
     def sampler():
+        shown = 0.0
         while not done.wait(every):
             kids = mock_children()
-            samples.append((time.monotonic() - t0, rss_kb(),
-                            rss_kb(kids[0]) if kids else None))
+            now = time.monotonic() - t0
+            samples.append((now, rss_kb(), rss_kb(kids[0]) if kids else None))
+            if now - shown >= 60.0:        # progress, once a minute, on stderr
+                shown = now
+                print(f"soak: {now / 60:.1f} of {args.minutes:g} min, host RSS "
+                      f"{samples[-1][1]} kB, runs so far {len(segments) + 1}",
+                      file=sys.stderr, flush=True)
 
     th = threading.Thread(target=sampler, daemon=True)
     th.start()
@@ -224,7 +231,6 @@ def main(argv=None) -> int:
           f"{' (with local changes)' if rev['dirty'] else ''}", file=sys.stderr, flush=True)
     error = None
     rep = None
-    segments = []           # --keep-going: one entry per run
     hogs = start_stress(args.stress, duration + 120.0)
     try:
         while True:
