@@ -7,6 +7,7 @@ client of the test's own connected to hapsim's output port.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -463,3 +464,77 @@ def test_native_callback_follows_a_server_block_size_change(jack_server):
     finally:
         out.client.blocksize = 256
         out.close()
+
+
+def _change_block_at(server, block, delay_s):
+    """A thread that sets the JACK server's period to ``block`` frames ``delay_s`` after
+    hapsim's client has registered its ports (so the change falls inside the played loop)."""
+    import threading
+
+    def go():
+        import jack
+        c = jack.Client("resize", no_start_server=True, servername=server)
+        deadline = time.monotonic() + 30.0
+        while not c.get_ports("hapsim:") and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(delay_s)
+        c.blocksize = block
+        c.close()
+    th = threading.Thread(target=go, daemon=True)
+    th.start()
+    return th
+
+
+def test_play_repredicts_when_the_server_block_changes(jack_server, tmp_path, capsys):
+    """The server's period goes from 256 to 128 frames during hapsim play: the loop's delay
+    becomes d + ceil(128 / 48) = 1 + 3, the change is journaled with the new prediction,
+    and the felt (k, b) measured from a free response after it equals the new prediction
+    to 1e-6 (not the one made at the start, for delay 7)."""
+    from hapsim.cli import main
+    from hapsim.daemon.runner import predict, prepare_scene
+    from hapsim.scene import parse_scene
+
+    path = tmp_path / "linear.yaml"
+    path.write_text(LINEAR)
+    th = _change_block_at(jack_server, 128, 0.8)
+    try:
+        code = main(["play", str(path), "--sound", "jack", "--jack-server", jack_server,
+                     "--duration", "2.5", "--json"])
+    finally:
+        th.join(10.0)
+    rep = json.loads(capsys.readouterr().out)
+    assert code == 0, rep
+    assert (rep["sound"]["block"], rep["sound"]["lead"], rep["delay"]) == (128, 3, 4)
+    ev = [e for e in rep["journal"] if e["event"] == "delay"]
+    assert len(ev) == 1 and ev[0]["args"] == [4] and ev[0]["stable"], ev
+    sc = prepare_scene(parse_scene(LINEAR))[0]
+    want = predict(dataclasses.replace(sc, device=dataclasses.replace(sc.device, delay=4)))
+    old = predict(dataclasses.replace(sc, device=dataclasses.replace(sc.device, delay=7)))
+    assert rep["felt"]["k"] == pytest.approx(want["k"], rel=1e-12)
+    assert rep["measured"]["k"] == pytest.approx(want["k"], rel=1e-6)
+    assert rep["measured"]["b"] == pytest.approx(want["b"], rel=1e-6)
+    assert abs(old["b"] / want["b"] - 1) > 0.01
+
+
+def test_play_stops_when_a_new_server_block_makes_the_loop_unstable(jack_server, capsys):
+    """The shipped string plays at 256 frames; the server's period goes to 512 (lead 11,
+    unstable for it, as play's own start check says): play stops with exit 1 and the
+    reason, and still prints its report of what was played."""
+    from hapsim.cli import main
+
+    th = _change_block_at(jack_server, 512, 0.3)
+    try:
+        code = main(["play", SCENE, "--sound", "jack", "--jack-server", jack_server,
+                     "--duration", "3", "--json"])
+    finally:
+        th.join(10.0)
+        import jack
+        c = jack.Client("resize-back", no_start_server=True, servername=jack_server)
+        c.blocksize = 256
+        c.close()
+    cap = capsys.readouterr()
+    rep = json.loads(cap.out)
+    assert code == 1
+    assert "512 frames" in rep["error"] and "unstable" in rep["error"], rep["error"]
+    assert "unstable" in cap.err
+    assert 0 < rep["samples"] < 3000

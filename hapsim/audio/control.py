@@ -144,8 +144,51 @@ class Controller:
         #: which the telemetry journal ``.hst`` writes), and the loop's sample counter.
         self.events: list | None = None
         self.sample_of = None
+        #: Why the loop must stop (set by :meth:`rebase_delay` when the new loop is
+        #: unstable), else None.
+        self.unstable: str | None = None
+        self._rebasing: threading.Thread | None = None
         self.analyst = Analyst(background)
         self.felt = self._predict(scene)
+
+    def rebase_delay(self, delay: int, why: str) -> None:
+        """The loop's delay changed outside hapsim (the sound server's block, hence the
+        live sound's lead): the scene takes the new delay now, the prediction follows in
+        the background (the sample loop does not wait for it).
+
+        A measurement under way, or of a window that started before the change, is
+        dropped (:meth:`measure`). When the new loop is unstable, :attr:`unstable`
+        holds the reason (the sample loop stops on it).
+
+        Parameters
+        ----------
+        delay : int
+            The loop's delay now [device samples] (device delay + lead).
+        why : str
+            What changed it (journaled, and in :attr:`unstable`).
+        """
+        self._gen += 1
+        old = self.scene
+        new = dataclasses.replace(old, device=dataclasses.replace(old.device,
+                                                                   delay=int(delay)))
+        self.scene = new
+        self.measured = (math.nan, math.nan)
+        self.measurement = None
+
+        def work():
+            with self._lock:
+                pred = self._predict(self.scene)
+                self.felt = pred
+            k, b = pred.get("k"), pred.get("b")
+            self._log("delay", "", [int(delay)], reason=why, felt=[k, b],
+                      stable=bool(pred["stable"]),
+                      spectral_radius=pred.get("spectral_radius"))
+            if not pred["stable"]:
+                self.unstable = (f"{why}: the closed loop (delay {int(delay)} samples) is "
+                                 f"unstable (spectral radius {pred['spectral_radius']:.6g})")
+
+        self._rebasing = threading.Thread(target=work, name="hapsim-rebase", daemon=True)
+        self._rebasing.start()
 
     def _predict(self, scene) -> dict:
         from hapsim.daemon.runner import predict
@@ -306,6 +349,8 @@ class Controller:
     def finish(self, timeout_s: float = 10.0) -> bool:
         """Wait up to ``timeout_s`` [s] for the identification under way; whether none is
         left running."""
+        if self._rebasing is not None:
+            self._rebasing.join(timeout_s)
         if self._pending is None:
             return True
         self._pending.wait(timeout_s)

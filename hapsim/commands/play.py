@@ -41,7 +41,9 @@ late: times the loop fell more than 20 ms behind the clock (it then resynchronis
 sound: computed in the sound server's callback, one block ahead of the hand: the force of
   device period n reaches the device lead = ceil(block / N) samples later (N audio
   sub-steps per device period), a pure delay the prediction includes (report: delay =
-  device delay + lead), and the loop is paced by the sound card's clock. Through JACK the
+  device delay + lead), and the loop is paced by the sound card's clock. When the server
+  changes its block during the run, the loop is predicted again for the new lead (journal
+  event 'delay'), and the run stops (exit 1) if that loop is unstable. Through JACK the
   callback is native code (report: callback native): it never takes Python's lock, so
   nothing else in the process can make it late. xruns (JACK's count, with when: xrun_at_s,
   or PortAudio underflows); underruns: frames of silence because the next period's
@@ -205,11 +207,24 @@ def run(args: argparse.Namespace) -> int:
             prio = max(0, ap - 1 if args.rt_priority is None else min(prio, ap - 1))
     rt = RealtimePriority(prio).__enter__()
     t0 = time.perf_counter()
+    # the lead the prediction was made for (the block may have changed since)
+    lead_now = int(played.device.delay) - int(dev.delay)
     try:
         for n in range(steps):
+            if live is not None and live.lead != lead_now:
+                # the sound server changed its block (JACK's buffer-size callback): the
+                # loop's delay is now device delay + the new lead; re-predict it, and do not
+                # measure a free response that straddles the change
+                lead_now = live.lead
+                quiet_from = n + 1 + int(dev.delay) + lead_now
+                ctl.rebase_delay(int(dev.delay) + lead_now,
+                                 f"the sound server's block changed to {out.blocksize} "
+                                 f"frames at sample {n} (lead {lead_now})")
+            if ctl.unstable is not None:
+                raise DeviceError(ctl.unstable)
             ctl.poll()
             if ctl.ramping:
-                quiet_from = n + 1
+                quiet_from = max(quiet_from, n + 1)
             x = phys.sample()
             f = step(x) * ctl.force_scale
             xs[n], fs[n] = x, f
@@ -231,7 +246,8 @@ def run(args: argparse.Namespace) -> int:
                 elif ahead < -0.02:       # more than 20 ms behind: count, resynchronise
                     late += 1
                     t0 -= ahead
-    except DeviceError as exc:            # the sound server stopped: report what was played
+    except DeviceError as exc:  # the sound server stopped, or its new block made the loop
+        # unstable: report what was played
         error = str(exc)
         steps = n
         xs, fs = xs[:steps], fs[:steps]
