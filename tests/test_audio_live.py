@@ -231,6 +231,7 @@ def test_run_sound_plays_the_loop_frames_and_keeps_the_prediction(jack_server):
     snd = rep["sound"]
     print(f"run --sound: {snd}")
     assert snd["backend"] == "JackOutput" and snd["written"] == 1000 * 48
+    assert snd["callback"] == "native"
     assert np.max(np.abs(rec.buf[:rec.n])) > 1e-3
 
 

@@ -1,4 +1,4 @@
-"""A JACK process callback that never enters Python: a numba ``cfunc`` over LiveSound's arrays.
+"""JACK process callbacks that never enter Python: numba cfuncs over hapsim's arrays.
 
 JACK-Client's process callback is a Python function: every block, the server's real-time
 thread takes the GIL, runs a few Python lines and calls the compiled model. Whenever another
@@ -13,11 +13,15 @@ and the GIL is never taken, so nothing that the rest of the process does in Pyth
 delay a block (JACK API: ``jack_set_process_callback``; the buffer pointer must be fetched
 in every cycle, ``jack_port_get_buffer``).
 
-Context layout (:data:`CTX`): the scalars ``nsub``, ``linear``, ``last``, ``port``, the
+:func:`process` runs a :class:`~hapsim.audio.live.LiveSound`'s model (``hapsim play``);
+:func:`process_ring` copies the frames of a :class:`~hapsim.audio.live.FrameRing` that the
+haptic loop fills (``hapsim run --sound``), through
+:func:`hapsim.kernels.audio.ring_read`. Context layout (:data:`CTX`): the scalars ``nsub``, ``linear``, ``last``, ``port``, the
 channel count, the block capacity (rows of ``audio``), a callback counter, a counter of
 blocks larger than the capacity (silence out), then the addresses and sizes of the arrays
 in :func:`run_frames`'s order, and the JACK port pointers (one per channel, at most
-:data:`MAX_CHANNELS`).
+:data:`MAX_CHANNELS`). For a FrameRing the array slots hold the ring's address and rows
+and the addresses of its write count and read state.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from numba.extending import intrinsic
 
 from hapsim.kernels import audio as audio_kernel
 
-__all__ = ["NativeProcess", "native_available", "client_rt_priority", "process",
+__all__ = ["NativeProcess", "native_available", "client_rt_priority", "process", "process_ring",
            "MAX_CHANNELS", "CTX"]
 
 #: Channels (JACK output ports) the native callback serves.
@@ -78,6 +82,7 @@ def _load_libjack() -> None:
 _load_libjack()
 CTX_PORTS = CTX["ports"]
 _A = CTX["arrays"]
+_RING = CTX["arrays"]          # FrameRing: ring address, rows, wr address, st address
 _get_buffer = types.ExternalFunction("jack_port_get_buffer",
                                      types.voidptr(types.voidptr, types.uint32))
 
@@ -123,6 +128,35 @@ def process(nframes, arg):
     return 0
 
 
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+def process_ring(nframes, arg):
+    """The JACK process callback over a :class:`~hapsim.audio.live.FrameRing` (``hapsim run
+    --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel."""
+    c = nb.carray(arg, (_CTX_N,), np.int64)
+    c[6] += 1
+    nch = c[4]
+    n = np.int64(nframes)
+    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
+    if n > c[5]:                       # a block larger than the buffers: silence
+        c[7] += 1
+        for ch in range(nch):
+            out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
+                            np.float32)
+            for r in range(n):
+                out[r] = 0.0
+        return 0
+    ring = nb.carray(_voidptr(c[_RING]), (c[_RING + 1], nch), np.float32)
+    wr = nb.carray(_voidptr(c[_RING + 2]), (1,), np.int64)
+    st = nb.carray(_voidptr(c[_RING + 3]), (3,), np.int64)
+    audio_kernel.ring_read(n, ring, wr, st, audio)
+    for ch in range(nch):
+        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
+                        np.float32)
+        for r in range(n):
+            out[r] = audio[r, ch]
+    return 0
+
+
 
 
 def native_available(live) -> str | None:
@@ -139,8 +173,18 @@ def native_available(live) -> str | None:
         The reason (not a :class:`~hapsim.audio.live.LiveSound`, an array of another dtype
         than the callback was compiled for, too many channels), or None.
     """
-    from hapsim.audio.live import LiveSound
+    from hapsim.audio.live import FrameRing, LiveSound
 
+    if isinstance(live, FrameRing):
+        ok = (live._ring.dtype == np.float32 and live._ring.flags.c_contiguous
+              and live._wr.dtype == np.int64 and live._st.dtype == np.int64
+              and live._st.size == 3 and live.block.dtype == np.float32
+              and live.block.flags.c_contiguous)
+        if not ok:
+            return "a ring array of another dtype or layout than the callback's"
+        if len(live.channels) > MAX_CHANNELS:
+            return f"{len(live.channels)} channels (at most {MAX_CHANNELS})"
+        return None
     if not isinstance(live, LiveSound):
         return f"{type(live).__name__} renders in Python"
     arrays = _arrays(live)
@@ -163,12 +207,14 @@ def _arrays(live) -> tuple:
 
 
 class NativeProcess:
-    """The native process callback of one JACK client over one LiveSound.
+    """The native process callback of one JACK client over a LiveSound or a FrameRing.
 
     Parameters
     ----------
-    live : hapsim.audio.live.LiveSound
-        What it renders (its arrays are read and written in place, from JACK's thread).
+    live : hapsim.audio.live.LiveSound or hapsim.audio.live.FrameRing
+        What it renders (its arrays are read and written in place, from JACK's thread):
+        :func:`process` runs a LiveSound's model, :func:`process_ring` copies a
+        FrameRing's frames.
     port_ptrs : sequence of int
         ``jack_port_t *`` of the output ports, one per channel, as integers.
 
@@ -190,6 +236,20 @@ class NativeProcess:
         if why is not None:
             raise ValueError(why)
         self.live = live
+        from hapsim.audio.live import FrameRing
+
+        if isinstance(live, FrameRing):
+            c = np.zeros(_CTX_N, dtype=np.int64)
+            c[CTX["channels"]] = len(live.channels)
+            c[CTX["rows"]] = live.block.shape[0]
+            c[CTX["audio"]] = live.block.ctypes.data
+            c[_RING], c[_RING + 1] = live._ring.ctypes.data, live._ring.shape[0]
+            c[_RING + 2], c[_RING + 3] = live._wr.ctypes.data, live._st.ctypes.data
+            for i, p in enumerate(port_ptrs):
+                c[CTX_PORTS + i] = int(p)
+            self._keep = (live._ring, live._wr, live._st, live.block)
+            self.ctx, self.cfunc, self.address = c, process_ring, process_ring.address
+            return
         (nsub, lin, last, port) = (live._nsub, live._lin, live._last, live._port)
         self._inv_ta = np.array([float(live._state[-1])])
         self._keep = _arrays(live) + (live.block, self._inv_ta)

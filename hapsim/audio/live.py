@@ -296,11 +296,12 @@ class JackOutput:
         in its first call (None before): a haptic thread must run below it, or it
         delays the callback past its deadline (:func:`wait_priority`).
     native : hapsim.audio.jack_native.NativeProcess or None
-        The native process callback (a numba ``cfunc`` that never takes the GIL), used for
-        a :class:`LiveSound`; None when JACK-Client's Python callback runs instead.
+        The native process callback (a numba ``cfunc`` that never takes the GIL), for a
+        :class:`LiveSound` or a :class:`FrameRing`; None when JACK-Client's Python callback
+        runs instead.
     python_reason : str or None
-        Why the Python callback runs (a :class:`FrameRing`, ``HAPSIM_JACK_PYTHON_CALLBACK``
-        set, the native one could not be built).
+        Why the Python callback runs (``HAPSIM_JACK_PYTHON_CALLBACK`` set, the native one
+        could not be built).
     callback : str
         ``"native"`` or ``"python (reason)"``, as the reports print it.
     xrun_at : list of float
