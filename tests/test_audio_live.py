@@ -539,3 +539,35 @@ def test_play_stops_when_a_new_server_block_makes_the_loop_unstable(jack_server,
     assert "512 frames" in rep["error"] and "unstable" in rep["error"], rep["error"]
     assert "unstable" in cap.err
     assert 0 < rep["samples"] < 3000
+
+
+@pytest.mark.parametrize("kind", ["live", "ring"])
+def test_native_callback_plays_silence_for_a_block_larger_than_its_buffers(jack_server, kind):
+    """A block larger than the buffers the callback was given (here max_block 128 against
+    the server's 256): every callback writes silence, counts it (too_big), and neither the
+    model nor the ring advances (positions and frames stay unread)."""
+    from hapsim.audio.live import FrameRing, JackOutput, LiveSound
+
+    scene = load_scene(SCENE)
+    if kind == "live":
+        eng = Engine(scene)
+        eng.set_port_position(-0.001, at_rest=True)
+        src = LiveSound(eng, max_block=128)
+        for x in pluck_gesture(50):
+            src.push(float(x))
+    else:
+        src = FrameRing(48000.0, ("a",), max_block=128)
+        src.push(np.ones((480, 1), dtype=np.float32))
+    rec = Recorder(jack_server, seconds=1.0)
+    out = JackOutput(src, server=jack_server)
+    try:
+        out.client.connect(out.out_names[0], rec.inp.name)
+        time.sleep(0.3)
+    finally:
+        out.close()
+        rec.close()
+    assert out.native is not None and out.native.calls > 0
+    assert out.native.too_big == out.native.calls
+    st = src.stats()
+    assert (st["consumed"] if kind == "live" else st["read"]) == 0, st
+    assert rec.n > 0 and not np.any(rec.buf[:rec.n])

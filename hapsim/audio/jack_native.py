@@ -97,6 +97,16 @@ def _i8(c, i):
     return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
 
 
+@nb.njit(inline="always", cache=True)
+def _to_ports(c, nframes, audio, silence):
+    """Write ``audio[:nframes]`` (or silence) to each channel's JACK port buffer."""
+    n = np.int64(nframes)
+    for ch in range(c[4]):
+        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,), np.float32)
+        for r in range(n):
+            out[r] = 0.0 if silence else audio[r, ch]
+
+
 @nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
 def process(nframes, arg):
     """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
@@ -104,15 +114,11 @@ def process(nframes, arg):
     c[6] += 1
     nch = c[4]
     n = np.int64(nframes)
+    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
     if n > c[5]:                       # a block larger than the buffers: silence
         c[7] += 1
-        for ch in range(nch):
-            out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
-                            np.float32)
-            for r in range(n):
-                out[r] = 0.0
+        _to_ports(c, nframes, audio, True)
         return 0
-    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
     inv_ta = nb.carray(_voidptr(c[8]), (1,), np.float64)[0]
     audio_kernel.run_frames(n, c[0], c[1] != 0, c[2] != 0, c[3],
                             _f8(c, 0), _i8(c, 1), _f8(c, 2), _f8(c, 3),
@@ -120,11 +126,7 @@ def process(nframes, arg):
                             _i8(c, 10), _i8(c, 11), _f8(c, 12), _f8(c, 13),
                             _i8(c, 14), _i8(c, 15), _f8(c, 16), _f8(c, 17), _f8(c, 18),
                             _i8(c, 19), _i8(c, 20), _f8(c, 21), inv_ta, audio)
-    for ch in range(nch):
-        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
-                        np.float32)
-        for r in range(n):
-            out[r] = audio[r, ch]
+    _to_ports(c, nframes, audio, False)
     return 0
 
 
@@ -139,21 +141,13 @@ def process_ring(nframes, arg):
     audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
     if n > c[5]:                       # a block larger than the buffers: silence
         c[7] += 1
-        for ch in range(nch):
-            out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
-                            np.float32)
-            for r in range(n):
-                out[r] = 0.0
+        _to_ports(c, nframes, audio, True)
         return 0
     ring = nb.carray(_voidptr(c[_RING]), (c[_RING + 1], nch), np.float32)
     wr = nb.carray(_voidptr(c[_RING + 2]), (1,), np.int64)
     st = nb.carray(_voidptr(c[_RING + 3]), (3,), np.int64)
     audio_kernel.ring_read(n, ring, wr, st, audio)
-    for ch in range(nch):
-        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,),
-                        np.float32)
-        for r in range(n):
-            out[r] = audio[r, ch]
+    _to_ports(c, nframes, audio, False)
     return 0
 
 
