@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import select
-import threading
 import time
 
 import numpy as np
@@ -29,6 +27,7 @@ from hapsim.daemon.telemetry import Telemetry
 from hapsim.daemon.transport import SerialTransport
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
+from pty_device import PtyDevice
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WALL = os.path.join(ROOT, "configs", "wall.yaml")
@@ -36,7 +35,7 @@ ARMED = fp.STATUS_ARMED | fp.STATUS_FORCE_APPLIED
 D = 1
 
 
-class ScriptedDevice(threading.Thread):
+class ScriptedDevice(PtyDevice):
     """A device on a pty master: HELLO for HELLO_REQUEST, PONG for PING, and after the
     i-th CONFIG the chunks of ``segments[i]``; records every FORCE and STOP.
 
@@ -44,49 +43,37 @@ class ScriptedDevice(threading.Thread):
     holds the STATE ``seq`` (for the stop-latency test)."""
 
     def __init__(self, master: int, segments, stop_at=None):
-        super().__init__(daemon=True)
-        self.master = master
+        super().__init__(master, fp.encode(fp.Hello(fp.PROTOCOL_VERSION, 1, 7, 1e-6, 1e-3,
+                                                    10.0, 1000.0)))
         self.segments = list(segments)
         self.forces: list = []
         self.stops = 0
         self.configs = 0
-        self.done = False
         self.stop_at = stop_at
+        self.pending: list = []
 
-    def run(self):
-        dec = fp.StreamDecoder()
-        pending: list = []
-        hello = fp.encode(fp.Hello(fp.PROTOCOL_VERSION, 1, 7, 1e-6, 1e-3, 10.0, 1000.0))
-        while not self.done:
-            r, _, _ = select.select([self.master], [], [], 0.0005 if pending else 0.01)
-            if r:
-                try:
-                    data = os.read(self.master, 65536)
-                except OSError:
-                    return
-                for msg in dec.feed(data):
-                    t = type(msg)
-                    if t is fp.HelloRequest:
-                        os.write(self.master, hello)
-                    elif t is fp.Ping:
-                        os.write(self.master, fp.encode(fp.Pong(msg.nonce, msg.host_time_us, 0)))
-                    elif t is fp.Config:
-                        pending = list(self.segments[self.configs]) \
-                            if self.configs < len(self.segments) else []
-                        self.configs += 1
-                    elif t is fp.Force:
-                        self.forces.append((msg.seq, msg.force[0]))
-                    elif t is fp.Stop:
-                        self.stops += 1
-            if pending and isinstance(pending[0], int):   # a burst waits for its answer
-                if self.forces and self.forces[-1][0] >= pending[0]:
-                    pending.pop(0)
-                continue
-            if pending:
-                seqs, chunk = pending.pop(0)
-                if self.stop_at is not None and self.stop_at[0] in seqs:
-                    self.stop_at[1].request()
-                os.write(self.master, chunk)
+    def on_message(self, msg):
+        t = type(msg)
+        if t is fp.Config:
+            self.pending = list(self.segments[self.configs]) \
+                if self.configs < len(self.segments) else []
+            self.configs += 1
+        elif t is fp.Force:
+            self.forces.append((msg.seq, msg.force[0]))
+        elif t is fp.Stop:
+            self.stops += 1
+
+    def tick(self):
+        pending = self.pending
+        if pending and isinstance(pending[0], int):   # a burst waits for its answer
+            if self.forces and self.forces[-1][0] >= pending[0]:
+                pending.pop(0)
+        elif pending:
+            seqs, chunk = pending.pop(0)
+            if self.stop_at is not None and self.stop_at[0] in seqs:
+                self.stop_at[1].request()
+            os.write(self.master, chunk)
+        return 0.0005 if pending else 0.01
 
 
 def state(seq, x, *, status=ARMED, fseq=None):

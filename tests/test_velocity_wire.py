@@ -15,8 +15,6 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
-import select
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +25,7 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
 from hapsim.daemon.mock import MockDevice
 from hapsim.scene import Device, Excitation, parse_scene
+from pty_device import PtyDevice
 
 HERE = Path(__file__).resolve().parent
 
@@ -213,37 +212,23 @@ def test_link_check_counts_the_velocity_frame():
         assert "48-byte STATE + VELOCITY" in msg and "192 Hz" in msg and "115200 baud" in msg
 
 
-class _OldDevice(threading.Thread):
+class _OldDevice(PtyDevice):
     """A device on a pty master that answers HELLO_REQUEST and PING only (written before
     SENSORS_REQUEST), or, with ``answer``, also SENSORS(offered=0, enabled=0)."""
 
     def __init__(self, master: int, answer: bool) -> None:
-        super().__init__(daemon=True)
-        self.master, self.answer, self.done = master, answer, False
+        super().__init__(master, fp.encode(fp.Hello(1, 1, 9, 1e-6, 1e-3, 10.0, 1e3)))
+        self.answer = answer
         self.requests = self.configs = 0
 
-    def run(self) -> None:
-        dec = fp.StreamDecoder()
-        while not self.done:
-            r, _, _ = select.select([self.master], [], [], 0.01)
-            if not r:
-                continue
-            try:
-                data = os.read(self.master, 65536)
-            except OSError:
-                return
-            for msg in dec.feed(data):
-                t = type(msg)
-                if t is fp.HelloRequest:
-                    os.write(self.master, fp.encode(fp.Hello(1, 1, 9, 1e-6, 1e-3, 10.0, 1e3)))
-                elif t is fp.Ping:
-                    os.write(self.master, fp.encode(fp.Pong(msg.nonce, msg.host_time_us, 0)))
-                elif t is fp.SensorsRequest:
-                    self.requests += 1
-                    if self.answer:
-                        os.write(self.master, fp.encode(fp.Sensors(0, 0)))
-                elif t is fp.Config:
-                    self.configs += 1
+    def on_message(self, msg) -> None:
+        t = type(msg)
+        if t is fp.SensorsRequest:
+            self.requests += 1
+            if self.answer:
+                os.write(self.master, fp.encode(fp.Sensors(0, 0)))
+        elif t is fp.Config:
+            self.configs += 1
 
 
 @pytest.mark.parametrize("answer,why", [(True, "it answers SENSORS offered=0x0000"),
