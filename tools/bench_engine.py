@@ -3,6 +3,7 @@
 Usage::
 
     python tools/bench_engine.py [--quick] [--json FILE]
+    python tools/bench_engine.py --audio [--jack-priority P[,P...]] [--live-repeats N]
 
 For strings of N beads (10 g, K = 2000 N/m, B = 0.0005 N s/m, between two grounds, with the
 port touching the middle bead through a contact, as ``configs/string.yaml``) it prints:
@@ -444,9 +445,10 @@ def _attribute(xrun_abs: list, stalls: dict | None, window: float = 0.05) -> lis
     return res
 
 
-def _live_run(prio: int, secs: float) -> dict:
+def _live_run(prio: int, secs: float, repeats: int = 1) -> dict:
     """Baseline then ``hapsim play`` of the shipped string, each ``secs`` [s], on a private
-    dummy JACK server at real-time priority ``prio``, each beside the stall probe."""
+    dummy JACK server at real-time priority ``prio``, each beside the stall probe;
+    ``repeats`` runs of hapsim after the baselines (``--live-repeats``)."""
     import uuid
 
     name = f"bench-{uuid.uuid4().hex[:8]}"
@@ -474,38 +476,50 @@ def _live_run(prio: int, secs: float) -> dict:
                 res_out["baseline" if kind == "python" else "baseline_native"] = {
                     "xruns": base, "driver": d1 - d0, "client": c1 - c0, "probe": st0}
             d1, c1 = _log_xruns(log)
-            probe = _probe(tmp, prio, secs + 4.0)
-            res = subprocess.run([sys.executable, "-m", "hapsim", "play",
-                                  str(REPO / "configs" / "audio_string.yaml"), "--sound",
-                                  "jack", "--jack-server", name, "--duration", str(secs),
-                                  "--pluck-every", "1", "--json"], cwd=REPO,
-                                 capture_output=True, text=True)
-            st1 = _stalls(probe)
-            d2, c2 = _log_xruns(log)
-            if res.returncode != 0:
-                print(f"live run failed: {res.stderr.strip()[-300:]}")
-                res_out["error"] = res.stderr.strip()[-300:]
-            else:
-                rep = json.loads(res.stdout)
-                snd = rep["sound"]
-                print(f"jackd -P {prio}: {secs:g} s of configs/audio_string.yaml live, "
-                      f"48 kHz/{BLOCK}: {snd['xruns']} xruns (driver timer late {d2 - d1}, "
-                      f"client late {c2 - c1}), {snd['underruns']} starved frames of "
-                      f"{snd['periods'] * 48}, haptic thread {rep['scheduling']}; load "
-                      f"{os.getloadavg()[0]:.2f}")
-                at = [snd["active_monotonic_s"] + x for x in snd.get("xrun_at_s", [])]
-                match = _attribute(at, st1)
-                own = sum(m is None for m in match) if st1 is not None else None
-                if st1 is not None:
-                    print(f"  stall probe beside it: {len(st1['at'])} wake-ups later than half "
-                          f"a period, worst {st1['max_us']} us; xruns at "
-                          + (", ".join(f"{x:.3f} s ({'probe late ' + str(m) + ' us' if m else 'no stall'})"
-                                       for x, m in zip(snd.get('xrun_at_s', []), match))
-                             or "-")
-                          + f" -> xruns not at a machine stall (hapsim's): {own}")
-                res_out["hapsim"] = {**snd, "driver": d2 - d1, "client": c2 - c1,
-                                     "scheduling": rep["scheduling"], "probe": st1,
-                                     "xrun_probe_late_us": match, "xruns_own": own}
+            runs = []
+            for i in range(repeats):
+                probe = _probe(tmp, prio, secs + 4.0)
+                res = subprocess.run([sys.executable, "-m", "hapsim", "play",
+                                      str(REPO / "configs" / "audio_string.yaml"), "--sound",
+                                      "jack", "--jack-server", name, "--duration", str(secs),
+                                      "--pluck-every", "1", "--json"], cwd=REPO,
+                                     capture_output=True, text=True)
+                st1 = _stalls(probe)
+                d2, c2 = _log_xruns(log)
+                if res.returncode != 0:
+                    print(f"live run failed: {res.stderr.strip()[-300:]}")
+                    res_out["error"] = res.stderr.strip()[-300:]
+                    break
+                else:
+                    rep = json.loads(res.stdout)
+                    snd = rep["sound"]
+                    print(f"jackd -P {prio}: {secs:g} s of configs/audio_string.yaml live, "
+                          f"48 kHz/{BLOCK}: {snd['xruns']} xruns (driver timer late {d2 - d1}, "
+                          f"client late {c2 - c1}), {snd['underruns']} starved frames of "
+                          f"{snd['periods'] * 48}, haptic thread {rep['scheduling']}; load "
+                          f"{os.getloadavg()[0]:.2f}")
+                    at = [snd["active_monotonic_s"] + x for x in snd.get("xrun_at_s", [])]
+                    match = _attribute(at, st1)
+                    own = sum(m is None for m in match) if st1 is not None else None
+                    if st1 is not None:
+                        print(f"  stall probe beside it: {len(st1['at'])} wake-ups later than half "
+                              f"a period, worst {st1['max_us']} us; xruns at "
+                              + (", ".join(f"{x:.3f} s ({'probe late ' + str(m) + ' us' if m else 'no stall'})"
+                                           for x, m in zip(snd.get('xrun_at_s', []), match))
+                                 or "-")
+                              + f" -> xruns not at a machine stall (hapsim's): {own}")
+                    runs.append({**snd, "driver": d2 - d1, "client": c2 - c1,
+                                 "scheduling": rep["scheduling"], "probe": st1,
+                                 "xrun_probe_late_us": match, "xruns_own": own})
+                    res_out["hapsim"] = runs[0]
+                    d1, c1 = d2, c2
+            if repeats > 1 and runs:
+                res_out["hapsim_runs"] = runs
+                xs = [r["xruns"] for r in runs]
+                owns = [r["xruns_own"] for r in runs]
+                print(f"jackd -P {prio}, {len(runs)} runs of {secs:g} s: xruns {xs} "
+                      f"({sum(x == 0 for x in xs)} runs with none); not at a machine stall: "
+                      f"{owns}")
         finally:
             jack.terminate()
             jack.wait()
@@ -552,7 +566,7 @@ def audio_main(a) -> int:
         secs = 10.0 if a.quick else 60.0
         out["live"] = {}
         for prio in a.jack_priority:
-            out["live"][str(prio)] = _live_run(prio, secs)
+            out["live"][str(prio)] = _live_run(prio, secs, a.live_repeats)
     print(f"load average now {os.getloadavg()[0]:.2f}")
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=2))
@@ -579,6 +593,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jack-priority", type=lambda v: [int(x) for x in v.split(",")],
                     default=[10, 70], metavar="P[,P...]",
                     help="--audio: jackd real-time priorities of the live runs (default 10,70)")
+    ap.add_argument("--live-repeats", type=int, default=1, metavar="N",
+                    help="--audio: hapsim's live runs per priority, after the baselines "
+                         "(default 1; each 60 s, 10 s with --quick)")
     ap.add_argument("--audio", action="store_true",
                     help="the sound side instead: largest 48 kHz real-time string beside "
                          "Faust's, and 60 s live on a dummy JACK server")
