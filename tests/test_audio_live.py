@@ -328,6 +328,10 @@ def test_play_with_live_sound_measured_equals_predicted_with_the_lead(jack_serve
     print(f"play, live sound: {snd}")
     assert (snd["block"], snd["lead"], rep["delay"]) == (256, 6, 7)
     assert snd["pushed"] == 1500 and rep["paced_by"] == "sound"
+    # starved frames are counted while the loop ran, in the blocks the report names (the
+    # silence after the last position, until the client closes, is the run's end)
+    assert snd["underruns"] <= 256 * len(snd["underrun_at_s"])
+    assert all(0.0 <= t <= 1.5 + 1.0 for t in snd["underrun_at_s"])
     assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(rep["felt"]["b"], rel=1e-6)
     without = predict(prepare_scene(parse_scene(LINEAR))[0])
@@ -571,3 +575,34 @@ def test_native_callback_plays_silence_for_a_block_larger_than_its_buffers(jack_
     st = src.stats()
     assert (st["consumed"] if kind == "live" else st["read"]) == 0, st
     assert rec.n > 0 and not np.any(rec.buf[:rec.n])
+
+
+def test_native_callback_logs_the_blocks_that_starved(jack_server):
+    """Positions run out (100 pushed, then none): every later block is silence, counted
+    as starved frames and logged by the native callback (its number), so the report can
+    say when the sound starved: the log is increasing, within the calls made, its blocks
+    hold all the starved frames (each but the first fully starved), and ``underrun_at``
+    turns them into times at the server's block; a limit of calls drops the later ones."""
+    from hapsim.audio.live import JackOutput, LiveSound
+
+    scene = load_scene(SCENE)
+    eng = Engine(scene)
+    eng.set_port_position(-0.001, at_rest=True)
+    live = LiveSound(eng)
+    out = JackOutput(live, server=jack_server)
+    try:
+        time.sleep(0.05)
+        assert out.native.starved_calls == []        # nothing pushed yet: waiting, not starved
+        for x in pluck_gesture(100):
+            live.push(float(x))
+        time.sleep(0.3)
+    finally:
+        out.close()
+    log = out.native.starved_calls
+    calls = out.native.calls
+    starved = live.stats()["underruns"]
+    assert len(log) >= 10 and log == sorted(set(log)) and log[-1] <= calls
+    assert log == list(range(log[0], log[0] + len(log)))   # every block since, in a row
+    assert (len(log) - 1) * 256 < starved <= len(log) * 256
+    assert out.underrun_at() == [round((i - 1) * 256 / 48000.0, 6) for i in log]
+    assert out.underrun_at(log[0]) == out.underrun_at()[:1]

@@ -20,7 +20,8 @@ haptic loop fills (``hapsim run --sound``), through
 channel count, the block capacity (rows of ``audio``), a callback counter, a counter of
 blocks larger than the capacity (silence out), then the addresses and sizes of the arrays
 in :func:`run_frames`'s order, and the JACK port pointers (one per channel, at most
-:data:`MAX_CHANNELS`). For a FrameRing the array slots hold the ring's address and rows
+:data:`MAX_CHANNELS`), then a log of the callbacks whose block had starved frames (its
+length, then at most :data:`LOG_MAX` callback numbers). For a FrameRing the array slots hold the ring's address and rows
 and the addresses of its write count and read state.
 """
 
@@ -37,7 +38,7 @@ from numba.extending import intrinsic
 from hapsim.kernels import audio as audio_kernel
 
 __all__ = ["NativeProcess", "native_available", "client_rt_priority", "process", "process_ring",
-           "MAX_CHANNELS", "CTX"]
+           "MAX_CHANNELS", "CTX", "LOG_MAX"]
 
 #: Channels (JACK output ports) the native callback serves.
 MAX_CHANNELS = 16
@@ -55,7 +56,11 @@ _NA = len(_ARRAYS)
 CTX = {"nsub": 0, "linear": 1, "last": 2, "port": 3, "channels": 4, "rows": 5,
        "calls": 6, "too_big": 7, "inv_ta": 8, "audio": 9, "arrays": 10,
        "ports": 10 + 2 * _NA}
-_CTX_N = CTX["ports"] + MAX_CHANNELS
+#: Callbacks whose block had starved frames, logged (the first ones; see NativeProcess).
+LOG_MAX = 256
+CTX["log_n"] = CTX["ports"] + MAX_CHANNELS
+CTX["log"] = CTX["log_n"] + 1
+_CTX_N = CTX["log"] + LOG_MAX
 
 
 @intrinsic
@@ -83,6 +88,7 @@ _load_libjack()
 CTX_PORTS = CTX["ports"]
 _A = CTX["arrays"]
 _RING = CTX["arrays"]          # FrameRing: ring address, rows, wr address, st address
+_LOG_N, _LOG = CTX["log_n"], CTX["log"]
 _get_buffer = types.ExternalFunction("jack_port_get_buffer",
                                      types.voidptr(types.voidptr, types.uint32))
 
@@ -120,12 +126,17 @@ def process(nframes, arg):
         _to_ports(c, nframes, audio, True)
         return 0
     inv_ta = nb.carray(_voidptr(c[8]), (1,), np.float64)[0]
+    st = _f8(c, 2)
+    starved0 = st[2]
     audio_kernel.run_frames(n, c[0], c[1] != 0, c[2] != 0, c[3],
-                            _f8(c, 0), _i8(c, 1), _f8(c, 2), _f8(c, 3),
+                            _f8(c, 0), _i8(c, 1), st, _f8(c, 3),
                             _f8(c, 4), _f8(c, 5), _f8(c, 6), _i8(c, 7), _f8(c, 8), _i8(c, 9),
                             _i8(c, 10), _i8(c, 11), _f8(c, 12), _f8(c, 13),
                             _i8(c, 14), _i8(c, 15), _f8(c, 16), _f8(c, 17), _f8(c, 18),
                             _i8(c, 19), _i8(c, 20), _f8(c, 21), inv_ta, audio)
+    if st[2] > starved0 and c[_LOG_N] < LOG_MAX:      # a block with starved frames
+        c[_LOG + c[_LOG_N]] = c[6]
+        c[_LOG_N] += 1
     _to_ports(c, nframes, audio, False)
     return 0
 
@@ -267,6 +278,12 @@ class NativeProcess:
     def calls(self) -> int:
         """Callbacks run so far."""
         return int(self.ctx[CTX["calls"]])
+
+    @property
+    def starved_calls(self) -> list:
+        """Which callbacks (1 = the first) had starved frames, the first :data:`LOG_MAX`
+        (a LiveSound: its next period's position had not arrived)."""
+        return [int(v) for v in self.ctx[_LOG:_LOG + self.ctx[_LOG_N]]]
 
     @property
     def too_big(self) -> int:

@@ -418,6 +418,22 @@ class JackOutput:
         if len(self.xrun_at) < 1000:
             self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
 
+    def underrun_at(self, upto_calls: int | None = None) -> list[float]:
+        """When blocks with starved frames started [s after activation, at the current
+        block size] (native callback over a LiveSound: the first 256; else empty).
+
+        Parameters
+        ----------
+        upto_calls : int, optional
+            Only the callbacks up to this one (e.g. :attr:`native.calls` when the loop
+            ended: after it the callback has no positions left, which is not starvation).
+        """
+        if self.native is None:
+            return []
+        per = self.blocksize / float(self.live.rate_hz)
+        return [round((i - 1) * per, 6) for i in self.native.starved_calls
+                if upto_calls is None or i <= upto_calls]
+
     @property
     def callback(self) -> str:
         """Which process callback runs: ``"native"`` (no GIL) or ``"python (why)"``."""

@@ -46,8 +46,9 @@ sound: computed in the sound server's callback, one block ahead of the hand: the
   event 'delay'), and the run stops (exit 1) if that loop is unstable. Through JACK the
   callback is native code (report: callback native): it never takes Python's lock, so
   nothing else in the process can make it late. xruns (JACK's count, with when: xrun_at_s,
-  or PortAudio underflows); underruns: frames of silence because the next period's
-  position had not arrived (the model waits; the loop stays the predicted one).
+  or PortAudio underflows); underruns: frames of silence, while the loop ran, because the
+  next period's position had not arrived (the model waits; the loop stays the predicted
+  one), with when the blocks that had them started (underrun_at_s, native callback).
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
   hapsim play configs/audio_string.yaml --osc 9000 --duration 60
@@ -252,6 +253,10 @@ def run(args: argparse.Namespace) -> int:
         steps = n
         xs, fs = xs[:steps], fs[:steps]
     finally:
+        # the sound as the loop left it: after the last position the callback has nothing
+        # to play (silence until the client closes), which is the run's end, not starvation
+        snd_end = live.stats() if live is not None else None
+        calls_end = out.native.calls if getattr(out, "native", None) is not None else None
         rt.__exit__(None, None, None)
         if server is not None:
             server.shutdown()
@@ -280,7 +285,9 @@ def run(args: argparse.Namespace) -> int:
                   "backend": type(out).__name__, "callback": out.callback,
                   "xruns": out.xruns, "xrun_at_s": list(out.xrun_at),
                   "active_monotonic_s": out.t_active, "block": out.blocksize,
-                  **live.stats()},
+                  "underrun_at_s": (out.underrun_at(calls_end)
+                                    if hasattr(out, "underrun_at") else []),
+                  **live.stats(), "underruns": snd_end["underruns"]},
               "journal": ctl.journal}
     if args.journal:
         _dump(args.journal, ctl.journal)
