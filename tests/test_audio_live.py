@@ -606,3 +606,4 @@ def test_native_callback_logs_the_blocks_that_starved(jack_server):
     assert (len(log) - 1) * 256 < starved <= len(log) * 256
     assert out.underrun_at() == [round((i - 1) * 256 / 48000.0, 6) for i in log]
     assert out.underrun_at(log[0]) == out.underrun_at()[:1]
+

@@ -23,6 +23,7 @@ JACK server runs, PortAudio through ``sounddevice`` (output underflows counted a
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import math
 import os
@@ -352,6 +353,8 @@ class JackOutput:
         self.xrun_at: list[float] = []
         #: ``time.monotonic()`` at activation (what :attr:`xrun_at` counts from).
         self.t_active = time.monotonic()
+        self._closed = False
+        atexit.register(self.close)
         self.client.activate()
         if connect:
             targets = self.client.get_ports(is_physical=True, is_input=True, is_audio=True)
@@ -445,7 +448,12 @@ class JackOutput:
         return [p.name for p in self.ports]
 
     def close(self) -> None:
-        """Deactivate and close the client."""
+        """Deactivate and close the client (once; also run at interpreter exit when it was
+        not called, so that a native callback never runs on freed arrays)."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self.close)
         self.client.deactivate()
         self.client.close()
 
