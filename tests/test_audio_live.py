@@ -467,8 +467,21 @@ def test_native_callback_follows_a_server_block_size_change(jack_server):
         assert out.blocksize == 512 and live.lead == -(-512 // n)
         assert out.native.calls > calls and out.native.too_big == 0
     finally:
-        out.client.blocksize = 256
         out.close()
+        _set_block(jack_server, 256)
+
+
+def _set_block(server, block):
+    """Set the JACK server's period to ``block`` frames (the module's server is shared:
+    a test that changes it puts it back)."""
+    import jack
+    c = jack.Client("resize-back", no_start_server=True, servername=server)
+    try:
+        if c.blocksize != block:
+            c.blocksize = block
+        assert c.blocksize == block
+    finally:
+        c.close()
 
 
 def _change_block_at(server, block, delay_s):
@@ -507,6 +520,7 @@ def test_play_repredicts_when_the_server_block_changes(jack_server, tmp_path, ca
                      "--duration", "2.5", "--json"])
     finally:
         th.join(10.0)
+        _set_block(jack_server, 256)
     rep = json.loads(capsys.readouterr().out)
     assert code == 0, rep
     assert (rep["sound"]["block"], rep["sound"]["lead"], rep["delay"]) == (128, 3, 4)
@@ -533,10 +547,7 @@ def test_play_stops_when_a_new_server_block_makes_the_loop_unstable(jack_server,
                      "--duration", "3", "--json"])
     finally:
         th.join(10.0)
-        import jack
-        c = jack.Client("resize-back", no_start_server=True, servername=jack_server)
-        c.blocksize = 256
-        c.close()
+        _set_block(jack_server, 256)
     cap = capsys.readouterr()
     rep = json.loads(cap.out)
     assert code == 1
