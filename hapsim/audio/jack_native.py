@@ -113,17 +113,26 @@ def _to_ports(c, nframes, audio, silence):
             out[r] = 0.0 if silence else audio[r, ch]
 
 
-@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
-def process(nframes, arg):
-    """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
+@nb.njit(inline="always", cache=True)
+def _enter(arg, nframes):
+    """A callback's start: the context, the block as an int, the frames buffer, and
+    whether the block fits it (if not: silence written and counted, nothing else to do)."""
     c = nb.carray(arg, (_CTX_N,), np.int64)
     c[6] += 1
-    nch = c[4]
     n = np.int64(nframes)
-    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
+    audio = nb.carray(_voidptr(c[9]), (c[5], c[4]), np.float32)
     if n > c[5]:                       # a block larger than the buffers: silence
         c[7] += 1
         _to_ports(c, nframes, audio, True)
+        return c, n, audio, False
+    return c, n, audio, True
+
+
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+def process(nframes, arg):
+    """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
+    c, n, audio, fits = _enter(arg, nframes)
+    if not fits:
         return 0
     inv_ta = nb.carray(_voidptr(c[8]), (1,), np.float64)[0]
     st = _f8(c, 2)
@@ -145,16 +154,10 @@ def process(nframes, arg):
 def process_ring(nframes, arg):
     """The JACK process callback over a :class:`~hapsim.audio.live.FrameRing` (``hapsim run
     --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel."""
-    c = nb.carray(arg, (_CTX_N,), np.int64)
-    c[6] += 1
-    nch = c[4]
-    n = np.int64(nframes)
-    audio = nb.carray(_voidptr(c[9]), (c[5], nch), np.float32)
-    if n > c[5]:                       # a block larger than the buffers: silence
-        c[7] += 1
-        _to_ports(c, nframes, audio, True)
+    c, n, audio, fits = _enter(arg, nframes)
+    if not fits:
         return 0
-    ring = nb.carray(_voidptr(c[_RING]), (c[_RING + 1], nch), np.float32)
+    ring = nb.carray(_voidptr(c[_RING]), (c[_RING + 1], c[4]), np.float32)
     wr = nb.carray(_voidptr(c[_RING + 2]), (1,), np.int64)
     st = nb.carray(_voidptr(c[_RING + 3]), (3,), np.int64)
     audio_kernel.ring_read(n, ring, wr, st, audio)
