@@ -208,6 +208,16 @@ def _crc16(buf, n, table):
 
 
 @_jit
+def _le(buf, off, nbytes):
+    """The little-endian unsigned integer in ``buf[off:off + nbytes]`` (PROTOCOL.md §3:
+    every integer field is little-endian)."""
+    v = np.int64(0)
+    for j in range(nbytes):
+        v |= np.int64(buf[off + j]) << (8 * j)
+    return v
+
+
+@_jit
 def _next_frame(rb, a, n_rb):
     """The next frame in ``rb[a:n_rb]``: ``(a, z)`` with ``rb[a:z]`` the frame's COBS
     bytes and ``rb[z]`` its 0x00 delimiter, idle fill (empty frames) skipped; ``z = -1``
@@ -441,10 +451,7 @@ def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
             m = _cobs_decode(rb, b, j, scratch)
             if (m == _STATE_PACKET and scratch[0] == 0x10 and _crc16(scratch, m, table) == 0
                     and scratch[13] & 0x01):
-                s2 = np.int64(0)
-                for q in range(4):
-                    s2 |= np.int64(scratch[1 + q]) << (8 * q)
-                ahead = (s2 - seq) & _U32
+                ahead = (_le(scratch, 1, 4) - seq) & _U32
                 if 0 < ahead < _HALF and ahead <= ahead_max:
                     return True
         b = j + 1
@@ -506,16 +513,10 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
                 continue
             if m != _STATE_PACKET or pkt[0] != 0x10 or _crc16(pkt, m, table) != 0:
                 break               # not a clean 1-axis STATE: Python's
-            seq = np.int64(0)
-            for j in range(4):
-                seq |= np.int64(pkt[1 + j]) << (8 * j)
-            tus = np.int64(0)
-            for j in range(8):
-                tus |= np.int64(pkt[5 + j]) << (8 * j)
-            status = np.int64(pkt[13]) | (np.int64(pkt[14]) << 8)
-            fseq = np.int64(0)
-            for j in range(4):
-                fseq |= np.int64(pkt[15 + j]) << (8 * j)
+            seq = _le(pkt, 1, 4)
+            tus = _le(pkt, 5, 8)
+            status = _le(pkt, 13, 2)
+            fseq = _le(pkt, 15, 4)
             for j in range(8):
                 u8[j] = pkt[19 + j]
             x = f8[0]

@@ -42,7 +42,7 @@ from numba import types
 import firmware_protocol as fp
 from hapsim.daemon.fastloop import (_CRC, _POLLERR, _POLLHUP, _POLLIN, _POLLNVAL,
                                     _c_poll, _c_read, _c_write, _cobs_decode, _cobs_encode,
-                                    _crc16, _jit, _next_frame, _now_ns)
+                                    _crc16, _jit, _le, _next_frame, _now_ns)
 
 __all__ = ["CompiledMock", "compiled_reason", "warm_up_mock"]
 
@@ -241,9 +241,7 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
         if m != _FORCE_PACKET or pkt[0] != 0x11 or _crc16(pkt, m, table) != 0:
             code = R_HANDOFF
             break
-        seq = np.int64(0)
-        for j in range(4):
-            seq |= np.int64(pkt[1 + j]) << (8 * j)
+        seq = _le(pkt, 1, 4)
         for j in range(8):
             u8[j] = pkt[5 + j]
         f = f8[0]
