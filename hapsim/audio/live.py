@@ -89,6 +89,7 @@ class LiveSound:
         self.timeout_s = 2.0
         #: Times :meth:`port_step` had to wait for the audio thread.
         self.waits = 0
+        self._starved_end = None             # underruns when the haptic side finished
         self.render(0)       # compile (or load from cache) now, not in the first callback
 
     @staticmethod
@@ -187,10 +188,18 @@ class LiveSound:
         (frames of silence because the next period's position had not arrived: the model
         waited), ``lead`` [device samples] and ``waits`` (haptic samples that waited for
         the audio thread)."""
+        starved = self._starved_end if self._starved_end is not None \
+            else int(self._st[_S["starved"]])
         return {"pushed": int(self._wr[0]), "consumed": int(self._st[_S["read"]]),
-                "underruns": int(self._st[_S["starved"]]),
+                "underruns": starved,
                 "periods": int(self._st[_S["written"]]), "lead": int(self.lead),
                 "waits": int(self.waits)}
+
+    def finish(self) -> None:
+        """The haptic side has pushed its last position: from now on the callback has
+        nothing to play, which is the run's end, not starvation, so :meth:`stats` keeps the
+        underruns counted until now."""
+        self._starved_end = int(self._st[_S["starved"]])
 
     # -------------------------------------------------------------- audio thread
     def render(self, nframes: int) -> np.ndarray:
@@ -236,6 +245,7 @@ class FrameRing:
         self._wr = np.zeros(1, dtype=np.int64)
         self._st = np.zeros(3, dtype=np.int64)
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
+        self._missing_end = None             # frames missing when the loop finished
         audio_kernel.ring_write(np.zeros((0, len(self.channels))), self._ring, self._wr)
         self.render(0)
 
@@ -250,8 +260,14 @@ class FrameRing:
 
     def stats(self) -> dict:
         """``written``, ``read`` frames, ``missing`` (silence on underrun), ``skipped``."""
+        missing = self._missing_end if self._missing_end is not None else int(self._st[1])
         return {"written": int(self._wr[0]), "read": int(self._st[0]),
-                "missing": int(self._st[1]), "skipped": int(self._st[2])}
+                "missing": missing, "skipped": int(self._st[2])}
+
+    def finish(self) -> None:
+        """The loop has written its last frames: silence from now on is the run's end, not
+        an underrun, so :meth:`stats` keeps the frames missing until now."""
+        self._missing_end = int(self._st[1])
 
 
 def sounding_engine(ring: FrameRing) -> type:
@@ -341,6 +357,7 @@ class JackOutput:
         #: The native process callback (:class:`hapsim.audio.jack_native.NativeProcess`)
         #: when the live sound can use it, else None (the Python callback).
         self.native = None
+        self._calls_end = None
         #: Why the Python callback is used (None when native).
         self.python_reason = None
         self._rt_priority = None
@@ -421,6 +438,15 @@ class JackOutput:
         if len(self.xrun_at) < 1000:
             self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
 
+    def finish(self) -> None:
+        """The producer is done (the loop's last position or frames): what the callback
+        plays from now on is the run's end, not starvation. The source's counters
+        (:meth:`LiveSound.finish`, :meth:`FrameRing.finish`) and :meth:`underrun_at` stop
+        here; the client plays on until :meth:`close`."""
+        self._calls_end = self.native.calls if self.native is not None else None
+        if hasattr(self.live, "finish"):
+            self.live.finish()
+
     def underrun_at(self, upto_calls: int | None = None) -> list[float]:
         """When blocks with starved frames started [s after activation, at the current
         block size] (native callback over a LiveSound: the first 256; else empty).
@@ -428,11 +454,14 @@ class JackOutput:
         Parameters
         ----------
         upto_calls : int, optional
-            Only the callbacks up to this one (e.g. :attr:`native.calls` when the loop
-            ended: after it the callback has no positions left, which is not starvation).
+            Only the callbacks up to this one (default: the callbacks until
+            :meth:`finish`, when it was called: after it the callback has no positions
+            left, which is not starvation).
         """
         if self.native is None:
             return []
+        if upto_calls is None:
+            upto_calls = self._calls_end
         per = self.blocksize / float(self.live.rate_hz)
         return [round((i - 1) * per, 6) for i in self.native.starved_calls
                 if upto_calls is None or i <= upto_calls]
@@ -512,6 +541,11 @@ class SoundDeviceOutput:
             self.stream.start()
         except Exception as exc:  # PortAudio raises its own error types
             raise DeviceError(f"no audio output through PortAudio: {exc}") from None
+
+    def finish(self) -> None:
+        """The producer is done (:meth:`JackOutput.finish`)."""
+        if hasattr(self.live, "finish"):
+            self.live.finish()
 
     def close(self) -> None:
         """Stop and close the stream."""

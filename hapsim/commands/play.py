@@ -253,10 +253,8 @@ def run(args: argparse.Namespace) -> int:
         steps = n
         xs, fs = xs[:steps], fs[:steps]
     finally:
-        # the sound as the loop left it: after the last position the callback has nothing
-        # to play (silence until the client closes), which is the run's end, not starvation
-        snd_end = live.stats() if live is not None else None
-        calls_end = out.native.calls if getattr(out, "native", None) is not None else None
+        if out is not None:
+            out.finish()      # the last position is pushed: what follows is not starvation
         rt.__exit__(None, None, None)
         if server is not None:
             server.shutdown()
@@ -285,9 +283,9 @@ def run(args: argparse.Namespace) -> int:
                   "backend": type(out).__name__, "callback": out.callback,
                   "xruns": out.xruns, "xrun_at_s": list(out.xrun_at),
                   "active_monotonic_s": out.t_active, "block": out.blocksize,
-                  "underrun_at_s": (out.underrun_at(calls_end)
-                                    if hasattr(out, "underrun_at") else []),
-                  **live.stats(), "underruns": snd_end["underruns"]},
+                  "underrun_at_s": (out.underrun_at() if hasattr(out, "underrun_at")
+                                    else []),
+                  **live.stats()},
               "journal": ctl.journal}
     if args.journal:
         _dump(args.journal, ctl.journal)
