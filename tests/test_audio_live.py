@@ -618,3 +618,37 @@ def test_native_callback_logs_the_blocks_that_starved(jack_server):
     assert out.underrun_at() == [round((i - 1) * 256 / 48000.0, 6) for i in log]
     assert out.underrun_at(log[0]) == out.underrun_at()[:1]
 
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_silence_after_finish_is_not_counted_as_an_underrun(seed):
+    """Both sound sources (FrameRing of run --sound, LiveSound of play), driven by random
+    pushes and random blocks (a stand-in for the server's callback): the starved/missing
+    count grows only before finish(); what the callback renders after it (silence: the
+    producer is done) leaves stats() unchanged, while the raw kernel counter still grows."""
+    from hapsim.audio.live import FrameRing, LiveSound
+
+    rng = np.random.default_rng(seed)
+    ring = FrameRing(48000.0, ("a",))
+    eng = Engine(load_scene(SCENE))
+    eng.set_port_position(-0.001, at_rest=True)
+    live = LiveSound(eng)
+    for _ in range(int(rng.integers(5, 30))):
+        ring.push(np.ones((48, 1)))
+        live.push(-0.001)
+        if rng.random() < 0.5:
+            b = int(rng.integers(1, 300))
+            ring.render(b)
+            live.render(b)
+    ring.render(48 * 40)          # the producer is behind: true underruns, counted
+    live.render(48 * 40)
+    before = (ring.stats()["missing"], live.stats()["underruns"])
+    assert before[0] > 0 and before[1] > 0
+    ring.finish()
+    live.finish()
+    for _ in range(int(rng.integers(1, 10))):
+        b = int(rng.integers(1, 1024))
+        ring.render(b)
+        live.render(b)
+    assert (ring.stats()["missing"], live.stats()["underruns"]) == before
+    assert int(ring._st[1]) > before[0]          # the kernel did play silence after finish

@@ -1051,6 +1051,9 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
     finally:
+        if out is not None:
+            out.finish()                # the loop's last frames are written: the silence
+            #                             after them is the run's end, not an underrun
         if conn.warm is not None:       # the loop ended before it armed the device
             conn.warm.join()
         if osc_server is not None:
