@@ -100,6 +100,15 @@ class Recorder:
         self.client.close()
 
 
+def resting_live(max_block=8192):
+    """A LiveSound of the shipped string with the port at rest 1 mm below it."""
+    from hapsim.audio.live import LiveSound
+
+    eng = Engine(load_scene(SCENE))
+    eng.set_port_position(-0.001, at_rest=True)
+    return LiveSound(eng, max_block=max_block)
+
+
 def pluck_gesture(n=600):
     """Port positions at 1 kHz: rest 1 mm below the string, press 3 mm into it over 100 ms,
     let go at once (the string rings)."""
@@ -447,12 +456,9 @@ def test_native_callback_follows_a_server_block_size_change(jack_server):
     """The server's period changed while the native callback runs (``jack_set_buffer_size``):
     JACK's buffer-size callback updates the output's block and the live sound's lead
     (ceil(block / N)), and the callback keeps running with the new block."""
-    from hapsim.audio.live import JackOutput, LiveSound
+    from hapsim.audio.live import JackOutput
 
-    scene = load_scene(SCENE)
-    eng = Engine(scene)
-    eng.set_port_position(-0.001, at_rest=True)
-    live = LiveSound(eng)
+    live = resting_live()
     out = JackOutput(live, server=jack_server)
     try:
         assert out.native is not None
@@ -561,13 +567,10 @@ def test_native_callback_plays_silence_for_a_block_larger_than_its_buffers(jack_
     """A block larger than the buffers the callback was given (here max_block 128 against
     the server's 256): every callback writes silence, counts it (too_big), and neither the
     model nor the ring advances (positions and frames stay unread)."""
-    from hapsim.audio.live import FrameRing, JackOutput, LiveSound
+    from hapsim.audio.live import FrameRing, JackOutput
 
-    scene = load_scene(SCENE)
     if kind == "live":
-        eng = Engine(scene)
-        eng.set_port_position(-0.001, at_rest=True)
-        src = LiveSound(eng, max_block=128)
+        src = resting_live(max_block=128)
         for x in pluck_gesture(50):
             src.push(float(x))
     else:
@@ -594,12 +597,9 @@ def test_native_callback_logs_the_blocks_that_starved(jack_server):
     say when the sound starved: the log is increasing, within the calls made, its blocks
     hold all the starved frames (each but the first fully starved), and ``underrun_at``
     turns them into times at the server's block; a limit of calls drops the later ones."""
-    from hapsim.audio.live import JackOutput, LiveSound
+    from hapsim.audio.live import JackOutput
 
-    scene = load_scene(SCENE)
-    eng = Engine(scene)
-    eng.set_port_position(-0.001, at_rest=True)
-    live = LiveSound(eng)
+    live = resting_live()
     out = JackOutput(live, server=jack_server)
     try:
         time.sleep(0.05)
@@ -626,13 +626,11 @@ def test_silence_after_finish_is_not_counted_as_an_underrun(seed):
     pushes and random blocks (a stand-in for the server's callback): the starved/missing
     count grows only before finish(); what the callback renders after it (silence: the
     producer is done) leaves stats() unchanged, while the raw kernel counter still grows."""
-    from hapsim.audio.live import FrameRing, LiveSound
+    from hapsim.audio.live import FrameRing
 
     rng = np.random.default_rng(seed)
     ring = FrameRing(48000.0, ("a",))
-    eng = Engine(load_scene(SCENE))
-    eng.set_port_position(-0.001, at_rest=True)
-    live = LiveSound(eng)
+    live = resting_live()
     for _ in range(int(rng.integers(5, 30))):
         ring.push(np.ones((48, 1)))
         live.push(-0.001)
