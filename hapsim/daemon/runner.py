@@ -26,6 +26,7 @@ A pipeline of named steps, each returning a small result object (DESIGN §4-§5)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -72,12 +73,107 @@ def _warm_up(scene: Scene) -> None:
 
 @dataclass
 class RunOptions:
-    """The options of one run (the keyword arguments of :func:`run_scene`, checked).
+    """The options of one run: built once (from the command line by
+    :func:`hapsim.commands.run.run_options`, or by a program), taken by :func:`run_scene`.
 
-    Attributes are those of :func:`run_scene` (same names, units and defaults), with
-    ``transport`` resolved (``"serial"``, ``"pty"``, ``"inprocess"`` or ``"sim"``),
-    ``reconnect`` resolved to a bool and ``plan`` the parsed
-    :class:`~hapsim.daemon.faults.FaultPlan`.
+    :meth:`check` validates them and resolves ``transport`` (``"serial"``, ``"pty"``,
+    ``"inprocess"`` or ``"sim"``), ``reconnect`` (a bool) and ``plan``.
+
+    Attributes
+    ----------
+    port : str, optional
+        Serial port of a device (hardware or ``hapsim mock``); None: a mock.
+    baud : int
+        Baud rate for ``port``.
+    duration : float, optional
+        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops (the
+        identification window: excitation + 10 periods). 0: open-ended, until SIGINT /
+        SIGTERM (``handle_signals``), ``stop``, a safety stop or a device end. Telemetry
+        in memory is the identification window plus a ring of :data:`RING_SECONDS` (a run
+        that fits in both is kept whole); the rest is only in the journal.
+    rate_hz : float, optional
+        Rate override [Hz].
+    lockstep : bool
+        Lockstep mock (one period per FORCE; deterministic).
+    host_clocked : bool
+        Host's clock instead of the device's (with ``lockstep``: the host paces the
+        lockstep device in real time).
+    telemetry : str, optional
+        Per-sample telemetry file: ``.hst`` (chunked journal, appended every
+        ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
+        journal ``PATH.hst`` is written during the run, so a killed daemon leaves its rows
+        there, and removed once the export succeeded).
+    allow_unstable : bool
+        Run a loop the analysis finds unstable (safety stops end it).
+    transport : {"serial", "pty", "inprocess", "sim"}, optional
+        Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
+        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
+        ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
+        (:class:`~hapsim.daemon.transport.SimTransport`: fast, deterministic fault tests).
+    seed : int
+        Mock sensor-noise seed.
+    stop : StopFlag, optional
+        External stop flag; a new one otherwise.
+    handle_signals : bool
+        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only),
+        from before the numba warm-up and the start of the embedded mock: a signal during
+        start-up ends the run at once, before CONFIG (no FORCE but the final zero one,
+        then STOP), with exit code 0. Restored on return.
+    rt_priority : int
+        ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
+        pty or a serial port, where the OS permits it; 0 for normal scheduling. Not for a
+        lockstep embedded mock (paced by the answers, not the clock). The mock takes it
+        after its start-up, the host once its own start-up is done. Restored after the run;
+        the report's ``loop.scheduling`` says what was obtained.
+    on_start : callable, optional
+        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
+        the device has said HELLO and the numba warm-up is done, just before the device is
+        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
+    faults : str, optional
+        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
+    fault_seed : int
+        Seed of the fault generator.
+    reconnect : bool, optional
+        Recover a lost device (default: on in real time, off in lockstep).
+    lost_timeout : float, optional
+        Silence after which the device is lost [s] (default: the watchdog period, 50 ms:
+        the device zeroes its force after one watchdog period without a FORCE, and the
+        host sends zero force and STOP then; see :class:`~hapsim.daemon.loop.LoopConfig`).
+    reconnect_attempts : int
+        Most HELLO + CONFIG attempts per loss.
+    reconnect_time : float
+        Most time spent recovering one loss [s].
+    telemetry_interval : float
+        Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
+    osc : int, optional
+        Serve live changes over OSC on localhost:PORT (0: any free port, printed on
+        stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
+        ``osc``). The measured (k, b) are those of the scene at the start.
+    osc_ramp : float
+        Ramp time of every OSC change [s].
+    sound : {"auto", "jack", "sounddevice"}, optional
+        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
+        the sound server (report: ``sound`` with xruns and ring underruns).
+    jack_server : str, optional
+        JACK server name.
+    plan : FaultPlan
+        Set by :meth:`check`: the parsed ``faults``
+        (:class:`~hapsim.daemon.faults.FaultPlan`).
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run
+        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
+        closed here whatever happens. Default: started by :func:`connect`.
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
+        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
+        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+
     """
 
     port: str | None = None
@@ -902,114 +998,20 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
-def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
-              duration: float | None = None, rate_hz: float | None = None,
-              lockstep: bool = False, host_clocked: bool = False,
-              telemetry: str | None = None, allow_unstable: bool = False,
-              transport: str | None = None, seed: int = 0,
-              stop: StopFlag | None = None, handle_signals: bool = True,
-              on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
-              reconnect: bool | None = None, lost_timeout: float | None = None,
-              reconnect_attempts: int = 8, reconnect_time: float = 10.0,
-              telemetry_interval: float = 0.05, osc: int | None = None,
-              osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None,
-              driver: str | None = None, loop: str = "compiled", embedded=None) -> dict:
+def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
     ----------
     scene : Scene
         Validated scene with a port and a device.
-    port : str, optional
-        Serial port of a device (hardware or ``hapsim mock``); None: a mock.
-    baud : int
-        Baud rate for ``port``.
-    duration : float, optional
-        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops (the
-        identification window: excitation + 10 periods). 0: open-ended, until SIGINT /
-        SIGTERM (``handle_signals``), ``stop``, a safety stop or a device end. Telemetry
-        in memory is the identification window plus a ring of :data:`RING_SECONDS` (a run
-        that fits in both is kept whole); the rest is only in the journal.
-    rate_hz : float, optional
-        Rate override [Hz].
-    lockstep : bool
-        Lockstep mock (one period per FORCE; deterministic).
-    host_clocked : bool
-        Host's clock instead of the device's (with ``lockstep``: the host paces the
-        lockstep device in real time).
-    telemetry : str, optional
-        Per-sample telemetry file: ``.hst`` (chunked journal, appended every
-        ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
-        journal ``PATH.hst`` is written during the run, so a killed daemon leaves its rows
-        there, and removed once the export succeeded).
-    allow_unstable : bool
-        Run a loop the analysis finds unstable (safety stops end it).
-    transport : {"serial", "pty", "inprocess", "sim"}, optional
-        Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
-        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
-        ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
-        (:class:`~hapsim.daemon.transport.SimTransport`: fast, deterministic fault tests).
-    seed : int
-        Mock sensor-noise seed.
-    stop : StopFlag, optional
-        External stop flag; a new one otherwise.
-    handle_signals : bool
-        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only),
-        from before the numba warm-up and the start of the embedded mock: a signal during
-        start-up ends the run at once, before CONFIG (no FORCE but the final zero one,
-        then STOP), with exit code 0. Restored on return.
-    rt_priority : int
-        ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
-        pty or a serial port, where the OS permits it; 0 for normal scheduling. Not for a
-        lockstep embedded mock (paced by the answers, not the clock). The mock takes it
-        after its start-up, the host once its own start-up is done. Restored after the run;
-        the report's ``loop.scheduling`` says what was obtained.
-    on_start : callable, optional
-        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
-        the device has said HELLO and the numba warm-up is done, just before the device is
-        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
-    faults : str, optional
-        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
-    fault_seed : int
-        Seed of the fault generator.
-    reconnect : bool, optional
-        Recover a lost device (default: on in real time, off in lockstep).
-    lost_timeout : float, optional
-        Silence after which the device is lost [s] (default: the watchdog period, 50 ms:
-        the device zeroes its force after one watchdog period without a FORCE, and the
-        host sends zero force and STOP then; see :class:`~hapsim.daemon.loop.LoopConfig`).
-    reconnect_attempts : int
-        Most HELLO + CONFIG attempts per loss.
-    reconnect_time : float
-        Most time spent recovering one loss [s].
-    telemetry_interval : float
-        Time between two telemetry chunks [s].
-    driver : str, optional
-        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
-        the loop is then host-clocked through a
-        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
-        driver's mock (paced by the host) without a port.
-    osc : int, optional
-        Serve live changes over OSC on localhost:PORT (0: any free port, printed on
-        stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
-        ``osc``). The measured (k, b) are those of the scene at the start.
-    osc_ramp : float
-        Ramp time of every OSC change [s].
-    sound : {"auto", "jack", "sounddevice"}, optional
-        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
-        the sound server (report: ``sound`` with xruns and ring underruns).
-    jack_server : str, optional
-        JACK server name.
-    embedded : EmbeddedMock, optional
-        The embedded mock already started for this run
-        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
-        closed here whatever happens. Default: started by :func:`connect`.
-    loop : {"compiled", "python"}
-        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
-        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
-        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
-        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+    options : RunOptions, optional
+        The run's options (:class:`RunOptions`: the port, duration, rate, transport,
+        telemetry, faults, sound...); default ``RunOptions()``. Not modified: the run
+        checks a copy.
+    **changes
+        Options changed from ``options`` (the fields of :class:`RunOptions`), e.g.
+        ``run_scene(scene, transport="inprocess", lockstep=True)``.
 
     Returns
     -------
@@ -1036,16 +1038,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         The device speaks another protocol version or has another number of axes than 1
         (with ``report`` as for DeviceError when the loop had started).
     """
-    opts = RunOptions(port=port, baud=baud, duration=duration, rate_hz=rate_hz,
-                      lockstep=lockstep, host_clocked=host_clocked, telemetry=telemetry,
-                      allow_unstable=allow_unstable, transport=transport, seed=seed, stop=stop,
-                      handle_signals=handle_signals, on_start=on_start,
-                      rt_priority=rt_priority, faults=faults, fault_seed=fault_seed,
-                      reconnect=reconnect, lost_timeout=lost_timeout,
-                      reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
-                      telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop, embedded=embedded)
+    opts = dataclasses.replace(options if options is not None else RunOptions(), **changes)
+    embedded = opts.embedded
     try:
         opts.check()
         if embedded is not None and (opts.transport != "pty"
