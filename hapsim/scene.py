@@ -23,8 +23,8 @@ for each key) is written from it by ``python -m hapsim.scene_doc``. A small scen
     device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10}
     excitation: {x0: 0.005}       # the hand starts 5 mm into the wall [m]
 
-Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
-the positions of the first and second mass named in ``between``,
+Link law (docs/design.md, 'The scheme'; Faust ``mi.lib`` ``spring``/``collision``): with
+``x1``, ``x2`` the positions of the first and second mass named in ``between``,
 ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` is applied as ``-F`` on the first
 mass and ``+F`` on the second. A contact acts only while ``x2 - x1 < threshold``, with its
 spring measured from the threshold, ``F = K (x1 - x2 + threshold) + B (...) / T``, so the
@@ -121,7 +121,8 @@ class Link:
     calibrated : bool
         True when (K, B) were written by calibration (:meth:`Scene.with_link`): the
         damping may then be negative, because the device's real friction b0 can exceed
-        the damping to be felt (DESIGN §4). A scene file cannot set it.
+        the damping to be felt (docs/design.md, 'The forward map'). A scene file cannot set
+        it.
     """
 
     name: str
@@ -891,7 +892,8 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
             _check_key(_key("links[].stiffness"), lk.stiffness, "links", i, "stiffness")
         if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
             # A calibrated B may be negative: the device's real friction b0 can exceed the
-            # felt damping (DESIGN §4); a scene file or a hand-built link may not.
+            # felt damping (docs/design.md, 'The forward map'); a scene file or a hand-built
+            # link may not.
             if lk.calibrated:
                 _number(lk.damping, "links", i, "damping")
             else:

@@ -1,7 +1,7 @@
 """The sampled THS loop: real mass + friction, hold, delay, virtual spring/damper.
 
-Real side ``m x'' + b0 x' = f`` (DESIGN.md Sec. 4). The pulse transfer from force samples to
-position samples is ``G(z) = N(z) / D(z)``; the virtual element is
+Real side ``m x'' + b0 x' = f`` (docs/design.md, 'The characteristic equation'). The pulse
+transfer from force samples to position samples is ``G(z) = N(z) / D(z)``; the virtual element is
 ``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1]) / T``; the closed loop is
 
     z^(d+1) D(z) + N(z) (K z + (B/T)(z - 1)) = 0,  i.e.  P K + Q B + R = 0,
