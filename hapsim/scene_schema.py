@@ -19,9 +19,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from hapsim.errors import ConfigError
+
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
            "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS",
-           "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
+           "check_product"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
@@ -55,6 +58,34 @@ MASS_RANGE = (1e-12, 1e12)
 #: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
 #: characteristic coefficients would span more than the double range can resolve.
 MAX_PRODUCT = 1e6
+
+
+def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
+    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
+
+    Parameters
+    ----------
+    value : float
+        Physical value, e.g. ``K`` [N/m].
+    scale : float
+        Its factor to the dimensionless product, e.g. ``T^2 / m``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit of ``value``.
+    what : str
+        The product's formula, e.g. ``"K T^2/m"``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
+    """
+    if abs(value) * scale > MAX_PRODUCT:
+        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
+                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
+                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
+
 
 #: What a listening point hears (``audio.listen[i].quantity``; first is the default).
 LISTEN_QUANTITIES = ("velocity", "position", "force")

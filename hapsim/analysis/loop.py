@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, MAX_PRODUCT, RATE_RANGE
+from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, MAX_PRODUCT, RATE_RANGE, check_product
 
 __all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
            "MASS_RANGE", "MAX_PRODUCT", "check_range", "check_product", "plant", "characteristic", "closed_loop_poles",
@@ -68,33 +68,6 @@ def check_range(value: float, lo: float, hi: float, key: str, unit: str) -> None
     """
     if not lo <= value <= hi:
         raise ConfigError(f"must be between {lo:g} and {hi:g} {unit}, got {value:g}", key=key)
-
-
-def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
-    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
-
-    Parameters
-    ----------
-    value : float
-        Physical value, e.g. ``K`` [N/m].
-    scale : float
-        Its factor to the dimensionless product, e.g. ``T^2 / m``.
-    key : str
-        Option or scene key named in the message.
-    unit : str
-        Unit of ``value``.
-    what : str
-        The product's formula, e.g. ``"K T^2/m"``.
-
-    Raises
-    ------
-    ConfigError
-        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
-    """
-    if abs(value) * scale > MAX_PRODUCT:
-        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
-                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
-                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
 
 
 def check_delay(delay, key: str = "delay") -> None:
