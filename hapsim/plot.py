@@ -14,7 +14,19 @@ from hapsim.errors import ConfigError
 __all__ = ["plot_grid", "save_figure", "figure_formats", "check_figure_path", "check_output_path"]
 
 
-def _mpl():
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend, imported here only (lazily).
+
+    Returns
+    -------
+    module
+        ``matplotlib.pyplot``.
+
+    Raises
+    ------
+    ConfigError
+        matplotlib is not installed (names the extra to install).
+    """
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -52,7 +64,7 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
-    plt = _mpl()
+    plt = pyplot()
     if ax is None:
         fig, ax = plt.subplots(figsize=(7.5, 6.0), dpi=110)
     else:
@@ -173,7 +185,7 @@ def figure_formats() -> tuple:
     ConfigError
         If matplotlib is missing.
     """
-    plt = _mpl()
+    plt = pyplot()
     fig = plt.figure()
     try:
         return tuple(sorted(fig.canvas.get_supported_filetypes()))
@@ -241,7 +253,7 @@ def save_figure(fig, path: str) -> None:
         If matplotlib is missing, or the file cannot be written (format or OS error; key
         ``path``).
     """
-    plt = _mpl()
+    plt = pyplot()
     try:
         fig.savefig(path)
     except (OSError, ValueError) as exc:

@@ -147,8 +147,8 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
 def _plot(fit, rec, path: str) -> None:
     import numpy as np
 
-    from hapsim.plot import _mpl, save_figure
-    plt = _mpl()
+    from hapsim.plot import pyplot, save_figure
+    plt = pyplot()
     t = np.arange(fit.n_samples) * fit.period
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
     a1.plot(t, rec["position"] * 1e3, lw=0.8, label="measured")
@@ -221,8 +221,8 @@ def run(args) -> int:
                "out": args.out, "plot": args.plot}
         if args.hand:
             out["note"] = ("mass and friction are the THS's: hand + handle, for this grip")
-        from hapsim.commands.run import _clean
-        print(json.dumps(_clean(out)))
+        from hapsim.outputs import json_safe
+        print(json.dumps(json_safe(out)))
     else:
         if args.hand:
             print("# with the hand on the handle: the mass and damping below are the THS's "

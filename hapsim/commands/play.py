@@ -8,11 +8,11 @@ import math
 import os
 import sys
 import time
-from collections import deque
 
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Play a scene live, as an instrument: the embedded mock device (the scene's device section)
@@ -120,10 +120,9 @@ def run(args: argparse.Namespace) -> int:
         2 on bad input (raised as ConfigError).
     """
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
-    from hapsim.device_model import MockPhysics, hand_force_samples
+    from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
-    from hapsim.daemon.runner import _warm_up
-    from hapsim.engine import Engine
+    from hapsim.engine import Engine, warm_up
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
 
@@ -155,12 +154,10 @@ def run(args: argparse.Namespace) -> int:
     phys = MockPhysics(dev, scene.rate_hz, scene.excitation, hand=hand, base_dir=base)
     xs = np.zeros(steps)
     fs = np.zeros(steps)
-    line = deque([0.0] * int(dev.delay))
-    lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
     from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
-    _warm_up(scene)                                   # kernels loaded before the clock starts
+    warm_up(scene)                                    # kernels loaded before the clock starts
     if live is not None:    # the sound starts after the warm-up (silence until the loop does)
         try:
             out = open_output(live, args.sound, server=args.jack_server)
@@ -192,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
         server, tel = serve_osc(ctl, args.osc, status=status)
         host, port = server.server_address[:2]
         print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
-    step = live.port_step if live is not None else engine.port_step
+    loop = InProcessLoop(phys, live.port_step if live is not None else engine.port_step,
+                         dev.delay, dev.force_limit)
     clocked = live is None and not args.lockstep     # live sound: the sound card's clock
     late = 0
     quiet_from = 0            # first sample after the last change's ramp ended
@@ -227,12 +225,8 @@ def run(args: argparse.Namespace) -> int:
             ctl.poll()
             if ctl.ramping:
                 quiet_from = max(quiet_from, n + 1)
-            x = phys.sample()
-            f = step(x) * ctl.force_scale
+            x, f = loop.step(ctl.force_scale)
             xs[n], fs[n] = x, f
-            line.append(f)
-            u = line.popleft()
-            phys.advance(min(lim, max(-lim, u)))
             if tel is not None and n % tel["every"] == 0:
                 send_telemetry(tel, n * T, x, f, ctl)
             if P <= steps and (n + 1) % P == 0 and h.size:
@@ -296,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
             np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
         os.replace(tmp, args.telemetry)
     if args.json:
-        print(json.dumps(_finite(report)))
+        print(json.dumps(json_safe(report)))
     else:
         felt = ctl.felt
         print(f"played {args.scene} for {steps * T:g} s ({steps} samples, {late} late); "
@@ -311,19 +305,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _finite(v):
-    """JSON-safe copy: non-finite floats become None."""
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite(x) for x in v]
-    return v
-
-
 def _dump(path: str, journal: list) -> None:
     tmp = path + ".partial"
     with open(tmp, "w") as fh:
-        json.dump(_finite(journal), fh, indent=1)
+        json.dump(json_safe(journal), fh, indent=1)
     os.replace(tmp, path)

@@ -8,6 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Run a scene in real time against a force-feedback device and measure what the hand feels.
@@ -173,16 +174,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
-
-
 def _announce(port, n_samples) -> None:
     """Tell the user on stderr that the loop starts and that Ctrl-C stops it cleanly.
 
@@ -290,7 +281,7 @@ def run(args) -> int:
     if advice is not None:
         rep["advice"] = advice.to_dict()
     if args.json:
-        print(json.dumps(_clean(rep)))
+        print(json.dumps(json_safe(rep)))
     else:
         print(format_report(rep))
     sys.stdout.flush()
@@ -315,7 +306,7 @@ def run_options(args, embedded=None):
     RunOptions
         Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
     """
-    from hapsim.daemon.runner import RunOptions
+    from hapsim.daemon.options import RunOptions
     return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
                       rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
                       telemetry=args.telemetry, allow_unstable=args.allow_unstable,

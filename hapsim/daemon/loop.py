@@ -101,12 +101,24 @@ LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLI
                             fp.FAULT_NON_FINITE_FORCE, fp.FAULT_VERSION_MISMATCH))
 
 
-class _Lost(Exception):
-    """Internal: the device is lost (silence, port error, reset); carries the reason."""
+class LostDevice(Exception):
+    """The device is lost (silence, port error, reset): raised inside the host loop (and
+    the compiled one) and handled by its recovery; never leaves :meth:`HostLoop.run`.
+
+    Parameters
+    ----------
+    reason : str
+        What was seen, for the report's events.
+    port_error : bool
+        True when the port itself failed (reopened on recovery).
+    """
 
     def __init__(self, reason: str, port_error: bool = False) -> None:
         super().__init__(reason)
         self.port_error = port_error
+
+
+_Lost = LostDevice          # the name this module's loop code uses
 
 
 class MeasuredVelocity:
@@ -1219,7 +1231,7 @@ class HostLoop:
                     f_max = af
                 if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
                         or excess > elim):
-                    res.stop_reason = _safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
+                    res.stop_reason = safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
                                                      v, vlim, excess, elim, e0)
                     res.safety_stop = True
                     stop.set = True
@@ -1562,7 +1574,7 @@ def _signame(signum: int) -> str:
         return str(signum)
 
 
-def _safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
+def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
                    position_bound: float, v: float, velocity_limit: float, excess: float,
                    energy_limit: float, stored: float = 0.0) -> str:
     """Why a safety stop is due (called only once a bound is breached, off the fast path).
