@@ -109,6 +109,9 @@ class Driver:
     #: Records to let pass after arming, at zero force, before the first sample: a
     #: firmware whose force comes up slowly (the FireFader's enable ramp) is full by then.
     arming_records = 0
+    #: The device's parser has no framing: answers that stop while commands go out mean
+    #: it may be inside a garbage command (the transport re-synchronises it).
+    unframed = False
     answering_firmware = "answers each command"
     streaming_firmware = "streams records unprompted"
 

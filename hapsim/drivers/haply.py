@@ -112,7 +112,8 @@ class ReplyDecoder(AlignedDecoder):
     """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream.
 
     A reply is taken where the id matches and the angle is finite, within
-    ``max_angle_deg`` and a whole number of encoder counts (the firmware sends
+    ``max_angle_deg``, within ``max_step_deg`` of the last reply and a whole number of
+    encoder counts (the firmware sends
     ``360 * count / resolution``: the window ``01 01 01 3f c5``, -3056.06 deg, is 41426.4
     counts at 4880 per revolution, no reply); otherwise one byte is dropped and the next
     position tried. :data:`DESYNC_BYTES` or more bytes dropped since the last reply mean the
@@ -126,6 +127,9 @@ class ReplyDecoder(AlignedDecoder):
         Largest plausible angle [deg].
     resolution : float or None
         Encoder counts per revolution (None: the whole-count check is off).
+    max_step_deg : float
+        Largest change between two replies taken [deg] (20 deg: 20000 deg/s at 1 kHz);
+        a reply farther from the last one is misaligned or corrupted.
 
     Attributes
     ----------
@@ -136,8 +140,10 @@ class ReplyDecoder(AlignedDecoder):
     length = 5
 
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
-                 resolution: float | None = None) -> None:
+                 resolution: float | None = None, max_step_deg: float = 20.0) -> None:
         super().__init__()
+        self.max_step = float(max_step_deg)
+        self._prev = None
         self.id = device_id & 0xFF
         self.max = float(max_angle_deg)
         self.res = None if resolution is None else float(resolution)
@@ -158,6 +164,11 @@ class ReplyDecoder(AlignedDecoder):
             want = 360.0 * n / self.res
             if abs(a - want) > 1e-6 * abs(want):
                 return None
+        if self._prev is not None and abs(a - self._prev) > self.max_step:
+            # a flipped exponent bit is still a whole count (x 2^k): no joint turns that
+            # far between two replies
+            return None
+        self._prev = a
         return a
 
     def feed(self, data: bytes) -> list:
@@ -180,6 +191,7 @@ class ReplyDecoder(AlignedDecoder):
             self._bad += 1
             if self._bad % 100 == DESYNC_BYTES:      # once, then again if it lasts
                 st["desync"] += 1
+                self._prev = None                   # the re-synchronised board's angles
         return out
 
 
@@ -194,7 +206,10 @@ class CommandDecoder:
     analog and PWM pin and 8 bytes (offset [deg], counts per revolution) per encoder;
     write ``[2][addr]`` reads one byte per PWM pin of ``addr`` and a float32 torque per
     motor of ``addr``; any other byte is no command. A command is taken once all its bytes
-    are there (the firmware's ``readBytes`` waits for them).
+    are there: the firmware's ``readBytes`` (torques, encoder parameters) waits for them,
+    but its single ``read()`` calls (address, masks, directions, pin lists) give 255 for a
+    byte not yet there, which the mock does not model (over USB a command's bytes come
+    together).
 
     Attributes
     ----------
@@ -365,6 +380,7 @@ class HaplyM3(Driver):
     force_limit = MAX_TORQUE
     force_scale = 0.0
     limits = LIMITS
+    unframed = True
 
     def __init__(self, device_id: int = 1, resolution: float = 4880.0,
                  direction: int = 0, offset_deg: float = 0.0) -> None:

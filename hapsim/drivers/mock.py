@@ -269,7 +269,9 @@ class HaplyDevice(_Actuated):
         c = self._counts() - self._base
         if dec.direction[0]:
             c = -c
-        return 360.0 * c / res if res else math.copysign(math.inf, c) if c else math.nan
+        if not (math.isfinite(res) and res):       # a garbage set-up's resolution
+            return math.copysign(math.inf, c) if c else math.nan
+        return 360.0 * c / res
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Bytes from the host in, the replies out (one per write)."""
@@ -298,7 +300,10 @@ class HaplyDevice(_Actuated):
             na, encs = dec.reply_layout(addr)
             out += bytes([addr]) + struct.pack("<f", 0.0) * na
             for p in encs:
-                out += struct.pack("<f", self.angle_deg(p))
+                a = self.angle_deg(p)
+                if abs(a) > 3.4028234663852886e38:    # binary32 overflows to inf
+                    a = math.copysign(math.inf, a)
+                out += struct.pack("<f", a)
         return out
 
 

@@ -54,6 +54,8 @@ __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
+#: Commands in a row without an answer after which the device is re-synchronised.
+SILENT_COMMANDS = 4
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
 _RING = 64
 
@@ -211,7 +213,12 @@ class DriverTransport:
         zero force. Called by the host loop on each missed tick."""
         if self._armed and (self._answered == self._cmd or self._now_us()
                             - self._sent_us[self._cmd % _RING] >= self._deadline_us):
-            self._command(self.driver.encode_force(self._force))
+            if self.driver.unframed and self._cmd - self._answered > SILENT_COMMANDS:
+                # answers stopped although bytes go out: the device may be inside a
+                # command that swallows them (a garbage set-up); put it back in step
+                self._resync()
+            else:
+                self._command(self.driver.encode_force(self._force))
 
     def _resync(self) -> None:
         """The device lost its place in the byte stream: the driver's re-synchronisation
@@ -219,6 +226,9 @@ class DriverTransport:
         self.stats["resyncs"] += 1
         self._force = 0.0
         self._command(self.driver.resync(self._x_last))
+        if self._answered < self._cmd - 1:      # the commands before it: missing samples
+            self.stats["missing"] += self._cmd - 1 - self._answered
+            self._answered = self._cmd - 1
 
     def _take(self, xs: list, out: list) -> None:
         """Records decoded in one read -> STATEs: the last answers the newest command sent,
@@ -231,6 +241,7 @@ class DriverTransport:
             # zero force while the device's own force comes up (Driver.arming_records)
             self._settle -= len(xs)
             self._answered = self._cmd
+            self._arm_ns = time.monotonic_ns()
             self._command(self.driver.encode_force(0.0))
             return
         n = len(xs)
@@ -284,13 +295,15 @@ class DriverTransport:
                         self._desyncs = d
                         if self._armed:
                             self._resync()
-                if (self._armed and self._answered < 0 and not out
+                if (self._armed and (self._answered < 0 or self._settle > 0) and not out
                         and time.monotonic_ns() - self._arm_ns > REARM_INTERVAL * 1e9):
                     # no first record yet: a board still in its bootloader dropped the
-                    # arming command; ask again
+                    # arming command, or a record was lost while the force comes up (no
+                    # host tick asks again then); ask again
                     self._arm_ns = time.monotonic_ns()
                     self.stats["rearms"] += 1
-                    self._command(self.driver.arm())
+                    self._command(self.driver.arm() if self._answered < 0
+                                  else self.driver.encode_force(0.0))
                 if out or timeout <= 0 or time.monotonic() >= end:
                     return out
         except Exception as exc:  # serial.SerialException, OSError
