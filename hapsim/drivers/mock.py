@@ -455,9 +455,11 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
     n = dev.commands()
     extra = {}
-    for k in ("enable", "merged", "passes", "firmware", "torque"):
+    for k in ("merged", "passes", "firmware"):
         if hasattr(dev, k):
             extra[k] = getattr(dev, k)
+    if getattr(dev, "enables", None):
+        extra["enable"] = dev.enables[-1]       # at the last pass (not after the host left)
     return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
             "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.held,
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
