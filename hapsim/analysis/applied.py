@@ -63,7 +63,8 @@ class AppliedAccount:
         The device's delay d [samples]: the smallest ``tick_delay`` of a row that applied
         a FORCE (-1 when the record shows none).
     late : ndarray of bool, shape (n,)
-        Rows whose held force is not the one answering the STATE ``d`` ticks before.
+        Rows whose held force is not the one answering the STATE ``d`` ticks before (an
+        older one, or zero from the device's watchdog).
     half_width : ndarray, shape (n,)
         Bound on ``|applied_true - applied|`` [N] (0 throughout from ``force_seq``).
     known : ndarray of bool, shape (n,)
@@ -222,7 +223,7 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
     late = np.zeros(n, bool)
     if d >= 0:
         due = idx >= first
-        late = due & ((tick != d) | ~named | ((st & STATUS_OVERRUN) != 0))
+        late = due & ((tick != d) | ~named | wd | ((st & STATUS_OVERRUN) != 0))
     src = np.where(wd, -1, src)
     return AppliedAccount(applied, src, tick, d, late, np.zeros(n), known, "force_seq")
 
