@@ -48,7 +48,8 @@ from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
             "run", "mock", "bench", "advise",
-            "play", "telemetry", "identify", "family", "compare_corrections")
+            "play", "telemetry", "identify", "family", "compare_corrections",
+            "kinematics")
 
 
 #: Options people confuse: felt (k, b) of ``calibrate`` against virtual (K, B) of ``render``.

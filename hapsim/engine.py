@@ -41,7 +41,7 @@ class Engine:
 
     Notes
     -----
-    Scheme (DESIGN §3, Florens-Voda-Urma Fig. 5): masses
+    Scheme (docs/design.md, 'The scheme'; Florens-Voda-Urma Fig. 5): masses
     ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``; links
     ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` applied ``-F`` on the first mass and
     ``+F`` on the second; contacts only while ``x2 - x1 < threshold``, with the spring term

@@ -18,6 +18,7 @@ __all__ = [
     "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
+    "KinematicsError",
     "show",
     "fixed",
     "plural",
@@ -141,6 +142,32 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
         ConfigError.__init__(self, message, file=file, line=line, key=key)
         self.spectral_radius = spectral_radius
         self.stiffness_limit = None
+
+
+class KinematicsError(ConfigError):
+    """A device configuration the kinematics refuses: outside the workspace or singular.
+
+    Bad input (a ``ConfigError``, exit code 2): the joint angles given are not a
+    configuration at which the device renders a force (:mod:`hapsim.kinematics`).
+
+    Parameters
+    ----------
+    message : str
+        Where (the joints in degrees) and why (no assembly, which singularity).
+    joints : array_like, optional
+        The refused joint angles [rad].
+    kind : {"workspace", "serial", "parallel"}, optional
+        No assembly; a serial singularity (an arm stretched or folded: the Jacobian loses
+        rank); a parallel one (the handle gains a freedom: the Jacobian is unbounded).
+    key : str, optional
+        Option or scene key, default ``joints``.
+    """
+
+    def __init__(self, message: str, *, joints=None, kind: str | None = None,
+                 key: str | None = "joints") -> None:
+        super().__init__(message, key=key)
+        self.joints = None if joints is None else [float(v) for v in joints]
+        self.kind = kind
 
 
 def show(value: object, limit: int = 60) -> str:

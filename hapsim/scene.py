@@ -23,8 +23,8 @@ for each key) is written from it by ``python -m hapsim.scene_doc``. A small scen
     device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10}
     excitation: {x0: 0.005}       # the hand starts 5 mm into the wall [m]
 
-Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
-the positions of the first and second mass named in ``between``,
+Link law (docs/design.md, 'The scheme'; Faust ``mi.lib`` ``spring``/``collision``): with
+``x1``, ``x2`` the positions of the first and second mass named in ``between``,
 ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` is applied as ``-F`` on the first
 mass and ``+F`` on the second. A contact acts only while ``x2 - x1 < threshold``, with its
 spring measured from the threshold, ``F = K (x1 - x2 + threshold) + B (...) / T``, so the
@@ -121,7 +121,8 @@ class Link:
     calibrated : bool
         True when (K, B) were written by calibration (:meth:`Scene.with_link`): the
         damping may then be negative, because the device's real friction b0 can exceed
-        the damping to be felt (DESIGN §4). A scene file cannot set it.
+        the damping to be felt (docs/design.md, 'The forward map'). A scene file cannot set
+        it.
     """
 
     name: str
@@ -394,7 +395,10 @@ class Scene:
         while a ``target`` awaits calibration; negative damping only when ``calibrated``);
         a finite threshold on a contact, 0 on a spring_damper; a ``target`` only on a
         spring_damper between the port and a ground, with k > 0, b >= 0; no contact
-        with ``integrator: exact``; and the ranges given in :class:`Device`,
+        with ``integrator: exact``; the loop's dimensionless products (``b0 T/m``,
+        ``|K| T^2/m``, ``|B| T/m`` at a link's lightest moving end, a target's ``k T^2/m``
+        and ``b T/m``, the hand's ``kh T^2/mh``) at most
+        ``hapsim.analysis.loop.MAX_PRODUCT``; and the ranges given in :class:`Device`,
         :class:`Excitation` (the ``profile`` file must exist) and :class:`Safety`.
     """
 
@@ -729,10 +733,58 @@ def _check_scene(s: Scene) -> None:
     elif ports:
         raise _Invalid("a scene with a port needs a device section "
                        "(mass, friction, delay, hold, ...)", ("device",))
+    _check_products(s)
     _check_excitation(s.excitation)
     _check_safety(s.safety)
     if s.audio is not None:
         _check_audio(s, names)
+
+
+def _check_products(s: Scene) -> None:
+    """The loop's dimensionless products, for every command alike (``check`` and
+    ``simulate`` once disagreed): ``b0 T/m`` of the device, ``kh T^2/mh`` of the hand's
+    spring, ``|K| T^2/m`` and ``|B| T/m`` of every link (``m`` its lightest moving end: a
+    virtual mass, or the device mass at the port) and, for a felt target, ``k T^2/m`` and
+    ``b T/m`` at the port: at most :data:`hapsim.analysis.loop.MAX_PRODUCT` (the reason is
+    there: the characteristic's coefficients would span more than a double resolves, and
+    the engine's update diverges within a row)."""
+    from hapsim.analysis.loop import check_product   # at check time: no import cycle
+
+    T = 1.0 / float(s.rate_hz)
+
+    def refuse(value, scale, unit, what, where):
+        try:
+            check_product(float(value), scale, _key_of(where), unit, what)
+        except ConfigError as exc:
+            raise _Invalid(exc.reason, where) from None
+
+    inertia = {m.name: float(m.mass) for m in s.masses if m.kind == "mass"}
+    d = s.device
+    port = next((m.name for m in s.masses if m.kind == "port"), None)
+    if d is not None and port is not None:
+        m_dev = float(d.mass)
+        inertia[port] = m_dev
+        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", ("device", "friction"))
+        h = d.hand
+        if h is not None:
+            hi = lambda v: float(v[1]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            lo = lambda v: float(v[0]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            if hi(h.stiffness) > 0:
+                refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
+                       ("device", "hand", "stiffness"))
+    for i, lk in enumerate(s.links):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for value, scale, unit, what, where in (
+                (lk.stiffness, T * T / m, "N/m", "K T^2/m", ("links", i, "stiffness")),
+                (lk.damping, T / m, "N s/m", "B T/m", ("links", i, "damping"))):
+            if not math.isnan(float(value)):          # NaN: a target awaiting calibration
+                refuse(value, scale, unit, what, where)
+        if lk.target is not None and not lk.calibrated:
+            refuse(lk.target[0], T * T / m, "N/m", "k T^2/m", ("links", i, "target", "k"))
+            refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
 
 
 def audio_substeps(audio_rate: float, rate_hz: float) -> int:
@@ -840,7 +892,8 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
             _check_key(_key("links[].stiffness"), lk.stiffness, "links", i, "stiffness")
         if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
             # A calibrated B may be negative: the device's real friction b0 can exceed the
-            # felt damping (DESIGN §4); a scene file or a hand-built link may not.
+            # felt damping (docs/design.md, 'The forward map'); a scene file or a hand-built
+            # link may not.
             if lk.calibrated:
                 _number(lk.damping, "links", i, "damping")
             else:

@@ -27,7 +27,7 @@ __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key
 MASS_KINDS = ("mass", "ground", "port")
 #: Link kinds a scene may use.
 LINK_KINDS = ("spring_damper", "contact")
-#: Output holds a device may use (DESIGN §4).
+#: Output holds a device may use (docs/design.md, 'The timing convention').
 HOLDS = ("zoh", "ideal")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
@@ -486,7 +486,8 @@ links:
 device: {mass: 0.1, friction: 0.5}
 """),
     Section("links[]", "links[]: the interactions",
-            "Each entry of `links` is a mapping. Link law (DESIGN §3, Faust `mi.lib`): with "
+            "Each entry of `links` is a mapping. Link law (docs/design.md, 'The scheme'; "
+            "Faust `mi.lib`): with "
             "x1, x2 the positions of the first and second mass of `between`, "
             "F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T acts as -F on the first and "
             "+F on the second.", """\

@@ -1,8 +1,9 @@
 """Identify a 1-DoF device from a recorded force / position stream (``hapsim identify``).
 
-Model (DESIGN.md Sec. 4-5): ``m x'' + b0 x' = u(t) - fc sign(x')`` with the commanded force
-``u`` applied ``d`` whole samples after the position it answers and held over the period
-(zero-order hold) -- or the paper's idealised sampled image (Florens, Voda & Urma eq. (4));
+Model (docs/design.md, 'The THS'): ``m x'' + b0 x' = u(t) - fc sign(x')`` with the
+commanded force ``u`` applied ``d`` whole samples after the position it answers and held
+over the period (zero-order hold) -- or the paper's idealised sampled image (Florens, Voda &
+Urma eq. (4));
 the encoder rounds to a quantum ``q`` after Gaussian noise of standard deviation ``sigma``.
 
 Method

@@ -10,7 +10,8 @@ For every member the closed-loop state matrix of the whole scene
 (:func:`hapsim.analysis.network.closed_loop`) differs only in its plant rows, so the
 family is one stack of matrices and one batched ``numpy.linalg.eigvals`` call. The felt
 pair is the least damped complex pair, ``k = m |s|^2``, ``b = -2 m Re s`` with ``m`` the
-member's total moving mass (handle + hand), ``s = ln(z)/T`` (DESIGN.md Sec. 4).
+member's total moving mass (handle + hand), ``s = ln(z)/T`` (docs/design.md,
+'The inverse map').
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Identification of the modes of a sampled free response (matrix pencil).
 
-This is the measuring half of the closed-THS check (DESIGN.md Sec. 5): the mock device
-(or a real one) records the position samples ``y[n]`` of the free closed loop; the poles
+This is the measuring half of the closed-THS check (docs/design.md, 'Identification'): the
+mock device (or a real one) records the position samples ``y[n]`` of the free closed loop; the poles
 of the loop are identified from ``y`` alone and converted to modes (``s = ln(z)/T``,
 ``k = m |s|^2``, ``b = -2 m Re(s)``) to be compared with the prediction of
 :func:`hapsim.analysis.loop.render`.
@@ -164,7 +164,7 @@ def fit_modes(y, period: float, order: int, mass: float, *, offset: bool = False
         Model order: number of non-zero poles excited in ``y`` (a pair counts 2).
     mass : float > 0
         Real mass ``m`` [kg] used to express each pole as ``k = m |s|^2`` [N/m] and
-        ``b = -2 m Re(s)`` [N s/m] (DESIGN.md Sec. 4).
+        ``b = -2 m Re(s)`` [N s/m] (docs/design.md, 'The inverse map').
     offset : bool, default False
         The signal has a constant offset: difference it first (exact, module docstring).
     pencil : int, optional
@@ -415,7 +415,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     period : float > 0
         Sample period T [s].
     mass : float > 0
-        Real mass m [kg] (``k = m |s|^2``, ``b = -2 m Re s``, DESIGN.md Sec. 4).
+        Real mass m [kg] (``k = m |s|^2``, ``b = -2 m Re s``, docs/design.md,
+        'The inverse map').
     predicted : array_like of complex, shape (M,)
         Predicted non-zero closed-loop poles seen at the port (conjugates included).
     felt : complex
@@ -446,7 +447,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         at the window start), ``cycles`` (oscillation cycles above the floor). Or
         ``error`` (str) when the record cannot support a measurement: the oscillation
         below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
-        that level.
+        that level, or the record is constant (``at_rest`` True: the loop never moved).
 
     Raises
     ------
@@ -460,6 +461,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     floor = sensor_sd(quantum, noise)
     order = int(order if order is not None else predicted.size)
     amp0 = float(np.max(np.abs(y - (np.median(y[-max(y.size // 10, 1):]) if offset else 0.0))))
+    if y.size and np.all(np.isfinite(y)) and amp0 == 0.0:
+        # a loop at rest (no excitation, or x0 = 0 on the rest position): a valid record
+        # with nothing in it to identify (and log(0) below)
+        return {"error": "the record is constant: the loop never moved (a scene at rest; "
+                         "give it an excitation: x0, v0, impulse or profile)",
+                "at_rest": True, "amplitude": 0.0}
     if floor == 0.0:
         md = None
         try:
@@ -543,9 +550,10 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
 
 
 def _kb_gradients(spec, fi, i, *, mass, period):
-    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma`` (DESIGN.md Sec. 4;
-    ``sigma = a / T``, ``omega = w / T``) over the nonlinear parameters of ``spec``; the
-    pair ``spec[fi]`` has its ``(a, w)`` at index ``i``."""
+    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma``
+    (docs/design.md, 'The inverse map'; ``sigma = a / T``, ``omega = w / T``) over the
+    nonlinear parameters of ``spec``; the pair ``spec[fi]`` has its ``(a, w)`` at index
+    ``i``."""
     n = sum(2 if s[0] == "pair" else 1 for s in spec)
     sig, om = spec[fi][1] / period, spec[fi][2] / period
     g_k, g_b = np.zeros(n), np.zeros(n)

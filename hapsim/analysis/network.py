@@ -1,6 +1,6 @@
 """The closed-loop state matrix of a scene coupled to its device, for every integrator.
 
-This is the one place that assembles it (DESIGN.md Sec. 4, last bullet): the whole sampled
+This is the one place that assembles it (docs/design.md, 'A whole scene'): the whole sampled
 THS (device plant, force delay line, every virtual mass integrated by the scene's
 ``integrator``, linearised links) is one linear recursion ``s[n+1] = A s[n]``; its
 eigenvalues are the closed-loop poles of the scene as the hand feels it.

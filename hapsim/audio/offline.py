@@ -76,7 +76,7 @@ def closed_loop_pluck(engine: Engine, steps: int, progress=None, seed: int = 0):
     (:class:`hapsim.daemon.mock.MockPhysics`: exact ZOH plant, quantisation, noise); every
     device sample the engine takes the device position, runs its N audio sub-steps and
     returns the port force, which the device applies ``d`` samples later, clamped to
-    ``force_limit`` (DESIGN §4-5: the THS the analysis models).
+    ``force_limit`` (the THS the analysis models, docs/design.md, 'The THS').
 
     Parameters
     ----------

@@ -23,7 +23,8 @@ Modules
 :mod:`hapsim.daemon.runner`
     ``run_scene``: calibrate, check, close the THS, identify, report.
 
-Timing convention (DESIGN §4): STATE ``n`` carries ``x(nT)``; the FORCE answering it
-(``seq = n``) is computed from ``x[n]`` and ``x[n-1]`` and applied by the device over
-``[(n+d)T, (n+d+1)T)`` with a zero-order hold; ``d = 0`` (apply at once) exists in lockstep only.
+Timing convention (docs/design.md, 'The timing convention'): STATE ``n`` carries
+``x(nT)``; the FORCE answering it (``seq = n``) is computed from ``x[n]`` and ``x[n-1]``
+and applied by the device over ``[(n+d)T, (n+d+1)T)`` with a zero-order hold; ``d = 0``
+(apply at once) exists in lockstep only.
 """

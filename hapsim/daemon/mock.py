@@ -1,7 +1,7 @@
 """The mock device: the real side of the THS, behind the device side of the protocol.
 
-Physics (DESIGN §4-§5)
-----------------------
+Physics (docs/design.md, 'The mock device')
+-------------------------------------------
 ``m x'' + b0 x' = u(t) + f_ext(t)`` with the commanded force ``u`` held constant over each
 period (zero-order hold), integrated *exactly* from tick to tick with the closed form of
 :func:`zoh_step_coefficients` (written here independently of

@@ -1,6 +1,7 @@
 """``run_scene``: calibrate, check, close the THS on a device, identify it, report.
 
-A pipeline of named steps, each returning a small result object (DESIGN §4-§5):
+A pipeline of named steps, each returning a small result object (docs/design.md, 'The THS'
+and 'The mock device'):
 :meth:`RunOptions.check` -> :func:`prepare_run` (prepare scene + predict:
 :class:`PreparedRun`) -> :func:`connect` (:class:`Connection`) -> :func:`run_loop`
 (:class:`LoopRun`) -> :func:`identify_run` -> :func:`build_report`.

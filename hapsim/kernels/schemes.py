@@ -258,7 +258,8 @@ def laplacians(n_masses: int, i1, i2, k, b):
     Returns
     -------
     LK, LB : ndarray, shape (n_masses, n_masses)
-        ``F = -LK x - LB v`` is the force on every point [N] (link law of DESIGN §3).
+        ``F = -LK x - LB v`` is the force on every point [N] (link law, docs/design.md,
+        'The scheme').
     """
     LK = np.zeros((n_masses, n_masses))
     LB = np.zeros((n_masses, n_masses))
