@@ -112,7 +112,8 @@ def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True):
 
 
 @pytest.mark.parametrize("dev", [
-    {"mass": 0.6, "friction": 0.2, "delay": 20, "coulomb": 0.3, "force_limit": 10.0},
+    {"mass": 0.6, "friction": 0.2, "delay": 20, "coulomb": 0.3, "force_limit": 10.0,
+     "noise": 2e-6},
 ])
 def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     """Over --port (a standalone lockstep mock on a real pty) the delay is the device's:
