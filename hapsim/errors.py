@@ -15,6 +15,7 @@ __all__ = [
     "ConfigError",
     "ProtocolError",
     "DeviceError",
+    "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
     "KinematicsError",
@@ -75,6 +76,18 @@ class ProtocolError(HapsimError, ValueError):
     A ``ValueError`` (the device's values are wrong, like ``firmware_protocol.FrameError``),
     deliberately not a :class:`DeviceError` or ``OSError``: reconnecting does not cure it,
     and the loop's recovery retries on DeviceError. ``hapsim`` exits 1 on it.
+    """
+
+
+class IdentificationError(HapsimError, ValueError):
+    """A record that cannot be identified (too short, too little motion, no force applied,
+    a fit that fails): a negative verdict on the data, not bad input. ``hapsim`` exits 1
+    on it with the reason.
+
+    Parameters
+    ----------
+    message : str
+        Why, and what to change (``--duration``, ``--force-limit``, ...).
     """
 
 
