@@ -267,6 +267,11 @@ def run(args) -> int:
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
+    from hapsim.daemon.startup import announce_compilation, run_compile_parts
+    # an empty numba cache: say what is compiled before the silence it costs
+    corrected = scene.device is not None and getattr(scene.device, "correction", None)
+    announce_compilation(run_compile_parts(scene, compiled_loop=args.loop == "compiled"
+                                           and args.driver == "framed" and not corrected))
     embedded = None
     if args.port is None and args.driver == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
