@@ -44,14 +44,16 @@ from typing import Any, Callable
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
-                                 PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
+                                 PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS, Key,
+                                 key_names,
                                  section_keys)
 from hapsim.scene_schema import key as _key
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
            "Listen", "Audio",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
-           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
+           "PROTOCOLS"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -169,6 +171,9 @@ class Device:
     correction : dict, optional
         ``{"kind": name, param: value, ...}``, a correction of the virtual element
         (:data:`CORRECTIONS`, :mod:`hapsim.analysis.corrections`).
+    protocol : str
+        The protocol the device speaks on its port, one of :data:`PROTOCOLS`
+        (``"framed"``, hapsim's own, by default).
     """
 
     mass: float
@@ -183,6 +188,7 @@ class Device:
     velocity_noise: float = 0.0
     hand: "Hand | None" = None
     correction: dict | None = None
+    protocol: str = "framed"
 
 
 @dataclass(frozen=True)
@@ -395,7 +401,10 @@ class Scene:
         while a ``target`` awaits calibration; negative damping only when ``calibrated``);
         a finite threshold on a contact, 0 on a spring_damper; a ``target`` only on a
         spring_damper between the port and a ground, with k > 0, b >= 0; no contact
-        with ``integrator: exact``; and the ranges given in :class:`Device`,
+        with ``integrator: exact``; the loop's dimensionless products (``b0 T/m``,
+        ``|K| T^2/m``, ``|B| T/m`` at a link's lightest moving end, a target's ``k T^2/m``
+        and ``b T/m``, the hand's ``kh T^2/mh``) at most
+        ``hapsim.analysis.loop.MAX_PRODUCT``; and the ranges given in :class:`Device`,
         :class:`Excitation` (the ``profile`` file must exist) and :class:`Safety`.
     """
 
@@ -730,10 +739,58 @@ def _check_scene(s: Scene) -> None:
     elif ports:
         raise _Invalid("a scene with a port needs a device section "
                        "(mass, friction, delay, hold, ...)", ("device",))
+    _check_products(s)
     _check_excitation(s.excitation)
     _check_safety(s.safety)
     if s.audio is not None:
         _check_audio(s, names)
+
+
+def _check_products(s: Scene) -> None:
+    """The loop's dimensionless products, for every command alike (``check`` and
+    ``simulate`` once disagreed): ``b0 T/m`` of the device, ``kh T^2/mh`` of the hand's
+    spring, ``|K| T^2/m`` and ``|B| T/m`` of every link (``m`` its lightest moving end: a
+    virtual mass, or the device mass at the port) and, for a felt target, ``k T^2/m`` and
+    ``b T/m`` at the port: at most :data:`hapsim.analysis.loop.MAX_PRODUCT` (the reason is
+    there: the characteristic's coefficients would span more than a double resolves, and
+    the engine's update diverges within a row)."""
+    from hapsim.analysis.loop import check_product   # at check time: no import cycle
+
+    T = 1.0 / float(s.rate_hz)
+
+    def refuse(value, scale, unit, what, where):
+        try:
+            check_product(float(value), scale, _key_of(where), unit, what)
+        except ConfigError as exc:
+            raise _Invalid(exc.reason, where) from None
+
+    inertia = {m.name: float(m.mass) for m in s.masses if m.kind == "mass"}
+    d = s.device
+    port = next((m.name for m in s.masses if m.kind == "port"), None)
+    if d is not None and port is not None:
+        m_dev = float(d.mass)
+        inertia[port] = m_dev
+        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", ("device", "friction"))
+        h = d.hand
+        if h is not None:
+            hi = lambda v: float(v[1]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            lo = lambda v: float(v[0]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            if hi(h.stiffness) > 0:
+                refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
+                       ("device", "hand", "stiffness"))
+    for i, lk in enumerate(s.links):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for value, scale, unit, what, where in (
+                (lk.stiffness, T * T / m, "N/m", "K T^2/m", ("links", i, "stiffness")),
+                (lk.damping, T / m, "N s/m", "B T/m", ("links", i, "damping"))):
+            if not math.isnan(float(value)):          # NaN: a target awaiting calibration
+                refuse(value, scale, unit, what, where)
+        if lk.target is not None and not lk.calibrated:
+            refuse(lk.target[0], T * T / m, "N/m", "k T^2/m", ("links", i, "target", "k"))
+            refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
 
 
 def audio_substeps(audio_rate: float, rate_hz: float) -> int:

@@ -447,7 +447,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         at the window start), ``cycles`` (oscillation cycles above the floor). Or
         ``error`` (str) when the record cannot support a measurement: the oscillation
         below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
-        that level.
+        that level, or the record is constant (``at_rest`` True: the loop never moved).
 
     Raises
     ------
@@ -461,6 +461,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     floor = sensor_sd(quantum, noise)
     order = int(order if order is not None else predicted.size)
     amp0 = float(np.max(np.abs(y - (np.median(y[-max(y.size // 10, 1):]) if offset else 0.0))))
+    if y.size and np.all(np.isfinite(y)) and amp0 == 0.0:
+        # a loop at rest (no excitation, or x0 = 0 on the rest position): a valid record
+        # with nothing in it to identify (and log(0) below)
+        return {"error": "the record is constant: the loop never moved (a scene at rest; "
+                         "give it an excitation: x0, v0, impulse or profile)",
+                "at_rest": True, "amplitude": 0.0}
     if floor == 0.0:
         md = None
         try:

@@ -34,7 +34,7 @@ from hapsim.errors import ConfigError
 
 __all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
            "MASS_RANGE", "MAX_PRODUCT", "check_range", "check_product", "plant", "characteristic", "closed_loop_poles",
-           "zoh_state_space", "spectral_radius", "STABILITY_TOL"]
+           "zoh_state_space", "spectral_radius", "spectral_radius_known", "STABILITY_TOL"]
 
 #: Valid values of :attr:`LoopModel.hold`.
 HOLDS = ("zoh", "ideal")
@@ -751,3 +751,63 @@ def spectral_radius(loop: LoopModel, K: float, B: float = 0.0) -> float:
         within :data:`STABILITY_TOL` of 1 the verdicts call the loop marginal.
     """
     return float(np.max(np.abs(closed_loop_poles(loop, K, B))))
+
+
+def spectral_radius_known(loop: LoopModel, K: float, B: float = 0.0) -> tuple[float, float]:
+    """Spectral radius with the precision to which double arithmetic knows it.
+
+    A pole of multiplicity ``m`` moves by ``~ (eta)^(1/m)`` under a relative perturbation
+    ``eta`` of the coefficients: at the stiffness limit of the undamped centred-difference
+    loop (ideal hold, ``d = 0``, ``K = 4 m / T^2``) the poles are a double root at
+    ``z = -1`` and any double-precision computation of their modulus is uncertain to
+    ~1e-7, so "1.0000000298" carries two digits of noise.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    K : float
+        Virtual stiffness [N/m].
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    rho : float
+        ``max |z|`` (:func:`spectral_radius`) [-].
+    error : float
+        First-order bound on its error [-]: for the dominant pole ``z0`` and the smallest
+        ``m`` such that at most ``m`` computed poles lie within ``2 e_m`` of it,
+        ``e_m = (m! eta(z0) / |p^(m)(z0)|)^(1/m)`` with the backward error
+        ``eta(z) = 4 n eps sum_j |c_j| |z|^j`` of the degree-``n`` characteristic
+        polynomial in ``z`` (coefficients ``c_j``; Wilkinson, *Rounding Errors in
+        Algebraic Processes*, 1963, ch. 2: the perturbation of a multiple root).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`closed_loop_poles`.
+    """
+    kappa, beta = _scaled(loop, K, B)
+    c = np.trim_zeros(_char_poly_z(loop, kappa, beta), "f")
+    z = closed_loop_poles(loop, K, B)
+    mod = np.abs(z)
+    i0 = int(np.argmax(mod))
+    z0, rho = complex(z[i0]), float(mod[i0])
+    n = c.size - 1
+    if n < 1:
+        return rho, 0.0
+    eps = np.finfo(float).eps
+    eta = 4.0 * n * eps * float(np.polyval(np.abs(c), abs(z0)))
+    dist = np.abs(z - z0)
+    der = c.astype(float)
+    err = math.inf
+    for m in range(1, n + 1):
+        der = np.polyder(der)
+        dm = abs(complex(np.polyval(der, z0)))
+        if dm == 0.0:
+            continue
+        e = (math.factorial(m) * eta / dm) ** (1.0 / m)
+        if np.count_nonzero(dist <= 2.0 * e) <= m:
+            err = e
+            break
+    return rho, float(err)

@@ -36,6 +36,30 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def known_digits(value: float, error: float) -> float:
+    """``value`` rounded to the digits that are known: to the decade at or above
+    ``2 error`` (so the last digit shown is off by at most half a unit).
+
+    Parameters
+    ----------
+    value : float
+    error : float >= 0
+        Its uncertainty (0 or non-finite: ``value`` unchanged).
+
+    Returns
+    -------
+    float
+    """
+    if not (error > 0 and math.isfinite(error)):
+        return value
+    return round(value, known_decimals(error))
+
+
+def known_decimals(error: float) -> int:
+    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0."""
+    return max(0, -math.ceil(math.log10(2.0 * error)))
+
+
 def run(args) -> int:
     """Run ``hapsim stability``.
 
@@ -47,29 +71,39 @@ def run(args) -> int:
     Returns
     -------
     int
-        0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is.
+        0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is. The spectral radius at
+        ``K_max`` is given to the digits double arithmetic knows
+        (:func:`hapsim.analysis.loop.spectral_radius_known`; JSON
+        ``spectral_radius_error``): a double pole there (the undamped centred-difference
+        loop, at ``z = -1``) is uncertain to ~1e-7.
 
     Raises
     ------
     hapsim.errors.ConfigError
         Bad loop option (key: the option) or a non-finite ``--B``.
     """
-    from hapsim.analysis.loop import spectral_radius
+    from hapsim.analysis.loop import spectral_radius_known
     from hapsim.analysis.ths import published_limits, stability_limit
     loop = loop_from_args(args)
     kmax = stability_limit(loop, args.B)
-    rho = spectral_radius(loop, kmax, args.B) if math.isfinite(kmax) else None
+    rho = err = None
+    if math.isfinite(kmax):
+        rho, err = spectral_radius_known(loop, kmax, args.B)
+        rho = known_digits(rho, err)
     d = {"K_max": kmax if math.isfinite(kmax) else None, "B": args.B,
-         "spectral_radius_at_K_max": rho, **published_limits(loop, args.B),
-         "loop": loop.to_dict()}
+         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
+         **published_limits(loop, args.B), "loop": loop.to_dict()}
     if args.json:
         print(json.dumps(d))
     else:
         out = sys.stdout
         print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
               f"d={loop.delay}  hold={loop.hold}   virtual B={args.B:g} N s/m", file=out)
+        shown = "-" if rho is None else (
+            f"{rho:.{known_decimals(err)}f} +- {err:.1g}" if err > 0
+            else f"{rho:.15g}")
         print(f"  exact K_max            {fmt(kmax):>14} N/m  (spectral radius "
-              f"{fmt(rho)} there)", file=out)
+              f"{shown} there)", file=out)
         if d["passivity_K"] > 0:
             print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
                   "zoh, d = 0", file=out)

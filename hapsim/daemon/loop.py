@@ -1116,9 +1116,9 @@ class HostLoop:
             restart = self._restart_flag
             energy = self._energy
             e0 = self._e0
-            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr = (
                 tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                tel.flags)
+                tel.flags, tel.force_seq, tel.status)
             hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
             # a loop that is not real-time lets the journal writer catch up each half lap
             drain = tel.drain if rl else None
@@ -1200,6 +1200,8 @@ class HostLoop:
                 s_arr[sl] = seq
                 ta_arr[sl] = (t_tx - t_rx) * 1e-3
                 late_arr[sl] = lt
+                fs_arr[sl] = msg.force_seq
+                st_arr[sl] = st
                 fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
                 self._skip_flag = 0
                 restart = 0
