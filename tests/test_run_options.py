@@ -23,7 +23,7 @@ def _parse(*argv):
 
 def test_command_line_defaults_are_the_options_defaults():
     """No option has one default in the parser and another in RunOptions."""
-    got = run_options(_parse())
+    got = run_options(_parse(), load_scene(WALL))
     want = RunOptions()
     for f in dataclasses.fields(RunOptions):
         if f.name == "on_start":
@@ -39,7 +39,7 @@ def test_every_command_line_option_reaches_its_field():
             "--fault-seed", "5", "--no-reconnect", "--lost-timeout", "0.2",
             "--reconnect-attempts", "2", "--reconnect-time", "1.5", "--driver", "haply",
             "--osc", "0", "--osc-ramp", "0.2", "--sound", "jack", "--jack-server", "srv"]
-    o = run_options(_parse(*argv), embedded="E")
+    o = run_options(_parse(*argv), load_scene(WALL), embedded="E")
     assert (o.port, o.baud, o.duration, o.rate_hz) == ("/dev/null", 9600, 2.5, 2000.0)
     assert o.lockstep and o.host_clocked and o.allow_unstable and o.loop == "python"
     assert (o.telemetry, o.rt_priority, o.seed, o.faults, o.fault_seed) == (
@@ -49,7 +49,7 @@ def test_every_command_line_option_reaches_its_field():
     assert (o.driver, o.osc, o.osc_ramp, o.sound, o.jack_server) == ("haply", 0, 0.2, "jack",
                                                                      "srv")
     assert o.embedded == "E"
-    assert run_options(_parse("--driver", "framed")).driver is None   # the default protocol
+    assert run_options(_parse("--driver", "framed"), load_scene(WALL)).driver is None
 
 
 def test_run_scene_checks_a_copy_with_the_changes():

@@ -95,6 +95,16 @@ class RunOptions:
         the loop is then host-clocked through a
         :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
         driver's mock (paced by the host) without a port.
+    driver_options : dict, optional
+        The driver's device parameters (its constructor's keywords: FireFader
+        ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
+        ``resolution``, ``direction``).
+    mock_options : dict, optional
+        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        which may differ from what ``driver_options`` believe.
+    driver_faults : dict, optional
+        Seeded byte loss and corruption on the driver mock's link, both directions
+        (:class:`hapsim.drivers.mock.ByteFaults`).
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -112,7 +122,8 @@ class RunOptions:
     embedded : EmbeddedMock, optional
         The embedded mock already started for this run
         (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
-        closed here whatever happens. Default: started by :func:`hapsim.daemon.runner.connect`.
+        closed here whatever happens. Default: started by
+        :func:`hapsim.daemon.runner.connect`.
     loop : {"compiled", "python"}
         Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
         serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
@@ -144,6 +155,9 @@ class RunOptions:
     telemetry_interval: float = 0.05
     loop: str = "compiled"
     driver: str | None = None
+    driver_options: dict | None = None
+    mock_options: dict | None = None
+    driver_faults: dict | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -188,7 +202,8 @@ class RunOptions:
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
         if self.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
-            get_driver(self.driver)             # unknown name: ConfigError before any work
+            # unknown name or bad parameters: ConfigError before any work
+            get_driver(self.driver, **(self.driver_options or {}))
             if not self.plan.empty:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")

@@ -44,7 +44,7 @@ from hapsim.daemon.mock import MockDevice
 from hapsim.daemon.options import RunOptions
 from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.report import format_report
-from hapsim.daemon.startup import preload_numba_blas, process_start
+from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
@@ -263,7 +263,9 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
-                      if lockstep else 1.0,
+                      if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
+                      # (a driver's board may reset when its port opens: the FireFader's
+                      # Nano spends ~1 s in its bootloader before its first record)
                       # the embedded mock is a fresh Python process (imports take seconds
                       # on a loaded machine); hardware answers at once
                       hello_timeout=30.0 if opts.transport == "pty" else 5.0,
@@ -290,12 +292,17 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            notice = compile_notice()   # set when the command announced a cold cache
             preload_numba_blas()        # before numba's first cache load (module notes)
             from hapsim import engine
             engine.warm_up(self.scene)
+            if notice is not None:
+                notice("the engine's kernels")
             if self.compiled:
                 from hapsim.daemon import fastloop
                 fastloop.warm_up(engine.Engine(self.scene))
+                if notice is not None:
+                    notice("the compiled host loop")
         except BaseException as exc:  # re-raised by finish() in the caller's thread
             self.error = exc
 
@@ -396,12 +403,21 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            drv = get_driver(opts.driver)
+            dopt = dict(opts.driver_options or {})
+            if opts.driver == "haply" and opts.port is None:
+                # the board's set-up sets the encoder's count to the offset: the embedded
+                # mock is armed with the joint at the excitation's x0
+                dopt.setdefault("offset_deg", math.degrees(scene.excitation.x0))
+            drv = get_driver(opts.driver, **dopt)
+            drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
-                                              scene.rate_hz, seed=opts.seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                                              scene.rate_hz, seed=opts.seed,
+                                              options=opts.mock_options,
+                                              faults=opts.driver_faults)
+                # the mock is paced by the commands: a slow mock process is no lost answer
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=dev.delay)
@@ -763,6 +779,9 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "device_id": hello.device_id, "force_limit": hello.force_limit,
             "native_rate_hz": hello.native_rate_hz},
         "mock": mock_report,
+        # a driver's link: commands, records, missing samples, re-synchronisations, and
+        # the firmware seen (hapsim.drivers.transport.DriverTransport.report)
+        "driver": tr.report() if hasattr(tr, "report") else None,
         "excitation_end_s": prep.exc_end,
         "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
         "implausible": res.implausible,
