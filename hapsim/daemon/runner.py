@@ -1368,6 +1368,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -1673,7 +1675,10 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
+    protocol = lp.get("protocol", "framed")
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+                          else ", lockstep" if lp["lockstep"]
+                          else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
@@ -1746,7 +1751,7 @@ def format_report(rep: dict) -> str:
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
     if lp.get("python_reason"):
-        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+        lines.append(f"loop: the Python loop ran, not the compiled one: {lp['python_reason']}")
     if lp.get("first_sample_s") is not None:
         lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
                      f"started")
