@@ -15,6 +15,7 @@ __all__ = [
     "ConfigError",
     "ProtocolError",
     "DeviceError",
+    "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
     "KinematicsError",
@@ -78,6 +79,18 @@ class ProtocolError(HapsimError, ValueError):
     """
 
 
+class IdentificationError(HapsimError, ValueError):
+    """A record that cannot be identified (too short, too little motion, no force applied,
+    a fit that fails): a negative verdict on the data, not bad input. ``hapsim`` exits 1
+    on it with the reason.
+
+    Parameters
+    ----------
+    message : str
+        Why, and what to change (``--duration``, ``--force-limit``, ...).
+    """
+
+
 class DeviceError(HapsimError, OSError):
     """The device or its port failed (absent, silent, reset, faulted)."""
 
@@ -106,7 +119,7 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
     """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
 
     A negative verdict (exit code 1, as ``hapsim calibrate`` gives for the same target:
-    README's table) that is also a :class:`ConfigError`, so the message names the file,
+    docs/commands.md, 'Exit codes') that is also a :class:`ConfigError`, so the message names the file,
     the line and the key ``links.NAME.target``; :func:`hapsim.cli.main` tests for
     :class:`UnstableConfigError` first.
 
