@@ -53,6 +53,16 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
 
     def leave() -> None:
         try:
+            if "--json" in sys.argv[1:]:  # the promise of --json: one object on stdout
+                # (written by hand: nothing may be imported while an import is cut short;
+                # the shape of hapsim.cli.error_json)
+                sys.stdout.write('{"error": {"type": "interrupted", "message": '
+                                 '"hapsim: interrupted", "file": null, "line": null, '
+                                 '"key": null}, "exit": 130}\n')
+                sys.stdout.flush()
+        except (OSError, ValueError):
+            pass
+        try:
             sys.stderr.write("hapsim: interrupted\n")
             sys.stderr.flush()
         finally:

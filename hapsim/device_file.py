@@ -70,6 +70,29 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
     return "\n".join(lines) + "\n"
 
 
+def device_keys(path: str) -> set[str]:
+    """The keys a device file gives in its ``device`` section (read after
+    :func:`load_device` has accepted the file).
+
+    Parameters
+    ----------
+    path : str
+        A device file.
+
+    Returns
+    -------
+    set of str
+        The keys written in the file (``mass``, ``friction``, ...); what is missing takes
+        the scene schema's default, which ``hapsim run --device`` replaces by the scene's
+        own value for ``force_limit`` and ``protocol``.
+    """
+    from hapsim._yaml_lines import load_yaml
+    with open(os.fspath(path), encoding="utf-8") as fh:
+        doc = load_yaml(fh.read(), os.fspath(path))
+    return set(doc["device"]) if isinstance(doc, dict) and isinstance(doc.get("device"),
+                                                                        dict) else set()
+
+
 def load_device(path: str):
     """Read a device file (a YAML document whose only key is ``device``).
 

@@ -15,8 +15,10 @@ __all__ = [
     "ConfigError",
     "ProtocolError",
     "DeviceError",
+    "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
+    "KinematicsError",
     "show",
     "fixed",
     "plural",
@@ -77,6 +79,18 @@ class ProtocolError(HapsimError, ValueError):
     """
 
 
+class IdentificationError(HapsimError, ValueError):
+    """A record that cannot be identified (too short, too little motion, no force applied,
+    a fit that fails): a negative verdict on the data, not bad input. ``hapsim`` exits 1
+    on it with the reason.
+
+    Parameters
+    ----------
+    message : str
+        Why, and what to change (``--duration``, ``--force-limit``, ...).
+    """
+
+
 class DeviceError(HapsimError, OSError):
     """The device or its port failed (absent, silent, reset, faulted)."""
 
@@ -128,6 +142,32 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
         ConfigError.__init__(self, message, file=file, line=line, key=key)
         self.spectral_radius = spectral_radius
         self.stiffness_limit = None
+
+
+class KinematicsError(ConfigError):
+    """A device configuration the kinematics refuses: outside the workspace or singular.
+
+    Bad input (a ``ConfigError``, exit code 2): the joint angles given are not a
+    configuration at which the device renders a force (:mod:`hapsim.kinematics`).
+
+    Parameters
+    ----------
+    message : str
+        Where (the joints in degrees) and why (no assembly, which singularity).
+    joints : array_like, optional
+        The refused joint angles [rad].
+    kind : {"workspace", "serial", "parallel"}, optional
+        No assembly; a serial singularity (an arm stretched or folded: the Jacobian loses
+        rank); a parallel one (the handle gains a freedom: the Jacobian is unbounded).
+    key : str, optional
+        Option or scene key, default ``joints``.
+    """
+
+    def __init__(self, message: str, *, joints=None, kind: str | None = None,
+                 key: str | None = "joints") -> None:
+        super().__init__(message, key=key)
+        self.joints = None if joints is None else [float(v) for v in joints]
+        self.kind = kind
 
 
 def show(value: object, limit: int = 60) -> str:

@@ -1,6 +1,6 @@
 """Figures. The only hapsim module that imports matplotlib (lazily, Agg backend).
 
-Install the extra with ``pip install 'hapsim[plot]'``.
+Install the extra with :data:`PLOT_INSTALL` (the command the README gives).
 """
 
 from __future__ import annotations
@@ -11,7 +11,12 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["plot_grid", "save_figure", "figure_formats", "check_figure_path", "check_output_path"]
+__all__ = ["PLOT_INSTALL", "plot_grid", "save_figure", "figure_formats", "check_figure_path",
+           "check_output_path"]
+
+
+#: How to install the plot extra (matplotlib): the README's command, in hapsim's checkout.
+PLOT_INSTALL = "pip install -e '.[plot]'"
 
 
 def _mpl():
@@ -20,8 +25,8 @@ def _mpl():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ConfigError("matplotlib is not installed; install the plot extra: "
-                          "pip install 'hapsim[plot]'", key="plot") from exc
+        raise ConfigError(f"matplotlib is not installed; install the plot extra in "
+                          f"hapsim's checkout: {PLOT_INSTALL}", key="plot") from exc
     return plt
 
 

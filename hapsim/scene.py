@@ -44,14 +44,16 @@ from typing import Any, Callable
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
-                                 PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
+                                 PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS, Key,
+                                 key_names,
                                  section_keys)
 from hapsim.scene_schema import key as _key
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
            "Listen", "Audio",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
-           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
+           "PROTOCOLS"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -169,6 +171,9 @@ class Device:
     correction : dict, optional
         ``{"kind": name, param: value, ...}``, a correction of the virtual element
         (:data:`CORRECTIONS`, :mod:`hapsim.analysis.corrections`).
+    protocol : str
+        The protocol the device speaks on its port, one of :data:`PROTOCOLS`
+        (``"framed"``, hapsim's own, by default).
     """
 
     mass: float
@@ -183,6 +188,7 @@ class Device:
     velocity_noise: float = 0.0
     hand: "Hand | None" = None
     correction: dict | None = None
+    protocol: str = "framed"
 
 
 @dataclass(frozen=True)

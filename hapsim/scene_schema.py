@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
-           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS",
+           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "PROTOCOLS", "INTEGRATORS",
            "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
 
 #: Mass kinds a scene may use.
@@ -29,6 +29,9 @@ MASS_KINDS = ("mass", "ground", "port")
 LINK_KINDS = ("spring_damper", "contact")
 #: Output holds a device may use (docs/design.md, 'The timing convention').
 HOLDS = ("zoh", "ideal")
+#: Protocols a device may speak (first is the default: hapsim's own framed protocol; the
+#: others are the drivers of hapsim.drivers, which takes its names from here).
+PROTOCOLS = ("framed", "firefader", "haply", "hapkit-serial")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
 #: What a listening point hears (``audio.listen[i].quantity``; first is the default).
@@ -352,6 +355,12 @@ _KEYS = [
             "below the moving mass) | `virtual_coupling` (`stiffness` [N/m], `damping` "
             "[N s/m]); see `hapsim compare-corrections`.",
         example="device: {mass: 0.1, correction: {kind: velocity_filter, cutoff_hz: 100}}"),
+    Key("device.protocol", "choice", default=PROTOCOLS[0], choices=PROTOCOLS,
+        doc="The protocol the device speaks on its port: `framed` is hapsim's own (COBS "
+            "frames, CRC, sequence numbers, watchdog); the others are the drivers of "
+            "devices with their own firmware (`hapsim run --help`, 'drivers'). `hapsim "
+            "run` uses it (and its mock speaks it) unless `--driver` is given.",
+        example="device: {mass: 0.05, protocol: firefader}"),
     # ------------------------------------------------------------------ excitation
     Key("excitation.x0", "number", "m", default=0.0,
         doc="Initial device displacement.",

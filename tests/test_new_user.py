@@ -301,6 +301,8 @@ JSON_ERRORS = [
     (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
     (["compare-corrections", *LOOP, "--delay", "-1", "--json"], 2, "ConfigError"),
     (["family", "{bad}", "--json"], 2, "ConfigError"),
+    (["kinematics", "delta", "--joints", "-170", "170", "90", "--json"], 2,
+     "KinematicsError"),
 ]
 
 

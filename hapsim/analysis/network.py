@@ -74,7 +74,8 @@ from hapsim.scene import INTEGRATORS
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "device_body", "body_stiffness", "plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
-           "port_io", "rest_position", "MAX_STATES", "state_count", "check_size"]
+           "port_io", "rest_position", "static_stiffness", "MAX_STATES", "state_count",
+           "check_size"]
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -221,6 +222,51 @@ def network(scene, calibrated=None, *, gain: float = 1.0) -> Network:
     masses = np.array([scene.masses[i].mass for i in mob], dtype=float)
     port = scene.index(scene.port.name) if scene.port is not None else -1
     return Network(mob.size, masses, LK, LB, mob, port, [scene.masses[i].name for i in mob])
+
+
+def static_stiffness(scene, calibrated=None) -> float | None:
+    """Stiffness of the virtual network felt at the port by a slow push.
+
+    The force the scene returns per metre when the port is moved so slowly that every
+    virtual mass is at rest: grounds fixed, the other masses at their static equilibrium,
+    contacts engaged (as :func:`network`), dampers silent. A scene whose least damped mode
+    at the port is a mode of an object (a string's partial) is felt at that frequency with
+    the stiffness ``m (2 pi f0)^2`` of the loop's pole, far from this one.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene.
+    calibrated : mapping, optional
+        ``{link: (K, B)}`` overrides, as :func:`link_values`.
+
+    Returns
+    -------
+    float or None
+        ``k_static`` [N/m] >= 0; None without a port.
+
+    Raises
+    ------
+    ConfigError
+        See :func:`link_values`.
+
+    Notes
+    -----
+    With ``LK`` the stiffness Laplacian over the points, ``p`` the port and ``f`` the
+    moving masses, the Schur complement ``LK_pp - LK_pf LK_ff^+ LK_fp`` (static
+    condensation of the free points; Guyan, AIAA J. 3(2) 1965). The pseudo-inverse covers
+    masses tied to neither the port nor a ground: they carry no static force.
+    """
+    if scene.port is None:
+        return None
+    net = network(scene, calibrated)
+    p, f = net.port, net.mob
+    k = float(net.LK[p, p])
+    if f.size:
+        kff = net.LK[np.ix_(f, f)]
+        kfp = net.LK[f, p]
+        k -= float(kfp @ np.linalg.lstsq(kff, kfp, rcond=None)[0])
+    return max(k, 0.0)
 
 
 def _link_arrays(net: Network):

@@ -133,6 +133,9 @@ class Controller:
         self.measured = (math.nan, math.nan)
         #: The last measurement's full result (:func:`identify_window`), or None.
         self.measurement: dict | None = None
+        #: Why :attr:`measured` is NaN (None once a window has been measured): no free
+        #: response handed in yet, the last window's refusal, or a change since.
+        self.unmeasured: str | None = "no free response has been measured yet"
         self._gen = 0                          # accepted scene changes so far
         self._pending = None                   # the identification under way (a Future)
         self._mail: collections.deque = collections.deque()
@@ -174,6 +177,7 @@ class Controller:
         self.scene = new
         self.measured = (math.nan, math.nan)
         self.measurement = None
+        self.unmeasured = f"none since {why}"
 
         def work():
             with self._lock:
@@ -250,6 +254,8 @@ class Controller:
                     self.felt = pred
                     self.measured = (math.nan, math.nan)
                     self.measurement = None
+                    self.unmeasured = (f"no free response measured since the change "
+                                       f"{address} {' '.join(map(str, args))}")
                     self._gen += 1
             self._mail.append(change)
         except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
@@ -338,9 +344,15 @@ class Controller:
         gen, scene, x = self._gen, self.scene, np.array(x, dtype=float)
 
         def done(res):
-            if "k" in res and self._gen == gen:
+            if self._gen != gen:       # a change came meanwhile: not the loop of now
+                return
+            if "k" in res:
                 self.measurement = res
                 self.measured = (float(res["k"]), float(res["b"]))
+                self.unmeasured = None
+            elif math.isnan(self.measured[0]):
+                self.unmeasured = (f"the last free response ({x.size} samples) could not "
+                                   f"be measured: {res.get('error', 'no result')}")
 
         self._pending = self.analyst.submit(identify_window, (x, scene), done)
         if wait > 0:

@@ -76,6 +76,15 @@ def _fmt_mode(md) -> str:
     return row.rstrip()
 
 
+def _object_mode(k: float, static: float, scene) -> bool:
+    """Whether the felt pole is a mode of the scene's virtual masses rather than the
+    port's spring: there are virtual masses, and its ``k`` is more than twice, or less
+    than half, the static stiffness at the port."""
+    if not any(m.kind == "mass" for m in scene.masses) or not math.isfinite(k):
+        return False
+    return not (0.5 * static <= k <= 2.0 * static)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim check``.
 
@@ -113,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
               f"{n_states}-square matrix, about {20 * (n_states / 2000) ** 3:.0f} s",
               file=sys.stderr, flush=True)
     chk = check_scene(scene)
+    from hapsim.analysis.network import static_stiffness
+    static = static_stiffness(scene) if chk.has_port else None
     ok = chk.stable
     verdict = "stable" if chk.stable else "unstable"
 
@@ -123,7 +134,9 @@ def run(args: argparse.Namespace) -> int:
                    "delay": scene.device.delay, "hold": scene.device.hold,
                    "correction": getattr(scene.device, "correction", None)},
                "calibrations": [c.to_dict() for c in cals],
-               **chk.to_dict()}
+               **chk.to_dict(),
+               # what a slow push feels [N/m] (virtual masses at rest), None without a port
+               "static_k": static}
         print(json.dumps(out))
         return 0 if ok else 1
 
@@ -164,8 +177,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"felt at the port: k = {rp.k:.6g} N/m, b = {rp.b:.6g} N s/m "
               f"(f0 = {rp.f0_hz:.6g} Hz, damping ratio {rp.damping_ratio:.4g}; "
               f"m = {chk.reference_mass:g} kg)")
+        if static is not None and _object_mode(rp.k, static, scene):
+            print(f"  that is a mode of the scene ringing at {rp.f0_hz:.6g} Hz, felt at the "
+                  f"port, not a spring: k = m (2 pi f0)^2")
     elif chk.has_port:
         print("felt at the port: no oscillating pole pair (nothing rings)")
+    if static is not None and any(m.kind == "mass" for m in scene.masses):
+        print(f"static at the port: k = {static:.6g} N/m (what a slow push feels: the "
+              f"virtual masses at rest)")
     others = [md for md in chk.modes if md is not rp and md.z != 0]
     deadbeat = sum(1 for md in chk.modes if md.z == 0)
     if args.modes and others:

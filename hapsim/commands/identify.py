@@ -7,8 +7,10 @@ import json
 import math
 import sys
 
+import numpy as np
+
 from hapsim.drivers import DRIVERS
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, HapsimError, IdentificationError
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -81,8 +83,11 @@ def register(sub) -> None:
                    help="excitation length [s] (default 4)")
     p.add_argument("--rate", type=float, default=1000.0, metavar="HZ",
                    help="loop rate [Hz] (default 1000)")
-    p.add_argument("--max-delay", type=int, default=4, metavar="D",
-                   help="largest delay considered [samples] (default 4)")
+    p.add_argument("--max-delay", type=int, default=20, metavar="D",
+                   help="largest device delay [samples] the centring loop is stable for "
+                        "and, for a protocol that does not report the force it applied, "
+                        "the largest delay tried (default 20: a USB latency timer of 16 ms "
+                        "at 1 kHz and some; a framed device shows its delay itself)")
     p.add_argument("--lockstep", action="store_true", help="lockstep embedded mock")
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
@@ -92,7 +97,7 @@ def register(sub) -> None:
 
 
 def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
-             duration=4.0, rate_hz=1000.0, max_delay=4, lockstep=False, seed=0,
+             duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None):
     """Excite, record and fit: the API behind ``hapsim identify``.
 
@@ -132,32 +137,58 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
                  handle_signals=handle_signals, driver=driver)
     # one uniform record: the longest stretch without a missing STATE
-    import numpy as np
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1
     bounds = np.concatenate([[0], cut, [seq.size]])
     i = int(np.argmax(np.diff(bounds)))
     a, b = int(bounds[i]), int(bounds[i + 1])
     rec["loop"]["fitted_rows"] = [a, b]
-    fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                     late=rec["late"][a:b], max_delay=max_delay + 1)
+    acc = rec.get("account")
+    acc = acc.rows(a, b) if acc is not None else None
+    if acc is not None:
+        rec["loop"]["account"] = acc.to_dict()
+    if b - a < 200 and seq.size >= 200:
+        raise IdentificationError(
+            f"too short a record: the longest stretch without a missing STATE is {b - a} "
+            f"samples (rows {a}..{b} of {seq.size}; {seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
+            f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
+            f"the baud rate, or run on a quieter machine)")
+    try:
+        fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
+                         late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
+    except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
+        if isinstance(exc, HapsimError):
+            raise
+        # the fit failed numerically: the record does not carry what the model needs
+        raise IdentificationError(f"the record cannot be identified: the fit failed "
+                                  f"({type(exc).__name__}: {exc}); "
+                                  f"{_record_summary(rec, a, b)}") from None
     return fit, rec
 
 
-def _plot(fit, rec, path: str) -> None:
-    import numpy as np
+def _record_summary(rec, a: int, b: int) -> str:
+    """One phrase on a record: rows fitted, late ticks, the device's delay, its stop."""
+    loop = rec["loop"]
+    dd = loop.get("device_delay")
+    return (f"rows {a}..{b}, {int(np.count_nonzero(rec['late'][a:b]))} late, device delay "
+            f"{'not shown' if dd is None or dd < 0 else dd}, stop: {loop['stop_reason']}")
 
+
+def _plot(fit, rec, path: str) -> None:
     from hapsim.plot import _mpl, save_figure
     plt = _mpl()
-    t = np.arange(fit.n_samples) * fit.period
+    # the fit covers the rows it was given (the longest stretch without a missing STATE)
+    a, b = rec["loop"].get("fitted_rows", (0, fit.n_samples))
+    x = rec["position"][a:b]
+    t = (a + np.arange(fit.n_samples)) * fit.period
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
-    a1.plot(t, rec["position"] * 1e3, lw=0.8, label="measured")
+    a1.plot(t, x * 1e3, lw=0.8, label="measured")
     a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
     a1.set_ylabel("position [mm]")
     a1.legend(loc="upper right")
     a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
                  f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
-    a2.plot(t, (fit.model - rec["position"]) * 1e6, lw=0.6)
+    a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
     a2.set_ylabel("model - measured [um]")
     a2.set_xlabel("time [s]")
     save_figure(fig, path)

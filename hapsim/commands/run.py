@@ -154,12 +154,13 @@ def register(sub) -> None:
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
-    p.add_argument("--driver", default="framed", metavar="NAME",
-                   help=f"device protocol, one of {', '.join(DRIVERS)} (default framed, "
-                        "hapsim's own); a driver runs host-clocked (see 'drivers' below)")
+    p.add_argument("--driver", metavar="NAME",
+                   help=f"device protocol, one of {', '.join(DRIVERS)} (default: the "
+                        "scene's device.protocol, else framed, hapsim's own); a driver runs "
+                        "host-clocked (see 'drivers' below)")
     p.add_argument("--device", metavar="FILE.yaml",
                    help="device section from a file (e.g. written by 'hapsim identify "
-                        "--out'); replaces the scene's")
+                        "--out'); replaces the scene's (said on stderr)")
     p.add_argument("--osc", type=int, metavar="PORT",
                    help="take live changes over OSC on localhost:PORT (0: any free port; "
                         "addresses: hapsim play --help); each is checked, ramped, journaled")
@@ -183,8 +184,9 @@ def _clean(obj):
     return obj
 
 
-def _announce(port, n_samples) -> None:
-    """Tell the user on stderr that the loop starts and that Ctrl-C stops it cleanly.
+def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
+    """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
+    stops it cleanly.
 
     Parameters
     ----------
@@ -192,10 +194,43 @@ def _announce(port, n_samples) -> None:
         The port the loop drives (None: the in-process mock).
     n_samples : int
         Samples to run; 0 for an open-ended run.
+    protocol : str
+        What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
+        protocol (the scene's device.protocol)"``, ...).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
-    print(f"hapsim run: closing the loop on {port or 'the in-process mock'} for "
-          f"{length} (SIGINT/SIGTERM stop cleanly)", file=sys.stderr, flush=True)
+    print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
+          f"for {length} (SIGINT/SIGTERM stop cleanly)",
+          file=sys.stderr, flush=True)
+
+
+def protocol_of(scene, driver: str | None) -> tuple[str, str]:
+    """The protocol a run speaks, and where that choice comes from.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The scene (its ``device.protocol``; ``"framed"`` without a device).
+    driver : str or None
+        ``--driver`` (None when not given).
+
+    Returns
+    -------
+    name : str
+        One of :data:`hapsim.drivers.DRIVERS`.
+    said : str
+        The name with its source, for the start-up line: ``"the framed protocol"``,
+        ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
+        (--driver; the scene's device.protocol is firefader)"``.
+    """
+    named = scene.device.protocol if scene.device is not None else "framed"
+    if driver is None:
+        return named, (f"the {named} protocol" + ("" if named == "framed"
+                                                   else " (the scene's device.protocol)"))
+    if driver != named:
+        return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
+                        f"is {named})")
+    return driver, f"the {driver} protocol"
 
 
 def run(args) -> int:
@@ -246,13 +281,7 @@ def run(args) -> int:
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
-        import dataclasses
-
-        from hapsim.device_file import load_device
-        dev = load_device(args.device)
-        if dev.force_limit == math.inf and scene.device is not None:   # not in the file
-            dev = dataclasses.replace(dev, force_limit=scene.device.force_limit)
-        scene = dataclasses.replace(scene, device=dev)
+        scene = _replace_device(scene, args.device)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -267,8 +296,10 @@ def run(args) -> int:
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
+    args.protocol, said = protocol_of(scene, args.driver)
+    args.announce = lambda port, n: _announce(port, n, said)
     embedded = None
-    if args.port is None and args.driver == "framed":
+    if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
         from hapsim.daemon.startup import start_embedded_mock
         embedded = start_embedded_mock(scene, rate_hz=args.rate, lockstep=args.lockstep,
@@ -299,18 +330,66 @@ def run(args) -> int:
     return code
 
 
+def _replace_device(scene, path: str):
+    """The scene with its device section replaced by the file's (``--device FILE``).
+
+    What the file leaves out and the scene gives is kept: the force limit (``hapsim
+    identify --out`` does not measure it) and the protocol. One line on stderr says what
+    was replaced, and by which values.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    path : str
+        A device file (:func:`hapsim.device_file.load_device`).
+
+    Returns
+    -------
+    hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid device file (file, line and key named).
+    """
+    import dataclasses
+
+    from hapsim.device_file import device_keys, load_device
+    dev = load_device(path)
+    given = device_keys(path)
+    old = scene.device
+    if old is not None:
+        keep = {name: getattr(old, name) for name in ("force_limit", "protocol")
+                if name not in given}
+        dev = dataclasses.replace(dev, **keep)
+    changed = [] if old is None else [
+        f"{f.name} {_short(getattr(old, f.name))} -> {_short(getattr(dev, f.name))}"
+        for f in dataclasses.fields(dev) if getattr(old, f.name) != getattr(dev, f.name)]
+    what = (f"{'; '.join(changed)}" if changed else "the same values") if old is not None \
+        else "the scene had none"
+    print(f"hapsim run: the device of {path} replaces the scene's ({what})",
+          file=sys.stderr, flush=True)
+    return dataclasses.replace(scene, device=dev)
+
+
+def _short(value) -> str:
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
 def _run(scene, args, embedded=None) -> dict:
     """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
     from hapsim.daemon.runner import run_scene
+    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
     return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
                      rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
                      telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                     seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
+                     seed=args.seed, rt_priority=args.rt_priority,
+                     on_start=getattr(args, "announce", _announce),
                      faults=args.faults, fault_seed=args.fault_seed,
                      reconnect=False if args.no_reconnect else None,
                      lost_timeout=args.lost_timeout,
                      reconnect_attempts=args.reconnect_attempts,
                      reconnect_time=args.reconnect_time, osc=args.osc,
                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                     driver=None if args.driver == "framed" else args.driver,
+                     driver=None if protocol == "framed" else protocol,
                      loop=args.loop, embedded=embedded)

@@ -318,7 +318,8 @@ def _write_all(fd, buf, n, pfd):
 
 @_jit
 def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
-            s_arr, ta_arr, late_arr, fl_arr, seq, time_us, status, force_seq, x, t_rx, fd,
+            s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, seq, time_us, status, force_seq,
+            x, t_rx, fd,
             pkt, f8, u8, table, tx, pfd, ts):
     """One sample of :meth:`HostLoop._drive`, transcribed: late check, port step, observer,
     controller, ramp, clamp, FORCE written, clamp window, telemetry row, maxima, bounds.
@@ -404,6 +405,8 @@ def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_a
     s_arr[sl] = seq
     ta_arr[sl] = (t_tx - t_rx) * 1e-3
     late_arr[sl] = lt
+    fs_arr[sl] = force_seq
+    st_arr[sl] = status
     fl_arr[sl] = lt | rf | iv[I_RESTART] | (FLAG_CLAMPED if c else 0) | iv[I_SKIPFLAG]
     iv[I_RESTART] = 0
     iv[I_SKIPFLAG] = 0
@@ -471,8 +474,8 @@ def _keep_frame(rb, a, z, hist, hist_len, iv):
 
 @_jit
 def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
-             s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
-             hist, hist_len):
+             s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, fd, rb, stop, pkt, f8, u8, table,
+             tx, pfd, ts, hist, hist_len):
     """Answer clean STATEs on ``fd`` until something needs Python (module notes).
 
     ``rb[:iv[I_RB_LEN]]`` holds received bytes not yet framed (a partial frame on entry;
@@ -545,7 +548,8 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
                 _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x)
                 continue
             code = _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
-                           x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, seq, tus, status,
+                           x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,
+                           seq, tus, status,
                            fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts)
             if code != R_OK or iv[I_N] >= iv[I_NMAX] or stop[0] != 0 or iv[I_N] >= sync_at:
                 for j in range(a, n_rb):
@@ -685,7 +689,7 @@ class CompiledHostLoop(HostLoop):
             "win": np.zeros(max(cfg.clamp_window, 1), dtype=np.int8),
             "eng": (*kernel_pack(eng), eng._x, eng._f, eng._port, _REC, _OUT),
             "tel": (tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                    tel.flags),
+                    tel.flags, tel.force_seq, tel.status),
             "io": (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
                    np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32),
                    np.zeros(2, dtype=np.int64)),
@@ -888,7 +892,8 @@ def _scratch(engine, fd: int) -> dict:
     iv[I_SYNC] = 4
     iv[I_EXPECT] = 0
     tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
-                                                  np.int64, np.float64, np.int8, np.uint8))
+                                                  np.int64, np.float64, np.int8, np.uint8,
+                                                  np.int64, np.uint16))
     u8 = np.zeros(8, dtype=np.uint8)
     io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
           np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))

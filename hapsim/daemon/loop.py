@@ -1116,9 +1116,9 @@ class HostLoop:
             restart = self._restart_flag
             energy = self._energy
             e0 = self._e0
-            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr = (
                 tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                tel.flags)
+                tel.flags, tel.force_seq, tel.status)
             hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
             # a loop that is not real-time lets the journal writer catch up each half lap
             drain = tel.drain if rl else None
@@ -1200,6 +1200,8 @@ class HostLoop:
                 s_arr[sl] = seq
                 ta_arr[sl] = (t_tx - t_rx) * 1e-3
                 late_arr[sl] = lt
+                fs_arr[sl] = msg.force_seq
+                st_arr[sl] = st
                 fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
                 self._skip_flag = 0
                 restart = 0
@@ -1394,6 +1396,10 @@ class HostLoop:
         else:
             mono_ns = time.monotonic_ns
         receive = tr.receive
+        # a request-reply device (a driver's) answers only what it is asked: a tick without
+        # a new sample asks again (hold: the last force), so one missing reply is one
+        # missing sample, not a silence that grows into a loss
+        hold = getattr(tr, "hold", None)
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -1468,6 +1474,8 @@ class HostLoop:
                 res.missed += 1
                 if clock() - last_new >= silence - 1e-6:
                     raise _Lost(f"no STATE from the device for {silence:g} s")
+                if hold is not None:
+                    hold()
                 deadline += period_ns
                 continue
             last_new = clock()

@@ -16,11 +16,13 @@ Interface of a driver (:class:`~hapsim.drivers.base.Driver`): its serial setting
 from __future__ import annotations
 
 from hapsim.errors import ConfigError
+from hapsim.scene_schema import PROTOCOLS
 
 __all__ = ["DRIVERS", "get_driver"]
 
-#: Driver names ``--driver`` accepts; ``framed`` is hapsim's own protocol (the default).
-DRIVERS = ("framed", "firefader", "haply", "hapkit-serial")
+#: Driver names ``--driver`` accepts (and a scene's ``device.protocol``); ``framed`` is
+#: hapsim's own protocol (the default).
+DRIVERS = PROTOCOLS
 
 
 def get_driver(name: str, **options):

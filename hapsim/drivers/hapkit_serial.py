@@ -160,6 +160,11 @@ class HapkitSerial(Driver):
         """The force the command carries [N]: clamped, rounded to binary32."""
         return _FF.unpack(self.encode_force(force)[2:])[1]
 
+    def round_trip_s(self) -> float:
+        """A 10-byte command and its 9-byte reply at 57600 baud, 10 bits a byte [s]
+        (3.3 ms; the sketch's 1 kHz tick adds up to 1 ms more, not counted)."""
+        return (10 + 9) * 10 / self.baud
+
     def decoder(self):
         """A fresh host decoder returning the handle position [m]."""
         return MappedDecoder(ReplyDecoder(self.function), lambda reply: reply[0])
