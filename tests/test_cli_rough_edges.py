@@ -216,7 +216,7 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
                    "  force_limit: 0.1\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err
-    assert "replaces the scene's (force_limit 1.5 -> 0.1; protocol firefader -> haply)" in err
+    assert "replaces the scene's (force_limit 0.38 -> 0.1; protocol firefader -> haply)" in err
     assert fake_run["driver"] == "haply"
 
 

@@ -138,7 +138,7 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     """hapsim run --driver firefader on the FireFader mock (pty, bytes): the telemetry is
     exactly the THS closed through the protocol's two quantisers (an independent
     re-simulation from the forces sent), and the measured (k, b) equal the prediction to
-    the bound the quantisers allow (k 1 %, b 10 %: README)."""
+    the bound the quantisers allow (k 1 %, b 10 %: docs/devices.md)."""
     from hapsim.daemon.mock import MockPhysics
     from hapsim.daemon.runner import run_scene
     from hapsim.daemon.telemetry import load

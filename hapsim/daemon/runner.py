@@ -41,7 +41,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.startup import preload_numba_blas, process_start
+from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -832,12 +832,17 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            notice = compile_notice()   # set when the command announced a cold cache
             preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
+            if notice is not None:
+                notice("the engine's kernels")
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
                 from hapsim.engine import Engine
                 warm_up(Engine(self.scene))
+                if notice is not None:
+                    notice("the compiled host loop")
         except BaseException as exc:  # re-raised by finish() in the caller's thread
             self.error = exc
 

@@ -92,7 +92,7 @@ class Driver:
     device_id : int
         Reported as HELLO.device_id.
     limits : str
-        What the protocol cannot do, for ``--help`` and the README.
+        What the protocol cannot do, for ``--help`` and docs/devices.md.
     """
 
     name = ""

@@ -49,7 +49,7 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
   no start byte, no checksum: the decoders realign on the fixed bytes and plausible
     floats; a corrupted float byte is a wrong force or position
   the stock sketch renders its own environments: the firmware must apply the second
-    float as the handle force for function code 255 (see the README)
+    float as the handle force for function code 255 (see docs/devices.md)
   57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz"""
 
 
