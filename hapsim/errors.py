@@ -119,7 +119,7 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
     """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
 
     A negative verdict (exit code 1, as ``hapsim calibrate`` gives for the same target:
-    README's table) that is also a :class:`ConfigError`, so the message names the file,
+    docs/commands.md, 'Exit codes') that is also a :class:`ConfigError`, so the message names the file,
     the line and the key ``links.NAME.target``; :func:`hapsim.cli.main` tests for
     :class:`UnstableConfigError` first.
 

@@ -433,6 +433,11 @@ class Scene:
             raise err from None
 
     @property
+    def dimension(self) -> int:
+        """Degrees of freedom of the scene: 1 (n-D scenes are :mod:`hapsim.scene_nd`'s)."""
+        return 1
+
+    @property
     def period(self) -> float:
         """Sample period T = 1 / rate_hz [s]."""
         return 1.0 / self.rate_hz
@@ -1164,6 +1169,16 @@ def parse_scene(text: str, path: str = "<string>",
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
+    if "dimension" in doc:
+        try:
+            _check_key(_key("dimension"), doc["dimension"], "dimension")
+        except _Invalid as bad:
+            raise ctx.error(bad.message, ctx.line_of(doc, "dimension"), "dimension") from None
+        if doc["dimension"] != 1:
+            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check` reads it "
+                            "(hapsim.scene_nd); this reader and the commands that run a "
+                            "scene take dimension 1", ctx.line_of(doc, "dimension"),
+                            "dimension")
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
     device = _read_device(ctx, doc) if "device" in doc else None

@@ -245,6 +245,11 @@ _KEYS = [
     Key("audio", "mapping", default=None,
         doc="The scene's sound: a multi-rate model and its listening points; see `audio`.",
         example="audio: {rate_hz: 8000, listen: [{mass: hand}]}"),
+    Key("dimension", "integer", default=1, minimum=1, maximum=3,
+        doc="Degrees of freedom of the scene: 1 is this format; 2 and 3 are the planar and "
+            "spatial format of `hapsim.scene_nd` (vector positions, Euclidean links, "
+            "planes, kinematic devices), which `hapsim check` reads.",
+        example="dimension: 1"),
     # ------------------------------------------------------------------ masses[]
     Key("masses[].name", "string",
         doc="Unique name of the mass (links refer to it).",

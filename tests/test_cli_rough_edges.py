@@ -209,14 +209,14 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
     assert (f"hapsim run: the device of {dev} replaces the scene's (mass 0.05 -> 0.06; "
             f"friction 0.1 -> 0.12)") in err
     d = fake_run["scene"].device
-    assert (d.mass, d.friction, d.protocol, d.force_limit) == (0.06, 0.12, "firefader", 1.5)
+    assert (d.mass, d.friction, d.protocol, d.force_limit) == (0.06, 0.12, "firefader", 0.38)
     assert fake_run["driver"] == "firefader"
     # a file that names them: its values win, and the line says so
     dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  protocol: haply\n"
                    "  force_limit: 0.1\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err
-    assert "replaces the scene's (force_limit 1.5 -> 0.1; protocol firefader -> haply)" in err
+    assert "replaces the scene's (force_limit 0.38 -> 0.1; protocol firefader -> haply)" in err
     assert fake_run["driver"] == "haply"
 
 

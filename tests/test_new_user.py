@@ -1,7 +1,7 @@
 """What a new user hits (issue 10, "tracebacks and inconsistent answers"), through the CLI.
 
 Every case goes through ``hapsim.cli.main(argv)`` and asserts the one-line message on
-stderr and the exit code (0 ok, 1 negative verdict, 2 bad input; README's table).
+stderr and the exit code (0 ok, 1 negative verdict, 2 bad input; docs/commands.md, 'Exit codes').
 """
 
 from __future__ import annotations
@@ -226,7 +226,7 @@ def interrupted(argv, after, tmp_path, console=False):
                                    "1000", "--K", "1000", "--B", "1.5"]],
                          ids=["run", "render"])
 def test_ctrl_c_at_any_time_is_quiet(tmp_path, argv, after):
-    """README: Ctrl-C ends cleanly. run exits 0 once its own SIGINT handler is in place
+    """docs/getting-started.md: Ctrl-C ends cleanly. run exits 0 once its own SIGINT handler is in place
     (it stops the loop and reports); before that, and for every other command, exit 130
     with one line; a command that already finished exits with its own verdict (the code it
     has without Ctrl-C: render's example is unstable, 1). Never a traceback."""

@@ -171,3 +171,80 @@ def test_first_sample_reported_after_process_start():
                     handle_signals=False)
     age = time.monotonic() - process_start()
     assert 0 < rep["loop"]["first_sample_s"] <= age
+
+
+# --- the first run talks (issue 21): what numba will compile, said before it compiles ---
+
+def test_cache_folder_is_the_one_numba_uses():
+    """:func:`numba_cache_dir` finds, without numba, the folder numba's own locator caches
+    a compiled function of hapsim in (the kernels and the compiled loop)."""
+    from hapsim.daemon import fastloop
+    from hapsim.daemon.startup import numba_cache_dir
+    from hapsim.kernels import cordis
+    for disp in (cordis.run_sd, fastloop._stretch):
+        numba_dir = disp._cache._cache_path
+        assert os.path.realpath(numba_cache_dir(disp.py_func.__code__.co_filename)) == \
+            os.path.realpath(numba_dir)
+
+
+def test_cache_freshness_follows_the_index_and_the_source(tmp_path, monkeypatch):
+    """A function is fresh once an index newer than its module exists; editing the module
+    (a newer modification time) makes it stale again, as numba's own stamp does."""
+    from hapsim.daemon.startup import cache_is_fresh, numba_cache_dir
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    src = tmp_path / "pkg" / "kern.py"
+    src.parent.mkdir()
+    src.write_text("def run_sd(): pass\n")
+    os.utime(src, (1_000_000, 1_000_000))
+    assert not cache_is_fresh(str(src), "run_sd")
+    folder = Path(numba_cache_dir(str(src)))
+    assert folder.parent == tmp_path / "cache"
+    folder.mkdir(parents=True)
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+    index = folder / f"kern.run_sd-1.{tag}.nbi"
+    index.write_bytes(b"")
+    assert cache_is_fresh(str(src), "run_sd")
+    assert not cache_is_fresh(str(src), "run_contact")      # another function: not cached
+    os.utime(src, (os.stat(index).st_mtime + 10,) * 2)      # the module edited since
+    assert not cache_is_fresh(str(src), "run_sd")
+
+
+def test_cold_cache_is_announced_before_numba_is_imported(tmp_path, monkeypatch):
+    """With an empty cache the run's parts are named on stderr (once, with the folder) by
+    a process that has not imported numba yet; with a complete cache nothing is said."""
+    cache = tmp_path / "cache"
+    code = f"""
+import json, sys, io
+from hapsim.daemon import startup
+from hapsim.scene import load_scene
+parts = startup.run_compile_parts(load_scene({WALL!r}), compiled_loop=True)
+err = io.StringIO()
+said = startup.announce_compilation(parts, stream=err)
+print(json.dumps({{"said": said, "text": err.getvalue(), "numba": "numba" in sys.modules,
+                  "notice": startup.compile_notice() is not None,
+                  "parts": [(w, f) for w, _, f in parts]}}))
+"""
+    env = dict(os.environ, PYTHONPATH=str(REPO), NUMBA_CACHE_DIR=str(cache))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, cwd=str(REPO), timeout=120)
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["said"] and got["notice"] and not got["numba"]
+    assert got["parts"] == [["the engine's kernels", "run_sd"],
+                            ["the compiled host loop", "_stretch"]]
+    line, = got["text"].splitlines()
+    assert line.startswith("hapsim run: compiling the engine's kernels and the compiled host "
+                           "loop with numba (once") and str(cache) in line
+    # the same parts with their indexes written after the sources: nothing to say
+    from hapsim.daemon import startup
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    for _, src, fn in startup.run_compile_parts(load_scene(WALL), compiled_loop=True):
+        folder = Path(startup.numba_cache_dir(src))
+        assert folder.parent == cache
+        folder.mkdir(parents=True, exist_ok=True)
+        mod = Path(src).stem
+        tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+        (folder / f"{mod}.{fn}-1.{tag}.nbi").write_bytes(b"")
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, cwd=str(REPO), timeout=120)
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert not got["said"] and got["text"] == "" and not got["notice"]

@@ -2,7 +2,7 @@
 
 Usage: PYTHONPATH=. python tools/identify_blind.py [SEED] [N] [DURATION_S]
 Prints each miss (and every noise-free case) and the misses per quantity. A benchmark-style
-program, not a test: the coverage it prints is what the README states.
+program, not a test: the coverage it prints is what docs/identify.md states.
 """
 import time, numpy as np, sys
 from hapsim.scene import Device

@@ -85,7 +85,7 @@ def _g(v, spec=".4g"):
 
 
 def table(data: dict) -> str:
-    """Markdown table of the figures of merit (the README's).
+    """Markdown table of the figures of merit (docs/stability.md's).
 
     Parameters
     ----------

@@ -298,6 +298,11 @@ def run(args) -> int:
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
     args.announce = lambda port, n: _announce(port, n, said)
+    from hapsim.daemon.startup import announce_compilation, run_compile_parts
+    # an empty numba cache: say what is compiled before the silence it costs
+    corrected = scene.device is not None and getattr(scene.device, "correction", None)
+    announce_compilation(run_compile_parts(scene, compiled_loop=args.loop == "compiled"
+                                           and args.protocol == "framed" and not corrected))
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow

@@ -1396,6 +1396,10 @@ class HostLoop:
         else:
             mono_ns = time.monotonic_ns
         receive = tr.receive
+        # a request-reply device (a driver's) answers only what it is asked: a tick without
+        # a new sample asks again (hold: the last force), so one missing reply is one
+        # missing sample, not a silence that grows into a loss
+        hold = getattr(tr, "hold", None)
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -1470,6 +1474,8 @@ class HostLoop:
                 res.missed += 1
                 if clock() - last_new >= silence - 1e-6:
                     raise _Lost(f"no STATE from the device for {silence:g} s")
+                if hold is not None:
+                    hold()
                 deadline += period_ns
                 continue
             last_new = clock()

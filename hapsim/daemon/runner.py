@@ -41,7 +41,7 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.startup import preload_numba_blas, process_start
+from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -529,6 +529,9 @@ class RunOptions:
     telemetry_interval: float = 0.05
     loop: str = "compiled"
     driver: str | None = None
+    driver_options: dict | None = None
+    mock_options: dict | None = None
+    driver_faults: dict | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -573,7 +576,8 @@ class RunOptions:
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
         if self.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
-            get_driver(self.driver)             # unknown name: ConfigError before any work
+            # unknown name or bad parameters: ConfigError before any work
+            get_driver(self.driver, **(self.driver_options or {}))
             if not self.plan.empty:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")
@@ -799,7 +803,9 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
-                      if lockstep else 1.0,
+                      if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
+                      # (a driver's board may reset when its port opens: the FireFader's
+                      # Nano spends ~1 s in its bootloader before its first record)
                       # the embedded mock is a fresh Python process (imports take seconds
                       # on a loaded machine); hardware answers at once
                       hello_timeout=30.0 if opts.transport == "pty" else 5.0,
@@ -826,12 +832,17 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            notice = compile_notice()   # set when the command announced a cold cache
             preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
+            if notice is not None:
+                notice("the engine's kernels")
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
                 from hapsim.engine import Engine
                 warm_up(Engine(self.scene))
+                if notice is not None:
+                    notice("the compiled host loop")
         except BaseException as exc:  # re-raised by finish() in the caller's thread
             self.error = exc
 
@@ -932,12 +943,21 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            drv = get_driver(opts.driver)
+            dopt = dict(opts.driver_options or {})
+            if opts.driver == "haply" and opts.port is None:
+                # the board's set-up sets the encoder's count to the offset: the embedded
+                # mock is armed with the joint at the excitation's x0
+                dopt.setdefault("offset_deg", math.degrees(scene.excitation.x0))
+            drv = get_driver(opts.driver, **dopt)
+            drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
-                                              scene.rate_hz, seed=opts.seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                                              scene.rate_hz, seed=opts.seed,
+                                              options=opts.mock_options,
+                                              faults=opts.driver_faults)
+                # the mock is paced by the commands: a slow mock process is no lost answer
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=dev.delay)
@@ -1418,6 +1438,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -1443,6 +1465,9 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "device_id": hello.device_id, "force_limit": hello.force_limit,
             "native_rate_hz": hello.native_rate_hz},
         "mock": mock_report,
+        # a driver's link: commands, records, missing samples, re-synchronisations, and
+        # the firmware seen (hapsim.drivers.transport.DriverTransport.report)
+        "driver": tr.report() if hasattr(tr, "report") else None,
         "excitation_end_s": prep.exc_end,
         "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
         "implausible": res.implausible,
@@ -1484,7 +1509,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
               telemetry_interval: float = 0.05, osc: int | None = None,
               osc_ramp: float = 0.05, sound: str | None = None,
               jack_server: str | None = None,
-              driver: str | None = None, loop: str = "compiled", embedded=None) -> dict:
+              driver: str | None = None, loop: str = "compiled", embedded=None,
+              driver_options: dict | None = None, mock_options: dict | None = None,
+              driver_faults: dict | None = None) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
@@ -1560,6 +1587,16 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         the loop is then host-clocked through a
         :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
         driver's mock (paced by the host) without a port.
+    driver_options : dict, optional
+        The driver's device parameters (its constructor's keywords: FireFader
+        ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
+        ``resolution``, ``direction``).
+    mock_options : dict, optional
+        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        which may differ from what ``driver_options`` believe.
+    driver_faults : dict, optional
+        Seeded byte loss and corruption on the driver mock's link, both directions
+        (:class:`hapsim.drivers.mock.ByteFaults`).
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -1615,7 +1652,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
                       reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
                       telemetry_interval=telemetry_interval, osc=osc,
                       osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop, embedded=embedded)
+                      driver=driver, loop=loop, embedded=embedded,
+                      driver_options=driver_options, mock_options=mock_options,
+                      driver_faults=driver_faults)
     try:
         opts.check()
         if embedded is not None and (opts.transport != "pty"
@@ -1723,7 +1762,10 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
+    protocol = lp.get("protocol", "framed")
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+                          else ", lockstep" if lp["lockstep"]
+                          else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
@@ -1796,7 +1838,7 @@ def format_report(rep: dict) -> str:
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
     if lp.get("python_reason"):
-        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+        lines.append(f"loop: the Python loop ran, not the compiled one: {lp['python_reason']}")
     if lp.get("first_sample_s") is not None:
         lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
                      f"started")

@@ -9,6 +9,11 @@ now :func:`hapsim.analysis.ths.brent_root`) and ``scipy.linalg``, which numba im
 first time it sets up its compiler, even to load a cached function, only to check that
 its BLAS bindings (``scipy.linalg.cython_blas``) exist. :func:`preload_numba_blas` loads
 that one extension module by itself, so that numba's check passes without the package.
+
+The first run with an empty numba cache compiles the kernels it needs (tens of seconds on
+a small machine). :func:`announce_compilation` says so on stderr before anything is
+compiled, from the files in numba's cache alone (numba is not imported for it), and
+:func:`compile_notice` lets the warm-up report each part as it is done.
 """
 
 from __future__ import annotations
@@ -17,7 +22,8 @@ import os
 import sys
 import time
 
-__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock"]
+__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
+           "cache_is_fresh", "run_compile_parts", "announce_compilation", "compile_notice"]
 
 
 def process_start() -> float:
@@ -87,6 +93,147 @@ def preload_numba_blas() -> bool:
     except Exception:   # noqa: BLE001 - any failure: numba imports scipy.linalg itself
         return False
     return False
+
+
+def numba_cache_dir(source: str) -> str:
+    """The folder numba caches the compiled functions of the module ``source`` in.
+
+    numba's own order (``numba.core.caching``, 0.5x-0.6x): ``NUMBA_CACHE_DIR`` when set
+    (a sub-folder named after the module's folder and the SHA-1 of its path), else the
+    module's ``__pycache__`` when it can be written, else the user's cache folder
+    (``$XDG_CACHE_HOME/numba`` or ``~/.cache/numba``, the same sub-folder).
+
+    Parameters
+    ----------
+    source : str
+        Path of the Python module.
+
+    Returns
+    -------
+    str
+        The folder (it may not exist yet).
+    """
+    import hashlib
+    folder = os.path.dirname(os.path.abspath(source))
+    sub = os.path.basename(folder) + "_" + hashlib.sha1(folder.encode()).hexdigest()
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return os.path.join(os.environ["NUMBA_CACHE_DIR"], sub)
+    tree = os.path.join(folder, "__pycache__")
+    if os.access(tree if os.path.isdir(tree) else folder, os.W_OK):
+        return tree
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "numba", sub)
+
+
+def cache_is_fresh(source: str, function: str) -> bool:
+    """Whether numba's cache holds ``function`` of module ``source`` compiled from the
+    module as it is now (an index file written after the module's last change).
+
+    Parameters
+    ----------
+    source : str
+        Path of the Python module.
+    function : str
+        The function's qualified name in it (``run_sd``).
+
+    Returns
+    -------
+    bool
+        False when no index exists or every index is older than the module (numba then
+        compiles: it keys its cache on the module's modification time).
+    """
+    import glob
+    mod = os.path.splitext(os.path.basename(source))[0]
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+    pattern = os.path.join(glob.escape(numba_cache_dir(source)), f"{mod}.{function}-*.{tag}.nbi")
+    try:
+        changed = os.stat(source).st_mtime
+        return any(os.stat(p).st_mtime >= changed for p in glob.glob(pattern))
+    except OSError:
+        return False
+
+
+def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str]]:
+    """What ``hapsim run`` compiles before its first sample: ``(what, module, function)``
+    for each part, the scene's engine kernels and, with the compiled host loop, the loop.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run (its integrator names the kernels' module).
+    compiled_loop : bool
+        The run answers the device with the compiled host loop.
+
+    Returns
+    -------
+    list of tuple of str
+        ``(description, module path, a function of it the part always compiles)``.
+    """
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    kinds = {lk.kind for lk in scene.links}
+    if scene.integrator == "centred":       # hapsim.kernels.cordis.KERNELS, by link kinds
+        kernels = "cordis.py"
+        kernel_fn = {frozenset(): "run_masses", frozenset({"spring_damper"}): "run_sd",
+                     frozenset({"contact"}): "run_contact"}.get(frozenset(kinds),
+                                                                "run_sd_contact")
+    else:
+        kernels = "schemes.py"
+        kernel_fn = ("run_symplectic_euler" if scene.integrator == "symplectic_euler"
+                     else "run_exact")
+    parts = [("the engine's kernels", os.path.join(here, "kernels", kernels), kernel_fn)]
+    if compiled_loop:
+        parts.append(("the compiled host loop", os.path.join(here, "daemon", "fastloop.py"),
+                      "_stretch"))
+    return parts
+
+
+_NOTICE = None
+
+
+def announce_compilation(parts, *, command: str = "hapsim run", stream=None) -> bool:
+    """Say on ``stream`` (stderr) which of ``parts`` numba will compile, before it does.
+
+    Nothing is printed when every part is in numba's cache. Otherwise one line names the
+    parts, says it happens once and where the result is kept, and :func:`compile_notice`
+    returns a reporter for the warm-up until the process ends.
+
+    Parameters
+    ----------
+    parts : list of tuple of str
+        :func:`run_compile_parts`.
+    command : str
+        The command's name, which starts the line.
+    stream : file, optional
+        Where to print (default ``sys.stderr``).
+
+    Returns
+    -------
+    bool
+        True when something will be compiled.
+    """
+    global _NOTICE
+    stream = sys.stderr if stream is None else stream
+    cold = [(what, src) for what, src, fn in parts if not cache_is_fresh(src, fn)]
+    if not cold:
+        return False
+    names = " and ".join(what for what, _ in cold)
+    where = sorted({numba_cache_dir(src) for _, src in cold})
+    print(f"{command}: compiling {names} with numba (once: the first run after an install "
+          f"or an update; later runs load them from {', '.join(where)}) ...",
+          file=stream, flush=True)
+    t0 = time.monotonic()
+
+    def notice(what: str) -> None:
+        print(f"{command}: compiled {what} ({time.monotonic() - t0:.1f} s since the "
+              f"announcement)", file=stream, flush=True)
+    _NOTICE = notice
+    return True
+
+
+def compile_notice():
+    """The reporter :func:`announce_compilation` set up (``notice(what)`` prints that
+    ``what`` is compiled and the time since), or None when nothing was announced."""
+    return _NOTICE
 
 
 def _import_real(name: str) -> bool:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 __all__ = ["Driver", "MappedDecoder", "AlignedDecoder"]
 
 
@@ -90,7 +92,7 @@ class Driver:
     device_id : int
         Reported as HELLO.device_id.
     limits : str
-        What the protocol cannot do, for ``--help`` and the README.
+        What the protocol cannot do, for ``--help`` and docs/devices.md.
     """
 
     name = ""
@@ -102,6 +104,61 @@ class Driver:
     native_rate_hz = 1000.0
     device_id = 0
     limits = ""
+    #: What :meth:`hapsim.drivers.transport.DriverTransport.report` says of a firmware
+    #: that answers each command, and of one that streams records unprompted.
+    #: Records to let pass after arming, at zero force, before the first sample: a
+    #: firmware whose force comes up slowly (the FireFader's enable ramp) is full by then.
+    arming_records = 0
+    #: The device's parser has no framing: answers that stop while commands go out mean
+    #: it may be inside a garbage command (the transport re-synchronises it).
+    unframed = False
+    answering_firmware = "answers each command"
+    streaming_firmware = "streams records unprompted"
+
+    def round_trip_s(self) -> float:
+        """Shortest time from a command's first byte to the end of its answer [s] (wire
+        time of both at the baud rate, 10 bits a byte, plus the device's own work); 0 for
+        a link whose wire time is negligible (USB at full speed)."""
+        return 0.0
+
+    def max_rate_hz(self) -> float:
+        """Highest host rate whose period holds a command and its answer [Hz] (inf when
+        the link sets no bound)."""
+        rt = self.round_trip_s()
+        return 1.0 / rt if rt > 0 else math.inf
+
+    def check_rate(self, rate_hz: float) -> None:
+        """Refuse a rate the device cannot hold: its period must hold one command and its
+        answer (:meth:`round_trip_s`), or answers come a period late and are taken for the
+        next command's (the protocols have no sequence number).
+
+        Parameters
+        ----------
+        rate_hz : float
+            The scene's rate [Hz].
+
+        Raises
+        ------
+        ConfigError
+            The period is shorter than the round trip; the message gives the round trip's
+            parts and the highest rate the device can hold.
+        """
+        top = self.max_rate_hz()
+        if rate_hz > top:
+            from hapsim.errors import ConfigError
+            raise ConfigError(
+                f"{self.name}: {rate_hz:g} Hz cannot be held: {self.rate_reason()}; the "
+                f"highest rate this device can hold is {math.floor(top):d} Hz", key="rate_hz")
+
+    def rate_reason(self) -> str:
+        """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message)."""
+        return f"a command and its answer take {self.round_trip_s() * 1e3:.3g} ms"
+
+    def resync(self, position: float = 0.0) -> bytes:
+        """Bytes that put a device which lost its place in the byte stream back in step,
+        zero force first (default: a zero-force command; a start byte re-aligns a framed
+        device by itself). ``position`` is the last position read [m] or [rad]."""
+        return self.encode_force(0.0)
 
     def encode_force(self, force: float) -> bytes:
         """Bytes commanding ``force`` [N] on the driven axis (zero on the others)."""
