@@ -148,6 +148,10 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     rep = run_scene(scene, driver="firefader", telemetry=tel, handle_signals=False,
                     rt_priority=0)
     assert rep["loop"]["mode"] == "host-clocked"
+    # the header names the protocol, not a lockstep nobody asked for (issue 21)
+    from hapsim.daemon.runner import format_report
+    head = format_report(rep).splitlines()[0]
+    assert head.endswith("(host-clocked, firefader protocol)") and "lockstep" not in head
     meas, pred = rep["measured"], rep["predicted"]
     assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
     assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
@@ -295,12 +299,32 @@ def test_hapkit_serial_hostile_streams():
 
 
 def test_hapkit_serial_config_rate_figure():
-    """configs/hapkit_serial.yaml says 57600 baud allows at most ~300 Hz: 10 + 9 bytes of
-    10 bits each per sample (start, 8 data, stop)."""
+    """configs/hapkit_serial.yaml and the driver's limits say 57600 baud allows at most
+    ~300 Hz: the bytes the driver really sends and the mock really answers per sample, 10
+    bits each on the wire (start, 8 data, stop), at the driver's baud rate."""
+    import re
     from pathlib import Path
+
+    from hapsim.drivers import hapkit_serial as hs
     text = (Path(__file__).resolve().parent.parent / "configs" / "hapkit_serial.yaml").read_text()
-    assert "57600 baud (at most ~300 Hz)" in text
-    assert 290 < 57600 / ((10 + 9) * 10) < 310
+    drv = get_driver("hapkit-serial")
+    command = drv.encode_force(0.5)
+    reply = hs.reply_packet(drv.function, 0.01, 0.5)
+    per_sample = len(command) + len(reply)
+    # the decoders take exactly these lengths: a sample is one command and one reply
+    assert (hs.CommandDecoder.length, hs.ReplyDecoder.length) == (len(command), len(reply))
+    max_rate = drv.baud / (10 * per_sample)
+    said = re.search(r"(\d+) baud \(at most ~(\d+) Hz\)", text)
+    assert int(said.group(1)) == drv.baud
+    assert abs(int(said.group(2)) - max_rate) / max_rate < 0.05, (said.group(2), max_rate)
+    limit = re.search(r"(\d+) bytes per sample take ([\d.]+) ms on the wire: at most ~(\d+) Hz",
+                      hs.LIMITS)
+    assert int(limit.group(1)) == per_sample
+    assert float(limit.group(2)) == pytest.approx(1e3 / max_rate, abs=0.05)
+    assert int(limit.group(3)) == int(said.group(2))
+    # a scene faster than the wire allows is not what the shipped one asks
+    from hapsim.scene import load_scene
+    assert load_scene("configs/hapkit_serial.yaml").rate_hz <= max_rate
 
 
 def test_hapkit_serial_closed_loop_through_its_mock():
