@@ -945,7 +945,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            dopt = dict(opts.driver_options or {})
+            # the device's parameters: given, else the scene's device.protocol_options
+            # when the scene's device speaks this protocol
+            dopt = dict(opts.driver_options if opts.driver_options is not None
+                        else dev.protocol_options or {} if dev.protocol == opts.driver
+                        else {})
             if opts.driver == "haply" and opts.port is None:
                 # the board's set-up sets the encoder's count to the offset: the embedded
                 # mock is armed with the joint at the excitation's x0
@@ -956,7 +960,9 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
-                                              options=opts.mock_options,
+                                              options=(opts.mock_options
+                                                       if opts.mock_options is not None
+                                                       else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)

@@ -121,6 +121,18 @@ class Driver:
     answering_firmware = "answers each command"
     streaming_firmware = "streams records unprompted"
 
+    def options(self) -> dict:
+        """The device parameters this driver was built with (its constructor's keywords
+        and their values): what ``device.protocol_options`` holds."""
+        import inspect
+        names = [n for n in inspect.signature(type(self).__init__).parameters if n != "self"]
+        return {n: getattr(self, n) for n in names if hasattr(self, n)}
+
+    def mock_hardware(self) -> dict:
+        """The keywords of this driver's mock (:mod:`hapsim.drivers.mock`) that build the
+        device this driver describes (by default none)."""
+        return {}
+
     def round_trip_s(self) -> float:
         """Shortest time from a command's first byte to the end of its answer [s] (wire
         time of both at the baud rate, 10 bits a byte, plus the device's own work); 0 for

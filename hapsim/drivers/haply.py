@@ -408,6 +408,10 @@ class HaplyM3(Driver):
         self.offset_deg = float(offset_deg)
         self.position_scale = 2 * math.pi / self.resolution
 
+    def mock_hardware(self) -> dict:
+        """The mock's encoder: this many counts per revolution."""
+        return {"cpr": self.resolution}
+
     def resync(self, position: float = 0.0) -> bytes:
         """Put the board back in step, zero torque first (module notes): a zero-torque
         write (taken if the board is in step), :data:`LONGEST_COMMAND` zero bytes (inside a
