@@ -339,7 +339,8 @@ def _replace_device(scene, path: str):
     """The scene with its device section replaced by the file's (``--device FILE``).
 
     What the file leaves out and the scene gives is kept: the force limit (``hapsim
-    identify --out`` does not measure it) and the protocol. One line on stderr says what
+    identify --out`` does not measure it), the protocol and, with the same protocol, its
+    options (``device.protocol_options``). One line on stderr says what
     was replaced, and by which values.
 
     Parameters
@@ -366,6 +367,10 @@ def _replace_device(scene, path: str):
     if old is not None:
         keep = {name: getattr(old, name) for name in ("force_limit", "protocol")
                 if name not in given}
+        # the device's own parameters go with its protocol: kept when the file names
+        # neither them nor another protocol
+        if "protocol_options" not in given and keep.get("protocol", dev.protocol) == old.protocol:
+            keep["protocol_options"] = old.protocol_options
         dev = dataclasses.replace(dev, **keep)
     changed = [] if old is None else [
         f"{f.name} {_short(getattr(old, f.name))} -> {_short(getattr(dev, f.name))}"
