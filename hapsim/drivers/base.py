@@ -93,6 +93,10 @@ class Driver:
         Reported as HELLO.device_id.
     limits : str
         What the protocol cannot do, for ``--help`` and docs/devices.md.
+    position_rel, force_rel : float
+        Largest relative rounding of the position / force fields on the wire (``2^-24``
+        for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
+        (:func:`hapsim.daemon.runner.identify_run`).
     """
 
     name = ""
@@ -104,6 +108,8 @@ class Driver:
     native_rate_hz = 1000.0
     device_id = 0
     limits = ""
+    position_rel = 0.0
+    force_rel = 0.0
     #: What :meth:`hapsim.drivers.transport.DriverTransport.report` says of a firmware
     #: that answers each command, and of one that streams records unprompted.
     #: Records to let pass after arming, at zero force, before the first sample: a

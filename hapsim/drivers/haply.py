@@ -373,6 +373,9 @@ class HaplyM3(Driver):
         A bad id, resolution or direction (the key and the valid range named).
     """
 
+    position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
+    force_rel = 2.0 ** -24
+
     name = "haply"
     baud = 115200                     # USB CDC: ignored
     rtscts = False
