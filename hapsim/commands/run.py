@@ -52,8 +52,12 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller
   with max_damping [N s/m] that damps that excess.
+drivers' devices (--driver): a reply that does not come is a missing sample (counted;
+  the next tick asks again), not a lost device; the FireFader .ino disables its force
+  after 0.1 s of silence, the Haply board and the Hapkit sketch have NO watchdog and hold
+  the last force: hapsim sends zero force first and at every end (docs/drivers.md).
 reliability: bad frames are counted and dropped; silence for --lost-timeout (default:
-  the 50 ms watchdog period, when the device zeroes its force by itself), a port error or
+  the 50 ms watchdog period, when a framed device zeroes its force by itself), a port error or
   a device reset (a HELLO after arming: noticed at once) -> zero force, STOP, state
   'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
