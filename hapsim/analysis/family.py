@@ -302,11 +302,28 @@ class FamilyResult:
     links: dict = field(default_factory=dict)
     calibrated: dict = field(default_factory=dict)
     period: float = 1e-3
+    certificate: object = None
 
     @property
     def robust(self) -> bool:
-        """Whether every member is stable (robust stability over the family)."""
+        """Whether no member is known unstable: every sampled member stable and, when the
+        ranges were certified (:mod:`hapsim.analysis.robust`), no unstable member found
+        between them. Over the continuous ranges only when :attr:`robust_method` is
+        ``"certified"``."""
+        cert = self.certificate
+        if cert is not None and cert.certified and not cert.robust:
+            return False
         return bool(np.all(self.stable))
+
+    @property
+    def robust_method(self) -> str:
+        """``"certified"`` (the verdict holds for every member of the continuous ranges:
+        proven by :func:`hapsim.analysis.robust.certify_family`, or an unstable member is a
+        proof) or ``"sampled (N)"`` (N members examined, nothing said between them)."""
+        cert = self.certificate
+        if not np.all(self.stable) or (cert is not None and cert.certified):
+            return "certified"
+        return f"sampled ({self.members.shape[0]})"
 
     @property
     def worst(self) -> int:
@@ -328,7 +345,10 @@ class FamilyResult:
         Returns
         -------
         dict
-            ``members`` (count), ``corners``, ``robust``, ``worst`` (:meth:`member_dict`),
+            ``members`` (count), ``corners``, ``robust``, ``robust_method``
+            (:attr:`robust_method`), ``certificate`` (the subdivision's
+            :meth:`hapsim.analysis.robust.Certificate.to_dict`, or None), ``worst``
+            (:meth:`member_dict`),
             ``unstable`` (count), ``first_unstable`` (member dict or None),
             ``corners_stable``, ``felt`` (``k``, ``b`` stats: min, max, nominal, spread =
             (max - min) / nominal), ``links`` (per link: K, B and the same stats),
@@ -341,7 +361,10 @@ class FamilyResult:
             links[name] = {"K": d["K"], "B": d["B"], "k": _stats(d["k"], d["k"][nom]),
                            "b": _stats(d["b"], d["b"][nom])}
         return {"members": int(self.members.shape[0]), "corners": int(self.corners),
-                "robust": self.robust, "unstable": int(bad.size),
+                "robust": self.robust, "robust_method": self.robust_method,
+                "certificate": (None if self.certificate is None
+                                else self.certificate.to_dict()),
+                "unstable": int(bad.size),
                 "corners_stable": bool(np.all(self.stable[:self.corners])),
                 "worst": self.member_dict(self.worst),
                 "first_unstable": self.member_dict(int(bad[0])) if bad.size else None,
@@ -352,7 +375,8 @@ class FamilyResult:
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
-           calibrated=None, mem: np.ndarray | None = None) -> FamilyResult:
+           calibrated=None, mem: np.ndarray | None = None,
+           certify: int = 0) -> FamilyResult:
     """Felt (k, b), spectral radius and verdict of every member of a scene's hand family.
 
     Parameters
@@ -372,6 +396,10 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     mem : ndarray, shape (n, 4), optional
         Explicit members (overrides ``samples``/``grid``; no corners then: ``corners = 0``
         and row 0 is taken as nominal).
+    certify : int, optional
+        When > 0 and every sampled member is stable, certify the verdict over the
+        continuous ranges with at most this many boxes
+        (:func:`hapsim.analysis.robust.certify_family`); 0: sampled only.
 
     Returns
     -------
@@ -408,8 +436,13 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
             lk_k, lk_b, _, _ = felt_pairs(family_poles(sub, mem, calibrated=cal), mass, T)
         links[lk.name] = {"K": K, "B": B, "k": lk_k, "b": lk_b,
                           "target": None if lk.target is None else tuple(lk.target)}
+    cert = None
+    if certify > 0 and np.all(stable):
+        from hapsim.analysis.robust import certify_family
+        cert = certify_family(scene, calibrated, max_boxes=int(certify))
     return FamilyResult(members=mem, corners=corners, mass=mass, rho=rho, stable=stable,
-                        k=k, b=b, links=links, calibrated=dict(calibrated), period=T)
+                        k=k, b=b, links=links, calibrated=dict(calibrated), period=T,
+                        certificate=cert)
 
 
 # --------------------------------------------------------------------------- minimax

@@ -52,8 +52,12 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller
   with max_damping [N s/m] that damps that excess.
+drivers' devices (--driver): a reply that does not come is a missing sample (counted;
+  the next tick asks again), not a lost device; the FireFader .ino disables its force
+  after 0.1 s of silence, the Haply board and the Hapkit sketch have NO watchdog and hold
+  the last force: hapsim sends zero force first and at every end (docs/drivers.md).
 reliability: bad frames are counted and dropped; silence for --lost-timeout (default:
-  the 50 ms watchdog period, when the device zeroes its force by itself), a port error or
+  the 50 ms watchdog period, when a framed device zeroes its force by itself), a port error or
   a device reset (a HELLO after arming: noticed at once) -> zero force, STOP, state
   'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
@@ -376,7 +380,8 @@ def _replace_device(scene, path: str):
     """The scene with its device section replaced by the file's (``--device FILE``).
 
     What the file leaves out and the scene gives is kept: the force limit (``hapsim
-    identify --out`` does not measure it) and the protocol. One line on stderr says what
+    identify --out`` does not measure it), the protocol and, with the same protocol, its
+    options (``device.protocol_options``). One line on stderr says what
     was replaced, and by which values.
 
     Parameters
@@ -403,6 +408,10 @@ def _replace_device(scene, path: str):
     if old is not None:
         keep = {name: getattr(old, name) for name in ("force_limit", "protocol")
                 if name not in given}
+        # the device's own parameters go with its protocol: kept when the file names
+        # neither them nor another protocol
+        if "protocol_options" not in given and keep.get("protocol", dev.protocol) == old.protocol:
+            keep["protocol_options"] = old.protocol_options
         dev = dataclasses.replace(dev, **keep)
     changed = [] if old is None else [
         f"{f.name} {_short(getattr(old, f.name))} -> {_short(getattr(dev, f.name))}"
