@@ -72,7 +72,7 @@ def test_site_builds_with_warnings_as_errors(tmp_path):
     file or field is missing; the built pages hold the figures of the tools' files."""
     pytest.importorskip("mkdocs", reason="mkdocs is in the test extra: pip install -e '.[test]'")
     site = tmp_path / "site"
-    p = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet",
+    p = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict",
                         "--config-file", str(ROOT / "mkdocs.yml"), "--site-dir", str(site)],
                        capture_output=True, text=True, cwd=str(ROOT), timeout=300)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]

@@ -105,6 +105,10 @@ def run(args: argparse.Namespace) -> int:
     UnrenderableTargetError
         A target that is not renderable (a negative verdict: exit code 1).
     """
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D check
+        from hapsim.commands.check_nd import run_nd
+        return run_nd(args)
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
     from hapsim.scene import load_scene
