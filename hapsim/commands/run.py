@@ -178,7 +178,7 @@ def register(sub) -> None:
                         "auto); the model stays in the loop, the frames go to the server")
     p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, early=_early)
 
 
 def _clean(obj):
@@ -191,7 +191,7 @@ def _clean(obj):
     return obj
 
 
-def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
+def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
     """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
     stops it cleanly.
 
@@ -204,10 +204,12 @@ def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
     protocol : str
         What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
         protocol (the scene's device.protocol)"``, ...).
+    note : str
+        Appended (which host loop runs, when it is not the one asked for).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
-          f"for {length} (SIGINT/SIGTERM stop cleanly)",
+          f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
           file=sys.stderr, flush=True)
 
 
@@ -266,7 +268,7 @@ def run(args) -> int:
     DeviceError, ProtocolError
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
-    from hapsim.scene import load_scene
+    from hapsim.scene import load_scene     # numpy: after the early notice (_early)
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
@@ -286,6 +288,8 @@ def run(args) -> int:
     if args.faults:
         from hapsim.daemon.faults import parse_faults
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
+    from hapsim.daemon import startup
+    startup.announce_new_install()      # said already by _early when run from the CLI
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
@@ -304,8 +308,8 @@ def run(args) -> int:
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
-    args.announce = lambda port, n: _announce(port, n, said)
-    from hapsim.daemon import startup
+    note = ""
+    args.announce = lambda port, n: _announce(port, n, said, note)
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
     possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
@@ -317,10 +321,9 @@ def run(args) -> int:
     compile_later = asked == "auto" and args.loop == "python"
     startup.announce_compilation(startup.run_compile_parts(
         scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
-    if compile_later:
-        print("hapsim run: the compiled host loop is not in numba's cache yet: this run uses "
-              "the Python loop (the same forces, bit for bit) and compiles it after the "
-              "report, for the next runs", file=sys.stderr, flush=True)
+    if compile_later:           # said when the loop starts (not before an input error)
+        note = ("; the Python host loop this time (the compiled one is not in numba's cache "
+                "yet: it is compiled after the report, for the next runs)")
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
@@ -425,6 +428,14 @@ def _replace_device(scene, path: str):
 
 def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
+def _early(args) -> None:
+    """What ``hapsim run`` says before anything heavy is imported (:func:`hapsim.cli.main`
+    calls it first): on a new install, that the engine's kernels are compiled once."""
+    from hapsim.daemon import startup
+    startup.reset_announcements()
+    startup.announce_new_install()
 
 
 def _run(scene, args, embedded=None) -> dict:
