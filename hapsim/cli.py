@@ -253,8 +253,6 @@ def _main(argv: list[str], want_json: bool) -> int:
             return code
         command = f"hapsim {args.command}"
         try:
-            if getattr(args, "early", None) is not None:
-                args.early(args)          # before numpy: what the command says at once
             import numpy as np
             # overflow/invalid in the analysis of extreme loops shows up in the results
             # (nan, inf, an unstable verdict); numpy's RuntimeWarnings on stderr only

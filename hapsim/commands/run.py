@@ -178,7 +178,7 @@ def register(sub) -> None:
                         "auto); the model stays in the loop, the frames go to the server")
     p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.set_defaults(func=run, early=_early)
+    p.set_defaults(func=run)
 
 
 def _clean(obj):
@@ -268,7 +268,7 @@ def run(args) -> int:
     DeviceError, ProtocolError
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
-    from hapsim.scene import load_scene     # numpy: after the early notice (_early)
+    from hapsim.scene import load_scene
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
@@ -288,11 +288,15 @@ def run(args) -> int:
     if args.faults:
         from hapsim.daemon.faults import parse_faults
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
-    from hapsim.daemon import startup
-    startup.announce_new_install()      # said already by _early when run from the CLI
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
+    # its one-line error alone) before the silence it costs
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -428,14 +432,6 @@ def _replace_device(scene, path: str):
 
 def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
-
-
-def _early(args) -> None:
-    """What ``hapsim run`` says before anything heavy is imported (:func:`hapsim.cli.main`
-    calls it first): on a new install, that the engine's kernels are compiled once."""
-    from hapsim.daemon import startup
-    startup.reset_announcements()
-    startup.announce_new_install()
 
 
 def _run(scene, args, embedded=None) -> dict:

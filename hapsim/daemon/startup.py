@@ -25,8 +25,7 @@ import time
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
            "cache_is_fresh", "loop_stamp", "loop_is_fresh", "scene_kernel", "choose_loop",
            "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
-           "engine_never_compiled", "reset_announcements", "announce_new_install",
-           "announce_compilation", "compile_notice"]
+           "reset_announcements", "announce_compilation", "compile_notice"]
 
 
 def process_start() -> float:
@@ -275,17 +274,6 @@ def reset_announcements() -> None:
     _SAID.clear()
 
 
-def engine_never_compiled() -> bool:
-    """No engine kernel is in numba's cache at all (a new install, or every kernel module
-    changed since): then the run will compile one, whatever its scene, and can say so
-    before it reads the scene (and imports numpy)."""
-    for mod in ("cordis", "schemes"):
-        src = os.path.join(_HERE, "kernels", f"{mod}.py")
-        if _any_fresh(src, "run_*"):
-            return False
-    return True
-
-
 def _any_fresh(source: str, function_glob: str) -> bool:
     import glob
     mod = os.path.splitext(os.path.basename(source))[0]
@@ -297,17 +285,6 @@ def _any_fresh(source: str, function_glob: str) -> bool:
         return any(os.stat(p).st_mtime >= changed for p in glob.glob(pattern))
     except OSError:
         return False
-
-
-def announce_new_install(*, command: str = "hapsim run", stream=None) -> bool:
-    """:func:`announce_compilation` of the engine's kernels when none is in numba's cache
-    (:func:`engine_never_compiled`), before the scene is read: the first line of a new
-    install's first run comes within the interpreter's start-up."""
-    if not engine_never_compiled():
-        return False
-    src = os.path.join(_HERE, "kernels", "cordis.py")
-    return announce_compilation([("the engine's kernels", src, None)], command=command,
-                                stream=stream)
 
 
 def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
