@@ -623,10 +623,11 @@ class IdentifyReport(_Report):
     plot: str | None
     note: str | None = None
 
-    def device_yaml(self, force_limit: float = 2.0) -> str:
-        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``)."""
+    def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
+        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``;
+        ``driver``: the :class:`hapsim.drivers.base.Driver` whose protocol it names)."""
         from hapsim.device_file import device_yaml
-        return device_yaml(self.fit, force_limit, hand=self.hand)
+        return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
 
 
 def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115200,
@@ -634,7 +635,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              duration: float = 4.0, rate_hz: float = 1000.0, max_delay: int = 20,
              lockstep: bool = False, seed: int = 0, hand: bool = False,
              transport: str | None = None, progress: bool = False,
-             handle_signals: bool = False) -> IdentifyReport:
+             handle_signals: bool = False,
+             driver_options: dict | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -668,6 +670,9 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
         A progress bar on stderr when it is a terminal.
     handle_signals : bool
         Stop cleanly on SIGINT/SIGTERM (a library leaves them to its caller by default).
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
 
     Returns
     -------
@@ -699,7 +704,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
                          envelope=envelope, duration=duration, rate_hz=rate_hz,
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
-                         transport=transport, handle_signals=handle_signals)
+                         transport=transport, handle_signals=handle_signals,
+                         driver_options=driver_options)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -709,7 +715,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
-             transport=None, progress=True, handle_signals=True, driver=None):
+             transport=None, progress=True, handle_signals=True, driver=None,
+             driver_options=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -726,6 +733,9 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
     driver : str, optional
         Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
 
     Returns
     -------
@@ -746,7 +756,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver)
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
     # one uniform record: the longest stretch without a missing STATE
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1

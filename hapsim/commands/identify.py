@@ -69,6 +69,10 @@ def register(sub) -> None:
     p.add_argument("--baud", type=int, default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
+    p.add_argument("--protocol-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a driver's device parameter (device.protocol_options; repeat: "
+                        "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
+                        "Haply board); written to --out with the protocol")
     p.add_argument("--out", metavar="FILE.yaml", help="write the device section there")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE.png", help="plot measured vs model response")
@@ -156,16 +160,39 @@ def run(args) -> int:
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")
+    dopts = None
+    drv = None
+    if args.driver != "framed":
+        from hapsim.drivers import get_driver
+        dopts = dict(device.protocol_options or {}) if (
+            device is not None and device.protocol == args.driver) else {}
+        for item in args.protocol_option:
+            key, sep, val = item.partition("=")
+            if not sep:
+                raise ConfigError(f"must be KEY=VALUE, got {item!r}", key="--protocol-option")
+            try:
+                dopts[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
+            except ValueError:
+                raise ConfigError(f"{key}: must be a number, got {val!r}",
+                                  key="--protocol-option") from None
+        try:
+            drv = get_driver(args.driver, **dopts)
+        except TypeError as exc:
+            raise ConfigError(f"{exc}", key="--protocol-option") from None
+    elif args.protocol_option:
+        raise ConfigError("the framed protocol takes no options (its device says its units "
+                          "in HELLO); give --driver", key="--protocol-option")
     from hapsim.api import identify as identify_api
     rep = identify_api(args.port, baud=args.baud, device=device,
                        force_limit=args.force_limit, envelope=args.envelope,
                        duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
                        lockstep=args.lockstep, seed=args.seed, driver=args.driver,
-                       hand=args.hand, progress=True, handle_signals=True)
+                       driver_options=dopts, hand=args.hand, progress=True,
+                       handle_signals=True)
     fit, rec = rep.fit, rep.record
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
-    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source)
+    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
