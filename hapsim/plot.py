@@ -16,7 +16,7 @@ __all__ = ["PLOT_INSTALL", "plot_grid", "save_figure", "figure_formats", "check_
 
 
 #: How to install the plot extra (matplotlib): the README's command, in hapsim's checkout.
-PLOT_INSTALL = "pip install -e '.[plot]'"
+PLOT_INSTALL = "python -m pip install -e '.[plot]'"
 
 
 def _mpl():

@@ -156,3 +156,35 @@ def test_identify_that_cannot_fit_says_why_exit_1(tmp_path):
     assert out["error"]["type"] == "IdentificationError"
     assert "hardly moved" in out["error"]["message"]
     assert "Traceback" not in r.stderr
+
+
+@settings(max_examples=6, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), frac=st.floats(0.0, 0.5), d=st.integers(1, 4),
+       K=st.floats(200.0, 1500.0), B=st.floats(0.0, 3.0))
+def test_run_with_scripted_late_ticks_measures_the_prediction(seed, frac, d, K, B):
+    """Property: ``run``'s measurement of a noise-free wall with seeded random late ticks
+    (0-50 % of the ticks, in bursts of 1-8) equals the prediction to 1e-6: the late ticks
+    are known inputs (their response taken out), not a cut (before: the longest stretch
+    without one, too short at 30 % late, so the measurement was of a disturbed loop)."""
+    import dataclasses
+
+    from hapsim.daemon import runner
+    from hapsim.scene import load_scene
+    scene = load_scene("configs/wall.yaml")
+    link = dataclasses.replace(scene.links[0], stiffness=K, damping=B)
+    scene = dataclasses.replace(scene, links=[link],
+                                device=dataclasses.replace(scene.device, delay=d))
+    pattern = _late_pattern(seed, 1000, frac)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_LateMock, "LATE", pattern)
+        mp.setattr(runner, "MockDevice", _LateMock)
+        rep = runner.run_scene(scene, lockstep=True, transport="inprocess",
+                               handle_signals=False, duration=1.0)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert rep["loop"]["late"] == meas.get("late_accounted", 0)
+    if pattern:
+        assert rep["loop"]["late"] > 0 and meas["device_delay"] == d
+    assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
+    assert meas["b"] == pytest.approx(pred["b"], rel=1e-6, abs=1e-6 * pred["k"] * 1e-3)
+    assert meas["within"] is True

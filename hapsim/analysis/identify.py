@@ -38,7 +38,8 @@ from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
            "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
-           "quantisation_bound", "sensor_error_response", "RANK_TOL"]
+           "quantisation_bound", "sensor_error_response", "disturbance_response",
+           "RANK_TOL"]
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
 #: the model order is cut to the numerical rank (Sarkar & Pereira, "Using the matrix pencil
@@ -830,4 +831,56 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     for i in range(1, n):
         out[i] = s[0]
         s = A @ s + (h if i == 1 else 0.0)
+    return out
+
+
+def disturbance_response(scene, w) -> np.ndarray:
+    """Logged-position response of the closed loop to a known force disturbance.
+
+    A late tick holds an older force than the loop's ``u[n] = F[n-d]``: the device applied
+    ``u[n] + w[n]`` with ``w[n]`` known from its STATEs
+    (:meth:`hapsim.analysis.applied.AppliedAccount.disturbance`). The loop is linear, so the
+    record is the undisturbed loop's plus ``x_w[n] = sum_{j<n} c A^(n-1-j) b w[j]`` with
+    ``A`` of :func:`hapsim.analysis.network.closed_loop`, ``b`` of
+    :func:`hapsim.analysis.network.force_input` and ``c`` the logged position (state 0):
+    the convolution of ``w`` with the loop's impulse response (superposition of a linear
+    time-invariant system driven by a known input).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated, calibrated scene with a port and a device.
+    w : array_like, shape (n,)
+        Disturbance force per sample [N].
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``x_w`` [m].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from scipy.signal import fftconvolve
+
+    from hapsim.analysis.network import closed_loop, force_input
+
+    w = np.asarray(w, float)
+    n = w.size
+    out = np.zeros(n)
+    nz = np.flatnonzero(w)
+    if n < 2 or nz.size == 0:
+        return out
+    A, _ = closed_loop(scene)
+    b = force_input(scene)
+    m = n - int(nz[0])                    # the response is needed this far
+    h = np.zeros(m)                       # h[k] = c A^(k-1) b, h[0] = 0
+    s = b.copy()
+    for k in range(1, m):
+        h[k] = s[0]
+        s = A @ s
+    first = int(nz[0])
+    out[first:] = fftconvolve(w[first:], h)[:m] if m > 64 else np.convolve(w[first:], h)[:m]
     return out

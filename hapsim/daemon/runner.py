@@ -1265,6 +1265,52 @@ def _contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: flo
     measured["within"] = None
 
 
+def _late_accounted(scene, cols: dict, hello=None):
+    """The logged positions with the response to the late ticks' known disturbance taken
+    out, when the device names the force it applied (framed protocol, ``force_seq``).
+
+    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
+    position minus the loop's response to ``w = applied - F[n-d]``
+    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
+    so the whole record is measured, not only the longest stretch without a late tick.
+
+    Returns
+    -------
+    (ndarray, ndarray or None, dict)
+        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
+    """
+    from hapsim.analysis.applied import account_from_force_seq
+
+    pos, late = cols["position"], cols["late"]
+    fseq = cols.get("force_seq")
+    dev = scene.device
+    # a driver's STATEs name no applied force (force_seq = seq - d, never late): its
+    # account is its own timing's (hapsim.analysis.applied.account_from_timing)
+    if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+        return pos, late, {}
+    lim = float(dev.force_limit)
+    if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
+        lim = min(lim, float(hello.force_limit))
+    acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
+                                 zero_delay=dev.delay == 0, force_limit=lim)
+    info = {"device_delay": int(acc.delay)}
+    if acc.delay != dev.delay:
+        # the model of the loop would be the wrong one: measure as recorded, and say so
+        info["late_accounted"] = 0
+        info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
+                             f"states {dev.delay}: late ticks are not taken out")
+        return pos, late, info
+    from hapsim.analysis.identify import disturbance_response
+    w = acc.disturbance(cols["force"], cols["seq"])
+    try:
+        xw = disturbance_response(scene, w)
+    except ConfigError:
+        return pos, late, info
+    info["late_accounted"] = acc.n_late
+    return pos - xw, None, info
+
+
 def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
@@ -1294,6 +1340,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    late_info = {}
     quantum = float(dev.position_resolution or 0.0)
     if not quantum and hello is not None and math.isfinite(hello.position_scale):
         quantum = max(float(hello.position_scale), 0.0)
@@ -1311,9 +1358,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+        position, late, late_info = _late_accounted(scene, cols, hello)
+        measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed)
@@ -1332,6 +1380,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
+    if late_info:
+        measured.update(late_info)
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -1388,6 +1438,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -1710,7 +1762,10 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
+    protocol = lp.get("protocol", "framed")
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+                          else ", lockstep" if lp["lockstep"]
+                          else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
@@ -1783,7 +1838,7 @@ def format_report(rep: dict) -> str:
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
     if lp.get("python_reason"):
-        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+        lines.append(f"loop: the Python loop ran, not the compiled one: {lp['python_reason']}")
     if lp.get("first_sample_s") is not None:
         lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
                      f"started")

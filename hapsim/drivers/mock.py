@@ -429,12 +429,17 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     """
     os.set_blocking(fd, False)
     fl = ByteFaults(faults)
-    t0 = last = time.monotonic()
+    t0 = last = t_idle = time.monotonic()
+    streams = getattr(dev, "firmware", "") == "pde"
     while not (stop and stop()):
         r, _, _ = select.select([fd], [], [], poll)
         out = b""
+        if streams and time.monotonic() - t_idle >= poll:
+            t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
+            out = dev.idle(t_idle - last)
         if not r:
-            out = dev.idle(time.monotonic() - last)
+            if not streams:
+                out = dev.idle(time.monotonic() - last)
         else:
             try:
                 data = os.read(fd, 4096)
@@ -446,7 +451,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
             now = time.monotonic()
             last = now
-            out = dev.feed(fl.rx(data), now - t0)
+            out += dev.feed(fl.rx(data), now - t0)
         out = fl.tx(out)
         if out:
             try:
@@ -460,6 +465,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):
         extra["enable"] = dev.enables[-1]       # at the last pass (not after the host left)
+        extra["passes_at_full_enable"] = sum(e == 129 for e in dev.enables)
     return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
             "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.held,
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
