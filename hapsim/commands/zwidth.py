@@ -62,7 +62,8 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", metavar="SCENE", default=None,
                    help="scene whose device, rate and safety limits are measured (default: "
-                        "configs/wall.yaml's device: 0.1 kg, b0 0.5 N s/m, d = 1, zoh, 1 kHz)")
+                        "configs/wall.yaml's device: 0.1 kg, b0 0.5 N s/m, d = 1, zoh, 1 kHz; "
+                        "with --firmware configs/hapkit.yaml, the device the board models)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--port", default=None, help="serial port of a device (or hapsim mock)")
     where.add_argument("--firmware", action="store_true",
@@ -87,6 +88,9 @@ def register(sub) -> None:
 
 def _base(args):
     from hapsim.scene import load_scene, parse_scene
+    if args.scene is None and args.firmware:      # the board models this device
+        from hapsim.daemon import board
+        args.scene = str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
     if args.scene is None:
         return parse_scene(DEFAULT_DEVICE, "<default device>")
     sc = load_scene(args.scene)
