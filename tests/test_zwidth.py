@@ -73,3 +73,22 @@ def test_zwidth_refuses_bad_options(capsys):
     assert main(["zwidth", "--lockstep", "--port", "/dev/null"]) == 2
     assert main(["zwidth", "--lockstep", "--B", "nan"]) == 2
     assert "--B" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("root,power", [(1000.0, 1.0), (437.0, 2.0), (5169.0, 0.5)])
+def test_onset_search_on_synthetic_records(root, power):
+    """The search alone, on records whose b(K) = 1 - (K/root)^p is known: it starts below
+    the guess, brackets the root between a decaying and a growing record and ends within
+    the tolerance (the guess 20 % off); a device whose every record grows gives no
+    limit."""
+    from hapsim.analysis.zwidth import Trial, locate_onset
+
+    def measure(K, B):
+        b = 1.0 - (K / root) ** power
+        return Trial(K, B, b, K, 0.0, None, b < 0)
+    Km, (lo, hi), trials, note = locate_onset(measure, 0.0, 1.2 * root, tol=1e-3)
+    assert abs(Km - root) <= 1e-3 * root and lo <= root <= hi and not note
+    assert trials[0].K < root and not trials[0].growing
+    Km, iv, trials, note = locate_onset(
+        lambda K, B: Trial(K, B, -1.0, K, 0.0, None, True, "safety: position"), 0.0, root)
+    assert Km is None and iv is None and "no decaying record" in note

@@ -334,6 +334,9 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
             return None, None, trials, f"record at K = {K:.6g} N/m undecided: {t.note}"
         K /= step ** 2                         # grows already: step down first
         t = rec(K)
+    if t.growing is not False:
+        return None, None, trials, (f"no decaying record down to K = {K:.6g} N/m (last: "
+                                    f"{t.note or 'grew'})")
     lo = t
     hi = None
     while len(trials) < max_trials:
