@@ -15,7 +15,7 @@ from hapsim.errors import ConfigError, KinematicsError
 from hapsim.kinematics import (DELTA_PRESETS, Delta, Pantograph, PantographGeometry,
                                cartesian_mass)
 
-N_CONFIGS = 1200
+N_CONFIGS = 1050
 
 
 # --------------------------------------------------------------------------- references

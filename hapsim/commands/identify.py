@@ -68,6 +68,10 @@ def register(sub) -> None:
     p.add_argument("--baud", type=int, default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
+    p.add_argument("--protocol-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a driver's device parameter (device.protocol_options; repeat: "
+                        "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
+                        "Haply board); written to --out with the protocol")
     p.add_argument("--out", metavar="FILE.yaml", help="write the device section there")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE.png", help="plot measured vs model response")
@@ -98,7 +102,8 @@ def register(sub) -> None:
 
 def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
-             transport=None, progress=True, handle_signals=True, driver=None):
+             transport=None, progress=True, handle_signals=True, driver=None,
+             driver_options=None):
     """Excite, record and fit: the API behind ``hapsim identify``.
 
     Parameters
@@ -115,6 +120,9 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
         Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
     driver : str, optional
         Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
 
     Returns
     -------
@@ -135,7 +143,7 @@ def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver)
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
     # one uniform record: the longest stretch without a missing STATE
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1
@@ -233,13 +241,36 @@ def run(args) -> int:
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")
+    dopts = None
+    drv = None
+    if args.driver != "framed":
+        from hapsim.drivers import get_driver
+        dopts = dict(device.protocol_options or {}) if (
+            device is not None and device.protocol == args.driver) else {}
+        for item in args.protocol_option:
+            key, sep, val = item.partition("=")
+            if not sep:
+                raise ConfigError(f"must be KEY=VALUE, got {item!r}", key="--protocol-option")
+            try:
+                dopts[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
+            except ValueError:
+                raise ConfigError(f"{key}: must be a number, got {val!r}",
+                                  key="--protocol-option") from None
+        try:
+            drv = get_driver(args.driver, **dopts)
+        except TypeError as exc:
+            raise ConfigError(f"{exc}", key="--protocol-option") from None
+    elif args.protocol_option:
+        raise ConfigError("the framed protocol takes no options (its device says its units "
+                          "in HELLO); give --driver", key="--protocol-option")
     fit, rec = identify(port=args.port, baud=args.baud, device=device,
                         force_limit=args.force_limit, envelope=args.envelope,
                         duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
-                        lockstep=args.lockstep, seed=args.seed, driver=args.driver)
+                        lockstep=args.lockstep, seed=args.seed, driver=args.driver,
+                        driver_options=dopts)
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
-    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source)
+    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)

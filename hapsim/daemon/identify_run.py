@@ -302,7 +302,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
            rate_hz: float = 1000.0, duration: float = 4.0, force_limit: float = 2.0,
            envelope: float = 0.01, max_delay: int = 5, seed: int = 0, noise_seed: int = 0,
            transport: str | None = None, lockstep: bool = False, progress: bool = True,
-           handle_signals: bool = True, stop=None, driver: str | None = None):
+           handle_signals: bool = True, stop=None, driver: str | None = None,
+           driver_options: dict | None = None, mock_options: dict | None = None):
     """Run the excitation on a device (or the mock of ``device``) and return the record.
 
     Parameters
@@ -340,6 +341,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     driver : str, optional
         A protocol of :mod:`hapsim.drivers` (host-clocked; without ``port``, that
         driver's mock of ``device``); None or ``"framed"``: hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``).
+    mock_options : dict, optional
+        The driver mock's hardware (default: the device the driver describes).
 
     Returns
     -------
@@ -385,15 +390,19 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     use_driver = driver not in (None, "framed")
     if use_driver:
         from hapsim.drivers import get_driver
-        drv = get_driver(driver)
+        drv = get_driver(driver, **(driver_options or {}))
+        drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
             if port is None:
                 from hapsim.drivers.mock import EmbeddedDriverMock
-                embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
+                                              options=(mock_options if mock_options is not None
+                                                       else drv.mock_hardware()))
+                # paced by the commands: a slow mock process is no lost answer
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, port, delay=1)
@@ -474,4 +483,6 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "transport": transport, "lockstep": bool(lock),
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
-                     "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs}}
+                     "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
+                     "driver": tr.report() if use_driver else None},
+            "protocol_options": drv.options() if use_driver else None}

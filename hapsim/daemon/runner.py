@@ -41,7 +41,8 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
+from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
+                                   process_start)
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -195,7 +196,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
-             closed: np.ndarray | None = None) -> dict:
+             closed: np.ndarray | None = None, wire=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -241,6 +242,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
+    wire : sequence of (float, ndarray), optional
+        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
 
     Returns
     -------
@@ -303,7 +306,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         try:
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response)
+                               sensor_response=sensor_response, wire=wire)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -897,7 +900,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         # starts and says HELLO: the loop waits for them just before it arms the device
         # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
-                              and corr is None)
+                              and compiled_loop_possible(scene, osc=opts.osc, sound=opts.sound,
+                                                         host_clocked=opts.host_clocked))
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it
@@ -943,7 +947,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            dopt = dict(opts.driver_options or {})
+            # the device's parameters: given, else the scene's device.protocol_options
+            # when the scene's device speaks this protocol
+            dopt = dict(opts.driver_options if opts.driver_options is not None
+                        else dev.protocol_options or {} if dev.protocol == opts.driver
+                        else {})
             if opts.driver == "haply" and opts.port is None:
                 # the board's set-up sets the encoder's count to the offset: the embedded
                 # mock is armed with the joint at the excitation's x0
@@ -954,7 +962,9 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
-                                              options=opts.mock_options,
+                                              options=(opts.mock_options
+                                                       if opts.mock_options is not None
+                                                       else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
@@ -1210,10 +1220,14 @@ def _verdict(prep: PreparedRun, measured: dict) -> None:
     dk = max(dk, 1e-9 * abs(pred["k"]))
     db = max(db, 1e-9 * abs(pred["b"]))
     measured["k_interval"], measured["b_interval"] = dk, db
+    from hapsim.analysis.identify import COVERAGE
     if measured.get("method") == "varpro":
-        from hapsim.analysis.identify import COVERAGE
         measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
                                      f"the fit, residual or sensor, the larger")
+    if "k_sd_wire" in measured:
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual, sensor or the wire's number "
+                                     f"format, the largest")
     ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
     measured["within"] = bool(ok)
     measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
@@ -1311,7 +1325,48 @@ def _late_accounted(scene, cols: dict, hello=None):
     return pos - xw, None, info
 
 
-def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
+def _wire_errors(scene, cols: dict, start: int, driver) -> list:
+    """The wire's number-format errors of a driver's run, for the stated uncertainty.
+
+    A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
+    field: at most ``2^-24``) and ``force_scale`` (an actuator step: the FireFader's 8-bit
+    PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
+    ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
+    position's rounding reaches the record as the sensor's does
+    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
+    the virtual links), the force's as a force error at the device
+    (:func:`hapsim.analysis.identify.force_error_response`).
+
+    Returns
+    -------
+    list of (float, ndarray)
+        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
+    """
+    if driver is None:
+        return []
+    from hapsim.analysis.identify import force_error_response, sensor_error_response
+    sel = cols["seq"] >= start
+    x, f = cols["position"][sel], cols["force"][sel]
+    n = int(x.size)
+    if n == 0:
+        return []
+    out = []
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
+    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
+    try:
+        if pr > 0:
+            out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
+                        sensor_error_response(scene, n)))
+        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
+        if sd_f > 0:
+            out.append((sd_f, force_error_response(scene, n)))
+    except ConfigError:
+        return []
+    return out
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -1325,6 +1380,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     hello : firmware_protocol.Hello, optional
         The device's HELLO: its ``position_scale`` is the sensor step when the scene's
         ``device.position_resolution`` does not give one.
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its wire's number format is in the stated uncertainty
+        (:func:`_wire_errors`).
 
     Returns
     -------
@@ -1364,7 +1422,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
                             offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
-                            closed=None if replay is None else replay.closed)
+                            closed=None if replay is None else replay.closed,
+                            wire=_wire_errors(scene, cols, start, driver))
         if replay is not None:
             _contact_verdict(measured, replay, cols["seq"], start, T)
     notes = []
@@ -1669,7 +1728,11 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel, run.res.hello)
+    drv = None
+    if opts.driver not in (None, "framed"):
+        from hapsim.drivers import get_driver
+        drv = get_driver(opts.driver, **(opts.driver_options or {}))
+    measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
@@ -1801,8 +1864,10 @@ def format_report(rep: dict) -> str:
         lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
                      f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
         if m.get("interval_note"):
-            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4f')} "
-                         f"{_fmt(m['b_interval'], '11.5f')}   ({m['interval_note']})")
+            # general format: a stated uncertainty far below the last fixed digit is
+            # printed as what it is, not as 0.0000
+            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4g')} "
+                         f"{_fmt(m['b_interval'], '11.4g')}   ({m['interval_note']})")
         if m.get("verdict"):
             lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
