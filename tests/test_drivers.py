@@ -360,6 +360,7 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults):
     assert lp["lost"] == 0 and lp["ticks"] > 0.8 * lp["requested"]
     fl = lp["mock"]["faults"]
     assert fl["drop_tx"] > 0 and fl["drop_rx"] > 0 and fl["corrupt_tx"] > 0
+    assert lp["mock"]["held_at_end"] == 0.0          # no force left behind
     dr = lp["driver"]
     assert dr["missing"] > 0                       # counted, and the loop went on
     assert dr["records"] + dr["missing"] <= dr["commands"]
@@ -394,6 +395,14 @@ def test_haply_desync_is_detected_and_resynchronised():
     assert dec.frames.stats["desync"] == 1 and angles == []
     assert board.decoder.motor_addr[0] != 1             # the board forgot its motor ...
     assert board.held == pytest.approx(0.05)            # ... and holds the torque
+    lost = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
+                       1000.0, Excitation())
+    lost.feed(drv.arm() + drv.encode_force(0.07) + drv.encode_force(0.0625)[1:])
+    assert lost.held == pytest.approx(0.07)
+    lost.feed(drv.encode_force(0.0))                    # a plain zero write is swallowed
+    assert lost.held == pytest.approx(0.07)
+    lost.feed(drv.stop_bytes(0.0))                      # the STOP hapsim sends is not
+    assert lost.held == 0.0
     back = dec.feed(board.feed(drv.resync(last)))
     assert board.held == 0.0 and board.decoder.motor_addr[0] == 1
     assert back and back[-1] == pytest.approx(last, abs=2 * 2 * math.pi / 4880)

@@ -172,6 +172,12 @@ class Driver:
         """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message)."""
         return f"a command and its answer take {self.round_trip_s() * 1e3:.3g} ms"
 
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """What the host sends to leave the device at zero force (STOP, a loss, closing
+        the port): a zero-force command by default; a device that may have lost its place
+        in the byte stream gets its re-synchronisation, which ends at zero force."""
+        return self.encode_force(0.0)
+
     def resync(self, position: float = 0.0) -> bytes:
         """Bytes that put a device which lost its place in the byte stream back in step,
         zero force first (default: a zero-force command; a start byte re-aligns a framed

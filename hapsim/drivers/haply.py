@@ -408,6 +408,11 @@ class HaplyM3(Driver):
         self.offset_deg = float(offset_deg)
         self.position_scale = 2 * math.pi / self.resolution
 
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """Zero torque whatever the board's parser is doing (:meth:`resync`): the board has
+        no watchdog, so a zero write it misreads would leave the last torque on."""
+        return self.resync(position)
+
     def mock_hardware(self) -> dict:
         """The mock's encoder: this many counts per revolution."""
         return {"cpr": self.resolution}

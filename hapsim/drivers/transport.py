@@ -13,7 +13,9 @@
   its bootloader runs);
 - FORCE -> the driver's force packet (a *command*); the record the device answers with
   becomes a STATE;
-- STOP -> a zero-force packet.
+- STOP -> zero force (:meth:`~hapsim.drivers.base.Driver.stop_bytes`: for the Haply board,
+  which has no watchdog, its whole re-synchronisation, so that zero torque is taken
+  whatever its parser is doing); closing the port sends the same first.
 
 Host-clocked only (the loop must run with ``host_clocked``): the device answers packets.
 
@@ -208,7 +210,7 @@ class DriverTransport:
         elif t is fp.Stop:
             self._armed = False
             self._force = 0.0
-            self._write(dr.encode_force(0.0))
+            self._write(dr.stop_bytes(self._x_last))
 
     def _listen(self) -> None:
         """Before arming: listen for :data:`LISTEN_S` without asking anything; records
@@ -340,7 +342,7 @@ class DriverTransport:
         """Close the port (idempotent): zero force first (a device may hold it)."""
         try:
             if self._ser.is_open:
-                self._ser.write(self.driver.encode_force(0.0))
+                self._ser.write(self.driver.stop_bytes(self._x_last))
                 self._ser.flush()
         except Exception:  # best effort: the port may be gone
             pass
