@@ -15,7 +15,8 @@ def _num(v: float) -> str:
     return "inf" if v == math.inf else f"{v:.6g}"
 
 
-def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = "") -> str:
+def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = "",
+                driver=None) -> str:
     """YAML text of the identified ``device:`` section, its intervals as comments.
 
     Parameters
@@ -29,6 +30,10 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         The record was taken with a hand on the handle (mass and friction are the THS's).
     source : str
         What was identified (port or mock), for the header comment.
+    driver : hapsim.drivers.base.Driver, optional
+        The driver the record was taken through: its name is written as ``protocol`` and
+        its parameters as ``protocol_options`` (the units the host assumed: the mass and
+        friction found are in them, module notes of :mod:`hapsim.drivers`).
 
     Returns
     -------
@@ -67,6 +72,17 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         f"# residual RMS {fit.rms_residual:.4g} m over {fit.n_samples} samples at "
         f"{1.0 / fit.period:g} Hz",
     ]
+    if driver is not None:
+        opts = ", ".join(f"{k}: {_num(v) if isinstance(v, float) else v}"
+                         for k, v in driver.options().items())
+        lines[-1:-1] = [
+            f"  protocol: {driver.name}",
+            f"  protocol_options: {{{opts}}}",
+            "  # identification sees the force-to-acceleration gain (force scale / mass) "
+            "and the position scale",
+            "  # only through these options: mass and friction above are in their units "
+            "(docs/drivers.md: a known",
+            "  # added mass separates the force scale from the mass)"]
     return "\n".join(lines) + "\n"
 
 

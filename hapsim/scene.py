@@ -173,6 +173,11 @@ class Device:
     protocol : str
         The protocol the device speaks on its port, one of :data:`PROTOCOLS`
         (``"framed"``, hapsim's own, by default).
+    protocol_options : dict, optional
+        The device's parameters in its driver's terms (the keywords of the driver's
+        constructor, :mod:`hapsim.drivers`: FireFader ``full_scale``, ``metres_per_count``,
+        ``axis``; Haply ``resolution``, ``direction``, ``device_id``, ``offset_deg``;
+        Hapkit-serial ``function``, ``force_limit``); a driver's protocol only.
     """
 
     mass: float
@@ -188,6 +193,7 @@ class Device:
     hand: "Hand | None" = None
     correction: dict | None = None
     protocol: str = "framed"
+    protocol_options: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -430,6 +436,11 @@ class Scene:
             err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
             err._scene_where = bad.where  # lets parse_scene name the line of the key itself
             raise err from None
+
+    @property
+    def dimension(self) -> int:
+        """Degrees of freedom of the scene: 1 (n-D scenes are :mod:`hapsim.scene_nd`'s)."""
+        return 1
 
     @property
     def period(self) -> float:
@@ -920,6 +931,35 @@ def _check_device(d: Any) -> None:
         _check_hand(d.hand, d.hold)
     if d.correction is not None:
         _check_correction(d.correction, d.hold)
+    if d.protocol_options is not None:
+        _check_protocol_options(d.protocol_options, d.protocol)
+
+
+def _check_protocol_options(o: Any, protocol: str) -> None:
+    """A driver's parameters: a mapping its constructor accepts (unknown keys and bad
+    values named with the valid choices)."""
+    where = ("device", "protocol_options")
+    if not isinstance(o, dict):
+        raise _Invalid(f"must be a mapping, got {_typename(o)} {show(o)}", where)
+    if protocol == "framed":
+        raise _Invalid("the framed protocol takes no options (its device says its own "
+                       "units in HELLO); set device.protocol to a driver", where)
+    import inspect
+
+    from hapsim.drivers import get_driver
+    from hapsim.errors import ConfigError
+    cls = type(get_driver(protocol))
+    valid = tuple(n for n in inspect.signature(cls.__init__).parameters if n != "self")
+    for name in o:
+        if name not in valid:
+            raise _Invalid(f"unknown option {show(name)} for {protocol}; valid: "
+                           f"{', '.join(valid)}", (*where, name))
+    try:
+        get_driver(protocol, **o)
+    except ConfigError as exc:
+        raise _Invalid(exc.reason, (*where, exc.key) if exc.key else where) from None
+    except (TypeError, ValueError) as exc:
+        raise _Invalid(str(exc), where) from None
 
 
 def _check_hand(h: Any, hold: str) -> None:
@@ -1161,6 +1201,16 @@ def parse_scene(text: str, path: str = "<string>",
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
+    if "dimension" in doc:
+        try:
+            _check_key(_key("dimension"), doc["dimension"], "dimension")
+        except _Invalid as bad:
+            raise ctx.error(bad.message, ctx.line_of(doc, "dimension"), "dimension") from None
+        if doc["dimension"] != 1:
+            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check` reads it "
+                            "(hapsim.scene_nd); this reader and the commands that run a "
+                            "scene take dimension 1", ctx.line_of(doc, "dimension"),
+                            "dimension")
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
     device = _read_device(ctx, doc) if "device" in doc else None
@@ -1256,6 +1306,10 @@ def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
     vals["correction"] = (dict(ctx.mapping(d["correction"], "device.correction",
                                            ctx.line_of(d, "correction")))
                           if "correction" in d else None)
+    vals["protocol_options"] = (dict(ctx.mapping(d["protocol_options"],
+                                                 "device.protocol_options",
+                                                 ctx.line_of(d, "protocol_options")))
+                                if "protocol_options" in d else None)
     return Device(**vals)
 
 

@@ -300,6 +300,11 @@ _KEYS = [
     Key("audio", "mapping", default=None,
         doc="The scene's sound: a multi-rate model and its listening points; see `audio`.",
         example="audio: {rate_hz: 8000, listen: [{mass: hand}]}"),
+    Key("dimension", "integer", default=1, minimum=1, maximum=3,
+        doc="Degrees of freedom of the scene: 1 is this format; 2 and 3 are the planar and "
+            "spatial format of `hapsim.scene_nd` (vector positions, Euclidean links, "
+            "planes, kinematic devices), which `hapsim check` reads.",
+        example="dimension: 1"),
     # ------------------------------------------------------------------ masses[]
     Key("masses[].name", "string",
         doc="Unique name of the mass (links refer to it).",
@@ -416,6 +421,16 @@ _KEYS = [
             "devices with their own firmware (`hapsim run --help`, 'drivers'). `hapsim "
             "run` uses it (and its mock speaks it) unless `--driver` is given.",
         example="device: {mass: 0.05, protocol: firefader}"),
+    Key("device.protocol_options", "mapping", default=None,
+        doc="The device's own parameters in its protocol's units (a driver only; the "
+            "embedded mock is built to match): `firefader`: `full_scale` [N] (force at 127 "
+            "counts; 0.39, the repository's calibrated Pd patch), `metres_per_count` [m] "
+            "(0.05/128), `axis` (0: fader A, 1: B); `haply`: `resolution` (encoder counts "
+            "per revolution, 4880), `direction` (0 CW, 1 CCW), `device_id` (1..255), "
+            "`offset_deg` (the joint's angle when armed); `hapkit-serial`: `function` "
+            "(0..255), `force_limit` [N]. See docs/drivers.md.",
+        example="device: {mass: 0.05, protocol: firefader, protocol_options: "
+                "{full_scale: 0.39}}"),
     # ------------------------------------------------------------------ excitation
     Key("excitation.x0", "number", "m", default=0.0,
         doc="Initial device displacement.",

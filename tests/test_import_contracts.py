@@ -55,12 +55,14 @@ PACKAGE_DIR = DAEMON_DIR.parent
 LAYERS = (
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
                     "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs")),
+    # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
+    # a scene checks its device.protocol_options with them; their mocks stand higher
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
-               "hapsim.device_file")),
+               "hapsim.device_file", "hapsim.drivers")),
     ("models", ("hapsim.engine", "hapsim.analysis", "hapsim.device_model",
                 "hapsim.kinematics", "hapsim.plot", "hapsim.plot_bench", "hapsim.plot_family",
                 "hapsim.plot_telemetry")),
-    ("devices and sound", ("hapsim.drivers", "hapsim.audio")),
+    ("devices and sound", ("hapsim.drivers.mock", "hapsim.audio")),
     ("daemon", ("hapsim.daemon",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
                      "hapsim")),

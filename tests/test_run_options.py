@@ -28,6 +28,8 @@ def test_command_line_defaults_are_the_options_defaults():
     for f in dataclasses.fields(RunOptions):
         if f.name == "on_start":
             assert got.on_start is _announce
+        elif f.name == "loop":      # 'auto': run() chooses compiled or python before the run
+            assert got.loop == "auto"
         else:
             assert getattr(got, f.name) == getattr(want, f.name), f.name
 

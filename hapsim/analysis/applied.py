@@ -108,16 +108,39 @@ class AppliedAccount:
                 "half_width_max": float(self.half_width.max()) if self.half_width.size
                 else 0.0}
 
-    def disturbance(self, force) -> np.ndarray:
+    def disturbance(self, force, seq=None) -> np.ndarray:
         """The known disturbance of a loop: the applied force minus the force that an
-        on-time device would have held, ``applied[k] - force[k - d]`` [N], shape (n,) (0
-        for ``k < d``)."""
+        on-time device would have held, ``w[k] = applied[k] - force[k - d]`` [N].
+
+        Parameters
+        ----------
+        force : array_like, shape (n,)
+            Force sent answering each row [N] (the loop's ``F``).
+        seq : array_like of int, shape (n,), optional
+            STATE seq of each row: ``w`` is then computed on each stretch of consecutive
+            seq on its own, and is 0 at a stretch's first ``d`` rows (the forces in
+            flight there are the loop's state at the stretch's start, not a disturbance).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            ``w`` (0 for ``k < d``).
+        """
         f = np.asarray(force, float)
+        n = f.size
         d = max(self.delay, 0)
-        on_time = np.zeros_like(f)
-        if d < f.size:
-            on_time[d:] = f[:f.size - d]
-        return self.applied - on_time
+        w = np.zeros(n)
+        if seq is None:
+            bounds = [(0, n)]
+        else:
+            s = np.asarray(seq, np.int64)
+            cuts = np.flatnonzero(np.diff(s) != 1) + 1
+            e = np.concatenate([[0], cuts, [n]])
+            bounds = list(zip(e[:-1], e[1:]))
+        for a, b in bounds:
+            if b - a > d:
+                w[a + d:b] = self.applied[a + d:b] - f[a:b - d]
+        return w
 
 
 def _rows_of(seq: np.ndarray, src: np.ndarray) -> np.ndarray:

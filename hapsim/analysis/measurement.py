@@ -23,7 +23,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
-             closed: np.ndarray | None = None) -> dict:
+             closed: np.ndarray | None = None, wire=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -69,6 +69,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
+    wire : sequence of (float, ndarray), optional
+        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
 
     Returns
     -------
@@ -131,7 +133,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         try:
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response)
+                               sensor_response=sensor_response, wire=wire)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -197,10 +199,14 @@ def verdict(pred: dict, measured: dict) -> None:
     dk = max(dk, 1e-9 * abs(pred["k"]))
     db = max(db, 1e-9 * abs(pred["b"]))
     measured["k_interval"], measured["b_interval"] = dk, db
+    from hapsim.analysis.identify import COVERAGE
     if measured.get("method") == "varpro":
-        from hapsim.analysis.identify import COVERAGE
         measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
                                      f"the fit, residual or sensor, the larger")
+    if "k_sd_wire" in measured:
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual, sensor or the wire's number "
+                                     f"format, the largest")
     ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
     measured["within"] = bool(ok)
     measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else

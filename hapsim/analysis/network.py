@@ -75,6 +75,7 @@ from hapsim.scene import INTEGRATORS
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "device_body", "body_stiffness", "plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
+           "force_input",
            "port_io", "rest_position", "static_stiffness", "MAX_STATES", "state_count",
            "check_size"]
 
@@ -528,6 +529,43 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         A[:nplant, :nplant] = Ad
         A[:nplant] += np.outer(Bd, u)
     return A, names
+
+
+def force_input(scene, member=None) -> np.ndarray:
+    """The column through which a force added to the one the device holds enters the
+    closed loop of :func:`closed_loop`: ``s[n+1] = A s[n] + b w[n]`` for a force ``w[n]``
+    [N] held over ``[nT, (n+1)T)`` on top of ``u[n] = F[n-d]`` (a late tick's known
+    disturbance, :mod:`hapsim.analysis.applied`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device.
+    member : array_like, shape (4,), optional
+        Hand member (default: nominal of ``device.hand``).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``b``: the plant's ``Bd`` in its rows (``"zoh"``), ``T^2 / (m c)`` in the first
+        row (``"ideal"``, Florens et al. eq. (4)), 0 elsewhere (module notes: the force
+        enters the plant only).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`closed_loop`.
+    """
+    A, _ = closed_loop(scene, member=member)
+    b = np.zeros(A.shape[0])
+    dev = scene.device
+    pr = plant_rows(dev, scene.period, member)
+    if pr is None:
+        b[0] = ideal_shift(dev, scene.period, member)[2]
+    else:
+        Bd = np.asarray(pr[1], float)
+        b[:Bd.size] = Bd
+    return b
 
 
 def plant_rows(dev, T: float, member=None):

@@ -41,7 +41,12 @@ semisimple damped vibrating systems", SIAM J. Matrix Anal. Appl. 29(1), 2007; La
 Prells, J. Sound Vib. 283, 2005): with ``[U; U S]`` invertible the pair is unique and real.
 The felt system therefore has the rendered poles *and* the rendered mode shapes: a hand
 pushing along ``u_i`` feels the oscillator ``(m_i, k_i, b_i)``. For ``n = 1`` this is the
-1-D map exactly; for a decoupled (diagonal) loop it is the 1-D map per axis.
+1-D map exactly; for a decoupled (diagonal) loop it is the 1-D map per axis. In general
+``k`` and ``b`` are *not* symmetric: the sampled, delayed loop is not a symmetric
+mechanical system, and its exact second-order image carries that (the symmetric parts
+are the conservative stiffness and the dissipative damping; the antisymmetric parts are
+circulatory and gyroscopic terms, of the order of the coupling times the delay). They
+are symmetric when the loop is (e.g. ``M``, ``B0``, ``K``, ``B`` diagonal in one basis).
 
 **Principal directions.** Each rendered mode moves the handle along an ellipse
 ``Re(u_i e^{i w t})``; its principal direction ``e_i`` is the ellipse's major axis (unit,
@@ -67,8 +72,9 @@ from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE, STABILITY_TO
 from hapsim.errors import ConfigError
 
 __all__ = ["LoopModelND", "zoh_matrices", "state_matrix", "closed_loop_poles_nd",
-           "rendered_pairs", "felt_matrices", "RenderND", "render_nd", "direction_limit",
-           "direction_limits", "workspace_limits", "WorkspaceLimits"]
+           "rendered_pairs", "rendered_pairs_of", "felt_matrices", "render_state",
+           "RenderND", "render_nd", "direction_limit", "direction_limits",
+           "workspace_limits", "WorkspaceLimits"]
 
 #: The only hold the n-D loop models (the paper's idealised hold has no n-D form here).
 HOLDS_ND = ("zoh",)
@@ -370,8 +376,28 @@ def rendered_pairs(loop: LoopModelND, K, B=0.0):
     poles : ndarray of complex
         Every closed-loop pole, largest ``|z|`` first.
     """
-    A = state_matrix(loop, K, B)
-    n = loop.dof
+    return rendered_pairs_of(state_matrix(loop, K, B), loop.dof, loop.period)
+
+
+def rendered_pairs_of(A, n: int, period: float):
+    """:func:`rendered_pairs` of any closed-loop state matrix whose first ``n`` states
+    are the handle position (a whole scene: :mod:`hapsim.analysis.scene_nd_check`).
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, N)
+        Closed-loop state matrix.
+    n : int
+        Degrees of freedom of the handle.
+    period : float
+        Sample period ``T`` [s].
+
+    Returns
+    -------
+    z, U, poles
+        As :func:`rendered_pairs`; a pair whose handle part is below 1e-8 of its
+        eigenvector's norm is a mode of the object the hand does not feel, never rendered.
+    """
     z, V = np.linalg.eig(A)
     order = np.argsort(-np.abs(z), kind="stable")
     z, V = z[order], V[:, order]
@@ -386,7 +412,7 @@ def rendered_pairs(loop: LoopModelND, K, B=0.0):
         u = u * (abs(u[j]) / u[j])
         # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
         # of this pair with the ones taken (conjugates included)
-        si = complex(_log(np.array([z[i]]), loop.period)[0])
+        si = complex(_log(np.array([z[i]]), period)[0])
         unit = si / abs(si) if si != 0 else 0.0
         cols = cols_taken + [np.concatenate([u, unit * u]),
                              np.concatenate([u.conj(), np.conj(unit) * u.conj()])]
@@ -563,10 +589,35 @@ def render_nd(loop: LoopModelND, K, B=0.0) -> RenderND:
         ``K`` or ``B`` not finite or of the wrong shape.
     """
     Kq, Bq = _gains(loop, K, B)
-    zr, U, poles = rendered_pairs(loop, Kq, Bq)
+    return render_state(state_matrix(loop, Kq, Bq), loop.mass, loop.period, K=Kq, B=Bq)
+
+
+def render_state(A, mass, period: float, *, K=None, B=None) -> RenderND:
+    """:func:`render_nd` of any closed-loop state matrix whose first n states are the
+    handle position (n = the mass matrix's size).
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, N)
+        Closed-loop state matrix.
+    mass : ndarray, shape (n, n)
+        Cartesian mass of hand + handle [kg].
+    period : float
+        Sample period ``T`` [s].
+    K, B : ndarray, optional
+        The virtual matrices to report (nan when not given).
+
+    Returns
+    -------
+    RenderND
+    """
+    M = np.asarray(mass, float)
+    n = M.shape[0]
+    Kq = np.full((n, n), np.nan) if K is None else K
+    Bq = np.full((n, n), np.nan) if B is None else B
+    zr, U, poles = rendered_pairs_of(A, n, period)
     rho = float(np.max(np.abs(poles))) if poles.size else 0.0
     stable = rho <= 1.0 + STABILITY_TOL
-    n = loop.dof
     common = dict(dof=n, K=Kq, B=Bq, rendered_poles=zr, poles=poles, spectral_radius=rho,
                   stable=stable)
     if zr.size < n:
@@ -576,10 +627,10 @@ def render_nd(loop: LoopModelND, K, B=0.0) -> RenderND:
                         note=f"the closed loop has {zr.size} rendered pair(s) with "
                              f"independent mode shapes at the handle, fewer than {n}: "
                              "no felt matrices", **common)
-    s = _log(zr, loop.period)
-    k, b = felt_matrices(loop.mass, s, U)
+    s = _log(zr, period)
+    k, b = felt_matrices(M, s, U)
     E = np.column_stack([_major_axis(U[:, i]) for i in range(n)])
-    m = np.einsum("in,ij,jn->n", E, loop.mass, E)
+    m = np.einsum("in,ij,jn->n", E, M, E)
     return RenderND(felt_stiffness=k, felt_damping=b, directions=E,
                     direction_stiffness=m * np.abs(s) ** 2,
                     direction_damping=-2.0 * m * s.real, direction_mass=m, **common)

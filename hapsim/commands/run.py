@@ -53,8 +53,12 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller
   with max_damping [N s/m] that damps that excess.
+drivers' devices (--driver): a reply that does not come is a missing sample (counted;
+  the next tick asks again), not a lost device; the FireFader .ino disables its force
+  after 0.1 s of silence, the Haply board and the Hapkit sketch have NO watchdog and hold
+  the last force: hapsim sends zero force first and at every end (docs/drivers.md).
 reliability: bad frames are counted and dropped; silence for --lost-timeout (default:
-  the 50 ms watchdog period, when the device zeroes its force by itself), a port error or
+  the 50 ms watchdog period, when a framed device zeroes its force by itself), a port error or
   a device reset (a HELLO after arming: noticed at once) -> zero force, STOP, state
   'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
@@ -121,11 +125,14 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
-    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
-                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
-                        "numba function that owns the port, without the GIL; a live --osc, "
-                        "--sound or a device correction keep the Python loop) or 'python' "
-                        "(the reference loop: the same FORCEs bit for bit, to compare)")
+    p.add_argument("--loop", choices=("auto", "compiled", "python"), default="auto",
+                   help="host loop: 'compiled' (the device-clocked hot path in one numba "
+                        "function that owns the port, without the GIL; a live --osc, --sound "
+                        "or a device correction keep the Python loop), 'python' (the "
+                        "reference loop: the same FORCEs bit for bit, to compare) or 'auto' "
+                        "(default: compiled when numba's cache holds it; otherwise this run "
+                        "uses the Python loop and compiles the other after its report, for "
+                        "the next runs)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -175,7 +182,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
+def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
     """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
     stops it cleanly.
 
@@ -188,10 +195,12 @@ def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
     protocol : str
         What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
         protocol (the scene's device.protocol)"``, ...).
+    note : str
+        Appended (which host loop runs, when it is not the one asked for).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
-          f"for {length} (SIGINT/SIGTERM stop cleanly)",
+          f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
           file=sys.stderr, flush=True)
 
 
@@ -273,6 +282,12 @@ def run(args) -> int:
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
+    # its one-line error alone) before the silence it costs
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -288,12 +303,22 @@ def run(args) -> int:
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
-    args.announce = lambda port, n: _announce(port, n, said)
-    from hapsim.daemon.startup import announce_compilation, run_compile_parts
-    # an empty numba cache: say what is compiled before the silence it costs
-    corrected = scene.device is not None and getattr(scene.device, "correction", None)
-    announce_compilation(run_compile_parts(scene, compiled_loop=args.loop == "compiled"
-                                           and args.protocol == "framed" and not corrected))
+    note = ""
+    args.announce = lambda port, n: _announce(port, n, said, note)
+    # an empty numba cache: say what is compiled before the silence it costs, and compile
+    # only what this run needs (--loop auto: the compiled loop after the report)
+    possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
+                                              osc=args.osc, sound=args.sound,
+                                              host_clocked=args.host_clocked)
+    asked = args.loop
+    if asked == "auto":     # a run that cannot use the compiled loop reports why it did not
+        args.loop = startup.choose_loop(asked, scene) if possible else "compiled"
+    compile_later = asked == "auto" and args.loop == "python"
+    startup.announce_compilation(startup.run_compile_parts(
+        scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
+    if compile_later:           # said when the loop starts (not before an input error)
+        note = ("; the Python host loop this time (the compiled one is not in numba's cache "
+                "yet: it is compiled after the report, for the next runs)")
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
@@ -323,14 +348,38 @@ def run(args) -> int:
     sys.stdout.flush()
     if lost is not None:                # the report first, then why the run ended
         print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
+    stopped = str(rep.get("loop", {}).get("stop_reason") or "").startswith("signal")
+    if compile_later and lost is None and not stopped:     # not after a Ctrl-C
+        _compile_loop_for_next_runs(scene)
     return code
+
+
+def _compile_loop_for_next_runs(scene) -> None:
+    """Compile the compiled host loop for ``scene``'s kernel into numba's cache, after a
+    run that used the Python loop because the cache did not hold it (``--loop auto``);
+    Ctrl-C leaves it for the next run."""
+    import time
+    t0 = time.monotonic()
+    print("hapsim run: compiling the compiled host loop for the next runs (once) ...",
+          file=sys.stderr, flush=True)
+    try:
+        from hapsim.analysis.targets import apply_targets
+        from hapsim.daemon.fastloop import warm_up
+        from hapsim.engine import Engine
+        warm_up(Engine(apply_targets(scene)[0]))
+    except KeyboardInterrupt:
+        print("hapsim run: interrupted; the next run compiles it", file=sys.stderr, flush=True)
+        return
+    print(f"hapsim run: compiled the compiled host loop ({time.monotonic() - t0:.1f} s); the "
+          "next runs use it", file=sys.stderr, flush=True)
 
 
 def _replace_device(scene, path: str):
     """The scene with its device section replaced by the file's (``--device FILE``).
 
     What the file leaves out and the scene gives is kept: the force limit (``hapsim
-    identify --out`` does not measure it) and the protocol. One line on stderr says what
+    identify --out`` does not measure it), the protocol and, with the same protocol, its
+    options (``device.protocol_options``). One line on stderr says what
     was replaced, and by which values.
 
     Parameters
@@ -357,6 +406,10 @@ def _replace_device(scene, path: str):
     if old is not None:
         keep = {name: getattr(old, name) for name in ("force_limit", "protocol")
                 if name not in given}
+        # the device's own parameters go with its protocol: kept when the file names
+        # neither them nor another protocol
+        if "protocol_options" not in given and keep.get("protocol", dev.protocol) == old.protocol:
+            keep["protocol_options"] = old.protocol_options
         dev = dataclasses.replace(dev, **keep)
     changed = [] if old is None else [
         f"{f.name} {_short(getattr(old, f.name))} -> {_short(getattr(dev, f.name))}"

@@ -25,7 +25,10 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
+    protocol = lp.get("protocol", "framed")
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+                          else ", lockstep" if lp["lockstep"]
+                          else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
@@ -61,8 +64,10 @@ def format_report(rep: dict) -> str:
         lines.append(f"  {'rel. error':<12} {dash(re['k'], '+12.2e')} {dash(re['b'], '+11.2e')} "
                      f"{dash(re['f0_hz'], '+10.2e')} {dash(re['damping_ratio'], '+9.2e')}")
         if m.get("interval_note"):
-            lines.append(f"  {'+-':<12} {dash(m['k_interval'], '12.4f')} "
-                         f"{dash(m['b_interval'], '11.5f')}   ({m['interval_note']})")
+            # general format: a stated uncertainty far below the last fixed digit is
+            # printed as what it is, not as 0.0000
+            lines.append(f"  {'+-':<12} {dash(m['k_interval'], '12.4g')} "
+                         f"{dash(m['b_interval'], '11.4g')}   ({m['interval_note']})")
         if m.get("verdict"):
             lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
@@ -98,7 +103,7 @@ def format_report(rep: dict) -> str:
                  f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
                  f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
     if lp.get("python_reason"):
-        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
+        lines.append(f"loop: the Python loop ran, not the compiled one: {lp['python_reason']}")
     if lp.get("first_sample_s") is not None:
         lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
                      f"started")

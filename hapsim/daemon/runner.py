@@ -34,6 +34,8 @@ import signal
 import threading
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from hapsim.analysis.measurement import contact_verdict, identify, relative_error, verdict
 from hapsim.analysis.network import device_body
 from hapsim.analysis.prediction import (has_offset, port_links, predict, predicted_poles,
@@ -44,7 +46,8 @@ from hapsim.daemon.mock import MockDevice
 from hapsim.daemon.options import RunOptions
 from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.report import format_report
-from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
+from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
+                                   process_start)
 from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
@@ -357,7 +360,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         # starts and says HELLO: the loop waits for them just before it arms the device
         # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
-                              and corr is None)
+                              and compiled_loop_possible(scene, osc=opts.osc, sound=opts.sound,
+                                                         host_clocked=opts.host_clocked))
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it
@@ -403,7 +407,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            dopt = dict(opts.driver_options or {})
+            # the device's parameters: given, else the scene's device.protocol_options
+            # when the scene's device speaks this protocol
+            dopt = dict(opts.driver_options if opts.driver_options is not None
+                        else dev.protocol_options or {} if dev.protocol == opts.driver
+                        else {})
             if opts.driver == "haply" and opts.port is None:
                 # the board's set-up sets the encoder's count to the offset: the embedded
                 # mock is armed with the joint at the excitation's x0
@@ -414,7 +422,9 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
-                                              options=opts.mock_options,
+                                              options=(opts.mock_options
+                                                       if opts.mock_options is not None
+                                                       else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
@@ -631,7 +641,102 @@ def _contact_replay(scene: Scene, cols: dict):
     return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
 
 
-def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
+def _late_accounted(scene, cols: dict, hello=None, driver=None):
+    """The logged positions with the response to the late ticks' known disturbance taken
+    out, when the device names the force it applied (framed protocol, ``force_seq``).
+
+    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
+    position minus the loop's response to ``w = applied - F[n-d]``
+    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
+    so the whole record is measured, not only the longest stretch without a late tick.
+
+    Returns
+    -------
+    (ndarray, ndarray or None, dict)
+        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
+    """
+    from hapsim.analysis.applied import account_from_force_seq
+
+    pos, late = cols["position"], cols["late"]
+    fseq = cols.get("force_seq")
+    dev = scene.device
+    hook = getattr(driver, "account", None) if driver is not None else None
+    if driver is not None:
+        # a driver's STATEs name no applied force (force_seq = seq - d): its account is
+        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
+        acc = hook(cols, cols["force"]) if hook is not None else None
+        if acc is None or not np.any(acc.late):
+            return pos, late, {}
+    else:
+        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+            return pos, late, {}
+        lim = float(dev.force_limit)
+        if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
+            lim = min(lim, float(hello.force_limit))
+        acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
+                                     zero_delay=dev.delay == 0, force_limit=lim)
+    info = {"device_delay": int(acc.delay), "account": acc.method}
+    if acc.delay != dev.delay:
+        # the model of the loop would be the wrong one: measure as recorded, and say so
+        info["late_accounted"] = 0
+        info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
+                             f"states {dev.delay}: late ticks are not taken out")
+        return pos, late, info
+    from hapsim.analysis.identify import disturbance_response
+    w = acc.disturbance(cols["force"], cols["seq"])
+    try:
+        xw = disturbance_response(scene, w)
+    except ConfigError:
+        return pos, late, info
+    info["late_accounted"] = acc.n_late
+    # what the account leaves uncertain (a driver's timing): a force error per sample
+    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
+    return pos - xw, None, info
+
+
+def _wire_errors(scene, cols: dict, start: int, driver) -> list:
+    """The wire's number-format errors of a driver's run, for the stated uncertainty.
+
+    A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
+    field: at most ``2^-24``) and ``force_scale`` (an actuator step: the FireFader's 8-bit
+    PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
+    ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
+    position's rounding reaches the record as the sensor's does
+    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
+    the virtual links), the force's as a force error at the device
+    (:func:`hapsim.analysis.identify.force_error_response`).
+
+    Returns
+    -------
+    list of (float, ndarray)
+        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
+    """
+    if driver is None:
+        return []
+    from hapsim.analysis.identify import force_error_response, sensor_error_response
+    sel = cols["seq"] >= start
+    x, f = cols["position"][sel], cols["force"][sel]
+    n = int(x.size)
+    if n == 0:
+        return []
+    out = []
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
+    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
+    try:
+        if pr > 0:
+            out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
+                        sensor_error_response(scene, n)))
+        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
+        if sd_f > 0:
+            out.append((sd_f, force_error_response(scene, n)))
+    except ConfigError:
+        return []
+    return out
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -645,6 +750,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     hello : firmware_protocol.Hello, optional
         The device's HELLO: its ``position_scale`` is the sensor step when the scene's
         ``device.position_resolution`` does not give one.
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its wire's number format is in the stated uncertainty
+        (:func:`_wire_errors`).
 
     Returns
     -------
@@ -660,6 +768,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    late_info = {}
     quantum = float(dev.position_resolution or 0.0)
     if not quantum and hello is not None and math.isfinite(hello.position_scale):
         quantum = max(float(hello.position_scale), 0.0)
@@ -677,12 +786,22 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+        position, late, late_info = _late_accounted(scene, cols, hello, driver)
+        wire = _wire_errors(scene, cols, start, driver)
+        hw = late_info.pop("_force_half_width", 0.0)
+        if hw > 0:
+            # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
+            # the loop's force response: in the stated uncertainty as the wire's errors
+            from hapsim.analysis.identify import force_error_response
+            wire.append((hw / math.sqrt(3.0),
+                         force_error_response(scene, int(np.sum(cols["seq"] >= start)))))
+        measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
-                            closed=None if replay is None else replay.closed)
+                            closed=None if replay is None else replay.closed,
+                            wire=wire)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
     notes = []
@@ -698,6 +817,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
+    if late_info:
+        measured.update(late_info)
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -754,6 +875,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -867,7 +990,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel, run.res.hello)
+    drv = None
+    if opts.driver not in (None, "framed"):
+        from hapsim.drivers import get_driver
+        drv = get_driver(opts.driver, **(opts.driver_options or {}))
+    measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1

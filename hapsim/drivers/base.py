@@ -93,6 +93,10 @@ class Driver:
         Reported as HELLO.device_id.
     limits : str
         What the protocol cannot do, for ``--help`` and docs/devices.md.
+    position_rel, force_rel : float
+        Largest relative rounding of the position / force fields on the wire (``2^-24``
+        for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
+        (:func:`hapsim.daemon.runner.identify_run`).
     """
 
     name = ""
@@ -104,6 +108,8 @@ class Driver:
     native_rate_hz = 1000.0
     device_id = 0
     limits = ""
+    position_rel = 0.0
+    force_rel = 0.0
     #: What :meth:`hapsim.drivers.transport.DriverTransport.report` says of a firmware
     #: that answers each command, and of one that streams records unprompted.
     #: Records to let pass after arming, at zero force, before the first sample: a
@@ -114,6 +120,18 @@ class Driver:
     unframed = False
     answering_firmware = "answers each command"
     streaming_firmware = "streams records unprompted"
+
+    def options(self) -> dict:
+        """The device parameters this driver was built with (its constructor's keywords
+        and their values): what ``device.protocol_options`` holds."""
+        import inspect
+        names = [n for n in inspect.signature(type(self).__init__).parameters if n != "self"]
+        return {n: getattr(self, n) for n in names if hasattr(self, n)}
+
+    def mock_hardware(self) -> dict:
+        """The keywords of this driver's mock (:mod:`hapsim.drivers.mock`) that build the
+        device this driver describes (by default none)."""
+        return {}
 
     def round_trip_s(self) -> float:
         """Shortest time from a command's first byte to the end of its answer [s] (wire
@@ -154,6 +172,12 @@ class Driver:
         """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message)."""
         return f"a command and its answer take {self.round_trip_s() * 1e3:.3g} ms"
 
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """What the host sends to leave the device at zero force (STOP, a loss, closing
+        the port): a zero-force command by default; a device that may have lost its place
+        in the byte stream gets its re-synchronisation, which ends at zero force."""
+        return self.encode_force(0.0)
+
     def resync(self, position: float = 0.0) -> bytes:
         """Bytes that put a device which lost its place in the byte stream back in step,
         zero force first (default: a zero-force command; a start byte re-aligns a framed
@@ -173,6 +197,29 @@ class Driver:
         """The force [N] the device receives for ``force`` (after the protocol's
         quantisation and clamp): what identification must fit against."""
         return float(force)
+
+    def account(self, columns: dict, force):
+        """The force the device applied per tick, from this driver's timing, or None.
+
+        A protocol without ``force_seq`` cannot name the force the device held at a tick;
+        a driver that times its commands and records fills this in with
+        :func:`hapsim.analysis.applied.account_from_timing` (late ticks, and the ticks it
+        cannot order, whose force half-width the stated uncertainty then covers).
+        ``identify`` fits the device to it and ``run`` takes the late ticks out as known
+        inputs; None (the default): the forces sent, every delay tried.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N] (:meth:`applied_force` of the sent).
+
+        Returns
+        -------
+        hapsim.analysis.applied.AppliedAccount or None
+        """
+        return None
 
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""

@@ -282,7 +282,7 @@ class FireFader(Driver):
                               key="metres_per_count")
         self.axis = axis
         self.full_scale = float(full_scale)
-        self.position_scale = float(metres_per_count)
+        self.position_scale = self.metres_per_count = float(metres_per_count)
         self.force_scale = self.full_scale / 127.0
         self.force_limit = FORCE_MAX * self.force_scale
 
@@ -297,6 +297,10 @@ class FireFader(Driver):
     def applied_force(self, force: float) -> float:
         """The force the packet of ``force`` commands [N]: its count times the scale."""
         return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
+
+    def mock_hardware(self) -> dict:
+        """The mock's fader: this full scale and position scale."""
+        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale}
 
     def round_trip_s(self) -> float:
         """From a packet's first byte to its record's last [s]: 3 + 7 bytes of 10 bits at

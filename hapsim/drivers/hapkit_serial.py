@@ -136,6 +136,8 @@ class HapkitSerial(Driver):
     rtscts = False
     native_rate_hz = 300.0
     device_id = 0x48415053           # "HAPS"
+    position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
+    force_rel = 2.0 ** -24
     position_scale = 0.0             # float32 on the wire: the firmware's resolution
     force_scale = 0.0
     limits = LIMITS

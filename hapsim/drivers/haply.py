@@ -373,6 +373,9 @@ class HaplyM3(Driver):
         A bad id, resolution or direction (the key and the valid range named).
     """
 
+    position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
+    force_rel = 2.0 ** -24
+
     name = "haply"
     baud = 115200                     # USB CDC: ignored
     rtscts = False
@@ -404,6 +407,15 @@ class HaplyM3(Driver):
                               key="offset_deg")
         self.offset_deg = float(offset_deg)
         self.position_scale = 2 * math.pi / self.resolution
+
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """Zero torque whatever the board's parser is doing (:meth:`resync`): the board has
+        no watchdog, so a zero write it misreads would leave the last torque on."""
+        return self.resync(position)
+
+    def mock_hardware(self) -> dict:
+        """The mock's encoder: this many counts per revolution."""
+        return {"cpr": self.resolution}
 
     def resync(self, position: float = 0.0) -> bytes:
         """Put the board back in step, zero torque first (module notes): a zero-torque

@@ -83,6 +83,14 @@ class _Actuated:
         """Force commands applied so far."""
         return len(self.applied)
 
+    def settles_on(self) -> float:
+        """The force the device holds once the commands in its delay queue are applied
+        (the last one that sets a force), [N]: what it is left with when the host is gone."""
+        for f in reversed(self._fifo):
+            if f is not None:
+                return 0.0 if not math.isfinite(f) else max(-self.limit, min(self.limit, f))
+        return self.held
+
     def apply_now(self, force: float) -> None:
         """The device sets ``force`` itself, at once (a firmware's silence rule): the queue
         is emptied too."""
@@ -421,7 +429,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     dict
         ``packets`` (force commands applied), ``decoder`` counters, ``faults`` (bytes
         dropped and corrupted per direction), ``held_at_end`` [N] (the force the device
-        holds when the host is gone), and the keys of
+        is left holding when the host is gone, its delay queue applied), and the keys of
         :class:`hapsim.daemon.mock.MockStats` the run report prints (``ticks`` = packets,
         ``late``, ``overruns`` and ``watchdog_trips`` 0: the device is paced by the packets
         and has no watchdog; ``clamped``; ``last_applied`` [N]; ``saw_stop``: the last
@@ -429,12 +437,17 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     """
     os.set_blocking(fd, False)
     fl = ByteFaults(faults)
-    t0 = last = time.monotonic()
+    t0 = last = t_idle = time.monotonic()
+    streams = getattr(dev, "firmware", "") == "pde"
     while not (stop and stop()):
         r, _, _ = select.select([fd], [], [], poll)
         out = b""
+        if streams and time.monotonic() - t_idle >= poll:
+            t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
+            out = dev.idle(t_idle - last)
         if not r:
-            out = dev.idle(time.monotonic() - last)
+            if not streams:
+                out = dev.idle(time.monotonic() - last)
         else:
             try:
                 data = os.read(fd, 4096)
@@ -446,7 +459,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
             now = time.monotonic()
             last = now
-            out = dev.feed(fl.rx(data), now - t0)
+            out += dev.feed(fl.rx(data), now - t0)
         out = fl.tx(out)
         if out:
             try:
@@ -460,8 +473,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):
         extra["enable"] = dev.enables[-1]       # at the last pass (not after the host left)
+        extra["passes_at_full_enable"] = sum(e == 129 for e in dev.enables)
     return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
-            "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.held,
+            "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.settles_on(),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
 

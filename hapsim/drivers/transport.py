@@ -13,7 +13,9 @@
   its bootloader runs);
 - FORCE -> the driver's force packet (a *command*); the record the device answers with
   becomes a STATE;
-- STOP -> a zero-force packet.
+- STOP -> zero force (:meth:`~hapsim.drivers.base.Driver.stop_bytes`: for the Haply board,
+  which has no watchdog, its whole re-synchronisation, so that zero torque is taken
+  whatever its parser is doing); closing the port sends the same first.
 
 Host-clocked only (the loop must run with ``host_clocked``): the device answers packets.
 
@@ -54,6 +56,8 @@ __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
+#: Listening before arming, for records nobody asked for (a streaming firmware) [s].
+LISTEN_S = 0.03
 #: Commands in a row without an answer after which the device is re-synchronised.
 SILENT_COMMANDS = 4
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
@@ -196,6 +200,7 @@ class DriverTransport:
         elif t is fp.Ping:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
+            self._listen()
             self._armed = True
             self._force = 0.0
             self._answered = self._cmd          # records of earlier commands are stale
@@ -205,7 +210,20 @@ class DriverTransport:
         elif t is fp.Stop:
             self._armed = False
             self._force = 0.0
-            self._write(dr.encode_force(0.0))
+            self._write(dr.stop_bytes(self._x_last))
+
+    def _listen(self) -> None:
+        """Before arming: listen for :data:`LISTEN_S` without asking anything; records
+        that come are a firmware that streams (counted in ``unprompted_before_arming``)."""
+        end = time.monotonic() + LISTEN_S
+        dec = self._dec
+        try:
+            while time.monotonic() < end:
+                data = self._ser.read(max(self._ser.in_waiting, 1))
+                if data:
+                    self.stats["unprompted_before_arming"] += len(dec.feed(data))
+        except Exception as exc:  # serial.SerialException, OSError
+            raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
     def hold(self) -> None:
         """A host tick without a new sample: command the last force again (a request-reply
@@ -311,12 +329,12 @@ class DriverTransport:
 
     def report(self) -> dict:
         """What the driver's link did: :attr:`stats` and the firmware seen (``firmware``:
-        ``"streams records unprompted"`` when records came with no command to answer,
-        else ``"answers each command"``; ``None`` before any record)."""
+        the driver's ``streaming_firmware`` when records came before anything was asked
+        (:data:`LISTEN_S` of listening at each arming), else its ``answering_firmware``;
+        ``None`` before any record)."""
         st = dict(self.stats)
         st["decoder"] = dict(self._dec.stats)
-        streams = st["unprompted"] + st["unprompted_before_arming"]
-        st["firmware"] = (self.driver.streaming_firmware if streams > max(2, st["records"] // 4)
+        st["firmware"] = (self.driver.streaming_firmware if st["unprompted_before_arming"]
                           else self.driver.answering_firmware if st["records"] else None)
         return st
 
@@ -324,7 +342,7 @@ class DriverTransport:
         """Close the port (idempotent): zero force first (a device may hold it)."""
         try:
             if self._ser.is_open:
-                self._ser.write(self.driver.encode_force(0.0))
+                self._ser.write(self.driver.stop_bytes(self._x_last))
                 self._ser.flush()
         except Exception:  # best effort: the port may be gone
             pass
