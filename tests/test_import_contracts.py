@@ -59,9 +59,11 @@ LAYERS = (
     # a scene checks its device.protocol_options with them; their mocks stand higher
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
                "hapsim.device_file", "hapsim.drivers")),
-    ("models", ("hapsim.engine", "hapsim.analysis", "hapsim.device_model",
-                "hapsim.kinematics", "hapsim.plot", "hapsim.plot_bench", "hapsim.plot_family",
-                "hapsim.plot_telemetry")),
+    # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
+    ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep_nd", "hapsim.scene_nd",
+                "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plot",
+                "hapsim.plot_bench", "hapsim.plot_family", "hapsim.plot_telemetry",
+                "hapsim.plot_workspace", "hapsim.plot_zwidth")),
     ("devices and sound", ("hapsim.drivers.mock", "hapsim.audio")),
     ("daemon", ("hapsim.daemon",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
