@@ -34,6 +34,7 @@ examples:
   hapsim zwidth --B 0 2 4 8 --plot zwidth.png          (embedded mock, real time)
   hapsim zwidth --scene configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
   hapsim zwidth --firmware --B 1.5                      (the emulated Hapkit board)
+  hapsim zwidth --firmware --lockstep --B 0 1.5 4       (the board, host-paced)
 
 exit codes: 0 every point measured, 1 some point not measured (no bracket), 2 bad input"""
 
@@ -71,7 +72,8 @@ def register(sub) -> None:
                             "started here")
     p.add_argument("--baud", type=int, default=115200, help="baud rate of --port")
     p.add_argument("--lockstep", action="store_true",
-                   help="the embedded mock in lockstep, in process (deterministic)")
+                   help="the embedded mock in lockstep, in process (deterministic); with "
+                        "--firmware, the emulated board's clock paced by the host")
     p.add_argument("--B", type=float, nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
                    help="virtual dampings [N s/m] (default 0 1.5 4)")
     p.add_argument("--x0", type=float, default=None,
@@ -103,15 +105,16 @@ def _base(args):
     return sc
 
 
-def _start_firmware(base):
-    """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port)."""
+def _start_firmware(base, realtime: bool = True):
+    """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port).
+    ``realtime`` False: the board's clock advances as the host answers (lockstep)."""
     import subprocess
     from hapsim.daemon import board
     why = board.missing_tools()
     if why:
         raise ConfigError(f"the emulated board cannot be built here: {why}", key="--firmware")
     board.build()
-    cmd = board.board_command(base.device, base.excitation, realtime=True)
+    cmd = board.board_command(base.device, base.excitation, realtime=realtime)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     for line in proc.stdout:
         if line.startswith("PORT "):
@@ -149,9 +152,9 @@ def run(args) -> int:
             raise ConfigError(f"out of range: {v!r}", key=key)
     if any(not math.isfinite(b) for b in args.B):
         raise ConfigError(f"must be finite, got {args.B}", key="--B")
-    if args.lockstep and (args.port or args.firmware):
-        raise ConfigError("--lockstep is the embedded mock's; drop it with --port or "
-                          "--firmware", key="--lockstep")
+    if args.lockstep and args.port:
+        raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
+                          "it with --port", key="--lockstep")
     if args.plot:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -160,11 +163,22 @@ def run(args) -> int:
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
     flim = float(base.device.force_limit or math.inf)
+    loop = device_loop(base.device, base.rate_hz)
     proc = None
     if args.firmware:
-        proc, port = _start_firmware(base)
-        opts = dict(port=port)
-        where = "the emulated Hapkit board (simavr, real time)"
+        # the board places the handle at its own x0 at every CONFIG: one release for all
+        # the walls, small enough for the stiffest one the search may reach (130 % of the
+        # largest predicted limit) to stay clear of the force limit
+        kmax = max(stability_limit(loop, B) for B in args.B)
+        if math.isfinite(kmax) and kmax > 0:
+            x0 = release(x0, flim, 1.3 * kmax)
+        import dataclasses
+        base = dataclasses.replace(base, excitation=dataclasses.replace(base.excitation,
+                                                                        x0=x0))
+        proc, port = _start_firmware(base, realtime=not args.lockstep)
+        opts = dict(port=port, lockstep=bool(args.lockstep))
+        where = ("the emulated Hapkit board (simavr, " + ("lockstep" if args.lockstep
+                                                          else "real time") + ")")
     elif args.port:
         opts = dict(port=args.port, baud=args.baud)
         where = f"the device on {args.port}"
@@ -175,7 +189,6 @@ def run(args) -> int:
         opts = {}
         where = "the embedded mock (real time, on a pty)"
     measure = run_measure(base, x0, duration=args.duration, **opts)
-    loop = device_loop(base.device, base.rate_hz)
     fc = float(base.device.coulomb or 0.0)
     points = []
     try:
