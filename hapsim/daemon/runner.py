@@ -42,7 +42,7 @@ from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
 
@@ -965,7 +965,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                                                        else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.01)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=dev.delay)
@@ -1439,6 +1439,15 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                      "loop is not the linear THS exactly")
     if late_info:
         measured.update(late_info)
+    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
+    if n_est and "k" in measured:
+        # a driver's missing replies: the scene stepped through them with an extrapolated
+        # position; the force sent there differs from the one the true position gives by
+        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        measured["estimated_samples"] = n_est
+        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
+                     f"stepped through with an extrapolated position: their disturbance is "
+                     f"not in the stated uncertainty")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -1507,7 +1516,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
-        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "late": res.late, "missed": res.missed, "estimated": res.estimated,
+        "overruns": res.overruns,
         "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
