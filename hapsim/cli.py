@@ -56,7 +56,7 @@ from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
             "run", "mock", "bench", "advise",
             "play", "telemetry", "identify", "family", "compare_corrections",
-            "kinematics")
+            "kinematics", "zwidth")
 
 
 #: Options people confuse: felt (k, b) of ``calibrate`` against virtual (K, B) of ``render``.

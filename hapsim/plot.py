@@ -11,7 +11,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["PLOT_INSTALL", "plot_grid", "save_figure", "figure_formats", "check_figure_path",
+__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "save_figure", "figure_formats", "check_figure_path",
            "check_output_path"]
 
 
@@ -229,6 +229,57 @@ def check_output_path(path: str, key: str) -> None:
     """
     from hapsim.outputs import check_writable   # one check for every command's outputs
     check_writable(path, key)
+
+
+def plot_poles(report, ax=None, title: str | None = None):
+    """The closed-loop poles of a checked scene or a rendered loop in the z-plane.
+
+    Parameters
+    ----------
+    report : hapsim.api.CheckReport or hapsim.api.RenderReport
+        Its ``eigenvalues`` (list of [re, im]) and ``rendered`` (the felt mode: ``z_re``,
+        ``z_im``, ``k`` [N/m], ``b`` [N s/m], ``f0_hz``).
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw into; a new figure is made when None.
+    title : str, optional
+        Default: the scene's path (a check) or the felt (k, b).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The unit circle (the stability boundary of a sampled system), every pole (x) and
+        the felt pair (o, labelled with k, b and f0). Axes: Re z, Im z.
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    plt = _mpl()
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=110)
+    else:
+        fig = ax.figure
+    t = np.linspace(0.0, 2.0 * np.pi, 400)
+    ax.plot(np.cos(t), np.sin(t), color="0.6", lw=1.0, label="|z| = 1 (stability boundary)")
+    z = np.array([[np.nan if v is None else v for v in e] for e in report.eigenvalues],
+                 dtype=float).reshape(-1, 2)
+    ax.plot(z[:, 0], z[:, 1], "x", color="C0", label="closed-loop poles")
+    r = report.rendered
+    if r is not None:
+        zr = np.array([r["z_re"], r["z_re"]]), np.array([r["z_im"], -r["z_im"]])
+        ax.plot(*zr, "o", mfc="none", color="C3", ms=10,
+                label=f"felt: k = {r['k']:.4g} N/m, b = {r['b']:.3g} N s/m, "
+                      f"f0 = {r['f0_hz']:.3g} Hz")
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.axhline(0.0, color="0.85", lw=0.8)
+    ax.axvline(0.0, color="0.85", lw=0.8)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
+    ax.set_title(title or getattr(report, "scene", None) or "closed-loop poles")
+    fig.tight_layout()
+    return fig
 
 
 def save_figure(fig, path: str) -> None:

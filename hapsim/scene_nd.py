@@ -308,6 +308,8 @@ class _Reader:
             if isinstance(v, bool):
                 raise TypeError
             if isinstance(v, (int, float)):
+                if not math.isfinite(float(v)):
+                    raise self.error(f"must be finite, got {show(v)}", line, where)
                 a = float(v) * np.eye(n)
             elif isinstance(v, list) and len(v) == n and all(
                     isinstance(c, (int, float)) and not isinstance(c, bool) for c in v):

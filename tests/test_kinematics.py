@@ -15,7 +15,7 @@ from hapsim.errors import ConfigError, KinematicsError
 from hapsim.kinematics import (DELTA_PRESETS, Delta, Pantograph, PantographGeometry,
                                cartesian_mass)
 
-N_CONFIGS = 1200
+N_CONFIGS = 1050
 
 
 # --------------------------------------------------------------------------- references
@@ -388,3 +388,31 @@ def test_cli_kinematics_bad_input_exit_2(argv, key, capsys):
     err = json.loads(cap.out)["error"]
     assert err["key"] == key, err
     assert cap.err.count("\n") == 1
+
+
+def test_cli_stiffness_limits_and_workspace_map(tmp_path, capsys):
+    """--joint-inertia: the Cartesian mass J^-T M_q J^-1 + m_h I and K_max along its
+    principal axes (= direction_limits of the same loop); --grid maps it over N^2
+    configurations (one of them the given joints: the same K_max); --out charts it."""
+    from hapsim.analysis.ths_nd import LoopModelND, direction_limits
+    argv = ["kinematics", "pantograph", "--joints", "130", "50", "--joint-inertia", "2e-4",
+            "--joint-friction", "1e-3", "--hand-mass", "0.05", "--B", "1", "--json"]
+    assert main(argv) == 0
+    lim = json.loads(capsys.readouterr().out)["limits"]
+    dev = Pantograph("haply")
+    q = np.radians([130, 50])
+    loop = LoopModelND.from_device(dev, q, [2e-4, 2e-4], [1e-3, 1e-3], hand_mass=0.05)
+    assert np.allclose(lim["mass"], loop.mass, rtol=1e-15)
+    K = direction_limits(loop, np.array(lim["directions"]).T, np.eye(2))
+    assert np.allclose(lim["K_max"], K, rtol=1e-12)
+    fig = tmp_path / "w.png"
+    assert main(argv + ["--grid", "3", "--span", "10", "--out", str(fig)]) == 0
+    w = json.loads(capsys.readouterr().out)["workspace"]
+    assert len(w["status"]) == 9 and w["status"] == ["ok"] * 9
+    centre = [i for i, j in enumerate(w["joints_deg"]) if np.allclose(j, [130, 50])][0]
+    assert w["K_max"][centre] == pytest.approx(lim["K_max"], rel=1e-12)
+    assert len(set(round(v[0], 6) for v in w["K_max"])) > 3     # it moves over the space
+    assert fig.stat().st_size > 1000
+    assert main(["kinematics", "pantograph", "--joints", "130", "50", "--grid", "3",
+                 "--json"]) == 2
+    assert json.loads(capsys.readouterr().out)["error"]["key"] == "--joint-inertia"

@@ -255,3 +255,35 @@ def test_check_cli_dispatches_on_dimension(tmp_path, capsys):
     f.write_text(BASE.replace("x0: [0.0, 0.01]", "x0: [0.0]"))
     assert main(["check", str(f), "--json"]) == 2
     assert json.loads(capsys.readouterr().out)["error"]["key"] == "masses[1].x0"
+
+
+def test_stiffness_limits_along_the_mass_axes_are_the_1d_limits_when_decoupled():
+    """A cartesian device with a diagonal mass and friction, the port on grounds and an
+    axis-aligned plane: K_max along each axis is the 1-D exact limit of that axis's mass,
+    friction and virtual damping (the other axis's stiffness kept: decoupled); with a
+    virtual mass on a port link there is no such limit (None)."""
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import stability_limit
+    text = """\
+dimension: 2
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground}
+links:
+  - {name: w, kind: spring_damper, between: [hand, wall], stiffness: 200, damping: 0.8}
+planes:
+  - {name: p, normal: [0, 1], offset: 0.0, stiffness: 300, damping: 0.4}
+device: {mass: [0.08, 0.2], friction: [0.3, 0.6], delay: 1}
+"""
+    chk = check_scene_nd(parse_scene_nd(text))
+    m, b0, B = [0.08, 0.2], [0.3, 0.6], [0.8, 1.2]
+    for i in range(2):
+        e = chk.limit_directions[:, i]
+        j = int(np.argmax(np.abs(e)))
+        ref = stability_limit(LoopModel(mass=m[j], friction=b0[j], rate_hz=1000.0,
+                                        delay=1), B[j])
+        assert chk.stiffness_limits[i] == pytest.approx(ref, rel=1e-9)
+    virt = text.replace("  - {name: wall, kind: ground}",
+                        "  - {name: wall, kind: mass, mass: 0.01}")
+    assert check_scene_nd(parse_scene_nd(virt)).stiffness_limits is None

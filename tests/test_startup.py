@@ -248,3 +248,60 @@ print(json.dumps({{"said": said, "text": err.getvalue(), "numba": "numba" in sys
                        text=True, cwd=str(REPO), timeout=120)
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert not got["said"] and got["text"] == "" and not got["notice"]
+
+
+def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
+    """``--loop auto`` takes the compiled loop only when its stamp for the scene's kernel is
+    newer than the loop's and the kernel's modules; another kernel's stamp does not count."""
+    from hapsim.daemon import startup
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    wall, string = load_scene(WALL), load_scene(str(REPO / "configs" / "string.yaml"))
+    assert startup.scene_kernel(wall)[1] == "run_sd"
+    assert startup.scene_kernel(string)[1] == "run_sd_contact"
+    assert startup.choose_loop("auto", wall) == "python"
+    assert startup.choose_loop("compiled", wall) == "compiled"
+    stamp = Path(startup.loop_stamp("run_sd"))
+    stamp.parent.mkdir(parents=True)
+    stamp.write_text("")
+    assert startup.choose_loop("auto", wall) == "compiled"
+    assert startup.choose_loop("auto", string) == "python"
+    os.utime(stamp, (1_000_000, 1_000_000))                 # older than the sources
+    assert startup.choose_loop("auto", wall) == "python"
+
+
+def test_compiled_loop_possible_matches_what_the_runner_would_run():
+    """The options that keep the Python loop (the runner's python_reason) are the ones
+    for which the compiled loop is neither announced nor compiled."""
+    from hapsim.daemon.startup import compiled_loop_possible
+    wall = load_scene(WALL)
+    assert compiled_loop_possible(wall)
+    assert not compiled_loop_possible(wall, framed=False)
+    assert not compiled_loop_possible(wall, osc=0)
+    assert not compiled_loop_possible(wall, sound="auto")
+    assert not compiled_loop_possible(wall, host_clocked=True)
+    assert not compiled_loop_possible(load_scene(str(REPO / "configs" / "audio_string.yaml")))
+
+
+def test_first_run_without_the_compiled_loop_uses_python_then_compiles_it(
+        monkeypatch, capsys):
+    """``hapsim run`` (``--loop auto``) with the compiled loop not in the cache: the run
+    says so, uses the Python loop (its report says which loop ran), and compiles the
+    compiled loop after the report, for the scene's kernel; with it in the cache, nothing
+    is compiled after the run."""
+    from hapsim.cli import main
+    from hapsim.daemon import fastloop, startup
+    compiled = []
+    monkeypatch.setattr(fastloop, "warm_up", lambda eng: compiled.append(eng) or 0.0)
+    monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: False)
+    argv = ["run", WALL, "--lockstep", "--duration", "0.2", "--json"]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    rep = json.loads(out)
+    assert rep["loop"]["compiled_samples"] == 0 and rep["loop"]["python_reason"] is None
+    assert "uses the Python loop" in err and "compiled the compiled host loop" in err
+    assert len(compiled) == 1 and compiled[0].scene.links[0].name == "wall"
+    monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: True)
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["loop"]["compiled_samples"] > 0
+    assert "for the next runs" not in err and "uses the Python loop" not in err

@@ -114,7 +114,7 @@ def test_eigenvalues_and_felt_matrices_equal_the_independent_reference(n):
     when the reference's n least damped pairs are the rendered ones."""
     rng = np.random.default_rng(100 + n)
     felt_checked = 0
-    for _ in range(40):
+    for _ in range(24):
         M, B0, rate, d, K, B = random_loop(rng, n)
         loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=d)
         A = reference_state_matrix(M, B0, 1.0 / rate, d, K, B)
@@ -135,7 +135,7 @@ def test_eigenvalues_and_felt_matrices_equal_the_independent_reference(n):
         assert np.max(np.abs(r.felt_stiffness - k_ref)) <= 1e-6 * scale_k
         assert np.max(np.abs(r.felt_damping - b_ref)) <= 1e-6 * scale_b
         felt_checked += 1
-    assert felt_checked >= 20
+    assert felt_checked >= 12
 
 
 def test_felt_system_has_the_rendered_poles_and_shapes():

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import LoopModelND, RenderND, render_state, zoh_matrices
+from hapsim.analysis.ths_nd import (LoopModelND, RenderND, direction_limit, render_state,
+                                    zoh_matrices)
 from hapsim.errors import ConfigError
 
 __all__ = ["link_blocks", "closed_loop_nd", "SceneCheckND", "check_scene_nd",
@@ -213,6 +214,13 @@ class SceneCheckND:
         [N/m], [N s/m]: the virtual (K, B) when every port link ends on a ground.
     states : int
         Size of the closed-loop state.
+    limit_directions : ndarray, shape (n, n) or None
+        The principal axes of the device's Cartesian mass (columns, lightest first).
+    stiffness_limits : ndarray, shape (n,) or None
+        ``K_max`` [N/m] along each of them
+        (:func:`hapsim.analysis.ths_nd.direction_limit`, with the port damping and the
+        rest of the port stiffness); None when a port link ends on a moving mass (the
+        limit of a port-ground spring says nothing about the felt k then, as in 1-D).
     """
 
     dof: int
@@ -220,6 +228,8 @@ class SceneCheckND:
     port_stiffness: np.ndarray
     port_damping: np.ndarray
     states: int
+    limit_directions: np.ndarray | None = None
+    stiffness_limits: np.ndarray | None = None
 
     @property
     def stable(self) -> bool:
@@ -242,6 +252,10 @@ class SceneCheckND:
                "port_stiffness": self.port_stiffness.tolist(),
                "port_damping": self.port_damping.tolist(),
                "states": self.states, "rendered_poles": r["rendered_poles"],
+               "stiffness_limits": None if self.stiffness_limits is None else [
+                   {"direction": self.limit_directions[:, i].tolist(),
+                    "K_max": float(v) if np.isfinite(v) else None}
+                   for i, v in enumerate(self.stiffness_limits)],
                "note": r["note"]}
         return out
 
@@ -270,10 +284,23 @@ def check_scene_nd(scene) -> SceneCheckND:
     Kp = np.zeros((n, n))
     Bp = np.zeros((n, n))
     port = scene.port.name
+    grounded = True
+    kinds = {m.name: m.kind for m in scene.masses}
     for _, a, b, Kl, Bl in link_blocks(scene):
         if port in (a, b):
             Kp += Kl
             Bp += Bl
+            other = b if a == port else a
+            grounded = grounded and (other is None or kinds[other] == "ground")
     r = render_state(A, scene.device.mass, scene.period, K=Kp, B=Bp)
+    E = lim = None
+    if grounded:
+        loop = LoopModelND(mass=scene.device.mass, friction=scene.device.friction,
+                           rate_hz=scene.rate_hz, delay=scene.device.delay)
+        E = np.linalg.eigh(scene.device.mass)[1]
+        lim = np.array([direction_limit(loop, E[:, i], Bp,
+                                        Kp - float(E[:, i] @ Kp @ E[:, i])
+                                        * np.outer(E[:, i], E[:, i]))
+                        for i in range(n)])
     return SceneCheckND(dof=n, render=r, port_stiffness=Kp, port_damping=Bp,
-                        states=A.shape[0])
+                        states=A.shape[0], limit_directions=E, stiffness_limits=lim)

@@ -41,7 +41,12 @@ semisimple damped vibrating systems", SIAM J. Matrix Anal. Appl. 29(1), 2007; La
 Prells, J. Sound Vib. 283, 2005): with ``[U; U S]`` invertible the pair is unique and real.
 The felt system therefore has the rendered poles *and* the rendered mode shapes: a hand
 pushing along ``u_i`` feels the oscillator ``(m_i, k_i, b_i)``. For ``n = 1`` this is the
-1-D map exactly; for a decoupled (diagonal) loop it is the 1-D map per axis.
+1-D map exactly; for a decoupled (diagonal) loop it is the 1-D map per axis. In general
+``k`` and ``b`` are *not* symmetric: the sampled, delayed loop is not a symmetric
+mechanical system, and its exact second-order image carries that (the symmetric parts
+are the conservative stiffness and the dissipative damping; the antisymmetric parts are
+circulatory and gyroscopic terms, of the order of the coupling times the delay). They
+are symmetric when the loop is (e.g. ``M``, ``B0``, ``K``, ``B`` diagonal in one basis).
 
 **Principal directions.** Each rendered mode moves the handle along an ellipse
 ``Re(u_i e^{i w t})``; its principal direction ``e_i`` is the ellipse's major axis (unit,

@@ -109,39 +109,27 @@ def run(args: argparse.Namespace) -> int:
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D check
         from hapsim.commands.check_nd import run_nd
         return run_nd(args)
-    from hapsim.analysis.scene_check import check_scene
-    from hapsim.analysis.targets import apply_targets
+    from hapsim.api import check
     from hapsim.scene import load_scene
 
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
-    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
-    scene, cals = apply_targets(scene)
     from hapsim.analysis.network import check_size, state_count
-    check_size(scene)
+    check_size(scene)                   # too large: refused before the cost is announced
     n_states = state_count(scene)
     if n_states > 500:  # say what it costs before it starts (O(n^3), ~20 s at 2000)
         print(f"hapsim check: {n_states} states: every eigenvalue of a dense "
               f"{n_states}-square matrix, about {20 * (n_states / 2000) ** 3:.0f} s",
               file=sys.stderr, flush=True)
-    chk = check_scene(scene)
-    from hapsim.analysis.network import static_stiffness
-    static = static_stiffness(scene) if chk.has_port else None
+    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
+    rep = check(scene)
+    chk, scene, cals, static = rep.analysis, rep.calibrated_scene, rep.calibrations_made, rep.static_k
     ok = chk.stable
-    verdict = "stable" if chk.stable else "unstable"
+    verdict = rep.verdict
 
     if args.json:
-        out = {"scene": args.scene, "verdict": verdict, "rate_hz": scene.rate_hz,
-               "device": None if scene.device is None else {
-                   "mass": scene.device.mass, "friction": scene.device.friction,
-                   "delay": scene.device.delay, "hold": scene.device.hold,
-                   "correction": getattr(scene.device, "correction", None)},
-               "calibrations": [c.to_dict() for c in cals],
-               **chk.to_dict(),
-               # what a slow push feels [N/m] (virtual masses at rest), None without a port
-               "static_k": static}
-        print(json.dumps(out))
+        print(json.dumps({**rep.to_dict(), "scene": args.scene}))
         return 0 if ok else 1
 
     T = scene.period

@@ -68,6 +68,12 @@ def run_nd(args) -> int:
             print(f"    {e}  m = {r.direction_mass[i]:.6g} kg  k = "
                   f"{r.direction_stiffness[i]:.6g} N/m  b = {r.direction_damping[i]:.6g} "
                   "N s/m", file=o)
+    if chk.stiffness_limits is not None:
+        print("  stiffness limit K_max along the device's principal mass axes (the port "
+              "links as port-ground springs):", file=o)
+        for i in range(n):
+            e = "(" + ", ".join(f"{v:+.4f}" for v in chk.limit_directions[:, i]) + ")"
+            print(f"    {e}  K_max = {chk.stiffness_limits[i]:.6g} N/m", file=o)
     if r.note:
         print(f"  {r.note}", file=o)
     return 0 if chk.stable else 1

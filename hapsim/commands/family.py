@@ -163,15 +163,6 @@ def _member_line(md: dict) -> str:
             f"{_g(md['spectral_radius'], '.9g')}")
 
 
-def _verdict(res) -> str:
-    """The JSON verdict: robust or not, and how it is known."""
-    if not res.robust:
-        return "not robustly stable (certified)"
-    if res.robust_method == "certified":
-        return "robustly stable (certified)"
-    return f"robustly stable on the samples only ({res.robust_method})"
-
-
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim family``.
 
@@ -191,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     ConfigError
         Bad scene or option (exit 2 via :mod:`hapsim.cli`).
     """
-    from hapsim.analysis.family import family
+    from hapsim.api import family
     from hapsim.scene import load_scene
 
     if args.samples is not None and args.samples < 1:
@@ -209,33 +200,15 @@ def run(args: argparse.Namespace) -> int:
         corr = parse_correction(args.correction)
         scene = dataclasses.replace(scene, device=dataclasses.replace(scene.device,
                                                                       correction=corr))
-    res = family(scene, args.samples, grid=args.grid, seed=args.seed,
-                 certify=args.certify_boxes)
-    rep = res.to_dict()
-    cons = None
-    from hapsim.analysis.hand import hand_stiffness
-    if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
-        from hapsim.analysis.family import consistency
-        c = consistency(scene, mem=res.members, calibrated=res.calibrated)
-        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum",
-                                                       "k_real")}
-        rep["consistency"] = cons
-    cals = []
-    if args.calibrate:
-        from hapsim.analysis.family import calibrate_family
-        targets = [lk.name for lk in scene.links if lk.target is not None]
-        if not targets:
-            raise ConfigError("--calibrate needs a link given as target {k, b}",
-                              file=scene.path, key="links")
-        cals = [calibrate_family(scene, name, mem=res.members).to_dict() for name in targets]
-        rep["family_calibrations"] = cals
+    fam = family(scene, args.samples, grid=args.grid, seed=args.seed,
+                 certify=args.certify_boxes, calibrate=args.calibrate)
+    res, rep = fam.analysis, fam.to_dict()
+    cons, cals = fam.consistency, fam.family_calibrations or []
     if args.plot:
-        from hapsim.plot_family import plot_family
         from hapsim.plot import save_figure
-        save_figure(plot_family(res, title=args.scene), args.plot)
+        save_figure(fam.plot(title=args.scene), args.plot)
     if args.json:
-        print(json.dumps({"scene": args.scene, "verdict": _verdict(res),
-                          "correction": getattr(scene.device, "correction", None), **rep}))
+        print(json.dumps({**rep, "scene": args.scene}))
         return 0 if res.robust else 1
     if getattr(scene.device, "hand", None) is None:
         print("no device.hand section: the family is the device alone (one member)")

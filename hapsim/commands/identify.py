@@ -9,8 +9,9 @@ import sys
 
 import numpy as np
 
+from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
-from hapsim.errors import ConfigError, HapsimError, IdentificationError
+from hapsim.errors import ConfigError
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -100,88 +101,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
-             duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
-             transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None):
-    """Excite, record and fit: the API behind ``hapsim identify``.
-
-    Parameters
-    ----------
-    port, baud : str, int
-        Device port (None: a mock of ``device``) and baud rate.
-    device : hapsim.scene.Device, optional
-        What the mock models.
-    force_limit, envelope, duration, rate_hz, max_delay, lockstep, seed
-        As the options of the same names ([N], [m], [s], [Hz], [samples]).
-    transport : {"inprocess", "pty", "serial"}, optional
-        As :func:`hapsim.daemon.identify_run.record`.
-    progress, handle_signals : bool
-        Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
-    driver : str, optional
-        Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
-    driver_options : dict, optional
-        The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
-        ``full_scale``); the mass and friction found are in the units they set.
-
-    Returns
-    -------
-    (DeviceFit, dict)
-        The fit and the record (:func:`hapsim.daemon.identify_run.record`).
-
-    Raises
-    ------
-    ConfigError
-        Bad values; a record too short to fit (a safety stop at once).
-    DeviceError, ProtocolError
-        As ``hapsim run``.
-    """
-    from hapsim.analysis.device_fit import fit_device
-    from hapsim.daemon.identify_run import record
-    if isinstance(max_delay, bool) or max_delay < 0:
-        raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="--max-delay")
-    rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
-                 force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
-                 noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
-    # one uniform record: the longest stretch without a missing STATE
-    seq = rec["seq"]
-    cut = np.flatnonzero(np.diff(seq) != 1) + 1
-    bounds = np.concatenate([[0], cut, [seq.size]])
-    i = int(np.argmax(np.diff(bounds)))
-    a, b = int(bounds[i]), int(bounds[i + 1])
-    rec["loop"]["fitted_rows"] = [a, b]
-    acc = rec.get("account")
-    acc = acc.rows(a, b) if acc is not None else None
-    if acc is not None:
-        rec["loop"]["account"] = acc.to_dict()
-    if b - a < 200 and seq.size >= 200:
-        raise IdentificationError(
-            f"too short a record: the longest stretch without a missing STATE is {b - a} "
-            f"samples (rows {a}..{b} of {seq.size}; {seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
-            f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
-            f"the baud rate, or run on a quieter machine)")
-    try:
-        fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                         late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
-    except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
-        if isinstance(exc, HapsimError):
-            raise
-        # the fit failed numerically: the record does not carry what the model needs
-        raise IdentificationError(f"the record cannot be identified: the fit failed "
-                                  f"({type(exc).__name__}: {exc}); "
-                                  f"{_record_summary(rec, a, b)}") from None
-    return fit, rec
-
-
-def _record_summary(rec, a: int, b: int) -> str:
-    """One phrase on a record: rows fitted, late ticks, the device's delay, its stop."""
-    loop = rec["loop"]
-    dd = loop.get("device_delay")
-    return (f"rows {a}..{b}, {int(np.count_nonzero(rec['late'][a:b]))} late, device delay "
-            f"{'not shown' if dd is None or dd < 0 else dd}, stop: {loop['stop_reason']}")
-
-
 def _plot(fit, rec, path: str) -> None:
     from hapsim.plot import _mpl, save_figure
     plt = _mpl()
@@ -263,11 +182,14 @@ def run(args) -> int:
     elif args.protocol_option:
         raise ConfigError("the framed protocol takes no options (its device says its units "
                           "in HELLO); give --driver", key="--protocol-option")
-    fit, rec = identify(port=args.port, baud=args.baud, device=device,
-                        force_limit=args.force_limit, envelope=args.envelope,
-                        duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
-                        lockstep=args.lockstep, seed=args.seed, driver=args.driver,
-                        driver_options=dopts)
+    from hapsim.api import identify as identify_api
+    rep = identify_api(args.port, baud=args.baud, device=device,
+                       force_limit=args.force_limit, envelope=args.envelope,
+                       duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
+                       lockstep=args.lockstep, seed=args.seed, driver=args.driver,
+                       driver_options=dopts, hand=args.hand, progress=True,
+                       handle_signals=True)
+    fit, rec = rep.fit, rep.record
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
     text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
@@ -279,12 +201,7 @@ def run(args) -> int:
     loop = rec["loop"]
     code = 0 if fit.explained and not loop["safety_stop"] and not loop["faults"] else 1
     if args.json:
-        out = {"device": fit.to_dict(), "loop": loop, "hand": bool(args.hand),
-               "out": args.out, "plot": args.plot}
-        if args.hand:
-            out["note"] = ("mass and friction are the THS's: hand + handle, for this grip")
-        from hapsim.commands.run import _clean
-        print(json.dumps(_clean(out)))
+        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot}))
     else:
         if args.hand:
             print("# with the hand on the handle: the mass and damping below are the THS's "

@@ -46,6 +46,25 @@ def register(sub) -> None:
     p.add_argument("--force", type=float, nargs="+", default=None, metavar="N",
                    help="a Cartesian handle force [N] (2 or 3 components): also print "
                         "the joint torques J^T F [N m]")
+    g = p.add_argument_group(
+        "stiffness limits (the THS as a matrix at these joints: hapsim.analysis.ths_nd)")
+    g.add_argument("--joint-inertia", type=float, nargs="+", metavar="KG_M2",
+                   help="joint inertia [kg m^2], one per joint (or one for all): computes "
+                        "the Cartesian mass and K_max along its principal axes")
+    g.add_argument("--joint-friction", type=float, nargs="+", default=[0.0],
+                   metavar="N_M_S", help="joint viscous friction [N m s/rad] (default 0)")
+    g.add_argument("--hand-mass", type=float, default=0.0, help="hand mass [kg] (default 0)")
+    g.add_argument("--hand-damping", type=float, default=0.0,
+                   help="hand damping [N s/m] (default 0)")
+    g.add_argument("--rate", type=float, default=1000.0, help="sample rate [Hz] (default 1000)")
+    g.add_argument("--delay", type=int, default=1, help="delay [samples] (default 1)")
+    g.add_argument("--B", type=float, default=0.0,
+                   help="virtual damping [N s/m], isotropic (default 0)")
+    g.add_argument("--grid", type=int, default=0, metavar="N",
+                   help="also map K_max over N points per joint within --span of the joints")
+    g.add_argument("--span", type=float, default=30.0, metavar="DEG",
+                   help="half-width of the --grid map around each joint [deg] (default 30)")
+    g.add_argument("--out", metavar="FIG", help="chart the --grid map (png, pdf, svg)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
@@ -115,6 +134,10 @@ def run(args) -> int:
                               f"{len(args.force)}", key="--force")
         out["force"] = list(args.force)
         out["torques"] = dev.torques(q, args.force).tolist()
+    if args.joint_inertia is not None:
+        out.update(_limits(args, dev, q, n))
+    elif args.grid or args.out:
+        raise ConfigError("the stiffness limits need --joint-inertia", key="--joint-inertia")
     if args.json:
         print(json.dumps(out))
         return 0
@@ -130,4 +153,75 @@ def run(args) -> int:
     if "torques" in out:
         print("  torques J^T F [N m]  " + "  ".join(f"{v:+.9g}" for v in out["torques"]),
               file=o)
+    if "limits" in out:
+        lim = out["limits"]
+        print(f"  Cartesian mass [kg] eigenvalues {', '.join(f'{v:.6g}' for v in lim['mass_eigenvalues'])}"
+              f"; K_max [N/m] along them (B = {args.B:g} N s/m, {args.rate:g} Hz, d = "
+              f"{args.delay}):", file=o)
+        for e, k in zip(lim["directions"], lim["K_max"]):
+            print("    (" + ", ".join(f"{v:+.4f}" for v in e) + f")  K_max = "
+                  f"{'inf' if k is None else format(k, '.6g')}", file=o)
+    if "workspace" in out:
+        w = out["workspace"]
+        ks = [v[0] for v, st in zip(w["K_max"], w["status"]) if st == "ok"]
+        print(f"  workspace map: {len(w['status'])} configurations, {len(ks)} usable; "
+              f"K_max along the lightest axis from {min(ks):.6g} to {max(ks):.6g} N/m"
+              if ks else "  workspace map: no usable configuration", file=o)
     return 0
+
+
+def _per_joint(values, n, key):
+    if len(values) == 1:
+        return [values[0]] * n
+    if len(values) != n:
+        raise ConfigError(f"must be 1 or {n} values, got {len(values)}", key=key)
+    return list(values)
+
+
+def _limits(args, dev, q, n) -> dict:
+    """The ``limits`` (and ``workspace``) part of the output."""
+    import numpy as np
+
+    from hapsim.analysis.ths_nd import LoopModelND, direction_limits, workspace_limits
+    Iq = _per_joint(args.joint_inertia, n, "--joint-inertia")
+    Bq = _per_joint(args.joint_friction, n, "--joint-friction")
+    if args.out:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.out)
+        if not args.grid:
+            raise ConfigError("a chart needs --grid N", key="--out")
+    kw = dict(hand_mass=args.hand_mass, hand_damping=args.hand_damping,
+              rate_hz=args.rate, delay=args.delay)
+    loop = LoopModelND.from_device(dev, q, Iq, Bq, **kw)
+    w, V = np.linalg.eigh(loop.mass)
+    K = direction_limits(loop, V, args.B * np.eye(n))
+
+    def f(v):
+        return float(v) if np.isfinite(v) else None
+    out = {"limits": {"mass": loop.mass.tolist(), "friction": loop.friction.tolist(),
+                      "mass_eigenvalues": w.tolist(), "directions": V.T.tolist(),
+                      "K_max": [f(v) for v in K], "B": args.B}}
+    if args.grid:
+        if not 2 <= args.grid <= 40:
+            raise ConfigError(f"must be between 2 and 40, got {args.grid}", key="--grid")
+        import itertools
+        axes = [np.linspace(v - np.radians(args.span), v + np.radians(args.span), args.grid)
+                for v in q]
+        Q = np.array(list(itertools.product(*axes)))
+        from hapsim.progress import Progress
+        with Progress(len(Q), "workspace map", unit="configurations") as bar:
+            res = workspace_limits(dev, Q, Iq, Bq, B=args.B * np.eye(n),
+                                   progress=bar.update, **kw)
+        out["workspace"] = {
+            "joints_deg": np.degrees(res.joints).tolist(),
+            "positions": [[f(v) for v in row] for row in res.positions],
+            "status": res.status,
+            "mass_eigenvalues": [[f(v) for v in row] for row in res.mass_eigenvalues],
+            "K_max": [[f(v) for v in row] for row in res.limits]}
+        if args.out:
+            from hapsim.plot import save_figure
+            from hapsim.plot_workspace import plot_workspace
+            save_figure(plot_workspace(res, f"{args.device}: K_max over the workspace "
+                                            f"(B = {args.B:g} N s/m, {args.rate:g} Hz, "
+                                            f"d = {args.delay})"), args.out)
+    return out

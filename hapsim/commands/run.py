@@ -124,11 +124,14 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
-    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
-                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
-                        "numba function that owns the port, without the GIL; a live --osc, "
-                        "--sound or a device correction keep the Python loop) or 'python' "
-                        "(the reference loop: the same FORCEs bit for bit, to compare)")
+    p.add_argument("--loop", choices=("auto", "compiled", "python"), default="auto",
+                   help="host loop: 'compiled' (the device-clocked hot path in one numba "
+                        "function that owns the port, without the GIL; a live --osc, --sound "
+                        "or a device correction keep the Python loop), 'python' (the "
+                        "reference loop: the same FORCEs bit for bit, to compare) or 'auto' "
+                        "(default: compiled when numba's cache holds it; otherwise this run "
+                        "uses the Python loop and compiles the other after its report, for "
+                        "the next runs)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -302,11 +305,22 @@ def run(args) -> int:
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
     args.announce = lambda port, n: _announce(port, n, said)
-    from hapsim.daemon.startup import announce_compilation, run_compile_parts
-    # an empty numba cache: say what is compiled before the silence it costs
-    corrected = scene.device is not None and getattr(scene.device, "correction", None)
-    announce_compilation(run_compile_parts(scene, compiled_loop=args.loop == "compiled"
-                                           and args.protocol == "framed" and not corrected))
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled before the silence it costs, and compile
+    # only what this run needs (--loop auto: the compiled loop after the report)
+    possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
+                                              osc=args.osc, sound=args.sound,
+                                              host_clocked=args.host_clocked)
+    asked = args.loop
+    if asked == "auto":     # a run that cannot use the compiled loop reports why it did not
+        args.loop = startup.choose_loop(asked, scene) if possible else "compiled"
+    compile_later = asked == "auto" and args.loop == "python"
+    startup.announce_compilation(startup.run_compile_parts(
+        scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
+    if compile_later:
+        print("hapsim run: the compiled host loop is not in numba's cache yet: this run uses "
+              "the Python loop (the same forces, bit for bit) and compiles it after the "
+              "report, for the next runs", file=sys.stderr, flush=True)
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
@@ -336,7 +350,30 @@ def run(args) -> int:
     sys.stdout.flush()
     if lost is not None:                # the report first, then why the run ended
         print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
+    stopped = str(rep.get("loop", {}).get("stop_reason") or "").startswith("signal")
+    if compile_later and lost is None and not stopped:     # not after a Ctrl-C
+        _compile_loop_for_next_runs(scene)
     return code
+
+
+def _compile_loop_for_next_runs(scene) -> None:
+    """Compile the compiled host loop for ``scene``'s kernel into numba's cache, after a
+    run that used the Python loop because the cache did not hold it (``--loop auto``);
+    Ctrl-C leaves it for the next run."""
+    import time
+    t0 = time.monotonic()
+    print("hapsim run: compiling the compiled host loop for the next runs (once) ...",
+          file=sys.stderr, flush=True)
+    try:
+        from hapsim.analysis.targets import apply_targets
+        from hapsim.daemon.fastloop import warm_up
+        from hapsim.engine import Engine
+        warm_up(Engine(apply_targets(scene)[0]))
+    except KeyboardInterrupt:
+        print("hapsim run: interrupted; the next run compiles it", file=sys.stderr, flush=True)
+        return
+    print(f"hapsim run: compiled the compiled host loop ({time.monotonic() - t0:.1f} s); the "
+          "next runs use it", file=sys.stderr, flush=True)
 
 
 def _replace_device(scene, path: str):

@@ -36,30 +36,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def known_digits(value: float, error: float) -> float:
-    """``value`` rounded to the digits that are known: to the decade at or above
-    ``2 error`` (so the last digit shown is off by at most half a unit).
-
-    Parameters
-    ----------
-    value : float
-    error : float >= 0
-        Its uncertainty (0 or non-finite: ``value`` unchanged).
-
-    Returns
-    -------
-    float
-    """
-    if not (error > 0 and math.isfinite(error)):
-        return value
-    return round(value, known_decimals(error))
-
-
-def known_decimals(error: float) -> int:
-    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0."""
-    return max(0, -math.ceil(math.log10(2.0 * error)))
-
-
 def run(args) -> int:
     """Run ``hapsim stability``.
 
@@ -82,17 +58,12 @@ def run(args) -> int:
     hapsim.errors.ConfigError
         Bad loop option (key: the option) or a non-finite ``--B``.
     """
-    from hapsim.analysis.loop import spectral_radius_known
-    from hapsim.analysis.ths import published_limits, stability_limit
+    from hapsim.api import known_decimals, stability
     loop = loop_from_args(args)
-    kmax = stability_limit(loop, args.B)
-    rho = err = None
-    if math.isfinite(kmax):
-        rho, err = spectral_radius_known(loop, kmax, args.B)
-        rho = known_digits(rho, err)
-    d = {"K_max": kmax if math.isfinite(kmax) else None, "B": args.B,
-         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
-         **published_limits(loop, args.B), "loop": loop.to_dict()}
+    rep = stability(loop, args.B)
+    d = rep.to_dict()
+    kmax = math.inf if rep.K_max is None else rep.K_max
+    rho, err = rep.spectral_radius_at_K_max, rep.spectral_radius_error
     if args.json:
         print(json.dumps(d))
     else:

@@ -42,6 +42,7 @@ import time
 import numba
 import numpy as np
 from numba import types
+from numba.extending import overload
 
 import firmware_protocol as fp
 from hapsim.daemon.loop import HostLoop, _Lost, _safety_reason
@@ -110,21 +111,27 @@ _CRC = _crc_table()
 _jit = numba.njit(nogil=True, cache=True)
 
 # ----------------------------------------------------------------------------- port step
-# The engine's kernel is chosen by an integer among the module-level kernels of
-# hapsim.kernels, with its arrays in one tuple of fixed types (unused slots empty): numba
-# loads a function from its on-disk cache only when no argument is a dispatcher (a
-# first-class function argument made the loop compile again at every start, ~8 s).
+# The engine's kernel is named by a tag among the module-level kernels of hapsim.kernels,
+# with its arrays in one tuple of fixed types (unused slots empty): numba loads a function
+# from its on-disk cache only when no argument is a dispatcher (a first-class function
+# argument made the loop compile again at every start, ~8 s). The tag is a tuple whose
+# length is the kernel's number + 1, so its numba *type* names the kernel: the loop is
+# compiled (and cached) per kernel, with only that kernel in it, instead of all six behind
+# a run-time branch (the first run of a spring wall compiled the contact, symplectic and
+# exact kernels too).
 K_MASSES, K_SD, K_CONTACT, K_SD_CONTACT, K_SYMPLECTIC, K_EXACT = range(6)
 _KINDS = {cordis.run_masses: K_MASSES, cordis.run_sd: K_SD, cordis.run_contact: K_CONTACT,
           cordis.run_sd_contact: K_SD_CONTACT, schemes.run_symplectic_euler: K_SYMPLECTIC,
           schemes.run_exact: K_EXACT}
+#: The kernels' function names, by kind (the compiled-loop stamps are named after them).
+_KERNEL_NAMES = {k: f.__name__ for f, k in _KINDS.items()}
 _EI = np.empty(0, dtype=np.int64)
 _EF = np.empty(0, dtype=np.float64)
 _EF2 = np.empty((0, 0), dtype=np.float64)
 
 
-def kernel_pack(engine) -> tuple[int, tuple]:
-    """The engine's kernel as ``(kind, pack)`` for :func:`_port_step`.
+def kernel_pack(engine) -> tuple[tuple, tuple]:
+    """The engine's kernel as ``(tag, pack)`` for :func:`_port_step`.
 
     Parameters
     ----------
@@ -134,8 +141,9 @@ def kernel_pack(engine) -> tuple[int, tuple]:
 
     Returns
     -------
-    kind : int
-        One of ``K_MASSES`` .. ``K_EXACT``.
+    tag : tuple
+        :func:`kernel_tag` of the kernel (``K_MASSES`` .. ``K_EXACT``): the compiled loop
+        is compiled for that kernel alone.
     pack : tuple
         ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
         c_thr, v, c, T, phi, gam, psi, snew, sold, uold)``; the slots the kernel does not
@@ -165,32 +173,83 @@ def kernel_pack(engine) -> tuple[int, tuple]:
     elif kind == K_EXACT:
         v, T, phi, gam, psi, snew, sold, uold = a[6:14]
         sd = a[14:18]
-    return kind, tuple(a[:6]) + tuple(sd) + tuple(ct) + (v, c, float(T), phi, gam, psi,
-                                                         snew, sold, uold)
+    return kernel_tag(kind), tuple(a[:6]) + tuple(sd) + tuple(ct) + (v, c, float(T), phi,
+                                                                     gam, psi, snew, sold,
+                                                                     uold)
+
+
+def _kernel_step(kind, ka, rec, out):
+    """One sample of the kernel the tag ``kind`` names, in compiled code only: numba
+    replaces each call by that kernel's call (:func:`_kernel_step_for`)."""
+    raise NotImplementedError("_kernel_step exists in compiled code only")
+
+
+@overload(_kernel_step)
+def _kernel_step_for(kind, ka, rec, out):
+    """The implementation of :func:`_kernel_step` for the kernel tag's type: only that
+    kernel is typed and compiled into the loop (a scene pays only for its element kinds,
+    the first run included)."""
+    which = len(kind.types) - 1          # kernel_tag: K + 1 zeros
+    if which == K_MASSES:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed = ka[:6]
+            cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
+    elif which == K_SD:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z = ka[:10]
+            cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec,
+                          out, 0)
+    elif which == K_CONTACT:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed = ka[:6]
+            c_i1, c_i2, c_k, c_z, c_thr = ka[10:15]
+            cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr,
+                               rec, out, 0)
+    elif which == K_SD_CONTACT:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr) = ka[:15]
+            cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
+                                  c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
+    elif which == K_SYMPLECTIC:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr, v, c, T) = ka[:18]
+            schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1,
+                                         sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec,
+                                         out, 0)
+    elif which == K_EXACT:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr, v, c, T, phi, gam, psi, snew, sold, uold) = ka
+            schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
+                              sold, uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+    else:
+        return None
+    return step
 
 
 @_jit
 def _port_step(kind, ka, rec, out):
-    """One sample of the engine's kernel ``kind`` on the arrays of ``ka``
+    """One sample of the engine's kernel named by the tag ``kind`` on the arrays of ``ka``
     (:func:`kernel_pack`)."""
-    (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr,
-     v, c, T, phi, gam, psi, snew, sold, uold) = ka
-    if kind == K_MASSES:
-        cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
-    elif kind == K_SD:
-        cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
-    elif kind == K_CONTACT:
-        cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr, rec,
-                           out, 0)
-    elif kind == K_SD_CONTACT:
-        cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
-                              c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
-    elif kind == K_SYMPLECTIC:
-        schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1, sd_i2,
-                                     sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
-    else:
-        schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold,
-                          uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+    _kernel_step(kind, ka, rec, out)
+
+
+def kernel_tag(kind: int) -> tuple:
+    """The tag that names kernel ``kind`` to the compiled loop: ``kind + 1`` zeros, whose
+    numba type (a tuple of that length) selects the kernel at compile time.
+
+    Parameters
+    ----------
+    kind : int
+        One of ``K_MASSES`` .. ``K_EXACT``.
+
+    Returns
+    -------
+    tuple of int
+    """
+    return (0,) * (int(kind) + 1)
 
 
 @_jit
@@ -944,4 +1003,20 @@ def warm_up(engine) -> float:
     finally:
         os.close(r)
         os.close(w)
+    _mark_compiled(len(kind) - 1)
     return time.perf_counter() - t0
+
+
+def _mark_compiled(kind: int) -> None:
+    """Leave the stamp that says the loop for kernel ``kind`` is in numba's cache
+    (:func:`hapsim.daemon.startup.loop_is_fresh` reads it without numba); best effort."""
+    import os
+
+    from hapsim.daemon.startup import loop_stamp
+    path = loop_stamp(_KERNEL_NAMES[kind])
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w"):
+            pass
+    except OSError:
+        pass

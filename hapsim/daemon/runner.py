@@ -41,7 +41,8 @@ from hapsim.daemon._blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.daemon.mock import MockDevice, hand_force_samples
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.startup import compile_notice, preload_numba_blas, process_start
+from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
+                                   process_start)
 from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
 from hapsim.scene import Scene
@@ -899,7 +900,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         # starts and says HELLO: the loop waits for them just before it arms the device
         # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
-                              and corr is None)
+                              and compiled_loop_possible(scene, osc=opts.osc, sound=opts.sound,
+                                                         host_clocked=opts.host_clocked))
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it

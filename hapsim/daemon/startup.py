@@ -23,7 +23,9 @@ import sys
 import time
 
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
-           "cache_is_fresh", "run_compile_parts", "announce_compilation", "compile_notice"]
+           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "scene_kernel", "choose_loop",
+           "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
+           "announce_compilation", "compile_notice"]
 
 
 def process_start() -> float:
@@ -153,44 +155,127 @@ def cache_is_fresh(source: str, function: str) -> bool:
         return False
 
 
-def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str]]:
-    """What ``hapsim run`` compiles before its first sample: ``(what, module, function)``
-    for each part, the scene's engine kernels and, with the compiled host loop, the loop.
+_HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_FASTLOOP = os.path.join(_HERE, "daemon", "fastloop.py")
+
+
+def scene_kernel(scene) -> tuple[str, str]:
+    """The module path and the function name of the engine kernel ``scene`` runs
+    (:data:`hapsim.kernels.cordis.KERNELS` by link kinds, or the integrator's kernel)."""
+    if scene.integrator == "centred":
+        kinds = frozenset(lk.kind for lk in scene.links)
+        fn = {frozenset(): "run_masses", frozenset({"spring_damper"}): "run_sd",
+              frozenset({"contact"}): "run_contact"}.get(kinds, "run_sd_contact")
+        return os.path.join(_HERE, "kernels", "cordis.py"), fn
+    fn = "run_symplectic_euler" if scene.integrator == "symplectic_euler" else "run_exact"
+    return os.path.join(_HERE, "kernels", "schemes.py"), fn
+
+
+def loop_stamp(kernel_fn: str) -> str:
+    """The stamp file :func:`hapsim.daemon.fastloop.warm_up` leaves once the compiled host
+    loop for the kernel ``kernel_fn`` is in numba's cache (the loop is compiled per
+    kernel, which numba's index of the loop's functions does not show without numba)."""
+    return os.path.join(numba_cache_dir(_FASTLOOP), f"hapsim-loop.{kernel_fn}.stamp")
+
+
+def loop_is_fresh(scene) -> bool:
+    """Whether the compiled host loop for ``scene``'s kernel is in numba's cache: its
+    stamp is newer than the loop's module and the kernel's module."""
+    src, fn = scene_kernel(scene)
+    try:
+        at = os.stat(loop_stamp(fn)).st_mtime
+        return at >= os.stat(_FASTLOOP).st_mtime and at >= os.stat(src).st_mtime
+    except OSError:
+        return False
+
+
+def compiled_loop_possible(scene, *, framed: bool = True, osc=None, sound=None,
+                           host_clocked: bool = False) -> bool:
+    """Whether a run of ``scene`` with these options can use the compiled host loop (else
+    the Python loop runs, and :func:`hapsim.daemon.runner.run_loop` reports why): the
+    framed protocol on a device clock, no live OSC or sound, no device correction, no
+    multi-rate audio model. A run that cannot use it does not compile it.
 
     Parameters
     ----------
     scene : Scene
-        The scene to run (its integrator names the kernels' module).
+        The scene to run.
+    framed : bool
+        The device speaks the framed protocol (no ``--driver``).
+    osc, sound : optional
+        ``--osc`` and ``--sound`` (None: not given).
+    host_clocked : bool
+        ``--host-clocked``.
+
+    Returns
+    -------
+    bool
+    """
+    dev = scene.device
+    return (framed and osc is None and sound is None and not host_clocked
+            and (dev is None or getattr(dev, "correction", None) is None)
+            and getattr(scene, "audio", None) is None)
+
+
+def choose_loop(requested: str, scene) -> str:
+    """The host loop a run uses: ``requested`` unless it is ``"auto"``, which takes the
+    compiled loop when it is in numba's cache for the scene's kernel, and otherwise the
+    Python loop (the reference: the same forces bit for bit) for this run.
+
+    Parameters
+    ----------
+    requested : {"auto", "compiled", "python"}
+        ``hapsim run --loop``.
+    scene : Scene
+        The scene to run.
+
+    Returns
+    -------
+    {"compiled", "python"}
+    """
+    if requested != "auto":
+        return requested
+    return "compiled" if loop_is_fresh(scene) else "python"
+
+
+def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str]]:
+    """What ``hapsim run`` compiles before its first sample: ``(what, module, function)``
+    for each part, the scene's engine kernel and, with the compiled host loop, the loop.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run (its integrator and link kinds name the kernel).
     compiled_loop : bool
         The run answers the device with the compiled host loop.
 
     Returns
     -------
     list of tuple of str
-        ``(description, module path, a function of it the part always compiles)``.
+        ``(description, module path, function)``: the part is compiled unless numba's
+        cache holds that function (:func:`cache_is_fresh`; for the loop, its stamp:
+        :func:`loop_is_fresh`).
     """
-    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    kinds = {lk.kind for lk in scene.links}
-    if scene.integrator == "centred":       # hapsim.kernels.cordis.KERNELS, by link kinds
-        kernels = "cordis.py"
-        kernel_fn = {frozenset(): "run_masses", frozenset({"spring_damper"}): "run_sd",
-                     frozenset({"contact"}): "run_contact"}.get(frozenset(kinds),
-                                                                "run_sd_contact")
-    else:
-        kernels = "schemes.py"
-        kernel_fn = ("run_symplectic_euler" if scene.integrator == "symplectic_euler"
-                     else "run_exact")
-    parts = [("the engine's kernels", os.path.join(here, "kernels", kernels), kernel_fn)]
+    src, fn = scene_kernel(scene)
+    parts = [("the engine's kernels", src, fn)]
     if compiled_loop:
-        parts.append(("the compiled host loop", os.path.join(here, "daemon", "fastloop.py"),
-                      "_stretch"))
+        parts.append(("the compiled host loop", _FASTLOOP, "_stretch"))
     return parts
+
+
+def part_is_fresh(part, scene=None) -> bool:
+    """Whether a part of :func:`run_compile_parts` is in numba's cache."""
+    what, src, fn = part
+    if src == _FASTLOOP and scene is not None:
+        return loop_is_fresh(scene)
+    return cache_is_fresh(src, fn)
 
 
 _NOTICE = None
 
 
-def announce_compilation(parts, *, command: str = "hapsim run", stream=None) -> bool:
+def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
+                         stream=None) -> bool:
     """Say on ``stream`` (stderr) which of ``parts`` numba will compile, before it does.
 
     Nothing is printed when every part is in numba's cache. Otherwise one line names the
@@ -201,6 +286,8 @@ def announce_compilation(parts, *, command: str = "hapsim run", stream=None) -> 
     ----------
     parts : list of tuple of str
         :func:`run_compile_parts`.
+    scene : Scene, optional
+        The scene the parts are for (the compiled loop's freshness is per kernel).
     command : str
         The command's name, which starts the line.
     stream : file, optional
@@ -213,7 +300,9 @@ def announce_compilation(parts, *, command: str = "hapsim run", stream=None) -> 
     """
     global _NOTICE
     stream = sys.stderr if stream is None else stream
-    cold = [(what, src) for what, src, fn in parts if not cache_is_fresh(src, fn)]
+    cold = [(what, src) for what, src, fn in parts
+            if not part_is_fresh((what, src, fn), scene)]
+    _NOTICE = None
     if not cold:
         return False
     names = " and ".join(what for what, _ in cold)
