@@ -402,7 +402,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                                               options=(mock_options if mock_options is not None
                                                        else drv.mock_hardware()))
                 # paced by the commands: a slow mock process is no lost answer
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.01)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, port, delay=1)

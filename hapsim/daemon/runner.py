@@ -967,7 +967,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                                                        else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.01)
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=dev.delay)
