@@ -3,9 +3,8 @@
 
 This layer validates (the scene did) and lays the arrays out; the kernels never see a
 Python object (CONVENTIONS §3). Links: ``spring_damper`` with ``length: 0`` runs as a
-``linear`` link, with ``length > 0`` as a ``euclid`` link (the laws in
-:mod:`hapsim.scene_nd`). Contacts and planes are analysed by ``hapsim check`` but not run
-by this engine yet (refused with the link's name).
+``linear`` link, with ``length > 0`` as a ``euclid`` link; ``contact`` links and
+``planes`` run as the kernels' contacts (the laws in :mod:`hapsim.scene_nd`).
 """
 
 from __future__ import annotations
@@ -26,11 +25,6 @@ class EngineND:
     scene : hapsim.scene_nd.SceneND
         A validated scene.
 
-    Raises
-    ------
-    ConfigError
-        A contact or a plane (not run by the n-D engine yet), naming it.
-
     Notes
     -----
     Positions start at ``x0`` with ``xp = x0 - T v0``; grounds and the port have
@@ -39,16 +33,6 @@ class EngineND:
     """
 
     def __init__(self, scene) -> None:
-        for lk in scene.links:
-            if lk.kind != "spring_damper":
-                raise ConfigError(f"a {lk.kind} is not run by the n-D engine yet (hapsim "
-                                  "check analyses it)", file=scene.path, line=lk.line,
-                                  key=f"links.{lk.name}")
-        if scene.planes:
-            pl = scene.planes[0]
-            raise ConfigError("planes are not run by the n-D engine yet (hapsim check "
-                              "analyses them)", file=scene.path, line=pl.line,
-                              key=f"planes.{pl.name}")
         self.scene = scene
         T = scene.period
         self.names = [m.name for m in scene.masses]
@@ -74,8 +58,23 @@ class EngineND:
             real = order >= 0
             out[real] = np.asarray(values, float)[order[real]]
             return out
-        lin = [lk for lk in scene.links if lk.length == 0]
-        eu = [lk for lk in scene.links if lk.length > 0]
+        lin = [lk for lk in scene.links if lk.kind == "spring_damper" and lk.length == 0]
+        eu = [lk for lk in scene.links if lk.kind == "spring_damper" and lk.length > 0]
+        con = [lk for lk in scene.links if lk.kind == "contact"]
+        self.c_i1 = np.array([index[lk.m1] for lk in con], np.int64)
+        self.c_i2 = np.array([index[lk.m2] for lk in con], np.int64)
+        self.c_k = np.array([lk.stiffness for lk in con], float)
+        self.c_z = np.array([lk.damping / T for lk in con], float)
+        self.c_thr = np.array([lk.threshold for lk in con], float)
+        d = self.xp[:, self.c_i1] - self.xp[:, self.c_i2]
+        self.c_lprev = np.sqrt((d * d).sum(axis=0))
+        pairs = [(pl, m) for pl in scene.planes for m in pl.masses]
+        self.p_mass = np.array([index[m] for _, m in pairs], np.int64)
+        self.p_normal = np.ascontiguousarray(
+            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, scene.dimension).T)
+        self.p_offset = np.array([pl.offset for pl, _ in pairs], float)
+        self.p_k = np.array([pl.stiffness for pl, _ in pairs], float)
+        self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
         self.lin_table, lo = pack(lin)
         self.eu_table, eo = pack(eu)
         self.lin_k = slot(lo, [lk.stiffness for lk in lin])
@@ -90,7 +89,9 @@ class EngineND:
         """Advance ``n`` samples [-] (no allocation)."""
         run_nd(int(n), self.x, self.xp, self.f, self.t2m, self.lin_table, self.lin_k,
                self.lin_z, self.eu_table, self.eu_k, self.eu_z, self.eu_rest,
-               self.eu_lprev, self.W)
+               self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+               self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
+               self.p_k, self.p_z)
 
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous

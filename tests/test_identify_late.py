@@ -49,7 +49,7 @@ def _late_pattern(seed: int, n: int, frac: float) -> frozenset:
     return frozenset(late)
 
 
-@settings(max_examples=5, deadline=None, derandomize=True,
+@settings(max_examples=4, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), frac=st.floats(0.0, 0.5), d=st.integers(1, 6),
        m=st.floats(0.03, 1.0), b0=st.floats(0.0, 4.0), fc=st.floats(0.0, 0.3))
@@ -57,7 +57,7 @@ def test_identify_with_scripted_late_ticks_is_exact(seed, frac, d, m, b0, fc):
     """Property: a noise-free device with seeded random late ticks (0-50 % in bursts) is
     identified exactly from the forces it applied: m, b0 and fc to 1e-6, d exact. The
     forces sent (late ticks treated as noise, or the delay assumed) do not give this."""
-    n = 1500
+    n = 1200
     pattern = _late_pattern(seed, n, frac)
     dev = Device(mass=m, friction=b0, delay=d, coulomb=fc, force_limit=10.0)
     with pytest.MonkeyPatch.context() as mp:
@@ -158,7 +158,7 @@ def test_identify_that_cannot_fit_says_why_exit_1(tmp_path):
     assert "Traceback" not in r.stderr
 
 
-@settings(max_examples=6, deadline=None, derandomize=True,
+@settings(max_examples=4, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), frac=st.floats(0.0, 0.5), d=st.integers(1, 4),
        K=st.floats(200.0, 1500.0), B=st.floats(0.0, 3.0))
@@ -188,3 +188,23 @@ def test_run_with_scripted_late_ticks_measures_the_prediction(seed, frac, d, K, 
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], rel=1e-6, abs=1e-6 * pred["k"] * 1e-3)
     assert meas["within"] is True
+
+
+def test_identify_plot_after_a_record_with_a_hole(tmp_path):
+    """``identify --out --plot`` after a record whose fit covers only its longest stretch
+    without a missing STATE (a real-time record): the plot draws the fitted rows (it
+    raised "x and y must have same first dimension (558,) and (4000,)")."""
+    pytest.importorskip("matplotlib")
+    from hapsim.commands.identify import _plot
+    from hapsim.daemon.identify_run import record
+    from hapsim.analysis.device_fit import fit_device
+    dev = Device(mass=0.1, friction=0.5, delay=2, force_limit=10.0, noise=1e-6)
+    rec = record(dev, transport="inprocess", duration=0.8, force_limit=4.0, max_delay=4,
+                 progress=False, handle_signals=False)
+    a, b = 200, 750                         # as if STATEs were missing outside [a, b)
+    rec["loop"]["fitted_rows"] = [a, b]
+    fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
+                     applied=rec["account"].rows(a, b))
+    path = tmp_path / "fit.png"
+    _plot(fit, rec, str(path))
+    assert path.stat().st_size > 1000

@@ -102,3 +102,50 @@ def test_an_accepted_change_still_answers_ok(osc):
     addr, params = _ask(osc, "/hapsim/link/kb", ["wall", 350.0, 1.2])
     assert addr == "/hapsim/ok" and params[0] == "/hapsim/link/kb"
     assert osc[0].scene.link("wall").stiffness == 350.0
+
+
+# ------------------------------------------------------------------ run's report after changes
+def _measured(first_row=100, used=500):
+    return {"k": 308.0, "b": 1.58, "k_interval": 0.5, "b_interval": 0.01, "first_row": first_row,
+            "samples_used": used, "rel_err": {"k": -0.24, "b": 0.75},
+            "verdict": "measured differs from predicted by more than the stated uncertainty"}
+
+
+def _accepted(sample, felt, ramp_s=0.01, address="/hapsim/link/kb", args=("wall", 300.0, 1.5)):
+    return {"event": "accepted", "sample": sample, "address": address, "args": list(args),
+            "ramp_s": ramp_s, "felt": list(felt)}
+
+
+def test_a_change_before_the_window_is_what_the_measurement_is_compared_with():
+    from hapsim.audio.control import revise_measurement
+    m = _measured()
+    journal = [{"event": "request", "sample": 3}, _accepted(5, (400.0, 1.0)),
+               {"event": "refused", "sample": 7}, _accepted(20, (308.2, 1.585))]
+    changes = revise_measurement(m, journal, 1000.0)
+    assert [c["sample"] for c in changes] == [5, 20]
+    assert m["compared_with"]["k"] == 308.2 and "at sample 20" in m["compared_with"]["after"]
+    assert m["rel_err"]["k"] == pytest.approx((308.0 - 308.2) / 308.2)
+    assert m["within"] and m["verdict"] == ("measured = predicted after the changes within "
+                                           "the stated uncertainty")
+
+
+@pytest.mark.parametrize("sample, ramp_s", [(95, 0.01), (300, 0.0), (599, 0.5)])
+def test_a_change_inside_the_window_makes_it_not_comparable(sample, ramp_s):
+    """Inside [first_row, first_row + samples_used), its ramp included."""
+    from hapsim.audio.control import revise_measurement
+    m = _measured()
+    revise_measurement(m, [_accepted(sample, (308.2, 1.585), ramp_s=ramp_s)], 1000.0)
+    assert m["comparable"] is False and "within" not in m
+    assert m["verdict"].startswith("not comparable: the scene changed while it was measured "
+                                   f"(/hapsim/link/kb wall 300.0 1.5 at sample {sample}, "
+                                   "window 100..600)")
+
+
+def test_changes_after_the_window_leave_the_start_prediction():
+    from hapsim.audio.control import revise_measurement
+    m = _measured()
+    before = dict(m)
+    changes = revise_measurement(m, [_accepted(600, (308.2, 1.585))], 1000.0)
+    assert len(changes) == 1 and m["verdict"] == before["verdict"]
+    assert m["compared_with"].startswith("the start's prediction")
+    assert m["rel_err"] == before["rel_err"]

@@ -287,3 +287,92 @@ device: {mass: [0.08, 0.2], friction: [0.3, 0.6], delay: 1}
     virt = text.replace("  - {name: wall, kind: ground}",
                         "  - {name: wall, kind: mass, mass: 0.01}")
     assert check_scene_nd(parse_scene_nd(virt)).stiffness_limits is None
+
+
+def test_lockstep_loop_is_the_analysed_state_matrix():
+    """The in-process loop (n-D engine + exact ZOH device + delay line) started from a
+    displaced, moving handle follows the analysis's state matrix A^k s0 to round-off over
+    300 samples, for a 2-D scene with a virtual mass at equilibrium at rest and linear
+    links (the analysis is the engine's exact linear image there; Euclidean links are
+    linearised, tested against their Jacobian above)."""
+    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.lockstep_nd import LockstepND
+    text = """\
+dimension: 2
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground, x0: [0.0, 0.0]}
+  - {name: bob, kind: mass, mass: 0.02, x0: [0.0, 0.0]}
+links:
+  - {name: w, kind: spring_damper, between: [hand, wall], stiffness: 150, damping: 0.6}
+  - {name: e, kind: spring_damper, between: [hand, bob], stiffness: 120, damping: 0.05}
+  - {name: g, kind: spring_damper, between: [bob, wall], stiffness: 60, damping: 0.02}
+device: {mass: [[0.1, 0.02], [0.02, 0.15]], friction: [0.4, 0.3], delay: 2}
+"""
+    scene = parse_scene_nd(text)
+    A, names = closed_loop_nd(scene)
+    x0, v0 = np.array([0.002, -0.001]), np.array([0.01, 0.03])
+    loop = LockstepND(scene, x0=x0, v0=v0)
+    rec = loop.step(300, record=True)
+    # the same start as a state of A: device (x, v), x_port[n-1], F delay line, the
+    # virtual mass at rest (x[n], x[n-1] deviations 0)
+    s = np.zeros(A.shape[0])
+    s[:2], s[2:4] = x0, v0
+    s[4:6] = x0 - v0 * scene.period
+    lin = []
+    for _ in range(300):
+        lin.append(s[:2].copy())
+        s = A @ s
+    lin = np.array(lin)
+    assert np.max(np.abs(lin)) > 1e-3
+    assert np.max(np.abs(rec - lin)) <= 1e-12 * np.max(np.abs(lin))
+
+
+def _balanced_plane_scene(dim):
+    """A port pressed on a tilted plane (always engaged for small motion) and held there
+    by a spring to a ground placed so that the rest position is an equilibrium: a linear
+    loop with anisotropic felt matrices."""
+    u = np.ones(dim)
+    u[0] = 0.3
+    u /= np.linalg.norm(u)
+    g = (-400 * 0.005 * u / 150).tolist()
+    M = np.eye(dim) * 0.12 + 0.02
+    return f"""\
+dimension: {dim}
+rate_hz: 1000
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: wall, kind: ground, x0: {g}}}
+links:
+  - {{name: w, kind: spring_damper, between: [hand, wall], stiffness: 150, damping: 0.6}}
+planes:
+  - {{name: p, normal: {u.tolist()}, offset: 0.005, stiffness: 400, damping: 0.2}}
+device: {{mass: {M.tolist()}, friction: {[0.4, 0.3, 0.5][:dim]}, delay: 2}}
+"""
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_lockstep_measured_felt_matrices_equal_the_prediction(dim):
+    """Free responses of the lockstep loop (n records from n initial handle states),
+    fitted by vector linear prediction (hapsim.analysis.identify_nd): the measured felt
+    stiffness and damping matrices equal check's prediction to 1e-6 (they agree to
+    ~1e-11 here), and the measured poles the predicted ones."""
+    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.lockstep_nd import LockstepND
+    scene = parse_scene_nd(_balanced_plane_scene(dim))
+    assert np.max(np.abs(LockstepND(scene).step(200, record=True))) < 1e-15  # at rest
+    chk = check_scene_nd(scene)
+    A, _ = closed_loop_nd(scene)
+    rng = np.random.default_rng(dim)
+    recs = [LockstepND(scene, x0=rng.uniform(-2e-3, 2e-3, dim),
+                       v0=rng.uniform(-0.03, 0.03, dim)).step(300, record=True)
+            for _ in range(dim)]
+    fit = fit_felt_nd(recs, scene.device.mass, scene.period, A.shape[0] // dim)
+    assert fit["residual"] < 1e-9
+    k, b = chk.render.felt_stiffness, chk.render.felt_damping
+    assert np.max(np.abs(fit["felt_stiffness"] - k)) <= 1e-6 * np.max(np.abs(k))
+    assert np.max(np.abs(fit["felt_damping"] - b)) <= 1e-6 * np.max(np.abs(b))
+    assert np.max(np.abs(np.sort_complex(fit["rendered_poles"])
+                         - np.sort_complex(chk.render.rendered_poles))) <= 1e-9

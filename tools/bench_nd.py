@@ -120,7 +120,9 @@ class Case:
         self.hap = (np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
                     np.zeros((3, self.N)), t2m, empty_t, e, e, table, slot(k), slot(z),
                     slot(rest), link_lengths(np.ascontiguousarray(X0.T), table,
-                                             order.size), np.zeros((3, CHUNK)))
+                                             order.size), np.zeros((3, CHUNK)),
+                    np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
+                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e)
         self.stripes = table.shape[0]
 
     def run_ref(self, n):

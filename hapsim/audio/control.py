@@ -694,6 +694,76 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
     return server, tel
 
 
+def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
+    """Compare a run's measurement with the prediction of the scene it measured, after
+    live changes (``hapsim run --osc``), as ``hapsim play`` re-predicts.
+
+    The measured window is rows ``[first_row, first_row + samples_used)`` of the run; each
+    accepted change acts from its ``sample`` over its ramp. A change inside the window
+    makes the measurement a mix of two loops: not comparable. Changes that all ended
+    before it: the measurement is compared with the prediction after the last of them
+    (its felt k, b). Changes that all came after it: the start's prediction stands.
+
+    Parameters
+    ----------
+    measured : dict
+        The run's identification result (``k`` [N/m], ``b`` [N s/m], ``k_interval``,
+        ``b_interval``, ``first_row``, ``samples_used``, ``rel_err``, ``verdict``);
+        updated in place: ``compared_with`` says which prediction, ``rel_err`` (k and b),
+        ``within`` and ``verdict`` follow it, or ``comparable`` False with the reason.
+    journal : list of dict
+        The controller's journal (:attr:`Controller.journal`).
+    rate_hz : float
+        Device rate [Hz] (ramp times to samples).
+
+    Returns
+    -------
+    list of dict
+        The accepted changes: ``sample``, ``address``, ``args``, ``ramp_s`` [s] and the
+        ``felt`` [k, b] predicted after each.
+    """
+    changes = [{"sample": int(e["sample"]), "address": e["address"], "args": e["args"],
+                "ramp_s": e.get("ramp_s", 0.0), "felt": e.get("felt")}
+               for e in journal if e.get("event") == "accepted"]
+    if not changes or "k" not in measured or measured.get("first_row") is None:
+        return changes
+    a = int(measured["first_row"])
+    b = a + int(measured.get("samples_used", 0))
+
+    def end(c):
+        return c["sample"] + int(math.ceil(c["ramp_s"] * rate_hz)) + 1
+
+    inside = [c for c in changes if c["sample"] < b and end(c) > a]
+    before = [c for c in changes if end(c) <= a]
+    if inside:
+        c = inside[0]
+        measured["comparable"] = False
+        measured["compared_with"] = None
+        measured["verdict"] = (f"not comparable: the scene changed while it was measured "
+                               f"({c['address']} {' '.join(map(str, c['args']))} at sample "
+                               f"{c['sample']}, window {a}..{b})")
+        measured.pop("within", None)
+        return changes
+    if not before:
+        measured["compared_with"] = "the start's prediction (every change came after the "\
+                                    "measured window)"
+        return changes
+    c = before[-1]
+    kp, bp = (float(v) for v in c["felt"])
+    measured["compared_with"] = {"k": kp, "b": bp, "after": f"{c['address']} "
+                                 f"{' '.join(map(str, c['args']))} at sample {c['sample']}"}
+    measured["rel_err"] = {"k": (measured["k"] - kp) / kp if kp else math.nan,
+                           "b": (measured["b"] - bp) / bp if bp else math.nan}
+    if "k_interval" in measured:
+        ok = (abs(measured["k"] - kp) <= measured["k_interval"]
+              and abs(measured["b"] - bp) <= measured["b_interval"])
+        measured["within"] = bool(ok)
+        measured["verdict"] = ("measured = predicted after the changes within the stated "
+                               "uncertainty" if ok else "measured differs from the prediction "
+                               "after the changes by more than the stated uncertainty")
+    return changes
+
+
 def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> None:
     """Send one ``/hapsim/tel t x f k b`` message when a telemetry client is set
     (called by the sample loop every ``tel["every"]`` samples; UDP, never blocks long)."""

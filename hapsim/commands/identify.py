@@ -7,7 +7,6 @@ import json
 import math
 import sys
 
-import numpy as np
 
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
@@ -102,23 +101,8 @@ def register(sub) -> None:
 
 
 def _plot(fit, rec, path: str) -> None:
-    from hapsim.plot import _mpl, save_figure
-    plt = _mpl()
-    # the fit covers the rows it was given (the longest stretch without a missing STATE)
-    a, b = rec["loop"].get("fitted_rows", (0, fit.n_samples))
-    x = rec["position"][a:b]
-    t = (a + np.arange(fit.n_samples)) * fit.period
-    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
-    a1.plot(t, x * 1e3, lw=0.8, label="measured")
-    a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
-    a1.set_ylabel("position [mm]")
-    a1.legend(loc="upper right")
-    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
-                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
-    a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
-    a2.set_ylabel("model - measured [um]")
-    a2.set_xlabel("time [s]")
-    save_figure(fig, path)
+    from hapsim.plot import plot_identify, save_figure
+    save_figure(plot_identify(fit, rec), path)
 
 
 def run(args) -> int:

@@ -23,7 +23,8 @@ constant-force steps: long stretches of one velocity sign, which is what separat
 from viscous friction), and early when the device is past 30 % of the envelope on the side
 it pushes towards (a relay: the steps move the device both ways and keep it centred without
 a stiff spring, which a long delay forbids). The gain ``g`` starts at 1/8 and grows by
-2^(1/4) every 100 ms (up to 1) while the device stayed within 30 % of the envelope, and
+2^(1/4) every 100 ms (up to 1) while the device moved over less than 30 % of the
+envelope, and
 halves each time the device is about to pass 60 % of the envelope (then 66 %, ...; its
 position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
 ``d`` samples after it moved) never leaves the envelope before the gain has found its
@@ -47,7 +48,7 @@ __all__ = ["ExcitationPlan", "ExcitationEngine", "excitation_plan", "record",
            "centring_gains", "MASS_RANGE"]
 
 #: Growth of the excitation's gain per calm 100 ms (2^(1/4): a force level at most 19 %
-#: above the last one that did not move the device out of 30 % of the envelope).
+#: above the last one, under which the device moved over less than 30 % of the envelope).
 _GROW = 2.0 ** 0.25
 #: Moving masses [kg] the centring loop is made stable for (a hand on a handle included).
 MASS_RANGE = (0.02, 2.0)
@@ -239,7 +240,8 @@ class ExcitationEngine:
         self._edge = 0.6 * scene.envelope
         self._calm = 0.3 * scene.envelope
         self._win = max(int(0.1 * scene.rate_hz), 1)
-        self._peak = 0.0
+        self._hi = -math.inf
+        self._lo = math.inf
         self._look = float(scene.max_delay + 1)
         self._sq = scene.square
         self._sign = 1.0
@@ -261,14 +263,18 @@ class ExcitationEngine:
         if ae > self._edge and self._g > 1e-3:
             self._g *= 0.5                 # nearing the envelope: excite less from now on
             self._edge *= 1.1
-        if ae > self._peak:
-            self._peak = ae
+        if position > self._hi:
+            self._hi = position
+        if position < self._lo:
+            self._lo = position
         if k % self._win == self._win - 1:
-            if self._peak < self._calm and self._g < 1.0:
-                # well inside for 100 ms: excite more, by steps small enough that a
-                # device held by Coulomb friction breaks loose gently
+            if self._hi - self._lo < self._calm and self._g < 1.0:
+                # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
+                # small enough that a device held by Coulomb friction breaks loose gently
+                # (wherever it sticks: the relay pushes it back towards the centre)
                 self._g = min(self._g * _GROW, 1.0)
-            self._peak = 0.0
+            self._hi = -math.inf
+            self._lo = math.inf
         # the square wave: its sign flips each half period (250 ms), and early when the
         # device is past 30 % of the envelope on the side it pushes towards (a relay:
         # the constant-force steps move the device both ways and keep it centred without

@@ -36,6 +36,10 @@ layer of rows; links that form no run fall into stripes of length 1 (the gather/
 of a general mesh). Summation order differs from one-link-at-a-time code only in the
 order each mass's link forces are added (round-off).
 
+Contacts (few, scattered) run one at a time: sphere contacts (the Euclidean law with rest
+length ``threshold`` while ``|d| < threshold``) and plane contacts (``p = offset -
+normal . x``, force ``(k p + z (p - p_prev)) normal`` while ``p > 0``).
+
 Scheme: ``x[n+1] = 2 x[n] - x[n-1] + t2m f[n]`` per axis (the 1-D scheme of
 :mod:`hapsim.kernels.cordis` on every axis; docs/design.md, 'The scheme').
 No kernel allocates.
@@ -227,6 +231,48 @@ def _links(x, xp, f, table, k, z, rest, lprev, W, euclid):
 
 
 @_jit
+def _contacts(x, f, i1, i2, k, z, thr, lprev):
+    """Sphere contacts, one at a time (few, scattered): the Euclidean law with rest length
+    ``thr`` while ``|d| < thr``; every contact's length is kept for its damping."""
+    dim = x.shape[0]
+    for j in range(i1.size):
+        a = _U(i1[j])
+        b = _U(i2[j])
+        l2 = 0.0
+        for d in range(dim):
+            dd = x[d, a] - x[d, b]
+            l2 += dd * dd
+        ln = np.sqrt(l2)
+        lp = lprev[j]
+        lprev[j] = ln
+        if ln < thr[j] and ln > 0.0:
+            g = (k[j] * (ln - thr[j]) + z[j] * (ln - lp)) / ln
+            for d in range(dim):
+                fd = g * (x[d, a] - x[d, b])
+                f[d, a] -= fd
+                f[d, b] += fd
+
+
+@_jit
+def _planes(x, xp, f, mass, normal, offset, k, z):
+    """Plane contacts, one (plane, mass) pair at a time: with the penetration
+    ``p = offset - normal . x``, the force ``(k p + z (p - p_prev)) normal`` while
+    ``p > 0``."""
+    dim = x.shape[0]
+    for j in range(mass.size):
+        m = _U(mass[j])
+        p = offset[j]
+        pp = offset[j]
+        for d in range(dim):
+            p -= normal[d, j] * x[d, m]
+            pp -= normal[d, j] * xp[d, m]
+        if p > 0.0:
+            g = k[j] * p + z[j] * (p - pp)
+            for d in range(dim):
+                f[d, m] += g * normal[d, j]
+
+
+@_jit
 def _advance(x, xp, f, t2m):
     n = _U(x.shape[1])
     for d in range(x.shape[0]):
@@ -241,7 +287,8 @@ def _advance(x, xp, f, t2m):
 
 @_jit
 def step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-            eu_lprev, W):
+            eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
+            p_offset, p_k, p_z):
     """One sample of the n-D scheme (module docstring).
 
     Parameters
@@ -263,6 +310,12 @@ def step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_res
         the lengths of ``xp``: :func:`link_lengths`).
     W : ndarray, shape (dim, CHUNK)
         Scratch (the link forces of one chunk).
+    c_i1, c_i2, c_k, c_z, c_thr, c_lprev : ndarray, shape (C,)
+        Sphere contacts: masses, ``K`` [N/m], ``B / T`` [N/m], threshold [m] and length
+        at the previous sample [m] (updated).
+    p_mass, p_normal, p_offset, p_k, p_z : ndarray
+        Plane contacts per (plane, mass) pair: the mass (P,), the unit normal (dim, P),
+        the offset [m], ``K`` [N/m] and ``B / T`` [N/m] (P,).
     """
     for d in range(f.shape[0]):
         fd = f[d]
@@ -270,13 +323,17 @@ def step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_res
             fd[i] = 0.0
     _links(x, xp, f, lin_table, lin_k, lin_z, lin_z, lin_z, W, False)
     _links(x, xp, f, eu_table, eu_k, eu_z, eu_rest, eu_lprev, W, True)
+    _contacts(x, f, c_i1, c_i2, c_k, c_z, c_thr, c_lprev)
+    _planes(x, xp, f, p_mass, p_normal, p_offset, p_k, p_z)
     _advance(x, xp, f, t2m)
 
 
 @_jit
 def run_nd(n, x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-           eu_lprev, W):
+           eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal, p_offset,
+           p_k, p_z):
     """``n`` samples of :func:`step_nd` (same arguments after ``n``)."""
     for _ in range(n):
         step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-                eu_lprev, W)
+                eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
+                p_offset, p_k, p_z)
