@@ -191,7 +191,7 @@ def _clean(obj):
     return obj
 
 
-def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
+def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
     """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
     stops it cleanly.
 
@@ -204,10 +204,12 @@ def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
     protocol : str
         What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
         protocol (the scene's device.protocol)"``, ...).
+    note : str
+        Appended (which host loop runs, when it is not the one asked for).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
-          f"for {length} (SIGINT/SIGTERM stop cleanly)",
+          f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
           file=sys.stderr, flush=True)
 
 
@@ -289,6 +291,12 @@ def run(args) -> int:
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
+    # its one-line error alone) before the silence it costs
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -304,8 +312,8 @@ def run(args) -> int:
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
-    args.announce = lambda port, n: _announce(port, n, said)
-    from hapsim.daemon import startup
+    note = ""
+    args.announce = lambda port, n: _announce(port, n, said, note)
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
     possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
@@ -317,10 +325,9 @@ def run(args) -> int:
     compile_later = asked == "auto" and args.loop == "python"
     startup.announce_compilation(startup.run_compile_parts(
         scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
-    if compile_later:
-        print("hapsim run: the compiled host loop is not in numba's cache yet: this run uses "
-              "the Python loop (the same forces, bit for bit) and compiles it after the "
-              "report, for the next runs", file=sys.stderr, flush=True)
+    if compile_later:           # said when the loop starts (not before an input error)
+        note = ("; the Python host loop this time (the compiled one is not in numba's cache "
+                "yet: it is compiled after the report, for the next runs)")
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow

@@ -80,6 +80,9 @@ def register(sub) -> None:
                    help="record length per trial [s] (default 0.3)")
     p.add_argument("--tol", type=float, default=2e-3,
                    help="relative width of the final bracket (default 0.002)")
+    p.add_argument("--start", type=float, default=0.7,
+                   help="first K as a fraction of the predicted limit (default 0.7; K is "
+                        "raised by 15 %% per record from there)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE", default=None,
                    help="chart: predicted boundary and measured points with their intervals")
@@ -140,7 +143,8 @@ def run(args) -> int:
     from hapsim.progress import Progress
 
     for key, v, ok in (("--duration", args.duration, args.duration > 0),
-                       ("--tol", args.tol, 0 < args.tol < 0.5)):
+                       ("--tol", args.tol, 0 < args.tol < 0.5),
+                       ("--start", args.start, 0 < args.start < 1)):
         if not (math.isfinite(v) and ok):
             raise ConfigError(f"out of range: {v!r}", key=key)
     if any(not math.isfinite(b) for b in args.B):
@@ -180,7 +184,8 @@ def run(args) -> int:
                 Kp = stability_limit(loop, B)
                 Kc = (predicted_coulomb(base.device, base.rate_hz, B,
                                         lambda K: release(x0, flim, K)) if fc > 0 else None)
-                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol)
+                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol,
+                                                    start=args.start)
                 points.append(ZPoint(B=float(B), K_max_predicted=Kp,
                                      K_max_predicted_coulomb=Kc, K_max_measured=Km,
                                      K_max_measured_interval=iv, trials=trials, note=note))

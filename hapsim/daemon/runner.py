@@ -1279,7 +1279,7 @@ def _contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: flo
     measured["within"] = None
 
 
-def _late_accounted(scene, cols: dict, hello=None):
+def _late_accounted(scene, cols: dict, hello=None, driver=None):
     """The logged positions with the response to the late ticks' known disturbance taken
     out, when the device names the force it applied (framed protocol, ``force_seq``).
 
@@ -1299,16 +1299,22 @@ def _late_accounted(scene, cols: dict, hello=None):
     pos, late = cols["position"], cols["late"]
     fseq = cols.get("force_seq")
     dev = scene.device
-    # a driver's STATEs name no applied force (force_seq = seq - d, never late): its
-    # account is its own timing's (hapsim.analysis.applied.account_from_timing)
-    if fseq is None or not np.any(fseq >= 0) or not np.any(late):
-        return pos, late, {}
-    lim = float(dev.force_limit)
-    if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
-        lim = min(lim, float(hello.force_limit))
-    acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                 zero_delay=dev.delay == 0, force_limit=lim)
-    info = {"device_delay": int(acc.delay)}
+    hook = getattr(driver, "account", None) if driver is not None else None
+    if driver is not None:
+        # a driver's STATEs name no applied force (force_seq = seq - d): its account is
+        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
+        acc = hook(cols, cols["force"]) if hook is not None else None
+        if acc is None or not np.any(acc.late):
+            return pos, late, {}
+    else:
+        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+            return pos, late, {}
+        lim = float(dev.force_limit)
+        if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
+            lim = min(lim, float(hello.force_limit))
+        acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
+                                     zero_delay=dev.delay == 0, force_limit=lim)
+    info = {"device_delay": int(acc.delay), "account": acc.method}
     if acc.delay != dev.delay:
         # the model of the loop would be the wrong one: measure as recorded, and say so
         info["late_accounted"] = 0
@@ -1322,6 +1328,8 @@ def _late_accounted(scene, cols: dict, hello=None):
     except ConfigError:
         return pos, late, info
     info["late_accounted"] = acc.n_late
+    # what the account leaves uncertain (a driver's timing): a force error per sample
+    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
     return pos - xw, None, info
 
 
@@ -1416,14 +1424,22 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        position, late, late_info = _late_accounted(scene, cols, hello)
+        position, late, late_info = _late_accounted(scene, cols, hello, driver)
+        wire = _wire_errors(scene, cols, start, driver)
+        hw = late_info.pop("_force_half_width", 0.0)
+        if hw > 0:
+            # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
+            # the loop's force response: in the stated uncertainty as the wire's errors
+            from hapsim.analysis.identify import force_error_response
+            wire.append((hw / math.sqrt(3.0),
+                         force_error_response(scene, int(np.sum(cols["seq"] >= start)))))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
-                            wire=_wire_errors(scene, cols, start, driver))
+                            wire=wire)
         if replay is not None:
             _contact_verdict(measured, replay, cols["seq"], start, T)
     notes = []
