@@ -1221,10 +1221,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    drv = None
-    if opts.driver not in (None, "framed"):
-        from hapsim.drivers import get_driver
-        drv = get_driver(opts.driver, **(opts.driver_options or {}))
+    # the run's own driver (its parameters: given, or the scene's protocol_options)
+    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
     measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
