@@ -208,3 +208,35 @@ def test_identify_plot_after_a_record_with_a_hole(tmp_path):
     path = tmp_path / "fit.png"
     _plot(fit, rec, str(path))
     assert path.stat().st_size > 1000
+
+
+def test_telemetry_felt_energy_from_the_applied_force(tmp_path):
+    """``hapsim telemetry``'s account of a run with scripted late ticks: the device delay,
+    the late count and the work of the force the device applied, tick by tick, equal the
+    lockstep mock's own log of what it applied (its ``applied_log``)."""
+    from hapsim.commands.telemetry import read, summarize
+    from hapsim.daemon import runner
+    from hapsim.scene import load_scene
+    mocks = []
+
+    class _Logged(_LateMock):
+        LATE = _late_pattern(7, 1000, 0.3)
+
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.applied_log = []
+            mocks.append(self)
+    path = str(tmp_path / "t.npz")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(runner, "MockDevice", _Logged)
+        runner.run_scene(load_scene("configs/wall.yaml"), lockstep=True,
+                         transport="inprocess", handle_signals=False, duration=1.0,
+                         telemetry=path)
+    cols, info = read(path)
+    s = summarize(cols, info)
+    log = mocks[0].applied_log                       # (time, tick, seq, force, configs)
+    f_dev = np.array([r[3] for r in log])[:cols["seq"].size]
+    assert s["applied"]["delay"] == 1 and s["applied"]["late"] == mocks[0].stats.late > 0
+    x = cols["position"]
+    e = np.cumsum(f_dev[:-1] * np.diff(x))
+    assert s["applied"]["felt_energy_j"]["end"] == pytest.approx(e[-1], rel=1e-12)

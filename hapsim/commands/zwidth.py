@@ -80,6 +80,9 @@ def register(sub) -> None:
                    help="record length per trial [s] (default 0.3)")
     p.add_argument("--tol", type=float, default=2e-3,
                    help="relative width of the final bracket (default 0.002)")
+    p.add_argument("--start", type=float, default=0.7,
+                   help="first K as a fraction of the predicted limit (default 0.7; K is "
+                        "raised by 15 %% per record from there)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE", default=None,
                    help="chart: predicted boundary and measured points with their intervals")
@@ -136,11 +139,12 @@ def run(args) -> int:
     """
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
-                                        release, run_measure)
+                                        release)
     from hapsim.progress import Progress
 
     for key, v, ok in (("--duration", args.duration, args.duration > 0),
-                       ("--tol", args.tol, 0 < args.tol < 0.5)):
+                       ("--tol", args.tol, 0 < args.tol < 0.5),
+                       ("--start", args.start, 0 < args.start < 1)):
         if not (math.isfinite(v) and ok):
             raise ConfigError(f"out of range: {v!r}", key=key)
     if any(not math.isfinite(b) for b in args.B):
@@ -180,7 +184,8 @@ def run(args) -> int:
                 Kp = stability_limit(loop, B)
                 Kc = (predicted_coulomb(base.device, base.rate_hz, B,
                                         lambda K: release(x0, flim, K)) if fc > 0 else None)
-                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol)
+                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol,
+                                                    start=args.start)
                 points.append(ZPoint(B=float(B), K_max_predicted=Kp,
                                      K_max_predicted_coulomb=Kc, K_max_measured=Km,
                                      K_max_measured_interval=iv, trials=trials, note=note))
@@ -286,6 +291,52 @@ def format_report(rep: dict) -> str:
 
 def _g(v) -> str:
     return "-" if v is None else format(v, ".6g")
+
+
+def run_measure(base, x0: float, *, duration: float, **run_options):
+    """A measuring function for :func:`hapsim.analysis.zwidth.locate_onset`: one ``hapsim
+    run`` per trial (it runs the daemon, so it stands with the command, not the analysis).
+
+    Parameters
+    ----------
+    base : hapsim.scene.Scene
+        The device (and rate, safety limits).
+    x0 : float
+        Release position [m] (reduced by :func:`hapsim.analysis.zwidth.release` for a stiff wall).
+    duration : float
+        Record length [s].
+    **run_options
+        Passed to :func:`hapsim.daemon.runner.run_scene` (``port``, ``lockstep``,
+        ``transport``, ...); ``allow_unstable`` is set (the safety limits stay armed).
+
+    Returns
+    -------
+    callable
+        ``measure(K, B) -> Trial``.
+    """
+    from hapsim.analysis.network import device_body
+    from hapsim.analysis.zwidth import Trial, release, wall_scene
+    from hapsim.daemon.runner import run_scene
+
+    m = device_body(base.device)[0]
+    T = base.period
+
+    flim = float(getattr(base.device, "force_limit", math.inf) or math.inf)
+
+    def measure(K: float, B: float) -> Trial:
+        rep = run_scene(wall_scene(base, K, B, release(x0, flim, K)), duration=duration,
+                        allow_unstable=True, handle_signals=False, **run_options)
+        meas = rep.get("measured") or {}
+        stop = str((rep.get("loop") or {}).get("stop_reason") or "")
+        safety = any(w in stop for w in ("energy", "velocity", "position", "force"))
+        b = meas.get("b")
+        if b is None or not math.isfinite(b):
+            return Trial(K, B, None, None, 0.0, None, True if safety else None,
+                         note=stop or str(meas.get("error", "not identified")))
+        unc = float(meas.get("b_unc") or 0.0)
+        return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
+                     math.exp(-b * T / (2.0 * m)), bool(b < 0 or safety), note=stop)
+    return measure
 
 
 if __name__ == "__main__":  # pragma: no cover
