@@ -47,7 +47,7 @@ from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.report import format_report
 from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
                                    process_start)
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import Scene
@@ -1040,6 +1040,15 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                      "loop is not the linear THS exactly")
     if late_info:
         measured.update(late_info)
+    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
+    if n_est and "k" in measured:
+        # a driver's missing replies: the scene stepped through them with an extrapolated
+        # position; the force sent there differs from the one the true position gives by
+        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        measured["estimated_samples"] = n_est
+        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
+                     f"stepped through with an extrapolated position: their disturbance is "
+                     f"not in the stated uncertainty")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -1108,7 +1117,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
-        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "late": res.late, "missed": res.missed, "estimated": res.estimated,
+        "overruns": res.overruns,
         "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
@@ -1211,10 +1221,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    drv = None
-    if opts.driver not in (None, "framed"):
-        from hapsim.drivers import get_driver
-        drv = get_driver(opts.driver, **(opts.driver_options or {}))
+    # the run's own driver (its parameters: given, or the scene's protocol_options)
+    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
     measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
