@@ -51,8 +51,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.family import _full, family_matrices
-from hapsim.analysis.hand import HAND_FIELDS, _rigid_matrices, hand_matrices, nominal_member
+from hapsim.analysis.family_loops import family_matrices, full_members
+from hapsim.analysis.hand import HAND_FIELDS, hand_matrices, nominal_member, rigid_matrices
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 
@@ -123,7 +123,7 @@ def _to_members(v: np.ndarray, mc: float, rigid: bool) -> np.ndarray:
 def _plant(mem: np.ndarray, mc: float, bc: float, rigid: bool):
     """Continuous ``(Ac, b)`` stacks of the members, state ``[x, v, ...]``."""
     if rigid:
-        A, b = _rigid_matrices(mc + mem[..., 0], bc + mem[..., 1], mem[..., 4])
+        A, b = rigid_matrices(mc + mem[..., 0], bc + mem[..., 1], mem[..., 4])
         return A, b
     A, b = hand_matrices(mc, bc, mem)
     return A, np.broadcast_to(b, A.shape[:-1])
@@ -217,7 +217,7 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
             return Certificate(False, None, done, f"gave up after {done} boxes")
         done += n
         cen = 0.5 * (boxes_lo + boxes_hi)
-        A, _ = family_matrices(scene, _full(_to_members(cen, mc, rigid)),
+        A, _ = family_matrices(scene, full_members(_to_members(cen, mc, rigid)),
                                calibrated=calibrated)
         As = A * S[None, :, None] / S[None, None, :]   # D A D^-1
         w, V = np.linalg.eig(As)

@@ -38,7 +38,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Trial", "ZPoint", "predicted_coulomb", "locate_onset", "wall_scene",
-           "run_measure", "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS"]
+           "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS"]
 
 #: Fewest ticks before a safety stop for an unidentified record to count as growing: from
 #: at most 30 % of the force limit a growth of 1 % per sample needs ~120 ticks to reach it,
@@ -243,56 +243,6 @@ def wall_scene(base, K: float, B: float, x0: float):
                  safety=base.safety)
 
 
-def run_measure(base, x0: float, *, duration: float, **run_options):
-    """A measuring function for :func:`locate_onset`: one ``hapsim run`` per trial.
-
-    Parameters
-    ----------
-    base : hapsim.scene.Scene
-        The device (and rate, safety limits).
-    x0 : float
-        Release position [m] (reduced by :func:`release` for a stiff wall).
-    duration : float
-        Record length [s].
-    **run_options
-        Passed to :func:`hapsim.daemon.runner.run_scene` (``port``, ``lockstep``,
-        ``transport``, ...); ``allow_unstable`` is set (the safety limits stay armed).
-
-    Returns
-    -------
-    callable
-        ``measure(K, B) -> Trial``.
-    """
-    from hapsim.analysis.network import device_body
-    from hapsim.daemon.runner import run_scene
-
-    m = device_body(base.device)[0]
-    T = base.period
-
-    flim = float(getattr(base.device, "force_limit", math.inf) or math.inf)
-
-    def measure(K: float, B: float) -> Trial:
-        rep = run_scene(wall_scene(base, K, B, release(x0, flim, K)), duration=duration,
-                        allow_unstable=True, handle_signals=False, **run_options)
-        meas = rep.get("measured") or {}
-        lp = rep.get("loop") or {}
-        stop = str(lp.get("stop_reason") or "")
-        safety = bool(lp.get("safety_stop")) or stop.startswith("safety")
-        b = meas.get("b")
-        if b is None or not math.isfinite(b):
-            # a safety stop after a while is growth from x0 (well inside the limits) to a
-            # limit; one within the first periods says nothing of the loop (a device out
-            # of place, a clamped start): undecided
-            grew = safety and int(lp.get("ticks") or 0) >= MIN_GROWTH_TICKS
-            return Trial(K, B, None, None, 0.0, None, True if grew else None,
-                         note=(f"{stop} after {lp.get('ticks')} ticks" if safety
-                               else stop or str(meas.get("error", "not identified"))))
-        unc = float(meas.get("b_unc") or 0.0)
-        return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
-                     math.exp(-b * T / (2.0 * m)), bool(b < 0 or safety), note=stop)
-    return measure
-
-
 def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
                  start: float = 0.7, step: float = 1.15, max_trials: int = 16,
                  progress=None) -> tuple:
@@ -301,7 +251,7 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
     Parameters
     ----------
     measure : callable
-        ``measure(K, B) -> Trial`` (:func:`run_measure`).
+        ``measure(K, B) -> Trial`` (:func:`hapsim.commands.zwidth.run_measure`).
     B : float
         Virtual damping [N s/m].
     K_guess : float > 0

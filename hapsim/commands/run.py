@@ -337,7 +337,7 @@ def run(args) -> int:
                                        fault_seed=args.fault_seed,
                                        rt_priority=0 if args.lockstep and not args.host_clocked
                                        else max(args.rt_priority, 0))
-    from hapsim.daemon.runner import format_report
+    from hapsim.daemon.report import format_report
     try:
         rep = _run(scene, args, embedded)
     except (DeviceError, ProtocolError) as exc:
@@ -434,20 +434,44 @@ def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
 
 
+def run_options(args, scene, embedded=None):
+    """The :class:`~hapsim.daemon.runner.RunOptions` of ``hapsim run``'s command line: the
+    one place where an option of the parser becomes an option of the run.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``hapsim run``'s parsed arguments (with ``protocol`` and ``announce`` once
+        :func:`run` has chosen them).
+    scene : hapsim.scene.Scene
+        The scene run (its ``device.protocol`` when ``args`` has no ``protocol``:
+        :func:`protocol_of`).
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run.
+
+    Returns
+    -------
+    RunOptions
+        Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
+    """
+    from hapsim.daemon.runner import RunOptions
+    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
+    return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
+                      rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                      telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                      seed=args.seed, rt_priority=args.rt_priority,
+                      on_start=getattr(args, "announce", _announce),
+                      faults=args.faults, fault_seed=args.fault_seed,
+                      reconnect=False if args.no_reconnect else None,
+                      lost_timeout=args.lost_timeout,
+                      reconnect_attempts=args.reconnect_attempts,
+                      reconnect_time=args.reconnect_time, osc=args.osc,
+                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                      driver=None if protocol == "framed" else protocol,
+                      loop=args.loop, embedded=embedded)
+
+
 def _run(scene, args, embedded=None) -> dict:
     """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
     from hapsim.daemon.runner import run_scene
-    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
-    return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
-                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                     seed=args.seed, rt_priority=args.rt_priority,
-                     on_start=getattr(args, "announce", _announce),
-                     faults=args.faults, fault_seed=args.fault_seed,
-                     reconnect=False if args.no_reconnect else None,
-                     lost_timeout=args.lost_timeout,
-                     reconnect_attempts=args.reconnect_attempts,
-                     reconnect_time=args.reconnect_time, osc=args.osc,
-                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                     driver=None if protocol == "framed" else protocol,
-                     loop=args.loop, embedded=embedded)
+    return run_scene(scene, run_options(args, scene, embedded))

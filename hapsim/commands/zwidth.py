@@ -142,7 +142,7 @@ def run(args) -> int:
     """
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
-                                        release, run_measure)
+                                        release)
     from hapsim.progress import Progress
 
     for key, v, ok in (("--duration", args.duration, args.duration > 0),
@@ -304,6 +304,58 @@ def format_report(rep: dict) -> str:
 
 def _g(v) -> str:
     return "-" if v is None else format(v, ".6g")
+
+
+def run_measure(base, x0: float, *, duration: float, **run_options):
+    """A measuring function for :func:`hapsim.analysis.zwidth.locate_onset`: one ``hapsim
+    run`` per trial (it runs the daemon, so it stands with the command, not the analysis).
+
+    Parameters
+    ----------
+    base : hapsim.scene.Scene
+        The device (and rate, safety limits).
+    x0 : float
+        Release position [m] (reduced by :func:`hapsim.analysis.zwidth.release` for a stiff wall).
+    duration : float
+        Record length [s].
+    **run_options
+        Passed to :func:`hapsim.daemon.runner.run_scene` (``port``, ``lockstep``,
+        ``transport``, ...); ``allow_unstable`` is set (the safety limits stay armed).
+
+    Returns
+    -------
+    callable
+        ``measure(K, B) -> Trial``.
+    """
+    from hapsim.analysis.network import device_body
+    from hapsim.analysis.zwidth import MIN_GROWTH_TICKS, Trial, release, wall_scene
+    from hapsim.daemon.runner import run_scene
+
+    m = device_body(base.device)[0]
+    T = base.period
+
+    flim = float(getattr(base.device, "force_limit", math.inf) or math.inf)
+
+    def measure(K: float, B: float) -> Trial:
+        rep = run_scene(wall_scene(base, K, B, release(x0, flim, K)), duration=duration,
+                        allow_unstable=True, handle_signals=False, **run_options)
+        meas = rep.get("measured") or {}
+        lp = rep.get("loop") or {}
+        stop = str(lp.get("stop_reason") or "")
+        safety = bool(lp.get("safety_stop")) or stop.startswith("safety")
+        b = meas.get("b")
+        if b is None or not math.isfinite(b):
+            # a safety stop after a while is growth from x0 (well inside the limits) to a
+            # limit; one within the first periods says nothing of the loop (a device out
+            # of place, a clamped start): undecided
+            grew = safety and int(lp.get("ticks") or 0) >= MIN_GROWTH_TICKS
+            return Trial(K, B, None, None, 0.0, None, True if grew else None,
+                         note=(f"{stop} after {lp.get('ticks')} ticks" if safety
+                               else stop or str(meas.get("error", "not identified"))))
+        unc = float(meas.get("b_unc") or 0.0)
+        return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
+                     math.exp(-b * T / (2.0 * m)), bool(b < 0 or safety), note=stop)
+    return measure
 
 
 if __name__ == "__main__":  # pragma: no cover
