@@ -611,7 +611,8 @@ class IdentifyReport(_Report):
     note : str or None
 
     Other attributes: ``fit`` (the :class:`~hapsim.analysis.device_fit.DeviceFit`) and
-    ``record`` (the excitation's columns and loop facts).
+    ``record`` (the excitation's columns and loop facts). Its chart (``plot`` is the
+    command's file field here): :func:`hapsim.plot.plot_identify` ``(report)``.
     """
 
     _OPTIONAL = ("note",)

@@ -7,6 +7,7 @@ matching built-in, so callers may catch either (pattern of pyserial's
 
 from __future__ import annotations
 
+import math
 import re
 
 __all__ = [
@@ -21,6 +22,7 @@ __all__ = [
     "KinematicsError",
     "show",
     "fixed",
+    "dash",
     "plural",
 ]
 
@@ -245,6 +247,26 @@ def fixed(value: float, spec: str) -> str:
         return text
     digits = int(m.group(3)) if m.group(3) else 6
     return format(value, f"{m.group(1)}{m.group(2)}.{max(digits, 1)}g")
+
+
+def dash(value, spec: str) -> str:
+    """``value`` in a report's column: ``"-"`` when it is None or a non-finite float, else
+    :func:`fixed` for a fixed-point ``spec`` and ``format(value, spec)`` otherwise.
+
+    Parameters
+    ----------
+    value : float or None
+        The number.
+    spec : str
+        A format spec (``"12.4f"``, ``"+9.2e"``, ``".6g"``).
+
+    Returns
+    -------
+    str
+    """
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return fixed(value, spec) if spec.endswith("f") else format(value, spec)
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:

@@ -11,7 +11,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "save_figure", "figure_formats", "check_figure_path",
+__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_identify", "save_figure", "figure_formats", "check_figure_path",
            "check_output_path"]
 
 
@@ -279,6 +279,50 @@ def plot_poles(report, ax=None, title: str | None = None):
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
     ax.set_title(title or getattr(report, "scene", None) or "closed-loop poles")
     fig.tight_layout()
+    return fig
+
+
+def plot_identify(fit, record=None):
+    """A device identification: the measured response against the fitted model.
+
+    Parameters
+    ----------
+    fit : hapsim.analysis.device_fit.DeviceFit or hapsim.api.IdentifyReport
+        The fit (``model`` [m], shape (n,), ``period`` [s], ``mass``, ``friction``,
+        ``coulomb``, ``delay``, ``hold``), or the API's report (its ``fit`` and
+        ``record``).
+    record : dict, optional
+        The excitation record (``position`` [m], shape (N,); ``loop.fitted_rows``: the rows
+        fitted); taken from the report when ``fit`` is one.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Top: measured and model positions [mm] against time [s]; bottom: model - measured
+        [um].
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    if record is None:
+        fit, record = fit.fit, fit.record
+    plt = _mpl()
+    # the fit covers the rows it was given (the longest stretch without a missing STATE)
+    a, _ = record["loop"].get("fitted_rows", (0, fit.n_samples))
+    x = record["position"][a:a + fit.n_samples]
+    t = (a + np.arange(fit.n_samples)) * fit.period
+    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
+    a1.plot(t, x * 1e3, lw=0.8, label="measured")
+    a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
+    a1.set_ylabel("position [mm]")
+    a1.legend(loc="upper right")
+    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
+                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
+    a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
+    a2.set_ylabel("model - measured [um]")
+    a2.set_xlabel("time [s]")
     return fig
 
 

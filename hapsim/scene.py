@@ -45,8 +45,7 @@ from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS, Key,
-                                 key_names,
-                                 section_keys)
+                                 check_product, key_names, section_keys)
 from hapsim.scene_schema import key as _key
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
@@ -765,8 +764,6 @@ def _check_products(s: Scene) -> None:
     ``b T/m`` at the port: at most :data:`hapsim.analysis.loop.MAX_PRODUCT` (the reason is
     there: the characteristic's coefficients would span more than a double resolves, and
     the engine's update diverges within a row)."""
-    from hapsim.analysis.loop import check_product   # at check time: no import cycle
-
     T = 1.0 / float(s.rate_hz)
 
     def refuse(value, scale, unit, what, where):

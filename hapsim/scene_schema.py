@@ -19,9 +19,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from hapsim.errors import ConfigError
+
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
-           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "PROTOCOLS", "INTEGRATORS",
-           "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "PROTOCOLS",
+           "INTEGRATORS", "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES",
+           "PORT_FORCE_MODES", "check_product"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
@@ -34,6 +37,59 @@ HOLDS = ("zoh", "ideal")
 PROTOCOLS = ("framed", "firefader", "haply", "hapkit-serial")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
+
+# The analysis's valid ranges (re-exported by hapsim.analysis.loop, which checks them;
+# here, at the bottom of the house, so that a key's ``limits_from`` names them without
+# importing the analysis).
+
+#: Largest delay [samples] the analysis accepts. The closed loop has ``d + 3`` poles, found
+#: as the eigenvalues of a dense ``(d + 3)``-square companion (state) matrix: ``O(d^3)``
+#: time, about 0.4 s at ``d = 500`` on one idle core (1.7 s at 1000, several times more on a
+#: loaded machine), and a stability limit needs several of them. 500 samples is 0.5 s at
+#: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
+#: timer is 16 samples at 1 kHz, 80 at 5 kHz).
+MAX_DELAY = 500
+#: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
+#: or ``1/T^2`` leave the double range long before any product is formed.
+RATE_RANGE = (1e-6, 1e9)
+#: Valid masses [kg] (device and virtual): 1 ng to 1e12 kg; a subnormal mass turns every
+#: ``T^2 / m`` into inf.
+MASS_RANGE = (1e-12, 1e12)
+#: Largest magnitude of the dimensionless loop products ``K T^2 / m`` (the spring's
+#: ``(omega T)^2``), ``B T / m`` and ``b0 T / m`` (damping per sample). Beyond 1e6 the spring
+#: rings a thousand times per sample or the damper settles in a millionth of one: no sampled
+#: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
+#: characteristic coefficients would span more than the double range can resolve.
+MAX_PRODUCT = 1e6
+
+
+def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
+    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
+
+    Parameters
+    ----------
+    value : float
+        Physical value, e.g. ``K`` [N/m].
+    scale : float
+        Its factor to the dimensionless product, e.g. ``T^2 / m``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit of ``value``.
+    what : str
+        The product's formula, e.g. ``"K T^2/m"``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
+    """
+    if abs(value) * scale > MAX_PRODUCT:
+        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
+                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
+                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
+
+
 #: What a listening point hears (``audio.listen[i].quantity``; first is the default).
 LISTEN_QUANTITIES = ("velocity", "position", "force")
 #: How the port position is brought up to the audio rate (first is the default).
@@ -141,8 +197,7 @@ class Key:
         """
         if not self.limits_from:
             return (None, None)
-        import hapsim.analysis.loop as lp        # at check time: no import cycle
-        v = getattr(lp, self.limits_from)
+        v = globals()[self.limits_from]
         return tuple(v) if isinstance(v, tuple) else (None, v)
 
     def why_text(self) -> str:

@@ -154,9 +154,13 @@ def fake_run(monkeypatch):
     from hapsim.errors import DeviceError
     seen = {}
 
-    def run_scene(scene, **kw):
-        seen.update(kw, scene=scene)
-        kw["on_start"]("/dev/fake", 1000)
+    def run_scene(scene, options=None, **kw):
+        import dataclasses
+        opts = dataclasses.replace(options if options is not None else runner.RunOptions(),
+                                   **kw)
+        seen.update({f.name: getattr(opts, f.name) for f in dataclasses.fields(opts)},
+                    scene=scene)
+        opts.on_start("/dev/fake", 1000)
         raise DeviceError("recorded")
 
     monkeypatch.setattr(runner, "run_scene", run_scene)

@@ -99,12 +99,12 @@ def test_account_from_force_seq_names_the_force_held():
     assert t.half_width[6] == pytest.approx(0.5) and t.half_width.sum() == pytest.approx(0.5)
 
 
-def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True):
+def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True, extra=()):
     scene = tmp_path / "dev.yaml"
     scene.write_text("rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\nlinks: []\n"
                      f"device: {json.dumps(dev)}\n")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--scene", str(scene)]
-                            + (["--lockstep"] if lockstep else []),
+                            + (["--lockstep"] if lockstep else []) + list(extra),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     assert line.startswith("PORT"), (line, proc.stderr.read() if proc.poll() else "")
@@ -112,14 +112,17 @@ def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True):
 
 
 @pytest.mark.parametrize("dev", [
-    {"mass": 0.6, "friction": 0.2, "delay": 20, "coulomb": 0.3, "force_limit": 10.0,
+    {"mass": 0.6, "friction": 0.2, "delay": 5, "coulomb": 0.3, "force_limit": 10.0,
      "noise": 2e-6},
 ])
 def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
-    """Over --port (a standalone lockstep mock on a real pty) the delay is the device's:
-    exit 0, stdout one JSON object, d exact, every truth inside its interval (the delay
-    was taken as 1: every tick of a d >= 2 device late, wrong estimates, tracebacks)."""
-    proc, port = _mock_on_pty(tmp_path, dev)
+    """Over --port (a standalone real-time mock on a real pty whose received FORCEs are held
+    up 12 ms now and then, so that ticks are late, as under load) the delay is the
+    device's: exit 0, stdout one JSON object, d exact, every truth inside its interval, the
+    late ticks accounted (the delay was taken as 1: every tick of a d >= 2 device late,
+    wrong estimates, tracebacks; under load the embedded mock was written 'delay: 4')."""
+    proc, port = _mock_on_pty(tmp_path, dev, lockstep=False,
+                              extra=("--faults", "rx.spike=0.01:12ms", "--fault-seed", "3"))
     try:
         r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
                             "--json", "--force-limit", "4", "--duration", "1.5"],
@@ -131,7 +134,8 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     out = json.loads(r.stdout)               # only JSON on stdout
     fit = out["device"]
     assert fit["delay"] == dev["delay"] and fit["delay_range"] == [dev["delay"]] * 2
-    assert out["loop"]["account"]["method"] == "force_seq"
+    acc = out["loop"]["account"]
+    assert acc["method"] == "force_seq" and acc["late"] > 0 and acc["delay"] == dev["delay"]
     for key, truth in (("mass", dev["mass"]), ("friction", dev["friction"]),
                        ("coulomb", dev["coulomb"])):
         e = fit[key]
@@ -208,3 +212,35 @@ def test_identify_plot_after_a_record_with_a_hole(tmp_path):
     path = tmp_path / "fit.png"
     _plot(fit, rec, str(path))
     assert path.stat().st_size > 1000
+
+
+def test_telemetry_felt_energy_from_the_applied_force(tmp_path):
+    """``hapsim telemetry``'s account of a run with scripted late ticks: the device delay,
+    the late count and the work of the force the device applied, tick by tick, equal the
+    lockstep mock's own log of what it applied (its ``applied_log``)."""
+    from hapsim.commands.telemetry import read, summarize
+    from hapsim.daemon import runner
+    from hapsim.scene import load_scene
+    mocks = []
+
+    class _Logged(_LateMock):
+        LATE = _late_pattern(7, 1000, 0.3)
+
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            self.applied_log = []
+            mocks.append(self)
+    path = str(tmp_path / "t.npz")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(runner, "MockDevice", _Logged)
+        runner.run_scene(load_scene("configs/wall.yaml"), lockstep=True,
+                         transport="inprocess", handle_signals=False, duration=1.0,
+                         telemetry=path)
+    cols, info = read(path)
+    s = summarize(cols, info)
+    log = mocks[0].applied_log                       # (time, tick, seq, force, configs)
+    f_dev = np.array([r[3] for r in log])[:cols["seq"].size]
+    assert s["applied"]["delay"] == 1 and s["applied"]["late"] == mocks[0].stats.late > 0
+    x = cols["position"]
+    e = np.cumsum(f_dev[:-1] * np.diff(x))
+    assert s["applied"]["felt_energy_j"]["end"] == pytest.approx(e[-1], rel=1e-12)

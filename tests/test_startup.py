@@ -216,11 +216,14 @@ def test_cold_cache_is_announced_before_numba_is_imported(tmp_path, monkeypatch)
     code = f"""
 import json, sys, io
 from hapsim.daemon import startup
-from hapsim.scene import load_scene
-parts = startup.run_compile_parts(load_scene({WALL!r}), compiled_loop=True)
 err = io.StringIO()
-said = startup.announce_compilation(parts, stream=err)
-print(json.dumps({{"said": said, "text": err.getvalue(), "numba": "numba" in sys.modules,
+from hapsim.scene import load_scene
+scene = load_scene({WALL!r})
+parts = startup.run_compile_parts(scene, compiled_loop=True)
+early = startup.announce_compilation(parts[:1], stream=err)    # what run says at once
+said = startup.announce_compilation(parts, stream=err)         # the loop too: once each
+print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
+                  "numba": "numba" in sys.modules,
                   "notice": startup.compile_notice() is not None,
                   "parts": [(w, f) for w, _, f in parts]}}))
 """
@@ -228,12 +231,13 @@ print(json.dumps({{"said": said, "text": err.getvalue(), "numba": "numba" in sys
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                        text=True, cwd=str(REPO), timeout=120)
     got = json.loads(p.stdout.strip().splitlines()[-1])
-    assert got["said"] and got["notice"] and not got["numba"]
+    assert got["said"] and got["early"] and got["notice"] and not got["numba"]
     assert got["parts"] == [["the engine's kernels", "run_sd"],
                             ["the compiled host loop", "_stretch"]]
-    line, = got["text"].splitlines()
-    assert line.startswith("hapsim run: compiling the engine's kernels and the compiled host "
-                           "loop with numba (once") and str(cache) in line
+    first, second = got["text"].splitlines()        # each part said once
+    assert first.startswith("hapsim run: compiling the engine's kernels with numba (once")
+    assert second.startswith("hapsim run: compiling the compiled host loop with numba")
+    assert str(cache) in first and str(cache) in second
     # the same parts with their indexes written after the sources: nothing to say
     from hapsim.daemon import startup
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
@@ -247,7 +251,7 @@ print(json.dumps({{"said": said, "text": err.getvalue(), "numba": "numba" in sys
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                        text=True, cwd=str(REPO), timeout=120)
     got = json.loads(p.stdout.strip().splitlines()[-1])
-    assert not got["said"] and got["text"] == "" and not got["notice"]
+    assert not got["said"] and not got["early"] and got["text"] == "" and not got["notice"]
 
 
 def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
@@ -298,10 +302,10 @@ def test_first_run_without_the_compiled_loop_uses_python_then_compiles_it(
     out, err = capsys.readouterr()
     rep = json.loads(out)
     assert rep["loop"]["compiled_samples"] == 0 and rep["loop"]["python_reason"] is None
-    assert "uses the Python loop" in err and "compiled the compiled host loop" in err
+    assert "the Python host loop this time" in err and "compiled the compiled host loop" in err
     assert len(compiled) == 1 and compiled[0].scene.links[0].name == "wall"
     monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: True)
     assert main(argv) == 0
     out, err = capsys.readouterr()
     assert json.loads(out)["loop"]["compiled_samples"] > 0
-    assert "for the next runs" not in err and "uses the Python loop" not in err
+    assert "for the next runs" not in err and "Python host loop" not in err

@@ -34,7 +34,7 @@ def test_lockstep_mock_measures_the_linear_limit(capsys):
     """The lockstep mock is the linear THS: measured = predicted (target 1 %; the records
     give it to ~1e-9), the interval holds it, the records below decay (rho < 1) and the
     first one above grows; the search starts below the limit and raises K."""
-    rep, p = _one_point(capsys, ["--lockstep", "--B", "1.5"])
+    rep, p = _one_point(capsys, ["--lockstep", "--B", "1.5", "--start", "0.9"])
     assert set(p) >= {"B", "K_max_predicted", "K_max_measured", "K_max_measured_interval"}
     Kp, Km, (lo, hi) = p["K_max_predicted"], p["K_max_measured"], \
         p["K_max_measured_interval"]
@@ -54,7 +54,7 @@ def test_coulomb_and_quantisation_move_the_limit_as_the_describing_function_says
     f = tmp_path / "coulomb.yaml"
     f.write_text(COULOMB)
     rep, p = _one_point(capsys, ["--scene", str(f), "--lockstep", "--B", "1.5",
-                                    "--tol", "0.01"])
+                                    "--tol", "0.01", "--start", "0.9"])
     assert rep["follows"] == "coulomb"
     assert abs(p["rel_err_coulomb"]) < 1e-2
     lo, hi = p["K_max_measured_interval"]
@@ -64,12 +64,14 @@ def test_coulomb_and_quantisation_move_the_limit_as_the_describing_function_says
 def test_real_time_mock_measures_the_limit_within_3_percent(capsys):
     """The embedded mock in real time on a pty (late ticks are cut out of the records by
     the run's identification): measured = predicted within the 3 % target."""
-    rep, p = _one_point(capsys, ["--B", "1.5", "--tol", "0.02", "--duration", "0.2"])
+    rep, p = _one_point(capsys, ["--B", "1.5", "--tol", "0.02", "--duration", "0.2",
+                                  "--start", "0.9"])
     assert abs(p["rel_err"]) < 0.03
 
 
 def test_zwidth_refuses_bad_options(capsys):
     assert main(["zwidth", "--lockstep", "--tol", "0"]) == 2
+    assert main(["zwidth", "--lockstep", "--start", "1.5"]) == 2
     assert main(["zwidth", "--lockstep", "--port", "/dev/null"]) == 2
     assert main(["zwidth", "--lockstep", "--B", "nan"]) == 2
     assert "--B" in capsys.readouterr().err

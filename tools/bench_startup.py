@@ -72,11 +72,13 @@ def startup_seconds(repo: Path, cache: Path, cold: bool) -> dict:
     p.wait()
     reader.join()
     wall = time.monotonic() - t0
-    if p.returncode != 0:
-        raise SystemExit(f"hapsim run failed in {repo}: "
-                         f"{chr(10).join(ln for _, ln in lines)[-800:]}")
-    loop = json.loads(out)["loop"]
-    return {"first_line_s": lines[0][0] if lines else None,
+    try:    # exit 1 (a negative verdict, e.g. a safety stop under load) still has a report
+        loop = json.loads(out)["loop"]
+    except (ValueError, KeyError):
+        raise SystemExit(f"hapsim run failed in {repo} (exit {p.returncode}): "
+                         f"{chr(10).join(ln for _, ln in lines)[-800:]}") from None
+    return {"exit": p.returncode, "stop": loop.get("stop_reason"),
+            "first_line_s": lines[0][0] if lines else None,
             "first_line": lines[0][1] if lines else None,
             "armed_s": loop["armed_monotonic_s"] - t0,
             "first_sample_s": loop.get("first_sample_s"), "wall_s": wall}

@@ -34,8 +34,7 @@ from hapsim.analysis.ths import calibrate, render, stability_limit
 from hapsim.errors import ConfigError
 
 __all__ = ["compare_corrections", "default_corrections", "tangency", "tangency_limit",
-           "TANGENT_TOL", "TANGENCY_AT",
-           "passivity_time_domain"]
+           "TANGENT_TOL", "TANGENCY_AT"]
 
 #: ``max |J - I|`` below which the grid counts as tangent to the identity at the origin.
 TANGENT_TOL = 0.05
@@ -283,56 +282,3 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
             "n": n, "rows": rows}
 
 
-def passivity_time_domain(loop: LoopModel, K: float, B: float, *, duration: float = 2.0,
-                          x0: float = 0.005) -> dict:
-    """The passivity controller beside the plain element, in the time domain only.
-
-    Hannaford & Ryu's passivity observer/controller (``safety.passivity_controller`` of
-    ``hapsim run``) is nonlinear: it has no P, Q, R and no grid. It is compared by running
-    the lockstep daemon on a one-link wall ``(K, B)`` with and without it (energy limit
-    raised to 100 J, position limit 10 m, so that only the loop decides).
-
-    Parameters
-    ----------
-    loop : LoopModel
-        Rigid device without correction (mass, friction, rate, delay, hold).
-    K, B : float
-        Virtual wall [N/m], [N s/m]; typically beyond the plain ``K_max(B)``.
-    duration : float, optional
-        Run length [s].
-    x0 : float, optional
-        Initial displacement into the wall [m].
-
-    Returns
-    -------
-    dict
-        ``{"plain": run, "passivity_controller": run}``, each with ``bounded`` (the run
-        lasted its duration with no safety stop), ``ticks``, ``stop_reason``,
-        ``energy_excess_max_j`` [J], ``passivity_samples`` (samples where the controller
-        damped), ``v_max`` [m/s], ``f_max`` [N] and the equivalent felt ``k``, ``b`` of a
-        linear fit (for the nonlinear run only an indication; None when not identified).
-    """
-    from hapsim.daemon.runner import run_scene
-    from hapsim.scene import parse_scene
-
-    out = {}
-    for key, pc in (("plain", "false"), ("passivity_controller", "true")):
-        text = f"""
-rate_hz: {loop.rate_hz!r}
-masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
-links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {float(K)!r},
-          damping: {float(B)!r}}}]
-device: {{mass: {loop.mass!r}, friction: {loop.friction!r}, delay: {loop.delay},
-          hold: {loop.hold}, force_limit: 1000000.0}}
-excitation: {{x0: {float(x0)!r}}}
-safety: {{passivity_controller: {pc}, energy_limit: 100.0, position_limit: 10.0}}
-"""
-        rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
-                        handle_signals=False, duration=duration, allow_unstable=True)
-        lp, ms = rep["loop"], rep["measured"]
-        out[key] = {"bounded": not lp["safety_stop"] and lp["ticks"] >= lp["requested"],
-                    "ticks": lp["ticks"], "stop_reason": lp["stop_reason"],
-                    "energy_excess_max_j": lp["energy_excess_max_j"],
-                    "passivity_samples": lp["passivity_samples"], "v_max": lp["v_max"],
-                    "f_max": lp["f_max"], "k": ms.get("k"), "b": ms.get("b")}
-    return {"K": float(K), "B": float(B), "duration": float(duration), **out}

@@ -451,7 +451,7 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
         Unknown hold; ``velocity_sensor`` with the ideal hold; ``inertia_compensation``
         with ``Mc`` not below the moving mass (handle + hand).
     """
-    from hapsim.analysis.network import _compliant, device_body
+    from hapsim.analysis.body import _compliant, device_body
 
     T = float(scene.period)
     if dev.hold == "zoh":

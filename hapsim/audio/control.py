@@ -3,7 +3,7 @@
 A change (a link's stiffness or damping, a felt target {k, b}, a mass's inertia, the sound
 gain, pause/resume) arrives on any thread (the OSC server's). It is checked there, before
 anything moves: the changed scene's closed loop must be stable, by the check ``hapsim run``
-makes (:func:`hapsim.daemon.runner.predict`, i.e. :func:`hapsim.analysis.check_scene` of the
+makes (:func:`hapsim.analysis.prediction.predict`, i.e. :func:`hapsim.analysis.check_scene` of the
 whole scene coupled to its device, multi-rate included), at the new values and at three
 points of the ramp toward them; a felt target is calibrated first
 (:func:`hapsim.analysis.targets.apply_targets`) and refused when no (K, B) renders it. A
@@ -202,7 +202,7 @@ class Controller:
         self._rebasing.start()
 
     def _predict(self, scene) -> dict:
-        from hapsim.daemon.runner import predict
+        from hapsim.analysis.prediction import predict
         return self.analyst.call(predict, scene)
 
     def close(self) -> None:
@@ -224,7 +224,7 @@ class Controller:
 
     def _check(self, new_scene, old_scene) -> dict:
         """Stability of the new scene and of three points of the ramp toward it
-        (:func:`hapsim.daemon.runner.predict`); the prediction of the new scene."""
+        (:func:`hapsim.analysis.prediction.predict`); the prediction of the new scene."""
         pred = self._predict(new_scene)
         if not pred["stable"]:
             raise _Refused(f"the closed loop would be unstable (spectral radius "
@@ -547,7 +547,7 @@ def _background() -> None:
         os.dup2(2, 1)         # LAPACK and friends print on fd 1: keep it off the report
     except OSError:
         pass
-    from hapsim.daemon._blas import limit_blas_threads
+    from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)
     import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
@@ -779,10 +779,10 @@ def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> 
 def identify_window(x: np.ndarray, scene) -> dict:
     """Felt (k, b) of a free response window, measured as ``hapsim run`` measures it.
 
-    :func:`hapsim.daemon.runner.identify` with the run's arguments: the predicted non-zero
+    :func:`hapsim.analysis.measurement.identify` with the run's arguments: the predicted non-zero
     closed-loop poles seen at the port and the predicted felt pole
-    (:func:`hapsim.daemon.runner._predicted_poles`), the equilibrium offset
-    (:func:`hapsim.daemon.runner._has_offset`), the device's sensor step and noise, so the
+    (:func:`hapsim.analysis.prediction.predicted_poles`), the equilibrium offset
+    (:func:`hapsim.analysis.prediction.has_offset`), the device's sensor step and noise, so the
     answer is :func:`hapsim.analysis.identify.measure_felt` (exact matrix pencil for an
     exact record, variable projection started from the prediction otherwise).
 
@@ -796,17 +796,18 @@ def identify_window(x: np.ndarray, scene) -> dict:
     Returns
     -------
     dict
-        :func:`~hapsim.daemon.runner.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
+        :func:`~hapsim.analysis.measurement.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
         ``k_unc``, ``b_unc`` ... or ``error`` (str) when the window cannot carry a
         measurement.
     """
     from hapsim.analysis.network import device_body
-    from hapsim.daemon.runner import _has_offset, _predicted_poles, identify
+    from hapsim.analysis.measurement import identify
+    from hapsim.analysis.prediction import has_offset, predicted_poles
 
     x = np.asarray(x, dtype=float)
     dev = scene.device
     try:
-        poles, felt = _predicted_poles(scene)
+        poles, felt = predicted_poles(scene)
         order = int(poles.size)
         if not order:
             return {"error": "the loop has no oscillation to measure"}
@@ -816,7 +817,7 @@ def identify_window(x: np.ndarray, scene) -> dict:
             from hapsim.analysis.identify import sensor_error_response
             response = sensor_error_response(scene, int(x.size))
         return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
-                        offset=_has_offset(scene), skip=int(dev.delay) + 2,
+                        offset=has_offset(scene), skip=int(dev.delay) + 2,
                         predicted=poles, felt=felt, quantum=quantum, noise=float(dev.noise),
                         sensor_response=response)
     except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:

@@ -7,7 +7,6 @@ import json
 import math
 import sys
 
-import numpy as np
 
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
@@ -26,7 +25,9 @@ steps, which separate Coulomb from viscous friction) on a weak centring spring, 
 run': device watchdog armed, host force clamp, safety stop beyond the envelope, zero force
 and STOP at the end or on Ctrl-C. The fit is an output-error least squares of the exact
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
-with Newey-West intervals. Without --port the embedded mock (--mock-scene: its device)
+with Newey-West intervals, driven by the force the device applied at each tick (its
+STATEs' force_seq name it: a late tick is a known input, and the delay is the one the
+device shows, never assumed). Without --port the embedded mock (--mock-scene: its device)
 is identified."""
 
 _EPILOG = """\
@@ -44,7 +45,8 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
   fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
-  data (or a safety stop / device fault), 2 bad arguments
+  data (or a safety stop / device fault), or the record cannot be identified (the reason
+  is printed: too short, the device hardly moved, ...), 2 bad arguments
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
@@ -102,23 +104,8 @@ def register(sub) -> None:
 
 
 def _plot(fit, rec, path: str) -> None:
-    from hapsim.plot import _mpl, save_figure
-    plt = _mpl()
-    # the fit covers the rows it was given (the longest stretch without a missing STATE)
-    a, b = rec["loop"].get("fitted_rows", (0, fit.n_samples))
-    x = rec["position"][a:b]
-    t = (a + np.arange(fit.n_samples)) * fit.period
-    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
-    a1.plot(t, x * 1e3, lw=0.8, label="measured")
-    a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
-    a1.set_ylabel("position [mm]")
-    a1.legend(loc="upper right")
-    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
-                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
-    a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
-    a2.set_ylabel("model - measured [um]")
-    a2.set_xlabel("time [s]")
-    save_figure(fig, path)
+    from hapsim.plot import plot_identify, save_figure
+    save_figure(plot_identify(fit, rec), path)
 
 
 def run(args) -> int:

@@ -120,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
         2 on bad input (raised as ConfigError).
     """
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
-    from hapsim.daemon.mock import MockPhysics, hand_force_samples
-    from hapsim.daemon.runner import _warm_up, prepare_scene
+    from hapsim.device_model import MockPhysics, hand_force_samples
+    from hapsim.analysis.prediction import prepare_scene
+    from hapsim.daemon.runner import _warm_up
     from hapsim.engine import Engine
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
@@ -157,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     line = deque([0.0] * int(dev.delay))
     lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
-    from hapsim.daemon._blas import limit_blas_threads
+    from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
     _warm_up(scene)                                   # kernels loaded before the clock starts
     if live is not None:    # the sound starts after the warm-up (silence until the loop does)

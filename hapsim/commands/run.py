@@ -191,7 +191,7 @@ def _clean(obj):
     return obj
 
 
-def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
+def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
     """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
     stops it cleanly.
 
@@ -204,10 +204,12 @@ def _announce(port, n_samples, protocol: str = "the framed protocol") -> None:
     protocol : str
         What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
         protocol (the scene's device.protocol)"``, ...).
+    note : str
+        Appended (which host loop runs, when it is not the one asked for).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
-          f"for {length} (SIGINT/SIGTERM stop cleanly)",
+          f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
           file=sys.stderr, flush=True)
 
 
@@ -289,6 +291,12 @@ def run(args) -> int:
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
+    # its one-line error alone) before the silence it costs
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -304,8 +312,8 @@ def run(args) -> int:
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
     args.protocol, said = protocol_of(scene, args.driver)
-    args.announce = lambda port, n: _announce(port, n, said)
-    from hapsim.daemon import startup
+    note = ""
+    args.announce = lambda port, n: _announce(port, n, said, note)
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
     possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
@@ -317,10 +325,9 @@ def run(args) -> int:
     compile_later = asked == "auto" and args.loop == "python"
     startup.announce_compilation(startup.run_compile_parts(
         scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
-    if compile_later:
-        print("hapsim run: the compiled host loop is not in numba's cache yet: this run uses "
-              "the Python loop (the same forces, bit for bit) and compiles it after the "
-              "report, for the next runs", file=sys.stderr, flush=True)
+    if compile_later:           # said when the loop starts (not before an input error)
+        note = ("; the Python host loop this time (the compiled one is not in numba's cache "
+                "yet: it is compiled after the report, for the next runs)")
     embedded = None
     if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
@@ -330,7 +337,7 @@ def run(args) -> int:
                                        fault_seed=args.fault_seed,
                                        rt_priority=0 if args.lockstep and not args.host_clocked
                                        else max(args.rt_priority, 0))
-    from hapsim.daemon.runner import format_report
+    from hapsim.daemon.report import format_report
     try:
         rep = _run(scene, args, embedded)
     except (DeviceError, ProtocolError) as exc:
@@ -427,20 +434,44 @@ def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
 
 
+def run_options(args, scene, embedded=None):
+    """The :class:`~hapsim.daemon.runner.RunOptions` of ``hapsim run``'s command line: the
+    one place where an option of the parser becomes an option of the run.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``hapsim run``'s parsed arguments (with ``protocol`` and ``announce`` once
+        :func:`run` has chosen them).
+    scene : hapsim.scene.Scene
+        The scene run (its ``device.protocol`` when ``args`` has no ``protocol``:
+        :func:`protocol_of`).
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run.
+
+    Returns
+    -------
+    RunOptions
+        Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
+    """
+    from hapsim.daemon.runner import RunOptions
+    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
+    return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
+                      rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                      telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                      seed=args.seed, rt_priority=args.rt_priority,
+                      on_start=getattr(args, "announce", _announce),
+                      faults=args.faults, fault_seed=args.fault_seed,
+                      reconnect=False if args.no_reconnect else None,
+                      lost_timeout=args.lost_timeout,
+                      reconnect_attempts=args.reconnect_attempts,
+                      reconnect_time=args.reconnect_time, osc=args.osc,
+                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                      driver=None if protocol == "framed" else protocol,
+                      loop=args.loop, embedded=embedded)
+
+
 def _run(scene, args, embedded=None) -> dict:
     """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
     from hapsim.daemon.runner import run_scene
-    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
-    return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
-                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                     seed=args.seed, rt_priority=args.rt_priority,
-                     on_start=getattr(args, "announce", _announce),
-                     faults=args.faults, fault_seed=args.fault_seed,
-                     reconnect=False if args.no_reconnect else None,
-                     lost_timeout=args.lost_timeout,
-                     reconnect_attempts=args.reconnect_attempts,
-                     reconnect_time=args.reconnect_time, osc=args.osc,
-                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                     driver=None if protocol == "framed" else protocol,
-                     loop=args.loop, embedded=embedded)
+    return run_scene(scene, run_options(args, scene, embedded))

@@ -136,8 +136,8 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
     Parameters
     ----------
     engine : hapsim.engine.Engine
-        Its ``_kernel`` and ``_args`` (the arrays are shared, not copied: the kernel
-        updates the engine's state in place).
+        Its :attr:`~hapsim.engine.Engine.kernel_pack` (the arrays are shared, not copied:
+        the kernel updates the engine's state in place).
 
     Returns
     -------
@@ -154,28 +154,22 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
     KeyError
         A kernel outside :mod:`hapsim.kernels.cordis` / :mod:`hapsim.kernels.schemes`.
     """
-    kind = _KINDS[engine._kernel]
-    a = engine._args
-    sd = (_EI, _EI, _EF, _EF)
-    ct = (_EI, _EI, _EF, _EF, _EF)
-    v = c = snew = sold = uold = _EF
-    phi = gam = psi = _EF2
-    T = 0.0
-    if kind == K_SD:
-        sd = a[6:10]
-    elif kind == K_CONTACT:
-        ct = a[6:11]
-    elif kind == K_SD_CONTACT:
-        sd, ct = a[6:10], a[10:15]
-    elif kind == K_SYMPLECTIC:
-        v, c, T = a[6], a[7], a[8]
-        sd, ct = a[9:13], a[13:18]
-    elif kind == K_EXACT:
-        v, T, phi, gam, psi, snew, sold, uold = a[6:14]
-        sd = a[14:18]
-    return kernel_tag(kind), tuple(a[:6]) + tuple(sd) + tuple(ct) + (v, c, float(T), phi,
-                                                                     gam, psi, snew, sold,
-                                                                     uold)
+    kp = engine.kernel_pack
+    kind = _KINDS[kp.kernel]
+    sd = kp.sd if kp.sd is not None else (_EI, _EI, _EF, _EF)
+    ct = kp.contact if kp.contact is not None else (_EI, _EI, _EF, _EF, _EF)
+    sc = kp.scheme
+    extras = tuple(sc.get(name, _EF) for name in ("v", "c")) + (float(sc.get("T", 0.0)),) \
+        + tuple(sc.get(name, _EF2) for name in ("phi", "gam", "psi")) \
+        + tuple(sc.get(name, _EF) for name in ("snew", "sold", "uold"))
+    return kernel_tag(kind), tuple(kp.state) + tuple(sd) + tuple(ct) + extras
+
+
+def _port_arrays(engine, at_least: int = -1) -> tuple:
+    """``(x, f, port)`` of the engine's kernel pack: its positions and forces (shared) and
+    the port's index (at least ``at_least``)."""
+    kp = engine.kernel_pack
+    return kp.state[0], kp.state[2], max(kp.port, at_least)
 
 
 def _kernel_step(kind, ka, rec, out):
@@ -746,7 +740,7 @@ class CompiledHostLoop(HostLoop):
             "iv": iv, "fv": fv, "pv": pv,
             "fh": np.zeros(d + 2, dtype=np.float64),
             "win": np.zeros(max(cfg.clamp_window, 1), dtype=np.int8),
-            "eng": (*kernel_pack(eng), eng._x, eng._f, eng._port, _REC, _OUT),
+            "eng": (*kernel_pack(eng), *_port_arrays(eng), _REC, _OUT),
             "tel": (tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
                     tel.flags, tel.force_seq, tel.status),
             "io": (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
@@ -956,7 +950,7 @@ def _scratch(engine, fd: int) -> dict:
     u8 = np.zeros(8, dtype=np.uint8)
     io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
           np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))
-    eng = (*kernel_pack(engine), engine._x, engine._f, max(engine._port, 0), _REC, _OUT)
+    eng = (*kernel_pack(engine), *_port_arrays(engine, at_least=0), _REC, _OUT)
     return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
             "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
             "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),

@@ -25,7 +25,7 @@ import time
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
            "cache_is_fresh", "loop_stamp", "loop_is_fresh", "scene_kernel", "choose_loop",
            "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
-           "announce_compilation", "compile_notice"]
+           "reset_announcements", "announce_compilation", "compile_notice"]
 
 
 def process_start() -> float:
@@ -144,15 +144,7 @@ def cache_is_fresh(source: str, function: str) -> bool:
         False when no index exists or every index is older than the module (numba then
         compiles: it keys its cache on the module's modification time).
     """
-    import glob
-    mod = os.path.splitext(os.path.basename(source))[0]
-    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
-    pattern = os.path.join(glob.escape(numba_cache_dir(source)), f"{mod}.{function}-*.{tag}.nbi")
-    try:
-        changed = os.stat(source).st_mtime
-        return any(os.stat(p).st_mtime >= changed for p in glob.glob(pattern))
-    except OSError:
-        return False
+    return _any_fresh(source, function)
 
 
 _HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -272,20 +264,42 @@ def part_is_fresh(part, scene=None) -> bool:
 
 
 _NOTICE = None
+_SAID: set = set()
+
+
+def reset_announcements() -> None:
+    """Forget what this process announced (at the start of each run of a command)."""
+    global _NOTICE
+    _NOTICE = None
+    _SAID.clear()
+
+
+def _any_fresh(source: str, function_glob: str) -> bool:
+    import glob
+    mod = os.path.splitext(os.path.basename(source))[0]
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+    pattern = os.path.join(glob.escape(numba_cache_dir(source)),
+                           f"{mod}.{function_glob}-*.{tag}.nbi")
+    try:
+        changed = os.stat(source).st_mtime
+        return any(os.stat(p).st_mtime >= changed for p in glob.glob(pattern))
+    except OSError:
+        return False
 
 
 def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
                          stream=None) -> bool:
     """Say on ``stream`` (stderr) which of ``parts`` numba will compile, before it does.
 
-    Nothing is printed when every part is in numba's cache. Otherwise one line names the
+    Nothing is printed when every part is in numba's cache or was announced already by
+    this run (:func:`reset_announcements` starts a run). Otherwise one line names the
     parts, says it happens once and where the result is kept, and :func:`compile_notice`
-    returns a reporter for the warm-up until the process ends.
+    returns a reporter for the warm-up.
 
     Parameters
     ----------
-    parts : list of tuple of str
-        :func:`run_compile_parts`.
+    parts : list of tuple
+        :func:`run_compile_parts` (a function of None: compiled, whatever the cache).
     scene : Scene, optional
         The scene the parts are for (the compiled loop's freshness is per kernel).
     command : str
@@ -296,26 +310,27 @@ def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
     Returns
     -------
     bool
-        True when something will be compiled.
+        True when something will be compiled (announced now or before).
     """
     global _NOTICE
     stream = sys.stderr if stream is None else stream
-    cold = [(what, src) for what, src, fn in parts
-            if not part_is_fresh((what, src, fn), scene)]
-    _NOTICE = None
+    cold = [(what, src) for what, src, fn in parts if what not in _SAID
+            and (fn is None or not part_is_fresh((what, src, fn), scene))]
     if not cold:
-        return False
+        return bool(_SAID & {what for what, _, _ in parts})
     names = " and ".join(what for what, _ in cold)
     where = sorted({numba_cache_dir(src) for _, src in cold})
     print(f"{command}: compiling {names} with numba (once: the first run after an install "
           f"or an update; later runs load them from {', '.join(where)}) ...",
           file=stream, flush=True)
-    t0 = time.monotonic()
+    _SAID.update(what for what, _ in cold)
+    if _NOTICE is None:
+        t0 = time.monotonic()
 
-    def notice(what: str) -> None:
-        print(f"{command}: compiled {what} ({time.monotonic() - t0:.1f} s since the "
-              f"announcement)", file=stream, flush=True)
-    _NOTICE = notice
+        def notice(what: str) -> None:
+            print(f"{command}: compiled {what} ({time.monotonic() - t0:.1f} s since the "
+                  f"announcement)", file=stream, flush=True)
+        _NOTICE = notice
     return True
 
 

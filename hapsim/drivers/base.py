@@ -198,6 +198,29 @@ class Driver:
         quantisation and clamp): what identification must fit against."""
         return float(force)
 
+    def account(self, columns: dict, force):
+        """The force the device applied per tick, from this driver's timing, or None.
+
+        A protocol without ``force_seq`` cannot name the force the device held at a tick;
+        a driver that times its commands and records fills this in with
+        :func:`hapsim.analysis.applied.account_from_timing` (late ticks, and the ticks it
+        cannot order, whose force half-width the stated uncertainty then covers).
+        ``identify`` fits the device to it and ``run`` takes the late ticks out as known
+        inputs; None (the default): the forces sent, every delay tried.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N] (:meth:`applied_force` of the sent).
+
+        Returns
+        -------
+        hapsim.analysis.applied.AppliedAccount or None
+        """
+        return None
+
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""
         raise NotImplementedError

@@ -22,7 +22,7 @@ import sys
 import time
 from collections import deque
 
-from hapsim.daemon.mock import MockPhysics
+from hapsim.device_model import MockPhysics
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
            "EmbeddedDriverMock", "main"]
@@ -556,8 +556,8 @@ class EmbeddedDriverMock:
         import tempfile
         import tty
 
-        from hapsim.daemon.transport import _package_root
         from hapsim.errors import ConfigError
+        from hapsim.spawn import child_env
         if driver not in ("firefader", "haply", "hapkit-serial"):
             raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply, "
                               "hapkit-serial",
@@ -573,9 +573,7 @@ class EmbeddedDriverMock:
                 "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
-        env = dict(os.environ)
-        root = _package_root()
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env = child_env()
         cmd = [sys.executable, "-m", "hapsim.drivers.mock", "--fd", str(master), "--spec",
                json.dumps(spec), "--rate", repr(float(rate_hz)), "--report", self.report_path,
                "--seed", str(seed), "--options", json.dumps(options or {}),
