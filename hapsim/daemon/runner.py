@@ -905,9 +905,14 @@ def _late_accounted(scene, cols: dict, hello=None, driver=None):
                              f"states {dev.delay}: late ticks are not taken out")
         return pos, late, info
     from hapsim.analysis.identify import disturbance_response
+    from hapsim.daemon.telemetry import FLAG_LOST
     w = acc.disturbance(cols["force"], cols["seq"])
+    # the response sums within each stretch of consecutive STATEs that the scene did not
+    # restart in: before a stretch, whatever happened is its initial state
+    seq = np.asarray(cols["seq"], np.int64)
+    starts = np.flatnonzero((np.diff(seq) != 1) | ((cols["flags"][1:] & FLAG_LOST) != 0)) + 1
     try:
-        xw = disturbance_response(scene, w)
+        xw = disturbance_response(scene, w, starts=starts)
     except ConfigError:
         return pos, late, info
     info["late_accounted"] = acc.n_late
