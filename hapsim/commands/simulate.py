@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         # the one place that turns felt targets into (K, B), as hapsim run and check do
         from hapsim.analysis.targets import apply_targets
         scene, calibrations = apply_targets(scene)
+    _announce_compilation(scene)
     engine = Engine(scene)
     if scene.port is not None:
         engine.set_port_position(scene.excitation.x0, at_rest=True)
@@ -177,6 +178,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _announce_compilation(scene) -> None:
+    """With numba's cache empty, say on stderr that the engine's kernel is compiled (once)
+    before the silence it costs (:mod:`hapsim.daemon.startup`)."""
+    from hapsim.daemon import startup
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene, command="hapsim simulate")
+
+
 def _run_audio(args: argparse.Namespace) -> int:
     """``simulate --audio``: render a gesture through the multi-rate scene to a WAV file
     (and the device trajectory to ``--out`` when given). Exit 0, 1 when the sound
@@ -199,6 +209,7 @@ def _run_audio(args: argparse.Namespace) -> int:
     if scene.unresolved_targets:
         from hapsim.analysis.targets import apply_targets
         scene, calibrations = apply_targets(scene)
+    _announce_compilation(scene)
     engine = Engine(scene)
     t0 = time.perf_counter()
     with Progress(args.steps, "simulate", unit="samples") as bar:
