@@ -109,6 +109,10 @@ def run(args: argparse.Namespace) -> int:
         (file, line, key), or a target no (K, B) renders
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
+        from hapsim.commands.simulate_nd import run_nd
+        return run_nd(args)
     if args.audio is not None:
         return _run_audio(args)
     if args.out is None:

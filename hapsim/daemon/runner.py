@@ -933,6 +933,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             wire=wire)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.control.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
@@ -1062,10 +1066,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     }
     targets = prep.targets
     ctl = run.control
-    osc = None if ctl is None else {
-        "accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
-        "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
-        "journal": ctl.journal}
+    osc = None
+    if ctl is not None:
+        # the measurement is compared with the prediction of the scene it measured (the
+        # changes accepted before its window), as hapsim play re-predicts
+        from hapsim.audio.control import revise_measurement
+        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
+               "journal": ctl.journal}
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
