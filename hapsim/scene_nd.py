@@ -446,7 +446,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
                       "this reader takes dimension 2 or 3", r.line(doc, "dimension"),
                       "dimension")
     rate = r.number(doc, "rate_hz", "", minimum=0.0, strict=True, unit="Hz")
-    from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE
+    from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, RATE_RANGE
     if not RATE_RANGE[0] <= rate <= RATE_RANGE[1]:
         raise r.error(f"must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} Hz, got "
                       f"{rate:g}", r.line(doc, "rate_hz"), "rate_hz")

@@ -1,11 +1,14 @@
 """The felt pair measured from a run's logged positions, and its verdict against the
 prediction.
 
-:func:`identify` cuts the record at late ticks, gaps and open contacts and fits the longest
-clean stretch of free response (:func:`hapsim.analysis.identify.measure_felt`, or the full
-order matrix pencil); :func:`verdict` states the interval and whether it holds the
+:func:`identify` cuts the record at gaps, open contacts and (unless the late ticks were
+accounted for, :func:`late_accounted`) late ticks, and fits the longest clean stretch of
+free response (:func:`hapsim.analysis.identify.measure_felt`, or the full order matrix
+pencil); :func:`verdict` states the interval and whether it holds the
 prediction (:mod:`hapsim.analysis.prediction`); :func:`contact_verdict` says why a run with
-contacts is not comparable.
+contacts is not comparable. :func:`late_accounted` takes the response to the late ticks'
+known disturbance out of the record (the device names the force it applied), and
+:func:`wire_errors` gives the wire's number-format errors the stated uncertainty covers.
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["identify", "verdict", "contact_verdict", "relative_error"]
+__all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_accounted",
+           "wire_errors"]
 
 
 def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
@@ -262,3 +266,131 @@ def contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: floa
     measured["error"] = "not comparable: " + reason
     measured["verdict"] = "not comparable: " + reason
     measured["within"] = None
+
+
+def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None):
+    """The logged positions with the response to the late ticks' known disturbance taken
+    out, when the device names the force it applied (framed protocol, ``force_seq``).
+
+    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
+    position minus the loop's response to ``w = applied - F[n-d]``
+    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
+    so the whole record is measured, not only the longest stretch without a late tick.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its device: delay, force limit).
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``, ``late``, ``force_seq``,
+        ``status``), each shape (n,).
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO (its force limit).
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its :meth:`~hapsim.drivers.base.Driver.account`, if any, instead
+        of ``force_seq``.
+    restarts : ndarray of bool, shape (n,), optional
+        Rows where the scene restarted (after a recovery).
+
+    Returns
+    -------
+    (ndarray, ndarray or None, dict)
+        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
+    """
+    from hapsim.analysis.applied import account_from_force_seq
+
+    pos, late = cols["position"], cols["late"]
+    fseq = cols.get("force_seq")
+    dev = scene.device
+    hook = getattr(driver, "account", None) if driver is not None else None
+    if driver is not None:
+        # a driver's STATEs name no applied force (force_seq = seq - d): its account is
+        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
+        acc = hook(cols, cols["force"]) if hook is not None else None
+        if acc is None or not np.any(acc.late):
+            return pos, late, {}
+    else:
+        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+            return pos, late, {}
+        lim = float(dev.force_limit)
+        if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
+            lim = min(lim, float(hello.force_limit))
+        acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
+                                     zero_delay=dev.delay == 0, force_limit=lim)
+    info = {"device_delay": int(acc.delay), "account": acc.method}
+    if acc.delay != dev.delay:
+        # the model of the loop would be the wrong one: measure as recorded, and say so
+        info["late_accounted"] = 0
+        info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
+                             f"states {dev.delay}: late ticks are not taken out")
+        return pos, late, info
+    from hapsim.analysis.identify import disturbance_response
+    w = acc.disturbance(cols["force"], cols["seq"])
+    # the response sums within each stretch of consecutive STATEs that the scene did not
+    # restart in: before a stretch, whatever happened is its initial state
+    seq = np.asarray(cols["seq"], np.int64)
+    cut = np.diff(seq) != 1
+    if restarts is not None:
+        cut |= np.asarray(restarts, bool)[1:]
+    starts = np.flatnonzero(cut) + 1
+    try:
+        xw = disturbance_response(scene, w, starts=starts)
+    except ConfigError:
+        return pos, late, info
+    info["late_accounted"] = acc.n_late
+    # what the account leaves uncertain (a driver's timing): a force error per sample
+    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
+    return pos - xw, None, info
+
+
+def wire_errors(scene, cols: dict, start: int, driver) -> list:
+    """The wire's number-format errors of a driver's run, for the stated uncertainty.
+
+    A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
+    field: at most ``2^-24``) and ``force_scale`` (an actuator step: the FireFader's 8-bit
+    PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
+    ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
+    position's rounding reaches the record as the sensor's does
+    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
+    the virtual links), the force's as a force error at the device
+    (:func:`hapsim.analysis.identify.force_error_response`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``).
+    start : int
+        First sequence number of the free response.
+    driver : hapsim.drivers.base.Driver or None
+        The run's driver (None: hapsim's own protocol).
+
+    Returns
+    -------
+    list of (float, ndarray)
+        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
+    """
+    if driver is None:
+        return []
+    from hapsim.analysis.identify import force_error_response, sensor_error_response
+    sel = cols["seq"] >= start
+    x, f = cols["position"][sel], cols["force"][sel]
+    n = int(x.size)
+    if n == 0:
+        return []
+    out = []
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
+    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
+    try:
+        if pr > 0:
+            out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
+                        sensor_error_response(scene, n)))
+        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
+        if sd_f > 0:
+            out.append((sd_f, force_error_response(scene, n)))
+    except ConfigError:
+        return []
+    return out

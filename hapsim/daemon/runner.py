@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.measurement import contact_verdict, identify, relative_error, verdict
+from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
+                                          relative_error, verdict, wire_errors)
 from hapsim.analysis.network import device_body
 from hapsim.analysis.prediction import (has_offset, port_links, predict, predicted_poles,
                                         prepare_scene, refusal)
@@ -862,101 +863,6 @@ def _contact_replay(scene: Scene, cols: dict):
     return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
 
 
-def _late_accounted(scene, cols: dict, hello=None, driver=None):
-    """The logged positions with the response to the late ticks' known disturbance taken
-    out, when the device names the force it applied (framed protocol, ``force_seq``).
-
-    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
-    position minus the loop's response to ``w = applied - F[n-d]``
-    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
-    so the whole record is measured, not only the longest stretch without a late tick.
-
-    Returns
-    -------
-    (ndarray, ndarray or None, dict)
-        Positions [m] to measure, the late flags to cut at (None when accounted for) and
-        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
-    """
-    from hapsim.analysis.applied import account_from_force_seq
-
-    pos, late = cols["position"], cols["late"]
-    fseq = cols.get("force_seq")
-    dev = scene.device
-    hook = getattr(driver, "account", None) if driver is not None else None
-    if driver is not None:
-        # a driver's STATEs name no applied force (force_seq = seq - d): its account is
-        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
-        acc = hook(cols, cols["force"]) if hook is not None else None
-        if acc is None or not np.any(acc.late):
-            return pos, late, {}
-    else:
-        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
-            return pos, late, {}
-        lim = float(dev.force_limit)
-        if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
-            lim = min(lim, float(hello.force_limit))
-        acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                     zero_delay=dev.delay == 0, force_limit=lim)
-    info = {"device_delay": int(acc.delay), "account": acc.method}
-    if acc.delay != dev.delay:
-        # the model of the loop would be the wrong one: measure as recorded, and say so
-        info["late_accounted"] = 0
-        info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
-                             f"states {dev.delay}: late ticks are not taken out")
-        return pos, late, info
-    from hapsim.analysis.identify import disturbance_response
-    w = acc.disturbance(cols["force"], cols["seq"])
-    try:
-        xw = disturbance_response(scene, w)
-    except ConfigError:
-        return pos, late, info
-    info["late_accounted"] = acc.n_late
-    # what the account leaves uncertain (a driver's timing): a force error per sample
-    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
-    return pos - xw, None, info
-
-
-def _wire_errors(scene, cols: dict, start: int, driver) -> list:
-    """The wire's number-format errors of a driver's run, for the stated uncertainty.
-
-    A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
-    field: at most ``2^-24``) and ``force_scale`` (an actuator step: the FireFader's 8-bit
-    PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
-    ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
-    position's rounding reaches the record as the sensor's does
-    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
-    the virtual links), the force's as a force error at the device
-    (:func:`hapsim.analysis.identify.force_error_response`).
-
-    Returns
-    -------
-    list of (float, ndarray)
-        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
-    """
-    if driver is None:
-        return []
-    from hapsim.analysis.identify import force_error_response, sensor_error_response
-    sel = cols["seq"] >= start
-    x, f = cols["position"][sel], cols["force"][sel]
-    n = int(x.size)
-    if n == 0:
-        return []
-    out = []
-    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
-    fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
-    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
-    try:
-        if pr > 0:
-            out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
-                        sensor_error_response(scene, n)))
-        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
-        if sd_f > 0:
-            out.append((sd_f, force_error_response(scene, n)))
-    except ConfigError:
-        return []
-    return out
-
-
 def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
@@ -973,7 +879,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``device.position_resolution`` does not give one.
     driver : hapsim.drivers.base.Driver, optional
         The run's driver: its wire's number format is in the stated uncertainty
-        (:func:`_wire_errors`).
+        (:func:`hapsim.analysis.measurement.wire_errors`).
 
     Returns
     -------
@@ -1007,8 +913,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        position, late, late_info = _late_accounted(scene, cols, hello, driver)
-        wire = _wire_errors(scene, cols, start, driver)
+        from hapsim.daemon.telemetry import FLAG_LOST
+        position, late, late_info = late_accounted(
+            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
+        wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", 0.0)
         if hw > 0:
             # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
@@ -1025,6 +933,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             wire=wire)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.control.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
@@ -1154,10 +1066,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     }
     targets = prep.targets
     ctl = run.control
-    osc = None if ctl is None else {
-        "accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
-        "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
-        "journal": ctl.journal}
+    osc = None
+    if ctl is not None:
+        # the measurement is compared with the prediction of the scene it measured (the
+        # changes accepted before its window), as hapsim play re-predicts
+        from hapsim.audio.control import revise_measurement
+        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
+               "journal": ctl.journal}
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
