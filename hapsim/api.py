@@ -44,7 +44,7 @@ from hapsim.errors import ConfigError, HapsimError, IdentificationError
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
            "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
-           "RUN_OPTIONS", "CheckReport", "RenderReport", "CalibrateReport",
+           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
 
 
@@ -854,11 +854,21 @@ class RunReport(_Report):
         return self.exit_code == 0
 
 
-#: The options of :func:`run` besides the scene (those of ``hapsim.daemon.runner.run_scene``).
-RUN_OPTIONS = ("port", "baud", "duration", "rate_hz", "lockstep", "host_clocked", "telemetry",
-               "allow_unstable", "seed", "rt_priority", "faults", "fault_seed", "reconnect",
-               "lost_timeout", "reconnect_attempts", "reconnect_time", "osc", "osc_ramp",
-               "sound", "jack_server", "driver", "loop", "transport", "handle_signals")
+#: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
+_RUN_INTERNAL = ("plan", "embedded")
+
+
+def run_options() -> tuple:
+    """The options :func:`run` takes: the fields of
+    :class:`hapsim.daemon.runner.RunOptions` (what ``hapsim run``'s options become).
+
+    Returns
+    -------
+    tuple of str
+    """
+    from hapsim.daemon.runner import RunOptions
+    return tuple(f.name for f in dataclasses.fields(RunOptions)
+                 if f.name not in _RUN_INTERNAL)
 
 
 def run(scene, **options: Any) -> RunReport:
@@ -868,7 +878,7 @@ def run(scene, **options: Any) -> RunReport:
     ----------
     scene : hapsim.scene.Scene or str
     **options
-        Those of ``hapsim run`` (:data:`RUN_OPTIONS`): ``port`` (None: the embedded mock
+        Those of ``hapsim run`` (:func:`run_options`): ``port`` (None: the embedded mock
         on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic mock),
         ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a file),
         ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
@@ -897,10 +907,11 @@ def run(scene, **options: Any) -> RunReport:
     from hapsim.daemon.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
 
-    unknown = sorted(set(options) - set(RUN_OPTIONS))
+    valid = run_options()
+    unknown = sorted(set(options) - set(valid))
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
-                          f"{', '.join(RUN_OPTIONS)}", key=unknown[0])
+                          f"{', '.join(valid)}", key=unknown[0])
     scene = _scene(scene)
     options.setdefault("handle_signals", False)
     if options.get("driver") is None and scene.device is not None:

@@ -207,3 +207,37 @@ planes:
         engaged[0] |= d < 0.006
         engaged[1] |= bool(np.any(-0.002 - u @ eng2.x > 0))
     assert engaged == [True, True]
+
+
+def test_simulate_cli_on_an_n_d_scene(tmp_path, capsys):
+    """`hapsim simulate` on a 3-D scene writes time, position (N+1, R, 3) and names equal
+    to EngineND's own run; a diverging scene stops with exit 1 and the rows before it; a
+    .csv output is refused (exit 2)."""
+    import json
+
+    from hapsim.cli import main
+    text = """\
+dimension: 3
+rate_hz: 1000
+masses:
+  - {name: g, kind: ground, x0: [0, 0, 0]}
+  - {name: a, kind: mass, mass: 0.01, x0: [0.01, 0.002, 0.0], v0: [0, 0.1, 0]}
+links:
+  - {name: s, kind: spring_damper, between: [g, a], stiffness: 40, damping: 0.001,
+     length: 0.01}
+"""
+    f = tmp_path / "s.yaml"
+    f.write_text(text)
+    out = tmp_path / "o.npz"
+    assert main(["simulate", str(f), "--steps", "50", "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["dimension"] == 3
+    d = np.load(out)
+    assert d["position"].shape == (51, 2, 3) and list(d["names"]) == ["g", "a"]
+    eng = EngineND(parse_scene_nd(text))
+    eng.step(50)
+    assert np.array_equal(d["position"][-1], eng.positions)
+    f.write_text(text.replace("stiffness: 40", "stiffness: 1.0e6"))
+    assert main(["simulate", str(f), "--steps", "20000", "--out", str(out)]) == 1
+    assert "diverged" in capsys.readouterr().err
+    assert np.all(np.isfinite(np.load(out)["position"]))
+    assert main(["simulate", str(f), "--steps", "5", "--out", str(tmp_path / "o.csv")]) == 2

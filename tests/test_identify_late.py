@@ -99,12 +99,12 @@ def test_account_from_force_seq_names_the_force_held():
     assert t.half_width[6] == pytest.approx(0.5) and t.half_width.sum() == pytest.approx(0.5)
 
 
-def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True):
+def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True, extra=()):
     scene = tmp_path / "dev.yaml"
     scene.write_text("rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\nlinks: []\n"
                      f"device: {json.dumps(dev)}\n")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--scene", str(scene)]
-                            + (["--lockstep"] if lockstep else []),
+                            + (["--lockstep"] if lockstep else []) + list(extra),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     assert line.startswith("PORT"), (line, proc.stderr.read() if proc.poll() else "")
@@ -112,14 +112,17 @@ def _mock_on_pty(tmp_path, dev: dict, lockstep: bool = True):
 
 
 @pytest.mark.parametrize("dev", [
-    {"mass": 0.6, "friction": 0.2, "delay": 20, "coulomb": 0.3, "force_limit": 10.0,
+    {"mass": 0.6, "friction": 0.2, "delay": 5, "coulomb": 0.3, "force_limit": 10.0,
      "noise": 2e-6},
 ])
 def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
-    """Over --port (a standalone lockstep mock on a real pty) the delay is the device's:
-    exit 0, stdout one JSON object, d exact, every truth inside its interval (the delay
-    was taken as 1: every tick of a d >= 2 device late, wrong estimates, tracebacks)."""
-    proc, port = _mock_on_pty(tmp_path, dev)
+    """Over --port (a standalone real-time mock on a real pty whose received FORCEs are held
+    up 12 ms now and then, so that ticks are late, as under load) the delay is the
+    device's: exit 0, stdout one JSON object, d exact, every truth inside its interval, the
+    late ticks accounted (the delay was taken as 1: every tick of a d >= 2 device late,
+    wrong estimates, tracebacks; under load the embedded mock was written 'delay: 4')."""
+    proc, port = _mock_on_pty(tmp_path, dev, lockstep=False,
+                              extra=("--faults", "rx.spike=0.01:12ms", "--fault-seed", "3"))
     try:
         r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
                             "--json", "--force-limit", "4", "--duration", "1.5"],
@@ -131,7 +134,8 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     out = json.loads(r.stdout)               # only JSON on stdout
     fit = out["device"]
     assert fit["delay"] == dev["delay"] and fit["delay_range"] == [dev["delay"]] * 2
-    assert out["loop"]["account"]["method"] == "force_seq"
+    acc = out["loop"]["account"]
+    assert acc["method"] == "force_seq" and acc["late"] > 0 and acc["delay"] == dev["delay"]
     for key, truth in (("mass", dev["mass"]), ("friction", dev["friction"]),
                        ("coulomb", dev["coulomb"])):
         e = fit[key]

@@ -149,3 +149,48 @@ def test_changes_after_the_window_leave_the_start_prediction():
     assert len(changes) == 1 and m["verdict"] == before["verdict"]
     assert m["compared_with"].startswith("the start's prediction")
     assert m["rel_err"] == before["rel_err"]
+
+
+def test_run_with_a_live_change_compares_with_the_prediction_after_it(capsys):
+    """hapsim run --osc: a change accepted before the measured window (sent when the loop
+    is about to arm, ramped over one sample) is listed, the report predicts again for the
+    changed scene, and the lockstep measurement equals that prediction (not the start's)."""
+    from pythonosc.osc_message import OscMessage
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    from hapsim.daemon.report import format_report
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+
+    path = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(30.0)
+    answers = []
+
+    def on_start(port, n):
+        import re
+        addr = re.search(r"OSC on [\d.]+:(\d+)", capsys.readouterr().err)
+        b = OscMessageBuilder(address="/hapsim/link/kb")
+        for a in ("wall", 300.0, 1.5):
+            b.add_arg(a)
+        sock.sendto(b.build().dgram, ("127.0.0.1", int(addr.group(1))))
+        answers.append(OscMessage(sock.recvfrom(65536)[0]))
+
+    try:
+        rep = run_scene(load_scene(path), transport="inprocess", lockstep=True, osc=0,
+                        osc_ramp=0.001, duration=1.0, handle_signals=False, on_start=on_start)
+    finally:
+        sock.close()
+    assert answers[0].address == "/hapsim/ok"
+    k_new, b_new = answers[0].params[2:4]
+    osc, m = rep["osc"], rep["measured"]
+    assert [c["address"] for c in osc["changes"]] == ["/hapsim/link/kb"]
+    assert m["compared_with"]["k"] == pytest.approx(k_new, rel=1e-6)   # float32 on the wire
+    assert m["k"] == pytest.approx(m["compared_with"]["k"], rel=1e-9)
+    assert m["b"] == pytest.approx(m["compared_with"]["b"], rel=1e-9)
+    assert abs(m["k"] / rep["predicted"]["k"] - 1) > 0.1      # the start's is another loop
+    assert m["within"] and m["verdict"].startswith("measured = predicted after the changes")
+    text = format_report(rep)
+    assert "  after OSC " in text and "osc: 1 change accepted, 0 refused" in text
+    assert "sample 0: /hapsim/link/kb wall 300.0 1.5 -> felt k" in text

@@ -262,6 +262,9 @@ def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
     wall, string = load_scene(WALL), load_scene(str(REPO / "configs" / "string.yaml"))
     assert startup.scene_kernel(wall)[1] == "run_sd"
     assert startup.scene_kernel(string)[1] == "run_sd_contact"
+    audio = load_scene(str(REPO / "configs" / "audio_string.yaml"))
+    assert startup.scene_kernel(audio) == (str(REPO / "hapsim" / "kernels" / "audio.py"),
+                                           "run_periods")
     assert startup.choose_loop("auto", wall) == "python"
     assert startup.choose_loop("compiled", wall) == "compiled"
     stamp = Path(startup.loop_stamp("run_sd"))

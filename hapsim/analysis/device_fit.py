@@ -732,6 +732,11 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         ym, p, J, n_nuis = mod.full(best["_res"].x)
     xi = x[mod.idx]
     r = ym - xi
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r)) and np.all(np.isfinite(p))):
+        # never hand LAPACK a non-finite matrix (it prints "DLASCL illegal value" on stdout)
+        raise IdentificationError("the fit diverged (non-finite model): the record does "
+                                  "not determine the device (raise --force-limit or "
+                                  "--duration, or check the device's delay)")
     cov = _hac(J, r, lag, n_nuis)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     m = math.exp(p[0])

@@ -902,7 +902,7 @@ def force_error_response(scene, n: int) -> np.ndarray:
     return h
 
 
-def disturbance_response(scene, w) -> np.ndarray:
+def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
     """Logged-position response of the closed loop to a known force disturbance.
 
     A late tick holds an older force than the loop's ``u[n] = F[n-d]``: the device applied
@@ -920,6 +920,13 @@ def disturbance_response(scene, w) -> np.ndarray:
         Validated, calibrated scene with a port and a device.
     w : array_like, shape (n,)
         Disturbance force per sample [N].
+    starts : array_like of int, optional
+        Rows where the record restarts (a gap in the STATEs, the scene restarted after a
+        recovery): the response is summed within each stretch only, from its first row
+        (what came before is the stretch's initial state, i.e. part of its free response).
+    response : ndarray, optional
+        :func:`force_error_response` of the scene, at least ``n`` long (computed when
+        None).
 
     Returns
     -------
@@ -939,8 +946,16 @@ def disturbance_response(scene, w) -> np.ndarray:
     nz = np.flatnonzero(w)
     if n < 2 or nz.size == 0:
         return out
-    m = n - int(nz[0])                    # the response is needed this far
-    h = force_error_response(scene, m)
-    first = int(nz[0])
-    out[first:] = fftconvolve(w[first:], h)[:m] if m > 64 else np.convolve(w[first:], h)[:m]
+    h = force_error_response(scene, n) if response is None else np.asarray(response, float)
+    edges = sorted({0, n, *(int(a) for a in (starts if starts is not None else ())
+                            if 0 < int(a) < n)})
+    for a, b in zip(edges[:-1], edges[1:]):
+        seg = w[a:b]
+        k = np.flatnonzero(seg)
+        if k.size == 0:
+            continue
+        first = a + int(k[0])             # the response is needed from here to b
+        m = b - first
+        out[first:b] = (fftconvolve(w[first:b], h[:m])[:m] if m > 64
+                        else np.convolve(w[first:b], h[:m])[:m])
     return out

@@ -1,11 +1,14 @@
 """The felt pair measured from a run's logged positions, and its verdict against the
 prediction.
 
-:func:`identify` cuts the record at late ticks, gaps and open contacts and fits the longest
-clean stretch of free response (:func:`hapsim.analysis.identify.measure_felt`, or the full
-order matrix pencil); :func:`verdict` states the interval and whether it holds the
+:func:`identify` cuts the record at gaps, open contacts and (unless the late ticks were
+accounted for, :func:`late_accounted`) late ticks, and fits the longest clean stretch of
+free response (:func:`hapsim.analysis.identify.measure_felt`, or the full order matrix
+pencil); :func:`verdict` states the interval and whether it holds the
 prediction (:mod:`hapsim.analysis.prediction`); :func:`contact_verdict` says why a run with
-contacts is not comparable.
+contacts is not comparable. :func:`late_accounted` takes the response to the late ticks'
+known disturbance out of the record (the device names the force it applied), and
+:func:`wire_errors` gives the wire's number-format errors the stated uncertainty covers.
 """
 
 from __future__ import annotations
@@ -265,7 +268,7 @@ def contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: floa
     measured["within"] = None
 
 
-def late_accounted(scene, cols: dict, hello=None, driver=None):
+def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None):
     """The logged positions with the response to the late ticks' known disturbance taken
     out, when the device names the force it applied (framed protocol, ``force_seq``).
 
@@ -277,14 +280,17 @@ def late_accounted(scene, cols: dict, hello=None, driver=None):
     Parameters
     ----------
     scene : hapsim.scene.Scene
-        The run's calibrated scene (its device's delay and force limit).
-    cols : dict
-        The telemetry columns (``position``, ``force``, ``seq``, ``late``, ``status``,
-        ``force_seq``).
+        The run's calibrated scene (its device: delay, force limit).
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``, ``late``, ``force_seq``,
+        ``status``), each shape (n,).
     hello : firmware_protocol.Hello, optional
         The device's HELLO (its force limit).
     driver : hapsim.drivers.base.Driver, optional
-        A driver whose ``account(columns, force)`` reconstructs what its device applied.
+        The run's driver: its :meth:`~hapsim.drivers.base.Driver.account`, if any, instead
+        of ``force_seq``.
+    restarts : ndarray of bool, shape (n,), optional
+        Rows where the scene restarted (after a recovery).
 
     Returns
     -------
@@ -321,15 +327,21 @@ def late_accounted(scene, cols: dict, hello=None, driver=None):
         return pos, late, info
     from hapsim.analysis.identify import disturbance_response
     w = acc.disturbance(cols["force"], cols["seq"])
+    # the response sums within each stretch of consecutive STATEs that the scene did not
+    # restart in: before a stretch, whatever happened is its initial state
+    seq = np.asarray(cols["seq"], np.int64)
+    cut = np.diff(seq) != 1
+    if restarts is not None:
+        cut |= np.asarray(restarts, bool)[1:]
+    starts = np.flatnonzero(cut) + 1
     try:
-        xw = disturbance_response(scene, w)
+        xw = disturbance_response(scene, w, starts=starts)
     except ConfigError:
         return pos, late, info
     info["late_accounted"] = acc.n_late
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
     return pos - xw, None, info
-
 
 
 def wire_errors(scene, cols: dict, start: int, driver) -> list:
@@ -348,12 +360,12 @@ def wire_errors(scene, cols: dict, start: int, driver) -> list:
     ----------
     scene : hapsim.scene.Scene
         The run's calibrated scene.
-    cols : dict
-        The telemetry columns (``position`` [m], ``force`` [N], ``seq``).
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``).
     start : int
         First sequence number of the free response.
     driver : hapsim.drivers.base.Driver or None
-        The run's driver (None: hapsim's own protocol, float64 fields: no error).
+        The run's driver (None: hapsim's own protocol).
 
     Returns
     -------

@@ -38,7 +38,13 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Trial", "ZPoint", "predicted_coulomb", "locate_onset", "wall_scene",
-           "device_loop", "release", "FORCE_SHARE"]
+           "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS"]
+
+#: Fewest ticks before a safety stop for an unidentified record to count as growing: from
+#: at most 30 % of the force limit a growth of 1 % per sample needs ~120 ticks to reach it,
+#: and the force-limit stop 50 clamped samples more; a stop sooner is a device that started
+#: out of place (undecided).
+MIN_GROWTH_TICKS = 100
 
 #: Largest share of the device's force limit the wall's initial force ``K x0`` may take:
 #: a clamped force is not the linear loop, and a growing record must stay clear of it.
@@ -263,8 +269,11 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
     Returns
     -------
     (K_measured, interval, trials, note)
-        ``K_measured`` [N/m] (None when no bracket was found), ``interval`` ``(lo, hi)``
-        [N/m] or None, the records, and a note.
+        ``K_measured`` [N/m], ``interval`` ``(lo, hi)`` [N/m], the records, and a note.
+        When a record is undecided before a bracket is found (a safety stop within
+        :data:`MIN_GROWTH_TICKS`, or no identification), ``K_measured`` is the last two
+        decaying records' ``b(K)`` extrapolated to 0 (the note says so) and the interval
+        None; without two decaying records, None.
 
     Notes
     -----
@@ -283,11 +292,23 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
             progress(t)
         return t
 
+    def undecided(K, t):
+        """No bracket: the decaying records' trend of b(K), extrapolated to b = 0 (the
+        device was never driven past its limit), or nothing."""
+        dec = sorted((x for x in trials if x.growing is False and x.b is not None),
+                     key=lambda x: x.K)[-2:]
+        why = f"record at K = {K:.6g} N/m undecided: {t.note}"
+        if len(dec) == 2 and dec[1].b > 0 and dec[1].b < dec[0].b:
+            root = dec[1].K - dec[1].b * (dec[1].K - dec[0].K) / (dec[1].b - dec[0].b)
+            return root, None, trials, (why + "; K_max extrapolated from the last two "
+                                        "decaying records (b(K) to 0), no interval")
+        return None, None, trials, why
+
     K = start * K_guess
     t = rec(K)
     while t.growing is not False and len(trials) < max_trials:
         if t.growing is None:
-            return None, None, trials, f"record at K = {K:.6g} N/m undecided: {t.note}"
+            return undecided(K, t)
         K /= step ** 2                         # grows already: step down first
         t = rec(K)
     if t.growing is not False:
@@ -299,7 +320,7 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
         K *= step
         t = rec(K)
         if t.growing is None:
-            return None, None, trials, f"record at K = {K:.6g} N/m undecided: {t.note}"
+            return undecided(K, t)
         if t.growing:
             hi = t
             break
@@ -316,7 +337,7 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
             Kn = min(max(Kn, lo.K + 1e-3 * (hi.K - lo.K)), hi.K - 1e-3 * (hi.K - lo.K))
         t = rec(Kn)
         if t.growing is None:
-            return None, None, trials, f"record at K = {Kn:.6g} N/m undecided: {t.note}"
+            return undecided(Kn, t)
         if t.growing:
             hi, fb = t, t.b
             if side == 1 and fa is not None:
@@ -332,8 +353,14 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
         Km = lo.K - lo.b / slope
         dK = max(lo.b_unc, hi.b_unc) / abs(slope) if slope else 0.0
         interval = (min(lo.K, Km - dK), max(hi.K, Km + dK))
-    else:
+    else:            # the growing end stopped unidentified: the decaying records' trend
+        dec = sorted((t for t in trials if t.growing is False and t.b is not None),
+                     key=lambda t: t.K)[-2:]
         Km = 0.5 * (lo.K + hi.K)
+        if len(dec) == 2 and dec[1].b != dec[0].b:
+            root = dec[1].K - dec[1].b * (dec[1].K - dec[0].K) / (dec[1].b - dec[0].b)
+            if lo.K <= root <= hi.K:
+                Km = root
         interval = (lo.K, hi.K)
     note = "" if (hi.K - lo.K) <= tol * lo.K else (
         f"bracket not refined to {tol:g} within {max_trials} records")

@@ -272,7 +272,8 @@ class Controller:
             return False, reason
         self.accepted += 1
         k, b = self.felt.get("k"), self.felt.get("b")
-        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz)
+        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz,
+                  predicted={q: self.felt.get(q) for q in ("k", "b", "f0_hz", "damping_ratio")})
         return True, (change.steps / self.scene.rate_hz, _num(k), _num(b))
 
     def _plan(self, address: str, args):
@@ -719,11 +720,13 @@ def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
     Returns
     -------
     list of dict
-        The accepted changes: ``sample``, ``address``, ``args``, ``ramp_s`` [s] and the
-        ``felt`` [k, b] predicted after each.
+        The accepted changes: ``sample``, ``address``, ``args``, ``ramp_s`` [s], the
+        ``felt`` [k, b] predicted after each and that ``predicted`` pair (``k``, ``b``,
+        ``f0_hz``, ``damping_ratio``).
     """
     changes = [{"sample": int(e["sample"]), "address": e["address"], "args": e["args"],
-                "ramp_s": e.get("ramp_s", 0.0), "felt": e.get("felt")}
+                "ramp_s": e.get("ramp_s", 0.0), "felt": e.get("felt"),
+                "predicted": e.get("predicted")}
                for e in journal if e.get("event") == "accepted"]
     if not changes or "k" not in measured or measured.get("first_row") is None:
         return changes
@@ -750,10 +753,14 @@ def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
         return changes
     c = before[-1]
     kp, bp = (float(v) for v in c["felt"])
-    measured["compared_with"] = {"k": kp, "b": bp, "after": f"{c['address']} "
+    pred = {"k": kp, "b": bp, **{q: v for q, v in (c.get("predicted") or {}).items()
+                                 if q not in ("k", "b")}}
+    measured["compared_with"] = {**pred, "after": f"{c['address']} "
                                  f"{' '.join(map(str, c['args']))} at sample {c['sample']}"}
-    measured["rel_err"] = {"k": (measured["k"] - kp) / kp if kp else math.nan,
-                           "b": (measured["b"] - bp) / bp if bp else math.nan}
+    measured["rel_err"] = {q: ((measured[q] - v) / v if v else math.nan)
+                           if v is not None and measured.get(q) is not None else math.nan
+                           for q, v in ((q, pred.get(q)) for q in
+                                        ("k", "b", "f0_hz", "damping_ratio"))}
     if "k_interval" in measured:
         ok = (abs(measured["k"] - kp) <= measured["k_interval"]
               and abs(measured["b"] - bp) <= measured["b_interval"])

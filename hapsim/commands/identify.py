@@ -25,7 +25,9 @@ steps, which separate Coulomb from viscous friction) on a weak centring spring, 
 run': device watchdog armed, host force clamp, safety stop beyond the envelope, zero force
 and STOP at the end or on Ctrl-C. The fit is an output-error least squares of the exact
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
-with Newey-West intervals. Without --port the embedded mock (--mock-scene: its device)
+with Newey-West intervals, driven by the force the device applied at each tick (its
+STATEs' force_seq name it: a late tick is a known input, and the delay is the one the
+device shows, never assumed). Without --port the embedded mock (--mock-scene: its device)
 is identified."""
 
 _EPILOG = """\
@@ -43,7 +45,8 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
   fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
-  data (or a safety stop / device fault), 2 bad arguments
+  data (or a safety stop / device fault), or the record cannot be identified (the reason
+  is printed: too short, the device hardly moved, ...), 2 bad arguments
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json

@@ -34,6 +34,7 @@ examples:
   hapsim zwidth --B 0 2 4 8 --plot zwidth.png          (embedded mock, real time)
   hapsim zwidth --scene configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
   hapsim zwidth --firmware --B 1.5                      (the emulated Hapkit board)
+  hapsim zwidth --firmware --lockstep --B 0 1.5 4       (the board, host-paced)
 
 exit codes: 0 every point measured, 1 some point not measured (no bracket), 2 bad input"""
 
@@ -71,7 +72,8 @@ def register(sub) -> None:
                             "started here")
     p.add_argument("--baud", type=int, default=115200, help="baud rate of --port")
     p.add_argument("--lockstep", action="store_true",
-                   help="the embedded mock in lockstep, in process (deterministic)")
+                   help="the embedded mock in lockstep, in process (deterministic); with "
+                        "--firmware, the emulated board's clock paced by the host")
     p.add_argument("--B", type=float, nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
                    help="virtual dampings [N s/m] (default 0 1.5 4)")
     p.add_argument("--x0", type=float, default=None,
@@ -103,15 +105,16 @@ def _base(args):
     return sc
 
 
-def _start_firmware(base):
-    """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port)."""
+def _start_firmware(base, realtime: bool = True):
+    """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port).
+    ``realtime`` False: the board's clock advances as the host answers (lockstep)."""
     import subprocess
     from hapsim.daemon import board
     why = board.missing_tools()
     if why:
         raise ConfigError(f"the emulated board cannot be built here: {why}", key="--firmware")
     board.build()
-    cmd = board.board_command(base.device, base.excitation, realtime=True)
+    cmd = board.board_command(base.device, base.excitation, realtime=realtime)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     for line in proc.stdout:
         if line.startswith("PORT "):
@@ -149,9 +152,9 @@ def run(args) -> int:
             raise ConfigError(f"out of range: {v!r}", key=key)
     if any(not math.isfinite(b) for b in args.B):
         raise ConfigError(f"must be finite, got {args.B}", key="--B")
-    if args.lockstep and (args.port or args.firmware):
-        raise ConfigError("--lockstep is the embedded mock's; drop it with --port or "
-                          "--firmware", key="--lockstep")
+    if args.lockstep and args.port:
+        raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
+                          "it with --port", key="--lockstep")
     if args.plot:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -160,11 +163,22 @@ def run(args) -> int:
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
     flim = float(base.device.force_limit or math.inf)
+    loop = device_loop(base.device, base.rate_hz)
     proc = None
     if args.firmware:
-        proc, port = _start_firmware(base)
-        opts = dict(port=port)
-        where = "the emulated Hapkit board (simavr, real time)"
+        # the board places the handle at its own x0 at every CONFIG: one release for all
+        # the walls, small enough for the stiffest one the search may reach (130 % of the
+        # largest predicted limit) to stay clear of the force limit
+        kmax = max(stability_limit(loop, B) for B in args.B)
+        if math.isfinite(kmax) and kmax > 0:
+            x0 = release(x0, flim, 1.3 * kmax)
+        import dataclasses
+        base = dataclasses.replace(base, excitation=dataclasses.replace(base.excitation,
+                                                                        x0=x0))
+        proc, port = _start_firmware(base, realtime=not args.lockstep)
+        opts = dict(port=port, lockstep=bool(args.lockstep))
+        where = ("the emulated Hapkit board (simavr, " + ("lockstep" if args.lockstep
+                                                          else "real time") + ")")
     elif args.port:
         opts = dict(port=args.port, baud=args.baud)
         where = f"the device on {args.port}"
@@ -175,7 +189,6 @@ def run(args) -> int:
         opts = {}
         where = "the embedded mock (real time, on a pty)"
     measure = run_measure(base, x0, duration=args.duration, **opts)
-    loop = device_loop(base.device, base.rate_hz)
     fc = float(base.device.coulomb or 0.0)
     points = []
     try:
@@ -315,7 +328,7 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         ``measure(K, B) -> Trial``.
     """
     from hapsim.analysis.network import device_body
-    from hapsim.analysis.zwidth import Trial, release, wall_scene
+    from hapsim.analysis.zwidth import MIN_GROWTH_TICKS, Trial, release, wall_scene
     from hapsim.daemon.runner import run_scene
 
     m = device_body(base.device)[0]
@@ -327,12 +340,18 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         rep = run_scene(wall_scene(base, K, B, release(x0, flim, K)), duration=duration,
                         allow_unstable=True, handle_signals=False, **run_options)
         meas = rep.get("measured") or {}
-        stop = str((rep.get("loop") or {}).get("stop_reason") or "")
-        safety = any(w in stop for w in ("energy", "velocity", "position", "force"))
+        lp = rep.get("loop") or {}
+        stop = str(lp.get("stop_reason") or "")
+        safety = bool(lp.get("safety_stop")) or stop.startswith("safety")
         b = meas.get("b")
         if b is None or not math.isfinite(b):
-            return Trial(K, B, None, None, 0.0, None, True if safety else None,
-                         note=stop or str(meas.get("error", "not identified")))
+            # a safety stop after a while is growth from x0 (well inside the limits) to a
+            # limit; one within the first periods says nothing of the loop (a device out
+            # of place, a clamped start): undecided
+            grew = safety and int(lp.get("ticks") or 0) >= MIN_GROWTH_TICKS
+            return Trial(K, B, None, None, 0.0, None, True if grew else None,
+                         note=(f"{stop} after {lp.get('ticks')} ticks" if safety
+                               else stop or str(meas.get("error", "not identified"))))
         unc = float(meas.get("b_unc") or 0.0)
         return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
                      math.exp(-b * T / (2.0 * m)), bool(b < 0 or safety), note=stop)

@@ -89,7 +89,7 @@ from hapsim.daemon.loop_types import SEQ_HALF as _HALF
 from hapsim.daemon.loop_types import SEQ_MASK as _U32
 from hapsim.daemon.realtime import sleep_until_ns
 from hapsim.daemon.recovery import Recovery
-from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
+from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_ESTIMATED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
@@ -97,6 +97,10 @@ __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity
            "BAD_FRAME_RECORDS", "BAD_FRAME_CONTEXT", "SENSORS_TRIES", "SENSORS_WAIT"]
 
 _Lost = LostDevice          # the name this module's loop code uses
+
+#: Missing samples in a row a driver's loop steps the scene through with an extrapolated
+#: position (beyond, ticks are skipped): :meth:`HostLoop._host_states`.
+ESTIMATED_MAX = 2
 
 
 class HostLoop(Handshake, Recovery, BadFrames):
@@ -633,10 +637,16 @@ class HostLoop(Handshake, Recovery, BadFrames):
         else:
             mono_ns = time.monotonic_ns
         receive = tr.receive
-        # a request-reply device (a driver's) answers only what it is asked: a tick without
-        # a new sample asks again (hold: the last force), so one missing reply is one
-        # missing sample, not a silence that grows into a loss
+        # a request-reply device (a driver's) answers only what it is asked. A tick whose
+        # answer is overdue (the transport's deadline) is a missing sample, not a silence
+        # that grows into a loss: the scene steps with the position extrapolated from the
+        # two before and its FORCE goes out (asking the device again), so the scene's clock
+        # stays the device's (row flagged FLAG_ESTIMATED); more than ESTIMATED_MAX in a row,
+        # the tick is skipped and the last force asked again (hold)
         hold = getattr(tr, "hold", None)
+        overdue = getattr(tr, "overdue", None)
+        run_est = 0
+        x_1 = x_2 = None            # the two positions answered last
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -705,18 +715,36 @@ class HostLoop(Handshake, Recovery, BadFrames):
             if stop.set:
                 break
             t_rx = perf()
-            if latest.seq == used_seq:
-                # no new sample since the last tick: stepping the engine with a stale
-                # position would corrupt its velocity; skip this tick (counted)
+            if (latest.seq - used_seq) & _U32 >= _HALF or latest.seq == used_seq:
+                # no new sample since the last tick (or only one older than an estimated
+                # tick already stepped through): stepping the engine with a stale
+                # position would corrupt its velocity; skip this tick (counted), or, for a
+                # driver whose answer is overdue, step it with an estimate (notes above)
                 res.missed += 1
                 if clock() - last_new >= silence - 1e-6:
                     raise _Lost(f"no STATE from the device for {silence:g} s")
+                if (overdue is not None and run_est < ESTIMATED_MAX and x_2 is not None
+                        and overdue()):
+                    run_est += 1
+                    res.estimated += 1
+                    used_seq = (used_seq + 1) & _U32
+                    x_e = 2.0 * x_1 - x_2
+                    x_2, x_1 = x_1, x_e
+                    self._skip_flag |= FLAG_ESTIMATED
+                    t_e = latest.time_us + int(round(((used_seq - latest.seq) & _U32)
+                                                     * 1e6 / rate))
+                    yield (State(used_seq, t_e & 0xFFFFFFFFFFFFFFFF, latest.status,
+                                 (used_seq - cfg.delay) & _U32, (x_e,)), x_e, t_rx)
+                    deadline += period_ns
+                    continue
                 if hold is not None:
                     hold()
                 deadline += period_ns
                 continue
             last_new = clock()
             used_seq = latest.seq
+            run_est = 0
+            x_2, x_1 = x_1, latest.position[0]
             yield latest, latest.position[0], t_rx   # _drive answers it (or stops)
             deadline += period_ns
             now = mono_ns()

@@ -299,7 +299,10 @@ class LoopResult:
         STATUS_OVERRUN).
     missed : int
         STATE sequence numbers never seen (gaps); host-clocked: host ticks without a new
-        STATE (skipped: no engine step, no FORCE).
+        STATE (skipped: no engine step, no FORCE; or, with a driver, ``estimated``).
+    estimated : int
+        Host-clocked with a driver: missed ticks the scene was stepped through with an
+        extrapolated position (their rows have ``FLAG_ESTIMATED``).
     overruns : int
         Host-clocked deadlines missed by more than one period.
     clamped : int
@@ -390,6 +393,7 @@ class LoopResult:
     safety_stop: bool = False
     late: int = 0
     missed: int = 0
+    estimated: int = 0
     overruns: int = 0
     clamped: int = 0
     skipped: int = 0

@@ -58,6 +58,9 @@ def format_report(rep: dict) -> str:
     p = rep["predicted"]
     row("predicted", p)
     m = rep["measured"]
+    after = m.get("compared_with")
+    if isinstance(after, dict):          # live changes came before the measured window
+        row("after OSC", after)
     if "k" in m:
         row("measured", m)
         re = m["rel_err"]
@@ -82,6 +85,7 @@ def format_report(rep: dict) -> str:
         lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
     if m.get("note"):
         lines.append(f"  note: {m['note']}")
+    lines += _osc_lines(rep.get("osc"), m)
     if p.get("stable") is not None:
         # K_max is the limit of the links at the port as one port-ground spring: the felt
         # k of a scene with virtual masses is another quantity, so say which it is there
@@ -168,3 +172,27 @@ def format_report(rep: dict) -> str:
             extra += f"; journal writer stopped: {tl['writer_error']}"
         lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
     return "\n".join(lines)
+
+
+def _osc_lines(osc: dict | None, measured: dict) -> list:
+    """What ``run --osc`` changed, and which prediction the measurement is compared with."""
+    if not osc or not (osc.get("accepted") or osc.get("refused")):
+        return []
+    changes = osc.get("changes") or []
+    n = osc.get("accepted", 0)
+    lines = [f"osc: {n} change{'' if n == 1 else 's'} accepted, {osc.get('refused', 0)} "
+             f"refused"]
+    for c in changes[:8]:
+        k, b = (c.get("felt") or [None, None])[:2]
+        lines.append(f"  sample {c['sample']}: {c['address']} "
+                     f"{' '.join(map(str, c['args']))} -> felt k {dash(k, '.6g')} N/m, "
+                     f"b {dash(b, '.6g')} N s/m (ramp {c.get('ramp_s', 0):g} s)")
+    if len(changes) > 8:
+        lines.append(f"  ... and {len(changes) - 8} more (--json: osc.changes)")
+    after = measured.get("compared_with")
+    if isinstance(after, dict):
+        lines.append(f"  the measurement is compared with the prediction after "
+                     f"{after['after']} (row 'after OSC')")
+    elif isinstance(after, str):
+        lines.append(f"  the measurement is compared with {after}")
+    return lines

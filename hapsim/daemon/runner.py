@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
-                                         relative_error, verdict, wire_errors)
+                                          relative_error, verdict, wire_errors)
 from hapsim.analysis.network import device_body
 from hapsim.analysis.prediction import (has_offset, port_links, predict, predicted_poles,
                                         prepare_scene, refusal)
@@ -49,7 +49,7 @@ from hapsim.daemon.realtime import RealtimePriority
 from hapsim.daemon.report import format_report
 from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
                                    process_start)
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import Scene
@@ -658,7 +658,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``device.position_resolution`` does not give one.
     driver : hapsim.drivers.base.Driver, optional
         The run's driver: its wire's number format is in the stated uncertainty
-        (:func:`wire_errors`).
+        (:func:`hapsim.analysis.measurement.wire_errors`).
 
     Returns
     -------
@@ -692,7 +692,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        position, late, late_info = late_accounted(scene, cols, hello, driver)
+        from hapsim.daemon.telemetry import FLAG_LOST
+        position, late, late_info = late_accounted(
+            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
         wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", 0.0)
         if hw > 0:
@@ -710,6 +712,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             wire=wire)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.control.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
@@ -725,6 +731,15 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                      "loop is not the linear THS exactly")
     if late_info:
         measured.update(late_info)
+    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
+    if n_est and "k" in measured:
+        # a driver's missing replies: the scene stepped through them with an extrapolated
+        # position; the force sent there differs from the one the true position gives by
+        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        measured["estimated_samples"] = n_est
+        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
+                     f"stepped through with an extrapolated position: their disturbance is "
+                     f"not in the stated uncertainty")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -793,7 +808,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
-        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "late": res.late, "missed": res.missed, "estimated": res.estimated,
+        "overruns": res.overruns,
         "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
@@ -829,10 +845,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     }
     targets = prep.targets
     ctl = run.control
-    osc = None if ctl is None else {
-        "accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
-        "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
-        "journal": ctl.journal}
+    osc = None
+    if ctl is not None:
+        # the measurement is compared with the prediction of the scene it measured (the
+        # changes accepted before its window), as hapsim play re-predicts
+        from hapsim.audio.control import revise_measurement
+        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
+               "journal": ctl.journal}
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
@@ -896,10 +917,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    drv = None
-    if opts.driver not in (None, "framed"):
-        from hapsim.drivers import get_driver
-        drv = get_driver(opts.driver, **(opts.driver_options or {}))
+    # the run's own driver (its parameters: given, or the scene's protocol_options)
+    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
     measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it

@@ -153,7 +153,10 @@ _FASTLOOP = os.path.join(_HERE, "daemon", "fastloop.py")
 
 def scene_kernel(scene) -> tuple[str, str]:
     """The module path and the function name of the engine kernel ``scene`` runs
-    (:data:`hapsim.kernels.cordis.KERNELS` by link kinds, or the integrator's kernel)."""
+    (:data:`hapsim.kernels.cordis.KERNELS` by link kinds, the integrator's kernel, or the
+    multi-rate kernel of a scene with ``audio``)."""
+    if getattr(scene, "audio", None) is not None:
+        return os.path.join(_HERE, "kernels", "audio.py"), "run_periods"
     if scene.integrator == "centred":
         kinds = frozenset(lk.kind for lk in scene.links)
         fn = {frozenset(): "run_masses", frozenset({"spring_damper"}): "run_sd",

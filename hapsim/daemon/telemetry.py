@@ -61,7 +61,8 @@ Columns
     Bits (uint8): :data:`FLAG_LATE` (as ``late``), :data:`FLAG_LOST` (first sample after
     the device was lost and recovered: the scene restarted here), :data:`FLAG_RAMP` (force
     scaled by the ramp after a recovery), :data:`FLAG_CLAMPED` (force clamped at the
-    limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped). Files
+    limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped),
+    :data:`FLAG_ESTIMATED` (no sample came: the position was extrapolated). Files
     written before this column existed read as 0.
 """
 
@@ -80,7 +81,7 @@ from hapsim.errors import ConfigError
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
            "write_journal", "save_columns",
            "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
-           "FLAG_CLAMPED", "FLAG_SKIPPED"]
+           "FLAG_CLAMPED", "FLAG_SKIPPED", "FLAG_ESTIMATED"]
 
 #: Magic bytes that open each journal chunk.
 CHUNK_MAGIC = b"HSTC"
@@ -108,6 +109,10 @@ FLAG_CLAMPED = 8
 #: ``flags`` bit: older STATEs were waiting with this one and were skipped (the backlog
 #: policy answers the newest; :attr:`hapsim.daemon.loop.LoopResult.skipped`).
 FLAG_SKIPPED = 16
+#: ``flags`` bit: no sample came for this tick (a driver's missing reply): the loop
+#: stepped the scene with a position extrapolated from the two before (the row's
+#: ``position``), so its clock and the device's stay one; a measurement interpolates it.
+FLAG_ESTIMATED = 32
 
 
 class Telemetry:

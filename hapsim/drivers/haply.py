@@ -33,8 +33,8 @@ What the board does not do (read from the firmware):
   are read as other commands (a reset forgets the set-up: writes are then answered by
   the 1-byte ``[id]``; a set-up out of garbage sets up other ports and ids). Replies are
   checked for their length and format (:class:`ReplyDecoder`: the id, and an angle that
-  is a whole number of encoder counts within range); bytes that make no reply mean the
-  board lost its place (``desync``), and the host re-synchronises it
+  is a whole number of encoder counts within range); more bytes that make no reply than
+  two faulty replies explain mean the board lost its place (``desync``), and the host re-synchronises it
   (:meth:`HaplyM3.resync`: zero bytes, which any command the board is inside takes as
   zero torque or a harmless reset, then the set-up and a zero-torque write).
 """
@@ -56,9 +56,11 @@ _F = struct.Struct("<f")
 #: Longest command the board can be inside [bytes]: a set-up with 4 motors, 4 encoders,
 #: 255 analog pins and 255 PWM pins (1 + 1 + 1 + 4 + 1 + 4 + 1 + 255 + 1 + 255 + 4 * 8).
 LONGEST_COMMAND = 556
-#: Bytes skipped since the last good reply that mean the board lost its place: one reply's
-#: length (a byte lost on the way back skips at most 4).
-DESYNC_BYTES = 5
+#: Bytes skipped since the last good reply that mean the board lost its place: more than
+#: two replies' worth of single faults on the way back (a lost byte skips at most 4 bytes,
+#: a corrupted one 5); a board that lost its set-up answers 1 byte per write, so this is
+#: about 11 writes.
+DESYNC_BYTES = 11
 
 LIMITS = """\
 Haply M3 protocol limits (hapsim --driver haply):
@@ -112,13 +114,13 @@ class ReplyDecoder(AlignedDecoder):
     """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream.
 
     A reply is taken where the id matches and the angle is finite, within
-    ``max_angle_deg``, within ``max_step_deg`` of the last reply and a whole number of
-    encoder counts (the firmware sends
+    ``max_angle_deg``, within ``max_step_deg`` of where the last two replies say the joint
+    is going, and a whole number of encoder counts (the firmware sends
     ``360 * count / resolution``: the window ``01 01 01 3f c5``, -3056.06 deg, is 41426.4
     counts at 4880 per revolution, no reply); otherwise one byte is dropped and the next
     position tried. :data:`DESYNC_BYTES` or more bytes dropped since the last reply mean the
     stream lost its format: the board answers something else than the replies it was set
-    up for (counted in ``desync``, once per run of bad bytes).
+    up for (counted in ``desync``, once per run of bad bytes, again every 100 bytes).
 
     Parameters
     ----------
@@ -128,8 +130,9 @@ class ReplyDecoder(AlignedDecoder):
     resolution : float or None
         Encoder counts per revolution (None: the whole-count check is off).
     max_step_deg : float
-        Largest change between two replies taken [deg] (20 deg: 20000 deg/s at 1 kHz);
-        a reply farther from the last one is misaligned or corrupted.
+        Largest distance of a reply from the linear prediction of the last two taken
+        [deg] (2 deg: an acceleration of 35000 rad/s^2 at 1 kHz, or a missed reply at
+        30 rad/s); a reply farther off is misaligned or corrupted.
 
     Attributes
     ----------
@@ -140,10 +143,10 @@ class ReplyDecoder(AlignedDecoder):
     length = 5
 
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
-                 resolution: float | None = None, max_step_deg: float = 20.0) -> None:
+                 resolution: float | None = None, max_step_deg: float = 2.0) -> None:
         super().__init__()
         self.max_step = float(max_step_deg)
-        self._prev = None
+        self._prev = self._prev2 = None
         self.id = device_id & 0xFF
         self.max = float(max_angle_deg)
         self.res = None if resolution is None else float(resolution)
@@ -164,11 +167,13 @@ class ReplyDecoder(AlignedDecoder):
             want = 360.0 * n / self.res
             if abs(a - want) > 1e-6 * abs(want):
                 return None
-        if self._prev is not None and abs(a - self._prev) > self.max_step:
-            # a flipped exponent bit is still a whole count (x 2^k): no joint turns that
-            # far between two replies
-            return None
-        self._prev = a
+        if self._prev is not None:
+            # a flipped exponent bit is still a whole count (x 2^k, half the time): no
+            # joint moves that far from where its last two replies say it is going
+            guess = self._prev if self._prev2 is None else 2.0 * self._prev - self._prev2
+            if abs(a - guess) > self.max_step:
+                return None
+        self._prev2, self._prev = self._prev, a
         return a
 
     def feed(self, data: bytes) -> list:
@@ -191,7 +196,7 @@ class ReplyDecoder(AlignedDecoder):
             self._bad += 1
             if self._bad % 100 == DESYNC_BYTES:      # once, then again if it lasts
                 st["desync"] += 1
-                self._prev = None                   # the re-synchronised board's angles
+                self._prev = self._prev2 = None     # the re-synchronised board's angles
         return out
 
 

@@ -22,8 +22,10 @@ Host-clocked only (the loop must run with ``host_clocked``): the device answers 
 The host clock, and a missing reply (neither protocol has a sequence number)
 ---------------------------------------------------------------------------
 Every command is one host tick, numbered here (``seq``). The host loop sends one per tick:
-a FORCE when it has a new STATE, else :meth:`DriverTransport.hold` (the last force again,
-so the device keeps being asked and keeps answering). A record is the answer to the newest
+a FORCE when it has a new STATE; when the answer is :meth:`DriverTransport.overdue`, a
+FORCE computed from an extrapolated position (the loop's estimated sample); else (a
+longer silence) :meth:`DriverTransport.hold` (the last force again), so the device keeps
+being asked and keeps answering. A record is the answer to the newest
 command sent before it was read, which is exact when the device answers within one period
 (the rates a driver accepts, :meth:`hapsim.drivers.base.Driver.check_rate`); records read
 together are the answers to the commands before it, in order, and a record with no
@@ -39,9 +41,13 @@ measurement).
 
 A driver whose replies can show that the *device* lost its place in the byte stream (the
 Haply board: no framing, one lost host byte desynchronises its parser) says so through
-its decoder's ``desync`` counter; the transport then re-synchronises the device with the
-driver's :meth:`~hapsim.drivers.base.Driver.resync` bytes (zero force first) and counts it
-(``resyncs``), and the samples until the next good record are missing samples.
+its decoder's ``desync`` counter, or by answers that stop while commands go out; the
+transport then re-synchronises the device with the driver's
+:meth:`~hapsim.drivers.base.Driver.resync` bytes (zero force first; the position the last
+two records extrapolate to now as the Haply encoder's new offset) and counts it
+(``resyncs``); the samples until the next good record are missing samples, and ``seq``
+skips one number there, so that a measurement does not run across the position's jump
+(the error of that extrapolation).
 """
 
 from __future__ import annotations
@@ -116,6 +122,9 @@ class DriverTransport:
         0 for hardware (the device's time goes on: each missed tick asks again); a mock
         paced by the commands (one period per command) waits longer, so that a slow mock
         process is not taken for a lost answer.
+    delay_known : bool
+        ``delay`` is the device's (a scene states it, a mock has it); False when it is a
+        guess that identification must search (then the driver gives no account).
 
     Attributes
     ----------
@@ -133,7 +142,7 @@ class DriverTransport:
     """
 
     def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
-                 reply_deadline: float = 0.0) -> None:
+                 reply_deadline: float = 0.0, delay_known: bool = True) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -142,6 +151,9 @@ class DriverTransport:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
         self._d = int(delay)
+        # for the driver's account of what was applied: the delay, when it is known (a
+        # scene's stated delay, a mock's own); an identification that searches it: None
+        driver.loop_delay = self._d if delay_known else None
         self._deadline_us = int(reply_deadline * 1e6)
         self._dec = driver.decoder()
         self.decoder = _Dec(DriverStats(self._dec.stats))
@@ -155,9 +167,12 @@ class DriverTransport:
         self._cmd = -1
         self._answered = -1
         self._force = 0.0
-        self._x_last = 0.0
+        self._x_last = self._x_prev = 0.0
+        self._s_last = -1
+        self._s_prev = None
         self._arm_ns = 0
         self._settle = 0
+        self._stray = False                 # the last bytes read made no record
         self._desyncs = 0
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
                       "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0}
@@ -192,6 +207,11 @@ class DriverTransport:
         t = type(msg)
         if t is fp.Force:
             f = msg.force[0]
+            if dr.unframed and self._armed and self._cmd - self._answered > SILENT_COMMANDS:
+                # answers stopped although commands go out: the device may be inside a
+                # command that swallows them (a garbage set-up); put it back in step
+                self._resync()
+                return
             self._force = f
             self._command(dr.encode_force(f))
         elif t is fp.HelloRequest:
@@ -225,6 +245,20 @@ class DriverTransport:
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
+    def overdue(self) -> bool:
+        """Whether the newest command's answer is overdue: none came and the reply
+        deadline passed (with a zero deadline, at once). The host loop then takes the tick
+        as a missing sample and sends its FORCE anyway (module notes)."""
+        if not (self._armed and self._settle <= 0 and self._answered < self._cmd):
+            return False
+        waited = self._now_us() - self._sent_us[self._cmd % _RING]
+        if self._deadline_us <= 0:
+            return True                     # hardware: its time went on
+        # a mock paced by the commands: overdue once bytes came that made no record (a
+        # damaged answer), or after a long silence (a wholly lost one); a slow mock
+        # process is neither
+        return waited >= (self._deadline_us if self._stray else 10 * self._deadline_us)
+
     def hold(self) -> None:
         """A host tick without a new sample: command the last force again (a request-reply
         device answers only what it is asked), or, while the device is re-synchronising,
@@ -243,7 +277,17 @@ class DriverTransport:
         (zero force first, then its set-up), as one command; the force held is zero."""
         self.stats["resyncs"] += 1
         self._force = 0.0
-        self._command(self.driver.resync(self._x_last))
+        # where the device is now: the last two records extrapolated to this command (a
+        # board that re-zeroes its position at the set-up goes on from there)
+        x = self._x_last
+        if self._s_prev is not None and self._s_last > self._s_prev:
+            v = (self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+            x += v * (self._cmd + 1 - self._s_last)
+        self._command(self.driver.resync(x))
+        # a deliberate gap in seq: the position may jump by the error of that estimate, so
+        # a measurement does not run across a re-synchronisation
+        self._cmd += 1
+        self._sent_us[self._cmd % _RING] = self._sent_us[(self._cmd - 1) % _RING]
         if self._answered < self._cmd - 1:      # the commands before it: missing samples
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1
@@ -272,7 +316,8 @@ class DriverTransport:
             st["missing"] += s - self._answered - 1
             st["records"] += 1
             self._answered = s
-            self._x_last = x
+            self._x_prev, self._s_prev = self._x_last, self._s_last
+            self._x_last, self._s_last = x, s
             out.append(fp.State(s & 0xFFFFFFFF, self._sent_us[s % _RING],
                                 fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
                                 (s - self._d) & 0xFFFFFFFF, (x,)))
@@ -306,6 +351,7 @@ class DriverTransport:
                 if data:
                     self._last.append(data.hex())
                     xs = dec.feed(data)
+                    self._stray = not xs
                     if xs:
                         self._take(xs, out)
                     d = dec.stats.get("desync", 0)
