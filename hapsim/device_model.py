@@ -419,9 +419,9 @@ class InProcessLoop:
     Each :meth:`step` samples the device's position ``x[n]``, asks ``force_of(x[n])`` for
     the port force (an :meth:`hapsim.engine.Engine.port_step`, or a live sound source's),
     and has the device apply the force computed ``d`` samples earlier, clamped to
-    ``force_limit``, over the coming period (the timing convention of docs/design.md, 'The
-    timing convention': FORCE ``n`` is applied over ``[(n+d)T, (n+d+1)T)``; zeros before
-    the first ``d`` forces).
+    ``force_limit``, over the coming period: FORCE ``n`` is applied over
+    ``[(n+d)T, (n+d+1)T)``, zeros before the first ``d`` forces
+    (docs/design.md, 'The timing convention').
 
     Parameters
     ----------

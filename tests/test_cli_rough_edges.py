@@ -268,14 +268,14 @@ def test_play_measures_a_scene_released_by_x0_alone(capsys):
 
 # ------------------------------------------------------------------ the plot extra
 def test_missing_matplotlib_names_the_readmes_install_command(monkeypatch, tmp_path, capsys):
-    from hapsim.plot import PLOT_INSTALL, _mpl
+    from hapsim.plot import PLOT_INSTALL, pyplot
     from hapsim.errors import ConfigError
     assert f"`{PLOT_INSTALL}`" in (ROOT / "README.md").read_text(encoding="utf-8")
     for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
         monkeypatch.delitem(sys.modules, name)
     monkeypatch.setitem(sys.modules, "matplotlib", None)    # import matplotlib: ImportError
     with pytest.raises(ConfigError, match=re.escape(PLOT_INSTALL)):
-        _mpl()
+        pyplot()
     assert main(["family", str(ROOT / "configs" / "hand_wall.yaml"), "--plot",
                  str(tmp_path / "f.png")]) == 2
     assert PLOT_INSTALL in capsys.readouterr().err

@@ -81,8 +81,8 @@ def spring_dampers(x, xp, f, i1, i2, k, z):
 @_jit_inline
 def contacts(x, xp, f, i1, i2, k, z, thr):
     """Add every engaged contact's force to ``f`` [N]: the spring-damper law with the spring
-    term ``k (x1 - x2 + thr)``, only while ``x2 - x1 < thr`` (docs/design.md, 'The
-    scheme')."""
+    term ``k (x1 - x2 + thr)``, only while ``x2 - x1 < thr``
+    (docs/design.md, 'The scheme')."""
     for j in range(i1.size):
         a = _U(i1[j])
         c = _U(i2[j])
