@@ -411,7 +411,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
-                tr = DriverTransport(drv, port, delay=1)
+                tr = DriverTransport(drv, port, delay=1, delay_known=False)
         elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, Excitation(), native_rate_hz=rate_hz, lockstep=True,
