@@ -53,6 +53,16 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
 
     def leave() -> None:
         try:
+            if "--json" in sys.argv[1:]:  # the promise of --json: one object on stdout
+                # (written by hand: nothing may be imported while an import is cut short;
+                # the shape of hapsim.cli.error_json)
+                sys.stdout.write('{"error": {"type": "interrupted", "message": '
+                                 '"hapsim: interrupted", "file": null, "line": null, '
+                                 '"key": null}, "exit": 130}\n')
+                sys.stdout.flush()
+        except (OSError, ValueError):
+            pass
+        try:
             sys.stderr.write("hapsim: interrupted\n")
             sys.stderr.flush()
         finally:
@@ -84,5 +94,22 @@ from hapsim.errors import (ConfigError, DeviceError, HapsimError, ProtocolError,
 
 __version__ = "0.1.0"
 
+#: The Python API (:mod:`hapsim.api`), imported on first use: ``import hapsim`` stays as
+#: light as the command line needs it.
+_API = ("load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
+        "identify", "run", "CheckReport", "RenderReport", "CalibrateReport",
+        "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport")
+
 __all__ = ["HapsimError", "ConfigError", "ProtocolError", "DeviceError",
-           "UnstableConfigError", "__version__"]
+           "UnstableConfigError", "__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from hapsim import api
+        return getattr(api, name)
+    raise AttributeError(f"module 'hapsim' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))

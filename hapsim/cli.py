@@ -17,6 +17,12 @@ Exit codes (all commands)
     Interrupted from the keyboard (Ctrl-C) before the command could finish; nothing is
     printed but ``hapsim COMMAND: interrupted``, at any moment, imports included.
     (``hapsim run`` catches SIGINT itself once its loop is armed and exits 0.)
+    With ``--json``, stdout holds the ``interrupted`` error object (below) then.
+141
+    stdout was closed by its reader (``hapsim check --json | head``): the command stops
+    quietly, prints nothing more (no ``BrokenPipeError`` traceback) and exits 128 + SIGPIPE,
+    the status a shell shows for ``yes | head``, so ``set -o pipefail`` treats hapsim as it
+    treats any other writer cut short by its reader.
 
 JSON (``--json``)
 -----------------
@@ -37,6 +43,7 @@ one-line message goes to stderr.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import json
 import math
@@ -48,7 +55,8 @@ from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
             "run", "mock", "bench", "advise",
-            "play", "telemetry", "identify", "family", "compare_corrections")
+            "play", "telemetry", "identify", "family", "compare_corrections",
+            "kinematics", "zwidth")
 
 
 #: Options people confuse: felt (k, b) of ``calibrate`` against virtual (K, B) of ``render``.
@@ -61,6 +69,9 @@ _CASE_HINTS = {
 }
 _WHAT = {"--K": "the virtual stiffness simulated", "--B": "the virtual damping simulated",
          "--k": "the felt stiffness to render", "--b": "the felt damping to render"}
+
+#: Exit code when the reader of stdout went away (128 + SIGPIPE, as a shell reports it).
+EXIT_BROKEN_PIPE = 141
 
 #: The argv being parsed (for the hints of :class:`HapsimArgumentParser`).
 _ARGV: list[str] = []
@@ -93,8 +104,41 @@ class HapsimArgumentParser(argparse.ArgumentParser):
                 hints.append(f"{opt} is {what}; {use}")
         if hints:
             message = f"{message} ({'; '.join(hints)})"
-        HapsimArgumentParser.last_usage_error = f"{self.prog}: {message}"
-        super().error(message)
+        if message.startswith("unrecognized arguments:"):
+            message += _did_you_mean(message.split(":", 1)[1].split(), sorted(known))
+        HapsimArgumentParser.last_usage_error = f"{parser.prog}: {message}"
+        # the sub-command's usage, not the top-level one: that is the parser whose options
+        # the user was typing (argparse reports a sub-command's leftovers from the top)
+        parser.print_usage(sys.stderr)
+        parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+
+def _did_you_mean(unknown: list[str], known: list[str]) -> str:
+    """``" (did you mean --duration?)"`` for each unknown option close to a known one.
+
+    Parameters
+    ----------
+    unknown : list of str
+        The arguments argparse did not recognise (``--duraton``, ``--duraton=2``, values).
+    known : list of str
+        The option strings of the parser being used.
+
+    Returns
+    -------
+    str
+        ``""`` when no unknown option is close to a known one (difflib's ratio >= 0.6).
+    """
+    options = [arg.split("=", 1)[0] for arg in unknown if arg.startswith("-")]
+    hints = []
+    for name in options:
+        close = difflib.get_close_matches(name, known, n=3)
+        # difflib's ratio scores a swap of two letters like any two edits (--polt is as
+        # close to --port as to --plot): the same letters rearranged is the likelier typo
+        close = sorted(close, key=lambda c: sorted(c) != sorted(name))
+        if close:
+            hints.append(f"{name}: did you mean {close[0]}?" if len(options) > 1
+                         else f"did you mean {close[0]}?")
+    return f" ({'; '.join(hints)})" if hints else ""
 
 
 def error_json(exc: BaseException | None, code: int, message: str) -> str:
@@ -155,7 +199,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
             "  hapsim render --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh --K 2000 --B 2\n"
             "  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh --k 2000 --b 3\n"
             "\nexit codes: 0 success, 1 negative verdict (unstable, unrenderable, device fault),\n"
-            "2 bad input. Run 'hapsim COMMAND --help' for each command."),
+            "2 bad input, 130 interrupted (Ctrl-C), 141 stdout closed by its reader (| head).\n"
+            "Run 'hapsim COMMAND --help' for each command."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"hapsim {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -180,6 +225,16 @@ def main(argv: list[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     want_json = "--json" in argv
+    try:
+        return _main(argv, want_json)
+    except BrokenPipeError:
+        # the reader of stdout is gone (``| head``): nothing more can be said there, and
+        # saying it on stderr would only be noise; entry() silences stdout's final flush
+        return EXIT_BROKEN_PIPE
+
+
+def _main(argv: list[str], want_json: bool) -> int:
+    """:func:`main` without the broken-pipe guard."""
     command = "hapsim"
     try:
         _ARGV[:] = argv
@@ -242,6 +297,14 @@ def entry() -> None:
     import, even though :func:`main` handled it.
     """
     code = main()
+    try:  # what is still buffered goes now, while a broken pipe can still be caught
+        sys.stdout.flush()
+    except BrokenPipeError:
+        code = EXIT_BROKEN_PIPE
+    except (OSError, ValueError):
+        pass
+    if code == EXIT_BROKEN_PIPE:
+        _silence_stdout()
     try:  # the work is done: a Ctrl-C from now on (flush, interpreter shut-down) changes
         import signal  # nothing, and must not turn the exit code into 1 or -SIGINT
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -256,6 +319,22 @@ def entry() -> None:
                 pass
         os._exit(130)
     sys.exit(code)
+
+
+def _silence_stdout() -> None:
+    """Point stdout's file descriptor at /dev/null once its reader has gone.
+
+    The interpreter flushes ``sys.stdout`` again at exit; with the pipe closed that flush
+    would print ``Exception ignored ... BrokenPipeError`` on stderr. This is the recipe of
+    the Python documentation (``signal`` module, "Note on SIGPIPE").
+    """
+    import os
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no real stdout (embedded): nothing to do
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

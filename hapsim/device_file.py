@@ -15,7 +15,8 @@ def _num(v: float) -> str:
     return "inf" if v == math.inf else f"{v:.6g}"
 
 
-def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = "") -> str:
+def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = "",
+                driver=None) -> str:
     """YAML text of the identified ``device:`` section, its intervals as comments.
 
     Parameters
@@ -29,6 +30,10 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         The record was taken with a hand on the handle (mass and friction are the THS's).
     source : str
         What was identified (port or mock), for the header comment.
+    driver : hapsim.drivers.base.Driver, optional
+        The driver the record was taken through: its name is written as ``protocol`` and
+        its parameters as ``protocol_options`` (the units the host assumed: the mass and
+        friction found are in them, module notes of :mod:`hapsim.drivers`).
 
     Returns
     -------
@@ -67,7 +72,41 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         f"# residual RMS {fit.rms_residual:.4g} m over {fit.n_samples} samples at "
         f"{1.0 / fit.period:g} Hz",
     ]
+    if driver is not None:
+        opts = ", ".join(f"{k}: {_num(v) if isinstance(v, float) else v}"
+                         for k, v in driver.options().items())
+        lines[-1:-1] = [
+            f"  protocol: {driver.name}",
+            f"  protocol_options: {{{opts}}}",
+            "  # identification sees the force-to-acceleration gain (force scale / mass) "
+            "and the position scale",
+            "  # only through these options: mass and friction above are in their units "
+            "(docs/drivers.md: a known",
+            "  # added mass separates the force scale from the mass)"]
     return "\n".join(lines) + "\n"
+
+
+def device_keys(path: str) -> set[str]:
+    """The keys a device file gives in its ``device`` section (read after
+    :func:`load_device` has accepted the file).
+
+    Parameters
+    ----------
+    path : str
+        A device file.
+
+    Returns
+    -------
+    set of str
+        The keys written in the file (``mass``, ``friction``, ...); what is missing takes
+        the scene schema's default, which ``hapsim run --device`` replaces by the scene's
+        own value for ``force_limit`` and ``protocol``.
+    """
+    from hapsim._yaml_lines import load_yaml
+    with open(os.fspath(path), encoding="utf-8") as fh:
+        doc = load_yaml(fh.read(), os.fspath(path))
+    return set(doc["device"]) if isinstance(doc, dict) and isinstance(doc.get("device"),
+                                                                        dict) else set()
 
 
 def load_device(path: str):

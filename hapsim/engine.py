@@ -7,7 +7,7 @@ lays it out as a struct of arrays and advances it with the kernel of
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -16,10 +16,48 @@ from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes
 from hapsim.scene import Scene, audio_substeps
 
-__all__ = ["Engine"]
+__all__ = ["Engine", "KernelPack"]
 
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
+
+
+class KernelPack(NamedTuple):
+    """An engine's kernel and its arrays by name: what a compiled caller (the host loop's
+    port step, :func:`hapsim.daemon.fastloop.kernel_pack`) needs to advance the engine
+    itself. The arrays are the engine's own (shared, not copied: the kernel updates them in
+    place).
+
+    Attributes
+    ----------
+    kernel : callable
+        The module-level kernel of :mod:`hapsim.kernels.cordis` or
+        :mod:`hapsim.kernels.schemes`, called as ``kernel(n, *args, rec, out, row0)``.
+    args : tuple
+        Its arguments, in its order.
+    state : tuple of ndarray
+        ``(x, xp, f, mobile, t2m, fixed)``: positions [m] now and one period ago, forces
+        [N], indices of the mobile masses, their ``T^2 / m`` [s^2/kg], indices of the port
+        and grounds (shapes (n,), (n,), (n,), (nm,), (nm,), (n - nm,)).
+    sd : tuple of ndarray or None
+        ``(i1, i2, k, z)`` of the spring-dampers: mass indices, stiffness [N/m], damping
+        per period ``B / T`` [N/m]; None without spring-dampers.
+    contact : tuple of ndarray or None
+        ``(i1, i2, k, z, thr)`` of the contacts (``thr`` the threshold [m]); None without.
+    scheme : dict
+        The integrator's own state and coefficients by name (empty for ``centred``; see
+        :func:`hapsim.kernels.schemes.build`).
+    port : int
+        Index of the port in ``x`` (-1 without a port).
+    """
+
+    kernel: Callable
+    args: tuple
+    state: tuple
+    sd: tuple | None
+    contact: tuple | None
+    scheme: dict
+    port: int
 
 
 class Engine:
@@ -41,7 +79,7 @@ class Engine:
 
     Notes
     -----
-    Scheme (DESIGN §3, Florens-Voda-Urma Fig. 5): masses
+    Scheme (docs/design.md, 'The scheme'; Florens-Voda-Urma Fig. 5): masses
     ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``; links
     ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` applied ``-F`` on the first mass and
     ``+F`` on the second; contacts only while ``x2 - x1 < threshold``, with the spring term
@@ -105,43 +143,57 @@ class Engine:
             return i1, i2, k, z
 
         kinds = scene.kinds
-        link_args: tuple[np.ndarray, ...] = ()
+        links = {kind: arrays(kind) if kind in kinds else None
+                 for kind in ("spring_damper", "contact")}
         #: name -> (stiffness array, damping-per-sample array, slot): live changes.
         self._link_slot: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}
-        for kind in ("spring_damper", "contact"):
-            if kind in kinds:
-                arr = arrays(kind)
-                link_args += arr
+        for kind, arr in links.items():
+            if arr is not None:
                 names = [lk.name for lk in scene.links if lk.kind == kind]
                 self._link_slot.update({nm: (arr[2], arr[3], j) for j, nm in enumerate(names)})
-        #: Velocity state [m/s] of the non-default integrators (None for centred).
-        self._v = None
+        state = (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
         integrator = getattr(scene, "integrator", "centred")
         if integrator == "centred":
-            self._kernel = cordis.KERNELS[kinds]
-            self._args = (self._x, self._xp, self._f, self._mobile, self._t2m,
-                          self._fixed) + link_args
+            kernel = cordis.KERNELS[kinds]
+            args = state + sum((arr for arr in links.values() if arr is not None), ())
+            extras = {}
         else:  # hapsim.kernels.schemes: symplectic_euler, exact
-            self._kernel, self._args = schemes.build(
-                integrator, T, self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed,
-                sd=arrays("spring_damper") if "spring_damper" in kinds else None,
-                contact=arrays("contact") if "contact" in kinds else None)
-            self._v = self._args[6]
+            kernel, args, extras = schemes.build(integrator, T, *state,
+                                                 sd=links["spring_damper"],
+                                                 contact=links["contact"])
+        self._kernel, self._args = kernel, args
+        self._pack = KernelPack(kernel, args, state, links["spring_damper"], links["contact"],
+                                extras, self._port)
+        #: Velocity state [m/s] of the non-default integrators (None for centred).
+        self._v = extras.get("v")
         #: Samples advanced since construction.
         self.sample = 0
         self._multi = None
         #: Names of the listened channels (``"<mass>.<quantity>"``), empty without audio.
         self.channels: tuple[str, ...] = ()
         if audio is not None:
-            self._init_audio(audio, kinds, link_args)
+            self._init_audio(audio)
 
-    def _init_audio(self, audio, kinds, link_args) -> None:
+    @property
+    def kernel_pack(self) -> KernelPack:
+        """The kernel and its arrays by name (:class:`KernelPack`), shared with this engine.
+
+        Returns
+        -------
+        KernelPack
+            Fixed at construction: the arrays are updated in place by every step, live
+            link changes (:meth:`set_link`) included.
+        """
+        return self._pack
+
+    def _init_audio(self, audio) -> None:
         """Arguments of :func:`hapsim.kernels.audio.run_periods` (every link kind given,
         empty when unused) and the one-period buffers :meth:`port_step` reuses."""
         e = np.empty(0, dtype=np.float64)
         ei = np.empty(0, dtype=np.int64)
-        sd = link_args[:4] if "spring_damper" in kinds else (ei, ei, e, e)
-        ct = link_args[-5:] if "contact" in kinds else (ei, ei, e, e, e)
+        pack = self._pack
+        sd = pack.sd if pack.sd is not None else (ei, ei, e, e)
+        ct = pack.contact if pack.contact is not None else (ei, ei, e, e, e)
         ls = audio.listen
         self.channels = tuple(f"{x.mass}.{x.quantity}" for x in ls)
         self._l_idx = np.array([self.scene.index(x.mass) for x in ls], dtype=np.int64)

@@ -7,6 +7,7 @@ matching built-in, so callers may catch either (pattern of pyserial's
 
 from __future__ import annotations
 
+import math
 import re
 
 __all__ = [
@@ -15,10 +16,13 @@ __all__ = [
     "ConfigError",
     "ProtocolError",
     "DeviceError",
+    "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
+    "KinematicsError",
     "show",
     "fixed",
+    "dash",
     "plural",
 ]
 
@@ -77,6 +81,18 @@ class ProtocolError(HapsimError, ValueError):
     """
 
 
+class IdentificationError(HapsimError, ValueError):
+    """A record that cannot be identified (too short, too little motion, no force applied,
+    a fit that fails): a negative verdict on the data, not bad input. ``hapsim`` exits 1
+    on it with the reason.
+
+    Parameters
+    ----------
+    message : str
+        Why, and what to change (``--duration``, ``--force-limit``, ...).
+    """
+
+
 class DeviceError(HapsimError, OSError):
     """The device or its port failed (absent, silent, reset, faulted)."""
 
@@ -105,7 +121,7 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
     """A felt target ``{k, b}`` that no virtual (K, B) renders with this device and rate.
 
     A negative verdict (exit code 1, as ``hapsim calibrate`` gives for the same target:
-    README's table) that is also a :class:`ConfigError`, so the message names the file,
+    docs/commands.md, 'Exit codes') that is also a :class:`ConfigError`, so the message names the file,
     the line and the key ``links.NAME.target``; :func:`hapsim.cli.main` tests for
     :class:`UnstableConfigError` first.
 
@@ -128,6 +144,32 @@ class UnrenderableTargetError(UnstableConfigError, ConfigError):
         ConfigError.__init__(self, message, file=file, line=line, key=key)
         self.spectral_radius = spectral_radius
         self.stiffness_limit = None
+
+
+class KinematicsError(ConfigError):
+    """A device configuration the kinematics refuses: outside the workspace or singular.
+
+    Bad input (a ``ConfigError``, exit code 2): the joint angles given are not a
+    configuration at which the device renders a force (:mod:`hapsim.kinematics`).
+
+    Parameters
+    ----------
+    message : str
+        Where (the joints in degrees) and why (no assembly, which singularity).
+    joints : array_like, optional
+        The refused joint angles [rad].
+    kind : {"workspace", "serial", "parallel"}, optional
+        No assembly; a serial singularity (an arm stretched or folded: the Jacobian loses
+        rank); a parallel one (the handle gains a freedom: the Jacobian is unbounded).
+    key : str, optional
+        Option or scene key, default ``joints``.
+    """
+
+    def __init__(self, message: str, *, joints=None, kind: str | None = None,
+                 key: str | None = "joints") -> None:
+        super().__init__(message, key=key)
+        self.joints = None if joints is None else [float(v) for v in joints]
+        self.kind = kind
 
 
 def show(value: object, limit: int = 60) -> str:
@@ -205,6 +247,26 @@ def fixed(value: float, spec: str) -> str:
         return text
     digits = int(m.group(3)) if m.group(3) else 6
     return format(value, f"{m.group(1)}{m.group(2)}.{max(digits, 1)}g")
+
+
+def dash(value, spec: str) -> str:
+    """``value`` in a report's column: ``"-"`` when it is None or a non-finite float, else
+    :func:`fixed` for a fixed-point ``spec`` and ``format(value, spec)`` otherwise.
+
+    Parameters
+    ----------
+    value : float or None
+        The number.
+    spec : str
+        A format spec (``"12.4f"``, ``"+9.2e"``, ``".6g"``).
+
+    Returns
+    -------
+    str
+    """
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return fixed(value, spec) if spec.endswith("f") else format(value, spec)
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:

@@ -1,6 +1,6 @@
 """Figures. The only hapsim module that imports matplotlib (lazily, Agg backend).
 
-Install the extra with ``pip install 'hapsim[plot]'``.
+Install the extra with :data:`PLOT_INSTALL` (the command the README gives).
 """
 
 from __future__ import annotations
@@ -11,7 +11,12 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["plot_grid", "save_figure", "figure_formats", "check_figure_path", "check_output_path"]
+__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_identify", "save_figure", "figure_formats", "check_figure_path",
+           "check_output_path"]
+
+
+#: How to install the plot extra (matplotlib): the README's command, in hapsim's checkout.
+PLOT_INSTALL = "python -m pip install -e '.[plot]'"
 
 
 def _mpl():
@@ -20,8 +25,8 @@ def _mpl():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ConfigError("matplotlib is not installed; install the plot extra: "
-                          "pip install 'hapsim[plot]'", key="plot") from exc
+        raise ConfigError(f"matplotlib is not installed; install the plot extra in "
+                          f"hapsim's checkout: {PLOT_INSTALL}", key="plot") from exc
     return plt
 
 
@@ -224,6 +229,101 @@ def check_output_path(path: str, key: str) -> None:
     """
     from hapsim.outputs import check_writable   # one check for every command's outputs
     check_writable(path, key)
+
+
+def plot_poles(report, ax=None, title: str | None = None):
+    """The closed-loop poles of a checked scene or a rendered loop in the z-plane.
+
+    Parameters
+    ----------
+    report : hapsim.api.CheckReport or hapsim.api.RenderReport
+        Its ``eigenvalues`` (list of [re, im]) and ``rendered`` (the felt mode: ``z_re``,
+        ``z_im``, ``k`` [N/m], ``b`` [N s/m], ``f0_hz``).
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw into; a new figure is made when None.
+    title : str, optional
+        Default: the scene's path (a check) or the felt (k, b).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The unit circle (the stability boundary of a sampled system), every pole (x) and
+        the felt pair (o, labelled with k, b and f0). Axes: Re z, Im z.
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    plt = _mpl()
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=110)
+    else:
+        fig = ax.figure
+    t = np.linspace(0.0, 2.0 * np.pi, 400)
+    ax.plot(np.cos(t), np.sin(t), color="0.6", lw=1.0, label="|z| = 1 (stability boundary)")
+    z = np.array([[np.nan if v is None else v for v in e] for e in report.eigenvalues],
+                 dtype=float).reshape(-1, 2)
+    ax.plot(z[:, 0], z[:, 1], "x", color="C0", label="closed-loop poles")
+    r = report.rendered
+    if r is not None:
+        zr = np.array([r["z_re"], r["z_re"]]), np.array([r["z_im"], -r["z_im"]])
+        ax.plot(*zr, "o", mfc="none", color="C3", ms=10,
+                label=f"felt: k = {r['k']:.4g} N/m, b = {r['b']:.3g} N s/m, "
+                      f"f0 = {r['f0_hz']:.3g} Hz")
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.axhline(0.0, color="0.85", lw=0.8)
+    ax.axvline(0.0, color="0.85", lw=0.8)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
+    ax.set_title(title or getattr(report, "scene", None) or "closed-loop poles")
+    fig.tight_layout()
+    return fig
+
+
+def plot_identify(fit, record=None):
+    """A device identification: the measured response against the fitted model.
+
+    Parameters
+    ----------
+    fit : hapsim.analysis.device_fit.DeviceFit or hapsim.api.IdentifyReport
+        The fit (``model`` [m], shape (n,), ``period`` [s], ``mass``, ``friction``,
+        ``coulomb``, ``delay``, ``hold``), or the API's report (its ``fit`` and
+        ``record``).
+    record : dict, optional
+        The excitation record (``position`` [m], shape (N,); ``loop.fitted_rows``: the rows
+        fitted); taken from the report when ``fit`` is one.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Top: measured and model positions [mm] against time [s]; bottom: model - measured
+        [um].
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    if record is None:
+        fit, record = fit.fit, fit.record
+    plt = _mpl()
+    # the fit covers the rows it was given (the longest stretch without a missing STATE)
+    a, _ = record["loop"].get("fitted_rows", (0, fit.n_samples))
+    x = record["position"][a:a + fit.n_samples]
+    t = (a + np.arange(fit.n_samples)) * fit.period
+    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
+    a1.plot(t, x * 1e3, lw=0.8, label="measured")
+    a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
+    a1.set_ylabel("position [mm]")
+    a1.legend(loc="upper right")
+    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
+                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
+    a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
+    a2.set_ylabel("model - measured [um]")
+    a2.set_xlabel("time [s]")
+    return fig
 
 
 def save_figure(fig, path: str) -> None:

@@ -49,7 +49,8 @@ def plot_family(res, title: str | None = None):
     a2.axhline(1.0, color="k", lw=0.8)
     a2.set_xlabel("moving mass, handle + hand [kg]")
     a2.set_ylabel("spectral radius")
-    verdict = "robustly stable" if res.robust else f"{int((~ok).sum())} members unstable"
+    verdict = (f"robustly stable ({res.robust_method})" if res.robust
+               else f"{int((~ok).sum())} members unstable")
     fig.suptitle(f"{title + ': ' if title else ''}{res.members.shape[0]} members, {verdict}")
     fig.tight_layout()
     return fig

@@ -23,8 +23,8 @@ for each key) is written from it by ``python -m hapsim.scene_doc``. A small scen
     device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10}
     excitation: {x0: 0.005}       # the hand starts 5 mm into the wall [m]
 
-Link law (DESIGN §3, Faust ``mi.lib`` ``spring``/``collision``): with ``x1``, ``x2``
-the positions of the first and second mass named in ``between``,
+Link law (docs/design.md, 'The scheme'; Faust ``mi.lib`` ``spring``/``collision``): with
+``x1``, ``x2`` the positions of the first and second mass named in ``between``,
 ``F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T`` is applied as ``-F`` on the first
 mass and ``+F`` on the second. A contact acts only while ``x2 - x1 < threshold``, with its
 spring measured from the threshold, ``F = K (x1 - x2 + threshold) + B (...) / T``, so the
@@ -44,14 +44,15 @@ from typing import Any, Callable
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
 from hapsim.errors import ConfigError, num, show
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
-                                 PORT_FORCE_MODES, PORT_POSITION_MODES, Key, key_names,
-                                 section_keys)
+                                 PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS, Key,
+                                 check_product, key_names, section_keys)
 from hapsim.scene_schema import key as _key
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
            "Listen", "Audio",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
-           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
+           "PROTOCOLS"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -121,7 +122,8 @@ class Link:
     calibrated : bool
         True when (K, B) were written by calibration (:meth:`Scene.with_link`): the
         damping may then be negative, because the device's real friction b0 can exceed
-        the damping to be felt (DESIGN §4). A scene file cannot set it.
+        the damping to be felt (docs/design.md, 'The forward map'). A scene file cannot set
+        it.
     """
 
     name: str
@@ -168,6 +170,14 @@ class Device:
     correction : dict, optional
         ``{"kind": name, param: value, ...}``, a correction of the virtual element
         (:data:`CORRECTIONS`, :mod:`hapsim.analysis.corrections`).
+    protocol : str
+        The protocol the device speaks on its port, one of :data:`PROTOCOLS`
+        (``"framed"``, hapsim's own, by default).
+    protocol_options : dict, optional
+        The device's parameters in its driver's terms (the keywords of the driver's
+        constructor, :mod:`hapsim.drivers`: FireFader ``full_scale``, ``metres_per_count``,
+        ``axis``; Haply ``resolution``, ``direction``, ``device_id``, ``offset_deg``;
+        Hapkit-serial ``function``, ``force_limit``); a driver's protocol only.
     """
 
     mass: float
@@ -182,6 +192,8 @@ class Device:
     velocity_noise: float = 0.0
     hand: "Hand | None" = None
     correction: dict | None = None
+    protocol: str = "framed"
+    protocol_options: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -394,7 +406,10 @@ class Scene:
         while a ``target`` awaits calibration; negative damping only when ``calibrated``);
         a finite threshold on a contact, 0 on a spring_damper; a ``target`` only on a
         spring_damper between the port and a ground, with k > 0, b >= 0; no contact
-        with ``integrator: exact``; and the ranges given in :class:`Device`,
+        with ``integrator: exact``; the loop's dimensionless products (``b0 T/m``,
+        ``|K| T^2/m``, ``|B| T/m`` at a link's lightest moving end, a target's ``k T^2/m``
+        and ``b T/m``, the hand's ``kh T^2/mh``) at most
+        ``hapsim.analysis.loop.MAX_PRODUCT``; and the ranges given in :class:`Device`,
         :class:`Excitation` (the ``profile`` file must exist) and :class:`Safety`.
     """
 
@@ -421,6 +436,11 @@ class Scene:
             err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
             err._scene_where = bad.where  # lets parse_scene name the line of the key itself
             raise err from None
+
+    @property
+    def dimension(self) -> int:
+        """Degrees of freedom of the scene: 1 (n-D scenes are :mod:`hapsim.scene_nd`'s)."""
+        return 1
 
     @property
     def period(self) -> float:
@@ -729,10 +749,56 @@ def _check_scene(s: Scene) -> None:
     elif ports:
         raise _Invalid("a scene with a port needs a device section "
                        "(mass, friction, delay, hold, ...)", ("device",))
+    _check_products(s)
     _check_excitation(s.excitation)
     _check_safety(s.safety)
     if s.audio is not None:
         _check_audio(s, names)
+
+
+def _check_products(s: Scene) -> None:
+    """The loop's dimensionless products, for every command alike (``check`` and
+    ``simulate`` once disagreed): ``b0 T/m`` of the device, ``kh T^2/mh`` of the hand's
+    spring, ``|K| T^2/m`` and ``|B| T/m`` of every link (``m`` its lightest moving end: a
+    virtual mass, or the device mass at the port) and, for a felt target, ``k T^2/m`` and
+    ``b T/m`` at the port: at most :data:`hapsim.analysis.loop.MAX_PRODUCT` (the reason is
+    there: the characteristic's coefficients would span more than a double resolves, and
+    the engine's update diverges within a row)."""
+    T = 1.0 / float(s.rate_hz)
+
+    def refuse(value, scale, unit, what, where):
+        try:
+            check_product(float(value), scale, _key_of(where), unit, what)
+        except ConfigError as exc:
+            raise _Invalid(exc.reason, where) from None
+
+    inertia = {m.name: float(m.mass) for m in s.masses if m.kind == "mass"}
+    d = s.device
+    port = next((m.name for m in s.masses if m.kind == "port"), None)
+    if d is not None and port is not None:
+        m_dev = float(d.mass)
+        inertia[port] = m_dev
+        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", ("device", "friction"))
+        h = d.hand
+        if h is not None:
+            hi = lambda v: float(v[1]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            lo = lambda v: float(v[0]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            if hi(h.stiffness) > 0:
+                refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
+                       ("device", "hand", "stiffness"))
+    for i, lk in enumerate(s.links):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for value, scale, unit, what, where in (
+                (lk.stiffness, T * T / m, "N/m", "K T^2/m", ("links", i, "stiffness")),
+                (lk.damping, T / m, "N s/m", "B T/m", ("links", i, "damping"))):
+            if not math.isnan(float(value)):          # NaN: a target awaiting calibration
+                refuse(value, scale, unit, what, where)
+        if lk.target is not None and not lk.calibrated:
+            refuse(lk.target[0], T * T / m, "N/m", "k T^2/m", ("links", i, "target", "k"))
+            refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
 
 
 def audio_substeps(audio_rate: float, rate_hz: float) -> int:
@@ -840,7 +906,8 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
             _check_key(_key("links[].stiffness"), lk.stiffness, "links", i, "stiffness")
         if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
             # A calibrated B may be negative: the device's real friction b0 can exceed the
-            # felt damping (DESIGN §4); a scene file or a hand-built link may not.
+            # felt damping (docs/design.md, 'The forward map'); a scene file or a hand-built
+            # link may not.
             if lk.calibrated:
                 _number(lk.damping, "links", i, "damping")
             else:
@@ -864,6 +931,35 @@ def _check_device(d: Any) -> None:
         _check_hand(d.hand, d.hold)
     if d.correction is not None:
         _check_correction(d.correction, d.hold)
+    if d.protocol_options is not None:
+        _check_protocol_options(d.protocol_options, d.protocol)
+
+
+def _check_protocol_options(o: Any, protocol: str) -> None:
+    """A driver's parameters: a mapping its constructor accepts (unknown keys and bad
+    values named with the valid choices)."""
+    where = ("device", "protocol_options")
+    if not isinstance(o, dict):
+        raise _Invalid(f"must be a mapping, got {_typename(o)} {show(o)}", where)
+    if protocol == "framed":
+        raise _Invalid("the framed protocol takes no options (its device says its own "
+                       "units in HELLO); set device.protocol to a driver", where)
+    import inspect
+
+    from hapsim.drivers import get_driver
+    from hapsim.errors import ConfigError
+    cls = type(get_driver(protocol))
+    valid = tuple(n for n in inspect.signature(cls.__init__).parameters if n != "self")
+    for name in o:
+        if name not in valid:
+            raise _Invalid(f"unknown option {show(name)} for {protocol}; valid: "
+                           f"{', '.join(valid)}", (*where, name))
+    try:
+        get_driver(protocol, **o)
+    except ConfigError as exc:
+        raise _Invalid(exc.reason, (*where, exc.key) if exc.key else where) from None
+    except (TypeError, ValueError) as exc:
+        raise _Invalid(str(exc), where) from None
 
 
 def _check_hand(h: Any, hold: str) -> None:
@@ -1105,6 +1201,16 @@ def parse_scene(text: str, path: str = "<string>",
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
+    if "dimension" in doc:
+        try:
+            _check_key(_key("dimension"), doc["dimension"], "dimension")
+        except _Invalid as bad:
+            raise ctx.error(bad.message, ctx.line_of(doc, "dimension"), "dimension") from None
+        if doc["dimension"] != 1:
+            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check` reads it "
+                            "(hapsim.scene_nd); this reader and the commands that run a "
+                            "scene take dimension 1", ctx.line_of(doc, "dimension"),
+                            "dimension")
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
     device = _read_device(ctx, doc) if "device" in doc else None
@@ -1200,6 +1306,10 @@ def _read_device(ctx: _Ctx, doc: _LDict) -> Device:
     vals["correction"] = (dict(ctx.mapping(d["correction"], "device.correction",
                                            ctx.line_of(d, "correction")))
                           if "correction" in d else None)
+    vals["protocol_options"] = (dict(ctx.mapping(d["protocol_options"],
+                                                 "device.protocol_options",
+                                                 ctx.line_of(d, "protocol_options")))
+                                if "protocol_options" in d else None)
     return Device(**vals)
 
 

@@ -19,18 +19,77 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from hapsim.errors import ConfigError
+
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
-           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "INTEGRATORS",
-           "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES"]
+           "section_keys", "key_names", "MASS_KINDS", "LINK_KINDS", "HOLDS", "PROTOCOLS",
+           "INTEGRATORS", "BASE_SCENE", "LISTEN_QUANTITIES", "PORT_POSITION_MODES",
+           "PORT_FORCE_MODES", "check_product"]
 
 #: Mass kinds a scene may use.
 MASS_KINDS = ("mass", "ground", "port")
 #: Link kinds a scene may use.
 LINK_KINDS = ("spring_damper", "contact")
-#: Output holds a device may use (DESIGN §4).
+#: Output holds a device may use (docs/design.md, 'The timing convention').
 HOLDS = ("zoh", "ideal")
+#: Protocols a device may speak (first is the default: hapsim's own framed protocol; the
+#: others are the drivers of hapsim.drivers, which takes its names from here).
+PROTOCOLS = ("framed", "firefader", "haply", "hapkit-serial")
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
+
+# The analysis's valid ranges (re-exported by hapsim.analysis.loop, which checks them;
+# here, at the bottom of the house, so that a key's ``limits_from`` names them without
+# importing the analysis).
+
+#: Largest delay [samples] the analysis accepts. The closed loop has ``d + 3`` poles, found
+#: as the eigenvalues of a dense ``(d + 3)``-square companion (state) matrix: ``O(d^3)``
+#: time, about 0.4 s at ``d = 500`` on one idle core (1.7 s at 1000, several times more on a
+#: loaded machine), and a stability limit needs several of them. 500 samples is 0.5 s at
+#: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
+#: timer is 16 samples at 1 kHz, 80 at 5 kHz).
+MAX_DELAY = 500
+#: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
+#: or ``1/T^2`` leave the double range long before any product is formed.
+RATE_RANGE = (1e-6, 1e9)
+#: Valid masses [kg] (device and virtual): 1 ng to 1e12 kg; a subnormal mass turns every
+#: ``T^2 / m`` into inf.
+MASS_RANGE = (1e-12, 1e12)
+#: Largest magnitude of the dimensionless loop products ``K T^2 / m`` (the spring's
+#: ``(omega T)^2``), ``B T / m`` and ``b0 T / m`` (damping per sample). Beyond 1e6 the spring
+#: rings a thousand times per sample or the damper settles in a millionth of one: no sampled
+#: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
+#: characteristic coefficients would span more than the double range can resolve.
+MAX_PRODUCT = 1e6
+
+
+def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
+    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
+
+    Parameters
+    ----------
+    value : float
+        Physical value, e.g. ``K`` [N/m].
+    scale : float
+        Its factor to the dimensionless product, e.g. ``T^2 / m``.
+    key : str
+        Option or scene key named in the message.
+    unit : str
+        Unit of ``value``.
+    what : str
+        The product's formula, e.g. ``"K T^2/m"``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
+    """
+    if abs(value) * scale > MAX_PRODUCT:
+        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
+                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
+                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
+
+
 #: What a listening point hears (``audio.listen[i].quantity``; first is the default).
 LISTEN_QUANTITIES = ("velocity", "position", "force")
 #: How the port position is brought up to the audio rate (first is the default).
@@ -138,8 +197,7 @@ class Key:
         """
         if not self.limits_from:
             return (None, None)
-        import hapsim.analysis.loop as lp        # at check time: no import cycle
-        v = getattr(lp, self.limits_from)
+        v = globals()[self.limits_from]
         return tuple(v) if isinstance(v, tuple) else (None, v)
 
     def why_text(self) -> str:
@@ -242,6 +300,11 @@ _KEYS = [
     Key("audio", "mapping", default=None,
         doc="The scene's sound: a multi-rate model and its listening points; see `audio`.",
         example="audio: {rate_hz: 8000, listen: [{mass: hand}]}"),
+    Key("dimension", "integer", default=1, minimum=1, maximum=3,
+        doc="Degrees of freedom of the scene: 1 is this format; 2 and 3 are the planar and "
+            "spatial format of `hapsim.scene_nd` (vector positions, Euclidean links, "
+            "planes, kinematic devices), which `hapsim check` reads.",
+        example="dimension: 1"),
     # ------------------------------------------------------------------ masses[]
     Key("masses[].name", "string",
         doc="Unique name of the mass (links refer to it).",
@@ -352,6 +415,22 @@ _KEYS = [
             "below the moving mass) | `virtual_coupling` (`stiffness` [N/m], `damping` "
             "[N s/m]); see `hapsim compare-corrections`.",
         example="device: {mass: 0.1, correction: {kind: velocity_filter, cutoff_hz: 100}}"),
+    Key("device.protocol", "choice", default=PROTOCOLS[0], choices=PROTOCOLS,
+        doc="The protocol the device speaks on its port: `framed` is hapsim's own (COBS "
+            "frames, CRC, sequence numbers, watchdog); the others are the drivers of "
+            "devices with their own firmware (`hapsim run --help`, 'drivers'). `hapsim "
+            "run` uses it (and its mock speaks it) unless `--driver` is given.",
+        example="device: {mass: 0.05, protocol: firefader}"),
+    Key("device.protocol_options", "mapping", default=None,
+        doc="The device's own parameters in its protocol's units (a driver only; the "
+            "embedded mock is built to match): `firefader`: `full_scale` [N] (force at 127 "
+            "counts; 0.39, the repository's calibrated Pd patch), `metres_per_count` [m] "
+            "(0.05/128), `axis` (0: fader A, 1: B); `haply`: `resolution` (encoder counts "
+            "per revolution, 4880), `direction` (0 CW, 1 CCW), `device_id` (1..255), "
+            "`offset_deg` (the joint's angle when armed); `hapkit-serial`: `function` "
+            "(0..255), `force_limit` [N]. See docs/drivers.md.",
+        example="device: {mass: 0.05, protocol: firefader, protocol_options: "
+                "{full_scale: 0.39}}"),
     # ------------------------------------------------------------------ excitation
     Key("excitation.x0", "number", "m", default=0.0,
         doc="Initial device displacement.",
@@ -486,7 +565,8 @@ links:
 device: {mass: 0.1, friction: 0.5}
 """),
     Section("links[]", "links[]: the interactions",
-            "Each entry of `links` is a mapping. Link law (DESIGN §3, Faust `mi.lib`): with "
+            "Each entry of `links` is a mapping. Link law (docs/design.md, 'The scheme'; "
+            "Faust `mi.lib`): with "
             "x1, x2 the positions of the first and second mass of `between`, "
             "F = K (x1 - x2) + B ((x1 - x2) - (x1p - x2p)) / T acts as -F on the first and "
             "+F on the second.", """\

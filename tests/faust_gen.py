@@ -8,7 +8,7 @@ Parameter mapping hapsim -> Faust 2.54 ``mi.lib`` (read from ``/usr/share/faust/
 -------------------------------------------------------------------------------------------
 ``mi.lib`` is sample-rate normalised: its mass update is
 ``x[n+1] = 2 x[n] - x[n-1] + F / m_f`` and its links output ``k_f dx + z_f d(dx)``. With
-``T = 1 / rate_hz`` the hapsim scheme (DESIGN §3) is reproduced exactly by
+``T = 1 / rate_hz`` the hapsim scheme (docs/design.md, 'The scheme') is reproduced exactly by
 
 * mass ``m`` [kg]          -> ``mi.mass(m / T^2, 0, x0, x1_f)``;
 * stiffness ``K`` [N/m]    -> ``k_f = K`` (forces stay in newtons);

@@ -433,7 +433,12 @@ def test_play_falls_back_to_portaudio_where_no_jack_server_runs(tmp_path):
     print(f"play through PortAudio: {snd}")
     assert snd["backend"] == "SoundDeviceOutput"
     assert (snd["block"], snd["lead"], rep["delay"]) == (256, 6, 7)
-    assert snd["pushed"] == snd["consumed"] == 1500
+    # the loop pushed every sample; the callback had finished at least the period the
+    # last force came from (port_step waits for period n - lead) and read no position that
+    # was not pushed. How many of the last `lead` it read before the stream closed is
+    # timing (1497 of 1500 on a loaded machine), not the coupling
+    assert snd["pushed"] == 1500
+    assert 1500 - snd["lead"] <= snd["periods"] <= snd["consumed"] <= snd["pushed"], snd
     assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
     assert rep["measured"]["b"] == pytest.approx(rep["felt"]["b"], rel=1e-6)
 

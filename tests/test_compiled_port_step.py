@@ -1,8 +1,9 @@
 """The compiled loop's port step (cacheable) and its silence rule, on the bare stretch.
 
 The compiled loop calls the engine's kernel through :func:`hapsim.daemon.fastloop._port_step`
-(a kernel chosen by an integer, so that numba loads the loop from its disk cache); each of
-the kernels of ``hapsim.kernels`` must step exactly as the engine's own call does.
+(a kernel named by a tag whose type selects it, so that numba loads the loop from its disk
+cache and compiles only that kernel into it); each of the kernels of ``hapsim.kernels``
+must step exactly as the engine's own call does.
 """
 from __future__ import annotations
 
@@ -48,7 +49,8 @@ def test_port_step_equals_the_engine_kernel_for_every_kernel():
     for name, sc in _scenes():
         a, b = Engine(sc), Engine(sc)
         kind, pack = fastloop.kernel_pack(b)
-        seen.add(kind)
+        assert kind == fastloop.kernel_tag(len(kind) - 1)
+        seen.add(len(kind) - 1)
         kick = 1e-3 * rng.standard_normal(a._x.size)
         for eng in (a, b):
             eng._x += kick
@@ -58,13 +60,33 @@ def test_port_step_equals_the_engine_kernel_for_every_kernel():
             for eng in (a, b):
                 if eng._port >= 0:
                     eng._x[eng._port] = drive
-            a._kernel(1, *a._args, fastloop._REC, fastloop._OUT, 0)
+            a.kernel_pack.kernel(1, *a.kernel_pack.args, fastloop._REC, fastloop._OUT, 0)
             fastloop._port_step(kind, pack, fastloop._REC, fastloop._OUT)
         assert np.array_equal(a._x, b._x), name
         assert np.array_equal(a._f, b._f), name
         assert not np.array_equal(a._x, x_init), name      # the scene moved
     assert seen == {fastloop.K_MASSES, fastloop.K_SD, fastloop.K_CONTACT, fastloop.K_SD_CONTACT,
                     fastloop.K_SYMPLECTIC, fastloop.K_EXACT}
+
+
+def test_kernel_pack_names_the_arrays_the_kernel_takes():
+    """Engine.kernel_pack: the state leads the kernel's arguments, every named array and
+    scheme value is one of them (the same object), the port is the scene's; so the
+    compiled loop reads them by name, not by position."""
+    for name, sc in _scenes():
+        eng = Engine(sc)
+        kp = eng.kernel_pack
+        assert all(a is b for a, b in zip(kp.args[:6], kp.state)), name
+        named = list(kp.scheme.values()) + list(kp.sd or ()) + list(kp.contact or ())
+        for a in named:
+            assert any(a is b for b in kp.args[6:]), name
+        assert kp.port == (sc.index(sc.port.name) if sc.port is not None else -1), name
+        assert (kp.sd is not None) == ("spring_damper" in sc.kinds), name
+        assert (kp.contact is not None) == ("contact" in sc.kinds), name
+        kp.state[0][kp.state[3]] += 1e-3      # a kick through the pack moves the engine
+        eng.step(5)
+        assert np.array_equal(eng.positions, kp.state[0]), name
+        assert np.any(eng.positions != 0.0), name
 
 
 @pytest.mark.parametrize("waiting", [True, False])

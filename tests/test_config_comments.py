@@ -10,9 +10,11 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hapsim.analysis import check_scene, calibrate, LoopModel
+from hapsim.analysis.network import network
 from hapsim.scene import load_scene, parse_scene
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -35,6 +37,7 @@ def test_every_config_comment_with_a_figure_is_pinned():
     """A config whose comments state a figure must appear below (by name)."""
     pinned = {"string.yaml", "oscillator.yaml", "felt_wall.yaml", "wall.yaml", "audio_string.yaml",
               "hapkit_serial.yaml",      # its figure: tests/test_drivers.py
+              "firefader.yaml",          # its figure: tests/test_drivers.py (rate refusal)
               "hand_wall.yaml"}
     for f in sorted(CONFIGS.glob("*.yaml")):
         if re.search(r"\d\s*(N/m|N s/m|Hz|1/s)", _comments(f.name)):
@@ -50,7 +53,16 @@ def test_string_pluck_stability_figures():
     seg = [lk for lk in sc.links if lk.name.startswith("seg")]
     assert all(lk.stiffness == 2000.0 for lk in seg)
     assert {m.mass for m in sc.masses if m.kind == "mass"} == {0.01}
-    assert 4 * 2000 / 0.01 == 8e5 < 4 * sc.rate_hz ** 2 == 4e6
+    # the comment's figure 4 K / m is the string's highest eigenfrequency squared (a bead
+    # between two segments of K; the pluck's contact adds its 200 N/m to one bead), and
+    # the centred-difference scheme is stable while it stays below 4 / T^2: here from the
+    # loaded scene's own matrices, M^-1 LK over the beads
+    net = network(sc)
+    w2 = np.linalg.eigvals(net.LK[np.ix_(net.mob, net.mob)] / net.masses[:, None]).real
+    K, m = seg[0].stiffness, sc.masses[net.mob[0]].mass
+    assert 4 * K / m == 8e5 and 4 * sc.rate_hz ** 2 == 4e6
+    assert float(np.max(w2)) == pytest.approx(4 * K / m, rel=0.01)
+    assert float(np.max(w2)) < 4 * sc.rate_hz ** 2
     assert check_scene(sc).stable                               # 200 N/m as shipped
     assert check_scene(_with_link("string.yaml", "pluck", 500.0)).stable
     assert check_scene(_with_link("string.yaml", "pluck", 1027.0)).stable

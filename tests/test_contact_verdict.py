@@ -5,8 +5,9 @@ The prediction takes every contact engaged; the run lets them open. A lockstep r
 exact, so wherever the prediction applies (a long enough stretch with every contact closed)
 measured equals predicted to round-off, and where it does not the verdict names the first
 sample with a contact open. That sample is checked against an independent replay written
-here in plain Python (the CORDIS-ANIMA centred scheme of DESIGN §3 / Florens et al. Fig. 5,
-driven by the logged port positions), which also reproduces the logged forces.
+here in plain Python (the CORDIS-ANIMA centred scheme of docs/design.md, 'The scheme' /
+Florens et al. Fig. 5, driven by the logged port positions), which also reproduces the
+logged forces.
 """
 
 from __future__ import annotations
@@ -226,7 +227,7 @@ def test_exact_fit_measures_the_predicted_felt_pole_not_the_least_damped():
     """An exact record of two pairs, the felt one (predicted) more damped than a faint
     second pair (a virtual mass's mode with a small residue at the port): the exact pencil
     path reports the felt pair, closed form ``k = m |s|^2``, ``b = -2 m Re s`` with
-    ``s = ln(z) / T`` (DESIGN §4)."""
+    ``s = ln(z) / T`` (docs/design.md, 'The inverse map')."""
     from hapsim.analysis.identify import measure_felt
     T, m = 1e-3, 0.1
     s_felt = complex(-3.0, 2 * math.pi * 20.0)

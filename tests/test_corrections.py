@@ -322,13 +322,15 @@ def test_virtual_coupling_bound_of_the_running_law(Kc, Bc):
             assert pb == pytest.approx(bound, rel=1e-9)
 
 
-def test_readme_correction_table_is_what_compare_corrections_prints(capsys):
-    """The README's table of correction means is the command's own output, row for row
-    (the command named above the table, without the time-domain part)."""
+def test_docs_correction_table_is_what_compare_corrections_prints(capsys):
+    """The documentation's table of correction means (docs/stability.md, 'Correction
+    means') is the command's own output, row for row (the command named above the table,
+    without the time-domain part)."""
     import pathlib
     import re
     from hapsim.cli import main
-    readme = (pathlib.Path(__file__).resolve().parent.parent / "README.md").read_text()
+    readme = (pathlib.Path(__file__).resolve().parent.parent / "docs" / "stability.md"
+              ).read_text()
     m = re.search(r"`hapsim compare-corrections (--mass [^`]*)`", readme)
     cmd = m.group(1).split()
     after = readme[m.end():].splitlines()

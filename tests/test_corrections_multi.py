@@ -285,7 +285,7 @@ excitation: {{x0: 0.005}}
                     duration=1.0, loop="compiled")
     assert rep["loop"]["loop"] == "python"
     assert rep["loop"]["python_reason"].startswith("device.correction (velocity_filter)")
-    assert "the Python loop ran: device.correction" in format_report(rep)
+    assert "the Python loop ran, not the compiled one: device.correction" in format_report(rep)
     assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
     plain = parse_scene(text.replace(f", correction: {corr_text(*CASES[1])}", ""))
     rep = run_scene(plain, transport="inprocess", lockstep=True, handle_signals=False,

@@ -149,8 +149,11 @@ def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig, durati
     try:
         run = hapsim("run", WALL, "--port", port, "--duration", duration, "--telemetry", tel,
                      "--json")
-        # the run announces on stderr once its signal handlers are installed
+        # the run announces on stderr once its signal handlers are installed (after the
+        # notices of what it compiles, when numba's cache is empty)
         line = run.stderr.readline()
+        while line.startswith("hapsim run: compil"):
+            line = run.stderr.readline()
         assert "closing the loop" in line, line
         time.sleep(1.0)
         assert run.poll() is None, run.stderr.read()

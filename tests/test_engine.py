@@ -117,7 +117,8 @@ def test_centred_difference_limit_4m_over_T2(factor, grows):
 
 def test_damped_oscillator_matches_pole_closed_form():
     """x[k] = a p1^k + c p2^k with p1, p2 the roots of
-    z^2 - (2 - (K T^2 + B T)/m) z + (1 - B T / m) (the scheme of DESIGN §3 in z)."""
+    z^2 - (2 - (K T^2 + B T)/m) z + (1 - B T / m) (the scheme of
+    docs/design.md, 'The scheme', in z)."""
     mass, stiffness, damping, x0, n = 0.1, 1000.0, 0.5, 0.01, 3000
     _, x = Engine(oscillator(stiffness, mass, x0, damping)).run(n, ["bob"])
     p1, p2 = np.roots([1.0, -(2.0 - (stiffness * T * T + damping * T) / mass), 1.0 - damping * T / mass])
@@ -173,7 +174,8 @@ def contact_switches(scene: Scene, x: np.ndarray) -> dict[str, tuple[int, int]]:
 
 
 def reference_run(scene: Scene, n: int, port_positions=None) -> np.ndarray:
-    """Plain-Python CORDIS-ANIMA, written from DESIGN §3 independently of the kernels."""
+    """Plain-Python CORDIS-ANIMA, written from docs/design.md, 'The scheme', independently of
+    the kernels."""
     T_ = scene.period
     names = [m.name for m in scene.masses]
     x = {m.name: m.x0 for m in scene.masses}

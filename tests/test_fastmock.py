@@ -19,9 +19,9 @@ import pytest
 
 import firmware_protocol as fp
 from hapsim.daemon.faults import FaultyDevice, parse_faults
-from hapsim.daemon.fastmock import CompiledMock, compiled_reason
+from hapsim.daemon.fastmock import CompiledMock
 from hapsim.daemon.loop import StopFlag
-from hapsim.daemon.mock import MockDevice, serve_fd
+from hapsim.daemon.mock import MockDevice, compiled_reason, serve_fd
 from hapsim.scene import Device, Excitation, Hand, Impulse
 
 
@@ -235,7 +235,7 @@ def test_compiled_stretch_serves_a_pty_host():
 
 
 def test_python_tick_serves_when_the_compiled_one_cannot_load(monkeypatch):
-    import hapsim.daemon.fastmock as fm
+    import hapsim.daemon.mock as fm
 
     def broken():
         raise ImportError("no numba here")

@@ -156,8 +156,9 @@ def test_chain_fast_path_equals_reference(seed, with_contacts):
         scene = dataclasses.replace(scene, links=tuple(lk for lk in scene.links
                                                        if lk.kind != "contact"))
     eng = Engine(scene)
-    a = eng._args
-    assert cordis._chain_start(a[0], a[3], a[5], a[6], a[7]) == 0   # the fast path is taken
+    kp = eng.kernel_pack
+    assert cordis._chain_start(kp.state[0], kp.state[3], kp.state[5], kp.sd[0],
+                               kp.sd[1]) == 0                     # the fast path is taken
     n = 600
     drive = 3e-3 * np.sin(np.arange(n) * 0.03)
     rows = [eng.positions]

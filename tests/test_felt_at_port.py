@@ -15,7 +15,8 @@ from hapsim.analysis import check_scene
 from hapsim.analysis.modes import OBSERVABLE_TOL
 from hapsim.analysis.network import rest_position
 from hapsim.cli import main
-from hapsim.daemon.runner import _has_offset, run_scene
+from hapsim.analysis.prediction import has_offset
+from hapsim.daemon.runner import run_scene
 from hapsim.scene import parse_scene
 
 
@@ -134,7 +135,7 @@ def test_rest_position_balances_forces_contacts_open_or_closed():
         closed = g <= thr                      # rest (K1 g + K2 thr)/(K1 + K2) <= thr
         want = (K1 * g + K2 * thr) / (K1 + K2) if closed else g
         assert x == pytest.approx(want, abs=1e-15)
-        assert _has_offset(sc) == (abs(want) > 1e-12 * max(abs(g), abs(thr)))
+        assert has_offset(sc) == (abs(want) > 1e-12 * max(abs(g), abs(thr)))
 
 
 @pytest.mark.parametrize("K1,K2,B1,B2,g,thr", [
@@ -151,7 +152,7 @@ def test_contact_closed_at_rest_run_matches_prediction(K1, K2, B1, B2, g, thr):
     amp = min(0.0005, 0.3 * (thr - rest))   # the contact stays closed
     text = _contact_scene(g, thr, K1, B1, K2, B2, x0=rest + amp)
     sc = parse_scene(text)
-    assert _has_offset(sc) == (abs(rest) > 1e-12 * max(abs(g), abs(thr)))
+    assert has_offset(sc) == (abs(rest) > 1e-12 * max(abs(g), abs(thr)))
     rep = _lockstep(text)
     p, m = rep["predicted"], rep["measured"]
     assert m["k"] == pytest.approx(p["k"], rel=1e-12)

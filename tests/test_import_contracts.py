@@ -44,3 +44,143 @@ def test_old_bench_names_are_the_analysis_ones():
     import hapsim.bench.methods as old
     for name in new.__all__:
         assert getattr(old, name) is getattr(new, name), name
+
+
+# ----------------------------------------------------------------------------- the layers
+# The house in floors, lowest first: a module imports only from its own floor or below
+# (function-level imports included), and no modules import each other in a circle. A
+# module of hapsim not named here stands on the top floor (nothing below may import it).
+PACKAGE_DIR = DAEMON_DIR.parent
+LAYERS = (
+    ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
+                    "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs")),
+    # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
+    # a scene checks its device.protocol_options with them; their mocks stand higher
+    ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
+               "hapsim.device_file", "hapsim.drivers")),
+    ("models", ("hapsim.engine", "hapsim.analysis", "hapsim.device_model",
+                "hapsim.kinematics", "hapsim.plot", "hapsim.plot_bench", "hapsim.plot_family",
+                "hapsim.plot_telemetry")),
+    ("devices and sound", ("hapsim.drivers.mock", "hapsim.audio")),
+    ("daemon", ("hapsim.daemon",)),
+    ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
+                     "hapsim")),
+)
+
+
+def _modules() -> dict[str, Path]:
+    """Every module of the package by dotted name (a package by its own name)."""
+    out = {}
+    for f in sorted(PACKAGE_DIR.rglob("*.py")):
+        parts = list(f.relative_to(PACKAGE_DIR.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = f
+    return out
+
+
+def _floor(module: str) -> int:
+    """Index in :data:`LAYERS` of the longest prefix naming ``module``'s floor."""
+    best, floor = -1, len(LAYERS) - 1
+    for i, (_, names) in enumerate(LAYERS):
+        for n in names:
+            if (module == n or module.startswith(n + ".")) and len(n) > best:
+                best, floor = len(n), i
+    return floor
+
+
+def _graph(sources: dict[str, str]) -> dict[str, set[str]]:
+    """module -> the modules of ``sources`` it imports (a name resolved to the longest
+    module it names: ``from hapsim.daemon.mock import MockDevice`` is hapsim.daemon.mock)."""
+    graph = {}
+    for mod, text in sources.items():
+        own = mod + ".__init__" if mod + ".__init__" in sources or _is_package(mod) else mod
+        deps = set()
+        names = imported_modules(text, own)
+        # ``from hapsim import scene`` names the package and its module: the module counts
+        names = {n for n in names if not any(m.startswith(n + ".") and m in sources
+                                             for m in names)}
+        for name in names:
+            parts = name.split(".")
+            for k in range(len(parts), 0, -1):
+                target = ".".join(parts[:k])
+                if target in sources:
+                    if target != mod:
+                        deps.add(target)
+                    break
+        graph[mod] = deps
+    return graph
+
+
+def _is_package(mod: str) -> bool:
+    return (PACKAGE_DIR.parent / mod.replace(".", "/") / "__init__.py").exists()
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def _upward(graph: dict[str, set[str]]) -> list[str]:
+    return [f"{a} (floor {LAYERS[_floor(a)][0]}) imports {b} (floor {LAYERS[_floor(b)][0]})"
+            for a in sorted(graph) for b in sorted(graph[a]) if _floor(b) > _floor(a)]
+
+
+def _house_graph() -> dict[str, set[str]]:
+    return _graph({m: f.read_text() for m, f in _modules().items()})
+
+
+def test_scanner_sees_circles_and_upward_imports():
+    """The checks below can fail: a made-up pair importing each other is a circle, a
+    scene module importing the analysis (even inside a function) is an upward import."""
+    g = _graph({"hapsim.audio.a": "from hapsim.audio.b import x\n",
+                "hapsim.audio.b": "def f():\n    from . import a\n",
+                "hapsim.scene": "def f():\n    import hapsim.analysis.loop as lp\n",
+                "hapsim.errors": "from hapsim import scene\n",
+                "hapsim.analysis.loop": "from hapsim.scene import Scene\n"})
+    assert ["hapsim.audio.a", "hapsim.audio.b"] in _circles(g)
+    assert ["hapsim.analysis.loop", "hapsim.scene"] in _circles(g)
+    assert _upward(g) == ["hapsim.errors (floor foundation) imports hapsim.scene (floor "
+                          "scene)", "hapsim.scene (floor scene) imports hapsim.analysis.loop "
+                          "(floor models)"]
+    assert _floor("hapsim.daemon.runner") == 4 and _floor("hapsim.new_module") == 5
+
+
+def test_no_module_imports_another_in_a_circle():
+    """No circles of imports among hapsim's modules (function-level imports included)."""
+    graph = _house_graph()
+    assert {"hapsim.daemon.runner", "hapsim.analysis.prediction"} <= set(graph)
+    assert _circles(graph) == []
+
+
+def test_nothing_imports_upward():
+    """Each module imports only from its floor or below (:data:`LAYERS`): the analysis and
+    the device model never import the daemon, the drivers never the daemon, the scene
+    never the analysis."""
+    assert _upward(_house_graph()) == []

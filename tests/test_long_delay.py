@@ -179,7 +179,7 @@ device: {{mass: {dm}, friction: 0.5, delay: {d}, hold: zoh}}
     ({"rate": "1.0e-300"}, "rate_hz", "must be between 1e-06 and 1e+09 Hz"),
     ({"m": "1.0e-320"}, "masses[1].mass", "must be between 1e-12 and 1e+12 kg"),
     ({"dm": "1.0e-320"}, "device.mass", "must be between 1e-12 and 1e+12 kg"),
-    ({"damp": "1.0e+308"}, "links.a.damping", "valid: |value| <= 1e+07 N s/m"),
+    ({"damp": "1.0e+308"}, "links[0].damping", "valid: |value| <= 1e+07 N s/m"),
 ])
 def test_check_refuses_extreme_scenes(subs, key, text, tmp_path, capsys):
     v = {"rate": "1000", "m": "0.01", "dm": "0.1", "damp": "0.001", "d": "1"}

@@ -244,17 +244,16 @@ def test_run_osc_changes_the_running_daemon():
     assert events[:2] == ["osc request", "osc accepted"] and "osc refused" in events
 
 
-README = os.path.join(ROOT, "README.md")
+SOUND_PAGE = os.path.join(ROOT, "docs", "sound.md")
 STRING = os.path.join(ROOT, "configs", "audio_string.yaml")
 
 
 def _readme_block(lang):
-    """The README's fenced code block of ``lang`` in its 'Sound and live control' section."""
+    """The fenced code block of ``lang`` in docs/sound.md ('Sound and OSC control')."""
     import re
-    text = open(README).read()
-    sec = text[text.index("## Sound and live control"):]
+    sec = open(SOUND_PAGE).read()
     m = re.search(r"```" + lang + r"\n(.*?)```", sec, re.S)
-    assert m, f"README: no ```{lang} block in 'Sound and live control'"
+    assert m, f"docs/sound.md: no ```{lang} block"
     return m.group(1)
 
 
@@ -279,7 +278,7 @@ def _play_string(jack_server, duration):
 
 
 def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
-    """The README's Pd patch, as printed (only its port changed), opened headless by pd
+    """The Pd patch of docs/sound.md, as printed (only its port changed), opened headless by pd
     against hapsim play on configs/audio_string.yaml: its changes arrive, are accepted and
     applied (the pluck's (K, B) at the end, the gain's ramp journaled)."""
     if shutil.which("pd") is None:
@@ -306,7 +305,7 @@ def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
 
 
 def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
-    """Each ``n.sendMsg`` line of the README's SuperCollider snippet, replayed by a
+    """Each ``n.sendMsg`` line of docs/sound.md's SuperCollider snippet, replayed by a
     python-osc client against hapsim play on configs/audio_string.yaml, gets the answer its
     comment states (ok, refused: unstable, felt), and the accepted values are applied."""
     import re

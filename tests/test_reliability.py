@@ -969,8 +969,8 @@ def test_journal_header_is_self_describing(tmp_path):
     head = json.loads(raw[16:16 + hlen])
     assert magic == b"HSTC" and version == 1 and head["rows"] == 10
     assert head["columns"] == ["time", "position", "force", "seq", "turnaround_us", "late",
-                               "flags"]
-    assert plen == 10 * (8 * 5 + 1 + 1)
+                               "flags", "force_seq", "status"]
+    assert plen == 10 * (8 * 5 + 1 + 1 + 8 + 2)
 
 
 # --------------------------------------------------------------------------- ring, journal

@@ -287,7 +287,8 @@ def test_code_change_to_a_file_scene_names_file_and_line():
 
 
 def test_calibrated_links_may_have_negative_damping_hand_built_ones_may_not():
-    """B < 0 arises from calibration (real friction above the felt damping, DESIGN §4):
+    """B < 0 arises from calibration (real friction above the felt damping, docs/design.md,
+    'The forward map'):
     Scene.with_link marks the link calibrated; a file or a hand-built link cannot."""
     s = load_scene("configs/felt_wall.yaml")
     cal = s.with_link("wall", stiffness=900.0, damping=-0.2)

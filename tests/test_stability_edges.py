@@ -91,7 +91,8 @@ def test_exact_scheme_has_no_stiffness_limit():
 def _closed_loop(hold, d, K, B, rate, n, b0=0.5):
     """Wall closed on the daemon's mock physics with a d-sample force delay line.
 
-    The virtual wall is the element's law written out here (DESIGN §3/§4,
+    The virtual wall is the element's law written out here (docs/design.md,
+    'The characteristic equation',
     ``F[n] = -K x[n] - B (x[n] - x[n-1]) / T``), not the engine: a refused calibration may
     ask for K < 0, which no valid scene holds, and the engine in the loop is covered by
     ``test_boundary_through_the_daemon_lockstep_path``."""

@@ -171,3 +171,144 @@ def test_first_sample_reported_after_process_start():
                     handle_signals=False)
     age = time.monotonic() - process_start()
     assert 0 < rep["loop"]["first_sample_s"] <= age
+
+
+# --- the first run talks (issue 21): what numba will compile, said before it compiles ---
+
+def test_cache_folder_is_the_one_numba_uses():
+    """:func:`numba_cache_dir` finds, without numba, the folder numba's own locator caches
+    a compiled function of hapsim in (the kernels and the compiled loop)."""
+    from hapsim.daemon import fastloop
+    from hapsim.daemon.startup import numba_cache_dir
+    from hapsim.kernels import cordis
+    for disp in (cordis.run_sd, fastloop._stretch):
+        numba_dir = disp._cache._cache_path
+        assert os.path.realpath(numba_cache_dir(disp.py_func.__code__.co_filename)) == \
+            os.path.realpath(numba_dir)
+
+
+def test_cache_freshness_follows_the_index_and_the_source(tmp_path, monkeypatch):
+    """A function is fresh once an index newer than its module exists; editing the module
+    (a newer modification time) makes it stale again, as numba's own stamp does."""
+    from hapsim.daemon.startup import cache_is_fresh, numba_cache_dir
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    src = tmp_path / "pkg" / "kern.py"
+    src.parent.mkdir()
+    src.write_text("def run_sd(): pass\n")
+    os.utime(src, (1_000_000, 1_000_000))
+    assert not cache_is_fresh(str(src), "run_sd")
+    folder = Path(numba_cache_dir(str(src)))
+    assert folder.parent == tmp_path / "cache"
+    folder.mkdir(parents=True)
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+    index = folder / f"kern.run_sd-1.{tag}.nbi"
+    index.write_bytes(b"")
+    assert cache_is_fresh(str(src), "run_sd")
+    assert not cache_is_fresh(str(src), "run_contact")      # another function: not cached
+    os.utime(src, (os.stat(index).st_mtime + 10,) * 2)      # the module edited since
+    assert not cache_is_fresh(str(src), "run_sd")
+
+
+def test_cold_cache_is_announced_before_numba_is_imported(tmp_path, monkeypatch):
+    """With an empty cache the run's parts are named on stderr (once, with the folder) by
+    a process that has not imported numba yet; with a complete cache nothing is said."""
+    cache = tmp_path / "cache"
+    code = f"""
+import json, sys, io
+from hapsim.daemon import startup
+err = io.StringIO()
+from hapsim.scene import load_scene
+scene = load_scene({WALL!r})
+parts = startup.run_compile_parts(scene, compiled_loop=True)
+early = startup.announce_compilation(parts[:1], stream=err)    # what run says at once
+said = startup.announce_compilation(parts, stream=err)         # the loop too: once each
+print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
+                  "numba": "numba" in sys.modules,
+                  "notice": startup.compile_notice() is not None,
+                  "parts": [(w, f) for w, _, f in parts]}}))
+"""
+    env = dict(os.environ, PYTHONPATH=str(REPO), NUMBA_CACHE_DIR=str(cache))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, cwd=str(REPO), timeout=120)
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["said"] and got["early"] and got["notice"] and not got["numba"]
+    assert got["parts"] == [["the engine's kernels", "run_sd"],
+                            ["the compiled host loop", "_stretch"]]
+    first, second = got["text"].splitlines()        # each part said once
+    assert first.startswith("hapsim run: compiling the engine's kernels with numba (once")
+    assert second.startswith("hapsim run: compiling the compiled host loop with numba")
+    assert str(cache) in first and str(cache) in second
+    # the same parts with their indexes written after the sources: nothing to say
+    from hapsim.daemon import startup
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    for _, src, fn in startup.run_compile_parts(load_scene(WALL), compiled_loop=True):
+        folder = Path(startup.numba_cache_dir(src))
+        assert folder.parent == cache
+        folder.mkdir(parents=True, exist_ok=True)
+        mod = Path(src).stem
+        tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+        (folder / f"{mod}.{fn}-1.{tag}.nbi").write_bytes(b"")
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                       text=True, cwd=str(REPO), timeout=120)
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert not got["said"] and not got["early"] and got["text"] == "" and not got["notice"]
+
+
+def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
+    """``--loop auto`` takes the compiled loop only when its stamp for the scene's kernel is
+    newer than the loop's and the kernel's modules; another kernel's stamp does not count."""
+    from hapsim.daemon import startup
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    wall, string = load_scene(WALL), load_scene(str(REPO / "configs" / "string.yaml"))
+    assert startup.scene_kernel(wall)[1] == "run_sd"
+    assert startup.scene_kernel(string)[1] == "run_sd_contact"
+    audio = load_scene(str(REPO / "configs" / "audio_string.yaml"))
+    assert startup.scene_kernel(audio) == (str(REPO / "hapsim" / "kernels" / "audio.py"),
+                                           "run_periods")
+    assert startup.choose_loop("auto", wall) == "python"
+    assert startup.choose_loop("compiled", wall) == "compiled"
+    stamp = Path(startup.loop_stamp("run_sd"))
+    stamp.parent.mkdir(parents=True)
+    stamp.write_text("")
+    assert startup.choose_loop("auto", wall) == "compiled"
+    assert startup.choose_loop("auto", string) == "python"
+    os.utime(stamp, (1_000_000, 1_000_000))                 # older than the sources
+    assert startup.choose_loop("auto", wall) == "python"
+
+
+def test_compiled_loop_possible_matches_what_the_runner_would_run():
+    """The options that keep the Python loop (the runner's python_reason) are the ones
+    for which the compiled loop is neither announced nor compiled."""
+    from hapsim.daemon.startup import compiled_loop_possible
+    wall = load_scene(WALL)
+    assert compiled_loop_possible(wall)
+    assert not compiled_loop_possible(wall, framed=False)
+    assert not compiled_loop_possible(wall, osc=0)
+    assert not compiled_loop_possible(wall, sound="auto")
+    assert not compiled_loop_possible(wall, host_clocked=True)
+    assert not compiled_loop_possible(load_scene(str(REPO / "configs" / "audio_string.yaml")))
+
+
+def test_first_run_without_the_compiled_loop_uses_python_then_compiles_it(
+        monkeypatch, capsys):
+    """``hapsim run`` (``--loop auto``) with the compiled loop not in the cache: the run
+    says so, uses the Python loop (its report says which loop ran), and compiles the
+    compiled loop after the report, for the scene's kernel; with it in the cache, nothing
+    is compiled after the run."""
+    from hapsim.cli import main
+    from hapsim.daemon import fastloop, startup
+    compiled = []
+    monkeypatch.setattr(fastloop, "warm_up", lambda eng: compiled.append(eng) or 0.0)
+    monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: False)
+    argv = ["run", WALL, "--lockstep", "--duration", "0.2", "--json"]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    rep = json.loads(out)
+    assert rep["loop"]["compiled_samples"] == 0 and rep["loop"]["python_reason"] is None
+    assert "the Python host loop this time" in err and "compiled the compiled host loop" in err
+    assert len(compiled) == 1 and compiled[0].scene.links[0].name == "wall"
+    monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: True)
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["loop"]["compiled_samples"] > 0
+    assert "for the next runs" not in err and "Python host loop" not in err

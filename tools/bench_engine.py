@@ -106,7 +106,7 @@ def string_scene(n: int) -> Scene:
 def string_args(n: int) -> tuple:
     """Kernel arguments of :func:`string_scene` ``(n)`` built directly with numpy.
 
-    Same layout and values as ``Engine(string_scene(n))._args`` (checked in :func:`check`),
+    Same layout and values as ``Engine(string_scene(n)).kernel_pack.args`` (checked in :func:`check`),
     without the per-name lookups that make building a 10^6-bead Scene slow.
 
     Parameters
@@ -147,7 +147,7 @@ def check() -> None:
     n = 100
     eng = Engine(string_scene(n))
     args = string_args(n)
-    for a, b in zip(args, eng._args):
+    for a, b in zip(args, eng.kernel_pack.args):
         assert a.dtype == b.dtype and np.array_equal(a, b), "bench layout differs from Engine's"
     eng.step(500)
     cordis.run_sd_contact(500, *args, _NOREC, _NOOUT, 0)

@@ -1,32 +1,197 @@
-"""Blind identification on the mock: seeded random devices, coverage of the reported intervals.
+"""Blind identification: hidden random devices, coverage of the reported intervals.
 
-Usage: PYTHONPATH=. python tools/identify_blind.py [SEED] [N] [DURATION_S]
-Prints each miss (and every noise-free case) and the misses per quantity. A benchmark-style
-program, not a test: the coverage it prints is what the README states.
+Usage::
+
+    python tools/identify_blind.py [--n 30] [--seed 19] [--duration 4] [--busy 0.5]
+                                   [--mode port|inprocess] [--json docs/identify_blind.json]
+
+``--mode port`` (default): each hidden device is a scene file given to a standalone
+``hapsim mock --scene DEV.yaml`` (real time, its own process, a real pty), identified by
+``hapsim identify --port PORT --json`` as a user would; the first ``busy`` fraction of the
+devices run beside a CPU-bound process (a busy loop this program starts and stops).
+``--mode inprocess``: the lockstep in-process mock (no real time), as the test suite's.
+
+The devices: m 0.02-2 kg (log-uniform), b0 0-5 N s/m, Coulomb friction 0-0.5 N, d 1-20
+samples (d = 0 exists in lockstep only; ``inprocess`` draws 0-20), encoder quantum 0-20 um
+and noise 0-5 um (each zero for a quarter of the devices). Force limit 4 N (0.1 F_lim
+steps of the excitation break a 0.5 N Coulomb friction loose), envelope 10 mm.
+
+Prints one row per device (truth, estimate, interval, misses), the coverage per quantity
+(the share of devices whose truth lies in the reported interval; d: exact), the exit codes
+and whether any traceback was seen; writes the same as JSON. A benchmark-style program,
+not a test.
 """
-import time, numpy as np, sys
-from hapsim.scene import Device
-from hapsim.daemon.identify_run import record
-from hapsim.analysis.device_fit import fit_device
-rng = np.random.default_rng(int(sys.argv[1]) if len(sys.argv)>1 else 12)
-N = int(sys.argv[2]) if len(sys.argv)>2 else 50
-dur = float(sys.argv[3]) if len(sys.argv)>3 else 3.0
-miss = {}
-t0=time.time()
-for i in range(N):
-    m = float(np.exp(rng.uniform(np.log(0.02), 0)))
-    b = float(rng.uniform(0,5)); fc=float(rng.uniform(0,0.3)); d=int(rng.integers(0,4))
-    q = float(rng.uniform(0,20e-6)) if rng.random()<0.7 else 0.0
-    nz = float(rng.uniform(0,5e-6)) if rng.random()<0.7 else 0.0
-    dev = Device(mass=m, friction=b, delay=d, coulomb=fc, position_resolution=q, noise=nz, force_limit=10.0)
-    rec = record(dev, transport="inprocess", duration=dur, force_limit=4.0, progress=False, handle_signals=False, seed=i, noise_seed=i)
-    fit = fit_device(rec["position"], rec["force"], rec["period"], late=rec["late"])
-    checks = {"m": fit.mass.contains(m), "b0": fit.friction.contains(b), "fc+": fit.coulomb_pos.contains(fc),
-              "fc-": fit.coulomb_neg.contains(fc), "d": fit.delay_range[0] <= d <= fit.delay_range[1] and fit.hold=="zoh",
-              "q": fit.position_resolution.contains(q), "noise": fit.noise.contains(nz)}
-    bad = [k for k,v in checks.items() if not v]
-    for k in bad: miss[k] = miss.get(k,0)+1
-    rel = (fit.mass.value/m-1, fit.friction.value-b)
-    if bad or nz==0:
-        print(i, f"m={m:.3g} b={b:.3g} fc={fc:.3g} d={d} q={q:.2g} nz={nz:.2g} | m^={fit.mass.value:.4g} [{fit.mass.lo:.4g},{fit.mass.hi:.4g}] b^={fit.friction.value:.4g} [{fit.friction.lo:.4g},{fit.friction.hi:.4g}] fc^={fit.coulomb_pos.value:.3g}/{fit.coulomb_neg.value:.3g} d^={fit.delay}{fit.hold} nz^={fit.noise.value:.2g}[{fit.noise.lo:.2g},{fit.noise.hi:.2g}] rms={fit.rms_residual:.2g} {fit.explained} {rec['loop']['stop_reason']} BAD={bad}", flush=True)
-print("misses", miss, "time", time.time()-t0)
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+QUANTITIES = ("m", "b0", "fc+", "fc-", "d", "q", "noise")
+
+
+def draw(rng, realtime: bool) -> dict:
+    """One hidden device (module notes)."""
+    return {"mass": float(np.exp(rng.uniform(math.log(0.02), math.log(2.0)))),
+            "friction": float(rng.uniform(0.0, 5.0)),
+            "coulomb": float(rng.uniform(0.0, 0.5)),
+            "delay": int(rng.integers(1 if realtime else 0, 21)),
+            "position_resolution": float(rng.uniform(0, 20e-6)) if rng.random() < 0.75
+            else 0.0,
+            "noise": float(rng.uniform(0, 5e-6)) if rng.random() < 0.75 else 0.0,
+            "hold": "zoh", "force_limit": 10.0}
+
+
+def busy_loop() -> subprocess.Popen:
+    """A CPU-bound process (one core), stopped by the caller."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def identify_port(dev: dict, duration: float, seed: int, tmp: str) -> tuple[dict, int, str]:
+    """``hapsim identify --port`` against ``hapsim mock --scene``; (JSON, exit, stderr)."""
+    path = os.path.join(tmp, f"dev{seed}.yaml")
+    with open(path, "w") as fh:
+        fh.write("rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\nlinks: []\n"
+                 f"device: {json.dumps(dev)}\n")
+    mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--scene", path,
+                             "--seed", str(seed)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = mock.stdout.readline()
+        if not line.startswith("PORT"):
+            return {}, -1, "mock did not start: " + line + mock.stderr.read()
+        port = line.split()[1]
+        r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
+                            "--json", "--force-limit", "4", "--duration", str(duration),
+                            "--seed", str(seed)], capture_output=True, text=True,
+                           timeout=600)
+    finally:
+        mock.terminate()
+        try:
+            mock.wait(10)
+        except subprocess.TimeoutExpired:
+            mock.kill()
+    try:
+        out = json.loads(r.stdout)
+    except ValueError:
+        out = {"stdout_not_json": r.stdout[:400]}
+    return out, r.returncode, r.stderr
+
+
+def identify_inprocess(dev: dict, duration: float, seed: int) -> tuple[dict, int, str]:
+    """The lockstep in-process mock; (the JSON ``hapsim identify`` would print, exit, '')."""
+    from hapsim.commands.identify import identify
+    from hapsim.errors import HapsimError
+    from hapsim.scene import Device
+    try:
+        fit, rec = identify(device=Device(**dev), transport="inprocess", duration=duration,
+                            force_limit=4.0, seed=seed, progress=False,
+                            handle_signals=False)
+    except HapsimError as exc:
+        return {"error": {"type": type(exc).__name__, "message": str(exc)}}, 1, ""
+    return ({"device": fit.to_dict(), "loop": rec["loop"]},
+            0 if fit.explained and not rec["loop"]["safety_stop"] else 1, "")
+
+
+def check(dev: dict, out: dict) -> dict:
+    """Whether each truth lies in its reported interval (d: exact)."""
+    fit = out.get("device")
+    if not fit:
+        return {q: False for q in QUANTITIES}
+
+    def inside(key, truth):
+        e = fit[key]
+        lo = -math.inf if e["lo"] is None else e["lo"]
+        hi = math.inf if e["hi"] is None else e["hi"]
+        return bool(lo <= truth <= hi)
+    return {"m": inside("mass", dev["mass"]), "b0": inside("friction", dev["friction"]),
+            "fc+": inside("coulomb_pos", dev["coulomb"]),
+            "fc-": inside("coulomb_neg", dev["coulomb"]),
+            "d": fit["delay"] == dev["delay"] and fit["hold"] == "zoh",
+            "q": inside("position_resolution", dev["position_resolution"]),
+            "noise": inside("noise", dev["noise"])}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--n", type=int, default=30)
+    ap.add_argument("--seed", type=int, default=19)
+    ap.add_argument("--duration", type=float, default=4.0)
+    ap.add_argument("--busy", type=float, default=0.5,
+                    help="fraction of the devices identified beside a CPU-bound process")
+    ap.add_argument("--mode", choices=("port", "inprocess"), default="port")
+    ap.add_argument("--json", metavar="FILE", help="write the results there")
+    a = ap.parse_args(argv)
+    rng = np.random.default_rng(a.seed)
+    rows = []
+    t0 = time.time()
+    n_busy = int(round(a.busy * a.n)) if a.mode == "port" else 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(a.n):
+            dev = draw(rng, a.mode == "port")
+            busy = busy_loop() if i < n_busy else None
+            t1 = time.time()
+            try:
+                if a.mode == "port":
+                    out, code, err = identify_port(dev, a.duration, a.seed * 1000 + i, tmp)
+                else:
+                    out, code, err = identify_inprocess(dev, a.duration, i)
+            finally:
+                if busy is not None:
+                    busy.terminate()
+                    busy.wait()
+            ok = check(dev, out)
+            fit = out.get("device") or {}
+            row = {"i": i, "busy": busy is not None, "truth": dev, "exit": code,
+                   "traceback": "Traceback" in err, "ok": ok, "seconds": time.time() - t1,
+                   "error": (out.get("error") or {}).get("message"),
+                   "estimate": {k: fit.get(k) for k in ("mass", "friction", "coulomb_pos",
+                                                        "coulomb_neg", "delay", "hold",
+                                                        "position_resolution", "noise",
+                                                        "explained")},
+                   "loop": {k: (out.get("loop") or {}).get(k)
+                            for k in ("samples", "late", "stop_reason", "account",
+                                      "fitted_rows")}}
+            rows.append(row)
+            bad = [q for q, v in ok.items() if not v]
+            e = row["estimate"]
+            est = (f"m^ {e['mass']['value']:.4g} b^ {e['friction']['value']:.3g} "
+                   f"fc^ {e['coulomb_pos']['value']:.3g}/{e['coulomb_neg']['value']:.3g} "
+                   f"d^ {e['delay']}" if e.get("mass") else f"no fit: {row['error']}")
+            late = (row["loop"].get("account") or {}).get("late")
+            print(f"{i:3d} {'busy' if row['busy'] else 'idle'} m {dev['mass']:.4g} "
+                  f"b0 {dev['friction']:.3g} fc {dev['coulomb']:.3g} d {dev['delay']} "
+                  f"q {dev['position_resolution'] * 1e6:.3g}um nz {dev['noise'] * 1e6:.3g}um"
+                  f" | {est} | exit {code} late {late} {row['seconds']:.1f}s"
+                  f"{' MISS ' + ','.join(bad) if bad else ''}"
+                  f"{' TRACEBACK' if row['traceback'] else ''}", flush=True)
+    cover = {q: sum(r["ok"][q] for r in rows) / max(len(rows), 1) for q in QUANTITIES}
+    summary = {"n": len(rows), "busy": n_busy, "mode": a.mode, "seed": a.seed,
+               "duration_s": a.duration, "coverage": cover,
+               "exit_codes": {str(c): sum(r["exit"] == c for r in rows)
+                              for c in sorted({r["exit"] for r in rows})},
+               "tracebacks": sum(r["traceback"] for r in rows),
+               "late_ticks": sum(((r["loop"].get("account") or {}).get("late") or 0)
+                                 for r in rows),
+               "wall_s": time.time() - t0,
+               "command": "python tools/identify_blind.py " + " ".join(
+                   sys.argv[1:] if argv is None else argv)}
+    print("coverage: " + ", ".join(f"{q} {v * 100:.0f} %" for q, v in cover.items()))
+    print(f"exit codes {summary['exit_codes']}, tracebacks {summary['tracebacks']}, "
+          f"late ticks accounted {summary['late_ticks']}, {summary['wall_s']:.0f} s")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump({"summary": summary, "devices": rows}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,5 +1,5 @@
 """THS analysis of Florens, Voda & Urma: loop model, rendered (k, b), calibration,
-stability boundary and the (k, b) grid in the (K, B) plane (DESIGN.md Sec. 4).
+stability boundary and the (k, b) grid in the (K, B) plane (docs/design.md, 'The THS').
 
 Compute functions here return plain data; drawing lives in :mod:`hapsim.plot`.
 """

@@ -31,12 +31,17 @@ from hapsim.analysis.corrections import Correction
 from hapsim.analysis.grid import grid
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import calibrate, render, stability_limit
+from hapsim.errors import ConfigError
 
-__all__ = ["compare_corrections", "default_corrections", "tangency", "TANGENT_TOL",
-           "passivity_time_domain"]
+__all__ = ["compare_corrections", "default_corrections", "tangency", "tangency_limit",
+           "TANGENT_TOL", "TANGENCY_AT"]
 
 #: ``max |J - I|`` below which the grid counts as tangent to the identity at the origin.
 TANGENT_TOL = 0.05
+
+#: Normalised ``K T^2/m = B T/m`` at which :func:`tangency` takes its finite Jacobian (the
+#: report states it beside the limit of :func:`tangency_limit`).
+TANGENCY_AT = 1e-3
 
 
 def default_corrections(loop: LoopModel) -> list:
@@ -99,6 +104,85 @@ def tangency(loop: LoopModel, *, at: float = 1e-3, step: float = 1e-6) -> np.nda
     return J
 
 
+def tangency_limit(loop: LoopModel) -> np.ndarray:
+    """Jacobian of the felt (k, b) against the virtual (K, B) *at* ``K = B = 0``, normalised.
+
+    The finite-difference :func:`tangency` at ``K T^2/m = B T/m = 1e-3`` is not the limit:
+    a virtual coupling's ``dk/dK`` is 0.81 there and 1.00 in the limit. The limit is exact:
+    at ``K = B = 0`` the felt pair is the integrator pole ``w1 = 0`` and the friction pole
+    ``w2 = -(1 - e^(-b0 T/m))`` (``w = z - 1``; a double root at 0 when ``b0 = 0``), and the
+    symmetric functions of the pair, ``k T^2/m = sigma1 sigma2`` and ``b T/m = -(sigma1 +
+    sigma2)`` with ``sigma = ln(1 + w)`` (``k = m |s|^2``, ``b = -2 m Re s``, ``s = sigma /
+    T``), stay analytic through the over-damped range where the pair is real.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        With or without a correction.
+
+    Returns
+    -------
+    ndarray, shape (2, 2)
+        ``[[dk/dK, dk/dB], [db/dK, db/dB]]`` in normalised units at the origin.
+
+    Raises
+    ------
+    ConfigError
+        The characteristic at ``K = B = 0`` has no integrator pole at ``w = 0`` (the felt
+        pair is then not the limit's).
+
+    Notes
+    -----
+    The pair is the monic factor ``q = w^2 + c1 w + c0`` of ``F = kappa P~ + beta Q~ + R~``
+    (:func:`hapsim.analysis.loop.char_eval`, Florens et al. Sec. 6 eq. (1) in the delta
+    variable), ``F = q G``. Differentiating at ``kappa = beta = 0``: ``P~ = dq G (mod q)``
+    (and ``Q~`` for ``beta``), a 2-by-2 linear system for ``dq = dc1 w + dc0``, with
+    ``G mod q`` and ``P~ mod q`` the linear interpolants at the roots of ``q`` (Hermite at a
+    double root). Then, with ``w1 = 0``: ``d(k T^2/m) = ln(1 + w2)/w2 dc0`` and ``d(b T/m)
+    = (dc1 - dc0)/(1 + w2)``.
+    """
+    from hapsim.analysis.loop import _char_parts
+
+    P, Q, D, e = _char_parts(loop)
+    P, Q, D = (np.asarray(v, float) for v in (P, Q, D))
+    if e:                         # plain loop: R~ = (1 + w)^e D, D = lead w (w - w2)
+        lead = D[0]
+        if D.size != 3 or D[2] != 0.0:
+            raise ConfigError("no integrator pole at K = B = 0", key="loop")
+        w2 = -D[1] / lead
+
+        def G(w, der=False):
+            return lead * (e * (1 + w) ** (e - 1) if der else (1 + w) ** e)
+    else:                         # a correction, a hand: R~ expanded
+        r = np.roots(np.trim_zeros(D, "f"))
+        r = r[np.argsort(np.abs(r))]
+        if r.size < 2 or abs(r[0]) > 1e-9:
+            raise ConfigError("no integrator pole at K = B = 0", key="loop")
+        w2 = float(r[1].real) if abs(r[1]) > 1e-7 else 0.0
+        Gp = np.polydiv(D, np.poly([0.0, w2]))[0]
+
+        def G(w, der=False):
+            return np.polyval(np.polyder(Gp) if der else Gp, w)
+
+    def lin(f, df):            # f mod q as (slope, intercept)
+        if w2 != 0.0:
+            g1 = (f(0.0) - f(w2)) / (0.0 - w2)
+        else:
+            g1 = df(0.0)
+        return g1, f(0.0)
+    c1, c0 = -w2, 0.0
+    g1, g0 = lin(G, lambda w: G(w, True))
+    A = np.array([[g0 - g1 * c1, g1], [-g1 * c0, g0]])
+    lam = math.log1p(w2) / w2 if w2 != 0.0 else 1.0
+    J = np.empty((2, 2))
+    for j, poly in enumerate((P, Q)):
+        r1, r0 = lin(lambda w: np.polyval(poly, w), lambda w: np.polyval(np.polyder(poly), w))
+        dc1, dc0 = np.linalg.solve(A, [r1, r0])
+        J[0, j] = lam * dc0
+        J[1, j] = (dc1 - dc0) / (1.0 + w2)
+    return J
+
+
 def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_range=None,
                         n: int = 6, window=None, n_boundary: int = 61,
                         progress=None) -> dict:
@@ -131,8 +215,12 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
         ``rows``: per correction ``label``, ``correction`` (dict or None), ``grid``
         (:class:`GridResult`), ``boundary`` ((B, K_max) arrays), ``stable_area``
         [N^2 s/m^2], ``stable_area_ratio`` (to the plain element), ``worst_distortion``,
-        ``unrenderable`` (count in the usable region), ``jacobian`` (2x2 list),
-        ``off_identity`` (``max |J - I|``), ``tangent`` (bool).
+        ``unrenderable`` (count in the usable region), ``jacobian`` (2x2 list: the limit
+        at ``K = B = 0``, :func:`tangency_limit`), ``jacobian_finite`` (:func:`tangency`
+        at ``K T^2/m = B T/m =`` :data:`TANGENCY_AT`), ``off_identity`` (``max |J - I|``
+        of the limit), ``tangent`` (bool); ``stable_area_method``: ``"sampled (N)"``, the
+        trapezoid over ``N = n_boundary`` exact ``K_max(B)`` (an area between samples is
+        not certified); ``jacobian_at``: where the two Jacobians are taken.
     """
     base = _with(loop, None)
     T, m, b0 = base.period, base.mass, base.friction
@@ -169,13 +257,18 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
                     continue
                 worst = max(worst, abs(c.K - k) / k, abs(c.B + b0 - b) / b)
         g = grid(lp, ks, bs, boundary_B=Bgrid)
-        J = tangency(lp)
+        J_at = tangency(lp, at=TANGENCY_AT)
+        try:
+            J = tangency_limit(lp)
+        except ConfigError:       # no integrator pole at the origin: the finite one
+            J = J_at
         off = float(np.max(np.abs(J - np.eye(2))))
         rows.append({"label": label, "correction": None if corr is None else corr.to_dict(),
                      "grid": g, "boundary": (Bgrid, Kmax), "stable_area": area,
                      "worst_distortion": math.inf if bad else worst,
                      "worst_distortion_renderable": worst, "unrenderable": bad,
-                     "jacobian": J.tolist(), "off_identity": off,
+                     "jacobian": J.tolist(), "jacobian_finite": J_at.tolist(),
+                     "off_identity": off,
                      "tangent": bool(off < TANGENT_TOL)})
         if progress is not None:
             progress(i + 1, total, label)
@@ -183,60 +276,9 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
     for r in rows:
         r["stable_area_ratio"] = (r["stable_area"] / a0) if a0 else None
     return {"loop": base.to_dict(), "k_range": (k_lo, k_hi), "b_range": (b_lo, b_hi),
+            "stable_area_method": f"sampled ({n_boundary})",
+            "jacobian_at": {"limit": "K, B -> 0", "finite_normalised": TANGENCY_AT},
             "window": (float(Kw), float(Bw)), "b0": b0, "tangent_tol": TANGENT_TOL,
             "n": n, "rows": rows}
 
 
-def passivity_time_domain(loop: LoopModel, K: float, B: float, *, duration: float = 2.0,
-                          x0: float = 0.005) -> dict:
-    """The passivity controller beside the plain element, in the time domain only.
-
-    Hannaford & Ryu's passivity observer/controller (``safety.passivity_controller`` of
-    ``hapsim run``) is nonlinear: it has no P, Q, R and no grid. It is compared by running
-    the lockstep daemon on a one-link wall ``(K, B)`` with and without it (energy limit
-    raised to 100 J, position limit 10 m, so that only the loop decides).
-
-    Parameters
-    ----------
-    loop : LoopModel
-        Rigid device without correction (mass, friction, rate, delay, hold).
-    K, B : float
-        Virtual wall [N/m], [N s/m]; typically beyond the plain ``K_max(B)``.
-    duration : float, optional
-        Run length [s].
-    x0 : float, optional
-        Initial displacement into the wall [m].
-
-    Returns
-    -------
-    dict
-        ``{"plain": run, "passivity_controller": run}``, each with ``bounded`` (the run
-        lasted its duration with no safety stop), ``ticks``, ``stop_reason``,
-        ``energy_excess_max_j`` [J], ``passivity_samples`` (samples where the controller
-        damped), ``v_max`` [m/s], ``f_max`` [N] and the equivalent felt ``k``, ``b`` of a
-        linear fit (for the nonlinear run only an indication; None when not identified).
-    """
-    from hapsim.daemon.runner import run_scene
-    from hapsim.scene import parse_scene
-
-    out = {}
-    for key, pc in (("plain", "false"), ("passivity_controller", "true")):
-        text = f"""
-rate_hz: {loop.rate_hz!r}
-masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
-links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {float(K)!r},
-          damping: {float(B)!r}}}]
-device: {{mass: {loop.mass!r}, friction: {loop.friction!r}, delay: {loop.delay},
-          hold: {loop.hold}, force_limit: 1000000.0}}
-excitation: {{x0: {float(x0)!r}}}
-safety: {{passivity_controller: {pc}, energy_limit: 100.0, position_limit: 10.0}}
-"""
-        rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
-                        handle_signals=False, duration=duration, allow_unstable=True)
-        lp, ms = rep["loop"], rep["measured"]
-        out[key] = {"bounded": not lp["safety_stop"] and lp["ticks"] >= lp["requested"],
-                    "ticks": lp["ticks"], "stop_reason": lp["stop_reason"],
-                    "energy_excess_max_j": lp["energy_excess_max_j"],
-                    "passivity_samples": lp["passivity_samples"], "v_max": lp["v_max"],
-                    "f_max": lp["f_max"], "k": ms.get("k"), "b": ms.get("b")}
-    return {"K": float(K), "B": float(B), "duration": float(duration), **out}

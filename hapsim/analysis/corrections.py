@@ -4,7 +4,7 @@ Florens, Voda & Urma Secs. 6.3 and 7 name them as future work: "k, b distortion
 corrections", "additional speed and acceleration sensor ... to compensate the effect of
 delay". Each correction changes the force law ``F[n]`` computed from the samples; the force
 is applied ``d`` samples later under the hold, as for the plain loop
-``F[n] = -K x[n] - B (x[n] - x[n-1]) / T`` (DESIGN.md Sec. 4).
+``F[n] = -K x[n] - B (x[n] - x[n-1]) / T`` (docs/design.md, 'The characteristic equation').
 
 =========================  ==============================================================
 kind                       force law (``x``: handle position samples, ``v``: handle
@@ -451,7 +451,7 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
         Unknown hold; ``velocity_sensor`` with the ideal hold; ``inertia_compensation``
         with ``Mc`` not below the moving mass (handle + hand).
     """
-    from hapsim.analysis.network import _compliant, device_body
+    from hapsim.analysis.body import _compliant, device_body
 
     T = float(scene.period)
     if dev.hold == "zoh":

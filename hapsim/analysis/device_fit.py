@@ -1,8 +1,9 @@
 """Identify a 1-DoF device from a recorded force / position stream (``hapsim identify``).
 
-Model (DESIGN.md Sec. 4-5): ``m x'' + b0 x' = u(t) - fc sign(x')`` with the commanded force
-``u`` applied ``d`` whole samples after the position it answers and held over the period
-(zero-order hold) -- or the paper's idealised sampled image (Florens, Voda & Urma eq. (4));
+Model (docs/design.md, 'The THS'): ``m x'' + b0 x' = u(t) - fc sign(x')`` with the
+commanded force ``u`` applied ``d`` whole samples after the position it answers and held
+over the period (zero-order hold) -- or the paper's idealised sampled image (Florens, Voda &
+Urma eq. (4));
 the encoder rounds to a quantum ``q`` after Gaussian noise of standard deviation ``sigma``.
 
 Method
@@ -58,7 +59,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, IdentificationError
 
 __all__ = ["Estimate", "DeviceFit", "fit_device", "applied_force", "POSITION_FLOOR",
            "LEVEL"]
@@ -68,6 +69,8 @@ POSITION_FLOOR = 1e-10
 #: Confidence level of every interval.
 LEVEL = 0.999
 _HOLDS = {"zoh": 0, "ideal": 1}
+#: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
+_LM_RANGE = (math.log(1e-6), math.log(1e6))
 
 
 @dataclass
@@ -349,12 +352,26 @@ class _Stretched:
         self.sid = np.repeat(np.arange(self.starts.size), lens)
         self.offs = np.concatenate([[0], np.cumsum(lens)[:-1]])
         self.dir_i = self.dirs[self.sid]
+        self._longest = int(lens.max()) if lens.size else 1
+        self._bad = np.ones(self.idx.size)
 
     def _solve(self, lm, b0):
+        i = self.idx
+        # outside the physical range the basis overflows (a negative b0 on a light mass
+        # grows as exp(|b0| t / m)) and the least squares below would get NaN (LAPACK's
+        # "DLASCL illegal value" on stdout): the optimiser gets a residual far worse than
+        # any physical model's instead (1 m per sample), so it steps back
+        if not (_LM_RANGE[0] < lm < _LM_RANGE[1] and math.isfinite(b0)
+                and abs(b0) * self.T * self._longest < 50.0 * math.exp(lm)):
+            return self._bad, np.zeros(2), np.zeros(self.starts.size), np.zeros(
+                self.starts.size)
         m = math.exp(lm)
         self._basis(self.u, self.starts, self.ends, m, b0, self.T, self.hold,
                     self._yu, self._g, self._c)
-        i = self.idx
+        if not (np.all(np.isfinite(self._g[i])) and np.all(np.isfinite(self._yu[i]))
+                and np.all(np.isfinite(self._c[i]))):
+            return self._bad, np.zeros(2), np.zeros(self.starts.size), np.zeros(
+                self.starts.size)
         t = self.x[i] - self._yu[i]
         g = self._g[i]
         off = self.offs
@@ -438,17 +455,20 @@ def _fit_stretched(x, u, T, hold, st, starts):
     return mod, best
 
 
-def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0):
+def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=None):
     """Fit every (hold, delay): the correlation's guess from three starts, then the others
-    warm-started from it."""
+    warm-started from it. With ``known = (u, d)`` (the force the device applied, from its
+    account) only the holds are tried, at the device's delay ``d``."""
     inv = {v: k for k, v in _HOLDS.items()}
+    delays = range(int(max_delay) + 1) if known is None else (known[1],)
+    if known is not None:
+        d0 = known[1]
     first = (inv[h0] if inv[h0] in holds else holds[0], d0)
-    order = [first] + [(h, d) for h in holds for d in range(int(max_delay) + 1)
-                       if (h, d) != first]
+    order = [first] + [(h, d) for h in holds for d in delays if (h, d) != first]
     starts = [(math.log(m0), b) for b in (1.0, 0.1, 4.0)]
     cands = []
     for hname, d in order:
-        u = applied_force(f, d, late)
+        u = applied_force(f, d, late) if known is None else known[0]
         mod, res = _fit_stretched(x, u, T, _HOLDS[hname], st, starts)
         if res is None:
             continue
@@ -584,7 +604,7 @@ def _estimate(value, sd, z, unit, floor=0.0):
 
 
 def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
-               holds=("zoh", "ideal"), lag: int = 50) -> DeviceFit:
+               holds=("zoh", "ideal"), lag: int = 50, applied=None) -> DeviceFit:
     """Identify mass, friction, Coulomb friction, delay, hold, quantum and noise.
 
     Parameters
@@ -603,6 +623,12 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         Holds tried.
     lag : int >= 1
         Newey-West lag [samples].
+    applied : hapsim.analysis.applied.AppliedAccount, optional
+        The account of the force the device applied per sample (its ``force_seq``): the
+        fit is then driven by ``applied.applied``, the delay is the one the device showed
+        (``applied.delay``, exact: ``delay_range`` is that one value) and ``late`` and
+        ``max_delay`` are not used. Without it, the delays ``0 .. max_delay`` are tried
+        on ``force`` (a device that names no applied force).
 
     Returns
     -------
@@ -611,8 +637,11 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     Raises
     ------
     ConfigError
-        Arrays of different lengths, fewer than 200 samples, non-finite values, a force
-        that never acts (all zero), an invalid period, delay or hold.
+        Arrays of different lengths, an invalid period, delay or hold.
+    IdentificationError
+        A record that cannot be identified: fewer than 200 samples, non-finite values, a
+        force that never acts (all zero), too little motion, no model fitted, a fit that
+        fails numerically.
     """
     from scipy.stats import chi2, norm
     x = np.asarray(position, float)
@@ -621,13 +650,13 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         raise ConfigError(f"position and force must be 1-D of one length, got {x.shape} "
                           f"and {f.shape}", key="position")
     if x.size < 200:
-        raise ConfigError(f"too short a record: {x.size} samples, at least 200 are needed",
-                          key="position")
+        raise IdentificationError(f"too short a record: {x.size} samples, at least 200 are "
+                                  f"needed")
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(f))):
-        raise ConfigError("the record holds non-finite samples", key="position")
+        raise IdentificationError("the record holds non-finite samples")
     if not np.any(f):
-        raise ConfigError("the force is zero throughout: nothing excites the device",
-                          key="force")
+        raise IdentificationError("the force is zero throughout: nothing excites the "
+                                  "device")
     if not (math.isfinite(period) and period > 0):
         raise ConfigError(f"must be a positive number [s], got {period!r}", key="period")
     if isinstance(max_delay, bool) or int(max_delay) != max_delay or max_delay < 0:
@@ -639,13 +668,30 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     n = x.size
     z = float(norm.ppf(0.5 + LEVEL / 2))
     cands = []
-    d0, h0, m0 = _correlation(x, f, T, max_delay)
+    known = None
+    if applied is not None:
+        u = np.asarray(applied.applied, float)
+        if u.shape != x.shape or not np.all(np.isfinite(u)):
+            raise ConfigError(f"the applied force must be finite, of the positions' length "
+                              f"{x.shape}, got {u.shape}", key="applied")
+        if applied.delay < 0:
+            raise IdentificationError("the device never reported applying a force (no "
+                                      "STATE with FORCE_APPLIED): nothing to fit")
+        if not np.any(u):
+            raise IdentificationError("the applied force is zero throughout: nothing "
+                                      "excited the device")
+        known = (u, int(applied.delay))
+        # the correlation sees the applied force: its delay is 0 by construction
+        _, h0, m0 = _correlation(x, u, T, 2)
+        d0 = known[1]
+    else:
+        d0, h0, m0 = _correlation(x, f, T, max_delay)
     q = _quantum(x)
     st = _stretches(x, q.value)
     if st[0].size == 0 or int(np.sum(st[1] - st[0])) < 100:
-        raise ConfigError("the device hardly moved: fewer than 100 samples of clear motion "
-                          "(raise --force-limit or --duration)", key="position")
-    cands = _search(x, f, T, late, holds, max_delay, st, d0, h0, m0)
+        raise IdentificationError("the device hardly moved: fewer than 100 samples of "
+                                  "clear motion (raise --force-limit or --duration)")
+    cands = _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known)
     if cands:
         # a stretch the best model misses by far hides an unseen reversal of the velocity
         # (Coulomb friction flips there): drop such stretches and fit again
@@ -658,9 +704,9 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             st = tuple(a_[keep] for a_ in st)
             b_ = best
             cands = _search(x, f, T, late, holds, max_delay, st, b_["delay"],
-                            _HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]))
+                            _HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]), known)
     if not cands:
-        raise ConfigError("no model could be fitted to the record", key="position")
+        raise IdentificationError("no model could be fitted to the record")
     # the nonlinear refinement (Coulomb reversals inside a stretch) for the two best
     cands.sort(key=lambda c: c["cost"])
     for c in cands[:2]:
@@ -686,6 +732,11 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         ym, p, J, n_nuis = mod.full(best["_res"].x)
     xi = x[mod.idx]
     r = ym - xi
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r)) and np.all(np.isfinite(p))):
+        # never hand LAPACK a non-finite matrix (it prints "DLASCL illegal value" on stdout)
+        raise IdentificationError("the fit diverged (non-finite model): the record does "
+                                  "not determine the device (raise --force-limit or "
+                                  "--duration, or check the device's delay)")
     cov = _hac(J, r, lag, n_nuis)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     m = math.exp(p[0])
@@ -722,6 +773,17 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                     cp = e
                 else:
                     cn = e
+    if mod.coulomb:
+        # a direction the device never clearly moved in says nothing of its Coulomb
+        # friction: [0, inf) (its value: the other direction's), and the mean is as
+        # unknown above
+        seen = (bool(np.any(mod.dir_i > 0)), bool(np.any(mod.dir_i < 0)))
+        if not all(seen):
+            known_e = cp if seen[0] else cn
+            free = Estimate(known_e.value, 0.0, math.inf, "N")
+            cp, cn = (known_e, free) if seen[0] else (free, known_e)
+            cm = Estimate(known_e.value, min(0.5 * known_e.lo, known_e.lo), math.inf, "N")
+            asym = Estimate(0.0, -math.inf, math.inf, "N")
     xm = np.full(n, np.nan)
     xm[mod.idx] = ym
     # the model output's own uncertainty per sample: a fitted linear model of k

@@ -10,7 +10,8 @@ For every member the closed-loop state matrix of the whole scene
 (:func:`hapsim.analysis.network.closed_loop`) differs only in its plant rows, so the
 family is one stack of matrices and one batched ``numpy.linalg.eigvals`` call. The felt
 pair is the least damped complex pair, ``k = m |s|^2``, ``b = -2 m Re s`` with ``m`` the
-member's total moving mass (handle + hand), ``s = ln(z)/T`` (DESIGN.md Sec. 4).
+member's total moving mass (handle + hand), ``s = ln(z)/T`` (docs/design.md,
+'The inverse map').
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.hand import (HAND_FIELDS, body_zoh, hand_stiffness, ideal_rows,
-                                  members as hand_members)
-from hapsim.analysis.loop import STABILITY_TOL, zoh_state_space
+from hapsim.analysis.hand import HAND_FIELDS, hand_stiffness
+from hapsim.analysis.family_loops import (family_matrices, family_members, family_poles,
+                                          full_members)
+from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
 
@@ -31,146 +33,6 @@ __all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "fa
            "felt_pairs",
            "felt_links", "family_error", "calibrate_family", "consistency",
            "family_members"]
-
-
-def family_members(scene, samples: int | None = None, *, grid: int = 9,
-                   seed: int = 0) -> np.ndarray:
-    """The members of a scene's hand family (one row, the rigid no-hand body, without one).
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        With a port and a device.
-    samples, grid, seed
-        As :func:`hapsim.analysis.hand.members`.
-
-    Returns
-    -------
-    ndarray, shape (n, 5)
-        ``(mh, bh, kg, bg, kh)`` per member; without a hand, ``[[0, 0, inf, 0, 0]]``.
-    """
-    hand = getattr(scene.device, "hand", None)
-    if hand is None:
-        return np.array([[0.0, 0.0, math.inf, 0.0, 0.0]])
-    return hand_members(hand, samples, grid=grid, seed=seed)
-
-
-def _full(mem) -> np.ndarray:
-    """Members as rows of every :data:`HAND_FIELDS` (a 4-column member has ``kh = 0``)."""
-    mem = np.atleast_2d(np.asarray(mem, float))
-    if mem.shape[1] < len(HAND_FIELDS):
-        mem = np.concatenate([mem, np.zeros((mem.shape[0], len(HAND_FIELDS) - mem.shape[1]))],
-                             axis=1)
-    return mem
-
-
-def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
-    """Closed-loop state matrices of a scene for every member of its hand family.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        Validated scene with a port and a device (a device correction adds its state,
-        :func:`hapsim.analysis.corrections.corrected_frame`).
-    mem : ndarray, shape (n, 4)
-        Members ``(mh, bh, kg, bg)``; the grip is rigid (``kg = inf``) for all or none.
-    calibrated : mapping, optional
-        ``{link: (K, B)}`` overrides (target links).
-    integrator : str, optional
-        Scheme of the virtual masses (default the scene's).
-
-    Returns
-    -------
-    A : ndarray, shape (n, s, s)
-        ``A[i]`` equals :func:`hapsim.analysis.network.closed_loop` ``(scene,
-        member=mem[i])`` (same layout), built from one frame and the stacked plants.
-    names : list of str
-        State names.
-
-    Raises
-    ------
-    ConfigError
-        A scene without a port or device, rigid and compliant members mixed.
-    """
-    from hapsim.analysis.network import (_frame, check_integrator, network, virtual_blocks,
-                                         virtual_state_names)
-
-    if scene.port is None or scene.device is None:
-        raise ConfigError("a family needs a scene with a port and a device section",
-                          file=scene.path, key="device")
-    dev = scene.device
-    mem = np.atleast_2d(np.asarray(mem, float))
-    finite = np.isfinite(mem[:, 2])
-    if finite.any() and not finite.all():
-        raise ConfigError("members mix rigid and compliant grips", key="device.hand")
-    integrator = integrator or getattr(scene, "integrator", None) or "centred"
-    check_integrator(integrator, scene)
-    net = network(scene, calibrated)
-    T = scene.period
-    blocks = virtual_blocks(net, integrator, T)
-    corr = getattr(dev, "correction", None)
-    if corr is not None and corr.get("kind") == "inertia_compensation" and not (
-            float(corr.get("mass", 0.0)) < float(dev.mass) + mem[:, 0].min()):
-        raise ConfigError(f"compensated mass {corr.get('mass')} kg must stay below the "
-                          f"moving mass of every member (least {float(dev.mass) + mem[:, 0].min():g}"
-                          " kg)", file=scene.path, key="device.correction.mass")
-    A0, u, nplant, names = _frame(scene, dev, scene.port.name, *blocks,
-                                  virtual_state_names(net, integrator), mem[0],
-                                  correction=corr)
-    n = mem.shape[0]
-    A = np.repeat(A0[None], n, axis=0)
-    m, b0 = float(dev.mass), float(dev.friction)
-    kh = hand_stiffness(mem)
-    if finite.all() or (dev.hold == "zoh" and np.any(kh > 0)):
-        Aw, Bd = body_zoh(m, b0, mem, T)
-        Ad = Aw + np.eye(Aw.shape[-1])
-    elif dev.hold == "zoh":
-        Ad = np.empty((n, 2, 2))
-        Bd = np.empty((n, 2))
-        for i in range(n):
-            Ad[i], Bd[i] = zoh_state_space(m + mem[i, 0], b0 + mem[i, 1], T)
-    else:
-        mass = m + mem[:, 0]
-        x = (b0 + mem[:, 1]) * T / mass
-        a = np.exp(-x)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c = np.where(x > 0, x / -np.expm1(-x), 1.0)
-        tr, det, g = 1.0 + a, a, T * T / (mass * c)
-        if np.any(kh > 0):            # the arm's real spring: impulse-invariant image
-            tr, det, g = ideal_rows(mass, b0 + mem[:, 1], kh, T)
-        A[:, 0, 0] = tr
-        A[:, 0, 1] = -det
-        A[:, 0, :] += g[:, None] * u[None, :]
-        return A, names
-    A[:, :nplant, :nplant] = Ad
-    A[:, :nplant, :] += Bd[:, :, None] * u[None, None, :]
-    return A, names
-
-
-def family_poles(scene, mem: np.ndarray, *, calibrated=None) -> np.ndarray:
-    """Closed-loop poles of every member, shape (n, s).
-
-    Eigenvalues of :func:`family_matrices` (one batched ``numpy.linalg.eigvals`` call),
-    with or without a device correction, for any scene with a port.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-    mem : ndarray, shape (n, 4)
-    calibrated : mapping, optional
-        ``{link: (K, B)}``.
-
-    Returns
-    -------
-    ndarray of complex, shape (n, s)
-
-    Raises
-    ------
-    ConfigError
-        As :func:`family_matrices`.
-    """
-    A, _ = family_matrices(scene, mem, calibrated=calibrated)
-    return np.linalg.eigvals(A)
 
 
 def felt_pairs(ev: np.ndarray, mass, period: float):
@@ -301,11 +163,28 @@ class FamilyResult:
     links: dict = field(default_factory=dict)
     calibrated: dict = field(default_factory=dict)
     period: float = 1e-3
+    certificate: object = None
 
     @property
     def robust(self) -> bool:
-        """Whether every member is stable (robust stability over the family)."""
+        """Whether no member is known unstable: every sampled member stable and, when the
+        ranges were certified (:mod:`hapsim.analysis.robust`), no unstable member found
+        between them. Over the continuous ranges only when :attr:`robust_method` is
+        ``"certified"``."""
+        cert = self.certificate
+        if cert is not None and cert.certified and not cert.robust:
+            return False
         return bool(np.all(self.stable))
+
+    @property
+    def robust_method(self) -> str:
+        """``"certified"`` (the verdict holds for every member of the continuous ranges:
+        proven by :func:`hapsim.analysis.robust.certify_family`, or an unstable member is a
+        proof) or ``"sampled (N)"`` (N members examined, nothing said between them)."""
+        cert = self.certificate
+        if not np.all(self.stable) or (cert is not None and cert.certified):
+            return "certified"
+        return f"sampled ({self.members.shape[0]})"
 
     @property
     def worst(self) -> int:
@@ -327,7 +206,10 @@ class FamilyResult:
         Returns
         -------
         dict
-            ``members`` (count), ``corners``, ``robust``, ``worst`` (:meth:`member_dict`),
+            ``members`` (count), ``corners``, ``robust``, ``robust_method``
+            (:attr:`robust_method`), ``certificate`` (the subdivision's
+            :meth:`hapsim.analysis.robust.Certificate.to_dict`, or None), ``worst``
+            (:meth:`member_dict`),
             ``unstable`` (count), ``first_unstable`` (member dict or None),
             ``corners_stable``, ``felt`` (``k``, ``b`` stats: min, max, nominal, spread =
             (max - min) / nominal), ``links`` (per link: K, B and the same stats),
@@ -340,7 +222,10 @@ class FamilyResult:
             links[name] = {"K": d["K"], "B": d["B"], "k": _stats(d["k"], d["k"][nom]),
                            "b": _stats(d["b"], d["b"][nom])}
         return {"members": int(self.members.shape[0]), "corners": int(self.corners),
-                "robust": self.robust, "unstable": int(bad.size),
+                "robust": self.robust, "robust_method": self.robust_method,
+                "certificate": (None if self.certificate is None
+                                else self.certificate.to_dict()),
+                "unstable": int(bad.size),
                 "corners_stable": bool(np.all(self.stable[:self.corners])),
                 "worst": self.member_dict(self.worst),
                 "first_unstable": self.member_dict(int(bad[0])) if bad.size else None,
@@ -351,7 +236,8 @@ class FamilyResult:
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
-           calibrated=None, mem: np.ndarray | None = None) -> FamilyResult:
+           calibrated=None, mem: np.ndarray | None = None,
+           certify: int = 0) -> FamilyResult:
     """Felt (k, b), spectral radius and verdict of every member of a scene's hand family.
 
     Parameters
@@ -371,6 +257,10 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     mem : ndarray, shape (n, 4), optional
         Explicit members (overrides ``samples``/``grid``; no corners then: ``corners = 0``
         and row 0 is taken as nominal).
+    certify : int, optional
+        When > 0 and every sampled member is stable, certify the verdict over the
+        continuous ranges with at most this many boxes
+        (:func:`hapsim.analysis.robust.certify_family`); 0: sampled only.
 
     Returns
     -------
@@ -393,7 +283,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         if hand is not None:
             from hapsim.analysis.hand import ranged_fields
             corners = 2 ** len(ranged_fields(hand))
-    mem = _full(mem)
+    mem = full_members(mem)
     T = scene.period
     mass = float(scene.device.mass) + mem[:, 0]
     k, b, rho, stable = felt_pairs(family_poles(scene, mem, calibrated=calibrated), mass, T)
@@ -407,8 +297,13 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
             lk_k, lk_b, _, _ = felt_pairs(family_poles(sub, mem, calibrated=cal), mass, T)
         links[lk.name] = {"K": K, "B": B, "k": lk_k, "b": lk_b,
                           "target": None if lk.target is None else tuple(lk.target)}
+    cert = None
+    if certify > 0 and np.all(stable):
+        from hapsim.analysis.robust import certify_family
+        cert = certify_family(scene, calibrated, max_boxes=int(certify))
     return FamilyResult(members=mem, corners=corners, mass=mass, rho=rho, stable=stable,
-                        k=k, b=b, links=links, calibrated=dict(calibrated), period=T)
+                        k=k, b=b, links=links, calibrated=dict(calibrated), period=T,
+                        certificate=cert)
 
 
 # --------------------------------------------------------------------------- minimax
@@ -551,7 +446,7 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
     k, b = float(k), float(b)
     if mem is None:
         mem = family_members(scene, samples, grid=grid, seed=seed)
-    mem = _full(mem)
+    mem = full_members(mem)
     hand = getattr(scene.device, "hand", None)
     ncorner = 0
     if hand is not None:

@@ -149,8 +149,19 @@ def _zoh(A: np.ndarray, b: np.ndarray, T: float):
     return (A * T) @ F, np.matmul(F, b[..., None])[..., 0] * T
 
 
-def _rigid_matrices(mass, friction, stiffness):
-    """``A`` (stack, 2x2) and ``b`` of ``m x'' + b x' + k x = f``, state ``[x, v]``."""
+def rigid_matrices(mass, friction, stiffness):
+    """``A`` (stack, 2x2) and ``b`` of ``m x'' + b x' + k x = f``, state ``[x, v]``.
+
+    Parameters
+    ----------
+    mass, friction, stiffness : array_like (broadcast together)
+        ``m`` [kg], ``b`` [N s/m], ``k`` [N/m].
+
+    Returns
+    -------
+    A : ndarray, shape (..., 2, 2)
+    b : ndarray, shape (..., 2)
+    """
     m, c, k = np.broadcast_arrays(*(np.asarray(v, float) for v in (mass, friction, stiffness)))
     A = np.zeros(m.shape + (2, 2))
     A[..., 0, 1] = 1.0
@@ -191,7 +202,7 @@ def body_zoh(mc: float, bc: float, member, period: float):
     p = np.asarray(member, dtype=float)
     if np.all(np.isfinite(p[..., 2])):
         return hand_zoh(mc, bc, p, period)
-    A, b = _rigid_matrices(mc + p[..., 0], bc + p[..., 1], hand_stiffness(p))
+    A, b = rigid_matrices(mc + p[..., 0], bc + p[..., 1], hand_stiffness(p))
     return _zoh(A, b, float(period))
 
 
@@ -220,7 +231,7 @@ def ideal_rows(mass, friction, stiffness, period: float):
     ``g = T sin(w0 T) / (m w0)``. The response to impulses ``T f[n]`` at ``nT`` has a
     numerator ``z`` only since ``h(0) = 0``.
     """
-    A, b = _rigid_matrices(mass, friction, stiffness)
+    A, b = rigid_matrices(mass, friction, stiffness)
     T = float(period)
     W = (A * T) @ _phi1_balanced(A, T)          # e^(AT) - I
     tr = 2.0 + W[..., 0, 0] + W[..., 1, 1]

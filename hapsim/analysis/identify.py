@@ -1,7 +1,7 @@
 """Identification of the modes of a sampled free response (matrix pencil).
 
-This is the measuring half of the closed-THS check (DESIGN.md Sec. 5): the mock device
-(or a real one) records the position samples ``y[n]`` of the free closed loop; the poles
+This is the measuring half of the closed-THS check (docs/design.md, 'Identification'): the
+mock device (or a real one) records the position samples ``y[n]`` of the free closed loop; the poles
 of the loop are identified from ``y`` alone and converted to modes (``s = ln(z)/T``,
 ``k = m |s|^2``, ``b = -2 m Re(s)``) to be compared with the prediction of
 :func:`hapsim.analysis.loop.render`.
@@ -38,7 +38,9 @@ from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
            "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
-           "quantisation_bound", "sensor_error_response", "RANK_TOL"]
+           "quantisation_bound", "sensor_error_response", "disturbance_response",
+           "force_error_response",
+           "RANK_TOL"]
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
 #: the model order is cut to the numerical rank (Sarkar & Pereira, "Using the matrix pencil
@@ -164,7 +166,7 @@ def fit_modes(y, period: float, order: int, mass: float, *, offset: bool = False
         Model order: number of non-zero poles excited in ``y`` (a pair counts 2).
     mass : float > 0
         Real mass ``m`` [kg] used to express each pole as ``k = m |s|^2`` [N/m] and
-        ``b = -2 m Re(s)`` [N s/m] (DESIGN.md Sec. 4).
+        ``b = -2 m Re(s)`` [N s/m] (docs/design.md, 'The inverse map').
     offset : bool, default False
         The signal has a constant offset: difference it first (exact, module docstring).
     pencil : int, optional
@@ -392,7 +394,7 @@ def _mode_of(spec_item, mass, period):
 
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
-                 pencil: int | None = None, sensor_response=None) -> dict:
+                 pencil: int | None = None, sensor_response=None, wire=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor.
 
@@ -415,7 +417,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     period : float > 0
         Sample period T [s].
     mass : float > 0
-        Real mass m [kg] (``k = m |s|^2``, ``b = -2 m Re s``, DESIGN.md Sec. 4).
+        Real mass m [kg] (``k = m |s|^2``, ``b = -2 m Re s``, docs/design.md,
+        'The inverse map').
     predicted : array_like of complex, shape (M,)
         Predicted non-zero closed-loop poles seen at the port (conjugates included).
     felt : complex
@@ -433,6 +436,14 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         then ``sigma_e^2 (J^T J)^-1 J^T F F^T J (J^T J)^-1`` with F the (lower triangular
         Toeplitz) filter matrix: the least-squares covariance under coloured noise
         (Seber & Wild 1989, Sec. 2.1.4). Default: white (observed only).
+    wire : sequence of (float, array_like), optional
+        Errors of the wire's number format, each ``(sd, response)``: a standard deviation
+        (bounding the format's rounding: ``u |v|_max / sqrt(3)`` for a rounding of relative
+        size at most ``u``, uniform; ``s / sqrt(12)`` for a step ``s``) and its impulse
+        response to the logged position. They do not make the record noisy for the choice
+        of path (a float32 record is exact to its rounding), but the stated half-interval
+        covers them: ``k_sd_wire = sqrt(sum sd_i^2 g' S_i g)`` with ``S_i`` the coloured
+        covariance of ``response_i`` (as the sensor's).
 
     Returns
     -------
@@ -446,7 +457,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         at the window start), ``cycles`` (oscillation cycles above the floor). Or
         ``error`` (str) when the record cannot support a measurement: the oscillation
         below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
-        that level.
+        that level, or the record is constant (``at_rest`` True: the loop never moved).
 
     Raises
     ------
@@ -460,6 +471,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     floor = sensor_sd(quantum, noise)
     order = int(order if order is not None else predicted.size)
     amp0 = float(np.max(np.abs(y - (np.median(y[-max(y.size // 10, 1):]) if offset else 0.0))))
+    if y.size and np.all(np.isfinite(y)) and amp0 == 0.0:
+        # a loop at rest (no excitation, or x0 = 0 on the rest position): a valid record
+        # with nothing in it to identify (and log(0) below)
+        return {"error": "the record is constant: the loop never moved (a scene at rest; "
+                         "give it an excitation: x0, v0, impulse or profile)",
+                "at_rest": True, "amplitude": 0.0}
     if floor == 0.0:
         md = None
         try:
@@ -478,8 +495,9 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 zf = complex(felt) if complex(felt).imag >= 0 else complex(felt).conjugate()
                 fi = min((i for i, s in enumerate(spec) if s[0] == "pair"),
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
-                return _result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
-                               method="pencil", skipped=0)
+                return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
+                                          method="pencil", skipped=0),
+                                  spec, fi, y, offset, wire, mass, period)
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
@@ -538,14 +556,36 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
             best = (sp, cost)
     spec = best[0]
     rms, cov, c = _covariance(spec, yw, offset, sensor_response)
-    return _result(spec, fi, cov, rms, floor, mass, period, yw, offset, method="varpro",
-                   skipped=skip, step=max(float(quantum), floor))
+    return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
+                              method="varpro", skipped=skip, step=max(float(quantum), floor)),
+                      spec, fi, yw, offset, wire, mass, period)
+
+
+def _with_wire(out, spec, fi, y, offset, wire, mass, period):
+    """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
+    ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too."""
+    if not wire:
+        return out
+    i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
+    g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    vk = vb = 0.0
+    for sd, resp in wire:
+        if not sd > 0:
+            continue
+        _, (_, col), _ = _covariance(spec, y, offset, resp)
+        vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)
+        vb += sd * sd * max(float(g_b @ col @ g_b), 0.0)
+    out["k_sd_wire"], out["b_sd_wire"] = math.sqrt(vk), math.sqrt(vb)
+    out["k_unc"] = max(out["k_unc"], COVERAGE * out["k_sd_wire"])
+    out["b_unc"] = max(out["b_unc"], COVERAGE * out["b_sd_wire"])
+    return out
 
 
 def _kb_gradients(spec, fi, i, *, mass, period):
-    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma`` (DESIGN.md Sec. 4;
-    ``sigma = a / T``, ``omega = w / T``) over the nonlinear parameters of ``spec``; the
-    pair ``spec[fi]`` has its ``(a, w)`` at index ``i``."""
+    """Gradients of ``k = m (sigma^2 + omega^2)`` and ``b = 2 m sigma``
+    (docs/design.md, 'The inverse map'; ``sigma = a / T``, ``omega = w / T``) over the
+    nonlinear parameters of ``spec``; the pair ``spec[fi]`` has its ``(a, w)`` at index
+    ``i``."""
     n = sum(2 if s[0] == "pair" else 1 for s in spec)
     sig, om = spec[fi][1] / period, spec[fi][2] / period
     g_k, g_b = np.zeros(n), np.zeros(n)
@@ -822,4 +862,100 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     for i in range(1, n):
         out[i] = s[0]
         s = A @ s + (h if i == 1 else 0.0)
+    return out
+
+
+def force_error_response(scene, n: int) -> np.ndarray:
+    """Impulse response from a force error at the device to the logged position [m/N].
+
+    ``h[0] = 0``, ``h[k] = c A^(k-1) b`` (``A``: :func:`hapsim.analysis.network.closed_loop`,
+    ``b``: :func:`hapsim.analysis.network.force_input`, ``c``: the logged position): how a
+    force held over one period that differs from the one computed (a late tick, a wire's
+    rounding) moves the handle afterwards, the loop closed.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated, calibrated scene with a port and a device.
+    n : int
+        Length.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from hapsim.analysis.network import closed_loop, force_input
+
+    h = np.zeros(max(int(n), 0))
+    if h.size < 2:
+        return h
+    A, _ = closed_loop(scene)
+    s = force_input(scene)
+    for k in range(1, h.size):
+        h[k] = s[0]
+        s = A @ s
+    return h
+
+
+def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
+    """Logged-position response of the closed loop to a known force disturbance.
+
+    A late tick holds an older force than the loop's ``u[n] = F[n-d]``: the device applied
+    ``u[n] + w[n]`` with ``w[n]`` known from its STATEs
+    (:meth:`hapsim.analysis.applied.AppliedAccount.disturbance`). The loop is linear, so the
+    record is the undisturbed loop's plus ``x_w[n] = sum_{j<n} c A^(n-1-j) b w[j]`` with
+    ``A`` of :func:`hapsim.analysis.network.closed_loop`, ``b`` of
+    :func:`hapsim.analysis.network.force_input` and ``c`` the logged position (state 0):
+    the convolution of ``w`` with the loop's impulse response (superposition of a linear
+    time-invariant system driven by a known input).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated, calibrated scene with a port and a device.
+    w : array_like, shape (n,)
+        Disturbance force per sample [N].
+    starts : array_like of int, optional
+        Rows where the record restarts (a gap in the STATEs, the scene restarted after a
+        recovery): the response is summed within each stretch only, from its first row
+        (what came before is the stretch's initial state, i.e. part of its free response).
+    response : ndarray, optional
+        :func:`force_error_response` of the scene, at least ``n`` long (computed when
+        None).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``x_w`` [m].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from scipy.signal import fftconvolve
+
+    w = np.asarray(w, float)
+    n = w.size
+    out = np.zeros(n)
+    nz = np.flatnonzero(w)
+    if n < 2 or nz.size == 0:
+        return out
+    h = force_error_response(scene, n) if response is None else np.asarray(response, float)
+    edges = sorted({0, n, *(int(a) for a in (starts if starts is not None else ())
+                            if 0 < int(a) < n)})
+    for a, b in zip(edges[:-1], edges[1:]):
+        seg = w[a:b]
+        k = np.flatnonzero(seg)
+        if k.size == 0:
+            continue
+        first = a + int(k[0])             # the response is needed from here to b
+        m = b - first
+        out[first:b] = (fftconvolve(w[first:b], h[:m])[:m] if m > 64
+                        else np.convolve(w[first:b], h[:m])[:m])
     return out

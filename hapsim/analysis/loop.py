@@ -1,7 +1,7 @@
 """The sampled THS loop: real mass + friction, hold, delay, virtual spring/damper.
 
-Real side ``m x'' + b0 x' = f`` (DESIGN.md Sec. 4). The pulse transfer from force samples to
-position samples is ``G(z) = N(z) / D(z)``; the virtual element is
+Real side ``m x'' + b0 x' = f`` (docs/design.md, 'The characteristic equation'). The pulse
+transfer from force samples to position samples is ``G(z) = N(z) / D(z)``; the virtual element is
 ``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1]) / T``; the closed loop is
 
     z^(d+1) D(z) + N(z) (K z + (B/T)(z - 1)) = 0,  i.e.  P K + Q B + R = 0,
@@ -31,10 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, MAX_PRODUCT, RATE_RANGE, check_product
 
 __all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
            "MASS_RANGE", "MAX_PRODUCT", "check_range", "check_product", "plant", "characteristic", "closed_loop_poles",
-           "zoh_state_space", "spectral_radius", "STABILITY_TOL"]
+           "zoh_state_space", "spectral_radius", "spectral_radius_known", "STABILITY_TOL"]
 
 #: Valid values of :attr:`LoopModel.hold`.
 HOLDS = ("zoh", "ideal")
@@ -45,28 +46,6 @@ HOLDS = ("zoh", "ideal")
 #: e.g. the centred-difference oscillator, sit on the unit circle up to round-off, so the
 #: sign of ``|z| - 1`` there says nothing).
 STABILITY_TOL = 1e-9
-
-#: Largest delay [samples] the analysis accepts. The closed loop has ``d + 3`` poles, found
-#: as the eigenvalues of a dense ``(d + 3)``-square companion (state) matrix: ``O(d^3)``
-#: time, about 0.4 s at ``d = 500`` on one idle core (1.7 s at 1000, several times more on a
-#: loaded machine), and a stability limit needs several of them. 500 samples is 0.5 s at
-#: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
-#: timer is 16 samples at 1 kHz, 80 at 5 kHz).
-MAX_DELAY = 500
-
-
-#: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
-#: or ``1/T^2`` leave the double range long before any product is formed.
-RATE_RANGE = (1e-6, 1e9)
-#: Valid masses [kg] (device and virtual): 1 ng to 1e12 kg; a subnormal mass turns every
-#: ``T^2 / m`` into inf.
-MASS_RANGE = (1e-12, 1e12)
-#: Largest magnitude of the dimensionless loop products ``K T^2 / m`` (the spring's
-#: ``(omega T)^2``), ``B T / m`` and ``b0 T / m`` (damping per sample). Beyond 1e6 the spring
-#: rings a thousand times per sample or the damper settles in a millionth of one: no sampled
-#: loop renders that (every K above ``4 m / T^2`` is already unstable), and the
-#: characteristic coefficients would span more than the double range can resolve.
-MAX_PRODUCT = 1e6
 
 
 def check_range(value: float, lo: float, hi: float, key: str, unit: str) -> None:
@@ -89,33 +68,6 @@ def check_range(value: float, lo: float, hi: float, key: str, unit: str) -> None
     """
     if not lo <= value <= hi:
         raise ConfigError(f"must be between {lo:g} and {hi:g} {unit}, got {value:g}", key=key)
-
-
-def check_product(value: float, scale: float, key: str, unit: str, what: str) -> None:
-    """Refuse ``|value| * scale > MAX_PRODUCT`` (a dimensionless loop product).
-
-    Parameters
-    ----------
-    value : float
-        Physical value, e.g. ``K`` [N/m].
-    scale : float
-        Its factor to the dimensionless product, e.g. ``T^2 / m``.
-    key : str
-        Option or scene key named in the message.
-    unit : str
-        Unit of ``value``.
-    what : str
-        The product's formula, e.g. ``"K T^2/m"``.
-
-    Raises
-    ------
-    ConfigError
-        Naming the valid maximum ``MAX_PRODUCT / scale`` in ``unit``.
-    """
-    if abs(value) * scale > MAX_PRODUCT:
-        raise ConfigError(f"{value:g} {unit} is too large for this loop: |{what}| = "
-                          f"{abs(value) * scale:.3g} > {MAX_PRODUCT:g}; valid: |value| <= "
-                          f"{MAX_PRODUCT / scale:.6g} {unit} (at this mass and rate)", key=key)
 
 
 def check_delay(delay, key: str = "delay") -> None:
@@ -751,3 +703,63 @@ def spectral_radius(loop: LoopModel, K: float, B: float = 0.0) -> float:
         within :data:`STABILITY_TOL` of 1 the verdicts call the loop marginal.
     """
     return float(np.max(np.abs(closed_loop_poles(loop, K, B))))
+
+
+def spectral_radius_known(loop: LoopModel, K: float, B: float = 0.0) -> tuple[float, float]:
+    """Spectral radius with the precision to which double arithmetic knows it.
+
+    A pole of multiplicity ``m`` moves by ``~ (eta)^(1/m)`` under a relative perturbation
+    ``eta`` of the coefficients: at the stiffness limit of the undamped centred-difference
+    loop (ideal hold, ``d = 0``, ``K = 4 m / T^2``) the poles are a double root at
+    ``z = -1`` and any double-precision computation of their modulus is uncertain to
+    ~1e-7, so "1.0000000298" carries two digits of noise.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    K : float
+        Virtual stiffness [N/m].
+    B : float, optional
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    rho : float
+        ``max |z|`` (:func:`spectral_radius`) [-].
+    error : float
+        First-order bound on its error [-]: for the dominant pole ``z0`` and the smallest
+        ``m`` such that at most ``m`` computed poles lie within ``2 e_m`` of it,
+        ``e_m = (m! eta(z0) / |p^(m)(z0)|)^(1/m)`` with the backward error
+        ``eta(z) = 4 n eps sum_j |c_j| |z|^j`` of the degree-``n`` characteristic
+        polynomial in ``z`` (coefficients ``c_j``; Wilkinson, *Rounding Errors in
+        Algebraic Processes*, 1963, ch. 2: the perturbation of a multiple root).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`closed_loop_poles`.
+    """
+    kappa, beta = _scaled(loop, K, B)
+    c = np.trim_zeros(_char_poly_z(loop, kappa, beta), "f")
+    z = closed_loop_poles(loop, K, B)
+    mod = np.abs(z)
+    i0 = int(np.argmax(mod))
+    z0, rho = complex(z[i0]), float(mod[i0])
+    n = c.size - 1
+    if n < 1:
+        return rho, 0.0
+    eps = np.finfo(float).eps
+    eta = 4.0 * n * eps * float(np.polyval(np.abs(c), abs(z0)))
+    dist = np.abs(z - z0)
+    der = c.astype(float)
+    err = math.inf
+    for m in range(1, n + 1):
+        der = np.polyder(der)
+        dm = abs(complex(np.polyval(der, z0)))
+        if dm == 0.0:
+            continue
+        e = (math.factorial(m) * eta / dm) ** (1.0 / m)
+        if np.count_nonzero(dist <= 2.0 * e) <= m:
+            err = e
+            break
+    return rho, float(err)

@@ -10,7 +10,7 @@ has ``s`` (and its conjugate) as poles, with ``m`` the real (hand + handle) mass
 ``f0_hz`` is therefore the *undamped natural frequency* of the equivalent oscillator,
 not the damped frequency ``|Im s| / (2 pi)``; the two coincide for light damping.
 This is the inverse map of Florens, Voda & Urma, Sec. 5 ((K, B) -> (k, b)) and
-DESIGN.md Sec. 4.
+docs/design.md, 'The inverse map'.
 
 Real poles are kept as ``kind="real"`` modes, converted with the same formulas. For
 ``z in (0, 1)`` their ``k`` and ``b`` are those of the critically damped oscillator with a
@@ -179,7 +179,8 @@ def mode_from_pole(z: complex, mass: float, period: float, kind: str,
     Returns
     -------
     Mode
-        With ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (DESIGN.md Sec. 4).
+        With ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (docs/design.md,
+        'The inverse map').
     """
     z = complex(z)
     s = log_z(z, w) / period
@@ -263,8 +264,9 @@ def rendered_pair(modes) -> Mode | None:
     Returns
     -------
     Mode or None
-        The ``"pair"`` mode with the largest ``|z|`` (Florens et al. Sec. 5, DESIGN.md
-        Sec. 4) among those observable at the port (participation None or at least
+        The ``"pair"`` mode with the largest ``|z|`` (Florens et al. Sec. 5,
+        docs/design.md, 'The inverse map') among those observable at the port
+        (participation None or at least
         :data:`OBSERVABLE_TOL`), or None when there is no such pair.
     """
     best = None

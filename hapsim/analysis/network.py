@@ -1,6 +1,6 @@
 """The closed-loop state matrix of a scene coupled to its device, for every integrator.
 
-This is the one place that assembles it (DESIGN.md Sec. 4, last bullet): the whole sampled
+This is the one place that assembles it (docs/design.md, 'A whole scene'): the whole sampled
 THS (device plant, force delay line, every virtual mass integrated by the scene's
 ``integrator``, linearised links) is one linear recursion ``s[n+1] = A s[n]``; its
 eigenvalues are the closed-loop poles of the scene as the hand feels it.
@@ -67,6 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapsim.analysis.body import _compliant, _ideal_shift, body_stiffness, device_body
 from hapsim.analysis.loop import MAX_PRODUCT, check_product, zoh_state_space
 from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
@@ -74,7 +75,9 @@ from hapsim.scene import INTEGRATORS
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "device_body", "body_stiffness", "plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
-           "port_io", "rest_position", "MAX_STATES", "state_count", "check_size"]
+           "force_input",
+           "port_io", "rest_position", "static_stiffness", "MAX_STATES", "state_count",
+           "check_size"]
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -221,6 +224,51 @@ def network(scene, calibrated=None, *, gain: float = 1.0) -> Network:
     masses = np.array([scene.masses[i].mass for i in mob], dtype=float)
     port = scene.index(scene.port.name) if scene.port is not None else -1
     return Network(mob.size, masses, LK, LB, mob, port, [scene.masses[i].name for i in mob])
+
+
+def static_stiffness(scene, calibrated=None) -> float | None:
+    """Stiffness of the virtual network felt at the port by a slow push.
+
+    The force the scene returns per metre when the port is moved so slowly that every
+    virtual mass is at rest: grounds fixed, the other masses at their static equilibrium,
+    contacts engaged (as :func:`network`), dampers silent. A scene whose least damped mode
+    at the port is a mode of an object (a string's partial) is felt at that frequency with
+    the stiffness ``m (2 pi f0)^2`` of the loop's pole, far from this one.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene.
+    calibrated : mapping, optional
+        ``{link: (K, B)}`` overrides, as :func:`link_values`.
+
+    Returns
+    -------
+    float or None
+        ``k_static`` [N/m] >= 0; None without a port.
+
+    Raises
+    ------
+    ConfigError
+        See :func:`link_values`.
+
+    Notes
+    -----
+    With ``LK`` the stiffness Laplacian over the points, ``p`` the port and ``f`` the
+    moving masses, the Schur complement ``LK_pp - LK_pf LK_ff^+ LK_fp`` (static
+    condensation of the free points; Guyan, AIAA J. 3(2) 1965). The pseudo-inverse covers
+    masses tied to neither the port nor a ground: they carry no static force.
+    """
+    if scene.port is None:
+        return None
+    net = network(scene, calibrated)
+    p, f = net.port, net.mob
+    k = float(net.LK[p, p])
+    if f.size:
+        kff = net.LK[np.ix_(f, f)]
+        kfp = net.LK[f, p]
+        k -= float(kfp @ np.linalg.lstsq(kff, kfp, rcond=None)[0])
+    return max(k, 0.0)
 
 
 def _link_arrays(net: Network):
@@ -482,73 +530,41 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     return A, names
 
 
-def device_body(dev, member=None) -> tuple[float, float]:
-    """Total moving mass [kg] and friction [N s/m] of a device (handle + hand).
+def force_input(scene, member=None) -> np.ndarray:
+    """The column through which a force added to the one the device holds enters the
+    closed loop of :func:`closed_loop`: ``s[n+1] = A s[n] + b w[n]`` for a force ``w[n]``
+    [N] held over ``[nT, (n+1)T)`` on top of ``u[n] = F[n-d]`` (a late tick's known
+    disturbance, :mod:`hapsim.analysis.applied`).
 
     Parameters
     ----------
-    dev : hapsim.scene.Device
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device.
     member : array_like, shape (4,), optional
-        Hand member ``(mh, bh, kg, bg)``; default the nominal member of ``dev.hand``.
+        Hand member (default: nominal of ``device.hand``).
 
     Returns
     -------
-    (float, float)
-        ``(m + mh, b0 + bh)`` (``(m, b0)`` without a hand): the mass the felt
-        ``k = m |s|^2``, ``b = -2 m Re s`` are expressed with.
+    ndarray, shape (n,)
+        ``b``: the plant's ``Bd`` in its rows (``"zoh"``), ``T^2 / (m c)`` in the first
+        row (``"ideal"``, Florens et al. eq. (4)), 0 elsewhere (module notes: the force
+        enters the plant only).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`closed_loop`.
     """
-    from hapsim.analysis.hand import nominal_member
-
-    m, b0 = float(dev.mass), float(dev.friction)
-    hand = getattr(dev, "hand", None)
-    if member is None and hand is None:
-        return m, b0
-    mh, bh = (member if member is not None else nominal_member(hand))[:2]
-    return m + float(mh), b0 + float(bh)
-
-
-def body_stiffness(dev, member=None) -> float:
-    """Real stiffness to ground of a device's hand (``device.hand.stiffness``) [N/m].
-
-    Parameters
-    ----------
-    dev : hapsim.scene.Device
-    member : array_like, shape (4,) or (5,), optional
-        Hand member; default the nominal member of ``dev.hand``.
-
-    Returns
-    -------
-    float
-        ``kh`` (0 without a hand or for a 4-column member).
-    """
-    from hapsim.analysis.hand import hand_stiffness, nominal_member
-
-    hand = getattr(dev, "hand", None)
-    if member is None and hand is None:
-        return 0.0
-    return float(hand_stiffness(member if member is not None else nominal_member(hand)))
-
-
-def _ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
-    """``(tr, det, g)`` of the ideal hold's ``x[n+1] = tr x[n] - det x[n-1] + g f[n]``
-    (Florens et al. eq. (4); with the hand's stiffness the impulse-invariant image,
-    :func:`hapsim.analysis.hand.ideal_rows`)."""
-    mass, b0 = device_body(dev, member)
-    kh = body_stiffness(dev, member)
-    if kh > 0:
-        from hapsim.analysis.hand import ideal_rows
-        return tuple(float(v) for v in ideal_rows(mass, b0, kh, T))
-    x = b0 * T / mass
-    a = math.exp(-x)
-    c = x / -math.expm1(-x) if x > 0 else 1.0
-    return 1.0 + a, a, T * T / (mass * c)
-
-
-def _compliant(dev, member) -> bool:
-    hand = getattr(dev, "hand", None)
-    if member is not None:
-        return math.isfinite(float(member[2]))
-    return hand is not None and not hand.rigid
+    A, _ = closed_loop(scene, member=member)
+    b = np.zeros(A.shape[0])
+    dev = scene.device
+    pr = plant_rows(dev, scene.period, member)
+    if pr is None:
+        b[0] = _ideal_shift(dev, scene.period, member)[2]
+    else:
+        Bd = np.asarray(pr[1], float)
+        b[:Bd.size] = Bd
+    return b
 
 
 def plant_rows(dev, T: float, member=None):

@@ -1,6 +1,6 @@
 """Scene-level closed-loop check: one state matrix for a whole scene coupled to its device.
 
-DESIGN.md Sec. 4, last bullet: the whole sampled THS (device plant, force delay line, every
+docs/design.md, 'A whole scene': the whole sampled THS (device plant, force delay line, every
 virtual mass integrated by the scene's ``integrator``, linearised links) is one linear
 recursion ``s[n+1] = A s[n]``; its eigenvalues are the closed-loop poles of the scene as
 the hand feels it. The matrix is built by :func:`hapsim.analysis.network.closed_loop`
@@ -212,7 +212,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     SceneCheck
         Eigenvalues of :func:`scene_state_matrix`, spectral radius, verdict, the rendered
         pair at the port (least damped complex pair observable at the port, ``k = m |s|^2``, ``b = -2 m Re s`` with
-        ``m`` the device mass, DESIGN.md Sec. 4) and every mode.
+        ``m`` the device mass, docs/design.md, 'The inverse map') and every mode.
 
     Raises
     ------

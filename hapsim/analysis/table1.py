@@ -10,7 +10,8 @@ A real mass ``m`` is coupled to
     V    a virtual K and a real k            sampled loop around the real mass-spring
 
 in the paper's idealised simulator: no computation delay (d = 0), "no holder" (the ideal
-sampled image, DESIGN.md Sec. 4: the image of the real mass is the centred-difference mass
+sampled image, docs/design.md, 'The characteristic equation': the image of the real mass
+is the centred-difference mass
 ``x[n+1] - 2 x[n] + x[n-1] = T^2 f[n] / m``) and no damping. Eq. (2),
 ``K = (m/T^2)(2 - 2 cos(T sqrt(k/m)))``, makes II equal to I exactly; III, IV and V then
 differ, and more so as ``k T^2 / m`` grows: the hybrid real/virtual world is not consistent

@@ -88,7 +88,7 @@ def calibrate_targets(scene) -> list[TargetCalibration]:
     -----
     Each target is the reference oscillator ``m s^2 + b s + k = 0`` of the device mass; the
     virtual (K, B) solve ``P K + Q B + R = 0`` at its poles (Florens, Voda & Urma eq. 1,
-    DESIGN §4), see :func:`hapsim.analysis.calibrate`.
+    docs/design.md, 'The forward map'), see :func:`hapsim.analysis.calibrate`.
     """
     targets = scene.unresolved_targets
     if not targets:

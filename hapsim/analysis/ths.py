@@ -1,8 +1,9 @@
 """Rendered (k, b), calibration (k, b) -> (K, B) and the exact stability boundary.
 
-Florens, Voda & Urma, Secs. 5-6; DESIGN.md Sec. 4. All computations use the dimensionless
-pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never expanded (the delay factor
-``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a quadratic by binary powering,
+Florens, Voda & Urma, Secs. 5-6; docs/design.md, 'The THS'. All computations use the
+dimensionless pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never expanded (the
+delay factor ``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a quadratic by binary
+powering,
 or found through the companion matrix in ``z``): the same precision at every delay.
 """
 
@@ -136,7 +137,7 @@ def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
     RenderResult
         Rendered pair = least damped complex pair of the closed loop (largest ``|z|``);
         ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5,
-        DESIGN.md Sec. 4). Other poles are reported as parasitic modes.
+        docs/design.md, 'The inverse map'). Other poles are reported as parasitic modes.
 
     Raises
     ------
@@ -331,8 +332,9 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     Notes
     -----
     Poles of ``m s^2 + b s + k`` (m: the loop mass) are mapped by ``z = e^(sT)`` and placed
-    on the closed loop ``P K + Q B + R = 0`` (Florens et al. Sec. 5, Fig. 4; DESIGN.md
-    Sec. 4). Rather than evaluating at one complex root, the characteristic polynomial is
+    on the closed loop ``P K + Q B + R = 0`` (Florens et al. Sec. 5, Fig. 4;
+    docs/design.md, 'The forward map'). Rather than evaluating at one complex root, the
+    characteristic polynomial is
     required to be divisible by the real quadratic ``(w - w1)(w - w2)``, ``w = z - 1``: the
     remainder is linear in ``(K, B)`` and gives two real equations. This single form covers
     the under-damped pair, the two real poles of an over-damped target and the double pole

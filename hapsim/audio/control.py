@@ -3,7 +3,7 @@
 A change (a link's stiffness or damping, a felt target {k, b}, a mass's inertia, the sound
 gain, pause/resume) arrives on any thread (the OSC server's). It is checked there, before
 anything moves: the changed scene's closed loop must be stable, by the check ``hapsim run``
-makes (:func:`hapsim.daemon.runner.predict`, i.e. :func:`hapsim.analysis.check_scene` of the
+makes (:func:`hapsim.analysis.prediction.predict`, i.e. :func:`hapsim.analysis.check_scene` of the
 whole scene coupled to its device, multi-rate included), at the new values and at three
 points of the ramp toward them; a felt target is calibrated first
 (:func:`hapsim.analysis.targets.apply_targets`) and refused when no (K, B) renders it. A
@@ -59,6 +59,13 @@ __all__ = ["Controller", "Change", "Analyst", "ADDRESSES", "serve_osc", "identif
 ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
              "/hapsim/link/target", "/hapsim/mass", "/hapsim/gain", "/hapsim/pause",
              "/hapsim/resume", "/hapsim/felt", "/hapsim/loop", "/hapsim/telemetry")
+
+#: The arguments each address takes (said in a refusal for missing or wrong arguments).
+USAGE = {"/hapsim/link/stiffness": "LINK K [N/m]", "/hapsim/link/damping": "LINK B [N s/m]",
+         "/hapsim/link/kb": "LINK K [N/m] B [N s/m]",
+         "/hapsim/link/target": "LINK k [N/m] b [N s/m]", "/hapsim/mass": "MASS m [kg]",
+         "/hapsim/gain": "G", "/hapsim/pause": "", "/hapsim/resume": "",
+         "/hapsim/felt": "", "/hapsim/loop": "", "/hapsim/telemetry": "HOST PORT [RATE_HZ]"}
 
 
 @dataclasses.dataclass
@@ -133,6 +140,9 @@ class Controller:
         self.measured = (math.nan, math.nan)
         #: The last measurement's full result (:func:`identify_window`), or None.
         self.measurement: dict | None = None
+        #: Why :attr:`measured` is NaN (None once a window has been measured): no free
+        #: response handed in yet, the last window's refusal, or a change since.
+        self.unmeasured: str | None = "no free response has been measured yet"
         self._gen = 0                          # accepted scene changes so far
         self._pending = None                   # the identification under way (a Future)
         self._mail: collections.deque = collections.deque()
@@ -174,6 +184,7 @@ class Controller:
         self.scene = new
         self.measured = (math.nan, math.nan)
         self.measurement = None
+        self.unmeasured = f"none since {why}"
 
         def work():
             with self._lock:
@@ -191,7 +202,7 @@ class Controller:
         self._rebasing.start()
 
     def _predict(self, scene) -> dict:
-        from hapsim.daemon.runner import predict
+        from hapsim.analysis.prediction import predict
         return self.analyst.call(predict, scene)
 
     def close(self) -> None:
@@ -213,7 +224,7 @@ class Controller:
 
     def _check(self, new_scene, old_scene) -> dict:
         """Stability of the new scene and of three points of the ramp toward it
-        (:func:`hapsim.daemon.runner.predict`); the prediction of the new scene."""
+        (:func:`hapsim.analysis.prediction.predict`); the prediction of the new scene."""
         pred = self._predict(new_scene)
         if not pred["stable"]:
             raise _Refused(f"the closed loop would be unstable (spectral radius "
@@ -250,6 +261,8 @@ class Controller:
                     self.felt = pred
                     self.measured = (math.nan, math.nan)
                     self.measurement = None
+                    self.unmeasured = (f"no free response measured since the change "
+                                       f"{address} {' '.join(map(str, args))}")
                     self._gen += 1
             self._mail.append(change)
         except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
@@ -259,7 +272,8 @@ class Controller:
             return False, reason
         self.accepted += 1
         k, b = self.felt.get("k"), self.felt.get("b")
-        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz)
+        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz,
+                  predicted={q: self.felt.get(q) for q in ("k", "b", "f0_hz", "damping_ratio")})
         return True, (change.steps / self.scene.rate_hz, _num(k), _num(b))
 
     def _plan(self, address: str, args):
@@ -270,18 +284,26 @@ class Controller:
             return Change(kind, "", (self.force_scale,), (0.0 if kind == "pause" else 1.0,),
                           steps), None
         if address == "/hapsim/gain":
-            (g,) = _floats(args, 1, "gain")
+            (g,) = _floats(args, 1, "gain", address)
             if self.live is None:
                 raise _Refused("no live sound in this run (--sound)")
             return Change("gain", "", (self.live.gain,), (g,), steps), None
         if address == "/hapsim/mass":
-            name, m = _name(args), _floats(args[1:], 1, "mass")[0]
+            name, m = _name(args, address), _floats(args[1:], 1, "m", address)[0]
             if not m > 0:
                 raise _Refused(f"mass must be > 0, got {m:g}")
-            i = sc.index(name)
+            moving = [mm.name for mm in sc.masses if mm.kind == "mass"]
+            try:
+                i = sc.index(name)
+            except KeyError:
+                raise _Refused(f"no mass {name!r}; moving masses: "
+                               f"{', '.join(moving) or 'none'}") from None
             old = sc.masses[i]
             if old.kind != "mass":
-                raise _Refused(f"{name!r} is a {old.kind}, not a moving mass")
+                why = ("a ground has no mass to change" if old.kind == "ground" else
+                       "the port's mass is the device's (device.mass), not the scene's")
+                raise _Refused(f"{name!r} is a {old.kind}, not a moving mass: {why}; moving "
+                               f"masses: {', '.join(moving) or 'none'}")
             new = dataclasses.replace(sc, masses=tuple(
                 dataclasses.replace(mm, mass=float(m)) if j == i else mm
                 for j, mm in enumerate(sc.masses)))
@@ -289,11 +311,17 @@ class Controller:
             self.scene = new
             return Change("mass", name, (old.mass,), (float(m),), steps), pred
         if address.startswith("/hapsim/link/"):
-            name = _name(args)
-            lk = sc.link(name)
             what = address.rsplit("/", 1)[1]
+            if address not in USAGE:
+                raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+            name = _name(args, address)
+            try:
+                lk = sc.link(name)
+            except KeyError:
+                raise _Refused(f"no link {name!r}; links: "
+                               f"{', '.join(x.name for x in sc.links) or 'none'}") from None
             if what == "target":
-                k, b = _floats(args[1:], 2, "k b")
+                k, b = _floats(args[1:], 2, "k b", address)
                 from hapsim.analysis.targets import apply_targets
                 tl = dataclasses.replace(lk, target=(k, b), stiffness=math.nan,
                                          damping=math.nan, calibrated=False)
@@ -302,11 +330,11 @@ class Controller:
                 new, _ = apply_targets(new)
             else:
                 if what == "stiffness":
-                    K, B = _floats(args[1:], 1, "K")[0], lk.damping
+                    K, B = _floats(args[1:], 1, "K", address)[0], lk.damping
                 elif what == "damping":
-                    K, B = lk.stiffness, _floats(args[1:], 1, "B")[0]
+                    K, B = lk.stiffness, _floats(args[1:], 1, "B", address)[0]
                 elif what == "kb":
-                    K, B = _floats(args[1:], 2, "K B")
+                    K, B = _floats(args[1:], 2, "K B", address)
                 else:
                     raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
                 new = sc.with_link(name, stiffness=K, damping=B)
@@ -338,9 +366,15 @@ class Controller:
         gen, scene, x = self._gen, self.scene, np.array(x, dtype=float)
 
         def done(res):
-            if "k" in res and self._gen == gen:
+            if self._gen != gen:       # a change came meanwhile: not the loop of now
+                return
+            if "k" in res:
                 self.measurement = res
                 self.measured = (float(res["k"]), float(res["b"]))
+                self.unmeasured = None
+            elif math.isnan(self.measured[0]):
+                self.unmeasured = (f"the last free response ({x.size} samples) could not "
+                                   f"be measured: {res.get('error', 'no result')}")
 
         self._pending = self.analyst.submit(identify_window, (x, scene), done)
         if wait > 0:
@@ -514,7 +548,7 @@ def _background() -> None:
         os.dup2(2, 1)         # LAPACK and friends print on fd 1: keep it off the report
     except OSError:
         pass
-    from hapsim.daemon._blas import limit_blas_threads
+    from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)
     import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
@@ -541,16 +575,23 @@ def _blend(a, b, w):
     return dataclasses.replace(a, links=links, masses=masses)
 
 
-def _name(args) -> str:
+def _usage(address: str) -> str:
+    return f" (usage: {address} {USAGE[address]})" if address in USAGE else ""
+
+
+def _name(args, address: str = "") -> str:
     if not args or not isinstance(args[0], str):
-        raise _Refused("the first argument must be a name (string)")
+        got = "nothing" if not args else f"{type(args[0]).__name__} {args[0]!r}"
+        raise _Refused(f"the first argument must be a name (string), got {got}"
+                       + _usage(address))
     return args[0]
 
 
-def _floats(args, n: int, what: str) -> tuple:
+def _floats(args, n: int, what: str, address: str = "") -> tuple:
     if len(args) < n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                 for v in args[:n]):
-        raise _Refused(f"expected {n} number(s): {what}")
+        missing = "missing" if len(args) < n else "not a number"
+        raise _Refused(f"expected {n} number(s) ({what}): {missing}" + _usage(address))
     vals = tuple(float(v) for v in args[:n])
     if not all(math.isfinite(v) for v in vals):
         raise _Refused(f"{what} must be finite")
@@ -640,14 +681,94 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
             d.map(a, on_telemetry, needs_reply_address=True)
         else:
             d.map(a, on_change, needs_reply_address=True)
-    d.set_default_handler(lambda client, address, *args: (
-        ctl._log("refused", address, args, reason="unknown address"),
+    def on_unknown(client, address, *args):
+        # returns None: python-osc sends a handler's return value back as a message (a
+        # tuple here was its BuildError traceback on stderr)
+        ctl._log("refused", address, args, reason="unknown address")
         reply(client, "/hapsim/refused", address,
-              f"unknown address; valid: {', '.join(ADDRESSES)}")), needs_reply_address=True)
+              f"unknown address; valid: {', '.join(ADDRESSES)}")
+
+    d.set_default_handler(on_unknown, needs_reply_address=True)
     server = osc_server.BlockingOSCUDPServer((host, port), d)
     sock_holder["server"] = server
     threading.Thread(target=server.serve_forever, name="hapsim-osc", daemon=True).start()
     return server, tel
+
+
+def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
+    """Compare a run's measurement with the prediction of the scene it measured, after
+    live changes (``hapsim run --osc``), as ``hapsim play`` re-predicts.
+
+    The measured window is rows ``[first_row, first_row + samples_used)`` of the run; each
+    accepted change acts from its ``sample`` over its ramp. A change inside the window
+    makes the measurement a mix of two loops: not comparable. Changes that all ended
+    before it: the measurement is compared with the prediction after the last of them
+    (its felt k, b). Changes that all came after it: the start's prediction stands.
+
+    Parameters
+    ----------
+    measured : dict
+        The run's identification result (``k`` [N/m], ``b`` [N s/m], ``k_interval``,
+        ``b_interval``, ``first_row``, ``samples_used``, ``rel_err``, ``verdict``);
+        updated in place: ``compared_with`` says which prediction, ``rel_err`` (k and b),
+        ``within`` and ``verdict`` follow it, or ``comparable`` False with the reason.
+    journal : list of dict
+        The controller's journal (:attr:`Controller.journal`).
+    rate_hz : float
+        Device rate [Hz] (ramp times to samples).
+
+    Returns
+    -------
+    list of dict
+        The accepted changes: ``sample``, ``address``, ``args``, ``ramp_s`` [s], the
+        ``felt`` [k, b] predicted after each and that ``predicted`` pair (``k``, ``b``,
+        ``f0_hz``, ``damping_ratio``).
+    """
+    changes = [{"sample": int(e["sample"]), "address": e["address"], "args": e["args"],
+                "ramp_s": e.get("ramp_s", 0.0), "felt": e.get("felt"),
+                "predicted": e.get("predicted")}
+               for e in journal if e.get("event") == "accepted"]
+    if not changes or "k" not in measured or measured.get("first_row") is None:
+        return changes
+    a = int(measured["first_row"])
+    b = a + int(measured.get("samples_used", 0))
+
+    def end(c):
+        return c["sample"] + int(math.ceil(c["ramp_s"] * rate_hz)) + 1
+
+    inside = [c for c in changes if c["sample"] < b and end(c) > a]
+    before = [c for c in changes if end(c) <= a]
+    if inside:
+        c = inside[0]
+        measured["comparable"] = False
+        measured["compared_with"] = None
+        measured["verdict"] = (f"not comparable: the scene changed while it was measured "
+                               f"({c['address']} {' '.join(map(str, c['args']))} at sample "
+                               f"{c['sample']}, window {a}..{b})")
+        measured.pop("within", None)
+        return changes
+    if not before:
+        measured["compared_with"] = "the start's prediction (every change came after the "\
+                                    "measured window)"
+        return changes
+    c = before[-1]
+    kp, bp = (float(v) for v in c["felt"])
+    pred = {"k": kp, "b": bp, **{q: v for q, v in (c.get("predicted") or {}).items()
+                                 if q not in ("k", "b")}}
+    measured["compared_with"] = {**pred, "after": f"{c['address']} "
+                                 f"{' '.join(map(str, c['args']))} at sample {c['sample']}"}
+    measured["rel_err"] = {q: ((measured[q] - v) / v if v else math.nan)
+                           if v is not None and measured.get(q) is not None else math.nan
+                           for q, v in ((q, pred.get(q)) for q in
+                                        ("k", "b", "f0_hz", "damping_ratio"))}
+    if "k_interval" in measured:
+        ok = (abs(measured["k"] - kp) <= measured["k_interval"]
+              and abs(measured["b"] - bp) <= measured["b_interval"])
+        measured["within"] = bool(ok)
+        measured["verdict"] = ("measured = predicted after the changes within the stated "
+                               "uncertainty" if ok else "measured differs from the prediction "
+                               "after the changes by more than the stated uncertainty")
+    return changes
 
 
 def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> None:
@@ -665,10 +786,10 @@ def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> 
 def identify_window(x: np.ndarray, scene) -> dict:
     """Felt (k, b) of a free response window, measured as ``hapsim run`` measures it.
 
-    :func:`hapsim.daemon.runner.identify` with the run's arguments: the predicted non-zero
+    :func:`hapsim.analysis.measurement.identify` with the run's arguments: the predicted non-zero
     closed-loop poles seen at the port and the predicted felt pole
-    (:func:`hapsim.daemon.runner._predicted_poles`), the equilibrium offset
-    (:func:`hapsim.daemon.runner._has_offset`), the device's sensor step and noise, so the
+    (:func:`hapsim.analysis.prediction.predicted_poles`), the equilibrium offset
+    (:func:`hapsim.analysis.prediction.has_offset`), the device's sensor step and noise, so the
     answer is :func:`hapsim.analysis.identify.measure_felt` (exact matrix pencil for an
     exact record, variable projection started from the prediction otherwise).
 
@@ -682,17 +803,18 @@ def identify_window(x: np.ndarray, scene) -> dict:
     Returns
     -------
     dict
-        :func:`~hapsim.daemon.runner.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
+        :func:`~hapsim.analysis.measurement.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
         ``k_unc``, ``b_unc`` ... or ``error`` (str) when the window cannot carry a
         measurement.
     """
     from hapsim.analysis.network import device_body
-    from hapsim.daemon.runner import _has_offset, _predicted_poles, identify
+    from hapsim.analysis.measurement import identify
+    from hapsim.analysis.prediction import has_offset, predicted_poles
 
     x = np.asarray(x, dtype=float)
     dev = scene.device
     try:
-        poles, felt = _predicted_poles(scene)
+        poles, felt = predicted_poles(scene)
         order = int(poles.size)
         if not order:
             return {"error": "the loop has no oscillation to measure"}
@@ -702,7 +824,7 @@ def identify_window(x: np.ndarray, scene) -> dict:
             from hapsim.analysis.identify import sensor_error_response
             response = sensor_error_response(scene, int(x.size))
         return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
-                        offset=_has_offset(scene), skip=int(dev.delay) + 2,
+                        offset=has_offset(scene), skip=int(dev.delay) + 2,
                         predicted=poles, felt=felt, quantum=quantum, noise=float(dev.noise),
                         sensor_response=response)
     except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:

@@ -181,7 +181,7 @@ def native_available(live) -> str | None:
         The reason (not a :class:`~hapsim.audio.live.LiveSound`, an array of another dtype
         than the callback was compiled for, too many channels), or None.
     """
-    from hapsim.audio.live import FrameRing, LiveSound
+    from hapsim.audio.sources import FrameRing, LiveSound
 
     if isinstance(live, FrameRing):
         ok = (live._ring.dtype == np.float32 and live._ring.flags.c_contiguous
@@ -244,7 +244,7 @@ class NativeProcess:
         if why is not None:
             raise ValueError(why)
         self.live = live
-        from hapsim.audio.live import FrameRing
+        from hapsim.audio.sources import FrameRing
 
         if isinstance(live, FrameRing):
             c = np.zeros(_CTX_N, dtype=np.int64)

@@ -39,9 +39,9 @@ def load_gesture(path: str, rate_hz: float, steps: int | None = None) -> np.ndar
     ConfigError
         Unreadable file, non-finite or non-increasing time (key ``--gesture``).
     """
-    from hapsim.daemon.mock import _load_profile
+    from hapsim.device_model import load_profile
 
-    t, x = _load_profile(path, "position", "m", key="--gesture")
+    t, x = load_profile(path, "position", "m", key="--gesture")
     n = steps if steps is not None else int(math.floor(t[-1] * rate_hz + 1e-9)) + 1
     return np.interp(np.arange(n) / rate_hz, t, x)
 
@@ -76,7 +76,7 @@ def closed_loop_pluck(engine: Engine, steps: int, progress=None, seed: int = 0):
     (:class:`hapsim.daemon.mock.MockPhysics`: exact ZOH plant, quantisation, noise); every
     device sample the engine takes the device position, runs its N audio sub-steps and
     returns the port force, which the device applies ``d`` samples later, clamped to
-    ``force_limit`` (DESIGN §4-5: the THS the analysis models).
+    ``force_limit`` (the THS the analysis models, docs/design.md, 'The THS').
 
     Parameters
     ----------
@@ -98,7 +98,7 @@ def closed_loop_pluck(engine: Engine, steps: int, progress=None, seed: int = 0):
     force : ndarray, shape (steps,)
         Port force computed at each sample [N] (before the clamp).
     """
-    from hapsim.daemon.mock import MockPhysics
+    from hapsim.device_model import MockPhysics
 
     scene = engine.scene
     dev = scene.device

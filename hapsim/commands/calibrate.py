@@ -54,13 +54,12 @@ def run(args) -> int:
     hapsim.errors.ConfigError
         Bad loop option (key: the option), ``--k <= 0`` or a non-finite target.
     """
-    from hapsim.analysis.ths import calibrate
+    from hapsim.api import calibrate
     loop = loop_from_args(args)
-    c = calibrate(loop, args.k, args.b)
+    rep = calibrate(loop, args.k, args.b)
+    c = rep.analysis
     if args.json:
-        d = c.to_dict()
-        d["loop"] = loop.to_dict()
-        print(json.dumps(d))
+        print(json.dumps(rep.to_dict()))
     else:
         out = sys.stdout
         print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "

@@ -76,6 +76,15 @@ def _fmt_mode(md) -> str:
     return row.rstrip()
 
 
+def _object_mode(k: float, static: float, scene) -> bool:
+    """Whether the felt pole is a mode of the scene's virtual masses rather than the
+    port's spring: there are virtual masses, and its ``k`` is more than twice, or less
+    than half, the static stiffness at the port."""
+    if not any(m.kind == "mass" for m in scene.masses) or not math.isfinite(k):
+        return False
+    return not (0.5 * static <= k <= 2.0 * static)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim check``.
 
@@ -96,35 +105,31 @@ def run(args: argparse.Namespace) -> int:
     UnrenderableTargetError
         A target that is not renderable (a negative verdict: exit code 1).
     """
-    from hapsim.analysis.scene_check import check_scene
-    from hapsim.analysis.targets import apply_targets
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D check
+        from hapsim.commands.check_nd import run_nd
+        return run_nd(args)
+    from hapsim.api import check
     from hapsim.scene import load_scene
 
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
-    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
-    scene, cals = apply_targets(scene)
     from hapsim.analysis.network import check_size, state_count
-    check_size(scene)
+    check_size(scene)                   # too large: refused before the cost is announced
     n_states = state_count(scene)
     if n_states > 500:  # say what it costs before it starts (O(n^3), ~20 s at 2000)
         print(f"hapsim check: {n_states} states: every eigenvalue of a dense "
               f"{n_states}-square matrix, about {20 * (n_states / 2000) ** 3:.0f} s",
               file=sys.stderr, flush=True)
-    chk = check_scene(scene)
+    # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
+    rep = check(scene)
+    chk, scene, cals, static = rep.analysis, rep.calibrated_scene, rep.calibrations_made, rep.static_k
     ok = chk.stable
-    verdict = "stable" if chk.stable else "unstable"
+    verdict = rep.verdict
 
     if args.json:
-        out = {"scene": args.scene, "verdict": verdict, "rate_hz": scene.rate_hz,
-               "device": None if scene.device is None else {
-                   "mass": scene.device.mass, "friction": scene.device.friction,
-                   "delay": scene.device.delay, "hold": scene.device.hold,
-                   "correction": getattr(scene.device, "correction", None)},
-               "calibrations": [c.to_dict() for c in cals],
-               **chk.to_dict()}
-        print(json.dumps(out))
+        print(json.dumps({**rep.to_dict(), "scene": args.scene}))
         return 0 if ok else 1
 
     T = scene.period
@@ -164,8 +169,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"felt at the port: k = {rp.k:.6g} N/m, b = {rp.b:.6g} N s/m "
               f"(f0 = {rp.f0_hz:.6g} Hz, damping ratio {rp.damping_ratio:.4g}; "
               f"m = {chk.reference_mass:g} kg)")
+        if static is not None and _object_mode(rp.k, static, scene):
+            print(f"  that is a mode of the scene ringing at {rp.f0_hz:.6g} Hz, felt at the "
+                  f"port, not a spring: k = m (2 pi f0)^2")
     elif chk.has_port:
         print("felt at the port: no oscillating pole pair (nothing rings)")
+    if static is not None and any(m.kind == "mass" for m in scene.masses):
+        print(f"static at the port: k = {static:.6g} N/m (what a slow push feels: the "
+              f"virtual masses at rest)")
     others = [md for md in chk.modes if md is not rp and md.z != 0]
     deadbeat = sum(1 for md in chk.modes if md.z == 0)
     if args.modes and others:

@@ -22,7 +22,12 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
 
   - the spectral radius: the family is ROBUSTLY STABLE when every member is stable; else
     the member that is not is named (an interior member may fail while every corner holds:
-    a grip resonance inside the range);
+    a grip resonance inside the range). A grid can miss a narrow unstable band between
+    two of its members, so the verdict is then certified over the continuous ranges by a
+    subdivision of the parameter box (Bauer-Fike bound on each box, hapsim.analysis.
+    robust; zero-order hold): it proves every member stable, or finds an unstable member
+    between the sampled ones. The report says "certified" or, when the subdivision gives
+    up (--certify-boxes), "sampled (N)": then nothing is claimed between the N members;
   - the felt (k, b) at the port (least damped pair, with m = handle + hand mass), and of
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
@@ -52,7 +57,7 @@ examples:
   hapsim family configs/hand_wall.yaml --correction velocity_filter:cutoff_hz=100
 
 exit codes:
-  0  every member of the family is stable
+  0  no member found unstable (every member when certified; the sampled ones otherwise)
   1  some member is unstable (named in the report)
   2  bad scene file or option"""
 
@@ -75,6 +80,9 @@ def register(sub) -> None:
     p.add_argument("--grid", type=int, default=9, metavar="G",
                    help="grid points per ranged hand value (default 9)")
     p.add_argument("--seed", type=int, default=0, help="seed of --samples (default 0)")
+    p.add_argument("--certify-boxes", type=int, default=4096, metavar="N",
+                   help="most boxes of the certified subdivision of the ranges (default "
+                        "4096; 0: the sampled verdict only)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--calibrate", action="store_true",
                    help="for every target link: the minimax (K, B) over the family (the "
@@ -174,13 +182,15 @@ def run(args: argparse.Namespace) -> int:
     ConfigError
         Bad scene or option (exit 2 via :mod:`hapsim.cli`).
     """
-    from hapsim.analysis.family import family
+    from hapsim.api import family
     from hapsim.scene import load_scene
 
     if args.samples is not None and args.samples < 1:
         raise ConfigError(f"must be >= 1, got {args.samples}", key="--samples")
     if args.grid < 2:
         raise ConfigError(f"must be >= 2, got {args.grid}", key="--grid")
+    if args.certify_boxes < 0:
+        raise ConfigError(f"must be >= 0, got {args.certify_boxes}", key="--certify-boxes")
     if args.plot:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -190,33 +200,15 @@ def run(args: argparse.Namespace) -> int:
         corr = parse_correction(args.correction)
         scene = dataclasses.replace(scene, device=dataclasses.replace(scene.device,
                                                                       correction=corr))
-    res = family(scene, args.samples, grid=args.grid, seed=args.seed)
-    rep = res.to_dict()
-    cons = None
-    from hapsim.analysis.hand import hand_stiffness
-    if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
-        from hapsim.analysis.family import consistency
-        c = consistency(scene, mem=res.members, calibrated=res.calibrated)
-        cons = {k: v for k, v in c.items() if k not in ("k", "b", "k_sum", "b_sum",
-                                                       "k_real")}
-        rep["consistency"] = cons
-    cals = []
-    if args.calibrate:
-        from hapsim.analysis.family import calibrate_family
-        targets = [lk.name for lk in scene.links if lk.target is not None]
-        if not targets:
-            raise ConfigError("--calibrate needs a link given as target {k, b}",
-                              file=scene.path, key="links")
-        cals = [calibrate_family(scene, name, mem=res.members).to_dict() for name in targets]
-        rep["family_calibrations"] = cals
+    fam = family(scene, args.samples, grid=args.grid, seed=args.seed,
+                 certify=args.certify_boxes, calibrate=args.calibrate)
+    res, rep = fam.analysis, fam.to_dict()
+    cons, cals = fam.consistency, fam.family_calibrations or []
     if args.plot:
-        from hapsim.plot_family import plot_family
         from hapsim.plot import save_figure
-        save_figure(plot_family(res, title=args.scene), args.plot)
+        save_figure(fam.plot(title=args.scene), args.plot)
     if args.json:
-        print(json.dumps({"scene": args.scene, "verdict": "robustly stable" if res.robust
-                          else "not robustly stable",
-                          "correction": getattr(scene.device, "correction", None), **rep}))
+        print(json.dumps({**rep, "scene": args.scene}))
         return 0 if res.robust else 1
     if getattr(scene.device, "hand", None) is None:
         print("no device.hand section: the family is the device alone (one member)")
@@ -229,13 +221,29 @@ def run(args: argparse.Namespace) -> int:
     for name, (K, B) in rep["calibrated"].items():
         print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
               f"B = {B:.6g} N s/m")
-    if res.robust:
-        print("verdict: ROBUSTLY STABLE (every member)")
-    else:
-        print(f"verdict: NOT ROBUSTLY STABLE: {rep['unstable']} of {rep['members']} members "
-              f"unstable" + ("" if not rep["corners_stable"] else
-                             " (every corner is stable: the failure is inside the range)"))
+    cert = res.certificate
+    if res.robust and res.robust_method == "certified":
+        print(f"verdict: ROBUSTLY STABLE (every member of the ranges: certified, "
+              f"{cert.boxes} boxes)")
+    elif res.robust:
+        why = cert.method if cert is not None else "not asked (--certify-boxes 0)"
+        print(f"verdict: ROBUSTLY STABLE on the sampled members only ({res.robust_method}); "
+              f"not certified between them: {why}")
+    elif rep["unstable"]:
+        print(f"verdict: NOT ROBUSTLY STABLE (certified): {rep['unstable']} of "
+              f"{rep['members']} members unstable"
+              + ("" if not rep["corners_stable"] else
+                 " (every corner is stable: the failure is inside the range)"))
         print("  first unstable member: " + _member_line(rep["first_unstable"]))
+    else:
+        ce = rep["certificate"]["counterexample"]
+        print(f"verdict: NOT ROBUSTLY STABLE (certified): every one of the {rep['members']} "
+              f"sampled members is stable, but the subdivision of the ranges found an "
+              f"unstable member between them ({cert.boxes} boxes)")
+        print(f"  unstable member: hand {ce['mass']:g} kg, damping {ce['damping']:g} N s/m, "
+              f"grip {ce['grip_stiffness']:.6g} N/m / {ce['grip_damping']:g} N s/m"
+              + (f", arm stiffness {ce['stiffness']:g} N/m" if ce["stiffness"] else "")
+              + f": spectral radius {ce['spectral_radius']:.9g}")
     print("  worst member: " + _member_line(rep["worst"]))
     print("felt at the port over the family (m = handle + hand of each member):")
     for q, unit in (("k", "N/m"), ("b", "N s/m")):

@@ -7,6 +7,8 @@ import json
 import math
 import sys
 
+
+from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
 
@@ -23,7 +25,9 @@ steps, which separate Coulomb from viscous friction) on a weak centring spring, 
 run': device watchdog armed, host force clamp, safety stop beyond the envelope, zero force
 and STOP at the end or on Ctrl-C. The fit is an output-error least squares of the exact
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
-with Newey-West intervals. Without --port the embedded mock (--mock-scene: its device)
+with Newey-West intervals, driven by the force the device applied at each tick (its
+STATEs' force_seq name it: a late tick is a known input, and the delay is the one the
+device shows, never assumed). Without --port the embedded mock (--mock-scene: its device)
 is identified."""
 
 _EPILOG = """\
@@ -41,7 +45,8 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
   fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
-  data (or a safety stop / device fault), 2 bad arguments
+  data (or a safety stop / device fault), or the record cannot be identified (the reason
+  is printed: too short, the device hardly moved, ...), 2 bad arguments
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
@@ -66,6 +71,10 @@ def register(sub) -> None:
     p.add_argument("--baud", type=int, default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
+    p.add_argument("--protocol-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a driver's device parameter (device.protocol_options; repeat: "
+                        "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
+                        "Haply board); written to --out with the protocol")
     p.add_argument("--out", metavar="FILE.yaml", help="write the device section there")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE.png", help="plot measured vs model response")
@@ -81,8 +90,11 @@ def register(sub) -> None:
                    help="excitation length [s] (default 4)")
     p.add_argument("--rate", type=float, default=1000.0, metavar="HZ",
                    help="loop rate [Hz] (default 1000)")
-    p.add_argument("--max-delay", type=int, default=4, metavar="D",
-                   help="largest delay considered [samples] (default 4)")
+    p.add_argument("--max-delay", type=int, default=20, metavar="D",
+                   help="largest device delay [samples] the centring loop is stable for "
+                        "and, for a protocol that does not report the force it applied, "
+                        "the largest delay tried (default 20: a USB latency timer of 16 ms "
+                        "at 1 kHz and some; a framed device shows its delay itself)")
     p.add_argument("--lockstep", action="store_true", help="lockstep embedded mock")
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
@@ -91,76 +103,9 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def identify(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
-             duration=4.0, rate_hz=1000.0, max_delay=4, lockstep=False, seed=0,
-             transport=None, progress=True, handle_signals=True, driver=None):
-    """Excite, record and fit: the API behind ``hapsim identify``.
-
-    Parameters
-    ----------
-    port, baud : str, int
-        Device port (None: a mock of ``device``) and baud rate.
-    device : hapsim.scene.Device, optional
-        What the mock models.
-    force_limit, envelope, duration, rate_hz, max_delay, lockstep, seed
-        As the options of the same names ([N], [m], [s], [Hz], [samples]).
-    transport : {"inprocess", "pty", "serial"}, optional
-        As :func:`hapsim.daemon.identify_run.record`.
-    progress, handle_signals : bool
-        Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
-    driver : str, optional
-        Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
-
-    Returns
-    -------
-    (DeviceFit, dict)
-        The fit and the record (:func:`hapsim.daemon.identify_run.record`).
-
-    Raises
-    ------
-    ConfigError
-        Bad values; a record too short to fit (a safety stop at once).
-    DeviceError, ProtocolError
-        As ``hapsim run``.
-    """
-    from hapsim.analysis.device_fit import fit_device
-    from hapsim.daemon.identify_run import record
-    if isinstance(max_delay, bool) or max_delay < 0:
-        raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="--max-delay")
-    rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
-                 force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
-                 noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver)
-    # one uniform record: the longest stretch without a missing STATE
-    import numpy as np
-    seq = rec["seq"]
-    cut = np.flatnonzero(np.diff(seq) != 1) + 1
-    bounds = np.concatenate([[0], cut, [seq.size]])
-    i = int(np.argmax(np.diff(bounds)))
-    a, b = int(bounds[i]), int(bounds[i + 1])
-    rec["loop"]["fitted_rows"] = [a, b]
-    fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                     late=rec["late"][a:b], max_delay=max_delay + 1)
-    return fit, rec
-
-
 def _plot(fit, rec, path: str) -> None:
-    import numpy as np
-
-    from hapsim.plot import _mpl, save_figure
-    plt = _mpl()
-    t = np.arange(fit.n_samples) * fit.period
-    fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
-    a1.plot(t, rec["position"] * 1e3, lw=0.8, label="measured")
-    a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
-    a1.set_ylabel("position [mm]")
-    a1.legend(loc="upper right")
-    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
-                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
-    a2.plot(t, (fit.model - rec["position"]) * 1e6, lw=0.6)
-    a2.set_ylabel("model - measured [um]")
-    a2.set_xlabel("time [s]")
-    save_figure(fig, path)
+    from hapsim.plot import plot_identify, save_figure
+    save_figure(plot_identify(fit, rec), path)
 
 
 def run(args) -> int:
@@ -202,13 +147,39 @@ def run(args) -> int:
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")
-    fit, rec = identify(port=args.port, baud=args.baud, device=device,
-                        force_limit=args.force_limit, envelope=args.envelope,
-                        duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
-                        lockstep=args.lockstep, seed=args.seed, driver=args.driver)
+    dopts = None
+    drv = None
+    if args.driver != "framed":
+        from hapsim.drivers import get_driver
+        dopts = dict(device.protocol_options or {}) if (
+            device is not None and device.protocol == args.driver) else {}
+        for item in args.protocol_option:
+            key, sep, val = item.partition("=")
+            if not sep:
+                raise ConfigError(f"must be KEY=VALUE, got {item!r}", key="--protocol-option")
+            try:
+                dopts[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
+            except ValueError:
+                raise ConfigError(f"{key}: must be a number, got {val!r}",
+                                  key="--protocol-option") from None
+        try:
+            drv = get_driver(args.driver, **dopts)
+        except TypeError as exc:
+            raise ConfigError(f"{exc}", key="--protocol-option") from None
+    elif args.protocol_option:
+        raise ConfigError("the framed protocol takes no options (its device says its units "
+                          "in HELLO); give --driver", key="--protocol-option")
+    from hapsim.api import identify as identify_api
+    rep = identify_api(args.port, baud=args.baud, device=device,
+                       force_limit=args.force_limit, envelope=args.envelope,
+                       duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
+                       lockstep=args.lockstep, seed=args.seed, driver=args.driver,
+                       driver_options=dopts, hand=args.hand, progress=True,
+                       handle_signals=True)
+    fit, rec = rep.fit, rep.record
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
-    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source)
+    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
@@ -217,12 +188,7 @@ def run(args) -> int:
     loop = rec["loop"]
     code = 0 if fit.explained and not loop["safety_stop"] and not loop["faults"] else 1
     if args.json:
-        out = {"device": fit.to_dict(), "loop": loop, "hand": bool(args.hand),
-               "out": args.out, "plot": args.plot}
-        if args.hand:
-            out["note"] = ("mass and friction are the THS's: hand + handle, for this grip")
-        from hapsim.commands.run import _clean
-        print(json.dumps(_clean(out)))
+        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot}))
     else:
         if args.hand:
             print("# with the hand on the handle: the mass and damping below are the THS's "

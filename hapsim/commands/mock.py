@@ -220,10 +220,10 @@ def run(args) -> int:
             # numba's loading (hundreds of ms of CPU) before SCHED_FIFO, not under it: a
             # real-time start-up starves every other real-time loop of the machine
             try:
-                from hapsim.daemon import fastmock
+                from hapsim.daemon.mock import warm_up_mock
                 from hapsim.daemon.startup import preload_numba_blas
                 preload_numba_blas()
-                fastmock.warm_up_mock()
+                warm_up_mock()
             except Exception:  # noqa: BLE001 - serve_fd says why and ticks in Python
                 pass
         with rt:

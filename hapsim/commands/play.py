@@ -120,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
         2 on bad input (raised as ConfigError).
     """
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
-    from hapsim.daemon.mock import MockPhysics, hand_force_samples
-    from hapsim.daemon.runner import _warm_up, prepare_scene
+    from hapsim.device_model import MockPhysics, hand_force_samples
+    from hapsim.analysis.prediction import prepare_scene
+    from hapsim.daemon.runner import _warm_up
     from hapsim.engine import Engine
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
@@ -157,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     line = deque([0.0] * int(dev.delay))
     lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
-    from hapsim.daemon._blas import limit_blas_threads
+    from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
     _warm_up(scene)                                   # kernels loaded before the clock starts
     if live is not None:    # the sound starts after the warm-up (silence until the loop does)
@@ -234,7 +235,8 @@ def run(args: argparse.Namespace) -> int:
             phys.advance(min(lim, max(-lim, u)))
             if tel is not None and n % tel["every"] == 0:
                 send_telemetry(tel, n * T, x, f, ctl)
-            if P <= steps and (n + 1) % P == 0 and h.size:
+            # (a scene plucked by x0 alone is free from the start, once: its first window)
+            if P <= steps and (n + 1) % P == 0 and (h.size or n + 1 == P):
                 # end of a free response: measured (on a worker thread) when no change
                 # disturbed it
                 a = max(n + 1 - P + h.size, quiet_from)
@@ -274,6 +276,7 @@ def run(args: argparse.Namespace) -> int:
               "delay": int(ctl.scene.device.delay),   # device samples, lead included
               "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
               "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1],
+                                             "why_not": ctl.unmeasured,
                                              **({} if ctl.measurement is None else {
                                                  q: ctl.measurement.get(q) for q in
                                                  ("k_unc", "b_unc", "method", "samples_used")})},
@@ -300,14 +303,47 @@ def run(args: argparse.Namespace) -> int:
         felt = ctl.felt
         print(f"played {args.scene} for {steps * T:g} s ({steps} samples, {late} late); "
               f"{ctl.accepted} changes accepted, {ctl.refused} refused")
-        print(f"felt now: k = {felt.get('k')} N/m, b = {felt.get('b')} N s/m predicted; "
-              f"measured k = {ctl.measured[0]:.6g}, b = {ctl.measured[1]:.6g}")
+        measured = (f"measured k = {ctl.measured[0]:.6g}, b = {ctl.measured[1]:.6g}"
+                    if ctl.unmeasured is None else f"measured: nothing ({ctl.unmeasured})")
+        print(f"felt now: k = {_g(felt.get('k'))} N/m, b = {_g(felt.get('b'))} N s/m "
+              f"predicted; {measured}")
         if report["sound"]:
-            print(f"sound: {report['sound']}")
+            print(sound_line(report["sound"]))
     if error:
         print(f"hapsim play: {error}", file=sys.stderr)
         return 1
     return 0
+
+
+def _g(v) -> str:
+    return f"{v:.6g}" if isinstance(v, (int, float)) else str(v)
+
+
+def sound_line(sound: dict) -> str:
+    """The ``sound:`` line of ``hapsim play``'s text report.
+
+    Parameters
+    ----------
+    sound : dict
+        The report's ``sound`` entry: ``backend``, ``callback``, ``block`` [frames],
+        ``xruns``, ``xrun_at_s``, ``underruns`` [frames], ``underrun_at_s``, ``lead``
+        [device samples], ``periods``, ``waits``, ...
+
+    Returns
+    -------
+    str
+        One line, e.g. ``sound: JackOutput (native callback), block 256 frames, lead 6
+        samples; xruns 0, underruns 0 frames; 3000 periods played, 0 waits``.
+    """
+    s = sound
+    line = (f"sound: {s.get('backend')} ({s.get('callback')} callback), block "
+            f"{s.get('block')} frames, lead {s.get('lead')} samples; xruns {s.get('xruns')}")
+    if s.get("xrun_at_s"):
+        line += f" (at {', '.join(f'{t:.3f}' for t in s['xrun_at_s'][:5])} s)"
+    line += f", underruns {s.get('underruns')} frames"
+    if s.get("underrun_at_s"):
+        line += f" (at {', '.join(f'{t:.3f}' for t in s['underrun_at_s'][:5])} s)"
+    return line + f"; {s.get('periods')} periods played, {s.get('waits')} waits"
 
 
 def _finite(v):

@@ -57,13 +57,12 @@ def run(args) -> int:
     hapsim.errors.ConfigError
         Bad loop option (key: the option) or a non-finite ``--K`` / ``--B``.
     """
-    from hapsim.analysis.ths import render
+    from hapsim.api import render
     loop = loop_from_args(args)
-    r = render(loop, args.K, args.B)
+    rep = render(loop, args.K, args.B)
+    r = rep.analysis
     if args.json:
-        d = r.to_dict()
-        d["loop"] = loop.to_dict()
-        print(json.dumps(d))
+        print(json.dumps(rep.to_dict()))
     else:
         out = sys.stdout
         print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "

@@ -52,8 +52,12 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller
   with max_damping [N s/m] that damps that excess.
+drivers' devices (--driver): a reply that does not come is a missing sample (counted;
+  the next tick asks again), not a lost device; the FireFader .ino disables its force
+  after 0.1 s of silence, the Haply board and the Hapkit sketch have NO watchdog and hold
+  the last force: hapsim sends zero force first and at every end (docs/drivers.md).
 reliability: bad frames are counted and dropped; silence for --lost-timeout (default:
-  the 50 ms watchdog period, when the device zeroes its force by itself), a port error or
+  the 50 ms watchdog period, when a framed device zeroes its force by itself), a port error or
   a device reset (a HELLO after arming: noticed at once) -> zero force, STOP, state
   'lost', then re-open, HELLO, CONFIG with backoff (state 'recovering'; at most
   --reconnect-attempts / --reconnect-time per loss), the scene restarted from its initial
@@ -120,11 +124,14 @@ def register(sub) -> None:
     p.add_argument("--host-clocked", action="store_true",
                    help="tick on the host's clock instead of answering each STATE "
                         "(with --lockstep: the host paces the lockstep mock in real time)")
-    p.add_argument("--loop", choices=("compiled", "python"), default="compiled",
-                   help="host loop: 'compiled' (default: the device-clocked hot path in one "
-                        "numba function that owns the port, without the GIL; a live --osc, "
-                        "--sound or a device correction keep the Python loop) or 'python' "
-                        "(the reference loop: the same FORCEs bit for bit, to compare)")
+    p.add_argument("--loop", choices=("auto", "compiled", "python"), default="auto",
+                   help="host loop: 'compiled' (the device-clocked hot path in one numba "
+                        "function that owns the port, without the GIL; a live --osc, --sound "
+                        "or a device correction keep the Python loop), 'python' (the "
+                        "reference loop: the same FORCEs bit for bit, to compare) or 'auto' "
+                        "(default: compiled when numba's cache holds it; otherwise this run "
+                        "uses the Python loop and compiles the other after its report, for "
+                        "the next runs)")
     p.add_argument("--telemetry", metavar="FILE",
                    help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
     p.add_argument("--allow-unstable", action="store_true",
@@ -154,12 +161,13 @@ def register(sub) -> None:
                    help="most reconnect attempts per loss (default 8)")
     p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
                    help="most time spent recovering one loss [s] (default 10)")
-    p.add_argument("--driver", default="framed", metavar="NAME",
-                   help=f"device protocol, one of {', '.join(DRIVERS)} (default framed, "
-                        "hapsim's own); a driver runs host-clocked (see 'drivers' below)")
+    p.add_argument("--driver", metavar="NAME",
+                   help=f"device protocol, one of {', '.join(DRIVERS)} (default: the "
+                        "scene's device.protocol, else framed, hapsim's own); a driver runs "
+                        "host-clocked (see 'drivers' below)")
     p.add_argument("--device", metavar="FILE.yaml",
                    help="device section from a file (e.g. written by 'hapsim identify "
-                        "--out'); replaces the scene's")
+                        "--out'); replaces the scene's (said on stderr)")
     p.add_argument("--osc", type=int, metavar="PORT",
                    help="take live changes over OSC on localhost:PORT (0: any free port; "
                         "addresses: hapsim play --help); each is checked, ramped, journaled")
@@ -183,8 +191,9 @@ def _clean(obj):
     return obj
 
 
-def _announce(port, n_samples) -> None:
-    """Tell the user on stderr that the loop starts and that Ctrl-C stops it cleanly.
+def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
+    """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
+    stops it cleanly.
 
     Parameters
     ----------
@@ -192,10 +201,45 @@ def _announce(port, n_samples) -> None:
         The port the loop drives (None: the in-process mock).
     n_samples : int
         Samples to run; 0 for an open-ended run.
+    protocol : str
+        What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
+        protocol (the scene's device.protocol)"``, ...).
+    note : str
+        Appended (which host loop runs, when it is not the one asked for).
     """
     length = f"{n_samples} samples" if n_samples else "an open-ended run"
-    print(f"hapsim run: closing the loop on {port or 'the in-process mock'} for "
-          f"{length} (SIGINT/SIGTERM stop cleanly)", file=sys.stderr, flush=True)
+    print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
+          f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
+          file=sys.stderr, flush=True)
+
+
+def protocol_of(scene, driver: str | None) -> tuple[str, str]:
+    """The protocol a run speaks, and where that choice comes from.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The scene (its ``device.protocol``; ``"framed"`` without a device).
+    driver : str or None
+        ``--driver`` (None when not given).
+
+    Returns
+    -------
+    name : str
+        One of :data:`hapsim.drivers.DRIVERS`.
+    said : str
+        The name with its source, for the start-up line: ``"the framed protocol"``,
+        ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
+        (--driver; the scene's device.protocol is firefader)"``.
+    """
+    named = scene.device.protocol if scene.device is not None else "framed"
+    if driver is None:
+        return named, (f"the {named} protocol" + ("" if named == "framed"
+                                                   else " (the scene's device.protocol)"))
+    if driver != named:
+        return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
+                        f"is {named})")
+    return driver, f"the {driver} protocol"
 
 
 def run(args) -> int:
@@ -246,13 +290,13 @@ def run(args) -> int:
         parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
-        import dataclasses
-
-        from hapsim.device_file import load_device
-        dev = load_device(args.device)
-        if dev.force_limit == math.inf and scene.device is not None:   # not in the file
-            dev = dataclasses.replace(dev, force_limit=scene.device.force_limit)
-        scene = dataclasses.replace(scene, device=dev)
+        scene = _replace_device(scene, args.device)
+    from hapsim.daemon import startup
+    # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
+    # its one-line error alone) before the silence it costs
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene)
     advice = None
     if args.auto:
         from hapsim.bench.advise import advise_scene
@@ -267,8 +311,25 @@ def run(args) -> int:
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
     from hapsim.errors import DeviceError, ProtocolError
+    args.protocol, said = protocol_of(scene, args.driver)
+    note = ""
+    args.announce = lambda port, n: _announce(port, n, said, note)
+    # an empty numba cache: say what is compiled before the silence it costs, and compile
+    # only what this run needs (--loop auto: the compiled loop after the report)
+    possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
+                                              osc=args.osc, sound=args.sound,
+                                              host_clocked=args.host_clocked)
+    asked = args.loop
+    if asked == "auto":     # a run that cannot use the compiled loop reports why it did not
+        args.loop = startup.choose_loop(asked, scene) if possible else "compiled"
+    compile_later = asked == "auto" and args.loop == "python"
+    startup.announce_compilation(startup.run_compile_parts(
+        scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
+    if compile_later:           # said when the loop starts (not before an input error)
+        note = ("; the Python host loop this time (the compiled one is not in numba's cache "
+                "yet: it is compiled after the report, for the next runs)")
     embedded = None
-    if args.port is None and args.driver == "framed":
+    if args.port is None and args.protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
         from hapsim.daemon.startup import start_embedded_mock
         embedded = start_embedded_mock(scene, rate_hz=args.rate, lockstep=args.lockstep,
@@ -276,7 +337,7 @@ def run(args) -> int:
                                        fault_seed=args.fault_seed,
                                        rt_priority=0 if args.lockstep and not args.host_clocked
                                        else max(args.rt_priority, 0))
-    from hapsim.daemon.runner import format_report
+    from hapsim.daemon.report import format_report
     try:
         rep = _run(scene, args, embedded)
     except (DeviceError, ProtocolError) as exc:
@@ -296,21 +357,121 @@ def run(args) -> int:
     sys.stdout.flush()
     if lost is not None:                # the report first, then why the run ended
         print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
+    stopped = str(rep.get("loop", {}).get("stop_reason") or "").startswith("signal")
+    if compile_later and lost is None and not stopped:     # not after a Ctrl-C
+        _compile_loop_for_next_runs(scene)
     return code
+
+
+def _compile_loop_for_next_runs(scene) -> None:
+    """Compile the compiled host loop for ``scene``'s kernel into numba's cache, after a
+    run that used the Python loop because the cache did not hold it (``--loop auto``);
+    Ctrl-C leaves it for the next run."""
+    import time
+    t0 = time.monotonic()
+    print("hapsim run: compiling the compiled host loop for the next runs (once) ...",
+          file=sys.stderr, flush=True)
+    try:
+        from hapsim.analysis.targets import apply_targets
+        from hapsim.daemon.fastloop import warm_up
+        from hapsim.engine import Engine
+        warm_up(Engine(apply_targets(scene)[0]))
+    except KeyboardInterrupt:
+        print("hapsim run: interrupted; the next run compiles it", file=sys.stderr, flush=True)
+        return
+    print(f"hapsim run: compiled the compiled host loop ({time.monotonic() - t0:.1f} s); the "
+          "next runs use it", file=sys.stderr, flush=True)
+
+
+def _replace_device(scene, path: str):
+    """The scene with its device section replaced by the file's (``--device FILE``).
+
+    What the file leaves out and the scene gives is kept: the force limit (``hapsim
+    identify --out`` does not measure it), the protocol and, with the same protocol, its
+    options (``device.protocol_options``). One line on stderr says what
+    was replaced, and by which values.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    path : str
+        A device file (:func:`hapsim.device_file.load_device`).
+
+    Returns
+    -------
+    hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid device file (file, line and key named).
+    """
+    import dataclasses
+
+    from hapsim.device_file import device_keys, load_device
+    dev = load_device(path)
+    given = device_keys(path)
+    old = scene.device
+    if old is not None:
+        keep = {name: getattr(old, name) for name in ("force_limit", "protocol")
+                if name not in given}
+        # the device's own parameters go with its protocol: kept when the file names
+        # neither them nor another protocol
+        if "protocol_options" not in given and keep.get("protocol", dev.protocol) == old.protocol:
+            keep["protocol_options"] = old.protocol_options
+        dev = dataclasses.replace(dev, **keep)
+    changed = [] if old is None else [
+        f"{f.name} {_short(getattr(old, f.name))} -> {_short(getattr(dev, f.name))}"
+        for f in dataclasses.fields(dev) if getattr(old, f.name) != getattr(dev, f.name)]
+    what = (f"{'; '.join(changed)}" if changed else "the same values") if old is not None \
+        else "the scene had none"
+    print(f"hapsim run: the device of {path} replaces the scene's ({what})",
+          file=sys.stderr, flush=True)
+    return dataclasses.replace(scene, device=dev)
+
+
+def _short(value) -> str:
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
+def run_options(args, scene, embedded=None):
+    """The :class:`~hapsim.daemon.runner.RunOptions` of ``hapsim run``'s command line: the
+    one place where an option of the parser becomes an option of the run.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``hapsim run``'s parsed arguments (with ``protocol`` and ``announce`` once
+        :func:`run` has chosen them).
+    scene : hapsim.scene.Scene
+        The scene run (its ``device.protocol`` when ``args`` has no ``protocol``:
+        :func:`protocol_of`).
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run.
+
+    Returns
+    -------
+    RunOptions
+        Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
+    """
+    from hapsim.daemon.runner import RunOptions
+    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
+    return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
+                      rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
+                      telemetry=args.telemetry, allow_unstable=args.allow_unstable,
+                      seed=args.seed, rt_priority=args.rt_priority,
+                      on_start=getattr(args, "announce", _announce),
+                      faults=args.faults, fault_seed=args.fault_seed,
+                      reconnect=False if args.no_reconnect else None,
+                      lost_timeout=args.lost_timeout,
+                      reconnect_attempts=args.reconnect_attempts,
+                      reconnect_time=args.reconnect_time, osc=args.osc,
+                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
+                      driver=None if protocol == "framed" else protocol,
+                      loop=args.loop, embedded=embedded)
 
 
 def _run(scene, args, embedded=None) -> dict:
     """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
     from hapsim.daemon.runner import run_scene
-    return run_scene(scene, port=args.port, baud=args.baud, duration=args.duration,
-                     rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                     telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                     seed=args.seed, rt_priority=args.rt_priority, on_start=_announce,
-                     faults=args.faults, fault_seed=args.fault_seed,
-                     reconnect=False if args.no_reconnect else None,
-                     lost_timeout=args.lost_timeout,
-                     reconnect_attempts=args.reconnect_attempts,
-                     reconnect_time=args.reconnect_time, osc=args.osc,
-                     osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                     driver=None if args.driver == "framed" else args.driver,
-                     loop=args.loop, embedded=embedded)
+    return run_scene(scene, run_options(args, scene, embedded))

@@ -109,6 +109,10 @@ def run(args: argparse.Namespace) -> int:
         (file, line, key), or a target no (K, B) renders
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
+        from hapsim.commands.simulate_nd import run_nd
+        return run_nd(args)
     if args.audio is not None:
         return _run_audio(args)
     if args.out is None:
@@ -127,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         # the one place that turns felt targets into (K, B), as hapsim run and check do
         from hapsim.analysis.targets import apply_targets
         scene, calibrations = apply_targets(scene)
+    _announce_compilation(scene)
     engine = Engine(scene)
     if scene.port is not None:
         engine.set_port_position(scene.excitation.x0, at_rest=True)
@@ -177,6 +182,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _announce_compilation(scene) -> None:
+    """With numba's cache empty, say on stderr that the engine's kernel is compiled (once)
+    before the silence it costs (:mod:`hapsim.daemon.startup`)."""
+    from hapsim.daemon import startup
+    startup.reset_announcements()
+    startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
+                                 scene=scene, command="hapsim simulate")
+
+
 def _run_audio(args: argparse.Namespace) -> int:
     """``simulate --audio``: render a gesture through the multi-rate scene to a WAV file
     (and the device trajectory to ``--out`` when given). Exit 0, 1 when the sound
@@ -199,6 +213,7 @@ def _run_audio(args: argparse.Namespace) -> int:
     if scene.unresolved_targets:
         from hapsim.analysis.targets import apply_targets
         scene, calibrations = apply_targets(scene)
+    _announce_compilation(scene)
     engine = Engine(scene)
     t0 = time.perf_counter()
     with Progress(args.steps, "simulate", unit="samples") as bar:

@@ -47,29 +47,34 @@ def run(args) -> int:
     Returns
     -------
     int
-        0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is.
+        0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is. The spectral radius at
+        ``K_max`` is given to the digits double arithmetic knows
+        (:func:`hapsim.analysis.loop.spectral_radius_known`; JSON
+        ``spectral_radius_error``): a double pole there (the undamped centred-difference
+        loop, at ``z = -1``) is uncertain to ~1e-7.
 
     Raises
     ------
     hapsim.errors.ConfigError
         Bad loop option (key: the option) or a non-finite ``--B``.
     """
-    from hapsim.analysis.loop import spectral_radius
-    from hapsim.analysis.ths import published_limits, stability_limit
+    from hapsim.api import known_decimals, stability
     loop = loop_from_args(args)
-    kmax = stability_limit(loop, args.B)
-    rho = spectral_radius(loop, kmax, args.B) if math.isfinite(kmax) else None
-    d = {"K_max": kmax if math.isfinite(kmax) else None, "B": args.B,
-         "spectral_radius_at_K_max": rho, **published_limits(loop, args.B),
-         "loop": loop.to_dict()}
+    rep = stability(loop, args.B)
+    d = rep.to_dict()
+    kmax = math.inf if rep.K_max is None else rep.K_max
+    rho, err = rep.spectral_radius_at_K_max, rep.spectral_radius_error
     if args.json:
         print(json.dumps(d))
     else:
         out = sys.stdout
         print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
               f"d={loop.delay}  hold={loop.hold}   virtual B={args.B:g} N s/m", file=out)
+        shown = "-" if rho is None else (
+            f"{rho:.{known_decimals(err)}f} +- {err:.1g}" if err > 0
+            else f"{rho:.15g}")
         print(f"  exact K_max            {fmt(kmax):>14} N/m  (spectral radius "
-              f"{fmt(rho)} there)", file=out)
+              f"{shown} there)", file=out)
         if d["passivity_K"] > 0:
             print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
                   "zoh, d = 0", file=out)

@@ -36,7 +36,11 @@ def register(sub) -> None:
             "says what was lost."),
         epilog=(
             "columns: time [s], position [m], force [N], seq, turnaround_us [us], late,\n"
-            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped)\n"
+            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped),\n"
+            "  force_seq (the device's STATE.force_seq: the FORCE it applied), status\n"
+            "applied: from force_seq, the force the device held at each tick, its delay\n"
+            "  and late ticks, and the felt energy from the applied force (exact with late\n"
+            "  ticks)\n"
             "felt energy: E(n) = sum_k f(k - d) (x(k+1) - x(k)) [J], the work the held force\n"
             "  did on the hand (the run's passivity observer), restarted at each recovery\n"
             "examples:\n"
@@ -202,7 +206,12 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         ``position_m``, ``force_n``, ``turnaround_us`` (``min``/``max``; turnaround also
         ``p50``/``p99``); ``felt_energy_j`` (``max``, ``end``, ``delay``); ``integrity``
         (``format``, ``intact``, and for a journal ``chunks``, ``torn_bytes``,
-        ``lost_rows``: ranges ``[a, b)`` lost to a torn last chunk or to the writer).
+        ``lost_rows``: ranges ``[a, b)`` lost to a torn last chunk or to the writer);
+        ``applied`` when the rows carry the device's ``force_seq``
+        (:func:`hapsim.analysis.applied.account_from_force_seq`): ``method``, ``delay`` (the
+        delay the device showed), ``late``, ``tick_delay_max``, ``unknown``, and
+        ``felt_energy_j`` (``max``, ``end``) from the force the device applied at each tick
+        (exact with late ticks; the ``felt_energy_j`` above assumes each force on time).
     """
     from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
@@ -231,7 +240,17 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     if info.get("format") == "hst":
         integrity.update(chunks=int(info["chunks"]), torn_bytes=int(info["torn_bytes"]),
                          lost_rows=lost_rows)
+    applied = None
+    fseq = cols.get("force_seq")
+    if n and fseq is not None and np.any(fseq >= 0):
+        from hapsim.analysis.applied import account_from_force_seq
+        acc = account_from_force_seq(seq, cols["force"], fseq, cols["status"])
+        if acc.delay >= 0:
+            ea = felt_energy(cols["position"], acc.applied, flags, 0)
+            applied = {**acc.to_dict(), "felt_energy_j": {"max": _finite(np.nanmax(ea)),
+                                                          "end": _finite(ea[-1])}}
     return {
+        "applied": applied,
         "samples": n,
         "duration_s": (_finite(t[-1] - t[0]) or 0.0) if n else 0.0,
         "rate_hz": float(1.0 / np.median(dt)) if dt.size else None,
@@ -288,6 +307,12 @@ def format_summary(path: str, s: dict) -> str:
     lines.append(f"turnaround [us]: p50 {_g(ta['p50'], '.0f')}  p99 {_g(ta['p99'], '.0f')}  "
                  f"max {_g(ta['max'], '.0f')}")
     lines.append(f"felt energy [J] (d = {e['delay']}): max {_g(e['max'])}, end {_g(e['end'])}")
+    ap = s.get("applied")
+    if ap:
+        lines.append(f"applied (force_seq): device delay {ap['delay']}, late {ap['late']} "
+                     f"(longest {ap['tick_delay_max']} ticks behind); felt energy [J] from the "
+                     f"applied force: max {_g(ap['felt_energy_j']['max'])}, end "
+                     f"{_g(ap['felt_energy_j']['end'])}")
     if ig["format"] == "hst":
         if ig["intact"]:
             lines.append(f"journal: {ig['chunks']} chunks, intact")

@@ -3,8 +3,9 @@
 Modules
 -------
 :mod:`hapsim.daemon.mock`
-    The device side of the protocol with exact THS physics (``MockPhysics``,
-    ``MockDevice``) and its serving loops (lockstep / real-time) on a file descriptor.
+    The device side of the protocol (``MockDevice``) around the device model
+    (:mod:`hapsim.device_model`: ``MockPhysics``) and its serving loops (lockstep /
+    real-time) on a file descriptor.
 :mod:`hapsim.daemon.transport`
     Message transports seen from the host: in-process (no bytes), pyserial (pty or
     hardware), the embedded mock on a pseudo-terminal, and the real-time mock on a virtual
@@ -21,9 +22,14 @@ Modules
     open-ended), its chunked journal (writer thread draining the ring, loss/recovery events,
     ``load``) and the atomic ``.npz``/``.csv`` export.
 :mod:`hapsim.daemon.runner`
-    ``run_scene``: calibrate, check, close the THS, identify, report.
+    ``run_scene``: calibrate, check, close the THS, identify, report (the prediction and
+    the measurement are :mod:`hapsim.analysis.prediction` and
+    :mod:`hapsim.analysis.measurement`).
+:mod:`hapsim.daemon.report`
+    ``format_report``: the human lines of a run's report.
 
-Timing convention (DESIGN §4): STATE ``n`` carries ``x(nT)``; the FORCE answering it
-(``seq = n``) is computed from ``x[n]`` and ``x[n-1]`` and applied by the device over
-``[(n+d)T, (n+d+1)T)`` with a zero-order hold; ``d = 0`` (apply at once) exists in lockstep only.
+Timing convention (docs/design.md, 'The timing convention'): STATE ``n`` carries
+``x(nT)``; the FORCE answering it (``seq = n``) is computed from ``x[n]`` and ``x[n-1]``
+and applied by the device over ``[(n+d)T, (n+d+1)T)`` with a zero-order hold; ``d = 0``
+(apply at once) exists in lockstep only.
 """

@@ -42,6 +42,7 @@ import time
 import numba
 import numpy as np
 from numba import types
+from numba.extending import overload
 
 import firmware_protocol as fp
 from hapsim.daemon.loop import HostLoop, _Lost, _safety_reason
@@ -110,32 +111,39 @@ _CRC = _crc_table()
 _jit = numba.njit(nogil=True, cache=True)
 
 # ----------------------------------------------------------------------------- port step
-# The engine's kernel is chosen by an integer among the module-level kernels of
-# hapsim.kernels, with its arrays in one tuple of fixed types (unused slots empty): numba
-# loads a function from its on-disk cache only when no argument is a dispatcher (a
-# first-class function argument made the loop compile again at every start, ~8 s).
+# The engine's kernel is named by a tag among the module-level kernels of hapsim.kernels,
+# with its arrays in one tuple of fixed types (unused slots empty): numba loads a function
+# from its on-disk cache only when no argument is a dispatcher (a first-class function
+# argument made the loop compile again at every start, ~8 s). The tag is a tuple whose
+# length is the kernel's number + 1, so its numba *type* names the kernel: the loop is
+# compiled (and cached) per kernel, with only that kernel in it, instead of all six behind
+# a run-time branch (the first run of a spring wall compiled the contact, symplectic and
+# exact kernels too).
 K_MASSES, K_SD, K_CONTACT, K_SD_CONTACT, K_SYMPLECTIC, K_EXACT = range(6)
 _KINDS = {cordis.run_masses: K_MASSES, cordis.run_sd: K_SD, cordis.run_contact: K_CONTACT,
           cordis.run_sd_contact: K_SD_CONTACT, schemes.run_symplectic_euler: K_SYMPLECTIC,
           schemes.run_exact: K_EXACT}
+#: The kernels' function names, by kind (the compiled-loop stamps are named after them).
+_KERNEL_NAMES = {k: f.__name__ for f, k in _KINDS.items()}
 _EI = np.empty(0, dtype=np.int64)
 _EF = np.empty(0, dtype=np.float64)
 _EF2 = np.empty((0, 0), dtype=np.float64)
 
 
-def kernel_pack(engine) -> tuple[int, tuple]:
-    """The engine's kernel as ``(kind, pack)`` for :func:`_port_step`.
+def kernel_pack(engine) -> tuple[tuple, tuple]:
+    """The engine's kernel as ``(tag, pack)`` for :func:`_port_step`.
 
     Parameters
     ----------
     engine : hapsim.engine.Engine
-        Its ``_kernel`` and ``_args`` (the arrays are shared, not copied: the kernel
-        updates the engine's state in place).
+        Its :attr:`~hapsim.engine.Engine.kernel_pack` (the arrays are shared, not copied:
+        the kernel updates the engine's state in place).
 
     Returns
     -------
-    kind : int
-        One of ``K_MASSES`` .. ``K_EXACT``.
+    tag : tuple
+        :func:`kernel_tag` of the kernel (``K_MASSES`` .. ``K_EXACT``): the compiled loop
+        is compiled for that kernel alone.
     pack : tuple
         ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
         c_thr, v, c, T, phi, gam, psi, snew, sold, uold)``; the slots the kernel does not
@@ -146,51 +154,96 @@ def kernel_pack(engine) -> tuple[int, tuple]:
     KeyError
         A kernel outside :mod:`hapsim.kernels.cordis` / :mod:`hapsim.kernels.schemes`.
     """
-    kind = _KINDS[engine._kernel]
-    a = engine._args
-    sd = (_EI, _EI, _EF, _EF)
-    ct = (_EI, _EI, _EF, _EF, _EF)
-    v = c = snew = sold = uold = _EF
-    phi = gam = psi = _EF2
-    T = 0.0
-    if kind == K_SD:
-        sd = a[6:10]
-    elif kind == K_CONTACT:
-        ct = a[6:11]
-    elif kind == K_SD_CONTACT:
-        sd, ct = a[6:10], a[10:15]
-    elif kind == K_SYMPLECTIC:
-        v, c, T = a[6], a[7], a[8]
-        sd, ct = a[9:13], a[13:18]
-    elif kind == K_EXACT:
-        v, T, phi, gam, psi, snew, sold, uold = a[6:14]
-        sd = a[14:18]
-    return kind, tuple(a[:6]) + tuple(sd) + tuple(ct) + (v, c, float(T), phi, gam, psi,
-                                                         snew, sold, uold)
+    kp = engine.kernel_pack
+    kind = _KINDS[kp.kernel]
+    sd = kp.sd if kp.sd is not None else (_EI, _EI, _EF, _EF)
+    ct = kp.contact if kp.contact is not None else (_EI, _EI, _EF, _EF, _EF)
+    sc = kp.scheme
+    extras = tuple(sc.get(name, _EF) for name in ("v", "c")) + (float(sc.get("T", 0.0)),) \
+        + tuple(sc.get(name, _EF2) for name in ("phi", "gam", "psi")) \
+        + tuple(sc.get(name, _EF) for name in ("snew", "sold", "uold"))
+    return kernel_tag(kind), tuple(kp.state) + tuple(sd) + tuple(ct) + extras
+
+
+def _port_arrays(engine, at_least: int = -1) -> tuple:
+    """``(x, f, port)`` of the engine's kernel pack: its positions and forces (shared) and
+    the port's index (at least ``at_least``)."""
+    kp = engine.kernel_pack
+    return kp.state[0], kp.state[2], max(kp.port, at_least)
+
+
+def _kernel_step(kind, ka, rec, out):
+    """One sample of the kernel the tag ``kind`` names, in compiled code only: numba
+    replaces each call by that kernel's call (:func:`_kernel_step_for`)."""
+    raise NotImplementedError("_kernel_step exists in compiled code only")
+
+
+@overload(_kernel_step)
+def _kernel_step_for(kind, ka, rec, out):
+    """The implementation of :func:`_kernel_step` for the kernel tag's type: only that
+    kernel is typed and compiled into the loop (a scene pays only for its element kinds,
+    the first run included)."""
+    which = len(kind.types) - 1          # kernel_tag: K + 1 zeros
+    if which == K_MASSES:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed = ka[:6]
+            cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
+    elif which == K_SD:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z = ka[:10]
+            cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec,
+                          out, 0)
+    elif which == K_CONTACT:
+        def step(kind, ka, rec, out):
+            x, xp, f, mobile, t2m, fixed = ka[:6]
+            c_i1, c_i2, c_k, c_z, c_thr = ka[10:15]
+            cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr,
+                               rec, out, 0)
+    elif which == K_SD_CONTACT:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr) = ka[:15]
+            cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
+                                  c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
+    elif which == K_SYMPLECTIC:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr, v, c, T) = ka[:18]
+            schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1,
+                                         sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec,
+                                         out, 0)
+    elif which == K_EXACT:
+        def step(kind, ka, rec, out):
+            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
+             c_thr, v, c, T, phi, gam, psi, snew, sold, uold) = ka
+            schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
+                              sold, uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+    else:
+        return None
+    return step
 
 
 @_jit
 def _port_step(kind, ka, rec, out):
-    """One sample of the engine's kernel ``kind`` on the arrays of ``ka``
+    """One sample of the engine's kernel named by the tag ``kind`` on the arrays of ``ka``
     (:func:`kernel_pack`)."""
-    (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr,
-     v, c, T, phi, gam, psi, snew, sold, uold) = ka
-    if kind == K_MASSES:
-        cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
-    elif kind == K_SD:
-        cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
-    elif kind == K_CONTACT:
-        cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr, rec,
-                           out, 0)
-    elif kind == K_SD_CONTACT:
-        cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
-                              c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
-    elif kind == K_SYMPLECTIC:
-        schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1, sd_i2,
-                                     sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
-    else:
-        schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold,
-                          uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+    _kernel_step(kind, ka, rec, out)
+
+
+def kernel_tag(kind: int) -> tuple:
+    """The tag that names kernel ``kind`` to the compiled loop: ``kind + 1`` zeros, whose
+    numba type (a tuple of that length) selects the kernel at compile time.
+
+    Parameters
+    ----------
+    kind : int
+        One of ``K_MASSES`` .. ``K_EXACT``.
+
+    Returns
+    -------
+    tuple of int
+    """
+    return (0,) * (int(kind) + 1)
 
 
 @_jit
@@ -318,7 +371,8 @@ def _write_all(fd, buf, n, pfd):
 
 @_jit
 def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
-            s_arr, ta_arr, late_arr, fl_arr, seq, time_us, status, force_seq, x, t_rx, fd,
+            s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, seq, time_us, status, force_seq,
+            x, t_rx, fd,
             pkt, f8, u8, table, tx, pfd, ts):
     """One sample of :meth:`HostLoop._drive`, transcribed: late check, port step, observer,
     controller, ramp, clamp, FORCE written, clamp window, telemetry row, maxima, bounds.
@@ -404,6 +458,8 @@ def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_a
     s_arr[sl] = seq
     ta_arr[sl] = (t_tx - t_rx) * 1e-3
     late_arr[sl] = lt
+    fs_arr[sl] = force_seq
+    st_arr[sl] = status
     fl_arr[sl] = lt | rf | iv[I_RESTART] | (FLAG_CLAMPED if c else 0) | iv[I_SKIPFLAG]
     iv[I_RESTART] = 0
     iv[I_SKIPFLAG] = 0
@@ -471,8 +527,8 @@ def _keep_frame(rb, a, z, hist, hist_len, iv):
 
 @_jit
 def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
-             s_arr, ta_arr, late_arr, fl_arr, fd, rb, stop, pkt, f8, u8, table, tx, pfd, ts,
-             hist, hist_len):
+             s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, fd, rb, stop, pkt, f8, u8, table,
+             tx, pfd, ts, hist, hist_len):
     """Answer clean STATEs on ``fd`` until something needs Python (module notes).
 
     ``rb[:iv[I_RB_LEN]]`` holds received bytes not yet framed (a partial frame on entry;
@@ -545,7 +601,8 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
                 _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x)
                 continue
             code = _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
-                           x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, seq, tus, status,
+                           x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,
+                           seq, tus, status,
                            fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts)
             if code != R_OK or iv[I_N] >= iv[I_NMAX] or stop[0] != 0 or iv[I_N] >= sync_at:
                 for j in range(a, n_rb):
@@ -683,9 +740,9 @@ class CompiledHostLoop(HostLoop):
             "iv": iv, "fv": fv, "pv": pv,
             "fh": np.zeros(d + 2, dtype=np.float64),
             "win": np.zeros(max(cfg.clamp_window, 1), dtype=np.int8),
-            "eng": (*kernel_pack(eng), eng._x, eng._f, eng._port, _REC, _OUT),
+            "eng": (*kernel_pack(eng), *_port_arrays(eng), _REC, _OUT),
             "tel": (tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                    tel.flags),
+                    tel.flags, tel.force_seq, tel.status),
             "io": (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
                    np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32),
                    np.zeros(2, dtype=np.int64)),
@@ -888,11 +945,12 @@ def _scratch(engine, fd: int) -> dict:
     iv[I_SYNC] = 4
     iv[I_EXPECT] = 0
     tel = tuple(np.zeros(4, dtype=dt) for dt in (np.float64, np.float64, np.float64,
-                                                  np.int64, np.float64, np.int8, np.uint8))
+                                                  np.int64, np.float64, np.int8, np.uint8,
+                                                  np.int64, np.uint16))
     u8 = np.zeros(8, dtype=np.uint8)
     io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
           np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))
-    eng = (*kernel_pack(engine), engine._x, engine._f, max(engine._port, 0), _REC, _OUT)
+    eng = (*kernel_pack(engine), *_port_arrays(engine, at_least=0), _REC, _OUT)
     return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
             "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
             "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
@@ -939,4 +997,20 @@ def warm_up(engine) -> float:
     finally:
         os.close(r)
         os.close(w)
+    _mark_compiled(len(kind) - 1)
     return time.perf_counter() - t0
+
+
+def _mark_compiled(kind: int) -> None:
+    """Leave the stamp that says the loop for kernel ``kind`` is in numba's cache
+    (:func:`hapsim.daemon.startup.loop_is_fresh` reads it without numba); best effort."""
+    import os
+
+    from hapsim.daemon.startup import loop_stamp
+    path = loop_stamp(_KERNEL_NAMES[kind])
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w"):
+            pass
+    except OSError:
+        pass

@@ -23,7 +23,7 @@ the Python mock's for the same host bytes at the same device times
 wakes on each host frame and stamps it (watchdog) on arrival, the compiled one reads what
 arrived when it wakes for the tick and stamps it with the tick's time.
 
-Not compiled (the Python mock serves; :func:`compiled_reason` says why): lockstep (paced by
+Not compiled (the Python mock serves; :func:`hapsim.daemon.mock.compiled_reason` says why): lockstep (paced by
 the FORCEs, not by a clock), a fault plan (the faults are Python), VELOCITY frames enabled
 by the host (a velocity-sensor correction), sensor noise (numpy's
 generator), a compliant hand grip (4-state plant), a subclass of the mock (tests), and the
@@ -33,8 +33,6 @@ per-tick ``trace`` / ``applied_log`` of the tests.
 from __future__ import annotations
 
 import math
-import os
-import time
 
 import numpy as np
 from numba import types
@@ -44,7 +42,7 @@ from hapsim.daemon.fastloop import (_CRC, _POLLERR, _POLLHUP, _POLLIN, _POLLNVAL
                                     _c_poll, _c_read, _c_write, _cobs_decode, _cobs_encode,
                                     _crc16, _jit, _le, _next_frame, _now_ns)
 
-__all__ = ["CompiledMock", "compiled_reason", "warm_up_mock"]
+__all__ = ["CompiledMock"]
 
 _c_clock_nanosleep = types.ExternalFunction(
     "clock_nanosleep", types.int32(types.int32, types.int32, types.intp, types.intp))
@@ -297,50 +295,6 @@ def _stretch(fd, stop, iv, fv, rf, rs, hand, rb, pkt, f8, u8, table, tx, ts, pfd
         iv[I_DEADLINE_NS] = nxt if nxt > late else late
 
 
-# ----------------------------------------------------------------------------- Python side
-def compiled_reason(mock, plan=None) -> str | None:
-    """Why the compiled tick cannot serve this mock now; None when it can.
-
-    Parameters
-    ----------
-    mock : MockDevice
-        The device (its current CONFIG: physics and mode).
-    plan : FaultPlan, optional
-        The fault plan of :func:`~hapsim.daemon.mock.serve_fd`.
-
-    Returns
-    -------
-    str or None
-        ``"lockstep"``, ``"faults"``, ``"velocity sensor"`` (VELOCITY frames enabled by
-        the host), ``"noise"``, ``"hand grip or arm stiffness (state-space plant)"``,
-        ``"hold"``, ``"subclass"``, ``"trace"`` or
-        ``"not configured"``; None: compiled.
-    """
-    from hapsim.daemon.mock import MockDevice, MockPhysics
-    if type(mock) is not MockDevice:
-        return "subclass"
-    if mock.lockstep:
-        return "lockstep"
-    if plan is not None and not plan.empty:
-        return "faults"
-    if getattr(mock, "sensors", 0):
-        return "velocity sensor"        # VELOCITY frames before each STATE: Python's
-    if mock.trace is not None or mock.applied_log is not None:
-        return "trace"
-    ph = mock.physics
-    if ph is None:
-        return "not configured"
-    if type(ph) is not MockPhysics:
-        return "subclass"
-    if ph._rng is not None:
-        return "noise"
-    if ph._grip is not None:
-        return "hand grip or arm stiffness (state-space plant)"
-    if ph.hold not in ("zoh", "ideal"):
-        return "hold"
-    return None
-
-
 class CompiledMock:
     """The compiled tick around a :class:`~hapsim.daemon.faults.FaultyDevice` without
     faults (module notes); the Python objects stay the reference state between stretches.
@@ -369,10 +323,6 @@ class CompiledMock:
         self._plan = dev.plan
 
     R_HANDOFF, R_PORT = R_HANDOFF, R_PORT       # the codes serve_fd acts on
-
-    def reason(self) -> str | None:
-        """:func:`compiled_reason` for this device now."""
-        return compiled_reason(self.dev.mock, self._plan)
 
     # ---------------------------------------------------------------- state in and out
     def load(self) -> None:
@@ -427,7 +377,7 @@ class CompiledMock:
         mock._last_force_us = int(iv[I_LAST_FORCE_US])
         mock._applied = mock.stats.last_applied = float(fv[F_APPLIED])
         mock._u = float(fv[F_U])
-        mock.velocity_out = None            # no VELOCITY while compiled (compiled_reason)
+        mock.velocity_out = None            # no VELOCITY while compiled (hapsim.daemon.mock.compiled_reason)
         mock._rf = self.rf.tolist()
         mock._rs = self.rs.tolist()
         st = mock.stats
@@ -529,35 +479,3 @@ class CompiledMock:
         return code, deadline_ns, rest
 
 
-def warm_up_mock() -> float:
-    """Compile (or load from numba's cache) the compiled tick, on a pipe; seconds taken.
-
-    Returns
-    -------
-    float
-        Wall time [s].
-    """
-    from hapsim.daemon.faults import FaultyDevice
-    from hapsim.daemon.loop import StopFlag
-    from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice
-
-    t = time.perf_counter()
-    mock = MockDevice(DEFAULT_DEVICE, DEFAULT_EXCITATION, lockstep=False)
-    dev = FaultyDevice(mock)
-    dev.feed(fp.encode(fp.Config(1000.0, 50_000, 10.0)), 0)
-    cm = CompiledMock(dev)
-    cm.load()
-    cm.feed(fp.encode(fp.Force(0, (0.0,))), 0)
-    cm.tick(0)
-    cm.store()
-    r, w = os.pipe()
-    try:
-        os.set_blocking(r, False)
-        os.write(w, fp.encode(fp.Stop()))
-        flag = StopFlag()
-        now = time.monotonic_ns()
-        cm.serve(r, now, now, 1_000_000, flag)       # reads the STOP: hands it over
-    finally:
-        os.close(r)
-        os.close(w)
-    return time.perf_counter() - t

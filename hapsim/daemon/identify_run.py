@@ -10,17 +10,26 @@ Force sent answering the position ``x[n]``::
 
     f[n] = -Kc (x[n] - x_start) - Bc (x[n] - x[n-1]) / T + r[n]
 
-a weak centring spring-damper (``Kc = 0.5 F_lim / envelope``: half the force limit at the
-envelope's edge; ``Bc = 1.5 Kc (d_max + 1) T`` [N s/m], enough to outweigh the negative
-damping ``~Kc (d + 1) T`` a delay of up to ``d_max`` samples and the backward difference
-give the spring) plus ``g r[n]``:
+a weak centring spring-damper, stable for every mass in :data:`MASS_RANGE` and every delay
+``0 .. d_max`` (:func:`centring_gains`: the largest ``Kc = 0.5 F_lim / envelope / 2^j``,
+half the force limit at the envelope's edge at most, for which a ``Bc`` makes every such
+loop's spectral radius < 1 -- a delayed spring needs damping ``> Kc (d + 1) T``, and delayed
+damping on a light mass is itself unstable beyond ``~(pi/2) m / (d T)``, so a long delay
+forces a weak spring) plus ``g r[n]``:
 a pseudo-random binary sequence of amplitude ``0.1 F_lim`` whose levels last 1..40
 samples at random (a wide band: the mass line above the friction corner, the friction
-below), added to a square wave of ``0.1 F_lim`` with a 0.5 s period (slow constant-force
-steps: long stretches of one velocity sign, which is what separates Coulomb from viscous
-friction). The gain ``g`` starts at 1 and halves each time the device passes 60 % of the
-envelope (then 66 %, ...), so a light device stays inside it. The fit (:mod:`hapsim.analysis.device_fit`) uses the forces as sent, so the
-centring loop does not bias it.
+below), added to a square wave of ``0.1 F_lim`` whose sign flips every 250 ms (slow
+constant-force steps: long stretches of one velocity sign, which is what separates Coulomb
+from viscous friction), and early when the device is past 30 % of the envelope on the side
+it pushes towards (a relay: the steps move the device both ways and keep it centred without
+a stiff spring, which a long delay forbids). The gain ``g`` starts at 1/8 and grows by
+2^(1/4) every 100 ms (up to 1) while the device moved over less than 30 % of the
+envelope, and
+halves each time the device is about to pass 60 % of the envelope (then 66 %, ...; its
+position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
+``d`` samples after it moved) never leaves the envelope before the gain has found its
+level. The fit (:mod:`hapsim.analysis.device_fit`) uses the forces the device applied
+(:mod:`hapsim.analysis.applied`), so neither the centring loop nor late ticks bias it.
 """
 
 from __future__ import annotations
@@ -35,7 +44,77 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["ExcitationPlan", "ExcitationEngine", "excitation_plan", "record"]
+__all__ = ["ExcitationPlan", "ExcitationEngine", "excitation_plan", "record",
+           "centring_gains", "MASS_RANGE"]
+
+#: Growth of the excitation's gain per calm 100 ms (2^(1/4): a force level at most 19 %
+#: above the last one, under which the device moved over less than 30 % of the envelope).
+_GROW = 2.0 ** 0.25
+#: Moving masses [kg] the centring loop is made stable for (a hand on a handle included).
+MASS_RANGE = (0.02, 2.0)
+
+
+def _rho_mass(m: float, kc: float, bc: float, d: int, T: float) -> float:
+    """Spectral radius of a mass ``m`` [kg] (exact ZOH, no friction) under the centring
+    force ``-kc x[n-d] - bc (x[n-d] - x[n-d-1]) / T``: the roots of
+    ``(z-1)^2 z^(d+1) + T^2/(2m) (z+1) (kc z + bc/T (z-1))`` (the plant
+    ``T^2 (z+1) / (2 m (z-1)^2)``, Florens, Voda & Urma eq. (4) with ``b0 = 0``)."""
+    a = np.zeros(d + 4)
+    a[:3] = (1.0, -2.0, 1.0)
+    b = (T * T / (2.0 * m)) * np.polymul([1.0, 1.0], [kc + bc / T, -bc / T])
+    a[-3:] += b
+    return float(np.max(np.abs(np.roots(a))))
+
+
+def centring_gains(force_limit: float, envelope: float, rate_hz: float, max_delay: int,
+                   masses=MASS_RANGE) -> tuple[float, float]:
+    """Centring stiffness and damping stable for every mass and delay (module notes).
+
+    Parameters
+    ----------
+    force_limit : float > 0
+        Largest force sent [N].
+    envelope : float > 0
+        Half-width of the position envelope [m].
+    rate_hz : float > 0
+        Sample rate [Hz].
+    max_delay : int >= 0
+        Largest device delay [samples].
+    masses : (float, float)
+        Range of moving masses [kg] (7 points on a log grid are checked, and the ends).
+
+    Returns
+    -------
+    (float, float)
+        ``Kc`` [N/m], ``Bc`` [N s/m]: the largest ``Kc = 0.5 F_lim / envelope / 2^j``
+        (``j = 0 .. 12``) with a ``Bc`` (24 values on a log grid from ``Kc (d_max + 1) T``
+        to ``(pi/2) m_min / ((d_max + 1) T)``) making every loop's spectral radius < 1;
+        ``Bc`` the geometric middle of the stable ones found. Without any, the smallest ``Kc`` tried
+        and ``Bc = 0`` (the device's own friction must then hold it; the envelope stop
+        remains).
+    """
+    T = 1.0 / rate_hz
+    d = int(max_delay)
+    grid = np.geomspace(masses[0], masses[1], 7)
+    kc0 = 0.5 * force_limit / envelope
+    kc = kc0
+    for j in range(13):
+        kc = kc0 / 2.0 ** j
+        lo = kc * (d + 1) * T
+        hi = 0.5 * math.pi * masses[0] / ((d + 1) * T)
+        if hi <= lo:
+            continue
+        ok = [float(bc) for bc in np.geomspace(lo, hi, 24)
+              if max(_rho_mass(m, kc, bc, d, T) for m in grid) < 1.0 - 1e-9]
+        if not ok:
+            continue
+        # the middle (geometric) of the stable dampings: as far from either edge as the
+        # grid allows, and no more damping than that (it would absorb the excitation)
+        bc = math.sqrt(ok[0] * ok[-1])
+        # the delay's worst case is not always the longest: check every one
+        if all(_rho_mass(m, kc, bc, dd, T) < 1.0 for dd in range(d + 1) for m in grid):
+            return float(kc), bc
+    return float(kc), 0.0
 
 
 class ExcitationPlan:
@@ -54,11 +133,18 @@ class ExcitationPlan:
     envelope : float
         Half-width of the position envelope [m]; the open-loop part is halved each time
         the device passes 60 % of it.
+    max_delay : int
+        Largest device delay [samples] (the gain looks that far ahead).
+    square : ndarray, shape (n,), optional
+        Amplitude of the square wave per sample [N] (its sign is the engine's).
     """
 
     def __init__(self, r: np.ndarray, kc: float, bc: float, rate_hz: float,
-                 envelope: float) -> None:
+                 envelope: float, max_delay: int = 0, square=None) -> None:
         self.r = np.asarray(r, float)
+        self.square = (np.zeros_like(self.r) if square is None
+                       else np.asarray(square, float))
+        self.max_delay = int(max_delay)
         self.envelope = float(envelope)
         self.kc = float(kc)
         self.bc = float(bc)
@@ -115,16 +201,16 @@ def excitation_plan(n: int, rate_hz: float, force_limit: float, envelope: float,
         level = -level if rng.random() < 0.5 else level
         i += k
     t = np.arange(n) * T
-    r += a * np.where((t % 0.5) < 0.25, 1.0, -1.0)
+    sq = np.full(n, a)
     # ramp in and out over 20 ms: no step at arming, zero force at the end
     nr = min(max(int(0.02 * rate_hz), 1), n // 4 or 1)
     ramp = np.ones(n)
     ramp[:nr] = np.linspace(0.0, 1.0, nr)
     ramp[n - nr:] = np.minimum(ramp[n - nr:], np.linspace(1.0, 0.0, nr))
     r *= ramp
-    kc = 0.5 * force_limit / envelope
-    bc = 1.5 * kc * (max_delay + 1) * T
-    return ExcitationPlan(r, kc, bc, rate_hz, envelope)
+    sq *= ramp
+    kc, bc = centring_gains(force_limit, envelope, rate_hz, max_delay)
+    return ExcitationPlan(r, kc, bc, rate_hz, envelope, max_delay, square=sq)
 
 
 class ExcitationEngine:
@@ -150,8 +236,16 @@ class ExcitationEngine:
         self._k = 0
         self._xc = 0.0
         self._xp = 0.0
-        self._g = 1.0
+        self._g = 0.125
         self._edge = 0.6 * scene.envelope
+        self._calm = 0.3 * scene.envelope
+        self._win = max(int(0.1 * scene.rate_hz), 1)
+        self._hi = -math.inf
+        self._lo = math.inf
+        self._look = float(scene.max_delay + 1)
+        self._sq = scene.square
+        self._sign = 1.0
+        self._half = max(int(0.25 * scene.rate_hz), 1)
 
     def set_port_position(self, position: float, at_rest: bool = False) -> None:
         """Centre the excitation at the device's position ``position`` [m]."""
@@ -162,10 +256,35 @@ class ExcitationEngine:
         """Force [N] answering the position ``position`` [m] (module notes)."""
         k = self._k
         e = position - self._xc
-        if (e > self._edge or e < -self._edge) and self._g > 1e-3:
+        # where the device will be when a force sent now acts (up to d_max + 1 samples
+        # later, at its present velocity): the gain reacts before the device gets there
+        ae = e + (position - self._xp) * self._look
+        ae = ae if ae >= 0.0 else -ae
+        if ae > self._edge and self._g > 1e-3:
             self._g *= 0.5                 # nearing the envelope: excite less from now on
             self._edge *= 1.1
-        r = self._g * self._r[k] if k < self._n else 0.0
+        if position > self._hi:
+            self._hi = position
+        if position < self._lo:
+            self._lo = position
+        if k % self._win == self._win - 1:
+            if self._hi - self._lo < self._calm and self._g < 1.0:
+                # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
+                # small enough that a device held by Coulomb friction breaks loose gently
+                # (wherever it sticks: the relay pushes it back towards the centre)
+                self._g = min(self._g * _GROW, 1.0)
+            self._hi = -math.inf
+            self._lo = math.inf
+        # the square wave: its sign flips each half period (250 ms), and early when the
+        # device is past 30 % of the envelope on the side it pushes towards (a relay:
+        # the constant-force steps move the device both ways and keep it centred without
+        # a stiff centring spring, which a long delay forbids)
+        sg = self._sign
+        if k % self._half == self._half - 1 or sg * e > self._calm:
+            if not sg * e < -self._calm:
+                sg = -sg
+                self._sign = sg
+        r = self._g * (self._r[k] + sg * self._sq[k]) if k < self._n else 0.0
         self._k = k + 1
         f = -self._kc * e - self._bc * (position - self._xp) + r
         self._xp = position
@@ -189,7 +308,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
            rate_hz: float = 1000.0, duration: float = 4.0, force_limit: float = 2.0,
            envelope: float = 0.01, max_delay: int = 5, seed: int = 0, noise_seed: int = 0,
            transport: str | None = None, lockstep: bool = False, progress: bool = True,
-           handle_signals: bool = True, stop=None, driver: str | None = None):
+           handle_signals: bool = True, stop=None, driver: str | None = None,
+           driver_options: dict | None = None, mock_options: dict | None = None):
     """Run the excitation on a device (or the mock of ``device``) and return the record.
 
     Parameters
@@ -227,6 +347,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     driver : str, optional
         A protocol of :mod:`hapsim.drivers` (host-clocked; without ``port``, that
         driver's mock of ``device``); None or ``"framed"``: hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``).
+    mock_options : dict, optional
+        The driver mock's hardware (default: the device the driver describes).
 
     Returns
     -------
@@ -272,18 +396,22 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     use_driver = driver not in (None, "framed")
     if use_driver:
         from hapsim.drivers import get_driver
-        drv = get_driver(driver)
+        drv = get_driver(driver, **(driver_options or {}))
+        drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
             if port is None:
                 from hapsim.drivers.mock import EmbeddedDriverMock
-                embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
+                                              options=(mock_options if mock_options is not None
+                                                       else drv.mock_hardware()))
+                # paced by the commands: a slow mock process is no lost answer
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
-                tr = DriverTransport(drv, port, delay=1)
+                tr = DriverTransport(drv, port, delay=1, delay_known=False)
         elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, Excitation(), native_rate_hz=rate_hz, lockstep=True,
@@ -303,7 +431,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                          state_timeout=(0.5 if transport == "inprocess" else 10.0) if lock
                          else 1.0,
                          hello_timeout=30.0 if transport == "pty" else 5.0,
-                         position_bound=envelope, reconnect=False)
+                         position_bound=envelope, reconnect=False,
+                         # every STATE answered and logged: a late answer is a known
+                         # input (its force_seq), a skipped STATE a hole in the record
+                         backlog="all")
         tel = Telemetry(n)
         loop = HostLoop(ExcitationEngine(plan), tr, cfg, tel, stop)
         evt = threading.Event()
@@ -326,23 +457,38 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     cols = tel.columns()
     force = cols["force"].copy()
     fs = 0.0
+    account = None
     if use_driver:          # what the device was sent: the protocol's quantised force
         force = np.array([drv.applied_force(v) for v in force])
+        # a driver's protocol names no applied force: its own timing may (issue 20)
+        hook = getattr(drv, "account", None)
+        account = hook(cols, force) if hook is not None else None
+        late = cols["late"].astype(bool) if account is None else account.late
     else:                   # a framed device's actuator grid, as its HELLO reports it
+        from hapsim.analysis.applied import account_from_force_seq
         hello = getattr(res, "hello", None)
         fs = float(getattr(hello, "force_scale", 0.0) or 0.0)
-        if math.isfinite(fs) and fs > 0:
-            force = np.round(force / fs) * fs
-        else:
+        if not (math.isfinite(fs) and fs > 0):
             fs = 0.0
+        hl = float(getattr(hello, "force_limit", math.inf) or math.inf)
+        # the force the device applied at every tick, from its STATEs' force_seq: the
+        # delay is the one the device shows, late ticks are known inputs
+        account = account_from_force_seq(cols["seq"], force, cols["force_seq"],
+                                         cols["status"], zero_delay=lock and d_expect == 0,
+                                         force_limit=min(force_limit, hl), force_scale=fs)
+        force = np.round(force / fs) * fs if fs else force
+        late = account.late
     return {"position": cols["position"].copy(), "force": force,
-            "late": cols["late"].astype(bool), "time": cols["time"].copy(),
-            "seq": cols["seq"].copy(),
+            "late": late, "time": cols["time"].copy(),
+            "seq": cols["seq"].copy(), "account": account,
             "period": 1.0 / rate_hz,
             "loop": {"samples": int(res.samples), "requested": n,
                      "stop_reason": res.stop_reason, "safety_stop": bool(res.safety_stop),
-                     "late": int(res.late), "clamped": int(res.clamped),
+                     "late": int(np.count_nonzero(late)), "clamped": int(res.clamped),
+                     "device_delay": None if account is None else int(account.delay),
                      "transport": transport, "lockstep": bool(lock),
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
-                     "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs}}
+                     "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
+                     "driver": tr.report() if use_driver else None},
+            "protocol_options": drv.options() if use_driver else None}

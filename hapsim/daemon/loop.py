@@ -78,7 +78,8 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.daemon.realtime import sleep_until_ns
-from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
+from hapsim.daemon.telemetry import (FLAG_CLAMPED, FLAG_ESTIMATED, FLAG_LOST, FLAG_RAMP,
+                                     FLAG_SKIPPED)
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
@@ -88,6 +89,10 @@ __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity
 _U32 = 0xFFFFFFFF
 _OPEN_ENDED = 1 << 62       # rows of a run without a sample count (ended by a stop)
 _HALF = 0x80000000
+
+#: Missing samples in a row a driver's loop steps the scene through with an extrapolated
+#: position (beyond, ticks are skipped): :meth:`HostLoop._host_states`.
+ESTIMATED_MAX = 2
 
 #: Bad-frame incidents kept in :attr:`LoopResult.bad_frames` (the latest ones).
 BAD_FRAME_RECORDS = 32
@@ -342,7 +347,10 @@ class LoopResult:
         STATUS_OVERRUN).
     missed : int
         STATE sequence numbers never seen (gaps); host-clocked: host ticks without a new
-        STATE (skipped: no engine step, no FORCE).
+        STATE (skipped: no engine step, no FORCE; or, with a driver, ``estimated``).
+    estimated : int
+        Host-clocked with a driver: missed ticks the scene was stepped through with an
+        extrapolated position (their rows have ``FLAG_ESTIMATED``).
     overruns : int
         Host-clocked deadlines missed by more than one period.
     clamped : int
@@ -444,6 +452,7 @@ class LoopResult:
     safety_stop: bool = False
     late: int = 0
     missed: int = 0
+    estimated: int = 0
     overruns: int = 0
     clamped: int = 0
     skipped: int = 0
@@ -1192,9 +1201,9 @@ class HostLoop:
             restart = self._restart_flag
             energy = self._energy
             e0 = self._e0
-            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr = (
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr = (
                 tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
-                tel.flags)
+                tel.flags, tel.force_seq, tel.status)
             hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
             # a loop that is not real-time lets the journal writer catch up each half lap
             drain = tel.drain if rl else None
@@ -1276,6 +1285,8 @@ class HostLoop:
                 s_arr[sl] = seq
                 ta_arr[sl] = (t_tx - t_rx) * 1e-3
                 late_arr[sl] = lt
+                fs_arr[sl] = msg.force_seq
+                st_arr[sl] = st
                 fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
                 self._skip_flag = 0
                 restart = 0
@@ -1475,6 +1486,16 @@ class HostLoop:
         else:
             mono_ns = time.monotonic_ns
         receive = tr.receive
+        # a request-reply device (a driver's) answers only what it is asked. A tick whose
+        # answer is overdue (the transport's deadline) is a missing sample, not a silence
+        # that grows into a loss: the scene steps with the position extrapolated from the
+        # two before and its FORCE goes out (asking the device again), so the scene's clock
+        # stays the device's (row flagged FLAG_ESTIMATED); more than ESTIMATED_MAX in a row,
+        # the tick is skipped and the last force asked again (hold)
+        hold = getattr(tr, "hold", None)
+        overdue = getattr(tr, "overdue", None)
+        run_est = 0
+        x_1 = x_2 = None            # the two positions answered last
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -1546,16 +1567,36 @@ class HostLoop:
             if stop.set:
                 break
             t_rx = perf()
-            if latest.seq == used_seq:
-                # no new sample since the last tick: stepping the engine with a stale
-                # position would corrupt its velocity; skip this tick (counted)
+            if (latest.seq - used_seq) & _U32 >= _HALF or latest.seq == used_seq:
+                # no new sample since the last tick (or only one older than an estimated
+                # tick already stepped through): stepping the engine with a stale
+                # position would corrupt its velocity; skip this tick (counted), or, for a
+                # driver whose answer is overdue, step it with an estimate (notes above)
                 res.missed += 1
                 if clock() - last_new >= silence - 1e-6:
                     raise _Lost(f"no STATE from the device for {silence:g} s")
+                if (overdue is not None and run_est < ESTIMATED_MAX and x_2 is not None
+                        and overdue()):
+                    run_est += 1
+                    res.estimated += 1
+                    used_seq = (used_seq + 1) & _U32
+                    x_e = 2.0 * x_1 - x_2
+                    x_2, x_1 = x_1, x_e
+                    self._skip_flag |= FLAG_ESTIMATED
+                    t_e = latest.time_us + int(round(((used_seq - latest.seq) & _U32)
+                                                     * 1e6 / rate))
+                    yield (State(used_seq, t_e & 0xFFFFFFFFFFFFFFFF, latest.status,
+                                 (used_seq - cfg.delay) & _U32, (x_e,)), x_e, t_rx)
+                    deadline += period_ns
+                    continue
+                if hold is not None:
+                    hold()
                 deadline += period_ns
                 continue
             last_new = clock()
             used_seq = latest.seq
+            run_est = 0
+            x_2, x_1 = x_1, latest.position[0]
             yield latest, latest.position[0], t_rx   # _drive answers it (or stops)
             deadline += period_ns
             now = mono_ns()

@@ -1,7 +1,7 @@
 """The mock device: the real side of the THS, behind the device side of the protocol.
 
-Physics (DESIGN §4-§5)
-----------------------
+Physics (docs/design.md, 'The mock device')
+-------------------------------------------
 ``m x'' + b0 x' = u(t) + f_ext(t)`` with the commanded force ``u`` held constant over each
 period (zero-order hold), integrated *exactly* from tick to tick with the closed form of
 :func:`zoh_step_coefficients` (written here independently of
@@ -45,23 +45,20 @@ import signal
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-
 import firmware_protocol as fp
 from hapsim.daemon.loop import StopFlag
+from hapsim.device_model import (DEFAULT_DEVICE, DEFAULT_EXCITATION, MockPhysics,
+                                 hand_force_samples, ideal_step_coefficients,
+                                 zoh_step_coefficients)
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 
 __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_samples",
            "MockPhysics", "MockDevice", "MockStats", "serve_fd", "MOCK_DEVICE_ID",
-           "DEFAULT_DEVICE", "DEFAULT_EXCITATION"]
+           "DEFAULT_DEVICE", "DEFAULT_EXCITATION", "compiled_reason", "warm_up_mock"]
 
 #: HELLO.device_id of the mock ("MOCK" in ASCII).
 MOCK_DEVICE_ID = 0x4D4F434B
-#: Device used by ``hapsim mock`` without ``--scene`` (the device of ``configs/wall.yaml``).
-DEFAULT_DEVICE = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=10.0)
-#: Excitation used by ``hapsim mock`` without ``--scene``: 5 mm initial displacement.
-DEFAULT_EXCITATION = Excitation(x0=0.005)
 #: Real-time ticks: the mock waits in ``select`` until this long before each deadline and
 #: reads the host's bytes in a loop for the rest [ns]. 0: no spin (the wait ends at the
 #: deadline; select's timeout is exact to the timer under SCHED_FIFO, whose timer slack is
@@ -73,363 +70,6 @@ MOCK_SPIN_NS = 0
 
 
 # --------------------------------------------------------------------------- physics
-
-def _series_psi_phi1(y: float) -> tuple[float, float]:
-    """``psi = (1 - e^-y)/y`` and ``phi1 = (e^-y - 1 + y)/y^2`` by their Taylor series."""
-    psi = 0.0
-    phi1 = 0.0
-    term = 1.0            # (-y)^j / j!
-    for j in range(30):
-        psi += term / (j + 1)
-        phi1 += term / ((j + 1) * (j + 2))
-        term *= -y / (j + 1)
-        if abs(term) < 1e-20:
-            break
-    return psi, phi1
-
-
-def zoh_step_coefficients(mass: float, friction: float, period: float):
-    """Coefficients of one exact ZOH step of ``m x'' + b0 x' = u`` (u held over the period).
-
-    Parameters
-    ----------
-    mass : float
-        Moving mass m [kg], > 0.
-    friction : float
-        Viscous friction b0 [N s/m], >= 0.
-    period : float
-        Period T [s], > 0.
-
-    Returns
-    -------
-    tuple of float
-        ``(a, c_xv, c_xu, c_vu)`` such that over one period
-        ``x' = x + c_xv v + c_xu u`` and ``v' = a v + c_vu u``, with ``y = b0 T/m``,
-        ``a = e^-y`` [-], ``c_xv = T (1 - e^-y)/y`` [s], ``c_xu = T^2/m (e^-y - 1 + y)/y^2``
-        [m/N], ``c_vu = T/m (1 - e^-y)/y`` [m/(N s)] (limits ``T``, ``T^2/(2m)``, ``T/m``
-        at ``b0 = 0``).
-
-    Raises
-    ------
-    ConfigError
-        On a non-positive mass or period or a negative friction.
-
-    Notes
-    -----
-    Solution of ``v' = -(b0/m) v + u/m`` and ``x' = v`` with ``u`` constant (variation of
-    constants); the small-``y`` branch (``y < 1e-2``) uses the Taylor series of ``psi`` and
-    ``phi1`` so no cancellation occurs. Matches ``expm([[A, B], [0, 0]] T)`` to ~1e-15.
-    """
-    m, b0, T = float(mass), float(friction), float(period)
-    if not (m > 0 and T > 0 and b0 >= 0):
-        raise ConfigError(f"need mass > 0, friction >= 0, period > 0; got m={mass!r}, "
-                          f"b0={friction!r}, T={period!r}")
-    y = b0 * T / m
-    if y < 1e-2:
-        psi, phi1 = _series_psi_phi1(y)
-    else:
-        em1 = math.expm1(-y)          # e^-y - 1
-        psi = -em1 / y
-        phi1 = (em1 + y) / (y * y)
-    a = math.exp(-y)
-    return a, T * psi, T * T / m * phi1, T / m * psi
-
-
-def ideal_step_coefficients(mass: float, friction: float, period: float):
-    """Coefficients of the paper's idealised sampled mass (Florens et al. eqs. (2)-(4)).
-
-    Parameters
-    ----------
-    mass, friction, period : float
-        m [kg] > 0, b0 [N s/m] >= 0, T [s] > 0.
-
-    Returns
-    -------
-    tuple of float
-        ``(a, c_u)`` with ``x[n+1] = (1 + a) x[n] - a x[n-1] + c_u u[n]``, ``a = e^-y``,
-        ``c_u = T^2/m (1 - e^-y)/y`` [m/N], ``y = b0 T / m``.
-
-    Raises
-    ------
-    ConfigError
-        As :func:`zoh_step_coefficients`.
-    """
-    m, b0, T = float(mass), float(friction), float(period)
-    if not (m > 0 and T > 0 and b0 >= 0):
-        raise ConfigError(f"need mass > 0, friction >= 0, period > 0; got m={mass!r}, "
-                          f"b0={friction!r}, T={period!r}")
-    y = b0 * T / m
-    psi = _series_psi_phi1(y)[0] if y < 1e-2 else -math.expm1(-y) / y
-    return math.exp(-y), T * T / m * psi
-
-
-def _load_profile(path: str, column: str = "force", unit: str = "N",
-                  key: str = "excitation.profile") -> tuple[np.ndarray, np.ndarray]:
-    """Time [s] and ``column`` columns of a ``.csv`` (header allowed) or ``.npz`` profile
-    (a 2-D ``.npz`` array: its first column); errors name ``key``."""
-    what = f"time [s], {column} [{unit}]"
-    try:
-        if path.lower().endswith(".npz"):
-            with np.load(path) as z:
-                t, f = np.asarray(z["time"], float), np.asarray(z[column], float)
-            f = f[:, 0] if f.ndim == 2 else f
-        else:
-            data = np.genfromtxt(path, delimiter=",", comments="#")
-            if data.ndim == 2 and not np.all(np.isfinite(data[0])):
-                data = data[1:]          # header line
-            data = np.atleast_2d(data)
-            t, f = data[:, 0], data[:, 1]
-    except (OSError, KeyError, ValueError, IndexError) as exc:
-        raise ConfigError(f"cannot read the {column} profile {path}: {exc}; expected "
-                          f"columns {what}", key=key) from None
-    if t.size < 1 or t.shape != f.shape or not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
-        raise ConfigError(f"profile needs finite columns {what}", key=key)
-    if np.any(np.diff(t) <= 0):
-        raise ConfigError("profile times must increase strictly", key=key)
-    return t, f
-
-
-def hand_force_samples(excitation: Excitation, period: float,
-                       base_dir: str | None = None) -> np.ndarray:
-    """The hand force of the excitation, one value per period [N].
-
-    Parameters
-    ----------
-    excitation : Excitation
-        The scene's excitation (``impulse`` and ``profile`` are used here).
-    period : float
-        Tick period T [s].
-    base_dir : str, optional
-        Directory a relative ``profile`` path is resolved against.
-
-    Returns
-    -------
-    ndarray, shape (n_ticks,)
-        Element ``n`` is the force held over ``[nT, (n+1)T)``: for the impulse, its mean over
-        the period (exact when ``start`` and ``duration`` are multiples of T); for the
-        profile, the profile linearly interpolated at the middle of the period (zero after
-        its last time). Empty when there is no hand force.
-
-    Raises
-    ------
-    ConfigError
-        When the profile cannot be read.
-    """
-    T = float(period)
-    n = 0
-    imp = excitation.impulse
-    prof = None
-    if imp is not None and imp.duration > 0 and imp.force != 0:
-        n = max(n, int(math.ceil((imp.start + imp.duration) / T - 1e-9)))
-    if excitation.profile:
-        path = excitation.profile
-        if base_dir and not os.path.isabs(path):
-            path = os.path.join(base_dir, path)
-        prof = _load_profile(path)
-        n = max(n, int(math.ceil(prof[0][-1] / T - 1e-9)) + 1)
-    out = np.zeros(n)
-    if imp is not None and imp.duration > 0 and imp.force != 0:
-        a, b = imp.start, imp.start + imp.duration
-        for i in range(n):
-            lo, hi = max(a, i * T), min(b, (i + 1) * T)
-            if hi > lo:
-                out[i] += imp.force * (hi - lo) / T
-    if prof is not None:
-        mid = (np.arange(n) + 0.5) * T
-        out += np.interp(mid, prof[0], prof[1], left=0.0, right=0.0)
-    return out
-
-
-def _body(device: Device, member=None):
-    """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
-    continuous matrix of a compliant grip (4x4) or of the one body with the hand's
-    stiffness to ground (2x2, ``[x, v]``); None when neither. ``mass`` is the body the
-    force acts on (the handle alone behind a compliant grip). Without a hand nothing is
-    imported: a mock restarted by CONFIG must answer at once."""
-    hand = getattr(device, "hand", None)
-    if hand is None and member is None:
-        return float(device.mass), float(device.friction), None
-    from hapsim.analysis.hand import hand_matrices, hand_stiffness, nominal_member
-    mem = np.asarray(member if member is not None else nominal_member(hand), float)
-    if np.isfinite(mem[2]):
-        A, _ = hand_matrices(float(device.mass), float(device.friction), mem)
-        return float(device.mass), float(device.friction), A
-    m, b = float(device.mass + mem[0]), float(device.friction + mem[1])
-    kh = float(hand_stiffness(mem))
-    if kh > 0:                                  # m x'' + b x' + kh x = f
-        return m, b, np.array([[0.0, 1.0], [-kh / m, -b / m]])
-    return m, b, None
-
-
-class MockPhysics:
-    """The real side of the THS, advanced one period at a time.
-
-    Parameters
-    ----------
-    device : Device
-        Mass, friction, hold and the optional imperfections (quantisation, Coulomb, noise).
-    rate_hz : float
-        Tick rate [Hz], > 0.
-    excitation : Excitation, optional
-        Initial displacement/velocity and hand force.
-    seed : int, optional
-        Seed of the sensor-noise generator (numpy ``default_rng``).
-    base_dir : str, optional
-        Directory relative profile paths are resolved against.
-    hand : ndarray, optional
-        Precomputed :func:`hand_force_samples` (a device restarted by CONFIG reuses it).
-    member : array_like, shape (4,), optional
-        The member ``(mh, bh, kg, bg[, kh])`` of ``device.hand`` to simulate (default its nominal
-        member, :func:`hapsim.analysis.hand.nominal_member`). A rigid grip adds the hand's
-        mass and damping to the handle's; a compliant one makes the plant
-        ``[xh, vh, xm, vm]``, advanced exactly by ``expm([[A, b], [0, 0]] T)``; the hand's
-        stiffness to ground (``kh``) puts a real spring on the hand (on the one body when
-        rigid: ``[x, v]`` by the same exponential, or ``e^(AT)`` and ``T e^(AT) b`` for
-        the ideal hold). Coulomb friction is not modelled on those paths; noise and
-        quantisation are.
-
-    Attributes
-    ----------
-    x : float
-        True position at the current tick [m].
-    v : float
-        Velocity at the current tick [m/s] (``"zoh"``; backward difference for ``"ideal"``).
-    n : int
-        Current tick.
-    hand : ndarray
-        Hand force per period [N] (see :func:`hand_force_samples`).
-
-    Raises
-    ------
-    ConfigError
-        On invalid device values or an unreadable profile.
-    """
-
-    def __init__(self, device: Device, rate_hz: float, excitation: Excitation | None = None,
-                 *, seed: int = 0, base_dir: str | None = None,
-                 hand: np.ndarray | None = None, member=None) -> None:
-        exc = excitation or Excitation()
-        self.device = device
-        self.period = T = 1.0 / float(rate_hz)
-        self.hold = device.hold
-        mass, friction, self._grip = _body(device, member)
-        if self._grip is not None:         # compliant grip or the arm's spring: state space
-            import scipy.linalg
-            p = self._grip.shape[0]
-            A = np.zeros((p + 1, p + 1))
-            A[:p, :p], A[1, p] = self._grip, 1.0 / mass
-            E = scipy.linalg.expm(A * T)
-            self._Ad, self._Bd = E[:p, :p], E[:p, p]
-            if self.hold == "ideal":       # impulses T f at nT: Bd = T e^(AT) b
-                self._Bd = T * self._Ad[:, 1] / mass
-            self._s = np.tile(np.array([exc.x0, exc.v0], dtype=float), p // 2)
-        if self.hold == "zoh":
-            self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
-                mass, friction, T)
-        elif self.hold == "ideal":
-            self._a, self._cu = ideal_step_coefficients(mass, friction, T)
-        else:
-            raise ConfigError(f"unknown hold {device.hold!r}; valid: zoh, ideal", key="device.hold")
-        self.x = float(exc.x0)
-        self.v = float(exc.v0)
-        self._xprev = self.x - self.v * T          # ideal hold: x[-1]
-        self.n = 0
-        self.hand = hand if hand is not None else hand_force_samples(exc, T, base_dir)
-        self._q = float(device.position_resolution or 0.0)
-        self._coulomb = float(device.coulomb or 0.0)
-        self._noise = float(device.noise or 0.0)
-        self._rng = np.random.default_rng(seed) if self._noise > 0 else None
-        self._vq = float(getattr(device, "velocity_resolution", 0.0) or 0.0)
-        self._vnoise = float(getattr(device, "velocity_noise", 0.0) or 0.0)
-        # its own stream: the position noise of a seed is the same with or without it
-        self._vrng = (np.random.default_rng([seed, 1]) if self._vnoise > 0 else None)
-
-    @property
-    def excitation_end(self) -> float:
-        """Time after which no hand force acts [s] (0.0 without impulse or profile)."""
-        return self.hand.size * self.period
-
-    def sample(self) -> float:
-        """Position the encoder reports at the current tick.
-
-        Returns
-        -------
-        float
-            ``x`` [m] plus Gaussian noise of standard deviation ``device.noise`` (seeded),
-            then rounded to a multiple of ``device.position_resolution`` when > 0.
-        """
-        y = self.x
-        if self._rng is not None:
-            y += self._noise * float(self._rng.standard_normal())
-        if self._q > 0:
-            y = self._q * round(y / self._q)
-        return y
-
-    def sample_velocity(self) -> float:
-        """Velocity the velocity sensor reports at the current tick (VELOCITY frames).
-
-        Returns
-        -------
-        float
-            ``v``, the exact velocity at the sample instant [m/s] (the handle's with a
-            compliant grip), plus Gaussian noise of standard deviation
-            ``device.velocity_noise`` (seeded, its own stream), then rounded to a multiple
-            of ``device.velocity_resolution`` when > 0.
-        """
-        y = self.v
-        if self._vrng is not None:
-            y += self._vnoise * float(self._vrng.standard_normal())
-        if self._vq > 0:
-            y = self._vq * round(y / self._vq)
-        return y
-
-    def advance(self, u: float) -> None:
-        """Advance one period with the force ``u`` [N] held (plus the hand force of this tick).
-
-        Parameters
-        ----------
-        u : float
-            Commanded force held over ``[nT, (n+1)T)`` [N].
-
-        Notes
-        -----
-        Coulomb friction ``C`` (when asked for) is added as the held force
-        ``-C sign(v)`` (``-C sign(u_total)`` from rest); if the velocity would change sign
-        within the period while ``|u_total| <= C`` the mass sticks (v = 0). This is a
-        first-order model, exact only while the sign of ``v`` does not change in the period.
-        """
-        n = self.n
-        f = u + (self.hand[n] if n < self.hand.size else 0.0)
-        if self._grip is not None:
-            s = self._Ad @ self._s + self._Bd * f
-            self._s = s
-            self.x, self.v = float(s[0]), float(s[1])
-        elif self.hold == "zoh":
-            x, v = self.x, self.v
-            fc = 0.0
-            if self._coulomb > 0:
-                C = self._coulomb
-                if v != 0.0:
-                    fc = -C if v > 0 else C
-                elif abs(f) > C:
-                    fc = -C if f > 0 else C
-                else:                         # stuck and the force cannot break it loose
-                    self.n = n + 1
-                    return
-            ft = f + fc
-            vn = self._a * v + self._cvu * ft
-            xn = x + self._cxv * v + self._cxu * ft
-            if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
-                vn = 0.0
-            self.x, self.v = xn, vn
-        else:
-            x, xp = self.x, self._xprev
-            xn = (1.0 + self._a) * x - self._a * xp + self._cu * f
-            self._xprev = x
-            self.x = xn
-            self.v = (xn - x) / self.period
-        self.n = n + 1
-
 
 # --------------------------------------------------------------------------- protocol side
 
@@ -840,7 +480,7 @@ def _load_tick(dev):
         from hapsim.daemon import fastmock
         from hapsim.daemon.startup import preload_numba_blas
         preload_numba_blas()
-        fastmock.warm_up_mock()
+        warm_up_mock()
         return fastmock.CompiledMock(dev), None
     except Exception as exc:  # noqa: BLE001 - the Python tick serves instead
         return None, f"{type(exc).__name__}: {exc}"
@@ -889,7 +529,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         1 kHz run does not need: the Python tick keeps 1 kHz (``tools/bench_mock.py``).
         ``"compiled"``: while armed in real time, the ticks run in numba
         (:class:`hapsim.daemon.fastmock.CompiledMock`: same bytes, no GIL, absolute-deadline
-        sleeps) wherever :func:`~hapsim.daemon.fastmock.compiled_reason` allows (not in
+        sleeps) wherever :func:`compiled_reason` allows (not in
         lockstep, with a fault plan, sensor noise or a compliant grip: then Python);
         ``"python"``: this function's Python loop throughout (the reference).
     hello : bool
@@ -990,7 +630,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             pending = None           # host bytes the compiled stretch handed over
             if (fast is not None and deadline is not None and not down and not python_once
                     and not awaiting_host and not dev._out and not dev.decoder._overflow
-                    and fast.reason() is None):
+                    and compiled_reason(dev.mock, dev.plan) is None):
                 code, deadline, pending = fast.serve(fd, t0, deadline, period_ns, flag)
                 if code != fast.R_HANDOFF:
                     python_once = code == fast.R_PORT
@@ -1076,3 +716,81 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                 json.dump(report, fh)
             os.replace(tmp, report_path)
     return report
+
+
+# ----------------------------------------------------------------------------- Python side
+def compiled_reason(mock, plan=None) -> str | None:
+    """Why the compiled tick cannot serve this mock now; None when it can.
+
+    Parameters
+    ----------
+    mock : MockDevice
+        The device (its current CONFIG: physics and mode).
+    plan : FaultPlan, optional
+        The fault plan of :func:`~hapsim.daemon.mock.serve_fd`.
+
+    Returns
+    -------
+    str or None
+        ``"lockstep"``, ``"faults"``, ``"velocity sensor"`` (VELOCITY frames enabled by
+        the host), ``"noise"``, ``"hand grip or arm stiffness (state-space plant)"``,
+        ``"hold"``, ``"subclass"``, ``"trace"`` or
+        ``"not configured"``; None: compiled.
+    """
+    if type(mock) is not MockDevice:
+        return "subclass"
+    if mock.lockstep:
+        return "lockstep"
+    if plan is not None and not plan.empty:
+        return "faults"
+    if getattr(mock, "sensors", 0):
+        return "velocity sensor"        # VELOCITY frames before each STATE: Python's
+    if mock.trace is not None or mock.applied_log is not None:
+        return "trace"
+    ph = mock.physics
+    if ph is None:
+        return "not configured"
+    if type(ph) is not MockPhysics:
+        return "subclass"
+    if ph._rng is not None:
+        return "noise"
+    if ph._grip is not None:
+        return "hand grip or arm stiffness (state-space plant)"
+    if ph.hold not in ("zoh", "ideal"):
+        return "hold"
+    return None
+
+
+
+def warm_up_mock() -> float:
+    """Compile (or load from numba's cache) the compiled tick, on a pipe; seconds taken.
+
+    Returns
+    -------
+    float
+        Wall time [s].
+    """
+    from hapsim.daemon.faults import FaultyDevice
+    from hapsim.daemon.loop import StopFlag
+    from hapsim.daemon.fastmock import CompiledMock
+
+    t = time.perf_counter()
+    mock = MockDevice(DEFAULT_DEVICE, DEFAULT_EXCITATION, lockstep=False)
+    dev = FaultyDevice(mock)
+    dev.feed(fp.encode(fp.Config(1000.0, 50_000, 10.0)), 0)
+    cm = CompiledMock(dev)
+    cm.load()
+    cm.feed(fp.encode(fp.Force(0, (0.0,))), 0)
+    cm.tick(0)
+    cm.store()
+    r, w = os.pipe()
+    try:
+        os.set_blocking(r, False)
+        os.write(w, fp.encode(fp.Stop()))
+        flag = StopFlag()
+        now = time.monotonic_ns()
+        cm.serve(r, now, now, 1_000_000, flag)       # reads the STOP: hands it over
+    finally:
+        os.close(r)
+        os.close(w)
+    return time.perf_counter() - t

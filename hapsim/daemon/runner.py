@@ -1,6 +1,7 @@
 """``run_scene``: calibrate, check, close the THS on a device, identify it, report.
 
-A pipeline of named steps, each returning a small result object (DESIGN §4-§5):
+A pipeline of named steps, each returning a small result object (docs/design.md, 'The THS'
+and 'The mock device'):
 :meth:`RunOptions.check` -> :func:`prepare_run` (prepare scene + predict:
 :class:`PreparedRun`) -> :func:`connect` (:class:`Connection`) -> :func:`run_loop`
 (:class:`LoopRun`) -> :func:`identify_run` -> :func:`build_report`.
@@ -26,6 +27,7 @@ A pipeline of named steps, each returning a small result object (DESIGN §4-§5)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -34,15 +36,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
+                                          relative_error, verdict, wire_errors)
 from hapsim.analysis.network import device_body
-from hapsim.analysis.targets import apply_targets
-from hapsim.daemon._blas import limit_blas_threads
+from hapsim.analysis.prediction import (has_offset, port_links, predict, predicted_poles,
+                                        prepare_scene, refusal)
+from hapsim.blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
-from hapsim.daemon.mock import MockDevice, hand_force_samples
+from hapsim.daemon.mock import MockDevice
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.startup import preload_numba_blas, process_start
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
-from hapsim.errors import ConfigError, DeviceError, ProtocolError, UnstableConfigError
+from hapsim.daemon.report import format_report
+from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
+                                   process_start)
+from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
+from hapsim.device_model import hand_force_samples
+from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -55,433 +63,6 @@ DEFAULT_DURATION = 1.0
 #: Telemetry ring [s]: rows after the identification window go round it (drained to the
 #: journal by the writer thread); a run no longer than window + ring is kept whole.
 RING_SECONDS = 4.0
-
-_ZERO_POLE = 1e-9
-
-
-def _analysis():
-    """The analysis functions the runner uses, by name."""
-    import hapsim.analysis as an
-    return {name: getattr(an, name) for name in (
-        "LoopModel", "closed_loop_poles", "render", "calibrate", "stability_limit",
-        "fit_rendered", "check_scene")}
-
-
-def _port_links(scene: Scene):
-    port = scene.port
-    grounds = {m.name for m in scene.masses if m.kind == "ground"}
-    return [lk for lk in scene.links if lk.kind == "spring_damper" and port is not None
-            and {lk.m1, lk.m2} <= ({port.name} | grounds) and port.name in (lk.m1, lk.m2)]
-
-
-def _links_at_port(scene: Scene):
-    """Every link with the port at one end (contacts included, taken engaged)."""
-    port = scene.port
-    if port is None:
-        return []
-    return [lk for lk in scene.links if port.name in (lk.m1, lk.m2)]
-
-
-def _require_device(scene: Scene):
-    if scene.port is None:
-        raise ConfigError("the scene has no port: nothing for a device to feel",
-                          file=scene.path, key="masses")
-    if scene.device is None:
-        raise ConfigError("the scene has a port but no device section", file=scene.path,
-                          key="device")
-    return scene.device
-
-
-def prepare_scene(scene: Scene, rate_hz: float | None = None):
-    """Apply a rate override and calibrate every ``target`` link.
-
-    Parameters
-    ----------
-    scene : Scene
-        Validated scene with a port and a device.
-    rate_hz : float, optional
-        Rate override [Hz].
-
-    Returns
-    -------
-    scene : Scene
-        The scene with calibrated (K, B).
-    targets : list of dict
-        One per target link: ``link``, ``k``, ``b`` [N/m, N s/m], ``K``, ``B``,
-        ``renderable``, ``reason``, ``f0_hz``, ``damping_ratio`` of the target oscillator.
-
-    Raises
-    ------
-    ConfigError
-        No port or device.
-    UnrenderableTargetError
-        A target is not renderable (message: file, line, ``links.NAME.target`` and the
-        analysis's reason); a ConfigError and an UnstableConfigError.
-    """
-    if rate_hz is not None:
-        scene = scene.with_rate(rate_hz)
-    _require_device(scene)
-    scene, cals = apply_targets(scene)
-    return scene, [c.to_dict() for c in cals]
-
-
-def predict(scene: Scene) -> dict:
-    """Predicted closed loop of a (calibrated) scene coupled to its device.
-
-    Parameters
-    ----------
-    scene : Scene
-        Calibrated scene with a port and a device.
-
-    Returns
-    -------
-    dict
-        ``k``, ``b`` [N/m, N s/m], ``f0_hz``, ``damping_ratio`` of the rendered pair (None
-        when no pair), ``stable``, ``spectral_radius``, ``order`` (number of non-zero
-        closed-loop poles, the identification order), ``stiffness_limit`` [N/m] of a
-        port-ground spring at the summed B of the links at the port (the limit of those
-        links alone, not of the felt k of a scene with virtual masses), ``port_K``,
-        ``port_B`` [N/m, N s/m] (the links at the port, summed), ``source``
-        (``"render"`` or ``"check_scene"``).
-
-    Raises
-    ------
-    ConfigError
-        When the scene cannot be analysed (no port/device).
-    """
-    dev = _require_device(scene)
-    an = _analysis()
-    loop = an["LoopModel"].from_device(dev, scene.rate_hz)
-    plinks = _port_links(scene)
-    B_port = sum(lk.damping for lk in _links_at_port(scene))
-    K_port = sum(lk.stiffness for lk in plinks) if plinks else 0.0
-    out = {"k": None, "b": None, "f0_hz": None, "damping_ratio": None, "stable": None,
-           "spectral_radius": None, "order": None, "stiffness_limit": None, "source": None,
-           "port_K": float(sum(lk.stiffness for lk in _links_at_port(scene))),
-           "port_B": float(B_port)}
-    try:
-        out["stiffness_limit"] = float(an["stability_limit"](loop, B_port))
-    except Exception:  # the limit is advisory in the report
-        out["stiffness_limit"] = None
-    single = len(scene.links) == 1 and len(plinks) == 1 and all(
-        m.kind != "mass" for m in scene.masses) and scene.audio is None  # multi-rate: matrix
-    if single:
-        r = an["render"](loop, K_port, B_port)
-        poles = np.asarray(an["closed_loop_poles"](loop, K_port, B_port))
-        out.update(source="render", stable=bool(r.stable), spectral_radius=float(r.spectral_radius),
-                   order=int(np.sum(np.abs(poles) > _ZERO_POLE)))
-        if r.rendered is not None:
-            out.update(k=float(r.k), b=float(r.b), f0_hz=float(r.f0_hz),
-                       damping_ratio=float(r.damping_ratio))
-        return out
-    chk = an["check_scene"](scene)
-    # identification order: the non-zero poles the port shows (a mode the hand cannot see,
-    # participation below OBSERVABLE_TOL, is absent from the port's record)
-    from hapsim.analysis.modes import OBSERVABLE_TOL
-    order = sum(2 if md.kind == "pair" else 1 for md in chk.modes
-                if abs(md.z) > _ZERO_POLE
-                and (md.participation is None or md.participation >= OBSERVABLE_TOL))
-    out.update(source="check_scene", stable=bool(chk.stable),
-               spectral_radius=float(chk.spectral_radius), order=int(order))
-    md = chk.rendered
-    if md is not None:
-        out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
-                   damping_ratio=float(md.damping_ratio))
-    return out
-
-
-def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
-             start: int, *, offset: bool = False, late: np.ndarray | None = None,
-             skip: int = 3, predicted=None, felt: complex | None = None,
-             quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
-             closed: np.ndarray | None = None) -> dict:
-    """Measure the rendered oscillator from logged positions.
-
-    Parameters
-    ----------
-    position : ndarray, shape (n,)
-        Logged device positions [m].
-    seq : ndarray of int, shape (n,)
-        Their STATE sequence numbers.
-    period : float
-        Sample period T [s].
-    order : int
-        Identification order (number of non-zero closed-loop poles).
-    mass : float
-        Device mass m [kg] (k = m |s|^2, b = -2 m Re s).
-    start : int
-        First sequence number of the free response (after the excitation and the
-        dead-beat transient).
-    offset : bool
-        Difference the signal first (constant equilibrium offset).
-    late : ndarray of int, shape (n,), optional
-        1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
-        not part of the linear THS: the record is cut there and the longest clean segment
-        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
-        disturbance is again a free response, minus ``skip`` samples of dead-beat
-        transient. Without a long enough clean segment the longest run is used as is
-        (``late_in_segment`` says how many disturbances it holds).
-    skip : int
-        Samples dropped at the start of a segment that follows a disturbance or a gap
-        (``d + 2`` is enough: the dead-beat states of the delay line).
-    predicted : array_like of complex, optional
-        Predicted non-zero closed-loop poles seen at the port; with ``felt`` (the predicted
-        felt pole) the measurement is :func:`hapsim.analysis.identify.measure_felt`
-        (robust to a quantised or noisy sensor, with standard errors); without, the full
-        order matrix pencil alone.
-    quantum, noise : float
-        Position sensor step [m] and noise standard deviation [m] (0: none).
-    sensor_response : ndarray, optional
-        Impulse response of the sensor error to the logged position
-        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
-    closed : ndarray of bool, shape (n,), optional
-        Per row: every contact engaged (the state the prediction assumes;
-        :func:`hapsim.daemon.contact_replay.replay_contacts`). Rows that are not are cut out
-        as late ticks are, and only a stretch of closed rows is identified: when the
-        longest is shorter than the fit needs, the result has ``comparable`` False,
-        ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
-
-    Returns
-    -------
-    dict
-        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
-        ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
-        :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
-        be identified or the record cannot support a measurement.
-    """
-    from hapsim.analysis.identify import fit_rendered
-
-    seq = np.asarray(seq, dtype=np.int64)
-    pos = np.asarray(position, dtype=float)
-    lt = np.zeros(seq.size, dtype=bool) if late is None else np.asarray(late).astype(bool)
-    sel = seq >= start
-    y, s, lt = pos[sel], seq[sel], lt[sel]
-    cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
-
-    def segments(cut_late: bool):
-        """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks and
-        at rows with a contact open (those rows left out)."""
-        cut = np.diff(s) != 1
-        if cut_late:
-            cut = cut | lt[1:]
-        if cl is not None:
-            cut = cut | (cl[1:] != cl[:-1])
-        edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [y.size]])
-        out = []
-        for a, b in zip(edges[:-1], edges[1:]):
-            if cl is not None and not cl[a]:
-                continue
-            a2 = a if a == 0 else min(a + skip, b)
-            out.append((a2, b))
-        return out or [(0, 0)]
-
-    need = max(4 * int(order) + 10, 100)
-    a = b = 0
-    if y.size:
-        segs = segments(True)
-        a, b = max(segs, key=lambda ab: ab[1] - ab[0])
-        if b - a < need:
-            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
-    late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
-    y, s = y[a:b], s[a:b]
-    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
-           "order": int(order), "late_in_segment": late_in}
-    if cl is not None:
-        out["comparable"] = bool(b - a >= need)
-        if not out["comparable"]:
-            out.update(closed_samples=int(b - a), needed=int(need),
-                       error=f"the longest stretch with every contact closed is {b - a} "
-                             f"samples, fewer than the {need} the fit needs")
-            return out
-    from hapsim.analysis.identify import thin_pencil
-    pencil = thin_pencil(order, y.size - (1 if offset else 0))
-    out["pencil"] = pencil
-    if predicted is not None and felt is not None and y.size:
-        from hapsim.analysis.identify import measure_felt
-        try:
-            res = measure_felt(y, period, mass, predicted, felt, offset=offset,
-                               quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response)
-        except ConfigError as exc:
-            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
-            return out
-        out.update(res)
-        if "error" in res:
-            for q in ("k", "b", "f0_hz", "damping_ratio"):
-                out.pop(q, None)
-        return out
-    try:
-        md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
-    except ConfigError as exc:
-        out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
-        if "identically zero" in out["error"]:
-            out["error"] += ("; the loop never moved: give the scene an excitation "
-                             "(x0, v0, impulse or profile)")
-        return out
-    out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
-               damping_ratio=float(md.damping_ratio))
-    return out
-
-
-def _has_offset(scene: Scene) -> bool:
-    """Whether the port's free response settles away from 0 (identify with ``offset``).
-
-    Decided from the scene's static equilibrium
-    (:func:`hapsim.analysis.network.rest_position`: grounds' ``x0``, contact thresholds,
-    every link), not from a list of causes; Coulomb friction (the mock's) stops the port
-    anywhere in its dead band: an offset. A scene whose rest is not unique (a free part)
-    has a pole at ``z = 1`` among the predicted ones, which the identification order
-    counts and which carries the constant: no differencing then.
-    """
-    from hapsim.analysis.network import rest_position
-    dev = scene.device
-    if dev.coulomb > 0:
-        return True
-    x = rest_position(scene)
-    if x is None:
-        return False
-    scale = max([abs(m.x0) for m in scene.masses if m.kind == "ground"]
-                + [abs(lk.threshold) for lk in scene.links if lk.kind == "contact"] + [0.0])
-    return abs(x) > 1e-12 * scale
-
-
-def _mass_limits(scene: Scene) -> list:
-    """Closed-form limit of the scene's integrator at each virtual mass (module table of
-    :mod:`hapsim.analysis.integrators`), the links at the mass summed (contacts engaged).
-
-    Parameters
-    ----------
-    scene : Scene
-        Calibrated scene.
-
-    Returns
-    -------
-    list of dict
-        One per virtual mass, worst first: ``mass`` (name), ``m`` [kg], ``K``, ``B`` (sums
-        over its links) [N/m, N s/m], ``K_max`` [N/m] (``oscillator_limits`` at ``B``; <= 0
-        when ``B`` alone is beyond the scheme), ``formula``, ``ratio`` (``K / K_max``; inf
-        when ``K_max <= 0``), ``rate_hz`` (the rate above which the closed form holds, None
-        when no rate does: exact integrator).
-    """
-    from hapsim.analysis.integrators import oscillator_limits
-    integ = getattr(scene, "integrator", "centred")
-    T = scene.period
-    out = []
-    for ms in scene.masses:
-        if ms.kind != "mass":
-            continue
-        links = [lk for lk in scene.links if ms.name in (lk.m1, lk.m2)]
-        K = sum(lk.stiffness for lk in links)
-        B = sum(lk.damping for lk in links)
-        lim = oscillator_limits(integ, ms.mass, T, B)
-        kmax = float(lim["K_max"])
-        ratio = (K / kmax if kmax > 0 else math.inf) if K > 0 or kmax <= 0 else 0.0
-        m = float(ms.mass)
-        root = math.sqrt(4 * B * B + 16 * m * K)
-        if integ == "centred":      # 4 m f^2 - 2 B f > K and B < 2 m f
-            rate = max((2 * B + root) / (8 * m), B / (2 * m))
-        elif integ == "symplectic_euler":   # 4 m f^2 + 2 B f > K
-            rate = (-2 * B + root) / (8 * m)
-        else:
-            rate = None
-        out.append({"mass": ms.name, "m": m, "K": K, "B": B, "K_max": kmax,
-                    "formula": lim["formula"], "ratio": ratio, "rate_hz": rate})
-    out.sort(key=lambda d: -d["ratio"])
-    return out
-
-
-def _refusal(scene: Scene, pred: dict) -> UnstableConfigError:
-    """The error refusing an unstable scene, naming what is beyond which limit.
-
-    Three cases: a virtual mass beyond its integrator's closed-form limit
-    (:func:`_mass_limits`; advice: lower the stiffness there, another integrator, a higher
-    rate), the links at the port beyond the THS limit ``stability_limit`` (advice: lower K,
-    a higher rate, and raise B only where that raises ``K_max``), or neither closed form
-    but the whole loop (:func:`hapsim.analysis.integrators.stability_margin`: coupled modes).
-
-    Parameters
-    ----------
-    scene : Scene
-        Calibrated scene the analysis found unstable.
-    pred : dict
-        Its :func:`predict` result.
-
-    Returns
-    -------
-    UnstableConfigError
-        With the spectral radius and the stiffness limit of the case found.
-    """
-    from hapsim.analysis.integrators import stability_margin
-    dev = scene.device
-    integ = getattr(scene, "integrator", "centred")
-    rho = pred["spectral_radius"]
-    head = (f"{scene.path}: the closed loop is unstable: spectral radius {rho:.9g} >= 1 "
-            f"(integrator {integ}; device m = {dev.mass:g} kg, b0 = {dev.friction:g} N s/m, "
-            f"d = {dev.delay}, {dev.hold}, {scene.rate_hz:g} Hz)")
-    tail = "; or pass --allow-unstable to run it under the safety stops"
-    at_port = _links_at_port(scene)
-    B = sum(lk.damping for lk in at_port)
-    K = sum(lk.stiffness for lk in at_port)
-    lim = pred["stiffness_limit"]
-    port_bad = lim is not None and K >= lim
-    masses = _mass_limits(scene)
-    worst = masses[0] if masses and masses[0]["ratio"] >= 1.0 else None
-    try:
-        margin = stability_margin(scene).limit_description
-    except Exception:  # the description is advice; the verdict is pred's
-        margin = None
-    if worst is not None:
-        w = worst
-        limit = (f"K < {w['K_max']:.6g} N/m" if w["K_max"] > 0
-                 else f"no K: B = {w['B']:g} N s/m is beyond its damping limit")
-        port = (f"the links at the port are within their limit (K = {K:g} N/m < K_max = "
-                f"{lim:.6g} N/m at B = {B:g} N s/m)" if lim is not None and not port_bad
-                else f"the links at the port are beyond their limit too (K = {K:g} N/m, "
-                     f"K_max = {_fmt(lim, '.6g')} N/m at B = {B:g} N s/m)")
-        alt = []
-        if integ == "centred":
-            from hapsim.analysis.integrators import oscillator_limits
-            kse = oscillator_limits("symplectic_euler", w["m"], scene.period, w["B"])["K_max"]
-            alt.append(f"symplectic_euler (K < {kse:.6g} N/m here: "
-                       f"{'enough' if w['K'] < kse else 'not enough'})")
-        if integ != "exact":
-            alt.append("exact (no limit for a passive network)")
-        rate = (f", or raise the rate above {w['rate_hz']:.6g} Hz (closed form)"
-                if w["rate_hz"] else "")
-        net = margin or f"integrator {integ}: {w['formula']}"
-        msg = (f"{head}. {port[0].upper() + port[1:]}; the virtual network is not: {net}. "
-               f"Virtual mass {w['mass']!r} ({w['m']:g} kg): its links sum to K = "
-               f"{w['K']:g} N/m, B = {w['B']:g} N s/m; {integ} allows {limit} "
-               f"(K / K_max = {w['ratio']:.4g}). Lower the stiffness at {w['mass']!r} below "
-               f"{max(w['K_max'], 0.0):.6g} N/m, use integrator {' or '.join(alt)}{rate}{tail}")
-        return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=w["K_max"])
-    if port_bad:
-        an = _analysis()
-        raise_b = False
-        try:
-            loop = an["LoopModel"].from_device(dev, scene.rate_hz)
-            raise_b = float(an["stability_limit"](loop, 1.25 * B + 0.1)) > lim
-        except Exception:  # advice only
-            pass
-        msg = (f"{head}: the links at the port (contacts engaged: K = {K:g} N/m, B = {B:g} "
-               f"N s/m) are beyond the stiffness limit K_max = {lim:.6g} N/m at this B. "
-               f"Lower K{', raise B' if raise_b else ''} or raise the rate{tail}")
-        return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=lim)
-    msg = (f"{head}: no single link or mass is beyond its closed-form limit (links at the "
-           f"port K = {K:g} N/m < K_max = {_fmt(lim, '.6g')} N/m at B = {B:g} N s/m), the "
-           f"coupled modes are" + (f": {margin}" if margin else "") +
-           f". Lower the stiffnesses, use another integrator"
-           f"{' (symplectic_euler, exact)' if integ == 'centred' else ''} or raise the "
-           f"rate{tail}")
-    return UnstableConfigError(msg, spectral_radius=rho, stiffness_limit=lim)
-
-
-def _rel(a, b):
-    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b == 0:
-        return None
-    return (a - b) / abs(b)
-
 
 def _warm_up(scene: Scene) -> None:
     """Load the numba kernel of the scene's link kinds before the real-time loop."""
@@ -497,12 +78,117 @@ def _warm_up(scene: Scene) -> None:
 
 @dataclass
 class RunOptions:
-    """The options of one run (the keyword arguments of :func:`run_scene`, checked).
+    """The options of one run: built once (from the command line by
+    :func:`hapsim.commands.run.run_options`, or by a program), taken by :func:`run_scene`.
 
-    Attributes are those of :func:`run_scene` (same names, units and defaults), with
-    ``transport`` resolved (``"serial"``, ``"pty"``, ``"inprocess"`` or ``"sim"``),
-    ``reconnect`` resolved to a bool and ``plan`` the parsed
-    :class:`~hapsim.daemon.faults.FaultPlan`.
+    :meth:`check` validates them and resolves ``transport`` (``"serial"``, ``"pty"``,
+    ``"inprocess"`` or ``"sim"``), ``reconnect`` (a bool) and ``plan``.
+
+    Attributes
+    ----------
+    port : str, optional
+        Serial port of a device (hardware or ``hapsim mock``); None: a mock.
+    baud : int
+        Baud rate for ``port``.
+    duration : float, optional
+        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops (the
+        identification window: excitation + 10 periods). 0: open-ended, until SIGINT /
+        SIGTERM (``handle_signals``), ``stop``, a safety stop or a device end. Telemetry
+        in memory is the identification window plus a ring of :data:`RING_SECONDS` (a run
+        that fits in both is kept whole); the rest is only in the journal.
+    rate_hz : float, optional
+        Rate override [Hz].
+    lockstep : bool
+        Lockstep mock (one period per FORCE; deterministic).
+    host_clocked : bool
+        Host's clock instead of the device's (with ``lockstep``: the host paces the
+        lockstep device in real time).
+    telemetry : str, optional
+        Per-sample telemetry file: ``.hst`` (chunked journal, appended every
+        ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
+        journal ``PATH.hst`` is written during the run, so a killed daemon leaves its rows
+        there, and removed once the export succeeded).
+    allow_unstable : bool
+        Run a loop the analysis finds unstable (safety stops end it).
+    transport : {"serial", "pty", "inprocess", "sim"}, optional
+        Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
+        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
+        ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
+        (:class:`~hapsim.daemon.transport.SimTransport`: fast, deterministic fault tests).
+    seed : int
+        Mock sensor-noise seed.
+    stop : StopFlag, optional
+        External stop flag; a new one otherwise.
+    handle_signals : bool
+        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only),
+        from before the numba warm-up and the start of the embedded mock: a signal during
+        start-up ends the run at once, before CONFIG (no FORCE but the final zero one,
+        then STOP), with exit code 0. Restored on return.
+    rt_priority : int
+        ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
+        pty or a serial port, where the OS permits it; 0 for normal scheduling. Not for a
+        lockstep embedded mock (paced by the answers, not the clock). The mock takes it
+        after its start-up, the host once its own start-up is done. Restored after the run;
+        the report's ``loop.scheduling`` says what was obtained.
+    on_start : callable, optional
+        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
+        the device has said HELLO and the numba warm-up is done, just before the device is
+        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
+    faults : str, optional
+        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
+    fault_seed : int
+        Seed of the fault generator.
+    reconnect : bool, optional
+        Recover a lost device (default: on in real time, off in lockstep).
+    lost_timeout : float, optional
+        Silence after which the device is lost [s] (default: the watchdog period, 50 ms:
+        the device zeroes its force after one watchdog period without a FORCE, and the
+        host sends zero force and STOP then; see :class:`~hapsim.daemon.loop.LoopConfig`).
+    reconnect_attempts : int
+        Most HELLO + CONFIG attempts per loss.
+    reconnect_time : float
+        Most time spent recovering one loss [s].
+    telemetry_interval : float
+        Time between two telemetry chunks [s].
+    driver : str, optional
+        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
+        the loop is then host-clocked through a
+        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
+        driver's mock (paced by the host) without a port.
+    driver_options : dict, optional
+        The driver's device parameters (its constructor's keywords: FireFader
+        ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
+        ``resolution``, ``direction``).
+    mock_options : dict, optional
+        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        which may differ from what ``driver_options`` believe.
+    driver_faults : dict, optional
+        Seeded byte loss and corruption on the driver mock's link, both directions
+        (:class:`hapsim.drivers.mock.ByteFaults`).
+    osc : int, optional
+        Serve live changes over OSC on localhost:PORT (0: any free port, printed on
+        stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
+        ``osc``). The measured (k, b) are those of the scene at the start.
+    osc_ramp : float
+        Ramp time of every OSC change [s].
+    sound : {"auto", "jack", "sounddevice"}, optional
+        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
+        the sound server (report: ``sound`` with xruns and ring underruns).
+    jack_server : str, optional
+        JACK server name.
+    plan : FaultPlan
+        Set by :meth:`check`: the parsed ``faults``
+        (:class:`~hapsim.daemon.faults.FaultPlan`).
+    embedded : EmbeddedMock, optional
+        The embedded mock already started for this run
+        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
+        closed here whatever happens. Default: started by :func:`connect`.
+    loop : {"compiled", "python"}
+        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
+        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
+        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
+        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+
     """
 
     port: str | None = None
@@ -528,6 +214,9 @@ class RunOptions:
     telemetry_interval: float = 0.05
     loop: str = "compiled"
     driver: str | None = None
+    driver_options: dict | None = None
+    mock_options: dict | None = None
+    driver_faults: dict | None = None
     osc: int | None = None
     osc_ramp: float = 0.05
     sound: str | None = None
@@ -572,7 +261,8 @@ class RunOptions:
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
         if self.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
-            get_driver(self.driver)             # unknown name: ConfigError before any work
+            # unknown name or bad parameters: ConfigError before any work
+            get_driver(self.driver, **(self.driver_options or {}))
             if not self.plan.empty:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")
@@ -737,7 +427,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
                           file=scene.path, key="device.delay")
     pred = predict(scene)
     if pred["stable"] is False and not opts.allow_unstable:
-        raise _refusal(scene, pred)
+        raise refusal(scene, pred)
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
@@ -798,7 +488,9 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
-                      if lockstep else 1.0,
+                      if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
+                      # (a driver's board may reset when its port opens: the FireFader's
+                      # Nano spends ~1 s in its bootloader before its first record)
                       # the embedded mock is a fresh Python process (imports take seconds
                       # on a loaded machine); hardware answers at once
                       hello_timeout=30.0 if opts.transport == "pty" else 5.0,
@@ -825,12 +517,17 @@ class _CompileThread(threading.Thread):
 
     def run(self) -> None:
         try:
+            notice = compile_notice()   # set when the command announced a cold cache
             preload_numba_blas()        # before numba's first cache load (module notes)
             _warm_up(self.scene)
+            if notice is not None:
+                notice("the engine's kernels")
             if self.compiled:
                 from hapsim.daemon.fastloop import warm_up
                 from hapsim.engine import Engine
                 warm_up(Engine(self.scene))
+                if notice is not None:
+                    notice("the compiled host loop")
         except BaseException as exc:  # re-raised by finish() in the caller's thread
             self.error = exc
 
@@ -885,7 +582,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         # starts and says HELLO: the loop waits for them just before it arms the device
         # (HostLoop.before_arm)
         warm = _CompileThread(scene, opts.loop == "compiled" and transport in ("pty", "serial")
-                              and corr is None)
+                              and compiled_loop_possible(scene, osc=opts.osc, sound=opts.sound,
+                                                         host_clocked=opts.host_clocked))
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it
@@ -931,12 +629,27 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         if opts.driver not in (None, "framed"):
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
-            drv = get_driver(opts.driver)
+            # the device's parameters: given, else the scene's device.protocol_options
+            # when the scene's device speaks this protocol
+            dopt = dict(opts.driver_options if opts.driver_options is not None
+                        else dev.protocol_options or {} if dev.protocol == opts.driver
+                        else {})
+            if opts.driver == "haply" and opts.port is None:
+                # the board's set-up sets the encoder's count to the offset: the embedded
+                # mock is armed with the joint at the excitation's x0
+                dopt.setdefault("offset_deg", math.degrees(scene.excitation.x0))
+            drv = get_driver(opts.driver, **dopt)
+            drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
                 from hapsim.drivers.mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
-                                              scene.rate_hz, seed=opts.seed)
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay)
+                                              scene.rate_hz, seed=opts.seed,
+                                              options=(opts.mock_options
+                                                       if opts.mock_options is not None
+                                                       else drv.mock_hardware()),
+                                              faults=opts.driver_faults)
+                # the mock is paced by the commands: a slow mock process is no lost answer
+                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=dev.delay)
@@ -1141,65 +854,6 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-def _predicted_poles(scene: Scene):
-    """Predicted non-zero closed-loop poles seen at the port and the felt one (or None).
-
-    The same models as :func:`predict`: the THS map for one port link, ``check_scene``
-    (observable modes, conjugates added) otherwise.
-    """
-    an = _analysis()
-    dev = scene.device
-    plinks = _port_links(scene)
-    single = len(scene.links) == 1 and len(plinks) == 1 and all(
-        m.kind != "mass" for m in scene.masses) and scene.audio is None
-    if single:
-        loop = an["LoopModel"].from_device(dev, scene.rate_hz)
-        K = sum(lk.stiffness for lk in plinks)
-        B = sum(lk.damping for lk in _links_at_port(scene))
-        r = an["render"](loop, K, B)
-        z = np.asarray(an["closed_loop_poles"](loop, K, B), dtype=complex)
-        felt = None if r.rendered is None else complex(r.rendered.z)
-        return z[np.abs(z) > _ZERO_POLE], felt
-    from hapsim.analysis.modes import OBSERVABLE_TOL
-    chk = an["check_scene"](scene)
-    z = []
-    for md in chk.modes:
-        if abs(md.z) > _ZERO_POLE and (md.participation is None
-                                       or md.participation >= OBSERVABLE_TOL):
-            z += [md.z, complex(md.z).conjugate()] if md.kind == "pair" else [md.z]
-    felt = None if chk.rendered is None else complex(chk.rendered.z)
-    return np.asarray(z, dtype=complex), felt
-
-
-def _verdict(prep: PreparedRun, measured: dict) -> None:
-    """Add ``k_interval``, ``b_interval`` (the stated half-widths), ``within`` and
-    ``verdict`` to an identification result.
-
-    The interval is the fit's: :data:`hapsim.analysis.identify.COVERAGE` standard errors,
-    the residual's or the sensor's (its error fed back through the loop), the larger; never
-    below 1e-9 relative (round-off of an exact record). The quantiser's loop gain
-    (describing function, :func:`hapsim.analysis.identify.quantiser_gain_bound`) is left
-    out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
-    errors observed over random loops (tests/test_identify_quantised.py).
-    """
-    pred = prep.pred
-    if "k" not in measured or "k_unc" not in measured or pred.get("k") is None:
-        return
-    dk, db = measured["k_unc"], measured["b_unc"]
-    dk = max(dk, 1e-9 * abs(pred["k"]))
-    db = max(db, 1e-9 * abs(pred["b"]))
-    measured["k_interval"], measured["b_interval"] = dk, db
-    if measured.get("method") == "varpro":
-        from hapsim.analysis.identify import COVERAGE
-        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
-                                     f"the fit, residual or sensor, the larger")
-    ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
-    measured["within"] = bool(ok)
-    measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
-                           "measured differs from predicted by more than the stated "
-                           "uncertainty")
-
-
 def _contact_replay(scene: Scene, cols: dict):
     """Contact states of the run's rows (:mod:`hapsim.daemon.contact_replay`), or None
     for a scene without contacts."""
@@ -1209,42 +863,7 @@ def _contact_replay(scene: Scene, cols: dict):
     return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
 
 
-def _contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: float) -> None:
-    """Say why a run with contacts is not comparable with the prediction (in place).
-
-    ``measured`` is :func:`identify`'s result with ``comparable``; when False, ``reason``
-    and ``verdict`` name the first row of the free response (sequence number >= ``start``)
-    with a contact open (``first_open_sample``, the telemetry row, and ``open_contact``), or
-    why the replay stops knowing, and the longest closed stretch against the samples the
-    fit needs. Not comparable is no device fault: the run's exit code is unchanged.
-    """
-    if measured.get("comparable", True):
-        return
-    seq = np.asarray(seq, dtype=np.int64)
-    rows = np.flatnonzero(seq >= start)
-    bad = rows[~replay.closed[rows]] if rows.size else rows
-    measured["first_open_sample"] = measured["open_contact"] = None
-    if bad.size == 0:
-        what = "the free response is too short"
-    else:
-        i = int(bad[0])
-        measured["first_open_sample"] = i
-        measured["open_contact"] = replay.open_link[i]
-        if replay.known[i]:
-            verb = "is open at" if i == int(rows[0]) else "opened at"
-            what = (f"contact {replay.open_link[i]!r} {verb} sample {i} / t = {i * T:.6g} s")
-        else:
-            what = replay.reason or f"the contact states are unknown from sample {i}"
-    reason = (f"{what}; the prediction holds while every contact is closed; the longest "
-              f"closed stretch is {measured['closed_samples']} samples, fewer than the "
-              f"{measured['needed']} the fit needs")
-    measured["reason"] = reason
-    measured["error"] = "not comparable: " + reason
-    measured["verdict"] = "not comparable: " + reason
-    measured["within"] = None
-
-
-def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
     The whole record while it fits in memory; the head once the ring has gone round.
@@ -1258,21 +877,25 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
     hello : firmware_protocol.Hello, optional
         The device's HELLO: its ``position_scale`` is the sensor step when the scene's
         ``device.position_resolution`` does not give one.
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its wire's number format is in the stated uncertainty
+        (:func:`hapsim.analysis.measurement.wire_errors`).
 
     Returns
     -------
     dict
         :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
-        ``b_interval`` (:func:`_verdict`), ``note`` (why prediction and measurement may differ),
+        ``b_interval`` (:func:`verdict`), ``note`` (why prediction and measurement may differ),
         ``rel_err`` against the prediction and ``rel_err_target`` (one target only);
         ``comparable`` (True with a measurement; False, with ``reason``,
         ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
-        scene's contacts leave no closed stretch long enough: :func:`_contact_verdict`).
+        scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
     """
     scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
+    late_info = {}
     quantum = float(dev.position_resolution or 0.0)
     if not quantum and hello is not None and math.isfinite(hello.position_scale):
         quantum = max(float(hello.position_scale), 0.0)
@@ -1280,8 +903,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
-        offset = _has_offset(scene)
-        poles, felt = _predicted_poles(scene)
+        offset = has_offset(scene)
+        poles, felt = predicted_poles(scene)
         response = None
         if quantum > 0 or dev.noise > 0:
             from hapsim.analysis.identify import sensor_error_response
@@ -1290,14 +913,30 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        measured = identify(cols["position"], cols["seq"], T, pred["order"],
+        from hapsim.daemon.telemetry import FLAG_LOST
+        position, late, late_info = late_accounted(
+            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
+        wire = wire_errors(scene, cols, start, driver)
+        hw = late_info.pop("_force_half_width", 0.0)
+        if hw > 0:
+            # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
+            # the loop's force response: in the stated uncertainty as the wire's errors
+            from hapsim.analysis.identify import force_error_response
+            wire.append((hw / math.sqrt(3.0),
+                         force_error_response(scene, int(np.sum(cols["seq"] >= start)))))
+        measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
-                            offset=offset, late=cols["late"], skip=dev.delay + 2,
+                            offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
-                            closed=None if replay is None else replay.closed)
+                            closed=None if replay is None else replay.closed,
+                            wire=wire)
         if replay is not None:
-            _contact_verdict(measured, replay, cols["seq"], start, T)
+            contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.control.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
@@ -1311,6 +950,17 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
             or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
         notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
                      "loop is not the linear THS exactly")
+    if late_info:
+        measured.update(late_info)
+    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
+    if n_est and "k" in measured:
+        # a driver's missing replies: the scene stepped through them with an extrapolated
+        # position; the force sent there differs from the one the true position gives by
+        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        measured["estimated_samples"] = n_est
+        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
+                     f"stepped through with an extrapolated position: their disturbance is "
+                     f"not in the stated uncertainty")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -1319,14 +969,14 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None) -> dict:
                      f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
-    _verdict(prep, measured)
+    verdict(prep.pred, measured)
     if "k" in measured:
         measured.setdefault("comparable", True)
-        measured["rel_err"] = {q: _rel(measured[q], pred.get(q))
+        measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))
                                for q in ("k", "b", "f0_hz", "damping_ratio")}
         if len(targets) == 1:     # with several targets the felt pair is their sum
             t0 = targets[0]
-            measured["rel_err_target"] = {q: _rel(measured[q], t0[q])
+            measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
                                           for q in ("k", "b", "f0_hz", "damping_ratio")}
     return measured
 
@@ -1350,7 +1000,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     """
     scene, res, cfg, tr = prep.scene, run.res, conn.cfg, conn.tr
     transport, mock_report = opts.transport, run.mock_report
-    plinks = _port_links(scene)
+    plinks = port_links(scene)
     virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
                          for lk in scene.links]}
     if plinks:
@@ -1367,6 +1017,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -1377,7 +1029,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
-        "late": res.late, "missed": res.missed, "overruns": res.overruns,
+        "late": res.late, "missed": res.missed, "estimated": res.estimated,
+        "overruns": res.overruns,
         "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
         "ping_rtt_us": res.ping_rtt_us,
         "low_latency": bool(tr.info.get("low_latency")),
@@ -1392,6 +1045,9 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "device_id": hello.device_id, "force_limit": hello.force_limit,
             "native_rate_hz": hello.native_rate_hz},
         "mock": mock_report,
+        # a driver's link: commands, records, missing samples, re-synchronisations, and
+        # the firmware seen (hapsim.drivers.transport.DriverTransport.report)
+        "driver": tr.report() if hasattr(tr, "report") else None,
         "excitation_end_s": prep.exc_end,
         "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
         "implausible": res.implausible, "earlier_session": res.earlier_session,
@@ -1411,10 +1067,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     }
     targets = prep.targets
     ctl = run.control
-    osc = None if ctl is None else {
-        "accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
-        "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
-        "journal": ctl.journal}
+    osc = None
+    if ctl is not None:
+        # the measurement is compared with the prediction of the scene it measured (the
+        # changes accepted before its window), as hapsim play re-predicts
+        from hapsim.audio.control import revise_measurement
+        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
+               "journal": ctl.journal}
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
@@ -1422,114 +1083,20 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
-def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
-              duration: float | None = None, rate_hz: float | None = None,
-              lockstep: bool = False, host_clocked: bool = False,
-              telemetry: str | None = None, allow_unstable: bool = False,
-              transport: str | None = None, seed: int = 0,
-              stop: StopFlag | None = None, handle_signals: bool = True,
-              on_start=None, rt_priority: int = 10, faults: str | None = None, fault_seed: int = 0,
-              reconnect: bool | None = None, lost_timeout: float | None = None,
-              reconnect_attempts: int = 8, reconnect_time: float = 10.0,
-              telemetry_interval: float = 0.05, osc: int | None = None,
-              osc_ramp: float = 0.05, sound: str | None = None,
-              jack_server: str | None = None,
-              driver: str | None = None, loop: str = "compiled", embedded=None) -> dict:
+def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
     Parameters
     ----------
     scene : Scene
         Validated scene with a port and a device.
-    port : str, optional
-        Serial port of a device (hardware or ``hapsim mock``); None: a mock.
-    baud : int
-        Baud rate for ``port``.
-    duration : float, optional
-        Run length [s] (> 0); default :data:`DEFAULT_DURATION`, longer for slow loops (the
-        identification window: excitation + 10 periods). 0: open-ended, until SIGINT /
-        SIGTERM (``handle_signals``), ``stop``, a safety stop or a device end. Telemetry
-        in memory is the identification window plus a ring of :data:`RING_SECONDS` (a run
-        that fits in both is kept whole); the rest is only in the journal.
-    rate_hz : float, optional
-        Rate override [Hz].
-    lockstep : bool
-        Lockstep mock (one period per FORCE; deterministic).
-    host_clocked : bool
-        Host's clock instead of the device's (with ``lockstep``: the host paces the
-        lockstep device in real time).
-    telemetry : str, optional
-        Per-sample telemetry file: ``.hst`` (chunked journal, appended every
-        ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
-        journal ``PATH.hst`` is written during the run, so a killed daemon leaves its rows
-        there, and removed once the export succeeded).
-    allow_unstable : bool
-        Run a loop the analysis finds unstable (safety stops end it).
-    transport : {"serial", "pty", "inprocess", "sim"}, optional
-        Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
-        on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
-        ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
-        (:class:`~hapsim.daemon.transport.SimTransport`: fast, deterministic fault tests).
-    seed : int
-        Mock sensor-noise seed.
-    stop : StopFlag, optional
-        External stop flag; a new one otherwise.
-    handle_signals : bool
-        Install SIGINT/SIGTERM handlers that request a clean stop (main thread only),
-        from before the numba warm-up and the start of the embedded mock: a signal during
-        start-up ends the run at once, before CONFIG (no FORCE but the final zero one,
-        then STOP), with exit code 0. Restored on return.
-    rt_priority : int
-        ``SCHED_FIFO`` priority of the host loop (and of the embedded mock it starts) over a
-        pty or a serial port, where the OS permits it; 0 for normal scheduling. Not for a
-        lockstep embedded mock (paced by the answers, not the clock). The mock takes it
-        after its start-up, the host once its own start-up is done. Restored after the run;
-        the report's ``loop.scheduling`` says what was obtained.
-    on_start : callable, optional
-        Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
-        the device has said HELLO and the numba warm-up is done, just before the device is
-        armed (e.g. to tell the user that Ctrl-C now stops cleanly).
-    faults : str, optional
-        Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
-    fault_seed : int
-        Seed of the fault generator.
-    reconnect : bool, optional
-        Recover a lost device (default: on in real time, off in lockstep).
-    lost_timeout : float, optional
-        Silence after which the device is lost [s] (default: the watchdog period, 50 ms:
-        the device zeroes its force after one watchdog period without a FORCE, and the
-        host sends zero force and STOP then; see :class:`~hapsim.daemon.loop.LoopConfig`).
-    reconnect_attempts : int
-        Most HELLO + CONFIG attempts per loss.
-    reconnect_time : float
-        Most time spent recovering one loss [s].
-    telemetry_interval : float
-        Time between two telemetry chunks [s].
-    driver : str, optional
-        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
-        the loop is then host-clocked through a
-        :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
-        driver's mock (paced by the host) without a port.
-    osc : int, optional
-        Serve live changes over OSC on localhost:PORT (0: any free port, printed on
-        stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
-        ``osc``). The measured (k, b) are those of the scene at the start.
-    osc_ramp : float
-        Ramp time of every OSC change [s].
-    sound : {"auto", "jack", "sounddevice"}, optional
-        Play the scene's ``audio`` live: the frames the loop computes go through a ring to
-        the sound server (report: ``sound`` with xruns and ring underruns).
-    jack_server : str, optional
-        JACK server name.
-    embedded : EmbeddedMock, optional
-        The embedded mock already started for this run
-        (:func:`hapsim.daemon.startup.start_embedded_mock`, ``transport`` ``"pty"``);
-        closed here whatever happens. Default: started by :func:`connect`.
-    loop : {"compiled", "python"}
-        Host loop: the compiled hot path (:mod:`hapsim.daemon.fastloop`; over a pty or a
-        serial port, device-clocked, without ``osc``/``sound``/``device.correction``;
-        elsewhere the Python loop, and the report's ``loop.python_reason`` says why) or the
-        Python reference loop (:class:`~hapsim.daemon.loop.HostLoop`).
+    options : RunOptions, optional
+        The run's options (:class:`RunOptions`: the port, duration, rate, transport,
+        telemetry, faults, sound...); default ``RunOptions()``. Not modified: the run
+        checks a copy.
+    **changes
+        Options changed from ``options`` (the fields of :class:`RunOptions`), e.g.
+        ``run_scene(scene, transport="inprocess", lockstep=True)``.
 
     Returns
     -------
@@ -1556,16 +1123,8 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
         The device speaks another protocol version or has another number of axes than 1
         (with ``report`` as for DeviceError when the loop had started).
     """
-    opts = RunOptions(port=port, baud=baud, duration=duration, rate_hz=rate_hz,
-                      lockstep=lockstep, host_clocked=host_clocked, telemetry=telemetry,
-                      allow_unstable=allow_unstable, transport=transport, seed=seed, stop=stop,
-                      handle_signals=handle_signals, on_start=on_start,
-                      rt_priority=rt_priority, faults=faults, fault_seed=fault_seed,
-                      reconnect=reconnect, lost_timeout=lost_timeout,
-                      reconnect_attempts=reconnect_attempts, reconnect_time=reconnect_time,
-                      telemetry_interval=telemetry_interval, osc=osc,
-                      osc_ramp=osc_ramp, sound=sound, jack_server=jack_server,
-                      driver=driver, loop=loop, embedded=embedded)
+    opts = dataclasses.replace(options if options is not None else RunOptions(), **changes)
+    embedded = opts.embedded
     try:
         opts.check()
         if embedded is not None and (opts.transport != "pty"
@@ -1580,7 +1139,9 @@ def run_scene(scene: Scene, *, port: str | None = None, baud: int = 115200,
     conn = connect(prep, opts)
     run = run_loop(prep, conn, opts)
     tel_info = _telemetry_info(conn, run, opts)
-    measured = identify_run(prep, conn.tel, run.res.hello)
+    # the run's own driver (its parameters: given, or the scene's protocol_options)
+    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
+    measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
     rep = build_report(prep, conn, run, opts, measured, tel_info)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
@@ -1649,165 +1210,3 @@ def _remove(path: str | None) -> None:
             os.unlink(path)
         except OSError:
             pass
-
-
-def _fmt(v, spec: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    from hapsim.errors import fixed
-    return fixed(v, spec) if spec.endswith("f") else format(v, spec)
-
-
-def format_report(rep: dict) -> str:
-    """The compact, aligned human report of :func:`run_scene`.
-
-    Parameters
-    ----------
-    rep : dict
-        A report returned by :func:`run_scene`.
-
-    Returns
-    -------
-    str
-        Several lines, no trailing newline.
-    """
-    lp = rep["loop"]
-    lines = []
-    clock = lp["mode"] + (", lockstep" if lp["lockstep"] else f", {lp.get('pace', 'real-time')}")
-    lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
-                 .replace("  ", " "))
-    lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
-
-    def row(name, d):
-        if d is None:
-            return
-        lines.append(f"  {name:<12} {_fmt(d.get('k'), '12.4f')} {_fmt(d.get('b'), '11.5f')} "
-                     f"{_fmt(d.get('f0_hz'), '10.4f')} {_fmt(d.get('damping_ratio'), '9.5f')}")
-
-    targets = rep.get("targets")
-    if targets is None:
-        targets = [rep["target"]] if rep.get("target") is not None else []
-    for t in targets:
-        row("target", t)
-        reason = str(t.get("reason") or "")
-        for word in ("renderable: ", "not renderable: "):
-            if reason.startswith(word):
-                reason = reason[len(word):]
-        lines.append(f"  {'':<12} link {t['link']}: "
-                     f"{'renderable' if t.get('renderable') else 'NOT renderable'}"
-                     + (f" ({reason})" if reason else ""))
-    v = rep["virtual"]
-    if "K" in v:
-        lines.append(f"  {'virtual K,B':<12} {_fmt(v['K'], '12.4f')} {_fmt(v['B'], '11.5f')}"
-                     f"   (link {v['link']})")
-    p = rep["predicted"]
-    row("predicted", p)
-    m = rep["measured"]
-    if "k" in m:
-        row("measured", m)
-        re = m["rel_err"]
-        lines.append(f"  {'rel. error':<12} {_fmt(re['k'], '+12.2e')} {_fmt(re['b'], '+11.2e')} "
-                     f"{_fmt(re['f0_hz'], '+10.2e')} {_fmt(re['damping_ratio'], '+9.2e')}")
-        if m.get("interval_note"):
-            lines.append(f"  {'+-':<12} {_fmt(m['k_interval'], '12.4f')} "
-                         f"{_fmt(m['b_interval'], '11.5f')}   ({m['interval_note']})")
-        if m.get("verdict"):
-            lines.append(f"  verdict: {m['verdict']}")
-        if "rel_err_target" in m:
-            rt = m["rel_err_target"]
-            lines.append(f"  {'vs target':<12} {_fmt(rt['k'], '+12.2e')} "
-                         f"{_fmt(rt['b'], '+11.2e')} {_fmt(rt['f0_hz'], '+10.2e')} "
-                         f"{_fmt(rt['damping_ratio'], '+9.2e')}")
-    elif m.get("comparable") is False:
-        lines.append(f"  {'measured':<12} not comparable (see verdict)")
-        lines.append(f"  verdict: {m['verdict']}")
-    else:
-        lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
-    if m.get("note"):
-        lines.append(f"  note: {m['note']}")
-    if p.get("stable") is not None:
-        # K_max is the limit of the links at the port as one port-ground spring: the felt
-        # k of a scene with virtual masses is another quantity, so say which it is there
-        kmax = f"K_max {_fmt(p['stiffness_limit'], '.6g')} N/m"
-        if p.get("source") == "check_scene" and p.get("port_K") is not None:
-            kmax += (f" of the links at the port as a port-ground spring (K = "
-                     f"{p['port_K']:g} N/m, B = {p['port_B']:g} N s/m), not of the felt k")
-        used = (": not comparable" if m.get("comparable") is False
-                else f" from {m.get('samples_used', 0)} samples")
-        lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
-                     f"{_fmt(p['spectral_radius'], '.9f')}, {kmax}; identification order "
-                     f"{p['order']}{used})")
-    ta = lp["turnaround_us"]
-    ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
-    lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
-                 f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
-                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
-                 f"clamped {lp['clamped']}; "
-                 f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
-                 f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
-    if lp.get("python_reason"):
-        lines.append(f"loop: --loop compiled asked, the Python loop ran: {lp['python_reason']}")
-    if lp.get("first_sample_s") is not None:
-        lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
-                     f"started")
-    pr = lp.get("ping_rtt_us") or {}
-    if pr.get("p50") is not None:
-        lines.append(f"ping round trip [us]: p50 {_fmt(pr.get('p50'), '.0f')}  max "
-                     f"{_fmt(pr.get('max'), '.0f')} ({pr.get('answered')}/{pr.get('sent')} "
-                     f"answered, before arming)")
-    lines.append(f"turnaround [us]: p50 {_fmt(ta.get('p50'), '.0f')}  p99 "
-                 f"{_fmt(ta.get('p99'), '.0f')}  p99.9 {_fmt(ta.get('p999'), '.0f')}  max "
-                 f"{_fmt(ta.get('max'), '.0f')}; low-latency mode {ll}")
-    if lp.get("lost") or lp.get("stale") or lp.get("bad_axes") or lp.get("device_faults") \
-            or lp.get("fault_plan") or lp.get("implausible"):
-        dec = lp.get("decoder") or {}
-        bad = sum(v for k, v in dec.items() if k != "frames_ok")
-        lines.append(f"faults: lost {lp['lost']}, recovered {lp['recovered']} "
-                     f"({lp['reconnect_attempts']} attempts), stale {lp['stale']}, bad frames "
-                     f"{bad}, wrong axes {lp['bad_axes']}, implausible seq "
-                 f"{lp.get('implausible', 0)}, device faults "
-                     f"{lp['device_faults'] or 0}")
-        for ev in lp.get("events", []):
-            if ev["event"] in ("lost", "recovered"):
-                what = (f"lost ({ev['reason']})" if ev["event"] == "lost" else
-                        f"recovered after {ev['after_s']:.3g} s, {ev['attempts']} attempt(s)")
-                lines.append(f"  t = {ev['t']:.3f} s, sample {ev['sample']}: {what}")
-        if lp.get("fault_plan"):
-            lines.append(f"injected: {lp['fault_plan']['injected']} "
-                         f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
-    bf = lp.get("bad_frames") or []
-    if bf:
-        kinds: dict = {}
-        for r in bf:
-            kinds[r["kind"]] = kinds.get(r["kind"], 0) + 1
-        last = bf[-1]
-        shown = last["hex"] if len(last["hex"]) <= 48 else last["hex"][:45] + "..."
-        lines.append(f"bad frames: {lp.get('bad_frames_seen', len(bf))} dropped, last "
-                     f"{len(bf)} recorded ({', '.join(f'{k} {v}' for k, v in kinds.items())}); "
-                     f"last at sample {last['sample']}, t = {last['t']:.3f} s: {last['kind']} "
-                     f"{shown} ({last['outcome']}); all in --json loop.bad_frames")
-    sf = lp["safety"]
-    lines.append(f"energy to the hand [J]: max {_fmt(lp.get('energy_max_j'), '.4g')}, end "
-                 f"{_fmt(lp.get('energy_j'), '.4g')}; stored at start "
-                 f"{_fmt(lp.get('energy_stored_j'), '.4g')}, excess max "
-                 f"{_fmt(lp.get('energy_excess_max_j'), '.4g')} (limit "
-                 f"{_fmt(sf['energy_limit'], 'g')}"
-                 f"{', passivity controller on' if sf['passivity_controller'] else ''})")
-    mk = lp.get("mock")
-    if mk:
-        lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
-                     f"{mk['watchdog_trips']}, overruns {mk['overruns']}, clamped {mk['clamped']}, "
-                     f"last force {mk['last_applied']:g} N, "
-                     f"STOP {'seen' if mk['saw_stop'] else 'not seen'}")
-    tl = rep["telemetry"]
-    if tl:
-        extra = ""
-        if tl.get("lost_rows"):
-            extra += (f"; {tl['lost_rows']} rows LOST: the journal writer fell more than the "
-                      f"{tl['ring']}-row ring behind")
-        if tl.get("events_journaled"):
-            extra += f"; {tl['events_journaled']} events journaled"
-        if tl.get("writer_error"):
-            extra += f"; journal writer stopped: {tl['writer_error']}"
-        lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
-    return "\n".join(lines)

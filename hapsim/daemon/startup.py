@@ -9,6 +9,11 @@ now :func:`hapsim.analysis.ths.brent_root`) and ``scipy.linalg``, which numba im
 first time it sets up its compiler, even to load a cached function, only to check that
 its BLAS bindings (``scipy.linalg.cython_blas``) exist. :func:`preload_numba_blas` loads
 that one extension module by itself, so that numba's check passes without the package.
+
+The first run with an empty numba cache compiles the kernels it needs (tens of seconds on
+a small machine). :func:`announce_compilation` says so on stderr before anything is
+compiled, from the files in numba's cache alone (numba is not imported for it), and
+:func:`compile_notice` lets the warm-up report each part as it is done.
 """
 
 from __future__ import annotations
@@ -17,7 +22,10 @@ import os
 import sys
 import time
 
-__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock"]
+__all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
+           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "scene_kernel", "choose_loop",
+           "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
+           "reset_announcements", "announce_compilation", "compile_notice"]
 
 
 def process_start() -> float:
@@ -87,6 +95,252 @@ def preload_numba_blas() -> bool:
     except Exception:   # noqa: BLE001 - any failure: numba imports scipy.linalg itself
         return False
     return False
+
+
+def numba_cache_dir(source: str) -> str:
+    """The folder numba caches the compiled functions of the module ``source`` in.
+
+    numba's own order (``numba.core.caching``, 0.5x-0.6x): ``NUMBA_CACHE_DIR`` when set
+    (a sub-folder named after the module's folder and the SHA-1 of its path), else the
+    module's ``__pycache__`` when it can be written, else the user's cache folder
+    (``$XDG_CACHE_HOME/numba`` or ``~/.cache/numba``, the same sub-folder).
+
+    Parameters
+    ----------
+    source : str
+        Path of the Python module.
+
+    Returns
+    -------
+    str
+        The folder (it may not exist yet).
+    """
+    import hashlib
+    folder = os.path.dirname(os.path.abspath(source))
+    sub = os.path.basename(folder) + "_" + hashlib.sha1(folder.encode()).hexdigest()
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return os.path.join(os.environ["NUMBA_CACHE_DIR"], sub)
+    tree = os.path.join(folder, "__pycache__")
+    if os.access(tree if os.path.isdir(tree) else folder, os.W_OK):
+        return tree
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "numba", sub)
+
+
+def cache_is_fresh(source: str, function: str) -> bool:
+    """Whether numba's cache holds ``function`` of module ``source`` compiled from the
+    module as it is now (an index file written after the module's last change).
+
+    Parameters
+    ----------
+    source : str
+        Path of the Python module.
+    function : str
+        The function's qualified name in it (``run_sd``).
+
+    Returns
+    -------
+    bool
+        False when no index exists or every index is older than the module (numba then
+        compiles: it keys its cache on the module's modification time).
+    """
+    return _any_fresh(source, function)
+
+
+_HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_FASTLOOP = os.path.join(_HERE, "daemon", "fastloop.py")
+
+
+def scene_kernel(scene) -> tuple[str, str]:
+    """The module path and the function name of the engine kernel ``scene`` runs
+    (:data:`hapsim.kernels.cordis.KERNELS` by link kinds, the integrator's kernel, or the
+    multi-rate kernel of a scene with ``audio``)."""
+    if getattr(scene, "audio", None) is not None:
+        return os.path.join(_HERE, "kernels", "audio.py"), "run_periods"
+    if scene.integrator == "centred":
+        kinds = frozenset(lk.kind for lk in scene.links)
+        fn = {frozenset(): "run_masses", frozenset({"spring_damper"}): "run_sd",
+              frozenset({"contact"}): "run_contact"}.get(kinds, "run_sd_contact")
+        return os.path.join(_HERE, "kernels", "cordis.py"), fn
+    fn = "run_symplectic_euler" if scene.integrator == "symplectic_euler" else "run_exact"
+    return os.path.join(_HERE, "kernels", "schemes.py"), fn
+
+
+def loop_stamp(kernel_fn: str) -> str:
+    """The stamp file :func:`hapsim.daemon.fastloop.warm_up` leaves once the compiled host
+    loop for the kernel ``kernel_fn`` is in numba's cache (the loop is compiled per
+    kernel, which numba's index of the loop's functions does not show without numba)."""
+    return os.path.join(numba_cache_dir(_FASTLOOP), f"hapsim-loop.{kernel_fn}.stamp")
+
+
+def loop_is_fresh(scene) -> bool:
+    """Whether the compiled host loop for ``scene``'s kernel is in numba's cache: its
+    stamp is newer than the loop's module and the kernel's module."""
+    src, fn = scene_kernel(scene)
+    try:
+        at = os.stat(loop_stamp(fn)).st_mtime
+        return at >= os.stat(_FASTLOOP).st_mtime and at >= os.stat(src).st_mtime
+    except OSError:
+        return False
+
+
+def compiled_loop_possible(scene, *, framed: bool = True, osc=None, sound=None,
+                           host_clocked: bool = False) -> bool:
+    """Whether a run of ``scene`` with these options can use the compiled host loop (else
+    the Python loop runs, and :func:`hapsim.daemon.runner.run_loop` reports why): the
+    framed protocol on a device clock, no live OSC or sound, no device correction, no
+    multi-rate audio model. A run that cannot use it does not compile it.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run.
+    framed : bool
+        The device speaks the framed protocol (no ``--driver``).
+    osc, sound : optional
+        ``--osc`` and ``--sound`` (None: not given).
+    host_clocked : bool
+        ``--host-clocked``.
+
+    Returns
+    -------
+    bool
+    """
+    dev = scene.device
+    return (framed and osc is None and sound is None and not host_clocked
+            and (dev is None or getattr(dev, "correction", None) is None)
+            and getattr(scene, "audio", None) is None)
+
+
+def choose_loop(requested: str, scene) -> str:
+    """The host loop a run uses: ``requested`` unless it is ``"auto"``, which takes the
+    compiled loop when it is in numba's cache for the scene's kernel, and otherwise the
+    Python loop (the reference: the same forces bit for bit) for this run.
+
+    Parameters
+    ----------
+    requested : {"auto", "compiled", "python"}
+        ``hapsim run --loop``.
+    scene : Scene
+        The scene to run.
+
+    Returns
+    -------
+    {"compiled", "python"}
+    """
+    if requested != "auto":
+        return requested
+    return "compiled" if loop_is_fresh(scene) else "python"
+
+
+def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str]]:
+    """What ``hapsim run`` compiles before its first sample: ``(what, module, function)``
+    for each part, the scene's engine kernel and, with the compiled host loop, the loop.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene to run (its integrator and link kinds name the kernel).
+    compiled_loop : bool
+        The run answers the device with the compiled host loop.
+
+    Returns
+    -------
+    list of tuple of str
+        ``(description, module path, function)``: the part is compiled unless numba's
+        cache holds that function (:func:`cache_is_fresh`; for the loop, its stamp:
+        :func:`loop_is_fresh`).
+    """
+    src, fn = scene_kernel(scene)
+    parts = [("the engine's kernels", src, fn)]
+    if compiled_loop:
+        parts.append(("the compiled host loop", _FASTLOOP, "_stretch"))
+    return parts
+
+
+def part_is_fresh(part, scene=None) -> bool:
+    """Whether a part of :func:`run_compile_parts` is in numba's cache."""
+    what, src, fn = part
+    if src == _FASTLOOP and scene is not None:
+        return loop_is_fresh(scene)
+    return cache_is_fresh(src, fn)
+
+
+_NOTICE = None
+_SAID: set = set()
+
+
+def reset_announcements() -> None:
+    """Forget what this process announced (at the start of each run of a command)."""
+    global _NOTICE
+    _NOTICE = None
+    _SAID.clear()
+
+
+def _any_fresh(source: str, function_glob: str) -> bool:
+    import glob
+    mod = os.path.splitext(os.path.basename(source))[0]
+    tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+    pattern = os.path.join(glob.escape(numba_cache_dir(source)),
+                           f"{mod}.{function_glob}-*.{tag}.nbi")
+    try:
+        changed = os.stat(source).st_mtime
+        return any(os.stat(p).st_mtime >= changed for p in glob.glob(pattern))
+    except OSError:
+        return False
+
+
+def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
+                         stream=None) -> bool:
+    """Say on ``stream`` (stderr) which of ``parts`` numba will compile, before it does.
+
+    Nothing is printed when every part is in numba's cache or was announced already by
+    this run (:func:`reset_announcements` starts a run). Otherwise one line names the
+    parts, says it happens once and where the result is kept, and :func:`compile_notice`
+    returns a reporter for the warm-up.
+
+    Parameters
+    ----------
+    parts : list of tuple
+        :func:`run_compile_parts` (a function of None: compiled, whatever the cache).
+    scene : Scene, optional
+        The scene the parts are for (the compiled loop's freshness is per kernel).
+    command : str
+        The command's name, which starts the line.
+    stream : file, optional
+        Where to print (default ``sys.stderr``).
+
+    Returns
+    -------
+    bool
+        True when something will be compiled (announced now or before).
+    """
+    global _NOTICE
+    stream = sys.stderr if stream is None else stream
+    cold = [(what, src) for what, src, fn in parts if what not in _SAID
+            and (fn is None or not part_is_fresh((what, src, fn), scene))]
+    if not cold:
+        return bool(_SAID & {what for what, _, _ in parts})
+    names = " and ".join(what for what, _ in cold)
+    where = sorted({numba_cache_dir(src) for _, src in cold})
+    print(f"{command}: compiling {names} with numba (once: the first run after an install "
+          f"or an update; later runs load them from {', '.join(where)}) ...",
+          file=stream, flush=True)
+    _SAID.update(what for what, _ in cold)
+    if _NOTICE is None:
+        t0 = time.monotonic()
+
+        def notice(what: str) -> None:
+            print(f"{command}: compiled {what} ({time.monotonic() - t0:.1f} s since the "
+                  f"announcement)", file=stream, flush=True)
+        _NOTICE = notice
+    return True
+
+
+def compile_notice():
+    """The reporter :func:`announce_compilation` set up (``notice(what)`` prints that
+    ``what`` is compiled and the time since), or None when nothing was announced."""
+    return _NOTICE
 
 
 def _import_real(name: str) -> bool:

@@ -50,11 +50,19 @@ Columns
 ``late`` [-]
     1 when the device reported holding an older force at this tick (its FORCE came too
     late: ``seq - force_seq != d`` or STATUS_OVERRUN), else 0 (int8).
+``force_seq`` [-]
+    STATE.force_seq of the sample (int64): the seq of the FORCE the device applied from
+    this tick on (PROTOCOL.md §4; -1 in a file written before this column existed, or
+    from a driver whose protocol has none). With ``status``, the account of the force the
+    device applied per tick (:mod:`hapsim.analysis.applied`).
+``status`` [-]
+    STATE.status bits of the sample (uint16; 0 in older files).
 ``flags`` [-]
     Bits (uint8): :data:`FLAG_LATE` (as ``late``), :data:`FLAG_LOST` (first sample after
     the device was lost and recovered: the scene restarted here), :data:`FLAG_RAMP` (force
     scaled by the ramp after a recovery), :data:`FLAG_CLAMPED` (force clamped at the
-    limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped). Files
+    limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped),
+    :data:`FLAG_ESTIMATED` (no sample came: the position was extrapolated). Files
     written before this column existed read as 0.
 """
 
@@ -73,7 +81,7 @@ from hapsim.errors import ConfigError
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
            "write_journal", "save_columns",
            "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
-           "FLAG_CLAMPED", "FLAG_SKIPPED"]
+           "FLAG_CLAMPED", "FLAG_SKIPPED", "FLAG_ESTIMATED"]
 
 #: Magic bytes that open each journal chunk.
 CHUNK_MAGIC = b"HSTC"
@@ -81,10 +89,14 @@ CHUNK_MAGIC = b"HSTC"
 CHUNK_VERSION = 1
 _HEAD = struct.Struct("<4sHHII")
 _DTYPES = {"time": "<f8", "position": "<f8", "force": "<f8", "seq": "<i8",
-           "turnaround_us": "<f8", "late": "|i1", "flags": "|u1"}
+           "turnaround_us": "<f8", "late": "|i1", "flags": "|u1", "force_seq": "<i8",
+           "status": "<u2"}
+#: Value of a column absent from an older file (else 0).
+_MISSING = {"force_seq": -1}
 
 #: Column names, in file order.
-COLUMNS = ("time", "position", "force", "seq", "turnaround_us", "late", "flags")
+COLUMNS = ("time", "position", "force", "seq", "turnaround_us", "late", "flags", "force_seq",
+           "status")
 
 #: ``flags`` bit: the device held an older force at this tick (as the ``late`` column).
 FLAG_LATE = 1
@@ -97,6 +109,10 @@ FLAG_CLAMPED = 8
 #: ``flags`` bit: older STATEs were waiting with this one and were skipped (the backlog
 #: policy answers the newest; :attr:`hapsim.daemon.loop.LoopResult.skipped`).
 FLAG_SKIPPED = 16
+#: ``flags`` bit: no sample came for this tick (a driver's missing reply): the loop
+#: stepped the scene with a position extrapolated from the two before (the row's
+#: ``position``), so its clock and the device's stay one; a measurement interpolates it.
+FLAG_ESTIMATED = 32
 
 
 class Telemetry:
@@ -121,6 +137,10 @@ class Telemetry:
         1 where the device held an older force (late FORCE).
     flags : ndarray of uint8, shape (head + ring,)
         :data:`FLAG_LATE` | :data:`FLAG_LOST` | :data:`FLAG_RAMP` | :data:`FLAG_CLAMPED`.
+    force_seq : ndarray of int64, shape (head + ring,)
+        STATE.force_seq per sample (-1: the protocol carries none).
+    status : ndarray of uint16, shape (head + ring,)
+        STATE.status per sample.
     n : int
         Rows recorded in all (the loop writes a row's slot, then raises ``n``).
     capacity : int
@@ -151,12 +171,15 @@ class Telemetry:
         self.turnaround_us = np.zeros(capacity)
         self.late = np.zeros(capacity, dtype=np.int8)
         self.flags = np.zeros(capacity, dtype=np.uint8)
+        self.force_seq = np.full(capacity, -1, dtype=np.int64)
+        self.status = np.zeros(capacity, dtype=np.uint16)
         # np.zeros maps untouched zero pages: writing them once here moves the page
         # faults (the kernel allocating memory) out of the hot loop (CONVENTIONS §4)
         for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
-                  self.late, self.flags):
+                  self.late, self.flags, self.status):
             a.fill(1)
             a.fill(0)
+        self.force_seq.fill(-1)
         self.n = 0
         self.drain = None
 
@@ -273,6 +296,7 @@ def _write_columns(cols: dict, path: str, events: list | None = None,
     if ext not in (".npz", ".csv"):
         raise ConfigError(f"unknown telemetry format {ext or '(none)'!r}; valid: .npz, .csv",
                           key=key)
+    cols = _complete(cols)
     tmp = f"{path}.partial"
     try:
         if ext == ".npz":
@@ -283,12 +307,23 @@ def _write_columns(cols: dict, path: str, events: list | None = None,
             # %.17g round-trips every float64 exactly (seq, late, flags are integers)
             data = np.column_stack([cols[c].astype(float) for c in COLUMNS])
             np.savetxt(tmp, data, delimiter=",", header=",".join(COLUMNS), comments="",
-                       fmt=["%.17g", "%.17g", "%.17g", "%d", "%.17g", "%d", "%d"])
+                       fmt=["%.17g", "%.17g", "%.17g", "%d", "%.17g", "%d", "%d", "%d", "%d"])
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _complete(cols: dict) -> dict:
+    """``cols`` with every column of :data:`COLUMNS` (an absent one as :func:`_absent`)."""
+    n = int(np.asarray(cols["seq"]).size)
+    return {c: (cols[c] if c in cols else _absent(c, n)) for c in COLUMNS}
+
+
+def _absent(c: str, n: int) -> np.ndarray:
+    """Column ``c`` of ``n`` rows for a file written before it existed."""
+    return np.full(n, _MISSING.get(c, 0), dtype=_DTYPES[c])
 
 
 def load_telemetry(path: str) -> dict[str, np.ndarray]:
@@ -310,13 +345,13 @@ def load_telemetry(path: str) -> dict[str, np.ndarray]:
     if path.lower().endswith(".npz"):
         with np.load(path) as z:
             n = z["seq"].size
-            return {c: (np.asarray(z[c]) if c in z.files else np.zeros(n, dtype=_DTYPES[c]))
+            return {c: (np.asarray(z[c]) if c in z.files else _absent(c, n))
                     for c in COLUMNS}
     with open(path) as fh:
         names = fh.readline().strip().split(",")
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     n = data.shape[0]
-    out = {c: (data[:, names.index(c)] if c in names else np.zeros(n))
+    out = {c: (data[:, names.index(c)] if c in names else _absent(c, n))
            .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
     return out
 
@@ -522,6 +557,7 @@ def write_journal(cols: dict, path: str, events: list | None = None,
     OSError
         When the file cannot be written (the temporary file is removed).
     """
+    cols = _complete(cols)
     n = int(np.asarray(cols["seq"]).size)
     tmp = f"{path}.partial"
     try:
@@ -641,7 +677,7 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
         except (ValueError, KeyError, TypeError):
             break
         for c in COLUMNS:
-            parts[c].append(got.get(c, np.zeros(n, dtype=_DTYPES[c])))
+            parts[c].append(got[c] if c in got else _absent(c, n))
         chunks += 1
         rows += n
         pos = b

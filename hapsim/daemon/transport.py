@@ -39,6 +39,7 @@ from collections import deque
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
+from hapsim.spawn import child_env
 
 __all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock", "SimTransport"]
 
@@ -257,11 +258,6 @@ class SerialTransport:
         return self._dec.format_last_frames()
 
 
-def _package_root() -> str:
-    import hapsim
-    return os.path.dirname(os.path.dirname(os.path.abspath(hapsim.__file__)))
-
-
 class EmbeddedMock:
     """A mock device in a child process on the master side of a new pseudo-terminal.
 
@@ -347,9 +343,7 @@ class EmbeddedMock:
             cmd += ["--link", self.port]
         if rt_priority:
             cmd += ["--rt-priority", str(int(rt_priority))]
-        env = dict(os.environ)
-        root = _package_root()
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env = child_env()
         try:
             self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=env,
                                          stdin=subprocess.DEVNULL, start_new_session=True)

@@ -10,17 +10,19 @@ Interface of a driver (:class:`~hapsim.drivers.base.Driver`): its serial setting
 (``baud``, ``rtscts``), the units of its one driven axis (``position_scale`` [m/count],
 ``force_scale`` [N/count], ``force_limit`` [N]), ``encode_force(f)`` -> bytes, a fresh
 ``decoder()`` whose ``feed(bytes)`` returns the positions [m] of the complete records, and
-``limits``: what the protocol cannot do (shown by ``--help`` and the README).
+``limits``: what the protocol cannot do (shown by ``--help`` and docs/devices.md).
 """
 
 from __future__ import annotations
 
 from hapsim.errors import ConfigError
+from hapsim.scene_schema import PROTOCOLS
 
 __all__ = ["DRIVERS", "get_driver"]
 
-#: Driver names ``--driver`` accepts; ``framed`` is hapsim's own protocol (the default).
-DRIVERS = ("framed", "firefader", "haply", "hapkit-serial")
+#: Driver names ``--driver`` accepts (and a scene's ``device.protocol``); ``framed`` is
+#: hapsim's own protocol (the default).
+DRIVERS = PROTOCOLS
 
 
 def get_driver(name: str, **options):

@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
-__all__ = ["Driver", "MappedDecoder", "AlignedDecoder"]
+import math
+
+import numpy as np
+
+__all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED"]
+
+#: The telemetry ``flags`` bit of an estimated sample
+#: (:data:`hapsim.daemon.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
+#: nothing of the daemon above them).
+FLAG_ESTIMATED = 32
 
 
 class AlignedDecoder:
@@ -90,7 +99,11 @@ class Driver:
     device_id : int
         Reported as HELLO.device_id.
     limits : str
-        What the protocol cannot do, for ``--help`` and the README.
+        What the protocol cannot do, for ``--help`` and docs/devices.md.
+    position_rel, force_rel : float
+        Largest relative rounding of the position / force fields on the wire (``2^-24``
+        for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
+        (:func:`hapsim.daemon.runner.identify_run`).
     """
 
     name = ""
@@ -102,6 +115,81 @@ class Driver:
     native_rate_hz = 1000.0
     device_id = 0
     limits = ""
+    position_rel = 0.0
+    force_rel = 0.0
+    #: What :meth:`hapsim.drivers.transport.DriverTransport.report` says of a firmware
+    #: that answers each command, and of one that streams records unprompted.
+    #: Records to let pass after arming, at zero force, before the first sample: a
+    #: firmware whose force comes up slowly (the FireFader's enable ramp) is full by then.
+    arming_records = 0
+    #: The device's parser has no framing: answers that stop while commands go out mean
+    #: it may be inside a garbage command (the transport re-synchronises it).
+    unframed = False
+    answering_firmware = "answers each command"
+    streaming_firmware = "streams records unprompted"
+
+    def options(self) -> dict:
+        """The device parameters this driver was built with (its constructor's keywords
+        and their values): what ``device.protocol_options`` holds."""
+        import inspect
+        names = [n for n in inspect.signature(type(self).__init__).parameters if n != "self"]
+        return {n: getattr(self, n) for n in names if hasattr(self, n)}
+
+    def mock_hardware(self) -> dict:
+        """The keywords of this driver's mock (:mod:`hapsim.drivers.mock`) that build the
+        device this driver describes (by default none)."""
+        return {}
+
+    def round_trip_s(self) -> float:
+        """Shortest time from a command's first byte to the end of its answer [s] (wire
+        time of both at the baud rate, 10 bits a byte, plus the device's own work); 0 for
+        a link whose wire time is negligible (USB at full speed)."""
+        return 0.0
+
+    def max_rate_hz(self) -> float:
+        """Highest host rate whose period holds a command and its answer [Hz] (inf when
+        the link sets no bound)."""
+        rt = self.round_trip_s()
+        return 1.0 / rt if rt > 0 else math.inf
+
+    def check_rate(self, rate_hz: float) -> None:
+        """Refuse a rate the device cannot hold: its period must hold one command and its
+        answer (:meth:`round_trip_s`), or answers come a period late and are taken for the
+        next command's (the protocols have no sequence number).
+
+        Parameters
+        ----------
+        rate_hz : float
+            The scene's rate [Hz].
+
+        Raises
+        ------
+        ConfigError
+            The period is shorter than the round trip; the message gives the round trip's
+            parts and the highest rate the device can hold.
+        """
+        top = self.max_rate_hz()
+        if rate_hz > top:
+            from hapsim.errors import ConfigError
+            raise ConfigError(
+                f"{self.name}: {rate_hz:g} Hz cannot be held: {self.rate_reason()}; the "
+                f"highest rate this device can hold is {math.floor(top):d} Hz", key="rate_hz")
+
+    def rate_reason(self) -> str:
+        """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message)."""
+        return f"a command and its answer take {self.round_trip_s() * 1e3:.3g} ms"
+
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """What the host sends to leave the device at zero force (STOP, a loss, closing
+        the port): a zero-force command by default; a device that may have lost its place
+        in the byte stream gets its re-synchronisation, which ends at zero force."""
+        return self.encode_force(0.0)
+
+    def resync(self, position: float = 0.0) -> bytes:
+        """Bytes that put a device which lost its place in the byte stream back in step,
+        zero force first (default: a zero-force command; a start byte re-aligns a framed
+        device by itself). ``position`` is the last position read [m] or [rad]."""
+        return self.encode_force(0.0)
 
     def encode_force(self, force: float) -> bytes:
         """Bytes commanding ``force`` [N] on the driven axis (zero on the others)."""
@@ -116,6 +204,54 @@ class Driver:
         """The force [N] the device receives for ``force`` (after the protocol's
         quantisation and clamp): what identification must fit against."""
         return float(force)
+
+    def account(self, columns: dict, force):
+        """The force the device applied per tick, from this driver's timing, or None.
+
+        A protocol without ``force_seq`` cannot name the force the device held at a tick;
+        a driver that times its commands and records fills this in with
+        :func:`hapsim.analysis.applied.account_from_timing` (late ticks, and the ticks it
+        cannot order, whose force half-width the stated uncertainty then covers).
+        ``identify`` fits the device to it and ``run`` takes the late ticks out as known
+        inputs; None (the default): the forces sent, every delay tried.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N] (:meth:`applied_force` of the sent).
+
+        Returns
+        -------
+        hapsim.analysis.applied.AppliedAccount or None
+
+        Notes
+        -----
+        The drivers here (all three protocols run through
+        :class:`~hapsim.drivers.transport.DriverTransport`) know one thing per tick: whether
+        the command's answer came. A command whose answer did not come (the next row is
+        an estimated sample, ``FLAG_ESTIMATED``) may not have reached the device (a lost
+        or merged packet) or may have (a lost record): the force applied from it is the
+        one sent or the one before, so those rows are *ambiguous* and the account states
+        the half-difference (:func:`~hapsim.analysis.applied.account_from_timing`, with
+        the transport's delay d: ``loop_delay``). None when every answer came.
+        """
+        flags = columns.get("flags")
+        d = getattr(self, "loop_delay", None)
+        if flags is None or d is None:
+            return None
+        est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
+        if not est.any():
+            return None
+        from hapsim.analysis.applied import account_from_timing
+        n = est.size
+        amb = np.zeros(n, bool)
+        # row r applies the force of row r - d, carried by the command answered (or not)
+        # at row r - d + 1
+        k = np.flatnonzero(est) + d - 1
+        amb[k[(k >= 0) & (k < n)]] = True
+        return account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale)
 
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""

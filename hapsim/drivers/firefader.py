@@ -1,7 +1,8 @@
 """FireFader (E. Berdahl and A. Kontogeorgakopoulos): two motorised faders, serial bytes.
 
-Layout, as the published host code reads and writes it (Berdahl's Pd patch and Arduino
-firmware, as used e.g. by the SuperCollider host in abramhindle/firefadervocoder):
+Layout, as the published firmware (``haptics_firmware.ino`` and the older ``.pde`` in
+Berdahl's "Open-Source Haptics for Artists" repository) and its Pd host patch
+(``FireFader~.pd``) read and write it:
 
 host -> device, one packet per update ::
 
@@ -11,15 +12,39 @@ host -> device, one packet per update ::
 device -> host, one record per packet ::
 
     [255, pA, pB, b3, b4, b5, b6]   pA, pB: fader positions 0..254 (255 is the record
-                                    start and never a value); four more bytes 0..254
+                                    start and never a value); b3, b4 the motor currents,
+                                    b5, b6 the capacitive touch sense (0 from the .pde)
 
-57600 baud with RTS/CTS flow control. The host code maps 127 counts to 1.56 (its force unit
-at ``scale = 1``), and a position count to 0.39 mm (the fader travel is 99 mm over 254
-counts). This module drives fader A as hapsim's one axis, with the position measured from
-the middle of the travel (count 127) and fader B held at zero force.
+57600 baud with RTS/CTS flow control. This module drives fader A as hapsim's one axis,
+with the position measured from the middle of the travel (count 127) and fader B held at
+zero force.
+
+Units (device parameters, :class:`FireFader`; ``hapsim identify`` finds the full scale):
+
+- force full scale, the force at 127 counts with the firmware's enable full: the
+  repository's *calibrated* Pd patch (``FireFader~.calibrated.pd``) divides the force in
+  newtons by 0.39 before multiplying by 127 (its uncalibrated patch divides by 4 and says
+  "this should be more like / 0.39"): 0.39 N is the default (:data:`FULL_SCALE_N`);
+- position: both patches map ``(count - 128) / 128 * 0.05`` to metres, 0.390625 mm per
+  count (:data:`METRES_PER_COUNT`; an earlier reading here, 99 mm over 254 counts, had no
+  source).
 
 Neither direction has a sequence number or a checksum: the decoders resynchronise on the
 start byte and count what they drop; a corrupted value byte is a wrong force or position.
+
+The firmware (``.ino``) answers each pass with one record and only runs a pass when a
+packet has come; packets that wait are merged (the last one counts). A pass reads the
+capacitive sense, the currents and the pots (about 1.25 ms: 175 + 175 + 150 + 150 + 300 +
+300 us, as its comments time them), and the record takes 7 bytes x 10 bits / 57600 baud =
+1.215 ms on the wire after the 3-byte packet's 0.52 ms: about 3 ms from a packet to its
+record, so the host's period must be longer (:meth:`FireFader.round_trip_s`). Its force is
+scaled by an enable filter that ramps from 0 to full over 66 passes after power-on or
+0.1 s without a byte, and stays down while the fader is untouched, at an end of its
+travel or hot (:class:`hapsim.drivers.mock.FireFaderDevice` runs that loop). The Nano
+resets when the port opens (about 1 s in its bootloader), so the transport repeats its
+arming packet until the first record comes. The older ``.pde`` has no enable filter and no
+silence rule (the force stays) and streams records unprompted; the transport says which
+firmware answered.
 """
 
 from __future__ import annotations
@@ -38,11 +63,13 @@ RECORD_BYTES = 6
 POSITION_MAX = 254
 FORCE_MIN = -127
 FORCE_MAX = 126
-#: Position resolution [m/count] (99 mm of travel over 254 counts, Berdahl's host code).
-METRES_PER_COUNT = 0.00039
-#: Force at 127 counts [N] (the host code's unit at scale 1; set ``full_scale`` to the
-#: calibration of your amplifier).
-FULL_SCALE_N = 1.56
+#: Position resolution [m/count]: 0.05 m per 128 counts (the repository's Pd patches).
+METRES_PER_COUNT = 0.05 / 128
+#: Force at 127 counts [N] (the repository's calibrated Pd patch; a device parameter:
+#: identify yours).
+FULL_SCALE_N = 0.39
+#: The firmware's pass, its reads alone [s] (its comments: 2 x 175 + 2 x 150 + 2 x 300 us).
+PASS_READS_S = 1.25e-3
 #: The count at the middle of the travel: position 0 of the driven axis.
 CENTRE = 127
 
@@ -53,12 +80,18 @@ FireFader protocol limits (hapsim --driver firefader):
     device.delay is taken as given (identify it with 'hapsim identify')
   no checksum: a corrupted byte is a wrong force or position; only a lost start byte or
     a truncated record is noticed (resync, counted as bad frames)
-  resolution: position 0.39 mm per count (0..254 over 99 mm), force full_scale/127 per
-    count (-127..126; 12.3 mN at the default 1.56 N): the THS is closed through both
+  resolution: position 0.39 mm per count (0.05 m per 128 counts), force full_scale/127
+    per count (-127..126; 3.07 mN at the default 0.39 N): the THS is closed through both
     quantisers, so measured (k, b) equal the prediction only to the bound these give
-  57600 baud, RTS/CTS: a 3-byte packet and a 7-byte record take 1.7 ms on the wire,
-    so rates above ~500 Hz are not reachable
-  no watchdog in the protocol: the host sends zero force at the end, on a stop or a loss"""
+  57600 baud, RTS/CTS: a 3-byte packet (0.52 ms), the firmware's reads (1.25 ms) and
+    the 7-byte record (1.215 ms) take ~3 ms: rates above ~330 Hz are refused
+  the firmware's force enable ramps up over 66 passes after power-on or 0.1 s of
+    silence, and is off while the fader is untouched, at an end or hot: the force the
+    device applied is then less than the one sent (the records' touch byte shows it)
+  the Nano resets when the port opens (~1 s bootloader): hapsim repeats its first
+    packet until a record comes
+  the older .pde firmware streams records unprompted and has no silence rule: hapsim
+    says which firmware answered; the host sends zero force at every end"""
 
 
 def force_counts(force: float, full_scale: float = FULL_SCALE_N) -> int:
@@ -214,22 +247,29 @@ class FireFader(Driver):
         Fader driven as hapsim's axis (0: A, 1: B); the other gets zero force.
     full_scale : float > 0
         Force at 127 counts [N] (default :data:`FULL_SCALE_N`).
+    metres_per_count : float > 0
+        Position per count [m] (default :data:`METRES_PER_COUNT`).
 
     Raises
     ------
     ConfigError
-        A bad axis or full scale.
+        A bad axis, full scale or position scale.
     """
 
     name = "firefader"
     baud = 57600
     rtscts = True
     position_scale = METRES_PER_COUNT
-    native_rate_hz = 500.0
+    native_rate_hz = 300.0
     device_id = 0x46464144            # "FFAD"
     limits = LIMITS
+    #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129, 2 more
+    arming_records = 72
+    answering_firmware = "haptics_firmware.ino (one record per packet)"
+    streaming_firmware = "haptics_firmware.pde (records streamed unprompted)"
 
-    def __init__(self, axis: int = 0, full_scale: float = FULL_SCALE_N) -> None:
+    def __init__(self, axis: int = 0, full_scale: float = FULL_SCALE_N,
+                 metres_per_count: float = METRES_PER_COUNT) -> None:
         from hapsim.errors import ConfigError
         if axis not in (0, 1):
             raise ConfigError(f"FireFader axis must be 0 (A) or 1 (B), got {axis!r}",
@@ -237,8 +277,12 @@ class FireFader(Driver):
         if not (math.isfinite(full_scale) and full_scale > 0):
             raise ConfigError(f"must be a positive force [N], got {full_scale!r}",
                               key="full_scale")
+        if not (math.isfinite(metres_per_count) and metres_per_count > 0):
+            raise ConfigError(f"must be a positive length [m], got {metres_per_count!r}",
+                              key="metres_per_count")
         self.axis = axis
         self.full_scale = float(full_scale)
+        self.position_scale = self.metres_per_count = float(metres_per_count)
         self.force_scale = self.full_scale / 127.0
         self.force_limit = FORCE_MAX * self.force_scale
 
@@ -254,7 +298,23 @@ class FireFader(Driver):
         """The force the packet of ``force`` commands [N]: its count times the scale."""
         return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
 
+    def mock_hardware(self) -> dict:
+        """The mock's fader: this full scale and position scale."""
+        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale}
+
+    def round_trip_s(self) -> float:
+        """From a packet's first byte to its record's last [s]: 3 + 7 bytes of 10 bits at
+        57600 baud and the firmware's reads (module notes), about 2.99 ms."""
+        return (3 + 7) * 10 / self.baud + PASS_READS_S
+
+    def rate_reason(self) -> str:
+        return (f"a packet (0.52 ms at {self.baud} baud), the firmware's reads "
+                f"({PASS_READS_S * 1e3:.2f} ms) and its 7-byte record (1.22 ms) take "
+                f"{self.round_trip_s() * 1e3:.2f} ms, and a period must hold them (a "
+                "record a period late is taken for the next packet's)")
+
     def decoder(self):
         """A fresh host-side decoder returning the driven fader's position [m]."""
         ax = self.axis
-        return MappedDecoder(RecordDecoder(), lambda r: (r[ax] - CENTRE) * METRES_PER_COUNT)
+        mpc = self.position_scale
+        return MappedDecoder(RecordDecoder(), lambda r: (r[ax] - CENTRE) * mpc)

@@ -49,7 +49,7 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
   no start byte, no checksum: the decoders realign on the fixed bytes and plausible
     floats; a corrupted float byte is a wrong force or position
   the stock sketch renders its own environments: the firmware must apply the second
-    float as the handle force for function code 255 (see the README)
+    float as the handle force for function code 255 (see docs/devices.md)
   57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz"""
 
 
@@ -136,6 +136,8 @@ class HapkitSerial(Driver):
     rtscts = False
     native_rate_hz = 300.0
     device_id = 0x48415053           # "HAPS"
+    position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
+    force_rel = 2.0 ** -24
     position_scale = 0.0             # float32 on the wire: the firmware's resolution
     force_scale = 0.0
     limits = LIMITS
@@ -159,6 +161,11 @@ class HapkitSerial(Driver):
     def applied_force(self, force: float) -> float:
         """The force the command carries [N]: clamped, rounded to binary32."""
         return _FF.unpack(self.encode_force(force)[2:])[1]
+
+    def round_trip_s(self) -> float:
+        """A 10-byte command and its 9-byte reply at 57600 baud, 10 bits a byte [s]
+        (3.3 ms; the sketch's 1 kHz tick adds up to 1 ms more, not counted)."""
+        return (10 + 9) * 10 / self.baud
 
     def decoder(self):
         """A fresh host decoder returning the handle position [m]."""

@@ -19,9 +19,24 @@ device -> host, after each write only ::
 
 The board clamps the torque to 0.123 N m. This driver sets up motor port 1 and encoder
 port 1 (no analog pin, no PWM pin), so a write is 6 bytes and a reply 5: ``[id][angle]``.
-Neither direction has a start byte, sequence number or checksum: the host decoder takes
-5-byte replies that start with ``id`` and decode to a finite angle within
-``max_angle_deg``, and otherwise drops one byte and looks again (counted).
+
+What the board does not do (read from the firmware):
+
+- **no watchdog**: the motor's PWM duty is only set by a write; reset (``reset_haply``)
+  and set-up (``setup_device`` -> ``reset_device``) clear the ports' addresses and the PWM
+  *pins*, not the motor's duty, so the board holds the last torque when the host stops
+  talking, through a reset and through a set-up. The host therefore commands zero torque
+  first (in :meth:`HaplyM3.arm` and :meth:`HaplyM3.resync`) and on every end (the
+  transport's STOP and close).
+- **no framing**: the board reads one command byte per pass and then the bytes the
+  command's layout says, so one lost or extra host byte shifts its parser: later bytes
+  are read as other commands (a reset forgets the set-up: writes are then answered by
+  the 1-byte ``[id]``; a set-up out of garbage sets up other ports and ids). Replies are
+  checked for their length and format (:class:`ReplyDecoder`: the id, and an angle that
+  is a whole number of encoder counts within range); more bytes that make no reply than
+  two faulty replies explain mean the board lost its place (``desync``), and the host re-synchronises it
+  (:meth:`HaplyM3.resync`: zero bytes, which any command the board is inside takes as
+  zero torque or a harmless reset, then the set-up and a zero-torque write).
 """
 
 from __future__ import annotations
@@ -32,12 +47,20 @@ import struct
 from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HaplyM3", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
-           "ReplyDecoder", "CommandDecoder"]
+           "ReplyDecoder", "CommandDecoder", "LONGEST_COMMAND", "DESYNC_BYTES"]
 
 #: The board's torque clamp [N m] (firmware ``MAX_TORQUE``).
 MAX_TORQUE = 0.123
 CMD_RESET, CMD_SETUP, CMD_WRITE = 0, 1, 2
 _F = struct.Struct("<f")
+#: Longest command the board can be inside [bytes]: a set-up with 4 motors, 4 encoders,
+#: 255 analog pins and 255 PWM pins (1 + 1 + 1 + 4 + 1 + 4 + 1 + 255 + 1 + 255 + 4 * 8).
+LONGEST_COMMAND = 556
+#: Bytes skipped since the last good reply that mean the board lost its place: more than
+#: two replies' worth of single faults on the way back (a lost byte skips at most 4 bytes,
+#: a corrupted one 5); a board that lost its set-up answers 1 byte per write, so this is
+#: about 11 writes.
+DESYNC_BYTES = 11
 
 LIMITS = """\
 Haply M3 protocol limits (hapsim --driver haply):
@@ -90,56 +113,144 @@ def reply_packet(device_id: int, angle_deg: float) -> bytes:
 class ReplyDecoder(AlignedDecoder):
     """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream.
 
+    A reply is taken where the id matches and the angle is finite, within
+    ``max_angle_deg``, within ``max_step_deg`` of where the last two replies say the joint
+    is going, and a whole number of encoder counts (the firmware sends
+    ``360 * count / resolution``: the window ``01 01 01 3f c5``, -3056.06 deg, is 41426.4
+    counts at 4880 per revolution, no reply); otherwise one byte is dropped and the next
+    position tried. :data:`DESYNC_BYTES` or more bytes dropped since the last reply mean the
+    stream lost its format: the board answers something else than the replies it was set
+    up for (counted in ``desync``, once per run of bad bytes, again every 100 bytes).
+
     Parameters
     ----------
     device_id : int
     max_angle_deg : float
-        Largest plausible angle [deg]; a reply beyond it (or not finite) is misaligned.
+        Largest plausible angle [deg].
+    resolution : float or None
+        Encoder counts per revolution (None: the whole-count check is off).
+    max_step_deg : float
+        Largest distance of a reply from the linear prediction of the last two taken
+        [deg] (2 deg: an acceleration of 35000 rad/s^2 at 1 kHz, or a missed reply at
+        30 rad/s); a reply farther off is misaligned or corrupted.
 
     Attributes
     ----------
     stats : dict
-        ``frames`` (replies), ``skipped`` (bytes dropped realigning).
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``desync``.
     """
 
     length = 5
 
-    def __init__(self, device_id: int, max_angle_deg: float = 3600.0) -> None:
+    def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
+                 resolution: float | None = None, max_step_deg: float = 2.0) -> None:
         super().__init__()
+        self.max_step = float(max_step_deg)
+        self._prev = self._prev2 = None
         self.id = device_id & 0xFF
         self.max = float(max_angle_deg)
+        self.res = None if resolution is None else float(resolution)
+        self.stats["desync"] = 0
+        self._bad = 0
 
     def parse(self, buf):
         """The angle [deg] of a reply at the start of ``buf``, or None."""
         if buf[0] != self.id:
             return None
         a = _F.unpack_from(buf, 1)[0]
-        return a if math.isfinite(a) and abs(a) <= self.max else None
+        if not (math.isfinite(a) and abs(a) <= self.max):
+            return None
+        if self.res is not None:
+            # the firmware's 360 * count / resolution, rounded once to binary32: a count
+            # of 0 is exactly 0.0 (a tiny garbage float is no reply)
+            n = round(a * self.res / 360.0)
+            want = 360.0 * n / self.res
+            if abs(a - want) > 1e-6 * abs(want):
+                return None
+        if self._prev is not None:
+            # a flipped exponent bit is still a whole count (x 2^k, half the time): no
+            # joint moves that far from where its last two replies say it is going
+            guess = self._prev if self._prev2 is None else 2.0 * self._prev - self._prev2
+            if abs(a - guess) > self.max_step:
+                return None
+        self._prev2, self._prev = self._prev, a
+        return a
+
+    def feed(self, data: bytes) -> list:
+        """Bytes in, the angles of the replies taken out (``skipped``, ``desync``
+        counted)."""
+        buf = self._buf
+        buf += data
+        out = []
+        st = self.stats
+        while len(buf) >= 5:
+            v = self.parse(buf)
+            if v is not None:
+                out.append(v)
+                del buf[:5]
+                st["frames"] += 1
+                self._bad = 0
+                continue
+            del buf[:1]
+            st["skipped"] += 1
+            self._bad += 1
+            if self._bad % 100 == DESYNC_BYTES:      # once, then again if it lasts
+                st["desync"] += 1
+                self._prev = self._prev2 = None     # the re-synchronised board's angles
+        return out
 
 
 class CommandDecoder:
-    """Device side (the mock): commands out of the host's bytes, as the firmware parses
-    them (a set-up fixes the lengths of later writes and replies).
+    """Device side (the mock): the board's command parser, as the firmware V1.5 runs it.
+
+    One command byte, then the bytes its layout says: reset ``[0][addr]`` clears every
+    port's address (motors, encoders, analog and PWM pins; not the motor's torque: the
+    caller holds it); set-up ``[1][addr]...`` first does the same, then gives ``addr`` to
+    the ports its masks name (direction bytes go to the first ports in order, as the
+    firmware's ``mtr_parameters``/``enc_parameters`` store them), reads one pin byte per
+    analog and PWM pin and 8 bytes (offset [deg], counts per revolution) per encoder;
+    write ``[2][addr]`` reads one byte per PWM pin of ``addr`` and a float32 torque per
+    motor of ``addr``; any other byte is no command. A command is taken once all its bytes
+    are there: the firmware's ``readBytes`` (torques, encoder parameters) waits for them,
+    but its single ``read()`` calls (address, masks, directions, pin lists) give 255 for a
+    byte not yet there, which the mock does not model (over USB a command's bytes come
+    together).
 
     Attributes
     ----------
     stats : dict
         ``writes``, ``setups``, ``resets``, ``unknown`` (bytes that are no command).
-    motors, encoders : int
-        Motors and encoders set up (this board: at most 4 each).
+    motor_addr, encoder_addr : list of int, length 4
+        Address of each motor / encoder port (0: none).
+    encoder_offset, encoder_res : list of float, length 4
+        Each encoder's set-up (offset [deg], counts per revolution).
+    direction : list of int, length 4
+        Rotational direction byte per port (motors and encoders alike here).
+    analog_addr : list of int, length 12
+    pwm_addr : list of int, length 14
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
-        self.motors = 0
-        self.encoders = 0
-        self.analog = 0
-        self.pwms = 0
-        self.id = None
-        self.resolution = None
         self.stats = {"writes": 0, "setups": 0, "resets": 0, "unknown": 0}
+        self._clear()
+        self.encoder_offset = [0.0] * 4
+        self.encoder_res = [0.0] * 4
+        self.direction = [0] * 4
 
-    def _setup_len(self, b) -> int | None:
+    def _clear(self) -> None:
+        self.motor_addr = [0] * 4
+        self.encoder_addr = [0] * 4
+        self.analog_addr = [0] * 12
+        self.pwm_addr = [0] * 14
+
+    @property
+    def id(self):
+        """Address of motor port 1 (None when it is not set up)."""
+        return self.motor_addr[0] or None
+
+    @staticmethod
+    def _setup_len(b) -> int | None:
         """Length of the set-up command at the start of ``b``; None if not all there."""
         if len(b) < 3:
             return None
@@ -157,53 +268,90 @@ class CommandDecoder:
         i += 1 + b[i]
         return i + 8 * ne
 
+    def _setup(self, b) -> int:
+        self._clear()
+        addr = b[1]
+        mmask = b[2] & 0x0F
+        nm = bin(mmask).count("1")
+        for k in range(nm):
+            self.direction[k] = b[3 + k]
+        i = 3 + nm
+        emask = b[i] & 0x0F
+        ne = bin(emask).count("1")
+        for k in range(ne):
+            self.direction[k] = b[i + 1 + k]
+        i += 1 + ne
+        for k in range(b[i]):
+            pin = b[i + 1 + k]
+            if 54 <= pin <= 65:
+                self.analog_addr[pin - 54] = addr
+        i += 1 + b[i]
+        for k in range(b[i]):
+            pin = b[i + 1 + k]
+            if pin <= 13:
+                self.pwm_addr[pin] = addr
+        i += 1 + b[i]
+        for port in range(4):
+            if emask >> port & 1:
+                self.encoder_addr[port] = addr
+                self.encoder_offset[port] = _F.unpack_from(b, i)[0]
+                self.encoder_res[port] = _F.unpack_from(b, i + 4)[0]
+                i += 8
+        for port in range(4):
+            if mmask >> port & 1:
+                self.motor_addr[port] = addr
+        return addr
+
     def feed(self, data: bytes) -> list:
-        """Bytes in; ``("write", id, [torques])``, ``("setup", id)``, ``("reset", id)`` out."""
+        """Bytes in; ``("write", addr, {motor port: torque})``, ``("setup", addr)``,
+        ``("reset", addr)`` out (the parser's state is the last command's)."""
+        return list(self.commands(data))
+
+    def commands(self, data: bytes):
+        """As :meth:`feed`, one command at a time: the parser's state (addresses, set-up)
+        is each command's own when it is yielded."""
         buf = self._buf
         buf += data
-        out = []
         while buf:
             c = buf[0]
             if c == CMD_RESET:
                 if len(buf) < 2:
                     break
-                out.append(("reset", buf[1]))
+                a = buf[1]
                 self.stats["resets"] += 1
-                self.motors = self.encoders = 0
+                self._clear()
                 del buf[:2]
+                yield ("reset", a)
             elif c == CMD_SETUP:
                 n = self._setup_len(buf)
                 if n is None or len(buf) < n:
                     break
-                self.id = buf[1]
-                self.motors = bin(buf[2] & 0x0F).count("1")
-                i = 3 + self.motors
-                self.encoders = bin(buf[i] & 0x0F).count("1")
-                i += 1 + self.encoders
-                self.analog = buf[i]
-                i += 1 + buf[i]
-                self.pwms = buf[i]
-                i += 1 + buf[i]
-                if self.encoders:          # encoder 1's (offset, counts per revolution)
-                    res = _F.unpack_from(buf, i + 4)[0]
-                    self.resolution = res if math.isfinite(res) and res > 0 else None
-                out.append(("setup", self.id))
+                a = self._setup(buf)
                 self.stats["setups"] += 1
                 del buf[:n]
+                yield ("setup", a)
             elif c == CMD_WRITE:
-                mine = len(buf) >= 2 and buf[1] == self.id
-                n = 2 + ((self.pwms + 4 * self.motors) if mine else 0)
+                if len(buf) < 2:
+                    break
+                addr = buf[1]
+                npwm = sum(a == addr for a in self.pwm_addr)
+                ports = [p for p in range(4) if self.motor_addr[p] == addr]
+                n = 2 + npwm + 4 * len(ports)
                 if len(buf) < n:
                     break
-                tq = [_F.unpack_from(buf, 2 + self.pwms + 4 * k)[0]
-                      for k in range(self.motors)] if mine else []
-                out.append(("write", buf[1], tq))
+                tq = {p: _F.unpack_from(buf, 2 + npwm + 4 * k)[0] for k, p in enumerate(ports)}
                 self.stats["writes"] += 1
                 del buf[:n]
+                yield ("write", addr, tq)
             else:
                 self.stats["unknown"] += 1
                 del buf[:1]
-        return out
+
+    def reply_layout(self, addr: int) -> tuple:
+        """What the board answers a write to ``addr`` with: ``(analog pins, encoder
+        ports)`` of that address (the reply is ``[addr]`` and a float32 for each)."""
+        return (sum(a == addr for a in self.analog_addr),
+                [p for p in range(4) if self.encoder_addr[p] == addr])
 
 
 class HaplyM3(Driver):
@@ -211,11 +359,27 @@ class HaplyM3(Driver):
 
     Parameters
     ----------
-    device_id : int, 0..255
-        The board's device id.
-    resolution : float
+    device_id : int, 1..255
+        The board's device id (0 is refused: after a reset every PWM pin's address is 0,
+        so a write to id 0 would be read as 14 PWM bytes first).
+    resolution : float > 0
         Encoder counts per revolution (sent in the set-up).
+    direction : {0, 1}
+        Rotational direction byte of the motor and the encoder (firmware CW = 0,
+        CCW = 1).
+    offset_deg : float
+        The joint's angle when it is armed [deg]: the set-up sets the encoder's count to
+        it (firmware ``initialize_encoder``), so angles are read from the pose the joint
+        is held at when hapsim arms it.
+
+    Raises
+    ------
+    ConfigError
+        A bad id, resolution or direction (the key and the valid range named).
     """
+
+    position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
+    force_rel = 2.0 ** -24
 
     name = "haply"
     baud = 115200                     # USB CDC: ignored
@@ -224,22 +388,68 @@ class HaplyM3(Driver):
     force_limit = MAX_TORQUE
     force_scale = 0.0
     limits = LIMITS
+    unframed = True
 
-    def __init__(self, device_id: int = 1, resolution: float = 4880.0) -> None:
+    def __init__(self, device_id: int = 1, resolution: float = 4880.0,
+                 direction: int = 0, offset_deg: float = 0.0) -> None:
         from hapsim.errors import ConfigError
-        if not 0 <= int(device_id) <= 255:
-            raise ConfigError(f"device id must be 0..255, got {device_id!r}", key="device_id")
+        if not 1 <= int(device_id) <= 255:
+            raise ConfigError(f"device id must be 1..255 (0 is every PWM pin's address after "
+                              f"a reset), got {device_id!r}", key="device_id")
         if not (math.isfinite(resolution) and resolution > 0):
             raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
                               key="resolution")
+        if direction not in (0, 1):
+            raise ConfigError(f"direction must be 0 (CW) or 1 (CCW), got {direction!r}",
+                              key="direction")
         self.id = int(device_id)
         self.device_id = self.id
-        self.resolution = float(resolution)
+        # the board holds it as binary32
+        self.resolution = _F.unpack(_F.pack(float(resolution)))[0]
+        self.direction = int(direction)
+        if not math.isfinite(offset_deg):
+            raise ConfigError(f"must be a finite angle [deg], got {offset_deg!r}",
+                              key="offset_deg")
+        self.offset_deg = float(offset_deg)
         self.position_scale = 2 * math.pi / self.resolution
 
+    def stop_bytes(self, position: float = 0.0) -> bytes:
+        """Zero torque whatever the board's parser is doing (:meth:`resync`): the board has
+        no watchdog, so a zero write it misreads would leave the last torque on."""
+        return self.resync(position)
+
+    def mock_hardware(self) -> dict:
+        """The mock's encoder: this many counts per revolution."""
+        return {"cpr": self.resolution}
+
+    def resync(self, position: float = 0.0) -> bytes:
+        """Put the board back in step, zero torque first (module notes): a zero-torque
+        write (taken if the board is in step), :data:`LONGEST_COMMAND` zero bytes (inside a
+        write they are zero torque, elsewhere resets, which hold the torque), two bytes 3
+        (no command: the address of a reset the zeros ended inside, or nothing), the
+        set-up, and a zero-torque write, whose reply is the next sample.
+
+        Parameters
+        ----------
+        position : float
+            The joint's last angle read [rad]: the set-up's encoder offset, because the
+            firmware sets the encoder's count to the offset (``initialize_encoder``), so
+            the angle goes on from there instead of jumping to 0.
+
+        Returns
+        -------
+        bytes
+        """
+        zero = self.encode_force(0.0)
+        setup = setup_packet(self.id, resolution=self.resolution, direction=self.direction,
+                             offset_deg=math.degrees(position) if math.isfinite(position)
+                             else 0.0)
+        return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + setup + zero
+
     def arm(self) -> bytes:
-        """Set-up (motor 1, encoder 1), then a zero-torque write."""
-        return setup_packet(self.id, resolution=self.resolution) + self.encode_force(0.0)
+        """The re-synchronisation (:meth:`resync`, at the arming pose ``offset_deg``): the
+        board may hold a torque from an earlier session and be anywhere in its parser."""
+        return self.resync(math.radians(self.offset_deg))
 
     def encode_force(self, force: float) -> bytes:
         """Write of ``force`` [N m], clamped to the board's 0.123 N m (NaN/inf: 0)."""
@@ -251,5 +461,5 @@ class HaplyM3(Driver):
         return _F.unpack(self.encode_force(force)[2:])[0]
 
     def decoder(self):
-        """A fresh host decoder returning the joint angle [rad]."""
-        return MappedDecoder(ReplyDecoder(self.id), math.radians)
+        """A fresh host decoder returning the joint angle [rad] (whole encoder counts)."""
+        return MappedDecoder(ReplyDecoder(self.id, resolution=self.resolution), math.radians)

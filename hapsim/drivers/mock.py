@@ -5,8 +5,10 @@ optional Coulomb friction, noise); the bytes are the device's protocol. The devi
 each host packet: it applies the force of the packet ``d`` packets back (the scene's
 ``device.delay``; zero before that), advances one period, and replies with one record of
 the new position -- so the host's clock paces it (the protocols are host-clocked). A
-packet that does not decode is dropped (the force last applied is held); a silence of more
-than ``watchdog`` seconds zeroes the force.
+packet that does not decode is dropped (the force last applied is held). What a silence
+does is each firmware's own rule (the FireFader ``.ino`` disables its force after 0.1 s;
+the Haply board and the Hapkit sketch have no watchdog and hold it). Seeded byte loss and
+corruption in either direction (:class:`ByteFaults`) test the host against a lossy link.
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ import sys
 import time
 from collections import deque
 
-from hapsim.daemon.mock import MockPhysics
+from hapsim.device_model import MockPhysics
 
-__all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "serve", "EmbeddedDriverMock", "main"]
+__all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
+           "EmbeddedDriverMock", "main"]
 
 
 class _Actuated:
@@ -58,13 +61,17 @@ class _Actuated:
         self.clamped = 0
         self.last_command = 0.0
 
-    def apply(self, force: float) -> None:
-        """Queue ``force``, apply the one due (``delay`` commands back), advance a period."""
-        self.last_command = force
-        if not math.isfinite(force):
-            force = 0.0                     # a corrupted float is no reason to push hard
+    def apply(self, force) -> None:
+        """Queue ``force``, apply the one due (``delay`` commands back), advance a period.
+        ``None``: this command changes no force (the one held goes on)."""
+        if force is not None:
+            self.last_command = force
+            if not math.isfinite(force):
+                force = 0.0                 # a corrupted float is no reason to push hard
         self._fifo.append(force)
         due = self._fifo.popleft()
+        if due is None:
+            due = self.held
         if abs(due) > self.limit:
             due = math.copysign(self.limit, due)
             self.clamped += 1
@@ -76,98 +83,235 @@ class _Actuated:
         """Force commands applied so far."""
         return len(self.applied)
 
-    def watchdog(self) -> None:
-        """No command for too long: zero the force from now on (the queue too)."""
-        self._fifo = deque([0.0] * self.delay)
-        self.held = 0.0
+    def settles_on(self) -> float:
+        """The force the device holds once the commands in its delay queue are applied
+        (the last one that sets a force), [N]: what it is left with when the host is gone."""
+        for f in reversed(self._fifo):
+            if f is not None:
+                return 0.0 if not math.isfinite(f) else max(-self.limit, min(self.limit, f))
+        return self.held
+
+    def apply_now(self, force: float) -> None:
+        """The device sets ``force`` itself, at once (a firmware's silence rule): the queue
+        is emptied too."""
+        self._fifo = deque([None] * self.delay)
+        self.held = force
+
+    def idle(self, silent_s: float) -> bytes:
+        """The host has been silent ``silent_s`` [s]; by default nothing happens (the
+        device holds its force: no watchdog)."""
+        return b""
 
 
 class FireFaderDevice(_Actuated):
-    """A FireFader whose fader A is the mock device's moving mass.
+    """A FireFader whose fader A is the mock device's moving mass, running the published
+    firmware's loop (``haptics_firmware.ino``, E. Berdahl 2010-2012), or its older
+    ``.pde``.
+
+    ``.ino`` (the default): the board waits for a packet ``[127][fA][fB]``; it reads
+    every packet waiting and keeps the last, sets the motor to ``(2 fA (e - 1)) >> 7`` of
+    the PWM's 254 (``e`` the force-enable filter, at most 129, where the force is the
+    packet's in full), samples the fader and answers with one record; then it updates the
+    motor's heat estimate ``h <- (16383 h >> 14) + (pwm >> 5)`` and the enable filter
+    ``e <- (31 e >> 5) + 5 [4 < pot < 251 and h >> 10 < 40 and touch > 30]``: from power-on
+    (or after about 0.1 s without a byte: the firmware's 65000 idle polls, which also zero
+    the motor) the force ramps up over 66 passes, and only while the fader is in range,
+    cool and touched (capacitive sensing, filtered ``c <- (7 c >> 3) + sense``).
+    ``.pde``: no enable, no heat, no silence rule: each force byte is applied as it
+    arrives, and records stream out on every pass whether asked or not.
 
     Parameters
     ----------
     device, rate_hz, excitation, seed
         As :class:`_Actuated`.
     full_scale : float
-        Force at 127 counts [N].
+        Force at 127 counts with the enable full [N] (the hardware's: the host may believe
+        another).
+    metres_per_count : float
+        The fader's position per pot count [m] (the hardware's).
+    firmware : {"ino", "pde"}
+    touch : bool
+        A hand on the fader (capacitive sense 10 per pass, else 1).
+    boot_s : float
+        The Nano's bootloader time after the port opens [s]: bytes before it are lost.
 
     Attributes
     ----------
     decoder : PacketDecoder
         Its counters are the device's view of bad bytes.
+    enable, heat, cap : int
+        The firmware's filter states.
     """
 
-    def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 1.56,
-                 seed: int = 0) -> None:
+    def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 0.39,
+                 metres_per_count: float | None = None, firmware: str = "ino",
+                 touch: bool = True, boot_s: float = 0.0, seed: int = 0) -> None:
         from hapsim.drivers import firefader as ff
         self._ff = ff
         self.full_scale = float(full_scale)
-        super().__init__(device, rate_hz, excitation, 126 * full_scale / 127, seed)
+        self.mpc = float(metres_per_count or ff.METRES_PER_COUNT)
+        self.firmware = firmware
+        self.touch = bool(touch)
+        self.boot_s = float(boot_s)
+        super().__init__(device, rate_hz, excitation, math.inf, seed)
         self.decoder = ff.PacketDecoder()
+        self.enable = 0
+        self.heat = 0
+        self.cap = 0
+        self.passes = 0
+        self.merged = 0
+        self.pwm = 0
+        self.enables: list = []
 
     def position_count(self) -> int:
         """Fader A's reading: the sampled position in counts from the centre, 0..254."""
         ff = self._ff
-        c = ff.CENTRE + round(self.physics.sample() / ff.METRES_PER_COUNT)
+        c = ff.CENTRE + round(self.physics.sample() / self.mpc)
         return int(min(max(c, 0), ff.POSITION_MAX))
 
-    def step(self, count_a: int) -> bytes:
-        """One packet: apply the force due, advance a period, answer with a record."""
-        self.apply(count_a * self.full_scale / 127.0)
-        return self._ff.encode_record(self.position_count(), self._ff.CENTRE)
+    def _force(self, pwm: int) -> float:
+        return pwm / 254.0 * self.full_scale
 
-    def feed(self, data: bytes) -> bytes:
-        """Bytes from the host in, the records to send back out."""
-        out = b""
-        for a, _b in self.decoder.feed(data):
-            out += self.step(a)
-        return out
+    def _pass(self, count_a: int, packets: int) -> bytes:
+        """One pass of the firmware's loop for the last of ``packets`` packets."""
+        ff = self._ff
+        if self.firmware == "ino":
+            self.pwm = (2 * count_a * (self.enable - 1)) >> 7
+        else:
+            self.pwm = 2 * count_a
+        f = self._force(self.pwm)
+        for _ in range(packets - 1):          # host ticks merged into this pass
+            self.apply(None)
+        self.apply(f)
+        pot = self.position_count()
+        self.enables.append(self.enable)
+        if self.firmware == "ino":
+            self.cap = ((self.cap * 7) >> 3) + (10 if self.touch else 1)
+            self.heat = ((self.heat * 16383) >> 14) + (self.pwm >> 5)
+            ok = 4 < pot < 251 and (self.heat >> 10) < 40 and self.cap > 30
+            self.enable = ((self.enable * 31) >> 5) + 5 * ok
+            cap = min(self.cap, 254)
+        else:
+            cap = 0
+        self.passes += 1
+        return ff.encode_record(pot, ff.CENTRE, (0, 0, cap, 0))
+
+    def step(self, count_a: int) -> bytes:
+        """One packet: one pass of the firmware, one record."""
+        return self._pass(count_a, 1)
+
+    def feed(self, data: bytes, now: float = math.inf) -> bytes:
+        """Bytes from the host in (at ``now`` [s] since the port opened), the records out.
+        ``.ino``: the packets of one read are what waited: one pass for the last."""
+        if now < self.boot_s:
+            return b""                        # the bootloader has them
+        pk = self.decoder.feed(data)
+        if not pk:
+            return b""
+        if self.firmware == "pde":
+            self.last_count = pk[-1][0]
+            for _ in pk:
+                self.apply(None)
+            return b""
+        self.merged += len(pk) - 1
+        return self._pass(pk[-1][0], len(pk))
+
+    def idle(self, silent_s: float) -> bytes:
+        """The host has been silent for ``silent_s`` [s]: ``.ino`` disables the force after
+        0.1 s; ``.pde`` streams a record (one pass) on every call."""
+        if self.firmware == "pde":
+            return self._pass(getattr(self, "last_count", 0), 1)
+        if silent_s > 0.1 and self.enable:
+            self.enable = 0
+            self.pwm = 0
+            self.apply_now(0.0)
+        return b""
 
 
 class HaplyDevice(_Actuated):
-    """A Haply M3 board whose motor 1 / encoder 1 joint is the mock device's axis
-    (rotary: mass = inertia [kg m^2], force = torque [N m], position = angle [rad]).
+    """A Haply M3 board (firmware V1.5) whose motor 1 / encoder 1 joint is the mock
+    device's axis (rotary: mass = inertia [kg m^2], force = torque [N m], position = angle
+    [rad]).
+
+    The board as its firmware is: no watchdog (the motor holds its torque until a write
+    changes it, through resets and set-ups), the parser of :class:`CommandDecoder` (no
+    framing: misaligned bytes are other commands), a reply ``[addr]`` + a float32 per
+    analog pin and encoder of ``addr`` to every write (1 byte when nothing has that
+    address), the angle ``360 * count / resolution`` with the set-up's resolution and the
+    count set to the set-up's offset. Each write is one host tick (one period).
 
     Parameters
     ----------
     device, rate_hz, excitation, seed
         As :class:`_Actuated`.
-    resolution : float
-        Encoder counts per revolution (the set-up's value replaces it).
+    cpr : float
+        The encoder's real counts per revolution (the set-up's resolution only scales
+        counts to degrees: a wrong one is a wrong angle).
 
     Attributes
     ----------
     decoder : CommandDecoder
+    torque : float
+        The torque motor 1 holds [N m].
     """
 
-    def __init__(self, device, rate_hz: float, excitation=None, *, resolution: float = 4880.0,
-                 seed: int = 0) -> None:
+    def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
+                 resolution: float | None = None, seed: int = 0) -> None:
         from hapsim.drivers import haply as hp
         self._hp = hp
         super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed)
         self.decoder = hp.CommandDecoder()
-        self.resolution = float(resolution)
+        self.cpr = float(resolution or cpr)
+        self._base = 0
 
-    def angle_deg(self) -> float:
-        """Encoder 1's reading [deg]: 360 counts / resolution (firmware ``read_encoder_value``)."""
-        counts = round(self.physics.sample() / (2 * math.pi) * self.resolution)
-        return 360.0 * counts / self.resolution
+    def _counts(self) -> int:
+        return round(self.physics.sample() / (2 * math.pi) * self.cpr)
 
-    def feed(self, data: bytes) -> bytes:
+    def angle_deg(self, port: int = 0) -> float:
+        """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``, rounded to
+        binary32 on the wire)."""
+        dec = self.decoder
+        if port != 0:
+            return 0.0
+        res = dec.encoder_res[0]
+        c = self._counts() - self._base
+        if dec.direction[0]:
+            c = -c
+        if not (math.isfinite(res) and res):       # a garbage set-up's resolution
+            return math.copysign(math.inf, c) if c else math.nan
+        return 360.0 * c / res
+
+    def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Bytes from the host in, the replies out (one per write)."""
+        import struct
         out = b""
-        for cmd in self.decoder.feed(data):
-            if cmd[0] == "setup" and self.decoder.resolution:
-                self.resolution = self.decoder.resolution
+        dec = self.decoder
+        for cmd in dec.commands(data):
+            if cmd[0] == "setup":
+                if dec.encoder_addr[0]:           # the count is set to the offset
+                    off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
+                    off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
+                    c = self._counts()
+                    self._base = c - (-off if dec.direction[0] else off)
+                continue
             if cmd[0] != "write":
                 continue
-            _, wid, tq = cmd
-            if wid != self.decoder.id or not tq:
-                out += bytes([wid])          # the firmware answers [id] and no values
-                continue
-            self.apply(tq[0])
-            out += self._hp.reply_packet(wid, self.angle_deg())
+            _, addr, tq = cmd
+            t = tq.get(0)
+            if t is not None:
+                if not math.isfinite(t):
+                    t = 0.0                       # (the firmware: a NaN duty is 0)
+                t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
+                if dec.direction[0]:
+                    t = -t
+            self.apply(t)
+            na, encs = dec.reply_layout(addr)
+            out += bytes([addr]) + struct.pack("<f", 0.0) * na
+            for p in encs:
+                a = self.angle_deg(p)
+                if abs(a) > 3.4028234663852886e38:    # binary32 overflows to inf
+                    a = math.copysign(math.inf, a)
+                out += struct.pack("<f", a)
         return out
 
 
@@ -194,7 +338,7 @@ class HapkitSerialDevice(_Actuated):
         super().__init__(device, rate_hz, excitation, force_limit, seed)
         self.decoder = hk.CommandDecoder()
 
-    def feed(self, data: bytes) -> bytes:
+    def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Bytes from the host in, one 9-byte reply per command out."""
         out = b""
         for f in self.decoder.feed(data):
@@ -203,69 +347,137 @@ class HapkitSerialDevice(_Actuated):
                                          self.held)
         return out
 
+    def idle(self, silent_s: float) -> bytes:
+        """The sketch has no silence rule: it holds its force."""
+        return b""
 
-def serve(fd: int, dev, *, watchdog: float = 0.5, stop=None) -> dict:
+
+class ByteFaults:
+    """Seeded byte faults on a driver mock's link, in both directions.
+
+    Parameters
+    ----------
+    spec : dict, optional
+        Probabilities per byte: ``drop_rx`` / ``corrupt_rx`` (host -> device: a byte lost,
+        or one bit of it flipped), ``drop_tx`` / ``corrupt_tx`` (device -> host); ``seed``.
+
+    Attributes
+    ----------
+    counts : dict
+        Bytes dropped and corrupted per direction.
+    """
+
+    KEYS = ("drop_rx", "corrupt_rx", "drop_tx", "corrupt_tx")
+
+    def __init__(self, spec: dict | None = None) -> None:
+        import numpy as np
+        spec = dict(spec or {})
+        self.p = {k: float(spec.get(k, 0.0)) for k in self.KEYS}
+        self.on = any(self.p.values())
+        self._rng = np.random.default_rng(int(spec.get("seed", 0)))
+        self.counts = {k: 0 for k in self.KEYS}
+
+    def _apply(self, data: bytes, drop: str, corrupt: str) -> bytes:
+        if not self.on or not data:
+            return data
+        n = len(data)
+        pd, pc = self.p[drop], self.p[corrupt]
+        u = self._rng.random(n)
+        bits = self._rng.integers(0, 8, n)
+        out = bytearray()
+        for k, b in enumerate(data):
+            if u[k] < pd:
+                self.counts[drop] += 1
+                continue
+            if u[k] < pd + pc:
+                self.counts[corrupt] += 1
+                b ^= 1 << int(bits[k])
+            out.append(b)
+        return bytes(out)
+
+    def rx(self, data: bytes) -> bytes:
+        """Host -> device bytes, after the faults."""
+        return self._apply(data, "drop_rx", "corrupt_rx")
+
+    def tx(self, data: bytes) -> bytes:
+        """Device -> host bytes, after the faults."""
+        return self._apply(data, "drop_tx", "corrupt_tx")
+
+
+def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
+          poll: float = 0.02) -> dict:
     """Serve ``dev`` on a byte stream until EOF (host closed) or ``stop()`` is true.
 
     Parameters
     ----------
     fd : int
         Master side of the pty.
-    dev : FireFaderDevice or HaplyDevice
-        The device (``feed(bytes) -> bytes``, ``decoder.stats``, ``watchdog()``).
-    watchdog : float
-        Silence after which the force is zeroed [s] (like the FireFader host's serial
-        timeout). The mock is paced by the host's commands, so this only guards against a
-        host that went away; 0.5 s by default, longer than a loaded host ever stalls.
+    dev : FireFaderDevice, HaplyDevice or HapkitSerialDevice
+        The device (``feed(bytes, now) -> bytes``, ``idle(silent_s) -> bytes``,
+        ``decoder.stats``). What a silent host does to the force is the device's own rule
+        (``idle``): the FireFader ``.ino`` disables it after 0.1 s, the Haply board and the
+        Hapkit sketch hold it (no watchdog).
     stop : callable, optional
         Polled; serving ends when it returns True.
+    faults : dict, optional
+        :class:`ByteFaults` spec (seeded byte loss and corruption, both directions).
+    poll : float
+        Wait for bytes before ``idle`` is called [s].
 
     Returns
     -------
     dict
-        ``packets``, ``decoder`` counters, ``watchdog_trips``, ``watchdog_at`` (packets
-        received before each trip: the queue of forces was zeroed before the next), and
-        the keys of
+        ``packets`` (force commands applied), ``decoder`` counters, ``faults`` (bytes
+        dropped and corrupted per direction), ``held_at_end`` [N] (the force the device
+        is left holding when the host is gone, its delay queue applied), and the keys of
         :class:`hapsim.daemon.mock.MockStats` the run report prints (``ticks`` = packets,
-        ``late`` and ``overruns`` 0: the device is paced by the packets; ``clamped``;
-        ``last_applied`` [N]; ``saw_stop``: the last packet commanded zero force, which
-        is all a STOP is in this protocol).
+        ``late``, ``overruns`` and ``watchdog_trips`` 0: the device is paced by the packets
+        and has no watchdog; ``clamped``; ``last_applied`` [N]; ``saw_stop``: the last
+        packet commanded zero force, which is all a STOP is in these protocols).
     """
     os.set_blocking(fd, False)
-    trips = 0
-    trip_at: list = []
-    last = time.monotonic()
-    tripped = False
+    fl = ByteFaults(faults)
+    t0 = last = t_idle = time.monotonic()
+    streams = getattr(dev, "firmware", "") == "pde"
     while not (stop and stop()):
-        r, _, _ = select.select([fd], [], [], 0.02)
+        r, _, _ = select.select([fd], [], [], poll)
+        out = b""
+        if streams and time.monotonic() - t_idle >= poll:
+            t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
+            out = dev.idle(t_idle - last)
         if not r:
-            if not tripped and time.monotonic() - last > watchdog:
-                dev.watchdog()
-                trips += 1
-                trip_at.append(dev.commands())
-                tripped = True
-            continue
-        try:
-            data = os.read(fd, 4096)
-        except BlockingIOError:
-            continue
-        except OSError:
-            break
-        if not data:
-            break
-        last = time.monotonic()
-        tripped = False
-        out = dev.feed(data)
+            if not streams:
+                out = dev.idle(time.monotonic() - last)
+        else:
+            try:
+                data = os.read(fd, 4096)
+            except BlockingIOError:
+                continue
+            except OSError:
+                break
+            if not data:
+                break
+            now = time.monotonic()
+            last = now
+            out += dev.feed(fl.rx(data), now - t0)
+        out = fl.tx(out)
         if out:
             try:
                 os.write(fd, out)
             except OSError:
                 break
     n = dev.commands()
-    return {"packets": n, "decoder": dict(dev.decoder.stats), "watchdog_trips": trips,
-            "watchdog_at": trip_at,
+    extra = {}
+    for k in ("merged", "passes", "firmware"):
+        if hasattr(dev, k):
+            extra[k] = getattr(dev, k)
+    if getattr(dev, "enables", None):
+        extra["enable"] = dev.enables[-1]       # at the last pass (not after the host left)
+        extra["passes_at_full_enable"] = sum(e == 129 for e in dev.enables)
+    return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
+            "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.settles_on(),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
-            "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0)}
+            "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
 
 
 def main(argv=None) -> int:
@@ -280,7 +492,10 @@ def main(argv=None) -> int:
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--report")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--options", default="{}")
+    p.add_argument("--faults", default="{}")
     a = p.parse_args(argv)
+    opt = json.loads(a.options)
     spec = json.loads(a.spec)
     d = spec["device"]
     if d.get("force_limit") is None:
@@ -292,17 +507,14 @@ def main(argv=None) -> int:
         from hapsim.scene import Impulse
         exc["impulse"] = Impulse(**exc["impulse"])
     excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
-    if spec.get("driver", "firefader") == "haply":
-        dev = HaplyDevice(device, a.rate, excitation, seed=a.seed)
-    elif spec.get("driver") == "hapkit-serial":
-        dev = HapkitSerialDevice(device, a.rate, excitation, seed=a.seed)
-    else:
-        dev = FireFaderDevice(device, a.rate, excitation, seed=a.seed,
-                              full_scale=float(spec.get("full_scale", 1.56)))
+    kind = spec.get("driver", "firefader")
+    cls = {"haply": HaplyDevice, "hapkit-serial": HapkitSerialDevice}.get(kind, FireFaderDevice)
+    dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
-    rep = serve(a.fd, dev, stop=lambda: flag["stop"])
+    rep = serve(a.fd, dev, stop=lambda: flag["stop"], faults=json.loads(a.faults),
+                poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate)
     if a.report:
         with open(a.report + ".partial", "w") as fh:
             json.dump(rep, fh)
@@ -323,8 +535,12 @@ class EmbeddedDriverMock:
         Host rate [Hz] (one period per packet).
     seed : int
         Sensor-noise seed.
-    full_scale : float
-        FireFader force at 127 counts [N].
+    options : dict, optional
+        The mock device's own keywords (:class:`FireFaderDevice`: ``full_scale``,
+        ``metres_per_count``, ``firmware``, ``touch``, ``boot_s``; :class:`HaplyDevice`:
+        ``cpr``): the hardware, which the host's driver may describe wrongly.
+    faults : dict, optional
+        :class:`ByteFaults` spec.
 
     Attributes
     ----------
@@ -333,15 +549,15 @@ class EmbeddedDriverMock:
     """
 
     def __init__(self, driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
-                 full_scale: float = 1.56) -> None:
+                 options: dict | None = None, faults: dict | None = None) -> None:
         import dataclasses
         import pty
         import subprocess
         import tempfile
         import tty
 
-        from hapsim.daemon.transport import _package_root
         from hapsim.errors import ConfigError
+        from hapsim.spawn import child_env
         if driver not in ("firefader", "haply", "hapkit-serial"):
             raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply, "
                               "hapkit-serial",
@@ -354,15 +570,14 @@ class EmbeddedDriverMock:
         os.close(fd)
         os.unlink(self.report_path)
         spec = {"device": dataclasses.asdict(device), "excitation": dataclasses.asdict(excitation),
-                "full_scale": full_scale, "driver": driver}
+                "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
-        env = dict(os.environ)
-        root = _package_root()
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env = child_env()
         cmd = [sys.executable, "-m", "hapsim.drivers.mock", "--fd", str(master), "--spec",
                json.dumps(spec), "--rate", repr(float(rate_hz)), "--report", self.report_path,
-               "--seed", str(seed)]
+               "--seed", str(seed), "--options", json.dumps(options or {}),
+               "--faults", json.dumps(faults or {})]
         try:
             self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=env,
                                          stdin=subprocess.DEVNULL, start_new_session=True)

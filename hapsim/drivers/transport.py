@@ -7,13 +7,47 @@
 - HELLO_REQUEST -> a HELLO made from the driver's facts (1 axis, its resolutions and
   force limit); PING -> a PONG at once (the driver has no round trip to measure);
 - CONFIG -> arms: the driver's set-up bytes and one zero-force command, whose answer is
-  the first record;
-- FORCE -> the driver's force packet; each record the device answers with becomes a STATE
-  (``seq`` counted here, ``time_us`` the host clock when it was read, ``force_seq = seq - d``
-  with ``d`` the delay the scene states: the protocol cannot tell it);
-- STOP -> a zero-force packet.
+  the first record (after the driver's ``arming_records`` at zero force, for a firmware
+  whose force comes up slowly; re-sent every :data:`REARM_INTERVAL` until a record comes: a board that
+  resets when its port opens, like the FireFader's Arduino Nano, drops what arrives while
+  its bootloader runs);
+- FORCE -> the driver's force packet (a *command*); the record the device answers with
+  becomes a STATE;
+- STOP -> zero force (:meth:`~hapsim.drivers.base.Driver.stop_bytes`: for the Haply board,
+  which has no watchdog, its whole re-synchronisation, so that zero torque is taken
+  whatever its parser is doing); closing the port sends the same first.
 
 Host-clocked only (the loop must run with ``host_clocked``): the device answers packets.
+
+The host clock, and a missing reply (neither protocol has a sequence number)
+---------------------------------------------------------------------------
+Every command is one host tick, numbered here (``seq``). The host loop sends one per tick:
+a FORCE when it has a new STATE; when the answer is :meth:`DriverTransport.overdue`, a
+FORCE computed from an extrapolated position (the loop's estimated sample); else (a
+longer silence) :meth:`DriverTransport.hold` (the last force again), so the device keeps
+being asked and keeps answering. A record is the answer to the newest
+command sent before it was read, which is exact when the device answers within one period
+(the rates a driver accepts, :meth:`hapsim.drivers.base.Driver.check_rate`); records read
+together are the answers to the commands before it, in order, and a record with no
+unanswered command left is *unprompted* (counted: a firmware that streams records, the
+FireFader's older ``.pde``). A command that gets no record is a *missing sample*: counted
+(``missing``), never a lost device: the loop counts the tick as missed and goes on; only a
+silence of the loop's ``lost_timeout`` is a loss. The STATE carries ``seq`` = the command
+it answers (gaps are the missing samples), ``time_us`` = the host clock when that command
+was sent [us] (the real time base of the sample), and ``force_seq = seq - d`` with ``d``
+the delay the scene states (the protocol cannot tell which force the device applied; its
+status has ``STATUS_FORCE_APPLIED`` clear, so nothing downstream takes that for a
+measurement).
+
+A driver whose replies can show that the *device* lost its place in the byte stream (the
+Haply board: no framing, one lost host byte desynchronises its parser) says so through
+its decoder's ``desync`` counter, or by answers that stop while commands go out; the
+transport then re-synchronises the device with the driver's
+:meth:`~hapsim.drivers.base.Driver.resync` bytes (zero force first; the position the last
+two records extrapolate to now as the Haply encoder's new offset) and counts it
+(``resyncs``); the samples until the next good record are missing samples, and ``seq``
+skips one number there, so that a measurement does not run across the position's jump
+(the error of that extrapolation).
 """
 
 from __future__ import annotations
@@ -24,7 +58,16 @@ from collections import deque
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["DriverTransport", "DriverStats"]
+__all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
+
+#: Wait for the first record before the arming command is sent again [s].
+REARM_INTERVAL = 0.1
+#: Listening before arming, for records nobody asked for (a streaming firmware) [s].
+LISTEN_S = 0.03
+#: Commands in a row without an answer after which the device is re-synchronised.
+SILENT_COMMANDS = 4
+#: Commands remembered for attributing records (a ring; far more than a record can lag).
+_RING = 64
 
 
 class DriverStats:
@@ -74,6 +117,23 @@ class DriverTransport:
         The loop delay d the scene states [samples] (reported in ``force_seq``).
     read_timeout : float
         pyserial read timeout [s].
+    reply_deadline : float
+        How long a command may wait for its answer before a missed tick asks again [s]:
+        0 for hardware (the device's time goes on: each missed tick asks again); a mock
+        paced by the commands (one period per command) waits longer, so that a slow mock
+        process is not taken for a lost answer.
+    delay_known : bool
+        ``delay`` is the device's (a scene states it, a mock has it); False when it is a
+        guess that identification must search (then the driver gives no account).
+
+    Attributes
+    ----------
+    stats : dict
+        ``commands`` (sent, one per host tick), ``records`` (taken as answers),
+        ``missing`` (commands no record answered: missing samples), ``unprompted``
+        (records with no command left to answer: a streaming firmware), ``resyncs``
+        (device re-synchronisations), ``rearms`` (arming commands sent again while the
+        device was silent at the start).
 
     Raises
     ------
@@ -81,7 +141,8 @@ class DriverTransport:
         The port cannot be opened.
     """
 
-    def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005) -> None:
+    def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
+                 reply_deadline: float = 0.0, delay_known: bool = True) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -90,13 +151,31 @@ class DriverTransport:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
         self._d = int(delay)
+        # for the driver's account of what was applied: the delay, when it is known (a
+        # scene's stated delay, a mock's own); an identification that searches it: None
+        driver.loop_delay = self._d if delay_known else None
+        self._deadline_us = int(reply_deadline * 1e6)
         self._dec = driver.decoder()
         self.decoder = _Dec(DriverStats(self._dec.stats))
         self._q: deque = deque()
-        self._seq = 0
         self._armed = False
         self._t0 = time.monotonic_ns()
         self._last = deque(maxlen=16)
+        # command ring: host time [us] each command was sent; seq of the newest command
+        # sent (-1: none), of the newest answered, the force last commanded
+        self._sent_us = [0] * _RING
+        self._cmd = -1
+        self._answered = -1
+        self._force = 0.0
+        self._x_last = self._x_prev = 0.0
+        self._s_last = -1
+        self._s_prev = None
+        self._arm_ns = 0
+        self._settle = 0
+        self._stray = False                 # the last bytes read made no record
+        self._desyncs = 0
+        self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
+                      "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0}
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
                      "low_latency": False, "driver": driver.name,
                      "low_latency_note": "driver protocol"}
@@ -106,33 +185,145 @@ class DriverTransport:
         except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
             self.info["low_latency_note"] = f"not available: {exc}".strip()
 
+    def _now_us(self) -> int:
+        return (time.monotonic_ns() - self._t0) // 1000
+
     def _write(self, data: bytes) -> None:
         try:
             self._ser.write(data)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.info['port']} failed: {exc}") from None
 
+    def _command(self, data: bytes) -> None:
+        """Send one command (one host tick): number it and stamp it."""
+        self._cmd += 1
+        self._sent_us[self._cmd % _RING] = self._now_us()
+        self.stats["commands"] += 1
+        self._write(data)
+
     def send(self, msg) -> None:
         """Translate one framed-protocol message into the driver's bytes (module notes)."""
         dr = self.driver
         t = type(msg)
         if t is fp.Force:
-            self._write(dr.encode_force(msg.force[0]))
+            f = msg.force[0]
+            if dr.unframed and self._armed and self._cmd - self._answered > SILENT_COMMANDS:
+                # answers stopped although commands go out: the device may be inside a
+                # command that swallows them (a garbage set-up); put it back in step
+                self._resync()
+                return
+            self._force = f
+            self._command(dr.encode_force(f))
         elif t is fp.HelloRequest:
             self._q.append(fp.Hello(fp.PROTOCOL_VERSION, 1, dr.device_id, dr.position_scale,
                                     dr.force_scale, dr.force_limit, dr.native_rate_hz))
         elif t is fp.Ping:
-            now = (time.monotonic_ns() - self._t0) // 1000
-            self._q.append(fp.Pong(msg.nonce, msg.host_time_us, now))
+            self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
+            self._listen()
             self._armed = True
-            self._write(dr.arm())
+            self._force = 0.0
+            self._answered = self._cmd          # records of earlier commands are stale
+            self._arm_ns = time.monotonic_ns()
+            self._settle = int(dr.arming_records)
+            self._command(dr.arm())
         elif t is fp.Stop:
             self._armed = False
-            self._write(dr.encode_force(0.0))
+            self._force = 0.0
+            self._write(dr.stop_bytes(self._x_last))
+
+    def _listen(self) -> None:
+        """Before arming: listen for :data:`LISTEN_S` without asking anything; records
+        that come are a firmware that streams (counted in ``unprompted_before_arming``)."""
+        end = time.monotonic() + LISTEN_S
+        dec = self._dec
+        try:
+            while time.monotonic() < end:
+                data = self._ser.read(max(self._ser.in_waiting, 1))
+                if data:
+                    self.stats["unprompted_before_arming"] += len(dec.feed(data))
+        except Exception as exc:  # serial.SerialException, OSError
+            raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
+
+    def overdue(self) -> bool:
+        """Whether the newest command's answer is overdue: none came and the reply
+        deadline passed (with a zero deadline, at once). The host loop then takes the tick
+        as a missing sample and sends its FORCE anyway (module notes)."""
+        if not (self._armed and self._settle <= 0 and self._answered < self._cmd):
+            return False
+        waited = self._now_us() - self._sent_us[self._cmd % _RING]
+        if self._deadline_us <= 0:
+            return True                     # hardware: its time went on
+        # a mock paced by the commands: overdue once bytes came that made no record (a
+        # damaged answer), or after a long silence (a wholly lost one); a slow mock
+        # process is neither
+        return waited >= (self._deadline_us if self._stray else 10 * self._deadline_us)
+
+    def hold(self) -> None:
+        """A host tick without a new sample: command the last force again (a request-reply
+        device answers only what it is asked), or, while the device is re-synchronising,
+        zero force. Called by the host loop on each missed tick."""
+        if self._armed and (self._answered == self._cmd or self._now_us()
+                            - self._sent_us[self._cmd % _RING] >= self._deadline_us):
+            if self.driver.unframed and self._cmd - self._answered > SILENT_COMMANDS:
+                # answers stopped although bytes go out: the device may be inside a
+                # command that swallows them (a garbage set-up); put it back in step
+                self._resync()
+            else:
+                self._command(self.driver.encode_force(self._force))
+
+    def _resync(self) -> None:
+        """The device lost its place in the byte stream: the driver's re-synchronisation
+        (zero force first, then its set-up), as one command; the force held is zero."""
+        self.stats["resyncs"] += 1
+        self._force = 0.0
+        # where the device is now: the last two records extrapolated to this command (a
+        # board that re-zeroes its position at the set-up goes on from there)
+        x = self._x_last
+        if self._s_prev is not None and self._s_last > self._s_prev:
+            v = (self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+            x += v * (self._cmd + 1 - self._s_last)
+        self._command(self.driver.resync(x))
+        # a deliberate gap in seq: the position may jump by the error of that estimate, so
+        # a measurement does not run across a re-synchronisation
+        self._cmd += 1
+        self._sent_us[self._cmd % _RING] = self._sent_us[(self._cmd - 1) % _RING]
+        if self._answered < self._cmd - 1:      # the commands before it: missing samples
+            self.stats["missing"] += self._cmd - 1 - self._answered
+            self._answered = self._cmd - 1
+
+    def _take(self, xs: list, out: list) -> None:
+        """Records decoded in one read -> STATEs: the last answers the newest command sent,
+        the ones before it the commands before that (module notes)."""
+        st = self.stats
+        if not self._armed:
+            st["unprompted_before_arming"] += len(xs)
+            return
+        if self._settle > 0:
+            # zero force while the device's own force comes up (Driver.arming_records)
+            self._settle -= len(xs)
+            self._answered = self._cmd
+            self._arm_ns = time.monotonic_ns()
+            self._command(self.driver.encode_force(0.0))
+            return
+        n = len(xs)
+        first = self._cmd - n + 1
+        for k, x in enumerate(xs):
+            s = first + k
+            if s <= self._answered:
+                st["unprompted"] += 1          # nothing left for it to answer
+                continue
+            st["missing"] += s - self._answered - 1
+            st["records"] += 1
+            self._answered = s
+            self._x_prev, self._s_prev = self._x_last, self._s_last
+            self._x_last, self._s_last = x, s
+            out.append(fp.State(s & 0xFFFFFFFF, self._sent_us[s % _RING],
+                                fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
+                                (s - self._d) & 0xFFFFFFFF, (x,)))
 
     def receive(self, timeout: float = 0.0) -> list:
-        """Messages: queued HELLO/PONG, and one STATE per complete record.
+        """Messages: queued HELLO/PONG, and one STATE per record taken (module notes).
 
         Parameters
         ----------
@@ -147,6 +338,7 @@ class DriverTransport:
         self._q.clear()
         ser = self._ser
         end = time.monotonic() + timeout
+        dec = self._dec
         try:
             while True:
                 waiting = ser.in_waiting
@@ -158,22 +350,48 @@ class DriverTransport:
                     data = b""
                 if data:
                     self._last.append(data.hex())
-                    for x in self._dec.feed(data):
-                        if not self._armed:
-                            continue
-                        s = self._seq
-                        out.append(fp.State(s & 0xFFFFFFFF,
-                                            (time.monotonic_ns() - self._t0) // 1000,
-                                            fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
-                                            (s - self._d) & 0xFFFFFFFF, (x,)))
-                        self._seq = s + 1
+                    xs = dec.feed(data)
+                    self._stray = not xs
+                    if xs:
+                        self._take(xs, out)
+                    d = dec.stats.get("desync", 0)
+                    if d != self._desyncs:
+                        self._desyncs = d
+                        if self._armed:
+                            self._resync()
+                if (self._armed and (self._answered < 0 or self._settle > 0) and not out
+                        and time.monotonic_ns() - self._arm_ns > REARM_INTERVAL * 1e9):
+                    # no first record yet: a board still in its bootloader dropped the
+                    # arming command, or a record was lost while the force comes up (no
+                    # host tick asks again then); ask again
+                    self._arm_ns = time.monotonic_ns()
+                    self.stats["rearms"] += 1
+                    self._command(self.driver.arm() if self._answered < 0
+                                  else self.driver.encode_force(0.0))
                 if out or timeout <= 0 or time.monotonic() >= end:
                     return out
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
+    def report(self) -> dict:
+        """What the driver's link did: :attr:`stats` and the firmware seen (``firmware``:
+        the driver's ``streaming_firmware`` when records came before anything was asked
+        (:data:`LISTEN_S` of listening at each arming), else its ``answering_firmware``;
+        ``None`` before any record)."""
+        st = dict(self.stats)
+        st["decoder"] = dict(self._dec.stats)
+        st["firmware"] = (self.driver.streaming_firmware if st["unprompted_before_arming"]
+                          else self.driver.answering_firmware if st["records"] else None)
+        return st
+
     def close(self) -> None:
-        """Close the port (idempotent)."""
+        """Close the port (idempotent): zero force first (a device may hold it)."""
+        try:
+            if self._ser.is_open:
+                self._ser.write(self.driver.stop_bytes(self._x_last))
+                self._ser.flush()
+        except Exception:  # best effort: the port may be gone
+            pass
         try:
             self._ser.close()
         except Exception:  # pragma: no cover

@@ -17,9 +17,10 @@ Link arrays (one set per kind): ``i1``, ``i2`` int64 (first and second mass), ``
 ``z`` = B / T [N/m] (damping per sample, Faust ``mi.lib``'s physical ``z``), and for
 contacts ``thr`` [m].
 
-Scheme (DESIGN §3; Florens, Voda & Urma Fig. 5; Faust ``mi.lib`` ``mass``/``spring``/
-``collision``): a link's force ``F = k (x1 - x2) + z ((x1 - x2) - (x1p - x2p))`` is applied
-as ``-F`` on mass 1 and ``+F`` on mass 2; a contact applies
+Scheme (docs/design.md, 'The scheme'; Florens, Voda & Urma Fig. 5; Faust ``mi.lib``
+``mass``/``spring``/``collision``): a link's force
+``F = k (x1 - x2) + z ((x1 - x2) - (x1p - x2p))`` is applied as ``-F`` on mass 1 and
+``+F`` on mass 2; a contact applies
 ``F = k (x1 - x2 + thr) + z ((x1 - x2) - (x1p - x2p))`` only while ``x2 - x1 < thr`` (so its
 force is continuous at engagement, as Faust 2.54 ``mi.lib`` ``collision``); then each
 mobile mass moves by ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``.

@@ -3,7 +3,7 @@
 Two kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
 samples a 1-DoF device would report for a given sequence of *applied* forces, stretch by
 stretch, and :func:`stretch_basis`, the responses its linear part is a combination of; for
-the two holds of DESIGN.md Sec. 4:
+the two holds of docs/design.md, 'The timing convention':
 
 ``zoh`` (hold 0)
     The force is held over each period and the motion integrated exactly (closed form of

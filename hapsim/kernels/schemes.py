@@ -258,7 +258,8 @@ def laplacians(n_masses: int, i1, i2, k, b):
     Returns
     -------
     LK, LB : ndarray, shape (n_masses, n_masses)
-        ``F = -LK x - LB v`` is the force on every point [N] (link law of DESIGN §3).
+        ``F = -LK x - LB v`` is the force on every point [N] (link law, docs/design.md,
+        'The scheme').
     """
     LK = np.zeros((n_masses, n_masses))
     LB = np.zeros((n_masses, n_masses))
@@ -331,7 +332,7 @@ _EMPTY_F = np.empty(0, dtype=np.float64)
 
 
 def build(integrator: str, T: float, x, xp, f, mobile, t2m, fixed, sd=None, contact=None):
-    """Kernel and argument tuple for a non-default integrator.
+    """Kernel, argument tuple and named extras for a non-default integrator.
 
     Parameters
     ----------
@@ -353,7 +354,12 @@ def build(integrator: str, T: float, x, xp, f, mobile, t2m, fixed, sd=None, cont
     kernel : callable
         Called as ``kernel(n, *args, rec, out, row0)``.
     args : tuple
-        Arrays and floats the kernel needs (``args[6]`` is the velocity state ``v``).
+        Arrays and floats the kernel needs, in its argument order.
+    extras : dict
+        The scheme's own state and coefficients by name, in their argument order between
+        ``fixed`` and the links: ``v``, ``c``, ``T`` (``symplectic_euler``); ``v``, ``T``,
+        ``phi``, ``gam``, ``psi``, ``snew``, ``sold``, ``uold`` (``exact``). ``v`` is the
+        velocity state [m/s]. The same objects as in ``args``.
 
     Raises
     ------
@@ -367,18 +373,18 @@ def build(integrator: str, T: float, x, xp, f, mobile, t2m, fixed, sd=None, cont
     T = float(T)
     v = ((x - xp) / T).astype(np.float64)
     if integrator == "symplectic_euler":
-        c = np.zeros_like(x)
-        return run_symplectic_euler, (x, xp, f, mobile, t2m, fixed, v, c, T) + tuple(sd) \
-            + tuple(contact)
+        extras = {"v": v, "c": np.zeros_like(x), "T": T}
+        return run_symplectic_euler, ((x, xp, f, mobile, t2m, fixed) + tuple(extras.values())
+                                      + tuple(sd) + tuple(contact)), extras
     if integrator == "exact":
         if contact[0].size:
             raise ValueError("the exact integrator takes linear links only (no contacts)")
         masses = T * T / t2m if t2m.size else t2m
         phi, gam, psi = exact_matrices(x.size, mobile, masses, fixed, sd[0], sd[1], sd[2],
                                        np.asarray(sd[3]) * T, T)
-        snew = np.zeros(2 * mobile.size)
-        sold = np.zeros(2 * mobile.size)
-        uold = np.zeros(2 * fixed.size)
-        return run_exact, (x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold,
-                           uold) + tuple(sd)
+        extras = {"v": v, "T": T, "phi": phi, "gam": gam, "psi": psi,
+                  "snew": np.zeros(2 * mobile.size), "sold": np.zeros(2 * mobile.size),
+                  "uold": np.zeros(2 * fixed.size)}
+        return run_exact, ((x, xp, f, mobile, t2m, fixed) + tuple(extras.values())
+                           + tuple(sd)), extras
     raise ValueError(f"unknown integrator {integrator!r}; valid: {', '.join(INTEGRATORS[1:])}")

@@ -1,4 +1,5 @@
-"""Limit the BLAS thread pool of this process (the daemon is single-threaded by design).
+"""Limit the BLAS thread pool of this process (the daemon, the OSC analyst and play are
+single-threaded by design).
 
 A threaded OpenBLAS on a loaded machine turns a small SVD (the identification's matrix
 pencil) into seconds of spinning threads, and idle BLAS threads compete with the real-time

@@ -1,0 +1,396 @@
+"""The felt pair measured from a run's logged positions, and its verdict against the
+prediction.
+
+:func:`identify` cuts the record at gaps, open contacts and (unless the late ticks were
+accounted for, :func:`late_accounted`) late ticks, and fits the longest clean stretch of
+free response (:func:`hapsim.analysis.identify.measure_felt`, or the full order matrix
+pencil); :func:`verdict` states the interval and whether it holds the
+prediction (:mod:`hapsim.analysis.prediction`); :func:`contact_verdict` says why a run with
+contacts is not comparable. :func:`late_accounted` takes the response to the late ticks'
+known disturbance out of the record (the device names the force it applied), and
+:func:`wire_errors` gives the wire's number-format errors the stated uncertainty covers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_accounted",
+           "wire_errors"]
+
+
+def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, mass: float,
+             start: int, *, offset: bool = False, late: np.ndarray | None = None,
+             skip: int = 3, predicted=None, felt: complex | None = None,
+             quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
+             closed: np.ndarray | None = None, wire=None) -> dict:
+    """Measure the rendered oscillator from logged positions.
+
+    Parameters
+    ----------
+    position : ndarray, shape (n,)
+        Logged device positions [m].
+    seq : ndarray of int, shape (n,)
+        Their STATE sequence numbers.
+    period : float
+        Sample period T [s].
+    order : int
+        Identification order (number of non-zero closed-loop poles).
+    mass : float
+        Device mass m [kg] (k = m |s|^2, b = -2 m Re s).
+    start : int
+        First sequence number of the free response (after the excitation and the
+        dead-beat transient).
+    offset : bool
+        Difference the signal first (constant equilibrium offset).
+    late : ndarray of int, shape (n,), optional
+        1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
+        not part of the linear THS: the record is cut there and the longest clean segment
+        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
+        disturbance is again a free response, minus ``skip`` samples of dead-beat
+        transient. Without a long enough clean segment the longest run is used as is
+        (``late_in_segment`` says how many disturbances it holds).
+    skip : int
+        Samples dropped at the start of a segment that follows a disturbance or a gap
+        (``d + 2`` is enough: the dead-beat states of the delay line).
+    predicted : array_like of complex, optional
+        Predicted non-zero closed-loop poles seen at the port; with ``felt`` (the predicted
+        felt pole) the measurement is :func:`hapsim.analysis.identify.measure_felt`
+        (robust to a quantised or noisy sensor, with standard errors); without, the full
+        order matrix pencil alone.
+    quantum, noise : float
+        Position sensor step [m] and noise standard deviation [m] (0: none).
+    sensor_response : ndarray, optional
+        Impulse response of the sensor error to the logged position
+        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
+    closed : ndarray of bool, shape (n,), optional
+        Per row: every contact engaged (the state the prediction assumes;
+        :func:`hapsim.daemon.contact_replay.replay_contacts`). Rows that are not are cut out
+        as late ticks are, and only a stretch of closed rows is identified: when the
+        longest is shorter than the fit needs, the result has ``comparable`` False,
+        ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
+    wire : sequence of (float, ndarray), optional
+        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
+
+    Returns
+    -------
+    dict
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
+        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
+        :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
+        be identified or the record cannot support a measurement.
+    """
+    from hapsim.analysis.identify import fit_rendered
+
+    seq = np.asarray(seq, dtype=np.int64)
+    pos = np.asarray(position, dtype=float)
+    lt = np.zeros(seq.size, dtype=bool) if late is None else np.asarray(late).astype(bool)
+    sel = seq >= start
+    y, s, lt = pos[sel], seq[sel], lt[sel]
+    cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
+
+    def segments(cut_late: bool):
+        """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks and
+        at rows with a contact open (those rows left out)."""
+        cut = np.diff(s) != 1
+        if cut_late:
+            cut = cut | lt[1:]
+        if cl is not None:
+            cut = cut | (cl[1:] != cl[:-1])
+        edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [y.size]])
+        out = []
+        for a, b in zip(edges[:-1], edges[1:]):
+            if cl is not None and not cl[a]:
+                continue
+            a2 = a if a == 0 else min(a + skip, b)
+            out.append((a2, b))
+        return out or [(0, 0)]
+
+    need = max(4 * int(order) + 10, 100)
+    a = b = 0
+    if y.size:
+        segs = segments(True)
+        a, b = max(segs, key=lambda ab: ab[1] - ab[0])
+        if b - a < need:
+            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
+    late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
+    y, s = y[a:b], s[a:b]
+    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
+           "order": int(order), "late_in_segment": late_in}
+    if cl is not None:
+        out["comparable"] = bool(b - a >= need)
+        if not out["comparable"]:
+            out.update(closed_samples=int(b - a), needed=int(need),
+                       error=f"the longest stretch with every contact closed is {b - a} "
+                             f"samples, fewer than the {need} the fit needs")
+            return out
+    from hapsim.analysis.identify import thin_pencil
+    pencil = thin_pencil(order, y.size - (1 if offset else 0))
+    out["pencil"] = pencil
+    if predicted is not None and felt is not None and y.size:
+        from hapsim.analysis.identify import measure_felt
+        try:
+            res = measure_felt(y, period, mass, predicted, felt, offset=offset,
+                               quantum=quantum, noise=noise, order=int(order), pencil=pencil,
+                               sensor_response=sensor_response, wire=wire)
+        except ConfigError as exc:
+            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+            return out
+        out.update(res)
+        if "error" in res:
+            for q in ("k", "b", "f0_hz", "damping_ratio"):
+                out.pop(q, None)
+        return out
+    try:
+        md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
+    except ConfigError as exc:
+        out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+        if "identically zero" in out["error"]:
+            out["error"] += ("; the loop never moved: give the scene an excitation "
+                             "(x0, v0, impulse or profile)")
+        return out
+    out.update(k=float(md.k), b=float(md.b), f0_hz=float(md.f0_hz),
+               damping_ratio=float(md.damping_ratio))
+    return out
+
+
+
+def relative_error(a, b):
+    """``(a - b) / |b|``, or None when either is None or not finite, or ``b`` is 0.
+
+    Parameters
+    ----------
+    a, b : float or None
+        Measured and reference value (same unit).
+
+    Returns
+    -------
+    float or None
+    """
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b == 0:
+        return None
+    return (a - b) / abs(b)
+
+
+
+def verdict(pred: dict, measured: dict) -> None:
+    """Add ``k_interval``, ``b_interval`` (the stated half-widths), ``within`` and
+    ``verdict`` to an identification result (in place).
+
+    The interval is the fit's: :data:`hapsim.analysis.identify.COVERAGE` standard errors,
+    the residual's or the sensor's (its error fed back through the loop), the larger; never
+    below 1e-9 relative (round-off of an exact record). The quantiser's loop gain
+    (describing function, :func:`hapsim.analysis.identify.quantiser_gain_bound`) is left
+    out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
+    errors observed over random loops (tests/test_identify_quantised.py).
+
+    Parameters
+    ----------
+    pred : dict
+        The prediction (:func:`hapsim.analysis.prediction.predict`): ``k`` [N/m], ``b``
+        [N s/m].
+    measured : dict
+        :func:`identify`'s result, completed in place.
+    """
+    if "k" not in measured or "k_unc" not in measured or pred.get("k") is None:
+        return
+    dk, db = measured["k_unc"], measured["b_unc"]
+    dk = max(dk, 1e-9 * abs(pred["k"]))
+    db = max(db, 1e-9 * abs(pred["b"]))
+    measured["k_interval"], measured["b_interval"] = dk, db
+    from hapsim.analysis.identify import COVERAGE
+    if measured.get("method") == "varpro":
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual or sensor, the larger")
+    if "k_sd_wire" in measured:
+        measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
+                                     f"the fit, residual, sensor or the wire's number "
+                                     f"format, the largest")
+    ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
+    measured["within"] = bool(ok)
+    measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
+                           "measured differs from predicted by more than the stated "
+                           "uncertainty")
+
+
+
+def contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: float) -> None:
+    """Say why a run with contacts is not comparable with the prediction (in place).
+
+    ``measured`` is :func:`identify`'s result with ``comparable``; when False, ``reason``
+    and ``verdict`` name the first row of the free response (sequence number >= ``start``)
+    with a contact open (``first_open_sample``, the telemetry row, and ``open_contact``), or
+    why the replay stops knowing, and the longest closed stretch against the samples the
+    fit needs. Not comparable is no device fault: the run's exit code is unchanged.
+
+    Parameters
+    ----------
+    measured : dict
+        :func:`identify`'s result (with ``comparable``), completed in place.
+    replay : object
+        The contact replay (:func:`hapsim.daemon.contact_replay.replay_contacts`):
+        ``closed``, ``known``, ``open_link`` per row and ``reason``.
+    seq : ndarray of int, shape (n,)
+        The rows' sequence numbers.
+    start : int
+        First sequence number of the free response.
+    T : float
+        Sample period [s].
+    """
+    if measured.get("comparable", True):
+        return
+    seq = np.asarray(seq, dtype=np.int64)
+    rows = np.flatnonzero(seq >= start)
+    bad = rows[~replay.closed[rows]] if rows.size else rows
+    measured["first_open_sample"] = measured["open_contact"] = None
+    if bad.size == 0:
+        what = "the free response is too short"
+    else:
+        i = int(bad[0])
+        measured["first_open_sample"] = i
+        measured["open_contact"] = replay.open_link[i]
+        if replay.known[i]:
+            verb = "is open at" if i == int(rows[0]) else "opened at"
+            what = (f"contact {replay.open_link[i]!r} {verb} sample {i} / t = {i * T:.6g} s")
+        else:
+            what = replay.reason or f"the contact states are unknown from sample {i}"
+    reason = (f"{what}; the prediction holds while every contact is closed; the longest "
+              f"closed stretch is {measured['closed_samples']} samples, fewer than the "
+              f"{measured['needed']} the fit needs")
+    measured["reason"] = reason
+    measured["error"] = "not comparable: " + reason
+    measured["verdict"] = "not comparable: " + reason
+    measured["within"] = None
+
+
+def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None):
+    """The logged positions with the response to the late ticks' known disturbance taken
+    out, when the device names the force it applied (framed protocol, ``force_seq``).
+
+    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
+    position minus the loop's response to ``w = applied - F[n-d]``
+    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
+    so the whole record is measured, not only the longest stretch without a late tick.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its device: delay, force limit).
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``, ``late``, ``force_seq``,
+        ``status``), each shape (n,).
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO (its force limit).
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its :meth:`~hapsim.drivers.base.Driver.account`, if any, instead
+        of ``force_seq``.
+    restarts : ndarray of bool, shape (n,), optional
+        Rows where the scene restarted (after a recovery).
+
+    Returns
+    -------
+    (ndarray, ndarray or None, dict)
+        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
+    """
+    from hapsim.analysis.applied import account_from_force_seq
+
+    pos, late = cols["position"], cols["late"]
+    fseq = cols.get("force_seq")
+    dev = scene.device
+    hook = getattr(driver, "account", None) if driver is not None else None
+    if driver is not None:
+        # a driver's STATEs name no applied force (force_seq = seq - d): its account is
+        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
+        acc = hook(cols, cols["force"]) if hook is not None else None
+        if acc is None or not np.any(acc.late):
+            return pos, late, {}
+    else:
+        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+            return pos, late, {}
+        lim = float(dev.force_limit)
+        if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
+            lim = min(lim, float(hello.force_limit))
+        acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
+                                     zero_delay=dev.delay == 0, force_limit=lim)
+    info = {"device_delay": int(acc.delay), "account": acc.method}
+    if acc.delay != dev.delay:
+        # the model of the loop would be the wrong one: measure as recorded, and say so
+        info["late_accounted"] = 0
+        info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
+                             f"states {dev.delay}: late ticks are not taken out")
+        return pos, late, info
+    from hapsim.analysis.identify import disturbance_response
+    w = acc.disturbance(cols["force"], cols["seq"])
+    # the response sums within each stretch of consecutive STATEs that the scene did not
+    # restart in: before a stretch, whatever happened is its initial state
+    seq = np.asarray(cols["seq"], np.int64)
+    cut = np.diff(seq) != 1
+    if restarts is not None:
+        cut |= np.asarray(restarts, bool)[1:]
+    starts = np.flatnonzero(cut) + 1
+    try:
+        xw = disturbance_response(scene, w, starts=starts)
+    except ConfigError:
+        return pos, late, info
+    info["late_accounted"] = acc.n_late
+    # what the account leaves uncertain (a driver's timing): a force error per sample
+    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
+    return pos - xw, None, info
+
+
+def wire_errors(scene, cols: dict, start: int, driver) -> list:
+    """The wire's number-format errors of a driver's run, for the stated uncertainty.
+
+    A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
+    field: at most ``2^-24``) and ``force_scale`` (an actuator step: the FireFader's 8-bit
+    PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
+    ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
+    position's rounding reaches the record as the sensor's does
+    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
+    the virtual links), the force's as a force error at the device
+    (:func:`hapsim.analysis.identify.force_error_response`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    cols : dict of str to ndarray
+        Telemetry columns (``seq``, ``position``, ``force``).
+    start : int
+        First sequence number of the free response.
+    driver : hapsim.drivers.base.Driver or None
+        The run's driver (None: hapsim's own protocol).
+
+    Returns
+    -------
+    list of (float, ndarray)
+        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
+    """
+    if driver is None:
+        return []
+    from hapsim.analysis.identify import force_error_response, sensor_error_response
+    sel = cols["seq"] >= start
+    x, f = cols["position"][sel], cols["force"][sel]
+    n = int(x.size)
+    if n == 0:
+        return []
+    out = []
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
+    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
+    try:
+        if pr > 0:
+            out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
+                        sensor_error_response(scene, n)))
+        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
+        if sd_f > 0:
+            out.append((sd_f, force_error_response(scene, n)))
+    except ConfigError:
+        return []
+    return out

@@ -1,0 +1,853 @@
+"""The THS as a matrix: the sampled loop of an n-DoF device (n = 1, 2, 3) and its felt
+stiffness and damping matrices.
+
+The 1-D THS of Florens, Voda & Urma (:mod:`hapsim.analysis.loop`, :mod:`hapsim.analysis.ths`)
+generalised to a handle moving in n Cartesian directions, linearised at an operating point
+(docs/design.md, 'The THS'; issue 23):
+
+- **Real side.** ``M x'' + B0 x' = F`` with the Cartesian mass ``M = J^-T M_q J^-1 + m_h I``
+  [kg] and friction ``B0 = J^-T B_q J^-1 + b_h I`` [N s/m] (joint inertia ``M_q``, joint
+  friction ``B_q`` mapped through the device Jacobian ``J`` at the operating point, plus
+  the hand's mass and damping; :func:`hapsim.kinematics.cartesian_mass`). At rest the
+  velocity-product (Coriolis) terms vanish and gravity is a constant offset, so this is
+  the exact linearisation for small motion about the operating point.
+- **Hold.** Zero-order hold of ``F`` over each period ``T`` (exact discretisation,
+  :func:`zoh_matrices`).
+- **Delay.** ``d`` whole samples between the position a force is computed from and the
+  sample it is applied at, as in 1-D.
+- **Virtual coupling.** ``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1]) / T`` with the
+  stiffness and damping *matrices* ``K`` [N/m], ``B`` [N s/m] (n x n).
+
+**Stability** is read from the MIMO characteristic: the eigenvalues of the closed loop's
+state matrix (:func:`state_matrix`), never axis by axis: stable axes do not make a stable
+coupled loop (Li, Tavakoli & Huang, "Stability of Cooperative Teleoperation Using Haptic
+Devices With Complementary Degrees of Freedom", IEEE TCST 22(2), 2014 — coupling through a
+non-diagonal ``M`` or ``K`` moves the poles).
+
+**The felt matrices.** In 1-D the felt ``(k, b)`` is the continuous oscillator
+``m s^2 + b s + k = 0`` whose poles ``s = ln(z)/T`` are the rendered (least damped)
+closed-loop pair ``z`` (Florens et al. Sec. 5). In n-D the closed loop has n rendered pairs
+``z_i`` (:func:`rendered_pairs`: the n least damped complex pairs whose handle mode shapes
+are independent), each with its mode shape ``u_i`` (the position part of the eigenvector,
+n complex components). The felt ``(k, b)`` matrices are the unique real n x n pair such that
+the continuous second-order system ``M x'' + b x' + k x = 0`` has exactly these 2n
+eigenpairs ``(s_i, u_i)``, ``(conj s_i, conj u_i)``:
+
+    k U + b U S = -M U S^2,   U = [u_1..u_n, conj u_1..conj u_n] (n x 2n),
+    S = diag(s_1..s_n, conj s_1..conj s_n),   i.e.   [k  b] [U; U S] = -M U S^2,
+
+the inverse quadratic eigenvalue problem (Lancaster, "Inverse spectral problems for
+semisimple damped vibrating systems", SIAM J. Matrix Anal. Appl. 29(1), 2007; Lancaster &
+Prells, J. Sound Vib. 283, 2005): with ``[U; U S]`` invertible the pair is unique and real.
+The felt system therefore has the rendered poles *and* the rendered mode shapes: a hand
+pushing along ``u_i`` feels the oscillator ``(m_i, k_i, b_i)``. For ``n = 1`` this is the
+1-D map exactly; for a decoupled (diagonal) loop it is the 1-D map per axis. In general
+``k`` and ``b`` are *not* symmetric: the sampled, delayed loop is not a symmetric
+mechanical system, and its exact second-order image carries that (the symmetric parts
+are the conservative stiffness and the dissipative damping; the antisymmetric parts are
+circulatory and gyroscopic terms, of the order of the coupling times the delay). They
+are symmetric when the loop is (e.g. ``M``, ``B0``, ``K``, ``B`` diagonal in one basis).
+
+**Principal directions.** Each rendered mode moves the handle along an ellipse
+``Re(u_i e^{i w t})``; its principal direction ``e_i`` is the ellipse's major axis (unit,
+real). Along it the felt pair is ``k_i = m_i |s_i|^2``, ``b_i = -2 m_i Re s_i`` with the
+modal mass ``m_i = e_i^T M e_i`` (the 1-D formulas with the mass felt along ``e_i``).
+
+**Stiffness limit per direction.** ``K_max(e)``: the largest ``kappa`` such that the loop
+with ``K = K0 + kappa e e^T`` (``K0`` the rest of the virtual stiffness) is stable for every
+``kappa' in (0, kappa)``. The added stiffness is a rank-one feedback, so a pole crosses the
+unit circle at ``z = e^{i theta}`` iff ``kappa = -1 / (c^T (z I - A0)^-1 b)`` is real
+(:func:`direction_limit`): exact crossings, classified by the spectral radius between
+them, as :func:`hapsim.analysis.ths.stability_limit` does in 1-D.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE, STABILITY_TOL
+from hapsim.errors import ConfigError
+
+__all__ = ["LoopModelND", "zoh_matrices", "state_matrix", "closed_loop_poles_nd",
+           "rendered_pairs", "rendered_pairs_of", "felt_matrices", "render_state",
+           "RenderND", "render_nd", "direction_limit", "direction_limits",
+           "workspace_limits", "WorkspaceLimits"]
+
+#: The only hold the n-D loop models (the paper's idealised hold has no n-D form here).
+HOLDS_ND = ("zoh",)
+
+
+def _matrix(name: str, value, n: int | None = None, *, symmetric: bool = False,
+            definite: str | None = None) -> np.ndarray:
+    """``value`` as a finite n x n float matrix (a scalar: times I; a vector: diagonal)."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"must be a number or a square matrix, got {value!r}",
+                          key=name) from None
+    if a.ndim == 0 and n is not None:
+        a = a * np.eye(n)
+    elif a.ndim == 1:
+        a = np.diag(a)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or (n is not None and a.shape[0] != n):
+        raise ConfigError(f"must be a {n or 'square'} x {n or 'square'} matrix, got shape "
+                          f"{a.shape}", key=name)
+    if not np.all(np.isfinite(a)):
+        raise ConfigError("must be finite", key=name)
+    if symmetric:
+        scale = max(float(np.max(np.abs(a))), 1e-300)
+        if np.max(np.abs(a - a.T)) > 1e-12 * scale:
+            raise ConfigError("must be symmetric", key=name)
+        a = 0.5 * (a + a.T)
+    if definite is not None:
+        lam = np.linalg.eigvalsh(a)
+        if definite == "positive" and not lam[0] > 0:
+            raise ConfigError(f"must be positive definite (smallest eigenvalue "
+                              f"{lam[0]:g})", key=name)
+        if definite == "semi" and lam[0] < -1e-12 * max(abs(lam[-1]), 1e-300):
+            raise ConfigError(f"must be positive semi-definite (smallest eigenvalue "
+                              f"{lam[0]:g})", key=name)
+    return a
+
+
+@dataclass(frozen=True)
+class LoopModelND:
+    """One n-DoF simulator configuration seen from the THS, at an operating point.
+
+    Parameters
+    ----------
+    mass : array_like, shape (n, n) (or (n,) diagonal, or a scalar with ``dof``)
+        Cartesian mass ``M`` of hand + handle [kg], symmetric positive definite.
+    friction : array_like, shape (n, n) (or (n,), or a scalar)
+        Cartesian viscous friction ``B0`` [N s/m], symmetric positive semi-definite.
+    rate_hz : float > 0
+        Sample rate [Hz]; ``T = 1 / rate_hz``.
+    delay : int >= 0
+        Whole samples ``d`` (as :class:`hapsim.analysis.loop.LoopModel`).
+    hold : {"zoh"}
+        Zero-order hold (the only one modelled in n-D).
+    dof : int, optional
+        ``n`` when ``mass`` is a scalar.
+
+    Raises
+    ------
+    ConfigError
+        A mass not symmetric positive definite or outside
+        :data:`hapsim.analysis.loop.MASS_RANGE` (its eigenvalues), friction not symmetric
+        positive semi-definite, shapes that differ, a rate outside
+        :data:`~hapsim.analysis.loop.RATE_RANGE`, a delay not a whole number in
+        ``[0, MAX_DELAY]``, an unknown hold; ``key`` names the field.
+    """
+
+    mass: object
+    friction: object = 0.0
+    rate_hz: float = 1000.0
+    delay: int = 1
+    hold: str = "zoh"
+    dof: int | None = None
+
+    def __post_init__(self) -> None:
+        n = self.dof
+        if n is None and np.ndim(self.mass) == 0:
+            raise ConfigError("a scalar mass needs dof", key="dof")
+        M = _matrix("mass", self.mass, n, symmetric=True, definite="positive")
+        n = M.shape[0]
+        if not 1 <= n <= 3:
+            raise ConfigError(f"must be 1, 2 or 3 degrees of freedom, got {n}", key="dof")
+        lam = np.linalg.eigvalsh(M)
+        if lam[0] < MASS_RANGE[0] or lam[-1] > MASS_RANGE[1]:
+            raise ConfigError(f"eigenvalues must be within {MASS_RANGE[0]:g} and "
+                              f"{MASS_RANGE[1]:g} kg, got {lam[0]:g}..{lam[-1]:g}",
+                              key="mass")
+        B0 = _matrix("friction", self.friction, n, symmetric=True, definite="semi")
+        try:
+            r = float(self.rate_hz)
+        except (TypeError, ValueError):
+            raise ConfigError(f"must be a number [Hz], got {self.rate_hz!r}",
+                              key="rate_hz") from None
+        if not RATE_RANGE[0] <= r <= RATE_RANGE[1]:
+            raise ConfigError(f"must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} "
+                              f"Hz, got {self.rate_hz!r}", key="rate_hz")
+        d = self.delay
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
+                or not float(d).is_integer() or not 0 <= d <= MAX_DELAY:
+            raise ConfigError(f"must be a whole number of samples in [0, {MAX_DELAY}], "
+                              f"got {d!r}", key="delay")
+        if self.hold not in HOLDS_ND:
+            raise ConfigError(f"unknown hold {self.hold!r} for an n-DoF loop; valid "
+                              f"choices: {', '.join(HOLDS_ND)}", key="hold")
+        object.__setattr__(self, "mass", M)
+        object.__setattr__(self, "friction", B0)
+        object.__setattr__(self, "rate_hz", r)
+        object.__setattr__(self, "delay", int(d))
+        object.__setattr__(self, "dof", n)
+
+    @property
+    def period(self) -> float:
+        """Sample period ``T`` [s]."""
+        return 1.0 / self.rate_hz
+
+    @classmethod
+    def from_device(cls, device, joints, joint_inertia, joint_friction=0.0, *,
+                    hand_mass: float = 0.0, hand_damping: float = 0.0,
+                    rate_hz: float = 1000.0, delay: int = 1) -> "LoopModelND":
+        """The loop of a kinematic device at the joint configuration ``joints``.
+
+        Parameters
+        ----------
+        device : hapsim.kinematics.Pantograph or hapsim.kinematics.Delta
+            The device (its ``jacobian(q)``).
+        joints : array_like, shape (n,)
+            Operating point [rad].
+        joint_inertia : array_like, shape (n,) or (n, n)
+            Joint-space inertia ``M_q`` [kg m^2].
+        joint_friction : array_like, shape (n,) or (n, n), or float
+            Joint viscous friction ``B_q`` [N m s/rad].
+        hand_mass, hand_damping : float, optional
+            Isotropic hand mass [kg] and damping [N s/m] added in Cartesian space.
+        rate_hz, delay
+            As the constructor.
+
+        Returns
+        -------
+        LoopModelND
+            ``M = J^-T M_q J^-1 + m_h I``, ``B0 = J^-T B_q J^-1 + b_h I`` (module docstring).
+
+        Raises
+        ------
+        hapsim.errors.KinematicsError
+            A singular or unreachable operating point.
+        ConfigError
+            As :func:`hapsim.kinematics.cartesian_mass` and the constructor.
+        """
+        from hapsim.kinematics import cartesian_mass
+        J = device.jacobian(joints)
+        n = J.shape[0]
+        Bq = _matrix("joint_friction", joint_friction, n)
+        M = cartesian_mass(J, joint_inertia) + float(hand_mass) * np.eye(n)
+        B0 = cartesian_mass(J, Bq) + float(hand_damping) * np.eye(n)
+        return cls(mass=M, friction=B0, rate_hz=rate_hz, delay=delay)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: ``dof``, ``mass`` [kg] and ``friction`` [N s/m] as nested
+        lists, ``rate_hz``, ``delay``, ``hold``."""
+        return {"dof": self.dof, "mass": self.mass.tolist(),
+                "friction": self.friction.tolist(), "rate_hz": self.rate_hz,
+                "delay": self.delay, "hold": self.hold}
+
+
+def zoh_matrices(loop: LoopModelND) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of ``M x'' + B0 x' = F``.
+
+    Parameters
+    ----------
+    loop : LoopModelND
+
+    Returns
+    -------
+    Ad : ndarray, shape (2n, 2n)
+        Transition of ``[x, v]`` ([m], [m/s]) over one period.
+    Bd : ndarray, shape (2n, n)
+        Response of ``[x, v]`` to a force held over the period [m/N, m/(N s)].
+
+    Notes
+    -----
+    With ``C = M^-1 B0`` and ``Z = -C T``: ``Ad = [[I, T phi1(Z)], [0, e^Z]]``,
+    ``Bd = [[T^2 phi2(Z)], [T phi1(Z)]] M^-1``, ``phi1(Z) = sum Z^k/(k+1)!``,
+    ``phi2(Z) = sum Z^k/(k+2)!``; the three blocks come from one matrix exponential of
+    ``[[Z, I, 0], [0, 0, I], [0, 0, 0]]`` (the phi-functions of exponential integrators:
+    Higham, *Functions of Matrices*, 2008, Sec. 10.7.4), which keeps ``1 - e^-x`` and
+    ``e^-x - 1 + x`` at full relative precision for small ``x = b0 T/m`` (the 1-D
+    :func:`hapsim.analysis.loop.zoh_state_space` is the case n = 1).
+    """
+    from scipy.linalg import expm
+    n, T = loop.dof, loop.period
+    Minv = np.linalg.inv(loop.mass)
+    Z = -(Minv @ loop.friction) * T
+    I = np.eye(n)
+    big = np.zeros((3 * n, 3 * n))
+    big[:n, :n] = Z
+    big[:n, n:2 * n] = I
+    big[n:2 * n, 2 * n:] = I
+    E = expm(big)
+    eZ, phi1, phi2 = E[:n, :n], E[:n, n:2 * n], E[:n, 2 * n:]
+    Ad = np.zeros((2 * n, 2 * n))
+    Ad[:n, :n] = I
+    Ad[:n, n:] = T * phi1
+    Ad[n:, n:] = eZ
+    Bd = np.vstack([T * T * phi2 @ Minv, T * phi1 @ Minv])
+    return Ad, Bd
+
+
+def _gains(loop: LoopModelND, K, B) -> tuple[np.ndarray, np.ndarray]:
+    n = loop.dof
+    return _matrix("K", K, n), _matrix("B", B, n)
+
+
+def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
+    """The closed loop's state matrix (plant + delay line + virtual coupling).
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    K : array_like, shape (n, n) (or (n,), or a scalar: times I)
+        Virtual stiffness matrix [N/m].
+    B : array_like, shape (n, n) (or (n,), or a scalar), optional
+        Virtual damping matrix [N s/m].
+
+    Returns
+    -------
+    ndarray, shape (n (d + 3), n (d + 3))
+        ``s[n+1] = A s[n]`` for the state ``s[n] = (x[n], v[n], x[n-1], ..., x[n-d-1])``
+        (positions [m], velocities [m/s]); ``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1])/T``
+        held over ``[nT, (n+1)T)``. For n = 1 its characteristic polynomial is the 1-D
+        ``P K + Q B + R`` of :func:`hapsim.analysis.loop.characteristic` (zoh).
+
+    Raises
+    ------
+    ConfigError
+        ``K`` or ``B`` not finite or of the wrong shape (key ``K`` / ``B``).
+    """
+    Kq, Bq = _gains(loop, K, B)
+    n, d, T = loop.dof, loop.delay, loop.period
+    Ad, Bd = zoh_matrices(loop)
+    N = n * (d + 3)
+    A = np.zeros((N, N))
+    A[:2 * n, :2 * n] = Ad
+
+    def pos(k):   # block of x[n - k]
+        return slice(0, n) if k == 0 else slice((k + 1) * n, (k + 2) * n)
+    # F = -(K + B/T) x[n-d] + (B/T) x[n-d-1]
+    A[:2 * n, pos(d)] += Bd @ (-(Kq + Bq / T))
+    A[:2 * n, pos(d + 1)] += Bd @ (Bq / T)
+    for k in range(1, d + 2):     # x[n+1-k] <- x[n-(k-1)]
+        A[pos(k), pos(k - 1)] = np.eye(n)
+    return A
+
+
+def closed_loop_poles_nd(loop: LoopModelND, K, B=0.0) -> np.ndarray:
+    """Eigenvalues of :func:`state_matrix` [-], shape (n (d + 3),), largest ``|z|`` first.
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    K, B : array_like
+        Virtual stiffness [N/m] and damping [N s/m] matrices.
+
+    Returns
+    -------
+    ndarray of complex
+        The MIMO characteristic's roots (Li, Tavakoli & Huang 2014: stability from these,
+        not per axis).
+    """
+    z = np.linalg.eigvals(state_matrix(loop, K, B))
+    return z[np.argsort(-np.abs(z), kind="stable")]
+
+
+def _log(z: np.ndarray, T: float) -> np.ndarray:
+    """``s = ln(z) / T`` accurate near ``z = 1`` (``log1p`` of ``|z|^2 - 1``)."""
+    w = z - 1.0
+    re = 0.5 * np.log1p(2.0 * w.real + w.real ** 2 + w.imag ** 2)
+    return (re + 1j * np.angle(z)) / T
+
+
+def rendered_pairs(loop: LoopModelND, K, B=0.0):
+    """The n rendered pairs of the closed loop and their handle mode shapes.
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    K, B : array_like
+        Virtual stiffness [N/m] and damping [N s/m] matrices.
+
+    Returns
+    -------
+    z : ndarray of complex, shape (m,)
+        The rendered poles (``Im z > 0``), ``m <= n``: the least damped complex pairs
+        (largest ``|z|``) taken in turn while their handle mode shapes stay independent
+        (the 1-D rendered pair, Florens et al. Sec. 5, per mode); ``m < n`` when the loop
+        has fewer such pairs (then no felt matrices exist).
+    U : ndarray of complex, shape (n, m)
+        Their mode shapes: the position part ``x[n]`` of each eigenvector, scaled to unit
+        norm with its largest component real positive.
+    poles : ndarray of complex
+        Every closed-loop pole, largest ``|z|`` first.
+    """
+    return rendered_pairs_of(state_matrix(loop, K, B), loop.dof, loop.period)
+
+
+def rendered_pairs_of(A, n: int, period: float):
+    """:func:`rendered_pairs` of any closed-loop state matrix whose first ``n`` states
+    are the handle position (a whole scene: :mod:`hapsim.analysis.scene_nd_check`).
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, N)
+        Closed-loop state matrix.
+    n : int
+        Degrees of freedom of the handle.
+    period : float
+        Sample period ``T`` [s].
+
+    Returns
+    -------
+    z, U, poles
+        As :func:`rendered_pairs`; a pair whose handle part is below 1e-8 of its
+        eigenvector's norm is a mode of the object the hand does not feel, never rendered.
+    """
+    z, V = np.linalg.eig(A)
+    order = np.argsort(-np.abs(z), kind="stable")
+    z, V = z[order], V[:, order]
+    chosen, shapes, cols_taken = [], [], []
+    for i in np.flatnonzero(z.imag > 1e-12 * np.maximum(1.0, np.abs(z))):
+        u = V[:n, i]
+        nu = np.linalg.norm(u)
+        if not nu > 1e-8 * np.linalg.norm(V[:, i]):
+            continue                                   # not seen at the handle
+        u = u / nu
+        j = int(np.argmax(np.abs(u)))
+        u = u * (abs(u[j]) / u[j])
+        # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
+        # of this pair with the ones taken (conjugates included)
+        si = complex(_log(np.array([z[i]]), period)[0])
+        unit = si / abs(si) if si != 0 else 0.0
+        cols = cols_taken + [np.concatenate([u, unit * u]),
+                             np.concatenate([u.conj(), np.conj(unit) * u.conj()])]
+        if np.linalg.matrix_rank(np.column_stack(cols), tol=1e-6) < len(cols):
+            continue
+        cols_taken = cols
+        chosen.append(z[i])
+        shapes.append(u)
+        if len(chosen) == n:
+            break
+    U = np.column_stack(shapes) if shapes else np.zeros((n, 0), complex)
+    return np.array(chosen, complex), U, z
+
+
+def felt_matrices(mass, s, U) -> tuple[np.ndarray, np.ndarray]:
+    """The felt stiffness and damping matrices of n rendered modes (module docstring).
+
+    Parameters
+    ----------
+    mass : array_like, shape (n, n)
+        Cartesian mass ``M`` [kg].
+    s : array_like of complex, shape (n,)
+        Continuous poles ``s_i = ln(z_i)/T`` [1/s] (one per pair).
+    U : array_like of complex, shape (n, n)
+        Their mode shapes (columns).
+
+    Returns
+    -------
+    k : ndarray, shape (n, n)
+        Felt stiffness [N/m].
+    b : ndarray, shape (n, n)
+        Felt damping [N s/m].
+
+    Notes
+    -----
+    Solves ``[k b] [W; W S] = -M W S^2`` with ``W = [U, conj U]``,
+    ``S = diag(s, conj s)`` (Lancaster 2007): the unique real pair whose continuous system
+    ``M x'' + b x' + k x = 0`` has the eigenpairs ``(s_i, u_i)`` and their conjugates.
+    ``n = 1``: ``k = m |s|^2``, ``b = -2 m Re s`` (the 1-D inverse map).
+
+    Raises
+    ------
+    ConfigError
+        Fewer than n modes, or mode shapes that do not determine the pair (``[W; W S]``
+        singular).
+    """
+    M = np.asarray(mass, float)
+    n = M.shape[0]
+    s = np.asarray(s, complex)
+    U = np.asarray(U, complex)
+    if s.shape != (n,) or U.shape != (n, n):
+        raise ConfigError(f"the felt matrices need {n} rendered pairs with independent "
+                          f"mode shapes at the handle, the loop has {s.size}",
+                          key="felt")
+    W = np.hstack([U, U.conj()])
+    S = np.concatenate([s, s.conj()])
+    G = np.vstack([W, W * S])
+    rhs = -(M @ (W * S * S))
+    try:
+        X = np.linalg.solve(G.T, rhs.T).T          # X G = rhs
+    except np.linalg.LinAlgError:
+        raise ConfigError("the rendered modes' shapes do not determine a felt (k, b) pair",
+                          key="felt") from None
+    return X[:, :n].real.copy(), X[:, n:].real.copy()
+
+
+@dataclass(frozen=True)
+class RenderND:
+    """What the hand feels through an n-DoF loop for virtual matrices ``(K, B)``.
+
+    Attributes
+    ----------
+    dof : int
+        n.
+    K, B : ndarray, shape (n, n)
+        The virtual stiffness [N/m] and damping [N s/m] analysed.
+    felt_stiffness, felt_damping : ndarray, shape (n, n) or None
+        The felt ``k`` [N/m] and ``b`` [N s/m] matrices (module docstring); None when the
+        loop has fewer than n rendered pairs.
+    directions : ndarray, shape (n, n) or None
+        Principal directions (columns, unit) of the rendered modes, least damped first.
+    direction_stiffness, direction_damping, direction_mass : ndarray, shape (n,) or None
+        The felt pair along each direction (``k_i = m_i |s_i|^2`` [N/m],
+        ``b_i = -2 m_i Re s_i`` [N s/m]) and its modal mass ``m_i`` [kg].
+    rendered_poles : ndarray of complex, shape (<= n,)
+        The rendered poles (``Im z > 0``).
+    poles : ndarray of complex
+        Every closed-loop pole, largest ``|z|`` first.
+    spectral_radius : float
+        ``max |z|`` [-].
+    stable : bool
+        ``spectral_radius <= 1 + STABILITY_TOL`` (the 1-D verdict's tolerance).
+    note : str
+        Empty, or why the felt matrices are None.
+    """
+
+    dof: int
+    K: np.ndarray
+    B: np.ndarray
+    felt_stiffness: np.ndarray | None
+    felt_damping: np.ndarray | None
+    directions: np.ndarray | None
+    direction_stiffness: np.ndarray | None
+    direction_damping: np.ndarray | None
+    direction_mass: np.ndarray | None
+    rendered_poles: np.ndarray
+    poles: np.ndarray
+    spectral_radius: float
+    stable: bool
+    note: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (matrices as nested lists, non-finite numbers as None).
+
+        Returns
+        -------
+        dict
+            ``dof``, ``K``, ``B``, ``felt_stiffness``, ``felt_damping`` (n x n),
+            ``principal_directions`` (list of n unit vectors), ``direction_stiffness``,
+            ``direction_damping``, ``direction_mass``, ``spectral_radius``, ``stable``,
+            ``rendered_poles`` (``[re, im]`` pairs), ``note``.
+        """
+        def clean(a):
+            if a is None:
+                return None
+            a = np.asarray(a, float)
+            return [clean(r) for r in a] if a.ndim > 1 else \
+                [float(v) if math.isfinite(v) else None for v in a]
+        return {"dof": self.dof, "K": clean(self.K), "B": clean(self.B),
+                "felt_stiffness": clean(self.felt_stiffness),
+                "felt_damping": clean(self.felt_damping),
+                "principal_directions": None if self.directions is None
+                else clean(self.directions.T),
+                "direction_stiffness": clean(self.direction_stiffness),
+                "direction_damping": clean(self.direction_damping),
+                "direction_mass": clean(self.direction_mass),
+                "spectral_radius": float(self.spectral_radius) if
+                math.isfinite(self.spectral_radius) else None,
+                "stable": bool(self.stable),
+                "rendered_poles": [[float(z.real), float(z.imag)]
+                                   for z in self.rendered_poles],
+                "note": self.note}
+
+
+def _major_axis(u: np.ndarray) -> np.ndarray:
+    """Unit major axis of the ellipse ``Re(u e^{i t})`` (``u`` complex, shape (n,))."""
+    R = np.column_stack([u.real, u.imag])
+    w, V = np.linalg.eigh(R @ R.T)
+    e = V[:, -1]
+    j = int(np.argmax(np.abs(e)))
+    return e if e[j] > 0 else -e
+
+
+def render_nd(loop: LoopModelND, K, B=0.0) -> RenderND:
+    """Inverse map ``(K, B) -> (k, b)`` as matrices: what the hand feels, and whether the
+    coupled loop is stable.
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    K, B : array_like, shape (n, n) (or (n,), or a scalar: times I)
+        Virtual stiffness [N/m] and damping [N s/m] matrices.
+
+    Returns
+    -------
+    RenderND
+        Felt matrices, principal directions and per-direction pairs (module docstring),
+        every pole and the spectral radius of the MIMO characteristic.
+
+    Raises
+    ------
+    ConfigError
+        ``K`` or ``B`` not finite or of the wrong shape.
+    """
+    Kq, Bq = _gains(loop, K, B)
+    return render_state(state_matrix(loop, Kq, Bq), loop.mass, loop.period, K=Kq, B=Bq)
+
+
+def render_state(A, mass, period: float, *, K=None, B=None) -> RenderND:
+    """:func:`render_nd` of any closed-loop state matrix whose first n states are the
+    handle position (n = the mass matrix's size).
+
+    Parameters
+    ----------
+    A : ndarray, shape (N, N)
+        Closed-loop state matrix.
+    mass : ndarray, shape (n, n)
+        Cartesian mass of hand + handle [kg].
+    period : float
+        Sample period ``T`` [s].
+    K, B : ndarray, optional
+        The virtual matrices to report (nan when not given).
+
+    Returns
+    -------
+    RenderND
+    """
+    M = np.asarray(mass, float)
+    n = M.shape[0]
+    Kq = np.full((n, n), np.nan) if K is None else K
+    Bq = np.full((n, n), np.nan) if B is None else B
+    zr, U, poles = rendered_pairs_of(A, n, period)
+    rho = float(np.max(np.abs(poles))) if poles.size else 0.0
+    stable = rho <= 1.0 + STABILITY_TOL
+    common = dict(dof=n, K=Kq, B=Bq, rendered_poles=zr, poles=poles, spectral_radius=rho,
+                  stable=stable)
+    if zr.size < n:
+        return RenderND(felt_stiffness=None, felt_damping=None, directions=None,
+                        direction_stiffness=None, direction_damping=None,
+                        direction_mass=None,
+                        note=f"the closed loop has {zr.size} rendered pair(s) with "
+                             f"independent mode shapes at the handle, fewer than {n}: "
+                             "no felt matrices", **common)
+    s = _log(zr, period)
+    k, b = felt_matrices(M, s, U)
+    E = np.column_stack([_major_axis(U[:, i]) for i in range(n)])
+    m = np.einsum("in,ij,jn->n", E, M, E)
+    return RenderND(felt_stiffness=k, felt_damping=b, directions=E,
+                    direction_stiffness=m * np.abs(s) ** 2,
+                    direction_damping=-2.0 * m * s.real, direction_mass=m, **common)
+
+
+# --------------------------------------------------------------------------- limits
+
+def _resolvent_scalar(A0: np.ndarray, b: np.ndarray, c: np.ndarray, z: np.ndarray):
+    """``c^T (z I - A0)^-1 b`` for many ``z`` (batched solves, chunked to ~300 MB)."""
+    z = np.asarray(z, complex).ravel()
+    N = A0.shape[0]
+    out = np.empty(z.shape, complex)
+    chunk = max(1, int(2e7 // (N * N)))
+    I = np.eye(N)
+    for lo in range(0, z.size, chunk):
+        zz = z[lo:lo + chunk]
+        Z = zz[:, None, None] * I - A0
+        with np.errstate(all="ignore"):
+            try:
+                y = np.linalg.solve(Z, np.broadcast_to(b.astype(complex), (zz.size, N))
+                                    [:, :, None])[:, :, 0]
+                out[lo:lo + chunk] = y @ c
+            except np.linalg.LinAlgError:       # a pole exactly on the scan: one by one
+                for k, zk in enumerate(zz):
+                    try:
+                        out[lo + k] = c @ np.linalg.solve(zk * I - A0, b.astype(complex))
+                    except np.linalg.LinAlgError:
+                        out[lo + k] = np.inf
+    return out
+
+
+def _rank_one(loop: LoopModelND, K0, B, e):
+    """``A(kappa) = A0 - kappa b c^T`` for ``K = K0 + kappa e e^T``."""
+    n, d = loop.dof, loop.delay
+    A0 = state_matrix(loop, K0, B)
+    _, Bd = zoh_matrices(loop)
+    N = A0.shape[0]
+    bvec = np.zeros(N)
+    bvec[:2 * n] = Bd @ e
+    cvec = np.zeros(N)
+    blk = slice(0, n) if d == 0 else slice((d + 1) * n, (d + 2) * n)
+    cvec[blk] = e
+    return A0, bvec, cvec
+
+
+def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
+                    scan: int = 2048) -> float:
+    """Largest stable stiffness added along one direction, ``K_max(e)`` [N/m].
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    direction : array_like, shape (n,)
+        The direction ``e`` (normalised here).
+    B : array_like, optional
+        Virtual damping matrix [N s/m].
+    K0 : array_like, optional
+        The rest of the virtual stiffness [N/m] (default none).
+    scan : int, optional
+        Points of the unit-circle scan before each crossing is refined.
+
+    Returns
+    -------
+    float
+        ``sup {kappa : the loop with K0 + kappa' e e^T is stable for all kappa' in
+        (0, kappa)}`` [N/m]; ``0.0`` when no small positive ``kappa`` is stable, ``inf``
+        when every one is.
+
+    Notes
+    -----
+    ``A(kappa) = A0 - kappa b c^T`` (``b = [Bd e; 0]``, ``c`` picks ``e^T x[n-d]``), so
+    ``det(zI - A(kappa)) = det(zI - A0) (1 + kappa c^T (zI - A0)^-1 b)``: a pole is on the
+    unit circle at ``z = e^{i theta}`` iff ``kappa = -1 / G(z)`` with
+    ``G = c^T (zI - A0)^-1 b`` real; ``Im G(e^{i theta}) = 0`` is scanned on
+    ``theta in (0, pi]`` and refined by Brent's method, and stability between consecutive
+    candidate ``kappa`` is constant, so each interval is classified by the spectral radius
+    at one interior point (the 1-D method of :func:`hapsim.analysis.ths.stability_limit`).
+    For ``n = 1`` and ``K0 = 0`` it is that 1-D limit.
+
+    Raises
+    ------
+    ConfigError
+        A zero or non-finite direction, bad ``K0`` or ``B``.
+    """
+    from scipy.optimize import brentq
+    n = loop.dof
+    e = np.asarray(direction, float).reshape(-1)
+    if e.shape != (n,) or not np.all(np.isfinite(e)) or not np.linalg.norm(e) > 0:
+        raise ConfigError(f"must be a non-zero vector of {n} finite components, got "
+                          f"{direction!r}", key="direction")
+    e = e / np.linalg.norm(e)
+    K0q, Bq = _gains(loop, K0, B)
+    A0, bvec, cvec = _rank_one(loop, K0q, Bq, e)
+    theta = np.linspace(0.0, math.pi, scan + 1)[1:]
+    G = _resolvent_scalar(A0, bvec, cvec, np.exp(1j * theta))
+
+    def img(t):
+        return float(_resolvent_scalar(A0, bvec, cvec, np.array([np.exp(1j * t)]))[0].imag)
+    cands = []
+    im = G.imag
+    for i in range(len(theta) - 1):
+        if np.isfinite(im[i]) and np.isfinite(im[i + 1]) and im[i] * im[i + 1] < 0:
+            t = brentq(img, theta[i], theta[i + 1], xtol=1e-15, rtol=1e-14)
+            g = _resolvent_scalar(A0, bvec, cvec, np.array([np.exp(1j * t)]))[0]
+            cands.append(-1.0 / g.real)
+        elif im[i] == 0 and np.isfinite(G[i].real) and G[i].real != 0:
+            cands.append(-1.0 / G[i].real)
+    g_pi = G[-1]                     # theta = pi: z = -1, G real
+    if np.isfinite(g_pi.real) and g_pi.real != 0:
+        cands.append(-1.0 / g_pi.real)
+    cands = sorted({c for c in cands if c > 0 and math.isfinite(c)})
+
+    def stable_at(kappa):
+        A = A0 - kappa * np.outer(bvec, cvec)
+        return float(np.max(np.abs(np.linalg.eigvals(A)))) <= 1.0 + STABILITY_TOL
+    edges = [0.0] + cands
+    for i, lo in enumerate(edges):
+        hi = edges[i + 1] if i + 1 < len(edges) else (2.0 * lo if lo > 0 else 1.0)
+        mid = math.sqrt(lo * hi) if lo > 0 else 0.5 * hi
+        if not stable_at(mid):
+            return lo
+    return math.inf
+
+
+def direction_limits(loop: LoopModelND, directions=None, B=0.0, K0=0.0) -> np.ndarray:
+    """:func:`direction_limit` along several directions [N/m].
+
+    Parameters
+    ----------
+    loop : LoopModelND
+    directions : array_like, shape (n, m), optional
+        Directions as columns; default the principal axes of the Cartesian mass
+        (eigenvectors of ``M``, lightest first: where the limit is lowest for an
+        isotropic friction).
+    B, K0 : array_like, optional
+        As :func:`direction_limit`.
+
+    Returns
+    -------
+    ndarray, shape (m,)
+        ``K_max`` along each direction [N/m].
+    """
+    if directions is None:
+        directions = np.linalg.eigh(loop.mass)[1]
+    D = np.asarray(directions, float)
+    return np.array([direction_limit(loop, D[:, i], B, K0) for i in range(D.shape[1])])
+
+
+@dataclass(frozen=True)
+class WorkspaceLimits:
+    """The stiffness limit over a device's workspace (configuration-dependent mass).
+
+    Attributes
+    ----------
+    joints : ndarray, shape (N, n)
+        The joint configurations [rad].
+    positions : ndarray, shape (N, n)
+        Handle positions [m] (nan where refused).
+    status : list of str, length N
+        ``"ok"`` or the refusal kind (``"workspace"``, ``"serial"``, ``"parallel"``).
+    mass_eigenvalues : ndarray, shape (N, n)
+        Eigenvalues of ``M(q)`` [kg], ascending.
+    limits : ndarray, shape (N, n)
+        ``K_max`` [N/m] along the principal axes of ``M(q)`` (lightest first).
+    """
+
+    joints: np.ndarray
+    positions: np.ndarray
+    status: list
+    mass_eigenvalues: np.ndarray
+    limits: np.ndarray
+
+
+def workspace_limits(device, joints, joint_inertia, joint_friction=0.0, *,
+                     hand_mass: float = 0.0, hand_damping: float = 0.0,
+                     rate_hz: float = 1000.0, delay: int = 1, B=0.0,
+                     progress=None) -> WorkspaceLimits:
+    """``K_max`` along the principal axes of the Cartesian mass at many configurations.
+
+    Parameters
+    ----------
+    device : hapsim.kinematics.Pantograph or hapsim.kinematics.Delta
+    joints : array_like, shape (N, n)
+        Joint configurations [rad].
+    joint_inertia, joint_friction, hand_mass, hand_damping, rate_hz, delay
+        As :meth:`LoopModelND.from_device`.
+    B : array_like, optional
+        Virtual damping matrix [N s/m].
+    progress : callable, optional
+        ``progress(done, total)`` after each configuration.
+
+    Returns
+    -------
+    WorkspaceLimits
+        Refused configurations keep their status and nan values.
+    """
+    from hapsim.errors import KinematicsError
+    Q = np.asarray(joints, float)
+    N, n = Q.shape
+    pos = np.full((N, n), np.nan)
+    lam = np.full((N, n), np.nan)
+    lim = np.full((N, n), np.nan)
+    status = []
+    for i, q in enumerate(Q):
+        try:
+            loop = LoopModelND.from_device(device, q, joint_inertia, joint_friction,
+                                           hand_mass=hand_mass, hand_damping=hand_damping,
+                                           rate_hz=rate_hz, delay=delay)
+        except KinematicsError as exc:
+            status.append(exc.kind or "workspace")
+        else:
+            status.append("ok")
+            pos[i] = device.forward(q)
+            w, V = np.linalg.eigh(loop.mass)
+            lam[i] = w
+            lim[i] = direction_limits(loop, V, B)
+        if progress is not None:
+            progress(i + 1, N)
+    return WorkspaceLimits(joints=Q, positions=pos, status=status, mass_eigenvalues=lam,
+                           limits=lim)

@@ -1,0 +1,963 @@
+"""hapsim's Python API: the commands as functions that return typed results.
+
+Flat, in python-control's style: load a scene, then ask what it feels like::
+
+    import hapsim
+    scene = hapsim.load_scene("configs/wall.yaml")
+    r = hapsim.check(scene)          # CheckReport: r.k [N/m], r.b [N s/m], r.stable, ...
+    fig = r.plot()                   # the closed-loop poles (needs the plot extra)
+
+Each function returns a frozen dataclass whose fields are exactly the keys of the matching
+command's ``--json`` object (``to_dict()`` gives that object back), so what a script reads
+is what a program reading ``hapsim COMMAND --json`` reads:
+
+============================  ==========================  ===========================
+function                      result                      command
+============================  ==========================  ===========================
+:func:`check`                 :class:`CheckReport`        ``hapsim check SCENE``
+:func:`render`                :class:`RenderReport`       ``hapsim render``
+:func:`calibrate`             :class:`CalibrateReport`    ``hapsim calibrate``
+:func:`stability`             :class:`StabilityReport`    ``hapsim stability``
+:func:`family`                :class:`FamilyReport`       ``hapsim family SCENE``
+:func:`identify`              :class:`IdentifyReport`     ``hapsim identify``
+:func:`run`                   :class:`RunReport`          ``hapsim run SCENE``
+============================  ==========================  ===========================
+
+``render``, ``calibrate`` and ``stability`` take a :class:`LoopModel` (the real side of
+the loop: mass, friction, rate, delay, hold). Errors are those of the commands: a
+:class:`~hapsim.errors.ConfigError` names the file, line and key; an
+:class:`~hapsim.errors.UnstableConfigError` is a negative verdict. Compute and drawing are
+apart: the ``plot()`` methods call :mod:`hapsim.plot`, the only module importing
+matplotlib (the ``plot`` extra).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+from hapsim.errors import ConfigError, HapsimError, IdentificationError
+
+__all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
+           "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
+           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
+           "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
+
+
+def __getattr__(name: str):
+    if name == "LoopModel":               # the analysis's loop model, imported on demand
+        from hapsim.analysis.loop import LoopModel
+        return LoopModel
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def load_scene(path: str | os.PathLike):
+    """Read and validate a scene file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A YAML scene (docs/scenes.md).
+
+    Returns
+    -------
+    hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid file: the message names the file, the line and the key,
+        with the valid keys or choices.
+    """
+    from hapsim.scene import load_scene as _load
+    return _load(os.fspath(path))
+
+
+class _Report:
+    """The common part of the results: built from, and turned back into, a ``--json``
+    object. Fields named in ``_OPTIONAL`` are left out of :meth:`to_dict` when None (the
+    command prints them only when asked). A key of the command's report that has no field
+    yet is kept in :attr:`extra` (and in :meth:`to_dict`), so the result never loses what
+    the command says; the tests keep the fields and the keys equal."""
+
+    _OPTIONAL: tuple = ()
+
+    def to_dict(self) -> dict:
+        """The command's ``--json`` object.
+
+        Returns
+        -------
+        dict
+            One entry per field, in field order (optional ones only when set), then
+            :attr:`extra`.
+        """
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+               if not (f.name in self._OPTIONAL and getattr(self, f.name) is None)}
+        out.update(self.extra)
+        return out
+
+    @property
+    def extra(self) -> dict:
+        """Keys of the command's report without a field here (empty when in step)."""
+        return getattr(self, "_extra", {})
+
+    @classmethod
+    def _from(cls, d: dict, **attrs):
+        names = {f.name for f in dataclasses.fields(cls)}
+        obj = cls(**{n: d.get(n) for n in names})
+        object.__setattr__(obj, "_extra", {k: v for k, v in d.items() if k not in names})
+        for k, v in attrs.items():
+            object.__setattr__(obj, k, v)
+        return obj
+
+
+def _scene(scene):
+    """A Scene from a Scene or a path."""
+    if isinstance(scene, (str, os.PathLike)):
+        return load_scene(scene)
+    return scene
+
+
+# ---------------------------------------------------------------------------- check
+@dataclasses.dataclass(frozen=True)
+class CheckReport(_Report):
+    """What ``hapsim check SCENE --json`` says: stability and the (k, b) felt at the port.
+
+    Attributes
+    ----------
+    scene : str
+        The scene's path.
+    verdict : {"stable", "unstable"}
+    rate_hz : float
+        Device rate [Hz].
+    device : dict or None
+        ``mass`` [kg], ``friction`` [N s/m], ``delay`` [samples], ``hold``, ``correction``.
+    calibrations : list of dict
+        The (K, B) calibrated for each ``target`` link.
+    stable, marginal : bool
+        Spectral radius < 1 (marginal: within 1e-9 of 1, counted stable).
+    spectral_radius : float
+        Of the closed-loop state matrix.
+    has_port : bool
+    period : float
+        T [s].
+    reference_mass : float
+        m [kg] the felt k, b are expressed with.
+    integrator : str
+    rendered : dict or None
+        The felt mode: ``k`` [N/m], ``b`` [N s/m], ``f0_hz``, ``damping_ratio``, ``z_re``,
+        ``z_im``, ``kind``, ``participation``.
+    modes : list of dict
+        Every mode, least damped first (same keys).
+    eigenvalues : list of [float, float]
+        Closed-loop eigenvalues z (real, imaginary).
+    state_names : list of str
+    calibrated : dict
+        ``{link: [K, B]}``.
+    static_k : float or None
+        Stiffness a slow push feels at the port [N/m] (virtual masses at rest;
+        :func:`hapsim.analysis.network.static_stiffness`).
+
+    Other attributes (not in ``--json``): ``analysis`` (the
+    :class:`~hapsim.analysis.scene_check.SceneCheck`), ``calibrated_scene`` (the scene
+    with its targets calibrated), ``calibrations_made`` (their calibration results).
+    """
+
+    scene: str
+    verdict: str
+    rate_hz: float
+    device: dict | None
+    calibrations: list
+    stable: bool
+    marginal: bool
+    spectral_radius: float
+    has_port: bool
+    period: float
+    reference_mass: float
+    integrator: str
+    rendered: dict | None
+    modes: list
+    eigenvalues: list
+    state_names: list
+    calibrated: dict
+    static_k: float | None
+
+    @property
+    def k(self) -> float:
+        """Felt stiffness k [N/m] (NaN when nothing rings at the port)."""
+        return _get(self.rendered, "k")
+
+    @property
+    def b(self) -> float:
+        """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
+        return _get(self.rendered, "b")
+
+    def plot(self, ax=None):
+        """The closed-loop poles in the z-plane, the felt pair marked
+        (:func:`hapsim.plot.plot_poles`). Returns the matplotlib figure."""
+        from hapsim.plot import plot_poles
+        return plot_poles(self, ax=ax)
+
+
+def _get(d, key) -> float:
+    v = None if d is None else d.get(key)
+    return math.nan if v is None else float(v)
+
+
+def check(scene) -> CheckReport:
+    """Check a scene: stability of its closed loop and what is felt at its port.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or str
+        A loaded scene, or the path of one.
+
+    Returns
+    -------
+    CheckReport
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene, or one too large to analyse.
+    UnrenderableTargetError
+        A ``target`` link the device cannot render (a negative verdict).
+
+    Notes
+    -----
+    The eigenvalues of the closed-loop state matrix of the temporary hybrid system
+    (Florens, Voda & Urma; docs/design.md, 'The THS'); the felt (k, b) are those of the
+    least damped pole pair seen at the port, ``k = m |s|^2``, ``b = -2 m Re(s)``.
+    """
+    from hapsim.analysis.network import check_size, static_stiffness
+    from hapsim.analysis.scene_check import check_scene
+    from hapsim.analysis.targets import apply_targets
+
+    scene = _scene(scene)
+    scene, cals = apply_targets(scene)
+    check_size(scene)
+    chk = check_scene(scene)
+    dev = scene.device
+    d = {"scene": scene.path, "verdict": "stable" if chk.stable else "unstable",
+         "rate_hz": scene.rate_hz,
+         "device": None if dev is None else {
+             "mass": dev.mass, "friction": dev.friction, "delay": dev.delay,
+             "hold": dev.hold, "correction": getattr(dev, "correction", None)},
+         "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
+         "static_k": static_stiffness(scene) if chk.has_port else None}
+    return CheckReport._from(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+
+
+# ---------------------------------------------------------------------------- a loop
+@dataclasses.dataclass(frozen=True)
+class RenderReport(_Report):
+    """What ``hapsim render --json`` says: the (k, b) felt for a virtual (K, B).
+
+    Attributes
+    ----------
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m] simulated.
+    k, b : float
+        Felt stiffness [N/m] and damping [N s/m] (b includes the device's friction).
+    f0_hz, damping_ratio : float
+        Of the felt pole pair.
+    stable, marginal : bool
+    spectral_radius : float
+    rendered : dict
+        The felt mode (as :attr:`CheckReport.rendered`).
+    modes : list of dict
+    note : str or None
+    loop : dict
+        The :class:`LoopModel` (mass, friction, rate_hz, delay, hold).
+
+    Other attributes: ``analysis``, the :class:`~hapsim.analysis.ths.RenderResult`.
+    """
+
+    K: float
+    B: float
+    k: float
+    b: float
+    f0_hz: float
+    damping_ratio: float
+    stable: bool
+    marginal: bool
+    spectral_radius: float
+    rendered: dict | None
+    modes: list
+    note: str | None
+    loop: dict
+
+    @property
+    def eigenvalues(self) -> list:
+        """Closed-loop poles as [re, im] (from :attr:`modes`)."""
+        return [[m["z_re"], m["z_im"]] for m in self.modes]
+
+    def plot(self, ax=None):
+        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`)."""
+        from hapsim.plot import plot_poles
+        return plot_poles(self, ax=ax)
+
+
+def render(loop, K: float, B: float = 0.0) -> RenderReport:
+    """The stiffness k and damping b felt for a virtual spring K and damper B.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The real side: ``mass`` [kg], ``friction`` [N s/m], ``rate_hz`` [Hz], ``delay``
+        [samples], ``hold`` (``"zoh"`` or ``"ideal"``).
+    K : float
+        Virtual stiffness [N/m].
+    B : float
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    RenderReport
+
+    Raises
+    ------
+    ConfigError
+        A non-finite K or B.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.ths.render`: the least damped closed-loop pole pair z,
+    ``s = ln(z) / T``, ``k = m |s|^2``, ``b = -2 m Re(s)`` (Florens, Voda & Urma).
+    """
+    from hapsim.analysis.ths import render as _render
+    r = _render(loop, K, B)
+    return RenderReport._from({**r.to_dict(), "loop": loop.to_dict()}, analysis=r)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrateReport(_Report):
+    """What ``hapsim calibrate --json`` says: the (K, B) that render a felt (k, b).
+
+    Attributes
+    ----------
+    k, b : float
+        The target felt stiffness [N/m] and damping [N s/m].
+    K, B : float
+        The virtual stiffness [N/m] and damping [N s/m] to simulate.
+    renderable : bool
+    reason : str
+    spectral_radius : float
+    target : dict
+        The target oscillator (``f0_hz``, ``damping_ratio``, ...).
+    modes : list of dict
+    loop : dict
+
+    Other attributes: ``analysis``, the :class:`~hapsim.analysis.ths.CalibrationResult`.
+    """
+
+    k: float
+    b: float
+    K: float
+    B: float
+    renderable: bool
+    reason: str
+    spectral_radius: float
+    target: dict
+    modes: list
+    loop: dict
+
+
+def calibrate(loop, k: float, b: float) -> CalibrateReport:
+    """The virtual (K, B) that make the hand feel (k, b).
+
+    Parameters
+    ----------
+    loop : LoopModel
+    k : float
+        Felt stiffness to render [N/m], > 0.
+    b : float
+        Felt damping to render [N s/m].
+
+    Returns
+    -------
+    CalibrateReport
+        ``renderable`` False (with the reason) when no stable (K, B) renders it.
+
+    Raises
+    ------
+    ConfigError
+        ``k <= 0`` or a non-finite target.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.ths.calibrate`: the inverse of :func:`render`, solved for the
+    pole pair of the target oscillator (Florens, Voda & Urma).
+    """
+    from hapsim.analysis.ths import calibrate as _calibrate
+    c = _calibrate(loop, k, b)
+    return CalibrateReport._from({**c.to_dict(), "loop": loop.to_dict()}, analysis=c)
+
+
+@dataclasses.dataclass(frozen=True)
+class StabilityReport(_Report):
+    """What ``hapsim stability --json`` says: the largest stable K for a damping B.
+
+    Attributes
+    ----------
+    K_max : float or None
+        Exact stability limit [N/m] (None when unbounded).
+    B : float
+        Virtual damping [N s/m].
+    spectral_radius_at_K_max, spectral_radius_error : float or None
+        The spectral radius there, to the digits double arithmetic knows, and its error.
+    passivity_K, diolaiti_K, centred_difference_K : float
+        Published limits [N/m]: Colgate & Schenkel 1997 (passivity, sufficient), Diolaiti
+        et al. 2006 (first order in b0 T / m), the centred difference (ideal, d = 0).
+    loop : dict
+    """
+
+    K_max: float | None
+    B: float
+    spectral_radius_at_K_max: float | None
+    spectral_radius_error: float | None
+    passivity_K: float
+    diolaiti_K: float
+    centred_difference_K: float
+    loop: dict
+
+
+def stability(loop, B: float = 0.0) -> StabilityReport:
+    """The largest virtual stiffness K the loop keeps stable, for a damping B.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    B : float
+        Virtual damping [N s/m].
+
+    Returns
+    -------
+    StabilityReport
+
+    Raises
+    ------
+    ConfigError
+        A non-finite B.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS) beside
+    :func:`hapsim.analysis.ths.published_limits`.
+    """
+    from hapsim.analysis.loop import spectral_radius_known
+    from hapsim.analysis.ths import published_limits, stability_limit
+    kmax = stability_limit(loop, B)
+    rho = err = None
+    if math.isfinite(kmax):
+        rho, err = spectral_radius_known(loop, kmax, B)
+        rho = known_digits(rho, err)
+    return StabilityReport._from({
+        "K_max": kmax if math.isfinite(kmax) else None, "B": B,
+        "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
+        **published_limits(loop, B), "loop": loop.to_dict()})
+
+
+# ---------------------------------------------------------------------------- family
+@dataclasses.dataclass(frozen=True)
+class FamilyReport(_Report):
+    """What ``hapsim family SCENE --json`` says: a family of hands, robustly stable or not.
+
+    Attributes
+    ----------
+    scene : str
+    verdict : str
+    correction : dict or None
+    members, corners : int
+    robust : bool
+    robust_method : str
+    certificate : dict or None
+    unstable : int
+    corners_stable : bool
+    worst, first_unstable : dict or None
+    felt : dict
+        The spread of the felt (k, b) over the members.
+    links : dict
+    calibrated : dict
+    consistency : dict or None
+        Parallel links and a real arm spring against a virtual one (when there are two).
+    family_calibrations : list or None
+        The minimax calibration of each target link (``calibrate=True``).
+
+    Other attributes: ``analysis``, the :class:`~hapsim.analysis.family.FamilyResult`.
+    """
+
+    _OPTIONAL = ("consistency", "family_calibrations")
+
+    scene: str
+    verdict: str
+    correction: dict | None
+    members: int
+    corners: int
+    robust: bool
+    robust_method: str
+    certificate: dict | None
+    unstable: int
+    corners_stable: bool
+    worst: dict | None
+    first_unstable: dict | None
+    felt: dict
+    links: dict
+    calibrated: dict
+    consistency: dict | None = None
+    family_calibrations: list | None = None
+
+    def plot(self, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius
+        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+        from hapsim.plot_family import plot_family
+        return plot_family(self.analysis, title=title or self.scene)
+
+
+def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
+           certify: int = 4096, calibrate: bool = False,
+           correction: dict | None = None) -> FamilyReport:
+    """A family of hands (the scene's ``device.hand`` ranges): robust stability, the spread
+    of what is felt, and optionally the minimax calibration of its target links.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or str
+    samples : int, optional
+        Random members beside the corners and the nominal one (default: a grid).
+    grid : int
+        Grid points per range (>= 2) when ``samples`` is None.
+    seed : int
+        Seed of the samples.
+    certify : int
+        Most boxes of the certificate between members (0: the sampled verdict only).
+    calibrate : bool
+        Calibrate each ``target`` link for the whole family.
+    correction : dict, optional
+        A ``device.correction`` mapping in place of the scene's.
+
+    Returns
+    -------
+    FamilyReport
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene or value; ``calibrate`` without a target link.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.family.family` (Florens, Voda & Urma Sec. 4: a family of THS).
+    """
+    from hapsim.analysis.family import family as _family
+    from hapsim.analysis.hand import hand_stiffness
+
+    if samples is not None and samples < 1:
+        raise ConfigError(f"must be >= 1, got {samples}", key="samples")
+    if grid < 2:
+        raise ConfigError(f"must be >= 2, got {grid}", key="grid")
+    if certify < 0:
+        raise ConfigError(f"must be >= 0, got {certify}", key="certify")
+    scene = _scene(scene)
+    if correction is not None:
+        scene = dataclasses.replace(scene, device=dataclasses.replace(
+            scene.device, correction=correction))
+    res = _family(scene, samples, grid=grid, seed=seed, certify=certify)
+    rep = res.to_dict()
+    if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
+        from hapsim.analysis.family import consistency
+        c = consistency(scene, mem=res.members, calibrated=res.calibrated)
+        rep["consistency"] = {k: v for k, v in c.items()
+                              if k not in ("k", "b", "k_sum", "b_sum", "k_real")}
+    if calibrate:
+        from hapsim.analysis.family import calibrate_family
+        targets = [lk.name for lk in scene.links if lk.target is not None]
+        if not targets:
+            raise ConfigError("calibrate needs a link given as target {k, b}",
+                              file=scene.path, key="links")
+        rep["family_calibrations"] = [calibrate_family(scene, name, mem=res.members).to_dict()
+                                      for name in targets]
+    if not res.robust:
+        verdict = "not robustly stable (certified)"
+    elif res.robust_method == "certified":
+        verdict = "robustly stable (certified)"
+    else:
+        verdict = f"robustly stable on the samples only ({res.robust_method})"
+    return FamilyReport._from({"scene": scene.path, "verdict": verdict,
+                               "correction": getattr(scene.device, "correction", None),
+                               **rep}, analysis=res)
+
+
+# ---------------------------------------------------------------------------- devices
+@dataclasses.dataclass(frozen=True)
+class IdentifyReport(_Report):
+    """What ``hapsim identify --json`` says: a device's mass, friction, delay and hold.
+
+    Attributes
+    ----------
+    device : dict
+        The fit (:meth:`hapsim.analysis.device_fit.DeviceFit.to_dict`): each quantity with
+        its confidence interval, ``explained``, the residual.
+    loop : dict
+        The excitation run (samples, stop reason, late, clamped, ...).
+    hand : bool
+        Whether a hand held the handle (then mass and friction are the THS's).
+    out, plot : str or None
+        The files the command wrote (None from the API).
+    note : str or None
+
+    Other attributes: ``fit`` (the :class:`~hapsim.analysis.device_fit.DeviceFit`) and
+    ``record`` (the excitation's columns and loop facts). Its chart (``plot`` is the
+    command's file field here): :func:`hapsim.plot.plot_identify` ``(report)``.
+    """
+
+    _OPTIONAL = ("note",)
+
+    device: dict
+    loop: dict
+    hand: bool
+    out: str | None
+    plot: str | None
+    note: str | None = None
+
+    def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
+        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``;
+        ``driver``: the :class:`hapsim.drivers.base.Driver` whose protocol it names)."""
+        from hapsim.device_file import device_yaml
+        return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
+
+
+def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115200,
+             device=None, force_limit: float = 2.0, envelope: float = 0.01,
+             duration: float = 4.0, rate_hz: float = 1000.0, max_delay: int = 20,
+             lockstep: bool = False, seed: int = 0, hand: bool = False,
+             transport: str | None = None, progress: bool = False,
+             handle_signals: bool = False,
+             driver_options: dict | None = None) -> IdentifyReport:
+    """Excite a device (or its mock) and identify its mass, friction, delay and hold.
+
+    Parameters
+    ----------
+    port : str, optional
+        Serial port of the device; None: the embedded mock of ``device``.
+    driver : str
+        Its protocol (:data:`hapsim.drivers.DRIVERS`).
+    baud : int
+    device : hapsim.scene.Device, optional
+        What the mock models (default m = 0.1 kg, b0 = 0.5 N s/m, d = 1).
+    force_limit : float
+        Largest force sent [N].
+    envelope : float
+        Position envelope [m] around the start; beyond it the excitation stops.
+    duration : float
+        Excitation length [s].
+    rate_hz : float
+        Loop rate [Hz].
+    max_delay : int
+        Largest device delay tried [samples].
+    lockstep : bool
+        Lockstep embedded mock (deterministic).
+    seed : int
+    hand : bool
+        A hand holds the handle (the result is the THS's mass and damping).
+    transport : {"inprocess", "pty", "serial"}, optional
+        ``"inprocess"``: the lockstep mock called directly (no child process); default
+        ``"serial"`` with a port, else the embedded mock on a pseudo-terminal.
+    progress : bool
+        A progress bar on stderr when it is a terminal.
+    handle_signals : bool
+        Stop cleanly on SIGINT/SIGTERM (a library leaves them to its caller by default).
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
+
+    Returns
+    -------
+    IdentifyReport
+
+    Raises
+    ------
+    ConfigError
+        Bad values, an unknown driver.
+    IdentificationError
+        A record too short or that the fit cannot explain.
+    DeviceError, ProtocolError
+        As :func:`run`.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.device_fit.fit_device`: least squares of the sampled plant
+    (mass, friction, Coulomb friction, delay, hold) on the recorded positions and forces.
+    """
+    from hapsim.drivers import DRIVERS
+    if driver not in DRIVERS:
+        raise ConfigError(f"unknown driver {driver!r}; valid: {', '.join(DRIVERS)}",
+                          key="driver")
+    for key, v in (("force_limit", force_limit), ("envelope", envelope),
+                   ("duration", duration), ("rate_hz", rate_hz)):
+        if not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"must be a positive number, got {v}", key=key)
+    fit, rec = excite_and_fit(port=port, baud=baud, device=device, force_limit=force_limit,
+                         envelope=envelope, duration=duration, rate_hz=rate_hz,
+                         max_delay=max_delay, lockstep=lockstep, seed=seed,
+                         driver=None if driver == "framed" else driver, progress=progress,
+                         transport=transport, handle_signals=handle_signals,
+                         driver_options=driver_options)
+    d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
+         "plot": None}
+    if hand:
+        d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
+    return IdentifyReport._from(_clean(d), fit=fit, record=rec)
+
+
+def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
+             duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
+             transport=None, progress=True, handle_signals=True, driver=None,
+             driver_options=None):
+    """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
+
+    Parameters
+    ----------
+    port, baud : str, int
+        Device port (None: a mock of ``device``) and baud rate.
+    device : hapsim.scene.Device, optional
+        What the mock models.
+    force_limit, envelope, duration, rate_hz, max_delay, lockstep, seed
+        As the options of the same names ([N], [m], [s], [Hz], [samples]).
+    transport : {"inprocess", "pty", "serial"}, optional
+        As :func:`hapsim.daemon.identify_run.record`.
+    progress, handle_signals : bool
+        Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
+    driver : str, optional
+        Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
+
+    Returns
+    -------
+    (DeviceFit, dict)
+        The fit and the record (:func:`hapsim.daemon.identify_run.record`).
+
+    Raises
+    ------
+    ConfigError
+        Bad values; a record too short to fit (a safety stop at once).
+    DeviceError, ProtocolError
+        As ``hapsim run``.
+    """
+    from hapsim.analysis.device_fit import fit_device
+    from hapsim.daemon.identify_run import record
+    if isinstance(max_delay, bool) or max_delay < 0:
+        raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="--max-delay")
+    rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
+                 force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
+                 noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
+    # one uniform record: the longest stretch without a missing STATE
+    seq = rec["seq"]
+    cut = np.flatnonzero(np.diff(seq) != 1) + 1
+    bounds = np.concatenate([[0], cut, [seq.size]])
+    i = int(np.argmax(np.diff(bounds)))
+    a, b = int(bounds[i]), int(bounds[i + 1])
+    rec["loop"]["fitted_rows"] = [a, b]
+    acc = rec.get("account")
+    acc = acc.rows(a, b) if acc is not None else None
+    if acc is not None:
+        rec["loop"]["account"] = acc.to_dict()
+    if b - a < 200 and seq.size >= 200:
+        raise IdentificationError(
+            f"too short a record: the longest stretch without a missing STATE is {b - a} "
+            f"samples (rows {a}..{b} of {seq.size}; {seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
+            f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
+            f"the baud rate, or run on a quieter machine)")
+    try:
+        fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
+                         late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
+    except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
+        if isinstance(exc, HapsimError):
+            raise
+        # the fit failed numerically: the record does not carry what the model needs
+        raise IdentificationError(f"the record cannot be identified: the fit failed "
+                                  f"({type(exc).__name__}: {exc}); "
+                                  f"{_record_summary(rec, a, b)}") from None
+    return fit, rec
+
+
+def _record_summary(rec, a: int, b: int) -> str:
+    """One phrase on a record: rows fitted, late ticks, the device's delay, its stop."""
+    loop = rec["loop"]
+    dd = loop.get("device_delay")
+    return (f"rows {a}..{b}, {int(np.count_nonzero(rec['late'][a:b]))} late, device delay "
+            f"{'not shown' if dd is None or dd < 0 else dd}, stop: {loop['stop_reason']}")
+
+
+# ---------------------------------------------------------------------------- run
+@dataclasses.dataclass(frozen=True)
+class RunReport(_Report):
+    """What ``hapsim run SCENE --json`` says: the loop closed, what was felt, how it ran.
+
+    Attributes
+    ----------
+    scene : str
+    target : dict or None
+        The first target link's (k, b) and renderability (``targets``: all of them).
+    targets : list of dict
+    virtual : dict
+        The (K, B) simulated.
+    predicted : dict
+        ``k`` [N/m], ``b`` [N s/m], ``f0_hz``, ``damping_ratio``, ``stable``, ...
+    measured : dict
+        The same figures identified from the logged free response, with their
+        uncertainty and the verdict (``error`` when nothing could be measured).
+    loop : dict
+        Rate, ticks, late, missed, turnaround, stop reason, the device's protocol, ...
+    telemetry, osc, sound : dict or None
+    advice : dict or None
+        What ``auto`` chose (rate and integrator).
+
+    Other attributes: ``exit_code``, what ``hapsim run`` exits with (0, or 1 after a
+    safety stop or a device fault).
+    """
+
+    _OPTIONAL = ("advice",)
+
+    scene: str
+    target: dict | None
+    targets: list
+    virtual: dict
+    predicted: dict
+    measured: dict
+    loop: dict
+    telemetry: dict | None
+    osc: dict | None
+    sound: dict | None
+    advice: dict | None = None
+
+    @property
+    def k(self) -> float:
+        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
+        return _get(self.measured, "k")
+
+    @property
+    def b(self) -> float:
+        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
+        return _get(self.measured, "b")
+
+    @property
+    def ok(self) -> bool:
+        """Ran to the end (or was stopped by a signal): what exit code 0 means."""
+        return self.exit_code == 0
+
+
+#: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
+_RUN_INTERNAL = ("plan", "embedded")
+
+
+def run_options() -> tuple:
+    """The options :func:`run` takes: the fields of
+    :class:`hapsim.daemon.runner.RunOptions` (what ``hapsim run``'s options become).
+
+    Returns
+    -------
+    tuple of str
+    """
+    from hapsim.daemon.runner import RunOptions
+    return tuple(f.name for f in dataclasses.fields(RunOptions)
+                 if f.name not in _RUN_INTERNAL)
+
+
+def run(scene, **options: Any) -> RunReport:
+    """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or str
+    **options
+        Those of ``hapsim run`` (:func:`run_options`): ``port`` (None: the embedded mock
+        on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic mock),
+        ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a file),
+        ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
+        process), ``handle_signals`` (default False here: a library leaves SIGINT to its
+        caller), ...
+
+    Returns
+    -------
+    RunReport
+        Also when the run ended on a safety stop or a device fault (``ok`` False).
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene or option (an unknown option names the valid ones).
+    UnstableConfigError
+        An unstable loop without ``allow_unstable``, an unrenderable target.
+    DeviceError, ProtocolError
+        The port failed or the device was lost beyond recovery before anything ran.
+
+    Notes
+    -----
+    The measured (k, b) are identified from the free response by the matrix pencil
+    method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
+    """
+    from hapsim.daemon.runner import run_scene
+    from hapsim.errors import DeviceError, ProtocolError
+
+    valid = run_options()
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
+                          f"{', '.join(valid)}", key=unknown[0])
+    scene = _scene(scene)
+    options.setdefault("handle_signals", False)
+    if options.get("driver") is None and scene.device is not None:
+        options["driver"] = scene.device.protocol
+    if options.get("driver") == "framed":
+        options["driver"] = None
+    try:
+        rep = run_scene(scene, **options)
+    except (DeviceError, ProtocolError) as exc:
+        rep = getattr(exc, "report", None)
+        if rep is None:
+            raise
+    code = rep.pop("exit_code")
+    return RunReport._from(_clean(rep), exit_code=code)
+
+
+def known_digits(value: float, error: float) -> float:
+    """``value`` rounded to the digits that are known: to the decade at or above
+    ``2 error`` (so the last digit shown is off by at most half a unit).
+
+    Parameters
+    ----------
+    value : float
+    error : float >= 0
+        Its uncertainty (0 or non-finite: ``value`` unchanged).
+
+    Returns
+    -------
+    float
+    """
+    if not (error > 0 and math.isfinite(error)):
+        return value
+    return round(value, known_decimals(error))
+
+
+def known_decimals(error: float) -> int:
+    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0."""
+    return max(0, -math.ceil(math.log10(2.0 * error)))
+
+
+def _clean(obj):
+    """JSON-safe copy (non-finite floats become None), as the commands print."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    return obj

@@ -1,0 +1,79 @@
+"""``hapsim check`` on a 2-D or 3-D scene: the MIMO closed loop, the felt matrices."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from hapsim.errors import ConfigError
+
+
+def run_nd(args) -> int:
+    """Check an n-D scene (``dimension: 2`` or ``3``; :mod:`hapsim.scene_nd`).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene`` (path), ``json`` (bool), ``modes`` (int).
+
+    Returns
+    -------
+    int
+        0 stable, 1 unstable (the MIMO characteristic's spectral radius).
+
+    Raises
+    ------
+    ConfigError
+        Bad scene file or option (exit 2), a scene without a port.
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.scene_nd import load_scene_nd
+    if args.modes < 0:
+        raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
+    scene = load_scene_nd(args.scene)
+    if scene.port is None:
+        raise ConfigError("an n-D scene is checked felt through its device: it needs a "
+                          "mass of kind 'port' and a device section", file=scene.path,
+                          key="masses")
+    chk = check_scene_nd(scene)
+    if args.json:
+        d = chk.to_dict()
+        d["scene"] = scene.path
+        d["device"] = {"kind": scene.device.kind, "mass": scene.device.mass.tolist(),
+                       "friction": scene.device.friction.tolist(),
+                       "position": scene.device.position.tolist(),
+                       "delay": scene.device.delay, "hold": scene.device.hold}
+        print(json.dumps(d))
+        return 0 if chk.stable else 1
+    o = sys.stdout
+    r = chk.render
+    n = chk.dof
+    print(f"{scene.path}: {n}-D scene, {chk.states} states, device {scene.device.kind} "
+          f"(delay {scene.device.delay}, hold {scene.device.hold})", file=o)
+    print(f"  verdict: {'stable' if chk.stable else 'UNSTABLE'} (spectral radius "
+          f"{r.spectral_radius:.9f}, MIMO characteristic)", file=o)
+
+    def mat(name, a, unit):
+        if a is None:
+            return
+        print(f"  {name} [{unit}]", file=o)
+        for row in a:
+            print("    " + "  ".join(f"{v:+14.6g}" for v in row), file=o)
+    mat("felt stiffness k", r.felt_stiffness, "N/m")
+    mat("felt damping b", r.felt_damping, "N s/m")
+    if r.directions is not None:
+        print("  principal directions (least damped first):", file=o)
+        for i in range(n):
+            e = "(" + ", ".join(f"{v:+.4f}" for v in r.directions[:, i]) + ")"
+            print(f"    {e}  m = {r.direction_mass[i]:.6g} kg  k = "
+                  f"{r.direction_stiffness[i]:.6g} N/m  b = {r.direction_damping[i]:.6g} "
+                  "N s/m", file=o)
+    if chk.stiffness_limits is not None:
+        print("  stiffness limit K_max along the device's principal mass axes (the port "
+              "links as port-ground springs):", file=o)
+        for i in range(n):
+            e = "(" + ", ".join(f"{v:+.4f}" for v in chk.limit_directions[:, i]) + ")"
+            print(f"    {e}  K_max = {chk.stiffness_limits[i]:.6g} N/m", file=o)
+    if r.note:
+        print(f"  {r.note}", file=o)
+    return 0 if chk.stable else 1

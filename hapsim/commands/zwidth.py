@@ -1,0 +1,362 @@
+"""``hapsim zwidth``: the stiffness limit K_max(B) measured on the device, beside the
+predicted one."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+from hapsim.errors import ConfigError
+
+_DESCRIPTION = """\
+Measure the device's Z-width (Colgate & Brown 1994): for each virtual damping B, the
+largest wall stiffness K it renders stably, located from the records themselves.
+
+For each B a one-link wall (K, B) is run on the device, released from x0, for a short
+record; hapsim run's identification gives the felt pair, whose damping b sets the dominant
+pole's modulus rho = exp(-b T / 2m): < 1 the record decays, > 1 it grows (on the boundary
+b = 0). K starts below the predicted limit and is raised by 15 % per record until a record
+grows (the run's safety limits stay armed; x0 is reduced so that K x0 stays under 30 % of
+the force limit), then the crossing is refined by regula falsi on the measured b(K) to
+--tol. K_max measured is the root of b(K); its interval is the last bracket (a decaying
+and a growing record), widened by the stated uncertainty of b.
+
+Predicted beside it: the exact linear limit (hapsim stability), and, for a device with
+Coulomb friction fc, the limit at the record's amplitude a by the describing function of
+friction (b_eq = 4 fc / (pi a w) added to b0): the device follows one or the other, and
+the report says which."""
+
+_EPILOG = """\
+examples:
+  hapsim zwidth --lockstep --B 0 1.5 4 --json
+  hapsim zwidth --B 0 2 4 8 --plot zwidth.png          (embedded mock, real time)
+  hapsim zwidth --scene configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
+  hapsim zwidth --firmware --B 1.5                      (the emulated Hapkit board)
+  hapsim zwidth --firmware --lockstep --B 0 1.5 4       (the board, host-paced)
+
+exit codes: 0 every point measured, 1 some point not measured (no bracket), 2 bad input"""
+
+#: The device measured when no --scene is given: configs/wall.yaml's.
+DEFAULT_DEVICE = """rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground, x0: 0.0}
+links:
+  - {name: wall, kind: spring_damper, between: [hand, wall], stiffness: 1000.0, damping: 1.5}
+device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: 10.0}
+excitation: {x0: 0.005}
+"""
+
+
+def register(sub) -> None:
+    """Add the ``zwidth`` parser to ``sub``.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-parsers.
+    """
+    p = sub.add_parser("zwidth", help="the stiffness limit K_max(B) measured on the device",
+                       description=_DESCRIPTION, epilog=_EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", metavar="SCENE", default=None,
+                   help="scene whose device, rate and safety limits are measured (default: "
+                        "configs/wall.yaml's device: 0.1 kg, b0 0.5 N s/m, d = 1, zoh, 1 kHz; "
+                        "with --firmware configs/hapkit.yaml, the device the board models)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--port", default=None, help="serial port of a device (or hapsim mock)")
+    where.add_argument("--firmware", action="store_true",
+                       help="the Hapkit 3 reference firmware on the emulated board (simavr), "
+                            "started here")
+    p.add_argument("--baud", type=int, default=115200, help="baud rate of --port")
+    p.add_argument("--lockstep", action="store_true",
+                   help="the embedded mock in lockstep, in process (deterministic); with "
+                        "--firmware, the emulated board's clock paced by the host")
+    p.add_argument("--B", type=float, nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
+                   help="virtual dampings [N s/m] (default 0 1.5 4)")
+    p.add_argument("--x0", type=float, default=None,
+                   help="release position [m] (default the scene's excitation x0, or 5 mm)")
+    p.add_argument("--duration", type=float, default=0.3,
+                   help="record length per trial [s] (default 0.3)")
+    p.add_argument("--tol", type=float, default=2e-3,
+                   help="relative width of the final bracket (default 0.002)")
+    p.add_argument("--start", type=float, default=0.7,
+                   help="first K as a fraction of the predicted limit (default 0.7; K is "
+                        "raised by 15 %% per record from there)")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument("--plot", metavar="FILE", default=None,
+                   help="chart: predicted boundary and measured points with their intervals")
+    p.set_defaults(func=run)
+
+
+def _base(args):
+    from hapsim.scene import load_scene, parse_scene
+    if args.scene is None and args.firmware:      # the board models this device
+        from hapsim.daemon import board
+        args.scene = str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
+    if args.scene is None:
+        return parse_scene(DEFAULT_DEVICE, "<default device>")
+    sc = load_scene(args.scene)
+    if sc.port is None or sc.device is None:
+        raise ConfigError("zwidth needs a scene with a port and a device section",
+                          file=sc.path, key="device")
+    return sc
+
+
+def _start_firmware(base, realtime: bool = True):
+    """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port).
+    ``realtime`` False: the board's clock advances as the host answers (lockstep)."""
+    import subprocess
+    from hapsim.daemon import board
+    why = board.missing_tools()
+    if why:
+        raise ConfigError(f"the emulated board cannot be built here: {why}", key="--firmware")
+    board.build()
+    cmd = board.board_command(base.device, base.excitation, realtime=realtime)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    for line in proc.stdout:
+        if line.startswith("PORT "):
+            return proc, line.split()[1]
+    proc.kill()
+    raise ConfigError("the emulated board printed no PORT line", key="--firmware")
+
+
+def run(args) -> int:
+    """Run ``hapsim zwidth``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+
+    Returns
+    -------
+    int
+        0 every point measured, 1 some point without a bracket.
+
+    Raises
+    ------
+    ConfigError
+        Bad option or scene (exit 2).
+    """
+    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
+                                        release)
+    from hapsim.progress import Progress
+
+    for key, v, ok in (("--duration", args.duration, args.duration > 0),
+                       ("--tol", args.tol, 0 < args.tol < 0.5),
+                       ("--start", args.start, 0 < args.start < 1)):
+        if not (math.isfinite(v) and ok):
+            raise ConfigError(f"out of range: {v!r}", key=key)
+    if any(not math.isfinite(b) for b in args.B):
+        raise ConfigError(f"must be finite, got {args.B}", key="--B")
+    if args.lockstep and args.port:
+        raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
+                          "it with --port", key="--lockstep")
+    if args.plot:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.plot, "--plot")
+    base = _base(args)
+    x0 = args.x0 if args.x0 is not None else (abs(base.excitation.x0) or 0.005)
+    if not (math.isfinite(x0) and x0 > 0):
+        raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
+    flim = float(base.device.force_limit or math.inf)
+    loop = device_loop(base.device, base.rate_hz)
+    proc = None
+    if args.firmware:
+        # the board places the handle at its own x0 at every CONFIG: one release for all
+        # the walls, small enough for the stiffest one the search may reach (130 % of the
+        # largest predicted limit) to stay clear of the force limit
+        kmax = max(stability_limit(loop, B) for B in args.B)
+        if math.isfinite(kmax) and kmax > 0:
+            x0 = release(x0, flim, 1.3 * kmax)
+        import dataclasses
+        base = dataclasses.replace(base, excitation=dataclasses.replace(base.excitation,
+                                                                        x0=x0))
+        proc, port = _start_firmware(base, realtime=not args.lockstep)
+        opts = dict(port=port, lockstep=bool(args.lockstep))
+        where = ("the emulated Hapkit board (simavr, " + ("lockstep" if args.lockstep
+                                                          else "real time") + ")")
+    elif args.port:
+        opts = dict(port=args.port, baud=args.baud)
+        where = f"the device on {args.port}"
+    elif args.lockstep:
+        opts = dict(transport="inprocess", lockstep=True)
+        where = "the embedded mock (lockstep, in process)"
+    else:
+        opts = {}
+        where = "the embedded mock (real time, on a pty)"
+    measure = run_measure(base, x0, duration=args.duration, **opts)
+    fc = float(base.device.coulomb or 0.0)
+    points = []
+    try:
+        with Progress(len(args.B), "measuring K_max(B)", "B values") as bar:
+            for i, B in enumerate(args.B):
+                Kp = stability_limit(loop, B)
+                Kc = (predicted_coulomb(base.device, base.rate_hz, B,
+                                        lambda K: release(x0, flim, K)) if fc > 0 else None)
+                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol,
+                                                    start=args.start)
+                points.append(ZPoint(B=float(B), K_max_predicted=Kp,
+                                     K_max_predicted_coulomb=Kc, K_max_measured=Km,
+                                     K_max_measured_interval=iv, trials=trials, note=note))
+                bar.update(i + 1)
+    finally:
+        if proc is not None:
+            proc.terminate()
+            proc.wait(timeout=10)
+    rep = report(points, base, where, x0, fc)
+    if args.plot:
+        from hapsim.plot import save_figure
+        from hapsim.plot_zwidth import plot_zwidth
+        save_figure(plot_zwidth(rep, loop, base.device, base.rate_hz, x0), args.plot)
+    if args.json:
+        print(json.dumps(rep))
+    else:
+        print(format_report(rep))
+        if args.plot:
+            print(f"figure: {args.plot}")
+    return 0 if all(p.K_max_measured is not None for p in points) else 1
+
+
+def report(points, base, where: str, x0: float, fc: float) -> dict:
+    """The JSON report: device, points, and which prediction the measurements follow.
+
+    Parameters
+    ----------
+    points : list of hapsim.analysis.zwidth.ZPoint
+    base : hapsim.scene.Scene
+    where : str
+    x0 : float
+    fc : float
+
+    Returns
+    -------
+    dict
+        ``device`` (mass, friction, coulomb, delay, hold, rate_hz, force_limit), ``where``,
+        ``x0``, ``points`` (:meth:`ZPoint.to_dict` plus ``rel_err`` against the linear and,
+        with Coulomb friction, the describing-function prediction), ``follows``
+        (``"linear"``, ``"coulomb"`` or None), ``worst_rel_err`` (against the one followed).
+    """
+    pts = []
+    for p in points:
+        d = p.to_dict()
+        km = d["K_max_measured"]
+        d["rel_err"] = None if km is None else (km - p.K_max_predicted) / p.K_max_predicted
+        d["rel_err_coulomb"] = (None if km is None or p.K_max_predicted_coulomb is None
+                                else (km - p.K_max_predicted_coulomb)
+                                / p.K_max_predicted_coulomb)
+        pts.append(d)
+    lin = [abs(d["rel_err"]) for d in pts if d["rel_err"] is not None]
+    cou = [abs(d["rel_err_coulomb"]) for d in pts if d["rel_err_coulomb"] is not None]
+    follows, worst = None, None
+    if lin:
+        follows, worst = "linear", max(lin)
+        if cou and max(cou) < max(lin):
+            follows, worst = "coulomb", max(cou)
+    dev = base.device
+    return {"where": where, "x0": x0,
+            "device": {"mass": dev.mass, "friction": dev.friction, "coulomb": fc,
+                       "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz,
+                       "force_limit": dev.force_limit},
+            "points": pts, "follows": follows, "worst_rel_err": worst}
+
+
+def format_report(rep: dict) -> str:
+    """The human table of :func:`report`.
+
+    Parameters
+    ----------
+    rep : dict
+
+    Returns
+    -------
+    str
+    """
+    d = rep["device"]
+    lines = [f"Z-width of {rep['where']}: m = {d['mass']:g} kg, b0 = {d['friction']:g} N s/m"
+             + (f", Coulomb {d['coulomb']:g} N" if d["coulomb"] else "")
+             + f", d = {d['delay']}, {d['hold']}, {d['rate_hz']:g} Hz; records released "
+             f"from x0 = {rep['x0'] * 1e3:g} mm"]
+    head = "   B [N s/m]   K_max predicted" + ("   with Coulomb" if d["coulomb"] else "") + \
+        "   measured   interval                  rel. err   records"
+    lines.append(head)
+    for p in rep["points"]:
+        iv = p["K_max_measured_interval"]
+        km = p["K_max_measured"]
+        err = p["rel_err_coulomb"] if rep["follows"] == "coulomb" else p["rel_err"]
+        lines.append(
+            f"  {p['B']:9.4g}   {_g(p['K_max_predicted']):>15}"
+            + (f"   {_g(p['K_max_predicted_coulomb']):>12}" if d["coulomb"] else "")
+            + f"   {_g(km):>8}   "
+            + (f"[{_g(iv[0])}, {_g(iv[1])}]" if iv else "-").ljust(24)
+            + f"  {'-' if err is None else format(err, '+.2e'):>9}   {len(p['trials'])}"
+            + (f"  ({p['note']})" if p["note"] else ""))
+    if rep["follows"]:
+        lines.append(f"the device follows the {rep['follows']} prediction"
+                     + (" (describing function of Coulomb friction at the record's amplitude)"
+                        if rep["follows"] == "coulomb" else "")
+                     + f": worst relative error {rep['worst_rel_err']:.2e}")
+    return "\n".join(lines)
+
+
+def _g(v) -> str:
+    return "-" if v is None else format(v, ".6g")
+
+
+def run_measure(base, x0: float, *, duration: float, **run_options):
+    """A measuring function for :func:`hapsim.analysis.zwidth.locate_onset`: one ``hapsim
+    run`` per trial (it runs the daemon, so it stands with the command, not the analysis).
+
+    Parameters
+    ----------
+    base : hapsim.scene.Scene
+        The device (and rate, safety limits).
+    x0 : float
+        Release position [m] (reduced by :func:`hapsim.analysis.zwidth.release` for a stiff wall).
+    duration : float
+        Record length [s].
+    **run_options
+        Passed to :func:`hapsim.daemon.runner.run_scene` (``port``, ``lockstep``,
+        ``transport``, ...); ``allow_unstable`` is set (the safety limits stay armed).
+
+    Returns
+    -------
+    callable
+        ``measure(K, B) -> Trial``.
+    """
+    from hapsim.analysis.network import device_body
+    from hapsim.analysis.zwidth import MIN_GROWTH_TICKS, Trial, release, wall_scene
+    from hapsim.daemon.runner import run_scene
+
+    m = device_body(base.device)[0]
+    T = base.period
+
+    flim = float(getattr(base.device, "force_limit", math.inf) or math.inf)
+
+    def measure(K: float, B: float) -> Trial:
+        rep = run_scene(wall_scene(base, K, B, release(x0, flim, K)), duration=duration,
+                        allow_unstable=True, handle_signals=False, **run_options)
+        meas = rep.get("measured") or {}
+        lp = rep.get("loop") or {}
+        stop = str(lp.get("stop_reason") or "")
+        safety = bool(lp.get("safety_stop")) or stop.startswith("safety")
+        b = meas.get("b")
+        if b is None or not math.isfinite(b):
+            # a safety stop after a while is growth from x0 (well inside the limits) to a
+            # limit; one within the first periods says nothing of the loop (a device out
+            # of place, a clamped start): undecided
+            grew = safety and int(lp.get("ticks") or 0) >= MIN_GROWTH_TICKS
+            return Trial(K, B, None, None, 0.0, None, True if grew else None,
+                         note=(f"{stop} after {lp.get('ticks')} ticks" if safety
+                               else stop or str(meas.get("error", "not identified"))))
+        unc = float(meas.get("b_unc") or 0.0)
+        return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
+                     math.exp(-b * T / (2.0 * m)), bool(b < 0 or safety), note=stop)
+    return measure
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("run it as: hapsim zwidth")

@@ -1,0 +1,198 @@
+"""The human report of a run: :func:`format_report` turns the dict that
+:func:`hapsim.daemon.runner.run_scene` returns (the same fields as ``hapsim run --json``)
+into the compact, aligned lines ``hapsim run`` prints. Formatting only: nothing here runs,
+measures or decides."""
+
+from __future__ import annotations
+
+from hapsim.errors import dash
+
+__all__ = ["format_report"]
+
+
+def format_report(rep: dict) -> str:
+    """The compact, aligned human report of :func:`run_scene`.
+
+    Parameters
+    ----------
+    rep : dict
+        A report returned by :func:`run_scene`.
+
+    Returns
+    -------
+    str
+        Several lines, no trailing newline.
+    """
+    lp = rep["loop"]
+    lines = []
+    protocol = lp.get("protocol", "framed")
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+                          else ", lockstep" if lp["lockstep"]
+                          else f", {lp.get('pace', 'real-time')}")
+    lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
+                 .replace("  ", " "))
+    lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
+
+    def row(name, d):
+        if d is None:
+            return
+        lines.append(f"  {name:<12} {dash(d.get('k'), '12.4f')} {dash(d.get('b'), '11.5f')} "
+                     f"{dash(d.get('f0_hz'), '10.4f')} {dash(d.get('damping_ratio'), '9.5f')}")
+
+    targets = rep.get("targets")
+    if targets is None:
+        targets = [rep["target"]] if rep.get("target") is not None else []
+    for t in targets:
+        row("target", t)
+        reason = str(t.get("reason") or "")
+        for word in ("renderable: ", "not renderable: "):
+            if reason.startswith(word):
+                reason = reason[len(word):]
+        lines.append(f"  {'':<12} link {t['link']}: "
+                     f"{'renderable' if t.get('renderable') else 'NOT renderable'}"
+                     + (f" ({reason})" if reason else ""))
+    v = rep["virtual"]
+    if "K" in v:
+        lines.append(f"  {'virtual K,B':<12} {dash(v['K'], '12.4f')} {dash(v['B'], '11.5f')}"
+                     f"   (link {v['link']})")
+    p = rep["predicted"]
+    row("predicted", p)
+    m = rep["measured"]
+    after = m.get("compared_with")
+    if isinstance(after, dict):          # live changes came before the measured window
+        row("after OSC", after)
+    if "k" in m:
+        row("measured", m)
+        re = m["rel_err"]
+        lines.append(f"  {'rel. error':<12} {dash(re['k'], '+12.2e')} {dash(re['b'], '+11.2e')} "
+                     f"{dash(re['f0_hz'], '+10.2e')} {dash(re['damping_ratio'], '+9.2e')}")
+        if m.get("interval_note"):
+            # general format: a stated uncertainty far below the last fixed digit is
+            # printed as what it is, not as 0.0000
+            lines.append(f"  {'+-':<12} {dash(m['k_interval'], '12.4g')} "
+                         f"{dash(m['b_interval'], '11.4g')}   ({m['interval_note']})")
+        if m.get("verdict"):
+            lines.append(f"  verdict: {m['verdict']}")
+        if "rel_err_target" in m:
+            rt = m["rel_err_target"]
+            lines.append(f"  {'vs target':<12} {dash(rt['k'], '+12.2e')} "
+                         f"{dash(rt['b'], '+11.2e')} {dash(rt['f0_hz'], '+10.2e')} "
+                         f"{dash(rt['damping_ratio'], '+9.2e')}")
+    elif m.get("comparable") is False:
+        lines.append(f"  {'measured':<12} not comparable (see verdict)")
+        lines.append(f"  verdict: {m['verdict']}")
+    else:
+        lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
+    if m.get("note"):
+        lines.append(f"  note: {m['note']}")
+    lines += _osc_lines(rep.get("osc"), m)
+    if p.get("stable") is not None:
+        # K_max is the limit of the links at the port as one port-ground spring: the felt
+        # k of a scene with virtual masses is another quantity, so say which it is there
+        kmax = f"K_max {dash(p['stiffness_limit'], '.6g')} N/m"
+        if p.get("source") == "check_scene" and p.get("port_K") is not None:
+            kmax += (f" of the links at the port as a port-ground spring (K = "
+                     f"{p['port_K']:g} N/m, B = {p['port_B']:g} N s/m), not of the felt k")
+        used = (": not comparable" if m.get("comparable") is False
+                else f" from {m.get('samples_used', 0)} samples")
+        lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
+                     f"{dash(p['spectral_radius'], '.9f')}, {kmax}; identification order "
+                     f"{p['order']}{used})")
+    ta = lp["turnaround_us"]
+    ll = "on" if lp["low_latency"] else f"off ({lp['low_latency_note'] or 'n/a'})"
+    lines.append(f"loop: {lp['rate_hz']:g} Hz, {lp['ticks']}/"
+                 f"{lp['requested'] if lp.get('requested') else 'open-ended'} ticks, "
+                 f"late {lp['late']}, missed {lp['missed']}, skipped {lp.get('skipped', 0)}, "
+                 f"clamped {lp['clamped']}; "
+                 f"stop: {lp['stop_reason']} (state {lp.get('state', '-')}); scheduling "
+                 f"{lp.get('scheduling', 'normal')}, {lp.get('loop', 'python')} host loop")
+    if lp.get("python_reason"):
+        lines.append(f"loop: the Python loop ran, not the compiled one: {lp['python_reason']}")
+    if lp.get("first_sample_s") is not None:
+        lines.append(f"start-up: first sample {lp['first_sample_s']:.2f} s after the process "
+                     f"started")
+    pr = lp.get("ping_rtt_us") or {}
+    if pr.get("p50") is not None:
+        lines.append(f"ping round trip [us]: p50 {dash(pr.get('p50'), '.0f')}  max "
+                     f"{dash(pr.get('max'), '.0f')} ({pr.get('answered')}/{pr.get('sent')} "
+                     f"answered, before arming)")
+    lines.append(f"turnaround [us]: p50 {dash(ta.get('p50'), '.0f')}  p99 "
+                 f"{dash(ta.get('p99'), '.0f')}  p99.9 {dash(ta.get('p999'), '.0f')}  max "
+                 f"{dash(ta.get('max'), '.0f')}; low-latency mode {ll}")
+    if lp.get("lost") or lp.get("stale") or lp.get("bad_axes") or lp.get("device_faults") \
+            or lp.get("fault_plan") or lp.get("implausible"):
+        dec = lp.get("decoder") or {}
+        bad = sum(v for k, v in dec.items() if k != "frames_ok")
+        lines.append(f"faults: lost {lp['lost']}, recovered {lp['recovered']} "
+                     f"({lp['reconnect_attempts']} attempts), stale {lp['stale']}, bad frames "
+                     f"{bad}, wrong axes {lp['bad_axes']}, implausible seq "
+                 f"{lp.get('implausible', 0)}, device faults "
+                     f"{lp['device_faults'] or 0}")
+        for ev in lp.get("events", []):
+            if ev["event"] in ("lost", "recovered"):
+                what = (f"lost ({ev['reason']})" if ev["event"] == "lost" else
+                        f"recovered after {ev['after_s']:.3g} s, {ev['attempts']} attempt(s)")
+                lines.append(f"  t = {ev['t']:.3f} s, sample {ev['sample']}: {what}")
+        if lp.get("fault_plan"):
+            lines.append(f"injected: {lp['fault_plan']['injected']} "
+                         f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
+    bf = lp.get("bad_frames") or []
+    if bf:
+        kinds: dict = {}
+        for r in bf:
+            kinds[r["kind"]] = kinds.get(r["kind"], 0) + 1
+        last = bf[-1]
+        shown = last["hex"] if len(last["hex"]) <= 48 else last["hex"][:45] + "..."
+        lines.append(f"bad frames: {lp.get('bad_frames_seen', len(bf))} dropped, last "
+                     f"{len(bf)} recorded ({', '.join(f'{k} {v}' for k, v in kinds.items())}); "
+                     f"last at sample {last['sample']}, t = {last['t']:.3f} s: {last['kind']} "
+                     f"{shown} ({last['outcome']}); all in --json loop.bad_frames")
+    sf = lp["safety"]
+    lines.append(f"energy to the hand [J]: max {dash(lp.get('energy_max_j'), '.4g')}, end "
+                 f"{dash(lp.get('energy_j'), '.4g')}; stored at start "
+                 f"{dash(lp.get('energy_stored_j'), '.4g')}, excess max "
+                 f"{dash(lp.get('energy_excess_max_j'), '.4g')} (limit "
+                 f"{dash(sf['energy_limit'], 'g')}"
+                 f"{', passivity controller on' if sf['passivity_controller'] else ''})")
+    mk = lp.get("mock")
+    if mk:
+        lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
+                     f"{mk['watchdog_trips']}, overruns {mk['overruns']}, clamped {mk['clamped']}, "
+                     f"last force {mk['last_applied']:g} N, "
+                     f"STOP {'seen' if mk['saw_stop'] else 'not seen'}")
+    tl = rep["telemetry"]
+    if tl:
+        extra = ""
+        if tl.get("lost_rows"):
+            extra += (f"; {tl['lost_rows']} rows LOST: the journal writer fell more than the "
+                      f"{tl['ring']}-row ring behind")
+        if tl.get("events_journaled"):
+            extra += f"; {tl['events_journaled']} events journaled"
+        if tl.get("writer_error"):
+            extra += f"; journal writer stopped: {tl['writer_error']}"
+        lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
+    return "\n".join(lines)
+
+
+def _osc_lines(osc: dict | None, measured: dict) -> list:
+    """What ``run --osc`` changed, and which prediction the measurement is compared with."""
+    if not osc or not (osc.get("accepted") or osc.get("refused")):
+        return []
+    changes = osc.get("changes") or []
+    n = osc.get("accepted", 0)
+    lines = [f"osc: {n} change{'' if n == 1 else 's'} accepted, {osc.get('refused', 0)} "
+             f"refused"]
+    for c in changes[:8]:
+        k, b = (c.get("felt") or [None, None])[:2]
+        lines.append(f"  sample {c['sample']}: {c['address']} "
+                     f"{' '.join(map(str, c['args']))} -> felt k {dash(k, '.6g')} N/m, "
+                     f"b {dash(b, '.6g')} N s/m (ramp {c.get('ramp_s', 0):g} s)")
+    if len(changes) > 8:
+        lines.append(f"  ... and {len(changes) - 8} more (--json: osc.changes)")
+    after = measured.get("compared_with")
+    if isinstance(after, dict):
+        lines.append(f"  the measurement is compared with the prediction after "
+                     f"{after['after']} (row 'after OSC')")
+    elif isinstance(after, str):
+        lines.append(f"  the measurement is compared with {after}")
+    return lines

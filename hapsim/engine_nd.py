@@ -1,0 +1,118 @@
+"""The n-D engine: a 2-D or 3-D scene (:mod:`hapsim.scene_nd`) on the kernels of
+:mod:`hapsim.kernels.nd`.
+
+This layer validates (the scene did) and lays the arrays out; the kernels never see a
+Python object (CONVENTIONS §3). Links: ``spring_damper`` with ``length: 0`` runs as a
+``linear`` link, with ``length > 0`` as a ``euclid`` link; ``contact`` links and
+``planes`` run as the kernels' contacts (the laws in :mod:`hapsim.scene_nd`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+from hapsim.kernels.nd import CHUNK, link_lengths, run_nd, stripes
+
+__all__ = ["EngineND"]
+
+
+class EngineND:
+    """Run an n-D scene sample by sample (centred scheme on every axis).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene.
+
+    Notes
+    -----
+    Positions start at ``x0`` with ``xp = x0 - T v0``; grounds and the port have
+    ``T^2/m = 0``. The port's position is set by :meth:`set_port_position` before a step;
+    :attr:`port_force` is then the force the step computed on it [N] (``-F`` of its links).
+    """
+
+    def __init__(self, scene) -> None:
+        self.scene = scene
+        T = scene.period
+        self.names = [m.name for m in scene.masses]
+        index = {n: i for i, n in enumerate(self.names)}
+        X0 = np.array([m.x0 for m in scene.masses], float)
+        V0 = np.array([m.v0 for m in scene.masses], float)
+        self.x = np.ascontiguousarray(X0.T)
+        self.xp = np.ascontiguousarray((X0 - T * V0).T)
+        self.f = np.zeros_like(self.x)
+        self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
+                             for m in scene.masses])
+        self.port = index.get(scene.port.name) if scene.port is not None else None
+
+        def pack(links):
+            if not links:
+                return np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+            i1 = np.array([index[lk.m1] for lk in links])
+            i2 = np.array([index[lk.m2] for lk in links])
+            return stripes(i1, i2)
+
+        def slot(order, values):
+            out = np.zeros(order.size)
+            real = order >= 0
+            out[real] = np.asarray(values, float)[order[real]]
+            return out
+        lin = [lk for lk in scene.links if lk.kind == "spring_damper" and lk.length == 0]
+        eu = [lk for lk in scene.links if lk.kind == "spring_damper" and lk.length > 0]
+        con = [lk for lk in scene.links if lk.kind == "contact"]
+        self.c_i1 = np.array([index[lk.m1] for lk in con], np.int64)
+        self.c_i2 = np.array([index[lk.m2] for lk in con], np.int64)
+        self.c_k = np.array([lk.stiffness for lk in con], float)
+        self.c_z = np.array([lk.damping / T for lk in con], float)
+        self.c_thr = np.array([lk.threshold for lk in con], float)
+        d = self.xp[:, self.c_i1] - self.xp[:, self.c_i2]
+        self.c_lprev = np.sqrt((d * d).sum(axis=0))
+        pairs = [(pl, m) for pl in scene.planes for m in pl.masses]
+        self.p_mass = np.array([index[m] for _, m in pairs], np.int64)
+        self.p_normal = np.ascontiguousarray(
+            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, scene.dimension).T)
+        self.p_offset = np.array([pl.offset for pl, _ in pairs], float)
+        self.p_k = np.array([pl.stiffness for pl, _ in pairs], float)
+        self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
+        self.lin_table, lo = pack(lin)
+        self.eu_table, eo = pack(eu)
+        self.lin_k = slot(lo, [lk.stiffness for lk in lin])
+        self.lin_z = slot(lo, [lk.damping / T for lk in lin])
+        self.eu_k = slot(eo, [lk.stiffness for lk in eu])
+        self.eu_z = slot(eo, [lk.damping / T for lk in eu])
+        self.eu_rest = slot(eo, [lk.length for lk in eu])
+        self.eu_lprev = link_lengths(self.xp, self.eu_table, eo.size)
+        self.W = np.zeros((scene.dimension, CHUNK))
+
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` samples [-] (no allocation)."""
+        run_nd(int(n), self.x, self.xp, self.f, self.t2m, self.lin_table, self.lin_k,
+               self.lin_z, self.eu_table, self.eu_k, self.eu_z, self.eu_rest,
+               self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+               self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
+               self.p_k, self.p_z)
+
+    def set_port_position(self, position) -> None:
+        """Set the port's position [m] (shape (dim,)) for the next step; its previous
+        position stays the one it had in the last step (not given: the step extrapolates
+        it, ``2 x - xp``, as the scheme moves a mass without force)."""
+        if self.port is None:
+            raise ConfigError("the scene has no port", key="masses")
+        p = np.asarray(position, float)
+        if p.shape != (self.x.shape[0],) or not np.all(np.isfinite(p)):
+            raise ConfigError(f"must be {self.x.shape[0]} finite coordinates [m], got "
+                              f"{position!r}", key="position")
+        self.x[:, self.port] = p
+
+    @property
+    def port_force(self) -> np.ndarray:
+        """Force on the port at the last step [N], shape (dim,)."""
+        if self.port is None:
+            raise ConfigError("the scene has no port", key="masses")
+        return self.f[:, self.port].copy()
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Current positions [m], shape (N, dim) (a copy)."""
+        return self.x.T.copy()

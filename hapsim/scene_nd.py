@@ -1,0 +1,614 @@
+"""Scenes in two and three dimensions (``dimension: 2`` or ``3``): reader and validation.
+
+A 1-D scene (no ``dimension`` key, or ``dimension: 1``) is read by :mod:`hapsim.scene`,
+unchanged. This module reads the n-D format: the same structure with vector positions,
+Euclidean links, planes and a device that may be a kinematic one (the pantograph, the
+delta of :mod:`hapsim.kinematics`) at an operating point. Every value is checked, and an
+error names the file, the line and the key (``masses[2].x0``) as the 1-D reader's do.
+
+Format (n = ``dimension``; vectors are lists of n numbers; a scalar where a vector is
+expected is refused)::
+
+    dimension: 2                  # 2 or 3
+    rate_hz: 1000                 # > 0 [Hz]
+    integrator: centred           # the only one in n-D
+    masses:                       # non-empty
+      - {name: hand, kind: port}                       # at most one; rests where the
+                                                       # device's handle is
+      - {name: anchor, kind: ground, x0: [0.0, 0.02]}  # fixed point [m]
+      - {name: bob, kind: mass, mass: 0.01, x0: [0.01, 0.0], v0: [0, 0]}  # [kg] [m] [m/s]
+    links:
+      - {name: s, kind: spring_damper, between: [hand, bob], stiffness: 300, damping: 0.5,
+         length: 0.01}            # rest length [m] >= 0 (default 0)
+      - {name: c, kind: contact, between: [hand, bob], stiffness: 800, threshold: 0.01}
+    planes:
+      - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
+         masses: [hand]}          # acts on the named masses (default: every moving one)
+    device:                       # required with a port
+      kind: cartesian             # cartesian | pantograph | delta
+      mass: 0.1                   # cartesian: [kg], a number (isotropic), a vector
+                                  # (diagonal) or an n x n matrix (SPD)
+      friction: 0.5               # cartesian: [N s/m], same shapes (PSD)
+      position: [0.0, 0.0]        # cartesian: the handle's rest position [m]
+      delay: 1                    # [samples]
+      hold: zoh                   # the only one in n-D
+    # a kinematic device instead: kind: pantograph (n = 2) or delta (n = 3), geometry: a
+    # preset (haply, falcon), joints: the operating point [deg], joint_inertia [kg m^2]
+    # and joint_friction [N m s/rad] (vectors or matrices), hand_mass [kg] and
+    # hand_damping [N s/m] (isotropic, default 0); the handle rests at the forward
+    # kinematics of the joints.
+
+Link laws (per sample, ``T`` the period; ``d = x1 - x2`` between the first and the second
+mass of ``between``; ``F`` acts as ``-F`` on the first and ``+F`` on the second):
+
+- ``spring_damper`` with ``length: 0`` (the default): ``F = K d + B (d - d_prev) / T``,
+  the 1-D law on every axis (Faust ``mi.lib``; a 2-D scene whose links are all of this
+  kind is n independent copies of the 1-D scene);
+- ``spring_damper`` with ``length: L > 0``: ``F = [K (|d| - L) + B (|d| - |d_prev|) / T]
+  d / |d|``: the Euclidean stretch and the damping on the relative velocity along the link
+  (miPhysics ``SpringDamper3D``);
+- ``contact`` (between spheres): the Euclidean law with ``L = threshold`` (> 0, the sum
+  of the radii), acting only while ``|d| < threshold``;
+- ``planes[]``: with the unit ``normal`` and the penetration ``p = offset - normal . x``,
+  the force ``[K p + B (p - p_prev) / T] normal`` on each named mass while ``p > 0``.
+
+:mod:`hapsim.analysis.scene_nd_check` linearises the scene at its rest configuration
+(contacts and planes engaged, as the 1-D check does) and analyses the coupled loop.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hapsim._yaml_lines import decode_text, load_yaml
+from hapsim.errors import ConfigError, show
+
+__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "SceneND", "scene_dimension",
+           "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+
+TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device")
+MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
+             "ground": ("name", "kind", "x0"), "port": ("name", "kind")}
+LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "length"),
+             "contact": ("name", "kind", "between", "stiffness", "damping", "threshold")}
+PLANE_KEYS = ("name", "normal", "offset", "stiffness", "damping", "masses")
+DEVICE_KINDS = ("cartesian", "pantograph", "delta")
+DEVICE_KEYS = {"cartesian": ("kind", "mass", "friction", "position", "delay", "hold"),
+               "pantograph": ("kind", "geometry", "joints", "joint_inertia",
+                              "joint_friction", "hand_mass", "hand_damping", "delay", "hold"),
+               "delta": ("kind", "geometry", "joints", "joint_inertia", "joint_friction",
+                         "hand_mass", "hand_damping", "delay", "hold")}
+DEVICE_DOF = {"pantograph": 2, "delta": 3}
+
+
+@dataclass(frozen=True)
+class MassND:
+    """A point of an n-D scene: ``kind`` in mass/ground/port, ``mass`` [kg] (0 unless
+    ``mass``), rest position ``x0`` [m] and velocity ``v0`` [m/s] (shape (n,))."""
+
+    name: str
+    kind: str
+    mass: float
+    x0: np.ndarray
+    v0: np.ndarray
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class LinkND:
+    """A link of an n-D scene (module docstring for its law): stiffness ``K`` [N/m],
+    damping ``B`` [N s/m], rest ``length`` [m] (spring_damper) or ``threshold`` [m]
+    (contact)."""
+
+    name: str
+    kind: str
+    m1: str
+    m2: str
+    stiffness: float
+    damping: float
+    length: float
+    threshold: float
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class PlaneND:
+    """A plane contact: unit ``normal``, ``offset`` [m] (the plane ``normal . x =
+    offset``), ``stiffness`` [N/m], ``damping`` [N s/m], the ``masses`` it acts on."""
+
+    name: str
+    normal: np.ndarray
+    offset: float
+    stiffness: float
+    damping: float
+    masses: tuple
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class DeviceND:
+    """The device of an n-D scene, at its operating point.
+
+    Attributes
+    ----------
+    kind : {"cartesian", "pantograph", "delta"}
+    mass : ndarray, shape (n, n)
+        Cartesian mass of hand + handle [kg] (for a kinematic device, ``J^-T M_q J^-1``
+        plus the hand's).
+    friction : ndarray, shape (n, n)
+        Cartesian friction [N s/m].
+    position : ndarray, shape (n,)
+        The handle's rest position [m].
+    delay : int
+        [samples].
+    hold : str
+        ``"zoh"``.
+    joints : ndarray or None
+        Operating point [rad] of a kinematic device.
+    geometry : str or None
+        Its preset.
+    """
+
+    kind: str
+    mass: np.ndarray
+    friction: np.ndarray
+    position: np.ndarray
+    delay: int
+    hold: str
+    joints: np.ndarray | None = None
+    geometry: str | None = None
+
+
+@dataclass(frozen=True)
+class SceneND:
+    """A validated 2-D or 3-D scene (:func:`load_scene_nd`)."""
+
+    dimension: int
+    rate_hz: float
+    masses: tuple
+    links: tuple
+    planes: tuple
+    device: DeviceND | None
+    path: str = "<string>"
+    integrator: str = "centred"
+
+    @property
+    def period(self) -> float:
+        """Sample period ``T`` [s]."""
+        return 1.0 / self.rate_hz
+
+    @property
+    def port(self) -> MassND | None:
+        """The port mass, or None."""
+        return next((m for m in self.masses if m.kind == "port"), None)
+
+
+class _Reader:
+    """Where we are in the file, for error messages (file, line, key)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def error(self, message: str, line, key: str) -> ConfigError:
+        return ConfigError(message, file=self.path, line=line, key=key or None)
+
+    @staticmethod
+    def line(container, key=None):
+        lines = getattr(container, "lines", None)
+        if key is not None and lines and key in lines:
+            return lines[key]
+        return getattr(container, "line", None)
+
+    def mapping(self, v, key, line):
+        if not isinstance(v, dict):
+            raise self.error(f"must be a mapping (key: value), got {_typename(v)}", line, key)
+        return v
+
+    def keys(self, d, allowed, key, required=()):
+        for k in d:
+            if k not in allowed:
+                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
+                                 self.line(d, k), f"{key}.{k}" if key else str(k))
+        for k in required:
+            if k not in d:
+                raise self.error(f"missing required key {show(k)}", self.line(d),
+                                 f"{key}.{k}" if key else k)
+
+    def number(self, d, k, key, *, default=None, minimum=None, strict=False,
+               maximum=None, unit=""):
+        if k not in d:
+            return default
+        v = d[k]
+        where = f"{key}.{k}" if key else k
+        line = self.line(d, k)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.error(f"must be a number{' [' + unit + ']' if unit else ''}, got "
+                             f"{_typename(v)} {show(v)}", line, where)
+        try:
+            x = float(v)
+        except OverflowError:
+            x = math.inf
+        if not math.isfinite(x):
+            raise self.error(f"must be a finite number, got {show(v)}", line, where)
+        if minimum is not None and (x < minimum or (strict and x == minimum)):
+            raise self.error(f"must be {'>' if strict else '>='} {minimum:g}"
+                             f"{' ' + unit if unit else ''}, got {x:g}", line, where)
+        if maximum is not None and x > maximum:
+            raise self.error(f"must be <= {maximum:g}{' ' + unit if unit else ''}, got "
+                             f"{x:g}", line, where)
+        return x
+
+    def integer(self, d, k, key, *, default, minimum, maximum, unit):
+        if k not in d:
+            return default
+        v = d[k]
+        where = f"{key}.{k}" if key else k
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.error(f"must be a whole number of {unit}, got {show(v)}",
+                             self.line(d, k), where)
+        if not minimum <= v <= maximum:
+            raise self.error(f"must be between {minimum} and {maximum} {unit}, got {v}",
+                             self.line(d, k), where)
+        return int(v)
+
+    def string(self, d, k, key, default=None):
+        if k not in d:
+            return default
+        v = d[k]
+        if not isinstance(v, str) or not v:
+            raise self.error(f"must be a non-empty string, got {_typename(v)} {show(v)}",
+                             self.line(d, k), f"{key}.{k}")
+        return v
+
+    def choice(self, d, k, key, choices, default=None):
+        if k not in d:
+            if default is None:
+                raise self.error(f"missing required key {show(k)}", self.line(d),
+                                 f"{key}.{k}" if key else k)
+            return default
+        v = d[k]
+        if not isinstance(v, str) or v not in choices:
+            raise self.error(f"unknown value {show(v)}; valid choices: {', '.join(choices)}",
+                             self.line(d, k), f"{key}.{k}" if key else k)
+        return v
+
+    def vector(self, d, k, key, n, default=None, unit="m"):
+        if k not in d:
+            return np.zeros(n) if default is None else default
+        v = d[k]
+        where = f"{key}.{k}"
+        line = self.line(d, k)
+        if not isinstance(v, list) or len(v) != n or \
+                any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v):
+            raise self.error(f"must be a list of {n} numbers [{unit}] (dimension {n}), got "
+                             f"{show(v)}", line, where)
+        try:
+            a = np.array([float(c) for c in v])
+        except OverflowError:
+            a = np.array([math.inf])
+        if not np.all(np.isfinite(a)):
+            raise self.error(f"must be finite, got {show(v)}", line, where)
+        return a
+
+    def matrix(self, d, k, key, n, default, unit, *, definite):
+        """A number (times I), a list of n numbers (diagonal) or n lists of n (a matrix)."""
+        if k not in d:
+            return default
+        v = d[k]
+        where = f"{key}.{k}"
+        line = self.line(d, k)
+        shape_msg = (f"must be a number, a list of {n} numbers (diagonal) or {n} lists of "
+                     f"{n} numbers [{unit}]")
+        try:
+            if isinstance(v, bool):
+                raise TypeError
+            if isinstance(v, (int, float)):
+                if not math.isfinite(float(v)):
+                    raise self.error(f"must be finite, got {show(v)}", line, where)
+                a = float(v) * np.eye(n)
+            elif isinstance(v, list) and len(v) == n and all(
+                    isinstance(c, (int, float)) and not isinstance(c, bool) for c in v):
+                a = np.diag([float(c) for c in v])
+            elif isinstance(v, list) and len(v) == n and all(
+                    isinstance(r, list) and len(r) == n and all(
+                        isinstance(c, (int, float)) and not isinstance(c, bool) for c in r)
+                    for r in v):
+                a = np.array([[float(c) for c in r] for r in v])
+            else:
+                raise TypeError
+        except (TypeError, OverflowError):
+            raise self.error(f"{shape_msg}, got {show(v)}", line, where) from None
+        if not np.all(np.isfinite(a)):
+            raise self.error(f"must be finite, got {show(v)}", line, where)
+        scale = max(float(np.max(np.abs(a))), 1e-300)
+        if np.max(np.abs(a - a.T)) > 1e-12 * scale:
+            raise self.error(f"must be symmetric, got {show(v)}", line, where)
+        lam = np.linalg.eigvalsh(0.5 * (a + a.T))
+        if definite == "positive" and not lam[0] > 0:
+            raise self.error(f"must be positive definite (every eigenvalue > 0 {unit}), "
+                             f"got eigenvalues {show([float(x) for x in lam])}", line, where)
+        if definite == "semi" and lam[0] < 0:
+            raise self.error(f"must be positive semi-definite (every eigenvalue >= 0 "
+                             f"{unit}), got eigenvalues {show([float(x) for x in lam])}",
+                             line, where)
+        return 0.5 * (a + a.T)
+
+
+def _typename(v: Any) -> str:
+    if v is None:
+        return "nothing (null)"
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, dict):
+        return "a mapping"
+    if isinstance(v, list):
+        return "a list"
+    return {int: "an integer", float: "a number", str: "a string"}.get(type(v), type(v).__name__)
+
+
+def scene_dimension(path: str | os.PathLike) -> int:
+    """The ``dimension`` a scene file declares (1 when absent), read cheaply.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Scene file.
+
+    Returns
+    -------
+    int
+        The value of a top-level ``dimension`` key when it is 2 or 3, else 1 (the 1-D
+        reader then reads the file and reports any other problem, including a bad
+        ``dimension``).
+    """
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            data = fh.read()
+    except OSError:
+        return 1
+    if b"dimension" not in data:
+        return 1
+    try:
+        doc = load_yaml(decode_text(data, os.fspath(path)), os.fspath(path))
+    except ConfigError:
+        return 1                       # the 1-D reader reports it
+    d = doc.get("dimension") if isinstance(doc, dict) else None
+    return d if d in (2, 3) and not isinstance(d, bool) else 1
+
+
+def load_scene_nd(path: str | os.PathLike) -> SceneND:
+    """Read and validate a 2-D or 3-D scene file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        YAML scene file (format in the module docstring).
+
+    Returns
+    -------
+    SceneND
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, is not valid YAML or breaks a rule; the message names the
+        file, the line and the key.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
+    return parse_scene_nd(decode_text(data, path), path)
+
+
+def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
+    """Parse and validate n-D scene text (module docstring).
+
+    Parameters
+    ----------
+    text : str
+        YAML text.
+    path : str
+        Name used in messages.
+
+    Returns
+    -------
+    SceneND
+
+    Raises
+    ------
+    ConfigError
+        Unknown keys (listing the valid ones), missing ones, wrong types or shapes
+        (vectors of ``dimension`` numbers), non-positive masses or rates, negative
+        stiffness, damping or length, a contact without a positive threshold, duplicate
+        names, links naming masses that do not exist or joining a mass to itself, more
+        than one port, a port without a device, a device of another dimension, a mass
+        matrix not positive definite, a kinematic device at a singular or unreachable
+        operating point.
+    """
+    r = _Reader(path)
+    doc = load_yaml(text, path)
+    if doc is None:
+        raise r.error("the scene is empty", 1, "dimension")
+    doc = r.mapping(doc, "", 1)
+    r.keys(doc, TOP_KEYS, "", required=("dimension", "rate_hz", "masses"))
+    n = r.integer(doc, "dimension", "", default=1, minimum=1, maximum=3,
+                  unit="dimensions")
+    if n == 1:
+        raise r.error("a 1-D scene is the 1-D format (hapsim.scene, docs/scenes.md): "
+                      "this reader takes dimension 2 or 3", r.line(doc, "dimension"),
+                      "dimension")
+    rate = r.number(doc, "rate_hz", "", minimum=0.0, strict=True, unit="Hz")
+    from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, RATE_RANGE
+    if not RATE_RANGE[0] <= rate <= RATE_RANGE[1]:
+        raise r.error(f"must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} Hz, got "
+                      f"{rate:g}", r.line(doc, "rate_hz"), "rate_hz")
+    r.choice(doc, "integrator", "", ("centred",), default="centred")
+
+    # masses
+    seq = doc["masses"]
+    if not isinstance(seq, list) or not seq:
+        raise r.error("must be a non-empty list of masses", r.line(doc, "masses"), "masses")
+    masses, names = [], {}
+    for i, item in enumerate(seq):
+        key = f"masses[{i}]"
+        d = r.mapping(item, key, r.line(seq, i))
+        kind = r.choice(d, "kind", key, ("mass", "ground", "port"))
+        r.keys(d, MASS_KEYS[kind], key, required=("name",) + (("mass",) if kind == "mass"
+                                                              else ()))
+        name = r.string(d, "name", key)
+        if name in names:
+            raise r.error(f"duplicate mass name {show(name)} (first on line "
+                          f"{names[name]})", r.line(d, "name"), f"{key}.name")
+        names[name] = r.line(d)
+        m = 0.0
+        if kind == "mass":
+            m = r.number(d, "mass", key, minimum=0.0, strict=True, unit="kg")
+            if not MASS_RANGE[0] <= m <= MASS_RANGE[1]:
+                raise r.error(f"must be between {MASS_RANGE[0]:g} and {MASS_RANGE[1]:g} kg,"
+                              f" got {m:g}", r.line(d, "mass"), f"{key}.mass")
+        masses.append(MassND(name, kind, m, r.vector(d, "x0", key, n),
+                             r.vector(d, "v0", key, n, unit="m/s"), line=r.line(d)))
+    ports = [m for m in masses if m.kind == "port"]
+    if len(ports) > 1:
+        raise r.error(f"at most one mass of kind 'port', got {len(ports)} (first on line "
+                      f"{ports[0].line})", ports[1].line, "masses")
+
+    # links
+    links, lnames = [], {}
+    lseq = doc.get("links") or []
+    if not isinstance(lseq, list):
+        raise r.error(f"must be a list of links, got {_typename(lseq)}",
+                      r.line(doc, "links"), "links")
+    for i, item in enumerate(lseq):
+        key = f"links[{i}]"
+        d = r.mapping(item, key, r.line(lseq, i))
+        kind = r.choice(d, "kind", key, tuple(LINK_KEYS))
+        r.keys(d, LINK_KEYS[kind], key, required=("between",) + (
+            ("threshold",) if kind == "contact" else ()))
+        name = r.string(d, "name", key, default=f"link{i}")
+        if name in lnames:
+            raise r.error(f"duplicate link name {show(name)} (first on line "
+                          f"{lnames[name]})", r.line(d, "name"), f"{key}.name")
+        lnames[name] = r.line(d)
+        between = d["between"]
+        if not (isinstance(between, list) and len(between) == 2
+                and all(isinstance(x, str) for x in between)):
+            raise r.error("must be a list of two mass names, e.g. [hand, wall]",
+                          r.line(d, "between"), f"{key}.between")
+        for x in between:
+            if x not in names:
+                raise r.error(f"no mass named {show(x)}; masses: {', '.join(names)}",
+                              r.line(d, "between"), f"{key}.between")
+        if between[0] == between[1]:
+            raise r.error("a link joins two different masses", r.line(d, "between"),
+                          f"{key}.between")
+        if "stiffness" not in d and "damping" not in d:
+            raise r.error("a link needs stiffness and/or damping", r.line(d),
+                          f"{key}.stiffness")
+        K = r.number(d, "stiffness", key, default=0.0, minimum=0.0, unit="N/m")
+        B = r.number(d, "damping", key, default=0.0, minimum=0.0, unit="N s/m")
+        length = r.number(d, "length", key, default=0.0, minimum=0.0, unit="m")
+        threshold = r.number(d, "threshold", key, default=0.0, minimum=0.0, strict=True,
+                             unit="m") if kind == "contact" else 0.0
+        links.append(LinkND(name, kind, between[0], between[1], K, B, length, threshold,
+                            line=r.line(d)))
+
+    # planes
+    planes, pnames = [], {}
+    pseq = doc.get("planes") or []
+    if not isinstance(pseq, list):
+        raise r.error(f"must be a list of planes, got {_typename(pseq)}",
+                      r.line(doc, "planes"), "planes")
+    moving = tuple(m.name for m in masses if m.kind != "ground")
+    for i, item in enumerate(pseq):
+        key = f"planes[{i}]"
+        d = r.mapping(item, key, r.line(pseq, i))
+        r.keys(d, PLANE_KEYS, key, required=("normal",))
+        name = r.string(d, "name", key, default=f"plane{i}")
+        if name in pnames or name in lnames:
+            raise r.error(f"duplicate name {show(name)} (links and planes share names)",
+                          r.line(d, "name"), f"{key}.name")
+        pnames[name] = r.line(d)
+        normal = r.vector(d, "normal", key, n, unit="-")
+        if not np.linalg.norm(normal) > 0:
+            raise r.error("must be a non-zero vector (the plane's outward normal)",
+                          r.line(d, "normal"), f"{key}.normal")
+        if "stiffness" not in d and "damping" not in d:
+            raise r.error("a plane needs stiffness and/or damping", r.line(d),
+                          f"{key}.stiffness")
+        on = d.get("masses", list(moving))
+        if not isinstance(on, list) or not on or not all(isinstance(x, str) for x in on):
+            raise r.error("must be a non-empty list of mass names", r.line(d, "masses"),
+                          f"{key}.masses")
+        for x in on:
+            if x not in names or x not in moving:
+                raise r.error(f"must name moving masses or the port; valid: "
+                              f"{', '.join(moving)}; got {show(x)}", r.line(d, "masses"),
+                              f"{key}.masses")
+        planes.append(PlaneND(name, normal / np.linalg.norm(normal),
+                              r.number(d, "offset", key, default=0.0, unit="m"),
+                              r.number(d, "stiffness", key, default=0.0, minimum=0.0,
+                                       unit="N/m"),
+                              r.number(d, "damping", key, default=0.0, minimum=0.0,
+                                       unit="N s/m"),
+                              tuple(on), line=r.line(d)))
+
+    # device
+    device = None
+    if "device" in doc:
+        device = _read_device(r, doc, n, MAX_DELAY)
+    elif ports:
+        raise r.error("a scene with a port needs a device section", ports[0].line,
+                      "device")
+    if ports and device is not None:
+        masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
+                  if m.kind == "port" else m for m in masses]
+    return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
+                   planes=tuple(planes), device=device, path=path)
+
+
+def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
+    key = "device"
+    d = r.mapping(doc["device"], key, r.line(doc, "device"))
+    kind = r.choice(d, "kind", key, DEVICE_KINDS, default="cartesian")
+    need = ("mass",) if kind == "cartesian" else ("joints", "joint_inertia")
+    r.keys(d, DEVICE_KEYS[kind], key, required=need)
+    delay = r.integer(d, "delay", key, default=1, minimum=0, maximum=max_delay,
+                      unit="samples")
+    hold = r.choice(d, "hold", key, ("zoh",), default="zoh")
+    if kind == "cartesian":
+        M = r.matrix(d, "mass", key, n, None, "kg", definite="positive")
+        B0 = r.matrix(d, "friction", key, n, np.zeros((n, n)), "N s/m", definite="semi")
+        pos = r.vector(d, "position", key, n)
+        return DeviceND(kind, M, B0, pos, delay, hold)
+    if DEVICE_DOF[kind] != n:
+        raise r.error(f"a {kind} has {DEVICE_DOF[kind]} degrees of freedom; this scene has "
+                      f"dimension {n}", r.line(d, "kind"), f"{key}.kind")
+    from hapsim.errors import KinematicsError
+    from hapsim.kinematics import DELTA_PRESETS, PANTOGRAPH_PRESETS, device as make
+    presets = PANTOGRAPH_PRESETS if kind == "pantograph" else DELTA_PRESETS
+    geometry = r.choice(d, "geometry", key, tuple(presets), default=next(iter(presets)))
+    q = np.radians(r.vector(d, "joints", key, n, unit="deg"))
+    Mq = r.matrix(d, "joint_inertia", key, n, None, "kg m^2", definite="positive")
+    Bq = r.matrix(d, "joint_friction", key, n, np.zeros((n, n)), "N m s/rad",
+                  definite="semi")
+    mh = r.number(d, "hand_mass", key, default=0.0, minimum=0.0, unit="kg")
+    bh = r.number(d, "hand_damping", key, default=0.0, minimum=0.0, unit="N s/m")
+    dev = make(kind, geometry)
+    try:
+        from hapsim.analysis.ths_nd import LoopModelND
+        loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                       rate_hz=1.0, delay=0)
+        pos = dev.forward(q)
+    except KinematicsError as exc:
+        raise r.error(exc.reason, r.line(d, "joints"), f"{key}.joints") from None
+    return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
+                    geometry=geometry)

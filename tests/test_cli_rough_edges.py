@@ -1,0 +1,332 @@
+"""The rough edges of the command line (issue 21): each with its message and exit code.
+
+- stdout closed by its reader (``| head``): no traceback, exit 141 (128 + SIGPIPE);
+- an unknown option: the sub-command's usage and "did you mean", exit 2;
+- Ctrl-C with ``--json``: the ``interrupted`` object on stdout, exit 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hapsim.cli import EXIT_BROKEN_PIPE, _did_you_mean, build_parser, main
+from test_new_user import interrupted  # same directory (pytest prepend import mode)
+
+ROOT = Path(__file__).resolve().parents[1]
+WALL = str(ROOT / "configs" / "wall.yaml")
+LOOP = ["--mass", "0.1", "--friction", "0.5", "--rate", "1000", "--delay", "1",
+        "--hold", "zoh"]
+
+
+class ClosedPipe(io.TextIOBase):
+    """A stdout whose reader has gone: every write raises what a closed pipe raises."""
+
+    def writable(self):
+        return True
+
+    def write(self, s):
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def journal(tmp_path) -> str:
+    from hapsim.daemon.telemetry import write_journal
+    n = 500
+    rng = np.random.default_rng(2)
+    cols = {"time": np.arange(n) * 1e-3, "position": rng.normal(size=n) * 1e-3,
+            "force": rng.normal(size=n), "seq": np.arange(n, dtype=np.int64),
+            "turnaround_us": rng.uniform(10, 90, n), "late": np.zeros(n, np.int8),
+            "flags": np.zeros(n, np.uint8)}
+    return write_journal(cols, str(tmp_path / "t.hst"))
+
+
+@pytest.mark.parametrize("argv", [
+    ["check", WALL, "--json"], ["check", WALL],
+    ["render", *LOOP, "--K", "2000", "--B", "2"],
+    ["render", *LOOP, "--K", "2000", "--B", "2", "--json"],
+    ["calibrate", *LOOP, "--k", "2000", "--b", "3"],
+    ["stability", *LOOP, "--B", "2"],
+    ["telemetry", "JOURNAL", "--json"], ["telemetry", "JOURNAL"],
+], ids=lambda a: " ".join(Path(x).name for x in a))
+def test_closed_stdout_is_quiet_exit_141(argv, tmp_path, monkeypatch, capsys):
+    """A reader that went away (``| head``) ends the command with 141 and nothing on
+    stderr, whatever the command was printing (text, JSON, help)."""
+    argv = [journal(tmp_path) if a == "JOURNAL" else a for a in argv]
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert main(argv) == EXIT_BROKEN_PIPE == 128 + signal.SIGPIPE
+    assert capsys.readouterr().err == ""
+
+
+def test_head_on_a_real_pipe_leaves_no_traceback():
+    """The console entry on a real pipe whose reader has closed: no ``BrokenPipeError``,
+    no "Exception ignored" from the interpreter's last flush, status 141."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r, w = os.pipe()
+    os.close(r)       # the reader is gone before hapsim writes a byte
+    p = subprocess.run([sys.executable, "-m", "hapsim", "render", *LOOP, "--K", "1000",
+                        "--json"], stdout=w, stderr=subprocess.PIPE, text=True, env=env,
+                       cwd=ROOT, timeout=120)
+    os.close(w)
+    assert p.stderr == "" and p.returncode == EXIT_BROKEN_PIPE, (p.returncode, p.stderr)
+
+
+def test_unknown_option_names_the_subcommand_and_the_close_option(capsys):
+    """``run SCENE --duraton 2``: the usage of ``hapsim run`` (not the top level) and the
+    option meant; exit 2; with ``--json`` the same message in the usage error object."""
+    assert main(["run", WALL, "--duraton", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: hapsim run ")
+    assert err.rstrip().endswith("hapsim run: error: unrecognized arguments: --duraton 2 "
+                                 "(did you mean --duration?)"), err
+    assert main(["check", WALL, "--jsn"]) == 2
+    assert "usage: hapsim check " in (e := capsys.readouterr().err) \
+        and "(did you mean --json?)" in e
+    assert main(["run", WALL, "--duraton=2", "--sed", "3", "--json"]) == 2
+    got = json.loads(capsys.readouterr().out)
+    assert got["exit"] == 2 and got["error"]["type"] == "usage"
+    assert got["error"]["message"] == (
+        "hapsim run: unrecognized arguments: --duraton=2 --sed 3 "
+        "(--duraton: did you mean --duration?; --sed: did you mean --seed?)")
+
+
+def test_far_from_every_option_no_guess(capsys):
+    assert main(["check", WALL, "--zzzzqqq"]) == 2
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: --zzzzqqq" in err and "did you mean" not in err
+
+
+def _long_options():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, p in sub.choices.items():
+        known = sorted(o for a in p._actions for o in a.option_strings)
+        for opt in known:
+            if opt.startswith("--") and len(opt) >= 6:
+                yield name, opt, known
+
+
+def test_every_option_is_found_again_from_a_transposition():
+    """For every long option of every command: the option with two inner letters swapped
+    (a typo argparse's prefix matching does not absorb) is suggested back."""
+    missed = []
+    for name, opt, known in _long_options():
+        i = len(opt) // 2
+        typo = opt[:i] + opt[i + 1] + opt[i] + opt[i + 2:]
+        if typo == opt:
+            continue
+        hint = _did_you_mean([typo], known)
+        if hint != f" (did you mean {opt}?)":
+            missed.append((name, opt, typo, hint))
+    assert not missed
+
+
+@pytest.mark.parametrize("argv", [["check", "configs/wall.yaml", "--json"],
+                                  ["run", "configs/wall.yaml", "--json", "--duration", "5"]],
+                         ids=["check", "run"])
+def test_ctrl_c_with_json_prints_the_interrupted_object(tmp_path, argv):
+    """Ctrl-C 0.1 s after the interpreter is up (hapsim still importing): stdout holds the
+    ``interrupted`` object the README promises, stderr one line, exit 130."""
+    code, out, err = interrupted(argv, 0.1, tmp_path)
+    assert code == 130, (code, err)
+    assert err.strip().splitlines()[-1].endswith("interrupted") and "Traceback" not in err
+    got = json.loads(out)
+    assert got == {"error": {"type": "interrupted", "message": "hapsim: interrupted",
+                             "file": None, "line": None, "key": None}, "exit": 130}
+
+
+# ------------------------------------------------------------------ the device's protocol
+@pytest.fixture
+def fake_run(monkeypatch):
+    """``run_scene`` replaced by a recorder: it announces the start as the runner does,
+    keeps its arguments, and ends the run with a DeviceError (nothing to report)."""
+    from hapsim.daemon import runner
+    from hapsim.errors import DeviceError
+    seen = {}
+
+    def run_scene(scene, options=None, **kw):
+        import dataclasses
+        opts = dataclasses.replace(options if options is not None else runner.RunOptions(),
+                                   **kw)
+        seen.update({f.name: getattr(opts, f.name) for f in dataclasses.fields(opts)},
+                    scene=scene)
+        opts.on_start("/dev/fake", 1000)
+        raise DeviceError("recorded")
+
+    monkeypatch.setattr(runner, "run_scene", run_scene)
+    import hapsim.daemon.startup as startup
+    monkeypatch.setattr(startup, "start_embedded_mock", lambda *a, **k: None)
+    return seen
+
+
+@pytest.mark.parametrize("config, protocol", [("firefader", "firefader"), ("haply", "haply"),
+                                              ("hapkit_serial", "hapkit-serial")])
+def test_a_scene_names_its_protocol_and_run_says_it(config, protocol, fake_run, capsys):
+    path = str(ROOT / "configs" / f"{config}.yaml")
+    assert main(["run", path]) == 1
+    err = capsys.readouterr().err
+    assert fake_run["driver"] == protocol
+    assert (f"closing the loop on /dev/fake in the {protocol} protocol (the scene's "
+            f"device.protocol) for 1000 samples") in err
+    other = "haply" if protocol != "haply" else "firefader"
+    assert main(["run", path, "--driver", other]) == 1
+    assert fake_run["driver"] == other
+    assert (f"in the {other} protocol (--driver; the scene's device.protocol is {protocol})"
+            in capsys.readouterr().err)
+
+
+def test_framed_is_said_and_passed_as_no_driver(fake_run, capsys):
+    assert main(["run", WALL]) == 1
+    assert fake_run["driver"] is None
+    assert "closing the loop on /dev/fake in the framed protocol for" in capsys.readouterr().err
+
+
+def test_protocol_key_is_validated_and_drivers_follow_it(tmp_path, capsys):
+    from hapsim.drivers import DRIVERS
+    from hapsim.scene_schema import PROTOCOLS
+    assert DRIVERS is PROTOCOLS
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((ROOT / "configs" / "firefader.yaml").read_text()
+                   .replace("protocol: firefader", "protocol: firefadr"))
+    assert main(["check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "device.protocol" in err and "firefadr" in err \
+        and "valid choices: framed, firefader, haply, hapkit-serial" in err
+
+
+def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path, fake_run,
+                                                                        capsys):
+    dev = tmp_path / "dev.yaml"
+    dev.write_text("device:\n  mass: 0.06\n  friction: 0.12\n  delay: 1\n")
+    assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
+    err = capsys.readouterr().err
+    assert (f"hapsim run: the device of {dev} replaces the scene's (mass 0.05 -> 0.06; "
+            f"friction 0.1 -> 0.12)") in err
+    d = fake_run["scene"].device
+    assert (d.mass, d.friction, d.protocol, d.force_limit) == (0.06, 0.12, "firefader", 0.38)
+    assert fake_run["driver"] == "firefader"
+    # a file that names them: its values win, and the line says so
+    dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  protocol: haply\n"
+                   "  force_limit: 0.1\n")
+    assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
+    err = capsys.readouterr().err
+    assert "replaces the scene's (force_limit 0.38 -> 0.1; protocol firefader -> haply)" in err
+    assert fake_run["driver"] == "haply"
+
+
+# ------------------------------------------------------------------ play's report
+def test_play_sound_line_is_readable():
+    from hapsim.commands.play import sound_line
+    line = sound_line({"backend": "JackOutput", "callback": "native", "xruns": 1,
+                       "xrun_at_s": [0.25], "active_monotonic_s": 3.0, "block": 256,
+                       "underrun_at_s": [], "pushed": 3000, "consumed": 3000,
+                       "underruns": 0, "periods": 2990, "lead": 6, "waits": 2})
+    assert line == ("sound: JackOutput (native callback), block 256 frames, lead 6 samples; "
+                    "xruns 1 (at 0.250 s), underruns 0 frames; 2990 periods played, 2 waits")
+    assert "{" not in line
+
+
+def test_play_says_why_nothing_was_measured():
+    """A window the identification refuses: the reason, not ``k = nan``."""
+    from hapsim.audio.control import Controller
+    from hapsim.engine import Engine
+    from hapsim.scene import load_scene
+    scene = load_scene(str(ROOT / "configs" / "wall.yaml"))
+    ctl = Controller(scene, Engine(scene), background=False)
+    try:
+        assert ctl.unmeasured == "no free response has been measured yet"
+        ctl.measure(np.zeros(80))
+        assert math.isnan(ctl.measured[0])
+        assert ctl.unmeasured.startswith("the last free response (80 samples) could not be "
+                                         "measured: ")
+        assert len(ctl.unmeasured) > len("the last free response (80 samples) could not be "
+                                         "measured: ") + 10
+    finally:
+        ctl.close()
+
+
+def test_play_measures_a_scene_released_by_x0_alone(capsys):
+    """wall.yaml has no hand force (x0 only): with --pluck-every its one free response,
+    the first window, is measured (it never was), equal to the prediction (lockstep)."""
+    assert main(["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.6",
+                 "--pluck-every", "0.3", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["measured"]["why_not"] is None
+    assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-9)
+    assert rep["measured"]["b"] == pytest.approx(rep["felt"]["b"], rel=1e-9)
+
+
+# ------------------------------------------------------------------ the plot extra
+def test_missing_matplotlib_names_the_readmes_install_command(monkeypatch, tmp_path, capsys):
+    from hapsim.plot import PLOT_INSTALL, _mpl
+    from hapsim.errors import ConfigError
+    assert f"`{PLOT_INSTALL}`" in (ROOT / "README.md").read_text(encoding="utf-8")
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)    # import matplotlib: ImportError
+    with pytest.raises(ConfigError, match=re.escape(PLOT_INSTALL)):
+        _mpl()
+    assert main(["family", str(ROOT / "configs" / "hand_wall.yaml"), "--plot",
+                 str(tmp_path / "f.png")]) == 2
+    assert PLOT_INSTALL in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ a string felt at the port
+def test_check_says_a_string_mode_is_felt_and_the_static_stiffness(capsys):
+    path = str(ROOT / "configs" / "audio_string.yaml")
+    assert main(["check", path]) == 0
+    out = capsys.readouterr().out
+    # 30 beads, 31 segments of 1.5e5 N/m, plucked at s15 through a 200 N/m contact: the
+    # port sees 200 in series with (15 segments) || (16 segments)
+    k_static = 1 / (1 / 200 + 1 / (1.5e5 / 15 + 1.5e5 / 16))
+    assert f"static at the port: k = {k_static:.6g} N/m (what a slow push feels" in out
+    felt = re.search(r"felt at the port: k = (\S+) N/m.*f0 = (\S+) Hz", out)
+    assert float(felt.group(1)) > 1000 * k_static
+    assert (f"  that is a mode of the scene ringing at {felt.group(2)} Hz, felt at the port, "
+            f"not a spring") in out
+    assert main(["check", path, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["static_k"] == pytest.approx(k_static, rel=1e-12)
+    assert main(["check", WALL]) == 0      # no virtual mass: the felt k is the spring's
+    out = capsys.readouterr().out
+    assert "mode of the scene" not in out and "static at the port" not in out
+
+
+def _chain_scene(springs, branches):
+    """Port -- springs in series -- ground, plus parallel spring chains to other grounds."""
+    lines = ["rate_hz: 1000", "masses:", "  - {name: p, kind: port}"]
+    links = ["links:"]
+    for c, chain in enumerate([springs, *branches]):
+        prev = "p"
+        for i, k in enumerate(chain):
+            last = i == len(chain) - 1
+            name = f"g{c}" if last else f"m{c}_{i}"
+            lines.append(f"  - {{name: {name}, kind: {'ground' if last else 'mass'}"
+                         f"{'' if last else ', mass: 0.01'}}}")
+            links.append(f"  - {{kind: spring_damper, between: [{prev}, {name}], "
+                         f"stiffness: {k!r}, damping: 0.1}}")
+            prev = name
+    return "\n".join(lines + links + ["device: {mass: 0.1, friction: 0.5}"]) + "\n"
+
+
+def test_static_stiffness_is_series_and_parallel_springs():
+    """Over random chains of springs from the port to grounds, in parallel: the static
+    stiffness is the sum over chains of 1 / sum(1/K) (springs in series)."""
+    from hapsim.analysis.network import static_stiffness
+    from hapsim.scene import parse_scene
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        chains = [[float(k) for k in rng.uniform(10, 1e4, rng.integers(1, 6))]
+                  for _ in range(rng.integers(1, 4))]
+        scene = parse_scene(_chain_scene(chains[0], chains[1:]))
+        want = sum(1 / sum(1 / k for k in ch) for ch in chains)
+        assert static_stiffness(scene) == pytest.approx(want, rel=1e-9)

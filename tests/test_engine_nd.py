@@ -1,0 +1,243 @@
+"""The n-D engine (hapsim.kernels.nd, hapsim.engine_nd) against a plain-numpy step
+written here over random meshes of both link kinds, the stripe layout's bookkeeping, and
+hapsim's 1-D engine on a 1-D scene laid along x."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hapsim.engine import Engine
+from hapsim.engine_nd import EngineND
+from hapsim.kernels.nd import stripes
+from hapsim.scene import parse_scene
+from hapsim.scene_nd import parse_scene_nd
+
+
+def reference_steps(X, XP, t2m, links, T, n, contacts=(), planes=()):
+    """Plain numpy, one element at a time: X, XP of shape (N, dim); links (i1, i2, K, B,
+    L, euclid); contacts (i1, i2, K, B, threshold); planes (mass, unit normal, offset, K,
+    B)."""
+    X, XP = X.copy(), XP.copy()
+    for _ in range(n):
+        F = np.zeros_like(X)
+        for a, b, K, B, L, eu in links:
+            d, dp = X[a] - X[b], XP[a] - XP[b]
+            if eu:
+                ln, lp = np.linalg.norm(d), np.linalg.norm(dp)
+                force = (K * (ln - L) + B / T * (ln - lp)) * d / ln
+            else:
+                force = K * d + B / T * (d - dp)
+            F[a] -= force
+            F[b] += force
+        for a, b, K, B, thr in contacts:
+            d, dp = X[a] - X[b], XP[a] - XP[b]
+            ln, lp = np.linalg.norm(d), np.linalg.norm(dp)
+            if 0 < ln < thr:
+                force = (K * (ln - thr) + B / T * (ln - lp)) * d / ln
+                F[a] -= force
+                F[b] += force
+        for m, u, off, K, B in planes:
+            p, pp = off - u @ X[m], off - u @ XP[m]
+            if p > 0:
+                F[m] += (K * p + B / T * (p - pp)) * u
+        X, XP = 2 * X - XP + t2m[:, None] * F, X
+    return X
+
+
+def random_scene(rng, dim, n_masses, n_links):
+    lines = [f"dimension: {dim}", "rate_hz: 2000", "masses:"]
+    X0 = rng.normal(size=(n_masses, dim)) * 0.02
+    V0 = rng.normal(size=(n_masses, dim)) * 0.01
+    kinds = []
+    for i in range(n_masses):
+        kind = "ground" if i % 7 == 0 else "mass"
+        kinds.append(kind)
+        m = f", mass: {rng.uniform(0.001, 0.01)!r}, v0: {V0[i].tolist()}" \
+            if kind == "mass" else ""
+        lines.append(f"  - {{name: m{i}, kind: {kind}, x0: {X0[i].tolist()}{m}}}")
+    lines.append("links:")
+    links = []
+    pairs = set()
+    while len(links) < n_links:
+        a, b = rng.integers(0, n_masses, 2)
+        if a == b or (a, b) in pairs or (b, a) in pairs:
+            continue
+        pairs.add((a, b))
+        K, B = rng.uniform(10, 300), rng.uniform(0, 0.05)
+        L = float(rng.choice([0.0, rng.uniform(0.005, 0.03)]))
+        lines.append(f"  - {{kind: spring_damper, between: [m{a}, m{b}], stiffness: {K!r}, "
+                     f"damping: {B!r}, length: {L!r}}}")
+        links.append((a, b, K, B, L, L > 0))
+    return "\n".join(lines) + "\n", links
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_kernel_equals_the_plain_reference_on_random_meshes(dim):
+    """Random topology (any offsets, both orientations), per-link K, B, rest length,
+    linear and Euclidean links, grounds: 300 samples agree to 1e-12 (relative to the
+    motion)."""
+    rng = np.random.default_rng(dim)
+    text, links = random_scene(rng, dim, 40, 90)
+    scene = parse_scene_nd(text) if dim > 1 else None
+    if dim == 1:   # the n-D kernels run a 1-D mesh too (the scene format starts at 2)
+        scene = parse_scene_nd(text.replace("dimension: 1", "dimension: 2")
+                               .replace("x0: [", "x0: [0.0, ").replace("v0: [", "v0: [0.0, "))
+    eng = EngineND(scene)
+    if dim == 1:
+        # drop the zero first axis: rebuild the arrays on the second row only
+        eng.x, eng.xp, eng.f = eng.x[1:].copy(), eng.xp[1:].copy(), eng.f[1:].copy()
+        eng.W = eng.W[1:].copy()
+        from hapsim.kernels.nd import link_lengths
+        eng.eu_lprev = link_lengths(eng.xp, eng.eu_table, eng.eu_k.size)
+    X0, XP0 = eng.x.T.copy(), eng.xp.T.copy()
+    ref = reference_steps(X0, XP0, eng.t2m, links, scene.period, 300)
+    eng.step(300)
+    scale = np.max(np.abs(ref - X0))
+    assert scale > 1e-4
+    assert np.max(np.abs(eng.x.T - ref)) <= 1e-12 * scale
+
+
+def test_stripes_cover_every_link_once():
+    """Each link lands in exactly one slot of one stripe with its orientation; padding
+    slots are -1 and inside gaps only; a 3-D grid's +x/+y/+z links make few stripes."""
+    rng = np.random.default_rng(0)
+    i1 = rng.integers(0, 200, 500)
+    i2 = (i1 + rng.choice([-13, -1, 1, 2, 40], 500)) % 200
+    keep = i1 != i2
+    i1, i2 = i1[keep], i2[keep]
+    table, order = stripes(i1, i2)
+    seen = np.zeros(i1.size, int)
+    for a, s, c, j0 in table:
+        for i in range(c):
+            j = order[j0 + i]
+            if j >= 0:
+                assert (i1[j], i2[j]) == (a + i, a + s + i)
+                seen[j] += 1
+    assert np.all(seen == 1)
+    assert order.size == table[:, 2].sum()
+    idx = np.arange(10 * 10 * 10).reshape(10, 10, 10)
+    gi1 = np.concatenate([idx[:, :, :-1].ravel(), idx[:, :-1, :].ravel(), idx[:-1].ravel()])
+    gi2 = np.concatenate([idx[:, :, 1:].ravel(), idx[:, 1:, :].ravel(), idx[1:].ravel()])
+    gtable, gorder = stripes(gi1, gi2)
+    assert len(gtable) <= 12 and (gorder < 0).mean() < 0.15
+
+
+def test_linear_2d_scene_along_x_is_the_1d_engine():
+    """A 1-D string laid along x in a 2-D scene (linear links): the x positions equal
+    hapsim's 1-D engine on the 1-D scene (1e-12 of the motion), the y positions stay 0."""
+    one = """\
+rate_hz: 1000
+masses:
+  - {name: left, kind: ground, x0: 0.0}
+  - {name: a, kind: mass, mass: 0.01, x0: 0.011, v0: 0.3}
+  - {name: b, kind: mass, mass: 0.02, x0: 0.02}
+  - {name: c, kind: mass, mass: 0.01, x0: 0.029, v0: -0.1}
+  - {name: right, kind: ground, x0: 0.04}
+links:
+  - {kind: spring_damper, between: [left, a], stiffness: 200, damping: 0.01}
+  - {kind: spring_damper, between: [a, b], stiffness: 300, damping: 0.02}
+  - {kind: spring_damper, between: [b, c], stiffness: 300, damping: 0.0}
+  - {kind: spring_damper, between: [c, right], stiffness: 200, damping: 0.01}
+"""
+    e1 = Engine(parse_scene(one))
+    two = "dimension: 2\n" + one
+    for v in ("0.0", "0.011", "0.02", "0.029", "0.04", "0.3", "-0.1"):
+        two = two.replace(f"x0: {v}}}", f"x0: [{v}, 0.0]}}").replace(
+            f"x0: {v},", f"x0: [{v}, 0.0],").replace(f"v0: {v}}}", f"v0: [{v}, 0.0]}}")
+    e2 = EngineND(parse_scene_nd(two))
+    x0 = e1.positions.copy()
+    for _ in range(5):
+        e1.step(100)
+        e2.step(100)
+        scale = np.max(np.abs(e1.positions - x0)) + 1e-300
+        assert np.max(np.abs(e2.positions[:, 0] - e1.positions)) <= 1e-12 * scale
+        assert np.all(e2.positions[:, 1] == 0.0)
+
+
+def test_port_contacts_and_planes_follow_their_laws():
+    """A port follows set_port_position and its force is -K d of its link; sphere
+    contacts and planes (engaging and releasing on the way) match the plain reference
+    over 400 samples of a falling, bouncing pair of beads."""
+    base = """\
+dimension: 2
+rate_hz: 1000
+masses:
+  - {name: hand, kind: port}
+  - {name: wall, kind: ground, x0: [0.0, 0.0]}
+links:
+  - {name: w, kind: spring_damper, between: [hand, wall], stiffness: 300, damping: 0}
+device: {mass: 0.1}
+"""
+    eng = EngineND(parse_scene_nd(base))
+    eng.set_port_position([0.01, -0.02])
+    eng.step()
+    assert np.allclose(eng.port_force, [-3.0, 6.0], rtol=1e-14)
+    text = """\
+dimension: 2
+rate_hz: 2000
+masses:
+  - {name: a, kind: mass, mass: 0.01, x0: [0.0, 0.01], v0: [0.05, -0.3]}
+  - {name: b, kind: mass, mass: 0.02, x0: [0.006, 0.004], v0: [-0.1, 0.0]}
+  - {name: g, kind: ground, x0: [0.02, 0.02]}
+links:
+  - {name: s, kind: spring_damper, between: [g, b], stiffness: 20, damping: 0.01,
+     length: 0.01}
+  - {name: c, kind: contact, between: [a, b], stiffness: 800, damping: 0.05,
+     threshold: 0.006}
+planes:
+  - {name: floor, normal: [0.2, 1], offset: -0.002, stiffness: 1500, damping: 0.1}
+"""
+    scene = parse_scene_nd(text)
+    eng = EngineND(scene)
+    X0, XP0 = eng.x.T.copy(), eng.xp.T.copy()
+    u = np.array([0.2, 1.0]) / np.hypot(0.2, 1.0)
+    ref = reference_steps(X0, XP0, eng.t2m, [(2, 1, 20.0, 0.01, 0.01, True)], scene.period,
+                          400, contacts=[(0, 1, 800.0, 0.05, 0.006)],
+                          planes=[(0, u, -0.002, 1500.0, 0.1), (1, u, -0.002, 1500.0, 0.1)])
+    # the reference engaged both: the contact and the floor
+    eng.step(400)
+    scale = np.max(np.abs(ref - X0))
+    assert np.max(np.abs(eng.x.T - ref)) <= 1e-10 * scale
+    engaged = [False, False]
+    eng2 = EngineND(scene)
+    for _ in range(400):
+        eng2.step()
+        d = np.linalg.norm(eng2.x[:, 0] - eng2.x[:, 1])
+        engaged[0] |= d < 0.006
+        engaged[1] |= bool(np.any(-0.002 - u @ eng2.x > 0))
+    assert engaged == [True, True]
+
+
+def test_simulate_cli_on_an_n_d_scene(tmp_path, capsys):
+    """`hapsim simulate` on a 3-D scene writes time, position (N+1, R, 3) and names equal
+    to EngineND's own run; a diverging scene stops with exit 1 and the rows before it; a
+    .csv output is refused (exit 2)."""
+    import json
+
+    from hapsim.cli import main
+    text = """\
+dimension: 3
+rate_hz: 1000
+masses:
+  - {name: g, kind: ground, x0: [0, 0, 0]}
+  - {name: a, kind: mass, mass: 0.01, x0: [0.01, 0.002, 0.0], v0: [0, 0.1, 0]}
+links:
+  - {name: s, kind: spring_damper, between: [g, a], stiffness: 40, damping: 0.001,
+     length: 0.01}
+"""
+    f = tmp_path / "s.yaml"
+    f.write_text(text)
+    out = tmp_path / "o.npz"
+    assert main(["simulate", str(f), "--steps", "50", "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["dimension"] == 3
+    d = np.load(out)
+    assert d["position"].shape == (51, 2, 3) and list(d["names"]) == ["g", "a"]
+    eng = EngineND(parse_scene_nd(text))
+    eng.step(50)
+    assert np.array_equal(d["position"][-1], eng.positions)
+    f.write_text(text.replace("stiffness: 40", "stiffness: 1.0e6"))
+    assert main(["simulate", str(f), "--steps", "20000", "--out", str(out)]) == 1
+    assert "diverged" in capsys.readouterr().err
+    assert np.all(np.isfinite(np.load(out)["position"]))
+    assert main(["simulate", str(f), "--steps", "5", "--out", str(tmp_path / "o.csv")]) == 2

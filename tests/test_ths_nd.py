@@ -1,0 +1,286 @@
+"""The THS as a matrix (hapsim.analysis.ths_nd) against an independent MIMO reference
+written here (continuous system, scipy.linalg.expm ZOH, a *force* delay line instead of
+hapsim's position delay line, eigenvalues; felt matrices by least squares on the quadratic
+eigen-equations), the 1-D prediction of hapsim.analysis.ths/loop, the 1-D answer per axis
+of a decoupled loop, and coupling that axis-by-axis checks miss."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+from scipy.optimize import linear_sum_assignment
+
+from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths_nd import (LoopModelND, closed_loop_poles_nd, direction_limit,
+                                    direction_limits, render_nd, workspace_limits)
+from hapsim.errors import ConfigError
+from hapsim.kinematics import Pantograph
+
+
+# --------------------------------------------------------------------------- reference
+
+def reference_state_matrix(M, B0, T, d, K, B):
+    """Independent closed loop: x' = v, M v' = -B0 v + F; ZOH by expm of the augmented
+    continuous system; the force computed from the current position and delayed by d
+    samples through a force delay line. State (x, v, x[n-1], F[n-1], ..., F[n-d])."""
+    n = M.shape[0]
+    Minv = np.linalg.inv(M)
+    Ac = np.zeros((2 * n, 2 * n))
+    Ac[:n, n:] = np.eye(n)
+    Ac[n:, n:] = -Minv @ B0
+    Bc = np.vstack([np.zeros((n, n)), Minv])
+    aug = np.zeros((3 * n, 3 * n))
+    aug[:2 * n, :2 * n] = Ac * T
+    aug[:2 * n, 2 * n:] = Bc * T
+    E = expm(aug)
+    Ad, Bd = E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
+    # controller output now: Fc = -(K + B/T) x + (B/T) x[n-1]
+    Cx, Cxp = -(K + B / T), B / T
+    N = n * (3 + d)
+    A = np.zeros((N, N))
+    X, V, XP = slice(0, n), slice(n, 2 * n), slice(2 * n, 3 * n)
+
+    def Fd(k):              # F[n-k], k = 1..d
+        return slice((2 + k) * n, (3 + k) * n)
+    # plant driven by F[n] = Fc[n - d]
+    if d == 0:
+        A[:2 * n, X] += Bd @ Cx
+        A[:2 * n, XP] += Bd @ Cxp
+    else:
+        A[:2 * n, Fd(d)] += Bd
+    A[:2 * n, :2 * n] += Ad
+    A[XP, X] = np.eye(n)
+    if d >= 1:
+        A[Fd(1), X] = Cx             # F[n] (new, delayed by one) = Fc[n]
+        A[Fd(1), XP] = Cxp
+        for k in range(2, d + 1):
+            A[Fd(k), Fd(k - 1)] = np.eye(n)
+    return A
+
+
+def match(a, b):
+    """Largest distance between two eigenvalue sets, optimally paired."""
+    cost = np.abs(a[:, None] - b[None, :])
+    r, c = linear_sum_assignment(cost)
+    return float(cost[r, c].max())
+
+
+def random_spd(rng, n, lo, hi):
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return Q @ np.diag(rng.uniform(lo, hi, n)) @ Q.T
+
+
+def random_loop(rng, n):
+    M = random_spd(rng, n, 0.05, 0.5)
+    B0 = random_spd(rng, n, 0.0, 2.0)
+    rate = float(rng.choice([500.0, 1000.0, 4000.0]))
+    d = int(rng.choice([0, 1, 2, 4]))
+    K = random_spd(rng, n, 0.0, 800.0)
+    B = random_spd(rng, n, 0.0, 3.0)
+    return M, B0, rate, d, K, B
+
+
+def reference_felt(M, T, z, V, n):
+    """Felt (k, b) by least squares on (M s^2 + b s + k) u = 0 over the n least damped
+    complex pairs of the reference (real and imaginary parts, 2n^2 unknowns)."""
+    up = np.flatnonzero(z.imag > 1e-12)
+    up = up[np.argsort(-np.abs(z[up]))][:n]
+    rows, rhs = [], []
+    for i in up:
+        s = np.log(z[i]) / T
+        u = V[:n, i] / np.linalg.norm(V[:n, i])
+        # unknown vector: vec(k) row-major then vec(b): (k u)_r = sum_c k[r, c] u[c]
+        for r in range(n):
+            row = np.zeros(2 * n * n, complex)
+            row[r * n:(r + 1) * n] = u
+            row[n * n + r * n:n * n + (r + 1) * n] = s * u
+            val = -(M @ u)[r] * s * s
+            rows += [row.real, row.imag]
+            rhs += [val.real, val.imag]
+    x = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    return x[:n * n].reshape(n, n), x[n * n:].reshape(n, n)
+
+
+# --------------------------------------------------------------------------- tests
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_eigenvalues_and_felt_matrices_equal_the_independent_reference(n):
+    """Over random n-D loops (random SPD mass and friction, rate, delay, SPD K and B):
+    the poles equal the reference's to 1e-9 and the felt matrices to 1e-6 (relative)
+    when the reference's n least damped pairs are the rendered ones."""
+    rng = np.random.default_rng(100 + n)
+    felt_checked = 0
+    for _ in range(24):
+        M, B0, rate, d, K, B = random_loop(rng, n)
+        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=d)
+        A = reference_state_matrix(M, B0, 1.0 / rate, d, K, B)
+        z_ref, V = np.linalg.eig(A)
+        z = closed_loop_poles_nd(loop, K, B)
+        assert z.size == z_ref.size == n * (d + 3)
+        assert match(z, z_ref) <= 1e-9
+        r = render_nd(loop, K, B)
+        assert r.spectral_radius == pytest.approx(np.max(np.abs(z_ref)), abs=1e-9)
+        if r.felt_stiffness is None:
+            continue
+        up = np.sort(np.abs(z_ref[z_ref.imag > 1e-12]))[::-1][:n]
+        if not np.allclose(np.sort(np.abs(r.rendered_poles))[::-1], up, atol=1e-12):
+            continue          # a shape-dependent pick: not the same n pairs
+        k_ref, b_ref = reference_felt(M, 1.0 / rate, z_ref, V, n)
+        scale_k = np.max(np.abs(k_ref))
+        scale_b = max(np.max(np.abs(b_ref)), 1e-3)
+        assert np.max(np.abs(r.felt_stiffness - k_ref)) <= 1e-6 * scale_k
+        assert np.max(np.abs(r.felt_damping - b_ref)) <= 1e-6 * scale_b
+        felt_checked += 1
+    assert felt_checked >= 12
+
+
+def test_felt_system_has_the_rendered_poles_and_shapes():
+    """M x'' + b x' + k x = 0 with the felt matrices has the rendered s_i = ln(z_i)/T as
+    eigenvalues (the definition, checked on its continuous state matrix)."""
+    rng = np.random.default_rng(7)
+    for n in (2, 3):
+        M, B0, rate, d, K, B = random_loop(rng, n)
+        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=min(d, 1))
+        r = render_nd(loop, K, B)
+        Minv = np.linalg.inv(M)
+        Ac = np.block([[np.zeros((n, n)), np.eye(n)],
+                       [-Minv @ r.felt_stiffness, -Minv @ r.felt_damping]])
+        s = np.linalg.eigvals(Ac)
+        s_ren = np.log(r.rendered_poles) * rate
+        assert match(s, np.concatenate([s_ren, s_ren.conj()])) <= 1e-8 * np.max(np.abs(s))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_one_dof_reproduces_the_1d_prediction(seed):
+    """n = 1: poles, felt (k, b), spectral radius and the stiffness limit equal
+    hapsim.analysis.loop/ths's to round-off."""
+    rng = np.random.default_rng(seed)
+    m, b0 = rng.uniform(0.02, 1.0), rng.uniform(0.0, 3.0)
+    rate, d = float(rng.choice([500.0, 1000.0, 10000.0])), int(rng.integers(0, 6))
+    K, B = rng.uniform(10.0, 1500.0), rng.uniform(0.0, 3.0)
+    l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
+    ln = LoopModelND(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    assert match(closed_loop_poles(l1, K, B), closed_loop_poles_nd(ln, K, B)) <= 1e-13
+    r1, rn = render(l1, K, B), render_nd(ln, K, B)
+    assert rn.spectral_radius == pytest.approx(r1.spectral_radius, abs=1e-14)
+    assert rn.stable == r1.stable
+    if math.isfinite(r1.k):
+        assert rn.felt_stiffness[0, 0] == pytest.approx(r1.k, rel=1e-10)
+        assert rn.felt_damping[0, 0] == pytest.approx(r1.b, rel=1e-9, abs=1e-12 * r1.k)
+        assert rn.direction_stiffness[0] == pytest.approx(r1.k, rel=1e-10)
+    assert direction_limit(ln, [1.0], B) == pytest.approx(stability_limit(l1, B), rel=1e-10)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_decoupled_loop_is_the_1d_answer_per_axis(n):
+    """Diagonal mass, friction, K and B: the felt matrices are diagonal with the 1-D
+    (k, b) of each axis on the diagonal; the limit along each axis is its 1-D limit."""
+    rng = np.random.default_rng(20 + n)
+    m, b0 = rng.uniform(0.05, 0.4, n), rng.uniform(0.1, 1.0, n)
+    K, B = rng.uniform(100.0, 800.0, n), rng.uniform(0.5, 2.0, n)
+    loop = LoopModelND(mass=m, friction=b0, rate_hz=1000.0, delay=1)
+    r = render_nd(loop, K, B)
+    assert r.stable
+    for i in range(n):
+        l1 = LoopModel(mass=m[i], friction=b0[i], rate_hz=1000.0, delay=1)
+        r1 = render(l1, K[i], B[i])
+        assert r.felt_stiffness[i, i] == pytest.approx(r1.k, rel=1e-10)
+        assert r.felt_damping[i, i] == pytest.approx(r1.b, rel=1e-9)
+        e = np.eye(n)[i]
+        assert direction_limit(loop, e, B) == pytest.approx(stability_limit(l1, B[i]),
+                                                            rel=1e-10)
+    off = r.felt_stiffness - np.diag(np.diag(r.felt_stiffness))
+    assert np.max(np.abs(off)) <= 1e-9 * np.max(np.abs(r.felt_stiffness))
+
+
+def test_rotation_moves_the_felt_matrices_not_the_poles():
+    """A rotated device and coupling: same poles, felt matrices R k R^T, directions R e."""
+    rng = np.random.default_rng(8)
+    M, B0, rate, d, K, B = random_loop(rng, 3)
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    a = render_nd(LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=1), K, B)
+    b = render_nd(LoopModelND(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
+                              delay=1), R @ K @ R.T, R @ B @ R.T)
+    assert match(a.poles, b.poles) <= 1e-9
+    assert np.allclose(R @ a.felt_stiffness @ R.T, b.felt_stiffness, rtol=0,
+                       atol=1e-7 * np.max(np.abs(a.felt_stiffness)))
+    assert np.allclose(R @ a.felt_damping @ R.T, b.felt_damping, rtol=0,
+                       atol=1e-7 * max(np.max(np.abs(a.felt_damping)), 1e-3))
+    for i in range(3):
+        assert abs(abs((R @ a.directions[:, i]) @ b.directions[:, i]) - 1) <= 1e-7
+
+
+def test_axis_by_axis_stable_but_coupled_loop_unstable():
+    """Li, Tavakoli & Huang 2014: a non-diagonal Cartesian mass (light along a diagonal
+    direction) with K = kappa I: each axis's 1-D check (mass M_ii) is stable, the MIMO
+    characteristic is not; the limit along M's light axis is the 1-D limit of its
+    eigenvalue (isotropic friction and damping commute with M: decoupled there)."""
+    th = math.radians(35)
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    lam = np.array([0.02, 0.3])
+    M = R @ np.diag(lam) @ R.T
+    b0, beta = 2.0, 10.0          # damping-heavy: the limit depends on the mass here
+    loop = LoopModelND(mass=M, friction=b0 * np.eye(2), rate_hz=1000.0, delay=1)
+    light = LoopModel(mass=lam[0], friction=b0, rate_hz=1000.0, delay=1)
+    k_light = stability_limit(light, beta)
+    k_axes = [stability_limit(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0,
+                                        delay=1), beta) for i in range(2)]
+    assert min(k_axes) > 1.2 * k_light
+    kappa = 0.5 * (k_light + min(k_axes))
+    for i in range(2):
+        assert render(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0, delay=1),
+                      kappa, beta).stable
+    r = render_nd(loop, kappa * np.eye(2), beta * np.eye(2))
+    assert not r.stable and r.spectral_radius > 1.0
+    limits = direction_limits(loop, None, beta * np.eye(2))
+    assert limits[0] == pytest.approx(k_light, rel=1e-10)
+    assert limits[1] == pytest.approx(stability_limit(
+        LoopModel(mass=lam[1], friction=b0, rate_hz=1000.0, delay=1), beta), rel=1e-10)
+
+
+def test_workspace_limits_follow_the_configuration_dependent_mass():
+    """Over Haply pantograph configurations (isotropic joint friction mapped, hand
+    damping, virtual damping beta I): the limit along each principal axis of M(q) is
+    the 1-D limit of that principal mass with that axis's friction, where the mapped
+    friction shares M's axes (joint inertia and friction proportional); it varies across
+    the workspace."""
+    dev = Pantograph("haply")
+    Iq, c = 2e-4, 500.0                     # joint inertia [kg m^2]; B_q = Iq / c ...
+    qs = np.radians([[130, 50], [150, 60], [120, 30], [140, 20]])
+    beta = 1.0
+    w = workspace_limits(dev, qs, [Iq, Iq], [Iq * c, Iq * c], rate_hz=1000.0, delay=1,
+                         B=beta * np.eye(2))
+    assert w.status == ["ok"] * 4
+    for i in range(4):
+        for j in range(2):
+            m = w.mass_eigenvalues[i, j]
+            ref = stability_limit(LoopModel(mass=m, friction=c * m, rate_hz=1000.0,
+                                            delay=1), beta)
+            assert w.limits[i, j] == pytest.approx(ref, rel=1e-9)
+    assert np.ptp(w.limits[:, 0]) > 0.05 * np.mean(w.limits[:, 0])
+
+
+def test_loop_model_nd_refuses_bad_input():
+    """Key-named refusals: a mass not SPD, friction not PSD, shapes, hold, delay."""
+    for kw, key in [(dict(mass=[[1.0, 2.0], [2.0, 1.0]]), "mass"),
+                    (dict(mass=[[1.0, 0.5], [0.0, 1.0]]), "mass"),
+                    (dict(mass=np.eye(2), friction=-np.eye(2)), "friction"),
+                    (dict(mass=np.eye(2), friction=np.eye(3)), "friction"),
+                    (dict(mass=np.eye(2), hold="ideal"), "hold"),
+                    (dict(mass=np.eye(2), delay=1.5), "delay"),
+                    (dict(mass=np.eye(4)), "dof"),
+                    (dict(mass=0.1), "dof")]:
+        with pytest.raises(ConfigError) as err:
+            LoopModelND(**kw)
+        assert err.value.key == key, (kw, err.value)
+    loop = LoopModelND(mass=np.eye(2) * 0.1)
+    with pytest.raises(ConfigError) as err:
+        render_nd(loop, np.ones((3, 3)))
+    assert err.value.key == "K"
+    with pytest.raises(ConfigError) as err:
+        direction_limit(loop, [0.0, 0.0])
+    assert err.value.key == "direction"

@@ -1,0 +1,45 @@
+"""The stated uncertainty of a run covers the wire's number format (issue 19 item 4)."""
+
+import json
+
+import numpy as np
+
+from hapsim.analysis.identify import force_error_response
+from hapsim.drivers import get_driver
+from hapsim.scene import load_scene
+
+
+def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
+    """``run configs/hapkit_serial.yaml --driver hapkit-serial`` (lockstep mock: exact but
+    for the float32 fields): the error (~2e-8 on b) is inside the stated uncertainty, which
+    names the wire (it stated 0.0000 and "differs"); stdout is one JSON object, exit 0."""
+    from hapsim.cli import main
+    code = main(["run", "configs/hapkit_serial.yaml", "--driver", "hapkit-serial", "--json"])
+    out = capsys.readouterr().out
+    assert code == 0
+    rep = json.loads(out)                    # stdout: one JSON object
+    m = rep["measured"]
+    assert m["within"] is True, m["verdict"]
+    assert m["b_sd_wire"] > 0 and m["k_sd_wire"] > 0
+    assert "wire" in m["interval_note"]
+    # the float32 error is there (not round-off of float64) and inside the interval
+    assert abs(m["rel_err"]["b"]) > 1e-10
+    assert abs(m["b"] - rep["predicted"]["b"]) <= m["b_interval"]
+
+
+def test_drivers_declare_their_wire_and_the_force_response_is_the_loops():
+    """binary32 fields (Hapkit-serial, Haply) declare 2^-24; the FireFader's 8-bit PWM its
+    step; the force-error response is the plant's ZOH step response closed by the wall:
+    its first sample is T^2/(2m)-like (Bd[0]) and the loop makes it decay."""
+    assert get_driver("hapkit-serial").position_rel == 2.0 ** -24
+    assert get_driver("haply").force_rel == 2.0 ** -24
+    ff = get_driver("firefader")
+    assert ff.force_rel == 0.0 and ff.force_scale > 0
+    scene = load_scene("configs/wall.yaml")
+    h = force_error_response(scene, 4000)
+    m, b0, T = scene.device.mass, scene.device.friction, scene.period
+    a = b0 * T / m
+    assert h[0] == 0.0
+    # one period of a unit force on m x'' + b0 x' from rest: (m / b0^2)(a - 1 + e^-a)
+    assert abs(h[1] / (m / b0 ** 2 * (a - 1 + np.exp(-a))) - 1) < 1e-9
+    assert abs(h[-1]) < 1e-3 * np.max(np.abs(h))

@@ -1,0 +1,221 @@
+"""Benchmark of the n-D engine kernels (hapsim.kernels.nd) against a straightforward
+reference written here, same run.
+
+Usage::
+
+    python tools/bench_nd.py [--quick] [--json FILE]
+
+The mesh: a 3-D grid of ``nx x ny x nz`` masses (1 g, spacing 1 cm), each joined to its
++x, +y and +z neighbours by a Euclidean spring-damper (K = 100 N/m, B = 0.001 N s/m, rest
+length the spacing: miPhysics' SpringDamper3D), about 3 links per mass; the face z = 0 is
+ground; every mass starts displaced at random by up to 1 mm (seeded).
+
+It prints, for growing meshes:
+
+* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes,
+  structure of arrays) and of the reference (a numba loop over the links one at a time,
+  positions as (N, 3) rows, forces scattered to both ends: the straightforward layout),
+  and their ratio, both measured in this run as thread CPU time (``time.thread_time``:
+  descheduling on a shared machine is not counted), median of repeats;
+* the agreement of the two after the benchmark's samples (largest position difference,
+  relative to the spacing: round-off, the forces are summed in another order);
+* the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
+  within 1 ms (1 kHz), by bisection on the mesh size measured at each step.
+
+Exit code 0, or 2 on bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+import numba as nb
+import numpy as np
+
+from hapsim.kernels.nd import CHUNK, link_lengths, run_nd, stripes
+
+T = 1.0 / 44100.0
+SPACING = 0.01
+
+
+@nb.njit(cache=True, nogil=True)
+def reference_run(n, X, XP, F, t2m, i1, i2, k, z, rest):
+    """The straightforward loop: one link at a time, (N, 3) rows, scattered forces,
+    the previous length recomputed from the previous positions."""
+    N = X.shape[0]
+    for _ in range(n):
+        for i in range(N):
+            F[i, 0] = 0.0
+            F[i, 1] = 0.0
+            F[i, 2] = 0.0
+        for j in range(i1.size):
+            a = i1[j]
+            b = i2[j]
+            dx = X[a, 0] - X[b, 0]
+            dy = X[a, 1] - X[b, 1]
+            dz = X[a, 2] - X[b, 2]
+            ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+            px = XP[a, 0] - XP[b, 0]
+            py = XP[a, 1] - XP[b, 1]
+            pz = XP[a, 2] - XP[b, 2]
+            lp = np.sqrt(px * px + py * py + pz * pz)
+            g = k[j] * (ln - rest[j]) + z[j] * (ln - lp)
+            if ln > 0.0:
+                g = g / ln
+            else:
+                g = 0.0
+            F[a, 0] -= g * dx
+            F[a, 1] -= g * dy
+            F[a, 2] -= g * dz
+            F[b, 0] += g * dx
+            F[b, 1] += g * dy
+            F[b, 2] += g * dz
+        for i in range(N):
+            for d in range(3):
+                xn = 2.0 * X[i, d] - XP[i, d] + t2m[i] * F[i, d]
+                XP[i, d] = X[i, d]
+                X[i, d] = xn
+
+
+def mesh(nx, ny, nz, seed=0):
+    """Grid masses (N, 3), links (i1, i2) to +x, +y, +z neighbours, t2m (ground z = 0)."""
+    idx = np.arange(nx * ny * nz).reshape(nz, ny, nx)
+    zz, yy, xx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    X0 = np.stack([xx, yy, zz], -1).reshape(-1, 3) * SPACING
+    rng = np.random.default_rng(seed)
+    X0 = X0 + rng.uniform(-1e-3, 1e-3, X0.shape) * (zz.reshape(-1, 1) > 0)
+    i1 = np.concatenate([idx[:, :, :-1].ravel(), idx[:, :-1, :].ravel(), idx[:-1].ravel()])
+    i2 = np.concatenate([idx[:, :, 1:].ravel(), idx[:, 1:, :].ravel(), idx[1:].ravel()])
+    t2m = np.where(zz.ravel() > 0, T * T / 0.001, 0.0)
+    return X0, i1, i2, t2m
+
+
+class Case:
+    """Both engines' arrays for one mesh."""
+
+    def __init__(self, nx, ny, nz):
+        X0, i1, i2, t2m = mesh(nx, ny, nz)
+        self.N, self.L = X0.shape[0], i1.size
+        K, B = 100.0, 0.001
+        k = np.full(self.L, K)
+        z = np.full(self.L, B / T)
+        rest = np.full(self.L, SPACING)
+        # reference: (N, 3)
+        self.ref = (np.ascontiguousarray(X0), X0.copy(), np.zeros_like(X0), t2m,
+                    i1.astype(np.int64), i2.astype(np.int64), k, z, rest)
+        # hapsim: (3, N), stripes
+        table, order = stripes(i1, i2)
+        real = order >= 0
+
+        def slot(v):                      # per-link values in stripe order, 0 for padding
+            out = np.zeros(order.size)
+            out[real] = v[order[real]]
+            return out
+        empty_t = np.zeros((0, 4), np.int64)
+        e = np.zeros(0)
+        self.hap = (np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
+                    np.zeros((3, self.N)), t2m, empty_t, e, e, table, slot(k), slot(z),
+                    slot(rest), link_lengths(np.ascontiguousarray(X0.T), table,
+                                             order.size), np.zeros((3, CHUNK)),
+                    np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
+                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e)
+        self.stripes = table.shape[0]
+
+    def run_ref(self, n):
+        reference_run(n, *self.ref)
+
+    def run_hap(self, n):
+        run_nd(n, *self.hap)
+
+
+def per_sample(fn, n, repeats):
+    """Median thread-CPU seconds per sample of ``fn(n)`` over ``repeats``."""
+    out = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn(n)
+        out.append((time.thread_time() - t0) / n)
+    return statistics.median(out)
+
+
+def largest(kind, deadline, quick):
+    """Largest cube-ish mesh (masses) whose sample takes <= deadline (bisection on nx
+    with ny = nx, nz = nx // 2 + 1)."""
+    def cost(nx):
+        c = Case(nx, nx, nx // 2 + 1)
+        fn = c.run_hap if kind == "hapsim" else c.run_ref
+        n = max(3, int(0.05 / max(deadline, 1e-6)))
+        fn(2)
+        return per_sample(fn, n, 3 if quick else 5), c.N
+    lo, hi = 2, 4
+    while True:
+        t, _ = cost(hi)
+        if t > deadline:
+            break
+        lo, hi = hi, hi * 2
+        if hi > 400:
+            break
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        t, _ = cost(mid)
+        if t <= deadline:
+            lo = mid
+        else:
+            hi = mid
+    t, N = cost(lo)
+    return N, t
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    sizes = [(10, 10, 5), (20, 20, 10), (30, 30, 15)] if args.quick else \
+        [(10, 10, 5), (20, 20, 10), (30, 30, 15), (40, 40, 20), (60, 60, 30)]
+    repeats = 3 if args.quick else 7
+    rows = []
+    print(f"{'masses':>8} {'links':>8} {'stripes':>8} {'hapsim ns/mass':>15} "
+          f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10}")
+    for nx, ny, nz in sizes:
+        c = Case(nx, ny, nz)
+        n = max(20, int(2e6 // c.L))
+        c.run_ref(2)
+        c.run_hap(2)
+        # agreement after the same samples from the same start
+        c2 = Case(nx, ny, nz)
+        c2.run_ref(200)
+        c2.run_hap(200)
+        err = float(np.max(np.abs(c2.ref[0].T - c2.hap[0]))) / SPACING
+        th = per_sample(c.run_hap, n, repeats)
+        tr = per_sample(c.run_ref, n, repeats)
+        row = {"masses": c.N, "links": c.L, "stripes": c.stripes,
+               "hapsim_ns_per_mass": th / c.N * 1e9, "hapsim_ns_per_link": th / c.L * 1e9,
+               "ref_ns_per_mass": tr / c.N * 1e9, "ref_ns_per_link": tr / c.L * 1e9,
+               "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err}
+        rows.append(row)
+        print(f"{c.N:>8} {c.L:>8} {c.stripes:>8} {row['hapsim_ns_per_mass']:>15.2f} "
+              f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
+              f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
+              f"{err:>10.2e}", flush=True)
+    out = {"rows": rows, "largest": {}}
+    for label, rate, deadline in (("44.1 kHz", "44100", 1.0 / 44100.0),
+                                  ("1 kHz", "1000", 1e-3)):
+        for kind in ("hapsim", "reference"):
+            N, t = largest(kind, deadline, args.quick)
+            out["largest"].setdefault(rate, {})[kind] = {
+                "masses": N, "us_per_sample": t * 1e6}
+            print(f"largest mesh within {label} ({deadline * 1e6:.2f} us/sample), {kind}: "
+                  f"{N} masses ({t * 1e6:.2f} us/sample)", flush=True)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
