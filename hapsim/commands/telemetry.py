@@ -36,7 +36,11 @@ def register(sub) -> None:
             "says what was lost."),
         epilog=(
             "columns: time [s], position [m], force [N], seq, turnaround_us [us], late,\n"
-            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped)\n"
+            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped),\n"
+            "  force_seq (the device's STATE.force_seq: the FORCE it applied), status\n"
+            "applied: from force_seq, the force the device held at each tick, its delay\n"
+            "  and late ticks, and the felt energy from the applied force (exact with late\n"
+            "  ticks)\n"
             "felt energy: E(n) = sum_k f(k - d) (x(k+1) - x(k)) [J], the work the held force\n"
             "  did on the hand (the run's passivity observer), restarted at each recovery\n"
             "examples:\n"
