@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hapsim.analysis.applied import account_from_force_seq, account_from_timing
+from hapsim.applied import account_from_force_seq, account_from_timing
 from hapsim.commands.identify import identify
 from hapsim.daemon import mock as mock_mod
 from hapsim.scene import Device
