@@ -63,7 +63,7 @@ In file order (a chunk's header names them with their dtypes):
     STATE.force_seq of the sample (int64): the seq of the FORCE the device applied from
     this tick on (PROTOCOL.md §4; -1 in a file written before this column existed, or
     from a driver whose protocol has none). With ``status``, the account of the force the
-    device applied per tick (:mod:`hapsim.analysis.applied`).
+    device applied per tick (:mod:`hapsim.applied`).
 ``status`` [-]
     STATE.status bits of the sample (uint16; 0 in older files).
 """
