@@ -52,8 +52,11 @@ def test_old_bench_names_are_the_analysis_ones():
 # module of hapsim not named here stands on the top floor (nothing below may import it).
 PACKAGE_DIR = DAEMON_DIR.parent
 LAYERS = (
+    # hapsim.applied: the account of the force a device applied per tick (plain arrays),
+    # which the drivers' timing fills and the analysis and the daemon read
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
-                    "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs")),
+                    "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
+                    "hapsim.applied")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",

@@ -969,8 +969,14 @@ def test_journal_header_is_self_describing(tmp_path):
     head = json.loads(raw[16:16 + hlen])
     assert magic == b"HSTC" and version == 1 and head["rows"] == 10
     assert head["columns"] == ["time", "position", "force", "seq", "turnaround_us", "late",
-                               "flags"]
-    assert plen == 10 * (8 * 5 + 1 + 1)
+                               "flags", "force_seq", "status"]
+    assert head["dtypes"] == ["<f8", "<f8", "<f8", "<i8", "<f8", "|i1", "|u1", "<i8", "<u2"]
+    assert plen == 10 * (8 * 5 + 1 + 1 + 8 + 2)
+    # every column the header names is documented, in file order, with its unit
+    import hapsim.daemon.telemetry as telemetry
+    doc = telemetry.__doc__.split("Columns\n-------\n")[1]
+    at = [doc.index(f"``{c}`` [") for c in head["columns"]]
+    assert at == sorted(at)
 
 
 # --------------------------------------------------------------------------- ring, journal

@@ -230,12 +230,16 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
             return Certificate(True, False, done, "certified",
                                _to_members(cen[i], mc, rigid), float(rho[i]))
         kappa = np.linalg.cond(V)
+        # the computed decomposition is not exact: A(c) V = V Lambda + Res, so A(c) is
+        # V Lambda V^-1 + Res V^-1, a perturbation both bounds carry
+        res = np.linalg.norm(As @ V - V * w[:, None, :], ord=2, axis=(-2, -1))
         with np.errstate(over="ignore", invalid="ignore"):
             contrib = _box_bound(boxes_lo, boxes_hi, cen, ranged, corners, mc, bc, rigid, Sp, T,
                              unorm)
-            bound = rho + kappa * contrib.sum(axis=1) * (1.0 + 1e-6) + 1e-12
+            winv = np.linalg.norm(np.linalg.inv(V), ord=2, axis=(-2, -1))
+            bound = rho + kappa * (contrib.sum(axis=1) + res * winv) * (1.0 + 1e-6) + 1e-12
             gbound, gcontrib = _mode_bound(boxes_lo, boxes_hi, cen, ranged, corners, mc, bc,
-                                           rigid, Sp, T, w, V, uvec / S)
+                                           rigid, Sp, T, w, V, uvec / S, As)
             gbound = gbound * (1.0 + 1e-6) + 1e-12
         bound = np.where(np.isnan(bound), np.inf, bound)
         gbound = np.where(np.isnan(gbound), np.inf, gbound)
@@ -332,7 +336,7 @@ def _force_row(scene, calibrated, nplant: int) -> np.ndarray:
     return row / Bd[0, k]
 
 
-def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us):
+def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us, As):
     """Column-Gershgorin bound on the poles of every member of each box, per mode.
 
     With ``A(c) = V Lambda V^-1`` (columns of ``V`` of unit norm, ``W = V^-1``) the poles of
@@ -347,7 +351,8 @@ def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us
 
     and the held force's share ``|u^T v_j|`` times the bound on ``dBd`` of
     :func:`_box_bound`; every supremum over the box is a maximum over its vertices (the
-    quantities are affine in each variable, their norms convex).
+    quantities are affine in each variable, their norms convex). The computed decomposition's
+    residual ``W (A(c) V - V Lambda)`` is added to each column's sum.
 
     Returns
     -------
@@ -383,7 +388,9 @@ def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us
         fad = grow[:, None] * (T * dkv + 0.5 * T * T * (dkn * grow)[:, None] * AcV)
         fbd = (grow * (0.5 * T * T * dkn * bmax + T * dbk))[:, None] * cu
         terms[:, k, :] = SW[:, None] * (fad + fbd)
-    radius = terms.sum(axis=1)                                   # (n, s)
+    # the decomposition's residual: W (A(c) V - V Lambda) joins every column's sum
+    resid = np.abs(Wn @ (As @ Vn - Vn * w[:, None, :])).sum(axis=1)  # (n, s)
+    radius = terms.sum(axis=1) + resid                           # (n, s)
     per = np.abs(w) + radius
     jw = np.argmax(per, axis=1)
     return per.max(axis=1), terms[np.arange(n), :, jw]

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["Driver", "MappedDecoder", "AlignedDecoder"]
+import numpy as np
+
+__all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED"]
+
+#: The telemetry ``flags`` bit of an estimated sample
+#: (:data:`hapsim.daemon.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
+#: nothing of the daemon above them).
+FLAG_ESTIMATED = 32
 
 
 class AlignedDecoder:
@@ -203,7 +210,7 @@ class Driver:
 
         A protocol without ``force_seq`` cannot name the force the device held at a tick;
         a driver that times its commands and records fills this in with
-        :func:`hapsim.analysis.applied.account_from_timing` (late ticks, and the ticks it
+        :func:`hapsim.applied.account_from_timing` (late ticks, and the ticks it
         cannot order, whose force half-width the stated uncertainty then covers).
         ``identify`` fits the device to it and ``run`` takes the late ticks out as known
         inputs; None (the default): the forces sent, every delay tried.
@@ -217,9 +224,34 @@ class Driver:
 
         Returns
         -------
-        hapsim.analysis.applied.AppliedAccount or None
+        hapsim.applied.AppliedAccount or None
+
+        Notes
+        -----
+        The drivers here (all three protocols run through
+        :class:`~hapsim.drivers.transport.DriverTransport`) know one thing per tick: whether
+        the command's answer came. A command whose answer did not come (the next row is
+        an estimated sample, ``FLAG_ESTIMATED``) may not have reached the device (a lost
+        or merged packet) or may have (a lost record): the force applied from it is the
+        one sent or the one before, so those rows are *ambiguous* and the account states
+        the half-difference (:func:`~hapsim.applied.account_from_timing`, with
+        the transport's delay d: ``loop_delay``). None when every answer came.
         """
-        return None
+        flags = columns.get("flags")
+        d = getattr(self, "loop_delay", None)
+        if flags is None or d is None:
+            return None
+        est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
+        if not est.any():
+            return None
+        from hapsim.applied import account_from_timing
+        n = est.size
+        amb = np.zeros(n, bool)
+        # row r applies the force of row r - d, carried by the command answered (or not)
+        # at row r - d + 1
+        k = np.flatnonzero(est) + d - 1
+        amb[k[(k >= 0) & (k < n)]] = True
+        return account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale)
 
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""

@@ -122,6 +122,9 @@ class DriverTransport:
         0 for hardware (the device's time goes on: each missed tick asks again); a mock
         paced by the commands (one period per command) waits longer, so that a slow mock
         process is not taken for a lost answer.
+    delay_known : bool
+        ``delay`` is the device's (a scene states it, a mock has it); False when it is a
+        guess that identification must search (then the driver gives no account).
 
     Attributes
     ----------
@@ -139,7 +142,7 @@ class DriverTransport:
     """
 
     def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
-                 reply_deadline: float = 0.0) -> None:
+                 reply_deadline: float = 0.0, delay_known: bool = True) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -148,6 +151,9 @@ class DriverTransport:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
         self._d = int(delay)
+        # for the driver's account of what was applied: the delay, when it is known (a
+        # scene's stated delay, a mock's own); an identification that searches it: None
+        driver.loop_delay = self._d if delay_known else None
         self._deadline_us = int(reply_deadline * 1e6)
         self._dec = driver.decoder()
         self.decoder = _Dec(DriverStats(self._dec.stats))
@@ -166,6 +172,8 @@ class DriverTransport:
         self._s_prev = None
         self._arm_ns = 0
         self._settle = 0
+        self._stray = False                 # the last bytes read made no record
+        self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
                       "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0}
@@ -182,6 +190,7 @@ class DriverTransport:
         return (time.monotonic_ns() - self._t0) // 1000
 
     def _write(self, data: bytes) -> None:
+        self._t_write = time.monotonic()
         try:
             self._ser.write(data)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
@@ -228,13 +237,18 @@ class DriverTransport:
     def _listen(self) -> None:
         """Before arming: listen for :data:`LISTEN_S` without asking anything; records
         that come are a firmware that streams (counted in ``unprompted_before_arming``)."""
-        end = time.monotonic() + LISTEN_S
         dec = self._dec
+        # answers to what was sent last (a STOP's zero force before a re-arming) are not
+        # unprompted: let them come and drop them first
+        quiet = self._t_write + LISTEN_S
+        end = max(time.monotonic(), quiet) + LISTEN_S
         try:
             while time.monotonic() < end:
                 data = self._ser.read(max(self._ser.in_waiting, 1))
                 if data:
-                    self.stats["unprompted_before_arming"] += len(dec.feed(data))
+                    n = len(dec.feed(data))
+                    if time.monotonic() >= quiet:
+                        self.stats["unprompted_before_arming"] += n
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
@@ -242,8 +256,15 @@ class DriverTransport:
         """Whether the newest command's answer is overdue: none came and the reply
         deadline passed (with a zero deadline, at once). The host loop then takes the tick
         as a missing sample and sends its FORCE anyway (module notes)."""
-        return (self._armed and self._settle <= 0 and self._answered < self._cmd
-                and self._now_us() - self._sent_us[self._cmd % _RING] >= self._deadline_us)
+        if not (self._armed and self._settle <= 0 and self._answered < self._cmd):
+            return False
+        waited = self._now_us() - self._sent_us[self._cmd % _RING]
+        if self._deadline_us <= 0:
+            return True                     # hardware: its time went on
+        # a mock paced by the commands: overdue once bytes came that made no record (a
+        # damaged answer), or after a long silence (a wholly lost one); a slow mock
+        # process is neither
+        return waited >= (self._deadline_us if self._stray else 10 * self._deadline_us)
 
     def hold(self) -> None:
         """A host tick without a new sample: command the last force again (a request-reply
@@ -337,6 +358,7 @@ class DriverTransport:
                 if data:
                     self._last.append(data.hex())
                     xs = dec.feed(data)
+                    self._stray = not xs
                     if xs:
                         self._take(xs, out)
                     d = dec.stats.get("desync", 0)
