@@ -13,6 +13,7 @@ import math
 import os
 import shutil
 import subprocess
+import tempfile
 import time
 import uuid
 
@@ -49,8 +50,12 @@ def jack_server():
 
     name = f"hapsim-test-{uuid.uuid4().hex[:8]}"
     env = dict(os.environ, JACK_NO_AUDIO_RESERVATION="1")
+    # its output goes to a file, never to an undrained pipe: under load jackd logs an xrun
+    # line per late period, and once a pipe's 64 KiB are full it blocks in write() and
+    # every client's jack_client_open waits for it forever (a whole suite hung so)
+    log = tempfile.TemporaryFile()
     proc = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", "48000", "-p", "256"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+                            stdout=log, stderr=subprocess.STDOUT, env=env)
     try:
         deadline = time.monotonic() + 20.0
         while True:
@@ -60,7 +65,8 @@ def jack_server():
                 break
             except jack.JackOpenError:
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    out = proc.stdout.read().decode(errors="replace") if proc.poll() is not None else ""
+                    log.seek(0)
+                    out = log.read().decode(errors="replace")
                     pytest.fail(f"jackd did not start: {out[-500:]}")
                 time.sleep(0.1)
         yield name
@@ -71,6 +77,7 @@ def jack_server():
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        log.close()
 
 
 class Recorder:

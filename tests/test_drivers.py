@@ -647,3 +647,40 @@ def test_driver_account_marks_the_forces_a_missing_answer_leaves_open():
     assert np.allclose(acc.applied[2:], force[:-2]) and np.all(acc.applied[:2] == 0)
     amb = np.flatnonzero(acc.half_width > 0)
     assert list(amb) == [6] and acc.half_width[6] == pytest.approx(0.005)
+
+
+def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
+    """A STOP sends the Haply board its whole re-synchronisation (replies come back); the
+    arming that follows (a recovery) lets them come first: the firmware is still the one
+    that answers each write, the board holds zero torque, and the first sample comes."""
+    import os
+    import time as _t
+
+    import firmware_protocol as fp
+    from hapsim.drivers.mock import HaplyDevice
+    board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
+                        1000.0, Excitation())
+    path, slave, master, flag, th = _pty_device(board)
+    try:
+        drv = get_driver("haply")
+        tr, got = _arm_and_wait(drv, path)
+        assert got
+        for _ in range(5):
+            tr.send(fp.Force(0, (0.05,)))
+            _t.sleep(0.003)
+            tr.receive(0.0)
+        tr.send(fp.Stop())
+        tr.send(fp.Config(1000.0, 50_000, 0.12))
+        again = []
+        end = _t.monotonic() + 2.0
+        while not again and _t.monotonic() < end:
+            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        rep = tr.report()
+        tr.close()
+    finally:
+        flag["stop"] = True
+        th.join(2.0)
+        os.close(slave)
+        os.close(master)
+    assert again and rep["unprompted_before_arming"] == 0
+    assert rep["firmware"].startswith("Haply M3") and board.held == 0.0

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hapsim.analysis.applied import account_from_force_seq, account_from_timing
+from hapsim.applied import account_from_force_seq, account_from_timing
 from hapsim.commands.identify import identify
 from hapsim.daemon import mock as mock_mod
 from hapsim.scene import Device
@@ -143,23 +143,23 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     assert "Traceback" not in r.stderr
 
 
-def test_identify_that_cannot_fit_says_why_exit_1(tmp_path):
+def test_identify_that_cannot_fit_says_why_exit_1(tmp_path, capsys):
     """A device too stiff in friction to move under the force limit: exit 1, the reason on
-    stderr, stdout only the JSON error, no traceback."""
-    proc, port = _mock_on_pty(tmp_path, {"mass": 0.1, "friction": 0.5, "delay": 3,
-                                         "coulomb": 5.0, "force_limit": 10.0})
-    try:
-        r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
-                            "--json", "--force-limit", "1", "--duration", "0.5"],
-                           capture_output=True, text=True, timeout=120)
-    finally:
-        proc.terminate()
-        proc.wait(10)
-    assert r.returncode == 1, (r.stdout, r.stderr)
-    out = json.loads(r.stdout)
+    stderr, stdout only the JSON error, no traceback (the fit's ZeroDivisionError and
+    OverflowError reached the user)."""
+    from hapsim.cli import main
+    scene = tmp_path / "dev.yaml"
+    scene.write_text("rate_hz: 1000\nmasses:\n  - {name: hand, kind: port}\nlinks: []\n"
+                     "device: {mass: 0.1, friction: 0.5, delay: 3, coulomb: 5.0, "
+                     "force_limit: 10.0}\n")
+    code = main(["identify", "--mock-scene", str(scene), "--lockstep", "--json",
+                 "--force-limit", "1", "--duration", "0.5"])
+    cap = capsys.readouterr()
+    assert code == 1, (cap.out, cap.err)
+    out = json.loads(cap.out)                # only the JSON error on stdout
     assert out["error"]["type"] == "IdentificationError"
-    assert "hardly moved" in out["error"]["message"]
-    assert "Traceback" not in r.stderr
+    assert "hardly moved" in out["error"]["message"] and "hardly moved" in cap.err
+    assert "Traceback" not in cap.err
 
 
 @settings(max_examples=4, deadline=None, derandomize=True,

@@ -53,11 +53,11 @@ def test_old_bench_names_are_the_analysis_ones():
 # module of hapsim not named here stands on the top floor (nothing below may import it).
 PACKAGE_DIR = DAEMON_DIR.parent
 LAYERS = (
-    # (analysis.applied: the account of what a device applied, array mathematics that
-    # imports nothing of hapsim, which the drivers' codecs use for their own timing)
+    # hapsim.applied: the account of the force a device applied per tick (plain arrays),
+    # which the drivers' timing fills and the analysis and the daemon read
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
                     "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
-                    "hapsim.analysis.applied")),
+                    "hapsim.applied")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",

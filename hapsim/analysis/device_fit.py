@@ -623,7 +623,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         Holds tried.
     lag : int >= 1
         Newey-West lag [samples].
-    applied : hapsim.analysis.applied.AppliedAccount, optional
+    applied : hapsim.applied.AppliedAccount, optional
         The account of the force the device applied per sample (its ``force_seq``): the
         fit is then driven by ``applied.applied``, the delay is the one the device showed
         (``applied.delay``, exact: ``delay_range`` is that one value) and ``late`` and

@@ -907,7 +907,7 @@ def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
 
     A late tick holds an older force than the loop's ``u[n] = F[n-d]``: the device applied
     ``u[n] + w[n]`` with ``w[n]`` known from its STATEs
-    (:meth:`hapsim.analysis.applied.AppliedAccount.disturbance`). The loop is linear, so the
+    (:meth:`hapsim.applied.AppliedAccount.disturbance`). The loop is linear, so the
     record is the undisturbed loop's plus ``x_w[n] = sum_{j<n} c A^(n-1-j) b w[j]`` with
     ``A`` of :func:`hapsim.analysis.network.closed_loop`, ``b`` of
     :func:`hapsim.analysis.network.force_input` and ``c`` the logged position (state 0):

@@ -272,7 +272,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     """The logged positions with the response to the late ticks' known disturbance taken
     out, when the device names the force it applied (framed protocol, ``force_seq``).
 
-    A late tick is a known input of the linear loop (:mod:`hapsim.analysis.applied`): the
+    A late tick is a known input of the linear loop (:mod:`hapsim.applied`): the
     position minus the loop's response to ``w = applied - F[n-d]``
     (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
     so the whole record is measured, not only the longest stretch without a late tick.
@@ -298,7 +298,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         Positions [m] to measure, the late flags to cut at (None when accounted for) and
         the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
     """
-    from hapsim.analysis.applied import account_from_force_seq
+    from hapsim.applied import account_from_force_seq
 
     pos, late = cols["position"], cols["late"]
     fseq = cols.get("force_seq")
@@ -306,7 +306,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     hook = getattr(driver, "account", None) if driver is not None else None
     if driver is not None:
         # a driver's STATEs name no applied force (force_seq = seq - d): its account is
-        # its own timing's (Driver.account -> hapsim.analysis.applied.account_from_timing)
+        # its own timing's (Driver.account -> hapsim.applied.account_from_timing)
         acc = hook(cols, cols["force"]) if hook is not None else None
         if acc is None or not np.any(acc.late):
             return pos, late, {}

@@ -535,7 +535,7 @@ def force_input(scene, member=None) -> np.ndarray:
     """The column through which a force added to the one the device holds enters the
     closed loop of :func:`closed_loop`: ``s[n+1] = A s[n] + b w[n]`` for a force ``w[n]``
     [N] held over ``[nT, (n+1)T)`` on top of ``u[n] = F[n-d]`` (a late tick's known
-    disturbance, :mod:`hapsim.analysis.applied`).
+    disturbance, :mod:`hapsim.applied`).
 
     Parameters
     ----------

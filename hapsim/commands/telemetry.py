@@ -36,7 +36,11 @@ def register(sub) -> None:
             "says what was lost."),
         epilog=(
             "columns: time [s], position [m], force [N], seq, turnaround_us [us], late,\n"
-            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped)\n"
+            "  flags (1 late, 2 first sample after a recovery, 4 ramped, 8 clamped),\n"
+            "  force_seq (the device's STATE.force_seq: the FORCE it applied), status\n"
+            "applied: from force_seq, the force the device held at each tick, its delay\n"
+            "  and late ticks, and the felt energy from the applied force (exact with late\n"
+            "  ticks)\n"
             "felt energy: E(n) = sum_k f(k - d) (x(k+1) - x(k)) [J], the work the held force\n"
             "  did on the hand (the run's passivity observer), restarted at each recovery\n"
             "examples:\n"
@@ -204,7 +208,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         (``format``, ``intact``, and for a journal ``chunks``, ``torn_bytes``,
         ``lost_rows``: ranges ``[a, b)`` lost to a torn last chunk or to the writer);
         ``applied`` when the rows carry the device's ``force_seq``
-        (:func:`hapsim.analysis.applied.account_from_force_seq`): ``method``, ``delay`` (the
+        (:func:`hapsim.applied.account_from_force_seq`): ``method``, ``delay`` (the
         delay the device showed), ``late``, ``tick_delay_max``, ``unknown``, and
         ``felt_energy_j`` (``max``, ``end``) from the force the device applied at each tick
         (exact with late ticks; the ``felt_energy_j`` above assumes each force on time).
@@ -239,7 +243,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     applied = None
     fseq = cols.get("force_seq")
     if n and fseq is not None and np.any(fseq >= 0):
-        from hapsim.analysis.applied import account_from_force_seq
+        from hapsim.applied import account_from_force_seq
         acc = account_from_force_seq(seq, cols["force"], fseq, cols["status"])
         if acc.delay >= 0:
             ea = felt_energy(cols["position"], acc.applied, flags, 0)

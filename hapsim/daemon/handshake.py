@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.daemon.loop_types import SENSORS_TRIES, SENSORS_WAIT, percentiles_us
+from hapsim.daemon.loop_types import (QUIESCE_NONCE, QUIESCE_TRIES, QUIESCE_WAIT,
+                                      SENSORS_TRIES, SENSORS_WAIT, percentiles_us)
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["Handshake"]
@@ -130,6 +131,54 @@ class Handshake:
                           f"velocity sensor ({why}); choose "
                           f"another correction, or a device that measures its velocity",
                           key="device.correction.kind")
+
+    def _quiesce(self) -> bool:
+        """Disarm the device and read everything it sent before: STOP, then PING, until
+        its PONG (PROTOCOL.md §4: STOP disarms; a device answers PING in order).
+
+        A device keeps ticking armed STATEs of the session it had (a port that vanished and
+        came back, a host that died without STOP) until it takes the next CONFIG. Those
+        STATEs carry the handle of that session, not the one the CONFIG (re)starts: a host
+        that resumed the scene at one would start from the wrong position (the real-time
+        mock restarts its plant at CONFIG; the state after a reconnect showed a handle
+        0.105 m out, beyond the position bound). The byte stream is in order, so once the
+        PONG of a PING sent after the STOP is read, every STATE sent before the STOP has
+        been read too (and dropped here), and the device, disarmed, sends no armed STATE
+        until CONFIG arms it: the first armed STATE after CONFIG is of the new session. An
+        armed STATE within two periods after the PONG shows that the STOP was lost on the
+        way (a lossy link): STOP and PING again.
+
+        Returns
+        -------
+        bool
+            True when the PONG came (:attr:`LoopResult.quiesced`); False after
+            :data:`QUIESCE_TRIES` waits of :data:`QUIESCE_WAIT` without it (a lossy link or
+            a device that does not answer PING: the loop then skips, before it resumes, a
+            STATE that shows an earlier session, :attr:`LoopResult.earlier_session`), or on
+            a stop.
+        """
+        tr = self.transport
+        clock = self._clock
+        settle = 2.0 / self.config.rate_hz
+        for k in range(QUIESCE_TRIES):
+            nonce = QUIESCE_NONCE + k
+            tr.send(fp.Stop())
+            tr.send(fp.Ping(nonce, 0))
+            end = clock() + QUIESCE_WAIT
+            pong = None
+            armed = False
+            while not armed and clock() < (end if pong is None else pong + settle):
+                if self.stop.set:
+                    return False
+                for msg in tr.receive(0.02 if pong is None else settle):
+                    if type(msg) is fp.Pong and msg.nonce == nonce:
+                        pong = clock()
+                    elif (pong is not None and type(msg) is fp.State
+                          and msg.status & fp.STATUS_ARMED):
+                        armed = True    # the STOP was lost on the way: send it again
+            if pong is not None and not armed:
+                return True
+        return False
 
     def _send_config(self) -> None:
         cfg = self.config

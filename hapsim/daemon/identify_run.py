@@ -29,7 +29,7 @@ halves each time the device is about to pass 60 % of the envelope (then 66 %, ..
 position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
 ``d`` samples after it moved) never leaves the envelope before the gain has found its
 level. The fit (:mod:`hapsim.analysis.device_fit`) uses the forces the device applied
-(:mod:`hapsim.analysis.applied`), so neither the centring loop nor late ticks bias it.
+(:mod:`hapsim.applied`), so neither the centring loop nor late ticks bias it.
 """
 
 from __future__ import annotations
@@ -465,7 +465,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         account = hook(cols, force) if hook is not None else None
         late = cols["late"].astype(bool) if account is None else account.late
     else:                   # a framed device's actuator grid, as its HELLO reports it
-        from hapsim.analysis.applied import account_from_force_seq
+        from hapsim.applied import account_from_force_seq
         hello = getattr(res, "hello", None)
         fs = float(getattr(hello, "force_scale", 0.0) or 0.0)
         if not (math.isfinite(fs) and fs > 0):

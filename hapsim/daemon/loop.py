@@ -37,7 +37,10 @@ zero FORCE and STOP are sent (best effort), then, when ``reconnect`` is on, the 
 the port if it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at
 most ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts
 from its initial state with the port at the device's position at rest, the force ramped up
-over ``ramp_samples``. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
+over ``ramp_samples``. A recovery's CONFIG follows a STOP and the PONG of a PING sent
+after it (:meth:`HostLoop._quiesce`; without that PONG, the first armed STATE after the
+CONFIG must not report a FORCE applied, as the host sent none yet): the scene restarts at
+the handle of the new session, never at a STATE the device sent before it took the CONFIG. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
 ``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device
 FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are counted; latched ones end the
 run. The host-clocked loop uses the same machinery (one driver,
@@ -170,6 +173,7 @@ class HostLoop(Handshake, Recovery, BadFrames):
         self._energy = 0.0          # passivity observer E since the last (re)start [J]
         self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
         self._applied_seen = False  # the device sets STATUS_FORCE_APPLIED (PROTOCOL.md §4)
+        self._check_applied = False  # skip STATEs with FORCE_APPLIED until the scene resumes
         self.force_limit = math.inf
         self.state = "idle"
         dec = getattr(transport, "decoder", None)
@@ -513,6 +517,7 @@ class HostLoop(Handshake, Recovery, BadFrames):
         rate = float(cfg.rate_hz)
         State = fp.State
         armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
@@ -562,6 +567,9 @@ class HostLoop(Handshake, Recovery, BadFrames):
                 x = msg.position[0]
                 resumes = self._fresh
                 if self._fresh:
+                    if self._check_applied and msg.status & applied_bit:
+                        res.earlier_session += 1  # a FORCE applied since CONFIG: none sent
+                        continue
                     if not isfinite(x):
                         x = math.nan          # _drive stops on it (non-finite position)
                     else:
@@ -627,6 +635,7 @@ class HostLoop(Handshake, Recovery, BadFrames):
         silence = self._silence()
         State = fp.State
         armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
         perf = time.perf_counter_ns
         clock = self._clock
         sleep = self._sleep
@@ -673,6 +682,9 @@ class HostLoop(Handshake, Recovery, BadFrames):
                         res.unarmed += 1
                         continue
                     raise _Lost("the device reports itself disarmed (reset?)")
+                if latest is None and self._check_applied and msg.status & applied_bit:
+                    res.earlier_session += 1      # a FORCE applied since CONFIG: none sent
+                    continue
                 if latest is not None:
                     ahead = (msg.seq - latest.seq) & _U32
                     if ahead >= _HALF:

@@ -18,7 +18,8 @@ import firmware_protocol as fp
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "MeasuredVelocity", "LostDevice",
            "percentiles_us", "signame", "LATCHED_FAULTS", "BAD_FRAME_RECORDS",
-           "BAD_FRAME_CONTEXT", "SENSORS_TRIES", "SENSORS_WAIT", "SEQ_MASK", "SEQ_HALF",
+           "BAD_FRAME_CONTEXT", "SENSORS_TRIES", "SENSORS_WAIT", "QUIESCE_TRIES",
+           "QUIESCE_WAIT", "QUIESCE_NONCE", "SEQ_MASK", "SEQ_HALF",
            "OPEN_ENDED"]
 
 #: Sequence numbers are 32-bit and wrap (PROTOCOL.md §3): differences are taken modulo
@@ -31,28 +32,27 @@ OPEN_ENDED = 1 << 62
 
 #: Bad-frame incidents kept in :attr:`LoopResult.bad_frames` (the latest ones).
 BAD_FRAME_RECORDS = 32
-
-
-
 #: Frames received before a bad one that its record shows (at most).
 BAD_FRAME_CONTEXT = 8
-
 
 
 #: SENSORS_REQUEST attempts before a device is taken to offer no sensor (it was written
 #: before the message and drops it, PROTOCOL.md §4), and the wait after each [s].
 SENSORS_TRIES = 3
-
-
-
 SENSORS_WAIT = 0.1
 
+#: Before every CONFIG the host sends STOP then a PING and waits for its PONG, at most this
+#: many times, this long each [s] (:meth:`hapsim.daemon.handshake.Handshake._quiesce`); then
+#: it arms anyway.
+QUIESCE_TRIES = 3
+QUIESCE_WAIT = 0.1
+#: Nonce of the quiescing PINGs (+ the try): apart from the round-trip PINGs' 0..15.
+QUIESCE_NONCE = 0x51E7_0000
 
 
 #: Fault codes that latch on the device (PROTOCOL.md §4): they end the run.
 LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLIFIER,
                             fp.FAULT_NON_FINITE_FORCE, fp.FAULT_VERSION_MISMATCH))
-
 
 
 class LostDevice(Exception):
@@ -70,7 +70,6 @@ class LostDevice(Exception):
     def __init__(self, reason: str, port_error: bool = False) -> None:
         super().__init__(reason)
         self.port_error = port_error
-
 
 
 class MeasuredVelocity:
@@ -135,7 +134,6 @@ class MeasuredVelocity:
         return {"frames": self.frames, "missing": self.missing}
 
 
-
 class StopFlag:
     """A flag a signal handler sets to end the loop cleanly (zero force, STOP, flush).
 
@@ -174,7 +172,6 @@ class StopFlag:
         """
         self.set = True
         self.signal = signum
-
 
 
 @dataclass
@@ -280,7 +277,6 @@ class LoopConfig:
     backlog: str = "newest"
 
 
-
 @dataclass
 class LoopResult:
     """What a host-loop run did.
@@ -344,6 +340,16 @@ class LoopResult:
         after it look stale).
     unarmed : int
         STATEs without STATUS_ARMED (before the first armed one after CONFIG): ignored.
+    earlier_session : int
+        Armed STATEs that arrived after a recovery's CONFIG not preceded by a confirmed
+        quiescence (``quiesced`` False), before the first one the loop resumed at, with
+        STATUS_FORCE_APPLIED set: that bit names a FORCE applied since the last CONFIG
+        (PROTOCOL.md §4), and the host had sent none since this one, so they were sent
+        before the device took it (an earlier session's handle): ignored.
+    quiesced : bool
+        The device answered the PING sent after the STOP that preceded the last recovery's
+        CONFIG (:meth:`hapsim.daemon.handshake.Handshake._quiesce`); False: no recovery, or
+        it re-armed without that barrier.
     hello_mid_run : int
         HELLO messages received after the handshake: before the first armed STATE after a
         CONFIG they answer HELLO requests and are ignored; after it, the device reset and
@@ -359,7 +365,8 @@ class LoopResult:
     events : list of dict
         ``{"event": "lost"|"lost again"|"attempt"|"recovered", "t": [s since arming],
         "sample", "state", ...}`` (off the hot path: only on faults); ``state`` is the
-        loop's state once the event happened.
+        loop's state once the event happened; ``recovered`` adds ``x``, the device
+        position [m] the scene restarted at.
     state : str
         The loop's state when the run ended, before the final zero FORCE and STOP:
         ``armed`` (ran to its end or was stopped while driving the device), ``lost`` or
@@ -408,6 +415,8 @@ class LoopResult:
     bad_axes: int = 0
     implausible: int = 0
     unarmed: int = 0
+    earlier_session: int = 0
+    quiesced: bool = False
     hello_mid_run: int = 0
     device_faults: dict = field(default_factory=dict)
     lost: int = 0
@@ -423,7 +432,6 @@ class LoopResult:
     v_max: float = 0.0
     f_max: float = 0.0
     velocity: dict = field(default_factory=dict)
-
 
 
 def percentiles_us(values: np.ndarray) -> dict:

@@ -117,6 +117,9 @@ class Recovery:
                 if hello is not None:
                     self._check_hello(hello)
                     self._ask_sensors()        # a reset device forgot the request
+                    # the device may still tick armed STATEs of the lost session
+                    res.quiesced = self._quiesce()
+                    self._check_applied = not res.quiesced
                     self._send_config()
                     self.state = "armed"
                     return True
@@ -188,7 +191,7 @@ class Recovery:
             self._ramp = max(int(self.config.ramp_samples), 1)
             self.result.recovered += 1
             self._event("recovered", attempts=self._attempts,
-                        after_s=round(self._clock() - self._lost_since, 6))
+                        after_s=round(self._clock() - self._lost_since, 6), x=x)
             self._lost_since = None
         self.engine.set_port_position(x, at_rest=True)
         # passivity observer: the scene (re)starts holding E0; E counts from 0 again
@@ -196,4 +199,5 @@ class Recovery:
         self._energy = 0.0
         self.result.energy_stored = self._e0
         self._fresh = False
+        self._check_applied = False
         return self.engine

@@ -154,6 +154,13 @@ def format_report(rep: dict) -> str:
                  f"{dash(lp.get('energy_excess_max_j'), '.4g')} (limit "
                  f"{dash(sf['energy_limit'], 'g')}"
                  f"{', passivity controller on' if sf['passivity_controller'] else ''})")
+    dl = lp.get("driver")
+    if dl:
+        # a driver's link (hapsim.drivers.transport): what came back of what was asked
+        lines.append(f"driver link: {dl['commands']} commands, {dl['records']} records, "
+                     f"missing {dl['missing']} (stepped through estimated: "
+                     f"{lp.get('estimated', 0)}), re-synchronised {dl['resyncs']}, arming "
+                     f"repeated {dl['rearms']}; firmware: {dl['firmware'] or 'not seen'}")
     mk = lp.get("mock")
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "

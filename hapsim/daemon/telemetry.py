@@ -37,6 +37,8 @@ read it as an empty chunk.
 
 Columns
 -------
+In file order (a chunk's header names them with their dtypes):
+
 ``time`` [s]
     Device time of the position sample (STATE.time_us / 1e6).
 ``position`` [m]
@@ -50,13 +52,6 @@ Columns
 ``late`` [-]
     1 when the device reported holding an older force at this tick (its FORCE came too
     late: ``seq - force_seq != d`` or STATUS_OVERRUN), else 0 (int8).
-``force_seq`` [-]
-    STATE.force_seq of the sample (int64): the seq of the FORCE the device applied from
-    this tick on (PROTOCOL.md §4; -1 in a file written before this column existed, or
-    from a driver whose protocol has none). With ``status``, the account of the force the
-    device applied per tick (:mod:`hapsim.analysis.applied`).
-``status`` [-]
-    STATE.status bits of the sample (uint16; 0 in older files).
 ``flags`` [-]
     Bits (uint8): :data:`FLAG_LATE` (as ``late``), :data:`FLAG_LOST` (first sample after
     the device was lost and recovered: the scene restarted here), :data:`FLAG_RAMP` (force
@@ -64,6 +59,13 @@ Columns
     limit), :data:`FLAG_SKIPPED` (older STATEs waiting with this one were skipped),
     :data:`FLAG_ESTIMATED` (no sample came: the position was extrapolated). Files
     written before this column existed read as 0.
+``force_seq`` [-]
+    STATE.force_seq of the sample (int64): the seq of the FORCE the device applied from
+    this tick on (PROTOCOL.md §4; -1 in a file written before this column existed, or
+    from a driver whose protocol has none). With ``status``, the account of the force the
+    device applied per tick (:mod:`hapsim.applied`).
+``status`` [-]
+    STATE.status bits of the sample (uint16; 0 in older files).
 """
 
 from __future__ import annotations

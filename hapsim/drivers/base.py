@@ -210,7 +210,7 @@ class Driver:
 
         A protocol without ``force_seq`` cannot name the force the device held at a tick;
         a driver that times its commands and records fills this in with
-        :func:`hapsim.analysis.applied.account_from_timing` (late ticks, and the ticks it
+        :func:`hapsim.applied.account_from_timing` (late ticks, and the ticks it
         cannot order, whose force half-width the stated uncertainty then covers).
         ``identify`` fits the device to it and ``run`` takes the late ticks out as known
         inputs; None (the default): the forces sent, every delay tried.
@@ -224,7 +224,7 @@ class Driver:
 
         Returns
         -------
-        hapsim.analysis.applied.AppliedAccount or None
+        hapsim.applied.AppliedAccount or None
 
         Notes
         -----
@@ -234,7 +234,7 @@ class Driver:
         an estimated sample, ``FLAG_ESTIMATED``) may not have reached the device (a lost
         or merged packet) or may have (a lost record): the force applied from it is the
         one sent or the one before, so those rows are *ambiguous* and the account states
-        the half-difference (:func:`~hapsim.analysis.applied.account_from_timing`, with
+        the half-difference (:func:`~hapsim.applied.account_from_timing`, with
         the transport's delay d: ``loop_delay``). None when every answer came.
         """
         flags = columns.get("flags")
@@ -244,7 +244,7 @@ class Driver:
         est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
         if not est.any():
             return None
-        from hapsim.analysis.applied import account_from_timing
+        from hapsim.applied import account_from_timing
         n = est.size
         amb = np.zeros(n, bool)
         # row r applies the force of row r - d, carried by the command answered (or not)

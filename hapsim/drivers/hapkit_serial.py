@@ -141,6 +141,7 @@ class HapkitSerial(Driver):
     position_scale = 0.0             # float32 on the wire: the firmware's resolution
     force_scale = 0.0
     limits = LIMITS
+    answering_firmware = "WHC2017 Hapkit sketch layout (one reply per command)"
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0) -> None:
         from hapsim.errors import ConfigError

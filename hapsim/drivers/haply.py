@@ -389,6 +389,7 @@ class HaplyM3(Driver):
     force_scale = 0.0
     limits = LIMITS
     unframed = True
+    answering_firmware = "Haply M3 firmware V1.5 layout (one reply per write)"
 
     def __init__(self, device_id: int = 1, resolution: float = 4880.0,
                  direction: int = 0, offset_deg: float = 0.0) -> None:

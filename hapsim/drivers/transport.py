@@ -173,6 +173,7 @@ class DriverTransport:
         self._arm_ns = 0
         self._settle = 0
         self._stray = False                 # the last bytes read made no record
+        self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
                       "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0}
@@ -189,6 +190,7 @@ class DriverTransport:
         return (time.monotonic_ns() - self._t0) // 1000
 
     def _write(self, data: bytes) -> None:
+        self._t_write = time.monotonic()
         try:
             self._ser.write(data)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
@@ -235,13 +237,18 @@ class DriverTransport:
     def _listen(self) -> None:
         """Before arming: listen for :data:`LISTEN_S` without asking anything; records
         that come are a firmware that streams (counted in ``unprompted_before_arming``)."""
-        end = time.monotonic() + LISTEN_S
         dec = self._dec
+        # answers to what was sent last (a STOP's zero force before a re-arming) are not
+        # unprompted: let them come and drop them first
+        quiet = self._t_write + LISTEN_S
+        end = max(time.monotonic(), quiet) + LISTEN_S
         try:
             while time.monotonic() < end:
                 data = self._ser.read(max(self._ser.in_waiting, 1))
                 if data:
-                    self.stats["unprompted_before_arming"] += len(dec.feed(data))
+                    n = len(dec.feed(data))
+                    if time.monotonic() >= quiet:
+                        self.stats["unprompted_before_arming"] += n
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
