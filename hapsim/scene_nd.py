@@ -151,6 +151,10 @@ class DeviceND:
         Operating point [rad] of a kinematic device.
     geometry : str or None
         Its preset.
+    joint_inertia, joint_friction : ndarray, shape (n, n), or None
+        A kinematic device's joint-space inertia [kg m^2] and friction [N m s/rad].
+    hand_mass, hand_damping : float
+        The hand's isotropic mass [kg] and damping [N s/m] (in ``mass``, ``friction``).
     """
 
     kind: str
@@ -161,6 +165,10 @@ class DeviceND:
     hold: str
     joints: np.ndarray | None = None
     geometry: str | None = None
+    joint_inertia: np.ndarray | None = None
+    joint_friction: np.ndarray | None = None
+    hand_mass: float = 0.0
+    hand_damping: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -251,7 +259,7 @@ class _Reader:
             raise self.error(f"must be a whole number of {unit}, got {show(v)}",
                              self.line(d, k), where)
         if not minimum <= v <= maximum:
-            raise self.error(f"must be between {minimum} and {maximum} {unit}, got {v}",
+            raise self.error(f"must be between {minimum} and {maximum} {unit}, got {show(v)}",
                              self.line(d, k), where)
         return int(v)
 
@@ -598,4 +606,5 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     except KinematicsError as exc:
         raise r.error(exc.reason, r.line(d, "joints"), f"{key}.joints") from None
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
-                    geometry=geometry)
+                    geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
+                    hand_damping=bh)

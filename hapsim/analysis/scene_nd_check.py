@@ -45,7 +45,7 @@ from hapsim.analysis.ths_nd import (LoopModelND, RenderND, direction_limit, rend
 from hapsim.errors import ConfigError
 
 __all__ = ["link_blocks", "closed_loop_nd", "SceneCheckND", "check_scene_nd",
-           "MAX_STATES_ND"]
+           "MAX_STATES_ND", "WorkspaceFelt", "felt_over_workspace"]
 
 #: Largest closed-loop state built (dense eigenvalues and eigenvectors: O(N^3)), the
 #: 1-D analysis's bound (hapsim.analysis.network.MAX_STATES).
@@ -304,3 +304,128 @@ def check_scene_nd(scene) -> SceneCheckND:
                         for i in range(n)])
     return SceneCheckND(dof=n, render=r, port_stiffness=Kp, port_damping=Bp,
                         states=A.shape[0], limit_directions=E, stiffness_limits=lim)
+
+
+@dataclass(frozen=True)
+class WorkspaceFelt:
+    """The workspace of a scene's device and the felt stiffness over it
+    (:func:`felt_over_workspace`).
+
+    Attributes
+    ----------
+    workspace : ndarray, shape (W, n)
+        Handle positions [m] of a joint grid about the operating point (refused
+        configurations left out).
+    positions : ndarray, shape (E, n)
+        Handle positions [m] where the felt matrices were computed.
+    felt_stiffness, felt_damping : ndarray, shape (E, n, n)
+        The felt ``k`` [N/m] and ``b`` [N s/m] there (nan where the loop has fewer than n
+        rendered pairs or is unstable).
+    stable : ndarray of bool, shape (E,)
+        The MIMO verdict there.
+    span_deg : float
+        Half-width of the joint grid about the operating point [deg].
+    note : str
+        Empty, or why there are no felt matrices over the workspace.
+    """
+
+    workspace: np.ndarray
+    positions: np.ndarray
+    felt_stiffness: np.ndarray
+    felt_damping: np.ndarray
+    stable: np.ndarray
+    span_deg: float
+    note: str = ""
+
+
+def felt_over_workspace(scene, *, span_deg: float = 30.0, points: int = 24,
+                        ellipses: int = 4) -> WorkspaceFelt:
+    """Where the handle of a scene's kinematic device can go, and what the port's links
+    feel like at those places (the configuration-dependent Cartesian mass).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a pantograph or delta device. When its port links all end
+        on grounds they are the port-ground stiffness ``K`` and damping ``B`` matrices of
+        :class:`SceneCheckND`, moved with the handle; when one ends on a moving mass the
+        felt matrices are the scene's own and none is computed over the workspace
+        (``note`` says so).
+    span_deg : float, optional
+        Half-width of the joint grid about the scene's joints [deg].
+    points : int, optional
+        Grid points per joint for the workspace (the delta: ``points // 2`` per joint).
+    ellipses : int, optional
+        Grid points per joint where the felt matrices are computed (the delta: one
+        fewer).
+
+    Returns
+    -------
+    WorkspaceFelt
+        At each grid configuration ``q``: the loop of
+        :meth:`hapsim.analysis.ths_nd.LoopModelND.from_device` (the scene's joint
+        inertia and friction, hand mass and damping, rate and delay), felt through
+        :func:`hapsim.analysis.ths_nd.render_nd` with the scene's port ``K`` and ``B``
+        (the inverse quadratic eigenvalue problem; module docstring).
+
+    Raises
+    ------
+    ConfigError
+        A Cartesian device (no joints: no workspace).
+    """
+    from hapsim.analysis.ths_nd import render_nd
+    from hapsim.errors import KinematicsError
+    from hapsim.kinematics import device as make
+    dev = scene.device
+    if dev is None or dev.joints is None:
+        raise ConfigError("the workspace is a kinematic device's (pantograph, delta): a "
+                          "cartesian device has none", file=scene.path, key="device.kind")
+    chk_links = link_blocks(scene)
+    kinds = {m.name: m.kind for m in scene.masses}
+    port = scene.port.name
+    n = scene.dimension
+    K = np.zeros((n, n))
+    B = np.zeros((n, n))
+    note = ""
+    for _, a, b, Kl, Bl in chk_links:
+        if port in (a, b):
+            other = b if a == port else a
+            if other is not None and kinds[other] != "ground":
+                note = (f"the port link to the moving mass {other!r}: the felt matrices "
+                        "are the scene's, at the handle only")
+                ellipses = 0
+            K += Kl
+            B += Bl
+    kin = make(dev.kind, dev.geometry)
+    q0 = np.asarray(dev.joints, float)
+    span = np.radians(span_deg)
+
+    def grid(m):
+        axes = [np.linspace(q - span, q + span, m) for q in q0]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, n)
+    W = []
+    for q in grid(points if n == 2 else max(3, points // 2)):
+        try:
+            W.append(kin.forward(q))
+        except KinematicsError:
+            continue
+    P, Ks, Bs, ok = [], [], [], []
+    Mq, Bq, mh, bh = dev.joint_inertia, dev.joint_friction, dev.hand_mass, dev.hand_damping
+    for q in (grid(ellipses if n == 2 else ellipses - 1) if ellipses > 1 else ()):
+        try:
+            loop = LoopModelND.from_device(kin, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                           rate_hz=scene.rate_hz, delay=dev.delay)
+            x = kin.forward(q)
+        except (KinematicsError, ConfigError):
+            continue
+        r = render_nd(loop, K, B)
+        good = r.felt_stiffness is not None and r.stable
+        P.append(x)
+        Ks.append(r.felt_stiffness if good else np.full((n, n), np.nan))
+        Bs.append(r.felt_damping if good else np.full((n, n), np.nan))
+        ok.append(bool(r.stable))
+    return WorkspaceFelt(workspace=np.array(W).reshape(-1, n),
+                         positions=np.array(P).reshape(-1, n),
+                         felt_stiffness=np.array(Ks).reshape(-1, n, n),
+                         felt_damping=np.array(Bs).reshape(-1, n, n),
+                         stable=np.array(ok, bool), span_deg=float(span_deg), note=note)

@@ -60,6 +60,9 @@ def register(sub) -> None:
                    help="print the result as one JSON object on stdout")
     p.add_argument("--modes", type=int, default=8, metavar="N",
                    help="parasitic modes listed in the table (default 8; 0 for none)")
+    p.add_argument("--plot", metavar="FIG",
+                   help="2-D or 3-D scene: draw it over its device's workspace with the "
+                        "felt stiffness ellipses (png, pdf, svg)")
     p.set_defaults(func=run)
 
 
@@ -109,6 +112,9 @@ def run(args: argparse.Namespace) -> int:
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D check
         from hapsim.commands.check_nd import run_nd
         return run_nd(args)
+    if getattr(args, "plot", None) is not None:
+        raise ConfigError("draws a 2-D or 3-D scene (dimension: 2 or 3); a 1-D scene's "
+                          "charts are hapsim stability/family --plot", key="--plot")
     from hapsim.api import check
     from hapsim.scene import load_scene
 

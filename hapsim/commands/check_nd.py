@@ -14,7 +14,9 @@ def run_nd(args) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene`` (path), ``json`` (bool), ``modes`` (int).
+        ``scene`` (path), ``json`` (bool), ``modes`` (int), ``plot`` (figure path or
+        None: the scene over its device's workspace with the felt stiffness ellipses,
+        :func:`hapsim.plot_workspace.plot_scene_nd`).
 
     Returns
     -------
@@ -30,12 +32,18 @@ def run_nd(args) -> int:
     from hapsim.scene_nd import load_scene_nd
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
+    plot = getattr(args, "plot", None)
+    if plot is not None:
+        from hapsim.plot import check_figure_path
+        check_figure_path(plot, "--plot")
     scene = load_scene_nd(args.scene)
     if scene.port is None:
         raise ConfigError("an n-D scene is checked felt through its device: it needs a "
                           "mass of kind 'port' and a device section", file=scene.path,
                           key="masses")
     chk = check_scene_nd(scene)
+    if plot is not None:
+        _plot(scene, chk, plot)
     if args.json:
         d = chk.to_dict()
         d["scene"] = scene.path
@@ -77,3 +85,17 @@ def run_nd(args) -> int:
     if r.note:
         print(f"  {r.note}", file=o)
     return 0 if chk.stable else 1
+
+
+def _plot(scene, chk, path: str) -> None:
+    """Write the scene's picture (:func:`hapsim.plot_workspace.plot_scene_nd`)."""
+    from hapsim.analysis.scene_nd_check import felt_over_workspace
+    from hapsim.plot import save_figure
+    from hapsim.plot_workspace import plot_scene_nd
+    felt = felt_over_workspace(scene) if scene.device.joints is not None else None
+    note = "\nfelt at the handle only (a port link ends on a moving mass)" \
+        if felt is not None and felt.note else ""
+    name = scene.path.rsplit("/", 1)[-1]
+    save_figure(plot_scene_nd(scene, chk, felt, title=f"{name}: {scene.device.kind}, "
+                              f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note),
+                path)

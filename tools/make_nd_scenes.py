@@ -1,0 +1,196 @@
+"""Write the shipped 2-D and 3-D scenes of configs/ (issue 23 item 7).
+
+The ground points that press the handle into a wall, a disc or a sphere sit where the
+handle rests (the forward kinematics of the device's joints), so they are computed here
+from :mod:`hapsim.kinematics` and written rounded to 0.1 um. Run from the repository root::
+
+    python tools/make_nd_scenes.py          # rewrites configs/{pantograph,delta}_*.yaml
+
+Each scene presses its handle ``PRESS`` into the object at rest with a soft "press"
+spring (length 0) to a ground point behind it: the rest is then (to the rounding) an
+equilibrium, the contact stays engaged under a small excitation, and every direction
+renders a pair (a frictionless wall, disc or sphere alone has no tangential stiffness, so
+the loop would have fewer than n rendered pairs and no felt matrices).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from hapsim.kinematics import device  # noqa: E402
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+PRESS = 0.0005          # the handle's depth into the object at rest [m]
+
+
+def v(a) -> str:
+    return "[" + ", ".join(f"{round(float(x), 7):.7f}".rstrip("0").rstrip(".")
+                           if abs(x) > 5e-8 else "0.0" for x in a) + "]"
+
+
+def unit(a) -> np.ndarray:
+    a = np.asarray(a, float)
+    return a / np.linalg.norm(a)
+
+
+def pantograph_device(joints) -> str:
+    return (f"device: {{kind: pantograph, geometry: haply, joints: {v(joints)},\n"
+            "         joint_inertia: [2.0e-4, 2.0e-4],   # [kg m^2]\n"
+            "         joint_friction: [1.0e-3, 1.0e-3],  # [N m s/rad]\n"
+            "         hand_mass: 0.05, delay: 1}        # [kg], [samples]\n")
+
+
+def delta_device(joints) -> str:
+    return (f"device: {{kind: delta, geometry: falcon, joints: {v(joints)},\n"
+            "         joint_inertia: [1.5e-4, 1.5e-4, 1.5e-4],   # [kg m^2]\n"
+            "         joint_friction: [1.0e-3, 1.0e-3, 1.0e-3],  # [N m s/rad]\n"
+            "         hand_mass: 0.05, delay: 1}                # [kg], [samples]\n")
+
+
+def wall() -> str:
+    q = [130.0, 50.0]
+    h = device("pantograph").forward(np.radians(q))
+    n = np.array([0.0, 1.0])                      # out of the wall, towards the handle
+    K, kp = 1000.0, 200.0
+    press = h - (K * PRESS / kp) * n
+    return (
+        "# A planar wall under the handle of a Haply 2DIY pantograph (five-bar, l = 0.05,\n"
+        "# L = 0.07, d = 0.02 m). The wall is the half-plane below y = offset; the handle\n"
+        "# rests 0.5 mm into it, held there by a soft press spring to a point behind it\n"
+        "# (without it a frictionless wall has no tangential stiffness: no felt matrices).\n"
+        "# hapsim check: the felt stiffness and damping matrices, the stiffness limit\n"
+        "# along the device's principal mass axes; --plot FIG.png draws them over the\n"
+        "# workspace. Written by tools/make_nd_scenes.py.\n"
+        "dimension: 2\n"
+        "rate_hz: 1000\n"
+        "masses:\n"
+        "  - {name: hand, kind: port}            # rests at the handle (joints below)\n"
+        f"  - {{name: press, kind: ground, x0: {v(press)}}}\n"
+        "links:\n"
+        "  - {name: press, kind: spring_damper, between: [hand, press], stiffness: "
+        f"{kp:g}, damping: 0.5}}\n"
+        "planes:\n"
+        f"  - {{name: wall, normal: {v(n)}, offset: {h[1] + PRESS:.7f}, stiffness: {K:g}, "
+        "damping: 2.0,\n"
+        "     masses: [hand]}\n"
+        + pantograph_device(q))
+
+
+def circle() -> str:
+    q = [140.0, 60.0]
+    h = device("pantograph").forward(np.radians(q))
+    R = 0.02
+    n = unit([-0.6, 0.8])                         # from the disc's centre to the handle
+    c = h - (R - PRESS) * n
+    K, kp = 1000.0, 200.0
+    press = h - (K * PRESS / kp) * n
+    return (
+        "# A disc (a circle of radius 0.02 m) touched by the handle of a Haply 2DIY\n"
+        "# pantograph, from its upper left, off the workspace's centre line (the device's\n"
+        "# Cartesian mass is not diagonal there). The handle rests 0.5 mm into the disc,\n"
+        "# held by a soft press spring; the contact is the sphere law (Euclidean, acting\n"
+        "# while the distance is below the threshold, the disc's radius).\n"
+        "# Written by tools/make_nd_scenes.py.\n"
+        "dimension: 2\n"
+        "rate_hz: 1000\n"
+        "masses:\n"
+        "  - {name: hand, kind: port}\n"
+        f"  - {{name: disc, kind: ground, x0: {v(c)}}}\n"
+        f"  - {{name: press, kind: ground, x0: {v(press)}}}\n"
+        "links:\n"
+        f"  - {{name: disc, kind: contact, between: [hand, disc], stiffness: {K:g}, "
+        f"damping: 2.0, threshold: {R:g}}}\n"
+        "  - {name: press, kind: spring_damper, between: [hand, press], stiffness: "
+        f"{kp:g}, damping: 0.5}}\n"
+        + pantograph_device(q))
+
+
+def sphere() -> str:
+    q = [20.0, 25.0, 15.0]
+    h = device("delta").forward(np.radians(q))
+    R = 0.025
+    n = unit([0.2, 0.1, -1.0])                    # the sphere is deeper (larger z)
+    c = h - (R - PRESS) * n
+    K, kp = 800.0, 200.0
+    press = h - (K * PRESS / kp) * n
+    return (
+        "# A sphere of radius 0.025 m touched by the handle of a Novint Falcon (delta,\n"
+        "# libnifalcon's geometry; z is the depth away from the user). The handle rests\n"
+        "# 0.5 mm into the sphere, held by a soft press spring; the contact is the\n"
+        "# Euclidean sphere law. Written by tools/make_nd_scenes.py.\n"
+        "dimension: 3\n"
+        "rate_hz: 1000\n"
+        "masses:\n"
+        "  - {name: hand, kind: port}\n"
+        f"  - {{name: sphere, kind: ground, x0: {v(c)}}}\n"
+        f"  - {{name: press, kind: ground, x0: {v(press)}}}\n"
+        "links:\n"
+        f"  - {{name: sphere, kind: contact, between: [hand, sphere], stiffness: {K:g}, "
+        f"damping: 2.0, threshold: {R:g}}}\n"
+        "  - {name: press, kind: spring_damper, between: [hand, press], stiffness: "
+        f"{kp:g}, damping: 0.5}}\n"
+        + delta_device(q))
+
+
+def mesh() -> str:
+    q = [20.0, 20.0, 20.0]
+    h = device("delta").forward(np.radians(q))
+    N, step, rest = 7, 0.008, 0.0064              # 7 x 7 points, 20 % pre-tension
+    lines = [
+        "# A 3-D mesh: a taut square membrane of 7 x 7 points 8 mm apart in the plane\n"
+        "# z = const through the handle of a Novint Falcon (delta); the border is fixed,\n"
+        "# the 25 inner points are masses, the links are Euclidean springs at 80 % of their\n"
+        "# length (pre-tension: without it the membrane has no stiffness across its plane).\n"
+        "# The handle holds the centre point through a grip spring, so it feels the\n"
+        "# membrane's modes. Written by tools/make_nd_scenes.py.\n",
+        "dimension: 3\n", "rate_hz: 1000\n", "masses:\n",
+        "  - {name: hand, kind: port}\n"]
+    c = (N - 1) // 2
+    names = {}
+    for i in range(N):
+        for j in range(N):
+            p = h + np.array([(i - c) * step, (j - c) * step, 0.0])
+            nm = f"m{i}{j}"
+            names[i, j] = nm
+            if i in (0, N - 1) or j in (0, N - 1):
+                lines.append(f"  - {{name: {nm}, kind: ground, x0: {v(p)}}}\n")
+            else:
+                lines.append(f"  - {{name: {nm}, kind: mass, mass: 0.005, x0: {v(p)}}}\n")
+    lines.append("links:\n")
+    lines.append(f"  - {{name: grip, kind: spring_damper, between: [hand, {names[c, c]}], "
+                 "stiffness: 300, damping: 0.5}\n")
+    for i in range(N):
+        for j in range(N):
+            for di, dj in ((1, 0), (0, 1)):
+                a, b = (i, j), (i + di, j + dj)
+                if b[0] >= N or b[1] >= N:
+                    continue
+                border = [x in (0, N - 1) for x in (a[0], a[1], b[0], b[1])]
+                if (border[0] or border[1]) and (border[2] or border[3]):
+                    continue                       # ground to ground: no force
+                lines.append(f"  - {{name: s{i}{j}{'x' if di else 'y'}, kind: spring_damper, "
+                             f"between: [{names[a]}, {names[b]}], stiffness: 300, "
+                             f"damping: 0.05, length: {rest:g}}}\n")
+    inner = [names[i, j] for i in range(1, N - 1) for j in range(1, N - 1)]
+    lines.append("planes:   # air: a damping-only plane the membrane lies 5 cm inside, so its\n"
+                 "          # motion across its plane is damped (the links damp along them)\n"
+                 f"  - {{name: air, normal: [0, 0, 1], offset: {h[2] + 0.05:.7f}, "
+                 "stiffness: 0, damping: 0.02,\n"
+                 f"     masses: [{', '.join(inner)}]}}\n")
+    lines.append(delta_device(q))
+    return "".join(lines)
+
+
+SCENES = {"pantograph_wall.yaml": wall, "pantograph_circle.yaml": circle,
+          "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh}
+
+if __name__ == "__main__":
+    for name, make in SCENES.items():
+        path = os.path.join(ROOT, "configs", name)
+        with open(path, "w") as fh:
+            fh.write(make())
+        print(path)
