@@ -1,4 +1,5 @@
-"""Checks a command makes before it starts work: can it write its outputs, will it fit.
+"""Checks a command makes before it starts work: can it write its outputs, will it fit;
+and the JSON-safe copy of what it prints (:func:`json_safe`).
 
 A command that writes a file or allocates a large array checks both up front, so a long
 simulation or a run on a device does not end in a traceback after minutes (issue 10).
@@ -6,11 +7,13 @@ simulation or a run on a device does not end in a traceback after minutes (issue
 
 from __future__ import annotations
 
+import math
 import os
+from typing import Any
 
 from hapsim.errors import ConfigError
 
-__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes"]
+__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -125,3 +128,27 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                 else "more than this machine can address")
         raise ConfigError(f"{what} need {format_bytes(nbytes)}; {have}: ask for less",
                           key=option)
+
+
+def json_safe(obj: Any) -> Any:
+    """A JSON-safe copy of a report: every non-finite float becomes ``None``.
+
+    Parameters
+    ----------
+    obj : Any
+        A float, a dict, a list or tuple of them (nested), or any other value.
+
+    Returns
+    -------
+    Any
+        The same structure (tuples become lists) with ``nan`` and ``+-inf`` replaced by
+        ``None``, which ``json.dumps`` writes as ``null`` (JSON has no NaN or Infinity);
+        other values are returned as they are.
+    """
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -1112,3 +1112,81 @@ def test_open_ended_run_ends_on_a_stop_request(tmp_path, monkeypatch):
         run_scene(parse_scene(wall()), transport="sim", duration=0, handle_signals=False)
     with pytest.raises(ConfigError, match="duration"):
         run_scene(parse_scene(wall()), transport="sim", duration=-1.0, handle_signals=False)
+
+
+# --------------------------------------------------------------------------- resume
+class LateConfig(RecordingMock):
+    """A device whose tick under way when a CONFIG arrives still goes out, armed, in the
+    session it had: one more STATE of the old handle just before the CONFIG takes effect
+    (the race between a real device's receiver and its tick, made certain here)."""
+
+    def handle(self, msg, now_us=0):
+        if isinstance(msg, fp.Config) and self.armed and self.physics is not None:
+            st = self.tick(now_us)
+            return self.frames(st) + super().handle(msg, now_us)
+        return super().handle(msg, now_us)
+
+
+class NoAppliedBit(LateConfig):
+    """... written before STATUS_FORCE_APPLIED: it never sets the bit."""
+
+    def _emit(self, now_us):
+        st = super()._emit(now_us)
+        return dataclasses.replace(st, status=st.status & ~fp.STATUS_FORCE_APPLIED)
+
+
+class LosesStops(LateConfig):
+    """... behind a link that loses the first ``lose`` STOPs after arming (PINGs pass)."""
+
+    lose = 2
+
+    def handle(self, msg, now_us=0):
+        if isinstance(msg, fp.Stop) and self.armed and self.lose > 0:
+            self.lose -= 1
+            return []
+        return super().handle(msg, now_us)
+
+
+class DeafToPing(LosesStops):
+    """... that loses every STOP and answers no PING: the host's quiescing barrier cannot
+    be confirmed (only the FORCE_APPLIED rule tells the sessions apart)."""
+
+    lose = 10 ** 9
+
+    def handle(self, msg, now_us=0):
+        if isinstance(msg, fp.Ping):
+            return []
+        return super().handle(msg, now_us)
+
+
+@pytest.mark.parametrize("device", [LateConfig, NoAppliedBit, LosesStops, DeafToPing])
+@pytest.mark.parametrize("vanish_at", [257, 401])
+def test_recovery_resumes_at_the_handle_of_the_new_session(device, vanish_at):
+    """After a port vanish the device, still armed, keeps sending STATEs of its old session
+    (a handle pushed away by the force it held until its watchdog) until it takes the new
+    CONFIG. The host read one of them as the first STATE of the new session: the scene
+    restarted at the old handle (0.105 m over a pty in 2 of 12 runs: a position safety
+    stop), and every STATE after the CONFIG (seq from 0 again) was stale, a second loss.
+    The scene must restart at the first STATE the new CONFIG produced: seq 0, the mock's
+    x0, once per loss; whether the device sets FORCE_APPLIED or not, the link loses STOPs,
+    or the device answers no PING."""
+    from hapsim.daemon.telemetry import FLAG_LOST
+
+    scene = parse_scene(wall())
+    mock = device(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    tr = SimTransport(mock, parse_faults(f"vanish@{vanish_at}:300ms", 1))
+    n = 1200
+    tel = Telemetry(n)
+    cfg = LoopConfig(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT,
+                     reconnect=True, watchdog_us=WATCHDOG_US, position_bound=0.1)
+    res = HostLoop(Engine(scene), tr, cfg, tel).run()
+    assert res.lost == res.recovered == 1 and res.stale == 0 and not res.safety_stop
+    assert res.samples == n and res.stop_reason == "duration"
+    cols = tel.columns()
+    restart = np.flatnonzero(cols["flags"] & FLAG_LOST)
+    assert restart.size == 1
+    i = int(restart[0])
+    assert cols["seq"][i] == 0 and cols["position"][i] == scene.excitation.x0
+    rec = next(e for e in res.events if e["event"] == "recovered")
+    assert rec["x"] == scene.excitation.x0
+    assert res.quiesced == (device is not DeafToPing)

@@ -8,6 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Run a scene in real time against a force-feedback device and measure what the hand feels.
@@ -185,16 +186,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
-
-
 def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
     """Tell the user on stderr that the loop starts, in which protocol, and that Ctrl-C
     stops it cleanly.
@@ -362,7 +353,7 @@ def run(args) -> int:
     if advice is not None:
         rep["advice"] = advice.to_dict()
     if args.json:
-        print(json.dumps(_clean(rep)))
+        print(json.dumps(json_safe(rep)))
     else:
         print(format_report(rep))
     sys.stdout.flush()

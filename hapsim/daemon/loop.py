@@ -31,7 +31,10 @@ zero FORCE and STOP are sent (best effort), then, when ``reconnect`` is on, the 
 the port if it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at
 most ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts
 from its initial state with the port at the device's position at rest, the force ramped up
-over ``ramp_samples``. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
+over ``ramp_samples``. A recovery's CONFIG follows a STOP and the PONG of a PING sent
+after it (:meth:`HostLoop._quiesce`; without that PONG, the first armed STATE after the
+CONFIG must not report a FORCE applied, as the host sent none yet): the scene restarts at
+the handle of the new session, never at a STATE the device sent before it took the CONFIG. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
 ``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device
 FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are counted; latched ones end the
 run. The host-clocked loop uses the same machinery (one driver,
@@ -100,6 +103,13 @@ BAD_FRAME_CONTEXT = 8
 #: before the message and drops it, PROTOCOL.md §4), and the wait after each [s].
 SENSORS_TRIES = 3
 SENSORS_WAIT = 0.1
+
+#: Before every CONFIG the host sends STOP then a PING and waits for its PONG, at most this
+#: many times, this long each [s] (:meth:`HostLoop._quiesce`); then it arms anyway.
+QUIESCE_TRIES = 3
+QUIESCE_WAIT = 0.1
+#: Nonce of the quiescing PINGs (+ the try): apart from the round-trip PINGs' 0..15.
+QUIESCE_NONCE = 0x51E7_0000
 
 #: Fault codes that latch on the device (PROTOCOL.md §4): they end the run.
 LATCHED_FAULTS = frozenset((fp.FAULT_BAD_CONFIG, fp.FAULT_SENSOR, fp.FAULT_AMPLIFIER,
@@ -382,6 +392,16 @@ class LoopResult:
         after it look stale).
     unarmed : int
         STATEs without STATUS_ARMED (before the first armed one after CONFIG): ignored.
+    earlier_session : int
+        Armed STATEs that arrived after a recovery's CONFIG not preceded by a confirmed
+        quiescence (``quiesced`` False), before the first one the loop resumed at, with
+        STATUS_FORCE_APPLIED set: that bit names a FORCE applied since the last CONFIG
+        (PROTOCOL.md §4), and the host had sent none since this one, so they were sent
+        before the device took it (an earlier session's handle): ignored.
+    quiesced : bool
+        The device answered the PING sent after the STOP that preceded the last recovery's
+        CONFIG (:meth:`HostLoop._quiesce`); False: no recovery, or it re-armed without
+        that barrier.
     hello_mid_run : int
         HELLO messages received after the handshake: before the first armed STATE after a
         CONFIG they answer HELLO requests and are ignored; after it, the device reset and
@@ -397,7 +417,8 @@ class LoopResult:
     events : list of dict
         ``{"event": "lost"|"lost again"|"attempt"|"recovered", "t": [s since arming],
         "sample", "state", ...}`` (off the hot path: only on faults); ``state`` is the
-        loop's state once the event happened.
+        loop's state once the event happened; ``recovered`` adds ``x``, the device
+        position [m] the scene restarted at.
     state : str
         The loop's state when the run ended, before the final zero FORCE and STOP:
         ``armed`` (ran to its end or was stopped while driving the device), ``lost`` or
@@ -446,6 +467,8 @@ class LoopResult:
     bad_axes: int = 0
     implausible: int = 0
     unarmed: int = 0
+    earlier_session: int = 0
+    quiesced: bool = False
     hello_mid_run: int = 0
     device_faults: dict = field(default_factory=dict)
     lost: int = 0
@@ -551,6 +574,7 @@ class HostLoop:
         self._energy = 0.0          # passivity observer E since the last (re)start [J]
         self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
         self._applied_seen = False  # the device sets STATUS_FORCE_APPLIED (PROTOCOL.md §4)
+        self._check_applied = False  # skip STATEs with FORCE_APPLIED until the scene resumes
         self.force_limit = math.inf
         self.state = "idle"
         dec = getattr(transport, "decoder", None)
@@ -664,6 +688,54 @@ class HostLoop:
                           f"velocity sensor ({why}); choose "
                           f"another correction, or a device that measures its velocity",
                           key="device.correction.kind")
+
+    def _quiesce(self) -> bool:
+        """Disarm the device and read everything it sent before: STOP, then PING, until
+        its PONG (PROTOCOL.md §4: STOP disarms; a device answers PING in order).
+
+        A device keeps ticking armed STATEs of the session it had (a port that vanished and
+        came back, a host that died without STOP) until it takes the next CONFIG. Those
+        STATEs carry the handle of that session, not the one the CONFIG (re)starts: a host
+        that resumed the scene at one would start from the wrong position (the real-time
+        mock restarts its plant at CONFIG; the state after a reconnect showed a handle
+        0.105 m out, beyond the position bound). The byte stream is in order, so once the
+        PONG of a PING sent after the STOP is read, every STATE sent before the STOP has
+        been read too (and dropped here), and the device, disarmed, sends no armed STATE
+        until CONFIG arms it: the first armed STATE after CONFIG is of the new session. An
+        armed STATE within two periods after the PONG shows that the STOP was lost on the
+        way (a lossy link): STOP and PING again.
+
+        Returns
+        -------
+        bool
+            True when the PONG came (:attr:`LoopResult.quiesced`); False after
+            :data:`QUIESCE_TRIES` waits of :data:`QUIESCE_WAIT` without it (a lossy link or
+            a device that does not answer PING: the loop then skips, before it resumes, a
+            STATE that shows an earlier session, :attr:`LoopResult.earlier_session`), or on
+            a stop.
+        """
+        tr = self.transport
+        clock = self._clock
+        settle = 2.0 / self.config.rate_hz
+        for k in range(QUIESCE_TRIES):
+            nonce = QUIESCE_NONCE + k
+            tr.send(fp.Stop())
+            tr.send(fp.Ping(nonce, 0))
+            end = clock() + QUIESCE_WAIT
+            pong = None
+            armed = False
+            while not armed and clock() < (end if pong is None else pong + settle):
+                if self.stop.set:
+                    return False
+                for msg in tr.receive(0.02 if pong is None else settle):
+                    if type(msg) is fp.Pong and msg.nonce == nonce:
+                        pong = clock()
+                    elif (pong is not None and type(msg) is fp.State
+                          and msg.status & fp.STATUS_ARMED):
+                        armed = True    # the STOP was lost on the way: send it again
+            if pong is not None and not armed:
+                return True
+        return False
 
     def _send_config(self) -> None:
         cfg = self.config
@@ -935,6 +1007,9 @@ class HostLoop:
                 if hello is not None:
                     self._check_hello(hello)
                     self._ask_sensors()        # a reset device forgot the request
+                    # the device may still tick armed STATEs of the lost session
+                    res.quiesced = self._quiesce()
+                    self._check_applied = not res.quiesced
                     self._send_config()
                     self.state = "armed"
                     return True
@@ -1006,7 +1081,7 @@ class HostLoop:
             self._ramp = max(int(self.config.ramp_samples), 1)
             self.result.recovered += 1
             self._event("recovered", attempts=self._attempts,
-                        after_s=round(self._clock() - self._lost_since, 6))
+                        after_s=round(self._clock() - self._lost_since, 6), x=x)
             self._lost_since = None
         self.engine.set_port_position(x, at_rest=True)
         # passivity observer: the scene (re)starts holding E0; E counts from 0 again
@@ -1014,6 +1089,7 @@ class HostLoop:
         self._energy = 0.0
         self.result.energy_stored = self._e0
         self._fresh = False
+        self._check_applied = False
         return self.engine
 
     def _note_other(self, msg) -> bool:
@@ -1281,6 +1357,7 @@ class HostLoop:
         rate = float(cfg.rate_hz)
         State = fp.State
         armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
         isfinite = math.isfinite
         perf = time.perf_counter_ns
         clock = self._clock
@@ -1330,6 +1407,9 @@ class HostLoop:
                 x = msg.position[0]
                 resumes = self._fresh
                 if self._fresh:
+                    if self._check_applied and msg.status & applied_bit:
+                        res.earlier_session += 1  # a FORCE applied since CONFIG: none sent
+                        continue
                     if not isfinite(x):
                         x = math.nan          # _drive stops on it (non-finite position)
                     else:
@@ -1395,6 +1475,7 @@ class HostLoop:
         silence = self._silence()
         State = fp.State
         armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
         perf = time.perf_counter_ns
         clock = self._clock
         sleep = self._sleep
@@ -1441,6 +1522,9 @@ class HostLoop:
                         res.unarmed += 1
                         continue
                     raise _Lost("the device reports itself disarmed (reset?)")
+                if latest is None and self._check_applied and msg.status & applied_bit:
+                    res.earlier_session += 1      # a FORCE applied since CONFIG: none sent
+                    continue
                 if latest is not None:
                     ahead = (msg.seq - latest.seq) & _U32
                     if ahead >= _HALF:

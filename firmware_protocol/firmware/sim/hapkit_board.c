@@ -431,6 +431,31 @@ static int open_pty(void)
     return fd;
 }
 
+/* simavr's messages: errors go to stderr (stdout carries only the PORT line and the
+ * report); its warnings and traces are not the user's business (e.g. "TIMER:
+ * avr_timer_write_ocr-1 mode 0 UNSUPPORTED" when the firmware writes OCR1A before it sets
+ * the timer's mode) and are only counted, the last one kept, for the report. */
+static struct {
+    uint64_t warnings;
+    char last[160];
+} simlog;
+
+static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
+{
+    (void)a;
+    if (level <= LOG_ERROR) {
+        vfprintf(stderr, format, ap);
+    } else if (level == LOG_WARNING) {
+        size_t n;
+        simlog.warnings++;
+        vsnprintf(simlog.last, sizeof simlog.last, format, ap);
+        n = strlen(simlog.last);
+        while (n > 0 && (simlog.last[n - 1] == '\n' || simlog.last[n - 1] == '\r')) {
+            simlog.last[--n] = 0;
+        }
+    }
+}
+
 /* ---------------------------------------------------------------- report */
 
 static void report(int code)
@@ -486,6 +511,18 @@ static void report(int code)
         }
     }
     fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
+    fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"",
+            (unsigned long long)simlog.warnings);
+    {
+        const char *c;
+        for (c = simlog.last; *c; c++) { /* JSON string: escape what needs it */
+            if (*c == '"' || *c == '\\') {
+                fputc('\\', f);
+            }
+            fputc((unsigned char)*c < 0x20 ? ' ' : *c, f);
+        }
+    }
+    fprintf(f, "\"},\n");
     fprintf(f, " \"handle\": {\"x_m\": %.9g, \"v_m_s\": %.9g, \"mass_kg\": %.9g, "
                "\"friction_n_s_m\": %.9g, \"coulomb_n\": %.9g}}\n",
             ph.x, ph.v, opt.mass, opt.friction, opt.coulomb);
@@ -534,14 +571,6 @@ static void usage(void)
     exit(2);
 }
 
-/* simavr's messages go to stderr: stdout carries only the PORT line (and the report). */
-static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
-{
-    (void)a;
-    if (level <= LOG_WARNING) {
-        vfprintf(stderr, format, ap);
-    }
-}
 
 static uint64_t wall_ns(void)
 {
