@@ -69,9 +69,13 @@ def test_large_excitation_departs_by_the_stated_first_order_term():
 def test_euclidean_second_order_term_is_the_stated_one():
     """The second-order term of F = K (1 - L/|d|) d about d0 = l0 e, from the law by
     central differences at random geometries, equals the closed form
-    (L/l0^2)(2 u (e.u) + e - 3 e (e.u)^2) a^2 K / 2 (1e-6) and its largest norm over
-    directions is (2/sqrt 3) K L a^2 / (2 l0^2)... i.e. c_link = L / (sqrt(3) l0^2) times
-    K a^2 (the linear term's scale K a times c_link a)."""
+    (K/2)(L/l0^2)(2 u (e.u) + e - 3 e (e.u)^2) a^2 (u the unit displacement), and the
+    largest norm of K H[u, u] over directions is (2/sqrt 3) K L / l0^2, so the
+    second-order term over the linear term's scale K a is c_link a with
+    c_link = L / (sqrt(3) l0^2), the coefficient hapsim.analysis.linearisation_nd
+    states."""
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.scene_nd import parse_scene_nd
     rng = np.random.default_rng(5)
 
     def law(d, K, L):
@@ -96,9 +100,21 @@ def test_euclidean_second_order_term_is_the_stated_one():
                 best = max(best, float(np.linalg.norm(closed)))
             top = 2 / math.sqrt(3) * K * L / l0 ** 2
             assert best <= top * (1 + 1e-12) and best >= 0.95 * top
-            # (1/2) H a^2 over K a: the stated per-metre coefficient
-            from hapsim.analysis.linearisation_nd import LinearisationBound  # noqa: F401
-            assert 0.5 * top / K == pytest.approx(L / (math.sqrt(3) * l0 ** 2), rel=1e-12)
+            if dim == 2:
+                # the module's coefficient for a contact of this geometry is (1/2) of the
+                # largest |K H[u, u]| found from the law, over K
+                bound = linearisation_bound(parse_scene_nd(f"""\
+dimension: 2
+rate_hz: 1000
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: ball, kind: ground, x0: {(-d0).tolist()}}}
+links:
+  - {{name: c, kind: contact, between: [hand, ball], stiffness: {K}, threshold: {L}}}
+device: {{mass: 0.1, position: [0.0, 0.0]}}
+"""), 1e-6)
+                assert bound.link == pytest.approx(0.5 * best / K, rel=0.05)
+                assert bound.link >= 0.5 * best / K * (1 - 1e-9)
 
 
 def test_kinematic_coefficient_is_the_mass_change_over_the_step():

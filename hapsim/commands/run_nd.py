@@ -108,6 +108,11 @@ def run_nd(args) -> int:
           f"of the Cartesian mass at rest, delay {scene.device.delay})", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
+    if not chk.stable:
+        grow = chk.render.spectral_radius ** res["samples"]
+        print(f"  the loop is UNSTABLE (--allow-unstable): its free responses grow by up to "
+              f"{grow:.3g} times over a record, so the amplitude and the bound below hold "
+              "at its start only", file=o)
 
     def mat(name, m, unit):
         if m is None:
