@@ -949,7 +949,24 @@ def known_digits(value: float, error: float) -> float:
 
 
 def known_decimals(error: float) -> int:
-    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0."""
+    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0.
+
+    Parameters
+    ----------
+    error : float
+        Half-width of what the value is known to (> 0, finite), in the value's unit.
+
+    Returns
+    -------
+    int
+        Decimals ``d`` to print: the unit of the last one, ``10**-d``, is at least the
+        interval ``2 error``, so every digit printed is known (0 when ``error > 0.05``).
+
+    Raises
+    ------
+    ValueError
+        ``error <= 0`` (``math.log10``).
+    """
     return max(0, -math.ceil(math.log10(2.0 * error)))
 
 
