@@ -24,7 +24,7 @@ from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
 
-__all__ = ["LockstepND"]
+__all__ = ["LockstepND", "measure_felt_lockstep"]
 
 
 class LockstepND:
@@ -101,3 +101,70 @@ class LockstepND:
                 u = F
             self.state = self.Ad @ self.state + self.Bd @ u
         return out
+
+
+def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = None,
+                          progress=None) -> dict:
+    """The felt matrices measured from lockstep free responses, against the prediction.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a port and a device.
+    amplitude : float, optional
+        Excitation amplitude ``a`` [m]: record ``i`` starts the handle displaced by
+        ``a e_i``, record ``n + i`` moving at ``a / (10 T) e_i`` (``e_i`` the axes).
+    samples : int, optional
+        Samples per record (default ``max(300, 20 x`` the prediction order ``x n)``).
+    progress : callable, optional
+        ``progress(done, total)`` after each record.
+
+    Returns
+    -------
+    dict
+        ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`'s dict of the
+        records minus the record from rest, which removes the loop's response to a rest
+        that is not exactly an equilibrium: exact for a linear loop), ``predicted``
+        (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
+        difference of the felt stiffness and damping matrices, each over the predicted
+        matrix's largest entry [-]; None without felt matrices), ``bound``
+        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at ``a``), ``order``,
+        ``records``, ``samples``.
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`, :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`;
+        ``amplitude`` not positive; ``samples`` too short for the order.
+    """
+    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    chk = check_scene_nd(scene)
+    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    n = scene.dimension
+    order = chk.states // n
+    N = int(samples) if samples is not None else max(300, 20 * order * n)
+    if N < 2 * order * n:
+        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
+                          f"({chk.states} states), got {N}", key="samples")
+    a = bound.amplitude
+    T = scene.period
+    starts = [(a * np.eye(n)[i], None) for i in range(n)] + \
+             [(None, a / (10 * T) * np.eye(n)[i]) for i in range(n)]
+    rest = LockstepND(scene).step(N, record=True)
+    recs = []
+    for j, (x0, v0) in enumerate(starts):
+        recs.append(LockstepND(scene, x0=x0, v0=v0).step(N, record=True) - rest)
+        if progress is not None:
+            progress(j + 1, len(starts))
+    fit = fit_felt_nd(recs, scene.device.mass, T, order)
+    k, b = chk.render.felt_stiffness, chk.render.felt_damping
+    dev = None
+    if fit["felt_stiffness"] is not None and k is not None:
+        dev = {"felt_stiffness": float(np.max(np.abs(fit["felt_stiffness"] - k))
+                                       / np.max(np.abs(k))),
+               "felt_damping": float(np.max(np.abs(fit["felt_damping"] - b))
+                                     / np.max(np.abs(b)))}
+    return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
+            "order": order, "records": len(recs), "samples": N}

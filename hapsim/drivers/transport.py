@@ -356,7 +356,7 @@ class DriverTransport:
                 else:
                     data = b""
                 if data:
-                    self._last.append(data.hex())
+                    self._last.append(data)         # hex only when a message shows it
                     xs = dec.feed(data)
                     self._stray = not xs
                     if xs:
@@ -406,4 +406,4 @@ class DriverTransport:
 
     def last_frames(self) -> str:
         """The last chunks of bytes received, as hex (CONVENTIONS §11)."""
-        return "\n".join(self._last)
+        return "\n".join(chunk.hex() for chunk in self._last)
