@@ -1,5 +1,4 @@
-"""Checks a command makes before it starts work: can it write its outputs, will it fit;
-and the JSON-safe copy of what it prints (:func:`json_safe`).
+"""Checks a command makes before it starts work: can it write its outputs, will it fit.
 
 A command that writes a file or allocates a large array checks both up front, so a long
 simulation or a run on a device does not end in a traceback after minutes (issue 10).
@@ -9,7 +8,6 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any
 
 from hapsim.errors import ConfigError
 
@@ -130,20 +128,18 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                           key=option)
 
 
-def json_safe(obj: Any) -> Any:
-    """A JSON-safe copy of a report: every non-finite float becomes ``None``.
+def json_safe(obj):
+    """A copy of ``obj`` that ``json.dumps`` writes as strict JSON: non-finite floats become
+    None (``null``), tuples lists; dicts and lists are copied recursively.
 
     Parameters
     ----------
-    obj : Any
-        A float, a dict, a list or tuple of them (nested), or any other value.
+    obj : object
+        A report (dicts, lists, tuples, numbers, strings).
 
     Returns
     -------
-    Any
-        The same structure (tuples become lists) with ``nan`` and ``+-inf`` replaced by
-        ``None``, which ``json.dumps`` writes as ``null`` (JSON has no NaN or Infinity);
-        other values are returned as they are.
+    object
     """
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
