@@ -242,6 +242,8 @@ def _main(argv: list[str], want_json: bool) -> int:
         # the command named first: only its module is imported (the others' imports cost
         # start-up time); no command, or an unknown one: all, for the listing and the error
         first = next((a for a in argv if not a.startswith("-")), None)
+        from hapsim.blas import size_pools
+        size_pools()                      # one BLAS thread, before numpy loads (hapsim.blas)
         parser = build_parser(first)      # imports the command(s): Ctrl-C may land here
         try:
             args = parser.parse_args(argv)
