@@ -323,8 +323,8 @@ def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
     scene = load_scene(str(ROOT / "configs/hapkit.yaml"))
     dev = dataclasses.replace(scene.device, coulomb=0.1)
     exc = dataclasses.replace(scene.excitation, x0=0.0)
-    # the emulated clock waits up to 2 s for each FORCE: a loaded host makes no late tick
-    cmd = board.board_command(dev, exc, wait_ms=2000.0)[2:]
+    # the emulated clock waits for each FORCE: a loaded host makes no late tick
+    cmd = board.board_command(dev, exc)[2:]
     with _board(tmp_path, None, *cmd) as (proc, port, report):
         fit, rec = identify(port=port, baud=2000000, driver="framed", rate_hz=RATE,
                             force_limit=1.0, envelope=0.02, duration=2.5, max_delay=3,
@@ -401,6 +401,34 @@ def _host_main(port: str, force: float) -> None:
         n += 1
         if n == 200:
             print("ARMED 200", flush=True)
+
+
+def test_lockstep_board_waits_for_a_slow_host_so_no_force_is_late(tmp_path):
+    """In lockstep (fast) mode the emulated clock waits for the host's answer to each armed
+    STATE however long the host takes: a host that pauses 0.2 s (a loaded machine) before
+    some FORCEs still has every one applied at its tick (FORCE_APPLIED, force_seq = seq - 1,
+    no OVERRUN). The board's wait was capped at 50 ms of wall time: a pause beyond made a
+    late tick at random, and 1 lockstep run in 8 measured another stiffness."""
+    _require()
+    with _board(tmp_path) as (proc, port, report):
+        host = _Host(port)
+        try:
+            host.arm()
+            n = 0
+            for st in host.armed_states():
+                if n >= 2:
+                    assert st.status & fp.STATUS_FORCE_APPLIED, st
+                    assert st.force_seq == st.seq - 1 and not st.status & fp.STATUS_OVERRUN, st
+                if n in (3, 7):
+                    time.sleep(0.2)
+                host.send(fp.encode(fp.Force(st.seq, (0.01,))))
+                n += 1
+                if n == 12:
+                    break
+            host.send(fp.encode(fp.Stop()))
+        finally:
+            host.close()
+    assert _report(report)["host"]["wait_timeouts"] == 0
 
 
 def test_killed_host_pwm_pin_at_zero_within_one_watchdog_period(tmp_path):

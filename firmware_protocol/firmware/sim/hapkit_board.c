@@ -21,10 +21,12 @@
  *
  * UART0 is bridged to a new pseudo-terminal on simavr's UART IRQs (input paced by the
  * UART's own FIFO, with its XON/XOFF flow control). Time: --realtime locks the emulated
- * clock to the wall clock; the default (fast) runs as fast as the host can answer: after
- * each armed STATE the emulation waits (up to --wait-ms of wall time) for the host's next
- * frame, so a slow host never makes a late FORCE, and a host that is gone (port closed)
- * leaves the emulation free-running.
+ * clock to the wall clock; the default (fast, lockstep) runs as fast as the host can
+ * answer: after each armed STATE the emulation waits for the host's next frame for as long
+ * as the host keeps the port open (or at most --wait-ms of wall time when given), so a slow
+ * or loaded host never makes a late FORCE (a 50 ms default cap made one, at random, on a
+ * host that paused longer: 1 run in 8 measured another stiffness), and a host that is gone
+ * (port closed) leaves the emulation free-running.
  *
  * On SIGINT/SIGTERM or after --duration emulated seconds it writes a JSON report (stdout,
  * or --report FILE): the MCU budget (cycles per tick busy -- ISR + codec + main loop,
@@ -76,7 +78,7 @@ static struct {
     double hand_force, hand_start, hand_duration;
     double wait_ms, duration;
     const char *report, *link, *profile;
-} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 50.0, 0.0, NULL, NULL, NULL};
+} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, NULL, NULL, NULL};
 
 /* --profile: cycles spent at each flash word while armed and awake (the MCU budget by
  * instruction; tools/bench_firmware.py --profile maps them to functions and lines) */
@@ -690,11 +692,11 @@ int main(int argc, char **argv)
             link_.waits++;
             while (!link_.host_frame_seen && link_.host_present && !stop_signal) {
                 uint64_t el = (wall_ns() - w0) / 1000000u;
-                if ((double)el >= opt.wait_ms) {
+                if (opt.wait_ms > 0 && (double)el >= opt.wait_ms) {
                     link_.wait_timeouts++;
                     break;
                 }
-                read_host((int)(opt.wait_ms - (double)el) + 1);
+                read_host(opt.wait_ms > 0 ? (int)(opt.wait_ms - (double)el) + 1 : 100);
             }
         }
         link_.await_host = 0;
