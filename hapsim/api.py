@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
+from hapsim.outputs import json_safe
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
            "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
@@ -711,7 +712,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
          "plot": None}
     if hand:
         d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
-    return IdentifyReport._from(_clean(d), fit=fit, record=rec)
+    return IdentifyReport._from(json_safe(d), fit=fit, record=rec)
 
 
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
@@ -925,7 +926,7 @@ def run(scene, **options: Any) -> RunReport:
         if rep is None:
             raise
     code = rep.pop("exit_code")
-    return RunReport._from(_clean(rep), exit_code=code)
+    return RunReport._from(json_safe(rep), exit_code=code)
 
 
 def known_digits(value: float, error: float) -> float:
@@ -948,16 +949,24 @@ def known_digits(value: float, error: float) -> float:
 
 
 def known_decimals(error: float) -> int:
-    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0."""
+    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0.
+
+    Parameters
+    ----------
+    error : float
+        Half-width of what the value is known to (> 0, finite), in the value's unit.
+
+    Returns
+    -------
+    int
+        Decimals ``d`` to print: the unit of the last one, ``10**-d``, is at least the
+        interval ``2 error``, so every digit printed is known (0 when ``error > 0.05``).
+
+    Raises
+    ------
+    ValueError
+        ``error <= 0`` (``math.log10``).
+    """
     return max(0, -math.ceil(math.log10(2.0 * error)))
 
 
-def _clean(obj):
-    """JSON-safe copy (non-finite floats become None), as the commands print."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj

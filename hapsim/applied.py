@@ -33,17 +33,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# the STATE.status bits read here, the protocol's own (firmware_protocol imports nothing of
+# hapsim: it stands on the ground floor with this module)
+from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_FORCE_CLAMPED,
+                                     STATUS_OVERRUN, STATUS_WATCHDOG_TRIPPED)
+
 __all__ = ["AppliedAccount", "account_from_force_seq", "account_from_timing",
            "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FORCE_APPLIED",
            "STATUS_OVERRUN"]
 
 _U32 = 0xFFFFFFFF
-#: STATE.status bits read here (``firmware_protocol.codec``; repeated so this module
-#: imports nothing above the analysis).
-STATUS_WATCHDOG_TRIPPED = 0x0002
-STATUS_FORCE_CLAMPED = 0x0004
-STATUS_OVERRUN = 0x0020
-STATUS_FORCE_APPLIED = 0x0080
 
 
 @dataclass

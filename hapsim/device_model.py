@@ -140,7 +140,33 @@ def ideal_step_coefficients(mass: float, friction: float, period: float):
 def load_profile(path: str, column: str = "force", unit: str = "N",
                   key: str = "excitation.profile") -> tuple[np.ndarray, np.ndarray]:
     """Time [s] and ``column`` columns of a ``.csv`` (header allowed) or ``.npz`` profile
-    (a 2-D ``.npz`` array: its first column); errors name ``key``."""
+    (a 2-D ``.npz`` array: its first column); errors name ``key``.
+
+    Parameters
+    ----------
+    path : str
+        ``.npz`` file with arrays ``time`` and ``column``, or ``.csv`` whose first two
+        columns are time [s] and the value (an optional header line, ``#`` comments).
+    column : str
+        Name of the value (the ``.npz`` array; the messages).
+    unit : str
+        Unit of the value, for the messages (``"N"``).
+    key : str
+        Scene key the messages name.
+
+    Returns
+    -------
+    t : ndarray, shape (n,)
+        Sample times [s], strictly increasing.
+    f : ndarray, shape (n,)
+        The values [``unit``].
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read or lacks the columns, a value is not finite, or the
+        times do not increase strictly (key ``key``).
+    """
     what = f"time [s], {column} [{unit}]"
     try:
         if path.lower().endswith(".npz"):

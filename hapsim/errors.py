@@ -21,6 +21,7 @@ __all__ = [
     "UnrenderableTargetError",
     "KinematicsError",
     "show",
+    "type_name",
     "fixed",
     "dash",
     "plural",
@@ -221,6 +222,33 @@ def num(value) -> str:
         return f"{value:g}"
     except (OverflowError, ValueError):
         return show(value)
+
+
+def type_name(value: object) -> str:
+    """What kind of value a message says it got: ``"a number"``, ``"a list"``, ...
+
+    Parameters
+    ----------
+    value : object
+        A value read from a file (YAML: null, boolean, mapping, list, integer, float,
+        string) or anything else.
+
+    Returns
+    -------
+    str
+        ``"nothing (null)"``, ``"a boolean"``, ``"a mapping"``, ``"a list"``,
+        ``"an integer"``, ``"a number"`` or ``"a string"``; else the type's name.
+    """
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    return {int: "an integer", float: "a number", str: "a string"}.get(
+        type(value), type(value).__name__)
 
 
 def fixed(value: float, spec: str) -> str:

@@ -114,6 +114,20 @@ def _joints(q, n: int) -> np.ndarray:
     return a
 
 
+def _geometry(geometry, kind: str, presets: dict, cls: type):
+    """``geometry`` itself when a ``cls``, else the preset of that name (ConfigError, key
+    ``geometry``, naming the valid choices, otherwise)."""
+    if isinstance(geometry, str):
+        if geometry not in presets:
+            raise ConfigError(f"unknown {kind} {geometry!r}; valid choices: "
+                              f"{', '.join(presets)}", key="geometry")
+        geometry = presets[geometry]
+    if not isinstance(geometry, cls):
+        raise ConfigError(f"must be a {cls.__name__} or a preset name, got {geometry!r}",
+                          key="geometry")
+    return geometry
+
+
 def _deg(q) -> str:
     return "(" + ", ".join(f"{math.degrees(v):.6g}" for v in q) + ") deg"
 
@@ -261,15 +275,8 @@ class Pantograph:
     dof = 2
 
     def __init__(self, geometry: PantographGeometry | str = "haply") -> None:
-        if isinstance(geometry, str):
-            if geometry not in PANTOGRAPH_PRESETS:
-                raise ConfigError(f"unknown pantograph {geometry!r}; valid choices: "
-                                  f"{', '.join(PANTOGRAPH_PRESETS)}", key="geometry")
-            geometry = PANTOGRAPH_PRESETS[geometry]
-        if not isinstance(geometry, PantographGeometry):
-            raise ConfigError(f"must be a PantographGeometry or a preset name, got "
-                              f"{geometry!r}", key="geometry")
-        self.geometry = geometry
+        self.geometry = _geometry(geometry, "pantograph", PANTOGRAPH_PRESETS,
+                                  PantographGeometry)
 
     def _solve(self, q):
         g = self.geometry
@@ -408,15 +415,7 @@ class Delta:
     dof = 3
 
     def __init__(self, geometry: DeltaGeometry | str = "falcon") -> None:
-        if isinstance(geometry, str):
-            if geometry not in DELTA_PRESETS:
-                raise ConfigError(f"unknown delta {geometry!r}; valid choices: "
-                                  f"{', '.join(DELTA_PRESETS)}", key="geometry")
-            geometry = DELTA_PRESETS[geometry]
-        if not isinstance(geometry, DeltaGeometry):
-            raise ConfigError(f"must be a DeltaGeometry or a preset name, got "
-                              f"{geometry!r}", key="geometry")
-        self.geometry = geometry
+        self.geometry = geometry = _geometry(geometry, "delta", DELTA_PRESETS, DeltaGeometry)
         phi = np.radians(geometry.phi_deg)
         #: rows: leg i's u and v axes in the base frame (x, y)
         self._u = np.stack([np.cos(phi), np.sin(phi)], axis=1)

@@ -24,7 +24,7 @@ from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
 
-__all__ = ["LockstepND"]
+__all__ = ["LockstepND", "JointDeviceND", "measure_felt_lockstep"]
 
 
 class LockstepND:
@@ -36,14 +36,19 @@ class LockstepND:
         A validated scene with a port and a device.
     x0, v0 : array_like, shape (n,), optional
         The device's initial displacement from its rest position [m] and velocity [m/s].
+    joint_space : bool, optional
+        Integrate a kinematic device's joint-space dynamics (:class:`JointDeviceND`: the
+        configuration-dependent inertia and the velocity-product terms) instead of the
+        exact ZOH of its Cartesian mass at rest.
 
     Raises
     ------
     ConfigError
-        No port or device; ``x0``/``v0`` not n finite numbers.
+        No port or device; ``x0``/``v0`` not n finite numbers; ``joint_space`` with a
+        cartesian device.
     """
 
-    def __init__(self, scene, x0=None, v0=None) -> None:
+    def __init__(self, scene, x0=None, v0=None, joint_space: bool = False) -> None:
         if scene.port is None or scene.device is None:
             raise ConfigError("the lockstep loop needs a port and its device",
                               file=scene.path, key="masses")
@@ -66,6 +71,7 @@ class LockstepND:
         # the port's previous position: where it was one period ago at the initial velocity
         self.engine.xp[:, self.engine.port] = p - self.state[n:] * scene.period
         self.engine.x[:, self.engine.port] = p
+        self.joint = JointDeviceND(scene, p, self.state[n:]) if joint_space else None
 
     def step(self, samples: int = 1, record: bool = False):
         """Advance the loop.
@@ -99,5 +105,168 @@ class LockstepND:
                 self.delay[0] = F
             else:
                 u = F
-            self.state = self.Ad @ self.state + self.Bd @ u
+            if self.joint is not None:
+                self.joint.step(u)
+                self.state = np.concatenate([self.joint.position() - self.rest,
+                                             np.zeros(n)])
+            else:
+                self.state = self.Ad @ self.state + self.Bd @ u
         return out
+
+
+class JointDeviceND:
+    """A kinematic device's joint-space dynamics, integrated over each sample period.
+
+    ``(M_q + m_h J^T J) q'' = J^T u - B_q q' - b_h J^T J q' - m_h J^T (d^2 f / ds^2)`` with
+    ``J = J(q)`` and the handle's acceleration bias ``d^2 f(q + s q') / ds^2`` (the
+    velocity-product terms of the hand mass carried by the handle; Lagrange's equations for
+    the rotor inertia ``M_q`` and the Cartesian point mass ``m_h``: Khatib 1987). The
+    joint torques ``tau = J(q_n)^T u`` are held over the period (a torque zero-order hold,
+    as a device applies them). Classical fourth-order Runge-Kutta with ``substeps`` steps
+    per period; for small motion it is the Cartesian loop of
+    :func:`hapsim.analysis.ths_nd.zoh_matrices` at rest (to the integrator's error,
+    ``O((w T / substeps)^4)`` relative), and for larger motion it carries the kinematic
+    nonlinearity :mod:`hapsim.analysis.linearisation_nd` bounds.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A scene whose device is a pantograph or a delta.
+    x0 : array_like, shape (n,)
+        Initial handle position [m] (joints by Newton steps from the operating point).
+    v0 : array_like, shape (n,)
+        Initial handle velocity [m/s].
+    substeps : int, optional
+        Runge-Kutta steps per period.
+
+    Raises
+    ------
+    ConfigError
+        A cartesian device (no joints).
+    hapsim.errors.KinematicsError
+        A motion leaving the workspace or reaching a singularity.
+    """
+
+    def __init__(self, scene, x0, v0, substeps: int = 2) -> None:
+        from hapsim.kinematics import device
+        dev = scene.device
+        if dev.joints is None:
+            raise ConfigError("a joint-space device needs a pantograph or a delta",
+                              file=scene.path, key="device.kind")
+        self.kin = device(dev.kind, dev.geometry)
+        self.Mq, self.Bq = dev.joint_inertia, dev.joint_friction
+        self.mh, self.bh = dev.hand_mass, dev.hand_damping
+        self.h = scene.period / int(substeps)
+        self.substeps = int(substeps)
+        q = np.asarray(dev.joints, float).copy()
+        x0 = np.asarray(x0, float)
+        for _ in range(6):                          # Newton: f(q) = x0
+            q = q + np.linalg.solve(self.kin.jacobian(q), x0 - self.kin.forward(q))
+        self.q = q
+        self.qd = np.linalg.solve(self.kin.jacobian(q), np.asarray(v0, float))
+        self.tau = np.zeros_like(q)
+
+    def position(self) -> np.ndarray:
+        """Handle position ``f(q)`` [m], shape (n,)."""
+        return self.kin.forward(self.q)
+
+    def _accel(self, q, qd):
+        J = self.kin.jacobian(q)
+        speed = float(np.linalg.norm(qd))
+        bias = np.zeros(J.shape[0])
+        if speed > 0:
+            eps = 1e-4 / speed                      # a 1e-4 rad step along q'
+            bias = (self.kin.forward(q + eps * qd) - 2 * self.kin.forward(q)
+                    + self.kin.forward(q - eps * qd)) / (eps * eps)
+        JtJ = J.T @ J
+        rhs = self.tau - self.Bq @ qd - self.bh * (JtJ @ qd) - self.mh * (J.T @ bias)
+        return np.linalg.solve(self.Mq + self.mh * JtJ, rhs)
+
+    def step(self, u) -> None:
+        """Hold the torques of the Cartesian force ``u`` [N] over one period and advance.
+
+        Parameters
+        ----------
+        u : array_like, shape (n,)
+            Force on the handle [N].
+        """
+        self.tau = self.kin.jacobian(self.q).T @ np.asarray(u, float)
+        q, qd, h = self.q, self.qd, self.h
+        for _ in range(self.substeps):
+            k1q, k1v = qd, self._accel(q, qd)
+            k2q, k2v = qd + 0.5 * h * k1v, self._accel(q + 0.5 * h * k1q, qd + 0.5 * h * k1v)
+            k3q, k3v = qd + 0.5 * h * k2v, self._accel(q + 0.5 * h * k2q, qd + 0.5 * h * k2v)
+            k4q, k4v = qd + h * k3v, self._accel(q + h * k3q, qd + h * k3v)
+            q = q + h / 6 * (k1q + 2 * k2q + 2 * k3q + k4q)
+            qd = qd + h / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+        self.q, self.qd = q, qd
+
+
+def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = None,
+                          progress=None, joint_space: bool = False) -> dict:
+    """The felt matrices measured from lockstep free responses, against the prediction.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a port and a device.
+    amplitude : float, optional
+        Excitation amplitude ``a`` [m]: record ``i`` starts the handle displaced by
+        ``a e_i``, record ``n + i`` moving at ``a / (10 T) e_i`` (``e_i`` the axes).
+    samples : int, optional
+        Samples per record (default ``max(300, 20 x`` the prediction order ``x n)``).
+    progress : callable, optional
+        ``progress(done, total)`` after each record.
+    joint_space : bool, optional
+        The device as :class:`JointDeviceND` (its kinematic nonlinearity in the loop).
+
+    Returns
+    -------
+    dict
+        ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`'s dict of the
+        records minus the record from rest, which removes the loop's response to a rest
+        that is not exactly an equilibrium: exact for a linear loop), ``predicted``
+        (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
+        difference of the felt stiffness and damping matrices, each over the predicted
+        matrix's largest entry [-]; None without felt matrices), ``bound``
+        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at ``a``), ``order``,
+        ``records``, ``samples``.
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`, :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`;
+        ``amplitude`` not positive; ``samples`` too short for the order.
+    """
+    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    chk = check_scene_nd(scene)
+    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    n = scene.dimension
+    order = chk.states // n
+    N = int(samples) if samples is not None else max(300, 20 * order * n)
+    if N < 2 * order * n:
+        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
+                          f"({chk.states} states), got {N}", key="samples")
+    a = bound.amplitude
+    T = scene.period
+    starts = [(a * np.eye(n)[i], None) for i in range(n)] + \
+             [(None, a / (10 * T) * np.eye(n)[i]) for i in range(n)]
+    rest = LockstepND(scene, joint_space=joint_space).step(N, record=True)
+    recs = []
+    for j, (x0, v0) in enumerate(starts):
+        recs.append(LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space)
+                    .step(N, record=True) - rest)
+        if progress is not None:
+            progress(j + 1, len(starts))
+    fit = fit_felt_nd(recs, scene.device.mass, T, order)
+    k, b = chk.render.felt_stiffness, chk.render.felt_damping
+    dev = None
+    if fit["felt_stiffness"] is not None and k is not None:
+        dev = {"felt_stiffness": float(np.max(np.abs(fit["felt_stiffness"] - k))
+                                       / np.max(np.abs(k))),
+               "felt_damping": float(np.max(np.abs(fit["felt_damping"] - b))
+                                     / np.max(np.abs(b)))}
+    return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
+            "order": order, "records": len(recs), "samples": N}

@@ -6,11 +6,12 @@ simulation or a run on a device does not end in a traceback after minutes (issue
 
 from __future__ import annotations
 
+import math
 import os
 
 from hapsim.errors import ConfigError
 
-__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes"]
+__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -125,3 +126,25 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                 else "more than this machine can address")
         raise ConfigError(f"{what} need {format_bytes(nbytes)}; {have}: ask for less",
                           key=option)
+
+
+def json_safe(obj):
+    """A copy of ``obj`` that ``json.dumps`` writes as strict JSON: non-finite floats become
+    None (``null``), tuples lists; dicts and lists are copied recursively.
+
+    Parameters
+    ----------
+    obj : object
+        A report (dicts, lists, tuples, numbers, strings).
+
+    Returns
+    -------
+    object
+    """
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from hapsim._yaml_lines import LDict, LList, decode_text, load_yaml
-from hapsim.errors import ConfigError, num, show
+from hapsim.errors import ConfigError, num, show, type_name
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS, Key,
                                  check_product, key_names, section_keys)
@@ -624,7 +624,7 @@ def _coerce(v: Any) -> Any:
 def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
             allow_inf: bool = False, maximum: float | None = None) -> None:
     if not _is_number(v):
-        raise _Invalid(f"must be a number, got {_typename(v)} {show(v)}", where)
+        raise _Invalid(f"must be a number, got {type_name(v)} {show(v)}", where)
     v = _float(v)
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise _Invalid(f"must be a finite number, got {v}", where)
@@ -654,7 +654,7 @@ def _check_key(k: Key, v: Any, *where: Any) -> None:
         _string(v, *where)
     elif k.type == "boolean":
         if not isinstance(v, bool):
-            raise _Invalid(f"must be true or false, got {_typename(v)} {show(v)}", where)
+            raise _Invalid(f"must be true or false, got {type_name(v)} {show(v)}", where)
 
 
 def _in_range(k: Key, x: float, where: tuple) -> None:
@@ -684,14 +684,14 @@ def _check_section(obj: Any, section: str, *where: Any) -> None:
 
 def _choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
+        raise _Invalid(f"must be a string, got {type_name(v)} {show(v)}", where)
     if v not in choices:
         raise _Invalid(f"unknown value {show(v)}; valid choices: {', '.join(choices)}", where)
 
 
 def _string(v: Any, *where: Any) -> None:
     if not isinstance(v, str):
-        raise _Invalid(f"must be a string, got {_typename(v)} {show(v)}", where)
+        raise _Invalid(f"must be a string, got {type_name(v)} {show(v)}", where)
 
 
 def _first(line: int, where: tuple) -> str:
@@ -712,14 +712,14 @@ def _check_scene(s: Scene) -> None:
     _check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
     _check_key(_key("integrator"), s.integrator, "integrator")
     if not isinstance(s.path, str):
-        raise _Invalid(f"must be a string, got {_typename(s.path)}", ("path",))
+        raise _Invalid(f"must be a string, got {type_name(s.path)}", ("path",))
     if not isinstance(s.masses, tuple) or not s.masses:
         raise _Invalid("must be a non-empty list of masses", ("masses",))
     names: dict[str, int] = {}
     ports: list[int] = []
     for i, m in enumerate(s.masses):
         if not isinstance(m, Mass):
-            raise _Invalid(f"must be a hapsim.scene.Mass, got {_typename(m)}", ("masses", i))
+            raise _Invalid(f"must be a hapsim.scene.Mass, got {type_name(m)}", ("masses", i))
         _check_key(_key("masses[].kind"), m.kind, "masses", i, "kind")
         _check_key(_key("masses[].name"), m.name, "masses", i, "name")
         if m.name in names:
@@ -830,7 +830,7 @@ def audio_substeps(audio_rate: float, rate_hz: float) -> int:
 def _check_audio(s: Scene, names: dict[str, int]) -> None:
     a = s.audio
     if not isinstance(a, Audio):
-        raise _Invalid(f"must be a hapsim.scene.Audio, got {_typename(a)}", ("audio",))
+        raise _Invalid(f"must be a hapsim.scene.Audio, got {type_name(a)}", ("audio",))
     _check_key(_key("audio.rate_hz"), a.rate_hz, "audio", "rate_hz")
     try:
         audio_substeps(a.rate_hz, s.rate_hz)
@@ -846,7 +846,7 @@ def _check_audio(s: Scene, names: dict[str, int]) -> None:
                        ("audio", "listen"))
     for i, ls in enumerate(a.listen):
         if not isinstance(ls, Listen):
-            raise _Invalid(f"must be a hapsim.scene.Listen, got {_typename(ls)}",
+            raise _Invalid(f"must be a hapsim.scene.Listen, got {type_name(ls)}",
                            ("audio", "listen", i))
         _check_key(_key("audio.listen[].mass"), ls.mass, "audio", "listen", i, "mass")
         if ls.mass not in names:
@@ -866,11 +866,11 @@ def _check_audio(s: Scene, names: dict[str, int]) -> None:
 
 def _check_links(s: Scene, names: dict[str, int]) -> None:
     if not isinstance(s.links, tuple):
-        raise _Invalid(f"must be a list of links, got {_typename(s.links)}", ("links",))
+        raise _Invalid(f"must be a list of links, got {type_name(s.links)}", ("links",))
     seen: dict[str, int] = {}
     for i, lk in enumerate(s.links):
         if not isinstance(lk, Link):
-            raise _Invalid(f"must be a hapsim.scene.Link, got {_typename(lk)}", ("links", i))
+            raise _Invalid(f"must be a hapsim.scene.Link, got {type_name(lk)}", ("links", i))
         _check_key(_key("links[].kind"), lk.kind, "links", i, "kind")
         _check_key(_key("links[].name"), lk.name, "links", i, "name")
         if lk.name in seen:
@@ -925,7 +925,7 @@ def _check_links(s: Scene, names: dict[str, int]) -> None:
 
 def _check_device(d: Any) -> None:
     if not isinstance(d, Device):
-        raise _Invalid(f"must be a hapsim.scene.Device, got {_typename(d)}", ("device",))
+        raise _Invalid(f"must be a hapsim.scene.Device, got {type_name(d)}", ("device",))
     _check_section(d, "device", "device")
     if d.hand is not None:
         _check_hand(d.hand, d.hold)
@@ -940,7 +940,7 @@ def _check_protocol_options(o: Any, protocol: str) -> None:
     values named with the valid choices)."""
     where = ("device", "protocol_options")
     if not isinstance(o, dict):
-        raise _Invalid(f"must be a mapping, got {_typename(o)} {show(o)}", where)
+        raise _Invalid(f"must be a mapping, got {type_name(o)} {show(o)}", where)
     if protocol == "framed":
         raise _Invalid("the framed protocol takes no options (its device says its own "
                        "units in HELLO); set device.protocol to a driver", where)
@@ -964,7 +964,7 @@ def _check_protocol_options(o: Any, protocol: str) -> None:
 
 def _check_hand(h: Any, hold: str) -> None:
     if not isinstance(h, Hand):
-        raise _Invalid(f"must be a hapsim.scene.Hand, got {_typename(h)}", ("device", "hand"))
+        raise _Invalid(f"must be a hapsim.scene.Hand, got {type_name(h)}", ("device", "hand"))
     for key, positive, inf in (("mass", True, False), ("damping", False, False),
                                ("grip_stiffness", True, True), ("grip_damping", False, False),
                                ("stiffness", False, False)):
@@ -1009,9 +1009,9 @@ def _check_correction(c: Any, hold: str) -> None:
 
 def _check_excitation(e: Any) -> None:
     if not isinstance(e, Excitation):
-        raise _Invalid(f"must be a hapsim.scene.Excitation, got {_typename(e)}", ("excitation",))
+        raise _Invalid(f"must be a hapsim.scene.Excitation, got {type_name(e)}", ("excitation",))
     if e.impulse is not None and not isinstance(e.impulse, Impulse):
-        raise _Invalid(f"must be a hapsim.scene.Impulse, got {_typename(e.impulse)}",
+        raise _Invalid(f"must be a hapsim.scene.Impulse, got {type_name(e.impulse)}",
                        ("excitation", "impulse"))
     _check_section(e, "excitation", "excitation")
     if e.impulse is not None:
@@ -1023,7 +1023,7 @@ def _check_excitation(e: Any) -> None:
 
 def _check_safety(f: Any) -> None:
     if not isinstance(f, Safety):
-        raise _Invalid(f"must be a hapsim.scene.Safety, got {_typename(f)}", ("safety",))
+        raise _Invalid(f"must be a hapsim.scene.Safety, got {type_name(f)}", ("safety",))
     _check_section(f, "safety", "safety")
 
 
@@ -1056,7 +1056,7 @@ class _Ctx:
 
     def mapping(self, value: Any, key: str, line: int | None) -> _LDict:
         if not isinstance(value, dict):
-            raise self.error(f"must be a mapping (key: value), got {_typename(value)}", line, key)
+            raise self.error(f"must be a mapping (key: value), got {type_name(value)}", line, key)
         return value
 
     def keys(self, d: _LDict, allowed: tuple[str, ...], key: str, required: tuple[str, ...] = ()) -> None:
@@ -1072,7 +1072,7 @@ class _Ctx:
     def not_null(self, d: _LDict, k: str, key: str) -> None:
         """Refuse ``k: null`` for a key whose absence means "none" (say what was meant)."""
         if k in d and d[k] is None:
-            raise self.error(f"must be given a value, got {_typename(None)} (leave the key "
+            raise self.error(f"must be given a value, got {type_name(None)} (leave the key "
                              "out for none)", self.line_of(d, k), f"{key}.{k}")
 
     def kind(self, d: _LDict, key: str, choices: tuple[str, ...]) -> str:
@@ -1112,18 +1112,6 @@ def _bare(k: Any) -> str:
 def _key_name(parent: str, k: Any) -> str:
     """Dotted key ``parent.k`` for a message (an odd key is :func:`show`-n)."""
     return f"{parent}.{_bare(k)}" if parent else _bare(k)
-
-
-def _typename(v: Any) -> str:
-    if v is None:
-        return "nothing (null)"
-    if isinstance(v, bool):
-        return "a boolean"
-    if isinstance(v, dict):
-        return "a mapping"
-    if isinstance(v, list):
-        return "a list"
-    return {int: "an integer", float: "a number", str: "a string"}.get(type(v), type(v).__name__)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -1266,7 +1254,7 @@ def _read_links(ctx: _Ctx, doc: _LDict, masses: list[Mass]) -> list[Link]:
         return []
     seq = doc["links"]
     if not isinstance(seq, list):
-        raise ctx.error(f"must be a list of links, got {_typename(seq)}",
+        raise ctx.error(f"must be a list of links, got {type_name(seq)}",
                         ctx.line_of(doc, "links"), "links")
     out: list[Link] = []
     for i, item in enumerate(seq):

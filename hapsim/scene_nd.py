@@ -61,12 +61,11 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from hapsim._yaml_lines import decode_text, load_yaml
-from hapsim.errors import ConfigError, show
+from hapsim.errors import ConfigError, show, type_name
 
 __all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "SceneND", "scene_dimension",
            "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
@@ -214,7 +213,7 @@ class _Reader:
 
     def mapping(self, v, key, line):
         if not isinstance(v, dict):
-            raise self.error(f"must be a mapping (key: value), got {_typename(v)}", line, key)
+            raise self.error(f"must be a mapping (key: value), got {type_name(v)}", line, key)
         return v
 
     def keys(self, d, allowed, key, required=()):
@@ -236,7 +235,7 @@ class _Reader:
         line = self.line(d, k)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.error(f"must be a number{' [' + unit + ']' if unit else ''}, got "
-                             f"{_typename(v)} {show(v)}", line, where)
+                             f"{type_name(v)} {show(v)}", line, where)
         try:
             x = float(v)
         except OverflowError:
@@ -269,7 +268,7 @@ class _Reader:
             return default
         v = d[k]
         if not isinstance(v, str) or not v:
-            raise self.error(f"must be a non-empty string, got {_typename(v)} {show(v)}",
+            raise self.error(f"must be a non-empty string, got {type_name(v)} {show(v)}",
                              self.line(d, k), f"{key}.{k}")
         return v
 
@@ -345,18 +344,6 @@ class _Reader:
                              f"{unit}), got eigenvalues {show([float(x) for x in lam])}",
                              line, where)
         return 0.5 * (a + a.T)
-
-
-def _typename(v: Any) -> str:
-    if v is None:
-        return "nothing (null)"
-    if isinstance(v, bool):
-        return "a boolean"
-    if isinstance(v, dict):
-        return "a mapping"
-    if isinstance(v, list):
-        return "a list"
-    return {int: "an integer", float: "a number", str: "a string"}.get(type(v), type(v).__name__)
 
 
 def scene_dimension(path: str | os.PathLike) -> int:
@@ -493,7 +480,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     links, lnames = [], {}
     lseq = doc.get("links") or []
     if not isinstance(lseq, list):
-        raise r.error(f"must be a list of links, got {_typename(lseq)}",
+        raise r.error(f"must be a list of links, got {type_name(lseq)}",
                       r.line(doc, "links"), "links")
     for i, item in enumerate(lseq):
         key = f"links[{i}]"
@@ -533,7 +520,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     planes, pnames = [], {}
     pseq = doc.get("planes") or []
     if not isinstance(pseq, list):
-        raise r.error(f"must be a list of planes, got {_typename(pseq)}",
+        raise r.error(f"must be a list of planes, got {type_name(pseq)}",
                       r.line(doc, "planes"), "planes")
     moving = tuple(m.name for m in masses if m.kind != "ground")
     for i, item in enumerate(pseq):

@@ -112,7 +112,7 @@ def test_round_trip_identify_yaml_run(tmp_path):
 def test_blind_identification_50_random_devices():
     """Blind identification on the lockstep mock: 50 seeded random devices (m 0.02-1 kg,
     b0 0-5 N s/m, fc 0-0.3 N, d 0-3, quantum 0-20 um, noise 0-5 um; a quarter without
-    quantum, a quarter without noise). Every true value lies inside its reported interval
+    quantum, a quarter without noise; 2 s records: 3 s ones miss as often). Every true value lies inside its reported interval
     in at least 95 % of the cases, quantity by quantity; m and b0 within 2 % wherever the
     noise is 0."""
     rng = np.random.default_rng(20261121)
@@ -127,7 +127,7 @@ def test_blind_identification_50_random_devices():
         nz = float(rng.uniform(0.0, 5e-6)) if rng.random() < 0.75 else 0.0
         dev = Device(mass=m, friction=b, delay=d, coulomb=fc, position_resolution=q,
                      noise=nz, force_limit=10.0)
-        fit, rec = identify(device=dev, transport="inprocess", duration=3.0, force_limit=4.0,
+        fit, rec = identify(device=dev, transport="inprocess", duration=2.0, force_limit=4.0,
                             max_delay=3, seed=i, progress=False, handle_signals=False)
         assert not rec["loop"]["safety_stop"]
         ok = {"m": fit.mass.contains(m), "b0": fit.friction.contains(b),

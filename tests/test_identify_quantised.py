@@ -20,7 +20,7 @@ from hapsim.daemon.runner import run_scene
 from hapsim.scene import parse_scene
 from test_daemon import wall_text  # same directory (pytest prepend import mode)
 
-CASES = 40
+CASES = 20     # 40 held 40/40; 20 still allow one miss at 95 %
 
 
 def _scene(m, b0, K, B, d, rate, q, noise, x0):

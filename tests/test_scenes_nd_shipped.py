@@ -110,15 +110,20 @@ def test_check_json_felt_matrices_are_the_ths_matrix(name, capsys):
 
 def test_simulate_runs_every_shipped_nd_scene(tmp_path, capsys):
     """`simulate` on each (100 samples, the port held at rest): exit 0, finite positions,
-    and the rest is an equilibrium to the file's rounding (0.1 um: nothing moves more
-    than 1 um)."""
+    and the rest is an equilibrium to the file's rounding (0.1 nm): nothing moves more
+    than 1 nm and the force on the port at rest is below 1 uN."""
+    from hapsim.engine_nd import EngineND
+    from hapsim.scene_nd import load_scene_nd
     for name in SHIPPED_ND:
         out = tmp_path / (name + ".npz")
         assert main(["simulate", str(CONFIGS / name), "--steps", "100", "--out",
                      str(out)]) == 0, name
         pos = np.load(out)["position"]
         assert np.all(np.isfinite(pos))
-        assert np.max(np.abs(pos - pos[0])) < 1e-6, name
+        assert np.max(np.abs(pos - pos[0])) < 1e-9, name
+        eng = EngineND(load_scene_nd(CONFIGS / name))
+        eng.step()
+        assert np.max(np.abs(eng.port_force)) < 1e-6, name
     capsys.readouterr()
 
 

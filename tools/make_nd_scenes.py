@@ -2,7 +2,7 @@
 
 The ground points that press the handle into a wall, a disc or a sphere sit where the
 handle rests (the forward kinematics of the device's joints), so they are computed here
-from :mod:`hapsim.kinematics` and written rounded to 0.1 um. Run from the repository root::
+from :mod:`hapsim.kinematics` and written rounded to 0.1 nm (the rest is an equilibrium to about 1e-10 m). Run from the repository root::
 
     python tools/make_nd_scenes.py          # rewrites configs/{pantograph,delta}_*.yaml
 
@@ -28,8 +28,8 @@ PRESS = 0.0005          # the handle's depth into the object at rest [m]
 
 
 def v(a) -> str:
-    return "[" + ", ".join(f"{round(float(x), 7):.7f}".rstrip("0").rstrip(".")
-                           if abs(x) > 5e-8 else "0.0" for x in a) + "]"
+    return "[" + ", ".join(f"{round(float(x), 10):.10f}".rstrip("0").rstrip(".")
+                           if abs(x) > 5e-11 else "0.0" for x in a) + "]"
 
 
 def unit(a) -> np.ndarray:
@@ -74,7 +74,7 @@ def wall() -> str:
         "  - {name: press, kind: spring_damper, between: [hand, press], stiffness: "
         f"{kp:g}, damping: 0.5}}\n"
         "planes:\n"
-        f"  - {{name: wall, normal: {v(n)}, offset: {h[1] + PRESS:.7f}, stiffness: {K:g}, "
+        f"  - {{name: wall, normal: {v(n)}, offset: {h[1] + PRESS:.10f}, stiffness: {K:g}, "
         "damping: 2.0,\n"
         "     masses: [hand]}\n"
         + pantograph_device(q))
@@ -178,7 +178,7 @@ def mesh() -> str:
     inner = [names[i, j] for i in range(1, N - 1) for j in range(1, N - 1)]
     lines.append("planes:   # air: a damping-only plane the membrane lies 5 cm inside, so its\n"
                  "          # motion across its plane is damped (the links damp along them)\n"
-                 f"  - {{name: air, normal: [0, 0, 1], offset: {h[2] + 0.05:.7f}, "
+                 f"  - {{name: air, normal: [0, 0, 1], offset: {h[2] + 0.05:.10f}, "
                  "stiffness: 0, damping: 0.02,\n"
                  f"     masses: [{', '.join(inner)}]}}\n")
     lines.append(delta_device(q))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import felt_matrices, rendered_pairs_of
+from hapsim.analysis.ths_nd import continuous_poles, felt_matrices, rendered_pairs_of
 from hapsim.errors import ConfigError
 
 __all__ = ["fit_felt_nd"]
@@ -78,8 +78,7 @@ def fit_felt_nd(records, mass, period: float, order: int) -> dict:
            "felt_damping": None, "residual": residual, "rank": int(rank)}
     if zr.size == n:
         z = zr.astype(complex)
-        s = (0.5 * np.log1p(2 * (z - 1).real + np.abs(z - 1) ** 2) + 1j * np.angle(z)) \
-            / period
+        s = continuous_poles(z, period)
         k, b = felt_matrices(np.asarray(mass, float), s, U)
         out["felt_stiffness"], out["felt_damping"] = k, b
     return out

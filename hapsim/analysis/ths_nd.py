@@ -72,7 +72,8 @@ from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE, STABILITY_TO
 from hapsim.errors import ConfigError
 
 __all__ = ["LoopModelND", "zoh_matrices", "state_matrix", "closed_loop_poles_nd",
-           "rendered_pairs", "rendered_pairs_of", "felt_matrices", "render_state",
+           "rendered_pairs", "rendered_pairs_of", "felt_matrices", "continuous_poles",
+           "render_state",
            "RenderND", "render_nd", "direction_limit", "direction_limits",
            "workspace_limits", "WorkspaceLimits"]
 
@@ -347,8 +348,25 @@ def closed_loop_poles_nd(loop: LoopModelND, K, B=0.0) -> np.ndarray:
     return z[np.argsort(-np.abs(z), kind="stable")]
 
 
-def _log(z: np.ndarray, T: float) -> np.ndarray:
-    """``s = ln(z) / T`` accurate near ``z = 1`` (``log1p`` of ``|z|^2 - 1``)."""
+def continuous_poles(z, T: float) -> np.ndarray:
+    """``s = ln(z) / T`` [1/s], accurate near ``z = 1`` (``log1p`` of ``|z|^2 - 1``).
+
+    Parameters
+    ----------
+    z : array_like of complex
+        Sampled poles [-] (non-zero).
+    T : float
+        Sample period [s].
+
+    Returns
+    -------
+    ndarray of complex, shape of ``z``
+        ``(ln|z| + i arg z) / T`` with ``arg z`` in ``(-pi, pi]``; ``ln|z|`` as
+        ``log1p(2 Re w + |w|^2) / 2``, ``w = z - 1``, so that a pole near the unit circle
+        keeps the relative precision of its damping (as :func:`hapsim.analysis.modes.log_z`
+        for one pole).
+    """
+    z = np.asarray(z)
     w = z - 1.0
     re = 0.5 * np.log1p(2.0 * w.real + w.real ** 2 + w.imag ** 2)
     return (re + 1j * np.angle(z)) / T
@@ -412,7 +430,7 @@ def rendered_pairs_of(A, n: int, period: float):
         u = u * (abs(u[j]) / u[j])
         # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
         # of this pair with the ones taken (conjugates included)
-        si = complex(_log(np.array([z[i]]), period)[0])
+        si = complex(continuous_poles(np.array([z[i]]), period)[0])
         unit = si / abs(si) if si != 0 else 0.0
         cols = cols_taken + [np.concatenate([u, unit * u]),
                              np.concatenate([u.conj(), np.conj(unit) * u.conj()])]
@@ -627,7 +645,7 @@ def render_state(A, mass, period: float, *, K=None, B=None) -> RenderND:
                         note=f"the closed loop has {zr.size} rendered pair(s) with "
                              f"independent mode shapes at the handle, fewer than {n}: "
                              "no felt matrices", **common)
-    s = _log(zr, period)
+    s = continuous_poles(zr, period)
     k, b = felt_matrices(M, s, U)
     E = np.column_stack([_major_axis(U[:, i]) for i in range(n)])
     m = np.einsum("in,ij,jn->n", E, M, E)

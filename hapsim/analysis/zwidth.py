@@ -53,7 +53,23 @@ FORCE_SHARE = 0.3
 
 def release(x0: float, force_limit: float, K: float) -> float:
     """Release position for a wall of stiffness ``K`` [m]: ``x0``, reduced so that
-    ``K x0 <= FORCE_SHARE * force_limit`` (no clamping while the record is measured)."""
+    ``K x0 <= FORCE_SHARE * force_limit`` (no clamping while the record is measured).
+
+    Parameters
+    ----------
+    x0 : float
+        Release position asked for [m].
+    force_limit : float
+        The device's force limit [N] (``inf``: none).
+    K : float
+        Virtual wall stiffness [N/m] (``<= 0``: no reduction).
+
+    Returns
+    -------
+    float
+        ``min(x0, FORCE_SHARE * force_limit / K)`` [m] when ``K > 0`` and the limit is
+        finite, else ``x0``.
+    """
     if K > 0 and math.isfinite(force_limit):
         return min(float(x0), FORCE_SHARE * float(force_limit) / float(K))
     return float(x0)

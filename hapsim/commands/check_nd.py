@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 from hapsim.errors import ConfigError
@@ -95,7 +96,7 @@ def _plot(scene, chk, path: str) -> None:
     felt = felt_over_workspace(scene) if scene.device.joints is not None else None
     note = "\nfelt at the handle only (a port link ends on a moving mass)" \
         if felt is not None and felt.note else ""
-    name = scene.path.rsplit("/", 1)[-1]
+    name = os.path.basename(scene.path)
     save_figure(plot_scene_nd(scene, chk, felt, title=f"{name}: {scene.device.kind}, "
                               f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note),
                 path)

@@ -13,6 +13,7 @@ from collections import deque
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Play a scene live, as an instrument: the embedded mock device (the scene's device section)
@@ -298,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
             np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
         os.replace(tmp, args.telemetry)
     if args.json:
-        print(json.dumps(_finite(report)))
+        print(json.dumps(json_safe(report)))
     else:
         felt = ctl.felt
         print(f"played {args.scene} for {steps * T:g} s ({steps} samples, {late} late); "
@@ -346,19 +347,8 @@ def sound_line(sound: dict) -> str:
     return line + f"; {s.get('periods')} periods played, {s.get('waits')} waits"
 
 
-def _finite(v):
-    """JSON-safe copy: non-finite floats become None."""
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite(x) for x in v]
-    return v
-
-
 def _dump(path: str, journal: list) -> None:
     tmp = path + ".partial"
     with open(tmp, "w") as fh:
-        json.dump(_finite(journal), fh, indent=1)
+        json.dump(json_safe(journal), fh, indent=1)
     os.replace(tmp, path)

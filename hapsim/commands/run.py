@@ -8,6 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Run a scene in real time against a force-feedback device and measure what the hand feels.
@@ -177,18 +178,12 @@ def register(sub) -> None:
                    help="play the scene's audio section live (JACK, else PortAudio with "
                         "auto); the model stays in the loop, the frames go to the server")
     p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
+    p.add_argument("--amplitude", type=float, metavar="M",
+                   help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
+                        "the measured free responses [m] (default 1e-8; the report states "
+                        "the linearisation bound at it)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
-
-
-def _clean(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    return obj
 
 
 def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
@@ -269,6 +264,13 @@ def run(args) -> int:
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
     from hapsim.scene import load_scene
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: in lockstep, in-process
+        from hapsim.commands.run_nd import run_nd
+        return run_nd(args)
+    if getattr(args, "amplitude", None) is not None:
+        raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
+                          "excitation section", key="--amplitude")
 
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
@@ -351,7 +353,7 @@ def run(args) -> int:
     if advice is not None:
         rep["advice"] = advice.to_dict()
     if args.json:
-        print(json.dumps(_clean(rep)))
+        print(json.dumps(json_safe(rep)))
     else:
         print(format_report(rep))
     sys.stdout.flush()

@@ -209,9 +209,7 @@ class DriverTransport:
         t = type(msg)
         if t is fp.Force:
             f = msg.force[0]
-            if dr.unframed and self._armed and self._cmd - self._answered > SILENT_COMMANDS:
-                # answers stopped although commands go out: the device may be inside a
-                # command that swallows them (a garbage set-up); put it back in step
+            if self._stalled():
                 self._resync()
                 return
             self._force = f
@@ -272,12 +270,17 @@ class DriverTransport:
         zero force. Called by the host loop on each missed tick."""
         if self._armed and (self._answered == self._cmd or self._now_us()
                             - self._sent_us[self._cmd % _RING] >= self._deadline_us):
-            if self.driver.unframed and self._cmd - self._answered > SILENT_COMMANDS:
-                # answers stopped although bytes go out: the device may be inside a
-                # command that swallows them (a garbage set-up); put it back in step
+            if self._stalled():
                 self._resync()
             else:
                 self._command(self.driver.encode_force(self._force))
+
+    def _stalled(self) -> bool:
+        """Answers stopped although commands go out (more than :data:`SILENT_COMMANDS`
+        unanswered, armed, an unframed driver): the device may be inside a command that
+        swallows them (a garbage set-up); :meth:`_resync` puts it back in step."""
+        return (self.driver.unframed and self._armed
+                and self._cmd - self._answered > SILENT_COMMANDS)
 
     def _resync(self) -> None:
         """The device lost its place in the byte stream: the driver's re-synchronisation
@@ -356,7 +359,7 @@ class DriverTransport:
                 else:
                     data = b""
                 if data:
-                    self._last.append(data.hex())
+                    self._last.append(data)         # hex only when a message shows it
                     xs = dec.feed(data)
                     self._stray = not xs
                     if xs:
@@ -406,4 +409,4 @@ class DriverTransport:
 
     def last_frames(self) -> str:
         """The last chunks of bytes received, as hex (CONVENTIONS §11)."""
-        return "\n".join(self._last)
+        return "\n".join(chunk.hex() for chunk in self._last)

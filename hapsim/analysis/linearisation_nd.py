@@ -1,0 +1,243 @@
+"""How far the linear n-D check holds: the linearisation bound at an excitation amplitude.
+
+:mod:`hapsim.analysis.scene_nd_check` linearises a 2-D or 3-D scene felt through its
+device at rest. A measurement excites the loop with a handle displacement of amplitude
+``a`` [m]; the loop then departs from its linear image by second-order terms, from two
+sources:
+
+**The device's kinematics.** A pantograph's or a delta's Cartesian mass depends on where
+the handle is: ``M(x) = J(q)^-T M_q J(q)^-1 + m_h I`` with ``q = q(x)``. Over a
+displacement ``delta`` it changes by ``dM = (dM/dx . delta) + O(|delta|^2)``, and the
+velocity-product (Coriolis and centrifugal) forces ``C(x, v) v``, whose Christoffel
+symbols are half-sums of three derivatives of ``M`` (Khatib 1987; Siciliano et al.,
+*Robotics*, 2009, Sec. 7.3.2), are at most ``(3/2) |dM/dx| |v|^2``. Relative to the
+linear inertial force ``M x''`` (``~ M w^2 a``, and ``|v| ~ w a``) both are first order in
+``a``, with the coefficient
+
+    c_kin = (3/2) max_{|e| = 1} || M^-1/2 (dM/dx . e) M^-1/2 ||_2     [1/m]
+
+(``dM/dx . e`` by central differences of ``M(q)`` along the joint direction
+``J^-1 e``). The felt matrices' relative error from the kinematics is then
+``eps_kin(a) = c_kin a`` to first order: a felt ``k = M |s|^2`` computed with the mass at
+rest moves as the mass the loop actually has.
+
+**The scene's Euclidean links and contacts.** The law ``F = K (1 - L/|d|) d`` (rest length
+or threshold ``L``) has, about ``d0 = l0 e``, the second-order term
+``(1/2) K H[delta, delta]`` with
+``H[delta, delta] = (L/l0^2) (2 delta (e . delta) + e |delta|^2 - 3 e (e . delta)^2)``;
+its norm is ``K L a^2 / l0^2 * s sqrt(1 + 3 c^2)`` with ``c = e . delta / a``,
+``s = sqrt(1 - c^2)``, at most ``(2 / sqrt 3) K L a^2 / l0^2`` (at ``c^2 = 1/3``). Over the
+linear term's scale ``K a`` each link contributes
+
+    c_link = L / (sqrt(3) l0^2)     [1/m],
+
+and a contact or plane stays engaged (the law stays smooth) only while ``a`` is below its
+depth at rest (``L - l0`` for a contact, the penetration for a plane): beyond it the
+loop is piecewise and no linear estimate holds. ``length: 0`` springs and engaged planes
+are linear (``c = 0``).
+
+**On the felt matrices.** A relative change ``eps`` of the loop's stiffness and inertia
+terms scales each rendered ``s_i^2`` by at most ``1 +- eps``, so it moves ``s_i`` by at
+most ``(eps/2) |s_i|`` to first order: the felt stiffness along a principal direction,
+``k_i = m_i |s_i|^2``, by at most ``eps k_i``; the felt damping ``b_i = -2 m_i Re s_i`` by
+at most ``m_i eps |s_i|``, i.e. ``eps |s_i| / (2 |Re s_i|) = eps / (2 zeta_i)`` relative
+(``zeta_i`` the mode's damping ratio: a lightly damped mode's damping is the most
+sensitive). The stated bounds are therefore
+
+    eps_k(a) = (c_kin + max c_link) a,     eps_b(a) = eps_k(a) max_i |s_i| / (2 |Re s_i|),
+
+first-order estimates of the relative departure of the felt stiffness and damping
+matrices from the linear prediction (not certified: second-order terms in ``a`` are left
+out, and the felt matrices' sensitivity is taken from the principal directions').
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient"]
+
+
+def kinematic_coefficient(kind: str, geometry: str, joints, joint_inertia,
+                          hand_mass: float = 0.0, *, h: float = 1e-6) -> float:
+    """``c_kin`` of a kinematic device at an operating point (module docstring) [1/m].
+
+    Parameters
+    ----------
+    kind : {"pantograph", "delta"}
+    geometry : str
+        Preset of :mod:`hapsim.kinematics`.
+    joints : array_like, shape (n,)
+        Operating point [rad].
+    joint_inertia : array_like, shape (n, n)
+        ``M_q`` [kg m^2].
+    hand_mass : float, optional
+        [kg].
+    h : float, optional
+        Cartesian step of the central differences [m].
+
+    Returns
+    -------
+    float
+        ``(3/2) max_e ||M^-1/2 (dM/dx . e) M^-1/2||_2`` over unit ``e`` [1/m] (the maximum
+        over 200 directions per dimension on the unit circle or a Fibonacci sphere; the
+        map ``e -> dM/dx . e`` is linear, so its largest normalised value is reached on
+        them to the sampling's resolution).
+
+    Raises
+    ------
+    hapsim.errors.KinematicsError
+        A configuration within ``h`` of a singularity or outside the workspace.
+    """
+    from hapsim.kinematics import cartesian_mass, device
+    dev = device(kind, geometry)
+    q0 = np.asarray(joints, float)
+    n = q0.size
+    Mq = np.asarray(joint_inertia, float)
+
+    def mass(q):
+        return cartesian_mass(dev.jacobian(q), Mq) + hand_mass * np.eye(n)
+    M0 = mass(q0)
+    w, V = np.linalg.eigh(M0)
+    Wm = V @ np.diag(w ** -0.5) @ V.T
+    Ji = np.linalg.inv(dev.jacobian(q0))
+    # dM/dx . e is linear in e: the derivative along each Cartesian axis
+    D = []
+    for i in range(n):
+        dq = Ji[:, i] * h
+        D.append((mass(q0 + dq) - mass(q0 - dq)) / (2 * h))
+    if n == 2:
+        t = np.linspace(0, np.pi, 200, endpoint=False)
+        E = np.column_stack([np.cos(t), np.sin(t)])
+    else:
+        k = np.arange(400) + 0.5
+        phi = np.arccos(1 - k / 400)             # a hemisphere: e and -e give one norm
+        th = np.pi * (1 + 5 ** 0.5) * k
+        E = np.column_stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi),
+                             np.cos(phi)])
+    best = 0.0
+    for e in E:
+        dM = sum(e[i] * D[i] for i in range(n))
+        best = max(best, float(np.max(np.abs(np.linalg.eigvalsh(Wm @ dM @ Wm)))))
+    return 1.5 * best
+
+
+@dataclass(frozen=True)
+class LinearisationBound:
+    """The linearisation bound of an n-D scene at an excitation amplitude.
+
+    Attributes
+    ----------
+    amplitude : float
+        ``a`` [m].
+    kinematic : float
+        ``c_kin`` [1/m] (0 for a cartesian device).
+    link : float
+        ``max c_link`` over the Euclidean links and contacts [1/m] (0 when none).
+    link_name : str or None
+        The link that sets it.
+    depth : float
+        The smallest depth at rest of a contact or plane [m] (0 when one is open at
+        rest: the check takes it engaged; inf when none).
+    depth_name : str or None
+        Its name.
+    damping_factor : float
+        ``max_i |s_i| / (2 |Re s_i|)`` over the rendered poles [-] (nan without them).
+    """
+
+    amplitude: float
+    kinematic: float
+    link: float
+    link_name: str | None
+    depth: float
+    depth_name: str | None
+    damping_factor: float = math.nan
+
+    @property
+    def stiffness(self) -> float:
+        """``eps_k(a) = (c_kin + c_link) a`` [-]: the stated relative departure of the felt
+        stiffness matrix (module docstring); inf when ``a`` reaches a contact's or a
+        plane's depth (the law is not smooth there)."""
+        if self.amplitude >= self.depth:
+            return math.inf
+        return (self.kinematic + self.link) * self.amplitude
+
+    @property
+    def damping(self) -> float:
+        """``eps_b(a) = eps_k(a) max_i |s_i| / (2 |Re s_i|)`` [-] (module docstring)."""
+        return self.stiffness * self.damping_factor
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: ``amplitude`` [m], ``kinematic_per_m``, ``link_per_m`` [1/m],
+        ``link``, ``contact_depth`` [m] (None when none), ``contact``,
+        ``damping_factor``, ``felt_stiffness`` and ``felt_damping`` (the relative bounds;
+        None when a contact or plane opens, or without rendered poles)."""
+        def num(x):
+            return float(x) if math.isfinite(x) else None
+        return {"amplitude": self.amplitude, "kinematic_per_m": self.kinematic,
+                "link_per_m": self.link, "link": self.link_name,
+                "contact_depth": num(self.depth), "contact": self.depth_name,
+                "damping_factor": num(self.damping_factor),
+                "felt_stiffness": num(self.stiffness), "felt_damping": num(self.damping)}
+
+
+def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> LinearisationBound:
+    """The linearisation bound of a scene felt through its device (module docstring).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a port and a device.
+    amplitude : float
+        Excitation amplitude ``a`` [m] (> 0).
+    rendered_poles : array_like of complex, optional
+        The rendered poles ``z_i`` of the scene's check (for ``damping_factor``:
+        ``s_i = ln(z_i) / T``).
+
+    Returns
+    -------
+    LinearisationBound
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        ``amplitude`` not a positive finite number.
+    """
+    from hapsim.errors import ConfigError
+    a = float(amplitude)
+    if not (math.isfinite(a) and a > 0):
+        raise ConfigError(f"must be a positive number [m], got {amplitude!r}",
+                          key="amplitude")
+    dev = scene.device
+    c_kin = 0.0
+    if dev.joints is not None:
+        c_kin = kinematic_coefficient(dev.kind, dev.geometry, dev.joints,
+                                      dev.joint_inertia, dev.hand_mass)
+    pos = {m.name: m.x0 for m in scene.masses}
+    c_link, link_name = 0.0, None
+    depth, depth_name = math.inf, None
+    for lk in scene.links:
+        L = lk.threshold if lk.kind == "contact" else lk.length
+        if L == 0:
+            continue
+        l0 = float(np.linalg.norm(pos[lk.m1] - pos[lk.m2]))
+        c = L / (math.sqrt(3.0) * l0 * l0)
+        if c > c_link:
+            c_link, link_name = c, lk.name
+        if lk.kind == "contact" and max(L - l0, 0.0) < depth:
+            depth, depth_name = max(L - l0, 0.0), lk.name     # 0: open at rest
+    for pl in scene.planes:
+        for m in pl.masses:
+            p = pl.offset - float(pl.normal @ pos[m])
+            if max(p, 0.0) < depth:
+                depth, depth_name = max(p, 0.0), pl.name     # 0: open at rest
+    factor = math.nan
+    if rendered_poles is not None and len(rendered_poles):
+        sp = np.log(np.asarray(rendered_poles, complex)) * scene.rate_hz
+        factor = float(np.max(np.abs(sp) / (2.0 * np.abs(sp.real))))
+    return LinearisationBound(amplitude=a, kinematic=c_kin, link=c_link,
+                              link_name=link_name, depth=depth, depth_name=depth_name,
+                              damping_factor=factor)
