@@ -453,13 +453,15 @@ def test_a_second_run_starts_at_x0_after_the_handle_was_pushed_far(tmp_path):
             host.send(fp.encode(fp.Stop()))
             assert far is not None and far < x0 - 0.1, far        # far beyond one period
             end = time.monotonic() + 20.0
-            back = None
+            back = last = None
             while back is None and time.monotonic() < end:
                 for m in host.receive(0.05):
+                    if isinstance(m, fp.State):
+                        last = m
                     if (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED
                             and abs(m.position[0] - x0) <= qx):
                         back = m
-            assert back is not None, "the handle did not come back to x0"
+            assert back is not None, ("the handle did not come back to x0", last)
             host.send(fp.encode(fp.Config(RATE, WATCHDOG_US, 5.0)))
             first = next(host.armed_states())
             assert abs(first.position[0] - x0) <= qx, (first, far)

@@ -148,7 +148,14 @@ static struct {
     size_t in_head, in_tail;
     int xon;
     int await_host, host_present;
-    unsigned frames_queued; /* complete host frames read, not yet fed to the UART */
+    /* lockstep: the seq of the armed STATE the host is to answer; what the host sent, as
+     * read from the pty (before the UART takes it): the newest FORCE seq of this session
+     * (since the last CONFIG), a STOP not followed by a CONFIG (the firmware disarms: no
+     * answer comes, even to a STATE it sent before it took the STOP), any other frame
+     * since the STATE (a host that does not answer it: a handshake) */
+    uint32_t await_seq, read_force_seq;
+    int read_force_valid, read_stop, read_other;
+    hp_decoder_t dec_read;
     uint16_t fw_status;
     uint64_t fw_status_rx_error, fw_overrun;
     uint32_t fw_rx_errors_detail;
@@ -342,11 +349,10 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
     /* the ADC reads floor(mV * 1023 / 5000): centre each count on its voltage */
     mv = floor((counts + 0.5) * HK_ADC_VREF_MV / HK_ADC_MAX + 0.5);
     avr_raise_irq(adc_irq + ADC_IRQ_ADC2, (uint32_t)mv);
-    if (!ph.zero_read) { /* the firmware takes its zero here: now the hand moves to x0 */
-        ph.zero_read = 1;
-        if (!ph.moving && !ph.configured) {
-            hand_move_to_x0(0);
-        }
+    /* the firmware takes its zero from its first reading it keeps (it drops a conversion
+     * a CONFIG restarted the ticks under): the hand moves to x0 after the third */
+    if (ph.zero_read < 3 && ++ph.zero_read == 3) {
+        hand_move_to_x0(ph.configured); /* a CONFIG before it: let go at the end */
     }
 }
 
@@ -365,6 +371,8 @@ static void on_fw_msg(const hp_msg_t *m)
         }
         if ((m->u.state.status & HP_STATUS_ARMED) && link_.host_present) {
             link_.await_host = 1; /* fast mode: let the host answer this STATE */
+            link_.await_seq = m->u.state.seq;
+            link_.read_other = 0;
         }
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
@@ -415,7 +423,9 @@ static void on_host_msg(const hp_msg_t *m)
         /* the hand lets go of the handle at x0 with v0 (the mock's plant restarts there at
          * CONFIG); a handle not there yet is moved there first, without a jump */
         advance_to(avr->cycle);
-        if (!ph.held || ph.moving || ph.x != opt.x0) {
+        if (ph.zero_read < 3) {
+            /* the firmware has not read its zero yet: the move waits for it (adc_trigger) */
+        } else if (!ph.held || ph.moving || ph.x != opt.x0) {
             if (!ph.moving) {
                 hand_move_to_x0(1);
             }
@@ -431,7 +441,7 @@ static void on_host_msg(const hp_msg_t *m)
     } else if (m->type == HP_MSG_STOP) {
         /* the run is over: the hand brings the handle back to x0 and holds it there */
         advance_to(avr->cycle);
-        if (!ph.held || ph.release) {
+        if (ph.zero_read >= 3 && (!ph.held || ph.release)) {
             if (!ph.moving) {
                 hand_move_to_x0(0);
             }
@@ -453,9 +463,7 @@ static void feed_uart(void)
         int r;
         link_.in_tail = (link_.in_tail + 1u) % sizeof link_.in_q;
         avr_raise_irq(uart_irq + UART_IRQ_INPUT, b);
-        if (b == 0 && link_.frames_queued) {
-            link_.frames_queued--;
-        }
+
         r = hp_decoder_feed(&link_.dec_host, b, &m);
         if (r == HP_OK) {
             on_host_msg(&m);
@@ -473,17 +481,27 @@ static void read_host(int timeout_ms)
     link_.host_present = !(pfd.revents & POLLHUP);
     if (r > 0 && (pfd.revents & POLLIN)) {
         uint8_t buf[256];
-        ssize_t n = read(master, buf, sizeof buf);
+        size_t room = (link_.in_tail + sizeof link_.in_q - link_.in_head - 1u) %
+                      sizeof link_.in_q; /* host far ahead of the UART: rest stays in pty */
+        ssize_t n = read(master, buf, room < sizeof buf ? room : sizeof buf);
         ssize_t i;
         for (i = 0; i < n; i++) {
-            size_t next = (link_.in_head + 1u) % sizeof link_.in_q;
-            if (next == link_.in_tail) {
-                break; /* host far ahead of the emulated UART: keep it in the pty */
-            }
+            hp_msg_t m;
             link_.in_q[link_.in_head] = buf[i];
-            link_.in_head = next;
-            if (buf[i] == 0) {
-                link_.frames_queued++;
+            link_.in_head = (link_.in_head + 1u) % sizeof link_.in_q;
+            if (hp_decoder_feed(&link_.dec_read, buf[i], &m) == HP_OK) {
+                if (m.type == HP_MSG_FORCE) {
+                    link_.read_force_seq = m.u.force.seq;
+                    link_.read_force_valid = 1;
+                } else {
+                    link_.read_other = 1;
+                    if (m.type == HP_MSG_STOP) {
+                        link_.read_stop = 1;
+                    } else if (m.type == HP_MSG_CONFIG) {
+                        link_.read_stop = 0;
+                        link_.read_force_valid = 0;
+                    }
+                }
             }
         }
     }
@@ -730,6 +748,7 @@ int main(int argc, char **argv)
     ph.held = 1; /* the hand holds the handle at rest at 0, the firmware's zero, until
                   * its first reading, then moves it to x0 and holds it until CONFIG */
     hp_decoder_init(&link_.dec_host);
+    hp_decoder_init(&link_.dec_read);
     hp_decoder_init(&link_.dec_fw);
     link_.xon = 0; /* until the firmware enables its receiver (simavr signals XON then) */
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
@@ -779,10 +798,13 @@ int main(int argc, char **argv)
             /* fast mode: wait (wall time) for the host's answer to this STATE */
             uint64_t w0 = wall_ns();
             link_.waits++;
-            /* until a whole host frame waits for the UART: the answer (it cannot come
-             * before the STATE is out), or one the host sent unasked (STOP, PING) before
-             * the STATE ended: waiting for another would wait for ever */
-            while (!link_.frames_queued && link_.host_present && !stop_signal) {
+            /* until the host's FORCE answering this STATE is read (a frame read before
+             * the STATE ended cannot be it), or a STOP (maybe read before this STATE
+             * ended, not taken yet), or another frame since it */
+            while (!(link_.read_force_valid &&
+                     (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) &&
+                   !link_.read_stop && !link_.read_other && link_.host_present &&
+                   !stop_signal) {
                 uint64_t el = (wall_ns() - w0) / 1000000u;
                 if (opt.wait_ms > 0 && (double)el >= opt.wait_ms) {
                     link_.wait_timeouts++;
