@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections import deque
+from typing import Callable
 
 import numpy as np
 
@@ -32,7 +34,8 @@ from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 
 __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_samples",
-           "load_profile", "MockPhysics", "DEFAULT_DEVICE", "DEFAULT_EXCITATION"]
+           "load_profile", "MockPhysics", "InProcessLoop", "DEFAULT_DEVICE",
+           "DEFAULT_EXCITATION"]
 
 
 #: Device used by ``hapsim mock`` without ``--scene`` (the device of ``configs/wall.yaml``).
@@ -432,3 +435,58 @@ class MockPhysics:
             self.x = xn
             self.v = (xn - x) / self.period
         self.n = n + 1
+
+
+class InProcessLoop:
+    """The device model closed on a force law in this process, one sample at a time: the
+    THS without a protocol (``hapsim play``, the offline pluck of
+    :func:`hapsim.audio.offline.closed_loop_pluck`).
+
+    Each :meth:`step` samples the device's position ``x[n]``, asks ``force_of(x[n])`` for
+    the port force (an :meth:`hapsim.engine.Engine.port_step`, or a live sound source's),
+    and has the device apply the force computed ``d`` samples earlier, clamped to
+    ``force_limit``, over the coming period: FORCE ``n`` is applied over
+    ``[(n+d)T, (n+d+1)T)``, zeros before the first ``d`` forces
+    (docs/design.md, 'The timing convention').
+
+    Parameters
+    ----------
+    physics : MockPhysics
+        The device model (its excitation and hand force included).
+    force_of : callable
+        ``force_of(position [m]) -> force [N]``, called once per sample.
+    delay : int
+        ``d`` [samples], >= 0.
+    force_limit : float
+        Clamp of the applied force [N] (inf: none).
+    """
+
+    def __init__(self, physics: MockPhysics, force_of: Callable[[float], float], delay: int,
+                 force_limit: float) -> None:
+        self.physics = physics
+        self.force_of = force_of
+        self._line = deque([0.0] * int(delay))
+        self._limit = float(force_limit)
+
+    def step(self, scale: float = 1.0) -> tuple[float, float]:
+        """One sample of the closed loop.
+
+        Parameters
+        ----------
+        scale : float
+            Factor on the computed force (a ramp of live changes); 1 by default.
+
+        Returns
+        -------
+        x : float
+            The device position sampled [m].
+        f : float
+            The port force computed from it [N] (scaled, before the delay and the clamp).
+        """
+        x = self.physics.sample()
+        f = self.force_of(x) * scale
+        self._line.append(f)
+        u = self._line.popleft()
+        lim = self._limit
+        self.physics.advance(min(lim, max(-lim, u)))
+        return x, f

@@ -16,7 +16,7 @@ from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes
 from hapsim.scene import Scene, audio_substeps
 
-__all__ = ["Engine", "KernelPack"]
+__all__ = ["Engine", "KernelPack", "warm_up"]
 
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
@@ -530,3 +530,27 @@ class Engine:
         kinds = ", ".join(sorted(self.scene.kinds)) or "no links"
         return (f"Engine({len(self.names)} masses, {len(self.scene.links)} links [{kinds}], "
                 f"rate {self.scene.rate_hz:g} Hz, sample {self.sample})")
+
+
+def warm_up(scene: Scene) -> None:
+    """Load the numba kernel of the scene's link kinds (from numba's cache, or compile it)
+    before a real-time loop: an engine of the scene advanced three samples.
+
+    Parameters
+    ----------
+    scene : Scene
+        A calibrated scene (the engine of a copy is stepped; nothing of the caller's
+        changes).
+
+    Raises
+    ------
+    ConfigError
+        As :class:`Engine` (a link with an uncalibrated target).
+    """
+    eng = Engine(scene)
+    if scene.port is not None:
+        eng.set_port_position(0.0, at_rest=True)
+        for _ in range(3):
+            eng.port_step(0.0)
+    else:
+        eng.step(3)

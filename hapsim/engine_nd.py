@@ -86,7 +86,13 @@ class EngineND:
         self.W = np.zeros((scene.dimension, CHUNK))
 
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples [-] (no allocation)."""
+        """Advance ``n`` samples [-] (no allocation).
+
+        Parameters
+        ----------
+        n : int
+            Samples to advance (>= 0).
+        """
         run_nd(int(n), self.x, self.xp, self.f, self.t2m, self.lin_table, self.lin_k,
                self.lin_z, self.eu_table, self.eu_k, self.eu_z, self.eu_rest,
                self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
@@ -96,7 +102,19 @@ class EngineND:
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous
         position stays the one it had in the last step (not given: the step extrapolates
-        it, ``2 x - xp``, as the scheme moves a mass without force)."""
+        it, ``2 x - xp``, as the scheme moves a mass without force).
+
+        Parameters
+        ----------
+        position : array_like, shape (dim,)
+            The port's position [m].
+
+        Raises
+        ------
+        ConfigError
+            The scene has no port (key ``masses``), or ``position`` is not ``dim`` finite
+            coordinates (key ``position``).
+        """
         if self.port is None:
             raise ConfigError("the scene has no port", key="masses")
         p = np.asarray(position, float)

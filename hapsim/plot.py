@@ -19,7 +19,19 @@ __all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_identify", "save_fig
 PLOT_INSTALL = "python -m pip install -e '.[plot]'"
 
 
-def _mpl():
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend, imported here only (lazily).
+
+    Returns
+    -------
+    module
+        ``matplotlib.pyplot``.
+
+    Raises
+    ------
+    ConfigError
+        matplotlib is not installed (names the extra to install).
+    """
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -57,7 +69,7 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
-    plt = _mpl()
+    plt = pyplot()
     if ax is None:
         fig, ax = plt.subplots(figsize=(7.5, 6.0), dpi=110)
     else:
@@ -178,7 +190,7 @@ def figure_formats() -> tuple:
     ConfigError
         If matplotlib is missing.
     """
-    plt = _mpl()
+    plt = pyplot()
     fig = plt.figure()
     try:
         return tuple(sorted(fig.canvas.get_supported_filetypes()))
@@ -255,7 +267,7 @@ def plot_poles(report, ax=None, title: str | None = None):
     ConfigError
         If matplotlib is missing.
     """
-    plt = _mpl()
+    plt = pyplot()
     if ax is None:
         fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=110)
     else:
@@ -308,7 +320,7 @@ def plot_identify(fit, record=None):
     """
     if record is None:
         fit, record = fit.fit, fit.record
-    plt = _mpl()
+    plt = pyplot()
     # the fit covers the rows it was given (the longest stretch without a missing STATE)
     a, _ = record["loop"].get("fitted_rows", (0, fit.n_samples))
     x = record["position"][a:a + fit.n_samples]
@@ -341,7 +353,7 @@ def save_figure(fig, path: str) -> None:
         If matplotlib is missing, or the file cannot be written (format or OS error; key
         ``path``).
     """
-    plt = _mpl()
+    plt = pyplot()
     try:
         fig.savefig(path)
     except (OSError, ValueError) as exc:

@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+
 __all__ = ["plot_accuracy_vs_rate", "plot_accuracy_vs_cost", "plot_capacity"]
 
 _D_COLORS = {0: "tab:blue", 1: "tab:orange", 2: "tab:red"}
@@ -18,11 +20,6 @@ _FLOOR = 1e-16
 #: Floor of chart 1's error axis: the calibrated loops sit at round-off (~1e-15) and are
 #: drawn on it, so the axis spans the naive errors (1e-4 ... 1e3) instead of 19 decades.
 _RATE_FLOOR = 1e-7
-
-
-def _mpl():
-    from hapsim.plot import _mpl as mpl  # the one place matplotlib is imported
-    return mpl()
 
 
 def _arr(v):
@@ -53,7 +50,7 @@ def plot_accuracy_vs_rate(data: dict):
     hapsim.errors.ConfigError
         If matplotlib is missing.
     """
-    plt = _mpl()
+    plt = pyplot()
     tg = data["targets"]
     fig, axes = plt.subplots(1, len(tg), figsize=(5.2 * len(tg), 5.4), dpi=110, squeeze=False)
     rates = np.array(data["rates"])
@@ -140,7 +137,7 @@ def plot_accuracy_vs_cost(data: dict):
         the rate; unstable points drawn as crosses at the top; the Pareto front (frequency
         error) in grey.
     """
-    plt = _mpl()
+    plt = pyplot()
     nets = data["networks"]
     fig, axes = plt.subplots(1, len(nets), figsize=(6.4 * len(nets), 5.2), dpi=110,
                              squeeze=False)
@@ -206,7 +203,7 @@ def plot_capacity(data: dict):
         daemon, and the period. Right: missed deadlines [%] of each. A note replaces the daemon
         curves when it is not available.
     """
-    plt = _mpl()
+    plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12.5, 5.8), dpi=110)
     rates = np.array(data["rates"])
     sources = []

@@ -8,12 +8,9 @@ import math
 
 import numpy as np
 
+from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+
 __all__ = ["plot_family", "plot_corrections"]
-
-
-def _mpl():
-    from hapsim.plot import _mpl as mpl  # the one place matplotlib is imported
-    return mpl()
 
 
 def plot_family(res, title: str | None = None):
@@ -31,7 +28,7 @@ def plot_family(res, title: str | None = None):
         as red crosses, corners as squares, nominal as a star). Right: spectral radius
         against total moving mass [kg], with the unit line.
     """
-    plt = _mpl()
+    plt = pyplot()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.5))
     ok = res.stable
     sc = a1.scatter(res.k[ok], res.b[ok], c=res.rho[ok], s=6, cmap="viridis")
@@ -73,7 +70,7 @@ def plot_corrections(data: dict):
         (k, b) in the virtual (K, B) plane, the identity grid (grey), the stability
         boundary (black), and the figures of merit in the title.
     """
-    plt = _mpl()
+    plt = pyplot()
     rows = data["rows"]
     n = len(rows)
     ncol = 3 if n > 4 else 2

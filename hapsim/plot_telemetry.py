@@ -1,6 +1,6 @@
 """The figure of a run's telemetry (``hapsim telemetry FILE --plot FIG``).
 
-matplotlib is imported lazily through :func:`hapsim.plot._mpl` (Agg backend).
+matplotlib is imported lazily through :func:`hapsim.plot.pyplot` (Agg backend).
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
-    from hapsim.plot import _mpl
+    from hapsim.plot import pyplot
 
-    plt = _mpl()
+    plt = pyplot()
     t = np.asarray(cols["time"], float)
     t0 = t[0] if t.size else 0.0
     tt = t - t0

@@ -7,12 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+
 __all__ = ["plot_workspace", "plot_scene_nd"]
-
-
-def _mpl():
-    from hapsim.plot import _mpl as mpl  # the one place matplotlib is imported
-    return mpl()
 
 
 def plot_workspace(res, title: str | None = None):
@@ -32,7 +29,7 @@ def plot_workspace(res, title: str | None = None):
         crosses. Right: ``K_max`` along the lightest axis against its mass eigenvalue
         [kg] (the configuration-dependent mass sets the limit).
     """
-    plt = _mpl()
+    plt = pyplot()
     ok = np.array([s == "ok" for s in res.status])
     P = res.positions
     j = 1 if P.shape[1] == 2 else 2
@@ -88,7 +85,7 @@ def plot_scene_nd(scene, chk, felt=None, title: str | None = None):
         the felt ellipses of the same port links at other configurations (grey; an
         unstable configuration as a red cross).
     """
-    plt = _mpl()
+    plt = pyplot()
     n = scene.dimension
     ax_i = (0, 1) if n == 2 else (0, 2)
     lab = ("x [m]", "y [m]") if n == 2 else ("x [m]", "z [m]")

@@ -32,9 +32,9 @@ def plot_zwidth(rep: dict, loop, device, rate_hz: float, x0: float):
     """
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import predicted_coulomb, release
-    from hapsim.plot import _mpl
+    from hapsim.plot import pyplot
 
-    plt = _mpl()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     Bs = [p["B"] for p in rep["points"]]
     hi = max(max(Bs) * 1.15, 1.0)

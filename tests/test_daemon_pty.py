@@ -184,14 +184,14 @@ def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, 
     """Ctrl-C while numba warms up (or the embedded mock starts) is not a KeyboardInterrupt:
     the handlers are in place, the run ends before CONFIG with no FORCE but the final zero
     one, then STOP; report and (empty) telemetry are written, exit code 0."""
-    import hapsim.daemon.runner as runner_mod
+    import hapsim.engine as engine_mod
     from hapsim.daemon.runner import format_report
-    real = runner_mod._warm_up
+    real = engine_mod.warm_up
 
     def warm_up_then_ctrl_c(scene):
         real(scene)
         os.kill(os.getpid(), signal.SIGINT)
-    monkeypatch.setattr(runner_mod, "_warm_up", warm_up_then_ctrl_c)
+    monkeypatch.setattr(engine_mod, "warm_up", warm_up_then_ctrl_c)
     before = signal.getsignal(signal.SIGINT)
     tel = str(tmp_path / "t.npz")
     rep = run_scene(load_scene(WALL), transport=transport, duration=5.0, telemetry=tel)

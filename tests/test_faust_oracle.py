@@ -157,7 +157,7 @@ def test_chain_fast_path_equals_reference(seed, with_contacts):
                                                        if lk.kind != "contact"))
     eng = Engine(scene)
     kp = eng.kernel_pack
-    assert cordis._chain_start(kp.state[0], kp.state[3], kp.state[5], kp.sd[0],
+    assert cordis.chain_start(kp.state[0], kp.state[3], kp.state[5], kp.sd[0],
                                kp.sd[1]) == 0                     # the fast path is taken
     n = 600
     drive = 3e-3 * np.sin(np.arange(n) * 0.03)

@@ -5,6 +5,7 @@ package (``hapsim.bench`` is charts and advice; its stability limits live in
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 from test_engine import imported_modules  # same directory (pytest prepend import mode)
@@ -61,9 +62,11 @@ LAYERS = (
     # a scene checks its device.protocol_options with them; their mocks stand higher
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
                "hapsim.device_file", "hapsim.drivers")),
-    ("models", ("hapsim.engine", "hapsim.analysis", "hapsim.device_model",
-                "hapsim.kinematics", "hapsim.plot", "hapsim.plot_bench", "hapsim.plot_family",
-                "hapsim.plot_telemetry")),
+    # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
+    ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep_nd", "hapsim.scene_nd",
+                "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plot",
+                "hapsim.plot_bench", "hapsim.plot_family", "hapsim.plot_telemetry",
+                "hapsim.plot_workspace", "hapsim.plot_zwidth")),
     ("devices and sound", ("hapsim.drivers.mock", "hapsim.audio")),
     ("daemon", ("hapsim.daemon",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
@@ -187,3 +190,44 @@ def test_nothing_imports_upward():
     the device model never import the daemon, the drivers never the daemon, the scene
     never the analysis."""
     assert _upward(_house_graph()) == []
+
+
+def _private_imports(text: str, module: str) -> list[str]:
+    """``from X import _name`` of another module (any depth; ``X`` resolved), as
+    ``"X._name"``; a module's own names and dunders are not counted."""
+    package = module.rsplit(".", 1)[0]
+    out = []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                stem = ".".join(base + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            if stem == module:
+                continue
+            out += [f"{stem}.{a.name}" for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")]
+    return out
+
+
+def test_scanner_sees_private_imports():
+    assert _private_imports("from hapsim.daemon.loop import HostLoop, _Lost\n",
+                            "hapsim.daemon.fastloop") == ["hapsim.daemon.loop._Lost"]
+    assert _private_imports("def f():\n    from .cordis import _clear\n",
+                            "hapsim.kernels.audio") == ["hapsim.kernels.cordis._clear"]
+    assert _private_imports("from hapsim.plot import pyplot as _plt\nfrom x import __all__\n",
+                            "hapsim.plot_bench") == []
+
+
+def test_no_module_imports_another_modules_private_names():
+    """What one module takes from another has a public name (a shared helper is part of
+    its module's interface: named, documented, tested as such)."""
+    bad = {}
+    for mod, f in _modules().items():
+        own = mod + ".__init__" if f.name == "__init__.py" else mod
+        found = _private_imports(f.read_text(), own)
+        if found:
+            bad[mod] = found
+    assert bad == {}

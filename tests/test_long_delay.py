@@ -214,7 +214,7 @@ def test_argument_principle_counts_the_unstable_poles():
     """The O(d) winding count used to classify the stability intervals equals the count of
     eigenvalues outside the unit circle (seeded random loops, d up to 300)."""
     from hapsim.analysis.ths import _roots_outside
-    from hapsim.analysis.loop import _roots_w
+    from hapsim.analysis.loop import roots_w
     rng = np.random.default_rng(5)
     for i in range(60):
         d = int(rng.integers(0, 301))
@@ -222,5 +222,5 @@ def test_argument_principle_counts_the_unstable_poles():
                          float(10 ** rng.uniform(2.5, 4.5)), d, ("zoh", "ideal")[i % 2])
         kappa = float(10 ** rng.uniform(-8, 0.5))
         beta = float(rng.uniform(-0.05, 0.3) * 10 ** rng.uniform(-3, 0))
-        want = int(np.sum(np.abs(1.0 + _roots_w(loop, kappa, beta)) > 1.0))
+        want = int(np.sum(np.abs(1.0 + roots_w(loop, kappa, beta)) > 1.0))
         assert _roots_outside(loop, kappa, beta) == want, (d, kappa, beta)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from hapsim.bench.methods import _network, _virtual_blocks, oscillator_poles
+from hapsim.analysis.network import network, virtual_blocks
+from hapsim.bench.methods import oscillator_poles
 from hapsim.bench.cost import oscillator_scene, string_scene
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
@@ -107,8 +108,8 @@ def test_kernel_equals_linear_map_with_a_moving_port(scheme):
     # the kernels and hapsim.bench.methods (used for stability and advice) are one map
     sc = parse_scene(_CHAIN.format(scheme=scheme))
     eng = Engine(sc)
-    net = _network(sc)
-    Av, bp, bpp, cx, cp, cpp = _virtual_blocks(net, scheme, sc.period)
+    net = network(sc)
+    Av, bp, bpp, cx, cp, cpp = virtual_blocks(net, scheme, sc.period)
     x = eng.positions
     X = np.array([x[1], x[2], x[1], x[2]]) if scheme == "centred" else \
         np.array([x[1], x[2], 0.0, 0.0])

@@ -69,10 +69,10 @@ def test_warm_up_loads_numba_without_scipy_linalg_and_blas_still_works():
 import json, sys
 import numpy as np
 from hapsim.daemon.startup import preload_numba_blas
-from hapsim.daemon.runner import _warm_up
+from hapsim.engine import warm_up
 from hapsim.scene import load_scene
 ok = preload_numba_blas()
-_warm_up(load_scene({WALL!r}))
+warm_up(load_scene({WALL!r}))
 pkg = "scipy.linalg" in sys.modules
 import numba
 @numba.njit(cache=False)

@@ -62,7 +62,7 @@ def body_stiffness(dev, member=None) -> float:
 
 
 
-def _ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
+def ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
     """``(tr, det, g)`` of the ideal hold's ``x[n+1] = tr x[n] - det x[n-1] + g f[n]``
     (Florens et al. eq. (4); with the hand's stiffness the impulse-invariant image,
     :func:`hapsim.analysis.hand.ideal_rows`)."""
@@ -78,7 +78,20 @@ def _ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
 
 
 
-def _compliant(dev, member) -> bool:
+def is_compliant(dev, member) -> bool:
+    """Whether the hand holds the handle through a compliant grip (finite grip stiffness).
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+    member : array_like, shape (4,) or (5,), or None
+        Hand member ``(mh, bh, kg, bg[, kh])``; None: the nominal ``dev.hand``.
+
+    Returns
+    -------
+    bool
+        True when ``kg`` is finite (4 plant states), False for a rigid grip or no hand.
+    """
     hand = getattr(dev, "hand", None)
     if member is not None:
         return math.isfinite(float(member[2]))

@@ -141,9 +141,9 @@ def tangency_limit(loop: LoopModel) -> np.ndarray:
     double root). Then, with ``w1 = 0``: ``d(k T^2/m) = ln(1 + w2)/w2 dc0`` and ``d(b T/m)
     = (dc1 - dc0)/(1 + w2)``.
     """
-    from hapsim.analysis.loop import _char_parts
+    from hapsim.analysis.loop import char_parts
 
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     P, Q, D = (np.asarray(v, float) for v in (P, Q, D))
     if e:                         # plain loop: R~ = (1 + w)^e D, D = lead w (w - w2)
         lead = D[0]

@@ -451,11 +451,11 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
         Unknown hold; ``velocity_sensor`` with the ideal hold; ``inertia_compensation``
         with ``Mc`` not below the moving mass (handle + hand).
     """
-    from hapsim.analysis.body import _compliant, device_body
+    from hapsim.analysis.body import is_compliant, device_body
 
     T = float(scene.period)
     if dev.hold == "zoh":
-        if _compliant(dev, member):
+        if is_compliant(dev, member):
             names = [f"{port}.x[n] (handle position)", "device.v[n]", "hand.x[n]",
                      "hand.v[n]"]
         else:

@@ -93,8 +93,8 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     ConfigError
         A scene without a port or device, rigid and compliant members mixed.
     """
-    from hapsim.analysis.network import (_frame, check_integrator, network, virtual_blocks,
-                                         virtual_state_names)
+    from hapsim.analysis.network import (check_integrator, closed_loop_frame, network,
+                                         virtual_blocks, virtual_state_names)
 
     if scene.port is None or scene.device is None:
         raise ConfigError("a family needs a scene with a port and a device section",
@@ -115,9 +115,9 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
         raise ConfigError(f"compensated mass {corr.get('mass')} kg must stay below the "
                           f"moving mass of every member (least {float(dev.mass) + mem[:, 0].min():g}"
                           " kg)", file=scene.path, key="device.correction.mass")
-    A0, u, nplant, names = _frame(scene, dev, scene.port.name, *blocks,
-                                  virtual_state_names(net, integrator), mem[0],
-                                  correction=corr)
+    A0, u, nplant, names = closed_loop_frame(scene, dev, scene.port.name, *blocks,
+                                             virtual_state_names(net, integrator), mem[0],
+                                             correction=corr)
     n = mem.shape[0]
     A = np.repeat(A0[None], n, axis=0)
     m, b0 = float(dev.mass), float(dev.friction)

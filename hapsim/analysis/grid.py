@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.analysis.loop import LoopModel
-from hapsim.analysis.ths import _calibrate_core, _log_abs_w, stability_boundary
+from hapsim.analysis.ths import calibrate_core, log_abs_w, stability_boundary
 
 __all__ = ["GridResult", "grid", "PAPER_PRESETS", "paper_preset"]
 
@@ -120,12 +120,12 @@ def _grid_point(loop: LoopModel, k: float, b: float):
     disc = b * b - 4 * m * k
     if b < 0 or (disc < 0 and math.sqrt(-disc) / (2 * m) * T >= math.pi):
         return math.nan, math.nan, False
-    core = _calibrate_core(loop, k, b)
+    core = calibrate_core(loop, k, b)
     if core is None:
         return math.nan, math.nan, False
     kappa, beta, others, w_t, _, _ = core
-    log_t = min(_log_abs_w(w) for w in w_t)
-    ok = all(_log_abs_w(w) < min(log_t, 0.0) for w in others)
+    log_t = min(log_abs_w(w) for w in w_t)
+    ok = all(log_abs_w(w) < min(log_t, 0.0) for w in others)
     if not ok:
         return math.nan, math.nan, False
     return kappa * m / (T * T), beta * m / T, True

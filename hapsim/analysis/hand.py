@@ -268,7 +268,19 @@ def _field(hand, f):
     return getattr(hand, f, 0.0)
 
 
-def _span(v) -> tuple[float, float]:
+def field_span(v) -> tuple[float, float]:
+    """``(lo, hi)`` of a hand field given as a number or as a range.
+
+    Parameters
+    ----------
+    v : float or tuple of float
+        The field's value, or its ``(lo, hi)`` range (in the field's unit).
+
+    Returns
+    -------
+    (float, float)
+        ``(v, v)`` for a number.
+    """
     return (float(v[0]), float(v[1])) if isinstance(v, tuple) else (float(v), float(v))
 
 
@@ -285,7 +297,8 @@ def ranged_fields(hand) -> list[str]:
         Among :data:`HAND_FIELDS`, in that order; ``2 ** len(...)`` is the number of
         corners of the family.
     """
-    return [f for f in HAND_FIELDS if _span(_field(hand, f))[0] < _span(_field(hand, f))[1]]
+    return [f for f in HAND_FIELDS
+            if field_span(_field(hand, f))[0] < field_span(_field(hand, f))[1]]
 
 
 def nominal_member(hand) -> np.ndarray:
@@ -303,7 +316,7 @@ def nominal_member(hand) -> np.ndarray:
     """
     out = []
     for f in HAND_FIELDS:
-        lo, hi = _span(_field(hand, f))
+        lo, hi = field_span(_field(hand, f))
         out.append(math.sqrt(lo * hi) if f in _LOG_FIELDS and lo > 0 else 0.5 * (lo + hi))
     return np.array(out)
 
@@ -333,7 +346,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     ConfigError
         ``samples < 1`` or ``grid < 2``.
     """
-    spans = [_span(_field(hand, f)) for f in HAND_FIELDS]
+    spans = [field_span(_field(hand, f)) for f in HAND_FIELDS]
     ranged = [i for i, (lo, hi) in enumerate(spans) if lo < hi]
     base = np.array([lo for lo, _ in spans])
     corners = np.repeat(base[None, :], 2 ** len(ranged), axis=0)

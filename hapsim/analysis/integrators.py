@@ -34,8 +34,6 @@ import math
 import numpy as np
 
 from hapsim.analysis.network import INTEGRATORS, check_integrator, closed_loop
-from hapsim.analysis.network import Network as _Net  # noqa: F401  (old private names,
-from hapsim.analysis.network import _link_arrays  # noqa: F401      kept for callers)
 from hapsim.analysis.network import network as _network
 from hapsim.analysis.network import virtual_blocks as _virtual_blocks
 from hapsim.analysis.loop import STABILITY_TOL

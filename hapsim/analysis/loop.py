@@ -480,13 +480,13 @@ def characteristic(loop: LoopModel):
     ``b0 > 0``, ``d = 1``, exactly eq. (4) (``R = z (z - 1)(z - e^-b0) b0/(1 - e^-b0)``).
     The closed loop then has ``d + 2`` poles (``"ideal"``) or ``d + 3`` (``"zoh"``).
     """
-    Pw, Qw, D, e = _char_parts(loop)
+    Pw, Qw, D, e = char_parts(loop)
     T, m = loop.period, loop.mass
     return (_w_to_z(Pw) * (T * T / m), _w_to_z(Qw) * (T / m),
             np.concatenate([_w_to_z(D), np.zeros(e)]))
 
 
-def _char_parts(loop: LoopModel):
+def char_parts(loop: LoopModel):
     """Low-degree pieces of the characteristic function, never expanded.
 
     Returns ``(P~, Q~, D, e)`` (polynomials in ``w = z - 1``, highest first, degree <= 2)
@@ -498,6 +498,18 @@ def _char_parts(loop: LoopModel):
     ``phi0 > 0``: no common factor there. Evaluating ``(1 + w)^e`` as a power keeps full precision at every
     delay, where the expanded polynomial (binomial coefficients up to ``C(e, e/2)``, 1e14 at
     ``e = 50``) loses it all.
+
+    Parameters
+    ----------
+    loop : LoopModel
+
+    Returns
+    -------
+    P, Q, D : ndarray, shape (<= 3,)
+        Coefficients in ``w``, highest first (``loop.generic``: the expanded ``P~``,
+        ``Q~``, ``R~``).
+    e : int
+        The power of ``(1 + w)`` multiplying ``D`` (0 when ``loop.generic``).
     """
     if loop.generic:
         # a hand behind a grip or a correction: (P~, Q~, R~) expanded, e = 0
@@ -543,7 +555,7 @@ def char_eval(loop: LoopModel, kappa: float, beta: float, w, *, derivative: bool
     Florens et al. Sec. 6 eq. (1) in the delta variable (module docstring); the delay factor
     ``z^e`` is a power, so the relative error is ``O(e eps)`` at any delay.
     """
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     w = np.asarray(w, dtype=complex)
     z = 1.0 + w
     ze = z ** e
@@ -563,7 +575,7 @@ def _char_poly_z(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     O(1) whatever the delay, so its companion matrix (plant states + delay line) is well
     conditioned, unlike the expanded polynomial in ``w``.
     """
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     low = np.polyadd(kappa * _w_to_z(P), beta * _w_to_z(Q))
     R = np.concatenate([_w_to_z(D), np.zeros(e)])
     return np.polyadd(R, low)
@@ -624,7 +636,7 @@ def _pair_up(r: np.ndarray) -> np.ndarray:
     return np.array(out, dtype=complex)
 
 
-def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+def roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     """Closed-loop poles as ``w = z - 1``.
 
     Eigenvalues of the companion matrix of the characteristic polynomial *in z* (its
@@ -632,6 +644,22 @@ def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     then Newton-polished in ``w`` on the unexpanded characteristic function
     (:func:`char_eval`), which restores the relative precision of the poles near ``z = 1``
     lost by the subtraction ``w = z - 1``.
+
+    Parameters
+    ----------
+    loop : LoopModel
+    kappa, beta : float
+        Dimensionless gains ``K T^2 / m``, ``B T / m`` (:func:`scaled_gains`).
+
+    Returns
+    -------
+    ndarray of complex, shape (n_poles,)
+        ``z - 1`` of every closed-loop pole.
+
+    Raises
+    ------
+    ConfigError
+        A delay beyond :data:`MAX_DELAY`.
     """
     check_delay(loop.delay)
     c = _char_poly_z(loop, kappa, beta)
@@ -648,8 +676,27 @@ def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     return _pair_up(w)
 
 
-def _scaled(loop: LoopModel, K: float, B: float, keys=("K", "B")) -> tuple[float, float]:
-    """``(K T^2 / m, B T / m)``, refused beyond :data:`MAX_PRODUCT` (keys name K and B)."""
+def scaled_gains(loop: LoopModel, K: float, B: float, keys=("K", "B")) -> tuple[float, float]:
+    """The dimensionless gains ``(K T^2 / m, B T / m)`` of the characteristic equation
+    (Florens, Voda & Urma eq. (4)).
+
+    Parameters
+    ----------
+    loop : LoopModel
+    K, B : float
+        Virtual stiffness [N/m] and damping [N s/m].
+    keys : tuple of str
+        The keys an error names for K and B.
+
+    Returns
+    -------
+    (float, float)
+
+    Raises
+    ------
+    ConfigError
+        A product beyond :data:`MAX_PRODUCT`.
+    """
     T, m = loop.period, loop.mass
     check_product(float(K), T * T / m, keys[0], "N/m", "K T^2/m")
     check_product(float(B), T / m, keys[1], "N s/m", "B T/m")
@@ -679,8 +726,8 @@ def closed_loop_poles(loop: LoopModel, K: float, B: float = 0.0) -> np.ndarray:
     ConfigError
         When ``|K| T^2/m`` or ``|B| T/m`` exceeds :data:`MAX_PRODUCT`.
     """
-    kappa, beta = _scaled(loop, K, B)
-    return 1.0 + _roots_w(loop, kappa, beta)
+    kappa, beta = scaled_gains(loop, K, B)
+    return 1.0 + roots_w(loop, kappa, beta)
 
 
 def spectral_radius(loop: LoopModel, K: float, B: float = 0.0) -> float:
@@ -739,7 +786,7 @@ def spectral_radius_known(loop: LoopModel, K: float, B: float = 0.0) -> tuple[fl
     ConfigError
         As :func:`closed_loop_poles`.
     """
-    kappa, beta = _scaled(loop, K, B)
+    kappa, beta = scaled_gains(loop, K, B)
     c = np.trim_zeros(_char_poly_z(loop, kappa, beta), "f")
     z = closed_loop_poles(loop, K, B)
     mod = np.abs(z)

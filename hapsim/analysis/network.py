@@ -67,7 +67,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.body import _compliant, _ideal_shift, body_stiffness, device_body
+from hapsim.analysis.body import is_compliant, ideal_shift, body_stiffness, device_body
 from hapsim.analysis.loop import MAX_PRODUCT, check_product, zoh_state_space
 from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
@@ -516,11 +516,12 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     if dev is None:
         raise ConfigError("a scene with a port needs a device section", file=scene.path,
                           key="device")
-    A, u, nplant, names = _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member,
-                                 correction=getattr(dev, "correction", None))
+    A, u, nplant, names = closed_loop_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp,
+                                            vnames, member,
+                                            correction=getattr(dev, "correction", None))
     pr = plant_rows(dev, T, member)
     if pr is None:                       # ideal hold
-        tr, det, g = _ideal_shift(dev, T, member)
+        tr, det, g = ideal_shift(dev, T, member)
         A[0, 0], A[0, 1] = tr, -det
         A[0] += g * u
     else:
@@ -560,7 +561,7 @@ def force_input(scene, member=None) -> np.ndarray:
     dev = scene.device
     pr = plant_rows(dev, scene.period, member)
     if pr is None:
-        b[0] = _ideal_shift(dev, scene.period, member)[2]
+        b[0] = ideal_shift(dev, scene.period, member)[2]
     else:
         Bd = np.asarray(pr[1], float)
         b[:Bd.size] = Bd
@@ -589,14 +590,15 @@ def plant_rows(dev, T: float, member=None):
 
     if dev.hold != "zoh":
         return None
-    if _compliant(dev, member) or body_stiffness(dev, member) > 0:
+    if is_compliant(dev, member) or body_stiffness(dev, member) > 0:
         mem = np.asarray(member if member is not None else nominal_member(dev.hand), float)
         Aw, Bd = body_zoh(float(dev.mass), float(dev.friction), mem, T)
         return Aw + np.eye(Aw.shape[-1]), Bd
     return zoh_state_space(*device_body(dev, member), T)
 
 
-def _frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None, correction=None):
+def closed_loop_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None,
+                      correction=None):
     """Closed-loop matrix without the plant rows: ``(A, u, nplant, names)``.
 
     ``u`` is the row giving the force held over the coming period from the state; the
@@ -644,7 +646,7 @@ def port_io(scene, n: int):
         _, Bd = plant_rows(dev, T)          # handle + hand when the device has a hand
         b[:Bd.size] = Bd
     else:
-        b[0] = _ideal_shift(dev, T)[2]
+        b[0] = ideal_shift(dev, T)[2]
     c = np.zeros(n)
     c[0] = 1.0
     return b, c
@@ -753,7 +755,7 @@ def state_count(scene) -> int:
     dev = getattr(scene, "device", None)
     if scene.port is not None and dev is not None:
         n += (3 if dev.hold == "zoh" else 2) + int(dev.delay)
-        if _compliant(dev, None):
+        if is_compliant(dev, None):
             n += 2                          # the hand's position and velocity
     return n
 
@@ -801,8 +803,8 @@ def _check_products(scene, calibrated, gain: float) -> None:
             raise ConfigError(exc.reason, file=scene.path, key="device.friction") from None
         hand = getattr(dev, "hand", None)
         if hand is not None:       # the arm's spring acts on the hand (+ handle) mass
-            from hapsim.analysis.hand import _span
-            kh, mh = _span(hand.stiffness)[1], _span(hand.mass)[0]
+            from hapsim.analysis.hand import field_span
+            kh, mh = field_span(hand.stiffness)[1], field_span(hand.mass)[0]
             try:
                 check_product(kh, T * T / mh, "device.hand.stiffness", "N/m", "kh T^2/m")
             except ConfigError as exc:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.loop import (STABILITY_TOL, LoopModel, _char_parts, _roots_w, _scaled,
+from hapsim.analysis.loop import (STABILITY_TOL, LoopModel, char_parts, roots_w, scaled_gains,
                                   char_eval)
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
@@ -44,8 +44,19 @@ def _log_rho(w: np.ndarray) -> float:
         return float(np.max(0.5 * np.log1p(np.maximum(arg, -1.0))))
 
 
-def _log_abs_w(w: complex) -> float:
-    """``ln |1 + w|``, accurate near the unit circle; ``-inf`` at ``w = -1``."""
+def log_abs_w(w: complex) -> float:
+    """``ln |1 + w|`` = ``ln |z|`` of a pole given as ``w = z - 1``, accurate near the unit
+    circle.
+
+    Parameters
+    ----------
+    w : complex
+
+    Returns
+    -------
+    float
+        ``-inf`` at ``w = -1``.
+    """
     arg = 2.0 * w.real + w.real * w.real + w.imag * w.imag
     return 0.5 * math.log1p(arg) if arg > -1.0 else -math.inf
 
@@ -148,8 +159,8 @@ def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
     for key, v in (("K", K), ("B", B)):
         if not math.isfinite(float(v)):
             raise ConfigError(f"must be finite, got {v!r}", key=key)
-    kappa, beta = _scaled(loop, K, B)
-    w = _roots_w(loop, kappa, beta)
+    kappa, beta = scaled_gains(loop, K, B)
+    w = roots_w(loop, kappa, beta)
     modes = _modes_of(loop, w)
     pair = rendered_pair(modes)
     rho = float(np.max(np.abs(1.0 + w)))
@@ -282,10 +293,26 @@ def _powmod(e: int, c1: float, c0: float):
     return out
 
 
-def _calibrate_core(loop: LoopModel, k: float, b: float):
-    """Solve for ``(kappa, beta)`` and return the other poles (in ``w``)."""
+def calibrate_core(loop: LoopModel, k: float, b: float):
+    """Solve the characteristic equation for the gains that put a pole pair at the felt
+    target and return the other poles (Florens, Voda & Urma eq. (4), inverted).
+
+    Parameters
+    ----------
+    loop : LoopModel
+    k, b : float
+        Felt target stiffness [N/m] and damping [N s/m].
+
+    Returns
+    -------
+    tuple or None
+        ``(kappa, beta, others, w_t, kind, s_t)``: the gains ``K T^2 / m``, ``B T / m``,
+        the other closed-loop poles and the target's in ``w = z - 1`` (ndarray of
+        complex), the target's kind and its continuous pole; None when the target's
+        equations are singular.
+    """
     w_t, c1, c0, kind, s_t = _target_w(loop, k, b)
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     _, p1, p0 = _divmod_quadratic(P, c1, c0)
     _, q1, q0 = _divmod_quadratic(Q, c1, c0)
     _, d1, d0 = _divmod_quadratic(D, c1, c0)
@@ -297,7 +324,7 @@ def _calibrate_core(loop: LoopModel, k: float, b: float):
     if abs(det) <= 1e-13 * scale:
         return None
     kappa, beta = np.linalg.solve(A, rhs)
-    others = list(_roots_w(loop, float(kappa), float(beta)))
+    others = list(roots_w(loop, float(kappa), float(beta)))
     for wt in w_t:  # the two target poles are among the closed-loop poles: take them out
         if others:
             others.pop(int(np.argmin([abs(w - wt) for w in others])))
@@ -349,7 +376,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
         raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
     m, T = loop.mass, loop.period
     nan = math.nan
-    _scaled(loop, k, b, keys=("k", "b"))
+    scaled_gains(loop, k, b, keys=("k", "b"))
 
     def fail(reason, K=nan, B=nan, rho=nan, modes=(), target=None):
         return CalibrationResult(k=k, b=b, K=K, B=B, renderable=False, reason=reason,
@@ -360,7 +387,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
         fN = 0.5 / T
         return fail(f"target damped frequency {math.sqrt(-disc) / (4 * math.pi * m):.6g} Hz "
                     f"is at or above the Nyquist frequency {fN:.6g} Hz")
-    core = _calibrate_core(loop, k, b)
+    core = calibrate_core(loop, k, b)
     if core is None:
         return fail("the calibration equations are singular for this target: no (K, B) "
                     "places a closed-loop pole pair there")
@@ -374,7 +401,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     modes = _modes_of(loop, others) if others.size else []
     all_w = np.concatenate([np.asarray(w_t), others])
     rho = float(np.max(np.abs(1.0 + all_w)))
-    log_t = min(_log_abs_w(w) for w in w_t)
+    log_t = min(log_abs_w(w) for w in w_t)
     if b <= 0:
         return fail(f"target damping b = {b:.6g} N s/m is not positive: the target "
                     f"oscillator does not decay (spectral radius {rho:.12g})",
@@ -382,7 +409,7 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     worst = None
     for w in others:
         z = 1.0 + w
-        lz = _log_abs_w(w)
+        lz = log_abs_w(w)
         if worst is None or lz > worst[0]:
             worst = (lz, complex(z))
     if worst is not None:
@@ -415,7 +442,7 @@ def _roots_outside(loop: LoopModel, kappa: float, beta: float) -> int | None:
     eigenvalues. Returns None when it cannot be trusted (a pole on or within ~1e-12 of the
     circle: the caller then takes the eigenvalues).
     """
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     # degree of the characteristic polynomial: e + 2 for the plain loop, deg R for a
     # hand or a correction (e = 0 there, R expanded)
     deg = max(len(np.trim_zeros(np.asarray(D, float), "f")) - 1 + e,
@@ -451,7 +478,7 @@ def _stable_at(loop: LoopModel, kappa: float, beta: float) -> bool:
     out = _roots_outside(loop, kappa, beta)
     if out is not None:
         return out == 0
-    return _log_rho(_roots_w(loop, kappa, beta)) < 0.0
+    return _log_rho(roots_w(loop, kappa, beta)) < 0.0
 
 
 def brent_root(f, a: float, b: float, *, xtol: float = 1e-12, rtol: float = 1e-15,
@@ -587,7 +614,7 @@ def _circle_values(A, C, e: int):
 
 def _kappa_max(loop: LoopModel, beta: float) -> float:
     """Dimensionless ``K_max T^2 / m`` for dimensionless ``beta = B T / m``."""
-    P, Q, D, e = _char_parts(loop)
+    P, Q, D, e = char_parts(loop)
     vals, lossless, k_pi = _circle_values(
         lambda w: np.polyval(P, w),
         lambda w: beta * np.polyval(Q, w) + (1.0 + w) ** e * np.polyval(D, w), e)
@@ -645,7 +672,7 @@ def stability_limit(loop: LoopModel, B: float = 0.0) -> float:
     if not math.isfinite(float(B)):
         raise ConfigError(f"must be finite, got {B!r}", key="B")
     T, m = loop.period, loop.mass
-    _, beta = _scaled(loop, 0.0, B)
+    _, beta = scaled_gains(loop, 0.0, B)
     return _kappa_max(loop, beta) * m / (T * T)
 
 
@@ -685,8 +712,8 @@ def damping_limits(loop: LoopModel, K: float) -> list:
     if not math.isfinite(float(K)):
         raise ConfigError(f"must be finite, got {K!r}", key="K")
     T, m = loop.period, loop.mass
-    kappa, _ = _scaled(loop, K, 0.0)
-    P, Q, D, e = _char_parts(loop)
+    kappa, _ = scaled_gains(loop, K, 0.0)
+    P, Q, D, e = char_parts(loop)
     vals, lossless, b_pi = _circle_values(
         lambda w: np.polyval(Q, w),
         lambda w: kappa * np.polyval(P, w) + (1.0 + w) ** e * np.polyval(D, w), e)

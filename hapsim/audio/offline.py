@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import os
 import wave
-from collections import deque
 
 import numpy as np
 
@@ -98,27 +97,21 @@ def closed_loop_pluck(engine: Engine, steps: int, progress=None, seed: int = 0):
     force : ndarray, shape (steps,)
         Port force computed at each sample [N] (before the clamp).
     """
-    from hapsim.device_model import MockPhysics
+    from hapsim.device_model import InProcessLoop, MockPhysics
 
     scene = engine.scene
     dev = scene.device
     phys = MockPhysics(dev, scene.rate_hz, scene.excitation, seed=seed,
                        base_dir=os.path.dirname(os.path.abspath(scene.path)))
+    loop = InProcessLoop(phys, engine.port_step, dev.delay, dev.force_limit)
     N = engine.substeps
     audio = np.zeros((steps * N, len(engine.channels)))
     xs = np.zeros(steps)
     fs = np.zeros(steps)
-    line = deque([0.0] * int(dev.delay))
-    lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
     for n in range(steps):
-        x = phys.sample()
-        f = engine.port_step(x)
+        xs[n], fs[n] = loop.step()
         audio[n * N:(n + 1) * N] = engine.frames
-        xs[n], fs[n] = x, f
-        line.append(f)
-        u = line.popleft()
-        phys.advance(min(lim, max(-lim, u)))
         if progress is not None and (n + 1) % 1000 == 0:
             progress(n + 1, steps)
     return audio, xs, fs

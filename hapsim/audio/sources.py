@@ -256,7 +256,19 @@ class FrameRing:
 def sounding_engine(ring: FrameRing) -> type:
     """An :class:`~hapsim.engine.Engine` subclass whose :meth:`port_step` also hands its
     frames to ``ring`` (the loop rebuilds it as ``type(engine)(scene)`` after a recovery,
-    so the ring is a class attribute)."""
+    so the ring is a class attribute).
+
+    Parameters
+    ----------
+    ring : FrameRing
+        The ring each device sample's frames, shape (substeps, channels), are pushed to.
+
+    Returns
+    -------
+    type
+        The subclass (``frame_ring`` = ``ring``), built like :class:`~hapsim.engine.Engine`
+        from a scene.
+    """
 
     class SoundingEngine(Engine):
         __doc__ = f"Engine whose device samples also feed a {type(ring).__name__}."

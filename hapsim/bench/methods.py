@@ -8,5 +8,3 @@ names for ``hapsim bench`` and its callers.
 
 from hapsim.analysis.integrators import *  # noqa: F401,F403
 from hapsim.analysis.integrators import __all__  # noqa: F401
-from hapsim.analysis.integrators import (  # noqa: F401  (private names callers use)
-    _Net, _check_integrator, _link_arrays, _network, _virtual_blocks)

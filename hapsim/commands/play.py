@@ -8,7 +8,6 @@ import math
 import os
 import sys
 import time
-from collections import deque
 
 import numpy as np
 
@@ -121,10 +120,9 @@ def run(args: argparse.Namespace) -> int:
         2 on bad input (raised as ConfigError).
     """
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
-    from hapsim.device_model import MockPhysics, hand_force_samples
+    from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
-    from hapsim.daemon.runner import _warm_up
-    from hapsim.engine import Engine
+    from hapsim.engine import Engine, warm_up
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
 
@@ -156,12 +154,10 @@ def run(args: argparse.Namespace) -> int:
     phys = MockPhysics(dev, scene.rate_hz, scene.excitation, hand=hand, base_dir=base)
     xs = np.zeros(steps)
     fs = np.zeros(steps)
-    line = deque([0.0] * int(dev.delay))
-    lim = float(dev.force_limit)
     engine.set_port_position(phys.sample(), at_rest=True)
     from hapsim.blas import limit_blas_threads
     limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
-    _warm_up(scene)                                   # kernels loaded before the clock starts
+    warm_up(scene)                                    # kernels loaded before the clock starts
     if live is not None:    # the sound starts after the warm-up (silence until the loop does)
         try:
             out = open_output(live, args.sound, server=args.jack_server)
@@ -193,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
         server, tel = serve_osc(ctl, args.osc, status=status)
         host, port = server.server_address[:2]
         print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
-    step = live.port_step if live is not None else engine.port_step
+    loop = InProcessLoop(phys, live.port_step if live is not None else engine.port_step,
+                         dev.delay, dev.force_limit)
     clocked = live is None and not args.lockstep     # live sound: the sound card's clock
     late = 0
     quiet_from = 0            # first sample after the last change's ramp ended
@@ -228,12 +225,8 @@ def run(args: argparse.Namespace) -> int:
             ctl.poll()
             if ctl.ramping:
                 quiet_from = max(quiet_from, n + 1)
-            x = phys.sample()
-            f = step(x) * ctl.force_scale
+            x, f = loop.step(ctl.force_scale)
             xs[n], fs[n] = x, f
-            line.append(f)
-            u = line.popleft()
-            phys.advance(min(lim, max(-lim, u)))
             if tel is not None and n % tel["every"] == 0:
                 send_telemetry(tel, n * T, x, f, ctl)
             # (a scene plucked by x0 alone is free from the start, once: its first window)

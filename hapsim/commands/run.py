@@ -456,7 +456,7 @@ def run_options(args, scene, embedded=None):
     RunOptions
         Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
     """
-    from hapsim.daemon.runner import RunOptions
+    from hapsim.daemon.options import RunOptions
     protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
     return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
                       rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,

@@ -15,8 +15,14 @@ Modules
     dropped, corrupted, duplicated, reordered, delayed frames, garbage, stall, reset, port
     vanishing, no HELLO.
 :mod:`hapsim.daemon.loop`
-    The host loop: handshake, device- or host-clocked fixed-rate loop, safety (limits,
-    passivity observer/controller), recovery of a lost device.
+    The host loop: device- or host-clocked fixed-rate loop, safety (limits, passivity
+    observer/controller); its handshake (:mod:`hapsim.daemon.handshake`), recovery of a
+    lost device (:mod:`hapsim.daemon.recovery`), bad-frame records
+    (:mod:`hapsim.daemon.bad_frames`), configuration and result
+    (:mod:`hapsim.daemon.loop_types`).
+:mod:`hapsim.daemon.fastloop`
+    The device-clocked loop compiled with numba (its I/O primitives:
+    :mod:`hapsim.daemon.compiled_io`).
 :mod:`hapsim.daemon.telemetry`
     Preallocated per-sample telemetry (a head kept whole, then a ring: runs may be
     open-ended), its chunked journal (writer thread draining the ring, loss/recovery events,
@@ -25,6 +31,8 @@ Modules
     ``run_scene``: calibrate, check, close the THS, identify, report (the prediction and
     the measurement are :mod:`hapsim.analysis.prediction` and
     :mod:`hapsim.analysis.measurement`).
+:mod:`hapsim.daemon.options`
+    ``RunOptions``: the options of one run, built once.
 :mod:`hapsim.daemon.report`
     ``format_report``: the human lines of a run's report.
 

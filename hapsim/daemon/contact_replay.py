@@ -20,7 +20,7 @@ Replay rules (the loop's):
   position, where the correction places the port).
 
 A contact ``(m1, m2, threshold)`` is engaged at a step when ``x2 - x1 < threshold`` on the
-positions the step evaluates (:mod:`hapsim.kernels.cordis`, ``_contacts``); after the step
+positions the step evaluates (:mod:`hapsim.kernels.cordis`, ``contacts``); after the step
 those are the engine's previous positions (every kernel moves ``x`` to ``xp``). A scene
 with ``audio`` is replayed with every sub-step's positions of the contacts' ends
 (:class:`_AudioStepper`), so a contact that opens between two device samples is seen.

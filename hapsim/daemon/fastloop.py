@@ -39,30 +39,22 @@ from __future__ import annotations
 import math
 import time
 
-import numba
 import numpy as np
-from numba import types
 from numba.extending import overload
 
 import firmware_protocol as fp
-from hapsim.daemon.loop import HostLoop, _Lost, _safety_reason
+# the compiled I/O primitives, under the names this module's numba code has always used
+from hapsim.daemon.compiled_io import (
+    CRC_TABLE as _CRC, POLLERR as _POLLERR, POLLHUP as _POLLHUP, POLLIN as _POLLIN,
+    POLLNVAL as _POLLNVAL, POLLOUT as _POLLOUT, c_poll as _c_poll, c_read as _c_read,
+    c_write as _c_write, cobs_decode as _cobs_decode, cobs_encode as _cobs_encode,
+    crc16 as _crc16, jit as _jit, le as _le, next_frame as _next_frame, now_ns as _now_ns)
+from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
-
-# ----------------------------------------------------------------------------- libc
-# libc by symbol (numba ExternalFunction: resolved at link time, so the compiled loop can be
-# cached on disk); pointers are passed as integers (intp), as the x86-64 / aarch64 ABI does
-_c_read = types.ExternalFunction("read", types.intp(types.int32, types.intp, types.uintp))
-_c_write = types.ExternalFunction("write", types.intp(types.int32, types.intp, types.uintp))
-_c_poll = types.ExternalFunction("poll", types.int32(types.intp, types.uint64, types.int32))
-_c_clock_gettime = types.ExternalFunction("clock_gettime",
-                                          types.int32(types.int32, types.intp))
-
-_CLOCK_MONOTONIC = 1
-_POLLIN, _POLLOUT, _POLLERR, _POLLHUP, _POLLNVAL = 0x1, 0x4, 0x8, 0x10, 0x20
 
 # ----------------------------------------------------------------------------- layout
 # iv: int64 state shared by Python and the compiled code
@@ -94,21 +86,6 @@ _RB_SIZE = 1 << 16
 SYNC_SECONDS = 0.02
 _HIST = 16
 
-
-def _crc_table() -> np.ndarray:
-    """CRC-16/CCITT-FALSE table (poly 0x1021, MSB first), as :func:`binascii.crc_hqx`."""
-    t = np.zeros(256, dtype=np.uint16)
-    for i in range(256):
-        c = i << 8
-        for _ in range(8):
-            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
-        t[i] = c & 0xFFFF
-    return t
-
-
-_CRC = _crc_table()
-
-_jit = numba.njit(nogil=True, cache=True)
 
 # ----------------------------------------------------------------------------- port step
 # The engine's kernel is named by a tag among the module-level kernels of hapsim.kernels,
@@ -244,94 +221,6 @@ def kernel_tag(kind: int) -> tuple:
     tuple of int
     """
     return (0,) * (int(kind) + 1)
-
-
-@_jit
-def _now_ns(ts):
-    _c_clock_gettime(_CLOCK_MONOTONIC, ts.ctypes.data)
-    return ts[0] * 1_000_000_000 + ts[1]
-
-
-@_jit
-def _crc16(buf, n, table):
-    c = 0xFFFF
-    for j in range(n):
-        c = ((c << 8) & 0xFFFF) ^ table[((c >> 8) ^ buf[j]) & 0xFF]
-    return c
-
-
-@_jit
-def _le(buf, off, nbytes):
-    """The little-endian unsigned integer in ``buf[off:off + nbytes]`` (PROTOCOL.md §3:
-    every integer field is little-endian)."""
-    v = np.int64(0)
-    for j in range(nbytes):
-        v |= np.int64(buf[off + j]) << (8 * j)
-    return v
-
-
-@_jit
-def _next_frame(rb, a, n_rb):
-    """The next frame in ``rb[a:n_rb]``: ``(a, z)`` with ``rb[a:z]`` the frame's COBS
-    bytes and ``rb[z]`` its 0x00 delimiter, idle fill (empty frames) skipped; ``z = -1``
-    when no delimiter has arrived yet (``rb[a:n_rb]`` is a partial frame).
-
-    PROTOCOL.md §2 (framing); shared by the compiled host loop (:func:`_stretch`) and the
-    compiled mock tick (:func:`hapsim.daemon.fastmock._feed`), which each apply their own
-    overlong rule to ``z - a``."""
-    while True:
-        z = -1
-        for j in range(a, n_rb):
-            if rb[j] == 0:
-                z = j
-                break
-        if z != a:
-            return a, z
-        a = z + 1                   # idle fill between frames
-
-
-@_jit
-def _cobs_decode(src, a, b, dst):
-    """COBS-decode ``src[a:b]`` (no 0x00 in it) into ``dst``; its length, -1 when bad
-    (Cheshire & Baker 1999, as the ``cobs`` package decodes)."""
-    i = a
-    o = 0
-    while i < b:
-        code = np.int64(src[i])
-        i += 1
-        end = i + code - 1
-        if end > b or o + code > dst.size:
-            return -1
-        for j in range(i, end):
-            dst[o] = src[j]
-            o += 1
-        i = end
-        if i < b and code < 0xFF:
-            dst[o] = 0
-            o += 1
-    return o
-
-
-@_jit
-def _cobs_encode(src, n, dst):
-    """COBS-encode ``src[:n]`` (n < 254) into ``dst`` with the 0x00 delimiter; the length."""
-    code_at = 0
-    o = 1
-    code = 1
-    for j in range(n):
-        byte = src[j]
-        if byte == 0:
-            dst[code_at] = code
-            code_at = o
-            o += 1
-            code = 1
-        else:
-            dst[o] = byte
-            o += 1
-            code += 1
-    dst[code_at] = code
-    dst[o] = 0
-    return o + 1
 
 
 @_jit
@@ -836,7 +725,7 @@ class CompiledHostLoop(HostLoop):
                 if self._finish(code, msg.seq):
                     break
         except DeviceError as exc:        # a read or write failed: the port is gone
-            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+            raise LostDevice(f"port failed: {str(exc).splitlines()[0]}", True) from None
         finally:
             if self._fast is not None:
                 self._publish()
@@ -853,9 +742,9 @@ class CompiledHostLoop(HostLoop):
             self._fast["iv"][I_LAST_SEQ] = seq      # the zero FORCE answered it
             return True
         if code == R_IOERR:
-            raise _Lost("port failed: write failed", True)
+            raise LostDevice("port failed: write failed", True)
         fv, pv, iv = self._fast["fv"], self._fast["pv"], self._fast["iv"]
-        res.stop_reason = _safety_reason(int(iv[I_WSUM]), self.config.clamp_max,
+        res.stop_reason = safety_reason(int(iv[I_WSUM]), self.config.clamp_max,
                                          self._fast["win"].size, self.force_limit,
                                          float(fv[F_X]), self.config.position_bound,
                                          float(fv[F_V]), self.config.velocity_limit,

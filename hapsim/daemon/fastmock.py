@@ -38,9 +38,9 @@ import numpy as np
 from numba import types
 
 import firmware_protocol as fp
-from hapsim.daemon.fastloop import (_CRC, _POLLERR, _POLLHUP, _POLLIN, _POLLNVAL,
-                                    _c_poll, _c_read, _c_write, _cobs_decode, _cobs_encode,
-                                    _crc16, _jit, _le, _next_frame, _now_ns)
+from hapsim.daemon.compiled_io import (CRC_TABLE, POLLERR, POLLHUP, POLLIN, POLLNVAL, c_poll,
+                                       c_read, c_write, cobs_decode, cobs_encode, crc16, jit,
+                                       le, next_frame, now_ns)
 
 __all__ = ["CompiledMock"]
 
@@ -76,7 +76,7 @@ _CLAMPED = fp.STATUS_FORCE_CLAMPED
 
 
 # ----------------------------------------------------------------------------- physics
-@_jit
+@jit
 def _round_half_even(v):
     """Python's ``round(v)`` of a float (ties to even), as a float."""
     r = math.floor(v)
@@ -86,7 +86,7 @@ def _round_half_even(v):
     return r
 
 
-@_jit
+@jit
 def _sample(fv):
     """:meth:`MockPhysics.sample` without noise: the position, quantised when asked."""
     y = fv[F_X]
@@ -96,7 +96,7 @@ def _sample(fv):
     return y
 
 
-@_jit
+@jit
 def _advance(iv, fv, hand, u):
     """:meth:`MockPhysics.advance` (rigid body: ZOH with Coulomb friction, or ideal)."""
     n = iv[I_N]
@@ -133,7 +133,7 @@ def _advance(iv, fv, hand, u):
 
 
 # ----------------------------------------------------------------------------- device
-@_jit
+@jit
 def _on_force(iv, rf, rs, seq, f, now_us):
     """:meth:`MockDevice._on_force`, real-time branch, for a finite force."""
     d = iv[I_DELAY]
@@ -150,7 +150,7 @@ def _on_force(iv, rf, rs, seq, f, now_us):
     rs[i] = s
 
 
-@_jit
+@jit
 def _apply_due(iv, fv, rf, rs, n, now_us):
     """:meth:`MockDevice._apply_due` (real time: the watchdog applies)."""
     due = n - iv[I_DELAY]
@@ -188,7 +188,7 @@ def _apply_due(iv, fv, rf, rs, n, now_us):
     fv[F_U] = f
 
 
-@_jit
+@jit
 def _tick(iv, fv, rf, rs, hand, now_us, pkt, f8, u8, table, tx):
     """:meth:`MockDevice.tick`: the force due, STATE encoded into ``tx`` (its length
     returned), the physics advanced one period."""
@@ -210,14 +210,14 @@ def _tick(iv, fv, rf, rs, hand, now_us, pkt, f8, u8, table, tx):
     f8[0] = _sample(fv)
     for j in range(8):
         pkt[19 + j] = u8[j]
-    c = _crc16(pkt, 27, table)
+    c = crc16(pkt, 27, table)
     pkt[27] = (c >> 8) & 0xFF
     pkt[28] = c & 0xFF
     _advance(iv, fv, hand, fv[F_U])
-    return _cobs_encode(pkt, _STATE_PACKET, tx)
+    return cobs_encode(pkt, _STATE_PACKET, tx)
 
 
-@_jit
+@jit
 def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
     """Act on the complete frames in ``rb[:iv[I_RB_LEN]]`` that are clean, finite FORCEs.
 
@@ -227,7 +227,7 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
     a = 0
     code = R_FED
     while True:
-        a, z = _next_frame(rb, a, n_rb)
+        a, z = next_frame(rb, a, n_rb)
         if z < 0:
             if n_rb - a > _MAX_FRAME - 1:
                 code = R_HANDOFF       # overlong: the Python receiver counts it
@@ -235,11 +235,11 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
         if z - a > _MAX_FRAME - 1:
             code = R_HANDOFF
             break
-        m = _cobs_decode(rb, a, z, pkt)
-        if m != _FORCE_PACKET or pkt[0] != 0x11 or _crc16(pkt, m, table) != 0:
+        m = cobs_decode(rb, a, z, pkt)
+        if m != _FORCE_PACKET or pkt[0] != 0x11 or crc16(pkt, m, table) != 0:
             code = R_HANDOFF
             break
-        seq = _le(pkt, 1, 4)
+        seq = le(pkt, 1, 4)
         for j in range(8):
             u8[j] = pkt[5 + j]
         f = f8[0]
@@ -256,7 +256,7 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
     return code
 
 
-@_jit
+@jit
 def _stretch(fd, stop, iv, fv, rf, rs, hand, rb, pkt, f8, u8, table, tx, ts, pfd):
     """Serve real-time ticks on ``fd`` until something needs Python (module notes)."""
     t0 = iv[I_T0_NS]
@@ -269,27 +269,27 @@ def _stretch(fd, stop, iv, fv, rf, rs, hand, rb, pkt, f8, u8, table, tx, ts, pfd
         ts[1] = dl % 1_000_000_000
         if _c_clock_nanosleep(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ts.ctypes.data, 0) != 0:
             return R_INTR              # a signal: Python runs its handler
-        now = _now_ns(ts)
+        now = now_ns(ts)
         now_us = (now - t0) // 1000
         pfd[0] = fd
-        pfd[1] = _POLLIN
-        r = _c_poll(pfd.ctypes.data, 1, 0)
+        pfd[1] = POLLIN
+        r = c_poll(pfd.ctypes.data, 1, 0)
         if r > 0:
             rev = pfd[1] >> 16
-            if rev & _POLLIN:
+            if rev & POLLIN:
                 n_rb = iv[I_RB_LEN]
-                got = _c_read(fd, rb.ctypes.data + n_rb, rb.size - n_rb)
+                got = c_read(fd, rb.ctypes.data + n_rb, rb.size - n_rb)
                 if got <= 0:
                     return R_PORT      # EOF / EIO: the Python path reads it again
                 iv[I_RB_LEN] = n_rb + got
                 if _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table) == R_HANDOFF:
                     return R_HANDOFF   # the tick of this deadline is Python's
-            elif rev & (_POLLERR | _POLLHUP | _POLLNVAL):
+            elif rev & (POLLERR | POLLHUP | POLLNVAL):
                 return R_PORT          # the host closed the port: Python reads the EIO
         if now - dl > period // 2:
             iv[I_OVERRUNS] += 1
         k = _tick(iv, fv, rf, rs, hand, now_us, pkt, f8, u8, table, tx)
-        _c_write(fd, tx.ctypes.data, k)     # non-blocking: a full buffer drops the frame
+        c_write(fd, tx.ctypes.data, k)     # non-blocking: a full buffer drops the frame
         nxt = dl + period
         late = now + period // 2
         iv[I_DEADLINE_NS] = nxt if nxt > late else late
@@ -312,7 +312,7 @@ class CompiledMock:
         self.fv = np.zeros(N_FV, dtype=np.float64)
         self.rb = np.zeros(_RB_SIZE, dtype=np.uint8)
         u8 = np.zeros(8, dtype=np.uint8)
-        self.io = (np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
+        self.io = (np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, CRC_TABLE,
                    np.zeros(64, dtype=np.uint8))
         self.ts = np.zeros(2, dtype=np.int64)
         self.pfd = np.zeros(2, dtype=np.int32)

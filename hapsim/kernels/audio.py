@@ -28,8 +28,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from hapsim.kernels.cordis import (_advance, _chain_fused, _chain_start, _clear, _contacts,
-                                   _move_marked, _spring_dampers)
+from hapsim.kernels.cordis import (advance, chain_fused, chain_start, clear_forces, contacts,
+                                   move_marked, spring_dampers)
 
 __all__ = ["run_periods", "run_frames", "ring_write", "ring_read", "LISTEN_CODES", "LIVE_STATE"]
 
@@ -45,14 +45,14 @@ def _substep(chain, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
              c_i1, c_i2, c_k, c_z, c_thr, l_idx, l_code, l_gain, inv_ta, audio, row):
     """One audio sub-step (the port already placed) and its listened frame ``audio[row]``."""
     if chain >= 0:
-        _chain_fused(x, xp, f, t2m, fixed, chain, sd_k, sd_z, c_i1, c_i2)
-        _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
-        _move_marked(x, xp, f, t2m, fixed, chain, sd_k.size, c_i1, c_i2)
+        chain_fused(x, xp, f, t2m, fixed, chain, sd_k, sd_z, c_i1, c_i2)
+        contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+        move_marked(x, xp, f, t2m, fixed, chain, sd_k.size, c_i1, c_i2)
     else:
-        _clear(f)
-        _spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
-        _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
-        _advance(x, xp, f, mobile, t2m, fixed)
+        clear_forces(f)
+        spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
+        contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+        advance(x, xp, f, mobile, t2m, fixed)
     for c in range(l_idx.size):
         k = l_idx[c]
         code = l_code[c]
@@ -110,7 +110,7 @@ def run_periods(n, nsub, linear, last, port, pos, x, xp, f, mobile, t2m, fixed,
     row0 : int
         First row of ``out`` to write.
     """
-    chain = _chain_start(x, mobile, fixed, sd_i1, sd_i2)
+    chain = chain_start(x, mobile, fixed, sd_i1, sd_i2)
     inv_n = 1.0 / nsub
     for i in range(n):
         p1 = pos[i] if port >= 0 else 0.0
@@ -180,7 +180,7 @@ def run_frames(nframes, nsub, linear, last, port, ring, wr, st, fring,
     audio : ndarray, shape (>= nframes, C)
         Frames out (float32 or float64).
     """
-    chain = _chain_start(x, mobile, fixed, sd_i1, sd_i2)
+    chain = chain_start(x, mobile, fixed, sd_i1, sd_i2)
     R = ring.size
     inv_n = 1.0 / nsub
     for r in range(nframes):

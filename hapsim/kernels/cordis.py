@@ -58,13 +58,17 @@ _ONE = nb.uint64(1)
 
 
 @_jit_inline
-def _clear(f):
+def clear_forces(f):
+    """Zero the force accumulator ``f`` (shape (n_masses,)) before a sample's links."""
     for i in range(f.size):
         f[i] = 0.0
 
 
 @_jit_inline
-def _spring_dampers(x, xp, f, i1, i2, k, z):
+def spring_dampers(x, xp, f, i1, i2, k, z):
+    """Add every spring-damper's force to ``f`` [N]: ``F = k (x1 - x2) + z ((x1 - x2) -
+    (x1p - x2p))`` (``z = B / T``), ``-F`` on the first mass, ``+F`` on the second
+    (docs/design.md, 'The scheme')."""
     for j in range(i1.size):
         a = _U(i1[j])
         c = _U(i2[j])
@@ -75,7 +79,10 @@ def _spring_dampers(x, xp, f, i1, i2, k, z):
 
 
 @_jit_inline
-def _contacts(x, xp, f, i1, i2, k, z, thr):
+def contacts(x, xp, f, i1, i2, k, z, thr):
+    """Add every engaged contact's force to ``f`` [N]: the spring-damper law with the spring
+    term ``k (x1 - x2 + thr)``, only while ``x2 - x1 < thr``
+    (docs/design.md, 'The scheme')."""
     for j in range(i1.size):
         a = _U(i1[j])
         c = _U(i2[j])
@@ -87,7 +94,9 @@ def _contacts(x, xp, f, i1, i2, k, z, thr):
 
 
 @_jit_inline
-def _advance(x, xp, f, mobile, t2m, fixed):
+def advance(x, xp, f, mobile, t2m, fixed):
+    """Move the mobile masses one period, ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``
+    (Florens, Voda & Urma Fig. 5), and carry the port's and grounds' ``x`` into ``xp``."""
     for j in range(mobile.size):
         i = _U(mobile[j])
         xn = 2.0 * x[i] - xp[i] + t2m[j] * f[i]
@@ -99,7 +108,7 @@ def _advance(x, xp, f, mobile, t2m, fixed):
 
 
 @_jit
-def _chain_start(x, mobile, fixed, i1, i2):
+def chain_start(x, mobile, fixed, i1, i2):
     """First mass of the spring-damper chain, or -1 when the links are not one.
 
     A chain (detected once per kernel call, O(n_sd)): link ``j`` joins masses ``s + j`` and
@@ -133,16 +142,16 @@ def _next_mark(c_i1, c_i2, a):
 
 
 @_jit_inline
-def _chain_fused(x, xp, f, t2m, fixed, s, k, z, c_i1, c_i2):
+def chain_fused(x, xp, f, t2m, fixed, s, k, z, c_i1, c_i2):
     """Forces of a chain and the move of its masses that no contact touches, in one pass.
 
-    ``f`` receives exactly what clearing it and running :func:`_spring_dampers` gives:
+    ``f`` receives exactly what clearing it and running :func:`spring_dampers` gives:
     ``(0 + F[j-1]) - F[j]`` == ``F[j-1] - F[j]`` on inner mass ``s + j``, ``0 - F[0]`` and
     ``0 + F[-1]`` on the ends, 0 on the other fixed masses. A moving mass no contact touches
-    has its final force then and moves at once, with :func:`_advance`'s operations (its
+    has its final force then and moves at once, with :func:`advance`'s operations (its
     old position is kept in registers for the next link). Masses that contacts touch keep
-    their position so that the caller adds the contact forces (:func:`_contacts`) and moves
-    them (:func:`_move_marked`). The inner loop runs between such masses and has no branch,
+    their position so that the caller adds the contact forces (:func:`contacts`) and moves
+    them (:func:`move_marked`). The inner loop runs between such masses and has no branch,
     which lets LLVM vectorise it.
     """
     for j in range(fixed.size):
@@ -190,7 +199,7 @@ def _chain_fused(x, xp, f, t2m, fixed, s, k, z, c_i1, c_i2):
 
 
 @_jit_inline
-def _move_marked(x, xp, f, t2m, fixed, s, nl, c_i1, c_i2):
+def move_marked(x, xp, f, t2m, fixed, s, nl, c_i1, c_i2):
     """Move the moving chain masses that are contact ends, then the fixed masses' ``xp``."""
     a = s
     while True:
@@ -235,8 +244,8 @@ def run_masses(n, x, xp, f, mobile, t2m, fixed, rec, out, row0):
         First row of ``out`` to write.
     """
     for s in range(n):
-        _clear(f)
-        _advance(x, xp, f, mobile, t2m, fixed)
+        clear_forces(f)
+        advance(x, xp, f, mobile, t2m, fixed)
         _record(x, rec, out, row0 + s)
 
 
@@ -247,17 +256,17 @@ def run_sd(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec, out, 
     Parameters as :func:`run_masses`, plus the spring-damper arrays ``sd_i1``, ``sd_i2``
     (int64, shape (n_sd,)), ``sd_k`` [N/m] and ``sd_z`` = B / T [N/m].
     """
-    c = _chain_start(x, mobile, fixed, sd_i1, sd_i2)
+    c = chain_start(x, mobile, fixed, sd_i1, sd_i2)
     if c >= 0:
         for s in range(n):
-            _chain_fused(x, xp, f, t2m, fixed, c, sd_k, sd_z, _NO_IDX, _NO_IDX)
-            _move_marked(x, xp, f, t2m, fixed, c, sd_k.size, _NO_IDX, _NO_IDX)
+            chain_fused(x, xp, f, t2m, fixed, c, sd_k, sd_z, _NO_IDX, _NO_IDX)
+            move_marked(x, xp, f, t2m, fixed, c, sd_k.size, _NO_IDX, _NO_IDX)
             _record(x, rec, out, row0 + s)
         return
     for s in range(n):
-        _clear(f)
-        _spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
-        _advance(x, xp, f, mobile, t2m, fixed)
+        clear_forces(f)
+        spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
+        advance(x, xp, f, mobile, t2m, fixed)
         _record(x, rec, out, row0 + s)
 
 
@@ -269,9 +278,9 @@ def run_contact(n, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr, re
     ``c_k`` [N/m], ``c_z`` = B / T [N/m] and ``c_thr`` [m].
     """
     for s in range(n):
-        _clear(f)
-        _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
-        _advance(x, xp, f, mobile, t2m, fixed)
+        clear_forces(f)
+        contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+        advance(x, xp, f, mobile, t2m, fixed)
         _record(x, rec, out, row0 + s)
 
 
@@ -282,19 +291,19 @@ def run_sd_contact(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
 
     Parameters as :func:`run_sd` followed by those of :func:`run_contact`.
     """
-    c = _chain_start(x, mobile, fixed, sd_i1, sd_i2)
+    c = chain_start(x, mobile, fixed, sd_i1, sd_i2)
     if c >= 0:
         for s in range(n):
-            _chain_fused(x, xp, f, t2m, fixed, c, sd_k, sd_z, c_i1, c_i2)
-            _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
-            _move_marked(x, xp, f, t2m, fixed, c, sd_k.size, c_i1, c_i2)
+            chain_fused(x, xp, f, t2m, fixed, c, sd_k, sd_z, c_i1, c_i2)
+            contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+            move_marked(x, xp, f, t2m, fixed, c, sd_k.size, c_i1, c_i2)
             _record(x, rec, out, row0 + s)
         return
     for s in range(n):
-        _clear(f)
-        _spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
-        _contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
-        _advance(x, xp, f, mobile, t2m, fixed)
+        clear_forces(f)
+        spring_dampers(x, xp, f, sd_i1, sd_i2, sd_k, sd_z)
+        contacts(x, xp, f, c_i1, c_i2, c_k, c_z, c_thr)
+        advance(x, xp, f, mobile, t2m, fixed)
         _record(x, rec, out, row0 + s)
 
 
