@@ -323,8 +323,8 @@ def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
     scene = load_scene(str(ROOT / "configs/hapkit.yaml"))
     dev = dataclasses.replace(scene.device, coulomb=0.1)
     exc = dataclasses.replace(scene.excitation, x0=0.0)
-    # the emulated clock waits up to 2 s for each FORCE: a loaded host makes no late tick
-    cmd = board.board_command(dev, exc, wait_ms=2000.0)[2:]
+    # the emulated clock waits for each FORCE: a loaded host makes no late tick
+    cmd = board.board_command(dev, exc)[2:]
     with _board(tmp_path, None, *cmd) as (proc, port, report):
         fit, rec = identify(port=port, baud=2000000, driver="framed", rate_hz=RATE,
                             force_limit=1.0, envelope=0.02, duration=2.5, max_delay=3,
@@ -403,6 +403,73 @@ def _host_main(port: str, force: float) -> None:
             print("ARMED 200", flush=True)
 
 
+def test_lockstep_board_waits_for_a_slow_host_so_no_force_is_late(tmp_path):
+    """In lockstep (fast) mode the emulated clock waits for the host's answer to each armed
+    STATE however long the host takes: a host that pauses 0.2 s (a loaded machine) before
+    some FORCEs still has every one applied at its tick (FORCE_APPLIED, force_seq = seq - 1,
+    no OVERRUN). The board's wait was capped at 50 ms of wall time: a pause beyond made a
+    late tick at random, and 1 lockstep run in 8 measured another stiffness."""
+    _require()
+    with _board(tmp_path) as (proc, port, report):
+        host = _Host(port)
+        try:
+            host.arm()
+            n = 0
+            for st in host.armed_states():
+                if n >= 2:
+                    assert st.status & fp.STATUS_FORCE_APPLIED, st
+                    assert st.force_seq == st.seq - 1 and not st.status & fp.STATUS_OVERRUN, st
+                if n in (3, 7):
+                    time.sleep(0.2)
+                host.send(fp.encode(fp.Force(st.seq, (0.01,))))
+                n += 1
+                if n == 12:
+                    break
+            host.send(fp.encode(fp.Stop()))
+        finally:
+            host.close()
+    assert _report(report)["host"]["wait_timeouts"] == 0
+
+
+def test_a_second_run_starts_at_x0_after_the_handle_was_pushed_far(tmp_path):
+    """A run pushes the handle 0.1-0.3 m away (many sensor periods), then STOPs: the
+    board's hand brings it back to x0 over many ticks, no jump, so the firmware's flip
+    counting follows, and the next run's first armed STATE reads x0 (to one ADC count).
+    The board placed the handle at x0 at once at CONFIG before: the firmware counted the
+    wrong number of turns and a second run started 0.27 m away with 18 J stored."""
+    _require()
+    qx, _ = _scales()
+    x0 = 0.005
+    with _board(tmp_path) as (proc, port, report):
+        host = _Host(port)
+        try:
+            host.arm()
+            far = None
+            for n, st in enumerate(host.armed_states()):
+                host.send(fp.encode(fp.Force(st.seq, (-3.0,))))
+                if n == 150:
+                    far = st.position[0]
+                    break
+            host.send(fp.encode(fp.Stop()))
+            assert far is not None and far < x0 - 0.1, far        # far beyond one period
+            end = time.monotonic() + 20.0
+            back = last = None
+            while back is None and time.monotonic() < end:
+                for m in host.receive(0.05):
+                    if isinstance(m, fp.State):
+                        last = m
+                    if (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED
+                            and abs(m.position[0] - x0) <= qx):
+                        back = m
+            assert back is not None, ("the handle did not come back to x0", last)
+            host.send(fp.encode(fp.Config(RATE, WATCHDOG_US, 5.0)))
+            first = next(host.armed_states())
+            assert abs(first.position[0] - x0) <= qx, (first, far)
+            host.send(fp.encode(fp.Stop()))
+        finally:
+            host.close()
+
+
 def test_killed_host_pwm_pin_at_zero_within_one_watchdog_period(tmp_path):
     """SIGKILL the host mid-run: the PWM pin (its duty, read from OC0B and PORTD5 by the
     board) falls to zero within one watchdog period of the last valid FORCE, measured in
@@ -471,6 +538,7 @@ def test_garbage_and_bit_flips_are_dropped_counted_and_never_applied(tmp_path):
                     seen += [m for m in host.others if isinstance(m, fp.Fault)]
                 if st.seq > 310:
                     break
+                host.send(fp.encode(fp.Force(st.seq, (good,))))   # lockstep: answered
         finally:
             host.close()
     rep = _report(report)

@@ -104,7 +104,8 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
     report, link : str, optional
         JSON report file written on exit; symbolic link kept to the pty.
     wait_ms, duration : float, optional
-        Longest wait for the host per STATE [ms]; emulated time to run [s].
+        Longest wait for the host per STATE [ms] (default: as long as the host keeps the
+        port open, so no FORCE is late however slow the host); emulated time to run [s].
 
     Returns
     -------

@@ -9,9 +9,13 @@
  * level) and the direction pin D8 (PB0, high = positive force); the force is
  *     F = +-(duty) * T_max * (rs / rp) / rh            (hapkit_geometry.h)
  * on a handle of mass m with viscous friction b0, optional Coulomb friction c, and an
- * optional hand: it places the handle at x0 with velocity v0 whenever the host sends
- * CONFIG (as the hapsim mock restarts its plant at CONFIG), and may push with a constant
- * force over a time window after it. Between two changes of the force the motion
+ * optional hand: it holds the handle at 0 until the firmware's first reading (its zero),
+ * moves it to x0 and holds it there at rest until the host sends CONFIG, then
+ * lets go with velocity v0 (as the hapsim mock restarts its plant at CONFIG); when the host
+ * sends STOP it moves the handle back to x0 along a smooth path (at most HAND_MOVE_SPEED,
+ * no jump the firmware's flip counting could miss) and holds it there, and a CONFIG that
+ * comes before the handle is back lets go at the end of that move; the hand may push
+ * with a constant force over a time window after CONFIG. Between two changes of the force the motion
  * m x'' + b0 x' = F is integrated exactly over the emulated time (with Coulomb friction:
  * 1 us steps). The magnetoresistive sensor turns the motor shaft angle
  *     theta_m = x / rh * (rs / rp) + pi * 460 / 921   (x = 0 on the centre of a count)
@@ -21,10 +25,12 @@
  *
  * UART0 is bridged to a new pseudo-terminal on simavr's UART IRQs (input paced by the
  * UART's own FIFO, with its XON/XOFF flow control). Time: --realtime locks the emulated
- * clock to the wall clock; the default (fast) runs as fast as the host can answer: after
- * each armed STATE the emulation waits (up to --wait-ms of wall time) for the host's next
- * frame, so a slow host never makes a late FORCE, and a host that is gone (port closed)
- * leaves the emulation free-running.
+ * clock to the wall clock; the default (fast, lockstep) runs as fast as the host can
+ * answer: after each armed STATE the emulation waits for the host's next frame for as long
+ * as the host keeps the port open (or at most --wait-ms of wall time when given), so a slow
+ * or loaded host never makes a late FORCE (a 50 ms default cap made one, at random, on a
+ * host that paused longer: 1 run in 8 measured another stiffness), and a host that is gone
+ * (port closed) leaves the emulation free-running.
  *
  * On SIGINT/SIGTERM or after --duration emulated seconds it writes a JSON report (stdout,
  * or --report FILE): the MCU budget (cycles per tick busy -- ISR + codec + main loop,
@@ -76,7 +82,7 @@ static struct {
     double hand_force, hand_start, hand_duration;
     double wait_ms, duration;
     const char *report, *link, *profile;
-} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 50.0, 0.0, NULL, NULL, NULL};
+} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, NULL, NULL, NULL};
 
 /* --profile: cycles spent at each flash word while armed and awake (the MCU budget by
  * instruction; tools/bench_firmware.py --profile maps them to functions and lines) */
@@ -94,7 +100,19 @@ static struct {
     uint64_t cyc;       /* emulated time of (x, v) [cycles] */
     uint64_t config_cyc;
     int configured;
+    /* the hand's move of the handle to x0 (at STOP, and at CONFIG when not there yet): it
+     * holds the handle on a raised-cosine path (the motor does not move it), then holds it
+     * at rest at x0 (after STOP) or lets go with v0 (after CONFIG) */
+    int moving, held, release, zero_read;
+    double move_from, move_to;
+    uint64_t move_start, move_cycles;
 } ph;
+
+/* Fastest the hand moves the handle [m/s]: at 1 m/s the handle moves 1 mm per 1 kHz tick,
+ * far below the half sensor period (8.1 mm of handle travel) the firmware's flip counting
+ * can follow; a jump (the board placed the handle at x0 at once, before) made it count the
+ * wrong number of turns: the next run started 0.27 m away with 18 J stored. */
+#define HAND_MOVE_SPEED 1.0
 
 static struct {
     uint16_t n;
@@ -129,7 +147,15 @@ static struct {
     uint8_t in_q[4096];
     size_t in_head, in_tail;
     int xon;
-    int await_host, host_present, host_frame_seen;
+    int await_host, host_present;
+    /* lockstep: the seq of the armed STATE the host is to answer; what the host sent, as
+     * read from the pty (before the UART takes it): the newest FORCE seq of this session
+     * (since the last CONFIG), a STOP not followed by a CONFIG (the firmware disarms: no
+     * answer comes, even to a STATE it sent before it took the STOP), any other frame
+     * since the STATE (a host that does not answer it: a handshake) */
+    uint32_t await_seq, read_force_seq;
+    int read_force_valid, read_stop, read_other;
+    hp_decoder_t dec_read;
     uint16_t fw_status;
     uint64_t fw_status_rx_error, fw_overrun;
     uint32_t fw_rx_errors_detail;
@@ -162,8 +188,53 @@ static void exact_step(double f, double dt)
     }
 }
 
+/* Start the hand's move of the handle from where it is to x0: peak speed HAND_MOVE_SPEED,
+ * velocity zero at both ends (x = a + (b - a)(1 - cos(pi s))/2, s in [0, 1]); `release`:
+ * let go with v0 at its end (CONFIG), else hold at rest there (STOP). */
+static void hand_move_to_x0(int release)
+{
+    double d = fabs(opt.x0 - ph.x);
+    ph.move_from = ph.x;
+    ph.move_to = opt.x0;
+    ph.move_start = ph.cyc;
+    ph.move_cycles = (uint64_t)ceil(M_PI / 2.0 * d / HAND_MOVE_SPEED * F_CPU_HZ);
+    ph.moving = 1;
+    ph.held = 1;
+    ph.release = release;
+}
+
+/* The hand's path at `cyc` (inside the move): position and velocity. */
+static void hand_path(uint64_t cyc)
+{
+    double span = ph.move_to - ph.move_from, T = (double)ph.move_cycles / F_CPU_HZ;
+    double sfrac = T > 0 ? (double)(cyc - ph.move_start) / (double)ph.move_cycles : 1.0;
+    ph.x = ph.move_from + span * (1.0 - cos(M_PI * sfrac)) / 2.0;
+    ph.v = T > 0 ? span * M_PI / (2.0 * T) * sin(M_PI * sfrac) : 0.0;
+}
+
 static void advance_to(uint64_t cyc)
 {
+    while (ph.held && ph.cyc < cyc) {
+        uint64_t end = ph.move_start + ph.move_cycles;
+        if (ph.moving && cyc < end) {
+            ph.cyc = cyc;
+            hand_path(cyc);
+            return;
+        }
+        if (ph.moving) {                 /* the move ends at `end` */
+            ph.cyc = end;
+            ph.x = ph.move_to;
+            ph.v = 0.0;
+            ph.moving = 0;
+        }
+        if (ph.release) {                /* the hand lets go at x0 with v0 */
+            ph.held = 0;
+            ph.v = opt.v0;
+        } else {                         /* held at rest at x0 until CONFIG */
+            ph.cyc = cyc;
+            return;
+        }
+    }
     while (ph.cyc < cyc) {
         uint64_t next = cyc;
         double f;
@@ -278,6 +349,11 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
     /* the ADC reads floor(mV * 1023 / 5000): centre each count on its voltage */
     mv = floor((counts + 0.5) * HK_ADC_VREF_MV / HK_ADC_MAX + 0.5);
     avr_raise_irq(adc_irq + ADC_IRQ_ADC2, (uint32_t)mv);
+    /* the firmware takes its zero from its first reading it keeps (it drops a conversion
+     * a CONFIG restarted the ticks under): the hand moves to x0 after the third */
+    if (ph.zero_read < 3 && ++ph.zero_read == 3) {
+        hand_move_to_x0(ph.configured); /* a CONFIG before it: let go at the end */
+    }
 }
 
 /* ---------------------------------------------------------------- UART <-> pty */
@@ -295,7 +371,8 @@ static void on_fw_msg(const hp_msg_t *m)
         }
         if ((m->u.state.status & HP_STATUS_ARMED) && link_.host_present) {
             link_.await_host = 1; /* fast mode: let the host answer this STATE */
-            link_.host_frame_seen = 0;
+            link_.await_seq = m->u.state.seq;
+            link_.read_other = 0;
         }
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
@@ -343,14 +420,33 @@ static void on_host_msg(const hp_msg_t *m)
 {
     link_.host_frames_ok++;
     if (m->type == HP_MSG_CONFIG) {
-        /* the hand places the handle and lets go (the mock's plant restarts at CONFIG) */
+        /* the hand lets go of the handle at x0 with v0 (the mock's plant restarts there at
+         * CONFIG); a handle not there yet is moved there first, without a jump */
         advance_to(avr->cycle);
-        ph.x = opt.x0;
-        ph.v = opt.v0;
+        if (ph.zero_read < 3) {
+            /* the firmware has not read its zero yet: the move waits for it (adc_trigger) */
+        } else if (!ph.held || ph.moving || ph.x != opt.x0) {
+            if (!ph.moving) {
+                hand_move_to_x0(1);
+            }
+            ph.release = 1;
+        } else {
+            ph.held = 0;
+            ph.v = opt.v0;
+        }
         ph.configured = 1;
         ph.config_cyc = avr->cycle;
         budget.rate_hz = m->u.config.rate_hz;
         budget.watchdog_us = m->u.config.watchdog_us;
+    } else if (m->type == HP_MSG_STOP) {
+        /* the run is over: the hand brings the handle back to x0 and holds it there */
+        advance_to(avr->cycle);
+        if (ph.zero_read >= 3 && (!ph.held || ph.release)) {
+            if (!ph.moving) {
+                hand_move_to_x0(0);
+            }
+            ph.release = 0;
+        }
     } else if (m->type == HP_MSG_FORCE) {
         link_.last_force_cyc = avr->cycle;
         link_.have_force = 1;
@@ -367,6 +463,7 @@ static void feed_uart(void)
         int r;
         link_.in_tail = (link_.in_tail + 1u) % sizeof link_.in_q;
         avr_raise_irq(uart_irq + UART_IRQ_INPUT, b);
+
         r = hp_decoder_feed(&link_.dec_host, b, &m);
         if (r == HP_OK) {
             on_host_msg(&m);
@@ -384,17 +481,27 @@ static void read_host(int timeout_ms)
     link_.host_present = !(pfd.revents & POLLHUP);
     if (r > 0 && (pfd.revents & POLLIN)) {
         uint8_t buf[256];
-        ssize_t n = read(master, buf, sizeof buf);
+        size_t room = (link_.in_tail + sizeof link_.in_q - link_.in_head - 1u) %
+                      sizeof link_.in_q; /* host far ahead of the UART: rest stays in pty */
+        ssize_t n = read(master, buf, room < sizeof buf ? room : sizeof buf);
         ssize_t i;
         for (i = 0; i < n; i++) {
-            size_t next = (link_.in_head + 1u) % sizeof link_.in_q;
-            if (next == link_.in_tail) {
-                break; /* host far ahead of the emulated UART: keep it in the pty */
-            }
+            hp_msg_t m;
             link_.in_q[link_.in_head] = buf[i];
-            link_.in_head = next;
-            if (buf[i] == 0) {
-                link_.host_frame_seen = 1;
+            link_.in_head = (link_.in_head + 1u) % sizeof link_.in_q;
+            if (hp_decoder_feed(&link_.dec_read, buf[i], &m) == HP_OK) {
+                if (m.type == HP_MSG_FORCE) {
+                    link_.read_force_seq = m.u.force.seq;
+                    link_.read_force_valid = 1;
+                } else {
+                    link_.read_other = 1;
+                    if (m.type == HP_MSG_STOP) {
+                        link_.read_stop = 1;
+                    } else if (m.type == HP_MSG_CONFIG) {
+                        link_.read_stop = 0;
+                        link_.read_force_valid = 0;
+                    }
+                }
             }
         }
     }
@@ -638,7 +745,10 @@ int main(int argc, char **argv)
     avr->vcc = avr->avcc = avr->aref = HK_ADC_VREF_MV;
     avr->sleep = noop_sleep; /* the board keeps time itself (fast or real-time) */
 
+    ph.held = 1; /* the hand holds the handle at rest at 0, the firmware's zero, until
+                  * its first reading, then moves it to x0 and holds it until CONFIG */
     hp_decoder_init(&link_.dec_host);
+    hp_decoder_init(&link_.dec_read);
     hp_decoder_init(&link_.dec_fw);
     link_.xon = 0; /* until the firmware enables its receiver (simavr signals XON then) */
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
@@ -688,13 +798,19 @@ int main(int argc, char **argv)
             /* fast mode: wait (wall time) for the host's answer to this STATE */
             uint64_t w0 = wall_ns();
             link_.waits++;
-            while (!link_.host_frame_seen && link_.host_present && !stop_signal) {
+            /* until the host's FORCE answering this STATE is read (a frame read before
+             * the STATE ended cannot be it), or a STOP (maybe read before this STATE
+             * ended, not taken yet), or another frame since it */
+            while (!(link_.read_force_valid &&
+                     (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) &&
+                   !link_.read_stop && !link_.read_other && link_.host_present &&
+                   !stop_signal) {
                 uint64_t el = (wall_ns() - w0) / 1000000u;
-                if ((double)el >= opt.wait_ms) {
+                if (opt.wait_ms > 0 && (double)el >= opt.wait_ms) {
                     link_.wait_timeouts++;
                     break;
                 }
-                read_host((int)(opt.wait_ms - (double)el) + 1);
+                read_host(opt.wait_ms > 0 ? (int)(opt.wait_ms - (double)el) + 1 : 100);
             }
         }
         link_.await_host = 0;
