@@ -242,6 +242,7 @@ class ExcitationEngine:
         self._win = max(int(0.1 * scene.rate_hz), 1)
         self._sub = max(int(0.025 * scene.rate_hz), 1)
         self._still = 0.005 * scene.envelope
+        self._stuck = True
         self._hi = -math.inf
         self._lo = math.inf
         self._look = float(scene.max_delay + 1)
@@ -269,8 +270,9 @@ class ExcitationEngine:
             self._hi = position
         if position < self._lo:
             self._lo = position
-        if k % self._win == self._win - 1 or (k % self._sub == self._sub - 1
-                                              and self._hi - self._lo < self._still):
+        if self._stuck and self._hi - self._lo >= self._still:
+            self._stuck = False            # broke loose: from now on the 100 ms steps only
+        if k % self._win == self._win - 1 or (self._stuck and k % self._sub == self._sub - 1):
             if self._hi - self._lo < self._calm and self._g < 1.0:
                 # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
                 # small enough that a device held by Coulomb friction breaks loose gently
