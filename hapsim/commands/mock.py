@@ -317,6 +317,14 @@ def _run_firmware(args) -> int:
         return 1
     cmd = board.board_command(scene.device, scene.excitation, realtime=not args.lockstep,
                               report=args.report, link=args.link)
+    if not args.lockstep and getattr(args, "rt_priority", 0):
+        # real time: the board holds the emulated clock to the wall clock; SCHED_FIFO (kept
+        # across exec) keeps other programs from descheduling it, as for the Python mock
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.rt_priority)))
+        except (AttributeError, OSError) as exc:
+            print(f"hapsim mock: normal scheduling (SCHED_FIFO {args.rt_priority} refused: "
+                  f"{getattr(exc, 'strerror', None) or exc})", file=sys.stderr, flush=True)
     sys.stdout.flush()
     os.execv(cmd[0], cmd)
     return 1  # not reached
