@@ -169,6 +169,9 @@ static avr_irq_t *uart_irq, *adc_irq;
  * sleeping to hold real time; real time: the emulated clock slips (never races to catch
  * up) when the process fell behind the wall clock by more than SLIP_NS. */
 #define SLIP_NS 2000000u
+/* How far the emulated clock may run ahead of the wall clock [ns]: each microsecond of lead
+ * is taken from the host's time to answer a STATE before the next tick. */
+#define LEAD_NS 50000u
 static struct {
     uint64_t emulate_ns, io_ns, sleep_ns, armed_emulate_ns, armed_cycles, slips, slipped_ns;
     uint64_t behind_max_ns;
@@ -866,7 +869,7 @@ int main(int argc, char **argv)
                 wall0 = wall_ns() - emu; /* lock from here on */
             }
             wall = wall_ns() - wall0;
-            if (emu > wall + 200000u) {
+            if (emu > wall + LEAD_NS) {
                 struct timespec ts = {0, (long)(emu - wall)};
                 uint64_t t_s = wall_ns();
                 nanosleep(&ts, NULL);
