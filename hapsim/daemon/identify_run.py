@@ -24,7 +24,7 @@ from viscous friction), and early when the device is past 30 % of the envelope o
 it pushes towards (a relay: the steps move the device both ways and keep it centred without
 a stiff spring, which a long delay forbids). The gain ``g`` starts at 1/8 and grows by
 2^(1/4) every 100 ms (up to 1) while the device moved over less than 30 % of the
-envelope (every 25 ms while it stays within 0.5 % of it: held by Coulomb friction), and
+envelope (every 25 ms while it has not yet moved 0.5 % of it: held by Coulomb friction at the start), and
 halves each time the device is about to pass 60 % of the envelope (then 66 %, ...; its
 position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
 ``d`` samples after it moved) never leaves the envelope before the gain has found its
@@ -277,7 +277,7 @@ class ExcitationEngine:
                 # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
                 # small enough that a device held by Coulomb friction breaks loose gently
                 # (wherever it sticks: the relay pushes it back towards the centre); and
-                # every 25 ms while it stays within 0.5 % of the envelope: a device held
+                # every 25 ms until it first moves 0.5 % of the envelope: a device held
                 # still by its Coulomb friction reaches its breakaway force within
                 # ~0.3 s, not 1.2 s, of a record whose stuck samples say nothing (the
                 # emulated Hapkit's viscous friction interval was 8 times wider so)
