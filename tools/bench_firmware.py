@@ -9,6 +9,12 @@ interrupts) and reports the mean, the worst case and the idle fraction. The buil
 is ``make bench`` (the firmware without its 1250 Hz CONFIG limit, which this table sets).
 
     PYTHONPATH=. python tools/bench_firmware.py [--ticks 1000] [--json FILE]
+
+``--realtime N``: instead, the board in real time (``hapsim mock --firmware``) under N runs of
+``hapsim run configs/hapkit.yaml --port`` (``--duration`` s each; ``--beside-cpu``: next to
+one CPU-bound process): each run's late ticks, then where the board's wall time went
+(emulating, the pty/UART bridge, sleeping to hold real time; the emulated MHz per wall
+second while armed; the slips of its clock) and the CPU it needed.
 """
 
 from __future__ import annotations
@@ -186,6 +192,57 @@ def measure(rate: float, ticks: int, profile: bool = False) -> dict:
     return res
 
 
+def realtime(runs: int, duration: float, beside_cpu: bool) -> int:
+    """The real-time board under ``runs`` runs of ``hapsim run --port``: print each run's
+    late ticks and the board's time breakdown (its report's ``time``); 0 when every run has
+    at most 1 % of its ticks late (5 % beside a CPU-bound process)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    tmp = Path(tempfile.mkdtemp())
+    link, rep = tmp / "port", tmp / "board.json"
+    hog = (subprocess.Popen([sys.executable, "-c", "while True: pass"]) if beside_cpu
+           else None)
+    mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware", "--link",
+                             str(link), "--report", str(rep)], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, env=env)
+    worst = 0.0
+    try:
+        line = mock.stdout.readline()
+        if not line.startswith("PORT "):
+            raise SystemExit(f"the board did not start: {line!r}")
+        load = os.getloadavg()
+        print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, cores {os.cpu_count()}"
+              f"{', beside one CPU-bound process' if beside_cpu else ''}")
+        t0 = time.monotonic()
+        for i in range(runs):
+            r = subprocess.run([sys.executable, "-m", "hapsim", "run",
+                                str(ROOT / "configs" / "hapkit.yaml"), "--port", str(link),
+                                "--duration", str(duration), "--json"],
+                               capture_output=True, text=True, env=env, timeout=300)
+            rep_run = json.loads(r.stdout)
+            lp = rep_run["loop"]
+            frac = lp["late"] / max(lp["ticks"], 1)
+            worst = max(worst, frac)
+            print(f"  run {i + 1}: late {lp['late']}/{lp['ticks']} ({frac:.2%}), "
+                  f"{lp['scheduling']}; {rep_run['measured'].get('verdict')}", flush=True)
+        wall = time.monotonic() - t0
+    finally:
+        mock.send_signal(signal.SIGTERM)
+        mock.wait(timeout=30)
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+    tm = json.loads(rep.read_text())["time"]
+    busy = tm["emulate_s"] + tm["io_s"]
+    print(f"board: emulating {tm['emulate_s']:.2f} s, pty/UART bridge {tm['io_s']:.2f} s, "
+          f"sleeping {tm['sleep_s']:.2f} s of {wall:.2f} s; {tm['armed_mhz']:.1f} emulated "
+          f"MHz per wall second while armed (16 MHz is real time); CPU needed "
+          f"{busy / wall:.0%} of a core; clock slips {tm['slips']} "
+          f"({tm['slipped_s']:.3f} s, at most {tm['behind_max_ms']:.1f} ms behind)")
+    limit = 0.05 if beside_cpu else 0.01
+    print(f"worst late fraction {worst:.2%} (target <= {limit:.0%})")
+    return 0 if worst <= limit else 1
+
+
 def main(argv=None) -> int:
     """Print the budget table (and write it as JSON with ``--json``)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -195,8 +252,16 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="FILE")
     ap.add_argument("--profile", action="store_true",
                     help="also the cycles per tick by path (ISR, ADC, codec, UART, ...)")
+    ap.add_argument("--realtime", type=int, default=0, metavar="N",
+                    help="instead: N real-time runs over the board, late ticks and where "
+                         "the board's time goes")
+    ap.add_argument("--duration", type=float, default=3.0, help="each run [s] (3)")
+    ap.add_argument("--beside-cpu", action="store_true",
+                    help="with --realtime: next to one CPU-bound process")
     args = ap.parse_args(argv)
     board.build()
+    if args.realtime:
+        return realtime(args.realtime, args.duration, args.beside_cpu)
     subprocess.run(["make", "-s", "-C", str(board.FIRMWARE_DIR), "bench"], check=True,
                    stdout=subprocess.DEVNULL)
     rows = []

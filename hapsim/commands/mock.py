@@ -85,9 +85,10 @@ def register(sub) -> None:
                    help="inject seeded faults (see below), e.g. drop=0.01,reset@800")
     p.add_argument("--fault-seed", type=int, default=0, metavar="N",
                    help="seed of the fault generator (default 0)")
-    p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
                    help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
-                        "normal scheduling; it is a test rig; 1..99). Embedded in 'hapsim "
+                        "normal scheduling; it is a test rig; 1..99; --firmware in real time: "
+                        "10, the emulated board holds the wall clock). Embedded in 'hapsim "
                         "run', the mock inherits the run's policy instead")
     p.add_argument("--once", action="store_true",
                    help="serve one run only: exit at the host's STOP (without faults) or when "
@@ -165,6 +166,8 @@ def run(args) -> int:
         ``--link``, or a scene without a device section (exit 2 from
         :func:`hapsim.cli.main`).
     """
+    if args.rt_priority is None:
+        args.rt_priority = 10 if args.firmware and not args.lockstep else 0
     if args.firmware:
         return _run_firmware(args)
     from hapsim.daemon.faults import parse_faults
@@ -317,6 +320,14 @@ def _run_firmware(args) -> int:
         return 1
     cmd = board.board_command(scene.device, scene.excitation, realtime=not args.lockstep,
                               report=args.report, link=args.link)
+    if not args.lockstep and getattr(args, "rt_priority", 0):
+        # real time: the board holds the emulated clock to the wall clock; SCHED_FIFO (kept
+        # across exec) keeps other programs from descheduling it, as for the Python mock
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.rt_priority)))
+        except (AttributeError, OSError) as exc:
+            print(f"hapsim mock: normal scheduling (SCHED_FIFO {args.rt_priority} refused: "
+                  f"{getattr(exc, 'strerror', None) or exc})", file=sys.stderr, flush=True)
     sys.stdout.flush()
     os.execv(cmd[0], cmd)
     return 1  # not reached

@@ -156,12 +156,26 @@ static struct {
     uint32_t await_seq, read_force_seq;
     int read_force_valid, read_stop, read_other;
     hp_decoder_t dec_read;
+    uint8_t out[64];
+    size_t out_n;
     uint16_t fw_status;
     uint64_t fw_status_rx_error, fw_overrun;
     uint32_t fw_rx_errors_detail;
 } link_;
 
 static avr_irq_t *uart_irq, *adc_irq;
+
+/* Where the wall time goes (report "time"): emulating (avr_run), the pty and UART bridge,
+ * sleeping to hold real time; real time: the emulated clock slips (never races to catch
+ * up) when the process fell behind the wall clock by more than SLIP_NS. */
+#define SLIP_NS 2000000u
+/* How far the emulated clock may run ahead of the wall clock [ns]: each microsecond of lead
+ * is taken from the host's time to answer a STATE before the next tick. */
+#define LEAD_NS 50000u
+static struct {
+    uint64_t emulate_ns, io_ns, sleep_ns, armed_emulate_ns, armed_cycles, slips, slipped_ns;
+    uint64_t behind_max_ns;
+} tm;
 
 static double hand_force_at(uint64_t cyc)
 {
@@ -382,6 +396,19 @@ static void on_fw_msg(const hp_msg_t *m)
     }
 }
 
+/* Write the firmware's bytes held so far to the pty (dropped, counted, when no host reads
+ * and the pty is full). */
+static void flush_out(void)
+{
+    if (link_.out_n && master >= 0) {
+        ssize_t w = write(master, link_.out, link_.out_n);
+        if (w < (ssize_t)link_.out_n) {
+            link_.tx_dropped += link_.out_n - (w > 0 ? (size_t)w : 0u);
+        }
+    }
+    link_.out_n = 0;
+}
+
 static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     uint8_t b = (uint8_t)value;
@@ -389,8 +416,9 @@ static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param)
     int r;
     (void)irq;
     (void)param;
-    if (master >= 0 && write(master, &b, 1) != 1) {
-        link_.tx_dropped++;
+    link_.out[link_.out_n++] = b;
+    if (b == 0 || link_.out_n == sizeof link_.out) {
+        flush_out(); /* a whole frame per write: one wake-up of the host, not one a byte */
     }
     r = hp_decoder_feed(&link_.dec_fw, b, &m);
     if (r == HP_OK) {
@@ -618,6 +646,12 @@ static void report(int code)
         }
     }
     fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
+    fprintf(f, " \"time\": {\"emulate_s\": %.6f, \"io_s\": %.6f, \"sleep_s\": %.6f, "
+               "\"armed_mhz\": %.3f, \"slips\": %llu, \"slipped_s\": %.6f, "
+               "\"behind_max_ms\": %.3f},\n",
+            tm.emulate_ns * 1e-9, tm.io_ns * 1e-9, tm.sleep_ns * 1e-9,
+            tm.armed_emulate_ns ? tm.armed_cycles * 1e3 / (double)tm.armed_emulate_ns : 0.0,
+            (unsigned long long)tm.slips, tm.slipped_ns * 1e-9, tm.behind_max_ns * 1e-6);
     fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"",
             (unsigned long long)simlog.warnings);
     {
@@ -772,6 +806,7 @@ int main(int argc, char **argv)
         if (opt.duration > 0 && (double)avr->cycle >= opt.duration * F_CPU_HZ) {
             break;
         }
+        uint64_t t_a = wall_ns(), c_a = avr->cycle, t_b;
         while (avr->cycle < end && !link_.await_host) {
             uint64_t c0 = avr->cycle, s0 = slept_cycles, busy;
             uint32_t pc0 = (uint32_t)avr->pc;
@@ -793,6 +828,13 @@ int main(int argc, char **argv)
             }
             sample_drive();
         }
+        t_b = wall_ns();
+        tm.emulate_ns += t_b - t_a;
+        if (link_.fw_status & HP_STATUS_ARMED) {
+            tm.armed_emulate_ns += t_b - t_a;
+            tm.armed_cycles += avr->cycle - c_a;
+        }
+        flush_out();
         read_host(0);
         if (link_.await_host && !opt.realtime) {
             /* fast mode: wait (wall time) for the host's answer to this STATE */
@@ -815,6 +857,7 @@ int main(int argc, char **argv)
         }
         link_.await_host = 0;
         feed_uart();
+        tm.io_ns += wall_ns() - t_b;
         /* real time: always with --realtime; in fast mode while a host listens to a
          * disarmed device (its STATEs would flood the host as fast as the host can read) */
         pace = opt.realtime ||
@@ -826,9 +869,20 @@ int main(int argc, char **argv)
                 wall0 = wall_ns() - emu; /* lock from here on */
             }
             wall = wall_ns() - wall0;
-            if (emu > wall + 200000u) {
+            if (emu > wall + LEAD_NS) {
                 struct timespec ts = {0, (long)(emu - wall)};
+                uint64_t t_s = wall_ns();
                 nanosleep(&ts, NULL);
+                tm.sleep_ns += wall_ns() - t_s;
+            } else if (wall > emu + SLIP_NS) {
+                /* descheduled or too slow: slip, do not race the firmware's ticks through
+                 * the lost time (a host answering in real time would be late for each) */
+                tm.slips++;
+                tm.slipped_ns += wall - emu;
+                if (wall - emu > tm.behind_max_ns) {
+                    tm.behind_max_ns = wall - emu;
+                }
+                wall0 += wall - emu;
             }
         }
         paced = pace;
