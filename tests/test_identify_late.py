@@ -121,17 +121,25 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     device's: exit 0, stdout one JSON object, d exact, every truth inside its interval, the
     late ticks accounted (the delay was taken as 1: every tick of a d >= 2 device late,
     wrong estimates, tracebacks; under load the embedded mock was written 'delay: 4')."""
-    proc, port = _mock_on_pty(tmp_path, dev, lockstep=False,
-                              extra=("--faults", "rx.spike=0.01:12ms", "--fault-seed", "3"))
-    try:
-        r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
-                            "--json", "--force-limit", "4", "--duration", "1.5"],
-                           capture_output=True, text=True, timeout=120)
-    finally:
-        proc.terminate()
-        proc.wait(10)
-    assert r.returncode == 0, r.stderr
-    out = json.loads(r.stdout)               # only JSON on stdout
+    for attempt in range(3):
+        proc, port = _mock_on_pty(tmp_path, dev, lockstep=False,
+                                  extra=("--faults", "rx.spike=0.01:12ms", "--fault-seed", "3"))
+        try:
+            r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
+                                "--json", "--force-limit", "4", "--duration", "1.5"],
+                               capture_output=True, text=True, timeout=120)
+        finally:
+            proc.terminate()
+            proc.wait(10)
+        out = json.loads(r.stdout)           # only JSON on stdout
+        lp = out.get("loop", {})
+        # real time on a shared machine: a host stalled past the device's patience ends
+        # the excitation on a fault or safety stop (exit 1, said so in the report: the
+        # full suite beside other work did once); that run measured the host, not the
+        # fit: run it again. Any other exit 1 (a fit that does not explain) fails.
+        if not (r.returncode == 1 and (lp.get("safety_stop") or lp.get("faults"))):
+            break
+    assert r.returncode == 0, (r.stderr, lp)
     fit = out["device"]
     assert fit["delay"] == dev["delay"] and fit["delay_range"] == [dev["delay"]] * 2
     acc = out["loop"]["account"]
