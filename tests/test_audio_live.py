@@ -148,9 +148,14 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
     eng.set_port_position(g[0], at_rest=True)
     live = LiveSound(eng)
     rec = Recorder(jack_server, seconds=3.0)
+    rec.armed = False
     out = JackOutput(live, server=jack_server)
     try:
         out.client.connect(out.out_names[0], rec.inp.name)
+        # record from here on: building the output (its native callback compiled on a
+        # fresh install, under load) took longer than the 3 s buffer, which the recorder
+        # then filled with the silence before the sound ('the live output is silent')
+        rec.armed = True
         time.sleep(0.1)                  # silence: the port held below the string
         for x in g:
             live.push(float(x))
