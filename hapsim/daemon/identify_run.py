@@ -24,7 +24,7 @@ from viscous friction), and early when the device is past 30 % of the envelope o
 it pushes towards (a relay: the steps move the device both ways and keep it centred without
 a stiff spring, which a long delay forbids). The gain ``g`` starts at 1/8 and grows by
 2^(1/4) every 100 ms (up to 1) while the device moved over less than 30 % of the
-envelope (every 25 ms while it stays within 0.5 % of it: held by Coulomb friction), and
+envelope (every 25 ms while it has not yet moved 0.5 % of it: held by Coulomb friction at the start), and
 halves each time the device is about to pass 60 % of the envelope (then 66 %, ...; its
 position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
 ``d`` samples after it moved) never leaves the envelope before the gain has found its
@@ -242,6 +242,7 @@ class ExcitationEngine:
         self._win = max(int(0.1 * scene.rate_hz), 1)
         self._sub = max(int(0.025 * scene.rate_hz), 1)
         self._still = 0.005 * scene.envelope
+        self._stuck = True
         self._hi = -math.inf
         self._lo = math.inf
         self._look = float(scene.max_delay + 1)
@@ -269,13 +270,14 @@ class ExcitationEngine:
             self._hi = position
         if position < self._lo:
             self._lo = position
-        if k % self._win == self._win - 1 or (k % self._sub == self._sub - 1
-                                              and self._hi - self._lo < self._still):
+        if self._stuck and self._hi - self._lo >= self._still:
+            self._stuck = False            # broke loose: from now on the 100 ms steps only
+        if k % self._win == self._win - 1 or (self._stuck and k % self._sub == self._sub - 1):
             if self._hi - self._lo < self._calm and self._g < 1.0:
                 # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
                 # small enough that a device held by Coulomb friction breaks loose gently
                 # (wherever it sticks: the relay pushes it back towards the centre); and
-                # every 25 ms while it stays within 0.5 % of the envelope: a device held
+                # every 25 ms until it first moves 0.5 % of the envelope: a device held
                 # still by its Coulomb friction reaches its breakaway force within
                 # ~0.3 s, not 1.2 s, of a record whose stuck samples say nothing (the
                 # emulated Hapkit's viscous friction interval was 8 times wider so)
