@@ -95,7 +95,8 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
         ``mass`` [kg], ``friction`` b0 [N s/m] and ``coulomb`` [N] become the handle's
         physics (``delay``, ``hold`` and ``force_limit`` are the firmware's own).
     excitation : hapsim.scene.Excitation
-        ``x0`` [m] and ``v0`` [m/s]: where the hand places the handle at each CONFIG; an
+        ``x0`` [m] and ``v0`` [m/s]: where the hand lets go of the handle at each CONFIG
+        (it brings it back there at STOP, without a jump); an
         ``impulse`` (force [N], start [s], duration [s]) becomes the hand's push.
     elf : str, optional
         Firmware ELF (default: the built ``hapkit.elf``).
