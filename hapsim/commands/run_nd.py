@@ -18,7 +18,7 @@ from hapsim.errors import ConfigError
 #: refused by name, with exit 2.
 _REFUSED = (("driver", "--driver"), ("device", "--device"),
             ("osc", "--osc"), ("sound", "--sound"), ("telemetry", "--telemetry"),
-            ("faults", "--faults"), ("auto", "--auto"), ("rate", "--rate"),
+            ("faults", "--faults"), ("auto", "--auto"), ("rate_hz", "--rate"),
             ("host_clocked", "--host-clocked"), ("duration", "--duration"))
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
