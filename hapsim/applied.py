@@ -241,7 +241,11 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
         applied = np.where(cl, np.clip(applied, -force_limit, force_limit), applied)
     # the device's delay: the smallest it shows on a tick that applied a FORCE (a device
     # never applies one before it is due; a late tick only shows a larger one)
+    # (force_seq = 0 without FORCE_APPLIED is "FORCE 0 or none yet", kernels.ticks notes:
+    # it shows a delay only when no row says more)
     on = named & ~wd
+    sure = on & ~((fseq == 0) & ((st & STATUS_FORCE_APPLIED) == 0))
+    on = sure if np.any(sure) else on
     d = int(tick[on].min()) if np.any(on) else -1
     # known: a named force in the record, or none named (zero) before the first one
     first = int(np.argmax(named)) if np.any(named) else n
