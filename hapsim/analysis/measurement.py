@@ -49,11 +49,18 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         Difference the signal first (constant equilibrium offset).
     late : ndarray of int, shape (n,), optional
         1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
-        not part of the linear THS: the record is cut there and the longest clean segment
-        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
-        disturbance is again a free response, minus ``skip`` samples of dead-beat
-        transient. Without a long enough clean segment the longest run is used as is
-        (``late_in_segment`` says how many disturbances it holds).
+        not part of the linear THS: the record is cut there as at a gap of seq; the
+        response after a disturbance is again a free response, minus ``skip`` samples of
+        dead-beat transient. Without a clean segment of at least ``max(4 order + 10,
+        100)`` samples the runs of consecutive seq are used as they are
+        (``late_in_segment`` says how many disturbances they hold).
+
+        With ``predicted`` and without ``closed``, every stretch is measured: the longest
+        and each other of at least ``2 (order + 1) + 10`` samples, each a free response
+        of the same loop from its own initial state (:func:`hapsim.analysis.identify.
+        measure_felt` with ``lens``), so a run with gaps, late ticks cut out or a
+        recovery uses all its data. With ``closed`` (contacts) or without a prediction
+        (the pencil alone), the longest stretch only.
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
@@ -79,8 +86,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     Returns
     -------
     dict
-        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``
+        (of the first stretch used), ``order``, ``pencil``, ``late_in_segment``,
+        ``stretches`` (of the free response) and ``stretches_used``; with ``predicted`` also ``k_sd``,
         ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
         :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
         be identified or the record cannot support a measurement.
@@ -112,16 +120,32 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         return out or [(0, 0)]
 
     need = max(4 * int(order) + 10, 100)
+    # a further stretch is fitted with the longest when it holds more samples than its
+    # own initial condition's coefficients (order + offset) by a margin
+    extra = 2 * (int(order) + 1) + 10
     a = b = 0
+    segs = [(0, 0)]
     if y.size:
         segs = segments(True)
         a, b = max(segs, key=lambda ab: ab[1] - ab[0])
         if b - a < need:
-            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
+            segs = segments(False)
+            a, b = max(segs, key=lambda ab: ab[1] - ab[0])
     late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
-    y, s = y[a:b], s[a:b]
-    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
-           "order": int(order), "late_in_segment": late_in}
+    if cl is None and predicted is not None and felt is not None:
+        # every stretch (each from its own initial state, the loop's poles shared): a run
+        # with gaps or a recovery is measured on all its data, not its longest stretch
+        use = [(a, b)] + [(p, q) for p, q in segs if (p, q) != (a, b) and q - p >= extra]
+        use.sort()
+    else:
+        use = [(a, b)]
+    late_in = sum(int(np.count_nonzero(lt[p + 1:q])) for p, q in use if q > p)
+    y = np.concatenate([y[p:q] for p, q in use])
+    first = s[use[0][0]:use[0][1]]
+    lens = [q - p for p, q in use]
+    out = {"samples_used": int(y.size), "first_seq": int(first[0]) if first.size else None,
+           "order": int(order), "late_in_segment": late_in, "stretches_used": len(use),
+           "stretches": len([1 for p, q in segs if q > p])}
     if cl is not None:
         out["comparable"] = bool(b - a >= need)
         if not out["comparable"]:
@@ -130,14 +154,14 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                              f"samples, fewer than the {need} the fit needs")
             return out
     from hapsim.analysis.identify import thin_pencil
-    pencil = thin_pencil(order, y.size - (1 if offset else 0))
+    pencil = thin_pencil(order, (b - a) - (1 if offset else 0))
     out["pencil"] = pencil
     if predicted is not None and felt is not None and y.size:
         from hapsim.analysis.identify import measure_felt
         try:
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response, wire=wire)
+                               sensor_response=sensor_response, wire=wire, lens=lens)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
