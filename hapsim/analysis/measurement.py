@@ -154,7 +154,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                              f"samples, fewer than the {need} the fit needs")
             return out
     from hapsim.analysis.identify import thin_pencil
-    pencil = thin_pencil(order, (b - a) - (1 if offset else 0))
+    pencil = thin_pencil(order, int(b - a) - (1 if offset else 0))
     out["pencil"] = pencil
     if predicted is not None and felt is not None and y.size:
         from hapsim.analysis.identify import measure_felt
