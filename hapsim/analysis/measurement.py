@@ -300,6 +300,11 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     position minus the loop's response to ``w = applied - F[n-d]``
     (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
     so the whole record is measured, not only the longest stretch without a late tick.
+    So is an actuator's rounding: a framed device whose HELLO states a ``force_scale``
+    (the Hapkit firmware's PWM step, to which it rounds every FORCE to the nearest) applies
+    that step's multiple, and ``w`` holds the rounding at every tick (left in, the 22.7 mN
+    steps biased the measured k of the emulated Hapkit in real time: -0.336 +- 0.286 N/m
+    from the prediction in one record, +0.027 with the rounding taken out).
 
     Parameters
     ----------
@@ -335,14 +340,22 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         if acc is None or not np.any(acc.late):
             return pos, late, {}
     else:
-        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+        # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
+        # the nearest step of every force (the firmware rounds so): a known input at every
+        # tick, late or not, taken out as a late tick's is
+        step = float(getattr(hello, "force_scale", 0.0) or 0.0) if hello is not None else 0.0
+        step = step if math.isfinite(step) and step > 0 else 0.0
+        if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0):
             return pos, late, {}
         lim = float(dev.force_limit)
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
             lim = min(lim, float(hello.force_limit))
         acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                     zero_delay=dev.delay == 0, force_limit=lim)
+                                     zero_delay=dev.delay == 0, force_limit=lim,
+                                     force_scale=step)
     info = {"device_delay": int(acc.delay), "account": acc.method}
+    if driver is None and step > 0:
+        info["force_step"] = step
     if acc.delay != dev.delay:
         # the model of the loop would be the wrong one: measure as recorded, and say so
         info["late_accounted"] = 0
