@@ -231,3 +231,46 @@ def test_no_module_imports_another_modules_private_names():
         if found:
             bad[mod] = found
     assert bad == {}
+
+
+# ------------------------------------------------------------------- the scene package
+# hapsim.scene is four rooms in a row, each importing only the rooms before it: the
+# elements (values), the rules (checks on the values), the model (Scene, checked by the
+# rules when built), the reader (YAML with lines -> the model). Users import the package.
+SCENE_ROOMS = ("hapsim.scene.elements", "hapsim.scene.rules", "hapsim.scene.model",
+               "hapsim.scene.reader")
+#: Modules outside the package that take a room directly, and which: a device file is a
+#: scene's device section, read and checked by the same code.
+SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"}}
+
+
+def test_the_scene_rooms_import_only_the_rooms_before_them():
+    graph = _house_graph()
+    assert set(SCENE_ROOMS) <= set(graph), "hapsim.scene lost a room"
+    for i, room in enumerate(SCENE_ROOMS):
+        inside = {m for m in graph[room] if m == "hapsim.scene" or m.startswith("hapsim.scene.")}
+        assert inside <= set(SCENE_ROOMS[:i]), f"{room} imports {sorted(inside)}"
+
+
+def test_outside_the_scene_package_only_the_named_users_take_a_room():
+    graph = _house_graph()
+    found = {}
+    for mod, deps in graph.items():
+        if mod == "hapsim.scene" or mod.startswith("hapsim.scene."):
+            continue
+        rooms = {d for d in deps if d in SCENE_ROOMS}
+        if rooms:
+            found[mod] = rooms
+    assert found == SCENE_ROOM_USERS
+
+
+def test_the_scene_package_keeps_its_public_names():
+    """``from hapsim.scene import ...`` is what it was before the package: every name of
+    its ``__all__`` is there, and the classes say they are the package's rooms'."""
+    import hapsim.scene as sc
+    assert set(sc.__all__) >= {"Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse",
+                               "Excitation", "Safety", "Listen", "Audio", "Scene",
+                               "load_scene", "parse_scene", "audio_substeps", "PROTOCOLS"}
+    for name in sc.__all__:
+        assert hasattr(sc, name), name
+    assert sc.Scene.__module__ == "hapsim.scene.model"
