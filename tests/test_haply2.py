@@ -16,7 +16,7 @@ import pytest
 
 from hapsim.daemon.haply2_board import Haply2DIYBoard, drive_haply2, measure_felt_haply2
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
-from hapsim.drivers.mock import ByteFaults
+from hapsim.driver_mock import ByteFaults
 from hapsim.scene_nd import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

@@ -227,7 +227,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
     samples : int
         Writes after arming.
     faults : object, optional
-        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.drivers.mock.ByteFaults`).
+        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.driver_mock.ByteFaults`).
     engine : hapsim.engine_nd.EngineND, optional
         A fresh engine (default: one of ``scene``).
 
