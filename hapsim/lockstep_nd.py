@@ -247,6 +247,7 @@ class LocalJointDeviceND:
         kin = device(dev.kind, dev.geometry)
         q0 = np.asarray(dev.joints, float)
         n = q0.size
+        self.q0 = q0.copy()
         self.J0 = kin.jacobian(q0)
         self.f0 = kin.forward(q0)
         h = 1e-5
@@ -285,11 +286,20 @@ class LocalJointDeviceND:
         return self.f0 + self._disp(self.s)
 
     def step(self, u) -> None:
-        """Hold the torques of the Cartesian force ``u`` [N] (shape (n,)) over one period
-        and advance (:func:`hapsim.kernels.joint_nd.joint_step`)."""
-        self._u[:] = u
+        """Hold the torques ``J(q_n)^T u`` of the Cartesian force ``u`` [N] (shape (n,))
+        over one period and advance."""
+        self.step_torque(self.J(self.s).T @ np.asarray(u, float))
+
+    def step_torque(self, tau) -> None:
+        """Hold the joint torques ``tau`` [N m] (shape (n,)) over one period and advance
+        (:func:`hapsim.kernels.joint_nd.joint_step`)."""
+        self._u[:] = tau
         joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
                    self.bh, self.h, self.substeps, self._wv, self._wm)
+
+    def joints(self) -> np.ndarray:
+        """Joint angles ``q0 + s`` [rad], shape (n,)."""
+        return self.q0 + self.s
 
 
 def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = None,
