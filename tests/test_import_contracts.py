@@ -324,3 +324,23 @@ def test_nothing_imports_into_a_folder_that_stands_above_it():
     holds the codecs and the driver transport (scene floor); their byte-exact mocks stand
     in hapsim.driver_mock (devices floor)."""
     assert _folder_upward(_house_graph()) == []
+
+
+def test_no_module_reads_an_engines_private_state():
+    """The live sound and the contact replay read an Engine through its public accessors
+    (``kernel_pack``, ``multirate_pack``, ``port_index``, ``positions``, ``corrected``),
+    not its ``_x``/``_xp``/``_multi``/``_port``: a name bound to an engine, read with a
+    leading underscore, appears nowhere outside the engine and its subclass in
+    hapsim.daemon.correction."""
+    import re
+    pattern = re.compile(r"\b(?:eng|engine|self\.eng|self\.engine)\._[a-z]\w*")
+    assert pattern.search("before = eng._x[self.uniq].copy()")
+    assert not pattern.search("x = self._x; y = eng.positions")
+    bad = {}
+    for mod, f in _modules().items():
+        if mod in ("hapsim.engine", "hapsim.engine_nd"):
+            continue
+        found = pattern.findall(f.read_text())
+        if found:
+            bad[mod] = sorted(set(found))
+    assert bad == {}
