@@ -818,6 +818,9 @@ class RunReport(_Report):
     loop : dict
         Rate, ticks, late, missed, turnaround, stop reason, the device's protocol, ...
     telemetry, osc, sound : dict or None
+    error : dict or None
+        ``type`` and ``message`` of the device error that ended the run (the device lost
+        beyond recovery); None when it ran to its end.
     advice : dict or None
         What ``auto`` chose (rate and integrator).
 
@@ -825,7 +828,7 @@ class RunReport(_Report):
     safety stop or a device fault).
     """
 
-    _OPTIONAL = ("advice",)
+    _OPTIONAL = ("error", "advice")
 
     scene: str
     target: dict | None
@@ -837,6 +840,7 @@ class RunReport(_Report):
     telemetry: dict | None
     osc: dict | None
     sound: dict | None
+    error: dict | None = None
     advice: dict | None = None
 
     @property
@@ -854,6 +858,17 @@ class RunReport(_Report):
         """Ran to the end (or was stopped by a signal): what exit code 0 means."""
         return self.exit_code == 0
 
+    def text(self) -> str:
+        """The human report ``hapsim run`` prints (:func:`hapsim.daemon.report.format_report`).
+
+        Returns
+        -------
+        str
+            Several aligned lines, no trailing newline.
+        """
+        from hapsim.daemon.report import format_report
+        return format_report(self.to_dict())
+
 
 #: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
 _RUN_INTERNAL = ("plan", "embedded")
@@ -861,35 +876,41 @@ _RUN_INTERNAL = ("plan", "embedded")
 
 def run_options() -> tuple:
     """The options :func:`run` takes: the fields of
-    :class:`hapsim.daemon.runner.RunOptions` (what ``hapsim run``'s options become).
+    :class:`hapsim.daemon.options.RunOptions` (what ``hapsim run``'s options become).
 
     Returns
     -------
     tuple of str
     """
-    from hapsim.daemon.runner import RunOptions
+    from hapsim.daemon.options import RunOptions
     return tuple(f.name for f in dataclasses.fields(RunOptions)
                  if f.name not in _RUN_INTERNAL)
 
 
-def run(scene, **options: Any) -> RunReport:
+def run(scene, options=None, **changes: Any) -> RunReport:
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    ``hapsim run`` is this function with the options of its command line
+    (:meth:`hapsim.daemon.options.RunOptions.from_args`); it prints the result.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene or str
-    **options
-        Those of ``hapsim run`` (:func:`run_options`): ``port`` (None: the embedded mock
-        on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic mock),
-        ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a file),
-        ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
-        process), ``handle_signals`` (default False here: a library leaves SIGINT to its
-        caller), ...
+    options : hapsim.daemon.options.RunOptions, optional
+        All the options at once (default: ``RunOptions(handle_signals=False)``: a library
+        leaves SIGINT to its caller).
+    **changes
+        Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
+        embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
+        mock), ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a
+        file), ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
+        process), ``handle_signals``, ...
 
     Returns
     -------
     RunReport
-        Also when the run ended on a safety stop or a device fault (``ok`` False).
+        Also when the run ended on a safety stop or a device fault (``ok`` False; a device
+        lost beyond recovery: ``error``).
 
     Raises
     ------
@@ -905,22 +926,24 @@ def run(scene, **options: Any) -> RunReport:
     The measured (k, b) are identified from the free response by the matrix pencil
     method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
     """
+    from hapsim.daemon.options import RunOptions
     from hapsim.daemon.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
 
     valid = run_options()
-    unknown = sorted(set(options) - set(valid))
+    unknown = sorted(set(changes) - set(valid))
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(valid)}", key=unknown[0])
     scene = _scene(scene)
-    options.setdefault("handle_signals", False)
-    if options.get("driver") is None and scene.device is not None:
-        options["driver"] = scene.device.protocol
-    if options.get("driver") == "framed":
-        options["driver"] = None
+    opts = dataclasses.replace(options if options is not None
+                               else RunOptions(handle_signals=False), **changes)
+    driver = opts.driver
+    if driver is None and scene.device is not None:
+        driver = scene.device.protocol
     try:
-        rep = run_scene(scene, **options)
+        rep = run_scene(scene, dataclasses.replace(
+            opts, driver=None if driver == "framed" else driver))
     except (DeviceError, ProtocolError) as exc:
         rep = getattr(exc, "report", None)
         if rep is None:
