@@ -258,12 +258,16 @@ class DriverTransport:
         as a missing sample and sends its FORCE anyway (module notes)."""
         if not (self._armed and self._settle <= 0 and self._answered < self._cmd):
             return False
-        waited = self._now_us() - self._sent_us[self._cmd % _RING]
+        return self._given_up()
+
+    def _given_up(self) -> bool:
+        """The newest command's answer will not come: at once on hardware (its time went
+        on); for a mock paced by the commands, once bytes came that made no record (a
+        damaged answer) or after a long silence (a wholly lost one); a slow mock process
+        is neither (asking it again would only merge two packets into one pass)."""
         if self._deadline_us <= 0:
-            return True                     # hardware: its time went on
-        # a mock paced by the commands: overdue once bytes came that made no record (a
-        # damaged answer), or after a long silence (a wholly lost one); a slow mock
-        # process is neither
+            return True
+        waited = self._now_us() - self._sent_us[self._cmd % _RING]
         return waited >= (self._deadline_us if self._stray else 10 * self._deadline_us)
 
     def _extrapolate(self, seq: int) -> float:
@@ -293,8 +297,7 @@ class DriverTransport:
         """A host tick without a new sample: command the last force again (a request-reply
         device answers only what it is asked), or, while the device is re-synchronising,
         zero force. Called by the host loop on each missed tick."""
-        if self._armed and (self._answered == self._cmd or self._now_us()
-                            - self._sent_us[self._cmd % _RING] >= self._deadline_us):
+        if self._armed and (self._answered == self._cmd or self._given_up()):
             if self._stalled():
                 self._resync()
             else:
