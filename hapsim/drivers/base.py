@@ -122,6 +122,11 @@ class Driver:
     #: Records to let pass after arming, at zero force, before the first sample: a
     #: firmware whose force comes up slowly (the FireFader's enable ramp) is full by then.
     arming_records = 0
+    #: The device parameter an added-mass calibration finds (``hapsim identify
+    #: --added-mass``; :mod:`hapsim.analysis.calibration`) and what it scales
+    #: (``"force"`` or ``"position"``); None: the protocol carries SI units.
+    scale_option: str | None = None
+    scale_kind = "force"
     #: The device answers each command with one record (request-reply): a command whose
     #: answer is overdue is a missing sample that the host loop steps through with an
     #: estimated position (:meth:`hapsim.drivers.transport.DriverTransport.overdue`,

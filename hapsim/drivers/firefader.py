@@ -325,6 +325,8 @@ class FireFader(Driver):
     native_rate_hz = 300.0
     device_id = 0x46464144            # "FFAD"
     limits = LIMITS
+    scale_option = "full_scale"
+    scale_kind = "force"
     #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129, 2 more
     arming_records = 72
     answering_firmware = "haptics_firmware.ino (one record per packet)"
