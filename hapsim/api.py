@@ -116,6 +116,19 @@ class _Report:
         return obj
 
 
+def _draw(report, draw, path_or_ax):
+    """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file (a path:
+    checked first, written by :func:`hapsim.plot.save_figure`). Returns the figure."""
+    from hapsim.plot import check_figure_path, save_figure
+    if isinstance(path_or_ax, (str, os.PathLike)):
+        path = os.fspath(path_or_ax)
+        check_figure_path(path, "plot")
+        fig = draw(report)
+        save_figure(fig, path)
+        return fig
+    return draw(report, ax=path_or_ax)
+
+
 def _scene(scene):
     """A Scene from a Scene or a path."""
     if isinstance(scene, (str, os.PathLike)):
@@ -197,11 +210,28 @@ class CheckReport(_Report):
         """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
         return _get(self.rendered, "b")
 
-    def plot(self, ax=None):
+    def plot(self, path_or_ax=None):
         """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plot.plot_poles`). Returns the matplotlib figure."""
+        (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def _get(d, key) -> float:
@@ -297,10 +327,25 @@ class RenderReport(_Report):
         """Closed-loop poles as [re, im] (from :attr:`modes`)."""
         return [[m["z_re"], m["z_im"]] for m in self.modes]
 
-    def plot(self, ax=None):
-        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`)."""
+    def plot(self, path_or_ax=None):
+        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write, axes to draw into, or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing, or a path that cannot be written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def render(loop, K: float, B: float = 0.0) -> RenderReport:
@@ -910,6 +955,29 @@ class RunReport(_Report):
     def ok(self) -> bool:
         """Ran to the end (or was stopped by a signal): what exit code 0 means."""
         return self.exit_code == 0
+
+    def plot(self, path_or_ax=None):
+        """The felt (k, b) of the run: simulated, predicted, measured (with its stated
+        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plot.plot_felt`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plot import plot_felt
+        return _draw(self, plot_felt, path_or_ax)
 
     def text(self) -> str:
         """The human report ``hapsim run`` prints (:func:`hapsim.daemon.report.format_report`).

@@ -176,11 +176,11 @@ class RunOptions:
         ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
         ``resolution``, ``direction``).
     mock_options : dict, optional
-        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        The driver mock's hardware (:class:`hapsim.driver_mock.EmbeddedDriverMock`),
         which may differ from what ``driver_options`` believe.
     driver_faults : dict, optional
         Seeded byte loss and corruption on the driver mock's link, both directions
-        (:class:`hapsim.drivers.mock.ByteFaults`).
+        (:class:`hapsim.driver_mock.ByteFaults`).
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
