@@ -44,8 +44,8 @@ from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits", "known_decimals",
-           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
+           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
+           "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
 
 

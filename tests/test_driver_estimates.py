@@ -1,5 +1,5 @@
 """What a driver's host knows of the force applied and of the samples it never got, checked
-against the FireFader firmware's own loop (hapsim.drivers.mock.FireFaderDevice) closed
+against the FireFader firmware's own loop (hapsim.driver_mock.FireFaderDevice) closed
 offline through hapsim's engine: deterministic, no pty, no real time (issue 20).
 
 The loop here is the host loop's arithmetic: row k is the record answering command k, the
@@ -18,7 +18,7 @@ import pytest
 from hapsim.daemon.options import RunOptions
 from hapsim.daemon.runner import identify_run, prepare_run
 from hapsim.drivers.firefader import CENTRE, FireFader, RecordDecoder, enable_passes
-from hapsim.drivers.mock import FireFaderDevice
+from hapsim.driver_mock import FireFaderDevice
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 

@@ -362,8 +362,7 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults, duration):
     device's clock), the device is left at zero force, and (Haply, where the free response
     fits the run) (k, b) are measured on the host's ticks, missing ones included, within
     1 % / 10 % of the prediction (before: no measurement, or a safety stop); the report
-    says the estimated samples' disturbance is not in the stated uncertainty (it can
-    exceed it: k is stated to ~0.05 % here)."""
+    says how much of the stated uncertainty is the estimated samples' worst case."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene(f"configs/{driver}.yaml"), driver=driver, duration=duration,

@@ -53,8 +53,8 @@ import math
 
 from hapsim.drivers.base import Driver, MappedDecoder
 
-__all__ = ["FireFader", "enable_passes", "HOST_START", "DEVICE_START", "POSITION_MAX", "FORCE_MIN", "FORCE_MAX",
-           "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
+__all__ = ["FireFader", "enable_passes", "HOST_START", "DEVICE_START", "POSITION_MAX",
+           "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
            "force_counts", "RecordDecoder", "PacketDecoder"]
 
 HOST_START = 127
@@ -168,7 +168,7 @@ def encode_record(pos_a: int, pos_b: int, extra=(0, 0, 0, 0)) -> bytes:
 def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
                   delay: int = 1, enable0: int = ENABLE_FULL, heat0: int = 0):
     """The ``.ino`` firmware's PWM per pass, from the host's commands: its enable filter
-    replayed (module notes; :class:`hapsim.drivers.mock.FireFaderDevice` runs the same loop).
+    replayed (module notes; :class:`hapsim.driver_mock.FireFaderDevice` runs the same loop).
 
     Pass ``c`` (command ``c``) sets the motor to ``(2 n_c (e - 1)) >> 7`` of 254 (``n_c``
     the packet's count, ``e`` the enable), then updates the heat estimate

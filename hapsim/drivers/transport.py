@@ -264,7 +264,7 @@ class DriverTransport:
         """The newest command's answer will not come: at once on hardware (its time went
         on); for a mock paced by the commands, once bytes came that made no record (a
         damaged answer) or after a long silence (a wholly lost one); a slow mock process
-        is neither (asking it again would only merge two packets into one pass)."""
+        is neither."""
         if self._deadline_us <= 0:
             return True
         waited = self._now_us() - self._sent_us[self._cmd % _RING]
@@ -297,7 +297,11 @@ class DriverTransport:
         """A host tick without a new sample: command the last force again (a request-reply
         device answers only what it is asked), or, while the device is re-synchronising,
         zero force. Called by the host loop on each missed tick."""
-        if self._armed and (self._answered == self._cmd or self._given_up()):
+        # (asked again after the reply deadline, not the longer silence overdue waits
+        # for: a packet lost on the way gets no answer at all, and the loop's silence
+        # allowed is shorter; a slow mock then merges two packets into one pass)
+        if self._armed and (self._answered == self._cmd or self._now_us()
+                            - self._sent_us[self._cmd % _RING] >= self._deadline_us):
             if self._stalled():
                 self._resync()
             else:
