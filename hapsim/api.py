@@ -557,11 +557,33 @@ class FamilyReport(_Report):
     consistency: dict | None = None
     family_calibrations: list | None = None
 
-    def plot(self, title: str | None = None):
-        """Felt (k, b) of every member, coloured by spectral radius
-        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+    def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
+        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format; ``hapsim family
+            --plot``); None: a new figure only.
+        title : str, optional
+            Default: the scene's path.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot_family import plot_family
-        return plot_family(self.analysis, title=title or self.scene)
+
+        def draw(report, ax=None):          # two panels: a figure of its own
+            return plot_family(report.analysis, title=title or report.scene)
+        return _draw(self, draw, path)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
