@@ -26,9 +26,16 @@ It prints, for growing meshes:
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
   within 1 ms (1 kHz), by bisection on the mesh size measured at each step.
 
+With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
+``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
+scene on :class:`hapsim.engine_nd.EngineND`, and its Faust twin (``tests/faust_gen.py``,
+``faust -double``, ``g++ -O3``): the largest difference of the trajectories over 2,000
+samples relative to the amplitude, and ns per mass-sample of both (Faust's driver times
+blocks of 64 samples; thread CPU time for both), with their ratio.
+
 The load average at the start and the end is printed (and written): figures measured
 beside other CPU-bound work are not a quiet machine's. Reproduce the shipped figures with
-``python tools/bench_nd.py --json docs/bench_nd.json`` (about 2 minutes).
+``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 3 minutes).
 
 Exit code 0, or 2 on bad arguments.
 """
@@ -36,15 +43,26 @@ Exit code 0, or 2 on bad arguments.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numba as nb
 import numpy as np
 
-from hapsim.kernels.nd import BLOCK, link_lengths, run_nd, schedule, stripes
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "tools"))
+
+from hapsim.kernels.nd import BLOCK, link_lengths, run_nd, schedule, stripes  # noqa: E402
+
+#: Beads of the string compared with Faust (Faust's build time grows with the string).
+FAUST_BEADS = 300
 
 T = 1.0 / 44100.0
 SPACING = 0.01
@@ -196,10 +214,55 @@ def largest(kind, deadline, quick):
     return N, t
 
 
+def faust_projection(n: int, repeats: int) -> dict:
+    """The 1-D string of ``n`` beads on EngineND against its Faust ``mi.lib`` twin.
+
+    Returns a dict with ``beads``, ``max_rel_diff`` (over 2,000 samples, relative to the
+    amplitude), ``hapsim_ns``, ``faust_ns`` (per mass-sample), ``ratio`` (hapsim / Faust)
+    and ``faust_build_s``; or ``{"skipped": reason}``.
+    """
+    import bench_engine
+    import faust_gen
+
+    from hapsim.engine_nd import EngineND
+    from hapsim.scene_nd import LinkND, MassND, SceneND
+    reason = faust_gen.tools_available()
+    if reason is not None:
+        return {"skipped": reason}
+    sc = bench_engine.string_scene(n)
+    sc = dataclasses.replace(sc, masses=tuple(m for m in sc.masses if m.kind != "port"),
+                             links=tuple(lk for lk in sc.links if lk.kind != "contact"))
+    nd = SceneND(1, sc.rate_hz,
+                 tuple(MassND(m.name, m.kind, m.mass, np.array([m.x0]), np.array([m.v0]))
+                       for m in sc.masses),
+                 tuple(LinkND(lk.name, lk.kind, lk.m1, lk.m2, lk.stiffness, lk.damping,
+                              0.0, 0.0) for lk in sc.links), (), None)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        exe = faust_gen.build(faust_gen.faust_program(sc), tmp, opt="-O3", timeout=600)
+        build_s = time.perf_counter() - t0
+        y = faust_gen.run_binary(exe, 2000)
+        samples = max(640, int(2e7 / n))
+        faust_s = faust_gen.bench_binary(exe, samples, repeats=repeats, block=64)
+    eng = EngineND(nd)
+    x = np.empty_like(y)
+    for s in range(2000):
+        eng.step()
+        x[s] = eng.x[0]
+    diff = float(np.max(np.abs(x - y)) / np.max(np.abs(x)))
+    hap_s = per_sample(eng.step, samples, repeats) * samples
+    N = len(sc.masses) - 2            # beads (the two grounds do not move)
+    return {"beads": n, "max_rel_diff": diff, "hapsim_ns": hap_s / (samples * N) * 1e9,
+            "faust_ns": faust_s / (samples * N) * 1e9, "ratio": hap_s / faust_s,
+            "faust_build_s": build_s}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--faust", action="store_true",
+                   help="also compare a 1-D projection with Faust mi.lib (builds it)")
     args = p.parse_args(argv)
     sizes = [(10, 10, 5), (22, 22, 11), (30, 30, 15)] if args.quick else \
         [(10, 10, 5), (20, 20, 10), (22, 22, 11), (30, 30, 15), (40, 40, 20),
@@ -243,6 +306,17 @@ def main(argv=None) -> int:
                 "masses": N, "us_per_sample": t * 1e6}
             print(f"largest mesh within {label} ({deadline * 1e6:.2f} us/sample), {kind}: "
                   f"{N} masses ({t * 1e6:.2f} us/sample)", flush=True)
+    if args.faust:
+        fa = faust_projection(FAUST_BEADS, repeats)
+        out["faust"] = fa
+        if "skipped" in fa:
+            print(f"Faust mi.lib comparison skipped: {fa['skipped']}")
+        else:
+            print(f"1-D string of {fa['beads']} beads, EngineND against Faust mi.lib (-O3): "
+                  f"largest difference {fa['max_rel_diff']:.1e} of the amplitude; "
+                  f"{fa['hapsim_ns']:.2f} ns against {fa['faust_ns']:.2f} ns per mass-sample "
+                  f"(hapsim / Faust = {fa['ratio']:.2f}; Faust build {fa['faust_build_s']:.0f} s)",
+                  flush=True)
     out["load_average"] = [load0, os.getloadavg()[0]]
     print(f"load average {out['load_average'][1]:.2f} at the end")
     if args.json:
