@@ -116,6 +116,19 @@ class _Report:
         return obj
 
 
+def _draw(report, draw, path_or_ax):
+    """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file (a path:
+    checked first, written by :func:`hapsim.plot.save_figure`). Returns the figure."""
+    from hapsim.plot import check_figure_path, save_figure
+    if isinstance(path_or_ax, (str, os.PathLike)):
+        path = os.fspath(path_or_ax)
+        check_figure_path(path, "plot")
+        fig = draw(report)
+        save_figure(fig, path)
+        return fig
+    return draw(report, ax=path_or_ax)
+
+
 def _scene(scene):
     """A Scene from a Scene or a path."""
     if isinstance(scene, (str, os.PathLike)):
@@ -197,11 +210,28 @@ class CheckReport(_Report):
         """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
         return _get(self.rendered, "b")
 
-    def plot(self, ax=None):
+    def plot(self, path_or_ax=None):
         """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plot.plot_poles`). Returns the matplotlib figure."""
+        (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def _get(d, key) -> float:
@@ -297,10 +327,25 @@ class RenderReport(_Report):
         """Closed-loop poles as [re, im] (from :attr:`modes`)."""
         return [[m["z_re"], m["z_im"]] for m in self.modes]
 
-    def plot(self, ax=None):
-        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`)."""
+    def plot(self, path_or_ax=None):
+        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write, axes to draw into, or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing, or a path that cannot be written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def render(loop, K: float, B: float = 0.0) -> RenderReport:
@@ -818,6 +863,9 @@ class RunReport(_Report):
     loop : dict
         Rate, ticks, late, missed, turnaround, stop reason, the device's protocol, ...
     telemetry, osc, sound : dict or None
+    error : dict or None
+        ``type`` and ``message`` of the device error that ended the run (the device lost
+        beyond recovery); None when it ran to its end.
     advice : dict or None
         What ``auto`` chose (rate and integrator).
 
@@ -825,7 +873,7 @@ class RunReport(_Report):
     safety stop or a device fault).
     """
 
-    _OPTIONAL = ("advice",)
+    _OPTIONAL = ("error", "advice")
 
     scene: str
     target: dict | None
@@ -837,6 +885,7 @@ class RunReport(_Report):
     telemetry: dict | None
     osc: dict | None
     sound: dict | None
+    error: dict | None = None
     advice: dict | None = None
 
     @property
@@ -854,6 +903,40 @@ class RunReport(_Report):
         """Ran to the end (or was stopped by a signal): what exit code 0 means."""
         return self.exit_code == 0
 
+    def plot(self, path_or_ax=None):
+        """The felt (k, b) of the run: simulated, predicted, measured (with its stated
+        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plot.plot_felt`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plot import plot_felt
+        return _draw(self, plot_felt, path_or_ax)
+
+    def text(self) -> str:
+        """The human report ``hapsim run`` prints (:func:`hapsim.daemon.report.format_report`).
+
+        Returns
+        -------
+        str
+            Several aligned lines, no trailing newline.
+        """
+        from hapsim.daemon.report import format_report
+        return format_report(self.to_dict())
+
 
 #: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
 _RUN_INTERNAL = ("plan", "embedded")
@@ -861,35 +944,41 @@ _RUN_INTERNAL = ("plan", "embedded")
 
 def run_options() -> tuple:
     """The options :func:`run` takes: the fields of
-    :class:`hapsim.daemon.runner.RunOptions` (what ``hapsim run``'s options become).
+    :class:`hapsim.daemon.options.RunOptions` (what ``hapsim run``'s options become).
 
     Returns
     -------
     tuple of str
     """
-    from hapsim.daemon.runner import RunOptions
+    from hapsim.daemon.options import RunOptions
     return tuple(f.name for f in dataclasses.fields(RunOptions)
                  if f.name not in _RUN_INTERNAL)
 
 
-def run(scene, **options: Any) -> RunReport:
+def run(scene, options=None, **changes: Any) -> RunReport:
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    ``hapsim run`` is this function with the options of its command line
+    (:meth:`hapsim.daemon.options.RunOptions.from_args`); it prints the result.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene or str
-    **options
-        Those of ``hapsim run`` (:func:`run_options`): ``port`` (None: the embedded mock
-        on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic mock),
-        ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a file),
-        ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
-        process), ``handle_signals`` (default False here: a library leaves SIGINT to its
-        caller), ...
+    options : hapsim.daemon.options.RunOptions, optional
+        All the options at once (default: ``RunOptions(handle_signals=False)``: a library
+        leaves SIGINT to its caller).
+    **changes
+        Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
+        embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
+        mock), ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a
+        file), ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
+        process), ``handle_signals``, ...
 
     Returns
     -------
     RunReport
-        Also when the run ended on a safety stop or a device fault (``ok`` False).
+        Also when the run ended on a safety stop or a device fault (``ok`` False; a device
+        lost beyond recovery: ``error``).
 
     Raises
     ------
@@ -905,22 +994,24 @@ def run(scene, **options: Any) -> RunReport:
     The measured (k, b) are identified from the free response by the matrix pencil
     method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
     """
+    from hapsim.daemon.options import RunOptions
     from hapsim.daemon.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
 
     valid = run_options()
-    unknown = sorted(set(options) - set(valid))
+    unknown = sorted(set(changes) - set(valid))
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(valid)}", key=unknown[0])
     scene = _scene(scene)
-    options.setdefault("handle_signals", False)
-    if options.get("driver") is None and scene.device is not None:
-        options["driver"] = scene.device.protocol
-    if options.get("driver") == "framed":
-        options["driver"] = None
+    opts = dataclasses.replace(options if options is not None
+                               else RunOptions(handle_signals=False), **changes)
+    driver = opts.driver
+    if driver is None and scene.device is not None:
+        driver = scene.device.protocol
     try:
-        rep = run_scene(scene, **options)
+        rep = run_scene(scene, dataclasses.replace(
+            opts, driver=None if driver == "framed" else driver))
     except (DeviceError, ProtocolError) as exc:
         rep = getattr(exc, "report", None)
         if rep is None:

@@ -7,7 +7,7 @@ import pytest
 
 from hapsim.drivers import get_driver
 from hapsim.drivers import firefader as ff
-from hapsim.drivers.mock import FireFaderDevice
+from hapsim.driver_mock import FireFaderDevice
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 
@@ -212,7 +212,7 @@ def test_haply_hostile_streams():
     import struct
 
     from hapsim.drivers import haply as hp
-    from hapsim.drivers.mock import HaplyDevice
+    from hapsim.driver_mock import HaplyDevice
     rng = np.random.default_rng(5)
     good = [hp.reply_packet(3, float(a)) for a in rng.uniform(-720, 720, 300)]
     data, intact = _hostile(rng, good)
@@ -279,7 +279,7 @@ def test_hapkit_serial_hostile_streams():
     import struct
 
     from hapsim.drivers import hapkit_serial as hk
-    from hapsim.drivers.mock import HapkitSerialDevice
+    from hapsim.driver_mock import HapkitSerialDevice
     rng = np.random.default_rng(9)
     good = [hk.reply_packet(255, float(x), float(f))
             for x, f in zip(rng.uniform(-0.05, 0.05, 300), rng.uniform(-2, 2, 300))]
@@ -391,7 +391,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     than two faulty replies explain, and the re-synchronisation leaves the board set up, at zero torque, answering
     5-byte replies that go on from the last angle."""
     from hapsim.drivers import haply as hp
-    from hapsim.drivers.mock import HaplyDevice
+    from hapsim.driver_mock import HaplyDevice
     drv = get_driver("haply", device_id=1)
     dec = drv.decoder()
     assert hp.ReplyDecoder(1, resolution=4880.0).feed(bytes([1, 1, 1, 0x3F, 0xC5])) == []
@@ -431,7 +431,7 @@ def test_haply_board_holds_its_torque_through_reset_and_setup():
     """No watchdog (firmware V1.5): a silence, a reset and a set-up leave the motor's
     torque as the last write set it; only a write changes it."""
     from hapsim.drivers import haply as hp
-    from hapsim.drivers.mock import HaplyDevice
+    from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
                         1000.0, Excitation())
     drv = get_driver("haply")
@@ -448,7 +448,7 @@ def test_firefader_firmware_enable_ramp_and_gating():
     """The .ino's enable filter (31/32 decay + 5 per good pass) reaches 129 in 66 passes
     once the touch filter passed 30; untouched or at an end of travel it stays 0 and the
     force is not applied; 0.1 s of silence disables it again."""
-    from hapsim.drivers.mock import FireFaderDevice
+    from hapsim.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=1.0)
     mk = FireFaderDevice(dev, 250.0, Excitation(), touch=True)
     for _ in range(70):
@@ -492,7 +492,7 @@ def _pty_device(dev):
     import threading
     import tty
 
-    from hapsim.drivers.mock import serve
+    from hapsim.driver_mock import serve
     master, slave = pty.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
@@ -527,7 +527,7 @@ def test_firefader_bootloader_and_firmware_detection():
     import os
     import time as _t
 
-    from hapsim.drivers.mock import FireFaderDevice
+    from hapsim.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=0.38)
     drv = get_driver("firefader")
     drv.arming_records = 0
@@ -559,7 +559,7 @@ def test_firefader_bootloader_and_firmware_detection():
 def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     """A FireFader record taken in-process: the host believes 0.39 N full scale, the
     fader has ``fs_true``; a random force with a weak centring spring (counts)."""
-    from hapsim.drivers.mock import FireFaderDevice
+    from hapsim.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
                          Excitation(), full_scale=fs_true)
@@ -659,7 +659,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     import time as _t
 
     import firmware_protocol as fp
-    from hapsim.drivers.mock import HaplyDevice
+    from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
                         1000.0, Excitation())
     path, slave, master, flag, th = _pty_device(board)

@@ -420,7 +420,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
-                from hapsim.drivers.mock import EmbeddedDriverMock
+                from hapsim.driver_mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
                                               options=(opts.mock_options

@@ -136,7 +136,7 @@ class Driver:
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
 
     def mock_hardware(self) -> dict:
-        """The keywords of this driver's mock (:mod:`hapsim.drivers.mock`) that build the
+        """The keywords of this driver's mock (:mod:`hapsim.driver_mock`) that build the
         device this driver describes (by default none)."""
         return {}
 

@@ -40,7 +40,7 @@ capacitive sense, the currents and the pots (about 1.25 ms: 175 + 175 + 150 + 15
 record, so the host's period must be longer (:meth:`FireFader.round_trip_s`). Its force is
 scaled by an enable filter that ramps from 0 to full over 66 passes after power-on or
 0.1 s without a byte, and stays down while the fader is untouched, at an end of its
-travel or hot (:class:`hapsim.drivers.mock.FireFaderDevice` runs that loop). The Nano
+travel or hot (:class:`hapsim.driver_mock.FireFaderDevice` runs that loop). The Nano
 resets when the port opens (about 1 s in its bootloader), so the transport repeats its
 arming packet until the first record comes. The older ``.pde`` has no enable filter and no
 silence rule (the force stays) and streams records unprompted; the transport says which
