@@ -452,6 +452,15 @@ class StabilityReport(_Report):
     ----------
     K_max : float or None
         Exact stability limit [N/m] (None when unbounded).
+    K_max_method : str
+        ``"certified"`` (proven in exact arithmetic: no crossing of ``|z| = 1`` below, a
+        guaranteed bracket; :mod:`hapsim.analysis.limit_certificate`) or ``"sampled (N)"``
+        (the scan of ``N`` points of the circle, not proven between them).
+    K_max_interval : [float, float] or None
+        The guaranteed bracket ``[K_lo, K_hi]`` [N/m] when certified (``[0, 0]``: no
+        ``K > 0`` stable; ``[None, None]``: every ``K > 0`` proven stable), else None.
+    K_max_not_certified : str or None
+        Why the limit is only sampled (None when certified).
     B : float
         Virtual damping [N s/m].
     spectral_radius_at_K_max, spectral_radius_error : float or None
@@ -463,6 +472,9 @@ class StabilityReport(_Report):
     """
 
     K_max: float | None
+    K_max_method: str
+    K_max_interval: list | None
+    K_max_not_certified: str | None
     B: float
     spectral_radius_at_K_max: float | None
     spectral_radius_error: float | None
@@ -492,18 +504,26 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
 
     Notes
     -----
-    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS) beside
+    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS, a scan of
+    the unit circle), proven by :func:`hapsim.analysis.limit_certificate.certify_limit`
+    where exact arithmetic can (the crossing condition as a polynomial in ``cos theta``,
+    Sturm's theorem, the Schur-Cohn-Jury test), beside
     :func:`hapsim.analysis.ths.published_limits`.
     """
+    from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop import spectral_radius_known
-    from hapsim.analysis.ths import published_limits, stability_limit
+    from hapsim.analysis.ths import circle_scan_points, published_limits, stability_limit
     kmax = stability_limit(loop, B)
+    cert = certify_limit(loop, B, kmax, circle_scan_points(loop))
     rho = err = None
     if math.isfinite(kmax):
         rho, err = spectral_radius_known(loop, kmax, B)
         rho = known_digits(rho, err)
+    iv = None if cert.interval is None else [
+        v if math.isfinite(v) else None for v in cert.interval]
     return StabilityReport._from({
-        "K_max": kmax if math.isfinite(kmax) else None, "B": B,
+        "K_max": kmax if math.isfinite(kmax) else None, "K_max_method": cert.method,
+        "K_max_interval": iv, "K_max_not_certified": cert.reason or None, "B": B,
         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
         **published_limits(loop, B), "loop": loop.to_dict()})
 
@@ -557,11 +577,33 @@ class FamilyReport(_Report):
     consistency: dict | None = None
     family_calibrations: list | None = None
 
-    def plot(self, title: str | None = None):
-        """Felt (k, b) of every member, coloured by spectral radius
-        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+    def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
+        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format; ``hapsim family
+            --plot``); None: a new figure only.
+        title : str, optional
+            Default: the scene's path.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot_family import plot_family
-        return plot_family(self.analysis, title=title or self.scene)
+
+        def draw(report, ax=None):          # two panels: a figure of its own
+            return plot_family(report.analysis, title=title or report.scene)
+        return _draw(self, draw, path)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
