@@ -44,8 +44,8 @@ from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-           "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
-           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
+           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
+           "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
 
 
@@ -452,6 +452,15 @@ class StabilityReport(_Report):
     ----------
     K_max : float or None
         Exact stability limit [N/m] (None when unbounded).
+    K_max_method : str
+        ``"certified"`` (proven in exact arithmetic: no crossing of ``|z| = 1`` below, a
+        guaranteed bracket; :mod:`hapsim.analysis.limit_certificate`) or ``"sampled (N)"``
+        (the scan of ``N`` points of the circle, not proven between them).
+    K_max_interval : [float, float] or None
+        The guaranteed bracket ``[K_lo, K_hi]`` [N/m] when certified (``[0, 0]``: no
+        ``K > 0`` stable; ``[None, None]``: every ``K > 0`` proven stable), else None.
+    K_max_not_certified : str or None
+        Why the limit is only sampled (None when certified).
     B : float
         Virtual damping [N s/m].
     spectral_radius_at_K_max, spectral_radius_error : float or None
@@ -463,6 +472,9 @@ class StabilityReport(_Report):
     """
 
     K_max: float | None
+    K_max_method: str
+    K_max_interval: list | None
+    K_max_not_certified: str | None
     B: float
     spectral_radius_at_K_max: float | None
     spectral_radius_error: float | None
@@ -492,18 +504,26 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
 
     Notes
     -----
-    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS) beside
+    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS, a scan of
+    the unit circle), proven by :func:`hapsim.analysis.limit_certificate.certify_limit`
+    where exact arithmetic can (the crossing condition as a polynomial in ``cos theta``,
+    Sturm's theorem, the Schur-Cohn-Jury test), beside
     :func:`hapsim.analysis.ths.published_limits`.
     """
+    from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop import spectral_radius_known
-    from hapsim.analysis.ths import published_limits, stability_limit
+    from hapsim.analysis.ths import circle_scan_points, published_limits, stability_limit
     kmax = stability_limit(loop, B)
+    cert = certify_limit(loop, B, kmax, circle_scan_points(loop))
     rho = err = None
     if math.isfinite(kmax):
         rho, err = spectral_radius_known(loop, kmax, B)
         rho = known_digits(rho, err)
+    iv = None if cert.interval is None else [
+        v if math.isfinite(v) else None for v in cert.interval]
     return StabilityReport._from({
-        "K_max": kmax if math.isfinite(kmax) else None, "B": B,
+        "K_max": kmax if math.isfinite(kmax) else None, "K_max_method": cert.method,
+        "K_max_interval": iv, "K_max_not_certified": cert.reason or None, "B": B,
         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
         **published_limits(loop, B), "loop": loop.to_dict()})
 
@@ -557,11 +577,33 @@ class FamilyReport(_Report):
     consistency: dict | None = None
     family_calibrations: list | None = None
 
-    def plot(self, title: str | None = None):
-        """Felt (k, b) of every member, coloured by spectral radius
-        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+    def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
+        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format; ``hapsim family
+            --plot``); None: a new figure only.
+        title : str, optional
+            Default: the scene's path.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot_family import plot_family
-        return plot_family(self.analysis, title=title or self.scene)
+
+        def draw(report, ax=None):          # two panels: a figure of its own
+            return plot_family(report.analysis, title=title or report.scene)
+        return _draw(self, draw, path)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
@@ -683,7 +725,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              lockstep: bool = False, seed: int = 0, hand: bool = False,
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
-             driver_options: dict | None = None) -> IdentifyReport:
+             driver_options: dict | None = None,
+             mock_options: dict | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -720,6 +763,9 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
+        one ``driver_options`` describe); default the driver's own.
 
     Returns
     -------
@@ -752,7 +798,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
-                         driver_options=driver_options)
+                         driver_options=driver_options, mock_options=mock_options)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -763,7 +809,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None):
+             driver_options=None, mock_options=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -783,6 +829,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
 
     Returns
     -------
@@ -803,7 +851,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options,
+                 mock_options=mock_options)
     # one uniform record: the longest stretch without a missing STATE
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1
@@ -832,6 +881,52 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                                   f"({type(exc).__name__}: {exc}); "
                                   f"{_record_summary(rec, a, b)}") from None
     return fit, rec
+
+
+def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: float,
+                    driver):
+    """A driver's scale parameter from two identifications, without and with a known
+    mass clamped to the handle (``hapsim identify --added-mass``).
+
+    Parameters
+    ----------
+    bare, loaded : IdentifyReport
+        :func:`identify` without and with ``added_mass`` on the handle, through ``driver``.
+    added_mass : float > 0
+        The clamped mass [kg] (an inertia [kg m^2] for a rotary axis).
+    driver : hapsim.drivers.base.Driver
+        The driver both records were taken through: its ``scale_option`` (the FireFader's
+        ``full_scale``, the Haply board's ``resolution``) is the value assumed.
+
+    Returns
+    -------
+    (ForceScale, DeviceFit, Driver)
+        The gain and the parameter found (:func:`hapsim.analysis.calibration.
+        full_scale_from_added_mass`: ``full_scale`` is the parameter whatever it is),
+        ``bare``'s fit in the device's own units
+        (:func:`~hapsim.analysis.calibration.rescale_fit`) and the driver with the
+        parameter found (its :meth:`~hapsim.drivers.base.Driver.options` are what the
+        device file's ``protocol_options`` then hold).
+
+    Raises
+    ------
+    ConfigError
+        A driver whose protocol carries SI units (nothing to calibrate), a bad mass, or
+        the added mass not resolved by the two fits.
+    """
+    from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
+    from hapsim.drivers import get_driver
+    opt = driver.scale_option
+    if opt is None:
+        raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "
+                          f"calibrate (valid with --added-mass: the drivers firefader and "
+                          f"haply)", key="--added-mass")
+    sc = full_scale_from_added_mass(bare.fit.mass, loaded.fit.mass, added_mass,
+                                    float(getattr(driver, opt)))
+    fit = rescale_fit(bare.fit, sc, driver.scale_kind)
+    opts = driver.options()
+    opts[opt] = sc.full_scale
+    return sc, fit, get_driver(driver.name, **opts)
 
 
 def _record_summary(rec, a: int, b: int) -> str:

@@ -241,8 +241,11 @@ def test_no_module_imports_another_modules_private_names():
 SCENE_ROOMS = ("hapsim.scene.elements", "hapsim.scene.rules", "hapsim.scene.model",
                "hapsim.scene.reader")
 #: Modules outside the package that take a room directly, and which: a device file is a
-#: scene's device section, read and checked by the same code.
-SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"}}
+#: scene's device section, read and checked by the same code; an n-D scene file is read
+#: with the same line-numbered context.
+SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"},
+                    # the n-D reader reads files and lines as the 1-D one does
+                    "hapsim.scene_nd": {"hapsim.scene.reader"}}
 
 
 def test_the_scene_rooms_import_only_the_rooms_before_them():
