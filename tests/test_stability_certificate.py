@@ -55,6 +55,29 @@ def test_certified_bracket_holds_the_limit(seed):
         assert _rho(loop, hi * (1 + 1e-6), B) > 1.0
 
 
+def test_certified_on_hands_real_stiffness_and_corrections():
+    """The expanded characteristics (a hand behind a compliant grip, a real stiffness to
+    ground, each correction of the virtual element) are certified too, and the bracket
+    is checked as above."""
+    from hapsim.analysis.corrections import Correction
+    loops = [LoopModel(0.15, 1.5, 1000.0, 1, "zoh", hand_mass=0.1, hand_damping=1.0,
+                       grip_stiffness=3000.0, grip_damping=2.0),
+             LoopModel(0.1, 0.5, 1000.0, 1, "zoh", stiffness=200.0)]
+    loops += [LoopModel(0.1, 0.5, 1000.0, 1, "zoh", correction=c) for c in (
+        Correction("velocity_filter", cutoff_hz=100.0), Correction("prediction", horizon=1.5),
+        Correction("virtual_coupling", stiffness=900.0),
+        Correction("inertia_compensation", mass=0.05))]
+    for loop in loops:
+        for B in (0.0, 1.5):
+            K = stability_limit(loop, B)
+            c = certify_limit(loop, B, K, circle_scan_points(loop))
+            assert c.certified, (loop, B, c)
+            lo, hi = c.interval
+            assert lo <= K <= hi and hi - lo <= 1e-11 * K
+            assert max(_rho(loop, Kt, B) for Kt in np.linspace(0.0, lo, 12)[1:]) < 1 + 1e-9
+            assert _rho(loop, hi * (1 + 1e-6), B) > 1.0
+
+
 def test_certifier_refuses_a_wrong_limit():
     """The certificate is a proof, not an echo: told a limit twice the true one (a scan
     that missed the crossing) it finds the crossing below; told one 1e-5 low it cannot
