@@ -143,7 +143,7 @@ def run_nd(args) -> int:
         print(f"  late ticks: {res['late']} of {(res['records'] + 1) * res['samples']} "
               f"(watchdog {res['watchdog']}), their known disturbance's response "
               "subtracted per axis; records run again for a lost STATE: "
-              f"{res['lost']}", file=o)
+              f"{res['lost']}; host scheduling: {port_info['scheduling']}", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -192,12 +192,13 @@ def _measure_over_port(args, scene, a: float, n: int):
     Returns
     -------
     (dict, dict)
-        The measurement and ``{"port", "embedded", "mock"}`` (the embedded mock's last
-        line on stderr, or None).
+        The measurement and ``{"port", "embedded", "mock", "scheduling"}`` (the embedded
+        mock's last line on stderr, or None; what the host's SCHED_FIFO request obtained).
     """
     import gc
     import subprocess
 
+    from hapsim.daemon.realtime import RealtimePriority
     from hapsim.daemon.run_nd import measure_felt_port
     from hapsim.daemon.transport import SerialTransport
     from hapsim.errors import DeviceError
@@ -207,7 +208,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     port = args.port
     if port is None:
         cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
-               "--amplitude", repr(a)]
+               "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0))]
         if args.lockstep:
             cmd.append("--lockstep")
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -220,10 +221,13 @@ def _measure_over_port(args, scene, a: float, n: int):
         port = line.split()[1]
     tr = SerialTransport(port, getattr(args, "baud", 115200))
     gc_was = gc.isenabled()
-    gc.disable()
+    rt = RealtimePriority(int(args.rt_priority or 0))
     try:
         with Progress(2 * n + 1, "run (over the port)", unit="records") as bar:
-            res = measure_felt_port(tr, scene, progress=bar.update)
+            # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
+            with rt:
+                gc.disable()
+                res = measure_felt_port(tr, scene, progress=bar.update)
     finally:
         if gc_was:
             gc.enable()
@@ -237,7 +241,7 @@ def _measure_over_port(args, scene, a: float, n: int):
                 child.kill()
                 child.communicate()
     return res, {"port": port, "embedded": child is not None,
-                 "mock": note[0] if note else None}
+                 "mock": note[0] if note else None, "scheduling": rt.note}
 
 
 #: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
