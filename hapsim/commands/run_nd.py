@@ -64,7 +64,6 @@ def run_nd(args) -> int:
     from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
     for attr, opt in _REFUSED:
         if getattr(args, attr, None) not in (None, False):
             raise ConfigError(f"a 2-D or 3-D scene does not take {opt} yet (1-D scenes "
@@ -75,13 +74,7 @@ def run_nd(args) -> int:
                           f"the Haply 2DIY), not {driver!r}", key="--driver")
     if driver == "haply":
         return _run_haply2(args)
-    a = DEFAULT_AMPLITUDE if getattr(args, "amplitude", None) is None else args.amplitude
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
-    scene = load_scene_nd(args.scene)
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
+    a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     pred = check_scene_nd(scene)
@@ -272,18 +265,11 @@ def _run_haply2(args) -> int:
     from hapsim.daemon.haply2_board import measure_felt_haply2
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
     if not args.lockstep or args.port:
         raise ConfigError("--driver haply on a 2-D scene runs in lockstep against the "
                           "emulated board only (no real-time n-D driver loop yet): add "
                           "--lockstep, without --port", key="--lockstep")
-    a = HAPLY_AMPLITUDE if getattr(args, "amplitude", None) is None else args.amplitude
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
-    scene = load_scene_nd(args.scene)
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
+    a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
     with Progress(5, "run (2DIY bytes, lockstep)", unit="records") as bar:
         try:
             res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
@@ -332,3 +318,22 @@ def _run_haply2(args) -> int:
           f"degrees); a real 2DIY's encoders: gen2 {real['gen2']:.2e}, gen3 "
           f"{real['gen3']:.2e} of a", file=o)
     return 0
+
+
+def _amplitude_and_scene(args, default: float):
+    """``--amplitude`` (``default`` when absent) checked, and the scene with its port.
+
+    Raises
+    ------
+    ConfigError
+        A non-positive amplitude; a scene without a port (file, key).
+    """
+    from hapsim.scene_nd import load_scene_nd
+    a = default if getattr(args, "amplitude", None) is None else args.amplitude
+    if not (math.isfinite(a) and a > 0):
+        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
+    scene = load_scene_nd(args.scene)
+    if scene.port is None:
+        raise ConfigError("a run needs a mass of kind 'port' and a device section",
+                          file=scene.path, key="masses")
+    return a, scene
