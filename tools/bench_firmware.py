@@ -136,9 +136,11 @@ PATHS = [
 ]
 
 
-def measure(rate: float, ticks: int, profile: bool = False) -> dict:
+def measure(rate: float, ticks: int, profile: bool = False, compact: bool = False) -> dict:
     """Run ``ticks`` armed ticks at ``rate`` [Hz]; the board's report plus late/overrun
-    (and, with ``profile``, the cycles per path: :func:`profile_paths`)."""
+    (and, with ``profile``, the cycles per path: :func:`profile_paths`); ``compact``: the
+    host asks for the compact frames (SENSORS_REQUEST bit COMPACT) and answers each
+    STATE_COMPACT with a FORCE_COMPACT."""
     import select
     with tempfile.TemporaryDirectory() as d:
         rep = Path(d, "board.json")
@@ -159,6 +161,17 @@ def measure(rate: float, ticks: int, profile: bool = False) -> dict:
                 for m in dec.feed(os.read(fd, 65536)):
                     if isinstance(m, fp.Hello):
                         hello = m
+            if compact:
+                os.write(fd, fp.encode(fp.SensorsRequest(fp.FEATURE_COMPACT)))
+                sens = None
+                while sens is None:
+                    select.select([fd], [], [], 0.05)
+                    for m in dec.feed(os.read(fd, 65536)):
+                        if isinstance(m, fp.Sensors):
+                            sens = m
+                if not sens.enabled & fp.FEATURE_COMPACT:
+                    raise SystemExit("the firmware does not offer the compact frames")
+                dec.expander = fp.CompactExpander(rate)
             os.write(fd, fp.encode(fp.Config(rate, int(5e6 / rate), 5.0)))
             n = late = overrun = 0
             while n < ticks:
@@ -173,7 +186,8 @@ def measure(rate: float, ticks: int, profile: bool = False) -> dict:
                         if m.seq >= 2 and (m.seq - m.force_seq) & 0xFFFFFFFF != 1:
                             late += 1
                         overrun += bool(m.status & fp.STATUS_OVERRUN)
-                        os.write(fd, fp.encode(fp.Force(m.seq, (-500.0 * m.position[0],))))
+                        f = fp.Force(m.seq, (-500.0 * m.position[0],))
+                        os.write(fd, fp.encode(fp.compact_force(f) if compact else f))
                         n += 1
             os.close(fd)
         finally:
@@ -182,7 +196,7 @@ def measure(rate: float, ticks: int, profile: bool = False) -> dict:
         out = json.loads(rep.read_text())
         paths = profile_paths(BENCH_ELF, prof) if profile else None
     b = out["budget"]
-    res = {"rate_hz": rate, "period_cycles": b["period_cycles"], "ticks": n,
+    res = {"frames": "compact" if compact else "full", "rate_hz": rate, "period_cycles": b["period_cycles"], "ticks": n,
             "busy_mean_cycles": b["busy_mean_cycles"], "busy_max_cycles": b["busy_max_cycles"],
             "idle_fraction": b["idle_fraction"], "saturated": b["saturated"], "late": late,
             "overrun_states": overrun}
@@ -250,6 +264,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", type=float, nargs="+", default=[1000.0, 1600.0, 2000.0, 5000.0],
                     metavar="HZ", help="tick rates to measure (default 1000 1600 2000 5000; each must divide 16 MHz)")
     ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--compact", action="store_true",
+                    help="the compact frames (STATE_COMPACT / FORCE_COMPACT) instead of "
+                         "STATE / FORCE")
     ap.add_argument("--profile", action="store_true",
                     help="also the cycles per tick by path (ISR, ADC, codec, UART, ...)")
     ap.add_argument("--realtime", type=int, default=0, metavar="N",
@@ -268,7 +285,7 @@ def main(argv=None) -> int:
     print("rate [Hz]  period [cycles]  busy mean  busy worst  idle    late  overrun")
     for rate in args.rates:
         t0 = time.monotonic()
-        r = measure(rate, args.ticks, args.profile)
+        r = measure(rate, args.ticks, args.profile, args.compact)
         rows.append(r)
         worst = "saturated" if r["saturated"] else f"{r['busy_max_cycles']:d}"
         print(f"{rate:9.0f}  {r['period_cycles']:15.0f}  {r['busy_mean_cycles']:9.0f}  "

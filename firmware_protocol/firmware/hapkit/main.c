@@ -57,6 +57,19 @@
 #endif
 #define HK_MAX_RATE_HZ (HK_LINK_MAX_RATE_HZ < HK_CPU_MAX_RATE_HZ ? HK_LINK_MAX_RATE_HZ : \
                         HK_CPU_MAX_RATE_HZ)
+/* With the compact frames (PROTOCOL.md section 4, "Compact frames"; the host asks for them
+ * with SENSORS_REQUEST bit COMPACT): a 13-byte STATE_COMPACT up, an 11-byte FORCE_COMPACT
+ * down, binary32 values (no binary64 conversion). The round trip on the wire is 24 bytes
+ * (1920 cycles at 2 Mbaud), so 4 kHz (a 4000-cycle period) keeps the delay at one tick
+ * (tools/bench_firmware.py --compact measures it). */
+#define HK_STATE_COMPACT_FRAME_BYTES 13UL
+#define HK_LINK_MAX_RATE_COMPACT_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
+                                                              HK_STATE_COMPACT_FRAME_BYTES))
+#ifndef HK_CPU_MAX_RATE_COMPACT_HZ
+#define HK_CPU_MAX_RATE_COMPACT_HZ 4000UL
+#endif
+#define HK_MAX_RATE_COMPACT_HZ (HK_LINK_MAX_RATE_COMPACT_HZ < HK_CPU_MAX_RATE_COMPACT_HZ ? \
+                                HK_LINK_MAX_RATE_COMPACT_HZ : HK_CPU_MAX_RATE_COMPACT_HZ)
 
 /* What the tick interrupt puts on the PWM: duty n / 256 (0 = off) and the direction. */
 typedef struct {
@@ -96,6 +109,7 @@ static int16_t g_last_raw;
 static int32_t g_turns;
 static int32_t g_zero;
 static uint8_t g_have_zero;
+static uint8_t g_compact;               /* the host enabled the compact frames */
 
 static void pwm_write(uint16_t n, uint8_t dir)
 {
@@ -332,7 +346,8 @@ static void on_config(const hp_config_t *c)
     uint32_t rate = 0, period;
     float limit;
     uint8_t ok = f64_to_u32_exact(c->rate_hz, &rate);
-    ok = ok && rate >= HK_MIN_RATE_HZ && rate <= HK_MAX_RATE_HZ && (F_CPU % rate) == 0;
+    ok = ok && rate >= HK_MIN_RATE_HZ && (F_CPU % rate) == 0 &&
+         rate <= (g_compact ? HK_MAX_RATE_COMPACT_HZ : HK_MAX_RATE_HZ);
     period = ok ? F_CPU / rate : 0;
     ok = ok && (period <= 65536UL || period % 8u == 0);
     /* the watchdog holds a FORCE floor(W / T) - 1 >= 1 ticks: W >= 2 T */
@@ -374,26 +389,24 @@ static void on_config(const hp_config_t *c)
     g_fault_latched = 0;
 }
 
-static void on_force(const hp_force_t *f)
+/* A valid FORCE (or FORCE_COMPACT) for STATE `seq`, its force `x` [N] as float32 (+-inf
+ * when a finite binary64 is beyond float32: clamped below); `finite`: the value on the
+ * wire was finite. */
+static void take_force(uint32_t seq, float x, uint8_t finite)
 {
     drive_t d;
     uint8_t clamped = 0;
-    float x, ax;
-    if (f->n_axes != 1) {
-        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
-        return;
-    }
+    float ax;
     if (!g_armed) {
         return;
     }
-    if (g_force_applied && (int32_t)(f->seq - g_force_seq) < 0) {
+    if (g_force_applied && (int32_t)(seq - g_force_seq) < 0) {
         return; /* older than the force applied (PROTOCOL.md section 5, rule 4) */
     }
-    if (!f64_is_finite(f->force[0])) {
+    if (!finite) {
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
         return;
     }
-    x = float_of_f64(f->force[0]); /* +-inf when beyond float32: clamped below */
     ax = x < 0 ? -x : x;
     ax *= (float)(HK_PWM_STEPS / HK_FORCE_MAX_N); /* in PWM steps */
     if (ax > g_limit_n_float) {
@@ -408,10 +421,37 @@ static void on_force(const hp_force_t *f)
     cli();
     g_pending.n = d.n;
     g_pending.dir = d.dir;
-    g_pending_seq = f->seq;
+    g_pending_seq = seq;
     g_pending_clamped = clamped;
     g_has_pending = 1;
     sei();
+}
+
+static void on_force(const hp_force_t *f)
+{
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    take_force(f->seq, float_of_f64(f->force[0]), f64_is_finite(f->force[0]));
+}
+
+/* FORCE_COMPACT: the 16-bit seq is restored from the tick counter (the FORCE answers a
+ * STATE already sent: hp_compact_seq), the binary32 force is used as it is. */
+static void on_force_compact(const hp_force_compact_t *f)
+{
+    uint32_t now, bits = f->force[0];
+    float x;
+    uint8_t s = SREG;
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    cli();
+    now = g_ticks - 1u; /* the seq of the last tick's STATE */
+    SREG = s;
+    memcpy(&x, &bits, sizeof x);
+    take_force(hp_compact_seq(now, f->seq), x, (bits & 0x7F800000UL) != 0x7F800000UL);
 }
 
 static void on_message(const hp_msg_t *m)
@@ -430,6 +470,9 @@ static void on_message(const hp_msg_t *m)
     case HP_MSG_FORCE:
         on_force(&m->u.force);
         break;
+    case HP_MSG_FORCE_COMPACT:
+        on_force_compact(&m->u.force_compact);
+        break;
     case HP_MSG_PING:
         r.type = HP_MSG_PONG;
         r.u.pong.nonce = m->u.ping.nonce;
@@ -443,10 +486,12 @@ static void on_message(const hp_msg_t *m)
         break;
     case HP_MSG_SENSORS_REQUEST:
         /* The Hapkit 3 measures position only (the MR sensor on the capstan; no
-         * tachometer): nothing offered, nothing enabled (PROTOCOL.md section 4). */
+         * tachometer): no sensor offered; the compact frames are (PROTOCOL.md section 4).
+         * They start with the next tick's STATE. */
         r.type = HP_MSG_SENSORS;
-        r.u.sensors.offered = 0;
-        r.u.sensors.enabled = 0;
+        r.u.sensors.offered = HP_FEATURE_COMPACT;
+        r.u.sensors.enabled = m->u.sensors_request.sensors & HP_FEATURE_COMPACT;
+        g_compact = r.u.sensors.enabled != 0;
         send(&r);
         break;
     default:
@@ -481,16 +526,17 @@ static void serve_tick(void)
     hp_msg_t m;
     int32_t counts;
     uint16_t status = 0, lost, raw;
+    uint32_t seq, fseq;
     uint8_t s;
     s = SREG;
     cli();
     raw = g_adc_raw;
     g_tick_flag = 0;
-    m.u.state.seq = g_ticks - 1u;
+    seq = g_ticks - 1u;
     SREG = s;
     counts = read_counts(raw);
     cli();
-    m.u.state.force_seq = g_force_seq;
+    fseq = g_force_seq;
     if (g_armed) {
         status |= HP_STATUS_ARMED;
     }
@@ -522,12 +568,31 @@ static void serve_tick(void)
     if (g_rx_error) {
         status |= HP_STATUS_RX_ERROR;
     }
-    m.type = HP_MSG_STATE;
-    m.u.state.time_us = now_us();
-    m.u.state.status = status;
-    m.u.state.n_axes = 1;
-    m.u.state.position[0] = f64_of_float((float)counts * (float)HK_POSITION_SCALE_M);
-    send(&m);
+    if (g_compact) {
+        /* STATE_COMPACT: seq and status cut to their low bits, the lag saturated at 255
+         * (0 before any FORCE), the float32 position as it is */
+        uint32_t lag = seq - fseq;
+        float x = (float)counts * (float)HK_POSITION_SCALE_M;
+        hp_msg_t c;
+        c.type = HP_MSG_STATE_COMPACT;
+        c.u.state_compact.seq = (uint16_t)seq;
+        c.u.state_compact.status = (uint8_t)status;
+        c.u.state_compact.lag = !(status & HP_STATUS_FORCE_APPLIED) ? 0u
+                                : lag > HP_COMPACT_LAG_MAX ? (uint8_t)HP_COMPACT_LAG_MAX
+                                                           : (uint8_t)lag;
+        c.u.state_compact.n_axes = 1;
+        memcpy(&c.u.state_compact.position[0], &x, sizeof x);
+        send(&c);
+    } else {
+        m.type = HP_MSG_STATE;
+        m.u.state.seq = seq;
+        m.u.state.force_seq = fseq;
+        m.u.state.time_us = now_us();
+        m.u.state.status = status;
+        m.u.state.n_axes = 1;
+        m.u.state.position[0] = f64_of_float((float)counts * (float)HK_POSITION_SCALE_M);
+        send(&m);
+    }
     if (g_trip_event) {
         g_trip_event = 0;
         send_fault(HP_FAULT_WATCHDOG, 0);
