@@ -173,7 +173,8 @@ def measure(rate: float, ticks: int, profile: bool = False, compact: bool = Fals
                     raise SystemExit("the firmware does not offer the compact frames")
                 dec.expander = fp.CompactExpander(rate)
             os.write(fd, fp.encode(fp.Config(rate, int(5e6 / rate), 5.0)))
-            n = late = overrun = 0
+            n = overrun = 0
+            lags: dict = {}     # seq - force_seq -> ticks (from the 5th tick on)
             while n < ticks:
                 r, _, _ = select.select([fd], [], [], 1.0)
                 if not r:
@@ -183,8 +184,9 @@ def measure(rate: float, ticks: int, profile: bool = False, compact: bool = Fals
                         raise SystemExit(f"the firmware refused CONFIG at {rate} Hz "
                                          "(a rate must divide 16 MHz)")
                     if isinstance(m, fp.State) and m.status & fp.STATUS_ARMED:
-                        if m.seq >= 2 and (m.seq - m.force_seq) & 0xFFFFFFFF != 1:
-                            late += 1
+                        if m.seq >= 4 and m.status & fp.STATUS_FORCE_APPLIED:
+                            lag = (m.seq - m.force_seq) & 0xFFFFFFFF
+                            lags[lag] = lags.get(lag, 0) + 1
                         overrun += bool(m.status & fp.STATUS_OVERRUN)
                         f = fp.Force(m.seq, (-500.0 * m.position[0],))
                         os.write(fd, fp.encode(fp.compact_force(f) if compact else f))
@@ -195,10 +197,15 @@ def measure(rate: float, ticks: int, profile: bool = False, compact: bool = Fals
             proc.wait(timeout=20)
         out = json.loads(rep.read_text())
         paths = profile_paths(BENCH_ELF, prof) if profile else None
+    # the device's delay: the lag of most ticks; late: the ticks with another lag
+    delay = max(lags, key=lags.get) if lags else None
+    late = sum(v for k, v in lags.items() if k != delay)
+    print(f"  lags at {rate:g} Hz: {dict(sorted(lags.items()))}", flush=True)
     b = out["budget"]
     res = {"frames": "compact" if compact else "full", "rate_hz": rate, "period_cycles": b["period_cycles"], "ticks": n,
             "busy_mean_cycles": b["busy_mean_cycles"], "busy_max_cycles": b["busy_max_cycles"],
-            "idle_fraction": b["idle_fraction"], "saturated": b["saturated"], "late": late,
+            "idle_fraction": b["idle_fraction"], "saturated": b["saturated"],
+            "delay": delay, "late": late,
             "overrun_states": overrun}
     if paths is not None:
         res["cycles_per_tick_by_path"] = {k: v / max(n, 1) for k, v in
@@ -282,14 +289,14 @@ def main(argv=None) -> int:
     subprocess.run(["make", "-s", "-C", str(board.FIRMWARE_DIR), "bench"], check=True,
                    stdout=subprocess.DEVNULL)
     rows = []
-    print("rate [Hz]  period [cycles]  busy mean  busy worst  idle    late  overrun")
+    print("rate [Hz]  period [cycles]  busy mean  busy worst  idle   delay  late  overrun")
     for rate in args.rates:
         t0 = time.monotonic()
         r = measure(rate, args.ticks, args.profile, args.compact)
         rows.append(r)
         worst = "saturated" if r["saturated"] else f"{r['busy_max_cycles']:d}"
         print(f"{rate:9.0f}  {r['period_cycles']:15.0f}  {r['busy_mean_cycles']:9.0f}  "
-              f"{worst:>10s}  {r['idle_fraction']:5.1%}  {r['late']:5d}  "
+              f"{worst:>10s}  {r['idle_fraction']:5.1%}  {r['delay'] or 0:5d}  {r['late']:5d}  "
               f"{r['overrun_states']:7d}   ({time.monotonic() - t0:.1f} s)", flush=True)
     for r in rows:
         if "cycles_per_tick_by_path" in r:

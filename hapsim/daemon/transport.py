@@ -153,6 +153,11 @@ class SerialTransport:
         """The stream decoder (counters in ``.stats``)."""
         return self._dec
 
+    @property
+    def compact(self) -> bool:
+        """Whether the session uses the compact frames (:meth:`set_compact`)."""
+        return self._compact
+
     def set_compact(self, rate_hz: float | None) -> None:
         """Enter (``rate_hz``) or leave (None) a compact session (PROTOCOL.md §4 "Compact
         frames"): each FORCE is then sent as FORCE_COMPACT and each STATE_COMPACT received

@@ -96,19 +96,22 @@ static volatile uint32_t g_force_seq;
 static volatile uint8_t g_force_applied;
 static volatile uint8_t g_clamped_now;
 static volatile uint32_t g_period_cycles = F_CPU / HK_NATIVE_RATE_HZ;
-static volatile uint64_t g_clock_cycles; /* device clock at the last tick [cycles] */
+/* The device clock at the last tick [cycles] is g_clock_base + ticks * g_period_cycles,
+ * ticks = g_tick_wraps * 2^32 + g_ticks (now_us; the tick interrupt only counts). */
+static uint64_t g_clock_base;           /* at the last change of period (CONFIG) */
+static volatile uint8_t g_tick_wraps;
 
 /* ---------------------------------------------------------------- main loop only */
 static uint8_t g_configured, g_fault_latched;
 static uint16_t g_limit_n;              /* largest PWM step within the force limit */
 static float g_limit_n_float;
-static float g_limit_n_floor;           /* (float)g_limit_n */
+static uint32_t g_limit_n_float_bits;   /* g_limit_n_float's bit pattern */
+static uint32_t g_limit_n_floor_bits;   /* (float)g_limit_n's */
 static uint32_t g_bad_frames, g_bad_reported; /* frames dropped (decoder + lost) */
 static uint16_t g_rx_lost_seen;
 static uint8_t g_rx_error;
 static int16_t g_last_raw;
-static int32_t g_turns;
-static int32_t g_zero;
+static int32_t g_offset;                /* turns * span - zero [counts] */
 static uint8_t g_have_zero;
 static uint8_t g_compact;               /* the host enabled the compact frames */
 
@@ -129,6 +132,12 @@ static void pwm_write(uint16_t n, uint8_t dir)
 
 ISR(TIMER1_COMPA_vect)
 {
+    /* sample the sensor now (ADC_vect latches it), first: the position is sampled at the
+     * tick, before the force changes (the model's sample-then-hold); started after the
+     * PWM update and the watchdog, as before, it was sampled ~100 cycles after the new
+     * force reached the pin: 0.6 % of a period at 1 kHz, 2.5 % at 4 kHz, a fractional
+     * advance of the force that moved the felt stiffness at 4 kHz past its interval */
+    ADCSRA |= (uint8_t)(1 << ADSC);
     PORTB |= (uint8_t)(1 << PB5); /* budget probe: busy */
     if (g_has_pending) {
         g_has_pending = 0;
@@ -153,13 +162,13 @@ ISR(TIMER1_COMPA_vect)
             g_wd_left--;
         }
     }
-    ADCSRA |= (uint8_t)(1 << ADSC); /* sample the sensor now; ADC_vect latches it */
     if (g_tick_flag | g_adc_busy) {
         g_overrun = 1;
     }
     g_adc_busy = 1;
-    g_ticks++;
-    g_clock_cycles += g_period_cycles;
+    if (++g_ticks == 0) {
+        g_tick_wraps++;
+    }
 }
 
 /* The conversion started by the tick is done (13 ADC clocks = 416 cycles later, which
@@ -263,10 +272,14 @@ static void send_hello(void)
 static uint64_t now_us(void)
 {
     uint64_t c;
-    uint8_t s = SREG;
+    uint32_t t, p;
+    uint8_t w, s = SREG;
     cli();
-    c = g_clock_cycles;
+    t = g_ticks;
+    w = g_tick_wraps;
+    p = g_period_cycles;
     SREG = s;
+    c = g_clock_base + (((uint64_t)w << 32) | t) * p;
     return c >> 4; /* 16 cycles per microsecond at 16 MHz */
 }
 
@@ -308,18 +321,19 @@ static int32_t read_counts(uint16_t raw)
     int16_t d;
     if (!g_have_zero) {
         g_last_raw = (int16_t)raw;
-        g_zero = (int32_t)raw;
+        g_offset = -(int32_t)raw; /* the zero: no turn yet */
         g_have_zero = 1;
     }
-    /* flip counting: a jump of more than half a span between two ticks is a wrap */
+    /* flip counting: a jump of more than half a span between two ticks is a wrap; the
+     * offset turns * span - zero is kept, not multiplied out each tick */
     d = (int16_t)((int16_t)raw - g_last_raw);
     if (d > (int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
-        g_turns--;
+        g_offset -= (int32_t)HK_SENSOR_SPAN_COUNTS;
     } else if (d < -(int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
-        g_turns++;
+        g_offset += (int32_t)HK_SENSOR_SPAN_COUNTS;
     }
     g_last_raw = (int16_t)raw;
-    return (int32_t)raw + g_turns * (int32_t)HK_SENSOR_SPAN_COUNTS - g_zero;
+    return (int32_t)raw + g_offset;
 }
 
 /* ---------------------------------------------------------------- protocol handling */
@@ -368,8 +382,14 @@ static void on_config(const hp_config_t *c)
     if (g_limit_n > HK_PWM_STEPS) {
         g_limit_n = HK_PWM_STEPS;
     }
-    g_limit_n_floor = (float)g_limit_n;
+    {
+        float fl = (float)g_limit_n;
+        memcpy(&g_limit_n_floor_bits, &fl, sizeof fl);
+        memcpy(&g_limit_n_float_bits, &g_limit_n_float, sizeof fl);
+    }
     cli();
+    g_clock_base += (((uint64_t)g_tick_wraps << 32) | g_ticks) * g_period_cycles;
+    g_tick_wraps = 0;
     g_period_cycles = period;
     g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
     g_wd_left = g_wd_reload;
@@ -399,6 +419,7 @@ static void take_force(uint32_t seq, float x, uint8_t finite)
     drive_t d;
     uint8_t clamped = 0;
     float ax;
+    uint32_t xb, axb;
     if (!g_armed) {
         return;
     }
@@ -409,17 +430,22 @@ static void take_force(uint32_t seq, float x, uint8_t finite)
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
         return;
     }
-    ax = x < 0 ? -x : x;
+    /* |x| and the comparisons on the bit patterns: for floats >= 0 (no NaN here) the
+     * order of the patterns as integers is the order of the values */
+    memcpy(&xb, &x, sizeof xb);
+    axb = xb & 0x7FFFFFFFUL;
+    memcpy(&ax, &axb, sizeof ax);
     ax *= (float)(HK_PWM_STEPS / HK_FORCE_MAX_N); /* in PWM steps */
-    if (ax > g_limit_n_float) {
+    memcpy(&axb, &ax, sizeof axb);
+    if (axb > g_limit_n_float_bits) {
         clamped = 1;
     }
-    if (ax >= g_limit_n_floor) {
+    if (axb >= g_limit_n_floor_bits) {
         d.n = g_limit_n;
     } else {
         d.n = (uint16_t)(ax + 0.5f); /* nearest step, still <= g_limit_n */
     }
-    d.dir = x > 0;
+    d.dir = !(xb >> 31) && (xb & 0x7FFFFFFFUL) != 0; /* x > 0 */
     cli();
     g_pending.n = d.n;
     g_pending.dir = d.dir;
@@ -440,20 +466,25 @@ static void on_force(const hp_force_t *f)
 
 /* FORCE_COMPACT: the 16-bit seq is restored from the tick counter (the FORCE answers a
  * STATE already sent: hp_compact_seq), the binary32 force is used as it is. */
-static void on_force_compact(const hp_force_compact_t *f)
+static void force_compact(uint16_t seq16, uint32_t bits)
 {
-    uint32_t now, bits = f->force[0];
+    uint32_t now;
     float x;
     uint8_t s = SREG;
-    if (f->n_axes != 1) {
-        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
-        return;
-    }
     cli();
     now = g_ticks - 1u; /* the seq of the last tick's STATE */
     SREG = s;
     memcpy(&x, &bits, sizeof x);
-    take_force(hp_compact_seq(now, f->seq), x, (bits & 0x7F800000UL) != 0x7F800000UL);
+    take_force(hp_compact_seq(now, seq16), x, (bits & 0x7F800000UL) != 0x7F800000UL);
+}
+
+static void on_force_compact(const hp_force_compact_t *f)
+{
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    force_compact(f->seq, f->force[0]);
 }
 
 static void on_message(const hp_msg_t *m)
@@ -501,18 +532,33 @@ static void on_message(const hp_msg_t *m)
     }
 }
 
-/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted. */
+/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted.
+ * The frame is COBS-decoded as it is taken from the receive ring (uart_packet), then
+ * checked and parsed by hp_decode_packet: hp_decode_frame's results in one pass less. */
 static void take_frame(void)
 {
-    const uint8_t *frame;
+    static uint8_t pk[HP_MAX_PACKET];
     hp_msg_t m;
-    uint8_t len = uart_frame(&frame);
+    uint8_t len = uart_packet(pk);
     int r;
     if (!len) {
         return;
     }
-    r = len == UART_OVERLONG ? HP_ERR_OVERLONG : hp_decode_frame(frame, len, &m);
-    uart_frame_done();
+    if (len == 9u && pk[0] == HP_MSG_FORCE_COMPACT) {
+        /* the one frame of every tick in a compact session, 1 axis: checked and taken
+         * here (hp_decode_packet's result for it, without its dispatch) */
+        if (hp_crc16(0xFFFFu, pk, 9u) == 0) {
+            uint32_t bits;
+            memcpy(&bits, &pk[3], sizeof bits); /* little-endian, as the wire */
+            force_compact(((uint16_t)pk[2] << 8) | pk[1], bits);
+        } else {
+            g_bad_frames++;
+            g_rx_error = 1;
+        }
+        return;
+    }
+    r = len == UART_OVERLONG ? HP_ERR_OVERLONG
+        : len == UART_BAD_COBS ? HP_ERR_BAD_COBS : hp_decode_packet(pk, len, &m);
     if (r == HP_OK) {
         on_message(&m);
     } else {
@@ -577,9 +623,8 @@ static void serve_tick(void)
          * tests these), to keep the tick's critical path short */
         uint32_t lag = seq - fseq;
         float x = (float)counts * (float)HK_POSITION_SCALE_M;
-        uint8_t pk[HK_STATE_COMPACT_FRAME_BYTES - 2u], fr[HK_STATE_COMPACT_FRAME_BYTES];
+        uint8_t pk[HK_STATE_COMPACT_FRAME_BYTES - 2u];
         uint16_t crc;
-        uint8_t n;
         pk[0] = HP_MSG_STATE_COMPACT;
         pk[1] = (uint8_t)seq;
         pk[2] = (uint8_t)(seq >> 8);
@@ -590,9 +635,7 @@ static void serve_tick(void)
         crc = hp_crc16(0xFFFFu, pk, 9u);
         pk[9] = (uint8_t)(crc >> 8);
         pk[10] = (uint8_t)crc;
-        n = (uint8_t)hp_cobs_encode(pk, sizeof pk, fr, sizeof fr - 1u);
-        fr[n++] = 0;
-        (void)uart_put(fr, n);
+        (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
     } else {
         m.type = HP_MSG_STATE;
         m.u.state.seq = seq;
