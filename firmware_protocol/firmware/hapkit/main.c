@@ -132,19 +132,24 @@ static void pwm_write(uint16_t n, uint8_t dir)
 
 ISR(TIMER1_COMPA_vect)
 {
-    /* sample the sensor now (ADC_vect latches it), first: the position is sampled at the
-     * tick, before the force changes (the model's sample-then-hold); started after the
-     * PWM update and the watchdog, as before, it was sampled ~100 cycles after the new
-     * force reached the pin: 0.6 % of a period at 1 kHz, 2.5 % at 4 kHz, a fractional
-     * advance of the force that moved the felt stiffness at 4 kHz past its interval */
+    /* The tick's new force on the pin and the sample of the sensor (ADC_vect latches it),
+     * a few cycles apart, before anything else: the model holds the force and samples the
+     * position at the same instant. (Sampled after the bookkeeping and the watchdog, as
+     * before, the position was taken ~100 cycles after the new force reached the pin: a
+     * fractional advance of the force, 0.6 % of a period at 1 kHz, 2.5 % at 4 kHz, which
+     * moved the felt stiffness at 4 kHz past its interval; sampled first, the force came
+     * ~35 cycles late and the felt damping fell by about K * 2.2 us.) */
+    uint8_t pending = g_has_pending;
+    if (pending) {
+        pwm_write(g_pending.n, g_pending.dir);
+    }
     ADCSRA |= (uint8_t)(1 << ADSC);
     PORTB |= (uint8_t)(1 << PB5); /* budget probe: busy */
-    if (g_has_pending) {
+    if (pending) {
         g_has_pending = 0;
         g_force_seq = g_pending_seq;
         g_force_applied = 1;
         g_clamped_now = g_pending_clamped;
-        pwm_write(g_pending.n, g_pending.dir);
         g_wd_left = g_wd_reload;
         g_tripped = 0;
     }
