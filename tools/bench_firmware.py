@@ -278,7 +278,9 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
         line = mock.stdout.readline()
         if not line.startswith("PORT "):
             raise SystemExit(f"the board did not start: {line!r}")
-        boards = [p for p in _descendants(mock.pid)
+        # ``hapsim mock --firmware`` execs the board: the process itself (or, should that
+        # change, a process below it)
+        boards = [p for p in [mock.pid, *_descendants(mock.pid)]
                   if Path(f"/proc/{p}/comm").read_text().strip().startswith("hapkit_board")]
         load0 = os.getloadavg()[0]
         cpu0 = sum(_cpu_s(p) for p in boards)

@@ -9,11 +9,18 @@
  * Timing. Timer1 in CTC mode interrupts at the CONFIG rate (device-clocked). The interrupt
  * (a) applies the force decided for this tick -- the last valid FORCE received, or zero
  * when the watchdog has run out -- to the PWM, which holds it until the next tick (the
- * zero-order hold), and (b) starts the ADC conversion of the sensor. The main loop then
+ * zero-order hold), and (b) starts the ADC conversion of the sensor, a few cycles after
+ * (a) (the model samples and holds at the same instant). The main loop then
  * reads the ADC, unwraps the shaft angle (flip counting), sends STATE, and decodes the
  * frames the UART interrupt cut out of what the host sent (FORCE: converted, clamped and quantised to a PWM step, kept for the next
  * tick). With every FORCE answering STATE n received before tick n + 1, the force is
- * applied at tick n + 1: a loop delay d = 1.
+ * applied at tick n + 1: a loop delay d = 1 (at 1 kHz). Whatever the delay, each STATE
+ * reports the FORCE applied (force_seq): at 4 kHz in compact frames it is 2.
+ *
+ * Compact frames (PROTOCOL.md section 4): offered in SENSORS; once the host enables them,
+ * STATE_COMPACT (13 bytes: 16-bit seq, 8-bit status, lag, float32 position) replaces STATE
+ * and FORCE_COMPACT (11 bytes: 16-bit seq, float32 force) is taken as FORCE; CONFIG then
+ * accepts rates up to 4 kHz (1250 Hz in full frames).
  *
  * Numbers. avr-gcc's double is 32-bit: positions are computed in float32 and sent as the
  * exact binary64 of that float32; forces arrive as binary64 and are rounded to float32
@@ -45,10 +52,10 @@
 #define HK_LINK_DEN 5UL
 #define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
                                                       HK_STATE_FRAME_BYTES))
-/* The MCU's own limit: a tick with one STATE out and one FORCE in keeps the chip busy
- * 9.3k cycles at most (tools/bench_firmware.py on the emulated chip: 73 % of 12800 at
- * 1250 Hz, no late tick). The next rate dividing 16 MHz, 1600 Hz, is late at every tick:
- * the FORCE answering STATE n misses tick n + 1, because the round trip -- the ADC (416
+/* The MCU's own limit in full frames: a tick with one STATE out and one FORCE in keeps the
+ * chip busy about 8.7k cycles (tools/bench_firmware.py on the emulated chip: 68 % of 12800
+ * at 1250 Hz, no late tick). At the next rate dividing 16 MHz, 1600 Hz, the FORCE
+ * answering STATE n misses tick n + 1 (delay 2), because the round trip -- the ADC (416
  * cycles), encoding STATE, 31 + 17 bytes on the wire (80 cycles each at 2 Mbaud), the
  * host, decoding FORCE -- takes longer than the 10000-cycle period; at 2 kHz the wire
  * alone takes 48 % of the period and the chip is saturated. */
