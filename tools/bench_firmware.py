@@ -267,7 +267,10 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
     link, rep = tmp / "port", tmp / "board.json"
     scene = tmp / "scene.yaml"
     text = (ROOT / "configs" / "hapkit.yaml").read_text()
-    scene.write_text(text.replace("rate_hz: 1000", f"rate_hz: {rate:g}"))
+    text = text.replace("rate_hz: 1000", f"rate_hz: {rate:g}")
+    if rate > 1250:    # compact frames: the firmware's delay is 2 ticks there (PROTOCOL.md §4)
+        text = text.replace("  delay: 1 ", "  delay: 2 ")
+    scene.write_text(text)
     hog = (subprocess.Popen([sys.executable, "-c", "while True: pass"]) if beside_cpu
            else None)
     mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware", "--link",
@@ -298,10 +301,14 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
                 print(f"  run {i + 1}: exit {r.returncode}, no report", flush=True)
                 continue
             frac = lp["late"] / max(lp["ticks"], 1)
-            rows.append({"run": i, "exit": r.returncode, "late": lp["late"],
-                         "ticks": lp["ticks"], "late_fraction": frac,
-                         "verdict": rep_run["measured"].get("verdict")
-                         or rep_run["measured"].get("error"),
+            meas, pred = rep_run["measured"], rep_run.get("predicted") or {}
+            rows.append({"run": i, "exit": r.returncode, "frames": lp.get("frames"),
+                         "late": lp["late"], "ticks": lp["ticks"], "late_fraction": frac,
+                         "k": meas.get("k"), "k_interval": meas.get("k_interval"),
+                         "k_predicted": pred.get("k"), "b": meas.get("b"),
+                         "b_interval": meas.get("b_interval"),
+                         "b_predicted": pred.get("b"),
+                         "verdict": meas.get("verdict") or meas.get("error"),
                          "scheduling": lp.get("scheduling")})
             print(f"  run {i + 1}: late {lp['late']}/{lp['ticks']} ({frac:.2%}), "
                   f"{lp.get('scheduling')}; {rows[-1]['verdict']}", flush=True)
@@ -354,7 +361,8 @@ def realtime(runs: int, duration: float, conditions: list, rate: float = 1000.0,
           "one core); emulated MHz/s: the emulation's speed while armed (16 = real time)")
     if json_path:
         cmd = f"PYTHONPATH=. python tools/bench_firmware.py --realtime {runs} --duration " \
-              f"{duration:g} --conditions {' '.join(conditions)} --json {json_path}"
+              f"{duration:g} --rt-rate {rate:g} --conditions {' '.join(conditions)} " \
+              f"--json {json_path}"
         Path(json_path).write_text(json.dumps({"command": cmd, "conditions": out},
                                               indent=1) + "\n")
     return 0 if all(c["met"] for c in out) else 1
@@ -379,6 +387,9 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=3.0, help="each run [s] (3)")
     ap.add_argument("--beside-cpu", action="store_true",
                     help="with --realtime: only next to one CPU-bound process")
+    ap.add_argument("--rt-rate", type=float, default=1000.0, metavar="HZ",
+                    help="with --realtime: the tick rate (default 1000; 4000: compact "
+                         "frames, delay 2)")
     ap.add_argument("--conditions", nargs="+", choices=("quiet", "hog"),
                     default=["quiet", "hog"],
                     help="with --realtime: alone, and next to one CPU-bound process (both)")
@@ -386,7 +397,8 @@ def main(argv=None) -> int:
     board.build()
     if args.realtime:
         conds = ["hog"] if args.beside_cpu else args.conditions
-        return realtime(args.realtime, args.duration, conds, json_path=args.json)
+        return realtime(args.realtime, args.duration, conds, rate=args.rt_rate,
+                        json_path=args.json)
     subprocess.run(["make", "-s", "-C", str(board.FIRMWARE_DIR), "bench"], check=True,
                    stdout=subprocess.DEVNULL)
     rows = []
