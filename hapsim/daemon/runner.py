@@ -563,7 +563,11 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         _restore_signals(conn.old_signals)
         tr.close()
         if conn.embedded is not None:
-            mock_report = conn.embedded.report()
+            # a device lost for good never sees the host leave (its port is gone, or it
+            # no longer answers): it is stopped at once (SIGTERM: zero force, its
+            # report) instead of being awaited for the 3 s a device that ends by itself
+            # gets
+            mock_report = conn.embedded.report(timeout=0.0 if error is not None else 3.0)
             conn.embedded.close()
     if opts.transport in ("inprocess", "sim"):
         mock_report = conn.mock.stats.to_dict()
