@@ -44,8 +44,8 @@ from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-           "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
-           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
+           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
+           "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
 
 
@@ -114,6 +114,19 @@ class _Report:
         for k, v in attrs.items():
             object.__setattr__(obj, k, v)
         return obj
+
+
+def _draw(report, draw, path_or_ax):
+    """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file (a path:
+    checked first, written by :func:`hapsim.plot.save_figure`). Returns the figure."""
+    from hapsim.plot import check_figure_path, save_figure
+    if isinstance(path_or_ax, (str, os.PathLike)):
+        path = os.fspath(path_or_ax)
+        check_figure_path(path, "plot")
+        fig = draw(report)
+        save_figure(fig, path)
+        return fig
+    return draw(report, ax=path_or_ax)
 
 
 def _scene(scene):
@@ -197,11 +210,28 @@ class CheckReport(_Report):
         """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
         return _get(self.rendered, "b")
 
-    def plot(self, ax=None):
+    def plot(self, path_or_ax=None):
         """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plot.plot_poles`). Returns the matplotlib figure."""
+        (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def _get(d, key) -> float:
@@ -297,10 +327,25 @@ class RenderReport(_Report):
         """Closed-loop poles as [re, im] (from :attr:`modes`)."""
         return [[m["z_re"], m["z_im"]] for m in self.modes]
 
-    def plot(self, ax=None):
-        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`)."""
+    def plot(self, path_or_ax=None):
+        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write, axes to draw into, or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing, or a path that cannot be written (key ``plot``).
+        """
         from hapsim.plot import plot_poles
-        return plot_poles(self, ax=ax)
+        return _draw(self, plot_poles, path_or_ax)
 
 
 def render(loop, K: float, B: float = 0.0) -> RenderReport:
@@ -407,6 +452,15 @@ class StabilityReport(_Report):
     ----------
     K_max : float or None
         Exact stability limit [N/m] (None when unbounded).
+    K_max_method : str
+        ``"certified"`` (proven in exact arithmetic: no crossing of ``|z| = 1`` below, a
+        guaranteed bracket; :mod:`hapsim.analysis.limit_certificate`) or ``"sampled (N)"``
+        (the scan of ``N`` points of the circle, not proven between them).
+    K_max_interval : [float, float] or None
+        The guaranteed bracket ``[K_lo, K_hi]`` [N/m] when certified (``[0, 0]``: no
+        ``K > 0`` stable; ``[None, None]``: every ``K > 0`` proven stable), else None.
+    K_max_not_certified : str or None
+        Why the limit is only sampled (None when certified).
     B : float
         Virtual damping [N s/m].
     spectral_radius_at_K_max, spectral_radius_error : float or None
@@ -418,6 +472,9 @@ class StabilityReport(_Report):
     """
 
     K_max: float | None
+    K_max_method: str
+    K_max_interval: list | None
+    K_max_not_certified: str | None
     B: float
     spectral_radius_at_K_max: float | None
     spectral_radius_error: float | None
@@ -447,18 +504,26 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
 
     Notes
     -----
-    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS) beside
+    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS, a scan of
+    the unit circle), proven by :func:`hapsim.analysis.limit_certificate.certify_limit`
+    where exact arithmetic can (the crossing condition as a polynomial in ``cos theta``,
+    Sturm's theorem, the Schur-Cohn-Jury test), beside
     :func:`hapsim.analysis.ths.published_limits`.
     """
+    from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop import spectral_radius_known
-    from hapsim.analysis.ths import published_limits, stability_limit
+    from hapsim.analysis.ths import circle_scan_points, published_limits, stability_limit
     kmax = stability_limit(loop, B)
+    cert = certify_limit(loop, B, kmax, circle_scan_points(loop))
     rho = err = None
     if math.isfinite(kmax):
         rho, err = spectral_radius_known(loop, kmax, B)
         rho = known_digits(rho, err)
+    iv = None if cert.interval is None else [
+        v if math.isfinite(v) else None for v in cert.interval]
     return StabilityReport._from({
-        "K_max": kmax if math.isfinite(kmax) else None, "B": B,
+        "K_max": kmax if math.isfinite(kmax) else None, "K_max_method": cert.method,
+        "K_max_interval": iv, "K_max_not_certified": cert.reason or None, "B": B,
         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
         **published_limits(loop, B), "loop": loop.to_dict()})
 
@@ -512,11 +577,33 @@ class FamilyReport(_Report):
     consistency: dict | None = None
     family_calibrations: list | None = None
 
-    def plot(self, title: str | None = None):
-        """Felt (k, b) of every member, coloured by spectral radius
-        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+    def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
+        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format; ``hapsim family
+            --plot``); None: a new figure only.
+        title : str, optional
+            Default: the scene's path.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot_family import plot_family
-        return plot_family(self.analysis, title=title or self.scene)
+
+        def draw(report, ax=None):          # two panels: a figure of its own
+            return plot_family(report.analysis, title=title or report.scene)
+        return _draw(self, draw, path)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
@@ -638,7 +725,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              lockstep: bool = False, seed: int = 0, hand: bool = False,
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
-             driver_options: dict | None = None) -> IdentifyReport:
+             driver_options: dict | None = None,
+             mock_options: dict | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -675,6 +763,9 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
+        one ``driver_options`` describe); default the driver's own.
 
     Returns
     -------
@@ -707,7 +798,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
-                         driver_options=driver_options)
+                         driver_options=driver_options, mock_options=mock_options)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -718,7 +809,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None):
+             driver_options=None, mock_options=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -738,6 +829,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
 
     Returns
     -------
@@ -758,7 +851,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options,
+                 mock_options=mock_options)
     # one uniform record: the longest stretch without a missing STATE
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1
@@ -787,6 +881,52 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                                   f"({type(exc).__name__}: {exc}); "
                                   f"{_record_summary(rec, a, b)}") from None
     return fit, rec
+
+
+def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: float,
+                    driver):
+    """A driver's scale parameter from two identifications, without and with a known
+    mass clamped to the handle (``hapsim identify --added-mass``).
+
+    Parameters
+    ----------
+    bare, loaded : IdentifyReport
+        :func:`identify` without and with ``added_mass`` on the handle, through ``driver``.
+    added_mass : float > 0
+        The clamped mass [kg] (an inertia [kg m^2] for a rotary axis).
+    driver : hapsim.drivers.base.Driver
+        The driver both records were taken through: its ``scale_option`` (the FireFader's
+        ``full_scale``, the Haply board's ``resolution``) is the value assumed.
+
+    Returns
+    -------
+    (ForceScale, DeviceFit, Driver)
+        The gain and the parameter found (:func:`hapsim.analysis.calibration.
+        full_scale_from_added_mass`: ``full_scale`` is the parameter whatever it is),
+        ``bare``'s fit in the device's own units
+        (:func:`~hapsim.analysis.calibration.rescale_fit`) and the driver with the
+        parameter found (its :meth:`~hapsim.drivers.base.Driver.options` are what the
+        device file's ``protocol_options`` then hold).
+
+    Raises
+    ------
+    ConfigError
+        A driver whose protocol carries SI units (nothing to calibrate), a bad mass, or
+        the added mass not resolved by the two fits.
+    """
+    from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
+    from hapsim.drivers import get_driver
+    opt = driver.scale_option
+    if opt is None:
+        raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "
+                          f"calibrate (valid with --added-mass: the drivers firefader and "
+                          f"haply)", key="--added-mass")
+    sc = full_scale_from_added_mass(bare.fit.mass, loaded.fit.mass, added_mass,
+                                    float(getattr(driver, opt)))
+    fit = rescale_fit(bare.fit, sc, driver.scale_kind)
+    opts = driver.options()
+    opts[opt] = sc.full_scale
+    return sc, fit, get_driver(driver.name, **opts)
 
 
 def _record_summary(rec, a: int, b: int) -> str:
@@ -818,6 +958,9 @@ class RunReport(_Report):
     loop : dict
         Rate, ticks, late, missed, turnaround, stop reason, the device's protocol, ...
     telemetry, osc, sound : dict or None
+    error : dict or None
+        ``type`` and ``message`` of the device error that ended the run (the device lost
+        beyond recovery); None when it ran to its end.
     advice : dict or None
         What ``auto`` chose (rate and integrator).
 
@@ -825,7 +968,7 @@ class RunReport(_Report):
     safety stop or a device fault).
     """
 
-    _OPTIONAL = ("advice",)
+    _OPTIONAL = ("error", "advice")
 
     scene: str
     target: dict | None
@@ -837,6 +980,7 @@ class RunReport(_Report):
     telemetry: dict | None
     osc: dict | None
     sound: dict | None
+    error: dict | None = None
     advice: dict | None = None
 
     @property
@@ -854,6 +998,40 @@ class RunReport(_Report):
         """Ran to the end (or was stopped by a signal): what exit code 0 means."""
         return self.exit_code == 0
 
+    def plot(self, path_or_ax=None):
+        """The felt (k, b) of the run: simulated, predicted, measured (with its stated
+        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plot.plot_felt`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plot import plot_felt
+        return _draw(self, plot_felt, path_or_ax)
+
+    def text(self) -> str:
+        """The human report ``hapsim run`` prints (:func:`hapsim.daemon.report.format_report`).
+
+        Returns
+        -------
+        str
+            Several aligned lines, no trailing newline.
+        """
+        from hapsim.daemon.report import format_report
+        return format_report(self.to_dict())
+
 
 #: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
 _RUN_INTERNAL = ("plan", "embedded")
@@ -861,35 +1039,41 @@ _RUN_INTERNAL = ("plan", "embedded")
 
 def run_options() -> tuple:
     """The options :func:`run` takes: the fields of
-    :class:`hapsim.daemon.runner.RunOptions` (what ``hapsim run``'s options become).
+    :class:`hapsim.daemon.options.RunOptions` (what ``hapsim run``'s options become).
 
     Returns
     -------
     tuple of str
     """
-    from hapsim.daemon.runner import RunOptions
+    from hapsim.daemon.options import RunOptions
     return tuple(f.name for f in dataclasses.fields(RunOptions)
                  if f.name not in _RUN_INTERNAL)
 
 
-def run(scene, **options: Any) -> RunReport:
+def run(scene, options=None, **changes: Any) -> RunReport:
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    ``hapsim run`` is this function with the options of its command line
+    (:meth:`hapsim.daemon.options.RunOptions.from_args`); it prints the result.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene or str
-    **options
-        Those of ``hapsim run`` (:func:`run_options`): ``port`` (None: the embedded mock
-        on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic mock),
-        ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a file),
-        ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
-        process), ``handle_signals`` (default False here: a library leaves SIGINT to its
-        caller), ...
+    options : hapsim.daemon.options.RunOptions, optional
+        All the options at once (default: ``RunOptions(handle_signals=False)``: a library
+        leaves SIGINT to its caller).
+    **changes
+        Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
+        embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
+        mock), ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a
+        file), ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
+        process), ``handle_signals``, ...
 
     Returns
     -------
     RunReport
-        Also when the run ended on a safety stop or a device fault (``ok`` False).
+        Also when the run ended on a safety stop or a device fault (``ok`` False; a device
+        lost beyond recovery: ``error``).
 
     Raises
     ------
@@ -905,22 +1089,24 @@ def run(scene, **options: Any) -> RunReport:
     The measured (k, b) are identified from the free response by the matrix pencil
     method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
     """
+    from hapsim.daemon.options import RunOptions
     from hapsim.daemon.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
 
     valid = run_options()
-    unknown = sorted(set(options) - set(valid))
+    unknown = sorted(set(changes) - set(valid))
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(valid)}", key=unknown[0])
     scene = _scene(scene)
-    options.setdefault("handle_signals", False)
-    if options.get("driver") is None and scene.device is not None:
-        options["driver"] = scene.device.protocol
-    if options.get("driver") == "framed":
-        options["driver"] = None
+    opts = dataclasses.replace(options if options is not None
+                               else RunOptions(handle_signals=False), **changes)
+    driver = opts.driver
+    if driver is None and scene.device is not None:
+        driver = scene.device.protocol
     try:
-        rep = run_scene(scene, **options)
+        rep = run_scene(scene, dataclasses.replace(
+            opts, driver=None if driver == "framed" else driver))
     except (DeviceError, ProtocolError) as exc:
         rep = getattr(exc, "report", None)
         if rep is None:

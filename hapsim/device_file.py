@@ -127,7 +127,8 @@ def load_device(path: str):
         Unreadable file, invalid YAML, other top-level keys than ``device``, or an invalid
         device section (file, line and key named, as for scenes).
     """
-    from hapsim import scene as sc
+    from hapsim.scene.reader import LineContext, read_device
+    from hapsim.scene.rules import Invalid, check_device
     path = os.fspath(path)
     try:
         with open(path, encoding="utf-8") as fh:
@@ -136,14 +137,14 @@ def load_device(path: str):
         raise ConfigError(f"cannot read device file: {exc.strerror or exc}", file=path) from exc
     from hapsim._yaml_lines import load_yaml
     doc = load_yaml(text, path)
-    ctx = sc._Ctx(path)
+    ctx = LineContext(path)
     if doc is None:
         raise ctx.error("the device file is empty; it needs a 'device:' section", 1, "device")
     doc = ctx.mapping(doc, "", 1)
     ctx.keys(doc, ("device",), "", required=("device",))
-    dev = sc._read_device(ctx, doc)
+    dev = read_device(ctx, doc)
     try:
-        sc._check_device(dev)
-    except sc._Invalid as exc:
+        check_device(dev)
+    except Invalid as exc:
         raise ConfigError(exc.message, file=path, key=exc.key) from None
     return dev

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels.nd import CHUNK, link_lengths, run_nd, stripes
+from hapsim.kernels.nd import BLOCK, ROWS, link_lengths, run_nd, schedule, stripes
 
 __all__ = ["EngineND"]
 
@@ -24,6 +24,9 @@ class EngineND:
     ----------
     scene : hapsim.scene_nd.SceneND
         A validated scene.
+    block : int, optional
+        Masses per block of the kernels' schedule (:data:`hapsim.kernels.nd.BLOCK`; a
+        smaller one only to test the schedule on small scenes).
 
     Notes
     -----
@@ -32,26 +35,38 @@ class EngineND:
     :attr:`port_force` is then the force the step computed on it [N] (``-F`` of its links).
     """
 
-    def __init__(self, scene) -> None:
+    def __init__(self, scene, block: int = BLOCK) -> None:
         self.scene = scene
+        self.block = int(block)
         T = scene.period
         self.names = [m.name for m in scene.masses]
         index = {n: i for i, n in enumerate(self.names)}
         X0 = np.array([m.x0 for m in scene.masses], float)
         V0 = np.array([m.v0 for m in scene.masses], float)
-        self.x = np.ascontiguousarray(X0.T)
-        self.xp = np.ascontiguousarray((X0 - T * V0).T)
-        self.f = np.zeros_like(self.x)
+        n, dim = len(scene.masses), scene.dimension
+        self.dim = dim
+        # three rows always (the kernels' layout); a lower dimension's extra rows stay 0
+        self._X = np.zeros((ROWS, n))
+        self._XP = np.zeros((ROWS, n))
+        self._X[:dim] = X0.T
+        self._XP[:dim] = (X0 - T * V0).T
+        self.f = np.zeros((ROWS, n))
+        self.port_f = np.zeros(ROWS)
         self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
                              for m in scene.masses])
         self.port = index.get(scene.port.name) if scene.port is not None else None
 
         def pack(links):
+            # lower index first (the laws are symmetric in the two ends), then stripes
+            # and their pieces per block of masses
             if not links:
-                return np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+                return (np.zeros((0, 4), np.int64), np.zeros(-(-n // block) + 1, np.int64),
+                        np.zeros(0, np.int64))
             i1 = np.array([index[lk.m1] for lk in links])
             i2 = np.array([index[lk.m2] for lk in links])
-            return stripes(i1, i2)
+            table, order = stripes(np.minimum(i1, i2), np.maximum(i1, i2))
+            pieces, ptr = schedule(table, n, block)
+            return pieces, ptr, order
 
         def slot(order, values):
             out = np.zeros(order.size)
@@ -66,24 +81,34 @@ class EngineND:
         self.c_k = np.array([lk.stiffness for lk in con], float)
         self.c_z = np.array([lk.damping / T for lk in con], float)
         self.c_thr = np.array([lk.threshold for lk in con], float)
-        d = self.xp[:, self.c_i1] - self.xp[:, self.c_i2]
+        d = self._XP[:, self.c_i1] - self._XP[:, self.c_i2]
         self.c_lprev = np.sqrt((d * d).sum(axis=0))
         pairs = [(pl, m) for pl in scene.planes for m in pl.masses]
         self.p_mass = np.array([index[m] for _, m in pairs], np.int64)
         self.p_normal = np.ascontiguousarray(
-            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, scene.dimension).T)
+            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, dim).T)
         self.p_offset = np.array([pl.offset for pl, _ in pairs], float)
         self.p_k = np.array([pl.stiffness for pl, _ in pairs], float)
         self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
-        self.lin_table, lo = pack(lin)
-        self.eu_table, eo = pack(eu)
+        self.lin_pieces, self.lin_ptr, lo = pack(lin)
+        self.eu_pieces, self.eu_ptr, eo = pack(eu)
         self.lin_k = slot(lo, [lk.stiffness for lk in lin])
         self.lin_z = slot(lo, [lk.damping / T for lk in lin])
         self.eu_k = slot(eo, [lk.stiffness for lk in eu])
         self.eu_z = slot(eo, [lk.damping / T for lk in eu])
         self.eu_rest = slot(eo, [lk.length for lk in eu])
-        self.eu_lprev = link_lengths(self.xp, self.eu_table, eo.size)
-        self.W = np.zeros((scene.dimension, CHUNK))
+        self.eu_lprev = link_lengths(self._XP, self.eu_pieces, eo.size)
+        self.W = np.zeros((ROWS, block))
+
+    @property
+    def x(self) -> np.ndarray:
+        """Positions at the current sample [m], shape (dim, N) (a view: writable)."""
+        return self._X[:self.dim]
+
+    @property
+    def xp(self) -> np.ndarray:
+        """Positions at the previous sample [m], shape (dim, N) (a view: writable)."""
+        return self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` samples [-] (no allocation).
@@ -93,11 +118,11 @@ class EngineND:
         n : int
             Samples to advance (>= 0).
         """
-        run_nd(int(n), self.x, self.xp, self.f, self.t2m, self.lin_table, self.lin_k,
-               self.lin_z, self.eu_table, self.eu_k, self.eu_z, self.eu_rest,
-               self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+        run_nd(int(n), self.dim, self.block, self._X, self._XP, self.f, self.t2m,
+               self.lin_pieces, self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces,
+               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
                self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
-               self.p_k, self.p_z)
+               self.p_k, self.p_z, -1 if self.port is None else self.port, self.port_f)
 
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous
@@ -128,7 +153,7 @@ class EngineND:
         """Force on the port at the last step [N], shape (dim,)."""
         if self.port is None:
             raise ConfigError("the scene has no port", key="masses")
-        return self.f[:, self.port].copy()
+        return self.port_f[:self.dim].copy()
 
     @property
     def positions(self) -> np.ndarray:

@@ -23,8 +23,10 @@ import numpy as np
 from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
+from hapsim.kernels.joint_nd import joint_step
 
-__all__ = ["LockstepND", "JointDeviceND", "measure_felt_lockstep"]
+__all__ = ["LockstepND", "JointDeviceND", "measure_felt_lockstep", "excitation_starts",
+           "felt_deviation", "default_samples", "LocalJointDeviceND"]
 
 
 class LockstepND:
@@ -202,6 +204,104 @@ class JointDeviceND:
         self.q, self.qd = q, qd
 
 
+class LocalJointDeviceND:
+    """A kinematic device's joint-space dynamics with its kinematics to second order about
+    the operating point: fast enough for a real-time mock (a delta's exact forward
+    kinematics is a Newton solve of ~5 ms).
+
+    ``f(q0 + s) = f(q0) + J0 s + H(s, s) / 2`` with ``J0 = J(q0)`` and ``H[:, j, k] =
+    d J[:, j] / d q_k`` (central differences of :meth:`hapsim.kinematics` Jacobians, step
+    ``1e-5`` rad: error ``O(1e-10)`` relative); the Jacobian is then ``J0 + H s`` and the
+    handle's acceleration bias ``H(q', q')`` exactly, and the dynamics are those of
+    :class:`JointDeviceND` (Lagrange's equations, Khatib 1987) for this quadratic
+    kinematics: the configuration-dependent inertia and the velocity-product terms are
+    exact to first order in the motion ``s``, which is the order of the linearisation bound
+    (:mod:`hapsim.analysis.linearisation_nd`); the next term is ``O(|s|^2)`` relative.
+    Torques ``J(q_n)^T u`` held over the period; classical Runge-Kutta, ``substeps`` per
+    period.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A scene whose device is a pantograph or a delta.
+    x0, v0 : array_like, shape (n,)
+        Initial handle displacement from the rest position [m] and velocity [m/s] (the
+        joints by Newton steps on the quadratic model).
+    substeps : int, optional
+        Runge-Kutta steps per period.
+
+    Raises
+    ------
+    ConfigError
+        A cartesian device (no joints).
+    hapsim.errors.KinematicsError
+        The operating point at a singularity or outside the workspace.
+    """
+
+    def __init__(self, scene, x0, v0, substeps: int = 2) -> None:
+        from hapsim.kinematics import device
+        dev = scene.device
+        if dev.joints is None:
+            raise ConfigError("a joint-space device needs a pantograph or a delta",
+                              file=scene.path, key="device.kind")
+        kin = device(dev.kind, dev.geometry)
+        q0 = np.asarray(dev.joints, float)
+        n = q0.size
+        self.q0 = q0.copy()
+        self.J0 = kin.jacobian(q0)
+        self.f0 = kin.forward(q0)
+        h = 1e-5
+        H = np.empty((n, n, n))
+        for k in range(n):
+            e = np.zeros(n)
+            e[k] = h
+            H[:, :, k] = (kin.jacobian(q0 + e) - kin.jacobian(q0 - e)) / (2 * h)
+        self.H = 0.5 * (H + H.transpose(0, 2, 1))      # d2f/dq_j dq_k is symmetric
+        self.Mq, self.Bq = dev.joint_inertia, dev.joint_friction
+        self.mh, self.bh = dev.hand_mass, dev.hand_damping
+        self.substeps = int(substeps)
+        self.h = scene.period / self.substeps
+        target = np.asarray(dev.position, float) + np.asarray(x0, float) - self.f0
+        s = np.zeros(n)
+        for _ in range(8):                               # Newton on the quadratic model
+            s = s + np.linalg.solve(self.J(s), target - self._disp(s))
+        self.s = s
+        self.sd = np.linalg.solve(self.J(s), np.asarray(v0, float))
+        self.Mq = np.ascontiguousarray(self.Mq, float)
+        self.Bq = np.ascontiguousarray(self.Bq, float)
+        self.mh, self.bh = float(self.mh), float(self.bh)
+        self._u = np.zeros(n)
+        self._wv = np.zeros((10, n))
+        self._wm = np.zeros((2, n, n))
+
+    def J(self, s) -> np.ndarray:
+        """Jacobian ``J0 + H s`` [m/rad] at joint displacement ``s`` [rad], shape (n, n)."""
+        return self.J0 + self.H @ s
+
+    def _disp(self, s):
+        return self.J0 @ s + 0.5 * ((self.H @ s) @ s)
+
+    def position(self) -> np.ndarray:
+        """Handle position ``f(q0 + s)`` [m], shape (n,)."""
+        return self.f0 + self._disp(self.s)
+
+    def step(self, u) -> None:
+        """Hold the torques ``J(q_n)^T u`` of the Cartesian force ``u`` [N] (shape (n,))
+        over one period and advance."""
+        self.step_torque(self.J(self.s).T @ np.asarray(u, float))
+
+    def step_torque(self, tau) -> None:
+        """Hold the joint torques ``tau`` [N m] (shape (n,)) over one period and advance
+        (:func:`hapsim.kernels.joint_nd.joint_step`)."""
+        self._u[:] = tau
+        joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
+                   self.bh, self.h, self.substeps, self._wv, self._wm)
+
+    def joints(self) -> np.ndarray:
+        """Joint angles ``q0 + s`` [rad], shape (n,)."""
+        return self.q0 + self.s
+
+
 def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = None,
                           progress=None, joint_space: bool = False) -> dict:
     """The felt matrices measured from lockstep free responses, against the prediction.
@@ -245,14 +345,13 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
     n = scene.dimension
     order = chk.states // n
-    N = int(samples) if samples is not None else max(300, 20 * order * n)
+    N = int(samples) if samples is not None else default_samples(order, n)
     if N < 2 * order * n:
         raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
                           f"({chk.states} states), got {N}", key="samples")
     a = bound.amplitude
     T = scene.period
-    starts = [(a * np.eye(n)[i], None) for i in range(n)] + \
-             [(None, a / (10 * T) * np.eye(n)[i]) for i in range(n)]
+    starts = excitation_starts(n, a, T)[1:]
     rest = LockstepND(scene, joint_space=joint_space).step(N, record=True)
     recs = []
     for j, (x0, v0) in enumerate(starts):
@@ -261,12 +360,65 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         if progress is not None:
             progress(j + 1, len(starts))
     fit = fit_felt_nd(recs, scene.device.mass, T, order)
-    k, b = chk.render.felt_stiffness, chk.render.felt_damping
-    dev = None
-    if fit["felt_stiffness"] is not None and k is not None:
-        dev = {"felt_stiffness": float(np.max(np.abs(fit["felt_stiffness"] - k))
-                                       / np.max(np.abs(k))),
-               "felt_damping": float(np.max(np.abs(fit["felt_damping"] - b))
-                                     / np.max(np.abs(b)))}
+    dev = felt_deviation(fit, chk)
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
             "order": order, "records": len(recs), "samples": N}
+
+
+def default_samples(order: int, n: int) -> int:
+    """Samples per identification record: ``max(300, 20 p n)`` for prediction order
+    ``p`` and ``n`` axes (ten times the regression's ``2 p n`` minimum, so the fit is
+    overdetermined tenfold)."""
+    return max(300, 20 * int(order) * int(n))
+
+
+def excitation_starts(n: int, amplitude: float, period: float) -> list:
+    """The initial states of the identification records, the record from rest first.
+
+    Parameters
+    ----------
+    n : int
+        Axes.
+    amplitude : float
+        ``a`` [m].
+    period : float
+        Sample period ``T`` [s].
+
+    Returns
+    -------
+    list of (x0, v0)
+        ``2 n + 1`` pairs, each of shape (n,) [m], [m/s]: rest ``(0, 0)``; the handle
+        displaced by ``a e_i``; the handle moving at ``a / (10 T) e_i`` (``e_i`` the axes).
+        Every mode of the loop is excited by one of them unless it is unobservable from
+        the handle (:mod:`hapsim.analysis.identify_nd`).
+    """
+    z = np.zeros(n)
+    e = np.eye(n)
+    return ([(z, z)] + [(amplitude * e[i], z) for i in range(n)]
+            + [(z, amplitude / (10.0 * period) * e[i]) for i in range(n)])
+
+
+def felt_deviation(fit: dict, chk) -> dict | None:
+    """How far measured felt matrices are from the predicted ones.
+
+    Parameters
+    ----------
+    fit : dict
+        :func:`hapsim.analysis.identify_nd.fit_felt_nd`'s result.
+    chk : hapsim.analysis.scene_nd_check.SceneCheckND
+        The prediction.
+
+    Returns
+    -------
+    dict or None
+        ``felt_stiffness`` and ``felt_damping``: the largest entry of
+        ``|measured - predicted|`` over the predicted matrix's largest entry [-]; None
+        when either side has no felt matrices.
+    """
+    k, b = chk.render.felt_stiffness, chk.render.felt_damping
+    if fit["felt_stiffness"] is None or k is None:
+        return None
+    return {"felt_stiffness": float(np.max(np.abs(fit["felt_stiffness"] - k))
+                                    / np.max(np.abs(k))),
+            "felt_damping": float(np.max(np.abs(fit["felt_damping"] - b))
+                                  / np.max(np.abs(b)))}

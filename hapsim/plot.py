@@ -11,7 +11,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_identify", "save_figure", "figure_formats", "check_figure_path",
+__all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_felt", "plot_identify", "save_figure", "figure_formats", "check_figure_path",
            "check_output_path"]
 
 
@@ -290,6 +290,74 @@ def plot_poles(report, ax=None, title: str | None = None):
     ax.axvline(0.0, color="0.85", lw=0.8)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
     ax.set_title(title or getattr(report, "scene", None) or "closed-loop poles")
+    fig.tight_layout()
+    return fig
+
+
+def plot_felt(report, ax=None, title: str | None = None):
+    """A run's felt (k, b): what was simulated, predicted, measured and asked for, in the
+    (k, b) plane.
+
+    Parameters
+    ----------
+    report : hapsim.api.RunReport
+        Its ``virtual`` (``K`` [N/m], ``B`` [N s/m] of the port link, when one), its
+        ``predicted`` and ``measured`` (``k`` [N/m], ``b`` [N s/m]; the measured
+        ``k_unc``, ``b_unc``: the stated uncertainty) and its ``targets``.
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw into; a new figure is made when None.
+    title : str, optional
+        Default: the scene's path.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Axes: k [N/m] (x), b [N s/m] (y). The simulated (K, B) (square), the predicted
+        felt pair (circle; the least damped closed-loop pole pair read as m s^2 + b s + k,
+        Florens, Voda & Urma), the measured pair with its stated uncertainty (cross with
+        error bars; matrix pencil, Hua & Sarkar 1990) and each target (star).
+
+    Raises
+    ------
+    ConfigError
+        If matplotlib is missing.
+    """
+    plt = pyplot()
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6.0, 4.5), dpi=110)
+    else:
+        fig = ax.figure
+
+    def pair(d, k="k", b="b"):
+        if not d or d.get(k) is None or d.get(b) is None:
+            return None
+        return float(d[k]), float(d[b])
+
+    v = pair(report.virtual, "K", "B")
+    if v is not None:
+        ax.plot(*v, "s", mfc="none", color="0.5", ms=9,
+                label=f"simulated K = {v[0]:.4g} N/m, B = {v[1]:.3g} N s/m")
+    p = pair(report.predicted)
+    if p is not None:
+        ax.plot(*p, "o", mfc="none", color="C0", ms=12,
+                label=f"predicted k = {p[0]:.4g} N/m, b = {p[1]:.3g} N s/m")
+    m = pair(report.measured)
+    if m is not None:
+        unc = report.measured
+        ax.errorbar(*m, xerr=unc.get("k_unc") or 0.0, yerr=unc.get("b_unc") or 0.0,
+                    fmt="x", color="C3", ms=9, capsize=3,
+                    label=f"measured k = {m[0]:.4g} N/m, b = {m[1]:.3g} N s/m")
+    for t in report.targets or []:
+        tp = pair(t)
+        if tp is not None:
+            ax.plot(*tp, "*", color="C2", ms=12,
+                    label=f"target ({t.get('link')}): k = {tp[0]:.4g} N/m, b = {tp[1]:.3g} "
+                          f"N s/m")
+    ax.set_xlabel("k [N/m]")
+    ax.set_ylabel("b [N s/m]")
+    ax.margins(0.25)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.15), fontsize=8, frameon=False)
+    ax.set_title(title or getattr(report, "scene", None) or "felt (k, b)")
     fig.tight_layout()
     return fig
 

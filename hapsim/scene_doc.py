@@ -133,7 +133,7 @@ def render_reference() -> str:
         if sec.example:
             out += ["", "A complete scene:", "", "```yaml", sec.example.rstrip(), "```"]
     out += ["", "## Rules across keys", "",
-            "Checked in code (`hapsim.scene._check_scene`) for a scene read from a file or "
+            "Checked in code (`hapsim.scene.rules.check_scene`) for a scene read from a file or "
             "built in Python alike:", ""]
     out += [f"- {r}" for r in CROSS_RULES]
     return "\n".join(out) + "\n"

@@ -64,8 +64,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim._yaml_lines import decode_text, load_yaml
+from hapsim._yaml_lines import load_yaml
 from hapsim.errors import ConfigError, show, type_name
+from hapsim.scene.reader import LineContext, read_text
 
 __all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "SceneND", "scene_dimension",
            "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
@@ -195,36 +196,15 @@ class SceneND:
         return next((m for m in self.masses if m.kind == "port"), None)
 
 
-class _Reader:
-    """Where we are in the file, for error messages (file, line, key)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def error(self, message: str, line, key: str) -> ConfigError:
-        return ConfigError(message, file=self.path, line=line, key=key or None)
+class _Reader(LineContext):
+    """Where we are in the file, for error messages (file, line, key): the 1-D reader's
+    :class:`~hapsim.scene.reader.LineContext` (mappings, keys, lines), with the n-D
+    values (numbers, vectors of ``dimension`` numbers, matrices) read and checked here."""
 
     @staticmethod
     def line(container, key=None):
-        lines = getattr(container, "lines", None)
-        if key is not None and lines and key in lines:
-            return lines[key]
-        return getattr(container, "line", None)
-
-    def mapping(self, v, key, line):
-        if not isinstance(v, dict):
-            raise self.error(f"must be a mapping (key: value), got {type_name(v)}", line, key)
-        return v
-
-    def keys(self, d, allowed, key, required=()):
-        for k in d:
-            if k not in allowed:
-                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
-                                 self.line(d, k), f"{key}.{k}" if key else str(k))
-        for k in required:
-            if k not in d:
-                raise self.error(f"missing required key {show(k)}", self.line(d),
-                                 f"{key}.{k}" if key else k)
+        """Line of ``container[key]``, else of the container (None without lines)."""
+        return LineContext.line_of(container, key)
 
     def number(self, d, k, key, *, default=None, minimum=None, strict=False,
                maximum=None, unit=""):
@@ -362,14 +342,13 @@ def scene_dimension(path: str | os.PathLike) -> int:
         ``dimension``).
     """
     try:
-        with open(os.fspath(path), "rb") as fh:
-            data = fh.read()
-    except OSError:
-        return 1
-    if b"dimension" not in data:
+        text = read_text(path)
+    except ConfigError:
+        return 1                       # the 1-D reader reports it
+    if "dimension" not in text:
         return 1
     try:
-        doc = load_yaml(decode_text(data, os.fspath(path)), os.fspath(path))
+        doc = load_yaml(text, os.fspath(path))
     except ConfigError:
         return 1                       # the 1-D reader reports it
     d = doc.get("dimension") if isinstance(doc, dict) else None
@@ -395,12 +374,7 @@ def load_scene_nd(path: str | os.PathLike) -> SceneND:
         file, the line and the key.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return parse_scene_nd(decode_text(data, path), path)
+    return parse_scene_nd(read_text(path), path)
 
 
 def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:

@@ -6,7 +6,7 @@ the reference and the validator cannot drift. **Adding a key to a scene means ad
 to** :data:`KEYS` (and, for a key of a dataclass section, the field of the same name; a test
 checks that every row has its field with the same default, and that every row's example
 loads). A rule that spans several keys (a target only between the port and a ground, no
-contact with the exact integrator, ...) is code in :func:`hapsim.scene._check_scene`; its
+contact with the exact integrator, ...) is code in :func:`hapsim.scene.rules.check_scene`; its
 one-line statement for the reference is in :data:`CROSS_RULES`.
 
 Paths: ``rate_hz`` (top level), ``device.friction`` (a key of a section),
@@ -511,7 +511,7 @@ KEYS: dict[str, Key] = {k.path: k for k in _KEYS}
 assert len(KEYS) == len(_KEYS), "duplicate path in the scene table"
 assert all(k.type in TYPES for k in _KEYS)
 
-#: Rules that span several keys, checked in code (hapsim.scene._check_scene), stated once here.
+#: Rules that span several keys, checked in code (hapsim.scene.rules.check_scene), stated once here.
 CROSS_RULES = (
     "Names of masses are unique, names of links are unique.",
     "At most one mass of kind `port`; a scene with a port needs a `device` section.",

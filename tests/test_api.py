@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import hapsim
@@ -74,7 +75,9 @@ def test_run_on_the_lockstep_mock_measures_the_prediction():
     rep = hapsim.run("configs/wall.yaml", lockstep=True, transport="inprocess")
     assert isinstance(rep, hapsim.RunReport) and rep.ok
     # the fields are the report's keys (the command prints the same dict)
-    assert rep.extra == {} and set(rep.to_dict()) == set(_fields(hapsim.RunReport)) - {"advice"}
+    # (advice only with --auto, error only after a device lost beyond recovery)
+    assert rep.extra == {}
+    assert set(rep.to_dict()) == set(_fields(hapsim.RunReport)) - {"advice", "error"}
     assert rep.k == pytest.approx(rep.predicted["k"], rel=1e-9)
     assert rep.b == pytest.approx(rep.predicted["b"], rel=1e-9)
     assert rep.loop["protocol"] == "framed"
@@ -114,6 +117,34 @@ def test_docs_example_runs_as_written(tmp_path, monkeypatch, capsys):
     exec(compile(m.group(1), "docs/api.md", "exec"), {})
     assert capsys.readouterr().out == m.group(2)
     assert (tmp_path / "wall_poles.png").stat().st_size > 10_000
+    assert (tmp_path / "wall_felt.png").stat().st_size > 10_000
+
+
+def test_run_chart_places_the_felt_pairs_where_the_report_says(tmp_path):
+    """RunReport.plot draws the simulated (K, B), the predicted and the measured (k, b) and
+    the target at their coordinates (a calibrated target: the felt pair is the target,
+    the simulated one is not), into given axes or a file; a bad file is refused first."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+    rep = hapsim.run("configs/felt_wall.yaml", lockstep=True, transport="inprocess")
+    fig, ax = plt.subplots()
+    assert rep.plot(ax) is fig
+    at = {ln.get_label().split()[0]: tuple(np.ravel(d)[0] for d in ln.get_data())
+          for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+    assert at["simulated"] == pytest.approx((rep.virtual["K"], rep.virtual["B"]))
+    assert at["predicted"] == pytest.approx((rep.predicted["k"], rep.predicted["b"]))
+    assert at["target"] == pytest.approx((rep.target["k"], rep.target["b"]))
+    measured = [c for c in ax.containers if c.get_label().startswith("measured")]
+    assert len(measured) == 1
+    assert tuple(np.ravel(d)[0] for d in measured[0][0].get_data()) == pytest.approx(
+        (rep.k, rep.b))
+    assert at["simulated"][0] != pytest.approx(at["target"][0], rel=1e-3)
+    plt.close(fig)
+    rep.plot(tmp_path / "felt.svg")
+    assert (tmp_path / "felt.svg").read_text().lstrip().startswith("<?xml")
+    with pytest.raises(hapsim.ConfigError) as info:
+        rep.plot(tmp_path / "felt.nosuch")
+    assert info.value.key == "plot" and ".png" in str(info.value)
 
 
 def test_import_hapsim_is_light_and_the_api_draws_only_when_asked():
@@ -183,3 +214,13 @@ def test_identify_chart_is_measured_against_model():
     assert top.get_title() == "m = 0.1 kg, b0 = 0.5 N s/m, fc = 0.02 N, d = 1, zoh"
     import matplotlib.pyplot as plt
     plt.close(fig)
+
+
+def test_a_chart_without_matplotlib_names_the_plot_extra(monkeypatch):
+    """The API's charts give the command's hint when matplotlib is missing."""
+    from hapsim.plot import PLOT_INSTALL
+    rep = hapsim.render(hapsim.LoopModel(**LOOP), K=1000.0, B=1.5)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)     # import matplotlib fails
+    with pytest.raises(hapsim.ConfigError) as info:
+        rep.plot()
+    assert PLOT_INSTALL in str(info.value)

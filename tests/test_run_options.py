@@ -1,5 +1,6 @@
-"""The run's options are built once: ``hapsim run``'s parser -> :func:`run_options` ->
-:class:`RunOptions`, which :func:`run_scene` takes (keyword changes on top)."""
+"""The run's options are declared once (:class:`RunOptions`' fields): ``hapsim run``'s
+parser is generated from them and :meth:`RunOptions.from_args` builds them back, which
+:func:`run_scene` takes (keyword changes on top)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from hapsim.cli import build_parser
-from hapsim.commands.run import _announce, run_options
+from hapsim.daemon.options import command_line_fields
 from hapsim.daemon.runner import RunOptions, run_scene
 from hapsim.errors import ConfigError
 from hapsim.scene import load_scene
@@ -23,15 +24,30 @@ def _parse(*argv):
 
 def test_command_line_defaults_are_the_options_defaults():
     """No option has one default in the parser and another in RunOptions."""
-    got = run_options(_parse(), load_scene(WALL))
+    got = RunOptions.from_args(_parse())
     want = RunOptions()
     for f in dataclasses.fields(RunOptions):
-        if f.name == "on_start":
-            assert got.on_start is _announce
-        elif f.name == "loop":      # 'auto': run() chooses compiled or python before the run
+        if f.name == "loop":      # 'auto': run() chooses compiled or python before the run
             assert got.loop == "auto"
         else:
             assert getattr(got, f.name) == getattr(want, f.name), f.name
+
+
+def test_every_option_of_the_parser_is_one_declared_field():
+    """The parser's run options are exactly the declared fields, by their flags (the
+    command adds its own: the scene, --auto, --tolerance, --device, --amplitude, --json)."""
+    import argparse
+    sub = next(a for a in build_parser("run")._actions
+               if isinstance(a, argparse._SubParsersAction))
+    parser = sub.choices["run"]
+    dests = {a.dest for a in parser._actions}
+    fields = {f.name for f in command_line_fields()}
+    assert fields <= dests
+    assert dests - fields == {"help", "scene", "auto", "tolerance", "device", "amplitude",
+                              "json"}
+    flags = {a.dest: a.option_strings for a in parser._actions}
+    for f in command_line_fields():
+        assert flags[f.name] == [f.metadata["cli"]["flag"]], f.name
 
 
 def test_every_command_line_option_reaches_its_field():
@@ -41,7 +57,7 @@ def test_every_command_line_option_reaches_its_field():
             "--fault-seed", "5", "--no-reconnect", "--lost-timeout", "0.2",
             "--reconnect-attempts", "2", "--reconnect-time", "1.5", "--driver", "haply",
             "--osc", "0", "--osc-ramp", "0.2", "--sound", "jack", "--jack-server", "srv"]
-    o = run_options(_parse(*argv), load_scene(WALL), embedded="E")
+    o = RunOptions.from_args(_parse(*argv), embedded="E")
     assert (o.port, o.baud, o.duration, o.rate_hz) == ("/dev/null", 9600, 2.5, 2000.0)
     assert o.lockstep and o.host_clocked and o.allow_unstable and o.loop == "python"
     assert (o.telemetry, o.rt_priority, o.seed, o.faults, o.fault_seed) == (
@@ -51,7 +67,23 @@ def test_every_command_line_option_reaches_its_field():
     assert (o.driver, o.osc, o.osc_ramp, o.sound, o.jack_server) == ("haply", 0, 0.2, "jack",
                                                                      "srv")
     assert o.embedded == "E"
-    assert run_options(_parse("--driver", "framed"), load_scene(WALL)).driver is None
+
+
+@pytest.mark.parametrize("argv, key", [
+    (["--rate", "0"], "--rate"), (["--rate", "nan"], "--rate"), (["--rate", "1e12"], "--rate"),
+    (["--duration", "-1"], "--duration"), (["--lost-timeout", "0"], "--lost-timeout"),
+    (["--reconnect-attempts", "-1"], "--reconnect-attempts"),
+    (["--reconnect-time", "inf"], "--reconnect-time"), (["--faults", "nosuch=1"], "--faults")])
+def test_a_bad_value_is_refused_by_its_declaration_from_both_doors(argv, key):
+    """The same check, keyed by the flag, from the command line and from a program."""
+    with pytest.raises(ConfigError) as cli:
+        RunOptions.from_args(_parse(*argv))
+    assert cli.value.key == key
+    name = next(f.name for f in command_line_fields() if f.metadata["cli"]["flag"] == argv[0])
+    value = getattr(_parse(*argv), name)
+    with pytest.raises(ConfigError) as prog:
+        RunOptions(**{name: value}).check()
+    assert prog.value.key == key and str(prog.value) == str(cli.value)
 
 
 def test_run_scene_checks_a_copy_with_the_changes():
@@ -64,3 +96,44 @@ def test_run_scene_checks_a_copy_with_the_changes():
     assert opts == RunOptions(lockstep=True)          # transport still unresolved, no plan
     with pytest.raises(TypeError):
         run_scene(scene, opts, no_such_option=1)
+
+
+def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
+    """``hapsim run`` is :func:`hapsim.api.run` with its command line's options: the JSON it
+    prints is the API's report, its text the report's ``text()``, its exit code the
+    report's; a device lost beyond recovery is said after the report."""
+    import json
+
+    from hapsim import api
+    from hapsim.cli import main
+    from hapsim.daemon import runner, startup
+    from hapsim.errors import DeviceError
+    got = {}
+    canned = api.run(WALL, lockstep=True, transport="inprocess").to_dict()
+
+    def run_scene(scene, options=None, **kw):
+        got["options"] = dataclasses.replace(options, **kw)
+        if got.get("lose"):
+            exc = DeviceError("gone")
+            exc.report = {**canned, "exit_code": 1,
+                          "error": {"type": "DeviceError", "message": "gone"}}
+            raise exc
+        return {**canned, "exit_code": 0}
+
+    calls = []
+    real_run = api.run
+    monkeypatch.setattr(api, "run", lambda *a, **k: calls.append(a) or real_run(*a, **k))
+    monkeypatch.setattr(runner, "run_scene", run_scene)
+    monkeypatch.setattr(startup, "start_embedded_mock", lambda *a, **k: None)
+    assert main(["run", WALL, "--lockstep", "--duration", "0.5", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert len(calls) == 1 and json.loads(out) == json.loads(json.dumps(canned))
+    o = got["options"]
+    assert (o.lockstep, o.duration, o.driver, o.handle_signals) == (True, 0.5, None, True)
+    assert o.loop in ("compiled", "python")       # 'auto' resolved by the command
+    got["lose"] = True
+    assert main(["run", WALL, "--lockstep"]) == 1
+    cap = capsys.readouterr()
+    assert cap.out.strip() == api.RunReport._from(
+        {**canned, "error": {"type": "DeviceError", "message": "gone"}}).text()
+    assert cap.err.rstrip().endswith("hapsim run: DeviceError: gone")

@@ -106,6 +106,10 @@ def register(sub) -> None:
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
                         "sensor noise and a compliant grip stay in Python) or in Python "
                         "('python', the reference)")
+    p.add_argument("--amplitude", type=float, metavar="M",
+                   help="2-D/3-D scenes: the hand's amplitude a [m] (default 1e-8): at each "
+                        "CONFIG it lets the handle go from the next identification start "
+                        "(rest, displaced by a along each axis, moving at a/(10 T) along each)")
     p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
@@ -169,6 +173,14 @@ def run(args) -> int:
     """
     if args.rt_priority is None:
         args.rt_priority = 10 if args.firmware and not args.lockstep else 0
+    if args.scene and not args.firmware and args.fd is None:
+        from hapsim.scene_nd import scene_dimension
+        if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device
+            from hapsim.commands.mock_nd import run_mock_nd
+            return run_mock_nd(args, _new_pty)
+    if getattr(args, "amplitude", None) is not None:
+        raise ConfigError("--amplitude is the hand of a 2-D or 3-D scene's mock (the 1-D "
+                          "mock takes its excitation from the scene)", key="--amplitude")
     if args.firmware:
         return _run_firmware(args)
     from hapsim.daemon.faults import parse_faults

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import math
 import sys
 
 from hapsim.errors import ConfigError
-from hapsim.outputs import json_safe
 
 _DESCRIPTION = """\
 Run a scene in real time against a force-feedback device and measure what the hand feels.
@@ -104,6 +103,7 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The sub-parsers action of ``hapsim``'s parser; ``run``'s ``func`` is :func:`run`.
     """
+    from hapsim.daemon.options import add_run_arguments
     from hapsim.drivers import DRIVERS, get_driver
     limits = "\n".join("  " + line for name in DRIVERS if name != "framed"
                        for line in get_driver(name).limits.splitlines())
@@ -112,72 +112,17 @@ def register(sub) -> None:
                        description=_DESCRIPTION, epilog=_EPILOG.replace("{drivers}", limits),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
-    p.add_argument("--port", metavar="PORT",
-                   help="serial port of the device (default: embedded mock on a pty)")
-    p.add_argument("--baud", type=int, default=115200, metavar="BAUD",
-                   help="baud rate (default 115200; ignored by USB CDC and ptys)")
-    p.add_argument("--duration", type=float, metavar="S",
-                   help="run length [s] (default 1 s, longer for slow oscillations); 0: "
-                        "open-ended, until SIGINT/SIGTERM (or a safety stop)")
-    p.add_argument("--rate", type=float, metavar="HZ", help="override the scene's rate [Hz]")
-    p.add_argument("--lockstep", action="store_true",
-                   help="lockstep mock: one period per FORCE, deterministic")
-    p.add_argument("--host-clocked", action="store_true",
-                   help="tick on the host's clock instead of answering each STATE "
-                        "(with --lockstep: the host paces the lockstep mock in real time)")
-    p.add_argument("--loop", choices=("auto", "compiled", "python"), default="auto",
-                   help="host loop: 'compiled' (the device-clocked hot path in one numba "
-                        "function that owns the port, without the GIL; a live --osc, --sound "
-                        "or a device correction keep the Python loop), 'python' (the "
-                        "reference loop: the same FORCEs bit for bit, to compare) or 'auto' "
-                        "(default: compiled when numba's cache holds it; otherwise this run "
-                        "uses the Python loop and compiles the other after its report, for "
-                        "the next runs)")
-    p.add_argument("--telemetry", metavar="FILE",
-                   help="write per-sample time, position, force, seq, turnaround, late (.npz/.csv)")
-    p.add_argument("--allow-unstable", action="store_true",
-                   help="run a loop the analysis finds unstable, under the safety stops")
-    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
-                   help="SCHED_FIFO priority of the loop and the embedded mock where the OS "
-                        "permits it (default 10; 0: normal scheduling; not with --lockstep, "
-                        "which is paced by the answers, not the clock). Under load it keeps "
-                        "late ticks rare; the report says what was obtained")
-    p.add_argument("--seed", type=int, default=0, help="mock sensor-noise seed (default 0)")
+    # the run's options, each declared once in hapsim.daemon.options.RunOptions
+    add_run_arguments(p)
+    # the command's own options (what it does before and after the run)
     p.add_argument("--auto", action="store_true",
                    help="use 'hapsim advise': the lowest rate and cheapest method that keep "
                         "the felt (k, b) within --tolerance (calibrating port links)")
     p.add_argument("--tolerance", type=float, default=0.01, metavar="REL",
                    help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
-    p.add_argument("--faults", metavar="SPEC",
-                   help="inject seeded faults in the embedded mock, e.g. "
-                        "drop=0.01,corrupt=0.005,stall@500:200ms,reset@800 (see below)")
-    p.add_argument("--fault-seed", type=int, default=0, metavar="N",
-                   help="seed of the fault generator (default 0)")
-    p.add_argument("--no-reconnect", action="store_true",
-                   help="a lost device ends the run (exit 1) instead of being recovered")
-    p.add_argument("--lost-timeout", type=float, metavar="S",
-                   help="silence after which the device is lost [s] (default: the watchdog "
-                        "period, 0.05)")
-    p.add_argument("--reconnect-attempts", type=int, default=8, metavar="N",
-                   help="most reconnect attempts per loss (default 8)")
-    p.add_argument("--reconnect-time", type=float, default=10.0, metavar="S",
-                   help="most time spent recovering one loss [s] (default 10)")
-    p.add_argument("--driver", metavar="NAME",
-                   help=f"device protocol, one of {', '.join(DRIVERS)} (default: the "
-                        "scene's device.protocol, else framed, hapsim's own); a driver runs "
-                        "host-clocked (see 'drivers' below)")
     p.add_argument("--device", metavar="FILE.yaml",
                    help="device section from a file (e.g. written by 'hapsim identify "
                         "--out'); replaces the scene's (said on stderr)")
-    p.add_argument("--osc", type=int, metavar="PORT",
-                   help="take live changes over OSC on localhost:PORT (0: any free port; "
-                        "addresses: hapsim play --help); each is checked, ramped, journaled")
-    p.add_argument("--osc-ramp", type=float, default=0.05, metavar="S",
-                   help="ramp time of every OSC change [s] (default 0.05)")
-    p.add_argument("--sound", choices=("auto", "jack", "sounddevice"),
-                   help="play the scene's audio section live (JACK, else PortAudio with "
-                        "auto); the model stays in the loop, the frames go to the server")
-    p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
     p.add_argument("--amplitude", type=float, metavar="M",
                    help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
                         "the measured free responses [m] (default 1e-8; the report states "
@@ -272,24 +217,8 @@ def run(args) -> int:
         raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
                           "excitation section", key="--amplitude")
 
-    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
-        raise ConfigError(f"must be a positive number [Hz], got {args.rate}", key="--rate")
-    if args.rate is not None:  # the scene's rate range (hapsim.analysis.loop.RATE_RANGE)
-        from hapsim.analysis.loop import RATE_RANGE, check_range
-        check_range(args.rate, *RATE_RANGE, "--rate", "Hz")
-    if args.lost_timeout is not None and not (math.isfinite(args.lost_timeout)
-                                              and args.lost_timeout > 0):
-        raise ConfigError(f"must be a positive number [s], got {args.lost_timeout}",
-                          key="--lost-timeout")
-    if args.reconnect_attempts < 0:
-        raise ConfigError(f"must be >= 0, got {args.reconnect_attempts}",
-                          key="--reconnect-attempts")
-    if not (math.isfinite(args.reconnect_time) and args.reconnect_time >= 0):
-        raise ConfigError(f"must be a number of seconds >= 0, got {args.reconnect_time}",
-                          key="--reconnect-time")
-    if args.faults:
-        from hapsim.daemon.faults import parse_faults
-        parse_faults(args.faults, args.fault_seed)      # unknown names: exit 2 before loading
+    from hapsim.daemon.options import RunOptions
+    opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
@@ -303,7 +232,7 @@ def run(args) -> int:
     if args.auto:
         from hapsim.bench.advise import advise_scene
         from hapsim.errors import UnstableConfigError
-        if args.rate is not None:
+        if opts.rate_hz is not None:
             raise ConfigError("--auto chooses the rate; drop --rate or --auto", key="--auto")
         advice = advise_scene(scene, args.tolerance)
         if not advice.ok:
@@ -312,57 +241,47 @@ def run(args) -> int:
         scene = advice.apply(scene)
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
-    from hapsim.errors import DeviceError, ProtocolError
-    args.protocol, said = protocol_of(scene, args.driver)
+    protocol, said = protocol_of(scene, opts.driver)
     note = ""
-    args.announce = lambda port, n: _announce(port, n, said, note)
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
-    possible = startup.compiled_loop_possible(scene, framed=args.protocol == "framed",
-                                              osc=args.osc, sound=args.sound,
-                                              host_clocked=args.host_clocked)
-    asked = args.loop
+    possible = startup.compiled_loop_possible(scene, framed=protocol == "framed",
+                                              osc=opts.osc, sound=opts.sound,
+                                              host_clocked=opts.host_clocked)
+    asked = loop = opts.loop
     if asked == "auto":     # a run that cannot use the compiled loop reports why it did not
-        args.loop = startup.choose_loop(asked, scene) if possible else "compiled"
-    compile_later = asked == "auto" and args.loop == "python"
+        loop = startup.choose_loop(asked, scene) if possible else "compiled"
+    compile_later = asked == "auto" and loop == "python"
     startup.announce_compilation(startup.run_compile_parts(
-        scene, compiled_loop=args.loop == "compiled" and possible), scene=scene)
+        scene, compiled_loop=loop == "compiled" and possible), scene=scene)
     if compile_later:           # said when the loop starts (not before an input error)
         note = ("; the Python host loop this time (the compiled one is not in numba's cache "
                 "yet: it is compiled after the report, for the next runs)")
     embedded = None
-    if args.port is None and args.protocol == "framed":
+    if opts.port is None and protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
         from hapsim.daemon.startup import start_embedded_mock
-        embedded = start_embedded_mock(scene, rate_hz=args.rate, lockstep=args.lockstep,
-                                       seed=args.seed, faults=args.faults,
-                                       fault_seed=args.fault_seed,
-                                       rt_priority=0 if args.lockstep and not args.host_clocked
-                                       else max(args.rt_priority, 0))
-    from hapsim.daemon.report import format_report
-    try:
-        rep = _run(scene, args, embedded)
-    except (DeviceError, ProtocolError) as exc:
-        rep = getattr(exc, "report", None)
-        if rep is None:                 # never started: nothing to report but the error
-            raise
-        lost = exc
-    else:
-        lost = None
-    code = rep.pop("exit_code")
+        embedded = start_embedded_mock(scene, rate_hz=opts.rate_hz, lockstep=opts.lockstep,
+                                       seed=opts.seed, faults=opts.faults,
+                                       fault_seed=opts.fault_seed,
+                                       rt_priority=0 if opts.lockstep and not opts.host_clocked
+                                       else max(opts.rt_priority, 0))
+    from hapsim import api
+    # the run itself is the API's (hapsim.api.run): the command announces, then prints
+    report = api.run(scene, dataclasses.replace(
+        opts, driver=protocol, loop=loop, handle_signals=True, embedded=embedded,
+        on_start=lambda port, n: _announce(port, n, said, note)))
     if advice is not None:
-        rep["advice"] = advice.to_dict()
-    if args.json:
-        print(json.dumps(json_safe(rep)))
-    else:
-        print(format_report(rep))
+        report = dataclasses.replace(report, advice=advice.to_dict())
+    print(json.dumps(report.to_dict()) if args.json else report.text())
     sys.stdout.flush()
-    if lost is not None:                # the report first, then why the run ended
-        print(f"hapsim run: {type(lost).__name__}: {lost}", file=sys.stderr, flush=True)
-    stopped = str(rep.get("loop", {}).get("stop_reason") or "").startswith("signal")
-    if compile_later and lost is None and not stopped:     # not after a Ctrl-C
+    if report.error is not None:        # the report first, then why the run ended
+        print(f"hapsim run: {report.error['type']}: {report.error['message']}",
+              file=sys.stderr, flush=True)
+    stopped = str(report.loop.get("stop_reason") or "").startswith("signal")
+    if compile_later and report.error is None and not stopped:     # not after a Ctrl-C
         _compile_loop_for_next_runs(scene)
-    return code
+    return report.exit_code
 
 
 def _compile_loop_for_next_runs(scene) -> None:
@@ -434,46 +353,3 @@ def _replace_device(scene, path: str):
 
 def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
-
-
-def run_options(args, scene, embedded=None):
-    """The :class:`~hapsim.daemon.runner.RunOptions` of ``hapsim run``'s command line: the
-    one place where an option of the parser becomes an option of the run.
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        ``hapsim run``'s parsed arguments (with ``protocol`` and ``announce`` once
-        :func:`run` has chosen them).
-    scene : hapsim.scene.Scene
-        The scene run (its ``device.protocol`` when ``args`` has no ``protocol``:
-        :func:`protocol_of`).
-    embedded : EmbeddedMock, optional
-        The embedded mock already started for this run.
-
-    Returns
-    -------
-    RunOptions
-        Not yet checked (:func:`~hapsim.daemon.runner.run_scene` checks it).
-    """
-    from hapsim.daemon.options import RunOptions
-    protocol = getattr(args, "protocol", None) or protocol_of(scene, args.driver)[0]
-    return RunOptions(port=args.port, baud=args.baud, duration=args.duration,
-                      rate_hz=args.rate, lockstep=args.lockstep, host_clocked=args.host_clocked,
-                      telemetry=args.telemetry, allow_unstable=args.allow_unstable,
-                      seed=args.seed, rt_priority=args.rt_priority,
-                      on_start=getattr(args, "announce", _announce),
-                      faults=args.faults, fault_seed=args.fault_seed,
-                      reconnect=False if args.no_reconnect else None,
-                      lost_timeout=args.lost_timeout,
-                      reconnect_attempts=args.reconnect_attempts,
-                      reconnect_time=args.reconnect_time, osc=args.osc,
-                      osc_ramp=args.osc_ramp, sound=args.sound, jack_server=args.jack_server,
-                      driver=None if protocol == "framed" else protocol,
-                      loop=args.loop, embedded=embedded)
-
-
-def _run(scene, args, embedded=None) -> dict:
-    """:func:`hapsim.daemon.runner.run_scene` with the options of the command line."""
-    from hapsim.daemon.runner import run_scene
-    return run_scene(scene, run_options(args, scene, embedded))

@@ -1,5 +1,8 @@
-"""``hapsim run --lockstep`` on a 2-D or 3-D scene: the loop closed in-process, the felt
-matrices measured and compared with the prediction, and the linearisation bound."""
+"""``hapsim run`` on a 2-D or 3-D scene: the felt matrices measured and compared with the
+prediction, and the linearisation bound. ``--lockstep``: the loop closed in-process;
+``--port PORT``: over the framed protocol with an n-axis device, in real time (late ticks
+accounted per axis, :mod:`hapsim.daemon.run_nd`); neither: the same over the embedded n-D
+mock (``hapsim mock --scene SCENE --once``) in a child process behind a pty."""
 
 from __future__ import annotations
 
@@ -11,11 +14,11 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-#: run's options an n-D scene does not take yet (no n-axis protocol, mock behind a port,
-#: driver or live input): each refused by name, with exit 2.
-_REFUSED = (("port", "--port"), ("driver", "--driver"), ("device", "--device"),
+#: run's options an n-D scene does not take yet (no live input): each refused by name,
+#: with exit 2 (``--driver`` takes ``haply`` on a pantograph scene, in lockstep).
+_REFUSED = (("device", "--device"),
             ("osc", "--osc"), ("sound", "--sound"), ("telemetry", "--telemetry"),
-            ("faults", "--faults"), ("auto", "--auto"), ("rate", "--rate"),
+            ("faults", "--faults"), ("auto", "--auto"), ("rate_hz", "--rate"),
             ("host_clocked", "--host-clocked"), ("duration", "--duration"))
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
@@ -25,33 +28,36 @@ DEFAULT_AMPLITUDE = 1e-8
 
 
 def run_nd(args) -> int:
-    """Measure an n-D scene's felt matrices in lockstep (``dimension: 2`` or ``3``).
+    """Measure an n-D scene's felt matrices (``dimension: 2`` or ``3``).
 
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene``, ``lockstep`` (required), ``amplitude`` [m] (None: 1e-8), ``json``, and
-        run's other options (refused when set: the n-D run is in-process only).
+        ``scene``, ``lockstep``, ``port``, ``amplitude`` [m] (None: 1e-8), ``json``, and
+        run's other options (refused when set).
 
     Returns
     -------
     int
         0 when the loop is stable (the measurement then reported, whatever it finds),
-        1 when the check finds it unstable and ``--allow-unstable`` is not given.
+        1 when the check finds it unstable and ``--allow-unstable`` is not given, or the
+        device fails (no HELLO, a FAULT, STATEs lost).
 
     Raises
     ------
     ConfigError
-        Without ``--lockstep``; an option the n-D run does not take; a bad amplitude or
-        scene (file, line, key).
+        An option the n-D run does not take; a bad amplitude or scene (file, line, key).
 
     Notes
     -----
+    In-process (``--lockstep`` without ``--port``):
     :func:`hapsim.lockstep_nd.measure_felt_lockstep`: 2n free responses of the loop
     (engine, exact ZOH device of the Cartesian mass at rest, delay line) from the handle
     displaced by ``a`` along each axis and moving along each, minus the response from
-    rest; the felt matrices by vector linear prediction and the inverse quadratic
-    eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
+    rest. Over a port: :func:`hapsim.daemon.run_nd.measure_felt_port`, the same records
+    from the device's hand, each a CONFIG, with the late ticks' known disturbance
+    subtracted. Then the felt matrices by vector linear prediction and the inverse
+    quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
     :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; the linearisation bound of
     :mod:`hapsim.analysis.linearisation_nd` at ``a``.
     """
@@ -59,14 +65,16 @@ def run_nd(args) -> int:
     from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
     from hapsim.scene_nd import load_scene_nd
-    if not args.lockstep:
-        raise ConfigError("a 2-D or 3-D scene runs in lockstep only, in-process (no n-axis "
-                          "protocol or mock behind a port yet): add --lockstep",
-                          key="--lockstep")
     for attr, opt in _REFUSED:
         if getattr(args, attr, None) not in (None, False):
-            raise ConfigError(f"a 2-D or 3-D scene runs in lockstep, in-process: {opt} "
-                              "takes 1-D scenes", key=opt)
+            raise ConfigError(f"a 2-D or 3-D scene does not take {opt} yet (1-D scenes "
+                              "only)", key=opt)
+    driver = getattr(args, "driver", None)
+    if driver not in (None, "haply"):
+        raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
+                          f"the Haply 2DIY), not {driver!r}", key="--driver")
+    if driver == "haply":
+        return _run_haply2(args)
     a = DEFAULT_AMPLITUDE if getattr(args, "amplitude", None) is None else args.amplitude
     if not (math.isfinite(a) and a > 0):
         raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
@@ -74,6 +82,7 @@ def run_nd(args) -> int:
     if scene.port is None:
         raise ConfigError("a run needs a mass of kind 'port' and a device section",
                           file=scene.path, key="masses")
+    from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     pred = check_scene_nd(scene)
     if not pred.stable and not args.allow_unstable:
@@ -82,13 +91,28 @@ def run_nd(args) -> int:
             f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
             "--allow-unstable to run it anyway")
     n = scene.dimension
-    with Progress(2 * n, "run (lockstep)", unit="records") as bar:
-        res = measure_felt_lockstep(scene, a, progress=bar.update)
+    in_process = args.lockstep and not args.port
+    where = "in-process"
+    port_info = None
+    if in_process:
+        with Progress(2 * n, "run (lockstep)", unit="records") as bar:
+            res = measure_felt_lockstep(scene, a, progress=bar.update)
+    else:
+        from hapsim.errors import DeviceError, ProtocolError
+        try:
+            res, port_info = _measure_over_port(args, scene, a, n)
+        except (DeviceError, ProtocolError) as exc:
+            print(f"hapsim run: {exc}", file=sys.stderr)
+            return 1
+        res["bound"] = linearisation_bound(scene, a, pred.render.rendered_poles)
+        where = (f"over {port_info['port']}" + (" (embedded mock, real time)"
+                                                 if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
     if args.json:
         def mat(x):
             return None if x is None else np.asarray(x, float).tolist()
-        out = {"scene": scene.path, "dof": n, "lockstep": True, "stable": bool(chk.stable),
+        out = {"scene": scene.path, "dof": n, "lockstep": bool(in_process),
+               "stable": bool(chk.stable),
                "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                              "felt_damping": mat(chk.render.felt_damping),
                              "rendered_poles": [[float(z.real), float(z.imag)]
@@ -101,11 +125,25 @@ def run_nd(args) -> int:
                "deviation": dev, "linearisation_bound": bound.to_dict(),
                "records": res["records"], "samples": res["samples"],
                "order": res["order"]}
+        if port_info is not None:
+            out["port"] = port_info
+            out["late"] = res["late"]
+            out["watchdog"] = res["watchdog"]
+            out["delay"] = res["delay"]
+            out["lost"] = res["lost"]
         print(json.dumps(out))
         return 0
     o = sys.stdout
-    print(f"{scene.path}: {n}-D scene in lockstep, in-process (engine, exact ZOH device "
-          f"of the Cartesian mass at rest, delay {scene.device.delay})", file=o)
+    if in_process:
+        print(f"{scene.path}: {n}-D scene in lockstep, in-process (engine, exact ZOH device "
+              f"of the Cartesian mass at rest, delay {scene.device.delay})", file=o)
+    else:
+        print(f"{scene.path}: {n}-D scene {where}, {n} axes on the framed protocol "
+              f"(device delay {res['delay'][0]} ticks from seq - force_seq)", file=o)
+        print(f"  late ticks: {res['late']} of {(res['records'] + 1) * res['samples']} "
+              f"(watchdog {res['watchdog']}), their known disturbance's response "
+              "subtracted per axis; records run again for a lost STATE: "
+              f"{res['lost']}", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -132,8 +170,9 @@ def run_nd(args) -> int:
     print(f"  linearisation bound at a = {a:g} m (first order in a; "
           "hapsim.analysis.linearisation_nd):", file=o)
     print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
-          "and the velocity-product terms over a; not in the lockstep device, which "
-          "holds the mass at rest)", file=o)
+          "and the velocity-product terms over a; "
+          + ("not in the lockstep device, which holds the mass at rest)" if in_process
+             else "carried by a joint-space device, the mock's or a real one)"), file=o)
     print(f"    Euclidean links c_link = {bound.link:.4g} /m"
           + (f" (link {bound.link_name!r})" if bound.link_name else " (none: linear)"),
           file=o)
@@ -144,4 +183,148 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
+    return 0
+
+
+def _measure_over_port(args, scene, a: float, n: int):
+    """:func:`hapsim.daemon.run_nd.measure_felt_port` over ``--port`` or an embedded mock.
+
+    Returns
+    -------
+    (dict, dict)
+        The measurement and ``{"port", "embedded", "mock"}`` (the embedded mock's last
+        line on stderr, or None).
+    """
+    import gc
+    import subprocess
+
+    from hapsim.daemon.run_nd import measure_felt_port
+    from hapsim.daemon.transport import SerialTransport
+    from hapsim.errors import DeviceError
+    from hapsim.progress import Progress
+    from hapsim.spawn import child_env
+    child = None
+    port = args.port
+    if port is None:
+        cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
+               "--amplitude", repr(a)]
+        if args.lockstep:
+            cmd.append("--lockstep")
+        child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 env=child_env(), text=True)
+        line = child.stdout.readline()
+        if not line.startswith("PORT "):
+            child.kill()
+            raise DeviceError("the embedded n-D mock did not start: "
+                              + (child.stderr.read() or line).strip()[-500:])
+        port = line.split()[1]
+    tr = SerialTransport(port, getattr(args, "baud", 115200))
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        with Progress(2 * n + 1, "run (over the port)", unit="records") as bar:
+            res = measure_felt_port(tr, scene, progress=bar.update)
+    finally:
+        if gc_was:
+            gc.enable()
+        tr.close()
+        note = None
+        if child is not None:
+            try:
+                _, err = child.communicate(timeout=5)
+                note = (err or "").strip().splitlines()[-1:] or None
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.communicate()
+    return res, {"port": port, "embedded": child is not None,
+                 "mock": note[0] if note else None}
+
+
+#: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
+#: ~1e-7 m at the handle, so 1e-4 m keeps them below 1e-3 of it.
+HAPLY_AMPLITUDE = 1e-4
+#: The emulated encoders' counts per revolution under ``--driver haply --lockstep``: a
+#: fine encoder, so that the run checks the wire and the loop (a real 2DIY's 10752 or 4880
+#: counts are tens of micrometres at the handle; the report states what they would be).
+HAPLY_CPR = 2.0 ** 22
+
+
+def _run_haply2(args) -> int:
+    """``hapsim run SCENE --driver haply --lockstep``: the felt matrices through the 2DIY's
+    bytes and its emulated board (:func:`hapsim.daemon.haply2_board.measure_felt_haply2`).
+
+    Returns
+    -------
+    int
+        0 (the measurement reported whatever it finds); 1 when the board lost a reply.
+
+    Raises
+    ------
+    ConfigError
+        Without ``--lockstep`` (no real-time n-D driver loop yet), with ``--port``, a scene
+        that is not a 2-D pantograph, a bad amplitude.
+    """
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.daemon.haply2_board import measure_felt_haply2
+    from hapsim.errors import DeviceError
+    from hapsim.progress import Progress
+    from hapsim.scene_nd import load_scene_nd
+    if not args.lockstep or args.port:
+        raise ConfigError("--driver haply on a 2-D scene runs in lockstep against the "
+                          "emulated board only (no real-time n-D driver loop yet): add "
+                          "--lockstep, without --port", key="--lockstep")
+    a = HAPLY_AMPLITUDE if getattr(args, "amplitude", None) is None else args.amplitude
+    if not (math.isfinite(a) and a > 0):
+        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
+    scene = load_scene_nd(args.scene)
+    if scene.port is None:
+        raise ConfigError("a run needs a mass of kind 'port' and a device section",
+                          file=scene.path, key="masses")
+    with Progress(5, "run (2DIY bytes, lockstep)", unit="records") as bar:
+        try:
+            res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                                      progress=bar.update)
+        except DeviceError as exc:
+            print(f"hapsim run: {exc}", file=sys.stderr)
+            return 1
+    chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
+    bound = linearisation_bound(scene, a, chk.render.rendered_poles)
+    real = res["quantum_encoders"]
+    if args.json:
+        def mat(x):
+            return None if x is None else np.asarray(x, float).tolist()
+        print(json.dumps({
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
+            "lockstep": True, "amplitude": a, "emulated_cpr": HAPLY_CPR,
+            "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
+                          "felt_damping": mat(chk.render.felt_damping)},
+            "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
+                         "felt_damping": mat(fit["felt_damping"]),
+                         "residual": fit["residual"], "rank": fit["rank"]},
+            "deviation": dev, "linearisation_bound": bound.to_dict(),
+            "quantum": res["quantum"], "quantum_real_encoders": real,
+            "records": res["records"], "samples": res["samples"]}))
+        return 0
+    o = sys.stdout
+    print(f"{scene.path}: the Haply 2DIY's bytes (gen3 set-up, firmware V1.5 board "
+          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), in lockstep", file=o)
+    print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
+          f"a = {a:g} m (minus the response from rest)", file=o)
+    for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
+                    ("measured felt stiffness k [N/m]", fit["felt_stiffness"]),
+                    ("predicted felt damping b [N s/m]", chk.render.felt_damping),
+                    ("measured felt damping b [N s/m]", fit["felt_damping"])):
+        print(f"  {name}", file=o)
+        for row in ([] if m is None else m):
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    bd = bound.to_dict()
+    if dev is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
+    if bd["felt_stiffness"] is not None:
+        print(f"  stated uncertainty (linearisation bound at a): k {bd['felt_stiffness']:.2e}"
+              f", b {bd['felt_damping']:.2e}", file=o)
+    print(f"  the wire's resolution at the handle over a: {res['quantum']:.2e} (binary32 "
+          f"degrees); a real 2DIY's encoders: gen2 {real['gen2']:.2e}, gen3 "
+          f"{real['gen3']:.2e} of a", file=o)
     return 0

@@ -1,24 +1,103 @@
-"""The options of one run (:class:`RunOptions`): built once, from the command line
-(:func:`hapsim.commands.run.run_options`) or by a program, checked by
-:meth:`RunOptions.check` and taken by :func:`hapsim.daemon.runner.run_scene`."""
+"""The options of one run (:class:`RunOptions`), each declared once.
+
+A field that ``hapsim run`` takes from its command line carries its flag, type, help and
+value check in its metadata (:func:`option`); :func:`add_run_arguments` generates the
+parser's arguments from those fields and :meth:`RunOptions.from_args` builds the options
+back from the parsed namespace, so an option's name, default, help and validation are
+written in one place. :meth:`RunOptions.check` validates the whole (the fields one by one,
+then their combinations) and resolves what depends on several; a program builds
+:class:`RunOptions` directly (or through :func:`hapsim.api.run`), and
+:func:`hapsim.daemon.runner.run_scene` takes it."""
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from hapsim.daemon.loop import StopFlag
 from hapsim.errors import ConfigError
 
-__all__ = ["RunOptions"]
+if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
+    from hapsim.daemon.loop import StopFlag
+
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
+
+
+def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
+           choices: tuple | None = None, action: str | None = None, const=None,
+           cli_default=dataclasses.MISSING, check=None):
+    """A :class:`RunOptions` field that ``hapsim run`` also takes from its command line.
+
+    Parameters
+    ----------
+    default : object
+        The field's default (also the parser's, unless ``cli_default`` is given).
+    flag : str
+        The command-line flag (``"--duration"``); it is the key of a ConfigError about
+        the field.
+    help : str
+        The parser's help text (``{drivers}`` is replaced by the driver names).
+    metavar, type, choices, action, const
+        As :meth:`argparse.ArgumentParser.add_argument` takes them.
+    cli_default : object, optional
+        The parser's default where it differs from the field's (``--loop auto``: the
+        command resolves it before the run).
+    check : callable, optional
+        ``check(value, flag)`` raising :class:`~hapsim.errors.ConfigError` on a bad value
+        (not called for None); run by :meth:`RunOptions.check_values`.
+
+    Returns
+    -------
+    dataclasses.Field
+    """
+    meta = {"flag": flag, "help": help, "metavar": metavar, "type": type,
+            "choices": choices, "action": action, "const": const, "check": check,
+            "cli_default": default if cli_default is dataclasses.MISSING else cli_default}
+    return field(default=default, metadata={"cli": meta})
+
+
+def _positive(value, flag: str, unit: str = "s") -> None:
+    """Refuse a value that is not a finite number > 0."""
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"must be a positive number [{unit}], got {value}", key=flag)
+
+
+def _rate(value, flag: str) -> None:
+    """Refuse a rate override outside the scene's rate range
+    (:data:`hapsim.analysis.loop.RATE_RANGE`)."""
+    _positive(value, flag, "Hz")
+    from hapsim.analysis.loop import RATE_RANGE, check_range
+    check_range(value, *RATE_RANGE, flag, "Hz")
+
+
+def _duration(value, flag: str) -> None:
+    """Refuse a duration that is neither > 0 nor 0 (open-ended)."""
+    if not (math.isfinite(value) and value >= 0):
+        raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
+                          f"got {value!r}", key=flag)
+
+
+def _count(value, flag: str) -> None:
+    """Refuse a negative count."""
+    if value < 0:
+        raise ConfigError(f"must be >= 0, got {value}", key=flag)
+
+
+def _seconds(value, flag: str) -> None:
+    """Refuse a time that is not a finite number >= 0."""
+    if not (math.isfinite(value) and value >= 0):
+        raise ConfigError(f"must be a number of seconds >= 0, got {value}", key=flag)
 
 
 @dataclass
 class RunOptions:
-    """The options of one run: built once (from the command line by
-    :func:`hapsim.commands.run.run_options`, or by a program), taken by
-    :func:`hapsim.daemon.runner.run_scene`.
+    """The options of one run, each declared once: a field ``hapsim run`` takes from its
+    command line carries its flag, help and check (:func:`option`); the parser is generated
+    from them (:func:`add_run_arguments`) and :meth:`from_args` builds them back. Taken by
+    :func:`hapsim.api.run` and :func:`hapsim.daemon.runner.run_scene`.
 
     :meth:`check` validates them and resolves ``transport`` (``"serial"``, ``"pty"``,
     ``"inprocess"`` or ``"sim"``), ``reconnect`` (a bool) and ``plan``.
@@ -100,11 +179,11 @@ class RunOptions:
         ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
         ``resolution``, ``direction``).
     mock_options : dict, optional
-        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        The driver mock's hardware (:class:`hapsim.driver_mock.EmbeddedDriverMock`),
         which may differ from what ``driver_options`` believe.
     driver_faults : dict, optional
         Seeded byte loss and corruption on the driver mock's link, both directions
-        (:class:`hapsim.drivers.mock.ByteFaults`).
+        (:class:`hapsim.driver_mock.ByteFaults`).
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -132,38 +211,142 @@ class RunOptions:
 
     """
 
-    port: str | None = None
-    baud: int = 115200
-    duration: float | None = None
-    rate_hz: float | None = None
-    lockstep: bool = False
-    host_clocked: bool = False
-    telemetry: str | None = None
-    allow_unstable: bool = False
+    # Each field that ``hapsim run`` takes from its command line is declared here once,
+    # in the order of its help, with its flag, help and check (:func:`option`).
+    port: str | None = option(
+        None, "--port", "serial port of the device (default: embedded mock on a pty)",
+        metavar="PORT")
+    baud: int = option(
+        115200, "--baud", "baud rate (default 115200; ignored by USB CDC and ptys)",
+        metavar="BAUD", type=int)
+    duration: float | None = option(
+        None, "--duration", "run length [s] (default 1 s, longer for slow oscillations); 0: "
+        "open-ended, until SIGINT/SIGTERM (or a safety stop)",
+        metavar="S", type=float, check=_duration)
+    rate_hz: float | None = option(
+        None, "--rate", "override the scene's rate [Hz]", metavar="HZ", type=float,
+        check=_rate)
+    lockstep: bool = option(
+        False, "--lockstep", "lockstep mock: one period per FORCE, deterministic",
+        action="store_true")
+    host_clocked: bool = option(
+        False, "--host-clocked", "tick on the host's clock instead of answering each STATE "
+        "(with --lockstep: the host paces the lockstep mock in real time)",
+        action="store_true")
+    loop: str = option(
+        "compiled", "--loop", "host loop: 'compiled' (the device-clocked hot path in one "
+        "numba function that owns the port, without the GIL; a live --osc, --sound or a "
+        "device correction keep the Python loop), 'python' (the reference loop: the same "
+        "FORCEs bit for bit, to compare) or 'auto' (default: compiled when numba's cache "
+        "holds it; otherwise this run uses the Python loop and compiles the other after its "
+        "report, for the next runs)",
+        choices=("auto", "compiled", "python"), cli_default="auto")
+    telemetry: str | None = option(
+        None, "--telemetry",
+        "write per-sample time, position, force, seq, turnaround, late (.npz/.csv)",
+        metavar="FILE")
+    allow_unstable: bool = option(
+        False, "--allow-unstable",
+        "run a loop the analysis finds unstable, under the safety stops", action="store_true")
+    rt_priority: int = option(
+        10, "--rt-priority", "SCHED_FIFO priority of the loop and the embedded mock where the "
+        "OS permits it (default 10; 0: normal scheduling; not with --lockstep, which is paced "
+        "by the answers, not the clock). Under load it keeps late ticks rare; the report says "
+        "what was obtained", metavar="N", type=int)
+    seed: int = option(0, "--seed", "mock sensor-noise seed (default 0)", type=int)
+    faults: str | None = option(
+        None, "--faults", "inject seeded faults in the embedded mock, e.g. "
+        "drop=0.01,corrupt=0.005,stall@500:200ms,reset@800 (see below)", metavar="SPEC")
+    fault_seed: int = option(
+        0, "--fault-seed", "seed of the fault generator (default 0)", metavar="N", type=int)
+    reconnect: bool | None = option(
+        None, "--no-reconnect",
+        "a lost device ends the run (exit 1) instead of being recovered",
+        action="store_const", const=False)
+    lost_timeout: float | None = option(
+        None, "--lost-timeout", "silence after which the device is lost [s] (default: the "
+        "watchdog period, 0.05)", metavar="S", type=float, check=_positive)
+    reconnect_attempts: int = option(
+        8, "--reconnect-attempts", "most reconnect attempts per loss (default 8)",
+        metavar="N", type=int, check=_count)
+    reconnect_time: float = option(
+        10.0, "--reconnect-time", "most time spent recovering one loss [s] (default 10)",
+        metavar="S", type=float, check=_seconds)
+    driver: str | None = option(
+        None, "--driver", "device protocol, one of {drivers} (default: the scene's "
+        "device.protocol, else framed, hapsim's own); a driver runs host-clocked (see "
+        "'drivers' below)", metavar="NAME")
+    osc: int | None = option(
+        None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
+        "addresses: hapsim play --help); each is checked, ramped, journaled",
+        metavar="PORT", type=int)
+    osc_ramp: float = option(
+        0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
+        type=float)
+    sound: str | None = option(
+        None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
+        "auto); the model stays in the loop, the frames go to the server",
+        choices=("auto", "jack", "sounddevice"))
+    jack_server: str | None = option(
+        None, "--jack-server", "JACK server name (jackd -n NAME)", metavar="NAME")
+    # a program's options (no flag)
     transport: str | None = None
-    seed: int = 0
     stop: StopFlag | None = None
     handle_signals: bool = True
     on_start: object = None
-    rt_priority: int = 10
-    faults: str | None = None
-    fault_seed: int = 0
-    reconnect: bool | None = None
-    lost_timeout: float | None = None
-    reconnect_attempts: int = 8
-    reconnect_time: float = 10.0
     telemetry_interval: float = 0.05
-    loop: str = "compiled"
-    driver: str | None = None
     driver_options: dict | None = None
     mock_options: dict | None = None
     driver_faults: dict | None = None
-    osc: int | None = None
-    osc_ramp: float = 0.05
-    sound: str | None = None
-    jack_server: str | None = None
     plan: object = None
     embedded: object = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace, **changes) -> "RunOptions":
+        """The options of a parsed command line (:func:`add_run_arguments`), checked one
+        by one (:meth:`check_values`; the whole is checked by :meth:`check`).
+
+        Parameters
+        ----------
+        args : argparse.Namespace
+            Holds one attribute per field of :func:`command_line_fields`, by field name.
+        **changes
+            Other fields (``on_start``, ``embedded``, ...), or fields the command resolved
+            (``driver``, ``loop``).
+
+        Returns
+        -------
+        RunOptions
+
+        Raises
+        ------
+        ConfigError
+            A bad value, keyed by its flag (``--rate``, ``--faults``, ...).
+        """
+        values = {f.name: getattr(args, f.name) for f in command_line_fields()}
+        return cls(**{**values, **changes}).check_values()
+
+    def check_values(self) -> "RunOptions":
+        """Check each command-line field by its declared check, and the fault SPEC.
+
+        Returns
+        -------
+        RunOptions
+            ``self``.
+
+        Raises
+        ------
+        ConfigError
+            A bad value, keyed by its flag; an unknown fault name (with the valid ones).
+        """
+        for f in command_line_fields():
+            meta = f.metadata["cli"]
+            value = getattr(self, f.name)
+            if meta["check"] is not None and value is not None:
+                meta["check"](value, meta["flag"])
+        from hapsim.daemon.faults import parse_faults
+        parse_faults(self.faults, self.fault_seed)
+        return self
 
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
@@ -179,11 +362,8 @@ class RunOptions:
             A bad duration, transport, fault spec, port or telemetry format, naming the
             option and the valid choices.
         """
-        d = self.duration
-        if d is not None and not (math.isfinite(d) and d >= 0):
-            raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
-                              f"got {d!r}", key="--duration")
-        if d == 0 and self.stop is None and not self.handle_signals:
+        self.check_values()
+        if self.duration == 0 and self.stop is None and not self.handle_signals:
             raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "
                               "handle_signals or a stop flag", key="--duration")
         if self.transport is None:
@@ -226,3 +406,44 @@ class RunOptions:
             from hapsim.outputs import check_writable
             check_writable(self.telemetry, "--telemetry")
         return self
+
+
+def command_line_fields() -> tuple:
+    """The fields of :class:`RunOptions` that ``hapsim run`` takes from its command line,
+    in the order of its help.
+
+    Returns
+    -------
+    tuple of dataclasses.Field
+        Each with its declaration in ``metadata["cli"]`` (:func:`option`).
+    """
+    return tuple(f for f in dataclasses.fields(RunOptions) if "cli" in f.metadata)
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one argument per command-line field of :class:`RunOptions` to ``parser``
+    (dest: the field's name; flag, type, default, help, choices: its declaration).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        ``hapsim run``'s parser (or a group of it).
+    """
+    drivers = None
+    for f in command_line_fields():
+        meta = f.metadata["cli"]
+        text = meta["help"]
+        if "{drivers}" in text:
+            if drivers is None:
+                from hapsim.drivers import DRIVERS
+                drivers = ", ".join(DRIVERS)
+            text = text.replace("{drivers}", drivers)
+        kw = {"dest": f.name, "default": meta["cli_default"], "help": text}
+        if meta["action"] is not None:
+            kw["action"] = meta["action"]
+            if meta["const"] is not None:
+                kw["const"] = meta["const"]
+        else:
+            kw.update({k: meta[k] for k in ("type", "metavar", "choices")
+                       if meta[k] is not None})
+        parser.add_argument(meta["flag"], **kw)

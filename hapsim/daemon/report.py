@@ -165,7 +165,7 @@ def format_report(rep: dict) -> str:
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
                      f"{mk['watchdog_trips']}, overruns {mk['overruns']}, clamped {mk['clamped']}, "
-                     f"last force {mk['last_applied']:g} N, "
+                     f"last force {dash(mk['last_applied'], 'g')} N, "
                      f"STOP {'seen' if mk['saw_stop'] else 'not seen'}")
     tl = rep["telemetry"]
     if tl:

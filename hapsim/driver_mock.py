@@ -481,12 +481,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
 
 
 def main(argv=None) -> int:
-    """Child-process entry: ``python -m hapsim.drivers.mock --fd N --spec JSON --rate R``."""
+    """Child-process entry: ``python -m hapsim.driver_mock --fd N --spec JSON --rate R``."""
     import argparse
     import dataclasses
 
     from hapsim.scene import Device, Excitation
-    p = argparse.ArgumentParser(prog="hapsim.drivers.mock")
+    p = argparse.ArgumentParser(prog="hapsim.driver_mock")
     p.add_argument("--fd", type=int, required=True)
     p.add_argument("--spec", required=True)
     p.add_argument("--rate", type=float, required=True)
@@ -574,7 +574,7 @@ class EmbeddedDriverMock:
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
         env = child_env()
-        cmd = [sys.executable, "-m", "hapsim.drivers.mock", "--fd", str(master), "--spec",
+        cmd = [sys.executable, "-m", "hapsim.driver_mock", "--fd", str(master), "--spec",
                json.dumps(spec), "--rate", repr(float(rate_hz)), "--report", self.report_path,
                "--seed", str(seed), "--options", json.dumps(options or {}),
                "--faults", json.dumps(faults or {})]

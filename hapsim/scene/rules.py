@@ -1,0 +1,549 @@
+"""The rules of the scene format, checked on the dataclasses (a scene built in code or
+read from a file meets the same ones): :func:`check_scene` raises :class:`Invalid` naming
+the broken rule and the path of the offending value; :class:`~hapsim.scene.Scene` turns
+it into a :class:`~hapsim.errors.ConfigError` with the file and the line. The single-key
+rules (types, ranges, choices) are rows of :data:`hapsim.scene_schema.KEYS`; what spans
+several keys is code here."""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+from typing import Any
+
+from hapsim.errors import ConfigError, num, show, type_name
+from hapsim.scene_schema import Key, check_product, section_keys
+from hapsim.scene_schema import key as _key
+from hapsim.scene.elements import (CORRECTIONS, Audio, Device, Excitation, Hand, Impulse, Link,
+                                   Listen, Mass, Safety, audio_substeps)
+
+__all__ = ["Invalid", "check_scene", "check_device", "check_key", "check_choice", "coerce",
+           "code_line", "bare_name"]
+
+
+
+class Invalid(Exception):
+    """One broken rule: the message, the key to name and where in the scene it lies.
+
+    ``where`` is the path of the offending value (``("masses", 2, "mass")``); it finds the
+    line, in the YAML document for a file, else on the Mass or Link entry.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, with the valid values or range.
+    where : tuple of str and int
+        Path of the offending value in the scene.
+    key : str, optional
+        The key to name; default: ``where`` dotted (``masses[2].mass``).
+    """
+
+    def __init__(self, message: str, where: tuple, key: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.where = where
+        self.key = key if key is not None else _key_of(where)
+
+
+def _key_of(where: tuple) -> str:
+    out = ""
+    for step in where:
+        out += f"[{step}]" if isinstance(step, int) else (f".{step}" if out else str(step))
+    return out
+
+
+def _is_number(v: Any) -> bool:
+    if type(v) is float or type(v) is int:   # the common case, without the ABC check
+        return True
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _float(v: Any) -> float:
+    """``float(v)``; an integer beyond the double range (YAML reads 400 digits as one) is
+    ``+-inf``, which the rules refuse as not finite, instead of an ``OverflowError``."""
+    try:
+        return float(v)
+    except OverflowError:
+        return math.inf if v > 0 else -math.inf
+
+
+def coerce(v: Any) -> Any:
+    """``float(v)`` for a real number; anything else unchanged (the rules report it).
+
+    Parameters
+    ----------
+    v : object
+        A value read from a file or given in code.
+
+    Returns
+    -------
+    float or object
+        ``float(v)`` for a real number that is not a bool (an integer beyond the double
+        range is ``+-inf``, which the rules refuse), else ``v`` itself.
+    """
+    return _float(v) if _is_number(v) else v
+
+
+def _number(v: Any, *where: Any, positive: bool = False, minimum: float | None = None,
+            allow_inf: bool = False, maximum: float | None = None) -> None:
+    if not _is_number(v):
+        raise Invalid(f"must be a number, got {type_name(v)} {show(v)}", where)
+    v = _float(v)
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise Invalid(f"must be a finite number, got {v}", where)
+    if positive and not v > 0:
+        raise Invalid(f"must be > 0, got {num(v)}", where)
+    if minimum is not None and v < minimum:
+        raise Invalid(f"must be >= {minimum:g}, got {num(v)}", where)
+    if maximum is not None and v > maximum:
+        raise Invalid(f"must be <= {maximum:g}, got {num(v)}", where)
+
+
+def check_key(k: Key, v: Any, *where: Any) -> None:
+    """Check ``v`` against its row ``k`` of the scene table (types the table can check).
+
+    Parameters
+    ----------
+    k : hapsim.scene_schema.Key
+        The row: type, range, choices, default.
+    v : object
+        The value (None for an absent key whose default is None: accepted).
+    *where : str or int
+        Path of the value in the scene, for the message.
+
+    Raises
+    ------
+    Invalid
+        Wrong type, out of the row's range, or not one of its choices.
+    """
+    if v is None and k.default is None:
+        return                       # absent: none
+    if k.type == "number":
+        _number(v, *where, allow_inf=k.allow_inf)
+        _in_range(k, _float(v), where)
+    elif k.type == "integer":
+        if not (isinstance(v, numbers.Integral) and not isinstance(v, bool)):
+            raise Invalid(f"must be a whole number of {k.unit or 'units'}, got {show(v)}",
+                           where)
+        _in_range(k, v, where)
+    elif k.type == "choice":
+        check_choice(v, k.choices, *where)
+    elif k.type == "string":
+        _string(v, *where)
+    elif k.type == "boolean":
+        if not isinstance(v, bool):
+            raise Invalid(f"must be true or false, got {type_name(v)} {show(v)}", where)
+
+
+def _in_range(k: Key, x: float, where: tuple) -> None:
+    """The row's ``minimum`` (``strict``: excluded) and ``maximum``, then the analysis's
+    limits it names (``limits_from``), with its ``why``."""
+    unit = f" {k.unit}" if k.unit else ""
+    checks = ((k.minimum, k.maximum, k.strict, not k.limits_from),
+              (*k.analysis_limits(), False, True))
+    for lo, hi, strict, explained in checks:
+        below = lo is not None and (x < lo or (strict and x == lo))
+        if not (below or (hi is not None and x > hi)):
+            continue
+        if lo is not None and hi is not None:
+            msg = f"must be between {lo:g} and {hi:g}{unit}, got {num(x)}"
+        elif below:
+            msg = f"must be {'>' if strict else '>='} {lo:g}, got {num(x)}"
+        else:
+            msg = f"must be <= {hi:g}{unit}, got {num(x)}"
+        raise Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
+
+
+def _check_section(obj: Any, section: str, *where: Any) -> None:
+    """Check every field of a dataclass section against the table, in table order."""
+    for k in section_keys(section):
+        check_key(k, getattr(obj, k.name), *where, k.name)
+
+
+def check_choice(v: Any, choices: tuple[str, ...], *where: Any) -> None:
+    """Refuse ``v`` unless it is one of the strings ``choices``.
+
+    Parameters
+    ----------
+    v : object
+    choices : tuple of str
+        The valid values, listed in the message.
+    *where : str or int
+        Path of the value in the scene.
+
+    Raises
+    ------
+    Invalid
+        Not a string, or not one of ``choices``.
+    """
+    if not isinstance(v, str):
+        raise Invalid(f"must be a string, got {type_name(v)} {show(v)}", where)
+    if v not in choices:
+        raise Invalid(f"unknown value {show(v)}; valid choices: {', '.join(choices)}", where)
+
+
+def _string(v: Any, *where: Any) -> None:
+    if not isinstance(v, str):
+        raise Invalid(f"must be a string, got {type_name(v)} {show(v)}", where)
+
+
+def _first(line: int, where: tuple) -> str:
+    return f"first on line {line}" if line else f"first is {_key_of(where)}"
+
+
+def check_scene(s) -> None:
+    """Every rule a scene obeys, whether it was read from YAML or built in code.
+
+    The YAML reader checks only what the dataclasses cannot express (syntax, structure,
+    unknown and missing keys); every value is checked here, once.
+
+    Raises
+    ------
+    Invalid
+        On the first broken rule, in scene order.
+    """
+    check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
+    check_key(_key("integrator"), s.integrator, "integrator")
+    if not isinstance(s.path, str):
+        raise Invalid(f"must be a string, got {type_name(s.path)}", ("path",))
+    if not isinstance(s.masses, tuple) or not s.masses:
+        raise Invalid("must be a non-empty list of masses", ("masses",))
+    names: dict[str, int] = {}
+    ports: list[int] = []
+    for i, m in enumerate(s.masses):
+        if not isinstance(m, Mass):
+            raise Invalid(f"must be a hapsim.scene.Mass, got {type_name(m)}", ("masses", i))
+        check_key(_key("masses[].kind"), m.kind, "masses", i, "kind")
+        check_key(_key("masses[].name"), m.name, "masses", i, "name")
+        if m.name in names:
+            j = names[m.name]
+            raise Invalid(f"duplicate mass name {show(m.name)} "
+                           f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
+        names[m.name] = i
+        if m.kind == "mass":
+            check_key(_key("masses[].mass"), m.mass, "masses", i, "mass")
+        elif m.mass != 0:
+            raise Invalid(f"must be 0 for a {m.kind} (only kind mass has inertia), "
+                           f"got {show(m.mass)}", ("masses", i, "mass"))
+        check_key(_key("masses[].x0"), m.x0, "masses", i, "x0")
+        check_key(_key("masses[].v0"), m.v0, "masses", i, "v0")
+        if m.kind != "mass" and m.v0 != 0:
+            raise Invalid(f"must be 0 for a {m.kind} (it does not move by itself), "
+                           f"got {show(m.v0)}", ("masses", i, "v0"))
+        if m.kind == "port":
+            ports.append(i)
+    if len(ports) > 1:
+        raise Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
+                       + ", ".join(bare_name(s.masses[p].name) for p in ports), ("masses", ports[1]),
+                       key="masses")
+    _check_links(s, names)
+    if s.device is not None:
+        check_device(s.device)
+    elif ports:
+        raise Invalid("a scene with a port needs a device section "
+                       "(mass, friction, delay, hold, ...)", ("device",))
+    _check_products(s)
+    _check_excitation(s.excitation)
+    _check_safety(s.safety)
+    if s.audio is not None:
+        _check_audio(s, names)
+
+
+def _check_products(s) -> None:
+    """The loop's dimensionless products, for every command alike (``check`` and
+    ``simulate`` once disagreed): ``b0 T/m`` of the device, ``kh T^2/mh`` of the hand's
+    spring, ``|K| T^2/m`` and ``|B| T/m`` of every link (``m`` its lightest moving end: a
+    virtual mass, or the device mass at the port) and, for a felt target, ``k T^2/m`` and
+    ``b T/m`` at the port: at most :data:`hapsim.analysis.loop.MAX_PRODUCT` (the reason is
+    there: the characteristic's coefficients would span more than a double resolves, and
+    the engine's update diverges within a row)."""
+    T = 1.0 / float(s.rate_hz)
+
+    def refuse(value, scale, unit, what, where):
+        try:
+            check_product(float(value), scale, _key_of(where), unit, what)
+        except ConfigError as exc:
+            raise Invalid(exc.reason, where) from None
+
+    inertia = {m.name: float(m.mass) for m in s.masses if m.kind == "mass"}
+    d = s.device
+    port = next((m.name for m in s.masses if m.kind == "port"), None)
+    if d is not None and port is not None:
+        m_dev = float(d.mass)
+        inertia[port] = m_dev
+        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", ("device", "friction"))
+        h = d.hand
+        if h is not None:
+            hi = lambda v: float(v[1]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            lo = lambda v: float(v[0]) if isinstance(v, tuple) else float(v)  # noqa: E731
+            if hi(h.stiffness) > 0:
+                refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
+                       ("device", "hand", "stiffness"))
+    for i, lk in enumerate(s.links):
+        ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
+        if not ends:
+            continue
+        m = min(ends)
+        for value, scale, unit, what, where in (
+                (lk.stiffness, T * T / m, "N/m", "K T^2/m", ("links", i, "stiffness")),
+                (lk.damping, T / m, "N s/m", "B T/m", ("links", i, "damping"))):
+            if not math.isnan(float(value)):          # NaN: a target awaiting calibration
+                refuse(value, scale, unit, what, where)
+        if lk.target is not None and not lk.calibrated:
+            refuse(lk.target[0], T * T / m, "N/m", "k T^2/m", ("links", i, "target", "k"))
+            refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
+
+
+def _check_audio(s, names: dict[str, int]) -> None:
+    a = s.audio
+    if not isinstance(a, Audio):
+        raise Invalid(f"must be a hapsim.scene.Audio, got {type_name(a)}", ("audio",))
+    check_key(_key("audio.rate_hz"), a.rate_hz, "audio", "rate_hz")
+    try:
+        audio_substeps(a.rate_hz, s.rate_hz)
+    except ValueError as exc:
+        raise Invalid(str(exc), ("audio", "rate_hz")) from None
+    if s.integrator != "centred":
+        raise Invalid(f"audio runs the centred scheme only; got integrator "
+                       f"{s.integrator!r}", ("integrator",))
+    check_key(_key("audio.port_position"), a.port_position, "audio", "port_position")
+    check_key(_key("audio.port_force"), a.port_force, "audio", "port_force")
+    if not isinstance(a.listen, tuple) or not a.listen:
+        raise Invalid("must be a non-empty list of listening points {mass, quantity, gain}",
+                       ("audio", "listen"))
+    for i, ls in enumerate(a.listen):
+        if not isinstance(ls, Listen):
+            raise Invalid(f"must be a hapsim.scene.Listen, got {type_name(ls)}",
+                           ("audio", "listen", i))
+        check_key(_key("audio.listen[].mass"), ls.mass, "audio", "listen", i, "mass")
+        if ls.mass not in names:
+            raise Invalid(f"no mass named {ls.mass!r}; masses are: "
+                           + ", ".join(list(names)[:20]), ("audio", "listen", i, "mass"))
+        check_key(_key("audio.listen[].quantity"), ls.quantity, "audio", "listen", i,
+                   "quantity")
+        check_key(_key("audio.listen[].gain"), ls.gain, "audio", "listen", i, "gain")
+    if a.port_position != "hold" and s.port is not None:
+        for i, lk in enumerate(s.links):
+            if lk.target is not None:
+                raise Invalid("a felt target is calibrated for the device-rate link; with "
+                               "audio.port_position: linear the port link renders "
+                               "differently: use port_position: hold, or give (K, B)",
+                               ("links", i, "target"))
+
+
+def _check_links(s, names: dict[str, int]) -> None:
+    if not isinstance(s.links, tuple):
+        raise Invalid(f"must be a list of links, got {type_name(s.links)}", ("links",))
+    seen: dict[str, int] = {}
+    for i, lk in enumerate(s.links):
+        if not isinstance(lk, Link):
+            raise Invalid(f"must be a hapsim.scene.Link, got {type_name(lk)}", ("links", i))
+        check_key(_key("links[].kind"), lk.kind, "links", i, "kind")
+        check_key(_key("links[].name"), lk.name, "links", i, "name")
+        if lk.name in seen:
+            j = seen[lk.name]
+            raise Invalid(f"duplicate link name {show(lk.name)} "
+                           f"({_first(s.links[j].line, ('links', j))})", ("links", i, "name"))
+        seen[lk.name] = i
+        for n in (lk.m1, lk.m2):
+            if n not in names:
+                shown = ", ".join(bare_name(k) for k in list(names)[:20])
+                shown += ", ..." if len(names) > 20 else ""
+                raise Invalid(f"no mass named {show(n)}; masses are: {shown}",
+                               ("links", i, "between"))
+        if lk.m1 == lk.m2:
+            raise Invalid(f"a link cannot join mass {show(lk.m1)} to itself", ("links", i, "between"))
+        if not isinstance(lk.calibrated, bool):
+            raise Invalid(f"must be True or False, got {show(lk.calibrated)}",
+                           ("links", i, "calibrated"))
+        awaiting = False
+        if lk.target is not None:
+            ends = {s.masses[names[lk.m1]].kind, s.masses[names[lk.m2]].kind}
+            if lk.kind != "spring_damper" or ends != {"port", "ground"}:
+                raise Invalid("a felt target {k, b} can only be calibrated for a "
+                               "spring_damper between the port and a ground",
+                               ("links", i, "target"))
+            if not (isinstance(lk.target, tuple) and len(lk.target) == 2):
+                raise Invalid(f"must be a pair (k, b), got {show(lk.target)}", ("links", i, "target"))
+            check_key(_key("links[].target.k"), lk.target[0], "links", i, "target", "k")
+            check_key(_key("links[].target.b"), lk.target[1], "links", i, "target", "b")
+            awaiting = not lk.calibrated
+        # NaN (K, B) mean "awaiting calibration" for a target link, nothing else.
+        if not (awaiting and _is_number(lk.stiffness) and math.isnan(lk.stiffness)):
+            check_key(_key("links[].stiffness"), lk.stiffness, "links", i, "stiffness")
+        if not (awaiting and _is_number(lk.damping) and math.isnan(lk.damping)):
+            # A calibrated B may be negative: the device's real friction b0 can exceed the
+            # felt damping (docs/design.md, 'The forward map'); a scene file or a hand-built
+            # link may not.
+            if lk.calibrated:
+                _number(lk.damping, "links", i, "damping")
+            else:
+                check_key(_key("links[].damping"), lk.damping, "links", i, "damping")
+        if lk.kind == "contact":
+            check_key(_key("links[].threshold"), lk.threshold, "links", i, "threshold")
+            if s.integrator == "exact":
+                raise Invalid("the exact integrator takes linear links only; a contact "
+                               "switches the network (use centred or symplectic_euler)",
+                               ("links", i, "kind"))
+        elif lk.threshold != 0:
+            raise Invalid(f"only a contact has a threshold; must be 0 for a {lk.kind}, "
+                           f"got {show(lk.threshold)}", ("links", i, "threshold"))
+
+
+def check_device(d: Any) -> None:
+    """The rules of a ``device`` section alone (a scene's, or a device file's).
+
+    Parameters
+    ----------
+    d : Device
+        The section: mass [kg], friction [N s/m], delay [samples], hold, force limit [N],
+        hand, correction and the protocol's options.
+
+    Raises
+    ------
+    Invalid
+        Not a :class:`~hapsim.scene.Device`, a value out of its row's range, a hand or a
+        correction the hold cannot render, or options the protocol's driver refuses.
+    """
+    if not isinstance(d, Device):
+        raise Invalid(f"must be a hapsim.scene.Device, got {type_name(d)}", ("device",))
+    _check_section(d, "device", "device")
+    if d.hand is not None:
+        _check_hand(d.hand, d.hold)
+    if d.correction is not None:
+        _check_correction(d.correction, d.hold)
+    if d.protocol_options is not None:
+        _check_protocol_options(d.protocol_options, d.protocol)
+
+
+def _check_protocol_options(o: Any, protocol: str) -> None:
+    """A driver's parameters: a mapping its constructor accepts (unknown keys and bad
+    values named with the valid choices)."""
+    where = ("device", "protocol_options")
+    if not isinstance(o, dict):
+        raise Invalid(f"must be a mapping, got {type_name(o)} {show(o)}", where)
+    if protocol == "framed":
+        raise Invalid("the framed protocol takes no options (its device says its own "
+                       "units in HELLO); set device.protocol to a driver", where)
+    import inspect
+
+    from hapsim.drivers import get_driver
+    from hapsim.errors import ConfigError
+    cls = type(get_driver(protocol))
+    valid = tuple(n for n in inspect.signature(cls.__init__).parameters if n != "self")
+    for name in o:
+        if name not in valid:
+            raise Invalid(f"unknown option {show(name)} for {protocol}; valid: "
+                           f"{', '.join(valid)}", (*where, name))
+    try:
+        get_driver(protocol, **o)
+    except ConfigError as exc:
+        raise Invalid(exc.reason, (*where, exc.key) if exc.key else where) from None
+    except (TypeError, ValueError) as exc:
+        raise Invalid(str(exc), where) from None
+
+
+def _check_hand(h: Any, hold: str) -> None:
+    if not isinstance(h, Hand):
+        raise Invalid(f"must be a hapsim.scene.Hand, got {type_name(h)}", ("device", "hand"))
+    for key, positive, inf in (("mass", True, False), ("damping", False, False),
+                               ("grip_stiffness", True, True), ("grip_damping", False, False),
+                               ("stiffness", False, False)):
+        v = getattr(h, key)
+        where = ("device", "hand", key)
+        if isinstance(v, tuple):
+            if len(v) != 2:
+                raise Invalid(f"a range is [lo, hi], got {list(v)!r}", where)
+            for x in v:
+                _number(x, *where, positive=positive, minimum=None if positive else 0.0)
+            if not v[0] <= v[1]:
+                raise Invalid(f"a range [lo, hi] needs lo <= hi, got {list(v)!r}", where)
+        else:
+            _number(v, *where, positive=positive, minimum=None if positive else 0.0,
+                    allow_inf=inf)
+    if not h.rigid and hold != "zoh":
+        raise Invalid("a compliant grip needs hold: zoh (the ideal hold models one mass); "
+                       "use grip_stiffness: rigid", ("device", "hand", "grip_stiffness"))
+
+
+def _check_correction(c: Any, hold: str) -> None:
+    where = ("device", "correction")
+    if not isinstance(c, dict) or "kind" not in c:
+        raise Invalid("must be a mapping with a kind; valid kinds: "
+                       + ", ".join(CORRECTIONS), where)
+    check_choice(c["kind"], tuple(CORRECTIONS), *where, "kind")
+    allowed = ("kind",) + CORRECTIONS[c["kind"]]
+    for k, v in c.items():
+        if k not in allowed:
+            raise Invalid(f"unknown key {k!r} for {c['kind']}; valid keys: "
+                           + ", ".join(allowed), where + (k,))
+        if k != "kind":
+            _number(v, *where, k, minimum=0.0)
+    if c["kind"] == "velocity_filter":
+        if "cutoff_hz" not in c:
+            raise Invalid("velocity_filter needs cutoff_hz [Hz]", where + ("cutoff_hz",))
+        _number(c["cutoff_hz"], *where, "cutoff_hz", positive=True)
+    if c["kind"] == "velocity_sensor" and hold != "zoh":
+        raise Invalid("a velocity sensor needs hold: zoh (the ideal hold has no velocity)",
+                       where + ("kind",))
+
+
+def _check_excitation(e: Any) -> None:
+    if not isinstance(e, Excitation):
+        raise Invalid(f"must be a hapsim.scene.Excitation, got {type_name(e)}", ("excitation",))
+    if e.impulse is not None and not isinstance(e.impulse, Impulse):
+        raise Invalid(f"must be a hapsim.scene.Impulse, got {type_name(e.impulse)}",
+                       ("excitation", "impulse"))
+    _check_section(e, "excitation", "excitation")
+    if e.impulse is not None:
+        _check_section(e.impulse, "excitation.impulse", "excitation", "impulse")
+    if e.profile is not None:
+        if not os.path.exists(e.profile):
+            raise Invalid(f"profile file not found: {e.profile}", ("excitation", "profile"))
+
+
+def _check_safety(f: Any) -> None:
+    if not isinstance(f, Safety):
+        raise Invalid(f"must be a hapsim.scene.Safety, got {type_name(f)}", ("safety",))
+    _check_section(f, "safety", "safety")
+
+
+def code_line(s, where: tuple) -> int | None:
+    """Line of the Mass or Link entry ``where`` points into.
+
+    Parameters
+    ----------
+    s : hapsim.scene.Scene
+        The scene (its masses and links carry the line they were read from, 0 in code).
+    where : tuple
+        Path of a value (``("links", 1, "stiffness")``).
+
+    Returns
+    -------
+    int or None
+        The entry's line, None when unknown (a scene built in code, another section).
+    """
+    if len(where) >= 2 and where[0] in ("masses", "links") and isinstance(where[1], int):
+        seq = getattr(s, where[0])
+        if isinstance(seq, tuple) and 0 <= where[1] < len(seq):
+            return getattr(seq[where[1]], "line", 0) or None
+    return None
+
+
+def bare_name(k: Any) -> str:
+    """A name as a message prints it: bare when short and plain, else :func:`show`-n.
+
+    Parameters
+    ----------
+    k : object
+        A key or a name read from a file.
+
+    Returns
+    -------
+    str
+        ``k`` itself for a printable string of 1 to 40 characters without spaces, else its
+        quoted, shortened :func:`hapsim.errors.show`.
+    """
+    plain = isinstance(k, str) and k.isprintable() and 0 < len(k) <= 40 and " " not in k
+    return k if plain else show(k, 40)

@@ -1,0 +1,110 @@
+"""``hapsim stability``'s K_max certified or labelled sampled (issue 22): the exact-arithmetic
+bracket holds the limit against an independent computation (numpy's roots of the expanded
+characteristic), the certifier refuses a wrong limit, and the report says which."""
+
+from __future__ import annotations
+
+import json
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from hapsim.analysis.limit_certificate import certify_limit, schur_stable
+from hapsim.analysis.loop import LoopModel, characteristic
+from hapsim.analysis.ths import circle_scan_points, stability_limit
+from hapsim.cli import main
+
+
+def _rho(loop, K, B):
+    """Spectral radius from numpy's roots of P K + Q B + R (independent of the scan)."""
+    P, Q, R = characteristic(loop)
+    n = max(P.size, Q.size, R.size)
+    c = sum(np.pad(a, (n - a.size, 0)) * g for a, g in ((P, K), (Q, B), (R, 1.0)))
+    return float(np.max(np.abs(np.roots(np.trim_zeros(c, "f")))))
+
+
+def _random_loop(rng):
+    return LoopModel(float(rng.uniform(0.02, 1.0)),
+                     float(rng.choice([0.0, rng.uniform(0.05, 3.0)])),
+                     float(rng.choice([500.0, 1000.0, 4000.0])), int(rng.integers(0, 7)),
+                     str(rng.choice(["zoh", "ideal"])))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_certified_bracket_holds_the_limit(seed):
+    """Random loops (delay 0-6, either hold, with and without friction, B from -0.5 to
+    5 N s/m): every one is certified; the bracket holds the scan's K_max and is ~1e-12
+    wide; numpy's roots find every K sampled in (0, K_lo) stable and 1e-6 above K_hi
+    unstable."""
+    rng = np.random.default_rng(seed)
+    for _ in range(6):
+        loop, B = _random_loop(rng), float(rng.uniform(-0.5, 5.0))
+        K = stability_limit(loop, B)
+        c = certify_limit(loop, B, K, circle_scan_points(loop))
+        assert c.certified and c.method == "certified", (loop, B, c)
+        lo, hi = c.interval
+        assert lo <= K <= hi
+        if K == 0:
+            assert _rho(loop, 1e-6 * loop.mass / loop.period ** 2, B) > 1.0
+            continue
+        assert hi - lo <= 1e-11 * K
+        for Kt in rng.uniform(0.0, lo, 8):
+            assert _rho(loop, Kt, B) < 1.0 + 1e-9
+        assert _rho(loop, hi * (1 + 1e-6), B) > 1.0
+
+
+def test_certifier_refuses_a_wrong_limit():
+    """The certificate is a proof, not an echo: told a limit twice the true one (a scan
+    that missed the crossing) it finds the crossing below; told one 1e-5 low it cannot
+    bracket it; either way the limit is only 'sampled (N)'."""
+    loop = LoopModel(0.1, 0.5, 1000.0, 2, "zoh")
+    K = stability_limit(loop, 1.0)
+    n = circle_scan_points(loop)
+    for wrong, why in ((2.0 * K, "crossing below"), (K * (1 - 1e-5), "not proven")):
+        c = certify_limit(loop, 1.0, wrong, n)
+        assert not c.certified and c.method == f"sampled ({n})" and c.interval is None
+        assert why in c.reason
+
+
+def test_schur_test_agrees_with_the_roots():
+    """The exact Schur-Cohn-Jury test against numpy's roots on random polynomials whose
+    radius is not within 1e-6 of 1 (and exactly on the boundary: z^2 - 1 is not stable)."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n = int(rng.integers(1, 8))
+        c = rng.normal(size=n + 1) * np.exp(rng.normal(size=n + 1))
+        r = float(np.max(np.abs(np.roots(c))))
+        if abs(r - 1.0) < 1e-6:
+            continue
+        assert schur_stable([Fraction(float(v)) for v in c[::-1]]) == (r < 1.0)
+    assert not schur_stable([Fraction(-1), Fraction(0), Fraction(1)])
+
+
+def test_stability_report_says_certified_or_sampled(capsys):
+    """The issue's loops: the shipped wall is certified (its bracket printed rounded
+    outwards holds K_max); the lossless centred-difference loop (poles on the circle below
+    the limit) is labelled 'sampled (N)' with the reason, in the report and the JSON."""
+    loop_args = ["--mass", "0.1", "--friction", "0.5", "--rate", "1000", "--delay", "1",
+                 "--hold", "zoh"]
+    assert main(["stability", *loop_args, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["K_max_method"] == "certified" and d["K_max_not_certified"] is None
+    lo, hi = d["K_max_interval"]
+    assert lo <= d["K_max"] <= hi
+    assert main(["stability", *loop_args]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if "certified" in x)
+    plo, phi = (float(v) for v in line.split("[")[1].split("]")[0].split(","))
+    assert plo <= lo and hi <= phi and phi - plo < 1e-6 * d["K_max"]
+    lossless = ["--mass", "0.1", "--friction", "0", "--rate", "1000", "--delay", "0",
+                "--hold", "ideal", "--B", "0"]
+    assert main(["stability", *lossless, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    n = circle_scan_points(LoopModel(0.1, 0.0, 1000.0, 0, "ideal"))
+    assert d["K_max_method"] == f"sampled ({n})" and d["K_max_interval"] is None
+    assert "lossless" in d["K_max_not_certified"]
+    assert math.isclose(d["K_max"], 4 * 0.1 / 1e-6, rel_tol=1e-12)
+    assert main(["stability", *lossless]) == 0
+    assert f"sampled ({n}): not certified (lossless" in capsys.readouterr().out
