@@ -179,6 +179,32 @@ def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig, durati
     assert seen["last_host_message"] == "Stop"
 
 
+def test_signals_stay_handled_until_the_report_is_made(monkeypatch):
+    """A SIGTERM (SIGINT) after the loop ended, while the telemetry is exported, the run
+    identified and the report made (seconds on a loaded machine), finds hapsim's handler:
+    the stop is under way, the report comes out as the loop ended. With the default
+    handler back there the process died with exit -15, report and export lost (a loaded
+    suite's run of the SIGTERM test above)."""
+    import hapsim.daemon.runner as runner
+    real = runner.identify_run
+    seen = {}
+
+    def identify_then_signals(*args, **kw):
+        for s in (signal.SIGTERM, signal.SIGINT):
+            seen[s] = handler = signal.getsignal(s)
+            assert callable(handler) and handler is not signal.default_int_handler, (s, handler)
+            handler(s, None)                # what the signal's arrival runs: no exception
+        return real(*args, **kw)
+
+    monkeypatch.setattr(runner, "identify_run", identify_then_signals)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    rep = run_scene(load_scene(WALL), transport="inprocess", lockstep=True, duration=0.2)
+    assert set(seen) == set(before)
+    assert {s: signal.getsignal(s) for s in before} == before       # then restored
+    assert rep["loop"]["stop_reason"] == "duration" and rep["exit_code"] == 0
+    assert rep["loop"]["ticks"] == 200
+
+
 @pytest.mark.parametrize("transport", ["sim", "pty"])
 def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, monkeypatch):
     """Ctrl-C while numba warms up (or the embedded mock starts) is not a KeyboardInterrupt:
