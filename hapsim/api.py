@@ -44,8 +44,8 @@ from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-           "identify", "run", "excite_and_fit", "known_digits", "known_decimals",
-           "run_options", "CheckReport", "RenderReport", "CalibrateReport",
+           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
+           "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport"]
 
 
@@ -577,11 +577,33 @@ class FamilyReport(_Report):
     consistency: dict | None = None
     family_calibrations: list | None = None
 
-    def plot(self, title: str | None = None):
-        """Felt (k, b) of every member, coloured by spectral radius
-        (:func:`hapsim.plot_family.plot_family`). Returns the figure."""
+    def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
+        """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
+        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format; ``hapsim family
+            --plot``); None: a new figure only.
+        title : str, optional
+            Default: the scene's path.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
         from hapsim.plot_family import plot_family
-        return plot_family(self.analysis, title=title or self.scene)
+
+        def draw(report, ax=None):          # two panels: a figure of its own
+            return plot_family(report.analysis, title=title or report.scene)
+        return _draw(self, draw, path)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
@@ -703,7 +725,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              lockstep: bool = False, seed: int = 0, hand: bool = False,
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
-             driver_options: dict | None = None) -> IdentifyReport:
+             driver_options: dict | None = None,
+             mock_options: dict | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -740,6 +763,9 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
+        one ``driver_options`` describe); default the driver's own.
 
     Returns
     -------
@@ -772,7 +798,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
-                         driver_options=driver_options)
+                         driver_options=driver_options, mock_options=mock_options)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -783,7 +809,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None):
+             driver_options=None, mock_options=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -803,6 +829,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
 
     Returns
     -------
@@ -823,7 +851,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
                  force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                  noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver, driver_options=driver_options)
+                 handle_signals=handle_signals, driver=driver, driver_options=driver_options,
+                 mock_options=mock_options)
     # one uniform record: the longest stretch without a missing STATE
     seq = rec["seq"]
     cut = np.flatnonzero(np.diff(seq) != 1) + 1
@@ -852,6 +881,52 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                                   f"({type(exc).__name__}: {exc}); "
                                   f"{_record_summary(rec, a, b)}") from None
     return fit, rec
+
+
+def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: float,
+                    driver):
+    """A driver's scale parameter from two identifications, without and with a known
+    mass clamped to the handle (``hapsim identify --added-mass``).
+
+    Parameters
+    ----------
+    bare, loaded : IdentifyReport
+        :func:`identify` without and with ``added_mass`` on the handle, through ``driver``.
+    added_mass : float > 0
+        The clamped mass [kg] (an inertia [kg m^2] for a rotary axis).
+    driver : hapsim.drivers.base.Driver
+        The driver both records were taken through: its ``scale_option`` (the FireFader's
+        ``full_scale``, the Haply board's ``resolution``) is the value assumed.
+
+    Returns
+    -------
+    (ForceScale, DeviceFit, Driver)
+        The gain and the parameter found (:func:`hapsim.analysis.calibration.
+        full_scale_from_added_mass`: ``full_scale`` is the parameter whatever it is),
+        ``bare``'s fit in the device's own units
+        (:func:`~hapsim.analysis.calibration.rescale_fit`) and the driver with the
+        parameter found (its :meth:`~hapsim.drivers.base.Driver.options` are what the
+        device file's ``protocol_options`` then hold).
+
+    Raises
+    ------
+    ConfigError
+        A driver whose protocol carries SI units (nothing to calibrate), a bad mass, or
+        the added mass not resolved by the two fits.
+    """
+    from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
+    from hapsim.drivers import get_driver
+    opt = driver.scale_option
+    if opt is None:
+        raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "
+                          f"calibrate (valid with --added-mass: the drivers firefader and "
+                          f"haply)", key="--added-mass")
+    sc = full_scale_from_added_mass(bare.fit.mass, loaded.fit.mass, added_mass,
+                                    float(getattr(driver, opt)))
+    fit = rescale_fit(bare.fit, sc, driver.scale_kind)
+    opts = driver.options()
+    opts[opt] = sc.full_scale
+    return sc, fit, get_driver(driver.name, **opts)
 
 
 def _record_summary(rec, a: int, b: int) -> str:

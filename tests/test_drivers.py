@@ -153,8 +153,10 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     head = format_report(rep).splitlines()[0]
     assert head.endswith("(host-clocked, firefader protocol)") and "lockstep" not in head
     meas, pred = rep["measured"], rep["predicted"]
-    assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
-    assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
+    # the quantisers' bound, or the stated interval where a loaded host left a shorter
+    # stretch or missing samples (their worst case is in it)
+    assert abs(meas["k"] - pred["k"]) <= max(0.01 * pred["k"], meas["k_unc"])
+    assert abs(meas["b"] - pred["b"]) <= max(0.10 * pred["b"], meas["b_unc"])
     cols = load(tel)
     x, f, seq = cols["position"], cols["force"], cols["seq"]
     # a clean link: a sample is missing only where a loaded host read a reply a period
@@ -360,8 +362,7 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults, duration):
     device's clock), the device is left at zero force, and (Haply, where the free response
     fits the run) (k, b) are measured on the host's ticks, missing ones included, within
     1 % / 10 % of the prediction (before: no measurement, or a safety stop); the report
-    says the estimated samples' disturbance is not in the stated uncertainty (it can
-    exceed it: k is stated to ~0.05 % here)."""
+    says how much of the stated uncertainty is the estimated samples' worst case."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene(f"configs/{driver}.yaml"), driver=driver, duration=duration,
@@ -577,13 +578,13 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     return np.array(xs), np.array(fs)
 
 
-def test_full_scale_separates_from_mass_with_an_added_mass():
+def test_full_scale_separates_from_mass_with_an_added_mass(tmp_path):
     """Identification through the FireFader's bytes sees the gain full_scale / m: a fader
     of 1.56 N full scale driven as if 0.39 N identifies as a quarter of its mass. Two
     records, without and with 50 g clamped on, give the full scale back (within the
     interval the two mass intervals allow)."""
+    from hapsim.analysis.calibration import full_scale_from_added_mass
     from hapsim.analysis.device_fit import fit_device
-    from hapsim.drivers.calibration import full_scale_from_added_mass
     fits = [fit_device(*_ff_record(m, 1.56), 1 / 250, max_delay=2) for m in (0.1, 0.15)]
     assert fits[0].mass.value == pytest.approx(0.1 * 0.39 / 1.56, rel=0.12)
     fsc = full_scale_from_added_mass(fits[0].mass, fits[1].mass, 0.05, 0.39)
@@ -592,6 +593,25 @@ def test_full_scale_separates_from_mass_with_an_added_mass():
     assert fsc.mass == pytest.approx(0.1, rel=0.12)
     with pytest.raises(ConfigError, match="not resolved"):
         full_scale_from_added_mass(fits[0].mass, fits[0].mass, 0.05, 0.39)
+    # hapsim identify --added-mass (api.calibrate_scale): the driver with the full scale
+    # found, written to the device file's protocol_options, and the device in its own
+    # units again (the true mass in the rescaled interval, the friction g times the fit's)
+    from types import SimpleNamespace
+
+    from hapsim.api import calibrate_scale
+    from hapsim.device_file import device_yaml, load_device
+    reps = [SimpleNamespace(fit=f) for f in fits]
+    sc, fit, found = calibrate_scale(reps[0], reps[1], 0.05, get_driver("firefader"))
+    assert sc == fsc and found.full_scale == pytest.approx(sc.full_scale)
+    assert fit.mass.lo <= 0.1 <= fit.mass.hi
+    assert fit.friction.value == pytest.approx(sc.gain * fits[0].friction.value)
+    path = tmp_path / "dev.yaml"
+    path.write_text(device_yaml(fit, 0.3, driver=found))
+    d = load_device(path)
+    assert d.protocol == "firefader" and d.mass == pytest.approx(fit.mass.value, rel=1e-5)
+    assert d.protocol_options["full_scale"] == pytest.approx(sc.full_scale, rel=1e-5)
+    with pytest.raises(ConfigError, match="SI units"):
+        calibrate_scale(reps[0], reps[1], 0.05, get_driver("hapkit-serial"))
 
 
 def test_protocol_options_in_the_scene_and_the_device_file(tmp_path):
@@ -686,3 +706,4 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
         os.close(master)
     assert again and rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("Haply M3") and board.held == 0.0
+

@@ -394,7 +394,8 @@ def _mode_of(spec_item, mass, period):
 
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
-                 pencil: int | None = None, sensor_response=None, wire=None) -> dict:
+                 pencil: int | None = None, sensor_response=None, wire=None,
+                 bounded=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor.
 
@@ -444,6 +445,14 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         of path (a float32 record is exact to its rounding), but the stated half-interval
         covers them: ``k_sd_wire = sqrt(sum sd_i^2 g' S_i g)`` with ``S_i`` the coloured
         covariance of ``response_i`` (as the sensor's).
+    bounded : sequence of (array_like, array_like), optional
+        Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), the largest
+        error of each row of ``y`` [m] (0 where none: an estimated sample's position,
+        :func:`hapsim.analysis.measurement.estimated_bounds`), and its impulse response to
+        the logged position. Not random: their worst case, ``sum_j e_j |s_j|`` with ``s_j``
+        the fit's first-order sensitivity to a unit error at row ``j`` through
+        ``response``, is added to ``k_unc``, ``b_unc`` (``k_bound_rows``,
+        ``b_bound_rows``).
 
     Returns
     -------
@@ -497,7 +506,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
                 return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
                                           method="pencil", skipped=0),
-                                  spec, fi, y, offset, wire, mass, period)
+                                  spec, fi, y, offset, wire, mass, period, bounded)
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
@@ -558,12 +567,59 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     rms, cov, c = _covariance(spec, yw, offset, sensor_response)
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor)),
-                      spec, fi, yw, offset, wire, mass, period)
+                      spec, fi, yw, offset, wire, mass, period,
+                      None if not bounded else [(np.asarray(e, float)[skip:], r)
+                                                for e, r in bounded])
 
 
-def _with_wire(out, spec, fi, y, offset, wire, mass, period):
+def _bounded_share(spec, fi, y, offset, bounded, mass, period):
+    """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
+    ``bounded``): ``sum_j e_j |s_j|`` with ``s_j = sum_m S_(j+m) h_m`` the fit's first-order
+    response to a unit error at row ``j`` filtered by ``h`` (``S = g' (J'J)^-1 J'``, the
+    linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
+    Sec. 2.1)."""
+    from scipy.signal import fftconvolve
+    n = y.size
+    theta = _theta(spec)
+    phi, dcols, c, _ = _solve(spec, theta, y, offset)
+    J = np.empty((n, theta.size + phi.shape[1]))
+    for j, parts in enumerate(dcols):
+        J[:, j] = sum(c[col] * d for col, d in parts)
+    J[:, theta.size:] = phi
+    P = (np.linalg.pinv(J.T @ J) @ J.T)[:theta.size]
+    i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
+    g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    bk = bb = 0.0
+    for e, resp in bounded:
+        e = np.asarray(e, float)[:n]
+        if e.size < n:
+            e = np.concatenate([e, np.zeros(n - e.size)])
+        if not np.any(e > 0):
+            continue
+        h = np.zeros(n)
+        r = np.asarray(resp, float)[:n]
+        h[:r.size] = r
+        for g, acc in ((g_k, "k"), (g_b, "b")):
+            S = g @ P
+            sj = fftconvolve(S[::-1], h)[:n][::-1]
+            v = float(np.sum(e * np.abs(sj)))
+            if acc == "k":
+                bk += v
+            else:
+                bb += v
+    return bk, bb
+
+
+def _with_wire(out, spec, fi, y, offset, wire, mass, period, bounded=None):
     """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
-    ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too."""
+    ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too; with
+    ``bounded``, the worst case of those errors (``k_bound_rows``, ``b_bound_rows``) added
+    to ``k_unc``, ``b_unc``."""
+    if bounded and "k" in out:
+        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period)
+        out["k_bound_rows"], out["b_bound_rows"] = bk, bb
+        out["k_unc"] += bk
+        out["b_unc"] += bb
     if not wire:
         return out
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
@@ -576,8 +632,9 @@ def _with_wire(out, spec, fi, y, offset, wire, mass, period):
         vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)
         vb += sd * sd * max(float(g_b @ col @ g_b), 0.0)
     out["k_sd_wire"], out["b_sd_wire"] = math.sqrt(vk), math.sqrt(vb)
-    out["k_unc"] = max(out["k_unc"], COVERAGE * out["k_sd_wire"])
-    out["b_unc"] = max(out["b_unc"], COVERAGE * out["b_sd_wire"])
+    bk, bb = out.get("k_bound_rows", 0.0), out.get("b_bound_rows", 0.0)
+    out["k_unc"] = max(out["k_unc"], COVERAGE * out["k_sd_wire"] + bk)
+    out["b_unc"] = max(out["b_unc"], COVERAGE * out["b_sd_wire"] + bb)
     return out
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import firmware_protocol as fp
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "MeasuredVelocity", "LostDevice",
+           "EstimatedState",
            "percentiles_us", "signame", "LATCHED_FAULTS", "BAD_FRAME_RECORDS",
            "BAD_FRAME_CONTEXT", "SENSORS_TRIES", "SENSORS_WAIT", "QUIESCE_TRIES",
            "QUIESCE_WAIT", "QUIESCE_NONCE", "SEQ_MASK", "SEQ_HALF",
@@ -275,6 +276,23 @@ class LoopConfig:
     attempt_timeout: float = 0.25
     ramp_samples: int = 50
     backlog: str = "newest"
+
+
+class EstimatedState:
+    """The STATE fields of an estimated sample (a driver's missing reply), one object per
+    loop, filled in place by the transport's ``estimate`` (no allocation per sample).
+
+    Attributes
+    ----------
+    seq, time_us, status, force_seq : int
+        As :class:`firmware_protocol.State`: the command whose answer is missing, the
+        host time it was sent [us], the transport's status bits, ``seq - d``.
+    """
+
+    __slots__ = ("seq", "time_us", "status", "force_seq")
+
+    def __init__(self) -> None:
+        self.seq = self.time_us = self.status = self.force_seq = 0
 
 
 @dataclass

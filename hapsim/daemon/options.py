@@ -16,9 +16,12 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from hapsim.daemon.loop import StopFlag
 from hapsim.errors import ConfigError
+
+if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
+    from hapsim.daemon.loop import StopFlag
 
 __all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
 

@@ -224,8 +224,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation``
         (:func:`hapsim.lockstep_nd.felt_deviation`), ``order``, ``records``, ``samples``,
         ``late`` (late rows over every record), ``watchdog`` (rows whose force the
-        watchdog zeroed), ``delay`` (the delay the device showed, per record), ``lost``
-        (records run again for a lost STATE), ``hello`` (the device's HELLO).
+        watchdog zeroed), ``delay`` (the delay the device showed, per record; -1 for a
+        record in which no FORCE arrived in time: the device held zero throughout, and the
+        whole force sent is the known disturbance), ``lost`` (records run again for a
+        lost STATE), ``hello`` (the device's HELLO).
 
     Raises
     ------
@@ -272,15 +274,25 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                               "seq): the link loses frames\nlast frames:\n"
                               + transport.last_frames())
     recs, late, wdog, delays = [], 0, 0, []
+    d = scene.device.delay
     for rec in raw:
-        acc = None
         W = np.zeros((N, n))
+        wdog += int(np.count_nonzero(rec.status & fp.STATUS_WATCHDOG_TRIPPED))
+        if not np.any(rec.status & fp.STATUS_FORCE_APPLIED):
+            # no FORCE arrived in time in the whole record (a host starved for longer
+            # than the watchdog): the device held zero throughout. (The account's rule
+            # for devices without the FORCE_APPLIED bit would name FORCE 0 on every row.)
+            W[d:] = -rec.force[:N - d]
+            late += N - d
+            delays.append(-1)
+            recs.append(rec.position - rest_pos - disturbance_response_nd(scene, W, A=A))
+            continue
+        acc = None
         for i in range(n):
             acc = account_from_force_seq(rec.seq, rec.force[:, i], rec.force_seq,
                                          rec.status, force_limit=FORCE_LIMIT)
             W[:, i] = acc.disturbance(rec.force[:, i], rec.seq)
         late += acc.n_late
-        wdog += int(np.count_nonzero(rec.status & fp.STATUS_WATCHDOG_TRIPPED))
         delays.append(int(acc.delay))
         if acc.delay >= 0 and acc.delay != scene.device.delay:
             raise ProtocolError(f"the device's delay is {acc.delay} ticks (seq - force_seq), "

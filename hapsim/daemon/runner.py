@@ -696,20 +696,36 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
         wire = wire_errors(scene, cols, start, driver)
-        hw = late_info.pop("_force_half_width", 0.0)
-        if hw > 0:
-            # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
-            # the loop's force response: in the stated uncertainty as the wire's errors
+        hw = late_info.pop("_force_half_width", None)
+        bounds = []
+        if hw is not None and np.any(hw > 0):
+            # the forces the account cannot name (a command whose answer never came: sent
+            # or the one before), bounded at their rows, through the loop's force
+            # response: their worst case is in the stated uncertainty
             from hapsim.analysis.identify import force_error_response
-            wire.append((hw / math.sqrt(3.0),
-                         force_error_response(scene, int(np.sum(cols["seq"] >= start)))))
+            bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
+        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
+            # a driver's missing replies: the positions the loop stepped through them with
+            # are extrapolations, wrong by at most what the device can have done meanwhile
+            from hapsim.analysis.measurement import estimated_bounds
+            if response is None:
+                from hapsim.analysis.identify import sensor_error_response
+                try:
+                    response = sensor_error_response(scene, int(cols["seq"].size))
+                except ConfigError:
+                    response = None
+            if response is not None:
+                bounds.append((estimated_bounds(
+                    cols, T, *device_body(dev), quantum, dev.noise,
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED),
+                    response))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
-                            wire=wire)
+                            wire=wire, bounds=bounds or None)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
         if measured.get("first_seq") is not None and cols["seq"].size:
@@ -734,12 +750,14 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
     if n_est and "k" in measured:
         # a driver's missing replies: the scene stepped through them with an extrapolated
-        # position; the force sent there differs from the one the true position gives by
-        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        # position, wrong by at most estimated_bounds; its worst case through the loop is
+        # in the stated uncertainty (k_bound_rows, b_bound_rows)
         measured["estimated_samples"] = n_est
         notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
-                     f"stepped through with an extrapolated position: their disturbance is "
-                     f"not in the stated uncertainty")
+                     f"stepped through with an extrapolated position: the stated "
+                     f"uncertainty covers the worst case of their error (k +-"
+                     f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
+                     f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
