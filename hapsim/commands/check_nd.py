@@ -32,28 +32,22 @@ def run_nd(args) -> int:
     ConfigError
         Bad scene file or option (exit 2).
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim import api
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     plot = getattr(args, "plot", None)
     if plot is not None:
         from hapsim.plot import check_figure_path
         check_figure_path(plot, "--plot")
-    scene = load_scene_nd(args.scene)
+    scene = api.load_scene_nd(args.scene)
     if scene.port is None:
         return _run_modes(args, scene, plot)
-    chk = check_scene_nd(scene)
+    rep = api.check_nd(scene)
+    chk = rep.analysis
     if plot is not None:
-        _plot(scene, chk, plot)
+        rep.plot(plot)
     if args.json:
-        d = chk.to_dict()
-        d["scene"] = scene.path
-        d["device"] = {"kind": scene.device.kind, "mass": scene.device.mass.tolist(),
-                       "friction": scene.device.friction.tolist(),
-                       "position": scene.device.position.tolist(),
-                       "delay": scene.device.delay, "hold": scene.device.hold}
-        print(json.dumps(d))
+        print(json.dumps(rep.to_dict()))
         return 0 if chk.stable else 1
     o = sys.stdout
     r = chk.render
@@ -89,34 +83,15 @@ def run_nd(args) -> int:
     return 0 if chk.stable else 1
 
 
-def _plot(scene, chk, path: str) -> None:
-    """Write the scene's picture (:func:`hapsim.plot_workspace.plot_scene_nd`)."""
-    from hapsim.analysis.scene_nd_check import felt_over_workspace
-    from hapsim.plot import save_figure
-    from hapsim.plot_workspace import plot_scene_nd
-    felt = felt_over_workspace(scene) if scene.device.joints is not None else None
-    note = "\nfelt at the handle only (a port link ends on a moving mass)" \
-        if felt is not None and felt.note else ""
-    name = os.path.basename(scene.path)
-    save_figure(plot_scene_nd(scene, chk, felt, title=f"{name}: {scene.device.kind}, "
-                              f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note),
-                path)
-
-
 def _run_modes(args, scene, plot) -> int:
     """``check`` on a scene without a port: its modes (:func:`run_nd`)."""
-    from hapsim.analysis.modes_nd import scene_modes_nd
-    res = scene_modes_nd(scene)
+    from hapsim import api
+    rep = api.modes_nd(scene)
+    res = rep.analysis
     if plot is not None:
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_modes_nd
-        save_figure(plot_modes_nd(scene, res, title=f"{os.path.basename(scene.path)}: "
-                                  f"modes at {scene.rate_hz:g} Hz"), plot)
+        rep.plot(plot)
     if args.json:
-        print(json.dumps({"scene": scene.path, "dof": scene.dimension,
-                          "masses": len(res.names), "states": res.states,
-                          "stable": res.stable, "spectral_radius": res.spectral_radius,
-                          "modes": [md.to_dict() for md in res.modes]}))
+        print(json.dumps(rep.to_dict()))
         return 0 if res.stable else 1
     # one line per eigenfrequency (a mode repeated along several axes, or a degenerate
     # pair of a symmetric mesh, within 1e-9 relative)
