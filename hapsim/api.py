@@ -468,8 +468,8 @@ class StabilityReport(_Report):
     K_max_interval : [float, float] or None
         The guaranteed bracket ``[K_lo, K_hi]`` [N/m] when certified (``[0, 0]``: no
         ``K > 0`` stable; ``[None, None]``: every ``K > 0`` proven stable), else None.
-    K_max_not_certified : str or None
-        Why the limit is only sampled (None when certified).
+    K_max_certificate : str
+        What was proven (certified) or why it could not be (sampled).
     B : float
         Virtual damping [N s/m].
     spectral_radius_at_K_max, spectral_radius_error : float or None
@@ -483,7 +483,7 @@ class StabilityReport(_Report):
     K_max: float | None
     K_max_method: str
     K_max_interval: list | None
-    K_max_not_certified: str | None
+    K_max_certificate: str
     B: float
     spectral_radius_at_K_max: float | None
     spectral_radius_error: float | None
@@ -532,7 +532,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
         v if math.isfinite(v) else None for v in cert.interval]
     return StabilityReport._from({
         "K_max": kmax if math.isfinite(kmax) else None, "K_max_method": cert.method,
-        "K_max_interval": iv, "K_max_not_certified": cert.reason or None, "B": B,
+        "K_max_interval": iv, "K_max_certificate": cert.note, "B": B,
         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
         **published_limits(loop, B), "loop": loop.to_dict()})
 
