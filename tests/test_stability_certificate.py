@@ -55,6 +55,29 @@ def test_certified_bracket_holds_the_limit(seed):
         assert _rho(loop, hi * (1 + 1e-6), B) > 1.0
 
 
+def test_certified_on_hands_real_stiffness_and_corrections():
+    """The expanded characteristics (a hand behind a compliant grip, a real stiffness to
+    ground, each correction of the virtual element) are certified too, and the bracket
+    is checked as above."""
+    from hapsim.analysis.corrections import Correction
+    loops = [LoopModel(0.15, 1.5, 1000.0, 1, "zoh", hand_mass=0.1, hand_damping=1.0,
+                       grip_stiffness=3000.0, grip_damping=2.0),
+             LoopModel(0.1, 0.5, 1000.0, 1, "zoh", stiffness=200.0)]
+    loops += [LoopModel(0.1, 0.5, 1000.0, 1, "zoh", correction=c) for c in (
+        Correction("velocity_filter", cutoff_hz=100.0), Correction("prediction", horizon=1.5),
+        Correction("virtual_coupling", stiffness=900.0),
+        Correction("inertia_compensation", mass=0.05))]
+    for loop in loops:
+        for B in (0.0, 1.5):
+            K = stability_limit(loop, B)
+            c = certify_limit(loop, B, K, circle_scan_points(loop))
+            assert c.certified, (loop, B, c)
+            lo, hi = c.interval
+            assert lo <= K <= hi and hi - lo <= 1e-11 * K
+            assert max(_rho(loop, Kt, B) for Kt in np.linspace(0.0, lo, 12)[1:]) < 1 + 1e-9
+            assert _rho(loop, hi * (1 + 1e-6), B) > 1.0
+
+
 def test_certifier_refuses_a_wrong_limit():
     """The certificate is a proof, not an echo: told a limit twice the true one (a scan
     that missed the crossing) it finds the crossing below; told one 1e-5 low it cannot
@@ -65,7 +88,7 @@ def test_certifier_refuses_a_wrong_limit():
     for wrong, why in ((2.0 * K, "crossing below"), (K * (1 - 1e-5), "not proven")):
         c = certify_limit(loop, 1.0, wrong, n)
         assert not c.certified and c.method == f"sampled ({n})" and c.interval is None
-        assert why in c.reason
+        assert why in c.note
 
 
 def test_schur_test_agrees_with_the_roots():
@@ -84,13 +107,15 @@ def test_schur_test_agrees_with_the_roots():
 
 def test_stability_report_says_certified_or_sampled(capsys):
     """The issue's loops: the shipped wall is certified (its bracket printed rounded
-    outwards holds K_max); the lossless centred-difference loop (poles on the circle below
-    the limit) is labelled 'sampled (N)' with the reason, in the report and the JSON."""
+    outwards holds K_max); the lossless centred-difference loop (ideal hold, d = 0, no
+    damping: poles on the circle below the limit) is certified through Cohn's theorem,
+    its bracket holding 4 m / T^2 exactly; a delay of 50 (degree 53) is labelled
+    'sampled (N)' with the reason, in the report and the JSON."""
     loop_args = ["--mass", "0.1", "--friction", "0.5", "--rate", "1000", "--delay", "1",
                  "--hold", "zoh"]
     assert main(["stability", *loop_args, "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert d["K_max_method"] == "certified" and d["K_max_not_certified"] is None
+    assert d["K_max_method"] == "certified" and "no pole" in d["K_max_certificate"]
     lo, hi = d["K_max_interval"]
     assert lo <= d["K_max"] <= hi
     assert main(["stability", *loop_args]) == 0
@@ -102,9 +127,34 @@ def test_stability_report_says_certified_or_sampled(capsys):
                 "--hold", "ideal", "--B", "0"]
     assert main(["stability", *lossless, "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    n = circle_scan_points(LoopModel(0.1, 0.0, 1000.0, 0, "ideal"))
+    assert d["K_max_method"] == "certified" and "Cohn" in d["K_max_certificate"]
+    lo, hi = d["K_max_interval"]
+    exact = Fraction(4) * Fraction(0.1) / Fraction(1, 1000) ** 2
+    assert Fraction(lo) <= exact <= Fraction(hi) and hi - lo < 1e-8 * float(exact)
+    long = ["--mass", "0.1", "--rate", "1000", "--delay", "50", "--B", "1"]
+    assert main(["stability", *long, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    n = circle_scan_points(LoopModel(0.1, 0.0, 1000.0, 50, "zoh"))
     assert d["K_max_method"] == f"sampled ({n})" and d["K_max_interval"] is None
-    assert "lossless" in d["K_max_not_certified"]
-    assert math.isclose(d["K_max"], 4 * 0.1 / 1e-6, rel_tol=1e-12)
-    assert main(["stability", *lossless]) == 0
-    assert f"sampled ({n}): not certified (lossless" in capsys.readouterr().out
+    assert "degree 53" in d["K_max_certificate"]
+    assert main(["stability", *long]) == 0
+    assert f"sampled ({n}): not certified (degree 53" in capsys.readouterr().out
+
+
+def test_a_lossless_loop_is_proven_marginal_below_and_refused_a_wrong_limit():
+    """Ideal hold, d = 0, B = -b0 (lossless for any b0): certified through the derivative
+    (Cohn 1922); numpy's roots put every pole on the circle (to 1e-7) below the bracket
+    and one off it above; a limit 1 % low or high is not certified."""
+    loop = LoopModel(0.2, 0.7, 2000.0, 0, "ideal")
+    B = -0.7
+    K = stability_limit(loop, B)
+    n = circle_scan_points(loop)
+    c = certify_limit(loop, B, K, n)
+    assert c.certified and "Cohn" in c.note
+    lo, hi = c.interval
+    assert lo <= K <= hi
+    for Kt in np.linspace(0.0, lo, 9)[1:]:
+        assert abs(_rho(loop, Kt, B) - 1.0) < 1e-7
+    assert _rho(loop, hi * (1 + 1e-6), B) > 1.0 + 1e-4
+    for wrong in (0.99 * K, 1.01 * K):
+        assert not certify_limit(loop, B, wrong, n).certified

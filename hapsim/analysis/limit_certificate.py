@@ -31,9 +31,12 @@ refining its isolating interval until neither has a root in it: a crossing lies 
 ``(0, kappa_lo]`` iff ``N > 0`` and ``kappa_lo M - N >= 0`` there. ``z = +-1`` are checked
 directly (``kappa = -C(+-1) / A(+-1)``).
 
+A lossless loop (``p`` vanishes identically: every ``kappa A + C`` is self-inversive, the
+poles sit on the circle for small ``K``, marginal, which hapsim counts stable) is proven
+through its derivative instead (Cohn 1922: :func:`_lossless`).
+
 Where it cannot be proven the limit stays the scan's, labelled ``sampled (N)`` with the
-scan's ``N`` points of the circle: a lossless loop (``p`` vanishes identically: poles on
-the circle for every small ``K``), a root on the circle for every ``K``, a characteristic of
+scan's ``N`` points of the circle: a root on the circle for every ``K``, a characteristic of
 degree above :data:`MAX_DEGREE` (a long delay: the exact arithmetic's cost grows fast), or
 a limit whose neighbourhood the three facts do not bracket.
 """
@@ -73,14 +76,14 @@ class LimitCertificate:
         ``[K_lo, K_hi]`` [N/m] holding ``K_max`` (rounded outwards; ``(inf, inf)`` when
         every ``K > 0`` is proven stable, ``(0, 0)`` when none is); None when not
         certified.
-    reason : str
-        Why not certified (empty when certified).
+    note : str
+        What was proven, or why it could not be.
     """
 
     certified: bool
     method: str
     interval: tuple | None
-    reason: str = ""
+    note: str = ""
 
 
 # ----------------------------------------------------------------- exact polynomials
@@ -237,13 +240,17 @@ def schur_stable(p) -> bool:
 # ----------------------------------------------------------------- the certificate
 
 class _Loop:
-    """The exact pieces of one loop at one ``beta``."""
+    """The exact pieces of the family ``kappa A(z) + C(z)`` (lowest degree first)."""
 
-    def __init__(self, loop: LoopModel, beta: float):
+    @classmethod
+    def of(cls, loop: LoopModel, beta: float) -> "_Loop":
+        """The THS's characteristic at one ``beta``."""
         P, Q, D, e = char_parts(loop)
-        A = _from_float_w(P)
-        C = _add(_scale(_from_float_w(Q), Fraction(beta)),
-                 _mul([Fraction(0)] * e + [Fraction(1)], _from_float_w(D)))
+        return cls(_from_float_w(P), _add(_scale(_from_float_w(Q), Fraction(beta)),
+                                          _mul([Fraction(0)] * e + [Fraction(1)],
+                                               _from_float_w(D))))
+
+    def __init__(self, A, C):
         self.A, self.C = A, C
         self.degree = max(len(A), len(C)) - 1
         Ar, Ai = _circle_parts(A)
@@ -381,22 +388,24 @@ def certify_limit(loop: LoopModel, B: float, K_max: float, scan_points: int) -> 
     def no(reason):
         return LimitCertificate(False, sampled, None, reason)
 
-    L = _Loop(loop, beta)
+    L = _Loop.of(loop, beta)
     if L.degree > MAX_DEGREE:
         return no(f"degree {L.degree} above {MAX_DEGREE} (a long delay): the scan's value")
     roots = L.crossing_roots()
-    if roots is None:
-        return no("lossless loop: the poles stay on the circle below the limit")
     scale = Fraction(m) / (Fraction(T) * Fraction(T))      # kappa -> K [N/m]
+    if roots is None:
+        return _lossless(L, K_max, scale, no)
     if math.isinf(K_max):
         if _any_positive_crossing(L, roots) is False and schur_stable(L.char(Fraction(1))):
-            return LimitCertificate(True, "certified", (math.inf, math.inf))
+            return LimitCertificate(True, "certified", (math.inf, math.inf),
+                                    "no pole on |z| = 1 for any K > 0")
         return no("no finite limit found but not proven")
     kappa = Fraction(K_max) / scale
     if kappa <= 0:
         k1 = Fraction(1, 10 ** 9)
         if _crossing_below(L, roots, k1) is False and not schur_stable(L.char(k1)):
-            return LimitCertificate(True, "certified", (0.0, 0.0))
+            return LimitCertificate(True, "certified", (0.0, 0.0),
+                                    "unstable for every small K > 0")
         return no("K_max = 0 not proven")
     why = "the bracket was not proven"
     for h in _WIDTHS:
@@ -412,10 +421,56 @@ def certify_limit(loop: LoopModel, B: float, K_max: float, scan_points: int) -> 
             break
         if schur_stable(L.char(hi)):
             continue                               # not yet unstable: widen
-        K_lo = math.nextafter(float(lo * scale), 0.0)
-        K_hi = math.nextafter(float(hi * scale), math.inf)
-        return LimitCertificate(True, "certified", (K_lo, K_hi))
+        return LimitCertificate(True, "certified", _outwards(lo, hi, scale),
+                                "no pole on |z| = 1 below")
     return no(why)
+
+
+def _outwards(lo, hi, scale) -> tuple:
+    return (math.nextafter(float(lo * scale), 0.0), math.nextafter(float(hi * scale), math.inf))
+
+
+def _self_inversive(A, C) -> bool:
+    """``A`` and ``C``, padded to the family's degree ``n``, both satisfy
+    ``c_k = s c_(n-k)`` with the same sign ``s`` (real self-inversive polynomials)."""
+    n = max(len(A), len(C)) - 1
+    for s in (1, -1):
+        if all((p[k] if k < len(p) else 0) == s * (p[n - k] if n - k < len(p) else 0)
+               for p in (A, C) for k in range(n + 1)):
+            return True
+    return False
+
+
+def _lossless(L: _Loop, K_max: float, scale, no) -> LimitCertificate:
+    """A lossless loop (``p`` vanishes: every ``kappa A + C`` self-inversive): marginal below
+    the limit, every pole on the circle and simple. Cohn's theorem (1922): a self-inversive
+    polynomial has all its roots on ``|z| = 1`` iff its derivative has all its roots in
+    ``|z| <= 1``, and then they are simple if the derivative's are strictly inside. The
+    derivative family ``kappa A' + C'`` is proven Schur stable on ``(0, kappa_lo]`` as the
+    loop itself is otherwise (no crossing, stable at ``kappa_lo``); at ``kappa_hi`` one of
+    its roots lies beyond ``1 + 1e-9``, so a pole of the loop is off the circle."""
+    if not (math.isfinite(K_max) and K_max > 0 and len(L.A) < len(L.C)
+            and _self_inversive(L.A, L.C)):
+        # (the leading coefficient must not depend on kappa: Cohn's theorem is for a
+        # self-inversive polynomial of its full degree)
+        return no("lossless loop: the poles stay on the circle below the limit")
+    D = _Loop(_deriv(L.A), _deriv(L.C))
+    roots = D.crossing_roots()
+    if roots is None:
+        return no("lossless loop whose derivative is lossless too")
+    kappa = Fraction(K_max) / scale
+    grow = Fraction(1) + Fraction(1, 10 ** 9)
+    for h in _WIDTHS:
+        lo, hi = kappa * (1 - h), kappa * (1 + h)
+        if _crossing_below(D, roots, lo) is not False or not schur_stable(D.char(lo)):
+            break
+        dh = D.char(hi)
+        if schur_stable([c * grow ** k for k, c in enumerate(dh)]):
+            continue                               # not yet off the circle: widen
+        return LimitCertificate(True, "certified", _outwards(lo, hi, scale),
+                                "every pole on |z| = 1 and simple below (marginal, "
+                                "counted stable; Cohn 1922), one off it above")
+    return no("lossless loop: the poles stay on the circle below the limit, not proven")
 
 
 def _any_positive_crossing(L: _Loop, roots) -> bool | None:

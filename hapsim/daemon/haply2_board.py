@@ -366,12 +366,9 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         A record with a missing reply (the clean stream lost one).
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.lockstep_nd import default_samples, felt_deviation
-    chk = check_scene_nd(scene)
+    from hapsim.lockstep_nd import felt_deviation, identification_plan
+    chk, order, N = identification_plan(scene, samples)
     n = 2
-    order = chk.states // n
-    N = int(samples) if samples is not None else default_samples(order, n)
     board = Haply2DIYBoard(scene, generation, cpr=cpr, amplitude=amplitude)
     drv = Haply2DIY(generation, resolution=resolution or board.cpr)
     recs = []

@@ -27,7 +27,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.errors import ConfigError, DeviceError, ProtocolError
+from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd"]
 
@@ -238,15 +238,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``samples`` too short for the loop's order.
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.analysis.scene_nd_check import check_scene_nd, closed_loop_nd
-    from hapsim.lockstep_nd import default_samples, felt_deviation
-    chk = check_scene_nd(scene)
+    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.lockstep_nd import felt_deviation, identification_plan
+    chk, order, N = identification_plan(scene, samples)
     n = scene.dimension
-    order = chk.states // n
-    N = int(samples) if samples is not None else default_samples(order, n)
-    if N < 2 * order * n:
-        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
-                          f"({chk.states} states), got {N}", key="samples")
     A = closed_loop_nd(scene)[0]
     from hapsim.engine_nd import EngineND
     EngineND(scene).step()       # the compiled kernels loaded before the first CONFIG

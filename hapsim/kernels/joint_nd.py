@@ -15,7 +15,6 @@ elimination with partial pivoting solves the n x n system).
 from __future__ import annotations
 
 import numba as nb
-import numpy as np
 
 __all__ = ["joint_step"]
 
