@@ -6,6 +6,7 @@ package (``hapsim.bench`` is charts and advice; its stability limits live in
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 from test_engine import imported_modules  # same directory (pytest prepend import mode)
@@ -159,7 +160,10 @@ def _upward(graph: dict[str, set[str]]) -> list[str]:
             for a in sorted(graph) for b in sorted(graph[a]) if _floor(b) > _floor(a)]
 
 
+@functools.lru_cache(maxsize=1)
 def _house_graph() -> dict[str, set[str]]:
+    """The import graph of the package, read once per test session (the tests only read
+    it)."""
     return _graph({m: f.read_text() for m, f in _modules().items()})
 
 

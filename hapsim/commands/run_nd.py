@@ -102,28 +102,8 @@ def run_nd(args) -> int:
                                                  if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
     if args.json:
-        def mat(x):
-            return None if x is None else np.asarray(x, float).tolist()
-        out = {"scene": scene.path, "dof": n, "lockstep": bool(in_process),
-               "stable": bool(chk.stable),
-               "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
-                             "felt_damping": mat(chk.render.felt_damping),
-                             "rendered_poles": [[float(z.real), float(z.imag)]
-                                                for z in chk.render.rendered_poles]},
-               "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
-                            "felt_damping": mat(fit["felt_damping"]),
-                            "rendered_poles": [[float(z.real), float(z.imag)]
-                                               for z in fit["rendered_poles"]],
-                            "residual": fit["residual"], "rank": fit["rank"]},
-               "deviation": dev, "linearisation_bound": bound.to_dict(),
-               "records": res["records"], "samples": res["samples"],
-               "order": res["order"]}
-        if port_info is not None:
-            out["port"] = port_info
-            out["late"] = res["late"]
-            out["watchdog"] = res["watchdog"]
-            out["delay"] = res["delay"]
-            out["lost"] = res["lost"]
+        from hapsim.api import run_report_nd
+        out = run_report_nd(scene, res, in_process, port_info).to_dict()
         print(json.dumps(out))
         return 0
     o = sys.stdout

@@ -40,7 +40,7 @@ from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, de
 from hapsim.errors import ConfigError
 from hapsim.lockstep_nd import LocalJointDeviceND
 
-__all__ = ["FalconDevice", "load_firmware", "home"]
+__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon"]
 
 
 class FalconDevice:
@@ -271,3 +271,83 @@ def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
         if got and got[-1][1] == 0x7:
             return k
     raise DeviceError(f"the Falcon's legs were not homed after {limit} packets")
+
+
+def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2) -> dict:
+    """Drive a homed Falcon over its packets in lockstep, one packet per sample.
+
+    Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
+    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact),
+    the n-D engine's force on the port, the leg torques ``J(q)^T F`` sent as commands
+    (:func:`hapsim.drivers.falcon.torque_command`, in libnifalcon's unit taken as N m). A
+    packet that does not come back (lost or corrupted on either way: both sides realign on
+    ``'<'``/``'>'``) leaves the sample missing (counted; the last position held for the
+    engine); a reply whose legs are not all homed, or that the kinematics refuses, is
+    no sample either.
+
+    Parameters
+    ----------
+    device_feed : callable
+        ``bytes -> bytes`` (a :class:`FalconDevice` after :func:`load_firmware` and
+        :func:`home`, possibly through faults).
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene with a delta device.
+    samples : int
+        Packets sent.
+    faults : object, optional
+        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.driver_mock.ByteFaults`).
+    leds : int
+        LED flags shown while running (green).
+
+    Returns
+    -------
+    dict
+        ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
+        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters).
+    """
+    from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
+                                       torque_command)
+    from hapsim.engine_nd import EngineND
+    from hapsim.kinematics import device
+    kin = device("delta", scene.device.geometry)
+    eng = EngineND(scene)
+    port = eng.port
+    dec = DevicePacketDecoder()
+    rx = (lambda b: b) if faults is None else faults.rx
+    tx = (lambda b: b) if faults is None else faults.tx
+    N = int(samples)
+    pos = np.full((N, 3), np.nan)
+    joints = np.full((N, 3), np.nan)
+    cmds = np.zeros((N, 3), np.int64)
+    missing = unhomed = 0
+    got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
+    x = J = None
+    started = False
+    for k in range(N):
+        ok = False
+        if got:
+            enc, homed, _ = got[-1]
+            if homed != 0x7:
+                unhomed += 1
+            else:
+                q = np.radians([theta_deg(e) for e in enc])
+                try:
+                    x, J = kin.forward(q), kin.jacobian(q)
+                    ok = True
+                    joints[k], pos[k] = q, x
+                except ConfigError:
+                    pass
+        if not ok:
+            missing += 1
+        if x is not None:
+            if not started:
+                eng.x[:, port] = x
+                eng.xp[:, port] = x
+                started = True
+            eng.set_port_position(x)
+        eng.step()
+        c = (0, 0, 0) if J is None else tuple(torque_command(t) for t in J.T @ eng.port_force)
+        cmds[k] = c
+        got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+    return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
+            "unhomed": unhomed, "decoder": dict(dec.stats)}

@@ -420,7 +420,7 @@ def command_line_fields() -> tuple:
     return tuple(f for f in dataclasses.fields(RunOptions) if "cli" in f.metadata)
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+def add_run_arguments(parser: argparse.ArgumentParser, after: dict | None = None) -> None:
     """Add one argument per command-line field of :class:`RunOptions` to ``parser``
     (dest: the field's name; flag, type, default, help, choices: its declaration).
 
@@ -428,7 +428,11 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     ----------
     parser : argparse.ArgumentParser
         ``hapsim run``'s parser (or a group of it).
+    after : dict, optional
+        Field name -> ``add(parser)``, called right after that field's argument: where
+        the command shows its own options beside the run options they go with.
     """
+    after = after or {}
     drivers = None
     for f in command_line_fields():
         meta = f.metadata["cli"]
@@ -447,3 +451,5 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
             kw.update({k: meta[k] for k in ("type", "metavar", "choices")
                        if meta[k] is not None})
         parser.add_argument(meta["flag"], **kw)
+        if f.name in after:
+            after[f.name](parser)

@@ -124,7 +124,8 @@ class Connection:
     mock : MockDevice or None
         In-process mock (``inprocess`` and ``sim``).
     old_signals : dict
-        ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+        ``{signum: handler}`` replaced, put back by :func:`run_scene` once the report is
+        made.
     measured : MeasuredVelocity or None
         The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
         correction: the loop asks the device for it and the engine reads it.
@@ -560,10 +561,13 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
                            "events": writer.events_written,
                            "error": str(writer.error) if writer.error else None}
-        _restore_signals(conn.old_signals)
         tr.close()
         if conn.embedded is not None:
-            mock_report = conn.embedded.report()
+            # a device lost for good never sees the host leave (its port is gone, or it
+            # no longer answers): it is stopped at once (SIGTERM: zero force, its
+            # report) instead of being awaited for the 3 s a device that ends by itself
+            # gets
+            mock_report = conn.embedded.report(timeout=0.0 if error is not None else 3.0)
             conn.embedded.close()
     if opts.transport in ("inprocess", "sim"):
         mock_report = conn.mock.stats.to_dict()
@@ -856,6 +860,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
         "velocity_sensor": res.velocity or None,
+        "frames": res.frames,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
@@ -934,12 +939,19 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
             embedded.close()
         raise
     conn = connect(prep, opts)
-    run = run_loop(prep, conn, opts)
-    tel_info = _telemetry_info(conn, run, opts)
-    # the run's own driver (its parameters: given, or the scene's protocol_options)
-    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
-    measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
-    rep = build_report(prep, conn, run, opts, measured, tel_info)
+    try:
+        run = run_loop(prep, conn, opts)
+        tel_info = _telemetry_info(conn, run, opts)
+        # the run's own driver (its parameters: given, or the scene's protocol_options)
+        drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
+        measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
+        rep = build_report(prep, conn, run, opts, measured, tel_info)
+    finally:
+        # the handlers stay until the report is made: a SIGINT/SIGTERM after the loop
+        # ended (the telemetry export, the identification and the report take seconds on
+        # a loaded machine) asks for a stop already under way; with the default handler
+        # back it killed the process there, report and telemetry export lost (exit -15)
+        _restore_signals(conn.old_signals)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
         rep["error"] = {"type": type(run.error).__name__, "message": str(run.error)}

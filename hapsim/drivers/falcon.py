@@ -43,7 +43,7 @@ __all__ = ["LED_GREEN", "LED_BLUE", "LED_RED", "HOMING_MODE", "HOMED", "host_pac
            "device_packet", "parse_host_packet", "parse_device_packet", "DevicePacketDecoder",
            "theta_deg", "ticks_of", "DEG_PER_TICK", "THETA_OFFSET_DEG", "TORQUE_PER_COUNT",
            "CHECK_SEND", "CHECK_REPLY", "LOADER_SEND", "FIRMWARE_CHUNK", "FalconFirmwareLoader",
-           "torque_command"]
+           "torque_command", "JUMP_PACKETS"]
 
 LED_GREEN, LED_BLUE, LED_RED = 0x2, 0x4, 0x8
 #: Byte 13's bit 0 from the host: homing mode (the legs seek their encoder index).
@@ -144,20 +144,84 @@ def parse_device_packet(p: bytes):
 
 
 class DevicePacketDecoder(AlignedDecoder):
-    """Device packets out of a byte stream, realigning on ``'<'`` ... ``'>'`` with valid
-    nibbles (one byte dropped per failed position; counted in ``skipped``).
+    """Device packets out of a byte stream: realigned on ``'<'`` ... ``'>'`` with valid
+    nibbles (one byte dropped per failed position; counted in ``skipped``), and checked
+    for plausibility, since the packet has no checksum (a flipped bit that keeps a byte in
+    ``'A'..'P'`` is another count) and no sequence number (a lost packet is not seen):
+    once two packets are taken, each count's step from the last at most ``max_step``
+    counts plus twice the last step (8 counts, 0.3 deg: a lost packet at constant
+    velocity passes, a flipped high nibble of a leg at rest does not; the faster the legs
+    move, the larger a flip that passes). A well-formed packet beyond it is dropped whole
+    (``implausible``); :data:`JUMP_PACKETS` of them in a row are a real jump (the device
+    reset, say) and the last is taken (counted too), the prediction restarted. A change of
+    the homing status restarts it too.
+
+    Parameters
+    ----------
+    max_step : int
+        Counts [-].
 
     Attributes
     ----------
     stats : dict
-        ``frames``, ``skipped``.
+        ``frames``, ``skipped``, ``implausible``.
     """
 
     length = 16
 
+    def __init__(self, max_step: int = 8) -> None:
+        super().__init__()
+        self.max_step = int(max_step)
+        self._prev = self._prev2 = None
+        self._homed = None
+        self._off = 0
+        self.stats["implausible"] = 0
+
     def parse(self, buf):
         """``(encoders, homed, grip)`` of a packet at the start of ``buf``, or None."""
         return parse_device_packet(bytes(buf[:16]))
+
+    def _plausible(self, enc, homed) -> bool:
+        if homed != self._homed or self._prev2 is None:
+            return True                     # the velocity is not known yet
+        # a step at most twice the last one (a packet lost on the way, and the last step
+        # itself may span a lost one) plus max_step
+        return all(abs(enc[i] - self._prev[i])
+                   <= self.max_step + 2 * abs(self._prev[i] - self._prev2[i])
+                   for i in range(3))
+
+    def feed(self, data: bytes) -> list:
+        """Bytes in, the packets taken out (``skipped``, ``implausible`` counted)."""
+        buf = self._buf
+        buf += data
+        out = []
+        st = self.stats
+        while len(buf) >= 16:
+            v = self.parse(buf)
+            if v is None:
+                del buf[:1]
+                st["skipped"] += 1
+                continue
+            del buf[:16]
+            enc, homed, _ = v
+            if not self._plausible(enc, homed):
+                st["implausible"] += 1
+                self._off += 1
+                if self._off < JUMP_PACKETS:
+                    continue
+                self._prev = None               # a real jump: start again from it
+            self._off = 0
+            if homed != self._homed:
+                self._prev = None
+            self._homed = homed
+            self._prev2, self._prev = (None, enc) if self._prev is None else (self._prev, enc)
+            out.append(v)
+            st["frames"] += 1
+        return out
+
+
+#: Implausible packets in a row taken as a real jump of the counts.
+JUMP_PACKETS = 3
 
 
 def theta_deg(ticks: int) -> float:

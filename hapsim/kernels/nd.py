@@ -67,7 +67,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["stripes", "schedule", "link_lengths", "step_nd", "run_nd", "BLOCK", "ROWS"]
+__all__ = ["stripes", "schedule", "link_lengths", "step_nd", "run_nd", "run_nd_listen",
+           "BLOCK", "ROWS"]
 
 _jit = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
                fastmath={"contract"})
@@ -364,3 +365,38 @@ def run_nd(n, dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_p
         step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
                 eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
                 c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+
+
+@_jit
+def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, lin_pieces,
+                  lin_ptr, lin_k, lin_z, eu_pieces, eu_ptr, eu_k, eu_z, eu_rest, eu_lprev,
+                  W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal, p_offset,
+                  p_k, p_z, port, port_f, port_x):
+    """``out.shape[0]`` samples of :func:`step_nd`, recording listening points.
+
+    Parameters
+    ----------
+    out : ndarray, shape (n, C)
+        Written: channel ``c`` after sample ``k + 1`` is ``gain[c] * x[axis[c],
+        mass[c]]``, minus ``gain[c] * xp[axis[c], mass[c]]`` where ``velocity[c]``
+        (give ``gain = g / T`` for a velocity [m/s] times ``g``).
+    axis, mass : ndarray of int64, shape (C,)
+    velocity : ndarray of bool, shape (C,)
+    gain : ndarray, shape (C,)
+    port_x : ndarray, shape (3,)
+        Where the port is held (set before every sample; ignored when ``port < 0``).
+    dim, block, x, ..., port_f
+        As :func:`step_nd`.
+    """
+    for k in range(out.shape[0]):
+        if port >= 0:
+            for d in range(dim):
+                x[d, port] = port_x[d]
+        step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
+                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
+                c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+        for c in range(out.shape[1]):
+            v = x[axis[c], mass[c]]
+            if velocity[c]:
+                v -= xp[axis[c], mass[c]]
+            out[k, c] = gain[c] * v
