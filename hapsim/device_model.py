@@ -16,7 +16,7 @@ noise, the hand on the handle and the excitation (``x0``, ``v0``, a force ``impu
 recorded hand force ``profile``).
 
 Below the daemon, the drivers and the sound: the protocol mock
-(:mod:`hapsim.daemon.mock`), the vendor drivers' mocks (:mod:`hapsim.drivers.mock`), the
+(:mod:`hapsim.daemon.mock`), the vendor drivers' mocks (:mod:`hapsim.driver_mock`), the
 offline renderer (:mod:`hapsim.audio.offline`) and ``hapsim play`` all advance this one
 model.
 """

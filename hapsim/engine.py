@@ -16,7 +16,7 @@ from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes
 from hapsim.scene import Scene, audio_substeps
 
-__all__ = ["Engine", "KernelPack", "warm_up"]
+__all__ = ["Engine", "KernelPack", "MultiRatePack", "warm_up"]
 
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
@@ -60,6 +60,30 @@ class KernelPack(NamedTuple):
     port: int
 
 
+class MultiRatePack(NamedTuple):
+    """An engine's multi-rate kernel arguments (a scene with an ``audio`` section): what a
+    caller of :func:`hapsim.kernels.audio.run_periods` or ``run_frames`` (the live sound,
+    the contact replay) passes to step the engine's own arrays. Shared with the engine,
+    not copied.
+
+    Attributes
+    ----------
+    head : tuple
+        ``(nsub, linear, last, port)``: audio sub-steps per device period, the port
+        position interpolated (``audio.port_position == "linear"``) rather than held, the
+        port force the last sub-step's (``audio.port_force == "last"``) rather than their
+        mean, the port's index (-1 without).
+    args : tuple
+        ``(x, xp, f, mobile, t2m, fixed)`` (as :attr:`KernelPack.state`), the
+        spring-dampers' ``(i1, i2, k, z)`` and the contacts' ``(i1, i2, k, z, thr)``
+        (empty arrays when the scene has none), the listening points' ``(index, code,
+        gain)`` and ``1 / Ta`` [1/s]: 19 entries.
+    """
+
+    head: tuple
+    args: tuple
+
+
 class Engine:
     """A scene compiled for simulation with the CORDIS-ANIMA scheme.
 
@@ -101,6 +125,11 @@ class Engine:
     >>> eng = Engine(load_scene("configs/oscillator.yaml"))   # doctest: +SKIP
     >>> t, x = eng.run(1000)                                  # doctest: +SKIP
     """
+
+    #: True for an engine whose port force follows a device correction
+    #: (:func:`hapsim.daemon.correction.corrected_engine`): its port law is not the
+    #: kernel's alone.
+    corrected: bool = False
 
     def __init__(self, scene: Scene) -> None:
         if not isinstance(scene, Scene):
@@ -186,6 +215,22 @@ class Engine:
         """
         return self._pack
 
+    @property
+    def multirate_pack(self) -> MultiRatePack | None:
+        """The multi-rate kernel's arguments (:class:`MultiRatePack`), shared with this
+        engine; None for a scene without an ``audio`` section.
+
+        Returns
+        -------
+        MultiRatePack or None
+        """
+        return self._multi
+
+    @property
+    def port_index(self) -> int:
+        """Index of the port mass in :attr:`positions` (-1 when the scene has none)."""
+        return self._port
+
     def _init_audio(self, audio) -> None:
         """Arguments of :func:`hapsim.kernels.audio.run_periods` (every link kind given,
         empty when unused) and the one-period buffers :meth:`port_step` reuses."""
@@ -200,11 +245,12 @@ class Engine:
         self._l_code = np.array([audio_kernel.LISTEN_CODES[x.quantity] for x in ls],
                                 dtype=np.int64)
         self._l_gain = np.array([x.gain for x in ls], dtype=np.float64)
-        self._multi = ((self.substeps, audio.port_position == "linear",
-                        audio.port_force == "last", self._port),
-                       (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
-                       + tuple(sd) + tuple(ct)
-                       + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
+        self._multi = MultiRatePack(
+            (self.substeps, audio.port_position == "linear", audio.port_force == "last",
+             self._port),
+            (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
+            + tuple(sd) + tuple(ct)
+            + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
         self._pos1 = np.zeros(1)
         self._force1 = np.zeros(1)
         #: Audio frames of the last :meth:`port_step`, shape (N, C) (reused buffer).

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels.nd import CHUNK, link_lengths, run_nd, stripes
+from hapsim.kernels.nd import (BLOCK, ROWS, link_lengths, run_nd, run_nd_listen,
+                               schedule, stripes)
 
 __all__ = ["EngineND"]
 
@@ -24,6 +25,9 @@ class EngineND:
     ----------
     scene : hapsim.scene_nd.SceneND
         A validated scene.
+    block : int, optional
+        Masses per block of the kernels' schedule (:data:`hapsim.kernels.nd.BLOCK`; a
+        smaller one only to test the schedule on small scenes).
 
     Notes
     -----
@@ -32,26 +36,38 @@ class EngineND:
     :attr:`port_force` is then the force the step computed on it [N] (``-F`` of its links).
     """
 
-    def __init__(self, scene) -> None:
+    def __init__(self, scene, block: int = BLOCK) -> None:
         self.scene = scene
+        self.block = int(block)
         T = scene.period
         self.names = [m.name for m in scene.masses]
         index = {n: i for i, n in enumerate(self.names)}
         X0 = np.array([m.x0 for m in scene.masses], float)
         V0 = np.array([m.v0 for m in scene.masses], float)
-        self.x = np.ascontiguousarray(X0.T)
-        self.xp = np.ascontiguousarray((X0 - T * V0).T)
-        self.f = np.zeros_like(self.x)
+        n, dim = len(scene.masses), scene.dimension
+        self.dim = dim
+        # three rows always (the kernels' layout); a lower dimension's extra rows stay 0
+        self._X = np.zeros((ROWS, n))
+        self._XP = np.zeros((ROWS, n))
+        self._X[:dim] = X0.T
+        self._XP[:dim] = (X0 - T * V0).T
+        self.f = np.zeros((ROWS, n))
+        self.port_f = np.zeros(ROWS)
         self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
                              for m in scene.masses])
         self.port = index.get(scene.port.name) if scene.port is not None else None
 
         def pack(links):
+            # lower index first (the laws are symmetric in the two ends), then stripes
+            # and their pieces per block of masses
             if not links:
-                return np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+                return (np.zeros((0, 4), np.int64), np.zeros(-(-n // block) + 1, np.int64),
+                        np.zeros(0, np.int64))
             i1 = np.array([index[lk.m1] for lk in links])
             i2 = np.array([index[lk.m2] for lk in links])
-            return stripes(i1, i2)
+            table, order = stripes(np.minimum(i1, i2), np.maximum(i1, i2))
+            pieces, ptr = schedule(table, n, block)
+            return pieces, ptr, order
 
         def slot(order, values):
             out = np.zeros(order.size)
@@ -66,24 +82,34 @@ class EngineND:
         self.c_k = np.array([lk.stiffness for lk in con], float)
         self.c_z = np.array([lk.damping / T for lk in con], float)
         self.c_thr = np.array([lk.threshold for lk in con], float)
-        d = self.xp[:, self.c_i1] - self.xp[:, self.c_i2]
+        d = self._XP[:, self.c_i1] - self._XP[:, self.c_i2]
         self.c_lprev = np.sqrt((d * d).sum(axis=0))
         pairs = [(pl, m) for pl in scene.planes for m in pl.masses]
         self.p_mass = np.array([index[m] for _, m in pairs], np.int64)
         self.p_normal = np.ascontiguousarray(
-            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, scene.dimension).T)
+            np.array([pl.normal for pl, _ in pairs], float).reshape(-1, dim).T)
         self.p_offset = np.array([pl.offset for pl, _ in pairs], float)
         self.p_k = np.array([pl.stiffness for pl, _ in pairs], float)
         self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
-        self.lin_table, lo = pack(lin)
-        self.eu_table, eo = pack(eu)
+        self.lin_pieces, self.lin_ptr, lo = pack(lin)
+        self.eu_pieces, self.eu_ptr, eo = pack(eu)
         self.lin_k = slot(lo, [lk.stiffness for lk in lin])
         self.lin_z = slot(lo, [lk.damping / T for lk in lin])
         self.eu_k = slot(eo, [lk.stiffness for lk in eu])
         self.eu_z = slot(eo, [lk.damping / T for lk in eu])
         self.eu_rest = slot(eo, [lk.length for lk in eu])
-        self.eu_lprev = link_lengths(self.xp, self.eu_table, eo.size)
-        self.W = np.zeros((scene.dimension, CHUNK))
+        self.eu_lprev = link_lengths(self._XP, self.eu_pieces, eo.size)
+        self.W = np.zeros((ROWS, block))
+
+    @property
+    def x(self) -> np.ndarray:
+        """Positions at the current sample [m], shape (dim, N) (a view: writable)."""
+        return self._X[:self.dim]
+
+    @property
+    def xp(self) -> np.ndarray:
+        """Positions at the previous sample [m], shape (dim, N) (a view: writable)."""
+        return self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` samples [-] (no allocation).
@@ -93,11 +119,46 @@ class EngineND:
         n : int
             Samples to advance (>= 0).
         """
-        run_nd(int(n), self.x, self.xp, self.f, self.t2m, self.lin_table, self.lin_k,
-               self.lin_z, self.eu_table, self.eu_k, self.eu_z, self.eu_rest,
-               self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+        run_nd(int(n), self.dim, self.block, self._X, self._XP, self.f, self.t2m,
+               self.lin_pieces, self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces,
+               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
                self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
-               self.p_k, self.p_z)
+               self.p_k, self.p_z, -1 if self.port is None else self.port, self.port_f)
+
+    def listen(self, out, axis, mass, velocity, gain) -> None:
+        """Advance ``out.shape[0]`` samples, recording listening points (no allocation);
+        a port is held where it is.
+
+        Parameters
+        ----------
+        out : ndarray, shape (n, C)
+            Written: channel ``c`` after each sample is ``gain[c]`` times the ``axis[c]``
+            position [m] of mass ``mass[c]`` or, where ``velocity[c]``, its change over
+            the sample [m] (pass ``gain = g / T`` for a velocity [m/s]).
+        axis, mass : ndarray of int64, shape (C,)
+            Axis (0..dim-1) and mass index (:attr:`names`).
+        velocity : ndarray of bool, shape (C,)
+        gain : ndarray, shape (C,)
+
+        Raises
+        ------
+        ConfigError
+            An axis or mass index out of range (key ``audio``).
+        """
+        axis = np.asarray(axis, np.int64)
+        mass = np.asarray(mass, np.int64)
+        if np.any((axis < 0) | (axis >= self.dim)) or \
+                np.any((mass < 0) | (mass >= len(self.names))):
+            raise ConfigError("a listening point's axis or mass is out of range", key="audio")
+        port = -1 if self.port is None else self.port
+        port_x = self._X[:, port].copy() if port >= 0 else np.zeros(ROWS)
+        run_nd_listen(out, axis, mass, np.asarray(velocity, np.bool_),
+                      np.asarray(gain, float), self.dim, self.block, self._X, self._XP,
+                      self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
+                      self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
+                      self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k,
+                      self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
+                      self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
 
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous
@@ -128,7 +189,7 @@ class EngineND:
         """Force on the port at the last step [N], shape (dim,)."""
         if self.port is None:
             raise ConfigError("the scene has no port", key="masses")
-        return self.f[:, self.port].copy()
+        return self.port_f[:self.dim].copy()
 
     @property
     def positions(self) -> np.ndarray:

@@ -26,7 +26,8 @@ from hapsim.errors import ConfigError
 from hapsim.kernels.joint_nd import joint_step
 
 __all__ = ["LockstepND", "JointDeviceND", "measure_felt_lockstep", "excitation_starts",
-           "felt_deviation", "default_samples", "LocalJointDeviceND"]
+           "felt_deviation", "default_samples", "LocalJointDeviceND",
+           "identification_plan"]
 
 
 class LockstepND:
@@ -116,6 +117,16 @@ class LockstepND:
         return out
 
 
+def _kinematics_of(scene):
+    """The kinematics of a scene's pantograph or delta (ConfigError for a cartesian one)."""
+    from hapsim.kinematics import device
+    dev = scene.device
+    if dev.joints is None:
+        raise ConfigError("a joint-space device needs a pantograph or a delta",
+                          file=scene.path, key="device.kind")
+    return device(dev.kind, dev.geometry)
+
+
 class JointDeviceND:
     """A kinematic device's joint-space dynamics, integrated over each sample period.
 
@@ -150,12 +161,8 @@ class JointDeviceND:
     """
 
     def __init__(self, scene, x0, v0, substeps: int = 2) -> None:
-        from hapsim.kinematics import device
         dev = scene.device
-        if dev.joints is None:
-            raise ConfigError("a joint-space device needs a pantograph or a delta",
-                              file=scene.path, key="device.kind")
-        self.kin = device(dev.kind, dev.geometry)
+        self.kin = _kinematics_of(scene)
         self.Mq, self.Bq = dev.joint_inertia, dev.joint_friction
         self.mh, self.bh = dev.hand_mass, dev.hand_damping
         self.h = scene.period / int(substeps)
@@ -239,14 +246,11 @@ class LocalJointDeviceND:
     """
 
     def __init__(self, scene, x0, v0, substeps: int = 2) -> None:
-        from hapsim.kinematics import device
         dev = scene.device
-        if dev.joints is None:
-            raise ConfigError("a joint-space device needs a pantograph or a delta",
-                              file=scene.path, key="device.kind")
-        kin = device(dev.kind, dev.geometry)
+        kin = _kinematics_of(scene)
         q0 = np.asarray(dev.joints, float)
         n = q0.size
+        self.q0 = q0.copy()
         self.J0 = kin.jacobian(q0)
         self.f0 = kin.forward(q0)
         h = 1e-5
@@ -285,11 +289,20 @@ class LocalJointDeviceND:
         return self.f0 + self._disp(self.s)
 
     def step(self, u) -> None:
-        """Hold the torques of the Cartesian force ``u`` [N] (shape (n,)) over one period
-        and advance (:func:`hapsim.kernels.joint_nd.joint_step`)."""
-        self._u[:] = u
+        """Hold the torques ``J(q_n)^T u`` of the Cartesian force ``u`` [N] (shape (n,))
+        over one period and advance."""
+        self.step_torque(self.J(self.s).T @ np.asarray(u, float))
+
+    def step_torque(self, tau) -> None:
+        """Hold the joint torques ``tau`` [N m] (shape (n,)) over one period and advance
+        (:func:`hapsim.kernels.joint_nd.joint_step`)."""
+        self._u[:] = tau
         joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
                    self.bh, self.h, self.substeps, self._wv, self._wm)
+
+    def joints(self) -> np.ndarray:
+        """Joint angles ``q0 + s`` [rad], shape (n,)."""
+        return self.q0 + self.s
 
 
 def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = None,
@@ -330,15 +343,9 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    chk = check_scene_nd(scene)
+    chk, order, N = identification_plan(scene, samples)
     bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
     n = scene.dimension
-    order = chk.states // n
-    N = int(samples) if samples is not None else default_samples(order, n)
-    if N < 2 * order * n:
-        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
-                          f"({chk.states} states), got {N}", key="samples")
     a = bound.amplitude
     T = scene.period
     starts = excitation_starts(n, a, T)[1:]
@@ -412,3 +419,36 @@ def felt_deviation(fit: dict, chk) -> dict | None:
                                     / np.max(np.abs(k))),
             "felt_damping": float(np.max(np.abs(fit["felt_damping"] - b))
                                   / np.max(np.abs(b)))}
+
+
+def identification_plan(scene, samples: int | None = None) -> tuple:
+    """The prediction, the prediction order and the record length of an identification.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a port and a device.
+    samples : int, optional
+        Samples per record (default :func:`default_samples`).
+
+    Returns
+    -------
+    (SceneCheckND, int, int)
+        :func:`hapsim.analysis.scene_nd_check.check_scene_nd`'s result, the order ``p``
+        (the loop's states over n) and the samples per record ``N``.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; ``samples`` fewer than
+        the regression's ``2 p n`` unknowns.
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    chk = check_scene_nd(scene)
+    n = scene.dimension
+    order = chk.states // n
+    N = int(samples) if samples is not None else default_samples(order, n)
+    if N < 2 * order * n:
+        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
+                          f"({chk.states} states), got {N}", key="samples")
+    return chk, order, N

@@ -24,6 +24,10 @@ expected is refused)::
     planes:
       - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
          masses: [hand]}          # acts on the named masses (default: every moving one)
+    audio:                        # optional: the scene heard (hapsim simulate --audio)
+      listen:                     # one WAV channel each, at rate_hz
+        - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
+                                  # quantity position [m] | velocity [m/s], gain [-]
     device:                       # required with a port
       kind: cartesian             # cartesian | pantograph | delta
       mass: 0.1                   # cartesian: [kg], a number (isotropic), a vector
@@ -64,13 +68,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim._yaml_lines import decode_text, load_yaml
+from hapsim._yaml_lines import load_yaml
 from hapsim.errors import ConfigError, show, type_name
+from hapsim.scene.reader import LineContext, read_text
 
-__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "SceneND", "scene_dimension",
-           "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
 
-TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device")
+TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
+            "audio")
+LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
+AXES = ("x", "y", "z")
 MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
              "ground": ("name", "kind", "x0"), "port": ("name", "kind")}
 LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "length"),
@@ -172,8 +180,22 @@ class DeviceND:
 
 
 @dataclass(frozen=True)
+class ListenND:
+    """A listening point of an n-D scene: the ``axis`` (0..n-1) component of a mass's
+    ``quantity`` (``"position"`` [m] or ``"velocity"`` [m/s], the backward difference
+    ``(x[n] - x[n-1]) / T``) times ``gain`` [-] is one channel of the sound."""
+
+    mass: str
+    axis: int
+    quantity: str
+    gain: float
+    line: int | None = None
+
+
+@dataclass(frozen=True)
 class SceneND:
-    """A validated 2-D or 3-D scene (:func:`load_scene_nd`)."""
+    """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
+    points (a tuple of :class:`ListenND`) or None."""
 
     dimension: int
     rate_hz: float
@@ -183,6 +205,7 @@ class SceneND:
     device: DeviceND | None
     path: str = "<string>"
     integrator: str = "centred"
+    audio: tuple | None = None
 
     @property
     def period(self) -> float:
@@ -195,36 +218,15 @@ class SceneND:
         return next((m for m in self.masses if m.kind == "port"), None)
 
 
-class _Reader:
-    """Where we are in the file, for error messages (file, line, key)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def error(self, message: str, line, key: str) -> ConfigError:
-        return ConfigError(message, file=self.path, line=line, key=key or None)
+class _Reader(LineContext):
+    """Where we are in the file, for error messages (file, line, key): the 1-D reader's
+    :class:`~hapsim.scene.reader.LineContext` (mappings, keys, lines), with the n-D
+    values (numbers, vectors of ``dimension`` numbers, matrices) read and checked here."""
 
     @staticmethod
     def line(container, key=None):
-        lines = getattr(container, "lines", None)
-        if key is not None and lines and key in lines:
-            return lines[key]
-        return getattr(container, "line", None)
-
-    def mapping(self, v, key, line):
-        if not isinstance(v, dict):
-            raise self.error(f"must be a mapping (key: value), got {type_name(v)}", line, key)
-        return v
-
-    def keys(self, d, allowed, key, required=()):
-        for k in d:
-            if k not in allowed:
-                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
-                                 self.line(d, k), f"{key}.{k}" if key else str(k))
-        for k in required:
-            if k not in d:
-                raise self.error(f"missing required key {show(k)}", self.line(d),
-                                 f"{key}.{k}" if key else k)
+        """Line of ``container[key]``, else of the container (None without lines)."""
+        return LineContext.line_of(container, key)
 
     def number(self, d, k, key, *, default=None, minimum=None, strict=False,
                maximum=None, unit=""):
@@ -362,14 +364,13 @@ def scene_dimension(path: str | os.PathLike) -> int:
         ``dimension``).
     """
     try:
-        with open(os.fspath(path), "rb") as fh:
-            data = fh.read()
-    except OSError:
-        return 1
-    if b"dimension" not in data:
+        text = read_text(path)
+    except ConfigError:
+        return 1                       # the 1-D reader reports it
+    if "dimension" not in text:
         return 1
     try:
-        doc = load_yaml(decode_text(data, os.fspath(path)), os.fspath(path))
+        doc = load_yaml(text, os.fspath(path))
     except ConfigError:
         return 1                       # the 1-D reader reports it
     d = doc.get("dimension") if isinstance(doc, dict) else None
@@ -395,12 +396,7 @@ def load_scene_nd(path: str | os.PathLike) -> SceneND:
         file, the line and the key.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return parse_scene_nd(decode_text(data, path), path)
+    return parse_scene_nd(read_text(path), path)
 
 
 def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
@@ -566,8 +562,40 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     if ports and device is not None:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
+    audio = _read_audio(r, doc, n, names) if "audio" in doc else None
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
-                   planes=tuple(planes), device=device, path=path)
+                   planes=tuple(planes), device=device, path=path, audio=audio)
+
+
+def _read_audio(r: _Reader, doc, n: int, names) -> tuple:
+    """The ``audio: {listen: [...]}`` section: a tuple of :class:`ListenND`."""
+    d = r.mapping(doc["audio"], "audio", r.line(doc, "audio"))
+    r.keys(d, ("listen",), "audio", required=("listen",))
+    seq = d["listen"]
+    if not isinstance(seq, list) or not seq:
+        raise r.error("must be a non-empty list of listening points, e.g. "
+                      "[{mass: m1, axis: z, quantity: velocity, gain: 10}]",
+                      r.line(d, "listen"), "audio.listen")
+    out = []
+    axes = AXES[:n]
+    for i, item in enumerate(seq):
+        key = f"audio.listen[{i}]"
+        e = r.mapping(item, key, r.line(seq, i))
+        r.keys(e, LISTEN_KEYS, key, required=("mass",))
+        mass = r.string(e, "mass", key)
+        if mass not in names:
+            raise r.error(f"no mass named {show(mass)}; masses: {', '.join(names)}",
+                          r.line(e, "mass"), f"{key}.mass")
+        ax = e.get("axis", axes[-1])
+        if isinstance(ax, bool) or not (ax in axes or (isinstance(ax, int)
+                                                        and 0 <= ax < n)):
+            raise r.error(f"must be one of {', '.join(axes)} or 0..{n - 1}, got {show(ax)}",
+                          r.line(e, "axis"), f"{key}.axis")
+        ax = axes.index(ax) if isinstance(ax, str) else int(ax)
+        q = r.choice(e, "quantity", key, ("position", "velocity"), default="velocity")
+        g = r.number(e, "gain", key, default=1.0, unit="-")
+        out.append(ListenND(mass, ax, q, g, line=r.line(e)))
+    return tuple(out)
 
 
 def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:

@@ -1,5 +1,5 @@
 """The environment of a child Python process that runs part of this hapsim (the embedded
-mocks of :mod:`hapsim.daemon.transport` and :mod:`hapsim.drivers.mock`): the parent's
+mocks of :mod:`hapsim.daemon.transport` and :mod:`hapsim.driver_mock`): the parent's
 environment with ``PYTHONPATH`` led by the directory that holds this package, so that the
 child imports the same tree as its parent, installed or not."""
 

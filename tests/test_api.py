@@ -224,3 +224,47 @@ def test_a_chart_without_matplotlib_names_the_plot_extra(monkeypatch):
     with pytest.raises(hapsim.ConfigError) as info:
         rep.plot()
     assert PLOT_INSTALL in str(info.value)
+
+
+# ---------------------------------------------------------------------------- n-D
+@pytest.mark.parametrize("config", ["pantograph_wall", "delta_sphere"])
+def test_check_nd_is_the_commands_json(config, capsys):
+    """2-D and 3-D scenes felt through a device: the fields are the keys of ``hapsim check
+    --json``, the values its values; k and b are the n x n felt matrices."""
+    path = f"configs/{config}.yaml"
+    rep = hapsim.check_nd(path)
+    assert isinstance(rep, hapsim.CheckReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == _fields(hapsim.CheckReportND)
+    assert json.dumps(rep.to_dict()) == _cli_json(["check", path, "--json"], capsys)
+    n = rep.dof
+    assert rep.k.shape == rep.b.shape == (n, n)
+    assert np.array_equal(rep.k, np.array(rep.felt_stiffness))
+    assert hapsim.load_scene_nd(path).dimension == n
+
+
+def test_modes_nd_is_the_commands_json(capsys):
+    rep = hapsim.modes_nd("configs/membrane.yaml")
+    assert isinstance(rep, hapsim.ModesReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == _fields(hapsim.ModesReportND)
+    assert json.dumps(rep.to_dict()) == _cli_json(
+        ["check", "configs/membrane.yaml", "--json"], capsys)
+    assert rep.frequencies.size == len(rep.modes) and np.all(np.diff(rep.frequencies) >= 0)
+    with pytest.raises(hapsim.ConfigError, match="modes_nd"):
+        hapsim.check_nd("configs/membrane.yaml")
+
+
+def test_run_nd_is_the_commands_json(capsys):
+    """``run --lockstep`` on a 2-D scene: the API's report is the command's JSON (the
+    lockstep measurement is deterministic), its fields the keys (the port's only over a
+    port); the measured felt matrices equal the predicted ones to 1e-6."""
+    path = "configs/pantograph_wall.yaml"
+    rep = hapsim.run_nd(path)
+    assert isinstance(rep, hapsim.RunReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == [f for f in _fields(hapsim.RunReportND)
+                                   if f not in api.RunReportND._OPTIONAL]
+    assert json.dumps(rep.to_dict()) == _cli_json(["run", path, "--lockstep", "--json"],
+                                                  capsys)
+    pk = np.array(rep.predicted["felt_stiffness"])
+    assert np.max(np.abs(rep.k - pk)) <= 1e-6 * np.max(np.abs(pk))
+    with pytest.raises(hapsim.ConfigError):
+        hapsim.run_nd(path, amplitude=-1.0)

@@ -38,3 +38,29 @@ def test_ci_script_parses():
     res = subprocess.run(["bash", "-n", str(ROOT / ".ci" / "run")], capture_output=True,
                          text=True)
     assert res.returncode == 0, res.stderr
+
+
+def test_a_run_that_collects_no_test_fails_ci(tmp_path):
+    """pytest exits 5 when it collects nothing (tests/ renamed, testpaths wrong, every
+    module failing to match): .ci/run then ends with 5, never 0. The script stops at the
+    first failing command (``set -e``, ``pipefail``), the test command is its last one and
+    nothing masks its status (no ``|| true``, ``|| :``, ``exit 0`` or trap); and pytest,
+    with this project's own [tool.pytest.ini_options], exits 5 on a tests/ with no test."""
+    import sys
+    import tomllib
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    executed = [ln.strip() for ln in ci if ln.strip() and not ln.lstrip().startswith("#")]
+    assert "set -euo pipefail" in executed
+    assert executed[-1] == readme_test_command()
+    assert executed[-1].rstrip().endswith("python -m pytest -q")
+    masks = [ln for ln in executed if re.search(r"\|\|\s*(true|:)\s*$|\bexit 0\b|^trap\b", ln)]
+    assert not masks, masks
+    ini = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "helper.py").write_text("X = 1\n")    # a module, no test in it
+    opts = "\n".join(f"{k} = {v!r}" if isinstance(v, str) else f"{k} = {v}"
+                     for k, v in ini.items()).replace("'", '"')
+    (tmp_path / "pyproject.toml").write_text(f"[tool.pytest.ini_options]\n{opts}\n")
+    res = subprocess.run([sys.executable, "-m", "pytest", "-q"],      # the README command
+                         cwd=tmp_path, capture_output=True, text=True)
+    assert res.returncode == 5, (res.returncode, res.stdout[-500:])

@@ -341,3 +341,25 @@ def test_docs_correction_table_is_what_compare_corrections_prints(capsys):
     out = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("|")]
     assert len(out) == 9                      # header, rule, the plain element and 6
     assert rows == out
+
+
+def test_polynomial_products_are_numpys_polymul_bit_for_bit():
+    """The corrected loop's polynomials multiply with ``corrections._pm`` (np.convolve of
+    leading-zero-trimmed arrays, no ``np.poly1d``): over random factors, with leading zeros,
+    signed zeros and all-zero ones, it equals ``np.polymul`` folded, bit for bit."""
+    from hapsim.analysis import corrections
+    rng = np.random.default_rng(21)
+    for _ in range(1000):
+        factors = []
+        for _ in range(int(rng.integers(0, 5))):
+            a = rng.normal(size=int(rng.integers(1, 5)))
+            if rng.random() < 0.3:
+                a[:int(rng.integers(1, a.size + 1))] = 0.0
+            if rng.random() < 0.1:
+                a = -0.0 * a
+            factors.append(a)
+        ref = np.array([1.0])
+        for a in factors:
+            ref = np.polymul(ref, a)
+        got = corrections._pm(*factors)
+        assert got.dtype == ref.dtype and np.array_equal(got, ref), (factors, got, ref)

@@ -49,6 +49,39 @@ excitation: {exc}
 """
 
 
+def late_tolerant_wall(directory, late: int = 10) -> str:
+    """configs/wall.yaml with a wall that stays stable while the host's FORCEs arrive up
+    to ``late`` samples late, written to ``directory``; returns the file's path.
+
+    The device holds the last force it got, so a FORCE ``late`` samples late makes the
+    loop's delay ``1 + late`` samples for that stretch. The shipped wall (K = 1000 N/m,
+    B = 1.5 N s/m, d = 1) is stable at its own delay only (K_max 1313 N/m at d = 1, 785
+    N/m at d = 2): on a loaded machine a real-time run on it grows to the force limit
+    and ends on a safety stop (exit 1). Tests of what a real-time run does (journal,
+    signals, faults, kill -9) rather than of what it measures take this wall: K at 0.9
+    times the stability limit at delay ``1 + late`` (the same B), about 150 N/m for 10
+    samples (10 ms at 1 kHz), the rest of the scene unchanged.
+    """
+    import re
+    from pathlib import Path
+
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.ths import stability_limit
+    from hapsim.scene import load_scene
+
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "wall.yaml"
+    sc = load_scene(shipped)
+    dev, link = sc.device, sc.links[0]
+    K = 0.9 * stability_limit(LoopModel(mass=dev.mass, friction=dev.friction,
+                                        rate_hz=sc.rate_hz, delay=dev.delay + late,
+                                        hold=dev.hold), link.damping)
+    text, n = re.subn(r"stiffness: [0-9.e+]+", f"stiffness: {K:.6g}", shipped.read_text())
+    assert n == 1 and K < link.stiffness, (n, K)
+    path = Path(directory) / "late_tolerant_wall.yaml"
+    path.write_text(text)
+    return str(path)
+
+
 def lockstep(text, **kw):
     kw.setdefault("duration", 1.0)
     return run_scene(parse_scene(text), transport="inprocess", lockstep=True,

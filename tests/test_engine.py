@@ -411,3 +411,25 @@ def test_kernels_import_nothing_from_the_api_layer():
             module += ".__init__"
         bad = _api_imports(imported_modules(f.read_text(), module))
         assert not bad, f"{f.name} imports the API layer: {sorted(bad)}"
+
+
+def test_public_read_accessors_share_the_engines_arrays():
+    """What the live sound and the contact replay read of an engine is public and is the
+    engine's own state: the multi-rate pack's positions are the kernel pack's, a step seen
+    through one is seen through the other and through ``positions``; the port index is the
+    scene's; a plain engine is not a corrected one."""
+    root = Path(__file__).resolve().parents[1]
+    eng = Engine(load_scene(root / "configs" / "audio_string.yaml"))
+    pack = eng.multirate_pack
+    assert pack is not None and len(pack.args) == 19
+    assert pack.args[0] is eng.kernel_pack.state[0] and pack.args[1] is eng.kernel_pack.state[1]
+    assert pack.head[0] == eng.substeps and pack.head[3] == eng.port_index
+    assert eng.port_index == eng.scene.index(eng.scene.port.name)
+    before = eng.positions
+    eng.port_step(1e-3)
+    assert np.array_equal(pack.args[0], eng.positions)
+    assert not np.array_equal(before, eng.positions)
+    assert np.array_equal(pack.args[1], eng.previous_positions)   # one audio sub-step ago
+    assert not eng.corrected
+    plain = Engine(load_scene(root / "configs" / "wall.yaml"))
+    assert plain.multirate_pack is None and plain.port_index == 0

@@ -213,7 +213,9 @@ def _drive_pty(n: int, tick: str = "compiled") -> tuple[dict, list]:
     t_end = time.monotonic() + 20.0
     while len(seen) < n and time.monotonic() < t_end:
         for msg in dec.feed(os.read(slave, 4096)):
-            if isinstance(msg, fp.State):
+            # one read may hold several STATEs (a host slowed by a loaded machine): the
+            # first n are answered and kept, as a host that stops after n would
+            if isinstance(msg, fp.State) and len(seen) < n:
                 seen.append(msg)
                 os.write(slave, _force(msg.seq, -100.0 * msg.position[0]))
     os.write(slave, fp.encode(fp.Stop()))

@@ -6,6 +6,7 @@ package (``hapsim.bench`` is charts and advice; its stability limits live in
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 from test_engine import imported_modules  # same directory (pytest prepend import mode)
@@ -59,7 +60,8 @@ LAYERS = (
                     "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
                     "hapsim.applied")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
-    # a scene checks its device.protocol_options with them; their mocks stand higher
+    # a scene checks its device.protocol_options with them; their mocks stand higher, in
+    # hapsim.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
                "hapsim.device_file", "hapsim.drivers")),
     # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
@@ -67,7 +69,7 @@ LAYERS = (
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plot",
                 "hapsim.plot_bench", "hapsim.plot_family", "hapsim.plot_telemetry",
                 "hapsim.plot_workspace", "hapsim.plot_zwidth")),
-    ("devices and sound", ("hapsim.drivers.mock", "hapsim.audio")),
+    ("devices and sound", ("hapsim.driver_mock", "hapsim.audio")),
     ("daemon", ("hapsim.daemon",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
                      "hapsim")),
@@ -158,7 +160,10 @@ def _upward(graph: dict[str, set[str]]) -> list[str]:
             for a in sorted(graph) for b in sorted(graph[a]) if _floor(b) > _floor(a)]
 
 
+@functools.lru_cache(maxsize=1)
 def _house_graph() -> dict[str, set[str]]:
+    """The import graph of the package, read once per test session (the tests only read
+    it)."""
     return _graph({m: f.read_text() for m, f in _modules().items()})
 
 
@@ -240,8 +245,11 @@ def test_no_module_imports_another_modules_private_names():
 SCENE_ROOMS = ("hapsim.scene.elements", "hapsim.scene.rules", "hapsim.scene.model",
                "hapsim.scene.reader")
 #: Modules outside the package that take a room directly, and which: a device file is a
-#: scene's device section, read and checked by the same code.
-SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"}}
+#: scene's device section, read and checked by the same code; an n-D scene file is read
+#: with the same line-numbered context.
+SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"},
+                    # the n-D reader reads files and lines as the 1-D one does
+                    "hapsim.scene_nd": {"hapsim.scene.reader"}}
 
 
 def test_the_scene_rooms_import_only_the_rooms_before_them():
@@ -274,3 +282,72 @@ def test_the_scene_package_keeps_its_public_names():
     for name in sc.__all__:
         assert hasattr(sc, name), name
     assert sc.Scene.__module__ == "hapsim.scene.model"
+
+
+def _folder_upward(graph: dict[str, set[str]], floor=None) -> list[str]:
+    """Imports into a folder (a sub-package of hapsim) that holds a module standing above
+    the importer: read folder by folder, such an import climbs even when the module taken
+    stands low (the scene importing the drivers' codecs while the drivers' mocks shared
+    their folder). ``floor``: module -> index in :data:`LAYERS` (default :func:`_floor`)."""
+    floor = floor or _floor
+    folders: dict[str, int] = {}
+    for mod in graph:
+        parts = mod.split(".")
+        for k in range(2, len(parts)):
+            folder = ".".join(parts[:k])
+            folders[folder] = max(folders.get(folder, -1), floor(mod))
+        if _is_package(mod):
+            folders[mod] = max(folders.get(mod, -1), floor(mod))
+    out = []
+    for a in sorted(graph):
+        for b in sorted(graph[a]):
+            parts = b.split(".")
+            for k in range(2, len(parts) + 1):
+                folder = ".".join(parts[:k])
+                if folder in folders and not (a == folder or a.startswith(folder + ".")) \
+                        and folders[folder] > floor(a):
+                    out.append(f"{a} (floor {LAYERS[floor(a)][0]}) imports {b} of folder "
+                               f"{folder}, which holds floor {LAYERS[folders[folder]][0]}")
+                    break
+    return out
+
+
+def test_scanner_sees_an_upward_folder():
+    """The house before the mocks left the drivers' folder: module by module nothing
+    climbed, folder by folder the scene climbed to the devices floor."""
+    g = _graph({"hapsim.scene": "def f():\n    from hapsim.drivers import get_driver\n",
+                "hapsim.drivers": "", "hapsim.drivers.mock": "",
+                "hapsim.audio": "", "hapsim.audio.live": ""})
+
+    def floor(mod):                   # the layers as they were: the mocks on devices
+        return 3 if mod.startswith("hapsim.drivers.mock") else _floor(mod)
+    assert _upward(g) == []
+    assert _folder_upward(g, floor) == ["hapsim.scene (floor scene) imports hapsim.drivers of folder "
+                                 "hapsim.drivers, which holds floor devices and sound"]
+
+
+def test_nothing_imports_into_a_folder_that_stands_above_it():
+    """Read folder by folder, the house has no upward arrow either: the drivers' folder
+    holds the codecs and the driver transport (scene floor); their byte-exact mocks stand
+    in hapsim.driver_mock (devices floor)."""
+    assert _folder_upward(_house_graph()) == []
+
+
+def test_no_module_reads_an_engines_private_state():
+    """The live sound and the contact replay read an Engine through its public accessors
+    (``kernel_pack``, ``multirate_pack``, ``port_index``, ``positions``, ``corrected``),
+    not its ``_x``/``_xp``/``_multi``/``_port``: a name bound to an engine, read with a
+    leading underscore, appears nowhere outside the engine and its subclass in
+    hapsim.daemon.correction."""
+    import re
+    pattern = re.compile(r"\b(?:eng|engine|self\.eng|self\.engine)\._[a-z]\w*")
+    assert pattern.search("before = eng._x[self.uniq].copy()")
+    assert not pattern.search("x = self._x; y = eng.positions")
+    bad = {}
+    for mod, f in _modules().items():
+        if mod in ("hapsim.engine", "hapsim.engine_nd"):
+            continue
+        found = pattern.findall(f.read_text())
+        if found:
+            bad[mod] = sorted(set(found))
+    assert bad == {}

@@ -57,7 +57,8 @@ def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
         line = mock.stdout.readline()
         assert line.startswith("PORT /dev/"), line
         port = line.split()[1]
-        for _ in range(3):                          # STOP no longer ends the mock
+        for _ in range(2):                          # STOP no longer ends the mock (a
+            #                                         second run proves it as a third did)
             run_exact(port)
             assert mock.poll() is None
         # a host killed mid-run (no STOP, port closed by the kernel)
@@ -74,13 +75,13 @@ def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
     assert mock.returncode == 0, err
     assert "Traceback" not in err
     # (a host that reopens the port to recover from a loss, on a loaded machine, adds one)
-    assert err.count("host left after STOP") >= 4 and err.count("host left without STOP") >= 1
+    assert err.count("host left after STOP") >= 3 and err.count("host left without STOP") >= 1
     served = re.search(r"stopped \(signal SIGINT\); (\d+) host\(s\) served", err)
-    assert served and int(served.group(1)) == err.count("host left") >= 5, err
+    assert served and int(served.group(1)) == err.count("host left") >= 4, err
     with open(report) as fh:
         seen = json.load(fh)
     assert seen["end"] == "signal SIGINT" and seen["last_applied"] == 0.0
-    assert seen["totals"]["configs"] >= 5
+    assert seen["totals"]["configs"] >= 4
 
 
 def test_mock_survives_a_stalled_host_and_sigterm():

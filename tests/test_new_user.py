@@ -184,13 +184,18 @@ if __name__ == "__main__":
 """
 
 
-def interrupted(argv, after, tmp_path, console=False):
+def interrupted(argv, after, tmp_path, console=False, at_import=None):
     """Start ``hapsim ARGV`` in a real process, SIGINT it ``after`` seconds later.
 
     The clock starts once the Python interpreter is up (a marker line on stderr, written
     before hapsim is imported): a SIGINT inside CPython's own start-up (``init_import_site``)
     is the interpreter's, which no program can catch, and on a loaded machine that start-up
     alone can take more than 0.1 s. From the first import of hapsim on, every moment counts.
+
+    ``at_import`` (a module name; ``after`` is then unused): the process sends itself the
+    SIGINT when that module's import starts, a moment no machine load can move (a SIGINT
+    sent 0.1 s after start-up by a descheduled test process landed after ``check`` had
+    finished, or once ``run``'s own handler was in place).
     """
     import os
     import signal
@@ -204,8 +209,16 @@ def interrupted(argv, after, tmp_path, console=False):
         script.write_text(CONSOLE_SCRIPT)
         cmd = [sys.executable, str(script), *argv]
     else:  # python -m hapsim, with the marker written first
-        boot = (f"import sys; sys.stderr.write({UP!r} + '\\n'); sys.stderr.flush(); "
-                "sys.argv[0] = '-m'; "  # what python -m shows while it imports the package
+        hook = "" if at_import is None else (
+            "import os, signal\n"
+            "class CtrlC:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            f"        if name == {at_import!r}:\n"
+            "            sys.meta_path.remove(self)\n"
+            "            os.kill(os.getpid(), signal.SIGINT)\n"
+            "sys.meta_path.insert(0, CtrlC())\n")
+        boot = (f"import sys; sys.stderr.write({UP!r} + '\\n'); sys.stderr.flush()\n{hook}"
+                "sys.argv[0] = '-m'\n"  # what python -m shows while it imports the package
                 "import runpy; runpy.run_module('hapsim', run_name='__main__', alter_sys=True)")
         cmd = [sys.executable, "-c", boot, *argv]
     env = {**os.environ, "PYTHONPATH": str(root)}
@@ -213,8 +226,9 @@ def interrupted(argv, after, tmp_path, console=False):
                             stderr=subprocess.PIPE, text=True)
     first = proc.stderr.readline()
     assert first.strip() == UP, first
-    time.sleep(after)
-    proc.send_signal(signal.SIGINT)
+    if at_import is None:
+        time.sleep(after)
+        proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     return proc.returncode, out, err
 

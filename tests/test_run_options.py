@@ -48,6 +48,11 @@ def test_every_option_of_the_parser_is_one_declared_field():
     flags = {a.dest: a.option_strings for a in parser._actions}
     for f in command_line_fields():
         assert flags[f.name] == [f.metadata["cli"]["flag"]], f.name
+    # in the declarations' order, the command's own options beside the ones they go with
+    order = [a.dest for a in parser._actions]
+    assert [d for d in order if d in fields] == [f.name for f in command_line_fields()]
+    assert order.index("auto") == order.index("seed") + 1
+    assert order.index("device") == order.index("driver") + 1
 
 
 def test_every_command_line_option_reaches_its_field():

@@ -376,3 +376,30 @@ def test_lockstep_measured_felt_matrices_equal_the_prediction(dim):
     assert np.max(np.abs(fit["felt_damping"] - b)) <= 1e-6 * np.max(np.abs(b))
     assert np.max(np.abs(np.sort_complex(fit["rendered_poles"])
                          - np.sort_complex(chk.render.rendered_poles))) <= 1e-9
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "utf-8-sig", "utf-16", "utf-32"])
+def test_an_nd_scene_file_is_read_as_the_1d_reader_reads_files(encoding, tmp_path):
+    """The n-D reader takes a file through the 1-D reader's text and lines: any encoding
+    the 1-D reader decodes is found to be 2-D (the dimension probe once looked for the
+    bytes b'dimension', which a UTF-16 file does not hold) and reads to the same scene;
+    an unknown key is named at its line as the 1-D reader names it."""
+    from pathlib import Path
+
+    from hapsim.scene_nd import load_scene_nd, scene_dimension
+    src = Path(__file__).resolve().parents[1] / "configs" / "pantograph_circle.yaml"
+    text = src.read_text(encoding="utf-8")
+    f = tmp_path / "scene.yaml"
+    f.write_bytes(text.encode(encoding))
+    assert scene_dimension(f) == 2
+    got, want = load_scene_nd(f), load_scene_nd(src)
+    assert (got.rate_hz, [m.name for m in got.masses]) == (want.rate_hz,
+                                                          [m.name for m in want.masses])
+    f.write_text("dimension: 2\nrate_hz: 1000\nmasses: []\n\"odd key\": 1\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as nd:
+        load_scene_nd(f)
+    g = tmp_path / "one.yaml"
+    g.write_text("rate_hz: 1000\nmasses: []\n\"odd key\": 1\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as one:
+        parse_scene(g.read_text(), str(g))
+    assert (nd.value.line, nd.value.key) == (4, one.value.key) and one.value.line == 3

@@ -63,10 +63,53 @@ def test_coulomb_and_quantisation_move_the_limit_as_the_describing_function_says
 
 def test_real_time_mock_measures_the_limit_within_3_percent(capsys):
     """The embedded mock in real time on a pty (late ticks are cut out of the records by
-    the run's identification): measured = predicted within the 3 % target."""
+    the run's identification): measured = predicted within the 3 % target, and the
+    interval, when the records bracket the limit, holds the prediction (the records are
+    exact wherever identified: a disturbance must not decide a record's side)."""
     rep, p = _one_point(capsys, ["--B", "1.5", "--tol", "0.02", "--duration", "0.2",
                                   "--start", "0.9"])
     assert abs(p["rel_err"]) < 0.03
+    iv = p["K_max_measured_interval"]
+    assert iv is None or iv[0] <= p["K_max_predicted"] <= iv[1]
+
+
+def _report(b=None, safety=False, ticks=300, late=0):
+    """A run's report as run_scene gives it, reduced to what run_measure reads."""
+    stop = "safety: force at the limit 10 N in 50 of the last 100 samples" if safety \
+        else "duration"
+    meas = {"error": "not identified"} if b is None else {"b": b, "k": 1300.0,
+                                                         "b_unc": 1e-14}
+    return {"measured": meas, "loop": {"stop_reason": stop, "safety_stop": safety,
+                                       "ticks": ticks, "late": late, "missed": 0,
+                                       "stale": 0, "mock": {"late": late}}}
+
+
+def test_a_disturbance_never_decides_a_records_side(monkeypatch):
+    """The class of the real-time misses (docs/zwidth.md): a record whose identified b
+    decays and that then stops on a safety limit (a host stall held a stale force) is
+    decaying; a disturbed record without identification is repeated, not called growing,
+    and undecided if every attempt is disturbed; an undisturbed one that ran into a limit
+    after MIN_GROWTH_TICKS grew."""
+    import hapsim.daemon.runner as runner
+    from hapsim.analysis.zwidth import MIN_GROWTH_TICKS, RECORD_ATTEMPTS
+    from hapsim.commands.zwidth import DEFAULT_DEVICE, run_measure
+    from hapsim.scene import parse_scene
+    queue = []
+    monkeypatch.setattr(runner, "run_scene", lambda *a, **k: queue.pop(0))
+    measure = run_measure(parse_scene(DEFAULT_DEVICE, "<d>"), 0.005, duration=0.3)
+    queue[:] = [_report(b=0.3, safety=True)]
+    t = measure(1000.0, 1.5)
+    assert t.growing is False and "disturbance" in t.note
+    queue[:] = [_report(safety=True, late=12), _report(b=-0.2)]
+    t = measure(1400.0, 1.5)
+    assert t.growing is True and t.b == -0.2 and "record 2 of" in t.note and not queue
+    queue[:] = [_report(safety=True, late=3) for _ in range(RECORD_ATTEMPTS)]
+    t = measure(1400.0, 1.5)
+    assert t.growing is None and not queue
+    queue[:] = [_report(safety=True, ticks=MIN_GROWTH_TICKS)]
+    assert measure(1400.0, 1.5).growing is True
+    queue[:] = [_report(safety=True, ticks=MIN_GROWTH_TICKS - 1)]
+    assert measure(1400.0, 1.5).growing is None
 
 
 def test_emulated_firmware_measures_the_limit_within_10_percent(capsys):
@@ -80,7 +123,10 @@ def test_emulated_firmware_measures_the_limit_within_10_percent(capsys):
     if why:
         print(f"test_zwidth: skipped: {why}")
         pytest.skip(f"emulated Hapkit board: {why}")
-    rep, p = _one_point(capsys, ["--firmware", "--lockstep", "--B", "1.5", "--start", "0.9"])
+    # --tol 0.05: the 10 % claim needs a bracket within 5 %, not the default 0.2 %
+    # (4 records instead of 6)
+    rep, p = _one_point(capsys, ["--firmware", "--lockstep", "--B", "1.5", "--start", "0.9",
+                                  "--tol", "0.05"])
     assert abs(p["rel_err"]) < 0.10
     assert rep["follows"] == "linear"
     # the records below the limit decay and the search crossed it from below
@@ -113,3 +159,10 @@ def test_onset_search_on_synthetic_records(root, power):
     Km, iv, trials, note = locate_onset(
         lambda K, B: Trial(K, B, -1.0, K, 0.0, None, True, "safety: position"), 0.0, root)
     assert Km is None and iv is None and "no decaying record" in note
+
+    def close_to_call(K, B):          # undecided within 1 % of the root
+        t = measure(K, B)
+        return t if abs(K - root) > 0.01 * root else Trial(K, B, t.b, K, 0.0, None, None,
+                                                             "too close")
+    Km, (lo, hi), trials, note = locate_onset(close_to_call, 0.0, 1.2 * root, tol=1e-3)
+    assert lo <= root <= hi and "undecided: too close" in note and trials[-1].growing is None

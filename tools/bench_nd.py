@@ -12,15 +12,30 @@ ground; every mass starts displaced at random by up to 1 mm (seeded).
 
 It prints, for growing meshes:
 
-* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes,
-  structure of arrays) and of the reference (a numba loop over the links one at a time,
-  positions as (N, 3) rows, forces scattered to both ends: the straightforward layout),
-  and their ratio, both measured in this run as thread CPU time (``time.thread_time``:
-  descheduling on a shared machine is not counted), median of repeats;
+* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes cut into
+  pieces per block of masses, structure of arrays, each block advanced while in cache)
+  and of the reference (a numba loop over the links one at a time, positions as (N, 3)
+  rows, forces scattered to both ends: the straightforward layout), and their ratio,
+  both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
+  shared machine is not counted), the fastest of repeated short runs (the one least
+  disturbed by other processes' use of the caches);
+* the floor the arithmetic sets: ns per element of a loop doing nothing but one square
+  root and one division (the Euclidean law's), measured the same way;
 * the agreement of the two after the benchmark's samples (largest position difference,
   relative to the spacing: round-off, the forces are summed in another order);
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
   within 1 ms (1 kHz), by bisection on the mesh size measured at each step.
+
+With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
+``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
+scene on :class:`hapsim.engine_nd.EngineND`, and its Faust twin (``tests/faust_gen.py``,
+``faust -double``, ``g++ -O3``): the largest difference of the trajectories over 2,000
+samples relative to the amplitude, and ns per mass-sample of both (Faust's driver times
+blocks of 64 samples; thread CPU time for both), with their ratio.
+
+The load average at the start and the end is printed (and written): figures measured
+beside other CPU-bound work are not a quiet machine's. Reproduce the shipped figures with
+``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 3 minutes).
 
 Exit code 0, or 2 on bad arguments.
 """
@@ -28,15 +43,26 @@ Exit code 0, or 2 on bad arguments.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import statistics
+import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numba as nb
 import numpy as np
 
-from hapsim.kernels.nd import CHUNK, link_lengths, run_nd, stripes
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "tools"))
+
+from hapsim.kernels.nd import BLOCK, link_lengths, run_nd, schedule, stripes  # noqa: E402
+
+#: Beads of the string compared with Faust (Faust's build time grows with the string).
+FAUST_BEADS = 300
 
 T = 1.0 / 44100.0
 SPACING = 0.01
@@ -107,8 +133,9 @@ class Case:
         # reference: (N, 3)
         self.ref = (np.ascontiguousarray(X0), X0.copy(), np.zeros_like(X0), t2m,
                     i1.astype(np.int64), i2.astype(np.int64), k, z, rest)
-        # hapsim: (3, N), stripes
+        # hapsim: (3, N), stripes cut into pieces per block of masses (as EngineND)
         table, order = stripes(i1, i2)
+        pieces, ptr = schedule(table, self.N, BLOCK)
         real = order >= 0
 
         def slot(v):                      # per-link values in stripe order, 0 for padding
@@ -116,13 +143,14 @@ class Case:
             out[real] = v[order[real]]
             return out
         empty_t = np.zeros((0, 4), np.int64)
+        empty_p = np.zeros(ptr.size, np.int64)
         e = np.zeros(0)
-        self.hap = (np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
-                    np.zeros((3, self.N)), t2m, empty_t, e, e, table, slot(k), slot(z),
-                    slot(rest), link_lengths(np.ascontiguousarray(X0.T), table,
-                                             order.size), np.zeros((3, CHUNK)),
+        lprev = link_lengths(np.ascontiguousarray(X0.T), pieces, order.size)
+        self.hap = (3, BLOCK, np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
+                    np.zeros((3, self.N)), t2m, empty_t, empty_p, e, e, pieces, ptr,
+                    slot(k), slot(z), slot(rest), lprev, np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
-                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e)
+                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
         self.stripes = table.shape[0]
 
     def run_ref(self, n):
@@ -133,24 +161,46 @@ class Case:
 
 
 def per_sample(fn, n, repeats):
-    """Median thread-CPU seconds per sample of ``fn(n)`` over ``repeats``."""
+    """Fewest thread-CPU seconds per sample of ``fn(n)`` over ``repeats`` runs."""
     out = []
     for _ in range(repeats):
         t0 = time.thread_time()
         fn(n)
         out.append((time.thread_time() - t0) / n)
-    return statistics.median(out)
+    return min(out)
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+def _sqrt_div(n, a, out):
+    for _ in range(n):
+        for i in range(a.size):
+            s = np.sqrt(a[i])
+            out[i] = 1.0 / s + s
+
+
+def sqrt_div_floor(repeats):
+    """ns per element of a loop of one square root and one division (vectorised)."""
+    a = np.random.default_rng(1).uniform(1e-4, 2e-4, 8192)
+    out = np.zeros_like(a)
+    _sqrt_div(2, a, out)
+    return per_sample(lambda n: _sqrt_div(n, a, out), 200, repeats) / a.size * 1e9
 
 
 def largest(kind, deadline, quick):
     """Largest cube-ish mesh (masses) whose sample takes <= deadline (bisection on nx
-    with ny = nx, nz = nx // 2 + 1)."""
+    with ny = nx, nz = nx // 2 + 1); returns it with the time measured when it was
+    accepted (each size is measured once: a re-measurement on a loaded machine could
+    land on either side)."""
+    seen = {}
+
     def cost(nx):
-        c = Case(nx, nx, nx // 2 + 1)
-        fn = c.run_hap if kind == "hapsim" else c.run_ref
-        n = max(3, int(0.05 / max(deadline, 1e-6)))
-        fn(2)
-        return per_sample(fn, n, 3 if quick else 5), c.N
+        if nx not in seen:
+            c = Case(nx, nx, nx // 2 + 1)
+            fn = c.run_hap if kind == "hapsim" else c.run_ref
+            n = max(3, int(0.01 / max(deadline, 1e-6)))
+            fn(2)
+            seen[nx] = (per_sample(fn, n, 5 if quick else 11), c.N)
+        return seen[nx]
     lo, hi = 2, 4
     while True:
         t, _ = cost(hi)
@@ -170,27 +220,75 @@ def largest(kind, deadline, quick):
     return N, t
 
 
+def faust_projection(n: int, repeats: int) -> dict:
+    """The 1-D string of ``n`` beads on EngineND against its Faust ``mi.lib`` twin.
+
+    Returns a dict with ``beads``, ``max_rel_diff`` (over 2,000 samples, relative to the
+    amplitude), ``hapsim_ns``, ``faust_ns`` (per mass-sample), ``ratio`` (hapsim / Faust)
+    and ``faust_build_s``; or ``{"skipped": reason}``.
+    """
+    import bench_engine
+    import faust_gen
+
+    from hapsim.engine_nd import EngineND
+    from hapsim.scene_nd import LinkND, MassND, SceneND
+    reason = faust_gen.tools_available()
+    if reason is not None:
+        return {"skipped": reason}
+    sc = bench_engine.string_scene(n)
+    sc = dataclasses.replace(sc, masses=tuple(m for m in sc.masses if m.kind != "port"),
+                             links=tuple(lk for lk in sc.links if lk.kind != "contact"))
+    nd = SceneND(1, sc.rate_hz,
+                 tuple(MassND(m.name, m.kind, m.mass, np.array([m.x0]), np.array([m.v0]))
+                       for m in sc.masses),
+                 tuple(LinkND(lk.name, lk.kind, lk.m1, lk.m2, lk.stiffness, lk.damping,
+                              0.0, 0.0) for lk in sc.links), (), None)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        exe = faust_gen.build(faust_gen.faust_program(sc), tmp, opt="-O3", timeout=600)
+        build_s = time.perf_counter() - t0
+        y = faust_gen.run_binary(exe, 2000)
+        samples = max(640, int(2e7 / n))
+        faust_s = faust_gen.bench_binary(exe, samples, repeats=repeats, block=64)
+    eng = EngineND(nd)
+    x = np.empty_like(y)
+    for s in range(2000):
+        eng.step()
+        x[s] = eng.x[0]
+    diff = float(np.max(np.abs(x - y)) / np.max(np.abs(x)))
+    hap_s = per_sample(eng.step, samples, repeats) * samples
+    N = len(sc.masses) - 2            # beads (the two grounds do not move)
+    return {"beads": n, "max_rel_diff": diff, "hapsim_ns": hap_s / (samples * N) * 1e9,
+            "faust_ns": faust_s / (samples * N) * 1e9, "ratio": hap_s / faust_s,
+            "faust_build_s": build_s}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    p.add_argument("--faust", action="store_true",
+                   help="also compare a 1-D projection with Faust mi.lib (builds it)")
     args = p.parse_args(argv)
-    sizes = [(10, 10, 5), (20, 20, 10), (30, 30, 15)] if args.quick else \
-        [(10, 10, 5), (20, 20, 10), (30, 30, 15), (40, 40, 20), (60, 60, 30)]
-    repeats = 3 if args.quick else 7
+    sizes = [(10, 10, 5), (22, 22, 11), (30, 30, 15)] if args.quick else \
+        [(10, 10, 5), (20, 20, 10), (22, 22, 11), (30, 30, 15), (40, 40, 20),
+         (60, 60, 30)]
+    repeats = 5 if args.quick else 15
+    load0 = os.getloadavg()[0]
+    print(f"load average {load0:.2f} (1 min) on {os.cpu_count()} CPUs at the start")
     rows = []
     print(f"{'masses':>8} {'links':>8} {'stripes':>8} {'hapsim ns/mass':>15} "
           f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10}")
     for nx, ny, nz in sizes:
         c = Case(nx, ny, nz)
-        n = max(20, int(2e6 // c.L))
+        n = max(5, int(4e5 // c.L))
         c.run_ref(2)
         c.run_hap(2)
         # agreement after the same samples from the same start
         c2 = Case(nx, ny, nz)
         c2.run_ref(200)
         c2.run_hap(200)
-        err = float(np.max(np.abs(c2.ref[0].T - c2.hap[0]))) / SPACING
+        err = float(np.max(np.abs(c2.ref[0].T - c2.hap[2]))) / SPACING
         th = per_sample(c.run_hap, n, repeats)
         tr = per_sample(c.run_ref, n, repeats)
         row = {"masses": c.N, "links": c.L, "stripes": c.stripes,
@@ -202,7 +300,10 @@ def main(argv=None) -> int:
               f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
               f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
               f"{err:>10.2e}", flush=True)
-    out = {"rows": rows, "largest": {}}
+    floor = sqrt_div_floor(repeats)
+    print(f"one square root and one division alone: {floor:.2f} ns per element "
+          f"(the Euclidean law needs both per link)", flush=True)
+    out = {"rows": rows, "sqrt_div_ns": floor, "largest": {}}
     for label, rate, deadline in (("44.1 kHz", "44100", 1.0 / 44100.0),
                                   ("1 kHz", "1000", 1e-3)):
         for kind in ("hapsim", "reference"):
@@ -211,6 +312,19 @@ def main(argv=None) -> int:
                 "masses": N, "us_per_sample": t * 1e6}
             print(f"largest mesh within {label} ({deadline * 1e6:.2f} us/sample), {kind}: "
                   f"{N} masses ({t * 1e6:.2f} us/sample)", flush=True)
+    if args.faust:
+        fa = faust_projection(FAUST_BEADS, repeats)
+        out["faust"] = fa
+        if "skipped" in fa:
+            print(f"Faust mi.lib comparison skipped: {fa['skipped']}")
+        else:
+            print(f"1-D string of {fa['beads']} beads, EngineND against Faust mi.lib (-O3): "
+                  f"largest difference {fa['max_rel_diff']:.1e} of the amplitude; "
+                  f"{fa['hapsim_ns']:.2f} ns against {fa['faust_ns']:.2f} ns per mass-sample "
+                  f"(hapsim / Faust = {fa['ratio']:.2f}; Faust build {fa['faust_build_s']:.0f} s)",
+                  flush=True)
+    out["load_average"] = [load0, os.getloadavg()[0]]
+    print(f"load average {out['load_average'][1]:.2f} at the end")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=1)

@@ -9,7 +9,10 @@ For each driver and seed, runs ``configs/<driver>.yaml`` through its mock
 (:func:`hapsim.daemon.runner.run_scene` with ``driver_faults``) and prints the bytes the
 link lost, the missing samples (estimated ones), re-synchronisations, the stop reason and
 the relative errors of the measured k and b against the prediction with their stated
-half-widths. A measurement program (issue 20), not a test: real time, on a shared machine.
+half-widths and, of those, the worst case of the estimated samples and of the forces a
+missing answer leaves open (``k_bound_rows``), and the late ticks the account took out (the
+FireFader's enable ramp after a host silence). A measurement program (issue 20), not a
+test: real time, on a shared machine.
 """
 
 from __future__ import annotations
@@ -45,6 +48,11 @@ def main(argv=None) -> int:
                    "stop": lp["stop_reason"], "k_rel": rel.get("k"), "b_rel": rel.get("b"),
                    "k_half_rel": (m["k_unc"] / pr["k"]) if "k_unc" in m else None,
                    "b_half_rel": (m["b_unc"] / pr["b"]) if "b_unc" in m else None,
+                   # the share of the estimated samples' (and open forces') worst case
+                   "k_bound_rel": m.get("k_bound_rows", 0.0) / pr["k"],
+                   "b_bound_rel": m.get("b_bound_rows", 0.0) / pr["b"],
+                   "late_accounted": m.get("late_accounted"),
+                   "samples_used": m.get("samples_used"),
                    "within": m.get("within"), "error": m.get("error")}
             rows.append(row)
             if not a.json:
@@ -52,8 +60,11 @@ def main(argv=None) -> int:
                     return "   -   " if v is None else f"{v * 100:+.3f}%"
                 print(f"{drv:10s} seed {seed}: missing {row['missing']:4d} (estimated "
                       f"{row['estimated']:4d}), resyncs {row['resyncs']:3d}, stop "
-                      f"{row['stop']}; k {pct(row['k_rel'])} (+-{pct(row['k_half_rel'])}), "
-                      f"b {pct(row['b_rel'])} (+-{pct(row['b_half_rel'])}), within "
+                      f"{row['stop']}; k {pct(row['k_rel'])} (+-{pct(row['k_half_rel'])}, "
+                      f"worst case of the estimates {pct(row['k_bound_rel'])}), "
+                      f"b {pct(row['b_rel'])} (+-{pct(row['b_half_rel'])}, "
+                      f"{pct(row['b_bound_rel'])}), fitted {row['samples_used']} samples, "
+                      f"late accounted {row['late_accounted'] or 0}, within "
                       f"{row['within']}{'; ' + row['error'] if row['error'] else ''}",
                       flush=True)
     if a.json:

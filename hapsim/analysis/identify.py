@@ -391,6 +391,28 @@ def _covariance(spec, y, offset, response=None, lens=None):
     the filter ``response`` applied stretch by stretch (None: the white one). An error
     before a stretch reaches it as a free response of the loop, which the stretch's own
     initial condition absorbs: the filter starts again at every stretch."""
+    p = _theta(spec).size
+    r, jts, G, n_lin, cs = _projected(spec, y, offset, lens)
+    inv = np.linalg.pinv(G)
+    dof = max(y.size - p - n_lin, 1)
+    col = inv
+    if response is not None:
+        from scipy.signal import fftconvolve
+        h = np.asarray(response, dtype=float)
+        S = np.zeros((p, p))
+        for Jt in jts:
+            L = Jt.shape[0]
+            FtJ = fftconvolve(Jt[::-1], h[:L, None], axes=0)[:L][::-1]   # F^T Jt
+            S += FtJ.T @ FtJ
+        col = inv @ S @ inv
+    return (float(np.sqrt(np.sum(r * r) / dof)), (inv, col), cs)
+
+
+def _projected(spec, y, offset, lens=None):
+    """The fit's Jacobian in the nonlinear parameters, projected off each stretch's
+    linear columns: ``(r, jts, G, n_lin, cs)`` with ``r`` the residual, ``jts`` the
+    projected blocks (one per stretch, shape (L, p)), ``G = sum Jt' Jt`` (p, p), ``n_lin``
+    the linear coefficients in all and ``cs`` their values per stretch."""
     theta = _theta(spec)
     p = theta.size
     blocks, r = _solve(spec, theta, y, offset, lens)
@@ -405,19 +427,7 @@ def _covariance(spec, y, offset, response=None, lens=None):
         G += Jt.T @ Jt
         jts.append(Jt)
         n_lin += phi.shape[1]
-    inv = np.linalg.pinv(G)
-    dof = max(y.size - p - n_lin, 1)
-    col = inv
-    if response is not None:
-        from scipy.signal import fftconvolve
-        h = np.asarray(response, dtype=float)
-        S = np.zeros((p, p))
-        for Jt in jts:
-            L = Jt.shape[0]
-            FtJ = fftconvolve(Jt[::-1], h[:L, None], axes=0)[:L][::-1]   # F^T Jt
-            S += FtJ.T @ FtJ
-        col = inv @ S @ inv
-    return (float(np.sqrt(np.sum(r * r) / dof)), (inv, col), [c for _, _, c in blocks])
+    return r, jts, G, n_lin, [c for _, _, c in blocks]
 
 
 def _mode_of(spec_item, mass, period):
@@ -429,7 +439,7 @@ def _mode_of(spec_item, mass, period):
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
                  pencil: int | None = None, sensor_response=None, wire=None,
-                 lens=None) -> dict:
+                 lens=None, bounded=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor; of one stretch, or of several that share the
     loop's poles, each from its own initial condition (``lens``).
@@ -490,6 +500,14 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         the pencil of the longest stretch and keeps them when they reproduce every
         stretch; the robust path drops its ``skipped`` samples at the start of every
         stretch, and leaves out a stretch shorter than twice its own coefficients + 4.
+    bounded : sequence of (array_like, array_like), optional
+        Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), the largest
+        error of each row of ``y`` [m] (0 where none: an estimated sample's position,
+        :func:`hapsim.analysis.measurement.estimated_bounds`), and its impulse response to
+        the logged position. Not random: their worst case, ``sum_j e_j |s_j|`` with ``s_j``
+        the fit's first-order sensitivity to a unit error at row ``j`` through
+        ``response``, is added to ``k_unc``, ``b_unc`` (``k_bound_rows``,
+        ``b_bound_rows``).
 
     Returns
     -------
@@ -547,7 +565,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
                 return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
                                           method="pencil", skipped=0, lens=lens),
-                                  spec, fi, y, offset, wire, mass, period, lens)
+                                  spec, fi, y, offset, wire, mass, period, lens, bounded)
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
@@ -614,12 +632,61 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
                               lens=lens_w),
-                      spec, fi, yw, offset, wire, mass, period, lens_w)
+                      spec, fi, yw, offset, wire, mass, period, lens_w,
+                      None if not bounded else [
+                          (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
+                          for e, r in bounded])
 
 
-def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None):
+def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
+    """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
+    ``bounded``): ``sum_j e_j |s_j|`` with ``s_j = sum_m S_(j+m) h_m`` the fit's first-order
+    response to a unit error at row ``j`` filtered by ``h`` (``S = g' (J'J)^-1 J'``, the
+    linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
+    Sec. 2.1), its nonlinear rows ``g' (Jt'Jt)^-1 Jt'`` with ``Jt`` projected off each
+    stretch's linear columns; the filter starts again at every stretch of ``lens``."""
+    from scipy.signal import fftconvolve
+    n = y.size
+    _, jts, G, _, _ = _projected(spec, y, offset, lens)
+    A = np.linalg.pinv(G)
+    i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
+    g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    bounds = _bounds(n, lens)
+    S_k = np.concatenate([g_k @ A @ Jt.T for Jt in jts])
+    S_b = np.concatenate([g_b @ A @ Jt.T for Jt in jts])
+    bk = bb = 0.0
+    for e, resp in bounded:
+        e = np.asarray(e, float)[:n]
+        if e.size < n:
+            e = np.concatenate([e, np.zeros(n - e.size)])
+        if not np.any(e > 0):
+            continue
+        r = np.asarray(resp, float)
+        for S, acc in ((S_k, "k"), (S_b, "b")):
+            sj = np.zeros(n)
+            for a, b in bounds:
+                L = b - a
+                h = np.zeros(L)
+                h[:min(L, r.size)] = r[:L]
+                sj[a:b] = fftconvolve(S[a:b][::-1], h)[:L][::-1]
+            v = float(np.sum(e * np.abs(sj)))
+            if acc == "k":
+                bk += v
+            else:
+                bb += v
+    return bk, bb
+
+
+def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=None):
     """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
-    ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too."""
+    ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too; with
+    ``bounded``, the worst case of those errors (``k_bound_rows``, ``b_bound_rows``) added
+    to ``k_unc``, ``b_unc``."""
+    if bounded and "k" in out:
+        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period, lens)
+        out["k_bound_rows"], out["b_bound_rows"] = bk, bb
+        out["k_unc"] += bk
+        out["b_unc"] += bb
     if not wire:
         return out
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
@@ -632,8 +699,9 @@ def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None):
         vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)
         vb += sd * sd * max(float(g_b @ col @ g_b), 0.0)
     out["k_sd_wire"], out["b_sd_wire"] = math.sqrt(vk), math.sqrt(vb)
-    out["k_unc"] = max(out["k_unc"], COVERAGE * out["k_sd_wire"])
-    out["b_unc"] = max(out["b_unc"], COVERAGE * out["b_sd_wire"])
+    bk, bb = out.get("k_bound_rows", 0.0), out.get("b_bound_rows", 0.0)
+    out["k_unc"] = max(out["k_unc"], COVERAGE * out["k_sd_wire"] + bk)
+    out["b_unc"] = max(out["b_unc"], COVERAGE * out["b_sd_wire"] + bb)
     return out
 
 

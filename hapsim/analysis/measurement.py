@@ -20,6 +20,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_accounted",
+           "estimated_bounds",
            "wire_errors"]
 
 
@@ -27,7 +28,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
-             closed: np.ndarray | None = None, wire=None) -> dict:
+             closed: np.ndarray | None = None, wire=None, bounds=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -82,6 +83,12 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
     wire : sequence of (float, ndarray), optional
         The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
+    bounds : sequence of (ndarray, ndarray), optional
+        Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), aligned
+        with ``position``, the largest error of each row (0 elsewhere; a position that is
+        no reading [m], :func:`estimated_bounds`, through the sensor's response; a force
+        the account cannot name [N], through the force response); their worst case is
+        added to the stated uncertainty (``measure_felt``'s ``bounded``).
 
     Returns
     -------
@@ -100,6 +107,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     lt = np.zeros(seq.size, dtype=bool) if late is None else np.asarray(late).astype(bool)
     sel = seq >= start
     y, s, lt = pos[sel], seq[sel], lt[sel]
+    eb = [(np.asarray(e, float)[sel], r) for e, r in (bounds or ())]
     cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
 
     def segments(cut_late: bool):
@@ -159,9 +167,12 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     if predicted is not None and felt is not None and y.size:
         from hapsim.analysis.identify import measure_felt
         try:
+            be = [(np.concatenate([e[p:q] for p, q in use]), r) for e, r in eb]
+            bounded = [(e, r) for e, r in be if np.any(e > 0)] or None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response, wire=wire, lens=lens)
+                               sensor_response=sensor_response, wire=wire, lens=lens,
+                               bounded=bounded)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -337,8 +348,13 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         # a driver's STATEs name no applied force (force_seq = seq - d): its account is
         # its own timing's (Driver.account -> hapsim.applied.account_from_timing)
         acc = hook(cols, cols["force"]) if hook is not None else None
-        if acc is None or not np.any(acc.late):
+        if acc is None:
             return pos, late, {}
+        if not np.any(acc.late):
+            # nothing to take out, but the forces it cannot order (a command whose
+            # answer never came: sent, or the one before) are in the stated uncertainty
+            hw = np.asarray(acc.half_width, float)
+            return pos, late, ({"_force_half_width": hw} if np.any(hw > 0) else {})
     else:
         # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
         # the nearest step of every force (the firmware rounds so): a known input at every
@@ -377,8 +393,72 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         return pos, late, info
     info["late_accounted"] = acc.n_late
     # what the account leaves uncertain (a driver's timing): a force error per sample
-    info["_force_half_width"] = float(np.max(acc.half_width)) if acc.half_width.size else 0.0
+    info["_force_half_width"] = np.asarray(acc.half_width, float)
     return pos - xw, None, info
+
+
+def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
+                     quantum: float, noise: float = 0.0, rel: float = 0.0,
+                     estimated_flag: int = 32, coulomb: float = 0.0) -> np.ndarray:
+    """The largest error of each estimated sample's position (a driver's missing reply).
+
+    The loop steps a tick whose reply never came with the position extrapolated linearly
+    from the last two records (:meth:`hapsim.drivers.transport.DriverTransport.estimate`):
+    records ``j`` and ``j - g`` (``g`` ticks apart: 1, or more when a reply between them
+    was missing too), the estimate for tick ``j + r`` (``r`` = 1, 2: the ``r``-th in a
+    row) is ``x_e = x[j] + r/g (x[j] - x[j-g])``. The reading it stands for, ``x[j+r]``,
+    differs from it by the device's motion and the readings' errors: with ``p`` the true
+    position and ``x = p + eps``, ``|eps| <= q/2`` (the sensor step q, plus ``3 noise`` and
+    the wire's relative rounding), ``x_e - x[j+r] = -(p[j+r] - L(j+r)) + (1 + r/g) eps[j]
+    - r/g eps[j-g] - eps[j+r]`` with ``L`` the line through the two records; the error of
+    linear interpolation (Taylor's theorem, the remainder of the Lagrange interpolant
+    through ``j - g`` and ``j``) bounds the first term by ``r (r+g)/2 T^2 a_max``, the
+    rest by ``(1 + r/g) q``. During the missing reply the device applied the force sent or
+    the one before (the account's ambiguity): ``a_max = (max|F| + b0 v_max + F_c) / m``
+    over the record (no hand on the device in a free response; ``F_c`` its Coulomb
+    friction), ``v_max`` from its largest step.
+
+    Parameters
+    ----------
+    cols : dict of str to ndarray
+        Telemetry columns (``position``, ``force``, ``flags``), shape (n,).
+    period : float
+        Sample period T [s].
+    mass, friction : float
+        The device's mass m [kg] and viscous friction b0 [N s/m].
+    quantum, noise, rel : float
+        Sensor step [m], noise standard deviation [m], the wire's relative rounding.
+    estimated_flag : int
+        The ``flags`` bit of an estimated row (``FLAG_ESTIMATED``).
+    coulomb : float
+        The device's Coulomb friction F_c [N].
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The bound [m] at each estimated row, 0 elsewhere.
+    """
+    flags = np.asarray(cols["flags"])
+    est = (flags & estimated_flag) != 0
+    out = np.zeros(est.size)
+    if not est.any():
+        return out
+    x = np.asarray(cols["position"], float)
+    f = np.asarray(cols["force"], float)
+    v = float(np.max(np.abs(np.diff(x)))) / period + quantum / period if x.size > 1 else 0.0
+    a = ((float(np.max(np.abs(f))) + abs(friction) * v + abs(coulomb)) / mass
+         if mass > 0 else math.inf)
+    eps = 0.5 * quantum + 3.0 * noise + rel * float(np.max(np.abs(x)))
+    seq = np.asarray(cols["seq"], np.int64) if "seq" in cols else np.arange(est.size)
+    last = prev = None                     # the seqs of the last two records
+    for k in range(est.size):
+        if not est[k]:
+            last, prev = int(seq[k]), last
+            continue
+        r = int(seq[k]) - last if last is not None else 1
+        g = last - prev if prev is not None and last > prev else 1
+        out[k] = r * (r + g) / 2 * period * period * a + (2 + 2 * r / g) * eps
+    return out
 
 
 def wire_errors(scene, cols: dict, start: int, driver) -> list:

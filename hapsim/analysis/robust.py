@@ -142,6 +142,46 @@ def _scales(names, T: float, m: float) -> np.ndarray:
     return np.array(out)
 
 
+@dataclass(frozen=True)
+class _Boxes:
+    """What every box of one subdivision shares, for :func:`_box_bound` and
+    :func:`_mode_bound`.
+
+    Attributes
+    ----------
+    ranged : list of int
+        Indices of the variables ``(q, bh, kg, bg, kh)`` that span a range.
+    corners : ndarray, shape (2**r, r)
+        0/1 pattern of each vertex over the ranged variables.
+    mc, bc : float
+        Handle mass [kg] and friction [N s/m].
+    rigid : bool
+        Rigid grip (the variable ``q`` is ``1/(mc + mh)``).
+    Sp : ndarray, shape (p,)
+        Scaling of the plant states to metres (:func:`_scales`).
+    T : float
+        Sample period [s].
+    """
+
+    ranged: list
+    corners: np.ndarray
+    mc: float
+    bc: float
+    rigid: bool
+    Sp: np.ndarray
+    T: float
+
+    def vertex_plants(self, lo_b, hi_b, cen):
+        """Continuous plants ``(Ac, b)`` at every vertex of every box, shapes
+        ``(n, 2**r, p, p)`` and ``(n, 2**r, p)``."""
+        r = len(self.ranged)
+        vert = np.repeat(cen[:, None, :], 2 ** r, axis=1)
+        for k, j in enumerate(self.ranged):
+            vert[:, :, j] = np.where(self.corners[None, :, k] > 0, hi_b[:, None, j],
+                                     lo_b[:, None, j])
+        return _plant(_to_members(vert, self.mc, self.rigid), self.mc, self.bc, self.rigid)
+
+
 def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int = 256,
                    progress=None) -> Certificate:
     """Prove (or refute) the stability of every member of a scene's hand ranges.
@@ -201,6 +241,7 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
     _, names = family_matrices(scene, nominal_member(hand)[None, :], calibrated=calibrated)
     S = _scales(names, T, mc)
     Sp = S[:nplant]
+    ctx = _Boxes(ranged, corners, mc, bc, rigid, Sp, T)
     uvec = _force_row(scene, calibrated, nplant)
     unorm = float(np.linalg.norm(uvec / S))
     # best first: the pending box whose parent came closest to the circle is examined first
@@ -234,12 +275,11 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
         # V Lambda V^-1 + Res V^-1, a perturbation both bounds carry
         res = np.linalg.norm(As @ V - V * w[:, None, :], ord=2, axis=(-2, -1))
         with np.errstate(over="ignore", invalid="ignore"):
-            contrib = _box_bound(boxes_lo, boxes_hi, cen, ranged, corners, mc, bc, rigid, Sp, T,
-                             unorm)
+            Ac, bv = ctx.vertex_plants(boxes_lo, boxes_hi, cen)
+            contrib = _box_bound(ctx, Ac, bv, unorm=unorm)
             winv = np.linalg.norm(np.linalg.inv(V), ord=2, axis=(-2, -1))
             bound = rho + kappa * (contrib.sum(axis=1) + res * winv) * (1.0 + 1e-6) + 1e-12
-            gbound, gcontrib = _mode_bound(boxes_lo, boxes_hi, cen, ranged, corners, mc, bc,
-                                           rigid, Sp, T, w, V, uvec / S, As)
+            gbound, gcontrib = _mode_bound(ctx, Ac, bv, w=w, V=V, us=uvec / S, As=As)
             gbound = gbound * (1.0 + 1e-6) + 1e-12
         bound = np.where(np.isnan(bound), np.inf, bound)
         gbound = np.where(np.isnan(gbound), np.inf, gbound)
@@ -271,7 +311,7 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
     return Certificate(True, True, done, "certified", margin=margin)
 
 
-def _box_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, unorm):
+def _box_bound(ctx: _Boxes, Ac, b, *, unorm: float):
     """Per box and ranged variable, the bound on ``||E||`` it contributes (module notes).
 
     The exponentials are bounded in energy-like coordinates ``G`` (velocities over the
@@ -279,26 +319,34 @@ def _box_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, unorm):
     ``e^(w T)`` growth) and carried to the closed loop's ``D`` (velocities times ``T``) by
     ``||D G^-1||`` and ``||G D^-1||``.
 
-    Returns ndarray, shape (n, max(r, 1)).
+    Parameters
+    ----------
+    ctx : _Boxes
+    Ac, b : ndarray, shapes (n, 2**r, p, p) and (n, 2**r, p)
+        The plant at each vertex of each box (:meth:`_Boxes.vertex_plants`).
+    unorm : float
+        ``||u / S||``, the scaled held-force row's norm.
+
+    Returns
+    -------
+    ndarray, shape (n, max(r, 1))
     """
-    n, r = cen.shape[0], len(ranged)
-    vert = np.repeat(cen[:, None, :], 2 ** r, axis=1)
-    for k, j in enumerate(ranged):
-        vert[:, :, j] = np.where(corners[None, :, k] > 0, hi_b[:, None, j], lo_b[:, None, j])
-    Ac, b = _plant(_to_members(vert, mc, rigid), mc, bc, rigid)
+    n, r = Ac.shape[0], len(ctx.ranged)
+    Sp, T, corners = ctx.Sp, ctx.T, ctx.corners
     npl = Sp.size
     vel = np.arange(npl) % 2 == 1
     w2 = np.abs(Ac[..., vel, :][..., :, ~vel]).max(axis=(-2, -1)).max(axis=1)
     omega = np.sqrt(np.maximum(w2, 1e-6 / (T * T)))          # [1/s], per box
-    energy = _contrib(Ac, b, np.where(vel[None, :], 1.0 / omega[:, None], 1.0), Sp, T,
-                      unorm, corners, n, r)
-    sampled = _contrib(Ac, b, np.broadcast_to(Sp, (n, npl)), Sp, T, unorm, corners, n, r)
+    energy = _contrib(ctx, Ac, b, np.where(vel[None, :], 1.0 / omega[:, None], 1.0), unorm)
+    sampled = _contrib(ctx, Ac, b, np.broadcast_to(Sp, (n, npl)), unorm)
     return np.minimum(energy, sampled)      # each term bounded either way: the least
 
 
-def _contrib(Ac, b, G, Sp, T, unorm, corners, n, r):
+def _contrib(ctx: _Boxes, Ac, b, G, unorm: float):
     """The per-variable bounds of :func:`_box_bound` with the exponentials bounded in the
     coordinates ``G`` (shape (n, p): per box, the factor of each plant state)."""
+    n, r = Ac.shape[0], len(ctx.ranged)
+    Sp, T, corners = ctx.Sp, ctx.T, ctx.corners
     Acg = Ac * G[:, None, :, None] / G[:, None, None, :]      # G Ac G^-1
     bg = b * G[:, None, :]
     DG = np.abs(Sp[None, :] / G).max(axis=1)                  # ||D G^-1||
@@ -336,7 +384,7 @@ def _force_row(scene, calibrated, nplant: int) -> np.ndarray:
     return row / Bd[0, k]
 
 
-def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us, As):
+def _mode_bound(ctx: _Boxes, Ac, b, *, w, V, us, As):
     """Column-Gershgorin bound on the poles of every member of each box, per mode.
 
     With ``A(c) = V Lambda V^-1`` (columns of ``V`` of unit norm, ``W = V^-1``) the poles of
@@ -354,6 +402,18 @@ def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us
     quantities are affine in each variable, their norms convex). The computed decomposition's
     residual ``W (A(c) V - V Lambda)`` is added to each column's sum.
 
+    Parameters
+    ----------
+    ctx : _Boxes
+    Ac, b : ndarray, shapes (n, 2**r, p, p) and (n, 2**r, p)
+        The plant at each vertex of each box (:meth:`_Boxes.vertex_plants`).
+    w, V : ndarray, shapes (n, s) and (n, s, s)
+        Eigenvalues and eigenvectors of each box centre's scaled closed loop ``As``.
+    us : ndarray, shape (s,)
+        The scaled held-force row ``u / S``.
+    As : ndarray, shape (n, s, s)
+        Each centre's scaled closed-loop matrix ``D A D^-1``.
+
     Returns
     -------
     bound : ndarray, shape (n,)
@@ -361,12 +421,9 @@ def _mode_bound(lo_b, hi_b, cen, ranged, corners, mc, bc, rigid, Sp, T, w, V, us
     contrib : ndarray, shape (n, max(r, 1))
         Per ranged variable, its share of the radius of the worst mode.
     """
-    n, r = cen.shape[0], len(ranged)
+    n, r = Ac.shape[0], len(ctx.ranged)
+    Sp, T, corners = ctx.Sp, ctx.T, ctx.corners
     npl = Sp.size
-    vert = np.repeat(cen[:, None, :], 2 ** r, axis=1)
-    for k, j in enumerate(ranged):
-        vert[:, :, j] = np.where(corners[None, :, k] > 0, hi_b[:, None, j], lo_b[:, None, j])
-    Ac, b = _plant(_to_members(vert, mc, rigid), mc, bc, rigid)
     Acs = Ac * Sp[:, None] / Sp                              # (n, nv, p, p)
     bs = b * Sp
     mu = np.linalg.eigvalsh(0.5 * (Acs + np.swapaxes(Acs, -1, -2)))[..., -1].max(axis=1)

@@ -21,7 +21,7 @@ from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, render
 from hapsim.errors import ConfigError
 
 __all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "stability_limit",
-           "damping_limits",
+           "damping_limits", "circle_scan_points",
            "stability_boundary", "published_limits"]
 
 
@@ -562,6 +562,30 @@ def brent_root(f, a: float, b: float, *, xtol: float = 1e-12, rtol: float = 1e-1
     raise RuntimeError(f"Brent's method did not converge in {maxiter} evaluations")
 
 
+def _circle_thetas(e: int) -> np.ndarray:
+    """The scan of the upper unit circle by :func:`_circle_values`: 4000 angles spaced
+    geometrically from 1e-9 and at least 64 per turn of ``z^e``, linearly, up to pi."""
+    n_lin = max(4000, 32 * (e + 1))
+    return np.unique(np.concatenate([np.geomspace(1e-9, math.pi, 4000),
+                                     np.linspace(0.0, math.pi, n_lin + 1)[1:]]))
+
+
+def circle_scan_points(loop: LoopModel) -> int:
+    """Angles of the unit circle :func:`stability_limit` scans for crossings.
+
+    Parameters
+    ----------
+    loop : LoopModel
+
+    Returns
+    -------
+    int
+        The ``N`` of a limit labelled ``"sampled (N)"``: the scan finds every crossing
+        whose neighbours on the circle are at least one scan step apart.
+    """
+    return int(_circle_thetas(char_parts(loop)[3]).size)
+
+
 def _circle_values(A, C, e: int):
     """Real ``x`` for which ``x A(w) + C(w)`` has a root on the unit circle.
 
@@ -582,9 +606,7 @@ def _circle_values(A, C, e: int):
         a, c = complex(A(w)), complex(C(w))
         return (c * np.conj(a)).imag / max(abs(c) * abs(a), 1e-300)
 
-    n_lin = max(4000, 32 * (e + 1))
-    thetas = np.unique(np.concatenate([np.geomspace(1e-9, math.pi, 4000),
-                                       np.linspace(0.0, math.pi, n_lin + 1)[1:]]))
+    thetas = _circle_thetas(e)
     wv = wof(thetas)
     av = A(wv)
     cv = C(wv)

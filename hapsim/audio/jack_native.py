@@ -44,7 +44,7 @@ __all__ = ["NativeProcess", "native_available", "client_rt_priority", "process",
 MAX_CHANNELS = 16
 
 # run_frames' array arguments after ``port``, with their dtype: (ring, wr, st, fring),
-# then the engine's multi-rate state (Engine._multi[1] without the trailing inv_ta).
+# then the engine's multi-rate state (Engine.multirate_pack.args without the trailing inv_ta).
 _F8, _I8 = 0, 1
 _ARRAYS = (_F8, _I8, _F8, _F8,                      # ring, wr, st, fring
            _F8, _F8, _F8, _I8, _F8, _I8,            # x, xp, f, mobile, t2m, fixed

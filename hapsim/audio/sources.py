@@ -46,7 +46,7 @@ class LiveSound:
     """
 
     def __init__(self, engine: Engine, ring: int = 4096, max_block: int = 8192) -> None:
-        if getattr(engine, "_multi", None) is None:
+        if engine.multirate_pack is None:
             raise ConfigError("live sound needs a scene with an audio section",
                               file=engine.scene.path, key="audio")
         self.engine = engine
@@ -57,11 +57,11 @@ class LiveSound:
         self._wr = np.zeros(1, dtype=np.int64)
         self._st = np.zeros(len(_S))
         self._st[_S["gain"]] = self._st[_S["gain_target"]] = 1.0
-        p = engine._port
-        x0 = float(engine._x[p]) if p >= 0 else 0.0
+        p = engine.port_index
+        x0 = float(engine.positions[p]) if p >= 0 else 0.0
         self._st[_S["p0"]] = self._st[_S["p1"]] = x0
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
-        (self._nsub, self._lin, self._last, self._port), self._state = engine._multi
+        (self._nsub, self._lin, self._last, self._port), self._state = engine.multirate_pack
         self._lock = threading.Lock()
         #: Device samples between a position and the force computed from it (set by
         #: :meth:`set_block` from the server's block size).

@@ -205,8 +205,7 @@ def run(args: argparse.Namespace) -> int:
     res, rep = fam.analysis, fam.to_dict()
     cons, cals = fam.consistency, fam.family_calibrations or []
     if args.plot:
-        from hapsim.plot import save_figure
-        save_figure(fam.plot(title=args.scene), args.plot)
+        fam.plot(args.plot, title=args.scene)
     if args.json:
         print(json.dumps({**rep, "scene": args.scene}))
         return 0 if res.robust else 1

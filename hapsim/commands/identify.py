@@ -75,6 +75,16 @@ def register(sub) -> None:
                    help="a driver's device parameter (device.protocol_options; repeat: "
                         "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
                         "Haply board); written to --out with the protocol")
+    p.add_argument("--added-mass", type=float, metavar="KG",
+                   help="find the driver's scale (the FireFader's full_scale, the Haply "
+                        "board's resolution): identify, then identify again with KG [kg] "
+                        "(an inertia [kg m^2] for a rotary axis) clamped to the handle "
+                        "(the embedded mock adds it itself; with --port, press Enter once "
+                        "it is on); --out gets the scale and the device in its own units")
+    p.add_argument("--mock-option", action="append", default=[], metavar="KEY=VALUE",
+                   help="the embedded driver mock's hardware, other than the device "
+                        "--protocol-option describes (repeat: e.g. full_scale=1.56 for "
+                        "the FireFader mock, cpr=4096 for the Haply mock)")
     p.add_argument("--out", metavar="FILE.yaml", help="write the device section there")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE.png", help="plot measured vs model response")
@@ -106,6 +116,34 @@ def register(sub) -> None:
 def _plot(fit, rec, path: str) -> None:
     from hapsim.plot import plot_identify, save_figure
     save_figure(plot_identify(fit, rec), path)
+
+
+def _key_values(items, key: str) -> dict:
+    """``KEY=VALUE`` options as a dict of numbers (int when whole)."""
+    out = {}
+    for item in items:
+        k, sep, val = item.partition("=")
+        if not sep:
+            raise ConfigError(f"must be KEY=VALUE, got {item!r}", key=key)
+        try:
+            out[k.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
+        except ValueError:
+            raise ConfigError(f"{k}: must be a number, got {val!r}", key=key) from None
+    return out
+
+
+def _loaded(device, args):
+    """The device of the second identification of ``--added-mass``: the embedded mock's
+    with the mass added; with ``--port``, the user clamps it on (asked on stderr)."""
+    import dataclasses
+    if args.port:
+        print(f"clamp {args.added_mass:g} kg to the handle, then press Enter",
+              file=sys.stderr, flush=True)
+        sys.stdin.readline()
+        return device
+    from hapsim.device_model import DEFAULT_DEVICE
+    dev = device or DEFAULT_DEVICE
+    return dataclasses.replace(dev, mass=dev.mass + args.added_mass)
 
 
 def run(args) -> int:
@@ -149,37 +187,53 @@ def run(args) -> int:
                               key="device")
     dopts = None
     drv = None
+    mopts = None
     if args.driver != "framed":
         from hapsim.drivers import get_driver
         dopts = dict(device.protocol_options or {}) if (
             device is not None and device.protocol == args.driver) else {}
-        for item in args.protocol_option:
-            key, sep, val = item.partition("=")
-            if not sep:
-                raise ConfigError(f"must be KEY=VALUE, got {item!r}", key="--protocol-option")
-            try:
-                dopts[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
-            except ValueError:
-                raise ConfigError(f"{key}: must be a number, got {val!r}",
-                                  key="--protocol-option") from None
+        dopts.update(_key_values(args.protocol_option, "--protocol-option"))
         try:
             drv = get_driver(args.driver, **dopts)
         except TypeError as exc:
             raise ConfigError(f"{exc}", key="--protocol-option") from None
-    elif args.protocol_option:
+        if args.mock_option:
+            mopts = {**drv.mock_hardware(), **_key_values(args.mock_option, "--mock-option")}
+    elif args.protocol_option or args.mock_option or args.added_mass is not None:
         raise ConfigError("the framed protocol takes no options (its device says its units "
-                          "in HELLO); give --driver", key="--protocol-option")
+                          "in HELLO); give --driver",
+                          key="--protocol-option" if args.protocol_option else
+                          "--mock-option" if args.mock_option else "--added-mass")
+    if args.added_mass is not None:
+        if not (math.isfinite(args.added_mass) and args.added_mass > 0):
+            raise ConfigError(f"must be a positive mass [kg], got {args.added_mass}",
+                              key="--added-mass")
+        if drv.scale_option is None:
+            raise ConfigError(f"the {drv.name} protocol carries SI units: no scale to "
+                              f"calibrate; valid with --added-mass: --driver firefader, "
+                              f"haply", key="--added-mass")
     from hapsim.api import identify as identify_api
-    rep = identify_api(args.port, baud=args.baud, device=device,
-                       force_limit=args.force_limit, envelope=args.envelope,
-                       duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
-                       lockstep=args.lockstep, seed=args.seed, driver=args.driver,
-                       driver_options=dopts, hand=args.hand, progress=True,
-                       handle_signals=True)
+    kw = dict(baud=args.baud, force_limit=args.force_limit, envelope=args.envelope,
+              duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
+              lockstep=args.lockstep, seed=args.seed, driver=args.driver,
+              driver_options=dopts, hand=args.hand, progress=True, handle_signals=True,
+              mock_options=mopts)
+    rep = identify_api(args.port, device=device, **kw)
     fit, rec = rep.fit, rep.record
+    scale = None
+    if args.added_mass is not None:
+        rep2 = identify_api(args.port, device=_loaded(device, args), **kw)
+        from hapsim.api import calibrate_scale
+        scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
     text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
+    if scale is not None:
+        opt = drv.scale_option
+        text = (f"# {opt} found with {args.added_mass:g} kg added: {scale.full_scale:.6g} "
+                f"[{scale.full_scale_lo:.4g}, {scale.full_scale_hi:.4g}] (gain "
+                f"{scale.gain:.4g} over the {opt} assumed); mass and friction in the "
+                f"device's own units\n") + text
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
@@ -187,6 +241,16 @@ def run(args) -> int:
         _plot(fit, rec, args.plot)
     loop = rec["loop"]
     code = 0 if fit.explained and not loop["safety_stop"] and not loop["faults"] else 1
+    if scale is not None:
+        # the report of the device in its own units, with the scale found (an extra key)
+        from hapsim.api import IdentifyReport
+        from hapsim.outputs import json_safe
+        rep = IdentifyReport._from(json_safe({
+            **rep.to_dict(), "device": fit.to_dict(), "scale": {
+                "option": drv.scale_option, "value": scale.full_scale,
+                "lo": scale.full_scale_lo, "hi": scale.full_scale_hi, "gain": scale.gain,
+                "added_mass": args.added_mass, "protocol_options": drv.options()}}),
+            fit=fit, record=rec)
     if args.json:
         print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot}))
     else:

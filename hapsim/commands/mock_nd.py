@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 
 from hapsim.errors import ConfigError
 
@@ -37,6 +38,7 @@ def run_mock_nd(args, new_pty) -> int:
         An option the n-D mock does not take; a scene without a port and device; a bad
         amplitude (exit 2).
     """
+    from hapsim.daemon.loop import StopFlag
     from hapsim.daemon.mock import serve_fd
     from hapsim.daemon.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.daemon.realtime import RealtimePriority
@@ -45,26 +47,35 @@ def run_mock_nd(args, new_pty) -> int:
         if getattr(args, attr, None) is not None:
             raise ConfigError(f"a 2-D or 3-D scene's mock does not take {opt} yet",
                               key=opt)
-    rt = RealtimePriority(args.rt_priority)
+    rt = RealtimePriority(args.rt_priority or 0)
     scene = load_scene_nd(args.scene)
     a = DEFAULT_AMPLITUDE if args.amplitude is None else args.amplitude
     mock = MockDeviceND(scene, a, lockstep=args.lockstep)
     master, slave = new_pty(None, announce=True)
-    persistent = not getattr(args, "once", False)
-    if persistent:
-        os.close(slave)
-        slave = None
+    # the raw settings stay with the pty; with no slave fd of its own the mock sees EIO
+    # when a host closes the port (or dies). A run sends STOP after every record, so STOP
+    # cannot end --once: the first host that ran and left does.
+    os.close(slave)
+    slave = None
+    once = getattr(args, "once", False)
+    flag = StopFlag()
 
     def host_gone(stats: dict) -> None:
         if stats["ticks"] or stats["saw_stop"]:
+            if once:
+                flag.request()
+                return
             print(f"hapsim mock: host left ({stats['ticks']} ticks since its last CONFIG, "
                   f"{stats['late']} late); waiting for the next run (Ctrl-C ends the mock)",
                   file=sys.stderr, flush=True)
     try:
         with rt:
-            # a run ends each record with STOP: only the host closing the port ends --once
+            # signal handlers can only be installed from the main thread (tests serve
+            # the mock from another one)
             report = serve_fd(master, mock, exit_on_stop=False, report_path=args.report,
-                              persistent=persistent, on_host_gone=host_gone, tick="python")
+                              persistent=True, on_host_gone=host_gone, tick="python",
+                              flag=flag, handle_signals=threading.current_thread()
+                              is threading.main_thread())
         print(f"hapsim mock: stopped ({report['end']})", file=sys.stderr, flush=True)
     finally:
         for fd in (master, slave):

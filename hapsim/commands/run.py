@@ -112,17 +112,24 @@ def register(sub) -> None:
                        description=_DESCRIPTION, epilog=_EPILOG.replace("{drivers}", limits),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
+    # the command's own options (what it does before and after the run), each shown
+    # beside the run options it goes with
+    def auto(parser):
+        parser.add_argument(
+            "--auto", action="store_true",
+            help="use 'hapsim advise': the lowest rate and cheapest method that keep the "
+                 "felt (k, b) within --tolerance (calibrating port links)")
+        parser.add_argument(
+            "--tolerance", type=float, default=0.01, metavar="REL",
+            help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
+
+    def device(parser):
+        parser.add_argument(
+            "--device", metavar="FILE.yaml",
+            help="device section from a file (e.g. written by 'hapsim identify --out'); "
+                 "replaces the scene's (said on stderr)")
     # the run's options, each declared once in hapsim.daemon.options.RunOptions
-    add_run_arguments(p)
-    # the command's own options (what it does before and after the run)
-    p.add_argument("--auto", action="store_true",
-                   help="use 'hapsim advise': the lowest rate and cheapest method that keep "
-                        "the felt (k, b) within --tolerance (calibrating port links)")
-    p.add_argument("--tolerance", type=float, default=0.01, metavar="REL",
-                   help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
-    p.add_argument("--device", metavar="FILE.yaml",
-                   help="device section from a file (e.g. written by 'hapsim identify "
-                        "--out'); replaces the scene's (said on stderr)")
+    add_run_arguments(p, after={"seed": auto, "driver": device})
     p.add_argument("--amplitude", type=float, metavar="M",
                    help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
                         "the measured free responses [m] (default 1e-8; the report states "

@@ -14,9 +14,9 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-#: run's options an n-D scene does not take yet (no n-D driver or live input): each
-#: refused by name, with exit 2.
-_REFUSED = (("driver", "--driver"), ("device", "--device"),
+#: run's options an n-D scene does not take yet (no live input): each refused by name,
+#: with exit 2 (``--driver`` takes ``haply`` on a pantograph scene, in lockstep).
+_REFUSED = (("device", "--device"),
             ("osc", "--osc"), ("sound", "--sound"), ("telemetry", "--telemetry"),
             ("faults", "--faults"), ("auto", "--auto"), ("rate_hz", "--rate"),
             ("host_clocked", "--host-clocked"), ("duration", "--duration"))
@@ -64,18 +64,17 @@ def run_nd(args) -> int:
     from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
     for attr, opt in _REFUSED:
         if getattr(args, attr, None) not in (None, False):
             raise ConfigError(f"a 2-D or 3-D scene does not take {opt} yet (1-D scenes "
                               "only)", key=opt)
-    a = DEFAULT_AMPLITUDE if getattr(args, "amplitude", None) is None else args.amplitude
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
-    scene = load_scene_nd(args.scene)
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
+    driver = getattr(args, "driver", None)
+    if driver not in (None, "haply"):
+        raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
+                          f"the Haply 2DIY), not {driver!r}", key="--driver")
+    if driver == "haply":
+        return _run_haply2(args)
+    a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     pred = check_scene_nd(scene)
@@ -103,28 +102,8 @@ def run_nd(args) -> int:
                                                  if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
     if args.json:
-        def mat(x):
-            return None if x is None else np.asarray(x, float).tolist()
-        out = {"scene": scene.path, "dof": n, "lockstep": bool(in_process),
-               "stable": bool(chk.stable),
-               "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
-                             "felt_damping": mat(chk.render.felt_damping),
-                             "rendered_poles": [[float(z.real), float(z.imag)]
-                                                for z in chk.render.rendered_poles]},
-               "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
-                            "felt_damping": mat(fit["felt_damping"]),
-                            "rendered_poles": [[float(z.real), float(z.imag)]
-                                               for z in fit["rendered_poles"]],
-                            "residual": fit["residual"], "rank": fit["rank"]},
-               "deviation": dev, "linearisation_bound": bound.to_dict(),
-               "records": res["records"], "samples": res["samples"],
-               "order": res["order"]}
-        if port_info is not None:
-            out["port"] = port_info
-            out["late"] = res["late"]
-            out["watchdog"] = res["watchdog"]
-            out["delay"] = res["delay"]
-            out["lost"] = res["lost"]
+        from hapsim.api import run_report_nd
+        out = run_report_nd(scene, res, in_process, port_info).to_dict()
         print(json.dumps(out))
         return 0
     o = sys.stdout
@@ -137,7 +116,7 @@ def run_nd(args) -> int:
         print(f"  late ticks: {res['late']} of {(res['records'] + 1) * res['samples']} "
               f"(watchdog {res['watchdog']}), their known disturbance's response "
               "subtracted per axis; records run again for a lost STATE: "
-              f"{res['lost']}", file=o)
+              f"{res['lost']}; host scheduling: {port_info['scheduling']}", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -186,12 +165,13 @@ def _measure_over_port(args, scene, a: float, n: int):
     Returns
     -------
     (dict, dict)
-        The measurement and ``{"port", "embedded", "mock"}`` (the embedded mock's last
-        line on stderr, or None).
+        The measurement and ``{"port", "embedded", "mock", "scheduling"}`` (the embedded
+        mock's last line on stderr, or None; what the host's SCHED_FIFO request obtained).
     """
     import gc
     import subprocess
 
+    from hapsim.daemon.realtime import RealtimePriority
     from hapsim.daemon.run_nd import measure_felt_port
     from hapsim.daemon.transport import SerialTransport
     from hapsim.errors import DeviceError
@@ -201,7 +181,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     port = args.port
     if port is None:
         cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
-               "--amplitude", repr(a)]
+               "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0))]
         if args.lockstep:
             cmd.append("--lockstep")
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -214,10 +194,13 @@ def _measure_over_port(args, scene, a: float, n: int):
         port = line.split()[1]
     tr = SerialTransport(port, getattr(args, "baud", 115200))
     gc_was = gc.isenabled()
-    gc.disable()
+    rt = RealtimePriority(int(args.rt_priority or 0))
     try:
         with Progress(2 * n + 1, "run (over the port)", unit="records") as bar:
-            res = measure_felt_port(tr, scene, progress=bar.update)
+            # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
+            with rt:
+                gc.disable()
+                res = measure_felt_port(tr, scene, progress=bar.update)
     finally:
         if gc_was:
             gc.enable()
@@ -231,4 +214,106 @@ def _measure_over_port(args, scene, a: float, n: int):
                 child.kill()
                 child.communicate()
     return res, {"port": port, "embedded": child is not None,
-                 "mock": note[0] if note else None}
+                 "mock": note[0] if note else None, "scheduling": rt.note}
+
+
+#: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
+#: ~1e-7 m at the handle, so 1e-4 m keeps them below 1e-3 of it.
+HAPLY_AMPLITUDE = 1e-4
+#: The emulated encoders' counts per revolution under ``--driver haply --lockstep``: a
+#: fine encoder, so that the run checks the wire and the loop (a real 2DIY's 10752 or 4880
+#: counts are tens of micrometres at the handle; the report states what they would be).
+HAPLY_CPR = 2.0 ** 22
+
+
+def _run_haply2(args) -> int:
+    """``hapsim run SCENE --driver haply --lockstep``: the felt matrices through the 2DIY's
+    bytes and its emulated board (:func:`hapsim.daemon.haply2_board.measure_felt_haply2`).
+
+    Returns
+    -------
+    int
+        0 (the measurement reported whatever it finds); 1 when the board lost a reply.
+
+    Raises
+    ------
+    ConfigError
+        Without ``--lockstep`` (no real-time n-D driver loop yet), with ``--port``, a scene
+        that is not a 2-D pantograph, a bad amplitude.
+    """
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.daemon.haply2_board import measure_felt_haply2
+    from hapsim.errors import DeviceError
+    from hapsim.progress import Progress
+    if not args.lockstep or args.port:
+        raise ConfigError("--driver haply on a 2-D scene runs in lockstep against the "
+                          "emulated board only (no real-time n-D driver loop yet): add "
+                          "--lockstep, without --port", key="--lockstep")
+    a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
+    with Progress(5, "run (2DIY bytes, lockstep)", unit="records") as bar:
+        try:
+            res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                                      progress=bar.update)
+        except DeviceError as exc:
+            print(f"hapsim run: {exc}", file=sys.stderr)
+            return 1
+    chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
+    bound = linearisation_bound(scene, a, chk.render.rendered_poles)
+    real = res["quantum_encoders"]
+    if args.json:
+        def mat(x):
+            return None if x is None else np.asarray(x, float).tolist()
+        print(json.dumps({
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
+            "lockstep": True, "amplitude": a, "emulated_cpr": HAPLY_CPR,
+            "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
+                          "felt_damping": mat(chk.render.felt_damping)},
+            "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
+                         "felt_damping": mat(fit["felt_damping"]),
+                         "residual": fit["residual"], "rank": fit["rank"]},
+            "deviation": dev, "linearisation_bound": bound.to_dict(),
+            "quantum": res["quantum"], "quantum_real_encoders": real,
+            "records": res["records"], "samples": res["samples"]}))
+        return 0
+    o = sys.stdout
+    print(f"{scene.path}: the Haply 2DIY's bytes (gen3 set-up, firmware V1.5 board "
+          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), in lockstep", file=o)
+    print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
+          f"a = {a:g} m (minus the response from rest)", file=o)
+    for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
+                    ("measured felt stiffness k [N/m]", fit["felt_stiffness"]),
+                    ("predicted felt damping b [N s/m]", chk.render.felt_damping),
+                    ("measured felt damping b [N s/m]", fit["felt_damping"])):
+        print(f"  {name}", file=o)
+        for row in ([] if m is None else m):
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    bd = bound.to_dict()
+    if dev is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
+    if bd["felt_stiffness"] is not None:
+        print(f"  stated uncertainty (linearisation bound at a): k {bd['felt_stiffness']:.2e}"
+              f", b {bd['felt_damping']:.2e}", file=o)
+    print(f"  the wire's resolution at the handle over a: {res['quantum']:.2e} (binary32 "
+          f"degrees); a real 2DIY's encoders: gen2 {real['gen2']:.2e}, gen3 "
+          f"{real['gen3']:.2e} of a", file=o)
+    return 0
+
+
+def _amplitude_and_scene(args, default: float):
+    """``--amplitude`` (``default`` when absent) checked, and the scene with its port.
+
+    Raises
+    ------
+    ConfigError
+        A non-positive amplitude; a scene without a port (file, key).
+    """
+    from hapsim.scene_nd import load_scene_nd
+    a = default if getattr(args, "amplitude", None) is None else args.amplitude
+    if not (math.isfinite(a) and a > 0):
+        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
+    scene = load_scene_nd(args.scene)
+    if scene.port is None:
+        raise ConfigError("a run needs a mass of kind 'port' and a device section",
+                          file=scene.path, key="masses")
+    return a, scene

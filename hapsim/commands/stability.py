@@ -25,7 +25,11 @@ def register(sub) -> None:
                     "passivity (Colgate & Schenkel 1997, b0 > K T/2 + |B|), Diolaiti et al. "
                     "2006 (K < (b0 + B)/(T/2 + d T)) and the centred-difference oscillator "
                     "(4 m / T^2). K_max = 0 means no positive K is stable; null (JSON) or "
-                    "inf means no finite limit."),
+                    "inf means no finite limit. The limit is certified where exact "
+                    "arithmetic proves it (no pole on |z| = 1 for any smaller K, stable "
+                    "below and unstable above a guaranteed bracket: JSON K_max_method "
+                    "'certified', K_max_interval), else labelled 'sampled (N)' (the scan of "
+                    "N points of the circle) with the reason."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --B 0\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -75,6 +79,16 @@ def run(args) -> int:
             else f"{rho:.15g}")
         print(f"  exact K_max            {fmt(kmax):>14} N/m  (spectral radius "
               f"{shown} there)", file=out)
+        iv, why = rep.K_max_interval, rep.K_max_certificate
+        if iv is not None and iv[1] == 0:
+            print(f"  certified: K_max = 0 (exact arithmetic: {why})", file=out)
+        elif iv is not None and iv[1] is None:
+            print(f"  certified: every K > 0 stable (exact arithmetic: {why})", file=out)
+        elif iv is not None:
+            print(f"  certified: K_max in [{_outward(iv[0], up=False)}, "
+                  f"{_outward(iv[1], up=True)}] N/m (exact arithmetic: {why})", file=out)
+        else:
+            print(f"  {rep.K_max_method}: not certified ({why})", file=out)
         if d["passivity_K"] > 0:
             print(f"  passivity (C&S 1997)   {fmt(d['passivity_K']):>14} N/m  sufficient, "
                   "zoh, d = 0", file=out)
@@ -86,3 +100,15 @@ def run(args) -> int:
         print(f"  centred difference     {fmt(d['centred_difference_K']):>14} N/m  "
               "ideal, d = 0, b0 = B = 0", file=out)
     return 0 if kmax > 0 else 1
+
+
+def _outward(v: float, up: bool, digits: int = 10) -> str:
+    """``v`` to ``digits`` significant digits, rounded away from the bracket's inside
+    (``up``: towards +inf), so the printed bracket still holds what the exact one does."""
+    from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
+    if v == 0:
+        return "0"
+    d = Decimal(v)
+    q = Decimal(1).scaleb(d.adjusted() - digits + 1)
+    r = d.quantize(q, rounding=ROUND_CEILING if up else ROUND_FLOOR)
+    return format(r.normalize(), "f") if abs(d.adjusted()) < 12 else format(r, "g")

@@ -113,8 +113,9 @@ class _AudioStepper:
     """
 
     def __init__(self, eng, ends) -> None:
-        head, state = eng._multi
+        head, state = eng.multirate_pack
         self.eng, self.head = eng, head
+        self.x = eng.kernel_pack.state[0]          # the engine's positions (shared)
         nsub, port = head[0], head[3]
         self.uniq = np.unique(np.concatenate(ends))
         col = {int(m): j for j, m in enumerate(self.uniq)}
@@ -135,7 +136,7 @@ class _AudioStepper:
         sub-step with one (-1 when none))."""
         from hapsim.kernels import audio as audio_kernel
         eng = self.eng
-        before = eng._x[self.uniq].copy()
+        before = self.x[self.uniq]                # (fancy indexing: a copy)
         self.pos[0] = x
         audio_kernel.run_periods(1, *self.head, self.pos, *self.state, self.frames, 0,
                                  self.force, self.rec, self.out, 0)
@@ -210,8 +211,8 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
     eng = _replay_engine(scene)
     if eng is None:
         return _fixed_contacts(scene, x_log, names, ends, thr)
-    multi = eng._multi is not None and not hasattr(eng, "_reset_law")
-    if eng._multi is not None and not multi:
+    multi = eng.multirate_pack is not None and not eng.corrected
+    if eng.multirate_pack is not None and not multi:
         return ContactReplay(closed, known, open_link, None,
                              "a corrected multi-rate scene cannot be replayed sub-step by "
                              "sub-step: the contact states are unknown")
@@ -237,7 +238,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
             ok = first < 0
         else:
             f = eng.port_step(x)
-            xp = eng._xp
+            xp = eng.kernel_pack.state[1]        # positions before this step (shared)
             op = ~(xp[ends[1]] - xp[ends[0]] < thr)
             ok = not op.any()
             first = int(np.argmax(op)) if not ok else -1

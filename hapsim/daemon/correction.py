@@ -109,6 +109,8 @@ def corrected_engine(scene, velocity=None):
     class CorrectedEngine(Engine):
         """Engine whose port force follows the device correction (module docstring)."""
 
+        corrected = True
+
         def __init__(self, sc):
             super().__init__(sc)
             # (stiffness array, damping/T array, slot, other end) of the links at the port

@@ -412,7 +412,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
             if port is None:
-                from hapsim.drivers.mock import EmbeddedDriverMock
+                from hapsim.driver_mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
                                               options=(mock_options if mock_options is not None
                                                        else drv.mock_hardware()))

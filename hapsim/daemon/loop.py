@@ -85,9 +85,9 @@ import firmware_protocol as fp
 from hapsim.daemon.bad_frames import BadFrames, bad_count
 from hapsim.daemon.handshake import Handshake
 from hapsim.daemon.loop_types import (BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS, LATCHED_FAULTS,
-                                      SENSORS_TRIES, SENSORS_WAIT, LoopConfig, LoopResult,
-                                      LostDevice, MeasuredVelocity, StopFlag, percentiles_us,
-                                      signame)
+                                      SENSORS_TRIES, SENSORS_WAIT, EstimatedState, LoopConfig,
+                                      LoopResult, LostDevice, MeasuredVelocity, StopFlag,
+                                      percentiles_us, signame)
 from hapsim.daemon.loop_types import SEQ_HALF as _HALF
 from hapsim.daemon.loop_types import SEQ_MASK as _U32
 from hapsim.daemon.realtime import sleep_until_ns
@@ -653,10 +653,14 @@ class HostLoop(Handshake, Recovery, BadFrames):
         # two before and its FORCE goes out (asking the device again), so the scene's clock
         # stays the device's (row flagged FLAG_ESTIMATED); more than ESTIMATED_MAX in a row,
         # the tick is skipped and the last force asked again (hold)
-        hold = getattr(tr, "hold", None)
-        overdue = getattr(tr, "overdue", None)
+        # the driver declares it (Driver.request_reply): its transport then offers
+        # overdue(), hold() and estimate()
+        replies = getattr(getattr(tr, "driver", None), "request_reply", False)
+        hold = tr.hold if replies else None
+        overdue = tr.overdue if replies else None
+        estimate = tr.estimate if replies else None
+        est_state = EstimatedState()
         run_est = 0
-        x_1 = x_2 = None            # the two positions answered last
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -736,20 +740,18 @@ class HostLoop(Handshake, Recovery, BadFrames):
                 res.missed += 1
                 if clock() - last_new >= silence - 1e-6:
                     raise _Lost(f"no STATE from the device for {silence:g} s")
-                if (overdue is not None and run_est < ESTIMATED_MAX and x_2 is not None
-                        and overdue()):
-                    run_est += 1
-                    res.estimated += 1
-                    used_seq = (used_seq + 1) & _U32
-                    x_e = 2.0 * x_1 - x_2
-                    x_2, x_1 = x_1, x_e
-                    self._skip_flag |= FLAG_ESTIMATED
-                    t_e = latest.time_us + int(round(((used_seq - latest.seq) & _U32)
-                                                     * 1e6 / rate))
-                    yield (State(used_seq, t_e & 0xFFFFFFFFFFFFFFFF, latest.status,
-                                 (used_seq - cfg.delay) & _U32, (x_e,)), x_e, t_rx)
-                    deadline += period_ns
-                    continue
+                if overdue is not None and run_est < ESTIMATED_MAX and overdue():
+                    # the position extrapolated from the last two records to this tick
+                    # (NaN before two came), the STATE fields filled in place
+                    x_e = estimate(est_state, (used_seq + 1) & _U32, cfg.delay)
+                    if x_e == x_e:
+                        run_est += 1
+                        res.estimated += 1
+                        used_seq = est_state.seq
+                        self._skip_flag |= FLAG_ESTIMATED
+                        yield est_state, x_e, t_rx
+                        deadline += period_ns
+                        continue
                 if hold is not None:
                     hold()
                 deadline += period_ns
@@ -757,7 +759,6 @@ class HostLoop(Handshake, Recovery, BadFrames):
             last_new = clock()
             used_seq = latest.seq
             run_est = 0
-            x_2, x_1 = x_1, latest.position[0]
             yield latest, latest.position[0], t_rx   # _drive answers it (or stops)
             deadline += period_ns
             now = mono_ns()

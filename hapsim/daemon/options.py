@@ -16,9 +16,12 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from hapsim.daemon.loop import StopFlag
 from hapsim.errors import ConfigError
+
+if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
+    from hapsim.daemon.loop import StopFlag
 
 __all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
 
@@ -176,11 +179,11 @@ class RunOptions:
         ``full_scale``, ``metres_per_count``, ``axis``; Haply ``device_id``,
         ``resolution``, ``direction``).
     mock_options : dict, optional
-        The driver mock's hardware (:class:`hapsim.drivers.mock.EmbeddedDriverMock`),
+        The driver mock's hardware (:class:`hapsim.driver_mock.EmbeddedDriverMock`),
         which may differ from what ``driver_options`` believe.
     driver_faults : dict, optional
         Seeded byte loss and corruption on the driver mock's link, both directions
-        (:class:`hapsim.drivers.mock.ByteFaults`).
+        (:class:`hapsim.driver_mock.ByteFaults`).
     osc : int, optional
         Serve live changes over OSC on localhost:PORT (0: any free port, printed on
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
@@ -417,7 +420,7 @@ def command_line_fields() -> tuple:
     return tuple(f for f in dataclasses.fields(RunOptions) if "cli" in f.metadata)
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+def add_run_arguments(parser: argparse.ArgumentParser, after: dict | None = None) -> None:
     """Add one argument per command-line field of :class:`RunOptions` to ``parser``
     (dest: the field's name; flag, type, default, help, choices: its declaration).
 
@@ -425,7 +428,11 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     ----------
     parser : argparse.ArgumentParser
         ``hapsim run``'s parser (or a group of it).
+    after : dict, optional
+        Field name -> ``add(parser)``, called right after that field's argument: where
+        the command shows its own options beside the run options they go with.
     """
+    after = after or {}
     drivers = None
     for f in command_line_fields():
         meta = f.metadata["cli"]
@@ -444,3 +451,5 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
             kw.update({k: meta[k] for k in ("type", "metavar", "choices")
                        if meta[k] is not None})
         parser.add_argument(meta["flag"], **kw)
+        if f.name in after:
+            after[f.name](parser)

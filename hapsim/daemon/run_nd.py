@@ -27,7 +27,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.errors import ConfigError, DeviceError, ProtocolError
+from hapsim.errors import DeviceError, ProtocolError
 
 __all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd"]
 
@@ -224,8 +224,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation``
         (:func:`hapsim.lockstep_nd.felt_deviation`), ``order``, ``records``, ``samples``,
         ``late`` (late rows over every record), ``watchdog`` (rows whose force the
-        watchdog zeroed), ``delay`` (the delay the device showed, per record), ``lost``
-        (records run again for a lost STATE), ``hello`` (the device's HELLO).
+        watchdog zeroed), ``delay`` (the delay the device showed, per record; -1 for a
+        record in which no FORCE arrived in time: the device held zero throughout, and the
+        whole force sent is the known disturbance), ``lost`` (records run again for a
+        lost STATE), ``hello`` (the device's HELLO).
 
     Raises
     ------
@@ -236,15 +238,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``samples`` too short for the loop's order.
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.analysis.scene_nd_check import check_scene_nd, closed_loop_nd
-    from hapsim.lockstep_nd import default_samples, felt_deviation
-    chk = check_scene_nd(scene)
+    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.lockstep_nd import felt_deviation, identification_plan
+    chk, order, N = identification_plan(scene, samples)
     n = scene.dimension
-    order = chk.states // n
-    N = int(samples) if samples is not None else default_samples(order, n)
-    if N < 2 * order * n:
-        raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
-                          f"({chk.states} states), got {N}", key="samples")
     A = closed_loop_nd(scene)[0]
     from hapsim.engine_nd import EngineND
     EngineND(scene).step()       # the compiled kernels loaded before the first CONFIG
@@ -272,15 +269,25 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                               "seq): the link loses frames\nlast frames:\n"
                               + transport.last_frames())
     recs, late, wdog, delays = [], 0, 0, []
+    d = scene.device.delay
     for rec in raw:
-        acc = None
         W = np.zeros((N, n))
+        wdog += int(np.count_nonzero(rec.status & fp.STATUS_WATCHDOG_TRIPPED))
+        if not np.any(rec.status & fp.STATUS_FORCE_APPLIED):
+            # no FORCE arrived in time in the whole record (a host starved for longer
+            # than the watchdog): the device held zero throughout. (The account's rule
+            # for devices without the FORCE_APPLIED bit would name FORCE 0 on every row.)
+            W[d:] = -rec.force[:N - d]
+            late += N - d
+            delays.append(-1)
+            recs.append(rec.position - rest_pos - disturbance_response_nd(scene, W, A=A))
+            continue
+        acc = None
         for i in range(n):
             acc = account_from_force_seq(rec.seq, rec.force[:, i], rec.force_seq,
                                          rec.status, force_limit=FORCE_LIMIT)
             W[:, i] = acc.disturbance(rec.force[:, i], rec.seq)
         late += acc.n_late
-        wdog += int(np.count_nonzero(rec.status & fp.STATUS_WATCHDOG_TRIPPED))
         delays.append(int(acc.delay))
         if acc.delay >= 0 and acc.delay != scene.device.delay:
             raise ProtocolError(f"the device's delay is {acc.delay} ticks (seq - force_seq), "

@@ -124,7 +124,8 @@ class Connection:
     mock : MockDevice or None
         In-process mock (``inprocess`` and ``sim``).
     old_signals : dict
-        ``{signum: handler}`` replaced, put back by :func:`run_loop`.
+        ``{signum: handler}`` replaced, put back by :func:`run_scene` once the report is
+        made.
     measured : MeasuredVelocity or None
         The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
         correction: the loop asks the device for it and the engine reads it.
@@ -420,7 +421,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
-                from hapsim.drivers.mock import EmbeddedDriverMock
+                from hapsim.driver_mock import EmbeddedDriverMock
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
                                               options=(opts.mock_options
@@ -560,10 +561,13 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
                            "events": writer.events_written,
                            "error": str(writer.error) if writer.error else None}
-        _restore_signals(conn.old_signals)
         tr.close()
         if conn.embedded is not None:
-            mock_report = conn.embedded.report()
+            # a device lost for good never sees the host leave (its port is gone, or it
+            # no longer answers): it is stopped at once (SIGTERM: zero force, its
+            # report) instead of being awaited for the 3 s a device that ends by itself
+            # gets
+            mock_report = conn.embedded.report(timeout=0.0 if error is not None else 3.0)
             conn.embedded.close()
     if opts.transport in ("inprocess", "sim"):
         mock_report = conn.mock.stats.to_dict()
@@ -696,20 +700,36 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
         wire = wire_errors(scene, cols, start, driver)
-        hw = late_info.pop("_force_half_width", 0.0)
-        if hw > 0:
-            # the account's force half-width, taken as uniform (sd hw / sqrt(3)), through
-            # the loop's force response: in the stated uncertainty as the wire's errors
+        hw = late_info.pop("_force_half_width", None)
+        bounds = []
+        if hw is not None and np.any(hw > 0):
+            # the forces the account cannot name (a command whose answer never came: sent
+            # or the one before), bounded at their rows, through the loop's force
+            # response: their worst case is in the stated uncertainty
             from hapsim.analysis.identify import force_error_response
-            wire.append((hw / math.sqrt(3.0),
-                         force_error_response(scene, int(np.sum(cols["seq"] >= start)))))
+            bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
+        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
+            # a driver's missing replies: the positions the loop stepped through them with
+            # are extrapolations, wrong by at most what the device can have done meanwhile
+            from hapsim.analysis.measurement import estimated_bounds
+            if response is None:
+                from hapsim.analysis.identify import sensor_error_response
+                try:
+                    response = sensor_error_response(scene, int(cols["seq"].size))
+                except ConfigError:
+                    response = None
+            if response is not None:
+                bounds.append((estimated_bounds(
+                    cols, T, *device_body(dev), quantum, dev.noise,
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
+                    coulomb=dev.coulomb), response))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=late, skip=dev.delay + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
-                            wire=wire)
+                            wire=wire, bounds=bounds or None)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
         if measured.get("first_seq") is not None and cols["seq"].size:
@@ -734,12 +754,14 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
     if n_est and "k" in measured:
         # a driver's missing replies: the scene stepped through them with an extrapolated
-        # position; the force sent there differs from the one the true position gives by
-        # about B q / T (q the sensor step), a disturbance the stated uncertainty omits
+        # position, wrong by at most estimated_bounds; its worst case through the loop is
+        # in the stated uncertainty (k_bound_rows, b_bound_rows)
         measured["estimated_samples"] = n_est
         notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
-                     f"stepped through with an extrapolated position: their disturbance is "
-                     f"not in the stated uncertainty")
+                     f"stepped through with an extrapolated position: the stated "
+                     f"uncertainty covers the worst case of their error (k +-"
+                     f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
+                     f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -838,6 +860,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
         "velocity_sensor": res.velocity or None,
+        "frames": res.frames,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
@@ -916,12 +939,19 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
             embedded.close()
         raise
     conn = connect(prep, opts)
-    run = run_loop(prep, conn, opts)
-    tel_info = _telemetry_info(conn, run, opts)
-    # the run's own driver (its parameters: given, or the scene's protocol_options)
-    drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
-    measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
-    rep = build_report(prep, conn, run, opts, measured, tel_info)
+    try:
+        run = run_loop(prep, conn, opts)
+        tel_info = _telemetry_info(conn, run, opts)
+        # the run's own driver (its parameters: given, or the scene's protocol_options)
+        drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
+        measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
+        rep = build_report(prep, conn, run, opts, measured, tel_info)
+    finally:
+        # the handlers stay until the report is made: a SIGINT/SIGTERM after the loop
+        # ended (the telemetry export, the identification and the report take seconds on
+        # a loaded machine) asks for a stop already under way; with the default handler
+        # back it killed the process there, report and telemetry export lost (exit -15)
+        _restore_signals(conn.old_signals)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
         rep["error"] = {"type": type(run.error).__name__, "message": str(run.error)}

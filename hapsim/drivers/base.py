@@ -122,6 +122,16 @@ class Driver:
     #: Records to let pass after arming, at zero force, before the first sample: a
     #: firmware whose force comes up slowly (the FireFader's enable ramp) is full by then.
     arming_records = 0
+    #: The device parameter an added-mass calibration finds (``hapsim identify
+    #: --added-mass``; :mod:`hapsim.analysis.calibration`) and what it scales
+    #: (``"force"`` or ``"position"``); None: the protocol carries SI units.
+    scale_option: str | None = None
+    scale_kind = "force"
+    #: The device answers each command with one record (request-reply): a command whose
+    #: answer is overdue is a missing sample that the host loop steps through with an
+    #: estimated position (:meth:`hapsim.drivers.transport.DriverTransport.overdue`,
+    #: ``estimate``, ``hold``): the capability the loop reads, not the transport's methods.
+    request_reply = True
     #: The device's parser has no framing: answers that stop while commands go out mean
     #: it may be inside a garbage command (the transport re-synchronises it).
     unframed = False
@@ -136,7 +146,7 @@ class Driver:
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
 
     def mock_hardware(self) -> dict:
-        """The keywords of this driver's mock (:mod:`hapsim.drivers.mock`) that build the
+        """The keywords of this driver's mock (:mod:`hapsim.driver_mock`) that build the
         device this driver describes (by default none)."""
         return {}
 

@@ -40,7 +40,7 @@ capacitive sense, the currents and the pots (about 1.25 ms: 175 + 175 + 150 + 15
 record, so the host's period must be longer (:meth:`FireFader.round_trip_s`). Its force is
 scaled by an enable filter that ramps from 0 to full over 66 passes after power-on or
 0.1 s without a byte, and stays down while the fader is untouched, at an end of its
-travel or hot (:class:`hapsim.drivers.mock.FireFaderDevice` runs that loop). The Nano
+travel or hot (:class:`hapsim.driver_mock.FireFaderDevice` runs that loop). The Nano
 resets when the port opens (about 1 s in its bootloader), so the transport repeats its
 arming packet until the first record comes. The older ``.pde`` has no enable filter and no
 silence rule (the force stays) and streams records unprompted; the transport says which
@@ -53,8 +53,8 @@ import math
 
 from hapsim.drivers.base import Driver, MappedDecoder
 
-__all__ = ["FireFader", "HOST_START", "DEVICE_START", "POSITION_MAX", "FORCE_MIN", "FORCE_MAX",
-           "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
+__all__ = ["FireFader", "enable_passes", "HOST_START", "DEVICE_START", "POSITION_MAX",
+           "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
            "force_counts", "RecordDecoder", "PacketDecoder"]
 
 HOST_START = 127
@@ -72,6 +72,14 @@ FULL_SCALE_N = 0.39
 PASS_READS_S = 1.25e-3
 #: The count at the middle of the travel: position 0 of the driven axis.
 CENTRE = 127
+#: The ``.ino``'s silence rule: after about 0.1 s without a byte (65000 idle polls) the
+#: enable and the motor go to 0 [s].
+SILENCE_S = 0.1
+#: Host silences this close to :data:`SILENCE_S` may or may not have reset the enable (the
+#: idle polls' time is the firmware's estimate; the host's clock stamps the send) [s].
+SILENCE_DOUBT_S = (0.08, 0.14)
+#: The enable filter's full value (the force is the packet's in full there).
+ENABLE_FULL = 129
 
 LIMITS = """\
 FireFader protocol limits (hapsim --driver firefader):
@@ -155,6 +163,60 @@ def encode_record(pos_a: int, pos_b: int, extra=(0, 0, 0, 0)) -> bytes:
     if len(vals) != RECORD_BYTES or any(not 0 <= v <= POSITION_MAX for v in vals):
         raise ValueError(f"record values must be 6 integers in 0..{POSITION_MAX}, got {vals}")
     return bytes((DEVICE_START,) + vals)
+
+
+def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
+                  delay: int = 1, enable0: int = ENABLE_FULL, heat0: int = 0):
+    """The ``.ino`` firmware's PWM per pass, from the host's commands: its enable filter
+    replayed (module notes; :class:`hapsim.driver_mock.FireFaderDevice` runs the same loop).
+
+    Pass ``c`` (command ``c``) sets the motor to ``(2 n_c (e - 1)) >> 7`` of 254 (``n_c``
+    the packet's count, ``e`` the enable), then updates the heat estimate
+    ``h <- (16383 h >> 14) + (pwm >> 5)`` and ``e <- (31 e >> 5) + 5 [4 < pot < 251 and
+    h >> 10 < 40 and touched]`` (touch is taken as given: the host does not log the
+    record's sense bytes); a silence of ``threshold`` or more before a command zeroes the
+    enable and the motor (the force queued in the device's delay is dropped: the next
+    ``delay`` passes hold 0).
+
+    Parameters
+    ----------
+    counts : array_like of int, shape (n,)
+        Force count of each command (-127..126).
+    silence : array_like of float, shape (n,)
+        Host silence before each command [s].
+    pots : array_like of int, shape (n,)
+        Fader count read at each pass (0..254).
+    threshold : float
+        Silence that resets the enable [s].
+    delay : int >= 0
+        Passes between a command and its force acting (the device's delay d).
+    enable0, heat0 : int
+        The filters before the first command (full enable after the arming).
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        PWM acting over pass ``c``'s period (of 254 full scale; 0 during the ``delay``
+        passes after a reset and before the first command's force arrives).
+    """
+    import numpy as np
+    n = len(counts)
+    pwm = np.zeros(n, np.int64)
+    due = np.zeros(n, np.int64)
+    e, h = int(enable0), int(heat0)
+    zero_until = -1
+    for c in range(n):
+        if silence[c] >= threshold:
+            e = 0
+            zero_until = c + delay - 1
+        p = (2 * int(counts[c]) * (e - 1)) >> 7
+        pwm[c] = p
+        h = ((h * 16383) >> 14) + (p >> 5)
+        ok = 4 < int(pots[c]) < 251 and (h >> 10) < 40
+        e = ((e * 31) >> 5) + 5 * ok
+        if c - delay >= 0 and c > zero_until:
+            due[c] = pwm[c - delay]
+    return due
 
 
 class _StartByteDecoder:
@@ -263,6 +325,8 @@ class FireFader(Driver):
     native_rate_hz = 300.0
     device_id = 0x46464144            # "FFAD"
     limits = LIMITS
+    scale_option = "full_scale"
+    scale_kind = "force"
     #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129, 2 more
     arming_records = 72
     answering_firmware = "haptics_firmware.ino (one record per packet)"
@@ -312,6 +376,95 @@ class FireFader(Driver):
                 f"({PASS_READS_S * 1e3:.2f} ms) and its 7-byte record (1.22 ms) take "
                 f"{self.round_trip_s() * 1e3:.2f} ms, and a period must hold them (a "
                 "record a period late is taken for the next packet's)")
+
+    def account(self, columns: dict, force):
+        """The force the fader applied per tick (:meth:`Driver.account`), with the
+        firmware's enable filter replayed (:func:`enable_passes`).
+
+        The ``.ino`` scales each packet's force by its enable, which the host cannot read
+        but can replay: it is full after the arming (:attr:`arming_records` at zero force)
+        and goes to 0 after a silence of :data:`SILENCE_S`, from which the force comes back
+        over ~66 passes. The host's clock stamps each command (the ``time`` column: when
+        the command a row answers was sent), so a host stall that long is in the record: the
+        rows of the ramp are late ticks with a known applied force, taken out as a known
+        input by the measurement (:func:`hapsim.analysis.measurement.late_accounted`).
+        A silence within :data:`SILENCE_DOUBT_S` may or may not have reset the enable: the
+        account takes the mean of both and states their half-difference. The touch,
+        pot-range and heat gating is replayed with the fader touched.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            Telemetry columns (``seq``, ``time``, ``position``, ``flags``).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N].
+
+        Returns
+        -------
+        hapsim.applied.AppliedAccount or None
+            None when every answer came and no silence reached the doubt band.
+        """
+        import numpy as np
+        acc = super().account(columns, force)
+        d = getattr(self, "loop_delay", None)
+        t = columns.get("time")
+        seq = columns.get("seq")
+        if d is None or t is None or seq is None or len(seq) < 2:
+            return acc
+        t = np.asarray(t, float)
+        seq = np.asarray(seq, np.int64)
+        gap = np.diff(t)
+        if not np.any(gap >= SILENCE_DOUBT_S[0]):
+            return acc
+        from hapsim.applied import account_from_timing
+        if acc is None:
+            acc = account_from_timing(force, d, force_scale=self.force_scale)
+        f = np.asarray(force, float)
+        n = f.size
+        # commands seq[0] .. seq[-1] + 1: row j answers command seq[j]; the force computed
+        # from row j goes out with command seq[j] + 1 (a command no row answered, a hold,
+        # repeats the force before); pass seq[j] + 1 moves the fader over row j's period
+        c0 = int(seq[0])
+        m = int(seq[-1]) + 2 - c0
+        row_of = np.full(m, -1, np.int64)
+        ok = (seq - c0 >= 0) & (seq - c0 < m)
+        row_of[seq[ok] - c0] = np.flatnonzero(ok)
+        cnt = np.zeros(m, np.int64)
+        sil = np.zeros(m)
+        pots = np.full(m, CENTRE, np.int64)
+        x = np.asarray(columns["position"], float)
+        last = 0
+        for c in range(1, m):
+            r = row_of[c - 1]
+            if r >= 0:
+                last = max(force_counts(f[r], self.full_scale), -FORCE_MAX)
+            cnt[c] = last
+            r1 = row_of[c]
+            # the pot the pass read: its record (row_of[c]), or the one before
+            pots[c] = (min(max(CENTRE + round(float(x[r1]) / self.position_scale), 0),
+                           POSITION_MAX) if r1 >= 0 else pots[c - 1])
+            if r1 >= 1 and row_of[c - 1] >= 0:
+                sil[c] = t[r1] - t[row_of[c - 1]]
+        lo, hi = SILENCE_DOUBT_S
+        sure = enable_passes(cnt, sil, pots, threshold=hi, delay=d)
+        maybe = enable_passes(cnt, sil, pots, threshold=lo, delay=d)
+        rows = np.arange(n)
+        pas = seq - c0 + 1
+        inside = pas < m
+        fs = self.full_scale / 254.0
+        a = np.where(inside, sure[np.minimum(pas, m - 1)], 0) * fs
+        b = np.where(inside, maybe[np.minimum(pas, m - 1)], 0) * fs
+        nominal = acc.applied
+        new = 0.5 * (a + b)
+        differs = (np.abs(new - nominal) > 1e-12) | (np.abs(a - b) > 1e-12)
+        differs &= rows >= d
+        if not differs.any():
+            return acc
+        acc.applied = np.where(differs, new, nominal)
+        acc.half_width = np.where(differs, np.maximum(acc.half_width, 0.5 * np.abs(a - b)),
+                                  acc.half_width)
+        acc.late = acc.late | differs
+        return acc
 
     def decoder(self):
         """A fresh host-side decoder returning the driven fader's position [m]."""

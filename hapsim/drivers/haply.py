@@ -389,6 +389,8 @@ class HaplyM3(Driver):
     force_scale = 0.0
     limits = LIMITS
     unframed = True
+    scale_option = "resolution"
+    scale_kind = "position"
     answering_firmware = "Haply M3 firmware V1.5 layout (one reply per write)"
 
     def __init__(self, device_id: int = 1, resolution: float = 4880.0,

@@ -21,9 +21,11 @@ Host-clocked only (the loop must run with ``host_clocked``): the device answers 
 
 The host clock, and a missing reply (neither protocol has a sequence number)
 ---------------------------------------------------------------------------
-Every command is one host tick, numbered here (``seq``). The host loop sends one per tick:
+Every command is one host tick, numbered here (``seq``). The host loop (for a driver that
+declares :attr:`~hapsim.drivers.base.Driver.request_reply`) sends one per tick:
 a FORCE when it has a new STATE; when the answer is :meth:`DriverTransport.overdue`, a
-FORCE computed from an extrapolated position (the loop's estimated sample); else (a
+FORCE computed from the position :meth:`DriverTransport.estimate` extrapolates (the
+loop's estimated sample); else (a
 longer silence) :meth:`DriverTransport.hold` (the last force again), so the device keeps
 being asked and keeps answering. A record is the answer to the newest
 command sent before it was read, which is exact when the device answers within one period
@@ -256,18 +258,48 @@ class DriverTransport:
         as a missing sample and sends its FORCE anyway (module notes)."""
         if not (self._armed and self._settle <= 0 and self._answered < self._cmd):
             return False
-        waited = self._now_us() - self._sent_us[self._cmd % _RING]
+        return self._given_up()
+
+    def _given_up(self) -> bool:
+        """The newest command's answer will not come: at once on hardware (its time went
+        on); for a mock paced by the commands, once bytes came that made no record (a
+        damaged answer) or after a long silence (a wholly lost one); a slow mock process
+        is neither."""
         if self._deadline_us <= 0:
-            return True                     # hardware: its time went on
-        # a mock paced by the commands: overdue once bytes came that made no record (a
-        # damaged answer), or after a long silence (a wholly lost one); a slow mock
-        # process is neither
+            return True
+        waited = self._now_us() - self._sent_us[self._cmd % _RING]
         return waited >= (self._deadline_us if self._stray else 10 * self._deadline_us)
+
+    def _extrapolate(self, seq: int) -> float:
+        """The position at command ``seq``, extrapolated linearly from the last two
+        records (the one place it is done: an estimated sample, a re-synchronisation);
+        NaN before two records came."""
+        if self._s_prev is None or self._s_last <= self._s_prev:
+            return float("nan")
+        v = (self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+        return self._x_last + v * (seq - self._s_last)
+
+    def estimate(self, out, seq: int, delay: int) -> float:
+        """An estimated sample for command ``seq``, whose answer is overdue (the host
+        loop's missing sample): ``out`` (an object with ``seq``, ``time_us``, ``status``,
+        ``force_seq``, filled in place: no allocation per sample) gets the command's seq,
+        the host time it was sent [us], the status of this transport's STATEs and
+        ``seq - delay``; the position [m] extrapolated from the last two records is
+        returned (NaN before two came: no estimate)."""
+        x = self._extrapolate(seq)
+        out.seq = seq
+        out.time_us = self._sent_us[seq % _RING]
+        out.status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED
+        out.force_seq = (seq - delay) & 0xFFFFFFFF
+        return x
 
     def hold(self) -> None:
         """A host tick without a new sample: command the last force again (a request-reply
         device answers only what it is asked), or, while the device is re-synchronising,
         zero force. Called by the host loop on each missed tick."""
+        # (asked again after the reply deadline, not the longer silence overdue waits
+        # for: a packet lost on the way gets no answer at all, and the loop's silence
+        # allowed is shorter; a slow mock then merges two packets into one pass)
         if self._armed and (self._answered == self._cmd or self._now_us()
                             - self._sent_us[self._cmd % _RING] >= self._deadline_us):
             if self._stalled():
@@ -289,11 +321,8 @@ class DriverTransport:
         self._force = 0.0
         # where the device is now: the last two records extrapolated to this command (a
         # board that re-zeroes its position at the set-up goes on from there)
-        x = self._x_last
-        if self._s_prev is not None and self._s_last > self._s_prev:
-            v = (self._x_last - self._x_prev) / (self._s_last - self._s_prev)
-            x += v * (self._cmd + 1 - self._s_last)
-        self._command(self.driver.resync(x))
+        x = self._extrapolate(self._cmd + 1)
+        self._command(self.driver.resync(self._x_last if x != x else x))
         # a deliberate gap in seq: the position may jump by the error of that estimate, so
         # a measurement does not run across a re-synchronisation
         self._cmd += 1

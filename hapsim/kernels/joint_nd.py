@@ -15,7 +15,6 @@ elimination with partial pivoting solves the n x n system).
 from __future__ import annotations
 
 import numba as nb
-import numpy as np
 
 __all__ = ["joint_step"]
 
@@ -75,15 +74,15 @@ def _accel(s, sd, tau, J0, H, Mq, Bq, mh, bh, out, J, A, b):
 
 
 @_jit
-def joint_step(s, sd, u, J0, H, Mq, Bq, mh, bh, h, substeps, wv, wm):
-    """Advance ``s``, ``sd`` in place over one period holding the torques ``J(s)^T u``.
+def joint_step(s, sd, tau, J0, H, Mq, Bq, mh, bh, h, substeps, wv, wm):
+    """Advance ``s``, ``sd`` in place over one period holding the joint torques ``tau``.
 
     Parameters
     ----------
     s, sd : ndarray, shape (n,)
         Joint displacement from ``q0`` [rad] and joint velocity [rad/s] (updated).
-    u : ndarray, shape (n,)
-        Cartesian force on the handle [N], held over the period.
+    tau : ndarray, shape (n,)
+        Joint torques [N m], held over the period.
     J0 : ndarray, shape (n, n)
         Jacobian at ``q0`` [m/rad].
     H : ndarray, shape (n, n, n)
@@ -107,19 +106,8 @@ def joint_step(s, sd, u, J0, H, Mq, Bq, mh, bh, h, substeps, wv, wm):
     n = s.size
     J = wm[0]
     A = wm[1]
-    b, tau, k1, k2, k3, k4, qt, vt, v2, v3 = (wv[0], wv[1], wv[2], wv[3], wv[4], wv[5],
-                                              wv[6], wv[7], wv[8], wv[9])
-    for i in range(n):
-        for j in range(n):
-            Jij = J0[i, j]
-            for k in range(n):
-                Jij += H[i, j, k] * s[k]
-            J[i, j] = Jij
-    for r in range(n):
-        v = 0.0
-        for i in range(n):
-            v += J[i, r] * u[i]
-        tau[r] = v
+    b, k1, k2, k3, k4, qt, vt, v2, v3 = (wv[0], wv[2], wv[3], wv[4], wv[5], wv[6], wv[7],
+                                         wv[8], wv[9])
     for _ in range(substeps):
         _accel(s, sd, tau, J0, H, Mq, Bq, mh, bh, k1, J, A, b)
         for i in range(n):

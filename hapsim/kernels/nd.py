@@ -1,44 +1,61 @@
 """n-D CORDIS-ANIMA kernels (n = 1, 2, 3): centred masses and visco-elastic links, laid
-out for speed.
+out and scheduled for speed.
 
 Plain arrays and floats only; nothing here imports from the API layer (CONVENTIONS §3).
 Units SI.
 
-State (structure of arrays, float64, C order):
+State (structure of arrays, float64, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D
+scene leaves the rows past its dimension at zero, where they stay):
 
-``x``, ``xp``, ``f`` (dim, N)
-    Positions at sample n and n - 1 [m], force accumulator [N]: one contiguous row per
-    axis, so every pass below reads and writes unit-stride rows.
+``x``, ``xp``, ``f`` (3, N)
+    Positions at sample n and n - 1 [m], force accumulator [N] (zero between samples:
+    each block of masses clears its forces once it has advanced).
 ``t2m`` (N,)
     ``T^2 / m`` [s^2/kg] of each mass; 0 for grounds and the port (they do not move under
     the forces: with ``xp = x`` the update ``2 x - xp`` leaves them in place).
 
-Links (one kind per link set):
+Links (one kind per link set), every link oriented so that its first mass has the lower
+index (the laws below are symmetric in the two ends):
 
 ``linear``
     ``F = k d + z (d - d_prev)`` with ``d = x1 - x2`` (vector), ``z = B / T`` [N/m]: the
     1-D law on every axis (Faust ``mi.lib`` ``spring``), ``-F`` on mass 1, ``+F`` on mass 2.
 ``euclid``
     ``F = [k (|d| - L) + z (|d| - l_prev)] d / |d|`` with ``l_prev`` the link's length at
-    the previous sample, kept per link (``eu_lprev``: one square root per link, not two):
-    the Euclidean stretch and the damping along the link (miPhysics ``SpringDamper3D``);
-    no force while ``|d| = 0`` (no direction).
+    the previous sample, kept per link (``eu_lprev``): the Euclidean stretch and the
+    damping along the link (miPhysics ``SpringDamper3D``); no force while ``|d| = 0``.
 
-Stripes. A mesh's links are grouped (:func:`stripes`, once, at build time) by the index
-offset ``s = i2 - i1`` into runs of consecutive ``i1``: a stripe is ``(a, s, c, j0)``, the
-``c`` links joining ``a + i`` to ``a + s + i`` whose parameters are ``k[j0 + i]`` etc.
-Per sample a stripe is processed in chunks of :data:`CHUNK` links, each in unit-stride
-passes: one fused loop computes the chunk's link forces into scratch rows (square roots
-and divisions vectorised), then ``f[d, a:a+c] -= W[d]`` and ``f[d, a+s:a+s+c] += W[d]``:
-no gather, no scatter, no aliasing between the reads and the writes of one loop, and
-unsigned indices (no negative-index wraparound), so LLVM vectorises every loop. A 3-D grid mesh is 3 stripes per
-layer of rows; links that form no run fall into stripes of length 1 (the gather/scatter
-of a general mesh). Summation order differs from one-link-at-a-time code only in the
-order each mass's link forces are added (round-off).
+Layout and schedule (why it is fast):
 
-Contacts (few, scattered) run one at a time: sphere contacts (the Euclidean law with rest
-length ``threshold`` while ``|d| < threshold``) and plane contacts (``p = offset -
-normal . x``, force ``(k p + z (p - p_prev)) normal`` while ``p > 0``).
+* *Stripes.* Links are grouped (:func:`stripes`, once) by the index offset
+  ``s = i2 - i1 > 0`` into runs of consecutive ``i1``: the ``c`` links joining ``a + i``
+  to ``a + s + i``, parameters at ``j0 + i``. A 3-D grid mesh is three long stripes (its
+  +x, +y, +z families); a link that forms no run is a stripe of one.
+* *Blocks.* The masses are cut into blocks of :data:`BLOCK` consecutive indices and each
+  stripe into *pieces* by the block of their lower mass (:func:`schedule`). A sample
+  runs the blocks in order: each piece computes its links' forces in one fused,
+  vectorised pass into scratch rows, adds them to the force rows with two unit-stride
+  passes (``f[:, a:a+c] -= W``, ``f[:, a+s:a+s+c] += W``: no gather, no scatter, no
+  aliasing between one loop's reads and writes), and then the block's masses --- whose
+  every link has now been counted (a link is in the block of its lower mass) --- advance
+  at once while their rows are still in the L1 cache. Nothing reads a mass's position
+  after it has advanced within the sample: a link reads its ends in the block of its
+  lower mass, never later than that mass's own block.
+* Every helper is inlined into :func:`step_nd` and indexes the 2-D arrays directly (no
+  row views: a view costs a reference-count update per piece).
+* ``fastmath={"contract"}`` only: ``a * b + c`` may become one fused multiply-add
+  (round-off); no reassociation, no finite-math assumption. Square roots and divisions
+  are the exact IEEE operations (an inverse square root by Newton's method from the
+  previous sample's, tried, was no faster here: the kernel is bound by its loads and
+  stores, not by its arithmetic; ``tools/bench_nd.py`` prints where the time goes).
+
+The summation order of each mass's forces differs from one-link-at-a-time code (and a
+fused multiply-add may round once where the reference rounds twice): the results agree
+with a straightforward implementation to round-off (``tests/test_engine_nd.py``, ``tools/bench_nd.py``).
+
+Contacts (few, scattered) run one at a time, before the blocks: sphere contacts (the
+Euclidean law with rest length ``threshold`` while ``|d| < threshold``) and plane contacts
+(``p = offset - normal . x``, force ``(k p + z (p - p_prev)) normal`` while ``p > 0``).
 
 Scheme: ``x[n+1] = 2 x[n] - x[n-1] + t2m f[n]`` per axis (the 1-D scheme of
 :mod:`hapsim.kernels.cordis` on every axis; docs/design.md, 'The scheme').
@@ -50,9 +67,19 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["stripes", "link_lengths", "step_nd", "run_nd", "CHUNK"]
+__all__ = ["stripes", "schedule", "link_lengths", "step_nd", "run_nd", "run_nd_listen",
+           "BLOCK", "ROWS"]
 
-_jit = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+_jit = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
+               fastmath={"contract"})
+_inline = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
+                  fastmath={"contract"}, inline="always")
+
+#: Rows of the state arrays (axes): a scene of lower dimension leaves the rest at zero.
+ROWS = 3
+#: Masses per block (and the most links in one piece): the block's rows, the scratch
+#: rows and the pieces' link data stay in L1.
+BLOCK = 256
 
 
 def stripes(i1: np.ndarray, i2: np.ndarray, max_gap: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +88,8 @@ def stripes(i1: np.ndarray, i2: np.ndarray, max_gap: int = 8) -> tuple[np.ndarra
     Parameters
     ----------
     i1, i2 : ndarray of int, shape (L,)
-        First and second mass of each link (``i1 != i2``).
+        First and second mass of each link (``i1 != i2``; the kernels need
+        ``i1 < i2``: orient the links first, the laws are symmetric).
     max_gap : int, optional
         Runs of the same offset separated by at most this many missing links are joined
         into one stripe, the holes filled with padding links (``order = -1``: give them
@@ -102,6 +130,49 @@ def stripes(i1: np.ndarray, i2: np.ndarray, max_gap: int = 8) -> tuple[np.ndarra
     return table, np.array(slots, dtype=np.int64)
 
 
+def schedule(table: np.ndarray, n_masses: int, block: int = BLOCK
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Cut stripes into pieces by the block of their lower mass (module docstring).
+
+    Parameters
+    ----------
+    table : ndarray of int64, shape (S, 4)
+        Stripes (:func:`stripes`) with every offset ``s > 0``.
+    n_masses : int
+        Number of masses N.
+    block : int, optional
+        Masses per block (:data:`BLOCK`).
+
+    Returns
+    -------
+    pieces : ndarray of int64, shape (P, 4)
+        ``(a, s, c, j0)`` per piece (a stripe's links ``a + i`` for ``i < c``, at most
+        ``block`` of them, all with ``a + i`` in one block), ordered by block.
+    ptr : ndarray of int64, shape (ceil(N / block) + 1,)
+        The pieces of block ``q`` are ``pieces[ptr[q]:ptr[q + 1]]``.
+
+    Raises
+    ------
+    ValueError
+        An offset ``s <= 0`` (a link not oriented lower index first).
+    """
+    n_blocks = max(1, -(-int(n_masses) // block))
+    per = [[] for _ in range(n_blocks)]
+    for a, s, c, j0 in np.asarray(table, np.int64).reshape(-1, 4):
+        if s <= 0:
+            raise ValueError(f"stripe offset {s} <= 0: orient links lower index first")
+        i = 0
+        while i < c:
+            q = (a + i) // block
+            m = min(c - i, (q + 1) * block - (a + i))
+            per[q].append((a + i, s, m, j0 + i))
+            i += m
+    ptr = np.zeros(n_blocks + 1, np.int64)
+    ptr[1:] = np.cumsum([len(p) for p in per])
+    rows = [r for p in per for r in p]
+    return np.array(rows, np.int64).reshape(-1, 4), ptr
+
+
 def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
     """Each stripe slot's link length at ``xp`` [m] (the start of ``eu_lprev``).
 
@@ -110,7 +181,7 @@ def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
     xp : ndarray, shape (dim, N)
         Positions at the previous sample [m].
     table : ndarray of int64, shape (S, 4)
-        Stripes (:func:`stripes`).
+        Stripes (:func:`stripes`) or pieces (:func:`schedule`).
     n_slots : int
         Length of the reordered link arrays.
 
@@ -128,118 +199,54 @@ def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
 
 _U = nb.uint64       # unsigned indices: no negative-index wraparound, so loops vectorise
 
-#: Links per chunk of a stripe: the scratch rows stay in L1 (3 x 512 x 8 bytes).
-CHUNK = 512
 
-
-@_jit
-def _scatter(f, a, b, c, W):
-    """``f[d, a:a+c] -= W[d]``, ``f[d, b:b+c] += W[d]`` per axis (two loops: no
+@_inline
+def _scatter(f, dim, a, b, c, W):
+    """``f[d, a:a+c] -= W[d]``, ``f[d, b:b+c] += W[d]`` per live axis (two loops: no
     aliasing between their reads and writes, even for an offset below the vector width)."""
-    for d in range(f.shape[0]):
-        fd = f[d]
-        wd = W[d]
+    for d in range(dim):
         for i in range(c):
-            fd[a + i] -= wd[i]
+            f[d, a + i] -= W[d, i]
         for i in range(c):
-            fd[b + i] += wd[i]
+            f[d, b + i] += W[d, i]
 
 
-@_jit
-def _linear_chunk(x, xp, f, a, b, c, j0, k, z, W):
-    for d in range(x.shape[0]):
-        xd = x[d]
-        pd = xp[d]
-        wd = W[d]
+@_inline
+def _linear_piece(x, xp, dim, a, b, c, j0, k, z, W):
+    """Linear links ``a + i`` -- ``b + i``: their forces into ``W``."""
+    for d in range(dim):
         for i in range(c):
-            dd = xd[a + i] - xd[b + i]
-            wd[i] = k[j0 + i] * dd + z[j0 + i] * (dd - (pd[a + i] - pd[b + i]))
-    _scatter(f, a, b, c, W)
+            dd = x[d, a + i] - x[d, b + i]
+            W[d, i] = k[j0 + i] * dd + z[j0 + i] * (dd - (xp[d, a + i] - xp[d, b + i]))
 
 
-@_jit
-def _euclid_chunk3(x, xp, f, a, b, c, j0, k, z, rest, lprev, W):
-    x0, x1, x2 = x[0], x[1], x[2]
-    w0, w1, w2 = W[0], W[1], W[2]
+@_inline
+def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
+    """Euclidean links ``a + i`` -- ``b + i``: their forces into ``W``, their lengths
+    into ``lprev`` (all three rows: a lower dimension's extra rows are zero)."""
     for i in range(c):
-        dx = x0[a + i] - x0[b + i]
-        dy = x1[a + i] - x1[b + i]
-        dz = x2[a + i] - x2[b + i]
+        j = j0 + i
+        dx = x[0, a + i] - x[0, b + i]
+        dy = x[1, a + i] - x[1, b + i]
+        dz = x[2, a + i] - x[2, b + i]
         ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        j = j0 + i
-        g = k[j] * (ln - rest[j]) + z[j] * (ln - lprev[j])
+        lp = lprev[j]
         lprev[j] = ln
-        g = g / ln if ln > 0.0 else 0.0
-        w0[i] = g * dx
-        w1[i] = g * dy
-        w2[i] = g * dz
-    _scatter(f, a, b, c, W)
-
-
-@_jit
-def _euclid_chunk2(x, xp, f, a, b, c, j0, k, z, rest, lprev, W):
-    x0, x1 = x[0], x[1]
-    w0, w1 = W[0], W[1]
-    for i in range(c):
-        dx = x0[a + i] - x0[b + i]
-        dy = x1[a + i] - x1[b + i]
-        ln = np.sqrt(dx * dx + dy * dy)
-        j = j0 + i
-        g = k[j] * (ln - rest[j]) + z[j] * (ln - lprev[j])
-        lprev[j] = ln
-        g = g / ln if ln > 0.0 else 0.0
-        w0[i] = g * dx
-        w1[i] = g * dy
-    _scatter(f, a, b, c, W)
-
-
-@_jit
-def _euclid_chunk1(x, xp, f, a, b, c, j0, k, z, rest, lprev, W):
-    x0 = x[0]
-    w0 = W[0]
-    for i in range(c):
-        dx = x0[a + i] - x0[b + i]
-        ln = abs(dx)
-        j = j0 + i
-        g = k[j] * (ln - rest[j]) + z[j] * (ln - lprev[j])
-        lprev[j] = ln
-        g = g / ln if ln > 0.0 else 0.0
-        w0[i] = g * dx
-    _scatter(f, a, b, c, W)
-
-
-@_jit
-def _links(x, xp, f, table, k, z, rest, lprev, W, euclid):
-    dim = x.shape[0]
-    for r in range(table.shape[0]):
-        a = _U(table[r, 0])
-        c = _U(table[r, 2])
-        j0 = _U(table[r, 3])
-        b = _U(table[r, 0] + table[r, 1])
-        lo = _U(0)
-        while lo < c:
-            m = min(_U(CHUNK), c - lo)
-            if not euclid:
-                _linear_chunk(x, xp, f, a + lo, b + lo, m, j0 + lo, k, z, W)
-            elif dim == 3:
-                _euclid_chunk3(x, xp, f, a + lo, b + lo, m, j0 + lo, k, z, rest, lprev, W)
-            elif dim == 2:
-                _euclid_chunk2(x, xp, f, a + lo, b + lo, m, j0 + lo, k, z, rest, lprev, W)
-            else:
-                _euclid_chunk1(x, xp, f, a + lo, b + lo, m, j0 + lo, k, z, rest, lprev, W)
-            lo += m
+        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln if ln > 0.0 else 0.0
+        W[0, i] = g * dx
+        W[1, i] = g * dy
+        W[2, i] = g * dz
 
 
 @_jit
 def _contacts(x, f, i1, i2, k, z, thr, lprev):
     """Sphere contacts, one at a time (few, scattered): the Euclidean law with rest length
     ``thr`` while ``|d| < thr``; every contact's length is kept for its damping."""
-    dim = x.shape[0]
     for j in range(i1.size):
         a = _U(i1[j])
         b = _U(i2[j])
         l2 = 0.0
-        for d in range(dim):
+        for d in range(x.shape[0]):
             dd = x[d, a] - x[d, b]
             l2 += dd * dd
         ln = np.sqrt(l2)
@@ -247,7 +254,7 @@ def _contacts(x, f, i1, i2, k, z, thr, lprev):
         lprev[j] = ln
         if ln < thr[j] and ln > 0.0:
             g = (k[j] * (ln - thr[j]) + z[j] * (ln - lp)) / ln
-            for d in range(dim):
+            for d in range(x.shape[0]):
                 fd = g * (x[d, a] - x[d, b])
                 f[d, a] -= fd
                 f[d, b] += fd
@@ -258,7 +265,7 @@ def _planes(x, xp, f, mass, normal, offset, k, z):
     """Plane contacts, one (plane, mass) pair at a time: with the penetration
     ``p = offset - normal . x``, the force ``(k p + z (p - p_prev)) normal`` while
     ``p > 0``."""
-    dim = x.shape[0]
+    dim = normal.shape[0]
     for j in range(mass.size):
         m = _U(mass[j])
         p = offset[j]
@@ -272,68 +279,124 @@ def _planes(x, xp, f, mass, normal, offset, k, z):
                 f[d, m] += g * normal[d, j]
 
 
-@_jit
-def _advance(x, xp, f, t2m):
-    n = _U(x.shape[1])
-    for d in range(x.shape[0]):
-        xd = x[d]
-        xpd = xp[d]
-        fd = f[d]
-        for i in range(n):
-            xn = 2.0 * xd[i] - xpd[i] + t2m[i] * fd[i]
-            xpd[i] = xd[i]
-            xd[i] = xn
+@_inline
+def _advance(x, xp, f, t2m, dim, m0, m1, port, port_f):
+    """Masses ``m0 <= i < m1`` to the next sample; their forces saved for the port and
+    cleared for the next sample."""
+    if m0 <= port < m1:
+        for d in range(dim):
+            port_f[d] = f[d, port]
+    for d in range(dim):
+        for i in range(m0, m1):
+            xn = 2.0 * x[d, i] - xp[d, i] + t2m[i] * f[d, i]
+            xp[d, i] = x[d, i]
+            x[d, i] = xn
+            f[d, i] = 0.0
 
 
 @_jit
-def step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-            eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
-            p_offset, p_k, p_z):
+def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
+            eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
+            c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f):
     """One sample of the n-D scheme (module docstring).
 
     Parameters
     ----------
-    x, xp, f : ndarray, shape (dim, N)
+    dim : int
+        The scene's dimension (1, 2 or 3): rows of ``x`` past it are zero.
+    block : int
+        Masses per block, as given to :func:`schedule`.
+    x, xp, f : ndarray, shape (3, N)
         Positions at n and n - 1 [m] (updated to n + 1 and n), force accumulator [N]
-        (left holding the forces of sample n).
+        (zero on entry and on return).
     t2m : ndarray, shape (N,)
         ``T^2 / m`` [s^2/kg] (0: does not move).
-    lin_table, eu_table : ndarray of int64, shape (S, 4)
-        Stripes of the linear and Euclidean links (:func:`stripes`).
+    lin_pieces, lin_ptr, eu_pieces, eu_ptr : ndarray of int64
+        The linear and Euclidean links' pieces and block pointers (:func:`schedule`).
     lin_k, lin_z : ndarray
         Linear links' ``K`` [N/m] and ``B / T`` [N/m], in stripe order.
     eu_k, eu_z, eu_rest : ndarray
         Euclidean links' ``K`` [N/m], ``B / T`` [N/m] and rest length [m], in stripe
         order (padding links: 0, 0, 0).
     eu_lprev : ndarray
-        Each Euclidean link's length at the previous sample [m] (updated; start it at
-        the lengths of ``xp``: :func:`link_lengths`).
-    W : ndarray, shape (dim, CHUNK)
-        Scratch (the link forces of one chunk).
+        Each Euclidean link's length at the previous sample [m] (updated; start it from
+        ``xp``: :func:`link_lengths`).
+    W : ndarray, shape (3, block)
+        Scratch (one piece's link forces).
     c_i1, c_i2, c_k, c_z, c_thr, c_lprev : ndarray, shape (C,)
         Sphere contacts: masses, ``K`` [N/m], ``B / T`` [N/m], threshold [m] and length
         at the previous sample [m] (updated).
     p_mass, p_normal, p_offset, p_k, p_z : ndarray
         Plane contacts per (plane, mass) pair: the mass (P,), the unit normal (dim, P),
         the offset [m], ``K`` [N/m] and ``B / T`` [N/m] (P,).
+    port : int
+        The mass whose force is saved in ``port_f`` (-1: none).
+    port_f : ndarray, shape (3,)
+        The force on ``port`` at this sample [N] (written).
     """
-    for d in range(f.shape[0]):
-        fd = f[d]
-        for i in range(_U(fd.size)):
-            fd[i] = 0.0
-    _links(x, xp, f, lin_table, lin_k, lin_z, lin_z, lin_z, W, False)
-    _links(x, xp, f, eu_table, eu_k, eu_z, eu_rest, eu_lprev, W, True)
     _contacts(x, f, c_i1, c_i2, c_k, c_z, c_thr, c_lprev)
     _planes(x, xp, f, p_mass, p_normal, p_offset, p_k, p_z)
-    _advance(x, xp, f, t2m)
+    n = x.shape[1]
+    for q in range(lin_ptr.size - 1):
+        for r in range(lin_ptr[q], lin_ptr[q + 1]):
+            a = _U(lin_pieces[r, 0])
+            b = _U(lin_pieces[r, 0] + lin_pieces[r, 1])
+            c = _U(lin_pieces[r, 2])
+            j0 = _U(lin_pieces[r, 3])
+            _linear_piece(x, xp, dim, a, b, c, j0, lin_k, lin_z, W)
+            _scatter(f, dim, a, b, c, W)
+        for r in range(eu_ptr[q], eu_ptr[q + 1]):
+            a = _U(eu_pieces[r, 0])
+            b = _U(eu_pieces[r, 0] + eu_pieces[r, 1])
+            c = _U(eu_pieces[r, 2])
+            j0 = _U(eu_pieces[r, 3])
+            _euclid_piece(x, a, b, c, j0, eu_k, eu_z, eu_rest, eu_lprev, W)
+            _scatter(f, dim, a, b, c, W)
+        m0 = q * block
+        _advance(x, xp, f, t2m, dim, _U(m0), _U(min(n, m0 + block)), port, port_f)
 
 
 @_jit
-def run_nd(n, x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-           eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal, p_offset,
-           p_k, p_z):
+def run_nd(n, dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
+           eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
+           c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f):
     """``n`` samples of :func:`step_nd` (same arguments after ``n``)."""
     for _ in range(n):
-        step_nd(x, xp, f, t2m, lin_table, lin_k, lin_z, eu_table, eu_k, eu_z, eu_rest,
-                eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
-                p_offset, p_k, p_z)
+        step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
+                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
+                c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+
+
+@_jit
+def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, lin_pieces,
+                  lin_ptr, lin_k, lin_z, eu_pieces, eu_ptr, eu_k, eu_z, eu_rest, eu_lprev,
+                  W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal, p_offset,
+                  p_k, p_z, port, port_f, port_x):
+    """``out.shape[0]`` samples of :func:`step_nd`, recording listening points.
+
+    Parameters
+    ----------
+    out : ndarray, shape (n, C)
+        Written: channel ``c`` after sample ``k + 1`` is ``gain[c] * x[axis[c],
+        mass[c]]``, minus ``gain[c] * xp[axis[c], mass[c]]`` where ``velocity[c]``
+        (give ``gain = g / T`` for a velocity [m/s] times ``g``).
+    axis, mass : ndarray of int64, shape (C,)
+    velocity : ndarray of bool, shape (C,)
+    gain : ndarray, shape (C,)
+    port_x : ndarray, shape (3,)
+        Where the port is held (set before every sample; ignored when ``port < 0``).
+    dim, block, x, ..., port_f
+        As :func:`step_nd`.
+    """
+    for k in range(out.shape[0]):
+        if port >= 0:
+            for d in range(dim):
+                x[d, port] = port_x[d]
+        step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
+                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
+                c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+        for c in range(out.shape[1]):
+            v = x[axis[c], mass[c]]
+            if velocity[c]:
+                v -= xp[axis[c], mass[c]]
+            out[k, c] = gain[c] * v

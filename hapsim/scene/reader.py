@@ -18,7 +18,7 @@ from hapsim.scene.elements import (Audio, Device, Excitation, Hand, Impulse, Lin
 from hapsim.scene.model import Scene
 from hapsim.scene.rules import Invalid, bare_name, check_choice, check_key, coerce
 
-__all__ = ["load_scene", "parse_scene", "LineContext", "read_device"]
+__all__ = ["load_scene", "parse_scene", "read_text", "LineContext", "read_device"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -114,6 +114,34 @@ def _key_name(parent: str, k: Any) -> str:
     return f"{parent}.{bare_name(k)}" if parent else bare_name(k)
 
 
+def read_text(path: str | os.PathLike) -> str:
+    """The text of a scene file (any dimension), decoded as the YAML reader takes it.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file.
+
+    Returns
+    -------
+    str
+        Its text (:func:`hapsim._yaml_lines.decode_text`: UTF-8/16/32 with or without a
+        byte-order mark).
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, or its bytes are no text (the file named).
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
+    return decode_text(data, path)
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and validate a scene file.
 
@@ -134,12 +162,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
         message names the file, the line and the key.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    text = decode_text(data, path)
+    text = read_text(path)
     if len(text) < 1_000_000:
         return parse_scene(text, path)
     from hapsim.progress import Progress

@@ -1,4 +1,5 @@
-"""Separating a driver's force scale from the moving mass (a known added mass).
+"""Separating a driver's force (or position) scale from the moving mass (a known added
+mass).
 
 A device identified through a driver's protocol (``hapsim identify --driver``) is seen
 only through the force-to-acceleration gain: the host sends forces in the units of the
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 from hapsim.errors import ConfigError
 
-__all__ = ["ForceScale", "full_scale_from_added_mass"]
+__all__ = ["ForceScale", "full_scale_from_added_mass", "rescale_fit"]
 
 
 @dataclass(frozen=True)
@@ -94,3 +95,58 @@ def full_scale_from_added_mass(m1, m2, added_mass: float,
     g_lo, g_hi = dm / (m2.hi - m1.lo), dm / lo_den
     fs = float(assumed_full_scale)
     return ForceScale(g, g_lo, g_hi, g * fs, g_lo * fs, g_hi * fs, g * m1.value)
+
+
+def rescale_fit(fit, scale: ForceScale, kind: str = "force"):
+    """The device identified in the host's assumed units, in the device's own.
+
+    With ``g`` the gain :func:`full_scale_from_added_mass` found, the identified mass and
+    viscous friction are ``m / g`` and ``b0 / g`` (module notes): the device's are ``g``
+    times them, their intervals spanning the gain's too (``[g_lo lo, g_hi hi]``). A wrong
+    *force* scale (``kind="force"``: the FireFader's ``full_scale``) scales the Coulomb
+    friction the same way; a wrong *position* scale (``kind="position"``: the Haply board's
+    counts per revolution) leaves forces as they are and scales positions by ``g``: the
+    encoder step, the noise and the rest position are ``1 / g`` times the identified ones.
+
+    Parameters
+    ----------
+    fit : hapsim.analysis.device_fit.DeviceFit
+        The identification without the added mass.
+    scale : ForceScale
+        The gain found with the added mass (``gain``, ``gain_lo``, ``gain_hi`` > 0).
+    kind : {"force", "position"}
+        Which scale the host assumed wrongly.
+
+    Returns
+    -------
+    DeviceFit
+        A copy in the device's units.
+
+    Raises
+    ------
+    ConfigError
+        An unknown ``kind`` or a gain interval that is not positive.
+    """
+    import dataclasses
+    if kind not in ("force", "position"):
+        raise ConfigError(f"must be 'force' or 'position', got {kind!r}", key="kind")
+    g, lo, hi = scale.gain, scale.gain_lo, scale.gain_hi
+    if not (g > 0 and lo > 0 and hi >= lo):
+        raise ConfigError(f"the gain must be positive, got {g:g} [{lo:g}, {hi:g}]",
+                          key="added_mass")
+
+    def times(e):
+        return dataclasses.replace(e, value=e.value * g, lo=min(e.lo * lo, e.lo * hi),
+                                   hi=max(e.hi * hi, e.hi * lo))
+
+    def over(e):
+        return dataclasses.replace(e, value=e.value / g, lo=min(e.lo / hi, e.lo / lo),
+                                   hi=max(e.hi / lo, e.hi / hi))
+    ch = {"mass": times(fit.mass), "friction": times(fit.friction)}
+    if kind == "force":
+        ch.update(coulomb=times(fit.coulomb), coulomb_pos=times(fit.coulomb_pos),
+                  coulomb_neg=times(fit.coulomb_neg))
+    else:
+        ch.update(position_resolution=over(fit.position_resolution), noise=over(fit.noise),
+                  x0=fit.x0 / g)
+    return dataclasses.replace(fit, **ch)

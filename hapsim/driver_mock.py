@@ -102,6 +102,10 @@ class _Actuated:
         device holds its force: no watchdog)."""
         return b""
 
+    #: From the end of a command read to the end of its answer on the wire [s]: what
+    #: :func:`serve` waits before writing the answer (0: at once, a USB device's time).
+    reply_delay_s = 0.0
+
 
 class FireFaderDevice(_Actuated):
     """A FireFader whose fader A is the mock device's moving mass, running the published
@@ -134,6 +138,12 @@ class FireFaderDevice(_Actuated):
         A hand on the fader (capacitive sense 10 per pass, else 1).
     boot_s : float
         The Nano's bootloader time after the port opens [s]: bytes before it are lost.
+    pass_time : bool
+        ``.ino``: the record leaves after the firmware's pass, as on the board:
+        :attr:`reply_delay_s` = the 3-byte packet's wire time (a pty delivers it at once),
+        the pass's reads (:data:`hapsim.drivers.firefader.PASS_READS_S`) and the 7-byte
+        record's wire time at 57600 baud, 2.99 ms (packets that come meanwhile wait and
+        are merged into the next pass); False: at once.
 
     Attributes
     ----------
@@ -145,9 +155,12 @@ class FireFaderDevice(_Actuated):
 
     def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 0.39,
                  metres_per_count: float | None = None, firmware: str = "ino",
-                 touch: bool = True, boot_s: float = 0.0, seed: int = 0) -> None:
+                 touch: bool = True, boot_s: float = 0.0, pass_time: bool = True,
+                 seed: int = 0) -> None:
         from hapsim.drivers import firefader as ff
         self._ff = ff
+        if pass_time and firmware == "ino":
+            self.reply_delay_s = (3 + 7) * 10 / 57600 + ff.PASS_READS_S
         self.full_scale = float(full_scale)
         self.mpc = float(metres_per_count or ff.METRES_PER_COUNT)
         self.firmware = firmware
@@ -459,7 +472,14 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
             now = time.monotonic()
             last = now
-            out += dev.feed(fl.rx(data), now - t0)
+            got = dev.feed(fl.rx(data), now - t0)
+            if got and dev.reply_delay_s > 0:
+                # the device's pass and its answer's wire time (the host's bytes that come
+                # meanwhile wait for the next pass)
+                wait = now + dev.reply_delay_s - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            out += got
         out = fl.tx(out)
         if out:
             try:
@@ -481,12 +501,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
 
 
 def main(argv=None) -> int:
-    """Child-process entry: ``python -m hapsim.drivers.mock --fd N --spec JSON --rate R``."""
+    """Child-process entry: ``python -m hapsim.driver_mock --fd N --spec JSON --rate R``."""
     import argparse
     import dataclasses
 
     from hapsim.scene import Device, Excitation
-    p = argparse.ArgumentParser(prog="hapsim.drivers.mock")
+    p = argparse.ArgumentParser(prog="hapsim.driver_mock")
     p.add_argument("--fd", type=int, required=True)
     p.add_argument("--spec", required=True)
     p.add_argument("--rate", type=float, required=True)
@@ -574,7 +594,7 @@ class EmbeddedDriverMock:
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
         env = child_env()
-        cmd = [sys.executable, "-m", "hapsim.drivers.mock", "--fd", str(master), "--spec",
+        cmd = [sys.executable, "-m", "hapsim.driver_mock", "--fd", str(master), "--spec",
                json.dumps(spec), "--rate", repr(float(rate_hz)), "--report", self.report_path,
                "--seed", str(seed), "--options", json.dumps(options or {}),
                "--faults", json.dumps(faults or {})]

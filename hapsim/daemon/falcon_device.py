@@ -1,0 +1,353 @@
+"""The Novint Falcon emulated byte for byte: its loader's handshake, the firmware's packet
+loop, homing, LEDs, and the delta's joint-space dynamics as the plant.
+
+States (:class:`FalconDevice`), from the handshake libnifalcon performs
+(:mod:`hapsim.drivers.falcon`):
+
+``loader``
+    After power-up or a DTR low-to-high edge: answers ``0A 43 0D`` with ``0A 44 2C 0D``
+    while the line runs at 9600 baud; other bytes are ignored.
+``loader-fast``
+    DTR low and the loading baud (divisor 0x15) set: answers ``'A'`` with ``'A'``, then
+    takes the firmware image, echoing every byte.
+``running``
+    Normal mode (divisor 0x2) after an image was loaded (the expected image, when one is
+    given): the firmware's packet loop. Each 16-byte host packet (realigned on ``'<'`` and
+    ``'>'`` with valid nibbles; a bad one dropped and counted) sets the three motor
+    commands (held until the next: no watchdog is modelled, libnifalcon publishes none), the
+    LEDs and the homing mode, advances the plant one period with the commands ``d``
+    packets back, and is answered by one packet: the encoder counts, the homing status and
+    the grip's buttons.
+
+Encoders: before a leg is homed its count is relative to where it was at power-up (the
+quadrature counter starts at 0); homing mode held for ``homing_packets`` packets homes
+all three legs (they found their index), after which a count is absolute,
+``ticks_of(theta)`` with ``theta`` the leg's angle in libnifalcon's convention (35 deg at
+count 0), which is hapsim's delta joint angle (:class:`hapsim.kinematics.Delta`). The
+plant's leg torque is ``-command * newton_metres_per_count`` (libnifalcon's
+``command = -10000 tau``; the emulator takes its unit as N m, an assumption: the scale
+is not published in newton-metres).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
+                                   parse_host_packet, ticks_of)
+from hapsim.errors import ConfigError
+from hapsim.lockstep_nd import LocalJointDeviceND
+
+__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon"]
+
+
+class FalconDevice:
+    """An emulated Falcon (module notes).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene whose device is a delta (the plant, at its operating point).
+    expected_image : bytes, optional
+        The firmware the device accepts (None: any non-empty image).
+    homing_packets : int
+        Packets in homing mode until the legs are homed.
+    power_up_joints_deg : sequence of 3 float, optional
+        Where the legs were at power-up [deg] (the unhomed counts' zero; default the
+        operating point).
+    newton_metres_per_count : float
+        Leg torque per motor-command count [N m].
+
+    Attributes
+    ----------
+    state : str
+        ``"off"``, ``"loader"``, ``"loader-fast"``, ``"running"``.
+    leds : int
+        LED flags of the last packet.
+    homed : int
+        Homing status bits.
+    stats : dict
+        ``packets``, ``bad_bytes`` (dropped realigning), ``loaded`` (image bytes).
+    """
+
+    def __init__(self, scene, *, expected_image: bytes | None = None,
+                 homing_packets: int = 20, power_up_joints_deg=None,
+                 newton_metres_per_count: float = TORQUE_PER_COUNT) -> None:
+        dev = scene.device
+        if scene.dimension != 3 or dev is None or dev.kind != "delta":
+            raise ConfigError("the Falcon drives a 3-D scene with a delta device",
+                              file=scene.path, key="device.kind")
+        self.scene = scene
+        self.expected = None if expected_image is None else bytes(expected_image)
+        self.homing_packets = int(homing_packets)
+        self.nm_per_count = float(newton_metres_per_count)
+        self.plant = LocalJointDeviceND(scene, np.zeros(3), np.zeros(3))
+        pu = (np.degrees(dev.joints) if power_up_joints_deg is None
+              else np.asarray(power_up_joints_deg, float))
+        self._power_up = [ticks_of(v) for v in pu]
+        self.delay = int(dev.delay)
+        self._fifo = deque([(0, 0, 0)] * self.delay)
+        self.commands = (0, 0, 0)
+        self.state = "off"
+        self.dtr = 0
+        self.baud = None
+        self.divisor = None
+        self.leds = 0
+        self.homed = 0
+        self._homing_count = 0
+        self._image = bytearray()
+        self._buf = bytearray()
+        self.stats = {"packets": 0, "bad_bytes": 0, "loaded": 0}
+
+    # ------------------------------------------------------------------ line settings
+    def line(self, **settings) -> None:
+        """USB control transfers: ``dtr``, ``rts``, ``baud``, ``baud_divisor``,
+        ``latency_ms``, ``purge``, ``bits``, ``flow`` (module notes for their effects)."""
+        if settings.get("purge"):
+            self._buf.clear()
+        if "baud" in settings:
+            self.baud, self.divisor = settings["baud"], None
+        if "baud_divisor" in settings:
+            self.divisor, self.baud = settings["baud_divisor"], None
+        if "dtr" in settings:
+            new = int(settings["dtr"])
+            if self.dtr == 0 and new == 1:          # the MCU resets into its loader
+                self.state = "loader"
+                self._image.clear()
+                self.homed = 0
+                self._homing_count = 0
+                self.commands = (0, 0, 0)
+            self.dtr = new
+        if self.state == "loader" and self.dtr == 0 and self.divisor == 0x15:
+            self.state = "loader-fast"
+            self._a_seen = False
+        if self.state == "loader-fast" and self.divisor == 0x2:
+            ok = len(self._image) > 0 and (self.expected is None
+                                           or bytes(self._image) == self.expected)
+            self.state = "running" if ok else "loader"
+            self._buf.clear()
+
+    # ------------------------------------------------------------------ bytes
+    def _counts(self) -> tuple:
+        q = np.degrees(self.plant.joints())
+        out = []
+        for i in range(3):
+            t = ticks_of(q[i])
+            out.append(t if self.homed >> i & 1 else t - self._power_up[i])
+        return tuple(out)
+
+    def feed(self, data: bytes) -> bytes:
+        """Bytes from the host in, the device's bytes out (module notes)."""
+        if self.state == "loader":
+            if self.baud == 9600 and CHECK_SEND in bytes(data):
+                return CHECK_REPLY
+            return b""
+        if self.state == "loader-fast":
+            out = bytearray()
+            for b in data:
+                if not self._a_seen:
+                    if b == 0x41:
+                        self._a_seen = True
+                        out.append(b)
+                    continue
+                self._image.append(b)
+                self.stats["loaded"] += 1
+                out.append(b)
+            return bytes(out)
+        if self.state != "running":
+            return b""
+        buf = self._buf
+        buf += data
+        out = bytearray()
+        while len(buf) >= 16:
+            pk = parse_host_packet(bytes(buf[:16]))
+            if pk is None:
+                del buf[:1]
+                self.stats["bad_bytes"] += 1
+                continue
+            del buf[:16]
+            out += self._packet(*pk)
+        return bytes(out)
+
+    def _packet(self, commands, leds, homing) -> bytes:
+        self.stats["packets"] += 1
+        self.leds = leds
+        if homing and self.homed != 0x7:
+            self._homing_count += 1
+            if self._homing_count >= self.homing_packets:
+                self.homed = 0x7
+        self._fifo.append(tuple(commands))
+        due = self._fifo.popleft()
+        self.commands = due
+        tau = np.array([-c * self.nm_per_count for c in due], float)
+        self.plant.step_torque(tau)
+        return device_packet(self._counts(), self.homed, 0)
+
+    def joints_deg(self) -> np.ndarray:
+        """The legs' true angles [deg] (tests)."""
+        return np.degrees(self.plant.joints())
+
+
+def load_firmware(device, image: bytes, check_tries: int = 100) -> dict:
+    """Run the host's firmware-load handshake against a device with ``line(**settings)``
+    and ``feed(bytes) -> bytes`` (:class:`FalconDevice`, or a real link wrapped so).
+
+    Parameters
+    ----------
+    device : object
+    image : bytes
+        The firmware image.
+    check_tries : int
+        Attempts of the first check.
+
+    Returns
+    -------
+    dict
+        ``checks`` (attempts of the first check), ``chunks`` (image chunks echoed).
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        The first check never answered, ``'A'`` not echoed, or a chunk's echo differs
+        (naming the chunk and the first differing byte).
+    """
+    from hapsim.drivers.falcon import FalconFirmwareLoader
+    from hapsim.errors import DeviceError
+    out = {"checks": 0, "chunks": 0}
+    for step in FalconFirmwareLoader(image, check_tries).steps():
+        if step[0] == "line":
+            device.line(**step[1])
+        elif step[0] == "check":
+            _, send, want, tries = step
+            for _ in range(tries):
+                out["checks"] += 1
+                got = device.feed(send)
+                if got.endswith(want):              # a leading 00 on some hosts
+                    break
+            else:
+                raise DeviceError(f"the Falcon's loader did not answer {send.hex(' ')} with "
+                                  f"{want.hex(' ')} in {tries} tries")
+        else:
+            _, send, want = step
+            got = device.feed(send)
+            if got != want:
+                k = next((i for i in range(min(len(got), len(want))) if got[i] != want[i]),
+                         min(len(got), len(want)))
+                raise DeviceError(f"the Falcon's loader echoed {len(got)} of {len(want)} "
+                                  f"bytes, differing at byte {k} of chunk {out['chunks']}")
+            out["chunks"] += send != b"A"
+    return out
+
+
+def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
+    """Send homing-mode packets (zero commands) until every leg reports homed.
+
+    Parameters
+    ----------
+    device_feed : callable
+        ``bytes -> bytes``.
+    leds : int
+        LED flags to show meanwhile.
+    limit : int
+        Most packets.
+
+    Returns
+    -------
+    int
+        Packets sent.
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        Not homed after ``limit`` packets.
+    """
+    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet
+    from hapsim.errors import DeviceError
+    dec = DevicePacketDecoder()
+    for k in range(1, limit + 1):
+        got = dec.feed(device_feed(host_packet((0, 0, 0), leds, homing=True)))
+        if got and got[-1][1] == 0x7:
+            return k
+    raise DeviceError(f"the Falcon's legs were not homed after {limit} packets")
+
+
+def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2) -> dict:
+    """Drive a homed Falcon over its packets in lockstep, one packet per sample.
+
+    Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
+    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact),
+    the n-D engine's force on the port, the leg torques ``J(q)^T F`` sent as commands
+    (:func:`hapsim.drivers.falcon.torque_command`, in libnifalcon's unit taken as N m). A
+    packet that does not come back (lost or corrupted on either way: both sides realign on
+    ``'<'``/``'>'``) leaves the sample missing (counted; the last position held for the
+    engine); a reply whose legs are not all homed, or that the kinematics refuses, is
+    no sample either.
+
+    Parameters
+    ----------
+    device_feed : callable
+        ``bytes -> bytes`` (a :class:`FalconDevice` after :func:`load_firmware` and
+        :func:`home`, possibly through faults).
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene with a delta device.
+    samples : int
+        Packets sent.
+    faults : object, optional
+        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.driver_mock.ByteFaults`).
+    leds : int
+        LED flags shown while running (green).
+
+    Returns
+    -------
+    dict
+        ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
+        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters).
+    """
+    from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
+                                       torque_command)
+    from hapsim.engine_nd import EngineND
+    from hapsim.kinematics import device
+    kin = device("delta", scene.device.geometry)
+    eng = EngineND(scene)
+    port = eng.port
+    dec = DevicePacketDecoder()
+    rx = (lambda b: b) if faults is None else faults.rx
+    tx = (lambda b: b) if faults is None else faults.tx
+    N = int(samples)
+    pos = np.full((N, 3), np.nan)
+    joints = np.full((N, 3), np.nan)
+    cmds = np.zeros((N, 3), np.int64)
+    missing = unhomed = 0
+    got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
+    x = J = None
+    started = False
+    for k in range(N):
+        ok = False
+        if got:
+            enc, homed, _ = got[-1]
+            if homed != 0x7:
+                unhomed += 1
+            else:
+                q = np.radians([theta_deg(e) for e in enc])
+                try:
+                    x, J = kin.forward(q), kin.jacobian(q)
+                    ok = True
+                    joints[k], pos[k] = q, x
+                except ConfigError:
+                    pass
+        if not ok:
+            missing += 1
+        if x is not None:
+            if not started:
+                eng.x[:, port] = x
+                eng.xp[:, port] = x
+                started = True
+            eng.set_port_position(x)
+        eng.step()
+        c = (0, 0, 0) if J is None else tuple(torque_command(t) for t in J.T @ eng.port_force)
+        cmds[k] = c
+        got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+    return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
+            "unhomed": unhomed, "decoder": dict(dec.stats)}

@@ -1,0 +1,394 @@
+"""The Haply 2DIY emulated byte for byte: its board's parser with a pantograph as the plant,
+and the host loop that drives it in lockstep (``hapsim run --driver haply`` on a 2-D scene).
+
+The board (:class:`Haply2DIYBoard`) parses the host's bytes as firmware V1.5 does
+(:class:`hapsim.drivers.haply.CommandDecoder`: no framing, a lost byte shifts the parser),
+keeps each motor port's torque until a write changes it (no watchdog), and answers every
+write with ``[id]`` + a float32 per analog pin and encoder port of that id. Each write is
+one period: the torques ``d`` writes back (the scene's ``device.delay``) are held over it
+while the plant advances (:class:`hapsim.lockstep_nd.LocalJointDeviceND`, the pantograph's
+joint-space dynamics), then the encoders are read: ``360 * count / resolution`` with the
+count set to ``int(offset * resolution / 360)`` at the set-up and moving by the joint's
+rotation in whole counts of the hardware's ``cpr``, in the direction the set-up's byte says
+(the generation's wiring counts up with hapsim's joint angle; the other byte counts down;
+the same for the motors' torque sign).
+
+The hand: at each set-up the board's plant is at the scene's operating point (where the
+host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
+:func:`hapsim.lockstep_nd.excitation_starts` (``k`` the set-ups so far), as the n-D mock
+does at each CONFIG (:mod:`hapsim.daemon.mock_nd`).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections import deque
+
+import numpy as np
+
+from hapsim.drivers.haply import CommandDecoder
+from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
+from hapsim.errors import ConfigError, DeviceError
+from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
+
+__all__ = ["BoardParser", "Haply2DIYBoard", "drive_haply2", "measure_felt_haply2"]
+
+_F = struct.Struct("<f")
+_F32_MAX = 3.4028234663852886e38
+
+
+class BoardParser(CommandDecoder):
+    """The firmware's parser, keeping the motors' and the encoders' direction bytes apart
+    (the firmware stores them in ``actuators[i]`` and ``encoders[i]``, ``i`` the k-th
+    active port).
+
+    Attributes
+    ----------
+    motor_direction, encoder_direction : list of int, length 4
+        Direction byte of the k-th active motor / encoder port.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.motor_direction = [0] * 4
+        self.encoder_direction = [0] * 4
+
+    def _setup(self, b) -> int:
+        addr = super()._setup(b)
+        nm = bin(b[2] & 0x0F).count("1")
+        for k in range(nm):
+            self.motor_direction[k] = b[3 + k]
+        i = 3 + nm
+        ne = bin(b[i] & 0x0F).count("1")
+        for k in range(ne):
+            self.encoder_direction[k] = b[i + 1 + k]
+        return addr
+
+
+class Haply2DIYBoard:
+    """An emulated Haply board driving a 2DIY pantograph (module notes).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A 2-D scene whose device is a pantograph.
+    generation : {"gen2", "gen3"}
+        The hardware's wiring (direction bytes that count up) and encoders.
+    cpr : float, optional
+        The encoders' real counts per revolution (default the generation's).
+    amplitude : float
+        The hand's amplitude ``a`` [m].
+
+    Raises
+    ------
+    ConfigError
+        Not a 2-D pantograph scene; an unknown generation.
+
+    Attributes
+    ----------
+    parser : BoardParser
+    setups : int
+        Set-ups taken (the hand's cycle).
+    writes : int
+        Writes taken (periods advanced).
+    torque : dict
+        Torque held per motor port (1..4) [N m], as the wire gave it.
+    """
+
+    def __init__(self, scene, generation: str = "gen3", *, cpr: float | None = None,
+                 amplitude: float = 1e-8) -> None:
+        dev = scene.device
+        if scene.dimension != 2 or dev is None or dev.kind != "pantograph":
+            raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
+                              file=scene.path, key="device.kind")
+        if generation not in GENERATIONS:
+            raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
+                              f"{', '.join(GENERATIONS)}", key="generation")
+        self.scene = scene
+        self.gen = GENERATIONS[generation]
+        self.cpr = float(cpr or self.gen.resolution)
+        self.amplitude = float(amplitude)
+        self.parser = BoardParser()
+        self.delay = int(dev.delay)
+        self._fifo = deque([None] * self.delay)
+        self.torque = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
+        self.setups = 0
+        self.writes = 0
+        self.plant = LocalJointDeviceND(scene, np.zeros(2), np.zeros(2))
+        self._base = {}                       # port -> (count at set-up, hardware count then)
+
+    def _hw_count(self, joint: int) -> int:
+        return round(math.degrees(self.plant.joints()[joint]) * self.cpr / 360.0)
+
+    def _joint_of_port(self, port: int) -> int | None:
+        return JOINT_PORTS.index(port) if port in JOINT_PORTS else None
+
+    def _on_setup(self) -> None:
+        p = self.parser
+        # the hand holds the handle at the operating point while the board is set up
+        self.plant = LocalJointDeviceND(self.scene, np.zeros(2), np.zeros(2))
+        self._base = {}
+        for port in range(1, 5):
+            if p.encoder_addr[port - 1]:
+                off = p.encoder_offset[port - 1] * p.encoder_res[port - 1] / 360.0
+                c0 = int(off) if math.isfinite(off) and abs(off) < 2 ** 31 else 0
+                j = self._joint_of_port(port)
+                self._base[port] = (c0, self._hw_count(j) if j is not None else 0)
+        starts = excitation_starts(2, self.amplitude, self.scene.period)
+        x0, v0 = starts[self.setups % len(starts)]
+        self.setups += 1
+        self.plant = LocalJointDeviceND(self.scene, x0, v0)
+        self._fifo = deque([None] * self.delay)
+
+    def _k_of(self, port: int, kind: str) -> int:
+        """The k-th active port's index (the firmware's actuators[k]/encoders[k])."""
+        p = self.parser
+        addrs = p.motor_addr if kind == "motor" else p.encoder_addr
+        active = [q for q in range(1, 5) if addrs[q - 1]]
+        return active.index(port) if port in active else 0
+
+    def angle_deg(self, port: int) -> float:
+        """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``)."""
+        p = self.parser
+        res = p.encoder_res[port - 1]
+        j = self._joint_of_port(port)
+        c0, hw0 = self._base.get(port, (0, 0))
+        moved = (self._hw_count(j) - hw0) if j is not None else 0
+        up = p.encoder_direction[self._k_of(port, "encoder")] == self.gen.encoder_direction[j] \
+            if j is not None else True
+        c = c0 + (moved if up else -moved)
+        if not (math.isfinite(res) and res):
+            return math.copysign(math.inf, c) if c else math.nan
+        return 360.0 * c / res
+
+    def _joint_torques(self) -> np.ndarray:
+        p = self.parser
+        tau = np.zeros(2)
+        for j, port in enumerate(JOINT_PORTS):
+            t = self.torque[port]
+            up = p.motor_direction[self._k_of(port, "motor")] == self.gen.motor_direction[j]
+            tau[j] = t if up else -t
+        return tau
+
+    def feed(self, data: bytes) -> bytes:
+        """Host bytes in, the board's replies out (one per write)."""
+        out = bytearray()
+        p = self.parser
+        for cmd in p.commands(data):
+            if cmd[0] == "setup":
+                self._on_setup()
+                continue
+            if cmd[0] != "write":
+                continue
+            _, addr, tq = cmd
+            new = {}
+            for port0, t in tq.items():
+                if not math.isfinite(t):
+                    t = 0.0                       # (the firmware: a NaN duty is 0)
+                new[port0 + 1] = max(-0.123, min(0.123, t))
+            self._fifo.append(new)
+            due = self._fifo.popleft()
+            if due:
+                self.torque.update(due)
+            self.plant.step_torque(self._joint_torques())
+            self.writes += 1
+            na, encs = p.reply_layout(addr)
+            out += bytes([addr]) + _F.pack(0.0) * na
+            for port0 in encs:
+                a = self.angle_deg(port0 + 1)
+                if abs(a) > _F32_MAX:
+                    a = math.copysign(math.inf, a)
+                out += _F.pack(a)
+        return bytes(out)
+
+
+def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=None,
+                 engine=None) -> dict:
+    """Drive a 2DIY over its bytes in lockstep: arm, then one write per sample.
+
+    Each sample: the reply's angles (whole counts) are the joints ``q`` [rad], the handle
+    at ``f(q)`` (:class:`hapsim.kinematics.Pantograph`, exact), the n-D engine's force
+    ``F`` on the port, the torques ``J(q)^T F`` written (clamped, binary32). A write whose
+    reply does not come (lost, corrupted, misaligned) leaves that sample missing (the last
+    position held for the engine; counted); a desync the decoder counts, or
+    :data:`MISSING_RESYNC` missing replies in a row, re-arm the board (counted; the
+    re-arming write is that sample's). The first reply after a set-up must read the
+    offsets the set-up sent (within the decoder's step, 2 deg): otherwise the stream
+    corrupted the set-up (a wrong offset would shift every later angle), which is counted
+    in ``bad_setups`` and armed again.
+
+    Parameters
+    ----------
+    board_feed : callable
+        ``board_feed(bytes) -> bytes``: the device (an emulated board, through faults).
+    driver : hapsim.drivers.haply2.Haply2DIY
+    scene : hapsim.scene_nd.SceneND
+    samples : int
+        Writes after arming.
+    faults : object, optional
+        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.driver_mock.ByteFaults`).
+    engine : hapsim.engine_nd.EngineND, optional
+        A fresh engine (default: one of ``scene``).
+
+    Returns
+    -------
+    dict
+        ``position`` (N, 2) [m] (NaN where missing), ``joints`` (N, 2) [rad], ``torque``
+        (N, 2) [N m] written, ``missing`` (samples without a reply), ``resyncs``,
+        ``bad_setups``, ``decoder`` (the reply decoder's counters), ``writes``.
+    """
+    from hapsim.engine_nd import EngineND
+    from hapsim.kinematics import device
+    dev = scene.device
+    kin = device(dev.kind, dev.geometry)
+    q0deg = [math.degrees(v) for v in dev.joints]
+    eng = EngineND(scene) if engine is None else engine
+    port = eng.port
+    dec = driver.decoder()
+    rx = (lambda b: b) if faults is None else faults.rx
+    tx = (lambda b: b) if faults is None else faults.tx
+    N = int(samples)
+    pos = np.full((N, 2), np.nan)
+    joints = np.full((N, 2), np.nan)
+    torque = np.zeros((N, 2))
+    missing = resyncs = 0
+    in_row = 0
+    zero = driver.write_bytes((0.0, 0.0))
+    bad_setups = 0
+
+    def arm(at_deg):
+        """Re-arm at the joints ``at_deg``; the first reply, or None when it is missing
+        or does not read the offsets just sent (a set-up the stream corrupted)."""
+        nonlocal bad_setups
+        data = driver.arm_bytes(at_deg)
+        dec.feed(tx(board_feed(rx(data[:-len(zero)]))))  # a reply before the set-up: dropped
+        dec.reset_prediction()                           # the hand moved the handle
+        got = dec.feed(tx(board_feed(rx(zero))))
+        if not got:
+            return None
+        a = driver.joints_of(got[-1])
+        if max(abs(math.degrees(a[j]) - at_deg[j]) for j in range(2)) > dec.max_step:
+            bad_setups += 1
+            dec.reset_prediction()
+            return None
+        return got[-1]
+    last = arm(q0deg)
+    if last is None:
+        in_row = MISSING_RESYNC                          # arm again at once
+    x = None
+    desync0 = 0
+    for k in range(N):
+        if last is None:
+            missing += 1
+            in_row += 1
+        else:
+            in_row = 0
+            q = np.asarray(driver.joints_of(last))
+            joints[k] = q
+            try:
+                x = kin.forward(q)
+                J = kin.jacobian(q)
+            except ConfigError:             # a reply the kinematics refuses: no sample
+                missing += 1
+                x = None
+            if x is not None:
+                pos[k] = x
+        if x is not None:
+            if k == 0:
+                eng.x[:, port] = x
+                eng.xp[:, port] = x
+            eng.set_port_position(x)
+        eng.step()
+        F = eng.port_force
+        tau = J.T @ F if x is not None else np.zeros(2)
+        torque[k] = driver.clamp(tau)
+        if dec.stats["desync"] != desync0 or in_row >= MISSING_RESYNC:
+            desync0 = dec.stats["desync"]
+            resyncs += 1
+            in_row = 0
+            # zero torque, the set-up at the last joints read, a zero write (its reply
+            # is the next sample): the angles go on from where they were
+            good = joints[~np.isnan(joints[:, 0])]
+            at = good[-1] if good.size else np.radians(q0deg)
+            last = arm([math.degrees(v) for v in at])
+            if last is None:
+                in_row = MISSING_RESYNC
+            continue
+        got = dec.feed(tx(board_feed(rx(driver.write_bytes(tau)))))
+        last = got[-1] if got else None
+    return {"position": pos, "joints": joints, "torque": torque, "missing": missing,
+            "resyncs": resyncs, "bad_setups": bad_setups, "decoder": dict(dec.stats),
+            "writes": N}
+
+
+#: Missing replies in a row after which the host re-arms the board (it may be inside a
+#: garbage command, or have lost its set-up).
+MISSING_RESYNC = 5
+
+
+def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1e-5,
+                        cpr: float | None = None, resolution: float | None = None,
+                        samples: int | None = None, progress=None) -> dict:
+    """The felt matrices of a pantograph scene measured through the emulated 2DIY's bytes.
+
+    ``2n + 1`` records (each an arm: the set-up, whose hand starts the record; then
+    ``samples`` writes) driven by :func:`drive_haply2` on a clean stream, the records
+    minus the one from rest fitted as in lockstep
+    (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+    generation : {"gen2", "gen3"}
+    amplitude : float
+        The hand's ``a`` [m].
+    cpr : float, optional
+        The emulated encoders' counts per revolution (default the generation's).
+    resolution : float, optional
+        The set-up's counts per revolution (default ``cpr``).
+    samples : int, optional
+        Writes per record (default :func:`hapsim.lockstep_nd.default_samples`).
+    progress : callable, optional
+
+    Returns
+    -------
+    dict
+        ``measured``, ``predicted``, ``deviation`` (as
+        :func:`hapsim.lockstep_nd.measure_felt_lockstep`), ``quantum`` (the reading's
+        resolution at the handle over ``a`` [-]: the larger of one encoder count and
+        the binary32 angle's half-ulp, times ``|J|``), ``quantum_encoders`` (one count of
+        each generation's encoders at the handle over ``a``), ``records``, ``samples``.
+
+    Raises
+    ------
+    DeviceError
+        A record with a missing reply (the clean stream lost one).
+    """
+    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.lockstep_nd import felt_deviation, identification_plan
+    chk, order, N = identification_plan(scene, samples)
+    n = 2
+    board = Haply2DIYBoard(scene, generation, cpr=cpr, amplitude=amplitude)
+    drv = Haply2DIY(generation, resolution=resolution or board.cpr)
+    recs = []
+    for j in range(2 * n + 1):
+        r = drive_haply2(board.feed, drv, scene, N)
+        if r["missing"]:
+            raise DeviceError(f"record {j}: {r['missing']} replies missing on a clean stream")
+        recs.append(r["position"])
+        if progress is not None:
+            progress(j + 1, 2 * n + 1)
+    rest = recs[0]
+    fit = fit_felt_nd([r - rest for r in recs[1:]], scene.device.mass, scene.period, order)
+    q = np.asarray(scene.device.joints, float)
+    from hapsim.kinematics import device
+    J = device("pantograph", scene.device.geometry).jacobian(q)
+    ulp = max(np.spacing(np.float32(abs(math.degrees(v)))) for v in q) / 2
+    step = max(2 * math.pi / board.cpr, math.radians(float(ulp)))
+    Jn = float(np.linalg.norm(J, 2))
+    return {"measured": fit, "predicted": chk, "deviation": felt_deviation(fit, chk),
+            "quantum": Jn * step / amplitude,
+            "quantum_encoders": {g: Jn * 2 * math.pi / GENERATIONS[g].resolution / amplitude
+                                 for g in GENERATIONS},
+            "records": 2 * n, "samples": N}

@@ -1,0 +1,275 @@
+"""Haply 2DIY: the pantograph's two joints on a Haply board, the bytes of its two generations.
+
+The board's command layout is the 1-DoF driver's (:mod:`hapsim.drivers.haply`: firmware
+V1.5's ``setup_device``, ``write_states``, ``read_states``; no framing, no checksum;
+IEEE-754 binary32 little-endian); the 2DIY uses two motor ports and two encoder ports, as
+Haply's hAPI host library sets it up (``Device.java`` V2.2: ``add_actuator``,
+``add_encoder``, ``device_set_parameters``, ``device_write_torques``,
+``device_read_data``). Ports are listed in port order, whatever joint each drives:
+
+host -> device ::
+
+    set-up  [1][id][motor mask][motor direction per port][encoder mask]
+            [encoder direction per port][0 analog][0 pwm]
+            [per encoder port: float32 offset deg, float32 counts per revolution]
+    write   [2][id][float32 torque N m of port 1][float32 torque N m of port 2]
+
+device -> host, after each write ::
+
+    [id][float32 angle deg of encoder port 1][float32 angle deg of encoder port 2]
+
+so a write is 10 bytes, a reply 9, a set-up 26. The 2DIY wires joint 1 (hAPI's
+actuator/encoder 1) to port 2 and joint 2 to port 1, in both generations; the
+generations differ in their encoders and direction bytes (hAPI's examples,
+``hardwareVersion`` 2 and 3):
+
+========== =================== ================== ====================
+generation motor direction      encoder direction  counts per revolution
+           (joint 1, joint 2)   (joint 1, joint 2)
+========== =================== ================== ====================
+``gen2``   CCW (1), CW (0)      CCW (1), CW (0)    10752
+``gen3``   CW (0), CW (0)       CCW (1), CCW (1)   4880
+========== =================== ================== ====================
+
+hAPI also sends its own encoder offsets (241 and -61 deg, 180 and 0 deg): the joint angles
+of its kinematic convention at the pose the board is set up in. hapsim's pantograph
+(:class:`hapsim.kinematics.Pantograph`) has its own convention, so this driver sends as
+offsets the joint angles (in hapsim's convention) of the pose the handle is held at when
+hapsim arms it (as the 1-DoF driver does with ``offset_deg``): the board's angles are then
+hapsim's joints directly. The board (firmware V1.5) clamps each torque to 0.123 N m and has
+no watchdog (module notes of :mod:`hapsim.drivers.haply`).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+from hapsim.drivers.base import AlignedDecoder
+from hapsim.drivers.haply import CMD_SETUP, CMD_WRITE, DESYNC_BYTES, LONGEST_COMMAND, MAX_TORQUE
+from hapsim.errors import ConfigError
+
+__all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
+
+_F = struct.Struct("<f")
+_F2 = struct.Struct("<ff")
+
+#: The board port (1..4) of each joint: joint 1 on port 2, joint 2 on port 1 (hAPI's
+#: ``add_actuator(1, .., 2)``, ``add_actuator(2, .., 1)``, the same for the encoders).
+JOINT_PORTS = (2, 1)
+
+
+@dataclass(frozen=True)
+class Generation:
+    """A 2DIY generation's set-up: direction bytes per joint and encoder counts per
+    revolution (hAPI's examples; module notes)."""
+
+    name: str
+    motor_direction: tuple
+    encoder_direction: tuple
+    resolution: float
+
+
+#: The two generations (module notes).
+GENERATIONS = {
+    "gen2": Generation("gen2", (1, 0), (1, 0), 10752.0),
+    "gen3": Generation("gen3", (0, 0), (1, 1), 4880.0),
+}
+
+LIMITS = """\
+Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
+  lockstep against the emulated board only (hapsim.daemon.haply2_board): no real-time
+    n-D driver loop yet
+  no start byte, no checksum: a lost or corrupted byte shifts or alters a reply; the
+    decoder realigns on the id and two plausible angles (whole encoder counts), and the
+    host re-synchronises a board that lost its place
+  angles float32 degrees of whole encoder counts (10752 or 4880 per revolution): a
+    quantum of 1.7 or 3.7 mrad at the joint, tens of micrometres at the handle"""
+
+
+class Reply2Decoder(AlignedDecoder):
+    """Host side: 9-byte replies ``[id][float32 deg][float32 deg]`` out of a byte stream.
+
+    A reply is taken where the id matches and both angles are finite, within
+    ``max_angle_deg``, whole numbers of encoder counts of their port's resolution, and
+    within ``max_step_deg`` of the linear prediction of the last two replies taken (the
+    checks of :class:`hapsim.drivers.haply.ReplyDecoder`, per angle); otherwise one byte
+    is dropped and the next position tried. :data:`~hapsim.drivers.haply.DESYNC_BYTES`
+    bytes dropped in a row count one ``desync`` (again every 100 bytes).
+
+    Parameters
+    ----------
+    device_id : int
+    resolution : tuple of float or None
+        Counts per revolution of encoder ports 1 and 2 (None: no whole-count check).
+    max_angle_deg, max_step_deg : float
+        As :class:`hapsim.drivers.haply.ReplyDecoder` [deg].
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames``, ``skipped``, ``desync``.
+    """
+
+    length = 9
+
+    def __init__(self, device_id: int, resolution=None, max_angle_deg: float = 3600.0,
+                 max_step_deg: float = 2.0) -> None:
+        super().__init__()
+        self.id = device_id & 0xFF
+        self.res = None if resolution is None else tuple(float(r) for r in resolution)
+        self.max = float(max_angle_deg)
+        self.max_step = float(max_step_deg)
+        self._prev = self._prev2 = None
+        self.stats["desync"] = 0
+        self._bad = 0
+
+    def reset_prediction(self) -> None:
+        """Forget the last replies (after a re-synchronisation the angles start afresh)."""
+        self._prev = self._prev2 = None
+
+    def parse(self, buf):
+        """The angles ``(port 1, port 2)`` [deg] of a reply at the start of ``buf``, or
+        None."""
+        if buf[0] != self.id:
+            return None
+        a = _F2.unpack_from(buf, 1)
+        for k, v in enumerate(a):
+            if not (math.isfinite(v) and abs(v) <= self.max):
+                return None
+            if self.res is not None:
+                n = round(v * self.res[k] / 360.0)
+                want = 360.0 * n / self.res[k]
+                if abs(v - want) > 1e-6 * abs(want):
+                    return None
+        if self._prev is not None:
+            for k in range(2):
+                guess = (self._prev[k] if self._prev2 is None
+                         else 2.0 * self._prev[k] - self._prev2[k])
+                if abs(a[k] - guess) > self.max_step:
+                    return None
+        self._prev2, self._prev = self._prev, a
+        return a
+
+    def feed(self, data: bytes) -> list:
+        """Bytes in, the angle pairs (port order) of the replies taken out."""
+        buf = self._buf
+        buf += data
+        out = []
+        st = self.stats
+        while len(buf) >= 9:
+            v = self.parse(buf)
+            if v is not None:
+                out.append(v)
+                del buf[:9]
+                st["frames"] += 1
+                self._bad = 0
+                continue
+            del buf[:1]
+            st["skipped"] += 1
+            self._bad += 1
+            if self._bad % 100 == DESYNC_BYTES:
+                st["desync"] += 1
+                self.reset_prediction()
+        return out
+
+
+class Haply2DIY:
+    """The host's codec of a Haply 2DIY (module notes).
+
+    Parameters
+    ----------
+    generation : {"gen2", "gen3"}
+        The set-up's direction bytes and encoder resolution.
+    device_id : int, 1..255
+    resolution : float, optional
+        Encoder counts per revolution sent in the set-up (default the generation's).
+
+    Raises
+    ------
+    ConfigError
+        An unknown generation (the valid ones named), a bad id or resolution.
+
+    Attributes
+    ----------
+    name : str
+        ``"haply"``.
+    force_limit : float
+        The board's torque clamp [N m].
+    limits : str
+    """
+
+    name = "haply"
+    force_limit = MAX_TORQUE
+    limits = LIMITS
+
+    def __init__(self, generation: str = "gen3", device_id: int = 1,
+                 resolution: float | None = None) -> None:
+        if generation not in GENERATIONS:
+            raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
+                              f"{', '.join(GENERATIONS)}", key="generation")
+        if not 1 <= int(device_id) <= 255:
+            raise ConfigError(f"device id must be 1..255, got {device_id!r}",
+                              key="device_id")
+        g = GENERATIONS[generation]
+        res = g.resolution if resolution is None else float(resolution)
+        if not (math.isfinite(res) and res > 0):
+            raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
+                              key="resolution")
+        self.generation = g
+        self.id = int(device_id)
+        self.resolution = _F.unpack(_F.pack(res))[0]      # binary32 on the wire
+
+    def setup_bytes(self, joints_deg) -> bytes:
+        """The set-up: both motors and encoders, the encoders' offsets the joints' angles
+        ``joints_deg`` (joint 1, joint 2) [deg] at the pose the handle is held at.
+
+        Returns
+        -------
+        bytes
+            26 bytes (module notes).
+        """
+        g = self.generation
+        by_port = sorted(range(2), key=lambda j: JOINT_PORTS[j])      # joints in port order
+        mask = sum(1 << (JOINT_PORTS[j] - 1) for j in range(2))
+        out = bytes([CMD_SETUP, self.id, mask]) + bytes(g.motor_direction[j] for j in by_port)
+        out += bytes([mask]) + bytes(g.encoder_direction[j] for j in by_port) + bytes((0, 0))
+        for j in by_port:
+            out += _F.pack(float(joints_deg[j])) + _F.pack(self.resolution)
+        return out
+
+    def clamp(self, torques) -> tuple:
+        """Torques [N m] as the board takes them: non-finite as 0, clamped to 0.123 N m,
+        rounded to binary32 (joint order)."""
+        out = []
+        for t in torques:
+            t = float(t) if math.isfinite(t) else 0.0
+            t = max(-MAX_TORQUE, min(MAX_TORQUE, t))
+            out.append(_F.unpack(_F.pack(t))[0])
+        return tuple(out)
+
+    def write_bytes(self, torques) -> bytes:
+        """The write of the joint torques ``(tau_1, tau_2)`` [N m] (clamped, port order):
+        10 bytes."""
+        t = self.clamp(torques)
+        return bytes([CMD_WRITE, self.id]) + _F2.pack(t[1], t[0])      # port 1 = joint 2
+
+    def arm_bytes(self, joints_deg) -> bytes:
+        """Zero torque whatever the board's parser is doing, then the set-up and a
+        zero-torque write whose reply is the first sample: a zero write, ``LONGEST_COMMAND``
+        zero bytes (zero torque inside a write, resets elsewhere), two bytes 3 (no
+        command), the set-up, a zero write (as :meth:`hapsim.drivers.haply.HaplyM3.resync`).
+        """
+        zero = self.write_bytes((0.0, 0.0))
+        return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + self.setup_bytes(joints_deg) \
+            + zero
+
+    def decoder(self) -> Reply2Decoder:
+        """A fresh reply decoder (whole counts at the set-up's resolution)."""
+        return Reply2Decoder(self.id, (self.resolution, self.resolution))
+
+    @staticmethod
+    def joints_of(reply) -> tuple:
+        """A reply's angles (port 1, port 2) [deg] as the joints (joint 1, joint 2) [rad]."""
+        return (math.radians(reply[1]), math.radians(reply[0]))
