@@ -43,12 +43,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
+
+if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
+    from hapsim.analysis.loop import LoopModel
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
            "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
@@ -58,11 +61,22 @@ __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability
            "CheckReportND", "ModesReportND", "RunReportND"]
 
 
+#: Public names provided on first use (PEP 562), with the module that defines them:
+#: importing the analysis costs more than the rest of this module together.
+_LAZY = {"LoopModel": "hapsim.analysis.loop"}
+
+
 def __getattr__(name: str):
-    if name == "LoopModel":               # the analysis's loop model, imported on demand
-        from hapsim.analysis.loop import LoopModel
-        return LoopModel
+    if name in _LAZY:
+        import importlib
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value            # once: the next reads find it directly
+        return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
 
 
 def load_scene(path: str | os.PathLike):

@@ -360,19 +360,24 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
 
 def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
                      quantum: float, noise: float = 0.0, rel: float = 0.0,
-                     estimated_flag: int = 32) -> np.ndarray:
+                     estimated_flag: int = 32, coulomb: float = 0.0) -> np.ndarray:
     """The largest error of each estimated sample's position (a driver's missing reply).
 
-    The loop steps a tick whose reply never came with ``x_e = (r + 1) x[k-1] - r x[k-2]``,
-    the ``r``-th estimate in a row (``r`` = 1, 2) extrapolated from the last two readings.
-    The reading it stands for, ``x[k-1+r]``, differs from it by the device's motion and
-    the readings' errors: with ``p`` the true position and ``x = p + eps``, ``|eps| <= q/2``
-    (the sensor step q, plus ``3 noise`` and the wire's relative rounding),
-    ``x_e - x[k-1+r] = -(p[k-1+r] - (r+1) p[k-1] + r p[k-2]) + (r+1) eps[k-1] - r eps[k-2]
-    - eps[k-1+r]``; Taylor's theorem bounds the first term by ``r (r+1)/2 T^2 a_max``, the
-    rest by ``(r+1) q``. During the missing reply the device applied the force sent or the
-    one before (the account's ambiguity): ``a_max = (max|F| + b0 v_max) / m`` over the
-    record (no hand on the device in a free response), ``v_max`` from its largest step.
+    The loop steps a tick whose reply never came with the position extrapolated linearly
+    from the last two records (:meth:`hapsim.drivers.transport.DriverTransport.estimate`):
+    records ``j`` and ``j - g`` (``g`` ticks apart: 1, or more when a reply between them
+    was missing too), the estimate for tick ``j + r`` (``r`` = 1, 2: the ``r``-th in a
+    row) is ``x_e = x[j] + r/g (x[j] - x[j-g])``. The reading it stands for, ``x[j+r]``,
+    differs from it by the device's motion and the readings' errors: with ``p`` the true
+    position and ``x = p + eps``, ``|eps| <= q/2`` (the sensor step q, plus ``3 noise`` and
+    the wire's relative rounding), ``x_e - x[j+r] = -(p[j+r] - L(j+r)) + (1 + r/g) eps[j]
+    - r/g eps[j-g] - eps[j+r]`` with ``L`` the line through the two records; the error of
+    linear interpolation (Taylor's theorem, the remainder of the Lagrange interpolant
+    through ``j - g`` and ``j``) bounds the first term by ``r (r+g)/2 T^2 a_max``, the
+    rest by ``(1 + r/g) q``. During the missing reply the device applied the force sent or
+    the one before (the account's ambiguity): ``a_max = (max|F| + b0 v_max + F_c) / m``
+    over the record (no hand on the device in a free response; ``F_c`` its Coulomb
+    friction), ``v_max`` from its largest step.
 
     Parameters
     ----------
@@ -386,6 +391,8 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
         Sensor step [m], noise standard deviation [m], the wire's relative rounding.
     estimated_flag : int
         The ``flags`` bit of an estimated row (``FLAG_ESTIMATED``).
+    coulomb : float
+        The device's Coulomb friction F_c [N].
 
     Returns
     -------
@@ -400,13 +407,18 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
     x = np.asarray(cols["position"], float)
     f = np.asarray(cols["force"], float)
     v = float(np.max(np.abs(np.diff(x)))) / period + quantum / period if x.size > 1 else 0.0
-    a = (float(np.max(np.abs(f))) + abs(friction) * v) / mass if mass > 0 else math.inf
+    a = ((float(np.max(np.abs(f))) + abs(friction) * v + abs(coulomb)) / mass
+         if mass > 0 else math.inf)
     eps = 0.5 * quantum + 3.0 * noise + rel * float(np.max(np.abs(x)))
-    run = 0
+    seq = np.asarray(cols["seq"], np.int64) if "seq" in cols else np.arange(est.size)
+    last = prev = None                     # the seqs of the last two records
     for k in range(est.size):
-        run = run + 1 if est[k] else 0
-        if run:
-            out[k] = run * (run + 1) / 2 * period * period * a + (2 * run + 2) * eps
+        if not est[k]:
+            last, prev = int(seq[k]), last
+            continue
+        r = int(seq[k]) - last if last is not None else 1
+        g = last - prev if prev is not None and last > prev else 1
+        out[k] = r * (r + g) / 2 * period * period * a + (2 + 2 * r / g) * eps
     return out
 
 

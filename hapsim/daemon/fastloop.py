@@ -701,6 +701,10 @@ class CompiledHostLoop(HostLoop):
     def _device_clocked_stretch(self, n_max: int) -> None:
         if self.poll is not None:   # a per-sample Python hook (live changes): Python's loop
             self.compiled = False
+        if getattr(self.transport, "compact", False):
+            # compact frames (PROTOCOL.md §4): the compiled stretch reads and writes full
+            # STATE / FORCE frames only; the reference loop sends through the transport
+            self.compiled = False
         if not self.compiled:
             return super()._device_clocked_stretch(n_max)
         states = self._device_states(n_max)

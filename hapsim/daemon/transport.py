@@ -146,11 +146,31 @@ class SerialTransport:
         self._timeout = read_timeout
         self._read = self._ser.read
         self._write = self._ser.write
+        self._compact = False
 
     @property
     def decoder(self) -> fp.StreamDecoder:
         """The stream decoder (counters in ``.stats``)."""
         return self._dec
+
+    @property
+    def compact(self) -> bool:
+        """Whether the session uses the compact frames (:meth:`set_compact`)."""
+        return self._compact
+
+    def set_compact(self, rate_hz: float | None) -> None:
+        """Enter (``rate_hz``) or leave (None) a compact session (PROTOCOL.md §4 "Compact
+        frames"): each FORCE is then sent as FORCE_COMPACT and each STATE_COMPACT received
+        comes out as the STATE it stands for (:class:`firmware_protocol.CompactExpander`,
+        restarted at every CONFIG sent).
+
+        Parameters
+        ----------
+        rate_hz : float or None
+            Tick rate of the session [Hz]; None: full frames.
+        """
+        self._compact = rate_hz is not None
+        self._dec.expander = fp.CompactExpander(rate_hz) if self._compact else None
 
     def send(self, msg) -> None:
         """Encode and write one message.
@@ -165,6 +185,11 @@ class SerialTransport:
         DeviceError
             When the write fails (port gone); the message carries the last frames.
         """
+        if self._compact:
+            if type(msg) is fp.Force:
+                msg = fp.compact_force(msg)
+            elif type(msg) is fp.Config:
+                self._dec.expander.restart(msg.rate_hz)   # the device restarts its seq
         try:
             self._write(fp.encode(msg))
         except Exception as exc:  # serial.SerialException, OSError, SerialTimeoutException
@@ -242,6 +267,7 @@ class SerialTransport:
         except (AttributeError, NotImplementedError, ValueError, OSError):
             pass
         self._dec.reset()
+        self.set_compact(None)   # a device that vanished may have reset: ask again
         self._read = self._ser.read
         self._write = self._ser.write
         self.reopened = getattr(self, "reopened", 0) + 1
