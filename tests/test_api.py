@@ -99,7 +99,7 @@ def test_identify_report_fields_are_the_commands_json_keys():
 
 
 def test_a_report_keeps_a_key_it_has_no_field_for():
-    rep = api.StabilityReport._from({**dict.fromkeys(_fields(api.StabilityReport)),
+    rep = api.StabilityReport.from_dict({**dict.fromkeys(_fields(api.StabilityReport)),
                                      "new_key": 1})
     assert rep.extra == {"new_key": 1} and rep.to_dict()["new_key"] == 1
 

@@ -142,6 +142,6 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
     got["lose"] = True
     assert main(["run", WALL, "--lockstep"]) == 1
     cap = capsys.readouterr()
-    assert cap.out.strip() == api.RunReport._from(
+    assert cap.out.strip() == api.RunReport.from_dict(
         {**canned, "error": {"type": "DeviceError", "message": "gone"}}).text()
     assert cap.err.rstrip().endswith("hapsim run: DeviceError: gone")
