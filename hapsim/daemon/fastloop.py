@@ -537,7 +537,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
 def compiled_available(transport) -> bool:
     """Whether the compiled loop can own this transport's port (a pyserial port with a
     file descriptor: hardware, or the mock's pty)."""
-    ser = getattr(transport, "_ser", None)
+    ser = getattr(transport, "serial_port", None)
     return isinstance(getattr(ser, "fd", None), int)
 
 
@@ -620,7 +620,7 @@ class CompiledHostLoop(HostLoop):
         pv[P_NEWEST] = 1.0 if cfg.backlog == "newest" else 0.0
         pv[P_AHEAD] = pv[P_SILENCE] * float(cfg.rate_hz) + 2.0
         u8 = np.zeros(8, dtype=np.uint8)
-        fd = self.transport._ser.fd if self.compiled else -1
+        fd = self.transport.serial_port.fd if self.compiled else -1
         self._fast = {
             "iv": iv, "fv": fv, "pv": pv,
             "fh": np.zeros(d + 2, dtype=np.float64),
@@ -766,16 +766,15 @@ class CompiledHostLoop(HostLoop):
 
         def receive(timeout: float):
             fst = self._fast
-            if fst is None or self._fresh or dec._overflow:
+            if fst is None or self._fresh or dec.overflow:
                 return base(timeout)
             iv, fv = fst["iv"], fst["fv"]
             rb = fst["rb"]
-            if dec._buf:                    # a partial frame the decoder holds: ours now
-                pre = dec._buf
+            pre = dec.take_partial()        # a partial frame the decoder holds: ours now
+            if pre:
                 n0 = int(iv[I_RB_LEN])
                 rb[n0:n0 + len(pre)] = np.frombuffer(pre, dtype=np.uint8)
                 iv[I_RB_LEN] = n0 + len(pre)
-                dec._buf = b""
             kind, kargs, xs, fs, port, rec, out = fst["eng"]
             while True:
                 iv[I_SKIPFLAG] = self._skip_flag
