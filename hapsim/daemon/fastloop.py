@@ -53,6 +53,8 @@ from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
+from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
+from hapsim.kernels.ticks import tick_late as _tick_late
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -270,18 +272,12 @@ def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_a
     logged) or R_IOERR (the write failed)."""
     d = np.int64(pv[P_D])
     lt = 0
-    if status & 0x0080 and iv[I_FAPPLIED] == 0:
+    if status & _FORCE_APPLIED and iv[I_FAPPLIED] == 0:
         iv[I_FAPPLIED] = 1
-    if seq >= d:
-        if status & 0x0020:
-            is_late = True
-        elif status & 0x0080 or iv[I_FAPPLIED] == 0:
-            is_late = ((seq - force_seq) & _U32) != d
-        else:
-            is_late = True
-        if is_late and (d > 0 or status & 0x0020):
-            lt = 1
-            iv[I_LATE] += 1
+    # the late-tick rule (hapsim.kernels.ticks), as the Python loop and the account read it
+    if _tick_late(seq, force_seq, status, d, iv[I_FAPPLIED] != 0):
+        lt = 1
+        iv[I_LATE] += 1
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
