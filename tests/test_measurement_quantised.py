@@ -46,7 +46,8 @@ SAMPLES = 1200      # the record: 0.3-1.2 s (the pencil's SVD costs O(n^3))
 
 
 def _simulate(m, b0, K, B, d, rate, q, s, x0, n):
-    """Logged (quantised) positions of the exact sampled loop, shape (n,) [m]."""
+    """Logged (quantised) positions [m] and commanded (unrounded) forces [N] of the exact
+    sampled loop, each shape (n,)."""
     T = 1.0 / rate
     a = b0 / m
     # x'' = -a x' + f / m under a hold: the exact transition over one period
@@ -55,17 +56,17 @@ def _simulate(m, b0, K, B, d, rate, q, s, x0, n):
     g1 = T * T / (2 * m) if a == 0 else (T - phi12) / (a * m)
     g2 = phi12 / m
     x, v = x0, 0.0
-    y = np.empty(n)
+    y, cmd = np.empty(n), np.empty(n)
     f = [0.0] * (n + d + 1)
     prev = round(x0 / q) * q if q else x0
     for i in range(n):
         yi = round(x / q) * q if q else x
         y[i] = yi
-        fi = -K * yi - B * (yi - prev) / T
+        fi = cmd[i] = -K * yi - B * (yi - prev) / T
         f[i + d] = round(fi / s) * s if s else fi
         prev = yi
         x, v = x + phi12 * v + g1 * f[i], ea * v + g2 * f[i]
-    return y
+    return y, cmd
 
 
 def _loop(rng):
@@ -86,12 +87,12 @@ def _loop(rng):
 
 def _measure(m, b0, K, B, d, rate, q, s, x0, *, K_true=None, n=SAMPLES):
     scene = parse_scene(wall_text(K, B, m=m, b0=b0, d=d, rate=rate, x0=x0, force_limit=1e4))
-    y = _simulate(m, b0, K if K_true is None else K_true, B, d, rate, q, s, x0, n)
+    y, cmd = _simulate(m, b0, K if K_true is None else K_true, B, d, rate, q, s, x0, n)
     seq = np.arange(n)
     poles, felt = predicted_poles(scene)
     hello = SimpleNamespace(force_scale=s, position_scale=q)
-    wire = wire_errors(scene, {"seq": seq, "position": y, "force": np.zeros(n)}, d + 3, None,
-                       hello)
+    wire = wire_errors(scene, {"seq": seq, "position": y, "force": cmd}, d + 3, None, hello,
+                       quantum=q)
     meas = identify(y, seq, 1.0 / rate, len(poles), m, d + 3, skip=d + 2, predicted=poles,
                     felt=felt, quantum=q, sensor_response=sensor_error_response(scene, n),
                     wire=wire)

@@ -444,7 +444,11 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         response to the logged position. They do not make the record noisy for the choice
         of path (a float32 record is exact to its rounding), but the stated half-interval
         covers them: ``k_sd_wire = sqrt(sum sd_i^2 g' S_i g)`` with ``S_i`` the coloured
-        covariance of ``response_i`` (as the sensor's).
+        covariance of ``response_i`` (as the sensor's). An entry ``(sd, response,
+        blocks)`` (``blocks`` shape (n,), integer labels aligned with ``y``) is a
+        quantiser's rounding, one value over each run of rows on the same step and
+        independent between runs: ``g' S_i g`` is then ``sum_B (sum_(j in B) s_j)^2``
+        (:func:`_block_variance`).
     bounded : sequence of (array_like, array_like), optional
         Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), the largest
         error of each row of ``y`` [m] (0 where none: an estimated sample's position,
@@ -567,18 +571,18 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     rms, cov, c = _covariance(spec, yw, offset, sensor_response)
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor)),
-                      spec, fi, yw, offset, wire, mass, period,
+                      spec, fi, yw, offset,
+                      None if not wire else [tuple(w[:2]) + tuple(np.asarray(b)[skip:]
+                                                                  for b in w[2:])
+                                             for w in wire], mass, period,
                       None if not bounded else [(np.asarray(e, float)[skip:], r)
                                                 for e, r in bounded])
 
 
-def _bounded_share(spec, fi, y, offset, bounded, mass, period):
-    """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
-    ``bounded``): ``sum_j e_j |s_j|`` with ``s_j = sum_m S_(j+m) h_m`` the fit's first-order
-    response to a unit error at row ``j`` filtered by ``h`` (``S = g' (J'J)^-1 J'``, the
-    linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
-    Sec. 2.1)."""
-    from scipy.signal import fftconvolve
+def _row_sensitivities(spec, fi, y, offset, mass, period):
+    """``(S_k, S_b)``, each shape (n,): the linearised least-squares (k, b) estimate's
+    first-order change per unit change of each row of the record, ``S = g' (J'J)^-1 J'``
+    (Seber & Wild 1989, Sec. 2.1; ``g`` from :func:`_kb_gradients`)."""
     n = y.size
     theta = _theta(spec)
     phi, dcols, c, _ = _solve(spec, theta, y, offset)
@@ -589,6 +593,27 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period):
     P = (np.linalg.pinv(J.T @ J) @ J.T)[:theta.size]
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    return g_k @ P, g_b @ P
+
+
+def _through(S, resp):
+    """``s_j = sum_m S_(j+m) h_m``, shape (n,): the estimate's response to a unit error at
+    row ``j`` that reaches the record through the impulse response ``h``."""
+    from scipy.signal import fftconvolve
+    n = S.size
+    h = np.zeros(n)
+    r = np.asarray(resp, float)[:n]
+    h[:r.size] = r
+    return fftconvolve(S[::-1], h)[:n][::-1]
+
+
+def _bounded_share(spec, fi, y, offset, bounded, mass, period):
+    """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
+    ``bounded``): ``sum_j e_j |s_j|`` with ``s_j`` (:func:`_through`) the fit's first-order
+    response to a unit error at row ``j`` filtered by the error's impulse response
+    (:func:`_row_sensitivities`; Seber & Wild 1989, Sec. 2.1)."""
+    n = y.size
+    S_k, S_b = _row_sensitivities(spec, fi, y, offset, mass, period)
     bk = bb = 0.0
     for e, resp in bounded:
         e = np.asarray(e, float)[:n]
@@ -596,18 +621,28 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period):
             e = np.concatenate([e, np.zeros(n - e.size)])
         if not np.any(e > 0):
             continue
-        h = np.zeros(n)
-        r = np.asarray(resp, float)[:n]
-        h[:r.size] = r
-        for g, acc in ((g_k, "k"), (g_b, "b")):
-            S = g @ P
-            sj = fftconvolve(S[::-1], h)[:n][::-1]
-            v = float(np.sum(e * np.abs(sj)))
-            if acc == "k":
-                bk += v
-            else:
-                bb += v
+        bk += float(np.sum(e * np.abs(_through(S_k, resp))))
+        bb += float(np.sum(e * np.abs(_through(S_b, resp))))
     return bk, bb
+
+
+def _block_variance(spec, fi, y, offset, resp, blocks, mass, period):
+    """Variance factors ``(v_k, v_b)`` of a rounding error that is one value over each
+    block of rows and independent between blocks: ``sum_B (sum_(j in B) s_j)^2``
+    (:func:`_through`). A quantised signal that stays on one step (a position or force near
+    its turning point, where it moves less than a step per tick) keeps its rounding error
+    for the whole run of rows; taken as white, those rows' errors were counted as
+    independent and the interval missed the bias they leave. ``blocks``: shape (n,), one
+    integer label per row (equal labels: one block)."""
+    n = y.size
+    lab = np.asarray(blocks)[:n]
+    lab = np.unique(lab, return_inverse=True)[1].ravel()
+    S_k, S_b = _row_sensitivities(spec, fi, y, offset, mass, period)
+    out = []
+    for S in (S_k, S_b):
+        sj = _through(S, resp)[:lab.size]
+        out.append(float(np.sum(np.bincount(lab, weights=sj) ** 2)))
+    return out
 
 
 def _with_wire(out, spec, fi, y, offset, wire, mass, period, bounded=None):
@@ -625,8 +660,14 @@ def _with_wire(out, spec, fi, y, offset, wire, mass, period, bounded=None):
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
     vk = vb = 0.0
-    for sd, resp in wire:
+    for w in wire:
+        sd, resp = w[0], w[1]
         if not sd > 0:
+            continue
+        if len(w) > 2:          # an error held over blocks of rows: _block_variance
+            fk, fb = _block_variance(spec, fi, y, offset, resp, w[2], mass, period)
+            vk += sd * sd * fk
+            vb += sd * sd * fb
             continue
         _, (_, col), _ = _covariance(spec, y, offset, resp)
         vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)

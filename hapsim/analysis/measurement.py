@@ -74,8 +74,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
-    wire : sequence of (float, ndarray), optional
-        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
+    wire : sequence of (float, ndarray[, ndarray]), optional
+        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`;
+        a third element, the rows' block labels, is aligned with ``position``).
     bounds : sequence of (ndarray, ndarray), optional
         Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), aligned
         with ``position``, the largest error of each row (0 elsewhere; a position that is
@@ -100,6 +101,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     sel = seq >= start
     y, s, lt = pos[sel], seq[sel], lt[sel]
     eb = [(np.asarray(e, float)[sel], r) for e, r in (bounds or ())]
+    wire = [tuple(w[:2]) + tuple(np.asarray(b)[sel] for b in w[2:]) for w in (wire or ())]
     cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
 
     def segments(cut_late: bool):
@@ -144,9 +146,11 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         from hapsim.analysis.identify import measure_felt
         try:
             bounded = [(e[a:b], r) for e, r in eb if np.any(e[a:b] > 0)] or None
+            wire_ab = [tuple(w[:2]) + tuple(blk[a:b] for blk in w[2:]) for w in wire] or None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response, wire=wire, bounded=bounded)
+                               sensor_response=sensor_response, wire=wire_ab,
+                               bounded=bounded)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -422,7 +426,8 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
     return out
 
 
-def wire_errors(scene, cols: dict, start: int, driver, hello=None) -> list:
+def wire_errors(scene, cols: dict, start: int, driver, hello=None, *,
+                quantum: float = 0.0) -> list:
     """The wire's number-format errors of a driver's run, for the stated uncertainty.
 
     A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
@@ -438,10 +443,16 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None) -> list:
     PWM, 0.0227 N) is one too: the device applies the force rounded to it. Left out, the
     run's stated uncertainty missed it: the emulated Hapkit at 4 kHz measured k = 503.55
     +- 0.18 N/m against 503.29 predicted, and over seeded random loops with a force step
-    of K x0 / 300 to K x0 / 30 the error reached 1.5 times the interval without it, 0.6
-    times with it (tests/test_measurement_quantised.py). Its rounding error, which the
-    loop's whole-step forces leave uncorrelated from one tick to the next (the force
-    crosses several steps per tick), is taken as white and uniform, ``s / sqrt(12)``.
+    of K x0 / 300 to K x0 / 30, 5 of 10 errors exceeded the interval, up to 1.5 times
+    (tests/test_measurement_quantised.py).
+
+    A step's rounding error (the actuator's, and the position sensor's ``quantum``) is not
+    white: where the signal moves less than a step per tick (around each turning point of
+    the oscillation) it stays on one step and keeps one error for the whole run of rows.
+    Each entry therefore carries block labels (one per run of rows on the same step, of
+    the commanded force rounded to the step, or of the logged position), and its variance
+    is counted per block (:func:`hapsim.analysis.identify.measure_felt`); taken white,
+    5 of 300 random loops exceeded the interval (up to 1.21 times).
 
     Parameters
     ----------
@@ -456,16 +467,19 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None) -> list:
     hello : firmware_protocol.Hello, optional
         The device's HELLO: its ``force_scale`` [N] (> 0) is the actuator step when the
         driver declares none.
+    quantum : float
+        The position sensor's step [m] (0: none).
 
     Returns
     -------
-    list of (float, ndarray)
-        ``(sd, response)`` pairs; for hapsim's own protocol (float64 fields) only the
-        device's actuator step, if its HELLO declares one.
+    list of tuple
+        ``(sd, response)`` pairs, and ``(sd, response, blocks)`` for a step (``blocks``
+        shape (len(cols["seq"]),): run labels of the rows); for hapsim's own protocol
+        (float64 fields) only the device's actuator and sensor steps.
     """
     hs = float(getattr(hello, "force_scale", 0.0) or 0.0)
     hs = hs if math.isfinite(hs) and hs > 0 else 0.0
-    if driver is None and hs == 0.0:
+    if driver is None and hs == 0.0 and not quantum > 0:
         return []
     from hapsim.analysis.identify import force_error_response, sensor_error_response
     sel = cols["seq"] >= start
@@ -481,9 +495,22 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None) -> list:
         if pr > 0:
             out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
                         sensor_error_response(scene, n)))
-        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
+        sd_f = fr * float(np.max(np.abs(f))) / math.sqrt(3.0)
         if sd_f > 0:
             out.append((sd_f, force_error_response(scene, n)))
+        if fs > 0:
+            out.append((fs / math.sqrt(12.0), force_error_response(scene, n),
+                        _runs(np.round(np.asarray(cols["force"], float) / fs))))
+        if quantum > 0:
+            out.append((quantum / math.sqrt(12.0), sensor_error_response(scene, n),
+                        _runs(np.round(np.asarray(cols["position"], float) / quantum))))
     except ConfigError:
         return []
     return out
+
+
+def _runs(level: np.ndarray) -> np.ndarray:
+    """Run labels, shape (n,): rows of one run of equal consecutive ``level`` share one."""
+    if level.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(level[1:] != level[:-1])]).astype(np.int64)

@@ -699,7 +699,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         from hapsim.daemon.telemetry import FLAG_LOST
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
-        wire = wire_errors(scene, cols, start, driver, hello)
+        wire = wire_errors(scene, cols, start, driver, hello, quantum=quantum)
         hw = late_info.pop("_force_half_width", None)
         bounds = []
         if hw is not None and np.any(hw > 0):
