@@ -50,11 +50,18 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         Difference the signal first (constant equilibrium offset).
     late : ndarray of int, shape (n,), optional
         1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
-        not part of the linear THS: the record is cut there and the longest clean segment
-        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
-        disturbance is again a free response, minus ``skip`` samples of dead-beat
-        transient. Without a long enough clean segment the longest run is used as is
-        (``late_in_segment`` says how many disturbances it holds).
+        not part of the linear THS: the record is cut there as at a gap of seq; the
+        response after a disturbance is again a free response, minus ``skip`` samples of
+        dead-beat transient. Without a clean segment of at least ``max(4 order + 10,
+        100)`` samples the runs of consecutive seq are used as they are
+        (``late_in_segment`` says how many disturbances they hold).
+
+        With ``predicted`` and without ``closed``, every stretch is measured: the longest
+        and each other of at least ``2 (order + 1) + 10`` samples, each a free response
+        of the same loop from its own initial state (:func:`hapsim.analysis.identify.
+        measure_felt` with ``lens``), so a run with gaps, late ticks cut out or a
+        recovery uses all its data. With ``closed`` (contacts) or without a prediction
+        (the pencil alone), the longest stretch only.
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
@@ -74,9 +81,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
-    wire : sequence of (float, ndarray[, ndarray]), optional
-        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`;
-        a third element, the rows' block labels, is aligned with ``position``).
+    wire : sequence of (float, ndarray), optional
+        The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
     bounds : sequence of (ndarray, ndarray), optional
         Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), aligned
         with ``position``, the largest error of each row (0 elsewhere; a position that is
@@ -87,8 +93,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     Returns
     -------
     dict
-        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``
+        (of the first stretch used), ``order``, ``pencil``, ``late_in_segment``,
+        ``stretches`` (of the free response) and ``stretches_used``; with ``predicted`` also ``k_sd``,
         ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
         :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
         be identified or the record cannot support a measurement.
@@ -101,7 +108,6 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     sel = seq >= start
     y, s, lt = pos[sel], seq[sel], lt[sel]
     eb = [(np.asarray(e, float)[sel], r) for e, r in (bounds or ())]
-    wire = [tuple(w[:2]) + tuple(np.asarray(b)[sel] for b in w[2:]) for w in (wire or ())]
     cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
 
     def segments(cut_late: bool):
@@ -122,16 +128,32 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         return out or [(0, 0)]
 
     need = max(4 * int(order) + 10, 100)
+    # a further stretch is fitted with the longest when it holds more samples than its
+    # own initial condition's coefficients (order + offset) by a margin
+    extra = 2 * (int(order) + 1) + 10
     a = b = 0
+    segs = [(0, 0)]
     if y.size:
         segs = segments(True)
         a, b = max(segs, key=lambda ab: ab[1] - ab[0])
         if b - a < need:
-            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
+            segs = segments(False)
+            a, b = max(segs, key=lambda ab: ab[1] - ab[0])
     late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
-    y, s = y[a:b], s[a:b]
-    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
-           "order": int(order), "late_in_segment": late_in}
+    if cl is None and predicted is not None and felt is not None:
+        # every stretch (each from its own initial state, the loop's poles shared): a run
+        # with gaps or a recovery is measured on all its data, not its longest stretch
+        use = [(a, b)] + [(p, q) for p, q in segs if (p, q) != (a, b) and q - p >= extra]
+        use.sort()
+    else:
+        use = [(a, b)]
+    late_in = sum(int(np.count_nonzero(lt[p + 1:q])) for p, q in use if q > p)
+    y = np.concatenate([y[p:q] for p, q in use])
+    first = s[use[0][0]:use[0][1]]
+    lens = [q - p for p, q in use]
+    out = {"samples_used": int(y.size), "first_seq": int(first[0]) if first.size else None,
+           "order": int(order), "late_in_segment": late_in, "stretches_used": len(use),
+           "stretches": len([1 for p, q in segs if q > p])}
     if cl is not None:
         out["comparable"] = bool(b - a >= need)
         if not out["comparable"]:
@@ -140,16 +162,16 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                              f"samples, fewer than the {need} the fit needs")
             return out
     from hapsim.analysis.identify import thin_pencil
-    pencil = thin_pencil(order, y.size - (1 if offset else 0))
+    pencil = thin_pencil(order, int(b - a) - (1 if offset else 0))
     out["pencil"] = pencil
     if predicted is not None and felt is not None and y.size:
         from hapsim.analysis.identify import measure_felt
         try:
-            bounded = [(e[a:b], r) for e, r in eb if np.any(e[a:b] > 0)] or None
-            wire_ab = [tuple(w[:2]) + tuple(blk[a:b] for blk in w[2:]) for w in wire] or None
+            be = [(np.concatenate([e[p:q] for p, q in use]), r) for e, r in eb]
+            bounded = [(e, r) for e, r in be if np.any(e > 0)] or None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response, wire=wire_ab,
+                               sensor_response=sensor_response, wire=wire, lens=lens,
                                bounded=bounded)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
@@ -223,7 +245,7 @@ def verdict(pred: dict, measured: dict) -> None:
     if "k_sd_wire" in measured:
         measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
                                      f"the fit, residual, sensor or the wire's number "
-                                     f"format and actuator step, the largest")
+                                     f"format, the largest")
     ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
     measured["within"] = bool(ok)
     measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else
@@ -289,6 +311,11 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     position minus the loop's response to ``w = applied - F[n-d]``
     (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
     so the whole record is measured, not only the longest stretch without a late tick.
+    So is an actuator's rounding: a framed device whose HELLO states a ``force_scale``
+    (the Hapkit firmware's PWM step, to which it rounds every FORCE to the nearest) applies
+    that step's multiple, and ``w`` holds the rounding at every tick (left in, the 22.7 mN
+    steps biased the measured k of the emulated Hapkit in real time: -0.336 +- 0.286 N/m
+    from the prediction in one record, +0.027 with the rounding taken out).
 
     Parameters
     ----------
@@ -329,14 +356,22 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
             hw = np.asarray(acc.half_width, float)
             return pos, late, ({"_force_half_width": hw} if np.any(hw > 0) else {})
     else:
-        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+        # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
+        # the nearest step of every force (the firmware rounds so): a known input at every
+        # tick, late or not, taken out as a late tick's is
+        step = float(getattr(hello, "force_scale", 0.0) or 0.0) if hello is not None else 0.0
+        step = step if math.isfinite(step) and step > 0 else 0.0
+        if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0):
             return pos, late, {}
         lim = float(dev.force_limit)
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
             lim = min(lim, float(hello.force_limit))
         acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                     zero_delay=dev.delay == 0, force_limit=lim)
+                                     zero_delay=dev.delay == 0, force_limit=lim,
+                                     force_scale=step)
     info = {"device_delay": int(acc.delay), "account": acc.method}
+    if driver is None and step > 0:
+        info["force_step"] = step
     if acc.delay != dev.delay:
         # the model of the loop would be the wrong one: measure as recorded, and say so
         info["late_accounted"] = 0
@@ -426,8 +461,7 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
     return out
 
 
-def wire_errors(scene, cols: dict, start: int, driver, hello=None, *,
-                quantum: float = 0.0) -> list:
+def wire_errors(scene, cols: dict, start: int, driver) -> list:
     """The wire's number-format errors of a driver's run, for the stated uncertainty.
 
     A driver declares ``position_rel`` / ``force_rel`` (the relative rounding of a float32
@@ -439,21 +473,6 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None, *,
     the virtual links), the force's as a force error at the device
     (:func:`hapsim.analysis.identify.force_error_response`).
 
-    A framed device's actuator step (``HELLO.force_scale``: the Hapkit firmware's 8-bit
-    PWM, 0.0227 N) is one too: the device applies the force rounded to it. Left out, the
-    run's stated uncertainty missed it: the emulated Hapkit at 4 kHz measured k = 503.55
-    +- 0.18 N/m against 503.29 predicted, and over seeded random loops with a force step
-    of K x0 / 300 to K x0 / 30, 5 of 10 errors exceeded the interval, up to 1.5 times
-    (tests/test_measurement_quantised.py).
-
-    A step's rounding error (the actuator's, and the position sensor's ``quantum``) is not
-    white: where the signal moves less than a step per tick (around each turning point of
-    the oscillation) it stays on one step and keeps one error for the whole run of rows.
-    Each entry therefore carries block labels (one per run of rows on the same step, of
-    the commanded force rounded to the step, or of the logged position), and its variance
-    is counted per block (:func:`hapsim.analysis.identify.measure_felt`); taken white,
-    5 of 300 random loops exceeded the interval (up to 1.21 times).
-
     Parameters
     ----------
     scene : hapsim.scene.Scene
@@ -464,22 +483,13 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None, *,
         First sequence number of the free response.
     driver : hapsim.drivers.base.Driver or None
         The run's driver (None: hapsim's own protocol).
-    hello : firmware_protocol.Hello, optional
-        The device's HELLO: its ``force_scale`` [N] (> 0) is the actuator step when the
-        driver declares none.
-    quantum : float
-        The position sensor's step [m] (0: none).
 
     Returns
     -------
-    list of tuple
-        ``(sd, response)`` pairs, and ``(sd, response, blocks)`` for a step (``blocks``
-        shape (len(cols["seq"]),): run labels of the rows); for hapsim's own protocol
-        (float64 fields) only the device's actuator and sensor steps.
+    list of (float, ndarray)
+        ``(sd, response)`` pairs; empty for hapsim's own protocol (float64 fields).
     """
-    hs = float(getattr(hello, "force_scale", 0.0) or 0.0)
-    hs = hs if math.isfinite(hs) and hs > 0 else 0.0
-    if driver is None and hs == 0.0 and not quantum > 0:
+    if driver is None:
         return []
     from hapsim.analysis.identify import force_error_response, sensor_error_response
     sel = cols["seq"] >= start
@@ -490,27 +500,14 @@ def wire_errors(scene, cols: dict, start: int, driver, hello=None, *,
     out = []
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
     fr = float(getattr(driver, "force_rel", 0.0) or 0.0)
-    fs = float(getattr(driver, "force_scale", 0.0) or 0.0) or hs
+    fs = float(getattr(driver, "force_scale", 0.0) or 0.0)
     try:
         if pr > 0:
             out.append((pr * float(np.max(np.abs(x))) / math.sqrt(3.0),
                         sensor_error_response(scene, n)))
-        sd_f = fr * float(np.max(np.abs(f))) / math.sqrt(3.0)
+        sd_f = math.sqrt((fr * float(np.max(np.abs(f)))) ** 2 / 3.0 + fs * fs / 12.0)
         if sd_f > 0:
             out.append((sd_f, force_error_response(scene, n)))
-        if fs > 0:
-            out.append((fs / math.sqrt(12.0), force_error_response(scene, n),
-                        _runs(np.round(np.asarray(cols["force"], float) / fs))))
-        if quantum > 0:
-            out.append((quantum / math.sqrt(12.0), sensor_error_response(scene, n),
-                        _runs(np.round(np.asarray(cols["position"], float) / quantum))))
     except ConfigError:
         return []
     return out
-
-
-def _runs(level: np.ndarray) -> np.ndarray:
-    """Run labels, shape (n,): rows of one run of equal consecutive ``level`` share one."""
-    if level.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    return np.concatenate([[0], np.cumsum(level[1:] != level[:-1])]).astype(np.int64)

@@ -699,7 +699,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         from hapsim.daemon.telemetry import FLAG_LOST
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
-        wire = wire_errors(scene, cols, start, driver, hello, quantum=quantum)
+        wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", None)
         bounds = []
         if hw is not None and np.any(hw > 0):
@@ -814,7 +814,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "python_reason": getattr(run.loop, "python_reason", None),
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
-        "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        "armed_monotonic_s": getattr(run.loop, "armed_at", None),
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
