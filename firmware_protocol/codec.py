@@ -27,18 +27,21 @@ __all__ = [
     "PROTOCOL_VERSION", "MAX_FRAME", "MAX_PACKET", "MAX_AXES", "CRC_INIT",
     "MSG_HELLO", "MSG_HELLO_REQUEST", "MSG_CONFIG", "MSG_LINK", "MSG_SENSORS_REQUEST",
     "MSG_SENSORS", "MSG_STATE", "MSG_FORCE", "MSG_VELOCITY",
+    "MSG_STATE_COMPACT", "MSG_FORCE_COMPACT",
     "MSG_PING", "MSG_PONG", "MSG_FAULT", "MSG_STOP", "MESSAGE_TYPES", "SENSOR_VELOCITY",
+    "FEATURE_COMPACT", "COMPACT_LAG_MAX",
     "STATUS_ARMED", "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FAULT",
     "STATUS_RX_ERROR", "STATUS_OVERRUN", "STATUS_CONFIGURED", "STATUS_FORCE_APPLIED",
     "FAULT_WATCHDOG", "FAULT_BAD_CONFIG", "FAULT_SENSOR", "FAULT_AMPLIFIER",
     "FAULT_NON_FINITE_FORCE", "FAULT_AXES_MISMATCH", "FAULT_RX_ERRORS", "FAULT_OVERRUN",
     "FAULT_VERSION_MISMATCH", "FAULT_NAMES",
     "Hello", "HelloRequest", "Config", "Link", "SensorsRequest", "Sensors", "State", "Force",
-    "Velocity", "Ping", "Pong", "Fault", "Stop",
-    "Message", "FrameError", "DecoderStats", "StreamDecoder",
+    "Velocity", "StateCompact", "ForceCompact", "Ping", "Pong", "Fault", "Stop",
+    "Message", "CompactExpander", "compact_force", "F32_MAX", "FrameError", "DecoderStats", "StreamDecoder",
     "encode", "encode_packet", "decode_frame", "decode_packet", "crc16",
     "state_frame_bytes", "force_frame_bytes", "velocity_frame_bytes", "LINK_LOAD",
-    "link_max_rate",
+    "link_max_rate", "state_compact_frame_bytes", "force_compact_frame_bytes",
+    "ROUND_TRIP_SHARE", "link_round_trip", "wants_compact",
 ]
 
 # --------------------------------------------------------------------------- constants
@@ -71,6 +74,12 @@ MSG_FORCE = 0x11
 #: VELOCITY, device -> host, just before the STATE of the same ``seq``, only while the host
 #: enabled it by SENSORS_REQUEST. Added within version 1 (PROTOCOL.md §9).
 MSG_VELOCITY = 0x12
+#: STATE_COMPACT, device -> host, and FORCE_COMPACT, host -> device: STATE and FORCE with
+#: 16-bit sequence numbers and binary32 values, sent only in a session whose host asked for
+#: them (SENSORS_REQUEST bit :data:`FEATURE_COMPACT`). Added within version 1 (PROTOCOL.md
+#: §4 "Compact frames", §9).
+MSG_STATE_COMPACT = 0x13
+MSG_FORCE_COMPACT = 0x14
 MSG_PING = 0x20
 MSG_PONG = 0x21
 MSG_FAULT = 0x30
@@ -91,6 +100,13 @@ STATUS_FORCE_APPLIED = 0x0080
 
 #: Sensor bits of SENSORS_REQUEST.sensors and SENSORS.offered / SENSORS.enabled.
 SENSOR_VELOCITY = 0x0001
+#: SENSORS_REQUEST / SENSORS bit: STATE_COMPACT instead of STATE, FORCE_COMPACT accepted
+#: (PROTOCOL.md §4 "Compact frames"). Added within version 1.
+FEATURE_COMPACT = 0x0002
+#: STATE_COMPACT.lag saturates here: 255 means "255 ticks or more".
+COMPACT_LAG_MAX = 255
+#: Largest finite binary32 [N]: FORCE_COMPACT saturates a larger finite force to it.
+F32_MAX = 3.4028234663852886e38
 
 #: FAULT.code values.
 FAULT_WATCHDOG = 0x0001
@@ -146,8 +162,78 @@ def velocity_frame_bytes(n_axes: int = 1) -> int:
     return 5 + 4 + 8 * int(n_axes)
 
 
+def state_compact_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a STATE_COMPACT frame: ``5 + 4 + 4 n`` (13 for one axis, §4)."""
+    return 5 + 4 + 4 * int(n_axes)
+
+
+def force_compact_frame_bytes(n_axes: int = 1) -> int:
+    """Bytes on the wire of a FORCE_COMPACT frame: ``5 + 2 + 4 n`` (11 for one axis, §4)."""
+    return 5 + 2 + 4 * int(n_axes)
+
+
+#: Largest share of the tick period the round trip of one STATE and one FORCE on the wire
+#: may take before a host asks for compact frames (PROTOCOL.md §4 "Compact frames": the
+#: rest of the period is the device's sampling, encoding and decoding and the host's answer).
+ROUND_TRIP_SHARE = 0.5
+
+
+def link_round_trip(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
+                    compact: bool = False) -> float:
+    """Time one STATE up and the FORCE answering it down spend on a serial line [s].
+
+    Parameters
+    ----------
+    baud : int
+        Line rate [bit/s]; 0 means "not a UART" (no time on the line).
+    bits_per_byte : int
+        Bits per byte on the line (10 for 8N1).
+    n_axes : int
+        Axes per STATE/FORCE.
+    compact : bool
+        STATE_COMPACT and FORCE_COMPACT instead of STATE and FORCE.
+
+    Returns
+    -------
+    float
+        ``(up + down) * bits_per_byte / baud`` with ``up``, ``down`` the frame bytes
+        (PROTOCOL.md §4 "Compact frames", the byte budget); 0 for ``baud == 0``. One axis at
+        2 Mbaud 8N1: 240 us full (31 + 17 bytes), 120 us compact (13 + 11 bytes).
+    """
+    if baud <= 0:
+        return 0.0
+    if compact:
+        n = state_compact_frame_bytes(n_axes) + force_compact_frame_bytes(n_axes)
+    else:
+        n = state_frame_bytes(n_axes) + force_frame_bytes(n_axes)
+    return n * bits_per_byte / baud
+
+
+def wants_compact(baud: int, bits_per_byte: int, n_axes: int, rate_hz: float) -> bool:
+    """Whether a host should ask for compact frames: the full frames' round trip on the
+    line takes more than :data:`ROUND_TRIP_SHARE` of the tick period (PROTOCOL.md §4).
+
+    Parameters
+    ----------
+    baud, bits_per_byte : int
+        The device's LINK [bit/s], [bits].
+    n_axes : int
+        Axes per STATE/FORCE.
+    rate_hz : float
+        Tick rate the host is about to CONFIGure [Hz], > 0.
+
+    Returns
+    -------
+    bool
+        True e.g. at 4 kHz on 2 Mbaud (240 us of a 250 us period), False at 1 kHz (240 of
+        1000 us) and for a device that is not a UART (``baud == 0``).
+    """
+    return link_round_trip(baud, bits_per_byte, n_axes) > ROUND_TRIP_SHARE / float(rate_hz)
+
+
 def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
-                  load: float = LINK_LOAD, velocity: bool = False) -> float:
+                  load: float = LINK_LOAD, velocity: bool = False,
+                  compact: bool = False) -> float:
     """Largest tick rate a serial line carries: one STATE up and one FORCE down per tick.
 
     The line is full duplex, so the longer direction (device -> host: STATE, and VELOCITY
@@ -167,6 +253,8 @@ def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
         Share of the line the STATE frames may take, 0 < load <= 1.
     velocity : bool
         A VELOCITY frame goes up with every STATE (the host enabled it, §4 SENSORS).
+    compact : bool
+        STATE_COMPACT frames instead of STATE (the host enabled them, §4 "Compact frames").
 
     Returns
     -------
@@ -175,7 +263,8 @@ def link_max_rate(baud: int, bits_per_byte: int = 10, n_axes: int = 1,
     """
     if baud <= 0:
         return math.inf
-    up = state_frame_bytes(n_axes) + (velocity_frame_bytes(n_axes) if velocity else 0)
+    up = (state_compact_frame_bytes(n_axes) if compact else state_frame_bytes(n_axes)) + (
+        velocity_frame_bytes(n_axes) if velocity else 0)
     return load * baud / (bits_per_byte * up)
 
 
@@ -416,6 +505,54 @@ class Velocity:
 
 
 @dataclass(frozen=True, slots=True)
+class StateCompact:
+    """STATE_COMPACT, device -> host: a STATE in 13 bytes (one axis), once per tick instead
+    of STATE while the host enabled :data:`FEATURE_COMPACT` (PROTOCOL.md §4).
+
+    :class:`CompactExpander` turns it back into the :class:`State` it stands for.
+
+    Parameters
+    ----------
+    seq : int, 0..0xFFFF
+        Low 16 bits of the tick counter (the device restarts it at 0 at each CONFIG).
+    status : int, 0..0xFF
+        Low 8 bits of the status (every status bit of version 1).
+    lag : int, 0..255
+        ``seq - force_seq`` (mod 2**32) saturated at :data:`COMPACT_LAG_MAX`; 0 while
+        FORCE_APPLIED is clear.
+    position : tuple of float, length n_axes (1..8)
+        Position per axis [m] (or [rad]), IEEE-754 binary32 (a value that is not a binary32
+        is rounded to nearest, ties to even, when encoded).
+    """
+
+    TYPE: ClassVar[int] = MSG_STATE_COMPACT
+    seq: int
+    status: int
+    lag: int
+    position: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class ForceCompact:
+    """FORCE_COMPACT, host -> device: a FORCE in 11 bytes (one axis), sent instead of FORCE
+    in a session with :data:`FEATURE_COMPACT` enabled (PROTOCOL.md §4).
+
+    Parameters
+    ----------
+    seq : int, 0..0xFFFF
+        Low 16 bits of the ``seq`` of the STATE answered (the device restores the rest
+        from its own tick counter).
+    force : tuple of float, length n_axes (1..8)
+        Force per axis [N] (or [N m]), IEEE-754 binary32 (:func:`compact_force` rounds and
+        saturates a float64 force).
+    """
+
+    TYPE: ClassVar[int] = MSG_FORCE_COMPACT
+    seq: int
+    force: tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
 class Ping:
     """PING, host -> device: the device answers with PONG at once.
 
@@ -477,12 +614,12 @@ class Stop:
 
 
 Message = Union[Hello, HelloRequest, Config, Link, SensorsRequest, Sensors, State, Force,
-                Velocity, Ping, Pong, Fault, Stop]
+                Velocity, StateCompact, ForceCompact, Ping, Pong, Fault, Stop]
 
 #: Message class by type id.
 MESSAGE_TYPES = {cls.TYPE: cls for cls in (Hello, HelloRequest, Config, Link, SensorsRequest,
-                                           Sensors, State, Force, Velocity, Ping, Pong, Fault,
-                                           Stop)}
+                                           Sensors, State, Force, Velocity, StateCompact,
+                                           ForceCompact, Ping, Pong, Fault, Stop)}
 
 # --------------------------------------------------------------------------- layouts
 
@@ -506,6 +643,11 @@ _STATE_BY_LEN = {s.size: (s, n) for n, s in enumerate(_STATE) if s is not None}
 _FORCE_BY_LEN = {s.size: (s, n) for n, s in enumerate(_FORCE) if s is not None}
 # VELOCITY has FORCE's layout (seq, f64[n]) under its own type id.
 _VELOCITY_BY_LEN = _FORCE_BY_LEN
+# STATE_COMPACT: seq u16, status u8, lag u8, f32[n]; FORCE_COMPACT: seq u16, f32[n].
+_STATE_C = (None,) + tuple(struct.Struct(f"<BHBB{n}f") for n in range(1, MAX_AXES + 1))
+_FORCE_C = (None,) + tuple(struct.Struct(f"<BH{n}f") for n in range(1, MAX_AXES + 1))
+_STATE_C_BY_LEN = {s.size: s for s in _STATE_C if s is not None}
+_FORCE_C_BY_LEN = {s.size: s for s in _FORCE_C if s is not None}
 _CRC = struct.Struct(">H")
 
 assert max(_STATE[MAX_AXES].size, _HELLO.size) + 2 <= MAX_PACKET
@@ -542,6 +684,20 @@ def _pack_velocity(m: Velocity) -> bytes:
     return _FORCE[n].pack(MSG_VELOCITY, m.seq, *m.velocity)
 
 
+def _pack_state_compact(m: StateCompact) -> bytes:
+    n = len(m.position)
+    if not 1 <= n <= MAX_AXES:
+        raise ValueError(f"StateCompact.position must have 1..{MAX_AXES} axes, got {n}")
+    return _STATE_C[n].pack(MSG_STATE_COMPACT, m.seq, m.status, m.lag, *m.position)
+
+
+def _pack_force_compact(m: ForceCompact) -> bytes:
+    n = len(m.force)
+    if not 1 <= n <= MAX_AXES:
+        raise ValueError(f"ForceCompact.force must have 1..{MAX_AXES} axes, got {n}")
+    return _FORCE_C[n].pack(MSG_FORCE_COMPACT, m.seq, *m.force)
+
+
 _PACKERS = {
     Hello: _pack_hello,
     HelloRequest: lambda m: _HELLO_REQUEST.pack(MSG_HELLO_REQUEST, m.protocol_version),
@@ -552,6 +708,8 @@ _PACKERS = {
     State: _pack_state,
     Force: _pack_force,
     Velocity: _pack_velocity,
+    StateCompact: _pack_state_compact,
+    ForceCompact: _pack_force_compact,
     Ping: lambda m: _PING.pack(MSG_PING, m.nonce, m.host_time_us),
     Pong: lambda m: _PONG.pack(MSG_PONG, m.nonce, m.host_time_us, m.device_time_us),
     Fault: lambda m: _FAULT.pack(MSG_FAULT, m.code, m.detail),
@@ -585,7 +743,7 @@ def encode_packet(message: Message) -> bytes:
         raise TypeError(f"not a protocol message: {type(message).__name__}") from None
     try:
         raw = packer(message)
-    except struct.error as exc:
+    except (struct.error, OverflowError) as exc:
         raise ValueError(f"{type(message).__name__}: field out of range: {exc}") from None
     return raw + _CRC.pack(crc_hqx(raw, CRC_INIT))
 
@@ -656,6 +814,26 @@ def _unpack_velocity(p: bytes):
     return Velocity(v[1], v[2:])
 
 
+def _unpack_state_compact(p: bytes):
+    try:
+        s = _STATE_C_BY_LEN[len(p)]
+    except KeyError:
+        raise FrameError(f"STATE_COMPACT packet of {len(p)} bytes is not 5 + 4 n, n in "
+                         f"1..{MAX_AXES}", "malformed") from None
+    v = s.unpack(p)
+    return StateCompact(v[1], v[2], v[3], v[4:])
+
+
+def _unpack_force_compact(p: bytes):
+    try:
+        s = _FORCE_C_BY_LEN[len(p)]
+    except KeyError:
+        raise FrameError(f"FORCE_COMPACT packet of {len(p)} bytes is not 3 + 4 n, n in "
+                         f"1..{MAX_AXES}", "malformed") from None
+    v = s.unpack(p)
+    return ForceCompact(v[1], v[2:])
+
+
 def _fixed(s: struct.Struct, name: str, build):
     size = s.size
     unpack = s.unpack
@@ -677,6 +855,8 @@ _UNPACKERS = {
     MSG_STATE: _unpack_state,
     MSG_FORCE: _unpack_force,
     MSG_VELOCITY: _unpack_velocity,
+    MSG_STATE_COMPACT: _unpack_state_compact,
+    MSG_FORCE_COMPACT: _unpack_force_compact,
     MSG_PING: _fixed(_PING, "PING", Ping),
     MSG_PONG: _fixed(_PONG, "PONG", Pong),
     MSG_FAULT: _fixed(_FAULT, "FAULT", Fault),
@@ -751,6 +931,95 @@ def decode_frame(frame: bytes) -> Message:
     except _cobs.DecodeError as exc:
         raise FrameError(f"COBS: {exc}", "bad_cobs") from None
     return decode_packet(packet)
+
+
+# --------------------------------------------------------------------------- compact
+
+
+def compact_force(force: Force) -> ForceCompact:
+    """The FORCE_COMPACT a host sends for ``force`` (PROTOCOL.md §4 "Compact frames").
+
+    Parameters
+    ----------
+    force : Force
+        The FORCE answering a STATE (``seq`` 32-bit, forces float64 [N]).
+
+    Returns
+    -------
+    ForceCompact
+        ``seq`` cut to its low 16 bits; each force rounded to binary32 (to nearest, ties to
+        even, IEEE-754 as the device's own float64 -> float32 conversion of a full FORCE)
+        and a finite force beyond the binary32 range saturated to :data:`F32_MAX` with its
+        sign, so that a finite force stays finite (the device clamps it) and NaN or an
+        infinity stays non-finite (the device zeroes the force and latches
+        NON_FINITE_FORCE), as with a full FORCE.
+    """
+    out = []
+    for x in force.force:
+        if x > F32_MAX or x < -F32_MAX:
+            x = math.copysign(F32_MAX, x) if math.isfinite(x) else x
+        out.append(_F32.unpack(_F32.pack(x))[0])
+    return ForceCompact(force.seq & 0xFFFF, tuple(out))
+
+
+_F32 = struct.Struct("<f")
+
+
+class CompactExpander:
+    """Restore the :class:`State` a :class:`StateCompact` stands for (host side).
+
+    PROTOCOL.md §4 "Compact frames": ``seq`` is the 32-bit number whose low 16 bits are
+    the frame's and that is at or after (mod 2**16) the last armed STATE's (the first armed
+    STATE after CONFIG is taken as is: the device restarts its counter at 0 at CONFIG);
+    ``force_seq = seq - lag`` when FORCE_APPLIED is set (else 0); the device time is the
+    tick's, ``time_us = round(seq * 1e6 / rate_hz)`` since CONFIG; positions are the
+    binary32 values, exactly widened.
+
+    Parameters
+    ----------
+    rate_hz : float
+        Tick rate of the session [Hz] (CONFIG.rate_hz), > 0.
+    """
+
+    __slots__ = ("rate_hz", "_last")
+
+    def __init__(self, rate_hz: float) -> None:
+        self.rate_hz = float(rate_hz)
+        self._last: int | None = None
+
+    def restart(self, rate_hz: float | None = None) -> None:
+        """Forget the last seq: the next armed STATE is the first of a session (at CONFIG).
+
+        Parameters
+        ----------
+        rate_hz : float, optional
+            New tick rate [Hz] (unchanged when None).
+        """
+        self._last = None
+        if rate_hz is not None:
+            self.rate_hz = float(rate_hz)
+
+    def expand(self, m: StateCompact) -> State:
+        """The full STATE of ``m``.
+
+        Parameters
+        ----------
+        m : StateCompact
+            A decoded compact STATE.
+
+        Returns
+        -------
+        State
+            ``seq`` and ``force_seq`` 32-bit, ``time_us`` since CONFIG [us], ``status`` as
+            sent, ``position`` the binary32 values [m]. Only an armed STATE moves the seq
+            reference (a disarmed one, e.g. before CONFIG, is expanded against it).
+        """
+        last = self._last
+        seq = m.seq if last is None else (last + ((m.seq - last) & 0xFFFF)) & 0xFFFFFFFF
+        if m.status & STATUS_ARMED:
+            self._last = seq
+        fseq = (seq - m.lag) & 0xFFFFFFFF if m.status & STATUS_FORCE_APPLIED else 0
+        return State(seq, int(round(seq * 1e6 / self.rate_hz)), m.status, fseq, m.position)
 
 
 # --------------------------------------------------------------------------- stream
@@ -828,13 +1097,16 @@ class StreamDecoder:
         bytes), ``outcome`` is ``"ok"`` or the name of the counter it fed.
     """
 
-    __slots__ = ("stats", "last_frames", "_buf", "_overflow")
+    __slots__ = ("stats", "last_frames", "_buf", "_overflow", "expander")
 
     def __init__(self, history: int = 16) -> None:
         self.stats = DecoderStats()
         self.last_frames: deque[tuple[bytes, str]] = deque(maxlen=history)
         self._buf = b""
         self._overflow = False
+        #: A :class:`CompactExpander`: when set, each STATE_COMPACT is returned as the
+        #: :class:`State` it stands for (a host in a compact session); None: as is.
+        self.expander: CompactExpander | None = None
 
     @property
     def buffered(self) -> int:
@@ -845,6 +1117,46 @@ class StreamDecoder:
         """Drop the partial frame (e.g. after reopening the port); counters are kept."""
         self._buf = b""
         self._overflow = False
+
+    @property
+    def overflow(self) -> bool:
+        """Whether the frame being received has passed ``MAX_FRAME - 1`` bytes (it is being
+        dropped up to its delimiter; :attr:`buffered` holds none of it)."""
+        return self._overflow
+
+    def take_partial(self) -> bytes:
+        """Hand over the partial frame held (the bytes after the last delimiter) and hold
+        none: for a reader that continues the stream itself (a compiled loop), which gives
+        back what it has not completed with :meth:`put_partial`.
+
+        Returns
+        -------
+        bytes
+            At most ``MAX_FRAME - 1`` bytes, no 0x00 (empty when none is held).
+        """
+        pre, self._buf = self._buf, b""
+        return pre
+
+    def put_partial(self, partial: bytes) -> None:
+        """Hold ``partial`` as the start of the next frame (the bytes another reader took
+        with :meth:`take_partial` and did not complete), replacing what was held.
+
+        Parameters
+        ----------
+        partial : bytes
+            A frame's start: no 0x00, at most ``MAX_FRAME - 1`` bytes.
+
+        Raises
+        ------
+        ValueError
+            ``partial`` holds a delimiter or is longer than a frame.
+        """
+        partial = bytes(partial)
+        delimited = b"\x00" in partial
+        if delimited or len(partial) > MAX_FRAME - 1:
+            raise ValueError(f"not a partial frame: {len(partial)} bytes"
+                             + (", with a delimiter" if delimited else ""))
+        self._buf = partial
 
     def feed(self, chunk: bytes) -> list[Message]:
         """Feed received bytes; return the messages of the frames they complete.
@@ -883,6 +1195,8 @@ class StreamDecoder:
             else:
                 self.stats.frames_ok += 1
                 self.last_frames.append((part, "ok"))
+                if self.expander is not None and type(msg) is StateCompact:
+                    msg = self.expander.expand(msg)
                 out.append(msg)
                 continue
             setattr(self.stats, reason, getattr(self.stats, reason) + 1)

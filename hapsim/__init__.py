@@ -98,7 +98,9 @@ __version__ = "0.1.0"
 #: light as the command line needs it.
 _API = ("load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
         "identify", "run", "CheckReport", "RenderReport", "CalibrateReport",
-        "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport")
+        "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport",
+        "load_scene_nd", "check_nd", "modes_nd", "run_nd", "CheckReportND", "ModesReportND",
+        "RunReportND")
 
 __all__ = ["HapsimError", "ConfigError", "ProtocolError", "DeviceError",
            "UnstableConfigError", "__version__", *_API]

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels.nd import BLOCK, ROWS, link_lengths, run_nd, schedule, stripes
+from hapsim.kernels.nd import (BLOCK, ROWS, link_lengths, run_nd, run_nd_listen,
+                               schedule, shared_params, stripes)
 
 __all__ = ["EngineND"]
 
@@ -98,6 +99,8 @@ class EngineND:
         self.eu_z = slot(eo, [lk.damping / T for lk in eu])
         self.eu_rest = slot(eo, [lk.length for lk in eu])
         self.eu_lprev = link_lengths(self._XP, self.eu_pieces, eo.size)
+        self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
+                                       self.eu_rest)
         self.W = np.zeros((ROWS, block))
 
     @property
@@ -120,9 +123,46 @@ class EngineND:
         """
         run_nd(int(n), self.dim, self.block, self._X, self._XP, self.f, self.t2m,
                self.lin_pieces, self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces,
-               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev,
+               *self.eu_shared, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
                self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
                self.p_k, self.p_z, -1 if self.port is None else self.port, self.port_f)
+
+    def listen(self, out, axis, mass, velocity, gain) -> None:
+        """Advance ``out.shape[0]`` samples, recording listening points (no allocation);
+        a port is held where it is.
+
+        Parameters
+        ----------
+        out : ndarray, shape (n, C)
+            Written: channel ``c`` after each sample is ``gain[c]`` times the ``axis[c]``
+            position [m] of mass ``mass[c]`` or, where ``velocity[c]``, its change over
+            the sample [m] (pass ``gain = g / T`` for a velocity [m/s]).
+        axis, mass : ndarray of int64, shape (C,)
+            Axis (0..dim-1) and mass index (:attr:`names`).
+        velocity : ndarray of bool, shape (C,)
+        gain : ndarray, shape (C,)
+
+        Raises
+        ------
+        ConfigError
+            An axis or mass index out of range (key ``audio``).
+        """
+        axis = np.asarray(axis, np.int64)
+        mass = np.asarray(mass, np.int64)
+        if np.any((axis < 0) | (axis >= self.dim)) or \
+                np.any((mass < 0) | (mass >= len(self.names))):
+            raise ConfigError("a listening point's axis or mass is out of range", key="audio")
+        port = -1 if self.port is None else self.port
+        port_x = self._X[:, port].copy() if port >= 0 else np.zeros(ROWS)
+        run_nd_listen(out, axis, mass, np.asarray(velocity, np.bool_),
+                      np.asarray(gain, float), self.dim, self.block, self._X, self._XP,
+                      self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
+                      self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
+                      self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
+                      self.c_i2, self.c_k,
+                      self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
+                      self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
 
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous

@@ -155,3 +155,61 @@ def plot_scene_nd(scene, chk, felt=None, title: str | None = None):
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
     return fig
+
+
+def plot_modes_nd(scene, res, title: str | None = None, count: int = 6):
+    """The lowest modes of a scene without a port, drawn over its rest positions.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+    res : hapsim.analysis.modes_nd.SceneModesND
+        Its modes (lowest frequency first).
+    title : str, optional
+    count : int, optional
+        Panels: the lowest modes moving along the scene's last axis (the membrane's
+        transverse one), one per frequency (a degenerate pair is drawn once).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One panel per mode: the masses at rest in the first two axes (m), coloured by the
+        mode shape's component along the last axis (red up, blue down), the grounds grey;
+        the panel's title gives the eigenfrequency [Hz] and the damping ratio.
+    """
+    plt = pyplot()
+    n = scene.dimension
+    pos = {m.name: np.asarray(m.x0, float) for m in scene.masses}
+    grounds = np.array([pos[m.name] for m in scene.masses if m.kind != "mass"]).reshape(-1, n)
+    moving = np.array([pos[nm] for nm in res.names]).reshape(-1, n)
+    picked = []
+    for md in res.modes:
+        if md.axis != n - 1:
+            continue
+        if picked and abs(md.frequency_hz - picked[-1].frequency_hz) <= \
+                1e-9 * md.frequency_hz:
+            continue
+        picked.append(md)
+        if len(picked) == count:
+            break
+    cols = min(3, max(1, len(picked)))
+    rows = max(1, -(-len(picked) // cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
+    for ax in axes.ravel()[len(picked):]:
+        ax.set_axis_off()
+    for ax, md in zip(axes.ravel(), picked):
+        w = md.shape[:, n - 1]
+        lim = float(np.max(np.abs(w))) or 1.0
+        if grounds.size:
+            ax.scatter(grounds[:, 0], grounds[:, 1], s=8, color="0.7")
+        ax.scatter(moving[:, 0], moving[:, 1], c=w, cmap="coolwarm", vmin=-lim, vmax=lim,
+                   s=28)
+        ax.set_title(f"{md.frequency_hz:.2f} Hz, zeta {md.damping_ratio:.2g}", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]", fontsize=8)
+        ax.set_ylabel("y [m]", fontsize=8)
+        ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig

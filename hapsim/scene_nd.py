@@ -24,6 +24,10 @@ expected is refused)::
     planes:
       - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
          masses: [hand]}          # acts on the named masses (default: every moving one)
+    audio:                        # optional: the scene heard (hapsim simulate --audio)
+      listen:                     # one WAV channel each, at rate_hz
+        - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
+                                  # quantity position [m] | velocity [m/s], gain [-]
     device:                       # required with a port
       kind: cartesian             # cartesian | pantograph | delta
       mass: 0.1                   # cartesian: [kg], a number (isotropic), a vector
@@ -68,10 +72,13 @@ from hapsim._yaml_lines import load_yaml
 from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.reader import LineContext, read_text
 
-__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "SceneND", "scene_dimension",
-           "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
 
-TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device")
+TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
+            "audio")
+LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
+AXES = ("x", "y", "z")
 MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
              "ground": ("name", "kind", "x0"), "port": ("name", "kind")}
 LINK_KEYS = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "length"),
@@ -173,8 +180,22 @@ class DeviceND:
 
 
 @dataclass(frozen=True)
+class ListenND:
+    """A listening point of an n-D scene: the ``axis`` (0..n-1) component of a mass's
+    ``quantity`` (``"position"`` [m] or ``"velocity"`` [m/s], the backward difference
+    ``(x[n] - x[n-1]) / T``) times ``gain`` [-] is one channel of the sound."""
+
+    mass: str
+    axis: int
+    quantity: str
+    gain: float
+    line: int | None = None
+
+
+@dataclass(frozen=True)
 class SceneND:
-    """A validated 2-D or 3-D scene (:func:`load_scene_nd`)."""
+    """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
+    points (a tuple of :class:`ListenND`) or None."""
 
     dimension: int
     rate_hz: float
@@ -184,6 +205,7 @@ class SceneND:
     device: DeviceND | None
     path: str = "<string>"
     integrator: str = "centred"
+    audio: tuple | None = None
 
     @property
     def period(self) -> float:
@@ -540,8 +562,40 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     if ports and device is not None:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
+    audio = _read_audio(r, doc, n, names) if "audio" in doc else None
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
-                   planes=tuple(planes), device=device, path=path)
+                   planes=tuple(planes), device=device, path=path, audio=audio)
+
+
+def _read_audio(r: _Reader, doc, n: int, names) -> tuple:
+    """The ``audio: {listen: [...]}`` section: a tuple of :class:`ListenND`."""
+    d = r.mapping(doc["audio"], "audio", r.line(doc, "audio"))
+    r.keys(d, ("listen",), "audio", required=("listen",))
+    seq = d["listen"]
+    if not isinstance(seq, list) or not seq:
+        raise r.error("must be a non-empty list of listening points, e.g. "
+                      "[{mass: m1, axis: z, quantity: velocity, gain: 10}]",
+                      r.line(d, "listen"), "audio.listen")
+    out = []
+    axes = AXES[:n]
+    for i, item in enumerate(seq):
+        key = f"audio.listen[{i}]"
+        e = r.mapping(item, key, r.line(seq, i))
+        r.keys(e, LISTEN_KEYS, key, required=("mass",))
+        mass = r.string(e, "mass", key)
+        if mass not in names:
+            raise r.error(f"no mass named {show(mass)}; masses: {', '.join(names)}",
+                          r.line(e, "mass"), f"{key}.mass")
+        ax = e.get("axis", axes[-1])
+        if isinstance(ax, bool) or not (ax in axes or (isinstance(ax, int)
+                                                        and 0 <= ax < n)):
+            raise r.error(f"must be one of {', '.join(axes)} or 0..{n - 1}, got {show(ax)}",
+                          r.line(e, "axis"), f"{key}.axis")
+        ax = axes.index(ax) if isinstance(ax, str) else int(ax)
+        q = r.choice(e, "quantity", key, ("position", "velocity"), default="velocity")
+        g = r.number(e, "gain", key, default=1.0, unit="-")
+        out.append(ListenND(mass, ax, q, g, line=r.line(e)))
+    return tuple(out)
 
 
 def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:

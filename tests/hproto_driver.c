@@ -11,10 +11,12 @@
  *   I                reset the stream decoder
  *   L <limit> <f>... hp_limit_force on the doubles -> {"status": s, "force": [...]}
  *   W <last> <now> <timeout>  hp_watchdog_expired -> {"expired": 0|1}
+ *   C <now> <low>    hp_compact_seq -> {"seq": n}
  *   E <type> <v>...  encode a message: type id in decimal, then the fields in wire order,
  *                    integers in decimal, doubles as 0x + 16 hex digits of their bits
  *                    -> {"frame": "<hex>"} or {"error": "encode"}
- * Doubles are printed as "0x" + 16 hex digits of their IEEE-754 bits (exact, NaN-safe).
+ * Doubles are printed as "0x" + 16 hex digits of their IEEE-754 bits (exact, NaN-safe);
+ * the binary32 values of the compact messages as "0x" + 8 hex digits, in and out.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -59,6 +61,41 @@ static void print_f64s(const double *v, unsigned n)
         print_f64(v[i]);
     }
     printf("]");
+}
+
+static void print_f32s(const uint32_t *v, unsigned n)
+{
+    unsigned i;
+    printf("[");
+    for (i = 0; i < n; i++) {
+        printf("%s\"0x%08lx\"", i ? ", " : "", (unsigned long)v[i]);
+    }
+    printf("]");
+}
+
+/* Remaining binary32 patterns on the line (0x + 8 hex digits), at most HP_MAX_AXES + 1. */
+static uint8_t next_f32s(char **s, uint32_t *out)
+{
+    uint8_t n = 0;
+    for (;;) {
+        char *end;
+        unsigned long bits;
+        while (**s == ' ') {
+            (*s)++;
+        }
+        if (**s == 0 || **s == '\n' || n > HP_MAX_AXES) {
+            return n;
+        }
+        bits = strtoul(*s, &end, 16);
+        if (end == *s) {
+            return n;
+        }
+        *s = end;
+        if (n < HP_MAX_AXES) {
+            out[n] = (uint32_t)bits;
+        }
+        n++;
+    }
 }
 
 static const char *error_name(int r)
@@ -135,6 +172,19 @@ static void print_msg(int r, const hp_msg_t *m)
     case HP_MSG_FORCE:
         printf("{\"type\": \"FORCE\", \"seq\": %lu, \"force\": ", (unsigned long)m->u.force.seq);
         print_f64s(m->u.force.force, m->u.force.n_axes);
+        printf("}\n");
+        break;
+    case HP_MSG_STATE_COMPACT:
+        printf("{\"type\": \"STATE_COMPACT\", \"seq\": %u, \"status\": %u, \"lag\": %u, "
+               "\"position\": ", (unsigned)m->u.state_compact.seq,
+               (unsigned)m->u.state_compact.status, (unsigned)m->u.state_compact.lag);
+        print_f32s(m->u.state_compact.position, m->u.state_compact.n_axes);
+        printf("}\n");
+        break;
+    case HP_MSG_FORCE_COMPACT:
+        printf("{\"type\": \"FORCE_COMPACT\", \"seq\": %u, \"force\": ",
+               (unsigned)m->u.force_compact.seq);
+        print_f32s(m->u.force_compact.force, m->u.force_compact.n_axes);
         printf("}\n");
         break;
     case HP_MSG_PING:
@@ -249,6 +299,16 @@ static void do_encode(char *s)
         m.u.force.seq = (uint32_t)next_u(&s);
         m.u.force.n_axes = next_fs(&s, m.u.force.force);
         break;
+    case HP_MSG_STATE_COMPACT:
+        m.u.state_compact.seq = (uint16_t)next_u(&s);
+        m.u.state_compact.status = (uint8_t)next_u(&s);
+        m.u.state_compact.lag = (uint8_t)next_u(&s);
+        m.u.state_compact.n_axes = next_f32s(&s, m.u.state_compact.position);
+        break;
+    case HP_MSG_FORCE_COMPACT:
+        m.u.force_compact.seq = (uint16_t)next_u(&s);
+        m.u.force_compact.n_axes = next_f32s(&s, m.u.force_compact.force);
+        break;
     case HP_MSG_PING:
         m.u.ping.nonce = (uint32_t)next_u(&s);
         m.u.ping.host_time_us = (uint64_t)next_u(&s);
@@ -324,6 +384,13 @@ int main(void)
             printf("{\"status\": %u, \"force\": ", st);
             print_f64s(f, k);
             printf("}\n");
+            break;
+        }
+        case 'C': {
+            char *s = line + 2;
+            unsigned long long now = next_u(&s), low = next_u(&s);
+            printf("{\"seq\": %lu}\n",
+                   (unsigned long)hp_compact_seq((uint32_t)now, (uint16_t)low));
             break;
         }
         case 'W': {

@@ -99,7 +99,7 @@ def test_identify_report_fields_are_the_commands_json_keys():
 
 
 def test_a_report_keeps_a_key_it_has_no_field_for():
-    rep = api.StabilityReport._from({**dict.fromkeys(_fields(api.StabilityReport)),
+    rep = api.StabilityReport.from_dict({**dict.fromkeys(_fields(api.StabilityReport)),
                                      "new_key": 1})
     assert rep.extra == {"new_key": 1} and rep.to_dict()["new_key"] == 1
 
@@ -170,6 +170,37 @@ def test_import_hapsim_is_light_and_the_api_draws_only_when_asked():
     assert not {m for m in imported if m and m.startswith("hapsim.commands")}
 
 
+def test_every_api_name_is_bound_where_checkers_look_and_lazy_ones_load_on_use():
+    """Each name of ``hapsim.api.__all__`` is bound at the module's top level (a def, a
+    class, an assignment or an import, a ``TYPE_CHECKING`` one included), as pyflakes
+    and type checkers read ``__all__``; the lazy ones (the analysis's LoopModel) are not
+    imported by ``import hapsim.api`` and resolve on first use to the defining object."""
+    import ast
+    tree = ast.parse((ROOT / "hapsim" / "api.py").read_text())
+    bound = set()
+    for node in tree.body:
+        body = node.body if isinstance(node, ast.If) else [node]
+        for n in body:
+            if isinstance(n, (ast.FunctionDef, ast.ClassDef)):
+                bound.add(n.name)
+            elif isinstance(n, (ast.Import, ast.ImportFrom)):
+                bound |= {(a.asname or a.name).split(".")[0] for a in n.names}
+            elif isinstance(n, ast.Assign):
+                bound |= {t.id for t in n.targets if isinstance(t, ast.Name)}
+            elif isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name):
+                bound.add(n.target.id)
+    api = sys.modules.get("hapsim.api") or __import__("hapsim.api").api
+    assert set(api.__all__) - bound == set()
+    code = ("import json, sys, hapsim.api as a; before = 'hapsim.analysis.loop' in sys.modules;"
+            " import hapsim.analysis.loop as l; print(json.dumps([before, a.LoopModel is "
+            "l.LoopModel, 'LoopModel' in dir(a)]))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, env=env, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert json.loads(p.stdout.strip().splitlines()[-1]) == [False, True, True]
+
+
 def test_pole_chart_marks_the_felt_pair():
     pytest.importorskip("matplotlib")
     rep = hapsim.check("configs/wall.yaml")
@@ -224,3 +255,47 @@ def test_a_chart_without_matplotlib_names_the_plot_extra(monkeypatch):
     with pytest.raises(hapsim.ConfigError) as info:
         rep.plot()
     assert PLOT_INSTALL in str(info.value)
+
+
+# ---------------------------------------------------------------------------- n-D
+@pytest.mark.parametrize("config", ["pantograph_wall", "delta_sphere"])
+def test_check_nd_is_the_commands_json(config, capsys):
+    """2-D and 3-D scenes felt through a device: the fields are the keys of ``hapsim check
+    --json``, the values its values; k and b are the n x n felt matrices."""
+    path = f"configs/{config}.yaml"
+    rep = hapsim.check_nd(path)
+    assert isinstance(rep, hapsim.CheckReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == _fields(hapsim.CheckReportND)
+    assert json.dumps(rep.to_dict()) == _cli_json(["check", path, "--json"], capsys)
+    n = rep.dof
+    assert rep.k.shape == rep.b.shape == (n, n)
+    assert np.array_equal(rep.k, np.array(rep.felt_stiffness))
+    assert hapsim.load_scene_nd(path).dimension == n
+
+
+def test_modes_nd_is_the_commands_json(capsys):
+    rep = hapsim.modes_nd("configs/membrane.yaml")
+    assert isinstance(rep, hapsim.ModesReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == _fields(hapsim.ModesReportND)
+    assert json.dumps(rep.to_dict()) == _cli_json(
+        ["check", "configs/membrane.yaml", "--json"], capsys)
+    assert rep.frequencies.size == len(rep.modes) and np.all(np.diff(rep.frequencies) >= 0)
+    with pytest.raises(hapsim.ConfigError, match="modes_nd"):
+        hapsim.check_nd("configs/membrane.yaml")
+
+
+def test_run_nd_is_the_commands_json(capsys):
+    """``run --lockstep`` on a 2-D scene: the API's report is the command's JSON (the
+    lockstep measurement is deterministic), its fields the keys (the port's only over a
+    port); the measured felt matrices equal the predicted ones to 1e-6."""
+    path = "configs/pantograph_wall.yaml"
+    rep = hapsim.run_nd(path)
+    assert isinstance(rep, hapsim.RunReportND) and rep.extra == {}
+    assert list(rep.to_dict()) == [f for f in _fields(hapsim.RunReportND)
+                                   if f not in api.RunReportND._OPTIONAL]
+    assert json.dumps(rep.to_dict()) == _cli_json(["run", path, "--lockstep", "--json"],
+                                                  capsys)
+    pk = np.array(rep.predicted["felt_stiffness"])
+    assert np.max(np.abs(rep.k - pk)) <= 1e-6 * np.max(np.abs(pk))
+    with pytest.raises(hapsim.ConfigError):
+        hapsim.run_nd(path, amplitude=-1.0)

@@ -116,7 +116,7 @@ def test_a_host_silence_ramps_the_force_and_the_account_takes_it_out(prep):
     passes. FireFader.account replays it from the host's clock (the rows' send times): its
     applied force is the mock's, pass for pass, and the measurement takes the ramp out
     (within the stated uncertainty); without it, the same record differs."""
-    cols, drv, applied = _closed_loop(prep, silence_at=300)
+    cols, drv, applied = _closed_loop(prep, n=600, silence_at=200)
     acc = drv.account(cols, cols["force"])
     assert acc is not None and 50 <= acc.n_late <= 80
     # row k's period is the mock's pass of command k + 1 (the device clamps at 0.38 N,

@@ -289,6 +289,69 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     assert bound["dk"] < 0.05 * bound["k"] and bound["db"] < 0.1 * bound["b"], bound
 
 
+def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
+    """The firmware at 4 kHz on its 2 Mbaud UART (lockstep board, ``hapsim run --port``):
+    hapsim asks for the compact frames (one STATE and one FORCE in full take 96 % of the
+    250 us period on the line) and the firmware takes them; its loop delay is 2 ticks (the
+    ADC, 24 byte times and the chip's codec exceed one 4000-cycle period: PROTOCOL.md §4,
+    "Compact frames"), which every STATE shows (no tick late against delay 2); the felt
+    (k, b) of the free response, fitted here and in the run's report, equal the THS
+    prediction at delay 2 within the bound the ADC and PWM quantisation allow
+    (:func:`hapsim.analysis.identify.quantisation_bound`), as at 1 kHz."""
+    _require()
+    from hapsim.analysis import identify
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.daemon import board
+    from hapsim.daemon.telemetry import load
+    from hapsim.scene import load_scene
+
+    rate = 4000.0
+    path = tmp_path / "hapkit_4khz.yaml"
+    text = (ROOT / "configs/hapkit.yaml").read_text()
+    text = text.replace("rate_hz: 1000", "rate_hz: 4000")
+    text = text.replace("  delay: 1 ", "  delay: 2 ")
+    assert "rate_hz: 4000" in text and "  delay: 2 " in text
+    path.write_text(text)
+    scene = load_scene(str(path))
+    dev = scene.device
+    tel = tmp_path / "tel.npz"
+    with _board(tmp_path, None, *board.board_command(dev, scene.excitation)[2:]) as (
+            proc, port, report):
+        r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(path), "--port", port,
+                            "--duration", "0.3", "--json", "--telemetry", str(tel)],
+                           capture_output=True, text=True, timeout=300,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["loop"]["frames"] == "compact", rep["loop"]
+    assert rep["loop"]["late"] == 0 and rep["loop"]["missed"] == 0, rep["loop"]
+    budget = _report(report)["budget"]
+    assert budget["rate_hz"] == rate and not budget["saturated"]
+    assert budget["busy_mean_cycles"] < 0.95 * budget["period_cycles"], budget
+    t = load(str(tel))
+    window = int(0.25 * rate)      # 2.8 cycles of the 11.3 Hz free response
+    x = t["position"][t["seq"] >= 8][:window]
+    assert x.size == window
+    loop = LoopModel(mass=dev.mass, friction=dev.friction, rate_hz=rate, delay=2,
+                     hold=dev.hold)
+    link = scene.links[0]
+    qx, qf = _scales()
+    bound = identify.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
+                                        window / rate, qx, qf, window)
+    meas = identify.fit_free_response(x, 1.0 / rate, dev.mass, bound["k"], bound["b"])
+    print(f"4 kHz: predicted k {bound['k']:.3f} b {bound['b']:.5f}; measured k "
+          f"{meas['k']:.3f} b {meas['b']:.5f}; bound dk {bound['dk']:.3f} db {bound['db']:.5f}; "
+          f"busy {budget['busy_mean_cycles']:.0f} of {budget['period_cycles']:.0f} cycles")
+    assert rep["predicted"]["k"] == pytest_approx(bound["k"])
+    assert abs(meas["k"] - bound["k"]) <= bound["dk"], (meas, bound)
+    assert abs(meas["b"] - bound["b"]) <= bound["db"], (meas, bound)
+    m = rep["measured"]
+    print(f"run's report: k {m.get('k')} +- {m.get('k_interval')}, b {m.get('b')} +- "
+          f"{m.get('b_interval')}: {m.get('verdict')}")
+    assert abs(m["k"] - bound["k"]) <= bound["dk"] and abs(m["b"] - bound["b"]) <= bound["db"], m
+    assert bound["dk"] < 0.05 * bound["k"] and bound["db"] < 0.1 * bound["b"], bound
+
+
 def pytest_approx(v):
     import pytest
     return pytest.approx(v, rel=1e-6)
@@ -583,8 +646,9 @@ def test_a_rate_the_link_cannot_carry_is_refused_naming_baud_and_frame_bytes(tmp
 
 def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_works(tmp_path):
     """The Hapkit 3 measures position only: SENSORS_REQUEST(VELOCITY) is answered
-    SENSORS(offered 0, enabled 0) and no VELOCITY frame is ever sent; the session goes on
-    as before (CONFIG arms it, FORCEs are applied: force_seq follows). ``hapsim run`` with a
+    SENSORS(offered COMPACT only, enabled 0) and no VELOCITY frame is ever sent; a host that
+    asks for the velocity alone (an old host, written before the compact frames) keeps the
+    full STATE frames; the session goes on as before (CONFIG arms it, FORCEs are applied: force_seq follows). ``hapsim run`` with a
     velocity_sensor correction against the board is refused before CONFIG, exit 2, in one
     line saying the device offers no velocity sensor."""
     _require()
@@ -597,7 +661,7 @@ def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_wo
             host.send(b"\x00" + fp.encode(fp.HelloRequest(fp.PROTOCOL_VERSION)))
             host.wait_for(fp.Hello)
             host.send(fp.encode(fp.SensorsRequest(fp.SENSOR_VELOCITY)))
-            assert host.wait_for(fp.Sensors) == fp.Sensors(0, 0)
+            assert host.wait_for(fp.Sensors) == fp.Sensors(fp.FEATURE_COMPACT, 0)
             host.send(fp.encode(fp.Config(RATE, WATCHDOG_US, 5.0)))
             applied = []
             for st in host.armed_states():
@@ -608,7 +672,7 @@ def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_wo
                     break
             host.send(fp.encode(fp.Stop()))
             assert set(applied) == {1}                    # delay 1: FORCE n applied at n + 1
-            assert not any(isinstance(m, fp.Velocity) for m in host.others)
+            assert not any(isinstance(m, (fp.Velocity, fp.StateCompact)) for m in host.others)
             # (a partial frame from before the port was opened may count as bad_crc)
             assert host.dec.stats.unknown_type == 0 and host.dec.stats.malformed == 0
         finally:
@@ -619,7 +683,7 @@ def test_a_host_asking_for_velocity_hears_none_offered_and_the_firmware_still_wo
     assert r.returncode == 2, (r.returncode, r.stderr)
     errors = [ln for ln in r.stderr.splitlines() if "error" in ln]   # after the progress line
     assert len(errors) == 1 and "does not offer a velocity sensor" in errors[0], r.stderr
-    assert "offered=0x0000" in errors[0] and "device.correction.kind" in errors[0]
+    assert "offered=0x0002" in errors[0] and "device.correction.kind" in errors[0]
 
 
 if __name__ == "__main__":

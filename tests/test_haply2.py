@@ -184,16 +184,14 @@ def test_a_lost_host_byte_desyncs_the_board_and_the_host_resyncs_it():
     assert not np.isnan(r["joints"][-50:, 0]).any()
 
 
-@pytest.mark.parametrize("name, gen", [("pantograph_wall.yaml", "gen2"),
-                                       ("pantograph_circle.yaml", "gen3")])
-def test_felt_matrices_through_the_bytes_within_the_stated_uncertainty(name, gen):
+def test_felt_matrices_through_the_bytes_within_the_stated_uncertainty():
     """In lockstep through the 2DIY's bytes (fine encoders, so the binary32 angles are the
     wire's resolution, 9e-4 of a = 1e-4 m): the measured felt matrices within the
     linearisation bound at a of the prediction, and not at round-off (the wire and the
     kinematics are really in the loop)."""
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    sc = _scene(name)
-    res = measure_felt_haply2(sc, gen, amplitude=1e-4, cpr=2.0 ** 22, samples=150)
+    sc = _scene("pantograph_wall.yaml")
+    res = measure_felt_haply2(sc, "gen2", amplitude=1e-4, cpr=2.0 ** 22, samples=150)
     b = linearisation_bound(sc, 1e-4, res["predicted"].render.rendered_poles).to_dict()
     dev = res["deviation"]
     assert res["quantum"] < 1e-3
@@ -212,3 +210,21 @@ def test_cli_driver_haply_on_a_2d_scene(capsys):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert key in err and "Traceback" not in err
+
+
+def test_cli_run_driver_haply_json(capsys):
+    """``hapsim run configs/pantograph_circle.yaml --driver haply --lockstep --json``: the
+    gen3 bytes, the measured felt matrices within the linearisation bound it reports, the
+    wire's resolution and one count of each generation's encoders over a."""
+    import json
+
+    from hapsim.cli import main
+    assert main(["run", str(CONFIGS / "pantograph_circle.yaml"), "--driver", "haply",
+                 "--lockstep", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["driver"] == "haply" and out["generation"] == "gen3" and out["dof"] == 2
+    b, dev = out["linearisation_bound"], out["deviation"]
+    assert dev["felt_stiffness"] <= b["felt_stiffness"]
+    assert dev["felt_damping"] <= b["felt_damping"]
+    assert out["quantum"] < 1e-3 < out["quantum_real_encoders"]["gen2"] < \
+        out["quantum_real_encoders"]["gen3"]

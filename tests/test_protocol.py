@@ -28,7 +28,8 @@ VECTORS = json.loads((PKG / "vectors" / "vectors.json").read_text())
 CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
            "SENSORS_REQUEST": fp.SensorsRequest, "SENSORS": fp.Sensors, "STATE": fp.State,
            "FORCE": fp.Force, "VELOCITY": fp.Velocity, "PING": fp.Ping, "PONG": fp.Pong,
-           "FAULT": fp.Fault, "STOP": fp.Stop}
+           "FAULT": fp.Fault, "STOP": fp.Stop, "STATE_COMPACT": fp.StateCompact,
+           "FORCE_COMPACT": fp.ForceCompact}
 
 
 def _oracle():
@@ -96,7 +97,8 @@ def test_constants():
     assert fp.MAX_PACKET == fp.MAX_FRAME - 2
     ids = [fp.MSG_HELLO, fp.MSG_HELLO_REQUEST, fp.MSG_CONFIG, fp.MSG_LINK,
            fp.MSG_SENSORS_REQUEST, fp.MSG_SENSORS, fp.MSG_STATE, fp.MSG_FORCE, fp.MSG_VELOCITY,
-           fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP]
+           fp.MSG_PING, fp.MSG_PONG, fp.MSG_FAULT, fp.MSG_STOP, fp.MSG_STATE_COMPACT,
+           fp.MSG_FORCE_COMPACT]
     assert len(set(ids)) == len(ids) and 0 not in ids
     assert sorted(fp.MESSAGE_TYPES) == sorted(ids)
     bits = [fp.STATUS_ARMED, fp.STATUS_WATCHDOG_TRIPPED, fp.STATUS_FORCE_CLAMPED,
@@ -230,7 +232,8 @@ def test_velocity_on_the_wire_stays_within_version_1():
     new type is one an old decoder counts as unknown_type and drops without acting."""
     old_types = {0x01, 0x02, 0x03, 0x04, 0x10, 0x11, 0x20, 0x21, 0x30, 0x31}
     new = {fp.MSG_SENSORS_REQUEST, fp.MSG_SENSORS, fp.MSG_VELOCITY}
-    assert not new & old_types and set(fp.MESSAGE_TYPES) == old_types | new
+    later = {fp.MSG_STATE_COMPACT, fp.MSG_FORCE_COMPACT}   # the compact frames, after
+    assert not new & old_types and set(fp.MESSAGE_TYPES) == old_types | new | later
     assert fp.PROTOCOL_VERSION == 1
     assert len(fp.encode(fp.State(0, 0, 0, 0, (0.0,)))) == fp.state_frame_bytes(1) == 31
     assert len(fp.encode(fp.Velocity(0, (0.0,) * 3))) == fp.velocity_frame_bytes(3) == 33
@@ -256,6 +259,8 @@ u32 = st.integers(0, 0xFFFFFFFF)
 u64 = st.integers(0, 2**64 - 1)
 f64 = st.floats(allow_nan=False)  # NaN != NaN; NaN bits are tested separately
 axes = st.lists(f64, min_size=1, max_size=fp.MAX_AXES).map(tuple)
+f32 = st.floats(allow_nan=False, width=32)
+axes32 = st.lists(f32, min_size=1, max_size=fp.MAX_AXES).map(tuple)
 
 MESSAGES = st.one_of(
     st.builds(fp.Hello, u8, st.integers(1, fp.MAX_AXES), u32, f64, f64, f64, f64),
@@ -270,6 +275,8 @@ MESSAGES = st.one_of(
     st.builds(fp.Pong, u32, u64, u64),
     st.builds(fp.Fault, u16, u32),
     st.just(fp.Stop()),
+    st.builds(fp.StateCompact, u16, u8, u8, axes32),
+    st.builds(fp.ForceCompact, u16, axes32),
 )
 
 
@@ -566,3 +573,29 @@ def test_protocol_error_family(monkeypatch, tmp_path, capsys):
     assert main(["simulate", "configs/oscillator.yaml", "--steps", "1", "--out", str(out)]) == 1
     assert "ProtocolError: device speaks protocol 2" in capsys.readouterr().err
     assert not out.exists()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-10, 10), st.integers(0, 65535)), min_size=1,
+                max_size=6),
+       st.binary(max_size=40), st.lists(st.integers(0, 400), max_size=8))
+def test_a_partial_frame_handed_over_and_back_decodes_as_if_never_taken(forces, junk, cuts):
+    """StreamDecoder.take_partial/put_partial (the compiled loop's hand-over): a stream
+    cut anywhere, its held partial frame taken out and put back at every cut, gives the
+    same messages and counters as the stream fed whole; take_partial leaves nothing
+    held, and put_partial refuses what is not a frame's start."""
+    stream = junk + b"".join(fp.encode(fp.Force(seq, (f,))) for f, seq in forces)
+    whole = fp.StreamDecoder()
+    want = whole.feed(stream)
+    dec, got, a = fp.StreamDecoder(), [], 0
+    for c in sorted(min(c, len(stream)) for c in cuts) + [len(stream)]:
+        got += dec.feed(stream[a:c])
+        a = c
+        if not dec.overflow:
+            pre = dec.take_partial()
+            assert dec.buffered == 0 and b"\x00" not in pre
+            dec.put_partial(pre)
+    assert got == want and dec.stats.as_dict() == whole.stats.as_dict()
+    for bad in (b"ab\x00", b"x" * fp.MAX_FRAME):
+        with pytest.raises(ValueError):
+            dec.put_partial(bad)

@@ -42,6 +42,8 @@ WIRE = {
     fp.MSG_SENSORS_REQUEST: ["sensors"],
     fp.MSG_SENSORS: ["offered", "enabled"],
     fp.MSG_VELOCITY: ["seq", "velocity"],
+    fp.MSG_STATE_COMPACT: ["seq", "status", "lag", "position"],
+    fp.MSG_FORCE_COMPACT: ["seq", "force"],
     fp.MSG_STATE: ["seq", "time_us", "status", "force_seq", "position"],
     fp.MSG_FORCE: ["seq", "force"],
     fp.MSG_PING: ["nonce", "host_time_us"],
@@ -52,11 +54,18 @@ WIRE = {
 CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Config, "LINK": fp.Link,
            "SENSORS_REQUEST": fp.SensorsRequest, "SENSORS": fp.Sensors, "STATE": fp.State,
            "FORCE": fp.Force, "VELOCITY": fp.Velocity, "PING": fp.Ping, "PONG": fp.Pong,
-           "FAULT": fp.Fault, "STOP": fp.Stop}
+           "FAULT": fp.Fault, "STOP": fp.Stop, "STATE_COMPACT": fp.StateCompact,
+           "FORCE_COMPACT": fp.ForceCompact}
+#: Messages whose value arrays are binary32 (the driver prints and reads 8 hex digits).
+F32 = (fp.StateCompact, fp.ForceCompact)
 
 
 def bits(x: float) -> str:
     return "0x%016x" % struct.unpack("<Q", struct.pack("<d", x))[0]
+
+
+def bits32(x: float) -> str:
+    return "0x%08x" % struct.unpack("<I", struct.pack("<f", x))[0]
 
 
 def as_c_json(msg) -> dict:
@@ -65,7 +74,7 @@ def as_c_json(msg) -> dict:
     for name in (f.name for f in dataclasses.fields(msg)):
         v = getattr(msg, name)
         if isinstance(v, tuple):
-            out[name] = [bits(x) for x in v]
+            out[name] = [(bits32 if isinstance(msg, F32) else bits)(x) for x in v]
         elif isinstance(v, float):
             out[name] = bits(v)
         else:
@@ -78,7 +87,7 @@ def encode_command(msg) -> str:
     for name in WIRE[msg.TYPE]:
         v = getattr(msg, name)
         if isinstance(v, tuple):
-            tokens += [bits(x) for x in v]
+            tokens += [(bits32 if isinstance(msg, F32) else bits)(x) for x in v]
         elif isinstance(v, float):
             tokens.append(bits(v))
         else:
@@ -166,6 +175,14 @@ def random_message(rng: random.Random):
 
     def ax():
         return tuple(f() for _ in range(rng.randint(1, fp.MAX_AXES)))
+
+    def ax32():     # binary32 values (random bit patterns but NaN: NaN != NaN in the check)
+        out, n = [], rng.randint(1, fp.MAX_AXES)
+        while len(out) < n:
+            x = struct.unpack("<f", struct.pack("<I", rng.getrandbits(32)))[0]
+            if x == x:
+                out.append(x)
+        return tuple(out)
     u32, u64 = (lambda: rng.getrandbits(32)), (lambda: rng.getrandbits(64))
     return rng.choice([
         lambda: fp.Hello(rng.getrandbits(8), rng.randint(1, 8), u32(), f(), f(), f(), f()),
@@ -180,6 +197,9 @@ def random_message(rng: random.Random):
         lambda: fp.Pong(u32(), u64(), u64()),
         lambda: fp.Fault(rng.getrandbits(16), u32()),
         lambda: fp.Stop(),
+        lambda: fp.StateCompact(rng.getrandbits(16), rng.getrandbits(8), rng.getrandbits(8),
+                                ax32()),
+        lambda: fp.ForceCompact(rng.getrandbits(16), ax32()),
     ])()
 
 

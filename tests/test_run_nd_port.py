@@ -92,18 +92,23 @@ class _HostileHost:
         return self.inner.last_frames()
 
 
-def test_late_ticks_are_accounted_per_axis(monkeypatch):
-    """Real-time mock on a virtual clock, FORCEs lost and late at random: many late
-    ticks, every one's force named by force_seq; measured = predicted to 1e-6. Without
-    subtracting the disturbance's response the same records are off by > 1e-3."""
-    sc = _scene("pantograph_wall.yaml")
+def test_late_ticks_are_accounted_per_axis(monkeypatch, tmp_path):
+    """Real-time mock on a virtual clock, a device delay of 2 ticks, FORCEs lost and
+    late at random: many late ticks, every one's force named by force_seq; measured =
+    predicted to 1e-6. Without subtracting the disturbance's response the same records
+    are off by > 1e-3."""
+    text = (CONFIGS / "pantograph_wall.yaml").read_text()
+    assert "hand_mass: 0.05, delay: 1}" in text
+    path = tmp_path / "wall_d2.yaml"
+    path.write_text(text.replace("hand_mass: 0.05, delay: 1}", "hand_mass: 0.05, delay: 2}"))
+    sc = load_scene_nd(path)
 
     def run():
         mock = MockDeviceND(sc, lockstep=False)
         return measure_felt_port(_HostileHost(SimTransport(mock), 0), sc, samples=150)
     res = run()
     assert res["late"] > 15
-    assert res["delay"] == [1] * 5
+    assert res["delay"] == [2] * 5
     assert max(res["deviation"].values()) < 1e-6, res["deviation"]
     import hapsim.daemon.run_nd as rn
     monkeypatch.setattr(rn, "disturbance_response_nd",

@@ -5,6 +5,7 @@ handle rests (the forward kinematics of the device's joints), so they are comput
 from :mod:`hapsim.kinematics` and written rounded to 0.1 nm (the rest is an equilibrium to about 1e-10 m). Run from the repository root::
 
     python tools/make_nd_scenes.py          # rewrites configs/{pantograph,delta}_*.yaml
+                                            # and configs/membrane.yaml
 
 Each scene presses its handle ``PRESS`` into the object at rest with a soft "press"
 spring (length 0) to a ground point behind it: the rest is then (to the rounding) an
@@ -185,8 +186,74 @@ def mesh() -> str:
     return "".join(lines)
 
 
+#: The membrane: MEMBRANE_N x MEMBRANE_N masses, spacing [m], mass [kg], link K [N/m] and
+#: B [N s/m], sample rate [Hz] (tests/test_membrane.py reads them).
+MEMBRANE_N, MEMBRANE_H, MEMBRANE_M, MEMBRANE_K, MEMBRANE_B = 12, 0.01, 0.001, 16000.0, 0.05
+MEMBRANE_RATE = 44100
+MEMBRANE_STRIKE, MEMBRANE_LISTEN = (4, 5), (9, 3)
+
+
+def membrane() -> str:
+    """A square membrane of masses and length-0 springs, its edge held, struck and heard."""
+    n, h = MEMBRANE_N, MEMBRANE_H
+    mu11 = 8 * np.sin(np.pi / (2 * (n + 1))) ** 2
+    f11 = np.sqrt(mu11 * MEMBRANE_K / MEMBRANE_M) / (2 * np.pi)
+    zeta11 = MEMBRANE_B * 2 * np.pi * f11 / (2 * MEMBRANE_K)
+
+    def name(i, j):
+        return f"m{i}_{j}" if 1 <= i <= n and 1 <= j <= n else f"g{i}_{j}"
+    si, sj = MEMBRANE_STRIKE
+    li, lj = MEMBRANE_LISTEN
+    lines = [
+        f"# A square membrane: {n} x {n} masses of {MEMBRANE_M * 1e3:g} g on a "
+        f"{h * 100:g} cm grid, each joined to its\n",
+        f"# four neighbours by a length-0 spring-damper (K = {MEMBRANE_K:g} N/m, "
+        f"B = {MEMBRANE_B:g} N s/m: the 1-D law on\n",
+        "# every axis, so its motion across its plane (z) is the discrete membrane), its "
+        "edge held by grounds.\n",
+        f"# Struck at {name(si, sj)} (v0 = 0.5 m/s along z), heard at {name(li, lj)} "
+        "(its z velocity).\n",
+        "# Modes: f_pq ~ sqrt(mu_pq K / m) / (2 pi) with mu_pq = 4 [sin^2(p pi / 26) + "
+        "sin^2(q pi / 26)]\n",
+        f"# (the centred scheme at 44.1 kHz warps them slightly): f_11 = {f11:.1f} Hz "
+        f"(damping ratio {zeta11:.2g}),\n",
+        "# f_12 = f_21, f_22, ... (inharmonic, as a drum's).\n",
+        "#   hapsim check configs/membrane.yaml [--json] [--plot FIG.png]   (the modes)\n",
+        "#   hapsim simulate configs/membrane.yaml --audio membrane.wav --steps 88200\n",
+        "# Written by tools/make_nd_scenes.py.\n",
+        "dimension: 3\n",
+        f"rate_hz: {MEMBRANE_RATE}\n",
+        "masses:\n"]
+    for i in range(0, n + 2):
+        for j in range(0, n + 2):
+            if (i in (0, n + 1)) and (j in (0, n + 1)):
+                continue                                  # corners join nothing
+            x0 = v([i * h, j * h, 0.0])
+            if 1 <= i <= n and 1 <= j <= n:
+                v0 = ", v0: [0, 0, 0.5]" if (i, j) == (si, sj) else ""
+                lines.append(f"  - {{name: {name(i, j)}, kind: mass, mass: {MEMBRANE_M:g}, "
+                             f"x0: {x0}{v0}}}\n")
+            else:
+                lines.append(f"  - {{name: {name(i, j)}, kind: ground, x0: {x0}}}\n")
+    lines.append("links:\n")
+    for i in range(0, n + 2):
+        for j in range(0, n + 2):
+            for di, dj in ((1, 0), (0, 1)):
+                a, b = (i, j), (i + di, j + dj)
+                if b[0] > n + 1 or b[1] > n + 1:
+                    continue
+                if not any(1 <= p <= n and 1 <= q <= n for p, q in (a, b)):
+                    continue
+                lines.append(f"  - {{kind: spring_damper, between: [{name(*a)}, "
+                             f"{name(*b)}], stiffness: {MEMBRANE_K:g}, damping: "
+                             f"{MEMBRANE_B:g}}}\n")
+    lines += ["audio:\n", "  listen:\n",
+              f"    - {{mass: {name(li, lj)}, axis: z, quantity: velocity, gain: 12.0}}\n"]
+    return "".join(lines)
+
+
 SCENES = {"pantograph_wall.yaml": wall, "pantograph_circle.yaml": circle,
-          "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh}
+          "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh, "membrane.yaml": membrane}
 
 if __name__ == "__main__":
     for name, make in SCENES.items():

@@ -13,6 +13,8 @@ typedef char hp_assert_double_is_64_bits[(sizeof(double) == 8) ? 1 : -1];
 
 #define HP_STATE_FIXED 19u /* type + seq + time_us + status + force_seq */
 #define HP_FORCE_FIXED 5u  /* type + seq */
+#define HP_STATE_C_FIXED 5u /* type + seq16 + status8 + lag8 */
+#define HP_FORCE_C_FIXED 3u /* type + seq16 */
 
 /* ------------------------------------------------------------------ CRC */
 
@@ -230,6 +232,36 @@ static uint8_t get_seq_axes(const uint8_t *p, size_t n, uint32_t *seq, hp_f64_t 
     return k;
 }
 
+/* n binary32 bit patterns, little-endian. */
+static uint8_t *put_f32s(uint8_t *p, uint8_t n, const uint32_t *v)
+{
+    uint8_t i;
+    for (i = 0; i < n; i++) {
+        p = put_u32(p, v[i]);
+    }
+    return p;
+}
+
+/* The binary32 values filling the rest of a packet of n bytes after `fixed` bytes; the
+ * axis count, 0 when the length is not fixed + 4 k with k in 1..8. */
+static uint8_t get_f32s(const uint8_t *p, size_t n, size_t fixed, uint32_t *v)
+{
+    uint8_t i, k;
+    if (n < fixed + 4u || n > fixed + 4u * HP_MAX_AXES || (n - fixed) % 4u != 0) {
+        return 0;
+    }
+    k = (uint8_t)((n - fixed) / 4u);
+    for (i = 0; i < k; i++) {
+        v[i] = get_u32(p + 4 * i);
+    }
+    return k;
+}
+
+uint32_t hp_compact_seq(uint32_t now, uint16_t low)
+{
+    return now - (uint16_t)((uint16_t)now - low);
+}
+
 /* Packet body without CRC; returns its length or 0 on an invalid message. */
 static size_t pack(const hp_msg_t *m, uint8_t *p0)
 {
@@ -285,6 +317,22 @@ static size_t pack(const hp_msg_t *m, uint8_t *p0)
         break;
     case HP_MSG_VELOCITY: /* FORCE's layout */
         p = put_seq_axes(p, m->u.velocity.seq, m->u.velocity.n_axes, m->u.velocity.velocity);
+        break;
+    case HP_MSG_STATE_COMPACT:
+        if (m->u.state_compact.n_axes < 1 || m->u.state_compact.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        p = put_u16(p, m->u.state_compact.seq);
+        *p++ = m->u.state_compact.status;
+        *p++ = m->u.state_compact.lag;
+        p = put_f32s(p, m->u.state_compact.n_axes, m->u.state_compact.position);
+        break;
+    case HP_MSG_FORCE_COMPACT:
+        if (m->u.force_compact.n_axes < 1 || m->u.force_compact.n_axes > HP_MAX_AXES) {
+            return 0;
+        }
+        p = put_u16(p, m->u.force_compact.seq);
+        p = put_f32s(p, m->u.force_compact.n_axes, m->u.force_compact.force);
         break;
     case HP_MSG_PING:
         p = put_u32(p, m->u.ping.nonce);
@@ -420,6 +468,24 @@ int hp_decode_packet(const uint8_t *pk, size_t len, hp_msg_t *m)
     case HP_MSG_FORCE:
         m->u.force.n_axes = get_seq_axes(p, n, &m->u.force.seq, m->u.force.force);
         return m->u.force.n_axes ? HP_OK : HP_ERR_MALFORMED;
+    case HP_MSG_STATE_COMPACT:
+        m->u.state_compact.n_axes = get_f32s(p + 4, n, HP_STATE_C_FIXED,
+                                             m->u.state_compact.position);
+        if (!m->u.state_compact.n_axes) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.state_compact.seq = get_u16(p);
+        m->u.state_compact.status = p[2];
+        m->u.state_compact.lag = p[3];
+        return HP_OK;
+    case HP_MSG_FORCE_COMPACT:
+        m->u.force_compact.n_axes = get_f32s(p + 2, n, HP_FORCE_C_FIXED,
+                                             m->u.force_compact.force);
+        if (!m->u.force_compact.n_axes) {
+            return HP_ERR_MALFORMED;
+        }
+        m->u.force_compact.seq = get_u16(p);
+        return HP_OK;
     case HP_MSG_PING:
         if (n != 13) {
             return HP_ERR_MALFORMED;

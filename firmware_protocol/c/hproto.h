@@ -54,6 +54,11 @@ typedef double hp_f64_t;
 #define HP_MSG_STATE 0x10u
 #define HP_MSG_FORCE 0x11u
 #define HP_MSG_VELOCITY 0x12u        /* added within version 1 */
+/* STATE_COMPACT / FORCE_COMPACT: STATE and FORCE with 16-bit seq and binary32 values, only
+ * while the host enabled HP_FEATURE_COMPACT (PROTOCOL.md section 4, "Compact frames").
+ * Added within version 1. */
+#define HP_MSG_STATE_COMPACT 0x13u
+#define HP_MSG_FORCE_COMPACT 0x14u
 #define HP_MSG_PING 0x20u
 #define HP_MSG_PONG 0x21u
 #define HP_MSG_FAULT 0x30u
@@ -73,6 +78,9 @@ typedef double hp_f64_t;
 
 /* Sensor bits of SENSORS_REQUEST.sensors, SENSORS.offered and SENSORS.enabled. */
 #define HP_SENSOR_VELOCITY 0x0001u
+/* ... and the compact frames (STATE_COMPACT instead of STATE, FORCE_COMPACT accepted). */
+#define HP_FEATURE_COMPACT 0x0002u
+#define HP_COMPACT_LAG_MAX 255u /* STATE_COMPACT.lag saturates here */
 
 /* FAULT.code values. */
 #define HP_FAULT_WATCHDOG 0x0001u
@@ -166,6 +174,23 @@ typedef struct {
     hp_f64_t velocity[HP_MAX_AXES]; /* [m/s] */
 } hp_velocity_t;
 
+/* STATE_COMPACT: seq and status cut to their low bits, force_seq as the lag, positions as
+ * IEEE-754 binary32 bit patterns (exact on every compiler; memcpy to a float to use). */
+typedef struct {
+    uint16_t seq;            /* low 16 bits of the tick counter */
+    uint8_t status;          /* low 8 bits of the status */
+    uint8_t lag;             /* seq - force_seq, saturated at 255; 0 without FORCE_APPLIED */
+    uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
+    uint32_t position[HP_MAX_AXES]; /* binary32 bits [m] */
+} hp_state_compact_t;
+
+/* FORCE_COMPACT: the low 16 bits of the answered STATE's seq, forces as binary32 bits. */
+typedef struct {
+    uint16_t seq;
+    uint8_t n_axes;          /* 1..8, not on the wire: implied by the length */
+    uint32_t force[HP_MAX_AXES]; /* binary32 bits [N] */
+} hp_force_compact_t;
+
 typedef struct {
     uint16_t code;           /* HP_FAULT_* */
     uint32_t detail;
@@ -187,6 +212,8 @@ typedef struct {
         hp_sensors_request_t sensors_request;
         hp_sensors_t sensors;
         hp_velocity_t velocity;
+        hp_state_compact_t state_compact;
+        hp_force_compact_t force_compact;
     } u;
 } hp_msg_t;
 
@@ -255,6 +282,11 @@ hp_b64_t hp_b64_from_f32_bits(uint32_t f);
  * to even as IEEE-754 requires (overflow gives +-inf, underflow subnormals or +-0; a NaN
  * stays a quiet NaN with its sign and the top of its payload). */
 uint32_t hp_f32_bits_from_b64(hp_b64_t d);
+
+/* The 32-bit seq of a FORCE_COMPACT (its low 16 bits `low`) on a device whose last STATE
+ * had seq `now`: the number at or before `now` with those low bits (a FORCE answers a STATE
+ * already sent), i.e. now - ((now - low) mod 2^16) (PROTOCOL.md section 4). */
+uint32_t hp_compact_seq(uint32_t now, uint16_t low);
 
 /* 1 when the watchdog has expired: more than `timeout_us` [us] elapsed between the last
  * valid FORCE (`last_force_us`) and `now_us`, on a free-running microsecond clock

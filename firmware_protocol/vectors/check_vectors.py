@@ -40,6 +40,8 @@ LAYOUT = {
                      ("position", "d*")]),
     "FORCE": (0x11, [("seq", "I"), ("force", "d*")]),
     "VELOCITY": (0x12, [("seq", "I"), ("velocity", "d*")]),
+    "STATE_COMPACT": (0x13, [("seq", "H"), ("status", "B"), ("lag", "B"), ("position", "f*")]),
+    "FORCE_COMPACT": (0x14, [("seq", "H"), ("force", "f*")]),
     "PING": (0x20, [("nonce", "I"), ("host_time_us", "Q")]),
     "PONG": (0x21, [("nonce", "I"), ("host_time_us", "Q"), ("device_time_us", "Q")]),
     "FAULT": (0x30, [("code", "H"), ("detail", "I")]),
@@ -184,6 +186,21 @@ GOOD = [
     ("sensors_none_offered", "SENSORS", dict(offered=0, enabled=0)),
     ("velocity_1axis", "VELOCITY", dict(seq=1, velocity=[-0.125])),
     ("velocity_3axes", "VELOCITY", dict(seq=0xFFFFFFFF, velocity=[0.0, 2.5e-3, -1e300])),
+    # compact frames (0x13, 0x14, and the SENSORS_REQUEST bit COMPACT 0x0002, added within
+    # version 1): a host asks for them with the velocity sensor or alone; a device that has
+    # both enables both; then STATE_COMPACT replaces STATE and FORCE_COMPACT answers it.
+    # Values are binary32 (0.01 is not: its binary32 0.00999999977648258209228515625 is sent)
+    ("sensors_request_compact", "SENSORS_REQUEST", dict(sensors=0x0002)),
+    ("sensors_compact_enabled", "SENSORS", dict(offered=0x0002, enabled=0x0002)),
+    ("state_compact_1axis", "STATE_COMPACT", dict(seq=1, status=0x41, lag=0,
+                                                  position=[0.009999999776482582])),
+    ("state_compact_applied_lag1", "STATE_COMPACT", dict(seq=0xFFFF, status=0xC1, lag=1,
+                                                         position=[-0.0])),
+    ("state_compact_3axes_saturated", "STATE_COMPACT", dict(
+        seq=0x1234, status=0xE5, lag=255, position=[3.4028234663852886e38, -1.401298464324817e-45, 0.5])),
+    ("force_compact_1axis", "FORCE_COMPACT", dict(seq=1, force=[0.5])),
+    ("force_compact_8axes", "FORCE_COMPACT", dict(seq=0xFFFF, force=[
+        -2.0, 1.401298464324817e-45, -3.4028234663852886e38, 0.25, 1.0, -1.0, 0.0, -0.0])),
 ]
 
 
@@ -210,6 +227,12 @@ def bad_vectors() -> list[dict]:
     vel_short = b"\x12\x01\x00\x00\x00"  # VELOCITY with no axis
     c = crc16_ccitt_false(vel_short)
     malformed_velocity = cobs_encode(vel_short + bytes([c >> 8, c & 0xFF])) + b"\x00"
+    sc_short = b"\x13\x01\x00\x41\x00"  # STATE_COMPACT with no axis
+    c = crc16_ccitt_false(sc_short)
+    malformed_state_compact = cobs_encode(sc_short + bytes([c >> 8, c & 0xFF])) + b"\x00"
+    fc_odd = b"\x14\x01\x00\x00\x00\x00\x3f\x00"  # FORCE_COMPACT, 5 value bytes
+    c = crc16_ccitt_false(fc_odd)
+    malformed_force_compact = cobs_encode(fc_odd + bytes([c >> 8, c & 0xFF])) + b"\x00"
     return [
         {"name": "bad_crc_bitflip", "frame_hex": bytes(flipped).hex(), "error": "bad_crc"},
         {"name": "bad_crc_runt", "frame_hex": cobs_encode(b"\x31\xc7").hex() + "00",
@@ -222,6 +245,10 @@ def bad_vectors() -> list[dict]:
         {"name": "overlong", "frame_hex": "ff" * 128 + "00", "error": "overlong"},
         {"name": "malformed_velocity_no_axis", "frame_hex": malformed_velocity.hex(),
          "error": "malformed"},
+        {"name": "malformed_state_compact_no_axis", "frame_hex": malformed_state_compact.hex(),
+         "error": "malformed"},
+        {"name": "malformed_force_compact_partial_axis",
+         "frame_hex": malformed_force_compact.hex(), "error": "malformed"},
     ]
 
 

@@ -22,37 +22,32 @@ def run_nd(args) -> int:
     Returns
     -------
     int
-        0 stable, 1 unstable (the MIMO characteristic's spectral radius).
+        0 stable, 1 unstable (the MIMO characteristic's spectral radius). A scene without
+        a port (nothing to feel: a sounding object) is checked on its own: the
+        eigenfrequencies and damping ratios of its modes
+        (:func:`hapsim.analysis.modes_nd.scene_modes_nd`), 1 when the scheme diverges.
 
     Raises
     ------
     ConfigError
-        Bad scene file or option (exit 2), a scene without a port.
+        Bad scene file or option (exit 2).
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim import api
     if args.modes < 0:
         raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     plot = getattr(args, "plot", None)
     if plot is not None:
         from hapsim.plot import check_figure_path
         check_figure_path(plot, "--plot")
-    scene = load_scene_nd(args.scene)
+    scene = api.load_scene_nd(args.scene)
     if scene.port is None:
-        raise ConfigError("an n-D scene is checked felt through its device: it needs a "
-                          "mass of kind 'port' and a device section", file=scene.path,
-                          key="masses")
-    chk = check_scene_nd(scene)
+        return _run_modes(args, scene, plot)
+    rep = api.check_nd(scene)
+    chk = rep.analysis
     if plot is not None:
-        _plot(scene, chk, plot)
+        rep.plot(plot)
     if args.json:
-        d = chk.to_dict()
-        d["scene"] = scene.path
-        d["device"] = {"kind": scene.device.kind, "mass": scene.device.mass.tolist(),
-                       "friction": scene.device.friction.tolist(),
-                       "position": scene.device.position.tolist(),
-                       "delay": scene.device.delay, "hold": scene.device.hold}
-        print(json.dumps(d))
+        print(json.dumps(rep.to_dict()))
         return 0 if chk.stable else 1
     o = sys.stdout
     r = chk.render
@@ -88,15 +83,36 @@ def run_nd(args) -> int:
     return 0 if chk.stable else 1
 
 
-def _plot(scene, chk, path: str) -> None:
-    """Write the scene's picture (:func:`hapsim.plot_workspace.plot_scene_nd`)."""
-    from hapsim.analysis.scene_nd_check import felt_over_workspace
-    from hapsim.plot import save_figure
-    from hapsim.plot_workspace import plot_scene_nd
-    felt = felt_over_workspace(scene) if scene.device.joints is not None else None
-    note = "\nfelt at the handle only (a port link ends on a moving mass)" \
-        if felt is not None and felt.note else ""
-    name = os.path.basename(scene.path)
-    save_figure(plot_scene_nd(scene, chk, felt, title=f"{name}: {scene.device.kind}, "
-                              f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note),
-                path)
+def _run_modes(args, scene, plot) -> int:
+    """``check`` on a scene without a port: its modes (:func:`run_nd`)."""
+    from hapsim import api
+    rep = api.modes_nd(scene)
+    res = rep.analysis
+    if plot is not None:
+        rep.plot(plot)
+    if args.json:
+        print(json.dumps(rep.to_dict()))
+        return 0 if res.stable else 1
+    # one line per eigenfrequency (a mode repeated along several axes, or a degenerate
+    # pair of a symmetric mesh, within 1e-9 relative)
+    lines = []
+    for md in res.modes:
+        if lines and abs(md.frequency_hz - lines[-1][0].frequency_hz) <= \
+                1e-9 * md.frequency_hz:
+            lines[-1][1].append(md)
+        else:
+            lines.append((md, [md]))
+    o = sys.stdout
+    print(f"{scene.path}: {scene.dimension}-D scene without a port, {len(res.names)} "
+          f"moving masses, {res.states} states (the centred scheme linearised at rest, "
+          "grounds held)", file=o)
+    print(f"  verdict: {'stable' if res.stable else 'UNSTABLE'} (spectral radius "
+          f"{res.spectral_radius:.9f})", file=o)
+    print(f"  {len(res.modes)} oscillating modes at {len(lines)} eigenfrequencies; the "
+          f"lowest {min(args.modes, len(lines))}:", file=o)
+    print(f"    {'f [Hz]':>12} {'damping ratio':>14}  modes (along)", file=o)
+    for md, same in lines[:args.modes]:
+        axes = " ".join(sorted({"xyz"[m.axis] for m in same}))
+        print(f"    {md.frequency_hz:12.4f} {md.damping_ratio:14.6g}  {len(same)} ({axes})",
+              file=o)
+    return 0 if res.stable else 1

@@ -34,7 +34,10 @@ def register(sub) -> None:
             "It serves host after host until SIGINT/SIGTERM (Ctrl-C): a run that ends "
             "(STOP), is killed, or closes and reopens the port leaves it disarmed with zero "
             "force, waiting for the next run on the same PORT. --once restores the one-run "
-            "device that exits at the first STOP."),
+            "device that exits at the first STOP. A 2-D or 3-D scene (dimension: 2 or 3) "
+            "serves its device with n axes (HELLO n_axes = n, the joint-space dynamics of "
+            "a pantograph or delta) and a hand that starts each CONFIG from the next "
+            "identification start (--amplitude); see docs/dimensions.md."),
         epilog=(
             "modes:\n"
             "  real-time (default)  ticks on the monotonic clock at the host's CONFIG rate;\n"

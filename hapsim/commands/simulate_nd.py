@@ -18,8 +18,9 @@ def run_nd(args) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene``, ``steps``, ``out`` (``.npz``), ``record``, ``json`` (``--audio`` is
-        refused: n-D scenes have no sound yet).
+        ``scene``, ``steps``, ``out`` (``.npz``), ``record``, ``json``, ``audio`` (a
+        ``.wav`` path: the scene's ``audio`` listening points instead of a trajectory,
+        :func:`hapsim.audio.offline_nd.render_nd`).
 
     Returns
     -------
@@ -33,16 +34,16 @@ def run_nd(args) -> int:
     Raises
     ------
     ConfigError
-        ``--audio``, an output that is not ``.npz``, negative ``--steps``, an unknown or
-        repeated ``--record`` name, an invalid scene (file, line, key).
+        An output that is not ``.npz`` (``.wav`` with ``--audio``), a scene without an
+        ``audio`` section with ``--audio``, negative ``--steps``, an unknown or repeated
+        ``--record`` name, an invalid scene (file, line, key).
     """
     from hapsim.engine_nd import EngineND
     from hapsim.outputs import check_fits, check_writable
     from hapsim.progress import Progress
     from hapsim.scene_nd import load_scene_nd
     if args.audio is not None:
-        raise ConfigError("a 2-D or 3-D scene has no sound yet: --audio takes 1-D scenes",
-                          key="--audio")
+        return _run_audio(args)
     if args.out is None or os.path.splitext(args.out)[1].lower() != ".npz":
         raise ConfigError(f"a 2-D or 3-D trajectory is written as .npz (time, position "
                           f"(N+1, R, n), names), got {args.out!r}", key="--out")
@@ -96,3 +97,55 @@ def run_nd(args) -> int:
         print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses x {n} axes "
               f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
     return 0 if bad is None else 1
+
+
+def _run_audio(args) -> int:
+    """``simulate --audio`` on an n-D scene: its listening points to a WAV file."""
+    from hapsim.audio.offline import write_wav
+    from hapsim.audio.offline_nd import render_nd
+    from hapsim.engine_nd import EngineND
+    from hapsim.outputs import check_writable
+    from hapsim.progress import Progress
+    from hapsim.scene_nd import load_scene_nd
+    if not args.audio.lower().endswith(".wav"):
+        raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}",
+                          key="--audio")
+    if args.steps < 0:
+        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
+    if getattr(args, "gesture", "excitation") != "excitation":
+        raise ConfigError("a 2-D or 3-D scene is heard from its initial state (no gesture "
+                          "drives its port yet): leave --gesture out", key="--gesture")
+    for opt, val in (("--out", args.out), ("--record", args.record)):
+        if val:
+            raise ConfigError(f"--audio writes the sound only: {opt} is not taken with it",
+                              key=opt)
+    check_writable(args.audio, "--audio")
+    scene = load_scene_nd(args.scene)
+    if not scene.audio:
+        raise ConfigError("the scene needs an audio section (listen: [{mass, axis, "
+                          "quantity, gain}]) to be heard; see configs/membrane.yaml",
+                          file=scene.path, key="audio")
+    if scene.rate_hz != int(scene.rate_hz):
+        raise ConfigError(f"a sound's rate is a whole number of Hz, got {scene.rate_hz:g}",
+                          file=scene.path, key="rate_hz")
+    t0 = time.perf_counter()
+    with Progress(args.steps, "simulate", unit="samples") as bar:
+        audio = render_nd(EngineND(scene), args.steps, progress=bar.update)
+    elapsed = time.perf_counter() - t0
+    try:
+        info = write_wav(args.audio, audio, scene.rate_hz)
+    except ValueError as e:
+        print(f"hapsim simulate: {e}", file=sys.stderr)
+        return 1
+    summary = {"scene": args.scene, "audio": args.audio, "dimension": scene.dimension,
+               "steps": args.steps, "rate_hz": scene.rate_hz, "frames": info["frames"],
+               "channels": info["channels"], "peak": info["peak"],
+               "clipped": info["clipped"], "seconds": elapsed}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.audio}: {info['frames']} frames x {info['channels']} "
+              f"channel(s) at {scene.rate_hz:g} Hz, peak {info['peak']:.3g}"
+              + (f", {info['clipped']} samples clipped" if info["clipped"] else "")
+              + f" ({elapsed:.2f} s)")
+    return 0

@@ -77,40 +77,70 @@ class Handshake:
                                 f"devices (port {self.transport.info.get('port')}); last "
                                 f"frames:\n{self.transport.last_frames() or '(none received)'}")
         link = getattr(self, "_link", None)
+        self._compact_ask = False
+        self._link_refusal = None
+        periods = cfg.watchdog_us * 1e-6 * cfg.rate_hz
+        compact_ok = (cfg.compact != "off" and periods <= 250
+                      and hasattr(self.transport, "set_compact"))
+        if cfg.compact == "on" and compact_ok:
+            self._compact_ask = True
         if link is not None:
             vel = self.measured is not None
             top = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes,
                                    velocity=vel)
+            top_c = fp.link_max_rate(link.baud, link.bits_per_byte, hello.n_axes,
+                                     velocity=vel, compact=True)
+            if compact_ok and cfg.compact == "auto" and (
+                    cfg.rate_hz > top or fp.wants_compact(
+                        link.baud, link.bits_per_byte, hello.n_axes, cfg.rate_hz)):
+                self._compact_ask = True
             if cfg.rate_hz > top:
                 up = fp.state_frame_bytes(hello.n_axes) + (
                     fp.velocity_frame_bytes(hello.n_axes) if vel else 0)
-                raise ConfigError(
-                    f"{cfg.rate_hz:g} Hz is more than the device's link carries: at "
-                    f"{link.baud} baud ({link.bits_per_byte} bits per byte) a "
-                    f"{up}-byte STATE{' + VELOCITY' if vel else ''} up and a "
-                    f"{fp.force_frame_bytes(hello.n_axes)}-byte FORCE down per tick fit "
-                    f"{top:.0f} Hz at most ({fp.LINK_LOAD:.0%} of the line); choose "
-                    f"rate_hz <= {int(top)}", key="rate_hz")
+                why = (f"{cfg.rate_hz:g} Hz is more than the device's link carries: at "
+                       f"{link.baud} baud ({link.bits_per_byte} bits per byte) a "
+                       f"{up}-byte STATE{' + VELOCITY' if vel else ''} up and a "
+                       f"{fp.force_frame_bytes(hello.n_axes)}-byte FORCE down per tick fit "
+                       f"{top:.0f} Hz at most ({fp.LINK_LOAD:.0%} of the line); choose "
+                       f"rate_hz <= {int(top)}")
+                if not (self._compact_ask and cfg.rate_hz <= top_c):
+                    raise ConfigError(why, key="rate_hz")
+                # the compact frames would carry it: refused after SENSORS if not taken
+                self._link_refusal = (why + f", or a device that offers the compact "
+                                            f"frames (they carry {top_c:.0f} Hz)")
         limit = cfg.force_limit if math.isfinite(cfg.force_limit) else hello.force_limit
         self.force_limit = min(float(limit), float(hello.force_limit))
 
     def _ask_sensors(self) -> None:
-        """Enable the device's velocity sensor (SENSORS_REQUEST, PROTOCOL.md §4), when the
-        loop has a :attr:`measured` velocity to fill; nothing otherwise.
+        """Enable the device's velocity sensor, when the loop has a :attr:`measured`
+        velocity to fill, and the compact frames, when :meth:`_check_hello` decided to ask
+        for them (SENSORS_REQUEST, PROTOCOL.md §4); nothing when neither.
+
+        A device that does not answer (written before SENSORS_REQUEST) within
+        ``SENSORS_TRIES * SENSORS_WAIT``, or leaves COMPACT out of its answer, keeps the
+        full frames; one that enables COMPACT sends STATE_COMPACT from its next tick, and the
+        transport then sends FORCE_COMPACT (:attr:`LoopResult.frames`).
 
         Raises
         ------
         ConfigError
-            The device answers that it has no velocity sensor, or does not answer
-            (written before SENSORS_REQUEST) within ``SENSORS_TRIES * SENSORS_WAIT``.
+            The device answers that it has no velocity sensor, or does not answer, when the
+            velocity was asked; or it does not take the compact frames at a rate only they
+            carry on its line.
         """
-        if self.measured is None:
-            return
         tr = self.transport
+        set_compact = getattr(tr, "set_compact", None)
+        if set_compact is not None:
+            set_compact(None)          # full frames until the device says otherwise
+        self.result.frames = "full"
+        want = (fp.SENSOR_VELOCITY if self.measured is not None else 0) | (
+            fp.FEATURE_COMPACT if getattr(self, "_compact_ask", False) else 0)
+        if not want:
+            return
         clock = self._clock
         answer = None
         for _ in range(SENSORS_TRIES):
-            tr.send(fp.SensorsRequest(fp.SENSOR_VELOCITY))
+            tr.send(fp.SensorsRequest(want))
             end = clock() + SENSORS_WAIT
             while answer is None and clock() < end and not self.stop.set:
                 for msg in tr.receive(0.02):
@@ -118,6 +148,13 @@ class Handshake:
                         answer = msg
             if answer is not None or self.stop.set:
                 break
+        if answer is not None and answer.enabled & want & fp.FEATURE_COMPACT:
+            set_compact(float(self.config.rate_hz))
+            self.result.frames = "compact"
+        elif getattr(self, "_link_refusal", None) and not self.stop.set:
+            raise ConfigError(self._link_refusal, key="rate_hz")
+        if self.measured is None:
+            return
         if answer is not None and answer.enabled & fp.SENSOR_VELOCITY:
             self.result.velocity = self.measured.as_dict()
             return
@@ -224,6 +261,13 @@ class Handshake:
         self.result.hello = hello
         self._t0 = self._clock()
         return hello
+
+    @property
+    def armed_at(self) -> float:
+        """The moment the loop was armed (CONFIG sent) on the loop's clock [s]
+        (``time.monotonic`` unless the transport brings its own ``clock``); 0.0 before;
+        what the run's events count their times from."""
+        return self._t0
 
     def _measure_ping(self, count: int = 16) -> None:
         """Round-trip PING -> PONG before arming [us] (transport + device answer time)."""

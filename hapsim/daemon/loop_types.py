@@ -249,6 +249,13 @@ class LoopConfig:
         device holds a fresh force at once instead of a queue of stale ones), or answer
         every one in order (``"all"``). A STATE counts as newer when it is armed, has one
         axis and is ahead by 1 .. ``silence * rate + 2`` samples.
+    compact : {"auto", "on", "off"}
+        The compact frames (STATE_COMPACT / FORCE_COMPACT, PROTOCOL.md §4): ``"auto"`` asks
+        a device for them when its LINK shows a UART on which one STATE and one FORCE take
+        more than half a period (:func:`firmware_protocol.wants_compact`: 4 kHz at 2 Mbaud)
+        or more than the full frames' LINK rule allows; ``"on"`` always asks; ``"off"``
+        never. Asked only while the watchdog is at most 250 periods (the compact lag is
+        exact up to 254 ticks); a device that does not offer them keeps the full frames.
     """
 
     rate_hz: float
@@ -276,6 +283,7 @@ class LoopConfig:
     attempt_timeout: float = 0.25
     ramp_samples: int = 50
     backlog: str = "newest"
+    compact: str = "auto"
 
 
 class EstimatedState:
@@ -411,6 +419,9 @@ class LoopResult:
         The device's velocity sensor over the wire, when the loop asked for it
         (:class:`MeasuredVelocity`): ``frames`` VELOCITY received, ``missing`` STATEs
         answered without theirs (last value held); empty otherwise.
+    frames : str
+        ``"compact"`` when the device took the compact frames (PROTOCOL.md §4), else
+        ``"full"``.
     """
 
     samples: int = 0
@@ -450,6 +461,7 @@ class LoopResult:
     v_max: float = 0.0
     f_max: float = 0.0
     velocity: dict = field(default_factory=dict)
+    frames: str = "full"
 
 
 def percentiles_us(values: np.ndarray) -> dict:

@@ -10,7 +10,8 @@ such as the Haply 2DIY is driven through its own driver).
 Its physics (:class:`PhysicsND`) is the device of :mod:`hapsim.lockstep_nd`: a pantograph or
 a delta integrates its joint-space dynamics (:class:`hapsim.lockstep_nd.LocalJointDeviceND`:
 the configuration-dependent inertia, joint friction, the torques ``J^T F`` held over the
-period, the kinematics to second order about the operating point, ~10 us a tick compiled),
+period, the kinematics to second order about the operating point, compiled: tens of
+microseconds a tick, ``tools/bench_joint_nd.py``),
 a cartesian device the exact zero-order hold of its Cartesian mass and friction.
 Device duties as the 1-D mock (:class:`hapsim.daemon.mock.MockDevice`, whose serving loop
 :func:`hapsim.daemon.mock.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it

@@ -23,7 +23,8 @@ from hapsim.errors import ConfigError
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.daemon.loop import StopFlag
 
-__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields",
+           "check_port_number"]
 
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
@@ -90,6 +91,40 @@ def _seconds(value, flag: str) -> None:
     """Refuse a time that is not a finite number >= 0."""
     if not (math.isfinite(value) and value >= 0):
         raise ConfigError(f"must be a number of seconds >= 0, got {value}", key=flag)
+
+
+def check_port_number(value: int, flag: str) -> None:
+    """Refuse a UDP/TCP port number outside 0-65535 (0: any free port).
+
+    Parameters
+    ----------
+    value : int
+        The port number.
+    flag : str
+        The option it came from (the error's key).
+
+    Raises
+    ------
+    ConfigError
+        Outside 0-65535 (a socket's bind would raise OverflowError).
+    """
+    if not 0 <= value <= 65535:
+        raise ConfigError(f"must be a port number from 0 to 65535 (0: any free port), "
+                          f"got {value}", key=flag)
+
+
+def _rt_priority(value, flag: str) -> None:
+    """Refuse a scheduling priority outside 0 (normal) and SCHED_FIFO's 1..99 (as
+    :class:`hapsim.daemon.realtime.RealtimePriority` does, here before anything runs)."""
+    if not 0 <= value <= 99:
+        raise ConfigError(f"must be 0 (off) or a SCHED_FIFO priority 1..99, got {value}",
+                          key=flag)
+
+
+def _baud(value, flag: str) -> None:
+    """Refuse a baud rate that is not > 0."""
+    if value <= 0:
+        raise ConfigError(f"must be a baud rate > 0, got {value}", key=flag)
 
 
 @dataclass
@@ -218,7 +253,7 @@ class RunOptions:
         metavar="PORT")
     baud: int = option(
         115200, "--baud", "baud rate (default 115200; ignored by USB CDC and ptys)",
-        metavar="BAUD", type=int)
+        metavar="BAUD", type=int, check=_baud)
     duration: float | None = option(
         None, "--duration", "run length [s] (default 1 s, longer for slow oscillations); 0: "
         "open-ended, until SIGINT/SIGTERM (or a safety stop)",
@@ -252,7 +287,7 @@ class RunOptions:
         10, "--rt-priority", "SCHED_FIFO priority of the loop and the embedded mock where the "
         "OS permits it (default 10; 0: normal scheduling; not with --lockstep, which is paced "
         "by the answers, not the clock). Under load it keeps late ticks rare; the report says "
-        "what was obtained", metavar="N", type=int)
+        "what was obtained", metavar="N", type=int, check=_rt_priority)
     seed: int = option(0, "--seed", "mock sensor-noise seed (default 0)", type=int)
     faults: str | None = option(
         None, "--faults", "inject seeded faults in the embedded mock, e.g. "
@@ -279,10 +314,10 @@ class RunOptions:
     osc: int | None = option(
         None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
         "addresses: hapsim play --help); each is checked, ramped, journaled",
-        metavar="PORT", type=int)
+        metavar="PORT", type=int, check=check_port_number)
     osc_ramp: float = option(
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
-        type=float)
+        type=float, check=_seconds)
     sound: str | None = option(
         None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
         "auto); the model stays in the loop, the frames go to the server",

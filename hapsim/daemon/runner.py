@@ -721,8 +721,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             if response is not None:
                 bounds.append((estimated_bounds(
                     cols, T, *device_body(dev), quantum, dev.noise,
-                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED),
-                    response))
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
+                    coulomb=dev.coulomb), response))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=late, skip=dev.delay + 2,
@@ -814,7 +814,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "python_reason": getattr(run.loop, "python_reason", None),
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
-        "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        "armed_monotonic_s": getattr(run.loop, "armed_at", None),
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
@@ -860,6 +860,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
         "velocity_sensor": res.velocity or None,
+        "frames": res.frames,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,

@@ -39,7 +39,7 @@ from collections import deque
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
-from hapsim.spawn import child_env
+from hapsim.spawn import PtyChild, child_env
 
 __all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock", "SimTransport"]
 
@@ -146,11 +146,37 @@ class SerialTransport:
         self._timeout = read_timeout
         self._read = self._ser.read
         self._write = self._ser.write
+        self._compact = False
 
     @property
     def decoder(self) -> fp.StreamDecoder:
         """The stream decoder (counters in ``.stats``)."""
         return self._dec
+
+    @property
+    def serial_port(self):
+        """The open pyserial port (``serial.SerialBase``; the compiled loop reads and
+        writes its file descriptor ``fd`` directly). Replaced by :meth:`reopen`."""
+        return self._ser
+
+    @property
+    def compact(self) -> bool:
+        """Whether the session uses the compact frames (:meth:`set_compact`)."""
+        return self._compact
+
+    def set_compact(self, rate_hz: float | None) -> None:
+        """Enter (``rate_hz``) or leave (None) a compact session (PROTOCOL.md §4 "Compact
+        frames"): each FORCE is then sent as FORCE_COMPACT and each STATE_COMPACT received
+        comes out as the STATE it stands for (:class:`firmware_protocol.CompactExpander`,
+        restarted at every CONFIG sent).
+
+        Parameters
+        ----------
+        rate_hz : float or None
+            Tick rate of the session [Hz]; None: full frames.
+        """
+        self._compact = rate_hz is not None
+        self._dec.expander = fp.CompactExpander(rate_hz) if self._compact else None
 
     def send(self, msg) -> None:
         """Encode and write one message.
@@ -165,6 +191,11 @@ class SerialTransport:
         DeviceError
             When the write fails (port gone); the message carries the last frames.
         """
+        if self._compact:
+            if type(msg) is fp.Force:
+                msg = fp.compact_force(msg)
+            elif type(msg) is fp.Config:
+                self._dec.expander.restart(msg.rate_hz)   # the device restarts its seq
         try:
             self._write(fp.encode(msg))
         except Exception as exc:  # serial.SerialException, OSError, SerialTimeoutException
@@ -242,6 +273,7 @@ class SerialTransport:
         except (AttributeError, NotImplementedError, ValueError, OSError):
             pass
         self._dec.reset()
+        self.set_compact(None)   # a device that vanished may have reset: ask again
         self._read = self._ser.read
         self._write = self._ser.write
         self.reopened = getattr(self, "reopened", 0) + 1
@@ -258,7 +290,7 @@ class SerialTransport:
         return self._dec.format_last_frames()
 
 
-class EmbeddedMock:
+class EmbeddedMock(PtyChild):
     """A mock device in a child process on the master side of a new pseudo-terminal.
 
     Parameters
@@ -295,7 +327,9 @@ class EmbeddedMock:
         ``vanish`` fault, a symbolic link in a temporary directory that the child points
         at each new pty (like a udev ``/dev/serial/by-id`` link).
     report_path : str
-        JSON file where the child writes its :class:`~hapsim.daemon.mock.MockStats` on exit.
+        JSON file where the child writes its report on exit (:meth:`PtyChild.report`):
+        the :class:`~hapsim.daemon.mock.MockStats` fields, ``end``, ``decoder``,
+        ``totals``, and with faults ``faults_injected``, ``fault_events``.
 
     Notes
     -----
@@ -350,56 +384,9 @@ class EmbeddedMock:
         finally:
             os.close(master)
 
-    def report(self, timeout: float = 3.0) -> dict | None:
-        """Wait for the child to exit and return what it saw.
-
-        Parameters
-        ----------
-        timeout : float
-            Longest wait for the child to exit by itself [s] (it does when the host closes
-            the port); then it is terminated (SIGTERM, SIGKILL after 2 s).
-
-        Returns
-        -------
-        dict or None
-            The child's JSON report (:class:`~hapsim.daemon.mock.MockStats` fields, ``end``,
-            ``decoder``, ``totals``, and with faults ``faults_injected``,
-            ``fault_events``); None when it wrote none (killed, or crashed).
-        """
-        try:
-            self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self._terminate()
-        try:
-            with open(self.report_path) as fh:
-                return json.load(fh)
-        except (OSError, ValueError):
-            return None
-
-    def _terminate(self) -> None:
-        """SIGTERM the child (the mock zeroes force and exits), SIGKILL after 2 s."""
-        self.proc.terminate()
-        try:
-            self.proc.wait(2.0)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-
-    def release_slave(self) -> None:
-        """Close this object's slave fd (once the host has opened the port)."""
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
-
     def close(self) -> None:
-        """Close the slave, stop the child if still running, remove the report file."""
-        self.release_slave()
-        if self.proc.poll() is None:
-            self._terminate()
-        try:
-            os.unlink(self.report_path)
-        except OSError:
-            pass
+        """:meth:`PtyChild.close`, and the ``vanish`` fault's link directory removed."""
+        super().close()
         if self._linkdir:
             import shutil
             shutil.rmtree(self._linkdir, ignore_errors=True)

@@ -9,11 +9,18 @@
  * Timing. Timer1 in CTC mode interrupts at the CONFIG rate (device-clocked). The interrupt
  * (a) applies the force decided for this tick -- the last valid FORCE received, or zero
  * when the watchdog has run out -- to the PWM, which holds it until the next tick (the
- * zero-order hold), and (b) starts the ADC conversion of the sensor. The main loop then
+ * zero-order hold), and (b) starts the ADC conversion of the sensor, a few cycles after
+ * (a) (the model samples and holds at the same instant). The main loop then
  * reads the ADC, unwraps the shaft angle (flip counting), sends STATE, and decodes the
  * frames the UART interrupt cut out of what the host sent (FORCE: converted, clamped and quantised to a PWM step, kept for the next
  * tick). With every FORCE answering STATE n received before tick n + 1, the force is
- * applied at tick n + 1: a loop delay d = 1.
+ * applied at tick n + 1: a loop delay d = 1 (at 1 kHz). Whatever the delay, each STATE
+ * reports the FORCE applied (force_seq): at 4 kHz in compact frames it is 2.
+ *
+ * Compact frames (PROTOCOL.md section 4): offered in SENSORS; once the host enables them,
+ * STATE_COMPACT (13 bytes: 16-bit seq, 8-bit status, lag, float32 position) replaces STATE
+ * and FORCE_COMPACT (11 bytes: 16-bit seq, float32 force) is taken as FORCE; CONFIG then
+ * accepts rates up to 4 kHz (1250 Hz in full frames).
  *
  * Numbers. avr-gcc's double is 32-bit: positions are computed in float32 and sent as the
  * exact binary64 of that float32; forces arrive as binary64 and are rounded to float32
@@ -45,10 +52,10 @@
 #define HK_LINK_DEN 5UL
 #define HK_LINK_MAX_RATE_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
                                                       HK_STATE_FRAME_BYTES))
-/* The MCU's own limit: a tick with one STATE out and one FORCE in keeps the chip busy
- * 9.3k cycles at most (tools/bench_firmware.py on the emulated chip: 73 % of 12800 at
- * 1250 Hz, no late tick). The next rate dividing 16 MHz, 1600 Hz, is late at every tick:
- * the FORCE answering STATE n misses tick n + 1, because the round trip -- the ADC (416
+/* The MCU's own limit in full frames: a tick with one STATE out and one FORCE in keeps the
+ * chip busy about 8.7k cycles (tools/bench_firmware.py on the emulated chip: 68 % of 12800
+ * at 1250 Hz, no late tick). At the next rate dividing 16 MHz, 1600 Hz, the FORCE
+ * answering STATE n misses tick n + 1 (delay 2), because the round trip -- the ADC (416
  * cycles), encoding STATE, 31 + 17 bytes on the wire (80 cycles each at 2 Mbaud), the
  * host, decoding FORCE -- takes longer than the 10000-cycle period; at 2 kHz the wire
  * alone takes 48 % of the period and the chip is saturated. */
@@ -57,6 +64,19 @@
 #endif
 #define HK_MAX_RATE_HZ (HK_LINK_MAX_RATE_HZ < HK_CPU_MAX_RATE_HZ ? HK_LINK_MAX_RATE_HZ : \
                         HK_CPU_MAX_RATE_HZ)
+/* With the compact frames (PROTOCOL.md section 4, "Compact frames"; the host asks for them
+ * with SENSORS_REQUEST bit COMPACT): a 13-byte STATE_COMPACT up, an 11-byte FORCE_COMPACT
+ * down, binary32 values (no binary64 conversion). The round trip on the wire is 24 bytes
+ * (1920 cycles at 2 Mbaud), so 4 kHz (a 4000-cycle period) keeps the delay at one tick
+ * (tools/bench_firmware.py --compact measures it). */
+#define HK_STATE_COMPACT_FRAME_BYTES 13UL
+#define HK_LINK_MAX_RATE_COMPACT_HZ (HK_BAUD * HK_LINK_NUM / (HK_LINK_DEN * HK_BITS_PER_BYTE * \
+                                                              HK_STATE_COMPACT_FRAME_BYTES))
+#ifndef HK_CPU_MAX_RATE_COMPACT_HZ
+#define HK_CPU_MAX_RATE_COMPACT_HZ 4000UL
+#endif
+#define HK_MAX_RATE_COMPACT_HZ (HK_LINK_MAX_RATE_COMPACT_HZ < HK_CPU_MAX_RATE_COMPACT_HZ ? \
+                                HK_LINK_MAX_RATE_COMPACT_HZ : HK_CPU_MAX_RATE_COMPACT_HZ)
 
 /* What the tick interrupt puts on the PWM: duty n / 256 (0 = off) and the direction. */
 typedef struct {
@@ -83,19 +103,24 @@ static volatile uint32_t g_force_seq;
 static volatile uint8_t g_force_applied;
 static volatile uint8_t g_clamped_now;
 static volatile uint32_t g_period_cycles = F_CPU / HK_NATIVE_RATE_HZ;
-static volatile uint64_t g_clock_cycles; /* device clock at the last tick [cycles] */
+/* The device clock at the last tick [cycles] is g_clock_base + ticks * g_period_cycles,
+ * ticks = g_tick_wraps * 2^32 + g_ticks (now_us; the tick interrupt only counts). */
+static uint64_t g_clock_base;           /* at the last change of period (CONFIG) */
+static volatile uint8_t g_tick_wraps;
 
 /* ---------------------------------------------------------------- main loop only */
 static uint8_t g_configured, g_fault_latched;
 static uint16_t g_limit_n;              /* largest PWM step within the force limit */
 static float g_limit_n_float;
+static uint32_t g_limit_n_float_bits;   /* g_limit_n_float's bit pattern */
+static uint32_t g_limit_n_floor_bits;   /* (float)g_limit_n's */
 static uint32_t g_bad_frames, g_bad_reported; /* frames dropped (decoder + lost) */
 static uint16_t g_rx_lost_seen;
 static uint8_t g_rx_error;
 static int16_t g_last_raw;
-static int32_t g_turns;
-static int32_t g_zero;
+static int32_t g_offset;                /* turns * span - zero [counts] */
 static uint8_t g_have_zero;
+static uint8_t g_compact;               /* the host enabled the compact frames */
 
 static void pwm_write(uint16_t n, uint8_t dir)
 {
@@ -114,13 +139,24 @@ static void pwm_write(uint16_t n, uint8_t dir)
 
 ISR(TIMER1_COMPA_vect)
 {
+    /* The tick's new force on the pin and the sample of the sensor (ADC_vect latches it),
+     * a few cycles apart, before anything else: the model holds the force and samples the
+     * position at the same instant. (Sampled after the bookkeeping and the watchdog, as
+     * before, the position was taken ~100 cycles after the new force reached the pin: a
+     * fractional advance of the force, 0.6 % of a period at 1 kHz, 2.5 % at 4 kHz, which
+     * moved the felt stiffness at 4 kHz past its interval; sampled first, the force came
+     * ~35 cycles late and the felt damping fell by about K * 2.2 us.) */
+    uint8_t pending = g_has_pending;
+    if (pending) {
+        pwm_write(g_pending.n, g_pending.dir);
+    }
+    ADCSRA |= (uint8_t)(1 << ADSC);
     PORTB |= (uint8_t)(1 << PB5); /* budget probe: busy */
-    if (g_has_pending) {
+    if (pending) {
         g_has_pending = 0;
         g_force_seq = g_pending_seq;
         g_force_applied = 1;
         g_clamped_now = g_pending_clamped;
-        pwm_write(g_pending.n, g_pending.dir);
         g_wd_left = g_wd_reload;
         g_tripped = 0;
     }
@@ -138,13 +174,13 @@ ISR(TIMER1_COMPA_vect)
             g_wd_left--;
         }
     }
-    ADCSRA |= (uint8_t)(1 << ADSC); /* sample the sensor now; ADC_vect latches it */
     if (g_tick_flag | g_adc_busy) {
         g_overrun = 1;
     }
     g_adc_busy = 1;
-    g_ticks++;
-    g_clock_cycles += g_period_cycles;
+    if (++g_ticks == 0) {
+        g_tick_wraps++;
+    }
 }
 
 /* The conversion started by the tick is done (13 ADC clocks = 416 cycles later, which
@@ -248,10 +284,14 @@ static void send_hello(void)
 static uint64_t now_us(void)
 {
     uint64_t c;
-    uint8_t s = SREG;
+    uint32_t t, p;
+    uint8_t w, s = SREG;
     cli();
-    c = g_clock_cycles;
+    t = g_ticks;
+    w = g_tick_wraps;
+    p = g_period_cycles;
     SREG = s;
+    c = g_clock_base + (((uint64_t)w << 32) | t) * p;
     return c >> 4; /* 16 cycles per microsecond at 16 MHz */
 }
 
@@ -293,18 +333,19 @@ static int32_t read_counts(uint16_t raw)
     int16_t d;
     if (!g_have_zero) {
         g_last_raw = (int16_t)raw;
-        g_zero = (int32_t)raw;
+        g_offset = -(int32_t)raw; /* the zero: no turn yet */
         g_have_zero = 1;
     }
-    /* flip counting: a jump of more than half a span between two ticks is a wrap */
+    /* flip counting: a jump of more than half a span between two ticks is a wrap; the
+     * offset turns * span - zero is kept, not multiplied out each tick */
     d = (int16_t)((int16_t)raw - g_last_raw);
     if (d > (int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
-        g_turns--;
+        g_offset -= (int32_t)HK_SENSOR_SPAN_COUNTS;
     } else if (d < -(int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
-        g_turns++;
+        g_offset += (int32_t)HK_SENSOR_SPAN_COUNTS;
     }
     g_last_raw = (int16_t)raw;
-    return (int32_t)raw + g_turns * (int32_t)HK_SENSOR_SPAN_COUNTS - g_zero;
+    return (int32_t)raw + g_offset;
 }
 
 /* ---------------------------------------------------------------- protocol handling */
@@ -332,7 +373,8 @@ static void on_config(const hp_config_t *c)
     uint32_t rate = 0, period;
     float limit;
     uint8_t ok = f64_to_u32_exact(c->rate_hz, &rate);
-    ok = ok && rate >= HK_MIN_RATE_HZ && rate <= HK_MAX_RATE_HZ && (F_CPU % rate) == 0;
+    ok = ok && rate >= HK_MIN_RATE_HZ && (F_CPU % rate) == 0 &&
+         rate <= (g_compact ? HK_MAX_RATE_COMPACT_HZ : HK_MAX_RATE_HZ);
     period = ok ? F_CPU / rate : 0;
     ok = ok && (period <= 65536UL || period % 8u == 0);
     /* the watchdog holds a FORCE floor(W / T) - 1 >= 1 ticks: W >= 2 T */
@@ -352,7 +394,14 @@ static void on_config(const hp_config_t *c)
     if (g_limit_n > HK_PWM_STEPS) {
         g_limit_n = HK_PWM_STEPS;
     }
+    {
+        float fl = (float)g_limit_n;
+        memcpy(&g_limit_n_floor_bits, &fl, sizeof fl);
+        memcpy(&g_limit_n_float_bits, &g_limit_n_float, sizeof fl);
+    }
     cli();
+    g_clock_base += (((uint64_t)g_tick_wraps << 32) | g_ticks) * g_period_cycles;
+    g_tick_wraps = 0;
     g_period_cycles = period;
     g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
     g_wd_left = g_wd_reload;
@@ -374,44 +423,80 @@ static void on_config(const hp_config_t *c)
     g_fault_latched = 0;
 }
 
-static void on_force(const hp_force_t *f)
+/* A valid FORCE (or FORCE_COMPACT) for STATE `seq`, its force `x` [N] as float32 (+-inf
+ * when a finite binary64 is beyond float32: clamped below); `finite`: the value on the
+ * wire was finite. */
+static void take_force(uint32_t seq, float x, uint8_t finite)
 {
     drive_t d;
     uint8_t clamped = 0;
-    float x, ax;
-    if (f->n_axes != 1) {
-        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
-        return;
-    }
+    float ax;
+    uint32_t xb, axb;
     if (!g_armed) {
         return;
     }
-    if (g_force_applied && (int32_t)(f->seq - g_force_seq) < 0) {
+    if (g_force_applied && (int32_t)(seq - g_force_seq) < 0) {
         return; /* older than the force applied (PROTOCOL.md section 5, rule 4) */
     }
-    if (!f64_is_finite(f->force[0])) {
+    if (!finite) {
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
         return;
     }
-    x = float_of_f64(f->force[0]); /* +-inf when beyond float32: clamped below */
-    ax = x < 0 ? -x : x;
+    /* |x| and the comparisons on the bit patterns: for floats >= 0 (no NaN here) the
+     * order of the patterns as integers is the order of the values */
+    memcpy(&xb, &x, sizeof xb);
+    axb = xb & 0x7FFFFFFFUL;
+    memcpy(&ax, &axb, sizeof ax);
     ax *= (float)(HK_PWM_STEPS / HK_FORCE_MAX_N); /* in PWM steps */
-    if (ax > g_limit_n_float) {
+    memcpy(&axb, &ax, sizeof axb);
+    if (axb > g_limit_n_float_bits) {
         clamped = 1;
     }
-    if (ax >= (float)g_limit_n) {
+    if (axb >= g_limit_n_floor_bits) {
         d.n = g_limit_n;
     } else {
         d.n = (uint16_t)(ax + 0.5f); /* nearest step, still <= g_limit_n */
     }
-    d.dir = x > 0;
+    d.dir = !(xb >> 31) && (xb & 0x7FFFFFFFUL) != 0; /* x > 0 */
     cli();
     g_pending.n = d.n;
     g_pending.dir = d.dir;
-    g_pending_seq = f->seq;
+    g_pending_seq = seq;
     g_pending_clamped = clamped;
     g_has_pending = 1;
     sei();
+}
+
+static void on_force(const hp_force_t *f)
+{
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    take_force(f->seq, float_of_f64(f->force[0]), f64_is_finite(f->force[0]));
+}
+
+/* FORCE_COMPACT: the 16-bit seq is restored from the tick counter (the FORCE answers a
+ * STATE already sent: hp_compact_seq), the binary32 force is used as it is. */
+static void force_compact(uint16_t seq16, uint32_t bits)
+{
+    uint32_t now;
+    float x;
+    uint8_t s = SREG;
+    cli();
+    now = g_ticks - 1u; /* the seq of the last tick's STATE */
+    SREG = s;
+    memcpy(&x, &bits, sizeof x);
+    take_force(hp_compact_seq(now, seq16), x, (bits & 0x7F800000UL) != 0x7F800000UL);
+}
+
+static void on_force_compact(const hp_force_compact_t *f)
+{
+    if (f->n_axes != 1) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    force_compact(f->seq, f->force[0]);
 }
 
 static void on_message(const hp_msg_t *m)
@@ -430,6 +515,9 @@ static void on_message(const hp_msg_t *m)
     case HP_MSG_FORCE:
         on_force(&m->u.force);
         break;
+    case HP_MSG_FORCE_COMPACT:
+        on_force_compact(&m->u.force_compact);
+        break;
     case HP_MSG_PING:
         r.type = HP_MSG_PONG;
         r.u.pong.nonce = m->u.ping.nonce;
@@ -443,10 +531,12 @@ static void on_message(const hp_msg_t *m)
         break;
     case HP_MSG_SENSORS_REQUEST:
         /* The Hapkit 3 measures position only (the MR sensor on the capstan; no
-         * tachometer): nothing offered, nothing enabled (PROTOCOL.md section 4). */
+         * tachometer): no sensor offered; the compact frames are (PROTOCOL.md section 4).
+         * They start with the next tick's STATE. */
         r.type = HP_MSG_SENSORS;
-        r.u.sensors.offered = 0;
-        r.u.sensors.enabled = 0;
+        r.u.sensors.offered = HP_FEATURE_COMPACT;
+        r.u.sensors.enabled = m->u.sensors_request.sensors & HP_FEATURE_COMPACT;
+        g_compact = r.u.sensors.enabled != 0;
         send(&r);
         break;
     default:
@@ -454,18 +544,33 @@ static void on_message(const hp_msg_t *m)
     }
 }
 
-/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted. */
+/* Decode the frame the UART cut out, if one waits; bad frames are dropped and counted.
+ * The frame is COBS-decoded as it is taken from the receive ring (uart_packet), then
+ * checked and parsed by hp_decode_packet: hp_decode_frame's results in one pass less. */
 static void take_frame(void)
 {
-    const uint8_t *frame;
+    static uint8_t pk[HP_MAX_PACKET];
     hp_msg_t m;
-    uint8_t len = uart_frame(&frame);
+    uint8_t len = uart_packet(pk);
     int r;
     if (!len) {
         return;
     }
-    r = len == UART_OVERLONG ? HP_ERR_OVERLONG : hp_decode_frame(frame, len, &m);
-    uart_frame_done();
+    if (len == 9u && pk[0] == HP_MSG_FORCE_COMPACT) {
+        /* the one frame of every tick in a compact session, 1 axis: checked and taken
+         * here (hp_decode_packet's result for it, without its dispatch) */
+        if (hp_crc16(0xFFFFu, pk, 9u) == 0) {
+            uint32_t bits;
+            memcpy(&bits, &pk[3], sizeof bits); /* little-endian, as the wire */
+            force_compact(((uint16_t)pk[2] << 8) | pk[1], bits);
+        } else {
+            g_bad_frames++;
+            g_rx_error = 1;
+        }
+        return;
+    }
+    r = len == UART_OVERLONG ? HP_ERR_OVERLONG
+        : len == UART_BAD_COBS ? HP_ERR_BAD_COBS : hp_decode_packet(pk, len, &m);
     if (r == HP_OK) {
         on_message(&m);
     } else {
@@ -481,16 +586,17 @@ static void serve_tick(void)
     hp_msg_t m;
     int32_t counts;
     uint16_t status = 0, lost, raw;
+    uint32_t seq, fseq;
     uint8_t s;
     s = SREG;
     cli();
     raw = g_adc_raw;
     g_tick_flag = 0;
-    m.u.state.seq = g_ticks - 1u;
+    seq = g_ticks - 1u;
     SREG = s;
     counts = read_counts(raw);
     cli();
-    m.u.state.force_seq = g_force_seq;
+    fseq = g_force_seq;
     if (g_armed) {
         status |= HP_STATUS_ARMED;
     }
@@ -522,12 +628,36 @@ static void serve_tick(void)
     if (g_rx_error) {
         status |= HP_STATUS_RX_ERROR;
     }
-    m.type = HP_MSG_STATE;
-    m.u.state.time_us = now_us();
-    m.u.state.status = status;
-    m.u.state.n_axes = 1;
-    m.u.state.position[0] = f64_of_float((float)counts * (float)HK_POSITION_SCALE_M);
-    send(&m);
+    if (g_compact) {
+        /* STATE_COMPACT: seq and status cut to their low bits, the lag saturated at 255
+         * (0 before any FORCE), the float32 position as it is; packed here, not through
+         * hp_encode (the same bytes: the golden vectors check hp_encode, the closed-loop
+         * tests these), to keep the tick's critical path short */
+        uint32_t lag = seq - fseq;
+        float x = (float)counts * (float)HK_POSITION_SCALE_M;
+        uint8_t pk[HK_STATE_COMPACT_FRAME_BYTES - 2u];
+        uint16_t crc;
+        pk[0] = HP_MSG_STATE_COMPACT;
+        pk[1] = (uint8_t)seq;
+        pk[2] = (uint8_t)(seq >> 8);
+        pk[3] = (uint8_t)status;
+        pk[4] = !(status & HP_STATUS_FORCE_APPLIED) ? 0u
+                : lag > HP_COMPACT_LAG_MAX ? (uint8_t)HP_COMPACT_LAG_MAX : (uint8_t)lag;
+        memcpy(&pk[5], &x, sizeof x); /* little-endian, as the wire */
+        crc = hp_crc16(0xFFFFu, pk, 9u);
+        pk[9] = (uint8_t)(crc >> 8);
+        pk[10] = (uint8_t)crc;
+        (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
+    } else {
+        m.type = HP_MSG_STATE;
+        m.u.state.seq = seq;
+        m.u.state.force_seq = fseq;
+        m.u.state.time_us = now_us();
+        m.u.state.status = status;
+        m.u.state.n_axes = 1;
+        m.u.state.position[0] = f64_of_float((float)counts * (float)HK_POSITION_SCALE_M);
+        send(&m);
+    }
     if (g_trip_event) {
         g_trip_event = 0;
         send_fault(HP_FAULT_WATCHDOG, 0);

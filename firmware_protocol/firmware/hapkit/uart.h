@@ -33,6 +33,17 @@ uint8_t uart_frame(const uint8_t **frame);
 void uart_frame_done(void);
 /* Queue `len` bytes: 1, or 0 (nothing queued) when the ring has not room for all. */
 uint8_t uart_put(const uint8_t *p, size_t len);
+/* Queue the frame of packet `pk` (type | body | crc, `len` <= 253 bytes): COBS-encoded
+ * straight into the ring, then the 0x00 delimiter (hp_cobs_encode's bytes, without the
+ * copy through a frame buffer). 1, or 0 (nothing queued) when the ring has not room. */
+uint8_t uart_put_packet(const uint8_t *pk, uint8_t len);
+/* The waiting frame, COBS-decoded as it is taken from the ring into `pk` (room for
+ * HP_MAX_PACKET bytes): its packet length (1..HP_MAX_PACKET); 0 when none waits (empty
+ * frames are idle fill, skipped); UART_OVERLONG for a frame longer than UART_FRAME_MAX;
+ * UART_BAD_COBS for a COBS error (a code byte pointing past the delimiter). The same
+ * results as uart_frame + hp_cobs_decode, in one pass over the bytes. */
+uint8_t uart_packet(uint8_t *pk);
+#define UART_BAD_COBS 0xFEu
 /* Bytes lost because the ring was full (each spoils its frame, which fails its CRC). */
 uint16_t uart_rx_lost(void);
 

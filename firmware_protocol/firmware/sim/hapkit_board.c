@@ -154,7 +154,7 @@ static struct {
      * answer comes, even to a STATE it sent before it took the STOP), any other frame
      * since the STATE (a host that does not answer it: a handshake) */
     uint32_t await_seq, read_force_seq;
-    int read_force_valid, read_stop, read_other;
+    int read_force_valid, read_stop, read_other, compact;
     hp_decoder_t dec_read;
     uint8_t out[64];
     size_t out_n;
@@ -372,22 +372,41 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
 
 /* ---------------------------------------------------------------- UART <-> pty */
 
+/* Whether the FORCE seq the host sent last answers the STATE awaited, or a later one: in
+ * 32 bits, or in 16 bits in a compact session (STATE_COMPACT and FORCE_COMPACT carry the
+ * low 16 bits of the seq, PROTOCOL.md section 4). */
+static int force_answers_await(void)
+{
+    if (link_.compact) {
+        return (int16_t)(uint16_t)(link_.read_force_seq - link_.await_seq) >= 0;
+    }
+    return (int32_t)(link_.read_force_seq - link_.await_seq) >= 0;
+}
+
+static void on_fw_state(uint32_t seq, uint16_t status, int compact)
+{
+    link_.fw_states++;
+    link_.fw_status = status;
+    link_.compact = compact;
+    if (status & HP_STATUS_RX_ERROR) {
+        link_.fw_status_rx_error++;
+    }
+    if (status & HP_STATUS_OVERRUN) {
+        link_.fw_overrun++;
+    }
+    if ((status & HP_STATUS_ARMED) && link_.host_present) {
+        link_.await_host = 1; /* fast mode: let the host answer this STATE */
+        link_.await_seq = seq;
+        link_.read_other = 0;
+    }
+}
+
 static void on_fw_msg(const hp_msg_t *m)
 {
     if (m->type == HP_MSG_STATE) {
-        link_.fw_states++;
-        link_.fw_status = m->u.state.status;
-        if (m->u.state.status & HP_STATUS_RX_ERROR) {
-            link_.fw_status_rx_error++;
-        }
-        if (m->u.state.status & HP_STATUS_OVERRUN) {
-            link_.fw_overrun++;
-        }
-        if ((m->u.state.status & HP_STATUS_ARMED) && link_.host_present) {
-            link_.await_host = 1; /* fast mode: let the host answer this STATE */
-            link_.await_seq = m->u.state.seq;
-            link_.read_other = 0;
-        }
+        on_fw_state(m->u.state.seq, m->u.state.status, 0);
+    } else if (m->type == HP_MSG_STATE_COMPACT) {
+        on_fw_state(m->u.state_compact.seq, m->u.state_compact.status, 1);
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
         if (m->u.fault.code == HP_FAULT_RX_ERRORS) {
@@ -479,6 +498,12 @@ static void on_host_msg(const hp_msg_t *m)
         link_.last_force_cyc = avr->cycle;
         link_.have_force = 1;
         link_.last_force_value = m->u.force.force[0];
+    } else if (m->type == HP_MSG_FORCE_COMPACT) {
+        float x;
+        memcpy(&x, &m->u.force_compact.force[0], sizeof x);
+        link_.last_force_cyc = avr->cycle;
+        link_.have_force = 1;
+        link_.last_force_value = x;
     }
 }
 
@@ -518,8 +543,9 @@ static void read_host(int timeout_ms)
             link_.in_q[link_.in_head] = buf[i];
             link_.in_head = (link_.in_head + 1u) % sizeof link_.in_q;
             if (hp_decoder_feed(&link_.dec_read, buf[i], &m) == HP_OK) {
-                if (m.type == HP_MSG_FORCE) {
-                    link_.read_force_seq = m.u.force.seq;
+                if (m.type == HP_MSG_FORCE || m.type == HP_MSG_FORCE_COMPACT) {
+                    link_.read_force_seq = m.type == HP_MSG_FORCE ? m.u.force.seq
+                                                                  : m.u.force_compact.seq;
                     link_.read_force_valid = 1;
                 } else {
                     link_.read_other = 1;
@@ -843,8 +869,7 @@ int main(int argc, char **argv)
             /* until the host's FORCE answering this STATE is read (a frame read before
              * the STATE ended cannot be it), or a STOP (maybe read before this STATE
              * ended, not taken yet), or another frame since it */
-            while (!(link_.read_force_valid &&
-                     (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) &&
+            while (!(link_.read_force_valid && force_answers_await()) &&
                    !link_.read_stop && !link_.read_other && link_.host_present &&
                    !stop_signal) {
                 uint64_t el = (wall_ns() - w0) / 1000000u;
