@@ -1,6 +1,7 @@
 """Drivers: FireFader bytes (published layout), hostile streams, closed loop via its mock."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -707,3 +708,18 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     assert again and rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("Haply M3") and board.held == 0.0
 
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--added-mass", "0.05"], "--added-mass.*give --driver"),
+    (["--driver", "hapkit-serial", "--added-mass", "0.05"], "SI units.*firefader, haply"),
+    (["--driver", "firefader", "--added-mass", "-1"], "--added-mass.*positive mass"),
+    (["--driver", "firefader", "--mock-option", "full_scale"], "--mock-option.*KEY=VALUE"),
+])
+def test_identify_added_mass_and_mock_option_are_checked(argv, msg, capsys):
+    """hapsim identify --added-mass / --mock-option: refused before anything runs (exit 2)
+    for the framed protocol, a protocol in SI units, a non-positive mass, a malformed
+    option; the message names the option and the valid choices."""
+    from hapsim.cli import main
+    assert main(["identify", *argv]) == 2
+    assert re.search(msg, capsys.readouterr().err, re.S)

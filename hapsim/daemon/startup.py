@@ -316,6 +316,7 @@ def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
         True when something will be compiled (announced now or before).
     """
     global _NOTICE
+    given = stream
     stream = sys.stderr if stream is None else stream
     cold = [(what, src) for what, src, fn in parts if what not in _SAID
             and (fn is None or not part_is_fresh((what, src, fn), scene))]
@@ -331,8 +332,14 @@ def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
         t0 = time.monotonic()
 
         def notice(what: str) -> None:
+            # sys.stderr looked up when the warm-up ends, not when it was announced: the
+            # notice outlives the command that announced it (a later run_scene in the same
+            # process, e.g. zwidth's records after a run, finishes the warm-up), whose
+            # stderr may be closed by then (a test's captured stream: 'I/O operation on
+            # closed file' on a fresh clone's cold cache)
             print(f"{command}: compiled {what} ({time.monotonic() - t0:.1f} s since the "
-                  f"announcement)", file=stream, flush=True)
+                  f"announcement)", file=sys.stderr if given is None else given,
+                  flush=True)
         _NOTICE = notice
     return True
 
