@@ -8,6 +8,7 @@ pseudo-terminal with the mock serving it in a thread."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pty
 import threading
@@ -152,3 +153,34 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     # -1: a record in which no FORCE came in time (this machine under load)
     assert out["dof"] == 2 and set(out["delay"]) <= {1, -1} and out["lost"] == 0
     assert max(out["deviation"].values()) < 1e-6, (out["deviation"], out["late"])
+
+
+class _WithoutAppliedBit:
+    """A device written before STATUS_FORCE_APPLIED existed (PROTOCOL.md §9: added within
+    version 1): its STATEs never set the bit; force_seq names the FORCE applied."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.info = getattr(inner, "info", None)
+
+    def send(self, msg):
+        self.inner.send(msg)
+
+    def receive(self, timeout=0.0):
+        return [dataclasses.replace(m, status=m.status & ~fp.STATUS_FORCE_APPLIED)
+                if isinstance(m, fp.State) else m for m in self.inner.receive(timeout)]
+
+    def last_frames(self):
+        return self.inner.last_frames()
+
+
+def test_a_device_without_the_applied_bit_is_measured():
+    """The same lockstep records from a device that never sets FORCE_APPLIED: force_seq
+    names each FORCE (seq - d), so the run measures the felt matrices to 1e-6 as with the
+    bit (before: a record without the bit was read as 'no FORCE arrived in time', the whole
+    force sent taken as a disturbance, delay -1)."""
+    sc = _scene("pantograph_wall.yaml")
+    res = measure_felt_port(_WithoutAppliedBit(InProcessTransport(
+        MockDeviceND(sc, lockstep=True))), sc, samples=150)
+    assert res["late"] == 0 and res["delay"] == [1] * 5
+    assert max(res["deviation"].values()) < 1e-6, res["deviation"]

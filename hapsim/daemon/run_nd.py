@@ -273,10 +273,12 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     for rec in raw:
         W = np.zeros((N, n))
         wdog += int(np.count_nonzero(rec.status & fp.STATUS_WATCHDOG_TRIPPED))
-        if not np.any(rec.status & fp.STATUS_FORCE_APPLIED):
+        if not np.any(rec.status & fp.STATUS_FORCE_APPLIED) and not np.any(rec.force_seq):
             # no FORCE arrived in time in the whole record (a host starved for longer
             # than the watchdog): the device held zero throughout. (The account's rule
             # for devices without the FORCE_APPLIED bit would name FORCE 0 on every row.)
+            # A device written before the bit existed (PROTOCOL.md §9) names its FORCEs
+            # in force_seq alone: the account reads it.
             W[d:] = -rec.force[:N - d]
             late += N - d
             delays.append(-1)
