@@ -289,7 +289,7 @@ class HaplyDevice(_Actuated):
             return 0.0
         res = dec.encoder_res[0]
         c = self._counts() - self._base
-        if dec.direction[0]:
+        if dec.encoder_direction[0]:
             c = -c
         if not (math.isfinite(res) and res):       # a garbage set-up's resolution
             return math.copysign(math.inf, c) if c else math.nan
@@ -306,7 +306,7 @@ class HaplyDevice(_Actuated):
                     off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
                     off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
                     c = self._counts()
-                    self._base = c - (-off if dec.direction[0] else off)
+                    self._base = c - (-off if dec.encoder_direction[0] else off)
                 continue
             if cmd[0] != "write":
                 continue
@@ -316,7 +316,7 @@ class HaplyDevice(_Actuated):
                 if not math.isfinite(t):
                     t = 0.0                       # (the firmware: a NaN duty is 0)
                 t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
-                if dec.direction[0]:
+                if dec.motor_direction[0]:
                     t = -t
             self.apply(t)
             na, encs = dec.reply_layout(addr)
