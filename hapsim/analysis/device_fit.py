@@ -139,6 +139,9 @@ class DeviceFit:
         Samples used.
     level : float
         Confidence level of the intervals.
+    motion_counts : int
+        Encoder steps seen on the fitted stretches (changes between neighbouring
+        samples; -1: positions not on a grid).
     candidates : list of dict
         ``hold``, ``delay``, ``rms`` of every model tried.
     model : ndarray
@@ -165,6 +168,7 @@ class DeviceFit:
     period: float
     n_samples: int
     level: float = LEVEL
+    motion_counts: int = -1
     candidates: list = field(default_factory=list)
     model: np.ndarray = field(default=None, repr=False)
 
@@ -598,6 +602,8 @@ def _noise_interval(loglik, r, crit):
     return Estimate(float(s_hat), float(lo), float(hi), "m")
 
 
+#: A mass interval wider than this ratio hi / lo is "not identified".
+MASS_SPAN = 100.0
 #: Replicates of the quantised record (:func:`_grid_replicates`).
 REPLICATES = 24
 
@@ -816,6 +822,21 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     # the linearised one and the replicates' bias-corrected prediction interval,
     # theta - bias +- t_(R-1) s sqrt(1 + 1/R) (the bias itself estimated from R
     # replicates: Student's t, R - 1 degrees of freedom)
+    # encoder steps on the fitted stretches: between two steps a quantised record only
+    # says the device is inside one cell
+    counts = -1
+    if q.value > 0:
+        steps = np.diff(xi) != 0
+        steps[mod.offs[1:] - 1] = False               # not across two stretches
+        counts = int(np.sum(steps))
+        n_par = p.size + n_nuis
+        if counts <= n_par:
+            raise IdentificationError(
+                f"the record does not determine the device: {counts} encoder steps "
+                f"({q.value * 1e6:.3g} um) on the {mod.starts.size} stretches of clear "
+                f"motion, for {n_par} parameters (each stretch's position and velocity, "
+                f"the mass and frictions); between steps the encoder only says the "
+                f"handle is inside one cell (raise --force-limit or --duration)")
     boot = None
     if q.value > 0:
         boot = _grid_replicates(mod, ym, p, q.value, noise.value)
@@ -847,6 +868,14 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         return w
     m = math.exp(p[0])
     mass = interval(unit_vec((0, 1.0)), "kg", log=True)
+    if not mass.hi < MASS_SPAN * mass.lo:
+        # every prediction rests on the mass: one not known within a factor MASS_SPAN is
+        # not a device to write down
+        raise IdentificationError(
+            f"the record does not determine the mass: {mass.value:.3g} kg, interval "
+            f"[{mass.lo:.3g}, {mass.hi:.3g}] kg at {LEVEL:.1%} (more than a factor "
+            f"{MASS_SPAN:g}; {counts} encoder steps of motion) -- raise --force-limit or "
+            f"--duration")
     fric = interval(unit_vec((1, 1.0)), "N s/m")
     if mod.coulomb:
         cp = interval(unit_vec((2, 1.0)), "N")
@@ -916,6 +945,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                      hold_certain=not other_hold, position_resolution=q, noise=noise,
                      x0=float(x0), rms_residual=rms, explained=bool(explained),
                      verdict=verdict, residual_peak_hz=peak, period=T, n_samples=n,
+                     motion_counts=counts,
                      candidates=[{"hold": c["hold"], "delay": c["delay"],
                                   "rms": math.sqrt(2 * c["cost"] / nu)} for c in cands],
                      model=xm)
