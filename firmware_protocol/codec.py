@@ -1118,6 +1118,46 @@ class StreamDecoder:
         self._buf = b""
         self._overflow = False
 
+    @property
+    def overflow(self) -> bool:
+        """Whether the frame being received has passed ``MAX_FRAME - 1`` bytes (it is being
+        dropped up to its delimiter; :attr:`buffered` holds none of it)."""
+        return self._overflow
+
+    def take_partial(self) -> bytes:
+        """Hand over the partial frame held (the bytes after the last delimiter) and hold
+        none: for a reader that continues the stream itself (a compiled loop), which gives
+        back what it has not completed with :meth:`put_partial`.
+
+        Returns
+        -------
+        bytes
+            At most ``MAX_FRAME - 1`` bytes, no 0x00 (empty when none is held).
+        """
+        pre, self._buf = self._buf, b""
+        return pre
+
+    def put_partial(self, partial: bytes) -> None:
+        """Hold ``partial`` as the start of the next frame (the bytes another reader took
+        with :meth:`take_partial` and did not complete), replacing what was held.
+
+        Parameters
+        ----------
+        partial : bytes
+            A frame's start: no 0x00, at most ``MAX_FRAME - 1`` bytes.
+
+        Raises
+        ------
+        ValueError
+            ``partial`` holds a delimiter or is longer than a frame.
+        """
+        partial = bytes(partial)
+        delimited = b"\x00" in partial
+        if delimited or len(partial) > MAX_FRAME - 1:
+            raise ValueError(f"not a partial frame: {len(partial)} bytes"
+                             + (", with a delimiter" if delimited else ""))
+        self._buf = partial
+
     def feed(self, chunk: bytes) -> list[Message]:
         """Feed received bytes; return the messages of the frames they complete.
 

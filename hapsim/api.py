@@ -43,12 +43,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
+
+if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
+    from hapsim.analysis.loop import LoopModel
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
            "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
@@ -58,11 +61,22 @@ __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability
            "CheckReportND", "ModesReportND", "RunReportND"]
 
 
+#: Public names provided on first use (PEP 562), with the module that defines them:
+#: importing the analysis costs more than the rest of this module together.
+_LAZY = {"LoopModel": "hapsim.analysis.loop"}
+
+
 def __getattr__(name: str):
-    if name == "LoopModel":               # the analysis's loop model, imported on demand
-        from hapsim.analysis.loop import LoopModel
-        return LoopModel
+    if name in _LAZY:
+        import importlib
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value            # once: the next reads find it directly
+        return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
 
 
 def load_scene(path: str | os.PathLike):
@@ -116,7 +130,23 @@ class _Report:
         return getattr(self, "_extra", {})
 
     @classmethod
-    def _from(cls, d: dict, **attrs):
+    def from_dict(cls, d: dict, **attrs):
+        """A result from a command's ``--json`` object (the inverse of :meth:`to_dict`).
+
+        Parameters
+        ----------
+        d : dict
+            The object: each field's key (a missing one is None); the other keys are
+            kept in :attr:`extra`.
+        **attrs
+            Objects the result carries beside its fields (the analysis behind it, a fit,
+            the record), set as attributes.
+
+        Returns
+        -------
+        _Report
+            An instance of the class it is called on.
+        """
         names = {f.name for f in dataclasses.fields(cls)}
         obj = cls(**{n: d.get(n) for n in names})
         object.__setattr__(obj, "_extra", {k: v for k, v in d.items() if k not in names})
@@ -289,7 +319,7 @@ def check(scene) -> CheckReport:
              "hold": dev.hold, "correction": getattr(dev, "correction", None)},
          "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
          "static_k": static_stiffness(scene) if chk.has_port else None}
-    return CheckReport._from(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+    return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
 
 
 # ---------------------------------------------------------------------------- a loop
@@ -386,7 +416,7 @@ def render(loop, K: float, B: float = 0.0) -> RenderReport:
     """
     from hapsim.analysis.ths import render as _render
     r = _render(loop, K, B)
-    return RenderReport._from({**r.to_dict(), "loop": loop.to_dict()}, analysis=r)
+    return RenderReport.from_dict({**r.to_dict(), "loop": loop.to_dict()}, analysis=r)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -450,7 +480,7 @@ def calibrate(loop, k: float, b: float) -> CalibrateReport:
     """
     from hapsim.analysis.ths import calibrate as _calibrate
     c = _calibrate(loop, k, b)
-    return CalibrateReport._from({**c.to_dict(), "loop": loop.to_dict()}, analysis=c)
+    return CalibrateReport.from_dict({**c.to_dict(), "loop": loop.to_dict()}, analysis=c)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -530,7 +560,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
         rho = known_digits(rho, err)
     iv = None if cert.interval is None else [
         v if math.isfinite(v) else None for v in cert.interval]
-    return StabilityReport._from({
+    return StabilityReport.from_dict({
         "K_max": kmax if math.isfinite(kmax) else None, "K_max_method": cert.method,
         "K_max_interval": iv, "K_max_certificate": cert.note, "B": B,
         "spectral_radius_at_K_max": rho, "spectral_radius_error": err,
@@ -684,7 +714,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         verdict = "robustly stable (certified)"
     else:
         verdict = f"robustly stable on the samples only ({res.robust_method})"
-    return FamilyReport._from({"scene": scene.path, "verdict": verdict,
+    return FamilyReport.from_dict({"scene": scene.path, "verdict": verdict,
                                "correction": getattr(scene.device, "correction", None),
                                **rep}, analysis=res)
 
@@ -812,7 +842,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
          "plot": None}
     if hand:
         d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
-    return IdentifyReport._from(json_safe(d), fit=fit, record=rec)
+    return IdentifyReport.from_dict(json_safe(d), fit=fit, record=rec)
 
 
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
@@ -1121,7 +1151,7 @@ def run(scene, options=None, **changes: Any) -> RunReport:
         if rep is None:
             raise
     code = rep.pop("exit_code")
-    return RunReport._from(json_safe(rep), exit_code=code)
+    return RunReport.from_dict(json_safe(rep), exit_code=code)
 
 
 def known_digits(value: float, error: float) -> float:
@@ -1347,7 +1377,7 @@ def check_nd(scene) -> CheckReportND:
          "device": {"kind": dev.kind, "mass": dev.mass.tolist(),
                     "friction": dev.friction.tolist(), "position": dev.position.tolist(),
                     "delay": dev.delay, "hold": dev.hold}}
-    return CheckReportND._from(d, analysis=chk, scene_nd=scene)
+    return CheckReportND.from_dict(d, analysis=chk, scene_nd=scene)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1449,7 +1479,7 @@ def modes_nd(scene) -> ModesReportND:
          "states": res.states, "stable": res.stable,
          "spectral_radius": res.spectral_radius,
          "modes": [md.to_dict() for md in res.modes]}
-    return ModesReportND._from(d, analysis=res, scene_nd=scene)
+    return ModesReportND.from_dict(d, analysis=res, scene_nd=scene)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1547,7 +1577,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"])
-    return RunReportND._from(d)
+    return RunReportND.from_dict(d)
 
 
 def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False

@@ -16,7 +16,9 @@ Two sources give the account:
   the host sent answering the STATE whose ``seq`` is STATE ``k``'s ``force_seq`` (0 before
   the device applied any, or when its watchdog zeroed the force); the device's delay is the
   smallest ``seq - force_seq`` it showed on a tick that applied a FORCE (a device never
-  applies a force before it is due; a late tick only shows a larger one).
+  applies a force before it is due; a late tick only shows a larger one). Which FORCE a
+  STATE names and whether its tick is late is the rule of :mod:`hapsim.kernels.ticks`,
+  the same functions the Python and the compiled host loops count late ticks with.
 - :func:`account_from_timing` (drivers whose protocol has no such field: FireFader, Haply,
   Hapkit-serial): the host's own clock says which force was written before each record was
   read; where it cannot tell (``ambiguous``: the write and the device's tick too close to
@@ -37,12 +39,11 @@ import numpy as np
 # hapsim: it stands on the ground floor with this module)
 from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_FORCE_CLAMPED,
                                      STATUS_OVERRUN, STATUS_WATCHDOG_TRIPPED)
+from hapsim.kernels.ticks import late_ticks
 
 __all__ = ["AppliedAccount", "account_from_force_seq", "account_from_timing",
            "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FORCE_APPLIED",
            "STATUS_OVERRUN"]
-
-_U32 = 0xFFFFFFFF
 
 
 @dataclass
@@ -211,7 +212,9 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
     if force_scale and force_scale > 0:
         f = np.round(f / force_scale) * force_scale
     if zero_delay:
-        late = (st & STATUS_OVERRUN) != 0
+        tick = np.empty(n, np.int64)
+        late = np.zeros(n, bool)
+        late_ticks(seq, fseq, st, 0, False, tick, late, np.zeros(n, bool))
         src = np.arange(n, dtype=np.int64)
         # an overrun holds the previous period's force
         for k in np.flatnonzero(late):
@@ -219,33 +222,37 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
         applied = np.where(src >= 0, f[np.maximum(src, 0)], 0.0)
         return AppliedAccount(applied, src, np.zeros(n, np.int64), 0, late, np.zeros(n),
                               np.ones(n, bool), "lockstep")
-    has = fseq >= 0
-    # a device that sets FORCE_APPLIED names a FORCE only with it; one written before
-    # the bit existed names one whenever force_seq is set (PROTOCOL.md §4)
+    # the late-tick rule (hapsim.kernels.ticks), as the host loops read it: which FORCE
+    # each row names (a running OR of FORCE_APPLIED says whether the device sets the bit)
+    # (the whole record says whether the device sets the bit at all, kernels.ticks notes)
     uses_bit = bool(np.any(st & STATUS_FORCE_APPLIED))
-    applied_bit = ((st & STATUS_FORCE_APPLIED) != 0) if uses_bit else has
-    named = has & applied_bit
-    tick = np.where(has, (seq - fseq) & _U32, -1)
-    tick = np.where(tick > _U32 // 2, -1, tick)         # "ahead": a stale field
-    named &= tick >= 0
+    tick = np.empty(n, np.int64)
+    late = np.zeros(n, bool)
+    flags = np.zeros(n, bool)
+    late_ticks(seq, fseq, st, -1, uses_bit, tick, late, flags)
+    named = tick >= 0
+    wd = (st & STATUS_WATCHDOG_TRIPPED) != 0
     src_seq = np.where(named, seq - tick, -1)
     src = _rows_of(seq, src_seq)
-    wd = (st & STATUS_WATCHDOG_TRIPPED) != 0
     applied = np.where(src >= 0, f[np.maximum(src, 0)], 0.0)
     applied = np.where(wd, 0.0, applied)
     if np.isfinite(force_limit):
         cl = (st & STATUS_FORCE_CLAMPED) != 0
         applied = np.where(cl, np.clip(applied, -force_limit, force_limit), applied)
-    d = int(tick[named].min()) if np.any(named) else -1
+    # the device's delay: the smallest it shows on a tick that applied a FORCE (a device
+    # never applies one before it is due; a late tick only shows a larger one)
+    # (force_seq = 0 without FORCE_APPLIED is "FORCE 0 or none yet", kernels.ticks notes:
+    # it shows a delay only when no row says more)
+    on = named & ~wd
+    sure = on & ~((fseq == 0) & ((st & STATUS_FORCE_APPLIED) == 0))
+    on = sure if np.any(sure) else on
+    d = int(tick[on].min()) if np.any(on) else -1
     # known: a named force in the record, or none named (zero) before the first one
     first = int(np.argmax(named)) if np.any(named) else n
     idx = np.arange(n)
     known = (named & (src >= 0)) | wd | (~named & (idx < first))
-    # late: a row at or after the first that should hold FORCE seq - d and does not
-    late = np.zeros(n, bool)
     if d >= 0:
-        due = idx >= first
-        late = due & ((tick != d) | ~named | wd | ((st & STATUS_OVERRUN) != 0))
+        late_ticks(seq, fseq, st, d, uses_bit, tick, late, flags)
     src = np.where(wd, -1, src)
     return AppliedAccount(applied, src, tick, d, late, np.zeros(n), known, "force_seq")
 

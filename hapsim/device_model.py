@@ -355,6 +355,55 @@ class MockPhysics:
         """Time after which no hand force acts [s] (0.0 without impulse or profile)."""
         return self.hand.size * self.period
 
+    @property
+    def step_coefficients(self) -> dict:
+        """The one-body step's coefficients by name, for a compiled twin of :meth:`advance`.
+
+        Returns
+        -------
+        dict of str to float
+            ``"zoh"`` hold: ``a``, ``cxv``, ``cxu``, ``cvu`` of
+            ``v' = a v + cvu f``, ``x' = x + cxv v + cxu f``
+            (:func:`zoh_step_coefficients`); ``"ideal"``: ``a``, ``cu`` of
+            ``x' = (1 + a) x - a x_prev + cu f`` (:func:`ideal_step_coefficients`). With
+            a compliant grip or an arm spring (:attr:`state_space`) :meth:`advance` steps
+            the state-space plant instead and these are not used.
+        """
+        if self.hold == "zoh":
+            return {"a": self._a, "cxv": self._cxv, "cxu": self._cxu, "cvu": self._cvu}
+        return {"a": self._a, "cu": self._cu}
+
+    @property
+    def position_resolution(self) -> float:
+        """The encoder's step [m] the sampled position is rounded to (0.0: none)."""
+        return self._q
+
+    @property
+    def coulomb(self) -> float:
+        """Coulomb friction force [N] on the one-body zoh path (0.0: none)."""
+        return self._coulomb
+
+    @property
+    def noisy(self) -> bool:
+        """Whether the sampled position carries sensor noise (a random stream)."""
+        return self._rng is not None
+
+    @property
+    def state_space(self) -> bool:
+        """Whether the plant is the hand grip's or the arm spring's state space rather than
+        the one body."""
+        return self._grip is not None
+
+    @property
+    def previous_position(self) -> float:
+        """The position one period ago, ``x[n-1]`` [m] (the ideal hold's recurrence); a
+        compiled twin that advanced the plant sets it back with :attr:`x` and :attr:`v`."""
+        return self._xprev
+
+    @previous_position.setter
+    def previous_position(self, value: float) -> None:
+        self._xprev = float(value)
+
     def sample(self) -> float:
         """Position the encoder reports at the current tick.
 

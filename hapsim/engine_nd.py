@@ -13,7 +13,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 from hapsim.kernels.nd import (BLOCK, ROWS, link_lengths, run_nd, run_nd_listen,
-                               schedule, stripes)
+                               schedule, shared_params, stripes)
 
 __all__ = ["EngineND"]
 
@@ -99,6 +99,8 @@ class EngineND:
         self.eu_z = slot(eo, [lk.damping / T for lk in eu])
         self.eu_rest = slot(eo, [lk.length for lk in eu])
         self.eu_lprev = link_lengths(self._XP, self.eu_pieces, eo.size)
+        self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
+                                       self.eu_rest)
         self.W = np.zeros((ROWS, block))
 
     @property
@@ -121,7 +123,8 @@ class EngineND:
         """
         run_nd(int(n), self.dim, self.block, self._X, self._XP, self.f, self.t2m,
                self.lin_pieces, self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces,
-               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
+               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev,
+               *self.eu_shared, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
                self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
                self.p_k, self.p_z, -1 if self.port is None else self.port, self.port_f)
 
@@ -156,7 +159,8 @@ class EngineND:
                       np.asarray(gain, float), self.dim, self.block, self._X, self._XP,
                       self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
                       self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
-                      self.eu_rest, self.eu_lprev, self.W, self.c_i1, self.c_i2, self.c_k,
+                      self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
+                      self.c_i2, self.c_k,
                       self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
                       self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
 

@@ -99,7 +99,7 @@ def test_identify_report_fields_are_the_commands_json_keys():
 
 
 def test_a_report_keeps_a_key_it_has_no_field_for():
-    rep = api.StabilityReport._from({**dict.fromkeys(_fields(api.StabilityReport)),
+    rep = api.StabilityReport.from_dict({**dict.fromkeys(_fields(api.StabilityReport)),
                                      "new_key": 1})
     assert rep.extra == {"new_key": 1} and rep.to_dict()["new_key"] == 1
 
@@ -168,6 +168,37 @@ def test_import_hapsim_is_light_and_the_api_draws_only_when_asked():
                                         if isinstance(node, ast.ImportFrom)}
     assert not {m for m in imported if m and m.split(".")[0] == "matplotlib"}
     assert not {m for m in imported if m and m.startswith("hapsim.commands")}
+
+
+def test_every_api_name_is_bound_where_checkers_look_and_lazy_ones_load_on_use():
+    """Each name of ``hapsim.api.__all__`` is bound at the module's top level (a def, a
+    class, an assignment or an import, a ``TYPE_CHECKING`` one included), as pyflakes
+    and type checkers read ``__all__``; the lazy ones (the analysis's LoopModel) are not
+    imported by ``import hapsim.api`` and resolve on first use to the defining object."""
+    import ast
+    tree = ast.parse((ROOT / "hapsim" / "api.py").read_text())
+    bound = set()
+    for node in tree.body:
+        body = node.body if isinstance(node, ast.If) else [node]
+        for n in body:
+            if isinstance(n, (ast.FunctionDef, ast.ClassDef)):
+                bound.add(n.name)
+            elif isinstance(n, (ast.Import, ast.ImportFrom)):
+                bound |= {(a.asname or a.name).split(".")[0] for a in n.names}
+            elif isinstance(n, ast.Assign):
+                bound |= {t.id for t in n.targets if isinstance(t, ast.Name)}
+            elif isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name):
+                bound.add(n.target.id)
+    api = sys.modules.get("hapsim.api") or __import__("hapsim.api").api
+    assert set(api.__all__) - bound == set()
+    code = ("import json, sys, hapsim.api as a; before = 'hapsim.analysis.loop' in sys.modules;"
+            " import hapsim.analysis.loop as l; print(json.dumps([before, a.LoopModel is "
+            "l.LoopModel, 'LoopModel' in dir(a)]))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, env=env, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert json.loads(p.stdout.strip().splitlines()[-1]) == [False, True, True]
 
 
 def test_pole_chart_marks_the_felt_pair():

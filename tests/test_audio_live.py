@@ -479,7 +479,7 @@ def test_native_callback_follows_a_server_block_size_change(jack_server):
     out = JackOutput(live, server=jack_server)
     try:
         assert out.native is not None
-        n = live._nsub
+        n = live.callback_pack.head[0]
         assert out.blocksize == 256 and live.lead == -(-256 // n)
         out.client.blocksize = 512
         deadline = time.monotonic() + 5.0
@@ -666,4 +666,37 @@ def test_silence_after_finish_is_not_counted_as_an_underrun(seed):
         ring.render(b)
         live.render(b)
     assert (ring.stats()["missing"], live.stats()["underruns"]) == before
-    assert int(ring._st[1]) > before[0]          # the kernel did play silence after finish
+    assert int(ring.callback_pack.st[1]) > before[0]          # the kernel did play silence after finish
+
+
+def test_the_callback_pack_is_the_live_sounds_own_state_and_renders_as_it_does():
+    """What the native callback reads (``LiveSound.callback_pack``, ``FrameRing.callback_pack``)
+    is the sources' own arrays and the engine's (shared, not copied), and one kernel call
+    over the pack renders exactly what :meth:`LiveSound.render` renders: two live sounds of
+    one gesture, one rendered by its method, the other by ``run_frames`` on its pack as the
+    native callback calls it, give the same frames bit for bit and the same force ring."""
+    from hapsim.audio.live import FrameRing
+    from hapsim.kernels import audio as audio_kernel
+
+    a, b = resting_live(), resting_live()
+    pa, pb = a.callback_pack, b.callback_pack
+    head, args = b.engine.multirate_pack
+    assert pb.head == tuple(head) and pb.inv_ta == args[-1]
+    assert all(x is y for x, y in zip(pb.arrays[4:], args[:-1])) and len(pb.arrays) == 22
+    assert pb.block is b.block and not np.shares_memory(pa.arrays[0], pb.arrays[0])
+    rng = np.random.default_rng(3)
+    fa, fb = [], []
+    for x in pluck_gesture(300):
+        a.push(x)
+        b.push(x)
+        n = int(rng.integers(1, 200))
+        fa.append(a.render(n).copy())
+        audio_kernel.run_frames(n, *pb.head, *pb.arrays, pb.inv_ta, pb.block)
+        fb.append(pb.block[:n].copy())
+    assert np.array_equal(np.concatenate(fa), np.concatenate(fb))
+    assert np.abs(np.concatenate(fa)).max() > 0          # the string did sound
+    assert a.stats() == b.stats() and np.array_equal(pa.arrays[3], pb.arrays[3])
+    ring = FrameRing(48000.0, ("a", "b"), ring=64)
+    ring.push(np.ones((5, 2)))
+    assert ring.callback_pack.wr[0] == 5 and ring.callback_pack.block is ring.block
+    assert ring.callback_pack.ring[:5].sum() == 10.0

@@ -514,16 +514,16 @@ def test_force_seq_read_only_when_the_device_says_it_is_valid():
     """PROTOCOL.md §4: force_seq names the FORCE applied only with STATUS_FORCE_APPLIED.
     After CONFIG, STATE seq 0 is answered by FORCE seq 0, so force_seq = 0 alone cannot
     tell "FORCE 0 applied" from "none applied yet"; the bit can."""
-    from hapsim.daemon.loop import _force_seq_late
+    from hapsim.kernels.ticks import named_delay, tick_late
     A = fp.STATUS_FORCE_APPLIED
     d = 1
     # a device that sets the bit: FORCE 0 applied at tick 1 is on time ...
-    assert not _force_seq_late(1, 0, A, d, True)
+    assert not tick_late(1, 0, A, d, True)
     # ... and at tick 1 with no FORCE applied yet (bit clear, force_seq 0) it is late,
     # which the bare force_seq comparison (1 - 0 == d) would have missed
-    assert _force_seq_late(1, 0, 0, d, True)
-    assert _force_seq_late(5, 3, A, d, True)           # an older FORCE held
+    assert tick_late(1, 0, 0, d, True)
+    assert tick_late(5, 3, A, d, True)           # an older FORCE held
     # a device that never sets the bit is read by force_seq alone, as before
-    assert not _force_seq_late(1, 0, 0, d, False)
-    assert _force_seq_late(5, 3, 0, d, False)
-    assert not _force_seq_late(0, 0xFFFFFFFF, A, d, True)   # mod 2^32
+    assert not tick_late(1, 0, 0, d, False)
+    assert tick_late(5, 3, 0, d, False)
+    assert named_delay(0, 0xFFFFFFFF, A, True) == 1          # mod 2^32

@@ -351,3 +351,110 @@ def test_no_module_reads_an_engines_private_state():
         if found:
             bad[mod] = sorted(set(found))
     assert bad == {}
+
+
+# ------------------------------------------------------- other objects' private state
+def _private_reads(text: str) -> list[str]:
+    """Reads and writes of another object's ``_name`` (``obj._x``, ``getattr(obj,
+    "_x")``, ``hasattr``/``setattr`` alike), as ``"obj._x"`` with ``obj`` as written.
+
+    Not counted: ``self``/``cls``/``super()`` (an object's own and inherited state),
+    dunders, and a name this module's own classes define (``self._x = ...`` or a ``_x``
+    in a class body: another instance of the module's class, read by its own code)."""
+    tree = ast.parse(text)
+    own = set()
+    for n in ast.walk(tree):
+        if (isinstance(n, ast.Attribute) and not isinstance(n.ctx, ast.Load)
+                and isinstance(n.value, ast.Name) and n.value.id in ("self", "cls")):
+            own.add(n.attr)
+        elif isinstance(n, ast.ClassDef):
+            for b in n.body:
+                if isinstance(b, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                    own.add(b.name)
+                elif isinstance(b, (ast.Assign, ast.AnnAssign)):
+                    for t in (b.targets if isinstance(b, ast.Assign) else [b.target]):
+                        if isinstance(t, ast.Name):
+                            own.add(t.id)
+    out = []
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Attribute):
+            name, value = n.attr, n.value
+        elif (isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+              and n.func.id in ("getattr", "hasattr", "setattr", "delattr")
+              and len(n.args) >= 2 and isinstance(n.args[1], ast.Constant)
+              and isinstance(n.args[1].value, str)):
+            name, value = n.args[1].value, n.args[0]
+        else:
+            continue
+        if not name.startswith("_") or (name.startswith("__") and name.endswith("__")):
+            continue
+        if isinstance(value, ast.Name) and value.id in ("self", "cls"):
+            continue
+        if (isinstance(value, ast.Call) and isinstance(value.func, ast.Name)
+                and value.func.id == "super"):
+            continue
+        if name not in own:
+            out.append(f"{ast.unparse(value)}.{name}")
+    return out
+
+
+#: Documented functions of the standard library whose names begin with an underscore.
+PUBLIC_UNDERSCORE = {"os._exit", "sys._getframe"}
+#: Private reads that stay, each with its reason: (module, "obj._name") -> why.
+PRIVATE_READS_ALLOWED = {
+    **{("hapsim.audio.jack_native", r): "JACK-Client exposes neither libjack's path nor the "
+       "C pointers (cffi) the native callback is registered with"
+       for r in ("jack._libname", "jack._ffi", "client._ptr")},
+    **{("hapsim.audio.live", r): "jack_set_process_callback with a numba cfunc needs "
+       "JACK-Client's cffi handle and the client's and ports' C pointers, which it does "
+       "not expose" for r in ("jack._ffi", "jack._lib", "self.client._ptr", "p._ptr")},
+    ("hapsim.cli", "argparse._SubParsersAction"): "argparse has no public type or list of a "
+    "parser's sub-commands and options (its error() finds the chosen sub-command's)",
+    ("hapsim.cli", "parser._actions"): "argparse: a parser's options have no public list",
+    ("hapsim.__main__", "hapsim._quiet_interrupt_at_start"): "the package's own start-up, "
+    "run by its own entry point before any import (not an API)",
+    # The compiled mock hands MockDevice's state over and back; mock.py is being merged
+    # with mock_nd.py by another engineer this session. What is left: MockDevice gets a
+    # public hand-over (its sequence, status, last force time, applied force, command and
+    # delay ring), and serve_fd/compiled_reason read MockPhysics.noisy/.state_space,
+    # StreamDecoder.overflow and a public "bytes queued" of FaultyDevice.
+    **{("hapsim.daemon.fastmock", f"mock.{a}"): "MockDevice's state hand-over (mock.py is "
+       "being restructured this session)" for a in ("_applied", "_applied_seq",
+                                                   "_last_force_us", "_rf", "_rs",
+                                                   "_status_extra", "_u")},
+    **{("hapsim.daemon.mock", r): "switch to the public name once mock.py's restructuring "
+       "lands (ph.noisy, ph.state_space, dev.decoder.overflow; FaultyDevice needs one)"
+       for r in ("ph._rng", "ph._grip", "dev.decoder._overflow", "dev._out")},
+}
+
+
+def test_scanner_sees_private_reads():
+    found = _private_reads(
+        "def f(run, dec, o):\n"
+        "    a = run.loop._t0\n    b = getattr(run.loop, '_t0', None)\n"
+        "    dec._buf = b''\n    o.__dict__\n    hasattr(o, '_x')\n")
+    assert sorted(found) == ["dec._buf", "o._x", "run.loop._t0", "run.loop._t0"]
+    assert _private_reads(
+        "class A:\n    _n = 0\n    def __init__(self):\n        self._x = 1\n"
+        "    def __eq__(self, other):\n        return self._x == other._x and other._n\n"
+        "    def g(self):\n        return super()._y + self._z + type(self)._n\n") == []
+    assert _private_reads("class A:\n    def g(self, o):\n        o._x = 1\n") == ["o._x"]
+
+
+def test_no_module_reads_another_objects_private_state():
+    """An object's ``_name`` is read and written by its own class (and the module that
+    defines it) only: what another module needs has a public, documented name
+    (``Engine.kernel_pack``, ``LiveSound.callback_pack``, ``StreamDecoder.take_partial``,
+    ``HostLoop.armed_at`` ...). The few reads of other libraries' internals that stay
+    are listed with their reason, and an entry no longer needed is an error too."""
+    seen, bad = set(), {}
+    for mod, f in _modules().items():
+        for r in _private_reads(f.read_text()):
+            if r in PUBLIC_UNDERSCORE:
+                continue
+            if (mod, r) in PRIVATE_READS_ALLOWED:
+                seen.add((mod, r))
+            else:
+                bad.setdefault(mod, set()).add(r)
+    assert bad == {}
+    assert set(PRIVATE_READS_ALLOWED) - seen == set()

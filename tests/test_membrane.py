@@ -101,6 +101,10 @@ def test_audio_errors_name_the_key(tmp_path, capsys):
     assert main(["simulate", str(bad), "--audio", str(tmp_path / "o.wav"),
                  "--steps", "10"]) == 2
     assert "audio.listen[0].axis" in capsys.readouterr().err
+    for extra in (["--gesture", "g.csv"], ["--out", "o.npz"]):
+        assert main(["simulate", str(SCENE), "--audio", str(tmp_path / "o.wav"),
+                     "--steps", "10", *extra]) == 2
+        assert extra[0] in capsys.readouterr().err
     bad.write_text(text[:text.index("audio:")])
     assert main(["simulate", str(bad), "--audio", str(tmp_path / "o.wav"),
                  "--steps", "10"]) == 2

@@ -573,3 +573,29 @@ def test_protocol_error_family(monkeypatch, tmp_path, capsys):
     assert main(["simulate", "configs/oscillator.yaml", "--steps", "1", "--out", str(out)]) == 1
     assert "ProtocolError: device speaks protocol 2" in capsys.readouterr().err
     assert not out.exists()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-10, 10), st.integers(0, 65535)), min_size=1,
+                max_size=6),
+       st.binary(max_size=40), st.lists(st.integers(0, 400), max_size=8))
+def test_a_partial_frame_handed_over_and_back_decodes_as_if_never_taken(forces, junk, cuts):
+    """StreamDecoder.take_partial/put_partial (the compiled loop's hand-over): a stream
+    cut anywhere, its held partial frame taken out and put back at every cut, gives the
+    same messages and counters as the stream fed whole; take_partial leaves nothing
+    held, and put_partial refuses what is not a frame's start."""
+    stream = junk + b"".join(fp.encode(fp.Force(seq, (f,))) for f, seq in forces)
+    whole = fp.StreamDecoder()
+    want = whole.feed(stream)
+    dec, got, a = fp.StreamDecoder(), [], 0
+    for c in sorted(min(c, len(stream)) for c in cuts) + [len(stream)]:
+        got += dec.feed(stream[a:c])
+        a = c
+        if not dec.overflow:
+            pre = dec.take_partial()
+            assert dec.buffered == 0 and b"\x00" not in pre
+            dec.put_partial(pre)
+    assert got == want and dec.stats.as_dict() == whole.stats.as_dict()
+    for bad in (b"ab\x00", b"x" * fp.MAX_FRAME):
+        with pytest.raises(ValueError):
+            dec.put_partial(bad)

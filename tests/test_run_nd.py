@@ -181,3 +181,36 @@ def test_joint_space_device_carries_the_kinematic_nonlinearity_within_the_bound(
     assert big["deviation"]["felt_stiffness"] <= b.stiffness
     assert big["deviation"]["felt_damping"] <= b.damping
     assert big["deviation"]["felt_damping"] > 1e-4          # not round-off: the kinematics
+
+
+def _set_value(meta):
+    """A valid command-line setting of a run option other than its default."""
+    if meta["action"] is not None:
+        return []
+    if meta["choices"]:
+        return [next(c for c in meta["choices"] if c != meta["cli_default"])]
+    if meta["flag"] == "--faults":
+        return ["drop=0.1"]
+    if meta["type"] is None:
+        return ["x"]
+    return ["1" if meta["cli_default"] != 1 else "2"]
+
+
+def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
+    """Each option hapsim run declares (RunOptions) that the n-D run does not use, set to a
+    value other than its default (0 included: --osc 0 is any free port, --duration 0 an
+    open-ended run, which a list of set values compared with (None, False) took for
+    unset), is refused with exit 2 naming it, before anything runs."""
+    from hapsim.commands.run_nd import ND_TAKES
+    from hapsim.daemon.options import command_line_fields
+    scene = str(CONFIGS / "pantograph_wall.yaml")
+    cases = [(["--osc", "0"], "--osc"), (["--duration", "0"], "--duration")]
+    for f in command_line_fields():
+        meta = f.metadata["cli"]
+        if f.name not in ND_TAKES:
+            cases.append(([meta["flag"], *_set_value(meta)], meta["flag"]))
+    assert len(cases) > 12
+    for extra, key in cases:
+        assert main(["run", scene, "--lockstep", *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert key in err and "does not take" in err, (extra, err)

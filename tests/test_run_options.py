@@ -78,7 +78,10 @@ def test_every_command_line_option_reaches_its_field():
     (["--rate", "0"], "--rate"), (["--rate", "nan"], "--rate"), (["--rate", "1e12"], "--rate"),
     (["--duration", "-1"], "--duration"), (["--lost-timeout", "0"], "--lost-timeout"),
     (["--reconnect-attempts", "-1"], "--reconnect-attempts"),
-    (["--reconnect-time", "inf"], "--reconnect-time"), (["--faults", "nosuch=1"], "--faults")])
+    (["--reconnect-time", "inf"], "--reconnect-time"), (["--faults", "nosuch=1"], "--faults"),
+    (["--osc", "70000"], "--osc"), (["--osc", "-1"], "--osc"),
+    (["--osc-ramp", "-0.1"], "--osc-ramp"), (["--osc-ramp", "nan"], "--osc-ramp"),
+    (["--baud", "0"], "--baud")])
 def test_a_bad_value_is_refused_by_its_declaration_from_both_doors(argv, key):
     """The same check, keyed by the flag, from the command line and from a program."""
     with pytest.raises(ConfigError) as cli:
@@ -139,6 +142,6 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
     got["lose"] = True
     assert main(["run", WALL, "--lockstep"]) == 1
     cap = capsys.readouterr()
-    assert cap.out.strip() == api.RunReport._from(
+    assert cap.out.strip() == api.RunReport.from_dict(
         {**canned, "error": {"type": "DeviceError", "message": "gone"}}).text()
     assert cap.err.rstrip().endswith("hapsim run: DeviceError: gone")

@@ -158,3 +158,27 @@ def test_a_lossless_loop_is_proven_marginal_below_and_refused_a_wrong_limit():
     assert _rho(loop, hi * (1 + 1e-6), B) > 1.0 + 1e-4
     for wrong in (0.99 * K, 1.01 * K):
         assert not certify_limit(loop, B, wrong, n).certified
+
+
+@pytest.mark.parametrize("end", [1, -1])
+@pytest.mark.parametrize("gap", [41, 45, 60])
+def test_a_crossing_next_to_z_plus_minus_one_is_found(end, gap):
+    """The crossing polynomial p with a root at x = +-1 (z = +-1, checked on its own) and
+    another 2^-gap from it: the family kappa + C(z) built so that C(+-1) = 0 and
+    Ci(x) = (x - end)(x - x1) has a root on |z| = 1 at a small kappa > 0 (numpy's value of
+    the characteristic there ~0); the certifier finds that crossing below twice that
+    kappa (stepping 2^-40 past the root at +-1 lost it, and the bracket was certified)."""
+    from hapsim.analysis.limit_certificate import _crossing_below, _eval, _Loop
+    e = Fraction(end)
+    x1 = e - e * Fraction(1, 2 ** gap)
+    c = [Fraction(0), e * x1 + Fraction(1, 4), -(e + x1) / 2, Fraction(1, 4)]
+    c[0] = -sum(v * e ** k for k, v in enumerate(c))          # C(end) = 0
+    for s in (1, -1):
+        L = _Loop([Fraction(1)], [s * v for v in c])
+        kappa = _eval(L.N, x1) / _eval(L.M, x1)
+        if kappa > 0:
+            break
+    assert _eval(L.p, e) == 0 and _eval(L.p, x1) == 0 and kappa > 0
+    z = np.exp(1j * math.acos(float(x1)))
+    assert abs(float(kappa) + sum(float(v) * z ** k for k, v in enumerate(L.C))) < 1e-12
+    assert _crossing_below(L, L.crossing_roots(), 2 * kappa) is True

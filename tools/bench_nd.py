@@ -13,7 +13,8 @@ ground; every mass starts displaced at random by up to 1 mm (seeded).
 It prints, for growing meshes:
 
 * ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes cut into
-  pieces per block of masses, structure of arrays, each block advanced while in cache)
+  pieces per block of masses, structure of arrays, each block advanced while in cache,
+  a piece's shared link parameters read once)
   and of the reference (a numba loop over the links one at a time, positions as (N, 3)
   rows, forces scattered to both ends: the straightforward layout), and their ratio,
   both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
@@ -59,7 +60,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
-from hapsim.kernels.nd import BLOCK, link_lengths, run_nd, schedule, stripes  # noqa: E402
+from hapsim.kernels.nd import (BLOCK, link_lengths, run_nd, schedule,  # noqa: E402
+                               shared_params, stripes)
 
 #: Beads of the string compared with Faust (Faust's build time grows with the string).
 FAUST_BEADS = 300
@@ -148,7 +150,9 @@ class Case:
         lprev = link_lengths(np.ascontiguousarray(X0.T), pieces, order.size)
         self.hap = (3, BLOCK, np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
                     np.zeros((3, self.N)), t2m, empty_t, empty_p, e, e, pieces, ptr,
-                    slot(k), slot(z), slot(rest), lprev, np.zeros((3, BLOCK)),
+                    slot(k), slot(z), slot(rest), lprev,
+                    *shared_params(pieces, order, slot(k), slot(z), slot(rest)),
+                    np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
                     np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
         self.stripes = table.shape[0]

@@ -322,18 +322,36 @@ def _theta(spec) -> np.ndarray:
     return np.array([v for s in spec for v in s[1:]], dtype=float)
 
 
-def _solve(spec, theta, y, offset):
-    with np.errstate(over="ignore", invalid="ignore"):
-        phi, dcols = _basis(spec, theta, y.size, offset)
-    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(y))):
-        # a trial pole growing past the float range: what lstsq raises on it, without
-        # LAPACK first printing its complaint on stdout (into a --json report)
-        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
-    c, *_ = np.linalg.lstsq(phi, y, rcond=None)
-    return phi, dcols, c, phi @ c - y
+def _bounds(n: int, lens) -> list:
+    """(begin, end) of each stretch of a record of ``n`` samples cut into ``lens``."""
+    if lens is None:
+        return [(0, n)]
+    e = np.concatenate([[0], np.cumsum(np.asarray(lens, dtype=np.int64))])
+    if e[-1] != n:
+        raise ValueError(f"stretch lengths {list(lens)} do not add up to {n} samples")
+    return [(int(a), int(b)) for a, b in zip(e[:-1], e[1:])]
 
 
-def _varpro(spec, y, offset):
+def _solve(spec, theta, y, offset, lens=None):
+    """Fit the linear coefficients of each stretch (its own initial condition) for the
+    poles ``theta``; ``(blocks, r)`` with ``blocks`` a list of ``(phi, dcols, c)`` per
+    stretch and ``r`` the residual of the whole record."""
+    blocks, res = [], []
+    for a, b in _bounds(y.size, lens):
+        yb = y[a:b]
+        with np.errstate(over="ignore", invalid="ignore"):
+            phi, dcols = _basis(spec, theta, yb.size, offset)
+        if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(yb))):
+            # a trial pole growing past the float range: what lstsq raises on it, without
+            # LAPACK first printing its complaint on stdout (into a --json report)
+            raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+        c, *_ = np.linalg.lstsq(phi, yb, rcond=None)
+        blocks.append((phi, dcols, c))
+        res.append(phi @ c - yb)
+    return blocks, np.concatenate(res) if res else np.zeros(0)
+
+
+def _varpro(spec, y, offset, lens=None):
     """Refine the poles of ``spec`` on ``y`` by variable projection; (spec, cost)."""
     from scipy.optimize import least_squares
 
@@ -342,7 +360,7 @@ def _varpro(spec, y, offset):
     ys = y / scale
 
     def res(th):
-        return _solve(spec, th, ys, offset)[3]
+        return _solve(spec, th, ys, offset, lens)[1]
 
     try:
         sol = least_squares(res, theta0, method="lm", x_scale="jac", xtol=1e-14,
@@ -362,28 +380,54 @@ def _varpro(spec, y, offset):
     return out, cost
 
 
-def _covariance(spec, y, offset, response=None):
+def _covariance(spec, y, offset, response=None, lens=None):
     """Residual rms, unit covariances of the nonlinear parameters and the fitted linear
-    coefficients. The covariances: ``(white, coloured)``; white = ``(J^T J)^-1`` (J over
-    all parameters, linear ones included), coloured = the sandwich with the filter
-    ``response`` (None: the white one)."""
-    theta = _theta(spec)
-    phi, dcols, c, r = _solve(spec, theta, y, offset)
-    J = np.empty((y.size, theta.size + phi.shape[1]))
-    for j, parts in enumerate(dcols):
-        J[:, j] = sum(c[col] * d for col, d in parts)
-    J[:, theta.size:] = phi
-    inv = np.linalg.pinv(J.T @ J)
-    dof = max(y.size - J.shape[1], 1)
-    p = theta.size
+    coefficients (a list, one array per stretch). The covariances: ``(white, coloured)``;
+    white = the nonlinear block of ``(J^T J)^-1`` (J over all parameters, every stretch's
+    linear ones included), i.e. ``(Jt^T Jt)^-1`` with ``Jt`` the nonlinear columns
+    projected off each stretch's linear ones (Schur complement; Golub & Pereyra, "The
+    differentiation of pseudo-inverses and nonlinear least squares problems whose
+    variables separate", SIAM J. Numer. Anal. 10(2), 1973); coloured = the sandwich with
+    the filter ``response`` applied stretch by stretch (None: the white one). An error
+    before a stretch reaches it as a free response of the loop, which the stretch's own
+    initial condition absorbs: the filter starts again at every stretch."""
+    p = _theta(spec).size
+    r, jts, G, n_lin, cs = _projected(spec, y, offset, lens)
+    inv = np.linalg.pinv(G)
+    dof = max(y.size - p - n_lin, 1)
     col = inv
     if response is not None:
         from scipy.signal import fftconvolve
-        h = np.asarray(response, dtype=float)[:y.size]
-        FtJ = fftconvolve(J[::-1], h[:, None], axes=0)[:y.size][::-1]   # F^T J
-        M = FtJ @ inv
-        col = M.T @ M
-    return (float(np.sqrt(np.sum(r * r) / dof)), (inv[:p, :p], col[:p, :p]), c)
+        h = np.asarray(response, dtype=float)
+        S = np.zeros((p, p))
+        for Jt in jts:
+            L = Jt.shape[0]
+            FtJ = fftconvolve(Jt[::-1], h[:L, None], axes=0)[:L][::-1]   # F^T Jt
+            S += FtJ.T @ FtJ
+        col = inv @ S @ inv
+    return (float(np.sqrt(np.sum(r * r) / dof)), (inv, col), cs)
+
+
+def _projected(spec, y, offset, lens=None):
+    """The fit's Jacobian in the nonlinear parameters, projected off each stretch's
+    linear columns: ``(r, jts, G, n_lin, cs)`` with ``r`` the residual, ``jts`` the
+    projected blocks (one per stretch, shape (L, p)), ``G = sum Jt' Jt`` (p, p), ``n_lin``
+    the linear coefficients in all and ``cs`` their values per stretch."""
+    theta = _theta(spec)
+    p = theta.size
+    blocks, r = _solve(spec, theta, y, offset, lens)
+    G = np.zeros((p, p))
+    jts = []
+    n_lin = 0
+    for phi, dcols, c in blocks:
+        J = np.empty((phi.shape[0], p))
+        for j, parts in enumerate(dcols):
+            J[:, j] = sum(c[col] * d for col, d in parts)
+        Jt = J - phi @ np.linalg.lstsq(phi, J, rcond=None)[0]
+        G += Jt.T @ Jt
+        jts.append(Jt)
+        n_lin += phi.shape[1]
+    return r, jts, G, n_lin, [c for _, _, c in blocks]
 
 
 def _mode_of(spec_item, mass, period):
@@ -395,9 +439,10 @@ def _mode_of(spec_item, mass, period):
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
                  pencil: int | None = None, sensor_response=None, wire=None,
-                 bounded=None) -> dict:
+                 lens=None, bounded=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
-    quantised or noisy position sensor.
+    quantised or noisy position sensor; of one stretch, or of several that share the
+    loop's poles, each from its own initial condition (``lens``).
 
     1. **Exact record** (no sensor error declared): the matrix pencil of the full order
        (:func:`pencil_poles`); if its modes reproduce the record to :data:`EXACT_RESIDUAL`
@@ -414,7 +459,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     Parameters
     ----------
     y : array_like of float, shape (n,)
-        Positions [m], one per sample period, from the start of the free response.
+        Positions [m], one per sample period, from the start of the free response (the
+        stretches of ``lens`` one after the other).
     period : float > 0
         Sample period T [s].
     mass : float > 0
@@ -445,6 +491,15 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         of path (a float32 record is exact to its rounding), but the stated half-interval
         covers them: ``k_sd_wire = sqrt(sum sd_i^2 g' S_i g)`` with ``S_i`` the coloured
         covariance of ``response_i`` (as the sensor's).
+    lens : sequence of int, optional
+        Lengths of the stretches ``y`` is made of (default: one). Each is a free response
+        of the same loop from its own initial state (a record cut at gaps or a recovery):
+        the poles are fitted to all of them at once, each stretch with its own linear
+        coefficients (variable projection with a block-diagonal basis; Golub & Pereyra
+        1973), so the whole record measures the pair. The exact path takes its poles from
+        the pencil of the longest stretch and keeps them when they reproduce every
+        stretch; the robust path drops its ``skipped`` samples at the start of every
+        stretch, and leaves out a stretch shorter than twice its own coefficients + 4.
     bounded : sequence of (array_like, array_like), optional
         Errors bounded at given rows, each ``(e, response)``: ``e`` shape (n,), the largest
         error of each row of ``y`` [m] (0 where none: an estimated sample's position,
@@ -463,7 +518,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         ``b_unc``: the stated half-interval, :data:`COVERAGE` times the larger of the two;
         ``method`` (``"pencil"`` or ``"varpro"``), ``skipped`` (samples dropped at the
         start), ``model_order``, ``rms_residual`` [m], ``amplitude`` [m] (felt oscillation
-        at the window start), ``cycles`` (oscillation cycles above the floor). Or
+        at the window start; the largest stretch's), ``cycles`` (oscillation cycles above
+        the floor, over the stretches), ``stretches`` (the stretches fitted). Or
         ``error`` (str) when the record cannot support a measurement: the oscillation
         below :data:`MIN_QUANTA` sensor steps, or fewer than :data:`MIN_CYCLES` cycles above
         that level, or the record is constant (``at_rest`` True: the loop never moved).
@@ -480,6 +536,9 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     floor = sensor_sd(quantum, noise)
     order = int(order if order is not None else predicted.size)
     amp0 = float(np.max(np.abs(y - (np.median(y[-max(y.size // 10, 1):]) if offset else 0.0))))
+    bounds = _bounds(y.size, lens)
+    lens = [b - a for a, b in bounds]
+    la, lb = max(bounds, key=lambda ab: ab[1] - ab[0])      # the longest stretch
     if y.size and np.all(np.isfinite(y)) and amp0 == 0.0:
         # a loop at rest (no excitation, or x0 = 0 on the rest position): a valid record
         # with nothing in it to identify (and log(0) below)
@@ -489,13 +548,13 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     if floor == 0.0:
         md = None
         try:
-            z = pencil_poles(y, order, offset=offset, period=period,
-                             pencil=pencil or thin_pencil(order, y.size - int(offset)))
+            z = pencil_poles(y[la:lb], order, offset=offset, period=period,
+                             pencil=pencil or thin_pencil(order, lb - la - int(offset)))
         except ConfigError:
             z = None
         if z is not None and np.all(np.isfinite(z)):
             spec = _spec(z[np.abs(z) > 0])
-            rms, cov, _ = _covariance(spec, y, offset)
+            rms, cov, _ = _covariance(spec, y, offset, None, lens)
             md = rendered_pair(modes_from_poles(z, mass, period))
             if md is not None and rms <= EXACT_RESIDUAL * amp0:
                 # the identified pair at the predicted felt pole, not the least damped one:
@@ -505,13 +564,13 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 fi = min((i for i, s in enumerate(spec) if s[0] == "pair"),
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
                 return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
-                                          method="pencil", skipped=0),
-                                  spec, fi, y, offset, wire, mass, period, bounded)
+                                          method="pencil", skipped=0, lens=lens),
+                                  spec, fi, y, offset, wire, mass, period, lens, bounded)
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
         felt = felt.conjugate()
-    n = y.size
+    n = lb - la
     rho = max(floor, 1e-12 * amp0) / max(amp0, 1e-300) / 10.0
     skip, keep = 0, []
     for z in predicted:
@@ -525,14 +584,19 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 skip = max(skip, int(math.ceil(nz)))
                 continue
         keep.append(z)
-    yw = y[skip:]
     spec0 = _spec(keep)
+    n_lin = sum(2 if sp_[0] == "pair" else 1 for sp_ in spec0) + int(offset)
+    kept = [(a + skip, b) for a, b in bounds
+            if b - a - skip >= 2 * n_lin + 4 or (a, b) == (la, lb)]
+    yw = np.concatenate([y[a:b] for a, b in kept])
+    lens_w = [b - a for a, b in kept]
+    yl = y[la + skip:lb]                 # the longest stretch's window
     fi = min((i for i, s in enumerate(spec0) if s[0] == "pair"),
              key=lambda i: abs(_mode_of(spec0[i], mass, period).z - felt))
     starts = [spec0]
     try:        # the pencil of the kept order on the window, matched to the prediction
-        zp = pencil_poles(yw, len(keep), offset=offset, period=period,
-                          pencil=thin_pencil(len(keep), yw.size - int(offset)))
+        zp = pencil_poles(yl, len(keep), offset=offset, period=period,
+                          pencil=thin_pencil(len(keep), yl.size - int(offset)))
         sp = _spec(zp)
         if [s[0] for s in sorted(sp)] == [s[0] for s in sorted(spec0)]:
             pairs = [s for s in sp if s[0] == "pair"]
@@ -549,7 +613,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
             starts.append(cand)
     except ConfigError:
         pass
-    yc = yw - np.mean(yw)          # the spectrum's peak: frequency of the felt pair
+    yc = yl - np.mean(yl)          # the spectrum's peak: frequency of the felt pair
     nfft = 1 << int(math.ceil(math.log2(max(8 * yc.size, 64))))
     spec_mag = np.abs(np.fft.rfft(yc, nfft))
     spec_mag[0] = 0.0
@@ -560,35 +624,36 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         starts.append(alt)
     best = None
     for st in starts:
-        sp, cost = _varpro(st, yw, offset)
+        sp, cost = _varpro(st, yw, offset, lens_w)
         if all(np.isfinite(_theta(sp))) and (best is None or cost < best[1]):
             best = (sp, cost)
     spec = best[0]
-    rms, cov, c = _covariance(spec, yw, offset, sensor_response)
+    rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w)
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
-                              method="varpro", skipped=skip, step=max(float(quantum), floor)),
-                      spec, fi, yw, offset, wire, mass, period,
-                      None if not bounded else [(np.asarray(e, float)[skip:], r)
-                                                for e, r in bounded])
+                              method="varpro", skipped=skip, step=max(float(quantum), floor),
+                              lens=lens_w),
+                      spec, fi, yw, offset, wire, mass, period, lens_w,
+                      None if not bounded else [
+                          (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
+                          for e, r in bounded])
 
 
-def _bounded_share(spec, fi, y, offset, bounded, mass, period):
+def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
     """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
     ``bounded``): ``sum_j e_j |s_j|`` with ``s_j = sum_m S_(j+m) h_m`` the fit's first-order
     response to a unit error at row ``j`` filtered by ``h`` (``S = g' (J'J)^-1 J'``, the
     linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
-    Sec. 2.1)."""
+    Sec. 2.1), its nonlinear rows ``g' (Jt'Jt)^-1 Jt'`` with ``Jt`` projected off each
+    stretch's linear columns; the filter starts again at every stretch of ``lens``."""
     from scipy.signal import fftconvolve
     n = y.size
-    theta = _theta(spec)
-    phi, dcols, c, _ = _solve(spec, theta, y, offset)
-    J = np.empty((n, theta.size + phi.shape[1]))
-    for j, parts in enumerate(dcols):
-        J[:, j] = sum(c[col] * d for col, d in parts)
-    J[:, theta.size:] = phi
-    P = (np.linalg.pinv(J.T @ J) @ J.T)[:theta.size]
+    _, jts, G, _, _ = _projected(spec, y, offset, lens)
+    A = np.linalg.pinv(G)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
+    bounds = _bounds(n, lens)
+    S_k = np.concatenate([g_k @ A @ Jt.T for Jt in jts])
+    S_b = np.concatenate([g_b @ A @ Jt.T for Jt in jts])
     bk = bb = 0.0
     for e, resp in bounded:
         e = np.asarray(e, float)[:n]
@@ -596,12 +661,14 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period):
             e = np.concatenate([e, np.zeros(n - e.size)])
         if not np.any(e > 0):
             continue
-        h = np.zeros(n)
-        r = np.asarray(resp, float)[:n]
-        h[:r.size] = r
-        for g, acc in ((g_k, "k"), (g_b, "b")):
-            S = g @ P
-            sj = fftconvolve(S[::-1], h)[:n][::-1]
+        r = np.asarray(resp, float)
+        for S, acc in ((S_k, "k"), (S_b, "b")):
+            sj = np.zeros(n)
+            for a, b in bounds:
+                L = b - a
+                h = np.zeros(L)
+                h[:min(L, r.size)] = r[:L]
+                sj[a:b] = fftconvolve(S[a:b][::-1], h)[:L][::-1]
             v = float(np.sum(e * np.abs(sj)))
             if acc == "k":
                 bk += v
@@ -610,13 +677,13 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period):
     return bk, bb
 
 
-def _with_wire(out, spec, fi, y, offset, wire, mass, period, bounded=None):
+def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=None):
     """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
     ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too; with
     ``bounded``, the worst case of those errors (``k_bound_rows``, ``b_bound_rows``) added
     to ``k_unc``, ``b_unc``."""
     if bounded and "k" in out:
-        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period)
+        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period, lens)
         out["k_bound_rows"], out["b_bound_rows"] = bk, bb
         out["k_unc"] += bk
         out["b_unc"] += bb
@@ -628,7 +695,7 @@ def _with_wire(out, spec, fi, y, offset, wire, mass, period, bounded=None):
     for sd, resp in wire:
         if not sd > 0:
             continue
-        _, (_, col), _ = _covariance(spec, y, offset, resp)
+        _, (_, col), _ = _covariance(spec, y, offset, resp, lens)
         vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)
         vb += sd * sd * max(float(g_b @ col @ g_b), 0.0)
     out["k_sd_wire"], out["b_sd_wire"] = math.sqrt(vk), math.sqrt(vb)
@@ -652,8 +719,10 @@ def _kb_gradients(spec, fi, i, *, mass, period):
 
 
 def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
-            step=0.0):
-    """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]``."""
+            step=0.0, lens=None):
+    """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]`` (over the
+    stretches ``lens`` of ``y``: the amplitude is the largest stretch's, the cycles above
+    the floor are summed over the stretches)."""
     md = _mode_of(spec[fi], mass, period)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     sig = spec[fi][1] / period
@@ -662,22 +731,27 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
 
     def sd(g, c):
         return float(np.sqrt(max(g @ c @ g, 0.0)))
-    _, _, c = _covariance(spec, y, offset)
-    amp = float(math.hypot(c[i], c[i + 1]))   # a pair has 2 nonlinear and 2 linear parameters
+    _, _, cs = _covariance(spec, y, offset, None, lens)
+    # a pair has 2 nonlinear and 2 linear parameters (per stretch)
+    amps = [float(math.hypot(c[i], c[i + 1])) for c in cs]
+    ns = [b - a for a, b in _bounds(y.size, lens)]
+    amp = max(amps)
     out = {"k": float(md.k), "b": float(md.b), "f0_hz": float(md.f0_hz),
            "damping_ratio": float(md.damping_ratio), "k_sd": rms * sd(g_k, white),
            "b_sd": rms * sd(g_b, white), "k_sd_sensor": floor * sd(g_k, coloured),
            "b_sd_sensor": floor * sd(g_b, coloured),
            "method": method, "skipped": int(skipped),
            "model_order": sum(2 if s[0] == "pair" else 1 for s in spec),
-           "rms_residual": rms, "amplitude": amp}
+           "rms_residual": rms, "amplitude": amp, "stretches": len(ns)}
     out["k_unc"] = COVERAGE * max(out["k_sd"], out["k_sd_sensor"])
     out["b_unc"] = COVERAGE * max(out["b_sd"], out["b_sd_sensor"])
     fl = max(step, rms) if method == "varpro" else 0.0
     if fl > 0:
-        t_above = math.log(amp / (MIN_QUANTA * fl)) / sig if amp > MIN_QUANTA * fl and sig > 0 \
-            else (math.inf if amp > MIN_QUANTA * fl else 0.0)
-        t_above = min(t_above, y.size * period)
+        t_above = 0.0
+        for a_j, n_j in zip(amps, ns):
+            t_j = math.log(a_j / (MIN_QUANTA * fl)) / sig if a_j > MIN_QUANTA * fl and sig > 0 \
+                else (math.inf if a_j > MIN_QUANTA * fl else 0.0)
+            t_above += min(t_j, n_j * period)
         out["cycles"] = float(md.f0_hz * t_above * math.sqrt(max(1 - md.damping_ratio ** 2, 0)))
         if amp < MIN_QUANTA * fl:
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "

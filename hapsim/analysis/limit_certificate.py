@@ -264,18 +264,20 @@ class _Loop:
         return _add(_scale(self.A, kappa), self.C)
 
     def crossing_roots(self):
-        """Isolating intervals ``(a, b]`` (rational, inside (-1, 1)) of the distinct roots
-        of ``p`` in (-1, 1), each holding exactly one, ``p(a) p(b) != 0``; None when ``p``
-        vanishes identically."""
+        """``(sq, intervals)``: ``sq`` the square-free part of ``p`` without the roots
+        ``x = +-1``, and rational isolating intervals ``(a, b]`` inside [-1, 1] of its
+        distinct roots in (-1, 1), each holding exactly one, ``sq(a) sq(b) != 0``; None
+        when ``p`` vanishes identically (a lossless loop)."""
         if not self.p:
             return None
         sq = _quo(self.p, _gcd(self.p, _deriv(self.p))) if len(self.p) > 2 else self.p
-        seq = _sturm(sq)
         lo, hi = Fraction(-1), Fraction(1)
-        if _eval(sq, hi) == 0:                 # z = 1 is checked on its own
-            hi = _nonroot(sq, hi, Fraction(-1, 2 ** 40))
-        if _eval(sq, lo) == 0:
-            lo = _nonroot(sq, lo, Fraction(1, 2 ** 40))
+        for xe in (lo, hi):                    # z = +-1 are checked on their own: the
+            if _eval(sq, xe) == 0:             # (simple) root divided out, none lost
+                sq = _quo(sq, [-xe, Fraction(1)])
+        if len(sq) < 2:
+            return sq, []
+        seq = _sturm(sq)
         out, todo = [], [(lo, hi, _roots_in(seq, lo, hi))]
         while todo:
             a, b, n = todo.pop()
@@ -284,16 +286,20 @@ class _Loop:
             if n == 1:
                 out.append((a, b))
                 continue
-            m = _nonroot(sq, (a + b) / 2, (b - a) / 64)
+            m = _split(sq, a, b)
             todo += [(a, m, _roots_in(seq, a, m)), (m, b, _roots_in(seq, m, b))]
         return sq, out
 
 
-def _nonroot(p, x, step):
-    """``x``, moved by ``step`` until ``p(x) != 0`` (a polynomial has few roots)."""
-    while _eval(p, x) == 0:
-        x += step
-    return x
+def _split(p, a, b):
+    """A point strictly inside ``(a, b)`` where ``p != 0``: the middle, else one of the
+    ``deg p + 1`` points ``a + (b - a) k / (deg p + 2)`` (at most ``deg p`` are roots)."""
+    m = (a + b) / 2
+    if _eval(p, m) != 0:
+        return m
+    n = len(p)
+    return next(x for x in (a + (b - a) * Fraction(k, n + 1) for k in range(1, n + 1))
+                if _eval(p, x) != 0)
 
 
 def _sign_at_root(sq, a, b, f):
@@ -402,10 +408,16 @@ def certify_limit(loop: LoopModel, B: float, K_max: float, scan_points: int) -> 
         return no("no finite limit found but not proven")
     kappa = Fraction(K_max) / scale
     if kappa <= 0:
-        k1 = Fraction(1, 10 ** 9)
-        if _crossing_below(L, roots, k1) is False and not schur_stable(L.char(k1)):
-            return LimitCertificate(True, "certified", (0.0, 0.0),
-                                    "unstable for every small K > 0")
+        for digits in (9, 12, 16, 24, 40):    # a K below every positive crossing
+            k1 = Fraction(1, 10 ** digits)
+            cross = _crossing_below(L, roots, k1)
+            if cross is None:
+                break
+            if not cross:
+                if not schur_stable(L.char(k1)):
+                    return LimitCertificate(True, "certified", (0.0, 0.0),
+                                            "unstable for every small K > 0")
+                break
         return no("K_max = 0 not proven")
     why = "the bracket was not proven"
     for h in _WIDTHS:

@@ -50,11 +50,18 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         Difference the signal first (constant equilibrium offset).
     late : ndarray of int, shape (n,), optional
         1 where the device held an older force (a late FORCE). Such a tick is a disturbance,
-        not part of the linear THS: the record is cut there and the longest clean segment
-        (at least ``max(4 order + 10, 100)`` samples) is identified; the response after a
-        disturbance is again a free response, minus ``skip`` samples of dead-beat
-        transient. Without a long enough clean segment the longest run is used as is
-        (``late_in_segment`` says how many disturbances it holds).
+        not part of the linear THS: the record is cut there as at a gap of seq; the
+        response after a disturbance is again a free response, minus ``skip`` samples of
+        dead-beat transient. Without a clean segment of at least ``max(4 order + 10,
+        100)`` samples the runs of consecutive seq are used as they are
+        (``late_in_segment`` says how many disturbances they hold).
+
+        With ``predicted`` and without ``closed``, every stretch is measured: the longest
+        and each other of at least ``2 (order + 1) + 10`` samples, each a free response
+        of the same loop from its own initial state (:func:`hapsim.analysis.identify.
+        measure_felt` with ``lens``), so a run with gaps, late ticks cut out or a
+        recovery uses all its data. With ``closed`` (contacts) or without a prediction
+        (the pencil alone), the longest stretch only.
     skip : int
         Samples dropped at the start of a segment that follows a disturbance or a gap
         (``d + 2`` is enough: the dead-beat states of the delay line).
@@ -86,8 +93,9 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     Returns
     -------
     dict
-        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``,
-        ``order``, ``pencil``, ``late_in_segment``; with ``predicted`` also ``k_sd``,
+        ``k``, ``b``, ``f0_hz``, ``damping_ratio``, ``samples_used``, ``first_seq``
+        (of the first stretch used), ``order``, ``pencil``, ``late_in_segment``,
+        ``stretches`` (of the free response) and ``stretches_used``; with ``predicted`` also ``k_sd``,
         ``b_sd``, ``k_unc``, ``b_unc``, ``method``, ``cycles``... of
         :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
         be identified or the record cannot support a measurement.
@@ -120,16 +128,32 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         return out or [(0, 0)]
 
     need = max(4 * int(order) + 10, 100)
+    # a further stretch is fitted with the longest when it holds more samples than its
+    # own initial condition's coefficients (order + offset) by a margin
+    extra = 2 * (int(order) + 1) + 10
     a = b = 0
+    segs = [(0, 0)]
     if y.size:
         segs = segments(True)
         a, b = max(segs, key=lambda ab: ab[1] - ab[0])
         if b - a < need:
-            a, b = max(segments(False), key=lambda ab: ab[1] - ab[0])
+            segs = segments(False)
+            a, b = max(segs, key=lambda ab: ab[1] - ab[0])
     late_in = int(np.count_nonzero(lt[a + 1:b])) if b > a else 0
-    y, s = y[a:b], s[a:b]
-    out = {"samples_used": int(y.size), "first_seq": int(s[0]) if s.size else None,
-           "order": int(order), "late_in_segment": late_in}
+    if cl is None and predicted is not None and felt is not None:
+        # every stretch (each from its own initial state, the loop's poles shared): a run
+        # with gaps or a recovery is measured on all its data, not its longest stretch
+        use = [(a, b)] + [(p, q) for p, q in segs if (p, q) != (a, b) and q - p >= extra]
+        use.sort()
+    else:
+        use = [(a, b)]
+    late_in = sum(int(np.count_nonzero(lt[p + 1:q])) for p, q in use if q > p)
+    y = np.concatenate([y[p:q] for p, q in use])
+    first = s[use[0][0]:use[0][1]]
+    lens = [q - p for p, q in use]
+    out = {"samples_used": int(y.size), "first_seq": int(first[0]) if first.size else None,
+           "order": int(order), "late_in_segment": late_in, "stretches_used": len(use),
+           "stretches": len([1 for p, q in segs if q > p])}
     if cl is not None:
         out["comparable"] = bool(b - a >= need)
         if not out["comparable"]:
@@ -138,15 +162,17 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                              f"samples, fewer than the {need} the fit needs")
             return out
     from hapsim.analysis.identify import thin_pencil
-    pencil = thin_pencil(order, y.size - (1 if offset else 0))
+    pencil = thin_pencil(order, int(b - a) - (1 if offset else 0))
     out["pencil"] = pencil
     if predicted is not None and felt is not None and y.size:
         from hapsim.analysis.identify import measure_felt
         try:
-            bounded = [(e[a:b], r) for e, r in eb if np.any(e[a:b] > 0)] or None
+            be = [(np.concatenate([e[p:q] for p, q in use]), r) for e, r in eb]
+            bounded = [(e, r) for e, r in be if np.any(e > 0)] or None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
-                               sensor_response=sensor_response, wire=wire, bounded=bounded)
+                               sensor_response=sensor_response, wire=wire, lens=lens,
+                               bounded=bounded)
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -285,6 +311,11 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     position minus the loop's response to ``w = applied - F[n-d]``
     (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
     so the whole record is measured, not only the longest stretch without a late tick.
+    So is an actuator's rounding: a framed device whose HELLO states a ``force_scale``
+    (the Hapkit firmware's PWM step, to which it rounds every FORCE to the nearest) applies
+    that step's multiple, and ``w`` holds the rounding at every tick (left in, the 22.7 mN
+    steps biased the measured k of the emulated Hapkit in real time: -0.336 +- 0.286 N/m
+    from the prediction in one record, +0.027 with the rounding taken out).
 
     Parameters
     ----------
@@ -325,14 +356,22 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
             hw = np.asarray(acc.half_width, float)
             return pos, late, ({"_force_half_width": hw} if np.any(hw > 0) else {})
     else:
-        if fseq is None or not np.any(fseq >= 0) or not np.any(late):
+        # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
+        # the nearest step of every force (the firmware rounds so): a known input at every
+        # tick, late or not, taken out as a late tick's is
+        step = float(getattr(hello, "force_scale", 0.0) or 0.0) if hello is not None else 0.0
+        step = step if math.isfinite(step) and step > 0 else 0.0
+        if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0):
             return pos, late, {}
         lim = float(dev.force_limit)
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
             lim = min(lim, float(hello.force_limit))
         acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                     zero_delay=dev.delay == 0, force_limit=lim)
+                                     zero_delay=dev.delay == 0, force_limit=lim,
+                                     force_scale=step)
     info = {"device_delay": int(acc.delay), "account": acc.method}
+    if driver is None and step > 0:
+        info["force_step"] = step
     if acc.delay != dev.delay:
         # the model of the loop would be the wrong one: measure as recorded, and say so
         info["late_accounted"] = 0
@@ -360,19 +399,24 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
 
 def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
                      quantum: float, noise: float = 0.0, rel: float = 0.0,
-                     estimated_flag: int = 32) -> np.ndarray:
+                     estimated_flag: int = 32, coulomb: float = 0.0) -> np.ndarray:
     """The largest error of each estimated sample's position (a driver's missing reply).
 
-    The loop steps a tick whose reply never came with ``x_e = (r + 1) x[k-1] - r x[k-2]``,
-    the ``r``-th estimate in a row (``r`` = 1, 2) extrapolated from the last two readings.
-    The reading it stands for, ``x[k-1+r]``, differs from it by the device's motion and
-    the readings' errors: with ``p`` the true position and ``x = p + eps``, ``|eps| <= q/2``
-    (the sensor step q, plus ``3 noise`` and the wire's relative rounding),
-    ``x_e - x[k-1+r] = -(p[k-1+r] - (r+1) p[k-1] + r p[k-2]) + (r+1) eps[k-1] - r eps[k-2]
-    - eps[k-1+r]``; Taylor's theorem bounds the first term by ``r (r+1)/2 T^2 a_max``, the
-    rest by ``(r+1) q``. During the missing reply the device applied the force sent or the
-    one before (the account's ambiguity): ``a_max = (max|F| + b0 v_max) / m`` over the
-    record (no hand on the device in a free response), ``v_max`` from its largest step.
+    The loop steps a tick whose reply never came with the position extrapolated linearly
+    from the last two records (:meth:`hapsim.drivers.transport.DriverTransport.estimate`):
+    records ``j`` and ``j - g`` (``g`` ticks apart: 1, or more when a reply between them
+    was missing too), the estimate for tick ``j + r`` (``r`` = 1, 2: the ``r``-th in a
+    row) is ``x_e = x[j] + r/g (x[j] - x[j-g])``. The reading it stands for, ``x[j+r]``,
+    differs from it by the device's motion and the readings' errors: with ``p`` the true
+    position and ``x = p + eps``, ``|eps| <= q/2`` (the sensor step q, plus ``3 noise`` and
+    the wire's relative rounding), ``x_e - x[j+r] = -(p[j+r] - L(j+r)) + (1 + r/g) eps[j]
+    - r/g eps[j-g] - eps[j+r]`` with ``L`` the line through the two records; the error of
+    linear interpolation (Taylor's theorem, the remainder of the Lagrange interpolant
+    through ``j - g`` and ``j``) bounds the first term by ``r (r+g)/2 T^2 a_max``, the
+    rest by ``(1 + r/g) q``. During the missing reply the device applied the force sent or
+    the one before (the account's ambiguity): ``a_max = (max|F| + b0 v_max + F_c) / m``
+    over the record (no hand on the device in a free response; ``F_c`` its Coulomb
+    friction), ``v_max`` from its largest step.
 
     Parameters
     ----------
@@ -386,6 +430,8 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
         Sensor step [m], noise standard deviation [m], the wire's relative rounding.
     estimated_flag : int
         The ``flags`` bit of an estimated row (``FLAG_ESTIMATED``).
+    coulomb : float
+        The device's Coulomb friction F_c [N].
 
     Returns
     -------
@@ -400,13 +446,18 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
     x = np.asarray(cols["position"], float)
     f = np.asarray(cols["force"], float)
     v = float(np.max(np.abs(np.diff(x)))) / period + quantum / period if x.size > 1 else 0.0
-    a = (float(np.max(np.abs(f))) + abs(friction) * v) / mass if mass > 0 else math.inf
+    a = ((float(np.max(np.abs(f))) + abs(friction) * v + abs(coulomb)) / mass
+         if mass > 0 else math.inf)
     eps = 0.5 * quantum + 3.0 * noise + rel * float(np.max(np.abs(x)))
-    run = 0
+    seq = np.asarray(cols["seq"], np.int64) if "seq" in cols else np.arange(est.size)
+    last = prev = None                     # the seqs of the last two records
     for k in range(est.size):
-        run = run + 1 if est[k] else 0
-        if run:
-            out[k] = run * (run + 1) / 2 * period * period * a + (2 * run + 2) * eps
+        if not est[k]:
+            last, prev = int(seq[k]), last
+            continue
+        r = int(seq[k]) - last if last is not None else 1
+        g = last - prev if prev is not None and last > prev else 1
+        out[k] = r * (r + g) / 2 * period * period * a + (2 + 2 * r / g) * eps
     return out
 
 

@@ -43,8 +43,9 @@ __all__ = ["NativeProcess", "native_available", "client_rt_priority", "process",
 #: Channels (JACK output ports) the native callback serves.
 MAX_CHANNELS = 16
 
-# run_frames' array arguments after ``port``, with their dtype: (ring, wr, st, fring),
-# then the engine's multi-rate state (Engine.multirate_pack.args without the trailing inv_ta).
+# run_frames' array arguments after ``port`` (LiveSound.callback_pack.arrays), with their
+# dtype: (ring, wr, st, fring), then the engine's multi-rate state
+# (Engine.multirate_pack.args without the trailing inv_ta).
 _F8, _I8 = 0, 1
 _ARRAYS = (_F8, _I8, _F8, _F8,                      # ring, wr, st, fring
            _F8, _F8, _F8, _I8, _F8, _I8,            # x, xp, f, mobile, t2m, fixed
@@ -184,10 +185,11 @@ def native_available(live) -> str | None:
     from hapsim.audio.sources import FrameRing, LiveSound
 
     if isinstance(live, FrameRing):
-        ok = (live._ring.dtype == np.float32 and live._ring.flags.c_contiguous
-              and live._wr.dtype == np.int64 and live._st.dtype == np.int64
-              and live._st.size == 3 and live.block.dtype == np.float32
-              and live.block.flags.c_contiguous)
+        pk = live.callback_pack
+        ok = (pk.ring.dtype == np.float32 and pk.ring.flags.c_contiguous
+              and pk.wr.dtype == np.int64 and pk.st.dtype == np.int64
+              and pk.st.size == 3 and pk.block.dtype == np.float32
+              and pk.block.flags.c_contiguous)
         if not ok:
             return "a ring array of another dtype or layout than the callback's"
         if len(live.channels) > MAX_CHANNELS:
@@ -195,23 +197,19 @@ def native_available(live) -> str | None:
         return None
     if not isinstance(live, LiveSound):
         return f"{type(live).__name__} renders in Python"
-    arrays = _arrays(live)
-    if len(arrays) != _NA:
-        return f"{len(arrays)} state arrays, the callback takes {_NA}"
-    for a, kind in zip(arrays, _ARRAYS):
+    pk = live.callback_pack
+    if len(pk.arrays) != _NA:
+        return f"{len(pk.arrays)} state arrays, the callback takes {_NA}"
+    for a, kind in zip(pk.arrays, _ARRAYS):
         want = np.float64 if kind == _F8 else np.int64
         if not (isinstance(a, np.ndarray) and a.dtype == want and a.ndim == 1
                 and a.flags.c_contiguous):
             return "a state array of another dtype or layout than the callback's"
-    if live.block.dtype != np.float32 or not live.block.flags.c_contiguous:
+    if pk.block.dtype != np.float32 or not pk.block.flags.c_contiguous:
         return "the block is not C-contiguous float32"
     if len(live.channels) > MAX_CHANNELS:
         return f"{len(live.channels)} channels (at most {MAX_CHANNELS})"
     return None
-
-
-def _arrays(live) -> tuple:
-    return (live._ring, live._wr, live._st, live._fring) + tuple(live._state[:-1])
 
 
 class NativeProcess:
@@ -247,28 +245,30 @@ class NativeProcess:
         from hapsim.audio.sources import FrameRing
 
         if isinstance(live, FrameRing):
+            pk = live.callback_pack
             c = np.zeros(_CTX_N, dtype=np.int64)
             c[CTX["channels"]] = len(live.channels)
-            c[CTX["rows"]] = live.block.shape[0]
-            c[CTX["audio"]] = live.block.ctypes.data
-            c[_RING], c[_RING + 1] = live._ring.ctypes.data, live._ring.shape[0]
-            c[_RING + 2], c[_RING + 3] = live._wr.ctypes.data, live._st.ctypes.data
+            c[CTX["rows"]] = pk.block.shape[0]
+            c[CTX["audio"]] = pk.block.ctypes.data
+            c[_RING], c[_RING + 1] = pk.ring.ctypes.data, pk.ring.shape[0]
+            c[_RING + 2], c[_RING + 3] = pk.wr.ctypes.data, pk.st.ctypes.data
             for i, p in enumerate(port_ptrs):
                 c[CTX_PORTS + i] = int(p)
-            self._keep = (live._ring, live._wr, live._st, live.block)
+            self._keep = tuple(pk)
             self.ctx, self.cfunc, self.address = c, process_ring, process_ring.address
             return
-        (nsub, lin, last, port) = (live._nsub, live._lin, live._last, live._port)
-        self._inv_ta = np.array([float(live._state[-1])])
-        self._keep = _arrays(live) + (live.block, self._inv_ta)
+        pk = live.callback_pack
+        (nsub, lin, last, port) = pk.head
+        self._inv_ta = np.array([float(pk.inv_ta)])
+        self._keep = pk.arrays + (pk.block, self._inv_ta)
         c = np.zeros(_CTX_N, dtype=np.int64)
         c[CTX["nsub"]], c[CTX["linear"]], c[CTX["last"]], c[CTX["port"]] = \
             int(nsub), int(bool(lin)), int(bool(last)), int(port)
         c[CTX["channels"]] = len(live.channels)
-        c[CTX["rows"]] = live.block.shape[0]
+        c[CTX["rows"]] = pk.block.shape[0]
         c[CTX["inv_ta"]] = self._inv_ta.ctypes.data
-        c[CTX["audio"]] = live.block.ctypes.data
-        for i, a in enumerate(_arrays(live)):
+        c[CTX["audio"]] = pk.block.ctypes.data
+        for i, a in enumerate(pk.arrays):
             c[CTX["arrays"] + 2 * i] = a.ctypes.data
             c[CTX["arrays"] + 2 * i + 1] = a.size
         for i, p in enumerate(port_ptrs):

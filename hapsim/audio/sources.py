@@ -14,6 +14,7 @@ import dataclasses
 import math
 import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -21,9 +22,61 @@ from hapsim.engine import Engine
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.kernels import audio as audio_kernel
 
-__all__ = ["LiveSound", "FrameRing", "sounding_engine"]
+__all__ = ["LiveSound", "FrameRing", "LivePack", "RingPack", "sounding_engine"]
 
 _S = audio_kernel.LIVE_STATE
+
+
+class LivePack(NamedTuple):
+    """A :class:`LiveSound`'s arguments of :func:`hapsim.kernels.audio.run_frames`, by
+    part: what a compiled caller (the native JACK callback,
+    :class:`hapsim.audio.jack_native.NativeProcess`) needs to render it. The arrays are
+    the live sound's and its engine's own (shared, not copied: the kernel updates them in
+    place); :meth:`LiveSound.render` calls the kernel with the same pack, so that both
+    callers pass one argument list.
+
+    Attributes
+    ----------
+    head : tuple
+        ``(nsub, linear, last, port)``, as :attr:`hapsim.engine.MultiRatePack.head`.
+    arrays : tuple of ndarray
+        22 one-dimensional C-contiguous arrays in ``run_frames``' order: the position ring
+        [m] (float64, shape (R,)), its write count (int64, (1,)), the live state
+        (float64, indexed by :data:`hapsim.kernels.audio.LIVE_STATE`), the force ring [N]
+        (float64, (R,)), then :attr:`hapsim.engine.MultiRatePack.args` without the
+        trailing ``1 / Ta``.
+    inv_ta : float
+        ``1 / Ta`` [1/s], the audio rate.
+    block : ndarray, shape (max_block, C), float32
+        The frames buffer the kernel writes (:attr:`LiveSound.block`).
+    """
+
+    head: tuple
+    arrays: tuple
+    inv_ta: float
+    block: np.ndarray
+
+
+class RingPack(NamedTuple):
+    """A :class:`FrameRing`'s arguments of :func:`hapsim.kernels.audio.ring_read` (shared,
+    not copied): what the native JACK callback over the ring needs.
+
+    Attributes
+    ----------
+    ring : ndarray, shape (R, C), float32
+        The frames (C-contiguous).
+    wr : ndarray, shape (1,), int64
+        Frames written (the haptic loop's count).
+    st : ndarray, shape (3,), int64
+        Frames read, missing (silence), skipped (see ``ring_read``).
+    block : ndarray, shape (max_block, C), float32
+        The frames buffer the reader writes (:attr:`FrameRing.block`).
+    """
+
+    ring: np.ndarray
+    wr: np.ndarray
+    st: np.ndarray
+    block: np.ndarray
 
 
 class LiveSound:
@@ -61,7 +114,10 @@ class LiveSound:
         x0 = float(engine.positions[p]) if p >= 0 else 0.0
         self._st[_S["p0"]] = self._st[_S["p1"]] = x0
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
-        (self._nsub, self._lin, self._last, self._port), self._state = engine.multirate_pack
+        head, state = engine.multirate_pack
+        self._nsub = int(head[0])
+        self._pack = LivePack(tuple(head), (self._ring, self._wr, self._st, self._fring)
+                              + tuple(state[:-1]), state[-1], self.block)
         self._lock = threading.Lock()
         #: Device samples between a position and the force computed from it (set by
         #: :meth:`set_block` from the server's block size).
@@ -83,6 +139,19 @@ class LiveSound:
         side, blocked on the force ``lead`` periods back, has pushed exactly that far.
         """
         return int(math.ceil(int(block) / int(nsub)))
+
+    @property
+    def callback_pack(self) -> LivePack:
+        """The kernel arguments a compiled callback renders this live sound with
+        (:class:`LivePack`), shared with it.
+
+        Returns
+        -------
+        LivePack
+            Fixed at construction: the arrays are read and written in place by every
+            render, :meth:`push` and :meth:`set_gain`.
+        """
+        return self._pack
 
     def set_block(self, block: int) -> int:
         """Set :attr:`lead` for the server's block size [frames]; return it."""
@@ -191,9 +260,8 @@ class LiveSound:
         ndarray, shape (nframes, C), float32
             A view of the preallocated block.
         """
-        audio_kernel.run_frames(nframes, self._nsub, self._lin, self._last, self._port,
-                                self._ring, self._wr, self._st, self._fring, *self._state,
-                                self.block)
+        pk = self._pack
+        audio_kernel.run_frames(nframes, *pk.head, *pk.arrays, pk.inv_ta, pk.block)
         return self.block[:nframes]
 
 
@@ -228,8 +296,20 @@ class FrameRing:
         self._st = np.zeros(3, dtype=np.int64)
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
         self._missing_end = None             # frames missing when the loop finished
+        self._pack = RingPack(self._ring, self._wr, self._st, self.block)
         audio_kernel.ring_write(np.zeros((0, len(self.channels))), self._ring, self._wr)
         self.render(0)
+
+    @property
+    def callback_pack(self) -> RingPack:
+        """The arrays a compiled callback reads this ring with (:class:`RingPack`), shared
+        with it.
+
+        Returns
+        -------
+        RingPack
+        """
+        return self._pack
 
     def push(self, frames: np.ndarray) -> None:
         """Append one device sample's frames, shape (N, C) (haptic thread)."""

@@ -245,7 +245,7 @@ def run(args) -> int:
         # the report of the device in its own units, with the scale found (an extra key)
         from hapsim.api import IdentifyReport
         from hapsim.outputs import json_safe
-        rep = IdentifyReport._from(json_safe({
+        rep = IdentifyReport.from_dict(json_safe({
             **rep.to_dict(), "device": fit.to_dict(), "scale": {
                 "option": drv.scale_option, "value": scale.full_scale,
                 "lo": scale.full_scale_lo, "hi": scale.full_scale_hi, "gain": scale.gain,

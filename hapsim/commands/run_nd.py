@@ -14,12 +14,31 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-#: run's options an n-D scene does not take yet (no live input): each refused by name,
-#: with exit 2 (``--driver`` takes ``haply`` on a pantograph scene, in lockstep).
-_REFUSED = (("device", "--device"),
-            ("osc", "--osc"), ("sound", "--sound"), ("telemetry", "--telemetry"),
-            ("faults", "--faults"), ("auto", "--auto"), ("rate_hz", "--rate"),
-            ("host_clocked", "--host-clocked"), ("duration", "--duration"))
+#: The run options (:class:`hapsim.daemon.options.RunOptions` fields) an n-D run takes;
+#: every other one set to anything but its default is refused by name, with exit 2
+#: (``--driver`` takes ``haply`` on a pantograph scene, in lockstep).
+ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver")
+
+#: ``hapsim run``'s own options (not run options) an n-D scene does not take.
+_REFUSED = (("device", "--device"), ("auto", "--auto"))
+
+
+def _refuse_options(args) -> None:
+    """Refuse every option the n-D run does not take (module constants), by its flag."""
+    from hapsim.daemon.options import command_line_fields
+    set_ = [opt for attr, opt in _REFUSED
+            if getattr(args, attr, None) is not None and getattr(args, attr) is not False]
+    for f in command_line_fields():
+        meta = f.metadata["cli"]
+        if f.name in ND_TAKES or not hasattr(args, f.name):
+            continue
+        v, d = getattr(args, f.name), meta["cli_default"]
+        # (0 == False == 0.0: a value is the default only of the same type)
+        if type(v) is not type(d) or v != d:
+            set_.append(meta["flag"])
+    if set_:
+        raise ConfigError(f"a 2-D or 3-D scene does not take {set_[0]} yet (1-D scenes "
+                          "only)", key=set_[0])
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
 #: from their linearisation by ~1e-7 (c_link ~ 30 /m), large enough against the round-off
@@ -64,10 +83,7 @@ def run_nd(args) -> int:
     from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
-    for attr, opt in _REFUSED:
-        if getattr(args, attr, None) not in (None, False):
-            raise ConfigError(f"a 2-D or 3-D scene does not take {opt} yet (1-D scenes "
-                              "only)", key=opt)
+    _refuse_options(args)
     driver = getattr(args, "driver", None)
     if driver not in (None, "haply"):
         raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "

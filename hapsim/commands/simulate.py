@@ -46,9 +46,12 @@ def register(sub) -> None:
             "  the mock device closed on the scene (the hand's impulse/profile pushes the handle\n"
             "  into the string, the contact throws it back); --gesture FILE drives the port\n"
             "  along a recorded position profile (time [s], position [m]; .csv or .npz).\n"
+            "  A 2-D or 3-D scene is heard at its own rate_hz (its audio.listen points name\n"
+            "  a mass, an axis and position or velocity; a port is held at rest).\n"
             "examples:\n"
             "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10\n"
-            "  hapsim simulate configs/audio_string.yaml --steps 2000 --audio pluck.wav"),
+            "  hapsim simulate configs/audio_string.yaml --steps 2000 --audio pluck.wav\n"
+            "  hapsim simulate configs/membrane.yaml --steps 88200 --audio drum.wav"),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
     p.add_argument("--steps", "-n", type=_count, required=True, metavar="N",

@@ -112,6 +112,13 @@ def _run_audio(args) -> int:
                           key="--audio")
     if args.steps < 0:
         raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
+    if getattr(args, "gesture", "excitation") != "excitation":
+        raise ConfigError("a 2-D or 3-D scene is heard from its initial state (no gesture "
+                          "drives its port yet): leave --gesture out", key="--gesture")
+    for opt, val in (("--out", args.out), ("--record", args.record)):
+        if val:
+            raise ConfigError(f"--audio writes the sound only: {opt} is not taken with it",
+                              key=opt)
     check_writable(args.audio, "--audio")
     scene = load_scene_nd(args.scene)
     if not scene.audio:

@@ -53,6 +53,8 @@ from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
+from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
+from hapsim.kernels.ticks import tick_late as _tick_late
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -270,18 +272,12 @@ def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_a
     logged) or R_IOERR (the write failed)."""
     d = np.int64(pv[P_D])
     lt = 0
-    if status & 0x0080 and iv[I_FAPPLIED] == 0:
+    if status & _FORCE_APPLIED and iv[I_FAPPLIED] == 0:
         iv[I_FAPPLIED] = 1
-    if seq >= d:
-        if status & 0x0020:
-            is_late = True
-        elif status & 0x0080 or iv[I_FAPPLIED] == 0:
-            is_late = ((seq - force_seq) & _U32) != d
-        else:
-            is_late = True
-        if is_late and (d > 0 or status & 0x0020):
-            lt = 1
-            iv[I_LATE] += 1
+    # the late-tick rule (hapsim.kernels.ticks), as the Python loop and the account read it
+    if _tick_late(seq, force_seq, status, d, iv[I_FAPPLIED] != 0):
+        lt = 1
+        iv[I_LATE] += 1
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
@@ -541,7 +537,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
 def compiled_available(transport) -> bool:
     """Whether the compiled loop can own this transport's port (a pyserial port with a
     file descriptor: hardware, or the mock's pty)."""
-    ser = getattr(transport, "_ser", None)
+    ser = getattr(transport, "serial_port", None)
     return isinstance(getattr(ser, "fd", None), int)
 
 
@@ -624,7 +620,7 @@ class CompiledHostLoop(HostLoop):
         pv[P_NEWEST] = 1.0 if cfg.backlog == "newest" else 0.0
         pv[P_AHEAD] = pv[P_SILENCE] * float(cfg.rate_hz) + 2.0
         u8 = np.zeros(8, dtype=np.uint8)
-        fd = self.transport._ser.fd if self.compiled else -1
+        fd = self.transport.serial_port.fd if self.compiled else -1
         self._fast = {
             "iv": iv, "fv": fv, "pv": pv,
             "fh": np.zeros(d + 2, dtype=np.float64),
@@ -770,16 +766,15 @@ class CompiledHostLoop(HostLoop):
 
         def receive(timeout: float):
             fst = self._fast
-            if fst is None or self._fresh or dec._overflow:
+            if fst is None or self._fresh or dec.overflow:
                 return base(timeout)
             iv, fv = fst["iv"], fst["fv"]
             rb = fst["rb"]
-            if dec._buf:                    # a partial frame the decoder holds: ours now
-                pre = dec._buf
+            pre = dec.take_partial()        # a partial frame the decoder holds: ours now
+            if pre:
                 n0 = int(iv[I_RB_LEN])
                 rb[n0:n0 + len(pre)] = np.frombuffer(pre, dtype=np.uint8)
                 iv[I_RB_LEN] = n0 + len(pre)
-                dec._buf = b""
             kind, kargs, xs, fs, port, rec, out = fst["eng"]
             while True:
                 iv[I_SKIPFLAG] = self._skip_flag

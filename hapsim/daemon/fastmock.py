@@ -339,22 +339,22 @@ class CompiledMock:
         iv[I_DELAY] = mock.delay
         iv[I_WATCHDOG_US] = mock.watchdog_us
         iv[I_HOLD] = HOLD_ZOH if ph.hold == "zoh" else HOLD_IDEAL
-        fv[F_X], fv[F_V], fv[F_XPREV] = ph.x, ph.v, ph._xprev
+        fv[F_X], fv[F_V], fv[F_XPREV] = ph.x, ph.v, ph.previous_position
         fv[F_APPLIED], fv[F_U], fv[F_LIMIT] = mock._applied, mock._u, mock.force_limit
-        fv[F_A] = ph._a
+        co = ph.step_coefficients
+        fv[F_A] = co["a"]
         if ph.hold == "zoh":
-            fv[F_CXV], fv[F_CXU], fv[F_CVU] = ph._cxv, ph._cxu, ph._cvu
+            fv[F_CXV], fv[F_CXU], fv[F_CVU] = co["cxv"], co["cxu"], co["cvu"]
         else:
-            fv[F_CU] = ph._cu
-        fv[F_Q], fv[F_COULOMB], fv[F_PERIOD] = ph._q, ph._coulomb, ph.period
+            fv[F_CU] = co["cu"]
+        fv[F_Q], fv[F_COULOMB], fv[F_PERIOD] = ph.position_resolution, ph.coulomb, ph.period
         self.rf = np.array(mock._rf, dtype=np.float64)
         self.rs = np.array(mock._rs, dtype=np.int64)
         self.hand = np.ascontiguousarray(ph.hand, dtype=np.float64)
         dec = self.dev.decoder
-        pre = dec._buf
+        pre = dec.take_partial()
         if pre:
             self.rb[:len(pre)] = np.frombuffer(pre, dtype=np.uint8)
-            dec._buf = b""
         iv[I_RB_LEN] = len(pre)
 
     def store(self) -> bytes:
@@ -371,7 +371,8 @@ class CompiledMock:
         ph = mock.physics
         iv, fv = self.iv, self.fv
         ph.n = int(iv[I_N])
-        ph.x, ph.v, ph._xprev = float(fv[F_X]), float(fv[F_V]), float(fv[F_XPREV])
+        ph.x, ph.v = float(fv[F_X]), float(fv[F_V])
+        ph.previous_position = float(fv[F_XPREV])
         mock._applied_seq = int(iv[I_APPLIED_SEQ])
         mock._status_extra = int(iv[I_STATUS_EXTRA])
         mock._last_force_us = int(iv[I_LAST_FORCE_US])
@@ -398,7 +399,7 @@ class CompiledMock:
         rest = bytes(self.rb[:int(iv[I_RB_LEN])])
         iv[I_RB_LEN] = 0
         if rest and rest.find(b"\x00") < 0 and len(rest) <= _MAX_FRAME - 1:
-            self.dev.decoder._buf = rest          # a partial frame: the receiver's again
+            self.dev.decoder.put_partial(rest)    # a partial frame: the receiver's again
             return b""
         return rest
 

@@ -262,6 +262,13 @@ class Handshake:
         self._t0 = self._clock()
         return hello
 
+    @property
+    def armed_at(self) -> float:
+        """The moment the loop was armed (CONFIG sent) on the loop's clock [s]
+        (``time.monotonic`` unless the transport brings its own ``clock``); 0.0 before;
+        what the run's events count their times from."""
+        return self._t0
+
     def _measure_ping(self, count: int = 16) -> None:
         """Round-trip PING -> PONG before arming [us] (transport + device answer time)."""
         tr = self.transport

@@ -94,6 +94,7 @@ from hapsim.daemon.realtime import sleep_until_ns
 from hapsim.daemon.recovery import Recovery
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_ESTIMATED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
+from hapsim.kernels.ticks import tick_late
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
            "LostDevice", "percentiles_us", "safety_reason", "LATCHED_FAULTS",
@@ -341,7 +342,6 @@ class HostLoop(Handshake, Recovery, BadFrames):
         fh = [0.0] * (d + 2)                # forces sent, by local sample index
         fhl = len(fh)
         Force = fp.Force
-        overrun_bit = fp.STATUS_OVERRUN
         applied_bit = fp.STATUS_FORCE_APPLIED
         flags_applied = self._applied_seen
         isfinite = math.isfinite
@@ -392,14 +392,11 @@ class HostLoop(Handshake, Recovery, BadFrames):
                 st = msg.status
                 if st & applied_bit and not flags_applied:
                     flags_applied = self._applied_seen = True
-                # with d = 0 (lockstep only) force_seq names the force of the previous
-                # period (FORCE n is not known yet, mock notes), so it says nothing about
-                # lateness: only STATUS_OVERRUN (the device held an older force) counts
-                if seq >= d and (st & overrun_bit or _force_seq_late(
-                        seq, msg.force_seq, st, d, flags_applied)):
-                    if d > 0 or st & overrun_bit:
-                        lt = 1
-                        res.late += 1
+                # the late-tick rule (hapsim.kernels.ticks), as the compiled loop and the
+                # record's account read it
+                if tick_late(seq, msg.force_seq, st, d, flags_applied):
+                    lt = 1
+                    res.late += 1
                 if poll is not None:
                     poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
@@ -768,36 +765,6 @@ class HostLoop(Handshake, Recovery, BadFrames):
             if now - deadline > period_ns:
                 res.overruns += 1
                 deadline = now
-
-
-def _force_seq_late(seq: int, force_seq: int, status: int, d: int,
-                    flags_applied: bool) -> bool:
-    """Whether a STATE at or after tick ``d`` shows the device holding an older force.
-
-    PROTOCOL.md §4: ``force_seq`` names the FORCE applied only when ``STATUS_FORCE_APPLIED``
-    is set; a device known to set that bit (``flags_applied``) and not setting it now has
-    applied no FORCE although one was due (late). A device that never sets the bit (written
-    before it existed) is read as before: ``force_seq`` compared with ``seq - d``.
-
-    Parameters
-    ----------
-    seq, force_seq : int
-        STATE fields (u32).
-    status : int
-        STATE status bits.
-    d : int
-        Expected loop delay [samples], >= 0.
-    flags_applied : bool
-        The device has set ``STATUS_FORCE_APPLIED`` at least once.
-
-    Returns
-    -------
-    bool
-        True when the force held is not the FORCE answering STATE ``seq - d``.
-    """
-    if status & fp.STATUS_FORCE_APPLIED or not flags_applied:
-        return (seq - force_seq) & _U32 != d
-    return True
 
 
 def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:

@@ -92,6 +92,19 @@ def _seconds(value, flag: str) -> None:
         raise ConfigError(f"must be a number of seconds >= 0, got {value}", key=flag)
 
 
+def _ip_port(value, flag: str) -> None:
+    """Refuse a UDP/TCP port number outside 0-65535 (0: any free port)."""
+    if not 0 <= value <= 65535:
+        raise ConfigError(f"must be a port number from 0 to 65535 (0: any free port), "
+                          f"got {value}", key=flag)
+
+
+def _baud(value, flag: str) -> None:
+    """Refuse a baud rate that is not > 0."""
+    if value <= 0:
+        raise ConfigError(f"must be a baud rate > 0, got {value}", key=flag)
+
+
 @dataclass
 class RunOptions:
     """The options of one run, each declared once: a field ``hapsim run`` takes from its
@@ -218,7 +231,7 @@ class RunOptions:
         metavar="PORT")
     baud: int = option(
         115200, "--baud", "baud rate (default 115200; ignored by USB CDC and ptys)",
-        metavar="BAUD", type=int)
+        metavar="BAUD", type=int, check=_baud)
     duration: float | None = option(
         None, "--duration", "run length [s] (default 1 s, longer for slow oscillations); 0: "
         "open-ended, until SIGINT/SIGTERM (or a safety stop)",
@@ -279,10 +292,10 @@ class RunOptions:
     osc: int | None = option(
         None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
         "addresses: hapsim play --help); each is checked, ramped, journaled",
-        metavar="PORT", type=int)
+        metavar="PORT", type=int, check=_ip_port)
     osc_ramp: float = option(
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
-        type=float)
+        type=float, check=_seconds)
     sound: str | None = option(
         None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
         "auto); the model stays in the loop, the frames go to the server",

@@ -721,8 +721,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             if response is not None:
                 bounds.append((estimated_bounds(
                     cols, T, *device_body(dev), quantum, dev.noise,
-                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED),
-                    response))
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
+                    coulomb=dev.coulomb), response))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
                             offset=offset, late=late, skip=dev.delay + 2,
@@ -814,7 +814,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "python_reason": getattr(run.loop, "python_reason", None),
         "compiled_samples": getattr(run.loop, "compiled_samples", 0),
         # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
-        "armed_monotonic_s": getattr(run.loop, "_t0", None),
+        "armed_monotonic_s": getattr(run.loop, "armed_at", None),
         # start-up: the first armed STATE, seconds after this process started
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),

@@ -154,6 +154,12 @@ class SerialTransport:
         return self._dec
 
     @property
+    def serial_port(self):
+        """The open pyserial port (``serial.SerialBase``; the compiled loop reads and
+        writes its file descriptor ``fd`` directly). Replaced by :meth:`reopen`."""
+        return self._ser
+
+    @property
     def compact(self) -> bool:
         """Whether the session uses the compact frames (:meth:`set_compact`)."""
         return self._compact

@@ -41,6 +41,10 @@ Layout and schedule (why it is fast):
   at once while their rows are still in the L1 cache. Nothing reads a mass's position
   after it has advanced within the sample: a link reads its ends in the block of its
   lower mass, never later than that mass's own block.
+* A Euclidean piece whose links share their stiffness, damping and rest length (a
+  uniform mesh's, once cut into pieces) reads them as three numbers instead of three
+  per-link arrays (:func:`shared_params`); its padding links (the holes a stripe was
+  given) are computed and their forces dropped before they are added.
 * Every helper is inlined into :func:`step_nd` and indexes the 2-D arrays directly (no
   row views: a view costs a reference-count update per piece).
 * ``fastmath={"contract"}`` only: ``a * b + c`` may become one fused multiply-add
@@ -67,8 +71,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["stripes", "schedule", "link_lengths", "step_nd", "run_nd", "run_nd_listen",
-           "BLOCK", "ROWS"]
+__all__ = ["stripes", "schedule", "shared_params", "link_lengths", "step_nd", "run_nd",
+           "run_nd_listen", "BLOCK", "ROWS"]
 
 _jit = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
                fastmath={"contract"})
@@ -173,6 +177,48 @@ def schedule(table: np.ndarray, n_masses: int, block: int = BLOCK
     return np.array(rows, np.int64).reshape(-1, 4), ptr
 
 
+def shared_params(pieces: np.ndarray, order: np.ndarray, k: np.ndarray, z: np.ndarray,
+                  rest: np.ndarray) -> tuple:
+    """Which pieces' real links share one stiffness, damping and rest length.
+
+    Parameters
+    ----------
+    pieces : ndarray of int64, shape (P, 4)
+        From :func:`schedule`.
+    order : ndarray of int64
+        Slot -> original link, -1 for padding (:func:`stripes`).
+    k, z, rest : ndarray
+        Per slot: ``K`` [N/m], ``B / T`` [N/m], rest length [m].
+
+    Returns
+    -------
+    shared : ndarray of bool, shape (P,)
+        The piece's real links all have the same ``(k, z, rest)`` (compared exactly).
+    sk, sz, srest : ndarray, shape (P,)
+        That ``k`` [N/m], ``z`` [N/m] and rest length [m] (0 where not shared).
+    pad_ptr : ndarray of int64, shape (P + 1,)
+        A shared piece's padding slots are ``pad[pad_ptr[r]:pad_ptr[r + 1]]``.
+    pad : ndarray of int64
+        Their offsets ``i`` within the piece (their forces are dropped).
+    """
+    P = len(pieces)
+    shared = np.zeros(P, np.bool_)
+    sk, sz, srest = np.zeros(P), np.zeros(P), np.zeros(P)
+    pad_ptr = np.zeros(P + 1, np.int64)
+    pad = []
+    for r, (a, s, c, j0) in enumerate(np.asarray(pieces, np.int64).reshape(-1, 4)):
+        sl = slice(j0, j0 + c)
+        real = np.asarray(order[sl]) >= 0
+        if real.any():
+            kr, zr, rr = k[sl][real], z[sl][real], rest[sl][real]
+            if np.all(kr == kr[0]) and np.all(zr == zr[0]) and np.all(rr == rr[0]):
+                shared[r] = True
+                sk[r], sz[r], srest[r] = kr[0], zr[0], rr[0]
+                pad.extend(np.flatnonzero(~real).tolist())
+        pad_ptr[r + 1] = len(pad)
+    return shared, sk, sz, srest, pad_ptr, np.array(pad, np.int64)
+
+
 def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
     """Each stripe slot's link length at ``xp`` [m] (the start of ``eu_lprev``).
 
@@ -238,6 +284,23 @@ def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
         W[2, i] = g * dz
 
 
+@_inline
+def _euclid_piece_shared(x, a, b, c, j0, k, z, rest, lprev, W):
+    """:func:`_euclid_piece` with one ``k``, ``z`` and rest length for the piece."""
+    for i in range(c):
+        j = j0 + i
+        dx = x[0, a + i] - x[0, b + i]
+        dy = x[1, a + i] - x[1, b + i]
+        dz = x[2, a + i] - x[2, b + i]
+        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+        lp = lprev[j]
+        lprev[j] = ln
+        g = (k * (ln - rest) + z * (ln - lp)) / ln if ln > 0.0 else 0.0
+        W[0, i] = g * dx
+        W[1, i] = g * dy
+        W[2, i] = g * dz
+
+
 @_jit
 def _contacts(x, f, i1, i2, k, z, thr, lprev):
     """Sphere contacts, one at a time (few, scattered): the Euclidean law with rest length
@@ -296,8 +359,9 @@ def _advance(x, xp, f, t2m, dim, m0, m1, port, port_f):
 
 @_jit
 def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
-            eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
-            c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f):
+            eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
+            eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
+            p_offset, p_k, p_z, port, port_f):
     """One sample of the n-D scheme (module docstring).
 
     Parameters
@@ -321,6 +385,9 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
     eu_lprev : ndarray
         Each Euclidean link's length at the previous sample [m] (updated; start it from
         ``xp``: :func:`link_lengths`).
+    eu_sh, eu_sk, eu_sz, eu_srest, eu_pad_ptr, eu_pad : ndarray
+        Per Euclidean piece: its links share ``K``, ``B / T`` and rest length, their
+        values, and its padding slots (:func:`shared_params`).
     W : ndarray, shape (3, block)
         Scratch (one piece's link forces).
     c_i1, c_i2, c_k, c_z, c_thr, c_lprev : ndarray, shape (C,)
@@ -350,7 +417,16 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
             b = _U(eu_pieces[r, 0] + eu_pieces[r, 1])
             c = _U(eu_pieces[r, 2])
             j0 = _U(eu_pieces[r, 3])
-            _euclid_piece(x, a, b, c, j0, eu_k, eu_z, eu_rest, eu_lprev, W)
+            if eu_sh[r]:
+                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
+                                     eu_lprev, W)
+                for p in range(eu_pad_ptr[r], eu_pad_ptr[r + 1]):
+                    i = eu_pad[p]
+                    W[0, i] = 0.0
+                    W[1, i] = 0.0
+                    W[2, i] = 0.0
+            else:
+                _euclid_piece(x, a, b, c, j0, eu_k, eu_z, eu_rest, eu_lprev, W)
             _scatter(f, dim, a, b, c, W)
         m0 = q * block
         _advance(x, xp, f, t2m, dim, _U(m0), _U(min(n, m0 + block)), port, port_f)
@@ -358,20 +434,23 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
 
 @_jit
 def run_nd(n, dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
-           eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
-           c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f):
+           eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
+           eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
+           p_offset, p_k, p_z, port, port_f):
     """``n`` samples of :func:`step_nd` (same arguments after ``n``)."""
     for _ in range(n):
         step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
-                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
-                c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
+                eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass,
+                p_normal, p_offset, p_k, p_z, port, port_f)
 
 
 @_jit
 def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, lin_pieces,
                   lin_ptr, lin_k, lin_z, eu_pieces, eu_ptr, eu_k, eu_z, eu_rest, eu_lprev,
-                  W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal, p_offset,
-                  p_k, p_z, port, port_f, port_x):
+                  eu_sh, eu_sk, eu_sz, eu_srest, eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k,
+                  c_z, c_thr, c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f,
+                  port_x):
     """``out.shape[0]`` samples of :func:`step_nd`, recording listening points.
 
     Parameters
@@ -393,8 +472,9 @@ def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, li
             for d in range(dim):
                 x[d, port] = port_x[d]
         step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
-                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, W, c_i1, c_i2, c_k, c_z, c_thr,
-                c_lprev, p_mass, p_normal, p_offset, p_k, p_z, port, port_f)
+                eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
+                eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass,
+                p_normal, p_offset, p_k, p_z, port, port_f)
         for c in range(out.shape[1]):
             v = x[axis[c], mass[c]]
             if velocity[c]:

@@ -1,0 +1,145 @@
+"""The late-tick rule: which FORCE a device applied at a tick, and whether the tick is late.
+
+Written once, here, on plain integers, and read by every path that needs it: the Python
+host loop (:meth:`hapsim.daemon.loop.HostLoop._drive`, the plain functions), the compiled
+host loop (:mod:`hapsim.daemon.fastloop`: the same functions, ``register_jitable``, are
+compiled into it) and the account of a record (:func:`hapsim.applied.
+account_from_force_seq`, through :func:`late_ticks`). The rule is the protocol's
+(``firmware_protocol/PROTOCOL.md`` §4 and the mock notes):
+
+- STATE ``n`` carries ``force_seq``, the ``seq`` of the FORCE applied from tick ``n`` on,
+  valid when the status has ``FORCE_APPLIED``. A device that has never set that bit
+  (written before it existed) names a FORCE whenever ``force_seq`` is set; one that has set
+  it once names none on a STATE without it. So whether a STATE names a FORCE depends on
+  ``flags_applied``: whether the device has set the bit on this or an earlier STATE of the
+  record (a running OR, as a host reading the stream in order knows it).
+- The tick delay a STATE shows is ``(seq - force_seq) mod 2^32``; one "ahead" (more than
+  half the counter) is a stale field and names nothing.
+- With the device delay ``d``, tick ``seq`` is *due* from ``seq >= d`` (the device's tick
+  counter restarts at CONFIG; FORCE 0 answers STATE 0 and is applied at tick ``d``). A due
+  tick is *late* when the device says it overran (``OVERRUN``: it held an older force),
+  when its watchdog zeroed the force (``WATCHDOG_TRIPPED``), or when the FORCE it names is
+  not the one answering STATE ``seq - d`` (an older one, or none). With ``d = 0`` (the
+  lockstep mock only) ``force_seq`` names the previous period's force, since FORCE ``n``
+  is not known when STATE ``n`` leaves: only ``OVERRUN`` says a tick is late.
+
+A protocol ambiguity stays: before a device has ever set ``FORCE_APPLIED``, a STATE with
+``force_seq = 0`` names FORCE 0 or none (PROTOCOL.md §4); a host loop reading the stream in
+order must read it as FORCE 0. The account of a whole record knows from any later row that
+the device sets the bit (``flags0``) and reads it as none: the two differ on at most the
+first due tick after a CONFIG (tick ``d``, when FORCE 0 was not applied there), where the
+account says late and the loop cannot.
+
+numba's on-disk cache keys a compiled function on its own source file only: the compiled
+host loop inlines these functions, so a change here must come with a change to
+``hapsim/daemon/fastloop.py`` (its cache is then rebuilt), or the loop keeps the old rule.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numba.extending import register_jitable
+
+from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_OVERRUN,
+                                     STATUS_WATCHDOG_TRIPPED)
+
+__all__ = ["SEQ_MASK", "SEQ_HALF", "STATUS_FORCE_APPLIED", "STATUS_OVERRUN",
+           "STATUS_WATCHDOG_TRIPPED", "named_delay", "tick_late", "late_ticks"]
+
+#: STATE.seq and FORCE.seq are u32 counters.
+SEQ_MASK = 0xFFFFFFFF
+#: A difference of more than half the counter is "behind", not ahead.
+SEQ_HALF = 0x80000000
+
+
+@register_jitable
+def named_delay(seq: int, force_seq: int, status: int, flags_applied: bool) -> int:
+    """Ticks between a STATE and the FORCE it names as applied (module notes).
+
+    Parameters
+    ----------
+    seq, force_seq : int
+        STATE fields (u32; ``force_seq`` -1 where the protocol carries none).
+    status : int
+        STATE status bits.
+    flags_applied : bool
+        The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
+
+    Returns
+    -------
+    int
+        ``(seq - force_seq) mod 2^32`` [ticks], or -1 when the STATE names no FORCE
+        (none carried, the bit clear on a device that sets it, or a stale field ahead).
+    """
+    if force_seq < 0:
+        return -1
+    if flags_applied and (status & STATUS_FORCE_APPLIED) == 0:
+        return -1
+    t = (seq - force_seq) & SEQ_MASK
+    if t >= SEQ_HALF:
+        return -1
+    return t
+
+
+@register_jitable
+def tick_late(seq: int, force_seq: int, status: int, d: int, flags_applied: bool) -> bool:
+    """Whether the device held another force than FORCE ``seq - d`` at tick ``seq``
+    (module notes).
+
+    Parameters
+    ----------
+    seq, force_seq : int
+        STATE fields (u32; ``force_seq`` -1 where the protocol carries none).
+    status : int
+        STATE status bits.
+    d : int >= 0
+        The device's delay [ticks].
+    flags_applied : bool
+        The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
+
+    Returns
+    -------
+    bool
+        True for a due tick (``seq >= d``) that overran, whose watchdog zeroed the force,
+        or that names another FORCE than ``seq - d`` (with ``d = 0``: overran only).
+    """
+    if seq < d:
+        return False
+    if status & STATUS_OVERRUN:
+        return True
+    if d == 0:
+        return False
+    if status & STATUS_WATCHDOG_TRIPPED:
+        return True
+    return named_delay(seq, force_seq, status, flags_applied) != d
+
+
+@nb.njit(cache=True, nogil=True)
+def late_ticks(seq, force_seq, status, d, flags0, tick, late, flags):
+    """The rule over a record, row by row in order (:func:`named_delay`, :func:`tick_late`).
+
+    Parameters
+    ----------
+    seq, force_seq, status : ndarray of int64, shape (n,)
+        STATE fields of each row (``force_seq`` -1 where the protocol carries none).
+    d : int
+        The device's delay [ticks]; < 0: not known yet (``late`` is left untouched).
+    flags0 : bool
+        ``flags_applied`` before the first row: a host loop's own knowledge so far; a
+        whole record's reader may know from any of its rows that the device sets the bit.
+    tick : ndarray of int64, shape (n,)
+        Out: :func:`named_delay` of each row (-1: names none) [ticks].
+    late : ndarray of bool, shape (n,)
+        Out: :func:`tick_late` of each row (when ``d >= 0``).
+    flags : ndarray of bool, shape (n,)
+        Out: ``flags_applied`` at each row (the running OR of ``FORCE_APPLIED``).
+    """
+    fa = flags0
+    for k in range(seq.size):
+        if status[k] & STATUS_FORCE_APPLIED:
+            fa = True
+        flags[k] = fa
+        tick[k] = named_delay(seq[k], force_seq[k], status[k], fa)
+        if d >= 0:
+            late[k] = tick_late(seq[k], force_seq[k], status[k], d, fa)
