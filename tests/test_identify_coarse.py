@@ -2,8 +2,8 @@
 
 A quantiser's error is a bounded, deterministic function of the position, correlated over
 many samples on a slow motion; on a record of few encoder steps the linearised
-(Newey-West) interval of the output-error fit missed the truth (10 of 26 Coulomb
-intervals on a 300 um encoder, b0 2.61 outside [2.62, 2.66] on a 23 um one). The fit
+(Newey-West) interval of the output-error fit missed the truth (the mass in 3 of 26
+seeds of a 1 kg device on a 300 um encoder, b0 2.61 outside [2.62, 2.66] on a 23 um one). The fit
 now adds the quantiser's effect measured on replicates of the record through the same
 encoder (``hapsim.analysis.device_fit._grid_replicates``), and refuses a record whose
 mass it cannot determine.

@@ -37,7 +37,13 @@ states partialled out of ``J`` (Frisch-Waugh-Lovell) and ``S`` the Newey-West
 & K. D. West, Econometrica 55(3), 1987): quantisation of a slowly moving position is not
 white. Positions are never taken as known better than :data:`POSITION_FLOOR` (on exact data
 the intervals do not shrink below the optimiser's resolution). The interval of ``m`` is
-``m exp(+-z s_ln m)``. The quantum is read from the positions (the smallest step between
+``m exp(+-z s_ln m)``. On a quantised record that linearisation is not enough (the
+quantiser's error is bounded and deterministic, and on a record of few encoder steps its
+effect on the estimates is neither small nor unbiased): each interval is then the union of
+the linearised one and the bias-corrected prediction interval of :data:`REPLICATES` refits
+of the fitted model passed through the same encoder (:func:`_grid_replicates`). A mass not
+determined within a factor :data:`MASS_SPAN`, or fewer encoder steps on the stretches than
+fitted parameters, is an :class:`~hapsim.errors.IdentificationError`. The quantum is read from the positions (the smallest step between
 distinct values, when every value is a whole multiple of it). The noise is the
 maximum-likelihood ``sigma`` of the rounded Gaussian ``P(y | x) = Phi((y - x + q/2)/s) -
 Phi((y - x - q/2)/s)``, ``s^2 = sigma^2 + delta^2`` (``delta``: the model output's own
