@@ -23,6 +23,7 @@ import time
 from collections import deque
 
 from hapsim.device_model import MockPhysics
+from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
            "EmbeddedDriverMock", "main"]
@@ -288,7 +289,7 @@ class HaplyDevice(_Actuated):
             return 0.0
         res = dec.encoder_res[0]
         c = self._counts() - self._base
-        if dec.direction[0]:
+        if dec.encoder_direction[0]:
             c = -c
         if not (math.isfinite(res) and res):       # a garbage set-up's resolution
             return math.copysign(math.inf, c) if c else math.nan
@@ -305,7 +306,7 @@ class HaplyDevice(_Actuated):
                     off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
                     off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
                     c = self._counts()
-                    self._base = c - (-off if dec.direction[0] else off)
+                    self._base = c - (-off if dec.encoder_direction[0] else off)
                 continue
             if cmd[0] != "write":
                 continue
@@ -315,7 +316,7 @@ class HaplyDevice(_Actuated):
                 if not math.isfinite(t):
                     t = 0.0                       # (the firmware: a NaN duty is 0)
                 t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
-                if dec.direction[0]:
+                if dec.motor_direction[0]:
                     t = -t
             self.apply(t)
             na, encs = dec.reply_layout(addr)
@@ -542,7 +543,7 @@ def main(argv=None) -> int:
     return 0
 
 
-class EmbeddedDriverMock:
+class EmbeddedDriverMock(PtyChild):
     """A driver mock in a child process on the master side of a new pty.
 
     Parameters
@@ -603,42 +604,6 @@ class EmbeddedDriverMock:
                                          stdin=subprocess.DEVNULL, start_new_session=True)
         finally:
             os.close(master)
-
-    def release_slave(self) -> None:
-        """Close this object's copy of the slave (after the host opened the port)."""
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
-
-    def report(self, timeout: float = 3.0):
-        """Wait for the child to end (the host closed the port) and return its report."""
-        try:
-            self.proc.wait(timeout)
-        except Exception:
-            self.proc.terminate()
-            try:
-                self.proc.wait(2.0)
-            except Exception:
-                self.proc.kill()
-        try:
-            with open(self.report_path) as fh:
-                return json.load(fh)
-        except (OSError, ValueError):
-            return None
-
-    def close(self) -> None:
-        """End the child and release the pty (idempotent)."""
-        self.release_slave()
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(2.0)
-            except Exception:
-                self.proc.kill()
-        try:
-            os.unlink(self.report_path)
-        except OSError:
-            pass
 
 
 if __name__ == "__main__":

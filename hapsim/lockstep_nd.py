@@ -18,6 +18,8 @@ left of the n-DoF run.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
@@ -27,7 +29,7 @@ from hapsim.kernels.joint_nd import joint_step
 
 __all__ = ["LockstepND", "JointDeviceND", "measure_felt_lockstep", "excitation_starts",
            "felt_deviation", "default_samples", "LocalJointDeviceND",
-           "identification_plan"]
+           "identification_plan", "error_responses", "felt_verdict", "MEASURABLE_WIRE"]
 
 
 class LockstepND:
@@ -76,7 +78,8 @@ class LockstepND:
         self.engine.x[:, self.engine.port] = p
         self.joint = JointDeviceND(scene, p, self.state[n:]) if joint_space else None
 
-    def step(self, samples: int = 1, record: bool = False):
+    def step(self, samples: int = 1, record: bool = False, *, reading_error=None,
+             force_error=None):
         """Advance the loop.
 
         Parameters
@@ -85,18 +88,27 @@ class LockstepND:
             Samples to run.
         record : bool, optional
             Return the device positions.
+        reading_error : ndarray, shape (samples, n), optional
+            An error of the host's reading [m]: at sample ``i`` the engine is given the
+            handle at ``x_dev[i] + reading_error[i]``, and the record holds that reading
+            (a sensor's or a wire's rounding, observed and fed back through the links).
+        force_error : ndarray, shape (samples, n), optional
+            A force error [N] added to the force the device holds over sample ``i``
+            (a wire's rounding of the force it is sent).
 
         Returns
         -------
         ndarray, shape (samples, n) or None
             The device's position deviation ``x_dev[n]`` [m] at each sample, before the
-            step (when ``record``).
+            step, plus ``reading_error`` (when ``record``).
         """
         n = self.n
         out = np.empty((samples, n)) if record else None
         eng = self.engine
         for i in range(int(samples)):
             x = self.state[:n]
+            if reading_error is not None:
+                x = x + reading_error[i]
             if record:
                 out[i] = x
             eng.set_port_position(self.rest + x)
@@ -108,6 +120,8 @@ class LockstepND:
                 self.delay[0] = F
             else:
                 u = F
+            if force_error is not None:
+                u = u + force_error[i]
             if self.joint is not None:
                 self.joint.step(u)
                 self.state = np.concatenate([self.joint.position() - self.rest,
@@ -452,3 +466,119 @@ def identification_plan(scene, samples: int | None = None) -> tuple:
         raise ConfigError(f"must be at least {2 * order * n} samples for this loop "
                           f"({chk.states} states), got {N}", key="samples")
     return chk, order, N
+
+
+def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
+    """The loop's impulse responses to a reading error and to a force error, per axis.
+
+    The lockstep loop (:class:`LockstepND`) run from rest with a unit error at sample 0
+    along each axis, minus the run without it, over the error's size: the record's
+    change at each later sample. A reading error is logged (the direct term, the identity
+    at sample 0) and fed back through the scene's links as a force; a force error moves
+    the device from the next sample. Exact for a linear loop (superposition); for a scene
+    with Euclidean links or contacts, the linearisation at rest to ``O(size)`` relative.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A validated scene with a port and a device.
+    samples : int
+        Length ``L`` of the responses.
+    size : float, optional
+        The error's size [m] or [N] for the runs.
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        Shapes (L, n, n): the response to a reading error [m/m] and to a force error
+        [m/N]; ``[t, :, j]`` the record's change at sample ``t`` for a unit error along
+        axis ``j`` at sample 0.
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`.
+    """
+    n = scene.dimension
+    L = int(samples)
+    rest = LockstepND(scene).step(L, record=True)
+    out = np.zeros((2, L, n, n))
+    for kind in range(2):
+        for j in range(n):
+            e = np.zeros((L, n))
+            e[0, j] = size
+            kw = {"reading_error" if kind == 0 else "force_error": e}
+            out[kind, :, :, j] = (LockstepND(scene).step(L, record=True, **kw) - rest) / size
+    return out[0], out[1]
+
+
+#: Largest first-order change of the felt matrices (relative, stiffness or damping) that
+#: the readings' rounding may cause for a measurement to be stated: beyond it the
+#: excitation is too small for the wire's or the encoders' resolution, the neglected
+#: higher orders of the fit's perturbation are no longer small against the first, and the
+#: run says "not measurable" instead of a verdict.
+MEASURABLE_WIRE = 0.25
+
+
+def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE) -> dict:
+    """The verdict of an n-D measurement against its stated uncertainty.
+
+    The stated uncertainty of each felt matrix is the linearisation bound at the
+    amplitude (:mod:`hapsim.analysis.linearisation_nd`) plus the wire's first-order
+    worst case (:func:`hapsim.analysis.identify_nd.worst_case_nd` of the readings' and
+    the forces' rounding), both relative to the predicted matrix's largest entry. The
+    measurement is "within" when both deviations are inside it, "differs" when one is
+    not, and "not measurable" when nothing can be stated: no felt matrices measured, a
+    contact or plane that opens at the amplitude, or a wire term above ``limit`` (the
+    first-order expansion no longer holds; the excitation is too small for the
+    resolution).
+
+    Parameters
+    ----------
+    deviation : dict or None
+        :func:`felt_deviation`'s result.
+    bound : hapsim.analysis.linearisation_nd.LinearisationBound
+    wire : dict or None, optional
+        ``felt_stiffness`` and ``felt_damping``: the wire's relative terms (None: the
+        record is exact, float64 on the wire).
+    limit : float, optional
+        :data:`MEASURABLE_WIRE`.
+
+    Returns
+    -------
+    dict
+        ``verdict`` (``"within"``, ``"differs"`` or ``"not measurable"``), ``within``
+        (bool, or None when not measurable), ``uncertainty`` (``felt_stiffness``,
+        ``felt_damping`` [-], or None) and ``reason`` (str).
+    """
+    lin = bound.to_dict()
+    wk = wd = 0.0
+    if wire is not None:
+        wk, wd = float(wire["felt_stiffness"]), float(wire["felt_damping"])
+
+    def no(reason):
+        return {"verdict": "not measurable", "within": None, "uncertainty": None,
+                "reason": reason}
+    if deviation is None:
+        return no("the records give no felt matrices (fewer than n rendered pairs)")
+    if lin["felt_stiffness"] is None:
+        return no(f"the amplitude {bound.amplitude:g} m reaches the depth of "
+                  f"{bound.depth_name!r} ({bound.depth:.3g} m): the contact opens, no "
+                  "linear estimate holds")
+    if not (math.isfinite(wk) and math.isfinite(wd)) or max(wk, wd) > limit:
+        need = bound.amplitude * max(wk, wd) / limit if math.isfinite(max(wk, wd)) else None
+        return no(f"the readings' rounding alone may move the felt stiffness by {wk:.2g} "
+                  f"and the damping by {wd:.2g} (relative, first order), above {limit:g}: "
+                  f"the excitation {bound.amplitude:g} m is too small for the wire's "
+                  "resolution" + (f" (about {need:.2g} m or more is needed)"
+                                  if need is not None else ""))
+    unc = {"felt_stiffness": lin["felt_stiffness"] + wk,
+           "felt_damping": lin["felt_damping"] + wd}
+    ok = (deviation["felt_stiffness"] <= unc["felt_stiffness"]
+          and deviation["felt_damping"] <= unc["felt_damping"])
+    return {"verdict": "within" if ok else "differs", "within": bool(ok),
+            "uncertainty": unc,
+            "reason": ("measured = predicted within the stated uncertainty (linearisation "
+                       "bound plus the wire's rounding)" if ok else
+                       "measured differs from predicted by more than the stated "
+                       "uncertainty (linearisation bound plus the wire's rounding)")}

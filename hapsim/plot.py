@@ -69,11 +69,7 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
-    plt = pyplot()
-    if ax is None:
-        fig, ax = plt.subplots(figsize=(7.5, 6.0), dpi=110)
-    else:
-        fig = ax.figure
+    fig, ax = _figure(ax, (7.5, 6.0))
     g = result
     b0 = g.b_bias
     loop = g.loop
@@ -133,6 +129,16 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ax.legend(fontsize=7, loc="upper right", framealpha=0.9)
     fig.tight_layout()
     return fig
+
+
+def _figure(ax, size: tuple):
+    """The figure and axes a chart draws into: ``ax`` and its figure, or a new figure of
+    ``size`` (width, height) [in] at 110 dpi (:func:`pyplot`, so a missing matplotlib
+    raises its ConfigError either way)."""
+    plt = pyplot()
+    if ax is None:
+        return plt.subplots(figsize=size, dpi=110)
+    return ax.figure, ax
 
 
 def _place_labels(ax, labels, fontsize: float = 7.0) -> None:
@@ -267,11 +273,7 @@ def plot_poles(report, ax=None, title: str | None = None):
     ConfigError
         If matplotlib is missing.
     """
-    plt = pyplot()
-    if ax is None:
-        fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=110)
-    else:
-        fig = ax.figure
+    fig, ax = _figure(ax, (5.5, 5.5))
     t = np.linspace(0.0, 2.0 * np.pi, 400)
     ax.plot(np.cos(t), np.sin(t), color="0.6", lw=1.0, label="|z| = 1 (stability boundary)")
     z = np.array([[np.nan if v is None else v for v in e] for e in report.eigenvalues],
@@ -322,11 +324,7 @@ def plot_felt(report, ax=None, title: str | None = None):
     ConfigError
         If matplotlib is missing.
     """
-    plt = pyplot()
-    if ax is None:
-        fig, ax = plt.subplots(figsize=(6.0, 4.5), dpi=110)
-    else:
-        fig = ax.figure
+    fig, ax = _figure(ax, (6.0, 4.5))
 
     def pair(d, k="k", b="b"):
         if not d or d.get(k) is None or d.get(b) is None:

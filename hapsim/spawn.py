@@ -1,13 +1,16 @@
-"""The environment of a child Python process that runs part of this hapsim (the embedded
-mocks of :mod:`hapsim.daemon.transport` and :mod:`hapsim.driver_mock`): the parent's
-environment with ``PYTHONPATH`` led by the directory that holds this package, so that the
-child imports the same tree as its parent, installed or not."""
+"""A child Python process that runs part of this hapsim (the embedded mocks of
+:mod:`hapsim.daemon.transport` and :mod:`hapsim.driver_mock`): its environment (the
+parent's, with ``PYTHONPATH`` led by the directory that holds this package, so that the
+child imports the same tree as its parent, installed or not) and the host's side of a
+child served on a pseudo-terminal (:class:`PtyChild`)."""
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
 
-__all__ = ["package_root", "child_env"]
+__all__ = ["package_root", "child_env", "PtyChild"]
 
 
 def package_root() -> str:
@@ -33,3 +36,77 @@ def child_env() -> dict:
     root = package_root()
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
+
+
+class PtyChild:
+    """The host's side of a child process served on a pseudo-terminal's master that writes
+    a JSON report when it exits (the embedded mocks): its end and its report.
+
+    A subclass starts the child in its ``__init__`` and sets the attributes below.
+
+    Attributes
+    ----------
+    proc : subprocess.Popen
+        The child.
+    report_path : str
+        The JSON file the child writes on exit (removed by :meth:`close`).
+    _slave : int or None
+        This object's descriptor of the pty's slave, kept open until the host has opened
+        the port (so the child never reads EIO before), closed by :meth:`release_slave`.
+    """
+
+    proc: subprocess.Popen
+    report_path: str
+    _slave: int | None = None
+
+    def release_slave(self) -> None:
+        """Close this object's copy of the slave (once the host has opened the port)."""
+        if self._slave is not None:
+            os.close(self._slave)
+            self._slave = None
+
+    def end(self, grace_s: float = 2.0) -> None:
+        """SIGTERM the child (a mock zeroes its force and writes its report), SIGKILL it
+        after ``grace_s`` [s]; it is reaped either way."""
+        self.proc.terminate()
+        try:
+            self.proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+    def report(self, timeout: float = 3.0) -> dict | None:
+        """Wait for the child to exit and return its JSON report.
+
+        Parameters
+        ----------
+        timeout : float
+            Longest wait for the child to exit by itself [s] (it does when the host closes
+            the port); then it is ended (:meth:`end`).
+
+        Returns
+        -------
+        dict or None
+            The child's report (what it holds: the subclass's ``report_path``); None when
+            it wrote none (killed, or crashed).
+        """
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.end()
+        try:
+            with open(self.report_path) as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return None
+
+    def close(self) -> None:
+        """Close the slave, end the child if still running, remove the report file
+        (idempotent)."""
+        self.release_slave()
+        if self.proc.poll() is None:
+            self.end()
+        try:
+            os.unlink(self.report_path)
+        except OSError:
+            pass

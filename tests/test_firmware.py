@@ -72,6 +72,35 @@ def _report(report: Path) -> dict:
     return json.loads(report.read_text())
 
 
+@contextmanager
+def _descheduled(proc, every: float = 0.3, length: float = 0.12):
+    """Stop the board's process for ``length`` seconds every ``every`` seconds (SIGSTOP,
+    SIGCONT) while the block runs: a loaded machine's descheduling, made certain. In
+    lockstep nothing the host or the board does may depend on it (a real-time host took a
+    pause longer than its 50 ms silence limit for a lost device and re-CONFIGured the
+    board mid-record: k = 493.0 once at load 10, 633.7 once at 4 kHz)."""
+    import threading
+    done = threading.Event()
+    stops = [0]
+
+    def run():
+        while not done.wait(every):
+            try:
+                os.kill(proc.pid, signal.SIGSTOP)
+                stops[0] += 1
+                time.sleep(length)
+            finally:
+                os.kill(proc.pid, signal.SIGCONT)
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    try:
+        yield stops
+    finally:
+        done.set()
+        th.join()
+        os.kill(proc.pid, signal.SIGCONT)
+
+
 class _Host:
     """A minimal protocol host on a pty (the test's own, independent of hapsim's loop)."""
 
@@ -245,20 +274,25 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     dev = scene.device
     tel = tmp_path / "tel.npz"
     with _board(tmp_path, None, *board.board_command(dev, scene.excitation)[2:]) as (
-            proc, port, report):
+            proc, port, report), _descheduled(proc) as stops:
         r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(ROOT / "configs/hapkit.yaml"),
-                            "--port", port, "--duration", "1", "--json", "--telemetry", str(tel)],
+                            "--port", port, "--lockstep", "--duration", "1", "--json",
+                            "--telemetry", str(tel)],
                            capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
                            timeout=120)
         assert r.returncode == 0, r.stderr
+    assert stops[0] >= 3, stops      # the board was descheduled during the run
     # simavr's warnings (the firmware writes OCR1A before it sets Timer1's mode) are
     # counted in the board's report, not printed on the user's terminal
     assert report.with_suffix(".log").read_text() == ""
     assert _report(report)["simavr"]["warnings"] >= 1
     rep = json.loads(r.stdout)
     assert rep["loop"]["late"] == 0, rep["loop"]
+    assert rep["loop"]["lost"] == 0 and rep["loop"]["recovered"] == 0, rep["loop"]
     assert rep["loop"]["device"]["force_limit"] == pytest_approx(board_force_max())
     t = load(str(tel))
+    from hapsim.daemon.telemetry import FLAG_LOST, FLAG_RAMP
+    assert not (t["flags"] & (FLAG_LOST | FLAG_RAMP)).any()   # one session, never restarted
     window = int(0.7 * RATE)
     x = t["position"][t["seq"] >= 4][:window]          # after the dead-beat transient
     assert x.size == window
@@ -312,7 +346,8 @@ def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
     with _board(tmp_path, None, *board.board_command(dev, scene.excitation)[2:]) as (
             proc, port, report):
         r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(path), "--port", port,
-                            "--duration", "0.3", "--json", "--telemetry", str(tel)],
+                            "--lockstep", "--duration", "0.3", "--json", "--telemetry",
+                            str(tel)],
                            capture_output=True, text=True, timeout=300,
                            env={**os.environ, "PYTHONPATH": str(ROOT)})
         assert r.returncode == 0, r.stderr

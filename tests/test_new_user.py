@@ -312,6 +312,7 @@ JSON_ERRORS = [
     (["check", "{hard}", "--json"], 1, "UnrenderableTargetError"),
     (["run", "{hard}", "--lockstep", "--json"], 1, "UnrenderableTargetError"),
     (["play", "{bad}", "--json"], 2, "ConfigError"),
+    (["play", "{unstable}", "--osc", "70000", "--sound", "none", "--json"], 2, "ConfigError"),
     (["telemetry", "{tmp}/missing.hst", "--json"], 2, "ConfigError"),
     (["identify", "--force-limit", "-1", "--json"], 2, "ConfigError"),
     (["compare-corrections", *LOOP, "--delay", "-1", "--json"], 2, "ConfigError"),

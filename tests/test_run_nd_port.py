@@ -8,6 +8,7 @@ pseudo-terminal with the mock serving it in a thread."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pty
 import threading
@@ -120,7 +121,8 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     """``hapsim mock --scene configs/pantograph_wall.yaml --once`` (served from a thread:
     the two share one interpreter, so late ticks are likely and accounted) and ``hapsim
     run SCENE --port PATH --json``: exit 0, the device's delay 1 in every record where a
-    FORCE came in time, the felt matrices to 1e-6 however many ticks were late; the mock
+    FORCE came in time, the felt matrices within the stated linearisation bound however
+    many ticks were late (the late ticks' known disturbance subtracted); the mock
     ends when the run closes the port."""
     import json
 
@@ -151,4 +153,43 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     assert not th.is_alive()
     # -1: a record in which no FORCE came in time (this machine under load)
     assert out["dof"] == 2 and set(out["delay"]) <= {1, -1} and out["lost"] == 0
-    assert max(out["deviation"].values()) < 1e-6, (out["deviation"], out["late"])
+    # the linear prediction holds to the stated linearisation bound, taken at the largest
+    # excursion the records reached (late ticks hold old forces and move the handle past
+    # the nominal amplitude; the loop's second-order terms grow with it): 1.7e-6 in
+    # damping was seen at load ~20 with 433 late ticks, against 3.4e-6 stated
+    bound = out["linearisation_bound"]
+    for key in ("felt_stiffness", "felt_damping"):
+        assert out["deviation"][key] <= bound[key], (key, out["deviation"], bound,
+                                                     out["late"])
+    assert max(out["deviation"].values()) < 1e-4, (out["deviation"], out["late"])
+
+
+class _WithoutAppliedBit:
+    """A device written before STATUS_FORCE_APPLIED existed (PROTOCOL.md §9: added within
+    version 1): its STATEs never set the bit; force_seq names the FORCE applied."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.info = getattr(inner, "info", None)
+
+    def send(self, msg):
+        self.inner.send(msg)
+
+    def receive(self, timeout=0.0):
+        return [dataclasses.replace(m, status=m.status & ~fp.STATUS_FORCE_APPLIED)
+                if isinstance(m, fp.State) else m for m in self.inner.receive(timeout)]
+
+    def last_frames(self):
+        return self.inner.last_frames()
+
+
+def test_a_device_without_the_applied_bit_is_measured():
+    """The same lockstep records from a device that never sets FORCE_APPLIED: force_seq
+    names each FORCE (seq - d), so the run measures the felt matrices to 1e-6 as with the
+    bit (before: a record without the bit was read as 'no FORCE arrived in time', the whole
+    force sent taken as a disturbance, delay -1)."""
+    sc = _scene("pantograph_wall.yaml")
+    res = measure_felt_port(_WithoutAppliedBit(InProcessTransport(
+        MockDeviceND(sc, lockstep=True))), sc, samples=150)
+    assert res["late"] == 0 and res["delay"] == [1] * 5
+    assert max(res["deviation"].values()) < 1e-6, res["deviation"]

@@ -81,7 +81,8 @@ def test_every_command_line_option_reaches_its_field():
     (["--reconnect-time", "inf"], "--reconnect-time"), (["--faults", "nosuch=1"], "--faults"),
     (["--osc", "70000"], "--osc"), (["--osc", "-1"], "--osc"),
     (["--osc-ramp", "-0.1"], "--osc-ramp"), (["--osc-ramp", "nan"], "--osc-ramp"),
-    (["--baud", "0"], "--baud")])
+    (["--baud", "0"], "--baud"), (["--rt-priority", "100"], "--rt-priority"),
+    (["--rt-priority", "-1"], "--rt-priority")])
 def test_a_bad_value_is_refused_by_its_declaration_from_both_doors(argv, key):
     """The same check, keyed by the flag, from the command line and from a program."""
     with pytest.raises(ConfigError) as cli:

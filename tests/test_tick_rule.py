@@ -114,3 +114,27 @@ def test_python_loop_compiled_loop_and_account_flag_the_same_ticks(seed, frac, d
     np.testing.assert_array_equal(acc.late, late | (ambiguous & bool(np.any(status & A))))
     if d > 0 and np.any(~made[d:]):
         assert acc.delay == d
+
+
+@settings(max_examples=100, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2 ** 32 - 1), frac=st.floats(0.0, 0.5), d=st.integers(0, 6),
+       uses_bit=st.booleans())
+def test_the_rule_reads_every_stream_as_it_was_made(seed, frac, d, uses_bit):
+    """Property, on the rule alone (no loop: cheap, so over many streams, every delay
+    0-6 and both kinds of device): ``late_ticks`` with a loop's knowledge flags exactly
+    the ticks the stream made late, but for the one documented ambiguity (force_seq 0
+    without FORCE_APPLIED at tick d), and the account of the record flags the same,
+    resolving the ambiguity from the later rows as documented."""
+    rng = np.random.default_rng(seed)
+    n = 200
+    _, fields = late_stream(rng, n, d, frac, uses_bit)
+    seq, fseq, status, made = (np.array(c, np.int64) for c in zip(*fields))
+    made = made.astype(bool)
+    tick, late, flags = np.empty(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
+    late_ticks(seq, fseq, status, d, False, tick, late, flags)
+    ambiguous = (seq == d) & (d > 0) & (fseq == 0) & (status & A == 0) & made
+    np.testing.assert_array_equal(late | ambiguous, made)
+    acc = account_from_force_seq(seq, np.zeros(n), fseq, status, zero_delay=d == 0)
+    np.testing.assert_array_equal(acc.late, late | (ambiguous & bool(np.any(status & A))))
+    if d > 0 and np.any(~made[d:]):
+        assert acc.delay == d

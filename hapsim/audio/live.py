@@ -28,11 +28,12 @@ import os
 import sys
 import time
 
-from hapsim.audio.sources import FrameRing, LiveSound, sounding_engine
+from hapsim.audio.sources import (FrameRing, LivePack, LiveSound, RingPack,
+                                  sounding_engine)
 from hapsim.errors import ConfigError, DeviceError
 
-__all__ = ["LiveSound", "FrameRing", "sounding_engine", "JackOutput", "SoundDeviceOutput",
-           "open_output", "wait_priority", "BACKENDS"]
+__all__ = ["LiveSound", "FrameRing", "LivePack", "RingPack", "sounding_engine", "JackOutput",
+           "SoundDeviceOutput", "open_output", "wait_priority", "BACKENDS"]
 
 #: Sound backends, in the order ``auto`` tries them.
 BACKENDS = ("jack", "sounddevice")

@@ -128,8 +128,11 @@ def run(args: argparse.Namespace) -> int:
 
     if not (args.duration > 0 and math.isfinite(args.duration)):
         raise ConfigError(f"must be > 0, got {args.duration}", key="--duration")
-    if not args.ramp >= 0:
-        raise ConfigError(f"must be >= 0, got {args.ramp}", key="--ramp")
+    if not (args.ramp >= 0 and math.isfinite(args.ramp)):
+        raise ConfigError(f"must be a number of seconds >= 0, got {args.ramp}", key="--ramp")
+    if args.osc is not None:
+        from hapsim.daemon.options import check_port_number
+        check_port_number(args.osc, "--osc")
     if not args.pluck_every >= 0:
         raise ConfigError(f"must be >= 0, got {args.pluck_every}", key="--pluck-every")
     if args.rt_priority is not None and not 0 <= args.rt_priority <= 99:

@@ -113,7 +113,11 @@ def run_nd(args) -> int:
         except (DeviceError, ProtocolError) as exc:
             print(f"hapsim run: {exc}", file=sys.stderr)
             return 1
-        res["bound"] = linearisation_bound(scene, a, pred.render.rendered_poles)
+        # the bound at the largest excursion the records reached: a late tick's held force
+        # moves the handle past the nominal amplitude, and the departure from the linear
+        # loop grows with the motion (hapsim.analysis.linearisation_nd)
+        res["bound"] = linearisation_bound(scene, max(a, res["excursion"]),
+                                           pred.render.rendered_poles)
         where = (f"over {port_info['port']}" + (" (embedded mock, real time)"
                                                  if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
@@ -249,7 +253,8 @@ def _run_haply2(args) -> int:
     Returns
     -------
     int
-        0 (the measurement reported whatever it finds); 1 when the board lost a reply.
+        0 (the measurement and its verdict reported, whatever it finds: "within",
+        "differs" or "not measurable"); 1 when the board lost a reply.
 
     Raises
     ------
@@ -257,7 +262,6 @@ def _run_haply2(args) -> int:
         Without ``--lockstep`` (no real-time n-D driver loop yet), with ``--port``, a scene
         that is not a 2-D pantograph, a bad amplitude.
     """
-    from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.daemon.haply2_board import measure_felt_haply2
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
@@ -274,8 +278,11 @@ def _run_haply2(args) -> int:
             print(f"hapsim run: {exc}", file=sys.stderr)
             return 1
     chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
-    bound = linearisation_bound(scene, a, chk.render.rendered_poles)
+    bound, wire = res["bound"], res["wire"]
     real = res["quantum_encoders"]
+
+    def num(x):
+        return float(x) if math.isfinite(x) else None
     if args.json:
         def mat(x):
             return None if x is None else np.asarray(x, float).tolist()
@@ -288,6 +295,12 @@ def _run_haply2(args) -> int:
                          "felt_damping": mat(fit["felt_damping"]),
                          "residual": fit["residual"], "rank": fit["rank"]},
             "deviation": dev, "linearisation_bound": bound.to_dict(),
+            "wire": {"felt_stiffness": num(wire["felt_stiffness"]),
+                     "felt_damping": num(wire["felt_damping"]),
+                     "reading_bound_rad": wire["reading_bound_rad"],
+                     "torque_rel": wire["torque_rel"]},
+            "uncertainty": res["uncertainty"], "verdict": res["verdict"],
+            "within": res["within"], "reason": res["reason"], "clamped": res["clamped"],
             "quantum": res["quantum"], "quantum_real_encoders": real,
             "records": res["records"], "samples": res["samples"]}))
         return 0
@@ -308,11 +321,22 @@ def _run_haply2(args) -> int:
         print(f"  measured - predicted (largest entry over the largest predicted): "
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     if bd["felt_stiffness"] is not None:
-        print(f"  stated uncertainty (linearisation bound at a): k {bd['felt_stiffness']:.2e}"
-              f", b {bd['felt_damping']:.2e}", file=o)
-    print(f"  the wire's resolution at the handle over a: {res['quantum']:.2e} (binary32 "
-          f"degrees); a real 2DIY's encoders: gen2 {real['gen2']:.2e}, gen3 "
-          f"{real['gen3']:.2e} of a", file=o)
+        print(f"  linearisation bound at a: k {bd['felt_stiffness']:.2e}, "
+              f"b {bd['felt_damping']:.2e}", file=o)
+    if math.isfinite(wire["felt_stiffness"]):
+        dq = wire["reading_bound_rad"]
+        print(f"  the wire's rounding (readings within {dq[0]:.2e} / {dq[1]:.2e} rad: half "
+              "a count and a binary32 ulp; torques 2^-24), first-order worst case through "
+              f"the loop and the fit: k {wire['felt_stiffness']:.2e}, "
+              f"b {wire['felt_damping']:.2e}", file=o)
+    if res["uncertainty"] is not None:
+        u = res["uncertainty"]
+        print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
+              f"b {u['felt_damping']:.2e}", file=o)
+    print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
+    print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
+          f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
+          f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
     return 0
 
 

@@ -32,38 +32,10 @@ from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
 
-__all__ = ["BoardParser", "Haply2DIYBoard", "drive_haply2", "measure_felt_haply2"]
+__all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2"]
 
 _F = struct.Struct("<f")
 _F32_MAX = 3.4028234663852886e38
-
-
-class BoardParser(CommandDecoder):
-    """The firmware's parser, keeping the motors' and the encoders' direction bytes apart
-    (the firmware stores them in ``actuators[i]`` and ``encoders[i]``, ``i`` the k-th
-    active port).
-
-    Attributes
-    ----------
-    motor_direction, encoder_direction : list of int, length 4
-        Direction byte of the k-th active motor / encoder port.
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.motor_direction = [0] * 4
-        self.encoder_direction = [0] * 4
-
-    def _setup(self, b) -> int:
-        addr = super()._setup(b)
-        nm = bin(b[2] & 0x0F).count("1")
-        for k in range(nm):
-            self.motor_direction[k] = b[3 + k]
-        i = 3 + nm
-        ne = bin(b[i] & 0x0F).count("1")
-        for k in range(ne):
-            self.encoder_direction[k] = b[i + 1 + k]
-        return addr
 
 
 class Haply2DIYBoard:
@@ -87,7 +59,7 @@ class Haply2DIYBoard:
 
     Attributes
     ----------
-    parser : BoardParser
+    parser : hapsim.drivers.haply.CommandDecoder
     setups : int
         Set-ups taken (the hand's cycle).
     writes : int
@@ -109,7 +81,7 @@ class Haply2DIYBoard:
         self.gen = GENERATIONS[generation]
         self.cpr = float(cpr or self.gen.resolution)
         self.amplitude = float(amplitude)
-        self.parser = BoardParser()
+        self.parser = CommandDecoder()
         self.delay = int(dev.delay)
         self._fifo = deque([None] * self.delay)
         self.torque = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
@@ -329,13 +301,30 @@ MISSING_RESYNC = 5
 
 def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1e-5,
                         cpr: float | None = None, resolution: float | None = None,
-                        samples: int | None = None, progress=None) -> dict:
-    """The felt matrices of a pantograph scene measured through the emulated 2DIY's bytes.
+                        samples: int | None = None, progress=None, plant=None,
+                        plan=None) -> dict:
+    """The felt matrices of a pantograph scene measured through the emulated 2DIY's bytes,
+    and their verdict against the stated uncertainty.
 
     ``2n + 1`` records (each an arm: the set-up, whose hand starts the record; then
     ``samples`` writes) driven by :func:`drive_haply2` on a clean stream, the records
     minus the one from rest fitted as in lockstep
     (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
+
+    The stated uncertainty (:func:`hapsim.lockstep_nd.felt_verdict`) is the linearisation
+    bound at ``a`` plus the wire's term: each reading is the joint angle to within
+    ``delta_j`` = half a count of the set-up's resolution plus one binary32 ulp of the
+    largest angle read (the count rounded, then ``360 c / res`` in single precision: two
+    roundings of half an ulp), and each torque the host computed reaches the board
+    rounded to binary32 (``2^-24 |tau|``). Each error moves the records through the loop
+    (:func:`hapsim.lockstep_nd.error_responses`: observed and fed back through the links;
+    the joint errors reach the handle through ``J(q0)``, the torque errors through
+    ``J(q0)^-T``), and the fit to first order
+    (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`); their worst case, whatever
+    their signs and correlation (:func:`hapsim.analysis.identify_nd.worst_case_nd`; the
+    rest record's errors enter every difference), is the wire's term. A rounding of a
+    smooth signal a few counts wide is not white noise, so no statistical interval is
+    taken for it.
 
     Parameters
     ----------
@@ -350,44 +339,88 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     samples : int, optional
         Writes per record (default :func:`hapsim.lockstep_nd.default_samples`).
     progress : callable, optional
+    plant : hapsim.scene_nd.SceneND, optional
+        The scene whose device the emulated board carries (default ``scene``): a device
+        that is not the one the scene states (a test of the verdict).
+    plan : tuple, optional
+        :func:`hapsim.lockstep_nd.identification_plan` of ``scene`` and ``samples``,
+        already computed (several measurements of one scene).
 
     Returns
     -------
     dict
         ``measured``, ``predicted``, ``deviation`` (as
-        :func:`hapsim.lockstep_nd.measure_felt_lockstep`), ``quantum`` (the reading's
-        resolution at the handle over ``a`` [-]: the larger of one encoder count and
-        the binary32 angle's half-ulp, times ``|J|``), ``quantum_encoders`` (one count of
-        each generation's encoders at the handle over ``a``), ``records``, ``samples``.
+        :func:`hapsim.lockstep_nd.measure_felt_lockstep`); ``bound`` (the linearisation
+        bound at ``a``); ``wire`` (``felt_stiffness``, ``felt_damping``: the wire's
+        relative terms, inf when the records give no sensitivity; ``reading_bound_rad``
+        per joint; ``torque_rel``); ``verdict``, ``within``, ``uncertainty``, ``reason``
+        (:func:`hapsim.lockstep_nd.felt_verdict`; "not measurable" also when the board's
+        torque clamp engaged, ``clamped`` samples); ``quantum`` (one step of a reading
+        at the handle over ``a`` [-]: one count or one binary32 ulp, the larger, times
+        ``|J|``), ``quantum_encoders`` (one count of each generation's encoders at the
+        handle over ``a``), ``records``, ``samples``.
 
     Raises
     ------
     DeviceError
         A record with a missing reply (the clean stream lost one).
     """
-    from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.lockstep_nd import felt_deviation, identification_plan
-    chk, order, N = identification_plan(scene, samples)
+    from hapsim.analysis.identify_nd import felt_sensitivity_nd, fit_felt_nd, worst_case_nd
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.drivers.haply import MAX_TORQUE
+    from hapsim.kinematics import device
+    from hapsim.lockstep_nd import (error_responses, felt_deviation, felt_verdict,
+                                    identification_plan)
+    chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
-    board = Haply2DIYBoard(scene, generation, cpr=cpr, amplitude=amplitude)
+    board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,
+                           amplitude=amplitude)
     drv = Haply2DIY(generation, resolution=resolution or board.cpr)
-    recs = []
+    runs = []
     for j in range(2 * n + 1):
         r = drive_haply2(board.feed, drv, scene, N)
         if r["missing"]:
             raise DeviceError(f"record {j}: {r['missing']} replies missing on a clean stream")
-        recs.append(r["position"])
+        runs.append(r)
         if progress is not None:
             progress(j + 1, 2 * n + 1)
-    rest = recs[0]
-    fit = fit_felt_nd([r - rest for r in recs[1:]], scene.device.mass, scene.period, order)
+    rest = runs[0]["position"]
+    diffs = [r["position"] - rest for r in runs[1:]]
+    mass, T = scene.device.mass, scene.period
+    fit = fit_felt_nd(diffs, mass, T, order)
+    dev = felt_deviation(fit, chk)
+    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
     q = np.asarray(scene.device.joints, float)
-    from hapsim.kinematics import device
     J = device("pantograph", scene.device.geometry).jacobian(q)
-    ulp = max(np.spacing(np.float32(abs(math.degrees(v)))) for v in q) / 2
-    step = max(2 * math.pi / board.cpr, math.radians(float(ulp)))
+    # the wire's term (docstring)
+    ang = np.max([np.nanmax(np.abs(r["joints"]), axis=0) for r in runs], axis=0)
+    ulp = np.radians(np.spacing(np.float32(np.degrees(ang))).astype(float))
+    delta = math.pi / float(drv.resolution) + ulp                 # [rad] per joint
+    torque_rel = 2.0 ** -24
+    wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
+            "reading_bound_rad": delta.tolist(), "torque_rel": torque_rel}
+    sens = felt_sensitivity_nd(diffs, mass, T, order)
+    kp, bp = chk.render.felt_stiffness, chk.render.felt_damping
+    if sens is not None and kp is not None:
+        sens = sens + [-sum(sens)]                 # the rest record's errors, in each
+        order_runs = runs[1:] + runs[:1]
+        Hr, Hf = error_responses(scene, N)
+        wc = worst_case_nd(sens, Hr @ J, [delta] * len(sens))
+        wc = wc + worst_case_nd(sens, Hf @ np.linalg.inv(J).T,
+                                [torque_rel * np.abs(r["torque"]) for r in order_runs])
+        wire["felt_stiffness"] = float(np.max(wc[0]) / np.max(np.abs(kp)))
+        wire["felt_damping"] = float(np.max(wc[1]) / np.max(np.abs(bp)))
+    clamped = int(sum(np.count_nonzero(np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
+                      for r in runs))
+    v = felt_verdict(dev, bound, wire)
+    if clamped:
+        v = {"verdict": "not measurable", "within": None, "uncertainty": None,
+             "reason": f"the board's torque clamp ({MAX_TORQUE} N m) engaged in {clamped} "
+                       "writes: the loop was not the linear one predicted"}
     Jn = float(np.linalg.norm(J, 2))
-    return {"measured": fit, "predicted": chk, "deviation": felt_deviation(fit, chk),
+    step = max(2 * math.pi / float(drv.resolution), float(np.max(ulp)))
+    return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
+            "wire": wire, **v, "clamped": clamped,
             "quantum": Jn * step / amplitude,
             "quantum_encoders": {g: Jn * 2 * math.pi / GENERATIONS[g].resolution / amplitude
                                  for g in GENERATIONS},

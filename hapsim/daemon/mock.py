@@ -188,28 +188,33 @@ class MockDevice:
         if self.delay == 0 and not self.lockstep:
             raise ConfigError("delay d = 0 (force applied at once) exists in lockstep only; "
                               "a real-time device needs d >= 1", key="device.delay")
+        self._hand_cache: dict = {}
+        self._init_protocol(float(device.force_limit))
+
+    def _init_protocol(self, force_limit: float) -> None:
+        """The protocol side's state before the first CONFIG (``delay``, ``lockstep``,
+        ``native_rate_hz`` and ``_zero`` set): delay line, counters, disarmed."""
         self._ring = max(16, 2 * self.delay + 2)
-        self._rf = [0.0] * self._ring
+        self._rf = [self._zero] * self._ring
         self._rs = [-1] * self._ring
         self.armed = False
         self.configured = False
-        self.physics: MockPhysics | None = None
+        self.physics = None
         self.stats = MockStats()
         self.history: list = []      # the MockStats of each earlier CONFIG (lifetime totals)
-        self._hand_cache: dict = {}
         self.trace: list | None = None  # tests: (time_us, applied force [N]) per tick when a list
         #: tests: when a ``collections.deque(maxlen=N)`` (bounded), one
         #: ``(time_us, tick, force_seq, applied force [N], configs)`` per tick, ``configs``
         #: counting the CONFIGs accepted before (the session the tick belongs to)
         self.applied_log = None
         self.rate_hz = self.native_rate_hz
-        self.force_limit = float(device.force_limit)
+        self.force_limit = force_limit
         self.watchdog_us = 0
-        self._applied = 0.0
+        self._applied = self._zero
         self._applied_seq = 0
         self._status_extra = 0
         self._last_force_us = 0
-        self._u = 0.0
+        self._u = self._zero
         #: sensor messages enabled by the host's SENSORS_REQUEST (PROTOCOL.md §4): kept
         #: across CONFIG and STOP, cleared by a reset
         self.sensors = 0
@@ -291,18 +296,47 @@ class MockDevice:
         vo = self.velocity_out
         return [state] if vo is None else [vo, state]
 
+    # ------------------------------------------------------------------ the force's axes
+    #: The force held when none is due [N]; an n-axis mock (:mod:`hapsim.daemon.mock_nd`)
+    #: holds a tuple of n forces and overrides these four.
+    _zero = 0.0
+
+    def _force_value(self, msg: fp.Force):
+        """The FORCE's force as this device holds it [N], or None when it carries another
+        number of axes than the device has (counted ``unexpected``)."""
+        return msg.force[0]
+
+    @staticmethod
+    def _is_finite(f) -> bool:
+        """Every axis of the force finite."""
+        return math.isfinite(f)
+
+    @staticmethod
+    def _clamp(f, lim: float):
+        """``(f clamped to [-lim, lim] on each axis, whether it was)`` [N]."""
+        if f > lim or f < -lim:
+            return (lim if f > 0 else -lim), True
+        return f, False
+
+    @staticmethod
+    def _first(f) -> float:
+        """The first axis of the force [N] (``stats.last_applied``)."""
+        return f
+
+    def _position(self, ph) -> tuple:
+        """The STATE's positions: the physics' sample on each axis [m]."""
+        return (ph.sample(),)
+
     def stop(self) -> None:
         """Zero the force at once and disarm (STOP, or the mock shutting down)."""
-        self._applied = 0.0
-        self._u = 0.0
+        self._applied = self._zero
+        self._u = self._zero
         self.armed = False
         self.stats.last_applied = 0.0
         self._rs = [-1] * self._ring
 
     def _on_config(self, msg: fp.Config, now_us: int) -> list:
-        ok = (math.isfinite(msg.rate_hz) and msg.rate_hz > 0 and msg.watchdog_us > 0
-              and math.isfinite(msg.force_limit) and msg.force_limit >= 0)
-        if not ok:
+        if not self._config_ok(msg):
             self.stats.faults.append("BAD_CONFIG")
             return [fp.Fault(fp.FAULT_BAD_CONFIG, 0)]
         self.rate_hz = float(msg.rate_hz)
@@ -314,13 +348,24 @@ class MockDevice:
                 self.excitation, 1.0 / self.rate_hz, self.base_dir)
         self.physics = MockPhysics(self.device, self.rate_hz, self.excitation,
                                    seed=self.seed, base_dir=self.base_dir, hand=hand)
+        return self._armed(now_us)
+
+    @staticmethod
+    def _config_ok(msg: fp.Config) -> bool:
+        """A CONFIG's rate, watchdog and force limit valid (else FAULT BAD_CONFIG)."""
+        return (math.isfinite(msg.rate_hz) and msg.rate_hz > 0 and msg.watchdog_us > 0
+                and math.isfinite(msg.force_limit) and msg.force_limit >= 0)
+
+    def _armed(self, now_us: int) -> list:
+        """After a CONFIG built the physics: a fresh session (counters, delay line, zero
+        force), armed; in lockstep the first STATE."""
         self.history.append(self.stats)
         self.stats = MockStats(last_host_message="Config")
         self._rs = [-1] * self._ring
-        self._applied = 0.0
+        self._applied = self._zero
         self._applied_seq = 0
         self._status_extra = 0          # force_seq restarts: FORCE_APPLIED clear until one is
-        self._u = 0.0
+        self._u = self._zero
         self._last_force_us = now_us
         self.armed = self.configured = True
         if self.lockstep:
@@ -332,8 +377,11 @@ class MockDevice:
         if not self.armed or self.physics is None:
             st.unexpected += 1
             return []
-        f = msg.force[0]
-        if not math.isfinite(f):
+        f = self._force_value(msg)
+        if f is None:
+            st.unexpected += 1
+            return []
+        if not self._is_finite(f):
             self.stop()
             st.faults.append("NON_FINITE_FORCE")
             return [fp.Fault(fp.FAULT_NON_FINITE_FORCE, msg.seq)]
@@ -377,7 +425,7 @@ class MockDevice:
         applied = self._status_extra & fp.STATUS_FORCE_APPLIED
         self._status_extra = 0
         if due < 0:
-            f, seq, applied = 0.0, 0, 0
+            f, seq, applied = self._zero, 0, 0
         else:
             i = due % self._ring
             if self._rs[i] == due:
@@ -389,18 +437,17 @@ class MockDevice:
         self._status_extra |= applied
         if (not self.lockstep and self.watchdog_us > 0
                 and now_us - self._last_force_us > self.watchdog_us):
-            f = 0.0
+            f = self._zero
             self.stats.watchdog_trips += 1
             self._status_extra |= fp.STATUS_WATCHDOG_TRIPPED
-        lim = self.force_limit
-        if f > lim or f < -lim:
-            f = lim if f > 0 else -lim
+        f, clamped = self._clamp(f, self.force_limit)
+        if clamped:
             self.stats.clamped += 1
             self._status_extra |= fp.STATUS_FORCE_CLAMPED
         self._applied = f
         self._applied_seq = seq
         self._u = f
-        self.stats.last_applied = f
+        self.stats.last_applied = self._first(f)
         if self.trace is not None:
             self.trace.append((now_us, f))
         if self.applied_log is not None:
@@ -419,7 +466,7 @@ class MockDevice:
         self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.sample_velocity(),))
                              if self.sensors & fp.SENSOR_VELOCITY else None)
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
-                        (ph.sample(),))
+                        self._position(ph))
 
     def totals(self) -> dict:
         """Counters summed over every CONFIG since start (``stats`` holds the current one).

@@ -13,7 +13,8 @@ the configuration-dependent inertia, joint friction, the torques ``J^T F`` held 
 period, the kinematics to second order about the operating point, compiled: tens of
 microseconds a tick, ``tools/bench_joint_nd.py``),
 a cartesian device the exact zero-order hold of its Cartesian mass and friction.
-Device duties as the 1-D mock (:class:`hapsim.daemon.mock.MockDevice`, whose serving loop
+Device duties are the 1-D mock's own code (:class:`hapsim.daemon.mock.MockDevice`, whose
+force hooks this device gives n axes, and whose serving loop
 :func:`hapsim.daemon.mock.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it
 arrived in time, else the last force held (``late``, STATUS_OVERRUN, ``force_seq`` naming the
 force held), the watchdog zeroing it, STOP, PING.
@@ -33,7 +34,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
-from hapsim.daemon.mock import MOCK_DEVICE_ID, MockDevice, MockStats
+from hapsim.daemon.mock import MOCK_DEVICE_ID, MockDevice
 from hapsim.errors import ConfigError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
 
@@ -136,26 +137,8 @@ class MockDeviceND(MockDevice):
             raise ConfigError("delay d = 0 (force applied at once) exists in lockstep only; "
                               "a real-time device needs d >= 1", file=scene.path,
                               key="device.delay")
-        self._ring = max(16, 2 * self.delay + 2)
         self._zero = (0.0,) * self.dim
-        self._rf = [self._zero] * self._ring
-        self._rs = [-1] * self._ring
-        self.armed = self.configured = False
-        self.physics = None
-        self.stats = MockStats()
-        self.history = []
-        self.trace = None
-        self.applied_log = None
-        self.rate_hz = self.native_rate_hz
-        self.force_limit = math.inf
-        self.watchdog_us = 0
-        self._applied = self._zero
-        self._applied_seq = 0
-        self._status_extra = 0
-        self._last_force_us = 0
-        self._u = self._zero
-        self.sensors = 0
-        self.velocity_out = None
+        self._init_protocol(math.inf)
         #: CONFIGs accepted since the last HELLO (which start the hand takes)
         self.configs_since_hello = 0
 
@@ -171,21 +154,32 @@ class MockDeviceND(MockDevice):
         """No extra sensors (0)."""
         return 0
 
-    def stop(self) -> None:
-        """Zero the force at once and disarm."""
-        self._applied = self._u = self._zero
-        self.armed = False
-        self.stats.last_applied = 0.0
-        self._rs = [-1] * self._ring
+    # the force's axes: a tuple of n forces [N] (MockDevice's hooks)
+    def _force_value(self, msg: fp.Force):
+        f = tuple(msg.force)
+        return f if len(f) == self.dim else None
+
+    @staticmethod
+    def _is_finite(f) -> bool:
+        return all(math.isfinite(v) for v in f)
+
+    @staticmethod
+    def _clamp(f, lim: float):
+        if any(v > lim or v < -lim for v in f):
+            return tuple(max(-lim, min(lim, v)) for v in f), True
+        return f, False
+
+    @staticmethod
+    def _first(f) -> float:
+        return float(f[0])
+
+    def _position(self, ph) -> tuple:
+        return ph.sample()
 
     def _on_config(self, msg: fp.Config, now_us: int) -> list:
-        ok = (math.isfinite(msg.rate_hz) and msg.rate_hz > 0 and msg.watchdog_us > 0
-              and math.isfinite(msg.force_limit) and msg.force_limit >= 0)
-        if not ok:
-            self.stats.faults.append("BAD_CONFIG")
-            return [fp.Fault(fp.FAULT_BAD_CONFIG, 0)]
-        if abs(msg.rate_hz - self.scene.rate_hz) > 1e-9 * self.scene.rate_hz:
-            # the joint-space physics is built at the scene's period
+        if not self._config_ok(msg) or \
+                abs(msg.rate_hz - self.scene.rate_hz) > 1e-9 * self.scene.rate_hz:
+            # (the joint-space physics is built at the scene's period)
             self.stats.faults.append("BAD_CONFIG")
             return [fp.Fault(fp.FAULT_BAD_CONFIG, 0)]
         self.rate_hz = float(msg.rate_hz)
@@ -195,96 +189,4 @@ class MockDeviceND(MockDevice):
         x0, v0 = starts[self.configs_since_hello % len(starts)]
         self.configs_since_hello += 1
         self.physics = PhysicsND(self.scene, x0, v0, joint_space=self.joint_space)
-        self.history.append(self.stats)
-        self.stats = MockStats(last_host_message="Config")
-        self._rs = [-1] * self._ring
-        self._applied = self._u = self._zero
-        self._applied_seq = 0
-        self._status_extra = 0
-        self._last_force_us = now_us
-        self.armed = self.configured = True
-        if self.lockstep:
-            return self.frames(self._emit(now_us))
-        return []
-
-    def _on_force(self, msg: fp.Force, now_us: int) -> list:
-        st = self.stats
-        if not self.armed or self.physics is None:
-            st.unexpected += 1
-            return []
-        f = tuple(msg.force)
-        if len(f) != self.dim:
-            st.unexpected += 1
-            return []
-        if not all(math.isfinite(v) for v in f):
-            self.stop()
-            st.faults.append("NON_FINITE_FORCE")
-            return [fp.Fault(fp.FAULT_NON_FINITE_FORCE, msg.seq)]
-        if not self.lockstep:
-            lo = self.physics.n - self.delay
-            ahead = (msg.seq - lo) & 0xFFFFFFFF
-            if ahead > self.delay:
-                st.stale += 1
-                return []
-            seq = lo + ahead
-            st.forces_rx += 1
-            self._last_force_us = now_us
-            i = seq % self._ring
-            self._rf[i] = f
-            self._rs[i] = seq
-            return []
-        st.forces_rx += 1
-        self._last_force_us = now_us
-        i = msg.seq % self._ring
-        self._rf[i] = f
-        self._rs[i] = msg.seq
-        n = self.physics.n
-        if msg.seq != n:
-            st.unexpected += 1
-            return []
-        if self.delay == 0:
-            self._apply_due(n, now_us)
-        self.physics.advance(self._u)
-        return self.frames(self._emit(now_us))
-
-    def _apply_due(self, n: int, now_us: int) -> None:
-        """Choose the force held over ``[nT, (n+1)T)``: FORCE ``n - d`` or the last one."""
-        due = n - self.delay
-        applied = self._status_extra & fp.STATUS_FORCE_APPLIED
-        self._status_extra = 0
-        if due < 0:
-            f, seq, applied = self._zero, 0, 0
-        else:
-            i = due % self._ring
-            if self._rs[i] == due:
-                f, seq, applied = self._rf[i], due, fp.STATUS_FORCE_APPLIED
-            else:
-                self.stats.late += 1
-                self._status_extra |= fp.STATUS_OVERRUN
-                f, seq = self._applied, self._applied_seq
-        self._status_extra |= applied
-        if (not self.lockstep and self.watchdog_us > 0
-                and now_us - self._last_force_us > self.watchdog_us):
-            f = self._zero
-            self.stats.watchdog_trips += 1
-            self._status_extra |= fp.STATUS_WATCHDOG_TRIPPED
-        lim = self.force_limit
-        if any(v > lim or v < -lim for v in f):
-            f = tuple(max(-lim, min(lim, v)) for v in f)
-            self.stats.clamped += 1
-            self._status_extra |= fp.STATUS_FORCE_CLAMPED
-        self._applied = f
-        self._applied_seq = seq
-        self._u = f
-        self.stats.last_applied = float(f[0])
-
-    def _emit(self, now_us: int) -> fp.State:
-        ph = self.physics
-        n = ph.n
-        if self.delay > 0:
-            self._apply_due(n, now_us)
-        self.stats.ticks += 1
-        time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
-        status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
-        return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
-                        ph.sample())
+        return self._armed(now_us)

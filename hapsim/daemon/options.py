@@ -23,7 +23,8 @@ from hapsim.errors import ConfigError
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.daemon.loop import StopFlag
 
-__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields",
+           "check_port_number"]
 
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
@@ -92,11 +93,32 @@ def _seconds(value, flag: str) -> None:
         raise ConfigError(f"must be a number of seconds >= 0, got {value}", key=flag)
 
 
-def _ip_port(value, flag: str) -> None:
-    """Refuse a UDP/TCP port number outside 0-65535 (0: any free port)."""
+def check_port_number(value: int, flag: str) -> None:
+    """Refuse a UDP/TCP port number outside 0-65535 (0: any free port).
+
+    Parameters
+    ----------
+    value : int
+        The port number.
+    flag : str
+        The option it came from (the error's key).
+
+    Raises
+    ------
+    ConfigError
+        Outside 0-65535 (a socket's bind would raise OverflowError).
+    """
     if not 0 <= value <= 65535:
         raise ConfigError(f"must be a port number from 0 to 65535 (0: any free port), "
                           f"got {value}", key=flag)
+
+
+def _rt_priority(value, flag: str) -> None:
+    """Refuse a scheduling priority outside 0 (normal) and SCHED_FIFO's 1..99 (as
+    :class:`hapsim.daemon.realtime.RealtimePriority` does, here before anything runs)."""
+    if not 0 <= value <= 99:
+        raise ConfigError(f"must be 0 (off) or a SCHED_FIFO priority 1..99, got {value}",
+                          key=flag)
 
 
 def _baud(value, flag: str) -> None:
@@ -265,7 +287,7 @@ class RunOptions:
         10, "--rt-priority", "SCHED_FIFO priority of the loop and the embedded mock where the "
         "OS permits it (default 10; 0: normal scheduling; not with --lockstep, which is paced "
         "by the answers, not the clock). Under load it keeps late ticks rare; the report says "
-        "what was obtained", metavar="N", type=int)
+        "what was obtained", metavar="N", type=int, check=_rt_priority)
     seed: int = option(0, "--seed", "mock sensor-noise seed (default 0)", type=int)
     faults: str | None = option(
         None, "--faults", "inject seeded faults in the embedded mock, e.g. "
@@ -292,7 +314,7 @@ class RunOptions:
     osc: int | None = option(
         None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
         "addresses: hapsim play --help); each is checked, ramped, journaled",
-        metavar="PORT", type=int, check=_ip_port)
+        metavar="PORT", type=int, check=check_port_number)
     osc_ramp: float = option(
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
         type=float, check=_seconds)

@@ -39,7 +39,7 @@ from collections import deque
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
-from hapsim.spawn import child_env
+from hapsim.spawn import PtyChild, child_env
 
 __all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock", "SimTransport"]
 
@@ -290,7 +290,7 @@ class SerialTransport:
         return self._dec.format_last_frames()
 
 
-class EmbeddedMock:
+class EmbeddedMock(PtyChild):
     """A mock device in a child process on the master side of a new pseudo-terminal.
 
     Parameters
@@ -327,7 +327,9 @@ class EmbeddedMock:
         ``vanish`` fault, a symbolic link in a temporary directory that the child points
         at each new pty (like a udev ``/dev/serial/by-id`` link).
     report_path : str
-        JSON file where the child writes its :class:`~hapsim.daemon.mock.MockStats` on exit.
+        JSON file where the child writes its report on exit (:meth:`PtyChild.report`):
+        the :class:`~hapsim.daemon.mock.MockStats` fields, ``end``, ``decoder``,
+        ``totals``, and with faults ``faults_injected``, ``fault_events``.
 
     Notes
     -----
@@ -382,56 +384,9 @@ class EmbeddedMock:
         finally:
             os.close(master)
 
-    def report(self, timeout: float = 3.0) -> dict | None:
-        """Wait for the child to exit and return what it saw.
-
-        Parameters
-        ----------
-        timeout : float
-            Longest wait for the child to exit by itself [s] (it does when the host closes
-            the port); then it is terminated (SIGTERM, SIGKILL after 2 s).
-
-        Returns
-        -------
-        dict or None
-            The child's JSON report (:class:`~hapsim.daemon.mock.MockStats` fields, ``end``,
-            ``decoder``, ``totals``, and with faults ``faults_injected``,
-            ``fault_events``); None when it wrote none (killed, or crashed).
-        """
-        try:
-            self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self._terminate()
-        try:
-            with open(self.report_path) as fh:
-                return json.load(fh)
-        except (OSError, ValueError):
-            return None
-
-    def _terminate(self) -> None:
-        """SIGTERM the child (the mock zeroes force and exits), SIGKILL after 2 s."""
-        self.proc.terminate()
-        try:
-            self.proc.wait(2.0)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-
-    def release_slave(self) -> None:
-        """Close this object's slave fd (once the host has opened the port)."""
-        if self._slave is not None:
-            os.close(self._slave)
-            self._slave = None
-
     def close(self) -> None:
-        """Close the slave, stop the child if still running, remove the report file."""
-        self.release_slave()
-        if self.proc.poll() is None:
-            self._terminate()
-        try:
-            os.unlink(self.report_path)
-        except OSError:
-            pass
+        """:meth:`PtyChild.close`, and the ``vanish`` fault's link directory removed."""
+        super().close()
         if self._linkdir:
             import shutil
             shutil.rmtree(self._linkdir, ignore_errors=True)

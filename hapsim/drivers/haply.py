@@ -111,7 +111,8 @@ def reply_packet(device_id: int, angle_deg: float) -> bytes:
 
 
 class ReplyDecoder(AlignedDecoder):
-    """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream.
+    """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream (or, with
+    ``angles`` encoders of one id, ``1 + 4 angles``-byte replies, each angle checked).
 
     A reply is taken where the id matches and the angle is finite, within
     ``max_angle_deg``, within ``max_step_deg`` of where the last two replies say the joint
@@ -133,6 +134,9 @@ class ReplyDecoder(AlignedDecoder):
         Largest distance of a reply from the linear prediction of the last two taken
         [deg] (2 deg: an acceleration of 35000 rad/s^2 at 1 kHz, or a missed reply at
         30 rad/s); a reply farther off is misaligned or corrupted.
+    angles : int, optional
+        Encoders in a reply (1: the angle is returned as a float; more: a tuple, in port
+        order, and ``resolution`` may give one per encoder).
 
     Attributes
     ----------
@@ -143,38 +147,54 @@ class ReplyDecoder(AlignedDecoder):
     length = 5
 
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
-                 resolution: float | None = None, max_step_deg: float = 2.0) -> None:
+                 resolution=None, max_step_deg: float = 2.0, angles: int = 1) -> None:
         super().__init__()
+        self.angles = int(angles)
+        self.length = 1 + 4 * self.angles
+        self._fmt = struct.Struct("<" + "f" * self.angles)
         self.max_step = float(max_step_deg)
         self._prev = self._prev2 = None
         self.id = device_id & 0xFF
         self.max = float(max_angle_deg)
-        self.res = None if resolution is None else float(resolution)
+        if resolution is None:
+            self.res = None
+        elif isinstance(resolution, (int, float)):
+            self.res = (float(resolution),) * self.angles
+        else:
+            self.res = tuple(float(r) for r in resolution)
         self.stats["desync"] = 0
         self._bad = 0
 
+    def reset_prediction(self) -> None:
+        """Forget the last replies (after a re-synchronisation the angles start afresh)."""
+        self._prev = self._prev2 = None
+
     def parse(self, buf):
-        """The angle [deg] of a reply at the start of ``buf``, or None."""
+        """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
+        reply at the start of ``buf``, or None."""
         if buf[0] != self.id:
             return None
-        a = _F.unpack_from(buf, 1)[0]
-        if not (math.isfinite(a) and abs(a) <= self.max):
-            return None
-        if self.res is not None:
-            # the firmware's 360 * count / resolution, rounded once to binary32: a count
-            # of 0 is exactly 0.0 (a tiny garbage float is no reply)
-            n = round(a * self.res / 360.0)
-            want = 360.0 * n / self.res
-            if abs(a - want) > 1e-6 * abs(want):
+        a = self._fmt.unpack_from(buf, 1)
+        for k, v in enumerate(a):
+            if not (math.isfinite(v) and abs(v) <= self.max):
                 return None
+            if self.res is not None:
+                # the firmware's 360 * count / resolution, rounded once to binary32: a
+                # count of 0 is exactly 0.0 (a tiny garbage float is no reply)
+                n = round(v * self.res[k] / 360.0)
+                want = 360.0 * n / self.res[k]
+                if abs(v - want) > 1e-6 * abs(want):
+                    return None
         if self._prev is not None:
             # a flipped exponent bit is still a whole count (x 2^k, half the time): no
             # joint moves that far from where its last two replies say it is going
-            guess = self._prev if self._prev2 is None else 2.0 * self._prev - self._prev2
-            if abs(a - guess) > self.max_step:
-                return None
+            for k in range(self.angles):
+                guess = (self._prev[k] if self._prev2 is None
+                         else 2.0 * self._prev[k] - self._prev2[k])
+                if abs(a[k] - guess) > self.max_step:
+                    return None
         self._prev2, self._prev = self._prev, a
-        return a
+        return a[0] if self.angles == 1 else a
 
     def feed(self, data: bytes) -> list:
         """Bytes in, the angles of the replies taken out (``skipped``, ``desync``
@@ -183,11 +203,12 @@ class ReplyDecoder(AlignedDecoder):
         buf += data
         out = []
         st = self.stats
-        while len(buf) >= 5:
+        n = self.length
+        while len(buf) >= n:
             v = self.parse(buf)
             if v is not None:
                 out.append(v)
-                del buf[:5]
+                del buf[:n]
                 st["frames"] += 1
                 self._bad = 0
                 continue
@@ -196,7 +217,7 @@ class ReplyDecoder(AlignedDecoder):
             self._bad += 1
             if self._bad % 100 == DESYNC_BYTES:      # once, then again if it lasts
                 st["desync"] += 1
-                self._prev = self._prev2 = None     # the re-synchronised board's angles
+                self.reset_prediction()             # the re-synchronised board's angles
         return out
 
 
@@ -224,8 +245,10 @@ class CommandDecoder:
         Address of each motor / encoder port (0: none).
     encoder_offset, encoder_res : list of float, length 4
         Each encoder's set-up (offset [deg], counts per revolution).
-    direction : list of int, length 4
-        Rotational direction byte per port (motors and encoders alike here).
+    motor_direction, encoder_direction : list of int, length 4
+        Rotational direction byte of the k-th motor / encoder port set up (the firmware
+        keeps them apart, in ``actuators[k]`` and ``encoders[k]``: a 2DIY gen3 sets its
+        motors CW and its encoders CCW).
     analog_addr : list of int, length 12
     pwm_addr : list of int, length 14
     """
@@ -236,7 +259,8 @@ class CommandDecoder:
         self._clear()
         self.encoder_offset = [0.0] * 4
         self.encoder_res = [0.0] * 4
-        self.direction = [0] * 4
+        self.motor_direction = [0] * 4
+        self.encoder_direction = [0] * 4
 
     def _clear(self) -> None:
         self.motor_addr = [0] * 4
@@ -274,12 +298,12 @@ class CommandDecoder:
         mmask = b[2] & 0x0F
         nm = bin(mmask).count("1")
         for k in range(nm):
-            self.direction[k] = b[3 + k]
+            self.motor_direction[k] = b[3 + k]
         i = 3 + nm
         emask = b[i] & 0x0F
         ne = bin(emask).count("1")
         for k in range(ne):
-            self.direction[k] = b[i + 1 + k]
+            self.encoder_direction[k] = b[i + 1 + k]
         i += 1 + ne
         for k in range(b[i]):
             pin = b[i + 1 + k]

@@ -46,8 +46,8 @@ import math
 import struct
 from dataclasses import dataclass
 
-from hapsim.drivers.base import AlignedDecoder
-from hapsim.drivers.haply import CMD_SETUP, CMD_WRITE, DESYNC_BYTES, LONGEST_COMMAND, MAX_TORQUE
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_COMMAND, MAX_TORQUE,
+                                  ReplyDecoder)
 from hapsim.errors import ConfigError
 
 __all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
@@ -88,15 +88,13 @@ Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
     quantum of 1.7 or 3.7 mrad at the joint, tens of micrometres at the handle"""
 
 
-class Reply2Decoder(AlignedDecoder):
-    """Host side: 9-byte replies ``[id][float32 deg][float32 deg]`` out of a byte stream.
-
-    A reply is taken where the id matches and both angles are finite, within
-    ``max_angle_deg``, whole numbers of encoder counts of their port's resolution, and
-    within ``max_step_deg`` of the linear prediction of the last two replies taken (the
-    checks of :class:`hapsim.drivers.haply.ReplyDecoder`, per angle); otherwise one byte
-    is dropped and the next position tried. :data:`~hapsim.drivers.haply.DESYNC_BYTES`
-    bytes dropped in a row count one ``desync`` (again every 100 bytes).
+class Reply2Decoder(ReplyDecoder):
+    """Host side: 9-byte replies ``[id][float32 deg][float32 deg]`` out of a byte stream:
+    :class:`hapsim.drivers.haply.ReplyDecoder` with two encoders (each angle finite,
+    within ``max_angle_deg``, a whole number of counts of its port's resolution, within
+    ``max_step_deg`` of the linear prediction of the last two replies taken; otherwise one
+    byte is dropped; :data:`~hapsim.drivers.haply.DESYNC_BYTES` bytes dropped in a row
+    count one ``desync``, again every 100 bytes).
 
     Parameters
     ----------
@@ -112,67 +110,9 @@ class Reply2Decoder(AlignedDecoder):
         ``frames``, ``skipped``, ``desync``.
     """
 
-    length = 9
-
     def __init__(self, device_id: int, resolution=None, max_angle_deg: float = 3600.0,
                  max_step_deg: float = 2.0) -> None:
-        super().__init__()
-        self.id = device_id & 0xFF
-        self.res = None if resolution is None else tuple(float(r) for r in resolution)
-        self.max = float(max_angle_deg)
-        self.max_step = float(max_step_deg)
-        self._prev = self._prev2 = None
-        self.stats["desync"] = 0
-        self._bad = 0
-
-    def reset_prediction(self) -> None:
-        """Forget the last replies (after a re-synchronisation the angles start afresh)."""
-        self._prev = self._prev2 = None
-
-    def parse(self, buf):
-        """The angles ``(port 1, port 2)`` [deg] of a reply at the start of ``buf``, or
-        None."""
-        if buf[0] != self.id:
-            return None
-        a = _F2.unpack_from(buf, 1)
-        for k, v in enumerate(a):
-            if not (math.isfinite(v) and abs(v) <= self.max):
-                return None
-            if self.res is not None:
-                n = round(v * self.res[k] / 360.0)
-                want = 360.0 * n / self.res[k]
-                if abs(v - want) > 1e-6 * abs(want):
-                    return None
-        if self._prev is not None:
-            for k in range(2):
-                guess = (self._prev[k] if self._prev2 is None
-                         else 2.0 * self._prev[k] - self._prev2[k])
-                if abs(a[k] - guess) > self.max_step:
-                    return None
-        self._prev2, self._prev = self._prev, a
-        return a
-
-    def feed(self, data: bytes) -> list:
-        """Bytes in, the angle pairs (port order) of the replies taken out."""
-        buf = self._buf
-        buf += data
-        out = []
-        st = self.stats
-        while len(buf) >= 9:
-            v = self.parse(buf)
-            if v is not None:
-                out.append(v)
-                del buf[:9]
-                st["frames"] += 1
-                self._bad = 0
-                continue
-            del buf[:1]
-            st["skipped"] += 1
-            self._bad += 1
-            if self._bad % 100 == DESYNC_BYTES:
-                st["desync"] += 1
-                self.reset_prediction()
-        return out
+        super().__init__(device_id, max_angle_deg, resolution, max_step_deg, angles=2)
 
 
 class Haply2DIY:

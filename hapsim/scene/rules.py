@@ -192,6 +192,23 @@ def _first(line: int, where: tuple) -> str:
     return f"first on line {line}" if line else f"first is {_key_of(where)}"
 
 
+def _check_named(items: tuple, i: int, cls: type, section: str, noun: str,
+                 seen: dict[str, int]) -> None:
+    """``items[i]`` is a ``cls`` with a valid kind and a name not used before in its
+    section (``seen``: name -> index, updated)."""
+    item = items[i]
+    if not isinstance(item, cls):
+        raise Invalid(f"must be a hapsim.scene.{cls.__name__}, got {type_name(item)}",
+                      (section, i))
+    check_key(_key(f"{section}[].kind"), item.kind, section, i, "kind")
+    check_key(_key(f"{section}[].name"), item.name, section, i, "name")
+    if item.name in seen:
+        j = seen[item.name]
+        raise Invalid(f"duplicate {noun} name {show(item.name)} "
+                      f"({_first(items[j].line, (section, j))})", (section, i, "name"))
+    seen[item.name] = i
+
+
 def check_scene(s) -> None:
     """Every rule a scene obeys, whether it was read from YAML or built in code.
 
@@ -212,15 +229,7 @@ def check_scene(s) -> None:
     names: dict[str, int] = {}
     ports: list[int] = []
     for i, m in enumerate(s.masses):
-        if not isinstance(m, Mass):
-            raise Invalid(f"must be a hapsim.scene.Mass, got {type_name(m)}", ("masses", i))
-        check_key(_key("masses[].kind"), m.kind, "masses", i, "kind")
-        check_key(_key("masses[].name"), m.name, "masses", i, "name")
-        if m.name in names:
-            j = names[m.name]
-            raise Invalid(f"duplicate mass name {show(m.name)} "
-                           f"({_first(s.masses[j].line, ('masses', j))})", ("masses", i, "name"))
-        names[m.name] = i
+        _check_named(s.masses, i, Mass, "masses", "mass", names)
         if m.kind == "mass":
             check_key(_key("masses[].mass"), m.mass, "masses", i, "mass")
         elif m.mass != 0:
@@ -337,15 +346,7 @@ def _check_links(s, names: dict[str, int]) -> None:
         raise Invalid(f"must be a list of links, got {type_name(s.links)}", ("links",))
     seen: dict[str, int] = {}
     for i, lk in enumerate(s.links):
-        if not isinstance(lk, Link):
-            raise Invalid(f"must be a hapsim.scene.Link, got {type_name(lk)}", ("links", i))
-        check_key(_key("links[].kind"), lk.kind, "links", i, "kind")
-        check_key(_key("links[].name"), lk.name, "links", i, "name")
-        if lk.name in seen:
-            j = seen[lk.name]
-            raise Invalid(f"duplicate link name {show(lk.name)} "
-                           f"({_first(s.links[j].line, ('links', j))})", ("links", i, "name"))
-        seen[lk.name] = i
+        _check_named(s.links, i, Link, "links", "link", seen)
         for n in (lk.m1, lk.m2):
             if n not in names:
                 shown = ", ".join(bare_name(k) for k in list(names)[:20])
