@@ -129,6 +129,33 @@ class _Report:
         """Keys of the command's report without a field here (empty when in step)."""
         return getattr(self, "_extra", {})
 
+    def replace(self, **changes):
+        """A copy with some fields changed, keeping what the result carries beside its
+        fields (:attr:`extra`, ``exit_code``, the analysis behind it), which
+        :func:`dataclasses.replace` would drop.
+
+        Parameters
+        ----------
+        **changes
+            Field names and their new values.
+
+        Returns
+        -------
+        _Report
+            A new instance of the same class.
+
+        Raises
+        ------
+        TypeError
+            A name that is not a field.
+        """
+        new = dataclasses.replace(self, **changes)
+        names = {f.name for f in dataclasses.fields(self)}
+        for k, v in vars(self).items():
+            if k not in names:
+                object.__setattr__(new, k, v)
+        return new
+
     @classmethod
     def from_dict(cls, d: dict, **attrs):
         """A result from a command's ``--json`` object (the inverse of :meth:`to_dict`).

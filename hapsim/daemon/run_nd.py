@@ -223,7 +223,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`), ``predicted``
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation``
         (:func:`hapsim.lockstep_nd.felt_deviation`), ``order``, ``records``, ``samples``,
-        ``late`` (late rows over every record), ``watchdog`` (rows whose force the
+        ``late`` (late rows over every record), ``excursion`` (the largest distance
+        [m] of the handle from rest over every record, the amplitude the linearisation
+        bound must be taken at: late ticks can drive the handle past the nominal
+        excitation), ``watchdog`` (rows whose force the
         watchdog zeroed), ``delay`` (the delay the device showed, per record; -1 for a
         record in which no FORCE arrived in time: the device held zero throughout, and the
         whole force sent is the known disturbance), ``lost`` (records run again for a
@@ -296,8 +299,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                                 f"the scene's device.delay {scene.device.delay}")
         xw = disturbance_response_nd(scene, W, A=A)
         recs.append(rec.position - rest_pos - xw)
+    excursion = max(float(np.max(np.linalg.norm(rec.position - rest_pos, axis=1)))
+                    for rec in raw)
     rest = recs[0]
     fit = fit_felt_nd([r - rest for r in recs[1:]], scene.device.mass, scene.period, order)
     return {"measured": fit, "predicted": chk, "deviation": felt_deviation(fit, chk),
             "order": order, "records": 2 * n, "samples": N, "late": late,
-            "watchdog": wdog, "delay": delays, "lost": lost, "hello": hello}
+            "excursion": excursion, "watchdog": wdog, "delay": delays, "lost": lost, "hello": hello}

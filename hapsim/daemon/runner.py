@@ -696,7 +696,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             except ConfigError:
                 response = None
         replay = _contact_replay(scene, cols)
-        from hapsim.daemon.telemetry import FLAG_LOST
+        from hapsim.daemon.telemetry import FLAG_LOST, FLAG_RAMP
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
         wire = wire_errors(scene, cols, start, driver)
@@ -729,6 +729,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
+                            exclude=(cols["flags"] & FLAG_RAMP) != 0,
                             wire=wire, bounds=bounds or None)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
