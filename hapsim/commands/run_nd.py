@@ -25,13 +25,18 @@ _REFUSED = (("device", "--device"), ("auto", "--auto"))
 
 
 def _refuse_options(args) -> None:
-    """Refuse every option the n-D run does not take (module constants), by its flag."""
+    """Refuse every option the n-D run does not take (module constants), by its flag, and
+    check the ones it takes by their declarations (:func:`hapsim.daemon.options.option`)."""
     from hapsim.daemon.options import command_line_fields
     set_ = [opt for attr, opt in _REFUSED
             if getattr(args, attr, None) is not None and getattr(args, attr) is not False]
     for f in command_line_fields():
         meta = f.metadata["cli"]
-        if f.name in ND_TAKES or not hasattr(args, f.name):
+        if not hasattr(args, f.name):
+            continue
+        if f.name in ND_TAKES:
+            if meta["check"] is not None and getattr(args, f.name) is not None:
+                meta["check"](getattr(args, f.name), meta["flag"])
             continue
         v, d = getattr(args, f.name), meta["cli_default"]
         # (0 == False == 0.0: a value is the default only of the same type)
