@@ -149,10 +149,11 @@ def test_kinematic_coefficient_is_the_mass_change_over_the_step():
 
 
 def test_nd_run_refuses_what_it_does_not_take(capsys):
-    """With a rate or a bad amplitude: exit 2 naming the option; the 1-D run and mock
+    """With a bad rate or a bad amplitude: exit 2 naming the option; the 1-D run and mock
     refuse --amplitude (their excitation is the scene's); the n-D mock refuses faults."""
     scene = str(CONFIGS / "pantograph_wall.yaml")
-    for argv, key in ((["run", scene, "--lockstep", "--rate", "500"], "--rate"),
+    for argv, key in ((["run", scene, "--lockstep", "--rate", "-500"], "--rate"),
+                      (["mock", "--scene", scene, "--rate", "0"], "--rate"),
                       (["mock", "--scene", scene, "--faults", "drop=0.1"], "--faults"),
                       (["mock", "--scene", str(CONFIGS / "wall.yaml"), "--amplitude",
                         "1e-6"], "--amplitude"),

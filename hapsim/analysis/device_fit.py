@@ -880,8 +880,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         raise IdentificationError(
             f"the record does not determine the mass: {mass.value:.3g} kg, interval "
             f"[{mass.lo:.3g}, {mass.hi:.3g}] kg at {LEVEL:.1%} (more than a factor "
-            f"{MASS_SPAN:g}; {counts} encoder steps of motion) -- raise --force-limit or "
-            f"--duration")
+            f"{MASS_SPAN:g}{f'; {counts} encoder steps of motion' if counts >= 0 else ''})"
+            f" -- raise --force-limit or --duration")
     fric = interval(unit_vec((1, 1.0)), "N s/m")
     if mod.coulomb:
         cp = interval(unit_vec((2, 1.0)), "N")
