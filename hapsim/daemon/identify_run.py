@@ -408,6 +408,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         drv = get_driver(driver, **(driver_options or {}))
         drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
+    probe = None
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
@@ -416,6 +417,11 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
                                               options=(mock_options if mock_options is not None
                                                        else drv.mock_hardware()))
+            if getattr(drv, "probes_direction", False):
+                # a wrong motor direction makes the excitation run away: find it first
+                drv, probe = _probe_direction(drv, port or embedded.port, force_limit,
+                                              envelope, rate_hz, port is None)
+            if port is None:
                 # paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
@@ -500,4 +506,18 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
                      "driver": tr.report() if use_driver else None},
-            "protocol_options": drv.options() if use_driver else None}
+            "protocol_options": drv.options() if use_driver else None,
+            "direction_probe": None if probe is None else probe.to_dict()}
+
+
+def _probe_direction(drv, port: str, force_limit: float, envelope: float, rate_hz: float,
+                     mock: bool):
+    """The driver with the motor direction found by a torque pulse of each sign
+    (:func:`hapsim.drivers.haply_probe.probe_port`), and what was found."""
+    from hapsim.drivers import get_driver
+    from hapsim.drivers.haply_probe import probe_port
+    # a mock advances one period per write, however slowly it runs: wait for it, unpaced
+    found = probe_port(drv, port, force_limit=force_limit, envelope=envelope,
+                       rate_hz=rate_hz, timeout=0.5 if mock else 0.05, pace=not mock)
+    return get_driver(drv.name, **{**drv.options(),
+                                   "motor_direction": found.motor_direction}), found
