@@ -2,8 +2,6 @@
 a torque pulse of each sign against the emulated board (firmware V1.5's two independent
 direction bytes, and a wiring that may reverse the motor against the encoder)."""
 
-import math
-
 import pytest
 
 from hapsim.driver_mock import HaplyDevice
@@ -99,20 +97,40 @@ def test_motor_direction_is_a_protocol_option_run_sends():
         assert reply[-5] == dev_id
 
 
-@pytest.mark.parametrize("probe", [True, False])
-def test_identify_finds_a_reversed_motor_before_exciting(probe, monkeypatch):
-    """hapsim identify --driver haply on the board mock whose motor is wired reversed:
-    the probe finds motor_direction 1, the record holds it in protocol_options, and the
-    excitation runs its whole length; without the probe the same excitation is positive
-    feedback and ends on a safety stop (what the probe prevents)."""
+def test_without_the_probe_a_reversed_motor_runs_away(monkeypatch):
+    """The case the probe is for: the same identification on the reversed board with the
+    motor byte left as the encoder's is positive feedback and ends on a safety stop (the
+    next test runs it with the probe: its whole length)."""
     from hapsim.daemon.identify_run import record
-    monkeypatch.setattr(HaplyM3, "probes_direction", probe)
+    monkeypatch.setattr(HaplyM3, "probes_direction", False)
     r = record(Device(mass=1e-3, friction=1e-3, delay=1), driver="haply", force_limit=0.1,
                envelope=0.2, duration=0.5, max_delay=4, progress=False,
                handle_signals=False, mock_options={"cpr": 4880.0, "motor_sign": -1})
-    if probe:
-        assert r["direction_probe"]["relative"] == -1
-        assert r["protocol_options"]["motor_direction"] == 1
-        assert not r["loop"]["safety_stop"] and r["loop"]["samples"] == 500
-    else:
-        assert r["direction_probe"] is None and r["loop"]["safety_stop"]
+    assert r["loop"]["direction_probe"] is None and r["loop"]["safety_stop"]
+    assert r["loop"]["samples"] < 500
+
+
+def test_identify_writes_the_direction_found_to_the_device_file(tmp_path, capsys):
+    """``hapsim identify --driver haply --out FILE`` on a board whose motor is wired
+    reversed: the probe finds it, the excitation runs its whole length, the device file's protocol_options hold motor_direction 1 (the driver they
+    build describes the reversed board, and its set-up sends that byte: what ``run``
+    uses), the JSON shows the probe, and the text output says the id is the host's."""
+    import json
+
+    from hapsim.cli import main
+    from hapsim.device_file import load_device
+    out = tmp_path / "dev.yaml"
+    argv = ["identify", "--driver", "haply", "--mock-scene", "configs/haply.yaml",
+            "--force-limit", "0.1", "--envelope", "1", "--duration", "0.8", "--max-delay",
+            "4", "--mock-option", "motor_sign=-1", "--out", str(out)]
+    assert main(argv + ["--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    probe = rep["loop"]["direction_probe"]
+    assert probe["motor_direction"] == 1 and probe["relative"] == -1
+    assert not rep["loop"]["safety_stop"] and rep["loop"]["samples"] == 800
+    d = load_device(out)
+    assert d.protocol == "haply" and d.protocol_options["motor_direction"] == 1
+    drv = get_driver("haply", **d.protocol_options)
+    assert drv.mock_hardware()["motor_sign"] == -1
+    assert drv.arm()[-(8 + 8 + 6) + 3] == 1
+    assert "found before the excitation" in out.read_text()

@@ -365,7 +365,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     -------
     dict
         ``position``, ``force``, ``late``, ``time``, ``seq`` (arrays), ``period`` [s], ``loop``
-        (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``).
+        (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``,
+        ``direction_probe``: what a driver that finds its motor direction first found,
+        :class:`hapsim.drivers.haply_probe.DirectionProbe`, else None),
+        ``protocol_options`` (the driver's parameters, the direction found included).
         ``force`` is the force the device applied for each sample: what the host sent,
         on the actuator's grid when the device reports one (a driver's protocol
         resolution, or a framed device's ``HELLO.force_scale`` > 0 [N], the nearest
@@ -378,6 +381,9 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         Bad values (:func:`excitation_plan`), an unknown transport.
     DeviceError, ProtocolError
         As :meth:`hapsim.daemon.loop.HostLoop.run`.
+    IdentificationError
+        The Haply joint's motor direction cannot be found (it does not move under the
+        probe's torque pulses, or moves the same way under both signs).
     """
     from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
     from hapsim.daemon.mock import DEFAULT_DEVICE, MockDevice
@@ -505,9 +511,9 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
-                     "driver": tr.report() if use_driver else None},
-            "protocol_options": drv.options() if use_driver else None,
-            "direction_probe": None if probe is None else probe.to_dict()}
+                     "driver": tr.report() if use_driver else None,
+                     "direction_probe": None if probe is None else probe.to_dict()},
+            "protocol_options": drv.options() if use_driver else None}
 
 
 def _probe_direction(drv, port: str, force_limit: float, envelope: float, rate_hz: float,
