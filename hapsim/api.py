@@ -129,6 +129,33 @@ class _Report:
         """Keys of the command's report without a field here (empty when in step)."""
         return getattr(self, "_extra", {})
 
+    def replace(self, **changes):
+        """A copy with some fields changed, keeping what the result carries beside its
+        fields (:attr:`extra`, ``exit_code``, the analysis behind it), which
+        :func:`dataclasses.replace` would drop.
+
+        Parameters
+        ----------
+        **changes
+            Field names and their new values.
+
+        Returns
+        -------
+        _Report
+            A new instance of the same class.
+
+        Raises
+        ------
+        TypeError
+            A name that is not a field.
+        """
+        new = dataclasses.replace(self, **changes)
+        names = {f.name for f in dataclasses.fields(self)}
+        for k, v in vars(self).items():
+            if k not in names:
+                object.__setattr__(new, k, v)
+        return new
+
     @classmethod
     def from_dict(cls, d: dict, **attrs):
         """A result from a command's ``--json`` object (the inverse of :meth:`to_dict`).
@@ -887,39 +914,57 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     from hapsim.daemon.identify_run import record
     if isinstance(max_delay, bool) or max_delay < 0:
         raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="--max-delay")
-    rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
-                 force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
-                 noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
-                 handle_signals=handle_signals, driver=driver, driver_options=driver_options,
-                 mock_options=mock_options)
-    # one uniform record: the longest stretch without a missing STATE
-    seq = rec["seq"]
-    cut = np.flatnonzero(np.diff(seq) != 1) + 1
-    bounds = np.concatenate([[0], cut, [seq.size]])
-    i = int(np.argmax(np.diff(bounds)))
-    a, b = int(bounds[i]), int(bounds[i + 1])
-    rec["loop"]["fitted_rows"] = [a, b]
-    acc = rec.get("account")
-    acc = acc.rows(a, b) if acc is not None else None
-    if acc is not None:
-        rec["loop"]["account"] = acc.to_dict()
-    if b - a < 200 and seq.size >= 200:
-        raise IdentificationError(
-            f"too short a record: the longest stretch without a missing STATE is {b - a} "
-            f"samples (rows {a}..{b} of {seq.size}; {seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
-            f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
-            f"the baud rate, or run on a quieter machine)")
+    import signal
+    import threading
+
+    from hapsim.daemon.loop_types import StopFlag
+    stop, old = None, {}
+    if handle_signals and threading.current_thread() is threading.main_thread():
+        # the handlers stay until the fit is made, as hapsim run's stay until its report:
+        # a SIGINT/SIGTERM while the mock reports or the fit runs (seconds on a loaded
+        # machine) asks for a stop already under way; with the default handler back
+        # there it killed the process (-15), the record and the fit lost
+        stop = StopFlag()
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
     try:
-        fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                         late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
-    except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
-        if isinstance(exc, HapsimError):
-            raise
-        # the fit failed numerically: the record does not carry what the model needs
-        raise IdentificationError(f"the record cannot be identified: the fit failed "
-                                  f"({type(exc).__name__}: {exc}); "
-                                  f"{_record_summary(rec, a, b)}") from None
-    return fit, rec
+        rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
+                     force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
+                     noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
+                     handle_signals=False, stop=stop, driver=driver,
+                     driver_options=driver_options, mock_options=mock_options)
+        # one uniform record: the longest stretch without a missing STATE
+        seq = rec["seq"]
+        cut = np.flatnonzero(np.diff(seq) != 1) + 1
+        bounds = np.concatenate([[0], cut, [seq.size]])
+        i = int(np.argmax(np.diff(bounds)))
+        a, b = int(bounds[i]), int(bounds[i + 1])
+        rec["loop"]["fitted_rows"] = [a, b]
+        acc = rec.get("account")
+        acc = acc.rows(a, b) if acc is not None else None
+        if acc is not None:
+            rec["loop"]["account"] = acc.to_dict()
+        if b - a < 200 and seq.size >= 200:
+            raise IdentificationError(
+                f"too short a record: the longest stretch without a missing STATE is {b - a} "
+                f"samples (rows {a}..{b} of {seq.size}; "
+                f"{seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
+                f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
+                f"the baud rate, or run on a quieter machine)")
+        try:
+            fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
+                             late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
+        except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
+            if isinstance(exc, HapsimError):
+                raise
+            # the fit failed numerically: the record does not carry what the model needs
+            raise IdentificationError(f"the record cannot be identified: the fit failed "
+                                      f"({type(exc).__name__}: {exc}); "
+                                      f"{_record_summary(rec, a, b)}") from None
+        return fit, rec
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: float,

@@ -520,7 +520,8 @@ def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 MEASURABLE_WIRE = 0.25
 
 
-def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE) -> dict:
+def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
+                 estimated: int = 0) -> dict:
     """The verdict of an n-D measurement against its stated uncertainty.
 
     The stated uncertainty of each felt matrix is the linearisation bound at the
@@ -543,6 +544,9 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE)
         record is exact, float64 on the wire).
     limit : float, optional
         :data:`MEASURABLE_WIRE`.
+    estimated : int, optional
+        Estimated samples (missing replies) whose error bounds the wire's term carries
+        (named in the reason).
 
     Returns
     -------
@@ -567,6 +571,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE)
                   "linear estimate holds")
     if not (math.isfinite(wk) and math.isfinite(wd)) or max(wk, wd) > limit:
         need = bound.amplitude * max(wk, wd) / limit if math.isfinite(max(wk, wd)) else None
+        if estimated:
+            return no(f"the readings' errors (the wire's rounding and {estimated} estimated "
+                      f"samples, missing replies) alone may move the felt stiffness by "
+                      f"{wk:.2g} and the damping by {wd:.2g} (relative, first order), above "
+                      f"{limit:g}: fewer missing replies (or a larger excitation) are needed")
         return no(f"the readings' rounding alone may move the felt stiffness by {wk:.2g} "
                   f"and the damping by {wd:.2g} (relative, first order), above {limit:g}: "
                   f"the excitation {bound.amplitude:g} m is too small for the wire's "

@@ -299,3 +299,26 @@ def test_run_nd_is_the_commands_json(capsys):
     assert np.max(np.abs(rep.k - pk)) <= 1e-6 * np.max(np.abs(pk))
     with pytest.raises(hapsim.ConfigError):
         hapsim.run_nd(path, amplitude=-1.0)
+
+
+def test_replace_keeps_what_a_result_carries_beside_its_fields():
+    """``_Report.replace`` keeps ``exit_code``, the extra keys and the analysis objects that
+    ``dataclasses.replace`` drops (``hapsim run --auto`` replaced its report's advice and
+    lost ``exit_code``: AttributeError), for every result class of the API."""
+    import dataclasses
+    from hapsim import api
+
+    def subclasses(c):
+        for s in c.__subclasses__():
+            yield s
+            yield from subclasses(s)
+    classes = list(subclasses(api._Report))
+    assert api.RunReport in classes and len(classes) >= 8
+    for cls in classes:
+        obj = cls.from_dict({"not_a_field": 7}, exit_code=3)
+        first = dataclasses.fields(cls)[0].name
+        new = obj.replace(**{first: "changed"})
+        assert getattr(new, first) == "changed" and type(new) is cls
+        assert new.exit_code == 3 and new.extra == {"not_a_field": 7}, cls
+        with pytest.raises(TypeError):
+            obj.replace(no_such_field=1)

@@ -363,3 +363,22 @@ def test_polynomial_products_are_numpys_polymul_bit_for_bit():
             ref = np.polymul(ref, a)
         got = corrections._pm(*factors)
         assert got.dtype == ref.dtype and np.array_equal(got, ref), (factors, got, ref)
+
+
+def test_plain_loop_polynomials_are_numpys_polymul_bit_for_bit():
+    """char_parts of a plain loop multiplies by z and by z - 1 with np.convolve (no
+    np.poly1d): over random plain loops, both holds, delays 0-5, it equals np.polymul of
+    the plant's numerator, bit for bit."""
+    from hapsim.analysis import loop as lp_mod
+    rng = np.random.default_rng(5)
+    for hold in ("zoh", "ideal"):
+        for d in range(6):
+            for _ in range(20):
+                loop = LoopModel(mass=float(np.exp(rng.uniform(-4, 1))),
+                                 friction=float(rng.uniform(0, 5)), delay=d, hold=hold,
+                                 rate_hz=float(rng.choice([500, 1000, 4000, 20000])))
+                P, Q, _, _ = lp_mod.char_parts(loop)
+                Nn = lp_mod._plant_w(loop)[0] if hold == "zoh" else np.array([1.0])
+                ref_p, ref_q = np.polymul([1.0, 1.0], Nn), np.polymul([1.0, 0.0], Nn)
+                assert P.dtype == ref_p.dtype and np.array_equal(P, ref_p), (loop, P, ref_p)
+                assert np.array_equal(Q, ref_q), (loop, Q, ref_q)

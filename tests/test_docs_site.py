@@ -195,3 +195,16 @@ def test_design_citations_name_sections_that_exist():
                 cited.update(re.findall(r"'([^']+)'", m.group(1)))
     assert not stale, stale
     assert cited and cited <= heads, sorted(cited - heads)
+
+
+def test_readme_commands_table_is_the_cli():
+    """The README's commands table lists every subcommand ``hapsim --help`` offers, and
+    nothing else (``kinematics`` was missing from it)."""
+    from hapsim.cli import build_parser
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    text = (ROOT / "README.md").read_text()
+    sec = text[text.index("## Commands"):]
+    sec = sec[:sec.index("\n## ", 1)]
+    listed = set(re.findall(r"^\| `hapsim ([\w-]+)", sec, re.M))
+    assert listed == set(sub.choices), sorted(listed ^ set(sub.choices))

@@ -560,7 +560,10 @@ def test_firefader_bootloader_and_firmware_detection():
 
 def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     """A FireFader record taken in-process: the host believes 0.39 N full scale, the
-    fader has ``fs_true``; a random force with a weak centring spring (counts)."""
+    fader has ``fs_true``; a random force with a weak centring spring (counts). Returns
+    the positions, the force computed from each row (sent with the next command) and
+    the driver's account of the force applied (the firmware's enable replayed: the
+    fader reaches its ends, where the range gate cuts the force)."""
     from hapsim.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
@@ -576,7 +579,12 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
         x = (r[1] - 127) * drv.position_scale
         xs.append(x)
         fs.append(c * drv.force_scale)
-    return np.array(xs), np.array(fs)
+    x = np.array(xs)
+    force = np.append(np.array(fs)[1:], 0.0)        # row k's force goes with command k+1
+    drv.loop_delay = 1
+    acc = drv.account({"seq": np.arange(n), "time": np.arange(n) / 250.0, "position": x,
+                       "flags": np.zeros(n, np.int64)}, force)
+    return x, force, acc
 
 
 def test_full_scale_separates_from_mass_with_an_added_mass(tmp_path):
@@ -586,8 +594,16 @@ def test_full_scale_separates_from_mass_with_an_added_mass(tmp_path):
     interval the two mass intervals allow)."""
     from hapsim.analysis.calibration import full_scale_from_added_mass
     from hapsim.analysis.device_fit import fit_device
-    fits = [fit_device(*_ff_record(m, 1.56), 1 / 250, max_delay=2) for m in (0.1, 0.15)]
+    recs = [_ff_record(m, 1.56) for m in (0.1, 0.15)]
+    fits = [fit_device(x, f, 1 / 250, applied=acc) for x, f, acc in recs]
     assert fits[0].mass.value == pytest.approx(0.1 * 0.39 / 1.56, rel=0.12)
+    # the range gate cut the force at the fader's ends; replayed, the fit's intervals
+    # hold the truth (b0 0.5 N s/m in host units: times 0.39 / 1.56; no Coulomb friction)
+    # -- fitted on the forces sent they did not (b0 -0.18 in [-0.32, -0.04], fc 0.3 N)
+    for (x, f, acc), fit, m in zip(recs, fits, (0.1, 0.15)):
+        assert acc is not None and np.any(acc.applied[1:] != f[:-1]), "gate not replayed"
+        assert fit.mass.contains(m * 0.39 / 1.56) and fit.friction.contains(0.5 * 0.39 / 1.56)
+        assert fit.coulomb_pos.contains(0.0) and fit.coulomb_neg.contains(0.0)
     fsc = full_scale_from_added_mass(fits[0].mass, fits[1].mass, 0.05, 0.39)
     assert fsc.full_scale_lo <= 1.56 <= fsc.full_scale_hi
     assert fsc.full_scale == pytest.approx(1.56, rel=0.1)      # (m2 - m1 amplifies)

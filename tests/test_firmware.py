@@ -426,7 +426,8 @@ def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
     with _board(tmp_path, None, *cmd) as (proc, port, report):
         fit, rec = identify(port=port, baud=2000000, driver="framed", rate_hz=RATE,
                             force_limit=1.0, envelope=0.02, duration=2.5, max_delay=3,
-                            progress=False, handle_signals=False)
+                            lockstep=True,    # the fast-clock board: a 1 s silence under
+                            progress=False, handle_signals=False)   # load is no loss
     print(fit.verdict, rec["loop"])
     for name in ("mass", "friction", "coulomb", "coulomb_pos", "coulomb_neg",
                  "position_resolution", "noise"):

@@ -266,11 +266,13 @@ def test_a_device_unlike_the_scenes_differs():
 
 
 def test_cli_driver_haply_on_a_2d_scene(capsys):
-    """``run --driver haply`` needs --lockstep (exit 2 naming it); another driver on a
-    2-D scene is refused naming --driver."""
+    """``run --driver haply --port`` is refused (a real board has no hand to start the
+    records: exit 2 naming --port); another driver on a 2-D scene is refused naming
+    --driver."""
     from hapsim.cli import main
     scene = str(CONFIGS / "pantograph_wall.yaml")
-    for argv, key in ((["run", scene, "--driver", "haply"], "--lockstep"),
+    for argv, key in ((["run", scene, "--driver", "haply", "--port", "/dev/null"],
+                       "--port"),
                       (["run", scene, "--driver", "firefader", "--lockstep"], "--driver")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err

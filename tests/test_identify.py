@@ -165,3 +165,31 @@ def test_quantum_found_on_float32_rounded_grids():
         assert e.hi - e.lo <= 1e-5 * q
     off = _quantum(rng.normal(0.0, 1e-3, 500))
     assert off.value == 0.0 and off.lo == 0.0 and 0 < off.hi < 1e-4
+
+
+def test_signals_stay_handled_until_the_fit_is_made(monkeypatch):
+    """hapsim identify's SIGINT/SIGTERM handlers stay while the record is fitted (and the
+    mock reports), as hapsim run's stay until its report: a signal then finds hapsim's
+    handler (a stop already under way, no exception), not the default one that killed
+    the process with the record unfitted; they are restored afterwards."""
+    import signal
+
+    import hapsim.analysis.device_fit as device_fit
+    from hapsim.api import excite_and_fit
+    real, seen = device_fit.fit_device, {}
+
+    def fit_with_signals(*args, **kw):
+        for s in (signal.SIGTERM, signal.SIGINT):
+            seen[s] = handler = signal.getsignal(s)
+            assert callable(handler) and handler is not signal.default_int_handler, (s, handler)
+            handler(s, None)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(device_fit, "fit_device", fit_with_signals)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    dev = Device(mass=0.1, friction=0.5, delay=1, force_limit=10.0)
+    fit, rec = excite_and_fit(device=dev, transport="inprocess", duration=0.5,
+                              force_limit=4.0, max_delay=3, progress=False)
+    assert set(seen) == set(before)
+    assert {s: signal.getsignal(s) for s in before} == before
+    assert rec["loop"]["stop_reason"] == "duration" and fit.mass.contains(0.1)

@@ -214,3 +214,7 @@ def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
         assert main(["run", scene, "--lockstep", *extra]) == 2, extra
         err = capsys.readouterr().err
         assert key in err and "does not take" in err, (extra, err)
+    # the options it takes are checked by their declarations, as a 1-D run's are
+    for extra, key in ((["--rt-priority", "500"], "--rt-priority"), (["--baud", "0"], "--baud")):
+        assert main(["run", scene, "--lockstep", *extra]) == 2, extra
+        assert key in capsys.readouterr().err

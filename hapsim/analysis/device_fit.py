@@ -37,7 +37,13 @@ states partialled out of ``J`` (Frisch-Waugh-Lovell) and ``S`` the Newey-West
 & K. D. West, Econometrica 55(3), 1987): quantisation of a slowly moving position is not
 white. Positions are never taken as known better than :data:`POSITION_FLOOR` (on exact data
 the intervals do not shrink below the optimiser's resolution). The interval of ``m`` is
-``m exp(+-z s_ln m)``. The quantum is read from the positions (the smallest step between
+``m exp(+-z s_ln m)``. On a quantised record that linearisation is not enough (the
+quantiser's error is bounded and deterministic, and on a record of few encoder steps its
+effect on the estimates is neither small nor unbiased): each interval is then the union of
+the linearised one and the bias-corrected prediction interval of :data:`REPLICATES` refits
+of the fitted model passed through the same encoder (:func:`_grid_replicates`). A mass not
+determined within a factor :data:`MASS_SPAN`, or fewer encoder steps on the stretches than
+fitted parameters, is an :class:`~hapsim.errors.IdentificationError`. The quantum is read from the positions (the smallest step between
 distinct values, when every value is a whole multiple of it). The noise is the
 maximum-likelihood ``sigma`` of the rounded Gaussian ``P(y | x) = Phi((y - x + q/2)/s) -
 Phi((y - x - q/2)/s)``, ``s^2 = sigma^2 + delta^2`` (``delta``: the model output's own
@@ -139,6 +145,9 @@ class DeviceFit:
         Samples used.
     level : float
         Confidence level of the intervals.
+    motion_counts : int
+        Encoder steps seen on the fitted stretches (changes between neighbouring
+        samples; -1: positions not on a grid).
     candidates : list of dict
         ``hold``, ``delay``, ``rms`` of every model tried.
     model : ndarray
@@ -165,6 +174,7 @@ class DeviceFit:
     period: float
     n_samples: int
     level: float = LEVEL
+    motion_counts: int = -1
     candidates: list = field(default_factory=list)
     model: np.ndarray = field(default=None, repr=False)
 
@@ -598,6 +608,71 @@ def _noise_interval(loglik, r, crit):
     return Estimate(float(s_hat), float(lo), float(hi), "m")
 
 
+#: A mass interval wider than this ratio hi / lo is "not identified".
+MASS_SPAN = 100.0
+#: Replicates of the quantised record (:func:`_grid_replicates`).
+REPLICATES = 24
+
+
+def _grid_replicates(mod, ym, theta, q, sigma, reps=REPLICATES, seed=0):
+    """Estimates from records the fitted model would give through the same encoder.
+
+    A quantiser's error is a deterministic, bounded function of the true position: on a
+    slow motion it is a sawtooth correlated over many samples, and its effect on the
+    estimates is neither white nor, on a record of few counts, small or unbiased (the
+    estimator is nonlinear in the data). Its only unknown is where the grid lies relative
+    to the motion. So the fitted model's positions ``ym`` (stretch states, forces and all)
+    are passed ``reps`` times through the encoder with a random grid phase ``U(-q/2,
+    q/2)`` after Gaussian noise ``sigma`` (the model of the module notes), and refitted
+    exactly as the record was (same stretches, hold and delay, the variable projection
+    from ``theta``, then the nonlinear refinement): a parametric bootstrap (B. Efron &
+    R. Tibshirani, *An Introduction to the Bootstrap*, 1993, Sec. 6.5 and 10.2 for the
+    bias). The spread and mean shift of the replicates are the quantisation's effect on
+    the estimates at the fitted device.
+
+    Parameters
+    ----------
+    mod : _Stretched
+        The chosen candidate's model (its stretches, hold, applied force).
+    ym : ndarray, shape (n_s,)
+        The fitted model's positions on the stretches [m].
+    theta : ndarray, shape (k,)
+        Fitted ``(ln m, b0[, fc+, fc-])``.
+    q, sigma : float
+        Encoder quantum [m] (> 0) and noise standard deviation [m].
+    reps : int
+        Replicates.
+    seed : int
+        Seed of the grid phases and noise (the fit is deterministic).
+
+    Returns
+    -------
+    ndarray, shape (r, k)
+        The replicates' estimates (``r <= reps``: those whose fit converged).
+    """
+    rng = np.random.default_rng(seed)
+    st = (mod.starts, mod.ends, mod.dirs)
+    out = []
+    y = mod.x.copy()
+    for _ in range(reps):
+        ph = rng.uniform(-0.5, 0.5)
+        e = sigma * rng.standard_normal(ym.size) if sigma > 0 else 0.0
+        y[mod.idx] = q * (np.round((ym + e) / q + ph) - ph)
+        m2, res = _fit_stretched(y, mod.u, mod.T, mod.hold, st, [theta[:2]])
+        if res is None:
+            continue
+        th = None
+        if mod.coulomb:
+            ref = _refine(m2, res.x)
+            if ref is not None and ref[4] < res.cost:
+                th = ref[1]
+        if th is None:
+            th = m2.full(res.x)[1]
+        if np.all(np.isfinite(th)):
+            out.append(np.asarray(th, float)[:theta.size])
+    return np.array(out).reshape(-1, theta.size)
+
+
 def _estimate(value, sd, z, unit, floor=0.0):
     h = z * sd + floor
     return Estimate(float(value), float(value - h), float(value + h), unit)
@@ -644,6 +719,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         fails numerically.
     """
     from scipy.stats import chi2, norm
+    from scipy.stats import t as student_t
     x = np.asarray(position, float)
     f = np.asarray(force, float)
     if x.ndim != 1 or x.shape != f.shape:
@@ -738,41 +814,107 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                                   "not determine the device (raise --force-limit or "
                                   "--duration, or check the device's delay)")
     cov = _hac(J, r, lag, n_nuis)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    m = math.exp(p[0])
-    mass = Estimate(m, m * math.exp(-z * sd[0]), m * math.exp(z * sd[0]), "kg")
-    fric = _estimate(p[1], sd[1], z, "N s/m")
-    if mod.coulomb:
-        cp = _estimate(p[2], sd[2], z, "N")
-        cn = _estimate(p[3], sd[3], z, "N")
-        v = np.zeros(p.size)
-        v[2:4] = 0.5
+    # the model output's own uncertainty per sample: a fitted linear model of k
+    # parameters carries k/N of the error variance on average
+    delta = float(np.sqrt(np.mean(r * r) * (p.size + n_nuis) / max(r.size, 1)))
+    # the fit's own error at the samples is somewhere between 0 and ~2 delta (it is
+    # correlated with the noise it partly absorbed): the interval spans both ends
+    noise = _noise(xi, ym, q.value, delta, z, p.size + n_nuis)
+    n_hi = _noise(xi, ym, q.value, 0.0, z, p.size + n_nuis)
+    n_lo = _noise(xi, ym, q.value, 2.0 * delta, z, p.size + n_nuis)
+    noise = Estimate(noise.value, min(noise.lo, n_lo.lo), max(noise.hi, n_hi.hi), "m")
+    # a quantised record: the quantiser's effect on the estimates, from replicates of the
+    # record through the same encoder (_grid_replicates); each interval is the union of
+    # the linearised one and the replicates' bias-corrected prediction interval,
+    # theta - bias +- t_(R-1) s sqrt(1 + 1/R) (the bias itself estimated from R
+    # replicates: Student's t, R - 1 degrees of freedom)
+    # encoder steps on the fitted stretches: between two steps a quantised record only
+    # says the device is inside one cell
+    counts = -1
+    if q.value > 0:
+        steps = np.diff(xi) != 0
+        steps[mod.offs[1:] - 1] = False               # not across two stretches
+        counts = int(np.sum(steps))
+        n_par = p.size + n_nuis
+        if counts <= n_par:
+            raise IdentificationError(
+                f"the record does not determine the device: {counts} encoder steps "
+                f"({q.value * 1e6:.3g} um) on the {mod.starts.size} stretches of clear "
+                f"motion, for {n_par} parameters (each stretch's position and velocity, "
+                f"the mass and frictions); between steps the encoder only says the "
+                f"handle is inside one cell (raise --force-limit or --duration)")
+    boot = None
+    if q.value > 0:
+        boot = _grid_replicates(mod, ym, p, q.value, noise.value)
+        if boot.shape[0] < REPLICATES // 2:
+            raise IdentificationError(
+                f"the record does not determine the device: fitted again through the same "
+                f"{q.value * 1e6:.3g} um encoder, {REPLICATES - boot.shape[0]} of "
+                f"{REPLICATES} replicates of it fail (raise --force-limit or --duration)")
+    t_q = float(student_t.ppf(0.5 + LEVEL / 2, max(REPLICATES - 1, 1)))
+
+    def interval(w, unit, log=False):
+        """Estimate of ``w . p`` (``exp`` of it when ``log``) with its interval."""
+        v = float(w @ p)
+        h = z * math.sqrt(max(float(w @ cov @ w), 0.0))
+        lo, hi = v - h, v + h
+        if boot is not None and boot.shape[0] >= 2:
+            b = boot @ w
+            bias = float(np.mean(b)) - v
+            hb = t_q * float(np.std(b, ddof=1)) * math.sqrt(1.0 + 1.0 / b.size)
+            lo, hi = min(lo, v - bias - hb), max(hi, v - bias + hb)
+        if log:
+            return Estimate(math.exp(v), math.exp(lo), math.exp(hi), unit)
+        return Estimate(v, lo, hi, unit)
+
+    def unit_vec(*pairs):
         w = np.zeros(p.size)
-        w[2], w[3] = 1.0, -1.0
-        cm = _estimate(0.5 * (p[2] + p[3]), math.sqrt(max(v @ cov @ v, 0)), z, "N")
-        asym = _estimate(p[2] - p[3], math.sqrt(max(w @ cov @ w, 0)), z, "N")
+        for j, c in pairs:
+            w[j] = c
+        return w
+    m = math.exp(p[0])
+    mass = interval(unit_vec((0, 1.0)), "kg", log=True)
+    if not mass.hi < MASS_SPAN * mass.lo:
+        # every prediction rests on the mass: one not known within a factor MASS_SPAN is
+        # not a device to write down
+        raise IdentificationError(
+            f"the record does not determine the mass: {mass.value:.3g} kg, interval "
+            f"[{mass.lo:.3g}, {mass.hi:.3g}] kg at {LEVEL:.1%} (more than a factor "
+            f"{MASS_SPAN:g}{f'; {counts} encoder steps of motion' if counts >= 0 else ''})"
+            f" -- raise --force-limit or --duration")
+    fric = interval(unit_vec((1, 1.0)), "N s/m")
+    if mod.coulomb:
+        cp = interval(unit_vec((2, 1.0)), "N")
+        cn = interval(unit_vec((3, 1.0)), "N")
+        cm = interval(unit_vec((2, 0.5), (3, 0.5)), "N")
+        asym = interval(unit_vec((2, 1.0), (3, -1.0)), "N")
     else:
         cp = cn = cm = asym = Estimate(0.0, 0.0, 0.0, "N")
     x0 = float(x[0])
-    # a delay the data cannot rule out moves the estimates: the intervals cover the
-    # estimates under every such delay (each widened by the best fit's half-widths)
+    # a delay or a hold the data cannot rule out moves the estimates: the intervals cover
+    # the estimates under every such candidate (each widened by the best fit's lower and
+    # upper half-widths)
+    def cover(e, v):
+        return Estimate(e.value, min(e.lo, v - (e.value - e.lo)), max(e.hi, v + (e.hi - e.value)),
+                        e.unit)
+    coulomb_free = False
     for c in cands:
-        if c is best or c["hold"] != best["hold"] or not close(c):
+        if c is best or not close(c):
             continue
         pc = c["_ref"][1] if c.get("_ref") is not None else c["_mod"].full(c["_res"].x)[1]
         mc = math.exp(pc[0])
         mass = Estimate(m, min(mass.lo, mc * mass.lo / m), max(mass.hi, mc * mass.hi / m), "kg")
-        hb = fric.hi - fric.value
-        fric = Estimate(fric.value, min(fric.lo, pc[1] - hb), max(fric.hi, pc[1] + hb), "N s/m")
+        fric = cover(fric, pc[1])
         if mod.coulomb and len(pc) >= 4:
-            for name, j in (("cp", 2), ("cn", 3)):
-                e = cp if name == "cp" else cn
-                h = e.hi - e.value
-                e = Estimate(e.value, min(e.lo, pc[j] - h), max(e.hi, pc[j] + h), "N")
-                if name == "cp":
-                    cp = e
-                else:
-                    cn = e
+            cp, cn = cover(cp, pc[2]), cover(cn, pc[3])
+            cm, asym = cover(cm, 0.5 * (pc[2] + pc[3])), cover(asym, pc[2] - pc[3])
+        elif not mod.coulomb and len(pc) >= 4:
+            coulomb_free = True
+    if coulomb_free:
+        # the idealised image (no Coulomb term) fits best, but the zero-order hold with
+        # Coulomb friction is not ruled out: the record does not determine the friction
+        cp = cn = cm = Estimate(0.0, 0.0, math.inf, "N")
+        asym = Estimate(0.0, -math.inf, math.inf, "N")
     if mod.coulomb:
         # a direction the device never clearly moved in says nothing of its Coulomb
         # friction: [0, inf) (its value: the other direction's), and the mean is as
@@ -786,15 +928,6 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             asym = Estimate(0.0, -math.inf, math.inf, "N")
     xm = np.full(n, np.nan)
     xm[mod.idx] = ym
-    # the model output's own uncertainty per sample: a fitted linear model of k
-    # parameters carries k/N of the error variance on average
-    delta = float(np.sqrt(np.mean(r * r) * (p.size + n_nuis) / max(r.size, 1)))
-    # the fit's own error at the samples is somewhere between 0 and ~2 delta (it is
-    # correlated with the noise it partly absorbed): the interval spans both ends
-    noise = _noise(xi, ym, q.value, delta, z, p.size + n_nuis)
-    n_hi = _noise(xi, ym, q.value, 0.0, z, p.size + n_nuis)
-    n_lo = _noise(xi, ym, q.value, 2.0 * delta, z, p.size + n_nuis)
-    noise = Estimate(noise.value, min(noise.lo, n_lo.lo), max(noise.hi, n_hi.hi), "m")
     resid = ym - xi
     rms = float(math.sqrt(np.mean(resid ** 2)))
     d2 = np.diff(resid, 2)
@@ -818,6 +951,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                      hold_certain=not other_hold, position_resolution=q, noise=noise,
                      x0=float(x0), rms_residual=rms, explained=bool(explained),
                      verdict=verdict, residual_peak_hz=peak, period=T, n_samples=n,
+                     motion_counts=counts,
                      candidates=[{"hold": c["hold"], "delay": c["delay"],
                                   "rms": math.sqrt(2 * c["cost"] / nu)} for c in cands],
                      model=xm)

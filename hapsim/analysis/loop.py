@@ -527,7 +527,13 @@ def char_parts(loop: LoopModel):
     e = loop.delay + 1
     if loop.hold == "ideal":
         Nn, e = np.array([1.0]), e - 1
-    return np.polymul([1.0, 1.0], Nn), np.polymul([1.0, 0.0], Nn), D, e
+    # np.polymul's products, without its two np.poly1d per call (the stability sweeps call
+    # this per evaluation: numpy's trim_zeros in them was a third of a sweep's time); the
+    # same np.convolve of the same arrays, Nn's leading zeros dropped as poly1d drops them
+    Nn = np.atleast_1d(np.asarray(Nn, dtype=float))
+    nz = np.flatnonzero(Nn)
+    Nn = Nn[nz[0]:] if nz.size else np.zeros(1)
+    return np.convolve([1.0, 1.0], Nn), np.convolve([1.0, 0.0], Nn), D, e
 
 
 def char_eval(loop: LoopModel, kappa: float, beta: float, w, *, derivative: bool = False):

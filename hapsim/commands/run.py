@@ -279,7 +279,7 @@ def run(args) -> int:
         opts, driver=protocol, loop=loop, handle_signals=True, embedded=embedded,
         on_start=lambda port, n: _announce(port, n, said, note)))
     if advice is not None:
-        report = dataclasses.replace(report, advice=advice.to_dict())
+        report = report.replace(advice=advice.to_dict())  # keeps exit_code
     print(json.dumps(report.to_dict()) if args.json else report.text())
     sys.stdout.flush()
     if report.error is not None:        # the report first, then why the run ended

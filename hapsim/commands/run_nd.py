@@ -16,7 +16,7 @@ from hapsim.errors import ConfigError
 
 #: The run options (:class:`hapsim.daemon.options.RunOptions` fields) an n-D run takes;
 #: every other one set to anything but its default is refused by name, with exit 2
-#: (``--driver`` takes ``haply`` on a pantograph scene, in lockstep).
+#: (``--driver`` takes ``haply`` on a pantograph scene: the emulated 2DIY board).
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver")
 
 #: ``hapsim run``'s own options (not run options) an n-D scene does not take.
@@ -24,13 +24,18 @@ _REFUSED = (("device", "--device"), ("auto", "--auto"))
 
 
 def _refuse_options(args) -> None:
-    """Refuse every option the n-D run does not take (module constants), by its flag."""
+    """Refuse every option the n-D run does not take (module constants), by its flag, and
+    check the ones it takes by their declarations (:func:`hapsim.daemon.options.option`)."""
     from hapsim.daemon.options import command_line_fields
     set_ = [opt for attr, opt in _REFUSED
             if getattr(args, attr, None) is not None and getattr(args, attr) is not False]
     for f in command_line_fields():
         meta = f.metadata["cli"]
-        if f.name in ND_TAKES or not hasattr(args, f.name):
+        if not hasattr(args, f.name):
+            continue
+        if f.name in ND_TAKES:
+            if meta["check"] is not None and getattr(args, f.name) is not None:
+                meta["check"](getattr(args, f.name), meta["flag"])
             continue
         v, d = getattr(args, f.name), meta["cli_default"]
         # (0 == False == 0.0: a value is the default only of the same type)
@@ -247,8 +252,11 @@ HAPLY_CPR = 2.0 ** 22
 
 
 def _run_haply2(args) -> int:
-    """``hapsim run SCENE --driver haply --lockstep``: the felt matrices through the 2DIY's
-    bytes and its emulated board (:func:`hapsim.daemon.haply2_board.measure_felt_haply2`).
+    """``hapsim run SCENE --driver haply [--lockstep]``: the felt matrices through the
+    2DIY's bytes and its emulated board, in lockstep
+    (:func:`hapsim.daemon.haply2_board.measure_felt_haply2`) or in real time, the board in
+    a child process behind a pty and the host on its clock, missing replies estimated
+    samples (:func:`hapsim.daemon.haply2_host.measure_felt_haply2_port`).
 
     Returns
     -------
@@ -259,21 +267,39 @@ def _run_haply2(args) -> int:
     Raises
     ------
     ConfigError
-        Without ``--lockstep`` (no real-time n-D driver loop yet), with ``--port``, a scene
-        that is not a 2-D pantograph, a bad amplitude.
+        With ``--port`` (a real board has no hand to start each record), a scene that is
+        not a 2-D pantograph, a bad amplitude.
     """
+    import gc
+
     from hapsim.daemon.haply2_board import measure_felt_haply2
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
-    if not args.lockstep or args.port:
-        raise ConfigError("--driver haply on a 2-D scene runs in lockstep against the "
-                          "emulated board only (no real-time n-D driver loop yet): add "
-                          "--lockstep, without --port", key="--lockstep")
+    if args.port:
+        raise ConfigError("--driver haply on a 2-D scene runs against the emulated board, "
+                          "whose hand starts each record (a real 2DIY has none): no --port",
+                          key="--port")
+    realtime = not args.lockstep
     a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
-    with Progress(5, "run (2DIY bytes, lockstep)", unit="records") as bar:
+    with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
+                  unit="records") as bar:
         try:
-            res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
-                                      progress=bar.update)
+            if realtime:
+                from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
+                child = Embedded2DIY(args.scene, "gen3", amplitude=a, cpr=HAPLY_CPR)
+                gc_was = gc.isenabled()
+                try:
+                    gc.disable()                 # no collection while the clock runs
+                    res = measure_felt_haply2_port(child.port, scene, "gen3", amplitude=a,
+                                                   resolution=HAPLY_CPR,
+                                                   progress=bar.update)
+                finally:
+                    if gc_was:
+                        gc.enable()
+                    child.close()
+            else:
+                res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                                          progress=bar.update)
         except DeviceError as exc:
             print(f"hapsim run: {exc}", file=sys.stderr)
             return 1
@@ -288,7 +314,9 @@ def _run_haply2(args) -> int:
             return None if x is None else np.asarray(x, float).tolist()
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
-            "lockstep": True, "amplitude": a, "emulated_cpr": HAPLY_CPR,
+            "lockstep": not realtime, "amplitude": a, "emulated_cpr": HAPLY_CPR,
+            **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
+                "replies": res["replies"], "writes": res["writes"]} if realtime else {}),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                           "felt_damping": mat(chk.render.felt_damping)},
             "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
@@ -306,7 +334,14 @@ def _run_haply2(args) -> int:
         return 0
     o = sys.stdout
     print(f"{scene.path}: the Haply 2DIY's bytes (gen3 set-up, firmware V1.5 board "
-          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), in lockstep", file=o)
+          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
+          + ("in real time (the board in a child process behind a pty)" if realtime
+             else "in lockstep"), file=o)
+    if realtime:
+        print(f"  estimated samples (replies not read by their tick) per record: "
+              f"{res['estimated']}; ticks the host began a period late: "
+              f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}",
+              file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
           f"a = {a:g} m (minus the response from rest)", file=o)
     for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
@@ -326,8 +361,11 @@ def _run_haply2(args) -> int:
     if math.isfinite(wire["felt_stiffness"]):
         dq = wire["reading_bound_rad"]
         print(f"  the wire's rounding (readings within {dq[0]:.2e} / {dq[1]:.2e} rad: half "
-              "a count and a binary32 ulp; torques 2^-24), first-order worst case through "
-              f"the loop and the fit: k {wire['felt_stiffness']:.2e}, "
+              "a count and a binary32 ulp; torques 2^-24)"
+              + (" and the estimated samples' error bounds" if realtime
+                 and sum(res["estimated"]) else "")
+              + f", first-order worst case through the loop and the fit: k "
+              f"{wire['felt_stiffness']:.2e}, "
               f"b {wire['felt_damping']:.2e}", file=o)
     if res["uncertainty"] is not None:
         u = res["uncertainty"]

@@ -87,6 +87,8 @@ class Haply2DIYBoard:
         self.torque = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
         self.setups = 0
         self.writes = 0
+        self.clamped = 0
+        self.held = self.last_command = 0.0
         self.plant = LocalJointDeviceND(scene, np.zeros(2), np.zeros(2))
         self._base = {}                       # port -> (count at set-up, hardware count then)
 
@@ -143,7 +145,31 @@ class Haply2DIYBoard:
             tau[j] = t if up else -t
         return tau
 
-    def feed(self, data: bytes) -> bytes:
+    # what hapsim.driver_mock.serve reads of a device (the board behind a pty)
+    reply_delay_s = 0.0
+
+    @property
+    def decoder(self):
+        """The parser (its ``stats``: writes, set-ups, resets, unknown bytes)."""
+        return self.parser
+
+    def idle(self, silent_s: float) -> bytes:
+        """A silent host: the board has no watchdog, it holds its torques."""
+        return b""
+
+    def commands(self) -> int:
+        """Writes taken."""
+        return self.writes
+
+    def settles_on(self) -> float:
+        """The largest torque the board holds once its queued writes apply [N m]."""
+        held = dict(self.torque)
+        for w in self._fifo:
+            if w:
+                held.update(w)
+        return max(abs(t) for t in held.values())
+
+    def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Host bytes in, the board's replies out (one per write)."""
         out = bytearray()
         p = self.parser
@@ -160,9 +186,12 @@ class Haply2DIYBoard:
                     t = 0.0                       # (the firmware: a NaN duty is 0)
                 new[port0 + 1] = max(-0.123, min(0.123, t))
             self._fifo.append(new)
+            self.clamped += sum(abs(t) >= 0.123 for t in new.values())
+            self.last_command = max((abs(t) for t in new.values()), default=0.0)
             due = self._fifo.popleft()
             if due:
                 self.torque.update(due)
+            self.held = max(abs(t) for t in self.torque.values())
             self.plant.step_torque(self._joint_torques())
             self.writes += 1
             na, encs = p.reply_layout(addr)
@@ -384,6 +413,41 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         runs.append(r)
         if progress is not None:
             progress(j + 1, 2 * n + 1)
+    return felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+
+
+def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float) -> dict:
+    """The felt matrices of a 2DIY's ``2n + 1`` records and their verdict (the analysis of
+    :func:`measure_felt_haply2`, whose notes give the wire's term).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+    runs : list of dict
+        The records, the one from rest first: ``position`` (N, 2) [m], ``joints``
+        (N, 2) [rad] read, ``torque`` (N, 2) [N m] written, and optionally ``bounds``
+        (N, 2): the largest error of each row's position beyond the readings' rounding
+        [m] (an estimated sample's, :func:`hapsim.daemon.haply2_host.estimate_bounds`),
+        which enters the wire's term through the loop as a reading error does.
+    plan : tuple
+        :func:`hapsim.lockstep_nd.identification_plan`'s ``(check, order, N)``.
+    resolution : float
+        The set-up's counts per revolution.
+    amplitude : float
+        The hand's ``a`` [m].
+
+    Returns
+    -------
+    dict
+        As :func:`measure_felt_haply2`.
+    """
+    from hapsim.analysis.identify_nd import felt_sensitivity_nd, fit_felt_nd, worst_case_nd
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.drivers.haply import MAX_TORQUE
+    from hapsim.kinematics import device
+    from hapsim.lockstep_nd import error_responses, felt_deviation, felt_verdict
+    chk, order, N = plan
+    n = 2
     rest = runs[0]["position"]
     diffs = [r["position"] - rest for r in runs[1:]]
     mass, T = scene.device.mass, scene.period
@@ -395,7 +459,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     # the wire's term (docstring)
     ang = np.max([np.nanmax(np.abs(r["joints"]), axis=0) for r in runs], axis=0)
     ulp = np.radians(np.spacing(np.float32(np.degrees(ang))).astype(float))
-    delta = math.pi / float(drv.resolution) + ulp                 # [rad] per joint
+    delta = math.pi / float(resolution) + ulp                 # [rad] per joint
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta.tolist(), "torque_rel": torque_rel}
@@ -408,17 +472,21 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         wc = worst_case_nd(sens, Hr @ J, [delta] * len(sens))
         wc = wc + worst_case_nd(sens, Hf @ np.linalg.inv(J).T,
                                 [torque_rel * np.abs(r["torque"]) for r in order_runs])
+        if any("bounds" in r for r in runs):
+            wc = wc + worst_case_nd(sens, Hr, [r.get("bounds", np.zeros(2))
+                                               for r in order_runs])
         wire["felt_stiffness"] = float(np.max(wc[0]) / np.max(np.abs(kp)))
         wire["felt_damping"] = float(np.max(wc[1]) / np.max(np.abs(bp)))
     clamped = int(sum(np.count_nonzero(np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
                       for r in runs))
-    v = felt_verdict(dev, bound, wire)
+    v = felt_verdict(dev, bound, wire, estimated=int(sum(
+        np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)))
     if clamped:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
              "reason": f"the board's torque clamp ({MAX_TORQUE} N m) engaged in {clamped} "
                        "writes: the loop was not the linear one predicted"}
     Jn = float(np.linalg.norm(J, 2))
-    step = max(2 * math.pi / float(drv.resolution), float(np.max(ulp)))
+    step = max(2 * math.pi / float(resolution), float(np.max(ulp)))
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
             "wire": wire, **v, "clamped": clamped,
             "quantum": Jn * step / amplitude,

@@ -390,7 +390,10 @@ class FireFader(Driver):
         input by the measurement (:func:`hapsim.analysis.measurement.late_accounted`).
         A silence within :data:`SILENCE_DOUBT_S` may or may not have reset the enable: the
         account takes the mean of both and states their half-difference. The touch,
-        pot-range and heat gating is replayed with the fader touched.
+        pot-range and heat gating is replayed with the fader touched, also without a
+        silence (a fader driven to its ends has its force cut by the range gate: fitted
+        as if sent, such a record gave b0 -0.2 against 0.125 and a Coulomb friction of
+        0.3 N against 0).
 
         Parameters
         ----------
@@ -414,7 +417,15 @@ class FireFader(Driver):
         t = np.asarray(t, float)
         seq = np.asarray(seq, np.int64)
         gap = np.diff(t)
-        if not np.any(gap >= SILENCE_DOUBT_S[0]):
+        # the enable also falls while the fader reads outside 4 < pot < 251 (the
+        # firmware's range gate) or once the heat estimate reaches 40 << 10 (at most
+        # 254 >> 5 = 7 per pass: not within 5851 passes): without a silence, a gate or
+        # that many passes, the force is the one sent
+        xs = np.asarray(columns["position"], float)
+        pot = CENTRE + np.round(xs / self.position_scale)
+        gated = bool(np.any((pot <= 4) | (pot >= 251)))
+        if not (np.any(gap >= SILENCE_DOUBT_S[0]) or gated
+                or xs.size * (POSITION_MAX >> 5) >= 40 << 10):
             return acc
         from hapsim.applied import account_from_timing
         if acc is None:

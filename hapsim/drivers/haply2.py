@@ -79,8 +79,10 @@ GENERATIONS = {
 
 LIMITS = """\
 Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
-  lockstep against the emulated board only (hapsim.daemon.haply2_board): no real-time
-    n-D driver loop yet
+  against the emulated board only (hapsim.daemon.haply2_board; in real time behind a
+    pty, hapsim.daemon.haply2_host): a real board has no hand to start each record
+  real time: no sequence numbers; a reply not read by its tick is an estimated sample
+    (counted, bounded in the stated uncertainty); no re-synchronisation in real time
   no start byte, no checksum: a lost or corrupted byte shifts or alters a reply; the
     decoder realigns on the id and two plausible angles (whole encoder counts), and the
     host re-synchronises a board that lost its place

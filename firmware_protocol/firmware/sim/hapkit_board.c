@@ -104,6 +104,20 @@ static struct {
      * holds the handle on a raised-cosine path (the motor does not move it), then holds it
      * at rest at x0 (after STOP) or lets go with v0 (after CONFIG) */
     int moving, held, release, zero_read;
+    /* a CONFIG taken with the handle held at rest at x0: the hand lets go at the first
+     * tick after the firmware's first armed STATE (release_armed: waiting for that STATE;
+     * release_tick: at the next conversion), so that the motion starts at the same cycle
+     * of the firmware's new tick clock in every run. Let go when the board read the
+     * CONFIG (a cycle the wall clock chose: the board paces a disarmed firmware in real
+     * time), two lockstep runs differed by one ADC count in 274 of 1000 samples; let go
+     * at tick 0's conversion (found when STATE 0 came out, the handle moved on from
+     * there) they still differed (k 507.305 and 507.322 N/m), for a cause not found (a
+     * host frame reaching the firmware before STATE 0 at a wall-chosen cycle is the
+     * suspect); let go at tick 1, 6 runs of 6 gave the same telemetry bit for bit
+     * (k 507.2901), 4 of them with the board stopped 0.12 s every 0.3 s. With v0 = 0
+     * nothing moves the handle over tick 0 either way (no FORCE is applied before tick
+     * 1); a v0 starts one period late (the free response is the same loop's). */
+    int release_armed, release_tick;
     double move_from, move_to;
     uint64_t move_start, move_cycles;
 } ph;
@@ -352,6 +366,11 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
         return;
     }
     advance_to(avr->cycle);
+    if (ph.release_tick) { /* the hand lets go now, at this tick (see release_armed) */
+        ph.release_tick = 0;
+        ph.held = 0;
+        ph.v = opt.v0;
+    }
     /* x = 0 at the middle of a half turn, on the centre of an ADC count (511) */
     theta = ph.x / HK_HANDLE_LENGTH_M * (HK_SECTOR_RADIUS_M / HK_CAPSTAN_RADIUS_M) +
             HK_SENSOR_PERIOD_RAD * (HK_SENSOR_SPAN_COUNTS / 2) / HK_SENSOR_SPAN_COUNTS;
@@ -393,6 +412,12 @@ static void on_fw_state(uint32_t seq, uint16_t status, int compact)
     }
     if (status & HP_STATUS_OVERRUN) {
         link_.fw_overrun++;
+    }
+    if (ph.release_armed && (status & HP_STATUS_ARMED) &&
+        !(status & HP_STATUS_FORCE_APPLIED)) {
+        /* the firmware's first STATE of the new session (tick 0): let go at tick 1 */
+        ph.release_armed = 0;
+        ph.release_tick = 1;
     }
     if ((status & HP_STATUS_ARMED) && link_.host_present) {
         link_.await_host = 1; /* fast mode: let the host answer this STATE */
@@ -478,8 +503,7 @@ static void on_host_msg(const hp_msg_t *m)
             }
             ph.release = 1;
         } else {
-            ph.held = 0;
-            ph.v = opt.v0;
+            ph.release_armed = 1; /* let go at the firmware's first armed tick */
         }
         ph.configured = 1;
         ph.config_cyc = avr->cycle;
@@ -488,6 +512,8 @@ static void on_host_msg(const hp_msg_t *m)
     } else if (m->type == HP_MSG_STOP) {
         /* the run is over: the hand brings the handle back to x0 and holds it there */
         advance_to(avr->cycle);
+        ph.release_armed = 0;
+        ph.release_tick = 0;
         if (ph.zero_read >= 3 && (!ph.held || ph.release)) {
             if (!ph.moving) {
                 hand_move_to_x0(0);
