@@ -183,6 +183,9 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
+    from hapsim.lockstep_nd import felt_verdict
+    v = felt_verdict(dev, bound)
+    print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
 
 
