@@ -160,9 +160,9 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     reach = min(min_counts * q, float(envelope)) if envelope > 0 else min_counts * q
     zero = drv.encode_force(0.0)
     found_t, found_c, rel = [], [], []
+    x = math.nan
     try:
         ex.send(drv.arm())
-        x = math.nan
         for _ in range(3):                      # the replies of a board in step
             x = ex.send(zero)
         for sign in (1.0, -1.0):
@@ -190,9 +190,11 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
                     f"{sign * top:+.4g} N m pulses of {PULSE_S * 1e3:g} ms (raised from "
                     f"{sign * top * 2.0 ** -(LEVELS - 1):+.4g} N m): the motor direction "
                     f"cannot be found. The joint is blocked, held, or unpowered, or its "
-                    f"static friction exceeds --force-limit; free it (or raise the limit, "
-                    f"at most the board's {MAX_TORQUE} N m), or give motor_direction as a "
-                    f"--protocol-option")
+                    f"static friction exceeds --force-limit; free it (let go of the "
+                    f"handle: identify with --hand after one without it), or raise the "
+                    f"limit (at most the board's {MAX_TORQUE} N m), or give the motor "
+                    f"direction (--protocol-option motor_direction=0 or 1: then it is not "
+                    f"probed)")
             found_t.append(moved[0])
             found_c.append(moved[1])
             rel.append(1 if moved[1] * moved[0] > 0 else -1)
