@@ -220,7 +220,8 @@ class _SerialLink:
     def __init__(self, port: str, baud: int) -> None:
         import serial
         try:
-            self.ser = serial.serial_for_url(port, baudrate=baud, timeout=0.0,
+            # a fixed short read timeout (setting it per read reconfigures the port)
+            self.ser = serial.serial_for_url(port, baudrate=baud, timeout=0.005,
                                              write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
@@ -233,8 +234,9 @@ class _SerialLink:
             raise DeviceError(f"write to {self.port} failed: {exc}") from None
 
     def read(self, timeout: float) -> bytes:
+        """Bytes waiting, or the first within the port's 5 ms (the caller loops to its
+        own ``timeout`` [s])."""
         try:
-            self.ser.timeout = timeout
             n = self.ser.in_waiting
             return self.ser.read(n if n else 1)
         except Exception as exc:  # serial.SerialException, OSError
