@@ -41,18 +41,19 @@ WIRINGS = sorted({(g.motor_direction[j], g.encoder_direction[j])
 
 @pytest.mark.parametrize("wiring", WIRINGS)
 @pytest.mark.parametrize("enc", [0, 1])
+@pytest.mark.parametrize("md0", [0, 1])
 @pytest.mark.parametrize("coulomb", [0.0, 0.03])
-def test_probe_finds_the_motor_byte_of_every_wiring(wiring, enc, coulomb):
+def test_probe_finds_the_motor_byte_of_every_wiring(wiring, enc, md0, coulomb):
     """The byte found drives the joint the way its angle counts up: a positive torque
     written after a set-up with it moves the encoder up; the pulses stay within the force
     limit, the joint within a few counts, and the board is left at zero torque."""
     m, e = wiring
     dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1, coulomb=coulomb), 1000.0,
                       motor_sign=(-1) ** (m + e))
-    drv = HaplyM3(direction=enc, motor_direction=0)
+    drv = HaplyM3(direction=enc, motor_direction=md0)
     p = _probe(dev, drv, force_limit=0.1)
     assert p.motor_direction == (m + e + enc) % 2
-    assert p.relative == (1 if p.motor_direction == 0 else -1)
+    assert p.relative == (1 if p.motor_direction == md0 else -1)
     assert p.torque[0] > 0 > p.torque[1] and max(map(abs, p.torque)) <= 0.1
     # static friction is overcome only by a pulse above it (raised by doubling)
     assert all(abs(t) > coulomb for t in p.torque)
@@ -82,6 +83,16 @@ def test_probe_refuses_a_joint_that_does_not_move(coulomb, limit):
     assert len(set(abs(f) for f in dev.applied if f)) == LEVELS
 
 
+def test_probe_refuses_a_joint_something_else_moves():
+    """A joint already moving (here let go at 1 rad/s, as a hand or a spring would move
+    it) moves the same way under both torque signs: refused, zero torque left."""
+    from hapsim.scene import Excitation
+    dev = HaplyDevice(Device(mass=1e-3, friction=1e-4, delay=1), 1000.0, Excitation(v0=1.0))
+    with pytest.raises(IdentificationError, match="the same way under both torque signs"):
+        _probe(dev, HaplyM3(), force_limit=0.1)
+    assert dev.held == 0.0 and dev.settles_on() == 0.0
+
+
 def test_motor_direction_is_a_protocol_option_run_sends():
     """The byte found goes to protocol_options and the set-up run sends (motor byte 3,
     encoder byte 5); omitted, it is the encoder's (the set-up of earlier device files);
@@ -97,15 +108,16 @@ def test_motor_direction_is_a_protocol_option_run_sends():
         assert reply[-5] == dev_id
 
 
-def test_without_the_probe_a_reversed_motor_runs_away(monkeypatch):
+def test_a_motor_direction_given_is_not_probed_and_a_wrong_one_runs_away():
     """The case the probe is for: the same identification on the reversed board with the
-    motor byte left as the encoder's is positive feedback and ends on a safety stop (the
-    next test runs it with the probe: its whole length)."""
+    motor byte given as the encoder's (``--protocol-option motor_direction=0``: given, so
+    not probed) is positive feedback and ends on a safety stop (the next test runs it
+    with the probe: its whole length)."""
     from hapsim.daemon.identify_run import record
-    monkeypatch.setattr(HaplyM3, "probes_direction", False)
     r = record(Device(mass=1e-3, friction=1e-3, delay=1), driver="haply", force_limit=0.1,
                envelope=0.2, duration=0.5, max_delay=4, progress=False,
-               handle_signals=False, mock_options={"cpr": 4880.0, "motor_sign": -1})
+               handle_signals=False, driver_options={"motor_direction": 0},
+               mock_options={"cpr": 4880.0, "motor_sign": -1})
     assert r["loop"]["direction_probe"] is None and r["loop"]["safety_stop"]
     assert r["loop"]["samples"] < 500
 

@@ -40,6 +40,10 @@ output:
   the THS (the paper's hand + handle): total mass and damping for this grip. hapsim
   reports that total; it does not split it into hand and device (a scene's hand model
   is another feature).
+--driver haply: before the excitation, a torque pulse of each sign (raised until the
+  encoder moves 3 counts, within --force-limit; zero torque after) finds the motor's
+  direction byte, written to --out's protocol_options (not probed when motor_direction is
+  given); the board's id is the host's choice (it answers any): nothing to identify.
 limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), sticks
   when the force cannot break it loose); the delay is a whole number of samples (a
   fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a

@@ -423,8 +423,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
                                               options=(mock_options if mock_options is not None
                                                        else drv.mock_hardware()))
-            if getattr(drv, "probes_direction", False):
+            if getattr(drv, "probes_direction", False) and \
+                    "motor_direction" not in (driver_options or {}):
                 # a wrong motor direction makes the excitation run away: find it first
+                # (unless it is given: a device file's, or --protocol-option)
                 drv, probe = _probe_direction(drv, port or embedded.port, force_limit,
                                               envelope, rate_hz, port is None)
             if port is None:

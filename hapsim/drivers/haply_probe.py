@@ -160,9 +160,9 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     reach = min(min_counts * q, float(envelope)) if envelope > 0 else min_counts * q
     zero = drv.encode_force(0.0)
     found_t, found_c, rel = [], [], []
+    x = math.nan
     try:
         ex.send(drv.arm())
-        x = math.nan
         for _ in range(3):                      # the replies of a board in step
             x = ex.send(zero)
         for sign in (1.0, -1.0):
@@ -190,9 +190,11 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
                     f"{sign * top:+.4g} N m pulses of {PULSE_S * 1e3:g} ms (raised from "
                     f"{sign * top * 2.0 ** -(LEVELS - 1):+.4g} N m): the motor direction "
                     f"cannot be found. The joint is blocked, held, or unpowered, or its "
-                    f"static friction exceeds --force-limit; free it (or raise the limit, "
-                    f"at most the board's {MAX_TORQUE} N m), or give motor_direction as a "
-                    f"--protocol-option")
+                    f"static friction exceeds --force-limit; free it (let go of the "
+                    f"handle: identify with --hand after one without it), or raise the "
+                    f"limit (at most the board's {MAX_TORQUE} N m), or give the motor "
+                    f"direction (--protocol-option motor_direction=0 or 1: then it is not "
+                    f"probed)")
             found_t.append(moved[0])
             found_c.append(moved[1])
             rel.append(1 if moved[1] * moved[0] > 0 else -1)
@@ -218,7 +220,8 @@ class _SerialLink:
     def __init__(self, port: str, baud: int) -> None:
         import serial
         try:
-            self.ser = serial.serial_for_url(port, baudrate=baud, timeout=0.0,
+            # a fixed short read timeout (setting it per read reconfigures the port)
+            self.ser = serial.serial_for_url(port, baudrate=baud, timeout=0.005,
                                              write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
@@ -231,8 +234,9 @@ class _SerialLink:
             raise DeviceError(f"write to {self.port} failed: {exc}") from None
 
     def read(self, timeout: float) -> bytes:
+        """Bytes waiting, or the first within the port's 5 ms (the caller loops to its
+        own ``timeout`` [s])."""
         try:
-            self.ser.timeout = timeout
             n = self.ser.in_waiting
             return self.ser.read(n if n else 1)
         except Exception as exc:  # serial.SerialException, OSError
