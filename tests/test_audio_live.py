@@ -23,6 +23,10 @@ import pytest
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
+#: pytest-xdist (the README command runs 2 workers): a private jackd (dummy backend) per module:
+#: two at once on 2 cores drop frames.
+pytestmark = pytest.mark.xdist_group("sound")
+
 SCENE = "configs/audio_string.yaml"
 #: A port - bob - wall chain heard at 48 kHz, linear (no contact), stable with the lead of
 #: a 256-frame block (6 device samples) added to its device delay.

@@ -22,6 +22,10 @@ from hapsim.driver_mock import FireFaderDevice
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
+#: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
+#: one worker.
+pytestmark = pytest.mark.xdist_group("test_driver_estimates")
+
 FLAG_ESTIMATED = 32
 
 

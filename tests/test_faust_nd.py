@@ -26,6 +26,10 @@ from test_faust_oracle import displaced_string  # noqa: E402
 from hapsim.engine_nd import EngineND  # noqa: E402
 from hapsim.scene_nd import LinkND, MassND, SceneND, parse_scene_nd  # noqa: E402
 
+#: pytest-xdist (the README command runs 2 workers): its module-scoped Faust build runs once, on
+#: one worker.
+pytestmark = pytest.mark.xdist_group("test_faust_nd")
+
 N = 2000
 TOL = 1e-12
 

@@ -148,14 +148,20 @@ class _Host:
 
 # ---------------------------------------------------------------------------- build
 
-def test_firmware_builds_warning_free_and_reports_flash_and_ram():
+def test_firmware_builds_warning_free_and_reports_flash_and_ram(tmp_path_factory):
     """``make -B`` rebuilds the firmware with -Wall -Wextra -Werror (a warning fails the
     build) and avr-size prints the flash and RAM it uses, within the ATmega328P's 32 KiB
-    and 2 KiB."""
+    and 2 KiB. It rebuilds a scratch copy of the sources (same Makefile, same relative
+    codec path): the shared ELF is never rewritten under a board another test (another
+    pytest-xdist worker) is starting."""
     _require()
+    import shutil
     from hapsim.daemon import board
-    r = subprocess.run(["make", "-B", "-C", str(board.FIRMWARE_DIR)], capture_output=True,
-                       text=True)
+    scratch = tmp_path_factory.mktemp("fw")     # not tmp_path: its name holds "warning"
+    work = scratch / "firmware" / "hapkit"
+    shutil.copytree(board.FIRMWARE_DIR, work, ignore=shutil.ignore_patterns("*.elf", "*.hex"))
+    shutil.copytree(board.ROOT.parent / "c", scratch / "c")
+    r = subprocess.run(["make", "-B", "-C", str(work)], capture_output=True, text=True)
     out = r.stdout + r.stderr
     print(out)
     assert r.returncode == 0, out

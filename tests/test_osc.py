@@ -23,6 +23,10 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
 from test_audio_live import jack_server  # noqa: F401  (the private JACK server fixture)
 
+#: pytest-xdist (the README command runs 2 workers): a private jackd and Pd/OSC clients:
+#: serialised with the other live-sound tests.
+pytestmark = pytest.mark.xdist_group("sound")
+
 SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

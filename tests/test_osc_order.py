@@ -23,6 +23,10 @@ from hapsim.daemon.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
+#: pytest-xdist (the README command runs 2 workers): live OSC control of a running daemon:
+#: serialised with the other live-sound tests.
+pytestmark = pytest.mark.xdist_group("sound")
+
 SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
 
 

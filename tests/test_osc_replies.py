@@ -15,6 +15,10 @@ from hapsim.daemon.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import parse_scene
 
+#: pytest-xdist (the README command runs 2 workers): live OSC control of a running daemon:
+#: serialised with the other live-sound tests.
+pytestmark = pytest.mark.xdist_group("sound")
+
 SCENE = """\
 rate_hz: 1000
 masses:

@@ -30,7 +30,10 @@ VECTORS = json.loads((PKG / "vectors" / "vectors.json").read_text())
 CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-O2"]
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
 
-pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler (cc/gcc/clang) on PATH")
+#: pytest-xdist (the README command runs 2 workers): its module-scoped C driver is compiled
+#: once, on one worker.
+pytestmark = [pytest.mark.skipif(CC is None, reason="no C compiler (cc/gcc/clang) on PATH"),
+              pytest.mark.xdist_group("test_protocol_c")]
 
 # Field order on the wire per type id (what the driver's E command reads).
 WIRE = {

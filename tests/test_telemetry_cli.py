@@ -15,6 +15,10 @@ from hapsim.cli import main
 from hapsim.commands.telemetry import felt_energy
 from hapsim.daemon.telemetry import COLUMNS, FLAG_LOST, load, write_journal
 
+#: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
+#: one worker.
+pytestmark = pytest.mark.xdist_group("test_telemetry_cli")
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WALL = os.path.join(ROOT, "configs", "wall.yaml")
 

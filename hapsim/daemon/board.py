@@ -9,6 +9,7 @@ when missing or older than their sources.
 
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import shutil
@@ -23,6 +24,9 @@ BOARD_DIR = ROOT / "sim"
 FIRMWARE_ELF = FIRMWARE_DIR / "hapkit.elf"
 VECTORS_ELF = FIRMWARE_DIR / "hapkit_vectors.elf"
 BOARD = BOARD_DIR / "hapkit_board"
+#: Held (``flock``) while ``make`` runs, so that two processes building at once (the test
+#: suite's two workers, two ``hapsim mock --board``) never write the same ELF together.
+BUILD_LOCK = ROOT / ".build.lock"
 
 
 def missing_tools() -> str | None:
@@ -51,7 +55,8 @@ def build(*, quiet: bool = True) -> dict:
     """Build the firmware (``hapkit.elf``, ``hapkit_vectors.elf``) and ``hapkit_board``.
 
     ``make`` rebuilds only what is missing or older than its sources; warnings are errors
-    (``-Wall -Wextra -Werror``). The UART runs at the Makefile's ``BAUD`` (2 Mbaud).
+    (``-Wall -Wextra -Werror``). Concurrent builders are serialised by an exclusive
+    ``flock`` on :data:`BUILD_LOCK`. The UART runs at the Makefile's ``BAUD`` (2 Mbaud).
 
     Parameters
     ----------
@@ -73,13 +78,16 @@ def build(*, quiet: bool = True) -> dict:
     if why:
         raise DeviceError(f"cannot build the emulated Hapkit board: {why}")
     out = []
-    for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")):
-        r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
-        out.append(r.stdout + r.stderr)
-        if r.returncode != 0:
-            raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
-        if not quiet:
-            print(out[-1], end="", flush=True)
+    with open(BUILD_LOCK, "a") as lock:
+        # the second builder waits here, then finds everything up to date
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")):
+            r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
+            out.append(r.stdout + r.stderr)
+            if r.returncode != 0:
+                raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
+            if not quiet:
+                print(out[-1], end="", flush=True)
     return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
             "output": "".join(out)}
 
