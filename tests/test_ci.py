@@ -64,3 +64,21 @@ def test_a_run_that_collects_no_test_fails_ci(tmp_path):
     res = subprocess.run([sys.executable, "-m", "pytest", "-q"],      # the README command
                          cwd=tmp_path, capture_output=True, text=True)
     assert res.returncode == 5, (res.returncode, res.stdout[-500:])
+
+
+def test_every_module_that_starts_a_jack_server_shares_the_sound_worker():
+    """The README command runs two pytest-xdist workers with ``--dist loadgroup``; two
+    private jackd servers (dummy backend) at once on a 2-core machine drop frames, so every
+    module that starts one (``jackd`` on its command line, or the ``jack_server`` fixture)
+    carries ``pytestmark``'s ``xdist_group("sound")`` and they all run on one worker."""
+    starts = []
+    for path in sorted((ROOT / "tests").glob("test_*.py")):
+        if path.name == Path(__file__).name:
+            continue
+        text = path.read_text()
+        if re.search(r"""["']jackd["']|^def test_\w+\([^)]*\bjack_server\b""", text, re.M):
+            starts.append(path.name)
+            marks = re.findall(r"^pytestmark\s*=.*?(?=^\S)", text + "\nEND", re.S | re.M)
+            assert marks and re.search(r"""xdist_group\(\s*["']sound["']\s*\)""", marks[-1]), \
+                f"{path.name} starts a JACK server but is not in xdist_group('sound')"
+    assert "test_audio_live.py" in starts and "test_osc.py" in starts, starts

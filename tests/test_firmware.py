@@ -171,6 +171,37 @@ def test_firmware_builds_warning_free_and_reports_flash_and_ram(tmp_path_factory
     assert 0 < flash < 32 * 1024 - 512 and 0 < ram < 2048 - 512, (flash, ram)
 
 
+
+def test_a_second_build_waits_for_the_first_to_finish():
+    """:func:`hapsim.daemon.board.build` holds an exclusive ``flock`` on ``BUILD_LOCK``
+    while make runs: another process's build (the other pytest-xdist worker's, a second
+    ``hapsim mock --board``) waits however long the first takes, then finds everything up
+    to date -- two builds never write one ELF together."""
+    _require()
+    import fcntl
+    import pytest
+    from hapsim.daemon import board
+    board.build()
+    code = ("import sys; from hapsim.daemon import board; print('start', flush=True); "
+            "r = board.build(); print('built', r['elf'], flush=True)")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    with open(board.BUILD_LOCK, "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            assert proc.stdout.readline().strip() == "start", proc.stderr.read()
+            with pytest.raises(subprocess.TimeoutExpired):   # blocked while the lock is held
+                proc.wait(timeout=1.0)
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert out.split() == ["built", str(board.FIRMWARE_ELF)], (out, err)
+
+
 # ---------------------------------------------------------------------------- golden vectors
 
 def _test_frame(packet: bytes) -> bytes:
