@@ -348,6 +348,9 @@ def test_static_stiffness_is_series_and_parallel_springs():
     # family stepped the audio scene's network at 1 kHz only: "NOT ROBUSTLY STABLE
     # (certified)", spectral radius 597, for a scene check finds stable (0.9973)
     (["family", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
+    # advise met a rate of its ladder the audio rate is no multiple of: "audio.rate_hz: ...
+    # 315 Hz", exit 2 as if the scene were bad; its matrices are single-rate too
+    (["advise", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
 ])
 @pytest.mark.parametrize("json_out", [False, True])
 def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv, where,
