@@ -1551,6 +1551,14 @@ class RunReportND(_Report):
         :meth:`hapsim.analysis.linearisation_nd.LinearisationBound.to_dict`.
     records, samples, order : int
         Free responses, samples each, the fit's order.
+    verdict : str
+        ``"within"``, ``"differs"`` or ``"not measurable"``: the deviation against the
+        linearisation bound (:func:`hapsim.lockstep_nd.felt_verdict`; the framed
+        protocol carries binary64 positions and forces, so the wire adds no term).
+    within : bool or None
+        The deviation is inside the bound (None: not measurable).
+    reason : str
+        The verdict in words, as ``hapsim run`` prints it.
     port, late, watchdog, delay, lost
         Over a port only: the port, the late ticks, watchdog trips, the device delay
         and the records run again.
@@ -1569,6 +1577,9 @@ class RunReportND(_Report):
     records: int
     samples: int
     order: int
+    verdict: str
+    within: bool | None
+    reason: str
     port: dict | None = None
     late: Any = None
     watchdog: Any = None
@@ -1605,7 +1616,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     -------
     RunReportND
     """
+    from hapsim.lockstep_nd import felt_verdict
     fit, chk = res["measured"], res["predicted"]
+    v = felt_verdict(res["deviation"], res["bound"])
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -1618,7 +1631,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
                                          for z in fit["rendered_poles"]],
                       "residual": fit["residual"], "rank": fit["rank"]},
          "deviation": res["deviation"], "linearisation_bound": res["bound"].to_dict(),
-         "records": res["records"], "samples": res["samples"], "order": res["order"]}
+         "records": res["records"], "samples": res["samples"], "order": res["order"],
+         "verdict": v["verdict"], "within": v["within"], "reason": v["reason"]}
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"])

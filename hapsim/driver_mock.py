@@ -261,6 +261,12 @@ class HaplyDevice(_Actuated):
     cpr : float
         The encoder's real counts per revolution (the set-up's resolution only scales
         counts to degrees: a wrong one is a wrong angle).
+    motor_sign : {1, -1}
+        The wiring of motor 1 against encoder 1: the sign of the count's motion under a
+        positive torque when both direction bytes are 0 (firmware CW). Each direction
+        byte of 1 flips its side (the motor's direction pin, the encoder's pins), so
+        the host's bytes drive the joint the right way when ``(-1)^(motor byte + encoder
+        byte)`` equals it, and as positive feedback otherwise.
 
     Attributes
     ----------
@@ -270,8 +276,12 @@ class HaplyDevice(_Actuated):
     """
 
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
-                 resolution: float | None = None, seed: int = 0) -> None:
+                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1) -> None:
         from hapsim.drivers import haply as hp
+        from hapsim.errors import ConfigError
+        if motor_sign not in (1, -1):
+            raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
+        self.motor_sign = int(motor_sign)
         self._hp = hp
         super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed)
         self.decoder = hp.CommandDecoder()
@@ -318,6 +328,7 @@ class HaplyDevice(_Actuated):
                 t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
                 if dec.motor_direction[0]:
                     t = -t
+                t *= self.motor_sign
             self.apply(t)
             na, encs = dec.reply_layout(addr)
             out += bytes([addr]) + struct.pack("<f", 0.0) * na
@@ -559,7 +570,7 @@ class EmbeddedDriverMock(PtyChild):
     options : dict, optional
         The mock device's own keywords (:class:`FireFaderDevice`: ``full_scale``,
         ``metres_per_count``, ``firmware``, ``touch``, ``boot_s``; :class:`HaplyDevice`:
-        ``cpr``): the hardware, which the host's driver may describe wrongly.
+        ``cpr``, ``motor_sign``): the hardware, which the host's driver may describe wrongly.
     faults : dict, optional
         :class:`ByteFaults` spec.
 

@@ -585,9 +585,10 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
            "felt_damping": lin["felt_damping"] + wd}
     ok = (deviation["felt_stiffness"] <= unc["felt_stiffness"]
           and deviation["felt_damping"] <= unc["felt_damping"])
+    what = ("linearisation bound plus the wire's rounding" if wire is not None else
+            "the linearisation bound; binary64 on the wire adds nothing")
     return {"verdict": "within" if ok else "differs", "within": bool(ok),
             "uncertainty": unc,
-            "reason": ("measured = predicted within the stated uncertainty (linearisation "
-                       "bound plus the wire's rounding)" if ok else
-                       "measured differs from predicted by more than the stated "
-                       "uncertainty (linearisation bound plus the wire's rounding)")}
+            "reason": (f"measured = predicted within the stated uncertainty ({what})" if ok
+                       else "measured differs from predicted by more than the stated "
+                       f"uncertainty ({what})")}

@@ -426,7 +426,9 @@ _KEYS = [
             "embedded mock is built to match): `firefader`: `full_scale` [N] (force at 127 "
             "counts; 0.39, the repository's calibrated Pd patch), `metres_per_count` [m] "
             "(0.05/128), `axis` (0: fader A, 1: B); `haply`: `resolution` (encoder counts "
-            "per revolution, 4880), `direction` (0 CW, 1 CCW), `device_id` (1..255), "
+            "per revolution, 4880), `direction` (the encoder's: 0 CW, 1 CCW), "
+            "`motor_direction` (the motor's; default the encoder's; `hapsim identify` "
+            "finds it), `device_id` (1..255), "
             "`offset_deg` (the joint's angle when armed); `hapkit-serial`: `function` "
             "(0..255), `force_limit` [N]. See docs/drivers.md.",
         example="device: {mass: 0.05, protocol: firefader, protocol_options: "

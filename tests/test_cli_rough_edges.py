@@ -337,3 +337,26 @@ def test_static_stiffness_is_series_and_parallel_springs():
         scene = parse_scene(_chain_scene(chains[0], chains[1:]))
         want = sum(1 / sum(1 / k for k in ch) for ch in chains)
         assert static_stiffness(scene) == pytest.approx(want, rel=1e-9)
+
+
+@pytest.mark.parametrize("argv, where, fragment", [
+    # no port: the run names the first mass's line and how to make one
+    (["run", "oscillator.yaml"], "oscillator.yaml:6: masses:", "give the handle's mass "
+                                                               "'kind: port'"),
+    # family read the missing device before its own check: an AttributeError traceback
+    (["family", "oscillator.yaml"], "oscillator.yaml: masses:", "needs a scene with a port"),
+    # family stepped the audio scene's network at 1 kHz only: "NOT ROBUSTLY STABLE
+    # (certified)", spectral radius 597, for a scene check finds stable (0.9973)
+    (["family", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
+])
+@pytest.mark.parametrize("json_out", [False, True])
+def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv, where,
+                                                                   fragment, json_out):
+    """A shipped scene given to a command that cannot take it: exit 2, one message with
+    the file, the key (and the line where one exists) and what to do; with ``--json``
+    stdout is the error object alone."""
+    argv = [argv[0], str(ROOT / "configs" / argv[1])] + (["--json"] if json_out else [])
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    msg = json.loads(out)["error"]["message"] if json_out else err
+    assert "Traceback" not in msg and where in msg and fragment in msg, msg

@@ -38,7 +38,7 @@ def test_every_config_comment_with_a_figure_is_pinned():
     pinned = {"string.yaml", "oscillator.yaml", "felt_wall.yaml", "wall.yaml", "audio_string.yaml",
               "hapkit_serial.yaml",      # its figure: tests/test_drivers.py
               "firefader.yaml",          # its figure: tests/test_drivers.py (rate refusal)
-              "hand_wall.yaml"}
+              "hand_wall.yaml", "membrane.yaml"}
     for f in sorted(CONFIGS.glob("*.yaml")):
         if re.search(r"\d\s*(N/m|N s/m|Hz|1/s)", _comments(f.name)):
             assert f.name in pinned, f"{f.name}: its comments state figures; pin them here"
@@ -133,3 +133,26 @@ def test_audio_string_partials_as_stated():
     assert n_beads == 30
     assert (round(f(1), 1), round(f(2), 1), round(f(3), 1)) == (197.5, 394.4, 590.5)
     assert round(f(30) / 1000, 2) == 3.94
+
+
+def test_membrane_mode_figures():
+    """membrane.yaml's comment: K = 16000 N/m, B = 0.05 N s/m, 1 g masses, and the lowest
+    mode f_11 = 217.0 Hz (damping ratio 0.0021) of the closed form
+    f_pq = sqrt(mu_pq K / m) / (2 pi), mu_pq = 4 [sin^2(p pi / 26) + sin^2(q pi / 26)],
+    which the check's lowest mode (the centred scheme at 44.1 kHz, linearised at rest)
+    follows up to a slight warp."""
+    import math
+
+    import hapsim
+    c = _comments("membrane.yaml")
+    assert "K = 16000 N/m, B = 0.05 N s/m" in c and "12 x 12 masses of 1 g" in c
+    assert "f_11 = 217.0 Hz (damping ratio 0.0021)" in c
+    rep = hapsim.modes_nd(str(CONFIGS / "membrane.yaml"))
+    low = min(rep.modes, key=lambda m: m["frequency_hz"])
+    mu = 4 * 2 * math.sin(math.pi / 26) ** 2
+    closed = math.sqrt(mu * 16000.0 / 0.001) / (2 * math.pi)
+    zeta = 0.05 * 2 * math.pi * closed / (2 * 16000.0)       # B w / (2 K) of the mode
+    assert round(closed, 1) == 217.0 and round(zeta, 4) == 0.0021
+    # "warps them slightly": the scheme's mode within 1e-3 of the closed form (7e-5 here)
+    assert abs(low["frequency_hz"] - closed) < 1e-3 * closed
+    assert abs(low["damping_ratio"] - zeta) < 1e-3 * zeta

@@ -663,7 +663,7 @@ def test_protocol_options_in_the_scene_and_the_device_file(tmp_path):
     d = load_device(path)
     assert d.protocol == "haply"
     assert d.protocol_options == {"device_id": 1, "resolution": 4096.0, "direction": 1,
-                                  "offset_deg": 0.0}
+                                  "offset_deg": 0.0, "motor_direction": 1}
 
 
 def test_driver_account_marks_the_forces_a_missing_answer_leaves_open():

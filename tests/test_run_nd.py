@@ -38,6 +38,7 @@ def test_lockstep_measured_equals_predicted_small_excitation(name, capsys):
     assert np.max(np.abs(zp - zm)) <= 1e-8
     b = out["linearisation_bound"]
     assert b["amplitude"] == 1e-8 and b["link_per_m"] > 0 and b["kinematic_per_m"] > 0
+    assert out["verdict"] == "within" and out["within"] is True, out["reason"]
 
 
 def test_large_excitation_departs_by_the_stated_first_order_term():
@@ -148,10 +149,11 @@ def test_kinematic_coefficient_is_the_mass_change_over_the_step():
 
 
 def test_nd_run_refuses_what_it_does_not_take(capsys):
-    """With a rate or a bad amplitude: exit 2 naming the option; the 1-D run and mock
+    """With a bad rate or a bad amplitude: exit 2 naming the option; the 1-D run and mock
     refuse --amplitude (their excitation is the scene's); the n-D mock refuses faults."""
     scene = str(CONFIGS / "pantograph_wall.yaml")
-    for argv, key in ((["run", scene, "--lockstep", "--rate", "500"], "--rate"),
+    for argv, key in ((["run", scene, "--lockstep", "--rate", "-500"], "--rate"),
+                      (["mock", "--scene", scene, "--rate", "0"], "--rate"),
                       (["mock", "--scene", scene, "--faults", "drop=0.1"], "--faults"),
                       (["mock", "--scene", str(CONFIGS / "wall.yaml"), "--amplitude",
                         "1e-6"], "--amplitude"),
@@ -218,3 +220,35 @@ def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
     for extra, key in ((["--rt-priority", "500"], "--rt-priority"), (["--baud", "0"], "--baud")):
         assert main(["run", scene, "--lockstep", *extra]) == 2, extra
         assert key in capsys.readouterr().err
+
+
+def test_text_report_ends_on_a_verdict(capsys):
+    """The framed n-D run's text report says what the comparison means, as the 1-D one
+    does (it printed the deviation and the bound and left the reading to the user): a
+    ``verdict:`` line, exit 0."""
+    assert main(["run", str(CONFIGS / "pantograph_wall.yaml"), "--lockstep"]) == 0
+    last = capsys.readouterr().out.rstrip().splitlines()[-1]
+    assert last.startswith("  verdict: within: measured = predicted within the stated "
+                           "uncertainty (the linearisation bound"), last
+
+
+def test_verdict_against_the_bound_is_decided_by_it():
+    """:func:`hapsim.lockstep_nd.felt_verdict` on a binary64 wire (no wire term): within
+    when both deviations are inside the linearisation bound, differs when either is above
+    it, not measurable when the amplitude opens a contact."""
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.scene_nd import load_scene_nd
+    scene = load_scene_nd(str(CONFIGS / "pantograph_circle.yaml"))
+    poles = check_scene_nd(scene).render.rendered_poles
+    bound = linearisation_bound(scene, 1e-8, poles)
+    bk, bb = bound.to_dict()["felt_stiffness"], bound.to_dict()["felt_damping"]
+    assert felt_verdict({"felt_stiffness": bk, "felt_damping": bb}, bound)["within"]
+    for dev in ({"felt_stiffness": 1.01 * bk, "felt_damping": 0.0},
+                {"felt_stiffness": 0.0, "felt_damping": 1.01 * bb}):
+        v = felt_verdict(dev, bound)
+        assert v["verdict"] == "differs" and v["within"] is False
+    far = linearisation_bound(scene, 1.0, poles)     # 1 m: past every contact's depth
+    assert felt_verdict({"felt_stiffness": 0.0, "felt_damping": 0.0},
+                        far)["verdict"] == "not measurable"

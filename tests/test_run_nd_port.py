@@ -162,6 +162,7 @@ def test_cli_mock_and_run_over_a_pty(capsys):
         assert out["deviation"][key] <= bound[key], (key, out["deviation"], bound,
                                                      out["late"])
     assert max(out["deviation"].values()) < 1e-4, (out["deviation"], out["late"])
+    assert out["verdict"] == "within", out["reason"]
 
 
 class _WithoutAppliedBit:

@@ -18,7 +18,8 @@ from hapsim.analysis.hand import (HAND_FIELDS, body_zoh, hand_stiffness, ideal_r
 from hapsim.analysis.loop import zoh_state_space
 from hapsim.errors import ConfigError
 
-__all__ = ["family_members", "full_members", "family_matrices", "family_poles"]
+__all__ = ["family_members", "full_members", "family_matrices", "family_poles",
+           "require_family_scene"]
 
 
 def family_members(scene, samples: int | None = None, *, grid: int = 9,
@@ -65,6 +66,32 @@ def full_members(mem) -> np.ndarray:
 
 
 
+def require_family_scene(scene) -> None:
+    """Refuse a scene whose hand family this module cannot build.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        No port or no device section (key ``masses`` / ``device``), or an ``audio``
+        section: the family's matrices step the virtual network at the device period
+        only, while a multi-rate scene's loop is the product of its audio sub-steps
+        (:mod:`hapsim.analysis.network`, multi-rate), so a family of it would judge
+        another loop.
+    """
+    if scene.port is None or scene.device is None:
+        raise ConfigError("a family needs a scene with a port and a device section",
+                          file=scene.path, key="device" if scene.port else "masses")
+    if getattr(scene, "audio", None) is not None:
+        raise ConfigError("a family of a scene with an audio section (the virtual network "
+                          "sub-stepped at audio.rate_hz) is not modelled; 'hapsim check' "
+                          "predicts this scene, or give the family a scene without audio",
+                          file=scene.path, key="audio")
+
+
 def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
     """Closed-loop state matrices of a scene for every member of its hand family.
 
@@ -96,9 +123,7 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     from hapsim.analysis.network import (check_integrator, closed_loop_frame, network,
                                          virtual_blocks, virtual_state_names)
 
-    if scene.port is None or scene.device is None:
-        raise ConfigError("a family needs a scene with a port and a device section",
-                          file=scene.path, key="device")
+    require_family_scene(scene)
     dev = scene.device
     mem = np.atleast_2d(np.asarray(mem, float))
     finite = np.isfinite(mem[:, 2])

@@ -67,8 +67,14 @@ def _links_at_port(scene: Scene):
 
 def _require_device(scene: Scene):
     if scene.port is None:
-        raise ConfigError("the scene has no port: nothing for a device to feel",
-                          file=scene.path, key="masses")
+        first = scene.masses[0] if scene.masses else None
+        kinds = sorted({m.kind for m in scene.masses})
+        raise ConfigError(
+            "the scene has no port: nothing for a device to feel (no mass is of kind "
+            f"'port'; its masses are {', '.join(map(repr, kinds)) or 'none'}): give the "
+            "handle's mass 'kind: port', or use 'hapsim check' or 'hapsim simulate', "
+            "which take a scene without one",
+            file=scene.path, line=(getattr(first, "line", 0) or None), key="masses")
     if scene.device is None:
         raise ConfigError("the scene has a port but no device section", file=scene.path,
                           key="device")

@@ -40,6 +40,10 @@ output:
   the THS (the paper's hand + handle): total mass and damping for this grip. hapsim
   reports that total; it does not split it into hand and device (a scene's hand model
   is another feature).
+--driver haply: before the excitation, a torque pulse of each sign (raised until the
+  encoder moves 3 counts, within --force-limit; zero torque after) finds the motor's
+  direction byte, written to --out's protocol_options (not probed when motor_direction is
+  given); the board's id is the host's choice (it answers any): nothing to identify.
 limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), sticks
   when the force cannot break it loose); the delay is a whole number of samples (a
   fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a
@@ -220,6 +224,9 @@ def run(args) -> int:
               mock_options=mopts)
     rep = identify_api(args.port, device=device, **kw)
     fit, rec = rep.fit, rep.record
+    if drv is not None and rec.get("protocol_options"):
+        # the driver as the record found it (the Haply motor direction, probed first)
+        drv = get_driver(args.driver, **rec["protocol_options"])
     scale = None
     if args.added_mass is not None:
         rep2 = identify_api(args.port, device=_loaded(device, args), **kw)
@@ -228,6 +235,14 @@ def run(args) -> int:
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
     text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
+    probe = rec["loop"].get("direction_probe")
+    if probe is not None:
+        tried = probe["motor_direction"] if probe["relative"] > 0 else 1 - probe["motor_direction"]
+        text = (f"# motor_direction {probe['motor_direction']} found before the excitation: "
+                f"{probe['torque'][0]:+.3g} N m moved the encoder {probe['counts'][0]:+d} "
+                f"counts with motor byte {tried} (encoder direction "
+                f"{drv.options().get('direction')}); the device id is the host's choice "
+                f"(the board answers any): nothing to identify\n") + text
     if scale is not None:
         opt = drv.scale_option
         text = (f"# {opt} found with {args.added_mass:g} kg added: {scale.full_scale:.6g} "

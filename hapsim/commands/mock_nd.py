@@ -3,6 +3,7 @@ on a new pseudo-terminal (:class:`hapsim.daemon.mock_nd.MockDeviceND`)."""
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import threading
@@ -10,8 +11,7 @@ import threading
 from hapsim.errors import ConfigError
 
 #: mock options a 2-D or 3-D scene's device does not take yet (refused by name, exit 2)
-_REFUSED = (("faults", "--faults"), ("link", "--link"), ("rate", "--rate"),
-            ("spec", "--spec"))
+_REFUSED = (("faults", "--faults"), ("link", "--link"), ("spec", "--spec"))
 
 
 def run_mock_nd(args, new_pty) -> int:
@@ -21,8 +21,9 @@ def run_mock_nd(args, new_pty) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``hapsim mock``'s options (``scene``, ``lockstep``, ``amplitude``, ``report``,
-        ``once``, ``rt_priority``, ``tick``).
+        ``hapsim mock``'s options (``scene``, ``lockstep``, ``amplitude``, ``rate`` (the
+        native rate HELLO announces [Hz]), ``report``, ``once``, ``rt_priority``,
+        ``tick``).
     new_pty : callable
         ``new_pty(link, announce) -> (master, slave)``: :mod:`hapsim.commands.mock`'s pty
         opener (prints ``PORT /dev/pts/N``).
@@ -36,7 +37,7 @@ def run_mock_nd(args, new_pty) -> int:
     ------
     ConfigError
         An option the n-D mock does not take; a scene without a port and device; a bad
-        amplitude (exit 2).
+        amplitude or rate (exit 2).
     """
     from hapsim.daemon.loop import StopFlag
     from hapsim.daemon.mock import serve_fd
@@ -50,7 +51,11 @@ def run_mock_nd(args, new_pty) -> int:
     rt = RealtimePriority(args.rt_priority or 0)
     scene = load_scene_nd(args.scene)
     a = DEFAULT_AMPLITUDE if args.amplitude is None else args.amplitude
-    mock = MockDeviceND(scene, a, lockstep=args.lockstep)
+    rate = getattr(args, "rate", None)
+    if rate is not None and not (math.isfinite(rate) and rate > 0):
+        raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
+    # --rate: the native rate HELLO announces; the physics follows each CONFIG's rate
+    mock = MockDeviceND(scene, a, lockstep=args.lockstep, native_rate_hz=rate)
     master, slave = new_pty(None, announce=True)
     # the raw settings stay with the pty; with no slave fd of its own the mock sees EIO
     # when a host closes the port (or dies). A run sends STOP after every record, so STOP

@@ -17,7 +17,8 @@ from hapsim.errors import ConfigError
 #: The run options (:class:`hapsim.daemon.options.RunOptions` fields) an n-D run takes;
 #: every other one set to anything but its default is refused by name, with exit 2
 #: (``--driver`` takes ``haply`` on a pantograph scene: the emulated 2DIY board).
-ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver")
+ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
+            "rate_hz")
 
 #: ``hapsim run``'s own options (not run options) an n-D scene does not take.
 _REFUSED = (("device", "--device"), ("auto", "--auto"))
@@ -133,8 +134,9 @@ def run_nd(args) -> int:
         return 0
     o = sys.stdout
     if in_process:
-        print(f"{scene.path}: {n}-D scene in lockstep, in-process (engine, exact ZOH device "
-              f"of the Cartesian mass at rest, delay {scene.device.delay})", file=o)
+        print(f"{scene.path}: {n}-D scene in lockstep at {scene.rate_hz:g} Hz, in-process "
+              f"(engine, exact ZOH device of the Cartesian mass at rest, delay "
+              f"{scene.device.delay})", file=o)
     else:
         print(f"{scene.path}: {n}-D scene {where}, {n} axes on the framed protocol "
               f"(device delay {res['delay'][0]} ticks from seq - force_seq)", file=o)
@@ -181,6 +183,9 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
+    from hapsim.lockstep_nd import felt_verdict
+    v = felt_verdict(dev, bound)
+    print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
 
 
@@ -206,7 +211,8 @@ def _measure_over_port(args, scene, a: float, n: int):
     port = args.port
     if port is None:
         cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
-               "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0))]
+               "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0)),
+               "--rate", repr(float(scene.rate_hz))]
         if args.lockstep:
             cmd.append("--lockstep")
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -286,7 +292,8 @@ def _run_haply2(args) -> int:
         try:
             if realtime:
                 from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
-                child = Embedded2DIY(args.scene, "gen3", amplitude=a, cpr=HAPLY_CPR)
+                child = Embedded2DIY(args.scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                                     rate_hz=scene.rate_hz)
                 gc_was = gc.isenabled()
                 try:
                     gc.disable()                 # no collection while the clock runs
@@ -314,7 +321,8 @@ def _run_haply2(args) -> int:
             return None if x is None else np.asarray(x, float).tolist()
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
-            "lockstep": not realtime, "amplitude": a, "emulated_cpr": HAPLY_CPR,
+            "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
+            "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
                 "replies": res["replies"], "writes": res["writes"]} if realtime else {}),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
@@ -379,18 +387,26 @@ def _run_haply2(args) -> int:
 
 
 def _amplitude_and_scene(args, default: float):
-    """``--amplitude`` (``default`` when absent) checked, and the scene with its port.
+    """``--amplitude`` (``default`` when absent) checked, and the scene with its port, at
+    ``--rate`` when given (the loop's rate overridden, as for a 1-D scene: the prediction,
+    the engine, the device and its mock all at that rate).
 
     Raises
     ------
     ConfigError
-        A non-positive amplitude; a scene without a port (file, key).
+        A non-positive amplitude or rate; a scene without a port (file, key).
     """
     from hapsim.scene_nd import load_scene_nd
     a = default if getattr(args, "amplitude", None) is None else args.amplitude
     if not (math.isfinite(a) and a > 0):
         raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
     scene = load_scene_nd(args.scene)
+    rate = getattr(args, "rate_hz", None)
+    if rate is not None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
+        import dataclasses
+        scene = dataclasses.replace(scene, rate_hz=float(rate))
     if scene.port is None:
         raise ConfigError("a run needs a mass of kind 'port' and a device section",
                           file=scene.path, key="masses")

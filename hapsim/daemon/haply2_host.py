@@ -339,6 +339,8 @@ class Embedded2DIY(PtyChild):
     slow_every : int, optional
         Every ``slow_every``-th write's reply waits ``slow_s`` [s] (a slow board; 0: none).
     slow_s : float, optional
+    rate_hz : float, optional
+        The loop's rate [Hz] (default the scene file's): the plant's period.
 
     Attributes
     ----------
@@ -347,7 +349,8 @@ class Embedded2DIY(PtyChild):
     """
 
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
-                 cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0) -> None:
+                 cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
+                 rate_hz: float | None = None) -> None:
         import pty
         import subprocess
         import tempfile
@@ -365,7 +368,7 @@ class Embedded2DIY(PtyChild):
                "--scene", str(scene_path), "--generation", generation, "--amplitude",
                repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
-               repr(float(slow_s))]
+               repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))]
         try:
             self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=child_env(),
                                          stdin=subprocess.DEVNULL, start_new_session=True)
@@ -414,9 +417,13 @@ def main(argv=None) -> int:
     p.add_argument("--report")
     p.add_argument("--slow-every", type=int, default=0)
     p.add_argument("--slow-s", type=float, default=0.0)
+    p.add_argument("--rate", type=float, default=0.0)
     a = p.parse_args(argv)
-    board = _SlowBoard(load_scene_nd(a.scene), a.generation, cpr=a.cpr or None,
-                       amplitude=a.amplitude)
+    scene = load_scene_nd(a.scene)
+    if a.rate:
+        import dataclasses
+        scene = dataclasses.replace(scene, rate_hz=a.rate)
+    board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude)
     board.slow_every, board.slow_s = a.slow_every, a.slow_s
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):

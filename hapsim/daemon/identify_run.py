@@ -365,7 +365,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     -------
     dict
         ``position``, ``force``, ``late``, ``time``, ``seq`` (arrays), ``period`` [s], ``loop``
-        (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``).
+        (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``,
+        ``direction_probe``: what a driver that finds its motor direction first found,
+        :class:`hapsim.drivers.haply_probe.DirectionProbe`, else None),
+        ``protocol_options`` (the driver's parameters, the direction found included).
         ``force`` is the force the device applied for each sample: what the host sent,
         on the actuator's grid when the device reports one (a driver's protocol
         resolution, or a framed device's ``HELLO.force_scale`` > 0 [N], the nearest
@@ -378,6 +381,9 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         Bad values (:func:`excitation_plan`), an unknown transport.
     DeviceError, ProtocolError
         As :meth:`hapsim.daemon.loop.HostLoop.run`.
+    IdentificationError
+        The Haply joint's motor direction cannot be found (it does not move under the
+        probe's torque pulses, or moves the same way under both signs).
     """
     from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
     from hapsim.daemon.mock import DEFAULT_DEVICE, MockDevice
@@ -408,6 +414,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         drv = get_driver(driver, **(driver_options or {}))
         drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
+    probe = None
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
@@ -416,6 +423,13 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
                                               options=(mock_options if mock_options is not None
                                                        else drv.mock_hardware()))
+            if getattr(drv, "probes_direction", False) and \
+                    "motor_direction" not in (driver_options or {}):
+                # a wrong motor direction makes the excitation run away: find it first
+                # (unless it is given: a device file's, or --protocol-option)
+                drv, probe = _probe_direction(drv, port or embedded.port, force_limit,
+                                              envelope, rate_hz, port is None)
+            if port is None:
                 # paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
                 embedded.release_slave()
@@ -499,5 +513,19 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
-                     "driver": tr.report() if use_driver else None},
+                     "driver": tr.report() if use_driver else None,
+                     "direction_probe": None if probe is None else probe.to_dict()},
             "protocol_options": drv.options() if use_driver else None}
+
+
+def _probe_direction(drv, port: str, force_limit: float, envelope: float, rate_hz: float,
+                     mock: bool):
+    """The driver with the motor direction found by a torque pulse of each sign
+    (:func:`hapsim.drivers.haply_probe.probe_port`), and what was found."""
+    from hapsim.drivers import get_driver
+    from hapsim.drivers.haply_probe import probe_port
+    # a mock advances one period per write, however slowly it runs: wait for it, unpaced
+    found = probe_port(drv, port, force_limit=force_limit, envelope=envelope,
+                       rate_hz=rate_hz, timeout=0.5 if mock else 0.05, pace=not mock)
+    return get_driver(drv.name, **{**drv.options(),
+                                   "motor_direction": found.motor_direction}), found

@@ -28,6 +28,7 @@ felt matrices (:mod:`hapsim.daemon.run_nd`) asks HELLO and then runs ``2n + 1`` 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -177,16 +178,18 @@ class MockDeviceND(MockDevice):
         return ph.sample()
 
     def _on_config(self, msg: fp.Config, now_us: int) -> list:
-        if not self._config_ok(msg) or \
-                abs(msg.rate_hz - self.scene.rate_hz) > 1e-9 * self.scene.rate_hz:
-            # (the joint-space physics is built at the scene's period)
+        if not self._config_ok(msg):
             self.stats.faults.append("BAD_CONFIG")
             return [fp.Fault(fp.FAULT_BAD_CONFIG, 0)]
         self.rate_hz = float(msg.rate_hz)
+        # the physics at the CONFIG's period (the host's rate, which may be another than
+        # the scene's: hapsim run --rate)
+        scene = (self.scene if self.rate_hz == self.scene.rate_hz
+                 else dataclasses.replace(self.scene, rate_hz=self.rate_hz))
         self.watchdog_us = int(msg.watchdog_us)
         self.force_limit = float(msg.force_limit)
         starts = excitation_starts(self.dim, self.amplitude, 1.0 / self.rate_hz)
         x0, v0 = starts[self.configs_since_hello % len(starts)]
         self.configs_since_hello += 1
-        self.physics = PhysicsND(self.scene, x0, v0, joint_space=self.joint_space)
+        self.physics = PhysicsND(scene, x0, v0, joint_space=self.joint_space)
         return self._armed(now_us)

@@ -76,7 +76,8 @@ Haply M3 protocol limits (hapsim --driver haply):
 
 
 def setup_packet(device_id: int, *, motor_port: int = 1, encoder_port: int = 1,
-                 direction: int = 0, offset_deg: float = 0.0, resolution: float = 4880.0) -> bytes:
+                 direction: int = 0, offset_deg: float = 0.0, resolution: float = 4880.0,
+                 motor_direction: int | None = None) -> bytes:
     """Set-up command for one motor and one encoder (module notes).
 
     Parameters
@@ -85,7 +86,10 @@ def setup_packet(device_id: int, *, motor_port: int = 1, encoder_port: int = 1,
     motor_port, encoder_port : int, 1..4
         Board ports.
     direction : {0, 1}
-        Rotational direction byte of both.
+        Rotational direction byte of the encoder (and of the motor when
+        ``motor_direction`` is None).
+    motor_direction : {0, 1}, optional
+        Rotational direction byte of the motor.
     offset_deg : float
         Encoder offset [deg].
     resolution : float
@@ -95,7 +99,8 @@ def setup_packet(device_id: int, *, motor_port: int = 1, encoder_port: int = 1,
     -------
     bytes
     """
-    return (bytes([CMD_SETUP, device_id & 0xFF, 1 << (motor_port - 1), direction,
+    md = direction if motor_direction is None else motor_direction
+    return (bytes([CMD_SETUP, device_id & 0xFF, 1 << (motor_port - 1), md,
                    1 << (encoder_port - 1), direction, 0, 0])
             + _F.pack(offset_deg) + _F.pack(resolution))
 
@@ -384,13 +389,24 @@ class HaplyM3(Driver):
     Parameters
     ----------
     device_id : int, 1..255
-        The board's device id (0 is refused: after a reset every PWM pin's address is 0,
-        so a write to id 0 would be read as 14 PWM bytes first).
+        The address the host gives the joint's ports in the set-up and names in each
+        write (0 is refused: after a reset every PWM pin's address is 0, so a write to id
+        0 would be read as 14 PWM bytes first). The board has no id of its own: firmware
+        V1.5 stores the set-up's address and answers a write with the write's address, so
+        any id works and there is nothing to identify.
     resolution : float > 0
         Encoder counts per revolution (sent in the set-up).
     direction : {0, 1}
-        Rotational direction byte of the motor and the encoder (firmware CW = 0,
-        CCW = 1).
+        Rotational direction byte of the encoder (firmware CW = 0, CCW = 1: CCW swaps
+        the encoder's two pins, ``initialize_encoder``): the sense in which the angle
+        counts up, a choice of the host's.
+    motor_direction : {0, 1}, optional
+        Rotational direction byte of the motor (firmware ``create_torque``: it flips the
+        direction pin). Which byte makes a positive torque turn the joint the way its
+        angle counts up depends on the motor's and the encoder's wiring: ``hapsim
+        identify --driver haply`` finds it with a torque pulse of each sign
+        (:func:`hapsim.drivers.haply_probe.find_direction`); None: the same byte as
+        ``direction``. A wrong one is positive feedback: every spring pushes away.
     offset_deg : float
         The joint's angle when it is armed [deg]: the set-up sets the encoder's count to
         it (firmware ``initialize_encoder``), so angles are read from the pose the joint
@@ -415,10 +431,14 @@ class HaplyM3(Driver):
     unframed = True
     scale_option = "resolution"
     scale_kind = "position"
+    #: ``hapsim identify`` finds the motor direction first (:mod:`hapsim.drivers.
+    #: haply_probe`): a wrong one makes the excitation run away.
+    probes_direction = True
     answering_firmware = "Haply M3 firmware V1.5 layout (one reply per write)"
 
     def __init__(self, device_id: int = 1, resolution: float = 4880.0,
-                 direction: int = 0, offset_deg: float = 0.0) -> None:
+                 direction: int = 0, offset_deg: float = 0.0,
+                 motor_direction: int | None = None) -> None:
         from hapsim.errors import ConfigError
         if not 1 <= int(device_id) <= 255:
             raise ConfigError(f"device id must be 1..255 (0 is every PWM pin's address after "
@@ -429,6 +449,12 @@ class HaplyM3(Driver):
         if direction not in (0, 1):
             raise ConfigError(f"direction must be 0 (CW) or 1 (CCW), got {direction!r}",
                               key="direction")
+        if motor_direction is None:
+            motor_direction = direction
+        if motor_direction not in (0, 1):
+            raise ConfigError(f"motor direction must be 0 (CW) or 1 (CCW), got "
+                              f"{motor_direction!r}", key="motor_direction")
+        self.motor_direction = int(motor_direction)
         self.id = int(device_id)
         self.device_id = self.id
         # the board holds it as binary32
@@ -446,8 +472,11 @@ class HaplyM3(Driver):
         return self.resync(position)
 
     def mock_hardware(self) -> dict:
-        """The mock's encoder: this many counts per revolution."""
-        return {"cpr": self.resolution}
+        """The mock's encoder: this many counts per revolution; its wiring: the one these
+        direction bytes drive the right way (``motor_sign``, :class:`hapsim.driver_mock.
+        HaplyDevice`)."""
+        return {"cpr": self.resolution,
+                "motor_sign": 1 if self.motor_direction == self.direction else -1}
 
     def resync(self, position: float = 0.0) -> bytes:
         """Put the board back in step, zero torque first (module notes): a zero-torque
@@ -469,6 +498,7 @@ class HaplyM3(Driver):
         """
         zero = self.encode_force(0.0)
         setup = setup_packet(self.id, resolution=self.resolution, direction=self.direction,
+                             motor_direction=self.motor_direction,
                              offset_deg=math.degrees(position) if math.isfinite(position)
                              else 0.0)
         return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + setup + zero

@@ -129,7 +129,8 @@ class Device:
     protocol_options : dict, optional
         The device's parameters in its driver's terms (the keywords of the driver's
         constructor, :mod:`hapsim.drivers`: FireFader ``full_scale``, ``metres_per_count``,
-        ``axis``; Haply ``resolution``, ``direction``, ``device_id``, ``offset_deg``;
+        ``axis``; Haply ``resolution``, ``direction``, ``motor_direction``, ``device_id``,
+        ``offset_deg``;
         Hapkit-serial ``function``, ``force_limit``); a driver's protocol only.
     """
 
