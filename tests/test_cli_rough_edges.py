@@ -360,3 +360,16 @@ def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv,
     out, err = capsys.readouterr()
     msg = json.loads(out)["error"]["message"] if json_out else err
     assert "Traceback" not in msg and where in msg and fragment in msg, msg
+
+
+@pytest.mark.parametrize("command", ["family", "advise"])
+@pytest.mark.parametrize("name, line", [("pantograph_wall.yaml", 8), ("delta_mesh.yaml", 7),
+                                        ("delta_sphere.yaml", 5)])
+def test_nd_scene_to_a_1d_command_names_its_dimension(capsys, command, name, line):
+    """A 2-D or 3-D scene given to a command that takes 1-D scenes: exit 2 at the line of
+    ``dimension``, naming the commands that take it. The scenes with ``planes`` got
+    "unknown key 'planes'" (the keys were checked before the dimension)."""
+    assert main([command, str(ROOT / "configs" / name)]) == 2
+    err = capsys.readouterr().err
+    assert f"{name}:{line}: dimension: a " in err and "`run` and `mock` take it" in err, err
+    assert "unknown key" not in err
