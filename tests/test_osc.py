@@ -253,7 +253,7 @@ def test_run_osc_changes_the_running_daemon():
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     hst = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"osc-{os.getpid()}.hst")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
-                             "--duration", "2", "--rt-priority", "0", "--json",
+                             "--duration", "0", "--rt-priority", "0", "--json",
                              "--telemetry", hst],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
@@ -276,8 +276,10 @@ def test_run_osc_changes_the_running_daemon():
         addr, p = c.ask("/hapsim/felt")
         assert p[1] == pytest.approx(render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 400.0,
                                             3.0).b, rel=1e-6)
+        _ramped(c)
     finally:
-        rep = finish(proc)
+        rep = stop(proc)       # --duration 0: open-ended, until the signal
+    assert rep["loop"]["stop_reason"] == "signal SIGTERM"
     osc = rep["osc"]
     assert (osc["accepted"], osc["refused"]) == (1, 1)
     assert osc["links"]["wall"] == [400.0, 3.0]
@@ -306,7 +308,14 @@ def _readme_block(lang):
     return m.group(1)
 
 
-def _play_string(jack_server, duration):
+def _ramped(c, ramp_samples=200):
+    """Wait until the loop has played ``ramp_samples`` more samples (the default ramp,
+    0.05 s at the string's 1 kHz device rate, ends within them)."""
+    s0 = c.ask("/hapsim/loop")[1][0]
+    wait_for(c, "/hapsim/loop", lambda p: p[0] >= s0 + ramp_samples, "the ramp's end")
+
+
+def _play_string(jack_server, duration=LONG_S):
     """hapsim play on the shipped string, sound through the test's JACK server, OSC on."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", STRING, "--osc", "0",
@@ -334,14 +343,19 @@ def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
         pytest.skip("pd not installed: apt-get install puredata")
     patch_text = _readme_block("pd")
     assert "connect 127.0.0.1 9000;" in patch_text
-    proc, port = _play_string(jack_server, 3.0)
+    proc, port = _play_string(jack_server)
     patch = tmp_path / "readme.pd"
     patch.write_text(patch_text.replace("connect 127.0.0.1 9000;", f"connect 127.0.0.1 {port};"))
     pd = subprocess.Popen(["pd", "-nogui", "-nosound", "-open", str(patch)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        rep = finish(proc)
+        c = Client(port)
+        wait_for(c, "/hapsim/loop", lambda p: p[3] >= 2, "the patch's two changes")
+        _ramped(c)
+        rep = stop(proc)
     finally:
+        if proc.poll() is None:
+            proc.kill()
         pd.kill()
         pd_err = pd.communicate()[1]
     got = [(e["event"], e["address"], e["args"]) for e in rep["journal"]
@@ -361,7 +375,7 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
 
     lines = [ln for ln in _readme_block("supercollider").splitlines() if "sendMsg" in ln]
     assert len(lines) >= 4
-    proc, port = _play_string(jack_server, 5.0)
+    proc, port = _play_string(jack_server)
     c = Client(port)
     try:
         for ln in lines:
@@ -374,7 +388,8 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
             assert addr == want, (ln, addr, p)
             if want == "/hapsim/refused":
                 assert "unstable" in p[1], p
+        _ramped(c)
     finally:
-        rep = finish(proc)
+        rep = stop(proc)
     assert rep["links"]["pluck"] == [150.0, 2.0]
     assert rep["accepted"] == 3 and rep["refused"] == 1
