@@ -344,7 +344,8 @@ def test_static_stiffness_is_series_and_parallel_springs():
     (["run", "oscillator.yaml"], "oscillator.yaml:6: masses:", "give the handle's mass "
                                                                "'kind: port'"),
     # family read the missing device before its own check: an AttributeError traceback
-    (["family", "oscillator.yaml"], "oscillator.yaml: masses:", "needs a scene with a port"),
+    (["family", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
+    (["advise", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
     # family stepped the audio scene's network at 1 kHz only: "NOT ROBUSTLY STABLE
     # (certified)", spectral radius 597, for a scene check finds stable (0.9973)
     (["family", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
