@@ -344,10 +344,14 @@ def test_static_stiffness_is_series_and_parallel_springs():
     (["run", "oscillator.yaml"], "oscillator.yaml:6: masses:", "give the handle's mass "
                                                                "'kind: port'"),
     # family read the missing device before its own check: an AttributeError traceback
-    (["family", "oscillator.yaml"], "oscillator.yaml: masses:", "needs a scene with a port"),
+    (["family", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
+    (["advise", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
     # family stepped the audio scene's network at 1 kHz only: "NOT ROBUSTLY STABLE
     # (certified)", spectral radius 597, for a scene check finds stable (0.9973)
     (["family", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
+    # advise met a rate of its ladder the audio rate is no multiple of: "audio.rate_hz: ...
+    # 315 Hz", exit 2 as if the scene were bad; its matrices are single-rate too
+    (["advise", "audio_string.yaml"], "audio_string.yaml: audio:", "'hapsim check' predicts"),
 ])
 @pytest.mark.parametrize("json_out", [False, True])
 def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv, where,
@@ -360,3 +364,16 @@ def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv,
     out, err = capsys.readouterr()
     msg = json.loads(out)["error"]["message"] if json_out else err
     assert "Traceback" not in msg and where in msg and fragment in msg, msg
+
+
+@pytest.mark.parametrize("command", ["family", "advise"])
+@pytest.mark.parametrize("name, line", [("pantograph_wall.yaml", 8), ("delta_mesh.yaml", 7),
+                                        ("delta_sphere.yaml", 5)])
+def test_nd_scene_to_a_1d_command_names_its_dimension(capsys, command, name, line):
+    """A 2-D or 3-D scene given to a command that takes 1-D scenes: exit 2 at the line of
+    ``dimension``, naming the commands that take it. The scenes with ``planes`` got
+    "unknown key 'planes'" (the keys were checked before the dimension)."""
+    assert main([command, str(ROOT / "configs" / name)]) == 2
+    err = capsys.readouterr().err
+    assert f"{name}:{line}: dimension: a " in err and "`run` and `mock` take it" in err, err
+    assert "unknown key" not in err

@@ -81,6 +81,13 @@ def test_site_builds_with_warnings_as_errors(tmp_path):
     page = (site / "reliability" / "index.html").read_text()
     assert f"{soak['lost']} / {soak['recovered']}" in page
     assert "{{" not in page
+    loss = json.loads((DOCS / "driver_loss.json").read_text())
+    page = (site / "drivers" / "index.html").read_text()
+    for drv, s in loss["summary"].items():     # the page's counts are the file's
+        assert f"{s['within']} of {s['runs']} within" in page, drv
+    for r in loss["runs"]:                      # and each run is in its table
+        assert r["k_rel"] is None or f"{100 * r['k_rel']:+.3f} %" in page, r
+    assert "{{" not in page
 
 
 def test_marked_blocks_exist_on_the_pages_a_user_reads_first():

@@ -1,7 +1,8 @@
 """Live control over OSC: ``hapsim play --osc`` driven by a python-osc client and by Pd.
 
-Each test starts the daemon as a child process (real time, no sound), sends changes (one of
-them unstable) and checks: the accepted ones are applied (the scene's links at the end, and
+Each test starts the daemon as a child process (real time, no sound, a duration far longer
+than the test needs), sends changes (one of them unstable), waits for their replies and
+effects however long a loaded machine takes, then ends the daemon by SIGTERM and checks: the accepted ones are applied (the scene's links at the end, and
 the felt k measured from the free responses after the change equals the prediction for the
 new (K, B) to 1e-6 relative), the refused one is not (answer /hapsim/refused with the
 reason), everything is journaled.
@@ -12,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -31,7 +33,12 @@ SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def start_daemon(duration, extra=()):
+#: The daemons' --duration [s]: never reached; the tests end them by a signal (:func:`stop`)
+#: once their replies are in, so a loaded machine cannot end the play before them.
+LONG_S = 600.0
+
+
+def start_daemon(duration=LONG_S, extra=()):
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", SCENE, "--osc", "0",
                              "--sound", "none", "--duration", str(duration),
@@ -53,6 +60,27 @@ def finish(proc):
         return json.loads(out)
     except ValueError:
         pytest.fail(f"not one JSON report on stdout: {out[:300]!r}; stderr: {err[-500:]}")
+
+
+def stop(proc, sig=signal.SIGTERM):
+    """End a daemon by ``sig`` (unless it ended already); its JSON report."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    return finish(proc)
+
+
+def wait_for(c, address, done, what, timeout=60.0):
+    """Ask ``address`` until ``done(params)`` (a loaded machine's pace), at most ``timeout``
+    seconds; the last params."""
+    deadline = time.monotonic() + timeout
+    while True:
+        addr, p = c.ask(address)
+        assert addr == address, (addr, p)
+        if done(p):
+            return p
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout:g} s (last {address} {p})")
+        time.sleep(0.05)
 
 
 def felt_k(K, B):
@@ -87,7 +115,7 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
     position the run logged at sample t * rate (its --telemetry file) and the felt k of
     the scene in force."""
     tel_file = str(tmp_path / "tel.npz")
-    proc, port = start_daemon(2.6, extra=("--telemetry", tel_file))
+    proc, port = start_daemon(extra=("--telemetry", tel_file))
     c = Client(port)
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
@@ -105,19 +133,17 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
         assert addr == "/hapsim/refused" and "nowhere" in p[1]
         addr, p = c.ask("/hapsim/mass", "wall", 1.0)                  # a ground
         assert addr == "/hapsim/refused"
-        deadline = time.monotonic() + 20.0   # a pluck after the ramp: a free response
-        while True:
-            addr, p = c.ask("/hapsim/felt")
-            if p[4] == p[4] or time.monotonic() > deadline:     # measured (not NaN)
-                break
-            time.sleep(0.1)
-        assert addr == "/hapsim/felt"
+        # a pluck after the ramp: a free response, measured (not NaN)
+        p = wait_for(c, "/hapsim/felt", lambda p: p[4] == p[4], "no free response measured")
         assert p[0] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
         assert p[4] == pytest.approx(p[0], rel=1e-6)                  # measured = predicted
         addr, p = c.ask("/hapsim/loop")
         assert addr == "/hapsim/loop" and p[2] == 1 and p[3] == 1 and p[4] == 3
+        # 0.8 s of samples played since the stream was asked for (at the start): 80 /hapsim/tel
+        wait_for(c, "/hapsim/loop", lambda p: p[0] >= 800, "800 samples")
     finally:
-        rep = finish(proc)
+        rep = stop(proc)
+    assert rep["stop_reason"] == "signal SIGTERM"
     assert rep["links"]["wall"] == [700.0, 1.0]
     assert rep["measured"]["k"] == pytest.approx(felt_k(700.0, 1.0), rel=1e-6)
     _check_telemetry_stream(sink, tel_file, rep["rate_hz"])
@@ -143,7 +169,7 @@ def _check_telemetry_stream(sink, tel_file, rate):
     with np.load(tel_file) as z:
         pos = z["position"]
     tel = [m.params for m in msgs if m.address == "/hapsim/tel"]
-    assert len(tel) > 50, len(tel)               # 100 Hz over ~2.6 s
+    assert len(tel) > 50, len(tel)               # 100 Hz over >= 0.8 s
     n = np.array([round(t * rate) for t, *_ in tel])
     x = np.array([p[1] for p in tel])
     np.testing.assert_allclose(x, pos[n].astype(np.float32), rtol=1e-6, atol=1e-12)
@@ -186,20 +212,43 @@ def test_pd_patch_sends_changes_over_osc(tmp_path):
     and quits from inside the patch."""
     if shutil.which("pd") is None:
         pytest.skip("pd not installed: apt-get install puredata")
-    proc, port = start_daemon(2.4)
+    proc, port = start_daemon()
     patch = tmp_path / "send.pd"
     patch.write_text(PATCH.format(port=port))
     try:
         pd = subprocess.run(["pd", "-nogui", "-nosound", "-open", str(patch)],
-                            capture_output=True, text=True, timeout=30)
+                            capture_output=True, text=True, timeout=60)
         assert pd.returncode == 0, pd.stderr
+        c = Client(port)     # both changes answered, then a free response measured after them
+        wait_for(c, "/hapsim/loop", lambda p: (p[3], p[4]) == (1, 1), "Pd's two changes")
+        wait_for(c, "/hapsim/felt", lambda p: p[4] == p[4], "no free response measured")
     finally:
-        rep = finish(proc)
+        rep = stop(proc)
     assert rep["links"]["wall"] == [600.0, 1.0]
     got = [(e["event"], e["args"]) for e in rep["journal"] if e["event"] in ("accepted", "refused")]
     assert got == [("accepted", ["wall", 600.0]), ("refused", ["wall", 1e6])], got
     assert rep["felt"]["k"] == pytest.approx(felt_k(600.0, 1.0), rel=1e-9)
     assert rep["measured"]["k"] == pytest.approx(rep["felt"]["k"], rel=1e-6)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_play_ends_on_a_signal_with_its_report(tmp_path, sig):
+    """SIGINT (Ctrl-C) or SIGTERM mid-play, as hapsim run: the loop ends, the report (JSON
+    alone on stdout) covers what was played, with the signal as stop reason, the telemetry
+    file holds exactly those samples, exit 0."""
+    import numpy as np
+
+    tel_file = str(tmp_path / "tel.npz")
+    proc, port = start_daemon(extra=("--telemetry", tel_file))
+    try:
+        played = wait_for(Client(port), "/hapsim/loop", lambda p: p[0] >= 300, "300 samples")[0]
+    finally:
+        rep = stop(proc, sig)
+    assert rep["stop_reason"] == f"signal {sig.name}"
+    assert played <= rep["samples"] < LONG_S * rep["rate_hz"]
+    with np.load(tel_file) as z:
+        assert z["position"].size == z["force"].size == rep["samples"]
+        assert np.all(np.isfinite(z["position"])) and np.any(z["position"] != 0)
 
 
 def test_run_osc_changes_the_running_daemon():
@@ -208,7 +257,7 @@ def test_run_osc_changes_the_running_daemon():
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     hst = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"osc-{os.getpid()}.hst")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
-                             "--duration", "2", "--rt-priority", "0", "--json",
+                             "--duration", "0", "--rt-priority", "0", "--json",
                              "--telemetry", hst],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
@@ -231,8 +280,10 @@ def test_run_osc_changes_the_running_daemon():
         addr, p = c.ask("/hapsim/felt")
         assert p[1] == pytest.approx(render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 400.0,
                                             3.0).b, rel=1e-6)
+        _ramped(c)
     finally:
-        rep = finish(proc)
+        rep = stop(proc)       # --duration 0: open-ended, until the signal
+    assert rep["loop"]["stop_reason"] == "signal SIGTERM"
     osc = rep["osc"]
     assert (osc["accepted"], osc["refused"]) == (1, 1)
     assert osc["links"]["wall"] == [400.0, 3.0]
@@ -261,7 +312,14 @@ def _readme_block(lang):
     return m.group(1)
 
 
-def _play_string(jack_server, duration):
+def _ramped(c, ramp_samples=200):
+    """Wait until the loop has played ``ramp_samples`` more samples (the default ramp,
+    0.05 s at the string's 1 kHz device rate, ends within them)."""
+    s0 = c.ask("/hapsim/loop")[1][0]
+    wait_for(c, "/hapsim/loop", lambda p: p[0] >= s0 + ramp_samples, "the ramp's end")
+
+
+def _play_string(jack_server, duration=LONG_S):
     """hapsim play on the shipped string, sound through the test's JACK server, OSC on."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", STRING, "--osc", "0",
@@ -289,14 +347,19 @@ def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
         pytest.skip("pd not installed: apt-get install puredata")
     patch_text = _readme_block("pd")
     assert "connect 127.0.0.1 9000;" in patch_text
-    proc, port = _play_string(jack_server, 3.0)
+    proc, port = _play_string(jack_server)
     patch = tmp_path / "readme.pd"
     patch.write_text(patch_text.replace("connect 127.0.0.1 9000;", f"connect 127.0.0.1 {port};"))
     pd = subprocess.Popen(["pd", "-nogui", "-nosound", "-open", str(patch)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        rep = finish(proc)
+        c = Client(port)
+        wait_for(c, "/hapsim/loop", lambda p: p[3] >= 2, "the patch's two changes")
+        _ramped(c)
+        rep = stop(proc)
     finally:
+        if proc.poll() is None:
+            proc.kill()
         pd.kill()
         pd_err = pd.communicate()[1]
     got = [(e["event"], e["address"], e["args"]) for e in rep["journal"]
@@ -316,7 +379,7 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
 
     lines = [ln for ln in _readme_block("supercollider").splitlines() if "sendMsg" in ln]
     assert len(lines) >= 4
-    proc, port = _play_string(jack_server, 5.0)
+    proc, port = _play_string(jack_server)
     c = Client(port)
     try:
         for ln in lines:
@@ -329,7 +392,8 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
             assert addr == want, (ln, addr, p)
             if want == "/hapsim/refused":
                 assert "unstable" in p[1], p
+        _ramped(c)
     finally:
-        rep = finish(proc)
+        rep = stop(proc)
     assert rep["links"]["pluck"] == [150.0, 2.0]
     assert rep["accepted"] == 3 and rep["refused"] == 1

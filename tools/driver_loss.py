@@ -4,6 +4,12 @@ Usage::
 
     python tools/driver_loss.py [--drivers haply firefader] [--seeds 1 2 3 4]
                                 [--drop-tx 0.005] [--drop-rx 0] [--corrupt-tx 0]
+                                [--json [PATH]]
+
+``--json`` alone writes the JSON to stdout (and nothing else there); ``--json PATH`` writes
+it to a file (``docs/driver_loss.json``, quoted by ``docs/drivers.md``) and prints the
+human-readable lines as well. The file holds the run conditions (command, faults, seeds,
+load average, CPU count), one row per run and a summary per driver (runs within, ranges).
 
 For each driver and seed, runs ``configs/<driver>.yaml`` through its mock
 (:func:`hapsim.daemon.runner.run_scene` with ``driver_faults``) and prints the bytes the
@@ -19,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 
@@ -29,8 +36,10 @@ def main(argv=None) -> int:
     p.add_argument("--drop-tx", type=float, default=1 / 200)
     p.add_argument("--drop-rx", type=float, default=0.0)
     p.add_argument("--corrupt-tx", type=float, default=0.0)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", nargs="?", const="-", default=None, metavar="PATH",
+                   help="JSON to stdout (bare) or to PATH")
     a = p.parse_args(argv)
+    load_before = _load()
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rows = []
@@ -55,7 +64,7 @@ def main(argv=None) -> int:
                    "samples_used": m.get("samples_used"),
                    "within": m.get("within"), "error": m.get("error")}
             rows.append(row)
-            if not a.json:
+            if a.json != "-":
                 def pct(v):
                     return "   -   " if v is None else f"{v * 100:+.3f}%"
                 print(f"{drv:10s} seed {seed}: missing {row['missing']:4d} (estimated "
@@ -67,10 +76,74 @@ def main(argv=None) -> int:
                       f"late accounted {row['late_accounted'] or 0}, within "
                       f"{row['within']}{'; ' + row['error'] if row['error'] else ''}",
                       flush=True)
-    if a.json:
-        json.dump(rows, sys.stdout, indent=1)
+    if a.json is None:
+        return 0
+    out = {"command": "python tools/driver_loss.py " + " ".join(argv if argv is not None
+                                                               else sys.argv[1:]),
+           "faults": {"drop_tx": a.drop_tx, "drop_rx": a.drop_rx,
+                      "corrupt_tx": a.corrupt_tx},
+           "seeds": a.seeds, "load_before": load_before, "load_after": _load(),
+           "cpus": os.cpu_count(), "runs": rows, "summary": summarize(rows)}
+    if a.json == "-":
+        json.dump(out, sys.stdout, indent=1)
         print()
+    else:
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+            f.write("\n")
     return 0
+
+
+def _load():
+    """The 1-minute load average, or None where the platform has none."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
+
+
+def _span(vals):
+    vals = [v for v in vals if v is not None]
+    return {"min": min(vals), "max": max(vals)} if vals else None
+
+
+def summarize(rows):
+    """Per driver: the runs, how many measured within the stated uncertainty, and the
+    ranges of |k|, |b| relative errors, their stated half-widths, the estimated samples'
+    worst-case share and the estimated samples per run.
+
+    Parameters
+    ----------
+    rows : list of dict
+        The rows :func:`main` measures (one per driver and seed).
+
+    Returns
+    -------
+    dict
+        ``{driver: {"runs", "within", "measured", "abs_k_rel", "abs_b_rel", "k_half_rel",
+        "b_half_rel", "k_bound_rel", "b_bound_rel", "k_bound_share", "b_bound_share",
+        "estimated"}}`` (``*_bound_share``: the worst case's share of the half-width), each range a
+        ``{"min", "max"}`` (None where no run measured it); relative values are fractions.
+    """
+    out = {}
+    for drv in dict.fromkeys(r["driver"] for r in rows):
+        rs = [r for r in rows if r["driver"] == drv]
+        out[drv] = {
+            "runs": len(rs), "within": sum(1 for r in rs if r["within"] is True),
+            "measured": sum(1 for r in rs if r["k_rel"] is not None),
+            "abs_k_rel": _span([abs(r["k_rel"]) for r in rs if r["k_rel"] is not None]),
+            "abs_b_rel": _span([abs(r["b_rel"]) for r in rs if r["b_rel"] is not None]),
+            "k_half_rel": _span([r["k_half_rel"] for r in rs]),
+            "b_half_rel": _span([r["b_half_rel"] for r in rs]),
+            "k_bound_rel": _span([r["k_bound_rel"] for r in rs]),
+            "b_bound_rel": _span([r["b_bound_rel"] for r in rs]),
+            "k_bound_share": _span([r["k_bound_rel"] / r["k_half_rel"] for r in rs
+                                    if r["k_half_rel"]]),
+            "b_bound_share": _span([r["b_bound_rel"] / r["b_half_rel"] for r in rs
+                                    if r["b_half_rel"]]),
+            "estimated": _span([r["estimated"] for r in rs]),
+        }
+    return out
 
 
 if __name__ == "__main__":

@@ -813,7 +813,6 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         raise IdentificationError("the fit diverged (non-finite model): the record does "
                                   "not determine the device (raise --force-limit or "
                                   "--duration, or check the device's delay)")
-    cov = _hac(J, r, lag, n_nuis)
     # the model output's own uncertainty per sample: a fitted linear model of k
     # parameters carries k/N of the error variance on average
     delta = float(np.sqrt(np.mean(r * r) * (p.size + n_nuis) / max(r.size, 1)))
@@ -824,10 +823,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     n_lo = _noise(xi, ym, q.value, 2.0 * delta, z, p.size + n_nuis)
     noise = Estimate(noise.value, min(noise.lo, n_lo.lo), max(noise.hi, n_hi.hi), "m")
     # a quantised record: the quantiser's effect on the estimates, from replicates of the
-    # record through the same encoder (_grid_replicates); each interval is the union of
-    # the linearised one and the replicates' bias-corrected prediction interval,
-    # theta - bias +- t_(R-1) s sqrt(1 + 1/R) (the bias itself estimated from R
-    # replicates: Student's t, R - 1 degrees of freedom)
+    # record through the same encoder (_grid_replicates, in intervals() below)
     # encoder steps on the fitted stretches: between two steps a quantised record only
     # says the device is inside one cell
     counts = -1
@@ -843,53 +839,81 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                 f"motion, for {n_par} parameters (each stretch's position and velocity, "
                 f"the mass and frictions); between steps the encoder only says the "
                 f"handle is inside one cell (raise --force-limit or --duration)")
-    boot = None
-    if q.value > 0:
-        boot = _grid_replicates(mod, ym, p, q.value, noise.value)
-        if boot.shape[0] < REPLICATES // 2:
-            raise IdentificationError(
-                f"the record does not determine the device: fitted again through the same "
-                f"{q.value * 1e6:.3g} um encoder, {REPLICATES - boot.shape[0]} of "
-                f"{REPLICATES} replicates of it fail (raise --force-limit or --duration)")
     t_q = float(student_t.ppf(0.5 + LEVEL / 2, max(REPLICATES - 1, 1)))
 
-    def interval(w, unit, log=False):
-        """Estimate of ``w . p`` (``exp`` of it when ``log``) with its interval."""
-        v = float(w @ p)
-        h = z * math.sqrt(max(float(w @ cov @ w), 0.0))
-        lo, hi = v - h, v + h
-        if boot is not None and boot.shape[0] >= 2:
-            b = boot @ w
-            bias = float(np.mean(b)) - v
-            hb = t_q * float(np.std(b, ddof=1)) * math.sqrt(1.0 + 1.0 / b.size)
-            lo, hi = min(lo, v - bias - hb), max(hi, v - bias + hb)
-        if log:
-            return Estimate(math.exp(v), math.exp(lo), math.exp(hi), unit)
-        return Estimate(v, lo, hi, unit)
+    def intervals(mod_c, ym_c, p_c, J_c, nn_c):
+        """(mass, fric, cp, cn, cm, asym) of one candidate: the union of the linearised
+        interval and, on a quantised record, the replicates' bias-corrected prediction
+        interval ``theta - bias +- t_(R-1) s sqrt(1 + 1/R)`` (the bias itself estimated
+        from R replicates: Student's t, R - 1 degrees of freedom)."""
+        cov_c = _hac(J_c, ym_c - x[mod_c.idx], lag, nn_c)
+        boot = None
+        if q.value > 0:
+            boot = _grid_replicates(mod_c, ym_c, p_c, q.value, noise.value)
+            if boot.shape[0] < REPLICATES // 2:
+                raise IdentificationError(
+                    f"the record does not determine the device: fitted again through the "
+                    f"same {q.value * 1e6:.3g} um encoder, {REPLICATES - boot.shape[0]} of "
+                    f"{REPLICATES} replicates of it fail (raise --force-limit or "
+                    f"--duration)")
 
-    def unit_vec(*pairs):
-        w = np.zeros(p.size)
-        for j, c in pairs:
-            w[j] = c
-        return w
+        def interval(pairs, unit, log=False):
+            w = np.zeros(p_c.size)
+            for j, c in pairs:
+                w[j] = c
+            v = float(w @ p_c)
+            h = z * math.sqrt(max(float(w @ cov_c @ w), 0.0))
+            lo, hi = v - h, v + h
+            if boot is not None and boot.shape[0] >= 2:
+                bb = boot @ w
+                bias = float(np.mean(bb)) - v
+                hb = t_q * float(np.std(bb, ddof=1)) * math.sqrt(1.0 + 1.0 / bb.size)
+                lo, hi = min(lo, v - bias - hb), max(hi, v - bias + hb)
+            if log:
+                return Estimate(math.exp(v), math.exp(lo), math.exp(hi), unit)
+            return Estimate(v, lo, hi, unit)
+        out = [interval([(0, 1.0)], "kg", log=True), interval([(1, 1.0)], "N s/m")]
+        if mod_c.coulomb:
+            out += [interval([(2, 1.0)], "N"), interval([(3, 1.0)], "N"),
+                    interval([(2, 0.5), (3, 0.5)], "N"), interval([(2, 1.0), (3, -1.0)], "N")]
+        else:
+            out += [Estimate(0.0, 0.0, 0.0, "N")] * 4
+        return out
     m = math.exp(p[0])
-    mass = interval(unit_vec((0, 1.0)), "kg", log=True)
+    mass, fric, cp, cn, cm, asym = intervals(mod, ym, p, J, n_nuis)
+    # a hold the data cannot rule out: its own intervals (its model confounds the
+    # frictions differently: the idealised image has no Coulomb term, which its b0
+    # absorbs) join the best's
+    rival = [c for c in cands if c["hold"] != best["hold"] and close(c)]
+    if rival:
+        c = min(rival, key=lambda c_: c_["cost"])
+        if c.get("_ref") is not None:
+            ym_r, p_r, J_r, nn_r, _ = c["_ref"]
+        else:
+            ym_r, p_r, J_r, nn_r = c["_mod"].full(c["_res"].x)
+        if (np.all(np.isfinite(J_r)) and np.all(np.isfinite(ym_r))
+                and np.all(np.isfinite(p_r))):
+            try:
+                o = intervals(c["_mod"], ym_r, p_r, J_r, nn_r)
+            except IdentificationError:
+                o = None
+            if o is not None:
+                mass = Estimate(mass.value, min(mass.lo, o[0].lo), max(mass.hi, o[0].hi),
+                                "kg")
+                fric = Estimate(fric.value, min(fric.lo, o[1].lo), max(fric.hi, o[1].hi),
+                                "N s/m")
+                if mod.coulomb:
+                    cp, cn, cm, asym = (
+                        Estimate(e.value, min(e.lo, f_.lo), max(e.hi, f_.hi), "N")
+                        for e, f_ in zip((cp, cn, cm, asym), o[2:]))
     if not mass.hi < MASS_SPAN * mass.lo:
-        # every prediction rests on the mass: one not known within a factor MASS_SPAN is
-        # not a device to write down
+        # every prediction rests on the mass: one not known within a factor MASS_SPAN
+        # (under the holds the data cannot tell apart) is not a device to write down
         raise IdentificationError(
             f"the record does not determine the mass: {mass.value:.3g} kg, interval "
             f"[{mass.lo:.3g}, {mass.hi:.3g}] kg at {LEVEL:.1%} (more than a factor "
             f"{MASS_SPAN:g}{f'; {counts} encoder steps of motion' if counts >= 0 else ''})"
             f" -- raise --force-limit or --duration")
-    fric = interval(unit_vec((1, 1.0)), "N s/m")
-    if mod.coulomb:
-        cp = interval(unit_vec((2, 1.0)), "N")
-        cn = interval(unit_vec((3, 1.0)), "N")
-        cm = interval(unit_vec((2, 0.5), (3, 0.5)), "N")
-        asym = interval(unit_vec((2, 1.0), (3, -1.0)), "N")
-    else:
-        cp = cn = cm = asym = Estimate(0.0, 0.0, 0.0, "N")
     x0 = float(x[0])
     # a delay or a hold the data cannot rule out moves the estimates: the intervals cover
     # the estimates under every such candidate (each widened by the best fit's lower and

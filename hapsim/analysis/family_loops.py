@@ -83,8 +83,11 @@ def require_family_scene(scene) -> None:
         another loop.
     """
     if scene.port is None or scene.device is None:
-        raise ConfigError("a family needs a scene with a port and a device section",
-                          file=scene.path, key="device" if scene.port else "masses")
+        first = getattr(scene.masses[0], "line", 0) if scene.masses else 0
+        raise ConfigError("a family needs a scene with a port (a mass of kind 'port') and a "
+                          "device section", file=scene.path,
+                          line=None if scene.port else (first or None),
+                          key="device" if scene.port else "masses")
     if getattr(scene, "audio", None) is not None:
         raise ConfigError("a family of a scene with an audio section (the virtual network "
                           "sub-stepped at audio.rate_hz) is not modelled; 'hapsim check' "

@@ -293,7 +293,8 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     Raises
     ------
     ConfigError
-        Non-positive tolerance, margin outside (0, 1], a scene without port or device.
+        Non-positive tolerance, margin outside (0, 1], a scene without port or device, a
+        scene with an audio section (multi-rate: not modelled here).
 
     Notes
     -----
@@ -308,8 +309,17 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     if not (0 < margin <= 1):
         raise ConfigError(f"must be in (0, 1], got {margin!r}", key="margin")
     if scene.port is None or scene.device is None:
-        raise ConfigError("advise needs a scene with a port and a device section",
-                          file=scene.path, key="masses")
+        first = getattr(scene.masses[0], "line", 0) if scene.masses else 0
+        raise ConfigError("advise needs a scene with a port (a mass of kind 'port') and a "
+                          "device section", file=scene.path,
+                          line=None if scene.port else (first or None),
+                          key="device" if scene.port else "masses")
+    if getattr(scene, "audio", None) is not None:
+        # its loop matrices (hapsim.bench.methods) step the network at the device period
+        # only, and the rate ladder meets rates the audio rate is no multiple of
+        raise ConfigError("advise does not model a scene with an audio section (the "
+                          "virtual network sub-stepped at audio.rate_hz); 'hapsim check' "
+                          "predicts it at its own rate", file=scene.path, key="audio")
     rates = [float(r) for r in rates]
     dev = scene.device
     link_adv = [_advise_link(scene, lk, tolerance, margin, rates) for lk in _port_links(scene)]

@@ -34,6 +34,8 @@ OSC addresses (replies go to the sender's address and port):
   /hapsim/felt  -> /hapsim/felt k b f0 zeta k_measured b_measured
   /hapsim/loop  -> /hapsim/loop sample spectral_radius stable accepted refused xruns underruns
   /hapsim/telemetry HOST PORT [RATE] -> /hapsim/tel t x f k b sent to HOST:PORT at RATE Hz
+signals: SIGINT (Ctrl-C) or SIGTERM ends the play early, as it ends hapsim run: the sound
+  and the OSC server are closed, the report (stop_reason: signal NAME) is printed, exit 0.
 measured (k, b): identified (matrix pencil) from each free response between plucks that no
   change disturbed; NaN until one has been.
 late: times the loop fell more than 20 ms behind the clock (it then resynchronises; the
@@ -105,6 +107,10 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim play``.
 
+    SIGINT and SIGTERM are handled from the start until the report is made (as ``hapsim
+    run`` does, :mod:`hapsim.daemon.runner`): they end the loop at its next sample, and the
+    report covers what was played (``stop_reason``: ``signal SIGINT``/``signal SIGTERM``).
+
     Parameters
     ----------
     args : argparse.Namespace
@@ -113,12 +119,31 @@ def run(args: argparse.Namespace) -> int:
     Returns
     -------
     int
-        0 after the run; 1 when the scene's closed loop (with live sound: its callback's
+        0 after the run (also when a signal ended it); 1 when the scene's closed loop (with live sound: its callback's
         lead added to the device delay) is unstable (refused before playing), no sound
         output could be opened for ``--sound jack|sounddevice``, or the sound server
         stopped calling back (the report then covers what was played);
         2 on bad input (raised as ConfigError).
     """
+    import signal
+    import threading
+
+    from hapsim.daemon.loop_types import StopFlag
+    stop = StopFlag()
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
+    try:
+        return _play(args, stop)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _play(args: argparse.Namespace, stop) -> int:
+    """The play itself (:func:`run`, its signal handlers in place); ``stop`` is the
+    :class:`~hapsim.daemon.loop_types.StopFlag` they set."""
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
@@ -212,8 +237,14 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     # the lead the prediction was made for (the block may have changed since)
     lead_now = int(played.device.delay) - int(dev.delay)
+    done = steps               # samples played (fewer after a signal or a device error)
+    stop_reason = "duration"
     try:
         for n in range(steps):
+            if stop.set:
+                from hapsim.daemon.loop_types import signame
+                done, stop_reason = n, f"signal {signame(stop.signal)}"
+                break
             if live is not None and live.lead != lead_now:
                 # the sound server changed its block (JACK's buffer-size callback): the
                 # loop's delay is now device delay + the new lead; re-predict it, and do not
@@ -249,8 +280,7 @@ def run(args: argparse.Namespace) -> int:
     except DeviceError as exc:  # the sound server stopped, or its new block made the loop
         # unstable: report what was played
         error = str(exc)
-        steps = n
-        xs, fs = xs[:steps], fs[:steps]
+        done, stop_reason = n, "error"
     finally:
         if out is not None:
             out.finish()      # the last position is pushed: what follows is not starvation
@@ -260,6 +290,9 @@ def run(args: argparse.Namespace) -> int:
             server.server_close()
         if out is not None:
             out.close()
+    if done < steps:
+        steps = done
+        xs, fs = xs[:steps], fs[:steps]
     if P > steps and max(h.size, quiet_from) < steps - 50:   # one free response: now
         ctl.measure(xs[max(h.size, quiet_from):], wait=END_WAIT_S)
     else:
@@ -268,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
         f"the last identification ran past {END_WAIT_S:g} s after the run: dropped")
     ctl.close()
     report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
-              "late": late,  # times > 20 ms behind the clock (then resynchronised)
+              "stop_reason": stop_reason, "late": late,  # times > 20 ms behind the clock (then resynchronised)
               "paced_by": "sound" if live is not None else ("clock" if clocked else "none"),
               "delay": int(ctl.scene.device.delay),   # device samples, lead included
               "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
@@ -299,7 +332,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         felt = ctl.felt
         print(f"played {args.scene} for {steps * T:g} s ({steps} samples, {late} late); "
-              f"{ctl.accepted} changes accepted, {ctl.refused} refused")
+              f"{ctl.accepted} changes accepted, {ctl.refused} refused"
+              + ("" if stop_reason == "duration" else f"; stopped by {stop_reason}"))
         measured = (f"measured k = {ctl.measured[0]:.6g}, b = {ctl.measured[1]:.6g}"
                     if ctl.unmeasured is None else f"measured: nothing ({ctl.unmeasured})")
         print(f"felt now: k = {_g(felt.get('k'))} N/m, b = {_g(felt.get('b'))} N s/m "

@@ -211,17 +211,19 @@ def parse_scene(text: str, path: str = "<string>",
     if doc is None:
         raise ctx.error("the scene is empty; it needs at least rate_hz and masses", 1, "rate_hz")
     doc = ctx.mapping(doc, "", 1)
-    ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
+    # the dimension first: a 2-D or 3-D scene's own keys (planes, ...) are not this
+    # reader's, and 'unknown key planes' would hide why
     if "dimension" in doc:
         try:
             check_key(_key("dimension"), doc["dimension"], "dimension")
         except Invalid as bad:
             raise ctx.error(bad.message, ctx.line_of(doc, "dimension"), "dimension") from None
         if doc["dimension"] != 1:
-            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check` reads it "
-                            "(hapsim.scene_nd); this reader and the commands that run a "
-                            "scene take dimension 1", ctx.line_of(doc, "dimension"),
-                            "dimension")
+            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check`, `simulate`, "
+                            "`run` and `mock` take it (hapsim.load_scene_nd); this command "
+                            "and hapsim.load_scene take dimension 1",
+                            ctx.line_of(doc, "dimension"), "dimension")
+    ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
     device = read_device(ctx, doc) if "device" in doc else None
