@@ -367,39 +367,12 @@ class Embedded2DIY(PtyChild):
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
                  rate_hz: float | None = None) -> None:
-        import pty
-        import subprocess
-        import tempfile
-        import tty
-
-        from hapsim.spawn import child_env
-        master, slave = pty.openpty()
-        tty.setraw(slave)
-        self.port = os.ttyname(slave)
-        self._slave = slave
-        fd, self.report_path = tempfile.mkstemp(prefix="hapsim-2diy-", suffix=".json")
-        os.close(fd)
-        os.unlink(self.report_path)
-        cmd = [sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
-               "--scene", str(scene_path), "--generation", generation, "--amplitude",
-               repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
-               self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
-               repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))]
-        try:
-            self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=child_env(),
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
-        finally:
-            os.close(master)
-
-    def close(self) -> None:
-        """End the child and release the pty (idempotent)."""
-        self.release_slave()
-        if self.proc.poll() is None:
-            self.end()
-        try:
-            os.unlink(self.report_path)
-        except OSError:
-            pass
+        master = self.open_pty("hapsim-2diy-")
+        self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
+                    "--scene", str(scene_path), "--generation", generation, "--amplitude",
+                    repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
+                    self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
+                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
