@@ -9,6 +9,8 @@ Python object (CONVENTIONS §3). Links: ``spring_damper`` with ``length: 0`` run
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hapsim.errors import ConfigError
@@ -56,6 +58,9 @@ class EngineND:
         self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
                              for m in scene.masses])
         self.port = index.get(scene.port.name) if scene.port is not None else None
+        # the port's coordinates in the state (a view made once: set_port_position
+        # writes through it, no allocation per sample)
+        self._port_x = None if self.port is None else self._X[:dim, self.port]
 
         def pack(links):
             # lower index first (the laws are symmetric in the two ends), then stripes
@@ -183,10 +188,11 @@ class EngineND:
         if self.port is None:
             raise ConfigError("the scene has no port", key="masses")
         p = np.asarray(position, float)
-        if p.shape != (self.x.shape[0],) or not np.all(np.isfinite(p)):
-            raise ConfigError(f"must be {self.x.shape[0]} finite coordinates [m], got "
+        px = self._port_x
+        if p.shape != px.shape or not _finite(p):
+            raise ConfigError(f"must be {self.dim} finite coordinates [m], got "
                               f"{position!r}", key="position")
-        self.x[:, self.port] = p
+        np.copyto(px, p)
 
     @property
     def port_force(self) -> np.ndarray:
@@ -199,3 +205,12 @@ class EngineND:
     def positions(self) -> np.ndarray:
         """Current positions [m], shape (N, dim) (a copy)."""
         return self.x.T.copy()
+
+
+def _finite(p) -> bool:
+    """Whether the 1, 2 or 3 coordinates of ``p`` are finite (element by element: no
+    temporary array, for the real-time loops' per-sample calls)."""
+    isf = math.isfinite
+    n = p.shape[0]
+    return (isf(p.item(0)) and (n < 2 or isf(p.item(1)))
+            and (n < 3 or isf(p.item(2))) and n <= 3)

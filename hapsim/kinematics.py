@@ -279,30 +279,36 @@ class Pantograph:
                                   PantographGeometry)
 
     def _solve(self, q):
-        g = self.geometry
         q = _joints(q, 2)
-        c1, s1, c2, s2 = math.cos(q[0]), math.sin(q[0]), math.cos(q[1]), math.sin(q[1])
-        A = np.array([g.l1 * c1, g.l1 * s1])
-        B = np.array([g.d + g.l2 * c2, g.l2 * s2])
-        AB = B - A
-        r = math.hypot(AB[0], AB[1])
+        ax, ay, bx, by, px, py = self._points(q[0], q[1])
+        return q, np.array([ax, ay]), np.array([bx, by]), np.array([px, py])
+
+    def _points(self, q1: float, q2: float) -> tuple:
+        """Elbows ``A``, ``B`` and handle ``P`` at joints ``(q1, q2)`` [rad], as six floats
+        [m] (scalar arithmetic: no array is made, for the real-time loops)."""
+        g = self.geometry
+        c1, s1, c2, s2 = math.cos(q1), math.sin(q1), math.cos(q2), math.sin(q2)
+        ax, ay = g.l1 * c1, g.l1 * s1
+        bx, by = g.d + g.l2 * c2, g.l2 * s2
+        r = math.hypot(bx - ax, by - ay)
         if not (abs(g.L1 - g.L2) < r < g.L1 + g.L2):
+            q = np.array([q1, q2])
             raise KinematicsError(
                 f"no assembly at joints {_deg(q)}: the elbows are {r:.6g} m apart, the "
                 f"distal links {g.L1:g} and {g.L2:g} m close only between "
                 f"{abs(g.L1 - g.L2):g} and {g.L1 + g.L2:g} m (outside the workspace)",
                 joints=q, kind="workspace")
-        e = AB / r
+        ex, ey = (bx - ax) / r, (by - ay) / r
         along = (g.L1 * g.L1 - g.L2 * g.L2 + r * r) / (2.0 * r)
         h = math.sqrt(max(g.L1 * g.L1 - along * along, 0.0))
-        n = np.array([-e[1], e[0]])
-        if abs(e[0]) < SINGULAR_SINE:
+        if abs(ex) < SINGULAR_SINE:
+            q = np.array([q1, q2])
             raise KinematicsError(
                 f"ambiguous assembly at joints {_deg(q)}: the elbows are vertically "
                 "aligned, so both closures of the linkage have the same y (the "
                 "larger-y branch is undefined)", joints=q, kind="workspace")
-        P = A + along * e + (h if e[0] > 0 else -h) * n
-        return q, A, B, P
+        hs = h if ex > 0 else -h                    # along the normal n = (-e_y, e_x)
+        return ax, ay, bx, by, ax + along * ex - hs * ey, ay + along * ey + hs * ex
 
     def forward(self, q) -> np.ndarray:
         """Handle position.
@@ -328,6 +334,28 @@ class Pantograph:
         """
         return self._solve(q)[3]
 
+    def forward_at(self, q1: float, q2: float) -> tuple:
+        """:meth:`forward` on two floats, as a tuple: no array is made (the real-time
+        loops' per-sample use; ``q`` is not validated).
+
+        Parameters
+        ----------
+        q1, q2 : float
+            Joint angles [rad].
+
+        Returns
+        -------
+        tuple of float
+            ``(x, y)`` [m].
+
+        Raises
+        ------
+        KinematicsError
+            As :meth:`forward`.
+        """
+        _, _, _, _, px, py = self._points(q1, q2)
+        return px, py
+
     def jacobian(self, q) -> np.ndarray:
         """``J = dx/dq`` [m/rad] at ``q``.
 
@@ -348,26 +376,53 @@ class Pantograph:
             (parallel, ``kind="parallel"``) or a distal link aligned with its proximal one
             (serial, ``kind="serial"``), to within :data:`SINGULAR_SINE`.
         """
+        q = _joints(q, 2)
+        j00, j01, j10, j11 = self.jacobian_at(q[0], q[1])
+        return np.array([[j00, j01], [j10, j11]])
+
+    def jacobian_at(self, q1: float, q2: float) -> tuple:
+        """:meth:`jacobian` on two floats, as ``(J00, J01, J10, J11)`` [m/rad]: no array
+        is made (the real-time loops' per-sample use; ``q`` is not validated). ``Phi``'s
+        2 x 2 inverse by its adjugate over ``det Phi`` (the cross product, bounded away
+        from 0 by the parallel-singularity test).
+
+        Parameters
+        ----------
+        q1, q2 : float
+            Joint angles [rad].
+
+        Returns
+        -------
+        tuple of float
+
+        Raises
+        ------
+        KinematicsError
+            As :meth:`jacobian`.
+        """
         g = self.geometry
-        q, A, B, P = self._solve(q)
-        PA, PB = P - A, P - B
-        dA = g.l1 * np.array([-math.sin(q[0]), math.cos(q[0])])
-        dB = g.l2 * np.array([-math.sin(q[1]), math.cos(q[1])])
-        cross = PA[0] * PB[1] - PA[1] * PB[0]
+        ax, ay, bx, by, px, py = self._points(q1, q2)
+        pax, pay, pbx, pby = px - ax, py - ay, px - bx, py - by
+        cross = pax * pby - pay * pbx
         if abs(cross) < SINGULAR_SINE * g.L1 * g.L2:
+            q = np.array([q1, q2])
             raise KinematicsError(
                 f"parallel singularity at joints {_deg(q)}: the distal links are aligned "
                 f"(sine of their angle {cross / (g.L1 * g.L2):.3g}); the handle is not "
                 "held there", joints=q, kind="parallel")
-        d1, d2 = float(PA @ dA), float(PB @ dB)
-        for i, (dd, l, L) in enumerate(((d1, g.l1, g.L1), (d2, g.l2, g.L2))):
-            if abs(dd) < SINGULAR_SINE * l * L:
-                raise KinematicsError(
-                    f"serial singularity at joints {_deg(q)}: arm {i + 1} is stretched "
-                    f"or folded (its distal link along its proximal one); the handle "
-                    "cannot move along that arm", joints=q, kind="serial")
-        Phi = np.array([PA, PB])
-        return np.linalg.solve(Phi, np.diag([d1, d2]))
+        # d1 = PA . dA/dq1, d2 = PB . dB/dq2
+        d1 = g.l1 * (-pax * math.sin(q1) + pay * math.cos(q1))
+        d2 = g.l2 * (-pbx * math.sin(q2) + pby * math.cos(q2))
+        if abs(d1) < SINGULAR_SINE * g.l1 * g.L1 or abs(d2) < SINGULAR_SINE * g.l2 * g.L2:
+            q = np.array([q1, q2])
+            for i, (dd, l, L) in enumerate(((d1, g.l1, g.L1), (d2, g.l2, g.L2))):
+                if abs(dd) < SINGULAR_SINE * l * L:
+                    raise KinematicsError(
+                        f"serial singularity at joints {_deg(q)}: arm {i + 1} is "
+                        "stretched or folded (its distal link along its proximal one); "
+                        "the handle cannot move along that arm", joints=q, kind="serial")
+        # J = Phi^-1 diag(d1, d2), Phi = [[PA], [PB]]: Phi^-1 = [[pby, -pay], [-pbx, pax]] / cross
+        return (pby * d1 / cross, -pay * d2 / cross, -pbx * d1 / cross, pax * d2 / cross)
 
     def torques(self, q, force) -> np.ndarray:
         """Joint torques ``tau = J^T F`` [N m] rendering the handle force ``F`` [N].

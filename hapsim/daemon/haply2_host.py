@@ -176,13 +176,20 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     qr = np.full((N + 2, 2), np.nan)
     got = 0
 
+    # the per-sample work below makes no array (the real-time rule): kinematics on
+    # floats (forward_at, jacobian_at), rows written element by element, the write
+    # packed into a reused buffer
+    fwd = kin.forward_at
+    jac = kin.jacobian_at
+
     def take(data):
         nonlocal got
         for rep in dec.feed(data):
             if got < xr.shape[0]:
-                q = np.asarray(driver.joints_of(rep))
-                qr[got] = q
-                xr[got] = kin.forward(q)
+                q1, q2 = driver.joints_of(rep)
+                qr[got, 0] = q1
+                qr[got, 1] = q2
+                xr[got, 0], xr[got, 1] = fwd(q1, q2)
             got += 1
     # the arming: zero torque and the re-synchronising bytes, whose answer (the zero
     # write's, from before the set-up) is dropped with what an earlier record left; then
@@ -213,6 +220,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     est = np.zeros(N, bool)
     lag = np.zeros(N, np.int64)
     late = 0
+    x = np.zeros(2)                                 # the sample the engine is given
+    F = eng.port_f[:2]                              # the engine's port force (a view)
+    wbuf = bytearray(driver.write_bytes((0.0, 0.0)))
+    write_into = driver.write_into
+    clamp1 = driver.clamp1
     t0 = time.perf_counter()
     for k in range(N):
         deadline = t0 + k * T
@@ -225,23 +237,37 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             pass
         take(_read(ser))
         if got > k:                                 # reply k read: a fresh sample
-            x, q = xr[k], qr[k]
-            joints[k] = q
+            i = k
+            x[0] = xr[k, 0]
+            x[1] = xr[k, 1]
+            joints[k, 0] = qr[k, 0]
+            joints[k, 1] = qr[k, 1]
         else:                                       # missing: an estimated sample
             i = got - 1
-            x = xr[i] + (k - i) * (xr[i] - xr[i - 1]) if i >= 1 else xr[i]
-            q = qr[i]
+            r = k - i
+            if i >= 1:                              # extrapolated from the last two
+                x[0] = xr[i, 0] + r * (xr[i, 0] - xr[i - 1, 0])
+                x[1] = xr[i, 1] + r * (xr[i, 1] - xr[i - 1, 1])
+            else:                                   # held: one reading only
+                x[0] = xr[0, 0]
+                x[1] = xr[0, 1]
             est[k] = True
-            lag[k] = k - i
+            lag[k] = r
         if k == 0:
             eng.x[:, port] = x
             eng.xp[:, port] = x
         eng.set_port_position(x)
         eng.step()
-        tau = kin.jacobian(q).T @ eng.port_force
-        torque[k] = driver.clamp(tau)
-        pos[k] = x
-        _write(ser, driver.write_bytes(tau))
+        j00, j01, j10, j11 = jac(qr[i, 0], qr[i, 1])
+        f0, f1 = F[0], F[1]
+        tau1 = j00 * f0 + j10 * f1                  # tau = J^T F
+        tau2 = j01 * f0 + j11 * f1
+        torque[k, 0] = clamp1(tau1)
+        torque[k, 1] = clamp1(tau2)
+        pos[k, 0] = x[0]
+        pos[k, 1] = x[1]
+        write_into(wbuf, tau1, tau2)
+        _write(ser, wbuf)
     _write(ser, driver.write_bytes((0.0, 0.0)))     # zero torque (no watchdog)
     end = time.monotonic() + 0.2
     while got < N + 2 and time.monotonic() < end:   # the late replies, counted

@@ -113,6 +113,11 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int) -> Recor
     rec = RecordND(N, n)
     eng = EngineND(scene)
     port = eng.port
+    # per sample no array is made (the real-time rule): the position goes into a reused
+    # buffer, the force is read from the engine's own (a view made once)
+    pos = np.zeros(n)
+    F = eng.port_f[:n]
+    items = _items(n)
     transport.send(fp.Config(rate_hz, watchdog_us, FORCE_LIMIT))
     k = 0
     deadline = time.monotonic() + 5.0 + 3.0 * N / rate_hz
@@ -136,21 +141,34 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int) -> Recor
                 ok = False
                 k = N
                 break
-            pos = np.asarray(m.position, float)
+            mp = m.position
+            for a in range(n):
+                pos[a] = mp[a]
             if k == 0:                       # the port starts where the handle is, at rest
                 eng.x[:, port] = pos
                 eng.xp[:, port] = pos
             eng.set_port_position(pos)
             eng.step()
-            F = eng.port_force
-            transport.send(fp.Force(m.seq, tuple(float(v) for v in F)))
+            transport.send(fp.Force(m.seq, items(F)))
             rec.seq[k], rec.status[k], rec.force_seq[k] = m.seq, m.status, m.force_seq
-            rec.position[k] = pos
-            rec.force[k] = F
+            rp, rf = rec.position, rec.force
+            for a in range(n):
+                rp[k, a] = pos[a]
+                rf[k, a] = F[a]
             k += 1
     transport.send(fp.Stop())
     _drain(transport)
     return rec if ok else None
+
+
+def _items(n: int):
+    """A function ``v -> (v[0], ..., v[n-1])`` as floats (1 <= n <= 3) that makes no
+    array (a FORCE's values, per sample)."""
+    if n == 1:
+        return lambda v: (v.item(0),)
+    if n == 2:
+        return lambda v: (v.item(0), v.item(1))
+    return lambda v: (v.item(0), v.item(1), v.item(2))
 
 
 def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:

@@ -46,6 +46,8 @@ import math
 import struct
 from dataclasses import dataclass
 
+import numpy as np
+
 from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_COMMAND, MAX_TORQUE,
                                   ReplyDecoder)
 from hapsim.errors import ConfigError
@@ -162,6 +164,7 @@ class Haply2DIY:
         self.generation = g
         self.id = int(device_id)
         self.resolution = _F.unpack(_F.pack(res))[0]      # binary32 on the wire
+        self._f32 = np.zeros(1, np.float32)                # clamp1's rounding cell
 
     def setup_bytes(self, joints_deg) -> bytes:
         """The set-up: both motors and encoders, the encoders' offsets the joints' angles
@@ -181,21 +184,39 @@ class Haply2DIY:
             out += _F.pack(float(joints_deg[j])) + _F.pack(self.resolution)
         return out
 
+    def clamp1(self, t: float) -> float:
+        """One torque [N m] as the board takes it: non-finite as 0, clamped to
+        ``MAX_TORQUE``, rounded to binary32 (through a reused float32 cell: no
+        allocation)."""
+        t = float(t) if math.isfinite(t) else 0.0
+        f32 = self._f32
+        f32[0] = max(-MAX_TORQUE, min(MAX_TORQUE, t))
+        return f32.item(0)
+
     def clamp(self, torques) -> tuple:
-        """Torques [N m] as the board takes them: non-finite as 0, clamped to 0.123 N m,
-        rounded to binary32 (joint order)."""
-        out = []
-        for t in torques:
-            t = float(t) if math.isfinite(t) else 0.0
-            t = max(-MAX_TORQUE, min(MAX_TORQUE, t))
-            out.append(_F.unpack(_F.pack(t))[0])
-        return tuple(out)
+        """Torques [N m] as the board takes them (:meth:`clamp1` each, joint order)."""
+        return tuple(self.clamp1(t) for t in torques)
 
     def write_bytes(self, torques) -> bytes:
         """The write of the joint torques ``(tau_1, tau_2)`` [N m] (clamped, port order):
         10 bytes."""
-        t = self.clamp(torques)
-        return bytes([CMD_WRITE, self.id]) + _F2.pack(t[1], t[0])      # port 1 = joint 2
+        buf = bytearray(10)
+        self.write_into(buf, *torques)
+        return bytes(buf)
+
+    def write_into(self, buf: bytearray, tau1: float, tau2: float) -> None:
+        """:meth:`write_bytes` into ``buf`` (10 bytes, reused: the real-time loop's, no
+        allocation per sample).
+
+        Parameters
+        ----------
+        buf : bytearray, length 10
+        tau1, tau2 : float
+            Joint torques [N m] (clamped as :meth:`clamp1`).
+        """
+        buf[0] = CMD_WRITE
+        buf[1] = self.id
+        _F2.pack_into(buf, 2, self.clamp1(tau2), self.clamp1(tau1))    # port 1 = joint 2
 
     def arm_bytes(self, joints_deg) -> bytes:
         """Zero torque whatever the board's parser is doing, then the set-up and a
