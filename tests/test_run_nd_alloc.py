@@ -1,0 +1,156 @@
+"""The n-D real-time host loops make no array per sample (the real-time rule): the
+transient memory of each tick's body, measured with ``tracemalloc`` between two writes
+of a scripted in-process run, stays below that of making one small array (measured the
+same way in the same run). The engine's compiled step is replaced by a no-op for the
+measurement: its numba dispatch is the one per-sample cost these loops cannot remove
+from Python (its compiled kernel allocates nothing)."""
+
+from __future__ import annotations
+
+import sys
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import firmware_protocol as fp
+from hapsim.engine_nd import EngineND
+from hapsim.scene_nd import load_scene_nd
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _transient(f) -> int:
+    """Peak bytes traced while ``f()`` runs, over those traced before [bytes]."""
+    tracemalloc.reset_peak()
+    c0 = tracemalloc.get_traced_memory()[0]
+    f()
+    return tracemalloc.get_traced_memory()[1] - c0
+
+
+@pytest.fixture
+def traced():
+    tracemalloc.start()
+    try:
+        yield
+    finally:
+        tracemalloc.stop()
+
+
+class ScriptedTransport:
+    """STATEs built beforehand, one per ``receive``; each ``send`` closes a tick's window
+    (its transient peak recorded at a FORCE) and opens the next."""
+
+    def __init__(self, states):
+        self.replies = [[s] for s in states]
+        self.i = 0
+        self.peaks = []
+        self.c0 = 0
+        self.empty = []
+
+    def send(self, msg):
+        if isinstance(msg, fp.Force):
+            self.peaks.append(tracemalloc.get_traced_memory()[1] - self.c0)
+        tracemalloc.reset_peak()
+        self.c0 = tracemalloc.get_traced_memory()[0]
+
+    def receive(self, timeout=0.0):
+        if self.i < len(self.replies):
+            self.i += 1
+            return self.replies[self.i - 1]
+        return self.empty
+
+    def last_frames(self):
+        return ""
+
+
+@pytest.mark.parametrize("name", ["pantograph_wall.yaml", "delta_sphere.yaml"])
+def test_run_nd_record_makes_no_array_per_sample(name, traced, monkeypatch):
+    """:func:`hapsim.daemon.run_nd._record`'s tick (STATE in, engine, FORCE out, the
+    record's rows) over 2-D and 3-D scenes: every tick after the first few below one
+    array's transient, whatever N."""
+    from hapsim.daemon import run_nd
+    sc = load_scene_nd(CONFIGS / name)
+    eng = EngineND(sc)
+    x0 = eng.x[:, eng.port]
+    N = 150
+    states = [fp.State(k, 0, fp.STATUS_ARMED, 0,
+                       tuple(float(v) + 1e-6 * np.sin(0.1 * k) for v in x0))
+              for k in range(N)]
+    monkeypatch.setattr(EngineND, "step", lambda self, n=1: None)
+    tr = ScriptedTransport(states)
+    rec = run_nd._record(tr, sc, N, sc.rate_hz, 0)
+    one_array = _transient(lambda: np.empty(sc.dimension))
+    assert rec is not None and len(tr.peaks) == N
+    np.testing.assert_array_equal(rec.position[-1], states[-1].position)
+    assert max(tr.peaks[5:]) < one_array, (max(tr.peaks[5:]), one_array)
+
+
+def test_haply2_loop_makes_no_array_per_sample(traced):
+    """:func:`hapsim.daemon.haply2_host.record_realtime`'s tick (estimate, engine,
+    ``J^T F``, clamp, the write's bytes) with the board silent after three replies (ticks 0..2 read):
+    every estimated tick below one array's transient (the ticks that read a reply add
+    the port's bytes and the decoder's frames: the driver's I/O, not measured here; the
+    kinematics they call are, below)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_haply2_realtime import WALL, ScriptedLink
+
+    from hapsim.daemon.haply2_board import Haply2DIYBoard
+    from hapsim.daemon.haply2_host import record_realtime
+    from hapsim.drivers.haply2 import Haply2DIY
+
+    class MeteredLink(ScriptedLink):
+        def __init__(self, *a, answer, **k):
+            super().__init__(*a, **k)
+            self.answer, self.peaks, self.c0 = answer, [], None
+
+        def write(self, data):
+            if self.c0 is not None:
+                self.peaks.append(tracemalloc.get_traced_memory()[1] - self.c0)
+            if self.since < self.answer or len(data) != 10:
+                super().write(data)
+            else:
+                self.calls += 1                 # no reply
+            tracemalloc.reset_peak()
+            self.c0 = tracemalloc.get_traced_memory()[0]
+            return len(data)
+
+    sc = load_scene_nd(WALL)
+    N = 60
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
+    eng = EngineND(sc)
+    eng.step = lambda n=1: None
+    rec = record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 14), sc, N, engine=eng)
+    one_array = _transient(lambda: np.empty(2))
+    est = np.flatnonzero(rec["estimated"])
+    np.testing.assert_array_equal(est, np.arange(3, N))    # ticks 0..2 read
+    # the arming's two writes come first: write j + 2 closes tick j's window
+    ticks = np.asarray(link.peaks[1:N + 1])
+    assert ticks[est[3:]].max() < one_array, (ticks[est[3:]].max(), one_array)
+
+
+def test_per_sample_helpers_make_no_array(traced):
+    """The helpers the loops call per sample: the pantograph's kinematics on floats (equal
+    to the array methods), the 2DIY's write packed into a reused buffer (equal to its
+    bytes), the engine's port position set in place."""
+    from hapsim.drivers.haply2 import Haply2DIY
+    from hapsim.kinematics import device
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    kin = device("pantograph", sc.device.geometry)
+    q = np.asarray(sc.device.joints, float)
+    drv = Haply2DIY("gen3")
+    buf = bytearray(10)
+    eng = EngineND(sc)
+    p = np.array(eng.x[:, eng.port])
+    one_array = _transient(lambda: np.empty(2))
+    for f in (lambda: kin.forward_at(q[0], q[1]), lambda: kin.jacobian_at(q[0], q[1]),
+              lambda: drv.write_into(buf, 0.01, -0.2), lambda: eng.set_port_position(p)):
+        f()
+        assert _transient(f) < one_array
+    np.testing.assert_array_equal(kin.forward_at(q[0], q[1]), kin.forward(q))
+    np.testing.assert_allclose(np.reshape(kin.jacobian_at(q[0], q[1]), (2, 2)),
+                               kin.jacobian(q), rtol=1e-12, atol=0)
+    drv.write_into(buf, 0.01, -0.2)
+    assert bytes(buf) == drv.write_bytes((0.01, -0.2))
