@@ -143,9 +143,9 @@ class Trial:
     growing : bool or None
         The record grows: its identified ``b < 0`` (a safety stop after a decaying stretch
         is a disturbance, not growth; with late ticks in the identified stretch only
-        beyond their bound and the stated half-interval, :func:`record_side`); unidentified, a safety stop after
-        at least :data:`MIN_GROWTH_TICKS` ticks of an undisturbed record. None when
-        undecided.
+        beyond their bound and the stated half-interval, :func:`record_side`);
+        unidentified, a safety stop after at least :data:`MIN_GROWTH_TICKS` ticks of an
+        undisturbed record. None when undecided.
     note : str
         Why a record is undecided, or the run's stop reason.
     """
