@@ -345,3 +345,20 @@ def test_an_actuator_step_is_a_known_input():
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], rel=1e-6)
     assert meas["within"] is True and meas["force_step"] == step
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.5, 5.0), st.lists(st.integers(-130, 130), min_size=5, max_size=60),
+       st.integers(0, 3))
+def test_the_timing_account_applies_the_drivers_own_rounding(full_scale, halves, d):
+    """Property (issue 19): a timing account (FireFader) names the force the driver's own
+    encoder commands (``applied_force``: Python's binary64 ``round(127 f / full_scale)``,
+    clamped), not the nearest multiple of ``full_scale / 127``, which names another count
+    near half-counts (forces here are whole and half counts, both signs, past the clamp)."""
+    from hapsim.drivers.firefader import FireFader
+    drv = FireFader(full_scale=full_scale)
+    f = np.array(halves, float) / 2 * drv.force_scale
+    acc = account_from_timing(f, d, force_scale=drv.force_scale, quantise=drv.applied_force)
+    want = np.array([drv.applied_force(v) for v in f])
+    np.testing.assert_array_equal(acc.applied[d:], want[:f.size - d])
+    assert np.all(acc.applied[:d] == 0.0)
