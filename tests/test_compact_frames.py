@@ -113,12 +113,12 @@ def test_the_host_restores_every_state_a_compact_frame_stands_for(sess, rate):
 
 
 @settings(max_examples=50, deadline=None)
-@given(st.integers(0, 0xFFFF), st.integers(0, 300), st.integers(1, 400))
+@given(st.integers(0, 0xFFFF), st.integers(0, 300), st.integers(1, 300))
 def test_a_saturated_lag_names_no_force_and_the_tick_is_late(seq16, gap, d):
     """A compact STATE's lag 255 means "255 ticks or more": the FORCE applied is not
     known, so the STATE names none (``force_seq`` -1, as a protocol without the field),
     and the late-tick rule (hapsim.kernels.ticks, read by both host loops and the
-    account) calls the tick late at every delay, 255 included, where ``seq - 255``
+    account) calls the (due) tick late at every delay, 255 included, where ``seq - 255``
     would have named a FORCE and an on-time tick."""
     from hapsim.kernels.ticks import late_ticks, named_delay, tick_late
     ex = fp.CompactExpander(1000.0)
