@@ -57,7 +57,7 @@ LAYERS = (
     # hapsim.applied: the account of the force a device applied per tick (plain arrays),
     # which the drivers' timing fills and the analysis and the daemon read
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
-                    "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
+                    "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs", "hapsim.option_values",
                     "hapsim.applied")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher, in
