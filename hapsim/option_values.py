@@ -28,20 +28,22 @@ class Number:
     low, high : float, optional
         Bounds of the valid range (None: unbounded on that side). Always finite:
         ``nan`` and ``inf`` are refused for every option.
-    open_low : bool, optional
-        ``value > low`` rather than ``value >= low``.
+    open_low, open_high : bool, optional
+        ``value > low`` rather than ``value >= low``; ``value < high`` rather than
+        ``value <= high``.
     unit : str, optional
         Unit shown in brackets in messages (``"kg"``, ``"Hz"``).
     """
 
     def __init__(self, kind=float, *, low: float | None = None, high: float | None = None,
-                 open_low: bool = False, unit: str = "") -> None:
+                 open_low: bool = False, open_high: bool = False, unit: str = "") -> None:
         if kind not in (float, int):
             raise TypeError(f"Number kind must be float or int, got {kind!r}")
         self.kind = kind
         self.low = low
         self.high = high
         self.open_low = open_low
+        self.open_high = open_high
         self.unit = unit
         # argparse names the type in its own messages: "invalid float value"
         self.__name__ = kind.__name__
@@ -54,15 +56,13 @@ class Number:
         str
         """
         what = "an integer" if self.kind is int else "a finite number"
-        if self.low is not None and self.high is not None:
-            rng = (f" > {self.low:g} and <= {self.high:g}" if self.open_low
-                   else f" from {self.low:g} to {self.high:g}")
-        elif self.low is not None:
-            rng = f" {'>' if self.open_low else '>='} {self.low:g}"
-        elif self.high is not None:
-            rng = f" <= {self.high:g}"
+        lo = f"{'>' if self.open_low else '>='} {self.low:g}" if self.low is not None else ""
+        hi = f"{'<' if self.open_high else '<='} {self.high:g}" if self.high is not None else ""
+        if lo and hi and not (self.open_low or self.open_high):
+            rng = f" from {self.low:g} to {self.high:g}"
         else:
-            rng = ""
+            rng = " and ".join(r for r in (lo, hi) if r)
+            rng = f" {rng}" if rng else ""
         unit = f" [{self.unit}]" if self.unit else ""
         return f"{what}{rng}{unit}"
 
@@ -116,7 +116,8 @@ class Number:
             return False
         if self.low is not None and (value <= self.low if self.open_low else value < self.low):
             return False
-        return self.high is None or value <= self.high
+        return self.high is None or (value < self.high if self.open_high
+                                     else value <= self.high)
 
     def check(self, value, flag: str) -> None:
         """Refuse a value outside the valid range.

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import io
 import json
 import math
@@ -393,7 +394,9 @@ NUMERIC_BASE = {
 }
 
 
+@functools.lru_cache(maxsize=1)
 def _subparsers() -> dict:
+    """Each sub-command's parser, by name (built once: the cases only read them)."""
     top = build_parser()
     return next(a for a in top._actions
                 if isinstance(a, argparse._SubParsersAction)).choices
@@ -409,10 +412,10 @@ def _bad_values(action) -> list[str]:
     """Values outside every numeric option's range, and below/above its declared bounds."""
     values = ["nan", "inf", "-inf", "abc"]
     kind = action.type
-    if kind.low is not None:
-        values.append(f"{kind.low - 1:g}")
+    if kind.low is not None:                     # below, and an open bound itself (0)
+        values += [f"{kind.low - 1:g}"] + [f"{kind.low:g}"] * kind.open_low
     if kind.high is not None:
-        values.append(f"{kind.high + 1:g}")
+        values += [f"{kind.high + 1:g}"] + [f"{kind.high:g}"] * kind.open_high
     return values
 
 

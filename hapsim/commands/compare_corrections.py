@@ -65,11 +65,14 @@ def register(sub) -> None:
         description=_DESCRIPTION, epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
-    p.add_argument("--k-range", type=Number(float, low=0, open_low=True, unit='N/m'), nargs=2, metavar=("LO", "HI"), default=None,
+    p.add_argument("--k-range", type=Number(float, low=0, open_low=True, unit="N/m"),
+                   nargs=2, metavar=("LO", "HI"), default=None,
                    help="usable felt stiffnesses [N/m] (default 5-50 %% of the plain K_max)")
-    p.add_argument("--b-range", type=Number(float, low=0, open_low=True, unit='N s/m'), nargs=2, metavar=("LO", "HI"), default=None,
+    p.add_argument("--b-range", type=Number(float, low=0, open_low=True, unit="N s/m"),
+                   nargs=2, metavar=("LO", "HI"), default=None,
                    help="usable felt dampings [N s/m] (default: damping ratios 0.05-0.5)")
-    p.add_argument("--n", type=Number(int, low=2), default=6, help="grid points per axis (default 6)")
+    p.add_argument("--n", type=Number(int, low=2),
+                   default=6, help="grid points per axis (default 6)")
     p.add_argument("--boundary-points", type=Number(int, low=2), default=61, metavar="N",
                    help="points of the exact boundary K_max(B) for the stable area "
                         "(default 61)")
@@ -135,10 +138,6 @@ def run(args) -> int:
     from hapsim.progress import Progress
 
     loop = loop_from_args(args)
-    if args.n < 2:
-        raise ConfigError(f"must be >= 2, got {args.n}", key="--n")
-    if args.boundary_points < 2:
-        raise ConfigError(f"must be >= 2, got {args.boundary_points}", key="--boundary-points")
     for key, rng in (("--k-range", args.k_range), ("--b-range", args.b_range)):
         if rng is not None and not (0 < rng[0] < rng[1] and math.isfinite(rng[1])):
             raise ConfigError(f"must be 0 < LO < HI, got {rng}", key=key)

@@ -81,9 +81,10 @@ def register(sub) -> None:
     p.add_argument("--scene", metavar="SCENE", help="scene whose device/excitation to model")
     p.add_argument("--lockstep", action="store_true",
                    help="advance one period per FORCE instead of on the clock")
-    p.add_argument("--rate", type=Number(float, low=0, open_low=True, unit='Hz'), metavar="HZ",
+    p.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"), metavar="HZ",
                    help="native rate announced in HELLO [Hz] (default: the scene's)")
-    p.add_argument("--seed", type=Number(int, low=0), default=0, help="sensor-noise seed (default 0)")
+    p.add_argument("--seed", type=Number(int, low=0),
+                   default=0, help="sensor-noise seed (default 0)")
     p.add_argument("--report", metavar="FILE",
                    help="write what the mock saw (ticks, late, last force, STOP) as JSON on exit")
     p.add_argument("--faults", metavar="SPEC",
@@ -110,11 +111,12 @@ def register(sub) -> None:
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
                         "sensor noise and a compliant grip stay in Python) or in Python "
                         "('python', the reference)")
-    p.add_argument("--amplitude", type=Number(float, low=0, open_low=True, unit='m'), metavar="M",
+    p.add_argument("--amplitude", type=Number(float, low=0, open_low=True, unit="m"), metavar="M",
                    help="2-D/3-D scenes: the hand's amplitude a [m] (default 1e-8): at each "
                         "CONFIG it lets the handle go from the next identification start "
                         "(rest, displaced by a along each axis, moving at a/(10 T) along each)")
-    p.add_argument("--fd", type=Number(int, low=0), help=argparse.SUPPRESS)    # embedded: pty master fd
+    p.add_argument("--fd", type=Number(int, low=0),
+                   help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
 
