@@ -583,38 +583,21 @@ class EmbeddedDriverMock(PtyChild):
     def __init__(self, driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
                  options: dict | None = None, faults: dict | None = None) -> None:
         import dataclasses
-        import pty
-        import subprocess
-        import tempfile
-        import tty
 
         from hapsim.errors import ConfigError
-        from hapsim.spawn import child_env
         if driver not in ("firefader", "haply", "hapkit-serial"):
             raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply, "
                               "hapkit-serial",
                               key="--driver")
-        master, slave = pty.openpty()
-        tty.setraw(slave)
-        self.port = os.ttyname(slave)
-        self._slave = slave
-        fd, self.report_path = tempfile.mkstemp(prefix="hapsim-drvmock-", suffix=".json")
-        os.close(fd)
-        os.unlink(self.report_path)
+        master = self.open_pty("hapsim-drvmock-")
         spec = {"device": dataclasses.asdict(device), "excitation": dataclasses.asdict(excitation),
                 "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
-        env = child_env()
-        cmd = [sys.executable, "-m", "hapsim.driver_mock", "--fd", str(master), "--spec",
-               json.dumps(spec), "--rate", repr(float(rate_hz)), "--report", self.report_path,
-               "--seed", str(seed), "--options", json.dumps(options or {}),
-               "--faults", json.dumps(faults or {})]
-        try:
-            self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=env,
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
-        finally:
-            os.close(master)
+        self.start([sys.executable, "-m", "hapsim.driver_mock", "--fd", str(master), "--spec",
+                    json.dumps(spec), "--rate", repr(float(rate_hz)), "--report",
+                    self.report_path, "--seed", str(seed), "--options",
+                    json.dumps(options or {}), "--faults", json.dumps(faults or {})], master)
 
 
 if __name__ == "__main__":

@@ -42,7 +42,8 @@ class PtyChild:
     """The host's side of a child process served on a pseudo-terminal's master that writes
     a JSON report when it exits (the embedded mocks): its end and its report.
 
-    A subclass starts the child in its ``__init__`` and sets the attributes below.
+    A subclass starts the child in its ``__init__``: :meth:`open_pty` (the pty, the
+    report's path), then :meth:`start` (the child, given the master).
 
     Attributes
     ----------
@@ -57,7 +58,57 @@ class PtyChild:
 
     proc: subprocess.Popen
     report_path: str
+    port: str
     _slave: int | None = None
+
+    def open_pty(self, prefix: str) -> int:
+        """A new pseudo-terminal, its slave in raw mode and kept open (``port`` its path),
+        and a fresh ``report_path`` (a name in the temporary directory, no file yet).
+
+        Parameters
+        ----------
+        prefix : str
+            The report file's name prefix.
+
+        Returns
+        -------
+        int
+            The master's descriptor, for :meth:`start` (which closes it).
+        """
+        import pty
+        import tempfile
+        import tty
+        master, slave = pty.openpty()
+        tty.setraw(slave)
+        self.port = os.ttyname(slave)
+        self._slave = slave
+        fd, self.report_path = tempfile.mkstemp(prefix=prefix, suffix=".json")
+        os.close(fd)
+        os.unlink(self.report_path)
+        return master
+
+    def start(self, cmd: list, master: int) -> None:
+        """Start the child ``cmd`` with ``master`` passed (``pass_fds``), this package
+        first on its path (:func:`child_env`), no stdin, in a new session (a Ctrl-C at the
+        terminal reaches only the host); ``master`` is closed here either way.
+
+        Parameters
+        ----------
+        cmd : list of str
+            The child's command line (it names ``master`` and ``report_path``).
+        master : int
+            :meth:`open_pty`'s descriptor.
+
+        Raises
+        ------
+        OSError
+            The child cannot be started.
+        """
+        try:
+            self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=child_env(),
+                                         stdin=subprocess.DEVNULL, start_new_session=True)
+        finally:
+            os.close(master)
 
     def release_slave(self) -> None:
         """Close this object's copy of the slave (once the host has opened the port)."""

@@ -739,3 +739,48 @@ def test_identify_added_mass_and_mock_option_are_checked(argv, msg, capsys):
     from hapsim.cli import main
     assert main(["identify", *argv]) == 2
     assert re.search(msg, capsys.readouterr().err, re.S)
+
+
+def test_aligned_decoder_hooks_see_every_skip_and_every_frame():
+    """:class:`hapsim.drivers.base.AlignedDecoder`'s hooks (the Haply desync count and
+    the Falcon plausibility filter are built on them): ``on_skip`` once per byte dropped,
+    ``accept`` once per parsed frame, whose bytes are consumed either way; only accepted
+    frames come out and count, over random streams fed in random pieces."""
+    from hapsim.drivers.base import AlignedDecoder
+
+    class Dec(AlignedDecoder):
+        length = 3
+
+        def __init__(self):
+            super().__init__()
+            self.skips = 0
+            self.seen = []
+
+        def parse(self, buf):
+            return bytes(buf[1:3]) if buf[0] == 0xAA else None
+
+        def on_skip(self):
+            self.skips += 1
+
+        def accept(self, v):
+            self.seen.append(v)
+            return v[0] % 2 == 0
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        data = bytes(rng.choice([0xAA, 1, 2, 3], size=int(rng.integers(0, 60))).tolist())
+        # the reference: a plain walk over the whole stream
+        i, frames, skipped = 0, [], 0
+        while len(data) - i >= 3:
+            if data[i] == 0xAA:
+                frames.append(data[i + 1:i + 3])
+                i += 3
+            else:
+                i += 1
+                skipped += 1
+        d, out, cut = Dec(), [], sorted(rng.integers(0, len(data) + 1, size=3).tolist())
+        for a, b in zip([0] + cut, cut + [len(data)]):
+            out += d.feed(data[a:b])
+        assert d.seen == frames
+        assert out == [f for f in frames if f[0] % 2 == 0]
+        assert d.stats == {"frames": len(out), "skipped": skipped} and d.skips == skipped

@@ -104,3 +104,46 @@ def test_over_a_pty_in_real_time():
     assert rep is not None and rep["packets"] == 5 * (N + 3) + 1
     assert rep["held_at_end"] == 0.0
     assert rep["decoder"]["unknown"] == 2 * 5        # the arming's two bytes 3 each
+
+
+class FirstLateLink(ScriptedLink):
+    """:class:`ScriptedLink` whose first reply of each record (write 1's, answering tick
+    0's torques) is always held back ``lag`` writes: ticks ``1..lag`` hold reply 0, the
+    only reading yet (no extrapolation), on records that start moving."""
+
+    def write(self, data):
+        n = super().write(data)
+        if self.since == 2 and not self.queue[-1][0] > self.calls:
+            self.late += 1
+            self.queue[-1] = (self.calls + self.lag, self.queue[-1][1])
+        return n
+
+
+@pytest.mark.parametrize("lag,p,seed", [(1, 0.0, 0), (3, 0.0, 0), (2, 0.2, 5)])
+def test_every_estimate_within_its_bound(lag, p, seed):
+    """Every estimated row, holds of reply 0 included, is within
+    :func:`estimate_bounds` of the handle's position there (its reply read late: the
+    reading, within its rounding ``eps``), on every record of the hand's cycle (the
+    velocity starts among them)."""
+    from hapsim.daemon.haply2_host import estimate_bounds, record_realtime
+    from hapsim.drivers.haply2 import Haply2DIY
+    from hapsim.kinematics import device
+    sc = load_scene_nd(WALL)
+    N = 40
+    drv = Haply2DIY("gen3", resolution=2.0 ** 14)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    link = FirstLateLink(board, N, p, lag, seed=seed)
+    J = device("pantograph", sc.device.geometry).jacobian(sc.device.joints)
+    holds = 0
+    for _ in range(5):
+        rec = record_realtime(link, drv, sc, N)
+        ang = np.nanmax(np.abs(rec["joints"]), axis=0)
+        delta = np.pi / drv.resolution + np.radians(
+            np.spacing(np.float32(np.degrees(ang))).astype(float))
+        eps = np.abs(J) @ delta
+        b = estimate_bounds(rec, sc, J, delta)
+        est = rec["estimated"]
+        holds += int(np.sum(rec["lag"][est] == np.flatnonzero(est)))
+        err = np.abs(rec["position"] - rec["readings"])[est]
+        assert np.all(err <= b[est] + eps), (err / (b[est] + eps)).max()
+    assert holds == 5 * lag

@@ -82,12 +82,14 @@ def register(sub) -> None:
                    help="advance one period per FORCE instead of on the clock")
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="native rate announced in HELLO [Hz] (default: the scene's)")
-    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
+    # --seed, --fault-seed: None when not given (a 2-D/3-D scene's mock refuses them by
+    # name); the 1-D mock reads None as 0
+    p.add_argument("--seed", type=int, default=None, help="sensor-noise seed (default 0)")
     p.add_argument("--report", metavar="FILE",
                    help="write what the mock saw (ticks, late, last force, STOP) as JSON on exit")
     p.add_argument("--faults", metavar="SPEC",
                    help="inject seeded faults (see below), e.g. drop=0.01,reset@800")
-    p.add_argument("--fault-seed", type=int, default=0, metavar="N",
+    p.add_argument("--fault-seed", type=int, default=None, metavar="N",
                    help="seed of the fault generator (default 0)")
     p.add_argument("--rt-priority", type=int, default=None, metavar="N",
                    help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
@@ -104,6 +106,7 @@ def register(sub) -> None:
                         "instead of the Python mock (default scene: configs/hapkit.yaml)")
     p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
                    help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
+                        "(2-D/3-D scenes: always 'python'). "
                         "(loading the compiled tick delays the HELLO by 0.5-1 s). "
                         "Real-time ticks in numba ('compiled': same bytes as the "
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
@@ -176,14 +179,19 @@ def run(args) -> int:
     """
     if args.rt_priority is None:
         args.rt_priority = 10 if args.firmware and not args.lockstep else 0
-    if args.scene and not args.firmware and args.fd is None:
+    if args.scene:
         from hapsim.scene_nd import scene_dimension
-        if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device
+        if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device (it
+            # refuses by name what it does not take: --firmware, --fd, --seed, ...)
             from hapsim.commands.mock_nd import run_mock_nd
             return run_mock_nd(args, _new_pty)
     if getattr(args, "amplitude", None) is not None:
         raise ConfigError("--amplitude is the hand of a 2-D or 3-D scene's mock (the 1-D "
                           "mock takes its excitation from the scene)", key="--amplitude")
+    if args.seed is None:
+        args.seed = 0
+    if args.fault_seed is None:
+        args.fault_seed = 0
     if args.firmware:
         return _run_firmware(args)
     from hapsim.daemon.faults import parse_faults

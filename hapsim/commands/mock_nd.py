@@ -10,8 +10,42 @@ import threading
 
 from hapsim.errors import ConfigError
 
-#: mock options a 2-D or 3-D scene's device does not take yet (refused by name, exit 2)
-_REFUSED = (("faults", "--faults"), ("link", "--link"), ("spec", "--spec"))
+#: The ``hapsim mock`` options (their ``argparse`` destinations) a 2-D or 3-D scene's
+#: mock takes; any other one given (not None, not False) is refused by name (exit 2).
+#: It has no randomness (no sensor noise: ``--seed`` has nothing to seed) and no faults.
+TAKES = frozenset({"scene", "lockstep", "rate", "report", "rt_priority", "once",
+                   "amplitude", "tick"})
+#: ``--tick`` values it takes: its real-time ticks are Python's ("auto" picks them).
+TICKS = ("auto", "python")
+#: Destinations that are no option of ``hapsim mock`` (the CLI's own).
+_NOT_OPTIONS = frozenset({"func", "command"})
+
+
+def refuse_untaken(args) -> None:
+    """Refuse every ``hapsim mock`` option given that a 2-D or 3-D scene's mock does not
+    take (it would be silently ignored otherwise).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``hapsim mock``'s options (an option not given is None or False).
+
+    Raises
+    ------
+    ConfigError
+        Naming the first such option and the ones the n-D mock takes (exit 2).
+    """
+    takes = ", ".join("--" + d.replace("_", "-") for d in sorted(TAKES))
+    for dest, value in sorted(vars(args).items()):
+        if dest in TAKES or dest in _NOT_OPTIONS or value is None or value is False:
+            continue
+        opt = "--" + dest.replace("_", "-")
+        raise ConfigError(f"a 2-D or 3-D scene's mock does not take {opt} (it takes "
+                          f"{takes})", key=opt)
+    tick = getattr(args, "tick", "auto")
+    if tick not in TICKS:
+        raise ConfigError(f"a 2-D or 3-D scene's mock ticks in Python: --tick {tick} is not "
+                          f"taken (valid: {', '.join(TICKS)})", key="--tick")
 
 
 def run_mock_nd(args, new_pty) -> int:
@@ -44,10 +78,7 @@ def run_mock_nd(args, new_pty) -> int:
     from hapsim.daemon.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.daemon.realtime import RealtimePriority
     from hapsim.scene_nd import load_scene_nd
-    for attr, opt in _REFUSED:
-        if getattr(args, attr, None) is not None:
-            raise ConfigError(f"a 2-D or 3-D scene's mock does not take {opt} yet",
-                              key=opt)
+    refuse_untaken(args)
     rt = RealtimePriority(args.rt_priority or 0)
     scene = load_scene_nd(args.scene)
     a = DEFAULT_AMPLITUDE if args.amplitude is None else args.amplitude

@@ -59,14 +59,19 @@ def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
     most ``a_max = (max |F| + b_max v_max) / m_min`` over the record: ``F = J^-T tau`` the
     force of the torques written, ``m_min`` and ``b_max`` the extreme eigenvalues of the
     Cartesian mass and friction at rest, ``v_max`` the largest step between consecutive
-    readings over ``T`` plus ``2 eps / T`` (no hand on the handle in a free response;
-    the velocity-product terms, second order in the amplitude, are left out).
+    readings over ``T`` plus ``2 eps / T`` (every reading, the replies read late too; no
+    hand on the handle in a free response; the velocity-product terms, second order in
+    the amplitude, are left out). A *hold* (only reply 0 read, ``r = k``: no
+    extrapolation yet, the estimate is ``x[0]``) is wrong by the motion since ``t_0``,
+    at most ``r T (v_max + T a_max / 2) + (r T)^2 / 2 a_max + eps`` (Taylor's theorem,
+    ``|v(t_0)|`` bounded by the first period's mean velocity plus ``T a_max / 2``).
 
     Parameters
     ----------
     rec : dict
         :func:`record_realtime`'s record: ``position`` (N, 2) [m], ``torque`` (N, 2)
-        [N m], ``estimated`` (N,) bool, ``lag`` (N,) int (``r``).
+        [N m], ``estimated`` (N,) bool, ``lag`` (N,) int (``r``), optionally
+        ``readings`` (N, 2) [m] (every reply's reading, NaN where none came).
     scene : hapsim.scene_nd.SceneND
     J : ndarray, shape (2, 2)
         The Jacobian at rest [m/rad].
@@ -86,16 +91,25 @@ def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
     T = scene.period
     eps = np.abs(J) @ np.asarray(delta, float)
     F = np.abs(np.linalg.solve(J.T, np.asarray(rec["torque"], float).T).T)
-    read = ~est
-    steps = np.diff(x, axis=0)[read[1:] & read[:-1]]
+    # every reading, the late ones too (they hold the steps over the estimated ticks)
+    xs = np.asarray(rec.get("readings", np.where(est[:, None], np.nan, x)), float)
+    steps = np.diff(xs, axis=0)
+    steps = steps[np.isfinite(steps).all(axis=1)]
     v = (float(np.max(np.linalg.norm(steps, axis=1))) if steps.size else 0.0) / T \
         + 2 * float(np.linalg.norm(eps)) / T
     m_min = float(np.min(np.linalg.eigvalsh(scene.device.mass)))
     b_max = float(np.max(np.abs(np.linalg.eigvalsh(
         0.5 * (scene.device.friction + scene.device.friction.T)))))
     a_max = (float(np.max(np.linalg.norm(F, axis=1))) + b_max * v) / m_min
-    r = np.asarray(rec["lag"], float)[est]
-    out[est] = (r * (r + 1) / 2 * T * T * a_max)[:, None] + (2 * r + 1)[:, None] * eps
+    lag = np.asarray(rec["lag"], np.int64)
+    r = lag[est].astype(float)
+    ext = (r * (r + 1) / 2 * T * T * a_max)[:, None] + (2 * r + 1)[:, None] * eps
+    # a hold (only reply 0 read: lag == k) is x[0]: its error is the motion since t_0,
+    # r T |v(t_0)| + (r T)^2 / 2 a_max, plus eps; |v(t_0)| <= v + T a_max / 2 (the
+    # mean velocity over the first period, within v, and Taylor's theorem)
+    hold = (lag == np.arange(len(lag)))[est]
+    held = (r * T * (v + T * a_max / 2) + (r * T) ** 2 / 2 * a_max)[:, None] + eps
+    out[est] = np.where(hold[:, None], held, ext)
     return out
 
 
@@ -138,7 +152,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         written, ``estimated`` (N,) bool, ``lag`` (N,) int (ticks since the last reading
         where estimated), ``late_ticks`` (ticks the host itself began more than a period
         late), ``replies`` (replies to the record's writes, read by its end: all of them
-        on a clean stream), ``writes``.
+        on a clean stream), ``writes``, ``readings`` (N, 2) [m] (reply ``k``'s reading,
+        read in time or late; NaN where it never came).
 
     Raises
     ------
@@ -236,7 +251,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         raise DeviceError(f"{dec.stats['skipped']} bytes made no reply: the stream is not "
                           "clean (the real-time 2DIY loop does not re-synchronise a board)")
     return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
-            "lag": lag, "late_ticks": late, "replies": got, "writes": N + 2}
+            "lag": lag, "late_ticks": late, "replies": got, "writes": N + 2,
+            "readings": xr[:N].copy()}
 
 
 def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
@@ -351,39 +367,12 @@ class Embedded2DIY(PtyChild):
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
                  rate_hz: float | None = None) -> None:
-        import pty
-        import subprocess
-        import tempfile
-        import tty
-
-        from hapsim.spawn import child_env
-        master, slave = pty.openpty()
-        tty.setraw(slave)
-        self.port = os.ttyname(slave)
-        self._slave = slave
-        fd, self.report_path = tempfile.mkstemp(prefix="hapsim-2diy-", suffix=".json")
-        os.close(fd)
-        os.unlink(self.report_path)
-        cmd = [sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
-               "--scene", str(scene_path), "--generation", generation, "--amplitude",
-               repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
-               self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
-               repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))]
-        try:
-            self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=child_env(),
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
-        finally:
-            os.close(master)
-
-    def close(self) -> None:
-        """End the child and release the pty (idempotent)."""
-        self.release_slave()
-        if self.proc.poll() is None:
-            self.end()
-        try:
-            os.unlink(self.report_path)
-        except OSError:
-            pass
+        master = self.open_pty("hapsim-2diy-")
+        self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
+                    "--scene", str(scene_path), "--generation", generation, "--amplitude",
+                    repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
+                    self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
+                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))], master)
 
 
 class _SlowBoard(Haply2DIYBoard):

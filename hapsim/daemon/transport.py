@@ -30,16 +30,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import pty
-import subprocess
 import sys
 import time
-import tty
 from collections import deque
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
-from hapsim.spawn import PtyChild, child_env
+from hapsim.spawn import PtyChild
 
 __all__ = ["InProcessTransport", "SerialTransport", "EmbeddedMock", "SimTransport"]
 
@@ -349,19 +346,13 @@ class EmbeddedMock(PtyChild):
         from hapsim.daemon.faults import parse_faults
 
         plan = parse_faults(faults, fault_seed)      # ConfigError before any process starts
-        master, slave = pty.openpty()
-        tty.setraw(slave)
-        self.port = os.ttyname(slave)
-        self._slave = slave
+        master = self.open_pty("hapsim-mock-")
         self._linkdir = None
         if plan.has_vanish:
             self._linkdir = tempfile.mkdtemp(prefix="hapsim-port-")
             link = os.path.join(self._linkdir, "port")
             os.symlink(self.port, link)
             self.port = link
-        fd, self.report_path = tempfile.mkstemp(prefix="hapsim-mock-", suffix=".json")
-        os.close(fd)
-        os.unlink(self.report_path)
         spec = {"device": dataclasses.asdict(device),
                 "excitation": dataclasses.asdict(excitation), "base_dir": base_dir}
         if not math.isfinite(spec["device"]["force_limit"]):
@@ -377,12 +368,7 @@ class EmbeddedMock(PtyChild):
             cmd += ["--link", self.port]
         if rt_priority:
             cmd += ["--rt-priority", str(int(rt_priority))]
-        env = child_env()
-        try:
-            self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=env,
-                                         stdin=subprocess.DEVNULL, start_new_session=True)
-        finally:
-            os.close(master)
+        self.start(cmd, master)
 
     def close(self) -> None:
         """:meth:`PtyChild.close`, and the ``vanish`` fault's link directory removed."""

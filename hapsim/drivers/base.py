@@ -20,7 +20,8 @@ class AlignedDecoder:
     the next position tried.
 
     Subclasses set ``length`` and define ``parse(buf) -> value or None`` (``buf`` holds at
-    least ``length`` bytes).
+    least ``length`` bytes); they may override the hooks :meth:`on_skip` (after each byte
+    dropped) and :meth:`accept` (a parsed frame kept or dropped, e.g. implausible).
 
     Attributes
     ----------
@@ -37,21 +38,32 @@ class AlignedDecoder:
     def parse(self, buf):
         raise NotImplementedError
 
+    def on_skip(self) -> None:
+        """Called after each byte dropped realigning (``stats["skipped"]`` counted)."""
+
+    def accept(self, value) -> bool:
+        """Whether a parsed frame (its ``length`` bytes consumed) is taken; only taken
+        frames are returned and counted in ``stats["frames"]``."""
+        return True
+
     def feed(self, data: bytes) -> list:
         """Bytes in, the values of the frames taken out."""
         buf = self._buf
         buf += data
         out = []
+        st = self.stats
         n = self.length
         while len(buf) >= n:
             v = self.parse(buf)
-            if v is not None:
-                out.append(v)
-                del buf[:n]
-                self.stats["frames"] += 1
+            if v is None:
+                del buf[:1]
+                st["skipped"] += 1
+                self.on_skip()
                 continue
-            del buf[:1]
-            self.stats["skipped"] += 1
+            del buf[:n]
+            if self.accept(v):
+                out.append(v)
+                st["frames"] += 1
         return out
 
 

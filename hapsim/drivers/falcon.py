@@ -190,34 +190,22 @@ class DevicePacketDecoder(AlignedDecoder):
                    <= self.max_step + 2 * abs(self._prev[i] - self._prev2[i])
                    for i in range(3))
 
-    def feed(self, data: bytes) -> list:
-        """Bytes in, the packets taken out (``skipped``, ``implausible`` counted)."""
-        buf = self._buf
-        buf += data
-        out = []
-        st = self.stats
-        while len(buf) >= 16:
-            v = self.parse(buf)
-            if v is None:
-                del buf[:1]
-                st["skipped"] += 1
-                continue
-            del buf[:16]
-            enc, homed, _ = v
-            if not self._plausible(enc, homed):
-                st["implausible"] += 1
-                self._off += 1
-                if self._off < JUMP_PACKETS:
-                    continue
-                self._prev = None               # a real jump: start again from it
-            self._off = 0
-            if homed != self._homed:
-                self._prev = None
-            self._homed = homed
-            self._prev2, self._prev = (None, enc) if self._prev is None else (self._prev, enc)
-            out.append(v)
-            st["frames"] += 1
-        return out
+    def accept(self, value) -> bool:
+        """A packet taken unless implausible (counted): :data:`JUMP_PACKETS` implausible
+        ones in a row are a real jump of the counts, taken as the new start."""
+        enc, homed, _ = value
+        if not self._plausible(enc, homed):
+            self.stats["implausible"] += 1
+            self._off += 1
+            if self._off < JUMP_PACKETS:
+                return False
+            self._prev = None               # a real jump: start again from it
+        self._off = 0
+        if homed != self._homed:
+            self._prev = None
+        self._homed = homed
+        self._prev2, self._prev = (None, enc) if self._prev is None else (self._prev, enc)
+        return True
 
 
 #: Implausible packets in a row taken as a real jump of the counts.

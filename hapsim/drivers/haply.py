@@ -201,29 +201,19 @@ class ReplyDecoder(AlignedDecoder):
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 
-    def feed(self, data: bytes) -> list:
-        """Bytes in, the angles of the replies taken out (``skipped``, ``desync``
-        counted)."""
-        buf = self._buf
-        buf += data
-        out = []
-        st = self.stats
-        n = self.length
-        while len(buf) >= n:
-            v = self.parse(buf)
-            if v is not None:
-                out.append(v)
-                del buf[:n]
-                st["frames"] += 1
-                self._bad = 0
-                continue
-            del buf[:1]
-            st["skipped"] += 1
-            self._bad += 1
-            if self._bad % 100 == DESYNC_BYTES:      # once, then again if it lasts
-                st["desync"] += 1
-                self.reset_prediction()             # the re-synchronised board's angles
-        return out
+    def accept(self, value) -> bool:
+        """A reply taken: the run of dropped bytes ends."""
+        self._bad = 0
+        return True
+
+    def on_skip(self) -> None:
+        """A byte dropped: after :data:`DESYNC_BYTES` in a row (and every 100 more while
+        it lasts) a ``desync`` is counted and the prediction reset (the re-synchronised
+        board's angles)."""
+        self._bad += 1
+        if self._bad % 100 == DESYNC_BYTES:
+            self.stats["desync"] += 1
+            self.reset_prediction()
 
 
 class CommandDecoder:
