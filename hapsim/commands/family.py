@@ -26,8 +26,9 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
     two of its members, so the verdict is then certified over the continuous ranges by a
     subdivision of the parameter box (Bauer-Fike bound on each box, hapsim.analysis.
     robust; zero-order hold): it proves every member stable, or finds an unstable member
-    between the sampled ones. The report says "certified" or, when the subdivision gives
-    up (--certify-boxes), "sampled (N)": then nothing is claimed between the N members;
+    between the sampled ones. The report says "certified" (in floating point: the bounds'
+    rounding is not bounded) or, when the subdivision gives up (--certify-boxes),
+    "sampled (N)": then nothing is claimed between the N members;
   - the felt (k, b) at the port (least damped pair, with m = handle + hand mass), and of
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
@@ -222,8 +223,8 @@ def run(args: argparse.Namespace) -> int:
               f"B = {B:.6g} N s/m")
     cert = res.certificate
     if res.robust and res.robust_method == "certified":
-        print(f"verdict: ROBUSTLY STABLE (every member of the ranges: certified, "
-              f"{cert.boxes} boxes)")
+        print(f"verdict: ROBUSTLY STABLE (every member of the ranges: certified in "
+              f"{cert.arithmetic}; {cert.boxes} boxes)")
     elif res.robust:
         why = cert.method if cert is not None else "not asked (--certify-boxes 0)"
         print(f"verdict: ROBUSTLY STABLE on the sampled members only ({res.robust_method}); "
@@ -236,9 +237,9 @@ def run(args: argparse.Namespace) -> int:
         print("  first unstable member: " + _member_line(rep["first_unstable"]))
     else:
         ce = rep["certificate"]["counterexample"]
-        print(f"verdict: NOT ROBUSTLY STABLE (certified): every one of the {rep['members']} "
-              f"sampled members is stable, but the subdivision of the ranges found an "
-              f"unstable member between them ({cert.boxes} boxes)")
+        print(f"verdict: NOT ROBUSTLY STABLE (certified in {cert.arithmetic}): every one "
+              f"of the {rep['members']} sampled members is stable, but the subdivision of "
+              f"the ranges found an unstable member between them ({cert.boxes} boxes)")
         print(f"  unstable member: hand {ce['mass']:g} kg, damping {ce['damping']:g} N s/m, "
               f"grip {ce['grip_stiffness']:.6g} N/m / {ce['grip_damping']:g} N s/m"
               + (f", arm stiffness {ce['stiffness']:g} N/m" if ce["stiffness"] else "")

@@ -328,8 +328,8 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         ``measure(K, B) -> Trial``.
     """
     from hapsim.analysis.network import device_body
-    from hapsim.analysis.zwidth import (DECISIVE, MIN_GROWTH_TICKS, RECORD_ATTEMPTS, Trial,
-                                        release, wall_scene)
+    from hapsim.analysis.zwidth import (MIN_GROWTH_TICKS, RECORD_ATTEMPTS, Trial,
+                                        record_side, release, wall_scene)
     from hapsim.daemon.runner import run_scene
 
     m = device_body(base.device)[0]
@@ -365,15 +365,19 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
                          note=why), disturbed
         unc = float(meas.get("b_unc") or 0.0)
         late_fit = int(meas.get("late_accounted") or 0) + int(meas.get("late_in_segment") or 0)
-        if late_fit and abs(b) <= DECISIVE * unc:
-            # late ticks inside the identified stretch: its stated interval is the fit's
-            # (the accounted forces' error taken as uniform), not a bound on the
-            # disturbance; too close to zero to tell the side: repeated, then undecided
+        lb = meas.get("b_bound_late")
+        side, margin = record_side(float(b), unc, late_fit,
+                                   None if lb is None else float(lb))
+        if side is None:
+            # late ticks inside the identified stretch, b within the worst case of their
+            # accounted forces' error (plus the fit's interval) of 0: too close to tell
+            # the side: repeated, then undecided
             return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
                          math.exp(-b * T / (2.0 * m)), None,
                          note=(f"b = {b:.3g} +- {unc:.2g} N s/m from a stretch with "
-                               f"{late_fit} late ticks: within {DECISIVE:g} stated "
-                               "half-intervals of 0, side not decided")), late_fit
+                               f"{late_fit} late ticks: within {margin:.2g} N s/m of 0 "
+                               "(their accounted forces' worst case through the fit, "
+                               "plus the fit's interval), side not decided")), late_fit
         # the identified pole decides, not a safety stop: a record whose identified stretch
         # decays (b > 0) and that then stops on a limit was disturbed after it (in real
         # time, a host late by tens of ms holds a stale force: the handle flies into the
@@ -382,7 +386,7 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         note = stop if not (safety and b > 0) else (
             f"{stop} after a decaying stretch (a disturbance: the identified b decides)")
         return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
-                     math.exp(-b * T / (2.0 * m)), bool(b < 0), note=note), disturbed
+                     math.exp(-b * T / (2.0 * m)), side, note=note), disturbed
 
     def measure(K: float, B: float) -> Trial:
         # a disturbed record that could not be decided is repeated: in real time the
