@@ -999,6 +999,27 @@ class CompactExpander:
         if rate_hz is not None:
             self.rate_hz = float(rate_hz)
 
+    @property
+    def last(self) -> int | None:
+        """The last armed STATE's 32-bit seq, the reference of the next expansion; None
+        before the first armed STATE of a session. Settable: a reader that expands compact
+        STATEs itself (the compiled host loop) hands its reference back here.
+
+        Raises
+        ------
+        ValueError
+            When set to a value outside 0 .. 2**32 - 1 (other than None).
+        """
+        return self._last
+
+    @last.setter
+    def last(self, seq: int | None) -> None:
+        if seq is not None:
+            seq = int(seq)
+            if not 0 <= seq <= 0xFFFFFFFF:
+                raise ValueError(f"CompactExpander.last must be a u32 seq or None, got {seq}")
+        self._last = seq
+
     def expand(self, m: StateCompact) -> State:
         """The full STATE of ``m``.
 
