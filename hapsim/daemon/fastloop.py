@@ -65,7 +65,7 @@ from hapsim.kernels.ticks import tick_late as _tick_late
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "567de04d66e935e8d26857039e16041c8776c6c3067e63d9c8ce5a7165d815ef"
+COMPILED_SOURCES_SHA256 = "0af88cbb3d6c51958e56732b9edc6b71cfcfc6ed37bb9d7331bbd95b268f8f27"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
