@@ -1031,15 +1031,24 @@ class CompactExpander:
         Returns
         -------
         State
-            ``seq`` and ``force_seq`` 32-bit, ``time_us`` since CONFIG [us], ``status`` as
-            sent, ``position`` the binary32 values [m]. Only an armed STATE moves the seq
+            ``seq`` and ``force_seq`` 32-bit (``force_seq`` -1, "names no FORCE", for a
+            saturated ``lag`` of :data:`COMPACT_LAG_MAX`: 255 or more ticks, so the FORCE is
+            not known), ``time_us`` since CONFIG [us], ``status`` as sent, ``position`` the
+            binary32 values [m]. Only an armed STATE moves the seq
             reference (a disarmed one, e.g. before CONFIG, is expanded against it).
         """
         last = self._last
         seq = m.seq if last is None else (last + ((m.seq - last) & 0xFFFF)) & 0xFFFFFFFF
         if m.status & STATUS_ARMED:
             self._last = seq
-        fseq = (seq - m.lag) & 0xFFFFFFFF if m.status & STATUS_FORCE_APPLIED else 0
+        if not m.status & STATUS_FORCE_APPLIED:
+            fseq = 0
+        elif m.lag >= COMPACT_LAG_MAX:
+            # "255 or more": the FORCE is not known, and one held that long was zeroed by
+            # the watchdog; the STATE names no FORCE (as a protocol without the field)
+            fseq = -1
+        else:
+            fseq = (seq - m.lag) & 0xFFFFFFFF
         return State(seq, int(round(seq * 1e6 / self.rate_hz)), m.status, fseq, m.position)
 
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 import time
 
+import numba
 import numpy as np
 from numba.extending import overload
 
@@ -50,13 +51,29 @@ from hapsim.daemon.compiled_io import (
     CRC_TABLE as _CRC, POLLERR as _POLLERR, POLLHUP as _POLLHUP, POLLIN as _POLLIN,
     POLLNVAL as _POLLNVAL, POLLOUT as _POLLOUT, c_poll as _c_poll, c_read as _c_read,
     c_write as _c_write, cobs_decode as _cobs_decode, cobs_encode as _cobs_encode,
-    crc16 as _crc16, jit as _jit, le as _le, next_frame as _next_frame, now_ns as _now_ns)
+    crc16 as _crc16, le as _le, next_frame as _next_frame, now_ns as _now_ns)
 from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
+from hapsim.daemon.startup import sources_digest
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
 from hapsim.kernels.ticks import tick_late as _tick_late
+
+#: SHA-256 of the modules this module's numba code compiles in
+#: (:data:`hapsim.daemon.startup.LOOP_SOURCES`, by :func:`~hapsim.daemon.startup.sources_digest`).
+#: numba keys its disk cache on this file alone: when those modules change, this constant
+#: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
+#: this file and makes numba recompile. Until then the loop compiles without the cache.
+COMPILED_SOURCES_SHA256 = "0af88cbb3d6c51958e56732b9edc6b71cfcfc6ed37bb9d7331bbd95b268f8f27"
+
+#: Whether numba's disk cache may serve this module's compiled code: only when the modules
+#: compiled in are those the digest names (else a cached loop could run an old rule).
+CACHE_OK = sources_digest() == COMPILED_SOURCES_SHA256
+
+#: The decorator of the compiled loop's functions: nopython, no GIL, cached on disk when
+#: :data:`CACHE_OK`.
+_jit = numba.njit(nogil=True, cache=CACHE_OK)
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -1003,6 +1020,8 @@ def _mark_compiled(kind: int) -> None:
     import os
 
     from hapsim.daemon.startup import loop_stamp
+    if not CACHE_OK:        # compiled without the cache: nothing for a later start to load
+        return
     path = loop_stamp(_KERNEL_NAMES[kind])
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
