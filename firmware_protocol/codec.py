@@ -999,6 +999,27 @@ class CompactExpander:
         if rate_hz is not None:
             self.rate_hz = float(rate_hz)
 
+    @property
+    def last(self) -> int | None:
+        """The last armed STATE's 32-bit seq, the reference of the next expansion; None
+        before the first armed STATE of a session. Settable: a reader that expands compact
+        STATEs itself (the compiled host loop) hands its reference back here.
+
+        Raises
+        ------
+        ValueError
+            When set to a value outside 0 .. 2**32 - 1 (other than None).
+        """
+        return self._last
+
+    @last.setter
+    def last(self, seq: int | None) -> None:
+        if seq is not None:
+            seq = int(seq)
+            if not 0 <= seq <= 0xFFFFFFFF:
+                raise ValueError(f"CompactExpander.last must be a u32 seq or None, got {seq}")
+        self._last = seq
+
     def expand(self, m: StateCompact) -> State:
         """The full STATE of ``m``.
 
@@ -1010,15 +1031,24 @@ class CompactExpander:
         Returns
         -------
         State
-            ``seq`` and ``force_seq`` 32-bit, ``time_us`` since CONFIG [us], ``status`` as
-            sent, ``position`` the binary32 values [m]. Only an armed STATE moves the seq
+            ``seq`` and ``force_seq`` 32-bit (``force_seq`` -1, "names no FORCE", for a
+            saturated ``lag`` of :data:`COMPACT_LAG_MAX`: 255 or more ticks, so the FORCE is
+            not known), ``time_us`` since CONFIG [us], ``status`` as sent, ``position`` the
+            binary32 values [m]. Only an armed STATE moves the seq
             reference (a disarmed one, e.g. before CONFIG, is expanded against it).
         """
         last = self._last
         seq = m.seq if last is None else (last + ((m.seq - last) & 0xFFFF)) & 0xFFFFFFFF
         if m.status & STATUS_ARMED:
             self._last = seq
-        fseq = (seq - m.lag) & 0xFFFFFFFF if m.status & STATUS_FORCE_APPLIED else 0
+        if not m.status & STATUS_FORCE_APPLIED:
+            fseq = 0
+        elif m.lag >= COMPACT_LAG_MAX:
+            # "255 or more": the FORCE is not known, and one held that long was zeroed by
+            # the watchdog; the STATE names no FORCE (as a protocol without the field)
+            fseq = -1
+        else:
+            fseq = (seq - m.lag) & 0xFFFFFFFF
         return State(seq, int(round(seq * 1e6 / self.rate_hz)), m.status, fseq, m.position)
 
 

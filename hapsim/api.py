@@ -735,10 +735,12 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
                               file=scene.path, key="links")
         rep["family_calibrations"] = [calibrate_family(scene, name, mem=res.members).to_dict()
                                       for name in targets]
+    from hapsim.analysis.robust import ARITHMETIC
     if not res.robust:
-        verdict = "not robustly stable (certified)"
+        # an unstable member: its eigenvalues computed in floating point (robust module)
+        verdict = f"not robustly stable (certified in {ARITHMETIC})"
     elif res.robust_method == "certified":
-        verdict = "robustly stable (certified)"
+        verdict = f"robustly stable (certified in {ARITHMETIC})"
     else:
         verdict = f"robustly stable on the samples only ({res.robust_method})"
     return FamilyReport.from_dict({"scene": scene.path, "verdict": verdict,

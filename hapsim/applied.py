@@ -41,7 +41,7 @@ from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_FORCE_CLAMPED,
                                      STATUS_OVERRUN, STATUS_WATCHDOG_TRIPPED)
 from hapsim.kernels.ticks import late_ticks
 
-__all__ = ["AppliedAccount", "account_from_force_seq", "account_from_timing",
+__all__ = ["AppliedAccount", "account_from_force_seq", "account_from_timing", "firmware_force",
            "STATUS_WATCHDOG_TRIPPED", "STATUS_FORCE_CLAMPED", "STATUS_FORCE_APPLIED",
            "STATUS_OVERRUN"]
 
@@ -165,6 +165,56 @@ def _rows_of(seq: np.ndarray, src: np.ndarray) -> np.ndarray:
     return out
 
 
+def firmware_force(force, force_scale: float, force_limit: float = np.inf) -> np.ndarray:
+    """The force a framed device with an actuator resolution applies for each force sent,
+    in the Hapkit firmware's own arithmetic (``firmware_protocol/firmware/hapkit/main.c``,
+    ``take_force`` and ``on_config``), bit for bit.
+
+    The firmware computes in binary32: the FORCE's binary64 rounded to binary32 (nearest,
+    ties to even; beyond the range: infinite, clamped below), ``ax = |x| * c`` with
+    ``c = (float)(steps / force_max)``, and the step ``n = (uint16_t)(ax + 0.5f)`` (the
+    sum rounded to binary32, then truncated): not the binary64 nearest multiple, which
+    names another step near a half-step. The clamp: ``n`` is at most
+    ``floor(limit * c)``. ``c`` is restored from ``HELLO.force_scale`` (the binary32
+    ``force_max / steps``, sent widened): ``1.0f / scale`` is the same binary32 as
+    ``steps / force_max`` (``steps`` is a power of two, so the quotients differ by an
+    exact factor and round alike).
+
+    Parameters
+    ----------
+    force : array_like, shape (n,)
+        Forces sent [N].
+    force_scale : float > 0
+        HELLO.force_scale [N/step].
+    force_limit : float
+        The effective force limit [N] (``min(CONFIG, HELLO)``); inf: none.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``sign(x) * n * force_scale`` [N] (NaN stays NaN; an infinite force with no
+        finite limit stays infinite).
+
+    Raises
+    ------
+    ValueError
+        ``force_scale`` not > 0.
+    """
+    if not force_scale > 0:
+        raise ValueError(f"force_scale must be > 0, got {force_scale!r}")
+    f32 = np.float32
+    with np.errstate(over="ignore", invalid="ignore"):
+        x = np.asarray(force, np.float64).astype(f32)
+        c = f32(1.0) / f32(force_scale)
+        ax = np.abs(x) * c                                   # binary32 product
+        n = np.floor(ax + f32(0.5))                          # binary32 sum, truncated
+        if np.isfinite(force_limit):
+            lim_n = np.floor(f32(force_limit) * c)           # on_config: floor(limit * c)
+            n = np.minimum(n, lim_n)
+        out = np.sign(x).astype(np.float64) * n.astype(np.float64) * float(force_scale)
+    return out
+
+
 def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = False,
                            force_limit: float = np.inf, force_scale: float = 0.0
                            ) -> AppliedAccount:
@@ -189,7 +239,7 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
         STATUS_FORCE_CLAMPED holds the force clamped there.
     force_scale : float
         Actuator resolution [N] (HELLO.force_scale; 0: none): the applied force is the
-        nearest multiple.
+        step the firmware's binary32 arithmetic names (:func:`firmware_force`).
 
     Returns
     -------
@@ -210,7 +260,7 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
         raise ValueError(f"columns of different lengths: {seq.shape}, {f.shape}, "
                          f"{fseq.shape}, {st.shape}")
     if force_scale and force_scale > 0:
-        f = np.round(f / force_scale) * force_scale
+        f = firmware_force(f, force_scale, force_limit)
     if zero_delay:
         tick = np.empty(n, np.int64)
         late = np.zeros(n, bool)
@@ -258,7 +308,7 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
 
 
 def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
-                        force_scale: float = 0.0) -> AppliedAccount:
+                        force_scale: float = 0.0, quantise=None) -> AppliedAccount:
     """The account of a device whose protocol names no applied force (module notes).
 
     Parameters
@@ -276,7 +326,11 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
         held force is the on-time one or the one before; the account takes the on-time
         one and states the half-difference in ``half_width``.
     force_scale : float
-        Actuator resolution [N] (0: none).
+        Actuator resolution [N] (0: none): without ``quantise``, the nearest multiple.
+    quantise : callable, optional
+        The driver's own rule, forces sent [N] -> forces the device receives [N] (its
+        :meth:`~hapsim.drivers.base.Driver.applied_force`, the arithmetic its protocol
+        encodes with); it replaces ``force_scale``'s nearest multiple.
 
     Returns
     -------
@@ -293,7 +347,9 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
     d = int(delay)
     if d < 0:
         raise ValueError(f"delay must be >= 0, got {delay!r}")
-    if force_scale and force_scale > 0:
+    if quantise is not None:
+        f = np.array([quantise(float(v)) for v in f], dtype=np.float64).reshape(f.shape)
+    elif force_scale and force_scale > 0:
         f = np.round(f / force_scale) * force_scale
     lt = np.zeros(n, bool) if late is None else np.asarray(late, bool)
     amb = np.zeros(n, bool) if ambiguous is None else np.asarray(ambiguous, bool)

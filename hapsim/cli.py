@@ -35,7 +35,8 @@ unstable scene refused, a device fault, Ctrl-C) it is :func:`error_json`'s::
                "key": "links[0].stiffness"}, "exit": 2}
 
 with ``type`` the exception class (``usage`` for a bad option, ``interrupted`` for
-Ctrl-C), ``file``/``line``/``key`` when known (else null), ``spectral_radius`` and
+Ctrl-C), ``file``/``line``/``key`` when known (else null; a bad command-line value's key
+is its flag as typed, ``--joints``), ``spectral_radius`` and
 ``stiffness_limit`` for an unstable configuration, and ``exit`` the exit code. The same
 one-line message goes to stderr.
 """
@@ -47,10 +48,12 @@ import difflib
 import importlib
 import json
 import math
+import re
 import sys
 
 from hapsim import __version__
 from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
+from hapsim.option_values import Number, check_numbers, typed_flag
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
@@ -83,10 +86,22 @@ class HapsimArgumentParser(argparse.ArgumentParser):
     Notes
     -----
     Sub-command parsers inherit the class (``add_subparsers`` uses the parent's class).
-    The message of the last error is kept in ``last_usage_error`` for :func:`main`.
+    The message of the last error is kept in ``last_usage_error`` for :func:`main`. A
+    non-number given to a numeric option is raised as a :class:`ConfigError` keyed by the
+    flag (:func:`_refuse_number`), as ``nan`` or a value out of its range is.
     """
 
     last_usage_error: str | None = None
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # argparse reads "-inf", "-nan" and "-1e3" as unknown options ("--B -inf":
+        # "expected one argument"): they are values, checked by the option's range
+        # (hapsim.option_values), as "-1" and "-.5" are
+        self._negative_number_matcher = re.compile(
+            r"^-(\d+\.?\d*|\.\d+)(e[+-]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
+    #: The option the last error is about, as typed (``argument --seed: ...``), else None.
+    last_usage_key: str | None = None
 
     def error(self, message: str):  # noqa: D102 - argparse's contract: print and exit 2
         given = {a.split("=", 1)[0] for a in _ARGV if a.startswith("--")}
@@ -95,6 +110,7 @@ class HapsimArgumentParser(argparse.ArgumentParser):
             if isinstance(action, argparse._SubParsersAction):
                 chosen = [action.choices[a] for a in _ARGV if a in action.choices]
                 parser = chosen[0] if chosen else parser
+        _refuse_number(parser, message)    # a non-number for a numeric option
         known = {o for a in parser._actions for o in a.option_strings}
         hints = []
         for opt, (what, other) in _CASE_HINTS.items():
@@ -107,10 +123,46 @@ class HapsimArgumentParser(argparse.ArgumentParser):
         if message.startswith("unrecognized arguments:"):
             message += _did_you_mean(message.split(":", 1)[1].split(), sorted(known))
         HapsimArgumentParser.last_usage_error = f"{parser.prog}: {message}"
+        HapsimArgumentParser.last_usage_key = _argument_key(parser, message)
         # the sub-command's usage, not the top-level one: that is the parser whose options
         # the user was typing (argparse reports a sub-command's leftovers from the top)
         parser.print_usage(sys.stderr)
         parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+
+def _refuse_number(parser: argparse.ArgumentParser, message: str) -> None:
+    """Raise the :class:`ConfigError` of a non-number given to a numeric option.
+
+    ``argument --joints: must be a finite number [deg], got 'abc'`` (the message of a
+    :class:`~hapsim.option_values.Number` type) becomes what ``nan`` or a value out of range
+    gets from :func:`~hapsim.option_values.check_numbers`: one line keyed by the flag as
+    typed, exit 2, without the usage. Other messages: nothing (argparse's own error).
+
+    Raises
+    ------
+    ConfigError
+        With ``prog`` set to the command (``hapsim kinematics``), for :func:`_main`.
+    """
+    if not message.startswith("argument "):
+        return
+    name, _, reason = message[len("argument "):].partition(": ")
+    for action in parser._actions:
+        if (action.option_strings and "/".join(action.option_strings) == name
+                and isinstance(action.type, Number) and reason.startswith("must be ")):
+            exc = ConfigError(reason, key=typed_flag(action.option_strings, _ARGV))
+            exc.prog = parser.prog
+            raise exc
+
+
+def _argument_key(parser: argparse.ArgumentParser, message: str) -> str | None:
+    """The option an argparse message ``argument -n/--steps: ...`` is about, as typed."""
+    if not message.startswith("argument "):
+        return None
+    name = message[len("argument "):].split(": ", 1)[0]
+    for action in parser._actions:
+        if action.option_strings and "/".join(action.option_strings) == name:
+            return typed_flag(action.option_strings, _ARGV)
+    return None
 
 
 def _did_you_mean(unknown: list[str], known: list[str]) -> str:
@@ -141,7 +193,8 @@ def _did_you_mean(unknown: list[str], known: list[str]) -> str:
     return f" ({'; '.join(hints)})" if hints else ""
 
 
-def error_json(exc: BaseException | None, code: int, message: str) -> str:
+def error_json(exc: BaseException | None, code: int, message: str,
+               key: str | None = None) -> str:
     """The JSON object a ``--json`` command prints when it fails before having a result.
 
     Parameters
@@ -152,6 +205,8 @@ def error_json(exc: BaseException | None, code: int, message: str) -> str:
         The exit code (2 bad input, 1 negative verdict or device fault, 130 Ctrl-C).
     message : str
         The one-line message also printed on stderr.
+    key : str, optional
+        The key when ``exc`` has none (a usage error about one option: its flag).
 
     Returns
     -------
@@ -163,7 +218,7 @@ def error_json(exc: BaseException | None, code: int, message: str) -> str:
            "interrupted" if isinstance(exc, KeyboardInterrupt) else type(exc).__name__,
            "message": message,
            "file": getattr(exc, "file", None), "line": getattr(exc, "line", None),
-           "key": getattr(exc, "key", None)}
+           "key": getattr(exc, "key", None) or key}
     for name in ("spectral_radius", "stiffness_limit"):
         value = getattr(exc, name, None)
         if isinstance(value, float) and math.isfinite(value):
@@ -239,6 +294,7 @@ def _main(argv: list[str], want_json: bool) -> int:
     try:
         _ARGV[:] = argv
         HapsimArgumentParser.last_usage_error = None
+        HapsimArgumentParser.last_usage_key = None
         # the command named first: only its module is imported (the others' imports cost
         # start-up time); no command, or an unknown one: all, for the listing and the error
         first = next((a for a in argv if not a.startswith("-")), None)
@@ -251,8 +307,11 @@ def _main(argv: list[str], want_json: bool) -> int:
             code = int(exc.code or 0)
             if code and want_json:
                 message = HapsimArgumentParser.last_usage_error or "bad arguments"
-                print(error_json(None, code, message), flush=True)
+                print(error_json(None, code, message, HapsimArgumentParser.last_usage_key),
+                      flush=True)
             return code
+        except ConfigError as exc:  # a non-number for a numeric option (_refuse_number)
+            return _fail(getattr(exc, "prog", command), exc, 2, f"error: {exc}", want_json)
         command = f"hapsim {args.command}"
         try:
             import numpy as np
@@ -260,6 +319,8 @@ def _main(argv: list[str], want_json: bool) -> int:
             # (nan, inf, an unstable verdict); numpy's RuntimeWarnings on stderr only
             # confuse (issue 10)
             with np.errstate(all="ignore"):
+                # every numeric option in its declared range, before any work
+                check_numbers(_subparser(parser, args.command), args, argv)
                 return int(args.func(args))
         except UnstableConfigError as exc:
             # a negative verdict (unstable, not renderable), even when also a ConfigError
@@ -273,6 +334,12 @@ def _main(argv: list[str], want_json: bool) -> int:
             return _fail(command, exc, 130, "interrupted", want_json)
         except KeyboardInterrupt:  # a second Ctrl-C while saying so
             return 130
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+    """The parser of sub-command ``name`` in the top-level ``parser``."""
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices[name]
 
 
 def _fail(command: str, exc: BaseException, code: int, text: str, want_json: bool) -> int:

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import io
 import json
 import math
@@ -377,3 +378,101 @@ def test_nd_scene_to_a_1d_command_names_its_dimension(capsys, command, name, lin
     err = capsys.readouterr().err
     assert f"{name}:{line}: dimension: a " in err and "`run` and `mock` take it" in err, err
     assert "unknown key" not in err
+
+
+# ----------------------------------------------- every numeric option: bad values refused
+
+#: A command line each sub-command parses (its positionals and required options): the
+#: option under test is appended to it (argparse keeps the last value given).
+NUMERIC_BASE = {
+    "simulate": [WALL, "--steps", "5"], "render": [*LOOP, "--K", "1000"],
+    "calibrate": [*LOOP, "--k", "1000", "--b", "1"], "stability": LOOP, "map": [],
+    "check": [WALL], "run": [WALL], "mock": ["--scene", WALL], "bench": ["--out", "b.json"], "advise": [WALL],
+    "play": [WALL], "telemetry": ["t.hst"], "identify": [], "family": [WALL],
+    "compare-corrections": LOOP, "kinematics": ["delta", "--joints", "0", "0", "0"],
+    "zwidth": [],
+}
+
+
+@functools.lru_cache(maxsize=1)
+def _subparsers() -> dict:
+    """Each sub-command's parser, by name (built once: the cases only read them)."""
+    top = build_parser()
+    return next(a for a in top._actions
+                if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _numeric_options() -> list:
+    """(command, action) for every option whose values are numbers, read from the parsers."""
+    return [(name, a) for name, p in _subparsers().items() for a in p._actions
+            if a.option_strings and (a.type in (float, int) or hasattr(a.type, "describe"))]
+
+
+def _bad_values(action) -> list[str]:
+    """Values outside every numeric option's range, and below/above its declared bounds."""
+    values = ["nan", "inf", "-inf", "abc"]
+    kind = action.type
+    if kind.low is not None:                     # below, and an open bound itself (0)
+        values += [f"{kind.low - 1:g}"] + [f"{kind.low:g}"] * kind.open_low
+    if kind.high is not None:
+        values += [f"{kind.high + 1:g}"] + [f"{kind.high:g}"] * kind.open_high
+    return values
+
+
+NUMERIC_CASES = [(name, action.option_strings[0], value)
+                 for name, action in _numeric_options() for value in _bad_values(action)]
+
+
+def test_every_numeric_option_declares_its_range():
+    """A float or int option without a declared range (hapsim.option_values.Number) is
+    refused here: then the generated cases below cover every new option."""
+    from hapsim.option_values import Number
+    bare = [f"{name} {a.option_strings[0]}" for name, a in _numeric_options()
+            if not isinstance(a.type, Number)]
+    assert not bare, f"declare type=Number(...) for: {bare}"
+    assert set(NUMERIC_BASE) == set(_subparsers()), "give each command a base command line"
+    assert len(NUMERIC_CASES) > 300
+
+
+def test_defaults_are_in_their_declared_ranges():
+    from hapsim.option_values import check_numbers
+    for name, parser in _subparsers().items():
+        check_numbers(parser, parser.parse_args(NUMERIC_BASE[name]))  # raises if not
+
+
+@pytest.mark.parametrize("command, flag, value", NUMERIC_CASES,
+                         ids=[f"{c}{f}={v}" for c, f, v in NUMERIC_CASES])
+def test_bad_number_is_exit_2_naming_the_flag_and_the_range(capsys, command, flag, value):
+    """nan, inf, -inf, a non-number, a value beyond a declared bound: exit 2 before any
+    work, one line on stderr naming the flag as typed and the valid range; with --json
+    stdout holds only the error object, keyed by the flag."""
+    parser = _subparsers()[command]
+    action = next(a for a in parser._actions if flag in a.option_strings)
+    n = action.nargs if isinstance(action.nargs, int) else 1
+    argv = [command, *NUMERIC_BASE[command], flag, value, *["1"] * (n - 1)]
+    json_too = any("--json" in a.option_strings for a in parser._actions)
+    assert main(argv + ["--json"] * json_too) == 2
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    line = err.strip()
+    assert line.startswith(f"hapsim {command}: error: {flag}: must be "), line
+    assert action.type.describe() in line, line
+    if json_too:
+        doc = json.loads(out)
+        assert out.count("\n") == 1 and doc["exit"] == 2, out
+        assert doc["error"]["type"] == "ConfigError" and doc["error"]["key"] == flag
+        assert doc["error"]["message"] == line
+    else:
+        assert out == ""
+
+
+@pytest.mark.parametrize("argv, key", [
+    (["kinematics", "delta", "--joints", "nan", "0", "0", "--json"], "--joints"),
+    (["stability", *LOOP, "--B", "inf", "--json"], "--B"),
+    (["simulate", WALL, "-n", "-3", "--json"], "-n"),           # the short form, as typed
+    (["zwidth", "--B", "0", "nan", "--json"], "--B"),             # any of a list's values
+])
+def test_reported_cases_name_the_flag_as_typed(capsys, argv, key):
+    assert main(argv) == 2
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["error"] == {**doc["error"], "type": "ConfigError", "key": key}

@@ -63,7 +63,8 @@ def _f32(x: float) -> float:
 @st.composite
 def sessions(draw):
     """A device's STATEs over sessions: ticks from 0 after each CONFIG, armed ones at gaps up
-    to 30,000 ticks (past the 16-bit wrap), disarmed ones between, lags 0..254."""
+    to 30,000 ticks (past the 16-bit wrap), disarmed ones between, lags 0..255 (255: the
+    saturated "255 or more")."""
     # (seq, status, lag, binary32 position) per STATE, one list per session
     out = []
     for _ in range(draw(st.integers(1, 3))):
@@ -74,7 +75,7 @@ def sessions(draw):
             armed = draw(st.booleans()) or not states or seq - last_armed > 32768
             last_armed = seq if armed else last_armed
             applied = draw(st.booleans())
-            lag = draw(st.integers(0, 254)) if applied else 0
+            lag = draw(st.sampled_from([0, 1, 254, 255]) | st.integers(0, 255)) if applied else 0
             status = draw(st.integers(0, 0xFF)) & ~(fp.STATUS_ARMED | fp.STATUS_FORCE_APPLIED)
             status |= (fp.STATUS_ARMED if armed else 0) | (
                 fp.STATUS_FORCE_APPLIED if applied else 0)
@@ -90,7 +91,7 @@ def test_the_host_restores_every_state_a_compact_frame_stands_for(sess, rate):
     """Property over random sessions (PROTOCOL.md §4): through the wire and a decoder with
     the expander restarted at each CONFIG, each STATE_COMPACT comes out as the STATE the
     device would have sent: seq past the 16-bit wrap, force_seq = seq - lag with
-    FORCE_APPLIED (else 0), time_us = round(seq * 1e6 / rate), the binary32 position
+    FORCE_APPLIED and lag < 255 (a saturated lag names no FORCE: -1; else 0), time_us = round(seq * 1e6 / rate), the binary32 position
     exactly. Disarmed STATEs (before the first armed one of a session) do not move the
     reference, whatever their seq."""
     dec = fp.StreamDecoder()
@@ -104,11 +105,39 @@ def test_the_host_restores_every_state_a_compact_frame_stands_for(sess, rate):
             got = dec.feed(fp.encode(fp.StateCompact(seq & 0xFFFF, status, lag, (x,))))
             if not status & fp.STATUS_ARMED:
                 continue    # restored against the last armed one (a different question)
-            want = fp.State(seq, int(round(seq * 1e6 / rate)), status,
-                            (seq - lag) & U32 if status & fp.STATUS_FORCE_APPLIED else 0,
-                            (x,))
+            fseq = 0 if not status & fp.STATUS_FORCE_APPLIED else \
+                -1 if lag == fp.COMPACT_LAG_MAX else (seq - lag) & U32
+            want = fp.State(seq, int(round(seq * 1e6 / rate)), status, fseq, (x,))
             assert got == [want]
     assert dec.stats.bad_frames == 0
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 0xFFFF), st.integers(0, 300), st.integers(1, 300))
+def test_a_saturated_lag_names_no_force_and_the_tick_is_late(seq16, gap, d):
+    """A compact STATE's lag 255 means "255 ticks or more": the FORCE applied is not
+    known, so the STATE names none (``force_seq`` -1, as a protocol without the field),
+    and the late-tick rule (hapsim.kernels.ticks, read by both host loops and the
+    account) calls the (due) tick late at every delay, 255 included, where ``seq - 255``
+    would have named a FORCE and an on-time tick."""
+    from hapsim.kernels.ticks import late_ticks, named_delay, tick_late
+    ex = fp.CompactExpander(1000.0)
+    armed = fp.STATUS_ARMED | fp.STATUS_FORCE_APPLIED
+    ex.expand(fp.StateCompact(seq16, armed, 1, (0.0,)))        # the session's reference
+    s = ex.expand(fp.StateCompact((seq16 + 300 + gap) & 0xFFFF, armed, fp.COMPACT_LAG_MAX,
+                                  (0.0,)))
+    assert s.force_seq == -1
+    assert named_delay(s.seq, s.force_seq, s.status, True) == -1
+    assert tick_late(s.seq, s.force_seq, s.status, d, True)
+    assert tick_late(s.seq, s.force_seq, s.status, 255, True)
+    tick, late = np.empty(1, np.int64), np.zeros(1, bool)
+    late_ticks(np.array([s.seq]), np.array([s.force_seq]), np.array([s.status]), 255, True,
+               tick, late, np.zeros(1, bool))
+    assert tick[0] == -1 and late[0]
+    # one below saturation is still exact
+    t = ex.expand(fp.StateCompact((seq16 + 301 + gap) & 0xFFFF, armed, 254, (0.0,)))
+    assert t.force_seq == (t.seq - 254) & U32
+    assert named_delay(t.seq, t.force_seq, t.status, True) == 254
 
 
 @settings(max_examples=100, deadline=None)

@@ -8,6 +8,11 @@ frames anywhere. The device stream does not depend on the forces, so both loops 
 same STATEs and must send the same FORCEs bit for bit, log the same telemetry (all
 columns but the turnaround, a time measurement) and report the same counters, stops and
 flags. No timing is asserted.
+
+The same in a compact session (PROTOCOL.md §4 "Compact frames": the device offers COMPACT
+at SENSORS_REQUEST and streams STATE_COMPACTs whose 16-bit seq wraps past 65535; the host
+answers FORCE_COMPACT): both loops expand the same seqs, force_seqs and times and send the
+same binary32 forces.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ class ScriptedDevice(PtyDevice):
     ``stop_at``: (seq, StopFlag): request the stop just before writing the chunk that
     holds the STATE ``seq`` (for the stop-latency test)."""
 
-    def __init__(self, master: int, segments, stop_at=None):
+    def __init__(self, master: int, segments, stop_at=None, compact=False):
         super().__init__(master, fp.encode(fp.Hello(fp.PROTOCOL_VERSION, 1, 7, 1e-6, 1e-3,
                                                     10.0, 1000.0)))
         self.segments = list(segments)
@@ -51,10 +56,16 @@ class ScriptedDevice(PtyDevice):
         self.configs = 0
         self.stop_at = stop_at
         self.pending: list = []
+        self.compact = compact
 
     def on_message(self, msg):
         t = type(msg)
-        if t is fp.Config:
+        if t is fp.SensorsRequest and self.compact:
+            os.write(self.master, fp.encode(fp.Sensors(fp.FEATURE_COMPACT,
+                                                       msg.sensors & fp.FEATURE_COMPACT)))
+        elif t is fp.ForceCompact:
+            self.forces.append((msg.seq, msg.force[0]))
+        elif t is fp.Config:
             self.pending = list(self.segments[self.configs]) \
                 if self.configs < len(self.segments) else []
             self.configs += 1
@@ -66,7 +77,8 @@ class ScriptedDevice(PtyDevice):
     def tick(self):
         pending = self.pending
         if pending and isinstance(pending[0], int):   # a burst waits for its answer
-            if self.forces and self.forces[-1][0] >= pending[0]:
+            if self.forces and (self.forces[-1][0] == pending[0] & 0xFFFF if self.compact
+                                else self.forces[-1][0] >= pending[0]):
                 pending.pop(0)
         elif pending:
             seqs, chunk = pending.pop(0)
@@ -81,24 +93,36 @@ def state(seq, x, *, status=ARMED, fseq=None):
                               ((seq - D) if fseq is None else fseq) & 0xFFFFFFFF, (x,)))
 
 
-def chunked(frames, rng, pause_every=1):
-    """Join ``(seq, bytes)`` frames and cut the stream at random places (1..120 bytes)."""
+def cstate(seq, x, *, status=ARMED, lag=D):
+    """A 1-axis STATE_COMPACT of the 32-bit ``seq`` (its low 16 bits on the wire)."""
+    return fp.encode(fp.StateCompact(seq & 0xFFFF, status, lag, (x,)))
+
+
+def chunked(frames, rng, pause_every=1, most=120):
+    """Join ``(seq, bytes)`` frames and cut the stream at random places (1..``most``
+    bytes)."""
     data = b"".join(b for _, b in frames)
     owner = []
     for s, b in frames:
         owner += [s] * len(b)
     out, i = [], 0
     while i < len(data):
-        n = int(rng.integers(1, 121))
+        n = int(rng.integers(1, most + 1))
         out.append((set(owner[i:i + n]), data[i:i + n]))
         i += n
     return out
 
 
-def faulty_segment(rng, seq0, n, *, reset_at=None):
-    """STATEs seq0.. with positions of a wall push, and faults sprinkled in."""
+def faulty_segment(rng, seq0, n, *, reset_at=None, compact=False):
+    """STATEs seq0.. with positions of a wall push, and faults sprinkled in (``compact``:
+    STATE_COMPACTs, without the implausible jump, which a 16-bit seq cannot carry)."""
+    def st(seq, x, *, status=ARMED, fseq=None):
+        if not compact:
+            return state(seq, x, status=status, fseq=fseq)
+        return cstate(seq, x, status=status, lag=D if fseq is None else seq - fseq)
+
     frames = [(-1, fp.encode(fp.Hello(fp.PROTOCOL_VERSION, 1, 7, 1e-6, 1e-3, 10.0, 1000.0)))]
-    frames += [(-1, state(seq0 - 3 + j, 0.0, status=fp.STATUS_CONFIGURED)) for j in range(3)]
+    frames += [(-1, st(seq0 - 3 + j, 0.0, status=fp.STATUS_CONFIGURED)) for j in range(3)]
     seq = seq0
     usable = 0
     prev = None
@@ -108,11 +132,11 @@ def faulty_segment(rng, seq0, n, *, reset_at=None):
         if r < 0.02:
             frames.append((-1, b"\x13\x37\x42" + b"\x00"))                 # bad COBS / CRC
         elif r < 0.04:
-            good = bytearray(state(seq + 100, x))
+            good = bytearray(st(seq + 100, x))
             good[5] ^= 0x40                                                   # bit flip
             frames.append((-1, bytes(good)))
         elif r < 0.05:
-            frames.append((-1, state(seq, x)[:9] + b"\x00"))                 # truncated
+            frames.append((-1, st(seq, x)[:9] + b"\x00"))                    # truncated
         elif r < 0.06 and prev is not None:
             frames.append((-1, prev))                                         # duplicate
         elif r < 0.07:
@@ -121,10 +145,10 @@ def faulty_segment(rng, seq0, n, *, reset_at=None):
             seq += int(rng.integers(1, 4))                                    # gap: missed
         elif r < 0.085:
             frames.append((-1, b"\x01" * 200 + b"\x00"))                      # overlong
-        elif r < 0.09:
+        elif r < 0.09 and not compact:
             frames.append((-1, state(seq + 5_000_000, x)))                    # implausible
         fseq = seq - D if rng.random() > 0.03 else seq - D - 1                # late at times
-        prev = state(seq, x, fseq=fseq)
+        prev = st(seq, x, fseq=fseq)
         frames.append((seq, prev))
         usable += 1
         seq += 1
@@ -135,20 +159,24 @@ def faulty_segment(rng, seq0, n, *, reset_at=None):
     return frames, usable
 
 
-def run_loop(cls, segments, n_samples, *, stop=None, stop_at=None, scene=None, **cfg_kw):
-    """Run ``cls`` against a scripted device; (result, telemetry, forces, device)."""
+def run_loop(cls, segments, n_samples, *, stop=None, stop_at=None, scene=None, compact=False,
+             **cfg_kw):
+    """Run ``cls`` against a scripted device (``compact``: one that offers the compact
+    frames, asked for by the host); (result, telemetry, forces, device)."""
     master, slave = os.openpty()
     tr = SerialTransport(os.ttyname(slave))
     os.close(slave)
     stop = stop or StopFlag()
-    dev = ScriptedDevice(master, segments, (stop_at, stop) if stop_at is not None else None)
+    dev = ScriptedDevice(master, segments, (stop_at, stop) if stop_at is not None else None,
+                         compact=compact)
     dev.start()
     sc = scene or prepare_scene(load_scene(WALL))[0]
     eng = Engine(sc)
     tel = Telemetry(n_samples + 10)
     kw = dict(rate_hz=sc.rate_hz, n_samples=n_samples, delay=D, force_limit=10.0,
               state_timeout=20.0, hello_timeout=20.0, lost_timeout=20.0, reconnect=True,
-              position_bound=0.05, backlog="all")    # chunks arrive at random: answer all
+              position_bound=0.05, backlog="all",    # chunks arrive at random: answer all
+              compact="on" if compact else "off")
     kw.update(cfg_kw)
     cfg = LoopConfig(**kw)
     loop = cls(eng, tr, cfg, tel, stop)
@@ -173,6 +201,7 @@ RESULT_FIELDS = ("samples", "stop_reason", "safety_stop", "late", "missed", "cla
 
 def assert_same(a, b):
     (ra, ta, da, la), (rb, tb, db, lb) = a, b
+    assert ra.frames == rb.frames
     assert lb.compiled and not getattr(la, "compiled", False)
     # the compiled path answers a good part (a fault hands the rest of its read to Python)
     assert lb.compiled_samples > rb.samples // 5
@@ -184,7 +213,7 @@ def assert_same(a, b):
     assert da.forces == db.forces
     assert da.stops == db.stops
     ca, cb = ta.columns(), tb.columns()
-    for c in ("time", "position", "force", "seq", "late", "flags"):
+    for c in ("time", "position", "force", "seq", "late", "flags", "force_seq", "status"):
         np.testing.assert_array_equal(ca[c], cb[c], err_msg=c)
     assert [e["event"] for e in ra.events] == [e["event"] for e in rb.events]
     # which bad frames the decoder's history still held when they were noted depends on
@@ -257,14 +286,14 @@ def test_a_stop_request_ends_the_compiled_stretch_within_one_sample():
     assert res.samples == tel.n < S
 
 
-def bursts(rng, n_bursts, seq0=0, kmax=5):
+def bursts(rng, n_bursts, seq0=0, kmax=5, enc=state):
     """Bursts of 1-``kmax`` STATEs (stalls of the device's stream), each written at once
     after the answer to the previous burst (an int in the script: wait for the FORCE of that
     seq); (script, sizes)."""
     script, sizes, seq = [], [], seq0
     for b in range(n_bursts):
         k = int(rng.integers(1, kmax + 1)) if b else 1     # the scene resumes on a lone STATE
-        frames = b"".join(state(seq + q, 0.002 * math.sin((seq + q) / 25.0)) for q in range(k))
+        frames = b"".join(enc(seq + q, 0.002 * math.sin((seq + q) / 25.0)) for q in range(k))
         script += [(set(range(seq, seq + k)), frames), seq + k - 1]
         sizes.append(k)
         seq += k
@@ -322,3 +351,86 @@ def test_skipped_states_feed_the_scene_not_the_velocity(seed):
     ramp = (cols["flags"] & 4) != 0                # the force ramp counts answered rows
     np.testing.assert_array_equal(cols["force"][~ramp], rcols["force"][ends][~ramp])
     assert res.v_max <= ref[0].v_max
+
+
+# ----------------------------------------------------------------------------- compact
+
+
+@pytest.mark.parametrize("seed, rate", [(31, 1000), (32, 3000)])
+def test_compiled_equals_python_in_a_compact_session_across_the_seq_wrap(seed, rate, tmp_path):
+    """A compact session (STATE_COMPACT / FORCE_COMPACT) on a faulty stream whose 16-bit
+    seq wraps past 65535 in both segments, with gaps, duplicates (stale), late ticks (lag
+    2), bad frames, FAULTs and a device reset (HELLO: lost, COMPACT asked again, the
+    expansion restarted at CONFIG): the two loops expand the same 32-bit seqs (past 65535),
+    force_seqs and times (rounded to the us at 3 kHz), send the same FORCE_COMPACTs and log
+    the same telemetry."""
+    scene = tmp_path / "wall.yaml"
+    with open(WALL) as fh:
+        scene.write_text(fh.read().replace("rate_hz: 1000", f"rate_hz: {rate}"))
+    rng = np.random.default_rng(seed)
+    s1, u1 = faulty_segment(rng, 65_300, 400, reset_at=250, compact=True)
+    s2, u2 = faulty_segment(rng, 65_200, 500, compact=True)
+    n = u1 + u2 - 5
+    # chunks of as many frames as the full-frame test's (13-byte frames, not 31): the device
+    # writes no faster in STATEs, so the compiled stretch answers as large a part
+    a, b = both([chunked(s1, rng, most=50), chunked(s2, rng, most=50)], n, compact=True,
+                passivity_controller=True, energy_limit=1.0,
+                scene=prepare_scene(load_scene(str(scene)))[0])
+    assert_same(a, b)
+    res, tel = b[0], b[1]
+    assert res.frames == "compact" and res.lost == 1 and res.recovered == 1
+    assert res.samples == n and res.late and res.stale and res.missed
+    cols = tel.columns()
+    seq, fseq = cols["seq"], cols["force_seq"]
+    assert seq.max() > 65_535                        # expanded past the 16-bit wrap
+    # the expansion: each row's 32-bit seq has the wire's low 16 bits, the device time
+    # is the tick's since CONFIG, force_seq = seq - lag (lag 1, or 2 on a late tick)
+    applied = (cols["status"] & fp.STATUS_FORCE_APPLIED) != 0
+    np.testing.assert_array_equal(cols["time"],
+                                  [round(int(s) * 1e6 / rate) * 1e-6 for s in seq])
+    assert set((seq - fseq)[applied]) == {D, D + 1}
+    np.testing.assert_array_equal(cols["late"][applied] != 0, (seq - fseq)[applied] > D)
+    # each row's FORCE_COMPACT, in order among those sent (the others: the zero forces of
+    # the loss and the stop), carries the row's seq's low 16 bits and its force in binary32
+    f32 = cols["force"].astype(np.float32).astype(np.float64)
+    sent = iter(b[2].forces)
+    for s, f in zip(seq, f32):
+        assert (int(s) & 0xFFFF, f) in sent
+
+
+@pytest.mark.parametrize("backlog", ["newest", "all"])
+def test_backlog_policy_in_a_compact_session(backlog):
+    """Bursts of STATE_COMPACTs across the 16-bit wrap: "newest" skips the same STATEs in
+    both loops (a newer STATE_COMPACT waiting is found by expanding it), "all" answers each
+    in order; bit for bit the same."""
+    rng = np.random.default_rng(6)
+    script, sizes = bursts(rng, 120, seq0=65_300, enc=cstate)
+    n = 120 if backlog == "newest" else sum(sizes)
+    a, b = both([script], n, backlog=backlog, compact=True)
+    assert_same(a, b)
+    ends = 65_300 + np.cumsum(sizes) - 1
+    cols = b[1].columns()
+    # the expansion's reference the compiled stretch moved is handed back to the decoder
+    # (a frame Python expands later is expanded after the last STATE taken, not before)
+    for run in (a, b):
+        assert run[3].transport.decoder.expander.last == ends[-1]
+    if backlog == "newest":
+        assert b[0].skipped == sum(sizes) - len(sizes)
+        np.testing.assert_array_equal(cols["seq"], ends)
+    else:
+        np.testing.assert_array_equal(cols["seq"], 65_300 + np.arange(sum(sizes)))
+
+
+def test_compact_force_frames_equal_the_protocol_encoder():
+    """The compiled FORCE_COMPACT encoder gives fp.encode(fp.compact_force(...)): 16-bit
+    seq, binary32 rounding (ties to even), saturation of finite forces beyond binary32,
+    signed zeros, subnormals, non-finite forces."""
+    rng = np.random.default_rng(7)
+    f32 = float(np.float32(1.5))
+    vals = list(rng.uniform(-20, 20, 300)) + [0.0, -0.0, 5e-324, 1e-40, -1e308, 3.5e38,
+                                              -3.4028235e38, math.inf, -math.inf, math.nan,
+                                              f32 + 2.0 ** -24, 1.0 + 2.0 ** -24]
+    for v in vals:
+        s = int(rng.integers(0, 2**32))
+        assert encode_force(s, v, compact=True) == fp.encode(fp.compact_force(
+            fp.Force(s, (v,)))), (s, v)

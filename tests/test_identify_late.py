@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hapsim.applied import account_from_force_seq, account_from_timing
+from hapsim.applied import account_from_force_seq, account_from_timing, firmware_force
 from hapsim.commands.identify import identify
 from hapsim.daemon import mock as mock_mod
 from hapsim.scene import Device
@@ -318,7 +318,8 @@ def test_run_measures_every_stretch_against_the_closed_form():
 
 def test_an_actuator_step_is_a_known_input():
     """A framed device whose HELLO states an actuator step and which applies the nearest
-    step of every FORCE (as the Hapkit firmware's 256-step PWM does): ``run`` takes the
+    step of every FORCE (as the Hapkit firmware's 256-step PWM does, in its binary32
+    arithmetic: :func:`hapsim.applied.firmware_force`): ``run`` takes the
     rounding out as a known input at every tick, so the noise-free lockstep wall measures
     the prediction to 1e-6 (left in, the 0.05 N steps bias k by 7e-5 relative; the
     emulated Hapkit's real-time record measured k -0.336 +- 0.286 N/m from the
@@ -335,7 +336,8 @@ def test_an_actuator_step_is_a_known_input():
 
         def _apply_due(self, n, now_us):
             super()._apply_due(n, now_us)
-            self._u = round(self._u / step) * step
+            # the step the firmware names, in its binary32 arithmetic (main.c take_force)
+            self._u = float(firmware_force([self._u], step)[0])
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(runner, "MockDevice", _Stepped)
@@ -345,3 +347,20 @@ def test_an_actuator_step_is_a_known_input():
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], rel=1e-6)
     assert meas["within"] is True and meas["force_step"] == step
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.5, 5.0), st.lists(st.integers(-130, 130), min_size=5, max_size=60),
+       st.integers(0, 3))
+def test_the_timing_account_applies_the_drivers_own_rounding(full_scale, halves, d):
+    """Property (issue 19): a timing account (FireFader) names the force the driver's own
+    encoder commands (``applied_force``: Python's binary64 ``round(127 f / full_scale)``,
+    clamped), not the nearest multiple of ``full_scale / 127``, which names another count
+    near half-counts (forces here are whole and half counts, both signs, past the clamp)."""
+    from hapsim.drivers.firefader import FireFader
+    drv = FireFader(full_scale=full_scale)
+    f = np.array(halves, float) / 2 * drv.force_scale
+    acc = account_from_timing(f, d, force_scale=drv.force_scale, quantise=drv.applied_force)
+    want = np.array([drv.applied_force(v) for v in f])
+    np.testing.assert_array_equal(acc.applied[d:], want[:f.size - d])
+    assert np.all(acc.applied[:d] == 0.0)

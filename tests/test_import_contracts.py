@@ -58,7 +58,7 @@ LAYERS = (
     # which the drivers' timing fills and the analysis and the daemon read
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
                     "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
-                    "hapsim.applied")),
+                    "hapsim.applied", "hapsim.option_values")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher, in
     # hapsim.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
@@ -411,6 +411,8 @@ PRIVATE_READS_ALLOWED = {
     ("hapsim.cli", "argparse._SubParsersAction"): "argparse has no public type or list of a "
     "parser's sub-commands and options (its error() finds the chosen sub-command's)",
     ("hapsim.cli", "parser._actions"): "argparse: a parser's options have no public list",
+    ("hapsim.option_values", "parser._actions"): "argparse: a parser's options have no "
+    "public list (check_numbers checks the declared ranges of a sub-command's options)",
     ("hapsim.__main__", "hapsim._quiet_interrupt_at_start"): "the package's own start-up, "
     "run by its own entry point before any import (not an API)",
     # The compiled mock hands MockDevice's state over and back; mock.py is being merged

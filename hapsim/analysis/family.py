@@ -180,7 +180,9 @@ class FamilyResult:
     def robust_method(self) -> str:
         """``"certified"`` (the verdict holds for every member of the continuous ranges:
         proven by :func:`hapsim.analysis.robust.certify_family`, or an unstable member is a
-        proof) or ``"sampled (N)"`` (N members examined, nothing said between them)."""
+        proof; in floating point, its rounding not bounded:
+        :data:`hapsim.analysis.robust.ARITHMETIC`) or ``"sampled (N)"`` (N members
+        examined, nothing said between them)."""
         cert = self.certificate
         if not np.all(self.stable) or (cert is not None and cert.certified):
             return "certified"

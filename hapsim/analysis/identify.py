@@ -439,7 +439,7 @@ def _mode_of(spec_item, mass, period):
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
                  pencil: int | None = None, sensor_response=None, wire=None,
-                 lens=None, bounded=None) -> dict:
+                 lens=None, bounded=None, late_bounded=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor; of one stretch, or of several that share the
     loop's poles, each from its own initial condition (``lens``).
@@ -508,6 +508,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         the fit's first-order sensitivity to a unit error at row ``j`` through
         ``response``, is added to ``k_unc``, ``b_unc`` (``k_bound_rows``,
         ``b_bound_rows``).
+    late_bounded : sequence of (array_like, array_like), optional
+        As ``bounded``, for the error of the late ticks' accounted forces (each row's
+        largest force error [N] through the force response): its worst case through the
+        same first-order sensitivity is returned apart, ``k_bound_late``,
+        ``b_bound_late`` [N/m, N s/m], not added to ``k_unc``, ``b_unc`` (a caller that
+        decides a side on it adds it: :func:`hapsim.analysis.zwidth.record_side`).
 
     Returns
     -------
@@ -565,7 +571,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
                 return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
                                           method="pencil", skipped=0, lens=lens),
-                                  spec, fi, y, offset, wire, mass, period, lens, bounded)
+                                  spec, fi, y, offset, wire, mass, period, lens, bounded,
+                                  late_bounded)
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
@@ -635,7 +642,10 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                       spec, fi, yw, offset, wire, mass, period, lens_w,
                       None if not bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
-                          for e, r in bounded])
+                          for e, r in bounded],
+                      None if not late_bounded else [
+                          (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
+                          for e, r in late_bounded])
 
 
 def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
@@ -677,11 +687,16 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
     return bk, bb
 
 
-def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=None):
+def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=None,
+               late_bounded=None):
     """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
     ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too; with
     ``bounded``, the worst case of those errors (``k_bound_rows``, ``b_bound_rows``) added
-    to ``k_unc``, ``b_unc``."""
+    to ``k_unc``, ``b_unc``; with ``late_bounded``, theirs (``k_bound_late``,
+    ``b_bound_late``) apart."""
+    if late_bounded and "k" in out:
+        out["k_bound_late"], out["b_bound_late"] = _bounded_share(
+            spec, fi, y, offset, late_bounded, mass, period, lens)
     if bounded and "k" in out:
         bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period, lens)
         out["k_bound_rows"], out["b_bound_rows"] = bk, bb

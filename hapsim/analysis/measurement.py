@@ -20,6 +20,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_accounted",
+           "late_force_bound",
            "estimated_bounds",
            "wire_errors"]
 
@@ -29,7 +30,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
              closed: np.ndarray | None = None, wire=None, bounds=None,
-             exclude: np.ndarray | None = None) -> dict:
+             exclude: np.ndarray | None = None, late_bounds=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -95,6 +96,10 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         no reading [m], :func:`estimated_bounds`, through the sensor's response; a force
         the account cannot name [N], through the force response); their worst case is
         added to the stated uncertainty (``measure_felt``'s ``bounded``).
+    late_bounds : sequence of (ndarray, ndarray), optional
+        As ``bounds``, for the late ticks' accounted forces (:func:`late_accounted`'s
+        bound [N], through the force response): their worst case is returned apart
+        (``k_bound_late``, ``b_bound_late``; ``measure_felt``'s ``late_bounded``).
 
     Returns
     -------
@@ -114,6 +119,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
     sel = seq >= start
     y, s, lt = pos[sel], seq[sel], lt[sel]
     eb = [(np.asarray(e, float)[sel], r) for e, r in (bounds or ())]
+    elb = [(np.asarray(e, float)[sel], r) for e, r in (late_bounds or ())]
     cl = None if closed is None else np.asarray(closed, dtype=bool)[sel]
     ex = None if exclude is None else np.asarray(exclude, dtype=bool)[sel]
 
@@ -180,10 +186,15 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         try:
             be = [(np.concatenate([e[p:q] for p, q in use]), r) for e, r in eb]
             bounded = [(e, r) for e, r in be if np.any(e > 0)] or None
+            lb = [(np.concatenate([np.asarray(e, float)[p:q] for p, q in use]), r)
+                  for e, r in elb]
+            lb = [(e, r) for e, r in lb if np.any(e > 0)] or None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
                                sensor_response=sensor_response, wire=wire, lens=lens,
-                               bounded=bounded)
+                               bounded=bounded, late_bounded=lb)
+            if late_bounds is not None and "b" in res and lb is None:
+                res["k_bound_late"] = res["b_bound_late"] = 0.0
         except ConfigError as exc:
             out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
             return out
@@ -405,7 +416,38 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
     info["late_accounted"] = acc.n_late
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = np.asarray(acc.half_width, float)
+    info["_late_force_bound"] = late_force_bound(acc, w)
     return pos - xw, None, info
+
+
+def late_force_bound(acc, w) -> np.ndarray:
+    """The largest error of the force a late tick's account takes out [N], per row.
+
+    At a late tick the device held the force the account names (``applied``) instead of
+    the one due (``applied - w``); the record is measured with ``w`` taken out through the
+    loop's response. If the account is wrong at that tick the force truly held lies
+    between the two (a FORCE arriving within the period is held for part of it: the
+    zero-order hold's impulse over the period is a convex combination of both), so the
+    error of the taken-out input is at most the whole disturbance, ``|w|``, plus the
+    account's own ``half_width``. On every other row the account's input is its
+    ``half_width`` (0 from ``force_seq``) and the on-time force, not a late one.
+
+    Parameters
+    ----------
+    acc : hapsim.applied.AppliedAccount
+        The account (its ``late``, ``half_width``), shape (n,).
+    w : array_like, shape (n,)
+        The disturbance taken out, ``applied - F[k - d]`` [N]
+        (:meth:`hapsim.applied.AppliedAccount.disturbance`).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        ``|w| + half_width`` [N] at late rows, 0 elsewhere.
+    """
+    late = np.asarray(acc.late, bool)
+    return np.where(late, np.abs(np.asarray(w, float)) + np.asarray(acc.half_width, float),
+                    0.0)
 
 
 def estimated_bounds(cols: dict, period: float, mass: float, friction: float,

@@ -39,6 +39,20 @@ mode: small for a mode the change hardly strains (hand and handle moving togethe
 wall's frequency), where the norm of ``E`` sees the grip's stiffest direction. A box is
 proven when either bound is below 1.
 
+What is proven, exactly: the subdivision's bounds (Bauer-Fike, Gershgorin, the change of
+the plant over a box) are theorems about the matrices computed, evaluated in floating
+point. The computed decomposition's own inexactness is carried (its residual
+``||A V - V Lambda||`` through ``kappa(V)`` and ``||V^-1||``), but the rounding of the
+centre's matrix (its exponential and the loop's assembly), of the residual, ``kappa(V)``,
+``||V^-1||`` and the norms themselves, and of the eigenvalues that find an unstable member,
+is not bounded; the bounds are padded by a relative ``1e-6`` and ``1e-12`` against it, a
+choice, not a derived bound. The verdict is therefore "certified in floating point: rounding
+not bounded" (:data:`ARITHMETIC`, in the report and the JSON), not a proof in exact or
+interval arithmetic (contrast :mod:`hapsim.analysis.limit_certificate`, exact rational
+arithmetic). A family whose bound comes within the rounding of these computations
+(amplified by ``kappa(V)``) of the circle is where it could be wrong; that distance is not
+computed.
+
 Only the zero-order hold is certified (the ideal hold's rows are a different realisation);
 a pole within ``RIGID_TOL`` of ``z = 1`` (a free body) cannot be separated from the circle
 either. Both fall back to the sampled verdict, and say so.
@@ -56,7 +70,11 @@ from hapsim.analysis.hand import HAND_FIELDS, hand_matrices, nominal_member, rig
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 
-__all__ = ["Certificate", "certify_family", "MAX_BOXES"]
+__all__ = ["Certificate", "certify_family", "MAX_BOXES", "ARITHMETIC"]
+
+#: What a certificate proves (module notes): its bounds in floating point, the computed
+#: decomposition's residual carried, the rounding of the computations not bounded.
+ARITHMETIC = "floating point: rounding not bounded"
 
 #: Default most boxes of the subdivision before :func:`certify_family` gives up.
 MAX_BOXES = 20000
@@ -84,6 +102,9 @@ class Certificate:
         Its spectral radius.
     margin : float or None
         Smallest ``1 - (rho + kappa ||E||)`` over the proven boxes [-].
+    arithmetic : str
+        What the certificate proves: :data:`ARITHMETIC` (its bounds evaluated in floating
+        point, their rounding not bounded; module notes).
     """
 
     certified: bool
@@ -93,6 +114,7 @@ class Certificate:
     counterexample: np.ndarray | None = None
     counterexample_rho: float | None = None
     margin: float | None = None
+    arithmetic: str = ARITHMETIC
 
     def to_dict(self) -> dict:
         """JSON-ready dict (the counterexample as ``{field: value}``)."""
@@ -101,7 +123,8 @@ class Certificate:
             ce = {f: float(v) for f, v in zip(HAND_FIELDS, self.counterexample)}
             ce["spectral_radius"] = self.counterexample_rho
         return {"certified": self.certified, "robust": self.robust, "boxes": self.boxes,
-                "method": self.method, "counterexample": ce, "margin": self.margin}
+                "method": self.method, "counterexample": ce, "margin": self.margin,
+                "arithmetic": self.arithmetic}
 
 
 def _spans(hand) -> np.ndarray:

@@ -39,7 +39,7 @@ from hapsim.errors import ConfigError
 
 __all__ = ["Trial", "ZPoint", "predicted_coulomb", "locate_onset", "wall_scene",
            "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS", "RECORD_ATTEMPTS",
-           "DECISIVE"]
+           "record_side"]
 
 #: Fewest ticks before a safety stop for an unidentified record to count as growing: from
 #: at most 30 % of the force limit a growth of 1 % per sample needs ~120 ticks to reach it,
@@ -52,13 +52,50 @@ MIN_GROWTH_TICKS = 100
 #: (a record is lost with probability q, all n attempts with q^n).
 RECORD_ATTEMPTS = 6
 
-#: Stated half-intervals of ``b`` beyond which a record with late ticks inside its
-#: identified stretch decides its side. Its interval is the fit's, with the accounted
-#: late forces' error taken as uniform: not a bound on the disturbance. At load 9.6 on
-#: 2 cores, 2 of 14 such records at K 0.06 % above the mock's limit (b = -0.0051 N s/m)
-#: fell back from the exact fit and were off by 1.2 and 2.0 half-intervals, on the
-#: decaying side; the exact ones are off by < 1e-12.
-DECISIVE = 3.0
+
+def record_side(b: float, b_unc: float, late_ticks: int, b_bound_late: float | None):
+    """The side of the stability limit a record decides from its identified felt damping.
+
+    A record without late ticks in its identified stretch is the loop's own free response
+    (exact to round-off on the mock; its fit's interval only bounds the noise): its sign of
+    ``b`` decides. One with late ticks had their forces taken out as a known input
+    (:func:`hapsim.analysis.measurement.late_accounted`), wrong by at most
+    :func:`hapsim.analysis.measurement.late_force_bound` at each of them; the worst case of
+    that error through the fit's first-order sensitivity is ``b_bound_late``
+    (:func:`hapsim.analysis.identify.measure_felt`'s ``late_bounded``: ``sum_j e_j |s_j|``,
+    Seber & Wild 1989, Sec. 2.1). Its side is decided only when ``|b|`` exceeds that bound
+    plus the fit's stated half-interval ``b_unc``; without the bound (late ticks not
+    accounted), never.
+
+    Parameters
+    ----------
+    b, b_unc : float
+        Identified felt damping and its stated half-interval [N s/m].
+    late_ticks : int
+        Late ticks inside the identified stretch (accounted or not).
+    b_bound_late : float or None
+        Worst-case error of ``b`` from the late ticks' accounted forces [N s/m] (None: not
+        bounded).
+
+    Returns
+    -------
+    (growing, margin)
+        ``growing``: True (``b < -margin``), False (``b > margin``) or None (undecided);
+        ``margin`` [N s/m]: 0 without late ticks (the sign decides), ``inf`` when they are
+        not bounded, else ``b_bound_late + b_unc``.
+    """
+    if not late_ticks:
+        margin = 0.0
+    elif b_bound_late is None or not math.isfinite(b_bound_late):
+        margin = math.inf
+    else:
+        margin = float(b_bound_late) + float(b_unc)
+    if b > margin:
+        return False, margin
+    if b < -margin:
+        return True, margin
+    return None, margin
+
 
 #: Largest share of the device's force limit the wall's initial force ``K x0`` may take:
 #: a clamped force is not the linear loop, and a growing record must stay clear of it.
@@ -106,9 +143,9 @@ class Trial:
     growing : bool or None
         The record grows: its identified ``b < 0`` (a safety stop after a decaying stretch
         is a disturbance, not growth; with late ticks in the identified stretch only
-        beyond :data:`DECISIVE` stated half-intervals); unidentified, a safety stop after
-        at least :data:`MIN_GROWTH_TICKS` ticks of an undisturbed record. None when
-        undecided.
+        beyond their bound and the stated half-interval, :func:`record_side`);
+        unidentified, a safety stop after at least :data:`MIN_GROWTH_TICKS` ticks of an
+        undisturbed record. None when undecided.
     note : str
         Why a record is undecided, or the run's stop reason.
     """

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from hapsim.option_values import Number
+
 _DESCRIPTION = """\
 Model no more than a scene needs. For each link to the port and for the scene as a whole,
 find the lowest sample rate (R10 ladder 250 Hz ... 20 kHz) and the cheapest method that
@@ -39,9 +41,9 @@ def register(sub) -> None:
                        description=_DESCRIPTION, epilog=_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
-    p.add_argument("--tolerance", type=float, default=0.01,
+    p.add_argument("--tolerance", type=Number(float, low=0, open_low=True), default=0.01,
                    help="relative error allowed on felt k and b (default 0.01)")
-    p.add_argument("--margin", type=float, default=0.95,
+    p.add_argument("--margin", type=Number(float, low=0, high=1, open_low=True), default=0.95,
                    help="gain margin: stable with (K, B) / margin (default 0.95)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

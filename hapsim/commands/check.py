@@ -8,6 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError, fixed, plural
+from hapsim.option_values import Number
 
 _DESCRIPTION = """\
 Check a whole scene felt through its device, before touching the device.
@@ -58,7 +59,7 @@ def register(sub) -> None:
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
     p.add_argument("--json", action="store_true",
                    help="print the result as one JSON object on stdout")
-    p.add_argument("--modes", type=int, default=8, metavar="N",
+    p.add_argument("--modes", type=Number(int, low=0), default=8, metavar="N",
                    help="parasitic modes listed in the table (default 8; 0 for none)")
     p.add_argument("--plot", metavar="FIG",
                    help="2-D or 3-D scene: draw it over its device's workspace with the "

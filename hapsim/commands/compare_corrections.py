@@ -8,6 +8,7 @@ import math
 
 from hapsim.commands._loop_args import add_loop_arguments, loop_from_args
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 _DESCRIPTION = """\
 Compare the correction means of the virtual element on the paper's grid (Florens, Voda &
@@ -64,12 +65,15 @@ def register(sub) -> None:
         description=_DESCRIPTION, epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
-    p.add_argument("--k-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+    p.add_argument("--k-range", type=Number(float, low=0, open_low=True, unit="N/m"),
+                   nargs=2, metavar=("LO", "HI"), default=None,
                    help="usable felt stiffnesses [N/m] (default 5-50 %% of the plain K_max)")
-    p.add_argument("--b-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+    p.add_argument("--b-range", type=Number(float, low=0, open_low=True, unit="N s/m"),
+                   nargs=2, metavar=("LO", "HI"), default=None,
                    help="usable felt dampings [N s/m] (default: damping ratios 0.05-0.5)")
-    p.add_argument("--n", type=int, default=6, help="grid points per axis (default 6)")
-    p.add_argument("--boundary-points", type=int, default=61, metavar="N",
+    p.add_argument("--n", type=Number(int, low=2),
+                   default=6, help="grid points per axis (default 6)")
+    p.add_argument("--boundary-points", type=Number(int, low=2), default=61, metavar="N",
                    help="points of the exact boundary K_max(B) for the stable area "
                         "(default 61)")
     p.add_argument("--no-time-domain", action="store_true",
@@ -134,10 +138,6 @@ def run(args) -> int:
     from hapsim.progress import Progress
 
     loop = loop_from_args(args)
-    if args.n < 2:
-        raise ConfigError(f"must be >= 2, got {args.n}", key="--n")
-    if args.boundary_points < 2:
-        raise ConfigError(f"must be >= 2, got {args.boundary_points}", key="--boundary-points")
     for key, rng in (("--k-range", args.k_range), ("--b-range", args.b_range)):
         if rng is not None and not (0 < rng[0] < rng[1] and math.isfinite(rng[1])):
             raise ConfigError(f"must be 0 < LO < HI, got {rng}", key=key)

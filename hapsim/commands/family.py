@@ -7,6 +7,7 @@ import json
 import math
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 _DESCRIPTION = """\
 Judge a scene over the whole family of hands that may hold the device (Florens, Voda &
@@ -26,8 +27,9 @@ zero-order hold, delay line, virtual network) and its eigenvalues give:
     two of its members, so the verdict is then certified over the continuous ranges by a
     subdivision of the parameter box (Bauer-Fike bound on each box, hapsim.analysis.
     robust; zero-order hold): it proves every member stable, or finds an unstable member
-    between the sampled ones. The report says "certified" or, when the subdivision gives
-    up (--certify-boxes), "sampled (N)": then nothing is claimed between the N members;
+    between the sampled ones. The report says "certified" (in floating point: the bounds'
+    rounding is not bounded) or, when the subdivision gives up (--certify-boxes),
+    "sampled (N)": then nothing is claimed between the N members;
   - the felt (k, b) at the port (least damped pair, with m = handle + hand mass), and of
     every spring_damper between the port and a ground alone, with their spread
     (max - min) / nominal over the family.
@@ -75,12 +77,13 @@ def register(sub) -> None:
         description=_DESCRIPTION, epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file (device.hand with ranges)")
-    p.add_argument("--samples", type=int, default=None, metavar="N",
+    p.add_argument("--samples", type=Number(int, low=1), default=None, metavar="N",
                    help="N seeded random members instead of the grid")
-    p.add_argument("--grid", type=int, default=9, metavar="G",
+    p.add_argument("--grid", type=Number(int, low=2), default=9, metavar="G",
                    help="grid points per ranged hand value (default 9)")
-    p.add_argument("--seed", type=int, default=0, help="seed of --samples (default 0)")
-    p.add_argument("--certify-boxes", type=int, default=4096, metavar="N",
+    p.add_argument("--seed", type=Number(int, low=0),
+                   default=0, help="seed of --samples (default 0)")
+    p.add_argument("--certify-boxes", type=Number(int, low=0), default=4096, metavar="N",
                    help="most boxes of the certified subdivision of the ranges (default "
                         "4096; 0: the sampled verdict only)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
@@ -185,12 +188,6 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.api import family
     from hapsim.scene import load_scene
 
-    if args.samples is not None and args.samples < 1:
-        raise ConfigError(f"must be >= 1, got {args.samples}", key="--samples")
-    if args.grid < 2:
-        raise ConfigError(f"must be >= 2, got {args.grid}", key="--grid")
-    if args.certify_boxes < 0:
-        raise ConfigError(f"must be >= 0, got {args.certify_boxes}", key="--certify-boxes")
     if args.plot:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -222,8 +219,8 @@ def run(args: argparse.Namespace) -> int:
               f"B = {B:.6g} N s/m")
     cert = res.certificate
     if res.robust and res.robust_method == "certified":
-        print(f"verdict: ROBUSTLY STABLE (every member of the ranges: certified, "
-              f"{cert.boxes} boxes)")
+        print(f"verdict: ROBUSTLY STABLE (every member of the ranges: certified in "
+              f"{cert.arithmetic}; {cert.boxes} boxes)")
     elif res.robust:
         why = cert.method if cert is not None else "not asked (--certify-boxes 0)"
         print(f"verdict: ROBUSTLY STABLE on the sampled members only ({res.robust_method}); "
@@ -236,9 +233,9 @@ def run(args: argparse.Namespace) -> int:
         print("  first unstable member: " + _member_line(rep["first_unstable"]))
     else:
         ce = rep["certificate"]["counterexample"]
-        print(f"verdict: NOT ROBUSTLY STABLE (certified): every one of the {rep['members']} "
-              f"sampled members is stable, but the subdivision of the ranges found an "
-              f"unstable member between them ({cert.boxes} boxes)")
+        print(f"verdict: NOT ROBUSTLY STABLE (certified in {cert.arithmetic}): every one "
+              f"of the {rep['members']} sampled members is stable, but the subdivision of "
+              f"the ranges found an unstable member between them ({cert.boxes} boxes)")
         print(f"  unstable member: hand {ce['mass']:g} kg, damping {ce['damping']:g} N s/m, "
               f"grip {ce['grip_stiffness']:.6g} N/m / {ce['grip_damping']:g} N s/m"
               + (f", arm stiffness {ce['stiffness']:g} N/m" if ce["stiffness"] else "")

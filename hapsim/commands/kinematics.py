@@ -8,6 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 #: Parameters of ``--geometry`` per device, in order (lengths [m]).
 GEOMETRY_FIELDS = {"pantograph": ("l", "L", "d"), "delta": ("a", "b", "c", "d", "e", "f")}
@@ -37,32 +38,38 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("device", choices=sorted(GEOMETRY_FIELDS),
                    help="pantograph (2 joints) or delta (3 joints)")
-    p.add_argument("--joints", type=float, nargs="+", required=True, metavar="DEG",
+    p.add_argument("--joints", type=Number(unit="deg"), nargs="+", required=True, metavar="DEG",
                    help="joint angles [deg]: 2 for the pantograph, 3 for the delta")
     p.add_argument("--geometry", default=None, metavar="SPEC",
                    help="a preset name (pantograph: haply; delta: falcon) or the lengths "
                         "[m] comma-separated: pantograph l,L,d; delta a,b,c,d,e,f (leg "
                         "base and angles stay the Falcon's)")
-    p.add_argument("--force", type=float, nargs="+", default=None, metavar="N",
+    p.add_argument("--force", type=Number(unit="N"), nargs="+", default=None, metavar="N",
                    help="a Cartesian handle force [N] (2 or 3 components): also print "
                         "the joint torques J^T F [N m]")
     g = p.add_argument_group(
         "stiffness limits (the THS as a matrix at these joints: hapsim.analysis.ths_nd)")
-    g.add_argument("--joint-inertia", type=float, nargs="+", metavar="KG_M2",
+    g.add_argument("--joint-inertia", type=Number(float, low=0, open_low=True, unit="kg m^2"),
+                   nargs="+", metavar="KG_M2",
                    help="joint inertia [kg m^2], one per joint (or one for all): computes "
                         "the Cartesian mass and K_max along its principal axes")
-    g.add_argument("--joint-friction", type=float, nargs="+", default=[0.0],
+    g.add_argument("--joint-friction", type=Number(float, low=0, unit="N m s/rad"),
+                   nargs="+", default=[0.0],
                    metavar="N_M_S", help="joint viscous friction [N m s/rad] (default 0)")
-    g.add_argument("--hand-mass", type=float, default=0.0, help="hand mass [kg] (default 0)")
-    g.add_argument("--hand-damping", type=float, default=0.0,
+    g.add_argument("--hand-mass", type=Number(float, low=0, unit="kg"),
+                   default=0.0, help="hand mass [kg] (default 0)")
+    g.add_argument("--hand-damping", type=Number(float, low=0, unit="N s/m"), default=0.0,
                    help="hand damping [N s/m] (default 0)")
-    g.add_argument("--rate", type=float, default=1000.0, help="sample rate [Hz] (default 1000)")
-    g.add_argument("--delay", type=int, default=1, help="delay [samples] (default 1)")
-    g.add_argument("--B", type=float, default=0.0,
+    g.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"),
+                   default=1000.0, help="sample rate [Hz] (default 1000)")
+    g.add_argument("--delay", type=Number(int, low=0, high=500),
+                   default=1, help="delay [samples] (default 1)")
+    g.add_argument("--B", type=Number(unit="N s/m"), default=0.0,
                    help="virtual damping [N s/m], isotropic (default 0)")
-    g.add_argument("--grid", type=int, default=0, metavar="N",
+    g.add_argument("--grid", type=Number(int, low=0, high=40), default=0, metavar="N",
                    help="also map K_max over N points per joint within --span of the joints")
-    g.add_argument("--span", type=float, default=30.0, metavar="DEG",
+    g.add_argument("--span", type=Number(float, low=0, open_low=True, unit="deg"),
+                   default=30.0, metavar="DEG",
                    help="half-width of the --grid map around each joint [deg] (default 30)")
     g.add_argument("--out", metavar="FIG", help="chart the --grid map (png, pdf, svg)")
     p.add_argument("--json", action="store_true", help="print one JSON object")

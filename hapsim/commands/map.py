@@ -9,6 +9,7 @@ import numpy as np
 
 from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, loop_from_args
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 
 def register(sub) -> None:
@@ -33,15 +34,16 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p, defaults={"friction": None, "delay": None, "hold": None},
                        require=False)
-    p.add_argument("--paper", type=int, choices=(7, 8, 9),
+    p.add_argument("--paper", type=Number(int, low=7, high=9), metavar="{7,8,9}",
                    help="preset of the paper's Fig. 7, 8 or 9 (m = T = 1, ideal hold; "
                         "d = 0/1/1, b0 = 0/0/0.5); loop options override it")
-    p.add_argument("--k-range", type=float, nargs=2, metavar=("KMIN", "KMAX"),
+    p.add_argument("--k-range", type=Number(unit="N/m"), nargs=2, metavar=("KMIN", "KMAX"),
                    help="range of felt stiffness k [N/m] (required without --paper)")
-    p.add_argument("--b-range", type=float, nargs=2, metavar=("BMIN", "BMAX"),
+    p.add_argument("--b-range", type=Number(unit="N s/m"), nargs=2, metavar=("BMIN", "BMAX"),
                    help="range of felt damping b [N s/m] (required without --paper)")
-    p.add_argument("--n", type=int, default=9, help="iso curves per family (default: 9)")
-    p.add_argument("--samples", type=int, default=80,
+    p.add_argument("--n", type=Number(int, low=2),
+                   default=9, help="iso curves per family (default: 9)")
+    p.add_argument("--samples", type=Number(int, low=0), default=80,
                    help="points along each curve (default: 80)")
     p.add_argument("--out", metavar="FIG.png", help="write the figure (needs matplotlib)")
     p.add_argument("--data", metavar="FILE.json", help="write the grid data as JSON")
@@ -97,8 +99,6 @@ def run(args) -> int:
     if args.data:
         from hapsim.plot import check_output_path
         check_output_path(args.data, "--data")
-    if args.n < 2:
-        raise ConfigError(f"must be >= 2, got {args.n}", key="--n")
     k0, k1 = args.k_range
     b0_, b1 = args.b_range
     if not (0 < k0 < k1):

@@ -10,6 +10,7 @@ import pty
 import tty
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 
 def register(sub) -> None:
@@ -80,18 +81,19 @@ def register(sub) -> None:
     p.add_argument("--scene", metavar="SCENE", help="scene whose device/excitation to model")
     p.add_argument("--lockstep", action="store_true",
                    help="advance one period per FORCE instead of on the clock")
-    p.add_argument("--rate", type=float, metavar="HZ",
+    p.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"), metavar="HZ",
                    help="native rate announced in HELLO [Hz] (default: the scene's)")
     # --seed, --fault-seed: None when not given (a 2-D/3-D scene's mock refuses them by
     # name); the 1-D mock reads None as 0
-    p.add_argument("--seed", type=int, default=None, help="sensor-noise seed (default 0)")
+    p.add_argument("--seed", type=Number(int, low=0), default=None,
+                   help="sensor-noise seed (default 0)")
     p.add_argument("--report", metavar="FILE",
                    help="write what the mock saw (ticks, late, last force, STOP) as JSON on exit")
     p.add_argument("--faults", metavar="SPEC",
                    help="inject seeded faults (see below), e.g. drop=0.01,reset@800")
-    p.add_argument("--fault-seed", type=int, default=None, metavar="N",
+    p.add_argument("--fault-seed", type=Number(int, low=0), default=None, metavar="N",
                    help="seed of the fault generator (default 0)")
-    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+    p.add_argument("--rt-priority", type=Number(int, low=0, high=99), default=None, metavar="N",
                    help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
                         "normal scheduling; it is a test rig; 1..99; --firmware in real time: "
                         "10, the emulated board holds the wall clock). Embedded in 'hapsim "
@@ -112,11 +114,12 @@ def register(sub) -> None:
                         "Python mock, no GIL, sleeps on absolute deadlines; lockstep, faults, "
                         "sensor noise and a compliant grip stay in Python) or in Python "
                         "('python', the reference)")
-    p.add_argument("--amplitude", type=float, metavar="M",
+    p.add_argument("--amplitude", type=Number(float, low=0, open_low=True, unit="m"), metavar="M",
                    help="2-D/3-D scenes: the hand's amplitude a [m] (default 1e-8): at each "
                         "CONFIG it lets the handle go from the next identification start "
                         "(rest, displaced by a along each axis, moving at a/(10 T) along each)")
-    p.add_argument("--fd", type=int, help=argparse.SUPPRESS)    # embedded: pty master fd
+    p.add_argument("--fd", type=Number(int, low=0),
+                   help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
     p.set_defaults(func=run)
 

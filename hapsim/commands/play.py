@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
 
 import numpy as np
 
-from hapsim.errors import ConfigError
 from hapsim.outputs import json_safe
+from hapsim.option_values import Number
 
 _DESCRIPTION = """\
 Play a scene live, as an instrument: the embedded mock device (the scene's device section)
@@ -74,17 +73,18 @@ def register(sub) -> None:
                        description=_DESCRIPTION, epilog=_EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file with a port and a device")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+    p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"),
+                   default=10.0, metavar="S",
                    help="play this long [s] (default 10)")
-    p.add_argument("--osc", type=int, metavar="PORT",
+    p.add_argument("--osc", type=Number(int, low=0, high=65535), metavar="PORT",
                    help="serve OSC changes and queries on localhost:PORT (0: any free port)")
     p.add_argument("--sound", default="auto", choices=("auto", "jack", "sounddevice", "none"),
                    help="sound output (default auto: JACK, else PortAudio; scenes without "
                         "an audio section play silently)")
     p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
-    p.add_argument("--ramp", type=float, default=0.05, metavar="S",
+    p.add_argument("--ramp", type=Number(float, low=0, unit="s"), default=0.05, metavar="S",
                    help="ramp time of every change [s] (default 0.05)")
-    p.add_argument("--pluck-every", type=float, default=0.0, metavar="S",
+    p.add_argument("--pluck-every", type=Number(float, low=0, unit="s"), default=0.0, metavar="S",
                    help="repeat the scene's excitation (hand impulse/profile) every S seconds "
                         "(default 0: once)")
     p.add_argument("--lockstep", action="store_true",
@@ -94,7 +94,7 @@ def register(sub) -> None:
                    help="write the change journal (requests, verdicts, ramps) here")
     p.add_argument("--telemetry", metavar="FILE.npz",
                    help="write time [s], device position [m], port force [N] per sample")
-    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+    p.add_argument("--rt-priority", type=Number(int, low=0, high=99), default=None, metavar="N",
                    help="SCHED_FIFO priority of the haptic loop where permitted (0: normal). "
                         "Default: with live sound one below the sound callback's thread (the "
                         "loop feeds it: a haptic thread behind other real-time work starves "
@@ -151,18 +151,6 @@ def _play(args: argparse.Namespace, stop) -> int:
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
 
-    if not (args.duration > 0 and math.isfinite(args.duration)):
-        raise ConfigError(f"must be > 0, got {args.duration}", key="--duration")
-    if not (args.ramp >= 0 and math.isfinite(args.ramp)):
-        raise ConfigError(f"must be a number of seconds >= 0, got {args.ramp}", key="--ramp")
-    if args.osc is not None:
-        from hapsim.daemon.options import check_port_number
-        check_port_number(args.osc, "--osc")
-    if not args.pluck_every >= 0:
-        raise ConfigError(f"must be >= 0, got {args.pluck_every}", key="--pluck-every")
-    if args.rt_priority is not None and not 0 <= args.rt_priority <= 99:
-        raise ConfigError(f"must be 0 (normal) or a SCHED_FIFO priority 1..99, got "
-                          f"{args.rt_priority}", key="--rt-priority")
     scene, _ = prepare_scene(load_scene(args.scene))
     engine = Engine(scene)
     live = out = None

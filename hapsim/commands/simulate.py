@@ -15,6 +15,7 @@ from hapsim.errors import ConfigError
 from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
 from hapsim.scene import load_scene
+from hapsim.option_values import Number
 
 
 def register(sub) -> None:
@@ -54,7 +55,7 @@ def register(sub) -> None:
             "  hapsim simulate configs/membrane.yaml --steps 88200 --audio drum.wav"),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
-    p.add_argument("--steps", "-n", type=_count, required=True, metavar="N",
+    p.add_argument("--steps", "-n", type=Number(int, low=0), required=True, metavar="N",
                    help="number of samples to simulate (>= 0; 2e4 is read as 20000)")
     p.add_argument("--out", "-o", metavar="FILE",
                    help="output file, .npz or .csv (format chosen by extension); required "
@@ -68,21 +69,6 @@ def register(sub) -> None:
                    help="masses to record, in this order (default: all)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.set_defaults(func=run)
-
-
-def _count(text: str) -> int:
-    """``--steps`` value: a whole number, also written as ``2e4`` (argparse type)."""
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if not (value == value and abs(value) != float("inf") and value == int(value)):
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}")
-    return int(value)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ import zipfile
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 __all__ = ["register", "run", "read", "summarize", "felt_energy", "format_summary"]
 
@@ -58,7 +59,7 @@ def register(sub) -> None:
     p.add_argument("--plot", metavar="FIG",
                    help="draw position, force, felt energy and flags over time to FIG (.png, "
                         ".svg, ...; needs matplotlib)")
-    p.add_argument("--delay", type=int, default=1, metavar="D",
+    p.add_argument("--delay", type=Number(int, low=0), default=1, metavar="D",
                    help="samples d between a position and the force answering it, for the "
                         "felt energy (the scene's device.delay; default 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")

@@ -10,6 +10,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 _DESCRIPTION = """\
 Measure the device's Z-width (Colgate & Brown 1994): for each virtual damping B, the
@@ -71,19 +72,22 @@ def register(sub) -> None:
     where.add_argument("--firmware", action="store_true",
                        help="the Hapkit 3 reference firmware on the emulated board (simavr), "
                             "started here")
-    p.add_argument("--baud", type=int, default=115200, help="baud rate of --port")
+    p.add_argument("--baud", type=Number(int, low=1), default=115200, help="baud rate of --port")
     p.add_argument("--lockstep", action="store_true",
                    help="the embedded mock in lockstep, in process (deterministic); with "
                         "--firmware, the emulated board's clock paced by the host")
-    p.add_argument("--B", type=float, nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
+    p.add_argument("--B", type=Number(unit="N s/m"),
+                   nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
                    help="virtual dampings [N s/m] (default 0 1.5 4)")
-    p.add_argument("--x0", type=float, default=None,
+    p.add_argument("--x0", type=Number(unit="m"), default=None,
                    help="release position [m] (default the scene's excitation x0, or 5 mm)")
-    p.add_argument("--duration", type=float, default=0.3,
+    p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"), default=0.3,
                    help="record length per trial [s] (default 0.3)")
-    p.add_argument("--tol", type=float, default=2e-3,
+    p.add_argument("--tol", type=Number(float, low=0, high=0.5, open_low=True, open_high=True),
+                   default=2e-3,
                    help="relative width of the final bracket (default 0.002)")
-    p.add_argument("--start", type=float, default=0.7,
+    p.add_argument("--start", type=Number(float, low=0, high=1, open_low=True, open_high=True),
+                   default=0.7,
                    help="first K as a fraction of the predicted limit (default 0.7; K is "
                         "raised by 15 %% per record from there)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
@@ -146,13 +150,6 @@ def run(args) -> int:
                                         release)
     from hapsim.progress import Progress
 
-    for key, v, ok in (("--duration", args.duration, args.duration > 0),
-                       ("--tol", args.tol, 0 < args.tol < 0.5),
-                       ("--start", args.start, 0 < args.start < 1)):
-        if not (math.isfinite(v) and ok):
-            raise ConfigError(f"out of range: {v!r}", key=key)
-    if any(not math.isfinite(b) for b in args.B):
-        raise ConfigError(f"must be finite, got {args.B}", key="--B")
     if args.lockstep and args.port:
         raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
                           "it with --port", key="--lockstep")
@@ -328,8 +325,8 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         ``measure(K, B) -> Trial``.
     """
     from hapsim.analysis.network import device_body
-    from hapsim.analysis.zwidth import (DECISIVE, MIN_GROWTH_TICKS, RECORD_ATTEMPTS, Trial,
-                                        release, wall_scene)
+    from hapsim.analysis.zwidth import (MIN_GROWTH_TICKS, RECORD_ATTEMPTS, Trial,
+                                        record_side, release, wall_scene)
     from hapsim.daemon.runner import run_scene
 
     m = device_body(base.device)[0]
@@ -365,15 +362,19 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
                          note=why), disturbed
         unc = float(meas.get("b_unc") or 0.0)
         late_fit = int(meas.get("late_accounted") or 0) + int(meas.get("late_in_segment") or 0)
-        if late_fit and abs(b) <= DECISIVE * unc:
-            # late ticks inside the identified stretch: its stated interval is the fit's
-            # (the accounted forces' error taken as uniform), not a bound on the
-            # disturbance; too close to zero to tell the side: repeated, then undecided
+        lb = meas.get("b_bound_late")
+        side, margin = record_side(float(b), unc, late_fit,
+                                   None if lb is None else float(lb))
+        if side is None:
+            # late ticks inside the identified stretch, b within the worst case of their
+            # accounted forces' error (plus the fit's interval) of 0: too close to tell
+            # the side: repeated, then undecided
             return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
                          math.exp(-b * T / (2.0 * m)), None,
                          note=(f"b = {b:.3g} +- {unc:.2g} N s/m from a stretch with "
-                               f"{late_fit} late ticks: within {DECISIVE:g} stated "
-                               "half-intervals of 0, side not decided")), late_fit
+                               f"{late_fit} late ticks: within {margin:.2g} N s/m of 0 "
+                               "(their accounted forces' worst case through the fit, "
+                               "plus the fit's interval), side not decided")), late_fit
         # the identified pole decides, not a safety stop: a record whose identified stretch
         # decays (b > 0) and that then stops on a limit was disturbed after it (in real
         # time, a host late by tens of ms holds a stale force: the handle flies into the
@@ -382,7 +383,7 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
         note = stop if not (safety and b > 0) else (
             f"{stop} after a decaying stretch (a disturbance: the identified b decides)")
         return Trial(K, B, float(b), float(meas.get("k", math.nan)), unc,
-                     math.exp(-b * T / (2.0 * m)), bool(b < 0), note=note), disturbed
+                     math.exp(-b * T / (2.0 * m)), side, note=note), disturbed
 
     def measure(K: float, B: float) -> Trial:
         # a disturbed record that could not be decided is repeated: in real time the

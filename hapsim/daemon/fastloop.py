@@ -13,7 +13,9 @@ reference loop does (:meth:`HostLoop._device_states`, which reads through
 :meth:`CompiledHostLoop._receive_hook`):
 
 - a frame it does not take: anything but a clean, armed, 1-axis STATE in sequence order
-  or a clean 1-axis VELOCITY (bad frames, FAULT, HELLO, stale / implausible / unarmed
+  (in a compact session, STATE_COMPACT, expanded as the decoder's
+  :class:`firmware_protocol.CompactExpander` does, whose reference seq it shares, and
+  answered with FORCE_COMPACT) or a clean 1-axis VELOCITY (bad frames, FAULT, HELLO, stale / implausible / unarmed
   STATEs): the bytes from that frame on are fed to the transport's Python decoder and the
   reference code handles them. A VELOCITY it takes is counted and kept in the decoder's
   history, and not used, as the Python loop does without a velocity_sensor correction
@@ -39,6 +41,7 @@ from __future__ import annotations
 import math
 import time
 
+import numba
 import numpy as np
 from numba.extending import overload
 
@@ -48,13 +51,29 @@ from hapsim.daemon.compiled_io import (
     CRC_TABLE as _CRC, POLLERR as _POLLERR, POLLHUP as _POLLHUP, POLLIN as _POLLIN,
     POLLNVAL as _POLLNVAL, POLLOUT as _POLLOUT, c_poll as _c_poll, c_read as _c_read,
     c_write as _c_write, cobs_decode as _cobs_decode, cobs_encode as _cobs_encode,
-    crc16 as _crc16, jit as _jit, le as _le, next_frame as _next_frame, now_ns as _now_ns)
+    crc16 as _crc16, le as _le, next_frame as _next_frame, now_ns as _now_ns)
 from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
+from hapsim.daemon.startup import sources_digest
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
 from hapsim.kernels.ticks import tick_late as _tick_late
+
+#: SHA-256 of the modules this module's numba code compiles in
+#: (:data:`hapsim.daemon.startup.LOOP_SOURCES`, by :func:`~hapsim.daemon.startup.sources_digest`).
+#: numba keys its disk cache on this file alone: when those modules change, this constant
+#: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
+#: this file and makes numba recompile. Until then the loop compiles without the cache.
+COMPILED_SOURCES_SHA256 = "0af88cbb3d6c51958e56732b9edc6b71cfcfc6ed37bb9d7331bbd95b268f8f27"
+
+#: Whether numba's disk cache may serve this module's compiled code: only when the modules
+#: compiled in are those the digest names (else a cached loop could run an old rule).
+CACHE_OK = sources_digest() == COMPILED_SOURCES_SHA256
+
+#: The decorator of the compiled loop's functions: nopython, no GIL, cached on disk when
+#: :data:`CACHE_OK`.
+_jit = numba.njit(nogil=True, cache=CACHE_OK)
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -62,16 +81,16 @@ __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 # iv: int64 state shared by Python and the compiled code
 I_K, I_N, I_WSUM, I_RAMP, I_RESTART, I_FAPPLIED, I_LATE, I_CLAMPED, I_PSAMPLES = range(9)
 I_LAST_SEQ, I_EXPECT, I_MISSED, I_FRAMES_OK, I_RB_LEN, I_NF_SEQ, I_NMAX, I_SYNC = range(9, 17)
-I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG = 17, 18, 19, 20, 21
-N_IV = 22
+I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG, I_CLAST = 17, 18, 19, 20, 21, 22
+N_IV = 23
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
 N_FV = 11
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
- P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD) = range(17)
-N_PV = 17
+ P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
+N_PV = 19
 
 # return codes
 R_OK, R_NONFINITE, R_SAFETY, R_IOERR = 0, 1, 2, 3
@@ -81,6 +100,8 @@ _U32 = 0xFFFFFFFF
 _HALF = 0x80000000
 _STATE_PACKET = 29          # type + 1-axis STATE body + CRC [bytes]
 _VELOCITY_PACKET = 15       # type + 1-axis VELOCITY body + CRC [bytes]
+_STATE_C_PACKET = 11        # type + 1-axis STATE_COMPACT body + CRC [bytes]
+_F32_MAX = fp.F32_MAX
 _MAX_FRAME = fp.MAX_FRAME
 _RB_SIZE = 1 << 16
 #: The compiled stretch returns to Python at least this often [s of samples] to publish
@@ -241,6 +262,36 @@ def _force_frame(seq, f, pkt, f8, u8, table, out):
 
 
 @_jit
+def _force_compact_frame(seq, f, pkt, f4, u8, table, out):
+    """FORCE_COMPACT(seq, (f,)) as a whole frame in ``out``; its length (11 bytes).
+
+    :func:`firmware_protocol.compact_force` on bytes (PROTOCOL.md §4 "Compact frames"): the
+    seq's low 16 bits, the force rounded to binary32 (to nearest, ties to even), a finite
+    force beyond the binary32 range saturated to ``F32_MAX`` with its sign."""
+    pkt[0] = 0x14
+    pkt[1] = seq & 0xFF
+    pkt[2] = (seq >> 8) & 0xFF
+    if (f > _F32_MAX or f < -_F32_MAX) and math.isfinite(f):
+        f = math.copysign(_F32_MAX, f)
+    f4[0] = f
+    for j in range(4):
+        pkt[3 + j] = u8[j]
+    c = _crc16(pkt, 7, table)
+    pkt[7] = (c >> 8) & 0xFF
+    pkt[8] = c & 0xFF
+    return _cobs_encode(pkt, 9, out)
+
+
+@_jit
+def _expand_seq(s16, last):
+    """The 32-bit seq of a STATE_COMPACT's 16-bit ``s16`` after the reference ``last``
+    (< 0: none, the seq is taken as is): :meth:`firmware_protocol.CompactExpander.expand`."""
+    if last < 0:
+        return s16
+    return (last + ((s16 - last) & 0xFFFF)) & _U32
+
+
+@_jit
 def _write_all(fd, buf, n, pfd):
     """Write ``buf[:n]`` (waiting up to 1 s for room); 0, or -1 on an error."""
     done = 0
@@ -264,7 +315,7 @@ def _write_all(fd, buf, n, pfd):
 def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
             s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, seq, time_us, status, force_seq,
             x, t_rx, fd,
-            pkt, f8, u8, table, tx, pfd, ts):
+            pkt, f8, u8, table, tx, pfd, ts, f4):
     """One sample of :meth:`HostLoop._drive`, transcribed: late check, port step, observer,
     controller, ramp, clamp, FORCE written, clamp window, telemetry row, maxima, bounds.
 
@@ -320,7 +371,10 @@ def _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_a
     elif f < -lim:
         f = -lim
         c = 1
-    n = _force_frame(seq, f, pkt, f8, u8, table, tx)
+    if pv[P_COMPACT] != 0.0:
+        n = _force_compact_frame(seq, f, pkt, f4, u8, table, tx)
+    else:
+        n = _force_frame(seq, f, pkt, f8, u8, table, tx)
     if _write_all(fd, tx, n, pfd) < 0:
         return R_IOERR
     t_tx = _now_ns(ts)
@@ -381,16 +435,30 @@ def _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x):
 
 
 @_jit
-def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table):
+def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table, compact):
     """Whether a complete frame in ``rb[a:n_rb]`` is an armed 1-axis STATE ahead of
-    ``seq`` by 1 .. ``ahead_max`` (:func:`hapsim.daemon.loop._newer_waiting`, on bytes)."""
+    ``seq`` by 1 .. ``ahead_max`` (:func:`hapsim.daemon.loop._newer_waiting`, on bytes).
+
+    ``compact``: the STATE_COMPACTs are expanded in order as the Python decoder's
+    :class:`firmware_protocol.CompactExpander` does (from ``seq``, each armed one of any
+    number of axes moving the reference)."""
     b = a
+    last = seq
     for j in range(a, n_rb):
         if rb[j] != 0:
             continue
         if j > b and j - b <= _MAX_FRAME - 1:
             m = _cobs_decode(rb, b, j, scratch)
-            if (m == _STATE_PACKET and scratch[0] == 0x10 and _crc16(scratch, m, table) == 0
+            if compact:
+                if (scratch[0] == 0x13 and m >= _STATE_C_PACKET and (m - 7) % 4 == 0
+                        and (m - 7) // 4 <= fp.MAX_AXES and _crc16(scratch, m, table) == 0
+                        and scratch[3] & 0x01):
+                    e = _expand_seq(_le(scratch, 1, 2), last)
+                    ahead = (e - seq) & _U32
+                    if m == _STATE_C_PACKET and 0 < ahead < _HALF and ahead <= ahead_max:
+                        return True
+                    last = e
+            elif (m == _STATE_PACKET and scratch[0] == 0x10 and _crc16(scratch, m, table) == 0
                     and scratch[13] & 0x01):
                 ahead = (_le(scratch, 1, 4) - seq) & _U32
                 if 0 < ahead < _HALF and ahead <= ahead_max:
@@ -413,15 +481,21 @@ def _keep_frame(rb, a, z, hist, hist_len, iv):
 @_jit
 def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr, f_arr,
              s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, fd, rb, stop, pkt, f8, u8, table,
-             tx, pfd, ts, hist, hist_len):
+             tx, pfd, ts, f4, hist, hist_len):
     """Answer clean STATEs on ``fd`` until something needs Python (module notes).
 
     ``rb[:iv[I_RB_LEN]]`` holds received bytes not yet framed (a partial frame on entry;
-    on return with R_HANDOFF or R_PORT, the bytes from the first frame not taken on)."""
+    on return with R_HANDOFF or R_PORT, the bytes from the first frame not taken on).
+
+    In a compact session (``pv[P_COMPACT]``) the clean 1-axis STATE_COMPACTs are taken
+    instead of STATEs, expanded against ``iv[I_CLAST]`` (the decoder's
+    :attr:`firmware_protocol.CompactExpander.last`, -1 for none; moved by each one taken)
+    with the time of ``pv[P_CRATE]``, and answered with FORCE_COMPACT."""
     n_rb = iv[I_RB_LEN]
     silence = pv[P_SILENCE]
     poll_max = pv[P_POLL]
     rate = pv[P_RATE]
+    compact = pv[P_COMPACT] != 0.0
     sync_at = iv[I_N] + iv[I_SYNC]
     t_read = _now_ns(ts)            # when the bytes in rb were read (the turnaround's start)
     while True:
@@ -452,15 +526,30 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
                 _keep_frame(rb, a, z, hist, hist_len, iv)
                 a = z + 1
                 continue
-            if m != _STATE_PACKET or pkt[0] != 0x10 or _crc16(pkt, m, table) != 0:
-                break               # not a clean 1-axis STATE: Python's
-            seq = _le(pkt, 1, 4)
-            tus = _le(pkt, 5, 8)
-            status = _le(pkt, 13, 2)
-            fseq = _le(pkt, 15, 4)
-            for j in range(8):
-                u8[j] = pkt[19 + j]
-            x = f8[0]
+            if compact:
+                # STATE_COMPACT (PROTOCOL.md §4 "Compact frames"), expanded as
+                # firmware_protocol.CompactExpander does: seq after the last armed one,
+                # force_seq = seq - lag when FORCE_APPLIED, time of the tick since CONFIG
+                if (m != _STATE_C_PACKET or pkt[0] != 0x13
+                        or _crc16(pkt, m, table) != 0):
+                    break           # not a clean 1-axis STATE_COMPACT: Python's
+                seq = _expand_seq(_le(pkt, 1, 2), iv[I_CLAST])
+                status = np.int64(pkt[3])
+                fseq = (seq - np.int64(pkt[4])) & _U32 if status & _FORCE_APPLIED else 0
+                tus = np.int64(round(seq * 1e6 / pv[P_CRATE]))
+                for j in range(4):
+                    u8[j] = pkt[5 + j]
+                x = np.float64(f4[0])
+            else:
+                if m != _STATE_PACKET or pkt[0] != 0x10 or _crc16(pkt, m, table) != 0:
+                    break           # not a clean 1-axis STATE: Python's
+                seq = _le(pkt, 1, 4)
+                tus = _le(pkt, 5, 8)
+                status = _le(pkt, 13, 2)
+                fseq = _le(pkt, 15, 4)
+                for j in range(8):
+                    u8[j] = pkt[19 + j]
+                x = f8[0]
             if not status & 0x0001:
                 break               # disarmed: Python declares the loss
             expect = iv[I_EXPECT]
@@ -476,11 +565,14 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             iv[I_MISSED] += gap
             fv[F_LAST_RX] = now
             iv[I_EXPECT] = (seq + 1) & _U32
+            if compact:
+                iv[I_CLAST] = seq           # armed: the expansion's reference moves
             iv[I_FRAMES_OK] += 1
             _keep_frame(rb, a, z, hist, hist_len, iv)
             a = z + 1
             handled = True
-            if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table):
+            if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table,
+                                                compact):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
                 _skip_step(kind, kargs, xs, port, rec, out, iv, fv, x)
@@ -488,7 +580,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             code = _sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,
                            seq, tus, status,
-                           fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts)
+                           fseq, x, t_rx, fd, pkt, f8, u8, table, tx, pfd, ts, f4)
             if code != R_OK or iv[I_N] >= iv[I_NMAX] or stop[0] != 0 or iv[I_N] >= sync_at:
                 for j in range(a, n_rb):
                     rb[j - a] = rb[j]
@@ -541,13 +633,32 @@ def compiled_available(transport) -> bool:
     return isinstance(getattr(ser, "fd", None), int)
 
 
-def encode_force(seq: int, force: float) -> bytes:
-    """The compiled encoder's frame of ``FORCE(seq, (force,))`` (equals
-    :func:`firmware_protocol.encode`; checked by the tests)."""
+def encode_force(seq: int, force: float, compact: bool = False) -> bytes:
+    """The compiled encoder's frame of ``FORCE(seq, (force,))``.
+
+    Parameters
+    ----------
+    seq : int
+        The STATE's seq answered (u32).
+    force : float
+        Force [N].
+    compact : bool
+        FORCE_COMPACT (PROTOCOL.md §4 "Compact frames") instead of FORCE.
+
+    Returns
+    -------
+    bytes
+        The COBS frame with its delimiter: equals :func:`firmware_protocol.encode` of the
+        FORCE, or of :func:`firmware_protocol.compact_force` of it (checked by the tests).
+    """
     out = np.zeros(32, dtype=np.uint8)
     u8 = np.zeros(8, dtype=np.uint8)
-    n = _force_frame(np.int64(seq), float(force), np.zeros(32, dtype=np.uint8), u8.view(np.float64),
-                     u8, _CRC, out)
+    if compact:
+        n = _force_compact_frame(np.int64(seq), float(force), np.zeros(32, dtype=np.uint8),
+                                 u8.view(np.float32), u8, _CRC, out)
+    else:
+        n = _force_frame(np.int64(seq), float(force), np.zeros(32, dtype=np.uint8),
+                         u8.view(np.float64), u8, _CRC, out)
     return bytes(out[:n])
 
 
@@ -619,6 +730,7 @@ class CompiledHostLoop(HostLoop):
         pv[P_POLL] = min(0.1, pv[P_SILENCE])
         pv[P_NEWEST] = 1.0 if cfg.backlog == "newest" else 0.0
         pv[P_AHEAD] = pv[P_SILENCE] * float(cfg.rate_hz) + 2.0
+        self._compact_params(pv, iv)
         u8 = np.zeros(8, dtype=np.uint8)
         fd = self.transport.serial_port.fd if self.compiled else -1
         self._fast = {
@@ -630,12 +742,23 @@ class CompiledHostLoop(HostLoop):
                     tel.flags, tel.force_seq, tel.status),
             "io": (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
                    np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32),
-                   np.zeros(2, dtype=np.int64)),
+                   np.zeros(2, dtype=np.int64), u8.view(np.float32)),
             "rb": np.zeros(_RB_SIZE, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
             "hist_seen": 0, "samples_seen": 0, "states_seen": 0,
         }
+
+    def _compact_params(self, pv, iv) -> None:
+        """The compact session's parameters from the transport (PROTOCOL.md §4 "Compact
+        frames"): whether it is one, the expander's tick rate and its reference seq (-1:
+        none) into ``pv`` / ``iv``."""
+        exp = getattr(getattr(self.transport, "decoder", None), "expander", None)
+        compact = bool(getattr(self.transport, "compact", False)) and exp is not None
+        pv[P_COMPACT] = 1.0 if compact else 0.0
+        pv[P_CRATE] = exp.rate_hz if compact else 0.0
+        last = exp.last if compact else None
+        iv[I_CLAST] = -1 if last is None else last
 
     def _publish(self) -> None:
         """Copy the compiled state back into the loop and its result (Python's view)."""
@@ -696,10 +819,6 @@ class CompiledHostLoop(HostLoop):
 
     def _device_clocked_stretch(self, n_max: int) -> None:
         if self.poll is not None:   # a per-sample Python hook (live changes): Python's loop
-            self.compiled = False
-        if getattr(self.transport, "compact", False):
-            # compact frames (PROTOCOL.md §4): the compiled stretch reads and writes full
-            # STATE / FORCE frames only; the reference loop sends through the transport
             self.compiled = False
         if not self.compiled:
             return super()._device_clocked_stretch(n_max)
@@ -776,16 +895,21 @@ class CompiledHostLoop(HostLoop):
                 rb[n0:n0 + len(pre)] = np.frombuffer(pre, dtype=np.uint8)
                 iv[I_RB_LEN] = n0 + len(pre)
             kind, kargs, xs, fs, port, rec, out = fst["eng"]
+            exp = dec.expander
             while True:
                 iv[I_SKIPFLAG] = self._skip_flag
                 iv[I_EXPECT] = self._expect
                 fv[F_LAST_RX] = self._last_rx
+                self._compact_params(fst["pv"], iv)     # the decoder's expansion, ours now
                 code = _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, fst["pv"],
                                 fst["fh"], fst["win"], *fst["tel"], fst["io"][0], rb,
                                 self.stop.shared, *fst["io"][1:], fst["hist"],
                                 fst["hist_len"])
                 self._expect = int(iv[I_EXPECT])
                 self._last_rx = float(fv[F_LAST_RX])
+                if exp is not None and fst["pv"][P_COMPACT] != 0.0:
+                    last = int(iv[I_CLAST])       # the STATE_COMPACTs taken moved it
+                    exp.last = None if last < 0 else last
                 self._publish()
                 self._frames_to_decoder()
                 if code in (R_SYNC, R_INTR):
@@ -837,7 +961,8 @@ def _scratch(engine, fd: int) -> dict:
                                                   np.int64, np.uint16))
     u8 = np.zeros(8, dtype=np.uint8)
     io = (fd, np.zeros(64, dtype=np.uint8), u8.view(np.float64), u8, _CRC,
-          np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64))
+          np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64),
+          u8.view(np.float32))
     eng = (*kernel_pack(engine), *_port_arrays(engine, at_least=0), _REC, _OUT)
     return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
             "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
@@ -895,6 +1020,8 @@ def _mark_compiled(kind: int) -> None:
     import os
 
     from hapsim.daemon.startup import loop_stamp
+    if not CACHE_OK:        # compiled without the cache: nothing for a later start to load
+        return
     path = loop_stamp(_KERNEL_NAMES[kind])
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)

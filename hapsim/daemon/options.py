@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import Number
 
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.daemon.loop import StopFlag
@@ -42,13 +43,16 @@ def option(default, flag: str, help: str, *, metavar: str | None = None, type=No
     help : str
         The parser's help text (``{drivers}`` is replaced by the driver names).
     metavar, type, choices, action, const
-        As :meth:`argparse.ArgumentParser.add_argument` takes them.
+        As :meth:`argparse.ArgumentParser.add_argument` takes them; a numeric option's
+        type is a :class:`~hapsim.option_values.Number`, its valid range (checked by
+        :meth:`RunOptions.check_values` as by the command line).
     cli_default : object, optional
         The parser's default where it differs from the field's (``--loop auto``: the
         command resolves it before the run).
     check : callable, optional
         ``check(value, flag)`` raising :class:`~hapsim.errors.ConfigError` on a bad value
-        (not called for None); run by :meth:`RunOptions.check_values`.
+        (not called for None), beyond the type's range; run by
+        :meth:`RunOptions.check_values`.
 
     Returns
     -------
@@ -74,25 +78,6 @@ def _rate(value, flag: str) -> None:
     check_range(value, *RATE_RANGE, flag, "Hz")
 
 
-def _duration(value, flag: str) -> None:
-    """Refuse a duration that is neither > 0 nor 0 (open-ended)."""
-    if not (math.isfinite(value) and value >= 0):
-        raise ConfigError(f"must be a number of seconds > 0, or 0 for an open-ended run, "
-                          f"got {value!r}", key=flag)
-
-
-def _count(value, flag: str) -> None:
-    """Refuse a negative count."""
-    if value < 0:
-        raise ConfigError(f"must be >= 0, got {value}", key=flag)
-
-
-def _seconds(value, flag: str) -> None:
-    """Refuse a time that is not a finite number >= 0."""
-    if not (math.isfinite(value) and value >= 0):
-        raise ConfigError(f"must be a number of seconds >= 0, got {value}", key=flag)
-
-
 def check_port_number(value: int, flag: str) -> None:
     """Refuse a UDP/TCP port number outside 0-65535 (0: any free port).
 
@@ -111,20 +96,6 @@ def check_port_number(value: int, flag: str) -> None:
     if not 0 <= value <= 65535:
         raise ConfigError(f"must be a port number from 0 to 65535 (0: any free port), "
                           f"got {value}", key=flag)
-
-
-def _rt_priority(value, flag: str) -> None:
-    """Refuse a scheduling priority outside 0 (normal) and SCHED_FIFO's 1..99 (as
-    :class:`hapsim.daemon.realtime.RealtimePriority` does, here before anything runs)."""
-    if not 0 <= value <= 99:
-        raise ConfigError(f"must be 0 (off) or a SCHED_FIFO priority 1..99, got {value}",
-                          key=flag)
-
-
-def _baud(value, flag: str) -> None:
-    """Refuse a baud rate that is not > 0."""
-    if value <= 0:
-        raise ConfigError(f"must be a baud rate > 0, got {value}", key=flag)
 
 
 @dataclass
@@ -253,14 +224,14 @@ class RunOptions:
         metavar="PORT")
     baud: int = option(
         115200, "--baud", "baud rate (default 115200; ignored by USB CDC and ptys)",
-        metavar="BAUD", type=int, check=_baud)
+        metavar="BAUD", type=Number(int, low=1))
     duration: float | None = option(
         None, "--duration", "run length [s] (default 1 s, longer for slow oscillations); 0: "
         "open-ended, until SIGINT/SIGTERM (or a safety stop)",
-        metavar="S", type=float, check=_duration)
+        metavar="S", type=Number(float, low=0, unit="s"))
     rate_hz: float | None = option(
-        None, "--rate", "override the scene's rate [Hz]", metavar="HZ", type=float,
-        check=_rate)
+        None, "--rate", "override the scene's rate [Hz]", metavar="HZ",
+        type=Number(float, low=0, open_low=True, unit="Hz"), check=_rate)
     lockstep: bool = option(
         False, "--lockstep", "lockstep mock: one period per FORCE, deterministic",
         action="store_true")
@@ -287,26 +258,29 @@ class RunOptions:
         10, "--rt-priority", "SCHED_FIFO priority of the loop and the embedded mock where the "
         "OS permits it (default 10; 0: normal scheduling; not with --lockstep, which is paced "
         "by the answers, not the clock). Under load it keeps late ticks rare; the report says "
-        "what was obtained", metavar="N", type=int, check=_rt_priority)
-    seed: int = option(0, "--seed", "mock sensor-noise seed (default 0)", type=int)
+        "what was obtained", metavar="N", type=Number(int, low=0, high=99))
+    seed: int = option(0, "--seed", "mock sensor-noise seed (default 0)",
+        type=Number(int, low=0))
     faults: str | None = option(
         None, "--faults", "inject seeded faults in the embedded mock, e.g. "
         "drop=0.01,corrupt=0.005,stall@500:200ms,reset@800 (see below)", metavar="SPEC")
     fault_seed: int = option(
-        0, "--fault-seed", "seed of the fault generator (default 0)", metavar="N", type=int)
+        0, "--fault-seed", "seed of the fault generator (default 0)", metavar="N",
+        type=Number(int, low=0))
     reconnect: bool | None = option(
         None, "--no-reconnect",
         "a lost device ends the run (exit 1) instead of being recovered",
         action="store_const", const=False)
     lost_timeout: float | None = option(
         None, "--lost-timeout", "silence after which the device is lost [s] (default: the "
-        "watchdog period, 0.05)", metavar="S", type=float, check=_positive)
+        "watchdog period, 0.05)", metavar="S",
+        type=Number(float, low=0, open_low=True, unit="s"))
     reconnect_attempts: int = option(
         8, "--reconnect-attempts", "most reconnect attempts per loss (default 8)",
-        metavar="N", type=int, check=_count)
+        metavar="N", type=Number(int, low=0))
     reconnect_time: float = option(
         10.0, "--reconnect-time", "most time spent recovering one loss [s] (default 10)",
-        metavar="S", type=float, check=_seconds)
+        metavar="S", type=Number(float, low=0, unit="s"))
     driver: str | None = option(
         None, "--driver", "device protocol, one of {drivers} (default: the scene's "
         "device.protocol, else framed, hapsim's own); a driver runs host-clocked (see "
@@ -314,10 +288,10 @@ class RunOptions:
     osc: int | None = option(
         None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
         "addresses: hapsim play --help); each is checked, ramped, journaled",
-        metavar="PORT", type=int, check=check_port_number)
+        metavar="PORT", type=Number(int, low=0, high=65535))
     osc_ramp: float = option(
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
-        type=float, check=_seconds)
+        type=Number(float, low=0, unit="s"))
     sound: str | None = option(
         None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
         "auto); the model stays in the loop, the frames go to the server",
@@ -377,7 +351,11 @@ class RunOptions:
         for f in command_line_fields():
             meta = f.metadata["cli"]
             value = getattr(self, f.name)
-            if meta["check"] is not None and value is not None:
+            if value is None:
+                continue
+            if isinstance(meta["type"], Number):      # its declared range
+                meta["type"].check(value, meta["flag"])
+            if meta["check"] is not None:
                 meta["check"](value, meta["flag"])
         from hapsim.daemon.faults import parse_faults
         parse_faults(self.faults, self.fault_seed)

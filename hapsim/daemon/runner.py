@@ -701,6 +701,13 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
         wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", None)
+        lfb = late_info.pop("_late_force_bound", None)
+        late_bounds = None if lfb is None else []
+        if lfb is not None and np.any(lfb > 0):
+            # the late ticks' accounted forces, wrong by at most the disturbance taken out:
+            # their worst case through the fit, apart (a side decided on b adds it)
+            from hapsim.analysis.identify import force_error_response
+            late_bounds = [(lfb, force_error_response(scene, int(cols["seq"].size)))]
         bounds = []
         if hw is not None and np.any(hw > 0):
             # the forces the account cannot name (a command whose answer never came: sent
@@ -730,7 +737,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
                             exclude=(cols["flags"] & FLAG_RAMP) != 0,
-                            wire=wire, bounds=bounds or None)
+                            wire=wire, bounds=bounds or None, late_bounds=late_bounds)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
         if measured.get("first_seq") is not None and cols["seq"].size:

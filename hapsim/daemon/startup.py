@@ -23,7 +23,8 @@ import sys
 import time
 
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
-           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "scene_kernel", "choose_loop",
+           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "LOOP_SOURCES", "loop_sources",
+           "sources_digest", "scene_kernel", "choose_loop",
            "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
            "reset_announcements", "announce_compilation", "compile_notice"]
 
@@ -173,13 +174,68 @@ def loop_stamp(kernel_fn: str) -> str:
     return os.path.join(numba_cache_dir(_FASTLOOP), f"hapsim-loop.{kernel_fn}.stamp")
 
 
+#: The modules, besides ``hapsim/daemon/fastloop.py``, whose code or constants numba
+#: compiles into the compiled host loop (the late-tick rule, the I/O primitives, the engine
+#: kernels, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
+#: a function on its own file's modification time and size only, so an edit to one of these
+#: alone would leave the cached loop on the old code: ``fastloop.py`` holds their SHA-256
+#: (:data:`hapsim.daemon.fastloop.COMPILED_SOURCES_SHA256`), compiles without the cache
+#: when it does not match, and ``tests/test_compiled_loop_sources.py`` asks for it to be
+#: updated (which touches ``fastloop.py``, so numba recompiles).
+LOOP_SOURCES = ("hapsim/daemon/compiled_io.py", "hapsim/daemon/telemetry.py",
+                "hapsim/kernels/ticks.py", "hapsim/kernels/cordis.py",
+                "hapsim/kernels/schemes.py", "firmware_protocol/codec.py")
+
+
+def loop_sources() -> list[str]:
+    """The absolute paths of :data:`LOOP_SOURCES` (``firmware_protocol`` located without
+    importing it)."""
+    import importlib.util
+    spec = importlib.util.find_spec("firmware_protocol")
+    fp_dir = os.path.dirname(spec.origin) if spec and spec.origin else \
+        os.path.join(os.path.dirname(_HERE), "firmware_protocol")
+    out = []
+    for rel in LOOP_SOURCES:
+        top, rest = rel.split("/", 1)
+        out.append(os.path.join(_HERE if top == "hapsim" else fp_dir, *rest.split("/")))
+    return out
+
+
+def sources_digest(paths=None) -> str:
+    """SHA-256 (hex) of the named source files, in order, each as its base name and bytes.
+
+    Parameters
+    ----------
+    paths : sequence of str, optional
+        Files; :func:`loop_sources` by default.
+
+    Returns
+    -------
+    str
+        64 hex digits; a file that cannot be read contributes its name only (the digest
+        then differs and the compiled loop compiles without numba's cache).
+    """
+    import hashlib
+    h = hashlib.sha256()
+    for p in (loop_sources() if paths is None else paths):
+        h.update(os.path.basename(p).encode() + b"\0")
+        try:
+            with open(p, "rb") as f:
+                h.update(f.read())
+        except OSError:
+            pass
+        h.update(b"\0")
+    return h.hexdigest()
+
+
 def loop_is_fresh(scene) -> bool:
     """Whether the compiled host loop for ``scene``'s kernel is in numba's cache: its
-    stamp is newer than the loop's module and the kernel's module."""
+    stamp is newer than the loop's module, the kernel's module and every module the loop
+    compiles in (:data:`LOOP_SOURCES`)."""
     src, fn = scene_kernel(scene)
     try:
         at = os.stat(loop_stamp(fn)).st_mtime
-        return at >= os.stat(_FASTLOOP).st_mtime and at >= os.stat(src).st_mtime
+        return all(at >= os.stat(p).st_mtime for p in (_FASTLOOP, src, *loop_sources()))
     except OSError:
         return False
 

@@ -273,7 +273,8 @@ class Driver:
         # at row r - d + 1
         k = np.flatnonzero(est) + d - 1
         amb[k[(k >= 0) & (k < n)]] = True
-        return account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale)
+        return account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
+                                   quantise=self.applied_force if self.force_scale > 0 else None)
 
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""

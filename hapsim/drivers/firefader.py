@@ -429,7 +429,8 @@ class FireFader(Driver):
             return acc
         from hapsim.applied import account_from_timing
         if acc is None:
-            acc = account_from_timing(force, d, force_scale=self.force_scale)
+            acc = account_from_timing(force, d, force_scale=self.force_scale,
+                                      quantise=self.applied_force)
         f = np.asarray(force, float)
         n = f.size
         # commands seq[0] .. seq[-1] + 1: row j answers command seq[j]; the force computed
