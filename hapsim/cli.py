@@ -53,7 +53,7 @@ import sys
 
 from hapsim import __version__
 from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
-from hapsim.option_values import check_numbers, typed_flag
+from hapsim.option_values import Number, check_numbers, typed_flag
 
 #: Sub-command modules, in the order ``--help`` lists them.
 COMMANDS = ("simulate", "render", "calibrate", "stability", "map", "check",
@@ -86,7 +86,9 @@ class HapsimArgumentParser(argparse.ArgumentParser):
     Notes
     -----
     Sub-command parsers inherit the class (``add_subparsers`` uses the parent's class).
-    The message of the last error is kept in ``last_usage_error`` for :func:`main`.
+    The message of the last error is kept in ``last_usage_error`` for :func:`main`. A
+    non-number given to a numeric option is raised as a :class:`ConfigError` keyed by the
+    flag (:func:`_refuse_number`), as ``nan`` or a value out of its range is.
     """
 
     last_usage_error: str | None = None
@@ -108,6 +110,7 @@ class HapsimArgumentParser(argparse.ArgumentParser):
             if isinstance(action, argparse._SubParsersAction):
                 chosen = [action.choices[a] for a in _ARGV if a in action.choices]
                 parser = chosen[0] if chosen else parser
+        _refuse_number(parser, message)    # a non-number for a numeric option
         known = {o for a in parser._actions for o in a.option_strings}
         hints = []
         for opt, (what, other) in _CASE_HINTS.items():
@@ -125,6 +128,30 @@ class HapsimArgumentParser(argparse.ArgumentParser):
         # the user was typing (argparse reports a sub-command's leftovers from the top)
         parser.print_usage(sys.stderr)
         parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+
+def _refuse_number(parser: argparse.ArgumentParser, message: str) -> None:
+    """Raise the :class:`ConfigError` of a non-number given to a numeric option.
+
+    ``argument --joints: must be a finite number [deg], got 'abc'`` (the message of a
+    :class:`~hapsim.option_values.Number` type) becomes what ``nan`` or a value out of range
+    gets from :func:`~hapsim.option_values.check_numbers`: one line keyed by the flag as
+    typed, exit 2, without the usage. Other messages: nothing (argparse's own error).
+
+    Raises
+    ------
+    ConfigError
+        With ``prog`` set to the command (``hapsim kinematics``), for :func:`_main`.
+    """
+    if not message.startswith("argument "):
+        return
+    name, _, reason = message[len("argument "):].partition(": ")
+    for action in parser._actions:
+        if (action.option_strings and "/".join(action.option_strings) == name
+                and isinstance(action.type, Number) and reason.startswith("must be ")):
+            exc = ConfigError(reason, key=typed_flag(action.option_strings, _ARGV))
+            exc.prog = parser.prog
+            raise exc
 
 
 def _argument_key(parser: argparse.ArgumentParser, message: str) -> str | None:
@@ -283,6 +310,8 @@ def _main(argv: list[str], want_json: bool) -> int:
                 print(error_json(None, code, message, HapsimArgumentParser.last_usage_key),
                       flush=True)
             return code
+        except ConfigError as exc:  # a non-number for a numeric option (_refuse_number)
+            return _fail(getattr(exc, "prog", command), exc, 2, f"error: {exc}", want_json)
         command = f"hapsim {args.command}"
         try:
             import numpy as np

@@ -199,6 +199,45 @@ def test_without_late_ticks_the_sign_decides():
         assert record_side(r["b"], r["b_unc"], 2, None) == (None, float("inf"))
 
 
+def test_run_states_the_late_forces_bound_that_zwidth_decides_on():
+    """End to end on the lockstep mock made late at scripted ticks (it holds the force it
+    applied before and names it by force_seq): ``run``'s measurement takes the late
+    forces out (exact here), states their worst case through the fit apart
+    (``b_bound_late`` > 0, holding the exact b), and a record 0.3 % above the limit with
+    10 late ticks is then not decided (|b| = 0.006 against a bound of 0.075 N s/m)."""
+    import pytest as _pytest
+
+    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.zwidth import device_loop, record_side, wall_scene
+    from hapsim.commands.zwidth import DEFAULT_DEVICE
+    from hapsim.daemon import mock as mock_mod
+    from hapsim.daemon import runner
+    from hapsim.scene import parse_scene
+
+    late = frozenset(range(77, 84)) | frozenset(range(231, 234))
+
+    class LateMock(mock_mod.MockDevice):
+        def _apply_due(self, n, now_us):
+            due = n - self.delay
+            if due in late and due >= 1 and self._rs[due % self._ring] == due:
+                self._rs[due % self._ring] = -1     # the FORCE missed its tick
+            super()._apply_due(n, now_us)
+
+    base = parse_scene(DEFAULT_DEVICE, "<d>")
+    K = stability_limit(device_loop(base.device, base.rate_hz), 1.5) * 1.003
+    with _pytest.MonkeyPatch.context() as mp:
+        mp.setattr(runner, "MockDevice", LateMock)
+        rep = runner.run_scene(wall_scene(base, K, 1.5, 0.005), lockstep=True,
+                               transport="inprocess", handle_signals=False, duration=0.3,
+                               allow_unstable=True)
+    meas, pred = rep["measured"], rep["predicted"]
+    assert meas["late_accounted"] == len(late) == rep["loop"]["late"]
+    assert meas["b"] == _pytest.approx(pred["b"], abs=1e-9) and pred["b"] < 0
+    assert abs(meas["b"]) < meas["b_bound_late"]
+    assert record_side(meas["b"], meas["b_unc"], meas["late_accounted"],
+                       meas["b_bound_late"])[0] is None
+
+
 def test_emulated_firmware_measures_the_limit_within_10_percent(capsys):
     """Over the Hapkit reference firmware on the emulated ATmega328P (simavr; its clock
     paced by the host, so the test does not depend on the machine's load): the measured
