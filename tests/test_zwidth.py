@@ -181,7 +181,7 @@ def test_late_ticks_never_decide_a_near_limit_record_on_the_wrong_side():
             wrong += side != (b_true < 0)
         old = None if abs(r["b"]) <= 3.0 * r["b_unc"] else r["b"] < 0
         wrong_old += old is not None and old != (b_true < 0)
-    assert wrong == 0 and decided >= 8 and wrong_old >= 1
+    assert wrong == 0 and decided >= 5 and wrong_old >= 1     # 8 and 4 of 30 here
 
 
 def test_without_late_ticks_the_sign_decides():
