@@ -12,8 +12,9 @@ import ast
 import os
 
 import numba
+import pytest
 
-from hapsim.daemon import fastloop, startup
+from hapsim.daemon import fastloop, fastmock, startup
 
 
 def test_the_digest_in_fastloop_names_the_sources_compiled_in():
@@ -26,14 +27,28 @@ def test_the_digest_in_fastloop_names_the_sources_compiled_in():
     assert fastloop.CACHE_OK
 
 
-def test_every_hapsim_module_fastloop_imports_from_is_listed_or_python_only():
-    """The class, not one file: every module fastloop.py imports names from is either in
-    ``LOOP_SOURCES`` (numba freezes its functions and constants into the loop) or only
-    used from Python (listed here, with why)."""
+def test_the_digest_in_fastmock_names_the_sources_compiled_in():
+    """The compiled mock, the same way (its functions inline the I/O primitives and the
+    protocol's constants)."""
+    now = startup.sources_digest(startup.loop_sources(startup.MOCK_SOURCES))
+    assert fastmock.COMPILED_SOURCES_SHA256 == now, (
+        f"update the digest in fastmock.py (this touches fastmock.py so numba recompiles): "
+        f'COMPILED_SOURCES_SHA256 = "{now}"')
+    assert fastmock.CACHE_OK
+
+
+@pytest.mark.parametrize("module, sources", [(fastloop, startup.LOOP_SOURCES),
+                                             (fastmock, startup.MOCK_SOURCES)])
+def test_every_hapsim_module_a_compiled_module_imports_from_is_listed_or_python_only(
+        module, sources):
+    """The class, not one file: every module fastloop.py (fastmock.py) imports names from
+    is either in its sources (numba freezes its functions and constants into the compiled
+    code) or only used from Python (listed here, with why)."""
     python_only = {"hapsim.daemon.loop",      # HostLoop, LostDevice, safety_reason: Python
                    "hapsim.errors",           # DeviceError: raised and caught in Python
                    "hapsim.daemon.startup"}   # the digest itself, the stamps
-    tree = ast.parse(open(fastloop.__file__).read())
+    listed = {s[:-3].replace("/", ".") for s in sources}
+    tree = ast.parse(open(module.__file__).read())
     mods = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -41,18 +56,16 @@ def test_every_hapsim_module_fastloop_imports_from_is_listed_or_python_only():
                 # "from hapsim.kernels import cordis": the module is the imported name
                 for a in node.names:
                     full = f"{node.module}.{a.name}"
-                    mods.add(full if full.replace(".", "/") + ".py" in
-                             {s[:-3].replace(".", "/") + ".py" for s in
-                              startup.LOOP_SOURCES} else node.module)
+                    mods.add(full if full in listed else node.module)
         elif isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.split(".")[0] == "firmware_protocol":
                     mods.add("firmware_protocol.codec")   # its names are the codec's
-    listed = {s[:-3].replace("/", ".") for s in startup.LOOP_SOURCES}
+    assert mods, module.__name__
     assert mods - python_only - listed == set()
-    for rel in startup.LOOP_SOURCES:
+    for rel in sources:
         assert any(p.endswith(os.path.join(*rel.split("/"))) and os.path.isfile(p)
-                   for p in startup.loop_sources()), rel
+                   for p in startup.loop_sources(sources)), rel
 
 
 def test_a_changed_source_makes_the_digest_and_the_freshness_change(tmp_path, monkeypatch):
@@ -94,8 +107,11 @@ def test_a_changed_source_makes_the_digest_and_the_freshness_change(tmp_path, mo
 def test_the_loop_functions_are_cached_only_under_a_matching_digest():
     """The compiled loop's functions carry ``cache=CACHE_OK``: with a stale digest numba
     compiles them afresh rather than load a loop built from older sources."""
-    for name in ("_sample", "_stretch", "_skip_step"):
-        fn = getattr(fastloop, name)
-        assert isinstance(fn, numba.core.registry.CPUDispatcher)
-        assert fn.targetoptions.get("nogil") is True
-        assert (fn._cache.__class__.__name__ != "NullCache") == fastloop.CACHE_OK
+    for mod in (fastloop, fastmock):
+        fns = [v for v in vars(mod).values()
+               if isinstance(v, numba.core.registry.CPUDispatcher)
+               and v.py_func.__module__ == mod.__name__]
+        assert fns, mod.__name__
+        for fn in fns:
+            assert fn.targetoptions.get("nogil") is True
+            assert (fn._cache.__class__.__name__ != "NullCache") == mod.CACHE_OK, fn

@@ -34,13 +34,28 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import types
 
 import firmware_protocol as fp
 from hapsim.daemon.compiled_io import (CRC_TABLE, POLLERR, POLLHUP, POLLIN, POLLNVAL, c_poll,
-                                       c_read, c_write, cobs_decode, cobs_encode, crc16, jit,
-                                       le, next_frame, now_ns)
+                                       c_read, c_write, cobs_decode, cobs_encode, crc16, le,
+                                       next_frame, now_ns)
+from hapsim.daemon.startup import MOCK_SOURCES, loop_sources, sources_digest
+
+#: SHA-256 of the modules this module's numba code compiles in
+#: (:data:`hapsim.daemon.startup.MOCK_SOURCES`): numba keys its disk cache on this file
+#: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
+#: so), which edits this file and makes numba recompile. Until then: no cache.
+COMPILED_SOURCES_SHA256 = "d0775e9e5ed31b054d713adec47a614652b99d2f72a88b2c77c40b350d7e07b2"
+
+#: Whether numba's disk cache may serve this module's compiled code.
+CACHE_OK = sources_digest(loop_sources(MOCK_SOURCES)) == COMPILED_SOURCES_SHA256
+
+#: The decorator of the compiled mock's functions: nopython, no GIL, cached on disk when
+#: :data:`CACHE_OK`.
+jit = numba.njit(nogil=True, cache=CACHE_OK)
 
 __all__ = ["CompiledMock"]
 

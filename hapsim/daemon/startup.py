@@ -23,7 +23,8 @@ import sys
 import time
 
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
-           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "LOOP_SOURCES", "loop_sources",
+           "cache_is_fresh", "loop_stamp", "loop_is_fresh", "LOOP_SOURCES", "MOCK_SOURCES",
+           "loop_sources",
            "sources_digest", "scene_kernel", "choose_loop",
            "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
            "reset_announcements", "announce_compilation", "compile_notice"]
@@ -187,15 +188,21 @@ LOOP_SOURCES = ("hapsim/daemon/compiled_io.py", "hapsim/daemon/telemetry.py",
                 "hapsim/kernels/schemes.py", "firmware_protocol/codec.py")
 
 
-def loop_sources() -> list[str]:
-    """The absolute paths of :data:`LOOP_SOURCES` (``firmware_protocol`` located without
-    importing it)."""
+#: The modules whose code or constants numba compiles into the compiled mock
+#: (``hapsim/daemon/fastmock.py``: the I/O primitives, the protocol's constants), for the
+#: same reason as :data:`LOOP_SOURCES` (``fastmock.COMPILED_SOURCES_SHA256``).
+MOCK_SOURCES = ("hapsim/daemon/compiled_io.py", "firmware_protocol/codec.py")
+
+
+def loop_sources(rels=LOOP_SOURCES) -> list[str]:
+    """The absolute paths of :data:`LOOP_SOURCES` (or of ``rels``, the same form;
+    ``firmware_protocol`` located without importing it)."""
     import importlib.util
     spec = importlib.util.find_spec("firmware_protocol")
     fp_dir = os.path.dirname(spec.origin) if spec and spec.origin else \
         os.path.join(os.path.dirname(_HERE), "firmware_protocol")
     out = []
-    for rel in LOOP_SOURCES:
+    for rel in rels:
         top, rest = rel.split("/", 1)
         out.append(os.path.join(_HERE if top == "hapsim" else fp_dir, *rest.split("/")))
     return out
