@@ -768,13 +768,23 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
                 else (math.inf if a_j > MIN_QUANTA * fl else 0.0)
             t_above += min(t_j, n_j * period)
         out["cycles"] = float(md.f0_hz * t_above * math.sqrt(max(1 - md.damping_ratio ** 2, 0)))
+        # the floor is the sensor's (its quantum or noise) or, when the fit leaves more,
+        # the fit's residual: said as what it is (a record with no sensor floor that the
+        # model does not fit is not the predicted loop's response, not a short one)
+        if rms > step:
+            fit = f"{MIN_QUANTA:g} x the {method} fit's rms residual ({fl:.3g} m"
+            what = (f"{fit}; the sensor's step is {step:.3g} m)" if step > 0 else
+                    f"{fit}; the sensor has no quantum or noise: the record is not the "
+                    f"order-{out['model_order']} linear loop's response, an input the "
+                    f"account does not know acted)")
+        else:
+            what = f"{MIN_QUANTA:g} sensor steps ({fl:.3g} m, the quantum or the noise)"
         if amp < MIN_QUANTA * fl:
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
-                            f"{MIN_QUANTA:g} sensor steps ({fl:.3g} m, the quantum or the "
-                            f"noise): no measurement")
+                            f"{what}: no measurement")
         elif out["cycles"] < MIN_CYCLES:
-            out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above {MIN_QUANTA:g} "
-                            f"sensor steps ({fl:.3g} m): too few for a measurement")
+            out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above "
+                            f"{what}: too few for a measurement")
     else:
         out["cycles"] = float(md.f0_hz * y.size * period)
     return out

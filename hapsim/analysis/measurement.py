@@ -325,7 +325,8 @@ def contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: floa
     measured["within"] = None
 
 
-def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None):
+def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
+                   computed=None):
     """The logged positions with the response to the late ticks' known disturbance taken
     out, when the device names the force it applied (framed protocol, ``force_seq``).
 
@@ -353,6 +354,12 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         of ``force_seq``.
     restarts : ndarray of bool, shape (n,), optional
         Rows where the scene restarted (after a recovery).
+    computed : ndarray, shape (n,), optional
+        The force the loop's law computed at each row before the host clamped it at the
+        force limit [N] (:func:`hapsim.daemon.contact_replay.computed_forces`). The
+        clamp is then a known input as a late tick is: ``w`` is the applied force minus
+        the computed one (without it, a record that reached the limit is the clamped,
+        nonlinear loop's, and is not identified).
 
     Returns
     -------
@@ -383,7 +390,10 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
         # tick, late or not, taken out as a late tick's is
         step = float(getattr(hello, "force_scale", 0.0) or 0.0) if hello is not None else 0.0
         step = step if math.isfinite(step) and step > 0 else 0.0
-        if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0):
+        clamps = computed is not None and bool(np.any(
+            np.asarray(computed, float) != np.asarray(cols["force"], float)))
+        if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0
+                                                         or clamps):
             return pos, late, {}
         lim = float(dev.force_limit)
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
@@ -401,7 +411,9 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None)
                              f"states {dev.delay}: late ticks are not taken out")
         return pos, late, info
     from hapsim.analysis.identify import disturbance_response
-    w = acc.disturbance(cols["force"], cols["seq"])
+    # the force the linear loop computed (the host's clamp at the force limit, when
+    # given, is then part of the known input)
+    w = acc.disturbance(cols["force"] if computed is None else computed, cols["seq"])
     # the response sums within each stretch of consecutive STATEs that the scene did not
     # restart in: before a stretch, whatever happened is its initial state
     seq = np.asarray(cols["seq"], np.int64)

@@ -40,7 +40,7 @@ import numpy as np
 
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
-__all__ = ["ContactReplay", "replay_contacts", "contact_links"]
+__all__ = ["ContactReplay", "replay_contacts", "contact_links", "computed_forces"]
 
 
 def contact_links(scene) -> list:
@@ -86,6 +86,51 @@ class ContactReplay:
     open_link: list
     mismatch_row: int | None = None
     reason: str | None = None
+
+
+def computed_forces(scene, cols: dict):
+    """The port force the run's law computed at every row, before the host clamped it at
+    the force limit, replayed from the logged positions (module notes' replay rules).
+
+    A clamp is a known input of the linear loop, as a late tick is: the device held the
+    clamped force, ``computed + (sent - computed)``, and the response to that difference
+    is taken out with the late ticks' (:func:`hapsim.analysis.measurement.late_accounted`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The calibrated scene the run stepped.
+    cols : dict of ndarray
+        Telemetry columns from the run's first row: ``position`` [m], ``force`` [N],
+        ``flags``, each shape (n,).
+
+    Returns
+    -------
+    ndarray, shape (n,), or None
+        Forces [N]; None when the replay cannot give them: a law the telemetry does not
+        hold the inputs of (a velocity sensor), skipped STATEs, a ramp, or a replayed force
+        that differs from the logged one on a row the loop did not clamp (a live change,
+        the passivity controller).
+    """
+    x_log = np.asarray(cols["position"], dtype=float)
+    f_log = np.asarray(cols["force"], dtype=float)
+    flags = np.asarray(cols["flags"]).astype(np.int64)
+    if np.any(flags & (FLAG_SKIPPED | FLAG_RAMP)):
+        return None
+    eng = _replay_engine(scene)
+    if eng is None:
+        return None
+    out = np.empty(x_log.size)
+    for i in range(x_log.size):
+        if i and flags[i] & FLAG_LOST:
+            eng = type(eng)(eng.scene)            # the loop's restart (HostLoop._resume)
+        if i == 0 or flags[i] & FLAG_LOST:
+            eng.set_port_position(float(x_log[i]), at_rest=True)
+        f = eng.port_step(float(x_log[i]))
+        if not flags[i] & FLAG_CLAMPED and not f == f_log[i]:
+            return None
+        out[i] = f
+    return out
 
 
 def _replay_engine(scene):

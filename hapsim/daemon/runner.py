@@ -697,8 +697,16 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                 response = None
         replay = _contact_replay(scene, cols)
         from hapsim.daemon.telemetry import FLAG_LOST, FLAG_RAMP
+        from hapsim.daemon.telemetry import FLAG_CLAMPED
+        computed = None
+        if np.any(cols["flags"] & FLAG_CLAMPED) and not scene.safety.passivity_controller:
+            # the host's clamp at the force limit: a known input (the law's force
+            # replayed from the logged positions), taken out with the late ticks'
+            from hapsim.daemon.contact_replay import computed_forces
+            computed = computed_forces(scene, cols)
         position, late, late_info = late_accounted(
-            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0)
+            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
+            computed=computed)
         wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", None)
         lfb = late_info.pop("_late_force_bound", None)
