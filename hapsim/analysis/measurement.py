@@ -365,12 +365,15 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     -------
     (ndarray, ndarray or None, dict)
         Positions [m] to measure, the late flags to cut at (None when accounted for) and
-        the report's ``late_accounted`` / ``device_delay`` (empty when nothing was done).
+        the report's ``late_accounted`` / ``device_delay`` / ``clamped_accounted`` (rows
+        whose clamp was taken out) (empty when nothing was done).
     """
     from hapsim.applied import account_from_force_seq
 
     pos, late = cols["position"], cols["late"]
     fseq = cols.get("force_seq")
+    n_clamped = 0 if computed is None else int(np.count_nonzero(
+        np.asarray(computed, float) != np.asarray(cols["force"], float)))
     dev = scene.device
     hook = getattr(driver, "account", None) if driver is not None else None
     if driver is not None:
@@ -379,7 +382,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         acc = hook(cols, cols["force"]) if hook is not None else None
         if acc is None:
             return pos, late, {}
-        if not np.any(acc.late):
+        if not np.any(acc.late) and not n_clamped:
             # nothing to take out, but the forces it cannot order (a command whose
             # answer never came: sent, or the one before) are in the stated uncertainty
             hw = np.asarray(acc.half_width, float)
@@ -390,10 +393,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         # tick, late or not, taken out as a late tick's is
         step = float(getattr(hello, "force_scale", 0.0) or 0.0) if hello is not None else 0.0
         step = step if math.isfinite(step) and step > 0 else 0.0
-        clamps = computed is not None and bool(np.any(
-            np.asarray(computed, float) != np.asarray(cols["force"], float)))
         if fseq is None or not np.any(fseq >= 0) or not (np.any(late) or step > 0
-                                                         or clamps):
+                                                         or n_clamped):
             return pos, late, {}
         lim = float(dev.force_limit)
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
@@ -426,6 +427,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     except ConfigError:
         return pos, late, info
     info["late_accounted"] = acc.n_late
+    if n_clamped:
+        info["clamped_accounted"] = n_clamped
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = np.asarray(acc.half_width, float)
     info["_late_force_bound"] = late_force_bound(acc, w)
