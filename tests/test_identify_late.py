@@ -452,3 +452,29 @@ def test_run_with_several_long_bursts_and_a_clamped_force_measures_the_predictio
     assert meas.get("error") is None, meas.get("error")
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], abs=1e-6 * max(abs(pred["b"]), B, 1.0))
+
+
+def test_a_record_the_linear_loop_does_not_fit_says_so_not_sensor_steps():
+    """Without the clamp's account (its replay unavailable), the zwidth record of two late
+    bursts driven into the force limit is not the linear loop's: the measurement says the
+    fit's residual stopped it and that the sensor has no quantum or noise, not that the
+    oscillation is below "5 sensor steps" of a sensor that has none."""
+    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.zwidth import device_loop, wall_scene
+    from hapsim.commands.zwidth import DEFAULT_DEVICE
+    from hapsim.daemon import contact_replay, runner
+    from hapsim.scene import parse_scene
+
+    base = parse_scene(DEFAULT_DEVICE, "<d>")
+    K = stability_limit(device_loop(base.device, base.rate_hz), 1.5) * 1.003
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_LateMock, "LATE", frozenset(range(120, 128)) | frozenset(range(200, 207)))
+        mp.setattr(runner, "MockDevice", _LateMock)
+        mp.setattr(contact_replay, "computed_forces", lambda scene, cols: None)
+        rep = runner.run_scene(wall_scene(base, K, 1.5, 0.005), lockstep=True,
+                               transport="inprocess", handle_signals=False, duration=0.3,
+                               allow_unstable=True)
+    err = rep["measured"]["error"]
+    assert rep["loop"]["clamped"] > 0 and "clamped_accounted" not in rep["measured"]
+    assert "rms residual" in err and "no quantum or noise" in err
+    assert "sensor steps" not in err
