@@ -244,11 +244,13 @@ def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, 
     assert "signal SIGINT" in format_report(rep)
 
 
-def test_real_time_embedded_wall_measures_roughly_the_prediction():
-    """Real time on a shared machine: loose (the lockstep tests carry the precision)."""
-    run = hapsim("run", WALL, "--json")
+def test_real_time_embedded_wall_measures_roughly_the_prediction(tmp_path):
+    """Real time on a shared machine: loose (the lockstep tests carry the precision). The
+    late-tolerant wall: on the shipped one (stable only at delay 1) a loaded machine's late
+    FORCE ends the run on a safety stop, which is a run's right answer, not this test's."""
+    run = hapsim("run", late_tolerant_wall(tmp_path), "--json")
     out, err = run.communicate(timeout=120)
-    assert run.returncode == 0, err
+    assert run.returncode == 0, (err, out[-2000:])
     rep = json.loads(out)
     lp = rep["loop"]
     assert lp["ticks"] == 1000 and lp["lockstep"] is False
