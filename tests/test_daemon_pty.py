@@ -248,7 +248,7 @@ def test_real_time_embedded_wall_measures_roughly_the_prediction(tmp_path):
     """Real time on a shared machine: loose (the lockstep tests carry the precision). The
     late-tolerant wall: on the shipped one (stable only at delay 1) a loaded machine's late
     FORCE ends the run on a safety stop, which is a run's right answer, not this test's."""
-    run = hapsim("run", late_tolerant_wall(tmp_path), "--json")
+    run = hapsim("run", late_tolerant_wall(tmp_path), "--duration", "1", "--json")
     out, err = run.communicate(timeout=120)
     assert run.returncode == 0, (err, out[-2000:])
     rep = json.loads(out)
