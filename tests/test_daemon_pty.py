@@ -99,12 +99,16 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
     assert seen["saw_stop"] and seen["last_applied"] == 0.0 and seen["end"] == "stop"
 
 
-def test_mock_and_run_port_real_time_complete_and_report():
-    mock, port = start_mock("--scene", WALL, "--once")
+def test_mock_and_run_port_real_time_complete_and_report(tmp_path):
+    # what a run does, not what it measures: the wall stays stable through late ticks
+    # (the shipped wall is stable only at delay 1: one late FORCE on a loaded machine,
+    # e.g. beside the suite's other worker, ended the run on a safety stop, exit 1)
+    wall = late_tolerant_wall(tmp_path)
+    mock, port = start_mock("--scene", wall, "--once")
     try:
-        run = hapsim("run", WALL, "--port", port, "--duration", "0.5")
+        run = hapsim("run", wall, "--port", port, "--duration", "0.5")
         out, err = run.communicate(timeout=90)
-        assert run.returncode == 0, err
+        assert run.returncode == 0, (err, out)
         assert "measured" in out and "turnaround [us]" in out and "late" in out
         # a device on a port sets the pace: the host does not claim it was real time
         assert "(device-clocked, device-paced)" in out.splitlines()[0], out
@@ -240,11 +244,13 @@ def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, 
     assert "signal SIGINT" in format_report(rep)
 
 
-def test_real_time_embedded_wall_measures_roughly_the_prediction():
-    """Real time on a shared machine: loose (the lockstep tests carry the precision)."""
-    run = hapsim("run", WALL, "--json")
+def test_real_time_embedded_wall_measures_roughly_the_prediction(tmp_path):
+    """Real time on a shared machine: loose (the lockstep tests carry the precision). The
+    late-tolerant wall: on the shipped one (stable only at delay 1) a loaded machine's late
+    FORCE ends the run on a safety stop, which is a run's right answer, not this test's."""
+    run = hapsim("run", late_tolerant_wall(tmp_path), "--duration", "1", "--json")
     out, err = run.communicate(timeout=120)
-    assert run.returncode == 0, err
+    assert run.returncode == 0, (err, out[-2000:])
     rep = json.loads(out)
     lp = rep["loop"]
     assert lp["ticks"] == 1000 and lp["lockstep"] is False
