@@ -24,8 +24,7 @@ from hapsim.option_values import Number
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.daemon.loop import StopFlag
 
-__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields",
-           "check_port_number"]
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
 
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
@@ -76,26 +75,6 @@ def _rate(value, flag: str) -> None:
     _positive(value, flag, "Hz")
     from hapsim.analysis.loop import RATE_RANGE, check_range
     check_range(value, *RATE_RANGE, flag, "Hz")
-
-
-def check_port_number(value: int, flag: str) -> None:
-    """Refuse a UDP/TCP port number outside 0-65535 (0: any free port).
-
-    Parameters
-    ----------
-    value : int
-        The port number.
-    flag : str
-        The option it came from (the error's key).
-
-    Raises
-    ------
-    ConfigError
-        Outside 0-65535 (a socket's bind would raise OverflowError).
-    """
-    if not 0 <= value <= 65535:
-        raise ConfigError(f"must be a port number from 0 to 65535 (0: any free port), "
-                          f"got {value}", key=flag)
 
 
 @dataclass
