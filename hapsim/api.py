@@ -49,21 +49,33 @@ import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.outputs import json_safe
+from hapsim.results import Report
 
 if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
     from hapsim.analysis.loop import LoopModel
+    from hapsim.api_nd import (CheckReportND, ModesReportND, RunReportND, check_nd,
+                               load_scene_nd, modes_nd, run_nd, run_report_nd)
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
            "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
            "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
-           "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport",
+           "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "Report",
            "load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd",
            "CheckReportND", "ModesReportND", "RunReportND"]
 
 
 #: Public names provided on first use (PEP 562), with the module that defines them:
 #: importing the analysis costs more than the rest of this module together.
-_LAZY = {"LoopModel": "hapsim.analysis.loop"}
+_LAZY = {"LoopModel": "hapsim.analysis.loop",
+         # the 2-D and 3-D API (its own module: hapsim.api_nd)
+         "load_scene_nd": "hapsim.api_nd",
+         "check_nd": "hapsim.api_nd",
+         "modes_nd": "hapsim.api_nd",
+         "run_nd": "hapsim.api_nd",
+         "run_report_nd": "hapsim.api_nd",
+         "CheckReportND": "hapsim.api_nd",
+         "ModesReportND": "hapsim.api_nd",
+         "RunReportND": "hapsim.api_nd"}
 
 
 def __getattr__(name: str):
@@ -101,87 +113,6 @@ def load_scene(path: str | os.PathLike):
     return _load(os.fspath(path))
 
 
-class _Report:
-    """The common part of the results: built from, and turned back into, a ``--json``
-    object. Fields named in ``_OPTIONAL`` are left out of :meth:`to_dict` when None (the
-    command prints them only when asked). A key of the command's report that has no field
-    yet is kept in :attr:`extra` (and in :meth:`to_dict`), so the result never loses what
-    the command says; the tests keep the fields and the keys equal."""
-
-    _OPTIONAL: tuple = ()
-
-    def to_dict(self) -> dict:
-        """The command's ``--json`` object.
-
-        Returns
-        -------
-        dict
-            One entry per field, in field order (optional ones only when set), then
-            :attr:`extra`.
-        """
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-               if not (f.name in self._OPTIONAL and getattr(self, f.name) is None)}
-        out.update(self.extra)
-        return out
-
-    @property
-    def extra(self) -> dict:
-        """Keys of the command's report without a field here (empty when in step)."""
-        return getattr(self, "_extra", {})
-
-    def replace(self, **changes):
-        """A copy with some fields changed, keeping what the result carries beside its
-        fields (:attr:`extra`, ``exit_code``, the analysis behind it), which
-        :func:`dataclasses.replace` would drop.
-
-        Parameters
-        ----------
-        **changes
-            Field names and their new values.
-
-        Returns
-        -------
-        _Report
-            A new instance of the same class.
-
-        Raises
-        ------
-        TypeError
-            A name that is not a field.
-        """
-        new = dataclasses.replace(self, **changes)
-        names = {f.name for f in dataclasses.fields(self)}
-        for k, v in vars(self).items():
-            if k not in names:
-                object.__setattr__(new, k, v)
-        return new
-
-    @classmethod
-    def from_dict(cls, d: dict, **attrs):
-        """A result from a command's ``--json`` object (the inverse of :meth:`to_dict`).
-
-        Parameters
-        ----------
-        d : dict
-            The object: each field's key (a missing one is None); the other keys are
-            kept in :attr:`extra`.
-        **attrs
-            Objects the result carries beside its fields (the analysis behind it, a fit,
-            the record), set as attributes.
-
-        Returns
-        -------
-        _Report
-            An instance of the class it is called on.
-        """
-        names = {f.name for f in dataclasses.fields(cls)}
-        obj = cls(**{n: d.get(n) for n in names})
-        object.__setattr__(obj, "_extra", {k: v for k, v in d.items() if k not in names})
-        for k, v in attrs.items():
-            object.__setattr__(obj, k, v)
-        return obj
-
-
 def _draw(report, draw, path_or_ax):
     """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file (a path:
     checked first, written by :func:`hapsim.plot.save_figure`). Returns the figure."""
@@ -204,7 +135,7 @@ def _scene(scene):
 
 # ---------------------------------------------------------------------------- check
 @dataclasses.dataclass(frozen=True)
-class CheckReport(_Report):
+class CheckReport(Report):
     """What ``hapsim check SCENE --json`` says: stability and the (k, b) felt at the port.
 
     Attributes
@@ -351,7 +282,7 @@ def check(scene) -> CheckReport:
 
 # ---------------------------------------------------------------------------- a loop
 @dataclasses.dataclass(frozen=True)
-class RenderReport(_Report):
+class RenderReport(Report):
     """What ``hapsim render --json`` says: the (k, b) felt for a virtual (K, B).
 
     Attributes
@@ -447,7 +378,7 @@ def render(loop, K: float, B: float = 0.0) -> RenderReport:
 
 
 @dataclasses.dataclass(frozen=True)
-class CalibrateReport(_Report):
+class CalibrateReport(Report):
     """What ``hapsim calibrate --json`` says: the (K, B) that render a felt (k, b).
 
     Attributes
@@ -511,7 +442,7 @@ def calibrate(loop, k: float, b: float) -> CalibrateReport:
 
 
 @dataclasses.dataclass(frozen=True)
-class StabilityReport(_Report):
+class StabilityReport(Report):
     """What ``hapsim stability --json`` says: the largest stable K for a damping B.
 
     Attributes
@@ -596,7 +527,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
 
 # ---------------------------------------------------------------------------- family
 @dataclasses.dataclass(frozen=True)
-class FamilyReport(_Report):
+class FamilyReport(Report):
     """What ``hapsim family SCENE --json`` says: a family of hands, robustly stable or not.
 
     Attributes
@@ -750,7 +681,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
 
 # ---------------------------------------------------------------------------- devices
 @dataclasses.dataclass(frozen=True)
-class IdentifyReport(_Report):
+class IdentifyReport(Report):
     """What ``hapsim identify --json`` says: a device's mass, friction, delay and hold.
 
     Attributes
@@ -1025,7 +956,7 @@ def _record_summary(rec, a: int, b: int) -> str:
 
 # ---------------------------------------------------------------------------- run
 @dataclasses.dataclass(frozen=True)
-class RunReport(_Report):
+class RunReport(Report):
     """What ``hapsim run SCENE --json`` says: the loop closed, what was felt, how it ran.
 
     Attributes
@@ -1240,456 +1171,3 @@ def known_decimals(error: float) -> int:
         ``error <= 0`` (``math.log10``).
     """
     return max(0, -math.ceil(math.log10(2.0 * error)))
-
-
-
-
-# ---------------------------------------------------------------------------- n-D
-def load_scene_nd(path: str | os.PathLike):
-    """Read and validate a 2-D or 3-D scene file (docs/dimensions.md).
-
-    Parameters
-    ----------
-    path : str or path-like
-        A YAML scene with ``dimension: 2`` or ``3``.
-
-    Returns
-    -------
-    hapsim.scene_nd.SceneND
-
-    Raises
-    ------
-    ConfigError
-        An unreadable or invalid file (file, line and key named), or a 1-D scene (read
-        it with :func:`load_scene`).
-    """
-    from hapsim.scene_nd import load_scene_nd as _load
-    return _load(os.fspath(path))
-
-
-def _scene_nd(scene):
-    """A SceneND from a SceneND or a path."""
-    if isinstance(scene, (str, os.PathLike)):
-        return load_scene_nd(scene)
-    return scene
-
-
-def _mat(x):
-    return None if x is None else np.asarray(x, float).tolist()
-
-
-@dataclasses.dataclass(frozen=True)
-class CheckReportND(_Report):
-    """What ``hapsim check SCENE --json`` says of a 2-D or 3-D scene felt through its
-    device: the MIMO closed loop's stability and the felt matrices.
-
-    Attributes
-    ----------
-    dof : int
-        n, the scene's dimension.
-    stable : bool
-        Spectral radius within 1e-9 of 1 or below (the MIMO characteristic).
-    verdict : {"stable", "unstable"}
-    spectral_radius : float
-    felt_stiffness, felt_damping : list of list of float or None
-        The n x n felt matrices k [N/m], b [N s/m] (None with fewer than n rendered
-        pairs; ``note`` says why).
-    principal_directions : list of list of float or None
-        Unit vectors (columns), least damped first.
-    direction_stiffness, direction_damping, direction_mass : list of float or None
-        The felt pair and the modal mass [kg] along each.
-    port_stiffness, port_damping : list of list of float
-        The port's links linearised at rest [N/m], [N s/m].
-    states : int
-    rendered_poles : list of [float, float]
-        The n rendered discrete poles z (real, imaginary).
-    stiffness_limits : list of dict or None
-        ``direction``, ``K_max`` [N/m] along the device's principal mass axes (when every
-        port link ends on a ground).
-    note : str or None
-    scene : str
-    device : dict
-        ``kind``, ``mass`` [kg], ``friction`` [N s/m], ``position`` [m], ``delay``,
-        ``hold``.
-
-    Other attribute (not in ``--json``): ``analysis``, the
-    :class:`~hapsim.analysis.scene_nd_check.SceneCheckND`; ``scene_nd``, the scene.
-    """
-
-    dof: int
-    stable: bool
-    verdict: str
-    spectral_radius: float
-    felt_stiffness: list | None
-    felt_damping: list | None
-    principal_directions: list | None
-    direction_stiffness: list | None
-    direction_damping: list | None
-    direction_mass: list | None
-    port_stiffness: list
-    port_damping: list
-    states: int
-    rendered_poles: list
-    stiffness_limits: list | None
-    note: str | None
-    scene: str
-    device: dict
-
-    @property
-    def k(self) -> np.ndarray:
-        """Felt stiffness matrix k [N/m], shape (n, n) (NaN without one)."""
-        return _matrix_or_nan(self.felt_stiffness, self.dof)
-
-    @property
-    def b(self) -> np.ndarray:
-        """Felt damping matrix b [N s/m], shape (n, n) (NaN without one)."""
-        return _matrix_or_nan(self.felt_damping, self.dof)
-
-    def plot(self, path=None, title: str | None = None):
-        """The scene over its device's workspace with the felt stiffness ellipses
-        (:func:`hapsim.plot_workspace.plot_scene_nd`; for a pantograph or a delta also the
-        ellipses felt at other configurations, :func:`felt_over_workspace`).
-
-        Parameters
-        ----------
-        path : str or path-like, optional
-            A figure file to write (its extension picks the format); None: only return it.
-        title : str, optional
-            Default: the scene's file name, device, rate and delay.
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-
-        Raises
-        ------
-        ConfigError
-            matplotlib missing, or a path that cannot be written (key ``plot``).
-        """
-        from hapsim.analysis.scene_nd_check import felt_over_workspace
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_scene_nd
-        scene = self.scene_nd
-        felt = felt_over_workspace(scene) if scene.device.joints is not None else None
-        if title is None:
-            note = "\nfelt at the handle only (a port link ends on a moving mass)" \
-                if felt is not None and felt.note else ""
-            title = (f"{os.path.basename(scene.path)}: {scene.device.kind}, "
-                     f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note)
-        fig = plot_scene_nd(scene, self.analysis, felt, title=title)
-        if path is not None:
-            save_figure(fig, os.fspath(path))
-        return fig
-
-
-def _matrix_or_nan(m, n: int) -> np.ndarray:
-    return np.full((n, n), math.nan) if m is None else np.array(m, float)
-
-
-def check_nd(scene) -> CheckReportND:
-    """Check a 2-D or 3-D scene felt through its device: the MIMO loop and the felt
-    matrices.
-
-    Parameters
-    ----------
-    scene : hapsim.scene_nd.SceneND or str
-        A loaded n-D scene with a port and a device, or the path of one.
-
-    Returns
-    -------
-    CheckReportND
-
-    Raises
-    ------
-    ConfigError
-        An invalid scene, one without a port (its modes: :func:`modes_nd`), or one too
-        large to analyse.
-
-    Notes
-    -----
-    The eigenvalues of the closed loop's state matrix (the device's exact ZOH, the delay
-    line, the virtual masses, the links linearised at rest); the felt matrices solve the
-    inverse quadratic eigenvalue problem on the n rendered pairs (Lancaster 2007;
-    :mod:`hapsim.analysis.scene_nd_check`, docs/dimensions.md).
-    """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    scene = _scene_nd(scene)
-    if scene.port is None:
-        raise ConfigError("an n-D scene is felt through its device: it needs a mass of "
-                          "kind 'port' and a device section (a scene without one: "
-                          "hapsim.modes_nd)", file=scene.path, key="masses")
-    chk = check_scene_nd(scene)
-    dev = scene.device
-    d = {**chk.to_dict(), "scene": scene.path,
-         "device": {"kind": dev.kind, "mass": dev.mass.tolist(),
-                    "friction": dev.friction.tolist(), "position": dev.position.tolist(),
-                    "delay": dev.delay, "hold": dev.hold}}
-    return CheckReportND.from_dict(d, analysis=chk, scene_nd=scene)
-
-
-@dataclasses.dataclass(frozen=True)
-class ModesReportND(_Report):
-    """What ``hapsim check SCENE --json`` says of a 2-D or 3-D scene without a port: the
-    modes of its centred scheme linearised at rest (:mod:`hapsim.analysis.modes_nd`).
-
-    Attributes
-    ----------
-    scene : str
-    dof : int
-        n, the scene's dimension.
-    masses : int
-        Moving masses.
-    states : int
-        Size of the one-step map.
-    stable : bool
-        Spectral radius within 1e-9 of 1 or below.
-    spectral_radius : float
-    modes : list of dict
-        ``frequency_hz`` [Hz], ``damping_ratio`` [-], ``axis`` (0..n-1: the one its shape
-        moves most along), lowest frequency first.
-
-    Other attribute (not in ``--json``): ``analysis``, the
-    :class:`~hapsim.analysis.modes_nd.SceneModesND` (with the mode shapes).
-    """
-
-    scene: str
-    dof: int
-    masses: int
-    states: int
-    stable: bool
-    spectral_radius: float
-    modes: list
-
-    @property
-    def frequencies(self) -> np.ndarray:
-        """Every mode's eigenfrequency [Hz], lowest first."""
-        return np.array([m["frequency_hz"] for m in self.modes], float)
-
-    def plot(self, path=None, title: str | None = None, count: int = 6):
-        """The lowest modes along the last axis over the rest positions
-        (:func:`hapsim.plot_workspace.plot_modes_nd`).
-
-        Parameters
-        ----------
-        path : str or path-like, optional
-            A figure file to write; None: only return it.
-        title : str, optional
-        count : int, optional
-            Panels (distinct eigenfrequencies).
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-
-        Raises
-        ------
-        ConfigError
-            matplotlib missing, or a path that cannot be written (key ``plot``).
-        """
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_modes_nd
-        scene = self.scene_nd
-        if title is None:
-            title = f"{os.path.basename(scene.path)}: modes at {scene.rate_hz:g} Hz"
-        fig = plot_modes_nd(scene, self.analysis, title=title, count=count)
-        if path is not None:
-            save_figure(fig, os.fspath(path))
-        return fig
-
-
-def modes_nd(scene) -> ModesReportND:
-    """The modes of a 2-D or 3-D scene on its own (grounds and a port held still).
-
-    Parameters
-    ----------
-    scene : hapsim.scene_nd.SceneND or str
-
-    Returns
-    -------
-    ModesReportND
-
-    Raises
-    ------
-    ConfigError
-        An invalid scene, no moving mass, or too many states.
-
-    Notes
-    -----
-    The eigenvalues ``z`` of the centred scheme's one-step map: frequency
-    ``arg(z) / (2 pi T)``, damping ratio ``-Re(s)/|s|`` with ``s = ln(z) / T``
-    (:mod:`hapsim.analysis.modes_nd`; a square membrane's closed form is in its tests).
-    """
-    from hapsim.analysis.modes_nd import scene_modes_nd
-    scene = _scene_nd(scene)
-    res = scene_modes_nd(scene)
-    d = {"scene": scene.path, "dof": scene.dimension, "masses": len(res.names),
-         "states": res.states, "stable": res.stable,
-         "spectral_radius": res.spectral_radius,
-         "modes": [md.to_dict() for md in res.modes]}
-    return ModesReportND.from_dict(d, analysis=res, scene_nd=scene)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunReportND(_Report):
-    """What ``hapsim run SCENE --json`` says of a 2-D or 3-D scene: the felt matrices
-    measured from free responses beside the prediction, and the linearisation bound.
-
-    Attributes
-    ----------
-    scene : str
-    dof : int
-    lockstep : bool
-        In-process lockstep (True) or over a port.
-    stable : bool
-        The check's verdict.
-    predicted, measured : dict
-        ``felt_stiffness`` [N/m], ``felt_damping`` [N s/m] (n x n lists or None),
-        ``rendered_poles`` ([re, im] of z); ``measured`` also ``residual`` and ``rank``
-        of the fit.
-    deviation : dict or None
-        ``felt_stiffness``, ``felt_damping``: the largest |measured - predicted| over the
-        largest predicted entry.
-    linearisation_bound : dict
-        :meth:`hapsim.analysis.linearisation_nd.LinearisationBound.to_dict`.
-    records, samples, order : int
-        Free responses, samples each, the fit's order.
-    verdict : str
-        ``"within"``, ``"differs"`` or ``"not measurable"``: the deviation against the
-        linearisation bound (:func:`hapsim.lockstep_nd.felt_verdict`; the framed
-        protocol carries binary64 positions and forces, so the wire adds no term).
-    within : bool or None
-        The deviation is inside the bound (None: not measurable).
-    reason : str
-        The verdict in words, as ``hapsim run`` prints it.
-    port, late, watchdog, delay, lost
-        Over a port only: the port, the late ticks, watchdog trips, the device delay
-        and the records run again.
-    """
-
-    _OPTIONAL = ("port", "late", "watchdog", "delay", "lost")
-
-    scene: str
-    dof: int
-    lockstep: bool
-    stable: bool
-    predicted: dict
-    measured: dict
-    deviation: dict | None
-    linearisation_bound: dict
-    records: int
-    samples: int
-    order: int
-    verdict: str
-    within: bool | None
-    reason: str
-    port: dict | None = None
-    late: Any = None
-    watchdog: Any = None
-    delay: Any = None
-    lost: Any = None
-
-    @property
-    def k(self) -> np.ndarray:
-        """Measured felt stiffness matrix [N/m], shape (n, n) (NaN without one)."""
-        return _matrix_or_nan(self.measured.get("felt_stiffness"), self.dof)
-
-    @property
-    def b(self) -> np.ndarray:
-        """Measured felt damping matrix [N s/m], shape (n, n) (NaN without one)."""
-        return _matrix_or_nan(self.measured.get("felt_damping"), self.dof)
-
-
-def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = None
-                  ) -> RunReportND:
-    """The report of an n-D measurement (what ``hapsim run --json`` prints).
-
-    Parameters
-    ----------
-    scene : hapsim.scene_nd.SceneND
-    res : dict
-        :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
-        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound``.
-    lockstep : bool
-        Measured in-process.
-    port_info : dict, optional
-        Over a port: ``port``, ``embedded``, ``mock``.
-
-    Returns
-    -------
-    RunReportND
-    """
-    from hapsim.lockstep_nd import felt_verdict
-    fit, chk = res["measured"], res["predicted"]
-    v = felt_verdict(res["deviation"], res["bound"])
-    d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
-         "stable": bool(chk.stable),
-         "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
-                       "felt_damping": _mat(chk.render.felt_damping),
-                       "rendered_poles": [[float(z.real), float(z.imag)]
-                                          for z in chk.render.rendered_poles]},
-         "measured": {"felt_stiffness": _mat(fit["felt_stiffness"]),
-                      "felt_damping": _mat(fit["felt_damping"]),
-                      "rendered_poles": [[float(z.real), float(z.imag)]
-                                         for z in fit["rendered_poles"]],
-                      "residual": fit["residual"], "rank": fit["rank"]},
-         "deviation": res["deviation"], "linearisation_bound": res["bound"].to_dict(),
-         "records": res["records"], "samples": res["samples"], "order": res["order"],
-         "verdict": v["verdict"], "within": v["within"], "reason": v["reason"]}
-    if port_info is not None:
-        d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
-                 delay=res["delay"], lost=res["lost"])
-    return RunReportND.from_dict(d)
-
-
-def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
-           ) -> RunReportND:
-    """Measure a 2-D or 3-D scene's felt matrices in lockstep, in-process
-    (``hapsim run SCENE --lockstep``).
-
-    Parameters
-    ----------
-    scene : hapsim.scene_nd.SceneND or str
-        An n-D scene with a port and a device, or its path.
-    amplitude : float, optional
-        The excitation ``a`` [m] (> 0): the handle displaced by ``a`` along each axis,
-        then moving along each.
-    allow_unstable : bool, optional
-        Run an unstable loop anyway.
-
-    Returns
-    -------
-    RunReportND
-
-    Raises
-    ------
-    ConfigError
-        An invalid scene or amplitude, a scene without a port.
-    UnstableConfigError
-        The check finds the loop unstable and ``allow_unstable`` is False.
-
-    Notes
-    -----
-    2n free responses of the loop (engine, exact ZOH device of the Cartesian mass at rest,
-    delay line) minus the response from rest; the felt matrices by vector linear
-    prediction and the inverse quadratic eigenvalue problem
-    (:mod:`hapsim.analysis.identify_nd`), against :func:`check_nd`'s prediction; the
-    first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation_nd`).
-    """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.errors import UnstableConfigError
-    from hapsim.lockstep_nd import measure_felt_lockstep
-    scene = _scene_nd(scene)
-    a = float(amplitude)
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {amplitude}",
-                          key="amplitude")
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
-    pred = check_scene_nd(scene)
-    if not pred.stable and not allow_unstable:
-        raise UnstableConfigError(
-            f"{scene.path}: the closed loop is unstable (spectral radius "
-            f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
-            "allow_unstable to run it anyway")
-    return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
