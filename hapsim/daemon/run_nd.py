@@ -240,7 +240,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     dict
         ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`), ``predicted``
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation``
-        (:func:`hapsim.lockstep_nd.felt_deviation`), ``order``, ``records``, ``samples``,
+        (:func:`hapsim.lockstep_nd.felt_deviation`), ``responses`` (the ``2n + 1``
+        records as fitted, shape (N, n) each [m]: the handle from rest, minus the late
+        ticks' known response), ``order``, ``records``, ``samples``,
         ``late`` (late rows over every record), ``excursion`` (the largest distance
         [m] of the handle from rest over every record, the amplitude the linearisation
         bound must be taken at: late ticks can drive the handle past the nominal
@@ -322,5 +324,6 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     rest = recs[0]
     fit = fit_felt_nd([r - rest for r in recs[1:]], scene.device.mass, scene.period, order)
     return {"measured": fit, "predicted": chk, "deviation": felt_deviation(fit, chk),
+            "responses": recs,
             "order": order, "records": 2 * n, "samples": N, "late": late,
             "excursion": excursion, "watchdog": wdog, "delay": delays, "lost": lost, "hello": hello}

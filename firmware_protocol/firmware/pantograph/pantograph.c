@@ -196,6 +196,7 @@ static volatile drive_t g_own_hold;      /* applied at the next SYNC */
 static volatile uint8_t g_own_ready;     /* g_own_next acked by the follower: hold it */
 static volatile uint32_t g_next_seq, g_hold_seq; /* the FORCE seqs of those drives */
 static volatile uint8_t g_next_clamped, g_hold_clamped, g_hold_new;
+static volatile uint8_t g_next_force;    /* g_own_next came from a FORCE (not a zeroing) */
 static volatile uint16_t g_adc_raw;
 static volatile uint8_t g_adc_done, g_tick_flag, g_overrun, g_nack;
 static volatile uint16_t g_nack_detail;
@@ -206,6 +207,7 @@ static volatile uint16_t g_wd_reload, g_wd_left;
 static volatile uint32_t g_period_cycles = F_CPU / PG_NATIVE_RATE_HZ;
 static volatile uint64_t g_clock_cycles; /* the device clock at the last tick [cycles] */
 static volatile uint8_t g_read_queued;   /* a conversion is done, the bus was busy */
+static volatile uint8_t g_sampled;       /* a SYNC of this session sampled: its READ counts */
 
 /* ---------------------------------------------------------------- main loop only */
 static pg_calib_t g_cal;
@@ -260,11 +262,12 @@ static void sample_now(void)
         g_own_hold.dir = g_own_next.dir;
         g_hold_seq = g_next_seq;
         g_hold_clamped = g_next_clamped;
-        g_hold_new = 1;
+        g_hold_new = g_next_force; /* a zeroing (CONFIG, STOP, fault) is no FORCE applied */
         g_own_ready = 0;
     }
     pwm_write(g_armed ? g_own_hold.n : 0u, g_own_hold.dir);
     ADCSRA |= (uint8_t)(1 << ADSC);
+    g_sampled = 1;
     if (g_hold_new) {
         g_hold_new = 0;
         g_force_seq = g_hold_seq;
@@ -342,7 +345,9 @@ ISR(TWI_vect)
         }
         if (st == 0x58 || g_rd_i >= PG_READ_BYTES) {
             twi_done();
-            g_tick_flag = 1;
+            /* a READ of a sample taken before a CONFIG restarted the ticks is dropped */
+            g_tick_flag = g_sampled;
+            g_sampled = 0;
         } else {
             TWCR = (uint8_t)(g_rd_i + 1u < PG_READ_BYTES ? TW_GO | (1 << TWEA) : TW_GO);
         }
@@ -518,17 +523,19 @@ static void zero_now(void)
 }
 
 static void queue_drive(uint16_t n, uint8_t dir);
+static void zero_drives(void);
 
 static void latch_fault(uint16_t code, uint32_t detail)
 {
     g_armed = 0;
     g_fault_latched = 1;
     zero_now();
-    queue_drive(0, 0);
+    zero_drives();
     send_fault(code, detail);
 }
 
-/* Put the follower's drive on the bus (now, or when the bus is free). */
+/* Put the follower's drive on the bus (now, or when the bus is free); the leader's own
+ * (g_own_next) goes with it once acknowledged. A zeroing sets the leader's to zero. */
 static void queue_drive(uint16_t n, uint8_t dir)
 {
     uint8_t b0 = (uint8_t)n, b1 = (uint8_t)(((n >> 8) & 1u) | (uint8_t)(dir << 1));
@@ -547,6 +554,20 @@ static void queue_drive(uint16_t n, uint8_t dir)
     SREG = s;
 }
 
+/* Both joints to zero torque at the next tick (not a FORCE applied). */
+static void zero_drives(void)
+{
+    uint8_t s = SREG;
+    cli();
+    g_own_next.n = 0;
+    g_own_next.dir = 0;
+    g_next_force = 0;
+    g_next_seq = 0;
+    g_next_clamped = 0;
+    SREG = s;
+    queue_drive(0, 0);
+}
+
 static void on_config(const hp_config_t *c)
 {
     uint32_t rate = 0, period;
@@ -561,7 +582,7 @@ static void on_config(const hp_config_t *c)
         return;
     }
     g_limit = float_of_f64(c->force_limit);
-    queue_drive(0, 0); /* the follower starts from zero torque */
+    zero_drives(); /* the follower starts from zero torque */
     cli();
     g_period_cycles = period;
     g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
@@ -579,6 +600,7 @@ static void on_config(const hp_config_t *c)
     g_ticks = 0;
     g_tick_flag = 0;
     g_adc_done = 0;
+    g_sampled = 0;
     g_overrun = 0;
     g_nack = 0;
     g_armed = 1;
@@ -637,6 +659,7 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
     g_own_next.dir = d1.dir;
     g_next_seq = seq;
     g_next_clamped = clamped;
+    g_next_force = 1;
     sei();
 }
 
@@ -678,7 +701,7 @@ static void on_message(const hp_msg_t *m)
     case HP_MSG_STOP:
         g_armed = 0;
         zero_now();
-        queue_drive(0, 0);
+        zero_drives();
         break;
     case HP_MSG_SENSORS_REQUEST:
         r.type = HP_MSG_SENSORS;
@@ -832,7 +855,7 @@ static void serve_tick(void)
         g_trip_event = 0;
         send_fault(HP_FAULT_WATCHDOG, 0);
         zero_now();
-        queue_drive(0, 0);
+        zero_drives();
     }
     if (g_bad_frames != g_bad_reported) {
         g_bad_reported = g_bad_frames;
