@@ -99,10 +99,18 @@ def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
 
 
 def _drain(transport, quiet: float = 0.03, limit: float = 1.0) -> None:
-    """Read and drop until nothing came for ``quiet`` seconds (at most ``limit``)."""
-    end = time.monotonic() + limit
-    while time.monotonic() < end:
-        if not transport.receive(quiet):
+    """Read and drop until nothing but disarmed STATEs came for ``quiet`` seconds (at most
+    ``limit``): a device sends STATE every tick, armed or not (``PROTOCOL.md`` §5.1: the
+    Hapkit firmware does), so a disarmed device is never silent."""
+    now = time.monotonic()
+    end = now + limit
+    last = now
+    while now < end:
+        for m in transport.receive(quiet):
+            if not (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED):
+                last = time.monotonic()
+        now = time.monotonic()
+        if now - last >= quiet:
             return
 
 

@@ -93,6 +93,7 @@ ISR(TWI_vect)
     case 0x70: /* general call: SYNC -- drive and sample now */
         pwm_write(f_hold.n, f_hold.dir);
         ADCSRA |= (uint8_t)(1 << ADSC);
+        TCNT1 = 0; /* the leader is there: the watchdog starts again */
         PORTB |= (uint8_t)(1 << PB5);
         f_rx_i = 0xFFu; /* no data expected */
         break;
@@ -135,6 +136,15 @@ ISR(TWI_vect)
     TWCR = (uint8_t)(TW_GO | (1 << TWEA));
 }
 
+/* The follower's watchdog: no SYNC for PG_FOLLOWER_WATCHDOG_MS (the leader or the bus
+ * gone): zero torque, held until the next DRIVE says otherwise. */
+ISR(TIMER1_COMPA_vect)
+{
+    f_hold.n = 0;
+    f_hold.dir = 0;
+    pwm_write(0, 0);
+}
+
 ISR(ADC_vect)
 {
     uint16_t raw = ADC;
@@ -151,6 +161,10 @@ int main(void)
     motor_adc_init();
     f_rx_i = 0xFFu;
     f_tx[2] = PG_CHECK_SEED;
+    /* Timer1, CTC at clk/64 (4 us a count): the watchdog's compare */
+    OCR1A = (uint16_t)(PG_FOLLOWER_WATCHDOG_MS * (F_CPU / 64000UL) - 1UL);
+    TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS11) | (1 << CS10));
+    TIMSK1 = (uint8_t)(1 << OCIE1A);
     TWAR = (uint8_t)((PG_FOLLOWER_ADDR << 1) | 1u); /* own address, general call on */
     TWCR = (uint8_t)((1 << TWEA) | (1 << TWEN) | (1 << TWIE));
     set_sleep_mode(SLEEP_MODE_IDLE);

@@ -42,6 +42,10 @@
 #define PG_FLAG_FRESH 0x04         /* (in the second byte) a conversion since the last READ */
 #define PG_FLAG_BAD_DRIVE 0x08     /* (in the second byte) a DRIVE failed its check since */
 
+/* The follower zeroes its motor when no SYNC came for this long [ms] (the leader or the
+ * bus gone: nobody else can stop it) */
+#define PG_FOLLOWER_WATCHDOG_MS 20UL
+
 /* FAULT SENSOR details (low byte; TWSR in the next byte) */
 #define PG_NACK_SYNC 1
 #define PG_NACK_READ 2

@@ -162,6 +162,7 @@ static struct {
     int release_armed;  /* 1: a CONFIG was fed; 2: the firmware took it (DRIVE seen) */
     double v_release[2];
     int configs;        /* CONFIGs since the host's last HELLO_REQUEST */
+    long configs_total; /* CONFIGs since power-up */
     double period;      /* the last CONFIG's period [s] */
     uint64_t rk_steps, bad_kinematics, big_jumps;
 } ph;
@@ -293,6 +294,7 @@ static void hand_on_config(double rate_hz)
 {
     double rest[2], x[2], v[2] = {0, 0}, q[2], J[4], det, T = 1.0 / rate_hz;
     int k = ph.configs++ % 5;
+    ph.configs_total++;
     double a = opt.amplitude;
     five_bar(opt.home, rest, NULL);
     x[0] = rest[0] + (k == 1 ? a : 0.0);
@@ -436,6 +438,7 @@ static struct {
     int addressed;       /* the follower is in a transaction: 1 receiver, 2 transmitter */
     int general;         /* ... by the general call */
     long transactions, nack_addr, nack_data, stretched, bytes_w, bytes_r, overflow;
+    long armed_transactions;   /* since the first CONFIG (--nack-after counts these) */
     int f_busy;          /* the follower's TWINT: raised by an event, cleared by its write */
     int pending_read, read_ack;   /* the leader asked a byte the follower has not given */
     uint8_t read_addr;
@@ -448,7 +451,7 @@ static int follower_acks(void)
 {
     avr_t *f = core[FOLL];
     uint8_t twcr = f->data[R_TWCR];
-    if (opt.nack_after >= 0 && bus.transactions > opt.nack_after) {
+    if (opt.nack_after >= 0 && ph.configs_total && bus.armed_transactions > opt.nack_after) {
         return 0;
     }
     return (twcr & (1u << TWEN_BIT)) && (twcr & (1u << TWEA_BIT));
@@ -565,8 +568,12 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
         uint64_t due = now + ((!rd && (twi[LEAD]->state & TWI_COND_WRITE)) ? 1u
                                                                            : TWI_BYTE_CYCLES);
         int match = gc ? ((own & 1u) && !rd) : ((sla >> 1) == (own >> 1));
-        int ack = match && follower_acks();
+        int ack;
         bus.transactions++;
+        if (ph.configs_total) {
+            bus.armed_transactions++;
+        }
+        ack = match && follower_acks();
         reply_leader(TWI_COND_ACK, sla, (uint8_t)ack);
         if (!ack) {
             bus.nack_addr++;
@@ -888,6 +895,10 @@ static void report(int code)
     fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
     fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"%s\"},\n",
             (unsigned long long)simlog.warnings, simlog.last);
+    fprintf(f, " \"drive\": {\"leader_steps\": %d, \"follower_steps\": %d, "
+               "\"torque_nm\": [%.9g, %.9g]},\n",
+            (drive[LEAD].dir ? 1 : -1) * (int)drive[LEAD].n,
+            (drive[FOLL].dir ? 1 : -1) * (int)drive[FOLL].n, ph.tau[0], ph.tau[1]);
     fprintf(f, " \"plant\": {\"q_rad\": [%.17g, %.17g], \"qd_rad_s\": [%.17g, %.17g], "
                "\"x_m\": [%.17g, %.17g], \"rk_steps\": %llu, \"bad_kinematics\": %llu, "
                "\"big_jumps\": %llu}}\n",
