@@ -126,8 +126,10 @@ def run_mock_nd(args, new_pty) -> int:
 
 
 #: What ``hapsim mock --firmware`` takes on a 2-D scene (the emulated Hapkit pantograph).
-FIRMWARE_TAKES = frozenset({"scene", "lockstep", "report", "amplitude", "link", "firmware",
-                            "rt_priority", "tick"})
+FIRMWARE_TAKES = frozenset({"scene", "lockstep", "report", "amplitude", "link", "firmware"})
+#: Options given their defaults by ``hapsim mock`` itself (a value, not None): taken at
+#: that value only (the board has no tick choice and, in lockstep, no real-time priority).
+_FIRMWARE_DEFAULTS = {"tick": "auto", "rt_priority": 0}
 #: The hand's default amplitude on the emulated Hapkit pantograph [m]: its sensors resolve
 #: ~1.3e-5 m at the handle (one count, scene-dependent), so 2e-4 m is ~15 counts; within
 #: the 0.5 mm depth of configs/pantograph_wall.yaml's wall.
@@ -163,6 +165,8 @@ def run_pantograph_firmware(args) -> int:
     from hapsim.scene_nd import load_scene_nd
     for dest, value in sorted(vars(args).items()):
         if dest in FIRMWARE_TAKES or dest in _NOT_OPTIONS or value is None or value is False:
+            continue
+        if dest in _FIRMWARE_DEFAULTS and value == _FIRMWARE_DEFAULTS[dest]:
             continue
         opt = "--" + dest.replace("_", "-")
         raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
