@@ -92,7 +92,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         poles, felt = predicted_poles(scene)
         response = None
         if quantum > 0 or dev.noise > 0:
-            from hapsim.analysis.identify import sensor_error_response
+            from hapsim.analysis.error_response import sensor_error_response
             try:
                 response = sensor_error_response(scene, int(cols["seq"].size))
             except ConfigError:
@@ -116,21 +116,21 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         if lfb is not None and np.any(lfb > 0):
             # the late ticks' accounted forces, wrong by at most the disturbance taken out:
             # their worst case through the fit, apart (a side decided on b adds it)
-            from hapsim.analysis.identify import force_error_response
+            from hapsim.analysis.error_response import force_error_response
             late_bounds = [(lfb, force_error_response(scene, int(cols["seq"].size)))]
         bounds = []
         if hw is not None and np.any(hw > 0):
             # the forces the account cannot name (a command whose answer never came: sent
             # or the one before), bounded at their rows, through the loop's force
             # response: their worst case is in the stated uncertainty
-            from hapsim.analysis.identify import force_error_response
+            from hapsim.analysis.error_response import force_error_response
             bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
         if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
             # a driver's missing replies: the positions the loop stepped through them with
             # are extrapolations, wrong by at most what the device can have done meanwhile
             from hapsim.analysis.measurement import estimated_bounds
             if response is None:
-                from hapsim.analysis.identify import sensor_error_response
+                from hapsim.analysis.error_response import sensor_error_response
                 try:
                     response = sensor_error_response(scene, int(cols["seq"].size))
                 except ConfigError:
