@@ -8,16 +8,19 @@
  * OC0B, 62.5 kHz), direction on D8 (PB0), D13 (PB5) high while the MCU works on a tick
  * (the budget probe the emulated board measures), TWI on A4/A5 (SDA/SCL).
  *
- * The leader (UART to the host, TWI master) speaks the framed protocol with n_axes = 2:
- * HELLO, CONFIG (rates that divide 16 MHz, up to PG_MAX_RATE_HZ), STATE with the handle's
- * (x, y) [m], FORCE with (Fx, Fy) [N], PING/PONG, STOP, SENSORS (none offered; no compact
- * frames), the watchdog. Each tick (pantograph_link.h): SYNC on the bus (both joints
- * sampled and driven at one instant), the follower's sample READ, the joint angles
- * unwrapped (flip counting, as the 1-DoF firmware) from the home of the calibration
- * block in EEPROM, the forward kinematics (the larger-y closure of the five-bar, as
- * hapsim.kinematics.Pantograph) in float32, STATE; a FORCE answering STATE n is turned
- * into joint torques tau = J(q_n)^T F (J of the same tick's angles), quantised to PWM
- * steps, the follower's sent by DRIVE, both applied at tick n + 1 (delay d = 1).
+ * The leader (UART to the host, TWI master) speaks the framed protocol with n_axes = 2 as a
+ * joint-level device: HELLO (device id "HKG2", position_scale = rad per sensor count,
+ * force_scale = N m per PWM step), CONFIG (rates that divide 16 MHz, PG_MIN_RATE_HZ ..
+ * PG_MAX_RATE_HZ), STATE with the joint angles (q1, q2) [rad], FORCE with the joint
+ * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (none offered; no compact frames),
+ * the watchdog. The host does the kinematics (x = f(q), tau = J(q_n)^T F): in float32 on
+ * this 16 MHz AVR the five-bar's forward kinematics and Jacobian took ~20,000 cycles a
+ * tick, more than the 16,000 of a 1 kHz period (docs/pantograph.md). Each tick
+ * (pantograph_link.h): SYNC on the bus (both joints sampled and driven at one instant),
+ * the follower's sample READ, the joint angles unwrapped (flip counting, as the 1-DoF
+ * firmware) from the home of the calibration block in EEPROM, STATE; a FORCE answering
+ * STATE n is quantised to PWM steps, the follower's sent by DRIVE, both applied at tick
+ * n + 1 (delay d = 1).
  *
  * The follower (TWI slave) holds the drive it was sent, applies it and starts its ADC at
  * each SYNC, and hands its raw sample to the READ. It has no clock of its own for the
@@ -359,8 +362,12 @@ ISR(TWI_vect)
         }
         if (st == 0x58 || g_rd_i >= PG_READ_BYTES) {
             twi_done();
-            /* a READ of a sample taken before a CONFIG restarted the ticks is dropped */
+            /* a READ of a sample taken before a CONFIG restarted the ticks is dropped
+             * (with its conversion: not an overrun of the new session's first tick) */
             g_tick_flag = g_sampled;
+            if (!g_sampled) {
+                g_adc_done = 0;
+            }
             g_sampled = 0;
         } else {
             TWCR = (uint8_t)(g_rd_i + 1u < PG_READ_BYTES ? TW_GO | (1 << TWEA) : TW_GO);

@@ -105,6 +105,7 @@ static struct {
          {2e-4, 0, 0, 2e-4}, {1e-3, 0, 0, 1e-3}, 0.0, 0.0, 1e-8, 5e-4, 0.0, -1, NULL, NULL, NULL, 0};
 
 static avr_t *core[2];
+static int last_fed_type; /* the last host frame handed to the leader's UART */
 
 static avr_twi_t *twi[2];
 static avr_irq_t *adc_irq[2], *uart_irq;
@@ -439,6 +440,8 @@ static struct {
     int general;         /* ... by the general call */
     long transactions, nack_addr, nack_data, stretched, bytes_w, bytes_r, overflow;
     long armed_transactions;   /* since the first CONFIG (--nack-after counts these) */
+    /* the critical path: from a DRIVE's end to the next SYNC (armed ticks) [cycles] */
+    uint64_t drive_end, last_sync, slack_min, slack_sum, slack_n;
     int f_busy;          /* the follower's TWINT: raised by an event, cleared by its write */
     int pending_read, read_ack;   /* the leader asked a byte the follower has not given */
     uint8_t read_addr;
@@ -555,6 +558,9 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
     if (m.u.twi.msg & TWI_COND_STOP) {
         if (bus.addressed == 1) {
             bus_post(now + 2u, 0xA0, 0, 0); /* STOP while addressed as receiver */
+            if (!bus.general && budget.armed && last_fed_type == HP_MSG_FORCE) {
+                bus.drive_end = now; /* a FORCE's DRIVE done: the critical path ends */
+            }
         }
         bus.addressed = 0;
         return;
@@ -582,6 +588,18 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
         }
         bus.general = gc;
         bus.addressed = rd ? 2 : 1;
+        if (gc && !rd) {
+            /* a SYNC: the slack of the last tick (its DRIVE's end to this tick) */
+            if (bus.drive_end > bus.last_sync && budget.armed) {
+                uint64_t slack = now - bus.drive_end;
+                if (!bus.slack_n || slack < bus.slack_min) {
+                    bus.slack_min = slack;
+                }
+                bus.slack_sum += slack;
+                bus.slack_n++;
+            }
+            bus.last_sync = now;
+        }
         if (gc && ph.release_armed == 2 && !rd) {
             ph.release_armed = 3; /* the session's first SYNC: let go at its samples */
         }
@@ -682,8 +700,8 @@ static void on_fw_msg(const hp_msg_t *m)
         link_.fw_states++;
         link_.fw_status = st;
         budget.armed = (st & HP_STATUS_ARMED) != 0;
-        if (st & HP_STATUS_OVERRUN) {
-            link_.fw_overrun++;
+        if ((st & HP_STATUS_OVERRUN) && (st & HP_STATUS_ARMED)) {
+            link_.fw_overrun++; /* armed ticks only (the first disarmed ones are no loop) */
         }
         if ((st & HP_STATUS_ARMED) && link_.host_present) {
             link_.await_host = 1;
@@ -735,6 +753,7 @@ static void uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param)
 static void on_host_msg(const hp_msg_t *m)
 {
     link_.host_frames_ok++;
+    last_fed_type = m->type;
     if (m->type == HP_MSG_HELLO_REQUEST) {
         ph.configs = 0;
     } else if (m->type == HP_MSG_CONFIG) {
@@ -872,9 +891,12 @@ static void report(int code)
             (unsigned long long)budget.busy_max[1]);
     fprintf(f, " \"twi\": {\"transactions\": %ld, \"nack_address\": %ld, \"nack_data\": %ld, "
                "\"bytes_written\": %ld, \"bytes_read\": %ld, \"stretched\": %ld, "
-               "\"late_bytes\": %ld, \"overflow\": %ld},\n",
+               "\"late_bytes\": %ld, \"overflow\": %ld, \"slack_ticks\": %llu, "
+               "\"slack_min_cycles\": %llu, \"slack_mean_cycles\": %.1f},\n",
             bus.transactions, bus.nack_addr, bus.nack_data, bus.bytes_w, bus.bytes_r,
-            bus.stretched, bus.late_bytes, bus.overflow);
+            bus.stretched, bus.late_bytes, bus.overflow, (unsigned long long)bus.slack_n,
+            (unsigned long long)bus.slack_min,
+            bus.slack_n ? (double)bus.slack_sum / (double)bus.slack_n : 0.0);
     fprintf(f, " \"host\": {\"frames_ok\": %llu, \"bad_frames\": %llu, \"waits\": %llu},\n",
             (unsigned long long)link_.host_frames_ok, (unsigned long long)link_.host_bad,
             (unsigned long long)link_.waits);
