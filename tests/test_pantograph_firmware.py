@@ -248,3 +248,97 @@ def test_mock_firmware_on_a_2d_scene_needs_lockstep(built):
                         str(SCENE)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert "--lockstep" in r.stderr
+
+
+def test_hostile_bytes_to_the_leader_are_dropped_counted_and_never_acted_on(built, scene,
+                                                                           tmp_path):
+    """Garbage, a corrupted FORCE (one bit flipped: its CRC fails) and an over-long frame
+    sent to the leader between good FORCEs are dropped and counted (FAULT RX_ERRORS with
+    the count, STATE's RX_ERROR), never applied: the torques stay the good FORCEs' (the
+    follower's joint keeps its constant torque's motion, read as the plant's to one count;
+    the corrupted FORCE's 0.3 N m, 146 PWM steps, would throw it off). The hostile bytes
+    hold the wire longer than the tick's slack: the good FORCE behind them comes late and
+    the torque held meanwhile is the same, its lag (seq - force_seq) above one."""
+    import random
+    from hapsim.daemon.transport import SerialTransport
+    rng = random.Random(5)
+    faults, q_read, lags, rx_err = [], [], set(), 0
+    with _board(tmp_path, scene) as (proc, port, report):
+        tr = SerialTransport(port)
+        try:
+            hello = _hello(tr)
+            c, tau = hello.position_scale, (0.0, 2 * hello.force_scale)
+            tr.send(fp.Config(1000.0, 20000, 10.0))
+            k = 0
+            end = time.monotonic() + 20
+            while k < 80 and time.monotonic() < end:
+                for m in tr.receive(0.05):
+                    if isinstance(m, fp.Fault):
+                        faults.append(m)
+                    elif isinstance(m, fp.State) and m.status & fp.STATUS_ARMED and m.seq == k:
+                        q_read.append(m.position)
+                        rx_err += bool(m.status & fp.STATUS_RX_ERROR)
+                        if m.status & fp.STATUS_FORCE_APPLIED:
+                            lags.add(m.seq - m.force_seq)
+                        if k % 10 == 5:       # hostile bytes before this tick's FORCE
+                            bad = bytearray(fp.encode(fp.Force(m.seq, (0.3, -0.3))))
+                            bad[4] ^= 0x10
+                            tr._ser.write(bytes(rng.randrange(1, 256) for _ in range(20))
+                                          + b"\x00" + bytes(bad) + b"\x01" * 200 + b"\x00")
+                        tr.send(fp.Force(m.seq, tau))
+                        k += 1
+            tr.send(fp.Stop())
+            time.sleep(0.1)
+        finally:
+            tr.close()
+    rep = json.loads(report.read_text())
+    rx = [f for f in faults if f.code == fp.FAULT_RX_ERRORS]
+    assert rx and rx_err > 0 and all(f.code == fp.FAULT_RX_ERRORS for f in faults)
+    assert rx[-1].detail >= 8 * 2                       # >= 2 bad frames per burst, 8 bursts
+    assert 1 in lags and max(lags) > 1                  # on time, and late behind the bytes
+    applied = [(0.0, 0.0)] + [tau] * 79
+    plant = _plant(scene, applied, scene.period)
+    q_plant = np.vstack([np.asarray(scene.device.joints, float), plant[:79, :2]])
+    assert np.max(np.abs(np.asarray(q_read) - q_plant)) <= 1.01 * c
+    assert rep["drive"]["leader_steps"] == 0                # STOP zeroed it
+
+
+def test_joint_level_transport_turns_angles_and_torques_into_the_cartesian_device(scene):
+    """:class:`JointLevelTransport` against the kinematics: after the pantograph's HELLO a
+    STATE's joint angles come out as f(q), a FORCE F answering it goes out as J(q)^T F;
+    before that HELLO (or for another device) nothing is changed; a FORCE for a STATE not
+    seen is an error, not a guess."""
+    from hapsim.daemon.pantograph_board import DEVICE_ID, JointLevelTransport
+    from hapsim.errors import DeviceError
+    from hapsim.kinematics import device
+
+    class Fake:
+        def __init__(self):
+            self.inbox, self.sent = [], []
+
+        def receive(self, timeout=0.0):
+            out, self.inbox = self.inbox, []
+            return out
+
+        def send(self, msg):
+            self.sent.append(msg)
+
+    kin = device("pantograph", scene.device.geometry)
+    rng = np.random.default_rng(7)
+    f = Fake()
+    tr = JointLevelTransport(f, scene)
+    q = tuple(float(v) for v in np.asarray(scene.device.joints) + rng.normal(0, 0.05, 2))
+    f.inbox = [fp.State(3, 0, 1, 2, q)]
+    assert tr.receive()[0].position == q                  # no HELLO yet: unchanged
+    f.inbox = [fp.Hello(1, 2, DEVICE_ID, 1e-4, 2e-3, 1e30, 1000.0), fp.State(4, 0, 1, 3, q)]
+    out = tr.receive()
+    assert tr.joint_level
+    assert np.allclose(out[1].position, kin.forward(np.array(q)), rtol=0, atol=1e-15)
+    F = (0.7, -1.3)
+    tr.send(fp.Force(4, F))
+    tau = kin.jacobian(np.array(q)).T @ np.array(F)
+    assert np.allclose(f.sent[-1].force, tau, rtol=1e-14, atol=0)
+    with pytest.raises(DeviceError, match="answers no STATE"):
+        tr.send(fp.Force(5, F))
+    f.inbox = [fp.Hello(1, 2, 0x12345678, 0, 0, 1e300, 1000.0), fp.State(6, 0, 1, 5, q)]
+    assert tr.receive()[1].position == q and not tr.joint_level
