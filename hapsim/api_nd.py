@@ -395,7 +395,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     scene : hapsim.scene_nd.SceneND
     res : dict
         :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
-        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound``.
+        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        ``wire``, the readings' and torques' term of a quantised device such as the
+        emulated Hapkit pantograph, :func:`hapsim.daemon.pantograph_board.wire_term`).
     lockstep : bool
         Measured in-process.
     port_info : dict, optional
@@ -411,7 +413,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
         from hapsim.daemon.run_nd import verdict_nd
         v = verdict_nd(res)
     else:
-        v = felt_verdict(res["deviation"], res["bound"])
+        v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -431,6 +433,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
                  delay=res["delay"], lost=res["lost"], rows=res["rows"],
                  counts=res["counts"], bad_frames=res["bad_frames"],
                  incomplete=res["incomplete"])
+    if res.get("wire") is not None:
+        d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)
 
 

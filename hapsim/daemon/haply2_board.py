@@ -27,7 +27,7 @@ from collections import deque
 
 import numpy as np
 
-from hapsim.drivers.haply import CommandDecoder
+from hapsim.drivers.haply import CommandDecoder, ResyncRule
 from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
@@ -253,7 +253,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
     pos = np.full((N, 2), np.nan)
     joints = np.full((N, 2), np.nan)
     torque = np.zeros((N, 2))
-    missing = resyncs = 0
+    missing = 0
     in_row = 0
     zero = driver.write_bytes((0.0, 0.0))
     bad_setups = 0
@@ -278,7 +278,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
     if last is None:
         in_row = MISSING_RESYNC                          # arm again at once
     x = None
-    desync0 = 0
+    rule = ResyncRule(dec.stats, MISSING_RESYNC - 1)
     for k in range(N):
         if last is None:
             missing += 1
@@ -304,9 +304,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
         F = eng.port_force
         tau = J.T @ F if x is not None else np.zeros(2)
         torque[k] = driver.clamp(tau)
-        if dec.stats["desync"] != desync0 or in_row >= MISSING_RESYNC:
-            desync0 = dec.stats["desync"]
-            resyncs += 1
+        if rule.due(in_row):
             in_row = 0
             # zero torque, the set-up at the last joints read, a zero write (its reply
             # is the next sample): the angles go on from where they were
@@ -319,7 +317,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
         got = dec.feed(tx(board_feed(rx(driver.write_bytes(tau)))))
         last = got[-1] if got else None
     return {"position": pos, "joints": joints, "torque": torque, "missing": missing,
-            "resyncs": resyncs, "bad_setups": bad_setups, "decoder": dict(dec.stats),
+            "resyncs": rule.count, "bad_setups": bad_setups, "decoder": dict(dec.stats),
             "writes": N}
 
 

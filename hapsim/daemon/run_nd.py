@@ -110,23 +110,33 @@ def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
                       + transport.last_frames())
 
 
-def _drain(transport, quiet: float = 0.03, limit: float = 1.0) -> bool:
-    """Read and drop until nothing came for ``quiet`` seconds (at most ``limit``), on the
-    transport's clock; True when it went quiet, False when frames kept coming."""
+def _drain(transport, quiet: float = 0.03, limit: float = 1.0, counts=None) -> bool:
+    """Read and drop until nothing but disarmed STATEs came for ``quiet`` seconds (at most
+    ``limit``), on the transport's clock: a device sends STATE every tick, armed or not
+    (``PROTOCOL.md`` §5.1: the Hapkit firmware does), so a disarmed device is never
+    silent. True when it went quiet, False when armed frames kept coming."""
     clock, _ = _clock_of(transport)
-    end = clock() + limit
-    while clock() < end:
-        if not transport.receive(quiet):
+    now = clock()
+    end = now + limit
+    last = now
+    while now < end:
+        for m in transport.receive(quiet):
+            if not (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED):
+                last = clock()
+            if counts is not None and isinstance(m, fp.Hello):
+                counts.hellos += 1              # the device (re)started its hand's cycle
+        now = clock()
+        if now - last >= quiet:
             return True
     return False
 
 
-def _quiesce(transport, tries: int = 4) -> bool:
+def _quiesce(transport, tries: int = 4, counts=None) -> bool:
     """STOP until the device falls silent (a STOP lost or a CONFIG held back by the link
     can leave it armed, ticking a session the host does not want); True when it did."""
     for _ in range(tries):
         transport.send(fp.Stop())
-        if _drain(transport, 0.03, 0.3):
+        if _drain(transport, 0.03, 0.3, counts):
             return True
     return False
 
@@ -134,8 +144,8 @@ def _quiesce(transport, tries: int = 4) -> bool:
 class _Counts:
     """What the records met (every field an int; :meth:`as_dict` for the report)."""
 
-    __slots__ = ("stale", "reordered", "missed", "cut", "resets", "silences", "faults", "configs",
-                 "unrecognised", "lost", "recovered", "reconnect_attempts")
+    __slots__ = ("hellos", "by_order", "stale", "reordered", "missed", "cut", "resets", "silences", "faults", "configs",
+                 "out_of_turn", "lost", "recovered", "reconnect_attempts")
 
     def __init__(self) -> None:
         for k in self.__slots__:
@@ -191,10 +201,12 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
                         raise DeviceError(f"the device sent FAULT code {m.code} detail "
                                           f"{m.detail}")
                     counts.faults += 1
-                elif isinstance(m, fp.Hello) and k:
-                    counts.resets += 1          # the device restarted: this session ended
-                    end = True
-                    break
+                elif isinstance(m, fp.Hello):
+                    counts.hellos += 1          # the device restarted its hand's cycle
+                    if k:
+                        counts.resets += 1      # ... and this session ended
+                        end = True
+                        break
                 continue
             if len(m.position) != n:
                 continue
@@ -295,7 +307,7 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
         ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` [m], ``B_w`` the ZOH input of the
         device (the first ``2n`` rows of the state, :func:`hapsim.analysis.ths_nd.zoh_matrices`)
         and ``C`` the device position (superposition, as the 1-D
-        :func:`hapsim.analysis.identify.disturbance_response`).
+        :func:`hapsim.analysis.error_response.disturbance_response`).
 
     Raises
     ------
@@ -375,10 +387,11 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
 
     Each CONFIG gives one record; the device's hand picks its start (the mock: the next
-    one after each CONFIG, from rest again after each HELLO), which the host reads from
-    the record's first two samples (:func:`start_of`), so records lost, cut short, or
-    taken by a device that reset or counted a CONFIG twice never put a start in the wrong
-    place. CONFIGs go on until every start has a whole record, or ``max_configs`` have
+    one after each CONFIG, from rest again after each HELLO). The host counts the CONFIGs
+    since the last HELLO it saw and reads the start from the record's first two samples
+    (:func:`start_of`) where they tell it (not through a quantised device's readings:
+    then the count says), so records lost, cut short, or taken by a device that reset or
+    counted a CONFIG twice never put a start in the wrong place. CONFIGs go on until every start has a whole record, or ``max_configs`` have
     been sent; then each start's longest record is used if it keeps at least
     :func:`min_rows` rows (a record stops at the first STATE the host did not get:
     :func:`_record`), all cut to the record from rest's length. Otherwise nothing is
@@ -417,6 +430,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`; matrices None when
         incomplete), ``predicted`` (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`),
         ``deviation`` (:func:`hapsim.lockstep_nd.felt_deviation`, None when incomplete),
+        ``responses`` (the records as fitted, each shape (rows, n) [m]: the handle from
+        rest, minus the late ticks' known response; empty when incomplete),
         ``order``, ``records`` (``2n``), ``samples`` (``N``), ``rows`` (rows used, per
         start, the record from rest first), ``late`` (late rows over the records used),
         ``excursion`` (the largest distance [m] of the handle from rest over them, the
@@ -425,8 +440,11 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         zeroed), ``delay`` (the delay the device showed, per record used; -1 for a record
         in which no FORCE arrived in time: the device held zero throughout, and the whole
         force sent is the known disturbance), ``lost`` (port failures), ``recovered``,
-        ``counts`` (``stale``, ``missed``, ``cut``, ``resets``, ``silences``, ``faults``,
-        ``configs``, ``unrecognised``, ``lost``, ``recovered``, ``reconnect_attempts``),
+        ``counts`` (``hellos`` seen, ``by_order`` (records whose start the readings
+        could not tell: taken from the hand's cycle), ``stale``, ``reordered``,
+        ``missed``, ``cut``, ``resets``, ``silences``, ``faults``, ``configs``,
+        ``out_of_turn`` (records whose start was not the one the cycle says: the device
+        skipped one), ``lost``, ``recovered``, ``reconnect_attempts``),
         ``bad_frames`` (the host decoder's count, when it has one), ``incomplete``
         (None, or why nothing was fitted), ``hello`` (the device's first HELLO).
 
@@ -460,14 +478,22 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     hello = None
     need_hello = True
     lost_since = None
+    since_hello = 0                             # CONFIGs the device took since its HELLO
     while counts.configs < budget and not all(r is not None and r.rows == N for r in best):
         try:
             if need_hello:
                 h = handshake_nd(transport, n)
                 hello = hello or h
                 need_hello = False
-            _quiesce(transport)
+                since_hello = 0
+            h0 = counts.hellos
+            _quiesce(transport, counts=counts)
+            if counts.hellos != h0:
+                since_hello = 0                 # a HELLO: the hand starts from rest again
+            expected = since_hello % S
+            h0 = counts.hellos
             rec = _record(transport, scene, N, rate, wd, counts=counts, silence=silence)
+            since_hello = 0 if counts.hellos != h0 else since_hello + 1
         except DeviceError as exc:
             if "FAULT" in str(exc).split("\n")[0]:
                 raise
@@ -485,8 +511,13 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             continue
         j = start_of(rec.position[:2], rest_pos, a, 1.0 / rate)
         if j is None:
-            counts.unrecognised += 1
-            continue
+            # readings that cannot tell the starts apart (a quantised device, another
+            # amplitude): the hand's cycle says which start it was
+            counts.by_order += 1
+            j = expected
+        elif j != expected:
+            counts.out_of_turn += 1             # the device's cycle is not the host's:
+            since_hello = j + 1                 # follow the device's
         if best[j] is None or rec.rows > best[j].rows:
             best[j] = rec
             if progress is not None and rec.rows == N:
@@ -553,7 +584,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                       scene.period, order)
     out.update(measured=fit, deviation=felt_deviation(fit, chk), late=late,
                excursion=excursion, watchdog=wdog, delay=delays,
-               rows=[min(r.rows, L) for r in best])
+               rows=[min(r.rows, L) for r in best], responses=recs)
     return out
 
 
@@ -590,7 +621,8 @@ def verdict_nd(res: dict) -> dict:
     Parameters
     ----------
     res : dict
-        A measurement with ``deviation`` and ``bound``.
+        A measurement with ``deviation`` and ``bound`` (and ``wire``, a quantised
+        device's term: :func:`hapsim.daemon.pantograph_board.wire_term`).
 
     Returns
     -------
@@ -601,4 +633,4 @@ def verdict_nd(res: dict) -> dict:
     if res.get("incomplete"):
         return {"verdict": "not measurable", "within": None, "uncertainty": None,
                 "reason": res["incomplete"]}
-    return felt_verdict(res["deviation"], res["bound"])
+    return felt_verdict(res["deviation"], res["bound"], res.get("wire"))

@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_COMMAND, MAX_TORQUE,
-                                  ReplyDecoder)
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, MAX_TORQUE, ReplyDecoder,
+                                  resync_bytes)
 from hapsim.errors import ConfigError
 
 __all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
@@ -84,7 +84,8 @@ Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
   against the emulated board only (hapsim.daemon.haply2_board; in real time behind a
     pty, hapsim.daemon.haply2_host): a real board has no hand to start each record
   real time: no sequence numbers; a reply not read by its tick is an estimated sample
-    (counted, bounded in the stated uncertainty); no re-synchronisation in real time
+    (counted, bounded in the stated uncertainty); a board that lost its place is
+    re-synchronised (zero torque first; counted) and its record is not measured
   no start byte, no checksum: a lost or corrupted byte shifts or alters a reply; the
     decoder realigns on the id and two plausible angles (whole encoder counts), and the
     host re-synchronises a board that lost its place
@@ -222,11 +223,10 @@ class Haply2DIY:
         """Zero torque whatever the board's parser is doing, then the set-up and a
         zero-torque write whose reply is the first sample: a zero write, ``LONGEST_COMMAND``
         zero bytes (zero torque inside a write, resets elsewhere), two bytes 3 (no
-        command), the set-up, a zero write (as :meth:`hapsim.drivers.haply.HaplyM3.resync`).
+        command), the set-up, a zero write (:func:`hapsim.drivers.haply.resync_bytes`, as
+        the 1-DoF joint's :meth:`hapsim.drivers.haply.HaplyM3.resync`).
         """
-        zero = self.write_bytes((0.0, 0.0))
-        return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + self.setup_bytes(joints_deg) \
-            + zero
+        return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg))
 
     def decoder(self) -> Reply2Decoder:
         """A fresh reply decoder (whole counts at the set-up's resolution)."""
