@@ -268,8 +268,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     if joint is not None and joint.joint_level:
         from hapsim.daemon.pantograph_board import wire_term
         h = joint.hello
-        res["torque_max"] = [max((abs(t) for tau in joint.torques.values() for t in tau),
-                                 default=0.0)]
+        res["torque_max"] = joint.torque_max
         res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
         info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
                           f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "

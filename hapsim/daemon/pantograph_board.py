@@ -173,11 +173,8 @@ class JointLevelTransport:
     joint_level : bool
         The device said it is the pantograph leader.
     hello : firmware_protocol.Hello or None
-    joints : dict
-        ``seq -> (q1, q2)`` of the STATEs converted (for the wire's term), cleared by
-        :meth:`clear_log`.
-    torques : dict
-        ``seq -> (tau1, tau2)`` [N m] sent.
+    torque_max : float
+        The largest joint torque sent [N m] (the wire's term takes its binary32 rounding).
     clamped : int
         STATEs whose torques the firmware clamped (full PWM duty).
 
@@ -194,17 +191,11 @@ class JointLevelTransport:
         self.hello = None
         self._seq = [-1] * 256
         self._J = [(0.0, 0.0, 0.0, 0.0)] * 256
-        self.joints: dict = {}
-        self.torques: dict = {}
+        self.torque_max = 0.0
         self.clamped = 0
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
-
-    def clear_log(self) -> None:
-        """Forget the joints and torques logged so far."""
-        self.joints.clear()
-        self.torques.clear()
 
     def receive(self, timeout: float = 0.0) -> list:
         """The inner transport's messages, STATEs of the pantograph in Cartesian form.
@@ -226,7 +217,6 @@ class JointLevelTransport:
                 k = m.seq & 255
                 self._seq[k] = m.seq
                 self._J[k] = self.kin.jacobian_at(q1, q2)
-                self.joints[m.seq] = (q1, q2)
                 if m.status & fp.STATUS_FORCE_CLAMPED:
                     self.clamped += 1
                 out[i] = fp.State(m.seq, m.time_us, m.status, m.force_seq, (x, y))
@@ -242,9 +232,9 @@ class JointLevelTransport:
                                   "pantograph: its torques need that STATE's Jacobian)")
             j00, j01, j10, j11 = self._J[k]
             fx, fy = msg.force
-            tau = (j00 * fx + j10 * fy, j01 * fx + j11 * fy)
-            self.torques[msg.seq] = tau
-            msg = fp.Force(msg.seq, tau)
+            t1, t2 = j00 * fx + j10 * fy, j01 * fx + j11 * fy
+            self.torque_max = max(self.torque_max, abs(t1), abs(t2))
+            msg = fp.Force(msg.seq, (t1, t2))
         self.inner.send(msg)
 
 
@@ -269,7 +259,8 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     scene : hapsim.scene_nd.SceneND
     res : dict
         :func:`hapsim.daemon.run_nd.measure_felt_port`'s result (``responses``,
-        ``samples``, ``predicted``, ``order``).
+        ``samples``, ``predicted``, ``order``) and ``torque_max`` [N m] (the largest
+        torque sent: :attr:`JointLevelTransport.torque_max`).
     rad_per_count : float
         ``c``: joint angle per sensor count [rad] (HELLO ``position_scale``).
     torque_step : float
@@ -279,8 +270,8 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     -------
     dict
         ``felt_stiffness``, ``felt_damping`` (relative; inf when the records give no
-        sensitivity), ``reading_bound_rad``, ``torque_bound_nm``, ``quantum`` (one count
-        at the handle, ``|J(q0)| c``, over the amplitude is the caller's to form).
+        sensitivity), ``reading_bound_rad`` (per joint), ``torque_bound_nm``,
+        ``quantum_m`` (one count at the handle, ``|J(q0)|_2 c`` [m]).
     """
     from hapsim.analysis.identify_nd import felt_sensitivity_nd, worst_case_nd
     from hapsim.lockstep_nd import error_responses
@@ -292,7 +283,7 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     chk, N = res["predicted"], res["samples"]
     ulp = np.spacing(np.abs(q0).astype(np.float32)).astype(float)
     delta = rad_per_count / 2.0 + ulp
-    tmax = float(np.max(np.abs(res.get("torque_max", [0.0]))))
+    tmax = abs(float(res.get("torque_max", 0.0)))
     tbound = torque_step / 2.0 + 2.0 ** -24 * tmax
     out = {"felt_stiffness": math.inf, "felt_damping": math.inf,
            "reading_bound_rad": delta.tolist(), "torque_bound_nm": tbound,
