@@ -384,7 +384,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     scene : hapsim.scene_nd.SceneND
     res : dict
         :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
-        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound``.
+        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        ``wire``, the readings' and torques' term of a quantised device such as the
+        emulated Hapkit pantograph, :func:`hapsim.daemon.pantograph_board.wire_term`).
     lockstep : bool
         Measured in-process.
     port_info : dict, optional
@@ -396,7 +398,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     """
     from hapsim.lockstep_nd import felt_verdict
     fit, chk = res["measured"], res["predicted"]
-    v = felt_verdict(res["deviation"], res["bound"])
+    v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -414,6 +416,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"])
+    if res.get("wire") is not None:
+        d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)
 
 
