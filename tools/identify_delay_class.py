@@ -10,9 +10,11 @@ quantum 0-400 um, noise 0-5 um) is simulated independently of the product (the s
 of ``tests/test_identify_gaps.py``: exact zero-order hold from the matrix exponential, a
 binary force of 0.1 x the force limit, 4 N or 40 m N/kg) and fitted by
 :func:`hapsim.analysis.device_fit.fit_device` with the delays 0-20 tried (a protocol that
-names no applied force). Counted: the delay exact, wrong, or refused (the refusal's first
-words). ``--white`` restores the selection before issue 19 (the likelihood ratio counted on
-every sample as if independent, no refusal), for comparison. A measurement program, not a
+names no applied force). Counted: the delay returned as certain and exact, or wrong; said
+ambiguous (``delay_certain`` False; ``truth_in_range``: the true delay inside
+``delay_range``); refused (the reason). ``--white`` restores the selection before issue 19
+(the likelihood ratio counted on every sample as if independent; no delay was ever said
+uncertain: judged by the delay returned), for comparison. A measurement program, not a
 test.
 """
 
@@ -42,8 +44,8 @@ def main(argv=None) -> int:
     from hapsim.analysis import device_fit
     from hapsim.errors import IdentificationError
     if a.white:
-        device_fit._ambiguous_delays = lambda cands, best, *args: [best["delay"]]
-    rows, count = [], {"exact": 0, "wrong": 0, "refused": 0}
+        device_fit._effective_samples = lambda r, offs, lag: float(np.size(r))
+    rows, count = [], {"exact": 0, "wrong": 0, "ambiguous": 0, "refused": 0}
     for i in range(a.n):
         rng = np.random.default_rng(a.seed + i)
         m, b0, fc, d, q, s = _coarse_device(rng)
@@ -53,8 +55,12 @@ def main(argv=None) -> int:
         row = {"m": m, "b0": b0, "fc": fc, "d": d, "quantum": q, "noise": s}
         try:
             fit = device_fit.fit_device(x, f, T, max_delay=20)
-            row.update(delay=fit.delay, delay_range=list(fit.delay_range))
-            row["said"] = "exact" if fit.delay == d else "wrong"
+            row.update(delay=fit.delay, delay_range=list(fit.delay_range),
+                       truth_in_range=bool(fit.delay_range[0] <= d <= fit.delay_range[1]))
+            if fit.delay_certain or a.white:
+                row["said"] = "exact" if fit.delay == d else "wrong"
+            else:
+                row["said"] = "ambiguous"
         except (IdentificationError, ArithmeticError) as exc:
             row.update(said="refused", reason=str(exc))
         count[row["said"]] += 1

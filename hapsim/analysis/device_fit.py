@@ -26,10 +26,11 @@ model output given them is the true position, the residual is the sensor error (
 residual is chosen; every other whose likelihood ratio ``N ln(S_d / S_best)`` is below the
 chi-square quantile stays in the delay's interval, and the intervals of m, b0 and fc then
 also cover the estimates under those delays. When the delays are tried (no account of the
-applied force), the ratio is also counted on the residual's effective samples
-(:func:`_effective_samples`: a quantiser's error is correlated), and a record that then
-cannot tell two delays apart is refused, naming both (:func:`_ambiguous_delays`): a
-guessed delay in a device file is worse than none.
+applied force), ``N`` is the residual's effective samples (:func:`_effective_samples`: a
+quantiser's error is correlated, and counted as ``N`` independent samples the ratio told
+apart delays the record cannot, the best a wrong one); a record that then cannot tell two
+delays apart says so (``delay_certain`` False, the verdict naming both), or is refused
+with ``ambiguous_delay="refuse"``.
 
 *Lost STATEs.* With ``seq`` (the device's tick of each row) a gap in the ticks cuts the
 record: every stretch of consecutive ticks is fitted from states of its own, none across a
@@ -157,6 +158,9 @@ class DeviceFit:
     motion_counts : int
         Encoder steps seen on the fitted stretches (changes between neighbouring
         samples; -1: positions not on a grid).
+    delay_certain : bool
+        False when another delay fits as well (``delay_range``; the verdict names it):
+        ``delay`` is then the better fit's, not determined.
     candidates : list of dict
         ``hold``, ``delay``, ``rms`` of every model tried.
     model : ndarray
@@ -184,6 +188,7 @@ class DeviceFit:
     n_samples: int
     level: float = LEVEL
     motion_counts: int = -1
+    delay_certain: bool = True
     candidates: list = field(default_factory=list)
     model: np.ndarray = field(default=None, repr=False)
 
@@ -660,53 +665,23 @@ def _effective_samples(r, offs, lag: int) -> float:
     return float(min(max(n / max(tau, 1.0), 1.0), n))
 
 
-def _ambiguous_delays(cands, best, nu, crit, lag, q):
-    """Every delay the record cannot tell from the best's, and whether to refuse.
-
-    Another delay (under either hold) is not ruled out when its likelihood ratio is within
-    the chi-square quantile ``crit``, counted on the best residual's effective samples
-    (:func:`_effective_samples`) rather than on its ``nu`` correlated ones. When the best
-    model explains the data (:func:`_explains`: its residual is the sensor's) such a
-    rival makes the delay a guess, and a wrong delay in a device file is worse than none:
-    :class:`~hapsim.errors.IdentificationError` names the two best instead. When it does
-    not (a resonance, a nonlinearity: the residual is correlated by what the model
-    misses), the verdict says so and the delays not ruled out are returned for the
-    delay's range.
-
-    Returns
-    -------
-    list of int
-        The delays not ruled out (the best's included).
-
-    Raises
-    ------
-    IdentificationError
-        An explained record with a rival delay.
-    """
+def _best_residual(best) -> np.ndarray:
+    """The best candidate's residual on its stretches [m] (its refinement's when kept)."""
     mod = best["_mod"]
     if best.get("_ref") is not None:
-        r = best["_ref"][0] - mod.x[mod.idx]
-    else:
-        r = mod.residual(best["_res"].x)
-    n_eff = _effective_samples(r, mod.offs, lag)
-    floor = 0.5 * nu * POSITION_FLOOR ** 2
-    s_best = max(best["cost"], floor)
-    rival = [c for c in cands if c["delay"] != best["delay"]
-             and n_eff * math.log(max(c["cost"], floor) / s_best) <= crit]
-    if not rival or not _explains(r, q)[0]:
-        return [best["delay"]] + [c["delay"] for c in rival]
-    c = min(rival, key=lambda c_: c_["cost"])
+        return best["_ref"][0] - mod.x[mod.idx]
+    return mod.residual(best["_res"].x)
 
+
+def _ambiguity(best, rival, nu, n_eff, q) -> str:
+    """The sentence naming two delays a record cannot tell apart."""
     def said(c_):
         return (f"d = {c_['delay']} ({c_['hold']} hold, residual RMS "
                 f"{math.sqrt(2.0 * c_['cost'] / nu) * 1e6:.3g} um)")
     enc = f"a {q * 1e6:.3g} um encoder" if q > 0 else "the sensor's noise"
-    raise IdentificationError(
-        f"the delay is ambiguous: {said(best)} and {said(c)} explain the record alike "
-        f"(likelihood ratio within the {LEVEL:.1%} chi-square bound over {n_eff:.0f} "
-        f"effective samples of {nu}: the residual of {enc} is correlated); no delay is "
-        f"chosen -- raise --force-limit or --duration for more motion, or use a protocol "
-        f"whose device reports the force it applied")
+    return (f"the delay is ambiguous: {said(best)} and {said(rival)} explain the record "
+            f"alike (likelihood ratio within the {LEVEL:.1%} chi-square bound over "
+            f"{n_eff:.0f} effective samples of {nu}: the residual of {enc} is correlated)")
 
 
 def _hac(J, r, lag, extra=0):
@@ -840,7 +815,8 @@ def _estimate(value, sd, z, unit, floor=0.0):
 
 
 def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
-               holds=("zoh", "ideal"), lag: int = 50, applied=None, seq=None) -> DeviceFit:
+               holds=("zoh", "ideal"), lag: int = 50, applied=None, seq=None,
+               ambiguous_delay: str = "range") -> DeviceFit:
     """Identify mass, friction, Coulomb friction, delay, hold, quantum and noise.
 
     Parameters
@@ -872,6 +848,13 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         from its own initial state with the mass and frictions shared (multiple shooting),
         and without an account the force answering row ``k`` acts from tick
         ``seq[k] + d`` (:func:`applied_force`). Default: no row lost.
+    ambiguous_delay : {"range", "refuse"}
+        When the delays are searched and another delay than the best's fits the record as
+        well (the likelihood ratio, counted on the residual's effective samples, within
+        the chi-square bound): ``"range"`` returns the fit with ``delay_certain`` False,
+        ``delay_range`` holding every such delay, the intervals covering their estimates
+        and the verdict naming two of them; ``"refuse"`` raises (a model that explains
+        the data; one that does not says so in its verdict either way).
 
     Returns
     -------
@@ -884,7 +867,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     IdentificationError
         A record that cannot be identified: fewer than 200 samples, non-finite values, a
         force that never acts (all zero), too little motion, no model fitted, a fit that
-        fails numerically.
+        fails numerically; with ``ambiguous_delay="refuse"``, a delay it cannot tell.
     """
     from scipy.stats import chi2, norm
     from scipy.stats import t as student_t
@@ -905,6 +888,9 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         raise ConfigError(f"must be a positive number [s], got {period!r}", key="period")
     if isinstance(max_delay, bool) or int(max_delay) != max_delay or max_delay < 0:
         raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="max_delay")
+    if ambiguous_delay not in ("range", "refuse"):
+        raise ConfigError(f"unknown choice {ambiguous_delay!r}; valid: range, refuse",
+                          key="ambiguous_delay")
     for h in holds:
         if h not in _HOLDS:
             raise ConfigError(f"unknown hold {h!r}; valid: zoh, ideal", key="hold")
@@ -980,18 +966,29 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     nu = best["_mod"].idx.size
     crit = chi2.ppf(LEVEL, 1)
     s_best = max(best["cost"], 0.5 * nu * POSITION_FLOOR ** 2)
+    mod = best["_mod"]
+    # the likelihood ratio's samples: when the delays are searched, the residual's
+    # effective ones (a quantiser's error is correlated: counted as nu independent
+    # samples, the ratio told apart delays the record cannot, and the best was a wrong
+    # delay); from an account of the applied force (one delay, the holds alone) all
+    n_lr = float(nu) if known is not None else _effective_samples(
+        _best_residual(best), mod.offs, lag)
 
     def close(c):
-        return nu * math.log(max(c["cost"], 0.5 * nu * POSITION_FLOOR ** 2) / s_best) <= crit
+        return n_lr * math.log(max(c["cost"], 0.5 * nu * POSITION_FLOOR ** 2) / s_best) <= crit
 
-    same = [c["delay"] for c in cands if c["hold"] == best["hold"] and close(c)]
+    # every delay not ruled out, under either hold
+    same = sorted({c["delay"] for c in cands if close(c)})
     other_hold = any(c["hold"] != best["hold"] and close(c) for c in cands)
-    mod = best["_mod"]
-    if known is None:
-        # a delay the record cannot tell (its residual correlated by the quantiser): no
-        # guess (a refusal naming the two), or, when the model does not explain the data,
-        # a range that says so
-        same = sorted(set(same) | set(_ambiguous_delays(cands, best, nu, crit, lag, q.value)))
+    ambiguity = None
+    if len(same) > 1:
+        rival = min((c for c in cands if c["delay"] != best["delay"] and close(c)),
+                    key=lambda c_: c_["cost"])
+        ambiguity = _ambiguity(best, rival, nu, n_lr, q.value)
+        if ambiguous_delay == "refuse" and _explains(_best_residual(best), q.value)[0]:
+            raise IdentificationError(
+                f"{ambiguity}; no delay is chosen -- raise --force-limit or --duration for "
+                f"more motion, or use a protocol whose device reports the force it applied")
     if best.get("_ref") is not None:
         ym, p, J, n_nuis, _ = best["_ref"]
     else:
@@ -1158,13 +1155,16 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                    f"{rms * 1e6:.3g} um against the sensor's {floor * 1e6:.3g} um; the "
                    f"residual peaks near {peak:.3g} Hz (a resonance or a compliant "
                    f"transmission the mass-friction model cannot fit, or a nonlinearity)")
+    if ambiguity is not None:
+        verdict += (f"; {ambiguity}: d = {int(best['delay'])} is the better fit's, not "
+                    f"determined")
     return DeviceFit(mass=mass, friction=fric, coulomb_pos=cp, coulomb_neg=cn, coulomb=cm,
                      asymmetry=asym, delay=int(best["delay"]),
                      delay_range=(min(same), max(same)), hold=best["hold"],
                      hold_certain=not other_hold, position_resolution=q, noise=noise,
                      x0=float(x0), rms_residual=rms, explained=bool(explained),
                      verdict=verdict, residual_peak_hz=peak, period=T, n_samples=n,
-                     motion_counts=counts,
+                     motion_counts=counts, delay_certain=ambiguity is None,
                      candidates=[{"hold": c["hold"], "delay": c["delay"],
                                   "rms": math.sqrt(2 * c["cost"] / nu)} for c in cands],
                      model=xm)

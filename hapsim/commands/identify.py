@@ -52,9 +52,10 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
   data (or a safety stop / device fault), or the record cannot be identified (the reason
-  is printed: too short, the device hardly moved, two delays it cannot tell apart (a
-  protocol without force_seq on a coarse encoder: both are named, none is guessed),
-  ...), 2 bad arguments
+  is printed: too short, the device hardly moved, ...), 2 bad arguments
+delay: a framed device shows it (force_seq); for another protocol every delay up to
+  --max-delay is tried, and one that another fits as well (a coarse encoder) is not
+  stated as certain: delay_certain false, delay_range and the verdict name them
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
