@@ -75,8 +75,8 @@
 #define CYCLES_PER_US 16u
 
 /* ---------------------------------------------------------------- options */
-/* Real time: the board ends each wait for the wall clock with a spin of at most this many
- * microseconds (--spin-us; 0: sleep all the way). See the pacing in main. */
+/* Real time: the longest spin per tick waiting for the host's FORCE [us] (--spin-us; 0:
+ * never spin). See `win`. */
 #define SPIN_US_DEFAULT 0.0
 
 
@@ -250,6 +250,20 @@ static void trace(char kind, uint64_t cyc, double a, double b, double c)
     trace_buf[trace_n].c = c;
     trace_n++;
 }
+
+/* Real time, --spin-us S > 0: from an armed STATE until the host's FORCE answering it is
+ * read (or S us of wall time have passed), the board emulates in WINDOW_CHUNK steps and
+ * spins to the wall clock between them, never ahead of it. The bytes of a FORCE enter the
+ * UART at the emulated cycle the board has reached when they are read: with 100 us chunks
+ * run ahead of the wall clock and a sleep after each, that cycle is up to 100 us (on
+ * average 50 us) after the wall time the FORCE came at, taken from the host's time to
+ * answer (traced: a FORCE must reach the UART ~240 us before the tick to be applied at it).
+ * The spin costs at most S us of CPU per tick (time.spin_s). */
+#define WINDOW_CHUNK 160u /* 10 us */
+static struct {
+    int open;
+    uint64_t since; /* [ns] wall */
+} win;
 
 static double hand_force_at(uint64_t cyc)
 {
@@ -851,29 +865,46 @@ static uint64_t wall_ns(void)
     return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
 }
 
-/* Wait until the wall clock reads `target` [ns]: an absolute sleep to `target` less the
- * spin (--spin-us), then a spin to `target`. A sleep's wake-up is late by the timer's and
- * the scheduler's latency, most of all when the core sat idle (it first leaves its idle
- * state); the spin pays CPU for a wake-up on time (report "time": sleep_s, spin_s). */
-static void wait_until(uint64_t target)
+/* Wait until the wall clock reads `target` [ns], taking the host's bytes as they come: a
+ * wait on the pty (ppoll) until `target` less `spin` [ns], then a spin to `target` that
+ * checks the pty without waiting. Each frame the host writes meanwhile is read and handed
+ * to the UART at once (at the emulated cycle the board has reached), not at the end of
+ * the wait. A wake-up from a sleep is late by the timer's and the scheduler's latency, most
+ * of all when the core sat idle (it first leaves its idle state); a spin pays CPU for a
+ * wake-up on time (report "time": sleep_s, spin_s; trace: W). */
+static void wait_until(uint64_t target, uint64_t spin)
 {
-    uint64_t t0 = wall_ns(), spin = (uint64_t)(opt.spin_us * 1e3), t1, now;
-    if (target > t0 + spin) {
-        uint64_t wake = target - spin;
-        struct timespec ts = {(time_t)(wake / 1000000000u), (long)(wake % 1000000000u)};
-        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL) == EINTR &&
-               !stop_signal) {
-        }
-    }
-    t1 = wall_ns();
-    now = t1;
+    uint64_t t0 = wall_ns(), now = t0, spun = 0;
+    uint64_t spin_from = 0;
     while (now < target && !stop_signal) {
+        struct pollfd pfd = {master, POLLIN, 0};
+        int r;
+        if (target - now > spin) {
+            uint64_t left = target - spin - now;
+            struct timespec ts = {(time_t)(left / 1000000000u), (long)(left % 1000000000u)};
+            if (link_.host_present) {
+                r = ppoll(&pfd, 1, &ts, NULL);
+            } else { /* no host: the pty hangs up at once, sleep instead */
+                r = 0;
+                nanosleep(&ts, NULL);
+            }
+        } else {
+            if (!spin_from) {
+                spin_from = now;
+            }
+            r = poll(&pfd, 1, 0);
+        }
+        if (r > 0 && (pfd.revents & (POLLIN | POLLHUP))) {
+            read_host(0);     /* the host's bytes now: into the queue, and to the UART */
+            feed_uart();
+        }
         now = wall_ns();
     }
-    tm.sleep_ns += t1 - t0;
-    tm.spin_ns += now - t1;
+    spun = spin_from ? now - spin_from : 0;
+    tm.sleep_ns += now - t0 - spun;
+    tm.spin_ns += spun;
     trace('W', avr->cycle, target > t0 ? (double)(target - t0) : 0.0,
-          (double)now - (double)target, (double)(now - t1));
+          (double)now - (double)target, (double)spun);
 }
 
 int main(int argc, char **argv)
@@ -965,7 +996,7 @@ int main(int argc, char **argv)
     link_.host_present = 0;
     wall0 = wall_ns();
     while (!stop_signal) {
-        uint64_t end = avr->cycle + chunk;
+        uint64_t end = avr->cycle + (win.open ? WINDOW_CHUNK : chunk);
         if (opt.duration > 0 && (double)avr->cycle >= opt.duration * F_CPU_HZ) {
             break;
         }
@@ -999,6 +1030,15 @@ int main(int argc, char **argv)
         }
         flush_out();
         read_host(0);
+        if (link_.await_host && opt.realtime && opt.spin_us > 0) {
+            win.open = 1; /* an armed STATE is out: watch for its FORCE (see win) */
+            win.since = wall_ns();
+        }
+        if (win.open && ((link_.read_force_valid && force_answers_await()) ||
+                         link_.read_stop || !link_.host_present ||
+                         (double)(wall_ns() - win.since) > opt.spin_us * 1e3)) {
+            win.open = 0;
+        }
         if (link_.await_host && !opt.realtime) {
             /* fast mode: wait (wall time) for the host's answer to this STATE */
             uint64_t w0 = wall_ns();
@@ -1031,8 +1071,10 @@ int main(int argc, char **argv)
                 wall0 = wall_ns() - emu; /* lock from here on */
             }
             wall = wall_ns() - wall0;
-            if (emu > wall + LEAD_NS) {
-                wait_until(wall0 + emu);
+            if (win.open && emu > wall) {
+                wait_until(wall0 + emu, UINT64_MAX); /* spin: see win */
+            } else if (emu > wall + LEAD_NS) {
+                wait_until(wall0 + emu, 0);
             } else if (wall > emu + SLIP_NS) {
                 /* descheduled or too slow: slip, do not race the firmware's ticks through
                  * the lost time (a host answering in real time would be late for each) */
