@@ -116,8 +116,9 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
             self.c0 = tracemalloc.get_traced_memory()[0]
             return len(data)
 
+    from hapsim.daemon.haply2_host import SILENT_WRITES
     sc = load_scene_nd(WALL)
-    N = 60
+    N = 3 + SILENT_WRITES            # the silence ends before the loop re-arms the board
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
     link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
     eng = EngineND(sc)

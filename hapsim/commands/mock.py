@@ -75,6 +75,9 @@ def register(sub) -> None:
             "  answers (the emulated clock waits for each FORCE); on exit it writes --report\n"
             "  (JSON: MCU cycles per tick, force on the pin, frames) or prints it\n"
             "  $ hapsim mock --firmware --scene configs/hapkit.yaml\n"
+            "  on a 2-D pantograph scene, --firmware --lockstep runs the Hapkit pantograph's\n"
+            "  firmware on two emulated ATmega328P joined on a TWI bus (docs/pantograph.md)\n"
+            "  $ hapsim mock --firmware --scene configs/pantograph_wall.yaml --lockstep\n"
             "exit codes: 0 stopped by a signal (or, with --once, by STOP); 1 the firmware\n"
             "stopped or could not be built; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -46,6 +46,24 @@ class AlignedDecoder:
         frames are returned and counted in ``stats["frames"]``."""
         return True
 
+    def clear(self) -> None:
+        """Drop the bytes held (the start of a frame not complete yet): a re-arming
+        drains the link, and what came before it is no part of what follows."""
+        del self._buf[:]
+
+    def reset_prediction(self, jumps: int = 1) -> None:
+        """Forget what earlier frames say the next one should be (a decoder that checks
+        a frame against its predecessors does; by default nothing): called at each
+        arming, after which the device's values start afresh.
+
+        Parameters
+        ----------
+        jumps : int
+            Frames to come that may each jump from the one before (an arming whose bytes
+            are answered twice: a write before the set-up, at the old value, and one
+            after it, at the new).
+        """
+
     def feed(self, data: bytes) -> list:
         """Bytes in, the values of the frames taken out."""
         buf = self._buf
@@ -88,6 +106,12 @@ class MappedDecoder:
         pos = self._position
         return [pos(fr) for fr in self.frames.feed(data)]
 
+    def reset_prediction(self, jumps: int = 1) -> None:
+        """The frame decoder's :meth:`AlignedDecoder.reset_prediction` (if it has one)."""
+        reset = getattr(self.frames, "reset_prediction", None)
+        if reset is not None:
+            reset(jumps)
+
 
 class Driver:
     """Base class of the drivers: serial settings, units and codec of one device.
@@ -115,7 +139,7 @@ class Driver:
     position_rel, force_rel : float
         Largest relative rounding of the position / force fields on the wire (``2^-24``
         for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
-        (:func:`hapsim.daemon.runner.identify_run`).
+        (:func:`hapsim.daemon.measure.identify_run`).
     """
 
     name = ""
