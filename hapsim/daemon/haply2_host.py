@@ -236,6 +236,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     # packed into a reused buffer
     fwd = kin.forward_at
     jac = kin.jacobian_at
+    feed_into = dec.feed_into
+    joints_of = driver.joints_of
+    frames = [None] * 8                             # the decoder's frames, reused
+    nr = xr.shape[0]
 
     def take(data):
         nonlocal got, replies, seen
@@ -243,19 +247,22 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             return
         st = dec.stats
         d0 = st["damaged"]
-        reps = dec.feed(data)
+        m = feed_into(data, frames)
         # a damaged reply (bytes lost or corrupted on the way back) was a write's
         # answer: the replies after it answer the writes after that one
         got += st["damaged"] - d0
-        for rep in reps:
-            if got < xr.shape[0]:
-                q1, q2 = driver.joints_of(rep)
+        j = 0
+        while j < m:                                # (no iterator: no allocation)
+            rep = frames[j]
+            if got < nr:
+                q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
                 qr[got, 1] = q2
                 xr[got, 0], xr[got, 1] = fwd(q1, q2)
                 seen = got
             got += 1
             replies += 1
+            j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
 
