@@ -74,22 +74,49 @@ def build(*, quiet: bool = True) -> dict:
     DeviceError
         A tool is missing (:func:`missing_tools`) or make failed (its output attached).
     """
+    output = make("the emulated Hapkit board",
+                  ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")), quiet=quiet)
+    return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
+            "output": output}
+
+
+def make(what: str, steps, *, quiet: bool = True) -> str:
+    """Run ``make -C DIR TARGET`` for each step, under the firmware tree's build lock
+    (one builder at a time: the second waits, then finds everything up to date).
+
+    Parameters
+    ----------
+    what : str
+        What is built, for the error (``"the emulated Hapkit board"``).
+    steps : iterable of (path-like, str)
+        ``(directory, target)`` in order.
+    quiet : bool
+        Capture make's output instead of printing it.
+
+    Returns
+    -------
+    str
+        make's output, every step's.
+
+    Raises
+    ------
+    DeviceError
+        A tool is missing (:func:`missing_tools`) or a make failed (its output attached).
+    """
     why = missing_tools()
     if why:
-        raise DeviceError(f"cannot build the emulated Hapkit board: {why}")
+        raise DeviceError(f"cannot build {what}: {why}")
     out = []
     with open(BUILD_LOCK, "a") as lock:
-        # the second builder waits here, then finds everything up to date
         fcntl.flock(lock, fcntl.LOCK_EX)
-        for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")):
+        for d, target in steps:
             r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
             out.append(r.stdout + r.stderr)
             if r.returncode != 0:
                 raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
             if not quiet:
                 print(out[-1], end="", flush=True)
-    return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
-            "output": "".join(out)}
+    return "".join(out)
 
 
 def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,
