@@ -21,6 +21,31 @@ TICKS = ("auto", "python")
 _NOT_OPTIONS = frozenset({"func", "command"})
 
 
+def _parser_defaults() -> dict:
+    """Each ``hapsim mock`` option's default (its ``argparse`` destination -> default):
+    an option at its default was not given."""
+    import argparse
+
+    from hapsim.commands import mock
+    sub = argparse.ArgumentParser().add_subparsers()
+    mock.register(sub)
+    return {a.dest: a.default for a in sub.choices["mock"]._actions}
+
+
+def _given(args, takes) -> list:
+    """The ``(flag, value)`` of every option given (not None, not False, not its default)
+    that is not in ``takes``, sorted by destination."""
+    defaults = _parser_defaults()
+    out = []
+    for dest, value in sorted(vars(args).items()):
+        if dest in takes or dest in _NOT_OPTIONS or value is None or value is False:
+            continue
+        if dest in defaults and value == defaults[dest]:
+            continue
+        out.append(("--" + dest.replace("_", "-"), value))
+    return out
+
+
 def refuse_untaken(args) -> None:
     """Refuse every ``hapsim mock`` option given that a 2-D or 3-D scene's mock does not
     take (it would be silently ignored otherwise).
@@ -33,13 +58,11 @@ def refuse_untaken(args) -> None:
     Raises
     ------
     ConfigError
-        Naming the first such option and the ones the n-D mock takes (exit 2).
+        Naming the first such option and the ones the n-D mock takes (exit 2). An option
+        at its parser default counts as not given.
     """
     takes = ", ".join("--" + d.replace("_", "-") for d in sorted(TAKES))
-    for dest, value in sorted(vars(args).items()):
-        if dest in TAKES or dest in _NOT_OPTIONS or value is None or value is False:
-            continue
-        opt = "--" + dest.replace("_", "-")
+    for opt, _ in _given(args, TAKES):
         raise ConfigError(f"a 2-D or 3-D scene's mock does not take {opt} (it takes "
                           f"{takes})", key=opt)
     tick = getattr(args, "tick", "auto")
@@ -136,6 +159,29 @@ _FIRMWARE_DEFAULTS = {"tick": "auto", "rt_priority": 0}
 FIRMWARE_AMPLITUDE = 2e-4
 
 
+def refuse_untaken_firmware(args) -> None:
+    """Refuse every ``hapsim mock`` option given that the emulated Hapkit pantograph does
+    not take (:data:`FIRMWARE_TAKES`; ``--rt-priority`` only at 0, what ``hapsim mock``
+    sets in lockstep).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+
+    Raises
+    ------
+    ConfigError
+        Naming the first such option and the ones it takes (exit 2).
+    """
+    for opt, value in _given(args, FIRMWARE_TAKES):
+        dest = opt[2:].replace("-", "_")
+        if dest in _FIRMWARE_DEFAULTS and value == _FIRMWARE_DEFAULTS[dest]:
+            continue
+        raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
+                          f"not take {opt} (it takes --scene, --lockstep, --amplitude, "
+                          "--report, --link)", key=opt)
+
+
 def run_pantograph_firmware(args) -> int:
     """``hapsim mock --firmware --scene SCENE --lockstep`` on a 2-D pantograph scene: build
     what is missing and become the emulated Hapkit pantograph
@@ -163,15 +209,7 @@ def run_pantograph_firmware(args) -> int:
     from hapsim.daemon import pantograph_board as pb
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
-    for dest, value in sorted(vars(args).items()):
-        if dest in FIRMWARE_TAKES or dest in _NOT_OPTIONS or value is None or value is False:
-            continue
-        if dest in _FIRMWARE_DEFAULTS and value == _FIRMWARE_DEFAULTS[dest]:
-            continue
-        opt = "--" + dest.replace("_", "-")
-        raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
-                          f"not take {opt} (it takes --scene, --lockstep, --amplitude, "
-                          "--report, --link)", key=opt)
+    refuse_untaken_firmware(args)
     if not args.lockstep:
         raise ConfigError("the emulated Hapkit pantograph runs in lockstep only (its real-time "
                           "mode is not built): add --lockstep", key="--lockstep")
