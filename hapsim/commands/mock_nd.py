@@ -18,29 +18,18 @@ TAKES = frozenset({"scene", "lockstep", "rate", "report", "rt_priority", "once",
 #: ``--tick`` values it takes: its real-time ticks are Python's ("auto" picks them).
 TICKS = ("auto", "python")
 #: Destinations that are no option of ``hapsim mock`` (the CLI's own).
-_NOT_OPTIONS = frozenset({"func", "command"})
-
-
-def _parser_defaults() -> dict:
-    """Each ``hapsim mock`` option's default (its ``argparse`` destination -> default):
-    an option at its default was not given."""
-    import argparse
-
-    from hapsim.commands import mock
-    sub = argparse.ArgumentParser().add_subparsers()
-    mock.register(sub)
-    return {a.dest: a.default for a in sub.choices["mock"]._actions}
+_NOT_OPTIONS = frozenset({"func", "command", "option_default"})
 
 
 def _given(args, takes) -> list:
     """The ``(flag, value)`` of every option given (not None, not False, not its default)
     that is not in ``takes``, sorted by destination."""
-    defaults = _parser_defaults()
+    default = getattr(args, "option_default", None)   # argparse's get_default of mock
     out = []
     for dest, value in sorted(vars(args).items()):
         if dest in takes or dest in _NOT_OPTIONS or value is None or value is False:
             continue
-        if dest in defaults and value == defaults[dest]:
+        if default is not None and value == default(dest):
             continue
         out.append(("--" + dest.replace("_", "-"), value))
     return out
