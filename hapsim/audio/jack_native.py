@@ -36,6 +36,16 @@ from numba import types
 from numba.extending import intrinsic
 
 from hapsim.kernels import audio as audio_kernel
+from hapsim.kernels.sources import cache_ok
+
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`): the
+#: multi-rate kernel and the engine helpers it inlines.
+COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py")
+#: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
+#: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
+COMPILED_SOURCES_SHA256 = "bc3e7887a6c8a63ae659703adabcceea2689faa2e8274c9b20fe9e618e01db7d"
+#: Whether numba's disk cache may serve this module's compiled code.
+CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
 __all__ = ["NativeProcess", "native_available", "client_rt_priority", "process", "process_ring",
            "MAX_CHANNELS", "CTX", "LOG_MAX"]
@@ -94,17 +104,17 @@ _get_buffer = types.ExternalFunction("jack_port_get_buffer",
                                      types.voidptr(types.voidptr, types.uint32))
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _f8(c, i):
     return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.float64)
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _i8(c, i):
     return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _to_ports(c, nframes, audio, silence):
     """Write ``audio[:nframes]`` (or silence) to each channel's JACK port buffer."""
     n = np.int64(nframes)
@@ -114,7 +124,7 @@ def _to_ports(c, nframes, audio, silence):
             out[r] = 0.0 if silence else audio[r, ch]
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _enter(arg, nframes):
     """A callback's start: the context, the block as an int, the frames buffer, and
     whether the block fits it (if not: silence written and counted, nothing else to do)."""
@@ -129,7 +139,7 @@ def _enter(arg, nframes):
     return c, n, audio, True
 
 
-@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process(nframes, arg):
     """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
     c, n, audio, fits = _enter(arg, nframes)
@@ -151,7 +161,7 @@ def process(nframes, arg):
     return 0
 
 
-@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process_ring(nframes, arg):
     """The JACK process callback over a :class:`~hapsim.audio.live.FrameRing` (``hapsim run
     --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel."""
