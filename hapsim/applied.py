@@ -8,7 +8,7 @@ that tick on (``firmware_protocol/PROTOCOL.md`` §1, §4), so the host knows the
 over every period and the delay the device really has, ``seq - force_seq``. With that
 account, a record with late ticks is a linear time-invariant loop driven by a known input:
 the force the device applied, i.e. the force computed plus the known disturbance
-``applied - computed`` (:func:`hapsim.analysis.identify.disturbance_response`).
+``applied - computed`` (:func:`hapsim.analysis.error_response.disturbance_response`).
 
 Two sources give the account:
 

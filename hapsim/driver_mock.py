@@ -110,31 +110,47 @@ class _Actuated:
 
 class FireFaderDevice(_Actuated):
     """A FireFader whose fader A is the mock device's moving mass, running the published
-    firmware's loop (``haptics_firmware.ino``, E. Berdahl 2010-2012), or its older
-    ``.pde``.
+    firmware's loop (``Hardware/FireFader/Firmware/haptics_firmware/haptics_firmware.ino``
+    of eberdahl/Open-Source-Haptics-For-Artists, commit 6bbe9cd, E. Berdahl 2010-2013), an
+    older copy of it, or the older ``.pde``.
 
-    ``.ino`` (the default): the board waits for a packet ``[127][fA][fB]``; it reads
-    every packet waiting and keeps the last, sets the motor to ``(2 fA (e - 1)) >> 7`` of
-    the PWM's 254 (``e`` the force-enable filter, at most 129, where the force is the
-    packet's in full), samples the fader and answers with one record; then it updates the
-    motor's heat estimate ``h <- (16383 h >> 14) + (pwm >> 5)`` and the enable filter
-    ``e <- (31 e >> 5) + 5 [4 < pot < 251 and h >> 10 < 40 and touch > 30]``: from power-on
-    (or after about 0.1 s without a byte: the firmware's 65000 idle polls, which also zero
-    the motor) the force ramps up over 66 passes, and only while the fader is in range,
-    cool and touched (capacitive sensing, filtered ``c <- (7 c >> 3) + sense``).
+    ``.ino`` (the default): the board hunts for a 127, takes the next two bytes as the
+    forces of faders A and B *whatever they are* (a 127 or a -128 included), and runs a pass
+    once no byte is waiting (``loop``, lines 283-315): packets that waited are merged, the
+    last counts. The pass sets the motor to ``2 fA`` of the PWM's 254, or 0 while the
+    force-enable filter ``e`` is below 20 (``setPWM``, lines 188-216), samples the fader,
+    answers with one record, then updates the motor's heat estimate ``h <- (16383 h >> 14)
+    + (pwm >> 5)`` (signed, lines 366-368) and the enable ``e <- (31 e >> 5) + 5 [4 < pot <
+    251 and h >> 10 < 40 and touch > 30]`` (lines 380-382; touch filtered ``c <- (7 c >> 3)
+    + sense``, lines 227-255): from power-on, or after about 0.1 s without a byte (65000
+    idle polls, lines 264-277, which also zero the motor), the force is off for 5 passes
+    (:func:`hapsim.drivers.firefader.pass_pwm`, :func:`~hapsim.drivers.firefader.enable_step`).
+    ``.ino-scaled``: the copy in ``haptics_firmware_old_lesssensitive_capsensing_level``,
+    whose ``setPWM`` scales by ``(e - 1) / 128`` (line 204) instead of gating.
     ``.pde``: no enable, no heat, no silence rule: each force byte is applied as it
     arrives, and records stream out on every pass whether asked or not.
+
+    Time: the physics advances one period per host write (one host tick: the host's time,
+    which goes on whether the firmware runs a pass or not); a write that ends in no pass
+    (its start byte lost, a packet waiting for a byte) holds the motor's PWM over its
+    period. A value byte lost makes the firmware take the next packet's 127 as fader B's
+    force and swallow that packet's forces (the pass applies fader A's byte of the damaged
+    packet: the other fader's, 0, when a is lost; a, when b is).
+
+    End stops: with ``travel`` the fader's position is held within
+    ``[stop_low, stop_low + travel]`` (an inelastic stop: the velocity is zeroed there);
+    the pot reads ``CENTRE + x / metres_per_count`` clipped to 0..254.
 
     Parameters
     ----------
     device, rate_hz, excitation, seed
         As :class:`_Actuated`.
     full_scale : float
-        Force at 127 counts with the enable full [N] (the hardware's: the host may believe
+        Force at 127 counts with the enable on [N] (the hardware's: the host may believe
         another).
     metres_per_count : float
         The fader's position per pot count [m] (the hardware's).
-    firmware : {"ino", "pde"}
+    firmware : {"ino", "ino-scaled", "pde"}
     touch : bool
         A hand on the fader (capacitive sense 10 per pass, else 1).
     boot_s : float
@@ -145,28 +161,45 @@ class FireFaderDevice(_Actuated):
         the pass's reads (:data:`hapsim.drivers.firefader.PASS_READS_S`) and the 7-byte
         record's wire time at 57600 baud, 2.99 ms (packets that come meanwhile wait and
         are merged into the next pass); False: at once.
+    travel : float, optional
+        The travel between the end stops [m] (None: no stops).
+    stop_low : float, optional
+        The low end stop's position [m] (default ``-travel / 2``).
 
     Attributes
     ----------
     decoder : PacketDecoder
-        Its counters are the device's view of bad bytes.
+        Its counters are the device's view of bad bytes (the ``.pde``'s parser; the
+        ``.ino``'s counts ``frames`` and the ``skipped`` bytes it hunted over).
     enable, heat, cap : int
         The firmware's filter states.
+    host_ticks : int
+        Host writes seen (each one period).
     """
 
     def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 0.39,
                  metres_per_count: float | None = None, firmware: str = "ino",
                  touch: bool = True, boot_s: float = 0.0, pass_time: bool = True,
+                 travel: float | None = None, stop_low: float | None = None,
                  seed: int = 0) -> None:
         from hapsim.drivers import firefader as ff
+        from hapsim.errors import ConfigError
+        if firmware not in ("ino", "ino-scaled", "pde"):
+            raise ConfigError(f"unknown FireFader firmware {firmware!r}; valid: ino, "
+                              "ino-scaled, pde", key="firmware")
         self._ff = ff
-        if pass_time and firmware == "ino":
+        if pass_time and firmware != "pde":
             self.reply_delay_s = (3 + 7) * 10 / 57600 + ff.PASS_READS_S
         self.full_scale = float(full_scale)
         self.mpc = float(metres_per_count or ff.METRES_PER_COUNT)
         self.firmware = firmware
         self.touch = bool(touch)
         self.boot_s = float(boot_s)
+        if travel is not None and not (math.isfinite(travel) and travel > 0):
+            raise ConfigError(f"must be a positive length [m], got {travel!r}", key="travel")
+        self.stops = (None if travel is None else
+                      (float(-travel / 2 if stop_low is None else stop_low),
+                       float((-travel / 2 if stop_low is None else stop_low) + travel)))
         super().__init__(device, rate_hz, excitation, math.inf, seed)
         self.decoder = ff.PacketDecoder()
         self.enable = 0
@@ -176,6 +209,11 @@ class FireFaderDevice(_Actuated):
         self.merged = 0
         self.pwm = 0
         self.enables: list = []
+        self.host_ticks = 0
+        self._state = 0                       # 0 hunting a 127, 1 byte A next, 2 byte B
+        self._fa = self._fb = 0
+        self._ready = None                    # a packet read, its pass not run yet
+        self._owed = 0                        # host ticks not yet advanced
 
     def position_count(self) -> int:
         """Fader A's reading: the sampled position in counts from the centre, 0..254."""
@@ -186,24 +224,34 @@ class FireFaderDevice(_Actuated):
     def _force(self, pwm: int) -> float:
         return pwm / 254.0 * self.full_scale
 
-    def _pass(self, count_a: int, packets: int) -> bytes:
-        """One pass of the firmware's loop for the last of ``packets`` packets."""
+    def _advance(self, force) -> None:
+        """One period (:meth:`_Actuated.apply`), the end stops enforced."""
+        self.apply(force)
+        if self.stops is not None:
+            ph = self.physics
+            lo, hi = self.stops
+            if ph.x <= lo or ph.x >= hi:
+                ph.x = min(max(ph.x, lo), hi)
+                ph.v = 0.0
+
+    def _pass(self, count_a: int, ticks: int) -> bytes:
+        """One pass of the firmware's loop for a packet whose force byte A is ``count_a``
+        (signed), over ``ticks`` host periods (the ones before its last held)."""
         ff = self._ff
-        if self.firmware == "ino":
-            self.pwm = (2 * count_a * (self.enable - 1)) >> 7
-        else:
+        if self.firmware == "pde":
             self.pwm = 2 * count_a
+        else:
+            self.pwm = ff.pass_pwm(count_a, self.enable, self.firmware == "ino-scaled")
         f = self._force(self.pwm)
-        for _ in range(packets - 1):          # host ticks merged into this pass
-            self.apply(None)
-        self.apply(f)
+        for _ in range(ticks - 1):            # host ticks merged into this pass
+            self._advance(None)
+        self._advance(f)
         pot = self.position_count()
         self.enables.append(self.enable)
-        if self.firmware == "ino":
+        if self.firmware != "pde":
             self.cap = ((self.cap * 7) >> 3) + (10 if self.touch else 1)
-            self.heat = ((self.heat * 16383) >> 14) + (self.pwm >> 5)
-            ok = 4 < pot < 251 and (self.heat >> 10) < 40 and self.cap > 30
-            self.enable = ((self.enable * 31) >> 5) + 5 * ok
+            self.enable, self.heat = ff.enable_step(self.enable, self.heat, self.pwm, pot,
+                                                    self.cap > 30)
             cap = min(self.cap, 254)
         else:
             cap = 0
@@ -214,28 +262,97 @@ class FireFaderDevice(_Actuated):
         """One packet: one pass of the firmware, one record."""
         return self._pass(count_a, 1)
 
-    def feed(self, data: bytes, now: float = math.inf) -> bytes:
+    def _parse(self, b: int):
+        """The ``.ino``'s reading of one byte: a completed packet ``(fA, fB)`` (signed) or
+        None."""
+        if self._state == 0:
+            if b == 127:
+                self._state = 1
+            else:
+                self.decoder.stats["skipped"] += 1
+            return None
+        v = b - 256 if b > 127 else b
+        if self._state == 1:
+            self._fa, self._state = v, 2
+            return None
+        self._state = 0
+        self.decoder.stats["frames"] += 1
+        return (self._fa, v)
+
+    @staticmethod
+    def host_writes(data: bytes) -> list:
+        """The host's bytes of one read as its writes: a new one at each 127 (no force
+        byte the host sends is 127); bytes before the first 127 continue a write already
+        counted (the first element, possibly empty)."""
+        out = [bytearray()]
+        for b in data:
+            if b == 127:
+                out.append(bytearray())
+            out[-1].append(b)
+        return [bytes(w) for w in out]
+
+    def feed(self, data: bytes, now: float = math.inf, writes=None) -> bytes:
         """Bytes from the host in (at ``now`` [s] since the port opened), the records out.
-        ``.ino``: the packets of one read are what waited: one pass for the last."""
+
+        Parameters
+        ----------
+        data : bytes
+            What one read got (after the link's faults).
+        now : float
+            [s] since the port opened (the bootloader drops what comes before ``boot_s``).
+        writes : list of bytes, optional
+            ``data`` split into the host's writes as they came off the link (each after
+            its faults; the first continues an earlier write, possibly empty): each
+            write but the first is one host tick. Default: :meth:`host_writes` of
+            ``data`` (exact for a clean link).
+
+        Returns
+        -------
+        bytes
+            The records of the passes run (``.ino``: at most one per read, after the last
+            write: the bytes of a write still on the wire are not yet waiting, those of
+            the later writes of one read are, and make the loop read on).
+        """
         if now < self.boot_s:
             return b""                        # the bootloader has them
-        pk = self.decoder.feed(data)
-        if not pk:
-            return b""
         if self.firmware == "pde":
+            pk = self.decoder.feed(data)
+            if not pk:
+                return b""
             self.last_count = pk[-1][0]
             for _ in pk:
                 self.apply(None)
             return b""
-        self.merged += len(pk) - 1
-        return self._pass(pk[-1][0], len(pk))
+        if writes is None:
+            writes = self.host_writes(data)
+        ticks = len(writes) - 1
+        self.host_ticks += ticks
+        self._owed += ticks
+        done = None
+        last = len(writes) - 1
+        for i, w in enumerate(writes):
+            for b in w:
+                pk = self._parse(b)
+                if pk is None:
+                    continue
+                if self._ready is not None:
+                    self.merged += 1
+                self._ready = pk
+                if i == last and done is None:
+                    done = pk                 # nothing waits: the loop ends, a pass runs
+                    self._ready = None
+        if done is None:
+            return b""                        # no pass: the motor holds its PWM (the
+            #                                   periods are advanced at the next pass)
+        n, self._owed = max(self._owed, 1), 0
+        return self._pass(done[0], n)
 
     def idle(self, silent_s: float) -> bytes:
         """The host has been silent for ``silent_s`` [s]: ``.ino`` disables the force after
         0.1 s; ``.pde`` streams a record (one pass) on every call."""
         if self.firmware == "pde":
             return self._pass(getattr(self, "last_count", 0), 1)
-        if silent_s > 0.1 and self.enable:
+        if silent_s > 0.1 and (self.enable or self.pwm):
             self.enable = 0
             self.pwm = 0
             self.apply_now(0.0)
@@ -484,7 +601,14 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
             now = time.monotonic()
             last = now
-            got = dev.feed(fl.rx(data), now - t0)
+            split = getattr(dev, "host_writes", None)
+            if split is not None and not streams:
+                # the link's faults per host write: a write is one host tick whatever the
+                # faults leave of it (the device's time goes on)
+                ws = [fl.rx(w) for w in split(data)]
+                got = dev.feed(b"".join(ws), now - t0, writes=ws)
+            else:
+                got = dev.feed(fl.rx(data), now - t0)
             if got and dev.reply_delay_s > 0:
                 # the device's pass and its answer's wire time (the host's bytes that come
                 # meanwhile wait for the next pass)
@@ -500,7 +624,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
     n = dev.commands()
     extra = {}
-    for k in ("merged", "passes", "firmware"):
+    for k in ("merged", "passes", "firmware", "host_ticks"):
         if hasattr(dev, k):
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):

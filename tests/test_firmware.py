@@ -295,13 +295,13 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     """``hapsim run configs/hapkit.yaml --port <emulated board>``: the felt (k, b) of the
     free response logged through the firmware's UART equal the THS prediction (m, b0 of the
     board, delay 1, zero-order hold) within the bound the ADC and PWM quantisation allow
-    (:func:`hapsim.analysis.identify.quantisation_bound`: describing-function gains of the two
+    (:func:`hapsim.analysis.quantisation.quantisation_bound`: describing-function gains of the two
     quantisers over the window's amplitudes through the THS map, plus 4 standard
     deviations of the quantisation noise through the fit). No tick is late. The report's
     own measurement (:func:`hapsim.analysis.identify.measure_felt`, the position step from
     HELLO) agrees with the prediction within its stated interval."""
     _require()
-    from hapsim.analysis import identify
+    from hapsim.analysis import identify, quantisation
     from hapsim.analysis.loop import LoopModel
     from hapsim.daemon import board
     from hapsim.daemon.telemetry import load
@@ -337,7 +337,7 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
                      delay=dev.delay, hold=dev.hold)
     link = scene.links[0]
     qx, qf = _scales()
-    bound = identify.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
+    bound = quantisation.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
                                      window / RATE, qx, qf, window)
     meas = identify.fit_free_response(x, 1.0 / RATE, dev.mass, bound["k"], bound["b"])
     print(f"predicted k {bound['k']:.3f} b {bound['b']:.5f}; measured k {meas['k']:.3f} "
@@ -362,9 +362,9 @@ def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
     "Compact frames"), which every STATE shows (no tick late against delay 2); the felt
     (k, b) of the free response, fitted here and in the run's report, equal the THS
     prediction at delay 2 within the bound the ADC and PWM quantisation allow
-    (:func:`hapsim.analysis.identify.quantisation_bound`), as at 1 kHz."""
+    (:func:`hapsim.analysis.quantisation.quantisation_bound`), as at 1 kHz."""
     _require()
-    from hapsim.analysis import identify
+    from hapsim.analysis import identify, quantisation
     from hapsim.analysis.loop import LoopModel
     from hapsim.daemon import board
     from hapsim.daemon.telemetry import load
@@ -402,7 +402,7 @@ def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
                      hold=dev.hold)
     link = scene.links[0]
     qx, qf = _scales()
-    bound = identify.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
+    bound = quantisation.quantisation_bound(loop, link.stiffness, link.damping, scene.excitation.x0,
                                         window / rate, qx, qf, window)
     meas = identify.fit_free_response(x, 1.0 / rate, dev.mass, bound["k"], bound["b"])
     print(f"4 kHz: predicted k {bound['k']:.3f} b {bound['b']:.5f}; measured k "

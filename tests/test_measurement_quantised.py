@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from hapsim.analysis.identify import sensor_error_response
+from hapsim.analysis.error_response import sensor_error_response
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.measurement import identify, late_accounted
 from hapsim.analysis.prediction import predict, predicted_poles

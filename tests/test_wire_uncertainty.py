@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from hapsim.analysis.identify import force_error_response
+from hapsim.analysis.error_response import force_error_response
 from hapsim.drivers import get_driver
 from hapsim.scene import load_scene
 

@@ -129,7 +129,7 @@ def _near_limit_record(seed, n_late_max=5):
     limit (either side), with late ticks whose accounted forces are wrong by a random
     share (up to all) of their known disturbance ``|w|`` (1-10 % of the wall's force)."""
     import numpy as np
-    from hapsim.analysis.identify import disturbance_response, force_error_response
+    from hapsim.analysis.error_response import disturbance_response, force_error_response
     from hapsim.analysis.prediction import predicted_poles
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene

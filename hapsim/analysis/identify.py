@@ -37,10 +37,7 @@ from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, render
 from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "measure_felt", "sensor_sd",
-           "fit_free_response", "quantiser_gain", "quantiser_gain_bound",
-           "quantisation_bound", "sensor_error_response", "disturbance_response",
-           "force_error_response",
-           "RANK_TOL"]
+           "fit_free_response", "pair_noise_sensitivity", "RANK_TOL"]
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
 #: the model order is cut to the numerical rank (Sarkar & Pereira, "Using the matrix pencil
@@ -733,6 +730,39 @@ def _kb_gradients(spec, fi, i, *, mass, period):
     return g_k, g_b
 
 
+def pair_noise_sensitivity(y, period: float, mass: float, sigma: float,
+                           omega: float) -> tuple[float, float]:
+    """Standard deviations of the felt (k, b) that :func:`measure_felt`'s least-squares fit
+    of one damped pair plus an offset gives per unit of white observation noise.
+
+    The fit's covariance is ``s^2 (Jt^T Jt)^-1`` over the pair's nonlinear parameters
+    ``(a, w) = (sigma T, omega T)``, the linear ones (amplitudes, offset) projected out
+    (Golub & Pereyra, SIAM J. Numer. Anal. 10(2), 1973); ``k = m (sigma^2 + omega^2)`` and
+    ``b = 2 m sigma`` (docs/design.md, 'The inverse map') carry it to first order.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n,)
+        The noise-free record the fit sees [m] (its amplitudes set the Jacobian).
+    period : float
+        Sample period T [s].
+    mass : float
+        m [kg].
+    sigma, omega : float
+        The pair's decay rate [1/s] and angular frequency [rad/s].
+
+    Returns
+    -------
+    (float, float)
+        ``(sd_k, sd_b)`` per metre of noise standard deviation [N/m per m], [N s/m per m].
+    """
+    spec = [["pair", sigma * period, omega * period]]
+    _, (white, _), _ = _covariance(spec, np.asarray(y, float), True)
+    g_k, g_b = _kb_gradients(spec, 0, 0, mass=mass, period=period)
+    return (float(np.sqrt(max(g_k @ white @ g_k, 0.0))),
+            float(np.sqrt(max(g_b @ white @ g_b, 0.0))))
+
+
 def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
             step=0.0, lens=None):
     """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]`` (over the
@@ -790,153 +820,6 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
     return out
 
 
-# ------------------------------------------------------------------ the quantisation bound
-
-
-def quantiser_gain(a: float) -> float:
-    """Describing function of a mid-tread (round-to-nearest) quantiser of unit step.
-
-    For an input ``a sin(wt)`` the first harmonic of the output is ``N(a) a sin(wt)`` with
-    ``N(a) = 4 / (pi a) * sum_{i=1..n} sqrt(1 - ((2 i - 1) / (2 a))^2)``,
-    ``n = floor(a + 1/2)`` (0 below half a step): Gelb & Vander Velde, *Multiple-Input
-    Describing Functions and Nonlinear System Design* (1968), the quantiser entry of their
-    table of describing functions.
-
-    Parameters
-    ----------
-    a : float
-        Input amplitude in quantiser steps, >= 0.
-
-    Returns
-    -------
-    float
-        N(a), -> 1 as a grows.
-    """
-    n = int(math.floor(a + 0.5))
-    if n <= 0:
-        return 0.0
-    s = 0.0
-    for i in range(1, n + 1):
-        u = (2 * i - 1) / (2.0 * a)
-        s += math.sqrt(max(0.0, 1.0 - u * u))
-    return 4.0 / (math.pi * a) * s
-
-
-def _max_gain_error(lo: float, hi: float, points: int = 4000) -> float:
-    """max |N(a) - 1| over amplitudes a in [lo, hi] steps (dense grid)."""
-    return max(abs(quantiser_gain(float(a)) - 1.0) for a in np.linspace(lo, hi, points))
-
-
-def quantiser_gain_bound(loop, K: float, B: float, a_max: float, a_min: float, q_x: float,
-                         q_f: float = 0.0) -> dict:
-    """How far the quantisers' loop gain may move the felt (k, b): part 1 of
-    :func:`quantisation_bound`.
-
-    The position quantiser (step ``q_x``) passes an oscillation of amplitude A with the
-    describing-function gain N(A / q_x), the force quantiser (step ``q_f``, 0: none) the
-    force's with N(K A / q_f) (:func:`quantiser_gain`; Gelb & Vander Velde 1968); over the
-    amplitudes ``[a_min, a_max]`` of a record the virtual (K, B) act within
-    ``(1 +- eps)``, ``eps = (1 + d_x)(1 + d_f) - 1``, ``d`` the largest ``|N - 1|``, and
-    the felt (k, b) within the THS map (:func:`hapsim.analysis.ths.render`) of the four
-    corners.
-
-    Parameters
-    ----------
-    loop : hapsim.analysis.loop.LoopModel
-        The device side of the THS.
-    K, B : float
-        Virtual stiffness [N/m] and damping [N s/m].
-    a_max, a_min : float
-        Largest and smallest oscillation amplitude of the record [m].
-    q_x, q_f : float
-        Position step [m] and force step [N] (0: that quantiser is absent).
-
-    Returns
-    -------
-    dict
-        ``dk`` [N/m], ``db`` [N s/m], ``eps``, ``d_x``, ``d_f``.
-    """
-    from hapsim.analysis.ths import render
-
-    pred = render(loop, K, B)
-    d_x = _max_gain_error(a_min / q_x, a_max / q_x) if q_x > 0 else 0.0
-    d_f = _max_gain_error(K * a_min / q_f, K * a_max / q_f) if q_f > 0 else 0.0
-    eps = (1.0 + d_x) * (1.0 + d_f) - 1.0
-    if eps == 0.0:
-        return {"dk": 0.0, "db": 0.0, "eps": 0.0, "d_x": d_x, "d_f": d_f}
-    corners = [render(loop, K * (1 + u), B * (1 + v)) for u in (-eps, eps) for v in (-eps, eps)]
-    return {"dk": max(abs(c.k - pred.k) for c in corners),
-            "db": max(abs(c.b - pred.b) for c in corners), "eps": eps, "d_x": d_x, "d_f": d_f}
-
-
-def quantisation_bound(loop, K: float, B: float, x0: float, t_fit: float, q_x: float,
-                       q_f: float, n_samples: int, sigmas: float = 4.0) -> dict:
-    """How far the ADC and PWM quantisation may move the felt (k, b) from the THS
-    prediction, derived from the two quantisers (nothing fitted).
-
-    Two effects, added:
-
-    1. **Loop gain.** Over the fit window the free response is a decaying sinusoid of
-       amplitude A from ``x0`` down to ``A_min = x0 exp(-sigma t_fit)`` (sigma = b / 2m of
-       the prediction). The position quantiser (step ``q_x``) passes its first harmonic
-       with the gain N(A / q_x), the PWM quantiser (step ``q_f``) the force's with
-       N(F / q_f), F >= K A (:func:`quantiser_gain`). So the virtual spring and damper act
-       with K', B' in ``[K, B] (1 +- eps)``, ``eps = (1 + d_x)(1 + d_f) - 1``, ``d`` the
-       largest |N - 1| over the window; the felt (k, b) lie within the THS map
-       (:func:`hapsim.analysis.ths.render`) of the four corners (K (1 +- eps), B (1 +- eps)).
-    2. **Observation.** The logged positions carry the quantisation error, uniform over one
-       step: white noise of variance ``q_x^2 / 12`` (Widrow & Kollar, *Quantization Noise*,
-       2008, ch. 4). A least-squares fit of ``A exp(-sigma t) cos(omega t + phi) + c`` to
-       ``n_samples`` such samples has the covariance ``q_x^2 / 12 (J^T J)^-1`` (J: the
-       model's Jacobian at the predicted parameters); ``sigmas`` standard deviations of
-       k = m (omega^2 + sigma^2) and b = 2 m sigma are added.
-
-    Parameters
-    ----------
-    loop : hapsim.analysis.loop.LoopModel
-        The device side of the THS (m, b0, rate, delay, hold).
-    K, B : float
-        Virtual stiffness [N/m] and damping [N s/m].
-    x0 : float
-        Initial amplitude of the free response [m].
-    t_fit : float
-        Length of the fit window [s].
-    q_x, q_f : float
-        Position step [m] (HELLO.position_scale) and force step [N] (HELLO.force_scale).
-    n_samples : int
-        Samples in the fit window.
-    sigmas : float
-        Standard deviations of the observation noise term.
-
-    Returns
-    -------
-    dict
-        ``k``, ``b`` (predicted), ``dk``, ``db`` (the bounds), ``eps``, ``d_x``, ``d_f``,
-        ``a_min`` [m], ``k_noise_sd``, ``b_noise_sd``.
-    """
-    from hapsim.analysis.ths import render
-
-    pred = render(loop, K, B)
-    m = loop.mass
-    sig = pred.b / (2.0 * m)
-    om = math.sqrt(max(pred.k / m - sig * sig, 0.0))
-    a_min = x0 * math.exp(-sig * t_fit)
-    g = quantiser_gain_bound(loop, K, B, x0, a_min, q_x, q_f)
-    eps, d_x, d_f, dk_gain, db_gain = g["eps"], g["d_x"], g["d_f"], g["dk"], g["db"]
-    # observation noise through the least-squares fit (the sensitivity of measure_felt's)
-    T = loop.period
-    spec = [["pair", sig * T, om * T]]
-    y = x0 * np.exp(-sig * T * np.arange(n_samples)) * np.cos(om * T * np.arange(n_samples))
-    _, (white, _), _ = _covariance(spec, y, True)
-    g_k, g_b = _kb_gradients(spec, 0, 0, mass=m, period=T)
-    q_sd = q_x / math.sqrt(12.0)
-    k_sd = q_sd * float(np.sqrt(g_k @ white @ g_k))
-    b_sd = q_sd * float(np.sqrt(g_b @ white @ g_b))
-    return {"k": float(pred.k), "b": float(pred.b), "dk": dk_gain + sigmas * k_sd,
-            "db": db_gain + sigmas * b_sd, "eps": eps, "d_x": d_x, "d_f": d_f,
-            "a_min": a_min, "k_noise_sd": k_sd, "b_noise_sd": b_sd}
-
-
 def fit_free_response(position, period: float, mass: float, k_guess: float,
                       b_guess: float) -> dict:
     """Felt (k, b) of a logged free response with an offset: :func:`measure_felt` on its
@@ -973,145 +856,4 @@ def fit_free_response(position, period: float, mass: float, k_guess: float,
     z = complex(np.exp(complex(-sig, math.sqrt(om2)) * period))
     out = measure_felt(position, period, mass, [z, z.conjugate()], z, offset=True)
     out["samples"] = int(np.asarray(position).size)
-    return out
-
-
-def sensor_error_response(scene, n: int) -> np.ndarray:
-    """Impulse response from the position sensor's error to the logged position.
-
-    The host reads ``x[n] + e[n]``: the error is logged (direct term 1) and, through the
-    virtual links, fed back as a force, so that it also moves the handle. With the
-    closed-loop state ``s[n+1] = A s[n]`` of :func:`hapsim.analysis.network.closed_loop`,
-    the error enters where the measured positions ``x[n]`` and ``x[n-1]`` do: the columns
-    ``g``, ``h`` of those two states that the links contribute (``A`` minus the same loop
-    with every link at zero gain). Then ``s[n+1] = A s[n] + g e[n] + h e[n-1]`` and the
-    response is ``1, c g, c (A g + h), c A (A g + h), ...``.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        Validated scene with a port and a device (calibrated: no ``target`` links).
-    n : int
-        Length of the response.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        Logged-position response to a unit sensor error at sample 0 [m/m].
-
-    Raises
-    ------
-    ConfigError
-        As :func:`hapsim.analysis.network.closed_loop`.
-    """
-    from hapsim.analysis.network import closed_loop
-
-    A, names = closed_loop(scene)
-    A0, _ = closed_loop(scene, gain=0.0)
-    ipp = 2 if scene.device.hold == "zoh" else 1
-    g, h = A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
-    out = np.zeros(max(n, 0))
-    if n <= 0:        # an empty record (a run refused before its first STATE)
-        return out
-    out[0] = 1.0
-    s = g.copy()
-    for i in range(1, n):
-        out[i] = s[0]
-        s = A @ s + (h if i == 1 else 0.0)
-    return out
-
-
-def force_error_response(scene, n: int) -> np.ndarray:
-    """Impulse response from a force error at the device to the logged position [m/N].
-
-    ``h[0] = 0``, ``h[k] = c A^(k-1) b`` (``A``: :func:`hapsim.analysis.network.closed_loop`,
-    ``b``: :func:`hapsim.analysis.network.force_input`, ``c``: the logged position): how a
-    force held over one period that differs from the one computed (a late tick, a wire's
-    rounding) moves the handle afterwards, the loop closed.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        Validated, calibrated scene with a port and a device.
-    n : int
-        Length.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-
-    Raises
-    ------
-    ConfigError
-        As :func:`hapsim.analysis.network.closed_loop`.
-    """
-    from hapsim.analysis.network import closed_loop, force_input
-
-    h = np.zeros(max(int(n), 0))
-    if h.size < 2:
-        return h
-    A, _ = closed_loop(scene)
-    s = force_input(scene)
-    for k in range(1, h.size):
-        h[k] = s[0]
-        s = A @ s
-    return h
-
-
-def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
-    """Logged-position response of the closed loop to a known force disturbance.
-
-    A late tick holds an older force than the loop's ``u[n] = F[n-d]``: the device applied
-    ``u[n] + w[n]`` with ``w[n]`` known from its STATEs
-    (:meth:`hapsim.applied.AppliedAccount.disturbance`). The loop is linear, so the
-    record is the undisturbed loop's plus ``x_w[n] = sum_{j<n} c A^(n-1-j) b w[j]`` with
-    ``A`` of :func:`hapsim.analysis.network.closed_loop`, ``b`` of
-    :func:`hapsim.analysis.network.force_input` and ``c`` the logged position (state 0):
-    the convolution of ``w`` with the loop's impulse response (superposition of a linear
-    time-invariant system driven by a known input).
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        Validated, calibrated scene with a port and a device.
-    w : array_like, shape (n,)
-        Disturbance force per sample [N].
-    starts : array_like of int, optional
-        Rows where the record restarts (a gap in the STATEs, the scene restarted after a
-        recovery): the response is summed within each stretch only, from its first row
-        (what came before is the stretch's initial state, i.e. part of its free response).
-    response : ndarray, optional
-        :func:`force_error_response` of the scene, at least ``n`` long (computed when
-        None).
-
-    Returns
-    -------
-    ndarray, shape (n,)
-        ``x_w`` [m].
-
-    Raises
-    ------
-    ConfigError
-        As :func:`hapsim.analysis.network.closed_loop`.
-    """
-    from scipy.signal import fftconvolve
-
-    w = np.asarray(w, float)
-    n = w.size
-    out = np.zeros(n)
-    nz = np.flatnonzero(w)
-    if n < 2 or nz.size == 0:
-        return out
-    h = force_error_response(scene, n) if response is None else np.asarray(response, float)
-    edges = sorted({0, n, *(int(a) for a in (starts if starts is not None else ())
-                            if 0 < int(a) < n)})
-    for a, b in zip(edges[:-1], edges[1:]):
-        seg = w[a:b]
-        k = np.flatnonzero(seg)
-        if k.size == 0:
-            continue
-        first = a + int(k[0])             # the response is needed from here to b
-        m = b - first
-        out[first:b] = (fftconvolve(w[first:b], h[:m])[:m] if m > 64
-                        else np.convolve(w[first:b], h[:m])[:m])
     return out

@@ -76,7 +76,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         Position sensor step [m] and noise standard deviation [m] (0: none).
     sensor_response : ndarray, optional
         Impulse response of the sensor error to the logged position
-        (:func:`hapsim.analysis.identify.sensor_error_response`); default: observed only.
+        (:func:`hapsim.analysis.error_response.sensor_error_response`); default: observed only.
     closed : ndarray of bool, shape (n,), optional
         Per row: every contact engaged (the state the prediction assumes;
         :func:`hapsim.daemon.contact_replay.replay_contacts`). Rows that are not are cut out
@@ -242,7 +242,7 @@ def verdict(pred: dict, measured: dict) -> None:
     The interval is the fit's: :data:`hapsim.analysis.identify.COVERAGE` standard errors,
     the residual's or the sensor's (its error fed back through the loop), the larger; never
     below 1e-9 relative (round-off of an exact record). The quantiser's loop gain
-    (describing function, :func:`hapsim.analysis.identify.quantiser_gain_bound`) is left
+    (describing function, :func:`hapsim.analysis.quantisation.quantiser_gain_bound`) is left
     out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
     errors observed over random loops (tests/test_identify_quantised.py).
 
@@ -332,7 +332,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
 
     A late tick is a known input of the linear loop (:mod:`hapsim.applied`): the
     position minus the loop's response to ``w = applied - F[n-d]``
-    (:func:`hapsim.analysis.identify.disturbance_response`) is the undisturbed loop's,
+    (:func:`hapsim.analysis.error_response.disturbance_response`) is the undisturbed loop's,
     so the whole record is measured, not only the longest stretch without a late tick.
     So is an actuator's rounding: a framed device whose HELLO states a ``force_scale``
     (the Hapkit firmware's PWM step, to which it rounds every FORCE to the nearest) applies
@@ -411,7 +411,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "
                              f"states {dev.delay}: late ticks are not taken out")
         return pos, late, info
-    from hapsim.analysis.identify import disturbance_response
+    from hapsim.analysis.error_response import disturbance_response
     # the force the linear loop computed (the host's clamp at the force limit, when
     # given, is then part of the known input)
     w = acc.disturbance(cols["force"] if computed is None else computed, cols["seq"])
@@ -537,9 +537,9 @@ def wire_errors(scene, cols: dict, start: int, driver) -> list:
     PWM). Each is a bounded error per sample; taken as uniform, its standard deviation is
     ``u |v|_max / sqrt(3)`` (``|v|_max`` over the free response) or ``s / sqrt(12)``. The
     position's rounding reaches the record as the sensor's does
-    (:func:`hapsim.analysis.identify.sensor_error_response`: observed, and fed back through
+    (:func:`hapsim.analysis.error_response.sensor_error_response`: observed, and fed back through
     the virtual links), the force's as a force error at the device
-    (:func:`hapsim.analysis.identify.force_error_response`).
+    (:func:`hapsim.analysis.error_response.force_error_response`).
 
     Parameters
     ----------
@@ -559,7 +559,7 @@ def wire_errors(scene, cols: dict, start: int, driver) -> list:
     """
     if driver is None:
         return []
-    from hapsim.analysis.identify import force_error_response, sensor_error_response
+    from hapsim.analysis.error_response import force_error_response, sensor_error_response
     sel = cols["seq"] >= start
     x, f = cols["position"][sel], cols["force"][sel]
     n = int(x.size)

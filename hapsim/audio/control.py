@@ -821,7 +821,7 @@ def identify_window(x: np.ndarray, scene) -> dict:
         response = None
         quantum = float(dev.position_resolution or 0.0)
         if quantum > 0 or dev.noise > 0:
-            from hapsim.analysis.identify import sensor_error_response
+            from hapsim.analysis.error_response import sensor_error_response
             response = sensor_error_response(scene, int(x.size))
         return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
                         offset=has_offset(scene), skip=int(dev.delay) + 2,

@@ -189,7 +189,7 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
         ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` [m], ``B_w`` the ZOH input of the
         device (the first ``2n`` rows of the state, :func:`hapsim.analysis.ths_nd.zoh_matrices`)
         and ``C`` the device position (superposition, as the 1-D
-        :func:`hapsim.analysis.identify.disturbance_response`).
+        :func:`hapsim.analysis.error_response.disturbance_response`).
 
     Raises
     ------

@@ -32,19 +32,31 @@ Units (device parameters, :class:`FireFader`; ``hapsim identify`` finds the full
 Neither direction has a sequence number or a checksum: the decoders resynchronise on the
 start byte and count what they drop; a corrupted value byte is a wrong force or position.
 
-The firmware (``.ino``) answers each pass with one record and only runs a pass when a
-packet has come; packets that wait are merged (the last one counts). A pass reads the
+The firmware answers each pass with one record and only runs a pass when a packet has come
+(``Hardware/FireFader/Firmware/haptics_firmware/haptics_firmware.ino`` of
+eberdahl/Open-Source-Haptics-For-Artists, commit 6bbe9cd, 2013: ``loop``, lines 283-315):
+it hunts for a 127, takes the next two bytes as the forces *whatever they are*, and runs the
+pass once no byte is waiting (packets that waited are merged: the last one counts). One
+lost value byte therefore makes it take the next packet's 127 as a force and swallow that
+packet's forces (:class:`hapsim.driver_mock.FireFaderDevice` parses so;
+:meth:`FireFader.account` states the force such a pass may have applied). A pass reads the
 capacitive sense, the currents and the pots (about 1.25 ms: 175 + 175 + 150 + 150 + 300 +
 300 us, as its comments time them), and the record takes 7 bytes x 10 bits / 57600 baud =
 1.215 ms on the wire after the 3-byte packet's 0.52 ms: about 3 ms from a packet to its
 record, so the host's period must be longer (:meth:`FireFader.round_trip_s`). Its force is
-scaled by an enable filter that ramps from 0 to full over 66 passes after power-on or
-0.1 s without a byte, and stays down while the fader is untouched, at an end of its
-travel or hot (:class:`hapsim.driver_mock.FireFaderDevice` runs that loop). The Nano
+**gated** by an enable filter (``setPWM``, lines 188-216: the PWM is twice the count, or 0
+while the enable is below :data:`ENABLE_GATE`): the enable (lines 380-382) rises
+``e <- (31 e >> 5) + 5`` per pass while the fader is touched, inside ``4 < pot < 251`` and
+cool, so the force is off for the first 5 passes after power-on or 0.1 s without a byte
+(``waitForSerialInput``, lines 264-277: 65000 idle polls zero the enable and the motor),
+and goes off ~59 passes after the fader leaves the pot range, is let go or gets hot. An
+older copy in the same repository (``haptics_firmware_old_lesssensitive_capsensing_level``,
+line 204) *scales* the force by ``(e - 1) / 128`` instead (a ramp over ~66 passes):
+``firmware="ino-scaled"`` in the mock, ``scaled=True`` in :func:`enable_passes`. The Nano
 resets when the port opens (about 1 s in its bootloader), so the transport repeats its
-arming packet until the first record comes. The older ``.pde`` has no enable filter and no
-silence rule (the force stays) and streams records unprompted; the transport says which
-firmware answered.
+arming packet until the first record comes. The older ``.pde`` (not in that repository's
+snapshot: described from an earlier reading) has no enable filter and no silence rule (the
+force stays) and streams records unprompted; the transport says which firmware answered.
 """
 
 from __future__ import annotations
@@ -53,7 +65,7 @@ import math
 
 from hapsim.drivers.base import Driver, MappedDecoder
 
-__all__ = ["FireFader", "enable_passes", "HOST_START", "DEVICE_START", "POSITION_MAX",
+__all__ = ["FireFader", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
            "force_counts", "RecordDecoder", "PacketDecoder"]
 
@@ -78,8 +90,13 @@ SILENCE_S = 0.1
 #: Host silences this close to :data:`SILENCE_S` may or may not have reset the enable (the
 #: idle polls' time is the firmware's estimate; the host's clock stamps the send) [s].
 SILENCE_DOUBT_S = (0.08, 0.14)
-#: The enable filter's full value (the force is the packet's in full there).
+#: The enable filter's full value (its fixed point: ``(31 * 129 >> 5) + 5 = 129``).
 ENABLE_FULL = 129
+#: The ``.ino``'s gate: below this enable the PWM is 0, from it on twice the packet's count
+#: (``haptics_firmware/haptics_firmware.ino`` line 204: ``if (forceEnable < 20) force=0``).
+ENABLE_GATE = 20
+#: Passes with zero force after the enable was zeroed (0, 5, 9, 13, 17: below the gate).
+GATE_PASSES = 5
 
 LIMITS = """\
 FireFader protocol limits (hapsim --driver firefader):
@@ -93,9 +110,13 @@ FireFader protocol limits (hapsim --driver firefader):
     quantisers, so measured (k, b) equal the prediction only to the bound these give
   57600 baud, RTS/CTS: a 3-byte packet (0.52 ms), the firmware's reads (1.25 ms) and
     the 7-byte record (1.215 ms) take ~3 ms: rates above ~330 Hz are refused
-  the firmware's force enable ramps up over 66 passes after power-on or 0.1 s of
-    silence, and is off while the fader is untouched, at an end or hot: the force the
-    device applied is then less than the one sent (the records' touch byte shows it)
+  the firmware's force is gated by an enable filter: off for 5 passes after power-on
+    or 0.1 s of silence, and off ~59 passes after the fader is let go, reaches an end
+    (pot <= 4 or >= 251) or gets hot: the force the device applied is then 0, not the
+    one sent (the records' touch byte shows the touch)
+  the firmware takes the two bytes after a 127 as forces whatever they are: one lost
+    value byte makes it read the next packet's 127 as fader B's force (+127: full
+    force on B if B is touched) and swallow that packet
   the Nano resets when the port opens (~1 s bootloader): hapsim repeats its first
     packet until a record comes
   the older .pde firmware streams records unprompted and has no silence rule: hapsim
@@ -165,18 +186,74 @@ def encode_record(pos_a: int, pos_b: int, extra=(0, 0, 0, 0)) -> bytes:
     return bytes((DEVICE_START,) + vals)
 
 
+def pass_pwm(count: int, enable: int, scaled: bool = False) -> int:
+    """The ``.ino``'s PWM for a packet's force count (``setPWM``), of 254 full scale.
+
+    ``haptics_firmware/haptics_firmware.ino`` lines 188-216: ``2 n``, or 0 while the
+    enable is below :data:`ENABLE_GATE`; the old copy
+    (``haptics_firmware_old_lesssensitive_capsensing_level/haptics_firmware.ino`` lines
+    201-205, ``scaled``): ``(2 n (e - 1)) >> 7`` (arithmetic shift, as avr-gcc's on an int).
+
+    Parameters
+    ----------
+    count : int
+        The packet's force byte as signed (-128..127).
+    enable : int
+        The enable filter before this pass (0..129).
+    scaled : bool
+        The old copy's scaling instead of the gate.
+
+    Returns
+    -------
+    int
+        Signed PWM (-256..254); its sign is the direction pin's.
+    """
+    if scaled:
+        return (2 * int(count) * (int(enable) - 1)) >> 7
+    return 0 if enable < ENABLE_GATE else 2 * int(count)
+
+
+def enable_step(enable: int, heat: int, pwm: int, pot: int, touched: bool = True):
+    """One pass's update of the ``.ino``'s heat estimate and force enable, after the record.
+
+    ``haptics_firmware/haptics_firmware.ino`` lines 366-368 (``h <- (16383 h >> 14) +
+    (pwm >> 5)``, the *signed* PWM: a negative force cools the estimate, so only pushing
+    towards the pot's high end can trip the heat gate) and 380-382 (``e <- (31 e >> 5) +
+    5 [4 < pot < 251 and h >> 10 < 40 and capsense > 30]``).
+
+    Parameters
+    ----------
+    enable, heat : int
+        The filters before the update.
+    pwm : int
+        The signed PWM this pass set (:func:`pass_pwm`).
+    pot : int
+        The fader count the pass read (0..254).
+    touched : bool
+        The capacitive sense's filter above 30.
+
+    Returns
+    -------
+    tuple of int
+        ``(enable, heat)`` after the pass.
+    """
+    heat = ((int(heat) * 16383) >> 14) + (int(pwm) >> 5)
+    ok = 4 < int(pot) < 251 and (heat >> 10) < 40 and touched
+    return ((int(enable) * 31) >> 5) + 5 * ok, heat
+
+
 def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
-                  delay: int = 1, enable0: int = ENABLE_FULL, heat0: int = 0):
+                  delay: int = 1, enable0: int = ENABLE_FULL, heat0: int = 0,
+                  scaled: bool = False):
     """The ``.ino`` firmware's PWM per pass, from the host's commands: its enable filter
     replayed (module notes; :class:`hapsim.driver_mock.FireFaderDevice` runs the same loop).
 
-    Pass ``c`` (command ``c``) sets the motor to ``(2 n_c (e - 1)) >> 7`` of 254 (``n_c``
-    the packet's count, ``e`` the enable), then updates the heat estimate
-    ``h <- (16383 h >> 14) + (pwm >> 5)`` and ``e <- (31 e >> 5) + 5 [4 < pot < 251 and
-    h >> 10 < 40 and touched]`` (touch is taken as given: the host does not log the
-    record's sense bytes); a silence of ``threshold`` or more before a command zeroes the
-    enable and the motor (the force queued in the device's delay is dropped: the next
-    ``delay`` passes hold 0).
+    Pass ``c`` (command ``c``) sets the motor to :func:`pass_pwm` of the packet's count and
+    the enable, then updates the heat estimate and the enable (:func:`enable_step`; touch
+    is taken as given: the host does not log the record's sense bytes); a silence of
+    ``threshold`` or more before a command zeroes the enable and the motor
+    (``waitForSerialInput``, ``haptics_firmware.ino`` lines 264-277; the force queued in the
+    device's delay is dropped: the next ``delay`` passes hold 0).
 
     Parameters
     ----------
@@ -192,6 +269,8 @@ def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
         Passes between a command and its force acting (the device's delay d).
     enable0, heat0 : int
         The filters before the first command (full enable after the arming).
+    scaled : bool
+        The old copy's scaled enable instead of the gate (:func:`pass_pwm`).
 
     Returns
     -------
@@ -209,11 +288,9 @@ def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
         if silence[c] >= threshold:
             e = 0
             zero_until = c + delay - 1
-        p = (2 * int(counts[c]) * (e - 1)) >> 7
+        p = pass_pwm(int(counts[c]), e, scaled)
         pwm[c] = p
-        h = ((h * 16383) >> 14) + (p >> 5)
-        ok = 4 < int(pots[c]) < 251 and (h >> 10) < 40
-        e = ((e * 31) >> 5) + 5 * ok
+        e, h = enable_step(e, h, p, int(pots[c]))
         if c - delay >= 0 and c > zero_until:
             due[c] = pwm[c - delay]
     return due
@@ -381,10 +458,11 @@ class FireFader(Driver):
         """The force the fader applied per tick (:meth:`Driver.account`), with the
         firmware's enable filter replayed (:func:`enable_passes`).
 
-        The ``.ino`` scales each packet's force by its enable, which the host cannot read
-        but can replay: it is full after the arming (:attr:`arming_records` at zero force)
-        and goes to 0 after a silence of :data:`SILENCE_S`, from which the force comes back
-        over ~66 passes. The host's clock stamps each command (the ``time`` column: when
+        The ``.ino`` gates each packet's force by its enable (``setPWM``,
+        ``haptics_firmware.ino`` lines 188-216), which the host cannot read but can
+        replay: it is full after the arming (:attr:`arming_records` at zero force) and goes
+        to 0 after a silence of :data:`SILENCE_S`, after which the force is off for
+        :data:`GATE_PASSES` passes. The host's clock stamps each command (the ``time`` column: when
         the command a row answers was sent), so a host stall that long is in the record: the
         rows of the ramp are late ticks with a known applied force, taken out as a known
         input by the measurement (:func:`hapsim.analysis.measurement.late_accounted`).
