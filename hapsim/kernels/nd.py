@@ -50,8 +50,14 @@ Layout and schedule (why it is fast):
 * ``fastmath={"contract"}`` only: ``a * b + c`` may become one fused multiply-add
   (round-off); no reassociation, no finite-math assumption. Square roots and divisions
   are the exact IEEE operations (an inverse square root by Newton's method from the
-  previous sample's, tried, was no faster here: the kernel is bound by its loads and
-  stores, not by its arithmetic; ``tools/bench_nd.py`` prints where the time goes).
+  previous sample's, or from a single-precision estimate, tried, was no faster here: the
+  kernel is bound by its loads and stores as much as by its divider;
+  ``tools/bench_nd.py`` prints where the time goes).
+* One argument per call from Python (:func:`context`, :func:`run_context`): the arrays'
+  addresses and shapes in one int64 array, rebuilt in compiled code
+  (:mod:`hapsim.kernels.pointers`), so that a real-time loop stepping once per sample
+  does not pay numba's type check and unboxing of 36 arguments (microseconds, and a
+  transient allocation, per call).
 
 The summation order of each mass's forces differs from one-link-at-a-time code (and a
 fused multiply-add may round once where the reference rounds twice): the results agree
