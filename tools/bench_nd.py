@@ -44,7 +44,8 @@ blocks of 64 samples; thread CPU time for both), with their ratio.
 
 The load average at the start and the end is printed (and written): figures measured
 beside other CPU-bound work are not a quiet machine's. Reproduce the shipped figures with
-``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 3 minutes).
+``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 5 minutes on a
+quiet machine, Faust's build included; three times that beside a load of 20).
 
 Exit code 0, or 2 on bad arguments.
 """
