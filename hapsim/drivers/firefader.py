@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.drivers.base import Driver, MappedDecoder
+from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
 
 __all__ = ["FireFader", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
@@ -486,7 +486,7 @@ class FireFader(Driver):
             None when every answer came and no silence reached the doubt band.
         """
         import numpy as np
-        acc = super().account(columns, force)
+        acc = self._parser_account(columns, force, super().account(columns, force))
         d = getattr(self, "loop_delay", None)
         t = columns.get("time")
         seq = columns.get("seq")
@@ -554,6 +554,50 @@ class FireFader(Driver):
         acc.half_width = np.where(differs, np.maximum(acc.half_width, 0.5 * np.abs(a - b)),
                                   acc.half_width)
         acc.late = acc.late | differs
+        return acc
+
+    def _parser_account(self, columns: dict, force, acc):
+        """Widen ``acc`` (:meth:`Driver.account`) for the ``.ino``'s parser: the command
+        *after* one whose answer never came may have been read as the rest of a damaged
+        packet (module notes: a lost force byte makes the firmware take the next 127 as
+        fader B's force and run the pass with the damaged packet's fader-A byte). Its
+        force is then the one sent, the one before (fader B's byte lost) or fader B's 0
+        (fader A's byte lost); driving fader B, the one sent or +127 counts (B's byte is
+        the 127). The row it acts on gets the middle of those and half their range.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            Telemetry columns (``flags`` marks the estimated rows).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N].
+        acc : hapsim.applied.AppliedAccount or None
+            The base account (None: every answer came; returned as is).
+
+        Returns
+        -------
+        hapsim.applied.AppliedAccount or None
+        """
+        import numpy as np
+        d = getattr(self, "loop_delay", None)
+        flags = columns.get("flags")
+        if acc is None or d is None or flags is None:
+            return acc
+        est = np.flatnonzero((np.asarray(flags) & FLAG_ESTIMATED) != 0)
+        n = acc.applied.size
+        fq = np.array([self.applied_force(float(v)) for v in np.asarray(force, float)])
+        for e in est:
+            r = e + d                          # the force of command e + 1 (row e's) acts
+            if r >= n:
+                continue
+            if self.axis == 0:
+                cand = [fq[e], fq[e - 1] if e >= 1 else 0.0, 0.0]
+            else:
+                cand = [fq[e], 127 * self.force_scale]
+            lo = min(min(cand), acc.applied[r] - acc.half_width[r])
+            hi = max(max(cand), acc.applied[r] + acc.half_width[r])
+            acc.applied[r] = 0.5 * (lo + hi)
+            acc.half_width[r] = 0.5 * (hi - lo)
         return acc
 
     def decoder(self):
