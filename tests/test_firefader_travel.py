@@ -88,3 +88,19 @@ def test_the_sweep_refuses_what_is_no_length_reference():
         _sweep(stuck, force=0.3)
     with pytest.raises(ConfigError, match="--travel"):
         find_travel(ff.FireFader(), _Wire(stuck), travel=-1.0, force=0.3)
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--travel", "98"], "--travel.*framed protocol has none.*--driver firefader"),
+    (["--driver", "haply", "--travel", "98"], "--travel.*haply protocol.*--driver firefader"),
+    (["--driver", "firefader", "--travel", "0"], r"--travel: must be a finite number > 0 \[mm\]"),
+])
+def test_identify_travel_is_checked(argv, msg, capsys):
+    """hapsim identify --travel: refused before anything runs (exit 2) for a protocol
+    without a position scale to find, and for a travel that is not a positive length;
+    the message names the option and the valid choice."""
+    import re
+
+    from hapsim.cli import main
+    assert main(["identify", *argv]) == 2
+    assert re.search(msg, capsys.readouterr().err, re.S)

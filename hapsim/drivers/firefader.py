@@ -84,6 +84,9 @@ FULL_SCALE_N = 0.39
 PASS_READS_S = 1.25e-3
 #: The count at the middle of the travel: position 0 of the driven axis.
 CENTRE = 127
+#: The embedded mock's travel between its end stops [counts of its own position scale]:
+#: inside the pot's rails, as a sweep needs (:mod:`hapsim.drivers.firefader_travel`).
+MOCK_TRAVEL_COUNTS = 250
 #: The ``.ino``'s silence rule: after about 0.1 s without a byte (65000 idle polls) the
 #: enable and the motor go to 0 [s].
 SILENCE_S = 0.1
@@ -440,8 +443,11 @@ class FireFader(Driver):
         return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
 
     def mock_hardware(self) -> dict:
-        """The mock's fader: this full scale and position scale."""
-        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale}
+        """The mock's fader: this full scale and position scale, and end stops
+        :data:`MOCK_TRAVEL_COUNTS` counts apart around the middle (its pot reads about 2
+        and 252 at them)."""
+        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale,
+                "travel": MOCK_TRAVEL_COUNTS * self.position_scale}
 
     def round_trip_s(self) -> float:
         """From a packet's first byte to its record's last [s]: 3 + 7 bytes of 10 bits at

@@ -10,8 +10,8 @@ user, against the pot counts read at the two stops.
 The sweep (:func:`find_travel`): arm the firmware (zero force while its touch and enable
 filters come up), push the fader towards the low stop with a constant force until its
 pot count has stayed within one count for :data:`STILL_S`, then towards the high stop,
-then bring it back to the middle between them with a proportional force and end at zero
-force. A count taken as a stop must meet three conditions, each refused with its reason
+then bring it back to the middle between them (a spring and a damper on the counts, until
+it rests there) and end at zero force. A count taken as a stop must meet three conditions, each refused with its reason
 otherwise:
 
 - the count settled within :data:`MAX_PUSH_S` of pushing (else the fader did not reach
@@ -46,7 +46,7 @@ STILL_S = 0.1
 #: Longest push towards one stop [s].
 MAX_PUSH_S = 3.0
 #: Time allowed to bring the fader back to the middle after the sweep [s].
-CENTRE_S = 1.0
+CENTRE_S = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,14 +289,21 @@ def find_travel(drv, link, *, travel: float, force: float, rate_hz: float = 250.
                 f"the FireFader's end stops read {c_lo:.1f} and {c_hi:.1f}: {span:.1f} "
                 f"counts apart (at least 20 needed): the fader did not move between them "
                 f"(blocked, held, or pushed the wrong way)")
-        # back to the middle between the stops, then zero force
+        # back to the middle between the stops (a spring and a damper on the counts:
+        # 1 force count per count, 40 per count per packet), at rest, then zero force
         mid = 0.5 * (c_lo + c_hi)
+        prev = last
+        rest = 0
         for _ in range(max(1, round(CENTRE_S * rate_hz))):
             x = last if last is not None else CENTRE
-            n = int(max(-n_force, min(n_force, round(0.5 * n_force * (mid - x) / 10.0))))
+            v = x - (prev if prev is not None else x)
+            n = int(max(-n_force, min(n_force, round((mid - x) - 40.0 * v))))
+            prev = x
             c, _s = ex.send(n)
             last = c if c is not None else last
-            if last is not None and abs(last - mid) <= 2:
+            rest = rest + 1 if (last is not None and abs(last - mid) <= 3
+                                and last == prev) else 0
+            if rest >= still:
                 break
     finally:
         try:
