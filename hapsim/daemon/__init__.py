@@ -30,11 +30,12 @@ Modules
 :mod:`hapsim.daemon.runner`
     ``run_scene``: calibrate, check, close the THS, identify, report (the prediction and
     the measurement are :mod:`hapsim.analysis.prediction` and
-    :mod:`hapsim.analysis.measurement`).
+    :mod:`hapsim.analysis.measurement`); its steps' results are the records of
+    :mod:`hapsim.daemon.run_types`, its identification step :mod:`hapsim.daemon.measure`.
 :mod:`hapsim.daemon.options`
     ``RunOptions``: the options of one run, built once.
 :mod:`hapsim.daemon.report`
-    ``format_report``: the human lines of a run's report.
+    ``build_report``: a run's report dict; ``format_report``: its human lines.
 
 Timing convention (docs/design.md, 'The timing convention'): STATE ``n`` carries
 ``x(nT)``; the FORCE answering it (``seq = n``) is computed from ``x[n]`` and ``x[n-1]``

@@ -1,22 +1,135 @@
-"""The human report of a run: :func:`format_report` turns the dict that
+"""The report of a run: :func:`build_report` gathers the dict that
 :func:`hapsim.daemon.runner.run_scene` returns (the same fields as ``hapsim run --json``)
-into the compact, aligned lines ``hapsim run`` prints. Formatting only: nothing here runs,
-measures or decides."""
+from the run's steps; :func:`format_report` turns it into the compact, aligned lines
+``hapsim run`` prints. Gathering and formatting only: nothing here runs, measures or
+decides."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from hapsim.analysis.prediction import port_links
+from hapsim.daemon.run_types import Connection, LoopRun, PreparedRun
+from hapsim.daemon.startup import process_start
 from hapsim.errors import dash
 
-__all__ = ["format_report"]
+if TYPE_CHECKING:
+    from hapsim.daemon.options import RunOptions
+
+__all__ = ["build_report", "format_report"]
+
+
+def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOptions,
+                 measured: dict, tel_info: dict | None) -> dict:
+    """Step 6: the report dict of :func:`hapsim.daemon.runner.run_scene` (see there for its
+    keys).
+
+    Parameters
+    ----------
+    prep, conn, run, opts
+        The results of the earlier steps and the options.
+    measured : dict
+        :func:`hapsim.daemon.measure.identify_run`'s result.
+    tel_info : dict or None
+        The telemetry file's description.
+
+    Returns
+    -------
+    dict
+    """
+    scene, res, cfg, tr = prep.scene, run.res, conn.cfg, conn.tr
+    transport, mock_report = opts.transport, run.mock_report
+    plinks = port_links(scene)
+    virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
+                         for lk in scene.links]}
+    if plinks:
+        virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
+    hello = res.hello
+    loop_info = {
+        "mode": "host-clocked" if opts.host_clocked else "device-clocked",
+        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
+        # --loop compiled asked but the Python loop ran: why (None otherwise)
+        "python_reason": getattr(run.loop, "python_reason", None),
+        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
+        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
+        "armed_monotonic_s": getattr(run.loop, "armed_at", None),
+        # start-up: the first armed STATE, seconds after this process started
+        "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
+        "lockstep": bool(opts.lockstep),
+        # the device's protocol (a driver's mock answers each command: paced by the host)
+        "protocol": opts.driver or "framed",
+        # what the host knows of the clock: its own (host-clocked), the embedded mock's
+        # (real time), or a device on a port that sets the pace, real time or not (a
+        # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
+        "pace": ("lockstep" if opts.lockstep else "real-time"
+                 if opts.host_clocked or transport != "serial" or opts.port is None
+                 else "device-paced"),
+        "transport": transport if transport != "pty" else
+        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
+        "rate_hz": scene.rate_hz, "ticks": res.samples,
+        "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
+        "late": res.late, "missed": res.missed, "estimated": res.estimated,
+        "overruns": res.overruns,
+        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
+        "ping_rtt_us": res.ping_rtt_us,
+        "low_latency": bool(tr.info.get("low_latency")),
+        "scheduling": conn.rt.note,
+        "low_latency_note": tr.info.get("low_latency_note", ""),
+        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop, "state": res.state,
+        "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
+        else cfg.watchdog_us * 1e-6,
+        "decoder": res.decoder,
+        "bad_frames": res.bad_frames, "bad_frames_seen": res.bad_frames_seen,
+        "device": None if hello is None else {
+            "device_id": hello.device_id, "force_limit": hello.force_limit,
+            "native_rate_hz": hello.native_rate_hz},
+        "mock": mock_report,
+        # a driver's link: commands, records, missing samples, re-synchronisations, and
+        # the firmware seen (hapsim.drivers.transport.DriverTransport.report)
+        "driver": tr.report() if hasattr(tr, "report") else None,
+        "excitation_end_s": prep.exc_end,
+        "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
+        "implausible": res.implausible, "earlier_session": res.earlier_session,
+        "quiesced": res.quiesced,
+        "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
+        "lost": res.lost, "recovered": res.recovered,
+        "reconnect_attempts": res.reconnect_attempts, "events": res.events,
+        "energy_j": res.energy, "energy_max_j": res.energy_max,
+        "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
+        "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
+        "velocity_sensor": res.velocity or None,
+        "frames": res.frames,
+        "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
+                   "energy_limit": cfg.energy_limit,
+                   "passivity_controller": cfg.passivity_controller,
+                   "max_damping": cfg.max_damping},
+        "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
+    }
+    targets = prep.targets
+    ctl = run.control
+    osc = None
+    if ctl is not None:
+        # the measurement is compared with the prediction of the scene it measured (the
+        # changes accepted before its window), as hapsim play re-predicts
+        from hapsim.audio.control import revise_measurement
+        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
+               "journal": ctl.journal}
+    return {"scene": scene.path, "target": targets[0] if targets else None,
+            "targets": targets, "virtual": virtual, "predicted": prep.pred,
+            "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
+            "sound": run.sound,
+            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
 
 
 def format_report(rep: dict) -> str:
-    """The compact, aligned human report of :func:`run_scene`.
+    """The compact, aligned human report of :func:`hapsim.daemon.runner.run_scene`.
 
     Parameters
     ----------
     rep : dict
-        A report returned by :func:`run_scene`.
+        A report returned by :func:`hapsim.daemon.runner.run_scene`.
 
     Returns
     -------
@@ -203,3 +316,21 @@ def _osc_lines(osc: dict | None, measured: dict) -> list:
     elif isinstance(after, str):
         lines.append(f"  the measurement is compared with {after}")
     return lines
+
+
+def _since_start(t, opts: RunOptions):
+    """``t`` (time.monotonic [s]) in seconds since the process started; None when ``t`` is
+    None or the loop's clock is not the wall's (a virtual-clock transport)."""
+    if t is None or opts.transport == "sim":
+        return None
+    return round(t - process_start(), 4)
+
+
+def _fault_plan(plan, mock_report) -> dict | None:
+    """Spec, seed and the faults the mock injected (its own count when it is a child)."""
+    if plan.empty:
+        return None
+    out = plan.to_dict()
+    if mock_report and mock_report.get("faults_injected") is not None:
+        out["injected"] = mock_report["faults_injected"]
+    return out

@@ -4,7 +4,9 @@ A pipeline of named steps, each returning a small result object (docs/design.md,
 and 'The mock device'):
 :meth:`RunOptions.check` -> :func:`prepare_run` (prepare scene + predict:
 :class:`PreparedRun`) -> :func:`connect` (:class:`Connection`) -> :func:`run_loop`
-(:class:`LoopRun`) -> :func:`identify_run` -> :func:`build_report`.
+(:class:`LoopRun`) -> :func:`identify_run` (:mod:`hapsim.daemon.measure`) ->
+:func:`build_report` (:mod:`hapsim.daemon.report`); the steps' results are the records of
+:mod:`hapsim.daemon.run_types`.
 
 1. Links given as a felt ``target: {k, b}`` are calibrated with
    :func:`hapsim.analysis.calibrate` on ``LoopModel.from_device(scene.device, rate)``; a
@@ -32,24 +34,19 @@ import math
 import os
 import signal
 import threading
-from dataclasses import dataclass, field
 
-import numpy as np
-
-from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
-                                          relative_error, verdict, wire_errors)
-from hapsim.analysis.network import device_body
-from hapsim.analysis.prediction import (has_offset, port_links, predict, predicted_poles,
-                                        prepare_scene, refusal)
+from hapsim.analysis.measurement import identify
+from hapsim.analysis.prediction import predict, prepare_scene, refusal
 from hapsim.blas import limit_blas_threads
 from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.daemon.measure import identify_run
 from hapsim.daemon.mock import MockDevice
 from hapsim.daemon.options import RunOptions
 from hapsim.daemon.realtime import RealtimePriority
-from hapsim.daemon.report import format_report
-from hapsim.daemon.startup import (compile_notice, compiled_loop_possible, preload_numba_blas,
-                                   process_start)
-from hapsim.daemon.telemetry import FLAG_ESTIMATED, ChunkWriter, Telemetry, convert, load
+from hapsim.daemon.report import build_report, format_report
+from hapsim.daemon.run_types import Connection, LoopRun, PreparedRun
+from hapsim.daemon.startup import compile_notice, compiled_loop_possible, preload_numba_blas
+from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import Scene
@@ -64,118 +61,6 @@ DEFAULT_DURATION = 1.0
 #: Telemetry ring [s]: rows after the identification window go round it (drained to the
 #: journal by the writer thread); a run no longer than window + ring is kept whole.
 RING_SECONDS = 4.0
-
-
-@dataclass
-class PreparedRun:
-    """Step 1-2 of a run: the calibrated scene, its prediction and the run's sizes.
-
-    Attributes
-    ----------
-    scene : Scene
-        Calibrated scene (rate override applied).
-    targets : list of dict
-        :func:`prepare_scene`'s target links.
-    pred : dict
-        :func:`predict`'s closed loop.
-    exc_end : float
-        End of the excitation [s].
-    window : float
-        Identification window [s] (excitation + 10 periods of the predicted pair, >= 1 s).
-    n_samples : int
-        Samples to run (0: open-ended).
-    n_window, n_ring : int
-        Telemetry head (identification window) and ring [samples].
-    base_dir : str or None
-        Directory of the scene file (profiles are relative to it).
-    """
-
-    scene: Scene
-    targets: list
-    pred: dict
-    exc_end: float
-    window: float
-    n_samples: int
-    n_window: int
-    n_ring: int
-    base_dir: str | None
-
-
-@dataclass
-class Connection:
-    """Step 3: what :func:`connect` set up for the loop (closed by :func:`run_loop`).
-
-    Attributes
-    ----------
-    engine : Engine
-        Warmed-up engine of the scene.
-    tel : Telemetry
-        Preallocated telemetry (whole run, or head + ring).
-    cfg : LoopConfig
-        Loop configuration.
-    stop : StopFlag
-        Stop flag the signal handlers set.
-    tr : object
-        Transport (serial, in-process or sim).
-    rt : RealtimePriority
-        Entered real-time scheduling (left by :func:`run_loop`).
-    embedded : EmbeddedMock or None
-        Mock child on a pty.
-    mock : MockDevice or None
-        In-process mock (``inprocess`` and ``sim``).
-    old_signals : dict
-        ``{signum: handler}`` replaced, put back by :func:`run_scene` once the report is
-        made.
-    measured : MeasuredVelocity or None
-        The device's velocity over the wire (VELOCITY frames) for a ``velocity_sensor``
-        correction: the loop asks the device for it and the engine reads it.
-    warm : thread or None
-        The numba warm-up, still running: :func:`run_loop` waits for it
-        (``finish()``) after the device's HELLO, before CONFIG arms it.
-    """
-
-    engine: object
-    tel: Telemetry
-    cfg: LoopConfig
-    stop: StopFlag
-    tr: object
-    rt: RealtimePriority
-    embedded: object = None
-    mock: object = None
-    old_signals: dict = field(default_factory=dict)
-    measured: object = None
-    warm: object = None
-
-
-@dataclass
-class LoopRun:
-    """Step 4: the loop's result and what the run left behind.
-
-    Attributes
-    ----------
-    res : LoopResult
-        :meth:`HostLoop.run`'s result.
-    mock_report : dict or None
-        The mock's own counters.
-    writer_info : dict or None
-        Journal writer's ``lost_rows``, ``chunks``, ``events``, ``error``.
-    journal : str or None
-        Journal path (``.hst``).
-    error : DeviceError or ProtocolError or None
-        What ended the loop when the device was lost beyond recovery (``res`` then holds
-        the run up to the loss); :func:`run_scene` raises it with the report attached.
-    loop : HostLoop or CompiledHostLoop
-        The loop that ran.
-    """
-
-    res: object
-    mock_report: dict | None
-    writer_info: dict | None
-    journal: str | None
-    control: object = None
-    sound: dict | None = None
-    error: Exception | None = None
-    loop: object = None
 
 
 def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
@@ -637,270 +522,6 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-def _contact_replay(scene: Scene, cols: dict):
-    """Contact states of the run's rows (:mod:`hapsim.daemon.contact_replay`), or None
-    for a scene without contacts."""
-    from hapsim.daemon.contact_replay import contact_links, replay_contacts
-    if not contact_links(scene) or scene.port is None:
-        return None
-    return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
-
-
-def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
-    """Step 5: identify the free response logged at the start and compare it.
-
-    The whole record while it fits in memory; the head once the ring has gone round.
-
-    Parameters
-    ----------
-    prep : PreparedRun
-        :func:`prepare_run`'s result.
-    tel : Telemetry
-        The run's telemetry.
-    hello : firmware_protocol.Hello, optional
-        The device's HELLO: its ``position_scale`` is the sensor step when the scene's
-        ``device.position_resolution`` does not give one.
-    driver : hapsim.drivers.base.Driver, optional
-        The run's driver: its wire's number format is in the stated uncertainty
-        (:func:`hapsim.analysis.measurement.wire_errors`).
-
-    Returns
-    -------
-    dict
-        :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
-        ``b_interval`` (:func:`verdict`), ``note`` (why prediction and measurement may differ),
-        ``rel_err`` against the prediction and ``rel_err_target`` (one target only);
-        ``comparable`` (True with a measurement; False, with ``reason``,
-        ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
-        scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
-    """
-    scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
-    T = scene.period
-    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
-    measured = {"error": "not identified"}
-    late_info = {}
-    quantum = float(dev.position_resolution or 0.0)
-    if not quantum and hello is not None and math.isfinite(hello.position_scale):
-        quantum = max(float(hello.position_scale), 0.0)
-    if pred["order"]:
-        start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
-        if cols["seq"].size:
-            start += int(cols["seq"][0])
-        offset = has_offset(scene)
-        poles, felt = predicted_poles(scene)
-        response = None
-        if quantum > 0 or dev.noise > 0:
-            from hapsim.analysis.error_response import sensor_error_response
-            try:
-                response = sensor_error_response(scene, int(cols["seq"].size))
-            except ConfigError:
-                response = None
-        replay = _contact_replay(scene, cols)
-        from hapsim.daemon.telemetry import FLAG_LOST, FLAG_RAMP
-        from hapsim.daemon.telemetry import FLAG_CLAMPED
-        computed = None
-        if np.any(cols["flags"] & FLAG_CLAMPED) and not scene.safety.passivity_controller:
-            # the host's clamp at the force limit: a known input (the law's force
-            # replayed from the logged positions), taken out with the late ticks'
-            from hapsim.daemon.contact_replay import computed_forces
-            computed = computed_forces(scene, cols)
-        position, late, late_info = late_accounted(
-            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
-            computed=computed)
-        wire = wire_errors(scene, cols, start, driver)
-        hw = late_info.pop("_force_half_width", None)
-        lfb = late_info.pop("_late_force_bound", None)
-        late_bounds = None if lfb is None else []
-        if lfb is not None and np.any(lfb > 0):
-            # the late ticks' accounted forces, wrong by at most the disturbance taken out:
-            # their worst case through the fit, apart (a side decided on b adds it)
-            from hapsim.analysis.error_response import force_error_response
-            late_bounds = [(lfb, force_error_response(scene, int(cols["seq"].size)))]
-        bounds = []
-        if hw is not None and np.any(hw > 0):
-            # the forces the account cannot name (a command whose answer never came: sent
-            # or the one before), bounded at their rows, through the loop's force
-            # response: their worst case is in the stated uncertainty
-            from hapsim.analysis.error_response import force_error_response
-            bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
-        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
-            # a driver's missing replies: the positions the loop stepped through them with
-            # are extrapolations, wrong by at most what the device can have done meanwhile
-            from hapsim.analysis.measurement import estimated_bounds
-            if response is None:
-                from hapsim.analysis.error_response import sensor_error_response
-                try:
-                    response = sensor_error_response(scene, int(cols["seq"].size))
-                except ConfigError:
-                    response = None
-            if response is not None:
-                bounds.append((estimated_bounds(
-                    cols, T, *device_body(dev), quantum, dev.noise,
-                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
-                    coulomb=dev.coulomb), response))
-        measured = identify(position, cols["seq"], T, pred["order"],
-                            device_body(dev)[0], start,
-                            offset=offset, late=late, skip=dev.delay + 2,
-                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
-                            sensor_response=response,
-                            closed=None if replay is None else replay.closed,
-                            exclude=(cols["flags"] & FLAG_RAMP) != 0,
-                            wire=wire, bounds=bounds or None, late_bounds=late_bounds)
-        if replay is not None:
-            contact_verdict(measured, replay, cols["seq"], start, T)
-        if measured.get("first_seq") is not None and cols["seq"].size:
-            # the identified stretch's first row of the run (live changes are journaled
-            # by row: hapsim.audio.control.revise_measurement)
-            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
-    notes = []
-    if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
-        notes.append("the scene has contacts: the prediction takes them engaged, so only the "
-                     "longest stretch with every contact closed (replayed from the "
-                     "telemetry) is identified")
-    if any(m.kind == "mass" for m in scene.masses) and "k" in measured:
-        notes.append("virtual masses add modes: the identified pair is the one at the "
-                     "predicted felt pole, which the excitation may barely excite")
-    sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
-    if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
-            or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
-        notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
-                     "loop is not the linear THS exactly")
-    if late_info:
-        measured.update(late_info)
-    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
-    if n_est and "k" in measured:
-        # a driver's missing replies: the scene stepped through them with an extrapolated
-        # position, wrong by at most estimated_bounds; its worst case through the loop is
-        # in the stated uncertainty (k_bound_rows, b_bound_rows)
-        measured["estimated_samples"] = n_est
-        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
-                     f"stepped through with an extrapolated position: the stated "
-                     f"uncertainty covers the worst case of their error (k +-"
-                     f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
-                     f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
-    late_in = measured.get("late_in_segment", 0)
-    if late_in:
-        notes.append(f"no stretch of 100 samples without late ticks: the identified record "
-                     f"holds {late_in} late ticks (the device held an older force), so the "
-                     f"measured pair is a disturbed loop, not the THS alone; rerun on a "
-                     f"quieter machine, at a lower rate, or with --lockstep")
-    if notes:
-        measured["note"] = "; ".join(notes)
-    verdict(prep.pred, measured)
-    if "k" in measured:
-        measured.setdefault("comparable", True)
-        measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))
-                               for q in ("k", "b", "f0_hz", "damping_ratio")}
-        if len(targets) == 1:     # with several targets the felt pair is their sum
-            t0 = targets[0]
-            measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
-                                          for q in ("k", "b", "f0_hz", "damping_ratio")}
-    return measured
-
-
-def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOptions,
-                 measured: dict, tel_info: dict | None) -> dict:
-    """Step 6: the report dict of :func:`run_scene` (see there for its keys).
-
-    Parameters
-    ----------
-    prep, conn, run, opts
-        The results of the earlier steps and the options.
-    measured : dict
-        :func:`identify_run`'s result.
-    tel_info : dict or None
-        The telemetry file's description.
-
-    Returns
-    -------
-    dict
-    """
-    scene, res, cfg, tr = prep.scene, run.res, conn.cfg, conn.tr
-    transport, mock_report = opts.transport, run.mock_report
-    plinks = port_links(scene)
-    virtual = {"links": [{"link": lk.name, "K": lk.stiffness, "B": lk.damping}
-                         for lk in scene.links]}
-    if plinks:
-        virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
-    hello = res.hello
-    loop_info = {
-        "mode": "host-clocked" if opts.host_clocked else "device-clocked",
-        "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
-        # --loop compiled asked but the Python loop ran: why (None otherwise)
-        "python_reason": getattr(run.loop, "python_reason", None),
-        "compiled_samples": getattr(run.loop, "compiled_samples", 0),
-        # the first sample's moment (CONFIG sent), on time.monotonic (start-up benchmark)
-        "armed_monotonic_s": getattr(run.loop, "armed_at", None),
-        # start-up: the first armed STATE, seconds after this process started
-        "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
-        "lockstep": bool(opts.lockstep),
-        # the device's protocol (a driver's mock answers each command: paced by the host)
-        "protocol": opts.driver or "framed",
-        # what the host knows of the clock: its own (host-clocked), the embedded mock's
-        # (real time), or a device on a port that sets the pace, real time or not (a
-        # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
-        "pace": ("lockstep" if opts.lockstep else "real-time"
-                 if opts.host_clocked or transport != "serial" or opts.port is None
-                 else "device-paced"),
-        "transport": transport if transport != "pty" else
-        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
-        "rate_hz": scene.rate_hz, "ticks": res.samples,
-        "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
-        "late": res.late, "missed": res.missed, "estimated": res.estimated,
-        "overruns": res.overruns,
-        "clamped": res.clamped, "skipped": res.skipped, "turnaround_us": res.turnaround_us,
-        "ping_rtt_us": res.ping_rtt_us,
-        "low_latency": bool(tr.info.get("low_latency")),
-        "scheduling": conn.rt.note,
-        "low_latency_note": tr.info.get("low_latency_note", ""),
-        "stop_reason": res.stop_reason, "safety_stop": res.safety_stop, "state": res.state,
-        "lost_timeout_s": cfg.lost_timeout if cfg.lost_timeout is not None
-        else cfg.watchdog_us * 1e-6,
-        "decoder": res.decoder,
-        "bad_frames": res.bad_frames, "bad_frames_seen": res.bad_frames_seen,
-        "device": None if hello is None else {
-            "device_id": hello.device_id, "force_limit": hello.force_limit,
-            "native_rate_hz": hello.native_rate_hz},
-        "mock": mock_report,
-        # a driver's link: commands, records, missing samples, re-synchronisations, and
-        # the firmware seen (hapsim.drivers.transport.DriverTransport.report)
-        "driver": tr.report() if hasattr(tr, "report") else None,
-        "excitation_end_s": prep.exc_end,
-        "stale": res.stale, "bad_axes": res.bad_axes, "unarmed": res.unarmed,
-        "implausible": res.implausible, "earlier_session": res.earlier_session,
-        "quiesced": res.quiesced,
-        "hello_mid_run": res.hello_mid_run, "device_faults": res.device_faults,
-        "lost": res.lost, "recovered": res.recovered,
-        "reconnect_attempts": res.reconnect_attempts, "events": res.events,
-        "energy_j": res.energy, "energy_max_j": res.energy_max,
-        "energy_stored_j": res.energy_stored, "energy_excess_max_j": res.energy_excess_max,
-        "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
-        "velocity_sensor": res.velocity or None,
-        "frames": res.frames,
-        "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
-                   "energy_limit": cfg.energy_limit,
-                   "passivity_controller": cfg.passivity_controller,
-                   "max_damping": cfg.max_damping},
-        "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
-    }
-    targets = prep.targets
-    ctl = run.control
-    osc = None
-    if ctl is not None:
-        # the measurement is compared with the prediction of the scene it measured (the
-        # changes accepted before its window), as hapsim play re-predicts
-        from hapsim.audio.control import revise_measurement
-        osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
-               "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
-               "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
-               "journal": ctl.journal}
-    return {"scene": scene.path, "target": targets[0] if targets else None,
-            "targets": targets, "virtual": virtual, "predicted": prep.pred,
-            "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
-            "sound": run.sound,
-            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
-
-
 def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
@@ -976,14 +597,6 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     return rep
 
 
-def _since_start(t, opts: RunOptions):
-    """``t`` (time.monotonic [s]) in seconds since the process started; None when ``t`` is
-    None or the loop's clock is not the wall's (a virtual-clock transport)."""
-    if t is None or opts.transport == "sim":
-        return None
-    return round(t - process_start(), 4)
-
-
 def _finish_warm(conn: Connection) -> None:
     """Wait for the numba warm-up (:class:`_CompileThread`) once; re-raise its error."""
     warm, conn.warm = conn.warm, None
@@ -1017,16 +630,6 @@ def _restore_signals(old: dict) -> None:
     """Put back the signal handlers ``run_scene`` replaced (``{signum: handler}``)."""
     for s, h in old.items():
         signal.signal(s, h)
-
-
-def _fault_plan(plan, mock_report) -> dict | None:
-    """Spec, seed and the faults the mock injected (its own count when it is a child)."""
-    if plan.empty:
-        return None
-    out = plan.to_dict()
-    if mock_report and mock_report.get("faults_injected") is not None:
-        out["injected"] = mock_report["faults_injected"]
-    return out
 
 
 def _remove(path: str | None) -> None:

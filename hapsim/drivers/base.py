@@ -115,7 +115,7 @@ class Driver:
     position_rel, force_rel : float
         Largest relative rounding of the position / force fields on the wire (``2^-24``
         for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
-        (:func:`hapsim.daemon.runner.identify_run`).
+        (:func:`hapsim.daemon.measure.identify_run`).
     """
 
     name = ""
