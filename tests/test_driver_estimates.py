@@ -17,9 +17,8 @@ import pytest
 
 from hapsim.daemon.options import RunOptions
 from hapsim.daemon.runner import identify_run, prepare_run
-from hapsim.drivers.firefader import CENTRE, FireFader, RecordDecoder, enable_passes
-from hapsim.driver_mock import FireFaderDevice
-from hapsim.engine import Engine
+from hapsim.drivers.firefader import FireFader, enable_passes
+from hapsim.driver_mock import FireFaderDevice, firefader_offline_loop
 from hapsim.scene import load_scene
 
 #: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
@@ -35,62 +34,9 @@ def prep():
                        RunOptions(driver="firefader", rt_priority=0, handle_signals=False))
 
 
-def _closed_loop(prep, n=900, *, lost=(), silence_at=None, silence=0.2, rx_drop=None):
-    """The FireFader THS closed offline: telemetry columns, the driver, the mock's forces.
-
-    ``lost``: rows whose record never came (estimated); ``silence_at``: the host is silent
-    ``silence`` [s] before the command that follows that row; ``rx_drop``: {row: byte}
-    the packet sent after that row loses that byte (0 the start, 1 fader A's, 2 fader
-    B's) on its way to the firmware, which parses what is left (a row whose record then
-    never comes is estimated)."""
-    sc = prep.scene
-    drv = FireFader()
-    drv.loop_delay = sc.device.delay
-    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
-    for _ in range(drv.arming_records):
-        dev.feed(drv.encode_force(0.0))
-    eng = Engine(sc)
-    T = sc.period
-    dec = RecordDecoder()
-
-    def record(b):
-        r = dec.feed(b)
-        return (r[-1][0] - CENTRE) * drv.position_scale if r else None
-
-    x = record(dev.feed(drv.encode_force(0.0)))
-    n0 = len(dev.applied)
-    cols = {k: np.zeros(n) for k in ("time", "position", "force")}
-    flags = np.zeros(n, np.uint8)
-    xs, ss = [x, x], [-1, 0]
-    lost = set(lost)
-    t = 0.0
-    rx_drop = dict(rx_drop or {})
-    for k in range(n):
-        cols["time"][k] = t
-        if k in lost or x is None:
-            lost.add(k)
-            flags[k] = FLAG_ESTIMATED
-            x_k = xs[-1] + (xs[-1] - xs[-2]) / (ss[-1] - ss[-2]) * (k - ss[-1])
-        else:
-            x_k = x
-            xs.append(x)
-            ss.append(k)
-        cols["position"][k] = x_k
-        f = min(max(eng.port_step(x_k), -sc.device.force_limit), sc.device.force_limit)
-        cols["force"][k] = drv.applied_force(f)
-        t += T
-        if k == silence_at:
-            dev.idle(silence)
-            t += silence
-        pk = drv.encode_force(f)
-        if k in rx_drop:
-            j = rx_drop[k]
-            pk = pk[:j] + pk[j + 1:]
-        x = record(dev.feed(pk, writes=[b"", pk]))      # one host write, one tick
-    cols.update(seq=np.arange(n), flags=flags, late=np.zeros(n, np.uint8),
-                force_seq=np.arange(n) - sc.device.delay, status=np.zeros(n, np.uint16))
-    # the pass of command k + 1 moves the fader over row k's period
-    return cols, drv, np.array(dev.applied[n0:n0 + n])
+def _closed_loop(prep, n=900, **kw):
+    """The FireFader THS closed offline (hapsim.driver_mock.firefader_offline_loop)."""
+    return firefader_offline_loop(prep.scene, n, **kw)
 
 
 def _measure(prep, cols, driver):
