@@ -407,7 +407,8 @@ class FireFader(Driver):
     limits = LIMITS
     scale_option = "full_scale"
     scale_kind = "force"
-    #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129, 2 more
+    #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129 (the
+    #: current ``.ino``'s gate needs 5 of them; the older copy's scale all), 2 more
     arming_records = 72
     answering_firmware = "haptics_firmware.ino (one record per packet)"
     streaming_firmware = "haptics_firmware.pde (records streamed unprompted)"
@@ -470,14 +471,13 @@ class FireFader(Driver):
         to 0 after a silence of :data:`SILENCE_S`, after which the force is off for
         :data:`GATE_PASSES` passes. The host's clock stamps each command (the ``time`` column: when
         the command a row answers was sent), so a host stall that long is in the record: the
-        rows of the ramp are late ticks with a known applied force, taken out as a known
+        gated rows are late ticks with a known applied force, taken out as a known
         input by the measurement (:func:`hapsim.analysis.measurement.late_accounted`).
         A silence within :data:`SILENCE_DOUBT_S` may or may not have reset the enable: the
         account takes the mean of both and states their half-difference. The touch,
         pot-range and heat gating is replayed with the fader touched, also without a
-        silence (a fader driven to its ends has its force cut by the range gate: fitted
-        as if sent, such a record gave b0 -0.2 against 0.125 and a Coulomb friction of
-        0.3 N against 0).
+        silence (a fader held past a pot count of 250 or under 5 for ~59 passes has its
+        force cut by the range gate).
 
         Parameters
         ----------
