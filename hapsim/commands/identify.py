@@ -11,7 +11,7 @@ import sys
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -73,7 +73,7 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--port", metavar="PORT",
                    help="serial port of the device (default: the embedded mock on a pty)")
-    p.add_argument("--baud", type=Number(int, low=1),
+    p.add_argument("--baud", type=declared("identify", "baud"),
                    default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
@@ -81,7 +81,7 @@ def register(sub) -> None:
                    help="a driver's device parameter (device.protocol_options; repeat: "
                         "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
                         "Haply board); written to --out with the protocol")
-    p.add_argument("--added-mass", type=Number(float, low=0, open_low=True, unit="kg"),
+    p.add_argument("--added-mass", type=declared("identify", "added_mass"),
                    metavar="KG",
                    help="find the driver's scale (the FireFader's full_scale, the Haply "
                         "board's resolution): identify, then identify again with KG [kg] "
@@ -105,20 +105,20 @@ def register(sub) -> None:
     p.add_argument("--hand", action="store_true",
                    help="a hand holds the handle: report the THS (hand + handle) mass and "
                         "damping")
-    p.add_argument("--force-limit", type=Number(float, low=0, open_low=True, unit="N"),
+    p.add_argument("--force-limit", type=declared("identify", "force_limit"),
                    default=2.0, metavar="N",
                    help="largest force sent [N] (default 2)")
-    p.add_argument("--envelope", type=Number(float, low=0, open_low=True, unit="m"),
+    p.add_argument("--envelope", type=declared("identify", "envelope"),
                    default=0.01, metavar="M",
                    help="position envelope +-M around the start [m]; beyond it the "
                         "excitation stops (default 0.01)")
-    p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"),
+    p.add_argument("--duration", type=declared("identify", "duration"),
                    default=4.0, metavar="S",
                    help="excitation length [s] (default 4)")
-    p.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"),
+    p.add_argument("--rate", type=declared("identify", "rate_hz"),
                    default=1000.0, metavar="HZ",
                    help="loop rate [Hz] (default 1000)")
-    p.add_argument("--max-delay", type=Number(int, low=0), default=20, metavar="D",
+    p.add_argument("--max-delay", type=declared("identify", "max_delay"), default=20, metavar="D",
                    help="largest device delay [samples] the centring loop is stable for "
                         "and, for a protocol that does not report the force it applied, "
                         "the largest delay tried (default 20: a USB latency timer of 16 ms "
@@ -127,7 +127,7 @@ def register(sub) -> None:
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
                         "b0 = 0.5 N s/m, d = 1)")
-    p.add_argument("--seed", type=Number(int, low=0),
+    p.add_argument("--seed", type=declared("identify", "seed"),
                    default=0, help="excitation and mock-noise seed")
     p.set_defaults(func=run)
 
