@@ -11,7 +11,7 @@ import sys
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
-from hapsim.option_values import declared
+from hapsim.option_values import Number, declared
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
