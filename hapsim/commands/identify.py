@@ -223,10 +223,7 @@ def run(args) -> int:
                           "in HELLO); give --driver",
                           key="--protocol-option" if args.protocol_option else
                           "--mock-option" if args.mock_option else "--added-mass")
-    if args.added_mass is not None:
-        if not (math.isfinite(args.added_mass) and args.added_mass > 0):
-            raise ConfigError(f"must be a positive mass [kg], got {args.added_mass}",
-                              key="--added-mass")
+    if args.added_mass is not None:       # (its range: the declaration, checked before)
         if drv.scale_option is None:
             raise ConfigError(f"the {drv.name} protocol carries SI units: no scale to "
                               f"calibrate; valid with --added-mass: --driver firefader, "
