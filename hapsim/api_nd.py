@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import check_values
 from hapsim.results import Report
 
 __all__ = ["load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd", "CheckReportND", "ModesReportND", "RunReportND"]
@@ -383,7 +384,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     scene : hapsim.scene_nd.SceneND
     res : dict
         :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
-        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound``.
+        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        ``wire``, the readings' and torques' term of a quantised device such as the
+        emulated Hapkit pantograph, :func:`hapsim.daemon.pantograph_board.wire_term`).
     lockstep : bool
         Measured in-process.
     port_info : dict, optional
@@ -395,7 +398,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     """
     from hapsim.lockstep_nd import felt_verdict
     fit, chk = res["measured"], res["predicted"]
-    v = felt_verdict(res["deviation"], res["bound"])
+    v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -413,6 +416,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"])
+    if res.get("wire") is not None:
+        d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)
 
 
@@ -453,11 +458,9 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
+    check_values("run_nd", amplitude=amplitude)
     scene = _scene_nd(scene)
     a = float(amplitude)
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {amplitude}",
-                          key="amplitude")
     if scene.port is None:
         raise ConfigError("a run needs a mass of kind 'port' and a device section",
                           file=scene.path, key="masses")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from hapsim.cli import build_parser, main
-from hapsim.commands.mock_nd import TAKES, TICKS
+from hapsim.commands.mock_nd import FIRMWARE_TAKES, TAKES, TICKS
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 SCENES = [CONFIGS / "pantograph_wall.yaml"]
@@ -48,7 +48,8 @@ def test_the_option_list_is_the_parser_s():
 
 
 @pytest.mark.parametrize("flag,dest,value",
-                         [o for o in OPTIONS if o[1] not in TAKES], ids=lambda o: str(o))
+                         [o for o in OPTIONS if o[1] not in TAKES | {"firmware"}],
+                         ids=lambda o: str(o))
 def test_an_option_not_taken_is_refused_by_name(flag, dest, value, capsys, monkeypatch):
     """Given on a 2-D scene, an option the n-D mock does not take exits 2 before any pty
     is opened, its flag named on stderr."""
@@ -84,3 +85,30 @@ def test_the_refusal_reads_the_namespace_not_a_list():
     refuse_untaken(argparse.Namespace(**given))
     with pytest.raises(ConfigError, match="--some-new-option"):
         refuse_untaken(argparse.Namespace(**given, some_new_option=0))
+
+
+@pytest.mark.parametrize("flag,dest,value",
+                         [o for o in OPTIONS if o[1] not in FIRMWARE_TAKES],
+                         ids=lambda o: str(o))
+def test_an_option_the_emulated_pantograph_does_not_take_is_refused(flag, dest, value, capsys):
+    """``--firmware`` on a 2-D scene selects the emulated Hapkit pantograph
+    (:func:`hapsim.commands.mock_nd.run_pantograph_firmware`): any other option given
+    exits 2, named, before anything is built or opened."""
+    argv = ["mock", "--scene", str(SCENES[0]), "--firmware", "--lockstep", flag]
+    argv += [] if value is None else [value]
+    assert main(argv) == 2
+    err = capsys.readouterr()
+    assert f"does not take {flag}" in err.err and "PORT" not in err.out
+
+
+def test_options_at_their_defaults_are_not_refused():
+    """``hapsim mock --scene <2-D scene>`` with nothing else, and with ``--firmware
+    --lockstep``, is not refused: an option at its parser default (a new option's 0.0,
+    say) was not given (a ``--spin-us`` default of 0.0 once made every 2-D mock refuse)."""
+    from hapsim.commands.mock_nd import refuse_untaken, refuse_untaken_firmware
+    parser = build_parser("mock")
+    args = parser.parse_args(["mock", "--scene", str(SCENES[0])])
+    refuse_untaken(args)
+    args = parser.parse_args(["mock", "--scene", str(SCENES[0]), "--firmware", "--lockstep"])
+    args.rt_priority = 0                    # what hapsim mock sets in lockstep
+    refuse_untaken_firmware(args)

@@ -115,8 +115,9 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
             self.c0 = tracemalloc.get_traced_memory()[0]
             return len(data)
 
+    from hapsim.daemon.haply2_host import SILENT_WRITES
     sc = load_scene_nd(WALL)
-    N = 60
+    N = 3 + SILENT_WRITES            # the silence ends before the loop re-arms the board
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
     link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
     eng = EngineND(sc)
@@ -206,3 +207,29 @@ def test_a_context_refuses_an_array_it_cannot_rebuild():
         wrong[i] = bad
         with pytest.raises(ValueError):
             context(eng.dim, eng.block, *wrong, -1, eng.port_f)
+
+
+def test_the_2diy_replies_are_decoded_without_allocating(traced):
+    """The real-time 2DIY loop's reading ticks decode their reply into a reused list
+    (``AlignedDecoder.feed_into``; the reply checks in index loops on floats): each
+    reply of the emulated board, decoded, below one array's transient (the checks as
+    they were, ``enumerate``, ``range`` and an int count rounded per angle, measured 297
+    bytes against 144), and the same angles as ``feed`` gives."""
+    import math
+
+    from hapsim.daemon.haply2_board import Haply2DIYBoard
+    from hapsim.drivers.haply2 import Haply2DIY
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    drv = Haply2DIY("gen3", resolution=2.0 ** 14)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    board.feed(drv.arm_bytes([math.degrees(v) for v in sc.device.joints]))
+    replies = [board.feed(drv.write_bytes((0.002, -0.001))) for _ in range(40)]
+    dec, ref = drv.decoder(), drv.decoder()
+    frames = [None] * 8
+    one_array = _transient(lambda: np.empty(2))
+    peaks = []
+    for k, rep in enumerate(replies):
+        peaks.append(_transient(lambda: dec.feed_into(rep, frames)))
+        assert frames[0] == ref.feed(rep)[0]
+    assert dec.stats["frames"] == 40 and dec.stats["skipped"] == 0
+    assert max(peaks[3:]) < one_array, (max(peaks[3:]), one_array)

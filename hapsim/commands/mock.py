@@ -75,6 +75,9 @@ def register(sub) -> None:
             "  answers (the emulated clock waits for each FORCE); on exit it writes --report\n"
             "  (JSON: MCU cycles per tick, force on the pin, frames) or prints it\n"
             "  $ hapsim mock --firmware --scene configs/hapkit.yaml\n"
+            "  on a 2-D pantograph scene, --firmware --lockstep runs the Hapkit pantograph's\n"
+            "  firmware on two emulated ATmega328P joined on a TWI bus (docs/pantograph.md)\n"
+            "  $ hapsim mock --firmware --scene configs/pantograph_wall.yaml --lockstep\n"
             "exit codes: 0 stopped by a signal (or, with --once, by STOP); 1 the firmware\n"
             "stopped or could not be built; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -106,6 +109,15 @@ def register(sub) -> None:
     p.add_argument("--firmware", action="store_true",
                    help="run the Hapkit 3 reference firmware on the emulated board (simavr) "
                         "instead of the Python mock (default scene: configs/hapkit.yaml)")
+    p.add_argument("--trace", metavar="FILE",
+                   help="--firmware: the emulated board writes its event trace to FILE on exit "
+                        "(ticks, STATEs, FORCEs read and fed, waits; emulated cycle and "
+                        "CLOCK_MONOTONIC; tools/bench_firmware.py reads it)")
+    p.add_argument("--spin-us", type=Number(float, low=0, high=1000, unit="us"), default=0.0,
+                   metavar="US",
+                   help="--firmware in real time: the longest spin per tick [us] while the "
+                        "board waits for the host's FORCE (default 0: none; costs up to US us "
+                        "of CPU per tick)")
     p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
                    help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
                         "(2-D/3-D scenes: always 'python'). "
@@ -121,7 +133,9 @@ def register(sub) -> None:
     p.add_argument("--fd", type=Number(int, low=0),
                    help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
-    p.set_defaults(func=run)
+    # the n-D mock and the emulated pantograph refuse the options they do not take: one at
+    # its default was not given (argparse's public get_default, read at run time)
+    p.set_defaults(func=run, option_default=p.get_default)
 
 
 def _from_spec(text: str):
@@ -177,8 +191,8 @@ def run(args) -> int:
     ------
     ConfigError
         Bad ``--rt-priority``, ``--rate`` or ``--faults``, a ``vanish`` fault without
-        ``--link``, or a scene without a device section (exit 2 from
-        :func:`hapsim.cli.main`).
+        ``--link``, ``--trace`` or ``--spin-us`` without ``--firmware``, or a scene without
+        a device section (exit 2 from :func:`hapsim.cli.main`).
     """
     if args.rt_priority is None:
         args.rt_priority = 10 if args.firmware and not args.lockstep else 0
@@ -197,6 +211,10 @@ def run(args) -> int:
         args.fault_seed = 0
     if args.firmware:
         return _run_firmware(args)
+    for flag, given in (("--trace", getattr(args, "trace", None)),
+                        ("--spin-us", getattr(args, "spin_us", 0.0))):
+        if given:
+            raise ConfigError("is an option of the emulated board (--firmware)", key=flag)
     from hapsim.daemon.faults import parse_faults
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
     from hapsim.daemon.realtime import RealtimePriority
@@ -346,7 +364,9 @@ def _run_firmware(args) -> int:
         print(f"hapsim mock: {exc}", file=sys.stderr)
         return 1
     cmd = board.board_command(scene.device, scene.excitation, realtime=not args.lockstep,
-                              report=args.report, link=args.link)
+                              report=args.report, link=args.link,
+                              trace=getattr(args, "trace", None),
+                              spin_us=getattr(args, "spin_us", 0.0))
     if not args.lockstep and getattr(args, "rt_priority", 0):
         # real time: the board holds the emulated clock to the wall clock; SCHED_FIFO (kept
         # across exec) keeps other programs from descheduling it, as for the Python mock

@@ -184,7 +184,20 @@ def run_nd(args) -> int:
               f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
     from hapsim.lockstep_nd import felt_verdict
-    v = felt_verdict(dev, bound)
+    wire = res.get("wire")
+    v = felt_verdict(dev, bound, wire)
+    if wire is not None:
+        dq = wire["reading_bound_rad"]
+        print(f"  device: {port_info.get('device')}", file=o)
+        print(f"  the wire's rounding (joint readings within {dq[0]:.2e} / {dq[1]:.2e} rad: "
+              f"half a count and a binary32 ulp; torques within {wire['torque_bound_nm']:.2e} "
+              "N m: half a PWM step), first-order worst case through the loop and the fit: "
+              f"k {wire['felt_stiffness']:.2e}, b {wire['felt_damping']:.2e}; one count at "
+              f"the handle {wire['quantum_m']:.2e} m", file=o)
+        if v["uncertainty"] is not None:
+            u = v["uncertainty"]
+            print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
+                  f"b {u['felt_damping']:.2e}", file=o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
 
@@ -224,6 +237,12 @@ def _measure_over_port(args, scene, a: float, n: int):
                               + (child.stderr.read() or line).strip()[-500:])
         port = line.split()[1]
     tr = SerialTransport(port, getattr(args, "baud", 115200))
+    joint = None
+    if scene.dimension == 2 and scene.device.kind == "pantograph":
+        # a joint-level pantograph (the Hapkit pantograph's firmware) says so in HELLO:
+        # then its joint angles and torques are turned into the Cartesian device's
+        from hapsim.daemon.pantograph_board import JointLevelTransport
+        tr = joint = JointLevelTransport(tr, scene)
     gc_was = gc.isenabled()
     rt = RealtimePriority(int(args.rt_priority or 0))
     try:
@@ -244,8 +263,18 @@ def _measure_over_port(args, scene, a: float, n: int):
             except subprocess.TimeoutExpired:
                 child.kill()
                 child.communicate()
-    return res, {"port": port, "embedded": child is not None,
-                 "mock": note[0] if note else None, "scheduling": rt.note}
+    info = {"port": port, "embedded": child is not None,
+            "mock": note[0] if note else None, "scheduling": rt.note}
+    if joint is not None and joint.joint_level:
+        from hapsim.daemon.pantograph_board import wire_term
+        h = joint.hello
+        res["torque_max"] = joint.torque_max
+        res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
+        info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
+                          f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "
+                          f"torques {h.force_scale:.6g} N m/step)")
+        info["clamped"] = joint.clamped
+    return res, info
 
 
 #: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
@@ -324,7 +353,9 @@ def _run_haply2(args) -> int:
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
             "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
-                "replies": res["replies"], "writes": res["writes"]} if realtime else {}),
+                "replies": res["replies"], "writes": res["writes"],
+                "resyncs": res["resyncs"], "skipped": res["skipped"]} if realtime else {}),
+            "direction_probe": res.get("direction_probe"),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                           "felt_damping": mat(chk.render.felt_damping)},
             "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),

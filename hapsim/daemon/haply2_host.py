@@ -17,6 +17,29 @@ counts when it comes, but never replaces the estimate the engine used (the recor
 holds what the loop saw). The records' verdict is
 :func:`hapsim.daemon.haply2_board.felt_verdict_of_runs`: the estimated rows' bounds
 enter the wire's term through the loop as reading errors do.
+
+Before any record, each joint's wiring is checked (:mod:`hapsim.drivers.haply2_probe`):
+a joint its direction bytes turn backwards is refused.
+
+The board has no framing (:mod:`hapsim.drivers.haply`): a host byte lost or corrupted
+shifts its parser, and it then answers garbage, one byte per write, or nothing. The loop
+re-synchronises it as the 1-DoF driver does (:class:`hapsim.drivers.haply.ResyncRule`:
+the decoder counted a desync, or :data:`SILENT_WRITES` writes went unanswered): the
+re-arming bytes (:func:`hapsim.drivers.haply.resync_bytes`: zero torque first, then the
+set-up), the link drained, and the set-up's zero write, whose reply is that tick's
+sample. The set-up's offsets are the operating point's joints, as at arming: the
+emulated board's hand holds the handle there at each set-up
+(:mod:`hapsim.daemon.haply2_board`), and on a board whose handle goes on moving they
+are wrong by the record's motion since the arming (its amplitude, 1e-4 m: about 1e-3
+rad) where the joints last read, extrapolated, would be wrong by the estimate's error.
+The clock starts again from the re-arming's reply (the time it took is counted,
+``resync_s``); a re-armed record is not measured (the hand restarts it). A reply damaged
+on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
+answer: the replies after it answer the writes after (the decoder's ``damaged``; when
+one read holds several replies and a damaged one, all of them are taken as after it).
+A record ends with a zero write; when its reply does not come in step the board is
+re-armed (zero torque whatever its parser is inside: no watchdog). A corrupted byte in
+a write the board takes cannot be seen (no checksum: a wrong torque for one period).
 """
 
 from __future__ import annotations
@@ -29,7 +52,8 @@ import time
 
 import numpy as np
 
-from hapsim.daemon.haply2_board import Haply2DIYBoard, felt_verdict_of_runs
+from hapsim.daemon.haply2_board import Haply2DIYBoard, felt_verdict_of_runs, in_hand_order
+from hapsim.drivers.haply import LONGEST_COMMAND, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.spawn import PtyChild
@@ -44,6 +68,23 @@ ARM_TIMEOUT = 10.0
 QUIET_S = 0.03
 #: How long before a tick's deadline the host stops sleeping and polls [s].
 SPIN_S = 3e-4
+#: Writes in a row without a reply after which the real-time loop re-synchronises the
+#: board (:class:`hapsim.drivers.haply.ResyncRule`): more than the longest command the
+#: board can be inside swallows (:data:`hapsim.drivers.haply.LONGEST_COMMAND` bytes, 10
+#: a write); after that a board out of step answers something, which the decoder's
+#: desync sees sooner. A slow board (a loaded host's child process) is not taken for
+#: one out of step before this.
+SILENT_WRITES = LONGEST_COMMAND // 10 + 1
+#: Set-ups tried in a row before the loop gives up on a stream that corrupts them.
+ARM_TRIES = 5
+#: Longest wait for a re-armed board's answer to the zero write before its set-up [s]
+#: (a board out of step may be inside a command that swallows it).
+REARM_WAIT_S = 0.05
+#: Longest wait for the first reply of a set-up after the first [s] (the board runs).
+REPLY_WAIT_S = 0.2
+#: Longest wait for the reply to a record's closing zero write [s] (without it, the
+#: board is re-armed: a loaded host must not take a slow reply for a lost one).
+END_WAIT_S = 1.0
 
 
 def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
@@ -153,14 +194,21 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         where estimated), ``late_ticks`` (ticks the host itself began more than a period
         late), ``replies`` (replies to the record's writes, read by its end: all of them
         on a clean stream), ``writes``, ``readings`` (N, 2) [m] (reply ``k``'s reading,
-        read in time or late; NaN where it never came).
+        read in time or late; NaN where it never came), ``resyncs`` (re-synchronisations
+        of a board that lost its place), ``resynced`` (N,) bool (the ticks they were
+        made at), ``resync_s`` (the time they took [s], out of the clock),
+        ``bad_setups`` (armings whose first reply did not come or did not read the
+        offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
+        did not come: the board was re-armed to leave it at zero torque), ``decoder``
+        (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
+        ``damaged``).
 
     Raises
     ------
     DeviceError
-        No first reply after the set-up within :data:`ARM_TIMEOUT`; a first reply that
-        does not read the offsets sent; bytes that make no reply (the stream is not
-        clean: this loop does not re-synchronise a board); the port failing.
+        No first reply after the first set-up within :data:`ARM_TIMEOUT`;
+        :data:`ARM_TRIES` armings in a row whose first reply did not come or did not
+        read the offsets sent; the port failing.
     """
     from hapsim.engine_nd import EngineND
     from hapsim.kinematics import device
@@ -170,59 +218,104 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     N = int(samples)
     T = scene.period
     dec = driver.decoder()
+    rule = ResyncRule(dec.stats, SILENT_WRITES)
     eng = EngineND(scene) if engine is None else engine
     port = eng.port
-    xr = np.full((N + 2, 2), np.nan)                # reading of reply i (answer to write i)
+    xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
     qr = np.full((N + 2, 2), np.nan)
+    # got: the tick whose write the next reply answers (replies come in order, one per
+    # write; a re-arming re-anchors it); replies: replies taken in all
     got = 0
+    replies = 0
+    seen = 0                                        # the last tick whose reply was read
+    bad_setups = 0
+    resync_s = 0.0
 
     # the per-sample work below makes no array (the real-time rule): kinematics on
     # floats (forward_at, jacobian_at), rows written element by element, the write
     # packed into a reused buffer
     fwd = kin.forward_at
     jac = kin.jacobian_at
+    feed_into = dec.feed_into
+    joints_of = driver.joints_of
+    frames = [None] * 8                             # the decoder's frames, reused
+    nr = xr.shape[0]
 
     def take(data):
-        nonlocal got
-        for rep in dec.feed(data):
-            if got < xr.shape[0]:
-                q1, q2 = driver.joints_of(rep)
+        nonlocal got, replies, seen
+        if not data:
+            return
+        st = dec.stats
+        d0 = st["damaged"]
+        m = feed_into(data, frames)
+        # a damaged reply (bytes lost or corrupted on the way back) was a write's
+        # answer: the replies after it answer the writes after that one
+        got += st["damaged"] - d0
+        j = 0
+        while j < m:                                # (no iterator: no allocation)
+            rep = frames[j]
+            if got < nr:
+                q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
                 qr[got, 1] = q2
                 xr[got, 0], xr[got, 1] = fwd(q1, q2)
+                seen = got
             got += 1
-    # the arming: zero torque and the re-synchronising bytes, whose answer (the zero
-    # write's, from before the set-up) is dropped with what an earlier record left; then
-    # the set-up and a zero write, whose reply is tick 0's sample
-    arm = driver.arm_bytes(q0deg)
+            replies += 1
+            j += 1
+
     zero = driver.write_bytes((0.0, 0.0))
-    _write(ser, arm[:-len(zero)])
-    end = time.monotonic() + ARM_TIMEOUT
-    quiet = math.inf                                # the board answers a write: wait for it
-    while time.monotonic() < min(end, quiet):
-        if _read(ser):
-            quiet = time.monotonic() + QUIET_S
-        time.sleep(1e-3)
-    _write(ser, zero)
-    end = time.monotonic() + ARM_TIMEOUT
-    while got == 0 and time.monotonic() < end:
-        take(_read(ser))
-        if got == 0:
-            time.sleep(2e-4)
-    if got == 0:
-        raise DeviceError("no reply from the 2DIY after its set-up")
-    if got > 1 or np.max(np.abs(np.degrees(qr[0]) - q0deg)) > dec.max_step:
-        raise DeviceError("the 2DIY's first reply does not read the offsets sent: the "
-                          "stream corrupted its set-up")
+
+    def arm(at_deg, k):
+        """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
+        re-synchronising bytes, whose answers (the zero write's, from before the set-up,
+        and whatever an earlier record or a desynchronised stream left) are drained and
+        dropped; then the set-up's zero write, whose reply is tick ``k``'s sample. A
+        first reply that does not read the offsets sent is a set-up the stream corrupted
+        (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
+        nonlocal got, bad_setups
+        data = driver.arm_bytes(at_deg)
+        # the first set-up waits for a board process that loads its plant first; the
+        # others for a board already running
+        wait = ARM_TIMEOUT if k == 0 and not replies else REPLY_WAIT_S
+        for _ in range(ARM_TRIES):
+            _write(ser, data[:-len(zero)])
+            end = time.monotonic() + wait
+            # the board answers the zero write when it is in step: wait for it (a board
+            # process just started loads its plant first); one out of step may not
+            quiet = math.inf if wait == ARM_TIMEOUT else time.monotonic() + REARM_WAIT_S
+            while time.monotonic() < min(end, quiet):
+                if _read(ser):
+                    quiet = time.monotonic() + QUIET_S
+                time.sleep(1e-3)
+            dec.clear()                         # a reply's part left: dropped too
+            dec.reset_prediction()              # the set-up's offsets start afresh
+            got = k
+            _write(ser, zero)
+            end = time.monotonic() + wait
+            while got == k and time.monotonic() < end:
+                take(_read(ser))
+                if got == k:
+                    time.sleep(2e-4)
+            if got == k + 1 and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step:
+                return
+            bad_setups += 1
+            wait = REPLY_WAIT_S
+        if not replies:
+            raise DeviceError(f"no reply from the 2DIY after {ARM_TRIES} set-ups")
+        raise DeviceError(f"the 2DIY's first reply after {ARM_TRIES} set-ups did not read "
+                          "the offsets sent: the stream corrupts its set-ups")
+    arm(q0deg, 0)
     pos = np.zeros((N, 2))
     joints = np.full((N, 2), np.nan)
     torque = np.zeros((N, 2))
     est = np.zeros(N, bool)
     lag = np.zeros(N, np.int64)
+    resynced = np.zeros(N, bool)
     late = 0
     x = np.zeros(2)                                 # the sample the engine is given
     F = eng.port_f[:2]                              # the engine's port force (a view)
-    wbuf = bytearray(driver.write_bytes((0.0, 0.0)))
+    wbuf = bytearray(zero)
     write_into = driver.write_into
     clamp1 = driver.clamp1
     t0 = time.perf_counter()
@@ -236,6 +329,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         while time.perf_counter() < deadline:
             pass
         take(_read(ser))
+        if rule.due(k + 1 - got):                   # writes unanswered (damaged: answered)
+            # the board lost its place (module notes): zero torque first, the set-up;
+            # its reply is this tick's sample, and the clock starts again from it (the
+            # time it took is counted)
+            t_r = time.perf_counter()
+            arm(q0deg, k)
+            resynced[k] = True
+            t0 += time.perf_counter() - t_r
+            resync_s += time.perf_counter() - t_r
         if got > k:                                 # reply k read: a fresh sample
             i = k
             x[0] = xr[k, 0]
@@ -243,14 +345,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             joints[k, 0] = qr[k, 0]
             joints[k, 1] = qr[k, 1]
         else:                                       # missing: an estimated sample
-            i = got - 1
+            i = seen
             r = k - i
-            if i >= 1:                              # extrapolated from the last two
+            if i >= 1 and not resynced[i] and qr[i - 1, 0] == qr[i - 1, 0]:
+                # extrapolated from the last two (read, on one set-up)
                 x[0] = xr[i, 0] + r * (xr[i, 0] - xr[i - 1, 0])
                 x[1] = xr[i, 1] + r * (xr[i, 1] - xr[i - 1, 1])
             else:                                   # held: one reading only
-                x[0] = xr[0, 0]
-                x[1] = xr[0, 1]
+                x[0] = xr[i, 0]
+                x[1] = xr[i, 1]
             est[k] = True
             lag[k] = r
         if k == 0:
@@ -268,22 +371,32 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         _write(ser, wbuf)
-    _write(ser, driver.write_bytes((0.0, 0.0)))     # zero torque (no watchdog)
-    end = time.monotonic() + 0.2
-    while got < N + 2 and time.monotonic() < end:   # the late replies, counted
+    # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
+    # read in step, says the board took it as a write (only a flipped top exponent bit
+    # of its zeros, 1 bit in 32, would be a torque it cannot show: no checksum); without
+    # it the board may be out of step, where a zero write is read as something else:
+    # re-armed then (zero torque first, whatever its parser is inside)
+    _write(ser, zero)
+    end = time.monotonic() + END_WAIT_S
+    while seen < N + 1 and time.monotonic() < end:
         take(_read(ser))
-        time.sleep(1e-3)
-    if dec.stats["skipped"]:
-        raise DeviceError(f"{dec.stats['skipped']} bytes made no reply: the stream is not "
-                          "clean (the real-time 2DIY loop does not re-synchronise a board)")
+        if seen < N + 1:
+            time.sleep(2e-4)
+    rearmed_at_end = seen < N + 1
+    if rearmed_at_end:
+        arm(q0deg, N + 1)
     return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
-            "lag": lag, "late_ticks": late, "replies": got, "writes": N + 2,
-            "readings": xr[:N].copy()}
+            "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
+            "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
+            "resync_s": resync_s, "bad_setups": bad_setups,
+            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
 
 
 def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                              amplitude: float, resolution: float | None = None,
-                             samples: int | None = None, progress=None, plan=None) -> dict:
+                             samples: int | None = None, progress=None, plan=None,
+                             probe_wiring: bool = True,
+                             directions: dict | None = None) -> dict:
     """The felt matrices of a pantograph scene measured through a 2DIY in real time, and
     their verdict (module notes).
 
@@ -304,13 +417,22 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     progress : callable, optional
     plan : tuple, optional
         :func:`hapsim.lockstep_nd.identification_plan`, already computed.
+    probe_wiring : bool, optional
+        Check each joint's wiring first (:func:`hapsim.drivers.haply2_probe.
+        find_directions`): a joint its direction bytes turn backwards is refused before
+        any torque loop runs (the records are then put in the emulated board's hand
+        order, :func:`hapsim.daemon.haply2_board.in_hand_order`).
+    directions : dict, optional
+        ``motor_direction`` / ``encoder_direction`` bytes instead of the generation's.
 
     Returns
     -------
     dict
         :func:`hapsim.daemon.haply2_board.felt_verdict_of_runs`'s, with ``estimated``
-        (estimated samples per record), ``late_ticks`` (per record) and ``replies``
-        (replies read per record, of ``writes``).
+        (estimated samples per record), ``late_ticks`` (per record), ``replies``
+        (replies read per record, of ``writes``), ``resyncs`` and ``skipped`` (bytes
+        that made no reply) per record; "not measurable" when the board was
+        re-synchronised (a re-armed record is no free response of the loop).
 
     Raises
     ------
@@ -318,6 +440,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         As :func:`record_realtime`; the port cannot be opened.
     ConfigError
         Not a 2-D pantograph scene.
+    IdentificationError
+        A joint wired backwards against its direction bytes (the probe's refusal).
     """
     import serial
 
@@ -327,7 +451,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
                           file=scene.path, key="device.kind")
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
-    drv = Haply2DIY(generation, resolution=resolution)
+    drv = Haply2DIY(generation, resolution=resolution, **(directions or {}))
     own = isinstance(port, str)
     try:
         ser = (serial.serial_for_url(port, baudrate=115200, timeout=0, write_timeout=1.0)
@@ -337,7 +461,17 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     from hapsim.engine_nd import EngineND
     EngineND(scene).step()               # the compiled kernels loaded before the clock
     runs = []
+    probe = None
     try:
+        if probe_wiring:
+            # each joint's wiring before any torque loop runs (a board that advances
+            # one period per write: unpaced, each reply waited for)
+            from hapsim.daemon.haply2_board import PROBE_ENVELOPE, PROBE_TORQUE
+            from hapsim.drivers.haply2_probe import find_directions
+            probe = find_directions(drv, _PortLink(ser),
+                                    [math.degrees(v) for v in scene.device.joints],
+                                    force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
+                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5)
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N))
             if progress is not None:
@@ -357,11 +491,43 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     for r in runs:
         if r["estimated"].any():
             r["bounds"] = estimate_bounds(r, scene, J, delta)
+    runs = in_hand_order(runs, 0 if probe is None else probe.setups)
     out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+    out["direction_probe"] = None if probe is None else probe.to_dict()
+    resyncs = [r["resyncs"] + r["rearmed_at_end"] for r in runs]
+    if sum(resyncs):
+        # a re-armed board restarts the hand's record (module notes of
+        # hapsim.daemon.haply2_board): those records are no free responses of the loop,
+        # and the records after one at the end start from another of the hand's starts
+        out.update(verdict="not measurable", within=None, uncertainty=None,
+                   reason=f"the board was re-synchronised {sum(resyncs)} times (the "
+                          f"stream lost or corrupted bytes): a re-armed record is no free "
+                          f"response of the loop predicted")
     out.update(estimated=[int(r["estimated"].sum()) for r in runs],
                late_ticks=[r["late_ticks"] for r in runs],
-               replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs])
+               replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
+               resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs])
     return out
+
+
+class _PortLink:
+    """``write``/``read(timeout)`` (the wiring probe's link) on an open serial-like port
+    (``in_waiting``, ``read``, ``write``)."""
+
+    def __init__(self, ser) -> None:
+        self.ser = ser
+
+    def write(self, data: bytes) -> None:
+        _write(self.ser, data)
+
+    def read(self, timeout: float) -> bytes:
+        """The bytes waiting, or the first to come within ``timeout`` [s] (polled)."""
+        end = time.monotonic() + timeout
+        while True:
+            data = _read(self.ser)
+            if data or time.monotonic() >= end:
+                return data
+            time.sleep(1e-4)
 
 
 class Embedded2DIY(PtyChild):
@@ -383,6 +549,8 @@ class Embedded2DIY(PtyChild):
     slow_s : float, optional
     rate_hz : float, optional
         The loop's rate [Hz] (default the scene file's): the plant's period.
+    wiring : ((int, int), (int, int)), optional
+        The emulated board's wiring (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
 
     Attributes
     ----------
@@ -392,13 +560,14 @@ class Embedded2DIY(PtyChild):
 
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
-                 rate_hz: float | None = None) -> None:
+                 rate_hz: float | None = None, wiring=((1, 1), (1, 1))) -> None:
         master = self.open_pty("hapsim-2diy-")
         self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
                     "--scene", str(scene_path), "--generation", generation, "--amplitude",
                     repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
-                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))], master)
+                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0)),
+                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw)], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
@@ -433,12 +602,15 @@ def main(argv=None) -> int:
     p.add_argument("--slow-every", type=int, default=0)
     p.add_argument("--slow-s", type=float, default=0.0)
     p.add_argument("--rate", type=float, default=0.0)
+    p.add_argument("--wiring", default="1,1,1,1")
     a = p.parse_args(argv)
+    w = [int(v) for v in a.wiring.split(",")]
     scene = load_scene_nd(a.scene)
     if a.rate:
         import dataclasses
         scene = dataclasses.replace(scene, rate_hz=a.rate)
-    board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude)
+    board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude,
+                       wiring=(tuple(w[:2]), tuple(w[2:])))
     board.slow_every, board.slow_s = a.slow_every, a.slow_s
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):

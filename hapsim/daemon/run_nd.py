@@ -99,10 +99,18 @@ def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
 
 
 def _drain(transport, quiet: float = 0.03, limit: float = 1.0) -> None:
-    """Read and drop until nothing came for ``quiet`` seconds (at most ``limit``)."""
-    end = time.monotonic() + limit
-    while time.monotonic() < end:
-        if not transport.receive(quiet):
+    """Read and drop until nothing but disarmed STATEs came for ``quiet`` seconds (at most
+    ``limit``): a device sends STATE every tick, armed or not (``PROTOCOL.md`` §5.1: the
+    Hapkit firmware does), so a disarmed device is never silent."""
+    now = time.monotonic()
+    end = now + limit
+    last = now
+    while now < end:
+        for m in transport.receive(quiet):
+            if not (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED):
+                last = time.monotonic()
+        now = time.monotonic()
+        if now - last >= quiet:
             return
 
 
@@ -240,7 +248,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     dict
         ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`), ``predicted``
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation``
-        (:func:`hapsim.lockstep_nd.felt_deviation`), ``order``, ``records``, ``samples``,
+        (:func:`hapsim.lockstep_nd.felt_deviation`), ``responses`` (the ``2n + 1``
+        records as fitted, shape (N, n) each [m]: the handle from rest, minus the late
+        ticks' known response), ``order``, ``records``, ``samples``,
         ``late`` (late rows over every record), ``excursion`` (the largest distance
         [m] of the handle from rest over every record, the amplitude the linearisation
         bound must be taken at: late ticks can drive the handle past the nominal
@@ -322,5 +332,6 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     rest = recs[0]
     fit = fit_felt_nd([r - rest for r in recs[1:]], scene.device.mass, scene.period, order)
     return {"measured": fit, "predicted": chk, "deviation": felt_deviation(fit, chk),
+            "responses": recs,
             "order": order, "records": 2 * n, "samples": N, "late": late,
             "excursion": excursion, "watchdog": wdog, "delay": delays, "lost": lost, "hello": hello}

@@ -46,13 +46,51 @@ class AlignedDecoder:
         frames are returned and counted in ``stats["frames"]``."""
         return True
 
+    def clear(self) -> None:
+        """Drop the bytes held (the start of a frame not complete yet): a re-arming
+        drains the link, and what came before it is no part of what follows."""
+        del self._buf[:]
+
+    def reset_prediction(self, jumps: int = 1) -> None:
+        """Forget what earlier frames say the next one should be (a decoder that checks
+        a frame against its predecessors does; by default nothing): called at each
+        arming, after which the device's values start afresh.
+
+        Parameters
+        ----------
+        jumps : int
+            Frames to come that may each jump from the one before (an arming whose bytes
+            are answered twice: a write before the set-up, at the old value, and one
+            after it, at the new).
+        """
+
     def feed(self, data: bytes) -> list:
         """Bytes in, the values of the frames taken out."""
+        out = []
+        self.feed_into(data, out)
+        return out
+
+    def feed_into(self, data: bytes, out: list) -> int:
+        """:meth:`feed` into a list the caller reuses (a real-time loop's: no list per
+        call): the frames taken go to ``out[0]``, ``out[1]``, ... (appended beyond its
+        length).
+
+        Parameters
+        ----------
+        data : bytes
+        out : list
+
+        Returns
+        -------
+        int
+            Frames taken.
+        """
         buf = self._buf
         buf += data
-        out = []
         st = self.stats
         n = self.length
+        cap = len(out)
+        i = 0
         while len(buf) >= n:
             v = self.parse(buf)
             if v is None:
@@ -62,9 +100,13 @@ class AlignedDecoder:
                 continue
             del buf[:n]
             if self.accept(v):
-                out.append(v)
+                if i < cap:
+                    out[i] = v
+                else:
+                    out.append(v)
+                i += 1
                 st["frames"] += 1
-        return out
+        return i
 
 
 class MappedDecoder:
@@ -87,6 +129,12 @@ class MappedDecoder:
         """Bytes in, the positions of the complete frames out."""
         pos = self._position
         return [pos(fr) for fr in self.frames.feed(data)]
+
+    def reset_prediction(self, jumps: int = 1) -> None:
+        """The frame decoder's :meth:`AlignedDecoder.reset_prediction` (if it has one)."""
+        reset = getattr(self.frames, "reset_prediction", None)
+        if reset is not None:
+            reset(jumps)
 
 
 class Driver:

@@ -47,7 +47,8 @@ import struct
 from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HaplyM3", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
-           "ReplyDecoder", "CommandDecoder", "LONGEST_COMMAND", "DESYNC_BYTES"]
+           "ReplyDecoder", "CommandDecoder", "LONGEST_COMMAND", "DESYNC_BYTES",
+           "resync_bytes", "ResyncRule"]
 
 #: The board's torque clamp [N m] (firmware ``MAX_TORQUE``).
 MAX_TORQUE = 0.123
@@ -115,6 +116,74 @@ def reply_packet(device_id: int, angle_deg: float) -> bytes:
     return bytes([device_id & 0xFF]) + _F.pack(angle_deg)
 
 
+def resync_bytes(zero: bytes, setup: bytes) -> bytes:
+    """Bytes that put a board back in step whatever its parser is inside, zero torque
+    first (module notes; the 1-DoF joint's and the 2DIY's): the zero-torque write
+    ``zero`` (taken if the board is in step), :data:`LONGEST_COMMAND` zero bytes (inside
+    a write they are zero torque, elsewhere resets, which hold the torque), two bytes 3
+    (no command: the address of a reset the zeros ended inside, or nothing), the set-up
+    ``setup``, and ``zero`` again, whose reply is the next sample.
+
+    Parameters
+    ----------
+    zero : bytes
+        The zero-torque write of the device's id.
+    setup : bytes
+        Its set-up.
+
+    Returns
+    -------
+    bytes
+    """
+    return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + setup + zero
+
+
+class ResyncRule:
+    """When the host re-synchronises an unframed board (:func:`resync_bytes`): the reply
+    decoder counted a ``desync`` (bytes that make no reply: module notes), or more than
+    ``silent`` writes went unanswered (the board may be inside a garbage command that
+    swallows them).
+
+    Parameters
+    ----------
+    stats : dict
+        The reply decoder's counters (its ``desync``, read live).
+    silent : int
+        Unanswered writes allowed (the real-time loop, whose replies lag a tick or more,
+        allows more than a lockstep one).
+
+    Attributes
+    ----------
+    count : int
+        Re-synchronisations it called for.
+    """
+
+    def __init__(self, stats: dict, silent: int) -> None:
+        self._stats = stats
+        self._seen = stats.get("desync", 0)
+        self.silent = int(silent)
+        self.count = 0
+
+    def due(self, unanswered: int) -> bool:
+        """Whether to re-synchronise now (counted when it is).
+
+        Parameters
+        ----------
+        unanswered : int
+            Writes sent since the last reply (or since the arming).
+
+        Returns
+        -------
+        bool
+        """
+        d = self._stats.get("desync", 0)
+        if d != self._seen or unanswered > self.silent:
+            self._seen = d
+            self.count += 1
+            return True
+        return False
+
+
 class ReplyDecoder(AlignedDecoder):
     """Host side: 5-byte replies ``[id][float32 deg]`` out of a byte stream (or, with
     ``angles`` encoders of one id, ``1 + 4 angles``-byte replies, each angle checked).
@@ -146,7 +215,8 @@ class ReplyDecoder(AlignedDecoder):
     Attributes
     ----------
     stats : dict
-        ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``desync``.
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``desync``,
+        ``damaged`` (replies the dropped bytes held, short of a desync).
     """
 
     length = 5
@@ -168,42 +238,70 @@ class ReplyDecoder(AlignedDecoder):
         else:
             self.res = tuple(float(r) for r in resolution)
         self.stats["desync"] = 0
+        self.stats["damaged"] = 0
         self._bad = 0
+        self._free = 0
 
-    def reset_prediction(self) -> None:
-        """Forget the last replies (after a re-synchronisation the angles start afresh)."""
+    def reset_prediction(self, jumps: int = 1) -> None:
+        """Forget the last replies (after a re-synchronisation the angles start afresh):
+        the next ``jumps`` replies are taken without the step check, each restarting the
+        prediction (an arming is answered at the old angle, then at the set-up's offset).
+        """
         self._prev = self._prev2 = None
+        self._free = int(jumps)
 
     def parse(self, buf):
         """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
         reply at the start of ``buf``, or None."""
+        # (index loops, floats only: the real-time loops decode without allocating)
         if buf[0] != self.id:
             return None
         a = self._fmt.unpack_from(buf, 1)
-        for k, v in enumerate(a):
+        res = self.res
+        na = self.angles
+        k = 0
+        while k < na:
+            v = a[k]
             if not (math.isfinite(v) and abs(v) <= self.max):
                 return None
-            if self.res is not None:
+            if res is not None:
                 # the firmware's 360 * count / resolution, rounded once to binary32: a
-                # count of 0 is exactly 0.0 (a tiny garbage float is no reply)
-                n = round(v * self.res[k] / 360.0)
-                want = 360.0 * n / self.res[k]
+                # count of 0 is exactly 0.0 (a tiny garbage float is no reply); the
+                # nearest whole count as a float (remainder rounds half to even, as
+                # round does)
+                n = v * res[k] / 360.0
+                n -= math.remainder(n, 1.0)
+                want = 360.0 * n / res[k]
                 if abs(v - want) > 1e-6 * abs(want):
                     return None
+            k += 1
+        if self._free:
+            # a jump allowed (reset_prediction): predict from this reply on
+            self._free -= 1
+            self._prev2, self._prev = None, a
+            return a[0] if self.angles == 1 else a
         if self._prev is not None:
             # a flipped exponent bit is still a whole count (x 2^k, half the time): no
             # joint moves that far from where its last two replies say it is going
-            for k in range(self.angles):
+            k = 0
+            while k < na:
                 guess = (self._prev[k] if self._prev2 is None
                          else 2.0 * self._prev[k] - self._prev2[k])
                 if abs(a[k] - guess) > self.max_step:
                     return None
+                k += 1
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 
     def accept(self, value) -> bool:
-        """A reply taken: the run of dropped bytes ends."""
-        self._bad = 0
+        """A reply taken: the run of dropped bytes before it ends; the replies it held
+        are counted in ``damaged`` (a run of ``s`` bytes held ``ceil(s / length)``: a
+        byte lost leaves ``length - 1``, a corrupted reply ``length``; a run long enough
+        to be a desync is the re-synchronisation's, not counted)."""
+        if self._bad:
+            if self._bad < DESYNC_BYTES:
+                self.stats["damaged"] += -(-self._bad // self.length)
+            self._bad = 0
         return True
 
     def on_skip(self) -> None:
@@ -486,12 +584,11 @@ class HaplyM3(Driver):
         -------
         bytes
         """
-        zero = self.encode_force(0.0)
         setup = setup_packet(self.id, resolution=self.resolution, direction=self.direction,
                              motor_direction=self.motor_direction,
                              offset_deg=math.degrees(position) if math.isfinite(position)
                              else 0.0)
-        return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + setup + zero
+        return resync_bytes(self.encode_force(0.0), setup)
 
     def arm(self) -> bytes:
         """The re-synchronisation (:meth:`resync`, at the arming pose ``offset_deg``): the

@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_COMMAND, MAX_TORQUE,
-                                  ReplyDecoder)
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, MAX_TORQUE, ReplyDecoder,
+                                  resync_bytes)
 from hapsim.errors import ConfigError
 
 __all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
@@ -84,7 +84,8 @@ Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
   against the emulated board only (hapsim.daemon.haply2_board; in real time behind a
     pty, hapsim.daemon.haply2_host): a real board has no hand to start each record
   real time: no sequence numbers; a reply not read by its tick is an estimated sample
-    (counted, bounded in the stated uncertainty); no re-synchronisation in real time
+    (counted, bounded in the stated uncertainty); a board that lost its place is
+    re-synchronised (zero torque first; counted) and its record is not measured
   no start byte, no checksum: a lost or corrupted byte shifts or alters a reply; the
     decoder realigns on the id and two plausible angles (whole encoder counts), and the
     host re-synchronises a board that lost its place
@@ -129,11 +130,16 @@ class Haply2DIY:
     device_id : int, 1..255
     resolution : float, optional
         Encoder counts per revolution sent in the set-up (default the generation's).
+    motor_direction, encoder_direction : (int, int), optional
+        The direction bytes (0 CW, 1 CCW) of joint 1's and joint 2's motor / encoder
+        (default the generation's): a joint wired backwards is set up with its byte
+        flipped (:func:`hapsim.drivers.haply2_probe.find_directions` says which joint).
 
     Raises
     ------
     ConfigError
-        An unknown generation (the valid ones named), a bad id or resolution.
+        An unknown generation (the valid ones named), a bad id, resolution or
+        direction bytes.
 
     Attributes
     ----------
@@ -149,7 +155,8 @@ class Haply2DIY:
     limits = LIMITS
 
     def __init__(self, generation: str = "gen3", device_id: int = 1,
-                 resolution: float | None = None) -> None:
+                 resolution: float | None = None, motor_direction=None,
+                 encoder_direction=None) -> None:
         if generation not in GENERATIONS:
             raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
                               f"{', '.join(GENERATIONS)}", key="generation")
@@ -161,6 +168,15 @@ class Haply2DIY:
         if not (math.isfinite(res) and res > 0):
             raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
                               key="resolution")
+        for key, v in (("motor_direction", motor_direction),
+                       ("encoder_direction", encoder_direction)):
+            if v is not None and (len(tuple(v)) != 2 or set(tuple(v)) - {0, 1}):
+                raise ConfigError(f"must be two direction bytes (joint 1, joint 2), each 0 "
+                                  f"(CW) or 1 (CCW), got {v!r}", key=key)
+        g = Generation(g.name, g.motor_direction if motor_direction is None
+                       else tuple(int(b) for b in motor_direction),
+                       g.encoder_direction if encoder_direction is None
+                       else tuple(int(b) for b in encoder_direction), g.resolution)
         self.generation = g
         self.id = int(device_id)
         self.resolution = _F.unpack(_F.pack(res))[0]      # binary32 on the wire
@@ -222,11 +238,10 @@ class Haply2DIY:
         """Zero torque whatever the board's parser is doing, then the set-up and a
         zero-torque write whose reply is the first sample: a zero write, ``LONGEST_COMMAND``
         zero bytes (zero torque inside a write, resets elsewhere), two bytes 3 (no
-        command), the set-up, a zero write (as :meth:`hapsim.drivers.haply.HaplyM3.resync`).
+        command), the set-up, a zero write (:func:`hapsim.drivers.haply.resync_bytes`, as
+        the 1-DoF joint's :meth:`hapsim.drivers.haply.HaplyM3.resync`).
         """
-        zero = self.write_bytes((0.0, 0.0))
-        return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + self.setup_bytes(joints_deg) \
-            + zero
+        return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg))
 
     def decoder(self) -> Reply2Decoder:
         """A fresh reply decoder (whole counts at the set-up's resolution)."""

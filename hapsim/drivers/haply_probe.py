@@ -11,10 +11,22 @@ The probe (:func:`find_direction`): arm the board (zero torque first: it has no
 watchdog), then for each sign a torque pulse of ``PULSE_S`` at a level raised by doubling
 from 1/16 of the largest allowed (the smaller of the force limit and the board's 0.123 N
 m) until the encoder moved ``min_counts`` counts (static friction holds a joint below
-some torque), each pulse ended by zero torque as soon as motion is seen and followed by
-``REST_S`` at zero torque. The sign of the motion against the torque's gives the motor
-byte; both signs must agree. Zero torque is sent after every pulse and, whatever happens
-(an error, an interrupt), when the probe ends.
+some torque), each pulse ended as soon as motion is seen, then the opposite torque for as
+many periods (an equal and opposite impulse: it takes back the velocity the pulse gave,
+whatever the motor's sign) and ``REST_S`` at zero torque. The sign of the motion against
+the torque's gives the motor byte; both signs must agree.
+
+Each pulse starts from rest: zero torque until the encoder has not moved for a whole
+measurement window (``PULSE_S + REST_S``), at most ``SETTLE_S``. A joint with little
+friction coasts long after a pulse (an inertia of 1e-3 kg m^2 on 1e-3 N m s/rad: a time
+constant of 1 s), and a pulse measured from a coasting joint reads the coast, not the
+torque: the next pulse of the other sign then "moves the same way". A joint that slows
+under friction alone (its speed falls monotonically) and moved less than one count in the
+last window moves less than one count in the next, below the ``min_counts`` a pulse must
+show. A joint that does not come to rest is moved by something else and is refused.
+Zero torque is sent after every pulse and, whatever happens (an error, an interrupt),
+when the probe ends; the stop's replies are read (left on the line, they would be taken
+for the answer to the next arming).
 """
 
 from __future__ import annotations
@@ -26,7 +38,7 @@ import time
 from hapsim.errors import DeviceError, IdentificationError
 
 __all__ = ["DirectionProbe", "find_direction", "probe_port", "PULSE_S", "REST_S",
-           "LEVELS"]
+           "LEVELS", "SETTLE_S", "AxisProbe", "probe_axis", "Exchange", "pulse_limits"]
 
 #: Longest torque pulse [s] at one level.
 PULSE_S = 0.03
@@ -34,6 +46,8 @@ PULSE_S = 0.03
 REST_S = 0.05
 #: Levels tried per sign: the largest torque allowed times 2^-(LEVELS-1) ... 2^0.
 LEVELS = 5
+#: Longest wait at zero torque for the joint to come to rest before a pulse [s].
+SETTLE_S = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,8 +82,11 @@ class DirectionProbe:
                 "writes": self.writes}
 
 
-class _Exchange:
-    """One write, its reply: a board that answers every write (the driver's decoder)."""
+class Exchange:
+    """One write, its reply: a board that answers every write (the driver's decoder),
+    paced at ``rate_hz`` on the host's clock or not (``pace``), each reply waited for at
+    most ``timeout`` [s]; more than 20 missing replies raise :class:`DeviceError`. Shared
+    by the 1-DoF joint's probe and the 2DIY's (:mod:`hapsim.drivers.haply2_probe`)."""
 
     def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float) -> None:
         self.drv = drv
@@ -84,6 +101,12 @@ class _Exchange:
 
     def send(self, data: bytes) -> float:
         """Send ``data`` (one period), return the last angle answered [rad] (NaN: none
+        within the timeout)."""
+        got = self.reply(data)
+        return math.nan if got is None else float(got)
+
+    def reply(self, data: bytes):
+        """Send ``data`` (one period), return the last reply the decoder gave (None: none
         within the timeout)."""
         if self.pace:
             now = time.monotonic()
@@ -104,8 +127,22 @@ class _Exchange:
                 raise DeviceError("the Haply board does not answer its writes (more than "
                                   "20 missing replies while finding the motor direction): "
                                   "check the port and the device id")
-            return math.nan
-        return float(got[-1])
+            return None
+        return got[-1]
+
+    def stop(self, data: bytes, replies: int) -> None:
+        """Send the stop ``data`` (zero torque) and read its ``replies`` (at most the
+        timeout): a reply left on the line would be read by whoever opens the port next
+        as the answer to its own first write. Best effort: never raises (the port may be
+        gone; this runs on every exit)."""
+        try:
+            self.link.write(data)
+            end = time.monotonic() + self.timeout
+            n = 0
+            while n < replies and time.monotonic() < end:
+                n += len(self.dec.feed(self.link.read(max(0.0, end - time.monotonic()))))
+        except Exception:  # noqa: BLE001 -- best effort: the port may be gone
+            pass
 
 
 def find_direction(drv, link, *, force_limit: float, envelope: float,
@@ -148,70 +185,201 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     DeviceError
         The board does not answer.
     """
-    from hapsim.drivers.haply import MAX_TORQUE
-    top = min(float(force_limit), MAX_TORQUE)
-    if not (math.isfinite(top) and top > 0):
-        raise IdentificationError(f"no torque to probe the motor direction with: force "
-                                  f"limit {force_limit!r} N m")
     q = drv.position_scale                       # one count [rad]
-    ex = _Exchange(drv, link, rate_hz, pace, timeout)
-    n_pulse = max(1, round(PULSE_S * rate_hz))
-    n_rest = max(1, round(REST_S * rate_hz))
-    reach = min(min_counts * q, float(envelope)) if envelope > 0 else min_counts * q
+    top, reach = pulse_limits(force_limit, q, envelope, min_counts, "the motor direction")
+    ex = Exchange(drv, link, rate_hz, pace, timeout)
     zero = drv.encode_force(0.0)
-    found_t, found_c, rel = [], [], []
     x = math.nan
     try:
         ex.send(drv.arm())
         for _ in range(3):                      # the replies of a board in step
             x = ex.send(zero)
-        for sign in (1.0, -1.0):
-            moved = None
-            for k in range(LEVELS - 1, -1, -1):
-                tau = sign * top * 2.0 ** -k
-                x0 = x if math.isfinite(x) else ex.send(zero)
-                dx = 0.0
-                for _ in range(n_pulse):
-                    x = ex.send(drv.encode_force(tau))
-                    if math.isfinite(x) and math.isfinite(x0) and abs(x - x0) >= reach - q / 2:
-                        dx = x - x0
-                        break
-                for _ in range(n_rest):          # zero at once, then let it stop
-                    x = ex.send(zero)
-                    if not dx and math.isfinite(x) and math.isfinite(x0) \
-                            and abs(x - x0) >= reach - q / 2:
-                        dx = x - x0             # it moved after the delay
-                if dx:
-                    moved = (tau, round(dx / q))
-                    break
-            if moved is None:
-                raise IdentificationError(
-                    f"the Haply joint did not move {min_counts} encoder counts under "
-                    f"{sign * top:+.4g} N m pulses of {PULSE_S * 1e3:g} ms (raised from "
-                    f"{sign * top * 2.0 ** -(LEVELS - 1):+.4g} N m): the motor direction "
-                    f"cannot be found. The joint is blocked, held, or unpowered, or its "
-                    f"static friction exceeds --force-limit; free it (let go of the "
-                    f"handle: identify with --hand after one without it), or raise the "
-                    f"limit (at most the board's {MAX_TORQUE} N m), or give the motor "
-                    f"direction (--protocol-option motor_direction=0 or 1: then it is not "
-                    f"probed)")
-            found_t.append(moved[0])
-            found_c.append(moved[1])
-            rel.append(1 if moved[1] * moved[0] > 0 else -1)
+        axis = probe_axis(ex.send, drv.encode_force, zero, top=top, count=q, reach=reach,
+                          rate_hz=rate_hz, min_counts=min_counts, label="the Haply joint",
+                          option="motor_direction")
+        x = axis.last
     finally:
-        try:
-            link.write(drv.stop_bytes(x if math.isfinite(x) else 0.0))
-        except Exception:  # noqa: BLE001 -- best effort: the port may be gone
-            pass
+        ex.stop(drv.stop_bytes(x if math.isfinite(x) else 0.0), 2)
+    r = axis.relative
+    md = drv.motor_direction if r > 0 else 1 - drv.motor_direction
+    return DirectionProbe(md, r, axis.torque, axis.counts, ex.writes)
+
+
+def pulse_limits(force_limit: float, count: float, envelope: float, min_counts: int,
+                 what: str) -> tuple:
+    """The largest torque of the pulses and the motion that counts as moving.
+
+    Parameters
+    ----------
+    force_limit : float
+        Largest torque allowed [N m].
+    count : float
+        One encoder count [rad].
+    envelope : float
+        Largest motion allowed [rad] (not positive: none).
+    min_counts : int
+    what : str
+        What is probed, for the message.
+
+    Returns
+    -------
+    (float, float)
+        ``min(force_limit, 0.123)`` [N m] (the board's clamp) and ``min(min_counts
+        count, envelope)`` [rad].
+
+    Raises
+    ------
+    IdentificationError
+        No positive torque allowed.
+    """
+    from hapsim.drivers.haply import MAX_TORQUE
+    top = min(float(force_limit), MAX_TORQUE)
+    if not (math.isfinite(top) and top > 0):
+        raise IdentificationError(f"no torque to probe {what} with: force limit "
+                                  f"{force_limit!r} N m")
+    reach = min_counts * count
+    return top, (min(reach, float(envelope)) if envelope > 0 else reach)
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisProbe:
+    """What :func:`probe_axis` found on one joint.
+
+    Attributes
+    ----------
+    relative : int
+        +1 when a positive torque turns the joint the way its angle counts up, else -1.
+    torque : tuple of float
+        The torque [N m] of the pulse that moved the joint, positive then negative pulse.
+    counts : tuple of int
+        The encoder counts moved under it (signed), positive then negative pulse.
+    last : float
+        The joint's last angle read [rad] (NaN: the last reply was missing).
+    """
+
+    relative: int
+    torque: tuple
+    counts: tuple
+    last: float
+
+
+def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: float,
+               rate_hz: float, min_counts: int = 3, label: str = "the Haply joint",
+               option: str = "motor_direction") -> AxisProbe:
+    """One joint's torque pulses of each sign, each from rest (module notes): the sign of
+    its motion against the torque's. Shared by the 1-DoF board (:func:`find_direction`)
+    and each joint of the 2DIY (:func:`hapsim.drivers.haply2_probe.find_directions`).
+
+    Parameters
+    ----------
+    send : callable
+        ``send(bytes) -> float``: one write (one period), the joint's angle read after it
+        [rad] (NaN: no reply).
+    write_of : callable
+        ``write_of(tau) -> bytes``: the write of torque ``tau`` [N m] on this joint (zero
+        on any other).
+    zero : bytes
+        The zero-torque write.
+    top : float
+        Largest torque [N m].
+    count : float
+        One encoder count [rad] (at the set-up's resolution).
+    reach : float
+        Motion that counts as moving [rad] (``min_counts`` counts, or less within an
+        envelope).
+    rate_hz : float
+        Writes per second [Hz] (the pulse, rest and settling lengths in writes).
+    min_counts : int
+    label, option : str
+        The joint's name and the protocol option that gives its motor direction, for the
+        messages.
+
+    Returns
+    -------
+    AxisProbe
+
+    Raises
+    ------
+    IdentificationError
+        The joint does not come to rest within :data:`SETTLE_S` at zero torque, or does
+        not move ``min_counts`` counts under the largest torque of either sign, or moves
+        the same way under both signs (something else moves it).
+    """
+    from hapsim.drivers.haply import MAX_TORQUE
+    n_pulse = max(1, round(PULSE_S * rate_hz))
+    n_rest = max(1, round(REST_S * rate_hz))
+    n_still = n_pulse + n_rest
+    n_settle = max(n_still, round(SETTLE_S * rate_hz))
+    found_t, found_c, rel = [], [], []
+    x = math.nan
+
+    def settle():
+        """Zero torque until the angle has not moved for ``n_still`` replies."""
+        nonlocal x
+        ref, still = math.nan, 0
+        for _ in range(n_settle):
+            x = send(zero)
+            if not math.isfinite(x):
+                still = 0
+                continue
+            if math.isfinite(ref) and abs(x - ref) < count / 2:
+                still += 1
+                if still >= n_still:
+                    return x
+            else:
+                ref, still = x, 0
+        raise IdentificationError(
+            f"{label} did not come to rest at zero torque within {SETTLE_S:g} s (it "
+            f"never stayed within a count for {n_still} periods): something else moves it "
+            f"(a hand, a spring, gravity); let go of the handle and identify again")
+    for sign in (1.0, -1.0):
+        moved = None
+        for k in range(LEVELS - 1, -1, -1):
+            tau = sign * top * 2.0 ** -k
+            x0 = settle()
+            dx = 0.0
+            sent = 0
+            for _ in range(n_pulse):
+                x = send(write_of(tau))
+                sent += 1
+                if math.isfinite(x) and abs(x - x0) >= reach - count / 2:
+                    dx = x - x0
+                    break
+            # the opposite impulse: whatever the motor's sign, it takes back the
+            # velocity the pulse gave (a joint with little friction coasts for seconds)
+            brake = write_of(-tau)
+            for _ in range(sent):
+                x = send(brake)
+                if not dx and math.isfinite(x) and abs(x - x0) >= reach - count / 2:
+                    dx = x - x0             # it moved after the delay
+            for _ in range(n_rest):          # zero, then let it stop
+                x = send(zero)
+                if not dx and math.isfinite(x) and abs(x - x0) >= reach - count / 2:
+                    dx = x - x0
+            if dx:
+                moved = (tau, round(dx / count))
+                break
+        if moved is None:
+            raise IdentificationError(
+                f"{label} did not move {min_counts} encoder counts under "
+                f"{sign * top:+.4g} N m pulses of {PULSE_S * 1e3:g} ms (raised from "
+                f"{sign * top * 2.0 ** -(LEVELS - 1):+.4g} N m): the motor direction "
+                f"cannot be found. The joint is blocked, held, or unpowered, or its "
+                f"static friction exceeds --force-limit; free it (let go of the "
+                f"handle: identify with --hand after one without it), or raise the "
+                f"limit (at most the board's {MAX_TORQUE} N m), or give the motor "
+                f"direction (--protocol-option {option}=0 or 1: then it is not "
+                f"probed)")
+        found_t.append(moved[0])
+        found_c.append(moved[1])
+        rel.append(1 if moved[1] * moved[0] > 0 else -1)
     if rel[0] != rel[1]:
         raise IdentificationError(
-            f"the Haply joint moved the same way under both torque signs ({found_c[0]:+d} "
+            f"{label} moved the same way under both torque signs ({found_c[0]:+d} "
             f"counts under {found_t[0]:+.4g} N m, {found_c[1]:+d} under {found_t[1]:+.4g} "
             f"N m): something else moves it (a hand, a spring, gravity); let go of the "
             f"handle and identify again")
-    r = rel[0]
-    md = drv.motor_direction if r > 0 else 1 - drv.motor_direction
-    return DirectionProbe(md, r, tuple(found_t), tuple(found_c), ex.writes)
+    return AxisProbe(rel[0], tuple(found_t), tuple(found_c), x)
 
 
 class _SerialLink:

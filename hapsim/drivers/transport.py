@@ -223,6 +223,10 @@ class DriverTransport:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
             self._listen()
+            # the arming's set-up may restart the device's values (the Haply board sets
+            # its angle to the set-up's offset): what came before predicts nothing, and
+            # the arming is answered twice (a zero write before its set-up, one after)
+            self._dec.reset_prediction(jumps=2)
             self._armed = True
             self._force = 0.0
             self._answered = self._cmd          # records of earlier commands are stale

@@ -1,0 +1,874 @@
+/*
+ * pantograph.c -- hapsim protocol version 1 firmware for the Hapkit pantograph: two Hapkit 3
+ * boards (ATmega328P, 16 MHz) on one TWI bus, one per proximal link of a five-bar
+ * linkage. One source, two roles chosen at compile time (make: pantograph_leader.elf,
+ * pantograph_follower.elf): -DPG_LEADER or -DPG_FOLLOWER.
+ *
+ * Pins (each board, as the Hapkit 3): MR sensor on A2 (ADC2), motor PWM on D5 (Timer0
+ * OC0B, 62.5 kHz), direction on D8 (PB0), D13 (PB5) high while the MCU works on a tick
+ * (the budget probe the emulated board measures), TWI on A4/A5 (SDA/SCL).
+ *
+ * The leader (UART to the host, TWI master) speaks the framed protocol with n_axes = 2 as a
+ * joint-level device: HELLO (device id "HKG2", position_scale = rad per sensor count,
+ * force_scale = N m per PWM step), CONFIG (rates that divide 16 MHz, PG_MIN_RATE_HZ ..
+ * PG_MAX_RATE_HZ), STATE with the joint angles (q1, q2) [rad], FORCE with the joint
+ * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (none offered; no compact frames),
+ * the watchdog. The host does the kinematics (x = f(q), tau = J(q_n)^T F): in float32 on
+ * this 16 MHz AVR the five-bar's forward kinematics and Jacobian took ~20,000 cycles a
+ * tick, more than the 16,000 of a 1 kHz period (docs/pantograph.md). Each tick
+ * (pantograph_link.h): SYNC on the bus (both joints sampled and driven at one instant),
+ * the follower's sample READ, the joint angles unwrapped (flip counting, as the 1-DoF
+ * firmware) from the home of the calibration block in EEPROM, STATE; a FORCE answering
+ * STATE n is quantised to PWM steps, the follower's sent by DRIVE, both applied at tick
+ * n + 1 (delay d = 1).
+ *
+ * The follower (TWI slave) holds the drive it was sent, applies it and starts its ADC at
+ * each SYNC, and hands its raw sample to the READ. It has no clock of its own for the
+ * loop: the leader's SYNC is its tick.
+ *
+ * No malloc, no recursion; each tick's work is bounded (one conversion, the kinematics,
+ * one STATE encode, the frames received).
+ */
+#include <avr/eeprom.h>
+#include <avr/interrupt.h>
+#include <avr/io.h>
+#include <avr/sleep.h>
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+#include "../../c/hproto.h"
+#include "../hapkit/hapkit_geometry.h"
+#include "../hapkit/hk_shared.h"
+#include "pantograph_link.h"
+
+#if defined(PG_LEADER) == defined(PG_FOLLOWER)
+#error "build with -DPG_LEADER or -DPG_FOLLOWER"
+#endif
+
+/* TWCR bits for "go on": interrupt flag cleared, enabled, interrupt on */
+#define TW_GO ((uint8_t)((1 << TWINT) | (1 << TWEN) | (1 << TWIE)))
+
+/* What the tick puts on the PWM: duty n / 256 (0 = off) and the direction. */
+typedef struct {
+    uint16_t n;
+    uint8_t dir;
+} drive_t;
+
+
+static void motor_adc_init(void)
+{
+    DDRD |= (uint8_t)(1 << PD5);
+    PORTD &= (uint8_t)~(1 << PD5);
+    DDRB |= (uint8_t)((1 << PB0) | (1 << PB5));
+    TCCR0A = (uint8_t)((1 << WGM01) | (1 << WGM00)); /* fast PWM 8-bit, OC0B off */
+    TCCR0B = (uint8_t)(1 << CS00);
+    OCR0B = 0;
+    ADMUX = (uint8_t)((1 << REFS0) | 2u);            /* AVcc, ADC2 */
+    DIDR0 = (uint8_t)(1 << ADC2D);
+    ADCSRA = (uint8_t)((1 << ADEN) | (1 << ADIE) | (1 << ADPS2) | (1 << ADPS0)); /* clk/32 */
+}
+
+/* ================================================================ the follower */
+#ifdef PG_FOLLOWER
+
+static volatile drive_t f_hold;          /* applied at the next SYNC */
+static volatile uint8_t f_tx[PG_READ_BYTES];
+static volatile uint8_t f_rx[PG_DRIVE_BYTES];
+static volatile uint8_t f_tx_i, f_rx_i, f_flags;
+
+ISR(TWI_vect)
+{
+    switch (TWSR & 0xF8u) {
+    case 0x70: /* general call: SYNC -- drive and sample now */
+        pwm_write(f_hold.n, f_hold.dir);
+        ADCSRA |= (uint8_t)(1 << ADSC);
+        TCNT1 = 0; /* the leader is there: the watchdog starts again */
+        TCNT0 = 0; /* the PWM carrier in the leader's phase (the leader restarts its own
+                    * with its tick clock): the same at every tick of every session */
+        PORTB |= (uint8_t)(1 << PB5);
+        f_rx_i = 0xFFu; /* no data expected */
+        break;
+    case 0x60: /* own SLA+W: a DRIVE starts */
+        f_rx_i = 0;
+        break;
+    case 0x80: /* a DRIVE byte */
+    case 0x90:
+        if (f_rx_i < PG_DRIVE_BYTES) {
+            f_rx[f_rx_i++] = TWDR;
+        }
+        break;
+    case 0xA0: /* STOP: a whole, checked DRIVE is held for the next SYNC */
+        if (f_rx_i == PG_DRIVE_BYTES) {
+            uint8_t c = (uint8_t)(PG_CHECK_SEED ^ f_rx[0] ^ f_rx[1]);
+            uint16_t n = (uint16_t)(f_rx[0] | ((uint16_t)(f_rx[1] & 1u) << 8));
+            if (c == f_rx[2] && n <= HK_PWM_STEPS) {
+                f_hold.n = n;
+                f_hold.dir = (uint8_t)((f_rx[1] >> 1) & 1u);
+            } else {
+                f_flags |= PG_FLAG_BAD_DRIVE;
+            }
+        }
+        f_rx_i = 0xFFu;
+        PORTB &= (uint8_t)~(1 << PB5);
+        break;
+    case 0xA8: /* own SLA+R: the READ starts with the first byte */
+        f_tx_i = 0;
+        /* fall through */
+    case 0xB8:
+        TWDR = f_tx[f_tx_i < PG_READ_BYTES ? f_tx_i : PG_READ_BYTES - 1u];
+        f_tx_i++;
+        if (f_tx_i >= PG_READ_BYTES) {
+            f_flags &= (uint8_t)~(PG_FLAG_FRESH | PG_FLAG_BAD_DRIVE);
+        }
+        break;
+    default: /* 0xC0, 0xC8: the master took what it wanted; bus errors: recover */
+        break;
+    }
+    TWCR = (uint8_t)(TW_GO | (1 << TWEA));
+}
+
+/* The follower's watchdog: no SYNC for PG_FOLLOWER_WATCHDOG_MS (the leader or the bus
+ * gone): zero torque, held until the next DRIVE says otherwise. */
+ISR(TIMER1_COMPA_vect)
+{
+    f_hold.n = 0;
+    f_hold.dir = 0;
+    pwm_write(0, 0);
+}
+
+ISR(ADC_vect)
+{
+    uint16_t raw = ADC;
+    uint8_t lo = (uint8_t)raw, hi;
+    f_flags |= PG_FLAG_FRESH;
+    hi = (uint8_t)((raw >> 8) | f_flags);
+    f_tx[0] = lo;
+    f_tx[1] = hi;
+    f_tx[2] = (uint8_t)(PG_CHECK_SEED ^ lo ^ hi);
+}
+
+int main(void)
+{
+    motor_adc_init();
+    f_rx_i = 0xFFu;
+    f_tx[2] = PG_CHECK_SEED;
+    /* Timer1, CTC at clk/64 (4 us a count): the watchdog's compare */
+    OCR1A = (uint16_t)(PG_FOLLOWER_WATCHDOG_MS * (F_CPU / 64000UL) - 1UL);
+    TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS11) | (1 << CS10));
+    TIMSK1 = (uint8_t)(1 << OCIE1A);
+    TWAR = (uint8_t)((PG_FOLLOWER_ADDR << 1) | 1u); /* own address, general call on */
+    TWCR = (uint8_t)((1 << TWEA) | (1 << TWEN) | (1 << TWIE));
+    set_sleep_mode(SLEEP_MODE_IDLE);
+    sei();
+    sleep_enable();
+    for (;;) {
+        sleep_cpu(); /* everything happens in the interrupts */
+    }
+}
+
+#endif /* PG_FOLLOWER */
+
+/* ================================================================ the leader */
+#ifdef PG_LEADER
+
+#include "../hapkit/uart.h"
+
+#define PG_DEVICE_ID 0x32474B48UL  /* "HKG2" little-endian */
+#define PG_NATIVE_RATE_HZ 1000UL
+#define PG_MIN_RATE_HZ 250UL       /* Timer1 at clk/1: the period fits 16 bits */
+#ifndef PG_MAX_RATE_HZ
+#define PG_MAX_RATE_HZ 1000UL      /* the cycle budget measured at 1 kHz (docs) */
+#endif
+/* joint angle per unwrapped count [rad] and joint torque per PWM step [N m] */
+#define PG_RAD_PER_COUNT ((float)(HK_SENSOR_PERIOD_RAD / HK_SENSOR_SPAN_COUNTS * \
+                                  HK_CAPSTAN_RADIUS_M / HK_SECTOR_RADIUS_M))
+#define PG_TAU_MAX_NM ((float)(HK_MOTOR_TORQUE_MAX_NM * HK_SECTOR_RADIUS_M / \
+                               HK_CAPSTAN_RADIUS_M))
+#define PG_STEPS_PER_NM ((float)HK_PWM_STEPS / PG_TAU_MAX_NM)
+
+enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
+#define PG_STATE_PACKET 37u /* type, seq, time, status, force_seq, 2 x f64, crc */
+#define PG_FORCE_PACKET 23u /* type, seq, 2 x f64, crc */
+
+/* ---------------------------------------------------------------- shared with the ISRs */
+static volatile uint8_t g_op;            /* the TWI transaction under way */
+static volatile uint8_t g_rd[PG_READ_BYTES], g_rd_i;
+static volatile uint8_t g_dr[PG_DRIVE_BYTES], g_dr_i;
+static volatile uint8_t g_drive_queued;  /* a DRIVE waits for the bus */
+static volatile uint8_t g_sync_queued;   /* a tick came while the bus was busy */
+static volatile drive_t g_own_next;      /* the leader's drive once the DRIVE is acked */
+static volatile drive_t g_own_hold;      /* applied at the next SYNC */
+static volatile uint8_t g_own_ready;     /* g_own_next acked by the follower: hold it */
+static volatile uint32_t g_next_seq, g_hold_seq; /* the FORCE seqs of those drives */
+static volatile uint8_t g_next_clamped, g_hold_clamped, g_hold_new;
+static volatile uint8_t g_next_force;    /* g_own_next came from a FORCE (not a zeroing) */
+static volatile uint16_t g_adc_raw;
+static volatile uint8_t g_adc_done, g_tick_flag, g_overrun, g_nack;
+static volatile uint16_t g_nack_detail;
+static volatile uint32_t g_ticks;
+static volatile uint8_t g_armed, g_tripped, g_trip_event, g_force_applied, g_clamped_now;
+static volatile uint32_t g_force_seq;
+static volatile uint16_t g_wd_reload, g_wd_left;
+static volatile uint32_t g_period_cycles = F_CPU / PG_NATIVE_RATE_HZ;
+static volatile uint64_t g_clock_cycles; /* the device clock at the last tick [cycles] */
+static volatile uint8_t g_read_queued;   /* a conversion is done, the bus was busy */
+static volatile uint8_t g_sampled;       /* a SYNC of this session sampled: its READ counts */
+
+/* ---------------------------------------------------------------- main loop only */
+static pg_calib_t g_cal;
+static uint8_t g_configured, g_fault_latched, g_rx_error, g_have_zero;
+static uint32_t g_bad_frames, g_bad_reported;
+static uint16_t g_rx_lost_seen;
+static int16_t g_last_raw[2];
+static int32_t g_offset[2];
+static float g_limit;                     /* CONFIG's limit on each torque [N m] */
+
+static void twi_start(uint8_t op)
+{
+    g_op = op;
+    TWCR = (uint8_t)(TW_GO | (1 << TWSTA));
+}
+
+/* The transaction is over: STOP, then whatever waits for the bus. */
+static void twi_done(void)
+{
+    TWCR = (uint8_t)((1 << TWINT) | (1 << TWEN) | (1 << TWIE) | (1 << TWSTO));
+    g_op = OP_IDLE;
+    if (g_sync_queued) {
+        g_sync_queued = 0;
+        twi_start(OP_SYNC);
+    } else if (g_read_queued) {
+        g_read_queued = 0;
+        twi_start(OP_READ);
+    } else if (g_drive_queued) {
+        g_drive_queued = 0;
+        g_dr_i = 0;
+        twi_start(OP_DRIVE);
+    }
+}
+
+static void twi_fail(uint8_t what, uint8_t st)
+{
+    g_nack = 1;
+    g_nack_detail = (uint16_t)(what | ((uint16_t)st << 8));
+    g_drive_queued = 0;
+    g_read_queued = 0;
+    g_own_ready = 0;
+    g_armed = 0;
+    pwm_write(0, 0);
+    twi_done();
+}
+
+/* The tick's instant: the leader's drive on its pin and its ADC started. */
+static void sample_now(void)
+{
+    if (g_own_ready) {
+        g_own_hold.n = g_own_next.n;
+        g_own_hold.dir = g_own_next.dir;
+        g_hold_seq = g_next_seq;
+        g_hold_clamped = g_next_clamped;
+        g_hold_new = g_next_force; /* a zeroing (CONFIG, STOP, fault) is no FORCE applied */
+        g_own_ready = 0;
+    }
+    pwm_write(g_armed ? g_own_hold.n : 0u, g_own_hold.dir);
+    ADCSRA |= (uint8_t)(1 << ADSC);
+    g_sampled = 1;
+    if (g_hold_new) {
+        g_hold_new = 0;
+        g_force_seq = g_hold_seq;
+        g_force_applied = 1;
+        g_clamped_now = g_hold_clamped;
+        g_wd_left = g_wd_reload;
+        g_tripped = 0;
+    } else if (g_armed) {
+        if (g_wd_left == 0) {
+            if (!g_tripped) {
+                g_tripped = 1;
+                g_trip_event = 1;
+            }
+        } else {
+            g_wd_left--;
+        }
+    }
+}
+
+ISR(TWI_vect)
+{
+    uint8_t st = TWSR & 0xF8u;
+    switch (st) {
+    case 0x08: /* START sent */
+    case 0x10:
+        TWDR = g_op == OP_SYNC ? 0u
+               : (uint8_t)((PG_FOLLOWER_ADDR << 1) | (g_op == OP_READ ? 1u : 0u));
+        TWCR = TW_GO;
+        return;
+    case 0x18: /* SLA+W acknowledged */
+        if (g_op == OP_SYNC) {
+            sample_now(); /* the same acknowledge bit as the follower's 0x70 */
+            twi_done();
+            return;
+        }
+        /* fall through - the DRIVE's first byte */
+    case 0x28: /* a byte acknowledged (simavr 1.6 reports the address so as well) */
+        if (g_op == OP_SYNC) {
+            sample_now();
+            twi_done();
+            return;
+        }
+        if (g_dr_i < PG_DRIVE_BYTES) {
+            TWDR = g_dr[g_dr_i++];
+            TWCR = TW_GO;
+        } else { /* all acknowledged: the leader's drive goes with the follower's */
+            g_own_ready = 1;
+            twi_done();
+        }
+        return;
+    case 0x20: /* SLA+W not acknowledged */
+        if (g_op == OP_SYNC) {
+            sample_now(); /* the leader keeps its clock; the fault zeroes the drives */
+            twi_fail(PG_NACK_SYNC, st);
+        } else {
+            twi_fail(PG_NACK_DRIVE, st);
+        }
+        return;
+    case 0x30: /* a byte not acknowledged (simavr 1.6: the address too) */
+        if (g_op == OP_SYNC) {
+            sample_now();
+            twi_fail(PG_NACK_SYNC, st);
+            return;
+        }
+        twi_fail(PG_NACK_DRIVE, st);
+        return;
+    case 0x40: /* SLA+R acknowledged */
+        g_rd_i = 0;
+        TWCR = (uint8_t)(TW_GO | (1 << TWEA));
+        return;
+    case 0x50: /* a byte, more wanted */
+    case 0x58: /* the last byte */
+        if (g_rd_i < PG_READ_BYTES) {
+            g_rd[g_rd_i++] = TWDR;
+        }
+        if (st == 0x58 || g_rd_i >= PG_READ_BYTES) {
+            twi_done();
+            /* a READ of a sample taken before a CONFIG restarted the ticks is dropped
+             * (with its conversion: not an overrun of the new session's first tick) */
+            g_tick_flag = g_sampled;
+            if (!g_sampled) {
+                g_adc_done = 0;
+            }
+            g_sampled = 0;
+        } else {
+            TWCR = (uint8_t)(g_rd_i + 1u < PG_READ_BYTES ? TW_GO | (1 << TWEA) : TW_GO);
+        }
+        return;
+    case 0x48: /* SLA+R not acknowledged */
+        twi_fail(PG_NACK_READ, st);
+        g_tick_flag = 1;
+        return;
+    default: /* arbitration lost, bus error */
+        twi_fail(PG_NACK_SYNC, st);
+        return;
+    }
+}
+
+ISR(TIMER1_COMPA_vect)
+{
+    PORTB |= (uint8_t)(1 << PB5); /* budget probe: busy */
+    if (g_tick_flag | g_adc_done) {
+        g_overrun = 1;
+    }
+    if (g_op == OP_IDLE) {
+        twi_start(OP_SYNC);
+    } else {
+        g_sync_queued = 1; /* a DRIVE still on the bus: the tick waits for it */
+        g_overrun = 1;
+    }
+    g_ticks++;
+    g_clock_cycles += g_period_cycles; /* a 64-bit add here, no multiply in now_us */
+}
+
+/* The tick's conversion is done: read the follower's sample of the same instant. */
+ISR(ADC_vect)
+{
+    g_adc_raw = ADC;
+    g_adc_done = 1;
+    if (g_op == OP_IDLE) {
+        twi_start(OP_READ);
+    } else {
+        g_read_queued = 1; /* after the transaction on the bus (a DRIVE) */
+    }
+}
+
+/* ---------------------------------------------------------------- sending */
+
+static void send(const hp_msg_t *m)
+{
+    uint8_t frame[HP_MAX_FRAME];
+    size_t n = hp_encode(m, frame, sizeof frame);
+    if (n) {
+        (void)uart_put(frame, n);
+    }
+}
+
+static void send_fault(uint16_t code, uint32_t detail)
+{
+    hp_msg_t m;
+    m.type = HP_MSG_FAULT;
+    m.u.fault.code = code;
+    m.u.fault.detail = detail;
+    send(&m);
+}
+
+static void send_hello(void)
+{
+    hp_msg_t m;
+    m.type = HP_MSG_LINK;
+    m.u.link.baud = HK_BAUD;
+    m.u.link.bits_per_byte = HK_BITS_PER_BYTE;
+    send(&m);
+    m.type = HP_MSG_HELLO;
+    m.u.hello.protocol_version = HP_PROTOCOL_VERSION;
+    m.u.hello.n_axes = 2;
+    m.u.hello.device_id = PG_DEVICE_ID;
+    /* joint angle per count [rad] and joint torque per PWM step [N m]: the positions and
+     * forces on the wire are Cartesian, these are the joints' resolution */
+    m.u.hello.position_scale = f64_of_float(PG_RAD_PER_COUNT);
+    m.u.hello.force_scale = f64_of_float(1.0f / PG_STEPS_PER_NM);
+    m.u.hello.force_limit = f64_of_float(1e30f);
+    m.u.hello.native_rate_hz = f64_of_float((float)PG_NATIVE_RATE_HZ);
+    send(&m);
+}
+
+#if F_CPU != 16000000UL
+#error "now_us() assumes 16 MHz"
+#endif
+
+/* The device clock at the last tick [us] (the STATE's time; a PONG's within a period). */
+static uint64_t now_us(void)
+{
+    uint64_t c;
+    uint8_t s = SREG;
+    cli();
+    c = g_clock_cycles;
+    SREG = s;
+    return c >> 4; /* 16 cycles per microsecond at 16 MHz */
+}
+
+static void timer1_start(uint32_t period_cycles)
+{
+    TCCR1B = (uint8_t)(1 << WGM12);
+    TCNT1 = 0;
+    /* the PWM carrier restarts with the tick clock: its phase at every tick is the same
+     * in every session, whatever cycle the CONFIG came at (as the 1-DoF firmware: simavr
+     * wakes a sleeping core on its timers' events) */
+    TCNT0 = 0;
+    TIFR1 = (uint8_t)(1 << OCF1A);
+    OCR1A = (uint16_t)(period_cycles - 1u);
+    TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));
+    TIMSK1 = (uint8_t)(1 << OCIE1A);
+}
+
+static void load_calibration(void)
+{
+    eeprom_read_block(&g_cal, (const void *)0, sizeof g_cal);
+    if (g_cal.magic != PG_CALIB_MAGIC ||
+        hp_crc16(0xFFFFu, (const uint8_t *)&g_cal, offsetof(pg_calib_t, crc)) != g_cal.crc ||
+        !isfinite(g_cal.home_q1) || !isfinite(g_cal.home_q2)) {
+        g_cal.home_q1 = (float)PG_DEFAULT_Q1;
+        g_cal.home_q2 = (float)PG_DEFAULT_Q2;
+    }
+}
+
+/* ---------------------------------------------------------------- protocol */
+
+static void zero_now(void)
+{
+    uint8_t s = SREG;
+    cli();
+    g_own_ready = 0;
+    g_own_hold.n = 0;
+    g_own_hold.dir = 0;
+    pwm_write(0, 0);
+    g_clamped_now = 0;
+    SREG = s;
+}
+
+static void queue_drive(uint16_t n, uint8_t dir);
+static void zero_drives(void);
+
+static void latch_fault(uint16_t code, uint32_t detail)
+{
+    g_armed = 0;
+    g_fault_latched = 1;
+    zero_now();
+    zero_drives();
+    send_fault(code, detail);
+}
+
+/* Put the follower's drive on the bus (now, or when the bus is free); the leader's own
+ * (g_own_next) goes with it once acknowledged. A zeroing sets the leader's to zero. */
+static void queue_drive(uint16_t n, uint8_t dir)
+{
+    uint8_t b0 = (uint8_t)n, b1 = (uint8_t)(((n >> 8) & 1u) | (uint8_t)(dir << 1));
+    uint8_t s = SREG;
+    cli();
+    g_dr[0] = b0;
+    g_dr[1] = b1;
+    g_dr[2] = (uint8_t)(PG_CHECK_SEED ^ b0 ^ b1);
+    g_own_ready = 0; /* the leader's next drive waits for this one's acknowledge */
+    if (g_op == OP_IDLE && !g_sync_queued) {
+        g_dr_i = 0;
+        twi_start(OP_DRIVE);
+    } else {
+        g_drive_queued = 1;
+    }
+    SREG = s;
+}
+
+/* Both joints to zero torque at the next tick (not a FORCE applied). */
+static void zero_drives(void)
+{
+    uint8_t s = SREG;
+    cli();
+    g_own_next.n = 0;
+    g_own_next.dir = 0;
+    g_next_force = 0;
+    g_next_seq = 0;
+    g_next_clamped = 0;
+    SREG = s;
+    queue_drive(0, 0);
+}
+
+static void on_config(const hp_config_t *c)
+{
+    uint32_t rate = 0, period;
+    uint8_t ok = f64_to_u32_exact(c->rate_hz, &rate);
+    ok = ok && rate >= PG_MIN_RATE_HZ && rate <= PG_MAX_RATE_HZ && (F_CPU % rate) == 0;
+    period = ok ? F_CPU / rate : 0;
+    ok = ok && (uint64_t)c->watchdog_us * rate >= 2000000ULL &&
+         (uint64_t)c->watchdog_us * rate / 1000000ULL <= 65535ULL;
+    ok = ok && f64_is_finite(c->force_limit) && !(c->force_limit.hi >> 31);
+    if (!ok) {
+        latch_fault(HP_FAULT_BAD_CONFIG, 0);
+        return;
+    }
+    g_limit = float_of_f64(c->force_limit);
+    zero_drives(); /* the follower starts from zero torque */
+    cli();
+    g_period_cycles = period;
+    g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
+    g_wd_left = g_wd_reload;
+    g_own_ready = 0;
+    g_own_hold.n = 0;
+    g_own_hold.dir = 0;
+    pwm_write(0, 0);
+    g_clamped_now = 0;
+    g_tripped = 0;
+    g_trip_event = 0;
+    g_force_seq = 0;
+    g_force_applied = 0;
+    g_hold_new = 0;
+    g_ticks = 0;
+    g_tick_flag = 0;
+    g_adc_done = 0;
+    g_sampled = 0;
+    g_overrun = 0;
+    g_nack = 0;
+    g_armed = 1;
+    timer1_start(period);
+    sei();
+    g_configured = 1;
+    g_fault_latched = 0;
+}
+
+/* Joint torque tau [N m] as PWM steps and direction; `clamped` set at full duty. */
+static drive_t to_drive(float tau, uint8_t *clamped)
+{
+    drive_t d;
+    float a = fabsf(tau) * PG_STEPS_PER_NM;
+    if (a >= (float)HK_PWM_STEPS) {
+        d.n = HK_PWM_STEPS;
+        *clamped = 1;
+    } else {
+        d.n = (uint16_t)(a + 0.5f);
+    }
+    d.dir = tau > 0.0f;
+    return d;
+}
+
+/* The joint torques [N m] of a FORCE answering STATE `seq` (binary64 on the wire). */
+static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
+{
+    float t1, t2;
+    uint8_t clamped = 0;
+    drive_t d1, d2;
+    if (!g_armed) {
+        return;
+    }
+    if (g_force_applied && (int32_t)(seq - g_force_seq) < 0) {
+        return; /* older than the torques applied */
+    }
+    if (!f64_is_finite(b1) || !f64_is_finite(b2)) {
+        latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
+        return;
+    }
+    t1 = float_of_f64(b1);
+    t2 = float_of_f64(b2);
+    if (fabsf(t1) > g_limit) {
+        t1 = t1 > 0 ? g_limit : -g_limit;
+        clamped = 1;
+    }
+    if (fabsf(t2) > g_limit) {
+        t2 = t2 > 0 ? g_limit : -g_limit;
+        clamped = 1;
+    }
+    d2 = to_drive(t2, &clamped);
+    queue_drive(d2.n, d2.dir); /* the follower's first: it is on the critical path */
+    d1 = to_drive(t1, &clamped);
+    cli();
+    g_own_next.n = d1.n;
+    g_own_next.dir = d1.dir;
+    g_next_seq = seq;
+    g_next_clamped = clamped;
+    g_next_force = 1;
+    sei();
+}
+
+static void on_force(const hp_force_t *f)
+{
+    if (f->n_axes != 2) {
+        send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
+        return;
+    }
+    take_torques(f->seq, f->force[0], f->force[1]);
+}
+
+static void on_message(const hp_msg_t *m)
+{
+    hp_msg_t r;
+    switch (m->type) {
+    case HP_MSG_HELLO_REQUEST:
+        send_hello();
+        if (m->u.hello_request.protocol_version != HP_PROTOCOL_VERSION) {
+            latch_fault(HP_FAULT_VERSION_MISMATCH, m->u.hello_request.protocol_version);
+        }
+        break;
+    case HP_MSG_CONFIG:
+        on_config(&m->u.config);
+        break;
+    case HP_MSG_FORCE:
+        on_force(&m->u.force);
+        break;
+    case HP_MSG_FORCE_COMPACT:
+        send_fault(HP_FAULT_AXES_MISMATCH, 0); /* compact frames are not offered */
+        break;
+    case HP_MSG_PING:
+        r.type = HP_MSG_PONG;
+        r.u.pong.nonce = m->u.ping.nonce;
+        r.u.pong.host_time_us = m->u.ping.host_time_us;
+        r.u.pong.device_time_us = now_us();
+        send(&r);
+        break;
+    case HP_MSG_STOP:
+        g_armed = 0;
+        zero_now();
+        zero_drives();
+        break;
+    case HP_MSG_SENSORS_REQUEST:
+        r.type = HP_MSG_SENSORS;
+        r.u.sensors.offered = 0;
+        r.u.sensors.enabled = 0;
+        send(&r);
+        break;
+    default:
+        break;
+    }
+}
+
+static void take_frame(void)
+{
+    static uint8_t pk[HP_MAX_PACKET];
+    hp_msg_t m;
+    uint8_t len = uart_packet(pk);
+    int r;
+    if (!len) {
+        return;
+    }
+    if (len == PG_FORCE_PACKET && pk[0] == HP_MSG_FORCE) {
+        /* the one frame of every tick, 2 axes: checked and taken here (hp_decode_packet's
+         * result for it, without its dispatch; little-endian, as the wire) */
+        if (hp_crc16(0xFFFFu, pk, PG_FORCE_PACKET) == 0) {
+            uint32_t seq;
+            hp_b64_t b1, b2;
+            memcpy(&seq, &pk[1], sizeof seq);
+            memcpy(&b1, &pk[5], sizeof b1);
+            memcpy(&b2, &pk[13], sizeof b2);
+            take_torques(seq, b1, b2);
+        } else {
+            g_bad_frames++;
+            g_rx_error = 1;
+        }
+        return;
+    }
+    r = len == UART_OVERLONG ? HP_ERR_OVERLONG
+        : len == UART_BAD_COBS ? HP_ERR_BAD_COBS : hp_decode_packet(pk, len, &m);
+    if (r == HP_OK) {
+        on_message(&m);
+    } else {
+        g_bad_frames++;
+        g_rx_error = 1;
+    }
+}
+
+/* Unwrapped counts of joint i from its raw sample (flip counting; zero at the first). */
+static int32_t unwrap(uint8_t i, uint16_t raw)
+{
+    int16_t d;
+    if (!g_have_zero) {
+        g_last_raw[i] = (int16_t)raw;
+        g_offset[i] = -(int32_t)raw;
+    }
+    d = (int16_t)((int16_t)raw - g_last_raw[i]);
+    if (d > (int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
+        g_offset[i] -= (int32_t)HK_SENSOR_SPAN_COUNTS;
+    } else if (d < -(int16_t)(HK_SENSOR_SPAN_COUNTS / 2)) {
+        g_offset[i] += (int32_t)HK_SENSOR_SPAN_COUNTS;
+    }
+    g_last_raw[i] = (int16_t)raw;
+    return (int32_t)raw + g_offset[i];
+}
+
+static void serve_tick(void)
+{
+    uint16_t status = 0, lost, raw0, raw1;
+    uint32_t seq, fseq;
+    uint8_t s, rd[PG_READ_BYTES], nack, ok_read;
+    float q1, q2;
+    s = SREG;
+    cli();
+    raw0 = g_adc_raw;
+    memcpy(rd, (const void *)g_rd, sizeof rd);
+    g_tick_flag = 0;
+    g_adc_done = 0;
+    nack = g_nack;
+    seq = g_ticks - 1u;
+    fseq = g_force_seq;
+    if (g_armed) {
+        status |= HP_STATUS_ARMED;
+    }
+    if (g_tripped) {
+        status |= HP_STATUS_WATCHDOG_TRIPPED;
+    }
+    if (g_clamped_now) {
+        status |= HP_STATUS_FORCE_CLAMPED;
+    }
+    if (g_force_applied) {
+        status |= HP_STATUS_FORCE_APPLIED;
+    }
+    if (g_overrun) {
+        status |= HP_STATUS_OVERRUN;
+        g_overrun = 0;
+    }
+    SREG = s;
+    ok_read = !nack && (uint8_t)(PG_CHECK_SEED ^ rd[0] ^ rd[1]) == rd[2] &&
+              (rd[1] & PG_FLAG_FRESH);
+    if (nack) {
+        g_nack = 0;
+        if (!g_fault_latched) {
+            latch_fault(HP_FAULT_SENSOR, g_nack_detail);
+        }
+        return;
+    }
+    if (!ok_read) {
+        if (!g_fault_latched) {
+            latch_fault(HP_FAULT_SENSOR, PG_BAD_READ);
+        }
+        return;
+    }
+    raw1 = (uint16_t)(rd[0] | ((uint16_t)(rd[1] & 3u) << 8));
+    q1 = g_cal.home_q1 + (float)unwrap(0, raw0) * PG_RAD_PER_COUNT;
+    q2 = g_cal.home_q2 + (float)unwrap(1, raw1) * PG_RAD_PER_COUNT;
+    g_have_zero = 1;
+    if (g_fault_latched) {
+        status |= HP_STATUS_FAULT;
+    }
+    if (g_configured) {
+        status |= HP_STATUS_CONFIGURED;
+    }
+    lost = uart_rx_lost();
+    if (lost != g_rx_lost_seen) {
+        g_rx_lost_seen = lost;
+        g_rx_error = 1;
+    }
+    if (g_rx_error) {
+        status |= HP_STATUS_RX_ERROR;
+    }
+    {
+        /* STATE packed here (hp_encode's bytes: the golden vectors check hp_encode, the
+         * closed-loop tests these), COBS-encoded straight into the transmit ring */
+        uint8_t pk[PG_STATE_PACKET];
+        uint64_t t = now_us();
+        hp_b64_t b1 = f64_of_float(q1), b2 = f64_of_float(q2);
+        uint16_t crc;
+        pk[0] = HP_MSG_STATE;
+        memcpy(&pk[1], &seq, 4);
+        memcpy(&pk[5], &t, 8);
+        memcpy(&pk[13], &status, 2);
+        memcpy(&pk[15], &fseq, 4);
+        memcpy(&pk[19], &b1, 8);
+        memcpy(&pk[27], &b2, 8);
+        crc = hp_crc16(0xFFFFu, pk, PG_STATE_PACKET - 2u);
+        pk[PG_STATE_PACKET - 2u] = (uint8_t)(crc >> 8);
+        pk[PG_STATE_PACKET - 1u] = (uint8_t)crc;
+        (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
+    }
+    if (g_trip_event) {
+        g_trip_event = 0;
+        send_fault(HP_FAULT_WATCHDOG, 0);
+        zero_now();
+        zero_drives();
+    }
+    if (g_bad_frames != g_bad_reported) {
+        g_bad_reported = g_bad_frames;
+        send_fault(HP_FAULT_RX_ERRORS, g_bad_frames);
+    }
+    g_rx_error = 0;
+}
+
+int main(void)
+{
+    const uint8_t zero = 0;
+    load_calibration();
+    motor_adc_init();
+    uart_init();
+    TWBR = PG_TWBR;
+    TWSR = 0; /* prescaler 1 */
+    TWCR = (uint8_t)((1 << TWEN) | (1 << TWIE));
+    timer1_start(g_period_cycles); /* native rate, disarmed: STATE for the host to watch */
+    set_sleep_mode(SLEEP_MODE_IDLE);
+    sei();
+    (void)uart_put(&zero, 1);
+    send_hello();
+    sleep_enable();
+    for (;;) {
+        cli();
+        if (g_tick_flag | uart_frame_ready()) {
+            sei();
+            if (uart_frame_ready()) {
+                take_frame();
+            }
+            if (g_tick_flag) {
+                serve_tick();
+            }
+            continue;
+        }
+        if (g_op == OP_IDLE) {
+            PORTB &= (uint8_t)~(1 << PB5); /* budget probe: idle */
+        }
+        sei();
+        sleep_cpu();
+    }
+}
+
+#endif /* PG_LEADER */

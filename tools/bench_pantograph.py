@@ -1,0 +1,164 @@
+"""The cycle budget of the Hapkit pantograph firmware (two emulated ATmega328P on a TWI bus).
+
+The emulated board (``pantograph_board``, lockstep: the emulated time waits for each FORCE,
+so the figures are cycle counts of the emulated chips and do not depend on the host
+machine's load) runs the leader and the follower on a scene's pantograph; a small host
+arms it at ``--rate`` and answers every STATE with joint torques (a joint-space spring
+``-K (q - q0)``, 5 N m/rad) for ``--ticks`` ticks. Reported, per tick (between two rising
+edges of the leader's D13 probe, which its tick interrupt raises): the cycles each MCU is
+not asleep (mean, worst), the slack of the critical path (from the end of the tick's DRIVE
+-- the follower's torque on the bus, the last step before both joints can take the next
+tick's torques -- to the next tick's SYNC: the cycles to spare, smallest and mean), the
+device's delay (``seq - force_seq``), the overruns and the TWI traffic. ``--profile``:
+the leader's busy cycles by function (the ELF's symbols).
+
+    PYTHONPATH=. python tools/bench_pantograph.py [--ticks 1000] [--json FILE] [--profile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import firmware_protocol as fp  # noqa: E402
+from hapsim.daemon import pantograph_board as pb  # noqa: E402
+from hapsim.daemon.transport import SerialTransport  # noqa: E402
+from hapsim.scene_nd import load_scene_nd  # noqa: E402
+
+#: The host's joint-space spring [N m/rad].
+SPRING = 5.0
+
+
+def _profile(path: Path) -> list:
+    """(function, cycles) of the leader's busy cycles, largest first."""
+    syms = []
+    out = subprocess.run(["avr-nm", "-n", "-S", str(pb.LEADER_ELF)], capture_output=True,
+                         text=True).stdout
+    for line in out.splitlines():
+        p = line.split()
+        if len(p) >= 4 and p[2] in "tTwW":
+            syms.append((int(p[0], 16), int(p[1], 16), p[3].split(".")[0]))
+    tot: collections.Counter = collections.Counter()
+    for line in path.read_text().splitlines():
+        a, c = line.split()
+        a, c = int(a, 16), int(c)
+        name = next((n for s, z, n in syms if s <= a < s + z), "?")
+        tot[name] += c
+    return tot.most_common()
+
+
+def measure(scene_path: str, rate: float, ticks: int, profile: bool = False) -> dict:
+    """Run the board and the host; returns the board's report with the host's figures.
+
+    Parameters
+    ----------
+    scene_path : str
+        A 2-D pantograph scene (its geometry, home and dynamics).
+    rate : float
+        CONFIG rate [Hz] (the firmware takes 250..1000 Hz dividing 16 MHz).
+    ticks : int
+        Armed ticks answered.
+    profile : bool
+        Add the leader's busy cycles by function.
+
+    Returns
+    -------
+    dict
+        ``rate_hz``, ``ticks``, ``delay`` (the most common ``seq - force_seq``),
+        ``late`` (STATEs whose lag is not that), ``budget``, ``twi``, ``firmware`` (the
+        board's report sections) and ``profile`` when asked.
+    """
+    pb.build()
+    scene = load_scene_nd(scene_path)
+    q0 = [float(v) for v in scene.device.joints]
+    with tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "board.json"
+        prof = Path(tmp) / "profile.txt"
+        cmd = pb.board_command(scene, 1e-8, report=str(report),
+                               profile=str(prof) if profile else None)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+        lags = collections.Counter()
+        try:
+            port = proc.stdout.readline().split()[1]
+            tr = SerialTransport(port)
+            tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
+            tr.send(fp.Config(float(rate), int(20e6 / rate), 10.0))
+            n = 0
+            end = time.monotonic() + 60 + ticks / 100
+            while n < ticks and time.monotonic() < end:
+                for m in tr.receive(0.05):
+                    if isinstance(m, fp.State) and m.status & fp.STATUS_ARMED:
+                        q = m.position
+                        tr.send(fp.Force(m.seq, tuple(-SPRING * (q[i] - q0[i])
+                                                      for i in range(2))))
+                        if m.status & fp.STATUS_FORCE_APPLIED:
+                            lags[m.seq - m.force_seq] += 1
+                        n += 1
+            tr.send(fp.Stop())
+            time.sleep(0.05)
+            tr.close()
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=20)
+        rep = json.loads(report.read_text())
+        delay, count = lags.most_common(1)[0] if lags else (None, 0)
+        out = {"rate_hz": rate, "ticks": n, "delay": delay,
+               "late": sum(lags.values()) - count, "budget": rep["budget"], "twi": rep["twi"],
+               "firmware": rep["firmware"]}
+        if profile:
+            out["profile"] = _profile(prof)
+    return out
+
+
+def main(argv=None) -> int:
+    """Print the budget table (and write ``--json``); exit 1 when a tick was late or the
+    delay is not one tick."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scene", default=str(ROOT / "configs" / "pantograph_wall.yaml"))
+    p.add_argument("--rates", default="1000,500", help="CONFIG rates [Hz], comma-separated")
+    p.add_argument("--ticks", type=int, default=1000)
+    p.add_argument("--json", metavar="FILE")
+    p.add_argument("--profile", action="store_true")
+    args = p.parse_args(argv)
+    rows = [measure(args.scene, float(r), args.ticks, args.profile)
+            for r in args.rates.split(",")]
+    print("| rate | period | leader busy mean / max | follower busy mean / max | "
+          "slack min / mean | delay | late | overruns |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    bad = False
+    for r in rows:
+        b, t = r["budget"], r["twi"]
+        print(f"| {r['rate_hz']:g} Hz | {b['period_cycles']:.0f} | "
+              f"{b['leader_busy_mean_cycles']:.0f} / {b['leader_busy_max_cycles']} | "
+              f"{b['follower_busy_mean_cycles']:.0f} / {b['follower_busy_max_cycles']} | "
+              f"{t['slack_min_cycles']} / {t['slack_mean_cycles']:.0f} | {r['delay']} | "
+              f"{r['late']} | {r['firmware']['overrun']} |")
+        bad = bad or r["late"] > 0 or r["delay"] != 1
+        if args.profile:
+            tot = sum(c for _, c in r["profile"])
+            for name, c in r["profile"][:12]:
+                print(f"    {name:32s} {c / max(r['ticks'], 1):8.0f} cycles/tick "
+                      f"{c / tot:6.1%}")
+    if args.json:
+        # paths as the command takes them in a clone (relative to it), not this machine's
+        scene = Path(args.scene).resolve()
+        scene = str(scene.relative_to(ROOT)) if scene.is_relative_to(ROOT) else args.scene
+        command = "PYTHONPATH=. python tools/bench_pantograph.py " + " ".join(
+            argv if argv is not None else sys.argv[1:])
+        Path(args.json).write_text(json.dumps({"command": command, "scene": scene,
+                                               "rows": rows}, indent=1) + "\n")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
