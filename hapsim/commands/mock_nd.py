@@ -198,10 +198,10 @@ def run_pantograph_firmware(args) -> int:
     from hapsim.daemon import pantograph_board as pb
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
-    refuse_untaken_firmware(args)
     if not args.lockstep:
         raise ConfigError("the emulated Hapkit pantograph runs in lockstep only (its real-time "
                           "mode is not built): add --lockstep", key="--lockstep")
+    refuse_untaken_firmware(args)
     scene = load_scene_nd(args.scene)
     a = FIRMWARE_AMPLITUDE if args.amplitude is None else args.amplitude
     cmd = pb.board_command(scene, a, report=args.report, link=args.link)
