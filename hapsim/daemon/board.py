@@ -121,7 +121,8 @@ def make(what: str, steps, *, quiet: bool = True) -> str:
 
 def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,
                   report: str | None = None, link: str | None = None,
-                  wait_ms: float | None = None, duration: float | None = None) -> list[str]:
+                  wait_ms: float | None = None, duration: float | None = None,
+                  trace: str | None = None, spin_us: float | None = None) -> list[str]:
     """The ``hapkit_board`` command line for a scene's device and excitation.
 
     Parameters
@@ -142,6 +143,13 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
     wait_ms, duration : float, optional
         Longest wait for the host per STATE [ms] (default: as long as the host keeps the
         port open, so no FORCE is late however slow the host); emulated time to run [s].
+    trace : str, optional
+        File the board writes its event trace to on exit (every tick, conversion, PWM
+        change, STATE, FORCE read and fed, wait for the wall clock; emulated cycle and
+        CLOCK_MONOTONIC; read by ``tools/bench_firmware.py``).
+    spin_us : float, optional
+        Real time: the longest spin per tick [us] while the board waits for the host's FORCE
+        (emulating in 10 us steps, never ahead of the wall clock); default 0, no spin.
 
     Returns
     -------
@@ -167,6 +175,10 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
         cmd += ["--wait-ms", repr(float(wait_ms))]
     if duration is not None and math.isfinite(duration):
         cmd += ["--duration", repr(float(duration))]
+    if trace:
+        cmd += ["--trace", trace]
+    if spin_us:
+        cmd += ["--spin-us", repr(float(spin_us))]
     return cmd
 
 

@@ -152,6 +152,7 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
     return LoopConfig(rate_hz=scene.rate_hz, n_samples=prep.n_samples, delay=dev.delay,
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
+                      compact={"auto": "auto", "full": "off", "compact": "on"}[opts.frames],
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
                       if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
                       # (a driver's board may reset when its port opens: the FireFader's

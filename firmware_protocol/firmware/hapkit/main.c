@@ -243,6 +243,12 @@ static void timer1_start(uint32_t period_cycles)
 {
     TCCR1B = (uint8_t)(1 << WGM12); /* CTC, clock stopped (OCR1A is written in CTC mode) */
     TCNT1 = 0;
+    /* the PWM carrier (Timer0, free-running since reset) restarts with the tick clock, so
+     * that its phase at every tick is the same in every session whatever cycle the CONFIG
+     * came at (simavr wakes a sleeping core on its timers' events: with the carrier's
+     * phase left to the CONFIG's arrival, two lockstep runs differed by one cycle in a
+     * tick interrupt's entry, then by one ADC count in 87 of 1200 samples at 4 kHz) */
+    TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     if (period_cycles <= 65536UL) {
         OCR1A = (uint16_t)(period_cycles - 1u);
