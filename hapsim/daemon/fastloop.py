@@ -65,7 +65,7 @@ from hapsim.kernels.ticks import tick_late as _tick_late
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "0af88cbb3d6c51958e56732b9edc6b71cfcfc6ed37bb9d7331bbd95b268f8f27"
+COMPILED_SOURCES_SHA256 = "84f99b09fcbacdbde3cbdd9281495c9d944c3a379520005a18dd885cffefe320"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
