@@ -106,3 +106,57 @@ def test_the_first_wall_comment_states_its_limits():
               for extra in range(5)]
     assert limits == [2259, 1344, 951, 732, 593]
     assert _loop("configs/first_wall.yaml", 0)[1:] == (500.0, 3.0)
+
+
+def stalled_run(m: float, b0: float, rate: float, K: float, B: float, *, stall: int,
+                watchdog: int = 50, limit: float = 10.0, x0: float = 0.005, at: int = 23,
+                n: int = 1000) -> tuple:
+    """The wall's real-time run (delay 1, force clamped at ``limit`` [N]) whose host goes
+    silent for ``stall`` samples from sample ``at``: the device holds its last force one
+    watchdog period (``watchdog`` samples, 50 ms at 1 kHz: hapsim.daemon.loop.LoopConfig),
+    then zero force, until the host answers again (the newest STATE). Independent of
+    hapsim: exact ZOH steps of the mass [kg] with friction [N s/m] (scipy), the force
+    ``-K x[n] - B (x[n] - x[n-1]) / T`` applied one period later.
+
+    Returns
+    -------
+    (bool, int)
+        Whether the loop's safety rule trips (the force at the limit in 50 of the last 100
+        samples answered), and the sample it trips at (-1: never).
+    """
+    T = 1.0 / rate
+    Ad, Bd, *_ = cont2discrete((np.array([[0.0, 1.0], [0.0, -b0 / m]]),
+                                np.array([[0.0], [1.0 / m]]), np.eye(2), np.zeros((2, 1))),
+                               T, "zoh")
+    s = np.array([x0, 0.0])
+    x_prev, held, at_limit = x0, 0.0, []
+    for k in range(n):
+        x = s[0]
+        if at <= k < at + stall:                      # the host silent
+            u = held if k < at + watchdog else 0.0
+        else:
+            f = min(limit, max(-limit, -K * x - B * (x - x_prev) / T))
+            u, held = held, f                         # applied one period later
+            at_limit.append(abs(f) >= limit)
+            if sum(at_limit[-100:]) >= 50:
+                return True, k
+        x_prev = x
+        s = Ad @ s + Bd[:, 0] * u
+    return False, -1
+
+
+@pytest.mark.parametrize("stall", [0, 30, 60, 96, 150])
+def test_the_first_wall_recovers_from_a_stalled_host_where_wall_yaml_stops(stall):
+    """A loaded machine's host can go silent for tens of samples (a 96-sample silence was
+    seen in a loaded real-time run of configs/wall.yaml, which ended on its safety stop:
+    docs/getting-started.md). The first run's wall recovers from silences up to 150
+    samples; wall.yaml's barely damped loop, once the excursion saturates the force, rings
+    at the limit until the safety stop, from 60 samples of silence on."""
+    def trips(path):
+        loop, K, B = _loop(path, 0)
+        scene = load_scene(str(ROOT / path))
+        assert loop.delay == 1                        # the model's
+        return stalled_run(loop.mass, loop.friction, loop.rate_hz, K, B, stall=stall,
+                           limit=scene.device.force_limit, x0=scene.excitation.x0)[0]
+    assert not trips(readme_first_run().split()[2])
+    assert trips("configs/wall.yaml") == (stall >= 60)

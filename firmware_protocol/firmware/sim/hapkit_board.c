@@ -62,6 +62,7 @@
 #include "avr_uart.h"
 
 #include "../../c/hproto.h"
+#include "board_common.h"
 #include "../hapkit/hapkit_geometry.h"
 
 /* ATmega328P data-space addresses (datasheet, register summary) */
@@ -677,61 +678,7 @@ static void read_host(int timeout_ms)
     }
 }
 
-static int open_pty(void)
-{
-    int fd = posix_openpt(O_RDWR | O_NOCTTY);
-    int slave;
-    struct termios t;
-    char *name;
-    if (fd < 0 || grantpt(fd) || unlockpt(fd) || !(name = ptsname(fd))) {
-        perror("hapkit_board: pty");
-        exit(1);
-    }
-    slave = open(name, O_RDWR | O_NOCTTY);
-    if (slave >= 0) {
-        tcgetattr(slave, &t);
-        cfmakeraw(&t);
-        tcsetattr(slave, TCSANOW, &t);
-        close(slave); /* the raw settings stay with the pty */
-    }
-    fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
-    if (opt.link) {
-        char tmp[4096];
-        snprintf(tmp, sizeof tmp, "%s.new", opt.link);
-        unlink(tmp);
-        if (symlink(name, tmp) == 0) {
-            rename(tmp, opt.link);
-        }
-    }
-    printf("PORT %s\n", opt.link ? opt.link : name);
-    fflush(stdout);
-    return fd;
-}
 
-/* simavr's messages: errors go to stderr (stdout carries only the PORT line and the
- * report); its warnings and traces are not the user's business (e.g. "TIMER:
- * avr_timer_write_ocr-1 mode 0 UNSUPPORTED" when the firmware writes OCR1A before it sets
- * the timer's mode) and are only counted, the last one kept, for the report. */
-static struct {
-    uint64_t warnings;
-    char last[160];
-} simlog;
-
-static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
-{
-    (void)a;
-    if (level <= LOG_ERROR) {
-        vfprintf(stderr, format, ap);
-    } else if (level == LOG_WARNING) {
-        size_t n;
-        simlog.warnings++;
-        vsnprintf(simlog.last, sizeof simlog.last, format, ap);
-        n = strlen(simlog.last);
-        while (n > 0 && (simlog.last[n - 1] == '\n' || simlog.last[n - 1] == '\r')) {
-            simlog.last[--n] = 0;
-        }
-    }
-}
 
 /* ---------------------------------------------------------------- report */
 
@@ -799,15 +746,7 @@ static void report(int code)
             (unsigned long long)trace_dropped);
     fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"",
             (unsigned long long)simlog.warnings);
-    {
-        const char *c;
-        for (c = simlog.last; *c; c++) { /* JSON string: escape what needs it */
-            if (*c == '"' || *c == '\\') {
-                fputc('\\', f);
-            }
-            fputc((unsigned char)*c < 0x20 ? ' ' : *c, f);
-        }
-    }
+    simlog_json(f);
     fprintf(f, "\"},\n");
     fprintf(f, " \"handle\": {\"x_m\": %.9g, \"v_m_s\": %.9g, \"mass_kg\": %.9g, "
                "\"friction_n_s_m\": %.9g, \"coulomb_n\": %.9g}}\n",
@@ -838,13 +777,7 @@ static void noop_sleep(avr_t *a, avr_cycle_count_t how_long)
 
 static double num(const char *s, const char *name)
 {
-    char *end;
-    double v = strtod(s, &end);
-    if (*s == 0 || *end != 0 || !isfinite(v)) {
-        fprintf(stderr, "hapkit_board: %s: not a number: %s\n", name, s);
-        exit(2);
-    }
-    return v;
+    return board_num(s, name, "hapkit_board");
 }
 
 static void usage(void)
@@ -992,7 +925,7 @@ int main(int argc, char **argv)
     signal(SIGINT, on_signal);
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
-    master = open_pty();
+    master = board_open_pty(opt.link, "hapkit_board");
     link_.host_present = 0;
     wall0 = wall_ns();
     while (!stop_signal) {
