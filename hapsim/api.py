@@ -728,7 +728,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
              driver_options: dict | None = None,
-             mock_options: dict | None = None) -> IdentifyReport:
+             mock_options: dict | None = None,
+             travel: float | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -768,6 +769,10 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     mock_options : dict, optional
         A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
         one ``driver_options`` describe); default the driver's own.
+    travel : float, optional
+        The FireFader's travel between its end stops [m] (its datasheet's): a sweep between
+        the stops finds its position scale first (``loop.travel_sweep``; the
+        record's ``protocol_options`` carry it).
 
     Returns
     -------
@@ -799,7 +804,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
-                         driver_options=driver_options, mock_options=mock_options)
+                         driver_options=driver_options, mock_options=mock_options,
+                         travel=travel)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -810,7 +816,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None, mock_options=None):
+             driver_options=None, mock_options=None, travel=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -832,6 +838,9 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         ``full_scale``); the mass and friction found are in the units they set.
     mock_options : dict, optional
         The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
+    travel : float, optional
+        The FireFader's travel between its end stops [m]
+        (:func:`hapsim.daemon.identify_run.record`).
 
     Returns
     -------
@@ -866,7 +875,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                      force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                      noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
                      handle_signals=False, stop=stop, driver=driver,
-                     driver_options=driver_options, mock_options=mock_options)
+                     driver_options=driver_options, mock_options=mock_options,
+                     travel=travel)
         # one uniform record: the longest stretch without a missing STATE
         seq = rec["seq"]
         cut = np.flatnonzero(np.diff(seq) != 1) + 1

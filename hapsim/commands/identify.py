@@ -11,7 +11,7 @@ import sys
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
-from hapsim.option_values import declared
+from hapsim.option_values import Number, declared
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -88,6 +88,13 @@ def register(sub) -> None:
                         "(an inertia [kg m^2] for a rotary axis) clamped to the handle "
                         "(the embedded mock adds it itself; with --port, press Enter once "
                         "it is on); --out gets the scale and the device in its own units")
+    p.add_argument("--travel", type=Number(float, low=0, open_low=True, unit="mm"),
+                   metavar="MM",
+                   help="the FireFader's travel between its end stops [mm] (its "
+                        "datasheet's): before the excitation the fader is pushed to each "
+                        "stop and metres_per_count = travel / (counts between the stops) "
+                        "is found, with its interval, and written to --out (with "
+                        "--added-mass, full_scale is then found in those units)")
     p.add_argument("--mock-option", action="append", default=[], metavar="KEY=VALUE",
                    help="the embedded driver mock's hardware, other than the device "
                         "--protocol-option describes (repeat: e.g. full_scale=1.56 for "
@@ -216,20 +223,22 @@ def run(args) -> int:
                           "in HELLO); give --driver",
                           key="--protocol-option" if args.protocol_option else
                           "--mock-option" if args.mock_option else "--added-mass")
-    if args.added_mass is not None:
-        if not (math.isfinite(args.added_mass) and args.added_mass > 0):
-            raise ConfigError(f"must be a positive mass [kg], got {args.added_mass}",
-                              key="--added-mass")
+    if args.added_mass is not None:       # (its range: the declaration, checked before)
         if drv.scale_option is None:
             raise ConfigError(f"the {drv.name} protocol carries SI units: no scale to "
                               f"calibrate; valid with --added-mass: --driver firefader, "
                               f"haply", key="--added-mass")
+    if args.travel is not None and args.driver != "firefader":
+        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
+                          f"{args.driver} protocol has none to find (valid with --travel: "
+                          f"--driver firefader)", key="--travel")
     from hapsim.api import identify as identify_api
     kw = dict(baud=args.baud, force_limit=args.force_limit, envelope=args.envelope,
               duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
               lockstep=args.lockstep, seed=args.seed, driver=args.driver,
               driver_options=dopts, hand=args.hand, progress=True, handle_signals=True,
-              mock_options=mopts)
+              mock_options=mopts,
+              travel=None if args.travel is None else args.travel * 1e-3)
     rep = identify_api(args.port, device=device, **kw)
     fit, rec = rep.fit, rep.record
     if drv is not None and rec.get("protocol_options"):
@@ -237,6 +246,9 @@ def run(args) -> int:
         drv = get_driver(args.driver, **rec["protocol_options"])
     scale = None
     if args.added_mass is not None:
+        # the second identification in the units the first found (the position scale
+        # of the sweep), without sweeping again
+        kw.update(driver_options=drv.options(), travel=None)
         rep2 = identify_api(args.port, device=_loaded(device, args), **kw)
         from hapsim.api import calibrate_scale
         scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
@@ -251,6 +263,14 @@ def run(args) -> int:
                 f"counts with motor byte {tried} (encoder direction "
                 f"{drv.options().get('direction')}); the device id is the host's choice "
                 f"(the board answers any): nothing to identify\n") + text
+    sweep = rec["loop"].get("travel_sweep")
+    if sweep is not None:
+        c_lo, c_hi = sweep["counts"]
+        text = (f"# metres_per_count found by a sweep between the end stops: "
+                f"{sweep['metres_per_count'] * 1e3:.5g} mm [{sweep['lo'] * 1e3:.5g}, "
+                f"{sweep['hi'] * 1e3:.5g}] per count ({sweep['travel'] * 1e3:g} mm of "
+                f"travel given over counts {c_lo:.1f} to {c_hi:.1f}; the travel's own "
+                f"tolerance adds to that interval)\n") + text
     if scale is not None:
         opt = drv.scale_option
         text = (f"# {opt} found with {args.added_mass:g} kg added: {scale.full_scale:.6g} "

@@ -133,7 +133,9 @@ def register(sub) -> None:
     p.add_argument("--fd", type=Number(int, low=0),
                    help=argparse.SUPPRESS)    # embedded: pty master fd
     p.add_argument("--spec", help=argparse.SUPPRESS)            # embedded: device JSON
-    p.set_defaults(func=run)
+    # the n-D mock and the emulated pantograph refuse the options they do not take: one at
+    # its default was not given (argparse's public get_default, read at run time)
+    p.set_defaults(func=run, option_default=p.get_default)
 
 
 def _from_spec(text: str):

@@ -84,6 +84,8 @@ ISR(TWI_vect)
         pwm_write(f_hold.n, f_hold.dir);
         ADCSRA |= (uint8_t)(1 << ADSC);
         TCNT1 = 0; /* the leader is there: the watchdog starts again */
+        TCNT0 = 0; /* the PWM carrier in the leader's phase (the leader restarts its own
+                    * with its tick clock): the same at every tick of every session */
         PORTB |= (uint8_t)(1 << PB5);
         f_rx_i = 0xFFu; /* no data expected */
         break;
@@ -457,6 +459,10 @@ static void timer1_start(uint32_t period_cycles)
 {
     TCCR1B = (uint8_t)(1 << WGM12);
     TCNT1 = 0;
+    /* the PWM carrier restarts with the tick clock: its phase at every tick is the same
+     * in every session, whatever cycle the CONFIG came at (as the 1-DoF firmware: simavr
+     * wakes a sleeping core on its timers' events) */
+    TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     OCR1A = (uint16_t)(period_cycles - 1u);
     TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));
