@@ -53,19 +53,22 @@ from hapsim.daemon.compiled_io import (
     c_write as _c_write, cobs_decode as _cobs_decode, cobs_encode as _cobs_encode,
     crc16 as _crc16, le as _le, next_frame as _next_frame, now_ns as _now_ns)
 from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
-from hapsim.daemon.startup import sources_digest
+from hapsim.daemon.startup import LOOP_SOURCES, sources_digest
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.errors import DeviceError
 from hapsim.kernels import cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
 from hapsim.kernels.ticks import tick_late as _tick_late
 
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
+COMPILED_SOURCES = LOOP_SOURCES
+
 #: SHA-256 of the modules this module's numba code compiles in
 #: (:data:`hapsim.daemon.startup.LOOP_SOURCES`, by :func:`~hapsim.daemon.startup.sources_digest`).
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "84f99b09fcbacdbde3cbdd9281495c9d944c3a379520005a18dd885cffefe320"
+COMPILED_SOURCES_SHA256 = "efd81c4b3c503b1ce389a9e1586aa1aec4e1a688a96dfa55afc2322439883614"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

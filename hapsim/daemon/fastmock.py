@@ -44,6 +44,9 @@ from hapsim.daemon.compiled_io import (CRC_TABLE, POLLERR, POLLHUP, POLLIN, POLL
                                        next_frame, now_ns)
 from hapsim.daemon.startup import MOCK_SOURCES, loop_sources, sources_digest
 
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
+COMPILED_SOURCES = MOCK_SOURCES
+
 #: SHA-256 of the modules this module's numba code compiles in
 #: (:data:`hapsim.daemon.startup.MOCK_SOURCES`): numba keys its disk cache on this file
 #: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
