@@ -261,7 +261,9 @@ def trace_summary(path: Path, rate: float) -> dict:
     Returns
     -------
     dict
-        ``ticks``, ``late`` (FORCE not applied at the next tick), ``state_out_us`` (p50),
+        ``ticks`` (answered), ``late`` (their FORCE not applied at the next tick),
+        ``unanswered`` (armed STATEs the host never answered: it answers the newest of
+        those waiting, and the ticks after them are late too), ``state_out_us`` (p50),
         ``answer_us`` (p50, p90, p99 of the write-to-read time [us] wall; ``answer_late_us``
         the same over late ticks only), ``deadline_us`` (smallest slack [us] of an applied
         FORCE), ``late_fed_after_deadline`` (late ticks whose FORCE reached the UART later
@@ -275,7 +277,13 @@ def trace_summary(path: Path, rate: float) -> dict:
     tick_cyc: list = []
     sess: dict = {}
 
+    unanswered = [0]
+
     def close(sess):
+        answered = [n for n in sess.get("R", {}) if n in sess.get("S", {})]
+        if answered:    # STATEs the host never answered (it answers the newest waiting)
+            top = max(answered)
+            unanswered[0] += sum(1 for n in sess["S"] if 2 <= n <= top and n not in sess["R"])
         for n, (cyc, wall, fseq_next) in sess.get("S", {}).items():
             if n < 2 or n + 1 not in sess["S"] or n not in sess["R"] or n not in sess["F"]:
                 continue
@@ -313,6 +321,7 @@ def trace_summary(path: Path, rate: float) -> dict:
     pct = (lambda v, q: [round(float(x), 1) for x in np.percentile(v, q)] if len(v) else None)
     deadline = float(sl[~late_a].min()) if (~late_a).any() else None
     return {"ticks": int(len(late_a)), "late": int(late_a.sum()),
+            "unanswered": unanswered[0],
             "period_us": period / 16.0,
             "state_out_us": pct(state_out, [50]),
             "answer_us": pct(ans, [50, 90, 99]),
@@ -491,7 +500,8 @@ def realtime(runs: int, duration: float, conditions: list, rate: float = 1000.0,
               f"FORCE must reach the UART {t['deadline_us']} us before the next tick; STATE "
               f"written -> FORCE read (p50, p90, p99) {t['answer_us']} us, over late ticks "
               f"{t['answer_late_us']} us; {t['late_fed_after_deadline']} of {t['late']} late "
-              f"ticks had their FORCE after that deadline; the board's waits ended late by "
+              f"ticks had their FORCE after that deadline ({t['unanswered']} STATEs not "
+              f"answered); the board's waits ended late by "
               f"(p50, p99, max) {t['wake_late_us']} us")
     if json_path:
         cmd = f"PYTHONPATH=. python tools/bench_firmware.py --realtime {runs} --duration " \
