@@ -625,6 +625,39 @@ def test_lockstep_is_bit_for_bit_the_same_whatever_cycle_the_config_comes_at(tmp
         assert len(b) == ticks and not diff, (wait, len(diff), [(a[i], b[i]) for i in diff[:3]])
 
 
+def test_the_board_trace_times_each_state_and_the_force_answering_it(tmp_path):
+    """``hapkit_board --trace``: a lockstep session of 60 answered ticks leaves, per tick,
+    the STATE, the FORCE read from the pty and handed to the UART, and the tick edges, so
+    that ``tools/bench_firmware.py``'s summary finds every tick answered and applied (no
+    late, no unanswered tick in lockstep), the STATE leaving within the period after its
+    tick (the full frames' codec: 411-549 us measured), and each FORCE reaching the UART
+    before the next tick (the deadline: the smallest slack of an applied FORCE)."""
+    _require()
+    sys.path.insert(0, str(ROOT / "tools"))
+    import bench_firmware
+    trace = tmp_path / "trace.txt"
+    with _board(tmp_path, None, "--trace", str(trace)) as (proc, port, report):
+        host = _Host(port)
+        try:
+            host.arm()
+            n = 0
+            for st in host.armed_states():
+                host.send(fp.encode(fp.Force(st.seq, (0.01,))))
+                n += 1
+                if n == 60:
+                    break
+            host.send(fp.encode(fp.Stop()))
+        finally:
+            host.close()
+    s = bench_firmware.trace_summary(trace, RATE)
+    assert s["ticks"] >= 55 and s["late"] == 0 and s["unanswered"] == 0, s
+    assert 0 < s["state_out_us"][0] < 1e6 / RATE, s
+    assert 0 < s["deadline_us"] < 1e6 / RATE - s["state_out_us"][0], s
+    kinds = {ln.split()[0] for ln in trace.read_text().splitlines()}
+    assert {"T", "A", "P", "S", "R", "F"} <= kinds, kinds
+    assert _report(report)["time"]["trace_dropped"] == 0
+
+
 def test_a_second_run_starts_at_x0_after_the_handle_was_pushed_far(tmp_path):
     """A run pushes the handle 0.1-0.3 m away (many sensor periods), then STOPs: the
     board's hand brings it back to x0 over many ticks, no jump, so the firmware's flip

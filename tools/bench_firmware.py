@@ -253,15 +253,19 @@ def trace_summary(path: Path, rate: float) -> dict:
     start (emulated), how long from that STATE's write to the pty until the board read the
     FORCE answering it (wall: the pty both ways, the host's wake-up and answer, the board's
     wake-up), and how long before tick n + 1 that FORCE reached the UART (emulated: the
-    slack). Tick n's FORCE is applied at tick n + 1 exactly when STATE n + 1 names it
-    (``force_seq``); the smallest slack of an applied FORCE is the firmware's deadline.
+    slack to tick n + d). Tick n's FORCE is applied at tick n + d (d: the device's delay,
+    the lag of most ticks) exactly when STATE n + d names it (``force_seq``); the smallest
+    slack of an applied FORCE is the firmware's deadline.
     The waits for the wall clock give the wake-up latency (``W`` events: how late each
     sleep or spin ended).
 
     Returns
     -------
     dict
-        ``ticks``, ``late`` (FORCE not applied at the next tick), ``state_out_us`` (p50),
+        ``ticks`` (answered), ``delay`` (d), ``late`` (their FORCE not applied at tick
+        n + d),
+        ``unanswered`` (armed STATEs the host never answered: it answers the newest of
+        those waiting, and the ticks after them are late too), ``state_out_us`` (p50),
         ``answer_us`` (p50, p90, p99 of the write-to-read time [us] wall; ``answer_late_us``
         the same over late ticks only), ``deadline_us`` (smallest slack [us] of an applied
         FORCE), ``late_fed_after_deadline`` (late ticks whose FORCE reached the UART later
@@ -275,17 +279,32 @@ def trace_summary(path: Path, rate: float) -> dict:
     tick_cyc: list = []
     sess: dict = {}
 
+    unanswered = [0]
+    delays: list = []
+
     def close(sess):
+        answered = [n for n in sess.get("R", {}) if n in sess.get("S", {})]
+        if answered:    # STATEs the host never answered (it answers the newest waiting)
+            top = max(answered)
+            unanswered[0] += sum(1 for n in sess["S"] if 2 <= n <= top and n not in sess["R"])
+        # the device's delay d: the lag seq - force_seq of most ticks (FORCE n is applied
+        # at tick n + d: 1 at 1 kHz, 2 at 4 kHz in compact frames)
+        lags: dict = {}
+        for n, (_, _, fseq) in sess.get("S", {}).items():
+            if n >= 4 and fseq != n:
+                lags[n - fseq] = lags.get(n - fseq, 0) + 1
+        d = max(lags, key=lags.get) if lags else 1
+        delays.append(d)
         for n, (cyc, wall, fseq_next) in sess.get("S", {}).items():
-            if n < 2 or n + 1 not in sess["S"] or n not in sess["R"] or n not in sess["F"]:
+            if n < 2 or n + d not in sess["S"] or n not in sess["R"] or n not in sess["F"]:
                 continue
             i = np.searchsorted(tick_cyc, cyc)
-            if i == 0 or i >= len(tick_cyc):
+            if i == 0 or i + d - 1 >= len(tick_cyc):
                 continue
             state_out.append((cyc - tick_cyc[i - 1]) / 16.0)
             answer.append((sess["R"][n] - wall) / 1e3)
-            slack.append((tick_cyc[i] - sess["F"][n]) / 16.0)
-            late.append(sess["S"][n + 1][2] != n)
+            slack.append((tick_cyc[i + d - 1] - sess["F"][n]) / 16.0)
+            late.append(sess["S"][n + d][2] != n)
 
     rows = []
     with open(path) as fh:
@@ -313,6 +332,8 @@ def trace_summary(path: Path, rate: float) -> dict:
     pct = (lambda v, q: [round(float(x), 1) for x in np.percentile(v, q)] if len(v) else None)
     deadline = float(sl[~late_a].min()) if (~late_a).any() else None
     return {"ticks": int(len(late_a)), "late": int(late_a.sum()),
+            "unanswered": unanswered[0], "delay": max(set(delays), key=delays.count)
+            if delays else None,
             "period_us": period / 16.0,
             "state_out_us": pct(state_out, [50]),
             "answer_us": pct(ans, [50, 90, 99]),
@@ -488,10 +509,12 @@ def realtime(runs: int, duration: float, conditions: list, rate: float = 1000.0,
         if "error" in t:
             continue
         print(f"{c['condition']}: STATE leaves {t['state_out_us']} us after its tick; the "
-              f"FORCE must reach the UART {t['deadline_us']} us before the next tick; STATE "
+              f"FORCE must reach the UART {t['deadline_us']} us before tick n + "
+              f"{t['delay']}; STATE "
               f"written -> FORCE read (p50, p90, p99) {t['answer_us']} us, over late ticks "
               f"{t['answer_late_us']} us; {t['late_fed_after_deadline']} of {t['late']} late "
-              f"ticks had their FORCE after that deadline; the board's waits ended late by "
+              f"ticks had their FORCE after that deadline ({t['unanswered']} STATEs not "
+              f"answered); the board's waits ended late by "
               f"(p50, p99, max) {t['wake_late_us']} us")
     if json_path:
         cmd = f"PYTHONPATH=. python tools/bench_firmware.py --realtime {runs} --duration " \

@@ -283,6 +283,9 @@ def run(args) -> int:
         report = report.replace(advice=advice.to_dict())  # keeps exit_code
     print(json.dumps(report.to_dict()) if args.json else report.text())
     sys.stdout.flush()
+    if args.json:                       # the human report says them in its text
+        for w in report.loop.get("warnings") or []:
+            print(f"hapsim run: warning: {w}", file=sys.stderr, flush=True)
     if report.error is not None:        # the report first, then why the run ended
         print(f"hapsim run: {report.error['type']}: {report.error['message']}",
               file=sys.stderr, flush=True)

@@ -68,7 +68,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "aa54d81e870254480d20ff67b7ff10905892bd90eed6475cf04f8efd8c6edb6f"
+COMPILED_SOURCES_SHA256 = "efd81c4b3c503b1ce389a9e1586aa1aec4e1a688a96dfa55afc2322439883614"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -34,6 +34,7 @@ import math
 import os
 import signal
 import threading
+import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
@@ -429,6 +430,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             error = exc
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+        ended_at = time.monotonic()
     finally:
         if out is not None:
             out.finish()                # the loop's last frames are written: the silence
@@ -464,7 +466,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     sound = None if ring is None else {"backend": type(out).__name__,
                                        "callback": out.callback, "xruns": out.xruns,
                                        "xrun_at_s": list(out.xrun_at), **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop, ended_at)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):

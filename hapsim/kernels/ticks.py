@@ -58,7 +58,7 @@ SEQ_HALF = 0x80000000
 #: The sources :func:`late_ticks` compiles in (the protocol's status bits), and their
 #: SHA-256 (:mod:`hapsim.kernels.sources`: numba keys its disk cache on this file alone).
 COMPILED_SOURCES = ("firmware_protocol/codec.py",)
-COMPILED_SOURCES_SHA256 = "a49cf669b47ff655e8557224a0fe456c29bd46e731612a8702b04be55c4c06eb"
+COMPILED_SOURCES_SHA256 = "4050cbef419c816a976ebfe661937a3ba04e21f2810924f56c4a87bbc5524ffa"
 #: Whether numba's disk cache may serve :func:`late_ticks`.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
