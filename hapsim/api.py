@@ -877,27 +877,18 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                      handle_signals=False, stop=stop, driver=driver,
                      driver_options=driver_options, mock_options=mock_options,
                      travel=travel)
-        # one uniform record: the longest stretch without a missing STATE
+        # the whole record: every stretch of consecutive STATEs is fitted, each from its
+        # own initial state (a lost STATE is a gap, the mass and frictions are shared)
         seq = rec["seq"]
-        cut = np.flatnonzero(np.diff(seq) != 1) + 1
-        bounds = np.concatenate([[0], cut, [seq.size]])
-        i = int(np.argmax(np.diff(bounds)))
-        a, b = int(bounds[i]), int(bounds[i + 1])
+        a, b = 0, int(seq.size)
         rec["loop"]["fitted_rows"] = [a, b]
+        rec["loop"]["gaps"] = int(np.count_nonzero(np.diff(seq) != 1))
         acc = rec.get("account")
-        acc = acc.rows(a, b) if acc is not None else None
         if acc is not None:
             rec["loop"]["account"] = acc.to_dict()
-        if b - a < 200 and seq.size >= 200:
-            raise IdentificationError(
-                f"too short a record: the longest stretch without a missing STATE is {b - a} "
-                f"samples (rows {a}..{b} of {seq.size}; "
-                f"{seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
-                f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
-                f"the baud rate, or run on a quieter machine)")
         try:
-            fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                             late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
+            fit = fit_device(rec["position"], rec["force"], rec["period"],
+                             late=rec["late"], max_delay=max_delay + 1, applied=acc, seq=seq)
         except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
             if isinstance(exc, HapsimError):
                 raise

@@ -27,8 +27,9 @@ and STOP at the end or on Ctrl-C. The fit is an output-error least squares of th
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
 with Newey-West intervals, driven by the force the device applied at each tick (its
 STATEs' force_seq name it: a late tick is a known input, and the delay is the one the
-device shows, never assumed). Without --port the embedded mock (--mock-scene: its device)
-is identified."""
+device shows, never assumed). A STATE lost on the way cuts the record: every stretch of
+consecutive STATEs is fitted, each from its own initial state. Without --port the embedded
+mock (--mock-scene: its device) is identified."""
 
 _EPILOG = """\
 output:
@@ -51,6 +52,9 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
   data (or a safety stop / device fault), or the record cannot be identified (the reason
   is printed: too short, the device hardly moved, ...), 2 bad arguments
+delay: a framed device shows it (force_seq); for another protocol every delay up to
+  --max-delay is tried, and one that another fits as well (a coarse encoder) is not
+  stated as certain: delay_certain false, delay_range and the verdict name them
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
