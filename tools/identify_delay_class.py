@@ -14,7 +14,7 @@ names no applied force). Counted: the delay returned as certain and exact, or wr
 ambiguous (``delay_certain`` False; ``truth_in_range``: the true delay inside
 ``delay_range``); refused (the reason). ``--white`` counts the likelihood ratio on every
 sample as if independent and judges by the delay returned, as before issue 19 (when no
-delay was said undetermined; the counts equal those of the code before it on these 40). A measurement program, not a
+delay was said undetermined; its range then held the same hold's delays only). A measurement program, not a
 test.
 """
 
