@@ -218,6 +218,9 @@ def test_on_a_coarse_encoder_the_delay_is_exact_or_said_ambiguous_never_wrong():
             continue
         lo, hi = fit.delay_range
         assert lo <= d <= hi and lo < hi, (case, fit.delay_range)
+        # the intervals cover every delay not ruled out, the true one's values included
+        assert fit.mass.contains(m) and fit.friction.contains(b0), (case, fit.mass,
+                                                                    fit.friction)
         named = [int(v) for v in re.findall(r"d = (\d+) \(", fit.verdict)]
         assert len(named) == 2 and named[0] != named[1], fit.verdict
         assert "not determined" in fit.verdict
