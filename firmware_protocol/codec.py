@@ -329,9 +329,12 @@ class Hello:
     device_id : int, 0..2**32-1
         Device identifier (serial number or model-specific id).
     position_scale : float
-        Position sensor resolution [m/count] (informational: STATE carries metres).
+        Position sensor resolution [m/count], >= 0 (informational: STATE carries metres;
+        0: not stated).
     force_scale : float
-        Actuator resolution [N/unit] (informational: FORCE carries newtons).
+        Actuator step [N/unit], >= 0: 0, a continuous actuator; > 0, the device applies
+        each FORCE as the reference firmware's binary32 step rule names it (PROTOCOL.md
+        §4, HELLO; :func:`hapsim.applied.firmware_force`).
     force_limit : float
         Largest force magnitude the device will ever apply [N], >= 0.
     native_rate_hz : float

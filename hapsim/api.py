@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
+from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
 from hapsim.results import Report
 
@@ -381,7 +382,8 @@ def render(loop, K: float, B: float = 0.0) -> RenderReport:
     Raises
     ------
     ConfigError
-        A non-finite K or B.
+        A non-finite K or B (keyed ``--K`` / ``--B``: the declaration and message of
+        ``hapsim render``'s, :data:`hapsim.option_values.API_OPTIONS`).
 
     Notes
     -----
@@ -389,6 +391,7 @@ def render(loop, K: float, B: float = 0.0) -> RenderReport:
     ``s = ln(z) / T``, ``k = m |s|^2``, ``b = -2 m Re(s)`` (Florens, Voda & Urma).
     """
     from hapsim.analysis.ths import render as _render
+    check_values("render", K=K, B=B)
     r = _render(loop, K, B)
     return RenderReport.from_dict({**r.to_dict(), "loop": loop.to_dict()}, analysis=r)
 
@@ -445,7 +448,8 @@ def calibrate(loop, k: float, b: float) -> CalibrateReport:
     Raises
     ------
     ConfigError
-        ``k <= 0`` or a non-finite target.
+        ``k <= 0`` or a non-finite target (keyed ``--k`` / ``--b``, as ``hapsim
+        calibrate`` says it: :data:`hapsim.option_values.API_OPTIONS`).
 
     Notes
     -----
@@ -453,6 +457,7 @@ def calibrate(loop, k: float, b: float) -> CalibrateReport:
     pole pair of the target oscillator (Florens, Voda & Urma).
     """
     from hapsim.analysis.ths import calibrate as _calibrate
+    check_values("calibrate", k=k, b=b)
     c = _calibrate(loop, k, b)
     return CalibrateReport.from_dict({**c.to_dict(), "loop": loop.to_dict()}, analysis=c)
 
@@ -513,7 +518,8 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
     Raises
     ------
     ConfigError
-        A non-finite B.
+        A non-finite B (keyed ``--B``, as ``hapsim stability`` says it:
+        :data:`hapsim.option_values.API_OPTIONS`).
 
     Notes
     -----
@@ -526,6 +532,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
     from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop import spectral_radius_known
     from hapsim.analysis.ths import circle_scan_points, published_limits, stability_limit
+    check_values("stability", B=B)
     kmax = stability_limit(loop, B)
     cert = certify_limit(loop, B, kmax, circle_scan_points(loop))
     rho = err = None
@@ -648,7 +655,8 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     Raises
     ------
     ConfigError
-        An invalid scene or value; ``calibrate`` without a target link.
+        An invalid scene or value (a value keyed by the flag of ``hapsim family``:
+        :data:`hapsim.option_values.API_OPTIONS`); ``calibrate`` without a target link.
 
     Notes
     -----
@@ -657,12 +665,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     from hapsim.analysis.family import family as _family
     from hapsim.analysis.hand import hand_stiffness
 
-    if samples is not None and samples < 1:
-        raise ConfigError(f"must be >= 1, got {samples}", key="samples")
-    if grid < 2:
-        raise ConfigError(f"must be >= 2, got {grid}", key="grid")
-    if certify < 0:
-        raise ConfigError(f"must be >= 0, got {certify}", key="certify")
+    check_values("family", samples=samples, grid=grid, seed=seed, certify=certify)
     scene = _scene(scene, "check_nd (there is no n-D family yet)")
     if correction is not None:
         scene = dataclasses.replace(scene, device=dataclasses.replace(
@@ -741,7 +744,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
              driver_options: dict | None = None,
-             mock_options: dict | None = None) -> IdentifyReport:
+             mock_options: dict | None = None,
+             travel: float | None = None) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -781,6 +785,10 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     mock_options : dict, optional
         A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
         one ``driver_options`` describe); default the driver's own.
+    travel : float, optional
+        The FireFader's travel between its end stops [m] (its datasheet's): a sweep between
+        the stops finds its position scale first (``loop.travel_sweep``; the
+        record's ``protocol_options`` carry it).
 
     Returns
     -------
@@ -789,7 +797,8 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     Raises
     ------
     ConfigError
-        Bad values, an unknown driver.
+        Bad values (keyed by the flag of ``hapsim identify``:
+        :data:`hapsim.option_values.API_OPTIONS`), an unknown driver.
     IdentificationError
         A record too short or that the fit cannot explain.
     DeviceError, ProtocolError
@@ -804,16 +813,15 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     if driver not in DRIVERS:
         raise ConfigError(f"unknown driver {driver!r}; valid: {', '.join(DRIVERS)}",
                           key="driver")
-    for key, v in (("force_limit", force_limit), ("envelope", envelope),
-                   ("duration", duration), ("rate_hz", rate_hz)):
-        if not (math.isfinite(v) and v > 0):
-            raise ConfigError(f"must be a positive number, got {v}", key=key)
+    check_values("identify", baud=baud, force_limit=force_limit, envelope=envelope,
+                 duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed)
     fit, rec = excite_and_fit(port=port, baud=baud, device=device, force_limit=force_limit,
                          envelope=envelope, duration=duration, rate_hz=rate_hz,
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
                          driver=None if driver == "framed" else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
-                         driver_options=driver_options, mock_options=mock_options)
+                         driver_options=driver_options, mock_options=mock_options,
+                         travel=travel)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -824,7 +832,7 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None, mock_options=None):
+             driver_options=None, mock_options=None, travel=None):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -846,6 +854,9 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         ``full_scale``); the mass and friction found are in the units they set.
     mock_options : dict, optional
         The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
+    travel : float, optional
+        The FireFader's travel between its end stops [m]
+        (:func:`hapsim.daemon.identify_run.record`).
 
     Returns
     -------
@@ -861,8 +872,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     """
     from hapsim.analysis.device_fit import fit_device
     from hapsim.daemon.identify_run import record
-    if isinstance(max_delay, bool) or max_delay < 0:
-        raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="--max-delay")
+    check_values("identify", max_delay=max_delay)
     import signal
     import threading
 
@@ -881,28 +891,20 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                      force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
                      noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
                      handle_signals=False, stop=stop, driver=driver,
-                     driver_options=driver_options, mock_options=mock_options)
-        # one uniform record: the longest stretch without a missing STATE
+                     driver_options=driver_options, mock_options=mock_options,
+                     travel=travel)
+        # the whole record: every stretch of consecutive STATEs is fitted, each from its
+        # own initial state (a lost STATE is a gap, the mass and frictions are shared)
         seq = rec["seq"]
-        cut = np.flatnonzero(np.diff(seq) != 1) + 1
-        bounds = np.concatenate([[0], cut, [seq.size]])
-        i = int(np.argmax(np.diff(bounds)))
-        a, b = int(bounds[i]), int(bounds[i + 1])
+        a, b = 0, int(seq.size)
         rec["loop"]["fitted_rows"] = [a, b]
+        rec["loop"]["gaps"] = int(np.count_nonzero(np.diff(seq) != 1))
         acc = rec.get("account")
-        acc = acc.rows(a, b) if acc is not None else None
         if acc is not None:
             rec["loop"]["account"] = acc.to_dict()
-        if b - a < 200 and seq.size >= 200:
-            raise IdentificationError(
-                f"too short a record: the longest stretch without a missing STATE is {b - a} "
-                f"samples (rows {a}..{b} of {seq.size}; "
-                f"{seq.size - 1 - int(np.sum(np.diff(seq) == 1))} "
-                f"gaps), at least 200 are needed: the link loses STATEs (check the port and "
-                f"the baud rate, or run on a quieter machine)")
         try:
-            fit = fit_device(rec["position"][a:b], rec["force"][a:b], rec["period"],
-                             late=rec["late"][a:b], max_delay=max_delay + 1, applied=acc)
+            fit = fit_device(rec["position"], rec["force"], rec["period"],
+                             late=rec["late"], max_delay=max_delay + 1, applied=acc, seq=seq)
         except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
             if isinstance(exc, HapsimError):
                 raise
@@ -949,6 +951,7 @@ def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: fl
     """
     from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
     from hapsim.drivers import get_driver
+    check_values("identify", added_mass=added_mass)
     opt = driver.scale_option
     if opt is None:
         raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "

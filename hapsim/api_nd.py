@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import check_values
 from hapsim.results import Report
 
 __all__ = ["load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd", "CheckReportND", "ModesReportND", "RunReportND"]
@@ -475,11 +476,9 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
+    check_values("run_nd", amplitude=amplitude)
     scene = _scene_nd(scene)
     a = float(amplitude)
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {amplitude}",
-                          key="amplitude")
     if scene.port is None:
         raise ConfigError("a run needs a mass of kind 'port' and a device section",
                           file=scene.path, key="masses")

@@ -323,8 +323,8 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
         is held).
     ambiguous : array_like of bool, shape (n,), optional
         Rows where the driver's clock cannot order the write and the device's tick: the
-        held force is the on-time one or the one before; the account takes the on-time
-        one and states the half-difference in ``half_width``.
+        held force is the on-time one or the one before; the account takes their middle
+        and states the half-difference in ``half_width`` (a bound on the error either way).
     force_scale : float
         Actuator resolution [N] (0: none): without ``quantise``, the nearest multiple.
     quantise : callable, optional
@@ -362,6 +362,10 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
     src = np.where(src >= 0, src, -1)
     applied = np.where(src >= 0, f[np.maximum(src, 0)], 0.0)
     prev = np.where(src >= 1, f[np.maximum(src - 1, 0)], 0.0)
+    # an ambiguous row holds the on-time force or the one before: the middle of the two,
+    # and half their difference bounds |applied_true - applied| (the on-time one stated
+    # with that half-width would leave the other case outside)
     hw = np.where(amb, 0.5 * np.abs(applied - prev), 0.0)
+    applied = np.where(amb, 0.5 * (applied + prev), applied)
     tick = np.where(lt, d + 1, d).astype(np.int64)
     return AppliedAccount(applied, src, tick, d, lt, hw, np.ones(n, bool), "timing")

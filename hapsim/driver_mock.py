@@ -26,7 +26,7 @@ from hapsim.device_model import MockPhysics
 from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
-           "EmbeddedDriverMock", "main"]
+           "EmbeddedDriverMock", "firefader_offline_loop", "main"]
 
 
 class _Actuated:
@@ -634,6 +634,98 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.settles_on(),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
+
+
+def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
+                           silence: float = 0.2, rx_drop=None):
+    """The FireFader THS closed offline through hapsim's engine and the firmware's own loop
+    (:class:`FireFaderDevice`): deterministic, no pty, no real time.
+
+    The host loop's arithmetic: row ``k`` is the record answering command ``k``, the force
+    computed from it goes out with command ``k + 1``; a record that never came is stepped
+    through with the position extrapolated from the last two records (``FLAG_ESTIMATED``),
+    as :meth:`hapsim.drivers.transport.DriverTransport.estimate` does.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A scene with a device (its rate, delay, force limit and excitation).
+    n : int
+        Rows [samples].
+    lost : iterable of int
+        Rows whose record never came (device -> host loss).
+    silence_at : int, optional
+        The host is silent ``silence`` [s] before the command that follows that row.
+    silence : float
+        [s].
+    rx_drop : dict of int to int, optional
+        ``{row: byte}``: the packet sent after that row loses that byte (0 the start, 1
+        fader A's, 2 fader B's) on its way to the firmware, which parses what is left (a
+        row whose record then never comes is estimated).
+
+    Returns
+    -------
+    tuple
+        ``(columns, driver, applied)``: telemetry columns (``time`` [s], ``position`` [m],
+        ``force`` [N], ``seq``, ``flags``, ``late``, ``force_seq``, ``status``), shape
+        (n,); the :class:`hapsim.drivers.firefader.FireFader` (its ``loop_delay`` set);
+        the force the mock applied over each row's period [N], shape (n,).
+    """
+    import numpy as np
+
+    from hapsim.drivers.base import FLAG_ESTIMATED
+    from hapsim.drivers.firefader import CENTRE, FireFader, RecordDecoder
+    from hapsim.engine import Engine
+    sc = scene
+    drv = FireFader()
+    drv.loop_delay = sc.device.delay
+    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
+    for _ in range(drv.arming_records):
+        dev.feed(drv.encode_force(0.0))
+    eng = Engine(sc)
+    T = sc.period
+    dec = RecordDecoder()
+
+    def record(b):
+        r = dec.feed(b)
+        return (r[-1][0] - CENTRE) * drv.position_scale if r else None
+
+    x = record(dev.feed(drv.encode_force(0.0)))
+    n0 = len(dev.applied)
+    cols = {k: np.zeros(n) for k in ("time", "position", "force")}
+    flags = np.zeros(n, np.uint8)
+    xs, ss = [x, x], [-1, 0]
+    lost = set(lost)
+    t = 0.0
+    rx_drop = dict(rx_drop or {})
+    for k in range(n):
+        cols["time"][k] = t
+        if k in lost or x is None:
+            lost.add(k)
+            flags[k] = FLAG_ESTIMATED
+            x_k = xs[-1] + (xs[-1] - xs[-2]) / (ss[-1] - ss[-2]) * (k - ss[-1])
+        else:
+            x_k = x
+            xs.append(x)
+            ss.append(k)
+        cols["position"][k] = x_k
+        f = min(max(eng.port_step(x_k), -sc.device.force_limit), sc.device.force_limit)
+        cols["force"][k] = drv.applied_force(f)
+        t += T
+        if k == silence_at:
+            dev.idle(silence)
+            t += silence
+        pk = drv.encode_force(f)
+        if k in rx_drop:
+            j = rx_drop[k]
+            pk = pk[:j] + pk[j + 1:]
+        x = record(dev.feed(pk, writes=[b"", pk]))      # one host write, one tick
+    cols.update(seq=np.arange(n), flags=flags, late=np.zeros(n, np.uint8),
+                force_seq=np.arange(n) - sc.device.delay, status=np.zeros(n, np.uint16))
+    # the pass of command k + 1 moves the fader over row k's period
+    return cols, drv, np.array(dev.applied[n0:n0 + n])
+
+
 
 
 def main(argv=None) -> int:

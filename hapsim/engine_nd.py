@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels.nd import (BLOCK, ROWS, link_lengths, run_nd, run_nd_listen,
-                               schedule, shared_params, stripes)
+from hapsim.kernels.nd import (BLOCK, ROWS, context, link_lengths, run_context,
+                               run_nd_listen, schedule, shared_params, stripes)
 
 __all__ = ["EngineND"]
 
@@ -107,6 +107,15 @@ class EngineND:
         self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
                                        self.eu_rest)
         self.W = np.zeros((ROWS, block))
+        # every array the step reads or writes, by address: one argument per step call
+        # (the arrays above are updated in place, never rebound)
+        self._ctx = context(
+            self.dim, self.block, self._X, self._XP, self.f, self.t2m, self.lin_pieces,
+            self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k,
+            self.eu_z, self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
+            self.c_i2, self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass,
+            self.p_normal, self.p_offset, self.p_k, self.p_z,
+            -1 if self.port is None else self.port, self.port_f)
 
     @property
     def x(self) -> np.ndarray:
@@ -119,19 +128,16 @@ class EngineND:
         return self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples [-] (no allocation).
+        """Advance ``n`` samples [-] (no allocation: one compiled call with one argument,
+        :func:`hapsim.kernels.nd.run_context`).
 
         Parameters
         ----------
         n : int
             Samples to advance (>= 0).
         """
-        run_nd(int(n), self.dim, self.block, self._X, self._XP, self.f, self.t2m,
-               self.lin_pieces, self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces,
-               self.eu_ptr, self.eu_k, self.eu_z, self.eu_rest, self.eu_lprev,
-               *self.eu_shared, self.W, self.c_i1, self.c_i2, self.c_k, self.c_z,
-               self.c_thr, self.c_lprev, self.p_mass, self.p_normal, self.p_offset,
-               self.p_k, self.p_z, -1 if self.port is None else self.port, self.port_f)
+        self._ctx[0] = n
+        run_context(self._ctx)
 
     def listen(self, out, axis, mass, velocity, gain) -> None:
         """Advance ``out.shape[0]`` samples, recording listening points (no allocation);

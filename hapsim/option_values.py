@@ -6,16 +6,23 @@ non-number with the valid range) and the range check :func:`check_numbers` runs 
 parsed namespace before the command does any work. A bad value (``nan``, ``inf``, a
 negative where the range starts at 0) is then a :class:`~hapsim.errors.ConfigError`
 keyed by the flag the user typed (``--joints``), with the valid range, exit code 2.
+
+The options a command shares with its function of :mod:`hapsim.api` (and the fields of
+:class:`hapsim.analysis.loop.LoopModel`) are declared once in :data:`API_OPTIONS`: the
+command's parser takes their type from there (:func:`declared`) and the function checks
+its keywords with :func:`check_values`, so a bad value gets the same message through
+both doors (keyed by the flag, as :func:`hapsim.api.run` keys its options).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import numbers
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Number", "check_numbers", "typed_flag"]
+__all__ = ["Number", "check_numbers", "typed_flag", "API_OPTIONS", "declared", "check_values"]
 
 
 class Number:
@@ -96,23 +103,29 @@ class Number:
                 pass
             if math.isfinite(value) and value == int(value):
                 return int(value)
-            if math.isfinite(value):
+            if math.isfinite(value):      # as check() says it of a program's 2.5
                 raise argparse.ArgumentTypeError(
-                    f"must be {self.describe()}, got {text!r}")
+                    f"must be {self.describe()}, got {self.shown(value)}")
         return value
 
     def ok(self, value) -> bool:
-        """Whether ``value`` is in the valid range (finite, within the bounds).
+        """Whether ``value`` is in the valid range (a real number, not a bool; finite; a
+        whole one for ``int``; within the bounds).
 
         Parameters
         ----------
-        value : float or int
+        value : object
+            A parsed value, or a keyword a program passed.
 
         Returns
         -------
         bool
         """
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            return False
         if not math.isfinite(value):
+            return False
+        if self.kind is int and not float(value).is_integer():
             return False
         if self.low is not None and (value <= self.low if self.open_low else value < self.low):
             return False
@@ -137,7 +150,26 @@ class Number:
         values = value if isinstance(value, (list, tuple)) else [value]
         for v in values:
             if v is not None and not self.ok(v):
-                raise ConfigError(f"must be {self.describe()}, got {v!r}", key=flag)
+                raise ConfigError(f"must be {self.describe()}, got {self.shown(v)}", key=flag)
+
+    def shown(self, value) -> str:
+        """``value`` as the messages show it: a number as the command line reads it (a
+        ``float`` option's ``-1`` is ``-1.0``, an ``int`` one's ``2.0`` is ``2``), so a
+        program's keyword and the same value typed get the same message.
+
+        Parameters
+        ----------
+        value : object
+
+        Returns
+        -------
+        str
+        """
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            return repr(value)
+        if self.kind is int and math.isfinite(value) and float(value).is_integer():
+            return repr(int(value))
+        return repr(float(value))
 
 
 def typed_flag(option_strings, argv) -> str:
@@ -181,3 +213,86 @@ def check_numbers(parser: argparse.ArgumentParser, args: argparse.Namespace,
         if isinstance(action.type, Number) and action.option_strings:
             value = getattr(args, action.dest, None)
             action.type.check(value, typed_flag(action.option_strings, argv))
+
+
+#: The numeric options a command and its :mod:`hapsim.api` function both take, each
+#: declared once: ``{function: {parameter: (flag, Number)}}``. ``"loop"`` is
+#: :class:`hapsim.analysis.loop.LoopModel`'s fields (``--mass --friction --rate --delay``
+#: of ``render``, ``calibrate``, ``stability``, ...; the model keys its errors by its
+#: field, the command re-keys them by the flag). The ranges beyond these (the mass and
+#: rate ranges, ``b0 T / m``) are the model's, checked through both doors alike.
+API_OPTIONS = {
+    "loop": {"mass": ("--mass", Number(float, low=0, open_low=True, unit="kg")),
+             "friction": ("--friction", Number(float, low=0, unit="N s/m")),
+             "rate_hz": ("--rate", Number(float, low=0, open_low=True, unit="Hz")),
+             # the analysis is O(d^3): hapsim.analysis.loop.MAX_DELAY
+             "delay": ("--delay", Number(int, low=0, high=500))},
+    "render": {"K": ("--K", Number(unit="N/m")), "B": ("--B", Number(unit="N s/m"))},
+    "calibrate": {"k": ("--k", Number(float, low=0, open_low=True, unit="N/m")),
+                  "b": ("--b", Number(unit="N s/m"))},
+    "stability": {"B": ("--B", Number(unit="N s/m"))},
+    "family": {"samples": ("--samples", Number(int, low=1)),
+               "grid": ("--grid", Number(int, low=2)),
+               "seed": ("--seed", Number(int, low=0)),
+               "certify": ("--certify-boxes", Number(int, low=0))},
+    "identify": {"baud": ("--baud", Number(int, low=1)),
+                 "force_limit": ("--force-limit", Number(float, low=0, open_low=True,
+                                                         unit="N")),
+                 "envelope": ("--envelope", Number(float, low=0, open_low=True, unit="m")),
+                 "duration": ("--duration", Number(float, low=0, open_low=True, unit="s")),
+                 "rate_hz": ("--rate", Number(float, low=0, open_low=True, unit="Hz")),
+                 "max_delay": ("--max-delay", Number(int, low=0)),
+                 "seed": ("--seed", Number(int, low=0)),
+                 "added_mass": ("--added-mass", Number(float, low=0, open_low=True,
+                                                       unit="kg"))},
+    "run_nd": {"amplitude": ("--amplitude", Number(float, low=0, open_low=True, unit="m"))},
+}
+
+
+def declared(function: str, parameter: str) -> Number:
+    """The declared type and range of one option of :data:`API_OPTIONS` (a parser's
+    ``type``).
+
+    Parameters
+    ----------
+    function : str
+        A key of :data:`API_OPTIONS` (``"identify"``, ``"loop"``, ...).
+    parameter : str
+        The function's keyword (``"force_limit"``).
+
+    Returns
+    -------
+    Number
+
+    Raises
+    ------
+    KeyError
+        Not declared (a programming error).
+    """
+    return API_OPTIONS[function][parameter][1]
+
+
+def check_values(function: str, key_by: str = "flag", **values) -> None:
+    """Refuse a function's keyword outside its declared range, as the command line does.
+
+    Parameters
+    ----------
+    function : str
+        A key of :data:`API_OPTIONS`.
+    key_by : {"flag", "parameter"}, optional
+        The error's key: the command's flag (``--force-limit``, as the command line and
+        :func:`hapsim.api.run` say it) or the keyword (``mass``, for a model's field).
+    **values
+        Keyword -> value; None is not checked.
+
+    Raises
+    ------
+    ConfigError
+        The first value outside its range: :meth:`Number.check`'s message.
+    KeyError
+        A keyword not declared for ``function`` (a programming error).
+    """
+    table = API_OPTIONS[function]
+    for name, value in values.items():
+        flag, number = table[name]
+        number.check(value, flag if key_by == "flag" else name)

@@ -387,10 +387,14 @@ def plot_identify(fit, record=None):
     if record is None:
         fit, record = fit.fit, fit.record
     plt = pyplot()
-    # the fit covers the rows it was given (the longest stretch without a missing STATE)
+    # the fit covers the rows it was given (the whole record: every stretch of
+    # consecutive STATEs), drawn at their ticks (a lost STATE leaves a gap in time)
     a, _ = record["loop"].get("fitted_rows", (0, fit.n_samples))
     x = record["position"][a:a + fit.n_samples]
-    t = (a + np.arange(fit.n_samples)) * fit.period
+    seq = record.get("seq")
+    ticks = (np.asarray(seq[a:a + fit.n_samples], float) if seq is not None
+             and len(seq) >= a + fit.n_samples else a + np.arange(fit.n_samples))
+    t = ticks * fit.period
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
     a1.plot(t, x * 1e3, lw=0.8, label="measured")
     a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")

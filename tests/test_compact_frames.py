@@ -169,9 +169,9 @@ class _Device(PtyDevice):
     SENSORS_REQUEST without them (a device of before the frames), "old" does not answer it
     (a device of before SENSORS_REQUEST). Records what it receives."""
 
-    def __init__(self, master: int, kind: str) -> None:
+    def __init__(self, master: int, kind: str, force_scale: float = 0.0) -> None:
         super().__init__(master, fp.encode(fp.Link(2_000_000, 10)) + fp.encode(
-            fp.Hello(1, 1, 7, 1e-6, 1e-3, 10.0, 1000.0)))
+            fp.Hello(1, 1, 7, 1e-6, force_scale, 10.0, 1000.0)))
         self.kind = kind
         self.requests: list = []
         self.received: list = []
@@ -189,13 +189,14 @@ class _Device(PtyDevice):
                 os.write(self.master, fp.encode(fp.Sensors(0, 0)))
 
 
-def _handshake(kind: str, rate: float, compact: str = "auto"):
-    """HELLO, its check and SENSORS with a :class:`_Device`; then one CONFIG, a compact
-    STATE from the device and a FORCE from the host. (loop, device, messages received)."""
+def _handshake(kind: str, rate: float, compact: str = "auto", force_scale: float = 0.0):
+    """HELLO (``force_scale``: 0, a continuous actuator), its check and SENSORS with a
+    :class:`_Device`; then one CONFIG, a compact STATE from the device and a FORCE from the
+    host. (loop, device, messages received)."""
     from hapsim.daemon.loop import HostLoop, LoopConfig
     from hapsim.daemon.transport import SerialTransport
     master, slave = os.openpty()
-    dev = _Device(master, kind)
+    dev = _Device(master, kind, force_scale)
     dev.start()
     tr = SerialTransport(os.ttyname(slave))
     try:
@@ -252,13 +253,26 @@ def test_negotiation_with_devices_that_do_not_offer_them_keeps_the_full_frames(k
     assert forces == [fp.Force(65537, (1e39,))]
 
 
-@pytest.mark.parametrize("rate,compact", [(1000.0, "auto"), (4000.0, "off")])
-def test_the_host_does_not_ask_when_it_needs_no_compact_frames(rate, compact):
-    """At 1 kHz on 2 Mbaud (the full round trip is 24 % of the period), or with
-    ``compact="off"``, the host sends no SENSORS_REQUEST to a device that offers them: the
-    device never sends a compact frame (nothing unasked for)."""
-    loop, dev, _ = _handshake("compact", rate, compact)
+@pytest.mark.parametrize("rate,compact,force_scale", [(1000.0, "auto", 0.0),
+                                                      (4000.0, "off", 0.0),
+                                                      (1000.0, "off", 1e-3)])
+def test_the_host_does_not_ask_when_it_needs_no_compact_frames(rate, compact, force_scale):
+    """At 1 kHz on 2 Mbaud (the full round trip is 24 % of the period) to a continuous
+    actuator (HELLO.force_scale 0), or with ``compact="off"``, the host sends no
+    SENSORS_REQUEST to a device that offers them: the device never sends a compact frame
+    (nothing unasked for)."""
+    loop, dev, _ = _handshake("compact", rate, compact, force_scale)
     assert dev.requests == [] and loop.result.frames == "full"
+
+
+@pytest.mark.parametrize("force_scale", [1e-3, 0.0227])
+def test_the_host_asks_at_1khz_a_uart_device_that_steps_its_force_in_binary32(force_scale):
+    """At 1 kHz on 2 Mbaud a device whose HELLO.force_scale > 0 applies each FORCE as the
+    firmware's binary32 step (PROTOCOL.md §4, HELLO): the compact FORCE loses nothing, and
+    its chip saves the binary64 codec's time, so the host asks (``auto``) and the session
+    runs compact."""
+    loop, dev, _ = _handshake("compact", 1000.0, "auto", force_scale)
+    assert dev.requests == [fp.FEATURE_COMPACT] and loop.result.frames == "compact"
 
 
 def test_a_rate_only_the_compact_frames_carry_is_refused_when_the_device_has_none():

@@ -9,12 +9,16 @@ and the protocol's constants: it holds their SHA-256, and these tests keep it tr
 from __future__ import annotations
 
 import ast
+import importlib
+import importlib.util
 import os
 
 import numba
+import numba.core.ccallback
 import pytest
 
 from hapsim.daemon import fastloop, fastmock, startup
+from hapsim.kernels import sources as sources_mod
 
 
 def test_the_digest_in_fastloop_names_the_sources_compiled_in():
@@ -115,3 +119,103 @@ def test_the_loop_functions_are_cached_only_under_a_matching_digest():
         for fn in fns:
             assert fn.targetoptions.get("nogil") is True
             assert (fn._cache.__class__.__name__ != "NullCache") == mod.CACHE_OK, fn
+
+
+# ------------------------------------------------------------ every cached compiled module
+# The class, not the two loops: any module of hapsim whose numba code is cached on disk and
+# compiles in another module's functions or constants holds their digest
+# (hapsim.kernels.sources). Imports only used from Python, per module, with why:
+PYTHON_ONLY = {
+    "hapsim.audio.jack_native": {"hapsim.audio.sources"},   # FrameRing, LiveSound: Python
+    "hapsim.daemon.fastloop": {"hapsim.daemon.loop", "hapsim.errors", "hapsim.daemon.startup"},
+    "hapsim.daemon.fastmock": {"hapsim.daemon.startup"},
+}
+PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _cached_numba_modules():
+    """Dotted names of hapsim's modules with a numba decorator given ``cache=``."""
+    out = []
+    for root, _, files in os.walk(os.path.join(PACKAGE, "hapsim")):
+        for name in files:
+            if not name.endswith(".py"):
+                continue
+            path = os.path.join(root, name)
+            tree = ast.parse(open(path).read())
+            if any(isinstance(n, ast.keyword) and n.arg == "cache" for n in ast.walk(tree)):
+                rel = os.path.relpath(path, PACKAGE)[:-3]
+                out.append(rel.replace(os.sep, "."))
+    return sorted(out)
+
+
+def _imported_modules(module_name):
+    """hapsim / firmware_protocol modules ``module_name`` imports names from (any level)."""
+    mod = importlib.import_module(module_name)
+    tree = ast.parse(open(mod.__file__).read())
+    mods = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module.split(".")[0] in ("hapsim", "firmware_protocol"):
+                for a in node.names:       # "from hapsim.kernels import audio": a module
+                    full = f"{node.module}.{a.name}"
+                    is_mod = importlib.util.find_spec(node.module) is not None and \
+                        os.path.isfile(os.path.join(PACKAGE, *full.split(".")) + ".py")
+                    mods.add(full if is_mod else node.module)
+    return mod, mods
+
+
+def test_the_scan_finds_the_known_cached_modules():
+    """The scan sees the modules known to cache compiled code (else the next test would
+    pass on nothing)."""
+    found = set(_cached_numba_modules())
+    assert {"hapsim.kernels.cordis", "hapsim.kernels.audio", "hapsim.kernels.nd",
+            "hapsim.kernels.ticks", "hapsim.audio.jack_native",
+            "hapsim.daemon.fastloop", "hapsim.daemon.fastmock"} <= found, found
+
+
+@pytest.mark.parametrize("module_name", _cached_numba_modules())
+def test_every_cached_module_holds_the_digest_of_what_it_compiles_in(module_name):
+    """A cached module importing names from another of hapsim's modules (or the
+    protocol's) lists it in ``COMPILED_SOURCES`` (or it is used from Python only, listed
+    above), holds their current SHA-256 and caches only while it matches."""
+    if module_name == "hapsim.audio.jack_native":
+        pytest.importorskip("jack")
+    mod, mods = _imported_modules(module_name)
+    mods -= PYTHON_ONLY.get(module_name, set())
+    mods.discard("hapsim.kernels.sources")            # the digest itself
+    if not mods:
+        assert not hasattr(mod, "COMPILED_SOURCES"), module_name
+        return
+    listed = {s[:-3].replace("/", ".") for s in mod.COMPILED_SOURCES}
+    assert mods <= listed, (module_name, sorted(mods - listed))
+    for m in mods:                  # what they compile in is compiled in here too
+        inner = getattr(importlib.import_module(m), "COMPILED_SOURCES", ())
+        assert set(inner) <= set(mod.COMPILED_SOURCES), (module_name, m)
+    now = sources_mod.sources_digest(sources_mod.source_paths(mod.COMPILED_SOURCES))
+    assert mod.COMPILED_SOURCES_SHA256 == now, (
+        f"update the digest in {mod.__file__} (this touches it so numba recompiles): "
+        f'COMPILED_SOURCES_SHA256 = "{now}"')
+    assert mod.CACHE_OK
+    compiled = [v for v in vars(mod).values()
+                if isinstance(v, (numba.core.registry.CPUDispatcher,
+                                  numba.core.ccallback.CFunc))
+                and v.__wrapped__.__module__ == module_name]
+    assert compiled, module_name
+    for fn in compiled:             # cached only under a matching digest
+        assert (fn._cache.__class__.__name__ != "NullCache") == mod.CACHE_OK, fn
+
+
+def test_a_changed_compiled_in_source_turns_the_cache_off(tmp_path, monkeypatch):
+    """:func:`hapsim.kernels.sources.cache_ok` on copies: true for the digest of the
+    sources as they are, false after one byte is appended to one of them."""
+    src = os.path.join(PACKAGE, "hapsim", "kernels", "cordis.py")
+    copy = tmp_path / "hapsim" / "kernels" / "cordis.py"
+    copy.parent.mkdir(parents=True)
+    copy.write_bytes(open(src, "rb").read())
+    monkeypatch.setattr(sources_mod, "_HAPSIM", str(tmp_path / "hapsim"))
+    rels = ("hapsim/kernels/cordis.py",)
+    d = sources_mod.sources_digest([src])
+    assert sources_mod.cache_ok(rels, d)
+    with open(copy, "a") as f:
+        f.write("\n")
+    assert not sources_mod.cache_ok(rels, d)

@@ -75,7 +75,7 @@ def test_scripted_missing_replies_are_estimated_and_bounded():
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4)
     link = ScriptedLink(board, N, 0.125, 1, seed=3)
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, resolution=2.0 ** 22,
-                                 samples=N, plan=plan)
+                                 samples=N, plan=plan, probe_wiring=False)
     assert sum(r["estimated"]) == link.late > 0
     assert r["replies"] == r["writes"] == [N + 2] * 5
     assert r["verdict"] == "within", (r["reason"], r["deviation"])
@@ -84,10 +84,12 @@ def test_scripted_missing_replies_are_estimated_and_bounded():
 
 
 def test_over_a_pty_in_real_time():
-    """The board in a child process behind a pty, the host on its 1 kHz clock: every tick
-    is a reply read in time or an estimated sample (the counts add up, whatever the
-    load), every reply comes (none lost on a clean link), the board is left at zero
-    torque, and the verdict is "within" or "not measurable" (never "differs")."""
+    """The board in a child process behind a pty, the host on its 1 kHz clock, each
+    joint's wiring probed first: every tick is a reply read in time or an estimated
+    sample (the counts add up, whatever the load), every reply comes (none lost on a
+    clean link), the board took exactly the probe's writes and the records', it is left
+    at zero torque, and the verdict is "within" or "not measurable" (never
+    "differs")."""
     sc = load_scene_nd(WALL)
     N = 80
     child = Embedded2DIY(str(WALL), "gen3", amplitude=1e-4, cpr=2.0 ** 22)
@@ -101,9 +103,12 @@ def test_over_a_pty_in_real_time():
     assert r["replies"] == r["writes"] == [N + 2] * 5
     assert all(0 <= e <= N for e in r["estimated"])
     assert r["verdict"] in ("within", "not measurable"), (r["reason"], r["estimated"])
-    assert rep is not None and rep["packets"] == 5 * (N + 3) + 1
+    probe = r["direction_probe"]
+    assert probe["relative"] == [1, 1] and probe["setups"] == 2
+    # the probe's writes (its arming's two), and its closing re-arming's two
+    assert rep is not None and rep["packets"] == 5 * (N + 3) + 1 + probe["writes"] + 3
     assert rep["held_at_end"] == 0.0
-    assert rep["decoder"]["unknown"] == 2 * 5        # the arming's two bytes 3 each
+    assert rep["decoder"]["unknown"] == 2 * (5 + 2)  # each set-up's two bytes 3 before it
 
 
 class FirstLateLink(ScriptedLink):

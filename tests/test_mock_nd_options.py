@@ -99,3 +99,16 @@ def test_an_option_the_emulated_pantograph_does_not_take_is_refused(flag, dest, 
     assert main(argv) == 2
     err = capsys.readouterr()
     assert f"does not take {flag}" in err.err and "PORT" not in err.out
+
+
+def test_options_at_their_defaults_are_not_refused():
+    """``hapsim mock --scene <2-D scene>`` with nothing else, and with ``--firmware
+    --lockstep``, is not refused: an option at its parser default (a new option's 0.0,
+    say) was not given (a ``--spin-us`` default of 0.0 once made every 2-D mock refuse)."""
+    from hapsim.commands.mock_nd import refuse_untaken, refuse_untaken_firmware
+    parser = build_parser("mock")
+    args = parser.parse_args(["mock", "--scene", str(SCENES[0])])
+    refuse_untaken(args)
+    args = parser.parse_args(["mock", "--scene", str(SCENES[0]), "--firmware", "--lockstep"])
+    args.rt_priority = 0                    # what hapsim mock sets in lockstep
+    refuse_untaken_firmware(args)

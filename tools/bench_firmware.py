@@ -245,26 +245,151 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float) -> dict:
+def trace_summary(path: Path, rate: float) -> dict:
+    """Where a real-time session's ticks lose their time, from the board's ``--trace``.
+
+    For each armed tick n answered by the host (every session of the trace: a CONFIG
+    starts one), on the board's clocks: when its STATE left the UART after the tick's
+    start (emulated), how long from that STATE's write to the pty until the board read the
+    FORCE answering it (wall: the pty both ways, the host's wake-up and answer, the board's
+    wake-up), and how long before tick n + 1 that FORCE reached the UART (emulated: the
+    slack to tick n + d). Tick n's FORCE is applied at tick n + d (d: the device's delay,
+    the lag of most ticks) exactly when STATE n + d names it (``force_seq``); the smallest
+    slack of an applied FORCE is the firmware's deadline.
+    The waits for the wall clock give the wake-up latency (``W`` events: how late each
+    sleep or spin ended).
+
+    Returns
+    -------
+    dict
+        ``ticks`` (answered), ``delay`` (d), ``late`` (their FORCE not applied at tick
+        n + d),
+        ``unanswered`` (armed STATEs the host never answered: it answers the newest of
+        those waiting, and the ticks after them are late too), ``state_out_us`` (p50),
+        ``answer_us`` (p50, p90, p99 of the write-to-read time [us] wall; ``answer_late_us``
+        the same over late ticks only), ``deadline_us`` (smallest slack [us] of an applied
+        FORCE), ``late_fed_after_deadline`` (late ticks whose FORCE reached the UART later
+        than that: lateness explained by the answer's time), ``wake_late_us`` (p50, p99,
+        max of the waits' lateness [us]), ``spin_s``.
+    """
+    import numpy as np
+    period = 16e6 / rate
+    state_out, answer, slack, late = [], [], [], []
+    wake = []
+    tick_cyc: list = []
+    sess: dict = {}
+
+    unanswered = [0]
+    delays: list = []
+
+    def close(sess):
+        answered = [n for n in sess.get("R", {}) if n in sess.get("S", {})]
+        if answered:    # STATEs the host never answered (it answers the newest waiting)
+            top = max(answered)
+            unanswered[0] += sum(1 for n in sess["S"] if 2 <= n <= top and n not in sess["R"])
+        # the device's delay d: the lag seq - force_seq of most ticks (FORCE n is applied
+        # at tick n + d: 1 at 1 kHz, 2 at 4 kHz in compact frames)
+        lags: dict = {}
+        for n, (_, _, fseq) in sess.get("S", {}).items():
+            if n >= 4 and fseq != n:
+                lags[n - fseq] = lags.get(n - fseq, 0) + 1
+        d = max(lags, key=lags.get) if lags else 1
+        delays.append(d)
+        for n, (cyc, wall, fseq_next) in sess.get("S", {}).items():
+            if n < 2 or n + d not in sess["S"] or n not in sess["R"] or n not in sess["F"]:
+                continue
+            i = np.searchsorted(tick_cyc, cyc)
+            if i == 0 or i + d - 1 >= len(tick_cyc):
+                continue
+            state_out.append((cyc - tick_cyc[i - 1]) / 16.0)
+            answer.append((sess["R"][n] - wall) / 1e3)
+            slack.append((tick_cyc[i + d - 1] - sess["F"][n]) / 16.0)
+            late.append(sess["S"][n + d][2] != n)
+
+    rows = []
+    with open(path) as fh:
+        for line in fh:
+            k, cyc, wall, a, b, c = line.split()
+            rows.append((k, int(cyc), int(wall), float(a), float(b), float(c)))
+    tick_cyc = np.array([r[1] for r in rows if r[0] == "T"], dtype=np.int64)
+    for k, cyc, wall, a, b, c in rows:
+        if k == "F" and int(a) == fp.MSG_CONFIG:
+            close(sess)
+            sess = {"S": {}, "R": {}, "F": {}}
+        elif not sess:
+            continue
+        elif k == "S" and int(b) & fp.STATUS_ARMED:
+            sess["S"].setdefault(int(a), (cyc, wall, int(c)))
+        elif k == "R":
+            sess["R"].setdefault(int(a), wall)
+        elif k == "F" and int(a) in (fp.MSG_FORCE, fp.MSG_FORCE_COMPACT):
+            sess["F"].setdefault(int(b), cyc)
+        elif k == "W":
+            wake.append(b / 1e3)
+    close(sess)
+    late_a = np.array(late, dtype=bool)
+    ans, sl = np.array(answer), np.array(slack)
+    pct = (lambda v, q: [round(float(x), 1) for x in np.percentile(v, q)] if len(v) else None)
+    deadline = float(sl[~late_a].min()) if (~late_a).any() else None
+    return {"ticks": int(len(late_a)), "late": int(late_a.sum()),
+            "unanswered": unanswered[0], "delay": max(set(delays), key=delays.count)
+            if delays else None,
+            "period_us": period / 16.0,
+            "state_out_us": pct(state_out, [50]),
+            "answer_us": pct(ans, [50, 90, 99]),
+            "answer_late_us": pct(ans[late_a], [50, 90, 99]),
+            "deadline_us": deadline,
+            "late_fed_after_deadline": int((sl[late_a] < deadline).sum())
+            if deadline is not None else None,
+            "wake_late_us": pct(wake, [50, 99, 100])}
+
+
+def machine() -> dict:
+    """The conditions a real-time figure was measured in: cores, CPU model, kernel, the
+    cpufreq governor and idle driver where Linux says, and whether this is a virtual
+    machine (``hypervisor`` in /proc/cpuinfo's flags)."""
+    def read(path):
+        try:
+            return Path(path).read_text().strip()
+        except OSError:
+            return None
+    info = read("/proc/cpuinfo") or ""
+    model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines()
+                  if ln.startswith("model name")), None)
+    return {"cores": os.cpu_count(), "cpu": model, "kernel": os.uname().release,
+            "virtual_machine": " hypervisor" in info,
+            "governor": read("/sys/devices/system/cpu/cpu0/cpufreq/scaling_governor"),
+            "idle_driver": read("/sys/devices/system/cpu/cpuidle/current_driver"),
+            "sched_rt_runtime_us": read("/proc/sys/kernel/sched_rt_runtime_us")}
+
+
+def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float,
+                       frames: str = "auto", spin_us: float = 0.0) -> dict:
     """The real-time board (``hapsim mock --firmware``, as a user starts it) under ``runs``
     runs of ``hapsim run configs/hapkit.yaml --port`` of ``duration`` s each, quiet or next
     to one CPU-bound process: per run the late ticks and the verdict; for the board the CPU
     it used (user + system time of ``hapkit_board`` over the wall time of the runs: the
-    share of one core) and where its wall time went (its report's ``time``).
+    share of one core) and where its wall time went (its report's ``time``); for the host
+    (``hapsim run``) its CPU the same way (the children's rusage, start-up included); where
+    the ticks lose their time (:func:`trace_summary` of the board's ``--trace``).
+    ``frames``: ``hapsim run --frames``; ``spin_us``: ``hapsim mock --spin-us``.
 
     Returns
     -------
     dict
         ``condition``, ``load1`` (before, after), ``runs`` (each ``late``, ``ticks``,
         ``late_fraction``, ``verdict``, ``scheduling``), ``late_fraction_worst``,
-        ``late_fraction_all``, ``board_cpu_share`` (of one core), ``armed_mhz`` (emulated MHz
+        ``late_fraction_all``, ``quiet_machine`` (load average < 0.3 before the runs: the
+        machine the targets are stated for), ``board_cpu_share`` (of one core), ``armed_mhz`` (emulated MHz
         per wall second of emulating while armed: 16 is real time), ``emulate_s``, ``io_s``,
-        ``sleep_s``, ``wall_s``, ``slips``, ``slipped_s``, ``behind_max_ms``, ``target``
-        (1 % quiet, 5 % beside a CPU-bound process) and ``met``.
+        ``sleep_s``, ``spin_s``, ``wall_s``, ``slips``, ``slipped_s``, ``behind_max_ms``,
+        ``host_cpu_share`` (of one core), ``frames``, ``spin_us``, ``machine``
+        (:func:`machine`), ``trace`` (:func:`trace_summary`), ``target`` (1 % quiet, 5 %
+        beside a CPU-bound process) and ``met``.
     """
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     tmp = Path(tempfile.mkdtemp())
-    link, rep = tmp / "port", tmp / "board.json"
+    link, rep, trace = tmp / "port", tmp / "board.json", tmp / "trace.txt"
     scene = tmp / "scene.yaml"
     text = (ROOT / "configs" / "hapkit.yaml").read_text()
     text = text.replace("rate_hz: 1000", f"rate_hz: {rate:g}")
@@ -274,7 +399,8 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
     hog = (subprocess.Popen([sys.executable, "-c", "while True: pass"]) if beside_cpu
            else None)
     mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware", "--link",
-                             str(link), "--report", str(rep)], stdout=subprocess.PIPE,
+                             str(link), "--report", str(rep), "--trace", str(trace),
+                             "--spin-us", f"{spin_us:g}"], stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True, env=env)
     rows = []
     try:
@@ -287,10 +413,13 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
                   if Path(f"/proc/{p}/comm").read_text().strip().startswith("hapkit_board")]
         load0 = os.getloadavg()[0]
         cpu0 = sum(_cpu_s(p) for p in boards)
+        import resource
+        ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.monotonic()
         for i in range(runs):
             r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(scene), "--port",
-                                str(link), "--duration", str(duration), "--json"],
+                                str(link), "--duration", str(duration), "--json",
+                                "--frames", frames],
                                capture_output=True, text=True, env=env, timeout=600)
             try:
                 rep_run = json.loads(r.stdout)
@@ -314,6 +443,8 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
                   f"{lp.get('scheduling')}; {rows[-1]['verdict']}", flush=True)
         wall = time.monotonic() - t0
         cpu = sum(_cpu_s(p) for p in boards) - cpu0
+        ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        host_cpu = (ru1.ru_utime + ru1.ru_stime) - (ru0.ru_utime + ru0.ru_stime)
         load1 = os.getloadavg()[0]
     finally:
         mock.send_signal(signal.SIGTERM)
@@ -322,47 +453,73 @@ def realtime_condition(runs: int, duration: float, beside_cpu: bool, rate: float
             hog.kill()
             hog.wait()
     tm = json.loads(rep.read_text())["time"]
+    try:
+        tr = trace_summary(trace, rate)
+    except (OSError, ValueError) as exc:
+        tr = {"error": str(exc)}
     fracs = [r["late_fraction"] for r in rows if r["late_fraction"] is not None]
     late = sum(r["late"] or 0 for r in rows)
     ticks = sum(r["ticks"] or 0 for r in rows)
     target = 0.05 if beside_cpu else 0.01
     worst = max(fracs) if len(fracs) == len(rows) and fracs else None
-    return {"condition": "beside one CPU-bound process" if beside_cpu else "quiet",
+    return {"condition": "beside one CPU-bound process" if beside_cpu else "alone",
+            # the targets are for a quiet machine (load average < 0.3 before the runs)
+            "quiet_machine": load0 < 0.3,
             "rate_hz": rate, "duration_s": duration, "load1": [load0, load1],
             "cores": os.cpu_count(), "runs": rows, "late_fraction_worst": worst,
             "late_fraction_all": late / ticks if ticks else None,
             "board_cpu_share": cpu / wall if wall > 0 else None,
             "armed_mhz": tm["armed_mhz"], "emulate_s": tm["emulate_s"], "io_s": tm["io_s"],
-            "sleep_s": tm["sleep_s"], "wall_s": wall, "slips": tm["slips"],
-            "slipped_s": tm["slipped_s"], "behind_max_ms": tm["behind_max_ms"],
+            "sleep_s": tm["sleep_s"], "spin_s": tm.get("spin_s"), "wall_s": wall,
+            "slips": tm["slips"], "slipped_s": tm["slipped_s"],
+            "behind_max_ms": tm["behind_max_ms"],
+            "host_cpu_share": host_cpu / wall if wall > 0 else None,
+            "frames": frames, "spin_us": spin_us, "machine": machine(), "trace": tr,
             "target": target, "met": worst is not None and worst <= target}
 
 
 def realtime(runs: int, duration: float, conditions: list, rate: float = 1000.0,
-             json_path: str | None = None) -> int:
+             json_path: str | None = None, frames: str = "auto",
+             spin_us: float = 0.0) -> int:
     """Run :func:`realtime_condition` for each of ``conditions`` (``"quiet"``, ``"hog"``),
-    print the table (late %, the board's CPU share) and write it as JSON; 0 when every
-    condition meets its target (late <= 1 % quiet, <= 5 % beside a CPU-bound process)."""
+    print the table (late %, the board's and the host's CPU share, where the ticks lose
+    their time) and write it as JSON; 0 when every condition meets its target (late <= 1 %
+    quiet, <= 5 % beside a CPU-bound process). ``frames``, ``spin_us``: as
+    :func:`realtime_condition`."""
     out = []
     for cond in conditions:
         load = os.getloadavg()
         print(f"{cond}: load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, cores "
-              f"{os.cpu_count()}, {runs} runs of {duration:g} s at {rate:g} Hz", flush=True)
-        out.append(realtime_condition(runs, duration, cond == "hog", rate))
+              f"{os.cpu_count()}, {runs} runs of {duration:g} s at {rate:g} Hz, frames "
+              f"{frames}, spin {spin_us:g} us", flush=True)
+        out.append(realtime_condition(runs, duration, cond == "hog", rate, frames, spin_us))
     print("\ncondition                      load   late worst  late all  target  met  "
-          "board CPU  emulated MHz/s  slips")
+          "board CPU  host CPU  emulated MHz/s  slips")
     for c in out:
         pct = (lambda v: "-" if v is None else f"{v:.2%}")
         print(f"{c['condition']:<30s} {c['load1'][0]:5.1f}  {pct(c['late_fraction_worst']):>10s}"
               f"  {pct(c['late_fraction_all']):>8s}  {c['target']:>5.0%}  "
               f"{'yes' if c['met'] else 'no':>3s}  {pct(c['board_cpu_share']):>9s}  "
-              f"{c['armed_mhz']:14.1f}  {c['slips']:5d}")
-    print("board CPU: user + system time of hapkit_board over the runs' wall time (share of "
-          "one core); emulated MHz/s: the emulation's speed while armed (16 = real time)")
+              f"{pct(c['host_cpu_share']):>8s}  {c['armed_mhz']:14.1f}  {c['slips']:5d}")
+    print("board / host CPU: user + system time of hapkit_board / hapsim run over the runs' "
+          "wall time (share of one core); emulated MHz/s: the emulation's speed while armed "
+          "(16 = real time)")
+    for c in out:
+        t = c["trace"]
+        if "error" in t:
+            continue
+        print(f"{c['condition']}: STATE leaves {t['state_out_us']} us after its tick; the "
+              f"FORCE must reach the UART {t['deadline_us']} us before tick n + "
+              f"{t['delay']}; STATE "
+              f"written -> FORCE read (p50, p90, p99) {t['answer_us']} us, over late ticks "
+              f"{t['answer_late_us']} us; {t['late_fed_after_deadline']} of {t['late']} late "
+              f"ticks had their FORCE after that deadline ({t['unanswered']} STATEs not "
+              f"answered); the board's waits ended late by "
+              f"(p50, p99, max) {t['wake_late_us']} us")
     if json_path:
         cmd = f"PYTHONPATH=. python tools/bench_firmware.py --realtime {runs} --duration " \
               f"{duration:g} --rt-rate {rate:g} --conditions {' '.join(conditions)} " \
-              f"--json {json_path}"
+              f"--frames {frames} --spin-us {spin_us:g} --json {json_path}"
         Path(json_path).write_text(json.dumps({"command": cmd, "conditions": out},
                                               indent=1) + "\n")
     return 0 if all(c["met"] for c in out) else 1
@@ -390,6 +547,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rt-rate", type=float, default=1000.0, metavar="HZ",
                     help="with --realtime: the tick rate (default 1000; 4000: compact "
                          "frames, delay 2)")
+    ap.add_argument("--frames", choices=("auto", "full", "compact"), default="auto",
+                    help="with --realtime: hapsim run --frames (default auto)")
+    ap.add_argument("--spin-us", type=float, default=0.0, metavar="US",
+                    help="with --realtime: hapsim mock --spin-us (default 0)")
     ap.add_argument("--conditions", nargs="+", choices=("quiet", "hog"),
                     default=["quiet", "hog"],
                     help="with --realtime: alone, and next to one CPU-bound process (both)")
@@ -398,7 +559,7 @@ def main(argv=None) -> int:
     if args.realtime:
         conds = ["hog"] if args.beside_cpu else args.conditions
         return realtime(args.realtime, args.duration, conds, rate=args.rt_rate,
-                        json_path=args.json)
+                        json_path=args.json, frames=args.frames, spin_us=args.spin_us)
     subprocess.run(["make", "-s", "-C", str(board.FIRMWARE_DIR), "bench"], check=True,
                    stdout=subprocess.DEVNULL)
     rows = []

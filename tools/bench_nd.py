@@ -24,8 +24,16 @@ It prints, for growing meshes:
   root and one division (the Euclidean law's), measured the same way;
 * the agreement of the two after the benchmark's samples (largest position difference,
   relative to the spacing: round-off, the forces are summed in another order);
+* the cost of one step call from Python (75 masses, one sample): us per call and the
+  transient bytes (tracemalloc), through the one-argument context (as
+  :meth:`hapsim.engine_nd.EngineND.step`) and with the 36 arrays passed one by one;
+* where the time goes (not with ``--quick``): the 5,324-mass mesh with the kernel whole
+  and with one part taken out of its source (:data:`ABLATIONS`: the link forces, their
+  scatter, the square root and division), measured alternately;
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
-  within 1 ms (1 kHz), by bisection on the mesh size measured at each step.
+  within 1 ms (1 kHz), by bisection on the mesh size measured at each step; at 44.1 kHz
+  also hapsim stepped one compiled call per sample from Python (``hapsim_per_call``: a
+  real-time loop's way; the others run blocks of samples per call, an audio buffer's).
 
 With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
 ``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
@@ -36,7 +44,8 @@ blocks of 64 samples; thread CPU time for both), with their ratio.
 
 The load average at the start and the end is printed (and written): figures measured
 beside other CPU-bound work are not a quiet machine's. Reproduce the shipped figures with
-``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 3 minutes).
+``python tools/bench_nd.py --faust --json docs/bench_nd.json`` (about 5 minutes on a
+quiet machine, Faust's build included; three times that beside a load of 20).
 
 Exit code 0, or 2 on bad arguments.
 """
@@ -60,8 +69,9 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
-from hapsim.kernels.nd import (BLOCK, link_lengths, run_nd, schedule,  # noqa: E402
-                               shared_params, stripes)
+import hapsim.kernels.nd as nd_kernels  # noqa: E402
+from hapsim.kernels.nd import (BLOCK, context, link_lengths, run_context,  # noqa: E402
+                               run_nd, schedule, shared_params, stripes)
 
 #: Beads of the string compared with Faust (Faust's build time grows with the string).
 FAUST_BEADS = 300
@@ -156,12 +166,20 @@ class Case:
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
                     np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
         self.stripes = table.shape[0]
+        self.ctx = context(*self.hap)          # ctx[0] = 1: one sample per call
 
     def run_ref(self, n):
         reference_run(n, *self.ref)
 
     def run_hap(self, n):
         run_nd(n, *self.hap)
+
+    def run_hap_calls(self, n):
+        """``n`` samples, one compiled call each, as a real-time loop steps
+        (:meth:`hapsim.engine_nd.EngineND.step`: one argument, the context)."""
+        ctx = self.ctx
+        for _ in range(n):
+            run_context(ctx)
 
 
 def per_sample(fn, n, repeats):
@@ -200,7 +218,8 @@ def largest(kind, deadline, quick):
     def cost(nx):
         if nx not in seen:
             c = Case(nx, nx, nx // 2 + 1)
-            fn = c.run_hap if kind == "hapsim" else c.run_ref
+            fn = {"hapsim": c.run_hap, "hapsim_per_call": c.run_hap_calls,
+                  "reference": c.run_ref}[kind]
             n = max(3, int(0.01 / max(deadline, 1e-6)))
             fn(2)
             seen[nx] = (per_sample(fn, n, 5 if quick else 11), c.N)
@@ -222,6 +241,99 @@ def largest(kind, deadline, quick):
             hi = mid
     t, N = cost(lo)
     return N, t
+
+
+#: Where the time goes: the kernel's own source with one part taken out (each
+#: replacement must match the kernel's text: the profile fails rather than measure
+#: something else after the kernel changes). Name -> [(old, new), ...].
+ABLATIONS = {
+    "no link forces (scatter of stale forces and advance)": [(
+        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
+                                     eu_lprev, W)""", "                pass")],
+    "no scatter (link forces and advance)": [(
+        "            _scatter(f, dim, a, b, c, W)\n        m0",
+        "            pass\n        m0")],
+    "advance only": [(
+        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
+                                     eu_lprev, W)""", "                pass"), (
+        "            _scatter(f, dim, a, b, c, W)\n        m0",
+        "            pass\n        m0")],
+    "no square root or division (a multiplication each)": [(
+        """        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+        lp = lprev[j]
+        lprev[j] = ln
+        g = (k * (ln - rest) + z * (ln - lp)) / ln if ln > 0.0 else 0.0""",
+        """        ln = (dx * dx + dy * dy + dz * dz) * 50.0
+        lp = lprev[j]
+        lprev[j] = ln
+        g = (k * (ln - rest) + z * (ln - lp)) * ln""")],
+}
+
+
+def _ablated(name, edits, tmp):
+    """The kernel module compiled from its source with ``edits`` applied (no cache)."""
+    import importlib.util
+    src = Path(nd_kernels.__file__).read_text().replace("cache=CACHE_OK", "cache=False")
+    for old, new in edits:
+        if old not in src:
+            raise RuntimeError(f"profile {name!r}: the kernel's text changed; update ABLATIONS")
+        src = src.replace(old, new)
+    path = Path(tmp) / f"nd_ablated_{len(os.listdir(tmp))}.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def profile(dims, repeats) -> dict:
+    """ns per mass-sample of the kernel and of each ablation (:data:`ABLATIONS`) on one
+    mesh, measured alternately in this run (the fastest of ``repeats``): the differences
+    are what each part costs in context (parts overlap in the out-of-order core: the
+    shares need not add up)."""
+    c = Case(*dims)
+    n = max(5, int(4e5 // c.L))
+    fns = {"full kernel": run_nd}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, edits in ABLATIONS.items():
+            fns[name] = _ablated(name, edits, tmp).run_nd
+        for fn in fns.values():
+            fn(2, *c.hap)
+        best = dict.fromkeys(fns, float("inf"))
+        for _ in range(repeats):
+            for name, fn in fns.items():
+                t0 = time.thread_time()
+                fn(n, *c.hap)
+                best[name] = min(best[name], (time.thread_time() - t0) / n)
+    return {"masses": c.N, "links": c.L,
+            "parts": {k: {"ns_per_mass": v / c.N * 1e9} for k, v in best.items()}}
+
+
+def per_call(repeats) -> dict:
+    """The cost of one step call from Python on a small mesh (75 masses): us per call
+    and transient bytes (tracemalloc) through the context (one argument, as EngineND) and
+    with the 36 arguments passed one by one."""
+    import tracemalloc
+    c = Case(5, 5, 3)
+    args = (1, *c.hap)
+    run_nd(*args)
+    run_context(c.ctx)
+
+    def direct(n):
+        for _ in range(n):
+            run_nd(*args)
+    out = {"masses": c.N}
+    for name, fn, one in (("context", c.run_hap_calls, lambda: run_context(c.ctx)),
+                          ("arguments", direct, lambda: run_nd(*args))):
+        out[f"{name}_us"] = per_sample(fn, 2000, repeats) * 1e6
+        tracemalloc.start()
+        one()
+        tracemalloc.reset_peak()
+        c0 = tracemalloc.get_traced_memory()[0]
+        one()
+        out[f"{name}_bytes"] = tracemalloc.get_traced_memory()[1] - c0
+        tracemalloc.stop()
+    return out
 
 
 def faust_projection(n: int, repeats: int) -> dict:
@@ -308,9 +420,23 @@ def main(argv=None) -> int:
     print(f"one square root and one division alone: {floor:.2f} ns per element "
           f"(the Euclidean law needs both per link)", flush=True)
     out = {"rows": rows, "sqrt_div_ns": floor, "largest": {}}
+    pc = per_call(repeats)
+    out["per_call"] = pc
+    print(f"one step call from Python ({pc['masses']} masses, 1 sample): through the "
+          f"context {pc['context_us']:.2f} us and {pc['context_bytes']} B transient; "
+          f"36 arguments {pc['arguments_us']:.2f} us and {pc['arguments_bytes']} B",
+          flush=True)
+    if not args.quick:
+        pr = profile((22, 22, 11), repeats)
+        out["profile"] = pr
+        print(f"where the time goes ({pr['masses']} masses, ns per mass-sample):")
+        for name, v in pr["parts"].items():
+            print(f"  {name:<55} {v['ns_per_mass']:6.2f}", flush=True)
     for label, rate, deadline in (("44.1 kHz", "44100", 1.0 / 44100.0),
                                   ("1 kHz", "1000", 1e-3)):
-        for kind in ("hapsim", "reference"):
+        kinds = ("hapsim", "hapsim_per_call", "reference") if rate == "44100" else \
+            ("hapsim", "reference")
+        for kind in kinds:
             N, t = largest(kind, deadline, args.quick)
             out["largest"].setdefault(rate, {})[kind] = {
                 "masses": N, "us_per_sample": t * 1e6}

@@ -150,8 +150,13 @@ def main(argv=None) -> int:
                 print(f"    {name:32s} {c / max(r['ticks'], 1):8.0f} cycles/tick "
                       f"{c / tot:6.1%}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"scene": args.scene, "rows": rows},
-                                              indent=1) + "\n")
+        # paths as the command takes them in a clone (relative to it), not this machine's
+        scene = Path(args.scene).resolve()
+        scene = str(scene.relative_to(ROOT)) if scene.is_relative_to(ROOT) else args.scene
+        command = "PYTHONPATH=. python tools/bench_pantograph.py " + " ".join(
+            argv if argv is not None else sys.argv[1:])
+        Path(args.json).write_text(json.dumps({"command": command, "scene": scene,
+                                               "rows": rows}, indent=1) + "\n")
     return 1 if bad else 0
 
 

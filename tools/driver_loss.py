@@ -3,7 +3,7 @@
 Usage::
 
     python tools/driver_loss.py [--drivers haply firefader] [--seeds 1 2 3 4]
-                                [--drop-tx 0.005] [--drop-rx 0] [--corrupt-tx 0]
+                                [--drop-tx 0.005] [--drop-rx 0.005] [--corrupt-tx 0]
                                 [--json [PATH]]
 
 ``--json`` alone writes the JSON to stdout (and nothing else there); ``--json PATH`` writes
@@ -12,8 +12,9 @@ human-readable lines as well. The file holds the run conditions (command, faults
 load average, CPU count), one row per run and a summary per driver (runs within, ranges).
 
 For each driver and seed, runs ``configs/<driver>.yaml`` through its mock
-(:func:`hapsim.daemon.runner.run_scene` with ``driver_faults``) and prints the bytes the
-link lost, the missing samples (estimated ones), re-synchronisations, the stop reason and
+(:func:`hapsim.daemon.runner.run_scene` with ``driver_faults``: seeded byte loss in both
+directions by default, host -> device and device -> host) and prints the bytes the
+link lost, the host ticks the mock's clock counted against the firmware passes it ran, the missing samples (estimated ones), re-synchronisations, the stop reason and
 the relative errors of the measured k and b against the prediction with their stated
 half-widths and, of those, the worst case of the estimated samples and of the forces a
 missing answer leaves open (``k_bound_rows``), and the late ticks the account took out (the
@@ -34,7 +35,7 @@ def main(argv=None) -> int:
     p.add_argument("--drivers", nargs="+", default=["haply", "firefader"])
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4])
     p.add_argument("--drop-tx", type=float, default=1 / 200)
-    p.add_argument("--drop-rx", type=float, default=0.0)
+    p.add_argument("--drop-rx", type=float, default=1 / 200)
     p.add_argument("--corrupt-tx", type=float, default=0.0)
     p.add_argument("--json", nargs="?", const="-", default=None, metavar="PATH",
                    help="JSON to stdout (bare) or to PATH")
@@ -53,6 +54,8 @@ def main(argv=None) -> int:
             rel = m.get("rel_err") or {}
             row = {"driver": drv, "seed": seed, "lost_bytes": lp["mock"]["faults"],
                    "ticks": lp["ticks"], "missing": lp["driver"]["missing"],
+                   "host_ticks": lp["mock"].get("host_ticks"),
+                   "passes": lp["mock"].get("passes"),
                    "estimated": lp["estimated"], "resyncs": lp["driver"]["resyncs"],
                    "stop": lp["stop_reason"], "k_rel": rel.get("k"), "b_rel": rel.get("b"),
                    "k_half_rel": (m["k_unc"] / pr["k"]) if "k_unc" in m else None,

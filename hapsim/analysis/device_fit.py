@@ -25,7 +25,17 @@ model output given them is the true position, the residual is the sensor error (
 *System Identification*, 2nd ed., 1999, Sec. 4.2, 7.3). The (hold, d) with the least
 residual is chosen; every other whose likelihood ratio ``N ln(S_d / S_best)`` is below the
 chi-square quantile stays in the delay's interval, and the intervals of m, b0 and fc then
-also cover the estimates under those delays.
+also cover the estimates under those delays. When the delays are tried (no account of the
+applied force), ``N`` is the residual's effective samples (:func:`_effective_samples`: a
+quantiser's error is correlated, and counted as ``N`` independent samples the ratio told
+apart delays the record cannot, the best a wrong one); a record that then cannot tell two
+delays apart says so (``delay_certain`` False, the verdict naming both), or is refused
+with ``ambiguous_delay="refuse"``.
+
+*Lost STATEs.* With ``seq`` (the device's tick of each row) a gap in the ticks cuts the
+record: every stretch of consecutive ticks is fitted from states of its own, none across a
+gap, with the mass and frictions shared; the force answering row ``k`` acts from tick
+``seq[k] + d`` (:func:`applied_force`).
 
 Intervals
 ---------
@@ -148,6 +158,9 @@ class DeviceFit:
     motion_counts : int
         Encoder steps seen on the fitted stretches (changes between neighbouring
         samples; -1: positions not on a grid).
+    delay_certain : bool
+        False when another delay fits as well (``delay_range``; the verdict names it):
+        ``delay`` is then the better fit's, not determined.
     candidates : list of dict
         ``hold``, ``delay``, ``rms`` of every model tried.
     model : ndarray
@@ -175,6 +188,7 @@ class DeviceFit:
     n_samples: int
     level: float = LEVEL
     motion_counts: int = -1
+    delay_certain: bool = True
     candidates: list = field(default_factory=list)
     model: np.ndarray = field(default=None, repr=False)
 
@@ -205,7 +219,7 @@ class DeviceFit:
         return d
 
 
-def applied_force(force, delay: int, late=None) -> np.ndarray:
+def applied_force(force, delay: int, late=None, seq=None) -> np.ndarray:
     """The force the device held over each period, from the forces the host sent.
 
     Parameters
@@ -216,22 +230,75 @@ def applied_force(force, delay: int, late=None) -> np.ndarray:
         d: that force acts over ``[(k+d)T, (k+d+1)T)``.
     late : array_like of bool, shape (n,), optional
         Ticks the device reported holding an older force: the force before is held.
+    seq : array_like of int, shape (n,), optional
+        The device's tick (STATE seq) of each row; rows missing from the record (a STATE
+        lost, never answered) are gaps in it. The force answering row ``k`` acts from tick
+        ``seq[k] + d``; at a tick whose due force was never sent (its STATE lost) the
+        device holds the last one that was. Default: ``seq[k] = k``.
 
     Returns
     -------
     ndarray, shape (n,)
-        ``u[k] = force[k - d]`` (0 for ``k < d``), the previous ``u`` where late.
+        ``u[j] = force[k]`` with ``k`` the last row whose ``seq[k] <= seq[j] - d`` (0 when
+        none: nothing sent yet), the previous tick's ``u`` where late. A fall of ``seq``
+        (the device restarted its ticks) starts the search anew.
     """
     f = np.asarray(force, float)
-    u = np.zeros_like(f)
-    if delay < f.size:
-        u[delay:] = f[:f.size - delay]
+    n = f.size
+    if seq is None:
+        u = np.zeros_like(f)
+        if delay < f.size:
+            u[delay:] = f[:f.size - delay]
+    else:
+        s = np.asarray(seq, np.int64)
+        if s.shape != f.shape:
+            raise ConfigError(f"seq must have the forces' shape {f.shape}, got {s.shape}",
+                              key="seq")
+        u = np.zeros(n)
+        for a, b in _runs(s, falls_only=True):
+            k = np.searchsorted(s[a:b], s[a:b] - int(delay), side="right") - 1
+            u[a:b] = np.where(k >= 0, f[a + np.maximum(k, 0)], 0.0)
     if late is not None:
         lt = np.asarray(late, bool)
         for k in np.flatnonzero(lt):
             if k > 0:
                 u[k] = u[k - 1]
     return u
+
+
+def _true_runs(mask: np.ndarray) -> list:
+    """``(a, b)`` ranges where ``mask`` holds throughout."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]]).astype(np.int8)
+    e = np.flatnonzero(np.diff(m))
+    return [(int(a), int(b)) for a, b in zip(e[0::2], e[1::2])]
+
+
+def _runs(seq: np.ndarray, falls_only: bool = False) -> list:
+    """``(a, b)`` row ranges of a record's stretches of consecutive ticks (``seq`` rising
+    by 1 from row to row), or with ``falls_only`` of its runs of rising ``seq`` (a fall:
+    the device restarted its ticks)."""
+    d = np.diff(np.asarray(seq, np.int64))
+    cut = np.flatnonzero(d <= 0 if falls_only else d != 1) + 1
+    e = np.concatenate([[0], cut, [seq.size]]).astype(np.int64)
+    return [(int(a), int(b)) for a, b in zip(e[:-1], e[1:])]
+
+
+def _input_known(seq: np.ndarray, late, max_delay: int) -> np.ndarray:
+    """Rows whose applied force :func:`applied_force` names for every delay up to
+    ``max_delay``: not a late row right after a gap (what the device held at the lost
+    tick before it is not in the record), not one of the first ``max_delay`` ticks after
+    the device restarted its ticks (forces sent before the restart may act there)."""
+    n = seq.size
+    ok = np.ones(n, bool)
+    if late is not None:
+        lt = np.asarray(late, bool)
+        gap_before = np.zeros(n, bool)
+        gap_before[1:] = np.diff(seq) != 1
+        ok &= ~(lt & gap_before)
+    for i, (a, b) in enumerate(_runs(seq, falls_only=True)):
+        if i > 0:
+            ok[a:b] &= seq[a:b] - seq[a] >= int(max_delay)
+    return ok
 
 
 def _quantum(y: np.ndarray) -> Estimate:
@@ -275,7 +342,7 @@ def _quantum(y: np.ndarray) -> Estimate:
     return Estimate(0.0, 0.0, q0, "m")
 
 
-def _correlation(x, f, T, max_delay):
+def _correlation(x, f, T, max_delay, pieces=None):
     """Delay, hold and mass from the correlation of force steps with acceleration.
 
     The PRBS makes the force increments ``df[n]`` nearly white and much larger than the
@@ -283,12 +350,19 @@ def _correlation(x, f, T, max_delay):
     x[n+1] - 2 x[n] + x[n-1]``) is the impulse response of ``df -> d2x``: for the exact ZOH
     with delay d, ``c_{d+1} ~ c_{d+2} ~ T^2/(2m)``; for the idealised image ``c_{d+1} ~
     T^2/m`` alone (correlation analysis, Ljung 1999 Sec. 6.1). Sensor noise is uncorrelated
-    with past force steps. Returns ``(d, hold, m)``.
+    with past force steps. ``pieces``: row ranges of consecutive ticks (a difference
+    across a lost STATE is left out). Returns ``(d, hold, m)``.
     """
     d2 = np.zeros_like(x)
     d2[1:-1] = x[2:] - 2 * x[1:-1] + x[:-2]
     df = np.zeros_like(f)
     df[1:] = np.diff(f)
+    if pieces is not None and len(pieces) > 1:
+        inside = np.zeros(x.size, bool)
+        for a, b in pieces:
+            inside[a + 1:b - 1] = True
+        d2 = np.where(inside, d2, 0.0)
+        df[[a for a, _ in pieces]] = 0.0
     D = int(max_delay) + 3
     n = x.size
     den = float(np.dot(df[:n - D], df[:n - D])) or 1.0
@@ -304,7 +378,7 @@ def _correlation(x, f, T, max_delay):
     return max(min(j - 1, int(max_delay)), 0), (0 if zoh else 1), float(m)
 
 
-def _stretches(x, q, W=5, margin=8, min_len=12):
+def _stretches(x, q, W=5, margin=8, min_len=12, pieces=None):
     """Stretches of samples where the device clearly moves one way.
 
     The velocity sign is read from ``x[n+W] - x[n-W]``, trusted when that exceeds the
@@ -312,31 +386,40 @@ def _stretches(x, q, W=5, margin=8, min_len=12):
     second difference); ``margin`` (> W: the centred difference sees W samples ahead and
     behind) samples are dropped at each end. Inside a stretch
     the Coulomb friction is a constant force (no sticking: the velocity keeps its sign),
-    so the model is linear there. Returns ``(starts, ends, dirs)`` (int64 arrays, dirs
-    +-1).
+    so the model is linear there. ``pieces``: ``(a, b)`` row ranges of consecutive ticks
+    with a known input (default: the whole record); a stretch never leaves its piece (a
+    lost STATE, a force not known: the model restarts from a state of its own). Returns
+    ``(starts, ends, dirs)`` (int64 arrays, dirs +-1).
     """
     n = x.size
-    d2 = np.diff(x, 2)
+    if pieces is None:
+        pieces = [(0, n)]
+    d2 = np.concatenate([np.diff(x[a:b], 2) for a, b in pieces if b - a > 2] or [[0.0]])
     sig = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0)
     thr = 1.5 * q + 4.0 * sig + 1e-12
-    dv = np.zeros(n)
-    dv[W:n - W] = x[2 * W:] - x[:n - 2 * W]
-    sgn = np.where(dv > thr, 1, np.where(dv < -thr, -1, 0))
     starts, ends, dirs = [], [], []
-    k = 0
-    while k < n:
-        if sgn[k] == 0:
-            k += 1
+    for p0, p1 in pieces:
+        xp = x[p0:p1]
+        m_ = xp.size
+        if m_ <= 2 * W:
             continue
-        j = k
-        while j < n and sgn[j] == sgn[k]:
-            j += 1
-        a_, b_ = k + margin, j - margin
-        if b_ - a_ >= min_len:
-            starts.append(a_)
-            ends.append(b_)
-            dirs.append(int(sgn[k]))
-        k = j
+        dv = np.zeros(m_)
+        dv[W:m_ - W] = xp[2 * W:] - xp[:m_ - 2 * W]
+        sgn = np.where(dv > thr, 1, np.where(dv < -thr, -1, 0))
+        k = 0
+        while k < m_:
+            if sgn[k] == 0:
+                k += 1
+                continue
+            j = k
+            while j < m_ and sgn[j] == sgn[k]:
+                j += 1
+            a_, b_ = k + margin, j - margin
+            if b_ - a_ >= min_len:
+                starts.append(p0 + a_)
+                ends.append(p0 + b_)
+                dirs.append(int(sgn[k]))
+            k = j
     return (np.array(starts, np.int64), np.array(ends, np.int64), np.array(dirs, np.int64))
 
 
@@ -465,10 +548,11 @@ def _fit_stretched(x, u, T, hold, st, starts):
     return mod, best
 
 
-def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=None):
+def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=None, seq=None):
     """Fit every (hold, delay): the correlation's guess from three starts, then the others
     warm-started from it. With ``known = (u, d)`` (the force the device applied, from its
-    account) only the holds are tried, at the device's delay ``d``."""
+    account) only the holds are tried, at the device's delay ``d``; ``seq``: the rows'
+    ticks (:func:`applied_force`)."""
     inv = {v: k for k, v in _HOLDS.items()}
     delays = range(int(max_delay) + 1) if known is None else (known[1],)
     if known is not None:
@@ -478,7 +562,7 @@ def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=None):
     starts = [(math.log(m0), b) for b in (1.0, 0.1, 4.0)]
     cands = []
     for hname, d in order:
-        u = applied_force(f, d, late) if known is None else known[0]
+        u = applied_force(f, d, late, seq) if known is None else known[0]
         mod, res = _fit_stretched(x, u, T, _HOLDS[hname], st, starts)
         if res is None:
             continue
@@ -546,6 +630,58 @@ def _refine(mod, p_lin):
         cols.append(zc - c1[mod.sid] * a1 - c2[mod.sid] * a2)
     y = r.fun + xi
     return y, r.x[:k], np.column_stack(cols), 2 * ns, float(r.cost)
+
+
+def _explains(resid, q: float) -> tuple[bool, float, float]:
+    """The verdict's test (module notes): ``(explained, rms, floor)``, the residual's RMS
+    against the sensor's ``floor = sqrt(q^2/12 + sigma_w^2)`` [m]."""
+    resid = np.asarray(resid, float)
+    rms = float(math.sqrt(np.mean(resid ** 2)))
+    d2 = np.diff(resid, 2)
+    sig_w = float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+    floor = math.sqrt(q ** 2 / 12.0 + sig_w ** 2)
+    return bool(rms <= 2.0 * floor + 3 * POSITION_FLOOR), rms, floor
+
+
+def _effective_samples(r, offs, lag: int) -> float:
+    """Independent samples a residual is worth: ``N / tau`` with ``tau = 1 + 2 sum_k
+    (1 - k/(L+1)) rho_k`` (``k = 1 .. L``, Bartlett weights, ``rho_k`` the residual's
+    autocorrelation pooled over the stretches, never across two), at least 1 sample and
+    at most ``N``. The integrated autocorrelation time of a stationary series (M. B.
+    Priestley, *Spectral Analysis and Time Series*, 1981, Sec. 5.3; the Newey-West weights
+    of :func:`_hac`): a quantiser's error on a slow motion is a sawtooth correlated over
+    many samples, and a likelihood ratio that counts its ``N`` samples as independent
+    tells candidates apart that the record cannot."""
+    r = np.asarray(r, float)
+    n = r.size
+    den = float(np.dot(r, r))
+    if n < 2 or den <= 0:
+        return float(max(n, 1))
+    bounds = list(zip(offs, list(offs[1:]) + [n]))
+    tau = 1.0
+    for k in range(1, int(lag) + 1):
+        num = sum(float(np.dot(r[a:b - k], r[a + k:b])) for a, b in bounds if b - a > k)
+        tau += 2.0 * (1.0 - k / (lag + 1.0)) * num / den
+    return float(min(max(n / max(tau, 1.0), 1.0), n))
+
+
+def _best_residual(best) -> np.ndarray:
+    """The best candidate's residual on its stretches [m] (its refinement's when kept)."""
+    mod = best["_mod"]
+    if best.get("_ref") is not None:
+        return best["_ref"][0] - mod.x[mod.idx]
+    return mod.residual(best["_res"].x)
+
+
+def _ambiguity(best, rival, nu, n_eff, q) -> str:
+    """The sentence naming two delays a record cannot tell apart."""
+    def said(c_):
+        return (f"d = {c_['delay']} ({c_['hold']} hold, residual RMS "
+                f"{math.sqrt(2.0 * c_['cost'] / nu) * 1e6:.3g} um)")
+    enc = f"a {q * 1e6:.3g} um encoder" if q > 0 else "the sensor's noise"
+    return (f"the delay is ambiguous: {said(best)} and {said(rival)} explain the record "
+            f"alike (likelihood ratio within the {LEVEL:.1%} chi-square bound over "
+            f"{n_eff:.0f} effective samples of {nu}: the residual of {enc} is correlated)")
 
 
 def _hac(J, r, lag, extra=0):
@@ -679,7 +815,8 @@ def _estimate(value, sd, z, unit, floor=0.0):
 
 
 def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
-               holds=("zoh", "ideal"), lag: int = 50, applied=None) -> DeviceFit:
+               holds=("zoh", "ideal"), lag: int = 50, applied=None, seq=None,
+               ambiguous_delay: str = "range") -> DeviceFit:
     """Identify mass, friction, Coulomb friction, delay, hold, quantum and noise.
 
     Parameters
@@ -703,7 +840,21 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         fit is then driven by ``applied.applied``, the delay is the one the device showed
         (``applied.delay``, exact: ``delay_range`` is that one value) and ``late`` and
         ``max_delay`` are not used. Without it, the delays ``0 .. max_delay`` are tried
-        on ``force`` (a device that names no applied force).
+        on ``force`` (a device that names no applied force); a row whose applied force
+        the account does not know (``applied.known`` False) is left out of the fit.
+    seq : array_like of int, shape (n,), optional
+        The device's tick (STATE seq) of each row. Rows lost from the record (a STATE that
+        never arrived) are gaps: every stretch of consecutive ticks is fitted, each
+        from its own initial state with the mass and frictions shared (multiple shooting),
+        and without an account the force answering row ``k`` acts from tick
+        ``seq[k] + d`` (:func:`applied_force`). Default: no row lost.
+    ambiguous_delay : {"range", "refuse"}
+        When the delays are searched and another delay than the best's fits the record as
+        well (the likelihood ratio, counted on the residual's effective samples, within
+        the chi-square bound): ``"range"`` returns the fit with ``delay_certain`` False,
+        ``delay_range`` holding every such delay, the intervals covering their estimates
+        and the verdict naming two of them; ``"refuse"`` raises (a model that explains
+        the data; one that does not says so in its verdict either way).
 
     Returns
     -------
@@ -716,7 +867,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     IdentificationError
         A record that cannot be identified: fewer than 200 samples, non-finite values, a
         force that never acts (all zero), too little motion, no model fitted, a fit that
-        fails numerically.
+        fails numerically; with ``ambiguous_delay="refuse"``, a delay it cannot tell.
     """
     from scipy.stats import chi2, norm
     from scipy.stats import t as student_t
@@ -737,14 +888,25 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         raise ConfigError(f"must be a positive number [s], got {period!r}", key="period")
     if isinstance(max_delay, bool) or int(max_delay) != max_delay or max_delay < 0:
         raise ConfigError(f"must be a whole number >= 0, got {max_delay!r}", key="max_delay")
+    if ambiguous_delay not in ("range", "refuse"):
+        raise ConfigError(f"unknown choice {ambiguous_delay!r}; valid: range, refuse",
+                          key="ambiguous_delay")
     for h in holds:
         if h not in _HOLDS:
             raise ConfigError(f"unknown hold {h!r}; valid: zoh, ideal", key="hold")
     T = float(period)
     n = x.size
+    if seq is not None:
+        seq = np.asarray(seq, np.int64)
+        if seq.shape != x.shape:
+            raise ConfigError(f"seq must have the positions' shape {x.shape}, got "
+                              f"{seq.shape}", key="seq")
     z = float(norm.ppf(0.5 + LEVEL / 2))
     cands = []
     known = None
+    # the pieces of the record a model may run through: consecutive ticks whose input is
+    # known (a lost STATE, a force the account cannot name, restart the model)
+    usable = np.ones(n, bool)
     if applied is not None:
         u = np.asarray(applied.applied, float)
         if u.shape != x.shape or not np.all(np.isfinite(u)):
@@ -757,17 +919,26 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             raise IdentificationError("the applied force is zero throughout: nothing "
                                       "excited the device")
         known = (u, int(applied.delay))
+        kn = getattr(applied, "known", None)
+        if kn is not None and np.shape(kn) == x.shape:
+            usable &= np.asarray(kn, bool)
+    elif seq is not None:
+        usable &= _input_known(seq, late, int(max_delay))
+    ticks = np.arange(n) if seq is None else seq
+    pieces = [(a + int(i0), a + int(i1)) for a, b in _runs(ticks)
+              for i0, i1 in _true_runs(usable[a:b])]
+    if known is not None:
         # the correlation sees the applied force: its delay is 0 by construction
-        _, h0, m0 = _correlation(x, u, T, 2)
+        _, h0, m0 = _correlation(x, u, T, 2, pieces)
         d0 = known[1]
     else:
-        d0, h0, m0 = _correlation(x, f, T, max_delay)
+        d0, h0, m0 = _correlation(x, f, T, max_delay, pieces)
     q = _quantum(x)
-    st = _stretches(x, q.value)
+    st = _stretches(x, q.value, pieces=pieces)
     if st[0].size == 0 or int(np.sum(st[1] - st[0])) < 100:
         raise IdentificationError("the device hardly moved: fewer than 100 samples of "
                                   "clear motion (raise --force-limit or --duration)")
-    cands = _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known)
+    cands = _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known, seq)
     if cands:
         # a stretch the best model misses by far hides an unseen reversal of the velocity
         # (Coulomb friction flips there): drop such stretches and fit again
@@ -780,7 +951,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             st = tuple(a_[keep] for a_ in st)
             b_ = best
             cands = _search(x, f, T, late, holds, max_delay, st, b_["delay"],
-                            _HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]), known)
+                            _HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]), known, seq)
     if not cands:
         raise IdentificationError("no model could be fitted to the record")
     # the nonlinear refinement (Coulomb reversals inside a stretch) for the two best
@@ -795,13 +966,29 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     nu = best["_mod"].idx.size
     crit = chi2.ppf(LEVEL, 1)
     s_best = max(best["cost"], 0.5 * nu * POSITION_FLOOR ** 2)
+    mod = best["_mod"]
+    # the likelihood ratio's samples: when the delays are searched, the residual's
+    # effective ones (a quantiser's error is correlated: counted as nu independent
+    # samples, the ratio told apart delays the record cannot, and the best was a wrong
+    # delay); from an account of the applied force (one delay, the holds alone) all
+    n_lr = float(nu) if known is not None else _effective_samples(
+        _best_residual(best), mod.offs, lag)
 
     def close(c):
-        return nu * math.log(max(c["cost"], 0.5 * nu * POSITION_FLOOR ** 2) / s_best) <= crit
+        return n_lr * math.log(max(c["cost"], 0.5 * nu * POSITION_FLOOR ** 2) / s_best) <= crit
 
-    same = [c["delay"] for c in cands if c["hold"] == best["hold"] and close(c)]
+    # every delay not ruled out, under either hold
+    same = sorted({c["delay"] for c in cands if close(c)})
     other_hold = any(c["hold"] != best["hold"] and close(c) for c in cands)
-    mod = best["_mod"]
+    ambiguity = None
+    if len(same) > 1:
+        rival = min((c for c in cands if c["delay"] != best["delay"] and close(c)),
+                    key=lambda c_: c_["cost"])
+        ambiguity = _ambiguity(best, rival, nu, n_lr, q.value)
+        if ambiguous_delay == "refuse" and _explains(_best_residual(best), q.value)[0]:
+            raise IdentificationError(
+                f"{ambiguity}; no delay is chosen -- raise --force-limit or --duration for "
+                f"more motion, or use a protocol whose device reports the force it applied")
     if best.get("_ref") is not None:
         ym, p, J, n_nuis, _ = best["_ref"]
     else:
@@ -870,7 +1057,10 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                 hb = t_q * float(np.std(bb, ddof=1)) * math.sqrt(1.0 + 1.0 / bb.size)
                 lo, hi = min(lo, v - bias - hb), max(hi, v - bias + hb)
             if log:
-                return Estimate(math.exp(v), math.exp(lo), math.exp(hi), unit)
+                # an interval of ln m beyond the float range is a mass not determined
+                # (refused below), not an OverflowError
+                return Estimate(*(math.exp(t_) if t_ < 709.0 else math.inf
+                                  for t_ in (v, lo, hi)), unit)
             return Estimate(v, lo, hi, unit)
         out = [interval([(0, 1.0)], "kg", log=True), interval([(1, 1.0)], "N s/m")]
         if mod_c.coulomb:
@@ -953,11 +1143,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     xm = np.full(n, np.nan)
     xm[mod.idx] = ym
     resid = ym - xi
-    rms = float(math.sqrt(np.mean(resid ** 2)))
-    d2 = np.diff(resid, 2)
-    sig_w = float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
-    floor = math.sqrt(q.value ** 2 / 12.0 + sig_w ** 2)
-    explained = rms <= 2.0 * floor + 3 * POSITION_FLOOR
+    explained, rms, floor = _explains(resid, q.value)
     spec = np.abs(np.fft.rfft(resid - resid.mean()))
     freqs = np.fft.rfftfreq(resid.size, T)
     peak = float(freqs[1 + int(np.argmax(spec[1:]))]) if spec.size > 1 else 0.0
@@ -969,13 +1155,16 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                    f"{rms * 1e6:.3g} um against the sensor's {floor * 1e6:.3g} um; the "
                    f"residual peaks near {peak:.3g} Hz (a resonance or a compliant "
                    f"transmission the mass-friction model cannot fit, or a nonlinearity)")
+    if ambiguity is not None:
+        verdict += (f"; {ambiguity}: d = {int(best['delay'])} is the better fit's, not "
+                    f"determined")
     return DeviceFit(mass=mass, friction=fric, coulomb_pos=cp, coulomb_neg=cn, coulomb=cm,
                      asymmetry=asym, delay=int(best["delay"]),
                      delay_range=(min(same), max(same)), hold=best["hold"],
                      hold_certain=not other_hold, position_resolution=q, noise=noise,
                      x0=float(x0), rms_residual=rms, explained=bool(explained),
                      verdict=verdict, residual_peak_hz=peak, period=T, n_samples=n,
-                     motion_counts=counts,
+                     motion_counts=counts, delay_certain=ambiguity is None,
                      candidates=[{"hold": c["hold"], "delay": c["delay"],
                                   "rms": math.sqrt(2 * c["cost"] / nu)} for c in cands],
                      model=xm)

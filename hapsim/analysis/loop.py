@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import check_values
 from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, MAX_PRODUCT, RATE_RANGE, check_product
 
 __all__ = ["LoopModel", "HOLDS", "MAX_DELAY", "check_delay", "char_eval", "RATE_RANGE",
@@ -154,31 +155,27 @@ class LoopModel:
     stiffness: float = 0.0
 
     def __post_init__(self) -> None:
-        def num(key, value):
+        def num(key, value, finite=True):
             try:
                 v = float(value)
             except (TypeError, ValueError):
                 raise ConfigError(f"must be a number, got {value!r}", key=key) from None
-            if not math.isfinite(v):
+            if finite and not math.isfinite(v):
                 raise ConfigError(f"must be finite, got {value!r}", key=key)
             return v
-        m = num("mass", self.mass)
-        if m <= 0:
-            raise ConfigError(f"must be > 0 [kg], got {self.mass!r}", key="mass")
+        # the signs and the delay by the declarations the command line's --mass
+        # --friction --rate --delay take (hapsim.option_values.API_OPTIONS): one message
+        m = num("mass", self.mass, finite=False)
+        check_values("loop", key_by="parameter", mass=m)
         check_range(m, *MASS_RANGE, "mass", "kg")
-        b0 = num("friction", self.friction)
-        if b0 < 0:
-            raise ConfigError(f"must be >= 0 [N s/m], got {self.friction!r}", key="friction")
-        r = num("rate_hz", self.rate_hz)
-        if r <= 0:
-            raise ConfigError(f"must be > 0 [Hz], got {self.rate_hz!r}", key="rate_hz")
+        b0 = num("friction", self.friction, finite=False)
+        check_values("loop", key_by="parameter", friction=b0)
+        r = num("rate_hz", self.rate_hz, finite=False)
+        check_values("loop", key_by="parameter", rate_hz=r)
         check_range(r, *RATE_RANGE, "rate_hz", "Hz")
         check_product(b0, 1.0 / (r * m), "friction", "N s/m", "b0 T/m")
         d = self.delay
-        if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
-                or not float(d).is_integer() or d < 0:
-            raise ConfigError(f"must be a whole number of samples >= 0, got {d!r}",
-                              key="delay")
+        check_values("loop", key_by="parameter", delay=d)
         check_delay(int(d))
         if self.hold not in HOLDS:
             raise ConfigError(f"unknown hold {self.hold!r}; valid choices: "

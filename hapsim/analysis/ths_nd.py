@@ -68,8 +68,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE, STABILITY_TOL
+from hapsim.analysis.loop import MASS_RANGE, RATE_RANGE, STABILITY_TOL
 from hapsim.errors import ConfigError
+from hapsim.option_values import check_values
 
 __all__ = ["LoopModelND", "zoh_matrices", "state_matrix", "closed_loop_poles_nd",
            "rendered_pairs", "rendered_pairs_of", "felt_matrices", "continuous_poles",
@@ -169,14 +170,14 @@ class LoopModelND:
         except (TypeError, ValueError):
             raise ConfigError(f"must be a number [Hz], got {self.rate_hz!r}",
                               key="rate_hz") from None
+        # the rate's sign and the delay by the declarations of --rate and --delay
+        # (hapsim.option_values.API_OPTIONS["loop"], as LoopModel): one message
+        check_values("loop", key_by="parameter", rate_hz=r)
         if not RATE_RANGE[0] <= r <= RATE_RANGE[1]:
             raise ConfigError(f"must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} "
                               f"Hz, got {self.rate_hz!r}", key="rate_hz")
         d = self.delay
-        if isinstance(d, bool) or not isinstance(d, (int, np.integer, float)) \
-                or not float(d).is_integer() or not 0 <= d <= MAX_DELAY:
-            raise ConfigError(f"must be a whole number of samples in [0, {MAX_DELAY}], "
-                              f"got {d!r}", key="delay")
+        check_values("loop", key_by="parameter", delay=d)
         if self.hold not in HOLDS_ND:
             raise ConfigError(f"unknown hold {self.hold!r} for an n-DoF loop; valid "
                               f"choices: {', '.join(HOLDS_ND)}", key="hold")

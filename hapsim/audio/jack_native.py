@@ -33,9 +33,20 @@ import ctypes.util
 import numba as nb
 import numpy as np
 from numba import types
-from numba.extending import intrinsic
 
 from hapsim.kernels import audio as audio_kernel
+from hapsim.kernels.pointers import voidptr
+from hapsim.kernels.sources import cache_ok
+
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`): the
+#: multi-rate kernel and the engine helpers it inlines.
+COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
+                    "hapsim/kernels/pointers.py")
+#: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
+#: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
+COMPILED_SOURCES_SHA256 = "57709fd5b40831c48f863b3b65fe65b3d9330afb7cf112f77fd4993070ec66fc"
+#: Whether numba's disk cache may serve this module's compiled code.
+CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
 __all__ = ["NativeProcess", "native_available", "client_rt_priority", "process", "process_ring",
            "MAX_CHANNELS", "CTX", "LOG_MAX"]
@@ -64,16 +75,6 @@ CTX["log"] = CTX["log_n"] + 1
 _CTX_N = CTX["log"] + LOG_MAX
 
 
-@intrinsic
-def _voidptr(typingctx, addr):
-    """An integer address as a ``void *`` (for :func:`numba.carray`)."""
-    sig = types.voidptr(types.int64)
-
-    def codegen(context, builder, sig, args):
-        return builder.inttoptr(args[0], context.get_value_type(types.voidptr))
-    return sig, codegen
-
-
 def _load_libjack() -> None:
     """Make libjack's symbols visible to numba's linker (``jack_port_get_buffer`` is an
     external function of the compiled callback, resolved when it is compiled or loaded
@@ -94,34 +95,34 @@ _get_buffer = types.ExternalFunction("jack_port_get_buffer",
                                      types.voidptr(types.voidptr, types.uint32))
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _f8(c, i):
-    return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.float64)
+    return nb.carray(voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.float64)
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _i8(c, i):
-    return nb.carray(_voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
+    return nb.carray(voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _to_ports(c, nframes, audio, silence):
     """Write ``audio[:nframes]`` (or silence) to each channel's JACK port buffer."""
     n = np.int64(nframes)
     for ch in range(c[4]):
-        out = nb.carray(_get_buffer(_voidptr(c[CTX_PORTS + ch]), nframes), (n,), np.float32)
+        out = nb.carray(_get_buffer(voidptr(c[CTX_PORTS + ch]), nframes), (n,), np.float32)
         for r in range(n):
             out[r] = 0.0 if silence else audio[r, ch]
 
 
-@nb.njit(inline="always", cache=True)
+@nb.njit(inline="always", cache=CACHE_OK)
 def _enter(arg, nframes):
     """A callback's start: the context, the block as an int, the frames buffer, and
     whether the block fits it (if not: silence written and counted, nothing else to do)."""
     c = nb.carray(arg, (_CTX_N,), np.int64)
     c[6] += 1
     n = np.int64(nframes)
-    audio = nb.carray(_voidptr(c[9]), (c[5], c[4]), np.float32)
+    audio = nb.carray(voidptr(c[9]), (c[5], c[4]), np.float32)
     if n > c[5]:                       # a block larger than the buffers: silence
         c[7] += 1
         _to_ports(c, nframes, audio, True)
@@ -129,13 +130,13 @@ def _enter(arg, nframes):
     return c, n, audio, True
 
 
-@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process(nframes, arg):
     """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
     c, n, audio, fits = _enter(arg, nframes)
     if not fits:
         return 0
-    inv_ta = nb.carray(_voidptr(c[8]), (1,), np.float64)[0]
+    inv_ta = nb.carray(voidptr(c[8]), (1,), np.float64)[0]
     st = _f8(c, 2)
     starved0 = st[2]
     audio_kernel.run_frames(n, c[0], c[1] != 0, c[2] != 0, c[3],
@@ -151,16 +152,16 @@ def process(nframes, arg):
     return 0
 
 
-@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=True)
+@nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process_ring(nframes, arg):
     """The JACK process callback over a :class:`~hapsim.audio.live.FrameRing` (``hapsim run
     --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel."""
     c, n, audio, fits = _enter(arg, nframes)
     if not fits:
         return 0
-    ring = nb.carray(_voidptr(c[_RING]), (c[_RING + 1], c[4]), np.float32)
-    wr = nb.carray(_voidptr(c[_RING + 2]), (1,), np.int64)
-    st = nb.carray(_voidptr(c[_RING + 3]), (3,), np.int64)
+    ring = nb.carray(voidptr(c[_RING]), (c[_RING + 1], c[4]), np.float32)
+    wr = nb.carray(voidptr(c[_RING + 2]), (1,), np.int64)
+    st = nb.carray(voidptr(c[_RING + 3]), (3,), np.int64)
     audio_kernel.ring_read(n, ring, wr, st, audio)
     _to_ports(c, nframes, audio, False)
     return 0

@@ -7,7 +7,7 @@ import textwrap
 
 from hapsim.analysis.loop import HOLDS, LoopModel
 from hapsim.errors import fixed
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 #: Text appended to each command's help: what k/b and K/B are, and the units.
 UNITS_HELP = """\
@@ -60,17 +60,17 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
     usual = {"mass": None, "friction": 0.0, "rate": None, "delay": 1, "hold": "zoh"}
     d = {**usual, **(defaults or {})}
     g = parser.add_argument_group("loop (the real side of the THS)")
-    g.add_argument("--mass", type=Number(float, low=0, open_low=True, unit="kg"),
+    g.add_argument("--mass", type=declared("loop", "mass"),
                    default=d["mass"], required=require and d["mass"] is None,
                    metavar="M", help="moving mass m of hand + handle [kg], 1e-12 to 1e12")
-    g.add_argument("--friction", type=Number(float, low=0, unit="N s/m"),
+    g.add_argument("--friction", type=declared("loop", "friction"),
                    default=d["friction"], metavar="B0",
                    help="real viscous friction b0 [N s/m], >= 0, b0 T/m <= 1e6"
                         + _default(d["friction"], usual["friction"]))
-    g.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"),
+    g.add_argument("--rate", type=declared("loop", "rate_hz"),
                    default=d["rate"], required=require and d["rate"] is None,
                    metavar="HZ", help="sample rate [Hz], 1e-6 to 1e9; period T = 1/rate")
-    g.add_argument("--delay", type=Number(int, low=0, high=500), default=d["delay"], metavar="D",
+    g.add_argument("--delay", type=declared("loop", "delay"), default=d["delay"], metavar="D",
                    help="whole samples between reading x and applying the force, 0 to "
                         "500 (the analysis is O(d^3))" + _default(d["delay"], usual["delay"]))
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],

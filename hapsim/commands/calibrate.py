@@ -8,7 +8,7 @@ import sys
 
 from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
                                         print_modes)
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 
 def register(sub) -> None:
@@ -30,9 +30,9 @@ def register(sub) -> None:
                "--delay 1 --hold zoh --k 2000 --b 3\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
-    p.add_argument("--k", type=Number(float, low=0, open_low=True, unit="N/m"),
+    p.add_argument("--k", type=declared("calibrate", "k"),
                    required=True, help="target felt stiffness k [N/m], > 0")
-    p.add_argument("--b", type=Number(unit="N s/m"), required=True,
+    p.add_argument("--b", type=declared("calibrate", "b"), required=True,
                    help="target felt damping b [N s/m] (whole: real b0 + virtual)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

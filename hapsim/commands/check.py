@@ -119,8 +119,6 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.api import check
     from hapsim.scene import load_scene
 
-    if args.modes < 0:
-        raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     scene = load_scene(args.scene)
     from hapsim.analysis.network import check_size, state_count
     check_size(scene)                   # too large: refused before the cost is announced

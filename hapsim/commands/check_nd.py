@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
-
-from hapsim.errors import ConfigError
 
 
 def run_nd(args) -> int:
@@ -33,8 +30,6 @@ def run_nd(args) -> int:
         Bad scene file or option (exit 2).
     """
     from hapsim import api
-    if args.modes < 0:
-        raise ConfigError(f"must be >= 0, got {args.modes}", key="--modes")
     plot = getattr(args, "plot", None)
     if plot is not None:
         from hapsim.plot import check_figure_path

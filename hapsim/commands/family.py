@@ -7,7 +7,7 @@ import json
 import math
 
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 _DESCRIPTION = """\
 Judge a scene over the whole family of hands that may hold the device (Florens, Voda &
@@ -77,13 +77,13 @@ def register(sub) -> None:
         description=_DESCRIPTION, epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file (device.hand with ranges)")
-    p.add_argument("--samples", type=Number(int, low=1), default=None, metavar="N",
+    p.add_argument("--samples", type=declared("family", "samples"), default=None, metavar="N",
                    help="N seeded random members instead of the grid")
-    p.add_argument("--grid", type=Number(int, low=2), default=9, metavar="G",
+    p.add_argument("--grid", type=declared("family", "grid"), default=9, metavar="G",
                    help="grid points per ranged hand value (default 9)")
-    p.add_argument("--seed", type=Number(int, low=0),
+    p.add_argument("--seed", type=declared("family", "seed"),
                    default=0, help="seed of --samples (default 0)")
-    p.add_argument("--certify-boxes", type=Number(int, low=0), default=4096, metavar="N",
+    p.add_argument("--certify-boxes", type=declared("family", "certify"), default=4096, metavar="N",
                    help="most boxes of the certified subdivision of the ranges (default "
                         "4096; 0: the sampled verdict only)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")

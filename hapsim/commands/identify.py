@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import Number, declared
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -28,8 +27,9 @@ and STOP at the end or on Ctrl-C. The fit is an output-error least squares of th
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
 with Newey-West intervals, driven by the force the device applied at each tick (its
 STATEs' force_seq name it: a late tick is a known input, and the delay is the one the
-device shows, never assumed). Without --port the embedded mock (--mock-scene: its device)
-is identified."""
+device shows, never assumed). A STATE lost on the way cuts the record: every stretch of
+consecutive STATEs is fitted, each from its own initial state. Without --port the embedded
+mock (--mock-scene: its device) is identified."""
 
 _EPILOG = """\
 output:
@@ -52,6 +52,9 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
   data (or a safety stop / device fault), or the record cannot be identified (the reason
   is printed: too short, the device hardly moved, ...), 2 bad arguments
+delay: a framed device shows it (force_seq); for another protocol every delay up to
+  --max-delay is tried, and one that another fits as well (a coarse encoder) is not
+  stated as certain: delay_certain false, delay_range and the verdict name them
 examples:
   hapsim identify --out device.yaml --plot fit.png
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
@@ -73,7 +76,7 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--port", metavar="PORT",
                    help="serial port of the device (default: the embedded mock on a pty)")
-    p.add_argument("--baud", type=Number(int, low=1),
+    p.add_argument("--baud", type=declared("identify", "baud"),
                    default=115200, metavar="BAUD", help="baud rate")
     p.add_argument("--driver", default="framed", metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
@@ -81,13 +84,20 @@ def register(sub) -> None:
                    help="a driver's device parameter (device.protocol_options; repeat: "
                         "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
                         "Haply board); written to --out with the protocol")
-    p.add_argument("--added-mass", type=Number(float, low=0, open_low=True, unit="kg"),
+    p.add_argument("--added-mass", type=declared("identify", "added_mass"),
                    metavar="KG",
                    help="find the driver's scale (the FireFader's full_scale, the Haply "
                         "board's resolution): identify, then identify again with KG [kg] "
                         "(an inertia [kg m^2] for a rotary axis) clamped to the handle "
                         "(the embedded mock adds it itself; with --port, press Enter once "
                         "it is on); --out gets the scale and the device in its own units")
+    p.add_argument("--travel", type=Number(float, low=0, open_low=True, unit="mm"),
+                   metavar="MM",
+                   help="the FireFader's travel between its end stops [mm] (its "
+                        "datasheet's): before the excitation the fader is pushed to each "
+                        "stop and metres_per_count = travel / (counts between the stops) "
+                        "is found, with its interval, and written to --out (with "
+                        "--added-mass, full_scale is then found in those units)")
     p.add_argument("--mock-option", action="append", default=[], metavar="KEY=VALUE",
                    help="the embedded driver mock's hardware, other than the device "
                         "--protocol-option describes (repeat: e.g. full_scale=1.56 for "
@@ -98,20 +108,20 @@ def register(sub) -> None:
     p.add_argument("--hand", action="store_true",
                    help="a hand holds the handle: report the THS (hand + handle) mass and "
                         "damping")
-    p.add_argument("--force-limit", type=Number(float, low=0, open_low=True, unit="N"),
+    p.add_argument("--force-limit", type=declared("identify", "force_limit"),
                    default=2.0, metavar="N",
                    help="largest force sent [N] (default 2)")
-    p.add_argument("--envelope", type=Number(float, low=0, open_low=True, unit="m"),
+    p.add_argument("--envelope", type=declared("identify", "envelope"),
                    default=0.01, metavar="M",
                    help="position envelope +-M around the start [m]; beyond it the "
                         "excitation stops (default 0.01)")
-    p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"),
+    p.add_argument("--duration", type=declared("identify", "duration"),
                    default=4.0, metavar="S",
                    help="excitation length [s] (default 4)")
-    p.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"),
+    p.add_argument("--rate", type=declared("identify", "rate_hz"),
                    default=1000.0, metavar="HZ",
                    help="loop rate [Hz] (default 1000)")
-    p.add_argument("--max-delay", type=Number(int, low=0), default=20, metavar="D",
+    p.add_argument("--max-delay", type=declared("identify", "max_delay"), default=20, metavar="D",
                    help="largest device delay [samples] the centring loop is stable for "
                         "and, for a protocol that does not report the force it applied, "
                         "the largest delay tried (default 20: a USB latency timer of 16 ms "
@@ -120,7 +130,7 @@ def register(sub) -> None:
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
                         "b0 = 0.5 N s/m, d = 1)")
-    p.add_argument("--seed", type=Number(int, low=0),
+    p.add_argument("--seed", type=declared("identify", "seed"),
                    default=0, help="excitation and mock-noise seed")
     p.set_defaults(func=run)
 
@@ -180,10 +190,6 @@ def run(args) -> int:
     if args.driver not in DRIVERS:
         raise ConfigError(f"unknown driver {args.driver!r}; valid: {', '.join(DRIVERS)}",
                           key="--driver")
-    for key, v in (("--force-limit", args.force_limit), ("--envelope", args.envelope),
-                   ("--duration", args.duration), ("--rate", args.rate)):
-        if not (math.isfinite(v) and v > 0):
-            raise ConfigError(f"must be a positive number, got {v}", key=key)
     if args.plot:
         from hapsim.plot import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -216,20 +222,22 @@ def run(args) -> int:
                           "in HELLO); give --driver",
                           key="--protocol-option" if args.protocol_option else
                           "--mock-option" if args.mock_option else "--added-mass")
-    if args.added_mass is not None:
-        if not (math.isfinite(args.added_mass) and args.added_mass > 0):
-            raise ConfigError(f"must be a positive mass [kg], got {args.added_mass}",
-                              key="--added-mass")
+    if args.added_mass is not None:       # (its range: the declaration, checked before)
         if drv.scale_option is None:
             raise ConfigError(f"the {drv.name} protocol carries SI units: no scale to "
                               f"calibrate; valid with --added-mass: --driver firefader, "
                               f"haply", key="--added-mass")
+    if args.travel is not None and args.driver != "firefader":
+        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
+                          f"{args.driver} protocol has none to find (valid with --travel: "
+                          f"--driver firefader)", key="--travel")
     from hapsim.api import identify as identify_api
     kw = dict(baud=args.baud, force_limit=args.force_limit, envelope=args.envelope,
               duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
               lockstep=args.lockstep, seed=args.seed, driver=args.driver,
               driver_options=dopts, hand=args.hand, progress=True, handle_signals=True,
-              mock_options=mopts)
+              mock_options=mopts,
+              travel=None if args.travel is None else args.travel * 1e-3)
     rep = identify_api(args.port, device=device, **kw)
     fit, rec = rep.fit, rep.record
     if drv is not None and rec.get("protocol_options"):
@@ -237,6 +245,9 @@ def run(args) -> int:
         drv = get_driver(args.driver, **rec["protocol_options"])
     scale = None
     if args.added_mass is not None:
+        # the second identification in the units the first found (the position scale
+        # of the sweep), without sweeping again
+        kw.update(driver_options=drv.options(), travel=None)
         rep2 = identify_api(args.port, device=_loaded(device, args), **kw)
         from hapsim.api import calibrate_scale
         scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
@@ -251,6 +262,14 @@ def run(args) -> int:
                 f"counts with motor byte {tried} (encoder direction "
                 f"{drv.options().get('direction')}); the device id is the host's choice "
                 f"(the board answers any): nothing to identify\n") + text
+    sweep = rec["loop"].get("travel_sweep")
+    if sweep is not None:
+        c_lo, c_hi = sweep["counts"]
+        text = (f"# metres_per_count found by a sweep between the end stops: "
+                f"{sweep['metres_per_count'] * 1e3:.5g} mm [{sweep['lo'] * 1e3:.5g}, "
+                f"{sweep['hi'] * 1e3:.5g}] per count ({sweep['travel'] * 1e3:g} mm of "
+                f"travel given over counts {c_lo:.1f} to {c_hi:.1f}; the travel's own "
+                f"tolerance adds to that interval)\n") + text
     if scale is not None:
         opt = drv.scale_option
         text = (f"# {opt} found with {args.added_mass:g} kg added: {scale.full_scale:.6g} "

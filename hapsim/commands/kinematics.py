@@ -8,7 +8,7 @@ import math
 import sys
 
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import Number, declared
 
 #: Parameters of ``--geometry`` per device, in order (lengths [m]).
 GEOMETRY_FIELDS = {"pantograph": ("l", "L", "d"), "delta": ("a", "b", "c", "d", "e", "f")}
@@ -60,9 +60,9 @@ def register(sub) -> None:
                    default=0.0, help="hand mass [kg] (default 0)")
     g.add_argument("--hand-damping", type=Number(float, low=0, unit="N s/m"), default=0.0,
                    help="hand damping [N s/m] (default 0)")
-    g.add_argument("--rate", type=Number(float, low=0, open_low=True, unit="Hz"),
+    g.add_argument("--rate", type=declared("loop", "rate_hz"),
                    default=1000.0, help="sample rate [Hz] (default 1000)")
-    g.add_argument("--delay", type=Number(int, low=0, high=500),
+    g.add_argument("--delay", type=declared("loop", "delay"),
                    default=1, help="delay [samples] (default 1)")
     g.add_argument("--B", type=Number(unit="N s/m"), default=0.0,
                    help="virtual damping [N s/m], isotropic (default 0)")

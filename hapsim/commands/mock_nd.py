@@ -19,7 +19,21 @@ TAKES = frozenset({"scene", "lockstep", "rate", "report", "rt_priority", "once",
 #: ``--tick`` values it takes: its real-time ticks are Python's ("auto" picks them).
 TICKS = ("auto", "python")
 #: Destinations that are no option of ``hapsim mock`` (the CLI's own).
-_NOT_OPTIONS = frozenset({"func", "command"})
+_NOT_OPTIONS = frozenset({"func", "command", "option_default"})
+
+
+def _given(args, takes) -> list:
+    """The ``(flag, value)`` of every option given (not None, not False, not its default)
+    that is not in ``takes``, sorted by destination."""
+    default = getattr(args, "option_default", None)   # argparse's get_default of mock
+    out = []
+    for dest, value in sorted(vars(args).items()):
+        if dest in takes or dest in _NOT_OPTIONS or value is None or value is False:
+            continue
+        if default is not None and value == default(dest):
+            continue
+        out.append(("--" + dest.replace("_", "-"), value))
+    return out
 
 
 def refuse_untaken(args) -> None:
@@ -34,13 +48,11 @@ def refuse_untaken(args) -> None:
     Raises
     ------
     ConfigError
-        Naming the first such option and the ones the n-D mock takes (exit 2).
+        Naming the first such option and the ones the n-D mock takes (exit 2). An option
+        at its parser default counts as not given.
     """
     takes = ", ".join("--" + d.replace("_", "-") for d in sorted(TAKES))
-    for dest, value in sorted(vars(args).items()):
-        if dest in TAKES or dest in _NOT_OPTIONS or value is None or value is False:
-            continue
-        opt = "--" + dest.replace("_", "-")
+    for opt, _ in _given(args, TAKES):
         raise ConfigError(f"a 2-D or 3-D scene's mock does not take {opt} (it takes "
                           f"{takes})", key=opt)
     tick = getattr(args, "tick", "auto")
@@ -142,6 +154,29 @@ _FIRMWARE_DEFAULTS = {"tick": "auto", "rt_priority": 0}
 FIRMWARE_AMPLITUDE = 2e-4
 
 
+def refuse_untaken_firmware(args) -> None:
+    """Refuse every ``hapsim mock`` option given that the emulated Hapkit pantograph does
+    not take (:data:`FIRMWARE_TAKES`; ``--rt-priority`` only at 0, what ``hapsim mock``
+    sets in lockstep).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+
+    Raises
+    ------
+    ConfigError
+        Naming the first such option and the ones it takes (exit 2).
+    """
+    for opt, value in _given(args, FIRMWARE_TAKES):
+        dest = opt[2:].replace("-", "_")
+        if dest in _FIRMWARE_DEFAULTS and value == _FIRMWARE_DEFAULTS[dest]:
+            continue
+        raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
+                          f"not take {opt} (it takes --scene, --lockstep, --amplitude, "
+                          "--report, --link)", key=opt)
+
+
 def run_pantograph_firmware(args) -> int:
     """``hapsim mock --firmware --scene SCENE --lockstep`` on a 2-D pantograph scene: build
     what is missing and become the emulated Hapkit pantograph
@@ -169,18 +204,10 @@ def run_pantograph_firmware(args) -> int:
     from hapsim.daemon import pantograph_board as pb
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
-    for dest, value in sorted(vars(args).items()):
-        if dest in FIRMWARE_TAKES or dest in _NOT_OPTIONS or value is None or value is False:
-            continue
-        if dest in _FIRMWARE_DEFAULTS and value == _FIRMWARE_DEFAULTS[dest]:
-            continue
-        opt = "--" + dest.replace("_", "-")
-        raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
-                          f"not take {opt} (it takes --scene, --lockstep, --amplitude, "
-                          "--report, --link)", key=opt)
     if not args.lockstep:
         raise ConfigError("the emulated Hapkit pantograph runs in lockstep only (its real-time "
                           "mode is not built): add --lockstep", key="--lockstep")
+    refuse_untaken_firmware(args)
     scene = load_scene_nd(args.scene)
     a = FIRMWARE_AMPLITUDE if args.amplitude is None else args.amplitude
     cmd = pb.board_command(scene, a, report=args.report, link=args.link)

@@ -10,7 +10,7 @@ from hapsim.errors import fixed
 
 from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
                                         print_modes)
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 
 def register(sub) -> None:
@@ -33,8 +33,8 @@ def register(sub) -> None:
                "--delay 1 --hold zoh --K 2000 --B 2\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
-    p.add_argument("--K", type=Number(unit="N/m"), required=True, help="virtual stiffness K [N/m]")
-    p.add_argument("--B", type=Number(unit="N s/m"), default=0.0, help="virtual damping B [N s/m] "
+    p.add_argument("--K", type=declared("render", "K"), required=True, help="virtual stiffness K [N/m]")
+    p.add_argument("--B", type=declared("render", "B"), default=0.0, help="virtual damping B [N s/m] "
                    "(default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

@@ -8,7 +8,7 @@ import json
 import sys
 
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import Number, declared
 
 _DESCRIPTION = """\
 Run a scene in real time against a force-feedback device and measure what the hand feels.
@@ -131,7 +131,7 @@ def register(sub) -> None:
                  "replaces the scene's (said on stderr)")
     # the run's options, each declared once in hapsim.daemon.options.RunOptions
     add_run_arguments(p, after={"seed": auto, "driver": device})
-    p.add_argument("--amplitude", type=Number(float, low=0, open_low=True, unit="m"), metavar="M",
+    p.add_argument("--amplitude", type=declared("run_nd", "amplitude"), metavar="M",
                    help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
                         "the measured free responses [m] (default 1e-8; the report states "
                         "the linearisation bound at it)")
@@ -283,6 +283,9 @@ def run(args) -> int:
         report = report.replace(advice=advice.to_dict())  # keeps exit_code
     print(json.dumps(report.to_dict()) if args.json else report.text())
     sys.stdout.flush()
+    if args.json:                       # the human report says them in its text
+        for w in report.loop.get("warnings") or []:
+            print(f"hapsim run: warning: {w}", file=sys.stderr, flush=True)
     if report.error is not None:        # the report first, then why the run ended
         print(f"hapsim run: {report.error['type']}: {report.error['message']}",
               file=sys.stderr, flush=True)

@@ -111,8 +111,6 @@ def run(args: argparse.Namespace) -> int:
     if ext not in (".npz", ".csv"):
         raise ConfigError(f"unknown output format {ext or '(none)'!r}; valid: .npz, .csv",
                           key="--out")
-    if args.steps < 0:
-        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
     check_writable(args.out, "--out")
     scene = load_scene(args.scene)
     calibrations = []
@@ -189,8 +187,6 @@ def _run_audio(args: argparse.Namespace) -> int:
 
     if not args.audio.lower().endswith(".wav"):
         raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}", key="--audio")
-    if args.steps < 0:
-        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
     if args.out is not None and os.path.splitext(args.out)[1].lower() not in (".npz", ".csv"):
         raise ConfigError("unknown output format; valid: .npz, .csv", key="--out")
     scene = load_scene(args.scene)

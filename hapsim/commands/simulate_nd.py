@@ -47,8 +47,6 @@ def run_nd(args) -> int:
     if args.out is None or os.path.splitext(args.out)[1].lower() != ".npz":
         raise ConfigError(f"a 2-D or 3-D trajectory is written as .npz (time, position "
                           f"(N+1, R, n), names), got {args.out!r}", key="--out")
-    if args.steps < 0:
-        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
     check_writable(args.out, "--out")
     scene = load_scene_nd(args.scene)
     engine = EngineND(scene)
@@ -110,8 +108,6 @@ def _run_audio(args) -> int:
     if not args.audio.lower().endswith(".wav"):
         raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}",
                           key="--audio")
-    if args.steps < 0:
-        raise ConfigError(f"must be >= 0, got {args.steps}", key="--steps")
     if getattr(args, "gesture", "excitation") != "excitation":
         raise ConfigError("a 2-D or 3-D scene is heard from its initial state (no gesture "
                           "drives its port yet): leave --gesture out", key="--gesture")

@@ -8,7 +8,7 @@ import math
 import sys
 
 from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args
-from hapsim.option_values import Number
+from hapsim.option_values import declared
 
 
 def register(sub) -> None:
@@ -35,7 +35,7 @@ def register(sub) -> None:
                "--delay 1 --hold zoh --B 0\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
-    p.add_argument("--B", type=Number(unit="N s/m"), default=0.0,
+    p.add_argument("--B", type=declared("stability", "B"), default=0.0,
                    help="virtual damping B [N s/m] (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

@@ -350,8 +350,6 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.daemon.telemetry import save_columns
     from hapsim.plot import check_output_path
 
-    if args.delay < 0:
-        raise ConfigError(f"must be >= 0 samples, got {args.delay}", key="--delay")
     if args.out:
         if os.path.splitext(args.out)[1].lower() not in _FORMATS:
             raise ConfigError(f"unknown telemetry format in {args.out!r}; valid: "

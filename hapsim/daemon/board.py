@@ -74,27 +74,55 @@ def build(*, quiet: bool = True) -> dict:
     DeviceError
         A tool is missing (:func:`missing_tools`) or make failed (its output attached).
     """
+    output = make("the emulated Hapkit board",
+                  ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")), quiet=quiet)
+    return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
+            "output": output}
+
+
+def make(what: str, steps, *, quiet: bool = True) -> str:
+    """Run ``make -C DIR TARGET`` for each step, under the firmware tree's build lock
+    (one builder at a time: the second waits, then finds everything up to date).
+
+    Parameters
+    ----------
+    what : str
+        What is built, for the error (``"the emulated Hapkit board"``).
+    steps : iterable of (path-like, str)
+        ``(directory, target)`` in order.
+    quiet : bool
+        Capture make's output instead of printing it.
+
+    Returns
+    -------
+    str
+        make's output, every step's.
+
+    Raises
+    ------
+    DeviceError
+        A tool is missing (:func:`missing_tools`) or a make failed (its output attached).
+    """
     why = missing_tools()
     if why:
-        raise DeviceError(f"cannot build the emulated Hapkit board: {why}")
+        raise DeviceError(f"cannot build {what}: {why}")
     out = []
     with open(BUILD_LOCK, "a") as lock:
-        # the second builder waits here, then finds everything up to date
         fcntl.flock(lock, fcntl.LOCK_EX)
-        for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "hapkit_board")):
+        for d, target in steps:
             r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
             out.append(r.stdout + r.stderr)
             if r.returncode != 0:
                 raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
             if not quiet:
                 print(out[-1], end="", flush=True)
-    return {"board": str(BOARD), "elf": str(FIRMWARE_ELF), "vectors_elf": str(VECTORS_ELF),
-            "output": "".join(out)}
+    return "".join(out)
 
 
 def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,
                   report: str | None = None, link: str | None = None,
-                  wait_ms: float | None = None, duration: float | None = None) -> list[str]:
+                  wait_ms: float | None = None, duration: float | None = None,
+                  trace: str | None = None, spin_us: float | None = None) -> list[str]:
     """The ``hapkit_board`` command line for a scene's device and excitation.
 
     Parameters
@@ -115,6 +143,13 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
     wait_ms, duration : float, optional
         Longest wait for the host per STATE [ms] (default: as long as the host keeps the
         port open, so no FORCE is late however slow the host); emulated time to run [s].
+    trace : str, optional
+        File the board writes its event trace to on exit (every tick, conversion, PWM
+        change, STATE, FORCE read and fed, wait for the wall clock; emulated cycle and
+        CLOCK_MONOTONIC; read by ``tools/bench_firmware.py``).
+    spin_us : float, optional
+        Real time: the longest spin per tick [us] while the board waits for the host's FORCE
+        (emulating in 10 us steps, never ahead of the wall clock); default 0, no spin.
 
     Returns
     -------
@@ -140,6 +175,10 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
         cmd += ["--wait-ms", repr(float(wait_ms))]
     if duration is not None and math.isfinite(duration):
         cmd += ["--duration", repr(float(duration))]
+    if trace:
+        cmd += ["--trace", trace]
+    if spin_us:
+        cmd += ["--spin-us", repr(float(spin_us))]
     return cmd
 
 

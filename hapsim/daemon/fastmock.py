@@ -44,11 +44,14 @@ from hapsim.daemon.compiled_io import (CRC_TABLE, POLLERR, POLLHUP, POLLIN, POLL
                                        next_frame, now_ns)
 from hapsim.daemon.startup import MOCK_SOURCES, loop_sources, sources_digest
 
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
+COMPILED_SOURCES = MOCK_SOURCES
+
 #: SHA-256 of the modules this module's numba code compiles in
 #: (:data:`hapsim.daemon.startup.MOCK_SOURCES`): numba keys its disk cache on this file
 #: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
 #: so), which edits this file and makes numba recompile. Until then: no cache.
-COMPILED_SOURCES_SHA256 = "d0775e9e5ed31b054d713adec47a614652b99d2f72a88b2c77c40b350d7e07b2"
+COMPILED_SOURCES_SHA256 = "d282a196adbe967c8871ee2184e8c44f2ff06319bfe8849d43eb8308a7524168"
 
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = sources_digest(loop_sources(MOCK_SOURCES)) == COMPILED_SOURCES_SHA256

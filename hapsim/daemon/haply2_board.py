@@ -32,7 +32,8 @@ from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
 
-__all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2"]
+__all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2", "BoardLink", "in_hand_order",
+           "PROBE_TORQUE", "PROBE_ENVELOPE"]
 
 _F = struct.Struct("<f")
 _F32_MAX = 3.4028234663852886e38
@@ -51,11 +52,15 @@ class Haply2DIYBoard:
         The encoders' real counts per revolution (default the generation's).
     amplitude : float
         The hand's amplitude ``a`` [m].
+    wiring : ((int, int), (int, int)), optional
+        Per joint, the sign of its motor and of its encoder against the generation's
+        wiring (1: as hAPI's direction bytes expect; -1: wired backwards, so that the
+        generation's byte turns the motor, or counts the encoder, the other way).
 
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; an unknown generation.
+        Not a 2-D pantograph scene; an unknown generation; a bad wiring.
 
     Attributes
     ----------
@@ -69,7 +74,7 @@ class Haply2DIYBoard:
     """
 
     def __init__(self, scene, generation: str = "gen3", *, cpr: float | None = None,
-                 amplitude: float = 1e-8) -> None:
+                 amplitude: float = 1e-8, wiring=((1, 1), (1, 1))) -> None:
         dev = scene.device
         if scene.dimension != 2 or dev is None or dev.kind != "pantograph":
             raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
@@ -77,6 +82,11 @@ class Haply2DIYBoard:
         if generation not in GENERATIONS:
             raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
                               f"{', '.join(GENERATIONS)}", key="generation")
+        w = tuple(tuple(int(v) for v in jw) for jw in wiring)
+        if len(w) != 2 or any(len(jw) != 2 or set(jw) - {1, -1} for jw in w):
+            raise ConfigError(f"wiring must be ((motor, encoder) sign of joint 1, of joint "
+                              f"2), each 1 or -1, got {wiring!r}", key="wiring")
+        self.wiring = w
         self.scene = scene
         self.gen = GENERATIONS[generation]
         self.cpr = float(cpr or self.gen.resolution)
@@ -129,8 +139,10 @@ class Haply2DIYBoard:
         j = self._joint_of_port(port)
         c0, hw0 = self._base.get(port, (0, 0))
         moved = (self._hw_count(j) - hw0) if j is not None else 0
-        up = p.encoder_direction[self._k_of(port, "encoder")] == self.gen.encoder_direction[j] \
-            if j is not None else True
+        up = True
+        if j is not None:
+            up = (p.encoder_direction[self._k_of(port, "encoder")]
+                  == self.gen.encoder_direction[j]) == (self.wiring[j][1] == 1)
         c = c0 + (moved if up else -moved)
         if not (math.isfinite(res) and res):
             return math.copysign(math.inf, c) if c else math.nan
@@ -142,6 +154,7 @@ class Haply2DIYBoard:
         for j, port in enumerate(JOINT_PORTS):
             t = self.torque[port]
             up = p.motor_direction[self._k_of(port, "motor")] == self.gen.motor_direction[j]
+            up = up == (self.wiring[j][0] == 1)
             tau[j] = t if up else -t
         return tau
 
@@ -329,7 +342,8 @@ MISSING_RESYNC = 5
 def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1e-5,
                         cpr: float | None = None, resolution: float | None = None,
                         samples: int | None = None, progress=None, plant=None,
-                        plan=None) -> dict:
+                        plan=None, probe_wiring: bool = True, wiring=((1, 1), (1, 1)),
+                        directions: dict | None = None) -> dict:
     """The felt matrices of a pantograph scene measured through the emulated 2DIY's bytes,
     and their verdict against the stated uncertainty.
 
@@ -372,6 +386,15 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     plan : tuple, optional
         :func:`hapsim.lockstep_nd.identification_plan` of ``scene`` and ``samples``,
         already computed (several measurements of one scene).
+    probe_wiring : bool, optional
+        Check each joint's wiring first (:func:`hapsim.drivers.haply2_probe.
+        find_directions`, within :data:`PROBE_TORQUE`): a joint turned backwards by its
+        direction bytes is refused before any torque loop runs.
+    wiring : ((int, int), (int, int)), optional
+        The emulated board's wiring (:class:`Haply2DIYBoard`).
+    directions : dict, optional
+        ``motor_direction`` / ``encoder_direction`` bytes the host sets up instead of the
+        generation's (:class:`hapsim.drivers.haply2.Haply2DIY`).
 
     Returns
     -------
@@ -385,12 +408,16 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         torque clamp engaged, ``clamped`` samples); ``quantum`` (one step of a reading
         at the handle over ``a`` [-]: one count or one binary32 ulp, the larger, times
         ``|J|``), ``quantum_encoders`` (one count of each generation's encoders at the
-        handle over ``a``), ``records``, ``samples``.
+        handle over ``a``), ``records``, ``samples``, ``direction_probe`` (what the
+        wiring probe found: :meth:`hapsim.drivers.haply2_probe.WiringProbe.to_dict`, or
+        None).
 
     Raises
     ------
     DeviceError
         A record with a missing reply (the clean stream lost one).
+    IdentificationError
+        A joint wired backwards against its direction bytes (the probe's refusal).
     """
     from hapsim.analysis.identify_nd import felt_sensitivity_nd, fit_felt_nd, worst_case_nd
     from hapsim.analysis.linearisation_nd import linearisation_bound
@@ -401,8 +428,15 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
     board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,
-                           amplitude=amplitude)
-    drv = Haply2DIY(generation, resolution=resolution or board.cpr)
+                           amplitude=amplitude, wiring=wiring)
+    drv = Haply2DIY(generation, resolution=resolution or board.cpr, **(directions or {}))
+    probe = None
+    if probe_wiring:
+        from hapsim.drivers.haply2_probe import find_directions
+        probe = find_directions(drv, BoardLink(board.feed),
+                                [math.degrees(v) for v in scene.device.joints],
+                                force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
+                                rate_hz=scene.rate_hz, pace=False, timeout=0.0)
     runs = []
     for j in range(2 * n + 1):
         r = drive_haply2(board.feed, drv, scene, N)
@@ -411,7 +445,52 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         runs.append(r)
         if progress is not None:
             progress(j + 1, 2 * n + 1)
-    return felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+    runs = in_hand_order(runs, 0 if probe is None else probe.setups)
+    out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+    out["direction_probe"] = None if probe is None else probe.to_dict()
+    return out
+
+
+#: The wiring probe's largest torque [N m] and envelope [rad] on the 2DIY
+#: (:func:`hapsim.drivers.haply2_probe.find_directions`: pulses raised from 1/16 of it).
+PROBE_TORQUE = 0.05
+PROBE_ENVELOPE = 0.1
+
+
+def in_hand_order(runs: list, setups_before: int) -> list:
+    """Records taken one per set-up, in the order of the emulated board's hand starts
+    (module notes: set-up ``k`` lets the handle go from start ``k mod (2n + 1)``), given
+    the set-ups the board took before the first record (the wiring probe's).
+
+    Parameters
+    ----------
+    runs : list
+        The ``2n + 1`` records, in the order taken.
+    setups_before : int
+
+    Returns
+    -------
+    list
+        ``runs`` rotated so that record ``i`` is start ``i``'s.
+    """
+    s = setups_before % len(runs)
+    return runs[-s:] + runs[:-s] if s else list(runs)
+
+
+class BoardLink:
+    """``write``/``read(timeout)`` on an in-process board's ``feed`` (the wiring probe's
+    link in lockstep: each write's replies are there at once)."""
+
+    def __init__(self, feed) -> None:
+        self._feed = feed
+        self._buf = b""
+
+    def write(self, data: bytes) -> None:
+        self._buf += self._feed(data)
+
+    def read(self, timeout: float) -> bytes:
+        out, self._buf = self._buf, b""
+        return out
 
 
 def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float) -> dict:

@@ -14,7 +14,12 @@ rows), its position extrapolated from the last two readings,
 ``x_e = x[i] + r (x[i] - x[i-1])`` with ``r = k - i`` (:func:`estimate_bounds` bounds
 its error), the engine's force computed from it and its torques written; the reply
 counts when it comes, but never replaces the estimate the engine used (the record
-holds what the loop saw).
+holds what the loop saw). The records' verdict is
+:func:`hapsim.daemon.haply2_board.felt_verdict_of_runs`: the estimated rows' bounds
+enter the wire's term through the loop as reading errors do.
+
+Before any record, each joint's wiring is checked (:mod:`hapsim.drivers.haply2_probe`):
+a joint its direction bytes turn backwards is refused.
 
 The board has no framing (:mod:`hapsim.drivers.haply`): a host byte lost or corrupted
 shifts its parser, and it then answers garbage, one byte per write, or nothing. The loop
@@ -26,15 +31,15 @@ sample. The set-up's offsets are the operating point's joints, as at arming: the
 emulated board's hand holds the handle there at each set-up
 (:mod:`hapsim.daemon.haply2_board`), and on a board whose handle goes on moving they
 are wrong by the record's motion since the arming (its amplitude, 1e-4 m: about 1e-3
-rad) where the joints last read, extrapolated, would be wrong by the estimate's error; the clock starts again from it
-(the time it took is counted, ``resync_s``). A reply damaged on the way back (bytes
-lost or corrupted, fewer than a desync) was still its write's answer: the replies after
-it answer the writes after (the decoder's ``damaged``). A record ends with a zero write;
-when its reply does not come in step the board is re-armed (zero torque whatever its
-parser is inside: no watchdog). A corrupted byte in a write the board takes cannot be
-seen (no checksum: a wrong torque for one period). The records' verdict is
-:func:`hapsim.daemon.haply2_board.felt_verdict_of_runs`: the estimated rows' bounds
-enter the wire's term through the loop as reading errors do.
+rad) where the joints last read, extrapolated, would be wrong by the estimate's error.
+The clock starts again from the re-arming's reply (the time it took is counted,
+``resync_s``); a re-armed record is not measured (the hand restarts it). A reply damaged
+on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
+answer: the replies after it answer the writes after (the decoder's ``damaged``; when
+one read holds several replies and a damaged one, all of them are taken as after it).
+A record ends with a zero write; when its reply does not come in step the board is
+re-armed (zero torque whatever its parser is inside: no watchdog). A corrupted byte in
+a write the board takes cannot be seen (no checksum: a wrong torque for one period).
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ import time
 
 import numpy as np
 
-from hapsim.daemon.haply2_board import Haply2DIYBoard, felt_verdict_of_runs
+from hapsim.daemon.haply2_board import Haply2DIYBoard, felt_verdict_of_runs, in_hand_order
 from hapsim.drivers.haply import LONGEST_COMMAND, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
@@ -231,6 +236,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     # packed into a reused buffer
     fwd = kin.forward_at
     jac = kin.jacobian_at
+    feed_into = dec.feed_into
+    joints_of = driver.joints_of
+    frames = [None] * 8                             # the decoder's frames, reused
+    nr = xr.shape[0]
 
     def take(data):
         nonlocal got, replies, seen
@@ -238,19 +247,22 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             return
         st = dec.stats
         d0 = st["damaged"]
-        reps = dec.feed(data)
+        m = feed_into(data, frames)
         # a damaged reply (bytes lost or corrupted on the way back) was a write's
         # answer: the replies after it answer the writes after that one
         got += st["damaged"] - d0
-        for rep in reps:
-            if got < xr.shape[0]:
-                q1, q2 = driver.joints_of(rep)
+        j = 0
+        while j < m:                                # (no iterator: no allocation)
+            rep = frames[j]
+            if got < nr:
+                q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
                 qr[got, 1] = q2
                 xr[got, 0], xr[got, 1] = fwd(q1, q2)
                 seen = got
             got += 1
             replies += 1
+            j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
 
@@ -382,7 +394,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
 
 def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                              amplitude: float, resolution: float | None = None,
-                             samples: int | None = None, progress=None, plan=None) -> dict:
+                             samples: int | None = None, progress=None, plan=None,
+                             probe_wiring: bool = True,
+                             directions: dict | None = None) -> dict:
     """The felt matrices of a pantograph scene measured through a 2DIY in real time, and
     their verdict (module notes).
 
@@ -403,6 +417,13 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     progress : callable, optional
     plan : tuple, optional
         :func:`hapsim.lockstep_nd.identification_plan`, already computed.
+    probe_wiring : bool, optional
+        Check each joint's wiring first (:func:`hapsim.drivers.haply2_probe.
+        find_directions`): a joint its direction bytes turn backwards is refused before
+        any torque loop runs (the records are then put in the emulated board's hand
+        order, :func:`hapsim.daemon.haply2_board.in_hand_order`).
+    directions : dict, optional
+        ``motor_direction`` / ``encoder_direction`` bytes instead of the generation's.
 
     Returns
     -------
@@ -419,6 +440,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         As :func:`record_realtime`; the port cannot be opened.
     ConfigError
         Not a 2-D pantograph scene.
+    IdentificationError
+        A joint wired backwards against its direction bytes (the probe's refusal).
     """
     import serial
 
@@ -428,7 +451,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
                           file=scene.path, key="device.kind")
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
-    drv = Haply2DIY(generation, resolution=resolution)
+    drv = Haply2DIY(generation, resolution=resolution, **(directions or {}))
     own = isinstance(port, str)
     try:
         ser = (serial.serial_for_url(port, baudrate=115200, timeout=0, write_timeout=1.0)
@@ -438,7 +461,17 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     from hapsim.engine_nd import EngineND
     EngineND(scene).step()               # the compiled kernels loaded before the clock
     runs = []
+    probe = None
     try:
+        if probe_wiring:
+            # each joint's wiring before any torque loop runs (a board that advances
+            # one period per write: unpaced, each reply waited for)
+            from hapsim.daemon.haply2_board import PROBE_ENVELOPE, PROBE_TORQUE
+            from hapsim.drivers.haply2_probe import find_directions
+            probe = find_directions(drv, _PortLink(ser),
+                                    [math.degrees(v) for v in scene.device.joints],
+                                    force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
+                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5)
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N))
             if progress is not None:
@@ -458,7 +491,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     for r in runs:
         if r["estimated"].any():
             r["bounds"] = estimate_bounds(r, scene, J, delta)
+    runs = in_hand_order(runs, 0 if probe is None else probe.setups)
     out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+    out["direction_probe"] = None if probe is None else probe.to_dict()
     resyncs = [r["resyncs"] + r["rearmed_at_end"] for r in runs]
     if sum(resyncs):
         # a re-armed board restarts the hand's record (module notes of
@@ -473,6 +508,26 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs])
     return out
+
+
+class _PortLink:
+    """``write``/``read(timeout)`` (the wiring probe's link) on an open serial-like port
+    (``in_waiting``, ``read``, ``write``)."""
+
+    def __init__(self, ser) -> None:
+        self.ser = ser
+
+    def write(self, data: bytes) -> None:
+        _write(self.ser, data)
+
+    def read(self, timeout: float) -> bytes:
+        """The bytes waiting, or the first to come within ``timeout`` [s] (polled)."""
+        end = time.monotonic() + timeout
+        while True:
+            data = _read(self.ser)
+            if data or time.monotonic() >= end:
+                return data
+            time.sleep(1e-4)
 
 
 class Embedded2DIY(PtyChild):
@@ -494,6 +549,8 @@ class Embedded2DIY(PtyChild):
     slow_s : float, optional
     rate_hz : float, optional
         The loop's rate [Hz] (default the scene file's): the plant's period.
+    wiring : ((int, int), (int, int)), optional
+        The emulated board's wiring (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
 
     Attributes
     ----------
@@ -503,13 +560,14 @@ class Embedded2DIY(PtyChild):
 
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
-                 rate_hz: float | None = None) -> None:
+                 rate_hz: float | None = None, wiring=((1, 1), (1, 1))) -> None:
         master = self.open_pty("hapsim-2diy-")
         self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
                     "--scene", str(scene_path), "--generation", generation, "--amplitude",
                     repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
-                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0))], master)
+                    repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0)),
+                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw)], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
@@ -544,12 +602,15 @@ def main(argv=None) -> int:
     p.add_argument("--slow-every", type=int, default=0)
     p.add_argument("--slow-s", type=float, default=0.0)
     p.add_argument("--rate", type=float, default=0.0)
+    p.add_argument("--wiring", default="1,1,1,1")
     a = p.parse_args(argv)
+    w = [int(v) for v in a.wiring.split(",")]
     scene = load_scene_nd(a.scene)
     if a.rate:
         import dataclasses
         scene = dataclasses.replace(scene, rate_hz=a.rate)
-    board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude)
+    board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude,
+                       wiring=(tuple(w[:2]), tuple(w[2:])))
     board.slow_every, board.slow_s = a.slow_every, a.slow_s
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):

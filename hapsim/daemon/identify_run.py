@@ -318,7 +318,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
            envelope: float = 0.01, max_delay: int = 5, seed: int = 0, noise_seed: int = 0,
            transport: str | None = None, lockstep: bool = False, progress: bool = True,
            handle_signals: bool = True, stop=None, driver: str | None = None,
-           driver_options: dict | None = None, mock_options: dict | None = None):
+           driver_options: dict | None = None, mock_options: dict | None = None,
+           travel: float | None = None):
     """Run the excitation on a device (or the mock of ``device``) and return the record.
 
     Parameters
@@ -360,6 +361,11 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         The driver's device parameters (``device.protocol_options``).
     mock_options : dict, optional
         The driver mock's hardware (default: the device the driver describes).
+    travel : float, optional
+        The FireFader's travel between its end stops [m]: before the excitation, a sweep
+        between the stops finds its position scale
+        (:func:`hapsim.drivers.firefader_travel.find_travel`), which the excitation and
+        ``protocol_options`` then use.
 
     Returns
     -------
@@ -367,7 +373,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         ``position``, ``force``, ``late``, ``time``, ``seq`` (arrays), ``period`` [s], ``loop``
         (stop reason, safety stop, late, clamped, samples, transport, ``force_scale``,
         ``direction_probe``: what a driver that finds its motor direction first found,
-        :class:`hapsim.drivers.haply_probe.DirectionProbe`, else None),
+        :class:`hapsim.drivers.haply_probe.DirectionProbe`, else None; ``travel_sweep``:
+        :class:`hapsim.drivers.firefader_travel.TravelSweep` as a dict, or None),
         ``protocol_options`` (the driver's parameters, the direction found included).
         ``force`` is the force the device applied for each sample: what the host sent,
         on the actuator's grid when the device reports one (a driver's protocol
@@ -383,7 +390,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         As :meth:`hapsim.daemon.loop.HostLoop.run`.
     IdentificationError
         The Haply joint's motor direction cannot be found (it does not move under the
-        probe's torque pulses, or moves the same way under both signs).
+        probe's torque pulses, or moves the same way under both signs); the FireFader's
+        sweep found no end stop it can take as one (``travel``).
     """
     from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
     from hapsim.daemon.mock import DEFAULT_DEVICE, MockDevice
@@ -409,12 +417,17 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     embedded = None
     lock = lockstep or transport == "inprocess"
     use_driver = driver not in (None, "framed")
+    if travel is not None and driver != "firefader":
+        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
+                          f"{driver or 'framed'} protocol has none to find (valid with "
+                          f"--travel: --driver firefader)", key="--travel")
     if use_driver:
         from hapsim.drivers import get_driver
         drv = get_driver(driver, **(driver_options or {}))
         drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
     probe = None
+    sweep = None
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
@@ -429,6 +442,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 # (unless it is given: a device file's, or --protocol-option)
                 drv, probe = _probe_direction(drv, port or embedded.port, force_limit,
                                               envelope, rate_hz, port is None)
+            if travel is not None:
+                # the position scale first: the excitation and its fit are in its units
+                drv, sweep = _sweep_travel(drv, port or embedded.port, travel, force_limit,
+                                           rate_hz, port is None)
             if port is None:
                 # paced by the commands: a slow mock process is no lost answer
                 tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
@@ -514,8 +531,22 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
                      "driver": tr.report() if use_driver else None,
-                     "direction_probe": None if probe is None else probe.to_dict()},
+                     "direction_probe": None if probe is None else probe.to_dict(),
+                     "travel_sweep": None if sweep is None else sweep.to_dict()},
             "protocol_options": drv.options() if use_driver else None}
+
+
+def _sweep_travel(drv, port: str, travel: float, force_limit: float, rate_hz: float,
+                  mock: bool):
+    """The FireFader driver with the position scale a sweep between its end stops found
+    (:func:`hapsim.drivers.firefader_travel.sweep_port`), and what was found."""
+    from hapsim.drivers import get_driver
+    from hapsim.drivers.firefader_travel import sweep_port
+    # a mock advances one period per packet, however slowly it runs: wait for it, unpaced
+    found = sweep_port(drv, port, travel=travel, force=force_limit, rate_hz=rate_hz,
+                       timeout=0.5 if mock else 0.05, pace=not mock)
+    return get_driver(drv.name, **{**drv.options(),
+                                   "metres_per_count": found.metres_per_count}), found
 
 
 def _probe_direction(drv, port: str, force_limit: float, envelope: float, rate_hz: float,

@@ -107,6 +107,12 @@ class RunOptions:
     host_clocked : bool
         Host's clock instead of the device's (with ``lockstep``: the host paces the
         lockstep device in real time).
+    frames : {"auto", "full", "compact"}
+        Frames to ask the device for (PROTOCOL.md §4 "Compact frames"): ``"auto"`` asks
+        for the compact frames where the full frames' round trip on the line takes more
+        than half the period (:func:`firmware_protocol.wants_compact`), ``"compact"``
+        whenever the device offers them (a device that does not keeps the full frames),
+        ``"full"`` never.
     telemetry : str, optional
         Per-sample telemetry file: ``.hst`` (chunked journal, appended every
         ``telemetry_interval`` by a writer thread and kept), or ``.npz`` / ``.csv`` (the
@@ -218,6 +224,12 @@ class RunOptions:
         False, "--host-clocked", "tick on the host's clock instead of answering each STATE "
         "(with --lockstep: the host paces the lockstep mock in real time)",
         action="store_true")
+    frames: str = option(
+        "auto", "--frames", "frames to ask the device for: 'auto' (default: compact where "
+        "the full frames' round trip on the line takes over half the period), 'compact' "
+        "(whenever the device offers them: shorter STATE/FORCE and less of the device's "
+        "codec time per tick, float32 on the wire), 'full'",
+        choices=("auto", "full", "compact"))
     loop: str = option(
         "compiled", "--loop", "host loop: 'compiled' (the device-clocked hot path in one "
         "numba function that owns the port, without the GIL; a live --osc, --sound or a "

@@ -24,14 +24,12 @@ applies them.
 
 from __future__ import annotations
 
-import fcntl
 import math
-import subprocess
 
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.daemon.board import BOARD_DIR, BUILD_LOCK, ROOT, missing_tools
+from hapsim.daemon.board import BOARD_DIR, ROOT, make
 from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["FIRMWARE_DIR", "BOARD", "LEADER_ELF", "FOLLOWER_ELF", "DEVICE_ID", "build",
@@ -67,21 +65,10 @@ def build(*, quiet: bool = True) -> dict:
     DeviceError
         A tool is missing or make failed (its output attached).
     """
-    why = missing_tools()
-    if why:
-        raise DeviceError(f"cannot build the emulated Hapkit pantograph: {why}")
-    out = []
-    with open(BUILD_LOCK, "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        for d, target in ((FIRMWARE_DIR, "all"), (BOARD_DIR, "pantograph_board")):
-            r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
-            out.append(r.stdout + r.stderr)
-            if r.returncode != 0:
-                raise DeviceError(f"make in {d} failed (exit {r.returncode}):\n{out[-1]}")
-            if not quiet:
-                print(out[-1], end="", flush=True)
+    output = make("the emulated Hapkit pantograph",
+                  ((FIRMWARE_DIR, "all"), (BOARD_DIR, "pantograph_board")), quiet=quiet)
     return {"board": str(BOARD), "leader": str(LEADER_ELF), "follower": str(FOLLOWER_ELF),
-            "output": "".join(out)}
+            "output": output}
 
 
 def _pantograph(scene):

@@ -16,7 +16,55 @@ from hapsim.errors import dash
 if TYPE_CHECKING:
     from hapsim.daemon.options import RunOptions
 
-__all__ = ["build_report", "format_report"]
+__all__ = ["build_report", "device_clock_warning", "format_report"]
+
+
+#: A device on a port whose ticks run this many times faster than the wall clock in a run
+#: the host takes for real time is paced by the FORCEs (an emulated board or mock in
+#: lockstep): a real-time device ticks at its rate or, descheduled, slower.
+FAST_CLOCK_RATIO = 1.25
+
+
+def device_clock_warning(ticks: int, rate_hz: float, armed_at: float | None,
+                         ended_at: float | None, real_time: bool) -> tuple:
+    """How fast the device ticked against the wall clock, and the warning when a run taken
+    for real time was in fact paced by the FORCEs.
+
+    A device that waits for each FORCE (``hapsim mock --lockstep``, the emulated Hapkit
+    board without ``--realtime``: ``hapsim mock --firmware --lockstep``) ticks as fast as the
+    host answers, 1.7x real time and more; ``hapsim run --port`` without ``--lockstep`` then
+    counts its late ticks, takes real-time priority and silence limits for a device that has
+    none. The ratio is ``ticks / rate_hz`` over the wall time from arming (CONFIG) to the
+    loop's end; a real-time device's is at most 1 (a start-up, a missed tick make it less).
+
+    Parameters
+    ----------
+    ticks : int
+        Samples the loop ran.
+    rate_hz : float
+        The scene's rate [Hz].
+    armed_at, ended_at : float or None
+        The loop's arming and end on ``time.monotonic`` [s].
+    real_time : bool
+        The run took the device for a real-time one (framed protocol over a port, neither
+        ``--lockstep`` nor ``--host-clocked``): only then is a fast clock warned about.
+
+    Returns
+    -------
+    tuple of (float or None, str or None)
+        The ratio (None when not measurable: under 0.2 s of ticks, or no times) and the
+        warning (None unless ``real_time`` and the ratio exceeds :data:`FAST_CLOCK_RATIO`).
+    """
+    if not armed_at or ended_at is None or ended_at <= armed_at or ticks < 0.2 * rate_hz:
+        return None, None
+    ratio = ticks / rate_hz / (ended_at - armed_at)
+    if not real_time or ratio <= FAST_CLOCK_RATIO:
+        return ratio, None
+    return ratio, (f"the device ticked {ratio:.2f}x faster than the wall clock: it is paced "
+                   "by the FORCEs (an emulated board or a mock in lockstep, e.g. 'hapsim mock "
+                   "--firmware --lockstep'), not real time; run with --lockstep (late ticks, "
+                   "real-time priority and the lost-device timeout do not apply to it), or "
+                   "start the device in real time (without --lockstep)")
 
 
 def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOptions,
@@ -45,6 +93,11 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     if plinks:
         virtual.update(link=plinks[0].name, K=plinks[0].stiffness, B=plinks[0].damping)
     hello = res.hello
+    clock_ratio, clock_warning = device_clock_warning(
+        res.samples, scene.rate_hz, getattr(run.loop, "armed_at", None),
+        getattr(run, "ended_at", None),
+        real_time=(transport == "serial" and opts.port is not None and not opts.lockstep
+                   and not opts.host_clocked and opts.driver in (None, "framed")))
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
         "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
@@ -64,6 +117,11 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "pace": ("lockstep" if opts.lockstep else "real-time"
                  if opts.host_clocked or transport != "serial" or opts.port is None
                  else "device-paced"),
+        # the device's ticks per second of the wall clock, in ticks of the scene's rate
+        # (a device paced by the FORCEs runs as fast as the host answers): see
+        # device_clock_warning
+        "device_clock_ratio": clock_ratio,
+        "warnings": [w for w in (clock_warning,) if w],
         "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
@@ -144,6 +202,8 @@ def format_report(rep: dict) -> str:
                           else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"
                  .replace("  ", " "))
+    for w in lp.get("warnings") or []:
+        lines.append(f"  warning: {w}")
     lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
 
     def row(name, d):

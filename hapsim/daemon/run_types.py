@@ -119,6 +119,8 @@ class LoopRun:
         the run up to the loss); :func:`~hapsim.daemon.runner.run_scene` raises it with the report attached.
     loop : HostLoop or CompiledHostLoop
         The loop that ran.
+    ended_at : float or None
+        When the loop ended, on ``time.monotonic`` [s] (its start: ``loop.armed_at``).
     """
 
     res: object
@@ -129,3 +131,4 @@ class LoopRun:
     sound: dict | None = None
     error: Exception | None = None
     loop: object = None
+    ended_at: float | None = None

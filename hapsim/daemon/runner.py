@@ -34,6 +34,7 @@ import math
 import os
 import signal
 import threading
+import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
@@ -152,6 +153,7 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
     return LoopConfig(rate_hz=scene.rate_hz, n_samples=prep.n_samples, delay=dev.delay,
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
+                      compact={"auto": "auto", "full": "off", "compact": "on"}[opts.frames],
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
                       if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
                       # (a driver's board may reset when its port opens: the FireFader's
@@ -428,6 +430,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             error = exc
             res = loop.finish()
             res.stop_reason = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+        ended_at = time.monotonic()
     finally:
         if out is not None:
             out.finish()                # the loop's last frames are written: the silence
@@ -463,7 +466,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
     sound = None if ring is None else {"backend": type(out).__name__,
                                        "callback": out.callback, "xruns": out.xruns,
                                        "xrun_at_s": list(out.xrun_at), **ring.stats()}
-    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop)
+    return LoopRun(res, mock_report, writer_info, journal, ctl, sound, error, loop, ended_at)
 
 
 def _start_sound(prep: PreparedRun, conn: Connection, opts: RunOptions):

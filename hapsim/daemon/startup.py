@@ -22,6 +22,9 @@ import os
 import sys
 import time
 
+from hapsim.kernels.sources import source_paths
+from hapsim.kernels.sources import sources_digest as _digest
+
 __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_cache_dir",
            "cache_is_fresh", "loop_stamp", "loop_is_fresh", "LOOP_SOURCES", "MOCK_SOURCES",
            "loop_sources",
@@ -195,21 +198,13 @@ MOCK_SOURCES = ("hapsim/daemon/compiled_io.py", "firmware_protocol/codec.py")
 
 
 def loop_sources(rels=LOOP_SOURCES) -> list[str]:
-    """The absolute paths of :data:`LOOP_SOURCES` (or of ``rels``, the same form;
-    ``firmware_protocol`` located without importing it)."""
-    import importlib.util
-    spec = importlib.util.find_spec("firmware_protocol")
-    fp_dir = os.path.dirname(spec.origin) if spec and spec.origin else \
-        os.path.join(os.path.dirname(_HERE), "firmware_protocol")
-    out = []
-    for rel in rels:
-        top, rest = rel.split("/", 1)
-        out.append(os.path.join(_HERE if top == "hapsim" else fp_dir, *rest.split("/")))
-    return out
+    """The absolute paths of :data:`LOOP_SOURCES` (or of ``rels``, the same form:
+    :func:`hapsim.kernels.sources.source_paths`)."""
+    return source_paths(rels)
 
 
 def sources_digest(paths=None) -> str:
-    """SHA-256 (hex) of the named source files, in order, each as its base name and bytes.
+    """SHA-256 (hex) of the named source files (:func:`hapsim.kernels.sources.sources_digest`).
 
     Parameters
     ----------
@@ -222,17 +217,7 @@ def sources_digest(paths=None) -> str:
         64 hex digits; a file that cannot be read contributes its name only (the digest
         then differs and the compiled loop compiles without numba's cache).
     """
-    import hashlib
-    h = hashlib.sha256()
-    for p in (loop_sources() if paths is None else paths):
-        h.update(os.path.basename(p).encode() + b"\0")
-        try:
-            with open(p, "rb") as f:
-                h.update(f.read())
-        except OSError:
-            pass
-        h.update(b"\0")
-    return h.hexdigest()
+    return _digest(loop_sources() if paths is None else paths)
 
 
 def loop_is_fresh(scene) -> bool:

@@ -66,11 +66,31 @@ class AlignedDecoder:
 
     def feed(self, data: bytes) -> list:
         """Bytes in, the values of the frames taken out."""
+        out = []
+        self.feed_into(data, out)
+        return out
+
+    def feed_into(self, data: bytes, out: list) -> int:
+        """:meth:`feed` into a list the caller reuses (a real-time loop's: no list per
+        call): the frames taken go to ``out[0]``, ``out[1]``, ... (appended beyond its
+        length).
+
+        Parameters
+        ----------
+        data : bytes
+        out : list
+
+        Returns
+        -------
+        int
+            Frames taken.
+        """
         buf = self._buf
         buf += data
-        out = []
         st = self.stats
         n = self.length
+        cap = len(out)
+        i = 0
         while len(buf) >= n:
             v = self.parse(buf)
             if v is None:
@@ -80,9 +100,13 @@ class AlignedDecoder:
                 continue
             del buf[:n]
             if self.accept(v):
-                out.append(v)
+                if i < cap:
+                    out[i] = v
+                else:
+                    out.append(v)
+                i += 1
                 st["frames"] += 1
-        return out
+        return i
 
 
 class MappedDecoder:

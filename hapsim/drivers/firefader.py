@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.drivers.base import Driver, MappedDecoder
+from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
 
 __all__ = ["FireFader", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
@@ -84,6 +84,9 @@ FULL_SCALE_N = 0.39
 PASS_READS_S = 1.25e-3
 #: The count at the middle of the travel: position 0 of the driven axis.
 CENTRE = 127
+#: The embedded mock's travel between its end stops [counts of its own position scale]:
+#: inside the pot's rails, as a sweep needs (:mod:`hapsim.drivers.firefader_travel`).
+MOCK_TRAVEL_COUNTS = 250
 #: The ``.ino``'s silence rule: after about 0.1 s without a byte (65000 idle polls) the
 #: enable and the motor go to 0 [s].
 SILENCE_S = 0.1
@@ -404,7 +407,8 @@ class FireFader(Driver):
     limits = LIMITS
     scale_option = "full_scale"
     scale_kind = "force"
-    #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129, 2 more
+    #: 4 passes for the touch filter to pass 30, 66 for the enable to reach 129 (the
+    #: current ``.ino``'s gate needs 5 of them; the older copy's scale all), 2 more
     arming_records = 72
     answering_firmware = "haptics_firmware.ino (one record per packet)"
     streaming_firmware = "haptics_firmware.pde (records streamed unprompted)"
@@ -440,8 +444,11 @@ class FireFader(Driver):
         return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
 
     def mock_hardware(self) -> dict:
-        """The mock's fader: this full scale and position scale."""
-        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale}
+        """The mock's fader: this full scale and position scale, and end stops
+        :data:`MOCK_TRAVEL_COUNTS` counts apart around the middle (its pot reads about 2
+        and 252 at them)."""
+        return {"full_scale": self.full_scale, "metres_per_count": self.position_scale,
+                "travel": MOCK_TRAVEL_COUNTS * self.position_scale}
 
     def round_trip_s(self) -> float:
         """From a packet's first byte to its record's last [s]: 3 + 7 bytes of 10 bits at
@@ -464,14 +471,13 @@ class FireFader(Driver):
         to 0 after a silence of :data:`SILENCE_S`, after which the force is off for
         :data:`GATE_PASSES` passes. The host's clock stamps each command (the ``time`` column: when
         the command a row answers was sent), so a host stall that long is in the record: the
-        rows of the ramp are late ticks with a known applied force, taken out as a known
+        gated rows are late ticks with a known applied force, taken out as a known
         input by the measurement (:func:`hapsim.analysis.measurement.late_accounted`).
         A silence within :data:`SILENCE_DOUBT_S` may or may not have reset the enable: the
         account takes the mean of both and states their half-difference. The touch,
         pot-range and heat gating is replayed with the fader touched, also without a
-        silence (a fader driven to its ends has its force cut by the range gate: fitted
-        as if sent, such a record gave b0 -0.2 against 0.125 and a Coulomb friction of
-        0.3 N against 0).
+        silence (a fader held past a pot count of 250 or under 5 for ~59 passes has its
+        force cut by the range gate).
 
         Parameters
         ----------
@@ -486,7 +492,7 @@ class FireFader(Driver):
             None when every answer came and no silence reached the doubt band.
         """
         import numpy as np
-        acc = super().account(columns, force)
+        acc = self._parser_account(columns, force, super().account(columns, force))
         d = getattr(self, "loop_delay", None)
         t = columns.get("time")
         seq = columns.get("seq")
@@ -554,6 +560,50 @@ class FireFader(Driver):
         acc.half_width = np.where(differs, np.maximum(acc.half_width, 0.5 * np.abs(a - b)),
                                   acc.half_width)
         acc.late = acc.late | differs
+        return acc
+
+    def _parser_account(self, columns: dict, force, acc):
+        """Widen ``acc`` (:meth:`Driver.account`) for the ``.ino``'s parser: the command
+        *after* one whose answer never came may have been read as the rest of a damaged
+        packet (module notes: a lost force byte makes the firmware take the next 127 as
+        fader B's force and run the pass with the damaged packet's fader-A byte). Its
+        force is then the one sent, the one before (fader B's byte lost) or fader B's 0
+        (fader A's byte lost); driving fader B, the one sent or +127 counts (B's byte is
+        the 127). The row it acts on gets the middle of those and half their range.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            Telemetry columns (``flags`` marks the estimated rows).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N].
+        acc : hapsim.applied.AppliedAccount or None
+            The base account (None: every answer came; returned as is).
+
+        Returns
+        -------
+        hapsim.applied.AppliedAccount or None
+        """
+        import numpy as np
+        d = getattr(self, "loop_delay", None)
+        flags = columns.get("flags")
+        if acc is None or d is None or flags is None:
+            return acc
+        est = np.flatnonzero((np.asarray(flags) & FLAG_ESTIMATED) != 0)
+        n = acc.applied.size
+        fq = np.array([self.applied_force(float(v)) for v in np.asarray(force, float)])
+        for e in est:
+            r = e + d                          # the force of command e + 1 (row e's) acts
+            if r >= n:
+                continue
+            if self.axis == 0:
+                cand = [fq[e], fq[e - 1] if e >= 1 else 0.0, 0.0]
+            else:
+                cand = [fq[e], 127 * self.force_scale]
+            lo = min(min(cand), acc.applied[r] - acc.half_width[r])
+            hi = max(max(cand), acc.applied[r] + acc.half_width[r])
+            acc.applied[r] = 0.5 * (lo + hi)
+            acc.half_width[r] = 0.5 * (hi - lo)
         return acc
 
     def decoder(self):

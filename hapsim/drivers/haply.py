@@ -253,19 +253,28 @@ class ReplyDecoder(AlignedDecoder):
     def parse(self, buf):
         """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
         reply at the start of ``buf``, or None."""
+        # (index loops, floats only: the real-time loops decode without allocating)
         if buf[0] != self.id:
             return None
         a = self._fmt.unpack_from(buf, 1)
-        for k, v in enumerate(a):
+        res = self.res
+        na = self.angles
+        k = 0
+        while k < na:
+            v = a[k]
             if not (math.isfinite(v) and abs(v) <= self.max):
                 return None
-            if self.res is not None:
+            if res is not None:
                 # the firmware's 360 * count / resolution, rounded once to binary32: a
-                # count of 0 is exactly 0.0 (a tiny garbage float is no reply)
-                n = round(v * self.res[k] / 360.0)
-                want = 360.0 * n / self.res[k]
+                # count of 0 is exactly 0.0 (a tiny garbage float is no reply); the
+                # nearest whole count as a float (remainder rounds half to even, as
+                # round does)
+                n = v * res[k] / 360.0
+                n -= math.remainder(n, 1.0)
+                want = 360.0 * n / res[k]
                 if abs(v - want) > 1e-6 * abs(want):
                     return None
+            k += 1
         if self._free:
             # a jump allowed (reset_prediction): predict from this reply on
             self._free -= 1
@@ -274,11 +283,13 @@ class ReplyDecoder(AlignedDecoder):
         if self._prev is not None:
             # a flipped exponent bit is still a whole count (x 2^k, half the time): no
             # joint moves that far from where its last two replies say it is going
-            for k in range(self.angles):
+            k = 0
+            while k < na:
                 guess = (self._prev[k] if self._prev2 is None
                          else 2.0 * self._prev[k] - self._prev2[k])
                 if abs(a[k] - guess) > self.max_step:
                     return None
+                k += 1
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 

@@ -130,11 +130,16 @@ class Haply2DIY:
     device_id : int, 1..255
     resolution : float, optional
         Encoder counts per revolution sent in the set-up (default the generation's).
+    motor_direction, encoder_direction : (int, int), optional
+        The direction bytes (0 CW, 1 CCW) of joint 1's and joint 2's motor / encoder
+        (default the generation's): a joint wired backwards is set up with its byte
+        flipped (:func:`hapsim.drivers.haply2_probe.find_directions` says which joint).
 
     Raises
     ------
     ConfigError
-        An unknown generation (the valid ones named), a bad id or resolution.
+        An unknown generation (the valid ones named), a bad id, resolution or
+        direction bytes.
 
     Attributes
     ----------
@@ -150,7 +155,8 @@ class Haply2DIY:
     limits = LIMITS
 
     def __init__(self, generation: str = "gen3", device_id: int = 1,
-                 resolution: float | None = None) -> None:
+                 resolution: float | None = None, motor_direction=None,
+                 encoder_direction=None) -> None:
         if generation not in GENERATIONS:
             raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
                               f"{', '.join(GENERATIONS)}", key="generation")
@@ -162,6 +168,15 @@ class Haply2DIY:
         if not (math.isfinite(res) and res > 0):
             raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
                               key="resolution")
+        for key, v in (("motor_direction", motor_direction),
+                       ("encoder_direction", encoder_direction)):
+            if v is not None and (len(tuple(v)) != 2 or set(tuple(v)) - {0, 1}):
+                raise ConfigError(f"must be two direction bytes (joint 1, joint 2), each 0 "
+                                  f"(CW) or 1 (CCW), got {v!r}", key=key)
+        g = Generation(g.name, g.motor_direction if motor_direction is None
+                       else tuple(int(b) for b in motor_direction),
+                       g.encoder_direction if encoder_direction is None
+                       else tuple(int(b) for b in encoder_direction), g.resolution)
         self.generation = g
         self.id = int(device_id)
         self.resolution = _F.unpack(_F.pack(res))[0]      # binary32 on the wire

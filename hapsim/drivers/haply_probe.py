@@ -13,8 +13,8 @@ from 1/16 of the largest allowed (the smaller of the force limit and the board's
 m) until the encoder moved ``min_counts`` counts (static friction holds a joint below
 some torque), each pulse ended as soon as motion is seen, then the opposite torque for as
 many periods (an equal and opposite impulse: it takes back the velocity the pulse gave,
-whatever the motor's sign) and ``REST_S`` at zero torque. The sign of the motion against the torque's gives the motor
-byte; both signs must agree.
+whatever the motor's sign) and ``REST_S`` at zero torque. The sign of the motion against
+the torque's gives the motor byte; both signs must agree.
 
 Each pulse starts from rest: zero torque until the encoder has not moved for a whole
 measurement window (``PULSE_S + REST_S``), at most ``SETTLE_S``. A joint with little
@@ -23,8 +23,10 @@ constant of 1 s), and a pulse measured from a coasting joint reads the coast, no
 torque: the next pulse of the other sign then "moves the same way". A joint that slows
 under friction alone (its speed falls monotonically) and moved less than one count in the
 last window moves less than one count in the next, below the ``min_counts`` a pulse must
-show. A joint that does not come to rest is moved by something else and is refused. Zero torque is sent after every pulse and, whatever happens
-(an error, an interrupt), when the probe ends.
+show. A joint that does not come to rest is moved by something else and is refused.
+Zero torque is sent after every pulse and, whatever happens (an error, an interrupt),
+when the probe ends; the stop's replies are read (left on the line, they would be taken
+for the answer to the next arming).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import time
 from hapsim.errors import DeviceError, IdentificationError
 
 __all__ = ["DirectionProbe", "find_direction", "probe_port", "PULSE_S", "REST_S",
-           "LEVELS", "SETTLE_S", "AxisProbe", "probe_axis"]
+           "LEVELS", "SETTLE_S", "AxisProbe", "probe_axis", "Exchange", "pulse_limits"]
 
 #: Longest torque pulse [s] at one level.
 PULSE_S = 0.03
@@ -80,8 +82,11 @@ class DirectionProbe:
                 "writes": self.writes}
 
 
-class _Exchange:
-    """One write, its reply: a board that answers every write (the driver's decoder)."""
+class Exchange:
+    """One write, its reply: a board that answers every write (the driver's decoder),
+    paced at ``rate_hz`` on the host's clock or not (``pace``), each reply waited for at
+    most ``timeout`` [s]; more than 20 missing replies raise :class:`DeviceError`. Shared
+    by the 1-DoF joint's probe and the 2DIY's (:mod:`hapsim.drivers.haply2_probe`)."""
 
     def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float) -> None:
         self.drv = drv
@@ -96,6 +101,12 @@ class _Exchange:
 
     def send(self, data: bytes) -> float:
         """Send ``data`` (one period), return the last angle answered [rad] (NaN: none
+        within the timeout)."""
+        got = self.reply(data)
+        return math.nan if got is None else float(got)
+
+    def reply(self, data: bytes):
+        """Send ``data`` (one period), return the last reply the decoder gave (None: none
         within the timeout)."""
         if self.pace:
             now = time.monotonic()
@@ -116,8 +127,8 @@ class _Exchange:
                 raise DeviceError("the Haply board does not answer its writes (more than "
                                   "20 missing replies while finding the motor direction): "
                                   "check the port and the device id")
-            return math.nan
-        return float(got[-1])
+            return None
+        return got[-1]
 
     def stop(self, data: bytes, replies: int) -> None:
         """Send the stop ``data`` (zero torque) and read its ``replies`` (at most the
@@ -174,14 +185,9 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     DeviceError
         The board does not answer.
     """
-    from hapsim.drivers.haply import MAX_TORQUE
-    top = min(float(force_limit), MAX_TORQUE)
-    if not (math.isfinite(top) and top > 0):
-        raise IdentificationError(f"no torque to probe the motor direction with: force "
-                                  f"limit {force_limit!r} N m")
     q = drv.position_scale                       # one count [rad]
-    ex = _Exchange(drv, link, rate_hz, pace, timeout)
-    reach = min(min_counts * q, float(envelope)) if envelope > 0 else min_counts * q
+    top, reach = pulse_limits(force_limit, q, envelope, min_counts, "the motor direction")
+    ex = Exchange(drv, link, rate_hz, pace, timeout)
     zero = drv.encode_force(0.0)
     x = math.nan
     try:
@@ -197,6 +203,42 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     r = axis.relative
     md = drv.motor_direction if r > 0 else 1 - drv.motor_direction
     return DirectionProbe(md, r, axis.torque, axis.counts, ex.writes)
+
+
+def pulse_limits(force_limit: float, count: float, envelope: float, min_counts: int,
+                 what: str) -> tuple:
+    """The largest torque of the pulses and the motion that counts as moving.
+
+    Parameters
+    ----------
+    force_limit : float
+        Largest torque allowed [N m].
+    count : float
+        One encoder count [rad].
+    envelope : float
+        Largest motion allowed [rad] (not positive: none).
+    min_counts : int
+    what : str
+        What is probed, for the message.
+
+    Returns
+    -------
+    (float, float)
+        ``min(force_limit, 0.123)`` [N m] (the board's clamp) and ``min(min_counts
+        count, envelope)`` [rad].
+
+    Raises
+    ------
+    IdentificationError
+        No positive torque allowed.
+    """
+    from hapsim.drivers.haply import MAX_TORQUE
+    top = min(float(force_limit), MAX_TORQUE)
+    if not (math.isfinite(top) and top > 0):
+        raise IdentificationError(f"no torque to probe {what} with: force limit "
+                                  f"{force_limit!r} N m")
+    reach = min_counts * count
+    return top, (min(reach, float(envelope)) if envelope > 0 else reach)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,7 +268,7 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
                option: str = "motor_direction") -> AxisProbe:
     """One joint's torque pulses of each sign, each from rest (module notes): the sign of
     its motion against the torque's. Shared by the 1-DoF board (:func:`find_direction`)
-    and each joint of the 2DIY (:func:`hapsim.daemon.haply2_probe.find_directions`).
+    and each joint of the 2DIY (:func:`hapsim.drivers.haply2_probe.find_directions`).
 
     Parameters
     ----------

@@ -30,14 +30,23 @@ import numpy as np
 
 from hapsim.kernels.cordis import (advance, chain_fused, chain_start, clear_forces, contacts,
                                    move_marked, spring_dampers)
+from hapsim.kernels.sources import cache_ok
 
 __all__ = ["run_periods", "run_frames", "ring_write", "ring_read", "LISTEN_CODES", "LIVE_STATE"]
 
 #: Kernel code of each listened quantity (``hapsim.scene.LISTEN_QUANTITIES``).
 LISTEN_CODES = {"position": 0, "velocity": 1, "force": 2}
 
-_jit = nb.njit(cache=True, nogil=True, boundscheck=False)
-_jit_inline = nb.njit(cache=True, nogil=True, boundscheck=False, inline="always")
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
+COMPILED_SOURCES = ("hapsim/kernels/cordis.py",)
+#: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
+#: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
+COMPILED_SOURCES_SHA256 = "77752d2cf717a9cff5ea822178daa4a025da6df79a0837914ef586858770735c"
+#: Whether numba's disk cache may serve this module's compiled code.
+CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
+
+_jit = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False)
+_jit_inline = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, inline="always")
 
 
 @_jit_inline

@@ -50,8 +50,14 @@ Layout and schedule (why it is fast):
 * ``fastmath={"contract"}`` only: ``a * b + c`` may become one fused multiply-add
   (round-off); no reassociation, no finite-math assumption. Square roots and divisions
   are the exact IEEE operations (an inverse square root by Newton's method from the
-  previous sample's, tried, was no faster here: the kernel is bound by its loads and
-  stores, not by its arithmetic; ``tools/bench_nd.py`` prints where the time goes).
+  previous sample's, or from a single-precision estimate, tried, was no faster here: the
+  kernel is bound by its loads and stores as much as by its divider;
+  ``tools/bench_nd.py`` prints where the time goes).
+* One argument per call from Python (:func:`context`, :func:`run_context`): the arrays'
+  addresses and shapes in one int64 array, rebuilt in compiled code
+  (:mod:`hapsim.kernels.pointers`), so that a real-time loop stepping once per sample
+  does not pay numba's type check and unboxing of 36 arguments (microseconds, and a
+  transient allocation, per call).
 
 The summation order of each mass's forces differs from one-link-at-a-time code (and a
 fused multiply-add may round once where the reference rounds twice): the results agree
@@ -71,12 +77,23 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["stripes", "schedule", "shared_params", "link_lengths", "step_nd", "run_nd",
-           "run_nd_listen", "BLOCK", "ROWS"]
+from hapsim.kernels.pointers import address, voidptr
+from hapsim.kernels.sources import cache_ok
 
-_jit = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
+__all__ = ["stripes", "schedule", "shared_params", "link_lengths", "step_nd", "run_nd",
+           "run_nd_listen", "context", "run_context", "BLOCK", "ROWS"]
+
+#: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
+COMPILED_SOURCES = ("hapsim/kernels/pointers.py",)
+#: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
+#: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
+COMPILED_SOURCES_SHA256 = "d1937bf4b09bf5823a6d067d1a37c811b31724b2cee1fd45c0f87a1e5bd196bf"
+#: Whether numba's disk cache may serve this module's compiled code.
+CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
+
+_jit = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="numpy",
                fastmath={"contract"})
-_inline = nb.njit(cache=True, nogil=True, boundscheck=False, error_model="numpy",
+_inline = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="numpy",
                   fastmath={"contract"}, inline="always")
 
 #: Rows of the state arrays (axes): a scene of lower dimension leaves the rest at zero.
@@ -480,3 +497,111 @@ def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, li
             if velocity[c]:
                 v -= xp[axis[c], mass[c]]
             out[k, c] = gain[c] * v
+
+
+# ------------------------------------------------------------------ one-argument calls
+#: The arrays of :func:`run_nd` after ``n, dim, block`` (and before ``port, port_f``), in
+#: order, with their element type and number of dimensions: a context names them.
+CONTEXT_ARRAYS = (
+    ("x", np.float64, 2), ("xp", np.float64, 2), ("f", np.float64, 2),
+    ("t2m", np.float64, 1), ("lin_pieces", np.int64, 2), ("lin_ptr", np.int64, 1),
+    ("lin_k", np.float64, 1), ("lin_z", np.float64, 1), ("eu_pieces", np.int64, 2),
+    ("eu_ptr", np.int64, 1), ("eu_k", np.float64, 1), ("eu_z", np.float64, 1),
+    ("eu_rest", np.float64, 1), ("eu_lprev", np.float64, 1), ("eu_sh", np.bool_, 1),
+    ("eu_sk", np.float64, 1), ("eu_sz", np.float64, 1), ("eu_srest", np.float64, 1),
+    ("eu_pad_ptr", np.int64, 1), ("eu_pad", np.int64, 1), ("W", np.float64, 2),
+    ("c_i1", np.int64, 1), ("c_i2", np.int64, 1), ("c_k", np.float64, 1),
+    ("c_z", np.float64, 1), ("c_thr", np.float64, 1), ("c_lprev", np.float64, 1),
+    ("p_mass", np.int64, 1), ("p_normal", np.float64, 2), ("p_offset", np.float64, 1),
+    ("p_k", np.float64, 1), ("p_z", np.float64, 1), ("port_f", np.float64, 1))
+#: Context slots: samples, dimension, block, port, then (address, rows, columns) per array.
+_CTX_HEAD = 4
+
+
+def context(dim, block, *arrays_and_port) -> np.ndarray:
+    """The int64 context of one :func:`run_context` call per step (module
+    :mod:`hapsim.kernels.pointers`): the arguments of :func:`run_nd` after ``n``.
+
+    Parameters
+    ----------
+    dim, block : int
+        As :func:`step_nd`.
+    *arrays_and_port
+        The arrays of :func:`step_nd` from ``x`` to ``p_z`` (:data:`CONTEXT_ARRAYS`), then
+        ``port`` (int) and ``port_f``; kept alive and in place by the caller.
+
+    Returns
+    -------
+    ndarray of int64, shape (4 + 3 * 33,)
+        Slot 0 the samples to run (set it before each call, 1 here), then ``dim``,
+        ``block``, ``port`` and each array's address, rows and columns.
+
+    Raises
+    ------
+    ValueError
+        An array of another element type or number of dimensions than
+        :data:`CONTEXT_ARRAYS` says, not C-ordered or not writeable.
+    """
+    *arrays, port, port_f = arrays_and_port
+    arrays = list(arrays) + [port_f]
+    if len(arrays) != len(CONTEXT_ARRAYS):
+        raise ValueError(f"{len(arrays)} arrays given, {len(CONTEXT_ARRAYS)} expected")
+    ctx = np.zeros(_CTX_HEAD + 3 * len(arrays), np.int64)
+    ctx[:_CTX_HEAD] = (1, dim, block, port)
+    for i, (a, (name, dtype, ndim)) in enumerate(zip(arrays, CONTEXT_ARRAYS)):
+        if a.ndim != ndim:
+            raise ValueError(f"{name}: {ndim} dimensions expected, got shape {a.shape}")
+        ctx[_CTX_HEAD + 3 * i] = address(a, dtype)
+        ctx[_CTX_HEAD + 3 * i + 1] = a.shape[0]
+        ctx[_CTX_HEAD + 3 * i + 2] = a.shape[1] if ndim == 2 else 0
+    return ctx
+
+
+@_inline
+def _f1(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1],), np.float64)
+
+
+@_inline
+def _f2(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
+
+
+@_inline
+def _i1(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1],), np.int64)
+
+
+@_inline
+def _i2(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.int64)
+
+
+@_inline
+def _b1(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1],), np.bool_)
+
+
+@_jit
+def run_context(ctx):
+    """``ctx[0]`` samples of :func:`step_nd` on the arrays a :func:`context` names: one
+    argument to type and unbox per call instead of 36 (the per-sample call of a real-time
+    loop; no allocation in the compiled code).
+
+    Parameters
+    ----------
+    ctx : ndarray of int64
+        From :func:`context` (its arrays alive and in place).
+    """
+    run_nd(ctx[0], ctx[1], ctx[2], _f2(ctx, 0), _f2(ctx, 1), _f2(ctx, 2), _f1(ctx, 3),
+           _i2(ctx, 4), _i1(ctx, 5), _f1(ctx, 6), _f1(ctx, 7), _i2(ctx, 8), _i1(ctx, 9),
+           _f1(ctx, 10), _f1(ctx, 11), _f1(ctx, 12), _f1(ctx, 13), _b1(ctx, 14),
+           _f1(ctx, 15), _f1(ctx, 16), _f1(ctx, 17), _i1(ctx, 18), _i1(ctx, 19),
+           _f2(ctx, 20), _i1(ctx, 21), _i1(ctx, 22), _f1(ctx, 23), _f1(ctx, 24),
+           _f1(ctx, 25), _f1(ctx, 26), _i1(ctx, 27), _f2(ctx, 28), _f1(ctx, 29),
+           _f1(ctx, 30), _f1(ctx, 31), ctx[3], _f1(ctx, 32))

@@ -45,6 +45,7 @@ from numba.extending import register_jitable
 
 from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_OVERRUN,
                                      STATUS_WATCHDOG_TRIPPED)
+from hapsim.kernels.sources import cache_ok
 
 __all__ = ["SEQ_MASK", "SEQ_HALF", "STATUS_FORCE_APPLIED", "STATUS_OVERRUN",
            "STATUS_WATCHDOG_TRIPPED", "named_delay", "tick_late", "late_ticks"]
@@ -53,6 +54,13 @@ __all__ = ["SEQ_MASK", "SEQ_HALF", "STATUS_FORCE_APPLIED", "STATUS_OVERRUN",
 SEQ_MASK = 0xFFFFFFFF
 #: A difference of more than half the counter is "behind", not ahead.
 SEQ_HALF = 0x80000000
+
+#: The sources :func:`late_ticks` compiles in (the protocol's status bits), and their
+#: SHA-256 (:mod:`hapsim.kernels.sources`: numba keys its disk cache on this file alone).
+COMPILED_SOURCES = ("firmware_protocol/codec.py",)
+COMPILED_SOURCES_SHA256 = "4050cbef419c816a976ebfe661937a3ba04e21f2810924f56c4a87bbc5524ffa"
+#: Whether numba's disk cache may serve :func:`late_ticks`.
+CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
 
 @register_jitable
@@ -117,7 +125,7 @@ def tick_late(seq: int, force_seq: int, status: int, d: int, flags_applied: bool
     return named_delay(seq, force_seq, status, flags_applied) != d
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=CACHE_OK, nogil=True)
 def late_ticks(seq, force_seq, status, d, flags0, tick, late, flags):
     """The rule over a record, row by row in order (:func:`named_delay`, :func:`tick_late`).
 

@@ -39,6 +39,7 @@
 
 #include "../../c/hproto.h"
 #include "hapkit_geometry.h"
+#include "hk_shared.h"
 #include "uart.h"
 
 #define HK_DEVICE_ID 0x33544B48UL  /* "HKT3" little-endian */
@@ -122,20 +123,6 @@ static int32_t g_offset;                /* turns * span - zero [counts] */
 static uint8_t g_have_zero;
 static uint8_t g_compact;               /* the host enabled the compact frames */
 
-static void pwm_write(uint16_t n, uint8_t dir)
-{
-    if (dir) {
-        PORTB |= (uint8_t)(1 << PB0);
-    } else {
-        PORTB &= (uint8_t)~(1 << PB0);
-    }
-    if (n == 0) {
-        TCCR0A &= (uint8_t)~(1 << COM0B1); /* OC0B off: the pin is PORTD5 = 0 */
-    } else {
-        OCR0B = (uint8_t)(n - 1u);
-        TCCR0A |= (uint8_t)(1 << COM0B1);
-    }
-}
 
 ISR(TIMER1_COMPA_vect)
 {
@@ -192,51 +179,6 @@ ISR(ADC_vect)
         g_adc_busy = 0;
         g_tick_flag = 1;
     }
-}
-
-/* ---------------------------------------------------------------- binary64 helpers */
-
-static hp_b64_t f64_of_float(float x)
-{
-    uint32_t b;
-    memcpy(&b, &x, sizeof b);
-    return hp_b64_from_f32_bits(b);
-}
-
-static float float_of_f64(hp_b64_t d)
-{
-    uint32_t b = hp_f32_bits_from_b64(d);
-    float x;
-    memcpy(&x, &b, sizeof x);
-    return x;
-}
-
-static uint8_t f64_is_finite(hp_b64_t d)
-{
-    return ((d.hi >> 20) & 0x7FFu) != 0x7FFu;
-}
-
-/* The value of binary64 `b` when it is a whole number in 0..2^32-1: 1, else 0. */
-static uint8_t f64_to_u32_exact(hp_b64_t b, uint32_t *out)
-{
-    uint64_t d = ((uint64_t)b.hi << 32) | b.lo;
-    int16_t e = (int16_t)((d >> 52) & 0x7FFu);
-    uint64_t m = d & 0xFFFFFFFFFFFFFULL;
-    int16_t sh;
-    if (d == 0) {
-        *out = 0;
-        return 1;
-    }
-    if ((d >> 63) || e < 1023 || e > 1023 + 31) {
-        return 0;
-    }
-    m |= 1ULL << 52;
-    sh = (int16_t)(52 - (e - 1023));
-    if (m & ((1ULL << sh) - 1u)) {
-        return 0; /* a fraction */
-    }
-    *out = (uint32_t)(m >> sh);
-    return 1;
 }
 
 /* ---------------------------------------------------------------- sending */
@@ -301,6 +243,12 @@ static void timer1_start(uint32_t period_cycles)
 {
     TCCR1B = (uint8_t)(1 << WGM12); /* CTC, clock stopped (OCR1A is written in CTC mode) */
     TCNT1 = 0;
+    /* the PWM carrier (Timer0, free-running since reset) restarts with the tick clock, so
+     * that its phase at every tick is the same in every session whatever cycle the CONFIG
+     * came at (simavr wakes a sleeping core on its timers' events: with the carrier's
+     * phase left to the CONFIG's arrival, two lockstep runs differed by one cycle in a
+     * tick interrupt's entry, then by one ADC count in 87 of 1200 samples at 4 kHz) */
+    TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     if (period_cycles <= 65536UL) {
         OCR1A = (uint16_t)(period_cycles - 1u);

@@ -39,6 +39,7 @@
 
 #include "../../c/hproto.h"
 #include "../hapkit/hapkit_geometry.h"
+#include "../hapkit/hk_shared.h"
 #include "pantograph_link.h"
 
 #if defined(PG_LEADER) == defined(PG_FOLLOWER)
@@ -54,20 +55,6 @@ typedef struct {
     uint8_t dir;
 } drive_t;
 
-static void pwm_write(uint16_t n, uint8_t dir)
-{
-    if (dir) {
-        PORTB |= (uint8_t)(1 << PB0);
-    } else {
-        PORTB &= (uint8_t)~(1 << PB0);
-    }
-    if (n == 0) {
-        TCCR0A &= (uint8_t)~(1 << COM0B1);
-    } else {
-        OCR0B = (uint8_t)(n - 1u);
-        TCCR0A |= (uint8_t)(1 << COM0B1);
-    }
-}
 
 static void motor_adc_init(void)
 {
@@ -97,6 +84,8 @@ ISR(TWI_vect)
         pwm_write(f_hold.n, f_hold.dir);
         ADCSRA |= (uint8_t)(1 << ADSC);
         TCNT1 = 0; /* the leader is there: the watchdog starts again */
+        TCNT0 = 0; /* the PWM carrier in the leader's phase (the leader restarts its own
+                    * with its tick clock): the same at every tick of every session */
         PORTB |= (uint8_t)(1 << PB5);
         f_rx_i = 0xFFu; /* no data expected */
         break;
@@ -411,49 +400,7 @@ ISR(ADC_vect)
     }
 }
 
-/* ---------------------------------------------------------------- helpers */
-
-static hp_b64_t f64_of_float(float x)
-{
-    uint32_t b;
-    memcpy(&b, &x, sizeof b);
-    return hp_b64_from_f32_bits(b);
-}
-
-static float float_of_f64(hp_b64_t d)
-{
-    uint32_t b = hp_f32_bits_from_b64(d);
-    float x;
-    memcpy(&x, &b, sizeof x);
-    return x;
-}
-
-static uint8_t f64_is_finite(hp_b64_t d)
-{
-    return ((d.hi >> 20) & 0x7FFu) != 0x7FFu;
-}
-
-static uint8_t f64_to_u32_exact(hp_b64_t b, uint32_t *out)
-{
-    uint64_t d = ((uint64_t)b.hi << 32) | b.lo;
-    int16_t e = (int16_t)((d >> 52) & 0x7FFu);
-    uint64_t m = d & 0xFFFFFFFFFFFFFULL;
-    int16_t sh;
-    if (d == 0) {
-        *out = 0;
-        return 1;
-    }
-    if ((d >> 63) || e < 1023 || e > 1023 + 31) {
-        return 0;
-    }
-    m |= 1ULL << 52;
-    sh = (int16_t)(52 - (e - 1023));
-    if (m & ((1ULL << sh) - 1u)) {
-        return 0;
-    }
-    *out = (uint32_t)(m >> sh);
-    return 1;
-}
+/* ---------------------------------------------------------------- sending */
 
 static void send(const hp_msg_t *m)
 {
@@ -512,6 +459,10 @@ static void timer1_start(uint32_t period_cycles)
 {
     TCCR1B = (uint8_t)(1 << WGM12);
     TCNT1 = 0;
+    /* the PWM carrier restarts with the tick clock: its phase at every tick is the same
+     * in every session, whatever cycle the CONFIG came at (as the 1-DoF firmware: simavr
+     * wakes a sleeping core on its timers' events) */
+    TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     OCR1A = (uint16_t)(period_cycles - 1u);
     TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));

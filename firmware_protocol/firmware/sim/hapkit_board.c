@@ -62,6 +62,7 @@
 #include "avr_uart.h"
 
 #include "../../c/hproto.h"
+#include "board_common.h"
 #include "../hapkit/hapkit_geometry.h"
 
 /* ATmega328P data-space addresses (datasheet, register summary) */
@@ -75,14 +76,21 @@
 #define CYCLES_PER_US 16u
 
 /* ---------------------------------------------------------------- options */
+/* Real time: the longest spin per tick waiting for the host's FORCE [us] (--spin-us; 0:
+ * never spin). See `win`. */
+#define SPIN_US_DEFAULT 0.0
+
+
 static struct {
     const char *elf;
     int realtime;
     double mass, friction, coulomb, x0, v0;
     double hand_force, hand_start, hand_duration;
     double wait_ms, duration;
-    const char *report, *link, *profile;
-} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, NULL, NULL, NULL};
+    const char *report, *link, *profile, *trace;
+    double spin_us;
+} opt = {NULL, 0, 0.1, 0.5, 0.0, 0.005, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, NULL, NULL, NULL, NULL,
+         SPIN_US_DEFAULT};
 
 /* --profile: cycles spent at each flash word while armed and awake (the MCU budget by
  * instruction; tools/bench_firmware.py --profile maps them to functions and lines) */
@@ -111,10 +119,15 @@ static struct {
      * CONFIG (a cycle the wall clock chose: the board paces a disarmed firmware in real
      * time), two lockstep runs differed by one ADC count in 274 of 1000 samples; let go
      * at tick 0's conversion (found when STATE 0 came out, the handle moved on from
-     * there) they still differed (k 507.305 and 507.322 N/m), for a cause not found (a
-     * host frame reaching the firmware before STATE 0 at a wall-chosen cycle is the
-     * suspect); let go at tick 1, 6 runs of 6 gave the same telemetry bit for bit
-     * (k 507.2901), 4 of them with the board stopped 0.12 s every 0.3 s. With v0 = 0
+     * there) they still differed (k 507.305 and 507.322 N/m); let go at tick 1, 6 runs
+     * of 6 gave the same telemetry bit for bit at 1 kHz (k 507.2901), 4 of them with the
+     * board stopped 0.12 s every 0.3 s, but 4 kHz runs still differed by one ADC count in
+     * 22-87 of 1200 samples: the PWM carrier (Timer0) ran free from reset, so its phase
+     * against the new tick clock was the CONFIG's wall-chosen cycle, and simavr, which
+     * wakes a sleeping core on its timers' events, entered a tick interrupt one cycle
+     * apart. The firmware now restarts the carrier with the tick clock (main.c,
+     * timer1_start): traced with --trace, two runs are the same cycle for cycle from the
+     * first armed tick on. With v0 = 0
      * nothing moves the handle over tick 0 either way (no FORCE is applied before tick
      * 1); a v0 starts one period late (the free response is the same loop's). */
     int release_armed, release_tick;
@@ -187,9 +200,71 @@ static avr_irq_t *uart_irq, *adc_irq;
  * is taken from the host's time to answer a STATE before the next tick. */
 #define LEAD_NS 50000u
 static struct {
-    uint64_t emulate_ns, io_ns, sleep_ns, armed_emulate_ns, armed_cycles, slips, slipped_ns;
+    uint64_t emulate_ns, io_ns, sleep_ns, spin_ns, armed_emulate_ns, armed_cycles, slips,
+        slipped_ns;
     uint64_t behind_max_ns;
 } tm;
+
+/* --trace FILE: the board's events with the emulated cycle and the wall clock
+ * (CLOCK_MONOTONIC, the clock the host's time.monotonic_ns reads), kept in memory and
+ * written at exit, one line each (tools/bench_firmware.py --trace reads them):
+ *   T cyc wall late_ns                a tick starts (D13 rises); late_ns: wall - schedule
+ *   A cyc wall mv x v                 the firmware starts a conversion of ADC2 (x [m], v [m/s])
+ *   P cyc wall n dir                  the motor PWM changes (duty steps, direction)
+ *   S cyc wall seq status force_seq   the firmware's STATE left the UART (last byte)
+ *   R cyc wall seq                    a host FORCE read from the pty (whole frame)
+ *   F cyc wall type seq               a host frame handed to the UART (last byte)
+ *   W cyc wall want_ns over_ns spun_ns a wait for the wall clock (real time) ended over_ns
+ *                                      after its target (a sleep, then a spin of spun_ns)
+ * late_ns is -1 while the clock is not locked to the wall (fast mode, armed). Two lockstep
+ * runs compare by their cycles and values (columns 2 and 4 on), not by the wall. */
+typedef struct {
+    char kind;
+    uint64_t cyc, wall;
+    double a, b, c;
+} trace_ev_t;
+#define TRACE_MAX (1u << 20)
+static trace_ev_t *trace_buf;
+static size_t trace_n;
+static uint64_t trace_dropped;
+
+static uint64_t wall_ns(void);
+/* the wall clock the emulated clock is locked to (emulated cycle 0 at wall0 [ns]) while
+ * `paced` (real time, or fast mode pacing a disarmed firmware) */
+static uint64_t wall0;
+static int paced;
+
+static void trace(char kind, uint64_t cyc, double a, double b, double c)
+{
+    if (!trace_buf) {
+        return;
+    }
+    if (trace_n >= TRACE_MAX) {
+        trace_dropped++;
+        return;
+    }
+    trace_buf[trace_n].kind = kind;
+    trace_buf[trace_n].cyc = cyc;
+    trace_buf[trace_n].wall = wall_ns();
+    trace_buf[trace_n].a = a;
+    trace_buf[trace_n].b = b;
+    trace_buf[trace_n].c = c;
+    trace_n++;
+}
+
+/* Real time, --spin-us S > 0: from an armed STATE until the host's FORCE answering it is
+ * read (or S us of wall time have passed), the board emulates in WINDOW_CHUNK steps and
+ * spins to the wall clock between them, never ahead of it. The bytes of a FORCE enter the
+ * UART at the emulated cycle the board has reached when they are read: with 100 us chunks
+ * run ahead of the wall clock and a sleep after each, that cycle is up to 100 us (on
+ * average 50 us) after the wall time the FORCE came at, taken from the host's time to
+ * answer (traced: a FORCE must reach the UART ~240 us before the tick to be applied at it).
+ * The spin costs at most S us of CPU per tick (time.spin_s). */
+#define WINDOW_CHUNK 160u /* 10 us */
+static struct {
+    int open;
+    uint64_t since; /* [ns] wall */
+} win;
 
 static double hand_force_at(uint64_t cyc)
 {
@@ -327,6 +402,7 @@ static void sample_drive(void)
             pin.zero_since_cyc = avr->cycle;
             pin.zero_valid = 1;
         }
+        trace('P', avr->cycle, n, dir, 0);
         if (ph.configured && fabs(f) > pin.max_abs_force) {
             pin.max_abs_force = fabs(f);
         }
@@ -335,6 +411,13 @@ static void sample_drive(void)
         pin.last_nonzero_cyc = avr->cycle;
     }
     if (probe && !budget.probe) { /* a tick starts: close the last window */
+        if (trace_buf) {
+            double late = -1.0;
+            if (paced) {
+                late = (double)wall_ns() - ((double)wall0 + (double)avr->cycle * 1e9 / F_CPU_HZ);
+            }
+            trace('T', avr->cycle, late, 0, 0);
+        }
         if (budget.counting) {
             uint64_t len = avr->cycle - budget.window_start;
             budget.ticks++;
@@ -382,6 +465,7 @@ static void adc_trigger(struct avr_irq_t *irq, uint32_t value, void *param)
     /* the ADC reads floor(mV * 1023 / 5000): centre each count on its voltage */
     mv = floor((counts + 0.5) * HK_ADC_VREF_MV / HK_ADC_MAX + 0.5);
     avr_raise_irq(adc_irq + ADC_IRQ_ADC2, (uint32_t)mv);
+    trace('A', avr->cycle, mv, ph.x, ph.v);
     /* the firmware takes its zero from its first reading it keeps (it drops a conversion
      * a CONFIG restarted the ticks under): the hand moves to x0 after the third */
     if (ph.zero_read < 3 && ++ph.zero_read == 3) {
@@ -429,8 +513,11 @@ static void on_fw_state(uint32_t seq, uint16_t status, int compact)
 static void on_fw_msg(const hp_msg_t *m)
 {
     if (m->type == HP_MSG_STATE) {
+        trace('S', avr->cycle, m->u.state.seq, m->u.state.status, m->u.state.force_seq);
         on_fw_state(m->u.state.seq, m->u.state.status, 0);
     } else if (m->type == HP_MSG_STATE_COMPACT) {
+        trace('S', avr->cycle, m->u.state_compact.seq, m->u.state_compact.status,
+              (double)m->u.state_compact.seq - m->u.state_compact.lag);
         on_fw_state(m->u.state_compact.seq, m->u.state_compact.status, 1);
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
@@ -491,6 +578,9 @@ static void uart_xoff(struct avr_irq_t *irq, uint32_t value, void *param)
 static void on_host_msg(const hp_msg_t *m)
 {
     link_.host_frames_ok++;
+    trace('F', avr->cycle, m->type,
+          m->type == HP_MSG_FORCE ? (double)m->u.force.seq
+          : m->type == HP_MSG_FORCE_COMPACT ? (double)m->u.force_compact.seq : -1.0, 0);
     if (m->type == HP_MSG_CONFIG) {
         /* the hand lets go of the handle at x0 with v0 (the mock's plant restarts there at
          * CONFIG); a handle not there yet is moved there first, without a jump */
@@ -573,6 +663,7 @@ static void read_host(int timeout_ms)
                     link_.read_force_seq = m.type == HP_MSG_FORCE ? m.u.force.seq
                                                                   : m.u.force_compact.seq;
                     link_.read_force_valid = 1;
+                    trace('R', avr->cycle, link_.read_force_seq, 0, 0);
                 } else {
                     link_.read_other = 1;
                     if (m.type == HP_MSG_STOP) {
@@ -587,61 +678,7 @@ static void read_host(int timeout_ms)
     }
 }
 
-static int open_pty(void)
-{
-    int fd = posix_openpt(O_RDWR | O_NOCTTY);
-    int slave;
-    struct termios t;
-    char *name;
-    if (fd < 0 || grantpt(fd) || unlockpt(fd) || !(name = ptsname(fd))) {
-        perror("hapkit_board: pty");
-        exit(1);
-    }
-    slave = open(name, O_RDWR | O_NOCTTY);
-    if (slave >= 0) {
-        tcgetattr(slave, &t);
-        cfmakeraw(&t);
-        tcsetattr(slave, TCSANOW, &t);
-        close(slave); /* the raw settings stay with the pty */
-    }
-    fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
-    if (opt.link) {
-        char tmp[4096];
-        snprintf(tmp, sizeof tmp, "%s.new", opt.link);
-        unlink(tmp);
-        if (symlink(name, tmp) == 0) {
-            rename(tmp, opt.link);
-        }
-    }
-    printf("PORT %s\n", opt.link ? opt.link : name);
-    fflush(stdout);
-    return fd;
-}
 
-/* simavr's messages: errors go to stderr (stdout carries only the PORT line and the
- * report); its warnings and traces are not the user's business (e.g. "TIMER:
- * avr_timer_write_ocr-1 mode 0 UNSUPPORTED" when the firmware writes OCR1A before it sets
- * the timer's mode) and are only counted, the last one kept, for the report. */
-static struct {
-    uint64_t warnings;
-    char last[160];
-} simlog;
-
-static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
-{
-    (void)a;
-    if (level <= LOG_ERROR) {
-        vfprintf(stderr, format, ap);
-    } else if (level == LOG_WARNING) {
-        size_t n;
-        simlog.warnings++;
-        vsnprintf(simlog.last, sizeof simlog.last, format, ap);
-        n = strlen(simlog.last);
-        while (n > 0 && (simlog.last[n - 1] == '\n' || simlog.last[n - 1] == '\r')) {
-            simlog.last[--n] = 0;
-        }
-    }
-}
 
 /* ---------------------------------------------------------------- report */
 
@@ -699,22 +736,17 @@ static void report(int code)
     }
     fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
     fprintf(f, " \"time\": {\"emulate_s\": %.6f, \"io_s\": %.6f, \"sleep_s\": %.6f, "
+               "\"spin_s\": %.6f, \"spin_us\": %.1f, "
                "\"armed_mhz\": %.3f, \"slips\": %llu, \"slipped_s\": %.6f, "
-               "\"behind_max_ms\": %.3f},\n",
-            tm.emulate_ns * 1e-9, tm.io_ns * 1e-9, tm.sleep_ns * 1e-9,
+               "\"behind_max_ms\": %.3f, \"trace_dropped\": %llu},\n",
+            tm.emulate_ns * 1e-9, tm.io_ns * 1e-9, tm.sleep_ns * 1e-9, tm.spin_ns * 1e-9,
+            opt.spin_us,
             tm.armed_emulate_ns ? tm.armed_cycles * 1e3 / (double)tm.armed_emulate_ns : 0.0,
-            (unsigned long long)tm.slips, tm.slipped_ns * 1e-9, tm.behind_max_ns * 1e-6);
+            (unsigned long long)tm.slips, tm.slipped_ns * 1e-9, tm.behind_max_ns * 1e-6,
+            (unsigned long long)trace_dropped);
     fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"",
             (unsigned long long)simlog.warnings);
-    {
-        const char *c;
-        for (c = simlog.last; *c; c++) { /* JSON string: escape what needs it */
-            if (*c == '"' || *c == '\\') {
-                fputc('\\', f);
-            }
-            fputc((unsigned char)*c < 0x20 ? ' ' : *c, f);
-        }
-    }
+    simlog_json(f);
     fprintf(f, "\"},\n");
     fprintf(f, " \"handle\": {\"x_m\": %.9g, \"v_m_s\": %.9g, \"mass_kg\": %.9g, "
                "\"friction_n_s_m\": %.9g, \"coulomb_n\": %.9g}}\n",
@@ -745,13 +777,7 @@ static void noop_sleep(avr_t *a, avr_cycle_count_t how_long)
 
 static double num(const char *s, const char *name)
 {
-    char *end;
-    double v = strtod(s, &end);
-    if (*s == 0 || *end != 0 || !isfinite(v)) {
-        fprintf(stderr, "hapkit_board: %s: not a number: %s\n", name, s);
-        exit(2);
-    }
-    return v;
+    return board_num(s, name, "hapkit_board");
 }
 
 static void usage(void)
@@ -760,7 +786,7 @@ static void usage(void)
             "usage: hapkit_board FIRMWARE.elf [--realtime] [--mass KG] [--friction NS_M]\n"
             "         [--coulomb N] [--x0 M] [--v0 M_S] [--hand-force N --hand-start S\n"
             "         --hand-duration S] [--wait-ms MS] [--duration S] [--report FILE]\n"
-            "         [--link PATH] [--profile FILE]\n");
+            "         [--link PATH] [--profile FILE] [--trace FILE] [--spin-us US]\n");
     exit(2);
 }
 
@@ -772,12 +798,54 @@ static uint64_t wall_ns(void)
     return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
 }
 
+/* Wait until the wall clock reads `target` [ns], taking the host's bytes as they come: a
+ * wait on the pty (ppoll) until `target` less `spin` [ns], then a spin to `target` that
+ * checks the pty without waiting. Each frame the host writes meanwhile is read and handed
+ * to the UART at once (at the emulated cycle the board has reached), not at the end of
+ * the wait. A wake-up from a sleep is late by the timer's and the scheduler's latency, most
+ * of all when the core sat idle (it first leaves its idle state); a spin pays CPU for a
+ * wake-up on time (report "time": sleep_s, spin_s; trace: W). */
+static void wait_until(uint64_t target, uint64_t spin)
+{
+    uint64_t t0 = wall_ns(), now = t0, spun = 0;
+    uint64_t spin_from = 0;
+    while (now < target && !stop_signal) {
+        struct pollfd pfd = {master, POLLIN, 0};
+        int r;
+        if (target - now > spin) {
+            uint64_t left = target - spin - now;
+            struct timespec ts = {(time_t)(left / 1000000000u), (long)(left % 1000000000u)};
+            if (link_.host_present) {
+                r = ppoll(&pfd, 1, &ts, NULL);
+            } else { /* no host: the pty hangs up at once, sleep instead */
+                r = 0;
+                nanosleep(&ts, NULL);
+            }
+        } else {
+            if (!spin_from) {
+                spin_from = now;
+            }
+            r = poll(&pfd, 1, 0);
+        }
+        if (r > 0 && (pfd.revents & (POLLIN | POLLHUP))) {
+            read_host(0);     /* the host's bytes now: into the queue, and to the UART */
+            feed_uart();
+        }
+        now = wall_ns();
+    }
+    spun = spin_from ? now - spin_from : 0;
+    tm.sleep_ns += now - t0 - spun;
+    tm.spin_ns += spun;
+    trace('W', avr->cycle, target > t0 ? (double)(target - t0) : 0.0,
+          (double)now - (double)target, (double)spun);
+}
+
 int main(int argc, char **argv)
 {
     elf_firmware_t fw;
     uint32_t flags = 0;
-    int i, code = 0, pace, paced = 0;
-    uint64_t wall0, chunk = 1600; /* 100 us of emulated time between host polls */
+    int i, code = 0, pace;
+    uint64_t chunk = 1600; /* 100 us of emulated time between host polls */
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
         const char *v = i + 1 < argc ? argv[i + 1] : NULL;
@@ -806,10 +874,17 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--report")) opt.report = v;
         else if (!strcmp(a, "--link")) opt.link = v;
         else if (!strcmp(a, "--profile")) opt.profile = v;
+        else if (!strcmp(a, "--trace")) opt.trace = v;
+        else if (!strcmp(a, "--spin-us")) opt.spin_us = num(v, a);
         else usage();
     }
-    if (!opt.elf || !(opt.mass > 0) || opt.friction < 0 || opt.coulomb < 0) {
+    if (!opt.elf || !(opt.mass > 0) || opt.friction < 0 || opt.coulomb < 0 ||
+        opt.spin_us < 0 || opt.spin_us > 1000) {
         usage();
+    }
+    if (opt.trace && !(trace_buf = malloc(TRACE_MAX * sizeof *trace_buf))) {
+        fprintf(stderr, "hapkit_board: no memory for --trace\n");
+        return 1;
     }
     avr_global_logger_set(log_stderr);
     memset(&fw, 0, sizeof fw);
@@ -850,11 +925,11 @@ int main(int argc, char **argv)
     signal(SIGINT, on_signal);
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
-    master = open_pty();
+    master = board_open_pty(opt.link, "hapkit_board");
     link_.host_present = 0;
     wall0 = wall_ns();
     while (!stop_signal) {
-        uint64_t end = avr->cycle + chunk;
+        uint64_t end = avr->cycle + (win.open ? WINDOW_CHUNK : chunk);
         if (opt.duration > 0 && (double)avr->cycle >= opt.duration * F_CPU_HZ) {
             break;
         }
@@ -888,6 +963,15 @@ int main(int argc, char **argv)
         }
         flush_out();
         read_host(0);
+        if (link_.await_host && opt.realtime && opt.spin_us > 0) {
+            win.open = 1; /* an armed STATE is out: watch for its FORCE (see win) */
+            win.since = wall_ns();
+        }
+        if (win.open && ((link_.read_force_valid && force_answers_await()) ||
+                         link_.read_stop || !link_.host_present ||
+                         (double)(wall_ns() - win.since) > opt.spin_us * 1e3)) {
+            win.open = 0;
+        }
         if (link_.await_host && !opt.realtime) {
             /* fast mode: wait (wall time) for the host's answer to this STATE */
             uint64_t w0 = wall_ns();
@@ -920,11 +1004,10 @@ int main(int argc, char **argv)
                 wall0 = wall_ns() - emu; /* lock from here on */
             }
             wall = wall_ns() - wall0;
-            if (emu > wall + LEAD_NS) {
-                struct timespec ts = {0, (long)(emu - wall)};
-                uint64_t t_s = wall_ns();
-                nanosleep(&ts, NULL);
-                tm.sleep_ns += wall_ns() - t_s;
+            if (win.open && emu > wall) {
+                wait_until(wall0 + emu, UINT64_MAX); /* spin: see win */
+            } else if (emu > wall + LEAD_NS) {
+                wait_until(wall0 + emu, 0);
             } else if (wall > emu + SLIP_NS) {
                 /* descheduled or too slow: slip, do not race the firmware's ticks through
                  * the lost time (a host answering in real time would be late for each) */
@@ -940,6 +1023,19 @@ int main(int argc, char **argv)
     }
 done:
     report(code);
+    if (trace_buf) {
+        FILE *tf = fopen(opt.trace, "w");
+        size_t k;
+        if (tf) {
+            for (k = 0; k < trace_n; k++) {
+                const trace_ev_t *e = &trace_buf[k];
+                fprintf(tf, "%c %llu %llu %.17g %.17g %.17g\n", e->kind,
+                        (unsigned long long)e->cyc, (unsigned long long)e->wall, e->a, e->b,
+                        e->c);
+            }
+            fclose(tf);
+        }
+    }
     if (opt.profile) {
         FILE *pf = fopen(opt.profile, "w");
         unsigned w;

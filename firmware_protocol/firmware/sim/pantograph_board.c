@@ -72,6 +72,7 @@
 #include "avr_uart.h"
 
 #include "../../c/hproto.h"
+#include "board_common.h"
 #include "../hapkit/hapkit_geometry.h"
 #include "../pantograph/pantograph_link.h"
 
@@ -821,53 +822,8 @@ static void read_host(int timeout_ms)
     }
 }
 
-static int open_pty(void)
-{
-    int fd = posix_openpt(O_RDWR | O_NOCTTY), slave;
-    struct termios t;
-    char *name;
-    if (fd < 0 || grantpt(fd) || unlockpt(fd) || !(name = ptsname(fd))) {
-        perror("pantograph_board: pty");
-        exit(1);
-    }
-    slave = open(name, O_RDWR | O_NOCTTY);
-    if (slave >= 0) {
-        tcgetattr(slave, &t);
-        cfmakeraw(&t);
-        tcsetattr(slave, TCSANOW, &t);
-        close(slave);
-    }
-    fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) | O_NONBLOCK);
-    if (opt.link) {
-        char tmp[4096];
-        snprintf(tmp, sizeof tmp, "%s.new", opt.link);
-        unlink(tmp);
-        if (symlink(name, tmp) == 0) {
-            rename(tmp, opt.link);
-        }
-    }
-    printf("PORT %s\n", opt.link ? opt.link : name);
-    fflush(stdout);
-    return fd;
-}
 
 /* ---------------------------------------------------------------- report */
-static struct {
-    uint64_t warnings;
-    char last[160];
-} simlog;
-
-static void log_stderr(avr_t *a, const int level, const char *format, va_list ap)
-{
-    (void)a;
-    if (level <= LOG_ERROR) {
-        vfprintf(stderr, format, ap);
-    } else if (level == LOG_WARNING) {
-        simlog.warnings++;
-        vsnprintf(simlog.last, sizeof simlog.last, format, ap);
-        simlog.last[strcspn(simlog.last, "\r\n\"\\")] = 0;
-    }
-}
 
 static void report(int code)
 {
@@ -915,8 +871,10 @@ static void report(int code)
         }
     }
     fprintf(f, "}, \"tx_dropped\": %llu},\n", (unsigned long long)link_.tx_dropped);
-    fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"%s\"},\n",
-            (unsigned long long)simlog.warnings, simlog.last);
+    fprintf(f, " \"simavr\": {\"warnings\": %llu, \"last_warning\": \"",
+            (unsigned long long)simlog.warnings);
+    simlog_json(f);
+    fprintf(f, "\"},\n");
     fprintf(f, " \"drive\": {\"leader_steps\": %d, \"follower_steps\": %d, "
                "\"torque_nm\": [%.9g, %.9g]},\n",
             (drive[LEAD].dir ? 1 : -1) * (int)drive[LEAD].n,
@@ -960,13 +918,7 @@ static avr_cycle_count_t fence_cb(avr_t *a, avr_cycle_count_t when, void *param)
 
 static double num(const char *s, const char *name)
 {
-    char *end;
-    double v = strtod(s, &end);
-    if (*s == 0 || *end != 0 || !isfinite(v)) {
-        fprintf(stderr, "pantograph_board: %s: not a number: %s\n", name, s);
-        exit(2);
-    }
-    return v;
+    return board_num(s, name, "pantograph_board");
 }
 
 static void nums(const char *s, const char *name, double *out, int n)
@@ -1130,7 +1082,7 @@ int main(int argc, char **argv)
     signal(SIGINT, on_signal);
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
-    master = open_pty();
+    master = board_open_pty(opt.link, "pantograph_board");
     {
         struct timespec wall0;
         clock_gettime(CLOCK_MONOTONIC, &wall0);

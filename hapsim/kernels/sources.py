@@ -1,0 +1,97 @@
+"""Which sources a numba-compiled module compiles in, and whether its disk cache is fresh.
+
+numba keys its on-disk cache of a function on the modification time and size of the
+function's own file only (numba documentation, "Cache invalidation": "changes in other
+files are not tracked"). A cached function that calls a jitted function of another module,
+or reads that module's constants, keeps the other module's old code after an edit to it.
+A module that compiles others in therefore holds, as a literal in its own file, the
+SHA-256 of those sources (:func:`sources_digest`), and caches only while it matches
+(:func:`cache_ok`); ``tests/test_compiled_loop_sources.py`` asks for the literal to be
+updated when it no longer matches, and that edit to the module's own file is what makes
+numba rebuild its cache. The host loop (:mod:`hapsim.daemon.fastloop`), the compiled mock
+(:mod:`hapsim.daemon.fastmock`), the multi-rate audio kernel (:mod:`hapsim.kernels.audio`),
+the late-tick rule (:mod:`hapsim.kernels.ticks`) and the JACK callback
+(:mod:`hapsim.audio.jack_native`) use it.
+
+Plain Python (no numba): importable from any floor.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+
+__all__ = ["source_paths", "sources_digest", "cache_ok"]
+
+#: The ``hapsim`` package directory.
+_HAPSIM = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def source_paths(rels) -> list[str]:
+    """Absolute paths of sources named relative to the repository.
+
+    Parameters
+    ----------
+    rels : sequence of str
+        ``"hapsim/..."`` or ``"firmware_protocol/..."`` paths with ``/`` separators.
+
+    Returns
+    -------
+    list of str
+        The files (``firmware_protocol`` located without importing it: where it is
+        installed, else beside the ``hapsim`` package).
+    """
+    spec = importlib.util.find_spec("firmware_protocol")
+    fp_dir = os.path.dirname(spec.origin) if spec and spec.origin else \
+        os.path.join(os.path.dirname(_HAPSIM), "firmware_protocol")
+    out = []
+    for rel in rels:
+        top, rest = rel.split("/", 1)
+        out.append(os.path.join(_HAPSIM if top == "hapsim" else fp_dir, *rest.split("/")))
+    return out
+
+
+def sources_digest(paths) -> str:
+    """SHA-256 (hex) of the named source files, in order, each as its base name and bytes.
+
+    Parameters
+    ----------
+    paths : sequence of str
+        Files (absolute paths, :func:`source_paths`).
+
+    Returns
+    -------
+    str
+        64 hex digits; a file that cannot be read contributes its name only (the digest
+        then differs and the module compiles without numba's cache).
+    """
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(os.path.basename(p).encode() + b"\0")
+        try:
+            with open(p, "rb") as f:
+                h.update(f.read())
+        except OSError:
+            pass
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def cache_ok(rels, digest: str) -> bool:
+    """Whether a module compiling in the sources ``rels`` may use numba's disk cache.
+
+    Parameters
+    ----------
+    rels : sequence of str
+        The sources it compiles in (:func:`source_paths`' form).
+    digest : str
+        The SHA-256 the module holds for them (a literal in its own file).
+
+    Returns
+    -------
+    bool
+        True when the sources are those the digest names; False (compile afresh, never
+        load a cache built from older sources) otherwise.
+    """
+    return sources_digest(source_paths(rels)) == digest

@@ -1,0 +1,116 @@
+"""The API and the command line refuse a bad value with the same message.
+
+Every numeric option a command shares with its :mod:`hapsim.api` function (and every
+field of :class:`~hapsim.analysis.loop.LoopModel` behind ``--mass --friction --rate
+--delay``) is declared once, in :data:`hapsim.option_values.API_OPTIONS`; the class of
+values outside each declared range (below, above, not finite, not whole) is tried through
+both doors: ``hapsim COMMAND ... --json`` and the function."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from hapsim import api
+from hapsim.analysis.loop import MAX_DELAY, LoopModel
+from hapsim.cli import main
+from hapsim.errors import ConfigError
+from hapsim.option_values import API_OPTIONS, Number, declared
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+WALL = str(CONFIGS / "wall.yaml")
+LOOP = ["--mass", "0.1", "--rate", "1000"]
+
+#: Each declared function: the command line before the option (a valid rest), and the
+#: function called with one keyword changed.
+DOORS = {
+    "loop": (["render", "--mass", "0.1", "--rate", "1000", "--K", "1"],
+             lambda **kw: LoopModel(**{"mass": 0.1, "rate_hz": 1000.0, **kw})),
+    "render": (["render", *LOOP, "--K", "1"],
+               lambda **kw: api.render(LoopModel(0.1), **{"K": 1.0, **kw})),
+    "calibrate": (["calibrate", *LOOP, "--k", "100", "--b", "1"],
+                  lambda **kw: api.calibrate(LoopModel(0.1), **{"k": 100.0, "b": 1.0, **kw})),
+    "stability": (["stability", *LOOP], lambda **kw: api.stability(LoopModel(0.1), **kw)),
+    "family": (["family", WALL], lambda **kw: api.family(WALL, **kw)),
+    "identify": (["identify"], lambda **kw: (
+        api.calibrate_scale(None, None, kw["added_mass"], None) if "added_mass" in kw
+        else api.identify(**kw))),
+    "run_nd": (["run", str(CONFIGS / "pantograph_wall.yaml"), "--lockstep"],
+               lambda **kw: api.run_nd(str(CONFIGS / "pantograph_wall.yaml"), **kw)),
+}
+
+
+def _bad_values(n: Number) -> list:
+    """Values outside ``n``'s range: just past each bound, far past it, not finite, and
+    (for an integer) not whole."""
+    out = [math.nan, math.inf, -math.inf]
+    if n.low is not None:
+        out += [n.low if n.open_low else n.low - 1, n.low - 1e6]
+    if n.high is not None:
+        out += [n.high if n.open_high else n.high + 1, n.high + 1e6]
+    if n.kind is int:
+        mid = (n.low or 0) + 0.5
+        if n.ok(math.floor(mid)):
+            out.append(mid)
+    return out
+
+
+CASES = [(fn, name, v) for fn, table in API_OPTIONS.items() for name, (_, n) in table.items()
+         for v in _bad_values(n)]
+
+
+def _cli(argv: list) -> dict:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        code = main(argv + ["--json"])
+    assert code == 2, (argv, out.getvalue())
+    return json.loads(out.getvalue())["error"]
+
+
+def _typed(v) -> str:
+    """``v`` as a user types it (``repr`` of a float: ``nan``, ``inf``, ``-1.0``)."""
+    return repr(float(v)) if isinstance(v, float) else str(v)
+
+
+def test_every_command_option_of_the_table_is_its_declaration():
+    """The parsers take these options' types from the table (not a copy of the range)."""
+    import argparse
+
+    from hapsim.cli import build_parser
+    for fn, (argv, _) in DOORS.items():
+        parser = build_parser(argv[0])
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        actions = {o: a for a in sub.choices[argv[0]]._actions for o in a.option_strings}
+        for name, (flag, n) in API_OPTIONS[fn].items():
+            assert actions[flag].type is declared(fn, name), (fn, flag)
+    assert declared("loop", "delay").high == MAX_DELAY     # the analysis's limit
+
+
+@pytest.mark.parametrize("fn, name, value", CASES,
+                         ids=[f"{f}-{n}-{v!r}" for f, n, v in CASES])
+def test_a_bad_value_gets_the_same_message_through_both_doors(fn, name, value):
+    flag, _ = API_OPTIONS[fn][name]
+    argv, call = DOORS[fn]
+    err = _cli([*argv, f"{flag}={_typed(value)}"])
+    with pytest.raises(ConfigError) as prog:
+        call(**{name: value})
+    assert err["key"] == flag
+    if fn == "loop":      # the model keys by its field, the command by the flag
+        assert prog.value.key == name and prog.value.reason in err["message"]
+        assert err["message"].endswith(f"{flag}: {prog.value.reason}")
+    else:
+        assert prog.value.key == flag
+        assert err["message"] == f"hapsim {argv[0]}: error: {prog.value}"
+
+
+@pytest.mark.parametrize("value", ["2", True, None.__class__, [1]])
+def test_a_value_that_is_no_number_is_refused_with_the_range(value):
+    """From a program, a string, a bool or another object is a ConfigError naming the
+    range, not a TypeError from the comparison."""
+    with pytest.raises(ConfigError, match=r"--grid: must be an integer >= 2"):
+        api.family(WALL, grid=value)
