@@ -12,9 +12,9 @@ binary force of 0.1 x the force limit, 4 N or 40 m N/kg) and fitted by
 :func:`hapsim.analysis.device_fit.fit_device` with the delays 0-20 tried (a protocol that
 names no applied force). Counted: the delay returned as certain and exact, or wrong; said
 ambiguous (``delay_certain`` False; ``truth_in_range``: the true delay inside
-``delay_range``); refused (the reason). ``--white`` restores the selection before issue 19
-(the likelihood ratio counted on every sample as if independent; no delay was ever said
-uncertain: judged by the delay returned), for comparison. A measurement program, not a
+``delay_range``); refused (the reason). ``--white`` counts the likelihood ratio on every
+sample as if independent and judges by the delay returned, as before issue 19 (when no
+delay was said undetermined; its range then held the same hold's delays only). A measurement program, not a
 test.
 """
 

@@ -1,19 +1,25 @@
 """The compiled I/O primitives of the numba host loop and the numba mock tick: libc's
 ``read``, ``write``, ``poll`` and ``clock_gettime`` called by symbol from nopython code,
 the CRC-16 and COBS of the framed protocol (PROTOCOL.md §2-§3), the little-endian field
-reader and the frame splitter. One implementation for both sides of the wire:
+reader and the frame splitter, the host's FORCE frames and the compact seq's expansion.
+One implementation for both sides of the wire:
 :mod:`hapsim.daemon.fastloop` (host) and :mod:`hapsim.daemon.fastmock` (device).
 """
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from numba import types
 
+import firmware_protocol as fp
+
 __all__ = ["c_read", "c_write", "c_poll", "c_clock_gettime", "CLOCK_MONOTONIC", "POLLIN",
            "POLLOUT", "POLLERR", "POLLHUP", "POLLNVAL", "crc_table", "CRC_TABLE", "jit",
-           "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode"]
+           "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode", "F32_MAX",
+           "force_frame", "force_compact_frame", "expand_seq"]
 
 # ----------------------------------------------------------------------------- libc
 # libc by symbol (numba ExternalFunction: resolved at link time, so the compiled loop can be
@@ -143,3 +149,109 @@ def cobs_encode(src, n, dst):
     dst[code_at] = code
     dst[o] = 0
     return o + 1
+
+
+# ----------------------------------------------------------------------------- host frames
+#: Largest finite binary32 [N] (:data:`firmware_protocol.F32_MAX`): a compact FORCE
+#: saturates there.
+F32_MAX = fp.F32_MAX
+
+
+@jit
+def force_frame(seq, f, pkt, f8, u8, table, out):
+    """FORCE(seq, (f,)) as a whole frame (PROTOCOL.md §4: type 0x11, seq, one binary64
+    force, CRC-16, COBS, delimiter): :func:`firmware_protocol.encode` on bytes.
+
+    Parameters
+    ----------
+    seq : int
+        The STATE's seq it answers (32 bits).
+    f : float
+        Force [N].
+    pkt : ndarray of uint8, shape (>= 15,)
+        Scratch for the packet before COBS.
+    f8, u8 : ndarray
+        One float64 and its 8 bytes: the same memory (``u8 = f8.view(np.uint8)``).
+    table : ndarray of uint16, shape (256,)
+        :data:`CRC_TABLE`.
+    out : ndarray of uint8, shape (>= 17,)
+        The frame.
+
+    Returns
+    -------
+    int
+        The frame's length in ``out`` (17 bytes).
+    """
+    pkt[0] = 0x11
+    for j in range(4):
+        pkt[1 + j] = (seq >> (8 * j)) & 0xFF
+    f8[0] = f
+    for j in range(8):
+        pkt[5 + j] = u8[j]
+    c = crc16(pkt, 13, table)
+    pkt[13] = (c >> 8) & 0xFF
+    pkt[14] = c & 0xFF
+    return cobs_encode(pkt, 15, out)
+
+
+@jit
+def force_compact_frame(seq, f, pkt, f4, u8, table, out):
+    """FORCE_COMPACT(seq, (f,)) as a whole frame: :func:`firmware_protocol.compact_force`
+    on bytes (PROTOCOL.md §4 "Compact frames"): the seq's low 16 bits, the force rounded
+    to binary32 (to nearest, ties to even), a finite force beyond the binary32 range
+    saturated to :data:`F32_MAX` with its sign.
+
+    Parameters
+    ----------
+    seq : int
+        The STATE's seq it answers (its low 16 bits are sent).
+    f : float
+        Force [N].
+    pkt : ndarray of uint8, shape (>= 9,)
+        Scratch for the packet before COBS.
+    f4, u8 : ndarray
+        One float32 and its 4 bytes: the same memory (``u8 = f4.view(np.uint8)``).
+    table : ndarray of uint16, shape (256,)
+        :data:`CRC_TABLE`.
+    out : ndarray of uint8, shape (>= 11,)
+        The frame.
+
+    Returns
+    -------
+    int
+        The frame's length in ``out`` (11 bytes).
+    """
+    pkt[0] = 0x14
+    pkt[1] = seq & 0xFF
+    pkt[2] = (seq >> 8) & 0xFF
+    if (f > F32_MAX or f < -F32_MAX) and math.isfinite(f):
+        f = math.copysign(F32_MAX, f)
+    f4[0] = f
+    for j in range(4):
+        pkt[3 + j] = u8[j]
+    c = crc16(pkt, 7, table)
+    pkt[7] = (c >> 8) & 0xFF
+    pkt[8] = c & 0xFF
+    return cobs_encode(pkt, 9, out)
+
+
+@jit
+def expand_seq(s16, last):
+    """The 32-bit seq of a STATE_COMPACT's 16-bit ``s16`` after the reference ``last``:
+    :meth:`firmware_protocol.CompactExpander.expand` (the nearest seq at or after
+    ``last`` whose low 16 bits are ``s16``, modulo 2^32).
+
+    Parameters
+    ----------
+    s16 : int
+        The frame's 16-bit seq.
+    last : int
+        The reference seq (< 0: none, ``s16`` is taken as is).
+
+    Returns
+    -------
+    int
+    """
+    if last < 0:
+        return s16
+    return (last + ((s16 - last) & 0xFFFF)) & 0xFFFFFFFF

@@ -50,8 +50,9 @@ import firmware_protocol as fp
 from hapsim.daemon.compiled_io import (
     CRC_TABLE as _CRC, POLLERR as _POLLERR, POLLHUP as _POLLHUP, POLLIN as _POLLIN,
     POLLNVAL as _POLLNVAL, POLLOUT as _POLLOUT, c_poll as _c_poll, c_read as _c_read,
-    c_write as _c_write, cobs_decode as _cobs_decode, cobs_encode as _cobs_encode,
-    crc16 as _crc16, le as _le, next_frame as _next_frame, now_ns as _now_ns)
+    c_write as _c_write, cobs_decode as _cobs_decode,
+    crc16 as _crc16, expand_seq as _expand_seq, force_compact_frame as _force_compact_frame,
+    force_frame as _force_frame, le as _le, next_frame as _next_frame, now_ns as _now_ns)
 from hapsim.daemon.loop import HostLoop, LostDevice, safety_reason
 from hapsim.daemon.startup import LOOP_SOURCES, sources_digest
 from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
@@ -68,7 +69,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "efd81c4b3c503b1ce389a9e1586aa1aec4e1a688a96dfa55afc2322439883614"
+COMPILED_SOURCES_SHA256 = "4b3b3375173ba6cf5765e2cb1022f6b562695e80e52081601d878066f94ee1ba"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -104,7 +105,6 @@ _HALF = 0x80000000
 _STATE_PACKET = 29          # type + 1-axis STATE body + CRC [bytes]
 _VELOCITY_PACKET = 15       # type + 1-axis VELOCITY body + CRC [bytes]
 _STATE_C_PACKET = 11        # type + 1-axis STATE_COMPACT body + CRC [bytes]
-_F32_MAX = fp.F32_MAX
 _MAX_FRAME = fp.MAX_FRAME
 _RB_SIZE = 1 << 16
 #: The compiled stretch returns to Python at least this often [s of samples] to publish
@@ -247,51 +247,6 @@ def kernel_tag(kind: int) -> tuple:
     tuple of int
     """
     return (0,) * (int(kind) + 1)
-
-
-@_jit
-def _force_frame(seq, f, pkt, f8, u8, table, out):
-    """FORCE(seq, (f,)) as a whole frame in ``out``; its length (17 bytes)."""
-    pkt[0] = 0x11
-    for j in range(4):
-        pkt[1 + j] = (seq >> (8 * j)) & 0xFF
-    f8[0] = f
-    for j in range(8):
-        pkt[5 + j] = u8[j]
-    c = _crc16(pkt, 13, table)
-    pkt[13] = (c >> 8) & 0xFF
-    pkt[14] = c & 0xFF
-    return _cobs_encode(pkt, 15, out)
-
-
-@_jit
-def _force_compact_frame(seq, f, pkt, f4, u8, table, out):
-    """FORCE_COMPACT(seq, (f,)) as a whole frame in ``out``; its length (11 bytes).
-
-    :func:`firmware_protocol.compact_force` on bytes (PROTOCOL.md §4 "Compact frames"): the
-    seq's low 16 bits, the force rounded to binary32 (to nearest, ties to even), a finite
-    force beyond the binary32 range saturated to ``F32_MAX`` with its sign."""
-    pkt[0] = 0x14
-    pkt[1] = seq & 0xFF
-    pkt[2] = (seq >> 8) & 0xFF
-    if (f > _F32_MAX or f < -_F32_MAX) and math.isfinite(f):
-        f = math.copysign(_F32_MAX, f)
-    f4[0] = f
-    for j in range(4):
-        pkt[3 + j] = u8[j]
-    c = _crc16(pkt, 7, table)
-    pkt[7] = (c >> 8) & 0xFF
-    pkt[8] = c & 0xFF
-    return _cobs_encode(pkt, 9, out)
-
-
-@_jit
-def _expand_seq(s16, last):
-    """The 32-bit seq of a STATE_COMPACT's 16-bit ``s16`` after the reference ``last``
-    (< 0: none, the seq is taken as is): :meth:`firmware_protocol.CompactExpander.expand`."""
-    if last < 0:
-        return s16
-    return (last + ((s16 - last) & 0xFFFF)) & _U32
 
 
 @_jit

@@ -51,7 +51,7 @@ COMPILED_SOURCES = MOCK_SOURCES
 #: (:data:`hapsim.daemon.startup.MOCK_SOURCES`): numba keys its disk cache on this file
 #: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
 #: so), which edits this file and makes numba recompile. Until then: no cache.
-COMPILED_SOURCES_SHA256 = "201a706e6d864061d823c6a68c856df6782dc8d0e10de9eaa873a43618b87dc9"
+COMPILED_SOURCES_SHA256 = "d282a196adbe967c8871ee2184e8c44f2ff06319bfe8849d43eb8308a7524168"
 
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = sources_digest(loop_sources(MOCK_SOURCES)) == COMPILED_SOURCES_SHA256
