@@ -151,8 +151,12 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     out = json.loads(capsys.readouterr().out)
     th.join(10)
     assert not th.is_alive()
-    # -1: a record in which no FORCE came in time (this machine under load)
-    assert out["dof"] == 2 and set(out["delay"]) <= {1, -1} and out["lost"] == 0
+    # -1: a record in which no FORCE came in time (this machine under load); the mock
+    # shares this interpreter, so a loaded machine can stall it past the silence allowed:
+    # the device is then lost and must be recovered (HELLO again, a new record), never
+    # guessed across
+    assert out["dof"] == 2 and set(out["delay"]) <= {1, -1}
+    assert out["counts"]["recovered"] == out["lost"], out["counts"]
     # the linear prediction holds to the stated linearisation bound, taken at the largest
     # excursion the records reached (late ticks hold old forces and move the handle past
     # the nominal amplitude; the loop's second-order terms grow with it): 1.7e-6 in
