@@ -28,7 +28,9 @@ function                      result                      command
                                                           --lockstep`` (n-D)
 ============================  ==========================  ===========================
 
-A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene_nd`.
+A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene` too (a
+:class:`~hapsim.scene_nd.SceneND`, whose ``dimension`` says which) or
+:func:`load_scene_nd`; the 1-D functions refuse it naming the n-D one.
 
 ``render``, ``calibrate`` and ``stability`` take a :class:`LoopModel` (the real side of
 the loop: mass, friction, rate, delay, hold). Errors are those of the commands: a
@@ -93,16 +95,20 @@ def __dir__():
 
 
 def load_scene(path: str | os.PathLike):
-    """Read and validate a scene file.
+    """Read and validate a scene file, in the dimension its ``dimension`` key declares.
 
     Parameters
     ----------
     path : str or path-like
-        A YAML scene (docs/scenes.md).
+        A YAML scene (docs/scenes.md; ``dimension: 2`` or ``3``: docs/dimensions.md).
 
     Returns
     -------
-    hapsim.scene.Scene
+    hapsim.scene.Scene or hapsim.scene_nd.SceneND
+        A :class:`~hapsim.scene.Scene` for a 1-D scene (no ``dimension`` key, or 1: as
+        before), a :class:`~hapsim.scene_nd.SceneND` for a 2-D or 3-D one, whose
+        ``dimension`` says which (the functions taking it: :func:`check_nd`,
+        :func:`modes_nd`, :func:`run_nd`).
 
     Raises
     ------
@@ -110,8 +116,13 @@ def load_scene(path: str | os.PathLike):
         An unreadable or invalid file: the message names the file, the line and the key,
         with the valid keys or choices.
     """
+    from hapsim.scene_nd import scene_dimension
+    p = os.fspath(path)
+    if scene_dimension(p) != 1:
+        from hapsim.scene_nd import load_scene_nd as _load_nd
+        return _load_nd(p)
     from hapsim.scene import load_scene as _load
-    return _load(os.fspath(path))
+    return _load(p)
 
 
 def _draw(report, draw, path_or_ax):
@@ -127,10 +138,15 @@ def _draw(report, draw, path_or_ax):
     return draw(report, ax=path_or_ax)
 
 
-def _scene(scene):
-    """A Scene from a Scene or a path."""
+def _scene(scene, nd: str = "check_nd"):
+    """A 1-D Scene from a Scene or a path; a 2-D or 3-D one is refused, naming the
+    function ``nd`` that takes it (a ConfigError)."""
     if isinstance(scene, (str, os.PathLike)):
-        return load_scene(scene)
+        scene = load_scene(scene)
+    if getattr(scene, "dimension", 1) != 1:
+        raise ConfigError(f"a {scene.dimension}-D scene: this function takes dimension 1; "
+                          f"hapsim.{nd} takes it", file=getattr(scene, "path", None),
+                          key="dimension")
     return scene
 
 
@@ -266,7 +282,7 @@ def check(scene) -> CheckReport:
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
 
-    scene = _scene(scene)
+    scene = _scene(scene, "check_nd (modes_nd for a scene without a port)")
     scene, cals = apply_targets(scene)
     check_size(scene)
     chk = check_scene(scene)
@@ -650,7 +666,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     from hapsim.analysis.hand import hand_stiffness
 
     check_values("family", samples=samples, grid=grid, seed=seed, certify=certify)
-    scene = _scene(scene)
+    scene = _scene(scene, "check_nd (there is no n-D family yet)")
     if correction is not None:
         scene = dataclasses.replace(scene, device=dataclasses.replace(
             scene.device, correction=correction))
@@ -1118,7 +1134,7 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(valid)}", key=unknown[0])
-    scene = _scene(scene)
+    scene = _scene(scene, "run_nd")
     opts = dataclasses.replace(options if options is not None
                                else RunOptions(handle_signals=False), **changes)
     driver = opts.driver

@@ -338,11 +338,19 @@ class RunReportND(Report):
     reason : str
         The verdict in words, as ``hapsim run`` prints it.
     port, late, watchdog, delay, lost
-        Over a port only: the port, the late ticks, watchdog trips, the device delay
-        and the records run again.
+        Over a port only: the port (with the embedded mock's ``faults``, ``fault_seed``
+        and ``faults_injected``), the late ticks, watchdog trips, the device delay per
+        record used and the device losses (the port failed).
+    rows, counts, bad_frames, incomplete
+        Over a port only: rows used per start (the record from rest first); what the
+        records met (:func:`hapsim.daemon.run_nd.measure_felt_port`: STATEs missed,
+        duplicates, reordered, records cut short, device resets, losses and recoveries,
+        CONFIGs sent); bad frames the host's decoder dropped; why nothing was fitted
+        (None when the matrices were measured).
     """
 
-    _OPTIONAL = ("port", "late", "watchdog", "delay", "lost")
+    _OPTIONAL = ("port", "late", "watchdog", "delay", "lost", "rows", "counts",
+                 "bad_frames", "incomplete")
 
     scene: str
     dof: int
@@ -363,6 +371,10 @@ class RunReportND(Report):
     watchdog: Any = None
     delay: Any = None
     lost: Any = None
+    rows: Any = None
+    counts: Any = None
+    bad_frames: Any = None
+    incomplete: Any = None
 
     @property
     def k(self) -> np.ndarray:
@@ -398,7 +410,11 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     """
     from hapsim.lockstep_nd import felt_verdict
     fit, chk = res["measured"], res["predicted"]
-    v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
+    if port_info is not None:
+        from hapsim.daemon.run_nd import verdict_nd
+        v = verdict_nd(res)
+    else:
+        v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -415,7 +431,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
          "verdict": v["verdict"], "within": v["within"], "reason": v["reason"]}
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
-                 delay=res["delay"], lost=res["lost"])
+                 delay=res["delay"], lost=res["lost"], rows=res["rows"],
+                 counts=res["counts"], bad_frames=res["bad_frames"],
+                 incomplete=res["incomplete"])
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)

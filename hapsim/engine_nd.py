@@ -159,21 +159,49 @@ class EngineND:
         ConfigError
             An axis or mass index out of range (key ``audio``).
         """
-        axis = np.asarray(axis, np.int64)
-        mass = np.asarray(mass, np.int64)
+        self.listener(axis, mass, velocity, gain)(out)
+
+    def listener(self, axis, mass, velocity, gain):
+        """:meth:`listen` with its listening points checked and bound once, for a caller
+        that records chunk after chunk (live sound: nothing is made per chunk).
+
+        Parameters
+        ----------
+        axis, mass, velocity, gain
+            As :meth:`listen`.
+
+        Returns
+        -------
+        callable
+            ``f(out)``: :meth:`listen` into ``out`` (shape (n, C), float64, C-contiguous).
+            A port is held at the position it has now (the engine's port must not be
+            moved between calls).
+
+        Raises
+        ------
+        ConfigError
+            An axis or mass index out of range (key ``audio``).
+        """
+        axis = np.ascontiguousarray(axis, np.int64)
+        mass = np.ascontiguousarray(mass, np.int64)
+        velocity = np.ascontiguousarray(velocity, np.bool_)
+        gain = np.ascontiguousarray(gain, float)
         if np.any((axis < 0) | (axis >= self.dim)) or \
                 np.any((mass < 0) | (mass >= len(self.names))):
             raise ConfigError("a listening point's axis or mass is out of range", key="audio")
         port = -1 if self.port is None else self.port
         port_x = self._X[:, port].copy() if port >= 0 else np.zeros(ROWS)
-        run_nd_listen(out, axis, mass, np.asarray(velocity, np.bool_),
-                      np.asarray(gain, float), self.dim, self.block, self._X, self._XP,
-                      self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
-                      self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
-                      self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
-                      self.c_i2, self.c_k,
-                      self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
-                      self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
+        args = (axis, mass, velocity, gain, self.dim, self.block, self._X, self._XP,
+                self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
+                self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
+                self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
+                self.c_i2, self.c_k,
+                self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
+                self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
+
+        def f(out) -> None:
+            run_nd_listen(out, *args)
+        return f
 
     def set_port_position(self, position) -> None:
         """Set the port's position [m] (shape (dim,)) for the next step; its previous

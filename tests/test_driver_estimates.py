@@ -103,8 +103,7 @@ def test_a_host_silence_gates_the_force_and_the_account_replays_it(prep, at):
 def test_estimated_samples_are_within_their_stated_worst_case(prep, seed):
     """Records lost at random (4 %, at most two in a row, as the loop estimates): the
     measured (k, b) are within the stated uncertainty, whose share for the estimated
-    samples (k_bound_rows) is what the extrapolation can be wrong by; for these seeds the
-    interval without that share would not hold k."""
+    samples (k_bound_rows) is what the extrapolation can be wrong by, and is in it."""
     rng = np.random.default_rng(seed)
     lost, run = [], 0
     for k in range(3, 900):
@@ -116,7 +115,9 @@ def test_estimated_samples_are_within_their_stated_worst_case(prep, seed):
     pk, pb = prep.pred["k"], prep.pred["b"]
     assert m["estimated_samples"] == len(lost) and m["within"]
     assert abs(m["k"] - pk) <= m["k_unc"] and abs(m["b"] - pb) <= m["b_unc"]
-    assert abs(m["k"] - pk) > m["k_unc"] - m["k_bound_rows"]
+    # (that share was once needed to hold k on these seeds: the sensor's step, 0.39 mm,
+    # was then missing from the interval, identify_run taking it from a HELLO only)
+    assert m["k_bound_rows"] > 0 and m["b_bound_rows"] > 0
 
 
 def test_the_mock_answers_after_the_firmware_pass_the_rate_refusal_allows_for():

@@ -150,11 +150,14 @@ def test_kinematic_coefficient_is_the_mass_change_over_the_step():
 
 def test_nd_run_refuses_what_it_does_not_take(capsys):
     """With a bad rate or a bad amplitude: exit 2 naming the option; the 1-D run and mock
-    refuse --amplitude (their excitation is the scene's); the n-D mock refuses faults."""
+    refuse --amplitude (their excitation is the scene's); the n-D mock refuses --seed (no
+    sensor noise), a vanish fault without --link and a bad fault SPEC, as the 1-D mock."""
     scene = str(CONFIGS / "pantograph_wall.yaml")
     for argv, key in ((["run", scene, "--lockstep", "--rate", "-500"], "--rate"),
                       (["mock", "--scene", scene, "--rate", "0"], "--rate"),
-                      (["mock", "--scene", scene, "--faults", "drop=0.1"], "--faults"),
+                      (["mock", "--scene", scene, "--seed", "1"], "--seed"),
+                      (["mock", "--scene", scene, "--faults", "vanish@10"], "--link"),
+                      (["mock", "--scene", scene, "--faults", "bogus=0.1"], "--faults"),
                       (["mock", "--scene", str(CONFIGS / "wall.yaml"), "--amplitude",
                         "1e-6"], "--amplitude"),
                       (["run", scene, "--lockstep", "--amplitude", "-1"], "--amplitude"),

@@ -6,7 +6,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["render_nd"]
+__all__ = ["render_nd", "listen_plan"]
 
 
 def render_nd(engine, steps: int, progress=None) -> np.ndarray:
@@ -37,6 +37,35 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
     ConfigError
         The scene has no ``audio`` section (key ``audio``).
     """
+    plan = listen_plan(engine)
+    out = np.empty((steps, len(plan[0])))
+    chunk = 4096
+    for k in range(0, steps, chunk):
+        engine.listen(out[k:k + chunk], *plan)
+        if progress is not None:
+            progress(min(steps, k + chunk))
+    return out
+
+
+def listen_plan(engine) -> tuple:
+    """The arguments of :meth:`hapsim.engine_nd.EngineND.listen` for the scene's listening
+    points (offline and live alike: :mod:`hapsim.audio.live_nd`).
+
+    Parameters
+    ----------
+    engine : hapsim.engine_nd.EngineND
+
+    Returns
+    -------
+    (axis, mass, velocity, gain)
+        ndarrays of shape (C,): int64 axes, int64 mass indices, bool, float gains [-]
+        (a velocity's gain times the rate [Hz]: ``gain (x - x_prev) / T``).
+
+    Raises
+    ------
+    ConfigError
+        The scene has no ``audio`` section (key ``audio``).
+    """
     scene = engine.scene
     if not scene.audio:
         raise ConfigError("the scene needs an audio section (listen: [{mass, axis, "
@@ -47,10 +76,4 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
     vel = np.array([p.quantity == "velocity" for p in scene.audio])
     gain = np.array([p.gain for p in scene.audio], float)
     gain = np.where(vel, gain * scene.rate_hz, gain)
-    out = np.empty((steps, len(idx)))
-    chunk = 4096
-    for k in range(0, steps, chunk):
-        engine.listen(out[k:k + chunk], ax, idx, vel, gain)
-        if progress is not None:
-            progress(min(steps, k + chunk))
-    return out
+    return ax, idx, vel, gain

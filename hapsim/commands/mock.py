@@ -215,22 +215,13 @@ def run(args) -> int:
                         ("--spin-us", getattr(args, "spin_us", 0.0))):
         if given:
             raise ConfigError("is an option of the emulated board (--firmware)", key=flag)
-    from hapsim.daemon.faults import parse_faults
+    from hapsim.daemon.faults import mock_fault_plan, reopener
     from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
     from hapsim.daemon.realtime import RealtimePriority
 
     rt = RealtimePriority(args.rt_priority)       # ConfigError (exit 2) when out of range
-    plan = parse_faults(args.faults, args.fault_seed) if args.faults else None
-    if plan is not None and plan.has_vanish and not args.link:
-        raise ConfigError("a vanish fault closes the pty and opens a new one: give --link "
-                          "PATH and open PATH from the host", key="--link")
-
-    def reopen() -> int:
-        # the new slave is closed at once: its raw settings stay with the pty; the mock
-        # ignores EIO until the host opens it
-        master, slave = _new_pty(args.link, announce=args.fd is None)
-        os.close(slave)
-        return master
+    plan = mock_fault_plan(args.faults, args.fault_seed, args.link)
+    reopen = reopener(args.link, _new_pty, announce=args.fd is None)
 
     rate = 1000.0
     if args.spec:

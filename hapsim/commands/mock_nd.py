@@ -12,9 +12,10 @@ from hapsim.errors import ConfigError
 
 #: The ``hapsim mock`` options (their ``argparse`` destinations) a 2-D or 3-D scene's
 #: mock takes; any other one given (not None, not False) is refused by name (exit 2).
-#: It has no randomness (no sensor noise: ``--seed`` has nothing to seed) and no faults.
+#: It has no sensor noise (``--seed`` has nothing to seed); its faults are the 1-D
+#: mock's (``--faults``, ``--fault-seed``, ``--link``: :mod:`hapsim.daemon.faults`).
 TAKES = frozenset({"scene", "lockstep", "rate", "report", "rt_priority", "once",
-                   "amplitude", "tick"})
+                   "amplitude", "tick", "faults", "fault_seed", "link"})
 #: ``--tick`` values it takes: its real-time ticks are Python's ("auto" picks them).
 TICKS = ("auto", "python")
 #: Destinations that are no option of ``hapsim mock`` (the CLI's own).
@@ -69,7 +70,7 @@ def run_mock_nd(args, new_pty) -> int:
     args : argparse.Namespace
         ``hapsim mock``'s options (``scene``, ``lockstep``, ``amplitude``, ``rate`` (the
         native rate HELLO announces [Hz]), ``report``, ``once``, ``rt_priority``,
-        ``tick``).
+        ``tick``, ``faults``, ``fault_seed``, ``link``).
     new_pty : callable
         ``new_pty(link, announce) -> (master, slave)``: :mod:`hapsim.commands.mock`'s pty
         opener (prints ``PORT /dev/pts/N``).
@@ -83,8 +84,9 @@ def run_mock_nd(args, new_pty) -> int:
     ------
     ConfigError
         An option the n-D mock does not take; a scene without a port and device; a bad
-        amplitude or rate (exit 2).
+        amplitude, rate or fault SPEC; a ``vanish`` fault without ``--link`` (exit 2).
     """
+    from hapsim.daemon.faults import mock_fault_plan, reopener
     from hapsim.daemon.loop import StopFlag
     from hapsim.daemon.mock import serve_fd
     from hapsim.daemon.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
@@ -100,8 +102,10 @@ def run_mock_nd(args, new_pty) -> int:
     if rate is not None and not (math.isfinite(rate) and rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
     # --rate: the native rate HELLO announces; the physics follows each CONFIG's rate
+    plan = mock_fault_plan(getattr(args, "faults", None), getattr(args, "fault_seed", None),
+                           getattr(args, "link", None))
     mock = MockDeviceND(scene, a, lockstep=args.lockstep, native_rate_hz=rate)
-    master, slave = new_pty(None, announce=True)
+    master, slave = new_pty(getattr(args, "link", None), announce=True)
     # the raw settings stay with the pty; with no slave fd of its own the mock sees EIO
     # when a host closes the port (or dies). A run sends STOP after every record, so STOP
     # cannot end --once: the first host that ran and left does.
@@ -125,7 +129,9 @@ def run_mock_nd(args, new_pty) -> int:
             report = serve_fd(master, mock, exit_on_stop=False, report_path=args.report,
                               persistent=True, on_host_gone=host_gone, tick="python",
                               flag=flag, handle_signals=threading.current_thread()
-                              is threading.main_thread())
+                              is threading.main_thread(), plan=plan,
+                              reopen=reopener(getattr(args, "link", None), new_pty,
+                                              announce=True))
         print(f"hapsim mock: stopped ({report['end']})", file=sys.stderr, flush=True)
     finally:
         for fd in (master, slave):

@@ -21,7 +21,10 @@ out through JACK (or PortAudio); an OSC server (--osc PORT, localhost) takes cha
 Pd, Max or SuperCollider while it plays. Every change is checked before it is applied (the
 changed scene's closed loop must be stable, the check hapsim run makes, also at three points
 of the ramp) or refused with the reason sent back; accepted changes are ramped over --ramp
-seconds (no step felt, no click) and journaled."""
+seconds (no step felt, no click) and journaled. A 2-D or 3-D scene (dimension: 2 or 3) with
+an audio section plays its sound from its initial state (a struck membrane rings): the
+frames 'hapsim simulate SCENE --audio F.wav' writes, live (--duration, --sound,
+--jack-server, --rt-priority, --json; the other options are refused by name)."""
 
 _EPILOG = """\
 OSC addresses (replies go to the sender's address and port):
@@ -143,7 +146,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _play(args: argparse.Namespace, stop) -> int:
     """The play itself (:func:`run`, its signal handlers in place); ``stop`` is the
-    :class:`~hapsim.daemon.loop_types.StopFlag` they set."""
+    :class:`~hapsim.daemon.loop_types.StopFlag` they set. A 2-D or 3-D scene plays its
+    sound (:func:`hapsim.commands.play_nd.play_nd`)."""
+    from hapsim.scene_nd import scene_dimension
+    if scene_dimension(args.scene) > 1:
+        from hapsim.commands.play_nd import play_nd
+        return play_nd(args, stop)
     from hapsim.audio.control import Controller, send_telemetry, serve_osc
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene

@@ -18,7 +18,7 @@ from hapsim.errors import ConfigError
 #: every other one set to anything but its default is refused by name, with exit 2
 #: (``--driver`` takes ``haply`` on a pantograph scene: the emulated 2DIY board).
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
-            "rate_hz")
+            "rate_hz", "faults", "fault_seed")
 
 #: ``hapsim run``'s own options (not run options) an n-D scene does not take.
 _REFUSED = (("device", "--device"), ("auto", "--auto"))
@@ -139,11 +139,19 @@ def run_nd(args) -> int:
               f"{scene.device.delay})", file=o)
     else:
         print(f"{scene.path}: {n}-D scene {where}, {n} axes on the framed protocol "
-              f"(device delay {res['delay'][0]} ticks from seq - force_seq)", file=o)
-        print(f"  late ticks: {res['late']} of {(res['records'] + 1) * res['samples']} "
+              f"(device delay {res['delay'][0] if res['delay'] else 'unknown'} ticks from "
+              "seq - force_seq)", file=o)
+        c = res["counts"]
+        print(f"  late ticks: {res['late']} of {sum(res['rows'])} rows used "
               f"(watchdog {res['watchdog']}), their known disturbance's response "
-              "subtracted per axis; records run again for a lost STATE: "
-              f"{res['lost']}; host scheduling: {port_info['scheduling']}", file=o)
+              f"subtracted per axis; host scheduling: {port_info['scheduling']}", file=o)
+        print(f"  rows used per start (rest first): {res['rows']} of {res['samples']}; "
+              f"CONFIGs {c['configs']}, records cut short at a lost STATE {c['cut']} "
+              f"(STATEs missed {c['missed']}, duplicates {c['stale']}, reordered "
+              f"{c['reordered']}, bad frames {res['bad_frames']}), device resets "
+              f"{c['resets']}, device lost {c['lost']} / recovered {c['recovered']}"
+              + (f"; faults injected: {port_info['faults_injected']}"
+                 if port_info.get("faults_injected") else ""), file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -183,9 +191,9 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.daemon.run_nd import verdict_nd
+    v = verdict_nd(res)
     wire = res.get("wire")
-    v = felt_verdict(dev, bound, wire)
     if wire is not None:
         dq = wire["reading_bound_rad"]
         print(f"  device: {port_info.get('device')}", file=o)
@@ -220,14 +228,32 @@ def _measure_over_port(args, scene, a: float, n: int):
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     from hapsim.spawn import child_env
+    import os
+    import shutil
+    import tempfile
+
+    from hapsim.daemon.faults import parse_faults
     child = None
     port = args.port
+    faults = getattr(args, "faults", None)
+    plan = parse_faults(faults, int(getattr(args, "fault_seed", 0) or 0)) if faults else None
+    if plan is not None and port is not None:
+        raise ConfigError("--faults are injected by the embedded mock: not with --port "
+                          "(give them to 'hapsim mock --faults' serving that port)",
+                          key="--faults")
+    tmp = tempfile.mkdtemp(prefix="hapsim-nd-")
+    report = os.path.join(tmp, "mock.json")
     if port is None:
         cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
                "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0)),
-               "--rate", repr(float(scene.rate_hz))]
+               "--rate", repr(float(scene.rate_hz)), "--report", report]
         if args.lockstep:
             cmd.append("--lockstep")
+        if plan is not None:
+            cmd += ["--faults", plan.spec, "--fault-seed", str(plan.seed)]
+            if plan.has_vanish:
+                # the pty closes and a new one comes: the host opens the link kept at it
+                cmd += ["--link", os.path.join(tmp, "port")]
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  env=child_env(), text=True)
         line = child.stdout.readline()
@@ -250,7 +276,7 @@ def _measure_over_port(args, scene, a: float, n: int):
             # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
             with rt:
                 gc.disable()
-                res = measure_felt_port(tr, scene, progress=bar.update)
+                res = measure_felt_port(tr, scene, progress=bar.update, amplitude=a)
     finally:
         if gc_was:
             gc.enable()
@@ -263,8 +289,18 @@ def _measure_over_port(args, scene, a: float, n: int):
             except subprocess.TimeoutExpired:
                 child.kill()
                 child.communicate()
+        injected = None
+        try:
+            with open(report) as fh:
+                injected = json.load(fh).get("faults_injected")
+        except (OSError, ValueError):
+            pass
+        shutil.rmtree(tmp, ignore_errors=True)
     info = {"port": port, "embedded": child is not None,
-            "mock": note[0] if note else None, "scheduling": rt.note}
+            "mock": note[0] if note else None, "scheduling": rt.note,
+            "faults": None if plan is None else plan.spec,
+            "fault_seed": None if plan is None else plan.seed,
+            "faults_injected": injected}
     if joint is not None and joint.joint_level:
         from hapsim.daemon.pantograph_board import wire_term
         h = joint.hello

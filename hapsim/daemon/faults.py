@@ -64,7 +64,7 @@ from dataclasses import dataclass, field
 import firmware_protocol as fp
 from hapsim.errors import ConfigError
 
-__all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "WIRE_FAULTS", "RX_WIRE_FAULTS",
+__all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "mock_fault_plan", "reopener", "WIRE_FAULTS", "RX_WIRE_FAULTS",
            "DEVICE_FAULTS", "FAULT_NAMES", "DEFAULT_DURATIONS"]
 
 #: Faults applied to each device -> host frame.
@@ -350,6 +350,66 @@ def parse_faults(spec: str | None, seed: int = 0) -> FaultPlan:
                              else DEFAULT_DURATIONS.get(name, 0.0)))
     return FaultPlan(rates=plan_rates, durations=durations, schedule=schedule,
                      nohello=nohello, seed=int(seed), spec=text)
+
+
+def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
+    """A mock's fault plan from ``--faults``, ``--fault-seed`` and ``--link`` (the 1-D,
+    2-D and 3-D mocks alike).
+
+    Parameters
+    ----------
+    spec : str or None
+        The SPEC (None or empty: no faults).
+    seed : int or None
+        ``--fault-seed`` (None: 0).
+    link : str or None
+        ``--link PATH``, which a ``vanish`` fault needs.
+
+    Returns
+    -------
+    FaultPlan or None
+        None without a SPEC.
+
+    Raises
+    ------
+    ConfigError
+        A bad SPEC (:func:`parse_faults`); a ``vanish`` fault without ``--link`` (exit 2).
+    """
+    if not spec:
+        return None
+    plan = parse_faults(spec, int(seed or 0))
+    if plan.has_vanish and not link:
+        raise ConfigError("a vanish fault closes the pty and opens a new one: give --link "
+                          "PATH and open PATH from the host", key="--link")
+    return plan
+
+
+def reopener(link: str | None, new_pty, announce: bool):
+    """The ``reopen() -> fd`` a ``vanish`` fault calls when the port comes back
+    (:func:`hapsim.daemon.mock.serve_fd`): a new pty, ``link`` pointed at it.
+
+    Parameters
+    ----------
+    link : str or None
+        ``--link PATH``.
+    new_pty : callable
+        ``new_pty(link, announce) -> (master, slave)`` (``hapsim mock``'s pty opener).
+    announce : bool
+        Print ``PORT PATH`` again.
+
+    Returns
+    -------
+    callable
+        ``reopen() -> int``: the new pty's master fd. Its slave is closed at once: the
+        raw settings stay with the pty, and the mock ignores EIO until the host opens it.
+    """
+    import os
+
+    def reopen() -> int:
+        master, slave = new_pty(link, announce=announce)
+        os.close(slave)
+        return master
+    return reopen
 
 
 class _Lane:

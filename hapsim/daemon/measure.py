@@ -64,7 +64,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``device.position_resolution`` does not give one.
     driver : hapsim.drivers.base.Driver, optional
         The run's driver: its wire's number format is in the stated uncertainty
-        (:func:`hapsim.analysis.measurement.wire_errors`).
+        (:func:`hapsim.analysis.measurement.wire_errors`), and its ``position_scale``
+        [m/count] is the sensor step when neither the scene nor a HELLO gives one (the
+        quantiser's share, q^2 / 12 through the loop: Widrow & Kollar 2008, ch. 4).
 
     Returns
     -------
@@ -84,6 +86,12 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     quantum = float(dev.position_resolution or 0.0)
     if not quantum and hello is not None and math.isfinite(hello.position_scale):
         quantum = max(float(hello.position_scale), 0.0)
+    if not quantum and driver is not None:
+        # a driver's positions are its wire's counts (FireFader: 0.39 mm): the step is the
+        # driver's own, whether or not a HELLO relayed it (an offline record has none);
+        # without it the sensor's share of the stated uncertainty was 0
+        ds = float(getattr(driver, "position_scale", 0.0) or 0.0)
+        quantum = ds if math.isfinite(ds) and ds > 0 else 0.0
     if pred["order"]:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
         if cols["seq"].size:
