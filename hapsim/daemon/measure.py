@@ -114,6 +114,14 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             # replayed from the logged positions), taken out with the late ticks'
             from hapsim.daemon.contact_replay import computed_forces
             computed = computed_forces(scene, cols)
+        # rows the host clamped at the force limit whose law force the replay cannot give
+        # (skipped STATEs: their positions, which the law stepped through, are not logged;
+        # a live change; the passivity controller): the force the device held there is
+        # the clamped one, not the linear loop's, an input the account does not know. Left
+        # out, the record cut there: the stretch after them is a free response from its
+        # own initial state (the clamped forces still in flight are part of it; the fit
+        # drops each stretch's first delay + 2 rows), so the measurement stays exact
+        clamp_unknown = (cols["flags"] & FLAG_CLAMPED) != 0 if computed is None else None
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
             computed=computed)
@@ -154,7 +162,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,
-                            exclude=(cols["flags"] & FLAG_RAMP) != 0,
+                            exclude=((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
+                                     else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown),
                             wire=wire, bounds=bounds or None, late_bounds=late_bounds)
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
