@@ -486,9 +486,13 @@ class BoardLink:
         self._buf = b""
 
     def write(self, data: bytes) -> None:
+        """Feed ``data`` (host -> board bytes) to the board; its replies wait for
+        :meth:`read`."""
         self._buf += self._feed(data)
 
     def read(self, timeout: float) -> bytes:
+        """Every reply byte the board has made since the last read (``timeout`` [s] is
+        not waited: in lockstep the replies are there at once; ``b""`` when none)."""
         out, self._buf = self._buf, b""
         return out
 

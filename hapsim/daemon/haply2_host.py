@@ -518,6 +518,13 @@ class _PortLink:
         self.ser = ser
 
     def write(self, data: bytes) -> None:
+        """Write ``data`` (host -> board bytes) to the port.
+
+        Raises
+        ------
+        DeviceError
+            The port's write failed.
+        """
         _write(self.ser, data)
 
     def read(self, timeout: float) -> bytes:

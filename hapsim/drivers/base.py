@@ -131,7 +131,14 @@ class MappedDecoder:
         return [pos(fr) for fr in self.frames.feed(data)]
 
     def reset_prediction(self, jumps: int = 1) -> None:
-        """The frame decoder's :meth:`AlignedDecoder.reset_prediction` (if it has one)."""
+        """Forget the frame decoder's prediction at an arming: its
+        :meth:`AlignedDecoder.reset_prediction` (if it has one; else nothing).
+
+        Parameters
+        ----------
+        jumps : int
+            As :meth:`AlignedDecoder.reset_prediction`.
+        """
         reset = getattr(self.frames, "reset_prediction", None)
         if reset is not None:
             reset(jumps)
