@@ -34,9 +34,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 
-from hapsim.errors import DeviceError, IdentificationError
+from hapsim.drivers.exchange import Exchange, SerialLink
+from hapsim.errors import IdentificationError
 
 __all__ = ["TravelSweep", "find_travel", "sweep_port", "stop_count", "STILL_S",
            "MAX_PUSH_S", "CENTRE_S"]
@@ -141,48 +141,18 @@ def stop_count(counts, forces, silence, *, still: int):
     return "stop", mean, half
 
 
-class _Link:
-    """One packet, its record: the FireFader ``.ino`` answers every packet."""
+def _send(ex, count: int):
+    """Send a packet of ``count`` force counts on the fader's axis (one period); return
+    ``(pot count or None, host silence before it [s])``."""
+    from hapsim.drivers.firefader import CENTRE, encode_packet
+    got = ex.reply(encode_packet(count, 0) if ex.drv.axis == 0 else encode_packet(0, count))
+    if got is None:
+        return None, ex.silence
+    return CENTRE + round(got / ex.drv.position_scale), ex.silence
 
-    def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float) -> None:
-        self.drv = drv
-        self.link = link
-        self.dec = drv.decoder()
-        self.period = 1.0 / rate_hz
-        self.pace = pace
-        self.timeout = timeout
-        self.writes = 0
-        self.missing = 0
-        self._next = time.monotonic()
-        self._last = time.monotonic()
 
-    def send(self, count: int):
-        """Send a packet of ``count`` force counts (one period); return ``(pot count or
-        None, host silence before it [s])``."""
-        from hapsim.drivers.firefader import CENTRE, encode_packet
-        now = time.monotonic()
-        if self.pace:
-            if now < self._next:
-                time.sleep(self._next - now)
-                now = time.monotonic()
-            self._next = max(now, self._next) + self.period
-        silence, self._last = now - self._last, now
-        ax = self.drv.axis
-        self.link.write(encode_packet(count, 0) if ax == 0 else encode_packet(0, count))
-        self.writes += 1
-        end = time.monotonic() + self.timeout
-        got = []
-        while not got:
-            got = self.dec.feed(self.link.read(max(0.0, end - time.monotonic())))
-            if not got and time.monotonic() >= end:
-                break
-        if not got:
-            self.missing += 1
-            if self.missing > 50:
-                raise DeviceError("the FireFader does not answer its packets (more than 50 "
-                                  "missing records during the travel sweep): check the port")
-            return None, silence
-        return CENTRE + round(got[-1] / self.drv.position_scale), silence
+_LOST = ("the FireFader does not answer its packets (more than 50 missing records during "
+         "the travel sweep): check the port")
 
 
 def find_travel(drv, link, *, travel: float, force: float, rate_hz: float = 250.0,
@@ -231,20 +201,20 @@ def find_travel(drv, link, *, travel: float, force: float, rate_hz: float = 250.
     if not (math.isfinite(force) and n_force > 0):
         raise ConfigError(f"no force to push the fader with: {force!r} N is 0 counts at "
                           f"full scale {drv.full_scale:g} N", key="--force-limit")
-    ex = _Link(drv, link, rate_hz, pace, timeout)
+    ex = Exchange(drv, link, rate_hz, pace, timeout, max_missing=50, lost=_LOST)
     still = max(3, round(STILL_S * rate_hz))
     n_push = max(still + 1, round(MAX_PUSH_S * rate_hz))
     found = []
     last = None
     try:
         for _ in range(drv.arming_records):   # the touch and enable filters come up
-            c, _s = ex.send(0)
+            c, _s = _send(ex, 0)
             last = c if c is not None else last
         for sign, name in ((-1, "low"), (1, "high")):
             cs, fs, ss = [], [], []
             state = "moving"
             for _ in range(n_push):
-                c, s = ex.send(sign * n_force)
+                c, s = _send(ex, sign * n_force)
                 if c is None:
                     continue
                 cs.append(c)
@@ -299,7 +269,7 @@ def find_travel(drv, link, *, travel: float, force: float, rate_hz: float = 250.
             v = x - (prev if prev is not None else x)
             n = int(max(-n_force, min(n_force, round((mid - x) - 40.0 * v))))
             prev = x
-            c, _s = ex.send(n)
+            c, _s = _send(ex, n)
             last = c if c is not None else last
             rest = rest + 1 if (last is not None and abs(last - mid) <= 3
                                 and last == prev) else 0
@@ -336,44 +306,9 @@ def sweep_port(drv, port: str, *, travel: float, force: float, rate_hz: float = 
     IdentificationError, DeviceError
         As :func:`find_travel`; DeviceError also when the port cannot be opened.
     """
-    link = _SerialLink(port, drv.baud, drv.rtscts)
+    link = SerialLink(port, drv.baud, drv.rtscts)
     try:
         return find_travel(drv, link, travel=travel, force=force, rate_hz=rate_hz,
                            timeout=timeout, pace=pace)
     finally:
         link.close()
-
-
-class _SerialLink:
-    """``write``/``read(timeout)`` on the fader's serial port (pyserial, RTS/CTS as the
-    driver asks)."""
-
-    def __init__(self, port: str, baud: int, rtscts: bool) -> None:
-        import serial
-        try:
-            self.ser = serial.serial_for_url(port, baudrate=baud, rtscts=rtscts,
-                                             timeout=0.005, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
-        self.port = port
-
-    def write(self, data: bytes) -> None:
-        try:
-            self.ser.write(data)
-        except Exception as exc:  # serial.SerialException, OSError, timeouts
-            raise DeviceError(f"write to {self.port} failed: {exc}") from None
-
-    def read(self, timeout: float) -> bytes:
-        """Bytes waiting, or the first within the port's 5 ms (the caller loops)."""
-        try:
-            n = self.ser.in_waiting
-            return self.ser.read(n if n else 1)
-        except Exception as exc:  # serial.SerialException, OSError
-            raise DeviceError(f"read from {self.port} failed: {exc}") from None
-
-    def close(self) -> None:
-        try:
-            self.ser.flush()
-            self.ser.close()
-        except Exception:  # noqa: BLE001 -- the port may be gone
-            pass

@@ -105,7 +105,8 @@ def find_directions(drv, link, joints_deg, *, force_limit: float, envelope: floa
     DeviceError
         The board does not answer.
     """
-    from hapsim.drivers.haply_probe import Exchange, probe_axis, pulse_limits
+    from hapsim.drivers.exchange import Exchange
+    from hapsim.drivers.haply_probe import probe_axis, pulse_limits
     count = 2 * math.pi / drv.resolution
     top, reach = pulse_limits(force_limit, count, envelope, min_counts, "the 2DIY's wiring")
     ex = Exchange(drv, link, rate_hz, pace, timeout)

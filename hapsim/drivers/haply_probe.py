@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 
-from hapsim.errors import DeviceError, IdentificationError
+from hapsim.drivers.exchange import Exchange, SerialLink
+from hapsim.errors import IdentificationError
 
 __all__ = ["DirectionProbe", "find_direction", "probe_port", "PULSE_S", "REST_S",
            "LEVELS", "SETTLE_S", "AxisProbe", "probe_axis", "Exchange", "pulse_limits"]
@@ -80,69 +80,6 @@ class DirectionProbe:
         return {"motor_direction": self.motor_direction, "relative": self.relative,
                 "torque": list(self.torque), "counts": list(self.counts),
                 "writes": self.writes}
-
-
-class Exchange:
-    """One write, its reply: a board that answers every write (the driver's decoder),
-    paced at ``rate_hz`` on the host's clock or not (``pace``), each reply waited for at
-    most ``timeout`` [s]; more than 20 missing replies raise :class:`DeviceError`. Shared
-    by the 1-DoF joint's probe and the 2DIY's (:mod:`hapsim.drivers.haply2_probe`)."""
-
-    def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float) -> None:
-        self.drv = drv
-        self.link = link
-        self.dec = drv.decoder()
-        self.period = 1.0 / rate_hz
-        self.pace = pace
-        self.timeout = timeout
-        self.writes = 0
-        self.missing = 0
-        self._next = time.monotonic()
-
-    def send(self, data: bytes) -> float:
-        """Send ``data`` (one period), return the last angle answered [rad] (NaN: none
-        within the timeout)."""
-        got = self.reply(data)
-        return math.nan if got is None else float(got)
-
-    def reply(self, data: bytes):
-        """Send ``data`` (one period), return the last reply the decoder gave (None: none
-        within the timeout)."""
-        if self.pace:
-            now = time.monotonic()
-            if now < self._next:
-                time.sleep(self._next - now)
-            self._next = max(now, self._next) + self.period
-        self.link.write(data)
-        self.writes += 1
-        end = time.monotonic() + self.timeout
-        got = []
-        while not got:
-            got = self.dec.feed(self.link.read(max(0.0, end - time.monotonic())))
-            if not got and time.monotonic() >= end:
-                break
-        if not got:
-            self.missing += 1
-            if self.missing > 20:
-                raise DeviceError("the Haply board does not answer its writes (more than "
-                                  "20 missing replies while finding the motor direction): "
-                                  "check the port and the device id")
-            return None
-        return got[-1]
-
-    def stop(self, data: bytes, replies: int) -> None:
-        """Send the stop ``data`` (zero torque) and read its ``replies`` (at most the
-        timeout): a reply left on the line would be read by whoever opens the port next
-        as the answer to its own first write. Best effort: never raises (the port may be
-        gone; this runs on every exit)."""
-        try:
-            self.link.write(data)
-            end = time.monotonic() + self.timeout
-            n = 0
-            while n < replies and time.monotonic() < end:
-                n += len(self.dec.feed(self.link.read(max(0.0, end - time.monotonic()))))
-        except Exception:  # noqa: BLE001 -- best effort: the port may be gone
-            pass
 
 
 def find_direction(drv, link, *, force_limit: float, envelope: float,
@@ -382,42 +319,6 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
     return AxisProbe(rel[0], tuple(found_t), tuple(found_c), x)
 
 
-class _SerialLink:
-    """``write``/``read(timeout)`` on a serial port (pyserial)."""
-
-    def __init__(self, port: str, baud: int) -> None:
-        import serial
-        try:
-            # a fixed short read timeout (setting it per read reconfigures the port)
-            self.ser = serial.serial_for_url(port, baudrate=baud, timeout=0.005,
-                                             write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
-        self.port = port
-
-    def write(self, data: bytes) -> None:
-        try:
-            self.ser.write(data)
-        except Exception as exc:  # serial.SerialException, OSError, timeouts
-            raise DeviceError(f"write to {self.port} failed: {exc}") from None
-
-    def read(self, timeout: float) -> bytes:
-        """Bytes waiting, or the first within the port's 5 ms (the caller loops to its
-        own ``timeout`` [s])."""
-        try:
-            n = self.ser.in_waiting
-            return self.ser.read(n if n else 1)
-        except Exception as exc:  # serial.SerialException, OSError
-            raise DeviceError(f"read from {self.port} failed: {exc}") from None
-
-    def close(self) -> None:
-        try:
-            self.ser.flush()
-            self.ser.close()
-        except Exception:  # noqa: BLE001 -- the port may be gone
-            pass
-
-
 def probe_port(drv, port: str, *, force_limit: float, envelope: float,
                rate_hz: float = 1000.0, timeout: float = 0.05,
                pace: bool = True) -> DirectionProbe:
@@ -439,7 +340,7 @@ def probe_port(drv, port: str, *, force_limit: float, envelope: float,
     IdentificationError, DeviceError
         As :func:`find_direction`; DeviceError also when the port cannot be opened.
     """
-    link = _SerialLink(port, drv.baud)
+    link = SerialLink(port, drv.baud)
     try:
         return find_direction(drv, link, force_limit=force_limit, envelope=envelope,
                               rate_hz=rate_hz, timeout=timeout, pace=pace)

@@ -1,0 +1,165 @@
+"""The exchanges that run before a loop: one write, its reply, on a device that answers
+every write (the Haply boards' direction probes, the FireFader's travel sweep), and the
+serial port they run on. Not the real-time loop's transport
+(:class:`hapsim.drivers.transport.DriverTransport`): these wait for each reply."""
+
+from __future__ import annotations
+
+import math
+import time
+
+from hapsim.errors import DeviceError
+
+__all__ = ["Exchange", "SerialLink"]
+
+
+class Exchange:
+    """One write, its reply: a device that answers every write (the driver's decoder),
+    paced at ``rate_hz`` [Hz] on the host's clock or not (``pace``), each reply waited for
+    at most ``timeout`` [s]. Shared by the probes and sweeps that run before a loop (the
+    Haply joint's and the 2DIY's direction probes, the FireFader's travel sweep).
+
+    Parameters
+    ----------
+    drv : hapsim.drivers.base.Driver
+        Gives the reply decoder.
+    link : object
+        ``write(bytes)`` and ``read(timeout [s]) -> bytes`` on the device's port.
+    rate_hz : float
+        Writes per second when paced [Hz].
+    pace : bool
+        Pace the writes on the host's clock (False: a mock paced by the writes).
+    timeout : float
+        Longest wait for one reply [s].
+    max_missing : int
+        Missing replies allowed before :class:`DeviceError`.
+    lost : str
+        That error's message.
+
+    Attributes
+    ----------
+    writes, missing : int
+        Writes sent and replies that did not come.
+    silence : float
+        Host time between the last two writes [s] (a firmware's silence rule reads it).
+
+    Raises
+    ------
+    DeviceError
+        From :meth:`reply`: more than ``max_missing`` replies missing.
+    """
+
+    def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float, *,
+                 max_missing: int = 20,
+                 lost: str = ("the Haply board does not answer its writes (more than 20 "
+                              "missing replies while finding the motor direction): check "
+                              "the port and the device id")) -> None:
+        self.drv = drv
+        self.link = link
+        self.dec = drv.decoder()
+        self.period = 1.0 / rate_hz
+        self.pace = pace
+        self.timeout = timeout
+        self.writes = 0
+        self.missing = 0
+        self.max_missing = max_missing
+        self.lost = lost
+        self.silence = 0.0
+        self._next = self._last = time.monotonic()
+
+    def send(self, data: bytes) -> float:
+        """Send ``data`` (one period), return the last angle answered [rad] (NaN: none
+        within the timeout)."""
+        got = self.reply(data)
+        return math.nan if got is None else float(got)
+
+    def reply(self, data: bytes):
+        """Send ``data`` (one period), return the last reply the decoder gave (None: none
+        within the timeout)."""
+        if self.pace:
+            now = time.monotonic()
+            if now < self._next:
+                time.sleep(self._next - now)
+            self._next = max(now, self._next) + self.period
+        now = time.monotonic()
+        self.silence, self._last = now - self._last, now
+        self.link.write(data)
+        self.writes += 1
+        end = time.monotonic() + self.timeout
+        got = []
+        while not got:
+            got = self.dec.feed(self.link.read(max(0.0, end - time.monotonic())))
+            if not got and time.monotonic() >= end:
+                break
+        if not got:
+            self.missing += 1
+            if self.missing > self.max_missing:
+                raise DeviceError(self.lost)
+            return None
+        return got[-1]
+
+    def stop(self, data: bytes, replies: int) -> None:
+        """Send the stop ``data`` (zero torque) and read its ``replies`` (at most the
+        timeout): a reply left on the line would be read by whoever opens the port next
+        as the answer to its own first write. Best effort: never raises (the port may be
+        gone; this runs on every exit)."""
+        try:
+            self.link.write(data)
+            end = time.monotonic() + self.timeout
+            n = 0
+            while n < replies and time.monotonic() < end:
+                n += len(self.dec.feed(self.link.read(max(0.0, end - time.monotonic()))))
+        except Exception:  # noqa: BLE001 -- best effort: the port may be gone
+            pass
+
+
+class SerialLink:
+    """``write``/``read(timeout)`` on a serial port (pyserial): the link :class:`Exchange`
+    takes, for hardware or a driver mock's pty.
+
+    Parameters
+    ----------
+    port : str
+        Serial port.
+    baud : int
+        Baud rate [bit/s].
+    rtscts : bool
+        RTS/CTS flow control (as the driver asks).
+
+    Raises
+    ------
+    DeviceError
+        The port cannot be opened; a write or read failed.
+    """
+
+    def __init__(self, port: str, baud: int, rtscts: bool = False) -> None:
+        import serial
+        try:
+            # a fixed short read timeout (setting it per read reconfigures the port)
+            self.ser = serial.serial_for_url(port, baudrate=baud, rtscts=rtscts, timeout=0.005,
+                                             write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"cannot open port {port}: {exc}") from None
+        self.port = port
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.ser.write(data)
+        except Exception as exc:  # serial.SerialException, OSError, timeouts
+            raise DeviceError(f"write to {self.port} failed: {exc}") from None
+
+    def read(self, timeout: float) -> bytes:
+        """Bytes waiting, or the first within the port's 5 ms (the caller loops to its
+        own ``timeout`` [s])."""
+        try:
+            n = self.ser.in_waiting
+            return self.ser.read(n if n else 1)
+        except Exception as exc:  # serial.SerialException, OSError
+            raise DeviceError(f"read from {self.port} failed: {exc}") from None
+
+    def close(self) -> None:
+        try:
+            self.ser.flush()
+            self.ser.close()
+        except Exception:  # noqa: BLE001 -- the port may be gone
+            pass
