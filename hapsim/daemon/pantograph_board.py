@@ -44,6 +44,12 @@ DEVICE_ID = 0x32474B48
 #: Sub-step of the board's Runge-Kutta integration [s] (two per 1 kHz period, as
 #: :class:`hapsim.lockstep_nd.JointDeviceND`).
 SUBSTEP = 5e-4
+#: Real time: the longest spin per tick [us] while the board waits for the host's FORCE
+#: (``pantograph_board --spin-us``): a whole 1 kHz period, so that the host's bytes reach
+#: the leader's UART within 10 us of the wall time they came at (the full-frame STATE
+#: leaves the host ~80 us at 1 kHz: a 100 us chunk run ahead of the wall clock would take
+#: more than that).
+SPIN_US = 1000.0
 
 
 def build(*, quiet: bool = True) -> dict:
@@ -84,7 +90,8 @@ def _pantograph(scene):
 
 def board_command(scene, amplitude: float, *, report: str | None = None,
                   link: str | None = None, nack_after: int | None = None,
-                  duration: float | None = None, profile: str | None = None) -> list:
+                  duration: float | None = None, profile: str | None = None,
+                  realtime: bool = False, spin_us: float | None = None) -> list:
     """The ``pantograph_board`` command line for a 2-D pantograph scene.
 
     Parameters
@@ -104,6 +111,14 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         firmware's handling of a lost follower).
     duration : float, optional
         Emulated seconds to run.
+    realtime : bool
+        Lock the emulated clock to the wall clock (default: lockstep, the clock waits for
+        each FORCE).
+    spin_us : float, optional
+        Real time: the longest spin per tick [us] while the board waits for the host's
+        FORCE (emulating in 10 us steps, never ahead of the wall clock by more than one;
+        default :data:`SPIN_US`; 0: none, the bytes may then reach the UART up to 150 us
+        after they came).
 
     Returns
     -------
@@ -112,7 +127,7 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; a non-positive amplitude.
+        Not a 2-D pantograph scene; a non-positive amplitude; a spin outside [0, 1e6].
     """
     kin = _pantograph(scene)
     if not (math.isfinite(amplitude) and amplitude > 0):
@@ -135,6 +150,11 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
             cmd += [flag, v]
     if nack_after is not None:
         cmd += ["--nack-after", str(int(nack_after))]
+    if realtime:
+        spin = SPIN_US if spin_us is None else float(spin_us)
+        if not (math.isfinite(spin) and 0 <= spin <= 1e6):
+            raise ConfigError(f"must be in [0, 1e6] us, got {spin_us}", key="--spin-us")
+        cmd += ["--realtime", "--spin-us", repr(spin)]
     if duration is not None:
         cmd += ["--duration", repr(float(duration))]
     return cmd

@@ -188,27 +188,55 @@ int main(void)
 #define PG_STEPS_PER_NM ((float)HK_PWM_STEPS / PG_TAU_MAX_NM)
 
 enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
+
+/* The DRIVE slot: a FORCE's DRIVE goes on the bus at Timer1's compare B, this many cycles
+ * before the tick (compare A), and ends before it (the longest DRIVE seen on the emulated
+ * bus at that point of the period, its address byte to its STOP, was 973 cycles: four
+ * bytes of nine bus clocks, the follower's clock stretching and the ISRs' latency;
+ * pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
+ * applied at the next tick; one decoded after it waits for the next slot and is applied a
+ * tick later, which its STATE names (force_seq): a known input to the host, never a
+ * moved tick (a SYNC waiting behind a DRIVE would sample and drive the joints up to a
+ * DRIVE late, a timing the host cannot know). At the slot nothing else is on the critical
+ * path: a DRIVE started at once instead, when its FORCE came late, slowed the next
+ * tick's STATE or FORCE by 600-1,000 cycles (its bus interrupts), so that FORCE missed
+ * its tick in turn: one late tick made every later one late. */
+#define PG_DRIVE_SLOT_CYCLES 1200u
+
+/* Both joints' next drive: the follower's DRIVE bytes and the leader's own drive, with
+ * what they come from. The follower holds the last DRIVE it received whole and applies it
+ * at the next SYNC; the leader takes the same pair once the follower acknowledged its
+ * last byte, so both joints always change torque at the same tick. */
+typedef struct {
+    uint8_t dr[PG_DRIVE_BYTES]; /* the follower's DRIVE */
+    drive_t own;                /* the leader's drive */
+    uint32_t seq;               /* the FORCE it answers (when `force`) */
+    uint8_t force;              /* from a FORCE; else a zeroing (CONFIG, STOP, fault, watchdog) */
+    uint8_t clamped;            /* the FORCE's torques were clamped */
+    uint8_t watchdog;           /* the watchdog's zeroing: it trips when this is applied */
+} pair_t;
 #define PG_STATE_PACKET 37u /* type, seq, time, status, force_seq, 2 x f64, crc */
 #define PG_FORCE_PACKET 23u /* type, seq, 2 x f64, crc */
 
 /* ---------------------------------------------------------------- shared with the ISRs */
 static volatile uint8_t g_op;            /* the TWI transaction under way */
 static volatile uint8_t g_rd[PG_READ_BYTES], g_rd_i;
-static volatile uint8_t g_dr[PG_DRIVE_BYTES], g_dr_i;
-static volatile uint8_t g_drive_queued;  /* a DRIVE waits for the bus */
+static volatile uint8_t g_dr_i;
+static volatile uint8_t g_drive_queued;  /* g_queued waits for the bus */
+static volatile uint8_t g_drive_now;     /* ... and goes as soon as it fits (a zeroing) */
 static volatile uint8_t g_sync_queued;   /* a tick came while the bus was busy */
-static volatile drive_t g_own_next;      /* the leader's drive once the DRIVE is acked */
-static volatile drive_t g_own_hold;      /* applied at the next SYNC */
-static volatile uint8_t g_own_ready;     /* g_own_next acked by the follower: hold it */
-static volatile uint32_t g_next_seq, g_hold_seq; /* the FORCE seqs of those drives */
-static volatile uint8_t g_next_clamped, g_hold_clamped, g_hold_new;
-static volatile uint8_t g_next_force;    /* g_own_next came from a FORCE (not a zeroing) */
+/* the drives (ISRs and cli sections only): queued, on the bus, acknowledged whole */
+static pair_t g_queued, g_fly, g_acked;
+static volatile uint8_t g_own_ready;     /* g_acked is to be applied at the next SYNC */
+static drive_t g_own_hold;               /* the leader's drive applied (ISRs, cli) */
 static volatile uint16_t g_adc_raw;
 static volatile uint8_t g_adc_done, g_tick_flag, g_overrun, g_nack;
 static volatile uint16_t g_nack_detail;
 static volatile uint32_t g_ticks;
 static volatile uint8_t g_armed, g_tripped, g_trip_event, g_force_applied, g_clamped_now;
 static volatile uint32_t g_force_seq;
+static volatile uint32_t g_taken_seq;    /* the newest FORCE taken this session */
+static volatile uint8_t g_have_taken;
 static volatile uint16_t g_wd_reload, g_wd_left;
 static volatile uint32_t g_period_cycles = F_CPU / PG_NATIVE_RATE_HZ;
 static volatile uint64_t g_clock_cycles; /* the device clock at the last tick [cycles] */
@@ -230,6 +258,23 @@ static void twi_start(uint8_t op)
     TWCR = (uint8_t)(TW_GO | (1 << TWSTA));
 }
 
+/* A DRIVE started now ends before the next tick (interrupts off: Timer1 counts 0 ..
+ * OCR1A in CTC mode; a compare A already flagged is a tick whose SYNC has not gone yet). */
+static uint8_t drive_fits(void)
+{
+    return !(TIFR1 & (uint8_t)(1 << OCF1A)) &&
+           (uint16_t)(OCR1A - TCNT1) > (uint16_t)(PG_DRIVE_SLOT_CYCLES - 40u);
+}
+
+/* The queued pair goes on the bus (interrupts off, the bus idle). */
+static void drive_start(void)
+{
+    g_fly = g_queued;
+    g_drive_queued = 0;
+    g_dr_i = 0;
+    twi_start(OP_DRIVE);
+}
+
 /* The transaction is over: STOP, then whatever waits for the bus. */
 static void twi_done(void)
 {
@@ -241,10 +286,8 @@ static void twi_done(void)
     } else if (g_read_queued) {
         g_read_queued = 0;
         twi_start(OP_READ);
-    } else if (g_drive_queued) {
-        g_drive_queued = 0;
-        g_dr_i = 0;
-        twi_start(OP_DRIVE);
+    } else if (g_drive_queued && g_drive_now && drive_fits()) {
+        drive_start();
     }
 }
 
@@ -260,36 +303,35 @@ static void twi_fail(uint8_t what, uint8_t st)
     twi_done();
 }
 
-/* The tick's instant: the leader's drive on its pin and its ADC started. */
+/* The tick's instant: the leader's drive on its pin and its ADC started (the follower
+ * applies the same pair at the same acknowledge bit). */
 static void sample_now(void)
 {
+    uint8_t fresh = 0;
     if (g_own_ready) {
-        g_own_hold.n = g_own_next.n;
-        g_own_hold.dir = g_own_next.dir;
-        g_hold_seq = g_next_seq;
-        g_hold_clamped = g_next_clamped;
-        g_hold_new = g_next_force; /* a zeroing (CONFIG, STOP, fault) is no FORCE applied */
         g_own_ready = 0;
+        g_own_hold = g_acked.own;
+        if (g_acked.force) {
+            fresh = 1;
+            g_force_seq = g_acked.seq;
+            g_clamped_now = g_acked.clamped;
+        } else {
+            g_clamped_now = 0; /* a zeroing (CONFIG, STOP, fault, watchdog): no FORCE */
+            if (g_acked.watchdog && g_armed && !g_tripped) {
+                g_tripped = 1;  /* both joints at zero from this tick on */
+                g_trip_event = 1;
+            }
+        }
     }
     pwm_write(g_armed ? g_own_hold.n : 0u, g_own_hold.dir);
     ADCSRA |= (uint8_t)(1 << ADSC);
     g_sampled = 1;
-    if (g_hold_new) {
-        g_hold_new = 0;
-        g_force_seq = g_hold_seq;
+    if (fresh) {
         g_force_applied = 1;
-        g_clamped_now = g_hold_clamped;
         g_wd_left = g_wd_reload;
         g_tripped = 0;
-    } else if (g_armed) {
-        if (g_wd_left == 0) {
-            if (!g_tripped) {
-                g_tripped = 1;
-                g_trip_event = 1;
-            }
-        } else {
-            g_wd_left--;
-        }
+    } else if (g_armed && g_wd_left) {
+        g_wd_left--; /* at 0 the main loop sends the watchdog's zeroing */
     }
 }
 
@@ -317,9 +359,10 @@ ISR(TWI_vect)
             return;
         }
         if (g_dr_i < PG_DRIVE_BYTES) {
-            TWDR = g_dr[g_dr_i++];
+            TWDR = g_fly.dr[g_dr_i++];
             TWCR = TW_GO;
         } else { /* all acknowledged: the leader's drive goes with the follower's */
+            g_acked = g_fly;
             g_own_ready = 1;
             twi_done();
         }
@@ -386,6 +429,14 @@ ISR(TIMER1_COMPA_vect)
     }
     g_ticks++;
     g_clock_cycles += g_period_cycles; /* a 64-bit add here, no multiply in now_us */
+}
+
+/* The DRIVE slot (PG_DRIVE_SLOT_CYCLES before the tick): the pair queued goes now. */
+ISR(TIMER1_COMPB_vect)
+{
+    if (g_drive_queued && g_op == OP_IDLE && !g_sync_queued) {
+        drive_start();
+    }
 }
 
 /* The tick's conversion is done: read the follower's sample of the same instant. */
@@ -465,8 +516,10 @@ static void timer1_start(uint32_t period_cycles)
     TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     OCR1A = (uint16_t)(period_cycles - 1u);
+    OCR1B = (uint16_t)(period_cycles - 1u - PG_DRIVE_SLOT_CYCLES);
+    TIFR1 = (uint8_t)(1 << OCF1B);
     TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));
-    TIMSK1 = (uint8_t)(1 << OCIE1A);
+    TIMSK1 = (uint8_t)((1 << OCIE1A) | (1 << OCIE1B));
 }
 
 static void load_calibration(void)
@@ -494,50 +547,48 @@ static void zero_now(void)
     SREG = s;
 }
 
-static void queue_drive(uint16_t n, uint8_t dir);
-static void zero_drives(void);
+static void zero_drives(uint8_t watchdog);
 
 static void latch_fault(uint16_t code, uint32_t detail)
 {
     g_armed = 0;
     g_fault_latched = 1;
     zero_now();
-    zero_drives();
+    zero_drives(0);
     send_fault(code, detail);
 }
 
-/* Put the follower's drive on the bus (now, or when the bus is free); the leader's own
- * (g_own_next) goes with it once acknowledged. A zeroing sets the leader's to zero. */
-static void queue_drive(uint16_t n, uint8_t dir)
+/* Both joints' next drive (p.dr filled here from `follower`), queued for the next DRIVE
+ * slot (a FORCE's), or `now` (a zeroing: on the bus at once when it ends before the next
+ * tick), replacing a pair queued before (the bus is never given a DRIVE of two pairs: the
+ * pair on it is g_fly's copy). */
+static void queue_pair(pair_t *p, drive_t follower, uint8_t now)
 {
-    uint8_t b0 = (uint8_t)n, b1 = (uint8_t)(((n >> 8) & 1u) | (uint8_t)(dir << 1));
+    uint8_t b0 = (uint8_t)follower.n;
+    uint8_t b1 = (uint8_t)(((follower.n >> 8) & 1u) | (uint8_t)(follower.dir << 1));
     uint8_t s = SREG;
+    p->dr[0] = b0;
+    p->dr[1] = b1;
+    p->dr[2] = (uint8_t)(PG_CHECK_SEED ^ b0 ^ b1);
     cli();
-    g_dr[0] = b0;
-    g_dr[1] = b1;
-    g_dr[2] = (uint8_t)(PG_CHECK_SEED ^ b0 ^ b1);
-    g_own_ready = 0; /* the leader's next drive waits for this one's acknowledge */
-    if (g_op == OP_IDLE && !g_sync_queued) {
-        g_dr_i = 0;
-        twi_start(OP_DRIVE);
-    } else {
-        g_drive_queued = 1;
+    g_queued = *p;
+    g_drive_queued = 1;
+    g_drive_now = now;
+    if (now && g_op == OP_IDLE && !g_sync_queued && drive_fits()) {
+        drive_start();
     }
     SREG = s;
 }
 
-/* Both joints to zero torque at the next tick (not a FORCE applied). */
-static void zero_drives(void)
+/* Both joints to zero torque at the next tick the DRIVE makes (not a FORCE applied);
+ * `watchdog`: the watchdog's zeroing (it trips at the tick that applies it). */
+static void zero_drives(uint8_t watchdog)
 {
-    uint8_t s = SREG;
-    cli();
-    g_own_next.n = 0;
-    g_own_next.dir = 0;
-    g_next_force = 0;
-    g_next_seq = 0;
-    g_next_clamped = 0;
-    SREG = s;
-    queue_drive(0, 0);
+    pair_t p;
+    drive_t z = {0, 0};
+    memset(&p, 0, sizeof p);
+    p.watchdog = watchdog;
+    queue_pair(&p, z, !watchdog); /* the watchdog's waits for the slot, as a FORCE's */
 }
 
 static void on_config(const hp_config_t *c)
@@ -553,9 +604,13 @@ static void on_config(const hp_config_t *c)
         latch_fault(HP_FAULT_BAD_CONFIG, 0);
         return;
     }
+    /* the frames sent so far leave first (a disarmed STATE takes up to 3,120 cycles): the
+     * session's STATE 0 is never queued behind them, late for its FORCE */
+    while (UCSR0B & (uint8_t)(1 << UDRIE0)) {
+    }
     g_limit = float_of_f64(c->force_limit);
-    zero_drives(); /* the follower starts from zero torque */
     cli();
+    g_drive_queued = 0;
     g_period_cycles = period;
     g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
     g_wd_left = g_wd_reload;
@@ -568,7 +623,7 @@ static void on_config(const hp_config_t *c)
     g_trip_event = 0;
     g_force_seq = 0;
     g_force_applied = 0;
-    g_hold_new = 0;
+    g_have_taken = 0;
     g_ticks = 0;
     g_tick_flag = 0;
     g_adc_done = 0;
@@ -578,6 +633,11 @@ static void on_config(const hp_config_t *c)
     g_armed = 1;
     timer1_start(period);
     sei();
+    /* the follower starts from zero torque: the DRIVE goes now, at the new tick clock's
+     * start (queued before the clock restarted, near the old clock's tick, it waited for
+     * the session's first slot: the hand, which lets go at the first SYNC after that
+     * DRIVE, let go a tick later in some runs than in others) */
+    zero_drives(0);
     g_configured = 1;
     g_fault_latched = 0;
 }
@@ -602,12 +662,13 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
 {
     float t1, t2;
     uint8_t clamped = 0;
-    drive_t d1, d2;
+    drive_t d2;
+    pair_t p;
     if (!g_armed) {
         return;
     }
-    if (g_force_applied && (int32_t)(seq - g_force_seq) < 0) {
-        return; /* older than the torques applied */
+    if (g_have_taken && (int32_t)(seq - g_taken_seq) <= 0) {
+        return; /* not newer than a FORCE taken: a duplicate or a stale one */
     }
     if (!f64_is_finite(b1) || !f64_is_finite(b2)) {
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
@@ -623,15 +684,33 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
         t2 = t2 > 0 ? g_limit : -g_limit;
         clamped = 1;
     }
+    /* the follower's DRIVE queued first (a slot that comes meanwhile takes it: the
+     * leader's own drive is computed while the DRIVE's bytes are on the bus), the
+     * leader's drive and the clamp put into the pair wherever it is by then: a DRIVE
+     * takes ~900 cycles, the conversion ~200, so it is still queued or on the bus
+     * (never applied without it) */
     d2 = to_drive(t2, &clamped);
-    queue_drive(d2.n, d2.dir); /* the follower's first: it is on the critical path */
-    d1 = to_drive(t1, &clamped);
+    memset(&p, 0, sizeof p);
+    p.seq = seq;
+    p.force = 1;
+    p.clamped = clamped;
+    g_taken_seq = seq;
+    g_have_taken = 1;
+    queue_pair(&p, d2, 0);
+    p.own = to_drive(t1, &clamped);
     cli();
-    g_own_next.n = d1.n;
-    g_own_next.dir = d1.dir;
-    g_next_seq = seq;
-    g_next_clamped = clamped;
-    g_next_force = 1;
+    if (g_drive_queued && g_queued.force && g_queued.seq == seq) {
+        g_queued.own = p.own;
+        g_queued.clamped = clamped;
+    }
+    if (g_op == OP_DRIVE && g_fly.force && g_fly.seq == seq) {
+        g_fly.own = p.own;
+        g_fly.clamped = clamped;
+    }
+    if (g_own_ready && g_acked.force && g_acked.seq == seq) {
+        g_acked.own = p.own; /* (not reached at 16 MHz: see above) */
+        g_acked.clamped = clamped;
+    }
     sei();
 }
 
@@ -673,7 +752,7 @@ static void on_message(const hp_msg_t *m)
     case HP_MSG_STOP:
         g_armed = 0;
         zero_now();
-        zero_drives();
+        zero_drives(0);
         break;
     case HP_MSG_SENSORS_REQUEST:
         r.type = HP_MSG_SENSORS;
@@ -824,10 +903,21 @@ static void serve_tick(void)
         (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
     }
     if (g_trip_event) {
-        g_trip_event = 0;
+        g_trip_event = 0; /* both joints are at zero since the tick (sample_now) */
         send_fault(HP_FAULT_WATCHDOG, 0);
-        zero_now();
-        zero_drives();
+    }
+    {
+        /* the watchdog ran out (no FORCE applied for its periods): both joints to zero at
+         * once, by a DRIVE like a FORCE's, so that it trips at the tick both change; a
+         * FORCE taken meanwhile replaces it (rules 2-3 of PROTOCOL.md section 5) */
+        uint8_t pending;
+        s = SREG;
+        cli();
+        pending = g_drive_queued || g_op == OP_DRIVE || g_own_ready;
+        SREG = s;
+        if (g_armed && !g_tripped && g_wd_left == 0 && !pending) {
+            zero_drives(1);
+        }
     }
     if (g_bad_frames != g_bad_reported) {
         g_bad_reported = g_bad_frames;
@@ -868,6 +958,11 @@ int main(void)
         }
         sei();
         sleep_cpu();
+        /* one instruction before the loop's cli: simavr 1.6 runs the instruction after a
+         * SLEEP that found an interrupt pending before it serves that interrupt (the chip
+         * serves it first); with the loop's cli right after SLEEP (as the compiler laid it
+         * out once) the TWI interrupt was never served and the bus stopped at its START */
+        __asm__ __volatile__("nop");
     }
 }
 
