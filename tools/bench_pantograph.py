@@ -9,10 +9,12 @@ edges of the leader's D13 probe, which its tick interrupt raises): the cycles ea
 not asleep (mean, worst), the slack of the critical path (from the end of the tick's DRIVE
 -- the follower's torque on the bus, the last step before both joints can take the next
 tick's torques -- to the next tick's SYNC: the cycles to spare, smallest and mean), the
-device's delay (``seq - force_seq``), the overruns and the TWI traffic. ``--profile``:
-the leader's busy cycles by function (the ELF's symbols).
+device's delay (``seq - force_seq``), the overruns and the TWI traffic, for the compact
+frames (STATE_COMPACT / FORCE_COMPACT, what hapsim asks of this firmware) and the full ones.
+``--profile``: the leader's busy cycles by function (the ELF's symbols).
 
-    PYTHONPATH=. python tools/bench_pantograph.py [--ticks 1000] [--json FILE] [--profile]
+    PYTHONPATH=. python tools/bench_pantograph.py [--ticks 1000] [--frames compact,full]
+        [--json FILE] [--profile]
 """
 
 from __future__ import annotations
@@ -57,7 +59,23 @@ def _profile(path: Path) -> list:
     return tot.most_common()
 
 
-def measure(scene_path: str, rate: float, ticks: int, profile: bool = False) -> dict:
+def ask_compact(tr, rate: float) -> None:
+    """SENSORS_REQUEST bit COMPACT, and the transport into the compact session once the
+    leader enables it (RuntimeError when it does not answer)."""
+    tr.send(fp.SensorsRequest(fp.FEATURE_COMPACT))
+    end = time.monotonic() + 5
+    while time.monotonic() < end:
+        for m in tr.receive(0.05):
+            if isinstance(m, fp.Sensors):
+                if not m.enabled & fp.FEATURE_COMPACT:
+                    raise RuntimeError("the leader did not enable the compact frames")
+                tr.set_compact(rate)
+                return
+    raise RuntimeError("no SENSORS from the leader")
+
+
+def measure(scene_path: str, rate: float, ticks: int, profile: bool = False,
+            frames: str = "compact") -> dict:
     """Run the board and the host; returns the board's report with the host's figures.
 
     Parameters
@@ -70,11 +88,13 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False) -> 
         Armed ticks answered.
     profile : bool
         Add the leader's busy cycles by function.
+    frames : {"compact", "full"}
+        The session's STATE and FORCE frames.
 
     Returns
     -------
     dict
-        ``rate_hz``, ``ticks``, ``delay`` (the most common ``seq - force_seq``),
+        ``rate_hz``, ``frames``, ``ticks``, ``delay`` (the most common ``seq - force_seq``),
         ``late`` (STATEs whose lag is not that), ``budget``, ``twi``, ``firmware`` (the
         board's report sections) and ``profile`` when asked.
     """
@@ -92,6 +112,8 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False) -> 
             port = proc.stdout.readline().split()[1]
             tr = SerialTransport(port)
             tr.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
+            if frames == "compact":
+                ask_compact(tr, float(rate))
             tr.send(fp.Config(float(rate), int(20e6 / rate), 10.0))
             n = 0
             end = time.monotonic() + 60 + ticks / 100
@@ -112,7 +134,7 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False) -> 
             proc.wait(timeout=20)
         rep = json.loads(report.read_text())
         delay, count = lags.most_common(1)[0] if lags else (None, 0)
-        out = {"rate_hz": rate, "ticks": n, "delay": delay,
+        out = {"rate_hz": rate, "frames": frames, "ticks": n, "delay": delay,
                "late": sum(lags.values()) - count, "budget": rep["budget"], "twi": rep["twi"],
                "firmware": rep["firmware"]}
         if profile:
@@ -127,23 +149,28 @@ def main(argv=None) -> int:
     p.add_argument("--scene", default=str(ROOT / "configs" / "pantograph_wall.yaml"))
     p.add_argument("--rates", default="1000,500", help="CONFIG rates [Hz], comma-separated")
     p.add_argument("--ticks", type=int, default=1000)
+    p.add_argument("--frames", default="compact,full",
+                   help="compact and/or full, comma-separated (default both)")
     p.add_argument("--json", metavar="FILE")
     p.add_argument("--profile", action="store_true")
     args = p.parse_args(argv)
-    rows = [measure(args.scene, float(r), args.ticks, args.profile)
-            for r in args.rates.split(",")]
-    print("| rate | period | leader busy mean / max | follower busy mean / max | "
+    rows = [measure(args.scene, float(r), args.ticks, args.profile, f)
+            for f in args.frames.split(",") for r in args.rates.split(",")]
+    print("| frames | rate | period | leader busy mean / max | follower busy mean / max | "
           "slack min / mean | delay | late | overruns |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     bad = False
     for r in rows:
         b, t = r["budget"], r["twi"]
-        print(f"| {r['rate_hz']:g} Hz | {b['period_cycles']:.0f} | "
+        print(f"| {r['frames']} | {r['rate_hz']:g} Hz | {b['period_cycles']:.0f} | "
               f"{b['leader_busy_mean_cycles']:.0f} / {b['leader_busy_max_cycles']} | "
               f"{b['follower_busy_mean_cycles']:.0f} / {b['follower_busy_max_cycles']} | "
               f"{t['slack_min_cycles']} / {t['slack_mean_cycles']:.0f} | {r['delay']} | "
               f"{r['late']} | {r['firmware']['overrun']} |")
-        bad = bad or r["late"] > 0 or r["delay"] != 1
+        # the compact frames must keep one tick of delay; the full ones at 1 kHz miss
+        # the DRIVE slot (their delay is what it is: reported, not a failure)
+        bad = bad or r["firmware"]["overrun"] > 0 or (
+            r["frames"] == "compact" and (r["late"] > 0 or r["delay"] != 1))
         if args.profile:
             tot = sum(c for _, c in r["profile"])
             for name, c in r["profile"][:12]:

@@ -201,7 +201,7 @@ enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
  * path: a DRIVE started at once instead, when its FORCE came late, slowed the next
  * tick's STATE or FORCE by 600-1,000 cycles (its bus interrupts), so that FORCE missed
  * its tick in turn: one late tick made every later one late. */
-#define PG_DRIVE_SLOT_CYCLES 1200u
+#define PG_DRIVE_SLOT_CYCLES 1600u
 
 /* Both joints' next drive: the follower's DRIVE bytes and the leader's own drive, with
  * what they come from. The follower holds the last DRIVE it received whole and applies it
@@ -217,6 +217,8 @@ typedef struct {
 } pair_t;
 #define PG_STATE_PACKET 37u /* type, seq, time, status, force_seq, 2 x f64, crc */
 #define PG_FORCE_PACKET 23u /* type, seq, 2 x f64, crc */
+#define PG_STATE_COMPACT_PACKET 15u /* type, seq16, status8, lag, 2 x f32, crc */
+#define PG_FORCE_COMPACT_PACKET 13u /* type, seq16, 2 x f32, crc */
 
 /* ---------------------------------------------------------------- shared with the ISRs */
 static volatile uint8_t g_op;            /* the TWI transaction under way */
@@ -246,6 +248,7 @@ static volatile uint8_t g_sampled;       /* a SYNC of this session sampled: its 
 /* ---------------------------------------------------------------- main loop only */
 static pg_calib_t g_cal;
 static uint8_t g_configured, g_fault_latched, g_rx_error, g_have_zero;
+static uint8_t g_compact;                 /* the host enabled the compact frames */
 static uint32_t g_bad_frames, g_bad_reported;
 static uint16_t g_rx_lost_seen;
 static int16_t g_last_raw[2];
@@ -657,10 +660,10 @@ static drive_t to_drive(float tau, uint8_t *clamped)
     return d;
 }
 
-/* The joint torques [N m] of a FORCE answering STATE `seq` (binary64 on the wire). */
-static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
+/* The joint torques t1, t2 [N m] (binary32; `finite`: neither is infinite or NaN) of a
+ * FORCE answering STATE `seq`. */
+static void take_torques(uint32_t seq, float t1, float t2, uint8_t finite)
 {
-    float t1, t2;
     uint8_t clamped = 0;
     drive_t d2;
     pair_t p;
@@ -670,12 +673,10 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
     if (g_have_taken && (int32_t)(seq - g_taken_seq) <= 0) {
         return; /* not newer than a FORCE taken: a duplicate or a stale one */
     }
-    if (!f64_is_finite(b1) || !f64_is_finite(b2)) {
+    if (!finite) {
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
         return;
     }
-    t1 = float_of_f64(b1);
-    t2 = float_of_f64(b2);
     if (fabsf(t1) > g_limit) {
         t1 = t1 > 0 ? g_limit : -g_limit;
         clamped = 1;
@@ -684,34 +685,27 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
         t2 = t2 > 0 ? g_limit : -g_limit;
         clamped = 1;
     }
-    /* the follower's DRIVE queued first (a slot that comes meanwhile takes it: the
-     * leader's own drive is computed while the DRIVE's bytes are on the bus), the
-     * leader's drive and the clamp put into the pair wherever it is by then: a DRIVE
-     * takes ~900 cycles, the conversion ~200, so it is still queued or on the bus
-     * (never applied without it) */
+    /* both drives computed before the pair is queued: computed after it (the follower's
+     * DRIVE on the bus sooner), the leader's was put into the pair wherever it had got to,
+     * and in a burst of FORCEs (a host catching up: the receive interrupts take half the
+     * CPU) the slot's DRIVE was acknowledged and applied before it: a tick with the
+     * leader's joint at zero torque, which no STATE names */
     d2 = to_drive(t2, &clamped);
     memset(&p, 0, sizeof p);
+    p.own = to_drive(t1, &clamped);
     p.seq = seq;
     p.force = 1;
     p.clamped = clamped;
     g_taken_seq = seq;
     g_have_taken = 1;
     queue_pair(&p, d2, 0);
-    p.own = to_drive(t1, &clamped);
-    cli();
-    if (g_drive_queued && g_queued.force && g_queued.seq == seq) {
-        g_queued.own = p.own;
-        g_queued.clamped = clamped;
-    }
-    if (g_op == OP_DRIVE && g_fly.force && g_fly.seq == seq) {
-        g_fly.own = p.own;
-        g_fly.clamped = clamped;
-    }
-    if (g_own_ready && g_acked.force && g_acked.seq == seq) {
-        g_acked.own = p.own; /* (not reached at 16 MHz: see above) */
-        g_acked.clamped = clamped;
-    }
-    sei();
+}
+
+/* A FORCE's binary64 torques: rounded to binary32 (a non-finite one stays non-finite). */
+static void take_torques_b64(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
+{
+    take_torques(seq, float_of_f64(b1), float_of_f64(b2),
+                 f64_is_finite(b1) && f64_is_finite(b2));
 }
 
 static void on_force(const hp_force_t *f)
@@ -720,7 +714,23 @@ static void on_force(const hp_force_t *f)
         send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
         return;
     }
-    take_torques(f->seq, f->force[0], f->force[1]);
+    take_torques_b64(f->seq, f->force[0], f->force[1]);
+}
+
+/* FORCE_COMPACT: the 16-bit seq restored from the tick counter (the FORCE answers a STATE
+ * already sent: hp_compact_seq), the binary32 torques used as they are. */
+static void force_compact(uint16_t seq16, uint32_t b1, uint32_t b2)
+{
+    uint32_t now;
+    float t1, t2;
+    uint8_t s = SREG;
+    cli();
+    now = g_ticks - 1u; /* the seq of the last tick's STATE */
+    SREG = s;
+    memcpy(&t1, &b1, sizeof t1);
+    memcpy(&t2, &b2, sizeof t2);
+    take_torques(hp_compact_seq(now, seq16), t1, t2,
+                 (b1 & 0x7F800000UL) != 0x7F800000UL && (b2 & 0x7F800000UL) != 0x7F800000UL);
 }
 
 static void on_message(const hp_msg_t *m)
@@ -740,7 +750,12 @@ static void on_message(const hp_msg_t *m)
         on_force(&m->u.force);
         break;
     case HP_MSG_FORCE_COMPACT:
-        send_fault(HP_FAULT_AXES_MISMATCH, 0); /* compact frames are not offered */
+        if (m->u.force_compact.n_axes != 2) {
+            send_fault(HP_FAULT_AXES_MISMATCH, m->u.force_compact.n_axes);
+        } else {
+            force_compact(m->u.force_compact.seq, m->u.force_compact.force[0],
+                          m->u.force_compact.force[1]);
+        }
         break;
     case HP_MSG_PING:
         r.type = HP_MSG_PONG;
@@ -755,9 +770,14 @@ static void on_message(const hp_msg_t *m)
         zero_drives(0);
         break;
     case HP_MSG_SENSORS_REQUEST:
+        /* no extra sensor; the compact frames (PROTOCOL.md section 4): with the full
+         * STATE and FORCE (39 + 25 bytes on the wire, 3,200 cycles of codec) the FORCE
+         * reaches the DRIVE slot of a 1 kHz tick with no time to spare for a host; the
+         * compact ones (17 + 15 bytes) leave it ~4,000 cycles (docs/pantograph.md) */
         r.type = HP_MSG_SENSORS;
-        r.u.sensors.offered = 0;
-        r.u.sensors.enabled = 0;
+        r.u.sensors.offered = HP_FEATURE_COMPACT;
+        r.u.sensors.enabled = m->u.sensors_request.sensors & HP_FEATURE_COMPACT;
+        g_compact = r.u.sensors.enabled != 0;
         send(&r);
         break;
     default:
@@ -783,7 +803,21 @@ static void take_frame(void)
             memcpy(&seq, &pk[1], sizeof seq);
             memcpy(&b1, &pk[5], sizeof b1);
             memcpy(&b2, &pk[13], sizeof b2);
-            take_torques(seq, b1, b2);
+            take_torques_b64(seq, b1, b2);
+        } else {
+            g_bad_frames++;
+            g_rx_error = 1;
+        }
+        return;
+    }
+    if (len == PG_FORCE_COMPACT_PACKET && pk[0] == HP_MSG_FORCE_COMPACT) {
+        /* the one frame of every tick in a compact session, 2 axes: checked and taken
+         * here (hp_decode_packet's result for it, without its dispatch) */
+        if (hp_crc16(0xFFFFu, pk, PG_FORCE_COMPACT_PACKET) == 0) {
+            uint32_t b1, b2;
+            memcpy(&b1, &pk[3], sizeof b1); /* little-endian, as the wire */
+            memcpy(&b2, &pk[7], sizeof b2);
+            force_compact((uint16_t)(((uint16_t)pk[2] << 8) | pk[1]), b1, b2);
         } else {
             g_bad_frames++;
             g_rx_error = 1;
@@ -883,7 +917,25 @@ static void serve_tick(void)
     if (g_rx_error) {
         status |= HP_STATUS_RX_ERROR;
     }
-    {
+    if (g_compact) {
+        /* STATE_COMPACT: seq and status cut to their low bits, the lag saturated at 255
+         * (0 before any FORCE), the binary32 angles as they are (hp_encode's bytes) */
+        uint32_t lag = seq - fseq;
+        uint8_t pk[PG_STATE_COMPACT_PACKET];
+        uint16_t crc;
+        pk[0] = HP_MSG_STATE_COMPACT;
+        pk[1] = (uint8_t)seq;
+        pk[2] = (uint8_t)(seq >> 8);
+        pk[3] = (uint8_t)status;
+        pk[4] = !(status & HP_STATUS_FORCE_APPLIED) ? 0u
+                : lag > HP_COMPACT_LAG_MAX ? (uint8_t)HP_COMPACT_LAG_MAX : (uint8_t)lag;
+        memcpy(&pk[5], &q1, sizeof q1); /* little-endian, as the wire */
+        memcpy(&pk[9], &q2, sizeof q2);
+        crc = hp_crc16(0xFFFFu, pk, PG_STATE_COMPACT_PACKET - 2u);
+        pk[PG_STATE_COMPACT_PACKET - 2u] = (uint8_t)(crc >> 8);
+        pk[PG_STATE_COMPACT_PACKET - 1u] = (uint8_t)crc;
+        (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
+    } else {
         /* STATE packed here (hp_encode's bytes: the golden vectors check hp_encode, the
          * closed-loop tests these), COBS-encoded straight into the transmit ring */
         uint8_t pk[PG_STATE_PACKET];

@@ -598,7 +598,8 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
             if (!bus.general && now - bus.drive_start > bus.drive_max) {
                 bus.drive_max = now - bus.drive_start;
             }
-            if (!bus.general && budget.armed && last_fed_type == HP_MSG_FORCE) {
+            if (!bus.general && budget.armed && (last_fed_type == HP_MSG_FORCE ||
+                                                      last_fed_type == HP_MSG_FORCE_COMPACT)) {
                 bus.drive_end = now; /* a FORCE's DRIVE done: the critical path ends */
             }
         }
@@ -718,7 +719,7 @@ static struct {
     size_t in_head, in_tail;
     int xon, await_host, host_present;
     uint32_t await_seq, read_force_seq;
-    int read_force_valid, read_stop, read_other;
+    int read_force_valid, read_stop, read_other, compact;
     uint8_t out[64];
     size_t out_n;
     uint16_t fw_status;
@@ -736,10 +737,23 @@ static void flush_out(void)
     link_.out_n = 0;
 }
 
+/* Whether the FORCE seq the host sent last answers the STATE awaited, or a later one: in
+ * 32 bits, or in 16 bits in a compact session (PROTOCOL.md section 4). */
+static int force_answers_await(void)
+{
+    if (link_.compact) {
+        return (int16_t)(uint16_t)(link_.read_force_seq - link_.await_seq) >= 0;
+    }
+    return (int32_t)(link_.read_force_seq - link_.await_seq) >= 0;
+}
+
 static void on_fw_msg(const hp_msg_t *m)
 {
-    if (m->type == HP_MSG_STATE) {
-        uint16_t st = m->u.state.status;
+    if (m->type == HP_MSG_STATE || m->type == HP_MSG_STATE_COMPACT) {
+        int compact = m->type == HP_MSG_STATE_COMPACT;
+        uint16_t st = compact ? m->u.state_compact.status : m->u.state.status;
+        uint32_t seq = compact ? m->u.state_compact.seq : m->u.state.seq;
+        link_.compact = compact;
         link_.fw_states++;
         link_.fw_status = st;
         budget.armed = (st & HP_STATUS_ARMED) != 0;
@@ -748,7 +762,7 @@ static void on_fw_msg(const hp_msg_t *m)
         }
         if ((st & HP_STATUS_ARMED) && link_.host_present) {
             link_.await_host = 1;
-            link_.await_seq = m->u.state.seq;
+            link_.await_seq = seq;
             link_.read_other = 0;
         }
     } else if (m->type == HP_MSG_FAULT) {
@@ -847,8 +861,9 @@ static void read_host(int timeout_ms)
             link_.in_q[link_.in_head] = buf[i];
             link_.in_head = (link_.in_head + 1u) % sizeof link_.in_q;
             if (hp_decoder_feed(&link_.dec_read, buf[i], &m) == HP_OK) {
-                if (m.type == HP_MSG_FORCE) {
-                    link_.read_force_seq = m.u.force.seq;
+                if (m.type == HP_MSG_FORCE || m.type == HP_MSG_FORCE_COMPACT) {
+                    link_.read_force_seq = m.type == HP_MSG_FORCE ? m.u.force.seq
+                                                                  : m.u.force_compact.seq;
                     link_.read_force_valid = 1;
                 } else {
                     link_.read_other = 1;
@@ -1236,8 +1251,7 @@ int main(int argc, char **argv)
                 win.open = 1; /* an armed STATE is out: watch for its FORCE (see win) */
                 win.since = wall_ns();
             }
-            if (win.open && ((link_.read_force_valid &&
-                              (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) ||
+            if (win.open && ((link_.read_force_valid && force_answers_await()) ||
                              link_.read_stop || !link_.host_present ||
                              (double)(wall_ns() - win.since) > opt.spin_us * 1e3)) {
                 win.open = 0;
@@ -1245,8 +1259,7 @@ int main(int argc, char **argv)
         } else if (link_.await_host) {
             /* lockstep: wait (wall time) for the host's FORCE answering this STATE */
             link_.waits++;
-            while (!(link_.read_force_valid &&
-                     (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) &&
+            while (!(link_.read_force_valid && force_answers_await()) &&
                    !link_.read_stop && !link_.read_other && link_.host_present &&
                    !stop_signal) {
                 read_host(100);
