@@ -83,12 +83,18 @@ def falcon_verdict(res: dict) -> dict:
     bad = {"replies missing": res["missing"], "bytes dropped realigning": d["skipped"],
            "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"]}
     said = ", ".join(f"{k} {v}" for k, v in bad.items() if v)
+    slow = res.get("slow")
+    if slow:
+        said = (said + "; " if said else "") + (
+            f"the loop ran at {res['packets_per_s']:.0f} packets/s, below the scene's "
+            f"{res['rate_hz']:g} Hz: the Falcon held each command {slow:.1f} periods, so "
+            "it rendered another loop than the scene's")
     caveat = ("the packets carry no checksum: a bit flipped inside a nibble is another "
               "count, which no host can see")
     if not said:
         return {"verdict": "ok", "reason": f"every one of the {res['samples']} replies "
                 f"came whole and plausible, every leg homed ({caveat})"}
-    return {"verdict": "degraded", "reason": f"{said} of {res['samples']} samples (a "
+    return {"verdict": "degraded", "reason": f"{said} (of {res['samples']} samples; a "
             f"missing sample holds the last reading); {caveat}"}
 
 
@@ -98,7 +104,7 @@ def _reply_end(b: bytes) -> bool:
 
 def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
                timeout: float = 0.05, before_loop=None,
-               homing_limit: int = 20000) -> dict:
+               homing_limit: int = 20000, paced: bool = False) -> dict:
     """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
 
     Parameters
@@ -123,6 +129,11 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         Called once the legs are homed, before the loop (the tests switch faults on).
     homing_limit : int
         Most homing packets (~20 s at the firmware's ~1 kHz).
+    paced : bool
+        A real Falcon (its firmware on its own clock): a loop slower than 0.9 times the
+        scene's rate is ``slow`` (each command held that many periods: another loop
+        than the scene's) and the verdict says so; the emulator steps one period per
+        packet, whatever the pace.
 
     Returns
     -------
@@ -131,7 +142,9 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         (packets), ``samples``, ``missing``, ``unhomed``, ``decoder`` (``frames``,
         ``skipped``, ``implausible``), ``packets_per_s`` (the loop's pace),
         ``position`` (N, 3) [m] (NaN where missing), ``commands`` (N, 3), ``truth`` (with
-        ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``verdict``, ``reason``.
+        ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
+        scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
+        None), ``verdict``, ``reason``.
 
     Raises
     ------
@@ -190,7 +203,11 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     out = {"firmware": fw, "homing": homing, "samples": int(samples),
            "missing": res["missing"], "unhomed": res["unhomed"], "decoder": res["decoder"],
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
-           "position": res["position"], "commands": res["commands"], "truth": None}
+           "position": res["position"], "commands": res["commands"], "truth": None,
+           "rate_hz": float(scene.rate_hz), "slow": None}
+    pps = out["packets_per_s"]
+    if paced and pps and pps < 0.9 * scene.rate_hz:
+        out["slow"] = scene.rate_hz / pps
     if truth is not None:
         # sample k reads the reply of exchange k (exchange 0 primes the loop)
         read = ~np.isnan(res["joints"][:, 0])
