@@ -152,24 +152,26 @@ class LiveND:
         self.params = np.array([1.0, 1.0])
         self.cells = np.zeros((int(max_ramps), 2), np.int64)
         self.ramps = np.zeros((int(max_ramps), kernel.RAMP_COLUMNS))
-        self._rows: list = []            # per ramp row: (change, cell key)
+        self._rows: list = []            # per ramp row: (change, cell key, first sample)
         self._left: dict = {}            # change id -> rows still ramping
         self._waiting: list = []         # changes taken, not yet in the table
         pack = self.ring.callback_pack
         port = engine.port if self.closed else -1
-        self._ctx = kernel.play_context(dim, d, port, self.every, {
+        # every array the context names, kept here (alive and in place while it is used)
+        self._arrays = {
             "engine": engine.context, "out": self._buf, "axis": axis, "mass": mass,
             "velocity": vel.astype(np.int64), "gain": gain, "ring": pack.ring,
             "wr": pack.wr, "x": engine.x, "xp": engine.xp,
-            "port_f": engine.port_f, "Ad": np.ascontiguousarray(Ad),
-            "Bd": np.ascontiguousarray(Bd), "state": self.state, "rest": self.rest,
+            "port_f": engine.port_f, "Ad": np.ascontiguousarray(Ad, float),
+            "Bd": np.ascontiguousarray(Bd, float), "state": self.state, "rest": self.rest,
             "line": self.line, "hand": self.hand, "direction": self.direction,
-            "params": self.params, "cells": self.cells, "ramps": self.ramps})
-        self._keep = (vel,)              # arrays the context names stay alive
+            "params": self.params, "cells": self.cells, "ramps": self.ramps}
+        self._ctx = kernel.play_context(dim, d, port, self.every, self._arrays)
         self._nr = 0
         self.control = control
         self._mail = control.mailbox if control is not None else None
         self._gain_before_pause = 1.0
+        self._paused = False
         self.written = 0
         self._missing0 = None           # the ring's silent frames before the first push
         self._missing_end = None        # ... after the last push of a run
@@ -185,26 +187,21 @@ class LiveND:
         if ch.kind == "mass":
             return [(a, i, 1, T * T, ch.end[0]) for a, i in self.engine.cells(ch.name)["mass"]]
         if ch.kind == "gain":
-            if self.params[0] == 0.0 and self._paused():
-                self._gain_before_pause = ch.end[0]      # heard on resume
+            if self._paused:
+                self._gain_before_pause = float(ch.end[0])      # heard on resume
                 return []
             return [(self.params, 1, 0, 1.0, ch.end[0])]
         pause = ch.kind == "pause"
-        if pause and not self._paused():
+        if pause and not self._paused:
             self._gain_before_pause = self._target(self.params, 1)
-        self._pause = pause
+        self._paused = pause
         return [(self.params, 0, 0, 1.0, 0.0 if pause else 1.0),
                 (self.params, 1, 0, 1.0, 0.0 if pause else self._gain_before_pause)]
-
-    _pause = False
-
-    def _paused(self) -> bool:
-        return self._pause
 
     def _target(self, arr, i) -> float:
         """Where a cell is going: the end of its ramp under way, else its value."""
         key = (int(arr.ctypes.data), int(i))
-        for r, (_, k) in enumerate(self._rows):
+        for r, (_, k, _) in enumerate(self._rows):
             if k == key:
                 return float(self.ramps[r, 3])
         return float(arr[i])
@@ -213,7 +210,7 @@ class LiveND:
         cells = self._cells_of(ch)
         keys = [(int(a.ctypes.data), int(i)) for a, i, *_ in cells]
         # a cell already ramping restarts from where it is now
-        self._drop([r for r, (_, k) in enumerate(self._rows) if k in keys])
+        self._drop([r for r, (_, k, _) in enumerate(self._rows) if k in keys])
         if self._nr + len(cells) > self.cells.shape[0]:
             return False
         for (a, i, law, c, end), key in zip(cells, keys):
@@ -222,7 +219,7 @@ class LiveND:
             start = (c / now if now != 0.0 else np.inf) if law == 1 else now / c
             self.cells[r] = key
             self.ramps[r] = (float(law), c, start, float(end), float(max(1, ch.steps)), 0.0)
-            self._rows.append((ch, key))
+            self._rows.append((ch, key, self.written))
             self._nr += 1
         self._left[id(ch)] = len(cells)
         self._ctx[kernel.RAMPS] = self._nr
@@ -239,12 +236,13 @@ class LiveND:
             return
         keep = [r for r in range(self._nr) if r not in rows]
         for r in rows:
-            ch, _ = self._rows[r]
+            ch, _, start = self._rows[r]
             self._left[id(ch)] -= 1
             if self._left[id(ch)] == 0:
                 del self._left[id(ch)]
                 if self.control is not None and self.ramps[r, 5] >= self.ramps[r, 4]:
-                    self.control.ramp_event("ramp_end", ch, self.written)
+                    # the sample its last value was first used at
+                    self.control.ramp_event("ramp_end", ch, start + int(self.ramps[r, 4]))
         self.cells[:len(keep)] = self.cells[keep]
         self.ramps[:len(keep)] = self.ramps[keep]
         self._rows = [self._rows[r] for r in keep]
@@ -288,6 +286,11 @@ class LiveND:
             self._missing0 = int(self.ring.callback_pack.st[1])
         self.written += n
         return n
+
+    @property
+    def gain(self) -> float:
+        """The master gain on every channel now [-] (ramped by ``/hapsim/gain``)."""
+        return float(self.params[1])
 
     @property
     def ramping(self) -> bool:

@@ -152,7 +152,7 @@ def _play(args: argparse.Namespace, stop) -> int:
     if scene_dimension(args.scene) > 1:
         from hapsim.commands.play_nd import play_nd
         return play_nd(args, stop)
-    from hapsim.audio.control import Controller, send_telemetry, serve_osc
+    from hapsim.audio.control import Controller, send_telemetry, serve_osc, write_journal
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
     from hapsim.engine import Engine, warm_up
@@ -317,7 +317,7 @@ def _play(args: argparse.Namespace, stop) -> int:
                   **live.stats()},
               "journal": ctl.journal}
     if args.journal:
-        _dump(args.journal, ctl.journal)
+        write_journal(args.journal, ctl.journal)
     if args.telemetry:
         tmp = args.telemetry + ".partial"
         with open(tmp, "wb") as fh:
@@ -371,10 +371,3 @@ def sound_line(sound: dict) -> str:
     if s.get("underrun_at_s"):
         line += f" (at {', '.join(f'{t:.3f}' for t in s['underrun_at_s'][:5])} s)"
     return line + f"; {s.get('periods')} periods played, {s.get('waits')} waits"
-
-
-def _dump(path: str, journal: list) -> None:
-    tmp = path + ".partial"
-    with open(tmp, "w") as fh:
-        json.dump(json_safe(journal), fh, indent=1)
-    os.replace(tmp, path)
