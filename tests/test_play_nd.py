@@ -48,8 +48,8 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
     names = [m.name for m in scene.masses]
     X = np.array([m.x0 for m in scene.masses], float)
     XP = X - T * np.array([m.v0 for m in scene.masses], float)
-    par = {"K": {lk.name: lk.stiffness for lk in scene.links},
-           "B": {lk.name: lk.damping for lk in scene.links},
+    par = {"K": {e.name: e.stiffness for e in (*scene.links, *scene.planes)},
+           "B": {e.name: e.damping for e in (*scene.links, *scene.planes)},
            "m": {m.name: m.mass for m in scene.masses}, "gain": 1.0, "scale": 1.0}
     lprev = {lk.name: float(np.linalg.norm(XP[names.index(lk.m1)] - XP[names.index(lk.m2)]))
              for lk in scene.links}
@@ -81,6 +81,12 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
                 lprev[lk.name] = ln
             f[i] -= F
             f[j] += F
+        for pl in scene.planes:
+            for name in pl.masses:
+                i = names.index(name)
+                p, pp = pl.offset - pl.normal @ X[i], pl.offset - pl.normal @ XP[i]
+                if p > 0:
+                    f[i] += (par["K"][pl.name] * p + par["B"][pl.name] / T * (p - pp)) * pl.normal
         Xn = X.copy()
         for i, m in enumerate(scene.masses):
             if m.kind == "mass":
@@ -117,9 +123,9 @@ def assert_float32_roundoff(got, ref):
 
 # ------------------------------------------------------------------------------ tests
 def test_the_closed_loop_and_a_change_at_a_known_sample_are_the_independent_rendering():
-    """The 2-D scene closed on its device (delay 2) plays the independent rendering; a
-    /hapsim/link/kb of the Euclidean link and a /hapsim/mass accepted between two chunks
-    ramp from the sample the journal names, over --ramp, to float32 round-off."""
+    """The 2-D scene closed on its device (delay 2) plays the independent rendering;
+    changes of a Euclidean link, a mass, a sphere contact and a plane accepted between two
+    chunks ramp from the sample the journal names, over --ramp, to float32 round-off."""
     sc = load_scene_nd(SCENE)
     eng = EngineND(sc)
     ctl = ControllerND(sc, eng, ramp_s=0.01, background=False)
@@ -132,13 +138,19 @@ def test_the_closed_loop_and_a_change_at_a_known_sample_are_the_independent_rend
     assert ok, info
     ok, info = ctl.request("/hapsim/mass", "m2", 0.015)
     assert ok, info
-    for _ in range(20):
+    for _ in range(2):
+        live.produce()
+    ok, info = ctl.request("/hapsim/link/stiffness", "touch", 1200.0)
+    assert ok, info
+    ok, info = ctl.request("/hapsim/link/kb", "wall", 2000.0, 1.5)
+    assert ok, info
+    for _ in range(18):
         live.produce()
     starts = [e for e in ctl.journal if e["event"] == "ramp_start"]
     ends = [e for e in ctl.journal if e["event"] == "ramp_end"]
-    assert [e["sample"] for e in starts] == [320, 320]
+    assert [e["sample"] for e in starts] == [320, 320, 448, 448]
     L = 80                                    # 0.01 s at 8 kHz
-    assert [e["sample"] for e in ends] == [400, 400]
+    assert [e["sample"] for e in ends] == [400, 400, 528, 528]
 
     def chain(p, a):
         p["K"]["chain"] = 500 + a * 400
@@ -146,7 +158,15 @@ def test_the_closed_loop_and_a_change_at_a_known_sample_are_the_independent_rend
 
     def mass(p, a):
         p["m"]["m2"] = 0.01 + a * 0.005
-    ref = reference(sc, live.written, [(320, L, chain), (320, L, mass)])
+
+    def touch(p, a):
+        p["K"]["touch"] = 800 + a * 400
+
+    def wall(p, a):
+        p["K"]["wall"] = 1000 + a * 1000
+        p["B"]["wall"] = 1.0 + a * 0.5
+    ref = reference(sc, live.written, [(320, L, chain), (320, L, mass), (448, L, touch),
+                                       (448, L, wall)])
     assert_float32_roundoff(drain(live), ref)
     # without the changes the sound differs far beyond round-off after the change
     plain = reference(sc, live.written)
