@@ -7,22 +7,18 @@ stiffness: one stable, one not) get their verdicts."""
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from test_audio_live import Recorder, dummy_jackd
-from test_osc import PATCH, Client, stop, wait_for
+from test_osc import PATCH, Client, play_daemon, run_patch, stop, wait_for
 from test_play_nd import SCENE, assert_float32_roundoff, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
 pytestmark = pytest.mark.xdist_group("sound")
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RATE = 8000
 
 
@@ -34,21 +30,7 @@ def jack8k():
 
 def start_play(server, *extra):
     """``hapsim play SCENE --osc 0`` through ``server``; the process and its OSC port."""
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", str(SCENE), "--osc", "0",
-                             "--sound", "jack", "--jack-server", server, "--duration", "600",
-                             "--json", *extra], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=env, cwd=ROOT, text=True)
-    seen = []
-    for _ in range(50):
-        line = proc.stderr.readline()
-        seen.append(line)
-        if "OSC on" in line:
-            return proc, int(line.strip().rsplit(":", 1)[1])
-        if not line:
-            break
-    proc.kill()
-    pytest.fail(f"play did not start its OSC server: {''.join(seen)}{proc.stderr.read()}")
+    return play_daemon(SCENE, server, *extra)
 
 
 def aligned(got, ref, window=400):
@@ -117,12 +99,8 @@ def test_pd_patch_changes_a_plane_of_the_2d_scene(jack8k, tmp_path):
     if shutil.which("pd") is None:
         pytest.skip("pd not installed: apt-get install puredata")
     proc, port = start_play(jack8k)
-    patch = tmp_path / "send.pd"
-    patch.write_text(PATCH.format(port=port))
     try:
-        pd = subprocess.run(["pd", "-nogui", "-nosound", "-open", str(patch)],
-                            capture_output=True, text=True, timeout=60)
-        assert pd.returncode == 0, pd.stderr
+        run_patch(PATCH, port, tmp_path)
         c = Client(port)
         wait_for(c, "/hapsim/loop", lambda p: (p[3], p[4]) == (1, 1), "Pd's two changes")
     finally:

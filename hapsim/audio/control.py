@@ -161,6 +161,8 @@ class Controller:
         self.unstable: str | None = None
         self._rebasing: threading.Thread | None = None
         self.analyst = Analyst(background)
+        #: What a refusal calls the loop checked.
+        self.what = "closed loop"
         self.felt = self._predict(scene)
 
     def rebase_delay(self, delay: int, why: str) -> None:
@@ -230,7 +232,7 @@ class Controller:
         (:func:`hapsim.analysis.prediction.predict`); the prediction of the new scene."""
         pred = self._predict(new_scene)
         if not pred["stable"]:
-            raise Refused(f"the closed loop would be unstable (spectral radius "
+            raise Refused(f"the {self.what} would be unstable (spectral radius "
                            f"{pred['spectral_radius']:.6g} > 1)")
         for a in (0.25, 0.5, 0.75):
             mid = self.blend(old_scene, new_scene, a)

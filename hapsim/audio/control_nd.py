@@ -115,6 +115,8 @@ class ControllerND(Controller):
     def __init__(self, scene, engine, live=None, ramp_s: float = 0.05,
                  background: bool = True) -> None:
         super().__init__(scene, engine, live, ramp_s=ramp_s, background=background)
+        if self.felt.get("loop") == "free":
+            self.what = "scene (it has no port: checked on its own)"
         self.unmeasured = ("a 2-D or 3-D play does not identify the felt matrices "
                            "(hapsim run --lockstep measures them)")
 

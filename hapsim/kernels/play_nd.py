@@ -53,15 +53,18 @@ _jit = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="numpy
 #: period [samples] (0: once).
 FRAMES, DIM, DELAY, PORT, RAMPS, HAND, SAMPLE, EVERY = range(8)
 HEAD = 8
-#: The arrays a context names, in order (name, element type, dimensions).
-PLAY_ARRAYS = (
-    ("engine", np.int64, 1), ("out", np.float64, 2), ("axis", np.int64, 1),
-    ("mass", np.int64, 1), ("velocity", np.int64, 1), ("gain", np.float64, 1),
-    ("ring", np.float32, 2), ("wr", np.int64, 1), ("x", np.float64, 2),
-    ("xp", np.float64, 2), ("port_f", np.float64, 1), ("Ad", np.float64, 2),
-    ("Bd", np.float64, 2), ("state", np.float64, 1), ("rest", np.float64, 1),
-    ("line", np.float64, 2), ("hand", np.float64, 1), ("direction", np.float64, 1),
-    ("params", np.float64, 1), ("cells", np.int64, 2), ("ramps", np.float64, 2))
+#: The arrays a context names, in the order :func:`play_chunk` reads them.
+PLAY_ARRAYS = ("engine", "out", "axis", "mass", "velocity", "gain", "ring", "wr", "x", "xp",
+               "port_f", "Ad", "Bd", "state", "rest", "line", "hand", "direction",
+               "params", "cells", "ramps")
+#: Their element types and dimensions: int64 vectors (the engine's context, listening
+#: points' axes, masses and velocity flags, the ring's write count), float64 vectors,
+#: float64 matrices, the ramp table's cells (int64: address, index), the ring (float32).
+_KINDS = {**dict.fromkeys(("engine", "axis", "mass", "velocity", "wr"), (np.int64, 1)),
+          **dict.fromkeys(("gain", "port_f", "state", "rest", "hand", "direction",
+                           "params"), (np.float64, 1)),
+          **dict.fromkeys(("out", "x", "xp", "Ad", "Bd", "line", "ramps"), (np.float64, 2)),
+          "cells": (np.int64, 2), "ring": (np.float32, 2)}
 #: Columns of the ramp table: law (0: ``c v``, 1: ``c / v``), c, start, end, steps, done.
 RAMP_COLUMNS = 6
 
@@ -99,13 +102,13 @@ def play_context(dim: int, delay: int, port: int, every: int, arrays: dict) -> n
     ctx = np.zeros(HEAD + 3 * len(PLAY_ARRAYS), np.int64)
     ctx[DIM], ctx[DELAY], ctx[PORT], ctx[EVERY] = dim, delay, port, every
     ctx[HAND] = arrays["hand"].shape[0]
-    for i, (name, dtype, ndim) in enumerate(PLAY_ARRAYS):
+    for i, name in enumerate(PLAY_ARRAYS):
+        dtype, ndim = _KINDS[name]
         a = arrays[name]
         if a.ndim != ndim:
             raise ValueError(f"{name}: {ndim} dimensions expected, got shape {a.shape}")
-        ctx[HEAD + 3 * i] = address(a, dtype)
-        ctx[HEAD + 3 * i + 1] = a.shape[0]
-        ctx[HEAD + 3 * i + 2] = a.shape[1] if ndim == 2 else 0
+        ctx[HEAD + 3 * i:HEAD + 3 * i + 3] = (address(a, dtype), a.shape[0],
+                                              a.shape[-1] if ndim == 2 else 0)
     return ctx
 
 
@@ -113,33 +116,17 @@ _inline = nb.njit(cache=CACHE_OK, nogil=True, inline="always")
 
 
 @_inline
-def _f1(c, i):
+def _v1(c, i, dtype):
+    """Array ``i`` of the context, 1-D, of ``dtype`` (no copy)."""
     k = HEAD + 3 * i
-    return nb.carray(voidptr(c[k]), (c[k + 1],), np.float64)
+    return nb.carray(voidptr(c[k]), (c[k + 1],), dtype)
 
 
 @_inline
-def _f2(c, i):
+def _v2(c, i, dtype):
+    """Array ``i`` of the context, 2-D, of ``dtype`` (no copy)."""
     k = HEAD + 3 * i
-    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
-
-
-@_inline
-def _i1(c, i):
-    k = HEAD + 3 * i
-    return nb.carray(voidptr(c[k]), (c[k + 1],), np.int64)
-
-
-@_inline
-def _i2(c, i):
-    k = HEAD + 3 * i
-    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.int64)
-
-
-@_inline
-def _s2(c, i):
-    k = HEAD + 3 * i
-    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float32)
+    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), dtype)
 
 
 @_jit
@@ -153,27 +140,27 @@ def play_chunk(ctx):
         From :func:`play_context` (its arrays alive and in place); ``ctx[FRAMES]`` at most
         the rows of its ``out`` array.
     """
-    eng = _i1(ctx, 0)
-    out = _f2(ctx, 1)
-    axis = _i1(ctx, 2)
-    mass = _i1(ctx, 3)
-    vel = _i1(ctx, 4)
-    gain = _f1(ctx, 5)
-    ring = _s2(ctx, 6)
-    wr = _i1(ctx, 7)
-    x = _f2(ctx, 8)
-    xp = _f2(ctx, 9)
-    port_f = _f1(ctx, 10)
-    Ad = _f2(ctx, 11)
-    Bd = _f2(ctx, 12)
-    state = _f1(ctx, 13)
-    rest = _f1(ctx, 14)
-    line = _f2(ctx, 15)
-    hand = _f1(ctx, 16)
-    direction = _f1(ctx, 17)
-    params = _f1(ctx, 18)
-    cells = _i2(ctx, 19)
-    ramps = _f2(ctx, 20)
+    eng = _v1(ctx, 0, np.int64)
+    out = _v2(ctx, 1, np.float64)
+    axis = _v1(ctx, 2, np.int64)
+    mass = _v1(ctx, 3, np.int64)
+    vel = _v1(ctx, 4, np.int64)
+    gain = _v1(ctx, 5, np.float64)
+    ring = _v2(ctx, 6, np.float32)
+    wr = _v1(ctx, 7, np.int64)
+    x = _v2(ctx, 8, np.float64)
+    xp = _v2(ctx, 9, np.float64)
+    port_f = _v1(ctx, 10, np.float64)
+    Ad = _v2(ctx, 11, np.float64)
+    Bd = _v2(ctx, 12, np.float64)
+    state = _v1(ctx, 13, np.float64)
+    rest = _v1(ctx, 14, np.float64)
+    line = _v2(ctx, 15, np.float64)
+    hand = _v1(ctx, 16, np.float64)
+    direction = _v1(ctx, 17, np.float64)
+    params = _v1(ctx, 18, np.float64)
+    cells = _v2(ctx, 19, np.int64)
+    ramps = _v2(ctx, 20, np.float64)
     frames = ctx[FRAMES]
     dim = ctx[DIM]
     d = ctx[DELAY]
