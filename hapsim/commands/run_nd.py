@@ -91,9 +91,17 @@ def run_nd(args) -> int:
     from hapsim.progress import Progress
     _refuse_options(args)
     driver = getattr(args, "driver", None)
+    if driver == "falcon":
+        from hapsim.commands.run_falcon import run_falcon_command
+        return run_falcon_command(args)
+    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
+        if getattr(args, attr, None) is not None:
+            raise ConfigError(f"{flag} goes with --driver falcon (a delta scene on the "
+                              "Novint Falcon)", key=flag)
     if driver not in (None, "haply"):
         raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
-                          f"the Haply 2DIY), not {driver!r}", key="--driver")
+                          f"the Haply 2DIY) or --driver falcon (a delta scene, the Novint "
+                          f"Falcon), not {driver!r}", key="--driver")
     if driver == "haply":
         return _run_haply2(args)
     a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
