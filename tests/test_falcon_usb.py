@@ -171,6 +171,33 @@ def test_clean_run_reads_every_count_exactly(scene):
     assert np.isfinite(res["position"]).all() and np.abs(res["commands"]).max() > 0
 
 
+def test_every_end_leaves_zero_torque(scene):
+    """The firmware holds the last command: after a loop, and after one ended by an
+    exception mid-loop (Ctrl-C, say), the emulated legs' applied commands are zero and
+    the LED red; a loop that pushed (non-zero commands) shows the test can fail."""
+    from hapsim.daemon.falcon_run import ZERO_PACKETS
+    link, dev, chip = emulated_falcon(scene, IMAGE)
+    res = run_falcon(scene, link, IMAGE, 60, timeout=FAST)
+    assert np.abs(res["commands"][-1]).max() > 0
+    assert res["zeroed"] == ZERO_PACKETS and dev.commands == (0, 0, 0)
+    assert dev.leds == fa.LED_RED
+    link.close()
+    link, dev, chip = emulated_falcon(scene, IMAGE)
+    calls = [0]
+    real = dev.feed
+
+    def interrupting(data):
+        calls[0] += 1
+        if calls[0] == 120:
+            raise KeyboardInterrupt
+        return real(data)
+    dev.feed = interrupting
+    with pytest.raises(KeyboardInterrupt):
+        run_falcon(scene, link, IMAGE, 500, timeout=FAST)
+    assert dev.commands == (0, 0, 0) and dev.leds == fa.LED_RED
+    link.close()
+
+
 @pytest.mark.parametrize("spec", [
     {"drop_tx": 0.006, "seed": 1}, {"drop_rx": 0.006, "seed": 2},
     {"corrupt_tx": 0.006, "seed": 3}, {"corrupt_rx": 0.006, "seed": 4},
@@ -292,3 +319,20 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
     assert main(["run", "--help"]) == 0
     h = capsys.readouterr().out
     assert "--driver falcon --firmware FILE" in h and "ftdi://0x0403:0xcb48/1" in h
+
+
+def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
+    """The emulated Falcon leaves the bus mid-loop under 'hapsim run': exit 1, stderr says
+    it went away and after how many packets; nothing on stdout (no verdict claimed)."""
+    import hapsim.daemon.falcon_run as fr
+    from hapsim.cli import main
+    real = fr.emulated_falcon
+    monkeypatch.setattr(fr, "emulated_falcon",
+                        lambda scene, image, **kw: real(scene, image, unplug_after=250))
+    fw = tmp_path / "falcon.bin"
+    fw.write_bytes(IMAGE)
+    assert main(["run", str(CONFIGS / "delta_sphere.yaml"), "--driver", "falcon",
+                 "--firmware", str(fw), "--packets", "400", "--json"]) == 1
+    cap = capsys.readouterr()
+    assert "went away" in cap.err and "packets since the firmware load" in cap.err
+    assert cap.out == ""
