@@ -535,7 +535,12 @@ def felt_directions(fit: dict, chk) -> dict | None:
     (:mod:`hapsim.analysis.ths_nd`: the major axis of rendered mode ``i``); for a loop
     that is symmetric in one basis (``M``, ``B0``, ``K``, ``B`` diagonal in it) they are
     the eigenvectors of ``k`` and ``b`` and ``e_i^T k e_i = m_i |s_i|^2`` (the check's
-    ``direction_stiffness``).
+    ``direction_stiffness``); otherwise the two differ by the loop's asymmetric coupling
+    (on the shipped scenes by at most 2e-5 relative) and the directions need not be
+    orthogonal. The quadratic form is a statement about a fixed direction, so it stays
+    well defined where two modes' poles coincide and their major axes are arbitrary;
+    being linear in the matrix, its first-order wire term is exact
+    (:func:`wire_terms_nd`).
 
     Parameters
     ----------
