@@ -108,6 +108,18 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
     return out
 
 
+def hand_of_scene(scene):
+    """The scene's impulse as one force per sample [N] (start and duration are whole
+    samples in the test scenes: the force itself over them) and its unit direction."""
+    ex = scene.excitation
+    a = int(round(ex.impulse.start * scene.rate_hz))
+    b = int(round((ex.impulse.start + ex.impulse.duration) * scene.rate_hz))
+    h = np.zeros(b)
+    h[a:] = ex.impulse.force
+    e = np.array([3.0, -4.0]) / 5.0            # the file's [3, -4], normalised
+    return h, e
+
+
 def drain(live):
     """Every frame the producer pushed, as the sound server's callback reads them."""
     return live.ring.render(live.written).copy()
@@ -218,6 +230,30 @@ def test_plucks_repeat_the_hand_force_along_the_direction():
     assert_float32_roundoff(drain(live), ref)
     with pytest.raises(Exception, match="norm 1"):
         LiveND(EngineND(sc), hand=hand, direction=[1.0, 1.0])
+
+
+def test_the_scenes_excitation_plucks_through_play(tmp_path):
+    """The scene's excitation (an impulse along [3, -4]) read from the file, as ``hapsim
+    play`` hands it to the loop (:func:`hapsim.commands.play_nd.hand_of`), repeated every
+    0.1 s by --pluck-every: the independent rendering with the impulse applied by hand."""
+    from hapsim.commands.play_nd import hand_of
+    sc = load_scene_nd(SCENE)
+    hand, e, every = hand_of(sc, 0.1)
+    assert every == 800
+    live = LiveND(EngineND(sc), chunk=256, ring=8192, ahead=4096, hand=hand, direction=e,
+                  every=every)
+    for _ in range(8):
+        live.produce()
+    h, e_ref = hand_of_scene(sc)
+    ref = reference(sc, live.written, hand=h, direction=e_ref, every=800)
+    assert_float32_roundoff(drain(live), ref)
+    free = reference(sc, live.written)
+    assert np.max(np.abs(free[800:] - ref[800:])) > 1e-2 * np.max(np.abs(ref))
+    bare = SCENE.read_text().replace("excitation:", "#")
+    nohand = tmp_path / "nohand.yaml"
+    nohand.write_text(bare)
+    with pytest.raises(Exception, match="--pluck-every"):
+        hand_of(load_scene_nd(nohand), 0.1)
 
 
 # ------------------------------------------------------------- verdicts over random scenes

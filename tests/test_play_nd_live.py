@@ -14,7 +14,7 @@ import pytest
 
 from test_audio_live import Recorder, dummy_jackd
 from test_osc import PATCH, Client, play_daemon, run_patch, stop, wait_for
-from test_play_nd import SCENE, assert_float32_roundoff, reference
+from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
 pytestmark = pytest.mark.xdist_group("sound")
@@ -49,11 +49,13 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     sample and the verdict; the recorded sound from the first frame heard to 0.4 s after
     the ramp is the independent rendering with that ramp, to float32 round-off."""
     rec = Recorder(jack8k, seconds=30.0)
+    rec.armed = False                 # from the connection on (a loaded start is slow)
     proc, port = start_play(jack8k, "--ramp", "0.01")
     try:
         src = rec.client.get_ports("hapsim.*:out_m2_y_velocity")
         assert src, rec.client.get_ports()
         rec.client.connect(src[0], rec.inp.name)
+        rec.armed = True
         c = Client(port)
         addr, felt = c.ask("/hapsim/felt")
         assert addr == "/hapsim/felt" and len(felt) == 6 + 1 + 8 and felt[6] == 2
@@ -81,7 +83,8 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         par["K"]["chain"] = 500 + a * 400
         par["B"]["chain"] = 0.1 + a * 0.15
     n = end[0] + int(0.4 * RATE)
-    ref = reference(sc, n, [(start[0], 80, chain)])[:, :1]
+    h, e = hand_of_scene(sc)                      # the scene's excitation, once
+    ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e)[:, :1]
     i0, j = aligned(got, ref[:, 0])
     assert j < start[0], "the recording began after the change"
     seg = got[i0:i0 + n - j]
@@ -89,6 +92,37 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         seg = seg[seg != 0]
     m = min(seg.size, n - j)
     assert m > n - j - 2000
+    assert_float32_roundoff(seg[:m, None], ref[j:j + m])
+
+
+def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
+    """``hapsim play SCENE --pluck-every 0.25``: the scene's impulse again every 2000
+    samples; the recorded sound is the independent rendering with the plucks at samples
+    2000 k + 80 .. 2000 k + 120, to float32 round-off, over the first second heard."""
+    rec = Recorder(jack8k, seconds=30.0)
+    rec.armed = False
+    proc, port = start_play(jack8k, "--pluck-every", "0.25")
+    try:
+        rec.client.connect(rec.client.get_ports("hapsim.*:out_m2_y_velocity")[0],
+                           rec.inp.name)
+        rec.armed = True
+        c = Client(port)
+        wait_for(c, "/hapsim/loop", lambda q: q[0] > 20000, "2.5 s of sound")
+    finally:
+        rep = stop(proc)
+        rec.close()
+    assert rep["plucks"]["every_samples"] == 2000
+    from hapsim.scene_nd import load_scene_nd
+    sc = load_scene_nd(SCENE)
+    h, e = hand_of_scene(sc)
+    got = rec.buf[:rec.n]
+    ref = reference(sc, 20000, hand=h, direction=e, every=2000)[:, :1]
+    i0, j = aligned(got, ref[:, 0])
+    seg = got[i0:i0 + 8000]
+    if rep["sound"]["underruns"]:
+        seg = seg[seg != 0]
+    m = min(seg.size, 20000 - j)
+    assert m > 4000 and (j + m) // 2000 > j // 2000 + 1      # two plucks at least heard
     assert_float32_roundoff(seg[:m, None], ref[j:j + m])
 
 
