@@ -38,11 +38,12 @@ def zoh(M, B0, T):
     return E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
 
 
-def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
+def reference(scene, steps, ramps=(), hand=None, direction=None, every=0, track=None):
     """The played loop, one sample at a time, one link at a time (module notes).
 
     ``ramps``: ``(first_sample, steps, setter)`` with ``setter(params, a)`` writing the
-    values at ramp fraction ``a`` into the mutable parameter dict."""
+    values at ramp fraction ``a`` into the mutable parameter dict. ``track``: a list that
+    gets the device's position before each sample and after the last (``steps + 1``)."""
     T = scene.period
     n = scene.dimension
     names = [m.name for m in scene.masses]
@@ -65,6 +66,8 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
                 setter(par, (k - first + 1) / length)
         if port is not None:
             X[port] = dev.position + s[:n]
+            if track is not None:
+                track.append(X[port].copy())
         f = np.zeros_like(X)
         for lk in scene.links:
             i, j = names.index(lk.m1), names.index(lk.m2)
@@ -105,6 +108,8 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
             v = X[i, p.axis] - (XP[i, p.axis] if p.quantity == "velocity" else 0.0)
             g = p.gain / T if p.quantity == "velocity" else p.gain
             out[k, c] = par["gain"] * g * v
+    if track is not None and port is not None:
+        track.append(dev.position + s[:n])
     return out
 
 

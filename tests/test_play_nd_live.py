@@ -8,6 +8,7 @@ stiffness: one stable, one not) get their verdicts."""
 from __future__ import annotations
 
 import shutil
+import socket
 
 import numpy as np
 import pytest
@@ -31,6 +32,20 @@ def jack8k():
 def start_play(server, *extra):
     """``hapsim play SCENE --osc 0`` through ``server``; the process and its OSC port."""
     return play_daemon(SCENE, server, *extra)
+
+
+def telemetry(sink):
+    """The /hapsim/tel messages that reached ``sink`` (its parameters)."""
+    from pythonosc.osc_message import OscMessage
+    sink.settimeout(0.3)
+    msgs = []
+    try:
+        while True:
+            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
+    except (socket.timeout, TimeoutError):
+        pass
+    sink.close()
+    return [m.params for m in msgs if m.address == "/hapsim/tel"]
 
 
 def aligned(got, ref, window=400):
@@ -57,6 +72,10 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         rec.client.connect(src[0], rec.inp.name)
         rec.armed = True
         c = Client(port)
+        sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sink.bind(("127.0.0.1", 0))
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        assert addr == "/hapsim/ok", p
         addr, felt = c.ask("/hapsim/felt")
         assert addr == "/hapsim/felt" and len(felt) == 6 + 1 + 8 and felt[6] == 2
         addr, p = c.ask("/hapsim/link/kb", "chain", 900.0, 0.25)
@@ -84,7 +103,18 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         par["B"]["chain"] = 0.1 + a * 0.15
     n = end[0] + int(0.4 * RATE)
     h, e = hand_of_scene(sc)                      # the scene's excitation, once
-    ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e)[:, :1]
+    track = []
+    ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e,
+                    track=track)[:, :1]
+    # every /hapsim/tel t x y fx fy k b: the device's position at sample t * rate
+    tel = telemetry(sink)
+    assert len(tel) > 20 and all(len(p) == 7 for p in tel)
+    k = np.array([round(p[0] * RATE) for p in tel])
+    assert np.all(np.diff(k) >= 80)               # 100 Hz at most
+    k_in = k <= n
+    assert k_in.sum() > 10
+    np.testing.assert_allclose(np.array([p[1:3] for p in tel])[k_in],   # OSC's float32
+                               np.array(track)[k[k_in]], rtol=1.2e-7, atol=1e-15)
     i0, j = aligned(got, ref[:, 0])
     assert j < start[0], "the recording began after the change"
     seg = got[i0:i0 + n - j]
