@@ -605,7 +605,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
 
 def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:
     """The ``excitation: {direction, impulse, profile}`` section (module docstring)."""
-    from hapsim.scene.elements import Impulse
+    from hapsim.scene import Impulse
     key = "excitation"
     d = r.mapping(doc[key], key, r.line(doc, key))
     r.keys(d, EXCITATION_KEYS, key, required=("direction",))
