@@ -68,3 +68,13 @@ def test_a_zero_stiffness_limit_says_why(capsys):
     assert main(argv + ["--B", "0.5"]) == 0
     out = capsys.readouterr().out
     assert "K_max = 0" not in out and "raise one of them" not in out
+
+
+def test_every_command_is_in_the_commands_page():
+    """docs/commands.md's table has a row for every command the CLI registers
+    (`hapsim kinematics` had none)."""
+    from hapsim.cli import COMMANDS
+    text = (ROOT / "docs" / "commands.md").read_text(encoding="utf-8")
+    table = text.split("## The commands", 1)[1].split("\n\n", 2)[1]
+    for name in COMMANDS:
+        assert f"| `hapsim {name.replace('_', '-')}" in table, name
