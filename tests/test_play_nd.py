@@ -38,11 +38,12 @@ def zoh(M, B0, T):
     return E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
 
 
-def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
+def reference(scene, steps, ramps=(), hand=None, direction=None, every=0, track=None):
     """The played loop, one sample at a time, one link at a time (module notes).
 
     ``ramps``: ``(first_sample, steps, setter)`` with ``setter(params, a)`` writing the
-    values at ramp fraction ``a`` into the mutable parameter dict."""
+    values at ramp fraction ``a`` into the mutable parameter dict. ``track``: a list that
+    gets the device's position before each sample and after the last (``steps + 1``)."""
     T = scene.period
     n = scene.dimension
     names = [m.name for m in scene.masses]
@@ -65,6 +66,8 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
                 setter(par, (k - first + 1) / length)
         if port is not None:
             X[port] = dev.position + s[:n]
+            if track is not None:
+                track.append(X[port].copy())
         f = np.zeros_like(X)
         for lk in scene.links:
             i, j = names.index(lk.m1), names.index(lk.m2)
@@ -105,7 +108,21 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
             v = X[i, p.axis] - (XP[i, p.axis] if p.quantity == "velocity" else 0.0)
             g = p.gain / T if p.quantity == "velocity" else p.gain
             out[k, c] = par["gain"] * g * v
+    if track is not None and port is not None:
+        track.append(dev.position + s[:n])
     return out
+
+
+def hand_of_scene(scene):
+    """The scene's impulse as one force per sample [N] (start and duration are whole
+    samples in the test scenes: the force itself over them) and its unit direction."""
+    ex = scene.excitation
+    a = int(round(ex.impulse.start * scene.rate_hz))
+    b = int(round((ex.impulse.start + ex.impulse.duration) * scene.rate_hz))
+    h = np.zeros(b)
+    h[a:] = ex.impulse.force
+    e = np.array([3.0, -4.0]) / 5.0            # the file's [3, -4], normalised
+    return h, e
 
 
 def drain(live):
@@ -218,6 +235,30 @@ def test_plucks_repeat_the_hand_force_along_the_direction():
     assert_float32_roundoff(drain(live), ref)
     with pytest.raises(Exception, match="norm 1"):
         LiveND(EngineND(sc), hand=hand, direction=[1.0, 1.0])
+
+
+def test_the_scenes_excitation_plucks_through_play(tmp_path):
+    """The scene's excitation (an impulse along [3, -4]) read from the file, as ``hapsim
+    play`` hands it to the loop (:func:`hapsim.commands.play_nd.hand_of`), repeated every
+    0.1 s by --pluck-every: the independent rendering with the impulse applied by hand."""
+    from hapsim.commands.play_nd import hand_of
+    sc = load_scene_nd(SCENE)
+    hand, e, every = hand_of(sc, 0.1)
+    assert every == 800
+    live = LiveND(EngineND(sc), chunk=256, ring=8192, ahead=4096, hand=hand, direction=e,
+                  every=every)
+    for _ in range(8):
+        live.produce()
+    h, e_ref = hand_of_scene(sc)
+    ref = reference(sc, live.written, hand=h, direction=e_ref, every=800)
+    assert_float32_roundoff(drain(live), ref)
+    free = reference(sc, live.written)
+    assert np.max(np.abs(free[800:] - ref[800:])) > 1e-2 * np.max(np.abs(ref))
+    bare = SCENE.read_text().replace("excitation:", "#")
+    nohand = tmp_path / "nohand.yaml"
+    nohand.write_text(bare)
+    with pytest.raises(Exception, match="--pluck-every"):
+        hand_of(load_scene_nd(nohand), 0.1)
 
 
 # ------------------------------------------------------------- verdicts over random scenes
