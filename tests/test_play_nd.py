@@ -478,3 +478,30 @@ def test_the_digest_names_the_sources_compiled_in():
     assert play_nd.COMPILED_SOURCES_SHA256 == now, (
         f'update the digest in hapsim/kernels/play_nd.py: COMPILED_SOURCES_SHA256 = "{now}"')
     assert play_nd.CACHE_OK
+
+
+# ------------------------------------------------------------------------------ the CLI
+def test_play_refuses_an_unstable_scene_and_osc_on_a_scene_too_large_to_check(tmp_path,
+                                                                             capsys):
+    """Before any sound opens: an unstable loop (the wall at 1e6 N/m) is exit 1 with its
+    spectral radius; --osc on a scene whose loop is too large to analyse is exit 2 naming
+    --osc (without --osc it would play, unchecked, with a note)."""
+    from hapsim.cli import main
+    hard = tmp_path / "hard.yaml"
+    hard.write_text(SCENE.read_text().replace("stiffness: 1000, damping: 1.0",
+                                              "stiffness: 1000000, damping: 1.0"))
+    assert main(["play", str(hard), "--sound", "jack", "--jack-server", "none-such"]) == 1
+    err = capsys.readouterr().err
+    assert "unstable" in err and "spectral radius 1.159" in err, err
+    big = ["dimension: 2", "rate_hz: 8000", "masses:", "  - {name: hand, kind: port}"]
+    big += [f"  - {{name: m{i}, kind: mass, mass: 0.01}}" for i in range(600)]
+    big += ["links:", "  - {kind: spring_damper, between: [hand, m0], stiffness: 10}"]
+    big += [f"  - {{kind: spring_damper, between: [m{i}, m{i + 1}], stiffness: 10}}"
+            for i in range(599)]
+    big += ["device: {kind: cartesian, mass: 0.1}", "audio: {listen: [{mass: m9}]}"]
+    path = tmp_path / "big.yaml"
+    path.write_text("\n".join(big) + "\n")
+    assert main(["play", str(path), "--osc", "0", "--sound", "jack",
+                 "--jack-server", "none-such"]) == 2
+    err = capsys.readouterr().err
+    assert "--osc" in err and "cannot be analysed" in err, err
