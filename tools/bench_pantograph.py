@@ -76,7 +76,7 @@ def ask_compact(tr, rate: float) -> None:
 
 
 def measure(scene_path: str, rate: float, ticks: int, profile: bool = False,
-            frames: str = "compact") -> dict:
+            frames: str = "compact", host_latency_us: float | None = None) -> dict:
     """Run the board and the host; returns the board's report with the host's figures.
 
     Parameters
@@ -91,6 +91,8 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False,
         Add the leader's busy cycles by function.
     frames : {"compact", "full"}
         The session's STATE and FORCE frames.
+    host_latency_us : float, optional
+        The emulated host answers each STATE this long after its last byte [us].
 
     Returns
     -------
@@ -106,7 +108,8 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False,
         report = Path(tmp) / "board.json"
         prof = Path(tmp) / "profile.txt"
         cmd = pb.board_command(scene, 1e-8, report=str(report),
-                               profile=str(prof) if profile else None)
+                               profile=str(prof) if profile else None,
+                               host_latency_us=host_latency_us)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         lags = collections.Counter()
         try:
@@ -143,6 +146,29 @@ def measure(scene_path: str, rate: float, ticks: int, profile: bool = False,
     return out
 
 
+def host_slack(scene_path: str, rate: float, frames: str, ticks: int = 300) -> dict:
+    """The longest a host may take to answer (from the STATE's last byte leaving the leader
+    to its FORCE's first byte reaching it) with every tick at one tick of delay: bisected
+    to 1 us over the emulated host latency (lockstep: emulated cycles, load-independent).
+
+    Returns
+    -------
+    dict
+        ``frames``, ``rate_hz``, ``host_slack_us`` (-1 when even an instant answer misses
+        the slot: the delay is 2 at this rate), ``ticks``.
+    """
+    def ok(lat):
+        r = measure(scene_path, rate, ticks, frames=frames, host_latency_us=lat)
+        return r["delay"] == 1 and r["late"] == 0 and r["firmware"]["overrun"] == 0
+    if not ok(0.0):
+        return {"frames": frames, "rate_hz": rate, "host_slack_us": -1, "ticks": ticks}
+    lo, hi = 0.0, 1e6 / rate
+    while hi - lo > 1.0:
+        mid = round((lo + hi) / 2, 1)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return {"frames": frames, "rate_hz": rate, "host_slack_us": lo, "ticks": ticks}
+
+
 def main(argv=None) -> int:
     """Print the budget table (and write ``--json``); exit 1 when a tick was late or the
     delay is not one tick."""
@@ -154,6 +180,8 @@ def main(argv=None) -> int:
                    help="compact and/or full, comma-separated (default both)")
     p.add_argument("--json", metavar="FILE")
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--host-slack", action="store_true",
+                   help="also bisect the host's time to answer that keeps one tick of delay")
     args = p.parse_args(argv)
     rows = [measure(args.scene, float(r), args.ticks, args.profile, f)
             for f in args.frames.split(",") for r in args.rates.split(",")]
@@ -177,6 +205,13 @@ def main(argv=None) -> int:
             for name, c in r["profile"][:12]:
                 print(f"    {name:32s} {c / max(r['ticks'], 1):8.0f} cycles/tick "
                       f"{c / tot:6.1%}")
+    slack = []
+    if args.host_slack:
+        for f in args.frames.split(","):
+            for r in args.rates.split(","):
+                h = host_slack(args.scene, float(r), f)
+                slack.append(h)
+                print(f"host slack, {f} frames at {float(r):g} Hz: {h['host_slack_us']:g} us")
     if args.json:
         # paths as the command takes them in a clone (relative to it), not this machine's
         scene = Path(args.scene).resolve()
@@ -184,7 +219,8 @@ def main(argv=None) -> int:
         command = command_line("tools/bench_pantograph.py", argv,
                                prefix="PYTHONPATH=. python")
         Path(args.json).write_text(json.dumps({"command": command, "scene": scene,
-                                               "rows": rows}, indent=1) + "\n")
+                                               "rows": rows, "host_slack": slack},
+                                              indent=1) + "\n")
     return 1 if bad else 0
 
 

@@ -91,7 +91,8 @@ def _pantograph(scene):
 def board_command(scene, amplitude: float, *, report: str | None = None,
                   link: str | None = None, nack_after: int | None = None,
                   duration: float | None = None, profile: str | None = None,
-                  realtime: bool = False, spin_us: float | None = None) -> list:
+                  realtime: bool = False, spin_us: float | None = None,
+                  host_latency_us: float | None = None) -> list:
     """The ``pantograph_board`` command line for a 2-D pantograph scene.
 
     Parameters
@@ -120,6 +121,10 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         default :data:`SPIN_US`; 0: none, the bytes may then reach the UART up to 150 us
         after they came).
 
+    host_latency_us : float, optional
+        Lockstep: each FORCE reaches the leader's UART this long [us] of emulated time
+        after the STATE it answers left (an emulated host's answer time).
+
     Returns
     -------
     list of str
@@ -127,7 +132,8 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; a non-positive amplitude; a spin outside [0, 1e6].
+        Not a 2-D pantograph scene; a non-positive amplitude; a spin outside [0, 1e6]; a
+        host latency outside [0, 1e6] or given with ``realtime``.
     """
     kin = _pantograph(scene)
     if not (math.isfinite(amplitude) and amplitude > 0):
@@ -155,6 +161,12 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         if not (math.isfinite(spin) and 0 <= spin <= 1e6):
             raise ConfigError(f"must be in [0, 1e6] us, got {spin_us}", key="--spin-us")
         cmd += ["--realtime", "--spin-us", repr(spin)]
+    if host_latency_us is not None:
+        lat = float(host_latency_us)
+        if realtime or not (math.isfinite(lat) and 0 <= lat <= 1e6):
+            raise ConfigError(f"a lockstep host's latency in [0, 1e6] us, got {host_latency_us}",
+                              key="host_latency_us")
+        cmd += ["--host-latency-us", repr(lat)]
     if duration is not None:
         cmd += ["--duration", repr(float(duration))]
     return cmd

@@ -40,7 +40,10 @@
  * STOP it holds the handle where it is.
  *
  * Time. Lockstep (the default): after each armed STATE the emulated clock waits for the
- * host's FORCE answering it, so the wire's time is emulated and a slow host is never late.
+ * host's FORCE answering it, so the wire's time is emulated and a slow host is never late;
+ * --host-latency-us L hands each FORCE to the UART L us of emulated time after the STATE's
+ * last byte left (a host that answers in L us: tools/bench_pantograph.py --host-slack finds
+ * the largest L that keeps the delay at one tick, in emulated cycles, whatever the load).
  * --realtime locks the emulated clock (the leader's; the follower never more than FENCE
  * cycles from it) to the wall clock (CLOCK_MONOTONIC), as hapkit_board --realtime: the
  * cores run in chunks of 100 us of emulated time at most LEAD_NS ahead of the wall clock
@@ -117,10 +120,10 @@ static struct {
     long nack_after;
     const char *report, *link, *profile;
     int plant_test, realtime;
-    double spin_us;
+    double spin_us, host_latency_us;
 } opt = {{NULL, NULL}, 0.05, 0.05, 0.07, 0.07, 0.02, {2.26892802759263, 0.872664625997165},
          {2e-4, 0, 0, 2e-4}, {1e-3, 0, 0, 1e-3}, 0.0, 0.0, 1e-8, 5e-4, 0.0, -1, NULL, NULL, NULL, 0,
-         0, 0.0};
+         0, 0.0, 0.0};
 
 /* Real time (hapkit_board's rules): the emulated clock slips when it fell more than
  * SLIP_NS behind the wall clock, and runs at most LEAD_NS ahead of it (each microsecond of
@@ -724,6 +727,7 @@ static struct {
     size_t out_n;
     uint16_t fw_status;
     uint64_t tx_dropped, waits;
+    uint64_t state_cyc, feed_at; /* lockstep --host-latency-us: the STATE's end, the feed */
 } link_;
 
 static void flush_out(void)
@@ -764,6 +768,7 @@ static void on_fw_msg(const hp_msg_t *m)
             link_.await_host = 1;
             link_.await_seq = seq;
             link_.read_other = 0;
+            link_.state_cyc = core[LEAD]->cycle;
         }
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
@@ -830,6 +835,9 @@ static void on_host_msg(const hp_msg_t *m)
 
 static void feed_uart(void)
 {
+    if (core[LEAD]->cycle < link_.feed_at) {
+        return; /* lockstep --host-latency-us: the host's answer is not there yet */
+    }
     while (link_.xon && link_.in_tail != link_.in_head) {
         uint8_t b = link_.in_q[link_.in_tail];
         hp_msg_t m;
@@ -1054,7 +1062,7 @@ static void usage(void)
             "         [--joint-friction B11,B12,B21,B22] [--hand-mass KG] [--hand-damping NS_M]\n"
             "         [--amplitude M] [--substep S] [--nack-after N] [--duration S]\n"
             "         [--report FILE] [--link PATH] [--profile FILE] [--realtime]\n"
-            "         [--spin-us US]\n"
+            "         [--spin-us US] [--host-latency-us US (lockstep)]\n"
             "       pantograph_board --plant-test [the plant's options] < 'tau1 tau2 dt' lines\n");
     exit(2);
 }
@@ -1139,10 +1147,12 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--link")) opt.link = v;
         else if (!strcmp(a, "--profile")) opt.profile = v;
         else if (!strcmp(a, "--spin-us")) opt.spin_us = num(v, a);
+        else if (!strcmp(a, "--host-latency-us")) opt.host_latency_us = num(v, a);
         else usage();
     }
     if (!(opt.substep > 0) || !(opt.amplitude > 0) || !(opt.spin_us >= 0) ||
-        opt.spin_us > 1e6) {
+        opt.spin_us > 1e6 || !(opt.host_latency_us >= 0) || opt.host_latency_us > 1e6 ||
+        (opt.realtime && opt.host_latency_us > 0)) {
         usage();
     }
     if (opt.plant_test) {
@@ -1200,6 +1210,9 @@ int main(int argc, char **argv)
     master = board_open_pty(opt.link, "pantograph_board");
     while (!stop_signal) {
         uint64_t end = core[LEAD]->cycle + (win.open ? WINDOW_CHUNK : 1600u); /* 100 us */
+        if (link_.feed_at > core[LEAD]->cycle && link_.feed_at < end) {
+            end = link_.feed_at; /* the host's delayed answer is fed at its cycle */
+        }
         uint64_t t_a = wall_ns(), c_a = core[LEAD]->cycle, t_b;
         int pace;
         if (opt.duration > 0 && (double)core[LEAD]->cycle >= opt.duration * F_CPU_HZ) {
@@ -1263,6 +1276,11 @@ int main(int argc, char **argv)
                    !link_.read_stop && !link_.read_other && link_.host_present &&
                    !stop_signal) {
                 read_host(100);
+            }
+            if (opt.host_latency_us > 0) {
+                /* the host answers host_latency_us after the STATE's last byte */
+                link_.feed_at = link_.state_cyc +
+                                (uint64_t)(opt.host_latency_us * F_CPU_HZ * 1e-6 + 0.5);
             }
         }
         link_.await_host = 0;
