@@ -24,6 +24,10 @@ expected is refused)::
     planes:
       - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
          masses: [hand]}          # acts on the named masses (default: every moving one)
+    engine:                       # optional
+      precision: double           # double (float64, the default) | single (float32:
+                                  # twice the engine's speed on a mesh, 24-bit positions;
+                                  # docs/dimensions.md, 'Single precision')
     audio:                        # optional: the scene heard (hapsim simulate --audio)
       listen:                     # one WAV channel each, at rate_hz
         - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
@@ -73,10 +77,13 @@ from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.reader import LineContext, read_text
 
 __all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
-           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS",
+           "PRECISIONS"]
 
 TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
-            "audio")
+            "audio", "engine")
+ENGINE_KEYS = ("precision",)
+PRECISIONS = ("double", "single")
 LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
 AXES = ("x", "y", "z")
 MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
@@ -195,7 +202,8 @@ class ListenND:
 @dataclass(frozen=True)
 class SceneND:
     """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
-    points (a tuple of :class:`ListenND`) or None."""
+    points (a tuple of :class:`ListenND`) or None; ``precision`` the engine's floating
+    type, ``"double"`` (float64, default) or ``"single"`` (float32)."""
 
     dimension: int
     rate_hz: float
@@ -206,6 +214,7 @@ class SceneND:
     path: str = "<string>"
     integrator: str = "centred"
     audio: tuple | None = None
+    precision: str = "double"
 
     @property
     def period(self) -> float:
@@ -563,8 +572,14 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
     audio = _read_audio(r, doc, n, names) if "audio" in doc else None
+    precision = "double"
+    if "engine" in doc:
+        e = r.mapping(doc["engine"], "engine", r.line(doc, "engine"))
+        r.keys(e, ENGINE_KEYS, "engine")
+        precision = r.choice(e, "precision", "engine", PRECISIONS, default="double")
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
-                   planes=tuple(planes), device=device, path=path, audio=audio)
+                   planes=tuple(planes), device=device, path=path, audio=audio,
+                   precision=precision)
 
 
 def _read_audio(r: _Reader, doc, n: int, names) -> tuple:

@@ -4,8 +4,14 @@ out and scheduled for speed.
 Plain arrays and floats only; nothing here imports from the API layer (CONVENTIONS §3).
 Units SI.
 
-State (structure of arrays, float64, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D
-scene leaves the rows past its dimension at zero, where they stay):
+State (structure of arrays, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D scene
+leaves the rows past its dimension at zero, where they stay), float64 or, in single
+precision, float32: every kernel is written for either (no float64 literal in an
+expression, :func:`_zero`), numba compiles one version per type, and :func:`context`
+with :func:`run_context` / :func:`run_context32` name the arrays of each. In float64 the
+arithmetic is the same operations in the same order as before single precision existed
+(``x + x`` for ``2 x``: both exact), so double-precision results are unchanged bit for
+bit:
 
 ``x``, ``xp``, ``f`` (3, N)
     Positions at sample n and n - 1 [m], force accumulator [N] (zero between samples:
@@ -76,12 +82,13 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba.extending import overload
 
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
 
 __all__ = ["stripes", "schedule", "shared_params", "link_lengths", "step_nd", "run_nd",
-           "run_nd_listen", "context", "run_context", "BLOCK", "ROWS"]
+           "run_nd_listen", "context", "run_context", "run_context32", "BLOCK", "ROWS"]
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/pointers.py",)
@@ -263,6 +270,19 @@ def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
 _U = nb.uint64       # unsigned indices: no negative-index wraparound, so loops vectorise
 
 
+def _zero(v):
+    """A zero of ``v``'s floating type (compiled code only: a literal ``0.0`` is a
+    float64, which would promote a single-precision expression to double)."""
+    return 0.0
+
+
+@overload(_zero, inline="always")
+def _zero_typed(v):
+    if isinstance(v, nb.types.Float) and v.bitwidth == 32:
+        return lambda v: np.float32(0.0)
+    return lambda v: 0.0
+
+
 @_inline
 def _scatter(f, dim, a, b, c, W):
     """``f[d, a:a+c] -= W[d]``, ``f[d, b:b+c] += W[d]`` per live axis (two loops: no
@@ -295,7 +315,9 @@ def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
         ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln if ln > 0.0 else 0.0
+        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
+        if not ln > 0.0:
+            g = _zero(g)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -312,7 +334,9 @@ def _euclid_piece_shared(x, a, b, c, j0, k, z, rest, lprev, W):
         ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln if ln > 0.0 else 0.0
+        g = (k * (ln - rest) + z * (ln - lp)) / ln
+        if not ln > 0.0:
+            g = _zero(g)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -368,7 +392,7 @@ def _advance(x, xp, f, t2m, dim, m0, m1, port, port_f):
             port_f[d] = f[d, port]
     for d in range(dim):
         for i in range(m0, m1):
-            xn = 2.0 * x[d, i] - xp[d, i] + t2m[i] * f[d, i]
+            xn = x[d, i] + x[d, i] - xp[d, i] + t2m[i] * f[d, i]
             xp[d, i] = x[d, i]
             x[d, i] = xn
             f[d, i] = 0.0
@@ -518,7 +542,7 @@ CONTEXT_ARRAYS = (
 _CTX_HEAD = 4
 
 
-def context(dim, block, *arrays_and_port) -> np.ndarray:
+def context(dim, block, *arrays_and_port, dtype=np.float64) -> np.ndarray:
     """The int64 context of one :func:`run_context` call per step (module
     :mod:`hapsim.kernels.pointers`): the arguments of :func:`run_nd` after ``n``.
 
@@ -529,6 +553,10 @@ def context(dim, block, *arrays_and_port) -> np.ndarray:
     *arrays_and_port
         The arrays of :func:`step_nd` from ``x`` to ``p_z`` (:data:`CONTEXT_ARRAYS`), then
         ``port`` (int) and ``port_f``; kept alive and in place by the caller.
+    dtype : numpy dtype, optional
+        The floating type of the state and parameters (the arrays :data:`CONTEXT_ARRAYS`
+        lists as float64): ``np.float64`` (run by :func:`run_context`) or ``np.float32``
+        (single precision, run by :func:`run_context32`).
 
     Returns
     -------
@@ -548,10 +576,12 @@ def context(dim, block, *arrays_and_port) -> np.ndarray:
         raise ValueError(f"{len(arrays)} arrays given, {len(CONTEXT_ARRAYS)} expected")
     ctx = np.zeros(_CTX_HEAD + 3 * len(arrays), np.int64)
     ctx[:_CTX_HEAD] = (1, dim, block, port)
-    for i, (a, (name, dtype, ndim)) in enumerate(zip(arrays, CONTEXT_ARRAYS)):
+    if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+        raise ValueError(f"dtype must be float64 or float32, got {np.dtype(dtype)}")
+    for i, (a, (name, kind, ndim)) in enumerate(zip(arrays, CONTEXT_ARRAYS)):
         if a.ndim != ndim:
             raise ValueError(f"{name}: {ndim} dimensions expected, got shape {a.shape}")
-        ctx[_CTX_HEAD + 3 * i] = address(a, dtype)
+        ctx[_CTX_HEAD + 3 * i] = address(a, dtype if kind is np.float64 else kind)
         ctx[_CTX_HEAD + 3 * i + 1] = a.shape[0]
         ctx[_CTX_HEAD + 3 * i + 2] = a.shape[1] if ndim == 2 else 0
     return ctx
@@ -567,6 +597,18 @@ def _f1(c, i):
 def _f2(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
+
+
+@_inline
+def _s1(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1],), np.float32)
+
+
+@_inline
+def _s2(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float32)
 
 
 @_inline
@@ -605,3 +647,22 @@ def run_context(ctx):
            _f2(ctx, 20), _i1(ctx, 21), _i1(ctx, 22), _f1(ctx, 23), _f1(ctx, 24),
            _f1(ctx, 25), _f1(ctx, 26), _i1(ctx, 27), _f2(ctx, 28), _f1(ctx, 29),
            _f1(ctx, 30), _f1(ctx, 31), ctx[3], _f1(ctx, 32))
+
+
+@_jit
+def run_context32(ctx):
+    """:func:`run_context` on a single-precision context (``context(..., dtype=
+    np.float32)``: the state and parameters float32, the same kernels compiled for them).
+
+    Parameters
+    ----------
+    ctx : ndarray of int64
+        From :func:`context` with ``dtype=np.float32`` (its arrays alive and in place).
+    """
+    run_nd(ctx[0], ctx[1], ctx[2], _s2(ctx, 0), _s2(ctx, 1), _s2(ctx, 2), _s1(ctx, 3),
+           _i2(ctx, 4), _i1(ctx, 5), _s1(ctx, 6), _s1(ctx, 7), _i2(ctx, 8), _i1(ctx, 9),
+           _s1(ctx, 10), _s1(ctx, 11), _s1(ctx, 12), _s1(ctx, 13), _b1(ctx, 14),
+           _s1(ctx, 15), _s1(ctx, 16), _s1(ctx, 17), _i1(ctx, 18), _i1(ctx, 19),
+           _s2(ctx, 20), _i1(ctx, 21), _i1(ctx, 22), _s1(ctx, 23), _s1(ctx, 24),
+           _s1(ctx, 25), _s1(ctx, 26), _i1(ctx, 27), _s2(ctx, 28), _s1(ctx, 29),
+           _s1(ctx, 30), _s1(ctx, 31), ctx[3], _s1(ctx, 32))
