@@ -70,6 +70,7 @@ sys.path.insert(0, str(REPO / "tests"))
 from hapsim.engine import Engine  # noqa: E402
 from hapsim.kernels import cordis  # noqa: E402
 from hapsim.scene import Device, Link, Mass, Scene  # noqa: E402
+from provenance import command_line  # noqa: E402  (tools/, beside this file)
 
 RATE = 1000.0
 T = 1.0 / RATE
@@ -531,8 +532,7 @@ def audio_main(a) -> int:
     the shipped string scene live on a dummy JACK server."""
     repeats = 3 if a.quick else 5
     deadline = BLOCK / AUDIO_RATE
-    print("command:", " ".join([Path(sys.executable).name, "tools/bench_engine.py"]
-                               + (a.argv or [])))
+    print("command:", command_line("tools/bench_engine.py", a.argv))
     print(f"host: {os.cpu_count()} cpus, load {os.getloadavg()[0]:.2f} (shared machine: the "
           f"figures are thread CPU time, medians of {repeats})")
     nmax, rows = largest_realtime(repeats)
@@ -609,8 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     faust_sizes = [100] if a.quick else [10, 100, 300]
     have_faust = shutil.which("faust") is not None and shutil.which("g++") is not None
 
-    print("command:", " ".join([Path(sys.executable).name, "tools/bench_engine.py"]
-                               + (argv if argv is not None else sys.argv[1:])))
+    print("command:", command_line("tools/bench_engine.py", argv))
     print(f"host: {os.cpu_count()} cpus, load {os.getloadavg()[0]:.2f}; numba kernel "
           f"run_sd_contact; medians of {repeats} repeats of ~{budget:.0e} mass-samples")
     check()

@@ -44,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 
 import firmware_protocol as fp  # noqa: E402
 from hapsim.daemon import board  # noqa: E402
+from provenance import portable_path  # noqa: E402  (tools/, beside this file)
 
 
 BENCH_ELF = board.FIRMWARE_DIR / "hapkit_bench.elf"  # without the firmware's 1250 Hz limit
@@ -519,7 +520,7 @@ def realtime(runs: int, duration: float, conditions: list, rate: float = 1000.0,
     if json_path:
         cmd = f"PYTHONPATH=. python tools/bench_firmware.py --realtime {runs} --duration " \
               f"{duration:g} --rt-rate {rate:g} --conditions {' '.join(conditions)} " \
-              f"--frames {frames} --spin-us {spin_us:g} --json {json_path}"
+              f"--frames {frames} --spin-us {spin_us:g} --json {portable_path(json_path)}"
         Path(json_path).write_text(json.dumps({"command": cmd, "conditions": out},
                                               indent=1) + "\n")
     return 0 if all(c["met"] for c in out) else 1

@@ -74,6 +74,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import firmware_protocol as fp  # noqa: E402
+from provenance import command_line  # noqa: E402  (tools/, beside this file)
 from hapsim.daemon import loop as loop_mod  # noqa: E402
 from hapsim.daemon.mock import MockDevice  # noqa: E402
 from hapsim.daemon.telemetry import Telemetry  # noqa: E402
@@ -290,7 +291,7 @@ def pty_main(args) -> int:
     exe = build_device(tmp)
     warm_up(Engine(load_scene(WALL)))     # as hapsim run does before its loop
     kinds = ("floor", "python", "compiled")
-    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print("command: " + command_line("tools/bench_loop.py", args.argv))
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs; device: C (cc -O2), "
           f"{args.seconds:g} s per run and loop")
     res = {"seconds": args.seconds, "rates": {}, "startup_s": {}}
@@ -459,6 +460,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ref", help="git revision whose loop.py is timed alongside")
     ap.add_argument("--json", help="also write the figures to this file")
     args = ap.parse_args(argv)
+    args.argv = argv
     if args.seconds is None:
         args.seconds = 3.0 if args.quick else 30.0
     if not args.sim:
@@ -495,7 +497,7 @@ def main(argv=None) -> int:
                 keep((name, clock), time_loop(mod, scene, args.n, hc))
 
     rt, ps = best["round trip"], best["port_step"]
-    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print("command: " + command_line("tools/bench_loop.py", args.argv))
     print(f"python {sys.version.split()[0]}, N = {args.n} samples, best of {args.repeat}")
     print(f"{'what':26} {'us/sample':>10} {'x rt':>7} {'own us':>8}")
     print(f"{'round trip (baseline)':26} {rt:10.3f} {1.0:7.3f} {'':>8}")

@@ -39,6 +39,7 @@ from hapsim.daemon.fastloop import (_CRC, _POLLIN, _c_poll, _c_read, _c_write,  
 from hapsim.daemon.realtime import RealtimePriority  # noqa: E402
 from hapsim.daemon.transport import EmbeddedMock  # noqa: E402
 from hapsim.scene import Device, Excitation  # noqa: E402
+from provenance import command_line  # noqa: E402  (tools/, beside this file)
 
 
 @_jit
@@ -135,7 +136,7 @@ def main(argv=None) -> int:
                    np.zeros(1), np.zeros(8, dtype=np.uint8), _CRC,
                    np.zeros(64, dtype=np.uint8), np.zeros(2, dtype=np.int32),
                    np.zeros(2, dtype=np.int64))
-    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print("command: " + command_line("tools/bench_mock.py", argv))
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.seconds:g} s per run, "
           f"CONFIG {args.settle:g} s after HELLO")

@@ -34,6 +34,7 @@ import firmware_protocol as fp  # noqa: E402
 from hapsim.daemon import pantograph_board as pb  # noqa: E402
 from hapsim.daemon.transport import SerialTransport  # noqa: E402
 from hapsim.scene_nd import load_scene_nd  # noqa: E402
+from provenance import command_line  # noqa: E402  (tools/, beside this file)
 
 #: The host's joint-space spring [N m/rad].
 SPRING = 5.0
@@ -153,8 +154,8 @@ def main(argv=None) -> int:
         # paths as the command takes them in a clone (relative to it), not this machine's
         scene = Path(args.scene).resolve()
         scene = str(scene.relative_to(ROOT)) if scene.is_relative_to(ROOT) else args.scene
-        command = "PYTHONPATH=. python tools/bench_pantograph.py " + " ".join(
-            argv if argv is not None else sys.argv[1:])
+        command = command_line("tools/bench_pantograph.py", argv,
+                               prefix="PYTHONPATH=. python")
         Path(args.json).write_text(json.dumps({"command": command, "scene": scene,
                                                "rows": rows}, indent=1) + "\n")
     return 1 if bad else 0

@@ -21,6 +21,7 @@ import sys
 import timeit
 
 import firmware_protocol as fp
+from provenance import command_line  # tools/, beside this file
 
 
 def best_us(stmt, number: int, repeat: int) -> float:
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         ("FORCE", "encode only", lambda: enc(force), "FORCE"),
         ("FORCE", "decode_frame only", lambda: decf(f_frame), "FORCE"),
     ]
-    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print("command: " + command_line("tools/bench_protocol.py", argv))
     print(f"python {sys.version.split()[0]}, axes={n}, frames: STATE {len(s_frame)} B, "
           f"FORCE {len(f_frame)} B, best of {args.repeat} x {args.number}")
     print(f"{'msg':6} {'operation':32} {'us':>8} {'of 1 ms':>9} {'x baseline':>11}")

@@ -38,6 +38,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from provenance import command_line, scrub  # tools/, beside this file
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -79,7 +81,8 @@ def startup_seconds(repo: Path, cache: Path, cold: bool) -> dict:
                          f"{chr(10).join(ln for _, ln in lines)[-800:]}") from None
     return {"exit": p.returncode, "stop": loop.get("stop_reason"),
             "first_line_s": lines[0][0] if lines else None,
-            "first_line": lines[0][1] if lines else None,
+            # the cache directory is this run's temporary one: named, not written out
+            "first_line": scrub(lines[0][1], {str(cache): "$NUMBA_CACHE_DIR"}) if lines else None,
             "armed_s": loop["armed_monotonic_s"] - t0,
             "first_sample_s": loop.get("first_sample_s"), "wall_s": wall}
 
@@ -115,7 +118,7 @@ def main(argv=None) -> int:
     trees = {"this": REPO}
     if args.baseline:
         trees[args.baseline] = _tree(args.baseline, tmp)
-    command = " ".join([Path(sys.executable).name, *sys.argv])
+    command = command_line("tools/bench_startup.py", argv)
     load_before = list(os.getloadavg())
     print("command: " + command)
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, load average "

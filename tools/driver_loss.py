@@ -29,6 +29,8 @@ import json
 import os
 import sys
 
+from provenance import command_line  # tools/, beside this file
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="driver_loss")
@@ -81,8 +83,7 @@ def main(argv=None) -> int:
                       flush=True)
     if a.json is None:
         return 0
-    out = {"command": "python tools/driver_loss.py " + " ".join(argv if argv is not None
-                                                               else sys.argv[1:]),
+    out = {"command": command_line("tools/driver_loss.py", argv),
            "faults": {"drop_tx": a.drop_tx, "drop_rx": a.drop_rx,
                       "corrupt_tx": a.corrupt_tx},
            "seeds": a.seeds, "load_before": load_before, "load_after": _load(),

@@ -29,6 +29,8 @@ import json
 import sys
 import types
 
+from provenance import command_line  # tools/, beside this file
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="firefader_silence")
@@ -89,8 +91,7 @@ def main(argv=None) -> int:
                       f"{row['blind_within']}", flush=True)
     if a.json is None:
         return 0
-    out = {"command": "python tools/firefader_silence.py " + " ".join(
-               argv if argv is not None else sys.argv[1:]),
+    out = {"command": command_line("tools/firefader_silence.py", argv),
            "scene": "configs/firefader.yaml", "n": a.n, "runs": rows,
            "summary": summarize(rows)}
     if a.json == "-":

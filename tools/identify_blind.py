@@ -35,6 +35,8 @@ import time
 
 import numpy as np
 
+from provenance import command_line  # tools/, beside this file
+
 QUANTITIES = ("m", "b0", "fc+", "fc-", "d", "q", "noise")
 
 
@@ -182,8 +184,7 @@ def main(argv=None) -> int:
                "late_ticks": sum(((r["loop"].get("account") or {}).get("late") or 0)
                                  for r in rows),
                "wall_s": time.time() - t0,
-               "command": "python tools/identify_blind.py " + " ".join(
-                   sys.argv[1:] if argv is None else argv)}
+               "command": command_line("tools/identify_blind.py", argv)}
     print("coverage: " + ", ".join(f"{q} {v * 100:.0f} %" for q, v in cover.items()))
     print(f"exit codes {summary['exit_codes']}, tracebacks {summary['tracebacks']}, "
           f"late ticks accounted {summary['late_ticks']}, {summary['wall_s']:.0f} s")

@@ -35,6 +35,8 @@ import subprocess
 import sys
 import time
 
+from provenance import command_line  # tools/, beside this file
+
 
 def _row(kind: str, i: int, load: float, r: subprocess.CompletedProcess) -> dict:
     """One run's row from ``hapsim run --json``'s report."""
@@ -130,7 +132,7 @@ def run_firmware(a, extra, tel_dir) -> list:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    cmd = "python tools/run_loaded.py " + " ".join(argv)
+    cmd = command_line("tools/run_loaded.py", argv)
     extra = []
     if "--" in argv:
         i = argv.index("--")

@@ -42,6 +42,8 @@ import time
 
 import numpy as np
 
+from provenance import portable_path  # tools/, beside this file
+
 #: Faults of the soak: wire faults per frame in both directions (device -> host, and
 #: host -> device as ``rx.*``), device faults per tick (1 kHz).
 DEFAULT_FAULTS = ("drop=0.002,corrupt=0.001,garbage=0.0005,dup=0.0005,reorder=0.0005,"
@@ -251,7 +253,9 @@ def main(argv=None) -> int:
                                                                                 error),
                              "lost": lp.get("lost"), "recovered": lp.get("recovered"),
                              "late": lp.get("late"), "skipped": lp.get("skipped"),
-                             "telemetry": tel_path})
+                             # the journal's path as a clone reads it; None when it was
+                             # this run's temporary directory (--telemetry not given)
+                             "telemetry": portable_path(tel_path) if args.telemetry else None})
             if not args.keep_going or lp.get("stop_reason") == "duration" \
                     or duration - (time.monotonic() - t0) < 10.0:
                 break
@@ -265,7 +269,7 @@ def main(argv=None) -> int:
     cols = load(tel_path, info=info)
     f = cols["force"]
     out = {"git_commit": rev["commit"], "git_dirty": rev["dirty"],
-           "scene": args.scene or "built-in wall with a moving hand",
+           "scene": portable_path(args.scene) if args.scene else "built-in wall with a moving hand",
            "minutes": args.minutes, "wall_s": round(wall, 1), "faults_spec": args.faults,
            "seed": args.seed, "error": error, "telemetry_rows": int(cols["seq"].size),
            "stress_processes": args.stress, "loop": args.loop,

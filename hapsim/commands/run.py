@@ -26,7 +26,16 @@ this (K, B) and, for links given as 'target: {k, b}', beside what the scene aske
 Without --port, the embedded mock device runs in a child process behind a real
 pseudo-terminal (real-time: it ticks on the clock; --lockstep: one period per FORCE,
 deterministic, measured = predicted to round-off). With --port, the same daemon drives
-hardware (or a 'hapsim mock' started elsewhere)."""
+hardware (or a 'hapsim mock' started elsewhere).
+
+A 2-D or 3-D scene (dimension: 2 or 3; docs/dimensions.md) is measured as a matrix: 2n
+free responses of the handle (displaced by --amplitude along each axis, then moving along
+each; minus the response from rest) give the felt stiffness and damping MATRICES, printed
+beside check's prediction with their largest difference, the linearisation bound at that
+amplitude and the verdict (within, differs, or not measurable). --lockstep runs it
+in-process, exactly; without it the n-axis mock (the pantograph's or delta's joint-space
+dynamics) serves it in real time, late ticks accounted per axis; --driver haply speaks the
+Haply 2DIY's bytes to its emulated board on a pantograph scene."""
 
 _EPILOG = """\
 what the numbers mean:
@@ -84,6 +93,9 @@ examples:
   hapsim run configs/wall.yaml
   hapsim run configs/firefader.yaml --driver firefader
   hapsim run configs/felt_wall.yaml --lockstep --json
+  hapsim run configs/pantograph_wall.yaml --lockstep       2-D: felt matrices, measured = predicted
+  hapsim run configs/delta_sphere.yaml                     3-D, the n-axis mock in real time
+  hapsim run configs/pantograph_wall.yaml --driver haply   the Haply 2DIY's bytes (emulated board)
   hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
   hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
   hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
