@@ -78,7 +78,7 @@ from hapsim.scene.reader import LineContext, read_text
 
 __all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
            "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS",
-           "PRECISIONS"]
+           "PRECISIONS", "ENGINE_KEYS"]
 
 TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
             "audio", "engine")
