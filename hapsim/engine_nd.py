@@ -42,13 +42,16 @@ class EngineND:
         The floating type of the state and the parameters (float64 or float32); default
         the scene's ``engine.precision`` (itself ``double`` by default). Single precision
         is twice the vector lanes and half the bytes (the 44.1 kHz mesh target is met
-        only there, docs/dimensions.md) and rounds the positions to 24 bits: its
-        accuracy is stated and measured in docs/dimensions.md, 'Single precision'.
+        only there, docs/dimensions.md) and rounds the positions to 24 bits; it keeps
+        the scheme's velocity form (the state's second row array is the increment
+        ``x[n] - x[n-1]``, :mod:`hapsim.kernels.nd`): its accuracy is stated and measured
+        in docs/dimensions.md, 'Single precision'.
 
     Raises
     ------
     ConfigError
-        ``precision`` not one of :data:`PRECISIONS` (key ``engine.precision``).
+        ``precision`` not one of :data:`PRECISIONS`, or single precision for a scene
+        with a port (key ``engine.precision``).
 
     Notes
     -----
@@ -65,6 +68,10 @@ class EngineND:
         if precision not in PRECISIONS:
             raise ConfigError(f"unknown precision {precision!r}; valid choices: "
                               f"{', '.join(PRECISIONS)}", key="engine.precision")
+        if precision == "single" and scene.port is not None:
+            raise ConfigError("single precision is for scenes without a port (a felt "
+                              "scene runs the double-precision engine, exact to "
+                              "round-off)", key="engine.precision")
         #: ``"double"`` or ``"single"``.
         self.precision = precision
         #: The floating type of the state and parameters.
@@ -133,6 +140,8 @@ class EngineND:
                                        self.eu_rest)
         self.W = np.zeros((ROWS, block))
         if self.dtype is not np.float64:      # the values above, rounded once
+            # the velocity form: the second row array holds x[n] - x[n-1] (kernels)
+            self._XP = self._X - self._XP
             for name in _FLOAT_ARRAYS:
                 setattr(self, name, getattr(self, name).astype(self.dtype))
             self.eu_shared = tuple(a.astype(self.dtype) if a.dtype == np.float64 else a
@@ -160,8 +169,16 @@ class EngineND:
     @property
     def xp(self) -> np.ndarray:
         """Positions at the previous sample [m], shape (dim, N), in the engine's
-        precision (a view: writable)."""
-        return self._XP[:self.dim]
+        precision (in double precision a view, writable; in single precision, whose
+        state holds the last increment ``x[n] - x[n-1]`` instead, a copy).
+
+        Returns
+        -------
+        ndarray, shape (dim, N)
+        """
+        if self.dtype is np.float64:
+            return self._XP[:self.dim]
+        return self._X[:self.dim] - self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` samples [-] (no allocation: one compiled call with one argument,

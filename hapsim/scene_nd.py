@@ -577,6 +577,10 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
         e = r.mapping(doc["engine"], "engine", r.line(doc, "engine"))
         r.keys(e, ENGINE_KEYS, "engine")
         precision = r.choice(e, "precision", "engine", PRECISIONS, default="double")
+        if precision == "single" and ports:
+            raise r.error("single precision is for scenes without a port: a felt scene "
+                          "runs the double-precision engine (exact to round-off)",
+                          r.line(e, "precision"), "engine.precision")
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
                    planes=tuple(planes), device=device, path=path, audio=audio,
                    precision=precision)

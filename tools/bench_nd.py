@@ -171,6 +171,8 @@ class Case:
                     np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
                     np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
+        if dtype is not np.float64:   # single precision's velocity form: xp holds x - xp
+            self.hap = self.hap[:3] + (np.zeros((3, self.N)),) + self.hap[4:]
         self.hap = tuple(a.astype(dtype) if isinstance(a, np.ndarray) and
                          a.dtype == np.float64 else a for a in self.hap)
         self.stripes = table.shape[0]
