@@ -130,6 +130,17 @@ class EngineND:
         self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
         self.lin_pieces, self.lin_ptr, lo = pack(lin)
         self.eu_pieces, self.eu_ptr, eo = pack(eu)
+        # where each named element's parameters live (cells()): slot of each link
+        self._slot = {}
+        for links, order, kind in ((lin, lo, "linear"), (eu, eo, "euclid")):
+            for j, i in enumerate(order):
+                if i >= 0:
+                    self._slot[links[i].name] = (kind, j)
+        for j, lk in enumerate(con):
+            self._slot[lk.name] = ("contact", j)
+        self._pairs = {}
+        for j, (pl, _) in enumerate(pairs):
+            self._pairs.setdefault(pl.name, []).append(j)
         self.lin_k = slot(lo, [lk.stiffness for lk in lin])
         self.lin_z = slot(lo, [lk.damping / T for lk in lin])
         self.eu_k = slot(eo, [lk.stiffness for lk in eu])
@@ -159,6 +170,58 @@ class EngineND:
             self.c_i2, self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass,
             self.p_normal, self.p_offset, self.p_k, self.p_z,
             -1 if self.port is None else self.port, self.port_f, dtype=self.dtype)
+
+    @property
+    def context(self) -> np.ndarray:
+        """The int64 context of the engine's step (:func:`hapsim.kernels.nd.context`),
+        for compiled code that steps it: set slot 0 to the samples and call
+        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does)."""
+        return self._ctx
+
+    def cells(self, name: str) -> dict:
+        """Where the running engine reads a link's, a plane's or a mass's parameters, so
+        that a live change can write them between (or within compiled) samples.
+
+        A Euclidean link in a piece whose links shared one ``(K, B, rest)``
+        (:func:`hapsim.kernels.nd.shared_params`) makes its piece read per-link values from
+        now on (the same forces: the per-link arrays hold the same numbers).
+
+        Parameters
+        ----------
+        name : str
+            A link's or plane's name (``"stiffness"`` and ``"damping"`` cells) or a moving
+            mass's (``"mass"``).
+
+        Returns
+        -------
+        dict
+            ``{"stiffness": [(array, index), ...], "damping": [...]}`` (the cells hold
+            ``K`` [N/m] and ``B / T`` [N/m]; a plane has one per mass it acts on) or
+            ``{"mass": [(t2m, index)]}`` (the cell holds ``T^2 / m`` [s^2/kg]).
+
+        Raises
+        ------
+        KeyError
+            No link, plane or moving mass of that name.
+        """
+        if name in self._slot:
+            kind, j = self._slot[name]
+            if kind == "contact":
+                return {"stiffness": [(self.c_k, j)], "damping": [(self.c_z, j)]}
+            if kind == "euclid":
+                sh = self.eu_shared[0]
+                for r, (_, _, c, j0) in enumerate(self.eu_pieces):
+                    if j0 <= j < j0 + c:
+                        sh[r] = False
+                return {"stiffness": [(self.eu_k, j)], "damping": [(self.eu_z, j)]}
+            return {"stiffness": [(self.lin_k, j)], "damping": [(self.lin_z, j)]}
+        if name in self._pairs:
+            js = self._pairs[name]
+            return {"stiffness": [(self.p_k, j) for j in js],
+                    "damping": [(self.p_z, j) for j in js]}
+        if name in self.names and self.t2m[self.names.index(name)] > 0:
+            return {"mass": [(self.t2m, self.names.index(name))]}
+        raise KeyError(name)
 
     @property
     def x(self) -> np.ndarray:

@@ -41,7 +41,8 @@ expected is refused)::
       delay: 1                    # [samples]
       hold: zoh                   # the only one in n-D
     # a kinematic device instead: kind: pantograph (n = 2) or delta (n = 3), geometry: a
-    # preset (haply, falcon), joints: the operating point [deg], joint_inertia [kg m^2]
+    # preset (haply, falcon) or, for a pantograph, its lengths as numbers
+    # {l1: 0.05, l2: 0.05, L1: 0.07, L2: 0.07, d: 0.02} [m], joints: the operating point [deg], joint_inertia [kg m^2]
     # and joint_friction [N m s/rad] (vectors or matrices), hand_mass [kg] and
     # hand_damping [N s/m] (isotropic, default 0); the handle rests at the forward
     # kinematics of the joints.
@@ -69,6 +70,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -98,6 +100,9 @@ DEVICE_KEYS = {"cartesian": ("kind", "mass", "friction", "position", "delay", "h
                "delta": ("kind", "geometry", "joints", "joint_inertia", "joint_friction",
                          "hand_mass", "hand_damping", "delay", "hold")}
 DEVICE_DOF = {"pantograph": 2, "delta": 3}
+#: A pantograph's lengths given as numbers (``geometry: {l1: .., l2: .., L1: .., L2: ..,
+#: d: ..}`` [m]: :class:`hapsim.kinematics.PantographGeometry`).
+PANTOGRAPH_GEOMETRY_KEYS = ("l1", "l2", "L1", "L2", "d")
 
 
 @dataclass(frozen=True)
@@ -164,8 +169,8 @@ class DeviceND:
         ``"zoh"``.
     joints : ndarray or None
         Operating point [rad] of a kinematic device.
-    geometry : str or None
-        Its preset.
+    geometry : str, hapsim.kinematics.PantographGeometry or None
+        Its preset's name, or a pantograph's lengths given as numbers.
     joint_inertia, joint_friction : ndarray, shape (n, n), or None
         A kinematic device's joint-space inertia [kg m^2] and friction [N m s/rad].
     hand_mass, hand_damping : float
@@ -179,7 +184,7 @@ class DeviceND:
     delay: int
     hold: str
     joints: np.ndarray | None = None
-    geometry: str | None = None
+    geometry: Any = None
     joint_inertia: np.ndarray | None = None
     joint_friction: np.ndarray | None = None
     hand_mass: float = 0.0
@@ -617,6 +622,34 @@ def _read_audio(r: _Reader, doc, n: int, names) -> tuple:
     return tuple(out)
 
 
+def _read_geometry(r: _Reader, d, key: str, kind: str, presets: dict):
+    """A kinematic device's ``geometry``: a preset's name (the default: the first
+    preset), or for a pantograph a mapping of its five lengths [m]
+    (:data:`PANTOGRAPH_GEOMETRY_KEYS`; ``l1, l2, L1, L2`` > 0, ``d`` >= 0), returned as a
+    :class:`hapsim.kinematics.PantographGeometry`. ConfigError naming the file, the line,
+    the key (``device.geometry`` or ``device.geometry.l1``) and the valid forms."""
+    from hapsim.kinematics import PantographGeometry
+    if "geometry" not in d:
+        return next(iter(presets))
+    v = d["geometry"]
+    where = f"{key}.geometry"
+    line = r.line(d, "geometry")
+    names = ", ".join(presets)
+    forms = (f"a preset ({names}) or a mapping of the five lengths "
+             "{l1, l2, L1, L2, d} [m]" if kind == "pantograph" else f"a preset ({names})")
+    if isinstance(v, str):
+        if v not in presets:
+            raise r.error(f"unknown value {show(v)}; valid forms: {forms}", line, where)
+        return v
+    if kind != "pantograph" or not isinstance(v, dict):
+        got = type_name(v) + ("" if v is None else f" {show(v)}")
+        raise r.error(f"must be {forms}, got {got}", line, where)
+    r.keys(v, PANTOGRAPH_GEOMETRY_KEYS, where, required=PANTOGRAPH_GEOMETRY_KEYS)
+    vals = {k: r.number(v, k, where, minimum=0.0, strict=(k != "d"), unit="m")
+            for k in PANTOGRAPH_GEOMETRY_KEYS}
+    return PantographGeometry(**vals)
+
+
 def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     key = "device"
     d = r.mapping(doc["device"], key, r.line(doc, "device"))
@@ -637,7 +670,7 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     from hapsim.errors import KinematicsError
     from hapsim.kinematics import DELTA_PRESETS, PANTOGRAPH_PRESETS, device as make
     presets = PANTOGRAPH_PRESETS if kind == "pantograph" else DELTA_PRESETS
-    geometry = r.choice(d, "geometry", key, tuple(presets), default=next(iter(presets)))
+    geometry = _read_geometry(r, d, key, kind, presets)
     q = np.radians(r.vector(d, "joints", key, n, unit="deg"))
     Mq = r.matrix(d, "joint_inertia", key, n, None, "kg m^2", definite="positive")
     Bq = r.matrix(d, "joint_friction", key, n, np.zeros((n, n)), "N m s/rad",
@@ -647,11 +680,20 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     dev = make(kind, geometry)
     try:
         from hapsim.analysis.ths_nd import LoopModelND
-        loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
-                                       rate_hz=1.0, delay=0)
+        with np.errstate(over="ignore", invalid="ignore"):   # refused below when not finite
+            loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                           rate_hz=1.0, delay=0)
         pos = dev.forward(q)
-    except KinematicsError as exc:
-        raise r.error(exc.reason, r.line(d, "joints"), f"{key}.joints") from None
+    except (KinematicsError, ConfigError) as exc:
+        # a configuration the kinematics refuse, or one so near a singularity that the
+        # Cartesian mass is not finite (e.g. a link of 1e-300 m)
+        given = ("" if isinstance(geometry, str) else " with the geometry given ("
+                 + ", ".join(f"{k} = {getattr(geometry, k):g}" for k in
+                             PANTOGRAPH_GEOMETRY_KEYS) + " m)")
+        what = exc.reason if isinstance(exc, KinematicsError) else (
+            f"the device's Cartesian mass at these joints is not usable ({exc.key}: "
+            f"{exc.reason}): too near a singularity")
+        raise r.error(what + given, r.line(d, "joints"), f"{key}.joints") from None
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
                     geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
                     hand_damping=bh)

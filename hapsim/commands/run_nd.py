@@ -91,9 +91,17 @@ def run_nd(args) -> int:
     from hapsim.progress import Progress
     _refuse_options(args)
     driver = getattr(args, "driver", None)
+    if driver == "falcon":
+        from hapsim.commands.run_falcon import run_falcon_command
+        return run_falcon_command(args)
+    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
+        if getattr(args, attr, None) is not None:
+            raise ConfigError(f"{flag} goes with --driver falcon (a delta scene on the "
+                              "Novint Falcon)", key=flag)
     if driver not in (None, "haply"):
         raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
-                          f"the Haply 2DIY), not {driver!r}", key="--driver")
+                          f"the Haply 2DIY) or --driver falcon (a delta scene, the Novint "
+                          f"Falcon), not {driver!r}", key="--driver")
     if driver == "haply":
         return _run_haply2(args)
     a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
@@ -202,12 +210,46 @@ def run_nd(args) -> int:
               "N m: half a PWM step), first-order worst case through the loop and the fit: "
               f"k {wire['felt_stiffness']:.2e}, b {wire['felt_damping']:.2e}; one count at "
               f"the handle {wire['quantum_m']:.2e} m", file=o)
-        if v["uncertainty"] is not None:
-            u = v["uncertainty"]
-            print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
-                  f"b {u['felt_damping']:.2e}", file=o)
+    print_statements(v, o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
+
+
+def print_statements(v: dict, o) -> None:
+    """Print a verdict's statements (:func:`hapsim.lockstep_nd.felt_verdict`), one a line:
+    the quantity (a felt matrix as a whole, or along a principal direction: predicted and
+    measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
+    linearisation bound plus the wire's term, relative), and what it says.
+
+    Parameters
+    ----------
+    v : dict
+        The verdict, with ``statements``.
+    o : file
+        Where to print.
+    """
+    st = v.get("statements") or []
+    if not st:
+        return
+    print("  statements (relative: measured - predicted against the stated uncertainty = "
+          "linearisation bound + the wire's term):", file=o)
+    unit = {"felt_stiffness": "N/m", "felt_damping": "N s/m"}
+
+    def e(x):
+        return "-" if x is None else f"{x:.2e}"
+    for s in st:
+        head = s["name"]
+        if s["direction"] is not None:
+            head += (f": predicted {s['predicted']:.6g}, measured {s['measured']:.6g} "
+                     f"{unit[s['quantity']]}")
+        terms = f"lin {e(s['linearisation'])}" + (f" + wire {e(s['wire'])}"
+                                                   if s["wire"] is not None else "")
+        if s["verdict"] == "not measurable":
+            print(f"    {head}: not measurable ({s['reason']})", file=o)
+        else:
+            print(f"    {head}: {s['verdict']} (deviation {e(s['deviation'])} "
+                  + ("<=" if s["within"] else ">") + f" {e(s['uncertainty'])} = {terms})",
+                  file=o)
 
 
 def _measure_over_port(args, scene, a: float, n: int):
@@ -402,7 +444,8 @@ def _run_haply2(args) -> int:
                      "felt_damping": num(wire["felt_damping"]),
                      "reading_bound_rad": wire["reading_bound_rad"],
                      "torque_rel": wire["torque_rel"]},
-            "uncertainty": res["uncertainty"], "verdict": res["verdict"],
+            "uncertainty": res["uncertainty"], "statements": res["statements"],
+            "not_stated": res["not_stated"], "verdict": res["verdict"],
             "within": res["within"], "reason": res["reason"], "clamped": res["clamped"],
             "quantum": res["quantum"], "quantum_real_encoders": real,
             "records": res["records"], "samples": res["samples"]}))
@@ -442,10 +485,7 @@ def _run_haply2(args) -> int:
               + f", first-order worst case through the loop and the fit: k "
               f"{wire['felt_stiffness']:.2e}, "
               f"b {wire['felt_damping']:.2e}", file=o)
-    if res["uncertainty"] is not None:
-        u = res["uncertainty"]
-        print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
-              f"b {u['felt_damping']:.2e}", file=o)
+    print_statements(res, o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
     print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "

@@ -300,7 +300,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
-    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact),
+    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact;
+    ``forward_jacobian`` from the last position),
     the n-D engine's force on the port, the leg torques ``J(q)^T F`` sent as commands
     (:func:`hapsim.drivers.falcon.torque_command`, in libnifalcon's unit taken as N m). A
     packet that does not come back (lost or corrupted on either way: both sides realign on
@@ -358,7 +359,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             else:
                 q = np.radians([theta_deg(e) for e in enc])
                 try:
-                    x, J = kin.forward(q), kin.jacobian(q)
+                    # from the last position: Newton's few steps, not a fresh search
+                    x, J = kin.forward_jacobian(q, x)
                     ok = True
                     joints[k], pos[k] = q, x
                 except ConfigError:

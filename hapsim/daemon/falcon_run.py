@@ -7,7 +7,9 @@ the emulated one (:func:`emulated_falcon`: :class:`hapsim.daemon.falcon_device.F
 behind an emulated FT232R, :mod:`hapsim.daemon.ftdi_usb`, under the same pyftdi code).
 
 The loop is libnifalcon's: one packet written, its reply read, the next written (the
-Falcon's firmware answers each packet; its own loop sets the pace, ~1 kHz). The
+Falcon's firmware answers each packet; its own loop sets the pace, ~1 kHz). It ends with
+:data:`ZERO_PACKETS` zero-command packets whatever ends it (the loop's end, an error,
+Ctrl-C): the firmware holds the last command. The
 packets carry no checksum and no sequence number: a lost or mangled reply is a missing
 sample (counted, the last reading held), a byte flipped inside a nibble is another count
 no host can tell from a real one. The verdict says only what the host can know:
@@ -29,6 +31,9 @@ __all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "FIRMWARE_PROBES"]
 
 #: Packets sent after the load before concluding the firmware does not run.
 FIRMWARE_PROBES = 10
+#: Zero-command packets sent at the end of a loop (more than a device's delay of a few
+#: packets: the last of them is applied).
+ZERO_PACKETS = 5
 
 
 def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
@@ -83,13 +88,32 @@ def falcon_verdict(res: dict) -> dict:
     bad = {"replies missing": res["missing"], "bytes dropped realigning": d["skipped"],
            "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"]}
     said = ", ".join(f"{k} {v}" for k, v in bad.items() if v)
+    slow = res.get("slow")
+    if slow:
+        said = (said + "; " if said else "") + (
+            f"the loop ran at {res['packets_per_s']:.0f} packets/s, below the scene's "
+            f"{res['rate_hz']:g} Hz: the Falcon held each command {slow:.1f} periods, so "
+            "it rendered another loop than the scene's")
     caveat = ("the packets carry no checksum: a bit flipped inside a nibble is another "
               "count, which no host can see")
     if not said:
         return {"verdict": "ok", "reason": f"every one of the {res['samples']} replies "
                 f"came whole and plausible, every leg homed ({caveat})"}
-    return {"verdict": "degraded", "reason": f"{said} of {res['samples']} samples (a "
+    return {"verdict": "degraded", "reason": f"{said} (of {res['samples']} samples; a "
             f"missing sample holds the last reading); {caveat}"}
+
+
+def _zero(link, timeout: float) -> int:
+    """Send :data:`ZERO_PACKETS` zero-command packets (red LED); the number that went."""
+    from hapsim.drivers.falcon import LED_RED, host_packet
+    sent = 0
+    for _ in range(ZERO_PACKETS):
+        try:
+            link.exchange(host_packet((0, 0, 0), LED_RED), 32, _reply_end, timeout)
+        except (DeviceError, OSError):
+            break
+        sent += 1
+    return sent
 
 
 def _reply_end(b: bytes) -> bool:
@@ -98,7 +122,7 @@ def _reply_end(b: bytes) -> bool:
 
 def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
                timeout: float = 0.05, before_loop=None,
-               homing_limit: int = 20000) -> dict:
+               homing_limit: int = 20000, paced: bool = False) -> dict:
     """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
 
     Parameters
@@ -123,6 +147,11 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         Called once the legs are homed, before the loop (the tests switch faults on).
     homing_limit : int
         Most homing packets (~20 s at the firmware's ~1 kHz).
+    paced : bool
+        A real Falcon (its firmware on its own clock): a loop slower than 0.9 times the
+        scene's rate is ``slow`` (each command held that many periods: another loop
+        than the scene's) and the verdict says so; the emulator steps one period per
+        packet, whatever the pace.
 
     Returns
     -------
@@ -131,7 +160,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         (packets), ``samples``, ``missing``, ``unhomed``, ``decoder`` (``frames``,
         ``skipped``, ``implausible``), ``packets_per_s`` (the loop's pace),
         ``position`` (N, 3) [m] (NaN where missing), ``commands`` (N, 3), ``truth`` (with
-        ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``verdict``, ``reason``.
+        ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
+        scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
+        None), ``zeroed`` (zero-command packets sent after the loop), ``verdict``,
+        ``reason``.
 
     Raises
     ------
@@ -183,14 +215,23 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     if before_loop is not None:
         before_loop()
     t0 = time.perf_counter()
-    res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec)
+    try:
+        res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec)
+    finally:
+        # the firmware holds the last command (no watchdog is published): zero torque
+        # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
+        zeroed = _zero(link, timeout)
     dt = time.perf_counter() - t0
     if progress:
         progress(1)
     out = {"firmware": fw, "homing": homing, "samples": int(samples),
            "missing": res["missing"], "unhomed": res["unhomed"], "decoder": res["decoder"],
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
-           "position": res["position"], "commands": res["commands"], "truth": None}
+           "position": res["position"], "commands": res["commands"], "truth": None,
+           "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed}
+    pps = out["packets_per_s"]
+    if paced and pps and pps < 0.9 * scene.rate_hz:
+        out["slow"] = scene.rate_hz / pps
     if truth is not None:
         # sample k reads the reply of exchange k (exchange 0 primes the loop)
         read = ~np.isnan(res["joints"][:, 0])
