@@ -175,7 +175,20 @@ class EngineND:
     def context(self) -> np.ndarray:
         """The int64 context of the engine's step (:func:`hapsim.kernels.nd.context`),
         for compiled code that steps it: set slot 0 to the samples and call
-        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does)."""
+        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does).
+
+        Raises
+        ------
+        ConfigError
+            The engine runs in single precision (key ``engine.precision``): its arrays
+            are float32, which :func:`~hapsim.kernels.nd.run_context` and the compiled
+            callers of this property would read as float64 (single precision runs through
+            :meth:`step`, :meth:`listen` and ``hapsim simulate``)."""
+        if self.dtype is not np.float64:
+            raise ConfigError("single precision (engine: {precision: single}) runs through "
+                              "hapsim simulate and the engine's step and listen; the live "
+                              "compiled loops take the double-precision engine: leave the "
+                              "key out here", key="engine.precision")
         return self._ctx
 
     def cells(self, name: str) -> dict:

@@ -72,6 +72,9 @@ def test_the_engine_state_is_in_the_chosen_precision():
         EngineND(single, precision="half")
     eng.step(100)
     assert 0 < abs(eng.x[0, 0]) < 0.01 and eng.x.dtype == np.float32
+    # the compiled live loops read the engine's context as float64: refused, not misread
+    with pytest.raises(ConfigError, match="double-precision engine"):
+        eng.context
 
 
 def test_single_precision_membrane_follows_the_closed_form():
