@@ -162,7 +162,7 @@ def _matrix_or_nan(m, n: int) -> np.ndarray:
     return np.full((n, n), math.nan) if m is None else np.array(m, float)
 
 
-def check_nd(scene) -> CheckReportND:
+def check_nd(scene, progress=None) -> CheckReportND:
     """Check a 2-D or 3-D scene felt through its device: the MIMO loop and the felt
     matrices.
 
@@ -170,6 +170,9 @@ def check_nd(scene) -> CheckReportND:
     ----------
     scene : hapsim.scene_nd.SceneND or str
         A loaded n-D scene with a port and a device, or the path of one.
+    progress : callable, optional
+        ``progress(done, total)`` after each direction's stiffness limit
+        (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`).
 
     Returns
     -------
@@ -194,7 +197,7 @@ def check_nd(scene) -> CheckReportND:
         raise ConfigError("an n-D scene is felt through its device: it needs a mass of "
                           "kind 'port' and a device section (a scene without one: "
                           "hapsim.modes_nd)", file=scene.path, key="masses")
-    chk = check_scene_nd(scene)
+    chk = check_scene_nd(scene, progress=progress)
     dev = scene.device
     d = {**chk.to_dict(), "scene": scene.path,
          "device": {"kind": dev.kind, "mass": dev.mass.tolist(),

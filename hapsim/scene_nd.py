@@ -24,10 +24,16 @@ expected is refused)::
     planes:
       - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
          masses: [hand]}          # acts on the named masses (default: every moving one)
+    excitation:                   # optional, with a port: the hand's force on the device's
+      direction: [0, 1]           # mass along this direction (normalised; required)
+      impulse: {force: 2.0, start: 0.0, duration: 0.002}   # [N] [s] [s]; and/or
+      profile: hand_force.csv     # a recorded force profile (time [s], force [N]),
+                                  # relative to the scene file (hapsim play plucks with
+                                  # it, again every --pluck-every seconds)
     engine:                       # optional
       precision: double           # double (float64, the default) | single (float32:
                                   # twice the engine's speed on a mesh, 24-bit positions;
-                                  # docs/dimensions.md, 'Single precision')
+                                  # no port; docs/dimensions.md, 'Single precision')
     audio:                        # optional: the scene heard (hapsim simulate --audio)
       listen:                     # one WAV channel each, at rate_hz
         - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
@@ -78,12 +84,14 @@ from hapsim._yaml_lines import load_yaml
 from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.reader import LineContext, read_text
 
-__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
+__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SceneND",
            "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS",
            "PRECISIONS", "ENGINE_KEYS"]
 
 TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
-            "audio", "engine")
+            "excitation", "audio", "engine")
+EXCITATION_KEYS = ("direction", "impulse", "profile")
+IMPULSE_KEYS = ("force", "start", "duration")
 ENGINE_KEYS = ("precision",)
 PRECISIONS = ("double", "single")
 LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
@@ -205,10 +213,25 @@ class ListenND:
 
 
 @dataclass(frozen=True)
+class ExcitationND:
+    """The hand's force on the device's mass in an n-D scene: the 1-D excitation's
+    ``impulse`` (:class:`hapsim.scene.elements.Impulse`, [N], [s]) and/or ``profile`` (a
+    file of time [s], force [N]; an absolute path) acting along the unit ``direction``
+    (shape (n,)): force vector ``h(t) direction`` (``h`` as
+    :func:`hapsim.device_model.hand_force_samples` samples it)."""
+
+    direction: np.ndarray
+    impulse: object | None = None
+    profile: str | None = None
+    line: int | None = None
+
+
+@dataclass(frozen=True)
 class SceneND:
     """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
-    points (a tuple of :class:`ListenND`) or None; ``precision`` the engine's floating
-    type, ``"double"`` (float64, default) or ``"single"`` (float32)."""
+    points (a tuple of :class:`ListenND`) or None, ``excitation`` the hand's force
+    (:class:`ExcitationND`) or None; ``precision`` the engine's floating type,
+    ``"double"`` (float64, default) or ``"single"`` (float32)."""
 
     dimension: int
     rate_hz: float
@@ -219,6 +242,7 @@ class SceneND:
     path: str = "<string>"
     integrator: str = "centred"
     audio: tuple | None = None
+    excitation: ExcitationND | None = None
     precision: str = "double"
 
     @property
@@ -577,6 +601,12 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
     audio = _read_audio(r, doc, n, names) if "audio" in doc else None
+    excitation = None
+    if "excitation" in doc:
+        if not ports:
+            raise r.error("an excitation is the hand's force on the device: the scene needs "
+                          "a port and a device", r.line(doc, "excitation"), "excitation")
+        excitation = _read_excitation(r, doc, n, path)
     precision = "double"
     if "engine" in doc:
         e = r.mapping(doc["engine"], "engine", r.line(doc, "engine"))
@@ -588,7 +618,36 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
                           r.line(e, "precision"), "engine.precision")
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
                    planes=tuple(planes), device=device, path=path, audio=audio,
-                   precision=precision)
+                   excitation=excitation, precision=precision)
+
+
+def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:
+    """The ``excitation: {direction, impulse, profile}`` section (module docstring)."""
+    from hapsim.scene import Impulse
+    key = "excitation"
+    d = r.mapping(doc[key], key, r.line(doc, key))
+    r.keys(d, EXCITATION_KEYS, key, required=("direction",))
+    if "impulse" not in d and "profile" not in d:
+        raise r.error("needs an impulse ({force, start, duration}) or a profile (a file of "
+                      "time [s], force [N])", r.line(d), f"{key}.impulse")
+    e = r.vector(d, "direction", key, n, unit="-")
+    norm = float(np.linalg.norm(e))
+    if not norm > 0:
+        raise r.error("must be a non-zero vector (the direction of the hand's force)",
+                      r.line(d, "direction"), f"{key}.direction")
+    impulse = None
+    if "impulse" in d:
+        ik = f"{key}.impulse"
+        i = r.mapping(d["impulse"], ik, r.line(d, "impulse"))
+        r.keys(i, IMPULSE_KEYS, ik, required=("force",))
+        impulse = Impulse(force=r.number(i, "force", ik, unit="N"),
+                          start=r.number(i, "start", ik, default=0.0, minimum=0.0, unit="s"),
+                          duration=r.number(i, "duration", ik, default=0.0, minimum=0.0,
+                                            unit="s"))
+    profile = r.string(d, "profile", key)
+    if profile is not None and not os.path.isabs(profile) and path != "<string>":
+        profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
+    return ExcitationND(e / norm, impulse, profile, line=r.line(d))
 
 
 def _read_audio(r: _Reader, doc, n: int, names) -> tuple:

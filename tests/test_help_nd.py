@@ -68,3 +68,23 @@ def test_a_zero_stiffness_limit_says_why(capsys):
     assert main(argv + ["--B", "0.5"]) == 0
     out = capsys.readouterr().out
     assert "K_max = 0" not in out and "raise one of them" not in out
+
+
+def test_every_command_is_in_the_commands_page():
+    """docs/commands.md's table has a row for every command the CLI registers
+    (`hapsim kinematics` had none)."""
+    from hapsim.cli import COMMANDS
+    text = (ROOT / "docs" / "commands.md").read_text(encoding="utf-8")
+    table = text.split("## The commands", 1)[1].split("\n\n", 2)[1]
+    for name in COMMANDS:
+        assert f"| `hapsim {name.replace('_', '-')}" in table, name
+
+
+def test_check_reports_progress_per_direction():
+    """The stiffness limits (the long part of an n-D check when the delay is long) report
+    their progress, one call per direction, through the API the CLI's bar uses."""
+    from hapsim import api
+    calls = []
+    api.check_nd(str(ROOT / "configs" / "delta_sphere.yaml"),
+                 progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(1, 3), (2, 3), (3, 3)]

@@ -38,11 +38,12 @@ def zoh(M, B0, T):
     return E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
 
 
-def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
+def reference(scene, steps, ramps=(), hand=None, direction=None, every=0, track=None):
     """The played loop, one sample at a time, one link at a time (module notes).
 
     ``ramps``: ``(first_sample, steps, setter)`` with ``setter(params, a)`` writing the
-    values at ramp fraction ``a`` into the mutable parameter dict."""
+    values at ramp fraction ``a`` into the mutable parameter dict. ``track``: a list that
+    gets the device's position before each sample and after the last (``steps + 1``)."""
     T = scene.period
     n = scene.dimension
     names = [m.name for m in scene.masses]
@@ -65,6 +66,8 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
                 setter(par, (k - first + 1) / length)
         if port is not None:
             X[port] = dev.position + s[:n]
+            if track is not None:
+                track.append(X[port].copy())
         f = np.zeros_like(X)
         for lk in scene.links:
             i, j = names.index(lk.m1), names.index(lk.m2)
@@ -105,7 +108,21 @@ def reference(scene, steps, ramps=(), hand=None, direction=None, every=0):
             v = X[i, p.axis] - (XP[i, p.axis] if p.quantity == "velocity" else 0.0)
             g = p.gain / T if p.quantity == "velocity" else p.gain
             out[k, c] = par["gain"] * g * v
+    if track is not None and port is not None:
+        track.append(dev.position + s[:n])
     return out
+
+
+def hand_of_scene(scene):
+    """The scene's impulse as one force per sample [N] (start and duration are whole
+    samples in the test scenes: the force itself over them) and its unit direction."""
+    ex = scene.excitation
+    a = int(round(ex.impulse.start * scene.rate_hz))
+    b = int(round((ex.impulse.start + ex.impulse.duration) * scene.rate_hz))
+    h = np.zeros(b)
+    h[a:] = ex.impulse.force
+    e = np.array([3.0, -4.0]) / 5.0            # the file's [3, -4], normalised
+    return h, e
 
 
 def drain(live):
@@ -220,53 +237,125 @@ def test_plucks_repeat_the_hand_force_along_the_direction():
         LiveND(EngineND(sc), hand=hand, direction=[1.0, 1.0])
 
 
+def test_the_scenes_excitation_plucks_through_play(tmp_path):
+    """The scene's excitation (an impulse along [3, -4]) read from the file, as ``hapsim
+    play`` hands it to the loop (:func:`hapsim.commands.play_nd.hand_of`), repeated every
+    0.1 s by --pluck-every: the independent rendering with the impulse applied by hand."""
+    from hapsim.commands.play_nd import hand_of
+    sc = load_scene_nd(SCENE)
+    hand, e, every = hand_of(sc, 0.1)
+    assert every == 800
+    live = LiveND(EngineND(sc), chunk=256, ring=8192, ahead=4096, hand=hand, direction=e,
+                  every=every)
+    for _ in range(8):
+        live.produce()
+    h, e_ref = hand_of_scene(sc)
+    ref = reference(sc, live.written, hand=h, direction=e_ref, every=800)
+    assert_float32_roundoff(drain(live), ref)
+    free = reference(sc, live.written)
+    assert np.max(np.abs(free[800:] - ref[800:])) > 1e-2 * np.max(np.abs(ref))
+    bare = SCENE.read_text().replace("excitation:", "#")
+    nohand = tmp_path / "nohand.yaml"
+    nohand.write_text(bare)
+    with pytest.raises(Exception, match="--pluck-every"):
+        hand_of(load_scene_nd(nohand), 0.1)
+
+
 # ------------------------------------------------------------- verdicts over random scenes
+def _vec(v):
+    return "[" + ", ".join("%.6g" % x for x in v) + "]"
+
+
+def _spd(rng, n, lo, hi):
+    """A random symmetric positive definite matrix, eigenvalues in [lo, hi], axes turned,
+    as YAML (every digit: the reader wants it symmetric)."""
+    Q = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    M = Q @ np.diag(rng.uniform(lo, hi, n)) @ Q.T
+    M = 0.5 * (M + M.T)
+    return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]" for r in M) + "]"
+
+
 def _random_scene(rng, n):
-    """A port on a Cartesian device, 1-3 masses, linear links (exact linearisation)."""
+    """A port on a Cartesian device whose mass and friction matrices are not diagonal,
+    1-3 masses in a tree of linear and Euclidean links, a contact, a plane with an
+    oblique normal under the handle: the axes are coupled (a check axis by axis is not
+    the loop's)."""
     nm = int(rng.integers(1, 4))
-    masses = ["  - {name: hand, kind: port}", "  - {name: g, kind: ground, x0: %s}"
-              % [0.0] * 1]
-    masses[1] = "  - {name: g, kind: ground, x0: [%s]}" % ", ".join(["0.0"] * n)
+    pos = {"hand": rng.uniform(-0.01, 0.01, n), "g": rng.uniform(-0.03, 0.03, n)}
+    lines = ["  - {name: hand, kind: port}", f"  - {{name: g, kind: ground, x0: {_vec(pos['g'])}}}"]
     for i in range(nm):
-        masses.append("  - {name: m%d, kind: mass, mass: %.4g, x0: [%s]}"
-                      % (i, rng.uniform(0.005, 0.05), ", ".join(["0.0"] * n)))
+        pos[f"m{i}"] = rng.uniform(-0.03, 0.03, n)
+        lines.append(f"  - {{name: m{i}, kind: mass, mass: {rng.uniform(0.005, 0.05):.4g}, "
+                     f"x0: {_vec(pos[f'm{i}'])}}}")
     nodes = ["hand"] + [f"m{i}" for i in range(nm)]
+    pairs = [(nodes[int(rng.integers(0, i + 1))], f"m{i}") for i in range(nm)]
+    pairs.append((nodes[int(rng.integers(0, nm + 1))], "g"))
     links = []
-    for i in range(nm):
-        a = nodes[int(rng.integers(0, i + 1))]
-        links.append((a, f"m{i}"))
-    links.append((nodes[int(rng.integers(0, nm + 1))], "g"))
-    text = [f"dimension: {n}", "rate_hz: 1000", "masses:", *masses, "links:"]
-    for j, (a, b) in enumerate(links):
-        text.append("  - {name: l%d, kind: spring_damper, between: [%s, %s], stiffness: %.4g,"
-                    " damping: %.4g}" % (j, a, b, rng.uniform(20, 300), rng.uniform(0.05, 1)))
-    mdiag = ", ".join("%.4g" % v for v in rng.uniform(0.05, 0.3, n))
-    text.append("device: {kind: cartesian, mass: [%s], friction: %.3g, position: [%s], "
-                "delay: %d}" % (mdiag, rng.uniform(0.1, 1), ", ".join(["0.0"] * n),
-                                int(rng.integers(0, 3))))
-    text.append("audio: {listen: [{mass: m0, axis: x}]}")
+    for j, (a, b) in enumerate(pairs):
+        K, B = rng.uniform(20, 300), rng.uniform(0.05, 1)
+        extra = ""
+        if rng.random() < 0.5:                        # Euclidean, stretched or slack
+            extra = ", length: %.6g" % (np.linalg.norm(pos[a] - pos[b]) * rng.uniform(0.7, 1.3))
+        links.append(f"  - {{name: l{j}, kind: spring_damper, between: [{a}, {b}], "
+                     f"stiffness: {K:.4g}, damping: {B:.4g}{extra}}}")
+    a = nodes[int(rng.integers(0, nm + 1))]
+    links.append(f"  - {{name: c, kind: contact, between: [{a}, g], stiffness: "
+                 f"{rng.uniform(20, 300):.4g}, damping: {rng.uniform(0.05, 1):.4g}, threshold: "
+                 f"{np.linalg.norm(pos[a] - pos['g']) * 1.1:.6g}}}")
+    u = rng.normal(size=n)
+    u /= np.linalg.norm(u)
+    text = [f"dimension: {n}", "rate_hz: 1000", "masses:", *lines, "links:", *links,
+            "planes:", f"  - {{name: w, normal: {_vec(u)}, offset: "
+            f"{u @ pos['hand'] + 0.001:.6g}, stiffness: {rng.uniform(20, 300):.4g}, "
+            f"damping: {rng.uniform(0.05, 1):.4g}, masses: [hand]}}",
+            "device: {kind: cartesian, mass: %s, friction: %s, position: %s, delay: %d}"
+            % (_spd(rng, n, 0.05, 0.3), _spd(rng, n, 0.1, 1.0), _vec(pos["hand"]),
+               int(rng.integers(0, 3))),
+            "audio: {listen: [{mass: m0, axis: x}]}"]
     return parse_scene_nd("\n".join(text) + "\n")
+
+
+def _blocks(scene, K, B):
+    """Each link's and plane's stiffness and damping blocks at rest (the Euclidean law's
+    axial and geometric stiffness, a contact engaged as a Euclidean link of rest length
+    its threshold, a plane ``K u u^T``), written here from the laws of docs/scenes.md."""
+    n = scene.dimension
+    x0 = {m.name: m.x0 for m in scene.masses}
+    for lk in scene.links:
+        L = lk.threshold if lk.kind == "contact" else lk.length
+        if lk.kind == "spring_damper" and L == 0:
+            yield lk.m1, lk.m2, K[lk.name] * np.eye(n), B[lk.name] * np.eye(n)
+            continue
+        d = x0[lk.m1] - x0[lk.m2]
+        ln = np.sqrt(d @ d)
+        e = np.outer(d, d) / (ln * ln)
+        yield (lk.m1, lk.m2, K[lk.name] * (e + (1 - L / ln) * (np.eye(n) - e)),
+               B[lk.name] * e)
+    for pl in scene.planes:
+        u = np.outer(pl.normal, pl.normal)
+        for m in pl.masses:
+            yield m, None, K[pl.name] * u, B[pl.name] * u
 
 
 def independent_radius(scene, K, B):
     """Spectral radius of the coupled loop, built here from its equations (state: device
-    x, v; the delay line; every node's position now and one sample ago)."""
+    x, v; the delay line; the virtual masses' positions now; every node's one sample ago)."""
     n, T = scene.dimension, scene.period
     dev = scene.device
     nodes = [m.name for m in scene.masses if m.kind in ("port", "mass")]
     N = len(nodes)
     Kg = np.zeros((N * n, N * n))
     Bg = np.zeros_like(Kg)
-    for lk in scene.links:
-        for M, v in ((Kg, K[lk.name]), (Bg, B[lk.name])):
-            ends = [nodes.index(x) if x in nodes else None for x in (lk.m1, lk.m2)]
+    for a, b, Kl, Bl in _blocks(scene, K, B):
+        ends = [nodes.index(x) if x in nodes else None for x in (a, b)]
+        for M, blk in ((Kg, Kl), (Bg, Bl)):
             for i in ends:
                 if i is not None:
-                    M[i * n:(i + 1) * n, i * n:(i + 1) * n] += v * np.eye(n)
+                    M[i * n:(i + 1) * n, i * n:(i + 1) * n] += blk
             if None not in ends:
                 i, j = ends
-                M[i * n:(i + 1) * n, j * n:(j + 1) * n] -= v * np.eye(n)
-                M[j * n:(j + 1) * n, i * n:(i + 1) * n] -= v * np.eye(n)
+                M[i * n:(i + 1) * n, j * n:(j + 1) * n] -= blk
+                M[j * n:(j + 1) * n, i * n:(i + 1) * n] -= blk
     Ad, Bd = zoh(dev.mass, dev.friction, T)
     d = dev.delay
     # state: [x_dev, v_dev, F[n-1..n-d], X[n] (virtual), X[n-1] (all nodes)]
@@ -297,20 +386,28 @@ def independent_radius(scene, K, B):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
-    """Random 2-D and 3-D scenes, random link changes (some far past the limit): a change
-    is accepted if and only if the coupled loop (independent eigenvalues) is stable at the
-    new values and at 25, 50 and 75 % of the ramp; a refusal says why and changes
-    nothing."""
+    """Random 2-D and 3-D scenes whose axes are coupled (:func:`_random_scene`), random
+    changes of a linear or Euclidean link, a contact or a plane (some far past the limit):
+    a change is accepted if and only if the coupled loop (independent eigenvalues) is
+    stable at the new values and at 25, 50 and 75 % of the ramp; the accepted loop's
+    spectral radius is the independent one; a refusal says why and changes nothing."""
+    from hapsim.audio.control_nd import predict_nd
     rng = np.random.default_rng(1000 + seed)
     n = 2 + seed % 2
-    sc = _random_scene(rng, n)
-    K0 = {lk.name: lk.stiffness for lk in sc.links}
-    B0 = {lk.name: lk.damping for lk in sc.links}
-    assert independent_radius(sc, K0, B0) <= 1.0
+    for _ in range(30):           # the starting scene must be stable; every draw's verdict
+        sc = _random_scene(rng, n)    # is the independent one (a slack link can buckle)
+        K0 = {e.name: e.stiffness for e in (*sc.links, *sc.planes)}
+        B0 = {e.name: e.damping for e in (*sc.links, *sc.planes)}
+        r0 = independent_radius(sc, K0, B0)
+        assert math.isclose(predict_nd(sc)["spectral_radius"], r0, rel_tol=1e-9)
+        if r0 < 1.0 - 1e-6:
+            break
+    else:
+        pytest.fail("no stable scene drawn")
     ctl = ControllerND(sc, EngineND(sc), ramp_s=0.01, background=False)
     seen = set()
     for _ in range(6):
-        lk = sc.links[int(rng.integers(0, len(sc.links)))].name
+        lk = sorted(K0)[int(rng.integers(0, len(K0)))]
         K = float(10 ** rng.uniform(1, 5.5))
         B = float(10 ** rng.uniform(-2, 1))
         radii = []
@@ -329,8 +426,8 @@ def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
             assert math.isclose(ctl.felt["spectral_radius"], radii[0], rel_tol=1e-9)
         else:
             assert "unstable" in info
-        assert {e.name: e.stiffness for e in ctl.scene.links} == K0
-    assert seen, "every change fell on the boundary"
+        assert {e.name: e.stiffness for e in (*ctl.scene.links, *ctl.scene.planes)} == K0
+    assert seen == {True, False}, seen       # both verdicts met in every scene
 
 
 def test_refusals_name_the_reason():
@@ -381,3 +478,30 @@ def test_the_digest_names_the_sources_compiled_in():
     assert play_nd.COMPILED_SOURCES_SHA256 == now, (
         f'update the digest in hapsim/kernels/play_nd.py: COMPILED_SOURCES_SHA256 = "{now}"')
     assert play_nd.CACHE_OK
+
+
+# ------------------------------------------------------------------------------ the CLI
+def test_play_refuses_an_unstable_scene_and_osc_on_a_scene_too_large_to_check(tmp_path,
+                                                                             capsys):
+    """Before any sound opens: an unstable loop (the wall at 1e6 N/m) is exit 1 with its
+    spectral radius; --osc on a scene whose loop is too large to analyse is exit 2 naming
+    --osc (without --osc it would play, unchecked, with a note)."""
+    from hapsim.cli import main
+    hard = tmp_path / "hard.yaml"
+    hard.write_text(SCENE.read_text().replace("stiffness: 1000, damping: 1.0",
+                                              "stiffness: 1000000, damping: 1.0"))
+    assert main(["play", str(hard), "--sound", "jack", "--jack-server", "none-such"]) == 1
+    err = capsys.readouterr().err
+    assert "unstable" in err and "spectral radius 1.159" in err, err
+    big = ["dimension: 2", "rate_hz: 8000", "masses:", "  - {name: hand, kind: port}"]
+    big += [f"  - {{name: m{i}, kind: mass, mass: 0.01}}" for i in range(600)]
+    big += ["links:", "  - {kind: spring_damper, between: [hand, m0], stiffness: 10}"]
+    big += [f"  - {{kind: spring_damper, between: [m{i}, m{i + 1}], stiffness: 10}}"
+            for i in range(599)]
+    big += ["device: {kind: cartesian, mass: 0.1}", "audio: {listen: [{mass: m9}]}"]
+    path = tmp_path / "big.yaml"
+    path.write_text("\n".join(big) + "\n")
+    assert main(["play", str(path), "--osc", "0", "--sound", "jack",
+                 "--jack-server", "none-such"]) == 2
+    err = capsys.readouterr().err
+    assert "--osc" in err and "cannot be analysed" in err, err

@@ -8,13 +8,14 @@ stiffness: one stable, one not) get their verdicts."""
 from __future__ import annotations
 
 import shutil
+import socket
 
 import numpy as np
 import pytest
 
 from test_audio_live import Recorder, dummy_jackd
 from test_osc import PATCH, Client, play_daemon, run_patch, stop, wait_for
-from test_play_nd import SCENE, assert_float32_roundoff, reference
+from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
 pytestmark = pytest.mark.xdist_group("sound")
@@ -33,6 +34,20 @@ def start_play(server, *extra):
     return play_daemon(SCENE, server, *extra)
 
 
+def telemetry(sink):
+    """The /hapsim/tel messages that reached ``sink`` (its parameters)."""
+    from pythonosc.osc_message import OscMessage
+    sink.settimeout(0.3)
+    msgs = []
+    try:
+        while True:
+            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
+    except (socket.timeout, TimeoutError):
+        pass
+    sink.close()
+    return [m.params for m in msgs if m.address == "/hapsim/tel"]
+
+
 def aligned(got, ref, window=400):
     """Where the recording's first sound is in the reference: the offset whose window
     matches best (the recorder connects after the sound started)."""
@@ -49,12 +64,18 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     sample and the verdict; the recorded sound from the first frame heard to 0.4 s after
     the ramp is the independent rendering with that ramp, to float32 round-off."""
     rec = Recorder(jack8k, seconds=30.0)
+    rec.armed = False                 # from the connection on (a loaded start is slow)
     proc, port = start_play(jack8k, "--ramp", "0.01")
     try:
         src = rec.client.get_ports("hapsim.*:out_m2_y_velocity")
         assert src, rec.client.get_ports()
         rec.client.connect(src[0], rec.inp.name)
+        rec.armed = True
         c = Client(port)
+        sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sink.bind(("127.0.0.1", 0))
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        assert addr == "/hapsim/ok", p
         addr, felt = c.ask("/hapsim/felt")
         assert addr == "/hapsim/felt" and len(felt) == 6 + 1 + 8 and felt[6] == 2
         addr, p = c.ask("/hapsim/link/kb", "chain", 900.0, 0.25)
@@ -81,7 +102,19 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         par["K"]["chain"] = 500 + a * 400
         par["B"]["chain"] = 0.1 + a * 0.15
     n = end[0] + int(0.4 * RATE)
-    ref = reference(sc, n, [(start[0], 80, chain)])[:, :1]
+    h, e = hand_of_scene(sc)                      # the scene's excitation, once
+    track = []
+    ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e,
+                    track=track)[:, :1]
+    # every /hapsim/tel t x y fx fy k b: the device's position at sample t * rate
+    tel = telemetry(sink)
+    assert len(tel) > 20 and all(len(p) == 7 for p in tel)
+    k = np.array([round(p[0] * RATE) for p in tel])
+    assert np.all(np.diff(k) >= 80)               # 100 Hz at most
+    k_in = k <= n
+    assert k_in.sum() > 10
+    np.testing.assert_allclose(np.array([p[1:3] for p in tel])[k_in],   # OSC's float32
+                               np.array(track)[k[k_in]], rtol=1.2e-7, atol=1e-15)
     i0, j = aligned(got, ref[:, 0])
     assert j < start[0], "the recording began after the change"
     seg = got[i0:i0 + n - j]
@@ -89,6 +122,37 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         seg = seg[seg != 0]
     m = min(seg.size, n - j)
     assert m > n - j - 2000
+    assert_float32_roundoff(seg[:m, None], ref[j:j + m])
+
+
+def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
+    """``hapsim play SCENE --pluck-every 0.25``: the scene's impulse again every 2000
+    samples; the recorded sound is the independent rendering with the plucks at samples
+    2000 k + 80 .. 2000 k + 120, to float32 round-off, over the first second heard."""
+    rec = Recorder(jack8k, seconds=30.0)
+    rec.armed = False
+    proc, port = start_play(jack8k, "--pluck-every", "0.25")
+    try:
+        rec.client.connect(rec.client.get_ports("hapsim.*:out_m2_y_velocity")[0],
+                           rec.inp.name)
+        rec.armed = True
+        c = Client(port)
+        wait_for(c, "/hapsim/loop", lambda q: q[0] > 20000, "2.5 s of sound")
+    finally:
+        rep = stop(proc)
+        rec.close()
+    assert rep["plucks"]["every_samples"] == 2000
+    from hapsim.scene_nd import load_scene_nd
+    sc = load_scene_nd(SCENE)
+    h, e = hand_of_scene(sc)
+    got = rec.buf[:rec.n]
+    ref = reference(sc, 20000, hand=h, direction=e, every=2000)[:, :1]
+    i0, j = aligned(got, ref[:, 0])
+    seg = got[i0:i0 + 8000]
+    if rep["sound"]["underruns"]:
+        seg = seg[seg != 0]
+    m = min(seg.size, 20000 - j)
+    assert m > 4000 and (j + m) // 2000 > j // 2000 + 1      # two plucks at least heard
     assert_float32_roundoff(seg[:m, None], ref[j:j + m])
 
 

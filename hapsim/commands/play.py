@@ -28,10 +28,13 @@ initial state (a struck membrane rings): without changes, the frames 'hapsim sim
 SCENE --audio F.wav' writes. With a port and a device its loop is closed on the device's
 model at the scene's rate (the exact ZOH of its Cartesian mass and friction, its delay:
 the loop 'hapsim check' analyses), in the sound's producer, one compiled call per chunk;
---osc takes the same addresses, checked by the MIMO criterion of the n-D check (the whole
-coupled loop's spectral radius, not axis by axis), and the ramps run sample by sample.
-It takes --duration, --sound, --jack-server, --rt-priority, --json, --osc, --ramp,
---journal (--lockstep, --telemetry and --sound none are refused by name)."""
+the scene's excitation (excitation: {direction: [..], impulse: {force, start, duration}}
+or a profile) is the hand's force on the device's mass along that direction, again every
+--pluck-every seconds; --osc takes the same addresses, checked by the MIMO criterion of
+the n-D check (the whole coupled loop's spectral radius, not axis by axis), and the ramps
+run sample by sample. It takes --duration, --sound, --jack-server, --rt-priority, --json,
+--osc, --ramp, --pluck-every, --journal (--lockstep, --telemetry and --sound none are
+refused by name)."""
 
 _EPILOG = """\
 OSC addresses (replies go to the sender's address and port):

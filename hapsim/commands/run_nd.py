@@ -232,7 +232,7 @@ def print_statements(v: dict, o) -> None:
     if not st:
         return
     print("  statements (relative: measured - predicted against the stated uncertainty = "
-          "linearisation bound + the wire's term):", file=o)
+          "linearisation bound + the wire's term + binary64 round-off):", file=o)
     unit = {"felt_stiffness": "N/m", "felt_damping": "N s/m"}
 
     def e(x):
@@ -242,8 +242,9 @@ def print_statements(v: dict, o) -> None:
         if s["direction"] is not None:
             head += (f": predicted {s['predicted']:.6g}, measured {s['measured']:.6g} "
                      f"{unit[s['quantity']]}")
-        terms = f"lin {e(s['linearisation'])}" + (f" + wire {e(s['wire'])}"
-                                                   if s["wire"] is not None else "")
+        terms = (f"lin {e(s['linearisation'])}"
+                 + (f" + wire {e(s['wire'])}" if s["wire"] is not None else "")
+                 + (f" + round-off {e(s.get('roundoff'))}" if s.get("roundoff") else ""))
         if s["verdict"] == "not measurable":
             print(f"    {head}: not measurable ({s['reason']})", file=o)
         else:
