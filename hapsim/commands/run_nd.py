@@ -183,8 +183,8 @@ def run_nd(args) -> int:
         print(f"  measured - predicted (largest entry over the largest predicted): "
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     bd = bound.to_dict()
-    print(f"  linearisation bound at a = {a:g} m (first order in a; "
-          "hapsim.analysis.linearisation_nd):", file=o)
+    print(f"  linearisation bound at the records' largest excursion {bound.amplitude:.3g} m "
+          f"(first order in it; hapsim.analysis.linearisation_nd):", file=o)
     print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
           "and the velocity-product terms over a; "
           + ("not in the lockstep device, which holds the mass at rest)" if in_process
@@ -193,11 +193,12 @@ def run_nd(args) -> int:
           + (f" (link {bound.link_name!r})" if bound.link_name else " (none: linear)"),
           file=o)
     if bd["felt_stiffness"] is None:
-        print(f"    a reaches the depth of {bound.depth_name!r} ({bound.depth:.3g} m): "
+        print(f"    the excursion reaches the depth of {bound.depth_name!r} "
+              f"({bound.depth:.3g} m): "
               "the contact opens, no linear estimate holds", file=o)
     else:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
-              f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
+              f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
     from hapsim.daemon.run_nd import verdict_nd
     v = verdict_nd(res)
