@@ -347,8 +347,10 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
         difference of the felt stiffness and damping matrices, each over the predicted
         matrix's largest entry [-]; None without felt matrices), ``bound``
-        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at ``a``), ``order``,
-        ``records``, ``samples``.
+        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at the larger of
+        ``a`` and ``excursion``), ``excursion`` (the largest distance [m] of the handle
+        from rest over the records: a start moving at ``a / (10 T)`` carries it past
+        ``a``), ``order``, ``records``, ``samples``.
 
     Raises
     ------
@@ -359,22 +361,26 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.linearisation_nd import linearisation_bound
     chk, order, N = identification_plan(scene, samples)
-    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    a = linearisation_bound(scene, amplitude, chk.render.rendered_poles).amplitude
     n = scene.dimension
-    a = bound.amplitude
     T = scene.period
     starts = excitation_starts(n, a, T)[1:]
     rest = LockstepND(scene, joint_space=joint_space).step(N, record=True)
+    excursion = float(np.max(np.linalg.norm(rest, axis=1)))
     recs = []
     for j, (x0, v0) in enumerate(starts):
-        recs.append(LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space)
-                    .step(N, record=True) - rest)
+        r = LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space).step(N, record=True)
+        excursion = max(excursion, float(np.max(np.linalg.norm(r, axis=1))))
+        recs.append(r - rest)
         if progress is not None:
             progress(j + 1, len(starts))
+    # the bound at the largest excursion the records reached (as over a port): a start
+    # moving at a / (10 T) carries the handle past a, and the departure grows with it
+    bound = linearisation_bound(scene, max(a, excursion), chk.render.rendered_poles)
     fit = fit_felt_nd(recs, scene.device.mass, T, order)
     dev = felt_deviation(fit, chk)
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
-            "order": order, "records": len(recs), "samples": N}
+            "order": order, "records": len(recs), "samples": N, "excursion": excursion}
 
 
 def default_samples(order: int, n: int) -> int:
@@ -829,7 +835,7 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     if deviation is None:
         return no("the records give no felt matrices (fewer than n rendered pairs)")
     if lin["felt_stiffness"] is None:
-        return no(f"the amplitude {bound.amplitude:g} m reaches the depth of "
+        return no(f"the motion ({bound.amplitude:g} m from rest) reaches the depth of "
                   f"{bound.depth_name!r} ({bound.depth:.3g} m): the contact opens, no "
                   "linear estimate holds")
     rnd = float(getattr(bound, "roundoff", 0.0))
