@@ -355,7 +355,8 @@ def _measure_over_port(args, scene, a: float, n: int):
         res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
         info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
                           f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "
-                          f"torques {h.force_scale:.6g} N m/step)")
+                          f"torques {h.force_scale:.6g} N m/step; "
+                          f"{res.get('frames', 'full')} frames)")
         info["clamped"] = joint.clamped
     return res, info
 
