@@ -400,10 +400,6 @@ def _run_haply2(args) -> int:
                           key="--port")
     realtime = not args.lockstep
     gen = getattr(args, "generation", None) or "gen3"
-    if realtime and gen != "gen3":
-        raise ConfigError(f"{gen} runs in lockstep only (--lockstep): its real-time host "
-                          "over a pty does not measure yet (its records come out wrong; "
-                          "gen3 does)", key="--generation")
     a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:
