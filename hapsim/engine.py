@@ -267,17 +267,16 @@ class Engine:
             self._step_run = step1d.RUNNERS[self._kernel]
             return
         head, state = self._multi
-        # scratch of a held-port period: its position, frames and force (dropped)
-        self._step_pos = np.zeros(1)
-        self._step_frames = np.zeros((self.substeps, self._l_idx.size))
-        self._step_force = np.zeros(1)
+        # step: the port held, one period at a time on scratch position, frames and force
+        # (dropped); port_step: the position given, frames and force kept (self.frames)
+        self._step_scratch = pos, frames, force = (np.zeros(1), np.zeros_like(self.frames),
+                                                   np.zeros(1))       # kept alive here
         self._step_ctx, self._step_keep = step1d.context(
-            (self._step_pos,) + state + (self._step_frames, self._step_force, _EMPTY_REC,
-                                         _EMPTY_OUT), head)
-        self._step_run = step1d.RUNNERS[audio_kernel.run_periods]
-        # port_step's period: the position given, frames and force kept (self.frames)
+            (pos,) + state + (frames, force, _EMPTY_REC, _EMPTY_OUT), head + (0,))
         self._port_ctx, self._port_keep = step1d.context(
-            (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT), head)
+            (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT),
+            head + (1,))
+        self._step_run = step1d.RUNNERS[audio_kernel.run_periods]
 
     def _periods(self, n, pos, audio, arow0, force, rec, out, row0) -> None:
         """``n`` device periods of the multi-rate kernel (:mod:`hapsim.kernels.audio`)."""
@@ -330,7 +329,7 @@ class Engine:
                               "kind port", file=self.scene.path, key="masses")
         if self._multi is not None:
             self._pos1[0] = position
-            step1d.PERIODS_OUT(self._port_ctx)
+            self._step_run(self._port_ctx)
             self.sample += 1
             return self._force1.item(0)
         self._x[self._port] = position

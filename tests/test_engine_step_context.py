@@ -141,3 +141,19 @@ def test_step_and_port_step_make_no_array(config):
     finally:
         tracemalloc.stop()
     assert max(peaks) < one, (peaks, one)
+
+
+@pytest.mark.parametrize("name,scene", SCENES[:4] + SCENES[-6:] + [
+    ("audio", load_scene(CONFIGS / "audio_string.yaml"))], ids=lambda v: v if isinstance(
+        v, str) else "")
+def test_start_up_checks_the_cache_of_the_runner_the_engine_calls(name, scene):
+    """``hapsim run`` announces a compilation unless numba's cache holds every function its
+    warm-up compiles: the engine part names the runner this engine's step calls (found by
+    name in step1d.py, without importing numba)."""
+    from hapsim.daemon import startup
+    eng = Engine(scene)
+    part = startup.run_compile_parts(scene, compiled_loop=False)[0]
+    runner = eng._step_run
+    assert (step1d.__file__, runner.__name__) in [
+        (str(Path(s)), f) for s, f in startup.part_functions(part)]
+    assert runner.__name__ == "step_" + part[2][len("run_"):]

@@ -24,7 +24,7 @@ from hapsim.kernels import audio, cordis, schemes
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
 
-__all__ = ["HEAD", "context", "RUNNERS", "PERIODS_OUT"]
+__all__ = ["HEAD", "context", "RUNNERS"]
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
@@ -107,36 +107,37 @@ def _i(c, i):
 
 
 # The runners: ctx[0] samples of one kernel, its arguments in the context in its order,
-# then rec (int64), out (2-D); row0 is 0 (a step records nothing).
+# then rec (int64), out (2-D); row0 is 0 (a step records nothing). Each is documented by
+# its kernel's docstring.
 
 @_jit
-def _masses(c):
+def step_masses(c):
     cordis.run_masses(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                       _i(c, 6), _f2(c, 7), 0)
 
 
 @_jit
-def _sd(c):
+def step_sd(c):
     cordis.run_sd(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                   _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _f2(c, 11), 0)
 
 
 @_jit
-def _contact(c):
+def step_contact(c):
     cordis.run_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                        _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _f(c, 10), _i(c, 11),
                        _f2(c, 12), 0)
 
 
 @_jit
-def _sd_contact(c):
+def step_sd_contact(c):
     cordis.run_sd_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                           _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _i(c, 11),
                           _f(c, 12), _f(c, 13), _f(c, 14), _i(c, 15), _f2(c, 16), 0)
 
 
 @_jit
-def _symplectic_euler(c):
+def step_symplectic_euler(c):
     schemes.run_symplectic_euler(
         c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
         _f(c, 7), _f(c, 8)[0], _i(c, 9), _i(c, 10), _f(c, 11), _f(c, 12), _i(c, 13),
@@ -144,7 +145,7 @@ def _symplectic_euler(c):
 
 
 @_jit
-def _exact(c):
+def step_exact(c):
     schemes.run_exact(
         c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
         _f(c, 7)[0], _f2(c, 8), _f2(c, 9), _f2(c, 10), _f(c, 11), _f(c, 12), _f(c, 13),
@@ -152,38 +153,31 @@ def _exact(c):
 
 
 @_jit
-def _periods(c):
-    # device periods with the port held where it is (Engine.step of a multi-rate scene):
-    # one period per call, its position the port's own, the sound and force dropped
+def step_periods(c):
+    """``ctx[0]`` device periods of :func:`hapsim.kernels.audio.run_periods` (head ``nsub,
+    linear, last, port, mode``). Mode 0 (``Engine.step``): the port held where it is, one
+    period per call on its own position (argument 0 is a 1-element scratch), frames and
+    forces dropped into scratch; mode 1 (``Engine.port_step``): the periods on the positions
+    of argument 0, frames and forces kept in arguments 20 and 21.
+    """
     pos, x, frames, force = _f(c, 0), _f(c, 1), _f2(c, 20), _f(c, 21)
-    port = c[4]
-    for _ in range(c[0]):
-        pos[0] = x[port] if port >= 0 else 0.0
-        audio.run_periods(1, c[1], c[2] != 0, c[3] != 0, port, pos, x, _f(c, 2), _f(c, 3),
-                          _i(c, 4), _f(c, 5), _i(c, 6), _i(c, 7), _i(c, 8), _f(c, 9),
-                          _f(c, 10), _i(c, 11), _i(c, 12), _f(c, 13), _f(c, 14), _f(c, 15),
-                          _i(c, 16), _i(c, 17), _f(c, 18), _f(c, 19)[0], frames, 0, force,
-                          _i(c, 22), _f2(c, 23), 0)
+    nsub, linear, last, port = c[1], c[2] != 0, c[3] != 0, c[4]
+    held = c[5] == 0
+    calls, periods = (c[0], 1) if held else (1, c[0])
+    for _ in range(calls):
+        if held:
+            pos[0] = x[port] if port >= 0 else 0.0
+        audio.run_periods(periods, nsub, linear, last, port, pos, x, _f(c, 2),
+                          _f(c, 3), _i(c, 4), _f(c, 5), _i(c, 6), _i(c, 7), _i(c, 8),
+                          _f(c, 9), _f(c, 10), _i(c, 11), _i(c, 12), _f(c, 13), _f(c, 14),
+                          _f(c, 15), _i(c, 16), _i(c, 17), _f(c, 18), _f(c, 19)[0], frames,
+                          0, force, _i(c, 22), _f2(c, 23), 0)
 
 
-@_jit
-def _periods_out(c):
-    # ctx[0] device periods on the given port positions, their frames and forces kept
-    # (Engine.port_step of a multi-rate scene)
-    audio.run_periods(c[0], c[1], c[2] != 0, c[3] != 0, c[4], _f(c, 0), _f(c, 1), _f(c, 2),
-                      _f(c, 3), _i(c, 4), _f(c, 5), _i(c, 6), _i(c, 7), _i(c, 8), _f(c, 9),
-                      _f(c, 10), _i(c, 11), _i(c, 12), _f(c, 13), _f(c, 14), _f(c, 15),
-                      _i(c, 16), _i(c, 17), _f(c, 18), _f(c, 19)[0], _f2(c, 20), 0, _f(c, 21),
-                      _i(c, 22), _f2(c, 23), 0)
-
-
-#: The runner of :func:`hapsim.kernels.audio.run_periods` that keeps what it computes:
-#: ``ctx[0]`` periods on the positions of argument 0, frames and forces written to
-#: arguments 20 and 21 (the context of ``RUNNERS[audio.run_periods]``, other arrays).
-PERIODS_OUT = _periods_out
-
-#: The runner of each kernel (called as ``runner(ctx)``), by the kernel function.
-RUNNERS = {cordis.run_masses: _masses, cordis.run_sd: _sd, cordis.run_contact: _contact,
-           cordis.run_sd_contact: _sd_contact,
-           schemes.run_symplectic_euler: _symplectic_euler, schemes.run_exact: _exact,
-           audio.run_periods: _periods}
+#: The runner of each kernel (called as ``runner(ctx)``), by the kernel function; kernel
+#: ``run_X`` has the runner ``step_X`` (:func:`hapsim.daemon.startup.part_is_fresh` finds
+#: a runner in numba's cache by that name, without importing numba).
+RUNNERS = {cordis.run_masses: step_masses, cordis.run_sd: step_sd,
+           cordis.run_contact: step_contact, cordis.run_sd_contact: step_sd_contact,
+           schemes.run_symplectic_euler: step_symplectic_euler, schemes.run_exact: step_exact,
+           audio.run_periods: step_periods}
