@@ -162,7 +162,7 @@ def _matrix_or_nan(m, n: int) -> np.ndarray:
     return np.full((n, n), math.nan) if m is None else np.array(m, float)
 
 
-def check_nd(scene) -> CheckReportND:
+def check_nd(scene, progress=None) -> CheckReportND:
     """Check a 2-D or 3-D scene felt through its device: the MIMO loop and the felt
     matrices.
 
@@ -170,6 +170,9 @@ def check_nd(scene) -> CheckReportND:
     ----------
     scene : hapsim.scene_nd.SceneND or str
         A loaded n-D scene with a port and a device, or the path of one.
+    progress : callable, optional
+        ``progress(done, total)`` after each direction's stiffness limit
+        (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`).
 
     Returns
     -------
@@ -194,7 +197,7 @@ def check_nd(scene) -> CheckReportND:
         raise ConfigError("an n-D scene is felt through its device: it needs a mass of "
                           "kind 'port' and a device section (a scene without one: "
                           "hapsim.modes_nd)", file=scene.path, key="masses")
-    chk = check_scene_nd(scene)
+    chk = check_scene_nd(scene, progress=progress)
     dev = scene.device
     d = {**chk.to_dict(), "scene": scene.path,
          "device": {"kind": dev.kind, "mass": dev.mass.tolist(),
@@ -337,6 +340,16 @@ class RunReportND(Report):
         The deviation is inside the bound (None: not measurable).
     reason : str
         The verdict in words, as ``hapsim run`` prints it.
+    statements : list of dict
+        What was stated, per quantity (the felt stiffness and damping matrices as a
+        whole) and per principal direction of the prediction (the felt stiffness and
+        damping along it): each ``quantity``, ``direction`` (unit vector, None for a
+        matrix), ``name``, ``predicted`` and ``measured`` (along the direction [N/m] or
+        [N s/m]; None for a matrix), ``deviation``, ``linearisation``, ``wire``,
+        ``uncertainty`` [-], ``verdict``, ``within``, ``reason``
+        (:func:`hapsim.lockstep_nd.felt_verdict`). ``verdict`` is their conjunction.
+    not_stated : list of str
+        The names of the statements that were not measurable.
     port, late, watchdog, delay, lost
         Over a port only: the port (with the embedded mock's ``faults``, ``fault_seed``
         and ``faults_injected``), the late ticks, watchdog trips, the device delay per
@@ -366,6 +379,8 @@ class RunReportND(Report):
     verdict: str
     within: bool | None
     reason: str
+    statements: Any = None
+    not_stated: Any = None
     port: dict | None = None
     late: Any = None
     watchdog: Any = None
@@ -408,13 +423,14 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     -------
     RunReportND
     """
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.lockstep_nd import felt_directions, felt_verdict
     fit, chk = res["measured"], res["predicted"]
     if port_info is not None:
         from hapsim.daemon.run_nd import verdict_nd
         v = verdict_nd(res)
     else:
-        v = felt_verdict(res["deviation"], res["bound"], res.get("wire"))
+        v = felt_verdict(res["deviation"], res["bound"], res.get("wire"),
+                         directions=felt_directions(fit, chk))
     d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": _mat(chk.render.felt_stiffness),
@@ -428,7 +444,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
                       "residual": fit["residual"], "rank": fit["rank"]},
          "deviation": res["deviation"], "linearisation_bound": res["bound"].to_dict(),
          "records": res["records"], "samples": res["samples"], "order": res["order"],
-         "verdict": v["verdict"], "within": v["within"], "reason": v["reason"]}
+         "verdict": v["verdict"], "within": v["within"], "reason": v["reason"],
+         "statements": v["statements"], "not_stated": v["not_stated"]}
     if port_info is not None:
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"], rows=res["rows"],

@@ -243,13 +243,16 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = HapsimArgumentParser(
         prog="hapsim",
         description=(
-            "Real-time haptic simulator for 1-DoF force-feedback devices. It runs a "
+            "Real-time haptic simulator for force-feedback devices (one axis, a 2-D "
+            "pantograph or a 3-D delta). It runs a "
             "mass-interaction scene against a device (or its mock) and tells you the "
             "stiffness k and damping b you actually feel, for the virtual K and B you "
             "simulate (Florens, Voda & Urma's temporary hybrid system)."),
         epilog=(
             "examples:\n"
             "  hapsim run configs/wall.yaml             close the loop on the embedded mock\n"
+            "  hapsim run configs/pantograph_wall.yaml  a 2-D scene: felt stiffness and damping matrices\n"
+            "  hapsim check configs/delta_sphere.yaml   a 3-D scene: stable? which matrices are felt?\n"
             "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz\n"
             "  hapsim render --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh --K 2000 --B 2\n"
             "  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh --k 2000 --b 3\n"

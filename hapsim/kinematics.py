@@ -451,6 +451,19 @@ class Pantograph:
 
 # --------------------------------------------------------------------------- delta
 
+def _solve3(A, r):
+    """``A^-1 r`` of a 3x3 system by Cramer's rule (floats), None when singular."""
+    (a, b, c), (d, e, f), (g, h, i) = A
+    c0, c1, c2 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c0 + b * c1 + c * c2
+    if det == 0.0 or not math.isfinite(det):
+        return None
+    r0, r1, r2 = r
+    return ((r0 * c0 + r1 * (c * h - b * i) + r2 * (b * f - c * e)) / det,
+            (r0 * c1 + r1 * (a * i - c * g) + r2 * (c * d - a * f)) / det,
+            (r0 * c2 + r1 * (b * g - a * h) + r2 * (a * e - b * d)) / det)
+
+
 class Delta:
     """The Novint Falcon's delta after Stamper: forward kinematics, Jacobian, ``J^T F``.
 
@@ -837,8 +850,91 @@ class Delta:
             :data:`SINGULAR_SINE` times its scale ``|dg_i/dx| a`` (serial,
             ``kind="serial"``).
         """
-        g = self.geometry
+        q, _, Gp, Gq = self._solve(q)
+        return self._jacobian_at(q, Gp, Gq)
+
+    def forward_jacobian(self, q, guess=None) -> tuple[np.ndarray, np.ndarray]:
+        """Effector position and Jacobian in one solve, by Newton's method from ``guess``
+        when it is given (a loop's last position: a few iterations instead of
+        :meth:`forward`'s search for a start), else as :meth:`forward`.
+
+        Parameters
+        ----------
+        q : array_like, shape (3,)
+            Thigh angles [rad].
+        guess : array_like, shape (3,), optional
+            A position near the solution [m]; where Newton's method from it does not end
+            on the Falcon's branch with a residual at round-off (the acceptance of
+            :meth:`forward`), the full solve is done.
+
+        Returns
+        -------
+        x : ndarray, shape (3,)
+            As :meth:`forward` [m] (the branch's solution is unique: the same point).
+        J : ndarray, shape (3, 3)
+            As :meth:`jacobian` [m/rad].
+
+        Raises
+        ------
+        ConfigError
+            ``q`` not three finite numbers (key ``joints``).
+        KinematicsError
+            As :meth:`jacobian`.
+        """
+        if guess is not None:
+            q = _joints(q, 3)
+            got = self._track(q, guess)
+            if got is not None:
+                return got[0], self._jacobian_at(q, got[1], got[2])
         q, p, Gp, Gq = self._solve(q)
+        return p.copy(), self._jacobian_at(q, Gp, Gq)
+
+    def _track(self, q, guess, iters: int = 12):
+        """Newton's method on floats (the constraints of :meth:`_eval`, one configuration)
+        from ``guess``: ``(p, dg/dp, dg_i/dq_i)`` when it ends on the Falcon's branch with
+        a residual at round-off (:meth:`_accept`'s tests), else None."""
+        g = self.geometry
+        try:
+            x, y, z = (float(v) for v in guess)
+        except (TypeError, ValueError):
+            return None
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            return None
+        de, b2, a = g.d + g.e, g.b * g.b, g.a
+        legs = [(float(self._u[i, 0]), float(self._u[i, 1]), float(self._v[i, 0]),
+                 float(self._v[i, 1]), math.cos(float(q[i])), math.sin(float(q[i])))
+                for i in range(3)]
+        tol = 1e-14 * g.b
+        for it in range(iters + 1):
+            r, G, gq, ok = [], [], [], True
+            for ux, uy, vx, vy, cq, sq in legs:
+                pu = x * ux + y * uy - g.r
+                pv = x * vx + y * vy - g.s
+                du = pu + g.c - a * cq
+                dw = z - a * sq
+                rho = math.hypot(du, dw)
+                if rho == 0.0:
+                    return None
+                k = 2.0 * (rho - de) / rho
+                gu, gv = k * du, 2.0 * (pv + g.f)
+                r.append((rho - de) ** 2 + (pv + g.f) ** 2 - b2)
+                G.append((gu * ux + gv * vx, gu * uy + gv * vy, k * dw))
+                gq.append(k * a * (du * sq - dw * cq))
+                ok = ok and rho > de and dw >= -1e-12 * g.b
+            done = it > 0 and max(abs(s) for s in step) < tol
+            if done or it == iters:
+                if ok and all(abs(v) <= 1e-12 * b2 for v in r):
+                    return (np.array([x, y, z]), np.array(G), np.array(gq))
+                return None
+            step = _solve3(G, r)
+            if step is None:
+                return None
+            x, y, z = x - step[0], y - step[1], z - step[2]
+        return None
+
+    def _jacobian_at(self, q, Gp, Gq):
+        """``J`` from the constraint derivatives at a solution; singular ones refused."""
+        g = self.geometry
         status, J = self._classify(np.array([True]), Gp[None], Gq[None])
         if status[0] == "parallel":
             raise KinematicsError(

@@ -24,6 +24,16 @@ expected is refused)::
     planes:
       - {name: wall, normal: [0, -1], offset: -0.02, stiffness: 1000, damping: 1.5,
          masses: [hand]}          # acts on the named masses (default: every moving one)
+    excitation:                   # optional, with a port: the hand's force on the device's
+      direction: [0, 1]           # mass along this direction (normalised; required)
+      impulse: {force: 2.0, start: 0.0, duration: 0.002}   # [N] [s] [s]; and/or
+      profile: hand_force.csv     # a recorded force profile (time [s], force [N]),
+                                  # relative to the scene file (hapsim play plucks with
+                                  # it, again every --pluck-every seconds)
+    engine:                       # optional
+      precision: double           # double (float64, the default) | single (float32:
+                                  # twice the engine's speed on a mesh, 24-bit positions;
+                                  # no port; docs/dimensions.md, 'Single precision')
     audio:                        # optional: the scene heard (hapsim simulate --audio)
       listen:                     # one WAV channel each, at rate_hz
         - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
@@ -37,7 +47,8 @@ expected is refused)::
       delay: 1                    # [samples]
       hold: zoh                   # the only one in n-D
     # a kinematic device instead: kind: pantograph (n = 2) or delta (n = 3), geometry: a
-    # preset (haply, falcon), joints: the operating point [deg], joint_inertia [kg m^2]
+    # preset (haply, falcon) or, for a pantograph, its lengths as numbers
+    # {l1: 0.05, l2: 0.05, L1: 0.07, L2: 0.07, d: 0.02} [m], joints: the operating point [deg], joint_inertia [kg m^2]
     # and joint_friction [N m s/rad] (vectors or matrices), hand_mass [kg] and
     # hand_damping [N s/m] (isotropic, default 0); the handle rests at the forward
     # kinematics of the joints.
@@ -65,6 +76,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -72,11 +84,16 @@ from hapsim._yaml_lines import load_yaml
 from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.reader import LineContext, read_text
 
-__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "SceneND",
-           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+__all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SceneND",
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS",
+           "PRECISIONS", "ENGINE_KEYS"]
 
 TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
-            "audio")
+            "excitation", "audio", "engine")
+EXCITATION_KEYS = ("direction", "impulse", "profile")
+IMPULSE_KEYS = ("force", "start", "duration")
+ENGINE_KEYS = ("precision",)
+PRECISIONS = ("double", "single")
 LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
 AXES = ("x", "y", "z")
 MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
@@ -91,6 +108,9 @@ DEVICE_KEYS = {"cartesian": ("kind", "mass", "friction", "position", "delay", "h
                "delta": ("kind", "geometry", "joints", "joint_inertia", "joint_friction",
                          "hand_mass", "hand_damping", "delay", "hold")}
 DEVICE_DOF = {"pantograph": 2, "delta": 3}
+#: A pantograph's lengths given as numbers (``geometry: {l1: .., l2: .., L1: .., L2: ..,
+#: d: ..}`` [m]: :class:`hapsim.kinematics.PantographGeometry`).
+PANTOGRAPH_GEOMETRY_KEYS = ("l1", "l2", "L1", "L2", "d")
 
 
 @dataclass(frozen=True)
@@ -157,8 +177,8 @@ class DeviceND:
         ``"zoh"``.
     joints : ndarray or None
         Operating point [rad] of a kinematic device.
-    geometry : str or None
-        Its preset.
+    geometry : str, hapsim.kinematics.PantographGeometry or None
+        Its preset's name, or a pantograph's lengths given as numbers.
     joint_inertia, joint_friction : ndarray, shape (n, n), or None
         A kinematic device's joint-space inertia [kg m^2] and friction [N m s/rad].
     hand_mass, hand_damping : float
@@ -172,7 +192,7 @@ class DeviceND:
     delay: int
     hold: str
     joints: np.ndarray | None = None
-    geometry: str | None = None
+    geometry: Any = None
     joint_inertia: np.ndarray | None = None
     joint_friction: np.ndarray | None = None
     hand_mass: float = 0.0
@@ -193,9 +213,25 @@ class ListenND:
 
 
 @dataclass(frozen=True)
+class ExcitationND:
+    """The hand's force on the device's mass in an n-D scene: the 1-D excitation's
+    ``impulse`` (:class:`hapsim.scene.elements.Impulse`, [N], [s]) and/or ``profile`` (a
+    file of time [s], force [N]; an absolute path) acting along the unit ``direction``
+    (shape (n,)): force vector ``h(t) direction`` (``h`` as
+    :func:`hapsim.device_model.hand_force_samples` samples it)."""
+
+    direction: np.ndarray
+    impulse: object | None = None
+    profile: str | None = None
+    line: int | None = None
+
+
+@dataclass(frozen=True)
 class SceneND:
     """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
-    points (a tuple of :class:`ListenND`) or None."""
+    points (a tuple of :class:`ListenND`) or None, ``excitation`` the hand's force
+    (:class:`ExcitationND`) or None; ``precision`` the engine's floating type,
+    ``"double"`` (float64, default) or ``"single"`` (float32)."""
 
     dimension: int
     rate_hz: float
@@ -206,6 +242,8 @@ class SceneND:
     path: str = "<string>"
     integrator: str = "centred"
     audio: tuple | None = None
+    excitation: ExcitationND | None = None
+    precision: str = "double"
 
     @property
     def period(self) -> float:
@@ -563,8 +601,53 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
     audio = _read_audio(r, doc, n, names) if "audio" in doc else None
+    excitation = None
+    if "excitation" in doc:
+        if not ports:
+            raise r.error("an excitation is the hand's force on the device: the scene needs "
+                          "a port and a device", r.line(doc, "excitation"), "excitation")
+        excitation = _read_excitation(r, doc, n, path)
+    precision = "double"
+    if "engine" in doc:
+        e = r.mapping(doc["engine"], "engine", r.line(doc, "engine"))
+        r.keys(e, ENGINE_KEYS, "engine")
+        precision = r.choice(e, "precision", "engine", PRECISIONS, default="double")
+        if precision == "single" and ports:
+            raise r.error("single precision is for scenes without a port: a felt scene "
+                          "runs the double-precision engine (exact to round-off)",
+                          r.line(e, "precision"), "engine.precision")
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
-                   planes=tuple(planes), device=device, path=path, audio=audio)
+                   planes=tuple(planes), device=device, path=path, audio=audio,
+                   excitation=excitation, precision=precision)
+
+
+def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:
+    """The ``excitation: {direction, impulse, profile}`` section (module docstring)."""
+    from hapsim.scene import Impulse
+    key = "excitation"
+    d = r.mapping(doc[key], key, r.line(doc, key))
+    r.keys(d, EXCITATION_KEYS, key, required=("direction",))
+    if "impulse" not in d and "profile" not in d:
+        raise r.error("needs an impulse ({force, start, duration}) or a profile (a file of "
+                      "time [s], force [N])", r.line(d), f"{key}.impulse")
+    e = r.vector(d, "direction", key, n, unit="-")
+    norm = float(np.linalg.norm(e))
+    if not norm > 0:
+        raise r.error("must be a non-zero vector (the direction of the hand's force)",
+                      r.line(d, "direction"), f"{key}.direction")
+    impulse = None
+    if "impulse" in d:
+        ik = f"{key}.impulse"
+        i = r.mapping(d["impulse"], ik, r.line(d, "impulse"))
+        r.keys(i, IMPULSE_KEYS, ik, required=("force",))
+        impulse = Impulse(force=r.number(i, "force", ik, unit="N"),
+                          start=r.number(i, "start", ik, default=0.0, minimum=0.0, unit="s"),
+                          duration=r.number(i, "duration", ik, default=0.0, minimum=0.0,
+                                            unit="s"))
+    profile = r.string(d, "profile", key)
+    if profile is not None and not os.path.isabs(profile) and path != "<string>":
+        profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
+    return ExcitationND(e / norm, impulse, profile, line=r.line(d))
 
 
 def _read_audio(r: _Reader, doc, n: int, names) -> tuple:
@@ -598,6 +681,34 @@ def _read_audio(r: _Reader, doc, n: int, names) -> tuple:
     return tuple(out)
 
 
+def _read_geometry(r: _Reader, d, key: str, kind: str, presets: dict):
+    """A kinematic device's ``geometry``: a preset's name (the default: the first
+    preset), or for a pantograph a mapping of its five lengths [m]
+    (:data:`PANTOGRAPH_GEOMETRY_KEYS`; ``l1, l2, L1, L2`` > 0, ``d`` >= 0), returned as a
+    :class:`hapsim.kinematics.PantographGeometry`. ConfigError naming the file, the line,
+    the key (``device.geometry`` or ``device.geometry.l1``) and the valid forms."""
+    from hapsim.kinematics import PantographGeometry
+    if "geometry" not in d:
+        return next(iter(presets))
+    v = d["geometry"]
+    where = f"{key}.geometry"
+    line = r.line(d, "geometry")
+    names = ", ".join(presets)
+    forms = (f"a preset ({names}) or a mapping of the five lengths "
+             "{l1, l2, L1, L2, d} [m]" if kind == "pantograph" else f"a preset ({names})")
+    if isinstance(v, str):
+        if v not in presets:
+            raise r.error(f"unknown value {show(v)}; valid forms: {forms}", line, where)
+        return v
+    if kind != "pantograph" or not isinstance(v, dict):
+        got = type_name(v) + ("" if v is None else f" {show(v)}")
+        raise r.error(f"must be {forms}, got {got}", line, where)
+    r.keys(v, PANTOGRAPH_GEOMETRY_KEYS, where, required=PANTOGRAPH_GEOMETRY_KEYS)
+    vals = {k: r.number(v, k, where, minimum=0.0, strict=(k != "d"), unit="m")
+            for k in PANTOGRAPH_GEOMETRY_KEYS}
+    return PantographGeometry(**vals)
+
+
 def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     key = "device"
     d = r.mapping(doc["device"], key, r.line(doc, "device"))
@@ -618,7 +729,7 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     from hapsim.errors import KinematicsError
     from hapsim.kinematics import DELTA_PRESETS, PANTOGRAPH_PRESETS, device as make
     presets = PANTOGRAPH_PRESETS if kind == "pantograph" else DELTA_PRESETS
-    geometry = r.choice(d, "geometry", key, tuple(presets), default=next(iter(presets)))
+    geometry = _read_geometry(r, d, key, kind, presets)
     q = np.radians(r.vector(d, "joints", key, n, unit="deg"))
     Mq = r.matrix(d, "joint_inertia", key, n, None, "kg m^2", definite="positive")
     Bq = r.matrix(d, "joint_friction", key, n, np.zeros((n, n)), "N m s/rad",
@@ -628,11 +739,20 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     dev = make(kind, geometry)
     try:
         from hapsim.analysis.ths_nd import LoopModelND
-        loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
-                                       rate_hz=1.0, delay=0)
+        with np.errstate(over="ignore", invalid="ignore"):   # refused below when not finite
+            loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                           rate_hz=1.0, delay=0)
         pos = dev.forward(q)
-    except KinematicsError as exc:
-        raise r.error(exc.reason, r.line(d, "joints"), f"{key}.joints") from None
+    except (KinematicsError, ConfigError) as exc:
+        # a configuration the kinematics refuse, or one so near a singularity that the
+        # Cartesian mass is not finite (e.g. a link of 1e-300 m)
+        given = ("" if isinstance(geometry, str) else " with the geometry given ("
+                 + ", ".join(f"{k} = {getattr(geometry, k):g}" for k in
+                             PANTOGRAPH_GEOMETRY_KEYS) + " m)")
+        what = exc.reason if isinstance(exc, KinematicsError) else (
+            f"the device's Cartesian mass at these joints is not usable ({exc.key}: "
+            f"{exc.reason}): too near a singularity")
+        raise r.error(what + given, r.line(d, "joints"), f"{key}.joints") from None
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
                     geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
                     hand_damping=bh)

@@ -44,9 +44,9 @@ audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
 """
 
 
-@pytest.fixture(scope="module")
-def jack_server():
-    """A private ``jackd -d dummy -r 48000 -p 256``; its name."""
+def dummy_jackd(rate=48000, period=256):
+    """A private ``jackd -d dummy -r RATE -p PERIOD`` (a generator: yields its name, stops
+    it after), for a module-scoped fixture."""
     if shutil.which("jackd") is None:
         pytest.skip("jackd not installed: apt-get install jackd2")
     pytest.importorskip("jack", reason="JACK-Client not installed: pip install JACK-Client")
@@ -58,8 +58,8 @@ def jack_server():
     # line per late period, and once a pipe's 64 KiB are full it blocks in write() and
     # every client's jack_client_open waits for it forever (a whole suite hung so)
     log = tempfile.TemporaryFile()
-    proc = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", "48000", "-p", "256"],
-                            stdout=log, stderr=subprocess.STDOUT, env=env)
+    proc = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", str(rate), "-p",
+                             str(period)], stdout=log, stderr=subprocess.STDOUT, env=env)
     try:
         deadline = time.monotonic() + 20.0
         while True:
@@ -82,6 +82,12 @@ def jack_server():
             proc.kill()
             proc.wait()
         log.close()
+
+
+@pytest.fixture(scope="module")
+def jack_server():
+    """A private ``jackd -d dummy -r 48000 -p 256``; its name."""
+    yield from dummy_jackd(48000, 256)
 
 
 class Recorder:

@@ -209,8 +209,10 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     a = 5e-5 m the felt stiffness departs beyond the linearisation bound alone (the
     readings' rounding, not the kinematics) and inside the bound plus the wire's term:
     "within"; on the wall at a = 1.5e-5 m the damping departs far beyond the bound alone
-    and the wire's term exceeds the measurable limit: "not measurable" (not "differs",
-    not "within" with a vacuous interval)."""
+    and its wire term exceeds the measurable limit: the felt damping (as a matrix and
+    along each principal direction) is "not measurable" (not "differs", not "within" with
+    a vacuous interval), while the felt stiffness, whose wire term is small, is stated
+    "within": the run's verdict is "within" with the damping named as not measurable."""
     from hapsim.lockstep_nd import MEASURABLE_WIRE
     _, r = _wire_res("gen3", 22, 5e-5, "pantograph_circle.yaml")
     lin = r["bound"].to_dict()
@@ -219,8 +221,19 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     assert r["deviation"]["felt_stiffness"] <= r["uncertainty"]["felt_stiffness"]
     _, r = _wire_res("gen3", 22, 1.5e-5)
     assert r["deviation"]["felt_damping"] > 3 * r["bound"].to_dict()["felt_damping"]
-    assert r["verdict"] == "not measurable" and r["within"] is None
-    assert r["wire"]["felt_damping"] > MEASURABLE_WIRE and "too small" in r["reason"]
+    assert r["wire"]["felt_damping"] > MEASURABLE_WIRE
+    by = {s["name"]: s for s in r["statements"]}
+    damping = [s for s in r["statements"] if s["quantity"] == "felt_damping"]
+    stiffness = [s for s in r["statements"] if s["quantity"] == "felt_stiffness"]
+    assert len(damping) == len(stiffness) == 3                 # the matrix, 2 directions
+    assert by["felt damping"]["verdict"] == "not measurable"
+    assert "felt damping" in r["not_stated"] and r["uncertainty"]["felt_damping"] is None
+    for s in damping:
+        assert s["verdict"] != "within" or s["wire"] <= MEASURABLE_WIRE
+    for s in stiffness:
+        assert s["verdict"] == "within" and s["deviation"] <= s["uncertainty"], s
+    assert r["verdict"] == "within" and r["within"] is True
+    assert "not measurable" in r["reason"] and "felt damping" in r["reason"]
 
 
 @settings(max_examples=5, deadline=None, derandomize=True,
@@ -230,10 +243,12 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
        name=st.sampled_from(["pantograph_wall.yaml", "pantograph_circle.yaml"]))
 def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
     """Over excitations of 20 to 3000 reading steps (capped below the wall's depth) and
-    encoders of 2^19..2^23 counts/rev, on a correct loop the verdict is never "differs":
-    "within" exactly when measurable and the deviation is inside the stated uncertainty
-    (linearisation bound plus the wire's first-order worst case), and otherwise "not
-    measurable" with its cause (the wire's term above the limit)."""
+    encoders of 2^19..2^23 counts/rev, on a correct loop no statement is "differs": each
+    quantity (a felt matrix, or the felt stiffness or damping along a principal
+    direction) is stated exactly when its wire term is within the measurable limit, then
+    "within" with its deviation inside its stated uncertainty (linearisation bound plus
+    the wire's first-order worst case), and otherwise "not measurable"; the run's verdict
+    is "within" when anything was stated, else "not measurable" with its cause."""
     from hapsim.kinematics import device
     from hapsim.lockstep_nd import MEASURABLE_WIRE
     sc, _ = _plan(name)
@@ -242,14 +257,20 @@ def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
     _, r = _wire_res(gen, bits, a, name)
     dev, w, lin = r["deviation"], r["wire"], r["bound"].to_dict()
     assert r["verdict"] in ("within", "not measurable"), (a, bits, r["reason"], dev)
-    measurable = max(w["felt_stiffness"], w["felt_damping"]) <= MEASURABLE_WIRE
-    assert (r["verdict"] == "within") == measurable, (a, bits, w)
-    if measurable:
-        for key in ("felt_stiffness", "felt_damping"):
+    assert len(r["statements"]) == 6
+    for s in r["statements"]:
+        measurable = s["wire"] is not None and s["wire"] <= MEASURABLE_WIRE
+        assert (s["verdict"] == "within") == measurable, (a, bits, s)
+        if measurable:
+            assert s["uncertainty"] == pytest.approx(s["linearisation"] + s["wire"])
+            assert s["deviation"] <= s["uncertainty"], (a, bits, s)
+    for key in ("felt_stiffness", "felt_damping"):
+        if w[key] <= MEASURABLE_WIRE:
             assert r["uncertainty"][key] == pytest.approx(lin[key] + w[key])
             assert dev[key] <= r["uncertainty"][key], (a, bits, key, dev, r["uncertainty"])
-    else:
+    if r["verdict"] == "not measurable":
         assert r["uncertainty"] is None and "too small" in r["reason"]
+        assert all(s["verdict"] == "not measurable" for s in r["statements"])
 
 
 def test_a_device_unlike_the_scenes_differs():

@@ -107,13 +107,14 @@ def test_a_chunk_makes_no_array(monkeypatch):
     assert max(peaks[1:]) < one, (peaks, one)
 
 
-@pytest.mark.parametrize("argv,flag", [(["--osc", "9000"], "--osc"),
+@pytest.mark.parametrize("argv,flag", [(["--telemetry", "t.npz"], "--telemetry"),
                                        (["--pluck-every", "0.5"], "--pluck-every"),
                                        (["--lockstep"], "--lockstep"),
                                        (["--sound", "none"], "--sound")])
 def test_play_nd_refuses_what_it_does_not_take(argv, flag, capsys):
-    """``hapsim play MEMBRANE`` with an option an n-D scene's play does not take: exit 2,
-    the flag named, before any sound opens."""
+    """``hapsim play MEMBRANE`` with an option an n-D scene's play does not take (or
+    --pluck-every, on a scene without an excitation): exit 2, the flag named, before any
+    sound opens."""
     from hapsim.cli import main
     assert main(["play", str(CONFIGS / "membrane.yaml"), *argv]) == 2
     assert flag in capsys.readouterr().err

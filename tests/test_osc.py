@@ -258,6 +258,16 @@ PATCH = """#N canvas 0 50 600 400 12;
 """
 
 
+def run_patch(text, port, tmp_path):
+    """Run a Pd patch (``text`` with ``{port}``) headless, ``pd -nogui -nosound``, to its
+    end (the patch quits itself)."""
+    patch = tmp_path / "send.pd"
+    patch.write_text(text.format(port=port))
+    pd = subprocess.run(["pd", "-nogui", "-nosound", "-open", str(patch)],
+                        capture_output=True, text=True, timeout=60)
+    assert pd.returncode == 0, pd.stderr
+
+
 def test_pd_patch_sends_changes_over_osc(tmp_path):
     """A Pd patch run headless (pd -nogui -nosound) sends, with [oscformat] into
     [netsend -u -b], K = 600 (stable: applied, then felt) and K = 1e6 (unstable: refused),
@@ -265,12 +275,8 @@ def test_pd_patch_sends_changes_over_osc(tmp_path):
     if shutil.which("pd") is None:
         pytest.skip("pd not installed: apt-get install puredata")
     proc, port = start_daemon()
-    patch = tmp_path / "send.pd"
-    patch.write_text(PATCH.format(port=port))
     try:
-        pd = subprocess.run(["pd", "-nogui", "-nosound", "-open", str(patch)],
-                            capture_output=True, text=True, timeout=60)
-        assert pd.returncode == 0, pd.stderr
+        run_patch(PATCH, port, tmp_path)
         c = Client(port, proc)   # both changes answered, then a free response measured after
         wait_for(c, "/hapsim/loop", lambda p: (p[3], p[4]) == (1, 1), "Pd's two changes")
         wait_for(c, "/hapsim/felt", lambda p: p[4] == p[4], "no free response measured")
@@ -372,12 +378,13 @@ def _ramped(c, ramp_samples=200):
     wait_for(c, "/hapsim/loop", lambda p: p[0] >= s0 + ramp_samples, "the ramp's end")
 
 
-def _play_string(jack_server, duration=LONG_S):
-    """hapsim play on the shipped string, sound through the test's JACK server, OSC on."""
+def play_daemon(scene, jack_server, *extra, duration=LONG_S):
+    """hapsim play on ``scene``, sound through the test's JACK server, OSC on any free
+    port; the process and that port."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", STRING, "--osc", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "play", str(scene), "--osc", "0",
                              "--sound", "jack", "--jack-server", jack_server,
-                             "--duration", str(duration), "--json"],
+                             "--duration", str(duration), "--json", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
     seen = []
@@ -390,6 +397,11 @@ def _play_string(jack_server, duration=LONG_S):
             break
     proc.kill()
     pytest.fail(f"play did not start its OSC server: {''.join(seen)}{proc.stderr.read()}")
+
+
+def _play_string(jack_server, duration=LONG_S):
+    """hapsim play on the shipped string (:func:`play_daemon`)."""
+    return play_daemon(STRING, jack_server, duration=duration)
 
 
 def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):

@@ -38,8 +38,15 @@ def unit(a) -> np.ndarray:
     return a / np.linalg.norm(a)
 
 
-def pantograph_device(joints) -> str:
-    return (f"device: {{kind: pantograph, geometry: haply, joints: {v(joints)},\n"
+def pantograph_device(joints, lengths=None) -> str:
+    if lengths is not None:                       # the five-bar's lengths as numbers
+        head = (f"device: {{kind: pantograph, joints: {v(joints)},\n"
+                "         geometry: {" + ", ".join(f"{k}: {x:g}" for k, x in
+                                         zip(("l1", "l2", "L1", "L2", "d"), lengths))
+                + "},  # [m]\n")
+    else:
+        head = f"device: {{kind: pantograph, geometry: haply, joints: {v(joints)},\n"
+    return (head +
             "         joint_inertia: [2.0e-4, 2.0e-4],   # [kg m^2]\n"
             "         joint_friction: [1.0e-3, 1.0e-3],  # [N m s/rad]\n"
             "         hand_mass: 0.05, delay: 1}        # [kg], [samples]\n")
@@ -108,6 +115,38 @@ def circle() -> str:
         "  - {name: press, kind: spring_damper, between: [hand, press], stiffness: "
         f"{kp:g}, damping: 0.5}}\n"
         + pantograph_device(q))
+
+
+#: The planar spring's stiffness [N/m] and damping [N s/m], and the excitation the
+#: emulated Hapkit pantograph is measured at [m] (docs/pantograph.md, 'What the loop
+#: measures').
+SPRING_K, SPRING_B, SPRING_AMPLITUDE = 800.0, 6.0, 5e-3
+
+
+def spring() -> str:
+    q = [130.0, 50.0]
+    h = device("pantograph").forward(np.radians(q))
+    return (
+        "# A planar spring: the handle of a pantograph held at its workspace's centre by a\n"
+        "# spring-damper of rest length 0 (the same law on both axes) to a ground there.\n"
+        "# No contact to open, so the hand may move millimetres: large against the Hapkit\n"
+        "# pantograph's resolution (one sensor count is about 11 um at the handle, one PWM\n"
+        "# step about 0.036 N), which its firmware then measures (docs/pantograph.md):\n"
+        f"#   hapsim mock --firmware --scene configs/pantograph_spring.yaml --lockstep "
+        f"--amplitude {SPRING_AMPLITUDE:g}\n"
+        f"#   hapsim run configs/pantograph_spring.yaml --port PTY --lockstep "
+        f"--amplitude {SPRING_AMPLITUDE:g}\n"
+        "# The geometry is given as numbers, the five-bar's lengths [m] (here the Haply\n"
+        "# 2DIY's; write your device's). Written by tools/make_nd_scenes.py.\n"
+        "dimension: 2\n"
+        "rate_hz: 1000\n"
+        "masses:\n"
+        "  - {name: hand, kind: port}\n"
+        f"  - {{name: centre, kind: ground, x0: {v(h)}}}\n"
+        "links:\n"
+        "  - {name: spring, kind: spring_damper, between: [hand, centre], stiffness: "
+        f"{SPRING_K:g}, damping: {SPRING_B:g}}}\n"
+        + pantograph_device(q, (0.05, 0.05, 0.07, 0.07, 0.02)))
 
 
 def sphere() -> str:
@@ -253,6 +292,7 @@ def membrane() -> str:
 
 
 SCENES = {"pantograph_wall.yaml": wall, "pantograph_circle.yaml": circle,
+          "pantograph_spring.yaml": spring,
           "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh, "membrane.yaml": membrane}
 
 if __name__ == "__main__":

@@ -260,13 +260,16 @@ class SceneCheckND:
         return out
 
 
-def check_scene_nd(scene) -> SceneCheckND:
+def check_scene_nd(scene, progress=None) -> SceneCheckND:
     """Closed-loop stability and felt matrices of an n-D scene felt through its device.
 
     Parameters
     ----------
     scene : hapsim.scene_nd.SceneND
         A validated scene with a port.
+    progress : callable, optional
+        ``progress(done, total)`` after each direction's stiffness limit (the long part
+        when the delay is long: the limit's scan grows with the loop's order).
 
     Returns
     -------
@@ -298,10 +301,13 @@ def check_scene_nd(scene) -> SceneCheckND:
         loop = LoopModelND(mass=scene.device.mass, friction=scene.device.friction,
                            rate_hz=scene.rate_hz, delay=scene.device.delay)
         E = np.linalg.eigh(scene.device.mass)[1]
-        lim = np.array([direction_limit(loop, E[:, i], Bp,
-                                        Kp - float(E[:, i] @ Kp @ E[:, i])
-                                        * np.outer(E[:, i], E[:, i]))
-                        for i in range(n)])
+        lim = np.empty(n)
+        for i in range(n):
+            lim[i] = direction_limit(loop, E[:, i], Bp,
+                                     Kp - float(E[:, i] @ Kp @ E[:, i])
+                                     * np.outer(E[:, i], E[:, i]))
+            if progress is not None:
+                progress(i + 1, n)
     return SceneCheckND(dof=n, render=r, port_stiffness=Kp, port_damping=Bp,
                         states=A.shape[0], limit_directions=E, stiffness_limits=lim)
 

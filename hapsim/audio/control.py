@@ -53,7 +53,9 @@ import numpy as np
 
 from hapsim.errors import ConfigError, HapsimError
 
-__all__ = ["Controller", "Change", "Analyst", "ADDRESSES", "serve_osc", "identify_window"]
+__all__ = ["Controller", "Change", "Analyst", "ADDRESSES", "serve_osc", "identify_window",
+           "Refused", "name_arg", "numbers", "send_telemetry", "revise_measurement",
+           "write_journal"]
 
 #: The OSC addresses the server maps (module docstring).
 ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
@@ -159,6 +161,8 @@ class Controller:
         self.unstable: str | None = None
         self._rebasing: threading.Thread | None = None
         self.analyst = Analyst(background)
+        #: What a refusal calls the loop checked.
+        self.what = "closed loop"
         self.felt = self._predict(scene)
 
     def rebase_delay(self, delay: int, why: str) -> None:
@@ -210,8 +214,9 @@ class Controller:
         self.analyst.close()
 
     # ------------------------------------------------------------ any thread
-    def _log(self, event: str, address: str, args, **extra) -> dict:
-        sample = self.sample_of() if self.sample_of is not None else self.sample
+    def _log(self, event: str, address: str, args, at: int | None = None, **extra) -> dict:
+        sample = at if at is not None else (
+            self.sample_of() if self.sample_of is not None else self.sample)
         rec = {"t": time.monotonic() - self._t0, "sample": sample, "event": event,
                "address": address, "args": list(args), **extra}
         self.journal.append(rec)
@@ -227,13 +232,13 @@ class Controller:
         (:func:`hapsim.analysis.prediction.predict`); the prediction of the new scene."""
         pred = self._predict(new_scene)
         if not pred["stable"]:
-            raise _Refused(f"the closed loop would be unstable (spectral radius "
+            raise Refused(f"the {self.what} would be unstable (spectral radius "
                            f"{pred['spectral_radius']:.6g} > 1)")
         for a in (0.25, 0.5, 0.75):
-            mid = _blend(old_scene, new_scene, a)
+            mid = self.blend(old_scene, new_scene, a)
             p = self._predict(mid)
             if not p["stable"]:
-                raise _Refused(f"the ramp passes through an unstable loop at {a:.0%} "
+                raise Refused(f"the ramp passes through an unstable loop at {a:.0%} "
                                f"(spectral radius {p['spectral_radius']:.6g})")
         return pred
 
@@ -265,7 +270,7 @@ class Controller:
                                        f"{address} {' '.join(map(str, args))}")
                     self._gen += 1
             self._mail.append(change)
-        except (_Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
+        except (Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
             reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             self.refused += 1
             self._log("refused", address, args, reason=reason)
@@ -276,33 +281,64 @@ class Controller:
                   predicted={q: self.felt.get(q) for q in ("k", "b", "f0_hz", "damping_ratio")})
         return True, (change.steps / self.scene.rate_hz, _num(k), _num(b))
 
-    def _plan(self, address: str, args):
+    def blend(self, a, b, w):
+        """Scene ``a`` moved the fraction ``w`` [-] toward ``b`` (links' K, B and masses
+        linearly): the points of a ramp checked before a change is accepted."""
+        return _blend(a, b, w)
+
+    @property
+    def mailbox(self) -> collections.deque:
+        """The accepted changes (:class:`Change`) not yet taken by the sample loop."""
+        return self._mail
+
+    def ramp_event(self, event: str, change: Change, sample: int) -> None:
+        """Journal a ramp's start or end seen by a loop that ramps the changes itself
+        (:class:`hapsim.audio.live_nd.LiveND`) at ``sample``."""
+        self._log(event, change.kind, [change.name, *change.end], at=int(sample))
+
+    def felt_reply(self) -> tuple:
+        """The values of ``/hapsim/felt``: k, b, f0, zeta predicted, k, b measured."""
+        f = self.felt
+        return (_num(f.get("k")), _num(f.get("b")), _num(f.get("f0_hz")),
+                _num(f.get("damping_ratio")), float(self.measured[0]),
+                float(self.measured[1]))
+
+    def _plan_common(self, address: str, args):
+        """The changes every scene takes (pause, resume, gain): a :class:`Change`, or
+        None for another address."""
         steps = self._steps()
-        sc = self.scene
         if address in ("/hapsim/pause", "/hapsim/resume"):
             kind = address.rsplit("/", 1)[1]
             return Change(kind, "", (self.force_scale,), (0.0 if kind == "pause" else 1.0,),
-                          steps), None
+                          steps)
         if address == "/hapsim/gain":
-            (g,) = _floats(args, 1, "gain", address)
+            (g,) = numbers(args, 1, "gain", address)
             if self.live is None:
-                raise _Refused("no live sound in this run (--sound)")
-            return Change("gain", "", (self.live.gain,), (g,), steps), None
+                raise Refused("no live sound in this run (--sound)")
+            return Change("gain", "", (self.live.gain,), (g,), steps)
+        return None
+
+    def _plan(self, address: str, args):
+        steps = self._steps()
+        sc = self.scene
+        common = self._plan_common(address, args)
+        if common is not None:
+            return common, None
         if address == "/hapsim/mass":
-            name, m = _name(args, address), _floats(args[1:], 1, "m", address)[0]
+            name, m = name_arg(args, address), numbers(args[1:], 1, "m", address)[0]
             if not m > 0:
-                raise _Refused(f"mass must be > 0, got {m:g}")
+                raise Refused(f"mass must be > 0, got {m:g}")
             moving = [mm.name for mm in sc.masses if mm.kind == "mass"]
             try:
                 i = sc.index(name)
             except KeyError:
-                raise _Refused(f"no mass {name!r}; moving masses: "
+                raise Refused(f"no mass {name!r}; moving masses: "
                                f"{', '.join(moving) or 'none'}") from None
             old = sc.masses[i]
             if old.kind != "mass":
                 why = ("a ground has no mass to change" if old.kind == "ground" else
                        "the port's mass is the device's (device.mass), not the scene's")
-                raise _Refused(f"{name!r} is a {old.kind}, not a moving mass: {why}; moving "
+                raise Refused(f"{name!r} is a {old.kind}, not a moving mass: {why}; moving "
                                f"masses: {', '.join(moving) or 'none'}")
             new = dataclasses.replace(sc, masses=tuple(
                 dataclasses.replace(mm, mass=float(m)) if j == i else mm
@@ -313,15 +349,15 @@ class Controller:
         if address.startswith("/hapsim/link/"):
             what = address.rsplit("/", 1)[1]
             if address not in USAGE:
-                raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
-            name = _name(args, address)
+                raise Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+            name = name_arg(args, address)
             try:
                 lk = sc.link(name)
             except KeyError:
-                raise _Refused(f"no link {name!r}; links: "
+                raise Refused(f"no link {name!r}; links: "
                                f"{', '.join(x.name for x in sc.links) or 'none'}") from None
             if what == "target":
-                k, b = _floats(args[1:], 2, "k b", address)
+                k, b = numbers(args[1:], 2, "k b", address)
                 from hapsim.analysis.targets import apply_targets
                 tl = dataclasses.replace(lk, target=(k, b), stiffness=math.nan,
                                          damping=math.nan, calibrated=False)
@@ -330,20 +366,20 @@ class Controller:
                 new, _ = apply_targets(new)
             else:
                 if what == "stiffness":
-                    K, B = _floats(args[1:], 1, "K", address)[0], lk.damping
+                    K, B = numbers(args[1:], 1, "K", address)[0], lk.damping
                 elif what == "damping":
-                    K, B = lk.stiffness, _floats(args[1:], 1, "B", address)[0]
+                    K, B = lk.stiffness, numbers(args[1:], 1, "B", address)[0]
                 elif what == "kb":
-                    K, B = _floats(args[1:], 2, "K B", address)
+                    K, B = numbers(args[1:], 2, "K B", address)
                 else:
-                    raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+                    raise Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
                 new = sc.with_link(name, stiffness=K, damping=B)
             nl = new.link(name)
             pred = self._check(new, sc)
             self.scene = new
             return Change("link", name, (lk.stiffness, lk.damping),
                           (nl.stiffness, nl.damping), steps), pred
-        raise _Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+        raise Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
 
     def measure(self, x, wait: float = 0.0) -> None:
         """Measure the felt (k, b) of a free response window in the background.
@@ -553,8 +589,8 @@ def _background() -> None:
     import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
 
-class _Refused(Exception):
-    """A change refused, with the reason sent back."""
+class Refused(Exception):
+    """A change refused, with the reason sent back to its sender (``/hapsim/refused``)."""
 
 
 def _replace_start(new: Change, old: Change) -> bool:
@@ -565,36 +601,58 @@ def _replace_start(new: Change, old: Change) -> bool:
 
 
 def _blend(a, b, w):
-    """Scene ``a`` moved the fraction ``w`` toward ``b`` (links' K, B and masses linearly)."""
+    """Scene ``a`` moved the fraction ``w`` toward ``b`` (links' K, B and masses linearly;
+    an n-D scene's planes' K, B too)."""
     links = tuple(dataclasses.replace(la, stiffness=la.stiffness + w * (lb.stiffness - la.stiffness),
                                       damping=la.damping + w * (lb.damping - la.damping))
                   if (la.stiffness, la.damping) != (lb.stiffness, lb.damping) else la
                   for la, lb in zip(a.links, b.links))
     masses = tuple(dataclasses.replace(ma, mass=ma.mass + w * (mb.mass - ma.mass))
                    if ma.mass != mb.mass else ma for ma, mb in zip(a.masses, b.masses))
-    return dataclasses.replace(a, links=links, masses=masses)
+    extra = {}
+    if hasattr(a, "planes"):
+        extra["planes"] = tuple(
+            dataclasses.replace(pa, stiffness=pa.stiffness + w * (pb.stiffness - pa.stiffness),
+                                damping=pa.damping + w * (pb.damping - pa.damping))
+            if (pa.stiffness, pa.damping) != (pb.stiffness, pb.damping) else pa
+            for pa, pb in zip(a.planes, b.planes))
+    return dataclasses.replace(a, links=links, masses=masses, **extra)
 
 
 def _usage(address: str) -> str:
     return f" (usage: {address} {USAGE[address]})" if address in USAGE else ""
 
 
-def _name(args, address: str = "") -> str:
+def name_arg(args, address: str = "") -> str:
+    """The name a change's first OSC argument gives.
+
+    Raises
+    ------
+    Refused
+        No first argument, or not a string (the address's usage said).
+    """
     if not args or not isinstance(args[0], str):
         got = "nothing" if not args else f"{type(args[0]).__name__} {args[0]!r}"
-        raise _Refused(f"the first argument must be a name (string), got {got}"
-                       + _usage(address))
+        raise Refused(f"the first argument must be a name (string), got {got}"
+                      + _usage(address))
     return args[0]
 
 
-def _floats(args, n: int, what: str, address: str = "") -> tuple:
+def numbers(args, n: int, what: str, address: str = "") -> tuple:
+    """The first ``n`` OSC arguments as finite floats.
+
+    Raises
+    ------
+    Refused
+        Fewer than ``n``, not numbers (booleans refused) or not finite.
+    """
     if len(args) < n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                 for v in args[:n]):
         missing = "missing" if len(args) < n else "not a number"
-        raise _Refused(f"expected {n} number(s) ({what}): {missing}" + _usage(address))
+        raise Refused(f"expected {n} number(s) ({what}): {missing}" + _usage(address))
     vals = tuple(float(v) for v in args[:n])
     if not all(math.isfinite(v) for v in vals):
-        raise _Refused(f"{what} must be finite")
+        raise Refused(f"{what} must be finite")
     return vals
 
 
@@ -649,9 +707,7 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
             reply(client, "/hapsim/refused", address, info)
 
     def on_felt(client, address, *args):
-        f = ctl.felt
-        reply(client, "/hapsim/felt", _num(f.get("k")), _num(f.get("b")), _num(f.get("f0_hz")),
-              _num(f.get("damping_ratio")), float(ctl.measured[0]), float(ctl.measured[1]))
+        reply(client, "/hapsim/felt", *ctl.felt_reply())
 
     def on_loop(client, address, *args):
         st = status() if status is not None else {}
@@ -771,13 +827,27 @@ def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
     return changes
 
 
-def send_telemetry(tel: dict, t: float, x: float, f: float, ctl: Controller) -> None:
+def send_telemetry(tel: dict, t: float, x, f, ctl: Controller) -> None:
     """Send one ``/hapsim/tel t x f k b`` message when a telemetry client is set
-    (called by the sample loop every ``tel["every"]`` samples; UDP, never blocks long)."""
+    (called by the sample loop every ``tel["every"]`` samples; UDP, never blocks long).
+
+    Parameters
+    ----------
+    tel : dict
+        :func:`serve_osc`'s telemetry dict.
+    t : float
+        Time [s].
+    x, f : float or array_like
+        Device position [m] and port force [N]: a number (1-D) or n of each (a 2-D or
+        3-D scene: ``/hapsim/tel t x1 .. xn f1 .. fn k b``).
+    ctl : Controller
+        Its felt ``k``, ``b`` are sent.
+    """
     c = tel.get("client")
     if c is not None:
         try:
-            c.send_message("/hapsim/tel", [float(t), float(x), float(f),
+            c.send_message("/hapsim/tel", [float(t), *(float(v) for v in np.ravel(x)),
+                                           *(float(v) for v in np.ravel(f)),
                                            _num(ctl.felt.get("k")), _num(ctl.felt.get("b"))])
         except OSError:
             pass
@@ -829,3 +899,23 @@ def identify_window(x: np.ndarray, scene) -> dict:
                         sensor_response=response)
     except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:
         return {"error": str(exc)}
+
+
+def write_journal(path: str, journal: list) -> None:
+    """Write a change journal (:attr:`Controller.journal`) as JSON to ``path`` (through a
+    ``.partial`` file renamed at the end: a reader never sees half of it).
+
+    Parameters
+    ----------
+    path : str
+        ``--journal FILE.json``.
+    journal : list of dict
+    """
+    import json
+    import os
+
+    from hapsim.outputs import json_safe
+    tmp = path + ".partial"
+    with open(tmp, "w") as fh:
+        json.dump(json_safe(journal), fh, indent=1)
+    os.replace(tmp, path)

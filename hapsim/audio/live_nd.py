@@ -1,5 +1,5 @@
 """Live sound of a 2-D or 3-D scene: its listening points computed ahead of a sound
-server's callback.
+server's callback, the scene felt through its device's model and changed while it plays.
 
 An n-D scene's sound (``audio: listen:``, :class:`hapsim.scene_nd.ListenND`) is its own
 rate's samples (an n-D scene is not multi-rate), the same ones
@@ -14,6 +14,14 @@ sound card's clock with a latency of ``ahead`` frames; when it falls behind, the
 plays silence, counted (``underruns``), and the sound resumes where it stopped: the frames
 played are the offline rendering's, in order, to float32 rounding (the ring's type), with
 the counted silences between.
+
+A scene with a port and a device is played closed on the device's model at the scene's
+rate (the loop :mod:`hapsim.lockstep_nd` runs and :mod:`hapsim.analysis.scene_nd_check`
+analyses: the exact zero-order hold of the Cartesian mass and friction, the delay line),
+the hand's force (the scene's ``excitation``, along its direction, again every ``every``
+samples) acting on the device's mass; live changes (:class:`hapsim.audio.control_nd.
+ControllerND`) are ramped sample by sample in the same compiled call
+(:func:`hapsim.kernels.play_nd.play_chunk`: one argument, nothing allocated per chunk).
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import numpy as np
 from hapsim.audio.offline_nd import listen_plan
 from hapsim.audio.sources import FrameRing
 from hapsim.errors import ConfigError
+from hapsim.kernels import play_nd as kernel
 
 __all__ = ["LiveND", "channel_names"]
 
@@ -47,7 +56,8 @@ def channel_names(scene) -> tuple:
 
 
 class LiveND:
-    """An n-D scene's listening points produced ahead of a sound server's callback.
+    """An n-D scene's listening points produced ahead of a sound server's callback, its
+    loop closed on its device's model, its live changes ramped.
 
     Parameters
     ----------
@@ -62,24 +72,41 @@ class LiveND:
         Frames written beyond those read at most (default ``ring // 4``; at most
         ``ring // 2``, beyond which the ring's reader would skip:
         :func:`hapsim.kernels.audio.ring_read`): the sound's latency [frames].
+    hand : array_like, shape (H,), optional
+        The hand's force on the device's mass [N], one value held per sample
+        (:func:`hapsim.device_model.hand_force_samples`); needs a port and a device.
+    direction : array_like, shape (dim,), optional
+        Its direction (unit vector; required with ``hand``).
+    every : int
+        Repeat the hand's force every ``every`` samples (0: once).
+    control : hapsim.audio.control_nd.ControllerND, optional
+        Its accepted changes are taken between chunks and ramped sample by sample; their
+        ramps' start and end are journaled there.
+    max_ramps : int
+        Parameter cells ramped at once at most (a change waits while the table is full).
 
     Attributes
     ----------
     ring : hapsim.audio.sources.FrameRing
         What the output plays (give it to :func:`hapsim.audio.live.open_output`).
     written : int
-        Frames computed and pushed.
+        Frames computed and pushed (= samples the loop has run).
+    closed : bool
+        Whether the loop is closed on a device (the scene has a port and a device).
 
     Raises
     ------
     ConfigError
-        No ``audio`` section; a chunk, ring or lead out of range.
+        No ``audio`` section; a chunk, ring or lead out of range; a hand force without a
+        port and device, or with a direction that is not ``dim`` finite numbers of norm 1.
     """
 
     def __init__(self, engine, *, chunk: int = 256, ring: int = 16384,
-                 ahead: int | None = None) -> None:
+                 ahead: int | None = None, hand=None, direction=None, every: int = 0,
+                 control=None, max_ramps: int = 64) -> None:
         scene = engine.scene
-        self.plan = listen_plan(engine)            # ConfigError without an audio section
+        axis, mass, vel, gain = listen_plan(engine)   # ConfigError without audio
+        self.plan = (axis, mass, vel, gain)
         chunk, ring = int(chunk), int(ring)
         ahead = ring // 4 if ahead is None else int(ahead)
         if chunk < 1 or ring < 4 * chunk or not chunk <= ahead <= ring // 2:
@@ -91,14 +118,152 @@ class LiveND:
         self.ahead = ahead
         self.ring = FrameRing(self.rate_hz, channel_names(scene), ring=ring,
                               max_block=max(8192, ring))
-        self._buf = np.empty((chunk, len(self.plan[0])))
-        self._listen = engine.listener(*self.plan)    # checked and bound once
+        dim = engine.dim
+        self.dim = dim
+        self.closed = scene.port is not None and scene.device is not None
+        dev = scene.device
+        d = int(dev.delay) if self.closed else 0
+        Ad, Bd = np.zeros((2 * dim, 2 * dim)), np.zeros((2 * dim, dim))
+        if self.closed:
+            from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
+            Ad, Bd = zoh_matrices(LoopModelND(mass=dev.mass, friction=dev.friction,
+                                              rate_hz=scene.rate_hz, delay=d))
+        self.hand = np.zeros(1)
+        self.direction = np.zeros(dim)
+        if hand is not None and np.size(hand):
+            if not self.closed:
+                raise ConfigError("a hand force needs a port and a device", file=scene.path,
+                                  key="excitation")
+            e = np.asarray(direction, float) if direction is not None else None
+            if e is None or e.shape != (dim,) or not np.all(np.isfinite(e)) or \
+                    abs(float(np.linalg.norm(e)) - 1.0) > 1e-9:
+                raise ConfigError(f"the hand's direction must be {dim} finite numbers of "
+                                  f"norm 1, got {direction!r}", file=scene.path,
+                                  key="excitation.direction")
+            self.hand = np.ascontiguousarray(hand, float).copy()
+            self.direction = e.copy()
+        self.every = int(every)
+        self._buf = np.zeros((chunk, len(axis)))
+        self.state = np.zeros(5 * dim)                       # x, v, u, next x, v
+        self.rest = (np.asarray(dev.position, float).copy() if self.closed
+                     else np.zeros(dim))
+        self.line = np.zeros((max(d, 1), dim))
+        #: [force scale, master gain]: ramped by pause/resume and /hapsim/gain
+        self.params = np.array([1.0, 1.0])
+        self.cells = np.zeros((int(max_ramps), 2), np.int64)
+        self.ramps = np.zeros((int(max_ramps), kernel.RAMP_COLUMNS))
+        self._rows: list = []            # per ramp row: (change, cell key, first sample)
+        self._left: dict = {}            # change id -> rows still ramping
+        self._waiting: list = []         # changes taken, not yet in the table
+        pack = self.ring.callback_pack
+        port = engine.port if self.closed else -1
+        # every array the context names, kept here (alive and in place while it is used)
+        self._arrays = {
+            "engine": engine.context, "out": self._buf, "axis": axis, "mass": mass,
+            "velocity": vel.astype(np.int64), "gain": gain, "ring": pack.ring,
+            "wr": pack.wr, "x": engine.x, "xp": engine.xp,
+            "port_f": engine.port_f, "Ad": np.ascontiguousarray(Ad, float),
+            "Bd": np.ascontiguousarray(Bd, float), "state": self.state, "rest": self.rest,
+            "line": self.line, "hand": self.hand, "direction": self.direction,
+            "params": self.params, "cells": self.cells, "ramps": self.ramps}
+        self._ctx = kernel.play_context(dim, d, port, self.every, self._arrays)
+        self._nr = 0
+        self.control = control
+        self._mail = control.mailbox if control is not None else None
+        self._gain_before_pause = 1.0
+        self._paused = False
         self.written = 0
         self._missing0 = None           # the ring's silent frames before the first push
         self._missing_end = None        # ... after the last push of a run
 
+    # ------------------------------------------------------------------ changes
+    def _cells_of(self, ch) -> list:
+        """``(array, index, law, c, end)`` per parameter cell a change ramps."""
+        T = 1.0 / self.rate_hz
+        if ch.kind == "link":
+            c = self.engine.cells(ch.name)
+            return ([(a, i, 0, 1.0, ch.end[0]) for a, i in c["stiffness"]]
+                    + [(a, i, 0, 1.0 / T, ch.end[1]) for a, i in c["damping"]])
+        if ch.kind == "mass":
+            return [(a, i, 1, T * T, ch.end[0]) for a, i in self.engine.cells(ch.name)["mass"]]
+        if ch.kind == "gain":
+            if self._paused:
+                self._gain_before_pause = float(ch.end[0])      # heard on resume
+                return []
+            return [(self.params, 1, 0, 1.0, ch.end[0])]
+        pause = ch.kind == "pause"
+        if pause and not self._paused:
+            self._gain_before_pause = self._target(self.params, 1)
+        self._paused = pause
+        return [(self.params, 0, 0, 1.0, 0.0 if pause else 1.0),
+                (self.params, 1, 0, 1.0, 0.0 if pause else self._gain_before_pause)]
+
+    def _target(self, arr, i) -> float:
+        """Where a cell is going: the end of its ramp under way, else its value."""
+        key = (int(arr.ctypes.data), int(i))
+        for r, (_, k, _) in enumerate(self._rows):
+            if k == key:
+                return float(self.ramps[r, 3])
+        return float(arr[i])
+
+    def _install(self, ch) -> bool:
+        cells = self._cells_of(ch)
+        keys = [(int(a.ctypes.data), int(i)) for a, i, *_ in cells]
+        # a cell already ramping restarts from where it is now
+        self._drop([r for r, (_, k, _) in enumerate(self._rows) if k in keys])
+        if self._nr + len(cells) > self.cells.shape[0]:
+            return False
+        for (a, i, law, c, end), key in zip(cells, keys):
+            r = self._nr
+            now = float(a[i])
+            start = (c / now if now != 0.0 else np.inf) if law == 1 else now / c
+            self.cells[r] = key
+            self.ramps[r] = (float(law), c, start, float(end), float(max(1, ch.steps)), 0.0)
+            self._rows.append((ch, key, self.written))
+            self._nr += 1
+        self._left[id(ch)] = len(cells)
+        self._ctx[kernel.RAMPS] = self._nr
+        if self.control is not None:
+            self.control.ramp_event("ramp_start", ch, self.written)
+            if not cells:
+                self.control.ramp_event("ramp_end", ch, self.written)
+        return True
+
+    def _drop(self, rows) -> None:
+        """Remove ramp rows (finished or replaced); a change whose rows are all gone
+        ended its ramp (journaled when it finished rather than being replaced)."""
+        if not rows:
+            return
+        keep = [r for r in range(self._nr) if r not in rows]
+        for r in rows:
+            ch, _, start = self._rows[r]
+            self._left[id(ch)] -= 1
+            if self._left[id(ch)] == 0:
+                del self._left[id(ch)]
+                if self.control is not None and self.ramps[r, 5] >= self.ramps[r, 4]:
+                    # the sample its last value was first used at
+                    self.control.ramp_event("ramp_end", ch, start + int(self.ramps[r, 4]))
+        self.cells[:len(keep)] = self.cells[keep]
+        self.ramps[:len(keep)] = self.ramps[keep]
+        self._rows = [self._rows[r] for r in keep]
+        self._nr = len(keep)
+        self._ctx[kernel.RAMPS] = self._nr
+
+    def _changes(self) -> None:
+        """Between chunks: retire the finished ramps, install the changes posted."""
+        if self._nr:
+            self._drop([r for r in range(self._nr)
+                        if self.ramps[r, 5] >= self.ramps[r, 4]])
+        mail = self._mail
+        while mail:
+            self._waiting.append(mail.popleft())
+        while self._waiting and self._install(self._waiting[0]):
+            self._waiting.pop(0)
+
+    # ------------------------------------------------------------------ producing
     def produce(self, frames: int | None = None) -> int:
-        """Compute and push the next chunk (or ``frames`` < chunk of them, once at the end).
+        """Take the changes posted, then compute and push the next chunk (or ``frames`` <
+        chunk of them, once at the end): one compiled call with one argument.
 
         Parameters
         ----------
@@ -110,21 +275,45 @@ class LiveND:
         int
             Frames pushed.
         """
-        buf = self._buf if frames is None or frames >= self.chunk else self._buf[:frames]
-        self._listen(buf)
-        self.ring.push(buf)
-        if self._missing0 is None and buf.shape[0]:
+        if self._nr or self._mail or self._waiting:
+            self._changes()
+        n = self.chunk if frames is None or frames >= self.chunk else int(frames)
+        ctx = self._ctx
+        ctx[0] = n
+        kernel.play_chunk(ctx)
+        if self._missing0 is None and n:
             # silence the callback played before the sound began is not an underrun
             self._missing0 = int(self.ring.callback_pack.st[1])
-        self.written += buf.shape[0]
-        return buf.shape[0]
+        self.written += n
+        return n
+
+    @property
+    def gain(self) -> float:
+        """The master gain on every channel now [-] (ramped by ``/hapsim/gain``)."""
+        return float(self.params[1])
+
+    @property
+    def ramping(self) -> bool:
+        """Whether a change is being ramped or waits to be."""
+        return bool(self._nr or self._mail or self._waiting)
+
+    def port_position(self) -> np.ndarray:
+        """The device's position now [m], shape (dim,) (a copy; the rest position
+        without a device loop)."""
+        return self.rest + self.state[:self.dim]
+
+    def port_force(self) -> np.ndarray:
+        """The force on the port at the last sample, before the scale of a pause [N],
+        shape (dim,) (a copy; zeros without a device loop)."""
+        return self.engine.port_f[:self.dim].copy()
 
     @property
     def read(self) -> int:
         """Frames the callback has read so far."""
         return int(self.ring.callback_pack.st[0])
 
-    def run(self, total: int, stop=None, *, wait: float | None = None) -> int:
+    def run(self, total: int, stop=None, *, wait: float | None = None,
+            on_chunk=None) -> int:
         """Produce ``total`` frames, each chunk once the callback has room for it.
 
         Parameters
@@ -135,6 +324,8 @@ class LiveND:
             Polled between chunks: its ``set`` true ends the run early.
         wait : float, optional
             Sleep while the ring is full [s] (default half a chunk's duration).
+        on_chunk : callable, optional
+            ``on_chunk(self)`` after each chunk (telemetry).
 
         Returns
         -------
@@ -149,6 +340,8 @@ class LiveND:
                 time.sleep(wait)
                 continue
             self.produce(min(chunk, total - self.written))
+            if on_chunk is not None:
+                on_chunk(self)
         # the silence after the last frame is the end (the callback's last block is
         # filled up with it), not an underrun: the count stops at the last push
         self._missing_end = int(st[1])

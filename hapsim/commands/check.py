@@ -30,13 +30,29 @@ poles are the parasitic modes.
 
 Links given as a felt target {k, b} (a spring_damper between the port and a ground) are
 first calibrated: the virtual (K, B) that puts the closed-loop pair on the target is
-computed for the device alone, then the whole scene is checked with it."""
+computed for the device alone, then the whole scene is checked with it.
+
+A 2-D or 3-D scene (dimension: 2 or 3; docs/dimensions.md) is checked the same way as a
+MIMO loop: the device's Cartesian mass and friction MATRICES (a pantograph or a delta at
+its operating point: J^-T M_q J^-1), the hold, the delay, every virtual mass and link
+linearised at rest. Stability comes from the spectral radius of the coupled loop, never
+axis by axis. It prints the felt stiffness k [N/m] and damping b [N s/m] as n x n
+matrices (the unique pair with the n rendered poles and their mode shapes at the
+handle), the principal directions with the (m, k, b) felt along each, and, when every
+port link ends on a ground, the stiffness limit K_max along the principal axes of the
+device's mass (--json: dof, felt_stiffness, felt_damping, principal_directions,
+spectral_radius, stiffness_limits). --plot draws the scene over the device's workspace
+with the felt stiffness ellipses. A scene without a port (a sounding membrane) gives its
+modes instead."""
 
 _EPILOG = """\
 examples:
   hapsim check configs/wall.yaml
   hapsim check configs/string.yaml --modes 5
   hapsim check configs/wall.yaml --json | python -m json.tool
+  hapsim check configs/pantograph_wall.yaml --plot wall.png     2-D: felt matrices, ellipses
+  hapsim check configs/delta_sphere.yaml --json                 3-D
+  hapsim check configs/membrane.yaml --modes 6                  no port: the modes
 
 exit codes:
   0  the closed loop is stable

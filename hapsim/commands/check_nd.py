@@ -37,7 +37,10 @@ def run_nd(args) -> int:
     scene = api.load_scene_nd(args.scene)
     if scene.port is None:
         return _run_modes(args, scene, plot)
-    rep = api.check_nd(scene)
+    from hapsim.progress import Progress
+    with Progress(scene.dimension, "stiffness limits (longer with a longer delay)",
+                  unit="directions") as bar:
+        rep = api.check_nd(scene, progress=bar.update)
     chk = rep.analysis
     if plot is not None:
         rep.plot(plot)

@@ -168,6 +168,10 @@ def run(args) -> int:
         for e, k in zip(lim["directions"], lim["K_max"]):
             print("    (" + ", ".join(f"{v:+.4f}" for v in e) + f")  K_max = "
                   f"{'inf' if k is None else format(k, '.6g')}", file=o)
+        if any(k == 0 for k in lim["K_max"]):
+            print("  K_max = 0 along an axis: no stiffness K > 0 is stable there (the damping, "
+                  "--B plus --joint-friction and --hand-damping through J, is too small "
+                  "for the delay: raise one of them)", file=o)
     if "workspace" in out:
         w = out["workspace"]
         ks = [v[0] for v, st in zip(w["K_max"], w["status"]) if st == "ok"]

@@ -21,10 +21,20 @@ out through JACK (or PortAudio); an OSC server (--osc PORT, localhost) takes cha
 Pd, Max or SuperCollider while it plays. Every change is checked before it is applied (the
 changed scene's closed loop must be stable, the check hapsim run makes, also at three points
 of the ramp) or refused with the reason sent back; accepted changes are ramped over --ramp
-seconds (no step felt, no click) and journaled. A 2-D or 3-D scene (dimension: 2 or 3) with
-an audio section plays its sound from its initial state (a struck membrane rings): the
-frames 'hapsim simulate SCENE --audio F.wav' writes, live (--duration, --sound,
---jack-server, --rt-priority, --json; the other options are refused by name)."""
+seconds (no step felt, no click) and journaled.
+
+A 2-D or 3-D scene (dimension: 2 or 3) with an audio section plays its sound from its
+initial state (a struck membrane rings): without changes, the frames 'hapsim simulate
+SCENE --audio F.wav' writes. With a port and a device its loop is closed on the device's
+model at the scene's rate (the exact ZOH of its Cartesian mass and friction, its delay:
+the loop 'hapsim check' analyses), in the sound's producer, one compiled call per chunk;
+the scene's excitation (excitation: {direction: [..], impulse: {force, start, duration}}
+or a profile) is the hand's force on the device's mass along that direction, again every
+--pluck-every seconds; --osc takes the same addresses, checked by the MIMO criterion of
+the n-D check (the whole coupled loop's spectral radius, not axis by axis), and the ramps
+run sample by sample. It takes --duration, --sound, --jack-server, --rt-priority, --json,
+--osc, --ramp, --pluck-every, --journal (--lockstep, --telemetry and --sound none are
+refused by name)."""
 
 _EPILOG = """\
 OSC addresses (replies go to the sender's address and port):
@@ -36,6 +46,12 @@ OSC addresses (replies go to the sender's address and port):
   /hapsim/felt  -> /hapsim/felt k b f0 zeta k_measured b_measured
   /hapsim/loop  -> /hapsim/loop sample spectral_radius stable accepted refused xruns underruns
   /hapsim/telemetry HOST PORT [RATE] -> /hapsim/tel t x f k b sent to HOST:PORT at RATE Hz
+  2-D/3-D scene: LINK may be a spring_damper, a contact or a plane (K, B on every mass it
+  acts on); k b are the felt stiffness along its stiffest principal direction and the
+  felt damping along it; /hapsim/felt appends n, the felt stiffness matrix and the felt
+  damping matrix (row by row); /hapsim/tel t x1..xn f1..fn k b; /hapsim/link/target is
+  refused (a felt target is a 1-D calibration); a scene without a port is checked alone
+  (its modes' spectral radius; k b NaN, f0 zeta its lowest mode's).
 signals: SIGINT (Ctrl-C) or SIGTERM ends the play early, as it ends hapsim run: the sound
   and the OSC server are closed, the report (stop_reason: signal NAME) is printed, exit 0.
 measured (k, b): identified (matrix pencil) from each free response between plucks that no
@@ -56,7 +72,8 @@ sound: computed in the sound server's callback, one block ahead of the hand: the
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
   hapsim play configs/audio_string.yaml --osc 9000 --duration 60
-  hapsim play configs/wall.yaml --osc 9000 --sound none --pluck-every 0.5 --json"""
+  hapsim play configs/wall.yaml --osc 9000 --sound none --pluck-every 0.5 --json
+  hapsim play configs/membrane.yaml --osc 9000 --ramp 0.02   # a 3-D membrane, changed live"""
 
 
 #: Longest wait for the last identification after the run [s] (a large scene's fit of a
@@ -152,7 +169,7 @@ def _play(args: argparse.Namespace, stop) -> int:
     if scene_dimension(args.scene) > 1:
         from hapsim.commands.play_nd import play_nd
         return play_nd(args, stop)
-    from hapsim.audio.control import Controller, send_telemetry, serve_osc
+    from hapsim.audio.control import Controller, send_telemetry, serve_osc, write_journal
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
     from hapsim.engine import Engine, warm_up
@@ -317,7 +334,7 @@ def _play(args: argparse.Namespace, stop) -> int:
                   **live.stats()},
               "journal": ctl.journal}
     if args.journal:
-        _dump(args.journal, ctl.journal)
+        write_journal(args.journal, ctl.journal)
     if args.telemetry:
         tmp = args.telemetry + ".partial"
         with open(tmp, "wb") as fh:
@@ -371,10 +388,3 @@ def sound_line(sound: dict) -> str:
     if s.get("underrun_at_s"):
         line += f" (at {', '.join(f'{t:.3f}' for t in s['underrun_at_s'][:5])} s)"
     return line + f"; {s.get('periods')} periods played, {s.get('waits')} waits"
-
-
-def _dump(path: str, journal: list) -> None:
-    tmp = path + ".partial"
-    with open(tmp, "w") as fh:
-        json.dump(json_safe(journal), fh, indent=1)
-    os.replace(tmp, path)

@@ -1,12 +1,17 @@
-"""``hapsim play`` on a 2-D or 3-D scene with an ``audio`` section: its sound, live.
+"""``hapsim play`` on a 2-D or 3-D scene with an ``audio`` section: its sound, live,
+felt through its device's model, changed over OSC while it plays.
 
 The scene runs from its initial state (a struck membrane rings) and its listening points
 go out through JACK (or PortAudio) as they are computed
-(:class:`hapsim.audio.live_nd.LiveND`): the frames played are the ones ``hapsim simulate
-SCENE --audio F.wav`` writes, paced by the sound card's clock; xruns (the server's count)
-and underruns (frames of silence because the producer was late) are counted and reported.
-An n-D scene is not played by a hand or changed over OSC (yet): those options are refused
-by name.
+(:class:`hapsim.audio.live_nd.LiveND`): without changes, the frames played are the ones
+``hapsim simulate SCENE --audio F.wav`` writes, paced by the sound card's clock; xruns
+(the server's count) and underruns (frames of silence because the producer was late) are
+counted and reported. A scene with a port and a device is closed on the device's model
+at the scene's rate (the loop ``hapsim check`` analyses); its ``excitation`` (a force on
+the device's mass along the scene's direction) plucks it, again every ``--pluck-every``
+seconds. ``--osc PORT`` serves the 1-D play's addresses
+(:mod:`hapsim.audio.control_nd`): every change is checked by the MIMO criterion before it
+is accepted and ramped over ``--ramp`` seconds, sample by sample.
 """
 
 from __future__ import annotations
@@ -15,14 +20,14 @@ import json
 import sys
 import time
 
+
 from hapsim.errors import ConfigError
 
 #: ``hapsim play`` options (argparse destinations) a 2-D or 3-D scene's play takes.
-TAKES = frozenset({"scene", "duration", "sound", "jack_server", "rt_priority", "json"})
+TAKES = frozenset({"scene", "duration", "sound", "jack_server", "rt_priority", "json", "osc",
+                   "ramp", "pluck_every", "journal"})
 #: Options it refuses when given other than their defaults (destination, flag, default).
-_REFUSED = (("osc", "--osc", None), ("ramp", "--ramp", 0.05),
-            ("pluck_every", "--pluck-every", 0.0), ("lockstep", "--lockstep", False),
-            ("journal", "--journal", None), ("telemetry", "--telemetry", None))
+_REFUSED = (("lockstep", "--lockstep", False), ("telemetry", "--telemetry", None))
 
 
 def refuse_untaken(args) -> None:
@@ -42,36 +47,80 @@ def refuse_untaken(args) -> None:
     for dest, flag, default in _REFUSED:
         v = getattr(args, dest, default)
         if v is not None and v != default:
-            raise ConfigError(f"a 2-D or 3-D scene's play does not take {flag} (it plays "
-                              f"the scene's sound from its initial state; it takes {takes})",
-                              key=flag)
+            raise ConfigError(f"a 2-D or 3-D scene's play does not take {flag} (its loop "
+                              f"runs in the sound's producer, paced by the sound card; it "
+                              f"takes {takes})", key=flag)
     if getattr(args, "sound", "auto") == "none":
         raise ConfigError("a 2-D or 3-D scene's play is its sound: --sound auto, jack or "
                           "sounddevice ('hapsim simulate SCENE --audio F.wav' renders it "
                           "offline)", key="--sound")
 
 
+def hand_of(scene, pluck_every: float):
+    """The hand's force profile, direction and pluck period of an n-D scene's play.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+    pluck_every : float
+        ``--pluck-every`` [s] (0: once).
+
+    Returns
+    -------
+    hand : ndarray, shape (H,), or None
+        One force per sample [N] (:func:`hapsim.device_model.hand_force_samples`), None
+        without an excitation.
+    direction : ndarray, shape (n,), or None
+    every : int
+        Pluck period [samples] (0: once).
+
+    Raises
+    ------
+    ConfigError
+        ``--pluck-every`` on a scene without an excitation (or without a port).
+    """
+    import os
+
+    from hapsim.device_model import hand_force_samples
+    exc = getattr(scene, "excitation", None)
+    every = int(round(pluck_every * scene.rate_hz)) if pluck_every > 0 else 0
+    if exc is None:
+        if every:
+            raise ConfigError("--pluck-every repeats the scene's excitation, and this scene "
+                              "has none (excitation: {direction: [..], impulse: {force, "
+                              "start, duration}} on a scene with a port and a device)",
+                              file=scene.path, key="excitation")
+        return None, None, 0
+    base = os.path.dirname(os.path.abspath(scene.path))
+    return hand_force_samples(exc, scene.period, base), exc.direction, every
+
+
 def play_nd(args, stop) -> int:
-    """Play an n-D scene's sound live (module notes).
+    """Play an n-D scene live (module notes).
 
     Parameters
     ----------
     args : argparse.Namespace
         ``hapsim play``'s options (``scene``, ``duration`` [s], ``sound``,
-        ``jack_server``, ``rt_priority``, ``json``).
+        ``jack_server``, ``rt_priority``, ``json``, ``osc``, ``ramp`` [s],
+        ``pluck_every`` [s], ``journal``).
     stop : hapsim.daemon.loop_types.StopFlag
         Set by SIGINT/SIGTERM: ends the play at the next chunk.
 
     Returns
     -------
     int
-        0 after the play (also when a signal ended it); 1 when no sound output opens.
+        0 after the play (also when a signal ended it); 1 when no sound output opens or
+        the scene's loop is unstable (refused before playing).
 
     Raises
     ------
     ConfigError
-        An option not taken; a scene without an ``audio`` section (exit 2).
+        An option not taken; a scene without an ``audio`` section; ``--pluck-every``
+        without an excitation; ``--osc`` on a scene too large to check (exit 2).
     """
+    from hapsim.audio.control import send_telemetry, serve_osc
+    from hapsim.audio.control_nd import ControllerND
     from hapsim.audio.live import open_output, wait_priority
     from hapsim.audio.live_nd import LiveND
     from hapsim.daemon.loop_types import signame
@@ -85,7 +134,29 @@ def play_nd(args, stop) -> int:
         raise ConfigError("the scene has no audio section (listen: [{mass, axis, quantity, "
                           "gain}]): nothing to play; see configs/membrane.yaml",
                           file=scene.path, key="audio")
-    live = LiveND(EngineND(scene))
+    hand, direction, every = hand_of(scene, getattr(args, "pluck_every", 0.0) or 0.0)
+    engine = EngineND(scene)
+    ctl = None
+    note = None
+    try:
+        ctl = ControllerND(scene, engine, ramp_s=getattr(args, "ramp", 0.05),
+                           background=getattr(args, "osc", None) is not None)
+    except ConfigError as exc:
+        if getattr(args, "osc", None) is not None:
+            raise ConfigError(f"--osc checks every change on the scene's loop, and this "
+                              f"scene cannot be analysed: {exc}", file=scene.path,
+                              key="--osc") from None
+        note = f"the loop was not checked before playing: {exc}"
+    if ctl is not None and not ctl.felt["stable"]:
+        print(f"hapsim play: the {'closed loop' if ctl.felt['loop'] == 'closed' else 'scene'}"
+              f" of {args.scene} is unstable (spectral radius "
+              f"{ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
+        ctl.close()
+        return 1
+    live = LiveND(engine, hand=hand, direction=direction, every=every, control=ctl)
+    if ctl is not None:
+        ctl.live = live
+        ctl.sample_of = lambda: live.written
     total = int(round(args.duration * scene.rate_hz))
     live.produce(0)                   # the compiled kernels loaded before the sound starts
     live.run(min(total, live.ahead))  # the first frames ready before the callback reads
@@ -93,7 +164,23 @@ def play_nd(args, stop) -> int:
         out = open_output(live.ring, args.sound, server=args.jack_server)
     except DeviceError as exc:
         print(f"hapsim play: {exc}", file=sys.stderr)
+        if ctl is not None:
+            ctl.close()
         return 1
+    server = tel = None
+    if getattr(args, "osc", None) is not None:
+        server, tel = serve_osc(ctl, args.osc, status=lambda: {
+            "xruns": out.xruns, "underruns": live.stats()["underruns"]})
+        host, port = server.server_address[:2]
+        print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    T = scene.period
+    last = [0]
+
+    def on_chunk(lv):
+        ctl.sample = lv.written
+        if tel["client"] is not None and lv.written // tel["every"] != last[0]:
+            last[0] = lv.written // tel["every"]
+            send_telemetry(tel, lv.written * T, lv.port_position(), lv.port_force(), ctl)
     # just below the callback's thread (the producer feeds it), as the 1-D play
     ap = wait_priority(out)
     prio = 10 if args.rt_priority is None else args.rt_priority
@@ -104,28 +191,53 @@ def play_nd(args, stop) -> int:
     stop_reason = "duration"
     try:
         with rt:
-            done = live.run(total, stop)
+            done = live.run(total, stop, on_chunk=on_chunk if server is not None else None)
         if done < total:
             stop_reason = f"signal {signame(stop.signal)}"
         live.finish()
     finally:
+        if server is not None:
+            server.shutdown()
+            server.server_close()
         out.finish()
         out.close()
+        if ctl is not None:
+            ctl.finish(0.0)
+            ctl.close()
     st = live.stats()
     report = {"scene": scene.path, "dof": scene.dimension, "rate_hz": scene.rate_hz,
               "frames": st["written"], "seconds": st["written"] / scene.rate_hz,
               "wall_s": round(time.monotonic() - t0, 3), "stop_reason": stop_reason,
-              "scheduling": rt.note,
+              "scheduling": rt.note, "note": note,
+              "loop": "closed" if live.closed else "free",
+              "delay": int(scene.device.delay) if live.closed else None,
+              "plucks": ({"every_samples": every, "samples": int(hand.size),
+                          "direction": [float(v) for v in direction]}
+                         if hand is not None else None),
               "sound": {"backend": type(out).__name__, "callback": out.callback,
                         "block": out.blocksize, "channels": list(live.ring.channels),
                         "xruns": out.xruns, "xrun_at_s": list(out.xrun_at), **st}}
+    if ctl is not None:
+        sc = ctl.scene
+        report.update({"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
+                       "links": {e.name: [e.stiffness, e.damping]
+                                 for e in (*sc.links, *sc.planes)},
+                       "masses": {m.name: m.mass for m in sc.masses if m.kind == "mass"},
+                       "journal": ctl.journal})
+        if getattr(args, "journal", None):
+            from hapsim.audio.control import write_journal
+            write_journal(args.journal, ctl.journal)
     if args.json:
-        print(json.dumps(report))
+        from hapsim.outputs import json_safe
+        print(json.dumps(json_safe(report)))
         return 0
     s = report["sound"]
-    print(f"played {scene.path} ({scene.dimension}-D) for {report['seconds']:g} s "
-          f"({st['written']} frames at {scene.rate_hz:g} Hz)"
+    print(f"played {scene.path} ({scene.dimension}-D, loop {report['loop']}) for "
+          f"{report['seconds']:g} s ({st['written']} frames at {scene.rate_hz:g} Hz)"
           + ("" if stop_reason == "duration" else f"; stopped by {stop_reason}"))
+    if ctl is not None:
+        print(f"{ctl.accepted} changes accepted, {ctl.refused} refused; spectral radius now "
+              f"{ctl.felt['spectral_radius']:.6g}")
     print(f"sound: {s['backend']} ({s['callback']} callback), block {s['block']} frames, "
           f"{st['ahead']} frames ahead; xruns {s['xruns']}, underruns {st['underruns']} "
           f"frames, skipped {st['skipped']}")

@@ -26,7 +26,25 @@ this (K, B) and, for links given as 'target: {k, b}', beside what the scene aske
 Without --port, the embedded mock device runs in a child process behind a real
 pseudo-terminal (real-time: it ticks on the clock; --lockstep: one period per FORCE,
 deterministic, measured = predicted to round-off). With --port, the same daemon drives
-hardware (or a 'hapsim mock' started elsewhere)."""
+hardware (or a 'hapsim mock' started elsewhere).
+
+A 2-D or 3-D scene (dimension: 2 or 3; docs/dimensions.md) is measured as a matrix: 2n
+free responses of the handle (displaced by --amplitude along each axis, then moving along
+each; minus the response from rest) give the felt stiffness and damping MATRICES, printed
+beside check's prediction with their largest difference, the linearisation bound at that
+amplitude and the verdict (within, differs, or not measurable). --lockstep runs it
+in-process, exactly; without it the n-axis mock (the pantograph's or delta's joint-space
+dynamics) serves it in real time, late ticks accounted per axis; --driver haply speaks the
+Haply 2DIY's bytes to its emulated board on a pantograph scene.
+
+--driver falcon --firmware FILE closes a delta scene's loop on a Novint Falcon over USB
+(pyftdi, pip install 'hapsim[falcon]'): the firmware loaded (the image is yours: hapsim
+does not ship Novint's), the legs homed (move the grip in and out), one packet per sample;
+--port ftdi://0x0403:0xcb48/1 names a real Falcon (:N the N-th, :SERIAL by serial number);
+without --port the emulated Falcon behind an emulated FT232R runs under the same pyftdi
+code. It reports the link (replies missing, bytes dropped, readings against the emulated
+encoders) and a verdict (ok, degraded); the felt matrices are not measured through the
+Falcon's counts. Permissions and the udev rule: docs/devices.md."""
 
 _EPILOG = """\
 what the numbers mean:
@@ -84,6 +102,10 @@ examples:
   hapsim run configs/wall.yaml
   hapsim run configs/firefader.yaml --driver firefader
   hapsim run configs/felt_wall.yaml --lockstep --json
+  hapsim run configs/pantograph_wall.yaml --lockstep       2-D: felt matrices, measured = predicted
+  hapsim run configs/delta_sphere.yaml                     3-D, the n-axis mock in real time
+  hapsim run configs/pantograph_wall.yaml --driver haply   the Haply 2DIY's bytes (emulated board)
+  hapsim run configs/delta_sphere.yaml --driver falcon --firmware FILE [--port ftdi://0x0403:0xcb48/1]
   hapsim run configs/wall.yaml --telemetry wall.npz --duration 2
   hapsim run configs/wall.yaml --auto --lockstep      rate and method from 'hapsim advise'
   hapsim run configs/wall.yaml --port /dev/ttyACM0 --baud 2000000
@@ -135,6 +157,17 @@ def register(sub) -> None:
                    help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
                         "the measured free responses [m] (default 1e-8; the report states "
                         "the linearisation bound at it)")
+    p.add_argument("--firmware", metavar="FILE",
+                   help="--driver falcon: the Novint firmware image the Falcon loads at "
+                        "each power-up (yours: hapsim does not ship it)")
+    p.add_argument("--packets", type=Number(int, low=1), metavar="N",
+                   help="--driver falcon: packets of the loop, one per sample (default "
+                        "1000)")
+    p.add_argument("--generation", choices=("gen2", "gen3"),
+                   help="--driver haply on a 2-D pantograph scene: the Haply 2DIY's wire "
+                        "generation (hAPI hardwareVersion 2 or 3: its motor and encoder "
+                        "direction bytes and encoder counts per revolution; default gen3; "
+                        "gen2 with --lockstep only)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -224,6 +257,13 @@ def run(args) -> int:
     if getattr(args, "amplitude", None) is not None:
         raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
                           "excitation section", key="--amplitude")
+    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
+        if getattr(args, attr, None) is not None:
+            raise ConfigError("goes with --driver falcon on a 3-D delta scene (the Novint "
+                              "Falcon)", key=flag)
+    if getattr(args, "generation", None) is not None:
+        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
+                          "2DIY's two wire generations)", key="--generation")
 
     from hapsim.daemon.options import RunOptions
     opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading

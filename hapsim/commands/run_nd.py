@@ -91,9 +91,20 @@ def run_nd(args) -> int:
     from hapsim.progress import Progress
     _refuse_options(args)
     driver = getattr(args, "driver", None)
+    if getattr(args, "generation", None) is not None and driver != "haply":
+        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
+                          "2DIY's two wire generations)", key="--generation")
+    if driver == "falcon":
+        from hapsim.commands.run_falcon import run_falcon_command
+        return run_falcon_command(args)
+    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
+        if getattr(args, attr, None) is not None:
+            raise ConfigError(f"{flag} goes with --driver falcon (a delta scene on the "
+                              "Novint Falcon)", key=flag)
     if driver not in (None, "haply"):
         raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
-                          f"the Haply 2DIY), not {driver!r}", key="--driver")
+                          f"the Haply 2DIY) or --driver falcon (a delta scene, the Novint "
+                          f"Falcon), not {driver!r}", key="--driver")
     if driver == "haply":
         return _run_haply2(args)
     a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
@@ -175,8 +186,8 @@ def run_nd(args) -> int:
         print(f"  measured - predicted (largest entry over the largest predicted): "
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     bd = bound.to_dict()
-    print(f"  linearisation bound at a = {a:g} m (first order in a; "
-          "hapsim.analysis.linearisation_nd):", file=o)
+    print(f"  linearisation bound at the records' largest excursion {bound.amplitude:.3g} m "
+          f"(first order in it; hapsim.analysis.linearisation_nd):", file=o)
     print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
           "and the velocity-product terms over a; "
           + ("not in the lockstep device, which holds the mass at rest)" if in_process
@@ -185,11 +196,12 @@ def run_nd(args) -> int:
           + (f" (link {bound.link_name!r})" if bound.link_name else " (none: linear)"),
           file=o)
     if bd["felt_stiffness"] is None:
-        print(f"    a reaches the depth of {bound.depth_name!r} ({bound.depth:.3g} m): "
+        print(f"    the excursion reaches the depth of {bound.depth_name!r} "
+              f"({bound.depth:.3g} m): "
               "the contact opens, no linear estimate holds", file=o)
     else:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
-              f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
+              f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
     from hapsim.daemon.run_nd import verdict_nd
     v = verdict_nd(res)
@@ -202,12 +214,47 @@ def run_nd(args) -> int:
               "N m: half a PWM step), first-order worst case through the loop and the fit: "
               f"k {wire['felt_stiffness']:.2e}, b {wire['felt_damping']:.2e}; one count at "
               f"the handle {wire['quantum_m']:.2e} m", file=o)
-        if v["uncertainty"] is not None:
-            u = v["uncertainty"]
-            print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
-                  f"b {u['felt_damping']:.2e}", file=o)
+    print_statements(v, o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
+
+
+def print_statements(v: dict, o) -> None:
+    """Print a verdict's statements (:func:`hapsim.lockstep_nd.felt_verdict`), one a line:
+    the quantity (a felt matrix as a whole, or along a principal direction: predicted and
+    measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
+    linearisation bound plus the wire's term, relative), and what it says.
+
+    Parameters
+    ----------
+    v : dict
+        The verdict, with ``statements``.
+    o : file
+        Where to print.
+    """
+    st = v.get("statements") or []
+    if not st:
+        return
+    print("  statements (relative: measured - predicted against the stated uncertainty = "
+          "linearisation bound + the wire's term + binary64 round-off):", file=o)
+    unit = {"felt_stiffness": "N/m", "felt_damping": "N s/m"}
+
+    def e(x):
+        return "-" if x is None else f"{x:.2e}"
+    for s in st:
+        head = s["name"]
+        if s["direction"] is not None:
+            head += (f": predicted {s['predicted']:.6g}, measured {s['measured']:.6g} "
+                     f"{unit[s['quantity']]}")
+        terms = (f"lin {e(s['linearisation'])}"
+                 + (f" + wire {e(s['wire'])}" if s["wire"] is not None else "")
+                 + (f" + round-off {e(s.get('roundoff'))}" if s.get("roundoff") else ""))
+        if s["verdict"] == "not measurable":
+            print(f"    {head}: not measurable ({s['reason']})", file=o)
+        else:
+            print(f"    {head}: {s['verdict']} (deviation {e(s['deviation'])} "
+                  + ("<=" if s["within"] else ">") + f" {e(s['uncertainty'])} = {terms})",
+                  file=o)
 
 
 def _measure_over_port(args, scene, a: float, n: int):
@@ -351,18 +398,23 @@ def _run_haply2(args) -> int:
                           "whose hand starts each record (a real 2DIY has none): no --port",
                           key="--port")
     realtime = not args.lockstep
+    gen = getattr(args, "generation", None) or "gen3"
+    if realtime and gen != "gen3":
+        raise ConfigError(f"{gen} runs in lockstep only (--lockstep): its real-time host "
+                          "over a pty does not measure yet (its records come out wrong; "
+                          "gen3 does)", key="--generation")
     a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:
         try:
             if realtime:
                 from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
-                child = Embedded2DIY(args.scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                      rate_hz=scene.rate_hz)
                 gc_was = gc.isenabled()
                 try:
                     gc.disable()                 # no collection while the clock runs
-                    res = measure_felt_haply2_port(child.port, scene, "gen3", amplitude=a,
+                    res = measure_felt_haply2_port(child.port, scene, gen, amplitude=a,
                                                    resolution=HAPLY_CPR,
                                                    progress=bar.update)
                 finally:
@@ -370,7 +422,7 @@ def _run_haply2(args) -> int:
                         gc.enable()
                     child.close()
             else:
-                res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                           progress=bar.update)
         except DeviceError as exc:
             print(f"hapsim run: {exc}", file=sys.stderr)
@@ -385,7 +437,7 @@ def _run_haply2(args) -> int:
         def mat(x):
             return None if x is None else np.asarray(x, float).tolist()
         print(json.dumps({
-            "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
             "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
@@ -402,13 +454,14 @@ def _run_haply2(args) -> int:
                      "felt_damping": num(wire["felt_damping"]),
                      "reading_bound_rad": wire["reading_bound_rad"],
                      "torque_rel": wire["torque_rel"]},
-            "uncertainty": res["uncertainty"], "verdict": res["verdict"],
+            "uncertainty": res["uncertainty"], "statements": res["statements"],
+            "not_stated": res["not_stated"], "verdict": res["verdict"],
             "within": res["within"], "reason": res["reason"], "clamped": res["clamped"],
             "quantum": res["quantum"], "quantum_real_encoders": real,
             "records": res["records"], "samples": res["samples"]}))
         return 0
     o = sys.stdout
-    print(f"{scene.path}: the Haply 2DIY's bytes (gen3 set-up, firmware V1.5 board "
+    print(f"{scene.path}: the Haply 2DIY's bytes ({gen} set-up, firmware V1.5 board "
           f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
           + ("in real time (the board in a child process behind a pty)" if realtime
              else "in lockstep"), file=o)
@@ -442,10 +495,7 @@ def _run_haply2(args) -> int:
               + f", first-order worst case through the loop and the fit: k "
               f"{wire['felt_stiffness']:.2e}, "
               f"b {wire['felt_damping']:.2e}", file=o)
-    if res["uncertainty"] is not None:
-        u = res["uncertainty"]
-        print(f"  stated uncertainty (the two added): k {u['felt_stiffness']:.2e}, "
-              f"b {u['felt_damping']:.2e}", file=o)
+    print_statements(res, o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
     print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "

@@ -32,7 +32,14 @@ def register(sub) -> None:
                     "'certified', K_max_interval), else labelled 'sampled (N)' (the scan of "
                     "N points of the circle) with the reason."),
         epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
-               "--delay 1 --hold zoh --B 0\n",
+               "--delay 1 --hold zoh --B 0\n"
+               "\n2-D and 3-D devices (one K_max per direction, and over the workspace):\n"
+               "  hapsim check configs/pantograph_wall.yaml     K_max along the device's "
+               "principal mass axes\n"
+               "  hapsim kinematics pantograph --joints 130 50 --joint-inertia 2e-4 "
+               "--joint-friction 1e-3 \\\n"
+               "      --hand-mass 0.05 --B 0.5 --grid 9 --out kmax.png   its map over the "
+               "workspace, charted\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_loop_arguments(p)
     p.add_argument("--B", type=declared("stability", "B"), default=0.0,

@@ -37,10 +37,21 @@ import numpy as np
 
 from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
                                    parse_host_packet, ticks_of)
+from hapsim.drivers.falcon_usb import ft232r_baud
 from hapsim.errors import ConfigError
 from hapsim.lockstep_nd import LocalJointDeviceND
 
-__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon"]
+__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "EmulatorLink",
+           "LOADER_BAUD", "LOADING_BAUD", "NORMAL_BAUD"]
+
+#: The UART rates the emulated MCU listens at [baud]: its loader (9600), the loading rate
+#: (FT232R divisor 0x15: 3 MHz / 21) and the firmware's (divisor 0x2: 1.5 Mbaud); a rate
+#: within 3 % of one is that one (a UART's tolerance), another is not heard.
+LOADER_BAUD, LOADING_BAUD, NORMAL_BAUD = 9600.0, 3e6 / 21, 1.5e6
+
+
+def _near(baud, want: float) -> bool:
+    return baud is not None and abs(baud - want) <= 0.03 * want
 
 
 class FalconDevice:
@@ -109,8 +120,9 @@ class FalconDevice:
             self._buf.clear()
         if "baud" in settings:
             self.baud, self.divisor = settings["baud"], None
-        if "baud_divisor" in settings:
-            self.divisor, self.baud = settings["baud_divisor"], None
+        if "baud_divisor" in settings:                 # the FT232R's divisor register
+            self.divisor = settings["baud_divisor"]
+            self.baud = ft232r_baud(self.divisor)
         if "dtr" in settings:
             new = int(settings["dtr"])
             if self.dtr == 0 and new == 1:          # the MCU resets into its loader
@@ -120,10 +132,10 @@ class FalconDevice:
                 self._homing_count = 0
                 self.commands = (0, 0, 0)
             self.dtr = new
-        if self.state == "loader" and self.dtr == 0 and self.divisor == 0x15:
+        if self.state == "loader" and self.dtr == 0 and _near(self.baud, LOADING_BAUD):
             self.state = "loader-fast"
             self._a_seen = False
-        if self.state == "loader-fast" and self.divisor == 0x2:
+        if self.state == "loader-fast" and _near(self.baud, NORMAL_BAUD):
             ok = len(self._image) > 0 and (self.expected is None
                                            or bytes(self._image) == self.expected)
             self.state = "running" if ok else "loader"
@@ -141,7 +153,7 @@ class FalconDevice:
     def feed(self, data: bytes) -> bytes:
         """Bytes from the host in, the device's bytes out (module notes)."""
         if self.state == "loader":
-            if self.baud == 9600 and CHECK_SEND in bytes(data):
+            if _near(self.baud, LOADER_BAUD) and CHECK_SEND in bytes(data):
                 return CHECK_REPLY
             return b""
         if self.state == "loader-fast":
@@ -185,14 +197,44 @@ class FalconDevice:
         self.plant.step_torque(tau)
         return device_packet(self._counts(), self.homed, 0)
 
+    def counts(self) -> tuple:
+        """The three encoder counts the device reports now (relative to the power-up
+        pose until homed): the truth a host's readings are compared with in the tests."""
+        return self._counts()
+
     def joints_deg(self) -> np.ndarray:
         """The legs' true angles [deg] (tests)."""
         return np.degrees(self.plant.joints())
 
 
+class EmulatorLink:
+    """A :class:`FalconDevice` (or anything with ``line`` and ``feed``) as a link of
+    :func:`hapsim.drivers.falcon_usb.load_firmware_link`: ``exchange`` feeds the bytes and
+    returns the whole answer (no USB in between; :mod:`hapsim.daemon.ftdi_usb` puts the
+    real pyftdi path there).
+
+    Parameters
+    ----------
+    device : object
+        ``line(**settings)``, ``feed(bytes) -> bytes``.
+    """
+
+    def __init__(self, device) -> None:
+        self.device = device
+
+    def line(self, **settings) -> None:
+        """The settings passed on."""
+        self.device.line(**settings)
+
+    def exchange(self, send: bytes, n: int, done=None, timeout=None) -> bytes:
+        """The device's answer to ``send`` (all of it, whatever ``n``)."""
+        return self.device.feed(send)
+
+
 def load_firmware(device, image: bytes, check_tries: int = 100) -> dict:
     """Run the host's firmware-load handshake against a device with ``line(**settings)``
-    and ``feed(bytes) -> bytes`` (:class:`FalconDevice`, or a real link wrapped so).
+    and ``feed(bytes) -> bytes`` (:class:`FalconDevice`) directly, without USB
+    (:func:`hapsim.drivers.falcon_usb.load_firmware_link` over :class:`EmulatorLink`).
 
     Parameters
     ----------
@@ -205,43 +247,20 @@ def load_firmware(device, image: bytes, check_tries: int = 100) -> dict:
     Returns
     -------
     dict
-        ``checks`` (attempts of the first check), ``chunks`` (image chunks echoed).
+        ``checks`` (attempts of the first check), ``chunks`` (image chunks echoed),
+        ``bytes`` (image bytes echoed).
 
     Raises
     ------
     hapsim.errors.DeviceError
-        The first check never answered, ``'A'`` not echoed, or a chunk's echo differs
-        (naming the chunk and the first differing byte).
+        The first check never answered, ``'A'`` not echoed, or a chunk's echo short or
+        differing (naming the image byte).
     """
-    from hapsim.drivers.falcon import FalconFirmwareLoader
-    from hapsim.errors import DeviceError
-    out = {"checks": 0, "chunks": 0}
-    for step in FalconFirmwareLoader(image, check_tries).steps():
-        if step[0] == "line":
-            device.line(**step[1])
-        elif step[0] == "check":
-            _, send, want, tries = step
-            for _ in range(tries):
-                out["checks"] += 1
-                got = device.feed(send)
-                if got.endswith(want):              # a leading 00 on some hosts
-                    break
-            else:
-                raise DeviceError(f"the Falcon's loader did not answer {send.hex(' ')} with "
-                                  f"{want.hex(' ')} in {tries} tries")
-        else:
-            _, send, want = step
-            got = device.feed(send)
-            if got != want:
-                k = next((i for i in range(min(len(got), len(want))) if got[i] != want[i]),
-                         min(len(got), len(want)))
-                raise DeviceError(f"the Falcon's loader echoed {len(got)} of {len(want)} "
-                                  f"bytes, differing at byte {k} of chunk {out['chunks']}")
-            out["chunks"] += send != b"A"
-    return out
+    from hapsim.drivers.falcon_usb import load_firmware_link
+    return load_firmware_link(EmulatorLink(device), image, check_tries)
 
 
-def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
+def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
     """Send homing-mode packets (zero commands) until every leg reports homed.
 
     Parameters
@@ -252,6 +271,9 @@ def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
         LED flags to show meanwhile.
     limit : int
         Most packets.
+    decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
+        The decoder to read the replies with (the loop's, so that it starts with the
+        legs' last counts and step); default a new one.
 
     Returns
     -------
@@ -265,7 +287,7 @@ def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
     """
     from hapsim.drivers.falcon import DevicePacketDecoder, host_packet
     from hapsim.errors import DeviceError
-    dec = DevicePacketDecoder()
+    dec = DevicePacketDecoder() if decoder is None else decoder
     for k in range(1, limit + 1):
         got = dec.feed(device_feed(host_packet((0, 0, 0), leds, homing=True)))
         if got and got[-1][1] == 0x7:
@@ -273,11 +295,13 @@ def home(device_feed, leds: int = 0, limit: int = 10000) -> int:
     raise DeviceError(f"the Falcon's legs were not homed after {limit} packets")
 
 
-def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2) -> dict:
+def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
+                 decoder=None) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
-    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact),
+    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact;
+    ``forward_jacobian`` from the last position),
     the n-D engine's force on the port, the leg torques ``J(q)^T F`` sent as commands
     (:func:`hapsim.drivers.falcon.torque_command`, in libnifalcon's unit taken as N m). A
     packet that does not come back (lost or corrupted on either way: both sides realign on
@@ -298,6 +322,9 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.driver_mock.ByteFaults`).
     leds : int
         LED flags shown while running (green).
+    decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
+        The homing's decoder (its last counts and step check the loop's first replies);
+        default a new one (the first reply then taken unchecked).
 
     Returns
     -------
@@ -312,7 +339,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     kin = device("delta", scene.device.geometry)
     eng = EngineND(scene)
     port = eng.port
-    dec = DevicePacketDecoder()
+    dec = DevicePacketDecoder() if decoder is None else decoder
     rx = (lambda b: b) if faults is None else faults.rx
     tx = (lambda b: b) if faults is None else faults.tx
     N = int(samples)
@@ -332,7 +359,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             else:
                 q = np.radians([theta_deg(e) for e in enc])
                 try:
-                    x, J = kin.forward(q), kin.jacobian(q)
+                    # from the last position: Newton's few steps, not a fresh search
+                    x, J = kin.forward_jacobian(q, x)
                     ok = True
                     joints[k], pos[k] = q, x
                 except ConfigError:

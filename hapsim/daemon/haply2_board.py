@@ -522,11 +522,11 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     dict
         As :func:`measure_felt_haply2`.
     """
-    from hapsim.analysis.identify_nd import felt_sensitivity_nd, fit_felt_nd, worst_case_nd
+    from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
-    from hapsim.lockstep_nd import error_responses, felt_deviation, felt_verdict
+    from hapsim.lockstep_nd import felt_deviation, felt_directions, felt_verdict, wire_terms_nd
     chk, order, N = plan
     n = 2
     rest = runs[0]["position"]
@@ -544,26 +544,19 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta.tolist(), "torque_rel": torque_rel}
-    sens = felt_sensitivity_nd(diffs, mass, T, order)
-    kp, bp = chk.render.felt_stiffness, chk.render.felt_damping
-    if sens is not None and kp is not None:
-        sens = sens + [-sum(sens)]                 # the rest record's errors, in each
-        order_runs = runs[1:] + runs[:1]
-        Hr, Hf = error_responses(scene, N)
-        wc = worst_case_nd(sens, Hr @ J, [delta] * len(sens))
-        wc = wc + worst_case_nd(sens, Hf @ np.linalg.inv(J).T,
-                                [torque_rel * np.abs(r["torque"]) for r in order_runs])
-        if any("bounds" in r for r in runs):
-            wc = wc + worst_case_nd(sens, Hr, [r.get("bounds", np.zeros(2))
-                                               for r in order_runs])
-        wire["felt_stiffness"] = float(np.max(wc[0]) / np.max(np.abs(kp)))
-        wire["felt_damping"] = float(np.max(wc[1]) / np.max(np.abs(bp)))
+    errors = [("reading", J, delta),
+              ("force", np.linalg.inv(J).T, [torque_rel * np.abs(r["torque"]) for r in runs])]
+    if any("bounds" in r for r in runs):
+        errors.append(("reading", np.eye(n), [r.get("bounds", np.zeros(2)) for r in runs]))
+    wire.update(wire_terms_nd(scene, diffs, chk, order, errors))
     clamped = int(sum(np.count_nonzero(np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
                       for r in runs))
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
-        np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)))
+        np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
+        directions=felt_directions(fit, chk))
     if clamped:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
+             "statements": [], "not_stated": ["felt stiffness", "felt damping"],
              "reason": f"the board's torque clamp ({MAX_TORQUE} N m) engaged in {clamped} "
                        "writes: the loop was not the linear one predicted"}
     Jn = float(np.linalg.norm(J, 2))

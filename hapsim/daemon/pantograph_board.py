@@ -257,32 +257,23 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     -------
     dict
         ``felt_stiffness``, ``felt_damping`` (relative; inf when the records give no
-        sensitivity), ``reading_bound_rad`` (per joint), ``torque_bound_nm``,
-        ``quantum_m`` (one count at the handle, ``|J(q0)|_2 c`` [m]).
+        sensitivity), ``directions`` (the terms along each principal direction:
+        :func:`hapsim.lockstep_nd.wire_terms_nd`), ``reading_bound_rad`` (per joint),
+        ``torque_bound_nm``, ``quantum_m`` (one count at the handle, ``|J(q0)|_2 c`` [m]).
     """
-    from hapsim.analysis.identify_nd import felt_sensitivity_nd, worst_case_nd
-    from hapsim.lockstep_nd import error_responses
+    from hapsim.lockstep_nd import wire_terms_nd
     kin = _pantograph(scene)
     q0 = np.asarray(scene.device.joints, float)
     J = kin.jacobian(q0)
     recs = res["responses"]
     diffs = [r - recs[0] for r in recs[1:]]
-    chk, N = res["predicted"], res["samples"]
     ulp = np.spacing(np.abs(q0).astype(np.float32)).astype(float)
     delta = rad_per_count / 2.0 + ulp
     tmax = abs(float(res.get("torque_max", 0.0)))
     tbound = torque_step / 2.0 + 2.0 ** -24 * tmax
-    out = {"felt_stiffness": math.inf, "felt_damping": math.inf,
-           "reading_bound_rad": delta.tolist(), "torque_bound_nm": tbound,
+    out = {"reading_bound_rad": delta.tolist(), "torque_bound_nm": tbound,
            "quantum_m": float(np.linalg.norm(J, 2) * rad_per_count)}
-    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, res["order"])
-    kp, bp = chk.render.felt_stiffness, chk.render.felt_damping
-    if sens is None or kp is None:
-        return out
-    sens = sens + [-sum(sens)]
-    Hr, Hf = error_responses(scene, N)
-    wc = worst_case_nd(sens, Hr @ J, [delta] * len(sens))
-    wc = wc + worst_case_nd(sens, Hf @ np.linalg.inv(J).T, [np.full(2, tbound)] * len(sens))
-    out["felt_stiffness"] = float(np.max(wc[0]) / np.max(np.abs(kp)))
-    out["felt_damping"] = float(np.max(wc[1]) / np.max(np.abs(bp)))
+    out.update(wire_terms_nd(scene, diffs, res["predicted"], res["order"],
+                             [("reading", J, delta),
+                              ("force", np.linalg.inv(J).T, np.full(2, tbound))]))
     return out

@@ -627,10 +627,14 @@ def verdict_nd(res: dict) -> dict:
     Returns
     -------
     dict
-        ``verdict``, ``within``, ``uncertainty``, ``reason``.
+        ``verdict``, ``within``, ``uncertainty``, ``reason``, ``statements``,
+        ``not_stated`` (per quantity and principal direction: the felt matrices along
+        :func:`hapsim.lockstep_nd.felt_directions`).
     """
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.lockstep_nd import felt_directions, felt_verdict
     if res.get("incomplete"):
         return {"verdict": "not measurable", "within": None, "uncertainty": None,
-                "reason": res["incomplete"]}
-    return felt_verdict(res["deviation"], res["bound"], res.get("wire"))
+                "reason": res["incomplete"], "statements": [],
+                "not_stated": ["felt stiffness", "felt damping"]}
+    return felt_verdict(res["deviation"], res["bound"], res.get("wire"),
+                        directions=felt_directions(res["measured"], res["predicted"]))

@@ -148,13 +148,15 @@ class DevicePacketDecoder(AlignedDecoder):
     nibbles (one byte dropped per failed position; counted in ``skipped``), and checked
     for plausibility, since the packet has no checksum (a flipped bit that keeps a byte in
     ``'A'..'P'`` is another count) and no sequence number (a lost packet is not seen):
-    once two packets are taken, each count's step from the last at most ``max_step``
-    counts plus twice the last step (8 counts, 0.3 deg: a lost packet at constant
+    the second packet after a start within :data:`START_STEP` of the first, then each count's
+    step from the last at most ``max_step`` counts plus twice the last step (8 counts, 0.3 deg: a lost packet at constant
     velocity passes, a flipped high nibble of a leg at rest does not; the faster the legs
     move, the larger a flip that passes). A well-formed packet beyond it is dropped whole
     (``implausible``); :data:`JUMP_PACKETS` of them in a row are a real jump (the device
     reset, say) and the last is taken (counted too), the prediction restarted. A change of
-    the homing status restarts it too.
+    the homing status is taken the same way (implausible until it stays
+    :data:`JUMP_PACKETS` packets: a flipped status bit would otherwise restart the
+    prediction and let the next packets in unchecked), and restarts the prediction.
 
     Parameters
     ----------
@@ -182,8 +184,14 @@ class DevicePacketDecoder(AlignedDecoder):
         return parse_device_packet(bytes(buf[:16]))
 
     def _plausible(self, enc, homed) -> bool:
-        if homed != self._homed or self._prev2 is None:
-            return True                     # the velocity is not known yet
+        if self._prev is None:
+            return True                     # nothing to compare with
+        if homed != self._homed:
+            # a leg does not lose its index: a changed status is a flipped bit until it
+            # stays JUMP_PACKETS packets (homing itself seen that much later)
+            return False
+        if self._prev2 is None:             # the velocity not known yet: near the last
+            return all(abs(enc[i] - self._prev[i]) <= START_STEP for i in range(3))
         # a step at most twice the last one (a packet lost on the way, and the last step
         # itself may span a lost one) plus max_step
         return all(abs(enc[i] - self._prev[i])
@@ -207,6 +215,11 @@ class DevicePacketDecoder(AlignedDecoder):
         self._prev2, self._prev = (None, enc) if self._prev is None else (self._prev, enc)
         return True
 
+
+#: The largest step [counts] between the first two packets after a start, when the
+#: velocity is not known yet: 64 counts (2.3 deg) in one ~1 ms packet is ~40 rad/s at a
+#: leg, beyond a hand's motion; a flipped bit of a count's two high nibbles is caught.
+START_STEP = 64
 
 #: Implausible packets in a row taken as a real jump of the counts.
 JUMP_PACKETS = 3

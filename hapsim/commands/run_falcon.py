@@ -1,0 +1,162 @@
+"""``hapsim run SCENE --driver falcon --firmware FILE [--port URL]``: a 3-D delta scene's
+loop closed on a Novint Falcon over its USB link (pyftdi), or, without ``--port``, on the
+emulated Falcon behind an emulated FT232R under the same pyftdi code
+(:mod:`hapsim.daemon.falcon_run`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["run_falcon_command", "DEFAULT_PACKETS"]
+
+#: Packets of the loop when ``--packets`` is not given (~1 s at the Falcon's ~1 kHz).
+DEFAULT_PACKETS = 1000
+
+#: Options a Falcon run refuses (flag, attribute, why).
+_REFUSED = (("--baud", "baud", "the Falcon's rates are its loader's and firmware's"),
+            ("--lockstep", "lockstep", "the Falcon's loop is one packet per sample "
+             "already: the firmware answers each packet"),
+            ("--faults", "faults", "the Falcon's hostile streams are injected by its "
+             "emulated FT232R in the tests (tests/test_falcon_usb.py)"),
+            ("--amplitude", "amplitude", "the felt matrices are not measured through "
+             "the Falcon's counts (docs/devices.md)"))
+
+
+def _image(path) -> bytes:
+    if not path:
+        raise ConfigError("--driver falcon needs --firmware FILE: the Novint firmware "
+                          "image the Falcon loads at each power-up (hapsim does not ship "
+                          "it: take it from the Novint SDK, or libnifalcon's firmware/ "
+                          "folder)", key="--firmware")
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"cannot read the firmware image: {exc.strerror}", file=path,
+                          key="--firmware") from None
+    if not data:
+        raise ConfigError("the firmware image is empty", file=path, key="--firmware")
+    return data
+
+
+def run_falcon_command(args) -> int:
+    """Run a delta scene on the Falcon (module notes).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``port`` (an ``ftdi://`` URL or None: the emulated Falcon),
+        ``firmware`` (the image's path), ``packets``, ``allow_unstable``, ``json``.
+
+    Returns
+    -------
+    int
+        0 when the loop ran (verdict ``ok`` or ``degraded``, said); 1 when the device
+        failed (not found, no permission, the loader's handshake, unplugged: the message
+        says what to check) or the loop is unstable without ``--allow-unstable``.
+
+    Raises
+    ------
+    ConfigError
+        No or an unreadable ``--firmware``, a refused option, a bad ``--port``, a scene
+        that is not 3-D with a delta device (exit 2).
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
+    from hapsim.drivers.falcon_usb import FalconUSB, parse_url
+    from hapsim.errors import DeviceError, UnstableConfigError
+    from hapsim.progress import Progress
+    from hapsim.scene_nd import load_scene_nd
+    from hapsim.daemon.options import command_line_fields
+    defaults = {f.name: f.metadata["cli"]["cli_default"] for f in command_line_fields()}
+    for flag, attr, why in _REFUSED:
+        v = getattr(args, attr, None)
+        if v not in (None, False, "") and v != defaults.get(attr):
+            raise ConfigError(f"--driver falcon does not take {flag}: {why}", key=flag)
+    image = _image(getattr(args, "firmware", None))
+    if args.port is not None:
+        parse_url(args.port)                      # a bad URL is exit 2, before any USB
+    scene = load_scene_nd(args.scene)
+    if scene.dimension != 3 or scene.device is None or scene.device.kind != "delta":
+        raise ConfigError("--driver falcon drives a 3-D scene whose device is a delta "
+                          "(configs/delta_sphere.yaml, delta_mesh.yaml)", file=scene.path,
+                          key="device.kind")
+    pred = check_scene_nd(scene)
+    if not pred.stable and not args.allow_unstable:
+        raise UnstableConfigError(
+            f"{scene.path}: the closed loop is unstable (spectral radius "
+            f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
+            "--allow-unstable to run it anyway")
+    packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
+    emulated = args.port is None
+    link = truth = None
+    try:
+        if emulated:
+            link, dev, _ = emulated_falcon(scene, image)
+            truth = dev.counts
+        else:
+            link = FalconUSB(args.port)
+        with Progress(3, "run (Falcon: firmware, homing, loop)", unit="stages") as bar:
+            res = run_falcon(scene, link, image, packets, truth=truth, progress=bar.update,
+                             paced=not emulated)
+    except DeviceError as exc:
+        print(f"hapsim run: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if link is not None:
+            link.close()
+    where = ("the emulated Falcon (an emulated FT232R under pyftdi's code)" if emulated
+             else f"the Falcon at {args.port}")
+    pos = res["position"]
+    taken = pos[~np.isnan(pos[:, 0])]
+    travel = (float(np.max(np.linalg.norm(taken - taken[0], axis=1)))
+              if len(taken) else None)
+    out = {"scene": scene.path, "dof": 3, "driver": "falcon", "emulated": emulated,
+           "port": args.port, "firmware_bytes": res["firmware"]["bytes"],
+           "firmware_chunks": res["firmware"]["chunks"],
+           "loader_checks": res["firmware"]["checks"],
+           "firmware_attempts": res["firmware"]["attempts"], "homing_packets": res["homing"],
+           "packets": res["samples"], "packets_per_s": res["packets_per_s"],
+           "rate_hz": res["rate_hz"], "slow": res["slow"],
+           "missing": res["missing"], "unhomed": res["unhomed"],
+           "skipped_bytes": res["decoder"]["skipped"],
+           "implausible": res["decoder"]["implausible"], "truth": res["truth"],
+           "travel_m": travel,
+           "max_command": int(np.abs(res["commands"]).max()) if packets else 0,
+           "felt_matrices": None, "verdict": res["verdict"], "reason": res["reason"]}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    o = sys.stdout
+    print(f"{scene.path}: the Novint Falcon's bytes over USB (pyftdi), {where}", file=o)
+    print(f"  firmware: {out['firmware_bytes']} bytes in {out['firmware_chunks']} chunks, "
+          f"each echoed byte for byte (loader answered check {out['loader_checks']}; "
+          f"load attempt {out['firmware_attempts']})", file=o)
+    print(f"  homing: {out['homing_packets']} packets until all three legs reported homed",
+          file=o)
+    rate = out["packets_per_s"]
+    print(f"  loop: {packets} packets, one per sample, at {rate:.0f} packets/s ("
+          + ("the emulator answers at once and steps one period per packet: the host's "
+             "own pace" if emulated else "the Falcon's replies and the host set the pace")
+          + f"; the scene's rate {res['rate_hz']:g} Hz)", file=o)
+    print(f"  replies missing {out['missing']}, bytes dropped realigning "
+          f"{out['skipped_bytes']}, implausible packets dropped {out['implausible']}, "
+          f"samples unhomed {out['unhomed']}", file=o)
+    t = res["truth"]
+    if t is not None:
+        print(f"  readings against the emulated encoders: exact in {t['exact']} of the "
+              f"{t['compared']} samples read"
+              + (f" (largest difference {t['max_error_counts']} counts)"
+                 if t["max_error_counts"] else ""), file=o)
+    if travel is not None:
+        print(f"  handle travel {travel * 1e3:.3f} mm from its first reading; largest motor "
+              f"command {out['max_command']} counts", file=o)
+    print("  not measured: the felt matrices (one encoder count is 27-47 um at the handle, "
+          "the free responses' whole range: docs/devices.md)", file=o)
+    print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
+    return 0
