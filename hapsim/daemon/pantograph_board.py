@@ -44,6 +44,12 @@ DEVICE_ID = 0x32474B48
 #: Sub-step of the board's Runge-Kutta integration [s] (two per 1 kHz period, as
 #: :class:`hapsim.lockstep_nd.JointDeviceND`).
 SUBSTEP = 5e-4
+#: Real time: the longest spin per tick [us] while the board waits for the host's FORCE
+#: (``pantograph_board --spin-us``): a whole 1 kHz period, so that the host's bytes reach
+#: the leader's UART within 10 us of the wall time they came at (the full-frame STATE
+#: leaves the host ~80 us at 1 kHz: a 100 us chunk run ahead of the wall clock would take
+#: more than that).
+SPIN_US = 1000.0
 
 
 def build(*, quiet: bool = True) -> dict:
@@ -84,7 +90,9 @@ def _pantograph(scene):
 
 def board_command(scene, amplitude: float, *, report: str | None = None,
                   link: str | None = None, nack_after: int | None = None,
-                  duration: float | None = None, profile: str | None = None) -> list:
+                  duration: float | None = None, profile: str | None = None,
+                  realtime: bool = False, spin_us: float | None = None,
+                  host_latency_us: float | None = None) -> list:
     """The ``pantograph_board`` command line for a 2-D pantograph scene.
 
     Parameters
@@ -104,6 +112,18 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         firmware's handling of a lost follower).
     duration : float, optional
         Emulated seconds to run.
+    realtime : bool
+        Lock the emulated clock to the wall clock (default: lockstep, the clock waits for
+        each FORCE).
+    spin_us : float, optional
+        Real time: the longest spin per tick [us] while the board waits for the host's
+        FORCE (emulating in 10 us steps, never ahead of the wall clock by more than one;
+        default :data:`SPIN_US`; 0: none, the bytes may then reach the UART up to 150 us
+        after they came).
+
+    host_latency_us : float, optional
+        Lockstep: each FORCE reaches the leader's UART this long [us] of emulated time
+        after the STATE it answers left (an emulated host's answer time).
 
     Returns
     -------
@@ -112,7 +132,8 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; a non-positive amplitude.
+        Not a 2-D pantograph scene; a non-positive amplitude; a spin outside [0, 1e6]; a
+        host latency outside [0, 1e6] or given with ``realtime``.
     """
     kin = _pantograph(scene)
     if not (math.isfinite(amplitude) and amplitude > 0):
@@ -135,6 +156,17 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
             cmd += [flag, v]
     if nack_after is not None:
         cmd += ["--nack-after", str(int(nack_after))]
+    if realtime:
+        spin = SPIN_US if spin_us is None else float(spin_us)
+        if not (math.isfinite(spin) and 0 <= spin <= 1e6):
+            raise ConfigError(f"must be in [0, 1e6] us, got {spin_us}", key="--spin-us")
+        cmd += ["--realtime", "--spin-us", repr(spin)]
+    if host_latency_us is not None:
+        lat = float(host_latency_us)
+        if realtime or not (math.isfinite(lat) and 0 <= lat <= 1e6):
+            raise ConfigError(f"a lockstep host's latency in [0, 1e6] us, got {host_latency_us}",
+                              key="host_latency_us")
+        cmd += ["--host-latency-us", repr(lat)]
     if duration is not None:
         cmd += ["--duration", repr(float(duration))]
     return cmd
