@@ -317,7 +317,7 @@ def test_mock_firmware_on_a_2d_scene_runs_in_real_time(built, tmp_path):
         proc.wait(timeout=20)
     assert armed >= 50
     rep = json.loads(report.read_text())
-    assert rep["mode"] == "realtime" and rep["time"]["spin_us"] > 0
+    assert rep["mode"] == "realtime" and rep["time"]["spin_us"] == 0   # the default
     # a host descheduled for 20 periods (a loaded machine) meets the leader's watchdog:
     # FAULT WATCHDOG (code 1) is the device's answer to it; nothing else may come
     assert set(rep["firmware"]["faults"]) <= {"1"} and rep["firmware"]["bad_frames"] == 0

@@ -14,7 +14,16 @@ frames (STATE_COMPACT / FORCE_COMPACT, what hapsim asks of this firmware) and th
 ``--profile``: the leader's busy cycles by function (the ELF's symbols).
 
     PYTHONPATH=. python tools/bench_pantograph.py [--ticks 1000] [--frames compact,full]
-        [--json FILE] [--profile]
+        [--json FILE] [--profile] [--host-slack]
+
+``--realtime N`` measures instead what a real-time run meets on this machine: N times
+``hapsim mock --firmware --scene SCENE`` (the board paced to the wall clock) and
+``hapsim run SCENE --port PTY --amplitude A --json`` against it, each run's late ticks
+(FORCEs that missed their DRIVE slot, taken as known inputs), verdict, and the board's
+time (slips, emulation speed), with the machine's load before and after (a figure
+measured beside other work is "loaded": the JSON says so):
+
+    PYTHONPATH=. python tools/bench_pantograph.py --realtime 8 --json FILE
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -169,6 +179,86 @@ def host_slack(scene_path: str, rate: float, frames: str, ticks: int = 300) -> d
     return {"frames": frames, "rate_hz": rate, "host_slack_us": lo, "ticks": ticks}
 
 
+def realtime_run(scene_path: str, amplitude: float = 2e-4, timeout: float = 300.0,
+                 mock_args: tuple = ()) -> dict:
+    """One real-time run: ``hapsim mock --firmware`` (real time) and ``hapsim run --port
+    --json`` against it, as a user types them.
+
+    Returns
+    -------
+    dict
+        ``verdict``, ``reason``, ``late`` (rows whose FORCE missed its tick), ``rows``
+        (rows used), ``late_fraction``, ``delay`` (per record), ``watchdog``, ``frames``,
+        ``run_exit`` and ``run_error`` (the run's exit code, its last stderr line),
+        ``board`` (the board's report: ``time``, ``firmware``, ``twi`` sections).
+        ``mock_args``: more options of ``hapsim mock`` (``--spin-us``, ``--rt-priority``).
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "board.json"
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware",
+                                 "--scene", scene_path, "--report", str(report),
+                                 *mock_args],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=env)
+        try:
+            line = mock.stdout.readline()
+            if not line.startswith("PORT "):
+                raise RuntimeError("the emulated board did not start: "
+                                   + (mock.stderr.read() or line)[-300:])
+            r = subprocess.run([sys.executable, "-m", "hapsim", "run", scene_path, "--port",
+                                line.split()[1], "--amplitude", repr(amplitude), "--json"],
+                               capture_output=True, text=True, timeout=timeout, env=env)
+        finally:
+            mock.send_signal(signal.SIGTERM)
+            try:
+                mock.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                mock.kill()
+                mock.wait()
+        board = json.loads(report.read_text()) if report.exists() else {}
+    out = {"run_exit": r.returncode,
+           "run_error": (r.stderr.strip().splitlines() or [""])[-1] if r.returncode else None,
+           "board": {k: board.get(k) for k in ("time", "firmware", "twi")}}
+    if r.returncode == 0:
+        d = json.loads(r.stdout)
+        rows = sum(d.get("rows") or [])
+        dev = (d.get("port") or {}).get("device") or ""
+        out.update(verdict=d["verdict"], reason=d["reason"], late=d["late"], rows=rows,
+                   late_fraction=d["late"] / rows if rows else None, delay=d["delay"],
+                   watchdog=d["watchdog"],
+                   frames="compact" if "compact frames" in dev else "full")
+    return out
+
+
+def realtime(scene_path: str, runs: int, amplitude: float = 2e-4,
+             mock_args: tuple = ()) -> dict:
+    """``runs`` real-time runs (:func:`realtime_run`) and their summary, with the
+    machine's conditions (``tools/bench_firmware.py``'s :func:`machine`, the load
+    average before and after: ``loaded`` when above half a core per core)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from bench_firmware import machine
+    load0 = os.getloadavg()
+    rows = []
+    for i in range(runs):
+        rows.append(realtime_run(scene_path, amplitude, mock_args=mock_args))
+        r = rows[-1]
+        print(f"run {i + 1}/{runs}: " + (f"{r['verdict']}, late {r['late']} of {r['rows']} "
+              f"rows, board slips {r['board']['time']['slips']}, emulation "
+              f"{r['board']['time']['armed_mhz']:.0f} MHz" if r["run_exit"] == 0
+              else f"run failed (exit {r['run_exit']}): {r['run_error']}"), flush=True)
+    load1 = os.getloadavg()
+    fr = [r["late_fraction"] for r in rows if r.get("late_fraction") is not None]
+    verdicts = collections.Counter(r.get("verdict", "failed") for r in rows)
+    cores = os.cpu_count() or 1
+    return {"runs": rows, "verdicts": dict(verdicts), "mock_args": list(mock_args),
+            "late_fraction": {"median": sorted(fr)[len(fr) // 2] if fr else None,
+                              "max": max(fr) if fr else None},
+            "load_before": load0, "load_after": load1,
+            "loaded": max(load0[0], load1[0]) > 0.5 * cores,
+            "machine": machine()}
+
+
 def main(argv=None) -> int:
     """Print the budget table (and write ``--json``); exit 1 when a tick was late or the
     delay is not one tick."""
@@ -182,7 +272,30 @@ def main(argv=None) -> int:
     p.add_argument("--profile", action="store_true")
     p.add_argument("--host-slack", action="store_true",
                    help="also bisect the host's time to answer that keeps one tick of delay")
+    p.add_argument("--realtime", type=int, metavar="N",
+                   help="instead: N real-time runs (hapsim mock --firmware, hapsim run "
+                        "--port) and their late ticks and verdicts")
+    p.add_argument("--amplitude", type=float, default=2e-4,
+                   help="--realtime: the hand's and the run's amplitude [m]")
+    p.add_argument("--mock-args", default="",
+                   help="--realtime: more options of hapsim mock, e.g. '--spin-us 0'")
     args = p.parse_args(argv)
+    if args.realtime:
+        pb.build()
+        res = realtime(args.scene, args.realtime, args.amplitude,
+                       tuple(args.mock_args.split()))
+        print(f"verdicts {res['verdicts']}; late fraction median "
+              f"{res['late_fraction']['median']}, max {res['late_fraction']['max']}; load "
+              f"{res['load_before'][0]:.1f} -> {res['load_after'][0]:.1f} on "
+              f"{res['machine']['cores']} cores" + (" (loaded)" if res["loaded"] else ""))
+        if args.json:
+            command = "PYTHONPATH=. python tools/bench_pantograph.py " + " ".join(
+                argv if argv is not None else sys.argv[1:])
+            Path(args.json).write_text(json.dumps({"command": command, **res}, indent=1)
+                                       + "\n")
+        # a verdict "differs" in real time is a wrong one (the lockstep run is within or
+        # not measurable): the account of the late ticks failed
+        return 1 if res["verdicts"].get("differs") or res["verdicts"].get("failed") else 0
     rows = [measure(args.scene, float(r), args.ticks, args.profile, f)
             for f in args.frames.split(",") for r in args.rates.split(",")]
     print("| frames | rate | period | leader busy mean / max | follower busy mean / max | "

@@ -117,9 +117,9 @@ def register(sub) -> None:
     p.add_argument("--spin-us", type=Number(float, low=0, high=1000, unit="us"), default=None,
                    metavar="US",
                    help="--firmware in real time: the longest spin per tick [us] while the "
-                        "board waits for the host's FORCE (default 0: none, on the 1-D "
-                        "board; 1000 on the pantograph's, whose full-frame STATE leaves the "
-                        "host ~80 us; costs up to US us of CPU per tick)")
+                        "board waits for the host's FORCE (default 0: none; costs up to US "
+                        "us of CPU per tick, and at SCHED_FIFO on a busy machine keeps the "
+                        "host off that core)")
     p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
                    help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
                         "(2-D/3-D scenes: always 'python'). "

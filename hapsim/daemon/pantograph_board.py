@@ -8,7 +8,12 @@ joins their TWI peripherals (simavr 1.6 models the master only: the board answer
 slave), wires each board's motor and magnetoresistive sensor to one proximal joint of a
 five-bar linkage, integrates the linkage's joint-space dynamics
 (:class:`hapsim.lockstep_nd.JointDeviceND` transcribed to C) and bridges the leader's
-UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE).
+UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE) or in real
+time (the emulated clock locked to the wall clock; a FORCE that misses its tick's DRIVE
+slot is applied a tick later and named by the STATEs' ``force_seq``, the known input
+:func:`hapsim.daemon.run_nd.measure_felt_port` takes it as). The leader offers the compact
+frames, which :func:`hapsim.daemon.run_nd.handshake_nd` asks for: at 1 kHz they leave a
+host 372 us to answer, the full frames none (``docs/pantograph.md``).
 
 The leader is a joint-level device (the Haply 2DIY's division of labour): STATE carries
 the joint angles [rad], FORCE the joint torques [N m]; HELLO says so with device id
@@ -45,11 +50,12 @@ DEVICE_ID = 0x32474B48
 #: :class:`hapsim.lockstep_nd.JointDeviceND`).
 SUBSTEP = 5e-4
 #: Real time: the longest spin per tick [us] while the board waits for the host's FORCE
-#: (``pantograph_board --spin-us``): a whole 1 kHz period, so that the host's bytes reach
-#: the leader's UART within 10 us of the wall time they came at (the full-frame STATE
-#: leaves the host ~80 us at 1 kHz: a 100 us chunk run ahead of the wall clock would take
-#: more than that).
-SPIN_US = 1000.0
+#: (``pantograph_board --spin-us``), by default none, as the 1-DoF board: measured beside
+#: other work on 2 cores (tools/bench_pantograph.py --realtime), a board spinning up to a
+#: period at SCHED_FIFO kept the host's process off its core and 95 % of the ticks late;
+#: without the spin 11 % (the FORCE's bytes then reach the UART up to ~150 us after they
+#: came, of the compact frames' 372 us of host slack at 1 kHz: docs/pantograph.md).
+SPIN_US = 0.0
 
 
 def build(*, quiet: bool = True) -> dict:
@@ -118,8 +124,8 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
     spin_us : float, optional
         Real time: the longest spin per tick [us] while the board waits for the host's
         FORCE (emulating in 10 us steps, never ahead of the wall clock by more than one;
-        default :data:`SPIN_US`; 0: none, the bytes may then reach the UART up to 150 us
-        after they came).
+        default :data:`SPIN_US`, none: the bytes may then reach the UART up to 150 us after
+        they came).
 
     host_latency_us : float, optional
         Lockstep: each FORCE reaches the leader's UART this long [us] of emulated time
