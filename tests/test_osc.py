@@ -153,12 +153,12 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
     assert sum(e == "refused" for e, _ in events) == 3
 
 
-def _check_telemetry_stream(sink, tel_file, rate):
-    """The /hapsim/tel messages that reached ``sink`` against the run's telemetry file."""
-    import numpy as np
+def received(sink, address, quiet=0.2):
+    """The parameters of every ``address`` message that reached the UDP socket ``sink``
+    (read until it has been quiet for ``quiet`` seconds; then closed)."""
     from pythonosc.osc_message import OscMessage
 
-    sink.settimeout(0.2)
+    sink.settimeout(quiet)
     msgs = []
     try:
         while True:
@@ -166,9 +166,16 @@ def _check_telemetry_stream(sink, tel_file, rate):
     except (socket.timeout, TimeoutError):
         pass
     sink.close()
+    return [m.params for m in msgs if m.address == address]
+
+
+def _check_telemetry_stream(sink, tel_file, rate):
+    """The /hapsim/tel messages that reached ``sink`` against the run's telemetry file."""
+    import numpy as np
+
+    tel = received(sink, "/hapsim/tel")
     with np.load(tel_file) as z:
         pos = z["position"]
-    tel = [m.params for m in msgs if m.address == "/hapsim/tel"]
     assert len(tel) > 50, len(tel)               # 100 Hz over >= 0.8 s
     n = np.array([round(t * rate) for t, *_ in tel])
     x = np.array([p[1] for p in tel])

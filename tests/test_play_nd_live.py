@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from test_audio_live import Recorder, dummy_jackd
-from test_osc import PATCH, Client, play_daemon, run_patch, stop, wait_for
+from test_osc import PATCH, Client, play_daemon, received, run_patch, stop, wait_for
 from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
@@ -32,20 +32,6 @@ def jack8k():
 def start_play(server, *extra):
     """``hapsim play SCENE --osc 0`` through ``server``; the process and its OSC port."""
     return play_daemon(SCENE, server, *extra)
-
-
-def telemetry(sink):
-    """The /hapsim/tel messages that reached ``sink`` (its parameters)."""
-    from pythonosc.osc_message import OscMessage
-    sink.settimeout(0.3)
-    msgs = []
-    try:
-        while True:
-            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
-    except (socket.timeout, TimeoutError):
-        pass
-    sink.close()
-    return [m.params for m in msgs if m.address == "/hapsim/tel"]
 
 
 def aligned(got, ref, window=400):
@@ -107,7 +93,7 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e,
                     track=track)[:, :1]
     # every /hapsim/tel t x y fx fy k b: the device's position at sample t * rate
-    tel = telemetry(sink)
+    tel = received(sink, "/hapsim/tel", quiet=0.3)
     assert len(tel) > 20 and all(len(p) == 7 for p in tel)
     k = np.array([round(p[0] * RATE) for p in tel])
     assert np.all(np.diff(k) >= 80)               # 100 Hz at most
