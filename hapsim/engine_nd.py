@@ -15,9 +15,17 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 from hapsim.kernels.nd import (BLOCK, ROWS, context, link_lengths, run_context,
-                               run_nd_listen, schedule, shared_params, stripes)
+                               run_context32, run_nd_listen, schedule, shared_params,
+                               stripes)
 
-__all__ = ["EngineND"]
+__all__ = ["EngineND", "PRECISIONS"]
+
+#: The engine's precisions and the floating type of its state and parameters.
+PRECISIONS = {"double": np.float64, "single": np.float32}
+#: The engine's arrays held in its precision (the rest are indices and flags).
+_FLOAT_ARRAYS = ("_X", "_XP", "f", "port_f", "t2m", "lin_k", "lin_z", "eu_k", "eu_z",
+                 "eu_rest", "eu_lprev", "W", "c_k", "c_z", "c_thr", "c_lprev", "p_normal",
+                 "p_offset", "p_k", "p_z")
 
 
 class EngineND:
@@ -30,6 +38,20 @@ class EngineND:
     block : int, optional
         Masses per block of the kernels' schedule (:data:`hapsim.kernels.nd.BLOCK`; a
         smaller one only to test the schedule on small scenes).
+    precision : {"double", "single"}, optional
+        The floating type of the state and the parameters (float64 or float32); default
+        the scene's ``engine.precision`` (itself ``double`` by default). Single precision
+        is twice the vector lanes and half the bytes (the 44.1 kHz mesh target is met
+        only there, docs/dimensions.md) and rounds the positions to 24 bits; it keeps
+        the scheme's velocity form (the state's second row array is the increment
+        ``x[n] - x[n-1]``, :mod:`hapsim.kernels.nd`): its accuracy is stated and measured
+        in docs/dimensions.md, 'Single precision'.
+
+    Raises
+    ------
+    ConfigError
+        ``precision`` not one of :data:`PRECISIONS`, or single precision for a scene
+        with a port (key ``engine.precision``).
 
     Notes
     -----
@@ -38,9 +60,22 @@ class EngineND:
     :attr:`port_force` is then the force the step computed on it [N] (``-F`` of its links).
     """
 
-    def __init__(self, scene, block: int = BLOCK) -> None:
+    def __init__(self, scene, block: int = BLOCK, precision: str | None = None) -> None:
         self.scene = scene
         self.block = int(block)
+        if precision is None:
+            precision = getattr(scene, "precision", "double")
+        if precision not in PRECISIONS:
+            raise ConfigError(f"unknown precision {precision!r}; valid choices: "
+                              f"{', '.join(PRECISIONS)}", key="engine.precision")
+        if precision == "single" and scene.port is not None:
+            raise ConfigError("single precision is for scenes without a port (a felt "
+                              "scene runs the double-precision engine, exact to "
+                              "round-off)", key="engine.precision")
+        #: ``"double"`` or ``"single"``.
+        self.precision = precision
+        #: The floating type of the state and parameters.
+        self.dtype = PRECISIONS[precision]
         T = scene.period
         self.names = [m.name for m in scene.masses]
         index = {n: i for i, n in enumerate(self.names)}
@@ -58,9 +93,6 @@ class EngineND:
         self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
                              for m in scene.masses])
         self.port = index.get(scene.port.name) if scene.port is not None else None
-        # the port's coordinates in the state (a view made once: set_port_position
-        # writes through it, no allocation per sample)
-        self._port_x = None if self.port is None else self._X[:dim, self.port]
 
         def pack(links):
             # lower index first (the laws are symmetric in the two ends), then stripes
@@ -118,6 +150,17 @@ class EngineND:
         self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
                                        self.eu_rest)
         self.W = np.zeros((ROWS, block))
+        if self.dtype is not np.float64:      # the values above, rounded once
+            # the velocity form: the second row array holds x[n] - x[n-1] (kernels)
+            self._XP = self._X - self._XP
+            for name in _FLOAT_ARRAYS:
+                setattr(self, name, getattr(self, name).astype(self.dtype))
+            self.eu_shared = tuple(a.astype(self.dtype) if a.dtype == np.float64 else a
+                                   for a in self.eu_shared)
+        # the port's coordinates in the state (a view made once: set_port_position
+        # writes through it, no allocation per sample)
+        self._port_x = None if self.port is None else self._X[:dim, self.port]
+        self._run = run_context if self.dtype is np.float64 else run_context32
         # every array the step reads or writes, by address: one argument per step call
         # (the arrays above are updated in place, never rebound)
         self._ctx = context(
@@ -126,13 +169,26 @@ class EngineND:
             self.eu_z, self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
             self.c_i2, self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass,
             self.p_normal, self.p_offset, self.p_k, self.p_z,
-            -1 if self.port is None else self.port, self.port_f)
+            -1 if self.port is None else self.port, self.port_f, dtype=self.dtype)
 
     @property
     def context(self) -> np.ndarray:
         """The int64 context of the engine's step (:func:`hapsim.kernels.nd.context`),
         for compiled code that steps it: set slot 0 to the samples and call
-        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does)."""
+        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does).
+
+        Raises
+        ------
+        ConfigError
+            The engine runs in single precision (key ``engine.precision``): its arrays
+            are float32, which :func:`~hapsim.kernels.nd.run_context` and the compiled
+            callers of this property would read as float64 (single precision runs through
+            :meth:`step`, :meth:`listen` and ``hapsim simulate``)."""
+        if self.dtype is not np.float64:
+            raise ConfigError("single precision (engine: {precision: single}) runs through "
+                              "hapsim simulate and the engine's step and listen; the live "
+                              "compiled loops take the double-precision engine: leave the "
+                              "key out here", key="engine.precision")
         return self._ctx
 
     def cells(self, name: str) -> dict:
@@ -182,13 +238,23 @@ class EngineND:
 
     @property
     def x(self) -> np.ndarray:
-        """Positions at the current sample [m], shape (dim, N) (a view: writable)."""
+        """Positions at the current sample [m], shape (dim, N), in the engine's
+        precision (a view: writable)."""
         return self._X[:self.dim]
 
     @property
     def xp(self) -> np.ndarray:
-        """Positions at the previous sample [m], shape (dim, N) (a view: writable)."""
-        return self._XP[:self.dim]
+        """Positions at the previous sample [m], shape (dim, N), in the engine's
+        precision (in double precision a view, writable; in single precision, whose
+        state holds the last increment ``x[n] - x[n-1]`` instead, a copy).
+
+        Returns
+        -------
+        ndarray, shape (dim, N)
+        """
+        if self.dtype is np.float64:
+            return self._XP[:self.dim]
+        return self._X[:self.dim] - self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` samples [-] (no allocation: one compiled call with one argument,
@@ -200,7 +266,7 @@ class EngineND:
             Samples to advance (>= 0).
         """
         self._ctx[0] = n
-        run_context(self._ctx)
+        self._run(self._ctx)
 
     def listen(self, out, axis, mass, velocity, gain) -> None:
         """Advance ``out.shape[0]`` samples, recording listening points (no allocation);
@@ -296,7 +362,7 @@ class EngineND:
         """Force on the port at the last step [N], shape (dim,)."""
         if self.port is None:
             raise ConfigError("the scene has no port", key="masses")
-        return self.port_f[:self.dim].copy()
+        return self.port_f[:self.dim].astype(np.float64)
 
     @property
     def positions(self) -> np.ndarray:

@@ -16,6 +16,7 @@ __all__ = [
     "ConfigError",
     "ProtocolError",
     "DeviceError",
+    "FirmwareEchoError",
     "IdentificationError",
     "UnstableConfigError",
     "UnrenderableTargetError",
@@ -96,6 +97,12 @@ class IdentificationError(HapsimError, ValueError):
 
 class DeviceError(HapsimError, OSError):
     """The device or its port failed (absent, silent, reset, faulted)."""
+
+
+class FirmwareEchoError(DeviceError):
+    """A firmware loader's echo of the image differed or stopped (the Novint Falcon's:
+    :func:`hapsim.drivers.falcon_usb.load_firmware_link`); the load may be tried again
+    from the loader's restart."""
 
 
 class UnstableConfigError(HapsimError, ValueError):

@@ -347,8 +347,10 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
         difference of the felt stiffness and damping matrices, each over the predicted
         matrix's largest entry [-]; None without felt matrices), ``bound``
-        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at ``a``), ``order``,
-        ``records``, ``samples``.
+        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at the larger of
+        ``a`` and ``excursion``), ``excursion`` (the largest distance [m] of the handle
+        from rest over the records: a start moving at ``a / (10 T)`` carries it past
+        ``a``), ``order``, ``records``, ``samples``.
 
     Raises
     ------
@@ -359,22 +361,26 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.linearisation_nd import linearisation_bound
     chk, order, N = identification_plan(scene, samples)
-    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    a = linearisation_bound(scene, amplitude, chk.render.rendered_poles).amplitude
     n = scene.dimension
-    a = bound.amplitude
     T = scene.period
     starts = excitation_starts(n, a, T)[1:]
     rest = LockstepND(scene, joint_space=joint_space).step(N, record=True)
+    excursion = float(np.max(np.linalg.norm(rest, axis=1)))
     recs = []
     for j, (x0, v0) in enumerate(starts):
-        recs.append(LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space)
-                    .step(N, record=True) - rest)
+        r = LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space).step(N, record=True)
+        excursion = max(excursion, float(np.max(np.linalg.norm(r, axis=1))))
+        recs.append(r - rest)
         if progress is not None:
             progress(j + 1, len(starts))
+    # the bound at the largest excursion the records reached (as over a port): a start
+    # moving at a / (10 T) carries the handle past a, and the departure grows with it
+    bound = linearisation_bound(scene, max(a, excursion), chk.render.rendered_poles)
     fit = fit_felt_nd(recs, scene.device.mass, T, order)
     dev = felt_deviation(fit, chk)
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
-            "order": order, "records": len(recs), "samples": N}
+            "order": order, "records": len(recs), "samples": N, "excursion": excursion}
 
 
 def default_samples(order: int, n: int) -> int:
@@ -535,7 +541,12 @@ def felt_directions(fit: dict, chk) -> dict | None:
     (:mod:`hapsim.analysis.ths_nd`: the major axis of rendered mode ``i``); for a loop
     that is symmetric in one basis (``M``, ``B0``, ``K``, ``B`` diagonal in it) they are
     the eigenvectors of ``k`` and ``b`` and ``e_i^T k e_i = m_i |s_i|^2`` (the check's
-    ``direction_stiffness``).
+    ``direction_stiffness``); otherwise the two differ by the loop's asymmetric coupling
+    (on the shipped scenes by at most 2e-5 relative) and the directions need not be
+    orthogonal. The quadratic form is a statement about a fixed direction, so it stays
+    well defined where two modes' poles coincide and their major axes are arbitrary;
+    being linear in the matrix, its first-order wire term is exact
+    (:func:`wire_terms_nd`).
 
     Parameters
     ----------
@@ -549,7 +560,8 @@ def felt_directions(fit: dict, chk) -> dict | None:
     dict or None
         ``directions`` (n unit vectors, the columns ``e_i``), ``damping_factor``
         (``|s_i| / (2 |Re s_i|)`` of mode ``i`` [-]: the linearisation bound's factor
-        for the damping along ``e_i``, :mod:`hapsim.analysis.linearisation_nd`), and for
+        for the damping along ``e_i``, :mod:`hapsim.analysis.linearisation_nd`),
+        ``largest`` (each predicted matrix's largest entry), and for
         ``felt_stiffness`` and ``felt_damping`` a list of n dicts ``predicted``,
         ``measured`` (``e_i^T X e_i``, [N/m] or [N s/m]) and ``deviation``
         (``|measured - predicted| / |predicted|`` [-], inf when ``predicted`` is 0). None
@@ -563,8 +575,10 @@ def felt_directions(fit: dict, chk) -> dict | None:
     out = {"directions": [E[:, i].tolist() for i in range(E.shape[1])],
            "damping_factor": [float(abs(v) / (2.0 * abs(v.real))) if v.real != 0
                               else math.inf for v in s]}
+    out["largest"] = {}
     for q in _QUANTITIES:
         P, Mx = np.asarray(getattr(r, q), float), np.asarray(fit[q], float)
+        out["largest"][q] = float(np.max(np.abs(P)))
         rows = []
         for i in range(E.shape[1]):
             e = E[:, i]
@@ -699,12 +713,13 @@ def statement_name(quantity: str, direction=None) -> str:
 
 
 def _statement(quantity, direction, predicted, measured, deviation, lin, wire, limit,
-               why_not=None) -> dict:
+               roundoff=0.0, why_not=None) -> dict:
     """One statement of :func:`felt_verdict` (its notes)."""
     out = {"quantity": quantity, "direction": direction,
            "name": statement_name(quantity, direction), "predicted": predicted,
            "measured": measured, "deviation": deviation,
            "linearisation": lin if lin is not None and math.isfinite(lin) else None,
+           "roundoff": roundoff if math.isfinite(roundoff) else None,
            "wire": wire if wire is not None and math.isfinite(wire) else None,
            "uncertainty": None, "verdict": "not measurable", "within": None,
            "reason": why_not}
@@ -720,7 +735,7 @@ def _statement(quantity, direction, predicted, measured, deviation, lin, wire, l
     if not (math.isfinite(deviation)):
         out["reason"] = "its predicted value is 0: no relative statement"
         return out
-    u = lin + (wire or 0.0)
+    u = lin + (wire or 0.0) + (roundoff if math.isfinite(roundoff) else 0.0)
     ok = deviation <= u
     out.update(uncertainty=u, verdict="within" if ok else "differs", within=bool(ok),
                reason=(f"measured - predicted {deviation:.2e} "
@@ -741,7 +756,10 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     statement says "within", "differs" or "not measurable" with its own uncertainty.
 
     **Each statement's uncertainty** (relative, first order) is the linearisation bound
-    plus the wire's term:
+    plus the wire's term plus the binary64 round-off allowance
+    (:attr:`hapsim.analysis.linearisation_nd.LinearisationBound.roundoff`, relative to
+    the matrix's largest entry, so ``roundoff max|X_pred| / |e_i^T X_pred e_i|`` along a
+    direction):
 
     * linearisation (:mod:`hapsim.analysis.linearisation_nd`): a relative change
       ``eps`` of the loop's stiffness and inertia terms (``eps_k = (c_kin + c_link) a``)
@@ -798,7 +816,8 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
         None when nothing was stated), ``reason`` (str), ``statements`` (list of dicts:
         ``quantity``, ``direction`` (unit vector or None for the matrix), ``name``,
         ``predicted``, ``measured`` (along the direction; None for a matrix),
-        ``deviation``, ``linearisation``, ``wire``, ``uncertainty`` [-], ``verdict``,
+        ``deviation``, ``linearisation``, ``wire``, ``roundoff``, ``uncertainty`` [-],
+        ``verdict``,
         ``within``, ``reason``) and ``not_stated`` (the names of the quantities that
         were not measurable).
     """
@@ -816,22 +835,25 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     if deviation is None:
         return no("the records give no felt matrices (fewer than n rendered pairs)")
     if lin["felt_stiffness"] is None:
-        return no(f"the amplitude {bound.amplitude:g} m reaches the depth of "
+        return no(f"the motion ({bound.amplitude:g} m from rest) reaches the depth of "
                   f"{bound.depth_name!r} ({bound.depth:.3g} m): the contact opens, no "
                   "linear estimate holds")
+    rnd = float(getattr(bound, "roundoff", 0.0))
     st = []
     for q in _QUANTITIES:
         st.append(_statement(q, None, None, None, float(deviation[q]), lin[q], wq[q],
-                             limit))
+                             limit, rnd))
     if dirs is not None:
         eps = lin["felt_stiffness"]
         for q in _QUANTITIES:
             for i, row in enumerate(dirs[q]):
                 lq = eps if q == "felt_stiffness" else eps * dirs["damping_factor"][i]
+                p = abs(row["predicted"])
+                rq = rnd * dirs["largest"][q] / p if p > 0 else math.inf
                 st.append(_statement(q, [float(v) for v in dirs["directions"][i]],
                                      row["predicted"], row["measured"], row["deviation"],
                                      lq, None if wdir is None else float(wdir[q][i]),
-                                     limit))
+                                     limit, rq))
     stated = [s for s in st if s["verdict"] != "not measurable"]
     not_stated = [s["name"] for s in st if s["verdict"] == "not measurable"]
     what = ("linearisation bound plus the wire's rounding" if wire is not None else

@@ -30,6 +30,10 @@ expected is refused)::
       profile: hand_force.csv     # a recorded force profile (time [s], force [N]),
                                   # relative to the scene file (hapsim play plucks with
                                   # it, again every --pluck-every seconds)
+    engine:                       # optional
+      precision: double           # double (float64, the default) | single (float32:
+                                  # twice the engine's speed on a mesh, 24-bit positions;
+                                  # no port; docs/dimensions.md, 'Single precision')
     audio:                        # optional: the scene heard (hapsim simulate --audio)
       listen:                     # one WAV channel each, at rate_hz
         - {mass: bob, axis: z, quantity: velocity, gain: 10.0}   # axis x|y|z (0..n-1),
@@ -81,12 +85,15 @@ from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.reader import LineContext, read_text
 
 __all__ = ["MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SceneND",
-           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS"]
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "TOP_KEYS", "DEVICE_KINDS",
+           "PRECISIONS", "ENGINE_KEYS"]
 
 TOP_KEYS = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
-            "excitation", "audio")
+            "excitation", "audio", "engine")
 EXCITATION_KEYS = ("direction", "impulse", "profile")
 IMPULSE_KEYS = ("force", "start", "duration")
+ENGINE_KEYS = ("precision",)
+PRECISIONS = ("double", "single")
 LISTEN_KEYS = ("mass", "axis", "quantity", "gain")
 AXES = ("x", "y", "z")
 MASS_KEYS = {"mass": ("name", "kind", "mass", "x0", "v0"),
@@ -223,7 +230,8 @@ class ExcitationND:
 class SceneND:
     """A validated 2-D or 3-D scene (:func:`load_scene_nd`); ``audio`` is its listening
     points (a tuple of :class:`ListenND`) or None, ``excitation`` the hand's force
-    (:class:`ExcitationND`) or None."""
+    (:class:`ExcitationND`) or None; ``precision`` the engine's floating type,
+    ``"double"`` (float64, default) or ``"single"`` (float32)."""
 
     dimension: int
     rate_hz: float
@@ -235,6 +243,7 @@ class SceneND:
     integrator: str = "centred"
     audio: tuple | None = None
     excitation: ExcitationND | None = None
+    precision: str = "double"
 
     @property
     def period(self) -> float:
@@ -598,9 +607,18 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
             raise r.error("an excitation is the hand's force on the device: the scene needs "
                           "a port and a device", r.line(doc, "excitation"), "excitation")
         excitation = _read_excitation(r, doc, n, path)
+    precision = "double"
+    if "engine" in doc:
+        e = r.mapping(doc["engine"], "engine", r.line(doc, "engine"))
+        r.keys(e, ENGINE_KEYS, "engine")
+        precision = r.choice(e, "precision", "engine", PRECISIONS, default="double")
+        if precision == "single" and ports:
+            raise r.error("single precision is for scenes without a port: a felt scene "
+                          "runs the double-precision engine (exact to round-off)",
+                          r.line(e, "precision"), "engine.precision")
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
                    planes=tuple(planes), device=device, path=path, audio=audio,
-                   excitation=excitation)
+                   excitation=excitation, precision=precision)
 
 
 def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:

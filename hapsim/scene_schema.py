@@ -305,7 +305,10 @@ _KEYS = [
             "spatial format of `hapsim.scene_nd` (vector positions, Euclidean links, "
             "planes, kinematic devices: the pantograph and the delta), which `hapsim "
             "check`, `run`, `simulate`, `mock --scene` and `play` take; its keys and laws "
-            "are in [Two and three dimensions](dimensions.md#scenes-in-2-and-3-dimensions).",
+            "are in [Two and three dimensions](dimensions.md#scenes-in-2-and-3-dimensions), "
+            "among them `engine: {precision: single}`, the engine in float32 "
+            "([Single precision](dimensions.md#single-precision): twice as fast on a mesh; "
+            "default `double`).",
         example="dimension: 1"),
     # ------------------------------------------------------------------ masses[]
     Key("masses[].name", "string",

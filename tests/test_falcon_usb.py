@@ -336,3 +336,39 @@ def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
     cap = capsys.readouterr()
     assert "went away" in cap.err and "packets since the firmware load" in cap.err
     assert cap.out == ""
+
+
+def test_a_failed_echo_is_loaded_again_from_the_loaders_restart(scene):
+    """An echo differing on the first load only: the second load (DTR's edge restarts the
+    loader, the image from its start) runs, attempts 2; differing every time: a
+    FirmwareEchoError naming the byte and the 3 attempts."""
+    from hapsim.errors import FirmwareEchoError
+
+    class FlipOnce(FalconDevice):
+        loads = 0
+
+        def line(self, **kw):
+            if kw.get("dtr") == 1 and self.dtr == 0:
+                self.loads += 1
+            super().line(**kw)
+
+        def feed(self, data):
+            out = super().feed(data)
+            if self.state == "loader-fast" and self.loads <= self.bad_loads and len(out) > 5:
+                out = out[:5] + bytes([out[5] ^ 1]) + out[6:]
+            return out
+
+    for bad, ok in ((1, True), (5, False)):
+        dev = FlipOnce(scene, expected_image=IMAGE)
+        dev.bad_loads = bad
+        link, _, _ = _open(scene, dev)
+        try:
+            if ok:
+                res = run_falcon(scene, link, IMAGE, 5, timeout=FAST)
+                assert res["firmware"]["attempts"] == 2 and dev.loads == 2
+            else:
+                with pytest.raises(FirmwareEchoError, match=r"image byte 5 .*\(3 attempts"):
+                    run_falcon(scene, link, IMAGE, 5, timeout=FAST)
+                assert dev.loads == 3
+        finally:
+            link.close()

@@ -154,7 +154,8 @@ def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced(fault):
 def test_a_resynchronised_record_is_not_measured():
     """The felt matrices are measured on the loop's free responses: a record during which
     the board was re-armed is none (the hand's record restarts), so the verdict is "not
-    measurable", saying why, with the re-synchronisations counted per record."""
+    measurable", saying why, with the re-synchronisations counted per record, and no
+    statement of a felt quantity stands."""
     from hapsim.lockstep_nd import identification_plan
     sc = load_scene_nd(WALL)
     N = 60
@@ -163,5 +164,6 @@ def test_a_resynchronised_record_is_not_measured():
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, samples=N,
                                  plan=identification_plan(sc, N), probe_wiring=False)
     assert r["verdict"] == "not measurable" and "re-synchronised 1 times" in r["reason"]
+    assert r["statements"] == [] and r["not_stated"] == ["felt stiffness", "felt damping"]
     assert r["resyncs"] == [1, 0, 0, 0, 0]
     assert board.settles_on() == 0.0

@@ -6,6 +6,7 @@ limit from ``hapsim kinematics`` says why."""
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 from pathlib import Path
@@ -88,3 +89,21 @@ def test_check_reports_progress_per_direction():
     api.check_nd(str(ROOT / "configs" / "delta_sphere.yaml"),
                  progress=lambda done, total: calls.append((done, total)))
     assert calls == [(1, 3), (2, 3), (3, 3)]
+
+
+def test_the_haply_generation_reaches_the_wire(capsys):
+    """`--generation gen2` (hAPI hardwareVersion 2: other direction bytes) reaches the
+    2DIY's set-up in lockstep and measures within its stated uncertainty; it is refused,
+    by name, where it means nothing (1-D, another driver) or does not measure yet (gen2 in
+    real time)."""
+    wall = str(ROOT / "configs" / "pantograph_wall.yaml")
+    assert main(["run", wall, "--driver", "haply", "--lockstep", "--generation", "gen2",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["generation"] == "gen2" and out["verdict"] == "within"
+    for argv in (["run", str(ROOT / "configs" / "wall.yaml"), "--generation", "gen2"],
+                 ["run", str(ROOT / "configs" / "delta_sphere.yaml"), "--lockstep",
+                  "--generation", "gen2"],
+                 ["run", wall, "--driver", "haply", "--generation", "gen2"]):
+        assert main(argv) == 2, argv
+        assert "--generation" in capsys.readouterr().err

@@ -36,7 +36,7 @@ def test_command_line_defaults_are_the_options_defaults():
 def test_every_option_of_the_parser_is_one_declared_field():
     """The parser's run options are exactly the declared fields, by their flags (the
     command adds its own: the scene, --auto, --tolerance, --device, --amplitude, --json,
-    and the Falcon's --firmware and --packets)."""
+    and the Falcon's --firmware and --packets, the Haply 2DIY's --generation)."""
     import argparse
     sub = next(a for a in build_parser("run")._actions
                if isinstance(a, argparse._SubParsersAction))
@@ -45,7 +45,7 @@ def test_every_option_of_the_parser_is_one_declared_field():
     fields = {f.name for f in command_line_fields()}
     assert fields <= dests
     assert dests - fields == {"help", "scene", "auto", "tolerance", "device", "amplitude",
-                              "json", "firmware", "packets"}
+                              "json", "firmware", "packets", "generation"}
     flags = {a.dest: a.option_strings for a in parser._actions}
     for f in command_line_fields():
         assert flags[f.name] == [f.metadata["cli"]["flag"]], f.name

@@ -35,6 +35,7 @@ def test_every_key_the_reader_takes_is_in_the_table_and_only_those():
             "planes[]": set(scene_nd.PLANE_KEYS),
             "device": set().union(*scene_nd.DEVICE_KEYS.values()),
             "audio.listen[]": set(scene_nd.LISTEN_KEYS),
+            "engine": set(scene_nd.ENGINE_KEYS),
             "excitation": set(scene_nd.EXCITATION_KEYS),
             "excitation.impulse": set(scene_nd.IMPULSE_KEYS)}
     assert set(rows) == set(want)

@@ -304,3 +304,83 @@ def test_cli_run_json_and_text_carry_the_statements(capsys):
     assert main(["run", scene, "--lockstep"]) == 0
     text = capsys.readouterr().out
     assert text.count("felt stiffness along (") == 2 and "statements" in text
+
+
+def test_each_statement_carries_its_own_uncertainty():
+    """:func:`hapsim.lockstep_nd.felt_verdict` on configs/pantograph_circle.yaml at
+    a = 1e-4 m with chosen measured matrices: the stiffness statements take ``eps_k``, the
+    damping along ``e_i`` mode i's ``eps_k |s_i| / (2 |Re s_i|)`` (from the rendered
+    poles, computed here) and the damping matrix the largest of them; a felt stiffness
+    raised along one principal direction by three times its bound differs there (and the
+    run does, naming it); wire terms above the limit for the damping alone leave the
+    stiffness stated, "within", with the damping listed as not stated."""
+    from pathlib import Path
+
+    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.lockstep_nd import felt_deviation, felt_directions, felt_verdict
+    from hapsim.scene_nd import load_scene_nd
+    scene = load_scene_nd(Path(__file__).resolve().parents[1] / "configs"
+                          / "pantograph_circle.yaml")
+    chk = check_scene_nd(scene)
+    r = chk.render
+    bound = linearisation_bound(scene, 1e-4, r.rendered_poles)
+    eps = bound.stiffness
+    s = np.log(np.asarray(r.rendered_poles, complex))
+    factor = np.abs(s) / (2 * np.abs(s.real))
+    k, b = r.felt_stiffness, r.felt_damping
+    fit = {"felt_stiffness": k * (1 + 0.5 * eps), "felt_damping": b.copy()}
+    v = felt_verdict(felt_deviation(fit, chk), bound, directions=felt_directions(fit, chk))
+    assert v["verdict"] == "within" and v["not_stated"] == []
+    dirs = [x for x in v["statements"] if x["direction"] is not None]
+    assert [x["quantity"] for x in dirs] == ["felt_stiffness"] * 2 + ["felt_damping"] * 2
+    for i, x in enumerate(dirs[2:]):
+        assert x["linearisation"] == pytest.approx(eps * factor[i], rel=1e-12)
+    for x in dirs[:2]:
+        assert x["linearisation"] == pytest.approx(eps, rel=1e-12)
+    assert v["statements"][1]["linearisation"] == pytest.approx(bound.damping, rel=1e-12)
+    assert bound.damping == pytest.approx(eps * factor.max(), rel=1e-12)
+    # raised along e_0 by three times its bound: that statement differs
+    e0 = r.directions[:, 0]
+    lam = float(e0 @ k @ e0)
+    fit = {"felt_stiffness": k + 3 * eps * lam * np.outer(e0, e0), "felt_damping": b.copy()}
+    v = felt_verdict(felt_deviation(fit, chk), bound, directions=felt_directions(fit, chk))
+    along = [x for x in v["statements"] if x["direction"] is not None
+             and x["quantity"] == "felt_stiffness"]
+    assert along[0]["verdict"] == "differs"
+    assert along[0]["deviation"] == pytest.approx(3 * eps, rel=1e-9)
+    assert v["verdict"] == "differs" and v["within"] is False
+    assert along[0]["name"] in v["reason"]
+    # a wire that cannot resolve the damping: the stiffness is stated alone
+    fit = {"felt_stiffness": k.copy(), "felt_damping": b.copy()}
+    wire = {"felt_stiffness": 0.01, "felt_damping": 0.9,
+            "directions": {"felt_stiffness": [0.01, 0.02], "felt_damping": [0.8, 1.1]}}
+    v = felt_verdict(felt_deviation(fit, chk), bound, wire,
+                     directions=felt_directions(fit, chk))
+    assert v["verdict"] == "within" and v["uncertainty"]["felt_damping"] is None
+    assert v["uncertainty"]["felt_stiffness"] == pytest.approx(eps + 0.01)
+    assert len(v["not_stated"]) == 3 and all("damping" in x for x in v["not_stated"])
+
+
+def test_an_exact_linear_loop_is_within_its_roundoff():
+    """A cartesian device with a length-0 spring and engaged planes has a linearisation
+    bound of 0: its lockstep run (``hapsim.run_nd``) at 1e-8 m and at 1e-3 m departs from
+    the prediction by binary64 round-off alone, inside the stated round-off allowance
+    (it was "differs" for its last bits), every statement "within"."""
+    from hapsim.api_nd import run_nd
+    from hapsim.scene_nd import parse_scene_nd
+    done = 0
+    for seed in range(8):
+        p = _random_scene(np.random.default_rng(seed), 2 + seed % 2)
+        scene = parse_scene_nd(_yaml(p), "<random>")
+        for a in (1e-8, 1e-3):
+            r = run_nd(scene, a)
+            if not r.stable:
+                break
+            assert r.linearisation_bound["felt_stiffness"] == 0.0
+            assert r.verdict == "within", (seed, a, r.deviation, r.reason)
+            assert all(s["verdict"] == "within" for s in r.statements)
+            done += 1
+        if done >= 4:
+            return
+    pytest.fail(f"only {done} stable cases")

@@ -20,6 +20,9 @@ It prints, for growing meshes:
   both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
   shared machine is not counted), the fastest of repeated short runs (the one least
   disturbed by other processes' use of the caches);
+* the same for hapsim's kernel in single precision (the same kernels compiled for float32,
+  as ``engine: {precision: single}`` runs them) and its difference from the reference
+  after 200 samples;
 * the floor the arithmetic sets: ns per element of a loop doing nothing but one square
   root and one division (the Euclidean law's), measured the same way;
 * the agreement of the two after the benchmark's samples (largest position difference,
@@ -31,9 +34,11 @@ It prints, for growing meshes:
   and with one part taken out of its source (:data:`ABLATIONS`: the link forces, their
   scatter, the square root and division), measured alternately;
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
-  within 1 ms (1 kHz), by bisection on the mesh size measured at each step; at 44.1 kHz
-  also hapsim stepped one compiled call per sample from Python (``hapsim_per_call``: a
-  real-time loop's way; the others run blocks of samples per call, an audio buffer's).
+  within 1 ms (1 kHz), by bisection on the mesh size measured at each step, for hapsim
+  in double and in single precision (``hapsim_single``) and the reference; at 44.1 kHz
+  also hapsim stepped one compiled call per sample from Python (``hapsim_per_call``,
+  ``hapsim_single_per_call``: a real-time loop's way; the others run blocks of samples
+  per call, an audio buffer's).
 
 With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
 ``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
@@ -71,7 +76,7 @@ sys.path.insert(0, str(REPO / "tools"))
 
 import hapsim.kernels.nd as nd_kernels  # noqa: E402
 from hapsim.kernels.nd import (BLOCK, context, link_lengths, run_context,  # noqa: E402
-                               run_nd, schedule, shared_params, stripes)
+                               run_context32, run_nd, schedule, shared_params, stripes)
 
 #: Beads of the string compared with Faust (Faust's build time grows with the string).
 FAUST_BEADS = 300
@@ -133,9 +138,10 @@ def mesh(nx, ny, nz, seed=0):
 
 
 class Case:
-    """Both engines' arrays for one mesh."""
+    """Both engines' arrays for one mesh; hapsim's in ``dtype`` (float64, or float32:
+    the single-precision engine, the same kernels compiled for float32)."""
 
-    def __init__(self, nx, ny, nz):
+    def __init__(self, nx, ny, nz, dtype=np.float64):
         X0, i1, i2, t2m = mesh(nx, ny, nz)
         self.N, self.L = X0.shape[0], i1.size
         K, B = 100.0, 0.001
@@ -165,8 +171,13 @@ class Case:
                     np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
                     np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
+        if dtype is not np.float64:   # single precision's velocity form: xp holds x - xp
+            self.hap = self.hap[:3] + (np.zeros((3, self.N)),) + self.hap[4:]
+        self.hap = tuple(a.astype(dtype) if isinstance(a, np.ndarray) and
+                         a.dtype == np.float64 else a for a in self.hap)
         self.stripes = table.shape[0]
-        self.ctx = context(*self.hap)          # ctx[0] = 1: one sample per call
+        self.ctx = context(*self.hap, dtype=dtype)   # ctx[0] = 1: one sample per call
+        self._run_ctx = run_context if dtype is np.float64 else run_context32
 
     def run_ref(self, n):
         reference_run(n, *self.ref)
@@ -178,8 +189,9 @@ class Case:
         """``n`` samples, one compiled call each, as a real-time loop steps
         (:meth:`hapsim.engine_nd.EngineND.step`: one argument, the context)."""
         ctx = self.ctx
+        run = self._run_ctx
         for _ in range(n):
-            run_context(ctx)
+            run(ctx)
 
 
 def per_sample(fn, n, repeats):
@@ -217,12 +229,15 @@ def largest(kind, deadline, quick):
 
     def cost(nx):
         if nx not in seen:
-            c = Case(nx, nx, nx // 2 + 1)
+            c = Case(nx, nx, nx // 2 + 1, np.float32 if "single" in kind else np.float64)
             fn = {"hapsim": c.run_hap, "hapsim_per_call": c.run_hap_calls,
+                  "hapsim_single": c.run_hap, "hapsim_single_per_call": c.run_hap_calls,
                   "reference": c.run_ref}[kind]
             n = max(3, int(0.01 / max(deadline, 1e-6)))
             fn(2)
-            seen[nx] = (per_sample(fn, n, 5 if quick else 11), c.N)
+            # the fastest of many short runs: on a shared machine, one run in a few
+            # escapes the other processes' use of the core and its caches
+            seen[nx] = (per_sample(fn, n, 5 if quick else 31), c.N)
         return seen[nx]
     lo, hi = 2, 4
     while True:
@@ -262,11 +277,13 @@ ABLATIONS = {
         """        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln if ln > 0.0 else 0.0""",
+        g = (k * (ln - rest) + z * (ln - lp)) / ln
+        if not ln > 0.0:""",
         """        ln = (dx * dx + dy * dy + dz * dz) * 50.0
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) * ln""")],
+        g = (k * (ln - rest) + z * (ln - lp)) * ln
+        if not ln > 0.0:""")],
 }
 
 
@@ -394,28 +411,36 @@ def main(argv=None) -> int:
     print(f"load average {load0:.2f} (1 min) on {os.cpu_count()} CPUs at the start")
     rows = []
     print(f"{'masses':>8} {'links':>8} {'stripes':>8} {'hapsim ns/mass':>15} "
-          f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10}")
+          f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10} "
+          f"{'single ns/mass':>15} {'single |dx|/h':>13}")
     for nx, ny, nz in sizes:
         c = Case(nx, ny, nz)
+        c32 = Case(nx, ny, nz, np.float32)
         n = max(5, int(4e5 // c.L))
         c.run_ref(2)
         c.run_hap(2)
+        c32.run_hap(2)
         # agreement after the same samples from the same start
         c2 = Case(nx, ny, nz)
         c2.run_ref(200)
         c2.run_hap(200)
         err = float(np.max(np.abs(c2.ref[0].T - c2.hap[2]))) / SPACING
+        c3 = Case(nx, ny, nz, np.float32)   # single precision after the same samples
+        c3.run_hap(200)
+        err32 = float(np.max(np.abs(c2.ref[0].T - c3.hap[2]))) / SPACING
         th = per_sample(c.run_hap, n, repeats)
         tr = per_sample(c.run_ref, n, repeats)
+        t32 = per_sample(c32.run_hap, n, repeats)
         row = {"masses": c.N, "links": c.L, "stripes": c.stripes,
                "hapsim_ns_per_mass": th / c.N * 1e9, "hapsim_ns_per_link": th / c.L * 1e9,
                "ref_ns_per_mass": tr / c.N * 1e9, "ref_ns_per_link": tr / c.L * 1e9,
-               "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err}
+               "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err,
+               "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32}
         rows.append(row)
         print(f"{c.N:>8} {c.L:>8} {c.stripes:>8} {row['hapsim_ns_per_mass']:>15.2f} "
               f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
               f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
-              f"{err:>10.2e}", flush=True)
+              f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e}", flush=True)
     floor = sqrt_div_floor(repeats)
     print(f"one square root and one division alone: {floor:.2f} ns per element "
           f"(the Euclidean law needs both per link)", flush=True)
@@ -434,8 +459,8 @@ def main(argv=None) -> int:
             print(f"  {name:<55} {v['ns_per_mass']:6.2f}", flush=True)
     for label, rate, deadline in (("44.1 kHz", "44100", 1.0 / 44100.0),
                                   ("1 kHz", "1000", 1e-3)):
-        kinds = ("hapsim", "hapsim_per_call", "reference") if rate == "44100" else \
-            ("hapsim", "reference")
+        kinds = ("hapsim", "hapsim_per_call", "hapsim_single", "hapsim_single_per_call",
+                 "reference") if rate == "44100" else ("hapsim", "hapsim_single", "reference")
         for kind in kinds:
             N, t = largest(kind, deadline, args.quick)
             out["largest"].setdefault(rate, {})[kind] = {

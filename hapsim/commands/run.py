@@ -163,6 +163,11 @@ def register(sub) -> None:
     p.add_argument("--packets", type=Number(int, low=1), metavar="N",
                    help="--driver falcon: packets of the loop, one per sample (default "
                         "1000)")
+    p.add_argument("--generation", choices=("gen2", "gen3"),
+                   help="--driver haply on a 2-D pantograph scene: the Haply 2DIY's wire "
+                        "generation (hAPI hardwareVersion 2 or 3: its motor and encoder "
+                        "direction bytes and encoder counts per revolution; default gen3; "
+                        "gen2 with --lockstep only)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -256,6 +261,9 @@ def run(args) -> int:
         if getattr(args, attr, None) is not None:
             raise ConfigError("goes with --driver falcon on a 3-D delta scene (the Novint "
                               "Falcon)", key=flag)
+    if getattr(args, "generation", None) is not None:
+        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
+                          "2DIY's two wire generations)", key="--generation")
 
     from hapsim.daemon.options import RunOptions
     opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading

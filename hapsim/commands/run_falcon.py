@@ -119,7 +119,8 @@ def run_falcon_command(args) -> int:
     out = {"scene": scene.path, "dof": 3, "driver": "falcon", "emulated": emulated,
            "port": args.port, "firmware_bytes": res["firmware"]["bytes"],
            "firmware_chunks": res["firmware"]["chunks"],
-           "loader_checks": res["firmware"]["checks"], "homing_packets": res["homing"],
+           "loader_checks": res["firmware"]["checks"],
+           "firmware_attempts": res["firmware"]["attempts"], "homing_packets": res["homing"],
            "packets": res["samples"], "packets_per_s": res["packets_per_s"],
            "rate_hz": res["rate_hz"], "slow": res["slow"],
            "missing": res["missing"], "unhomed": res["unhomed"],
@@ -134,8 +135,8 @@ def run_falcon_command(args) -> int:
     o = sys.stdout
     print(f"{scene.path}: the Novint Falcon's bytes over USB (pyftdi), {where}", file=o)
     print(f"  firmware: {out['firmware_bytes']} bytes in {out['firmware_chunks']} chunks, "
-          f"each echoed byte for byte (loader answered check {out['loader_checks']})",
-          file=o)
+          f"each echoed byte for byte (loader answered check {out['loader_checks']}; "
+          f"load attempt {out['firmware_attempts']})", file=o)
     print(f"  homing: {out['homing_packets']} packets until all three legs reported homed",
           file=o)
     rate = out["packets_per_s"]

@@ -91,6 +91,9 @@ def run_nd(args) -> int:
     from hapsim.progress import Progress
     _refuse_options(args)
     driver = getattr(args, "driver", None)
+    if getattr(args, "generation", None) is not None and driver != "haply":
+        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
+                          "2DIY's two wire generations)", key="--generation")
     if driver == "falcon":
         from hapsim.commands.run_falcon import run_falcon_command
         return run_falcon_command(args)
@@ -183,8 +186,8 @@ def run_nd(args) -> int:
         print(f"  measured - predicted (largest entry over the largest predicted): "
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     bd = bound.to_dict()
-    print(f"  linearisation bound at a = {a:g} m (first order in a; "
-          "hapsim.analysis.linearisation_nd):", file=o)
+    print(f"  linearisation bound at the records' largest excursion {bound.amplitude:.3g} m "
+          f"(first order in it; hapsim.analysis.linearisation_nd):", file=o)
     print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
           "and the velocity-product terms over a; "
           + ("not in the lockstep device, which holds the mass at rest)" if in_process
@@ -193,11 +196,12 @@ def run_nd(args) -> int:
           + (f" (link {bound.link_name!r})" if bound.link_name else " (none: linear)"),
           file=o)
     if bd["felt_stiffness"] is None:
-        print(f"    a reaches the depth of {bound.depth_name!r} ({bound.depth:.3g} m): "
+        print(f"    the excursion reaches the depth of {bound.depth_name!r} "
+              f"({bound.depth:.3g} m): "
               "the contact opens, no linear estimate holds", file=o)
     else:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
-              f"{bd['felt_damping']:.2e} (relative) while a < {bound.depth:.3g} m"
+              f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
     from hapsim.daemon.run_nd import verdict_nd
     v = verdict_nd(res)
@@ -232,7 +236,7 @@ def print_statements(v: dict, o) -> None:
     if not st:
         return
     print("  statements (relative: measured - predicted against the stated uncertainty = "
-          "linearisation bound + the wire's term):", file=o)
+          "linearisation bound + the wire's term + binary64 round-off):", file=o)
     unit = {"felt_stiffness": "N/m", "felt_damping": "N s/m"}
 
     def e(x):
@@ -242,8 +246,9 @@ def print_statements(v: dict, o) -> None:
         if s["direction"] is not None:
             head += (f": predicted {s['predicted']:.6g}, measured {s['measured']:.6g} "
                      f"{unit[s['quantity']]}")
-        terms = f"lin {e(s['linearisation'])}" + (f" + wire {e(s['wire'])}"
-                                                   if s["wire"] is not None else "")
+        terms = (f"lin {e(s['linearisation'])}"
+                 + (f" + wire {e(s['wire'])}" if s["wire"] is not None else "")
+                 + (f" + round-off {e(s.get('roundoff'))}" if s.get("roundoff") else ""))
         if s["verdict"] == "not measurable":
             print(f"    {head}: not measurable ({s['reason']})", file=o)
         else:
@@ -393,18 +398,23 @@ def _run_haply2(args) -> int:
                           "whose hand starts each record (a real 2DIY has none): no --port",
                           key="--port")
     realtime = not args.lockstep
+    gen = getattr(args, "generation", None) or "gen3"
+    if realtime and gen != "gen3":
+        raise ConfigError(f"{gen} runs in lockstep only (--lockstep): its real-time host "
+                          "over a pty does not measure yet (its records come out wrong; "
+                          "gen3 does)", key="--generation")
     a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:
         try:
             if realtime:
                 from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
-                child = Embedded2DIY(args.scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                      rate_hz=scene.rate_hz)
                 gc_was = gc.isenabled()
                 try:
                     gc.disable()                 # no collection while the clock runs
-                    res = measure_felt_haply2_port(child.port, scene, "gen3", amplitude=a,
+                    res = measure_felt_haply2_port(child.port, scene, gen, amplitude=a,
                                                    resolution=HAPLY_CPR,
                                                    progress=bar.update)
                 finally:
@@ -412,7 +422,7 @@ def _run_haply2(args) -> int:
                         gc.enable()
                     child.close()
             else:
-                res = measure_felt_haply2(scene, "gen3", amplitude=a, cpr=HAPLY_CPR,
+                res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                           progress=bar.update)
         except DeviceError as exc:
             print(f"hapsim run: {exc}", file=sys.stderr)
@@ -427,7 +437,7 @@ def _run_haply2(args) -> int:
         def mat(x):
             return None if x is None else np.asarray(x, float).tolist()
         print(json.dumps({
-            "scene": scene.path, "dof": 2, "driver": "haply", "generation": "gen3",
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
             "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
@@ -451,7 +461,7 @@ def _run_haply2(args) -> int:
             "records": res["records"], "samples": res["samples"]}))
         return 0
     o = sys.stdout
-    print(f"{scene.path}: the Haply 2DIY's bytes (gen3 set-up, firmware V1.5 board "
+    print(f"{scene.path}: the Haply 2DIY's bytes ({gen} set-up, firmware V1.5 board "
           f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
           + ("in real time (the board in a child process behind a pty)" if realtime
              else "in lockstep"), file=o)

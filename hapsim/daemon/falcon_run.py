@@ -122,7 +122,8 @@ def _reply_end(b: bytes) -> bool:
 
 def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
                timeout: float = 0.05, before_loop=None,
-               homing_limit: int = 20000, paced: bool = False) -> dict:
+               homing_limit: int = 20000, paced: bool = False,
+               load_attempts: int = 3) -> dict:
     """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
 
     Parameters
@@ -147,6 +148,9 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         Called once the legs are homed, before the loop (the tests switch faults on).
     homing_limit : int
         Most homing packets (~20 s at the firmware's ~1 kHz).
+    load_attempts : int
+        Firmware loads tried when the loader's echo differs or stops (each from the
+        loader's restart by DTR, as libnifalcon's ``loadFirmware(retries)``).
     paced : bool
         A real Falcon (its firmware on its own clock): a loop slower than 0.9 times the
         scene's rate is ``slow`` (each command held that many periods: another loop
@@ -156,7 +160,8 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     Returns
     -------
     dict
-        ``firmware`` (:func:`hapsim.drivers.falcon_usb.load_firmware_link`), ``homing``
+        ``firmware`` (:func:`hapsim.drivers.falcon_usb.load_firmware_link`, with
+        ``attempts``), ``homing``
         (packets), ``samples``, ``missing``, ``unhomed``, ``decoder`` (``frames``,
         ``skipped``, ``implausible``), ``packets_per_s`` (the loop's pace),
         ``position`` (N, 3) [m] (NaN where missing), ``commands`` (N, 3), ``truth`` (with
@@ -174,7 +179,17 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     from hapsim.daemon.falcon_device import drive_falcon, home
     from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
     from hapsim.drivers.falcon_usb import load_firmware_link
-    fw = load_firmware_link(link, image)
+    from hapsim.errors import FirmwareEchoError
+    for attempt in range(1, load_attempts + 1):
+        try:
+            fw = load_firmware_link(link, image)
+            break
+        except FirmwareEchoError as exc:
+            # libnifalcon's loadFirmware(retries): DTR's edge restarts the loader
+            if attempt == load_attempts:
+                raise FirmwareEchoError(f"{exc} ({attempt} attempts, each from the "
+                                        "loader's restart)") from None
+    fw["attempts"] = attempt
     if progress:
         progress(1)
     sent = [0]

@@ -500,6 +500,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         # hapsim.daemon.haply2_board): those records are no free responses of the loop,
         # and the records after one at the end start from another of the hand's starts
         out.update(verdict="not measurable", within=None, uncertainty=None,
+                   statements=[], not_stated=["felt stiffness", "felt damping"],
                    reason=f"the board was re-synchronised {sum(resyncs)} times (the "
                           f"stream lost or corrupted bytes): a re-armed record is no free "
                           f"response of the loop predicted")

@@ -36,7 +36,7 @@ import errno as _errno
 import re
 import time
 
-from hapsim.errors import ConfigError, DeviceError
+from hapsim.errors import ConfigError, DeviceError, FirmwareEchoError
 
 __all__ = ["FALCON_VID", "FALCON_PID", "DEFAULT_URL", "UDEV_RULE", "FT232R_CLOCK_HZ",
            "ft232r_baud", "BAUD_OF_DIVISOR", "parse_url", "FalconUSB", "load_firmware_link",
@@ -415,7 +415,8 @@ def load_firmware_link(link, image: bytes, check_tries: int = 100,
     Raises
     ------
     DeviceError
-        An empty image; the loader's first check unanswered (what came, what to check);
+        An empty image; the loader's first check unanswered (what came, what to check).
+    FirmwareEchoError
         ``'A'`` not echoed; an image chunk's echo short or differing (the image byte's
         offset, the byte sent and the byte echoed).
     """
@@ -450,7 +451,7 @@ def load_firmware_link(link, image: bytes, check_tries: int = 100,
             a_echoed = True
             got = link.exchange(send, 1, None, timeout)
             if got != want:
-                raise DeviceError(
+                raise FirmwareEchoError(
                     f"the Falcon's loader did not echo 'A' at the loading baud rate (got "
                     f"{got.hex(' ') or 'nothing'}): the loader answered at 9600 baud but "
                     "not at 142,857; unplug and plug the Falcon and load again")
@@ -461,14 +462,14 @@ def load_firmware_link(link, image: bytes, check_tries: int = 100,
             k = next((i for i in range(min(len(got), len(want))) if got[i] != want[i]),
                      None)
             if k is not None:
-                raise DeviceError(
+                raise FirmwareEchoError(
                     f"the Falcon's loader echoed image byte {off + k} (chunk "
                     f"{out['chunks'] + 1} of {n_chunks}) as {got[k]:#04x}, sent "
                     f"{want[k]:#04x}: the load failed. Unplug and plug the Falcon and load "
                     "again; if it fails at another byte, suspect the cable or hub, at the "
                     "same byte, the image file")
             if len(got) < len(want):
-                raise DeviceError(
+                raise FirmwareEchoError(
                     f"the Falcon's loader echoed {len(got)} of the {len(want)} bytes of "
                     f"chunk {out['chunks'] + 1} of {n_chunks} (image bytes {off}.."
                     f"{off + len(want) - 1}) within {timeout * 1e3:g} ms: it stopped "

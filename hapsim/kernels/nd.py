@@ -4,8 +4,14 @@ out and scheduled for speed.
 Plain arrays and floats only; nothing here imports from the API layer (CONVENTIONS §3).
 Units SI.
 
-State (structure of arrays, float64, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D
-scene leaves the rows past its dimension at zero, where they stay):
+State (structure of arrays, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D scene
+leaves the rows past its dimension at zero, where they stay), float64 or, in single
+precision, float32: every kernel is written for either (no float64 literal in an
+expression, :func:`_zero`), numba compiles one version per type, and :func:`context`
+with :func:`run_context` / :func:`run_context32` name the arrays of each. In float64 the
+arithmetic is the same operations in the same order as before single precision existed
+(``x + x`` for ``2 x``: both exact), so double-precision results are unchanged bit for
+bit:
 
 ``x``, ``xp``, ``f`` (3, N)
     Positions at sample n and n - 1 [m], force accumulator [N] (zero between samples:
@@ -69,6 +75,16 @@ Euclidean law with rest length ``threshold`` while ``|d| < threshold``) and plan
 
 Scheme: ``x[n+1] = 2 x[n] - x[n-1] + t2m f[n]`` per axis (the 1-D scheme of
 :mod:`hapsim.kernels.cordis` on every axis; docs/design.md, 'The scheme').
+
+In single precision the same scheme is kept in its velocity form: the ``xp`` array holds
+the increment ``v = x[n] - x[n-1]`` [m] and a sample is ``v += t2m f``, ``x += v``
+(:func:`_vform`; the linear law's damping reads ``v1 - v2``, a plane's previous
+penetration ``p + normal . v``). Equal in exact arithmetic; in float32 a position is
+rounded to 24 bits every sample, and in the position form that rounding (up to
+``ulp(x) / 2``, 4e-9 m at 0.1 m) is a velocity error, integrated twice: on a mesh 1 cm
+apart moving 1 mm at 44.1 kHz, the position form's float32 trajectory is 2e-2 of the
+motion away from float64's after 200 samples, the velocity form's 2e-5. Double precision
+keeps the position form (its results unchanged bit for bit).
 No kernel allocates.
 """
 
@@ -76,12 +92,13 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba.extending import overload
 
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
 
 __all__ = ["stripes", "schedule", "shared_params", "link_lengths", "step_nd", "run_nd",
-           "run_nd_listen", "context", "run_context", "BLOCK", "ROWS"]
+           "run_nd_listen", "context", "run_context", "run_context32", "BLOCK", "ROWS"]
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/pointers.py",)
@@ -263,6 +280,33 @@ def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
 _U = nb.uint64       # unsigned indices: no negative-index wraparound, so loops vectorise
 
 
+def _zero(v):
+    """A zero of ``v``'s floating type (compiled code only: a literal ``0.0`` is a
+    float64, which would promote a single-precision expression to double)."""
+    return 0.0
+
+
+@overload(_zero, inline="always")
+def _zero_typed(v):
+    if isinstance(v, nb.types.Float) and v.bitwidth == 32:
+        return lambda v: np.float32(0.0)
+    return lambda v: 0.0
+
+
+def _vform(x):
+    """Whether the state ``x`` is in single precision, whose second row array holds the
+    velocity form's increment ``x[n] - x[n-1]`` instead of ``x[n-1]`` (module docstring;
+    a constant of the compiled code: each type compiles one branch)."""
+    return False
+
+
+@overload(_vform, inline="always")
+def _vform_typed(x):
+    if x.dtype == nb.types.float32:
+        return lambda x: True
+    return lambda x: False
+
+
 @_inline
 def _scatter(f, dim, a, b, c, W):
     """``f[d, a:a+c] -= W[d]``, ``f[d, b:b+c] += W[d]`` per live axis (two loops: no
@@ -277,10 +321,16 @@ def _scatter(f, dim, a, b, c, W):
 @_inline
 def _linear_piece(x, xp, dim, a, b, c, j0, k, z, W):
     """Linear links ``a + i`` -- ``b + i``: their forces into ``W``."""
-    for d in range(dim):
-        for i in range(c):
-            dd = x[d, a + i] - x[d, b + i]
-            W[d, i] = k[j0 + i] * dd + z[j0 + i] * (dd - (xp[d, a + i] - xp[d, b + i]))
+    if _vform(x):
+        for d in range(dim):
+            for i in range(c):
+                dd = x[d, a + i] - x[d, b + i]
+                W[d, i] = k[j0 + i] * dd + z[j0 + i] * (xp[d, a + i] - xp[d, b + i])
+    else:
+        for d in range(dim):
+            for i in range(c):
+                dd = x[d, a + i] - x[d, b + i]
+                W[d, i] = k[j0 + i] * dd + z[j0 + i] * (dd - (xp[d, a + i] - xp[d, b + i]))
 
 
 @_inline
@@ -295,7 +345,9 @@ def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
         ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln if ln > 0.0 else 0.0
+        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
+        if not ln > 0.0:
+            g = _zero(g)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -312,7 +364,9 @@ def _euclid_piece_shared(x, a, b, c, j0, k, z, rest, lprev, W):
         ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln if ln > 0.0 else 0.0
+        g = (k * (ln - rest) + z * (ln - lp)) / ln
+        if not ln > 0.0:
+            g = _zero(g)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -353,6 +407,10 @@ def _planes(x, xp, f, mass, normal, offset, k, z):
         for d in range(dim):
             p -= normal[d, j] * x[d, m]
             pp -= normal[d, j] * xp[d, m]
+        if _vform(x):           # xp holds x[n] - x[n-1]: p_prev = p + normal . xp
+            pp = p
+            for d in range(dim):
+                pp += normal[d, j] * xp[d, m]
         if p > 0.0:
             g = k[j] * p + z[j] * (p - pp)
             for d in range(dim):
@@ -366,12 +424,20 @@ def _advance(x, xp, f, t2m, dim, m0, m1, port, port_f):
     if m0 <= port < m1:
         for d in range(dim):
             port_f[d] = f[d, port]
-    for d in range(dim):
-        for i in range(m0, m1):
-            xn = 2.0 * x[d, i] - xp[d, i] + t2m[i] * f[d, i]
-            xp[d, i] = x[d, i]
-            x[d, i] = xn
-            f[d, i] = 0.0
+    if _vform(x):
+        for d in range(dim):
+            for i in range(m0, m1):
+                v = xp[d, i] + t2m[i] * f[d, i]
+                xp[d, i] = v
+                x[d, i] = x[d, i] + v
+                f[d, i] = 0.0
+    else:
+        for d in range(dim):
+            for i in range(m0, m1):
+                xn = x[d, i] + x[d, i] - xp[d, i] + t2m[i] * f[d, i]
+                xp[d, i] = x[d, i]
+                x[d, i] = xn
+                f[d, i] = 0.0
 
 
 @_jit
@@ -488,6 +554,8 @@ def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, li
         if port >= 0:
             for d in range(dim):
                 x[d, port] = port_x[d]
+                if _vform(x):
+                    xp[d, port] = _zero(xp[d, port])
         step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
                 eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
                 eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass,
@@ -495,7 +563,10 @@ def run_nd_listen(out, axis, mass, velocity, gain, dim, block, x, xp, f, t2m, li
         for c in range(out.shape[1]):
             v = x[axis[c], mass[c]]
             if velocity[c]:
-                v -= xp[axis[c], mass[c]]
+                if _vform(x):
+                    v = xp[axis[c], mass[c]]
+                else:
+                    v -= xp[axis[c], mass[c]]
             out[k, c] = gain[c] * v
 
 
@@ -518,7 +589,7 @@ CONTEXT_ARRAYS = (
 _CTX_HEAD = 4
 
 
-def context(dim, block, *arrays_and_port) -> np.ndarray:
+def context(dim, block, *arrays_and_port, dtype=np.float64) -> np.ndarray:
     """The int64 context of one :func:`run_context` call per step (module
     :mod:`hapsim.kernels.pointers`): the arguments of :func:`run_nd` after ``n``.
 
@@ -529,6 +600,10 @@ def context(dim, block, *arrays_and_port) -> np.ndarray:
     *arrays_and_port
         The arrays of :func:`step_nd` from ``x`` to ``p_z`` (:data:`CONTEXT_ARRAYS`), then
         ``port`` (int) and ``port_f``; kept alive and in place by the caller.
+    dtype : numpy dtype, optional
+        The floating type of the state and parameters (the arrays :data:`CONTEXT_ARRAYS`
+        lists as float64): ``np.float64`` (run by :func:`run_context`) or ``np.float32``
+        (single precision, run by :func:`run_context32`).
 
     Returns
     -------
@@ -548,10 +623,12 @@ def context(dim, block, *arrays_and_port) -> np.ndarray:
         raise ValueError(f"{len(arrays)} arrays given, {len(CONTEXT_ARRAYS)} expected")
     ctx = np.zeros(_CTX_HEAD + 3 * len(arrays), np.int64)
     ctx[:_CTX_HEAD] = (1, dim, block, port)
-    for i, (a, (name, dtype, ndim)) in enumerate(zip(arrays, CONTEXT_ARRAYS)):
+    if np.dtype(dtype) not in (np.dtype(np.float64), np.dtype(np.float32)):
+        raise ValueError(f"dtype must be float64 or float32, got {np.dtype(dtype)}")
+    for i, (a, (name, kind, ndim)) in enumerate(zip(arrays, CONTEXT_ARRAYS)):
         if a.ndim != ndim:
             raise ValueError(f"{name}: {ndim} dimensions expected, got shape {a.shape}")
-        ctx[_CTX_HEAD + 3 * i] = address(a, dtype)
+        ctx[_CTX_HEAD + 3 * i] = address(a, dtype if kind is np.float64 else kind)
         ctx[_CTX_HEAD + 3 * i + 1] = a.shape[0]
         ctx[_CTX_HEAD + 3 * i + 2] = a.shape[1] if ndim == 2 else 0
     return ctx
@@ -567,6 +644,18 @@ def _f1(c, i):
 def _f2(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
+
+
+@_inline
+def _s1(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1],), np.float32)
+
+
+@_inline
+def _s2(c, i):
+    k = _CTX_HEAD + 3 * i
+    return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float32)
 
 
 @_inline
@@ -605,3 +694,22 @@ def run_context(ctx):
            _f2(ctx, 20), _i1(ctx, 21), _i1(ctx, 22), _f1(ctx, 23), _f1(ctx, 24),
            _f1(ctx, 25), _f1(ctx, 26), _i1(ctx, 27), _f2(ctx, 28), _f1(ctx, 29),
            _f1(ctx, 30), _f1(ctx, 31), ctx[3], _f1(ctx, 32))
+
+
+@_jit
+def run_context32(ctx):
+    """:func:`run_context` on a single-precision context (``context(..., dtype=
+    np.float32)``: the state and parameters float32, the same kernels compiled for them).
+
+    Parameters
+    ----------
+    ctx : ndarray of int64
+        From :func:`context` with ``dtype=np.float32`` (its arrays alive and in place).
+    """
+    run_nd(ctx[0], ctx[1], ctx[2], _s2(ctx, 0), _s2(ctx, 1), _s2(ctx, 2), _s1(ctx, 3),
+           _i2(ctx, 4), _i1(ctx, 5), _s1(ctx, 6), _s1(ctx, 7), _i2(ctx, 8), _i1(ctx, 9),
+           _s1(ctx, 10), _s1(ctx, 11), _s1(ctx, 12), _s1(ctx, 13), _b1(ctx, 14),
+           _s1(ctx, 15), _s1(ctx, 16), _s1(ctx, 17), _i1(ctx, 18), _i1(ctx, 19),
+           _s2(ctx, 20), _i1(ctx, 21), _i1(ctx, 22), _s1(ctx, 23), _s1(ctx, 24),
+           _s1(ctx, 25), _s1(ctx, 26), _i1(ctx, 27), _s2(ctx, 28), _s1(ctx, 29),
+           _s1(ctx, 30), _s1(ctx, 31), ctx[3], _s1(ctx, 32))
