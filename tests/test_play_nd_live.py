@@ -8,13 +8,12 @@ stiffness: one stable, one not) get their verdicts."""
 from __future__ import annotations
 
 import shutil
-import socket
 
 import numpy as np
 import pytest
 
 from test_audio_live import Recorder, dummy_jackd
-from test_osc import PATCH, Client, play_daemon, received, run_patch, stop, wait_for
+from test_osc import PATCH, Client, Sink, play_daemon, run_patch, stop, wait_for
 from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
@@ -58,9 +57,8 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         rec.client.connect(src[0], rec.inp.name)
         rec.armed = True
         c = Client(port)
-        sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sink.bind(("127.0.0.1", 0))
-        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        sink = Sink()
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.port, 100.0)
         assert addr == "/hapsim/ok", p
         addr, felt = c.ask("/hapsim/felt")
         assert addr == "/hapsim/felt" and len(felt) == 6 + 1 + 8 and felt[6] == 2
@@ -93,7 +91,7 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e,
                     track=track)[:, :1]
     # every /hapsim/tel t x y fx fy k b: the device's position at sample t * rate
-    tel = received(sink, "/hapsim/tel", quiet=0.3)
+    tel = sink.received("/hapsim/tel", quiet=0.3)
     assert len(tel) > 20 and all(len(p) == 7 for p in tel)
     k = np.array([round(p[0] * RATE) for p in tel])
     assert np.all(np.diff(k) >= 80)               # 100 Hz at most
