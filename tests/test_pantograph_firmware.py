@@ -230,7 +230,8 @@ def test_follower_nack_is_refused_cleanly(built, scene, tmp_path):
         finally:
             tr.close()
     rep = json.loads(report.read_text())
-    assert [f.code for f in faults] == [fp.FAULT_SENSOR]
+    assert [f.code for f in faults] == [fp.FAULT_SENSOR], (faults, rep["firmware"],
+                                                           rep["host"])
     assert faults[0].detail & 0xFF in (1, 2, 3)         # SYNC, READ or DRIVE NACKed
     assert armed_after == 0
     assert rep["twi"]["nack_address"] >= 1

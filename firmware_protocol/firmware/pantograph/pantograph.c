@@ -195,9 +195,9 @@ enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
 
 /* The DRIVE slot: a FORCE's DRIVE goes on the bus at Timer1's compare B, this many cycles
  * before the tick (compare A), and ends before it (the longest DRIVE seen on the emulated
- * bus at that point of the period, its address byte to its STOP, was 973 cycles: four
- * bytes of nine bus clocks, the follower's clock stretching and the ISRs' latency;
- * pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
+ * bus, its address byte to its STOP, was 927-995 cycles in lockstep and 1,239 in real time
+ * with a host's bytes pouring in: four bytes of nine bus clocks, the follower's clock
+ * stretching and the ISRs' latency; pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
  * applied at the next tick; one decoded after it waits for the next slot and is applied a
  * tick later, which its STATE names (force_seq): a known input to the host, never a
  * moved tick (a SYNC waiting behind a DRIVE would sample and drive the joints up to a
