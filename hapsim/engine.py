@@ -13,7 +13,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 from hapsim.kernels import audio as audio_kernel
-from hapsim.kernels import cordis, schemes
+from hapsim.kernels import cordis, schemes, step1d
 from hapsim.scene import Scene, audio_substeps
 
 __all__ = ["Engine", "KernelPack", "MultiRatePack", "warm_up"]
@@ -202,6 +202,7 @@ class Engine:
         self.channels: tuple[str, ...] = ()
         if audio is not None:
             self._init_audio(audio)
+        self._init_step()
 
     @property
     def kernel_pack(self) -> KernelPack:
@@ -256,6 +257,27 @@ class Engine:
         #: Audio frames of the last :meth:`port_step`, shape (N, C) (reused buffer).
         self.frames = np.zeros((self.substeps, len(ls)))
 
+    def _init_step(self) -> None:
+        """The one-argument step (:mod:`hapsim.kernels.step1d`): the kernel's arguments
+        packed once, so that :meth:`step` and :meth:`port_step` allocate nothing per call.
+        The arrays named are the engine's own, updated in place and never rebound."""
+        if self._multi is None:
+            self._step_ctx, self._step_keep = step1d.context(
+                self._args + (_EMPTY_REC, _EMPTY_OUT))
+            self._step_run = step1d.RUNNERS[self._kernel]
+            return
+        head, state = self._multi
+        # step: the port held, one period at a time on scratch position, frames and force
+        # (dropped); port_step: the position given, frames and force kept (self.frames)
+        self._step_scratch = pos, frames, force = (np.zeros(1), np.zeros_like(self.frames),
+                                                   np.zeros(1))       # kept alive here
+        self._step_ctx, self._step_keep = step1d.context(
+            (pos,) + state + (frames, force, _EMPTY_REC, _EMPTY_OUT), head + (0,))
+        self._port_ctx, self._port_keep = step1d.context(
+            (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT),
+            head + (1,))
+        self._step_run = step1d.RUNNERS[audio_kernel.run_periods]
+
     def _periods(self, n, pos, audio, arow0, force, rec, out, row0) -> None:
         """``n`` device periods of the multi-rate kernel (:mod:`hapsim.kernels.audio`)."""
         head, state = self._multi
@@ -263,7 +285,9 @@ class Engine:
 
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples.
+        """Advance ``n`` samples (no allocation: one compiled call with one argument,
+        :mod:`hapsim.kernels.step1d`; a multi-rate scene's port is held where it is and
+        its sound dropped, as :meth:`run`).
 
         Parameters
         ----------
@@ -277,10 +301,8 @@ class Engine:
         """
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
-        if self._multi is not None:
-            self.run(n, [])
-            return
-        self._kernel(n, *self._args, _EMPTY_REC, _EMPTY_OUT, 0)
+        self._step_ctx[0] = n
+        self._step_run(self._step_ctx)
         self.sample += n
 
     def port_step(self, position: float) -> float:
@@ -307,14 +329,14 @@ class Engine:
                               "kind port", file=self.scene.path, key="masses")
         if self._multi is not None:
             self._pos1[0] = position
-            self._periods(1, self._pos1, self.frames, 0, self._force1, _EMPTY_REC,
-                          _EMPTY_OUT, 0)
+            self._step_run(self._port_ctx)
             self.sample += 1
-            return float(self._force1[0])
+            return self._force1.item(0)
         self._x[self._port] = position
-        self._kernel(1, *self._args, _EMPTY_REC, _EMPTY_OUT, 0)
+        self._step_ctx[0] = 1
+        self._step_run(self._step_ctx)
         self.sample += 1
-        return float(self._f[self._port])
+        return self._f.item(self._port)
 
     def run(self, n: int, record: Sequence[str] | None = None,
             progress: Callable[[int, int], None] | None = None,

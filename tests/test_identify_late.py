@@ -18,6 +18,7 @@ from hapsim.applied import (STATUS_WATCHDOG_TRIPPED, account_from_force_seq, acc
 from hapsim.commands.identify import identify
 from hapsim.daemon import mock as mock_mod
 from hapsim.scene import Device
+from intervals import assert_within  # same directory (pytest prepend import mode)
 
 
 class _LateMock(mock_mod.MockDevice):
@@ -167,10 +168,11 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     assert fit["delay"] == dev["delay"] and fit["delay_range"] == [dev["delay"]] * 2
     acc = out["loop"]["account"]
     assert acc["method"] == "force_seq" and acc["late"] > 0 and acc["delay"] == dev["delay"]
-    for key, truth in (("mass", dev["mass"]), ("friction", dev["friction"]),
-                       ("coulomb", dev["coulomb"])):
-        e = fit[key]
-        assert e["lo"] <= truth <= e["hi"], (key, e, truth)
+    # each truth inside its 99.9 % interval, as one real-time run can say it: widened to a
+    # false alarm of 1e-6 for the three together (tests/intervals.py; right intervals
+    # leave a truth outside one run in a thousand each, as once in the loaded suite)
+    assert_within(fit, {"mass": dev["mass"], "friction": dev["friction"],
+                        "coulomb": dev["coulomb"]})
     assert "Traceback" not in r.stderr
 
 
@@ -596,3 +598,23 @@ def test_a_record_the_linear_loop_does_not_fit_says_so_not_sensor_steps():
     err = rep["measured"]["error"]
     assert "rms residual" in err and "no quantum or noise" in err
     assert "sensor steps" not in err
+
+
+def test_the_widened_intervals_keep_their_false_alarm_rate():
+    """tests/intervals.py against simulation: three right 99.9 % intervals (Gaussian
+    estimates) widened for a false alarm of 1 % together miss at that rate (binomial
+    bound, 4.5 sigma over 40,000 runs); unwidened, at the ~0.3 % the coverage says; one
+    check at its own level is not widened."""
+    from intervals import widening
+    from scipy.stats import norm
+    assert widening(1, 1e-3) == pytest.approx(1.0, rel=1e-12)
+    assert widening(3, 1e-6) == pytest.approx(1.55, abs=0.01)
+    rng = np.random.default_rng(23)
+    n, z = 40_000, norm.ppf(0.9995)
+    err = np.abs(rng.standard_normal((n, 3)))          # |estimate - truth| / sigma
+    for c, rate in ((widening(3, 0.01), 0.01), (1.0, 1 - 0.999 ** 3)):
+        miss = np.mean(np.any(err > c * z, axis=1))
+        assert abs(miss - rate) <= 4.5 * math.sqrt(rate * (1 - rate) / n), (c, miss, rate)
+    with pytest.raises(AssertionError, match="coulomb"):
+        assert_within({"coulomb": {"value": 0.3002, "lo": 0.3001, "hi": 0.3003}},
+                      {"coulomb": 0.3})                # 2 half-widths out, > 1.49 for one

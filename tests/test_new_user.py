@@ -171,12 +171,15 @@ def test_yaml_12_floats_through_check(tmp_path, capsys):
 
 # ----------------------------------------------------------------- 7. Ctrl-C at any time
 
-UP = "@interpreter-up"  # written once the interpreter has started, before hapsim is imported
+#: Written once hapsim's own SIGINT handling is in place (its package imported, as the
+#: first thing either entry point does), before anything else of hapsim is imported.
+UP = "@hapsim-handles-sigint"
 
 CONSOLE_SCRIPT = """\
 import re
 import sys
-sys.stderr.write("@interpreter-up\\n"); sys.stderr.flush()
+import hapsim  # what the next line imports first; its handler is then in place
+sys.stderr.write("@hapsim-handles-sigint\\n"); sys.stderr.flush()
 from hapsim.cli import entry
 if __name__ == "__main__":
     sys.argv[0] = re.sub(r"(-script\\.pyw|\\.exe)?$", "", sys.argv[0])
@@ -187,10 +190,13 @@ if __name__ == "__main__":
 def interrupted(argv, after, tmp_path, console=False, at_import=None):
     """Start ``hapsim ARGV`` in a real process, SIGINT it ``after`` seconds later.
 
-    The clock starts once the Python interpreter is up (a marker line on stderr, written
-    before hapsim is imported): a SIGINT inside CPython's own start-up (``init_import_site``)
-    is the interpreter's, which no program can catch, and on a loaded machine that start-up
-    alone can take more than 0.1 s. From the first import of hapsim on, every moment counts.
+    The clock starts once hapsim handles SIGINT (a marker line on stderr, written once
+    ``import hapsim`` has run ``_quiet_interrupt_at_start``, the package's first statement
+    that does anything): a SIGINT before that lands in CPython's own start-up
+    (``init_import_site``), in ``runpy`` finding the package or in reading its
+    ``__init__``, the interpreter's, which no program can catch; on a loaded machine that
+    alone took more than 0.1 s (a KeyboardInterrupt traceback from ``runpy`` once, with the
+    clock started before it). From hapsim's first statement on, every moment counts.
 
     ``at_import`` (a module name; ``after`` is then unused): the process sends itself the
     SIGINT when that module's import starts, a moment no machine load can move (a SIGINT
@@ -208,7 +214,7 @@ def interrupted(argv, after, tmp_path, console=False, at_import=None):
         script = tmp_path / "hapsim"
         script.write_text(CONSOLE_SCRIPT)
         cmd = [sys.executable, str(script), *argv]
-    else:  # python -m hapsim, with the marker written first
+    else:  # python -m hapsim, the marker written once the package is imported
         hook = "" if at_import is None else (
             "import os, signal\n"
             "class CtrlC:\n"
@@ -217,9 +223,11 @@ def interrupted(argv, after, tmp_path, console=False, at_import=None):
             "            sys.meta_path.remove(self)\n"
             "            os.kill(os.getpid(), signal.SIGINT)\n"
             "sys.meta_path.insert(0, CtrlC())\n")
-        boot = (f"import sys; sys.stderr.write({UP!r} + '\\n'); sys.stderr.flush()\n{hook}"
+        boot = (f"import sys\n{hook}"
                 "sys.argv[0] = '-m'\n"  # what python -m shows while it imports the package
-                "import runpy; runpy.run_module('hapsim', run_name='__main__', alter_sys=True)")
+                "import runpy, hapsim\n"  # as run_module's first step does
+                f"sys.stderr.write({UP!r} + '\\n'); sys.stderr.flush()\n"
+                "runpy.run_module('hapsim', run_name='__main__', alter_sys=True)")
         cmd = [sys.executable, "-c", boot, *argv]
     env = {**os.environ, "PYTHONPATH": str(root)}
     proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,

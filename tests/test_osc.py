@@ -87,14 +87,26 @@ def felt_k(K, B):
     return render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), K, B).k
 
 
-class Client:
-    """A python-osc client that sends from one UDP socket and reads the replies on it."""
+#: The longest a reply may take while the daemon runs [s]: a hang's bound, not a pace (a
+#: loaded machine delays the daemon's OSC thread by seconds; a daemon that has ended fails
+#: at once, with its stderr).
+REPLY_S = 120.0
 
-    def __init__(self, port):
+
+class Client:
+    """A python-osc client that sends from one UDP socket and reads the replies on it.
+
+    ``proc`` (the daemon): a reply is waited for as long as the daemon runs (at most
+    :data:`REPLY_S`), never for a fixed time a loaded machine can stretch; one that has
+    ended fails the test at once with its stderr. Requests and replies stay paired: a reply
+    is never given up on, so a late one cannot answer the next request."""
+
+    def __init__(self, port, proc=None):
         self.addr = ("127.0.0.1", port)
+        self.proc = proc
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(10.0)
+        self.sock.settimeout(1.0)
 
     def ask(self, address, *args):
         from pythonosc.osc_message import OscMessage
@@ -104,9 +116,57 @@ class Client:
         for a in args:
             b.add_arg(a)
         self.sock.sendto(b.build().dgram, self.addr)
-        data, _ = self.sock.recvfrom(65536)
+        deadline = time.monotonic() + REPLY_S
+        while True:
+            try:
+                data, _ = self.sock.recvfrom(65536)
+                break
+            except (socket.timeout, TimeoutError):
+                if self.proc is not None and self.proc.poll() is not None:
+                    pytest.fail(f"the daemon ended (exit {self.proc.returncode}) before "
+                                f"answering {address}: {self.proc.stderr.read()[-800:]}")
+                if time.monotonic() > deadline:
+                    pytest.fail(f"no answer to {address} within {REPLY_S:g} s")
         msg = OscMessage(data)
         return msg.address, list(msg.params)
+
+
+class Sink:
+    """A UDP socket that receives a daemon's ``/hapsim/tel`` stream, drained by a thread
+    as it arrives: read only at the end, its receive buffer (~200 KB, a few hundred
+    datagrams) overflowed while a loaded machine made the test last longer, and the kernel
+    dropped the newest datagrams (those after a change)."""
+
+    def __init__(self):
+        import threading
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = self.sock.getsockname()[1]
+        self.data = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._drain, daemon=True)
+        self._thread.start()
+
+    def _drain(self):
+        while not self._stop.is_set():
+            try:
+                self.data.append(self.sock.recvfrom(65536)[0])
+            except (socket.timeout, TimeoutError):
+                pass
+            except OSError:
+                return
+
+    def close(self, linger=0.2):
+        """Stop after ``linger`` seconds without a datagram; the datagrams received."""
+        n = -1
+        while n != len(self.data):
+            n = len(self.data)
+            time.sleep(linger)
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+        return self.data
 
 
 def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
@@ -116,11 +176,10 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
     the scene in force."""
     tel_file = str(tmp_path / "tel.npz")
     proc, port = start_daemon(extra=("--telemetry", tel_file))
-    c = Client(port)
-    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sink.bind(("127.0.0.1", 0))
+    c = Client(port, proc)
+    sink = Sink()
     try:
-        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.port, 100.0)
         assert addr == "/hapsim/ok" and p[0] == "/hapsim/telemetry"
         addr, p = c.ask("/hapsim/link/stiffness", "wall", 700.0)
         assert addr == "/hapsim/ok" and p[0] == "/hapsim/link/stiffness"
@@ -158,14 +217,7 @@ def _check_telemetry_stream(sink, tel_file, rate):
     import numpy as np
     from pythonosc.osc_message import OscMessage
 
-    sink.settimeout(0.2)
-    msgs = []
-    try:
-        while True:
-            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
-    except (socket.timeout, TimeoutError):
-        pass
-    sink.close()
+    msgs = [OscMessage(d) for d in sink.close()]
     with np.load(tel_file) as z:
         pos = z["position"]
     tel = [m.params for m in msgs if m.address == "/hapsim/tel"]
@@ -225,7 +277,7 @@ def test_pd_patch_sends_changes_over_osc(tmp_path):
     proc, port = start_daemon()
     try:
         run_patch(PATCH, port, tmp_path)
-        c = Client(port)     # both changes answered, then a free response measured after them
+        c = Client(port, proc)   # both changes answered, then a free response measured after
         wait_for(c, "/hapsim/loop", lambda p: (p[3], p[4]) == (1, 1), "Pd's two changes")
         wait_for(c, "/hapsim/felt", lambda p: p[4] == p[4], "no free response measured")
     finally:
@@ -247,7 +299,8 @@ def test_play_ends_on_a_signal_with_its_report(tmp_path, sig):
     tel_file = str(tmp_path / "tel.npz")
     proc, port = start_daemon(extra=("--telemetry", tel_file))
     try:
-        played = wait_for(Client(port), "/hapsim/loop", lambda p: p[0] >= 300, "300 samples")[0]
+        played = wait_for(Client(port, proc), "/hapsim/loop", lambda p: p[0] >= 300,
+                          "300 samples")[0]
     finally:
         rep = stop(proc, sig)
     assert rep["stop_reason"] == f"signal {sig.name}"
@@ -278,7 +331,7 @@ def test_run_osc_changes_the_running_daemon():
     if port is None:
         proc.kill()
         pytest.fail(f"run did not start its OSC server: {proc.stderr.read()}")
-    c = Client(port)
+    c = Client(port, proc)
     try:
         assert c.ask("/hapsim/link/damping", "wall", 3.0)[0] == "/hapsim/ok"
         addr, p = c.ask("/hapsim/link/kb", "wall", 5.0e5, 3.0)
@@ -365,7 +418,7 @@ def test_readme_pd_patch_drives_the_shipped_string(jack_server, tmp_path):
     pd = subprocess.Popen(["pd", "-nogui", "-nosound", "-open", str(patch)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        c = Client(port)
+        c = Client(port, proc)
         wait_for(c, "/hapsim/loop", lambda p: p[3] >= 2, "the patch's two changes")
         _ramped(c)
         rep = stop(proc)
@@ -392,7 +445,7 @@ def test_readme_supercollider_lines_drive_the_shipped_string(jack_server):
     lines = [ln for ln in _readme_block("supercollider").splitlines() if "sendMsg" in ln]
     assert len(lines) >= 4
     proc, port = _play_string(jack_server)
-    c = Client(port)
+    c = Client(port, proc)
     try:
         for ln in lines:
             call, comment = (ln.split("//", 1) + [""])[:2]

@@ -241,13 +241,14 @@ print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
     # the same parts with their indexes written after the sources: nothing to say
     from hapsim.daemon import startup
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
-    for _, src, fn in startup.run_compile_parts(load_scene(WALL), compiled_loop=True):
-        folder = Path(startup.numba_cache_dir(src))
-        assert folder.parent == cache
-        folder.mkdir(parents=True, exist_ok=True)
-        mod = Path(src).stem
-        tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
-        (folder / f"{mod}.{fn}-1.{tag}.nbi").write_bytes(b"")
+    for part in startup.run_compile_parts(load_scene(WALL), compiled_loop=True):
+        for src, fn in startup.part_functions(part):
+            folder = Path(startup.numba_cache_dir(src))
+            assert folder.parent == cache
+            folder.mkdir(parents=True, exist_ok=True)
+            mod = Path(src).stem
+            tag = f"py{sys.version_info[0]}{sys.version_info[1]}{getattr(sys, 'abiflags', '')}"
+            (folder / f"{mod}.{fn}-1.{tag}.nbi").write_bytes(b"")
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                        text=True, cwd=str(REPO), timeout=120)
     got = json.loads(p.stdout.strip().splitlines()[-1])

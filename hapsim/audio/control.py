@@ -283,7 +283,22 @@ class Controller:
 
     def blend(self, a, b, w):
         """Scene ``a`` moved the fraction ``w`` [-] toward ``b`` (links' K, B and masses
-        linearly): the points of a ramp checked before a change is accepted."""
+        linearly): the points of a ramp checked before a change is accepted.
+
+        Parameters
+        ----------
+        a, b : Scene or SceneND
+            The scenes before and after the change (the same masses and links).
+        w : float
+            Fraction of the way from ``a`` to ``b`` [-], in [0, 1].
+
+        Returns
+        -------
+        Scene or SceneND
+            Each link's stiffness [N/m] and damping [N s/m], each mass [kg] (and an n-D
+            scene's planes' K, B) at ``a + w (b - a)``: a linear ramp, as the sample loop
+            applies it.
+        """
         return _blend(a, b, w)
 
     @property
@@ -293,7 +308,17 @@ class Controller:
 
     def ramp_event(self, event: str, change: Change, sample: int) -> None:
         """Journal a ramp's start or end seen by a loop that ramps the changes itself
-        (:class:`hapsim.audio.live_nd.LiveND`) at ``sample``."""
+        (:class:`hapsim.audio.live_nd.LiveND`) at ``sample``.
+
+        Parameters
+        ----------
+        event : {"ramp_start", "ramp_end"}
+            What the loop saw.
+        change : Change
+            The accepted change being ramped (its kind, name and end values journaled).
+        sample : int
+            The device sample it happened at [-].
+        """
         self._log(event, change.kind, [change.name, *change.end], at=int(sample))
 
     def felt_reply(self) -> tuple:
@@ -626,6 +651,18 @@ def _usage(address: str) -> str:
 def name_arg(args, address: str = "") -> str:
     """The name a change's first OSC argument gives.
 
+    Parameters
+    ----------
+    args : sequence
+        The message's OSC arguments.
+    address : str
+        The OSC address, for the usage in the refusal (none when empty or unknown).
+
+    Returns
+    -------
+    str
+        ``args[0]``.
+
     Raises
     ------
     Refused
@@ -640,6 +677,22 @@ def name_arg(args, address: str = "") -> str:
 
 def numbers(args, n: int, what: str, address: str = "") -> tuple:
     """The first ``n`` OSC arguments as finite floats.
+
+    Parameters
+    ----------
+    args : sequence
+        The message's OSC arguments.
+    n : int
+        How many numbers the address takes (>= 1).
+    what : str
+        What they are, for the refusal (``"K, B"``).
+    address : str
+        The OSC address, for the usage in the refusal.
+
+    Returns
+    -------
+    tuple of float
+        The first ``n`` arguments (units as the address documents them).
 
     Raises
     ------

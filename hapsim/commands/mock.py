@@ -75,9 +75,10 @@ def register(sub) -> None:
             "  answers (the emulated clock waits for each FORCE); on exit it writes --report\n"
             "  (JSON: MCU cycles per tick, force on the pin, frames) or prints it\n"
             "  $ hapsim mock --firmware --scene configs/hapkit.yaml\n"
-            "  on a 2-D pantograph scene, --firmware --lockstep runs the Hapkit pantograph's\n"
-            "  firmware on two emulated ATmega328P joined on a TWI bus (docs/pantograph.md)\n"
-            "  $ hapsim mock --firmware --scene configs/pantograph_wall.yaml --lockstep\n"
+            "  on a 2-D pantograph scene, --firmware runs the Hapkit pantograph's firmware\n"
+            "  on two emulated ATmega328P joined on a TWI bus (docs/pantograph.md), real-time\n"
+            "  by default as well, or --lockstep\n"
+            "  $ hapsim mock --firmware --scene configs/pantograph_wall.yaml\n"
             "exit codes: 0 stopped by a signal (or, with --once, by STOP); 1 the firmware\n"
             "stopped or could not be built; 2 bad arguments, scene or SPEC."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -113,11 +114,12 @@ def register(sub) -> None:
                    help="--firmware: the emulated board writes its event trace to FILE on exit "
                         "(ticks, STATEs, FORCEs read and fed, waits; emulated cycle and "
                         "CLOCK_MONOTONIC; tools/bench_firmware.py reads it)")
-    p.add_argument("--spin-us", type=Number(float, low=0, high=1000, unit="us"), default=0.0,
+    p.add_argument("--spin-us", type=Number(float, low=0, high=1000, unit="us"), default=None,
                    metavar="US",
                    help="--firmware in real time: the longest spin per tick [us] while the "
-                        "board waits for the host's FORCE (default 0: none; costs up to US us "
-                        "of CPU per tick)")
+                        "board waits for the host's FORCE (default 0: none; costs up to US "
+                        "us of CPU per tick, and at SCHED_FIFO on a busy machine keeps the "
+                        "host off that core)")
     p.add_argument("--tick", choices=("auto", "compiled", "python"), default="auto",
                    help="'auto' (default): 'compiled' above 2 kHz, 'python' at and below "
                         "(2-D/3-D scenes: always 'python'). "
@@ -212,7 +214,7 @@ def run(args) -> int:
     if args.firmware:
         return _run_firmware(args)
     for flag, given in (("--trace", getattr(args, "trace", None)),
-                        ("--spin-us", getattr(args, "spin_us", 0.0))):
+                        ("--spin-us", getattr(args, "spin_us", None))):
         if given:
             raise ConfigError("is an option of the emulated board (--firmware)", key=flag)
     from hapsim.daemon.faults import mock_fault_plan, reopener
@@ -355,7 +357,7 @@ def _run_firmware(args) -> int:
     cmd = board.board_command(scene.device, scene.excitation, realtime=not args.lockstep,
                               report=args.report, link=args.link,
                               trace=getattr(args, "trace", None),
-                              spin_us=getattr(args, "spin_us", 0.0))
+                              spin_us=getattr(args, "spin_us", None) or 0.0)
     if not args.lockstep and getattr(args, "rt_priority", 0):
         # real time: the board holds the emulated clock to the wall clock; SCHED_FIFO (kept
         # across exec) keeps other programs from descheduling it, as for the Python mock

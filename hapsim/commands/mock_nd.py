@@ -144,10 +144,11 @@ def run_mock_nd(args, new_pty) -> int:
 
 
 #: What ``hapsim mock --firmware`` takes on a 2-D scene (the emulated Hapkit pantograph).
-FIRMWARE_TAKES = frozenset({"scene", "lockstep", "report", "amplitude", "link", "firmware"})
+FIRMWARE_TAKES = frozenset({"scene", "lockstep", "report", "amplitude", "link", "firmware",
+                            "spin_us", "rt_priority"})
 #: Options given their defaults by ``hapsim mock`` itself (a value, not None): taken at
-#: that value only (the board has no tick choice and, in lockstep, no real-time priority).
-_FIRMWARE_DEFAULTS = {"tick": "auto", "rt_priority": 0}
+#: that value only (the board has no tick choice).
+_FIRMWARE_DEFAULTS = {"tick": "auto"}
 #: The hand's default amplitude on the emulated Hapkit pantograph [m]: its sensors resolve
 #: ~1.3e-5 m at the handle (one count, scene-dependent), so 2e-4 m is ~15 counts; within
 #: the 0.5 mm depth of configs/pantograph_wall.yaml's wall.
@@ -156,8 +157,8 @@ FIRMWARE_AMPLITUDE = 2e-4
 
 def refuse_untaken_firmware(args) -> None:
     """Refuse every ``hapsim mock`` option given that the emulated Hapkit pantograph does
-    not take (:data:`FIRMWARE_TAKES`; ``--rt-priority`` only at 0, what ``hapsim mock``
-    sets in lockstep).
+    not take (:data:`FIRMWARE_TAKES`; ``--spin-us`` and a ``--rt-priority`` above 0 only in
+    real time).
 
     Parameters
     ----------
@@ -174,20 +175,31 @@ def refuse_untaken_firmware(args) -> None:
             continue
         raise ConfigError(f"the emulated Hapkit pantograph (--firmware on a 2-D scene) does "
                           f"not take {opt} (it takes --scene, --lockstep, --amplitude, "
-                          "--report, --link)", key=opt)
+                          "--report, --link, and in real time --spin-us, --rt-priority)",
+                          key=opt)
+    if args.lockstep:
+        for opt, v in (("--spin-us", getattr(args, "spin_us", None)),
+                       ("--rt-priority", getattr(args, "rt_priority", 0) or None)):
+            if v is not None:
+                raise ConfigError(f"{opt} is an option of the real-time board: not with "
+                                  "--lockstep (the emulated clock waits for each FORCE)",
+                                  key=opt)
 
 
 def run_pantograph_firmware(args) -> int:
-    """``hapsim mock --firmware --scene SCENE --lockstep`` on a 2-D pantograph scene: build
-    what is missing and become the emulated Hapkit pantograph
+    """``hapsim mock --firmware --scene SCENE [--lockstep]`` on a 2-D pantograph scene:
+    build what is missing and become the emulated Hapkit pantograph
     (:mod:`hapsim.daemon.pantograph_board`: our firmware on two ATmega328P on one TWI bus),
-    which prints ``PORT /dev/pts/N``.
+    which prints ``PORT /dev/pts/N``; in real time (the default: the emulated clock locked
+    to the wall clock, SCHED_FIFO at ``--rt-priority``, default 10, where permitted) or in
+    lockstep (the emulated clock waits for each FORCE).
 
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene``, ``lockstep`` (required: the board has no real-time mode yet),
-        ``amplitude`` [m] (default :data:`FIRMWARE_AMPLITUDE`), ``report``, ``link``.
+        ``scene``, ``lockstep``, ``amplitude`` [m] (default :data:`FIRMWARE_AMPLITUDE`),
+        ``report``, ``link``, ``spin_us`` (real time; default
+        :data:`hapsim.daemon.pantograph_board.SPIN_US`), ``rt_priority``.
 
     Returns
     -------
@@ -198,19 +210,19 @@ def run_pantograph_firmware(args) -> int:
     Raises
     ------
     ConfigError
-        Without ``--lockstep``; an option it does not take; not a pantograph scene; a bad
-        amplitude (exit 2).
+        An option it does not take (``--spin-us`` or ``--rt-priority`` with
+        ``--lockstep``); not a pantograph scene; a bad amplitude (exit 2).
     """
     from hapsim.daemon import pantograph_board as pb
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
-    if not args.lockstep:
-        raise ConfigError("the emulated Hapkit pantograph runs in lockstep only (its real-time "
-                          "mode is not built): add --lockstep", key="--lockstep")
+    if args.lockstep and args.rt_priority == 0:
+        args.rt_priority = None                 # hapsim mock's own lockstep default
     refuse_untaken_firmware(args)
     scene = load_scene_nd(args.scene)
     a = FIRMWARE_AMPLITUDE if args.amplitude is None else args.amplitude
-    cmd = pb.board_command(scene, a, report=args.report, link=args.link)
+    cmd = pb.board_command(scene, a, report=args.report, link=args.link,
+                           realtime=not args.lockstep, spin_us=getattr(args, "spin_us", None))
     print("hapsim mock: building the pantograph firmware and its emulated boards (make) ...",
           file=sys.stderr, flush=True)
     try:
@@ -218,6 +230,14 @@ def run_pantograph_firmware(args) -> int:
     except DeviceError as exc:
         print(f"hapsim mock: {exc}", file=sys.stderr)
         return 1
+    if not args.lockstep and args.rt_priority:
+        # the board holds the emulated clock to the wall clock: SCHED_FIFO (kept across
+        # exec) keeps other programs from descheduling it, as the 1-D board
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.rt_priority)))
+        except (AttributeError, OSError) as exc:
+            print(f"hapsim mock: normal scheduling (SCHED_FIFO {args.rt_priority} refused: "
+                  f"{getattr(exc, 'strerror', None) or exc})", file=sys.stderr, flush=True)
     sys.stdout.flush()
     os.execv(cmd[0], cmd)
     return 1  # not reached

@@ -166,8 +166,7 @@ def register(sub) -> None:
     p.add_argument("--generation", choices=("gen2", "gen3"),
                    help="--driver haply on a 2-D pantograph scene: the Haply 2DIY's wire "
                         "generation (hAPI hardwareVersion 2 or 3: its motor and encoder "
-                        "direction bytes and encoder counts per revolution; default gen3; "
-                        "gen2 with --lockstep only)")
+                        "direction bytes and encoder counts per revolution; default gen3)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 

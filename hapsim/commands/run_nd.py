@@ -355,7 +355,8 @@ def _measure_over_port(args, scene, a: float, n: int):
         res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
         info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
                           f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "
-                          f"torques {h.force_scale:.6g} N m/step)")
+                          f"torques {h.force_scale:.6g} N m/step; "
+                          f"{res.get('frames', 'full')} frames)")
         info["clamped"] = joint.clamped
     return res, info
 
@@ -399,10 +400,6 @@ def _run_haply2(args) -> int:
                           key="--port")
     realtime = not args.lockstep
     gen = getattr(args, "generation", None) or "gen3"
-    if realtime and gen != "gen3":
-        raise ConfigError(f"{gen} runs in lockstep only (--lockstep): its real-time host "
-                          "over a pty does not measure yet (its records come out wrong; "
-                          "gen3 does)", key="--generation")
     a, scene = _amplitude_and_scene(args, HAPLY_AMPLITUDE)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:

@@ -8,7 +8,12 @@ joins their TWI peripherals (simavr 1.6 models the master only: the board answer
 slave), wires each board's motor and magnetoresistive sensor to one proximal joint of a
 five-bar linkage, integrates the linkage's joint-space dynamics
 (:class:`hapsim.lockstep_nd.JointDeviceND` transcribed to C) and bridges the leader's
-UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE).
+UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE) or in real
+time (the emulated clock locked to the wall clock; a FORCE that misses its tick's DRIVE
+slot is applied a tick later and named by the STATEs' ``force_seq``, the known input
+:func:`hapsim.daemon.run_nd.measure_felt_port` takes it as). The leader offers the compact
+frames, which :func:`hapsim.daemon.run_nd.handshake_nd` asks for: at 1 kHz they leave a
+host 372 us to answer, the full frames none (``docs/pantograph.md``).
 
 The leader is a joint-level device (the Haply 2DIY's division of labour): STATE carries
 the joint angles [rad], FORCE the joint torques [N m]; HELLO says so with device id
@@ -44,6 +49,13 @@ DEVICE_ID = 0x32474B48
 #: Sub-step of the board's Runge-Kutta integration [s] (two per 1 kHz period, as
 #: :class:`hapsim.lockstep_nd.JointDeviceND`).
 SUBSTEP = 5e-4
+#: Real time: the longest spin per tick [us] while the board waits for the host's FORCE
+#: (``pantograph_board --spin-us``), by default none, as the 1-DoF board: measured beside
+#: other work on 2 cores (tools/bench_pantograph.py --realtime), a board spinning up to a
+#: period at SCHED_FIFO kept the host's process off its core and 95 % of the ticks late;
+#: without the spin 11 % (the FORCE's bytes then reach the UART up to ~150 us after they
+#: came, of the compact frames' 372 us of host slack at 1 kHz: docs/pantograph.md).
+SPIN_US = 0.0
 
 
 def build(*, quiet: bool = True) -> dict:
@@ -84,7 +96,9 @@ def _pantograph(scene):
 
 def board_command(scene, amplitude: float, *, report: str | None = None,
                   link: str | None = None, nack_after: int | None = None,
-                  duration: float | None = None, profile: str | None = None) -> list:
+                  duration: float | None = None, profile: str | None = None,
+                  realtime: bool = False, spin_us: float | None = None,
+                  host_latency_us: float | None = None) -> list:
     """The ``pantograph_board`` command line for a 2-D pantograph scene.
 
     Parameters
@@ -104,6 +118,18 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         firmware's handling of a lost follower).
     duration : float, optional
         Emulated seconds to run.
+    realtime : bool
+        Lock the emulated clock to the wall clock (default: lockstep, the clock waits for
+        each FORCE).
+    spin_us : float, optional
+        Real time: the longest spin per tick [us] while the board waits for the host's
+        FORCE (emulating in 10 us steps, never ahead of the wall clock by more than one;
+        default :data:`SPIN_US`, none: the bytes may then reach the UART up to 150 us after
+        they came).
+
+    host_latency_us : float, optional
+        Lockstep: each FORCE reaches the leader's UART this long [us] of emulated time
+        after the STATE it answers left (an emulated host's answer time).
 
     Returns
     -------
@@ -112,7 +138,8 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; a non-positive amplitude.
+        Not a 2-D pantograph scene; a non-positive amplitude; a spin outside [0, 1e6]; a
+        host latency outside [0, 1e6] or given with ``realtime``.
     """
     kin = _pantograph(scene)
     if not (math.isfinite(amplitude) and amplitude > 0):
@@ -135,6 +162,17 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
             cmd += [flag, v]
     if nack_after is not None:
         cmd += ["--nack-after", str(int(nack_after))]
+    if realtime:
+        spin = SPIN_US if spin_us is None else float(spin_us)
+        if not (math.isfinite(spin) and 0 <= spin <= 1e6):
+            raise ConfigError(f"must be in [0, 1e6] us, got {spin_us}", key="--spin-us")
+        cmd += ["--realtime", "--spin-us", repr(spin)]
+    if host_latency_us is not None:
+        lat = float(host_latency_us)
+        if realtime or not (math.isfinite(lat) and 0 <= lat <= 1e6):
+            raise ConfigError(f"a lockstep host's latency in [0, 1e6] us, got {host_latency_us}",
+                              key="host_latency_us")
+        cmd += ["--host-latency-us", repr(lat)]
     if duration is not None:
         cmd += ["--duration", repr(float(duration))]
     return cmd

@@ -22,13 +22,14 @@ responses, fitted as in lockstep (:func:`hapsim.analysis.identify_nd.fit_felt_nd
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.daemon.loop_types import LATCHED_FAULTS
-from hapsim.errors import DeviceError, ProtocolError
+from hapsim.daemon.loop_types import LATCHED_FAULTS, SENSORS_TRIES, SENSORS_WAIT
+from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
 __all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd"]
 
@@ -69,8 +70,19 @@ def _clock_of(transport):
             getattr(transport, "sleep", time.sleep))
 
 
-def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
-    """Ask the device's HELLO and check it speaks version 1 with ``n`` axes.
+def handshake_nd(transport, n: int, timeout: float = 1.0,
+                 compact_rate: float | None = None) -> fp.Hello:
+    """Ask the device's HELLO and check it speaks version 1 with ``n`` axes; then, when
+    ``compact_rate`` is given, the device applies its forces in steps (HELLO
+    ``force_scale > 0``) and the transport can (``set_compact``), ask for the compact
+    frames (SENSORS_REQUEST bit COMPACT, ``PROTOCOL.md`` §4 "Compact frames", as the 1-D
+    host does for such a device: :mod:`hapsim.daemon.handshake`).
+
+    A device that offers them (the Hapkit pantograph's leader) then sends STATE_COMPACT and
+    takes FORCE_COMPACT: 32 bytes a tick on the wire instead of 64 and no binary64 codec on
+    its 8-bit chip, which leaves the host ~4,000 cycles more of the 1 kHz period
+    (``docs/pantograph.md``). A device that does not answer within ``SENSORS_TRIES *
+    SENSORS_WAIT``, or leaves the bit out, keeps the full frames.
 
     Parameters
     ----------
@@ -79,6 +91,9 @@ def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
         Axes the scene has.
     timeout : float
         Wait per request [s] (3 requests), on the transport's clock.
+    compact_rate : float, optional
+        The session's tick rate [Hz] (the compact STATE's time is ``seq / rate``); None:
+        full frames.
 
     Returns
     -------
@@ -105,9 +120,33 @@ def handshake_nd(transport, n: int, timeout: float = 1.0) -> fp.Hello:
                     if m.n_axes != n:
                         raise ProtocolError(f"device has {m.n_axes} axes, the scene "
                                             f"{n} (dimension)")
+                    _ask_compact(transport, m, compact_rate)
                     return m
     raise DeviceError("no HELLO from the device after 3 requests\nlast frames:\n"
                       + transport.last_frames())
+
+
+def _ask_compact(transport, hello, rate: float | None) -> bool:
+    """The compact frames asked of a device that applies its forces in steps (module
+    notes of :func:`handshake_nd`); True when the session uses them."""
+    set_compact = getattr(transport, "set_compact", None)
+    if set_compact is None:
+        return False
+    set_compact(None)                           # full frames until the device says so
+    if rate is None or not hello.force_scale > 0:
+        return False
+    clock, _ = _clock_of(transport)
+    for _ in range(SENSORS_TRIES):
+        transport.send(fp.SensorsRequest(fp.FEATURE_COMPACT))
+        end = clock() + SENSORS_WAIT
+        while clock() < end:
+            for m in transport.receive(0.02):
+                if type(m) is fp.Sensors:
+                    if m.enabled & fp.FEATURE_COMPACT:
+                        set_compact(float(rate))
+                        return True
+                    return False
+    return False
 
 
 def _drain(transport, quiet: float = 0.03, limit: float = 1.0, counts=None) -> bool:
@@ -383,7 +422,8 @@ def min_rows(N: int, order: int, n: int) -> int:
 def measure_felt_port(transport, scene, *, samples: int | None = None, progress=None,
                       watchdog_periods: int = 20, amplitude: float | None = None,
                       max_configs: int | None = None, reconnect_time: float = 10.0,
-                      backoff: float = 0.05, backoff_max: float = 1.0) -> dict:
+                      backoff: float = 0.05, backoff_max: float = 1.0,
+                      frames: str = "auto") -> dict:
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
 
     Each CONFIG gives one record; the device's hand picks its start (the mock: the next
@@ -423,6 +463,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         Time allowed to open a failed port again [s], per loss.
     backoff, backoff_max : float
         First wait between attempts [s], doubled up to ``backoff_max``.
+    frames : {"auto", "full"}
+        ``"auto"``: the compact frames with a device that applies its forces in steps and
+        offers them (:func:`handshake_nd`); ``"full"``: never.
 
     Returns
     -------
@@ -439,14 +482,17 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         handle past the nominal excitation), ``watchdog`` (rows whose force the watchdog
         zeroed), ``delay`` (the delay the device showed, per record used; -1 for a record
         in which no FORCE arrived in time: the device held zero throughout, and the whole
-        force sent is the known disturbance), ``lost`` (port failures), ``recovered``,
+        force sent is the known disturbance; more than ``device.delay`` for a record in
+        which no FORCE made its tick: its rows past the scene's delay are late, each
+        holding a known older force), ``lost`` (port failures), ``recovered``,
         ``counts`` (``hellos`` seen, ``by_order`` (records whose start the readings
         could not tell: taken from the hand's cycle), ``stale``, ``reordered``,
         ``missed``, ``cut``, ``resets``, ``silences``, ``faults``, ``configs``,
         ``out_of_turn`` (records whose start was not the one the cycle says: the device
         skipped one), ``lost``, ``recovered``, ``reconnect_attempts``),
         ``bad_frames`` (the host decoder's count, when it has one), ``incomplete``
-        (None, or why nothing was fitted), ``hello`` (the device's first HELLO).
+        (None, or why nothing was fitted), ``hello`` (the device's first HELLO),
+        ``frames`` (``"compact"`` or ``"full"``: the last session's).
 
     Raises
     ------
@@ -454,13 +500,15 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         No or a wrong HELLO, a latched FAULT, a port that does not come back within
         ``reconnect_time``.
     ConfigError
-        ``samples`` too short for the loop's order.
+        ``samples`` too short for the loop's order; ``frames`` not one of its choices.
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
     from hapsim.daemon.mock_nd import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
     from hapsim.lockstep_nd import felt_deviation, identification_plan
+    if frames not in ("auto", "full"):
+        raise ConfigError(f"frames must be 'auto' or 'full', got {frames!r}", key="frames")
     chk, order, N = identification_plan(scene, samples)
     n = scene.dimension
     S = 2 * n + 1
@@ -469,6 +517,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     EngineND(scene).step()       # the compiled kernels loaded before the first CONFIG
     rate = scene.rate_hz
     wd = max(1, int(round(watchdog_periods * 1e6 / rate)))
+    # the compact STATE's lag is exact while a FORCE is held for fewer than 255 ticks,
+    # which the watchdog ensures at 250 periods or fewer (PROTOCOL.md §4)
+    compact = frames != "full" and watchdog_periods <= 250
     rest_pos = np.asarray(scene.device.position, float)
     clock, sleep = _clock_of(transport)
     counts = _Counts()
@@ -482,7 +533,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     while counts.configs < budget and not all(r is not None and r.rows == N for r in best):
         try:
             if need_hello:
-                h = handshake_nd(transport, n)
+                h = handshake_nd(transport, n, compact_rate=rate if compact else None)
                 hello = hello or h
                 need_hello = False
                 since_hello = 0
@@ -528,7 +579,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         pass
     out = {"predicted": chk, "order": order, "records": 2 * n, "samples": N,
            "hello": hello, "counts": counts.as_dict(), "lost": counts.lost,
-           "recovered": counts.recovered, "incomplete": None}
+           "recovered": counts.recovered, "incomplete": None,
+           "frames": "compact" if getattr(transport, "compact", False) else "full"}
     dec = getattr(transport, "decoder", None)
     st = getattr(dec, "stats", None)
     out["bad_frames"] = (None if st is None else int(
@@ -567,15 +619,24 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             recs.append(pos - rest_pos - disturbance_response_nd(scene, W, A=A))
             continue
         acc = None
+        rows = np.arange(k)
+        shown = -1
         for i in range(n):
             acc = account_from_force_seq(seq, force[:, i], fseq, status,
                                          force_limit=FORCE_LIMIT)
+            shown = int(acc.delay)
+            if 0 <= shown < d:
+                raise ProtocolError(f"the device's delay is {shown} ticks (seq - "
+                                    f"force_seq), the scene's device.delay {d}")
+            if shown > d:
+                # no FORCE of the record made its tick (a host late throughout): the
+                # smallest delay shown is a late one (a device never applies a FORCE
+                # before it is due), so the loop's delay is the scene's and every row
+                # past it holds a known, older force (or zero: the watchdog's)
+                acc = replace(acc, delay=d, late=(rows >= d) & (acc.source != rows - d))
             W[:, i] = acc.disturbance(force[:, i], seq)
         late += acc.n_late
-        delays.append(int(acc.delay))
-        if acc.delay >= 0 and acc.delay != d:
-            raise ProtocolError(f"the device's delay is {acc.delay} ticks (seq - force_seq), "
-                                f"the scene's device.delay {d}")
+        delays.append(shown)
         recs.append(pos - rest_pos - disturbance_response_nd(scene, W, A=A))
     excursion = max(float(np.max(np.linalg.norm(r.position[:min(r.rows, L)] - rest_pos,
                                                 axis=1))) for r in best)

@@ -29,7 +29,7 @@ __all__ = ["process_start", "preload_numba_blas", "start_embedded_mock", "numba_
            "cache_is_fresh", "loop_stamp", "loop_is_fresh", "LOOP_SOURCES", "MOCK_SOURCES",
            "loop_sources",
            "sources_digest", "scene_kernel", "choose_loop",
-           "compiled_loop_possible", "run_compile_parts", "part_is_fresh",
+           "compiled_loop_possible", "run_compile_parts", "part_is_fresh", "part_functions",
            "reset_announcements", "announce_compilation", "compile_notice"]
 
 
@@ -306,12 +306,38 @@ def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str
     return parts
 
 
+_STEP1D = os.path.join(_HERE, "kernels", "step1d.py")
+
+
+def part_functions(part) -> list[tuple[str, str]]:
+    """The compiled functions a part of :func:`run_compile_parts` stands for, as
+    ``(module path, function)``: the part's own and, for an engine kernel ``run_X``, its
+    one-argument runner ``step_X`` of :mod:`hapsim.kernels.step1d` (which the engine's step
+    and port_step call, and the warm-up compiles with the kernel).
+
+    Parameters
+    ----------
+    part : tuple of str
+        ``(description, module path, function)``.
+
+    Returns
+    -------
+    list of tuple of str
+    """
+    what, src, fn = part
+    out = [(src, fn)]
+    if fn.startswith("run_") and os.path.dirname(src) == os.path.dirname(_STEP1D):
+        out.append((_STEP1D, "step_" + fn[len("run_"):]))
+    return out
+
+
 def part_is_fresh(part, scene=None) -> bool:
-    """Whether a part of :func:`run_compile_parts` is in numba's cache."""
+    """Whether a part of :func:`run_compile_parts` is in numba's cache (every function of
+    :func:`part_functions`; the compiled loop by its stamp, :func:`loop_is_fresh`)."""
     what, src, fn = part
     if src == _FASTLOOP and scene is not None:
         return loop_is_fresh(scene)
-    return cache_is_fresh(src, fn)
+    return all(cache_is_fresh(s, f) for s, f in part_functions(part))
 
 
 _NOTICE = None

@@ -12,15 +12,19 @@
  * joint-level device: HELLO (device id "HKG2", position_scale = rad per sensor count,
  * force_scale = N m per PWM step), CONFIG (rates that divide 16 MHz, PG_MIN_RATE_HZ ..
  * PG_MAX_RATE_HZ), STATE with the joint angles (q1, q2) [rad], FORCE with the joint
- * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (none offered; no compact frames),
+ * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (no extra sensor; the compact
+ * frames offered: STATE_COMPACT / FORCE_COMPACT with binary32 angles and torques, what
+ * hapsim asks for: at 1 kHz they leave a host 372 us to answer, the full frames none),
  * the watchdog. The host does the kinematics (x = f(q), tau = J(q_n)^T F): in float32 on
  * this 16 MHz AVR the five-bar's forward kinematics and Jacobian took ~20,000 cycles a
  * tick, more than the 16,000 of a 1 kHz period (docs/pantograph.md). Each tick
  * (pantograph_link.h): SYNC on the bus (both joints sampled and driven at one instant),
  * the follower's sample READ, the joint angles unwrapped (flip counting, as the 1-DoF
  * firmware) from the home of the calibration block in EEPROM, STATE; a FORCE answering
- * STATE n is quantised to PWM steps, the follower's sent by DRIVE, both applied at tick
- * n + 1 (delay d = 1).
+ * STATE n is quantised to PWM steps, the follower's sent by DRIVE at the tick's DRIVE
+ * slot (100 us before the next tick), both applied at that tick: tick n + 1 (delay d = 1)
+ * when the FORCE was decoded before the slot, a tick later when not (a late tick, named
+ * by the next STATEs' force_seq: the tick itself never moves).
  *
  * The follower (TWI slave) holds the drive it was sent, applies it and starts its ADC at
  * each SYNC, and hands its raw sample to the READ. It has no clock of its own for the
@@ -188,27 +192,57 @@ int main(void)
 #define PG_STEPS_PER_NM ((float)HK_PWM_STEPS / PG_TAU_MAX_NM)
 
 enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
+
+/* The DRIVE slot: a FORCE's DRIVE goes on the bus at Timer1's compare B, this many cycles
+ * before the tick (compare A), and ends before it (the longest DRIVE seen on the emulated
+ * bus, its address byte to its STOP, was 927-995 cycles in lockstep and 1,239 in real time
+ * with a host's bytes pouring in: four bytes of nine bus clocks, the follower's clock
+ * stretching and the ISRs' latency; pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
+ * applied at the next tick; one decoded after it waits for the next slot and is applied a
+ * tick later, which its STATE names (force_seq): a known input to the host, never a
+ * moved tick (a SYNC waiting behind a DRIVE would sample and drive the joints up to a
+ * DRIVE late, a timing the host cannot know). At the slot nothing else is on the critical
+ * path: a DRIVE started at once instead, when its FORCE came late, slowed the next
+ * tick's STATE or FORCE by 600-1,000 cycles (its bus interrupts), so that FORCE missed
+ * its tick in turn: one late tick made every later one late. */
+#define PG_DRIVE_SLOT_CYCLES 1600u
+
+/* Both joints' next drive: the follower's DRIVE bytes and the leader's own drive, with
+ * what they come from. The follower holds the last DRIVE it received whole and applies it
+ * at the next SYNC; the leader takes the same pair once the follower acknowledged its
+ * last byte, so both joints always change torque at the same tick. */
+typedef struct {
+    uint8_t dr[PG_DRIVE_BYTES]; /* the follower's DRIVE */
+    drive_t own;                /* the leader's drive */
+    uint32_t seq;               /* the FORCE it answers (when `force`) */
+    uint8_t force;              /* from a FORCE; else a zeroing (CONFIG, STOP, fault, watchdog) */
+    uint8_t clamped;            /* the FORCE's torques were clamped */
+    uint8_t watchdog;           /* the watchdog's zeroing: it trips when this is applied */
+} pair_t;
 #define PG_STATE_PACKET 37u /* type, seq, time, status, force_seq, 2 x f64, crc */
 #define PG_FORCE_PACKET 23u /* type, seq, 2 x f64, crc */
+#define PG_STATE_COMPACT_PACKET 15u /* type, seq16, status8, lag, 2 x f32, crc */
+#define PG_FORCE_COMPACT_PACKET 13u /* type, seq16, 2 x f32, crc */
 
 /* ---------------------------------------------------------------- shared with the ISRs */
 static volatile uint8_t g_op;            /* the TWI transaction under way */
 static volatile uint8_t g_rd[PG_READ_BYTES], g_rd_i;
-static volatile uint8_t g_dr[PG_DRIVE_BYTES], g_dr_i;
-static volatile uint8_t g_drive_queued;  /* a DRIVE waits for the bus */
+static volatile uint8_t g_dr_i;
+static volatile uint8_t g_drive_queued;  /* g_queued waits for the bus */
+static volatile uint8_t g_drive_now;     /* ... and goes as soon as it fits (a zeroing) */
 static volatile uint8_t g_sync_queued;   /* a tick came while the bus was busy */
-static volatile drive_t g_own_next;      /* the leader's drive once the DRIVE is acked */
-static volatile drive_t g_own_hold;      /* applied at the next SYNC */
-static volatile uint8_t g_own_ready;     /* g_own_next acked by the follower: hold it */
-static volatile uint32_t g_next_seq, g_hold_seq; /* the FORCE seqs of those drives */
-static volatile uint8_t g_next_clamped, g_hold_clamped, g_hold_new;
-static volatile uint8_t g_next_force;    /* g_own_next came from a FORCE (not a zeroing) */
+/* the drives (ISRs and cli sections only): queued, on the bus, acknowledged whole */
+static pair_t g_queued, g_fly, g_acked;
+static volatile uint8_t g_own_ready;     /* g_acked is to be applied at the next SYNC */
+static drive_t g_own_hold;               /* the leader's drive applied (ISRs, cli) */
 static volatile uint16_t g_adc_raw;
 static volatile uint8_t g_adc_done, g_tick_flag, g_overrun, g_nack;
 static volatile uint16_t g_nack_detail;
 static volatile uint32_t g_ticks;
 static volatile uint8_t g_armed, g_tripped, g_trip_event, g_force_applied, g_clamped_now;
 static volatile uint32_t g_force_seq;
+static volatile uint32_t g_taken_seq;    /* the newest FORCE taken this session */
+static volatile uint8_t g_have_taken;
 static volatile uint16_t g_wd_reload, g_wd_left;
 static volatile uint32_t g_period_cycles = F_CPU / PG_NATIVE_RATE_HZ;
 static volatile uint64_t g_clock_cycles; /* the device clock at the last tick [cycles] */
@@ -218,6 +252,7 @@ static volatile uint8_t g_sampled;       /* a SYNC of this session sampled: its 
 /* ---------------------------------------------------------------- main loop only */
 static pg_calib_t g_cal;
 static uint8_t g_configured, g_fault_latched, g_rx_error, g_have_zero;
+static uint8_t g_compact;                 /* the host enabled the compact frames */
 static uint32_t g_bad_frames, g_bad_reported;
 static uint16_t g_rx_lost_seen;
 static int16_t g_last_raw[2];
@@ -228,6 +263,23 @@ static void twi_start(uint8_t op)
 {
     g_op = op;
     TWCR = (uint8_t)(TW_GO | (1 << TWSTA));
+}
+
+/* A DRIVE started now ends before the next tick (interrupts off: Timer1 counts 0 ..
+ * OCR1A in CTC mode; a compare A already flagged is a tick whose SYNC has not gone yet). */
+static uint8_t drive_fits(void)
+{
+    return !(TIFR1 & (uint8_t)(1 << OCF1A)) &&
+           (uint16_t)(OCR1A - TCNT1) > (uint16_t)(PG_DRIVE_SLOT_CYCLES - 40u);
+}
+
+/* The queued pair goes on the bus (interrupts off, the bus idle). */
+static void drive_start(void)
+{
+    g_fly = g_queued;
+    g_drive_queued = 0;
+    g_dr_i = 0;
+    twi_start(OP_DRIVE);
 }
 
 /* The transaction is over: STOP, then whatever waits for the bus. */
@@ -241,10 +293,8 @@ static void twi_done(void)
     } else if (g_read_queued) {
         g_read_queued = 0;
         twi_start(OP_READ);
-    } else if (g_drive_queued) {
-        g_drive_queued = 0;
-        g_dr_i = 0;
-        twi_start(OP_DRIVE);
+    } else if (g_drive_queued && g_drive_now && drive_fits()) {
+        drive_start();
     }
 }
 
@@ -260,36 +310,35 @@ static void twi_fail(uint8_t what, uint8_t st)
     twi_done();
 }
 
-/* The tick's instant: the leader's drive on its pin and its ADC started. */
+/* The tick's instant: the leader's drive on its pin and its ADC started (the follower
+ * applies the same pair at the same acknowledge bit). */
 static void sample_now(void)
 {
+    uint8_t fresh = 0;
     if (g_own_ready) {
-        g_own_hold.n = g_own_next.n;
-        g_own_hold.dir = g_own_next.dir;
-        g_hold_seq = g_next_seq;
-        g_hold_clamped = g_next_clamped;
-        g_hold_new = g_next_force; /* a zeroing (CONFIG, STOP, fault) is no FORCE applied */
         g_own_ready = 0;
+        g_own_hold = g_acked.own;
+        if (g_acked.force) {
+            fresh = 1;
+            g_force_seq = g_acked.seq;
+            g_clamped_now = g_acked.clamped;
+        } else {
+            g_clamped_now = 0; /* a zeroing (CONFIG, STOP, fault, watchdog): no FORCE */
+            if (g_acked.watchdog && g_armed && !g_tripped) {
+                g_tripped = 1;  /* both joints at zero from this tick on */
+                g_trip_event = 1;
+            }
+        }
     }
     pwm_write(g_armed ? g_own_hold.n : 0u, g_own_hold.dir);
     ADCSRA |= (uint8_t)(1 << ADSC);
     g_sampled = 1;
-    if (g_hold_new) {
-        g_hold_new = 0;
-        g_force_seq = g_hold_seq;
+    if (fresh) {
         g_force_applied = 1;
-        g_clamped_now = g_hold_clamped;
         g_wd_left = g_wd_reload;
         g_tripped = 0;
-    } else if (g_armed) {
-        if (g_wd_left == 0) {
-            if (!g_tripped) {
-                g_tripped = 1;
-                g_trip_event = 1;
-            }
-        } else {
-            g_wd_left--;
-        }
+    } else if (g_armed && g_wd_left) {
+        g_wd_left--; /* at 0 the main loop sends the watchdog's zeroing */
     }
 }
 
@@ -317,9 +366,10 @@ ISR(TWI_vect)
             return;
         }
         if (g_dr_i < PG_DRIVE_BYTES) {
-            TWDR = g_dr[g_dr_i++];
+            TWDR = g_fly.dr[g_dr_i++];
             TWCR = TW_GO;
         } else { /* all acknowledged: the leader's drive goes with the follower's */
+            g_acked = g_fly;
             g_own_ready = 1;
             twi_done();
         }
@@ -386,6 +436,14 @@ ISR(TIMER1_COMPA_vect)
     }
     g_ticks++;
     g_clock_cycles += g_period_cycles; /* a 64-bit add here, no multiply in now_us */
+}
+
+/* The DRIVE slot (PG_DRIVE_SLOT_CYCLES before the tick): the pair queued goes now. */
+ISR(TIMER1_COMPB_vect)
+{
+    if (g_drive_queued && g_op == OP_IDLE && !g_sync_queued) {
+        drive_start();
+    }
 }
 
 /* The tick's conversion is done: read the follower's sample of the same instant. */
@@ -465,8 +523,10 @@ static void timer1_start(uint32_t period_cycles)
     TCNT0 = 0;
     TIFR1 = (uint8_t)(1 << OCF1A);
     OCR1A = (uint16_t)(period_cycles - 1u);
+    OCR1B = (uint16_t)(period_cycles - 1u - PG_DRIVE_SLOT_CYCLES);
+    TIFR1 = (uint8_t)(1 << OCF1B);
     TCCR1B = (uint8_t)((1 << WGM12) | (1 << CS10));
-    TIMSK1 = (uint8_t)(1 << OCIE1A);
+    TIMSK1 = (uint8_t)((1 << OCIE1A) | (1 << OCIE1B));
 }
 
 static void load_calibration(void)
@@ -494,50 +554,48 @@ static void zero_now(void)
     SREG = s;
 }
 
-static void queue_drive(uint16_t n, uint8_t dir);
-static void zero_drives(void);
+static void zero_drives(uint8_t watchdog);
 
 static void latch_fault(uint16_t code, uint32_t detail)
 {
     g_armed = 0;
     g_fault_latched = 1;
     zero_now();
-    zero_drives();
+    zero_drives(0);
     send_fault(code, detail);
 }
 
-/* Put the follower's drive on the bus (now, or when the bus is free); the leader's own
- * (g_own_next) goes with it once acknowledged. A zeroing sets the leader's to zero. */
-static void queue_drive(uint16_t n, uint8_t dir)
+/* Both joints' next drive (p.dr filled here from `follower`), queued for the next DRIVE
+ * slot (a FORCE's), or `now` (a zeroing: on the bus at once when it ends before the next
+ * tick), replacing a pair queued before (the bus is never given a DRIVE of two pairs: the
+ * pair on it is g_fly's copy). */
+static void queue_pair(pair_t *p, drive_t follower, uint8_t now)
 {
-    uint8_t b0 = (uint8_t)n, b1 = (uint8_t)(((n >> 8) & 1u) | (uint8_t)(dir << 1));
+    uint8_t b0 = (uint8_t)follower.n;
+    uint8_t b1 = (uint8_t)(((follower.n >> 8) & 1u) | (uint8_t)(follower.dir << 1));
     uint8_t s = SREG;
+    p->dr[0] = b0;
+    p->dr[1] = b1;
+    p->dr[2] = (uint8_t)(PG_CHECK_SEED ^ b0 ^ b1);
     cli();
-    g_dr[0] = b0;
-    g_dr[1] = b1;
-    g_dr[2] = (uint8_t)(PG_CHECK_SEED ^ b0 ^ b1);
-    g_own_ready = 0; /* the leader's next drive waits for this one's acknowledge */
-    if (g_op == OP_IDLE && !g_sync_queued) {
-        g_dr_i = 0;
-        twi_start(OP_DRIVE);
-    } else {
-        g_drive_queued = 1;
+    g_queued = *p;
+    g_drive_queued = 1;
+    g_drive_now = now;
+    if (now && g_op == OP_IDLE && !g_sync_queued && drive_fits()) {
+        drive_start();
     }
     SREG = s;
 }
 
-/* Both joints to zero torque at the next tick (not a FORCE applied). */
-static void zero_drives(void)
+/* Both joints to zero torque at the next tick the DRIVE makes (not a FORCE applied);
+ * `watchdog`: the watchdog's zeroing (it trips at the tick that applies it). */
+static void zero_drives(uint8_t watchdog)
 {
-    uint8_t s = SREG;
-    cli();
-    g_own_next.n = 0;
-    g_own_next.dir = 0;
-    g_next_force = 0;
-    g_next_seq = 0;
-    g_next_clamped = 0;
-    SREG = s;
-    queue_drive(0, 0);
+    pair_t p;
+    drive_t z = {0, 0};
+    memset(&p, 0, sizeof p);
+    p.watchdog = watchdog;
+    queue_pair(&p, z, !watchdog); /* the watchdog's waits for the slot, as a FORCE's */
 }
 
 static void on_config(const hp_config_t *c)
@@ -553,9 +611,13 @@ static void on_config(const hp_config_t *c)
         latch_fault(HP_FAULT_BAD_CONFIG, 0);
         return;
     }
+    /* the frames sent so far leave first (a disarmed STATE takes up to 3,120 cycles): the
+     * session's STATE 0 is never queued behind them, late for its FORCE */
+    while (UCSR0B & (uint8_t)(1 << UDRIE0)) {
+    }
     g_limit = float_of_f64(c->force_limit);
-    zero_drives(); /* the follower starts from zero torque */
     cli();
+    g_drive_queued = 0;
     g_period_cycles = period;
     g_wd_reload = (uint16_t)((uint64_t)c->watchdog_us * rate / 1000000ULL - 1u);
     g_wd_left = g_wd_reload;
@@ -568,7 +630,7 @@ static void on_config(const hp_config_t *c)
     g_trip_event = 0;
     g_force_seq = 0;
     g_force_applied = 0;
-    g_hold_new = 0;
+    g_have_taken = 0;
     g_ticks = 0;
     g_tick_flag = 0;
     g_adc_done = 0;
@@ -578,6 +640,11 @@ static void on_config(const hp_config_t *c)
     g_armed = 1;
     timer1_start(period);
     sei();
+    /* the follower starts from zero torque: the DRIVE goes now, at the new tick clock's
+     * start (queued before the clock restarted, near the old clock's tick, it waited for
+     * the session's first slot: the hand, which lets go at the first SYNC after that
+     * DRIVE, let go a tick later in some runs than in others) */
+    zero_drives(0);
     g_configured = 1;
     g_fault_latched = 0;
 }
@@ -597,24 +664,23 @@ static drive_t to_drive(float tau, uint8_t *clamped)
     return d;
 }
 
-/* The joint torques [N m] of a FORCE answering STATE `seq` (binary64 on the wire). */
-static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
+/* The joint torques t1, t2 [N m] (binary32; `finite`: neither is infinite or NaN) of a
+ * FORCE answering STATE `seq`. */
+static void take_torques(uint32_t seq, float t1, float t2, uint8_t finite)
 {
-    float t1, t2;
     uint8_t clamped = 0;
-    drive_t d1, d2;
+    drive_t d2;
+    pair_t p;
     if (!g_armed) {
         return;
     }
-    if (g_force_applied && (int32_t)(seq - g_force_seq) < 0) {
-        return; /* older than the torques applied */
+    if (g_have_taken && (int32_t)(seq - g_taken_seq) <= 0) {
+        return; /* not newer than a FORCE taken: a duplicate or a stale one */
     }
-    if (!f64_is_finite(b1) || !f64_is_finite(b2)) {
+    if (!finite) {
         latch_fault(HP_FAULT_NON_FINITE_FORCE, 0);
         return;
     }
-    t1 = float_of_f64(b1);
-    t2 = float_of_f64(b2);
     if (fabsf(t1) > g_limit) {
         t1 = t1 > 0 ? g_limit : -g_limit;
         clamped = 1;
@@ -623,16 +689,27 @@ static void take_torques(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
         t2 = t2 > 0 ? g_limit : -g_limit;
         clamped = 1;
     }
+    /* both drives computed before the pair is queued: computed after it (the follower's
+     * DRIVE on the bus sooner), the leader's was put into the pair wherever it had got to,
+     * and in a burst of FORCEs (a host catching up: the receive interrupts take half the
+     * CPU) the slot's DRIVE was acknowledged and applied before it: a tick with the
+     * leader's joint at zero torque, which no STATE names */
     d2 = to_drive(t2, &clamped);
-    queue_drive(d2.n, d2.dir); /* the follower's first: it is on the critical path */
-    d1 = to_drive(t1, &clamped);
-    cli();
-    g_own_next.n = d1.n;
-    g_own_next.dir = d1.dir;
-    g_next_seq = seq;
-    g_next_clamped = clamped;
-    g_next_force = 1;
-    sei();
+    memset(&p, 0, sizeof p);
+    p.own = to_drive(t1, &clamped);
+    p.seq = seq;
+    p.force = 1;
+    p.clamped = clamped;
+    g_taken_seq = seq;
+    g_have_taken = 1;
+    queue_pair(&p, d2, 0);
+}
+
+/* A FORCE's binary64 torques: rounded to binary32 (a non-finite one stays non-finite). */
+static void take_torques_b64(uint32_t seq, hp_b64_t b1, hp_b64_t b2)
+{
+    take_torques(seq, float_of_f64(b1), float_of_f64(b2),
+                 f64_is_finite(b1) && f64_is_finite(b2));
 }
 
 static void on_force(const hp_force_t *f)
@@ -641,7 +718,23 @@ static void on_force(const hp_force_t *f)
         send_fault(HP_FAULT_AXES_MISMATCH, f->n_axes);
         return;
     }
-    take_torques(f->seq, f->force[0], f->force[1]);
+    take_torques_b64(f->seq, f->force[0], f->force[1]);
+}
+
+/* FORCE_COMPACT: the 16-bit seq restored from the tick counter (the FORCE answers a STATE
+ * already sent: hp_compact_seq), the binary32 torques used as they are. */
+static void force_compact(uint16_t seq16, uint32_t b1, uint32_t b2)
+{
+    uint32_t now;
+    float t1, t2;
+    uint8_t s = SREG;
+    cli();
+    now = g_ticks - 1u; /* the seq of the last tick's STATE */
+    SREG = s;
+    memcpy(&t1, &b1, sizeof t1);
+    memcpy(&t2, &b2, sizeof t2);
+    take_torques(hp_compact_seq(now, seq16), t1, t2,
+                 (b1 & 0x7F800000UL) != 0x7F800000UL && (b2 & 0x7F800000UL) != 0x7F800000UL);
 }
 
 static void on_message(const hp_msg_t *m)
@@ -661,7 +754,12 @@ static void on_message(const hp_msg_t *m)
         on_force(&m->u.force);
         break;
     case HP_MSG_FORCE_COMPACT:
-        send_fault(HP_FAULT_AXES_MISMATCH, 0); /* compact frames are not offered */
+        if (m->u.force_compact.n_axes != 2) {
+            send_fault(HP_FAULT_AXES_MISMATCH, m->u.force_compact.n_axes);
+        } else {
+            force_compact(m->u.force_compact.seq, m->u.force_compact.force[0],
+                          m->u.force_compact.force[1]);
+        }
         break;
     case HP_MSG_PING:
         r.type = HP_MSG_PONG;
@@ -673,12 +771,17 @@ static void on_message(const hp_msg_t *m)
     case HP_MSG_STOP:
         g_armed = 0;
         zero_now();
-        zero_drives();
+        zero_drives(0);
         break;
     case HP_MSG_SENSORS_REQUEST:
+        /* no extra sensor; the compact frames (PROTOCOL.md section 4): with the full
+         * STATE and FORCE (39 + 25 bytes on the wire, 3,200 cycles of codec) the FORCE
+         * reaches the DRIVE slot of a 1 kHz tick with no time to spare for a host; the
+         * compact ones (17 + 15 bytes) leave it ~4,000 cycles (docs/pantograph.md) */
         r.type = HP_MSG_SENSORS;
-        r.u.sensors.offered = 0;
-        r.u.sensors.enabled = 0;
+        r.u.sensors.offered = HP_FEATURE_COMPACT;
+        r.u.sensors.enabled = m->u.sensors_request.sensors & HP_FEATURE_COMPACT;
+        g_compact = r.u.sensors.enabled != 0;
         send(&r);
         break;
     default:
@@ -704,7 +807,21 @@ static void take_frame(void)
             memcpy(&seq, &pk[1], sizeof seq);
             memcpy(&b1, &pk[5], sizeof b1);
             memcpy(&b2, &pk[13], sizeof b2);
-            take_torques(seq, b1, b2);
+            take_torques_b64(seq, b1, b2);
+        } else {
+            g_bad_frames++;
+            g_rx_error = 1;
+        }
+        return;
+    }
+    if (len == PG_FORCE_COMPACT_PACKET && pk[0] == HP_MSG_FORCE_COMPACT) {
+        /* the one frame of every tick in a compact session, 2 axes: checked and taken
+         * here (hp_decode_packet's result for it, without its dispatch) */
+        if (hp_crc16(0xFFFFu, pk, PG_FORCE_COMPACT_PACKET) == 0) {
+            uint32_t b1, b2;
+            memcpy(&b1, &pk[3], sizeof b1); /* little-endian, as the wire */
+            memcpy(&b2, &pk[7], sizeof b2);
+            force_compact((uint16_t)(((uint16_t)pk[2] << 8) | pk[1]), b1, b2);
         } else {
             g_bad_frames++;
             g_rx_error = 1;
@@ -804,7 +921,25 @@ static void serve_tick(void)
     if (g_rx_error) {
         status |= HP_STATUS_RX_ERROR;
     }
-    {
+    if (g_compact) {
+        /* STATE_COMPACT: seq and status cut to their low bits, the lag saturated at 255
+         * (0 before any FORCE), the binary32 angles as they are (hp_encode's bytes) */
+        uint32_t lag = seq - fseq;
+        uint8_t pk[PG_STATE_COMPACT_PACKET];
+        uint16_t crc;
+        pk[0] = HP_MSG_STATE_COMPACT;
+        pk[1] = (uint8_t)seq;
+        pk[2] = (uint8_t)(seq >> 8);
+        pk[3] = (uint8_t)status;
+        pk[4] = !(status & HP_STATUS_FORCE_APPLIED) ? 0u
+                : lag > HP_COMPACT_LAG_MAX ? (uint8_t)HP_COMPACT_LAG_MAX : (uint8_t)lag;
+        memcpy(&pk[5], &q1, sizeof q1); /* little-endian, as the wire */
+        memcpy(&pk[9], &q2, sizeof q2);
+        crc = hp_crc16(0xFFFFu, pk, PG_STATE_COMPACT_PACKET - 2u);
+        pk[PG_STATE_COMPACT_PACKET - 2u] = (uint8_t)(crc >> 8);
+        pk[PG_STATE_COMPACT_PACKET - 1u] = (uint8_t)crc;
+        (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
+    } else {
         /* STATE packed here (hp_encode's bytes: the golden vectors check hp_encode, the
          * closed-loop tests these), COBS-encoded straight into the transmit ring */
         uint8_t pk[PG_STATE_PACKET];
@@ -824,10 +959,21 @@ static void serve_tick(void)
         (void)uart_put_packet(pk, sizeof pk); /* a full ring drops it (a gap) */
     }
     if (g_trip_event) {
-        g_trip_event = 0;
+        g_trip_event = 0; /* both joints are at zero since the tick (sample_now) */
         send_fault(HP_FAULT_WATCHDOG, 0);
-        zero_now();
-        zero_drives();
+    }
+    {
+        /* the watchdog ran out (no FORCE applied for its periods): both joints to zero at
+         * once, by a DRIVE like a FORCE's, so that it trips at the tick both change; a
+         * FORCE taken meanwhile replaces it (rules 2-3 of PROTOCOL.md section 5) */
+        uint8_t pending;
+        s = SREG;
+        cli();
+        pending = g_drive_queued || g_op == OP_DRIVE || g_own_ready;
+        SREG = s;
+        if (g_armed && !g_tripped && g_wd_left == 0 && !pending) {
+            zero_drives(1);
+        }
     }
     if (g_bad_frames != g_bad_reported) {
         g_bad_reported = g_bad_frames;
@@ -868,6 +1014,11 @@ int main(void)
         }
         sei();
         sleep_cpu();
+        /* one instruction before the loop's cli: simavr 1.6 runs the instruction after a
+         * SLEEP that found an interrupt pending before it serves that interrupt (the chip
+         * serves it first); with the loop's cli right after SLEEP (as the compiler laid it
+         * out once) the TWI interrupt was never served and the bus stopped at its START */
+        __asm__ __volatile__("nop");
     }
 }
 

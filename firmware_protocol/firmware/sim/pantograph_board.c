@@ -39,10 +39,28 @@
  * tick (the first SYNC after the firmware took the CONFIG), with the start's velocity; at
  * STOP it holds the handle where it is.
  *
- * Lockstep only (the emulated clock waits for the host's FORCE answering each armed
- * STATE). On SIGINT/SIGTERM or after --duration emulated seconds it writes a JSON report
- * (stdout or --report FILE): the cycle budget of each MCU per tick, the bus, the frames,
- * the plant.
+ * Time. Lockstep (the default): after each armed STATE the emulated clock waits for the
+ * host's FORCE answering it, so the wire's time is emulated and a slow host is never late;
+ * --host-latency-us L hands each FORCE to the UART L us of emulated time after the STATE's
+ * last byte left (a host that answers in L us: tools/bench_pantograph.py --host-slack finds
+ * the largest L that keeps the delay at one tick, in emulated cycles, whatever the load).
+ * --realtime locks the emulated clock (the leader's; the follower never more than FENCE
+ * cycles from it) to the wall clock (CLOCK_MONOTONIC), as hapkit_board --realtime: the
+ * cores run in chunks of 100 us of emulated time at most LEAD_NS ahead of the wall clock
+ * and wait for it on the pty (a byte the host writes meanwhile is handed to the UART at
+ * once, at the emulated cycle reached: never earlier than the wall time it came at, so
+ * the host never gains time); a board that fell more than SLIP_NS behind (descheduled,
+ * too slow) slips its clock instead of racing the firmware's ticks through the lost time
+ * (counted: time.slips, slipped_s; the plant and the firmware see no gap, the emulated
+ * time is continuous). With --spin-us S > 0, from an armed STATE until the FORCE answering
+ * it is read (or S us have passed) the board emulates in 10 us steps and spins to the
+ * wall clock between them, never ahead of it by more than a step: the bytes then reach
+ * the UART within 10 us of the wall time they came at (the full STATE leaves the host
+ * ~80 us at 1 kHz, docs/pantograph.md). A FORCE that comes too late for its tick is held
+ * back by the firmware to the next one and its STATE says so (force_seq): the host's
+ * account of late ticks. On SIGINT/SIGTERM or after --duration emulated seconds it writes
+ * a JSON report (stdout or --report FILE): the cycle budget of each MCU per tick, the bus,
+ * the frames, the plant, the time.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -101,9 +119,28 @@ static struct {
     double Mq[4], Bq[4], mh, bh, amplitude, substep, duration;
     long nack_after;
     const char *report, *link, *profile;
-    int plant_test;
+    int plant_test, realtime;
+    double spin_us, host_latency_us;
 } opt = {{NULL, NULL}, 0.05, 0.05, 0.07, 0.07, 0.02, {2.26892802759263, 0.872664625997165},
-         {2e-4, 0, 0, 2e-4}, {1e-3, 0, 0, 1e-3}, 0.0, 0.0, 1e-8, 5e-4, 0.0, -1, NULL, NULL, NULL, 0};
+         {2e-4, 0, 0, 2e-4}, {1e-3, 0, 0, 1e-3}, 0.0, 0.0, 1e-8, 5e-4, 0.0, -1, NULL, NULL, NULL, 0,
+         0, 0.0, 0.0};
+
+/* Real time (hapkit_board's rules): the emulated clock slips when it fell more than
+ * SLIP_NS behind the wall clock, and runs at most LEAD_NS ahead of it (each microsecond of
+ * lead is taken from the host's time to answer); --spin-us steps of WINDOW_CHUNK cycles. */
+#define SLIP_NS 2000000u
+#define LEAD_NS 50000u
+#define WINDOW_CHUNK 160u /* 10 us */
+static struct {
+    uint64_t emulate_ns, io_ns, sleep_ns, spin_ns, slips, slipped_ns, behind_max_ns;
+    uint64_t armed_emulate_ns, armed_cycles;
+} tm;
+static struct {
+    int open;
+    uint64_t since; /* [ns] wall */
+} win;
+static uint64_t wall0; /* the wall clock [ns] at emulated cycle 0 while paced */
+static int paced;
 
 static avr_t *core[2];
 static int last_fed_type; /* the last host frame handed to the leader's UART */
@@ -443,6 +480,8 @@ static struct {
     long armed_transactions;   /* since the first CONFIG (--nack-after counts these) */
     /* the critical path: from a DRIVE's end to the next SYNC (armed ticks) [cycles] */
     uint64_t drive_end, last_sync, slack_min, slack_sum, slack_n;
+    /* a DRIVE on the bus, its START to its STOP [leader cycles]: the longest */
+    uint64_t drive_start, drive_max;
     int f_busy;          /* the follower's TWINT: raised by an event, cleared by its write */
     int pending_read, read_ack;   /* the leader asked a byte the follower has not given */
     uint8_t read_addr;
@@ -559,7 +598,11 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
     if (m.u.twi.msg & TWI_COND_STOP) {
         if (bus.addressed == 1) {
             bus_post(now + 2u, 0xA0, 0, 0); /* STOP while addressed as receiver */
-            if (!bus.general && budget.armed && last_fed_type == HP_MSG_FORCE) {
+            if (!bus.general && now - bus.drive_start > bus.drive_max) {
+                bus.drive_max = now - bus.drive_start;
+            }
+            if (!bus.general && budget.armed && (last_fed_type == HP_MSG_FORCE ||
+                                                      last_fed_type == HP_MSG_FORCE_COMPACT)) {
                 bus.drive_end = now; /* a FORCE's DRIVE done: the critical path ends */
             }
         }
@@ -589,6 +632,9 @@ static void leader_twi_out(struct avr_irq_t *irq, uint32_t value, void *param)
         }
         bus.general = gc;
         bus.addressed = rd ? 2 : 1;
+        if (!gc && !rd) {
+            bus.drive_start = now; /* its address byte (the START is ~60 cycles before) */
+        }
         if (gc && !rd) {
             /* a SYNC: the slack of the last tick (its DRIVE's end to this tick) */
             if (bus.drive_end > bus.last_sync && budget.armed) {
@@ -676,11 +722,12 @@ static struct {
     size_t in_head, in_tail;
     int xon, await_host, host_present;
     uint32_t await_seq, read_force_seq;
-    int read_force_valid, read_stop, read_other;
+    int read_force_valid, read_stop, read_other, compact;
     uint8_t out[64];
     size_t out_n;
     uint16_t fw_status;
     uint64_t tx_dropped, waits;
+    uint64_t state_cyc, feed_at; /* lockstep --host-latency-us: the STATE's end, the feed */
 } link_;
 
 static void flush_out(void)
@@ -694,10 +741,23 @@ static void flush_out(void)
     link_.out_n = 0;
 }
 
+/* Whether the FORCE seq the host sent last answers the STATE awaited, or a later one: in
+ * 32 bits, or in 16 bits in a compact session (PROTOCOL.md section 4). */
+static int force_answers_await(void)
+{
+    if (link_.compact) {
+        return (int16_t)(uint16_t)(link_.read_force_seq - link_.await_seq) >= 0;
+    }
+    return (int32_t)(link_.read_force_seq - link_.await_seq) >= 0;
+}
+
 static void on_fw_msg(const hp_msg_t *m)
 {
-    if (m->type == HP_MSG_STATE) {
-        uint16_t st = m->u.state.status;
+    if (m->type == HP_MSG_STATE || m->type == HP_MSG_STATE_COMPACT) {
+        int compact = m->type == HP_MSG_STATE_COMPACT;
+        uint16_t st = compact ? m->u.state_compact.status : m->u.state.status;
+        uint32_t seq = compact ? m->u.state_compact.seq : m->u.state.seq;
+        link_.compact = compact;
         link_.fw_states++;
         link_.fw_status = st;
         budget.armed = (st & HP_STATUS_ARMED) != 0;
@@ -706,8 +766,9 @@ static void on_fw_msg(const hp_msg_t *m)
         }
         if ((st & HP_STATUS_ARMED) && link_.host_present) {
             link_.await_host = 1;
-            link_.await_seq = m->u.state.seq;
+            link_.await_seq = seq;
             link_.read_other = 0;
+            link_.state_cyc = core[LEAD]->cycle;
         }
     } else if (m->type == HP_MSG_FAULT) {
         link_.fw_faults[m->u.fault.code & 15u]++;
@@ -774,6 +835,9 @@ static void on_host_msg(const hp_msg_t *m)
 
 static void feed_uart(void)
 {
+    if (core[LEAD]->cycle < link_.feed_at) {
+        return; /* lockstep --host-latency-us: the host's answer is not there yet */
+    }
     while (link_.xon && link_.in_tail != link_.in_head) {
         uint8_t b = link_.in_q[link_.in_tail];
         hp_msg_t m;
@@ -805,8 +869,9 @@ static void read_host(int timeout_ms)
             link_.in_q[link_.in_head] = buf[i];
             link_.in_head = (link_.in_head + 1u) % sizeof link_.in_q;
             if (hp_decoder_feed(&link_.dec_read, buf[i], &m) == HP_OK) {
-                if (m.type == HP_MSG_FORCE) {
-                    link_.read_force_seq = m.u.force.seq;
+                if (m.type == HP_MSG_FORCE || m.type == HP_MSG_FORCE_COMPACT) {
+                    link_.read_force_seq = m.type == HP_MSG_FORCE ? m.u.force.seq
+                                                                  : m.u.force_compact.seq;
                     link_.read_force_valid = 1;
                 } else {
                     link_.read_other = 1;
@@ -822,6 +887,47 @@ static void read_host(int timeout_ms)
     }
 }
 
+static uint64_t wall_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+}
+
+/* Wait until the wall clock reads `target` [ns], taking the host's bytes as they come: a
+ * wait on the pty (ppoll) until `target` less `spin` [ns], then a spin that checks the pty
+ * without waiting. Each frame the host writes meanwhile is read and handed to the UART at
+ * once (at the emulated cycle reached, which is at or after the wall time it came at). */
+static void wait_until(uint64_t target, uint64_t spin)
+{
+    uint64_t t0 = wall_ns(), now = t0, spin_from = 0;
+    while (now < target && !stop_signal) {
+        struct pollfd pfd = {master, POLLIN, 0};
+        int r;
+        if (target - now > spin) {
+            uint64_t left = target - spin - now;
+            struct timespec ts = {(time_t)(left / 1000000000u), (long)(left % 1000000000u)};
+            if (link_.host_present) {
+                r = ppoll(&pfd, 1, &ts, NULL);
+            } else { /* no host: the pty hangs up at once, sleep instead */
+                r = 0;
+                nanosleep(&ts, NULL);
+            }
+        } else {
+            if (!spin_from) {
+                spin_from = now;
+            }
+            r = poll(&pfd, 1, 0);
+        }
+        if (r > 0 && (pfd.revents & (POLLIN | POLLHUP))) {
+            read_host(0);
+            feed_uart();
+        }
+        now = wall_ns();
+    }
+    tm.spin_ns += spin_from ? now - spin_from : 0;
+    tm.sleep_ns += now - t0 - (spin_from ? now - spin_from : 0);
+}
 
 /* ---------------------------------------------------------------- report */
 
@@ -835,8 +941,16 @@ static void report(int code)
         f = stdout;
     }
     five_bar(ph.q, x, NULL);
-    fprintf(f, "{\"exit\": \"%s\", \"emulated_s\": %.9f, \"mode\": \"lockstep\",\n",
-            code == 0 ? "ok" : "firmware stopped", (double)core[LEAD]->cycle / F_CPU_HZ);
+    fprintf(f, "{\"exit\": \"%s\", \"emulated_s\": %.9f, \"mode\": \"%s\",\n",
+            code == 0 ? "ok" : "firmware stopped", (double)core[LEAD]->cycle / F_CPU_HZ,
+            opt.realtime ? "realtime" : "lockstep");
+    fprintf(f, " \"time\": {\"emulate_s\": %.6f, \"io_s\": %.6f, \"sleep_s\": %.6f, "
+               "\"spin_s\": %.6f, \"spin_us\": %.1f, \"armed_mhz\": %.3f, \"slips\": %llu, "
+               "\"slipped_s\": %.6f, \"behind_max_ms\": %.3f},\n",
+            tm.emulate_ns * 1e-9, tm.io_ns * 1e-9, tm.sleep_ns * 1e-9, tm.spin_ns * 1e-9,
+            opt.spin_us,
+            tm.armed_emulate_ns ? tm.armed_cycles * 1e3 / (double)tm.armed_emulate_ns : 0.0,
+            (unsigned long long)tm.slips, tm.slipped_ns * 1e-9, tm.behind_max_ns * 1e-6);
     fprintf(f, " \"budget\": {\"rate_hz\": %.6g, \"period_cycles\": %.0f, \"ticks\": %llu, "
                "\"leader_busy_mean_cycles\": %.1f, \"leader_busy_max_cycles\": %llu, "
                "\"follower_busy_mean_cycles\": %.1f, \"follower_busy_max_cycles\": %llu},\n",
@@ -848,11 +962,13 @@ static void report(int code)
     fprintf(f, " \"twi\": {\"transactions\": %ld, \"nack_address\": %ld, \"nack_data\": %ld, "
                "\"bytes_written\": %ld, \"bytes_read\": %ld, \"stretched\": %ld, "
                "\"late_bytes\": %ld, \"overflow\": %ld, \"slack_ticks\": %llu, "
-               "\"slack_min_cycles\": %llu, \"slack_mean_cycles\": %.1f},\n",
+               "\"slack_min_cycles\": %llu, \"slack_mean_cycles\": %.1f, "
+               "\"drive_max_cycles\": %llu},\n",
             bus.transactions, bus.nack_addr, bus.nack_data, bus.bytes_w, bus.bytes_r,
             bus.stretched, bus.late_bytes, bus.overflow, (unsigned long long)bus.slack_n,
             (unsigned long long)bus.slack_min,
-            bus.slack_n ? (double)bus.slack_sum / (double)bus.slack_n : 0.0);
+            bus.slack_n ? (double)bus.slack_sum / (double)bus.slack_n : 0.0,
+            (unsigned long long)bus.drive_max);
     fprintf(f, " \"host\": {\"frames_ok\": %llu, \"bad_frames\": %llu, \"waits\": %llu},\n",
             (unsigned long long)link_.host_frames_ok, (unsigned long long)link_.host_bad,
             (unsigned long long)link_.waits);
@@ -945,7 +1061,8 @@ static void usage(void)
             "         [--home Q1,Q2] [--joint-inertia M11,M12,M21,M22]\n"
             "         [--joint-friction B11,B12,B21,B22] [--hand-mass KG] [--hand-damping NS_M]\n"
             "         [--amplitude M] [--substep S] [--nack-after N] [--duration S]\n"
-            "         [--report FILE] [--link PATH] [--profile FILE]\n"
+            "         [--report FILE] [--link PATH] [--profile FILE] [--realtime]\n"
+            "         [--spin-us US] [--host-latency-us US (lockstep)]\n"
             "       pantograph_board --plant-test [the plant's options] < 'tau1 tau2 dt' lines\n");
     exit(2);
 }
@@ -994,6 +1111,10 @@ int main(int argc, char **argv)
             opt.plant_test = 1;
             continue;
         }
+        if (!strcmp(a, "--realtime")) {
+            opt.realtime = 1;
+            continue;
+        }
         if (a[0] != '-') {
             if (n_elf >= 2) {
                 usage();
@@ -1025,9 +1146,13 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--report")) opt.report = v;
         else if (!strcmp(a, "--link")) opt.link = v;
         else if (!strcmp(a, "--profile")) opt.profile = v;
+        else if (!strcmp(a, "--spin-us")) opt.spin_us = num(v, a);
+        else if (!strcmp(a, "--host-latency-us")) opt.host_latency_us = num(v, a);
         else usage();
     }
-    if (!(opt.substep > 0) || !(opt.amplitude > 0)) {
+    if (!(opt.substep > 0) || !(opt.amplitude > 0) || !(opt.spin_us >= 0) ||
+        opt.spin_us > 1e6 || !(opt.host_latency_us >= 0) || opt.host_latency_us > 1e6 ||
+        (opt.realtime && opt.host_latency_us > 0)) {
         usage();
     }
     if (opt.plant_test) {
@@ -1083,88 +1208,110 @@ int main(int argc, char **argv)
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
     master = board_open_pty(opt.link, "pantograph_board");
-    {
-        struct timespec wall0;
-        clock_gettime(CLOCK_MONOTONIC, &wall0);
-        while (!stop_signal) {
-            uint64_t end = core[LEAD]->cycle + 1600u; /* 100 us between host polls */
-            if (opt.duration > 0 && (double)core[LEAD]->cycle >= opt.duration * F_CPU_HZ) {
-                break;
-            }
-            while (core[LEAD]->cycle < end && !link_.await_host) {
-                /* the follower never ahead of the leader (the bus events the leader
-                 * causes are due in the follower's future), the leader at most FENCE
-                 * cycles ahead of the follower */
-                int c = core[LEAD]->cycle < core[FOLL]->cycle + FENCE ? LEAD : FOLL;
-                avr_t *a = core[c], *o = core[1 - c];
-                uint64_t c0 = a->cycle, s0 = slept[c];
-                uint32_t pc0 = a->pc;
-                uint64_t limit = c == LEAD ? o->cycle + FENCE : o->cycle;
-                int st;
-                if (limit > a->cycle) {
-                    avr_cycle_timer_register(a, limit - a->cycle, fence_cb, NULL);
-                }
-                st = avr_run(a);
-                if (st == cpu_Done || st == cpu_Crashed) {
-                    fprintf(stderr, "pantograph_board: %s firmware stopped (state %d) at "
-                                    "%.6f s\n", c == LEAD ? "leader" : "follower", st,
-                            (double)a->cycle / F_CPU_HZ);
-                    code = 1;
-                    goto done;
-                }
-                {
-                    uint64_t busy = (a->cycle - c0) - (slept[c] - s0);
-                    budget.window_busy[c] += busy;
-                    if (opt.profile && c == LEAD && budget.armed && busy) {
-                        prof[(pc0 >> 1) % 16384u] += busy;
-                    }
-                }
-                sample_drive(c);
-                if (c == FOLL) {
-                    bus_pump();
-                }
-            }
-            flush_out();
-            read_host(0);
-            if (link_.await_host) {
-                /* lockstep: wait (wall time) for the host's FORCE answering this STATE */
-                link_.waits++;
-                while (!(link_.read_force_valid &&
-                         (int32_t)(link_.read_force_seq - link_.await_seq) >= 0) &&
-                       !link_.read_stop && !link_.read_other && link_.host_present &&
-                       !stop_signal) {
-                    read_host(100);
-                }
-            }
-            link_.await_host = 0;
-            feed_uart();
-            if (link_.host_present && !budget.armed) {
-                /* a host listens to a disarmed device: its STATEs in real time */
-                struct timespec now;
-                static uint64_t lock_cyc, lock_ns;
-                static int locked;
-                uint64_t ns, emu;
-                clock_gettime(CLOCK_MONOTONIC, &now);
-                ns = (uint64_t)now.tv_sec * 1000000000ull + (uint64_t)now.tv_nsec;
-                if (!locked) {
-                    lock_cyc = core[LEAD]->cycle;
-                    lock_ns = ns;
-                    locked = 1;
-                }
-                emu = (uint64_t)((double)(core[LEAD]->cycle - lock_cyc) * 1e9 / F_CPU_HZ);
-                if (emu > ns - lock_ns + 50000u) {
-                    struct timespec ts = {0, (long)(emu - (ns - lock_ns))};
-                    if (ts.tv_nsec > 10000000L) {
-                        ts.tv_nsec = 10000000L;
-                    }
-                    nanosleep(&ts, NULL);
-                } else if (ns - lock_ns > emu + 2000000u) {
-                    lock_cyc = core[LEAD]->cycle; /* fell behind: slip, do not race */
-                    lock_ns = ns;
-                }
-            }
-            (void)wall0;
+    while (!stop_signal) {
+        uint64_t end = core[LEAD]->cycle + (win.open ? WINDOW_CHUNK : 1600u); /* 100 us */
+        if (link_.feed_at > core[LEAD]->cycle && link_.feed_at < end) {
+            end = link_.feed_at; /* the host's delayed answer is fed at its cycle */
         }
+        uint64_t t_a = wall_ns(), c_a = core[LEAD]->cycle, t_b;
+        int pace;
+        if (opt.duration > 0 && (double)core[LEAD]->cycle >= opt.duration * F_CPU_HZ) {
+            break;
+        }
+        while (core[LEAD]->cycle < end && !link_.await_host) {
+            /* the follower never ahead of the leader (the bus events the leader causes
+             * are due in the follower's future), the leader at most FENCE cycles ahead of
+             * the follower */
+            int c = core[LEAD]->cycle < core[FOLL]->cycle + FENCE ? LEAD : FOLL;
+            avr_t *a = core[c], *o = core[1 - c];
+            uint64_t c0 = a->cycle, s0 = slept[c];
+            uint32_t pc0 = a->pc;
+            uint64_t limit = c == LEAD ? o->cycle + FENCE : o->cycle;
+            int st;
+            if (limit > a->cycle) {
+                avr_cycle_timer_register(a, limit - a->cycle, fence_cb, NULL);
+            }
+            st = avr_run(a);
+            if (st == cpu_Done || st == cpu_Crashed) {
+                fprintf(stderr, "pantograph_board: %s firmware stopped (state %d) at "
+                                "%.6f s\n", c == LEAD ? "leader" : "follower", st,
+                        (double)a->cycle / F_CPU_HZ);
+                code = 1;
+                goto done;
+            }
+            {
+                uint64_t busy = (a->cycle - c0) - (slept[c] - s0);
+                budget.window_busy[c] += busy;
+                if (opt.profile && c == LEAD && budget.armed && busy) {
+                    prof[(pc0 >> 1) % 16384u] += busy;
+                }
+            }
+            sample_drive(c);
+            if (c == FOLL) {
+                bus_pump();
+            }
+        }
+        t_b = wall_ns();
+        tm.emulate_ns += t_b - t_a;
+        if (budget.armed) {
+            tm.armed_emulate_ns += t_b - t_a;
+            tm.armed_cycles += core[LEAD]->cycle - c_a;
+        }
+        flush_out();
+        read_host(0);
+        if (opt.realtime) {
+            if (link_.await_host && opt.spin_us > 0) {
+                win.open = 1; /* an armed STATE is out: watch for its FORCE (see win) */
+                win.since = wall_ns();
+            }
+            if (win.open && ((link_.read_force_valid && force_answers_await()) ||
+                             link_.read_stop || !link_.host_present ||
+                             (double)(wall_ns() - win.since) > opt.spin_us * 1e3)) {
+                win.open = 0;
+            }
+        } else if (link_.await_host) {
+            /* lockstep: wait (wall time) for the host's FORCE answering this STATE */
+            link_.waits++;
+            while (!(link_.read_force_valid && force_answers_await()) &&
+                   !link_.read_stop && !link_.read_other && link_.host_present &&
+                   !stop_signal) {
+                read_host(100);
+            }
+            if (opt.host_latency_us > 0) {
+                /* the host answers host_latency_us after the STATE's last byte */
+                link_.feed_at = link_.state_cyc +
+                                (uint64_t)(opt.host_latency_us * F_CPU_HZ * 1e-6 + 0.5);
+            }
+        }
+        link_.await_host = 0;
+        feed_uart();
+        tm.io_ns += wall_ns() - t_b;
+        /* real time: always with --realtime; in lockstep while a host listens to a
+         * disarmed device (its STATEs would flood the host as fast as the host reads) */
+        pace = opt.realtime || (link_.host_present && !budget.armed);
+        if (pace) {
+            uint64_t emu = (uint64_t)((double)core[LEAD]->cycle * 1e9 / F_CPU_HZ);
+            uint64_t wall;
+            if (!paced) {
+                wall0 = wall_ns() - emu; /* lock from here on */
+            }
+            wall = wall_ns() - wall0;
+            if (win.open && emu > wall) {
+                wait_until(wall0 + emu, UINT64_MAX); /* spin: see win */
+            } else if (emu > wall + LEAD_NS) {
+                wait_until(wall0 + emu, 0);
+            } else if (wall > emu + SLIP_NS) {
+                /* descheduled or too slow: slip, do not race the firmware's ticks through
+                 * the lost time (a host answering in real time would be late for each) */
+                tm.slips++;
+                tm.slipped_ns += wall - emu;
+                if (wall - emu > tm.behind_max_ns) {
+                    tm.behind_max_ns = wall - emu;
+                }
+                wall0 += wall - emu;
+            }
+        }
+        paced = pace;
     }
 done:
     report(code);
