@@ -78,7 +78,9 @@ def test_scripted_missing_replies_are_estimated_and_bounded():
                                  samples=N, plan=plan, probe_wiring=False)
     assert sum(r["estimated"]) == link.late > 0
     assert r["replies"] == r["writes"] == [N + 2] * 5
-    assert r["verdict"] == "within", (r["reason"], r["deviation"])
+    assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
+        (r["reason"], r["deviation"])
+    assert (r["verdict"] == "partly within") == bool(r["not_stated"])
     for k in ("felt_stiffness", "felt_damping"):
         assert r["deviation"][k] <= r["uncertainty"][k]
 
@@ -102,7 +104,8 @@ def test_over_a_pty_in_real_time():
         child.close()
     assert r["replies"] == r["writes"] == [N + 2] * 5
     assert all(0 <= e <= N for e in r["estimated"])
-    assert r["verdict"] in ("within", "not measurable"), (r["reason"], r["estimated"])
+    assert r["verdict"] in ("within", "partly within", "not measurable"), \
+        (r["reason"], r["estimated"])
     probe = r["direction_probe"]
     assert probe["relative"] == [1, 1] and probe["setups"] == 2
     # the probe's writes (its arming's two), and its closing re-arming's two

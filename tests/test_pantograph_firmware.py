@@ -230,7 +230,8 @@ def test_follower_nack_is_refused_cleanly(built, scene, tmp_path):
         finally:
             tr.close()
     rep = json.loads(report.read_text())
-    assert [f.code for f in faults] == [fp.FAULT_SENSOR]
+    assert [f.code for f in faults] == [fp.FAULT_SENSOR], (faults, rep["firmware"],
+                                                           rep["host"])
     assert faults[0].detail & 0xFF in (1, 2, 3)         # SYNC, READ or DRIVE NACKed
     assert armed_after == 0
     assert rep["twi"]["nack_address"] >= 1
@@ -238,10 +239,16 @@ def test_follower_nack_is_refused_cleanly(built, scene, tmp_path):
     assert rep["emulated_s"] > 0
 
 
-def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene, tmp_path):
+@pytest.mark.parametrize("frames", ["auto", "full"])
+def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene, tmp_path,
+                                                                    frames):
     """hapsim run's measurement over the leader's UART (joint-level pantograph turned into
-    the Cartesian device), lockstep, on configs/pantograph_wall.yaml with a = 0.2 mm: the
-    delay is one tick, no tick is late, the measured felt matrices are within the stated
+    the Cartesian device), lockstep, on configs/pantograph_wall.yaml with a = 0.2 mm. With
+    the compact frames (what the host asks for) the delay is one tick and no tick is late;
+    with the full ones every FORCE misses its DRIVE slot (the 1 kHz budget) and is applied
+    a tick later, every tick: 149 late rows a record, each the known input its STATE names,
+    and the measurement is as good (the account of late ticks against the firmware, every
+    tick). Either way the measured felt matrices are within the stated
     uncertainty (the linearisation bound plus the wire's worst case: half a sensor count,
     half a PWM step) of the prediction, and the verdict says what the Hapkit's 10-bit
     sensor and 8-bit PWM allow: "not measurable" (the wire's term is above 0.25: one
@@ -256,11 +263,16 @@ def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene,
     with _board(tmp_path, scene, a) as (proc, port, report):
         tr = JointLevelTransport(SerialTransport(port), scene)
         try:
-            res = measure_felt_port(tr, scene, samples=150)
+            res = measure_felt_port(tr, scene, samples=150, frames=frames)
         finally:
             tr.close()
-    assert tr.joint_level and tr.clamped == 0
-    assert res["delay"] == [1] * 5 and res["late"] == 0 and res["lost"] == 0
+    assert tr.joint_level and tr.clamped == 0 and res["lost"] == 0
+    if frames == "auto":
+        assert res["frames"] == "compact"
+        assert res["delay"] == [1] * 5 and res["late"] == 0
+    else:
+        assert res["frames"] == "full"
+        assert res["delay"] == [2] * 5 and res["late"] == 5 * 149
     res["torque_max"] = tr.torque_max
     assert 0 < tr.torque_max < 0.5                       # a live loop, never full duty
     wire = wire_term(scene, res, tr.hello.position_scale, tr.hello.force_scale)
@@ -560,7 +572,8 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     bound = linearisation_bound(scene, max(a, res["excursion"]),
                                 res["predicted"].render.rendered_poles)
     v = felt_verdict(res["deviation"], bound, wire)
-    assert v["verdict"] in ("within", "not measurable"), (v, res["late"], res["delay"])
+    assert v["verdict"] in ("within", "partly within", "not measurable"), \
+        (v, res["late"], res["delay"])
     lin = bound.to_dict()
     for key in ("felt_stiffness", "felt_damping"):
         if lin[key] is not None:                 # None: beyond the bound's validity
@@ -592,19 +605,24 @@ def _replay(scene, hello, torques):
 
 def test_late_ticks_in_real_time_are_the_torques_the_states_name(built, scene, tmp_path):
     """A real-time host that answers some STATEs late on purpose (a 3 ms pause before
-    every 12th FORCE, so that it and the ones queued behind it miss their DRIVE slot) and
-    never answers others: the leader holds the older torques over those periods and each
-    STATE names what it held (force_seq; zero under WATCHDOG_TRIPPED). The joint readings
+    every 12th FORCE, so that it and the ones queued behind it miss their DRIVE slot),
+    never answers others, and sends hostile bytes before every 17th FORCE (garbage, a
+    FORCE_COMPACT of 0.3 N m with one bit flipped, an over-long frame: dropped and counted,
+    FAULT RX_ERRORS, never applied): the leader holds the older torques over those
+    periods and each STATE names what it held (force_seq; zero under WATCHDOG_TRIPPED). The joint readings
     are those of an independent model (:class:`QuantisedPantograph`'s plant, sensor and
-    binary32 readings) driven by the torques the STATEs name, to the first rounding that
-    falls the other way (one count) and for 85 % of the samples or more; the same model
-    driven by the on-time assumption (FORCE k over period k + 1) does not match them. The
+    binary32 readings) driven by the torques the STATEs name, to one count at every sample
+    (a rounding that falls the other way) and exactly at 75 % of them or more; the same
+    model driven by the on-time assumption (FORCE k over period k + 1) is off by more
+    than two counts. The
     account (:func:`hapsim.applied.account_from_force_seq`) counts as late exactly the
     ticks whose named FORCE is not the one before."""
     from hapsim.applied import account_from_force_seq
     from hapsim.daemon.transport import SerialTransport
+    import random
+    rng = random.Random(11)
     N = 240
-    states = {}
+    states, faults = {}, []
     with _board(tmp_path, scene, realtime=True) as (proc, port, report):
         tr = SerialTransport(port)
         try:
@@ -617,18 +635,31 @@ def test_late_ticks_in_real_time_are_the_torques_the_states_name(built, scene, t
             end = time.monotonic() + 20
             while len(states) < N and time.monotonic() < end:
                 for m in tr.receive(0.02):
+                    if isinstance(m, fp.Fault):
+                        faults.append(m)
                     if isinstance(m, fp.State) and m.status & fp.STATUS_ARMED \
                             and m.seq not in states and m.seq < N:
                         states[m.seq] = m
                         if m.seq % 12 == 5:
                             time.sleep(0.003)           # late on purpose
+                        if m.seq % 17 == 3:             # hostile bytes
+                            bad = bytearray(fp.encode(fp.compact_force(
+                                fp.Force(m.seq, (0.3, -0.3)))))
+                            bad[4] ^= 0x10
+                            tr._ser.write(bytes(rng.randrange(1, 256) for _ in range(20))
+                                          + b"\x00" + bytes(bad) + b"\x01" * 200 + b"\x00")
                         if m.seq % 29 != 13:            # never answered
                             tr.send(fp.Force(m.seq, torque[m.seq]))
             tr.send(fp.Stop())
-            time.sleep(0.05)
+            end = time.monotonic() + 0.1
+            while time.monotonic() < end:
+                faults += [m for m in tr.receive(0.02) if isinstance(m, fp.Fault)]
         finally:
             tr.close()
     rep = json.loads(report.read_text())
+    rx = [f for f in faults if f.code == fp.FAULT_RX_ERRORS]
+    assert rx and rx[-1].detail >= 2 * 10                # >= 2 bad frames a burst, 14 bursts
+    assert {f.code for f in faults} <= {fp.FAULT_RX_ERRORS, fp.FAULT_WATCHDOG}
     seqs = sorted(states)
     assert seqs == list(range(len(seqs))) and len(seqs) >= 200, len(seqs)
     st = [states[k] for k in seqs]
@@ -650,13 +681,17 @@ def test_late_ticks_in_real_time_are_the_torques_the_states_name(built, scene, t
         first = np.flatnonzero(d > 1e-12)
         return d, (first[0] if first.size else K)
 
+    # the torques are not fed back: a period held with other torques than the ones named
+    # moves the joints off for good (a growing difference), a rounding that falls the
+    # other way (the model leaves out the cycles between a PWM change and its ADC start)
+    # is one count at that sample only
     d, first = compare(named)
-    assert first == K or d[first] <= 1.01 * c, (first, d[first] / c)
-    assert np.count_nonzero(d <= 1e-12) >= 0.85 * K, np.count_nonzero(d <= 1e-12)
-    # the on-time assumption, FORCE k - 1 over period k, is another loop
+    assert np.max(d) <= 1.01 * c, (np.argmax(d), np.max(d) / c)
+    assert np.count_nonzero(d <= 1e-12) >= 0.75 * K, np.count_nonzero(d <= 1e-12)
+    # the on-time assumption, FORCE k - 1 over period k, is another motion
     naive = [(0.0, 0.0)] + [torque[k] for k in range(K - 1)]
     d_naive, _ = compare(naive)
-    assert np.count_nonzero(d_naive <= 1e-12) < np.count_nonzero(d <= 1e-12) - 10
+    assert np.max(d_naive) > 2 * c, np.max(d_naive) / c
     # the account: late = a due tick whose named FORCE is not the one before it
     acc = account_from_force_seq(np.array(seqs), np.array([t[0] for t in torque[:K]]),
                                  np.array([m.force_seq for m in st]),

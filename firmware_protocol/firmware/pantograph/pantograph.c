@@ -12,15 +12,19 @@
  * joint-level device: HELLO (device id "HKG2", position_scale = rad per sensor count,
  * force_scale = N m per PWM step), CONFIG (rates that divide 16 MHz, PG_MIN_RATE_HZ ..
  * PG_MAX_RATE_HZ), STATE with the joint angles (q1, q2) [rad], FORCE with the joint
- * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (none offered; no compact frames),
+ * torques (tau1, tau2) [N m], PING/PONG, STOP, SENSORS (no extra sensor; the compact
+ * frames offered: STATE_COMPACT / FORCE_COMPACT with binary32 angles and torques, what
+ * hapsim asks for: at 1 kHz they leave a host 372 us to answer, the full frames none),
  * the watchdog. The host does the kinematics (x = f(q), tau = J(q_n)^T F): in float32 on
  * this 16 MHz AVR the five-bar's forward kinematics and Jacobian took ~20,000 cycles a
  * tick, more than the 16,000 of a 1 kHz period (docs/pantograph.md). Each tick
  * (pantograph_link.h): SYNC on the bus (both joints sampled and driven at one instant),
  * the follower's sample READ, the joint angles unwrapped (flip counting, as the 1-DoF
  * firmware) from the home of the calibration block in EEPROM, STATE; a FORCE answering
- * STATE n is quantised to PWM steps, the follower's sent by DRIVE, both applied at tick
- * n + 1 (delay d = 1).
+ * STATE n is quantised to PWM steps, the follower's sent by DRIVE at the tick's DRIVE
+ * slot (100 us before the next tick), both applied at that tick: tick n + 1 (delay d = 1)
+ * when the FORCE was decoded before the slot, a tick later when not (a late tick, named
+ * by the next STATEs' force_seq: the tick itself never moves).
  *
  * The follower (TWI slave) holds the drive it was sent, applies it and starts its ADC at
  * each SYNC, and hands its raw sample to the READ. It has no clock of its own for the
@@ -191,9 +195,9 @@ enum { OP_IDLE = 0, OP_SYNC, OP_READ, OP_DRIVE };
 
 /* The DRIVE slot: a FORCE's DRIVE goes on the bus at Timer1's compare B, this many cycles
  * before the tick (compare A), and ends before it (the longest DRIVE seen on the emulated
- * bus at that point of the period, its address byte to its STOP, was 973 cycles: four
- * bytes of nine bus clocks, the follower's clock stretching and the ISRs' latency;
- * pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
+ * bus, its address byte to its STOP, was 927-995 cycles in lockstep and 1,239 in real time
+ * with a host's bytes pouring in: four bytes of nine bus clocks, the follower's clock
+ * stretching and the ISRs' latency; pantograph_board's report, twi.drive_max_cycles). A FORCE decoded before the slot is
  * applied at the next tick; one decoded after it waits for the next slot and is applied a
  * tick later, which its STATE names (force_seq): a known input to the host, never a
  * moved tick (a SYNC waiting behind a DRIVE would sample and drive the joints up to a
