@@ -100,8 +100,15 @@ def _finite(name: str, value) -> float:
     return v
 
 
-def _joints(q, n: int) -> np.ndarray:
-    """``q`` as a float array of shape (n,), finite, else ConfigError (key ``joints``)."""
+#: The largest joint angle taken [rad]: one turn either way. A revolute joint's angle is
+#: periodic, so nothing is lost; beyond it a value is a mistake (degrees given as radians
+#: twice over, an overflow), and past ~1e16 rad its sine has no correct digit left.
+JOINT_TURN = 2.0 * math.pi
+
+
+def _joints(q, n: int, turn: bool = True) -> np.ndarray:
+    """``q`` as a float array of shape (n,), finite and (with ``turn``) within one turn
+    (:data:`JOINT_TURN`), else ConfigError (key ``joints``)."""
     try:
         a = np.asarray(q, dtype=float)
     except (TypeError, ValueError):
@@ -111,6 +118,11 @@ def _joints(q, n: int) -> np.ndarray:
                           key="joints")
     if not np.all(np.isfinite(a)):
         raise ConfigError(f"must be finite, got {a.tolist()}", key="joints")
+    if turn and np.any(np.abs(a) > JOINT_TURN):
+        raise ConfigError(f"must be within one turn, -360..360 deg (a revolute joint's "
+                          f"angle is periodic: give it modulo 360), got "
+                          f"{[round(math.degrees(v), 6) for v in a.tolist()]} deg",
+                          key="joints")
     return a
 
 
@@ -327,7 +339,7 @@ class Pantograph:
         Raises
         ------
         ConfigError
-            ``q`` not two finite numbers (key ``joints``).
+            ``q`` not two finite numbers within one turn (key ``joints``).
         KinematicsError
             No assembly (``|AB|`` outside ``(|L1 - L2|, L1 + L2)``) or both closures at
             the same ``y``.
@@ -555,7 +567,7 @@ class Delta:
         """
         g = self.geometry
         try:
-            p = _joints(p, 3)
+            p = _joints(p, 3, turn=False)
         except ConfigError as exc:
             raise ConfigError(exc.reason.replace("joint angles [rad]", "coordinates [m]"),
                               key="position") from None
@@ -681,12 +693,15 @@ class Delta:
         Raises
         ------
         ConfigError
-            ``Q`` not of shape (N, 3) or not finite (key ``joints``).
+            ``Q`` not of shape (N, 3), not finite or beyond one turn (key ``joints``).
         """
         Q = np.asarray(Q, dtype=float)
         if Q.ndim != 2 or Q.shape[1] != 3 or not np.all(np.isfinite(Q)):
             raise ConfigError(f"must be finite joint angles of shape (N, 3) [rad], got "
                               f"shape {Q.shape}", key="joints")
+        if np.any(np.abs(Q) > JOINT_TURN):
+            raise ConfigError("must be within one turn, -360..360 deg (a revolute joint's "
+                              "angle is periodic: give it modulo 360)", key="joints")
         P, ok = self._solve_many(Q)[:2]
         P = P.copy()
         P[~ok] = np.nan
@@ -778,7 +793,7 @@ class Delta:
         Raises
         ------
         ConfigError
-            ``q`` not three finite numbers (key ``joints``).
+            ``q`` not three finite numbers within one turn (key ``joints``).
         KinematicsError
             No assembly (outside the workspace, ``kind="workspace"``).
         """
@@ -803,12 +818,15 @@ class Delta:
         Raises
         ------
         ConfigError
-            ``Q`` not of shape (N, 3) or not finite (key ``joints``).
+            ``Q`` not of shape (N, 3), not finite or beyond one turn (key ``joints``).
         """
         Q = np.asarray(Q, dtype=float)
         if Q.ndim != 2 or Q.shape[1] != 3 or not np.all(np.isfinite(Q)):
             raise ConfigError(f"must be finite joint angles of shape (N, 3) [rad], got "
                               f"shape {Q.shape}", key="joints")
+        if np.any(np.abs(Q) > JOINT_TURN):
+            raise ConfigError("must be within one turn, -360..360 deg (a revolute joint's "
+                              "angle is periodic: give it modulo 360)", key="joints")
         P, ok, Gp, Gq = self._solve_many(Q)
         status, J = self._classify(ok, Gp, Gq)
         return J, status
@@ -877,7 +895,7 @@ class Delta:
         Raises
         ------
         ConfigError
-            ``q`` not three finite numbers (key ``joints``).
+            ``q`` not three finite numbers within one turn (key ``joints``).
         KinematicsError
             As :meth:`jacobian`.
         """

@@ -786,8 +786,10 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     stiffness along one direction and nothing else.
 
     **The run's verdict** is the conjunction of what was stated: "differs" when any
-    stated quantity differs, "within" when every stated one is within (and the reason
-    lists what could not be stated), "not measurable" when nothing could be stated.
+    stated quantity differs; "within" when every quantity was stated and is within;
+    "partly within" when every stated one is within but some could not be stated (the
+    reason and ``not_stated`` name them: a reader of the verdict alone is not told that
+    an unmeasured damping was verified); "not measurable" when nothing could be stated.
 
     Parameters
     ----------
@@ -810,8 +812,9 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     Returns
     -------
     dict
-        ``verdict`` (``"within"``, ``"differs"`` or ``"not measurable"``), ``within``
-        (bool, or None when not measurable), ``uncertainty`` (``felt_stiffness``,
+        ``verdict`` (``"within"``, ``"partly within"``, ``"differs"`` or ``"not
+        measurable"``), ``within`` (bool: every *stated* quantity within; None when
+        nothing was stated), ``uncertainty`` (``felt_stiffness``,
         ``felt_damping``: each matrix's stated uncertainty [-], None for one not stated;
         None when nothing was stated), ``reason`` (str), ``statements`` (list of dicts:
         ``quantity``, ``direction`` (unit vector or None for the matrix), ``name``,
@@ -895,6 +898,7 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
         reason += ("; not measurable (the wire's rounding too large against it"
                    + (f", {estimated} estimated samples" if estimated else "") + "): "
                    + ", ".join(not_stated))
-    return {"verdict": "within" if ok else "differs", "within": bool(ok),
+    verdict = "differs" if not ok else ("partly within" if not_stated else "within")
+    return {"verdict": verdict, "within": bool(ok),
             "uncertainty": unc, "reason": reason, "statements": st,
             "not_stated": not_stated}

@@ -44,44 +44,117 @@ audio: {rate_hz: 48000, listen: [{mass: bob, quantity: velocity, gain: 5.0}]}
 """
 
 
-def dummy_jackd(rate=48000, period=256):
-    """A private ``jackd -d dummy -r RATE -p PERIOD`` (a generator: yields its name, stops
-    it after), for a module-scoped fixture."""
-    if shutil.which("jackd") is None:
-        pytest.skip("jackd not installed: apt-get install jackd2")
-    pytest.importorskip("jack", reason="JACK-Client not installed: pip install JACK-Client")
-    import jack
+#: jackd2's shared-memory registry (``/dev/shm/jack-shm-registry``) holds 8 servers for the
+#: whole machine, every checkout and user together (``MAX_SERVERS``: "Too many servers
+#: already active"), and frees the slot of a server that died without unregistering (a
+#: SIGKILL, an orphan whose pytest was killed) only when a server of the *same name*
+#: registers again. A fresh name per run (a uuid) therefore leaks a slot for each such
+#: death and, with a few suites at once from other checkouts, fills the registry: the
+#: private servers take their names from this pool instead, each held by an exclusive lock
+#: while its server runs (two runs never start the same name), so a dead server's slot is
+#: taken back by the next run that draws its name.
+JACK_NAMES = 8
+#: Longest wait [s] for a free name and a server that answers: a safety net against a
+#: jackd that hangs, not the start-up's expected time (a jackd that is still starting, or
+#: that exits, is seen as such whatever the load).
+JACK_START_S = 300.0
 
-    name = f"hapsim-test-{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, JACK_NO_AUDIO_RESERVATION="1")
+
+def _die_with_parent():
+    """In the child before exec: SIGTERM when the test process dies (Linux
+    ``PR_SET_PDEATHSIG``), so a killed pytest leaves no orphan jackd holding a slot."""
+    import ctypes
+    import signal
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _jack_name_lock(k):
+    """An exclusive, non-blocking lock on the pool's name ``k`` (an open file; released
+    by closing it or by the process's death), or None when another run holds it."""
+    import fcntl
+    path = os.path.join(tempfile.gettempdir(), f"hapsim-jackd-{os.getuid()}-{k}.lock")
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _start_jackd(name, rate, period, env):
+    """Start ``jackd -n NAME -d dummy`` and wait until a client opens on it; the process
+    and its log, or None and the log when it exited first (the registry full, or a live
+    server of that name left by an older run)."""
+    import jack
     # its output goes to a file, never to an undrained pipe: under load jackd logs an xrun
     # line per late period, and once a pipe's 64 KiB are full it blocks in write() and
     # every client's jack_client_open waits for it forever (a whole suite hung so)
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(["jackd", "-n", name, "-d", "dummy", "-r", str(rate), "-p",
-                             str(period)], stdout=log, stderr=subprocess.STDOUT, env=env)
-    try:
-        deadline = time.monotonic() + 20.0
-        while True:
-            try:
-                c = jack.Client("probe", no_start_server=True, servername=name)
-                c.close()
+                             str(period)], stdout=log, stderr=subprocess.STDOUT, env=env,
+                            preexec_fn=_die_with_parent)
+    deadline = time.monotonic() + JACK_START_S
+    while proc.poll() is None:
+        try:
+            jack.Client("probe", no_start_server=True, servername=name).close()
+        except jack.JackOpenError:
+            if time.monotonic() > deadline:
+                proc.kill()
+                proc.wait()
                 break
-            except jack.JackOpenError:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    log.seek(0)
-                    out = log.read().decode(errors="replace")
-                    pytest.fail(f"jackd did not start: {out[-500:]}")
-                time.sleep(0.1)
+            time.sleep(0.1)
+            continue
+        if proc.poll() is None:          # the server answering is ours
+            return proc, log
+    proc.wait()
+    log.seek(0)
+    out = log.read().decode(errors="replace")
+    log.close()
+    return None, out
+
+
+def dummy_jackd(rate=48000, period=256):
+    """A private ``jackd -d dummy -r RATE -p PERIOD`` (a generator: yields its name, stops
+    it after), for a module-scoped fixture. Its name is the first of the pool's
+    (:data:`JACK_NAMES`) no other run holds; when every name is held or the registry is
+    full, it waits for one (at most :data:`JACK_START_S`)."""
+    if shutil.which("jackd") is None:
+        pytest.skip("jackd not installed: apt-get install jackd2")
+    pytest.importorskip("jack", reason="JACK-Client not installed: pip install JACK-Client")
+    env = dict(os.environ, JACK_NO_AUDIO_RESERVATION="1")
+    deadline = time.monotonic() + JACK_START_S
+    last = "every name of the pool held by another run"
+    proc = lock = None
+    while proc is None:
+        for k in range(JACK_NAMES):
+            lock = _jack_name_lock(k)
+            if lock is None:
+                continue
+            name = f"hapsim-test-{k}"
+            proc, log = _start_jackd(name, rate, period, env)
+            if proc is not None:
+                break
+            os.close(lock)
+            lock, last = None, log
+        if proc is None:
+            if time.monotonic() > deadline:
+                pytest.fail(f"no jackd started within {JACK_START_S:g} s: {last[-500:]}")
+            time.sleep(1.0)
+    try:
         yield name
     finally:
         proc.terminate()
         try:
-            proc.wait(5)
+            proc.wait(30)
         except subprocess.TimeoutExpired:
-            proc.kill()
+            proc.kill()                  # its slot is taken back by the next of this name
             proc.wait()
         log.close()
+        os.close(lock)
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +205,31 @@ def pluck_gesture(n=600):
     t = np.arange(n) * 1e-3
     return np.where(t < 0.05, -0.001,
                     np.where(t < 0.15, -0.001 + 0.03 * (t - 0.05), -0.003))
+
+
+def test_two_private_servers_at_once_take_two_names_of_the_pool():
+    """Two runs (two checkouts' suites) at once: their private servers never share a name
+    (the pool's lock), a name held is refused to the other, and a stopped server's name is
+    free again (the next run that draws it takes back its registry slot, even after a
+    SIGKILL)."""
+    if shutil.which("jackd") is None:
+        pytest.skip("jackd not installed: apt-get install jackd2")
+    a, b = dummy_jackd(8000, 128), dummy_jackd(8000, 128)
+    na = next(a)
+    try:
+        nb = next(b)
+        try:
+            assert na != nb and {na, nb} <= {f"hapsim-test-{k}" for k in range(JACK_NAMES)}
+            held = [_jack_name_lock(int(n.rsplit("-", 1)[1])) for n in (na, nb)]
+            assert held == [None, None]
+        finally:
+            b.close()
+        k = int(nb.rsplit("-", 1)[1])
+        fd = _jack_name_lock(k)
+        assert fd is not None
+        os.close(fd)
+    finally:
+        a.close()
 
 
 @pytest.mark.parametrize("callback", ["native", "python"])

@@ -212,12 +212,14 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     and its wire term exceeds the measurable limit: the felt damping (as a matrix and
     along each principal direction) is "not measurable" (not "differs", not "within" with
     a vacuous interval), while the felt stiffness, whose wire term is small, is stated
-    "within": the run's verdict is "within" with the damping named as not measurable."""
+    "within": the run's verdict is "partly within", the damping named as not measurable
+    (never a bare "within" that a reader could take for a checked damping)."""
     from hapsim.lockstep_nd import MEASURABLE_WIRE
     _, r = _wire_res("gen3", 22, 5e-5, "pantograph_circle.yaml")
     lin = r["bound"].to_dict()
     assert r["deviation"]["felt_stiffness"] > lin["felt_stiffness"]       # the old verdict
-    assert r["verdict"] == "within" and r["within"] is True
+    assert r["verdict"] in ("within", "partly within") and r["within"] is True
+    assert (r["verdict"] == "partly within") == bool(r["not_stated"])
     assert r["deviation"]["felt_stiffness"] <= r["uncertainty"]["felt_stiffness"]
     _, r = _wire_res("gen3", 22, 1.5e-5)
     assert r["deviation"]["felt_damping"] > 3 * r["bound"].to_dict()["felt_damping"]
@@ -232,7 +234,7 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
         assert s["verdict"] != "within" or s["wire"] <= MEASURABLE_WIRE
     for s in stiffness:
         assert s["verdict"] == "within" and s["deviation"] <= s["uncertainty"], s
-    assert r["verdict"] == "within" and r["within"] is True
+    assert r["verdict"] == "partly within" and r["within"] is True
     assert "not measurable" in r["reason"] and "felt damping" in r["reason"]
 
 
@@ -256,7 +258,8 @@ def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
     a = min(quanta * np.linalg.norm(J, 2) * 2 * math.pi / 2.0 ** bits, 4e-4)
     _, r = _wire_res(gen, bits, a, name)
     dev, w, lin = r["deviation"], r["wire"], r["bound"].to_dict()
-    assert r["verdict"] in ("within", "not measurable"), (a, bits, r["reason"], dev)
+    assert r["verdict"] in ("within", "partly within", "not measurable"), \
+        (a, bits, r["reason"], dev)
     assert len(r["statements"]) == 6
     for s in r["statements"]:
         measurable = s["wire"] is not None and s["wire"] <= MEASURABLE_WIRE

@@ -128,3 +128,64 @@ def test_a_reversed_motor_is_refused_before_the_real_time_loop_over_a_pty():
     assert rep["decoder"]["setups"] == 2                 # the probe's arming and stop
     b = Haply2DIYBoard(sc, "gen3", wiring=((1, 1), (-1, 1)), amplitude=1e-4)
     assert _probe(b, Haply2DIY("gen3", motor_direction=(0, 1))).relative == (1, 1)
+
+
+class _LateLink:
+    """The emulated board behind a link whose replies come late on script: each reply
+    held back ``lag`` writes with probability ``p`` (seeded; what follows waits too, the
+    board answers in order), and the first reply not before ``start_s`` [s] of the host's
+    clock (a board process still starting). ``silent``: no reply ever."""
+
+    def __init__(self, board, p=0.0, lag=0, seed=0, start_s=0.0, silent=False):
+        import time
+        self.board, self.p, self.lag, self.silent = board, p, lag, silent
+        self.rng = np.random.default_rng(seed)
+        self.start = time.monotonic() + start_s
+        self.writes = self.late = 0
+        self.queue, self.out = [], b""
+
+    def write(self, data):
+        self.writes += 1
+        late = self.rng.random() < self.p
+        self.late += late
+        self.queue.append((self.writes + (self.lag if late else 0), self.board.feed(data)))
+
+    def read(self, timeout):
+        import time
+        if self.silent or time.monotonic() < self.start:
+            return b""
+        while self.queue and self.queue[0][0] <= self.writes:
+            self.out += self.queue.pop(0)[1]
+        out, self.out = self.out, b""
+        return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_late_replies_are_read_late_not_taken_for_a_silent_board(seed):
+    """A loaded host (or board process): a reply in 25 comes two writes late, more
+    than 20 over the probe but never 20 writes in a row without one. The probe reads
+    them late (the board answers every write, in order) and finds the wiring, as on a
+    prompt link; it used to refuse with "more than 20 missing replies"."""
+    q0 = [math.degrees(v) for v in _scene().device.joints]
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), p=0.04, lag=2, seed=seed)
+    r = find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
+                        pace=False, timeout=1e-4)
+    assert link.late > 20
+    assert r.relative == (1, 1)
+
+
+def test_a_board_still_starting_is_waited_for_and_a_silent_one_refused():
+    """The first write's reply is waited for ``first_timeout`` (a board process still
+    loading when the port opened: the probe is the first to talk to it); a board that
+    never answers is refused after 21 writes in a row without a reply, naming the rule."""
+    from hapsim.errors import DeviceError
+    q0 = [math.degrees(v) for v in _scene().device.joints]
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), start_s=0.2)
+    r = find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
+                        pace=False, timeout=0.0, first_timeout=5.0)
+    assert r.relative == (1, 1)
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), silent=True)
+    with pytest.raises(DeviceError, match="more than 20 writes in a row"):
+        find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
+                        pace=False, timeout=0.0)
+    assert link.writes == 21 + 1                  # and the stop's zero torque

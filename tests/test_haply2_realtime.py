@@ -78,7 +78,9 @@ def test_scripted_missing_replies_are_estimated_and_bounded():
                                  samples=N, plan=plan, probe_wiring=False)
     assert sum(r["estimated"]) == link.late > 0
     assert r["replies"] == r["writes"] == [N + 2] * 5
-    assert r["verdict"] == "within", (r["reason"], r["deviation"])
+    assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
+        (r["reason"], r["deviation"])
+    assert (r["verdict"] == "partly within") == bool(r["not_stated"])
     for k in ("felt_stiffness", "felt_damping"):
         assert r["deviation"][k] <= r["uncertainty"][k]
 
@@ -86,10 +88,11 @@ def test_scripted_missing_replies_are_estimated_and_bounded():
 def test_over_a_pty_in_real_time():
     """The board in a child process behind a pty, the host on its 1 kHz clock, each
     joint's wiring probed first: every tick is a reply read in time or an estimated
-    sample (the counts add up, whatever the load), every reply comes (none lost on a
-    clean link), the board took exactly the probe's writes and the records', it is left
-    at zero torque, and the verdict is "within" or "not measurable" (never
-    "differs")."""
+    sample (the counts add up, whatever the load), the board is left at zero torque, and
+    the verdict is "within", "partly within" or "not measurable" (never "differs").
+    Unless a record's closing reply came after its wait (a loaded machine; the board then
+    re-armed and the verdict "not measurable"), every reply is read by its record's end
+    and the board took exactly the probe's writes and the records'."""
     sc = load_scene_nd(WALL)
     N = 80
     child = Embedded2DIY(str(WALL), "gen3", amplitude=1e-4, cpr=2.0 ** 22)
@@ -100,14 +103,26 @@ def test_over_a_pty_in_real_time():
         rep = child.report(5.0)
     finally:
         child.close()
-    assert r["replies"] == r["writes"] == [N + 2] * 5
+    assert r["writes"] == [N + 2] * 5
     assert all(0 <= e <= N for e in r["estimated"])
-    assert r["verdict"] in ("within", "not measurable"), (r["reason"], r["estimated"])
+    assert r["verdict"] in ("within", "partly within", "not measurable"), \
+        (r["reason"], r["estimated"])
     probe = r["direction_probe"]
     assert probe["relative"] == [1, 1] and probe["setups"] == 2
-    # the probe's writes (its arming's two), and its closing re-arming's two
-    assert rep is not None and rep["packets"] == 5 * (N + 3) + 1 + probe["writes"] + 3
-    assert rep["held_at_end"] == 0.0
+    assert rep is not None and rep["held_at_end"] == 0.0
+    if sum(r["resyncs"]):
+        # a loaded machine held the board's child past a record's closing wait
+        # (END_WAIT_S): its remaining replies came after the record ended, the board was
+        # re-armed (extra set-ups), and such a record is no free response: the product's
+        # rule is "not measurable", never a verdict from it
+        assert r["verdict"] == "not measurable" and "re-synchronised" in r["reason"]
+        assert all(p <= w for p, w in zip(r["replies"], r["writes"]))
+        return
+    # a run the load did not hold up: every reply read by its record's end, and the
+    # board took exactly the probe's writes (its arming's two, its closing re-arming's
+    # two) and the records'
+    assert r["replies"] == r["writes"]
+    assert rep["packets"] == 5 * (N + 3) + 1 + probe["writes"] + 3
     assert rep["decoder"]["unknown"] == 2 * (5 + 2)  # each set-up's two bytes 3 before it
 
 

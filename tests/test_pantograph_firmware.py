@@ -571,7 +571,8 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     bound = linearisation_bound(scene, max(a, res["excursion"]),
                                 res["predicted"].render.rendered_poles)
     v = felt_verdict(res["deviation"], bound, wire)
-    assert v["verdict"] in ("within", "not measurable"), (v, res["late"], res["delay"])
+    assert v["verdict"] in ("within", "partly within", "not measurable"), \
+        (v, res["late"], res["delay"])
     lin = bound.to_dict()
     for key in ("felt_stiffness", "felt_damping"):
         if lin[key] is not None:                 # None: beyond the bound's validity

@@ -8,13 +8,12 @@ stiffness: one stable, one not) get their verdicts."""
 from __future__ import annotations
 
 import shutil
-import socket
 
 import numpy as np
 import pytest
 
 from test_audio_live import Recorder, dummy_jackd
-from test_osc import PATCH, Client, play_daemon, run_patch, stop, wait_for
+from test_osc import PATCH, Client, Sink, play_daemon, run_patch, stop, wait_for
 from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
@@ -32,20 +31,6 @@ def jack8k():
 def start_play(server, *extra):
     """``hapsim play SCENE --osc 0`` through ``server``; the process and its OSC port."""
     return play_daemon(SCENE, server, *extra)
-
-
-def telemetry(sink):
-    """The /hapsim/tel messages that reached ``sink`` (its parameters)."""
-    from pythonosc.osc_message import OscMessage
-    sink.settimeout(0.3)
-    msgs = []
-    try:
-        while True:
-            msgs.append(OscMessage(sink.recvfrom(65536)[0]))
-    except (socket.timeout, TimeoutError):
-        pass
-    sink.close()
-    return [m.params for m in msgs if m.address == "/hapsim/tel"]
 
 
 def aligned(got, ref, window=400):
@@ -71,10 +56,9 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         assert src, rec.client.get_ports()
         rec.client.connect(src[0], rec.inp.name)
         rec.armed = True
-        c = Client(port)
-        sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sink.bind(("127.0.0.1", 0))
-        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.getsockname()[1], 100.0)
+        c = Client(port, proc)
+        sink = Sink()
+        addr, p = c.ask("/hapsim/telemetry", "127.0.0.1", sink.port, 100.0)
         assert addr == "/hapsim/ok", p
         addr, felt = c.ask("/hapsim/felt")
         assert addr == "/hapsim/felt" and len(felt) == 6 + 1 + 8 and felt[6] == 2
@@ -107,7 +91,8 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     ref = reference(sc, n, [(start[0], 80, chain)], hand=h, direction=e,
                     track=track)[:, :1]
     # every /hapsim/tel t x y fx fy k b: the device's position at sample t * rate
-    tel = telemetry(sink)
+    from pythonosc.osc_message import OscMessage
+    tel = [m.params for m in map(OscMessage, sink.close()) if m.address == "/hapsim/tel"]
     assert len(tel) > 20 and all(len(p) == 7 for p in tel)
     k = np.array([round(p[0] * RATE) for p in tel])
     assert np.all(np.diff(k) >= 80)               # 100 Hz at most
@@ -136,7 +121,7 @@ def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
         rec.client.connect(rec.client.get_ports("hapsim.*:out_m2_y_velocity")[0],
                            rec.inp.name)
         rec.armed = True
-        c = Client(port)
+        c = Client(port, proc)
         wait_for(c, "/hapsim/loop", lambda q: q[0] > 20000, "2.5 s of sound")
     finally:
         rep = stop(proc)
@@ -165,7 +150,7 @@ def test_pd_patch_changes_a_plane_of_the_2d_scene(jack8k, tmp_path):
     proc, port = start_play(jack8k)
     try:
         run_patch(PATCH, port, tmp_path)
-        c = Client(port)
+        c = Client(port, proc)
         wait_for(c, "/hapsim/loop", lambda p: (p[3], p[4]) == (1, 1), "Pd's two changes")
     finally:
         rep = stop(proc)

@@ -311,9 +311,14 @@ def test_mock_rt_priority_out_of_range_exits_2(capsys):
     assert "--rt-priority" in capsys.readouterr().err
 
 
-def test_rx_faults_over_a_pty_are_applied_by_serve_fd():
+def test_rx_faults_over_a_pty_are_applied_by_serve_fd(tmp_path):
+    # what the faults do, not what the run measures: a dropped or corrupted FORCE is a
+    # late tick, and the shipped wall is stable at its own delay only (on a loaded machine
+    # the late ticks grew to a safety stop, exit 1, in the full suite): the late-tolerant
+    # wall (test_daemon.late_tolerant_wall), as the other real-time runs of what a run does
+    from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)
     r = subprocess.run(
-        [sys.executable, "-m", "hapsim", "run", os.path.join(ROOT, "configs", "wall.yaml"),
+        [sys.executable, "-m", "hapsim", "run", late_tolerant_wall(tmp_path),
          "--duration", "1", "--faults", "rx.drop=0.02,rx.corrupt=0.02,rx.dup=0.02",
          "--fault-seed", "4", "--rt-priority", "0", "--json"],
         capture_output=True, text=True, cwd=ROOT, timeout=60,

@@ -78,7 +78,13 @@ def test_an_asymmetric_five_bar_is_its_kinematics(g):
     Ji = np.linalg.inv(J)
     M = Ji.T @ np.diag([2e-4, 3e-4]) @ Ji + 0.05 * np.eye(2)
     assert np.max(np.abs(sc.device.mass - M)) < 1e-6 * np.max(np.abs(M))
-    assert check_scene_nd(sc).render.felt_stiffness is not None
+    chk = check_scene_nd(sc)
+    assert chk.render.felt_stiffness is not None
+    from hapsim.api_nd import run_nd
+    r = run_nd(sc)              # the lockstep run through these lengths' kinematics
+    assert r.verdict == "within", r.reason
+    assert np.allclose(r.measured["felt_stiffness"], chk.render.felt_stiffness,
+                       rtol=1e-6, atol=1e-6 * np.max(np.abs(chk.render.felt_stiffness)))
 
 
 @pytest.mark.parametrize("geometry, key, words", [

@@ -193,7 +193,7 @@ def _limits(args, dev, q, n) -> dict:
     """The ``limits`` (and ``workspace``) part of the output."""
     import numpy as np
 
-    from hapsim.analysis.ths_nd import LoopModelND, direction_limits, workspace_limits
+    from hapsim.analysis.ths_nd import LoopModelND, direction_limits
     Iq = _per_joint(args.joint_inertia, n, "--joint-inertia")
     Bq = _per_joint(args.joint_friction, n, "--joint-friction")
     if args.out:
@@ -213,26 +213,74 @@ def _limits(args, dev, q, n) -> dict:
                       "mass_eigenvalues": w.tolist(), "directions": V.T.tolist(),
                       "K_max": [f(v) for v in K], "B": args.B}}
     if args.grid:
-        if not 2 <= args.grid <= 40:
-            raise ConfigError(f"must be between 2 and 40, got {args.grid}", key="--grid")
-        import itertools
-        axes = [np.linspace(v - np.radians(args.span), v + np.radians(args.span), args.grid)
-                for v in q]
-        Q = np.array(list(itertools.product(*axes)))
-        from hapsim.progress import Progress
-        with Progress(len(Q), "workspace map", unit="configurations") as bar:
-            res = workspace_limits(dev, Q, Iq, Bq, B=args.B * np.eye(n),
-                                   progress=bar.update, **kw)
-        out["workspace"] = {
-            "joints_deg": np.degrees(res.joints).tolist(),
+        out["workspace"] = workspace_map(
+            dev, q, Iq, Bq, B=args.B * np.eye(n), grid=args.grid, span=args.span,
+            out=args.out, title=(f"{args.device}: K_max over the workspace (B = "
+                                 f"{args.B:g} N s/m, {args.rate:g} Hz, d = {args.delay})"),
+            **kw)
+    return out
+
+
+def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: float,
+                  out: str | None = None, title: str = "", **loop) -> dict:
+    """``K_max`` along the principal axes of the Cartesian mass over a grid of joint
+    configurations around ``q``, as JSON-ready lists, charted to ``out`` if given
+    (``hapsim kinematics --grid`` and ``hapsim stability --scene --grid``).
+
+    Parameters
+    ----------
+    dev : hapsim.kinematics.Pantograph or hapsim.kinematics.Delta
+    q : array_like, shape (n,)
+        The grid's centre [rad].
+    joint_inertia, joint_friction
+        As :meth:`hapsim.analysis.ths_nd.LoopModelND.from_device`.
+    B : ndarray, shape (n, n)
+        Virtual damping [N s/m].
+    grid : int
+        Points per joint, 2 to 40 (``grid ** n`` configurations).
+    span : float
+        Half-width of the grid around each joint [deg].
+    out : str, optional
+        Chart path (png, pdf, svg).
+    title : str, optional
+    **loop
+        ``hand_mass``, ``hand_damping``, ``rate_hz``, ``delay``.
+
+    Returns
+    -------
+    dict
+        ``joints_deg``, ``positions`` [m], ``status``, ``mass_eigenvalues`` [kg],
+        ``K_max`` [N/m] (:func:`hapsim.analysis.ths_nd.workspace_limits`; None for a
+        non-finite value).
+
+    Raises
+    ------
+    ConfigError
+        ``grid`` outside 2..40 (key ``--grid``); a grid point beyond one turn (key
+        ``joints``).
+    """
+    import itertools
+
+    import numpy as np
+
+    from hapsim.analysis.ths_nd import workspace_limits
+    from hapsim.progress import Progress
+    if not 2 <= grid <= 40:
+        raise ConfigError(f"must be between 2 and 40, got {grid}", key="--grid")
+
+    def f(v):
+        return float(v) if np.isfinite(v) else None
+    axes = [np.linspace(v - np.radians(span), v + np.radians(span), grid) for v in q]
+    Q = np.array(list(itertools.product(*axes)))
+    with Progress(len(Q), "workspace map", unit="configurations") as bar:
+        res = workspace_limits(dev, Q, joint_inertia, joint_friction, B=B,
+                               progress=bar.update, **loop)
+    if out:
+        from hapsim.plot import save_figure
+        from hapsim.plot_workspace import plot_workspace
+        save_figure(plot_workspace(res, title), out)
+    return {"joints_deg": np.degrees(res.joints).tolist(),
             "positions": [[f(v) for v in row] for row in res.positions],
             "status": res.status,
             "mass_eigenvalues": [[f(v) for v in row] for row in res.mass_eigenvalues],
             "K_max": [[f(v) for v in row] for row in res.limits]}
-        if args.out:
-            from hapsim.plot import save_figure
-            from hapsim.plot_workspace import plot_workspace
-            save_figure(plot_workspace(res, f"{args.device}: K_max over the workspace "
-                                            f"(B = {args.B:g} N s/m, {args.rate:g} Hz, "
-                                            f"d = {args.delay})"), args.out)
-    return out

@@ -8,7 +8,8 @@ import math
 import sys
 
 from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args
-from hapsim.option_values import declared
+from hapsim.errors import ConfigError
+from hapsim.option_values import Number, declared
 
 
 def register(sub) -> None:
@@ -34,16 +35,33 @@ def register(sub) -> None:
         epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
                "--delay 1 --hold zoh --B 0\n"
                "\n2-D and 3-D devices (one K_max per direction, and over the workspace):\n"
-               "  hapsim check configs/pantograph_wall.yaml     K_max along the device's "
-               "principal mass axes\n"
+               "  hapsim stability --scene configs/pantograph_wall.yaml   K_max along the "
+               "device's principal mass axes\n"
+               "  hapsim stability --scene configs/pantograph_wall.yaml --grid 9 --out "
+               "kmax.png   and its map over the workspace\n"
+               "  hapsim check configs/pantograph_wall.yaml     the same limits beside the "
+               "felt matrices\n"
                "  hapsim kinematics pantograph --joints 130 50 --joint-inertia 2e-4 "
                "--joint-friction 1e-3 \\\n"
                "      --hand-mass 0.05 --B 0.5 --grid 9 --out kmax.png   its map over the "
                "workspace, charted\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_loop_arguments(p)
+    add_loop_arguments(p, require=False)
     p.add_argument("--B", type=declared("stability", "B"), default=0.0,
                    help="virtual damping B [N s/m] (default %(default)s)")
+    g = p.add_argument_group(
+        "a 2-D or 3-D scene (instead of --mass/--rate: the loop is the scene's)")
+    g.add_argument("--scene", metavar="SCENE.yaml",
+                   help="K_max along each principal axis of the scene's device's Cartesian "
+                        "mass at its operating point (the port links' damping and the rest "
+                        "of their stiffness held; the MIMO loop, not axis by axis)")
+    g.add_argument("--grid", type=Number(int, low=0, high=40), default=0, metavar="N",
+                   help="also map K_max over N points per joint within --span of the "
+                        "device's joints (a pantograph or delta; the port damping held)")
+    g.add_argument("--span", type=Number(float, low=0, open_low=True, unit="deg"),
+                   default=30.0, metavar="DEG",
+                   help="half-width of the --grid map around each joint [deg] (default 30)")
+    g.add_argument("--out", metavar="FIG", help="chart the --grid map (png, pdf, svg)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
@@ -68,9 +86,21 @@ def run(args) -> int:
     Raises
     ------
     hapsim.errors.ConfigError
-        Bad loop option (key: the option) or a non-finite ``--B``.
+        Bad loop option (key: the option), a non-finite ``--B``, neither the loop nor
+        ``--scene``, or a bad scene (:func:`_run_scene`).
     """
     from hapsim.api import known_decimals, stability
+    if args.scene is not None:
+        return _run_scene(args)
+    for flag in ("--grid", "--span", "--out"):
+        dest = flag[2:]
+        if getattr(args, dest) not in (None, 0, 30.0):
+            raise ConfigError("a workspace map needs a 2-D or 3-D scene: --scene FILE",
+                              key=flag)
+    missing = [f for f, v in (("--mass", args.mass), ("--rate", args.rate)) if v is None]
+    if missing:
+        raise ConfigError(f"the loop needs {' and '.join(missing)} (or --scene FILE for a "
+                          "2-D or 3-D scene's device)", key=missing[0])
     loop = loop_from_args(args)
     rep = stability(loop, args.B)
     d = rep.to_dict()
@@ -120,3 +150,115 @@ def _outward(v: float, up: bool, digits: int = 10) -> str:
     q = Decimal(1).scaleb(d.adjusted() - digits + 1)
     r = d.quantize(q, rounding=ROUND_CEILING if up else ROUND_FLOOR)
     return format(r.normalize(), "f") if abs(d.adjusted()) < 12 else format(r, "g")
+
+
+#: The loop options a scene gives itself (flag, destination, default).
+_LOOP_FLAGS = (("--mass", "mass", None), ("--friction", "friction", 0.0),
+               ("--rate", "rate", None), ("--delay", "delay", 1), ("--hold", "hold", "zoh"),
+               ("--B", "B", 0.0))
+
+
+def _run_scene(args) -> int:
+    """``hapsim stability --scene``: ``K_max`` per principal direction of a 2-D/3-D
+    scene's device (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`, the MIMO loop's
+    spectral radius through :func:`hapsim.analysis.ths_nd.direction_limit`; issue 23
+    item 4) and, with ``--grid``, its map over the workspace
+    (:func:`hapsim.commands.kinematics.workspace_map`).
+
+    Returns
+    -------
+    int
+        0 when every direction has a positive limit, 1 when one has none or the scene's
+        port links end on moving masses (no port-to-ground limit to state).
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        A loop option given with a scene (the scene gives them), a 1-D scene or one
+        without a port, ``--grid`` on a Cartesian device, ``--out`` without ``--grid``,
+        a bad scene file.
+    """
+    import numpy as np
+
+    from hapsim import api
+    from hapsim.progress import Progress
+    given = [f for f, dest, default in _LOOP_FLAGS if getattr(args, dest) != default]
+    if given:
+        raise ConfigError("a scene gives its own loop (device mass, friction, rate, delay, "
+                          "hold) and its port links' damping: leave out "
+                          + ", ".join(given), key=given[0])
+    if args.out:
+        from hapsim.plot import check_figure_path
+        check_figure_path(args.out)
+        if not args.grid:
+            raise ConfigError("a chart needs --grid N", key="--out")
+    scene = api.load_scene(args.scene)
+    if not hasattr(scene, "dimension") or scene.dimension == 1:
+        raise ConfigError("a 1-D scene: 'hapsim check SCENE' gives its K_max, or give the "
+                          "loop as --mass --rate", key="--scene")
+    if scene.port is None:
+        raise ConfigError("the scene has no port (nothing felt, no loop): 'hapsim check "
+                          "SCENE' gives its modes", key="--scene")
+    dev = scene.device
+    if args.grid and dev.kind not in ("pantograph", "delta"):
+        raise ConfigError(f"a {dev.kind} device's mass is the same over the workspace: the "
+                          "limits above hold everywhere (a map needs a pantograph or a "
+                          "delta)", key="--grid")
+    with Progress(scene.dimension, "stiffness limits (longer with a longer delay)",
+                  unit="directions") as bar:
+        rep = api.check_nd(scene, progress=bar.update)
+    chk = rep.analysis
+    n = scene.dimension
+    lim = chk.stiffness_limits
+    E = chk.limit_directions
+
+    def f(v):
+        return float(v) if np.isfinite(v) else None
+    w = np.linalg.eigvalsh(dev.mass)
+    d = {"scene": str(args.scene), "dof": n, "device": dev.kind, "rate_hz": scene.rate_hz,
+         "delay": dev.delay, "port_stiffness": chk.port_stiffness.tolist(),
+         "port_damping": chk.port_damping.tolist(),
+         "mass_eigenvalues": w.tolist(),
+         "directions": None if E is None else E.T.tolist(),
+         "K_max": None if lim is None else [f(v) for v in lim],
+         "port_stiffness_along": None if E is None else [
+             float(E[:, i] @ chk.port_stiffness @ E[:, i]) for i in range(n)]}
+    if args.grid:
+        from hapsim.commands.kinematics import workspace_map
+        from hapsim.kinematics import device as kin_device
+        d["workspace"] = workspace_map(
+            kin_device(dev.kind, dev.geometry), dev.joints, dev.joint_inertia,
+            dev.joint_friction, B=chk.port_damping, grid=args.grid, span=args.span,
+            out=args.out, title=(f"{args.scene}: K_max over the workspace ({scene.rate_hz:g}"
+                                 f" Hz, d = {dev.delay}, the port damping)"),
+            hand_mass=dev.hand_mass, hand_damping=dev.hand_damping,
+            rate_hz=scene.rate_hz, delay=dev.delay)
+    code = 1 if lim is None or not np.all(lim > 0) else 0
+    if args.json:
+        print(json.dumps(d))
+        return code
+    o = sys.stdout
+    print(f"scene: {args.scene}  ({n}-D {dev.kind}, {scene.rate_hz:g} Hz, d={dev.delay})",
+          file=o)
+    if lim is None:
+        print("  no per-direction limit: a port link ends on a moving mass, so the limit "
+              "of a port-to-ground spring says nothing about what is felt (as in 1-D)",
+              file=o)
+        return code
+    print("  K_max along the principal axes of the device's Cartesian mass (the MIMO "
+          "loop's spectral radius; the port damping and the rest of its stiffness held):",
+          file=o)
+    for i in range(n):
+        e = "(" + ", ".join(f"{v:+.4f}" for v in E[:, i]) + ")"
+        print(f"    {e}  mass {w[i]:.4g} kg  K_max = {fmt(lim[i])} N/m   (the scene's "
+              f"port stiffness along it: {d['port_stiffness_along'][i]:.6g} N/m)", file=o)
+    if args.grid:
+        ws = d["workspace"]
+        ok = [min(v for v in row if v is not None) for row, st in zip(ws["K_max"],
+                                                                       ws["status"])
+              if st == "ok" and any(v is not None for v in row)]
+        print(f"  over the workspace ({args.grid} points per joint, +-{args.span:g} deg): "
+              f"{len(ok)} of {len(ws['status'])} configurations assembled; lowest K_max "
+              + (f"{fmt(min(ok))} N/m" if ok else "-")
+              + (f"; chart: {args.out}" if args.out else ""), file=o)
+    return code

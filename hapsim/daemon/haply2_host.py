@@ -471,7 +471,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             probe = find_directions(drv, _PortLink(ser),
                                     [math.degrees(v) for v in scene.device.joints],
                                     force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
-                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5)
+                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5,
+                                    first_timeout=ARM_TIMEOUT)
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N))
             if progress is not None:

@@ -32,28 +32,36 @@ class Exchange:
     timeout : float
         Longest wait for one reply [s].
     max_missing : int
-        Missing replies allowed before :class:`DeviceError`.
+        Writes in a row without any reply allowed before :class:`DeviceError` (a board
+        that stopped answering). A reply that comes after its timeout is late, not lost:
+        it is read with the next write's (the board answers every write, in order), so a
+        loaded host or device slows the exchange without failing it.
     lost : str
         That error's message.
+    first_timeout : float, optional
+        Longest wait for the first write's reply [s] (a board, or a board process, still
+        starting when the port opened); default ``timeout``.
 
     Attributes
     ----------
-    writes, missing : int
-        Writes sent and replies that did not come.
+    writes, missing, replies : int
+        Writes sent, writes whose reply did not come within the timeout, and replies
+        read.
     silence : float
         Host time between the last two writes [s] (a firmware's silence rule reads it).
 
     Raises
     ------
     DeviceError
-        From :meth:`reply`: more than ``max_missing`` replies missing.
+        From :meth:`reply`: more than ``max_missing`` writes in a row without a reply.
     """
 
     def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float, *,
                  max_missing: int = 20,
-                 lost: str = ("the Haply board does not answer its writes (more than 20 "
-                              "missing replies while finding the motor direction): check "
-                              "the port and the device id")) -> None:
+                 lost: str = ("the Haply board does not answer its writes (no reply to "
+                              "more than 20 writes in a row while finding the motor "
+                              "direction): check the port and the device id"),
+                 first_timeout: float | None = None) -> None:
         self.drv = drv
         self.link = link
         self.dec = drv.decoder()
@@ -62,6 +70,9 @@ class Exchange:
         self.timeout = timeout
         self.writes = 0
         self.missing = 0
+        self.replies = 0
+        self.silent = 0                  # writes in a row without any reply
+        self.first_timeout = timeout if first_timeout is None else float(first_timeout)
         self.max_missing = max_missing
         self.lost = lost
         self.silence = 0.0
@@ -85,7 +96,7 @@ class Exchange:
         self.silence, self._last = now - self._last, now
         self.link.write(data)
         self.writes += 1
-        end = time.monotonic() + self.timeout
+        end = time.monotonic() + (self.first_timeout if self.writes == 1 else self.timeout)
         got = []
         while not got:
             got = self.dec.feed(self.link.read(max(0.0, end - time.monotonic())))
@@ -93,18 +104,23 @@ class Exchange:
                 break
         if not got:
             self.missing += 1
-            if self.missing > self.max_missing:
+            self.silent += 1
+            if self.silent > self.max_missing:
                 raise DeviceError(self.lost)
             return None
+        self.replies += len(got)
+        self.silent = 0
         return got[-1]
 
     def stop(self, data: bytes, replies: int) -> None:
-        """Send the stop ``data`` (zero torque) and read its ``replies`` (at most the
-        timeout): a reply left on the line would be read by whoever opens the port next
-        as the answer to its own first write. Best effort: never raises (the port may be
-        gone; this runs on every exit)."""
+        """Send the stop ``data`` (zero torque) and read its ``replies`` and those of
+        earlier writes still on their way (late ones; at most the timeout): a reply left
+        on the line would be read by whoever opens the port next as the answer to its own
+        first write. Best effort: never raises (the port may be gone; this runs on every
+        exit)."""
         try:
             self.link.write(data)
+            replies += max(0, self.writes - self.replies) if self.replies else 0
             end = time.monotonic() + self.timeout
             n = 0
             while n < replies and time.monotonic() < end:

@@ -151,8 +151,8 @@ def _send(ex, count: int):
     return CENTRE + round(got / ex.drv.position_scale), ex.silence
 
 
-_LOST = ("the FireFader does not answer its packets (more than 50 missing records during "
-         "the travel sweep): check the port")
+_LOST = ("the FireFader does not answer its packets (no record for more than 50 packets "
+         "in a row during the travel sweep): check the port")
 
 
 def find_travel(drv, link, *, travel: float, force: float, rate_hz: float = 250.0,

@@ -73,7 +73,7 @@ class WiringProbe:
 
 def find_directions(drv, link, joints_deg, *, force_limit: float, envelope: float,
                     rate_hz: float = 1000.0, min_counts: int = 3, pace: bool = True,
-                    timeout: float = 0.05) -> WiringProbe:
+                    timeout: float = 0.05, first_timeout: float | None = None) -> WiringProbe:
     """Check each joint of a 2DIY turns the way its angle counts up (module notes).
 
     Parameters
@@ -90,6 +90,9 @@ def find_directions(drv, link, joints_deg, *, force_limit: float, envelope: floa
         A pulse also ends when the joint moved this far [rad].
     rate_hz, min_counts, pace, timeout
         As :func:`hapsim.drivers.haply_probe.find_direction` ([Hz], counts, bool, [s]).
+    first_timeout : float, optional
+        Longest wait for the arming's reply [s] (a board process still starting: the
+        probe is the first to talk to it); default ``timeout``.
 
     Returns
     -------
@@ -103,13 +106,17 @@ def find_directions(drv, link, joints_deg, *, force_limit: float, envelope: floa
         come to rest, does not move, or moves the same way under both signs (as the 1-DoF
         probe).
     DeviceError
-        The board does not answer.
+        The board does not answer (no reply to more than 20 writes in a row; replies that
+        come late are read, :class:`hapsim.drivers.exchange.Exchange`).
     """
     from hapsim.drivers.exchange import Exchange
     from hapsim.drivers.haply_probe import probe_axis, pulse_limits
     count = 2 * math.pi / drv.resolution
     top, reach = pulse_limits(force_limit, count, envelope, min_counts, "the 2DIY's wiring")
-    ex = Exchange(drv, link, rate_hz, pace, timeout)
+    ex = Exchange(drv, link, rate_hz, pace, timeout, first_timeout=first_timeout,
+                  lost="the 2DIY does not answer its writes (no reply to more than 20 "
+                       "writes in a row while checking its wiring): check the port and "
+                       "the device id")
     zero = drv.write_bytes((0.0, 0.0))
     found = []
     try:
