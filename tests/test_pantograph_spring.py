@@ -71,6 +71,31 @@ def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, ca
     assert text.rstrip().splitlines()[-1].startswith("  verdict: within")
 
 
+def test_a_board_started_at_another_amplitude_is_not_measurable_not_a_traceback(built,
+                                                                                capsys):
+    """The board's simulated hand moves to the starts of its own amplitude (2e-4 m here);
+    a run at 5e-3 m gets its records at starts it did not expect. Before, the joint-level
+    wire term read the incomplete result's responses and the run ended in a KeyError
+    traceback (exit 1); now: exit 0, "not measurable", the reason naming the amplitude."""
+    from hapsim.cli import main
+    from hapsim.daemon.pantograph_board import board_command
+    from hapsim.scene_nd import load_scene_nd
+    scene = load_scene_nd(str(SCENE))
+    proc = subprocess.Popen(board_command(scene, 2e-4), stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("PORT "), line
+        assert main(["run", str(SCENE), "--port", line.split()[1], "--lockstep",
+                     "--amplitude", "5e-3", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+    assert out["verdict"] == "not measurable" and out["within"] is None
+    assert "another amplitude" in out["reason"] and "0.005 m" in out["reason"], out["reason"]
+
+
 def test_check_and_plot_of_the_spring(tmp_path, capsys):
     """``hapsim check configs/pantograph_spring.yaml --json``: stable, two principal
     directions (the device's mass axes at the workspace's centre, x and y); ``--plot``

@@ -198,7 +198,7 @@ def realtime_run(scene_path: str, amplitude: float = 2e-4, timeout: float = 300.
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         mock = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware",
                                  "--scene", scene_path, "--report", str(report),
-                                 *mock_args],
+                                 "--amplitude", repr(amplitude), *mock_args],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                 env=env)
         try:

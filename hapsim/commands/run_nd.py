@@ -352,7 +352,8 @@ def _measure_over_port(args, scene, a: float, n: int):
         from hapsim.daemon.pantograph_board import wire_term
         h = joint.hello
         res["torque_max"] = joint.torque_max
-        res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
+        if not res.get("incomplete"):      # an incomplete record has no responses to weigh
+            res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
         info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
                           f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "
                           f"torques {h.force_scale:.6g} N m/step; "

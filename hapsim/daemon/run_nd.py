@@ -597,7 +597,13 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                                f"{need} rows or more in {counts.configs} CONFIGs (STATEs "
                                f"missed: {counts.missed}, records cut short: {counts.cut}, "
                                f"device losses: {counts.lost}): the felt matrices are not "
-                               "measured"))
+                               "measured" + (
+                                   f"; {counts.out_of_turn} of the {counts.configs} records "
+                                   "began at another start than the one expected: the "
+                                   "device's hand moves to the starts of another amplitude "
+                                   f"(an emulated device's --amplitude must be this run's, "
+                                   f"{a:g} m)" if 2 * counts.out_of_turn >= counts.configs
+                                   else "")))
         return out
     recs, late, wdog, delays = [], 0, 0, []
     d = scene.device.delay
