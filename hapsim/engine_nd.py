@@ -177,19 +177,24 @@ class EngineND:
         for compiled code that steps it: set slot 0 to the samples and call
         :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does).
 
-        Raises
-        ------
-        ConfigError
-            The engine runs in single precision (key ``engine.precision``): its arrays
-            are float32, which :func:`~hapsim.kernels.nd.run_context` and the compiled
-            callers of this property would read as float64 (single precision runs through
-            :meth:`step`, :meth:`listen` and ``hapsim simulate``)."""
-        if self.dtype is not np.float64:
-            raise ConfigError("single precision (engine: {precision: single}) runs through "
-                              "hapsim simulate and the engine's step and listen; the live "
-                              "compiled loops take the double-precision engine: leave the "
-                              "key out here", key="engine.precision")
+        In single precision its arrays are float32: step it with
+        :func:`hapsim.kernels.nd.run_context32` (:attr:`precision` says which), never
+        :func:`~hapsim.kernels.nd.run_context`, which would read them as float64."""
         return self._ctx
+
+    @property
+    def step_rows(self) -> tuple:
+        """The two state arrays the compiled step advances, as views (dim, N) in the
+        engine's precision, for compiled callers that read them between samples
+        (:mod:`hapsim.kernels.play_nd`): the positions ``x[n]`` [m] and, in double
+        precision, ``x[n-1]`` [m]; in single precision (the scheme's velocity form) the
+        last step ``x[n] - x[n-1]`` [m].
+
+        Returns
+        -------
+        tuple of ndarray, shape (dim, N) each
+        """
+        return self._X[:self.dim], self._XP[:self.dim]
 
     def cells(self, name: str) -> dict:
         """Where the running engine reads a link's, a plane's or a mass's parameters, so

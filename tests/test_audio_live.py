@@ -810,14 +810,16 @@ def test_the_callback_pack_is_the_live_sounds_own_state_and_renders_as_it_does()
     assert ring.callback_pack.ring[:5].sum() == 10.0
 
 
-def test_live_nd_membrane_equals_offline_rendering(jack_server):
+@pytest.mark.parametrize("precision", ["double", "single"])
+def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     """A 2-D/3-D scene's live sound (issue 23 item 7): the struck membrane (at the test
     server's 48 kHz) produced chunk by chunk into the frame ring and played by the native
     JACK callback; the frames a client of ours recorded through a real connection are
     the offline rendering's (hapsim simulate --audio), bit for bit in float32, every frame
     read once (none skipped); xruns counted (printed, not asserted: shared machine).
     Should the producer fall behind (underruns, counted), the frames played between the
-    silences are still the offline ones in order."""
+    silences are still the offline ones in order. In both precisions (single: the
+    engine's float32 velocity form, its own compiled chunk)."""
     from hapsim.audio.live import JackOutput
     from hapsim.audio.live_nd import LiveND
     from hapsim.audio.offline_nd import render_nd
@@ -826,8 +828,8 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server):
 
     sc = dataclasses.replace(load_scene_nd("configs/membrane.yaml"), rate_hz=48000.0)
     total = 24000                                     # 0.5 s
-    ref = render_nd(EngineND(sc), total)[:, 0].astype(np.float32)
-    live = LiveND(EngineND(sc))
+    ref = render_nd(EngineND(sc, precision=precision), total)[:, 0].astype(np.float32)
+    live = LiveND(EngineND(sc, precision=precision))
     live.produce(0)                                   # compiled before the clock runs
     rec = Recorder(jack_server, seconds=3.0)
     rec.armed = False

@@ -72,9 +72,14 @@ def test_the_engine_state_is_in_the_chosen_precision():
         EngineND(single, precision="half")
     eng.step(100)
     assert 0 < abs(eng.x[0, 0]) < 0.01 and eng.x.dtype == np.float32
-    # the compiled live loops read the engine's context as float64: refused, not misread
-    with pytest.raises(ConfigError, match="double-precision engine"):
-        eng.context
+    # the live loop names the float32 rows in its context only as float32 (a context
+    # built for the double engine refuses them, never misreads them)
+    from hapsim.kernels.pointers import address
+    x, v = eng.step_rows
+    assert x.dtype == v.dtype == np.float32 and x.shape == v.shape == (2, 2)
+    with pytest.raises(ValueError):
+        address(x, np.float64)
+    assert address(x, np.float32) == x.ctypes.data
 
 
 def test_single_precision_membrane_follows_the_closed_form():

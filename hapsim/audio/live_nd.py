@@ -161,12 +161,17 @@ class LiveND:
         self._arrays = {
             "engine": engine.context, "out": self._buf, "axis": axis, "mass": mass,
             "velocity": vel.astype(np.int64), "gain": gain, "ring": pack.ring,
-            "wr": pack.wr, "x": engine.x, "xp": engine.xp,
+            "wr": pack.wr, "x": engine.step_rows[0], "xp": engine.step_rows[1],
             "port_f": engine.port_f, "Ad": np.ascontiguousarray(Ad, float),
             "Bd": np.ascontiguousarray(Bd, float), "state": self.state, "rest": self.rest,
             "line": self.line, "hand": self.hand, "direction": self.direction,
             "params": self.params, "cells": self.cells, "ramps": self.ramps}
-        self._ctx = kernel.play_context(dim, d, port, self.every, self._arrays)
+        # a single-precision engine (float32 state in the velocity form; no port) runs
+        # through its own entry point, the ramps writing its float32 cells
+        single = engine.dtype is not np.float64
+        self._ctx = kernel.play_context(dim, d, port, self.every, self._arrays,
+                                        dtype=engine.dtype)
+        self._chunk = kernel.play_chunk32 if single else kernel.play_chunk
         self._nr = 0
         self.control = control
         self._mail = control.mailbox if control is not None else None
@@ -280,7 +285,7 @@ class LiveND:
         n = self.chunk if frames is None or frames >= self.chunk else int(frames)
         ctx = self._ctx
         ctx[0] = n
-        kernel.play_chunk(ctx)
+        self._chunk(ctx)
         if self._missing0 is None and n:
             # silence the callback played before the sound began is not an underrun
             self._missing0 = int(self.ring.callback_pack.st[1])

@@ -35,8 +35,8 @@ from hapsim.kernels import nd as nd_kernel
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
 
-__all__ = ["play_context", "play_chunk", "HEAD", "PLAY_ARRAYS", "FRAMES", "RAMPS",
-           "SAMPLE", "RAMP_COLUMNS"]
+__all__ = ["play_context", "play_chunk", "play_chunk32", "HEAD", "PLAY_ARRAYS", "FRAMES",
+           "RAMPS", "SAMPLE", "RAMP_COLUMNS", "ENGINE_ARRAYS"]
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
@@ -65,12 +65,17 @@ _KINDS = {**dict.fromkeys(("engine", "axis", "mass", "velocity", "wr"), (np.int6
                            "params"), (np.float64, 1)),
           **dict.fromkeys(("out", "x", "xp", "Ad", "Bd", "line", "ramps"), (np.float64, 2)),
           "cells": (np.int64, 2), "ring": (np.float32, 2)}
+#: The arrays held in the engine's precision (float32 for a single-precision engine,
+#: whose ``xp`` rows hold the last step ``x[n] - x[n-1]``: the velocity form).
+ENGINE_ARRAYS = ("x", "xp", "port_f")
 #: Columns of the ramp table: law (0: ``c v``, 1: ``c / v``), c, start, end, steps, done.
 RAMP_COLUMNS = 6
 
 
-def play_context(dim: int, delay: int, port: int, every: int, arrays: dict) -> np.ndarray:
-    """The int64 context of :func:`play_chunk`.
+def play_context(dim: int, delay: int, port: int, every: int, arrays: dict,
+                 dtype=np.float64) -> np.ndarray:
+    """The int64 context of :func:`play_chunk` (or, with ``dtype`` float32, of
+    :func:`play_chunk32`).
 
     Parameters
     ----------
@@ -86,6 +91,9 @@ def play_context(dim: int, delay: int, port: int, every: int, arrays: dict) -> n
         Every array of :data:`PLAY_ARRAYS` by name, kept alive and in place by the
         caller (``engine`` is the engine's own context,
         :func:`hapsim.kernels.nd.context`).
+    dtype : numpy dtype, optional
+        The engine's precision: the type of :data:`ENGINE_ARRAYS` (float32: a
+        single-precision engine, ``port`` then -1).
 
     Returns
     -------
@@ -99,15 +107,19 @@ def play_context(dim: int, delay: int, port: int, every: int, arrays: dict) -> n
         An array missing, of another element type or number of dimensions, not
         C-ordered or not writeable.
     """
+    if np.dtype(dtype) != np.float64 and port >= 0:
+        raise ValueError("a single-precision engine plays without a device (port -1)")
     ctx = np.zeros(HEAD + 3 * len(PLAY_ARRAYS), np.int64)
     ctx[DIM], ctx[DELAY], ctx[PORT], ctx[EVERY] = dim, delay, port, every
     ctx[HAND] = arrays["hand"].shape[0]
     for i, name in enumerate(PLAY_ARRAYS):
-        dtype, ndim = _KINDS[name]
+        kind, ndim = _KINDS[name]
+        if name in ENGINE_ARRAYS:
+            kind = dtype
         a = arrays[name]
         if a.ndim != ndim:
             raise ValueError(f"{name}: {ndim} dimensions expected, got shape {a.shape}")
-        ctx[HEAD + 3 * i:HEAD + 3 * i + 3] = (address(a, dtype), a.shape[0],
+        ctx[HEAD + 3 * i:HEAD + 3 * i + 3] = (address(a, kind), a.shape[0],
                                               a.shape[-1] if ndim == 2 else 0)
     return ctx
 
@@ -170,14 +182,7 @@ def play_chunk(ctx):
     m2 = 2 * dim
     for k in range(frames):
         s = ctx[SAMPLE]
-        for r in range(ctx[RAMPS]):
-            if ramps[r, 5] < ramps[r, 4]:
-                ramps[r, 5] += 1.0
-                a = ramps[r, 5] / ramps[r, 4]
-                v = ramps[r, 2] + a * (ramps[r, 3] - ramps[r, 2])
-                v = ramps[r, 1] / v if ramps[r, 0] == 1.0 else ramps[r, 1] * v
-                cell = nb.carray(voidptr(cells[r, 0]), (cells[r, 1] + 1,), np.float64)
-                cell[cells[r, 1]] = v
+        _ramp(ctx[RAMPS], ramps, cells, np.float64)
         if port >= 0:
             for i in range(dim):
                 x[i, port] = rest[i] + state[i]
@@ -207,11 +212,67 @@ def play_chunk(ctx):
                 state[m2 + dim + i] = acc
             for i in range(m2):
                 state[i] = state[m2 + dim + i]
-        g = params[1]
-        for c in range(out.shape[1]):
-            v = x[axis[c], mass[c]]
-            if vel[c] != 0:
-                v -= xp[axis[c], mass[c]]
-            out[k, c] = g * gain[c] * v
+        _listen(out, k, x, xp, axis, mass, vel, gain, params[1], False)
         ctx[SAMPLE] = s + 1
     audio_kernel.ring_write(out[:frames], ring, wr)
+
+
+@_jit
+def play_chunk32(ctx):
+    """:func:`play_chunk` for a single-precision engine (its state float32, in the
+    scheme's velocity form: ``xp`` holds ``x[n] - x[n-1]``), which plays without a device
+    (a port's scene runs the double-precision engine): each sample the ramps advance
+    (written to the engine's float32 cells), the engine steps
+    (:func:`hapsim.kernels.nd.run_context32`) and the listening points are recorded.
+
+    Parameters
+    ----------
+    ctx : ndarray of int64
+        From :func:`play_context` with ``dtype=np.float32`` and port -1.
+    """
+    eng = _v1(ctx, 0, np.int64)
+    out = _v2(ctx, 1, np.float64)
+    axis = _v1(ctx, 2, np.int64)
+    mass = _v1(ctx, 3, np.int64)
+    vel = _v1(ctx, 4, np.int64)
+    gain = _v1(ctx, 5, np.float64)
+    ring = _v2(ctx, 6, np.float32)
+    wr = _v1(ctx, 7, np.int64)
+    x = _v2(ctx, 8, np.float32)
+    v = _v2(ctx, 9, np.float32)
+    params = _v1(ctx, 18, np.float64)
+    cells = _v2(ctx, 19, np.int64)
+    ramps = _v2(ctx, 20, np.float64)
+    frames = ctx[FRAMES]
+    for k in range(frames):
+        _ramp(ctx[RAMPS], ramps, cells, np.float32)
+        eng[0] = 1
+        nd_kernel.run_context32(eng)
+        _listen(out, k, x, v, axis, mass, vel, gain, params[1], True)
+        ctx[SAMPLE] += 1
+    audio_kernel.ring_write(out[:frames], ring, wr)
+
+
+@_inline
+def _ramp(count, ramps, cells, dtype):
+    """Every ramp under way takes its next value (module docstring, step 1), written into
+    its cell, an array of ``dtype`` (the engine's precision, or this loop's float64)."""
+    for r in range(count):
+        if ramps[r, 5] < ramps[r, 4]:
+            ramps[r, 5] += 1.0
+            a = ramps[r, 5] / ramps[r, 4]
+            v = ramps[r, 2] + a * (ramps[r, 3] - ramps[r, 2])
+            v = ramps[r, 1] / v if ramps[r, 0] == 1.0 else ramps[r, 1] * v
+            cell = nb.carray(voidptr(cells[r, 0]), (cells[r, 1] + 1,), dtype)
+            cell[cells[r, 1]] = v
+
+
+@_inline
+def _listen(out, k, x, xp, axis, mass, vel, gain, g, step_form):
+    """Frame ``k``: each listening point, ``g gain[c] x[axis, mass]`` or, for a velocity,
+    its last step (``x - xp``, or ``xp`` itself in the velocity form: ``step_form``)."""
+    for c in range(out.shape[1]):
+        v = float(x[axis[c], mass[c]])
+        if vel[c] != 0:
+            v = float(xp[axis[c], mass[c]]) if step_form else v - xp[axis[c], mass[c]]
+        out[k, c] = g * gain[c] * v
