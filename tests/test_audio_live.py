@@ -816,7 +816,8 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     server's 48 kHz) produced chunk by chunk into the frame ring and played by the native
     JACK callback; the frames a client of ours recorded through a real connection are
     the offline rendering's (hapsim simulate --audio), bit for bit in float32, every frame
-    read once (none skipped); xruns counted (printed, not asserted: shared machine).
+    read once (none skipped); xruns counted (printed, not asserted: shared machine; an
+    xrun may leave the recording client one period of other frames, and no more).
     Should the producer fall behind (underruns, counted), the frames played between the
     silences are still the offline ones in order. In both precisions (single: the
     engine's float32 velocity form, its own compiled chunk)."""
@@ -854,11 +855,23 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     r0 = int(np.flatnonzero(ref)[0])
     seg = got[nz[0]:]
     if st["underruns"] == 0:
+        a, b = seg, ref[r0:]
         m = min(seg.size, total - r0)
         assert m > 0.4 * 48000
-        np.testing.assert_array_equal(seg[:m], ref[r0:r0 + m])
     else:                        # silences inserted where the producer was late: drop them
         a, b = seg[seg != 0], ref[r0:][ref[r0:] != 0]
         m = min(a.size, b.size)
         assert m > 0.4 * 48000 - st["underruns"]
-        np.testing.assert_array_equal(a[:m], b[:m])
+    bad = np.flatnonzero(a[:m] != b[:m])
+    if bad.size and out.xruns:
+        # a server xrun (its cycle missed) can leave the recording client one period of
+        # other frames; the rest stays the offline rendering, in order (seen once beside
+        # two CPU-bound processes: 256 frames wrong, one xrun)
+        runs = np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1)
+        assert len(runs) <= out.xruns and all(r[-1] - r[0] < out.blocksize for r in runs), \
+            (len(runs), out.xruns, [(int(r[0]), int(r[-1])) for r in runs])
+        keep = np.ones(m, bool)
+        keep[bad] = False
+        a, b = a[:m][keep], b[:m][keep]
+        m = a.size
+    np.testing.assert_array_equal(a[:m], b[:m])
