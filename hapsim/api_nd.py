@@ -19,7 +19,8 @@ from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.results import Report
 
-__all__ = ["load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd", "CheckReportND", "ModesReportND", "RunReportND"]
+__all__ = ["load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd", "stable_prediction_nd",
+           "CheckReportND", "ModesReportND", "RunReportND"]
 
 def load_scene_nd(path: str | os.PathLike):
     """Read and validate a 2-D or 3-D scene file (docs/dimensions.md).
@@ -490,8 +491,6 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     (:mod:`hapsim.analysis.identify_nd`), against :func:`check_nd`'s prediction; the
     first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation_nd`).
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
     check_values("run_nd", amplitude=amplitude)
     scene = _scene_nd(scene)
@@ -499,10 +498,40 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     if scene.port is None:
         raise ConfigError("a run needs a mass of kind 'port' and a device section",
                           file=scene.path, key="masses")
+    stable_prediction_nd(scene, allow_unstable)
+    return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
+
+
+def stable_prediction_nd(scene, allow_unstable: bool = False,
+                         override: str = "allow_unstable"):
+    """The scene's check (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`), refused
+    when its closed loop is unstable unless ``allow_unstable`` (every n-D run: the API's,
+    ``hapsim run``'s and the Falcon's).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A scene with a port and a device.
+    allow_unstable : bool, optional
+        Return the check of an unstable loop instead of refusing it.
+    override : str, optional
+        How the caller's user says ``allow_unstable`` (named in the refusal).
+
+    Returns
+    -------
+    hapsim.analysis.scene_nd_check.SceneCheckND
+
+    Raises
+    ------
+    UnstableConfigError
+        The closed loop's spectral radius is 1 or more and ``allow_unstable`` is false.
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.errors import UnstableConfigError
     pred = check_scene_nd(scene)
     if not pred.stable and not allow_unstable:
         raise UnstableConfigError(
             f"{scene.path}: the closed loop is unstable (spectral radius "
             f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
-            "allow_unstable to run it anyway")
-    return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
+            f"{override} to run it anyway")
+    return pred

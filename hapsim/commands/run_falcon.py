@@ -66,10 +66,9 @@ def run_falcon_command(args) -> int:
         No or an unreadable ``--firmware``, a refused option, a bad ``--port``, a scene
         that is not 3-D with a delta device (exit 2).
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
-    from hapsim.errors import DeviceError, UnstableConfigError
+    from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     from hapsim.scene_nd import load_scene_nd
     from hapsim.daemon.options import command_line_fields
@@ -86,12 +85,8 @@ def run_falcon_command(args) -> int:
         raise ConfigError("--driver falcon drives a 3-D scene whose device is a delta "
                           "(configs/delta_sphere.yaml, delta_mesh.yaml)", file=scene.path,
                           key="device.kind")
-    pred = check_scene_nd(scene)
-    if not pred.stable and not args.allow_unstable:
-        raise UnstableConfigError(
-            f"{scene.path}: the closed loop is unstable (spectral radius "
-            f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
-            "--allow-unstable to run it anyway")
+    from hapsim.api_nd import stable_prediction_nd
+    pred = stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
     packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
     emulated = args.port is None
     link = truth = None

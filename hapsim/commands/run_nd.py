@@ -86,7 +86,6 @@ def run_nd(args) -> int:
     :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; the linearisation bound of
     :mod:`hapsim.analysis.linearisation_nd` at ``a``.
     """
-    from hapsim.errors import UnstableConfigError
     from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
     _refuse_options(args)
@@ -109,13 +108,8 @@ def run_nd(args) -> int:
         return _run_haply2(args)
     a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.analysis.scene_nd_check import check_scene_nd
-    pred = check_scene_nd(scene)
-    if not pred.stable and not args.allow_unstable:
-        raise UnstableConfigError(
-            f"{scene.path}: the closed loop is unstable (spectral radius "
-            f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
-            "--allow-unstable to run it anyway")
+    from hapsim.api_nd import stable_prediction_nd
+    pred = stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
     n = scene.dimension
     in_process = args.lockstep and not args.port
     where = "in-process"
