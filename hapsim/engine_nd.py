@@ -2,7 +2,7 @@
 :mod:`hapsim.kernels.nd`.
 
 This layer validates (the scene did) and lays the arrays out; the kernels never see a
-Python object (CONVENTIONS §3). Links: ``spring_damper`` with ``length: 0`` runs as a
+Python object (docs/design.md, rule 3). Links: ``spring_damper`` with ``length: 0`` runs as a
 ``linear`` link, with ``length > 0`` as a ``euclid`` link; ``contact`` links and
 ``planes`` run as the kernels' contacts (the laws in :mod:`hapsim.scene_nd`).
 """

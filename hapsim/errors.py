@@ -70,7 +70,7 @@ class ProtocolError(HapsimError, ValueError):
     ``PROTOCOL_VERSION`` than ``firmware_protocol.PROTOCOL_VERSION``, or another number of
     axes than the scene drives (PROTOCOL.md §1, host duties in §5): the host then sends
     no CONFIG or FORCE. The message says what was expected and what was received, with
-    the decoder's last frames (CONVENTIONS §11).
+    the decoder's last frames (docs/design.md, rule 11).
 
     Not raised for a corrupt frame (bad COBS or CRC, over-long, unknown type): the stream
     decoder drops and counts those and the loop treats them like a missing frame

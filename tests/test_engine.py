@@ -400,7 +400,7 @@ def test_import_contract_scanner_catches_api_imports():
 
 
 def test_kernels_import_nothing_from_the_api_layer():
-    """CONVENTIONS §3 (poliastro's core/ import contract): hapsim/kernels/* import only
+    """docs/design.md, rule 3 (poliastro's core/ import contract): hapsim/kernels/* import only
     the standard library, numpy, numba, scipy and each other, never hapsim.engine,
     hapsim.scene, hapsim.commands, hapsim.daemon, hapsim.analysis, ..."""
     files = sorted(KERNEL_DIR.glob("*.py"))

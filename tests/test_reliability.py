@@ -146,7 +146,7 @@ def test_corrupted_bytes_are_counted_and_never_acted_on():
 
 
 def test_bad_frames_are_recorded_with_their_bytes_and_the_frames_before():
-    """CONVENTIONS §11: a bad frame that causes no loss leaves a record, not only a count."""
+    """docs/design.md, rule 11: a bad frame that causes no loss leaves a record, not only a count."""
     from hapsim.daemon.loop import BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS
     res, mock, tr, tel = sim("corrupt=0.02,garbage=0.005", seed=4)
     dec = res.decoder

@@ -60,7 +60,7 @@ class Handshake:
         ------
         ProtocolError
             The device speaks another protocol version, or has another number of axes
-            than 1 (the message carries the last frames received, CONVENTIONS §11).
+            than 1 (the message carries the last frames received, docs/design.md, rule 11).
         ConfigError
             The device's LINK (sent with HELLO) shows that its serial line cannot carry a
             STATE and a FORCE frame per tick at the configured rate

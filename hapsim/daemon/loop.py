@@ -6,7 +6,7 @@ its recovery :class:`~hapsim.daemon.recovery.Recovery`, the bad-frame records
 :class:`~hapsim.daemon.bad_frames.BadFrames`, and what goes in and out (``LoopConfig``,
 ``LoopResult``, ``StopFlag``) :mod:`hapsim.daemon.loop_types` (re-exported here).
 
-Hot path (CONVENTIONS §4): per sample it decodes the STATE, steps the engine (numba), clamps,
+Hot path (docs/design.md, rule 4): per sample it decodes the STATE, steps the engine (numba), clamps,
 encodes and writes the FORCE and writes one telemetry row *by index* into preallocated
 arrays (a head kept whole, then a ring that a writer thread drains to the journal: the data
 leaves through a ring buffer, and a run can be open-ended). No logging, no file I/O, no
@@ -24,7 +24,7 @@ last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
 ``energy_limit``. Every end sends a zero FORCE then STOP.
 
 Reliability (both loops): bad frames are dropped by the decoder and never acted on, and
-each is recorded (CONVENTIONS §11: sample, time, what the decoder found, its bytes and the
+each is recorded (docs/design.md, rule 11: sample, time, what the decoder found, its bytes and the
 frames before it; the last ``BAD_FRAME_RECORDS``): the loop compares the decoder's bad-frame
 count after each read (five integer reads) and only when it changed copies the references
 of the decoder's last frames, formatted at the end of the run;

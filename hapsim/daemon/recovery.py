@@ -75,7 +75,7 @@ class Recovery:
         res = self.result
         clock = self._clock
         reason = str(lost)
-        frames = tr.last_frames() or "(none received)"      # CONVENTIONS §11
+        frames = tr.last_frames() or "(none received)"      # docs/design.md, rule 11
         self._check_bad()
         self.state = "lost"
         if self._lost_since is None:

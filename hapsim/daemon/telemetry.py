@@ -1,7 +1,7 @@
 """Per-sample telemetry of the host loop: a preallocated head and ring, drained off the hot path.
 
 The loop writes one row per sample *by index* into arrays allocated before it starts
-(CONVENTIONS §4: no allocation, no file I/O in the hot loop; data leaves through a ring
+(docs/design.md, rule 4: no allocation, no file I/O in the hot loop; data leaves through a ring
 buffer). The storage is a *head* of ``head`` rows, kept for the whole run (the free
 response that identification needs is at the start), followed by a *ring* of ``ring`` rows
 that the rows after the head go round (:meth:`Telemetry.slot`); ``ring = 0`` is a plain
@@ -176,7 +176,7 @@ class Telemetry:
         self.force_seq = np.full(capacity, -1, dtype=np.int64)
         self.status = np.zeros(capacity, dtype=np.uint16)
         # np.zeros maps untouched zero pages: writing them once here moves the page
-        # faults (the kernel allocating memory) out of the hot loop (CONVENTIONS §4)
+        # faults (the kernel allocating memory) out of the hot loop (docs/design.md, rule 4)
         for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
                   self.late, self.flags, self.status):
             a.fill(1)

@@ -11,7 +11,7 @@ Every transport offers the same small interface to :mod:`hapsim.daemon.loop`:
 ``info``
     Dict of facts for the loop report (kind, port, baud, low-latency mode).
 ``last_frames()``
-    Text of the last frames received (CONVENTIONS §11), for error messages.
+    Text of the last frames received (docs/design.md, rule 11), for error messages.
 
 :class:`InProcessTransport` calls a :class:`~hapsim.daemon.mock.MockDevice` directly (no
 bytes: fast lockstep tests). :class:`SerialTransport` opens any port with pyserial (a pty of
@@ -87,7 +87,7 @@ class InProcessTransport:
         """Nothing to release."""
 
     def last_frames(self) -> str:
-        """The last frames received, as text (CONVENTIONS §11).
+        """The last frames received, as text (docs/design.md, rule 11).
 
         Returns
         -------
@@ -276,7 +276,7 @@ class SerialTransport:
         self.reopened = getattr(self, "reopened", 0) + 1
 
     def last_frames(self) -> str:
-        """The last frames received as text (CONVENTIONS §11).
+        """The last frames received as text (docs/design.md, rule 11).
 
         Returns
         -------
@@ -574,7 +574,7 @@ class SimTransport:
         """Nothing to release."""
 
     def last_frames(self) -> str:
-        """The last frames received as text (CONVENTIONS §11).
+        """The last frames received as text (docs/design.md, rule 11).
 
         Returns
         -------

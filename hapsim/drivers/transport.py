@@ -441,5 +441,5 @@ class DriverTransport:
             pass
 
     def last_frames(self) -> str:
-        """The last chunks of bytes received, as hex (CONVENTIONS §11)."""
+        """The last chunks of bytes received, as hex (docs/design.md, rule 11)."""
         return "\n".join(chunk.hex() for chunk in self._last)

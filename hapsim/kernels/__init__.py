@@ -2,5 +2,5 @@
 
 Plain arrays and floats only; nothing here imports from the API layer (``hapsim.engine``,
 ``hapsim.scene``), and the API layer validates everything before calling in
-(CONVENTIONS §3). Units are SI throughout.
+(docs/design.md, rule 3). Units are SI throughout.
 """

@@ -1,7 +1,7 @@
 """n-D CORDIS-ANIMA kernels (n = 1, 2, 3): centred masses and visco-elastic links, laid
 out and scheduled for speed.
 
-Plain arrays and floats only; nothing here imports from the API layer (CONVENTIONS §3).
+Plain arrays and floats only; nothing here imports from the API layer (docs/design.md, rule 3).
 Units SI.
 
 State (structure of arrays, C order, always :data:`ROWS` = 3 rows: a 1-D or 2-D scene

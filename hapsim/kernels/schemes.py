@@ -51,7 +51,7 @@ exact (:func:`run_exact`)
 
 No kernel allocates; everything is compiled once (``cache=True``). The matrix set-up
 (:func:`exact_matrices`) uses numpy/scipy at construction, never in the step. Nothing here
-imports from the API layer (CONVENTIONS §3).
+imports from the API layer (docs/design.md, rule 3).
 """
 
 from __future__ import annotations
