@@ -100,7 +100,7 @@ def _base(args):
     from hapsim.scene import load_scene, parse_scene
     if args.scene is None and args.firmware:      # the board models this device
         from hapsim.daemon import board
-        args.scene = str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
+        args.scene = board.shipped_scene("hapkit.yaml")
     if args.scene is None:
         return parse_scene(DEFAULT_DEVICE, "<default device>")
     sc = load_scene(args.scene)
