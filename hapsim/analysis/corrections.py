@@ -183,7 +183,7 @@ def _pm(*ps):
 
 
 def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: float,
-                           period: float):
+                           period: float, lead: float | None = None):
     """Dimensionless ``(P~, Q~, R~)`` in ``w = z - 1`` of a corrected loop.
 
     Parameters
@@ -200,6 +200,10 @@ def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: fl
         Reference (total moving) mass ``m`` [kg] of the scaling.
     period : float
         ``T`` [s].
+    lead : float, optional
+        The loop's whole delay [periods], the prediction's default horizon, when it is not
+        ``delay`` (a fractional delay ``m + f``: ``delay`` is ``m``, the plant carries
+        ``f``, :mod:`hapsim.analysis.subsample`).
 
     Returns
     -------
@@ -231,7 +235,8 @@ def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: fl
         E = np.array([1.0, eps])            # z - a = w + (1 - a)
         return _pm(Nn, E), eps * _pm(w, Nn), _pm(zd, D, E)
     if kind == "prediction":
-        h = float(delay if corr.horizon is None else corr.horizon)
+        h = float((delay if lead is None else lead) if corr.horizon is None
+                  else corr.horizon)
         Pi = np.array([1.0 + h, 1.0])       # z + h (z - 1) = (1 + h) w + 1
         return _pm(z, Pi, Nn), _pm(w, Pi, Nn), _pm(zd, z, z, D)
     if kind == "inertia_compensation":
