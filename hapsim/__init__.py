@@ -10,20 +10,6 @@ temporary hybrid system (THS) analysis of Florens, Voda & Urma.
 _QUIET_INTERRUPT = False
 
 
-def _run_by_runpy() -> bool:
-    """True while ``runpy`` imports this package to run ``hapsim/__main__.py`` (``python -m
-    hapsim`` or ``runpy.run_module("hapsim")``): a runpy frame with ``mod_name`` hapsim."""
-    import sys
-    frame = sys._getframe(1)
-    while frame is not None:
-        if frame.f_code.co_filename.endswith("runpy>") or \
-                frame.f_code.co_filename.endswith("runpy.py"):
-            if frame.f_locals.get("mod_name") in ("hapsim", "hapsim.__main__"):
-                return True
-        frame = frame.f_back
-    return False
-
-
 def _quiet_interrupt_at_start(force: bool = False) -> None:
     """Let Ctrl-C end the ``hapsim`` command quietly (exit 130) at any moment, imports included.
 
@@ -46,7 +32,9 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
     import sys
     global _QUIET_INTERRUPT
     argv0 = sys.argv[0] if sys.argv else ""
-    if _QUIET_INTERRUPT or not (force or argv0 == "-m" or _run_by_runpy()
+    # ``python -m hapsim`` shows "-m" while it imports the package; runpy.run_module from
+    # another program gets here through __main__'s force=True (no walk of the call stack)
+    if _QUIET_INTERRUPT or not (force or argv0 == "-m"
                                 or os.path.basename(argv0) in ("hapsim", "hapsim.exe")):
         return
     _QUIET_INTERRUPT = True

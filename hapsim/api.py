@@ -36,7 +36,7 @@ A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene` too
 the loop: mass, friction, rate, delay, hold). Errors are those of the commands: a
 :class:`~hapsim.errors.ConfigError` names the file, line and key; an
 :class:`~hapsim.errors.UnstableConfigError` is a negative verdict. Compute and drawing are
-apart: the ``plot()`` methods call :mod:`hapsim.plot`, the only module importing
+apart: the ``plot()`` methods call :mod:`hapsim.plots`, the only module importing
 matplotlib (the ``plot`` extra).
 """
 
@@ -127,8 +127,8 @@ def load_scene(path: str | os.PathLike):
 
 def _draw(report, draw, path_or_ax):
     """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file (a path:
-    checked first, written by :func:`hapsim.plot.save_figure`). Returns the figure."""
-    from hapsim.plot import check_figure_path, save_figure
+    checked first, written by :func:`hapsim.plots.save_figure`). Returns the figure."""
+    from hapsim.plots import check_figure_path, save_figure
     if isinstance(path_or_ax, (str, os.PathLike)):
         path = os.fspath(path_or_ax)
         check_figure_path(path, "plot")
@@ -226,7 +226,7 @@ class CheckReport(Report):
 
     def plot(self, path_or_ax=None):
         """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plot.plot_poles`).
+        (:func:`hapsim.plots.plot_poles`).
 
         Parameters
         ----------
@@ -244,7 +244,7 @@ class CheckReport(Report):
             matplotlib missing (the hint names the plot extra), or a path that cannot be
             written (key ``plot``).
         """
-        from hapsim.plot import plot_poles
+        from hapsim.plots import plot_poles
         return _draw(self, plot_poles, path_or_ax)
 
 
@@ -342,7 +342,7 @@ class RenderReport(Report):
         return [[m["z_re"], m["z_im"]] for m in self.modes]
 
     def plot(self, path_or_ax=None):
-        """The closed-loop poles in the z-plane (:func:`hapsim.plot.plot_poles`).
+        """The closed-loop poles in the z-plane (:func:`hapsim.plots.plot_poles`).
 
         Parameters
         ----------
@@ -358,7 +358,7 @@ class RenderReport(Report):
         ConfigError
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
-        from hapsim.plot import plot_poles
+        from hapsim.plots import plot_poles
         return _draw(self, plot_poles, path_or_ax)
 
 
@@ -599,7 +599,7 @@ class FamilyReport(Report):
 
     def plot(self, path: str | os.PathLike | None = None, title: str | None = None):
         """Felt (k, b) of every member, coloured by spectral radius, and the spectral radius
-        against the moving mass (:func:`hapsim.plot_family.plot_family`).
+        against the moving mass (:func:`hapsim.plots.family.plot_family`).
 
         Parameters
         ----------
@@ -619,7 +619,7 @@ class FamilyReport(Report):
             matplotlib missing (the hint names the plot extra), or a path that cannot be
             written (key ``plot``).
         """
-        from hapsim.plot_family import plot_family
+        from hapsim.plots.family import plot_family
 
         def draw(report, ax=None):          # two panels: a figure of its own
             return plot_family(report.analysis, title=title or report.scene)
@@ -718,7 +718,7 @@ class IdentifyReport(Report):
 
     Other attributes: ``fit`` (the :class:`~hapsim.analysis.device_fit.DeviceFit`) and
     ``record`` (the excitation's columns and loop facts). Its chart (``plot`` is the
-    command's file field here): :func:`hapsim.plot.plot_identify` ``(report)``.
+    command's file field here): :func:`hapsim.plots.plot_identify` ``(report)``.
     """
 
     _OPTIONAL = ("note",)
@@ -1036,7 +1036,7 @@ class RunReport(Report):
 
     def plot(self, path_or_ax=None):
         """The felt (k, b) of the run: simulated, predicted, measured (with its stated
-        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plot.plot_felt`).
+        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plots.plot_felt`).
 
         Parameters
         ----------
@@ -1054,7 +1054,7 @@ class RunReport(Report):
             matplotlib missing (the hint names the plot extra), or a path that cannot be
             written (key ``plot``).
         """
-        from hapsim.plot import plot_felt
+        from hapsim.plots import plot_felt
         return _draw(self, plot_felt, path_or_ax)
 
     def text(self) -> str:

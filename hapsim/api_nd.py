@@ -124,7 +124,7 @@ class CheckReportND(Report):
 
     def plot(self, path=None, title: str | None = None):
         """The scene over its device's workspace with the felt stiffness ellipses
-        (:func:`hapsim.plot_workspace.plot_scene_nd`; for a pantograph or a delta also the
+        (:func:`hapsim.plots.workspace.plot_scene_nd`; for a pantograph or a delta also the
         ellipses felt at other configurations, :func:`felt_over_workspace`).
 
         Parameters
@@ -144,8 +144,8 @@ class CheckReportND(Report):
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
         from hapsim.analysis.scene_nd_check import felt_over_workspace
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_scene_nd
+        from hapsim.plots import save_figure
+        from hapsim.plots.workspace import plot_scene_nd
         scene = self.scene_nd
         felt = felt_over_workspace(scene) if scene.device.joints is not None else None
         if title is None:
@@ -247,7 +247,7 @@ class ModesReportND(Report):
 
     def plot(self, path=None, title: str | None = None, count: int = 6):
         """The lowest modes along the last axis over the rest positions
-        (:func:`hapsim.plot_workspace.plot_modes_nd`).
+        (:func:`hapsim.plots.workspace.plot_modes_nd`).
 
         Parameters
         ----------
@@ -266,8 +266,8 @@ class ModesReportND(Report):
         ConfigError
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_modes_nd
+        from hapsim.plots import save_figure
+        from hapsim.plots.workspace import plot_modes_nd
         scene = self.scene_nd
         if title is None:
             title = f"{os.path.basename(scene.path)}: modes at {scene.rate_hz:g} Hz"

@@ -16,7 +16,7 @@ from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes, step1d
 from hapsim.scene import Scene, audio_substeps
 
-__all__ = ["Engine", "KernelPack", "MultiRatePack", "warm_up"]
+__all__ = ["Engine", "KernelPack", "MultiRatePack", "mass_indices", "warm_up"]
 
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
@@ -82,6 +82,43 @@ class MultiRatePack(NamedTuple):
 
     head: tuple
     args: tuple
+
+
+def mass_indices(masses: Sequence[str], names: Sequence[str] | None,
+                 key: str = "record") -> np.ndarray:
+    """Indices of ``names`` among a scene's masses (all of them when None), checked before
+    any engine is built (``hapsim simulate --record`` refuses a wrong name before it
+    compiles anything).
+
+    Parameters
+    ----------
+    masses : sequence of str
+        The scene's mass names, in order (``Engine.names``).
+    names : sequence of str or None
+        The names asked for.
+    key : str
+        The argument named in the error (the names are an argument, not part of the scene
+        file).
+
+    Returns
+    -------
+    numpy.ndarray, shape (len(names),), int64
+
+    Raises
+    ------
+    ConfigError
+        When no mass has one of the names (the valid names are listed, the first 20).
+    """
+    if names is None:
+        return np.arange(len(masses), dtype=np.int64)
+    lookup = {nm: i for i, nm in enumerate(masses)}
+    out = []
+    for nm in names:
+        if nm not in lookup:
+            shown = ", ".join(masses[:20]) + (", ..." if len(masses) > 20 else "")
+            raise ConfigError(f"no mass named {nm!r}; masses are: {shown}", key=key)
+        out.append(lookup[nm])
+    return np.array(out, dtype=np.int64)
 
 
 class Engine:
@@ -547,18 +584,8 @@ class Engine:
         return float(self._x[self._indices([name], key="name")[0]])
 
     def _indices(self, names: Sequence[str] | None, key: str = "record") -> np.ndarray:
-        """Indices of ``names`` (all masses when None); ``key`` is the argument named in the
-        error (the names are an argument, not part of the scene file)."""
-        if names is None:
-            return np.arange(len(self.names), dtype=np.int64)
-        lookup = {nm: i for i, nm in enumerate(self.names)}
-        out = []
-        for nm in names:
-            if nm not in lookup:
-                shown = ", ".join(self.names[:20]) + (", ..." if len(self.names) > 20 else "")
-                raise ConfigError(f"no mass named {nm!r}; masses are: {shown}", key=key)
-            out.append(lookup[nm])
-        return np.array(out, dtype=np.int64)
+        """Indices of ``names`` (all masses when None): :func:`mass_indices`."""
+        return mass_indices(self.names, names, key)
 
     def energy(self) -> float:
         """Discrete energy of the virtual network [J].

@@ -150,7 +150,7 @@ def test_run_chart_places_the_felt_pairs_where_the_report_says(tmp_path):
 def test_import_hapsim_is_light_and_the_api_draws_only_when_asked():
     """``import hapsim`` (what the command line starts with) loads neither numpy nor the
     API; the API names resolve on first use; the API module imports matplotlib nowhere
-    (its plot methods call hapsim.plot, the one module that does)."""
+    (its plot methods call hapsim.plots, the one module that does)."""
     import ast
     code = ("import json, sys, hapsim; print(json.dumps([m for m in ('numpy', 'hapsim.api', "
             "'matplotlib') if m in sys.modules]))")
@@ -218,7 +218,7 @@ def test_pole_chart_marks_the_felt_pair():
 
 
 def test_identify_chart_is_measured_against_model():
-    """hapsim.plot.plot_identify draws the fitted rows of the record against the fit's
+    """hapsim.plots.plot_identify draws the fitted rows of the record against the fit's
     model (positions in mm), the residual model - measured in micrometres, and the fit's
     figures in the title (a stand-in fit: the drawing is under test, not the fit)."""
     pytest.importorskip("matplotlib")
@@ -226,7 +226,7 @@ def test_identify_chart_is_measured_against_model():
 
     import numpy as np
 
-    from hapsim.plot import plot_identify
+    from hapsim.plots import plot_identify
     n, a = 300, 50
     t = np.arange(a + n + 20) * 1e-3
     position = 1e-3 * np.sin(40 * t)
@@ -249,7 +249,7 @@ def test_identify_chart_is_measured_against_model():
 
 def test_a_chart_without_matplotlib_names_the_plot_extra(monkeypatch):
     """The API's charts give the command's hint when matplotlib is missing."""
-    from hapsim.plot import PLOT_INSTALL
+    from hapsim.plots import PLOT_INSTALL
     rep = hapsim.render(hapsim.LoopModel(**LOOP), K=1000.0, B=1.5)
     monkeypatch.setitem(sys.modules, "matplotlib", None)     # import matplotlib fails
     with pytest.raises(hapsim.ConfigError) as info:

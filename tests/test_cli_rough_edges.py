@@ -276,7 +276,7 @@ def test_play_measures_a_scene_released_by_x0_alone(capsys, monkeypatch):
 
 # ------------------------------------------------------------------ the plot extra
 def test_missing_matplotlib_names_the_readmes_install_command(monkeypatch, tmp_path, capsys):
-    from hapsim.plot import PLOT_INSTALL, pyplot
+    from hapsim.plots import PLOT_INSTALL, pyplot
     from hapsim.errors import ConfigError
     assert f"`{PLOT_INSTALL}`" in (ROOT / "README.md").read_text(encoding="utf-8")
     for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:

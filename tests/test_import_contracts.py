@@ -66,9 +66,9 @@ LAYERS = (
                "hapsim.device_file", "hapsim.drivers")),
     # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
     ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep_nd", "hapsim.scene_nd",
-                "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plot",
-                "hapsim.plot_bench", "hapsim.plot_family", "hapsim.plot_telemetry",
-                "hapsim.plot_workspace", "hapsim.plot_zwidth")),
+                "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
+                "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
+                "hapsim.plots.workspace", "hapsim.plots.zwidth")),
     ("devices and sound", ("hapsim.driver_mock", "hapsim.audio")),
     ("daemon", ("hapsim.daemon",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
@@ -222,8 +222,8 @@ def test_scanner_sees_private_imports():
                             "hapsim.daemon.fastloop") == ["hapsim.daemon.loop._Lost"]
     assert _private_imports("def f():\n    from .cordis import _clear\n",
                             "hapsim.kernels.audio") == ["hapsim.kernels.cordis._clear"]
-    assert _private_imports("from hapsim.plot import pyplot as _plt\nfrom x import __all__\n",
-                            "hapsim.plot_bench") == []
+    assert _private_imports("from hapsim.plots import pyplot as _plt\nfrom x import __all__\n",
+                            "hapsim.plots.bench") == []
 
 
 def test_no_module_imports_another_modules_private_names():

@@ -544,7 +544,7 @@ def test_grid_figure_labels_do_not_overlap_and_axes_say_normalised(number):
     pytest.importorskip("matplotlib")
     import numpy as np
     from hapsim.analysis.grid import grid, paper_preset
-    from hapsim.plot import plot_grid
+    from hapsim.plots import plot_grid
     loop, k_range, b_range, title = paper_preset(number, "ideal")
     g = grid(loop, np.linspace(*k_range, 9), np.linspace(*b_range, 9), samples=60)
     fig = plot_grid(g, title=title)
@@ -564,7 +564,7 @@ def test_grid_figure_labels_do_not_overlap_and_axes_say_normalised(number):
 
 def test_capacity_chart_legend_tells_quantiles_apart():
     pytest.importorskip("matplotlib")
-    from hapsim.plot_bench import plot_capacity
+    from hapsim.plots.bench import plot_capacity
     row = {"turnaround_us": {"p50": 10, "p99": 20, "p999": 40}, "missed_pct": 0.1}
     fig = plot_capacity({"rates": [1000, 2000], "echo": [row, row], "daemon": [row, row],
                          "machine": "test"})
@@ -580,7 +580,7 @@ def test_accuracy_chart_axis_spans_the_naive_errors():
     """The calibrated loops (round-off) sit on a 1e-7 floor, not 19 decades down."""
     pytest.importorskip("matplotlib")
     from pathlib import Path
-    from hapsim.plot_bench import plot_accuracy_vs_rate
+    from hapsim.plots.bench import plot_accuracy_vs_rate
     data = json.loads((Path(__file__).resolve().parents[1] / "docs" / "bench"
                        / "accuracy_vs_rate.json").read_text())
     fig = plot_accuracy_vs_rate(data)

@@ -433,9 +433,9 @@ def chart3_data(res: dict) -> dict:
 
 
 def chart3(res: dict, path: str) -> None:
-    """Chart 3 of ``hapsim bench`` (:func:`hapsim.plot_bench.plot_capacity`) redrawn from
+    """Chart 3 of ``hapsim bench`` (:func:`hapsim.plots.bench.plot_capacity`) redrawn from
     these figures (:func:`chart3_data`) into the PNG ``path``."""
-    from hapsim.plot_bench import plot_capacity
+    from hapsim.plots.bench import plot_capacity
 
     plot_capacity(chart3_data(res)).savefig(path, dpi=110)
 

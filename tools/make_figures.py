@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     with open(path, "w") as fh:
         fh.write(table1_markdown(table1_experiment()).rstrip("\n") + "\n")
     print(path)
-    from hapsim.plot import plot_grid, save_figure   # matplotlib: the figures only
+    from hapsim.plots import plot_grid, save_figure   # matplotlib: the figures only
     for number in (7, 8, 9):
         for hold in ("ideal", "zoh"):
             loop, k_range, b_range, title = paper_preset(number, hold)

@@ -1,7 +1,7 @@
 """THS analysis of Florens, Voda & Urma: loop model, rendered (k, b), calibration,
 stability boundary and the (k, b) grid in the (K, B) plane (docs/design.md, 'The THS').
 
-Compute functions here return plain data; drawing lives in :mod:`hapsim.plot`.
+Compute functions here return plain data; drawing lives in :mod:`hapsim.plots`.
 """
 
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair

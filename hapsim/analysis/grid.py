@@ -1,6 +1,6 @@
 """The (k, b) grid in the (K, B) plane: Florens, Voda & Urma Fig. 4 (algorithm), Figs. 7-9.
 
-Compute only: :func:`grid` returns arrays; :func:`hapsim.plot.plot_grid` draws them.
+Compute only: :func:`grid` returns arrays; :func:`hapsim.plots.plot_grid` draws them.
 """
 
 from __future__ import annotations
@@ -181,7 +181,7 @@ def grid(loop: LoopModel, k_values, b_values, *, boundary_B=None, n_boundary: in
     grid is then ``K = k``, ``B + b0 = b`` (``identity_B = b - b0`` in virtual units).
     Each point is the calibration of :func:`hapsim.analysis.calibrate` (Florens et al.
     Sec. 5, Fig. 4: solve ``P K + Q B + R = 0`` at the target's poles ``z = e^(sT)``).
-    Plotting is separate: :func:`hapsim.plot.plot_grid`.
+    Plotting is separate: :func:`hapsim.plots.plot_grid`.
     """
     kv = np.asarray(k_values, dtype=float).ravel()
     bv = np.asarray(b_values, dtype=float).ravel()

@@ -1,6 +1,6 @@
 """Speed against accuracy: the methods compared, charts' data, stability margins, advice.
 
-Compute only (plain data); figures are drawn by :mod:`hapsim.plot_bench`.
+Compute only (plain data); figures are drawn by :mod:`hapsim.plots.bench`.
 
 - :mod:`hapsim.bench.methods`: the old name of :mod:`hapsim.analysis.integrators`
   (integrators as linear maps, closed-form limits, ``stability_margin``).

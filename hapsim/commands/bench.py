@@ -119,8 +119,8 @@ def run(args) -> int:
             json.dump(data, fh, indent=1, allow_nan=False)
         msg = f"{path} ({time.perf_counter() - t0:.1f} s)"
         if not args.no_plot:
-            from hapsim import plot_bench
-            from hapsim.plot import save_figure
+            from hapsim.plots import bench as plot_bench
+            from hapsim.plots import save_figure
             png = os.path.join(args.out, name + ".png")
             save_figure(getattr(plot_bench, plots[name])(data), png)
             msg += f", {png}"

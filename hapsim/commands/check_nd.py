@@ -14,7 +14,7 @@ def run_nd(args) -> int:
     args : argparse.Namespace
         ``scene`` (path), ``json`` (bool), ``modes`` (int), ``plot`` (figure path or
         None: the scene over its device's workspace with the felt stiffness ellipses,
-        :func:`hapsim.plot_workspace.plot_scene_nd`).
+        :func:`hapsim.plots.workspace.plot_scene_nd`).
 
     Returns
     -------
@@ -32,7 +32,7 @@ def run_nd(args) -> int:
     from hapsim import api
     plot = getattr(args, "plot", None)
     if plot is not None:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(plot, "--plot")
     scene = api.load_scene_nd(args.scene)
     if scene.port is None:

@@ -142,7 +142,7 @@ def run(args) -> int:
         if rng is not None and not (0 < rng[0] < rng[1] and math.isfinite(rng[1])):
             raise ConfigError(f"must be 0 < LO < HI, got {rng}", key=key)
     if args.plot:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     with Progress(7, "comparing corrections", "corrections") as bar:
         data = compare_corrections(loop, k_range=args.k_range, b_range=args.b_range,
@@ -153,8 +153,8 @@ def run(args) -> int:
         B = 0.5 * sum(data["b_range"]) - data["b0"]
         td = passivity_time_domain(loop, 1.5 * stability_limit(loop, B), B)
     if args.plot:
-        from hapsim.plot import save_figure
-        from hapsim.plot_family import plot_corrections
+        from hapsim.plots import save_figure
+        from hapsim.plots.family import plot_corrections
         save_figure(plot_corrections(data), args.plot)
     if args.json:
         out = {k: v for k, v in data.items() if k != "rows"}

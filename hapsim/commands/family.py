@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.scene import load_scene
 
     if args.plot:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     scene = load_scene(args.scene)
     if args.correction is not None:

@@ -136,7 +136,7 @@ def register(sub) -> None:
 
 
 def _plot(fit, rec, path: str) -> None:
-    from hapsim.plot import plot_identify, save_figure
+    from hapsim.plots import plot_identify, save_figure
     save_figure(plot_identify(fit, rec), path)
 
 
@@ -191,10 +191,10 @@ def run(args) -> int:
         raise ConfigError(f"unknown driver {args.driver!r}; valid: {', '.join(DRIVERS)}",
                           key="--driver")
     if args.plot:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     if args.out:
-        from hapsim.plot import check_output_path
+        from hapsim.plots import check_output_path
         check_output_path(args.out, "--out")
     device = None
     if args.mock_scene:

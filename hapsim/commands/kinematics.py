@@ -197,7 +197,7 @@ def _limits(args, dev, q, n) -> dict:
     Iq = _per_joint(args.joint_inertia, n, "--joint-inertia")
     Bq = _per_joint(args.joint_friction, n, "--joint-friction")
     if args.out:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.out)
         if not args.grid:
             raise ConfigError("a chart needs --grid N", key="--out")
@@ -276,8 +276,8 @@ def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: 
         res = workspace_limits(dev, Q, joint_inertia, joint_friction, B=B,
                                progress=bar.update, **loop)
     if out:
-        from hapsim.plot import save_figure
-        from hapsim.plot_workspace import plot_workspace
+        from hapsim.plots import save_figure
+        from hapsim.plots.workspace import plot_workspace
         save_figure(plot_workspace(res, title), out)
     return {"joints_deg": np.degrees(res.joints).tolist(),
             "positions": [[f(v) for v in row] for row in res.positions],

@@ -94,10 +94,10 @@ def run(args) -> int:
         args.hold = "zoh" if args.hold is None else args.hold
     loop = loop_from_args(args)
     if args.out:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.out, "--out")
     if args.data:
-        from hapsim.plot import check_output_path
+        from hapsim.plots import check_output_path
         check_output_path(args.data, "--data")
     k0, k1 = args.k_range
     b0_, b1 = args.b_range
@@ -110,7 +110,7 @@ def run(args) -> int:
     if title is not None and loop.hold != "ideal":
         title += f" ({loop.hold} hold)"
     if args.out:
-        from hapsim.plot import plot_grid, save_figure
+        from hapsim.plots import plot_grid, save_figure
         try:
             save_figure(plot_grid(g, title=title), args.out)
         except ConfigError as exc:

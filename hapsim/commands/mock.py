@@ -343,7 +343,7 @@ def _run_firmware(args) -> int:
         if getattr(args, name, None) is not None:
             raise ConfigError("does not apply to --firmware (the firmware takes its rate from "
                               "CONFIG and has no fault injection)", key=flag)
-    path = args.scene or str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
+    path = args.scene or board.shipped_scene("hapkit.yaml")
     scene = load_scene(path)
     if scene.device is None:
         raise ConfigError("the scene has no device section", file=scene.path, key="device")

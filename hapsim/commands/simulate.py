@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from hapsim.engine import Engine
+from hapsim.engine import Engine, mass_indices
 from hapsim.errors import ConfigError
 from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
@@ -118,11 +118,12 @@ def run(args: argparse.Namespace) -> int:
         # the one place that turns felt targets into (K, B), as hapsim run and check do
         from hapsim.analysis.targets import apply_targets
         scene, calibrations = apply_targets(scene)
-    _announce_compilation(scene)
-    engine = Engine(scene)
-    if scene.port is not None:
-        engine.set_port_position(scene.excitation.x0, at_rest=True)
-    names = list(args.record) if args.record else list(engine.names)
+    # what the command line asks is refused before the engine is compiled (seconds on a
+    # first run): the columns (the engine's names are the scene's masses, in order) and
+    # the memory they need
+    masses = tuple(m.name for m in scene.masses)
+    names = list(args.record) if args.record else list(masses)
+    mass_indices(masses, names, key="--record")
     if len(set(names)) != len(names):
         twice = sorted({n for n in names if names.count(n) > 1})
         raise ConfigError(f"names a mass twice: {', '.join(twice)}; each column once",
@@ -130,6 +131,10 @@ def run(args: argparse.Namespace) -> int:
     # time and positions, (N+1) x (R+1) float64, plus the engine's chunk
     check_fits(8.0 * (args.steps + 1) * (len(names) + 1),
                f"{args.steps} samples x {len(names)} masses of positions", "--steps")
+    _announce_compilation(scene)
+    engine = Engine(scene)
+    if scene.port is not None:
+        engine.set_port_position(scene.excitation.x0, at_rest=True)
     t0 = time.perf_counter()
     try:
         with Progress(args.steps, "simulate", unit="samples") as bar:

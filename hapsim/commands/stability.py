@@ -188,7 +188,7 @@ def _run_scene(args) -> int:
                           "hold) and its port links' damping: leave out "
                           + ", ".join(given), key=given[0])
     if args.out:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.out)
         if not args.grid:
             raise ConfigError("a chart needs --grid N", key="--out")

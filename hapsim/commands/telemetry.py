@@ -348,7 +348,7 @@ def run(args: argparse.Namespace) -> int:
         another extension or in a missing directory, an unwritable ``--plot`` (exit 2).
     """
     from hapsim.daemon.telemetry import save_columns
-    from hapsim.plot import check_output_path
+    from hapsim.plots import check_output_path
 
     if args.out:
         if os.path.splitext(args.out)[1].lower() not in _FORMATS:
@@ -358,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
         if os.path.abspath(args.out) == os.path.abspath(args.file):
             raise ConfigError("--out is the file being read; give another name", key="--out")
     if args.plot:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     cols, info = read(args.file)
     s = summarize(cols, info, args.delay)
@@ -367,8 +367,8 @@ def run(args: argparse.Namespace) -> int:
         save_columns(cols, args.out, info.get("events"), key="--out")
         s["out"] = args.out
     if args.plot:
-        from hapsim.plot_telemetry import plot_telemetry
-        from hapsim.plot import save_figure
+        from hapsim.plots.telemetry import plot_telemetry
+        from hapsim.plots import save_figure
         e = felt_energy(cols["position"], cols["force"], cols["flags"], args.delay)
         save_figure(plot_telemetry(cols, e, info.get("events", []),
                                    title=os.path.basename(args.file)), args.plot)

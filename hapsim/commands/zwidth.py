@@ -100,7 +100,7 @@ def _base(args):
     from hapsim.scene import load_scene, parse_scene
     if args.scene is None and args.firmware:      # the board models this device
         from hapsim.daemon import board
-        args.scene = str(board.ROOT.parents[1] / "configs" / "hapkit.yaml")
+        args.scene = board.shipped_scene("hapkit.yaml")
     if args.scene is None:
         return parse_scene(DEFAULT_DEVICE, "<default device>")
     sc = load_scene(args.scene)
@@ -154,7 +154,7 @@ def run(args) -> int:
         raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
                           "it with --port", key="--lockstep")
     if args.plot:
-        from hapsim.plot import check_figure_path
+        from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     base = _base(args)
     x0 = args.x0 if args.x0 is not None else (abs(base.excitation.x0) or 0.005)
@@ -206,8 +206,8 @@ def run(args) -> int:
             proc.wait(timeout=10)
     rep = report(points, base, where, x0, fc)
     if args.plot:
-        from hapsim.plot import save_figure
-        from hapsim.plot_zwidth import plot_zwidth
+        from hapsim.plots import save_figure
+        from hapsim.plots.zwidth import plot_zwidth
         save_figure(plot_zwidth(rep, loop, base.device, base.rate_hz, x0), args.plot)
     if args.json:
         print(json.dumps(rep))

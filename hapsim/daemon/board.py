@@ -10,6 +10,9 @@ when missing or older than their sources.
 from __future__ import annotations
 
 import fcntl
+import filecmp
+import hashlib
+import importlib.util
 import math
 import os
 import shutil
@@ -18,7 +21,35 @@ from pathlib import Path
 
 from hapsim.errors import DeviceError
 
-ROOT = Path(__file__).resolve().parents[2] / "firmware_protocol" / "firmware"
+def _build_tree(package: Path, cache: Path) -> Path:
+    """Where the firmware is built: the installed ``firmware_protocol`` package itself when
+    it is writable (a checkout, an editable or a root install), else a per-user copy.
+
+    Parameters
+    ----------
+    package : pathlib.Path
+        The ``firmware_protocol`` package directory (it holds ``c/`` and ``firmware/``, the
+        sources shipped as package data).
+    cache : pathlib.Path
+        The user's cache directory (``$XDG_CACHE_HOME`` or ``~/.cache``).
+
+    Returns
+    -------
+    pathlib.Path
+        A directory holding (or about to hold, see :func:`make`) ``c/`` and ``firmware/``.
+    """
+    if os.access(package / "firmware", os.W_OK):
+        return package
+    tag = hashlib.sha1(str(package).encode()).hexdigest()[:12]   # one copy per installation
+    return cache / "hapsim" / f"firmware_protocol-{tag}"
+
+
+#: The ``firmware_protocol`` package as installed (its firmware sources are package data).
+PACKAGE = Path(importlib.util.find_spec("firmware_protocol").origin).resolve().parent
+#: The tree ``make`` runs in: the package itself, or a writable copy of its sources.
+BUILD_TREE = _build_tree(PACKAGE, Path(os.environ.get("XDG_CACHE_HOME")
+                                        or Path.home() / ".cache"))
+ROOT = BUILD_TREE / "firmware"
 FIRMWARE_DIR = ROOT / "hapkit"
 BOARD_DIR = ROOT / "sim"
 FIRMWARE_ELF = FIRMWARE_DIR / "hapkit.elf"
@@ -107,8 +138,10 @@ def make(what: str, steps, *, quiet: bool = True) -> str:
     if why:
         raise DeviceError(f"cannot build {what}: {why}")
     out = []
+    ROOT.mkdir(parents=True, exist_ok=True)
     with open(BUILD_LOCK, "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
+        _copy_sources()
         for d, target in steps:
             r = subprocess.run(["make", "-C", str(d), target], capture_output=True, text=True)
             out.append(r.stdout + r.stderr)
@@ -117,6 +150,50 @@ def make(what: str, steps, *, quiet: bool = True) -> str:
             if not quiet:
                 print(out[-1], end="", flush=True)
     return "".join(out)
+
+
+def _copy_sources() -> None:
+    """Bring the build tree's sources up to date with the installed package's (a no-op when
+    the package itself is the build tree): a changed file is copied, so ``make`` sees it
+    newer than what was built from the old one."""
+    if BUILD_TREE == PACKAGE:
+        return
+    for src in PACKAGE.rglob("*"):
+        rel = src.relative_to(PACKAGE)
+        if not src.is_file() or rel.parts[0] not in ("c", "firmware"):
+            continue
+        dst = BUILD_TREE / rel
+        if not dst.exists() or not filecmp.cmp(src, dst, shallow=False):
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, dst)
+
+
+def shipped_scene(name: str) -> str:
+    """A scene of the checkout's ``configs/`` (the default device of ``hapsim mock
+    --firmware`` and ``hapsim zwidth --firmware``).
+
+    Parameters
+    ----------
+    name : str
+        File name in ``configs/`` (``"hapkit.yaml"``).
+
+    Returns
+    -------
+    str
+        Its path.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        The package was installed without the source checkout, so there is no ``configs/``:
+        the message asks for ``--scene``.
+    """
+    from hapsim.errors import ConfigError
+    path = Path(__file__).resolve().parents[2] / "configs" / name
+    if not path.is_file():
+        raise ConfigError(f"no default scene here (configs/{name} comes with the source "
+                          "checkout): give the device's scene with --scene", key="--scene")
+    return str(path)
 
 
 def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,

@@ -1,5 +1,5 @@
 """Figures of ``hapsim family`` and ``hapsim compare-corrections``. Imports matplotlib
-lazily through :mod:`hapsim.plot`.
+lazily through :mod:`hapsim.plots`.
 """
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+from hapsim.plots import pyplot  # the one place matplotlib is imported (lazily)
 
 __all__ = ["plot_family", "plot_corrections"]
 

@@ -1,7 +1,7 @@
-"""Figures of ``hapsim bench`` (charts 1-3). Imports matplotlib lazily, as :mod:`hapsim.plot`.
+"""Figures of ``hapsim bench`` (charts 1-3). Imports matplotlib lazily, as :mod:`hapsim.plots`.
 
 Each function takes the plain data returned by :mod:`hapsim.bench` and returns a figure;
-:func:`hapsim.plot.save_figure` writes it.
+:func:`hapsim.plots.save_figure` writes it.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+from hapsim.plots import pyplot  # the one place matplotlib is imported (lazily)
 
 __all__ = ["plot_accuracy_vs_rate", "plot_accuracy_vs_cost", "plot_capacity"]
 

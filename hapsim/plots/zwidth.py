@@ -1,5 +1,5 @@
 """Figure of ``hapsim zwidth``: the predicted stiffness boundary and the measured points.
-Imports matplotlib lazily through :mod:`hapsim.plot`."""
+Imports matplotlib lazily through :mod:`hapsim.plots`."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def plot_zwidth(rep: dict, loop, device, rate_hz: float, x0: float):
     """
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import predicted_coulomb, release
-    from hapsim.plot import pyplot
+    from hapsim.plots import pyplot
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))

@@ -1,13 +1,13 @@
 """Charts of a multi-DoF device's workspace: the stiffness limit over it (``hapsim
 kinematics --grid --out``) and an n-D scene with its felt stiffness ellipses (``hapsim
-check --plot`` on a 2-D or 3-D scene). Imports matplotlib lazily through :mod:`hapsim.plot`.
+check --plot`` on a 2-D or 3-D scene). Imports matplotlib lazily through :mod:`hapsim.plots`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from hapsim.plot import pyplot  # the one place matplotlib is imported (lazily)
+from hapsim.plots import pyplot  # the one place matplotlib is imported (lazily)
 
 __all__ = ["plot_workspace", "plot_scene_nd"]
 

@@ -1,6 +1,6 @@
 """The figure of a run's telemetry (``hapsim telemetry FILE --plot FIG``).
 
-matplotlib is imported lazily through :func:`hapsim.plot.pyplot` (Agg backend).
+matplotlib is imported lazily through :func:`hapsim.plots.pyplot` (Agg backend).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
-    from hapsim.plot import pyplot
+    from hapsim.plots import pyplot
 
     plt = pyplot()
     t = np.asarray(cols["time"], float)
