@@ -48,6 +48,7 @@ import math
 
 import numpy as np
 
+from hapsim.analysis.hand import rigid_matrices, zoh_matrices
 from hapsim.errors import ConfigError
 
 __all__ = ["split_delay", "split_hold", "split_hold_body", "held_plant",
@@ -125,9 +126,8 @@ def split_hold(A, b, period: float, fraction: float):
     Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark sec. 2.3 (module notes).
     Each piece by Van Loan's block exponential (C. F. Van Loan, "Computing integrals
     involving the matrix exponential", IEEE TAC 23, 1978), through the accurate ``phi1``
-    of :mod:`hapsim.analysis.hand` on balanced coordinates.
+    of :func:`hapsim.analysis.hand.zoh_matrices` on balanced coordinates.
     """
-    from hapsim.analysis.hand import _zoh
     f, T = float(fraction), float(period)
     if not 0.0 <= f < 1.0:
         raise ConfigError(f"must be in [0, 1), got {fraction!r}", key="fraction")
@@ -136,16 +136,16 @@ def split_hold(A, b, period: float, fraction: float):
     A = np.asarray(A, dtype=float)
     b = np.asarray(b, dtype=float)
     eye = np.eye(A.shape[0])
-    W, G = _zoh(A, b, T)
-    W0, G0 = _zoh(A, b, (1.0 - f) * T)
+    W, G = zoh_matrices(A, b, T)
+    W0, G0 = zoh_matrices(A, b, (1.0 - f) * T)
     if f == 0.0:
         return eye + W, G0, np.zeros_like(G0)
-    _, Gf = _zoh(A, b, f * T)
+    _, Gf = zoh_matrices(A, b, f * T)
     return eye + W, G0, Gf + W0 @ Gf
 
 
 def split_hold_body(mass: float, friction: float, period: float, fraction: float):
-    """The split hold of the rigid device body ``m x'' + b0 x' = f``, in closed form.
+    """The split hold of the rigid device body ``m x'' + b0 x' = f``.
 
     Parameters
     ----------
@@ -168,24 +168,18 @@ def split_hold_body(mass: float, friction: float, period: float, fraction: float
     Raises
     ------
     ConfigError
-        As :func:`hapsim.analysis.loop.zoh_state_space`, or ``fraction`` outside [0, 1).
+        A non-positive mass or period, a negative friction, ``fraction`` outside [0, 1).
 
     Notes
     -----
-    Each sub-interval ``tau`` is :func:`hapsim.analysis.loop.zoh_state_space` at period
-    ``tau`` (closed form with ``expm1``, accurate at any ``b0 tau / m``);
-    ``Gamma1 = Ad((1-f)T) Bd(fT)`` (module notes).
+    :func:`split_hold` on ``A = [[0, 1], [0, -b0/m]]``, ``b = [0, 1/m]`` (the hold's
+    series is accurate at any ``b0 tau / m``).
     """
-    from hapsim.analysis.loop import zoh_state_space
-    f = float(fraction)
-    if not 0.0 <= f < 1.0:
-        raise ConfigError(f"must be in [0, 1), got {fraction!r}", key="fraction")
-    Phi, G = zoh_state_space(mass, friction, period)
-    if f == 0.0:
-        return Phi, G, np.zeros(2)
-    A0, G0 = zoh_state_space(mass, friction, (1.0 - f) * period)
-    _, Gf = zoh_state_space(mass, friction, f * period)
-    return Phi, G0, A0 @ Gf
+    if not (float(mass) > 0 and float(friction) >= 0):
+        raise ConfigError(f"need mass > 0 and friction >= 0, got mass={mass!r}, "
+                          f"friction={friction!r}", key="device")
+    A, b = rigid_matrices(mass, friction, 0.0)
+    return split_hold(A, b, period, fraction)
 
 
 def held_plant(Phi, Gamma0, Gamma1):
