@@ -174,8 +174,8 @@ device: {{mass: {dm}, friction: 0.5, delay: {d}, hold: zoh}}
 
 
 @pytest.mark.parametrize("subs,key,text", [
-    ({"d": "6000"}, "device.delay", f"must be <= {MAX_DELAY} samples"),
-    ({"d": "100000"}, "device.delay", f"must be <= {MAX_DELAY} samples"),
+    ({"d": "6000"}, "device.delay", f"must be between 0 and {MAX_DELAY} periods"),
+    ({"d": "100000"}, "device.delay", f"must be between 0 and {MAX_DELAY} periods"),
     ({"rate": "1.0e-300"}, "rate_hz", "must be between 1e-06 and 1e+09 Hz"),
     ({"m": "1.0e-320"}, "masses[1].mass", "must be between 1e-12 and 1e+12 kg"),
     ({"dm": "1.0e-320"}, "device.mass", "must be between 1e-12 and 1e+12 kg"),
