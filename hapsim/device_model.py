@@ -304,6 +304,11 @@ class MockPhysics:
         Current tick.
     hand : ndarray
         Hand force per period [N] (see :func:`hand_force_samples`).
+    split : float
+        The fraction ``f`` of a sub-sample ``device.delay = m + f`` (0 for a whole delay):
+        :meth:`advance` holds the previous force over the first ``f T`` of the period and
+        the new one over the rest (the split hold, :mod:`hapsim.analysis.subsample`); the
+        whole ``m`` is the protocol's delay line.
 
     Raises
     ------
@@ -329,6 +334,22 @@ class MockPhysics:
             if self.hold == "ideal":       # impulses T f at nT: Bd = T e^(AT) b
                 self._Bd = T * self._Ad[:, 1] / mass
             self._s = np.tile(np.array([exc.x0, exc.v0], dtype=float), p // 2)
+        # a sub-sample delay m + f (hapsim.analysis.subsample): the device applies each
+        # force f T into the period, after holding the previous one; the whole m is the
+        # protocol's delay line (int(device.delay)), the fraction is the physics'
+        self.split = float(getattr(device, "delay", 0)) % 1.0
+        self._held = 0.0
+        if self.split > 0:
+            if self.hold != "zoh":
+                raise ConfigError("a fractional delay needs hold: zoh", key="device.delay")
+            if self._grip is not None:
+                self._sub = []
+                for tau in (self.split * T, (1.0 - self.split) * T):
+                    E = scipy.linalg.expm(A * tau)
+                    self._sub.append((E[:p, :p], E[:p, p]))
+            else:
+                self._sub = [zoh_step_coefficients(mass, friction, tau)
+                             for tau in (self.split * T, (1.0 - self.split) * T)]
         if self.hold == "zoh":
             self._a, self._cxv, self._cxu, self._cvu = zoh_step_coefficients(
                 mass, friction, T)
@@ -453,6 +474,9 @@ class MockPhysics:
         within the period while ``|u_total| <= C`` the mass sticks (v = 0). This is a
         first-order model, exact only while the sign of ``v`` does not change in the period.
         """
+        if self.split > 0:
+            self._advance_split(u)
+            return
         n = self.n
         f = u + (self.hand[n] if n < self.hand.size else 0.0)
         if self._grip is not None:
@@ -483,6 +507,41 @@ class MockPhysics:
             self._xprev = x
             self.x = xn
             self.v = (xn - x) / self.period
+        self.n = n + 1
+
+
+    def _advance_split(self, u: float) -> None:
+        """:meth:`advance` for a sub-sample delay ``m + f``: the force held before (the
+        previous ``u``) over the first ``f T``, then ``u`` over the last ``(1 - f) T``,
+        each sub-interval integrated exactly (Coulomb friction as in :meth:`advance`, per
+        sub-interval); the hand force of the tick acts over the whole period."""
+        n = self.n
+        h = self.hand[n] if n < self.hand.size else 0.0
+        for (co, force) in zip(self._sub, (self._held, u)):
+            f = force + h
+            if self._grip is not None:
+                Ad, Bd = co
+                self._s = Ad @ self._s + Bd * f
+                self.x, self.v = float(self._s[0]), float(self._s[1])
+                continue
+            a, cxv, cxu, cvu = co
+            x, v = self.x, self.v
+            fc = 0.0
+            if self._coulomb > 0:
+                C = self._coulomb
+                if v != 0.0:
+                    fc = -C if v > 0 else C
+                elif abs(f) > C:
+                    fc = -C if f > 0 else C
+                else:
+                    continue                  # stuck: the force cannot break it loose
+            ft = f + fc
+            vn = a * v + cvu * ft
+            xn = x + cxv * v + cxu * ft
+            if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
+                vn = 0.0
+            self.x, self.v = xn, vn
+        self._held = u
         self.n = n + 1
 
 

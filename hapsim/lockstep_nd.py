@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
+from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
 from hapsim.kernels.joint_nd import joint_step
@@ -61,8 +61,20 @@ class LockstepND:
         n = scene.dimension
         self.n = n
         dev = scene.device
-        self.Ad, self.Bd = zoh_matrices(LoopModelND(mass=dev.mass, friction=dev.friction,
-                                                    rate_hz=scene.rate_hz, delay=dev.delay))
+        lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                         delay=dev.delay)
+        self.Ad, self.Bd = zoh_matrices(lm)
+        # a sub-sample delay m + f: the device holds the previous force over the period's
+        # first f T (the split hold, hapsim.analysis.ths_nd.split_hold_matrices)
+        self.split = float(dev.delay) % 1.0
+        if self.split > 0:
+            if joint_space:
+                raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is "
+                                  "modelled on the Cartesian device; the joint-space model "
+                                  "applies whole periods: use a whole delay or the "
+                                  "Cartesian model", file=scene.path, key="device.delay")
+            _, self._G0, self._G1 = split_hold_matrices(lm)
+            self._held = np.zeros(n)
         self.engine = EngineND(scene)
         self.rest = dev.position.copy()
 
@@ -72,7 +84,7 @@ class LockstepND:
                 raise ConfigError(f"must be {n} finite numbers, got {v!r}", key=key)
             return a
         self.state = np.concatenate([vec(x0, "x0"), vec(v0, "v0")])  # deviation, velocity
-        self.delay = np.zeros((dev.delay, n))     # F[n-1], ..., F[n-d]
+        self.delay = np.zeros((int(dev.delay), n))     # F[n-1], ..., F[n-d] (whole d)
         p = self.rest + self.state[:n]
         # the port's previous position: where it was one period ago at the initial velocity
         self.engine.xp[:, self.engine.port] = p - self.state[n:] * scene.period
@@ -127,6 +139,9 @@ class LockstepND:
                 self.joint.step(u)
                 self.state = np.concatenate([self.joint.position() - self.rest,
                                              np.zeros(n)])
+            elif self.split > 0:
+                self.state = self.Ad @ self.state + self._G0 @ u + self._G1 @ self._held
+                self._held = u
             else:
                 self.state = self.Ad @ self.state + self.Bd @ u
         return out

@@ -226,7 +226,7 @@ API_OPTIONS = {
              "friction": ("--friction", Number(float, low=0, unit="N s/m")),
              "rate_hz": ("--rate", Number(float, low=0, open_low=True, unit="Hz")),
              # the analysis is O(d^3): hapsim.analysis.loop.MAX_DELAY
-             "delay": ("--delay", Number(int, low=0, high=500))},
+             "delay": ("--delay", Number(float, low=0, high=500, unit="periods"))},
     "render": {"K": ("--K", Number(unit="N/m")), "B": ("--B", Number(unit="N s/m"))},
     "calibrate": {"k": ("--k", Number(float, low=0, open_low=True, unit="N/m")),
                   "b": ("--b", Number(unit="N s/m"))},

@@ -44,7 +44,7 @@ expected is refused)::
                                   # (diagonal) or an n x n matrix (SPD)
       friction: 0.5               # cartesian: [N s/m], same shapes (PSD)
       position: [0.0, 0.0]        # cartesian: the handle's rest position [m]
-      delay: 1                    # [samples]
+      delay: 1                    # [periods, a real number]
       hold: zoh                   # the only one in n-D
     # a kinematic device instead: kind: pantograph (n = 2) or delta (n = 3), geometry: a
     # preset (haply, falcon) or, for a pantograph, its lengths as numbers
@@ -171,8 +171,9 @@ class DeviceND:
         Cartesian friction [N s/m].
     position : ndarray, shape (n,)
         The handle's rest position [m].
-    delay : int
-        [samples].
+    delay : int or float
+        [periods]: an int for a whole delay, a float ``m + f`` for the split hold
+        (:mod:`hapsim.analysis.subsample`).
     hold : str
         ``"zoh"``.
     joints : ndarray or None
@@ -189,7 +190,7 @@ class DeviceND:
     mass: np.ndarray
     friction: np.ndarray
     position: np.ndarray
-    delay: int
+    delay: int | float
     hold: str
     joints: np.ndarray | None = None
     geometry: Any = None
@@ -791,8 +792,11 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     kind = r.choice(d, "kind", key, DEVICE_KINDS, default="cartesian")
     need = ("mass",) if kind == "cartesian" else ("joints", "joint_inertia")
     r.keys(d, DEVICE_KEYS[kind], key, required=need)
-    delay = r.integer(d, "delay", key, default=1, minimum=0, maximum=max_delay,
-                      unit="samples")
+    # a real number of periods (hapsim.analysis.subsample); a whole one stays an int
+    delay = r.number(d, "delay", key, default=1, minimum=0.0, maximum=float(max_delay),
+                     unit="periods")
+    if float(delay).is_integer():
+        delay = int(delay)
     hold = r.choice(d, "hold", key, ("zoh",), default="zoh")
     if kind == "cartesian":
         M = r.matrix(d, "mass", key, n, None, "kg", definite="positive")

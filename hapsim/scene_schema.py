@@ -373,12 +373,15 @@ _KEYS = [
     Key("device.friction", "number", "N s/m", default=0.0, minimum=0.0,
         doc="Real viscous friction b0 of the device.",
         example="device: {mass: 0.1, friction: 0.5}"),
-    Key("device.delay", "integer", "samples", default=1, minimum=0.0, limits_from="MAX_DELAY",
+    Key("device.delay", "number", "periods", default=1, minimum=0.0, maximum=float(MAX_DELAY),
         why="the closed loop's d + 3 poles are eigenvalues of a dense (d + 3)-square matrix, "
             "O(d^3), ~0.4 s at d = {limit}",
-        doc="Whole samples d between the position a force is computed from and the "
-            "sample the force is applied at.",
-        example="device: {mass: 0.1, delay: 2}"),
+        doc="Delay d from the sample a force is computed from to the instant the force "
+            "takes effect [periods], a real number: a whole d is the plain hold; "
+            "d = m + f (0 < f < 1) switches the held force f T into the period (the split "
+            "hold, docs/stability.md: e.g. a FireFader at 250 Hz reading its ADC 1.1 ms "
+            "after the packet is d = 1 - 1.1/4 = 0.725).",
+        example="device: {mass: 0.1, delay: 1.3}"),
     Key("device.hold", "choice", default=HOLDS[0], choices=HOLDS,
         doc="`zoh`: the device holds each force over a period; `ideal`: the paper's "
             "idealised sampled image.",

@@ -50,7 +50,8 @@ def _brentq_kmax(loop, B, k_hi):
 @pytest.mark.parametrize("kw, key", [
     (dict(mass=0.0), "mass"), (dict(mass=-1.0), "mass"), (dict(rate_hz=0.0), "rate_hz"),
     (dict(rate_hz=-5.0), "rate_hz"), (dict(friction=-0.1), "friction"),
-    (dict(delay=-1), "delay"), (dict(delay=1.5), "delay"), (dict(hold="foh"), "hold"),
+    (dict(delay=-1), "delay"), (dict(delay=1.5, hold="ideal"), "delay"),
+    (dict(delay=float("nan")), "delay"), (dict(hold="foh"), "hold"),
 ])
 def test_loop_validation_names_the_key(kw, key):
     args = dict(mass=1.0, friction=0.0, rate_hz=1000.0, delay=1, hold="zoh")

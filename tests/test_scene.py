@@ -110,10 +110,14 @@ CASES = [
      "device: {mass: 0.1}\n", 4, "masses", "at most one port"),
     ("device unknown hold", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  hold: foh\n",
      5, "device.hold", "valid choices: zoh, ideal"),
-    ("device fractional delay", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  delay: 1.5\n",
-     5, "device.delay", "whole number of samples"),
+    ("device fractional delay, ideal hold", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  delay: 1.5\n  hold: ideal\n",
+     5, "device.delay", "needs hold: zoh"),
+    ("device delay not a number", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  delay: .nan\n",
+     5, "device.delay", "must be a finite number"),
+    ("device delay beyond the analysis", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  delay: 500.5\n",
+     5, "device.delay", "between 0 and 500 periods"),
     ("device negative delay", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  delay: -1\n",
-     5, "device.delay", "must be >= 0"),
+     5, "device.delay", "must be between 0 and 500 periods"),
     ("device unknown key", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  mass: 0.1\n  frcition: 1\n",
      5, "device.frcition", "valid keys: mass, friction, delay, hold, force_limit"),
     ("device missing mass", "rate_hz: 1000\nmasses: [{name: p, kind: port}]\ndevice:\n  friction: 1\n", 4,
@@ -321,8 +325,11 @@ def test_code_scene_structure_rules():
     with pytest.raises(ConfigError, match=r"^device: a scene with a port needs a device"):
         Scene(1000.0, (Mass("p", "port"), Mass("g", "ground")),
               (Link("w", "spring_damper", "p", "g", 100.0),))
-    with pytest.raises(ConfigError, match=r"^device\.delay: must be a whole number"):
-        Scene(1000.0, (Mass("p", "port"),), (), device=Device(mass=0.1, delay=1.5))
+    with pytest.raises(ConfigError, match=r"^device\.delay: a delay of 1\.5 periods"):
+        Scene(1000.0, (Mass("p", "port"),), (), device=Device(mass=0.1, delay=1.5,
+                                                              hold="ideal"))
+    assert Scene(1000.0, (Mass("p", "port"),), (),
+                 device=Device(mass=0.1, delay=1.5)).device.delay == 1.5
     with pytest.raises(ConfigError, match=r"^masses\[0\]\.mass: must be 0 for a ground"):
         Scene(1000.0, (Mass("g", "ground", 2.0),), ())
     # lists are accepted and frozen into tuples

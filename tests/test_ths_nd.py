@@ -310,7 +310,7 @@ def test_loop_model_nd_refuses_bad_input():
                     (dict(mass=np.eye(2), friction=-np.eye(2)), "friction"),
                     (dict(mass=np.eye(2), friction=np.eye(3)), "friction"),
                     (dict(mass=np.eye(2), hold="ideal"), "hold"),
-                    (dict(mass=np.eye(2), delay=1.5), "delay"),
+                    (dict(mass=np.eye(2), delay=-0.5), "delay"),
                     (dict(mass=np.eye(4)), "dof"),
                     (dict(mass=0.1), "dof")]:
         with pytest.raises(ConfigError) as err:

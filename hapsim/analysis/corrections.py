@@ -183,7 +183,7 @@ def _pm(*ps):
 
 
 def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: float,
-                           period: float):
+                           period: float, lead: float | None = None):
     """Dimensionless ``(P~, Q~, R~)`` in ``w = z - 1`` of a corrected loop.
 
     Parameters
@@ -200,6 +200,10 @@ def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: fl
         Reference (total moving) mass ``m`` [kg] of the scaling.
     period : float
         ``T`` [s].
+    lead : float, optional
+        The loop's whole delay [periods], the prediction's default horizon, when it is not
+        ``delay`` (a fractional delay ``m + f``: ``delay`` is ``m``, the plant carries
+        ``f``, :mod:`hapsim.analysis.subsample`).
 
     Returns
     -------
@@ -231,7 +235,8 @@ def correction_polynomials(corr: Correction, Nn, D, Nvn, *, delay: int, mass: fl
         E = np.array([1.0, eps])            # z - a = w + (1 - a)
         return _pm(Nn, E), eps * _pm(w, Nn), _pm(zd, D, E)
     if kind == "prediction":
-        h = float(delay if corr.horizon is None else corr.horizon)
+        h = float((delay if lead is None else lead) if corr.horizon is None
+                  else corr.horizon)
         Pi = np.array([1.0 + h, 1.0])       # z + h (z - 1) = (1 + h) w + 1
         return _pm(z, Pi, Nn), _pm(w, Pi, Nn), _pm(zd, z, z, D)
     if kind == "inertia_compensation":
@@ -452,7 +457,10 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
     A : ndarray, shape (n, n)
         Closed-loop matrix with the plant rows ``0 .. nplant-1`` left zero (the ideal
         hold's are completed by the caller), state order: plant, ``x_port[n-1]``, delay
-        line (d), virtual (2N), the correction's state (0 or 1).
+        line (d), virtual (2N), the correction's state (0 or 1), and for a fractional
+        delay ``m + f`` (``d = m`` then) the force held over the period's first ``f T``
+        (:func:`hapsim.analysis.subsample.held_plant`: the caller adds
+        ``Gamma1`` times it to the plant rows).
     u : ndarray, shape (n,)
         Row giving the force held over the coming period.
     nplant : int
@@ -484,7 +492,8 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
     if kind == "velocity_sensor" and dev.hold != "zoh":
         raise ConfigError("a velocity sensor needs hold: zoh (the ideal hold has no "
                           "velocity)", file=scene.path, key="device.correction.kind")
-    d = int(dev.delay)
+    from hapsim.analysis.subsample import split_delay
+    d, frac = split_delay(dev.delay, "device.delay")
     nd = len(names)
     nplant = nd - 1
     names += [f"F[n-{i}] (port force, delay line)" for i in range(1, d + 1)]
@@ -510,7 +519,7 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
         qq = e[ip] - T * vf
         A[ic] = vf
     elif kind == "prediction":
-        h = float(d if corr.horizon is None else corr.horizon)
+        h = float(float(dev.delay) if corr.horizon is None else corr.horizon)
         q = (1.0 + h) * e[ip] - h * e[ipp]
         qq = (1.0 + h) * e[ipp] - h * e[ic]
         A[ic] = e[ipp]
@@ -540,4 +549,12 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
     A[ipp, ip] = 1.0
     A[o:o + nv, o:o + nv] = Av
     A[o:o + nv] += np.outer(bp, q) + np.outer(bpp, qq)
+    if frac > 0:
+        # the split hold (hapsim.analysis.subsample.held_plant): the force u held over
+        # the last (1 - f) T of this period is held over the first f T of the next, one
+        # more state, last; the caller's plant rows take it through Gamma1
+        A = np.pad(A, ((0, 1), (0, 1)))
+        u = np.append(u, 0.0)
+        A[n] = u
+        names.append(f"F[n-{d + 1}] (port force, held the first {frac:g} T)")
     return A, u, nplant, names

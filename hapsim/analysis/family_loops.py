@@ -150,6 +150,16 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     A = np.repeat(A0[None], n, axis=0)
     m, b0 = float(dev.mass), float(dev.friction)
     kh = hand_stiffness(mem)
+    f = float(dev.delay) % 1.0
+    if f > 0:                     # the split hold (hapsim.analysis.subsample), stacked
+        Aw, _ = body_zoh(m, b0, mem, T)
+        W0, G0 = body_zoh(m, b0, mem, (1.0 - f) * T)
+        _, Gf = body_zoh(m, b0, mem, f * T)
+        G1 = Gf + np.matmul(W0, Gf[..., None])[..., 0]
+        A[:, :nplant, :nplant] = Aw + np.eye(Aw.shape[-1])
+        A[:, :nplant, :] += G0[:, :, None] * u[None, None, :]
+        A[:, :nplant, -1] += G1
+        return A, names
     if finite.all() or (dev.hold == "zoh" and np.any(kh > 0)):
         Aw, Bd = body_zoh(m, b0, mem, T)
         Ad = Aw + np.eye(Aw.shape[-1])

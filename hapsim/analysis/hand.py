@@ -34,7 +34,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["HAND_FIELDS", "hand_matrices", "hand_zoh", "body_zoh", "ideal_rows",
+__all__ = ["HAND_FIELDS", "hand_matrices", "hand_zoh", "body_zoh", "ideal_rows", "zoh_matrices",
            "hand_stiffness", "nominal_member", "members", "ranged_fields"]
 
 #: Order of the columns of a member array: hand mass [kg], hand damping [N s/m], grip
@@ -147,6 +147,33 @@ def _zoh(A: np.ndarray, b: np.ndarray, T: float):
     ``Gamma = T phi1(A T)``; ``b`` one column or a stack of them."""
     F = _phi1_balanced(A, T)
     return (A * T) @ F, np.matmul(F, b[..., None])[..., 0] * T
+
+
+def zoh_matrices(A, b, period: float):
+    """Exact zero-order hold of ``x' = A x + b u`` over ``period``, accurate near ``A = 0``.
+
+    Parameters
+    ----------
+    A : ndarray, shape (..., p, p)
+        Continuous state matrix (a stack allowed) [1/s]; states ``[x, v, ...]`` in pairs
+        (balanced as ``[x, v T]`` for the series).
+    b : ndarray, shape (..., p)
+        Input column [state units / (N s)].
+    period : float > 0
+        Hold time ``T`` [s].
+
+    Returns
+    -------
+    Aw : ndarray, shape (..., p, p)
+        ``e^(AT) - I`` [-].
+    Bd : ndarray, shape (..., p)
+        ``int_0^T e^(As) ds b`` [state units / N].
+
+    Notes
+    -----
+    Van Loan (1978) through ``Gamma = T phi1(AT)``, as :func:`hand_zoh`.
+    """
+    return _zoh(np.asarray(A, float), np.asarray(b, float), float(period))
 
 
 def rigid_matrices(mass, friction, stiffness):

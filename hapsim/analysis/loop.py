@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapsim.analysis.subsample import split_delay, split_hold_body, split_numerator_w
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.scene_schema import MASS_RANGE, MAX_DELAY, MAX_PRODUCT, RATE_RANGE, check_product
@@ -106,9 +107,12 @@ class LoopModel:
         Real viscous friction ``b0`` [N s/m].
     rate_hz : float > 0
         Sample rate [Hz]; the period is ``T = 1 / rate_hz`` [s].
-    delay : int >= 0
-        Whole samples ``d`` between the position a force is computed from and the sample
-        it is applied at.
+    delay : float >= 0
+        Delay ``d`` [periods] from the sample a force is computed from to the instant it
+        takes effect. A whole number is the plain hold (stored as an int: today's code
+        path, bit for bit); ``d = m + f`` with ``0 < f < 1`` switches the held force
+        ``f T`` into the period (the split hold, :mod:`hapsim.analysis.subsample`;
+        modified z-transform, Franklin, Powell & Workman sec. 4.3.4).
     hold : {"zoh", "ideal"}
         ``"zoh"``: exact zero-order hold of ``m x'' + b0 x' = f``. ``"ideal"``: the paper's
         idealised sampled image, a centred-difference mass (Florens et al. eqs. (2)-(4)).
@@ -129,8 +133,8 @@ class LoopModel:
     Raises
     ------
     ConfigError
-        On a non-positive mass or rate, a negative friction, a negative or non-integer
-        delay, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
+        On a non-positive mass or rate, a negative friction, a negative or non-finite
+        delay, a fractional delay with the ideal hold, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
         :data:`RATE_RANGE`, ``b0 T / m`` or ``kh T^2 / m > MAX_PRODUCT``, a delay above
         :data:`MAX_DELAY`, a negative ``stiffness``;
         a hand part not inside the whole, a compliant grip with the ideal hold; ``key``
@@ -176,14 +180,21 @@ class LoopModel:
         check_product(b0, 1.0 / (r * m), "friction", "N s/m", "b0 T/m")
         d = self.delay
         check_values("loop", key_by="parameter", delay=d)
-        check_delay(int(d))
+        whole, frac = split_delay(d)
+        check_delay(whole)
         if self.hold not in HOLDS:
             raise ConfigError(f"unknown hold {self.hold!r}; valid choices: "
                               f"{', '.join(HOLDS)}", key="hold")
+        if frac > 0 and self.hold != "zoh":
+            raise ConfigError(f"a delay of {float(d):g} periods switches the force inside "
+                              "the period: it needs hold: zoh (the idealised 'ideal' hold "
+                              "has no time inside the period); valid: a whole delay with "
+                              "'ideal'", key="delay")
         object.__setattr__(self, "mass", m)
         object.__setattr__(self, "friction", b0)
         object.__setattr__(self, "rate_hz", r)
-        object.__setattr__(self, "delay", int(d))
+        # a whole delay stays an int: the plain hold's code path, bit for bit
+        object.__setattr__(self, "delay", whole if frac == 0.0 else float(d))
         kh = num("stiffness", self.stiffness)
         if kh < 0:
             raise ConfigError(f"must be >= 0 [N/m], got {self.stiffness!r}", key="stiffness")
@@ -209,6 +220,18 @@ class LoopModel:
         """Whether the loop needs the general plant/controller path (hand, real spring or
         correction)."""
         return self.correction is not None or not self.rigid or self.stiffness > 0
+
+    @property
+    def delay_whole(self) -> int:
+        """``m = floor(d)``: whole periods of the delay [samples]."""
+        return int(math.floor(self.delay))
+
+    @property
+    def delay_fraction(self) -> float:
+        """``f = d - floor(d)`` in ``[0, 1)``: the part of a period by which the force
+        switches inside the period (:mod:`hapsim.analysis.subsample`) [-]; 0 for a whole
+        delay."""
+        return float(self.delay - math.floor(self.delay))
 
     @property
     def period(self) -> float:
@@ -374,6 +397,39 @@ def _plant_w(loop: LoopModel):
     return Nn, D
 
 
+def _split_plant_w(loop: LoopModel):
+    """Split-hold plant of a fractional delay, in ``w``: ``(Nf~, D, Nvf~)``.
+
+    ``x = (T^2/m) Nf~ / (z D) u[n-m]`` and ``v = (T/m) Nvf~ / (z D) u[n-m]`` (module
+    :mod:`hapsim.analysis.subsample`: ``c (zI - Phi)^-1 (Gamma0 + Gamma1/z)``), ``D`` the
+    plain hold's denominator. Rigid body: closed form on ``Phi = [[1, p], [0, a]]``, where
+    ``c adj(zI - Phi) g = (z - a) g1 + p g2`` (position) and ``(z - 1) g2`` (velocity);
+    compliant grip or real stiffness: :func:`split_numerator_w` on the state space.
+    """
+    m, T, f = loop.mass, loop.period, loop.delay_fraction
+    if loop.rigid and not loop.stiffness > 0:
+        Phi, G0, G1 = split_hold_body(m, loop.friction, T, f)
+        _, D = _plant_w(loop)
+        p, one_minus_a = Phi[0, 1], D[1]
+
+        def pos(g):        # (z - a) g1 + p g2 = g1 w + (g1 (1 - a) + p g2)
+            return np.array([g[0], g[0] * one_minus_a + p * g[1]])
+        Nf = np.polyadd(np.convolve([1.0, 1.0], pos(G0)), pos(G1)) * (m / (T * T))
+        Nvf = np.polyadd(np.convolve([1.0, 1.0], [G0[1], 0.0]), [G1[1], 0.0]) * (m / T)
+        return Nf, D, Nvf
+    from hapsim.analysis.hand import body_zoh
+    member = (loop.hand_mass, loop.hand_damping, loop.grip_stiffness, loop.grip_damping,
+              loop.stiffness)
+    mc, bc = m - loop.hand_mass, loop.friction - loop.hand_damping
+    Aw, _ = body_zoh(mc, bc, member, T)
+    W0, G0 = body_zoh(mc, bc, member, (1.0 - f) * T)
+    _, Gf = body_zoh(mc, bc, member, f * T)
+    G1 = Gf + W0 @ Gf
+    rows = np.eye(Aw.shape[0])
+    return (split_numerator_w(Aw, G0, G1, rows[0]) * (m / (T * T)), np.poly(Aw),
+            split_numerator_w(Aw, G0, G1, rows[1]) * (m / T))
+
+
 def _compliant_plant_w(loop: LoopModel):
     """State-space plant in ``w`` (compliant grip and/or real stiffness): ``(Nn, D, Nvn)``,
     scaled by the total mass.
@@ -508,6 +564,18 @@ def char_parts(loop: LoopModel):
     e : int
         The power of ``(1 + w)`` multiplying ``D`` (0 when ``loop.generic``).
     """
+    if loop.delay_fraction > 0:
+        # the split hold (hapsim.analysis.subsample): the plant N~f / (z D) behind the
+        # whole delay m, i.e. one more pole (the force held from the previous period)
+        Nf, D, Nvf = _split_plant_w(loop)
+        if loop.generic:
+            from hapsim.analysis.corrections import correction_polynomials
+            P, Q, R = correction_polynomials(loop.correction, Nf, np.convolve([1.0, 1.0], D),
+                                             Nvf, delay=loop.delay_whole, mass=loop.mass,
+                                             period=loop.period, lead=loop.delay)
+            return P, Q, R, 0
+        return (np.convolve([1.0, 1.0], Nf), np.convolve([1.0, 0.0], Nf), D,
+                loop.delay_whole + 2)
     if loop.generic:
         # a hand behind a grip or a correction: (P~, Q~, R~) expanded, e = 0
         # (hapsim.analysis.corrections.correction_polynomials)
@@ -664,13 +732,15 @@ def roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     ConfigError
         A delay beyond :data:`MAX_DELAY`.
     """
-    check_delay(loop.delay)
+    check_delay(loop.delay_whole)
     c = _char_poly_z(loop, kappa, beta)
     c = np.trim_zeros(c, "f")
     z = np.roots(c) if c.size > 1 else np.zeros(0, complex)
     # roots np.roots drops (trailing zero coefficients) are exact poles at z = 0
     if loop.generic:
         nz = c.size - 1 - z.size
+    elif loop.delay_fraction > 0:
+        nz = loop.delay_whole + 4 - z.size     # split hold: one more state
     else:
         nz = (loop.delay + (3 if loop.hold == "zoh" else 2)) - z.size
     if nz > 0:

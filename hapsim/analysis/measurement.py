@@ -400,12 +400,12 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         if hello is not None and math.isfinite(getattr(hello, "force_limit", math.inf)):
             lim = min(lim, float(hello.force_limit))
         acc = account_from_force_seq(cols["seq"], cols["force"], fseq, cols["status"],
-                                     zero_delay=dev.delay == 0, force_limit=lim,
+                                     zero_delay=int(dev.delay) == 0, force_limit=lim,
                                      force_scale=step)
     info = {"device_delay": int(acc.delay), "account": acc.method}
     if driver is None and step > 0:
         info["force_step"] = step
-    if acc.delay != dev.delay:
+    if acc.delay != int(dev.delay):     # whole ticks: a fraction is the physics'
         # the model of the loop would be the wrong one: measure as recorded, and say so
         info["late_accounted"] = 0
         info["late_note"] = (f"the device shows a delay of {acc.delay} samples, the scene "

@@ -73,7 +73,7 @@ from hapsim.errors import ConfigError
 from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
-           "device_body", "body_stiffness", "plant_rows",
+           "device_body", "body_stiffness", "plant_rows", "split_plant_rows",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "closed_loop",
            "force_input",
            "port_io", "rest_position", "static_stiffness", "MAX_STATES", "state_count",
@@ -524,6 +524,11 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         tr, det, g = ideal_shift(dev, T, member)
         A[0, 0], A[0, 1] = tr, -det
         A[0] += g * u
+    elif float(dev.delay) % 1.0:         # the split hold: Gamma0 u + Gamma1 F held
+        Ad, G0, G1 = split_plant_rows(dev, T, member)
+        A[:nplant, :nplant] = Ad
+        A[:nplant] += np.outer(G0, u)
+        A[:nplant, -1] += G1
     else:
         Ad, Bd = pr
         A[:nplant, :nplant] = Ad
@@ -549,7 +554,8 @@ def force_input(scene, member=None) -> np.ndarray:
     ndarray, shape (n,)
         ``b``: the plant's ``Bd`` in its rows (``"zoh"``), ``T^2 / (m c)`` in the first
         row (``"ideal"``, Florens et al. eq. (4)), 0 elsewhere (module notes: the force
-        enters the plant only).
+        enters the plant only); a fractional delay: ``Gamma0`` in the plant's rows and 1
+        in the held force's state (:func:`split_plant_rows`).
 
     Raises
     ------
@@ -562,6 +568,12 @@ def force_input(scene, member=None) -> np.ndarray:
     pr = plant_rows(dev, scene.period, member)
     if pr is None:
         b[0] = ideal_shift(dev, scene.period, member)[2]
+    elif float(dev.delay) % 1.0:
+        # the split hold: the force applied enters through Gamma0 over the period's last
+        # (1 - f) T and is the one held over the next period's first f T (the last state)
+        _, G0, _ = split_plant_rows(dev, scene.period, member)
+        b[:G0.size] = G0
+        b[-1] = 1.0
     else:
         Bd = np.asarray(pr[1], float)
         b[:Bd.size] = Bd
@@ -595,6 +607,48 @@ def plant_rows(dev, T: float, member=None):
         Aw, Bd = body_zoh(float(dev.mass), float(dev.friction), mem, T)
         return Aw + np.eye(Aw.shape[-1]), Bd
     return zoh_state_space(*device_body(dev, member), T)
+
+
+def split_plant_rows(dev, T: float, member=None):
+    """Split hold of the device plant for its delay ``m + f``: ``(Ad, Gamma0, Gamma1)``.
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+        ``hold: zoh`` (a fractional delay needs it).
+    T : float
+        Period [s].
+    member : array_like, shape (4,), optional
+        Hand member (default: nominal of ``dev.hand``).
+
+    Returns
+    -------
+    Ad : ndarray, shape (p, p)
+        As :func:`plant_rows`.
+    Gamma0, Gamma1 : ndarray, shape (p,)
+        Response to the force held over the period's last ``(1 - f) T`` and first ``f T``
+        (:func:`hapsim.analysis.subsample.split_hold`; ``f = 0``: ``Bd`` and zeros).
+
+    Notes
+    -----
+    Modified z-transform (Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark
+    sec. 2.3): ``Gamma0 = int_0^((1-f)T) e^(As) ds b``,
+    ``Gamma1 = e^(A(1-f)T) int_0^(fT) e^(As) ds b``.
+    """
+    from hapsim.analysis.hand import body_zoh, nominal_member
+    from hapsim.analysis.subsample import split_delay, split_hold_body
+
+    _, f = split_delay(dev.delay, "device.delay")
+    if is_compliant(dev, member) or body_stiffness(dev, member) > 0:
+        mem = np.asarray(member if member is not None else nominal_member(dev.hand), float)
+        m, b0 = float(dev.mass), float(dev.friction)
+        Aw, _ = body_zoh(m, b0, mem, T)
+        W0, G0 = body_zoh(m, b0, mem, (1.0 - f) * T)
+        if f == 0.0:
+            return Aw + np.eye(Aw.shape[-1]), G0, np.zeros_like(G0)
+        _, Gf = body_zoh(m, b0, mem, f * T)
+        return Aw + np.eye(Aw.shape[-1]), G0, Gf + W0 @ Gf
+    return split_hold_body(*device_body(dev, member), T, f)
 
 
 def closed_loop_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=None,
@@ -749,12 +803,13 @@ def state_count(scene) -> int:
     -------
     int
         ``2 N`` (N moving masses) plus, with a port and a device, ``3 + d`` (``"zoh"``) or
-        ``2 + d`` (``"ideal"``).
+        ``2 + d`` (``"ideal"``); a fractional ``d`` counts ``ceil(d)`` (the split hold's
+        held force is one more state).
     """
     n = 2 * sum(1 for m in scene.masses if m.kind == "mass")
     dev = getattr(scene, "device", None)
     if scene.port is not None and dev is not None:
-        n += (3 if dev.hold == "zoh" else 2) + int(dev.delay)
+        n += (3 if dev.hold == "zoh" else 2) + math.ceil(float(dev.delay))
         if is_compliant(dev, None):
             n += 2                          # the hand's position and velocity
     return n

@@ -12,6 +12,9 @@ State at sample ``n`` (each block n-dimensional)::
     x_port[n-1]                 for the port links' damping
     F[n-1], ..., F[n-d]         the force delay line (computed, not yet applied)
     x[n] of the N virtual masses, then x[n-1] of them   (centred scheme)
+    F[n-d-1]                    a delay d + f (0 < f < 1) only: the force held over the
+                                period's first f T (the split hold,
+                                hapsim.analysis.ths_nd.split_hold_matrices)
 
 At sample ``n`` the port is at the device sample; every link's force is computed from
 the positions at ``n`` and ``n - 1``; the virtual masses advance
@@ -36,12 +39,13 @@ quadratic eigenvalue problem on the n least damped pairs the hand feels).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from hapsim.analysis.ths_nd import (LoopModelND, RenderND, direction_limit, render_state,
-                                    zoh_matrices)
+                                    split_hold_matrices, zoh_matrices)
 from hapsim.errors import ConfigError
 
 __all__ = ["link_blocks", "closed_loop_nd", "SceneCheckND", "check_scene_nd",
@@ -124,10 +128,11 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
         raise ConfigError("the n-D check needs a port and its device", file=scene.path,
                           key="masses")
     n, T, dev = scene.dimension, scene.period, scene.device
-    d = dev.delay
+    d = int(math.floor(dev.delay))
+    split = float(dev.delay) % 1.0 > 0      # the split hold: one more block, last
     virt = [m for m in scene.masses if m.kind == "mass"]
     Nv = len(virt)
-    N = n * (3 + d + 2 * Nv)
+    N = n * (3 + d + 2 * Nv + split)
     if N > MAX_STATES_ND:
         raise ConfigError(f"the closed loop would have {N} states, more than "
                           f"{MAX_STATES_ND} (dense eigenvalues, O(N^3))", file=scene.path,
@@ -165,8 +170,14 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
     prev = [XPP] + [xvp(i) for i in range(Nv)]  # X[n-1] blocks
     A = np.zeros((N, N))
     loop = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
-                       delay=d)
-    Ad, Bd = zoh_matrices(loop)
+                       delay=dev.delay)
+    if split:
+        # F[n-d] enters through Gamma0 and is held over the next period's first f T
+        # (block H); Gamma1 takes H (hapsim.analysis.subsample.held_plant)
+        Ad, Bd, G1 = split_hold_matrices(loop)
+        H = 3 + d + 2 * Nv
+    else:
+        Ad, Bd = zoh_matrices(loop)
 
     def put(r, c, M):
         A[blk(r), blk(c)] += M
@@ -178,13 +189,20 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
         for c, M in port_row:                   # u[n] = F[n]
             put(XP, c, Bd[:n] @ M)
             put(VP, c, Bd[n:] @ M)
+            if split:
+                put(H, c, M)
     else:
         put(XP, fd(d), Bd[:n])                  # u[n] = F[n-d]
         put(VP, fd(d), Bd[n:])
+        if split:
+            put(H, fd(d), np.eye(n))
         for c, M in port_row:                   # F[(n+1)-1] = F[n]
             put(fd(1), c, M)
         for k in range(2, d + 1):
             put(fd(k), fd(k - 1), np.eye(n))
+    if split:
+        put(XP, H, G1[:n])
+        put(VP, H, G1[n:])
     put(XPP, XP, np.eye(n))
     for i, m in enumerate(virt):
         g = T * T / m.mass
@@ -195,7 +213,8 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
             put(xv(i), prev[j], g * Fxp[blk(1 + i), blk(j)])
         put(xvp(i), xv(i), np.eye(n))
     names = (["x_dev[n]", "v_dev[n]", "x_port[n-1]"] + [f"F[n-{k}]" for k in range(1, d + 1)]
-             + [f"x[n] {m.name}" for m in virt] + [f"x[n-1] {m.name}" for m in virt])
+             + [f"x[n] {m.name}" for m in virt] + [f"x[n-1] {m.name}" for m in virt]
+             + ([f"F[n-{d + 1}] (held the first f T)"] if split else []))
     return A, names
 
 

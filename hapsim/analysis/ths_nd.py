@@ -69,10 +69,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.analysis.loop import MASS_RANGE, RATE_RANGE, STABILITY_TOL
+from hapsim.analysis.subsample import split_delay
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 
-__all__ = ["LoopModelND", "zoh_matrices", "state_matrix", "closed_loop_poles_nd",
+__all__ = ["LoopModelND", "zoh_matrices", "split_hold_matrices", "state_matrix",
+           "closed_loop_poles_nd",
            "rendered_pairs", "rendered_pairs_of", "felt_matrices", "continuous_poles",
            "render_state",
            "RenderND", "render_nd", "direction_limit", "direction_limits",
@@ -127,8 +129,10 @@ class LoopModelND:
         Cartesian viscous friction ``B0`` [N s/m], symmetric positive semi-definite.
     rate_hz : float > 0
         Sample rate [Hz]; ``T = 1 / rate_hz``.
-    delay : int >= 0
-        Whole samples ``d`` (as :class:`hapsim.analysis.loop.LoopModel`).
+    delay : float >= 0
+        Delay ``d`` [periods] (as :class:`hapsim.analysis.loop.LoopModel`): a whole
+        number (stored as an int) or ``m + f``, the split hold
+        (:mod:`hapsim.analysis.subsample`).
     hold : {"zoh"}
         Zero-order hold (the only one modelled in n-D).
     dof : int, optional
@@ -140,7 +144,7 @@ class LoopModelND:
         A mass not symmetric positive definite or outside
         :data:`hapsim.analysis.loop.MASS_RANGE` (its eigenvalues), friction not symmetric
         positive semi-definite, shapes that differ, a rate outside
-        :data:`~hapsim.analysis.loop.RATE_RANGE`, a delay not a whole number in
+        :data:`~hapsim.analysis.loop.RATE_RANGE`, a delay not a real number in
         ``[0, MAX_DELAY]``, an unknown hold; ``key`` names the field.
     """
 
@@ -184,7 +188,8 @@ class LoopModelND:
         object.__setattr__(self, "mass", M)
         object.__setattr__(self, "friction", B0)
         object.__setattr__(self, "rate_hz", r)
-        object.__setattr__(self, "delay", int(d))
+        whole, frac = split_delay(d)
+        object.__setattr__(self, "delay", whole if frac == 0.0 else float(d))
         object.__setattr__(self, "dof", n)
 
     @property
@@ -241,6 +246,40 @@ class LoopModelND:
                 "delay": self.delay, "hold": self.hold}
 
 
+def split_hold_matrices(loop: LoopModelND):
+    """The split hold of ``M x'' + B0 x' = F`` for the loop's delay ``m + f``.
+
+    Parameters
+    ----------
+    loop : LoopModelND
+
+    Returns
+    -------
+    Ad : ndarray, shape (2n, 2n)
+        As :func:`zoh_matrices`.
+    Gamma0 : ndarray, shape (2n, n)
+        Response of ``[x, v]`` to the force held over the period's last ``(1 - f) T``
+        [m/N, m/(N s)].
+    Gamma1 : ndarray, shape (2n, n)
+        Response to the force held over its first ``f T`` (zeros for a whole delay).
+
+    Notes
+    -----
+    ``Gamma0 = int_0^((1-f)T) e^(As) ds b``, ``Gamma1 = e^(A(1-f)T) int_0^(fT) e^(As) ds b``
+    (modified z-transform: Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark
+    sec. 2.3; :mod:`hapsim.analysis.subsample`), each piece by :func:`zoh_matrices`' block
+    exponential over its own length.
+    """
+    T = loop.period
+    f = float(loop.delay) % 1.0
+    Ad, Bd = _zoh_over(loop, T)
+    if f == 0.0:
+        return Ad, Bd, np.zeros_like(Bd)
+    A0, G0 = _zoh_over(loop, (1.0 - f) * T)
+    _, Gf = _zoh_over(loop, f * T)
+    return Ad, G0, A0 @ Gf
+
+
 def zoh_matrices(loop: LoopModelND) -> tuple[np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation of ``M x'' + B0 x' = F``.
 
@@ -265,8 +304,13 @@ def zoh_matrices(loop: LoopModelND) -> tuple[np.ndarray, np.ndarray]:
     ``e^-x - 1 + x`` at full relative precision for small ``x = b0 T/m`` (the 1-D
     :func:`hapsim.analysis.loop.zoh_state_space` is the case n = 1).
     """
+    return _zoh_over(loop, loop.period)
+
+
+def _zoh_over(loop: LoopModelND, T: float):
+    """:func:`zoh_matrices` over a hold of length ``T`` [s]."""
     from scipy.linalg import expm
-    n, T = loop.dof, loop.period
+    n = loop.dof
     Minv = np.linalg.inv(loop.mass)
     Z = -(Minv @ loop.friction) * T
     I = np.eye(n)
@@ -302,8 +346,10 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (n (d + 3), n (d + 3))
+    ndarray, shape (n (d + 3), n (d + 3)); ``n (m + 4)`` for a delay ``m + f``
         ``s[n+1] = A s[n]`` for the state ``s[n] = (x[n], v[n], x[n-1], ..., x[n-d-1])``
+        (a delay ``m + f``: ``..., x[n-m-1]``, then the force held over the period's
+        first ``f T``, :func:`split_hold_matrices`)
         (positions [m], velocities [m/s]); ``F[n] = -K x[n-d] - B (x[n-d] - x[n-d-1])/T``
         held over ``[nT, (n+1)T)``. For n = 1 its characteristic polynomial is the 1-D
         ``P K + Q B + R`` of :func:`hapsim.analysis.loop.characteristic` (zoh).
@@ -315,6 +361,8 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
     """
     Kq, Bq = _gains(loop, K, B)
     n, d, T = loop.dof, loop.delay, loop.period
+    if d % 1:
+        return _split_state_matrix(loop, Kq, Bq)
     Ad, Bd = zoh_matrices(loop)
     N = n * (d + 3)
     A = np.zeros((N, N))
@@ -326,6 +374,32 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
     A[:2 * n, pos(d)] += Bd @ (-(Kq + Bq / T))
     A[:2 * n, pos(d + 1)] += Bd @ (Bq / T)
     for k in range(1, d + 2):     # x[n+1-k] <- x[n-(k-1)]
+        A[pos(k), pos(k - 1)] = np.eye(n)
+    return A
+
+
+def _split_state_matrix(loop: LoopModelND, Kq, Bq) -> np.ndarray:
+    """:func:`state_matrix` for a delay ``m + f``: state ``(x[n], v[n], x[n-1], ...,
+    x[n-m-1], h[n])`` with ``h[n] = F[n-m-1]`` the force held over the period's first
+    ``f T``: ``[x; v][n+1] = Ad [x; v] + Gamma0 F[n-m] + Gamma1 h``, ``h[n+1] = F[n-m]``
+    (:func:`hapsim.analysis.subsample.held_plant`); ``n (m + 4)`` states."""
+    n, T = loop.dof, loop.period
+    m = int(math.floor(loop.delay))
+    Ad, G0, G1 = split_hold_matrices(loop)
+    N = n * (m + 4)
+    A = np.zeros((N, N))
+    A[:2 * n, :2 * n] = Ad
+
+    def pos(k):   # block of x[n - k]
+        return slice(0, n) if k == 0 else slice((k + 1) * n, (k + 2) * n)
+    h = slice((m + 3) * n, (m + 4) * n)
+    Fx, Fxp = -(Kq + Bq / T), Bq / T          # F[n-m] = Fx x[n-m] + Fxp x[n-m-1]
+    A[:2 * n, pos(m)] += G0 @ Fx
+    A[:2 * n, pos(m + 1)] += G0 @ Fxp
+    A[:2 * n, h] += G1
+    A[h, pos(m)] = Fx
+    A[h, pos(m + 1)] = Fxp
+    for k in range(1, m + 2):     # x[n+1-k] <- x[n-(k-1)]
         A[pos(k), pos(k - 1)] = np.eye(n)
     return A
 
@@ -685,10 +759,17 @@ def _rank_one(loop: LoopModelND, K0, B, e):
     """``A(kappa) = A0 - kappa b c^T`` for ``K = K0 + kappa e e^T``."""
     n, d = loop.dof, loop.delay
     A0 = state_matrix(loop, K0, B)
-    _, Bd = zoh_matrices(loop)
     N = A0.shape[0]
     bvec = np.zeros(N)
-    bvec[:2 * n] = Bd @ e
+    if d % 1:       # the split hold: K enters F[n-m], which the plant and h both take
+        m = int(math.floor(d))
+        _, G0, _ = split_hold_matrices(loop)
+        bvec[:2 * n] = G0 @ e
+        bvec[N - n:] = e
+        d = m
+    else:
+        _, Bd = zoh_matrices(loop)
+        bvec[:2 * n] = Bd @ e
     cvec = np.zeros(N)
     blk = slice(0, n) if d == 0 else slice((d + 1) * n, (d + 2) * n)
     cvec[blk] = e

@@ -176,15 +176,16 @@ class Controller:
 
         Parameters
         ----------
-        delay : int
-            The loop's delay now [device samples] (device delay + lead).
+        delay : int or float
+            The loop's delay now [device periods] (device delay + lead; real for a
+            sub-sample device delay).
         why : str
             What changed it (journaled, and in :attr:`unstable`).
         """
         self._gen += 1
         old = self.scene
-        new = dataclasses.replace(old, device=dataclasses.replace(old.device,
-                                                                   delay=int(delay)))
+        new = dataclasses.replace(old, device=dataclasses.replace(
+            old.device, delay=int(delay) if float(delay).is_integer() else float(delay)))
         self.scene = new
         self.measured = (math.nan, math.nan)
         self.measurement = None
@@ -195,7 +196,7 @@ class Controller:
                 pred = self._predict(self.scene)
                 self.felt = pred
             k, b = pred.get("k"), pred.get("b")
-            self._log("delay", "", [int(delay)], reason=why, felt=[k, b],
+            self._log("delay", "", [delay], reason=why, felt=[k, b],
                       stable=bool(pred["stable"]),
                       spectral_radius=pred.get("spectral_radius"))
             if not pred["stable"]:

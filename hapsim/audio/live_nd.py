@@ -122,6 +122,11 @@ class LiveND:
         self.dim = dim
         self.closed = scene.port is not None and scene.device is not None
         dev = scene.device
+        if self.closed and float(dev.delay) % 1.0:
+            raise ConfigError(f"the live n-D loop's device applies whole periods; a "
+                              f"sub-sample delay ({float(dev.delay):g} periods) is analysed "
+                              "by check and stability but not played: use a whole delay",
+                              file=scene.path, key="device.delay")
         d = int(dev.delay) if self.closed else 0
         Ad, Bd = np.zeros((2 * dim, 2 * dim)), np.zeros((2 * dim, dim))
         if self.closed:

@@ -162,7 +162,7 @@ class LiveSound:
         """``scene`` with its device delay increased by :attr:`lead`: the loop this live
         sound closes (period n's force reaches the device ``lead`` samples later)."""
         return dataclasses.replace(scene, device=dataclasses.replace(
-            scene.device, delay=int(scene.device.delay) + int(self.lead)))
+            scene.device, delay=scene.device.delay + int(self.lead)))
 
     # -------------------------------------------------------------- haptic thread
     def push(self, position: float) -> None:

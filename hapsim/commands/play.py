@@ -249,7 +249,7 @@ def _play(args: argparse.Namespace, stop) -> int:
     rt = RealtimePriority(prio).__enter__()
     t0 = time.perf_counter()
     # the lead the prediction was made for (the block may have changed since)
-    lead_now = int(played.device.delay) - int(dev.delay)
+    lead_now = round(float(played.device.delay) - float(dev.delay))
     done = steps               # samples played (fewer after a signal or a device error)
     stop_reason = "duration"
     try:
@@ -264,7 +264,7 @@ def _play(args: argparse.Namespace, stop) -> int:
                 # measure a free response that straddles the change
                 lead_now = live.lead
                 quiet_from = n + 1 + int(dev.delay) + lead_now
-                ctl.rebase_delay(int(dev.delay) + lead_now,
+                ctl.rebase_delay(dev.delay + lead_now,
                                  f"the sound server's block changed to {out.blocksize} "
                                  f"frames at sample {n} (lead {lead_now})")
             if ctl.unstable is not None:

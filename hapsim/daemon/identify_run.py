@@ -448,7 +448,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                                            rate_hz, port is None)
             if port is None:
                 # paced by the commands: a slow mock process is no lost answer
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
+                tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
+                                     reply_deadline=0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, port, delay=1, delay_known=False)
@@ -465,7 +466,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         else:
             from hapsim.daemon.transport import SerialTransport
             tr = SerialTransport(port, baud)
-        d_expect = dev.delay if port is None else 1
+        d_expect = int(dev.delay) if port is None else 1     # whole ticks (force_seq)
         cfg = LoopConfig(rate_hz=rate_hz, n_samples=n, delay=d_expect, force_limit=force_limit,
                          lockstep=lock, host_clocked=use_driver,
                          state_timeout=(0.5 if transport == "inprocess" else 10.0) if lock

@@ -93,7 +93,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ds = float(getattr(driver, "position_scale", 0.0) or 0.0)
         quantum = ds if math.isfinite(ds) and ds > 0 else 0.0
     if pred["order"]:
-        start = int(math.ceil(prep.exc_end / T - 1e-9)) + dev.delay + 3
+        start = int(math.ceil(prep.exc_end / T - 1e-9)) + math.ceil(float(dev.delay)) + 3
         if cols["seq"].size:
             start += int(cols["seq"][0])
         offset = has_offset(scene)
@@ -158,7 +158,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                     coulomb=dev.coulomb), response))
         measured = identify(position, cols["seq"], T, pred["order"],
                             device_body(dev)[0], start,
-                            offset=offset, late=late, skip=dev.delay + 2,
+                            offset=offset, late=late, skip=math.ceil(float(dev.delay)) + 2,
                             predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed,

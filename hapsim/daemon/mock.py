@@ -781,7 +781,7 @@ def compiled_reason(mock, plan=None) -> str | None:
     str or None
         ``"lockstep"``, ``"faults"``, ``"velocity sensor"`` (VELOCITY frames enabled by
         the host), ``"noise"``, ``"hand grip or arm stiffness (state-space plant)"``,
-        ``"hold"``, ``"subclass"``, ``"trace"`` or
+        ``"sub-sample delay (the split hold)"``, ``"hold"``, ``"subclass"``, ``"trace"`` or
         ``"not configured"``; None: compiled.
     """
     if type(mock) is not MockDevice:
@@ -803,6 +803,8 @@ def compiled_reason(mock, plan=None) -> str | None:
         return "noise"
     if ph._grip is not None:
         return "hand grip or arm stiffness (state-space plant)"
+    if ph.split > 0:
+        return "sub-sample delay (the split hold)"
     if ph.hold not in ("zoh", "ideal"):
         return "hold"
     return None

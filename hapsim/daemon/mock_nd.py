@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 import firmware_protocol as fp
-from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
+from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
 from hapsim.daemon.mock import MOCK_DEVICE_ID, MockDevice
 from hapsim.errors import ConfigError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
@@ -74,11 +74,21 @@ class PhysicsND:
         x0 = np.asarray(x0, float)
         v0 = np.asarray(v0, float)
         self.joint = None
+        self.split = float(dev.delay) % 1.0
         if joint_space and dev.joints is not None:
+            if self.split > 0:
+                raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is "
+                                  "modelled on the Cartesian device; the joint-space model "
+                                  "applies whole periods: use a whole delay or the "
+                                  "Cartesian model", file=scene.path, key="device.delay")
             self.joint = LocalJointDeviceND(scene, x0, v0)
         else:
-            self.Ad, self.Bd = zoh_matrices(LoopModelND(mass=dev.mass, friction=dev.friction,
-                                                        rate_hz=scene.rate_hz, delay=0))
+            lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                             delay=dev.delay)
+            self.Ad, self.Bd = zoh_matrices(lm)
+            if self.split > 0:        # the split hold (ths_nd.split_hold_matrices)
+                _, self._G0, self._G1 = split_hold_matrices(lm)
+                self._held = np.zeros(self.dim)
         self.state = np.concatenate([x0, v0])
 
     def sample(self) -> tuple:
@@ -91,6 +101,10 @@ class PhysicsND:
         """Hold the force ``u`` [N] (shape (n,)) over one period and advance."""
         if self.joint is not None:
             self.joint.step(u)
+        elif self.split > 0:      # the previous force over the first f T, then u
+            u = np.asarray(u, float)
+            self.state = self.Ad @ self.state + self._G0 @ u + self._G1 @ self._held
+            self._held = u
         else:
             self.state = self.Ad @ self.state + self.Bd @ np.asarray(u, float)
         self.n += 1

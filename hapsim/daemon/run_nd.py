@@ -354,14 +354,19 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
         As :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`.
     """
     from hapsim.analysis.scene_nd_check import closed_loop_nd
-    from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
+    from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
     W = np.asarray(W, float)
     n = scene.dimension
     if A is None:
         A = closed_loop_nd(scene)[0]
     dev = scene.device
-    _, Bd = zoh_matrices(LoopModelND(mass=dev.mass, friction=dev.friction,
-                                     rate_hz=scene.rate_hz, delay=dev.delay))
+    lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                     delay=dev.delay)
+    split = float(dev.delay) % 1.0 > 0
+    if split:    # the force applied enters through Gamma0 and is held next period (last)
+        _, Bd, _ = split_hold_matrices(lm)
+    else:
+        _, Bd = zoh_matrices(lm)
     out = np.zeros_like(W)
     nz = np.flatnonzero(np.any(W != 0, axis=1))
     if nz.size == 0:
@@ -371,6 +376,8 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
         out[k] = s[:n]
         s = A @ s
         s[:2 * n] += Bd @ W[k]
+        if split:
+            s[-n:] += W[k]
     return out
 
 
@@ -606,7 +613,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                                    else "")))
         return out
     recs, late, wdog, delays = [], 0, 0, []
-    d = scene.device.delay
+    d = int(scene.device.delay)       # whole ticks (force_seq); a fraction is the physics'
+
     for r in best:
         k = min(r.rows, L)
         seq, status, fseq = r.seq[:k], r.status[:k], r.force_seq[:k]

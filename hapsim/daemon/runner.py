@@ -91,6 +91,14 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
                           "lockstep (--lockstep); a real-time device needs d >= 1",
                           file=scene.path, key="device.delay")
+    if float(dev.delay) < 1 and not opts.lockstep and opts.driver in (None, "framed"):
+        # the framed mock's delay line is whole periods: d < 1 would need the force of a
+        # tick before that tick; a driver's board gives the fraction by its own timing
+        raise ConfigError(f"device delay d = {float(dev.delay):g} < 1 period: hapsim's mock "
+                          "applies each FORCE at a tick after the one it answers, so a "
+                          "real-time run needs d >= 1 (or --lockstep; a driver's board "
+                          "such as the FireFader's takes d < 1 from its own timing)",
+                          file=scene.path, key="device.delay")
     pred = predict(scene)
     if pred["stable"] is False and not opts.allow_unstable:
         raise refusal(scene, pred)
@@ -150,7 +158,9 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
     x0 = abs(scene.excitation.x0)
     sf = scene.safety
     pos_bound = sf.position_limit if sf.position_limit is not None else max(0.1, 20.0 * x0)
-    return LoopConfig(rate_hz=scene.rate_hz, n_samples=prep.n_samples, delay=dev.delay,
+    # the host's tick bookkeeping (force_seq) counts whole periods: a delay m + f is m
+    # ticks there, the fraction is in the physics (the device's) and in the prediction
+    return LoopConfig(rate_hz=scene.rate_hz, n_samples=prep.n_samples, delay=int(dev.delay),
                       force_limit=dev.force_limit, lockstep=lockstep,
                       host_clocked=opts.host_clocked,
                       compact={"auto": "auto", "full": "off", "compact": "on"}[opts.frames],
@@ -316,10 +326,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                                                        else drv.mock_hardware()),
                                               faults=opts.driver_faults)
                 # the mock is paced by the commands: a slow mock process is no lost answer
-                tr = DriverTransport(drv, embedded.port, delay=dev.delay, reply_deadline=0.02)
+                tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
+                                     reply_deadline=0.02)
                 embedded.release_slave()
             else:
-                tr = DriverTransport(drv, opts.port, delay=dev.delay)
+                tr = DriverTransport(drv, opts.port, delay=int(dev.delay))
         elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,

@@ -101,9 +101,11 @@ class Device:
         Moving mass m of hand + handle [kg], in [1e-12, 1e12].
     friction : float
         Real viscous friction b0 [N s/m], >= 0, with b0 T / m <= 1e6.
-    delay : int
-        Whole samples d between the position a force is computed from and the sample
-        the force is applied at, 0 to 500 (the analysis's cost: O(d^3)).
+    delay : int or float
+        Delay d from the sample a force is computed from to the instant the force takes
+        effect [periods], 0 to 500 (the analysis's cost: O(d^3)): an int for a whole
+        delay (the plain hold), a float ``m + f`` for the split hold
+        (:mod:`hapsim.analysis.subsample`).
     hold : {"zoh", "ideal"}
         Zero-order hold of the force, or the paper's idealised sampled image.
     force_limit : float
@@ -136,7 +138,7 @@ class Device:
 
     mass: float
     friction: float = 0.0
-    delay: int = 1
+    delay: int | float = 1
     hold: str = "zoh"
     force_limit: float = math.inf
     position_resolution: float = 0.0

@@ -336,6 +336,8 @@ def read_device(ctx: LineContext, doc: LDict) -> Device:
     """
     d = ctx.mapping(doc["device"], "device", ctx.line_of(doc, "device"))
     vals = _read_values(ctx, d, "device", "device")
+    if isinstance(vals["delay"], float) and vals["delay"].is_integer():
+        vals["delay"] = int(vals["delay"])   # a whole delay: the plain hold's int, as before
     vals["hand"] = _read_hand(ctx, d) if "hand" in d else None
     vals["correction"] = (dict(ctx.mapping(d["correction"], "device.correction",
                                            ctx.line_of(d, "correction")))

@@ -407,18 +407,23 @@ def check_device(d: Any) -> None:
     Parameters
     ----------
     d : Device
-        The section: mass [kg], friction [N s/m], delay [samples], hold, force limit [N],
-        hand, correction and the protocol's options.
+        The section: mass [kg], friction [N s/m], delay [periods, real], hold, force
+        limit [N], hand, correction and the protocol's options.
 
     Raises
     ------
     Invalid
-        Not a :class:`~hapsim.scene.Device`, a value out of its row's range, a hand or a
+        Not a :class:`~hapsim.scene.Device`, a value out of its row's range, a fractional
+        delay with the ideal hold, a hand or a
         correction the hold cannot render, or options the protocol's driver refuses.
     """
     if not isinstance(d, Device):
         raise Invalid(f"must be a hapsim.scene.Device, got {type_name(d)}", ("device",))
     _check_section(d, "device", "device")
+    if d.hold != "zoh" and float(d.delay) % 1.0:
+        raise Invalid(f"a delay of {num(float(d.delay))} periods switches the force inside "
+                      "the period (the split hold): it needs hold: zoh; the 'ideal' hold "
+                      "takes a whole delay", ("device", "delay"))
     if d.hand is not None:
         _check_hand(d.hand, d.hold)
     if d.correction is not None:
