@@ -285,17 +285,29 @@ def expm_tol(A) -> float:
     Returns
     -------
     float
-        ``SAFETY * n * eps * kappa_exp`` with the relative condition number of the
-        exponential bounded by ``||A|| e^(||A|| - ...)`` in the form of Van Loan's bound
-        ``kappa_exp(A) <= ||A|| exp(||A||) / ||exp(A)||`` (Higham, *Functions of Matrices*,
-        SIAM 2008, Lemma 10.15) and scaling-and-squaring being forward stable to that
-        conditioning (Al-Mohy & Higham 2009, the algorithm scipy uses).
+        ``SAFETY * n * eps * kappa`` with ``kappa = max(1, m^2 ||A|| / ||e^A||)`` and
+        ``m = max_{0 <= s <= 1} ||e^(sA)||_2``: the Frechet derivative
+        ``L(A, E) = int_0^1 e^((1-s)A) E e^(sA) ds`` is at most ``m^2 ||E||``, so ``kappa``
+        bounds the exponential's relative condition number (Higham, *Functions of
+        Matrices*, SIAM 2008, eq. (10.15) and Sec. 3.1); scaling and squaring (Al-Mohy &
+        Higham 2009, scipy's algorithm) is forward stable to that conditioning, ``n eps``
+        being its products' backward error. ``m`` is taken over ``s = j/k``,
+        ``k >= ||A||``, as ``||e^(A/k)^j||`` times ``e^(||A||/k) <= e`` for the steps between
+        (``||e^((s + h)A)|| <= ||e^(sA)|| e^(h ||A||)``): an upper bound, not a sample.
     """
     A = np.asarray(A, dtype=float)
     n = A.shape[0]
     a = float(np.linalg.norm(A, 2))
-    eA = float(np.linalg.norm(scipy.linalg.expm(A), 2))
-    kappa = max(1.0, a * math.exp(a) / max(eA, np.finfo(float).tiny))
+    k = max(16, int(math.ceil(a)))
+    P1 = scipy.linalg.expm(A / k)
+    P = np.eye(n)
+    m = 1.0
+    for _ in range(k):
+        P = P1 @ P
+        m = max(m, float(np.linalg.norm(P, 2)))
+    m *= math.exp(a / k)
+    eA = max(float(np.linalg.norm(P, 2)), np.finfo(float).tiny)
+    kappa = max(1.0, m * m * a / eA)
     return SAFETY * n * EPS * kappa
 
 
