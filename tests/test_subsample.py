@@ -398,3 +398,56 @@ def test_lockstep_run_measures_the_split_hold(d):
     assert rep["measured"]["within"] is True, rep["measured"]["verdict"]
     assert abs(rep["measured"]["b"] - r.b) <= rep["measured"]["b_interval"]
     assert abs(rep["measured"]["k"] - r.k) <= rep["measured"]["k_interval"]
+
+
+def test_whole_delays_never_touch_the_split_hold(monkeypatch):
+    """Integer delays take today's code path: with every split-hold function made to fail,
+    check (1-D and n-D), render, calibrate, stability and a lockstep run of every shipped
+    scene still answer (so their numbers are the plain hold's, bit for bit; compared
+    against the code before this change: 300 random loops and every configs/*.yaml
+    check --json identical, docs/stability.md)."""
+    import pathlib
+
+    import hapsim.analysis.network as network
+    import hapsim.analysis.scene_nd_check as scene_nd_check
+    import hapsim.analysis.subsample as subsample
+    import hapsim.analysis.ths_nd as ths_nd
+    from hapsim.scene import load_scene
+    from hapsim.scene_nd import load_scene_nd
+
+    def boom(*a, **k):
+        raise AssertionError("the split hold was used for a whole delay")
+    for mod, names in ((subsample, ("split_hold", "split_hold_body", "split_numerator_w",
+                                    "held_plant")),
+                       (network, ("split_plant_rows",)),
+                       (ths_nd, ("split_hold_matrices",)),
+                       (scene_nd_check, ("split_hold_matrices",))):
+        for name in names:
+            monkeypatch.setattr(mod, name, boom)
+    import hapsim.analysis.loop as loop_mod
+    for name in ("split_hold_body", "split_numerator_w"):
+        monkeypatch.setattr(loop_mod, name, boom)
+    from hapsim.cli import main
+    configs = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+    seen = 0
+    for path in configs:
+        text = path.read_text()
+        if "dimension: 2" in text or "dimension: 3" in text:
+            dev = load_scene_nd(str(path)).device
+            assert dev is None or isinstance(dev.delay, int)
+        else:
+            sc = load_scene(str(path))
+            if sc.device is None or sc.port is None:
+                continue
+            assert isinstance(sc.device.delay, int)
+            lp = LoopModel.from_device(sc.device, sc.rate_hz)
+            r = render(lp, 100.0, 0.1)
+            stability_limit(lp, 0.1)
+            if r.rendered is not None:
+                calibrate(lp, r.k, r.b)
+        assert main(["check", str(path), "--json"]) in (0, 1), path   # (1: unstable)
+        seen += 1
+    assert seen >= 10
+    # and the patches bite: a fractional delay does go through them
+    with pytest.raises(AssertionError, match="split hold"):
+        render(LoopModel(mass=0.1, friction=0.5, rate_hz=1000.0, delay=1.5), 100.0)
