@@ -210,7 +210,7 @@ def test_protocol_key_is_validated_and_drivers_follow_it(tmp_path, capsys):
 def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path, fake_run,
                                                                         capsys):
     dev = tmp_path / "dev.yaml"
-    dev.write_text("device:\n  mass: 0.06\n  friction: 0.12\n  delay: 1\n")
+    dev.write_text("device:\n  mass: 0.06\n  friction: 0.12\n  delay: 0.725\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err
     assert (f"hapsim run: the device of {dev} replaces the scene's (mass 0.05 -> 0.06; "
@@ -219,7 +219,7 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
     assert (d.mass, d.friction, d.protocol, d.force_limit) == (0.06, 0.12, "firefader", 0.38)
     assert fake_run["driver"] == "firefader"
     # a file that names them: its values win, and the line says so
-    dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  protocol: haply\n"
+    dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  delay: 0.725\n  protocol: haply\n"
                    "  force_limit: 0.1\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err

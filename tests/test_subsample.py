@@ -451,3 +451,32 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     # and the patches bite: a fractional delay does go through them
     with pytest.raises(AssertionError, match="split hold"):
         render(LoopModel(mass=0.1, friction=0.5, rate_hz=1000.0, delay=1.5), 100.0)
+
+
+def test_firefader_with_its_own_adc_timing_is_predicted_by_the_real_delay():
+    """configs/firefader.yaml run through the FireFader's bytes on its driver mock, the
+    board keeping its own pass timing (the .ino sets the PWM at the packet and reads the
+    fader 1.1 ms later: hapsim.driver_mock.FireFaderDevice(adc_s=1.1e-3), which ignores the
+    scene's delay): the scene's d = 1 - 1.1/4 = 0.725 predicts the measured (k, b) within
+    the run's stated uncertainty, and the measured b lies outside that uncertainty of the
+    whole delay's prediction (the issue's +11 to +16 %)."""
+    import dataclasses
+
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    import pathlib
+    sc = load_scene(str(pathlib.Path(__file__).resolve().parents[1] / "configs"
+                        / "firefader.yaml"))
+    assert sc.device.delay == 0.725
+    rep = run_scene(sc, driver="firefader", mock_options={"adc_s": 1.1e-3},
+                    handle_signals=False, rt_priority=0)
+    m = rep["measured"]
+    assert m["within"] is True, m["verdict"]
+    whole = render(LoopModel.from_device(dataclasses.replace(sc.device, delay=1),
+                                         sc.rate_hz), *_spring(sc))
+    assert m["b"] - whole.b > m["b_interval"] and m["b"] > 1.1 * whole.b
+
+
+def _spring(sc):
+    lk = sc.links[0]
+    return lk.stiffness, lk.damping
