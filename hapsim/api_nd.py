@@ -223,6 +223,8 @@ class ModesReportND(Report):
         Size of the one-step map.
     stable : bool
         Spectral radius within 1e-9 of 1 or below.
+    verdict : {"stable", "unstable"}
+        The same, as every ``check --json`` says it (1-D, n-D, with or without a port).
     spectral_radius : float
     modes : list of dict
         ``frequency_hz`` [Hz], ``damping_ratio`` [-], ``axis`` (0..n-1: the one its shape
@@ -237,6 +239,7 @@ class ModesReportND(Report):
     masses: int
     states: int
     stable: bool
+    verdict: str
     spectral_radius: float
     modes: list
 
@@ -304,6 +307,7 @@ def modes_nd(scene) -> ModesReportND:
     res = scene_modes_nd(scene)
     d = {"scene": scene.path, "dof": scene.dimension, "masses": len(res.names),
          "states": res.states, "stable": res.stable,
+         "verdict": "stable" if res.stable else "unstable",
          "spectral_radius": res.spectral_radius,
          "modes": [md.to_dict() for md in res.modes]}
     return ModesReportND.from_dict(d, analysis=res, scene_nd=scene)

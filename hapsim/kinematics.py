@@ -1041,8 +1041,11 @@ def cartesian_mass(J, joint_inertia) -> np.ndarray:
     if J.shape != (n, n) or Mq.shape != (n, n) or not np.all(np.isfinite(Mq)):
         raise ConfigError(f"needs a square Jacobian and a matching joint inertia; got "
                           f"{J.shape} and {np.shape(joint_inertia)}", key="joint_inertia")
+    # eigenvalues of M_q scaled to entries <= 1: LAPACK's symmetric solver does not
+    # converge on entries near the double range (a joint inertia of 1e308, issue 31)
+    sq = max(float(np.max(np.abs(Mq))), np.finfo(float).tiny)
     if not np.allclose(Mq, Mq.T, rtol=1e-12, atol=0) or \
-            np.min(np.linalg.eigvalsh(0.5 * (Mq + Mq.T))) < 0:
+            np.min(np.linalg.eigvalsh(0.5 * (Mq / sq) + 0.5 * (Mq.T / sq))) < 0:
         raise ConfigError("must be symmetric positive semi-definite", key="joint_inertia")
     try:
         Jinv = np.linalg.inv(J)

@@ -374,9 +374,12 @@ class _Reader(LineContext):
         if not np.all(np.isfinite(a)):
             raise self.error(f"must be finite, got {show(v)}", line, where)
         scale = max(float(np.max(np.abs(a))), 1e-300)
-        if np.max(np.abs(a - a.T)) > 1e-12 * scale:
+        if np.max(np.abs(a / scale - a.T / scale)) > 1e-12:
             raise self.error(f"must be symmetric, got {show(v)}", line, where)
-        lam = np.linalg.eigvalsh(0.5 * (a + a.T))
+        # eigenvalues of the matrix scaled to entries <= 1 (exact up to round-off): LAPACK's
+        # symmetric solver does not converge on entries near the double range (1e308,
+        # issue 31), and a + a.T would overflow there
+        lam = scale * np.linalg.eigvalsh(0.5 * (a / scale) + 0.5 * (a.T / scale))
         if definite == "positive" and not lam[0] > 0:
             raise self.error(f"must be positive definite (every eigenvalue > 0 {unit}), "
                              f"got eigenvalues {show([float(x) for x in lam])}", line, where)
@@ -384,7 +387,7 @@ class _Reader(LineContext):
             raise self.error(f"must be positive semi-definite (every eigenvalue >= 0 "
                              f"{unit}), got eigenvalues {show([float(x) for x in lam])}",
                              line, where)
-        return 0.5 * (a + a.T)
+        return 0.5 * a + 0.5 * a.T
 
 
 def scene_dimension(path: str | os.PathLike) -> int:
@@ -598,6 +601,8 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     elif ports:
         raise r.error("a scene with a port needs a device section", ports[0].line,
                       "device")
+    _check_products(r, 1.0 / rate, masses, links, planes, device,
+                    r.line(doc, "device") if "device" in doc else None)
     if ports and device is not None:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
@@ -620,6 +625,54 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
                    planes=tuple(planes), device=device, path=path, audio=audio,
                    excitation=excitation, precision=precision)
+
+
+def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_line) -> None:
+    """The n-D loop's dimensionless products, the 1-D scene's rule
+    (:func:`hapsim.scene.rules._check_products`): ``|K| T^2/m`` and ``|B| T/m`` of every
+    link and plane, ``m`` its lightest moving end (a virtual mass, or the device's
+    Cartesian mass along its lightest axis at the port), and the device's ``b0 T/m``
+    (largest friction over the lightest mass axis): at most
+    :data:`hapsim.scene_schema.MAX_PRODUCT`, whose reason is there (the state matrix's
+    entries would span more than a double resolves; 1e308 overflowed it into inf or
+    made LAPACK's SVD fail, issue 31).
+
+    Raises
+    ------
+    ConfigError
+        The first product beyond the bound, with file, line and key.
+    """
+    from hapsim.scene_schema import check_product
+    inertia = {m.name: float(m.mass) for m in masses if m.kind == "mass"}
+    if device is not None:
+        light = float(np.min(np.linalg.eigvalsh(0.5 * (device.mass + device.mass.T))))
+        heavy_b0 = float(np.max(np.abs(np.linalg.eigvalsh(
+            0.5 * (device.friction + device.friction.T)))))
+        if not (math.isfinite(light) and light > 0):
+            raise r.error("the device's Cartesian mass is not positive definite here",
+                          dev_line, "device")
+        try:
+            check_product(heavy_b0, T / light, "friction", "N s/m", "b0 T/m")
+        except ConfigError as exc:
+            raise r.error(exc.reason, dev_line, "device.friction") from None
+        for m in masses:
+            if m.kind == "port":
+                inertia[m.name] = light
+    groups = [(f"links[{i}]", lk.line, (lk.m1, lk.m2), lk.stiffness, lk.damping)
+              for i, lk in enumerate(links)]
+    groups += [(f"planes[{i}]", pl.line, pl.masses, pl.stiffness, pl.damping)
+               for i, pl in enumerate(planes)]
+    for key, line, ends, K, B in groups:
+        ms = [inertia[x] for x in ends if x in inertia]
+        if not ms:
+            continue
+        m = min(ms)
+        for val, scale, unit, what, field in ((K, T * T / m, "N/m", "K T^2/m", "stiffness"),
+                                              (B, T / m, "N s/m", "B T/m", "damping")):
+            try:
+                check_product(val, scale, field, unit, what)
+            except ConfigError as exc:
+                raise r.error(exc.reason, line, f"{key}.{field}") from None
 
 
 def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:
@@ -710,6 +763,29 @@ def _read_geometry(r: _Reader, d, key: str, kind: str, presets: dict):
     return PantographGeometry(**vals)
 
 
+def _jacobian_regular(dev, q) -> bool:
+    """Whether the device's Jacobian at ``q`` is finite and well conditioned (``cond(J)``
+    below ``1 / sqrt(eps)``: its inverse has half the digits or more)."""
+    try:
+        J = np.asarray(dev.jacobian(q), float)
+        c = float(np.linalg.cond(J))
+    except Exception:           # a pose the kinematics refuse: not regular
+        return False
+    return math.isfinite(c) and c < 1.0 / math.sqrt(np.finfo(float).eps)
+
+
+def _mass_in_range(r: _Reader, M, line, key: str, what: str = "") -> None:
+    """Refuse a device mass matrix whose eigenvalues leave
+    :data:`hapsim.scene_schema.MASS_RANGE` (the 1-D device's range, and its reason)."""
+    from hapsim.scene_schema import MASS_RANGE
+    s = max(float(np.max(np.abs(M))), np.finfo(float).tiny)
+    lam = s * np.linalg.eigvalsh(0.5 * (M / s) + 0.5 * (M.T / s))
+    if not (MASS_RANGE[0] <= lam[0] and lam[-1] <= MASS_RANGE[1]):
+        raise r.error(f"the mass along every direction must be between {MASS_RANGE[0]:g} "
+                      f"and {MASS_RANGE[1]:g} kg{what}, got eigenvalues "
+                      f"{show([float(x) for x in lam])}", line, key)
+
+
 def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     key = "device"
     d = r.mapping(doc["device"], key, r.line(doc, "device"))
@@ -724,6 +800,7 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     hold = r.choice(d, "hold", key, ("zoh",), default="zoh")
     if kind == "cartesian":
         M = r.matrix(d, "mass", key, n, None, "kg", definite="positive")
+        _mass_in_range(r, M, r.line(d, "mass"), f"{key}.mass")
         B0 = r.matrix(d, "friction", key, n, np.zeros((n, n)), "N s/m", definite="semi")
         pos = r.vector(d, "position", key, n)
         return DeviceND(kind, M, B0, pos, delay, hold)
@@ -753,10 +830,18 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
         given = ("" if isinstance(geometry, str) else " with the geometry given ("
                  + ", ".join(f"{k} = {getattr(geometry, k):g}" for k in
                              PANTOGRAPH_GEOMETRY_KEYS) + " m)")
+        if isinstance(exc, ConfigError) and _jacobian_regular(dev, q):
+            # a regular Jacobian: the joint values, not the pose, overflowed the mass
+            raise r.error(f"the device's Cartesian mass J^-T M_q J^-1 at these joints is "
+                          f"not finite ({exc.key}: {exc.reason}): the joint inertia, "
+                          "friction or hand values are beyond the double range",
+                          r.line(d, "joint_inertia"), f"{key}.joint_inertia") from None
         what = exc.reason if isinstance(exc, KinematicsError) else (
             f"the device's Cartesian mass at these joints is not usable ({exc.key}: "
             f"{exc.reason}): too near a singularity")
         raise r.error(what + given, r.line(d, "joints"), f"{key}.joints") from None
+    _mass_in_range(r, loop.mass, r.line(d, "joint_inertia"), f"{key}.joint_inertia",
+                   " (the Cartesian mass J^-T M_q J^-1 at these joints, hand included)")
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
                     geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
                     hand_damping=bh)

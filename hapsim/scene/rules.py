@@ -289,6 +289,15 @@ def _check_products(s) -> None:
             if hi(h.stiffness) > 0:
                 refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
                        ("device", "hand", "stiffness"))
+            refuse(hi(h.damping), T / lo(h.mass), "N s/m", "bh T/m",
+                   ("device", "hand", "damping"))
+            # the grip joins the hand and the handle: the lighter of the two moves most
+            m_grip = min(lo(h.mass), m_dev)
+            if math.isfinite(hi(h.grip_stiffness)):       # inf: a rigid grip
+                refuse(hi(h.grip_stiffness), T * T / m_grip, "N/m", "kg T^2/m",
+                       ("device", "hand", "grip_stiffness"))
+            refuse(hi(h.grip_damping), T / m_grip, "N s/m", "bg T/m",
+                   ("device", "hand", "grip_damping"))
     for i, lk in enumerate(s.links):
         ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
         if not ends:
