@@ -479,3 +479,32 @@ def test_firefader_with_its_own_adc_timing_is_predicted_by_the_real_delay():
 def _spring(sc):
     lk = sc.links[0]
     return lk.stiffness, lk.damping
+
+
+@pytest.mark.parametrize("kg", ["[500, 5000]", "rigid"])
+def test_family_matrices_equal_closed_loop_per_member_at_a_fractional_delay(kg):
+    """The hand family's stacked split hold (family_loops) equals the scene matrix built
+    member by member (network.closed_loop), each entry to a few roundings of its size
+    (the stacked and the single exponentials differ in the order of their products)."""
+    from hapsim.analysis.family import family_members, family_matrices
+    from hapsim.analysis.network import closed_loop
+    from hapsim.scene import parse_scene
+    text = f"""
+rate_hz: 1000
+masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
+links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: 100,
+          damping: 2}}]
+device: {{mass: 0.02, friction: 1.0, delay: 1.35, force_limit: 1000000.0,
+          hand: {{mass: [0.05, 0.5], damping: 1.0, grip_stiffness: {kg}, grip_damping: 0.0}}}}
+excitation: {{x0: 0.002}}
+"""
+    sc = parse_scene(text)
+    mem = family_members(sc, 5)
+    A, names = family_matrices(sc, mem)
+    assert names[-1].startswith("F[n-2]")
+    for i in range(mem.shape[0]):
+        Ai, ni = closed_loop(sc, member=mem[i])
+        assert ni == names
+        scale = np.abs(Ai) + np.abs(A[i])
+        # (absolute below 1: the poles see errors against ||A|| >= 1, its identity blocks)
+        assert np.all(np.abs(A[i] - Ai) <= C_BACKWARD * EPS * np.maximum(scale, 1.0))
