@@ -122,6 +122,7 @@ class HapsimArgumentParser(argparse.ArgumentParser):
             message = f"{message} ({'; '.join(hints)})"
         if message.startswith("unrecognized arguments:"):
             message += _did_you_mean(message.split(":", 1)[1].split(), sorted(known))
+        message += _command_did_you_mean(parser, message)
         HapsimArgumentParser.last_usage_error = f"{parser.prog}: {message}"
         HapsimArgumentParser.last_usage_key = _argument_key(parser, message)
         # the sub-command's usage, not the top-level one: that is the parser whose options
@@ -191,6 +192,35 @@ def _did_you_mean(unknown: list[str], known: list[str]) -> str:
             hints.append(f"{name}: did you mean {close[0]}?" if len(options) > 1
                          else f"did you mean {close[0]}?")
     return f" ({'; '.join(hints)})" if hints else ""
+
+
+def _command_did_you_mean(parser: argparse.ArgumentParser, message: str) -> str:
+    """``" (did you mean check?)"`` for a mistyped sub-command (``hapsim chekc``).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The parser that refused the argument.
+    message : str
+        argparse's message, ``argument COMMAND: invalid choice: 'chekc' (choose from ...)``.
+
+    Returns
+    -------
+    str
+        ``""`` unless the refused word is a sub-command's name mistyped (the same rule as
+        :func:`_did_you_mean`: difflib's ratio >= 0.6, the same letters rearranged first).
+    """
+    found = re.match(r"argument COMMAND: invalid choice: '([^']*)'", message)
+    if not found:
+        return ""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            names = sorted(action.choices)
+            word = found.group(1)
+            close = difflib.get_close_matches(word, names, n=3)
+            close = sorted(close, key=lambda c: sorted(c) != sorted(word))
+            return f" (did you mean {close[0]}?)" if close else ""
+    return ""
 
 
 def error_json(exc: BaseException | None, code: int, message: str,

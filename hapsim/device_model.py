@@ -510,6 +510,17 @@ class MockPhysics:
         self.n = n + 1
 
 
+    def hold_now(self, u: float) -> None:
+        """The device sets the force it holds itself, now (a firmware's silence rule).
+
+        Parameters
+        ----------
+        u : float
+            The force held from now [N]: with a sub-sample delay the next period's first
+            ``f T`` holds it too (nothing changes for a whole delay).
+        """
+        self._held = float(u)
+
     def _advance_split(self, u: float) -> None:
         """:meth:`advance` for a sub-sample delay ``m + f``: the force held before (the
         previous ``u``) over the first ``f T``, then ``u`` over the last ``(1 - f) T``,

@@ -97,6 +97,7 @@ class _Actuated:
         is emptied too."""
         self._fifo = deque([None] * self.delay)
         self.held = force
+        self.physics.hold_now(force)
 
     def idle(self, silent_s: float) -> bytes:
         """The host has been silent ``silent_s`` [s]; by default nothing happens (the
@@ -165,6 +166,16 @@ class FireFaderDevice(_Actuated):
         The travel between the end stops [m] (None: no stops).
     stop_low : float, optional
         The low end stop's position [m] (default ``-travel / 2``).
+    adc_s : float, optional
+        The board's own sub-sample timing [s]: the pass sets the PWM when the packet has
+        come and reads pot A ``adc_s`` later (the ``.ino``'s ``loop``: ``setPWM`` first,
+        then the capacitive sense, currents and pot B, ~1.1 ms, lines 295-317), so the
+        fader holds the previous packet's force until the new packet, then the new one
+        until the read. None (the default): the scene's ``device.delay`` sets both (its
+        whole part as packets of delay, its fraction as the split hold of
+        :class:`hapsim.device_model.MockPhysics`); given, the board ignores the scene's
+        delay (no queue: the ``.ino`` has none) and the loop's delay *is* ``1 -
+        adc_s / T`` periods (:mod:`hapsim.analysis.subsample`, the sensor-side delay).
 
     Attributes
     ----------
@@ -181,7 +192,9 @@ class FireFaderDevice(_Actuated):
                  metres_per_count: float | None = None, firmware: str = "ino",
                  touch: bool = True, boot_s: float = 0.0, pass_time: bool = True,
                  travel: float | None = None, stop_low: float | None = None,
-                 seed: int = 0) -> None:
+                 adc_s: float | None = None, seed: int = 0) -> None:
+        import dataclasses
+
         from hapsim.drivers import firefader as ff
         from hapsim.errors import ConfigError
         if firmware not in ("ino", "ino-scaled", "pde"):
@@ -200,6 +213,16 @@ class FireFaderDevice(_Actuated):
         self.stops = (None if travel is None else
                       (float(-travel / 2 if stop_low is None else stop_low),
                        float((-travel / 2 if stop_low is None else stop_low) + travel)))
+        self.adc_s = None if adc_s is None else float(adc_s)
+        if self.adc_s is not None:
+            T = 1.0 / float(rate_hz)
+            if not (math.isfinite(self.adc_s) and 0.0 < self.adc_s < T):
+                raise ConfigError(f"must be a time inside the period (0, {T:g}) [s], got "
+                                  f"{adc_s!r}", key="adc_s")
+            # the board's own timing: no queue; over the time from one read to the next
+            # the fader holds the old force for T - adc_s, the new one for adc_s: the
+            # split hold of a delay 1 - adc_s / T (0 whole periods)
+            device = dataclasses.replace(device, delay=1.0 - self.adc_s / T)
         super().__init__(device, rate_hz, excitation, math.inf, seed)
         self.decoder = ff.PacketDecoder()
         self.enable = 0
@@ -678,7 +701,7 @@ def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
     from hapsim.engine import Engine
     sc = scene
     drv = FireFader()
-    drv.loop_delay = sc.device.delay
+    drv.loop_delay = int(sc.device.delay)       # whole passes (the fraction: the physics)
     dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
     for _ in range(drv.arming_records):
         dev.feed(drv.encode_force(0.0))
@@ -721,7 +744,7 @@ def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
             pk = pk[:j] + pk[j + 1:]
         x = record(dev.feed(pk, writes=[b"", pk]))      # one host write, one tick
     cols.update(seq=np.arange(n), flags=flags, late=np.zeros(n, np.uint8),
-                force_seq=np.arange(n) - sc.device.delay, status=np.zeros(n, np.uint16))
+                force_seq=np.arange(n) - int(sc.device.delay), status=np.zeros(n, np.uint16))
     # the pass of command k + 1 moves the fader over row k's period
     return cols, drv, np.array(dev.applied[n0:n0 + n])
 

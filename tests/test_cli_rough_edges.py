@@ -107,6 +107,35 @@ def test_far_from_every_option_no_guess(capsys):
     assert "unrecognized arguments: --zzzzqqq" in err and "did you mean" not in err
 
 
+def _command_names():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sorted(sub.choices)
+
+
+@pytest.mark.parametrize("edit", ["swap", "drop", "double"])
+def test_every_mistyped_command_is_suggested_back(edit, capsys):
+    """``hapsim chekc``: for every command, two inner letters swapped, one dropped or one
+    doubled gets "did you mean COMMAND?" on the usage error (exit 2), as a mistyped option
+    does; a word close to no command gets the list of commands and no guess."""
+    missed = []
+    for name in _command_names():
+        i = len(name) // 2
+        typo = {"swap": name[:i] + name[i + 1] + name[i] + name[i + 2:],
+                "drop": name[:i] + name[i + 1:],
+                "double": name[:i] + name[i] + name[i:]}[edit]
+        if typo == name:
+            continue
+        code = main([typo, WALL])
+        err = capsys.readouterr().err
+        if code != 2 or not err.rstrip().endswith(f"(did you mean {name}?)"):
+            missed.append((typo, code, err.splitlines()[-1]))
+    assert not missed, missed
+    assert main(["zzzzqqq"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'zzzzqqq'" in err and "did you mean" not in err
+
+
 def _long_options():
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -210,7 +239,7 @@ def test_protocol_key_is_validated_and_drivers_follow_it(tmp_path, capsys):
 def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path, fake_run,
                                                                         capsys):
     dev = tmp_path / "dev.yaml"
-    dev.write_text("device:\n  mass: 0.06\n  friction: 0.12\n  delay: 1\n")
+    dev.write_text("device:\n  mass: 0.06\n  friction: 0.12\n  delay: 0.725\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err
     assert (f"hapsim run: the device of {dev} replaces the scene's (mass 0.05 -> 0.06; "
@@ -219,7 +248,7 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
     assert (d.mass, d.friction, d.protocol, d.force_limit) == (0.06, 0.12, "firefader", 0.38)
     assert fake_run["driver"] == "firefader"
     # a file that names them: its values win, and the line says so
-    dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  protocol: haply\n"
+    dev.write_text("device:\n  mass: 0.05\n  friction: 0.1\n  delay: 0.725\n  protocol: haply\n"
                    "  force_limit: 0.1\n")
     assert main(["run", str(ROOT / "configs" / "firefader.yaml"), "--device", str(dev)]) == 1
     err = capsys.readouterr().err

@@ -65,7 +65,8 @@ def test_enable_filter_replay_is_the_firmware_loop():
         cnt.append(k)
         sil.append(s)
         pots.append(dev.position_count())
-    got = enable_passes(np.array(cnt), np.array(sil), np.array(pots), delay=1)
+    got = enable_passes(np.array(cnt), np.array(sil), np.array(pots),
+                        delay=int(sc.device.delay))     # whole passes (no queue: 0.725)
     want = np.array(dev.applied[n0:]) * 254 / drv.full_scale
     assert min(pots) <= 4 or max(pots) >= 251          # the pot gating was exercised
     assert np.array_equal(np.round(want).astype(int), got)
@@ -84,7 +85,7 @@ def test_a_host_silence_gates_the_force_and_the_account_replays_it(prep, at):
     from hapsim.drivers.firefader import GATE_PASSES
     cols, drv, applied = _closed_loop(prep, n=600, silence_at=at)
     acc = drv.account(cols, cols["force"])
-    assert acc is not None and acc.n_late == GATE_PASSES + prep.scene.device.delay
+    assert acc is not None and acc.n_late == GATE_PASSES + int(prep.scene.device.delay)
     assert np.all(applied[at:at + acc.n_late] == 0.0) and np.flatnonzero(acc.late)[0] == at
     # row k's period is the mock's pass of command k + 1 (the device clamps at 0.38 N,
     # the protocol's 124 counts are 0.3808 N: row 1)

@@ -398,3 +398,153 @@ def test_lockstep_run_measures_the_split_hold(d):
     assert rep["measured"]["within"] is True, rep["measured"]["verdict"]
     assert abs(rep["measured"]["b"] - r.b) <= rep["measured"]["b_interval"]
     assert abs(rep["measured"]["k"] - r.k) <= rep["measured"]["k_interval"]
+
+
+def test_whole_delays_never_touch_the_split_hold(monkeypatch):
+    """Integer delays take today's code path: with every split-hold function made to fail,
+    check (1-D and n-D), render, calibrate, stability and a lockstep run of every shipped
+    scene still answer (so their numbers are the plain hold's, bit for bit; compared
+    against the code before this change: 300 random loops and every configs/*.yaml
+    check --json identical, docs/stability.md)."""
+    import pathlib
+
+    import hapsim.analysis.network as network
+    import hapsim.analysis.scene_nd_check as scene_nd_check
+    import hapsim.analysis.subsample as subsample
+    import hapsim.analysis.ths_nd as ths_nd
+    from hapsim.scene import load_scene
+    from hapsim.scene_nd import load_scene_nd
+
+    def boom(*a, **k):
+        raise AssertionError("the split hold was used for a whole delay")
+    for mod, names in ((subsample, ("split_hold", "split_hold_body", "split_numerator_w",
+                                    "held_plant")),
+                       (network, ("split_plant_rows",)),
+                       (ths_nd, ("split_hold_matrices",)),
+                       (scene_nd_check, ("split_hold_matrices",))):
+        for name in names:
+            monkeypatch.setattr(mod, name, boom)
+    import hapsim.analysis.loop as loop_mod
+    for name in ("split_hold_body", "split_numerator_w"):
+        monkeypatch.setattr(loop_mod, name, boom)
+    from hapsim.cli import main
+    configs = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+    seen = 0
+    for path in configs:
+        text = path.read_text()
+        if "dimension: 2" in text or "dimension: 3" in text:
+            dev = load_scene_nd(str(path)).device
+            assert dev is None or isinstance(dev.delay, int)
+        else:
+            sc = load_scene(str(path))
+            if sc.device is None or sc.port is None or sc.device.delay % 1:
+                continue          # (firefader.yaml states its real delay, 0.725)
+            lp = LoopModel.from_device(sc.device, sc.rate_hz)
+            r = render(lp, 100.0, 0.1)
+            stability_limit(lp, 0.1)
+            if r.rendered is not None:
+                calibrate(lp, r.k, r.b)
+        assert main(["check", str(path), "--json"]) in (0, 1), path   # (1: unstable)
+        seen += 1
+    assert seen >= 10
+    # and the patches bite: a fractional delay does go through them
+    with pytest.raises(AssertionError, match="split hold"):
+        render(LoopModel(mass=0.1, friction=0.5, rate_hz=1000.0, delay=1.5), 100.0)
+
+
+def test_firefader_with_its_own_adc_timing_is_predicted_by_the_real_delay():
+    """configs/firefader.yaml run through the FireFader's bytes on its driver mock, the
+    board keeping its own pass timing (the .ino sets the PWM at the packet and reads the
+    fader 1.1 ms later: hapsim.driver_mock.FireFaderDevice(adc_s=1.1e-3), which ignores the
+    scene's delay): the scene's d = 1 - 1.1/4 = 0.725 predicts the measured (k, b) within
+    the run's stated uncertainty, and the measured b lies outside that uncertainty of the
+    whole delay's prediction (the issue's +11 to +16 %)."""
+    import dataclasses
+
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import load_scene
+    import pathlib
+    sc = load_scene(str(pathlib.Path(__file__).resolve().parents[1] / "configs"
+                        / "firefader.yaml"))
+    assert sc.device.delay == 0.725
+    rep = run_scene(sc, driver="firefader", mock_options={"adc_s": 1.1e-3},
+                    handle_signals=False, rt_priority=0)
+    m = rep["measured"]
+    assert m["within"] is True, m["verdict"]
+    whole = render(LoopModel.from_device(dataclasses.replace(sc.device, delay=1),
+                                         sc.rate_hz), *_spring(sc))
+    assert m["b"] - whole.b > m["b_interval"] and m["b"] > 1.1 * whole.b
+
+
+def _spring(sc):
+    lk = sc.links[0]
+    return lk.stiffness, lk.damping
+
+
+@pytest.mark.parametrize("kg", ["[500, 5000]", "rigid"])
+def test_family_matrices_equal_closed_loop_per_member_at_a_fractional_delay(kg):
+    """The hand family's stacked split hold (family_loops) equals the scene matrix built
+    member by member (network.closed_loop), each entry to a few roundings of its size
+    (the stacked and the single exponentials differ in the order of their products)."""
+    from hapsim.analysis.family import family_members, family_matrices
+    from hapsim.analysis.network import closed_loop
+    from hapsim.scene import parse_scene
+    text = f"""
+rate_hz: 1000
+masses: [{{name: hand, kind: port}}, {{name: wall, kind: ground}}]
+links: [{{name: wall, kind: spring_damper, between: [hand, wall], stiffness: 100,
+          damping: 2}}]
+device: {{mass: 0.02, friction: 1.0, delay: 1.35, force_limit: 1000000.0,
+          hand: {{mass: [0.05, 0.5], damping: 1.0, grip_stiffness: {kg}, grip_damping: 0.0}}}}
+excitation: {{x0: 0.002}}
+"""
+    sc = parse_scene(text)
+    mem = family_members(sc, 5)
+    A, names = family_matrices(sc, mem)
+    assert names[-1].startswith("F[n-2]")
+    for i in range(mem.shape[0]):
+        Ai, ni = closed_loop(sc, member=mem[i])
+        assert ni == names
+        scale = np.abs(Ai) + np.abs(A[i])
+        # (absolute below 1: the poles see errors against ||A|| >= 1, its identity blocks)
+        assert np.all(np.abs(A[i] - Ai) <= C_BACKWARD * EPS * np.maximum(scale, 1.0))
+
+
+CHAIN = """rate_hz: {rate!r}
+masses:
+  - {{name: hand, kind: port}}
+  - {{name: bead, kind: mass, mass: {mv!r}}}
+  - {{name: wall, kind: ground}}
+links:
+  - {{name: a, kind: spring_damper, between: [hand, bead], stiffness: {K1!r}, damping: {B1!r}}}
+  - {{name: b, kind: spring_damper, between: [bead, wall], stiffness: {K2!r}, damping: {B2!r}}}
+device: {{mass: {m!r}, friction: {b0!r}, delay: {d!r}, hold: zoh}}
+excitation: {{x0: 0.001}}
+"""
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_lockstep_scenes_with_a_virtual_mass_are_predicted(seed):
+    """Random scenes with a virtual mass between the port and a wall, random fractional
+    delays: the lockstep run (the numba engine and the mock device's split hold, sample by
+    sample) measures what check's scene matrix predicts, within the run's own interval."""
+    from hapsim.analysis import check_scene
+    from hapsim.daemon.runner import run_scene
+    from hapsim.scene import parse_scene
+    rng = np.random.default_rng(7000 + seed)
+    for _ in range(50):
+        kw = dict(rate=float(rng.choice([500.0, 1000.0, 2000.0])),
+                  m=float(rng.uniform(0.05, 0.3)), b0=float(rng.uniform(0.2, 2.0)),
+                  d=float(rng.integers(0, 3) + rng.uniform(0.05, 0.95)),
+                  mv=float(rng.uniform(0.01, 0.1)), K1=float(rng.uniform(50, 500)),
+                  B1=float(rng.uniform(0.0, 1.0)), K2=float(rng.uniform(50, 500)),
+                  B2=float(rng.uniform(0.0, 1.0)))
+        sc = parse_scene(CHAIN.format(**kw))
+        chk = check_scene(sc)
+        if chk.stable and chk.spectral_radius < 0.9999 and chk.rendered is not None:
+            break
+    rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False)
+    m = rep["measured"]
+    assert m["within"] is True, (kw, m["verdict"])
+    assert abs(m["b"] - chk.rendered.b) <= m["b_interval"]
+    assert abs(m["k"] - chk.rendered.k) <= m["k_interval"]

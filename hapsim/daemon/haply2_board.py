@@ -92,6 +92,12 @@ class Haply2DIYBoard:
         self.cpr = float(cpr or self.gen.resolution)
         self.amplitude = float(amplitude)
         self.parser = CommandDecoder()
+        if float(dev.delay) % 1.0:
+            # its joint-space plant applies whole periods (no split hold there)
+            raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is not "
+                              "emulated by this board (its joint-space model applies whole "
+                              "periods): use a whole delay", file=scene.path,
+                              key="device.delay")
         self.delay = int(dev.delay)
         self._fifo = deque([None] * self.delay)
         self.torque = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
