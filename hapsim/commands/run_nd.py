@@ -417,9 +417,13 @@ def _run_haply2(args) -> int:
                 gc_was = gc.isenabled()
                 try:
                     gc.disable()                 # no collection while the clock runs
-                    res = measure_felt_haply2_port(child.port, scene, gen, amplitude=a,
-                                                   resolution=HAPLY_CPR,
-                                                   progress=bar.update)
+                    # the emulated board advances one period per write unless it
+                    # says it keeps the wall clock: a host stall costs its record
+                    # nothing then
+                    res = measure_felt_haply2_port(
+                        child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
+                        progress=bar.update,
+                        lockstep_board=getattr(child, "clock", "lockstep") == "lockstep")
                 finally:
                     if gc_was:
                         gc.enable()
