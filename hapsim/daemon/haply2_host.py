@@ -37,6 +37,15 @@ The clock starts again from the re-arming's reply (the time it took is counted,
 on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
 answer: the replies after it answer the writes after (the decoder's ``damaged``; when
 one read holds several replies and a damaged one, all of them are taken as after it).
+A host stall (a tick begun more than a period late: a descheduled process) is a stall,
+never a burst of catch-up writes: the clock goes on from where the host woke, the stall
+is counted (``stalled``), and the board, which held the last torque meanwhile on its own
+clock, is not re-synchronised for it: a late reply is a late sample (the decoder's step
+check widens with the ticks since the last reply read, as the extrapolation's error does)
+and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_WRITES` are
+taken for a board out of step. An estimated tick whose newest reading is older than
+:data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise). A
+record with a stall or a zeroed tick is not measured (no uniform loop of the THS).
 A record ends with a zero write; when its reply does not come in step the board is
 re-armed (zero torque whatever its parser is inside: no watchdog). A corrupted byte in
 a write the board takes cannot be seen (no checksum: a wrong torque for one period).
@@ -85,6 +94,14 @@ REPLY_WAIT_S = 0.2
 #: Longest wait for the reply to a record's closing zero write [s] (without it, the
 #: board is re-armed: a loaded host must not take a slow reply for a lost one).
 END_WAIT_S = 1.0
+#: Longest time [s] the host lets the board (no watchdog) hold a torque computed from a
+#: sample older than this: an estimated tick past it writes zero torque (``held_zero``).
+#: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+HOLD_BOUND_S = 0.02
+#: The oldest unanswered write's wait [s] without which no count of unanswered writes is
+#: taken for a board out of step (a board answers a write within its pass and a USB
+#: frame, about 1 ms; a late reply or a host stall is not this).
+SILENT_S = 0.05
 
 
 def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
@@ -169,7 +186,8 @@ def _write(ser, data: bytes) -> None:
         raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
 
 
-def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None) -> dict:
+def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
+                    lockstep_board: bool = False) -> dict:
     """One record in real time: arm (the set-up, whose hand starts the record), then one
     write per tick of the host's clock (module notes).
 
@@ -184,6 +202,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         Ticks ``N``.
     engine : hapsim.engine_nd.EngineND, optional
         A fresh engine (default: one of ``scene``).
+    lockstep_board : bool, optional
+        The board advances one period per write (named lockstep): a sample's age is then
+        counted in the board's periods, not on the wall clock (:data:`HOLD_BOUND_S`).
 
     Returns
     -------
@@ -197,7 +218,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         read in time or late; NaN where it never came), ``resyncs`` (re-synchronisations
         of a board that lost its place), ``resynced`` (N,) bool (the ticks they were
         made at), ``resync_s`` (the time they took [s], out of the clock),
-        ``bad_setups`` (armings whose first reply did not come or did not read the
+        ``stalled`` (N,) bool (ticks the host began more than a period late: the
+        clock went on from there, no catch-up writes), ``stall_s`` (their lateness [s]),
+        ``held_zero`` (estimated ticks written at zero torque: no fresh sample for
+        :data:`HOLD_BOUND_S`), ``bad_setups`` (armings whose first reply did not come or did not read the
         offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
         did not come: the board was re-armed to leave it at zero torque), ``decoder``
         (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
@@ -219,6 +243,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     T = scene.period
     dec = driver.decoder()
     rule = ResyncRule(dec.stats, SILENT_WRITES)
+    # the decoder's step check (an angle no motion could reach from where the last two
+    # replies say the joint is going) is stated for consecutive replies; a reply r ticks
+    # after the last one read may be r (r + 1) / 2 times as far off at the same
+    # acceleration (Taylor's theorem, as estimate_bounds): widened by that, so that a
+    # late reply or one after a host stall is a late sample, never taken for a board out
+    # of step
+    step0 = float(dec.max_step)
     eng = EngineND(scene) if engine is None else engine
     port = eng.port
     xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
@@ -265,6 +296,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
+    # perf_counter() of the write whose reply is each tick's sample (the arming's zero
+    # write for tick 0)
+    t_wrote = np.full(N + 2, np.nan)
 
     def arm(at_deg, k):
         """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
@@ -292,6 +326,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             dec.reset_prediction()              # the set-up's offsets start afresh
             got = k
             _write(ser, zero)
+            t_wrote[k] = time.perf_counter()
             end = time.monotonic() + wait
             while got == k and time.monotonic() < end:
                 take(_read(ser))
@@ -312,7 +347,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     est = np.zeros(N, bool)
     lag = np.zeros(N, np.int64)
     resynced = np.zeros(N, bool)
+    stalled = np.zeros(N, bool)
     late = 0
+    stall_s = 0.0
+    held_zero = 0
     x = np.zeros(2)                                 # the sample the engine is given
     F = eng.port_f[:2]                              # the engine's port force (a view)
     wbuf = bytearray(zero)
@@ -322,14 +360,30 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     for k in range(N):
         deadline = t0 + k * T
         now = time.perf_counter()
-        if now > deadline + T:
-            late += 1
+        if now > deadline + 0.5 * T:
+            # the host is behind (a descheduled process): no catch-up burst of writes,
+            # each a period's torque sent 0.1 ms apart; the clock goes on from now (any
+            # three writes span at least half a period). A whole period or more behind is
+            # a stall, counted: the board held the last torque over it, on its own clock,
+            # and the record is no uniform loop of the THS then (not measured)
+            if now > deadline + T:
+                late += 1
+                stalled[k] = True
+                stall_s += now - deadline
+            t0 += now - deadline
+            deadline = now
         elif deadline - now > SPIN_S:
             time.sleep(deadline - now - SPIN_S)
         while time.perf_counter() < deadline:
             pass
+        r_gap = k - seen
+        dec.max_step = step0 * max(1, r_gap * (r_gap + 1) // 2)
         take(_read(ser))
-        if rule.due(k + 1 - got):                   # writes unanswered (damaged: answered)
+        unanswered = k + 1 - got                    # (damaged: answered)
+        if unanswered > SILENT_WRITES and (
+                time.perf_counter() - t_wrote[got] < SILENT_S):
+            unanswered = 0                          # a count alone is no evidence
+        if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the
             # time it took is counted)
@@ -365,12 +419,19 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         f0, f1 = F[0], F[1]
         tau1 = j00 * f0 + j10 * f1                  # tau = J^T F
         tau2 = j01 * f0 + j11 * f1
+        if est[k] and ((k - i) * T if lockstep_board
+                       else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
+            # no fresh sample for HOLD_BOUND_S: the torque was computed from where the
+            # joints were, not where they are; the board (no watchdog) would hold it
+            tau1 = tau2 = 0.0
+            held_zero += 1
         torque[k, 0] = clamp1(tau1)
         torque[k, 1] = clamp1(tau2)
         pos[k, 0] = x[0]
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         _write(ser, wbuf)
+        t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
     # of its zeros, 1 bit in 32, would be a torque it cannot show: no checksum); without
@@ -388,7 +449,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
             "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
             "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
-            "resync_s": resync_s, "bad_setups": bad_setups,
+            "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
+            "held_zero": held_zero, "bad_setups": bad_setups,
             "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
 
 
@@ -396,7 +458,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                              amplitude: float, resolution: float | None = None,
                              samples: int | None = None, progress=None, plan=None,
                              probe_wiring: bool = True,
-                             directions: dict | None = None) -> dict:
+                             directions: dict | None = None,
+                             lockstep_board: bool = False) -> dict:
     """The felt matrices of a pantograph scene measured through a 2DIY in real time, and
     their verdict (module notes).
 
@@ -424,6 +487,11 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         order, :func:`hapsim.daemon.haply2_board.in_hand_order`).
     directions : dict, optional
         ``motor_direction`` / ``encoder_direction`` bytes instead of the generation's.
+    lockstep_board : bool, optional
+        The board advances one period per write (an emulated board in lockstep, asked
+        for by name): a host stall then costs its record nothing (the board waited), and
+        a stalled record is measured. False (a real board, or one on the wall clock):
+        a record with a host stall is not measured (module notes).
 
     Returns
     -------
@@ -432,7 +500,10 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
         (replies read per record, of ``writes``), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record; "not measurable" when the board was
-        re-synchronised (a re-armed record is no free response of the loop).
+        re-synchronised (a re-armed record is no free response of the loop); ``stalls``
+        (host stalls per record) and ``held_zero`` (ticks written at zero torque for want
+        of a fresh sample, :data:`HOLD_BOUND_S`): "not measurable" when any (the board
+        held a torque over more than a period on its own clock).
 
     Raises
     ------
@@ -474,7 +545,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                                     rate_hz=scene.rate_hz, pace=False, timeout=0.5,
                                     first_timeout=ARM_TIMEOUT)
         for j in range(5):
-            runs.append(record_realtime(ser, drv, scene, N))
+            runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board))
             if progress is not None:
                 progress(j + 1, 5)
     finally:
@@ -505,7 +576,20 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                    reason=f"the board was re-synchronised {sum(resyncs)} times (the "
                           f"stream lost or corrupted bytes): a re-armed record is no free "
                           f"response of the loop predicted")
+    stalls = [int(r["stalled"].sum()) for r in runs]
+    zeroed = [int(r["held_zero"]) for r in runs]
+    if not sum(resyncs) and ((sum(stalls) and not lockstep_board) or sum(zeroed)):
+        # the host stalled (the board held a torque over more than a period, on its own
+        # clock), or zeroed the torque of ticks without a fresh sample: those records are
+        # no uniform loop of the THS (a wrong verdict is worse than none)
+        out.update(verdict="not measurable", within=None, uncertainty=None,
+                   statements=[], not_stated=["felt stiffness", "felt damping"],
+                   reason=f"the host stalled {sum(stalls)} times (the board held a torque "
+                          f"for more than a period) and zeroed the torque of {sum(zeroed)} "
+                          f"ticks without a fresh sample for {HOLD_BOUND_S * 1e3:g} ms: "
+                          f"those records are no uniform loop of the prediction")
     out.update(estimated=[int(r["estimated"].sum()) for r in runs],
+               stalls=stalls, held_zero=zeroed,
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs])
