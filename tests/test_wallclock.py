@@ -167,6 +167,48 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     assert abs(x) > 2 * abs(lock.physics.x)
 
 
+@pytest.mark.parametrize("k", [1, 3, 17])
+def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
+    """The 2DIY board on its own clock: torques written, the host silent ``k`` periods,
+    the next write: the joints moved as the same plant stepped ``k`` periods with those
+    torques held (the same Runge-Kutta steps, to round-off; lockstep would have moved it
+    one period); a set-up costs its two encoders' 2 ms each (``new Encoder``) after one
+    50 us pass per command before it, and the write after it is answered then."""
+    import copy
+
+    from hapsim.daemon.haply2_board import PASS_S, SETUP_S, Haply2DIYBoard
+    from hapsim.drivers.haply import CommandDecoder
+    from hapsim.drivers.haply2 import Haply2DIY
+    from hapsim.scene_nd import load_scene_nd
+    from pathlib import Path
+    sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "pantograph_wall.yaml")
+    assert sc.device.delay == 1                      # the board's own: no extra latency
+    drv = Haply2DIY("gen3")
+    wall = Haply2DIYBoard(sc, "gen3", amplitude=1e-4)
+    arm = drv.arm_bytes([math.degrees(v) for v in sc.device.joints])
+    wall.feed(arm, now=0.0)
+    kinds = [c[0] for c in CommandDecoder().commands(arm)]
+    assert kinds[-2:] == ["setup", "write"]
+    assert wall.ready_at == pytest.approx((len(kinds) - 2) * PASS_S + 2 * SETUP_S,
+                                          abs=1e-12)
+    t = wall.ready_at + 1e-3
+    wall.feed(drv.write_bytes((0.01, -0.02)), now=t)
+    ref = copy.deepcopy(wall.plant)                  # at t, the torques just taken
+    jt = wall._joint_torques()
+    T = sc.period
+    wall.feed(drv.write_bytes((0.0, 0.0)), now=t + k * T)
+    one = copy.deepcopy(ref)
+    one.step_torque(jt)
+    for _ in range(k):
+        ref.step_torque(jt)
+    q_w, q_r, q_1 = wall.plant.joints(), ref.joints(), one.joints()
+    moved = float(np.abs(q_r - copy.deepcopy(wall).plant.q0).max())
+    # the same steps; the step length k T / n against T / 2 differs by an ulp
+    assert np.abs(q_w - q_r).max() <= rel_tol(40 * k) * max(moved, 1.0)
+    if k > 1:
+        assert np.abs(q_w - q_1).max() > 1e3 * rel_tol(40 * k) * max(moved, 1.0)
+
+
 def test_the_named_clocks_and_a_wrong_one():
     """The default is the wall clock; lockstep is asked for by name; another is refused
     with the valid choices."""

@@ -97,7 +97,7 @@ def run_haply2(seed: int, loss: float) -> dict:
     from hapsim.scene_nd import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd("configs/pantograph_wall.yaml")
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     q0 = np.asarray(sc.device.joints, float)
     exc_max = [0.0]
