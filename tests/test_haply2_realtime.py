@@ -73,7 +73,7 @@ def test_scripted_missing_replies_are_estimated_and_bounded_lockstep():
     sc = load_scene_nd(WALL)
     N = 120
     plan = identification_plan(sc, N)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
     link = ScriptedLink(board, N, 0.125, 1, seed=3)
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, resolution=2.0 ** 22,
                                  samples=N, plan=plan, probe_wiring=False,
@@ -153,7 +153,7 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
     sc = load_scene_nd(WALL)
     N = 40
     drv = Haply2DIY("gen3", resolution=2.0 ** 14)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     link = FirstLateLink(board, N, p, lag, seed=seed)
     J = device("pantograph", sc.device.geometry).jacobian(sc.device.joints)
     holds = 0

@@ -69,7 +69,7 @@ def _record(seed, loss, N=300):
     # 3 to 5 host stalls of 6 to 30 ms at random writes of the loop
     at = rng.choice(np.arange(10, N - 10), size=int(rng.integers(3, 6)), replace=False)
     stalls = {int(a): float(rng.uniform(0.006, 0.030)) for a in at}
-    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link = StallingLink(board, stalls, f.rx, f.tx)
     rec = host.record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
@@ -126,7 +126,7 @@ def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypa
         rec["stalled"][N // 2] = True
         return rec
     monkeypatch.setattr(host, "record_realtime", stalled)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
     link = StallingLink(board, {})
     r = host.measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4,
                                       resolution=2.0 ** 22, samples=N,

@@ -535,14 +535,16 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     probe = None
     try:
         if probe_wiring:
-            # each joint's wiring before any torque loop runs (a board that advances
-            # one period per write: unpaced, each reply waited for)
+            # each joint's wiring before any torque loop runs (paced on the host's clock:
+            # a board on its own clock moves in real time; a lockstep board advances one
+            # period per write: unpaced, each reply waited for)
             from hapsim.daemon.haply2_board import PROBE_ENVELOPE, PROBE_TORQUE
             from hapsim.drivers.haply2_probe import find_directions
             probe = find_directions(drv, _PortLink(ser),
                                     [math.degrees(v) for v in scene.device.joints],
                                     force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
-                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5,
+                                    rate_hz=scene.rate_hz, pace=not lockstep_board,
+                                    timeout=0.5,
                                     first_timeout=ARM_TIMEOUT)
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board))
@@ -626,7 +628,9 @@ class _PortLink:
 class Embedded2DIY(PtyChild):
     """The emulated 2DIY board (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`) in a
     child process on the master side of a new pty, served by
-    :func:`hapsim.driver_mock.serve` (one period per write, replies at once).
+    :func:`hapsim.driver_mock.serve` on its own clock (the wall clock: the joints move in
+    real time, a set-up takes its encoders' waits) or, named, in lockstep (one period per
+    write, replies at once).
 
     Parameters
     ----------
@@ -644,23 +648,35 @@ class Embedded2DIY(PtyChild):
         The loop's rate [Hz] (default the scene file's): the plant's period.
     wiring : ((int, int), (int, int)), optional
         The emulated board's wiring (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
+    clock : {"wall", "lockstep"}
+        The emulated board's clock (:class:`~hapsim.daemon.haply2_board.Haply2DIYBoard`):
+        its own time (the default) or one period per write (named, for deterministic
+        tests).
 
     Attributes
     ----------
     port : str
         The slave path to open.
+    clock : str
+        The board's clock (what the host's loop reads: a stall on a board with its own
+        clock costs a record).
     """
 
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
-                 rate_hz: float | None = None, wiring=((1, 1), (1, 1))) -> None:
+                 rate_hz: float | None = None, wiring=((1, 1), (1, 1)),
+                 clock: str = "wall") -> None:
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
         master = self.open_pty("hapsim-2diy-")
         self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
                     "--scene", str(scene_path), "--generation", generation, "--amplitude",
                     repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
                     repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0)),
-                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw)], master)
+                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw),
+                    "--clock", clock], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
@@ -696,6 +712,7 @@ def main(argv=None) -> int:
     p.add_argument("--slow-s", type=float, default=0.0)
     p.add_argument("--rate", type=float, default=0.0)
     p.add_argument("--wiring", default="1,1,1,1")
+    p.add_argument("--clock", choices=("wall", "lockstep"), default="wall")
     a = p.parse_args(argv)
     w = [int(v) for v in a.wiring.split(",")]
     scene = load_scene_nd(a.scene)
@@ -703,7 +720,7 @@ def main(argv=None) -> int:
         import dataclasses
         scene = dataclasses.replace(scene, rate_hz=a.rate)
     board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude,
-                       wiring=(tuple(w[:2]), tuple(w[2:])))
+                       wiring=(tuple(w[:2]), tuple(w[2:])), clock=a.clock)
     board.slow_every, board.slow_s = a.slow_every, a.slow_s
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
