@@ -30,29 +30,55 @@ __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults",
 
 
 class _Actuated:
-    """The physics side shared by the driver mocks: delay queue, clamp, one period per
-    command.
+    """The physics side shared by the driver mocks: delay, clamp, and the device's clock.
+
+    Two clocks (``clock``):
+
+    - ``"wall"``: the device keeps its own time (:class:`WallClock`): its physics runs
+      with the monotonic time :func:`serve` gives each packet, holding the last force
+      while the host is silent or late, as a board does. A packet's force takes effect
+      when it arrives plus the latency that brings the loop to the device's delay
+      (:attr:`extra_latency_s`); the sample a reply carries is taken when its packet
+      arrives.
+    - ``"lockstep"`` (named, for deterministic tests): one period per command; the force
+      of the packet ``delay`` packets back is applied over it.
 
     Parameters
     ----------
     device : hapsim.scene.Device
         Mass (or inertia), friction, delay and imperfections of the driven axis.
     rate_hz : float
-        Period the host runs at [Hz] (one period per command).
+        Period the host runs at [Hz] (lockstep: one period per command).
     excitation : hapsim.scene.Excitation, optional
         Initial displacement / velocity / hand force.
     limit : float
         The device's own force clamp [N] (or [N m]); the device section's is also applied.
     seed : int
         Sensor-noise seed.
+    clock : {"wall", "lockstep"}
+        The device's clock (above).
 
     Attributes
     ----------
     applied : list of float
         Forces applied per command (for tests).
+
+    Raises
+    ------
+    ConfigError
+        An unknown ``clock``.
     """
 
-    def __init__(self, device, rate_hz, excitation, limit, seed):
+    #: The delay [periods] a host-clocked board on the wall clock has by itself: the
+    #: sample of a reply is taken when the packet arrives, and the force computed from it
+    #: arrives with the next packet, one period later.
+    natural_delay = 1.0
+
+    def __init__(self, device, rate_hz, excitation, limit, seed, clock="lockstep"):
+        from hapsim.errors import ConfigError
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
         self.physics = MockPhysics(device, rate_hz, excitation, seed=seed)
         self.delay = int(device.delay)
         self.limit = min(float(device.force_limit), float(limit))
@@ -61,14 +87,33 @@ class _Actuated:
         self.held = 0.0
         self.clamped = 0
         self.last_command = 0.0
+        self.wall = WallClock(self.physics) if clock == "wall" else None
+        #: Latency [s] added to each force on the wall clock: what brings a board whose
+        #: own delay is :attr:`natural_delay` to the scene's (never negative: a board is
+        #: not faster than its protocol).
+        self.extra_latency_s = (max(0.0, float(device.delay) - self.natural_delay)
+                                / float(rate_hz))
 
-    def apply(self, force) -> None:
-        """Queue ``force``, apply the one due (``delay`` commands back), advance a period.
-        ``None``: this command changes no force (the one held goes on)."""
+    def apply(self, force, now: float | None = None) -> None:
+        """Lockstep: queue ``force``, apply the one due (``delay`` commands back), advance a
+        period. Wall clock: run the physics to ``now`` [s], then the force takes effect at
+        ``now + extra_latency_s``. ``None``: this command changes no force (the one held
+        goes on)."""
         if force is not None:
             self.last_command = force
             if not math.isfinite(force):
                 force = 0.0                 # a corrupted float is no reason to push hard
+        if self.wall is not None:
+            self.wall.run_to(now)
+            self.held = self.wall.held
+            if force is None:
+                return
+            if abs(force) > self.limit:
+                force = math.copysign(self.limit, force)
+                self.clamped += 1
+            self.applied.append(force)
+            self.wall.schedule(now + self.extra_latency_s, force)
+            return
         self._fifo.append(force)
         due = self._fifo.popleft()
         if due is None:
@@ -87,6 +132,8 @@ class _Actuated:
     def settles_on(self) -> float:
         """The force the device holds once the commands in its delay queue are applied
         (the last one that sets a force), [N]: what it is left with when the host is gone."""
+        if self.wall is not None:
+            return self.wall.settles_on()
         for f in reversed(self._fifo):
             if f is not None:
                 return 0.0 if not math.isfinite(f) else max(-self.limit, min(self.limit, f))
@@ -97,6 +144,9 @@ class _Actuated:
         is emptied too."""
         self._fifo = deque([None] * self.delay)
         self.held = force
+        if self.wall is not None:
+            self.wall.set_now(force)
+            return
         self.physics.hold_now(force)
 
     def idle(self, silent_s: float) -> bytes:
@@ -107,6 +157,83 @@ class _Actuated:
     #: From the end of a command read to the end of its answer on the wire [s]: what
     #: :func:`serve` waits before writing the answer (0: at once, a USB device's time).
     reply_delay_s = 0.0
+
+
+class WallClock:
+    """A device's own time: its physics integrated exactly over the real time between
+    events, holding the force in effect (a board's motor holds its last PWM duty).
+
+    Events are the packets' arrival times and the times their forces take effect; the
+    physics is stepped from one to the next by :meth:`MockPhysics.advance_interval`, cut
+    at the period boundaries (the hand force is per period).
+
+    Parameters
+    ----------
+    physics : hapsim.device_model.MockPhysics
+        The device's plant (``hold: zoh``).
+
+    Attributes
+    ----------
+    t : float
+        The device's time the physics has reached [s] (0 at the first packet's clock).
+    held : float
+        The force in effect [N].
+    """
+
+    def __init__(self, physics) -> None:
+        self.physics = physics
+        self.t = 0.0
+        self.held = 0.0
+        #: The largest |position| the physics reached [m] (or [rad]): the true excursion,
+        #: whatever the host believes.
+        self.excursion = abs(physics.x)
+        self._due: deque = deque()       # (time [s], force [N]) not yet in effect
+
+    def schedule(self, at: float, force: float) -> None:
+        """The force ``force`` [N] takes effect at ``at`` [s] (in time order: a later
+        packet's force never takes effect before an earlier one's)."""
+        if self._due and at < self._due[-1][0]:
+            at = self._due[-1][0]
+        self._due.append((float(at), float(force)))
+
+    def set_now(self, force: float) -> None:
+        """The device sets its force itself, at once (a firmware's silence rule); what was
+        due is dropped."""
+        self._due.clear()
+        self.held = float(force)
+
+    def settles_on(self) -> float:
+        """The force in effect once everything due has taken effect [N]."""
+        return self._due[-1][1] if self._due else self.held
+
+    def run_to(self, now: float) -> None:
+        """Integrate the physics to ``now`` [s] (nothing when ``now`` is not later).
+
+        Raises
+        ------
+        ValueError
+            ``now`` is not finite (a wall-clock device needs the packet's time).
+        """
+        if not math.isfinite(now):
+            raise ValueError("a device on the wall clock needs the time of each packet")
+        ph = self.physics
+        T = ph.period
+        due = self._due
+        while self.t < now:
+            boundary = (ph.n + 1) * T
+            nxt = min(now, boundary)
+            if due and due[0][0] < nxt:
+                nxt = max(due[0][0], self.t)
+            ph.advance_interval(nxt - self.t, self.held)
+            self.t = nxt
+            if abs(ph.x) > self.excursion:
+                self.excursion = abs(ph.x)
+            if nxt >= boundary:
+                ph.end_period()
+            while due and due[0][0] <= self.t:
+                self.held = due.popleft()[1]
+        while due and due[0][0] <= self.t:
+            self.held = due.popleft()[1]
 
 
 class FireFaderDevice(_Actuated):
@@ -392,7 +519,19 @@ class HaplyDevice(_Actuated):
     framing: misaligned bytes are other commands), a reply ``[addr]`` + a float32 per
     analog pin and encoder of ``addr`` to every write (1 byte when nothing has that
     address), the angle ``360 * count / resolution`` with the set-up's resolution and the
-    count set to the set-up's offset. Each write is one host tick (one period).
+    count set to the set-up's offset.
+
+    Its time (``clock="wall"``, the default): the firmware's ``loop()`` takes one command
+    per pass and answers a write in the same pass, after setting the motor's duty
+    (``Haply_M3_Firmware_V1_5.ino``, ``loop``: ``write_states`` then ``read_states``;
+    HaplyHaptics/Haply-Arduino-Firmware-Versions, commit edcf50f), so the angle a reply
+    carries is sampled when its write arrives and the torque acts from then on, held
+    until the next write (no watchdog: :class:`_Actuated`, ``natural_delay`` 1). A set-up
+    costs :data:`SETUP_S`: ``initialize_encoder`` (``Haply_M3_Firmware_V1_5.h``) builds a
+    ``new Encoder(...)``, whose constructor waits ``delayMicroseconds(2000)`` for the
+    pins' R-C filter (``Arduino_Support_Libraries/Encoder/Encoder.h``, ``Encoder(uint8_t,
+    uint8_t)``) before the count is written with the offset; the commands after it wait,
+    the joint does not. ``clock="lockstep"``: each write is one period.
 
     Parameters
     ----------
@@ -415,18 +554,25 @@ class HaplyDevice(_Actuated):
         The torque motor 1 holds [N m].
     """
 
+    #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
+    SETUP_S = 2e-3
+
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
-                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1) -> None:
+                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
+                 clock: str = "wall") -> None:
         from hapsim.drivers import haply as hp
         from hapsim.errors import ConfigError
         if motor_sign not in (1, -1):
             raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
         self.motor_sign = int(motor_sign)
         self._hp = hp
-        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed)
+        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
         self.decoder = hp.CommandDecoder()
         self.cpr = float(resolution or cpr)
         self._base = 0
+        #: The board's time [s] its last answer is ready at (:func:`serve` writes it then).
+        self.ready_at = 0.0
+        self._busy_until = 0.0
 
     def _counts(self) -> int:
         return round(self.physics.sample() / (2 * math.pi) * self.cpr)
@@ -446,12 +592,34 @@ class HaplyDevice(_Actuated):
         return 360.0 * c / res
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
-        """Bytes from the host in, the replies out (one per write)."""
+        """Bytes from the host in, the replies out (one per write).
+
+        Parameters
+        ----------
+        data : bytes
+            What the host wrote.
+        now : float
+            The board's time the bytes arrived at [s] (needed on the wall clock).
+
+        Returns
+        -------
+        bytes
+            The replies; on the wall clock they are ready at :attr:`ready_at`.
+        """
         import struct
         out = b""
         dec = self.decoder
+        wall = self.wall is not None
+        t = max(now, self._busy_until) if wall else now
         for cmd in dec.commands(data):
+            if wall:
+                t = max(t, self._busy_until)      # the pass after a set-up's wait
             if cmd[0] == "setup":
+                if wall:
+                    self.wall.run_to(t)
+                    self._busy_until = t + self.SETUP_S
+                    t = self._busy_until
+                    self.wall.run_to(t)           # the count is written after the wait
                 if dec.encoder_addr[0]:           # the count is set to the offset
                     off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
                     off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
@@ -461,15 +629,18 @@ class HaplyDevice(_Actuated):
             if cmd[0] != "write":
                 continue
             _, addr, tq = cmd
-            t = tq.get(0)
-            if t is not None:
-                if not math.isfinite(t):
-                    t = 0.0                       # (the firmware: a NaN duty is 0)
-                t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
+            tau = tq.get(0)
+            if tau is not None:
+                if not math.isfinite(tau):
+                    tau = 0.0                     # (the firmware: a NaN duty is 0)
+                tau = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, tau))
                 if dec.motor_direction[0]:
-                    t = -t
-                t *= self.motor_sign
-            self.apply(t)
+                    tau = -tau
+                tau *= self.motor_sign
+            if wall:
+                self.apply(tau, now=t)            # the joint has run to t; the torque acts
+            else:
+                self.apply(tau)
             na, encs = dec.reply_layout(addr)
             out += bytes([addr]) + struct.pack("<f", 0.0) * na
             for p in encs:
@@ -477,6 +648,8 @@ class HaplyDevice(_Actuated):
                 if abs(a) > 3.4028234663852886e38:    # binary32 overflows to inf
                     a = math.copysign(math.inf, a)
                 out += struct.pack("<f", a)
+        if wall:
+            self.ready_at = t
         return out
 
 
@@ -638,6 +811,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 wait = now + dev.reply_delay_s - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
+            if got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
+                # a board on its own clock answers when its pass has run (after a set-up's
+                # wait, later than the bytes came)
+                wait = t0 + dev.ready_at - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
             out += got
         out = fl.tx(out)
         if out:
@@ -655,6 +834,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
         extra["passes_at_full_enable"] = sum(e == 129 for e in dev.enables)
     return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
             "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.settles_on(),
+            "clock": getattr(dev, "clock", "lockstep"),
+            "true_excursion": (dev.wall.excursion if getattr(dev, "wall", None) is not None
+                               else None),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
 
