@@ -578,9 +578,14 @@ class MockPhysics:
         self.n += 1
 
     def hold_now(self, u: float) -> None:
-        """The device sets the force it holds itself, now (a firmware's silence rule): with
-        a sub-sample delay the next period's first ``f T`` holds ``u`` [N] too (nothing
-        changes for a whole delay)."""
+        """The device sets the force it holds itself, now (a firmware's silence rule).
+
+        Parameters
+        ----------
+        u : float
+            The force held from now [N]: with a sub-sample delay the next period's first
+            ``f T`` holds it too (nothing changes for a whole delay).
+        """
         self._held = float(u)
 
     def _advance_split(self, u: float) -> None:

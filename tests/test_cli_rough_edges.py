@@ -107,6 +107,35 @@ def test_far_from_every_option_no_guess(capsys):
     assert "unrecognized arguments: --zzzzqqq" in err and "did you mean" not in err
 
 
+def _command_names():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sorted(sub.choices)
+
+
+@pytest.mark.parametrize("edit", ["swap", "drop", "double"])
+def test_every_mistyped_command_is_suggested_back(edit, capsys):
+    """``hapsim chekc``: for every command, two inner letters swapped, one dropped or one
+    doubled gets "did you mean COMMAND?" on the usage error (exit 2), as a mistyped option
+    does; a word close to no command gets the list of commands and no guess."""
+    missed = []
+    for name in _command_names():
+        i = len(name) // 2
+        typo = {"swap": name[:i] + name[i + 1] + name[i] + name[i + 2:],
+                "drop": name[:i] + name[i + 1:],
+                "double": name[:i] + name[i] + name[i:]}[edit]
+        if typo == name:
+            continue
+        code = main([typo, WALL])
+        err = capsys.readouterr().err
+        if code != 2 or not err.rstrip().endswith(f"(did you mean {name}?)"):
+            missed.append((typo, code, err.splitlines()[-1]))
+    assert not missed, missed
+    assert main(["zzzzqqq"]) == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'zzzzqqq'" in err and "did you mean" not in err
+
+
 def _long_options():
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))

@@ -70,7 +70,9 @@ CASES = [
     ("between-not-pair", HEAD + "links:\n  - {name: w, kind: spring_damper, between: hand,"
      " stiffness: 1} #<\n" + DEVICE, "links[0].between"),
     ("device-not-mapping", HEAD + LINK + "device: 0.1 #<\n", "device"),
-    ("delay-fraction", HEAD + LINK + "device:\n  mass: 0.1\n  delay: 1.5 #<\n", "device.delay"),
+    ("delay-fraction-ideal", HEAD + LINK + "device:\n  mass: 0.1\n  hold: ideal\n  delay: 1.5 #<\n",
+     "device.delay"),
+    ("delay-negative", HEAD + LINK + "device:\n  mass: 0.1\n  delay: -0.5 #<\n", "device.delay"),
     ("pc-not-bool", HEAD + LINK + DEVICE + "safety:\n  passivity_controller: yes please #<\n",
      "safety.passivity_controller"),
     ("bool-as-number", HEAD + LINK + "device:\n  mass: true #<\n", "device.mass"),

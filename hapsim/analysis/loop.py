@@ -112,7 +112,7 @@ class LoopModel:
         takes effect. A whole number is the plain hold (stored as an int: today's code
         path, bit for bit); ``d = m + f`` with ``0 < f < 1`` switches the held force
         ``f T`` into the period (the split hold, :mod:`hapsim.analysis.subsample`;
-        modified z-transform, Franklin, Powell & Workman sec. 4.3.4).
+        modified z-transform, Franklin, Powell & Workman ch. 4, sec. 4.3).
     hold : {"zoh", "ideal"}
         ``"zoh"``: exact zero-order hold of ``m x'' + b0 x' = f``. ``"ideal"``: the paper's
         idealised sampled image, a centred-difference mass (Florens et al. eqs. (2)-(4)).

@@ -631,7 +631,7 @@ def split_plant_rows(dev, T: float, member=None):
 
     Notes
     -----
-    Modified z-transform (Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark
+    Modified z-transform (Franklin, Powell & Workman ch. 4, sec. 4.3; Astrom & Wittenmark
     sec. 2.3): ``Gamma0 = int_0^((1-f)T) e^(As) ds b``,
     ``Gamma1 = e^(A(1-f)T) int_0^(fT) e^(As) ds b``.
     """

@@ -251,6 +251,12 @@ def certify_family(scene, calibrated, *, max_boxes: int = MAX_BOXES, batch: int 
     if dev.hold != "zoh":
         return Certificate(False, None, 0, "ideal hold (only the zero-order hold is "
                                            "certified)")
+    if float(dev.delay) % 1.0:
+        # the bounds below perturb the plant through one Bd u^T; the split hold has two
+        # (Gamma0, Gamma1: hapsim.analysis.subsample): not certified, said so
+        return Certificate(False, None, 0, f"sub-sample delay {float(dev.delay):g} "
+                                           "(only whole delays are certified; the sampled "
+                                           "family's poles are exact)")
     spans = _spans(hand)
     rigid = not math.isfinite(spans[2, 1])
     lo_v, hi_v = spans[:, 0].copy(), spans[:, 1].copy()

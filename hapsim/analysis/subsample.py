@@ -11,11 +11,12 @@ then ``u[n-m]`` for ``(1 - f) T``. Integrating ``x' = A x + b u`` over the two p
     Gamma0 = int_0^((1-f)T) e^(A s) ds b
     Gamma1 = e^(A (1-f) T) int_0^(fT) e^(A s) ds b
 
-This is the modified z-transform of the hold-plus-plant (E. I. Jury; G. F. Franklin,
-J. D. Powell & M. L. Workman, *Digital Control of Dynamic Systems*, 3rd ed., 1998,
-sec. 4.3.4 "Time delay" / the modified z-transform; K. J. Astrom & B. Wittenmark,
-*Computer-Controlled Systems*, 3rd ed., 1997, sec. 2.3 "Systems with time delay",
-eqs. (2.12)-(2.13), there with ``tau = (d-1) h + tau'``). ``f = 0`` gives
+This is the modified z-transform of the hold-plus-plant (E. I. Jury, *Theory and
+Application of the z-Transform Method*, 1964; G. F. Franklin, J. D. Powell & M. L.
+Workman, *Digital Control of Dynamic Systems*, 3rd ed., 1998, ch. 4, sec. 4.3: the
+continuous time delay and the state-space model of a system with delay; K. J. Astrom &
+B. Wittenmark, *Computer-Controlled Systems*, 3rd ed., 1997, sec. 2.3, "Systems with time
+delay", there with ``tau = (d - 1) h + tau'``). ``f = 0`` gives
 ``Gamma1 = 0``, ``Gamma0 = Gamma`` (the plain hold: today's model exactly); ``f -> 1``
 gives ``Gamma0 -> 0``, ``Gamma1 -> Gamma``: the hold of delay ``m + 1``. The loop is
 continuous in ``d`` across the integers.
@@ -123,7 +124,7 @@ def split_hold(A, b, period: float, fraction: float):
 
     Notes
     -----
-    Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark sec. 2.3 (module notes).
+    Franklin, Powell & Workman ch. 4, sec. 4.3; Astrom & Wittenmark sec. 2.3 (module notes).
     Each piece by Van Loan's block exponential (C. F. Van Loan, "Computing integrals
     involving the matrix exponential", IEEE TAC 23, 1978), through the accurate ``phi1``
     of :func:`hapsim.analysis.hand.zoh_matrices` on balanced coordinates.

@@ -266,7 +266,7 @@ def split_hold_matrices(loop: LoopModelND):
     Notes
     -----
     ``Gamma0 = int_0^((1-f)T) e^(As) ds b``, ``Gamma1 = e^(A(1-f)T) int_0^(fT) e^(As) ds b``
-    (modified z-transform: Franklin, Powell & Workman sec. 4.3.4; Astrom & Wittenmark
+    (modified z-transform: Franklin, Powell & Workman ch. 4, sec. 4.3; Astrom & Wittenmark
     sec. 2.3; :mod:`hapsim.analysis.subsample`), each piece by :func:`zoh_matrices`' block
     exponential over its own length.
     """

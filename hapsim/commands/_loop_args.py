@@ -71,8 +71,10 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
                    default=d["rate"], required=require and d["rate"] is None,
                    metavar="HZ", help="sample rate [Hz], 1e-6 to 1e9; period T = 1/rate")
     g.add_argument("--delay", type=declared("loop", "delay"), default=d["delay"], metavar="D",
-                   help="whole samples between reading x and applying the force, 0 to "
-                        "500 (the analysis is O(d^3))" + _default(d["delay"], usual["delay"]))
+                   help="periods from reading x to the force computed from it taking "
+                        "effect, a real number 0 to 500 (1.3: the force switches 0.3 T into "
+                        "the period, the split hold; the analysis is O(d^3))"
+                        + _default(d["delay"], usual["delay"]))
     g.add_argument("--hold", choices=HOLDS, default=d["hold"],
                    help="zoh: exact zero-order hold of the force; ideal: the paper's "
                         "idealised sampled mass" + _default(d["hold"], usual["hold"]))

@@ -63,7 +63,7 @@ def register(sub) -> None:
     g.add_argument("--rate", type=declared("loop", "rate_hz"),
                    default=1000.0, help="sample rate [Hz] (default 1000)")
     g.add_argument("--delay", type=declared("loop", "delay"),
-                   default=1, help="delay [samples] (default 1)")
+                   default=1, help="delay [periods], a real number (default 1)")
     g.add_argument("--B", type=Number(unit="N s/m"), default=0.0,
                    help="virtual damping [N s/m], isotropic (default 0)")
     g.add_argument("--grid", type=Number(int, low=0, high=40), default=0, metavar="N",

@@ -98,6 +98,12 @@ class FalconDevice:
         pu = (np.degrees(dev.joints) if power_up_joints_deg is None
               else np.asarray(power_up_joints_deg, float))
         self._power_up = [ticks_of(v) for v in pu]
+        if float(dev.delay) % 1.0:
+            # its joint-space plant applies whole periods (no split hold there)
+            raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is not "
+                              "emulated by this board (its joint-space model applies whole "
+                              "periods): use a whole delay", file=scene.path,
+                              key="device.delay")
         self.delay = int(dev.delay)
         self._fifo = deque([(0, 0, 0)] * self.delay)
         self.commands = (0, 0, 0)

@@ -174,11 +174,15 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
                "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
                "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),
                "journal": ctl.journal}
+    # a run whose device left its workspace, or whose board was re-synchronised more than
+    # the stated bound, does not say "within" (the latter exits 1: the link is unfit)
+    from hapsim.daemon.link_verdict import link_verdict
+    unfit = link_verdict(measured, loop_info)
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
             "sound": run.sound,
-            "exit_code": 1 if (res.safety_stop or res.faults) else 0}
+            "exit_code": 1 if (res.safety_stop or res.faults or unfit) else 0}
 
 
 def format_report(rep: dict) -> str:

@@ -318,12 +318,12 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
-                from hapsim.driver_mock import EmbeddedDriverMock
+                from hapsim.driver_mock import WALL_CLOCK_MOCKS, EmbeddedDriverMock
                 hardware = dict(opts.mock_options if opts.mock_options is not None
                                 else drv.mock_hardware())
-                wall = opts.driver == "haply" and not opts.lockstep
-                if opts.driver == "haply":
-                    # the board keeps its own time unless the run asks for lockstep
+                # the board keeps its own time unless the run asks for lockstep
+                wall = opts.driver in WALL_CLOCK_MOCKS and not opts.lockstep
+                if opts.driver in WALL_CLOCK_MOCKS:
                     hardware.setdefault("clock", "wall" if wall else "lockstep")
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
