@@ -202,13 +202,36 @@ def main(argv=None) -> int:
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
-           "runs": rows, "summary": summarize(rows)}
+           "runs": normalize(rows), "summary": summarize(rows)}
     text = json.dumps(out, indent=1, default=str)
     if a.json:
         with open(a.json, "w") as f:
             f.write(text + "\n")
     print(json.dumps(out["summary"], indent=1))
     return 0
+
+
+#: The keys every row has (None where a run does not give one): the docs' table reads them.
+ROW_KEYS = ("driver", "loss", "seed", "clock", "safety_stop", "stop", "resyncs", "stalls",
+            "excursion_true", "excursion_host", "workspace", "verdict", "within",
+            "exit_code", "error", "seconds", "load")
+
+
+def normalize(rows):
+    """Every row with every key of :data:`ROW_KEYS` (None where missing), in place.
+
+    Parameters
+    ----------
+    rows : list of dict
+
+    Returns
+    -------
+    list of dict
+    """
+    for r in rows:
+        for k in ROW_KEYS:
+            r.setdefault(k, None)
+    return rows
 
 
 def summarize(rows):
