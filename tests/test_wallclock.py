@@ -296,12 +296,13 @@ def _burn(until: float) -> None:
 
 @pytest.fixture
 def two_cpu_hogs():
-    """Two CPU-bound processes for the test's length (each ends by itself within 60 s)."""
+    """Two CPU-bound processes for the test's length (each ends by itself within 90 s)."""
     ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_burn, args=(time.monotonic() + 60.0,), daemon=True)
+    procs = [ctx.Process(target=_burn, args=(time.monotonic() + 90.0,), daemon=True)
              for _ in range(2)]
     for p in procs:
         p.start()
+    time.sleep(0.2)                      # burning before the loop starts
     try:
         yield procs
     finally:
@@ -311,29 +312,26 @@ def two_cpu_hogs():
 
 
 @pytest.mark.parametrize("config, driver", [("firefader", "firefader"),
-                                            ("hapkit_serial", "hapkit-serial"),
-                                            ("wall", None)])
+                                            ("hapkit_serial", "hapkit-serial")])
 def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, config,
                                                                   driver):
-    """The THS closed through each driver's bytes (and the framed mock's, real time by
-    default) on the board's own clock, two CPU-bound processes running: no safety stop,
-    the device never beyond its travel, measured = predicted within the run's stated
-    uncertainty (the samples a loaded host or emulator left missing are in it)."""
+    """The THS closed through each driver's bytes on the board's own clock, two
+    CPU-bound processes running: no safety stop, measured = predicted within the run's
+    stated uncertainty (the samples a loaded host or emulator left missing are in it).
+    (The framed mock is real time by default: tests/test_daemon_pty.py; the 2DIY and the
+    Falcon on their own clocks: tests/test_haply2_realtime.py, the Falcon tests below.)"""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     from pathlib import Path
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / f"{config}.yaml"))
+    assert all(p.is_alive() for p in two_cpu_hogs)         # they run beside it
     kw = {"driver": driver} if driver else {}
     # the default scheduling (SCHED_FIFO 10 where the OS permits, as `hapsim run`): a
     # loop at normal priority beside two CPU-bound processes is no real-time loop
     rep = run_scene(sc, handle_signals=False, **kw)
-    assert all(p.is_alive() for p in two_cpu_hogs)         # they ran beside it
     loop = rep["loop"]
     assert not loop.get("safety_stop"), loop.get("stop_reason")
-    if driver:
-        assert loop["mock"]["clock"] == "wall"
-    else:
-        assert loop["mode"] != "lockstep"
+    assert loop["mock"]["clock"] == "wall"
     m = rep["measured"]
     assert m["within"] is True, m["verdict"]
 
