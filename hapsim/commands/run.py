@@ -66,7 +66,7 @@ exit codes: 0 ran (or stopped by SIGINT/SIGTERM), 1 refused, safety stop or devi
 
 #: The options ``hapsim run --help`` shows; the others appear with ``--help-all``.
 COMMON_OPTIONS = ("--help", "--help-all", "--port", "--duration", "--lockstep", "--rate",
-                  "--telemetry", "--driver", "--device", "--amplitude", "--json")
+                  "--telemetry", "--driver", "--device", "--amplitude", "--json", "--view")
 
 
 class _HelpAll(argparse.Action):
