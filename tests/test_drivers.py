@@ -104,7 +104,7 @@ def test_device_never_applies_a_force_over_its_limit():
     and every force the device applies is still within its limit."""
     rng = np.random.default_rng(11)
     dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.3)
-    mock = FireFaderDevice(dev, 500.0, Excitation())
+    mock = FireFaderDevice(dev, 500.0, Excitation(), clock="lockstep")   # the parser alone
     good = [ff.encode_packet(*rng.integers(-127, 127, 2)) for _ in range(500)]
     data, _ = _hostile(rng, good)
     data += bytes([127, 5, 0x80, 1, 127, 3])            # a -128 force byte, a truncation
@@ -230,7 +230,7 @@ def test_haply_hostile_streams():
     seen = set(out)
     assert sum(struct.unpack("<f", g[1:])[0] in seen for g in intact) >= 0.9 * len(intact)
     dev = HaplyDevice(Device(mass=0.001, friction=0.001, delay=1, force_limit=0.1), 1000.0,
-                      Excitation())
+                      Excitation(), clock="lockstep")
     drv = get_driver("haply", device_id=3)
     # garbage can reconfigure the board (a random set-up): the host arms it again
     stream = drv.arm() + bytes(rng.integers(0, 256, 20000).astype(np.uint8))
@@ -243,13 +243,15 @@ def test_haply_hostile_streams():
     assert dev.applied and max(abs(t) for t in dev.applied) <= 0.1
 
 
-def test_haply_closed_loop_through_its_mock():
-    """hapsim run --driver haply (configs/haply.yaml, rotary units) on the board mock: the
-    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %)."""
+def test_haply_closed_loop_through_its_mock_in_lockstep():
+    """hapsim run --driver haply --lockstep (configs/haply.yaml, rotary units) on the board
+    mock, lockstep by name (the maths through the board's bytes, not its timing): the
+    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %). On
+    the wall clock: tests/test_haply_wallclock.py."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
-                    rt_priority=0)
+                    rt_priority=0, lockstep=True)
     meas, pred = rep["measured"], rep["predicted"]
     assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
     assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
@@ -293,7 +295,7 @@ def test_hapkit_serial_hostile_streams():
     seen = set(out)
     assert sum(struct.unpack("<ff", g[1:]) in seen for g in intact) >= 0.9 * len(intact)
     mock = HapkitSerialDevice(Device(mass=0.1, friction=0.3, delay=1, force_limit=1.0), 250.0,
-                              Excitation(), force_limit=2.0)
+                              Excitation(), force_limit=2.0, clock="lockstep")   # the parser
     drv = get_driver("hapkit-serial")
     stream = bytes(rng.integers(0, 256, 5000).astype(np.uint8))
     for v in rng.normal(0, 5, 300):
@@ -335,12 +337,14 @@ def test_hapkit_serial_config_rate_figure():
 
 
 def test_hapkit_serial_closed_loop_through_its_mock():
-    """hapsim run --driver hapkit-serial on the sketch mock: positions and forces are
-    binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6."""
+    """hapsim run --driver hapkit-serial --lockstep on the sketch mock: positions and
+    forces are binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6
+    (lockstep by name: the wire's arithmetic; the same loop on the board's own clock,
+    tests/test_wallclock.py, is within its stated uncertainty)."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
-                    handle_signals=False, rt_priority=0)
+                    lockstep=True, handle_signals=False, rt_priority=0)
     meas, pred = rep["measured"], rep["predicted"]
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], rel=1e-5)
@@ -366,8 +370,10 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults, duration):
     says how much of the stated uncertainty is the estimated samples' worst case."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
+    # lockstep, by name: what is under test is the decoders and the re-synchronisation
+    # against lost and corrupted bytes, not the timing
     rep = run_scene(load_scene(f"configs/{driver}.yaml"), driver=driver, duration=duration,
-                    handle_signals=False, rt_priority=0, driver_faults=faults)
+                    handle_signals=False, rt_priority=0, driver_faults=faults, lockstep=True)
     lp = rep["loop"]
     assert lp["stop_reason"] == "duration" and not lp["safety_stop"], lp["stop_reason"]
     assert lp["lost"] == 0 and lp["ticks"] > 0.8 * lp["requested"]
@@ -398,7 +404,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     dec = drv.decoder()
     assert hp.ReplyDecoder(1, resolution=4880.0).feed(bytes([1, 1, 1, 0x3F, 0xC5])) == []
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation(x0=0.1))
+                        1000.0, Excitation(x0=0.1), clock="lockstep")
     assert dec.feed(board.feed(drv.arm())) == [0.0]
     got = []
     for _ in range(20):
@@ -415,7 +421,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     assert board.decoder.motor_addr[0] != 1             # the board forgot its motor ...
     assert board.held == pytest.approx(0.05)            # ... and holds the torque
     lost = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                       1000.0, Excitation())
+                       1000.0, Excitation(), clock="lockstep")
     lost.feed(drv.arm() + drv.encode_force(0.07) + drv.encode_force(0.0625)[1:])
     assert lost.held == pytest.approx(0.07)
     lost.feed(drv.encode_force(0.0))                    # a plain zero write is swallowed
@@ -435,7 +441,7 @@ def test_haply_board_holds_its_torque_through_reset_and_setup():
     from hapsim.drivers import haply as hp
     from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation())
+                        1000.0, Excitation(), clock="lockstep")
     drv = get_driver("haply")
     board.feed(drv.arm() + drv.encode_force(0.08))
     assert board.idle(5.0) == b"" and board.held == pytest.approx(0.08)
@@ -453,7 +459,9 @@ def test_firefader_firmware_enable_ramp_and_gating():
     the enable passes the gate (5 passes)."""
     from hapsim.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=1.0)
-    mk = FireFaderDevice(dev, 250.0, Excitation(), touch=True)
+    # lockstep by name: the filters' arithmetic pass by pass (the silence rule on the
+    # wall clock: tests/test_wallclock.py)
+    mk = FireFaderDevice(dev, 250.0, Excitation(), touch=True, clock="lockstep")
     for _ in range(70):
         mk.step(0)
     assert mk.enable == 129 and mk.enables.index(129) == 4 + 66 - 1
@@ -468,17 +476,18 @@ def test_firefader_firmware_enable_ramp_and_gating():
         assert mk.held == 0.0
     mk.step(100)
     assert mk.enables[-1] == 21 and mk.held == pytest.approx(200 / 254 * 0.39)
-    old = FireFaderDevice(dev, 250.0, Excitation(), touch=True, firmware="ino-scaled")
+    old = FireFaderDevice(dev, 250.0, Excitation(), touch=True, firmware="ino-scaled",
+                          clock="lockstep")
     for k in range(20):
         old.step(100 if k % 2 else -100)
         c = 200 if k % 2 else -200
         assert old.applied[-1] == pytest.approx(((c * (old.enables[-1] - 1)) >> 7) / 254 * 0.39)
     assert 0 < old.applied[-1] < 200 / 254 * 0.39        # partly on: a ramp, not a gate
-    cold = FireFaderDevice(dev, 250.0, Excitation(), touch=False)
+    cold = FireFaderDevice(dev, 250.0, Excitation(), touch=False, clock="lockstep")
     for _ in range(200):
         cold.step(50)
     assert cold.enable == 0 and max(abs(f) for f in cold.applied) < 0.01
-    edge = FireFaderDevice(dev, 250.0, Excitation(x0=0.0499), touch=True)
+    edge = FireFaderDevice(dev, 250.0, Excitation(x0=0.0499), touch=True, clock="lockstep")
     for _ in range(200):
         edge.step(0)
     assert edge.position_count() >= 251 and edge.enable == 0
@@ -581,7 +590,7 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     from hapsim.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
-                         Excitation(), full_scale=fs_true)
+                         Excitation(), full_scale=fs_true, clock="lockstep")   # in-process
     for _ in range(72):
         mk.step(0)                                  # the enable comes up
     rng = np.random.default_rng(seed)
@@ -719,7 +728,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     import firmware_protocol as fp
     from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation())
+                        1000.0, Excitation(), clock="lockstep")
     path, slave, master, flag, th = _pty_device(board)
     try:
         drv = get_driver("haply")

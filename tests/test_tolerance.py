@@ -116,7 +116,7 @@ def test_helpers_refuse_nonsense():
 
 # a literal tolerance: pytest.approx/allclose keywords, or an assert's right-hand bound
 _KEYWORD = re.compile(r"\b(?:rel|abs|atol|rtol)\s*=\s*(\d+(?:\.\d*)?(?:e-?\d+)?|\.\d+)")
-_BOUND = re.compile(r"<=?\s*(\d+(?:\.\d*)?e-\d+)")
+_BOUND = re.compile(r"<=?\s*\\?\s*(\d+(?:\.\d*)?e-\d+)")
 
 
 #: below this a literal is a round-off tolerance (a model's or a measurement's tolerance,
@@ -127,19 +127,21 @@ ROUNDOFF_SCALE = 1e-3
 def bare_literals(path: Path) -> list[str]:
     """Lines of ``path`` with a literal round-off tolerance (0 < value < 1e-3) not inside
     ``measured(...)`` (a measured tolerance names its margin); a factor of a derivation
-    (``atol=2 * dz``: two paths) is not one."""
+    (``atol=2 * dz``: two paths) is not one. The text is scanned whole, comments blanked,
+    so a tolerance continued on the next line is found too."""
+    lines = path.read_text().splitlines()
+    code = "\n".join(line.split("#", 1)[0] for line in lines)
     out = []
-    for no, line in enumerate(path.read_text().splitlines(), 1):
-        code = line.split("#", 1)[0]
-        for rx in (_KEYWORD, _BOUND):
-            for m in rx.finditer(code):
-                if not 0.0 < float(m.group(1)) < ROUNDOFF_SCALE:
-                    continue
-                if "measured(" in code[:m.start()] and code.rfind(")", 0, m.start()) < \
-                        code.rfind("measured(", 0, m.start()):
-                    continue
-                out.append(f"{path.name}:{no}: {line.strip()}")
-    return out
+    for rx in (_KEYWORD, _BOUND):
+        for m in rx.finditer(code):
+            if not 0.0 < float(m.group(1)) < ROUNDOFF_SCALE:
+                continue
+            before = code[:m.start()]
+            if before.rfind("measured(") > before.rfind(")"):
+                continue
+            no = code.count("\n", 0, m.start(1)) + 1
+            out.append(f"{path.name}:{no}: {lines[no - 1].strip()}")
+    return sorted(set(out), key=lambda t: int(t.split(":")[1]))
 
 
 def numerical_modules() -> list[Path]:
@@ -166,5 +168,6 @@ def test_the_literal_finder_finds_literals():
                      "assert np.allclose(a, b, rtol=0, atol=1e-12)\n"
                      "assert err <= 1e-13\n"
                      "assert err <= measured(1e-13, 100)\n"
+                     "assert err <= \\\n    1e-9 * scale\n"
                      "assert a == pytest.approx(b, rel=0, abs=tol)\n")
-        assert [s.split(":")[1] for s in bare_literals(p)] == ["1", "2", "3"]
+        assert [s.split(":")[1] for s in bare_literals(p)] == ["1", "2", "3", "6"]

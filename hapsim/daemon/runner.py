@@ -318,16 +318,20 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
-                from hapsim.driver_mock import EmbeddedDriverMock
+                from hapsim.driver_mock import WALL_CLOCK_MOCKS, EmbeddedDriverMock
+                hardware = dict(opts.mock_options if opts.mock_options is not None
+                                else drv.mock_hardware())
+                # the board keeps its own time unless the run asks for lockstep
+                wall = opts.driver in WALL_CLOCK_MOCKS and not opts.lockstep
+                if opts.driver in WALL_CLOCK_MOCKS:
+                    hardware.setdefault("clock", "wall" if wall else "lockstep")
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
-                                              options=(opts.mock_options
-                                                       if opts.mock_options is not None
-                                                       else drv.mock_hardware()),
-                                              faults=opts.driver_faults)
-                # the mock is paced by the commands: a slow mock process is no lost answer
+                                              options=hardware, faults=opts.driver_faults)
+                # a mock paced by the commands: a slow mock process is no lost answer; a
+                # board on its own clock answers as hardware does
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.02)
+                                     reply_deadline=0.0 if wall else 0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=int(dev.delay))
@@ -552,6 +556,55 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
+#: A driver's run (host-clocked) whose host missed its deadline in more than this share
+#: of its ticks is not the THS the prediction describes: the device held older forces for
+#: varying times (a late or stalled host), so its record does not state the felt pair.
+LATE_SHARE_MAX = 0.02
+#: Re-synchronisations beyond which a driver's run does not state the felt pair: the
+#: position after each is an estimate (the board's count restarts at the host's guess).
+RESYNCS_STATED = 2
+
+
+def timing_verdict(measured: dict, res, link: dict, *, wall: bool = True) -> None:
+    """Withdraw a driver's run's verdict when its timing or its link leaves the record
+    outside the THS (in place): more than :data:`LATE_SHARE_MAX` of the ticks late by a
+    period or more (``res.overruns``), or more than :data:`RESYNCS_STATED`
+    re-synchronisations. The verdict becomes ``not measurable`` with the reason; the fit
+    stays in the record for who wants to see it.
+
+    Parameters
+    ----------
+    measured : dict
+        :func:`hapsim.daemon.measure.identify_run`'s result.
+    res : hapsim.daemon.loop_types.LoopResult
+        The loop's counters (``overruns``, ``samples``).
+    link : dict
+        The driver transport's ``stats`` (``resyncs``).
+    wall : bool
+        The device kept its own time (not a lockstep run, where the host paces the device:
+        lateness costs nothing and a re-synchronised board has not moved meanwhile).
+    """
+    if not wall:
+        return
+    ticks = max(int(res.samples), 1)
+    late = int(getattr(res, "overruns", 0) or 0)
+    resyncs = int(link.get("resyncs", 0))
+    why = []
+    if late > LATE_SHARE_MAX * ticks:
+        why.append(f"the host missed its deadline in {late} of {ticks} ticks "
+                   f"({100.0 * late / ticks:.1f} % > {100 * LATE_SHARE_MAX:g} %): the device "
+                   f"held older forces for varying times, so the record is not the THS; "
+                   f"rerun on a quieter machine, at a lower rate, or with --lockstep")
+    if resyncs > RESYNCS_STATED:
+        why.append(f"the board was re-synchronised {resyncs} times (> {RESYNCS_STATED}): "
+                   f"the position after each is an estimate")
+    if not why or "k" not in measured:
+        return
+    measured["within"] = False
+    measured["comparable"] = False
+    measured["verdict"] = "not measurable: " + "; ".join(why)
+
+
 def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
@@ -612,6 +665,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         # the run's own driver (its parameters: given, or the scene's protocol_options)
         drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
         measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
+        if drv is not None:
+            timing_verdict(measured, run.res, conn.tr.stats, wall=not opts.lockstep)
         rep = build_report(prep, conn, run, opts, measured, tel_info)
         if getattr(conn, "view", None) is not None:
             conn.view.finish(rep)
