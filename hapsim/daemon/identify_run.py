@@ -66,6 +66,18 @@ _LOWPASS = 1.0 / 8.0
 #: Samples at the start whose second differences give the sensor noise (the probe's force
 #: is then ~1/64 of its top level, ramped in over 20 ms).
 _QUIET = 100
+#: Margin on the measured overshoot coefficient (a faster or weaker reversal than those
+#: measured: the coefficient of the delay's share falls with the velocity, of the
+#: inertia's with the level).
+_OVERSHOOT_MARGIN = 1.5
+#: Each reversal's overshoot coefficient replaces the last one when larger than this share
+#: of it (an old measurement at another level fades out).
+_FORGET = 0.7
+#: Share of the envelope the halving's threshold grows to at most (it grows by 10 % at each
+#: halving; unbounded, it passed the envelope after four and no longer protected it).
+_EDGE_TOP = 0.8
+#: The excitation's last seconds: it brakes the device to rest while it ramps out.
+_END_S = 0.1
 #: Share of the envelope where the square wave reverses when the device would stop beyond.
 _CALM = 0.4
 #: Share of the envelope beyond which a predicted stop halves the level.
@@ -225,11 +237,13 @@ def excitation_plan(n: int, rate_hz: float, force_limit: float, envelope: float,
         level = -level if rng.random() < 0.5 else level
         i += k
     sq = np.ones(n)
-    # ramp in and out over 20 ms: no step at arming, zero force at the end
+    # ramp in over 20 ms (no step at arming), out over the engine's braking end (zero
+    # force at the end)
     nr = min(max(int(0.02 * rate_hz), 1), n // 4 or 1)
+    ne = min(max(int(_END_S * rate_hz), 1), n // 4 or 1)
     ramp = np.ones(n)
     ramp[:nr] = np.linspace(0.0, 1.0, nr)
-    ramp[n - nr:] = np.minimum(ramp[n - nr:], np.linspace(1.0, 0.0, nr))
+    ramp[n - ne:] = np.minimum(ramp[n - ne:], np.linspace(1.0, 0.0, ne))
     r *= ramp
     sq *= ramp
     kc, bc = centring_gains(force_limit, envelope, rate_hz, max_delay)
@@ -271,7 +285,14 @@ class ExcitationEngine:
       (friction only helps); ``v_n`` is three standard deviations of the sensor noise's
       share of ``v``, the noise measured from the second differences of the first 100
       samples (the device at rest or nearly: the probe's force is tiny then), and ``M`` is
-      at most ``2 MASS_RANGE[1]``. The square wave reverses when ``s`` passes 40 % of the
+      at most ``2 MASS_RANGE[1]``. Once the device has turned after a reversal of the square
+      wave, its measured overshoot ``o`` beyond the position of the reversal, over the
+      square of the velocity ``v_r`` it had then, is a stop coefficient that holds the
+      delay, the inertia and the damping as the device shows them: the stop ahead is the
+      smaller of the above and ``1.5 max(o / v_r^2, 0.7 x the last)`` ``sign(v) v^2``
+      (a heavily damped device stops far sooner than its apparent mass says);
+    - *end*: over the last 100 ms the level ramps out and only brakes (against ``v``).
+      The square wave reverses when ``s`` passes 40 % of the
       envelope on the side it pushes towards, and every 250 ms; when ``s`` passes 70 %
       (then 77 %, ...) ``A`` halves once the device moves the way
       it is pushed again (the braking push keeps the level the stop ahead counted on: halved
@@ -310,7 +331,12 @@ class ExcitationEngine:
         self._e0 = 0.0
         self._measured = False
         self._halve = False
+        self._nend = min(max(int(_END_S * scene.rate_hz), 1), self._n // 4 or 1)
         self._n2 = 0.0
+        self._cmeas = 0.0
+        self._vf0 = 0.0
+        self._xf0 = 0.0
+        self._o = 0.0
         self._vdead = 0.0
         self._lp = 0.0
         self._sq = scene.square
@@ -361,18 +387,35 @@ class ExcitationEngine:
         brake = (1.0 - PRBS_SHARE) * self._g
         va = v - self._vdead if v > self._vdead else (
             v + self._vdead if v < -self._vdead else 0.0)
-        s = lp - self._xc + v * self._tau + va * abs(va) * self._mass / (2.0 * brake)
+        s = v * self._tau + va * abs(va) * self._mass / (2.0 * brake)
+        if self._cmeas > 0.0:
+            # the overshoot measured after the last reversals (delay, inertia and damping
+            # as the device shows them), with its margin, when it says less
+            s2 = _OVERSHOOT_MARGIN * self._cmeas * va * abs(va)
+            if abs(s2) < abs(s):
+                s = s2
+        s += lp - self._xc
+        # the overshoot after the last reversal: how far the device went on the way it
+        # moved when the force turned
+        if self._vf0 != 0.0:
+            o = (lp - self._xf0) * (1.0 if self._vf0 > 0.0 else -1.0)
+            if o > self._o:
+                self._o = o
+            if v * self._vf0 <= 0.0:           # it turned: one measurement
+                c = self._o / (self._vf0 * self._vf0)
+                self._cmeas = max(c, _FORGET * self._cmeas)
+                self._vf0 = 0.0
         as_ = s if s >= 0.0 else -s
         if as_ > self._edge and self._g > 1e-3 * self._amax:
             # nearing the envelope: excite less from the push after the braking one (the
             # braking push keeps the level the stop ahead counted on)
             self._halve = True
-            self._edge *= 1.1
+            self._edge = min(self._edge * 1.1, _EDGE_TOP * self.scene.envelope)
         if lp > self._hi:
             self._hi = lp
         if lp < self._lo:
             self._lo = lp
-        if self._stuck and self._hi - self._lo >= self._still:
+        if self._stuck and (self._hi - self._lo >= self._still and self._mass > 0.0):
             self._stuck = False            # broke loose: from now on the 100 ms steps only
         if k % self._win == self._win - 1 or (self._stuck and k % self._sub == self._sub - 1):
             if self._hi - self._lo < self._calm and self._g < self._amax:
@@ -390,6 +433,8 @@ class ExcitationEngine:
                 self._sign = sg
                 self._vf = self._xf = 0.0
                 self._e0 = lp - self._xc
+                if self._vf0 == 0.0 and abs(v) > self._vdead and k >= _QUIET:
+                    self._vf0, self._xf0, self._o = v, lp, 0.0
                 # a push measures the mass only from rest or against the motion (a
                 # velocity along it would make the apparent mass too small)
                 self._measured = sg * v > 0.0
@@ -405,7 +450,13 @@ class ExcitationEngine:
                     m2 = max(2.0 * self._xf * sg / dx, MASS_RANGE[0])
                     m2 = min(m2, 2.0 * MASS_RANGE[1])
                     self._mass = m2 if self._mass == 0.0 else min(self._mass, m2)
-        r = self._g * (self._r[k] + sg * self._sq[k]) if k < self._n else 0.0
+        if k >= self._n - self._nend:
+            # the end: brake to rest as the level ramps out (no push, no PRBS): a device
+            # left coasting at the end of a push travels v m / b0 past it
+            r = (-self._g * self._sq[k] * (1.0 if va > 0.0 else -1.0 if va < 0.0 else 0.0)
+                 if k < self._n else 0.0)
+        else:
+            r = self._g * (self._r[k] + sg * self._sq[k])
         self._k = k + 1
         f = -self._kc * e - self._bc * (position - self._xp) + r
         self._xp = position
