@@ -40,6 +40,7 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
     _QUIET_INTERRUPT = True
 
     def leave() -> None:
+        _undo_started()
         try:
             if "--json" in sys.argv[1:]:  # the promise of --json: one object on stdout
                 # (written by hand: nothing may be imported while an import is cut short;
@@ -73,6 +74,37 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
         previous(kind, value, tb)
 
     sys.excepthook = hook
+
+
+def _undo_started() -> None:
+    """Undo what the command has started so far (the embedded mock's child, its report in
+    the temporary directory: :func:`hapsim.spawn.run_stops`) before the process ends at
+    once inside an import, SIGINT and SIGTERM held off meanwhile. Nothing to do, nothing
+    imported, when :mod:`hapsim.spawn` was never loaded (nothing was started)."""
+    import signal
+    import sys
+    spawn = sys.modules.get("hapsim.spawn")
+    if spawn is None:
+        return
+    try:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_IGN)
+    except (ValueError, OSError):  # not the main thread
+        pass
+    try:
+        spawn.run_stops()
+    except BaseException:  # noqa: BLE001 - ending anyway
+        pass
+
+
+def _inside_import(frame) -> bool:
+    """Whether ``frame`` or a caller of it is in the import machinery (a signal raised
+    there may come out of the import as another exception)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
 
 
 _quiet_interrupt_at_start()

@@ -18,6 +18,10 @@ Exit codes (all commands)
     printed but ``hapsim COMMAND: interrupted``, at any moment, imports included.
     (``hapsim run`` catches SIGINT itself once its loop is armed and exits 0.)
     With ``--json``, stdout holds the ``interrupted`` error object (below) then.
+143
+    Terminated (SIGTERM) before the command installed its own handler: what it started
+    (children, temporary files) is undone first; nothing is printed (``--json``: the
+    ``interrupted`` object). (``hapsim run`` stops cleanly on SIGTERM once armed, exit 0.)
 141
     stdout was closed by its reader (``hapsim check --json | head``): the command stops
     quietly, prints nothing more (no ``BrokenPipeError`` traceback) and exits 128 + SIGPIPE,
@@ -313,12 +317,71 @@ def main(argv: list[str] | None = None) -> int:
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     want_json = "--json" in argv
+    previous = _raise_on_sigterm()
     try:
         return _main(argv, want_json)
     except BrokenPipeError:
         # the reader of stdout is gone (``| head``): nothing more can be said there, and
         # saying it on stderr would only be noise; entry() silences stdout's final flush
         return EXIT_BROKEN_PIPE
+    finally:
+        _undo_at_stop(previous)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received before a command installed its own handler: the command stops as
+    on Ctrl-C (what it started is undone, :func:`hapsim.spawn.run_stops`), exit 143."""
+
+
+#: Exit code after SIGTERM (128 + SIGTERM, as a shell reports it).
+EXIT_TERMINATED = 143
+
+
+def _raise_on_sigterm():
+    """Make SIGTERM raise :class:`Terminated` (main thread, default disposition only).
+
+    Returns
+    -------
+    object
+        The previous handler, for :func:`_undo_at_stop`; None when nothing was changed.
+    """
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return None
+
+    def _terminated(signum, frame):
+        import hapsim
+        if hapsim._inside_import(frame):   # it could come out as an ImportError: end now
+            hapsim._undo_started()
+            import os
+            os._exit(EXIT_TERMINATED)
+        raise Terminated()
+    signal.signal(signal.SIGTERM, _terminated)
+    return signal.SIG_DFL
+
+
+def _undo_at_stop(previous) -> None:
+    """Undo what the command left to undo (children, temporary files and folders:
+    :func:`hapsim.spawn.run_stops`) with SIGINT and SIGTERM held off, then put the SIGTERM
+    handler ``previous`` back (None: it was not changed)."""
+    import signal
+    import threading
+    from hapsim.spawn import run_stops
+    main_thread = threading.current_thread() is threading.main_thread()
+    held = {}
+    if main_thread:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            held[s] = signal.signal(s, signal.SIG_IGN)
+    try:
+        run_stops()
+    finally:
+        for s, handler in held.items():
+            signal.signal(s, handler)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _main(argv: list[str], want_json: bool) -> int:
@@ -363,6 +426,10 @@ def _main(argv: list[str], want_json: bool) -> int:
         except HapsimError as exc:
             return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
     except KeyboardInterrupt as exc:
+        if isinstance(exc, Terminated):     # asked by a process: the code says it
+            if want_json:
+                print(error_json(exc, EXIT_TERMINATED, f"{command}: terminated"), flush=True)
+            return EXIT_TERMINATED
         try:
             return _fail(command, exc, 130, "interrupted", want_json)
         except KeyboardInterrupt:  # a second Ctrl-C while saying so
@@ -412,14 +479,14 @@ def entry() -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     except (ValueError, OSError):  # not the main thread
         pass
-    if code == 130:
+    if code in (130, EXIT_TERMINATED):
         import os
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
             except (OSError, ValueError, KeyboardInterrupt):
                 pass
-        os._exit(130)
+        os._exit(code)
     sys.exit(code)
 
 

@@ -324,6 +324,7 @@ class MockPhysics:
         self.period = T = 1.0 / float(rate_hz)
         self.hold = device.hold
         mass, friction, self._grip = _body(device, member)
+        self._mass, self._friction = mass, friction     # advance_interval's own steps
         if self._grip is not None:         # compliant grip or the arm's spring: state space
             import scipy.linalg
             p = self._grip.shape[0]
@@ -331,6 +332,7 @@ class MockPhysics:
             A[:p, :p], A[1, p] = self._grip, 1.0 / mass
             E = scipy.linalg.expm(A * T)
             self._Ad, self._Bd = E[:p, :p], E[:p, p]
+            self._A = A
             if self.hold == "ideal":       # impulses T f at nT: Bd = T e^(AT) b
                 self._Bd = T * self._Ad[:, 1] / mass
             self._s = np.tile(np.array([exc.x0, exc.v0], dtype=float), p // 2)
@@ -509,6 +511,71 @@ class MockPhysics:
             self.v = (xn - x) / self.period
         self.n = n + 1
 
+
+    def advance_interval(self, tau: float, u: float) -> None:
+        """Advance ``tau`` seconds (any length within the current period) with the force
+        ``u`` [N] held: a device on the wall clock, whose force changes when a packet
+        arrives, not at a period boundary (:class:`hapsim.driver_mock.WallClock`).
+
+        Parameters
+        ----------
+        tau : float
+            Interval [s], ``0 <= tau``; the caller splits intervals at period boundaries
+            (the hand force is the current period's, ``hand[n]``) and ends a period with
+            :meth:`end_period`.
+        u : float
+            Force held over the interval [N].
+
+        Raises
+        ------
+        ConfigError
+            With the ideal hold (impulses at the sample instants have no meaning between
+            them).
+
+        Notes
+        -----
+        The exact ZOH solution over ``tau`` (:func:`zoh_step_coefficients` with the period
+        ``tau``; ``expm`` of the augmented state-space plant with a grip or an arm spring),
+        Coulomb friction per interval as in :meth:`advance`. A period cut into intervals
+        equals one :meth:`advance` of the whole period with the same held force to round-off
+        (the semigroup property of the exact solution).
+        """
+        if tau <= 0.0:
+            return
+        if self.hold != "zoh":
+            raise ConfigError("a device on the wall clock needs hold: zoh (the ideal hold's "
+                              "impulses act at sample instants only)", key="device.hold")
+        n = self.n
+        f = u + (self.hand[n] if n < self.hand.size else 0.0)
+        if self._grip is not None:
+            import scipy.linalg
+            p = self._grip.shape[0]
+            E = scipy.linalg.expm(self._A * tau)
+            self._s = E[:p, :p] @ self._s + E[:p, p] * f
+            self.x, self.v = float(self._s[0]), float(self._s[1])
+            return
+        a, cxv, cxu, cvu = zoh_step_coefficients(self._mass, self._friction, tau)
+        x, v = self.x, self.v
+        fc = 0.0
+        if self._coulomb > 0:
+            C = self._coulomb
+            if v != 0.0:
+                fc = -C if v > 0 else C
+            elif abs(f) > C:
+                fc = -C if f > 0 else C
+            else:
+                return                        # stuck: the force cannot break it loose
+        ft = f + fc
+        vn = a * v + cvu * ft
+        xn = x + cxv * v + cxu * ft
+        if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
+            vn = 0.0
+        self.x, self.v = xn, vn
+
+    def end_period(self) -> None:
+        """A period boundary passed on the wall clock (:meth:`advance_interval`): the next
+        period's hand force applies."""
+        self.n += 1
 
     def hold_now(self, u: float) -> None:
         """The device sets the force it holds itself, now (a firmware's silence rule).

@@ -26,33 +26,65 @@ from hapsim.device_model import MockPhysics
 from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
+           "WallClock", "WALL_CLOCK_MOCKS",
            "EmbeddedDriverMock", "firefader_offline_loop", "main"]
+
+#: The drivers whose mock keeps its own time (``clock="wall"``) unless a run asks for
+#: lockstep by name (``--lockstep``). (The Haply M3's board joins when its driver's
+#: re-synchronisation rules land: the lead's part of issue 29.)
+WALL_CLOCK_MOCKS = ("firefader", "hapkit-serial")
 
 
 class _Actuated:
-    """The physics side shared by the driver mocks: delay queue, clamp, one period per
-    command.
+    """The physics side shared by the driver mocks: delay, clamp, and the device's clock.
+
+    Two clocks (``clock``):
+
+    - ``"wall"``: the device keeps its own time (:class:`WallClock`): its physics runs
+      with the monotonic time :func:`serve` gives each packet, holding the last force
+      while the host is silent or late, as a board does. A packet's force takes effect
+      when it arrives plus the latency that brings the loop to the device's delay
+      (:attr:`extra_latency_s`); the sample a reply carries is taken when its packet
+      arrives.
+    - ``"lockstep"`` (named, for deterministic tests): one period per command; the force
+      of the packet ``delay`` packets back is applied over it.
 
     Parameters
     ----------
     device : hapsim.scene.Device
         Mass (or inertia), friction, delay and imperfections of the driven axis.
     rate_hz : float
-        Period the host runs at [Hz] (one period per command).
+        Period the host runs at [Hz] (lockstep: one period per command).
     excitation : hapsim.scene.Excitation, optional
         Initial displacement / velocity / hand force.
     limit : float
         The device's own force clamp [N] (or [N m]); the device section's is also applied.
     seed : int
         Sensor-noise seed.
+    clock : {"wall", "lockstep"}
+        The device's clock (above).
 
     Attributes
     ----------
     applied : list of float
         Forces applied per command (for tests).
+
+    Raises
+    ------
+    ConfigError
+        An unknown ``clock``.
     """
 
-    def __init__(self, device, rate_hz, excitation, limit, seed):
+    #: The delay [periods] a host-clocked board on the wall clock has by itself: the
+    #: sample of a reply is taken when the packet arrives, and the force computed from it
+    #: arrives with the next packet, one period later.
+    natural_delay = 1.0
+
+    def __init__(self, device, rate_hz, excitation, limit, seed, clock="lockstep"):
+        from hapsim.errors import ConfigError
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
         self.physics = MockPhysics(device, rate_hz, excitation, seed=seed)
         self.delay = int(device.delay)
         self.limit = min(float(device.force_limit), float(limit))
@@ -61,14 +93,33 @@ class _Actuated:
         self.held = 0.0
         self.clamped = 0
         self.last_command = 0.0
+        self.wall = WallClock(self.physics) if clock == "wall" else None
+        #: Latency [s] added to each force on the wall clock: what brings a board whose
+        #: own delay is :attr:`natural_delay` to the scene's (never negative: a board is
+        #: not faster than its protocol).
+        self.extra_latency_s = (max(0.0, float(device.delay) - self.natural_delay)
+                                / float(rate_hz))
 
-    def apply(self, force) -> None:
-        """Queue ``force``, apply the one due (``delay`` commands back), advance a period.
-        ``None``: this command changes no force (the one held goes on)."""
+    def apply(self, force, now: float | None = None) -> None:
+        """Lockstep: queue ``force``, apply the one due (``delay`` commands back), advance a
+        period. Wall clock: run the physics to ``now`` [s], then the force takes effect at
+        ``now + extra_latency_s``. ``None``: this command changes no force (the one held
+        goes on)."""
         if force is not None:
             self.last_command = force
             if not math.isfinite(force):
                 force = 0.0                 # a corrupted float is no reason to push hard
+        if self.wall is not None:
+            self.wall.run_to(now)
+            self.held = self.wall.held
+            if force is None:
+                return
+            if abs(force) > self.limit:
+                force = math.copysign(self.limit, force)
+                self.clamped += 1
+            self.applied.append(force)
+            self.wall.schedule(now + self.extra_latency_s, force)
+            return
         self._fifo.append(force)
         due = self._fifo.popleft()
         if due is None:
@@ -87,6 +138,8 @@ class _Actuated:
     def settles_on(self) -> float:
         """The force the device holds once the commands in its delay queue are applied
         (the last one that sets a force), [N]: what it is left with when the host is gone."""
+        if self.wall is not None:
+            return self.wall.settles_on()
         for f in reversed(self._fifo):
             if f is not None:
                 return 0.0 if not math.isfinite(f) else max(-self.limit, min(self.limit, f))
@@ -97,6 +150,9 @@ class _Actuated:
         is emptied too."""
         self._fifo = deque([None] * self.delay)
         self.held = force
+        if self.wall is not None:
+            self.wall.set_now(force)
+            return
         self.physics.hold_now(force)
 
     def idle(self, silent_s: float) -> bytes:
@@ -107,6 +163,83 @@ class _Actuated:
     #: From the end of a command read to the end of its answer on the wire [s]: what
     #: :func:`serve` waits before writing the answer (0: at once, a USB device's time).
     reply_delay_s = 0.0
+
+
+class WallClock:
+    """A device's own time: its physics integrated exactly over the real time between
+    events, holding the force in effect (a board's motor holds its last PWM duty).
+
+    Events are the packets' arrival times and the times their forces take effect; the
+    physics is stepped from one to the next by :meth:`MockPhysics.advance_interval`, cut
+    at the period boundaries (the hand force is per period).
+
+    Parameters
+    ----------
+    physics : hapsim.device_model.MockPhysics
+        The device's plant (``hold: zoh``).
+
+    Attributes
+    ----------
+    t : float
+        The device's time the physics has reached [s] (0 at the first packet's clock).
+    held : float
+        The force in effect [N].
+    """
+
+    def __init__(self, physics) -> None:
+        self.physics = physics
+        self.t = 0.0
+        self.held = 0.0
+        #: The largest |position| the physics reached [m] (or [rad]): the true excursion,
+        #: whatever the host believes.
+        self.excursion = abs(physics.x)
+        self._due: deque = deque()       # (time [s], force [N]) not yet in effect
+
+    def schedule(self, at: float, force: float) -> None:
+        """The force ``force`` [N] takes effect at ``at`` [s] (in time order: a later
+        packet's force never takes effect before an earlier one's)."""
+        if self._due and at < self._due[-1][0]:
+            at = self._due[-1][0]
+        self._due.append((float(at), float(force)))
+
+    def set_now(self, force: float) -> None:
+        """The device sets its force itself, at once (a firmware's silence rule); what was
+        due is dropped."""
+        self._due.clear()
+        self.held = float(force)
+
+    def settles_on(self) -> float:
+        """The force in effect once everything due has taken effect [N]."""
+        return self._due[-1][1] if self._due else self.held
+
+    def run_to(self, now: float) -> None:
+        """Integrate the physics to ``now`` [s] (nothing when ``now`` is not later).
+
+        Raises
+        ------
+        ValueError
+            ``now`` is not finite (a wall-clock device needs the packet's time).
+        """
+        if not math.isfinite(now):
+            raise ValueError("a device on the wall clock needs the time of each packet")
+        ph = self.physics
+        T = ph.period
+        due = self._due
+        while self.t < now:
+            boundary = (ph.n + 1) * T
+            nxt = min(now, boundary)
+            if due and due[0][0] < nxt:
+                nxt = max(due[0][0], self.t)
+            ph.advance_interval(nxt - self.t, self.held)
+            self.t = nxt
+            if abs(ph.x) > self.excursion:
+                self.excursion = abs(ph.x)
+            if nxt >= boundary:
+                ph.end_period()
+            while due and due[0][0] <= self.t:
+                self.held = due.popleft()[1]
+        while due and due[0][0] <= self.t:
+            self.held = due.popleft()[1]
 
 
 class FireFaderDevice(_Actuated):
@@ -131,10 +264,32 @@ class FireFaderDevice(_Actuated):
     ``.pde``: no enable, no heat, no silence rule: each force byte is applied as it
     arrives, and records stream out on every pass whether asked or not.
 
-    Time: the physics advances one period per host write (one host tick: the host's time,
-    which goes on whether the firmware runs a pass or not); a write that ends in no pass
-    (its start byte lost, a packet waiting for a byte) holds the motor's PWM over its
-    period. A value byte lost makes the firmware take the next packet's 127 as fader B's
+    Time, ``clock="wall"`` (the default): the board keeps its own time. Its fader is
+    integrated exactly over the real time between events (:class:`WallClock`), the motor
+    holding its PWM duty whatever the host does. A pass starts when a packet has come and
+    no byte waits (``loop``, lines 292-315), or when the previous pass ends, whichever is
+    later; it sets the PWM at once (``setPWM``, lines 320-321), reads pot A ``adc_s``
+    later (after the two capacitive senses, 175 us each, lines 324-325, the two current
+    reads, 75 us each, lines 328-330, and pot B, 150 us, line 341: pot A's eight
+    conversions, line 343, end ~0.8 ms into the pass; :data:`ADC_S` from the packet, the
+    issue's measured board) and its record's last byte leaves ``reply_s`` after the
+    packet (the 7 bytes at 57600 baud, 1.22 ms, line 103, which ``Serial.flush``, line
+    358, waits out: :data:`REPLY_S`). Bytes that come during a pass wait for the next
+    (they are merged, the last packet counts). The silence rule runs on the same clock:
+    ``waitForSerialInput`` (lines 264-277) counts 65000 polls, about
+    :data:`hapsim.drivers.firefader.SILENCE_S`, while no byte waits, then zeroes the
+    enable and both motors; so a host silent longer than that from the end of a pass (or
+    from its last byte) finds the force off from that instant on, and the next 5 passes
+    off. The loop's own delay is ``1 - adc_s / T`` periods (the force set at the packet,
+    the pot read ``adc_s`` later): a scene stating more delays each force by the rest
+    (:attr:`_Actuated.extra_latency_s`), never less.
+
+    Time, ``clock="lockstep"`` (named, for deterministic tests): the physics advances one
+    period per host write (one host tick: the host's time, which goes on whether the
+    firmware runs a pass or not); a write that ends in no pass (its start byte lost, a
+    packet waiting for a byte) holds the motor's PWM over its period.
+
+    A value byte lost makes the firmware take the next packet's 127 as fader B's
     force and swallow that packet's forces (the pass applies fader A's byte of the damaged
     packet: the other fader's, 0, when a is lost; a, when b is).
 
@@ -157,11 +312,12 @@ class FireFaderDevice(_Actuated):
     boot_s : float
         The Nano's bootloader time after the port opens [s]: bytes before it are lost.
     pass_time : bool
-        ``.ino``: the record leaves after the firmware's pass, as on the board:
-        :attr:`reply_delay_s` = the 3-byte packet's wire time (a pty delivers it at once),
-        the pass's reads (:data:`hapsim.drivers.firefader.PASS_READS_S`) and the 7-byte
-        record's wire time at 57600 baud, 2.99 ms (packets that come meanwhile wait and
-        are merged into the next pass); False: at once.
+        ``.ino``: the record leaves after the firmware's pass, as on the board (wall
+        clock: ``reply_s`` after the packet; lockstep: :attr:`reply_delay_s` = the 3-byte
+        packet's wire time, a pty delivers it at once, the pass's reads,
+        :data:`hapsim.drivers.firefader.PASS_READS_S`, and the 7-byte record's wire time
+        at 57600 baud, 2.99 ms; packets that come meanwhile wait and are merged into the
+        next pass); False: at once (wall clock: at the pot's read).
     travel : float, optional
         The travel between the end stops [m] (None: no stops).
     stop_low : float, optional
@@ -176,6 +332,13 @@ class FireFaderDevice(_Actuated):
         :class:`hapsim.device_model.MockPhysics`); given, the board ignores the scene's
         delay (no queue: the ``.ino`` has none) and the loop's delay *is* ``1 -
         adc_s / T`` periods (:mod:`hapsim.analysis.subsample`, the sensor-side delay).
+        On the wall clock None means :data:`ADC_S` (the board's), the scene's delay
+        adding a latency to the force when it states more than ``1 - adc_s / T``.
+    reply_s : float, optional
+        Wall clock: from the packet to its record's last byte on the wire [s] (default
+        :data:`REPLY_S`); at least ``adc_s``.
+    clock : {"wall", "lockstep"}
+        The board's clock (above; :class:`_Actuated`).
 
     Attributes
     ----------
@@ -185,14 +348,35 @@ class FireFaderDevice(_Actuated):
     enable, heat, cap : int
         The firmware's filter states.
     host_ticks : int
-        Host writes seen (each one period).
+        Host writes seen (each one period; lockstep).
+    ready_at : float
+        Wall clock: the board's time [s] its last record has left at (:func:`serve`
+        writes it then).
+    silences : list of float
+        Wall clock: the board's times [s] its silence rule zeroed the force at.
+
+    Raises
+    ------
+    ConfigError
+        An unknown firmware or clock, a travel that is no positive length, an ``adc_s``
+        outside the period or a ``reply_s`` before the read.
     """
+
+    #: From the packet to pot A's read on the board [s]: the issue's measured FireFader
+    #: (the ``.ino``'s reads before pot A's last conversion sum to ~0.8 ms of the pass by
+    #: its comments, lines 324-343; the pass starts when the packet's last byte is in).
+    ADC_S = 1.1e-3
+    #: From the packet to the record's last byte on the wire [s]: the issue's measured
+    #: board (the read, pot A's remaining conversions and the 7-byte record's 1.22 ms at
+    #: 57600 baud, which ``Serial.flush`` waits out, line 358).
+    REPLY_S = 2.5e-3
 
     def __init__(self, device, rate_hz: float, excitation=None, *, full_scale: float = 0.39,
                  metres_per_count: float | None = None, firmware: str = "ino",
                  touch: bool = True, boot_s: float = 0.0, pass_time: bool = True,
                  travel: float | None = None, stop_low: float | None = None,
-                 adc_s: float | None = None, seed: int = 0) -> None:
+                 adc_s: float | None = None, reply_s: float | None = None,
+                 clock: str = "wall", seed: int = 0) -> None:
         import dataclasses
 
         from hapsim.drivers import firefader as ff
@@ -201,7 +385,8 @@ class FireFaderDevice(_Actuated):
             raise ConfigError(f"unknown FireFader firmware {firmware!r}; valid: ino, "
                               "ino-scaled, pde", key="firmware")
         self._ff = ff
-        if pass_time and firmware != "pde":
+        wall = clock == "wall"
+        if pass_time and firmware != "pde" and not wall:
             self.reply_delay_s = (3 + 7) * 10 / 57600 + ff.PASS_READS_S
         self.full_scale = float(full_scale)
         self.mpc = float(metres_per_count or ff.METRES_PER_COUNT)
@@ -214,8 +399,8 @@ class FireFaderDevice(_Actuated):
                       (float(-travel / 2 if stop_low is None else stop_low),
                        float((-travel / 2 if stop_low is None else stop_low) + travel)))
         self.adc_s = None if adc_s is None else float(adc_s)
+        T = 1.0 / float(rate_hz)
         if self.adc_s is not None:
-            T = 1.0 / float(rate_hz)
             if not (math.isfinite(self.adc_s) and 0.0 < self.adc_s < T):
                 raise ConfigError(f"must be a time inside the period (0, {T:g}) [s], got "
                                   f"{adc_s!r}", key="adc_s")
@@ -223,7 +408,20 @@ class FireFaderDevice(_Actuated):
             # the fader holds the old force for T - adc_s, the new one for adc_s: the
             # split hold of a delay 1 - adc_s / T (0 whole periods)
             device = dataclasses.replace(device, delay=1.0 - self.adc_s / T)
-        super().__init__(device, rate_hz, excitation, math.inf, seed)
+        elif wall:
+            self.adc_s = self.ADC_S if firmware != "pde" else 0.0
+        if wall:
+            rs = (self.REPLY_S if reply_s is None else float(reply_s)) if pass_time \
+                else self.adc_s
+            if firmware == "pde":
+                rs = 0.0
+            if not (math.isfinite(rs) and rs >= self.adc_s):
+                raise ConfigError(f"must be a time [s] not before the pot's read "
+                                  f"({self.adc_s:g} s), got {reply_s!r}", key="reply_s")
+            self.reply_s = rs
+            # the loop's own delay: the force at the packet, the pot adc_s later
+            self.natural_delay = 1.0 - self.adc_s / T
+        super().__init__(device, rate_hz, excitation, math.inf, seed, clock=clock)
         self.decoder = ff.PacketDecoder()
         self.enable = 0
         self.heat = 0
@@ -237,6 +435,11 @@ class FireFaderDevice(_Actuated):
         self._fa = self._fb = 0
         self._ready = None                    # a packet read, its pass not run yet
         self._owed = 0                        # host ticks not yet advanced
+        self.ready_at = 0.0
+        self.silences: list = []
+        self._busy_until = 0.0                # wall clock: the pass running ends then
+        self._quiet_from = 0.0                # wall clock: no byte waiting since then
+        self._last_now = 0.0
 
     def position_count(self) -> int:
         """Fader A's reading: the sampled position in counts from the centre, 0..254."""
@@ -257,18 +460,55 @@ class FireFaderDevice(_Actuated):
                 ph.x = min(max(ph.x, lo), hi)
                 ph.v = 0.0
 
-    def _pass(self, count_a: int, ticks: int) -> bytes:
+    def _run_to(self, t: float) -> None:
+        """Wall clock: the fader integrated to the board's time ``t`` [s], the motor's
+        force held, the end stops enforced at each period's end (and at ``t``)."""
+        w = self.wall
+        T = self.physics.period
+        while w.t < t:
+            w.run_to(min(t, w.t + T))
+            if self.stops is not None:
+                ph = self.physics
+                lo, hi = self.stops
+                if ph.x <= lo or ph.x >= hi:
+                    ph.x = min(max(ph.x, lo), hi)
+                    ph.v = 0.0
+        self.held = w.held
+
+    def _silence(self, now: float) -> None:
+        """Wall clock: the ``.ino``'s silence rule up to the board's time ``now`` [s]: no
+        byte waiting for :data:`hapsim.drivers.firefader.SILENCE_S` zeroes the enable and
+        the motor at that instant (``waitForSerialInput``, lines 264-277)."""
+        if self.firmware == "pde":
+            return
+        at = self._quiet_from + self._ff.SILENCE_S
+        if now > at and (self.enable or self.pwm or self.wall.settles_on()):
+            self._run_to(at)
+            self.enable = 0
+            self.pwm = 0
+            self.apply_now(0.0)
+            self.silences.append(at)
+
+    def _pass(self, count_a: int, ticks: int, start: float | None = None) -> bytes:
         """One pass of the firmware's loop for a packet whose force byte A is ``count_a``
-        (signed), over ``ticks`` host periods (the ones before its last held)."""
+        (signed): lockstep, over ``ticks`` host periods (the ones before its last held);
+        wall clock, starting at the board's time ``start`` [s]."""
         ff = self._ff
         if self.firmware == "pde":
             self.pwm = 2 * count_a
         else:
             self.pwm = ff.pass_pwm(count_a, self.enable, self.firmware == "ino-scaled")
         f = self._force(self.pwm)
-        for _ in range(ticks - 1):            # host ticks merged into this pass
-            self._advance(None)
-        self._advance(f)
+        if self.wall is not None:
+            self._run_to(start)
+            self.apply(f, now=start)          # setPWM: the duty from the pass's start
+            self._run_to(start + self.adc_s)  # ... held to pot A's read
+            self._busy_until = self.ready_at = start + self.reply_s
+            self._quiet_from = self.ready_at
+        else:
+            for _ in range(ticks - 1):        # host ticks merged into this pass
+                self._advance(None)
+            self._advance(f)
         pot = self.position_count()
         self.enables.append(self.enable)
         if self.firmware != "pde":
@@ -338,6 +578,8 @@ class FireFaderDevice(_Actuated):
         """
         if now < self.boot_s:
             return b""                        # the bootloader has them
+        if self.wall is not None:
+            return self._feed_wall(data, now)
         if self.firmware == "pde":
             pk = self.decoder.feed(data)
             if not pk:
@@ -370,9 +612,51 @@ class FireFaderDevice(_Actuated):
         n, self._owed = max(self._owed, 1), 0
         return self._pass(done[0], n)
 
+    def _feed_wall(self, data: bytes, now: float) -> bytes:
+        """:meth:`feed` on the wall clock (class notes): the bytes came at the board's time
+        ``now`` [s]; a pass runs when the last of them completes a packet (otherwise the
+        firmware waits inside a packet, or hunts for a 127, and runs none)."""
+        # (the silence rule runs from idle, when the emulator has seen the silence: bytes
+        # it reads late because its own process was descheduled came in time for all it
+        # knows, and a real board would have seen them as they came)
+        self._last_now = max(self._last_now, now)
+        if self.firmware == "pde":
+            self._run_to(now)
+            for pk in self.decoder.feed(data):
+                self.last_count = pk[0]
+                self.pwm = 2 * pk[0]
+                self.apply(self._force(self.pwm), now=now)
+            return b""
+        end = None
+        for b in data:
+            pk = self._parse(b)
+            end = pk
+            if pk is None:
+                continue
+            if self._ready is not None:
+                self.merged += 1
+            self._ready = pk
+        self._quiet_from = max(now, self._busy_until)
+        if end is None:
+            return b""
+        self._ready = None
+        return self._pass(end[0], 1, start=max(now, self._busy_until))
+
     def idle(self, silent_s: float) -> bytes:
-        """The host has been silent for ``silent_s`` [s]: ``.ino`` disables the force after
-        0.1 s; ``.pde`` streams a record (one pass) on every call."""
+        """The host has been silent for ``silent_s`` [s] since its last bytes: ``.ino``
+        disables the force after 0.1 s (on the wall clock at the instant the firmware's
+        polls ran out, :meth:`_silence`, once the emulator has seen the silence last that
+        long: :func:`serve` calls this while no byte waits, every ``poll``); ``.pde``
+        streams a record (one pass) on every call."""
+        if self.wall is not None:
+            now = self._last_now + silent_s
+            if self.firmware == "pde":
+                self._run_to(now)
+                self.passes += 1
+                return self._ff.encode_record(self.position_count(), self._ff.CENTRE,
+                                              (0, 0, 0, 0))
+            self._silence(now)
+            return b""
         if self.firmware == "pde":
             return self._pass(getattr(self, "last_count", 0), 1)
         if silent_s > 0.1 and (self.enable or self.pwm):
@@ -392,7 +676,20 @@ class HaplyDevice(_Actuated):
     framing: misaligned bytes are other commands), a reply ``[addr]`` + a float32 per
     analog pin and encoder of ``addr`` to every write (1 byte when nothing has that
     address), the angle ``360 * count / resolution`` with the set-up's resolution and the
-    count set to the set-up's offset. Each write is one host tick (one period).
+    count set to the set-up's offset.
+
+    Its time (``clock="wall"``; the default stays ``"lockstep"`` until the driver's
+    re-synchronisation rules land): the firmware's ``loop()`` takes one command per pass
+    and answers a write in the same pass, after setting the motor's duty
+    (``Haply_M3_Firmware_V1_5.ino``, ``loop``: ``write_states`` then ``read_states``;
+    HaplyHaptics/Haply-Arduino-Firmware-Versions, commit edcf50f), so the angle a reply
+    carries is sampled when its write arrives and the torque acts from then on, held
+    until the next write (no watchdog: :class:`_Actuated`, ``natural_delay`` 1). A set-up
+    costs :data:`SETUP_S`: ``initialize_encoder`` (``Haply_M3_Firmware_V1_5.h``) builds a
+    ``new Encoder(...)``, whose constructor waits ``delayMicroseconds(2000)`` for the
+    pins' R-C filter (``Arduino_Support_Libraries/Encoder/Encoder.h``, ``Encoder(uint8_t,
+    uint8_t)``) before the count is written with the offset; the commands after it wait,
+    the joint does not. ``clock="lockstep"``: each write is one period.
 
     Parameters
     ----------
@@ -415,18 +712,25 @@ class HaplyDevice(_Actuated):
         The torque motor 1 holds [N m].
     """
 
+    #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
+    SETUP_S = 2e-3
+
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
-                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1) -> None:
+                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
+                 clock: str = "lockstep") -> None:
         from hapsim.drivers import haply as hp
         from hapsim.errors import ConfigError
         if motor_sign not in (1, -1):
             raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
         self.motor_sign = int(motor_sign)
         self._hp = hp
-        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed)
+        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
         self.decoder = hp.CommandDecoder()
         self.cpr = float(resolution or cpr)
         self._base = 0
+        #: The board's time [s] its last answer is ready at (:func:`serve` writes it then).
+        self.ready_at = 0.0
+        self._busy_until = 0.0
 
     def _counts(self) -> int:
         return round(self.physics.sample() / (2 * math.pi) * self.cpr)
@@ -446,12 +750,34 @@ class HaplyDevice(_Actuated):
         return 360.0 * c / res
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
-        """Bytes from the host in, the replies out (one per write)."""
+        """Bytes from the host in, the replies out (one per write).
+
+        Parameters
+        ----------
+        data : bytes
+            What the host wrote.
+        now : float
+            The board's time the bytes arrived at [s] (needed on the wall clock).
+
+        Returns
+        -------
+        bytes
+            The replies; on the wall clock they are ready at :attr:`ready_at`.
+        """
         import struct
         out = b""
         dec = self.decoder
+        wall = self.wall is not None
+        t = max(now, self._busy_until) if wall else now
         for cmd in dec.commands(data):
+            if wall:
+                t = max(t, self._busy_until)      # the pass after a set-up's wait
             if cmd[0] == "setup":
+                if wall:
+                    self.wall.run_to(t)
+                    self._busy_until = t + self.SETUP_S
+                    t = self._busy_until
+                    self.wall.run_to(t)           # the count is written after the wait
                 if dec.encoder_addr[0]:           # the count is set to the offset
                     off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
                     off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
@@ -461,15 +787,18 @@ class HaplyDevice(_Actuated):
             if cmd[0] != "write":
                 continue
             _, addr, tq = cmd
-            t = tq.get(0)
-            if t is not None:
-                if not math.isfinite(t):
-                    t = 0.0                       # (the firmware: a NaN duty is 0)
-                t = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, t))
+            tau = tq.get(0)
+            if tau is not None:
+                if not math.isfinite(tau):
+                    tau = 0.0                     # (the firmware: a NaN duty is 0)
+                tau = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, tau))
                 if dec.motor_direction[0]:
-                    t = -t
-                t *= self.motor_sign
-            self.apply(t)
+                    tau = -tau
+                tau *= self.motor_sign
+            if wall:
+                self.apply(tau, now=t)            # the joint has run to t; the torque acts
+            else:
+                self.apply(tau)
             na, encs = dec.reply_layout(addr)
             out += bytes([addr]) + struct.pack("<f", 0.0) * na
             for p in encs:
@@ -477,6 +806,8 @@ class HaplyDevice(_Actuated):
                 if abs(a) > 3.4028234663852886e38:    # binary32 overflows to inf
                     a = math.copysign(math.inf, a)
                 out += struct.pack("<f", a)
+        if wall:
+            self.ready_at = t
         return out
 
 
@@ -484,29 +815,71 @@ class HapkitSerialDevice(_Actuated):
     """A Hapkit running the WHC2017 sketch with the host-force function: its handle is the
     mock device's moving mass.
 
+    Its time, ``clock="wall"`` (the default): the sketch runs a fixed 1 kHz tick on its
+    own clock (:data:`TICK_S`, from power-on: the board's time 0) and answers each
+    command on the tick after it has come, with one 9-byte reply (the driver's reading of
+    ``Hapkit_arduino.ino`` and ``Board.java``: :mod:`hapsim.drivers.hapkit_serial`, whose
+    module notes this follows; the sketch's source is not in this project's reference
+    library, so the order within a tick is taken as the driver states it: the handle read
+    at the tick, the command's force applied from it). The handle is integrated exactly
+    over the real time between ticks that change something (:class:`WallClock`), the
+    force held whatever the host does: the sketch has no silence rule. The reply's last
+    byte leaves the 9 bytes' wire time at 57600 baud (:data:`REPLY_WIRE_S`, 1.56 ms)
+    after its tick. Its loop delay is one host period (the read and the force at the same
+    tick, the force computed from that read one command later), to the tick's grid; a
+    scene stating more delays each force by the rest (:attr:`_Actuated.extra_latency_s`).
+    ``clock="lockstep"`` (named, for deterministic tests): one period per command, the
+    reply at once.
+
     Parameters
     ----------
     device, rate_hz, excitation, seed
         As :class:`_Actuated`.
     force_limit : float
         The firmware's force clamp [N].
+    clock : {"wall", "lockstep"}
+        The board's clock (above).
 
     Attributes
     ----------
     decoder : CommandDecoder
+    ready_at : float
+        Wall clock: the board's time [s] its last reply has left at (:func:`serve` writes
+        it then).
     """
 
+    #: The sketch's control tick [s] (1 kHz).
+    TICK_S = 1e-3
+    #: A 9-byte reply's time on the wire at 57600 baud, 10 bits a byte [s].
+    REPLY_WIRE_S = 9 * 10 / 57600
+
     def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
-                 seed: int = 0) -> None:
+                 clock: str = "wall", seed: int = 0) -> None:
         from hapsim.drivers import hapkit_serial as hk
         self._hk = hk
-        super().__init__(device, rate_hz, excitation, force_limit, seed)
+        super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
         self.decoder = hk.CommandDecoder()
+        self.ready_at = 0.0
+        self._tick = -1                               # the last tick that took a command
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
-        """Bytes from the host in, one 9-byte reply per command out."""
+        """Bytes from the host in (at the board's time ``now`` [s], needed on the wall
+        clock), one 9-byte reply per command out."""
         out = b""
+        wall = self.wall is not None
         for f in self.decoder.feed(data):
+            if wall:
+                # the tick after the command came (several in one read: one tick each)
+                k = max(math.floor(now / self.TICK_S) + 1, self._tick + 1)
+                self._tick = k
+                tick = k * self.TICK_S
+                self.wall.run_to(tick)
+                x = self.physics.sample()             # the handle read at the tick
+                self.apply(f, now=tick)               # the force from the tick on
+                out += self._hk.reply_packet(self.decoder.function, x,
+                                             self.wall.settles_on())
+                self.ready_at = tick + self.REPLY_WIRE_S
+                continue
             self.apply(f)
             out += self._hk.reply_packet(self.decoder.function, self.physics.sample(),
                                          self.held)
@@ -638,6 +1011,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 wait = now + dev.reply_delay_s - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
+            if got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
+                # a board on its own clock answers when its pass has run (after a set-up's
+                # wait, later than the bytes came)
+                wait = t0 + dev.ready_at - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
             out += got
         out = fl.tx(out)
         if out:
@@ -655,6 +1034,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
         extra["passes_at_full_enable"] = sum(e == 129 for e in dev.enables)
     return {"packets": n, "decoder": dict(dev.decoder.stats), "faults": dict(fl.counts),
             "watchdog_trips": 0, "watchdog_at": [], "held_at_end": dev.settles_on(),
+            "clock": getattr(dev, "clock", "lockstep"),
+            "true_excursion": (dev.wall.excursion if getattr(dev, "wall", None) is not None
+                               else None),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
 
@@ -662,7 +1044,8 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
 def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
                            silence: float = 0.2, rx_drop=None):
     """The FireFader THS closed offline through hapsim's engine and the firmware's own loop
-    (:class:`FireFaderDevice`): deterministic, no pty, no real time.
+    (:class:`FireFaderDevice` with ``clock="lockstep"``, by name): deterministic, no pty, no
+    real time.
 
     The host loop's arithmetic: row ``k`` is the record answering command ``k``, the force
     computed from it goes out with command ``k + 1``; a record that never came is stepped
@@ -702,7 +1085,7 @@ def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
     sc = scene
     drv = FireFader()
     drv.loop_delay = int(sc.device.delay)       # whole passes (the fraction: the physics)
-    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
+    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, clock="lockstep")
     for _ in range(drv.arming_records):
         dev.feed(drv.encode_force(0.0))
     eng = Engine(sc)

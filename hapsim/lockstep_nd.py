@@ -330,6 +330,21 @@ class LocalJointDeviceND:
         joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
                    self.bh, self.h, self.substeps, self._wv, self._wm)
 
+    def advance_torque(self, tau, dt: float) -> None:
+        """Hold the joint torques ``tau`` [N m] (shape (n,)) over ``dt`` [s], any length: a
+        board on the wall clock (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
+
+        The same Runge-Kutta steps as :meth:`step_torque`, none longer than this device's
+        ``h`` (``ceil(dt / h)`` equal steps): a period cut into intervals is the period's
+        motion to the integrator's error, ``O((w h)^4)`` relative.
+        """
+        if not dt > 0.0:
+            return
+        n = max(1, math.ceil(dt / self.h - 1e-9))
+        self._u[:] = tau
+        joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
+                   self.bh, dt / n, n, self._wv, self._wm)
+
     def joints(self) -> np.ndarray:
         """Joint angles ``q0 + s`` [rad], shape (n,)."""
         return self.q0 + self.s

@@ -2,15 +2,78 @@
 :mod:`hapsim.daemon.transport` and :mod:`hapsim.driver_mock`): its environment (the
 parent's, with ``PYTHONPATH`` led by the directory that holds this package, so that the
 child imports the same tree as its parent, installed or not) and the host's side of a
-child served on a pseudo-terminal (:class:`PtyChild`)."""
+child served on a pseudo-terminal (:class:`PtyChild`); and what a command leaves to undo
+when it stops at any moment (:func:`at_stop`, :func:`run_stops`): a child still running,
+its report file in the temporary directory, a temporary folder."""
 
 from __future__ import annotations
 
+import atexit
+import itertools
 import json
 import os
 import subprocess
+import threading
+from typing import Callable
 
-__all__ = ["package_root", "child_env", "PtyChild"]
+__all__ = ["package_root", "child_env", "PtyChild", "at_stop", "done", "run_stops"]
+
+#: What is still to undo, by token, in the order registered (:func:`at_stop`).
+_STOPS: dict[int, Callable[[], None]] = {}
+_TOKENS = itertools.count()
+_STOPS_LOCK = threading.Lock()
+
+
+def at_stop(undo: Callable[[], None]) -> int:
+    """Register ``undo`` (end a child, remove a temporary file or folder) to be run when
+    the command stops, whatever the way: :func:`run_stops` runs it at the end of every
+    command (normal end, error, Ctrl-C, SIGTERM: :func:`hapsim.cli.main`) and at the
+    interpreter's exit (``atexit``, for the Python API).
+
+    Parameters
+    ----------
+    undo : callable
+        ``undo()``, idempotent; an exception it raises is ignored.
+
+    Returns
+    -------
+    int
+        The token for :func:`done`, once the owner has undone it itself.
+    """
+    with _STOPS_LOCK:
+        token = next(_TOKENS)
+        _STOPS[token] = undo
+    return token
+
+
+def done(token: int | None) -> None:
+    """Forget the ``undo`` of :func:`at_stop` (its owner has run it)."""
+    with _STOPS_LOCK:
+        _STOPS.pop(token, None)
+
+
+def run_stops() -> None:
+    """Run every registered ``undo`` not yet done, the latest first, and forget them.
+
+    Notes
+    -----
+    Each runs once even when this is called from two places (the command's end, then
+    ``atexit``); an exception (a second Ctrl-C included) from one does not keep the others
+    from running.
+    """
+    while True:
+        with _STOPS_LOCK:
+            if not _STOPS:
+                return
+            token = max(_STOPS)
+            undo = _STOPS.pop(token)
+        try:
+            undo()
+        except BaseException:  # noqa: BLE001 - the others must still run
+            pass
+
+
+atexit.register(run_stops)
 
 
 def package_root() -> str:
@@ -56,7 +119,7 @@ class PtyChild:
         the port (so the child never reads EIO before), closed by :meth:`release_slave`.
     """
 
-    proc: subprocess.Popen
+    proc: subprocess.Popen | None = None
     report_path: str
     port: str
     _slave: int | None = None
@@ -85,6 +148,9 @@ class PtyChild:
         fd, self.report_path = tempfile.mkstemp(prefix=prefix, suffix=".json")
         os.close(fd)
         os.unlink(self.report_path)
+        # the child writes its report when it exits: a stop at any moment from now on
+        # (Ctrl-C during the imports, before the owner's try) ends it and removes that
+        self._stop_token = at_stop(self.close)
         return master
 
     def start(self, cmd: list, master: int) -> None:
@@ -155,9 +221,11 @@ class PtyChild:
         """Close the slave, end the child if still running, remove the report file
         (idempotent)."""
         self.release_slave()
-        if self.proc.poll() is None:
+        proc = getattr(self, "proc", None)      # None: stopped before the child started
+        if proc is not None and proc.poll() is None:
             self.end()
         try:
             os.unlink(self.report_path)
         except OSError:
             pass
+        done(getattr(self, "_stop_token", None))

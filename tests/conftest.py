@@ -13,8 +13,12 @@ mask: restored without a failure, Python's children ignore SIGPIPE anyway.)
 
 from __future__ import annotations
 
+import json
+import os
+import resource
 import signal
 import threading
+import time
 
 import pytest
 
@@ -54,3 +58,130 @@ def _signals_left_as_found():
     assert not changed and not blocked, (
         f"the test left signal state changed (inherited by every process this worker "
         f"starts next; restored now): dispositions {changed}, newly blocked {blocked}")
+
+
+# --- Where the suite's time goes (issue 31 item 2) -------------------------------------
+# Wall time on this shared 2-core machine follows the load; CPU seconds hardly do. With
+# ``--cpu-time=N`` every test records the CPU seconds of the pytest worker
+# (time.process_time: all its threads) and of the children it waited for
+# (getrusage(RUSAGE_CHILDREN): every ``python -m hapsim``, jackd, simavr, cc it started),
+# beside its wall seconds; the N heaviest are printed at the end and, with
+# ``--cpu-time-json=PATH``, all of them written as JSON (tools/suite_time.py reads it).
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("cpu-time", "CPU seconds per test (tests/conftest.py)")
+    group.addoption("--cpu-time", type=int, default=None, metavar="N",
+                    help="record CPU seconds per test (worker + waited-for children); "
+                         "print the N heaviest (0: none) at the end")
+    group.addoption("--cpu-time-json", default=None, metavar="PATH",
+                    help="with --cpu-time: write every test's figures to PATH as JSON "
+                         "(and PATH + 'l', one JSON line per test as it ends)")
+
+
+def _child_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Record CPU seconds (own, children) and wall seconds of one test's set-up, call and
+    tear-down as the item's user properties (xdist ships them to the controller)."""
+    if item.config.getoption("--cpu-time") is None:
+        yield
+        return
+    w0, c0, k0 = time.perf_counter(), time.process_time(), _child_cpu()
+    item.user_properties.append(("cpu_time_start", (w0, c0, k0)))
+    yield
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Stamp each phase's report with the figures accumulated since the test began (the
+    tear-down report carries the whole test)."""
+    if item.config.getoption("--cpu-time") is None:
+        return
+    start = dict(item.user_properties).get("cpu_time_start")
+    if start is None:
+        return
+    w0, c0, k0 = start
+    item.user_properties[:] = [p for p in item.user_properties if p[0] != "cpu_time"]
+    item.user_properties.append(("cpu_time", {
+        "wall": time.perf_counter() - w0, "cpu": time.process_time() - c0,
+        "children": _child_cpu() - k0, "pid": os.getpid()}))
+
+
+class _CpuTimeReport:
+    """Controller side: gather the tear-down figures, print the heaviest, write JSON."""
+
+    def __init__(self, config):
+        self.config = config
+        self.rows: dict[str, dict] = {}
+        self.t0 = time.perf_counter()
+
+    def pytest_runtest_logreport(self, report):
+        if report.when != "teardown":
+            return
+        fig = dict(report.user_properties).get("cpu_time")
+        if fig:
+            row = dict(fig, worker=getattr(report, "node", None) and report.node.gateway.id
+                       or "main", outcome=report.outcome)
+            self.rows[report.nodeid] = row
+            path = self.config.getoption("--cpu-time-json")
+            if path:       # one line per test as it ends: a long run can be read midway
+                with open(path + "l", "a") as f:
+                    f.write(json.dumps(dict(row, test=report.nodeid)) + "\n")
+
+    def pytest_terminal_summary(self, terminalreporter):
+        n = self.config.getoption("--cpu-time")
+        rows = sorted(self.rows.items(), key=lambda r: -(r[1]["cpu"] + r[1]["children"]))
+        tot_cpu = sum(r["cpu"] for r in self.rows.values())
+        tot_child = sum(r["children"] for r in self.rows.values())
+        tot_wall = sum(r["wall"] for r in self.rows.values())
+        tr = terminalreporter
+        tr.write_sep("=", f"CPU seconds per test ({len(rows)} tests)")
+        tr.write_line(f"total: own {tot_cpu:.1f} s + children {tot_child:.1f} s CPU; "
+                      f"{tot_wall:.1f} s of test wall time; session "
+                      f"{time.perf_counter() - self.t0:.1f} s; load {os.getloadavg()[0]:.2f}")
+        for nodeid, r in rows[:n]:
+            tr.write_line(f"{r['cpu'] + r['children']:8.2f} cpu {r['cpu']:7.2f} own "
+                          f"{r['children']:7.2f} children {r['wall']:7.2f} wall  {nodeid}")
+        path = self.config.getoption("--cpu-time-json")
+        if path:
+            with open(path, "w") as f:
+                json.dump({"load": os.getloadavg(), "session_wall": time.perf_counter() - self.t0,
+                           "tests": self.rows}, f, indent=0)
+
+
+def pytest_configure(config):
+    if config.getoption("--cpu-time") is not None and not hasattr(config, "workerinput"):
+        config.pluginmanager.register(_CpuTimeReport(config), "cpu-time-report")
+
+
+# --- Which kernels this run computes with (issue 31 item 1: CI's second numerical pass) ---
+
+
+def _kernels() -> tuple[list[str], str]:
+    """The loaded OpenBLAS libraries' kernel architectures and numba's code target."""
+    import numpy  # noqa: F401  (loads numpy's BLAS)
+    import scipy.linalg  # noqa: F401  (and scipy's)
+    from threadpoolctl import threadpool_info
+    blas = sorted({f"{i['internal_api']} {i.get('architecture') or '?'}"
+                   for i in threadpool_info() if i.get("user_api") == "blas"})
+    from numba.core import config as nbconfig
+    target = nbconfig.CPU_NAME or "host"
+    return blas, target
+
+
+def pytest_report_header(config):
+    """Name the BLAS kernels and numba target in the header; when the run asks for others
+    (``OPENBLAS_CORETYPE``, CI's second pass) and did not get them, stop: a pass that
+    silently ran on the host's own kernels would repeat the first one."""
+    blas, target = _kernels()
+    want = os.environ.get("OPENBLAS_CORETYPE")
+    if want and any(b.startswith("openblas") and b.split()[1].lower() != want.lower()
+                    for b in blas):
+        raise pytest.UsageError(f"OPENBLAS_CORETYPE={want} asked, but the BLAS kernels "
+                                f"loaded are {blas}")
+    return f"kernels: BLAS {', '.join(blas) or 'none found'}; numba target {target}"

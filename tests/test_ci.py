@@ -22,15 +22,26 @@ def readme_test_command() -> str:
     return lines[0]
 
 
+#: The second pass of the numerical tests, on another BLAS kernel and numba target.
+NUMERICAL_PASS = "python -m pytest -q -m numerical"
+
+
+def _executed(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+
 def test_ci_runs_the_readme_test_command_verbatim():
     cmd = readme_test_command()
     assert "pytest" in cmd and ".[test]" in cmd
-    ci = (ROOT / ".ci" / "run").read_text().splitlines()
-    executed = [ln for ln in ci if ln.strip() and not ln.lstrip().startswith("#")]
+    executed = _executed((ROOT / ".ci" / "run").read_text())
     assert executed.count(cmd) == 1, f"{cmd!r} not a line of .ci/run"
-    # and nothing else in .ci/run runs tests or installs the package another way
+    # and nothing else in .ci/run runs tests or installs the package another way: the one
+    # other pytest line is the numerical tests' second pass, after the README's command
     others = [ln for ln in executed if ln != cmd]
-    assert not [ln for ln in others if re.search(r"pytest|pip install|venv", ln)], others
+    runs = [ln for ln in others if re.search(r"\bpython3?\s+-m\s+(pytest|pip|venv)\b|"
+                                             r"^\s*(pytest|pip3?)\b", ln)]
+    assert runs == [NUMERICAL_PASS], runs
+    assert executed.index(cmd) < executed.index(NUMERICAL_PASS)
 
 
 @pytest.mark.skipif(shutil.which("bash") is None, reason="no bash")
@@ -40,22 +51,78 @@ def test_ci_script_parses():
     assert res.returncode == 0, res.stderr
 
 
-def test_a_run_that_collects_no_test_fails_ci(tmp_path):
+_STUB_PYTHON = r"""#!/usr/bin/env bash
+# stands for python/python3 in a copy of .ci/run: logs each call, exits as told
+echo "$* | ${OPENBLAS_CORETYPE:-} ${NUMBA_CPU_NAME:-} ${NUMBA_CACHE_DIR:-}" >> "$CI_LOG"
+case "$*" in
+  "-m venv .venv") mkdir -p .venv/bin && echo ': activated' > .venv/bin/activate; exit "$VENV_RC";;
+  -m\ pip\ *) exit "$PIP_RC";;
+  "-m pytest -q") exit "$PYTEST_RC";;
+  "-m pytest -q -m numerical") exit "$NUMERICAL_RC";;
+esac
+echo "unexpected call: $*" >&2; exit 99
+"""
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="no bash")
+@pytest.mark.parametrize("venv, pip, readme, numerical, status, said", [
+    (0, 0, 0, 0, 0, None),
+    (0, 0, 5, 0, 5, "collected no test (exit 5) in the README's test command"),
+    (0, 0, 1, 0, 1, "exit 1 in the README's test command"),
+    (0, 0, 0, 5, 5, "collected no test (exit 5) in the second numerical pass"),
+    (0, 0, 0, 1, 1, "exit 1 in the second numerical pass"),
+    (0, 1, 0, 0, 1, "exit 1 in the README's test command"),
+    (1, 0, 0, 0, 1, "exit 1 in the README's test command"),
+])
+def test_ci_fails_loudly_on_any_failing_step(tmp_path, venv, pip, readme, numerical, status,
+                                             said):
+    """The real .ci/run, with python, python3 and the Debian parts' commands stood in by
+    stubs that exit as told: CI ends with the status of the first failing step, says which
+    and (exit 5) that nothing was collected, in the README's command and in the second
+    pass alike; a venv or pip failure, which ``set -e`` does not stop inside an ``&&``
+    list, fails it too; the second pass runs only after a green first one, with the other
+    BLAS kernel, numba target and a cache of its own."""
+    repo, stubs = tmp_path / "clone", tmp_path / "stubs"
+    (repo / ".ci").mkdir(parents=True)
+    stubs.mkdir()
+    shutil.copy(ROOT / ".ci" / "run", repo / ".ci" / "run")
+    for name in ("python", "python3"):
+        (stubs / name).write_text(_STUB_PYTHON)
+    for name in ("faust", "avr-gcc", "simavr", "jackd", "pd", "dpkg", "apt-get"):
+        (stubs / name).write_text("#!/usr/bin/env bash\nexit 0\n")
+    for f in stubs.iterdir():
+        f.chmod(0o755)
+    log = tmp_path / "calls.log"
+    env = {"PATH": f"{stubs}:/usr/bin:/bin", "HOME": str(tmp_path), "CI_LOG": str(log),
+           "VENV_RC": str(venv), "PIP_RC": str(pip), "PYTEST_RC": str(readme),
+           "NUMERICAL_RC": str(numerical)}
+    res = subprocess.run(["bash", str(repo / ".ci" / "run")], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == status, (res.returncode, res.stdout, res.stderr)
+    if said is None:
+        assert "FAILED" not in res.stderr, res.stderr
+    else:
+        assert f"ci: FAILED" in res.stderr and said in res.stderr, res.stderr
+    calls = log.read_text().splitlines()
+    second = [c for c in calls if c.startswith("-m pytest -q -m numerical")]
+    if venv or pip or readme:
+        assert not second, calls
+    else:
+        assert second == ["-m pytest -q -m numerical | Sandybridge generic "
+                          ".venv/numba-generic"], calls
+        first = [c for c in calls if c.startswith("-m pytest -q |")]
+        assert first == ["-m pytest -q |   "], calls      # the host's own kernels first
+
+
+def test_a_run_that_collects_no_test_exits_5(tmp_path):
     """pytest exits 5 when it collects nothing (tests/ renamed, testpaths wrong, every
-    module failing to match): .ci/run then ends with 5, never 0. The script stops at the
-    first failing command (``set -e``, ``pipefail``), the test command is its last one and
-    nothing masks its status (no ``|| true``, ``|| :``, ``exit 0`` or trap); and pytest,
-    with this project's own [tool.pytest.ini_options], exits 5 on a tests/ with no test."""
+    module failing to match) or deselects everything (no test carries ``-m numerical``'s
+    marker); .ci/run turns that into a failure (test above). Checked here with this
+    project's own [tool.pytest.ini_options]; and the marker is carried in tests/."""
     import sys
     import tomllib
-    ci = (ROOT / ".ci" / "run").read_text().splitlines()
-    executed = [ln.strip() for ln in ci if ln.strip() and not ln.lstrip().startswith("#")]
-    assert "set -euo pipefail" in executed
-    assert executed[-1] == readme_test_command()
-    assert executed[-1].rstrip().endswith("python -m pytest -q")
-    masks = [ln for ln in executed if re.search(r"\|\|\s*(true|:)\s*$|\bexit 0\b|^trap\b", ln)]
-    assert not masks, masks
     ini = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+    assert any(m.startswith("numerical:") for m in ini["markers"])
     (tmp_path / "tests").mkdir()
     (tmp_path / "tests" / "helper.py").write_text("X = 1\n")    # a module, no test in it
     opts = "\n".join(f"{k} = {v!r}" if isinstance(v, str) else f"{k} = {v}"
@@ -64,6 +131,15 @@ def test_a_run_that_collects_no_test_fails_ci(tmp_path):
     res = subprocess.run([sys.executable, "-m", "pytest", "-q"],      # the README command
                          cwd=tmp_path, capture_output=True, text=True)
     assert res.returncode == 5, (res.returncode, res.stdout[-500:])
+    (tmp_path / "tests" / "test_plain.py").write_text("def test_x():\n    pass\n")
+    # (-n 0: the deselection is pytest's own, xdist's controller exits 5 alike, measured;
+    # two more worker start-ups would cost ~5 s CPU)
+    res = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-m", "numerical"],
+                         cwd=tmp_path, capture_output=True, text=True)
+    assert res.returncode == 5, (res.returncode, res.stdout[-500:])
+    carriers = [p.name for p in (ROOT / "tests").glob("test_*.py")
+                if re.search(r"pytest\.mark\.numerical\b", p.read_text())]
+    assert carriers, "no test module carries the 'numerical' marker"
 
 
 def test_every_module_that_starts_a_jack_server_shares_the_sound_worker():

@@ -141,7 +141,10 @@ def _cached_numba_modules():
             if not name.endswith(".py"):
                 continue
             path = os.path.join(root, name)
-            tree = ast.parse(open(path).read())
+            text = open(path).read()
+            if "cache" not in text:         # no ``cache=`` keyword can be in it: no parse
+                continue                    # (this runs at collection, in every worker)
+            tree = ast.parse(text)
             if any(isinstance(n, ast.keyword) and n.arg == "cache" for n in ast.walk(tree)):
                 rel = os.path.relpath(path, PACKAGE)[:-3]
                 out.append(rel.replace(os.sep, "."))

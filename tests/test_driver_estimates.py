@@ -50,7 +50,8 @@ def test_enable_filter_replay_is_the_firmware_loop():
     packets, two silences and the pot leaving its range: the same PWM every pass."""
     sc = load_scene("configs/firefader.yaml")
     drv = FireFader()
-    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
+    # lockstep by name: the replay against the firmware's filters pass by pass
+    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, clock="lockstep")
     rng = np.random.default_rng(1)
     for _ in range(drv.arming_records):
         dev.feed(drv.encode_force(0.0))
@@ -122,10 +123,12 @@ def test_estimated_samples_are_within_their_stated_worst_case(prep, seed):
 
 
 def test_the_mock_answers_after_the_firmware_pass_the_rate_refusal_allows_for():
-    """The FireFader mock (.ino) writes each record after the firmware's pass: the packet's
-    and the record's wire time at 57600 baud and the reads (2.99 ms), never sooner (a
-    lower bound: a loaded machine only adds to it); the highest rate the driver accepts
-    is the one whose period holds exactly that, and the next rate up is refused."""
+    """The FireFader mock (.ino) writes each record after the firmware's pass, never
+    sooner (a lower bound: a loaded machine only adds to it): on the wall clock (its
+    default) the board's ``reply_s`` (2.5 ms) after the packet; in lockstep (named) the
+    packet's and the record's wire time at 57600 baud and the reads (2.99 ms), the
+    highest rate the driver accepts being the one whose period holds exactly that, and
+    the next rate up refused."""
     import socket
     import threading
     import time
@@ -134,12 +137,14 @@ def test_the_mock_answers_after_the_firmware_pass_the_rate_refusal_allows_for():
     from hapsim.errors import ConfigError
     sc = load_scene("configs/firefader.yaml")
     drv = FireFader()
-    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
-    assert dev.reply_delay_s == pytest.approx(2.99e-3, abs=0.01e-3)
-    assert 1.0 / dev.reply_delay_s == pytest.approx(drv.max_rate_hz(), rel=1e-12)
+    lock = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, clock="lockstep")
+    assert lock.reply_delay_s == pytest.approx(2.99e-3, abs=0.01e-3)
+    assert 1.0 / lock.reply_delay_s == pytest.approx(drv.max_rate_hz(), rel=1e-12)
     drv.check_rate(np.floor(drv.max_rate_hz()))
     with pytest.raises(ConfigError, match="cannot be held"):
         drv.check_rate(np.floor(drv.max_rate_hz()) + 1)
+    dev = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation)
+    assert dev.clock == "wall" and dev.reply_s == FireFaderDevice.REPLY_S
     host, device = socket.socketpair()
     stop = threading.Event()
     th = threading.Thread(target=serve, args=(device.fileno(), dev),
@@ -155,14 +160,16 @@ def test_the_mock_answers_after_the_firmware_pass_the_rate_refusal_allows_for():
                 got += host.recv(7 - len(got))
             waits.append(time.monotonic() - t0)
             assert got[0] == 255
-        assert min(waits) >= dev.reply_delay_s
+        assert min(waits) >= dev.reply_s
     finally:
         stop.set()
         th.join(2.0)
         host.close()
         device.close()
-    assert FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, pass_time=False) \
-        .reply_delay_s == 0.0
+    assert FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, pass_time=False,
+                           clock="lockstep").reply_delay_s == 0.0
+    quick = FireFaderDevice(sc.device, sc.rate_hz, sc.excitation, pass_time=False)
+    assert quick.reply_s == quick.adc_s == FireFaderDevice.ADC_S
 
 
 @pytest.mark.parametrize("seed", [3, 4, 5])

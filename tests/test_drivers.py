@@ -104,7 +104,7 @@ def test_device_never_applies_a_force_over_its_limit():
     and every force the device applies is still within its limit."""
     rng = np.random.default_rng(11)
     dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.3)
-    mock = FireFaderDevice(dev, 500.0, Excitation())
+    mock = FireFaderDevice(dev, 500.0, Excitation(), clock="lockstep")   # the parser alone
     good = [ff.encode_packet(*rng.integers(-127, 127, 2)) for _ in range(500)]
     data, _ = _hostile(rng, good)
     data += bytes([127, 5, 0x80, 1, 127, 3])            # a -128 force byte, a truncation
@@ -293,7 +293,7 @@ def test_hapkit_serial_hostile_streams():
     seen = set(out)
     assert sum(struct.unpack("<ff", g[1:]) in seen for g in intact) >= 0.9 * len(intact)
     mock = HapkitSerialDevice(Device(mass=0.1, friction=0.3, delay=1, force_limit=1.0), 250.0,
-                              Excitation(), force_limit=2.0)
+                              Excitation(), force_limit=2.0, clock="lockstep")   # the parser
     drv = get_driver("hapkit-serial")
     stream = bytes(rng.integers(0, 256, 5000).astype(np.uint8))
     for v in rng.normal(0, 5, 300):
@@ -335,12 +335,14 @@ def test_hapkit_serial_config_rate_figure():
 
 
 def test_hapkit_serial_closed_loop_through_its_mock():
-    """hapsim run --driver hapkit-serial on the sketch mock: positions and forces are
-    binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6."""
+    """hapsim run --driver hapkit-serial --lockstep on the sketch mock: positions and
+    forces are binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6
+    (lockstep by name: the wire's arithmetic; the same loop on the board's own clock,
+    tests/test_wallclock.py, is within its stated uncertainty)."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
-                    handle_signals=False, rt_priority=0)
+                    lockstep=True, handle_signals=False, rt_priority=0)
     meas, pred = rep["measured"], rep["predicted"]
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
     assert meas["b"] == pytest.approx(pred["b"], rel=1e-5)
@@ -453,7 +455,9 @@ def test_firefader_firmware_enable_ramp_and_gating():
     the enable passes the gate (5 passes)."""
     from hapsim.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=1.0)
-    mk = FireFaderDevice(dev, 250.0, Excitation(), touch=True)
+    # lockstep by name: the filters' arithmetic pass by pass (the silence rule on the
+    # wall clock: tests/test_wallclock.py)
+    mk = FireFaderDevice(dev, 250.0, Excitation(), touch=True, clock="lockstep")
     for _ in range(70):
         mk.step(0)
     assert mk.enable == 129 and mk.enables.index(129) == 4 + 66 - 1
@@ -468,17 +472,18 @@ def test_firefader_firmware_enable_ramp_and_gating():
         assert mk.held == 0.0
     mk.step(100)
     assert mk.enables[-1] == 21 and mk.held == pytest.approx(200 / 254 * 0.39)
-    old = FireFaderDevice(dev, 250.0, Excitation(), touch=True, firmware="ino-scaled")
+    old = FireFaderDevice(dev, 250.0, Excitation(), touch=True, firmware="ino-scaled",
+                          clock="lockstep")
     for k in range(20):
         old.step(100 if k % 2 else -100)
         c = 200 if k % 2 else -200
         assert old.applied[-1] == pytest.approx(((c * (old.enables[-1] - 1)) >> 7) / 254 * 0.39)
     assert 0 < old.applied[-1] < 200 / 254 * 0.39        # partly on: a ramp, not a gate
-    cold = FireFaderDevice(dev, 250.0, Excitation(), touch=False)
+    cold = FireFaderDevice(dev, 250.0, Excitation(), touch=False, clock="lockstep")
     for _ in range(200):
         cold.step(50)
     assert cold.enable == 0 and max(abs(f) for f in cold.applied) < 0.01
-    edge = FireFaderDevice(dev, 250.0, Excitation(x0=0.0499), touch=True)
+    edge = FireFaderDevice(dev, 250.0, Excitation(x0=0.0499), touch=True, clock="lockstep")
     for _ in range(200):
         edge.step(0)
     assert edge.position_count() >= 251 and edge.enable == 0
@@ -581,7 +586,7 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     from hapsim.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
-                         Excitation(), full_scale=fs_true)
+                         Excitation(), full_scale=fs_true, clock="lockstep")   # in-process
     for _ in range(72):
         mk.step(0)                                  # the enable comes up
     rng = np.random.default_rng(seed)

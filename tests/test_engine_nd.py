@@ -14,6 +14,18 @@ from hapsim.engine_nd import EngineND
 from hapsim.kernels.nd import stripes
 from hapsim.scene import parse_scene
 from hapsim.scene_nd import parse_scene_nd
+from tolerance import measured, rel_tol
+
+pytestmark = pytest.mark.numerical
+
+#: The compiled kernels against the plain numpy reference, relative to the motion: the
+#: worst measured over this module's meshes (1.2e-13 with NUMBA_CPU_NAME=generic, 7.7e-14
+#: on the host target: FMA contraction differs between them), margin 1000 (a wrong force
+#: law or a link applied twice moves the motion by >= 1e-6 of itself).
+KERNEL_VS_REFERENCE = measured(1.3e-13, 1000)
+#: The n-D engine against the 1-D engine on a string along x: 3.8e-13 measured on the
+#: host target (0 with the generic one), margin 1000.
+ND_VS_1D = measured(3.8e-13, 1000)
 
 
 def reference_steps(X, XP, t2m, links, T, n, contacts=(), planes=()):
@@ -77,8 +89,8 @@ def random_scene(rng, dim, n_masses, n_links):
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_kernel_equals_the_plain_reference_on_random_meshes(dim):
     """Random topology (any offsets, both orientations), per-link K, B, rest length,
-    linear and Euclidean links, grounds: 300 samples agree to 1e-12 (relative to the
-    motion)."""
+    linear and Euclidean links, grounds: 300 samples agree to round-off (relative to the
+    motion, KERNEL_VS_REFERENCE)."""
     rng = np.random.default_rng(dim)
     text, links = random_scene(rng, dim, 40, 90)
     scene = parse_scene_nd(text) if dim > 1 else None
@@ -99,7 +111,7 @@ def test_kernel_equals_the_plain_reference_on_random_meshes(dim):
     eng.step(300)
     scale = np.max(np.abs(ref - X0))
     assert scale > 1e-4
-    assert np.max(np.abs(eng.x.T - ref)) <= 1e-12 * scale
+    assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
 
 
 @settings(max_examples=12, deadline=None, derandomize=True)
@@ -109,7 +121,7 @@ def test_blocked_schedule_equals_the_plain_reference(seed, dim, block, n_masses)
     """Property: on random meshes (any topology and orientation, per-link K, B, rest
     length, both link kinds, grounds) cut into blocks of any size, so that links cross
     many blocks and masses advance block by block within a sample, 80 samples agree with
-    the plain one-link-at-a-time reference to round-off (1e-12 of the motion)."""
+    the plain one-link-at-a-time reference to round-off (KERNEL_VS_REFERENCE)."""
     rng = np.random.default_rng(seed)
     n_links = int(rng.integers(1, 3 * n_masses))
     n_links = min(n_links, n_masses * (n_masses - 1) // 2)
@@ -121,7 +133,7 @@ def test_blocked_schedule_equals_the_plain_reference(seed, dim, block, n_masses)
     eng.step(80)
     scale = np.max(np.abs(ref - X0)) + 1e-300
     assert np.all(np.isfinite(ref))
-    assert np.max(np.abs(eng.x.T - ref)) <= 1e-12 * scale
+    assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
 
 
 def grid_scene(rng, nx, ny, nz, odd):
@@ -143,8 +155,12 @@ def grid_scene(rng, nx, ny, nz, odd):
                                (np.s_[:-1], np.s_[1:]))
              for a, b in zip(idx[sl[0]].ravel(), idx[sl[1]].ravel())]
     links = []
+    # the odd link joins a moving mass (one between two grounds does not enter the
+    # engine, which would leave every piece shared: dims (3, 1, 2) did)
+    moving = [q for q, (a, b) in enumerate(pairs) if max(a, b) >= nx * ny]
+    q_odd = moving[len(moving) // 2]
     for q, (a, b) in enumerate(pairs):
-        k = K * 1.5 if odd and q == len(pairs) // 2 else K
+        k = K * 1.5 if odd and q == q_odd else K
         lines.append(f"  - {{kind: spring_damper, between: [m{a}, m{b}], stiffness: {k!r}, "
                      f"damping: {B!r}, length: {L!r}}}")
         links.append((a, b, k, B, L, True))
@@ -159,7 +175,7 @@ def test_shared_parameter_pieces_equal_the_plain_reference(seed, block, dims, od
     """Property: a grid mesh whose links share (K, B, L) runs its pieces on the shared
     parameters (their padding links' forces dropped), and, with one link different, the
     piece holding it on per-link ones; 80 samples agree with the plain reference to
-    1e-12 of the motion."""
+    round-off (KERNEL_VS_REFERENCE)."""
     rng = np.random.default_rng(seed)
     text, links = grid_scene(rng, *dims, odd)
     scene = parse_scene_nd(text)
@@ -171,7 +187,7 @@ def test_shared_parameter_pieces_equal_the_plain_reference(seed, block, dims, od
     eng.step(80)
     scale = np.max(np.abs(ref - X0))
     assert scale > 0
-    assert np.max(np.abs(eng.x.T - ref)) <= 1e-12 * scale
+    assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
 
 
 def test_schedule_pieces_stay_in_their_block():
@@ -224,7 +240,7 @@ def test_stripes_cover_every_link_once():
 
 def test_linear_2d_scene_along_x_is_the_1d_engine():
     """A 1-D string laid along x in a 2-D scene (linear links): the x positions equal
-    hapsim's 1-D engine on the 1-D scene (1e-12 of the motion), the y positions stay 0."""
+    hapsim's 1-D engine on the 1-D scene (to round-off, ND_VS_1D), the y positions stay 0."""
     one = """\
 rate_hz: 1000
 masses:
@@ -250,7 +266,7 @@ links:
         e1.step(100)
         e2.step(100)
         scale = np.max(np.abs(e1.positions - x0)) + 1e-300
-        assert np.max(np.abs(e2.positions[:, 0] - e1.positions)) <= 1e-12 * scale
+        assert np.max(np.abs(e2.positions[:, 0] - e1.positions)) <= ND_VS_1D * scale
         assert np.all(e2.positions[:, 1] == 0.0)
 
 
@@ -271,7 +287,8 @@ device: {mass: 0.1}
     eng = EngineND(parse_scene_nd(base))
     eng.set_port_position([0.01, -0.02])
     eng.step()
-    assert np.allclose(eng.port_force, [-3.0, 6.0], rtol=1e-14)
+    # -K d: a difference of positions and one product (3 roundings)
+    assert np.allclose(eng.port_force, [-3.0, 6.0], rtol=rel_tol(3), atol=0)
     text = """\
 dimension: 2
 rate_hz: 2000
@@ -297,7 +314,8 @@ planes:
     # the reference engaged both: the contact and the floor
     eng.step(400)
     scale = np.max(np.abs(ref - X0))
-    assert np.max(np.abs(eng.x.T - ref)) <= 1e-10 * scale
+    # bit for bit here on both targets; the kernels' class bound all the same
+    assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
     engaged = [False, False]
     eng2 = EngineND(scene)
     for _ in range(400):

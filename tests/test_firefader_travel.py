@@ -33,9 +33,10 @@ class _Wire:
 def _fader(mpc, travel, stop_low, *, mass=0.05, friction=0.5, coulomb=0.0, touch=True,
            full_scale=0.39, seed=0):
     dev = Device(mass=mass, friction=friction, delay=1, force_limit=10.0, coulomb=coulomb)
+    # lockstep by name: the sweep's logic against the firmware's, in-process, no time
     return FireFaderDevice(dev, 250.0, Excitation(), full_scale=full_scale,
                            metres_per_count=mpc, travel=travel, stop_low=stop_low,
-                           touch=touch, seed=seed)
+                           touch=touch, seed=seed, clock="lockstep")
 
 
 def _sweep(dev, drv=None, force=0.3):

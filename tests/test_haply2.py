@@ -66,7 +66,7 @@ def test_emulated_board_reads_the_joints_and_applies_the_torques(gen):
     drv = Haply2DIY(gen)
     res = GENERATIONS[gen].resolution
     for flip in (False, True):
-        board = Haply2DIYBoard(sc, gen)
+        board = Haply2DIYBoard(sc, gen, clock="lockstep")
         setup = bytearray(drv.setup_bytes(q0))
         if flip:
             setup[6:8] = bytes(1 - b for b in setup[6:8])
@@ -98,7 +98,7 @@ def test_flipped_motor_turns_the_joint_the_other_way():
     drv = Haply2DIY("gen3")
     turned = []
     for flip in (False, True):
-        board = Haply2DIYBoard(sc, "gen3")
+        board = Haply2DIYBoard(sc, "gen3", clock="lockstep")
         setup = bytearray(drv.setup_bytes(q0))
         if flip:
             setup[4] = 1 - setup[4]                     # port 2's motor = joint 1's
@@ -119,7 +119,7 @@ def test_hostile_streams_the_loop_goes_on_and_counts(seed):
     step (a clean write is answered)."""
     sc = _scene()
     drv = Haply2DIY("gen2")
-    board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4, clock="lockstep")
     faults = ByteFaults({"drop_rx": 3e-3, "corrupt_rx": 3e-3, "drop_tx": 3e-3,
                          "corrupt_tx": 3e-3, "seed": seed})
     r = drive_haply2(board.feed, drv, sc, 400, faults=faults)
@@ -141,7 +141,7 @@ def test_a_corrupted_setup_offset_is_caught_and_armed_again():
     and every reading is the joints'."""
     sc = _scene()
     drv = Haply2DIY("gen3")
-    board = Haply2DIYBoard(sc, "gen3")
+    board = Haply2DIYBoard(sc, "gen3", clock="lockstep")
     zero = len(drv.write_bytes((0.0, 0.0)))
 
     class FlipOffset:
@@ -169,7 +169,7 @@ def test_a_lost_host_byte_desyncs_the_board_and_the_host_resyncs_it():
     the samples come back."""
     sc = _scene()
     drv = Haply2DIY("gen3")
-    board = Haply2DIYBoard(sc, "gen3")
+    board = Haply2DIYBoard(sc, "gen3", clock="lockstep")
 
     class OneLoss:
         def __init__(self):

@@ -70,7 +70,7 @@ def test_every_wiring_is_found_and_corrected_or_refused(gen, w):
     m1, e1, m2, e2 = w
     wiring = ((m1, e1), (m2, e2))
     bad = [j for j, (m, e) in enumerate(wiring) if m * e < 0]
-    board = Haply2DIYBoard(sc, gen, wiring=wiring, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, gen, wiring=wiring, amplitude=1e-4, clock="lockstep")
     drv = Haply2DIY(gen)
     if bad:
         with pytest.raises(IdentificationError) as ei:
@@ -90,7 +90,7 @@ def test_every_wiring_is_found_and_corrected_or_refused(gen, w):
         efix = tuple(1 - b if wiring[k][1] < 0 and k in bad else b
                      for k, b in enumerate(g.encoder_direction))
         drv = Haply2DIY(gen, motor_direction=mfix, encoder_direction=efix)
-        board = Haply2DIYBoard(sc, gen, wiring=wiring, amplitude=1e-4)
+        board = Haply2DIYBoard(sc, gen, wiring=wiring, amplitude=1e-4, clock="lockstep")
     p = _probe(board, drv)
     assert p.relative == (1, 1)
     assert all(t[0] > 0 > t[1] and max(map(abs, t)) <= 0.05 for t in p.torque)
@@ -98,7 +98,7 @@ def test_every_wiring_is_found_and_corrected_or_refused(gen, w):
     assert board.settles_on() == 0.0
     for j in range(2):
         read, turned = _turns_true(Haply2DIYBoard(sc, gen, wiring=wiring,
-                                                  amplitude=1e-4), drv, j)
+                                                  amplitude=1e-4, clock="lockstep"), drv, j)
         assert read > 2 * 2 * math.pi / drv.resolution
         both = wiring[j][0] < 0 and wiring[j][1] < 0
         assert np.sign(turned) == (-1 if both else 1), (wiring, j, read, turned)
@@ -126,7 +126,7 @@ def test_a_reversed_motor_is_refused_before_the_real_time_loop_over_a_pty():
         child.close()
     assert rep is not None and rep["held_at_end"] == 0.0
     assert rep["decoder"]["setups"] == 2                 # the probe's arming and stop
-    b = Haply2DIYBoard(sc, "gen3", wiring=((1, 1), (-1, 1)), amplitude=1e-4)
+    b = Haply2DIYBoard(sc, "gen3", wiring=((1, 1), (-1, 1)), amplitude=1e-4, clock="lockstep")
     assert _probe(b, Haply2DIY("gen3", motor_direction=(0, 1))).relative == (1, 1)
 
 
@@ -167,7 +167,7 @@ def test_late_replies_are_read_late_not_taken_for_a_silent_board(seed):
     them late (the board answers every write, in order) and finds the wiring, as on a
     prompt link; it used to refuse with "more than 20 missing replies"."""
     q0 = [math.degrees(v) for v in _scene().device.joints]
-    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), p=0.04, lag=2, seed=seed)
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3", clock="lockstep"), p=0.04, lag=2, seed=seed)
     r = find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
                         pace=False, timeout=1e-4)
     assert link.late > 20
@@ -180,11 +180,11 @@ def test_a_board_still_starting_is_waited_for_and_a_silent_one_refused():
     never answers is refused after 21 writes in a row without a reply, naming the rule."""
     from hapsim.errors import DeviceError
     q0 = [math.degrees(v) for v in _scene().device.joints]
-    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), start_s=0.2)
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3", clock="lockstep"), start_s=0.2)
     r = find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
                         pace=False, timeout=0.0, first_timeout=5.0)
     assert r.relative == (1, 1)
-    link = _LateLink(Haply2DIYBoard(_scene(), "gen3"), silent=True)
+    link = _LateLink(Haply2DIYBoard(_scene(), "gen3", clock="lockstep"), silent=True)
     with pytest.raises(DeviceError, match="more than 20 writes in a row"):
         find_directions(Haply2DIY("gen3"), link, q0, force_limit=0.05, envelope=0.1,
                         pace=False, timeout=0.0)

@@ -64,18 +64,20 @@ class ScriptedLink:
         return b
 
 
-def test_scripted_missing_replies_are_estimated_and_bounded():
-    """One reply in 8 held back one write (so its tick has no reply): exactly those ticks
+def test_scripted_missing_replies_are_estimated_and_bounded_lockstep():
+    """Lockstep (the board in process, one period per write, named so: a host stall costs
+    the record nothing). One reply in 8 held back one write (so its tick has no reply): exactly those ticks
     are estimated samples (lag 1, joints not read, counted per record), every reply still
     comes, and the verdict on this correct loop is "within": the estimates' error bounds
     are in the stated uncertainty, which covers the deviation."""
     sc = load_scene_nd(WALL)
     N = 120
     plan = identification_plan(sc, N)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
     link = ScriptedLink(board, N, 0.125, 1, seed=3)
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, resolution=2.0 ** 22,
-                                 samples=N, plan=plan, probe_wiring=False)
+                                 samples=N, plan=plan, probe_wiring=False,
+                                 lockstep_board=True)
     assert sum(r["estimated"]) == link.late > 0
     assert r["replies"] == r["writes"] == [N + 2] * 5
     assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
@@ -140,8 +142,8 @@ class FirstLateLink(ScriptedLink):
 
 
 @pytest.mark.parametrize("lag,p,seed", [(1, 0.0, 0), (3, 0.0, 0), (2, 0.2, 5)])
-def test_every_estimate_within_its_bound(lag, p, seed):
-    """Every estimated row, holds of reply 0 included, is within
+def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
+    """Lockstep (the board in process, one period per write). Every estimated row, holds of reply 0 included, is within
     :func:`estimate_bounds` of the handle's position there (its reply read late: the
     reading, within its rounding ``eps``), on every record of the hand's cycle (the
     velocity starts among them)."""
@@ -151,12 +153,12 @@ def test_every_estimate_within_its_bound(lag, p, seed):
     sc = load_scene_nd(WALL)
     N = 40
     drv = Haply2DIY("gen3", resolution=2.0 ** 14)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     link = FirstLateLink(board, N, p, lag, seed=seed)
     J = device("pantograph", sc.device.geometry).jacobian(sc.device.joints)
     holds = 0
     for _ in range(5):
-        rec = record_realtime(link, drv, sc, N)
+        rec = record_realtime(link, drv, sc, N, lockstep_board=True)
         ang = np.nanmax(np.abs(rec["joints"]), axis=0)
         delta = np.pi / drv.resolution + np.radians(
             np.spacing(np.float32(np.degrees(ang))).astype(float))

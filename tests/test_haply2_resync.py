@@ -87,7 +87,7 @@ def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
     a re-synchronisation, most ticks read a reply, and the board ends at zero torque."""
     sc = load_scene_nd(WALL)
     N = 400
-    board = Haply2DIYBoard(sc, gen, amplitude=1e-4)
+    board = Haply2DIYBoard(sc, gen, amplitude=1e-4, clock="lockstep")
     f = ByteFaults({"drop_rx": 1e-3, "corrupt_rx": 1e-3, "drop_tx": 1e-3,
                     "corrupt_tx": 1e-3, "seed": seed})
     link = FaultyLink(board, f.rx, f.tx)
@@ -107,7 +107,7 @@ def test_a_lost_host_byte_desyncs_the_board_and_the_loop_resyncs_it():
     re-synchronises the board once, and every later tick reads its reply."""
     sc = load_scene_nd(WALL)
     N = 120
-    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, rx=_at_nth_write(3 + 30, lambda b: b[:4] + b[5:]))
     rec = record_realtime(link, Haply2DIY("gen3"), sc, N)
     read = _check(rec, link, N, board.cpr)
@@ -123,7 +123,7 @@ def test_a_lost_device_byte_is_one_missing_sample_and_no_resync():
     sample, nothing is re-synchronised."""
     sc = load_scene_nd(WALL)
     N = 80
-    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, tx=_at_nth_write(3 + 40, lambda b: b[:3] + b[4:]))
     rec = record_realtime(link, Haply2DIY("gen3"), sc, N)
     _check(rec, link, N, board.cpr)
@@ -143,7 +143,7 @@ def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced(fault):
     mk = {"command": lambda b: bytes([3]) + b[1:],
           "reset": lambda b: bytes((0, 1)) + b,
           "garbage": lambda b: bytes((1, 1, 0, 0, 0, 255)) + b}[fault]
-    board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, rx=_at_nth_write(3 + 25, mk))
     rec = record_realtime(link, Haply2DIY("gen2"), sc, N)
     read = _check(rec, link, N, board.cpr)
@@ -159,7 +159,7 @@ def test_a_resynchronised_record_is_not_measured():
     from hapsim.lockstep_nd import identification_plan
     sc = load_scene_nd(WALL)
     N = 60
-    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4)
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, rx=_at_nth_write(3 + 20, lambda b: b[:4] + b[5:]))
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, samples=N,
                                  plan=identification_plan(sc, N), probe_wiring=False)

@@ -118,7 +118,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
     from hapsim.daemon.haply2_host import SILENT_WRITES
     sc = load_scene_nd(WALL)
     N = 3 + SILENT_WRITES            # the silence ends before the loop re-arms the board
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
     eng = EngineND(sc)
     rec = record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 14), sc, N, engine=eng)
@@ -221,7 +221,7 @@ def test_the_2diy_replies_are_decoded_without_allocating(traced):
     from hapsim.drivers.haply2 import Haply2DIY
     sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
     drv = Haply2DIY("gen3", resolution=2.0 ** 14)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     board.feed(drv.arm_bytes([math.degrees(v) for v in sc.device.joints]))
     replies = [board.feed(drv.write_bytes((0.002, -0.001))) for _ in range(40)]
     dec, ref = drv.decoder(), drv.decoder()

@@ -1,6 +1,8 @@
 """Whole 2-D and 3-D scenes against an independent closed-loop reference written here in
 plain numpy (issue 23, "What must be shown": eigenvalues to 1e-9, felt matrices to 1e-6
-over random 2-D and 3-D scenes).
+over random 2-D and 3-D scenes; measured 1.5e-13 and 2.6e-10; the tests hold them to
+the derived round-off bound of each eigenproblem and to the measured felt deviation with
+a margin of 1000, issue 31).
 
 The reference does not linearise anything by hand and calls none of hapsim's analysis:
 it is one sample of the scene's *nonlinear* loop, written from the published laws of
@@ -27,6 +29,24 @@ from scipy.optimize import linear_sum_assignment
 from hapsim.analysis.scene_nd_check import check_scene_nd
 from hapsim.cli import main
 from hapsim.scene_nd import parse_scene_nd
+from tolerance import eig_tol, expm_tol, measured, rel_tol
+
+pytestmark = pytest.mark.numerical
+
+
+def pole_tol(scene, desc, A_ref):
+    """Bound on |reference poles - hapsim's|: both eigenproblems' round-off
+    (tests/tolerance.py), the reference matrix carrying its exponential's error (the
+    device's ZOH, expm_tol of its augmented matrix, relative to ||A_ref||)."""
+    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    M, B0, T, n = desc["M"], desc["B0"], desc["T"], desc["n"]
+    Minv = np.linalg.inv(M)
+    aug = np.zeros((3 * n, 3 * n))
+    aug[:n, n:2 * n] = np.eye(n) * T
+    aug[n:2 * n, n:2 * n] = -Minv @ B0 * T
+    aug[n:2 * n, 2 * n:] = Minv * T
+    err = expm_tol(aug) * np.linalg.norm(A_ref, 2)
+    return eig_tol(A_ref, err) + eig_tol(closed_loop_nd(scene)[0])
 
 
 def _spd(rng, n, lo, hi):
@@ -227,15 +247,18 @@ def test_reference_step_is_the_published_law():
     step, rest = reference_step(desc)
     out = step(rest)
     F = 200.0 * (0.05 - 0.02) * np.array([0.03, 0.04]) / 0.05      # pulls v0 to hand
-    assert np.allclose(out[6:8], rest[6:8] - 1e-6 * F / 0.01, rtol=0, atol=1e-15)
+    # x + T^2 F / m: a few roundings on positions ~0.04 m (rel_tol(8) of the position)
+    assert np.allclose(out[6:8], rest[6:8] - 1e-6 * F / 0.01, rtol=0,
+                       atol=rel_tol(8) * np.max(np.abs(rest[6:8])))
 
 
 @pytest.mark.parametrize("n", [2, 3])
 def test_random_scenes_equal_the_independent_reference(n):
     """Over random n-D scenes: the closed loop's eigenvalues equal the reference's to
-    1e-9 (every nonzero one, same count) and the felt matrices of the pairs hapsim
-    renders, solved from the reference's own mode shapes, equal hapsim's to 1e-6
-    (relative to the largest entry)."""
+    round-off (every nonzero one, same count; pole_tol) and the felt matrices of the pairs
+    hapsim renders, solved from the reference's own mode shapes, equal hapsim's (relative
+    to the largest entry; measured 1.2e-10 and 2.6e-10 at worst on x86-64 with OpenBLAS
+    Haswell, Sandybridge and Prescott kernels, margin 1000)."""
     rng = np.random.default_rng(2300 + n)
     felt_checked = 0
     for _ in range(20):
@@ -244,21 +267,27 @@ def test_random_scenes_equal_the_independent_reference(n):
         A = reference_matrix(desc)
         z_ref, V = np.linalg.eig(A)
         z = np.asarray(chk.render.poles)
+        dz = pole_tol(parse_scene_nd(text, "random.yaml"), desc, A)
+        # the delay lines' poles at z = 0 differ in number between the layouts: nonzero
+        # ones only (the smallest nonzero pole of these loops is >> 1e-6)
         big_ref, big = z_ref[np.abs(z_ref) > 1e-6], z[np.abs(z) > 1e-6]
         assert big.size == big_ref.size, text
-        assert _match(big, big_ref) <= 1e-9, text
-        assert chk.render.spectral_radius == pytest.approx(np.max(np.abs(z_ref)), abs=1e-9)
+        assert _match(big, big_ref) <= dz, text
+        assert chk.render.spectral_radius == pytest.approx(np.max(np.abs(z_ref)), rel=0,
+                                                           abs=dz)
         if chk.render.felt_stiffness is None:
             continue
         zr = np.asarray(chk.render.rendered_poles)
         idx = [int(np.argmin(np.abs(z_ref - zi))) for zi in zr]
-        assert max(abs(z_ref[i] - zi) for i, zi in zip(idx, zr)) <= 1e-9
+        assert max(abs(z_ref[i] - zi) for i, zi in zip(idx, zr)) <= dz
         U = V[:n, idx]
         k_ref, b_ref = reference_felt(desc["M"], desc["T"], np.log(z_ref[idx]) / desc["T"],
                                       U / np.linalg.norm(U, axis=0))
         k, b = chk.render.felt_stiffness, chk.render.felt_damping
-        assert np.max(np.abs(k - k_ref)) <= 1e-6 * np.max(np.abs(k_ref)), text
-        assert np.max(np.abs(b - b_ref)) <= 1e-6 * max(np.max(np.abs(b_ref)), 1e-3), text
+        assert np.max(np.abs(k - k_ref)) <= measured(1.2e-10, 1000) * np.max(np.abs(k_ref)), \
+            text
+        assert np.max(np.abs(b - b_ref)) <= measured(2.6e-10, 1000) * max(
+            np.max(np.abs(b_ref)), 1e-3), text
         felt_checked += 1
     assert felt_checked >= 10
 
@@ -276,14 +305,17 @@ def test_check_json_of_a_random_scene_is_the_reference(tmp_path, capsys):
     code = main(["check", str(path), "--json"])
     out = json.loads(capsys.readouterr().out)
     assert out["dof"] == 3
-    z_ref, V = np.linalg.eig(reference_matrix(desc))
-    assert out["spectral_radius"] == pytest.approx(np.max(np.abs(z_ref)), abs=1e-9)
+    A = reference_matrix(desc)
+    z_ref, V = np.linalg.eig(A)
+    dz = pole_tol(parse_scene_nd(text, "r.yaml"), desc, A)
+    assert out["spectral_radius"] == pytest.approx(np.max(np.abs(z_ref)), rel=0, abs=dz)
     assert code == (0 if np.max(np.abs(z_ref)) < 1 else 1)     # the exit is the verdict
     zr = np.array([complex(*p) for p in out["rendered_poles"]])
     idx = [int(np.argmin(np.abs(z_ref - zi))) for zi in zr]
     k_ref, b_ref = reference_felt(desc["M"], desc["T"], np.log(z_ref[idx]) / desc["T"],
                                   V[:3, idx])
+    # JSON carries floats exactly (repr): the felt deviations measured above hold
     assert np.max(np.abs(np.array(out["felt_stiffness"]) - k_ref)) <= \
-        1e-6 * np.max(np.abs(k_ref))
+        measured(1.2e-10, 1000) * np.max(np.abs(k_ref))
     assert np.max(np.abs(np.array(out["felt_damping"]) - b_ref)) <= \
-        1e-6 * np.max(np.abs(b_ref))
+        measured(2.6e-10, 1000) * np.max(np.abs(b_ref))

@@ -467,7 +467,9 @@ def test_firefader_with_its_own_adc_timing_is_predicted_by_the_real_delay():
     sc = load_scene(str(pathlib.Path(__file__).resolve().parents[1] / "configs"
                         / "firefader.yaml"))
     assert sc.device.delay == 0.725
-    rep = run_scene(sc, driver="firefader", mock_options={"adc_s": 1.1e-3},
+    # lockstep by name: the split hold's arithmetic, bit-exact timing (the same board on
+    # the wall clock: tests/test_wallclock.py)
+    rep = run_scene(sc, driver="firefader", mock_options={"adc_s": 1.1e-3}, lockstep=True,
                     handle_signals=False, rt_priority=0)
     m = rep["measured"]
     assert m["within"] is True, m["verdict"]

@@ -10,11 +10,13 @@ from hapsim.scene import load_scene
 
 
 def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
-    """``run configs/hapkit_serial.yaml --driver hapkit-serial`` (lockstep mock: exact but
-    for the float32 fields): the error (~2e-8 on b) is inside the stated uncertainty, which
-    names the wire (it stated 0.0000 and "differs"); stdout is one JSON object, exit 0."""
+    """``run configs/hapkit_serial.yaml --driver hapkit-serial --lockstep`` (lockstep by
+    name: exact but for the float32 fields): the error (~2e-8 on b) is inside the stated
+    uncertainty, which names the wire (it stated 0.0000 and "differs"); stdout is one JSON
+    object, exit 0."""
     from hapsim.cli import main
-    code = main(["run", "configs/hapkit_serial.yaml", "--driver", "hapkit-serial", "--json"])
+    code = main(["run", "configs/hapkit_serial.yaml", "--driver", "hapkit-serial",
+                 "--lockstep", "--json"])
     out = capsys.readouterr().out
     assert code == 0
     rep = json.loads(out)                    # stdout: one JSON object

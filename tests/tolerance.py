@@ -285,17 +285,29 @@ def expm_tol(A) -> float:
     Returns
     -------
     float
-        ``SAFETY * n * eps * kappa_exp`` with the relative condition number of the
-        exponential bounded by ``||A|| e^(||A|| - ...)`` in the form of Van Loan's bound
-        ``kappa_exp(A) <= ||A|| exp(||A||) / ||exp(A)||`` (Higham, *Functions of Matrices*,
-        SIAM 2008, Lemma 10.15) and scaling-and-squaring being forward stable to that
-        conditioning (Al-Mohy & Higham 2009, the algorithm scipy uses).
+        ``SAFETY * n * eps * kappa`` with ``kappa = max(1, m^2 ||A|| / ||e^A||)`` and
+        ``m = max_{0 <= s <= 1} ||e^(sA)||_2``: the Frechet derivative
+        ``L(A, E) = int_0^1 e^((1-s)A) E e^(sA) ds`` is at most ``m^2 ||E||``, so ``kappa``
+        bounds the exponential's relative condition number (Higham, *Functions of
+        Matrices*, SIAM 2008, eq. (10.15) and Sec. 3.1); scaling and squaring (Al-Mohy &
+        Higham 2009, scipy's algorithm) is forward stable to that conditioning, ``n eps``
+        being its products' backward error. ``m`` is taken over ``s = j/k``,
+        ``k >= ||A||``, as ``||e^(A/k)^j||`` times ``e^(||A||/k) <= e`` for the steps between
+        (``||e^((s + h)A)|| <= ||e^(sA)|| e^(h ||A||)``): an upper bound, not a sample.
     """
     A = np.asarray(A, dtype=float)
     n = A.shape[0]
     a = float(np.linalg.norm(A, 2))
-    eA = float(np.linalg.norm(scipy.linalg.expm(A), 2))
-    kappa = max(1.0, a * math.exp(a) / max(eA, np.finfo(float).tiny))
+    k = max(16, int(math.ceil(a)))
+    P1 = scipy.linalg.expm(A / k)
+    P = np.eye(n)
+    m = 1.0
+    for _ in range(k):
+        P = P1 @ P
+        m = max(m, float(np.linalg.norm(P, 2)))
+    m *= math.exp(a / k)
+    eA = max(float(np.linalg.norm(P, 2)), np.finfo(float).tiny)
+    kappa = max(1.0, m * m * a / eA)
     return SAFETY * n * EPS * kappa
 
 
@@ -326,3 +338,94 @@ def measured(worst: float, margin: float) -> float:
     if margin < 1.0:
         raise ValueError("a margin below 1 is not a margin")
     return float(worst) * float(margin)
+
+
+def power_bound(A, steps: int) -> float:
+    """``max_{0 <= k <= steps} ||A^k||_2`` [-], computed by multiplying out (exact up to a
+    relative round-off of ``steps * gamma(N)``, negligible beside the factor it gives).
+
+    Parameters
+    ----------
+    A : array_like, shape (N, N)
+        A one-step map.
+    steps : int
+        Number of steps (>= 0).
+
+    Returns
+    -------
+    float
+        The largest amplification of a perturbation over at most ``steps`` steps.
+    """
+    A = np.asarray(A)
+    P = np.eye(A.shape[0], dtype=A.dtype)
+    worst = 1.0
+    for _ in range(int(steps)):
+        P = A @ P
+        worst = max(worst, float(np.linalg.norm(P, 2)))
+    return worst
+
+
+def recurrence_tol(A, steps: int, scale: float, ops: int | None = None) -> float:
+    """Absolute bound on the round-off of ``x[k+1] = A x[k]`` iterated ``steps`` times,
+    for states of size at most ``scale`` [unit of x].
+
+    Parameters
+    ----------
+    A : array_like, shape (N, N)
+        The exact one-step map the computation implements (in whatever form: a compiled
+        kernel, a matrix product).
+    steps : int
+        Number of steps.
+    scale : float
+        ``max_k ||x[k]||`` (the largest state along the run).
+    ops : int, optional
+        Roundings per state entry and step; default ``N + 2`` (one row of ``A`` as an
+        inner product, Higham eq. (3.4), plus the update's own add and store; a kernel
+        that computes a row by fewer operations is covered).
+
+    Returns
+    -------
+    float
+        ``SAFETY * steps * P * gamma(ops) * ||A||_2 * scale`` with
+        ``P = max_k ||A^k||`` (:func:`power_bound`): the error made at step ``k`` is at
+        most ``gamma(ops) ||A|| ||x[k]||`` and is carried to the end by ``A^(steps-k)``
+        (Higham Sec. 18 on powers of matrices, first order).
+    """
+    A = np.asarray(A)
+    N = A.shape[0]
+    ops = N + 2 if ops is None else int(ops)
+    return (SAFETY * steps * power_bound(A, steps) * gamma(ops)
+            * float(np.linalg.norm(A, 2)) * float(scale))
+
+
+#: Brent's tolerances hapsim passes to scipy.optimize.brentq for the angle ``theta`` of a
+#: pole on the unit circle (hapsim.analysis.ths, ths_nd): ``xtol + rtol * pi`` [rad].
+BRENT_THETA = 1e-15 + 1e-14 * math.pi
+
+
+def crossing_tol(f, x: float, dy: float, h_rel: float = 1e-4) -> float:
+    """Bound on the error of a computed crossing ``x`` of a level by ``f`` [unit of x].
+
+    Parameters
+    ----------
+    f : callable
+        The function whose level crossing ``x`` is (e.g. the spectral radius as a function
+        of the stiffness, crossing 1 at the stiffness limit).
+    x : float
+        The crossing.
+    dy : float
+        How well ``f`` near ``x`` is known to the method that found ``x`` (its round-off
+        plus the root finder's tolerance, mapped to ``f``'s unit).
+    h_rel : float, optional
+        Relative step of the centred difference that measures ``f'(x)``; its error is
+        ``O(h^2 f''')``, second order, and it only scales the bound.
+
+    Returns
+    -------
+    float
+        ``dy / |f'(x)|``: first-order inverse error analysis of a root (Higham Sec. 1.6;
+        a simple crossing, ``f'(x) != 0``).
+    """
+    h = h_rel * abs(x) if x != 0 else h_rel
+    slope = abs(f(x + h) - f(x - h)) / (2 * h)
+    return float(dy) / slope if slope > 0 else math.inf

@@ -114,7 +114,7 @@ examples:
 exit codes:
   0  ran to the end (or stopped by SIGINT/SIGTERM)
   1  refused (unstable loop, unrenderable target), safety stop, latched device fault, device lost beyond
-     recovery (or silent with --no-reconnect), a driver's board re-synchronised more than 10 times a
+     recovery (or silent with --no-reconnect), a driver's board re-synchronised more than 50 times a
      second of the run (the verdict is then "not measurable", as after a safety stop)
   2  bad arguments, invalid scene, unknown fault name"""
 

@@ -268,7 +268,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     from hapsim.daemon.transport import SerialTransport
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
-    from hapsim.spawn import child_env
+    from hapsim.spawn import at_stop, child_env, done
     import os
     import shutil
     import tempfile
@@ -284,6 +284,15 @@ def _measure_over_port(args, scene, a: float, n: int):
                           key="--faults")
     tmp = tempfile.mkdtemp(prefix="hapsim-nd-")
     report = os.path.join(tmp, "mock.json")
+    started: list = []      # the child, once started: a stop at any moment ends it first
+
+    def undo() -> None:
+        for proc in started:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        shutil.rmtree(tmp, ignore_errors=True)
+    stop_token = at_stop(undo)
     if port is None:
         cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
                "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0)),
@@ -297,6 +306,7 @@ def _measure_over_port(args, scene, a: float, n: int):
                 cmd += ["--link", os.path.join(tmp, "port")]
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                  env=child_env(), text=True)
+        started.append(child)
         line = child.stdout.readline()
         if not line.startswith("PORT "):
             child.kill()
@@ -337,6 +347,7 @@ def _measure_over_port(args, scene, a: float, n: int):
         except (OSError, ValueError):
             pass
         shutil.rmtree(tmp, ignore_errors=True)
+        done(stop_token)
     info = {"port": port, "embedded": child is not None,
             "mock": note[0] if note else None, "scheduling": rt.note,
             "faults": None if plan is None else plan.spec,
@@ -406,9 +417,13 @@ def _run_haply2(args) -> int:
                 gc_was = gc.isenabled()
                 try:
                     gc.disable()                 # no collection while the clock runs
-                    res = measure_felt_haply2_port(child.port, scene, gen, amplitude=a,
-                                                   resolution=HAPLY_CPR,
-                                                   progress=bar.update)
+                    # the emulated board advances one period per write unless it
+                    # says it keeps the wall clock: a host stall costs its record
+                    # nothing then
+                    res = measure_felt_haply2_port(
+                        child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
+                        progress=bar.update,
+                        lockstep_board=getattr(child, "clock", "lockstep") == "lockstep")
                 finally:
                     if gc_was:
                         gc.enable()

@@ -34,6 +34,10 @@ FIRMWARE_PROBES = 10
 #: Zero-command packets sent at the end of a loop (more than a device's delay of a few
 #: packets: the last of them is applied).
 ZERO_PACKETS = 5
+#: Periods between two of the loop's packets beyond which the host stalled: the
+#: firmware, on its own clock, held the last command over them (counted in ``stalls``;
+#: on a paced Falcon the verdict is "degraded" then: another loop than the scene's).
+HELD_PERIODS = 2.0
 
 
 def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
@@ -88,6 +92,11 @@ def falcon_verdict(res: dict) -> dict:
     bad = {"replies missing": res["missing"], "bytes dropped realigning": d["skipped"],
            "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"]}
     said = ", ".join(f"{k} {v}" for k, v in bad.items() if v)
+    if res.get("paced") and res.get("stalls"):
+        said = (said + "; " if said else "") + (
+            f"the host stalled {res['stalls']} times (a command held up to "
+            f"{res['held_max_s'] * 1e3:.1f} ms, more than {HELD_PERIODS:g} periods): the "
+            "Falcon held it on its own clock, another loop than the scene's")
     slow = res.get("slow")
     if slow:
         said = (said + "; " if said else "") + (
@@ -167,8 +176,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         ``position`` (N, 3) [m] (NaN where missing), ``commands`` (N, 3), ``truth`` (with
         ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
         scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
-        None), ``zeroed`` (zero-command packets sent after the loop), ``verdict``,
-        ``reason``.
+        None), ``zeroed`` (zero-command packets sent after the loop), ``stalls`` (gaps
+        of more than :data:`HELD_PERIODS` periods between two of the loop's packets: the
+        host stalled, the firmware held the last command), ``held_max_s`` (the longest
+        gap [s]), ``paced``, ``verdict``, ``reason``.
 
     Raises
     ------
@@ -194,9 +205,13 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         progress(1)
     sent = [0]
     truths = []
+    # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
+    # between two packets is a host stall (the firmware held the last command over it)
+    stamps = []
 
     def feed(packet: bytes) -> bytes:
         sent[0] += 1
+        stamps.append(time.perf_counter())
         try:
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
@@ -230,6 +245,7 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     if before_loop is not None:
         before_loop()
     t0 = time.perf_counter()
+    stamps.clear()
     try:
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec)
     finally:
@@ -244,9 +260,13 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed}
+    gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
+    out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
+    out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0
     pps = out["packets_per_s"]
     if paced and pps and pps < 0.9 * scene.rate_hz:
         out["slow"] = scene.rate_hz / pps
+    out["paced"] = bool(paced)
     if truth is not None:
         # sample k reads the reply of exchange k (exchange 0 primes the loop)
         read = ~np.isnan(res["joints"][:, 0])

@@ -17,6 +17,24 @@ The hand: at each set-up the board's plant is at the scene's operating point (wh
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
 :func:`hapsim.lockstep_nd.excitation_starts` (``k`` the set-ups so far), as the n-D mock
 does at each CONFIG (:mod:`hapsim.daemon.mock_nd`).
+
+Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
+(``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read
+line by line; its ``.h`` beside it). ``loop()`` takes at most one command per pass and a
+pass at most every 50 us (lines 59-64: ``micros() - lastPublished >= 50``); a write sets
+the motors' duties (``write_states``, line 77) and the same pass answers it with the
+encoders read then (``read_states``, line 89), so the angles a reply carries are sampled
+when its write is taken and its torques act from then on, held until the next write (no
+watchdog). A set-up (line 74) builds a ``new Encoder(...)`` for each active encoder port
+(``setup_encoders``, ``.h`` lines 332-360; ``initialize_encoder``, ``.h`` line 441),
+whose constructor waits ``delayMicroseconds(2000)`` for the pins' R-C filter (the Encoder
+library Haply ships), then writes the count at the offset (``.h`` line 442): the 2DIY's
+two encoders cost :data:`SETUP_S` each, during which the commands wait and the joints
+do not. Between events the pantograph is integrated over the real time that passed
+(:meth:`hapsim.lockstep_nd.LocalJointDeviceND.advance_torque`). The loop's own delay is
+one period (the read and the torques at the same write, the torques computed from that
+read one write later); a scene stating more delays each write's torques by the rest.
+``clock="lockstep"`` (named, for deterministic tests): each write is one period.
 """
 
 from __future__ import annotations
@@ -33,7 +51,13 @@ from hapsim.errors import ConfigError, DeviceError
 from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
 
 __all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2", "BoardLink", "in_hand_order",
-           "PROBE_TORQUE", "PROBE_ENVELOPE"]
+           "PROBE_TORQUE", "PROBE_ENVELOPE", "SETUP_S", "PASS_S"]
+
+#: What building one ``Encoder`` takes on the board [s]: its constructor's
+#: ``delayMicroseconds(2000)`` (module notes).
+SETUP_S = 2e-3
+#: The firmware's shortest pass [s]: ``loop()`` runs when 50 us have passed since the last.
+PASS_S = 50e-6
 
 _F = struct.Struct("<f")
 _F32_MAX = 3.4028234663852886e38
@@ -56,11 +80,14 @@ class Haply2DIYBoard:
         Per joint, the sign of its motor and of its encoder against the generation's
         wiring (1: as hAPI's direction bytes expect; -1: wired backwards, so that the
         generation's byte turns the motor, or counts the encoder, the other way).
+    clock : {"wall", "lockstep"}
+        The board's clock (module notes): its own time (``feed`` needs each read's time)
+        or one period per write.
 
     Raises
     ------
     ConfigError
-        Not a 2-D pantograph scene; an unknown generation; a bad wiring.
+        Not a 2-D pantograph scene; an unknown generation; a bad wiring; an unknown clock.
 
     Attributes
     ----------
@@ -71,10 +98,28 @@ class Haply2DIYBoard:
         Writes taken (periods advanced).
     torque : dict
         Torque held per motor port (1..4) [N m], as the wire gave it.
+    ready_at : float
+        Wall clock: the board's time [s] its last reply is ready at (:func:`serve
+        <hapsim.driver_mock.serve>` writes it then).
+    excursion : float
+        The largest joint displacement from the operating point the plant reached [rad]
+        (the truth, whatever the host believes).
     """
 
     def __init__(self, scene, generation: str = "gen3", *, cpr: float | None = None,
-                 amplitude: float = 1e-8, wiring=((1, 1), (1, 1))) -> None:
+                 amplitude: float = 1e-8, wiring=((1, 1), (1, 1)),
+                 clock: str = "wall") -> None:
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
+        #: The board itself on the wall clock (what :func:`hapsim.driver_mock.serve` reads:
+        #: its ``excursion``), None in lockstep.
+        self.wall = self if clock == "wall" else None
+        self.ready_at = 0.0
+        self.excursion = 0.0
+        self._t = 0.0                         # the board's time the plant has reached [s]
+        self._busy_until = 0.0                # the firmware's next pass, not before [s]
+        self._due: deque = deque()            # (time [s], torques) not yet in effect
         dev = scene.device
         if scene.dimension != 2 or dev is None or dev.kind != "pantograph":
             raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
@@ -99,6 +144,9 @@ class Haply2DIYBoard:
                               "periods): use a whole delay", file=scene.path,
                               key="device.delay")
         self.delay = int(dev.delay)
+        #: Wall clock: the latency added to each write's torques [s], what brings the
+        #: board's own delay of one period to the scene's (never negative).
+        self.extra_latency_s = max(0.0, self.delay - 1.0) * scene.period
         self._fifo = deque([None] * self.delay)
         self.torque = {1: 0.0, 2: 0.0, 3: 0.0, 4: 0.0}
         self.setups = 0
@@ -130,6 +178,7 @@ class Haply2DIYBoard:
         self.setups += 1
         self.plant = LocalJointDeviceND(self.scene, x0, v0)
         self._fifo = deque([None] * self.delay)
+        self._due.clear()
 
     def _k_of(self, port: int, kind: str) -> int:
         """The k-th active port's index (the firmware's actuators[k]/encoders[k])."""
@@ -186,32 +235,93 @@ class Haply2DIYBoard:
         for w in self._fifo:
             if w:
                 held.update(w)
+        for _, w in self._due:
+            held.update(w)
         return max(abs(t) for t in held.values())
 
+    def run_to(self, t: float) -> None:
+        """Wall clock: the pantograph integrated to the board's time ``t`` [s], the torques
+        in effect held, each write's taking effect at its time.
+
+        Raises
+        ------
+        ValueError
+            ``t`` is not finite (a board on the wall clock needs the time of its bytes).
+        """
+        if not math.isfinite(t):
+            raise ValueError("a board on the wall clock needs the time of each read "
+                             "(feed(data, now)); in process without time: clock='lockstep'")
+        while self._t < t:
+            nxt = t
+            if self._due and self._due[0][0] < nxt:
+                nxt = max(self._due[0][0], self._t)
+            self.plant.advance_torque(self._joint_torques(), nxt - self._t)
+            self._t = nxt
+            while self._due and self._due[0][0] <= self._t:
+                self.torque.update(self._due.popleft()[1])
+        while self._due and self._due[0][0] <= self._t:
+            self.torque.update(self._due.popleft()[1])
+        self.held = max(abs(v) for v in self.torque.values())
+        self.excursion = max(self.excursion,
+                             float(np.abs(self.plant.joints() - self.plant.q0).max()))
+
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
-        """Host bytes in, the board's replies out (one per write)."""
+        """Host bytes in, the board's replies out (one per write).
+
+        Parameters
+        ----------
+        data : bytes
+            What the host wrote.
+        now : float
+            The board's time the bytes came at [s] (wall clock; ignored in lockstep).
+
+        Returns
+        -------
+        bytes
+            The replies; on the wall clock they are ready at :attr:`ready_at`.
+        """
         out = bytearray()
         p = self.parser
+        t = max(now, self._busy_until) if self.wall is not None else now
         for cmd in p.commands(data):
+            if self.wall is not None:
+                t = max(t, self._busy_until)  # one command a pass, after a set-up's waits
+                self.run_to(t)
+                self._busy_until = t + PASS_S
             if cmd[0] == "setup":
                 self._on_setup()
+                if self.wall is not None:
+                    # each active encoder's constructor waits; the joint does not
+                    n = sum(1 for a in p.encoder_addr if a)
+                    self._busy_until = t + max(n * SETUP_S, PASS_S)
                 continue
             if cmd[0] != "write":
                 continue
             _, addr, tq = cmd
             new = {}
-            for port0, t in tq.items():
-                if not math.isfinite(t):
-                    t = 0.0                       # (the firmware: a NaN duty is 0)
-                new[port0 + 1] = max(-0.123, min(0.123, t))
-            self._fifo.append(new)
-            self.clamped += sum(abs(t) >= 0.123 for t in new.values())
-            self.last_command = max((abs(t) for t in new.values()), default=0.0)
-            due = self._fifo.popleft()
-            if due:
-                self.torque.update(due)
-            self.held = max(abs(t) for t in self.torque.values())
-            self.plant.step_torque(self._joint_torques())
+            for port0, tv in tq.items():
+                if not math.isfinite(tv):
+                    tv = 0.0                      # (the firmware: a NaN duty is 0)
+                new[port0 + 1] = max(-0.123, min(0.123, tv))
+            self.clamped += sum(abs(tv) >= 0.123 for tv in new.values())
+            self.last_command = max((abs(tv) for tv in new.values()), default=0.0)
+            if self.wall is not None:
+                # write_states, then read_states in the same pass: the angles below are
+                # read at t, the torques act from t (plus the scene's extra delay)
+                if new:
+                    if self._due and self._due[-1][0] > t + self.extra_latency_s:
+                        self._due.append((self._due[-1][0], new))
+                    else:
+                        self._due.append((t + self.extra_latency_s, new))
+                    self.run_to(t)
+                self.ready_at = t
+            else:
+                self._fifo.append(new)
+                due = self._fifo.popleft()
+                if due:
+                    self.torque.update(due)
+                self.held = max(abs(tv) for tv in self.torque.values())
+                self.plant.step_torque(self._joint_torques())
             self.writes += 1
             na, encs = p.reply_layout(addr)
             out += bytes([addr]) + _F.pack(0.0) * na
@@ -434,7 +544,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
     board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,
-                           amplitude=amplitude, wiring=wiring)
+                           amplitude=amplitude, wiring=wiring, clock="lockstep")
     drv = Haply2DIY(generation, resolution=resolution or board.cpr, **(directions or {}))
     probe = None
     if probe_wiring:

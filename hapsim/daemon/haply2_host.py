@@ -37,6 +37,15 @@ The clock starts again from the re-arming's reply (the time it took is counted,
 on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
 answer: the replies after it answer the writes after (the decoder's ``damaged``; when
 one read holds several replies and a damaged one, all of them are taken as after it).
+A host stall (a tick begun more than a period late: a descheduled process) is a stall,
+never a burst of catch-up writes: the clock goes on from where the host woke, the stall
+is counted (``stalled``), and the board, which held the last torque meanwhile on its own
+clock, is not re-synchronised for it: a late reply is a late sample (the decoder's step
+check widens with the ticks since the last reply read, as the extrapolation's error does)
+and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_WRITES` are
+taken for a board out of step. An estimated tick whose newest reading is older than
+:data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise). A
+record with a stall or a zeroed tick is not measured (no uniform loop of the THS).
 A record ends with a zero write; when its reply does not come in step the board is
 re-armed (zero torque whatever its parser is inside: no watchdog). A corrupted byte in
 a write the board takes cannot be seen (no checksum: a wrong torque for one period).
@@ -85,6 +94,14 @@ REPLY_WAIT_S = 0.2
 #: Longest wait for the reply to a record's closing zero write [s] (without it, the
 #: board is re-armed: a loaded host must not take a slow reply for a lost one).
 END_WAIT_S = 1.0
+#: Longest time [s] the host lets the board (no watchdog) hold a torque computed from a
+#: sample older than this: an estimated tick past it writes zero torque (``held_zero``).
+#: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+HOLD_BOUND_S = 0.02
+#: The oldest unanswered write's wait [s] without which no count of unanswered writes is
+#: taken for a board out of step (a board answers a write within its pass and a USB
+#: frame, about 1 ms; a late reply or a host stall is not this).
+SILENT_S = 0.05
 
 
 def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
@@ -169,7 +186,8 @@ def _write(ser, data: bytes) -> None:
         raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
 
 
-def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None) -> dict:
+def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
+                    lockstep_board: bool = False) -> dict:
     """One record in real time: arm (the set-up, whose hand starts the record), then one
     write per tick of the host's clock (module notes).
 
@@ -184,6 +202,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         Ticks ``N``.
     engine : hapsim.engine_nd.EngineND, optional
         A fresh engine (default: one of ``scene``).
+    lockstep_board : bool, optional
+        The board advances one period per write (named lockstep): a sample's age is then
+        counted in the board's periods, not on the wall clock (:data:`HOLD_BOUND_S`).
 
     Returns
     -------
@@ -197,7 +218,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         read in time or late; NaN where it never came), ``resyncs`` (re-synchronisations
         of a board that lost its place), ``resynced`` (N,) bool (the ticks they were
         made at), ``resync_s`` (the time they took [s], out of the clock),
-        ``bad_setups`` (armings whose first reply did not come or did not read the
+        ``stalled`` (N,) bool (ticks the host began more than a period late: the
+        clock went on from there, no catch-up writes), ``stall_s`` (their lateness [s]),
+        ``held_zero`` (estimated ticks written at zero torque: no fresh sample for
+        :data:`HOLD_BOUND_S`), ``bad_setups`` (armings whose first reply did not come or did not read the
         offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
         did not come: the board was re-armed to leave it at zero torque), ``decoder``
         (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
@@ -219,6 +243,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     T = scene.period
     dec = driver.decoder()
     rule = ResyncRule(dec.stats, SILENT_WRITES)
+    # the decoder's step check (an angle no motion could reach from where the last two
+    # replies say the joint is going) is stated for consecutive replies; a reply r ticks
+    # after the last one read may be r (r + 1) / 2 times as far off at the same
+    # acceleration (Taylor's theorem, as estimate_bounds): widened by that, so that a
+    # late reply or one after a host stall is a late sample, never taken for a board out
+    # of step
+    step0 = float(dec.max_step)
     eng = EngineND(scene) if engine is None else engine
     port = eng.port
     xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
@@ -265,6 +296,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
+    # perf_counter() of the write whose reply is each tick's sample (the arming's zero
+    # write for tick 0)
+    t_wrote = np.full(N + 2, np.nan)
 
     def arm(at_deg, k):
         """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
@@ -292,6 +326,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
             dec.reset_prediction()              # the set-up's offsets start afresh
             got = k
             _write(ser, zero)
+            t_wrote[k] = time.perf_counter()
             end = time.monotonic() + wait
             while got == k and time.monotonic() < end:
                 take(_read(ser))
@@ -312,7 +347,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     est = np.zeros(N, bool)
     lag = np.zeros(N, np.int64)
     resynced = np.zeros(N, bool)
+    stalled = np.zeros(N, bool)
     late = 0
+    stall_s = 0.0
+    held_zero = 0
     x = np.zeros(2)                                 # the sample the engine is given
     F = eng.port_f[:2]                              # the engine's port force (a view)
     wbuf = bytearray(zero)
@@ -322,14 +360,30 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     for k in range(N):
         deadline = t0 + k * T
         now = time.perf_counter()
-        if now > deadline + T:
-            late += 1
+        if now > deadline + 0.5 * T:
+            # the host is behind (a descheduled process): no catch-up burst of writes,
+            # each a period's torque sent 0.1 ms apart; the clock goes on from now (any
+            # three writes span at least half a period). A whole period or more behind is
+            # a stall, counted: the board held the last torque over it, on its own clock,
+            # and the record is no uniform loop of the THS then (not measured)
+            if now > deadline + T:
+                late += 1
+                stalled[k] = True
+                stall_s += now - deadline
+            t0 += now - deadline
+            deadline = now
         elif deadline - now > SPIN_S:
             time.sleep(deadline - now - SPIN_S)
         while time.perf_counter() < deadline:
             pass
+        r_gap = k - seen
+        dec.max_step = step0 * max(1, r_gap * (r_gap + 1) // 2)
         take(_read(ser))
-        if rule.due(k + 1 - got):                   # writes unanswered (damaged: answered)
+        unanswered = k + 1 - got                    # (damaged: answered)
+        if unanswered > SILENT_WRITES and (
+                time.perf_counter() - t_wrote[got] < SILENT_S):
+            unanswered = 0                          # a count alone is no evidence
+        if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the
             # time it took is counted)
@@ -365,12 +419,19 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
         f0, f1 = F[0], F[1]
         tau1 = j00 * f0 + j10 * f1                  # tau = J^T F
         tau2 = j01 * f0 + j11 * f1
+        if est[k] and ((k - i) * T if lockstep_board
+                       else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
+            # no fresh sample for HOLD_BOUND_S: the torque was computed from where the
+            # joints were, not where they are; the board (no watchdog) would hold it
+            tau1 = tau2 = 0.0
+            held_zero += 1
         torque[k, 0] = clamp1(tau1)
         torque[k, 1] = clamp1(tau2)
         pos[k, 0] = x[0]
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         _write(ser, wbuf)
+        t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
     # of its zeros, 1 bit in 32, would be a torque it cannot show: no checksum); without
@@ -388,7 +449,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None)
     return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
             "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
             "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
-            "resync_s": resync_s, "bad_setups": bad_setups,
+            "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
+            "held_zero": held_zero, "bad_setups": bad_setups,
             "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
 
 
@@ -396,7 +458,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                              amplitude: float, resolution: float | None = None,
                              samples: int | None = None, progress=None, plan=None,
                              probe_wiring: bool = True,
-                             directions: dict | None = None) -> dict:
+                             directions: dict | None = None,
+                             lockstep_board: bool = False) -> dict:
     """The felt matrices of a pantograph scene measured through a 2DIY in real time, and
     their verdict (module notes).
 
@@ -424,6 +487,11 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         order, :func:`hapsim.daemon.haply2_board.in_hand_order`).
     directions : dict, optional
         ``motor_direction`` / ``encoder_direction`` bytes instead of the generation's.
+    lockstep_board : bool, optional
+        The board advances one period per write (an emulated board in lockstep, asked
+        for by name): a host stall then costs its record nothing (the board waited), and
+        a stalled record is measured. False (a real board, or one on the wall clock):
+        a record with a host stall is not measured (module notes).
 
     Returns
     -------
@@ -432,7 +500,10 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
         (replies read per record, of ``writes``), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record; "not measurable" when the board was
-        re-synchronised (a re-armed record is no free response of the loop).
+        re-synchronised (a re-armed record is no free response of the loop); ``stalls``
+        (host stalls per record) and ``held_zero`` (ticks written at zero torque for want
+        of a fresh sample, :data:`HOLD_BOUND_S`): "not measurable" when any (the board
+        held a torque over more than a period on its own clock).
 
     Raises
     ------
@@ -464,17 +535,19 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     probe = None
     try:
         if probe_wiring:
-            # each joint's wiring before any torque loop runs (a board that advances
-            # one period per write: unpaced, each reply waited for)
+            # each joint's wiring before any torque loop runs (paced on the host's clock:
+            # a board on its own clock moves in real time; a lockstep board advances one
+            # period per write: unpaced, each reply waited for)
             from hapsim.daemon.haply2_board import PROBE_ENVELOPE, PROBE_TORQUE
             from hapsim.drivers.haply2_probe import find_directions
             probe = find_directions(drv, _PortLink(ser),
                                     [math.degrees(v) for v in scene.device.joints],
                                     force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
-                                    rate_hz=scene.rate_hz, pace=False, timeout=0.5,
+                                    rate_hz=scene.rate_hz, pace=not lockstep_board,
+                                    timeout=0.5,
                                     first_timeout=ARM_TIMEOUT)
         for j in range(5):
-            runs.append(record_realtime(ser, drv, scene, N))
+            runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board))
             if progress is not None:
                 progress(j + 1, 5)
     finally:
@@ -505,7 +578,20 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                    reason=f"the board was re-synchronised {sum(resyncs)} times (the "
                           f"stream lost or corrupted bytes): a re-armed record is no free "
                           f"response of the loop predicted")
+    stalls = [int(r["stalled"].sum()) for r in runs]
+    zeroed = [int(r["held_zero"]) for r in runs]
+    if not sum(resyncs) and ((sum(stalls) and not lockstep_board) or sum(zeroed)):
+        # the host stalled (the board held a torque over more than a period, on its own
+        # clock), or zeroed the torque of ticks without a fresh sample: those records are
+        # no uniform loop of the THS (a wrong verdict is worse than none)
+        out.update(verdict="not measurable", within=None, uncertainty=None,
+                   statements=[], not_stated=["felt stiffness", "felt damping"],
+                   reason=f"the host stalled {sum(stalls)} times (the board held a torque "
+                          f"for more than a period) and zeroed the torque of {sum(zeroed)} "
+                          f"ticks without a fresh sample for {HOLD_BOUND_S * 1e3:g} ms: "
+                          f"those records are no uniform loop of the prediction")
     out.update(estimated=[int(r["estimated"].sum()) for r in runs],
+               stalls=stalls, held_zero=zeroed,
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs])
@@ -542,7 +628,9 @@ class _PortLink:
 class Embedded2DIY(PtyChild):
     """The emulated 2DIY board (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`) in a
     child process on the master side of a new pty, served by
-    :func:`hapsim.driver_mock.serve` (one period per write, replies at once).
+    :func:`hapsim.driver_mock.serve` on its own clock (the wall clock: the joints move in
+    real time, a set-up takes its encoders' waits) or, named, in lockstep (one period per
+    write, replies at once).
 
     Parameters
     ----------
@@ -560,23 +648,35 @@ class Embedded2DIY(PtyChild):
         The loop's rate [Hz] (default the scene file's): the plant's period.
     wiring : ((int, int), (int, int)), optional
         The emulated board's wiring (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
+    clock : {"wall", "lockstep"}
+        The emulated board's clock (:class:`~hapsim.daemon.haply2_board.Haply2DIYBoard`):
+        its own time (the default) or one period per write (named, for deterministic
+        tests).
 
     Attributes
     ----------
     port : str
         The slave path to open.
+    clock : str
+        The board's clock (what the host's loop reads: a stall on a board with its own
+        clock costs a record).
     """
 
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
-                 rate_hz: float | None = None, wiring=((1, 1), (1, 1))) -> None:
+                 rate_hz: float | None = None, wiring=((1, 1), (1, 1)),
+                 clock: str = "wall") -> None:
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
         master = self.open_pty("hapsim-2diy-")
         self.start([sys.executable, "-m", "hapsim.daemon.haply2_host", "--fd", str(master),
                     "--scene", str(scene_path), "--generation", generation, "--amplitude",
                     repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
                     repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0)),
-                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw)], master)
+                    "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw),
+                    "--clock", clock], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
@@ -612,6 +712,7 @@ def main(argv=None) -> int:
     p.add_argument("--slow-s", type=float, default=0.0)
     p.add_argument("--rate", type=float, default=0.0)
     p.add_argument("--wiring", default="1,1,1,1")
+    p.add_argument("--clock", choices=("wall", "lockstep"), default="wall")
     a = p.parse_args(argv)
     w = [int(v) for v in a.wiring.split(",")]
     scene = load_scene_nd(a.scene)
@@ -619,7 +720,7 @@ def main(argv=None) -> int:
         import dataclasses
         scene = dataclasses.replace(scene, rate_hz=a.rate)
     board = _SlowBoard(scene, a.generation, cpr=a.cpr or None, amplitude=a.amplitude,
-                       wiring=(tuple(w[:2]), tuple(w[2:])))
+                       wiring=(tuple(w[:2]), tuple(w[2:])), clock=a.clock)
     board.slow_every, board.slow_s = a.slow_every, a.slow_s
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):

@@ -20,10 +20,15 @@ A measurement compares the free response the host recorded with the THS predicti
 
 The bound is stated per second of the run, :data:`MAX_RESYNCS_PER_S`, from what one
 costs: a re-synchronisation leaves the joint blind (zero torque, no reading) from the last
-reply to the set-up's, at least :data:`RESYNC_BLIND_S` (the reset bytes and the set-up,
-~570 bytes; the firmware's ``new Encoder(...)`` waits 2 ms, ``delayMicroseconds(2000)``
-in the Encoder library it ships; a host tick or two on either side). At the bound, at
-most :data:`BLIND_SHARE` of the run is blind. Beyond it the verdict is "not measurable"
+reply to the set-up's, at least :data:`RESYNC_BLIND_S`: the firmware's ``new
+Encoder(...)`` waits 2 ms (``delayMicroseconds(2000)`` in the Encoder library it ships);
+the ~570 bytes of resets and set-up take under 0.4 ms more at USB full speed. At the
+bound, at least :data:`BLIND_SHARE` of the run may be blind. It is the rate at which the
+1-DoF driver's transport gives the link up altogether (``MAX_RESYNCS_PER_S`` of
+:mod:`hapsim.drivers.transport`, 50 within any second); one host byte lost in 200 costs
+the Haply M3 a re-synchronisation per byte lost, 30 a second at 1 kHz (6-byte writes:
+18 to 32 in a 1 s run measured with ``tools/driver_timing.py``), within it.
+Beyond it the verdict is "not measurable"
 with the reason, ``within`` is False and ``hapsim run`` exits 1 (its documented code for
 a device fault: the link is not fit for a measurement).
 """
@@ -36,7 +41,7 @@ __all__ = ["MAX_RESYNCS_PER_S", "RESYNC_BLIND_S", "BLIND_SHARE", "resync_bound",
            "link_verdict"]
 
 #: Shortest time a re-synchronisation leaves the joint blind [s] (module notes).
-RESYNC_BLIND_S = 0.01
+RESYNC_BLIND_S = 0.002
 #: Largest share of a run its re-synchronisations may leave blind and the run still state
 #: a verdict.
 BLIND_SHARE = 0.1
@@ -61,7 +66,8 @@ def resync_bound(ticks: int, rate_hz: float) -> int:
     int
     """
     dur = max(int(ticks), 0) / float(rate_hz)
-    # (the product rounded once, then floored: 10 a second over 0.3 s is 3)
+    # (rounded to 9 digits before the floor: a product a unit in the last place below a
+    # whole number is that number)
     return max(1, int(math.floor(round(MAX_RESYNCS_PER_S * dur, 9))))
 
 

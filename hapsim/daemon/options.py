@@ -392,7 +392,11 @@ class RunOptions:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")
             self.host_clocked = True            # the protocols answer commands: no clock
-            self.lockstep = self.lockstep or self.port is None   # its mock: host-paced
+            # its mock keeps its own time (the wall clock) unless the run asks for
+            # lockstep (hapsim.driver_mock.WALL_CLOCK_MOCKS)
+            from hapsim.driver_mock import WALL_CLOCK_MOCKS
+            self.lockstep = self.lockstep or (self.port is None
+                                              and self.driver not in WALL_CLOCK_MOCKS)
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:

@@ -318,16 +318,20 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
-                from hapsim.driver_mock import EmbeddedDriverMock
+                from hapsim.driver_mock import WALL_CLOCK_MOCKS, EmbeddedDriverMock
+                hardware = dict(opts.mock_options if opts.mock_options is not None
+                                else drv.mock_hardware())
+                # the board keeps its own time unless the run asks for lockstep
+                wall = opts.driver in WALL_CLOCK_MOCKS and not opts.lockstep
+                if opts.driver in WALL_CLOCK_MOCKS:
+                    hardware.setdefault("clock", "wall" if wall else "lockstep")
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
-                                              options=(opts.mock_options
-                                                       if opts.mock_options is not None
-                                                       else drv.mock_hardware()),
-                                              faults=opts.driver_faults)
-                # the mock is paced by the commands: a slow mock process is no lost answer
+                                              options=hardware, faults=opts.driver_faults)
+                # a mock paced by the commands: a slow mock process is no lost answer; a
+                # board on its own clock answers as hardware does
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.02)
+                                     reply_deadline=0.0 if wall else 0.02)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=int(dev.delay))

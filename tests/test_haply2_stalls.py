@@ -1,0 +1,135 @@
+"""The 2DIY's real-time loop through host stalls (issue 29 item 2): a stall is a stall,
+never a burst of catch-up writes nor by itself a re-synchronisation; with 1 byte in 200
+lost each way the re-synchronisations are bounded by the faults, the joints never leave
+the workspace, and a record with a stall is not measured on a board that keeps its own
+time.
+
+Lockstep by name: the board here is the emulated firmware V1.5 in process, one period per
+write (the host's stalls are injected by sleeping inside a write); what is tested is the
+host's behaviour (no burst, no re-synchronisation without evidence), which does not
+depend on the board's clock."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hapsim.daemon import haply2_host as host
+from hapsim.daemon.haply2_board import Haply2DIYBoard
+from hapsim.driver_mock import ByteFaults
+from hapsim.drivers.haply2 import Haply2DIY
+from hapsim.scene_nd import load_scene_nd
+
+WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
+#: The workspace the joints must stay in [rad] around the rest joints: 50 times the
+#: hand's excursion here (1e-4 m at the handle is ~2e-3 rad at a joint); the storm of the
+#: issue turned a joint 1 to 12.5 rad.
+WORKSPACE_RAD = 0.1
+
+
+class StallingLink:
+    """The emulated board behind ``write``/``in_waiting``/``read``, host bytes through
+    ``rx``, replies through ``tx``; the host stalls ``stalls[n]`` seconds inside its
+    ``n``-th write of a record's loop (a sleep: the host process descheduled). ``times``:
+    perf_counter() of each 10-byte write; ``truth``: the board's joints after each."""
+
+    def __init__(self, board, stalls, rx=None, tx=None):
+        self.board, self.stalls = board, dict(stalls)
+        self.rx = rx or (lambda b: b)
+        self.tx = tx or (lambda b: b)
+        self.out = bytearray()
+        self.truth, self.times = [], []
+
+    def write(self, data):
+        if len(data) == 10:
+            self.times.append(time.perf_counter())
+            s = self.stalls.get(len(self.times))
+            if s:
+                time.sleep(s)
+        self.out += self.tx(self.board.feed(self.rx(bytes(data))))
+        self.truth.append(self.board.plant.joints().copy())
+        return len(data)
+
+    @property
+    def in_waiting(self):
+        return len(self.out)
+
+    def read(self, n):
+        b = bytes(self.out[:n])
+        del self.out[:n]
+        return b
+
+
+def _record(seed, loss, N=300):
+    sc = load_scene_nd(WALL)
+    rng = np.random.default_rng(seed)
+    # 3 to 5 host stalls of 6 to 30 ms at random writes of the loop
+    at = rng.choice(np.arange(10, N - 10), size=int(rng.integers(3, 6)), replace=False)
+    stalls = {int(a): float(rng.uniform(0.006, 0.030)) for a in at}
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
+    f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
+    link = StallingLink(board, stalls, f.rx, f.tx)
+    rec = host.record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
+    q0 = np.asarray(sc.device.joints, float)
+    return sc, rec, link, f, q0, stalls
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_host_stalls_lockstep_no_burst_no_resync(seed):
+    """No fault, only host stalls of 6-30 ms: not one re-synchronisation, every stall
+    counted, no burst: any three consecutive writes of the loop span at least half a
+    period (exact, from the loop's rule: tick k + 1 begins at most T/2 after its deadline
+    or the clock goes on from it, write k comes before it, and write k + 2 not before its
+    own deadline, a period after tick k + 1's), the joints within the workspace, the
+    board left at zero torque."""
+    sc, rec, link, f, q0, stalls = _record(seed, 0.0)
+    T = sc.period
+    assert rec["resyncs"] == 0 and rec["bad_setups"] == 0 and rec["decoder"]["desync"] == 0
+    assert rec["stalled"].sum() >= len(stalls)
+    w = np.asarray(link.times)[1:-1]            # the loop's (not the arming's, the end's)
+    assert np.min(w[2:] - w[:-2]) >= T / 2, np.min(w[2:] - w[:-2]) / T
+    assert np.abs(np.asarray(link.truth) - q0).max() <= WORKSPACE_RAD
+    assert link.board.settles_on() == 0.0
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_host_stalls_and_byte_loss_lockstep_bounded_resyncs(seed):
+    """1 byte in 200 lost each way and host stalls: each re-synchronisation answers a
+    fault (no more of them than bytes lost, in either direction), each takes at most the
+    loop's stated waits (ARM_TRIES set-ups, each waiting REARM_WAIT_S, QUIET_S and
+    REPLY_WAIT_S), the joints within the workspace, the board left at zero torque."""
+    sc, rec, link, f, q0, stalls = _record(seed, 1 / 200, N=150)
+    lost = f.counts["drop_rx"] + f.counts["drop_tx"]
+    assert lost > 0
+    assert rec["resyncs"] <= lost, (rec["resyncs"], f.counts)
+    per = host.ARM_TRIES * (host.REARM_WAIT_S + host.QUIET_S + host.REPLY_WAIT_S)
+    assert rec["resync_s"] <= per * max(rec["resyncs"], 1)
+    assert np.abs(np.asarray(link.truth) - q0).max() <= WORKSPACE_RAD
+    assert link.board.settles_on() == 0.0
+
+
+def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypatch):
+    """A host stall in a record: on a board that keeps its own time the board held a
+    torque over more than a period, so the verdict is "not measurable" with the stalls
+    counted (never a verdict from a record that is no uniform loop of the THS). The
+    records are made by the lockstep board with a stall forced into each."""
+    from hapsim.lockstep_nd import identification_plan
+    sc = load_scene_nd(WALL)
+    N = 40
+    real = host.record_realtime
+
+    def stalled(*a, **k):
+        rec = real(*a, **k)
+        rec["stalled"][N // 2] = True
+        return rec
+    monkeypatch.setattr(host, "record_realtime", stalled)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
+    link = StallingLink(board, {})
+    r = host.measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4,
+                                      resolution=2.0 ** 22, samples=N,
+                                      plan=identification_plan(sc, N), probe_wiring=False)
+    assert r["verdict"] == "not measurable" and r["within"] is None
+    assert "stalled" in r["reason"] and sum(r["stalls"]) >= 5

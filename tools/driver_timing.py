@@ -1,0 +1,271 @@
+"""Every driver's closed loop beside CPU-bound processes, with and without byte loss: what
+real timing does to it (issue 29 item 2).
+
+Usage::
+
+    nice python tools/driver_timing.py [--drivers haply haply2 firefader hapkit-serial falcon]
+                                       [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
+                                       [--duration 1.5] [--json PATH]
+
+For each driver, each loss (the probability that a byte is lost, each way: 0 and 1 in
+200 by default) and each seed, one run beside ``--hogs`` CPU-bound processes (started
+here, ended here by their pids):
+
+- ``haply`` (Haply M3, one axis), ``firefader`` (``configs/firefader.yaml``, 250 Hz),
+  ``hapkit-serial`` (``configs/hapkit_serial.yaml``): the driver's scene through
+  :func:`hapsim.daemon.runner.run_scene` and its driver's byte-exact mock on a pty, the
+  mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
+- ``haply2`` (2DIY, ``configs/pantograph_wall.yaml``): the real-time host loop
+  (:func:`hapsim.daemon.haply2_host.measure_felt_haply2_port`) against the emulated board
+  in process behind a link that loses bytes (seeded; the board steps one period per
+  write: ``clock`` says lockstep);
+- ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.daemon.falcon_run.run_falcon`
+  over pyftdi and the emulated FT232R, the loss on its UART.
+
+Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
+device's own where its model reports it, ``true_excursion``; else the host's readings),
+the verdict and the exit code ``hapsim run`` would give. A measurement program, not a
+test: real time, on a shared machine; the 1-minute load average is in the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from provenance import command_line  # tools/, beside this file
+
+DRIVERS = ("haply", "haply2", "firefader", "hapkit-serial", "falcon")
+
+
+def _load():
+    """The 1-minute load average, or None where the platform has none."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
+
+
+def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
+    """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes)."""
+    from hapsim.daemon.runner import run_scene
+    from hapsim.errors import DeviceError, ProtocolError
+    from hapsim.scene import load_scene
+    with tempfile.TemporaryDirectory() as tmp:
+        tel = os.path.join(tmp, "t.npz")
+        try:
+            rep = run_scene(load_scene(f"configs/{driver.replace('-', '_')}.yaml"),
+                            driver=driver,
+                            duration=duration, handle_signals=False, rt_priority=0,
+                            telemetry=tel, seed=seed,
+                            driver_faults={"drop_tx": loss, "drop_rx": loss, "seed": seed})
+            err = None
+        except (DeviceError, ProtocolError) as exc:
+            rep = getattr(exc, "report", None)
+            err = f"{type(exc).__name__}: {exc}"
+            if rep is None:
+                return {"error": err}
+        x_host = None
+        if os.path.exists(tel):
+            d = np.load(tel)
+            if "position" in d.files and d["position"].size:
+                x_host = float(np.nanmax(np.abs(d["position"])))
+    lp, m = rep["loop"], rep["measured"]
+    mk, dl = lp.get("mock") or {}, lp.get("driver") or {}
+    return {"clock": mk.get("clock", "lockstep" if lp.get("lockstep") else "?"),
+            "safety_stop": bool(lp["safety_stop"]), "stop": lp["stop_reason"],
+            "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
+            "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
+            "workspace": lp["safety"]["position_limit"],
+            "verdict": m.get("verdict"), "within": m.get("within"),
+            "exit_code": rep.get("exit_code"), "error": err or m.get("error")}
+
+
+def run_haply2(seed: int, loss: float) -> dict:
+    """One 2DIY measurement against the in-process emulated board behind a lossy link."""
+    from hapsim.daemon.haply2_board import Haply2DIYBoard
+    from hapsim.daemon.haply2_host import measure_felt_haply2_port
+    from hapsim.driver_mock import ByteFaults
+    from hapsim.lockstep_nd import identification_plan
+    from hapsim.scene_nd import load_scene_nd
+    from hapsim.errors import DeviceError
+    sc = load_scene_nd("configs/pantograph_wall.yaml")
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
+    f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
+    q0 = np.asarray(sc.device.joints, float)
+    exc_max = [0.0]
+
+    class Link:
+        out = bytearray()
+
+        def write(self, data):
+            self.out += f.tx(board.feed(f.rx(bytes(data))))
+            exc_max[0] = max(exc_max[0], float(np.abs(board.plant.joints() - q0).max()))
+            return len(data)
+
+        @property
+        def in_waiting(self):
+            return len(self.out)
+
+        def read(self, n):
+            b = bytes(self.out[:n])
+            del self.out[:n]
+            return b
+    N = 200
+    try:
+        r = measure_felt_haply2_port(Link(), sc, "gen3", amplitude=1e-4,
+                                     resolution=2.0 ** 22, samples=N,
+                                     plan=identification_plan(sc, N), probe_wiring=False,
+                                     lockstep_board=True)
+    except DeviceError as exc:
+        return {"clock": "lockstep", "error": f"DeviceError: {exc}",
+                "excursion_true": exc_max[0]}
+    return {"clock": "lockstep", "safety_stop": False, "stop": "end",
+            "resyncs": int(sum(r["resyncs"])), "stalls": int(sum(r.get("stalls", [0]))),
+            "excursion_true": exc_max[0], "excursion_host": None,
+            "workspace": None, "verdict": r["verdict"], "within": r["within"],
+            "exit_code": 0 if r["verdict"] != "differs" else 1,
+            "held_at_end": board.settles_on(), "error": None}
+
+
+def run_falcon_once(seed: int, loss: float) -> dict:
+    """One Falcon run over the emulated FT232R with seeded loss on its UART."""
+    from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
+    from hapsim.driver_mock import ByteFaults
+    from hapsim.errors import DeviceError
+    from hapsim.scene_nd import load_scene_nd
+    sc = load_scene_nd("configs/delta_sphere.yaml")
+    image = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
+    faults = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
+    link, dev, chip = emulated_falcon(sc, image, faults=faults)
+    chip.faults_on = False
+    try:
+        res = run_falcon(sc, link, image, 1000, truth=dev.counts, timeout=0.002,
+                         before_loop=lambda: setattr(chip, "faults_on", True))
+    except DeviceError as exc:
+        return {"clock": "lockstep", "error": f"DeviceError: {exc}"}
+    finally:
+        link.close()
+    pos = res["position"]
+    return {"clock": "lockstep", "safety_stop": False, "stop": "end", "resyncs": 0,
+            "stalls": res.get("stalls"), "excursion_true": None,
+            "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
+            "workspace": None, "verdict": res["verdict"], "within": None,
+            "exit_code": 0, "missing": res["missing"],
+            "truth": res["truth"], "error": None}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="driver_timing", description=__doc__.split("\n\n")[0])
+    p.add_argument("--drivers", nargs="+", default=list(DRIVERS), choices=DRIVERS)
+    p.add_argument("--seeds", nargs="+", type=int, default=list(range(1, 11)))
+    p.add_argument("--loss", nargs="+", type=float, default=[0.0, 1 / 200])
+    p.add_argument("--hogs", type=int, default=2, help="CPU-bound processes beside (2)")
+    p.add_argument("--duration", type=float, default=1.5, help="1-D runs [s]")
+    p.add_argument("--json", default=None, metavar="PATH")
+    a = p.parse_args(argv)
+    import signal
+    # a SIGTERM ends the runs through the finally below (the CPU-bound processes too)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(a.hogs)]
+    load_before = _load()
+    rows = []
+    try:
+        for drv in a.drivers:
+            for loss in a.loss:
+                for seed in a.seeds:
+                    t = time.monotonic()
+                    if drv == "haply2":
+                        row = run_haply2(seed, loss)
+                    elif drv == "falcon":
+                        row = run_falcon_once(seed, loss)
+                    else:
+                        row = run_1d(drv, seed, loss, a.duration)
+                    row.update(driver=drv, seed=seed, loss=loss,
+                               seconds=round(time.monotonic() - t, 1), load=_load())
+                    rows.append(row)
+                    print(json.dumps({k: row.get(k) for k in (
+                        "driver", "loss", "seed", "clock", "safety_stop", "resyncs", "stalls",
+                        "excursion_true", "excursion_host", "verdict", "exit_code",
+                        "error")}, default=str), file=sys.stderr, flush=True)
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
+           "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
+           "runs": normalize(rows), "summary": summarize(rows)}
+    text = json.dumps(out, indent=1, default=str)
+    if a.json:
+        with open(a.json, "w") as f:
+            f.write(text + "\n")
+    print(json.dumps(out["summary"], indent=1))
+    return 0
+
+
+#: The keys every row has (None where a run does not give one): the docs' table reads them.
+ROW_KEYS = ("driver", "loss", "seed", "clock", "safety_stop", "stop", "resyncs", "stalls",
+            "excursion_true", "excursion_host", "workspace", "verdict", "within",
+            "exit_code", "error", "seconds", "load")
+
+
+def normalize(rows):
+    """Every row with every key of :data:`ROW_KEYS` (None where missing), in place.
+
+    Parameters
+    ----------
+    rows : list of dict
+
+    Returns
+    -------
+    list of dict
+    """
+    for r in rows:
+        for k in ROW_KEYS:
+            r.setdefault(k, None)
+    return rows
+
+
+def summarize(rows):
+    """Per driver and loss: runs, safety stops, runs with a re-synchronisation, the most
+    re-synchronisations, the largest excursion, verdicts counted, errors.
+
+    Parameters
+    ----------
+    rows : list of dict
+
+    Returns
+    -------
+    dict
+        ``{"driver loss": {...}}``.
+    """
+    out = {}
+    for r in rows:
+        s = out.setdefault(f"{r['driver']} {r['loss']:g}", {
+            "runs": 0, "safety_stops": 0, "runs_resynced": 0, "resyncs_max": 0,
+            "excursion_true_max": None, "excursion_host_max": None, "verdicts": {},
+            "errors": 0, "clock": r.get("clock")})
+        s["runs"] += 1
+        s["safety_stops"] += bool(r.get("safety_stop"))
+        s["runs_resynced"] += bool(r.get("resyncs"))
+        s["resyncs_max"] = max(s["resyncs_max"], r.get("resyncs") or 0)
+        for k in ("excursion_true", "excursion_host"):
+            v = r.get(k)
+            if v is not None:
+                s[k + "_max"] = v if s[k + "_max"] is None else max(s[k + "_max"], v)
+        v = str(r.get("verdict")).split(":")[0]
+        s["verdicts"][v] = s["verdicts"].get(v, 0) + 1
+        s["errors"] += bool(r.get("error")) and r.get("verdict") is None
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())
