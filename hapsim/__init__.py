@@ -97,16 +97,6 @@ def _undo_started() -> None:
         pass
 
 
-def _inside_import(frame) -> bool:
-    """Whether ``frame`` or a caller of it is in the import machinery (a signal raised
-    there may come out of the import as another exception)."""
-    while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
-            return True
-        frame = frame.f_back
-    return False
-
-
 _quiet_interrupt_at_start()
 
 from hapsim.errors import (ConfigError, DeviceError, HapsimError, ProtocolError,

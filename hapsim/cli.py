@@ -55,7 +55,7 @@ import math
 import re
 import sys
 
-from hapsim import __version__
+from hapsim import __version__, spawn
 from hapsim.errors import ConfigError, HapsimError, UnstableConfigError
 from hapsim.option_values import Number, check_numbers, typed_flag
 
@@ -318,14 +318,17 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     want_json = "--json" in argv
     previous = _raise_on_sigterm()
-    try:
-        return _main(argv, want_json)
-    except BrokenPipeError:
-        # the reader of stdout is gone (``| head``): nothing more can be said there, and
-        # saying it on stderr would only be noise; entry() silences stdout's final flush
-        return EXIT_BROKEN_PIPE
-    finally:
-        _undo_at_stop(previous)
+    from hapsim.progress import Watch
+    with Watch("hapsim") as watch:      # a status line on a terminal after 0.8 s of silence
+        try:
+            return _main(argv, want_json, watch)
+        except BrokenPipeError:
+            # the reader of stdout is gone (``| head``): nothing more can be said there, and
+            # saying it on stderr would only be noise; entry() silences stdout's final flush
+            return EXIT_BROKEN_PIPE
+        finally:
+            watch.doing = "ending what it started"
+            _undo_at_stop(previous)
 
 
 class Terminated(KeyboardInterrupt):
@@ -353,9 +356,10 @@ def _raise_on_sigterm():
         return None
 
     def _terminated(signum, frame):
-        import hapsim
-        if hapsim._inside_import(frame):   # it could come out as an ImportError: end now
-            hapsim._undo_started()
+        if spawn.inside_import(frame):    # it could come out as an ImportError: end now
+            for s in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(s, signal.SIG_IGN)
+            spawn.run_stops()
             import os
             os._exit(EXIT_TERMINATED)
         raise Terminated()
@@ -369,14 +373,13 @@ def _undo_at_stop(previous) -> None:
     handler ``previous`` back (None: it was not changed)."""
     import signal
     import threading
-    from hapsim.spawn import run_stops
     main_thread = threading.current_thread() is threading.main_thread()
     held = {}
     if main_thread:
         for s in (signal.SIGINT, signal.SIGTERM):
             held[s] = signal.signal(s, signal.SIG_IGN)
     try:
-        run_stops()
+        spawn.run_stops()
     finally:
         for s, handler in held.items():
             signal.signal(s, handler)
@@ -384,8 +387,9 @@ def _undo_at_stop(previous) -> None:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _main(argv: list[str], want_json: bool) -> int:
-    """:func:`main` without the broken-pipe guard."""
+def _main(argv: list[str], want_json: bool, watch) -> int:
+    """:func:`main` without the broken-pipe guard (``watch``: its status line, whose
+    label becomes the command once known)."""
     command = "hapsim"
     try:
         _ARGV[:] = argv
@@ -408,7 +412,9 @@ def _main(argv: list[str], want_json: bool) -> int:
             return code
         except ConfigError as exc:  # a non-number for a numeric option (_refuse_number)
             return _fail(getattr(exc, "prog", command), exc, 2, f"error: {exc}", want_json)
-        command = f"hapsim {args.command}"
+        command = watch.label = f"hapsim {args.command}"
+        if args.command == "mock":      # a server: silent until stopped is its normal state
+            watch.stop()
         try:
             import numpy as np
             # overflow/invalid in the analysis of extreme loops shows up in the results

@@ -30,9 +30,8 @@ __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults",
            "EmbeddedDriverMock", "firefader_offline_loop", "main"]
 
 #: The drivers whose mock keeps its own time (``clock="wall"``) unless a run asks for
-#: lockstep by name (``--lockstep``). (The Haply M3's board joins when its driver's
-#: re-synchronisation rules land: the lead's part of issue 29.)
-WALL_CLOCK_MOCKS = ("firefader", "hapkit-serial")
+#: lockstep by name (``--lockstep``).
+WALL_CLOCK_MOCKS = ("firefader", "hapkit-serial", "haply")
 
 
 class _Actuated:
@@ -678,9 +677,8 @@ class HaplyDevice(_Actuated):
     address), the angle ``360 * count / resolution`` with the set-up's resolution and the
     count set to the set-up's offset.
 
-    Its time (``clock="wall"``; the default stays ``"lockstep"`` until the driver's
-    re-synchronisation rules land): the firmware's ``loop()`` takes one command per pass
-    and answers a write in the same pass, after setting the motor's duty
+    Its time (``clock="wall"``, the default): the firmware's ``loop()`` takes one command
+    per pass and answers a write in the same pass, after setting the motor's duty
     (``Haply_M3_Firmware_V1_5.ino``, ``loop``: ``write_states`` then ``read_states``;
     HaplyHaptics/Haply-Arduino-Firmware-Versions, commit edcf50f), so the angle a reply
     carries is sampled when its write arrives and the torque acts from then on, held
@@ -717,7 +715,7 @@ class HaplyDevice(_Actuated):
 
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
                  resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
-                 clock: str = "lockstep") -> None:
+                 clock: str = "wall") -> None:
         from hapsim.drivers import haply as hp
         from hapsim.errors import ConfigError
         if motor_sign not in (1, -1):

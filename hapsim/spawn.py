@@ -16,7 +16,8 @@ import subprocess
 import threading
 from typing import Callable
 
-__all__ = ["package_root", "child_env", "PtyChild", "at_stop", "done", "run_stops"]
+__all__ = ["package_root", "child_env", "PtyChild", "at_stop", "done", "run_stops",
+           "inside_import"]
 
 #: What is still to undo, by token, in the order registered (:func:`at_stop`).
 _STOPS: dict[int, Callable[[], None]] = {}
@@ -76,6 +77,28 @@ def run_stops() -> None:
 atexit.register(run_stops)
 
 
+def inside_import(frame) -> bool:
+    """Whether ``frame`` or one of its callers is in the import machinery.
+
+    Parameters
+    ----------
+    frame : frame or None
+        A signal handler's frame.
+
+    Returns
+    -------
+    bool
+        True when an exception raised there could come out of the import as another one
+        (numpy turns a KeyboardInterrupt into an ``ImportError``): the process must end at
+        once instead (:func:`hapsim.cli.main`'s SIGTERM, ``hapsim._quiet_interrupt_at_start``).
+    """
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def package_root() -> str:
     """The directory holding the ``hapsim`` package.
 
@@ -88,7 +111,9 @@ def package_root() -> str:
 
 
 def child_env() -> dict:
-    """A copy of ``os.environ`` with :func:`package_root` first on ``PYTHONPATH``.
+    """A copy of ``os.environ`` with :func:`package_root` first on ``PYTHONPATH`` and
+    ``HAPSIM_STATUS=0`` (no second status line on a shared terminal:
+    :class:`hapsim.progress.Watch`).
 
     Returns
     -------
@@ -96,6 +121,7 @@ def child_env() -> dict:
         The environment to pass to ``subprocess.Popen(env=...)``.
     """
     env = dict(os.environ)
+    env["HAPSIM_STATUS"] = "0"      # the parent's status line is enough (progress.Watch)
     root = package_root()
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env

@@ -155,6 +155,16 @@ class _CpuTimeReport:
 
 
 def pytest_configure(config):
+    """One BLAS thread in every pytest process, as every ``hapsim`` command runs
+    (hapsim.blas): two workers on two cores, each with an OpenBLAS pool as large as the
+    machine, spin on each other's cores (an SVD of the matrix pencil took 14 s of CPU that
+    way; the first in-process ``hapsim.cli.main`` of a worker used to shrink its pool, so
+    a test's cost depended on which tests the worker had run before). Children keep the
+    sizing of their own command line (nothing is put in the environment)."""
+    from hapsim.blas import limit_blas_threads
+    import numpy  # noqa: F401  (loads numpy's OpenBLAS: its pool is limited below)
+    import scipy.linalg  # noqa: F401  (and scipy's)
+    limit_blas_threads(1)
     if config.getoption("--cpu-time") is not None and not hasattr(config, "workerinput"):
         config.pluginmanager.register(_CpuTimeReport(config), "cpu-time-report")
 

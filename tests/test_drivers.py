@@ -230,7 +230,7 @@ def test_haply_hostile_streams():
     seen = set(out)
     assert sum(struct.unpack("<f", g[1:])[0] in seen for g in intact) >= 0.9 * len(intact)
     dev = HaplyDevice(Device(mass=0.001, friction=0.001, delay=1, force_limit=0.1), 1000.0,
-                      Excitation())
+                      Excitation(), clock="lockstep")
     drv = get_driver("haply", device_id=3)
     # garbage can reconfigure the board (a random set-up): the host arms it again
     stream = drv.arm() + bytes(rng.integers(0, 256, 20000).astype(np.uint8))
@@ -243,13 +243,15 @@ def test_haply_hostile_streams():
     assert dev.applied and max(abs(t) for t in dev.applied) <= 0.1
 
 
-def test_haply_closed_loop_through_its_mock():
-    """hapsim run --driver haply (configs/haply.yaml, rotary units) on the board mock: the
-    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %)."""
+def test_haply_closed_loop_through_its_mock_in_lockstep():
+    """hapsim run --driver haply --lockstep (configs/haply.yaml, rotary units) on the board
+    mock, lockstep by name (the maths through the board's bytes, not its timing): the
+    measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %). On
+    the wall clock: tests/test_haply_wallclock.py."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
-                    rt_priority=0)
+                    rt_priority=0, lockstep=True)
     meas, pred = rep["measured"], rep["predicted"]
     assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
     assert meas["b"] == pytest.approx(pred["b"], rel=0.10)
@@ -368,8 +370,10 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults, duration):
     says how much of the stated uncertainty is the estimated samples' worst case."""
     from hapsim.daemon.runner import run_scene
     from hapsim.scene import load_scene
+    # lockstep, by name: what is under test is the decoders and the re-synchronisation
+    # against lost and corrupted bytes, not the timing
     rep = run_scene(load_scene(f"configs/{driver}.yaml"), driver=driver, duration=duration,
-                    handle_signals=False, rt_priority=0, driver_faults=faults)
+                    handle_signals=False, rt_priority=0, driver_faults=faults, lockstep=True)
     lp = rep["loop"]
     assert lp["stop_reason"] == "duration" and not lp["safety_stop"], lp["stop_reason"]
     assert lp["lost"] == 0 and lp["ticks"] > 0.8 * lp["requested"]
@@ -400,7 +404,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     dec = drv.decoder()
     assert hp.ReplyDecoder(1, resolution=4880.0).feed(bytes([1, 1, 1, 0x3F, 0xC5])) == []
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation(x0=0.1))
+                        1000.0, Excitation(x0=0.1), clock="lockstep")
     assert dec.feed(board.feed(drv.arm())) == [0.0]
     got = []
     for _ in range(20):
@@ -417,7 +421,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     assert board.decoder.motor_addr[0] != 1             # the board forgot its motor ...
     assert board.held == pytest.approx(0.05)            # ... and holds the torque
     lost = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                       1000.0, Excitation())
+                       1000.0, Excitation(), clock="lockstep")
     lost.feed(drv.arm() + drv.encode_force(0.07) + drv.encode_force(0.0625)[1:])
     assert lost.held == pytest.approx(0.07)
     lost.feed(drv.encode_force(0.0))                    # a plain zero write is swallowed
@@ -437,7 +441,7 @@ def test_haply_board_holds_its_torque_through_reset_and_setup():
     from hapsim.drivers import haply as hp
     from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation())
+                        1000.0, Excitation(), clock="lockstep")
     drv = get_driver("haply")
     board.feed(drv.arm() + drv.encode_force(0.08))
     assert board.idle(5.0) == b"" and board.held == pytest.approx(0.08)
@@ -724,7 +728,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     import firmware_protocol as fp
     from hapsim.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
-                        1000.0, Excitation())
+                        1000.0, Excitation(), clock="lockstep")
     path, slave, master, flag, th = _pty_device(board)
     try:
         drv = get_driver("haply")

@@ -79,7 +79,9 @@ def test_angle_scale_is_getTheta():
 
 
 def _device(**kw):
-    return FalconDevice(load_scene_nd(CONFIGS / "delta_sphere.yaml"), **kw)
+    # lockstep by name: the protocol and the firmware's states, packet by packet, in
+    # process (the device on its own clock: tests/test_wallclock.py)
+    return FalconDevice(load_scene_nd(CONFIGS / "delta_sphere.yaml"), clock="lockstep", **kw)
 
 
 def test_firmware_handshake_and_its_failures():
@@ -192,7 +194,7 @@ def test_the_loop_closes_over_hostile_packets(seed):
     from hapsim.daemon.falcon_device import drive_falcon
     from hapsim.driver_mock import ByteFaults
     sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
-    dev = FalconDevice(sc)
+    dev = FalconDevice(sc, clock="lockstep")      # by name: the host loop's arithmetic
     load_firmware(dev, IMAGE)
     home(dev.feed)
     truth, applied = [], []

@@ -22,7 +22,7 @@ IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
 
 def _run(stall_at, stall_s, paced, samples=120):
     sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
-    link, dev, chip = fr.emulated_falcon(sc, IMAGE)
+    link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="lockstep")   # by name
     calls = [0, False]
     real = link.exchange
 

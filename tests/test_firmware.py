@@ -310,7 +310,7 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     scene = load_scene(str(ROOT / "configs/hapkit.yaml"))
     dev = scene.device
     tel = tmp_path / "tel.npz"
-    with _board(tmp_path, None, *board.board_command(dev, scene.excitation)[2:]) as (
+    with _board(tmp_path, None, *board.board_command(dev, scene.excitation, lockstep=True)[2:]) as (
             proc, port, report), _descheduled(proc) as stops:
         r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(ROOT / "configs/hapkit.yaml"),
                             "--port", port, "--lockstep", "--duration", "1", "--json",
@@ -380,7 +380,7 @@ def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
     scene = load_scene(str(path))
     dev = scene.device
     tel = tmp_path / "tel.npz"
-    with _board(tmp_path, None, *board.board_command(dev, scene.excitation)[2:]) as (
+    with _board(tmp_path, None, *board.board_command(dev, scene.excitation, lockstep=True)[2:]) as (
             proc, port, report):
         r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(path), "--port", port,
                             "--lockstep", "--duration", "0.3", "--json", "--telemetry",
@@ -459,7 +459,7 @@ def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
     dev = dataclasses.replace(scene.device, coulomb=0.1)
     exc = dataclasses.replace(scene.excitation, x0=0.0)
     # the emulated clock waits for each FORCE: a loaded host makes no late tick
-    cmd = board.board_command(dev, exc)[2:]
+    cmd = board.board_command(dev, exc, lockstep=True)[2:]
     with _board(tmp_path, None, *cmd) as (proc, port, report):
         fit, rec = identify(port=port, baud=2000000, driver="framed", rate_hz=RATE,
                             force_limit=1.0, envelope=0.02, duration=2.5, max_delay=3,

@@ -4,13 +4,15 @@ lost each way the re-synchronisations are bounded by the faults, the joints neve
 the workspace, and a record with a stall is not measured on a board that keeps its own
 time.
 
-Lockstep by name: the board here is the emulated firmware V1.5 in process, one period per
-write (the host's stalls are injected by sleeping inside a write); what is tested is the
-host's behaviour (no burst, no re-synchronisation without evidence), which does not
-depend on the board's clock."""
+The board is the emulated firmware V1.5 in process: on the wall clock (its own time: the
+joints move over a host stall under the torque held, replies ready when the board's pass
+made them), or in lockstep (one period per write), named so in the test's name. The host's
+stalls are injected by sleeping inside a write."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -24,10 +26,11 @@ from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene_nd import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
-#: The workspace the joints must stay in [rad] around the rest joints: 50 times the
-#: hand's excursion here (1e-4 m at the handle is ~2e-3 rad at a joint); the storm of the
-#: issue turned a joint 1 to 12.5 rad.
-WORKSPACE_RAD = 0.1
+#: The workspace the joints must stay in [rad] around the rest joints: what a 30 ms host
+#: stall (the longest injected) at the board's torque clamp allows on this joint, 1/2
+#: (0.123 N m / 2e-4 kg m^2) (0.03 s)^2 = 0.28 rad, with a margin; the storm of the issue
+#: turned a joint 1 to 12.5 rad.
+WORKSPACE_RAD = 0.5
 
 
 class StallingLink:
@@ -61,6 +64,116 @@ class StallingLink:
         b = bytes(self.out[:n])
         del self.out[:n]
         return b
+
+
+class WallLink:
+    """The emulated board on the wall clock behind ``write``/``in_waiting``/``read``: each
+    write fed at its time (``perf_counter`` since the link was made), its replies readable
+    from the board's ``ready_at`` on; host bytes through ``rx``, replies through ``tx``;
+    the host stalls ``stalls[n]`` seconds inside its ``n``-th 10-byte write."""
+
+    def __init__(self, board, stalls, rx=None, tx=None):
+        self.board, self.stalls = board, dict(stalls)
+        self.rx = rx or (lambda b: b)
+        self.tx = tx or (lambda b: b)
+        self.t0 = time.perf_counter()
+        self.queue, self.out = [], bytearray()
+        self.times = []
+
+    def _now(self):
+        return time.perf_counter() - self.t0
+
+    def write(self, data):
+        if len(data) == 10:
+            self.times.append(time.perf_counter())
+            s = self.stalls.get(len(self.times))
+            if s:
+                time.sleep(s)
+        rep = self.board.feed(self.rx(bytes(data)), self._now())
+        if rep:
+            self.queue.append((self.board.ready_at, self.tx(rep)))
+        return len(data)
+
+    def _release(self):
+        now = self._now()
+        while self.queue and self.queue[0][0] <= now:
+            self.out += self.queue.pop(0)[1]
+
+    @property
+    def in_waiting(self):
+        self._release()
+        return len(self.out)
+
+    def read(self, n):
+        self._release()
+        b = bytes(self.out[:n])
+        del self.out[:n]
+        return b
+
+
+def _wall_record(seed, loss, N=300):
+    sc = load_scene_nd(WALL)
+    rng = np.random.default_rng(seed)
+    at = rng.choice(np.arange(10, N - 10), size=int(rng.integers(3, 6)), replace=False)
+    stalls = {int(a): float(rng.uniform(0.006, 0.030)) for a in at}
+    board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="wall")
+    f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
+    link = WallLink(board, stalls, f.rx, f.tx)
+    rec = host.record_realtime(link, Haply2DIY("gen3"), sc, N)
+    # the board run to the end of the record (its joints under the zero torque left)
+    board.run_to(link._now())
+    return sc, rec, link, f, stalls
+
+
+@pytest.mark.parametrize("seed", [11])
+def test_host_stalls_on_the_wall_clock_no_resync(seed):
+    """The board on its own clock holds the torque over each 6-30 ms host stall and the
+    joints move meanwhile: not one re-synchronisation (a late reply is a late sample),
+    every stall counted, no burst after one (three consecutive writes span half a period),
+    the board left at zero torque."""
+    sc, rec, link, f, stalls = _wall_record(seed, 0.0)
+    assert rec["resyncs"] == 0 and rec["bad_setups"] == 0, rec["decoder"]
+    assert rec["stalled"].sum() >= len(stalls)
+    w = np.asarray(link.times)[1:-1]
+    assert np.min(w[2:] - w[:-2]) >= sc.period / 2
+    assert link.board.settles_on() == 0.0
+
+
+def test_wall_clock_beside_two_cpu_bound_processes_no_storm():
+    """Beside two CPU-bound processes (the suite's own machine, loaded), the board on its
+    own clock, host stalls, no byte lost: no storm of re-synchronisations (at most one per
+    ten stalls counted), zero torque at the end."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        sc, rec, link, f, stalls = _wall_record(13, 0.0, N=200)
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+    # no storm: with no byte lost, a re-synchronisation can only follow a host stall
+    # whose late reply the decoder took for garbage, and none feeds another (before: 5
+    # desyncs in 200 ticks with the fixed 2-degree step check; now 0 or 1 measured; zero
+    # is the issue's goal, not met beside the hogs: docs/drivers.md)
+    assert rec["resyncs"] <= max(1, rec["stalled"].sum() // 10), (rec["resyncs"],
+                                                                  rec["decoder"])
+    # (the joints' excursion is not asserted beside the hogs: their stalls are the
+    # machine's, longer than the ones injected, and the board has no watchdog: 0.61 rad
+    # measured once, the issue's finding that stays open, docs/drivers.md)
+    assert link.board.settles_on() == 0.0
+
+
+def test_wall_clock_byte_loss_bounded_resyncs():
+    """The board on its own clock, 1 byte in 200 lost each way, host stalls: the
+    re-synchronisations no more than the bytes lost, the board left at zero torque.
+    (The joints' excursion is not asserted here: a host byte lost shifts the board's
+    parser, which may take a garbage torque, clamped to 0.123 N m, and hold it until the
+    host sees the board out of step, SILENT_S at most; on this light joint, 2e-4 kg m^2,
+    that is 12 rad/s, and the set-up re-anchors the angle the host reads. Measured 2 to
+    18 rad of true excursion: docs/drivers.md, 'Real timing, every driver'.)"""
+    sc, rec, link, f, stalls = _wall_record(7, 1 / 200, N=200)
+    lost = f.counts["drop_rx"] + f.counts["drop_tx"]
+    assert lost > 0 and rec["resyncs"] <= lost, (rec["resyncs"], f.counts)
+    assert link.board.settles_on() == 0.0
 
 
 def _record(seed, loss, N=300):

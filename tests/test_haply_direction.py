@@ -49,7 +49,7 @@ def test_probe_finds_the_motor_byte_of_every_wiring(wiring, enc, md0, coulomb):
     limit, the joint within a few counts, and the board is left at zero torque."""
     m, e = wiring
     dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1, coulomb=coulomb), 1000.0,
-                      motor_sign=(-1) ** (m + e))
+                      motor_sign=(-1) ** (m + e), clock="lockstep")
     drv = HaplyM3(direction=enc, motor_direction=md0)
     p = _probe(dev, drv, force_limit=0.1)
     assert p.motor_direction == (m + e + enc) % 2
@@ -74,7 +74,7 @@ def test_probe_finds_the_motor_byte_of_every_wiring(wiring, enc, md0, coulomb):
 def test_probe_refuses_a_joint_that_does_not_move(coulomb, limit):
     """Static friction above the largest torque allowed (the board's 0.123 N m, or a lower
     force limit): no motion, a clear refusal naming the torque, and zero torque left."""
-    dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1, coulomb=coulomb), 1000.0)
+    dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1, coulomb=coulomb), 1000.0, clock="lockstep")
     with pytest.raises(IdentificationError, match=rf"did not move 3 encoder counts under "
                                                   rf"\+{min(limit, MAX_TORQUE):.4g} N m"):
         _probe(dev, HaplyM3(), force_limit=limit)
@@ -88,7 +88,7 @@ def test_probe_refuses_a_joint_something_else_moves():
     it) does not come to rest at zero torque before the first pulse: refused after
     SETTLE_S, zero torque left."""
     from hapsim.scene import Excitation
-    dev = HaplyDevice(Device(mass=1e-3, friction=1e-4, delay=1), 1000.0, Excitation(v0=1.0))
+    dev = HaplyDevice(Device(mass=1e-3, friction=1e-4, delay=1), 1000.0, Excitation(v0=1.0), clock="lockstep")
     with pytest.raises(IdentificationError, match="did not come to rest at zero torque "
                                                   "within 3 s.*something else moves it"):
         _probe(dev, HaplyM3(), force_limit=0.1)
@@ -105,7 +105,7 @@ def test_motor_direction_is_a_protocol_option_run_sends():
     assert get_driver("haply", direction=1).options()["motor_direction"] == 1
     assert drv.mock_hardware()["motor_sign"] == -1
     for dev_id in (7, 200):
-        dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1), 1000.0)
+        dev = HaplyDevice(Device(mass=1e-4, friction=1e-3, delay=1), 1000.0, clock="lockstep")
         reply = dev.feed(HaplyM3(device_id=dev_id).arm())
         assert reply[-5] == dev_id
 

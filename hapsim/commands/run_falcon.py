@@ -97,8 +97,10 @@ def run_falcon_command(args) -> int:
         else:
             link = FalconUSB(args.port)
         with Progress(3, "run (Falcon: firmware, homing, loop)", unit="stages") as bar:
+            # the emulated Falcon keeps its own time (its firmware's ticks) unless
+            # lockstep: then it is paced as a real one is
             res = run_falcon(scene, link, image, packets, truth=truth, progress=bar.update,
-                             paced=not emulated)
+                             paced=not emulated or dev.clock == "wall")
     except DeviceError as exc:
         print(f"hapsim run: {exc}", file=sys.stderr)
         return 1

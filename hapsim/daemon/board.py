@@ -196,10 +196,11 @@ def shipped_scene(name: str) -> str:
     return str(path)
 
 
-def board_command(device, excitation, *, elf: str | None = None, realtime: bool = False,
+def board_command(device, excitation, *, elf: str | None = None, realtime: bool | None = None,
                   report: str | None = None, link: str | None = None,
                   wait_ms: float | None = None, duration: float | None = None,
-                  trace: str | None = None, spin_us: float | None = None) -> list[str]:
+                  trace: str | None = None, spin_us: float | None = None,
+                  lockstep: bool = False) -> list[str]:
     """The ``hapkit_board`` command line for a scene's device and excitation.
 
     Parameters
@@ -213,8 +214,9 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
         ``impulse`` (force [N], start [s], duration [s]) becomes the hand's push.
     elf : str, optional
         Firmware ELF (default: the built ``hapkit.elf``).
-    realtime : bool
-        Lock the emulated clock to the wall clock (default: as fast as the host answers).
+    realtime : bool, optional
+        Lock the emulated clock to the wall clock (the board keeps its own time); default
+        ``not lockstep``.
     report, link : str, optional
         JSON report file written on exit; symbolic link kept to the pty.
     wait_ms, duration : float, optional
@@ -227,6 +229,9 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
     spin_us : float, optional
         Real time: the longest spin per tick [us] while the board waits for the host's FORCE
         (emulating in 10 us steps, never ahead of the wall clock); default 0, no spin.
+    lockstep : bool
+        The board as fast as the host answers (each STATE waits for its FORCE), asked for
+        by name (deterministic tests); default False: the wall clock.
 
     Returns
     -------
@@ -242,6 +247,8 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
     if imp is not None:
         cmd += ["--hand-force", repr(float(imp.force)), "--hand-start", repr(float(imp.start)),
                 "--hand-duration", repr(float(imp.duration))]
+    if realtime is None:
+        realtime = not lockstep
     if realtime:
         cmd.append("--realtime")
     if report:

@@ -27,10 +27,26 @@ count 0), which is hapsim's delta joint angle (:class:`hapsim.kinematics.Delta`)
 plant's leg torque is ``-command * newton_metres_per_count`` (libnifalcon's
 ``command = -10000 tau``; the emulator takes its unit as N m, an assumption: the scale
 is not published in newton-metres).
+
+Its time (``clock="wall"``, the default): the Falcon's firmware runs its own loop at
+about 1 kHz, which sets the pace of libnifalcon's exchange (one packet written, its reply
+read, the next written: ``FalconComm`` and ``FalconFirmwareNovintSDK::runIOLoop`` wait
+for the reply); the firmware is Novint's binary, not published, so what the emulator
+takes from it is only that pace: a packet is taken at the firmware's next tick of the
+scene's period on the device's own clock (``time.monotonic`` in this process, or the
+time a caller gives), its commands set then (plus the scene's delay beyond one period)
+and held until the next (no watchdog is published), the encoders read at that tick and
+the reply ready then (:attr:`FalconDevice.ready_at`, which
+:class:`hapsim.daemon.ftdi_usb.VirtualFT232R` honours). Between ticks the delta's legs
+are integrated over the real time that passed
+(:meth:`hapsim.lockstep_nd.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
+(named, for deterministic tests): each packet is one period, the reply at once.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from collections import deque
 
 import numpy as np
@@ -70,6 +86,13 @@ class FalconDevice:
         operating point).
     newton_metres_per_count : float
         Leg torque per motor-command count [N m].
+    clock : {"wall", "lockstep"}
+        The device's clock (module notes).
+
+    Raises
+    ------
+    ConfigError
+        Not a 3-D delta scene, a sub-sample delay, an unknown clock.
 
     Attributes
     ----------
@@ -81,11 +104,28 @@ class FalconDevice:
         Homing status bits.
     stats : dict
         ``packets``, ``bad_bytes`` (dropped realigning), ``loaded`` (image bytes).
+    ready_at : float
+        Wall clock: the device's time [s] its last reply is ready at.
+    excursion : float
+        The largest leg displacement from the operating point [rad] (the truth).
     """
 
     def __init__(self, scene, *, expected_image: bytes | None = None,
                  homing_packets: int = 20, power_up_joints_deg=None,
-                 newton_metres_per_count: float = TORQUE_PER_COUNT) -> None:
+                 newton_metres_per_count: float = TORQUE_PER_COUNT,
+                 clock: str = "wall") -> None:
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
+        #: The device itself on the wall clock, None in lockstep.
+        self.wall = self if clock == "wall" else None
+        self.tick_s = float(scene.period)
+        self.ready_at = 0.0
+        self.excursion = 0.0
+        self._t0 = time.monotonic()
+        self._t = 0.0                         # the device's time the plant has reached [s]
+        self._k = -1                          # the last tick that took a packet
+        self._due: deque = deque()            # (time [s], commands) not yet in effect
         dev = scene.device
         if scene.dimension != 3 or dev is None or dev.kind != "delta":
             raise ConfigError("the Falcon drives a 3-D scene with a delta device",
@@ -105,6 +145,9 @@ class FalconDevice:
                               "periods): use a whole delay", file=scene.path,
                               key="device.delay")
         self.delay = int(dev.delay)
+        #: Wall clock: what brings the firmware's own delay of one period to the scene's
+        #: [s] (never negative).
+        self.extra_latency_s = max(0.0, self.delay - 1.0) * self.tick_s
         self._fifo = deque([(0, 0, 0)] * self.delay)
         self.commands = (0, 0, 0)
         self.state = "off"
@@ -137,6 +180,7 @@ class FalconDevice:
                 self.homed = 0
                 self._homing_count = 0
                 self.commands = (0, 0, 0)
+                self._due.clear()
             self.dtr = new
         if self.state == "loader" and self.dtr == 0 and _near(self.baud, LOADING_BAUD):
             self.state = "loader-fast"
@@ -156,8 +200,44 @@ class FalconDevice:
             out.append(t if self.homed >> i & 1 else t - self._power_up[i])
         return tuple(out)
 
-    def feed(self, data: bytes) -> bytes:
-        """Bytes from the host in, the device's bytes out (module notes)."""
+    def now(self) -> float:
+        """The device's own clock [s]: ``time.monotonic`` since it was made."""
+        return time.monotonic() - self._t0
+
+    def run_to(self, t: float) -> None:
+        """Wall clock: the legs integrated to the device's time ``t`` [s], the commands in
+        effect held, each packet's taking effect at its time."""
+        while self._t < t:
+            nxt = t
+            if self._due and self._due[0][0] < nxt:
+                nxt = max(self._due[0][0], self._t)
+            tau = np.array([-c * self.nm_per_count for c in self.commands], float)
+            self.plant.advance_torque(tau, nxt - self._t)
+            self._t = nxt
+            while self._due and self._due[0][0] <= self._t:
+                self.commands = self._due.popleft()[1]
+        while self._due and self._due[0][0] <= self._t:
+            self.commands = self._due.popleft()[1]
+        self.excursion = max(self.excursion,
+                             float(np.abs(self.plant.joints() - self.plant.q0).max()))
+
+    def feed(self, data: bytes, now: float | None = None) -> bytes:
+        """Bytes from the host in, the device's bytes out (module notes).
+
+        Parameters
+        ----------
+        data : bytes
+        now : float, optional
+            The device's time the bytes came at [s] (wall clock; default :meth:`now`).
+
+        Returns
+        -------
+        bytes
+            The answer; on the wall clock the packets' replies are ready at
+            :attr:`ready_at`.
+        """
+        if self.wall is not None and now is None:
+            now = self.now()
         if self.state == "loader":
             if _near(self.baud, LOADER_BAUD) and CHECK_SEND in bytes(data):
                 return CHECK_REPLY
@@ -186,16 +266,26 @@ class FalconDevice:
                 self.stats["bad_bytes"] += 1
                 continue
             del buf[:16]
-            out += self._packet(*pk)
+            out += self._packet(*pk, now=now)
         return bytes(out)
 
-    def _packet(self, commands, leds, homing) -> bytes:
+    def _packet(self, commands, leds, homing, now=None) -> bytes:
         self.stats["packets"] += 1
         self.leds = leds
         if homing and self.homed != 0x7:
             self._homing_count += 1
             if self._homing_count >= self.homing_packets:
                 self.homed = 0x7
+        if self.wall is not None:
+            # the firmware's next tick on its own clock: the legs run to it, the packet's
+            # commands are set there, the encoders read there, the reply ready then
+            self._k = max(math.floor(now / self.tick_s) + 1, self._k + 1)
+            t = self._k * self.tick_s
+            self.run_to(t)
+            self._due.append((t + self.extra_latency_s, tuple(commands)))
+            self.run_to(t)
+            self.ready_at = t
+            return device_packet(self._counts(), self.homed, 0)
         self._fifo.append(tuple(commands))
         due = self._fifo.popleft()
         self.commands = due

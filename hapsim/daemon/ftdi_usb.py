@@ -21,9 +21,13 @@ bulk transfers (every later transfer raises ``USBError`` ENODEV, libusb's
 ``LIBUSB_ERROR_NO_DEVICE``, and the device leaves the bus), a permission refusal on open
 (EACCES, ``LIBUSB_ERROR_ACCESS``), a busy interface (EBUSY).
 
+Time: a device on its own clock (``device.wall``, :class:`hapsim.daemon.falcon_device.
+FalconDevice`'s default) says when its answer is ready (``device.ready_at`` on
+``device.now()``'s clock: the Falcon's firmware answers a packet at its next tick); a bulk
+IN returns only the bytes ready by then, as the chip has them from the UART only then.
 Not modelled: the latency timer's timing (a bulk IN returns what the device has
-answered at once, the status bytes alone when nothing), the FIFOs' sizes, the baud
-rate's time on the wire (a byte takes no time), USB timeouts.
+answered by then at once, the status bytes alone when nothing), the FIFOs' sizes, the
+baud rate's time on the wire (a byte takes no time), USB timeouts.
 """
 
 from __future__ import annotations
@@ -102,6 +106,7 @@ class VirtualFT232R:
         self.transfers = 0
         self.plugged = True
         self._to_host = bytearray()
+        self._later: list = []               # (device time ready [s], bytes) not yet in
         self.strings = {1: "FTDI", 2: "hapsim emulated FT232R", 3: serial}
         self.desc = SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0,
@@ -151,9 +156,11 @@ class VirtualFT232R:
         if req == SIO["reset"]:
             if value == 0:                            # reset: both buffers
                 self._to_host.clear()
+                self._later.clear()
                 dev.line(purge=True)
             elif value == 1:                          # purge RX: what goes to the host
                 self._to_host.clear()
+                self._later.clear()
             elif value == 2:                          # purge TX: what goes to the device
                 dev.line(purge=True)
             else:
@@ -232,13 +239,20 @@ class VirtualFT232R:
             if twice.any():
                 self.duplicated += int(twice.sum())
                 ans = bytes(b for k, b in enumerate(ans) for _ in range(1 + int(twice[k])))
-        self._to_host += ans
+        if ans and getattr(self.device, "wall", None) is not None:
+            self._later.append((self.device.ready_at, ans))
+        else:
+            self._to_host += ans
         return len(data)
 
     def bulk_in(self, buff) -> int:
         """Device -> host: USB packets of the two status bytes and up to 62 data bytes,
         as many as ``buff`` holds (at least the status bytes)."""
         self._count_transfer()
+        if self._later:
+            now = self.device.now()
+            while self._later and self._later[0][0] <= now:
+                self._to_host += self._later.pop(0)[1]
         s0, s1 = self._status()
         pos = 0
         size = len(buff)

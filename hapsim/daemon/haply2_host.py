@@ -24,7 +24,7 @@ a joint its direction bytes turn backwards is refused.
 The board has no framing (:mod:`hapsim.drivers.haply`): a host byte lost or corrupted
 shifts its parser, and it then answers garbage, one byte per write, or nothing. The loop
 re-synchronises it as the 1-DoF driver does (:class:`hapsim.drivers.haply.ResyncRule`:
-the decoder counted a desync, or :data:`SILENT_WRITES` writes went unanswered): the
+the decoder counted a desync, or writes went unanswered for :data:`SILENT_S`): the
 re-arming bytes (:func:`hapsim.drivers.haply.resync_bytes`: zero torque first, then the
 set-up), the link drained, and the set-up's zero write, whose reply is that tick's
 sample. The set-up's offsets are the operating point's joints, as at arming: the
@@ -41,8 +41,8 @@ A host stall (a tick begun more than a period late: a descheduled process) is a 
 never a burst of catch-up writes: the clock goes on from where the host woke, the stall
 is counted (``stalled``), and the board, which held the last torque meanwhile on its own
 clock, is not re-synchronised for it: a late reply is a late sample (the decoder's step
-check widens with the ticks since the last reply read, as the extrapolation's error does)
-and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_WRITES` are
+check widens with the ticks since the last reply read, by the motion the board's torque
+clamp and the joint inertia allow), and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_COUNT` are
 taken for a board out of step. An estimated tick whose newest reading is older than
 :data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise). A
 record with a stall or a zeroed tick is not measured (no uniform loop of the THS).
@@ -62,7 +62,7 @@ import time
 import numpy as np
 
 from hapsim.daemon.haply2_board import Haply2DIYBoard, felt_verdict_of_runs, in_hand_order
-from hapsim.drivers.haply import LONGEST_COMMAND, ResyncRule
+from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.spawn import PtyChild
@@ -98,10 +98,17 @@ END_WAIT_S = 1.0
 #: sample older than this: an estimated tick past it writes zero torque (``held_zero``).
 #: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
 HOLD_BOUND_S = 0.02
-#: The oldest unanswered write's wait [s] without which no count of unanswered writes is
-#: taken for a board out of step (a board answers a write within its pass and a USB
-#: frame, about 1 ms; a late reply or a host stall is not this).
-SILENT_S = 0.05
+#: The oldest unanswered write's wait [s] that shows the board stopped answering (with
+#: more than :data:`SILENT_COUNT` unanswered): a board answers a write within its pass and
+#: a USB frame, about 1 ms; a late reply or a host stall is not this. The hold bound: a
+#: board out of step may hold a torque a garbage command set, and it is re-synchronised
+#: (zero torque) no later than this after the write it stopped answering (before, after
+#: :data:`SILENT_WRITES` writes: 56 ms at 1 kHz, in which 0.123 N m turns a 2e-4 kg m^2
+#: joint 0.96 rad and leaves it at 34 rad/s).
+SILENT_S = HOLD_BOUND_S
+#: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
+#: frame hold a few).
+SILENT_COUNT = 4
 
 
 def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
@@ -243,13 +250,19 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     T = scene.period
     dec = driver.decoder()
     rule = ResyncRule(dec.stats, SILENT_WRITES)
-    # the decoder's step check (an angle no motion could reach from where the last two
-    # replies say the joint is going) is stated for consecutive replies; a reply r ticks
-    # after the last one read may be r (r + 1) / 2 times as far off at the same
-    # acceleration (Taylor's theorem, as estimate_bounds): widened by that, so that a
-    # late reply or one after a host stall is a late sample, never taken for a board out
-    # of step
+    # the decoder's step check (an angle no motion could reach from the linear prediction
+    # of the last two replies, one tick ahead) a time tau after the last reading's write
+    # (a host stall is time, not ticks: the clock went on from it): the prediction then
+    # lags by tau / T - 1 steps of the last velocity, and the joint may accelerate at
+    # most alpha = 0.123 N m over the smallest joint inertia (the board's clamp; a hand on
+    # the handle only adds inertia): the reply is within (tau / T - 1) |q1 - q2| +
+    # alpha tau^2 of it (Taylor's theorem, with a factor 2 of margin). Widened by that, never
+    # narrowed: a late reply, or the first after a host stall, is a late sample, not
+    # bytes of a board out of step
     step0 = float(dec.max_step)
+    ji = getattr(dev, "joint_inertia", None)
+    alpha = (MAX_TORQUE / float(np.min(np.linalg.eigvalsh(np.atleast_2d(ji))))
+             if ji is not None and np.all(np.isfinite(ji)) else 0.0)
     eng = EngineND(scene) if engine is None else engine
     port = eng.port
     xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
@@ -313,7 +326,12 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # others for a board already running
         wait = ARM_TIMEOUT if k == 0 and not replies else REPLY_WAIT_S
         for _ in range(ARM_TRIES):
-            _write(ser, data[:-len(zero)])
+            # a re-synchronisation (k > 0): the whole bytes, the closing zero write too:
+            # the board (no watchdog) takes zero torque right after its set-up, not after
+            # the drain below (a torque a garbage command left was held through it); a
+            # record's first arming leaves it for the sample's write (a lockstep board
+            # would advance a period on it before the record)
+            _write(ser, data if k > 0 else data[:-len(zero)])
             end = time.monotonic() + wait
             # the board answers the zero write when it is in step: wait for it (a board
             # process just started loads its plant first); one out of step may not
@@ -376,13 +394,23 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             time.sleep(deadline - now - SPIN_S)
         while time.perf_counter() < deadline:
             pass
-        r_gap = k - seen
-        dec.max_step = step0 * max(1, r_gap * (r_gap + 1) // 2)
+        tau = time.perf_counter() - t_wrote[seen]   # since the last reading's write
+        if tau > T and alpha > 0 and seen >= 1:
+            v = max(abs(qr[seen, 0] - qr[seen - 1, 0]), abs(qr[seen, 1] - qr[seen - 1, 1]))
+            v = v if v == v else 0.0
+            dec.max_step = max(step0, math.degrees((tau / T - 1.0) * v + alpha * tau * tau))
+        else:
+            dec.max_step = step0
         take(_read(ser))
         unanswered = k + 1 - got                    # (damaged: answered)
-        if unanswered > SILENT_WRITES and (
-                time.perf_counter() - t_wrote[got] < SILENT_S):
-            unanswered = 0                          # a count alone is no evidence
+        if unanswered > SILENT_COUNT:
+            # writes unanswered for SILENT_S are a board that stopped answering (a board
+            # in step answers within its pass and a USB frame, ~1 ms); fewer, or younger,
+            # are late replies (a count alone is no evidence)
+            unanswered = (SILENT_WRITES + 1
+                          if time.perf_counter() - t_wrote[got] >= SILENT_S else 0)
+        else:
+            unanswered = 0
         if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the

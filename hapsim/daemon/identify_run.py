@@ -432,10 +432,16 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
             if port is None:
-                from hapsim.driver_mock import EmbeddedDriverMock
+                from hapsim.driver_mock import WALL_CLOCK_MOCKS, EmbeddedDriverMock
+                hardware = dict(mock_options if mock_options is not None
+                                else drv.mock_hardware())
+                if driver in WALL_CLOCK_MOCKS:
+                    # the board's clock follows the host's pacing: an identification over
+                    # a driver's embedded mock is still lockstep (named here), its probes
+                    # and excitation paced by the commands
+                    hardware.setdefault("clock", "lockstep" if lock else "wall")
                 embedded = EmbeddedDriverMock(driver, dev, Excitation(), rate_hz, seed=noise_seed,
-                                              options=(mock_options if mock_options is not None
-                                                       else drv.mock_hardware()))
+                                              options=hardware)
             if getattr(drv, "probes_direction", False) and \
                     "motor_direction" not in (driver_options or {}):
                 # a wrong motor direction makes the excitation run away: find it first

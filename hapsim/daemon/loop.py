@@ -661,6 +661,12 @@ class HostLoop(Handshake, Recovery, BadFrames):
         estimate = tr.estimate if replies else None
         est_state = EstimatedState()
         run_est = 0
+        # a driver's transport on the wall clock is told of the host's stalls (no catch-up
+        # burst of commands after one); a lockstep or virtual-clock run has none
+        stalled = (getattr(tr, "host_stalled", None)
+                   if replies and not cfg.lockstep and not virtual else None)
+        late_ring = [0] * LATE_WINDOW           # 1 per late tick, the last LATE_WINDOW
+        late_i = late_n = late_old = 0
         period_ns = int(round(1e9 / cfg.rate_hz))
         latest = None
         t_latest = 0.0              # clock time the latest STATE was taken [s]
@@ -731,6 +737,32 @@ class HostLoop(Handshake, Recovery, BadFrames):
             take(receive(0.0))
             if stop.set:
                 break
+            if stalled is not None:
+                behind = mono_ns() - deadline
+                late_ring[late_i] = behind if behind > period_ns else 0
+                late_n += late_ring[late_i] - late_old
+                late_i = (late_i + 1) % LATE_WINDOW
+                late_old = late_ring[late_i]
+                if late_n > LATE_STOP * LATE_WINDOW * period_ns:
+                    # a board without a watchdog holds each torque as long as the host is
+                    # late: a host that is late by half the time feeds the loop energy
+                    # through the varying delay; stop before the device runs away
+                    res.stop_reason = (f"safety: the host was {late_n / 1e6:.0f} ms late "
+                                       f"over its last {LATE_WINDOW} ticks: it cannot hold "
+                                       f"{rate:g} Hz here (a loaded machine without real-time "
+                                       f"priority?); zero torque sent")
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                if behind > period_ns:
+                    # the host is late (a descheduled process, a collection): the ticks it
+                    # missed are not sent now in a burst -- the device held its force over
+                    # them, a known input; a stall of STALL_TICKS or more is a gap in seq
+                    # (the transport), so a measurement does not run across it
+                    res.overruns += 1
+                    if behind >= STALL_TICKS * period_ns:
+                        stalled(int(behind // period_ns))
+                    deadline = mono_ns()
             t_rx = perf()
             if (latest.seq - used_seq) & _U32 >= _HALF or latest.seq == used_seq:
                 # no new sample since the last tick (or only one older than an estimated
@@ -765,6 +797,16 @@ class HostLoop(Handshake, Recovery, BadFrames):
             if now - deadline > period_ns:
                 res.overruns += 1
                 deadline = now
+
+
+#: Host deadlines missed at once that a driver's run marks as a gap in seq (a host stall:
+#: the device held its force over them); a shorter lateness only moves the next deadline.
+STALL_TICKS = 3
+#: A driver's run on the wall clock stops (safety) when its host was late, summed over the
+#: ticks late by a period or more among the last LATE_WINDOW, by more than LATE_STOP of
+#: the window's time (a board without a watchdog held older torques that long).
+LATE_WINDOW = 100
+LATE_STOP = 0.5
 
 
 def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:

@@ -540,6 +540,55 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
+#: A driver's run (host-clocked) whose host missed its deadline in more than this share
+#: of its ticks is not the THS the prediction describes: the device held older forces for
+#: varying times (a late or stalled host), so its record does not state the felt pair.
+LATE_SHARE_MAX = 0.02
+#: Re-synchronisations beyond which a driver's run does not state the felt pair: the
+#: position after each is an estimate (the board's count restarts at the host's guess).
+RESYNCS_STATED = 2
+
+
+def timing_verdict(measured: dict, res, link: dict, *, wall: bool = True) -> None:
+    """Withdraw a driver's run's verdict when its timing or its link leaves the record
+    outside the THS (in place): more than :data:`LATE_SHARE_MAX` of the ticks late by a
+    period or more (``res.overruns``), or more than :data:`RESYNCS_STATED`
+    re-synchronisations. The verdict becomes ``not measurable`` with the reason; the fit
+    stays in the record for who wants to see it.
+
+    Parameters
+    ----------
+    measured : dict
+        :func:`hapsim.daemon.measure.identify_run`'s result.
+    res : hapsim.daemon.loop_types.LoopResult
+        The loop's counters (``overruns``, ``samples``).
+    link : dict
+        The driver transport's ``stats`` (``resyncs``).
+    wall : bool
+        The device kept its own time (not a lockstep run, where the host paces the device:
+        lateness costs nothing and a re-synchronised board has not moved meanwhile).
+    """
+    if not wall:
+        return
+    ticks = max(int(res.samples), 1)
+    late = int(getattr(res, "overruns", 0) or 0)
+    resyncs = int(link.get("resyncs", 0))
+    why = []
+    if late > LATE_SHARE_MAX * ticks:
+        why.append(f"the host missed its deadline in {late} of {ticks} ticks "
+                   f"({100.0 * late / ticks:.1f} % > {100 * LATE_SHARE_MAX:g} %): the device "
+                   f"held older forces for varying times, so the record is not the THS; "
+                   f"rerun on a quieter machine, at a lower rate, or with --lockstep")
+    if resyncs > RESYNCS_STATED:
+        why.append(f"the board was re-synchronised {resyncs} times (> {RESYNCS_STATED}): "
+                   f"the position after each is an estimate")
+    if not why or "k" not in measured:
+        return
+    measured["within"] = False
+    measured["comparable"] = False
+    measured["verdict"] = "not measurable: " + "; ".join(why)
+
+
 def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
     """Close the THS of a scene on a device and measure what is felt.
 
@@ -600,6 +649,8 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         # the run's own driver (its parameters: given, or the scene's protocol_options)
         drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
         measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
+        if drv is not None:
+            timing_verdict(measured, run.res, conn.tr.stats, wall=not opts.lockstep)
         rep = build_report(prep, conn, run, opts, measured, tel_info)
     finally:
         # the handlers stay until the report is made: a SIGINT/SIGTERM after the loop

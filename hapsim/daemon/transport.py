@@ -97,6 +97,18 @@ class InProcessTransport:
         return ""
 
 
+def _is_pty(port: str) -> bool:
+    """Whether ``port`` is a pseudo-terminal's slave (``/dev/pts/N``, followed through a
+    link): Linux's Unix98 pty slaves have the character major numbers 136-143
+    (Documentation/admin-guide/devices.txt)."""
+    try:
+        st = os.stat(port)
+    except (OSError, TypeError, ValueError):
+        return False
+    import stat
+    return stat.S_ISCHR(st.st_mode) and 136 <= os.major(st.st_rdev) <= 143
+
+
 class SerialTransport:
     """Framed protocol over a pyserial port (hardware, or the mock's pseudo-terminal).
 
@@ -134,11 +146,16 @@ class SerialTransport:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.info = {"kind": "serial", "port": port, "baud": baud, "low_latency": False,
                      "low_latency_note": ""}
-        try:
-            self._ser.set_low_latency_mode(True)
-            self.info["low_latency"] = True
-        except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
-            self.info["low_latency_note"] = f"not available: {exc}".strip()
+        if _is_pty(port):
+            # ASYNC_LOW_LATENCY is a serial driver's flag (the FTDI latency timer): a pty
+            # (the embedded mock) has none, and asking only yields ENOTTY (issue 31)
+            self.info["low_latency_note"] = "a pty: not a serial driver"
+        else:
+            try:
+                self._ser.set_low_latency_mode(True)
+                self.info["low_latency"] = True
+            except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
+                self.info["low_latency_note"] = f"not available: {exc}".strip()
         self._dec = fp.StreamDecoder()
         self._timeout = read_timeout
         self._read = self._ser.read

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 
 from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
@@ -207,7 +208,15 @@ class ReplyDecoder(AlignedDecoder):
     max_step_deg : float
         Largest distance of a reply from the linear prediction of the last two taken
         [deg] (2 deg: an acceleration of 35000 rad/s^2 at 1 kHz, or a missed reply at
-        30 rad/s); a reply farther off is misaligned or corrupted.
+        30 rad/s) when it comes within ``period_s`` of the last; a reply farther off is
+        misaligned or corrupted. Later replies get the same acceleration over the real
+        time that passed (``max_step_deg * (dt / period_s)**2``, dt the time between the
+        reads): a board on its own clock moved on while the host was late or stalled,
+        and that is no evidence of a lost place.
+    period_s : float
+        The period the step bound is stated for [s] (1 ms).
+    clock : callable
+        Monotonic time [s] of a read (``time.monotonic``).
     angles : int, optional
         Encoders in a reply (1: the angle is returned as a float; more: a tuple, in port
         order, and ``resolution`` may give one per encoder).
@@ -222,8 +231,12 @@ class ReplyDecoder(AlignedDecoder):
     length = 5
 
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
-                 resolution=None, max_step_deg: float = 2.0, angles: int = 1) -> None:
+                 resolution=None, max_step_deg: float = 2.0, angles: int = 1,
+                 period_s: float = 1e-3, clock=time.monotonic) -> None:
         super().__init__()
+        self.period_s = float(period_s)
+        self._clock = clock
+        self._t_read = self._t_prev = None
         self.angles = int(angles)
         self.length = 1 + 4 * self.angles
         self._fmt = struct.Struct("<" + "f" * self.angles)
@@ -241,6 +254,22 @@ class ReplyDecoder(AlignedDecoder):
         self.stats["damaged"] = 0
         self._bad = 0
         self._free = 0
+
+    def feed(self, data: bytes) -> list:
+        """Replies out of the bytes of one read (the read's time scales the step bound:
+        ``max_step_deg``).
+
+        Parameters
+        ----------
+        data : bytes
+
+        Returns
+        -------
+        list
+            The angles [deg] decoded (tuples with several encoders).
+        """
+        self._t_read = self._clock()
+        return super().feed(data)
 
     def reset_prediction(self, jumps: int = 1) -> None:
         """Forget the last replies (after a re-synchronisation the angles start afresh):
@@ -278,18 +307,32 @@ class ReplyDecoder(AlignedDecoder):
         if self._free:
             # a jump allowed (reset_prediction): predict from this reply on
             self._free -= 1
+            self._t_prev = self._t_read
             self._prev2, self._prev = None, a
             return a[0] if self.angles == 1 else a
         if self._prev is not None:
             # a flipped exponent bit is still a whole count (x 2^k, half the time): no
-            # joint moves that far from where its last two replies say it is going
+            # joint moves that far from where its last two replies say it is going, in the
+            # time that passed
+            step = self.max_step
+            if self._t_read is not None and self._t_prev is not None:
+                r = (self._t_read - self._t_prev) / self.period_s
+                if r > 1.0:
+                    step *= r * r
             k = 0
             while k < na:
-                guess = (self._prev[k] if self._prev2 is None
-                         else 2.0 * self._prev[k] - self._prev2[k])
-                if abs(a[k] - guess) > self.max_step:
+                p1 = self._prev[k]
+                guess = p1 if self._prev2 is None else 2.0 * p1 - self._prev2[k]
+                # off the linear prediction, a reply is still a joint's motion when it
+                # moved no more than last time plus the step: the board samples when a
+                # write arrives, so two replies a late host's writes brought close
+                # together are close in time too, though the last two were far apart
+                if abs(a[k] - guess) > step and (
+                        self._prev2 is None
+                        or abs(a[k] - p1) > abs(p1 - self._prev2[k]) + step):
                     return None
                 k += 1
+        self._t_prev = self._t_read
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 

@@ -54,6 +54,7 @@ skips one number there, so that a measurement does not run across the position's
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
@@ -66,8 +67,24 @@ __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
 REARM_INTERVAL = 0.1
 #: Listening before arming, for records nobody asked for (a streaming firmware) [s].
 LISTEN_S = 0.03
-#: Commands in a row without an answer after which the device is re-synchronised.
+#: Commands in a row without an answer after which the device may be re-synchronised
+#: (with :data:`SILENT_S`: both must hold).
 SILENT_COMMANDS = 4
+#: The oldest unanswered command's wait [s] that shows the board stopped answering (it is
+#: inside a command that swallows the writes): a board answers a write within its pass
+#: and a USB frame (about 1 ms); a late reply, a slow host or a host stall is not this.
+SILENT_S = 0.02
+#: Re-synchronisations within one second beyond which the link is declared unfit and the
+#: run ends (each puts zero torque first; the position after each is an estimate). One
+#: lost host byte in 200 costs the Haply M3 about 16 a second at 1 kHz (a 6-byte write).
+MAX_RESYNCS_PER_S = 50
+#: The shortest time between two re-synchronisations [s]: one costs the board a set-up
+#: (2 ms on the Haply M3) and the link ~570 bytes; a second one sooner is no new evidence
+#: (zero torque is commanded meanwhile).
+RESYNC_GAP_S = 0.005
+#: Longest time [s] the host lets a board without a watchdog hold a torque computed from
+#: a sample older than this: a missed tick past it commands zero torque.
+HOLD_BOUND_S = 0.02
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
 _RING = 64
 
@@ -177,8 +194,11 @@ class DriverTransport:
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
+        self._t_resync = -math.inf            # monotonic time of the last re-synchronisation
+        self._resync_times: deque = deque()   # those of the last second
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
-                      "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0}
+                      "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0,
+                      "held_zero": 0, "host_stalls": 0}
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
                      "low_latency": False, "driver": driver.name,
                      "low_latency_note": "driver protocol"}
@@ -308,19 +328,85 @@ class DriverTransport:
                             - self._sent_us[self._cmd % _RING] >= self._deadline_us):
             if self._stalled():
                 self._resync()
-            else:
-                self._command(self.driver.encode_force(self._force))
+                return
+            if (self._s_last >= 0 and self._now_us()
+                    - self._sent_us[self._s_last % _RING] > HOLD_BOUND_S * 1e6):
+                # no fresh sample for HOLD_BOUND_S: the force was computed from where the
+                # device was, not where it is; a board without a watchdog would hold it
+                self._force = 0.0
+                self.stats["held_zero"] += 1
+            self._command(self.driver.encode_force(self._force))
+
+    def host_stalled(self, ticks: int) -> None:
+        """The host loop missed ``ticks`` of its deadlines at once (the host stalled): no
+        catch-up writes are sent for them (the device held its force meanwhile, a known
+        input); when every command is answered, ``seq`` skips those ticks, so a
+        measurement does not run across the stall as if it were one period (the host
+        loop calls this).
+
+        Parameters
+        ----------
+        ticks : int
+            Deadlines missed, >= 1.
+        """
+        self.stats["host_stalls"] += 1
+        if not self._armed or self._answered != self._cmd or ticks < 1:
+            return
+        t_us = self._sent_us[self._cmd % _RING]
+        for _ in range(int(ticks)):
+            self._cmd += 1
+            self._sent_us[self._cmd % _RING] = t_us
+        self._answered = self._cmd
+        self.stats["missing"] += int(ticks)
 
     def _stalled(self) -> bool:
         """Answers stopped although commands go out (more than :data:`SILENT_COMMANDS`
-        unanswered, armed, an unframed driver): the device may be inside a command that
-        swallows them (a garbage set-up); :meth:`_resync` puts it back in step."""
-        return (self.driver.unframed and self._armed
-                and self._cmd - self._answered > SILENT_COMMANDS)
+        unanswered and the oldest of them waiting :data:`SILENT_S`, armed, an unframed
+        driver): the device may be inside a command that swallows them (a garbage
+        set-up); :meth:`_resync` puts it back in step. A count alone is no evidence: a
+        board answering late, or a host that sent several ticks while its reads were
+        behind, has unanswered commands that will be answered."""
+        if not (self.driver.unframed and self._armed
+                and self._cmd - self._answered > SILENT_COMMANDS):
+            return False
+        if self._deadline_us > 0:
+            # a mock paced by the commands (a lockstep run): its time is the commands'
+            return True
+        oldest = self._sent_us[(self._answered + 1) % _RING]
+        return self._now_us() - oldest >= SILENT_S * 1e6
 
     def _resync(self) -> None:
         """The device lost its place in the byte stream: the driver's re-synchronisation
-        (zero force first, then its set-up), as one command; the force held is zero."""
+        (zero force first, then its set-up), as one command; the force held is zero.
+
+        Bounded in time and bytes: not sooner than :data:`RESYNC_GAP_S` after the last
+        one (meanwhile zero torque is commanded), and not more than
+        :data:`MAX_RESYNCS_PER_S` within a second.
+
+        Raises
+        ------
+        DeviceError
+            A re-synchronisation beyond :data:`MAX_RESYNCS_PER_S` in one second (the link
+            loses the board's place faster than it can be restored: zero torque has been
+            sent).
+        """
+        now = time.monotonic()
+        if now - self._t_resync < RESYNC_GAP_S:
+            self._force = 0.0
+            self._command(self.driver.encode_force(0.0))
+            return
+        recent = self._resync_times
+        while recent and now - recent[0] > 1.0:
+            recent.popleft()
+        if len(recent) >= MAX_RESYNCS_PER_S:
+            self._force = 0.0
+            self._write(self.driver.stop_bytes(self._x_last))
+            raise DeviceError(
+                f"the {self.driver.name} board lost its place in the byte stream more than "
+                f"{MAX_RESYNCS_PER_S} times in a second: the link is not fit for a run (zero "
+                f"torque sent; decoder {dict(self._dec.stats)})")
+        recent.append(now)
+        self._t_resync = now
         self.stats["resyncs"] += 1
         self._force = 0.0
         # where the device is now: the last two records extrapolated to this command (a

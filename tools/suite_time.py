@@ -1,0 +1,123 @@
+"""The suite's time beside CPU-bound processes, and where it goes (issue 31 item 2).
+
+Usage::
+
+    python tools/suite_time.py [--busy 1] [--top 20] [--json docs/suite_time.json]
+                               [-- extra pytest arguments]
+
+Starts ``--busy`` CPU-bound processes (``python -c 'while 1: pass'``, stopped at the end),
+runs the README's test command (``python -m pytest -q``, two pytest-xdist workers) with the
+suite's ``--cpu-time`` option (tests/conftest.py: CPU seconds of the worker and of the
+children it waited for, per test), and prints the wall seconds against the 6-minute budget
+(the ratio), the load before and after, the CPU seconds in total, and the heaviest tests
+and modules by CPU seconds. Writes the same as JSON with ``--json``. A measurement program,
+not a test: the wall figure is only the budget's when the machine has nothing else
+running than the ``--busy`` processes (the load is written beside it). Exit status:
+pytest's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+from provenance import REPO, command_line  # tools/, beside this file
+
+#: The project's budget for the README's test command, seconds (2 cores, one busy process).
+BUDGET_S = 360.0
+
+
+def main(argv=None) -> int:
+    """Run the suite as described in the module docstring.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        pytest's exit status.
+    """
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--busy", type=int, default=1,
+                    help="CPU-bound processes beside the suite (default 1, the budget's)")
+    ap.add_argument("--top", type=int, default=20, help="heaviest tests and modules shown")
+    ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("pytest_args", nargs="*", help="after --: more pytest arguments")
+    a = ap.parse_args(argv)
+    busy = [subprocess.Popen([sys.executable, "-c", "while 1: pass"])
+            for _ in range(a.busy)]
+    tmp = tempfile.mkdtemp(prefix="suite_time_")
+    out = os.path.join(tmp, "cpu.json")
+    try:
+        time.sleep(2.0)                          # the busy processes are running
+        load0 = os.getloadavg()[0]
+        cmd = [sys.executable, "-m", "pytest", "-q", "--cpu-time=0", f"--cpu-time-json={out}",
+               *a.pytest_args]
+        print(f"suite_time: {' '.join(cmd[1:])} beside {a.busy} busy process(es), "
+              f"load {load0:.2f}", file=sys.stderr)
+        t0 = time.perf_counter()
+        rc = subprocess.call(cmd, cwd=str(REPO), stdout=sys.stderr)   # progress on stderr
+        wall = time.perf_counter() - t0
+        load1 = os.getloadavg()[0]
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    try:
+        with open(out) as f:
+            tests = json.load(f)["tests"]
+    except (OSError, ValueError):
+        tests = {}
+    finally:
+        for name in os.listdir(tmp):
+            os.unlink(os.path.join(tmp, name))
+        os.rmdir(tmp)
+    cpu = lambda r: r["cpu"] + r["children"]                            # noqa: E731
+    heavy = sorted(tests.items(), key=lambda kv: -cpu(kv[1]))[:a.top]
+    mods = collections.defaultdict(lambda: [0.0, 0.0, 0])
+    for node, r in tests.items():
+        m = mods[node.split("::")[0]]
+        m[0] += cpu(r)
+        m[1] += r["wall"]
+        m[2] += 1
+    res = {"command": command_line("tools/suite_time.py", argv),
+           "pytest": "python -m pytest -q " + " ".join(a.pytest_args),
+           "busy": a.busy, "cores": os.cpu_count(), "load_before": round(load0, 2),
+           "load_after": round(load1, 2), "exit": rc, "tests": len(tests),
+           "wall_s": round(wall, 1), "budget_s": BUDGET_S,
+           "wall_over_budget": round(wall / BUDGET_S, 3),
+           "cpu_own_s": round(sum(r["cpu"] for r in tests.values()), 1),
+           "cpu_children_s": round(sum(r["children"] for r in tests.values()), 1),
+           "heaviest_tests": [{"test": n, "cpu_s": round(cpu(r), 2),
+                               "children_s": round(r["children"], 2),
+                               "wall_s": round(r["wall"], 2)} for n, r in heavy],
+           "heaviest_modules": [{"module": n, "cpu_s": round(v[0], 1), "wall_s": round(v[1], 1),
+                                 "tests": v[2]}
+                                for n, v in sorted(mods.items(), key=lambda kv: -kv[1][0])
+                                [:a.top]]}
+    print(f"suite: {res['wall_s']} s wall = {res['wall_over_budget']:.2f} x the "
+          f"{BUDGET_S:.0f} s budget, beside {a.busy} busy process(es) on {res['cores']} "
+          f"cores, load {res['load_before']} -> {res['load_after']}; CPU {res['cpu_own_s']} s "
+          f"in the workers + {res['cpu_children_s']} s in their children; exit {rc}")
+    for t in res["heaviest_tests"]:
+        print(f"  {t['cpu_s']:7.2f} s CPU ({t['children_s']:6.2f} children) "
+              f"{t['wall_s']:7.2f} s wall  {t['test']}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(res, f, indent=1)
+            f.write("\n")
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
