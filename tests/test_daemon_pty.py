@@ -322,7 +322,13 @@ def test_host_clocked_real_time_run_completes_and_ends_with_zero_force():
 
 
 def test_run_help_teaches(capsys):
+    """``run --help`` fits a screen (issue 31: it was 247 lines) and says where the rest
+    is; ``--help-all`` has the rest: every option, what the numbers mean."""
     assert main(["run", "--help"]) == 0
+    short = capsys.readouterr().out
+    assert len(short.splitlines()) <= 45 and "--help-all" in short and "examples" in short
+    assert "--allow-unstable" not in short
+    assert main(["run", "--help-all"]) == 0
     out = capsys.readouterr().out
     for word in ("temporary hybrid system", "exit codes", "turnaround", "--allow-unstable",
                  "examples", "k = m |s|^2"):

@@ -324,7 +324,7 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
                  "ftdi://0x0403:0xcb48/1"]) == 1
     err = capsys.readouterr().err
     assert "libusb" in err or "no Novint Falcon" in err, err
-    assert main(["run", "--help"]) == 0
+    assert main(["run", "--help-all"]) == 0
     h = capsys.readouterr().out
     assert "--driver falcon --firmware FILE" in h and "ftdi://0x0403:0xcb48/1" in h
 

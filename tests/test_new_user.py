@@ -526,8 +526,8 @@ def test_help_texts_have_no_none_default_and_baud_metavar(capsys):
     out = capsys.readouterr().out
     assert "default: None" not in out and "(default: the --paper preset, else 0.0)" in " ".join(
         out.split())
-    for command in ("run", "identify"):    # B is the virtual damping, not a baud rate
-        assert main([command, "--help"]) == 0
+    for argv in (["run", "--help-all"], ["identify", "--help"]):  # B: a damping, not a baud
+        assert main(argv) == 0
         assert "--baud BAUD" in capsys.readouterr().out
 
 

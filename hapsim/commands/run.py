@@ -46,6 +46,46 @@ code. It reports the link (replies missing, bytes dropped, readings against the 
 encoders) and a verdict (ok, degraded); the felt matrices are not measured through the
 Falcon's counts. Permissions and the udev rule: docs/devices.md."""
 
+#: ``hapsim run --help``: what fits a screen (the rest: ``--help-all``, docs/commands.md).
+_SHORT_DESCRIPTION = """\
+Run a scene in real time against a force-feedback device (without --port: the embedded
+mock behind a pty) and measure the stiffness k and damping b the hand feels, beside what
+the analysis predicted for the scene's virtual (K, B). A 2-D or 3-D scene is measured as
+felt stiffness and damping MATRICES (--amplitude; the linearisation bound at it;
+--driver haply: the Haply 2DIY's bytes). Common options below; every option, what the
+numbers mean, faults and drivers: 'hapsim run --help-all' and docs/commands.md."""
+
+_SHORT_EPILOG = """\
+examples:
+  hapsim run configs/wall.yaml
+  hapsim run configs/felt_wall.yaml --lockstep --json
+  hapsim run configs/pantograph_wall.yaml --lockstep       2-D: felt matrices
+  hapsim run configs/wall.yaml --port /dev/ttyACM0 --telemetry wall.hst
+exit codes: 0 ran (or stopped by SIGINT/SIGTERM), 1 refused, safety stop or device
+  fault, 2 bad input."""
+
+#: The options ``hapsim run --help`` shows; the others appear with ``--help-all``.
+COMMON_OPTIONS = ("--help", "--help-all", "--port", "--duration", "--lockstep", "--rate",
+                  "--telemetry", "--driver", "--device", "--amplitude", "--json", "--view")
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: the full description, every option and the long epilog, then exit."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0,
+                         help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        for action in parser._actions:
+            if hasattr(action, "full_help"):
+                action.help = action.full_help
+        parser.description, parser.epilog, parser.usage = parser.full_text
+        parser.print_help()
+        parser.exit()
+
+
 _EPILOG = """\
 what the numbers mean:
   target      the (k, b) the scene asked for, with its f0 and zeta, and whether it is
@@ -169,7 +209,23 @@ def register(sub) -> None:
                         "generation (hAPI hardwareVersion 2 or 3: its motor and encoder "
                         "direction bytes and encoder counts per revolution; default gen3)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("--help-all", action=_HelpAll,
+                   help="every option, what the report's numbers mean, faults, drivers")
+    _shorten_help(p)
     p.set_defaults(func=run)
+
+
+def _shorten_help(p: argparse.ArgumentParser) -> None:
+    """Make ``hapsim run --help`` fit a screen (issue 31: it was 247 lines): the short
+    description and examples, the options of :data:`COMMON_OPTIONS` only; ``--help-all``
+    puts back the full text (kept on the parser) and every option's help."""
+    p.full_text = (p.description, p.epilog, None)
+    p.description, p.epilog = _SHORT_DESCRIPTION, _SHORT_EPILOG
+    p.usage = "hapsim run [options] SCENE   (every option: hapsim run --help-all)"
+    for action in p._actions:
+        if action.option_strings and not set(action.option_strings) & set(COMMON_OPTIONS):
+            action.full_help = action.help
+            action.help = argparse.SUPPRESS
 
 
 def _announce(port, n_samples, protocol: str = "the framed protocol", note: str = "") -> None:
