@@ -466,9 +466,9 @@ _KEYS = [
             "must exist (the example: a scene in configs/).",
         example="excitation: {profile: hand_force.csv}"),
     # ------------------------------------------------------------------ audio
-    Key("audio.rate_hz", "number", "Hz", minimum=0.0, strict=True,
+    Key("audio.rate_hz", "number", "Hz", minimum=0.0, strict=True, limits_from="RATE_RANGE",
         doc="Audio rate: every virtual mass runs at it; a whole multiple N of the scene's "
-            "`rate_hz` (N audio steps per device period).",
+            "`rate_hz` (N audio steps per device period, N <= 10000).",
         example="audio: {rate_hz: 48000, listen: [{mass: hand}]}"),
     Key("audio.listen", "list",
         doc="Listening points, one output channel each (non-empty); see `audio.listen[]`.",

@@ -106,6 +106,10 @@ def _replace_line(text: str, line: int, old: str, new: str) -> str:
     ("pantograph_wall.yaml", 16, "stiffness: 1000", "stiffness: 1e308", "planes[0].stiffness"),
     # a grip spring of 1e308 N/m (its exponential overflowed)
     ("hand_wall.yaml", 22, "[300, 3000]", "1e308", "device.hand.grip_stiffness"),
+    # an audio rate of 4.8e16 Hz (simulate asked for 349 TiB) and of 1e9 Hz (check silent
+    # for minutes): the rate range, and at most MAX_AUDIO_SUBSTEPS per device period
+    ("audio_string.yaml", 92, "48000", "4.8e16", "audio.rate_hz"),
+    ("audio_string.yaml", 92, "48000", "1e9", "audio.rate_hz"),
 ])
 def test_the_fuzz_findings_are_answered(tmp_path, name, line, old, new, key):
     """Each traceback the fuzz found is now a verdict (exit 1) or a refusal naming the key."""

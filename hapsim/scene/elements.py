@@ -320,6 +320,13 @@ class Audio:
 
 
 
+#: Most audio sub-steps per device period: 10000 (e.g. 192 kHz audio over a 19.2 Hz
+#: loop). The check's multirate map and the engine's audio buffers grow with it; a ratio of
+#: 1e6 kept ``hapsim check`` silent for minutes and one of 4.8e13 asked ``simulate`` for
+#: 349 TiB (issue 31's fuzz).
+MAX_AUDIO_SUBSTEPS = 10000
+
+
 def audio_substeps(audio_rate: float, rate_hz: float) -> int:
     """Audio sub-steps per device period, ``N = audio_rate / rate_hz``.
 
@@ -336,13 +343,19 @@ def audio_substeps(audio_rate: float, rate_hz: float) -> int:
     Raises
     ------
     ValueError
-        When the ratio is not a whole number >= 1 (to 1e-9 relative).
+        When the ratio is not a whole number >= 1 (to 1e-9 relative), or is above
+        :data:`MAX_AUDIO_SUBSTEPS`.
     """
     r = float(audio_rate) / float(rate_hz)
     n = round(r)
     if n < 1 or abs(r - n) > 1e-9 * r:
         raise ValueError(f"the audio rate {audio_rate:g} Hz must be a whole multiple of "
                          f"rate_hz {rate_hz:g} Hz (ratio {r:g})")
+    if n > MAX_AUDIO_SUBSTEPS:
+        raise ValueError(f"the audio rate {audio_rate:g} Hz is {r:g} times rate_hz "
+                         f"{rate_hz:g} Hz; valid: at most {MAX_AUDIO_SUBSTEPS} audio steps "
+                         f"per device period (audio.rate_hz <= "
+                         f"{MAX_AUDIO_SUBSTEPS * float(rate_hz):g} Hz here)")
     return int(n)
 
 
