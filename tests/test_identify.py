@@ -113,8 +113,8 @@ def test_blind_identification_50_random_devices():
     """Blind identification on the lockstep mock: 50 seeded random devices (m 0.02-1 kg,
     b0 0-5 N s/m, fc 0-0.3 N, d 0-3, quantum 0-20 um, noise 0-5 um; a quarter without
     quantum, a quarter without noise; 2 s records: 3 s ones miss as often). Every true value lies inside its reported interval
-    in at least 95 % of the cases, quantity by quantity; m and b0 within 2 % wherever the
-    noise is 0."""
+    in at least 95 % of the cases, quantity by quantity; m and b0 to 1e-6 wherever the
+    record is exact (no noise, no quantum)."""
     rng = np.random.default_rng(20261121)
     misses = {}
     n = 50
@@ -137,9 +137,11 @@ def test_blind_identification_50_random_devices():
         for k, v in ok.items():
             if not v:
                 misses[k] = misses.get(k, 0) + 1
-        if nz == 0:
-            assert abs(fit.mass.value / m - 1) < 0.02, (i, dev, fit.mass)
-            assert abs(fit.friction.value - b) < 0.02 * b, (i, dev, fit.friction)
+        if nz == 0 and q == 0:
+            # an exact record determines the device to the optimiser's resolution (the
+            # intervals' floor, POSITION_FLOOR over millimetres of motion: ~1e-7)
+            assert abs(fit.mass.value / m - 1) < 1e-6, (i, dev, fit.mass)
+            assert abs(fit.friction.value - b) < 1e-6 * max(b, 1.0), (i, dev, fit.friction)
     assert all(v <= 0.05 * n for v in misses.values()), misses
 
 

@@ -70,7 +70,9 @@ LAYERS = (
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
                 "hapsim.plots.workspace", "hapsim.plots.zwidth")),
     ("devices and sound", ("hapsim.driver_mock", "hapsim.audio")),
-    ("daemon", ("hapsim.daemon",)),
+    # hapsim.view: the live view reads the daemon's telemetry and the audio controller,
+    # and the run (hapsim.daemon.runner) starts it beside its loop
+    ("daemon", ("hapsim.daemon", "hapsim.view")),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
                      "hapsim")),
 )

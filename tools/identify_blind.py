@@ -2,19 +2,25 @@
 
 Usage::
 
-    python tools/identify_blind.py [--n 30] [--seed 19] [--duration 4] [--busy 0.5]
+    python tools/identify_blind.py [--n 30] [--seed 19] [--busy 2] [--fractional]
                                    [--mode port|inprocess] [--json docs/identify_blind.json]
 
 ``--mode port`` (default): each hidden device is a scene file given to a standalone
 ``hapsim mock --scene DEV.yaml`` (real time, its own process, a real pty), identified by
-``hapsim identify --port PORT --json`` as a user would; the first ``busy`` fraction of the
-devices run beside a CPU-bound process (a busy loop this program starts and stops).
+``hapsim identify --port PORT --json`` with its default options (no --force-limit, no
+--duration, no --envelope: the excitation designs itself), as a user would; every device
+runs beside ``--busy`` CPU-bound processes (busy loops this program starts and stops).
 ``--mode inprocess``: the lockstep in-process mock (no real time), as the test suite's.
 
-The devices: m 0.02-2 kg (log-uniform), b0 0-5 N s/m, Coulomb friction 0-0.5 N, d 1-20
-samples (d = 0 exists in lockstep only; ``inprocess`` draws 0-20), encoder quantum 0-20 um
-and noise 0-5 um (each zero for a quarter of the devices). Force limit 4 N (0.1 F_lim
-steps of the excitation break a 0.5 N Coulomb friction loose), envelope 10 mm.
+The devices (issue 29): m 0.02-2 kg (log-uniform), b0 0-5 N s/m, Coulomb friction 0-0.5 N,
+d 1-20 samples (d = 0 exists in lockstep only; ``inprocess`` draws 0-20; ``--fractional``:
+a real number of periods, 1-20), sensor noise 0-50 um and encoder quantum 0-20 um (each
+zero for a quarter of the devices), force limit 10 N.
+
+A row counts as identified when ``identify`` printed a device; a safety stop is the loop's
+``safety_stop``; the coverage of a quantity is the share of identified devices whose truth
+lies inside the reported interval (d: the reported delay interval, ``delay_range`` or the
+real-valued ``delay_interval``, holds the truth).
 
 Prints one row per device (truth, estimate, interval, misses), the coverage per quantity
 (the share of devices whose truth lies in the reported interval; d: exact), the exit codes
@@ -40,15 +46,16 @@ from provenance import command_line  # tools/, beside this file
 QUANTITIES = ("m", "b0", "fc+", "fc-", "d", "q", "noise")
 
 
-def draw(rng, realtime: bool) -> dict:
+def draw(rng, realtime: bool, fractional: bool = False) -> dict:
     """One hidden device (module notes)."""
     return {"mass": float(np.exp(rng.uniform(math.log(0.02), math.log(2.0)))),
             "friction": float(rng.uniform(0.0, 5.0)),
             "coulomb": float(rng.uniform(0.0, 0.5)),
-            "delay": int(rng.integers(1 if realtime else 0, 21)),
+            "delay": (round(float(rng.uniform(1.0, 20.0)), 3) if fractional else
+                      int(rng.integers(1 if realtime else 0, 21))),
             "position_resolution": float(rng.uniform(0, 20e-6)) if rng.random() < 0.75
             else 0.0,
-            "noise": float(rng.uniform(0, 5e-6)) if rng.random() < 0.75 else 0.0,
+            "noise": float(rng.uniform(0, 50e-6)) if rng.random() < 0.75 else 0.0,
             "hold": "zoh", "force_limit": 10.0}
 
 
@@ -57,7 +64,7 @@ def busy_loop() -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
 
 
-def identify_port(dev: dict, duration: float, seed: int, tmp: str) -> tuple[dict, int, str]:
+def identify_port(dev: dict, seed: int, tmp: str) -> tuple[dict, int, str]:
     """``hapsim identify --port`` against ``hapsim mock --scene``; (JSON, exit, stderr)."""
     path = os.path.join(tmp, f"dev{seed}.yaml")
     with open(path, "w") as fh:
@@ -72,8 +79,7 @@ def identify_port(dev: dict, duration: float, seed: int, tmp: str) -> tuple[dict
             return {}, -1, "mock did not start: " + line + mock.stderr.read()
         port = line.split()[1]
         r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
-                            "--json", "--force-limit", "4", "--duration", str(duration),
-                            "--seed", str(seed)], capture_output=True, text=True,
+                            "--json", "--seed", str(seed)], capture_output=True, text=True,
                            timeout=600)
     finally:
         mock.terminate()
@@ -88,14 +94,14 @@ def identify_port(dev: dict, duration: float, seed: int, tmp: str) -> tuple[dict
     return out, r.returncode, r.stderr
 
 
-def identify_inprocess(dev: dict, duration: float, seed: int) -> tuple[dict, int, str]:
+def identify_inprocess(dev: dict, seed: int) -> tuple[dict, int, str]:
     """The lockstep in-process mock; (the JSON ``hapsim identify`` would print, exit, '')."""
     from hapsim.commands.identify import identify
     from hapsim.errors import HapsimError
     from hapsim.scene import Device
     try:
-        fit, rec = identify(device=Device(**dev), transport="inprocess", duration=duration,
-                            force_limit=4.0, seed=seed, progress=False,
+        fit, rec = identify(device=Device(**dev), transport="inprocess", seed=seed,
+                            progress=False,
                             handle_signals=False)
     except HapsimError as exc:
         return {"error": {"type": type(exc).__name__, "message": str(exc)}}, 1, ""
@@ -117,46 +123,60 @@ def check(dev: dict, out: dict) -> dict:
     return {"m": inside("mass", dev["mass"]), "b0": inside("friction", dev["friction"]),
             "fc+": inside("coulomb_pos", dev["coulomb"]),
             "fc-": inside("coulomb_neg", dev["coulomb"]),
-            "d": fit["delay"] == dev["delay"] and fit["hold"] == "zoh",
+            "d": _delay_inside(fit, dev["delay"]) and fit["hold"] == "zoh",
             "q": inside("position_resolution", dev["position_resolution"]),
             "noise": inside("noise", dev["noise"])}
+
+
+def _delay_inside(fit: dict, truth: float) -> bool:
+    """The reported delay interval holds the truth (a real-valued one when reported)."""
+    iv = fit.get("delay_interval")
+    if iv:
+        return bool(iv["lo"] <= truth <= iv["hi"])
+    lo, hi = fit.get("delay_range") or (fit["delay"], fit["delay"])
+    return bool(lo <= truth <= hi)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=30)
     ap.add_argument("--seed", type=int, default=19)
-    ap.add_argument("--duration", type=float, default=4.0)
-    ap.add_argument("--busy", type=float, default=0.5,
-                    help="fraction of the devices identified beside a CPU-bound process")
+    ap.add_argument("--busy", type=int, default=2,
+                    help="CPU-bound processes running beside every identification")
+    ap.add_argument("--fractional", action="store_true",
+                    help="hidden delays a real number of periods (1-20)")
     ap.add_argument("--mode", choices=("port", "inprocess"), default="port")
     ap.add_argument("--json", metavar="FILE", help="write the results there")
     a = ap.parse_args(argv)
     rng = np.random.default_rng(a.seed)
     rows = []
     t0 = time.time()
-    n_busy = int(round(a.busy * a.n)) if a.mode == "port" else 0
+    n_busy = a.busy if a.mode == "port" else 0
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.n):
-            dev = draw(rng, a.mode == "port")
-            busy = busy_loop() if i < n_busy else None
+            dev = draw(rng, a.mode == "port", a.fractional)
+            busy = [busy_loop() for _ in range(n_busy)]
             t1 = time.time()
             try:
                 if a.mode == "port":
-                    out, code, err = identify_port(dev, a.duration, a.seed * 1000 + i, tmp)
+                    out, code, err = identify_port(dev, a.seed * 1000 + i, tmp)
                 else:
-                    out, code, err = identify_inprocess(dev, a.duration, i)
+                    out, code, err = identify_inprocess(dev, i)
             finally:
-                if busy is not None:
-                    busy.terminate()
-                    busy.wait()
+                for b in busy:
+                    b.terminate()
+                    b.wait()
             ok = check(dev, out)
             fit = out.get("device") or {}
-            row = {"i": i, "busy": busy is not None, "truth": dev, "exit": code,
+            lp = out.get("loop") or {}
+            row = {"i": i, "busy": len(busy), "truth": dev, "exit": code,
+                   "identified": bool(out.get("device")),
+                   "safety_stop": bool(lp.get("safety_stop")),
                    "traceback": "Traceback" in err, "ok": ok, "seconds": time.time() - t1,
                    "error": (out.get("error") or {}).get("message"),
                    "estimate": {k: fit.get(k) for k in ("mass", "friction", "coulomb_pos",
                                                         "coulomb_neg", "delay", "hold",
+                                                        "delay_interval", "delay_range",
                                                         "position_resolution", "noise",
                                                         "explained")},
                    "loop": {k: (out.get("loop") or {}).get(k)
@@ -169,15 +189,22 @@ def main(argv=None) -> int:
                    f"fc^ {e['coulomb_pos']['value']:.3g}/{e['coulomb_neg']['value']:.3g} "
                    f"d^ {e['delay']}" if e.get("mass") else f"no fit: {row['error']}")
             late = (row["loop"].get("account") or {}).get("late")
-            print(f"{i:3d} {'busy' if row['busy'] else 'idle'} m {dev['mass']:.4g} "
+            print(f"{i:3d} busy {row['busy']} m {dev['mass']:.4g} "
                   f"b0 {dev['friction']:.3g} fc {dev['coulomb']:.3g} d {dev['delay']} "
                   f"q {dev['position_resolution'] * 1e6:.3g}um nz {dev['noise'] * 1e6:.3g}um"
-                  f" | {est} | exit {code} late {late} {row['seconds']:.1f}s"
+                  f" | {est} | exit {code}{' SAFETY' if row['safety_stop'] else ''} late "
+                  f"{late} {row['seconds']:.1f}s"
                   f"{' MISS ' + ','.join(bad) if bad else ''}"
                   f"{' TRACEBACK' if row['traceback'] else ''}", flush=True)
-    cover = {q: sum(r["ok"][q] for r in rows) / max(len(rows), 1) for q in QUANTITIES}
+    ident = [r for r in rows if r["identified"]]
+    cover = {q: sum(r["ok"][q] for r in ident) / max(len(ident), 1) for q in QUANTITIES}
+    inside = sum(sum(r["ok"].values()) for r in ident)
+    total = sum(len(r["ok"]) for r in ident)
     summary = {"n": len(rows), "busy": n_busy, "mode": a.mode, "seed": a.seed,
-               "duration_s": a.duration, "coverage": cover,
+               "fractional": a.fractional, "identified": len(ident),
+               "safety_stops": sum(r["safety_stop"] for r in rows),
+               "coverage_all": inside / max(total, 1), "coverage": cover,
+               "load_before": os.getloadavg()[0],
                "exit_codes": {str(c): sum(r["exit"] == c for r in rows)
                               for c in sorted({r["exit"] for r in rows})},
                "tracebacks": sum(r["traceback"] for r in rows),
@@ -185,6 +212,9 @@ def main(argv=None) -> int:
                                  for r in rows),
                "wall_s": time.time() - t0,
                "command": command_line("tools/identify_blind.py", argv)}
+    print(f"identified {len(ident)} of {len(rows)}, safety stops {summary['safety_stops']}, "
+          f"truths inside their intervals {inside} of {total} "
+          f"({100 * summary['coverage_all']:.1f} %)")
     print("coverage: " + ", ".join(f"{q} {v * 100:.0f} %" for q, v in cover.items()))
     print(f"exit codes {summary['exit_codes']}, tracebacks {summary['tracebacks']}, "
           f"late ticks accounted {summary['late_ticks']}, {summary['wall_s']:.0f} s")

@@ -57,7 +57,11 @@ fitted parameters, is an :class:`~hapsim.errors.IdentificationError`. The quantu
 distinct values, when every value is a whole multiple of it). The noise is the
 maximum-likelihood ``sigma`` of the rounded Gaussian ``P(y | x) = Phi((y - x + q/2)/s) -
 Phi((y - x - q/2)/s)``, ``s^2 = sigma^2 + delta^2`` (``delta``: the model output's own
-error, taken anywhere in ``[0, 2 delta]``), with its profile-likelihood interval.
+error, taken anywhere in ``[0, 2 delta]``), with its profile-likelihood interval. Without a
+quantum, the noise is the white part of the residual, from the median absolute second
+difference inside the stretches (:func:`_noise_white`): a smooth model error (the Coulomb
+model's stick and reversal timing) is no noise, and the residual's variance counted it as
+noise (an interval of 8-11 um missing a noise of 0).
 
 Verdict
 -------
@@ -700,11 +704,47 @@ def _hac(J, r, lag, extra=0):
     return cov
 
 
-def _noise(y, xm, q, delta, z, dof):
-    """ML estimate and profile interval of the sensor noise (module notes)."""
+#: Asymptotic efficiency of the median absolute deviation as a Gaussian scale estimator
+#: (P. J. Huber & E. M. Ronchetti, *Robust Statistics*, 2nd ed., 2009, Sec. 5.5: 36.7 %).
+MAD_EFFICIENCY = 0.367
+#: Integrated autocorrelation time of the second differences of white noise: their
+#: autocorrelation is -4/6 at lag 1 and 1/6 at lag 2, so ``1 + 2 (16 + 1) / 36``.
+_D2_TAU = 1.0 + 2.0 * (16.0 + 1.0) / 36.0
+
+
+def _noise_white(r, offs, delta, z):
+    """The white sensor noise of an unquantised record from its residual's second
+    differences (module notes): ``sigma = 1.4826 median|D2 r| / sqrt(6)``, the differences
+    taken inside each stretch (``offs``: their first rows), never across two.
+
+    A model error is smooth between the device's events (a stick, a reversal) and its
+    second differences are ~0 but for a few samples there, which the median ignores: the
+    residual's own variance counted it as noise (a device with no noise got an interval
+    of 8-11 um, the model's Coulomb mismatch). The interval is the median absolute
+    deviation's normal one, ``sigma (1 +- z / sqrt(2 MAD_EFFICIENCY N / _D2_TAU))``, its
+    lower end less the model output's own share ``delta`` and POSITION_FLOOR (in
+    quadrature), at least 0."""
+    r = np.asarray(r, float)
+    edges = list(np.asarray(offs, np.int64)) + [r.size]
+    d2 = np.concatenate([np.diff(r[a:b], 2) for a, b in zip(edges[:-1], edges[1:])
+                         if b - a >= 3] or [np.zeros(0)])
+    if d2.size < 8:
+        return Estimate(0.0, 0.0, math.inf, "m")
+    sig = float(1.4826 * np.median(np.abs(d2)) / math.sqrt(6.0))
+    h = z / math.sqrt(2.0 * MAD_EFFICIENCY * d2.size / _D2_TAU)
+    lo2 = (sig * max(1.0 - h, 0.0)) ** 2 - (delta ** 2 + POSITION_FLOOR ** 2)
+    hi = sig * (1.0 + h) + POSITION_FLOOR
+    return Estimate(sig, math.sqrt(lo2) if lo2 > 0 else 0.0, hi, "m")
+
+
+def _noise(y, xm, q, delta, z, dof, offs=None):
+    """ML estimate and profile interval of the sensor noise (module notes); an
+    unquantised record's from its second differences (:func:`_noise_white`)."""
     from scipy.special import log_ndtr
     from scipy.stats import chi2
     r = y - xm
+    if q <= 0 and offs is not None:
+        return _noise_white(r, offs, delta, z)
     crit = 0.5 * chi2.ppf(LEVEL, 1)
     floor2 = delta ** 2 + POSITION_FLOOR ** 2
     if q > 0:
@@ -1005,9 +1045,9 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     delta = float(np.sqrt(np.mean(r * r) * (p.size + n_nuis) / max(r.size, 1)))
     # the fit's own error at the samples is somewhere between 0 and ~2 delta (it is
     # correlated with the noise it partly absorbed): the interval spans both ends
-    noise = _noise(xi, ym, q.value, delta, z, p.size + n_nuis)
-    n_hi = _noise(xi, ym, q.value, 0.0, z, p.size + n_nuis)
-    n_lo = _noise(xi, ym, q.value, 2.0 * delta, z, p.size + n_nuis)
+    noise = _noise(xi, ym, q.value, delta, z, p.size + n_nuis, offs=mod.offs)
+    n_hi = _noise(xi, ym, q.value, 0.0, z, p.size + n_nuis, offs=mod.offs)
+    n_lo = _noise(xi, ym, q.value, 2.0 * delta, z, p.size + n_nuis, offs=mod.offs)
     noise = Estimate(noise.value, min(noise.lo, n_lo.lo), max(noise.hi, n_hi.hi), "m")
     # a quantised record: the quantiser's effect on the estimates, from replicates of the
     # record through the same encoder (_grid_replicates, in intervals() below)

@@ -19,10 +19,13 @@ on: the moving mass m [kg], the viscous friction b0 [N s/m], the Coulomb frictio
 not, the encoder quantum and the sensor noise -- each with a 99.9 % confidence interval, the
 fit's residual and a verdict on whether the mass-friction model explains the data.
 
-The excitation is a small force (a pseudo-random binary sequence plus slow constant-force
-steps, which separate Coulomb from viscous friction) on a weak centring spring, within
---force-limit and the position envelope --envelope, under the same host loop as 'hapsim
-run': device watchdog armed, host force clamp, safety stop beyond the envelope, zero force
+The excitation is a force (a pseudo-random binary sequence on slow constant-force steps,
+which separate Coulomb from viscous friction) on a weak centring spring that designs its
+own level, with nothing to tune: a short probe raises it until the device moves, then the
+steps reverse before the device would stop beyond 40 % of --envelope (its inertia bounded
+from the probe, its overshoot measured after each reversal, the longest delay counted),
+up to 0.4 x --force-limit (steps plus PRBS: 0.6 x). It runs under the same host loop as
+'hapsim run': device watchdog armed, host force clamp, safety stop beyond the envelope, zero force
 and STOP at the end or on Ctrl-C. The fit is an output-error least squares of the exact
 zero-order-hold discretisation (multiple shooting) on the recorded STATE/FORCE stream,
 with Newey-West intervals, driven by the force the device applied at each tick (its

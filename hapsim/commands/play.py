@@ -98,6 +98,11 @@ def register(sub) -> None:
                    help="play this long [s] (default 10)")
     p.add_argument("--osc", type=Number(int, low=0, high=65535), metavar="PORT",
                    help="serve OSC changes and queries on localhost:PORT (0: any free port)")
+    p.add_argument("--view", type=Number(int, low=0, high=65535), nargs="?", const=8765,
+                   metavar="PORT",
+                   help="serve a live view on http://127.0.0.1:PORT (default port 8765; 0: "
+                        "any free port): scene, traces, (k, b) grid, the --osc changes, stop "
+                        "(needs pip install 'hapsim[view]')")
     p.add_argument("--sound", default="auto", choices=("auto", "jack", "sounddevice", "none"),
                    help="sound output (default auto: JACK, else PortAudio; scenes without "
                         "an audio section play silently)")
@@ -166,6 +171,9 @@ def _play(args: argparse.Namespace, stop) -> int:
     :class:`~hapsim.daemon.loop_types.StopFlag` they set. A 2-D or 3-D scene plays its
     sound (:func:`hapsim.commands.play_nd.play_nd`)."""
     from hapsim.scene_nd import scene_dimension
+    if getattr(args, "view", None) is not None:     # before anything starts: how to install
+        from hapsim.view.server import require_websockets
+        require_websockets()
     if scene_dimension(args.scene) > 1:
         from hapsim.commands.play_nd import play_nd
         return play_nd(args, stop)
@@ -230,6 +238,20 @@ def _play(args: argparse.Namespace, stop) -> int:
         server, tel = serve_osc(ctl, args.osc, status=status)
         host, port = server.server_address[:2]
         print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    view = None
+    if getattr(args, "view", None) is not None:
+        from hapsim.view import PlaySource, start_view
+        try:
+            view = start_view(PlaySource(scene, xs, fs, engine, ctl), ctl, stop, args.view,
+                              "play")
+        except BaseException:
+            if server is not None:
+                server.shutdown()
+                server.server_close()
+            if out is not None:
+                out.close()
+            ctl.close()
+            raise
     loop = InProcessLoop(phys, live.port_step if live is not None else engine.port_step,
                          dev.delay, dev.force_limit)
     clocked = live is None and not args.lockstep     # live sound: the sound card's clock
@@ -256,7 +278,9 @@ def _play(args: argparse.Namespace, stop) -> int:
         for n in range(steps):
             if stop.set:
                 from hapsim.daemon.loop_types import signame
-                done, stop_reason = n, f"signal {signame(stop.signal)}"
+                done, stop_reason = n, (f"signal {signame(stop.signal)}"
+                                        if stop.signal is not None or stop.reason is None
+                                        else stop.reason)
                 break
             if live is not None and live.lead != lead_now:
                 # the sound server changed its block (JACK's buffer-size callback): the
@@ -340,6 +364,8 @@ def _play(args: argparse.Namespace, stop) -> int:
         with open(tmp, "wb") as fh:
             np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
         os.replace(tmp, args.telemetry)
+    if view is not None:
+        view.finish(report)
     if args.json:
         print(json.dumps(json_safe(report)))
     else:

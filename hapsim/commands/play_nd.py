@@ -20,11 +20,13 @@ import json
 import sys
 import time
 
+import numpy as np
+
 
 from hapsim.errors import ConfigError
 
 #: ``hapsim play`` options (argparse destinations) a 2-D or 3-D scene's play takes.
-TAKES = frozenset({"scene", "duration", "sound", "jack_server", "rt_priority", "json", "osc",
+TAKES = frozenset({"scene", "duration", "sound", "jack_server", "rt_priority", "json", "osc", "view",
                    "ramp", "pluck_every", "journal"})
 #: Options it refuses when given other than their defaults (destination, flag, default).
 _REFUSED = (("lockstep", "--lockstep", False), ("telemetry", "--telemetry", None))
@@ -140,7 +142,8 @@ def play_nd(args, stop) -> int:
     note = None
     try:
         ctl = ControllerND(scene, engine, ramp_s=getattr(args, "ramp", 0.05),
-                           background=getattr(args, "osc", None) is not None)
+                           background=getattr(args, "osc", None) is not None
+                           or getattr(args, "view", None) is not None)
     except ConfigError as exc:
         if getattr(args, "osc", None) is not None:
             raise ConfigError(f"--osc checks every change on the scene's loop, and this "
@@ -175,10 +178,31 @@ def play_nd(args, stop) -> int:
         print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
     T = scene.period
     last = [0]
+    view = None
+    if getattr(args, "view", None) is not None:
+        from hapsim.view import ChunkSource, start_view
+        src = ChunkSource(scene, engine, ctl)
+        try:
+            view = start_view(src, ctl, stop, args.view, "play")
+        except BaseException:
+            if server is not None:
+                server.shutdown()
+                server.server_close()
+            out.close()
+            if ctl is not None:
+                ctl.close()
+            raise
 
     def on_chunk(lv):
-        ctl.sample = lv.written
-        if tel["client"] is not None and lv.written // tel["every"] != last[0]:
+        if ctl is not None:
+            ctl.sample = lv.written
+        if view is not None:                    # a bounded deque: never waits
+            if lv.closed:
+                src.push(lv.written - 1, lv.port_position(), lv.port_force())
+            else:                               # a free scene: its listened mass
+                src.push(lv.written - 1, src.probe(), np.zeros(scene.dimension))
+        if tel is not None and tel["client"] is not None \
+                and lv.written // tel["every"] != last[0]:
             last[0] = lv.written // tel["every"]
             send_telemetry(tel, lv.written * T, lv.port_position(), lv.port_force(), ctl)
     # just below the callback's thread (the producer feeds it), as the 1-D play
@@ -191,9 +215,11 @@ def play_nd(args, stop) -> int:
     stop_reason = "duration"
     try:
         with rt:
-            done = live.run(total, stop, on_chunk=on_chunk if server is not None else None)
+            done = live.run(total, stop, on_chunk=on_chunk if server is not None
+                            or view is not None else None)
         if done < total:
-            stop_reason = f"signal {signame(stop.signal)}"
+            stop_reason = (f"signal {signame(stop.signal)}" if stop.signal is not None
+                           or stop.reason is None else stop.reason)
         live.finish()
     finally:
         if server is not None:
@@ -227,6 +253,8 @@ def play_nd(args, stop) -> int:
         if getattr(args, "journal", None):
             from hapsim.audio.control import write_journal
             write_journal(args.journal, ctl.journal)
+    if view is not None:
+        view.finish(report)
     if args.json:
         from hapsim.outputs import json_safe
         print(json.dumps(json_safe(report)))

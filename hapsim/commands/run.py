@@ -346,11 +346,15 @@ def run(args) -> int:
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
     protocol, said = protocol_of(scene, opts.driver)
+    if opts.view is not None:           # said before anything starts: how to install it
+        from hapsim.view.server import require_websockets
+        require_websockets()
     note = ""
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
     possible = startup.compiled_loop_possible(scene, framed=protocol == "framed",
-                                              osc=opts.osc, sound=opts.sound,
+                                              osc=opts.osc if opts.view is None else opts.view,
+                                              sound=opts.sound,
                                               host_clocked=opts.host_clocked)
     asked = loop = opts.loop
     if asked == "auto":     # a run that cannot use the compiled loop reports why it did not

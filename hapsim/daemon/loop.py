@@ -243,6 +243,9 @@ class HostLoop(Handshake, Recovery, BadFrames):
         res = self.result
         if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
             res.stop_reason = f"signal {signame(self.stop.signal)}"
+        elif self.stop.set and res.stop_reason == "duration" and getattr(self.stop, "reason",
+                                                                          None):
+            res.stop_reason = self.stop.reason
         res.samples = self.tel.n
         if self.measured is not None and res.velocity:
             res.velocity = self.measured.as_dict()

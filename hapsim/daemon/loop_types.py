@@ -162,7 +162,11 @@ class StopFlag:
     def set(self, value: bool) -> None:
         self.shared[0] = 1 if value else 0
 
-    def request(self, signum: int | None = None) -> None:
+    #: What asked for the stop when no signal did (the live view's stop button), said
+    #: as the loop's stop reason; None otherwise.
+    reason: str | None = None
+
+    def request(self, signum: int | None = None, reason: str | None = None) -> None:
         """Request a stop (safe to call from a signal handler: two attribute stores).
 
         Parameters
@@ -170,7 +174,11 @@ class StopFlag:
         signum : int, optional
             Number of the signal that asked (``signal.SIGINT``, ``signal.SIGTERM``); the
             loop reports ``"signal NAME"`` as the stop reason. None: another caller.
+        reason : str, optional
+            The stop reason another caller reports (e.g. ``"view: stop button"``).
         """
+        if reason is not None:
+            self.reason = reason
         self.set = True
         self.signal = signum
 

@@ -29,7 +29,7 @@ __all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
            choices: tuple | None = None, action: str | None = None, const=None,
-           cli_default=dataclasses.MISSING, check=None):
+           cli_default=dataclasses.MISSING, check=None, nargs=None):
     """A :class:`RunOptions` field that ``hapsim run`` also takes from its command line.
 
     Parameters
@@ -45,6 +45,8 @@ def option(default, flag: str, help: str, *, metavar: str | None = None, type=No
         As :meth:`argparse.ArgumentParser.add_argument` takes them; a numeric option's
         type is a :class:`~hapsim.option_values.Number`, its valid range (checked by
         :meth:`RunOptions.check_values` as by the command line).
+    nargs : str, optional
+        ``"?"``: the flag takes an optional value (``const`` when it is given alone).
     cli_default : object, optional
         The parser's default where it differs from the field's (``--loop auto``: the
         command resolves it before the run).
@@ -59,6 +61,7 @@ def option(default, flag: str, help: str, *, metavar: str | None = None, type=No
     """
     meta = {"flag": flag, "help": help, "metavar": metavar, "type": type,
             "choices": choices, "action": action, "const": const, "check": check,
+            "nargs": nargs,
             "cli_default": default if cli_default is dataclasses.MISSING else cli_default}
     return field(default=default, metadata={"cli": meta})
 
@@ -180,7 +183,11 @@ class RunOptions:
         stderr; :mod:`hapsim.audio.control`: checked, ramped, journaled in the report's
         ``osc``). The measured (k, b) are those of the scene at the start.
     osc_ramp : float
-        Ramp time of every OSC change [s].
+        Ramp time of every OSC change [s] (and of the live view's).
+    view : int, optional
+        Serve the live view (:mod:`hapsim.view`) on 127.0.0.1:PORT (0: any free port,
+        printed on stderr): its changes are the OSC ones (checked, ramped, journaled),
+        its stop button ends the run as SIGINT does.
     sound : {"auto", "jack", "sounddevice"}, optional
         Play the scene's ``audio`` live: the frames the loop computes go through a ring to
         the sound server (report: ``sound`` with xruns and ring underruns).
@@ -283,6 +290,11 @@ class RunOptions:
     osc_ramp: float = option(
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
         type=Number(float, low=0, unit="s"))
+    view: int | None = option(
+        None, "--view", "serve a live view of the run on http://127.0.0.1:PORT (default "
+        "port 8765; 0: any free port): scene, traces, (k, b) grid, live changes as --osc, "
+        "stop (needs pip install 'hapsim[view]')", metavar="PORT", nargs="?", const=8765,
+        type=Number(int, low=0, high=65535))
     sound: str | None = option(
         None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
         "auto); the model stays in the loop, the frames go to the server",
@@ -458,6 +470,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, after: dict | None = None
         else:
             kw.update({k: meta[k] for k in ("type", "metavar", "choices")
                        if meta[k] is not None})
+            if meta.get("nargs") is not None:
+                kw.update(nargs=meta["nargs"], const=meta["const"])
         parser.add_argument(meta["flag"], **kw)
         if f.name in after:
             after[f.name](parser)

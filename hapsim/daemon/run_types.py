@@ -85,6 +85,8 @@ class Connection:
     warm : thread or None
         The numba warm-up, still running: :func:`~hapsim.daemon.runner.run_loop` waits for it
         (``finish()``) after the device's HELLO, before CONFIG arms it.
+    view : hapsim.view.ViewServer or None
+        The live view (``--view``), handed the report once it is made.
     """
 
     engine: object
@@ -98,6 +100,7 @@ class Connection:
     old_signals: dict = field(default_factory=dict)
     measured: object = None
     warm: object = None
+    view: object = None
 
 
 @dataclass

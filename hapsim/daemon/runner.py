@@ -406,6 +406,8 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         # The report says why (python_reason), never silently.
         why = ("--sound: the sounding engine runs per sample in Python" if opts.sound
                else "--osc: live changes run per sample in Python" if opts.osc is not None
+               else "--view: the view's live changes run per sample in Python"
+               if opts.view is not None
                else f"device.correction ({corr.get('kind')}): its law runs in the engine's "
                "port_step in Python" if corr is not None
                # the compiled loop steps the single-rate kernel: one audio sub-step per
@@ -430,8 +432,10 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
                 opts.on_start(tr.info.get("port"), prep.n_samples)
 
         loop.before_arm = before_arm
-        if opts.osc is not None:
+        if opts.osc is not None or opts.view is not None:
             ctl, osc_server = _start_osc(prep, conn, loop, opts)
+        if opts.view is not None:
+            conn.view = _start_view(prep, conn, loop, ctl, opts)
         if telemetry:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
             writer = ChunkWriter(tel, journal, opts.telemetry_interval,
@@ -455,6 +459,7 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if osc_server is not None:
             osc_server.shutdown()
             osc_server.server_close()
+        if ctl is not None:
             ctl.close()                 # its analysis process
         if out is not None:
             out.close()
@@ -510,11 +515,22 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
     ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
     ctl.events = loop.result.events             # journaled with the telemetry (.hst)
     ctl.sample_of = lambda: conn.tel.n
-    server, _ = serve_osc(ctl, opts.osc, status=lambda: {"xruns": 0, "underruns": 0})
     loop.poll = lambda: ctl.poll(loop.engine)
+    if opts.osc is None:                        # --view alone: its changes, no OSC server
+        return ctl, None
+    server, _ = serve_osc(ctl, opts.osc, status=lambda: {"xruns": 0, "underruns": 0})
     host, port = server.server_address[:2]
     print(f"hapsim run: OSC on {host}:{port}", file=sys.stderr, flush=True)
     return ctl, server
+
+
+def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: RunOptions):
+    """``run --view PORT``: the live view (:mod:`hapsim.view`) reading the run's telemetry
+    arrays, the loop's engine and events, and the controller's journal; its stop button
+    sets the run's stop flag (as SIGINT). :func:`run_scene` hands it the report."""
+    from hapsim.view import RunSource, start_view
+    src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events)
+    return start_view(src, ctl, conn.stop, opts.view, "run")
 
 
 def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | None:
@@ -652,7 +668,11 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         if drv is not None:
             timing_verdict(measured, run.res, conn.tr.stats, wall=not opts.lockstep)
         rep = build_report(prep, conn, run, opts, measured, tel_info)
+        if getattr(conn, "view", None) is not None:
+            conn.view.finish(rep)
     finally:
+        if getattr(conn, "view", None) is not None:
+            conn.view.close()
         # the handlers stay until the report is made: a SIGINT/SIGTERM after the loop
         # ended (the telemetry export, the identification and the report take seconds on
         # a loaded machine) asks for a stop already under way; with the default handler

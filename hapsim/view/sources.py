@@ -1,0 +1,227 @@
+"""What the view reads from a running loop: rows it already records, positions it holds.
+
+Each source is read by the view's server thread only, at the display's rate, without a
+lock: the loop writes its arrays and appends to its lists as it always does, and a reader
+that sees a row being written draws one stale point (the next frame draws it right). A
+source never makes the loop wait and never allocates on its behalf.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+
+import numpy as np
+
+__all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout"]
+
+
+def scene_layout(scene) -> dict:
+    """The scene's masses, links and planes as the page draws them.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or hapsim.scene_nd.SceneND
+        The scene the loop runs (1-D, 2-D or 3-D).
+
+    Returns
+    -------
+    dict
+        ``dim`` (1, 2 or 3), ``masses`` (``name``, ``kind`` in mass/ground/port, ``mass``
+        [kg]), ``links`` (``name``, ``kind`` spring_damper/contact, ``i``, ``j`` mass
+        indices, ``K`` [N/m], ``B`` [N s/m], ``threshold`` [m], ``length`` [m] (n-D rest
+        length, 0 in 1-D)), ``planes`` (n-D plane contacts: ``name``, ``normal``,
+        ``offset`` [m], ``K``, ``B``, ``masses`` indices), ``rate_hz`` [Hz].
+    """
+    dim = int(getattr(scene, "dimension", 1) or 1)
+    names = [m.name for m in scene.masses]
+    idx = {n: i for i, n in enumerate(names)}
+    masses = [{"name": m.name, "kind": m.kind, "mass": float(getattr(m, "mass", 0.0) or 0.0)}
+              for m in scene.masses]
+    links = [{"name": lk.name, "kind": lk.kind, "i": idx[lk.m1], "j": idx[lk.m2],
+              "K": _num(lk.stiffness), "B": _num(lk.damping),
+              "threshold": _num(getattr(lk, "threshold", 0.0)),
+              "length": _num(getattr(lk, "length", 0.0))} for lk in scene.links]
+    planes = [{"name": p.name, "normal": [float(v) for v in p.normal],
+               "offset": float(p.offset), "K": _num(p.stiffness), "B": _num(p.damping),
+               "masses": [idx[n] for n in p.masses if n in idx]}
+              for p in getattr(scene, "planes", ()) or ()]
+    return {"dim": dim, "masses": masses, "links": links, "planes": planes,
+            "rate_hz": float(scene.rate_hz)}
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+class _Base:
+    """Shared reading of an engine's positions and a controller's journal."""
+
+    dim = 1
+
+    def __init__(self, scene, engine_of, ctl=None, events=None) -> None:
+        self.scene = scene
+        self.rate_hz = float(scene.rate_hz)
+        self.period = 1.0 / self.rate_hz
+        self.engine_of = engine_of
+        self.ctl = ctl
+        self.events = events if events is not None else []
+
+    def positions(self) -> np.ndarray:
+        """Copy of every mass's position [m], shape (n_masses, dim)."""
+        e = self.engine_of()
+        if self.dim == 1:
+            return np.asarray(e.positions, dtype=float).reshape(-1, 1)
+        return np.array(e.step_rows[0], dtype=float).T
+
+    def previous(self) -> np.ndarray | None:
+        """Positions one sample earlier [m], shape (n_masses, dim); None when the engine
+        does not keep them (an n-D engine in single precision keeps the step)."""
+        e = self.engine_of()
+        if self.dim == 1:
+            return np.asarray(e.previous_positions, dtype=float).reshape(-1, 1)
+        if getattr(e, "precision", "double") != "double":
+            return None
+        return np.array(e.step_rows[1], dtype=float).T
+
+
+class RunSource(_Base):
+    """``hapsim run``: the telemetry arrays (:class:`hapsim.daemon.telemetry.Telemetry`)
+    and the loop's event list.
+
+    Parameters
+    ----------
+    scene : Scene
+        The calibrated scene.
+    tel : Telemetry
+        The run's telemetry (rows ``0 .. tel.n - 1`` recorded).
+    engine_of : callable
+        ``engine_of() -> Engine``: the engine the loop steps now (a recovery rebuilds it).
+    ctl : hapsim.audio.control.Controller, optional
+        The live changes' controller.
+    events : list of dict
+        The loop's events (``LoopResult.events``: losses, recoveries, safety stops,
+        live changes), appended by the loop.
+    """
+
+    def __init__(self, scene, tel, engine_of, ctl=None, events=None) -> None:
+        super().__init__(scene, engine_of, ctl, events)
+        self.tel = tel
+
+    @property
+    def count(self) -> int:
+        """Rows recorded so far."""
+        return int(self.tel.n)
+
+    def rows(self, since: int, most: int) -> tuple[int, dict]:
+        """Rows ``[max(since, count - most), count)`` still in memory.
+
+        Returns
+        -------
+        first : int
+            Index of the first row returned.
+        cols : dict of ndarray
+            ``t`` [s], ``x`` [m], ``f`` [N], ``turnaround_us`` [us], ``flags`` (bits of
+            :mod:`hapsim.daemon.telemetry`).
+        """
+        tel = self.tel
+        n = int(tel.n)
+        lo = max(since, n - most, 0)
+        if tel.ring:
+            lo = max(lo, n - tel.ring) if n > tel.capacity else lo
+            idx = np.arange(lo, n)
+            sl = np.where(idx < tel.head, idx, tel.head + (idx - tel.head) % max(tel.ring, 1))
+        else:
+            n = min(n, tel.head)
+            lo = min(lo, n)
+            sl = np.arange(lo, n)
+        return lo, {"t": tel.time[sl], "x": tel.position[sl], "f": tel.force[sl],
+                    "turnaround_us": tel.turnaround_us[sl], "flags": tel.flags[sl]}
+
+
+class PlaySource(_Base):
+    """``hapsim play`` (1-D): the arrays of device position and port force it fills.
+
+    Parameters
+    ----------
+    scene : Scene
+    xs, fs : ndarray, shape (steps,)
+        Position [m] and force [N] per sample, written by the play loop.
+    engine : Engine
+    ctl : Controller
+        Its ``sample`` counts the samples polled (row ``sample - 1`` is being computed).
+    """
+
+    def __init__(self, scene, xs, fs, engine, ctl) -> None:
+        super().__init__(scene, lambda: engine, ctl)
+        self.xs, self.fs = xs, fs
+
+    @property
+    def count(self) -> int:
+        """Rows complete so far."""
+        return max(0, min(int(self.ctl.sample) - 1, self.xs.size))
+
+    def rows(self, since: int, most: int) -> tuple[int, dict]:
+        """As :meth:`RunSource.rows` (no turnaround or flags: the play loop has no link)."""
+        n = self.count
+        lo = max(since, n - most, 0)
+        t = np.arange(lo, n) * self.period
+        return lo, {"t": t, "x": self.xs[lo:n], "f": self.fs[lo:n]}
+
+
+class ChunkSource(_Base):
+    """An n-D loop (``hapsim play`` of a 2-D or 3-D scene): the port's position and force
+    handed over by the loop's chunk callback into a bounded deque.
+
+    Parameters
+    ----------
+    scene : SceneND
+    engine : EngineND
+    ctl : ControllerND or None
+    maxlen : int
+        Most pending rows; the oldest are dropped when the view falls behind (the loop
+        never waits: ``deque.append`` is atomic and bounded).
+    """
+
+    def __init__(self, scene, engine, ctl=None, maxlen: int = 4096) -> None:
+        super().__init__(scene, lambda: engine, ctl)
+        self.dim = int(scene.dimension)
+        self.queue: collections.deque = collections.deque(maxlen=maxlen)
+        self._count = 0
+        self.scene_index = {m.name: i for i, m in enumerate(scene.masses)}
+
+    def probe(self) -> np.ndarray:
+        """Position [m], shape (dim,), of the scene's first listened mass (a free loop's
+        trace: it has no port), else of its first mass."""
+        listen = getattr(self.scene, "audio", None) or ()
+        name = getattr(listen[0], "mass", None) if listen else None
+        i = self.scene_index.get(name, 0)
+        return np.array(self.engine_of().step_rows[0][:, i], dtype=float)
+
+    def push(self, sample: int, x, f) -> None:
+        """Called by the loop: one row (the sample index, port position [m] and force
+        [N], each shape (dim,)); never blocks."""
+        self.queue.append((int(sample), x, f))
+
+    @property
+    def count(self) -> int:
+        """Rows handed over so far."""
+        return self._count
+
+    def rows(self, since: int, most: int) -> tuple[int, dict]:
+        """The rows handed over since the last call (``since`` and ``most`` bound them as
+        in :meth:`RunSource.rows`); ``x``, ``f`` are the port's first axis, ``xs``, ``fs``
+        every axis, shape (rows, dim)."""
+        got = []
+        while self.queue:
+            got.append(self.queue.popleft())
+        got = got[-most:]
+        if not got:
+            return since, {"t": np.zeros(0), "x": np.zeros(0), "f": np.zeros(0)}
+        self._count = got[-1][0] + 1
+        s = np.array([g[0] for g in got])
+        X = np.array([np.ravel(g[1]) for g in got], dtype=float)
+        F = np.array([np.ravel(g[2]) for g in got], dtype=float)
+        return int(s[0]), {"t": s * self.period, "x": X[:, 0], "f": F[:, 0],
+                           "xs": X, "fs": F}

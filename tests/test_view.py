@@ -1,0 +1,140 @@
+"""The live view (hapsim/view) in a real headless browser: Debian's chromium and
+chromium-driver through selenium (tools/view_browser.py, shared with the docs' screenshots).
+
+One run of each kind, each a few seconds of wall clock once started: ``hapsim run`` of the
+1-D wall (the page loads, its traces advance, a slider change reaches the engine at the
+sample the run's journal says, a refused change is shown with its reason, the stop button
+ends the run with its report), and ``hapsim play`` of the membrane on a private JACK dummy
+server (the 3-D scene drawn, its traces advance, stop). Each writes its screenshot into
+docs/ (docs/view.md shows them). The pantograph's play (a 1000 Hz JACK server) did not
+reach its traces here: not tested yet.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "tools"))
+
+import view_browser as vb  # noqa: E402
+from test_audio_live import dummy_jackd  # noqa: E402  (a private JACK dummy server)
+
+pytestmark = pytest.mark.xdist_group("view_browser")
+DOCS = os.path.join(ROOT, "docs")
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    why = vb.browser_missing()
+    if why:
+        pytest.skip(why)
+    d = vb.open_browser(str(tmp_path_factory.mktemp("chromium-profile")))
+    yield d
+    d.quit()
+
+
+def _set(driver, row_id: str, value: float) -> None:
+    """Type ``value`` in a control's number box and commit it (its change event)."""
+    driver.execute_script(
+        "const n = document.querySelector(`#${arguments[0]} input[type=number]`);"
+        "n.value = arguments[1]; n.dispatchEvent(new Event('change'));", row_id, value)
+
+
+def test_run_wall_view_change_refusal_stop(browser):
+    # lockstep, paced by the host in real time: this test is about the page and the
+    # controller, not the device's timing (a loaded 2-core box, the browser drawing beside
+    # the loop, stalled a wall-clock mock into a safety stop: tools/view_bench.py measures
+    # that side)
+    r = vb.ViewRun(["run", "configs/wall.yaml", "--duration", "0", "--lockstep",
+                    "--host-clocked", "--json"])
+    try:
+        browser.get(r.url)
+        vb.wait_for(browser, "window.hapsimView && window.hapsimView.t.length > 20", 60)
+        t1 = browser.execute_script("const S = window.hapsimView; return S.t[S.t.length-1]")
+        t2 = vb.wait_for(browser, f"(() => {{ const S = window.hapsimView; "
+                                  f"const t = S.t[S.t.length-1]; return t > {t1} + 0.1 && t }})()")
+        assert t2 > t1                                  # the traces advance
+        vb.wait_for(browser, "window.hapsimView.grid !== null", 60)
+        browser.save_screenshot(os.path.join(DOCS, "view_wall.png"))
+        # an accepted change: the wall's K from 1000 to 1100 N/m
+        _set(browser, "ctl-wall-K", 1100)
+        rep = vb.wait_for(browser, "window.hapsimView.replies.find(m => m.op === 'request')",
+                          60)
+        assert rep["ok"], rep
+        try:
+            start = vb.wait_for(browser, "window.hapsimView.journal.find("
+                                         "j => j.event === 'ramp_start')", 60)
+        except TimeoutError:
+            raise AssertionError(browser.execute_script(
+                "return JSON.stringify([window.hapsimView.journal, window.hapsimView.count,"
+                " window.hapsimView.frames])")) from None
+        # a refused change: K far beyond the stability boundary (K_max ~ 1313 N/m)
+        _set(browser, "ctl-wall-K", 1e6)
+        bad = vb.wait_for(browser, "window.hapsimView.replies.find(m => m.ok === false)", 60)
+        assert "unstable" in bad["reason"]
+        shown = browser.find_element("id", "reply")
+        assert shown.get_attribute("class") == "refused"
+        assert "unstable" in shown.text and "refused" in shown.text
+        # the slider went back to the accepted value
+        assert float(browser.execute_script(
+            "return document.querySelector('#ctl-wall-K input[type=number]').value")) == 1100
+        browser.find_element("id", "stop").click()
+        vb.wait_for(browser, "window.hapsimView.report !== null", 60)
+        text = browser.find_element("id", "report").text
+        assert "view: stop button" in text
+        code, out, err = r.finish(60)
+    finally:
+        r.kill()
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["loop"]["stop_reason"] == "view: stop button"
+    changes = report["osc"]["changes"]
+    assert [c["args"] for c in changes] == [["wall", 1100, 1.5]]
+    # the engine took the change at the sample the page's journal said, and the run's
+    # journal (the report) says the same sample
+    assert changes[0]["sample"] == rep_sample(browser) and start["sample"] >= changes[0]["sample"]
+    assert report["osc"]["refused"] == 1
+
+
+def rep_sample(browser) -> int:
+    """The sample the page's journal gives the accepted change."""
+    return browser.execute_script(
+        "return window.hapsimView.journal.find(j => j.event === 'accepted').sample")
+
+
+@pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256)])
+def test_play_nd_view(browser, tmp_path, which, rate, period):
+    """An n-D play (its JACK server at the scene's rate) drawn and stopped from the page."""
+    scene = (vb.pantograph_with_listen(str(tmp_path)) if which == "pantograph"
+             else os.path.join("configs", "membrane.yaml"))
+    jack = dummy_jackd(rate, period)
+    server = next(jack)
+    try:
+        _play_nd(browser, scene, server, which)
+    finally:
+        jack.close()
+
+
+def _play_nd(browser, scene, jack_server, which):
+    r = vb.ViewRun(["play", scene, "--sound", "jack", "--jack-server", jack_server,
+                    "--duration", "60", "--json"])
+    try:
+        browser.get(r.url)
+        vb.wait_for(browser, "window.hapsimView && window.hapsimView.t.length > 20", 60)
+        dim = browser.execute_script("return window.hapsimView.layout.dim")
+        assert dim == (2 if which == "pantograph" else 3)
+        n0 = browser.execute_script("return window.hapsimView.count")
+        vb.wait_for(browser, f"window.hapsimView.count > {n0}")
+        browser.save_screenshot(os.path.join(DOCS, f"view_{which}.png"))
+        browser.find_element("id", "stop").click()
+        vb.wait_for(browser, "window.hapsimView.report !== null", 60)
+        code, out, err = r.finish(60)
+    finally:
+        r.kill()
+    assert code == 0, err
+    assert json.loads(out)["stop_reason"] == "view: stop button"
