@@ -121,11 +121,13 @@ def wait_for(driver, script: str, timeout: float = 30.0, every: float = 0.1):
     raise TimeoutError(f"the page never had {script!r} within {timeout:g} s")
 
 
-def shoot(driver, url: str, path: str, settle: float = 1.5, grid: bool = True) -> None:
-    """Load the view, wait until traces are drawn (and the grid, for a 1-D loop), and
-    write a screenshot of the page to ``path``."""
+def shoot(driver, url: str, path: str, settle: float = 1.5, grid: bool = True,
+          points: int = 20) -> None:
+    """Load the view, wait until ``points`` trace points are drawn (and the grid, for a 1-D
+    loop), and write a screenshot of the page to ``path``. (An n-D play hands one row per
+    chunk of its producer over: few points at a low rate.)"""
     driver.get(url)
-    wait_for(driver, "window.hapsimView && window.hapsimView.t.length > 20", 60)
+    wait_for(driver, f"window.hapsimView && window.hapsimView.t.length > {points}", 60)
     if grid:
         wait_for(driver, "window.hapsimView.grid !== null", 60)
     time.sleep(settle)
@@ -169,7 +171,8 @@ def main(argv=None) -> int:
                                   "--jack-server", a.jack_server, "--duration", "60"], False)):
                 r = ViewRun(argv_)
                 try:
-                    shoot(drv, r.url, os.path.join(a.shots, f"view_{name}.png"), grid=grid)
+                    shoot(drv, r.url, os.path.join(a.shots, f"view_{name}.png"), grid=grid,
+                          points=20 if grid else 2)
                     print(f"view_browser: {a.shots}/view_{name}.png", file=sys.stderr)
                 finally:
                     r.kill()
