@@ -601,11 +601,11 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     elif ports:
         raise r.error("a scene with a port needs a device section", ports[0].line,
                       "device")
-    _check_products(r, 1.0 / rate, masses, links, planes, device,
-                    r.line(doc, "device") if "device" in doc else None)
     if ports and device is not None:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
+    _check_products(r, 1.0 / rate, masses, links, planes, device,
+                    r.line(doc, "device") if "device" in doc else None)
     audio = _read_audio(r, doc, n, names) if "audio" in doc else None
     excitation = None
     if "excitation" in doc:
@@ -642,7 +642,7 @@ def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_lin
     ConfigError
         The first product beyond the bound, with file, line and key.
     """
-    from hapsim.scene_schema import check_product
+    from hapsim.scene_schema import MAX_PRODUCT, check_product
     inertia = {m.name: float(m.mass) for m in masses if m.kind == "mass"}
     if device is not None:
         light = float(np.min(np.linalg.eigvalsh(0.5 * (device.mass + device.mass.T))))
@@ -658,11 +658,20 @@ def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_lin
         for m in masses:
             if m.kind == "port":
                 inertia[m.name] = light
-    groups = [(f"links[{i}]", lk.line, (lk.m1, lk.m2), lk.stiffness, lk.damping)
-              for i, lk in enumerate(links)]
-    groups += [(f"planes[{i}]", pl.line, pl.masses, pl.stiffness, pl.damping)
+    # a Euclidean link at rest distance r with rest length (or threshold) L stiffens
+    # across its axis by K |1 - L/r| (its linearisation, scene_nd_check.link_blocks): the
+    # product bounds that too (a length of 1e308 overflowed the state matrix)
+    where = {m.name: m.x0 for m in masses}
+    groups = []
+    for i, lk in enumerate(links):
+        L = lk.length if lk.kind == "spring_damper" else lk.threshold
+        rr = float(np.linalg.norm(where[lk.m1] - where[lk.m2]))
+        gain = max(1.0, abs(1.0 - L / rr)) if L > 0 and rr > 0 else 1.0
+        groups.append((f"links[{i}]", lk.line, (lk.m1, lk.m2), lk.stiffness, lk.damping,
+                       gain, "length" if lk.kind == "spring_damper" else "threshold"))
+    groups += [(f"planes[{i}]", pl.line, pl.masses, pl.stiffness, pl.damping, 1.0, None)
                for i, pl in enumerate(planes)]
-    for key, line, ends, K, B in groups:
+    for key, line, ends, K, B, gain, lkey in groups:
         ms = [inertia[x] for x in ends if x in inertia]
         if not ms:
             continue
@@ -673,6 +682,11 @@ def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_lin
                 check_product(val, scale, field, unit, what)
             except ConfigError as exc:
                 raise r.error(exc.reason, line, f"{key}.{field}") from None
+        if gain > 1.0 and not K * gain * T * T / m <= MAX_PRODUCT:
+            raise r.error(f"the link's stiffness across its axis at rest, K |1 - L/r| = "
+                          f"{K * gain:.3g} N/m, makes |K T^2/m| > {MAX_PRODUCT:g}: the rest "
+                          f"{lkey} is {gain:.3g} times too far from the rest distance",
+                          line, f"{key}.{lkey}")
 
 
 def _read_excitation(r: _Reader, doc, n: int, path: str) -> ExcitationND:

@@ -110,6 +110,10 @@ def _replace_line(text: str, line: int, old: str, new: str) -> str:
     # for minutes): the rate range, and at most MAX_AUDIO_SUBSTEPS per device period
     ("audio_string.yaml", 92, "48000", "4.8e16", "audio.rate_hz"),
     ("audio_string.yaml", 92, "48000", "1e9", "audio.rate_hz"),
+    # a rest length / contact threshold of 1e308 m: K |1 - L/r| across the link overflowed
+    ("delta_mesh.yaml", 94, "length: 0.0064", "length: 1e308", "links[33].length"),
+    ("pantograph_circle.yaml", 14, "threshold: 0.02", "threshold: 1e308",
+     "links[0].threshold"),
 ])
 def test_the_fuzz_findings_are_answered(tmp_path, name, line, old, new, key):
     """Each traceback the fuzz found is now a verdict (exit 1) or a refusal naming the key."""
