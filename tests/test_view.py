@@ -138,3 +138,14 @@ def _play_nd(browser, scene, jack_server, which):
         r.kill()
     assert code == 0, err
     assert json.loads(out)["stop_reason"] == "view: stop button"
+
+
+def test_view_without_websockets_says_how_to_install(monkeypatch, capsys):
+    """``--view`` without the websockets package: exit 2 before anything starts, with the
+    install command (``hapsim[view]``)."""
+    from hapsim.cli import main
+    monkeypatch.setitem(sys.modules, "websockets", None)
+    monkeypatch.setitem(sys.modules, "websockets.asyncio.server", None)
+    assert main(["run", "configs/wall.yaml", "--view", "0", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--view" in err and "pip install 'hapsim[view]'" in err
