@@ -645,9 +645,11 @@ def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_lin
     from hapsim.scene_schema import MAX_PRODUCT, check_product
     inertia = {m.name: float(m.mass) for m in masses if m.kind == "mass"}
     if device is not None:
-        light = float(np.min(np.linalg.eigvalsh(0.5 * (device.mass + device.mass.T))))
-        heavy_b0 = float(np.max(np.abs(np.linalg.eigvalsh(
-            0.5 * (device.friction + device.friction.T)))))
+        def eigs(X):            # scaled to entries <= 1: eigvalsh fails near 1e308
+            sx = max(float(np.max(np.abs(X))), np.finfo(float).tiny)
+            return sx * np.linalg.eigvalsh(0.5 * (X / sx) + 0.5 * (X.T / sx))
+        light = float(np.min(eigs(device.mass)))
+        heavy_b0 = float(np.max(np.abs(eigs(device.friction))))
         if not (math.isfinite(light) and light > 0):
             raise r.error("the device's Cartesian mass is not positive definite here",
                           dev_line, "device")
@@ -829,7 +831,9 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
     Mq = r.matrix(d, "joint_inertia", key, n, None, "kg m^2", definite="positive")
     Bq = r.matrix(d, "joint_friction", key, n, np.zeros((n, n)), "N m s/rad",
                   definite="semi")
-    mh = r.number(d, "hand_mass", key, default=0.0, minimum=0.0, unit="kg")
+    from hapsim.scene_schema import MASS_RANGE
+    mh = r.number(d, "hand_mass", key, default=0.0, minimum=0.0, maximum=MASS_RANGE[1],
+                  unit="kg")
     bh = r.number(d, "hand_damping", key, default=0.0, minimum=0.0, unit="N s/m")
     dev = make(kind, geometry)
     try:

@@ -413,6 +413,9 @@ PRIVATE_READS_ALLOWED = {
     ("hapsim.cli", "argparse._SubParsersAction"): "argparse has no public type or list of a "
     "parser's sub-commands and options (its error() finds the chosen sub-command's)",
     ("hapsim.cli", "parser._actions"): "argparse: a parser's options have no public list",
+    **{("hapsim.commands.run", r): "argparse: a parser's options have no public list (run "
+       "--help shows the common ones, --help-all every one)" for r in ("parser._actions",
+                                                                        "p._actions")},
     ("hapsim.option_values", "parser._actions"): "argparse: a parser's options have no "
     "public list (check_numbers checks the declared ranges of a sub-command's options)",
     ("hapsim.__main__", "hapsim._quiet_interrupt_at_start"): "the package's own start-up, "

@@ -69,7 +69,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "4b3b3375173ba6cf5765e2cb1022f6b562695e80e52081601d878066f94ee1ba"
+COMPILED_SOURCES_SHA256 = "c9596b88b9c0285d6f3731ee7c0085b84e18a5a95dbe08673a9677f827ccb39a"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
