@@ -36,7 +36,8 @@ def test_command_line_defaults_are_the_options_defaults():
 def test_every_option_of_the_parser_is_one_declared_field():
     """The parser's run options are exactly the declared fields, by their flags (the
     command adds its own: the scene, --auto, --tolerance, --device, --amplitude, --json,
-    and the Falcon's --firmware and --packets, the Haply 2DIY's --generation)."""
+    the Falcon's --firmware and --packets, the Haply 2DIY's --generation, and --help-all,
+    which prints every option where --help prints the common ones)."""
     import argparse
     sub = next(a for a in build_parser("run")._actions
                if isinstance(a, argparse._SubParsersAction))
@@ -44,8 +45,8 @@ def test_every_option_of_the_parser_is_one_declared_field():
     dests = {a.dest for a in parser._actions}
     fields = {f.name for f in command_line_fields()}
     assert fields <= dests
-    assert dests - fields == {"help", "scene", "auto", "tolerance", "device", "amplitude",
-                              "json", "firmware", "packets", "generation"}
+    assert dests - fields == {"help", "help_all", "scene", "auto", "tolerance", "device",
+                              "amplitude", "json", "firmware", "packets", "generation"}
     flags = {a.dest: a.option_strings for a in parser._actions}
     for f in command_line_fields():
         assert flags[f.name] == [f.metadata["cli"]["flag"]], f.name
