@@ -50,10 +50,9 @@ Falcon's counts. Permissions and the udev rule: docs/devices.md."""
 _SHORT_DESCRIPTION = """\
 Run a scene in real time against a force-feedback device (without --port: the embedded
 mock behind a pty) and measure the stiffness k and damping b the hand feels, beside what
-the analysis predicted for the scene's virtual (K, B). A 2-D or 3-D scene is measured as
-felt stiffness and damping MATRICES (--amplitude; the linearisation bound at it;
---driver haply: the Haply 2DIY's bytes). Common options below; every option, what the
-numbers mean, faults and drivers: 'hapsim run --help-all' and docs/commands.md."""
+the analysis predicted for the scene's virtual (K, B); a 2-D or 3-D scene as felt
+MATRICES. Common options below; every option, what the numbers mean, faults and
+drivers: 'hapsim run --help-all' and docs/commands.md."""
 
 _SHORT_EPILOG = """\
 examples:
@@ -195,9 +194,8 @@ def register(sub) -> None:
     # the run's options, each declared once in hapsim.daemon.options.RunOptions
     add_run_arguments(p, after={"seed": auto, "driver": device})
     p.add_argument("--amplitude", type=declared("run_nd", "amplitude"), metavar="M",
-                   help="2-D or 3-D scene (with --lockstep): the excitation amplitude of "
-                        "the measured free responses [m] (default 1e-8; the report states "
-                        "the linearisation bound at it)")
+                   help="2-D or 3-D scene: the free responses' amplitude [m] (default "
+                        "1e-8; the report states the linearisation bound at it)")
     p.add_argument("--firmware", metavar="FILE",
                    help="--driver falcon: the Novint firmware image the Falcon loads at "
                         "each power-up (yours: hapsim does not ship it)")

@@ -281,8 +281,7 @@ class RunOptions:
         metavar="S", type=Number(float, low=0, unit="s"))
     driver: str | None = option(
         None, "--driver", "device protocol, one of {drivers} (default: the scene's "
-        "device.protocol, else framed, hapsim's own); a driver runs host-clocked (see "
-        "'drivers' below)", metavar="NAME")
+        "device.protocol, else framed, hapsim's own); drivers: --help-all", metavar="NAME")
     osc: int | None = option(
         None, "--osc", "take live changes over OSC on localhost:PORT (0: any free port; "
         "addresses: hapsim play --help); each is checked, ramped, journaled",
@@ -291,9 +290,8 @@ class RunOptions:
         0.05, "--osc-ramp", "ramp time of every OSC change [s] (default 0.05)", metavar="S",
         type=Number(float, low=0, unit="s"))
     view: int | None = option(
-        None, "--view", "serve a live view of the run on http://127.0.0.1:PORT (default "
-        "port 8765; 0: any free port): scene, traces, (k, b) grid, live changes as --osc, "
-        "stop (needs pip install 'hapsim[view]')", metavar="PORT", nargs="?", const=8765,
+        None, "--view", "serve a live view (scene, traces, (k, b) grid, changes, stop) "
+        "on http://127.0.0.1:PORT (default 8765; 0: any free port); extra 'view'", metavar="PORT", nargs="?", const=8765,
         type=Number(int, low=0, high=65535))
     sound: str | None = option(
         None, "--sound", "play the scene's audio section live (JACK, else PortAudio with "
