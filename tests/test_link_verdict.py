@@ -12,32 +12,42 @@ from hapsim.daemon import link_verdict as lv
 def test_the_rule_over_random_runs():
     """Random runs (length, rate, re-synchronisations, safety stop, a framed or a driver
     link, the measurement's own verdict): "within" survives exactly when the measurement
-    said it, no safety stop ended the run and the re-synchronisations stay within the
-    bound, computed here independently (blind share 10 % of the run at 2 ms each:
+    said it, no safety stop that left the workspace (position, speed, energy; a stop on
+    the host's force clamp alone keeps the measured verdict) ended the run and the
+    re-synchronisations stay within the bound, computed here independently (blind share 10 % of the run at 2 ms each:
     50 a second, floored, at least 1); the link fails the run (exit 1) exactly when they
     exceed it."""
     rng = np.random.default_rng(29)
-    seen = {"failed": 0, "stopped": 0, "kept": 0}
+    seen = {"failed": 0, "stopped": 0, "clamped": 0, "kept": 0}
     for _ in range(2000):
         rate = float(rng.choice([250.0, 500.0, 1000.0, 2000.0]))
         ticks = int(rng.integers(0, 6000))
         framed = rng.random() < 0.2
         resyncs = int(rng.integers(0, 3 * (ticks / rate) * 50 + 3))
         stop = bool(rng.random() < 0.3)
+        clamp = stop and bool(rng.random() < 0.4)
         within = bool(rng.random() < 0.7)
+        reason = rng.choice(["safety: position 0.2 m beyond +-0.1 m",
+                             "safety: velocity 3 m/s beyond +-2 m/s",
+                             "safety: the scene gave the hand 2 J more than the 0 J it "
+                             "stored at its start, beyond the energy limit 1 J"])
+        if clamp:
+            reason = "safety: force at the limit 10 N in 50 of the last 100 samples"
         loop = {"ticks": ticks, "rate_hz": rate, "safety_stop": stop,
-                "stop_reason": "safety: position 0.2 m beyond +-0.1 m" if stop else "duration",
+                "stop_reason": str(reason) if stop else "duration",
                 "driver": None if framed else {"resyncs": resyncs}}
         measured = {"within": within, "verdict": "measured = predicted" if within else "differs"}
         failed = lv.link_verdict(measured, loop)
         bound = max(1, (50 * ticks) // int(rate))      # exact integer arithmetic
         over = (not framed) and resyncs > bound
         assert failed == over
-        assert measured["within"] == (within and not stop and not over)
-        if stop or over:
+        left = stop and not clamp
+        assert measured["within"] == (within and not left and not over)
+        if left or over:
             assert measured["verdict"].startswith("not measurable")
         seen["failed"] += over
-        seen["stopped"] += stop
+        seen["stopped"] += left
+        seen["clamped"] += clamp
         seen["kept"] += measured["within"]
     assert min(seen.values()) > 100           # every case drawn, many times
 
@@ -69,3 +79,14 @@ def test_a_run_over_the_bound_says_not_measurable_and_exits_1(monkeypatch):
     assert f"re-synchronised {resyncs} times" in m["verdict"]
     assert m["link"] == {"resyncs": resyncs, "resync_bound": 1, "reason": m["link"]["reason"]}
     assert rep["exit_code"] == 1
+
+
+def test_the_clamp_stop_is_the_loops_own_reason():
+    """The stop the rule keeps is the one the loop writes: safety_reason's clamp text
+    begins with CLAMP_STOP, its position stop does not."""
+    from hapsim.daemon.loop import safety_reason
+    clamp = safety_reason(50, 50, 100, 10.0, 0.0, 0.1, 0.0, 1.0, 0.0, 1.0)
+    away = safety_reason(0, 50, 100, 10.0, 0.2, 0.1, 0.0, 1.0, 0.0, 1.0)
+    assert clamp.startswith(lv.CLAMP_STOP) and not away.startswith(lv.CLAMP_STOP)
+    assert not lv.left_workspace({"safety_stop": True, "stop_reason": clamp})
+    assert lv.left_workspace({"safety_stop": True, "stop_reason": away})

@@ -115,13 +115,16 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
             self.c0 = tracemalloc.get_traced_memory()[0]
             return len(data)
 
-    from hapsim.daemon.haply2_host import SILENT_WRITES
+    from hapsim.daemon.haply2_host import SILENT_S
     sc = load_scene_nd(WALL)
-    N = 3 + SILENT_WRITES            # the silence ends before the loop re-arms the board
+    # the silence ends before the loop re-arms the board (SILENT_S of the lockstep
+    # board's periods, named: on the wall clock a loaded host re-arms sooner in ticks)
+    N = 3 + int(SILENT_S * sc.rate_hz)
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
     eng = EngineND(sc)
-    rec = record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 14), sc, N, engine=eng)
+    rec = record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 14), sc, N, engine=eng,
+                          lockstep_board=True)
     one_array = _transient(lambda: np.empty(2))
     est = np.flatnonzero(rec["estimated"])
     np.testing.assert_array_equal(est, np.arange(3, N))    # ticks 0..2 read

@@ -688,11 +688,54 @@ def _ambiguity(best, rival, nu, n_eff, q) -> str:
             f"{n_eff:.0f} effective samples of {nu}: the residual of {enc} is correlated)")
 
 
+#: Variance given to a parameter the record does not determine (its Jacobian column is
+#: zero, or lies in the span of the others', after scaling): finite, so that weighted sums
+#: of the covariance stay numbers, and so large that any interval through it is the whole
+#: line (a mass interval of exp(1e150): refused as not determined).
+UNDETERMINED_VARIANCE = 1e300
+
+
+def _bread(JtJ):
+    """The inverse of the normal matrix, column-scaled, and which parameters it leaves
+    undetermined.
+
+    ``np.linalg.pinv(JtJ)`` cuts singular values below 1e-15 of the largest: a parameter
+    whose sensitivity is tiny beside another's (a mass of 6.5e11 kg fitted to a record
+    of straight stretches, beside the Coulomb terms) got variance ZERO, a narrow interval
+    around a wrong value. Scaling every column to unit norm first (the covariance is
+    invariant to it: Jacobi scaling) leaves only the collinearity the record really has;
+    the directions of the scaled matrix below the rank tolerance of
+    ``numpy.linalg.matrix_rank`` (largest eigenvalue times size times the machine
+    epsilon) are not determined: every parameter with weight on them beyond
+    ``sqrt(eps)`` is marked undetermined.
+
+    Returns ``(bread, undetermined)``: ndarray (p, p) and a bool mask (p,).
+    """
+    p = JtJ.shape[0]
+    d = np.sqrt(np.maximum(np.diag(JtJ), 0.0))
+    ok = np.isfinite(d) & (d > 0.0)
+    s = np.where(ok, d, 1.0)
+    A = JtJ / np.outer(s, s)
+    A[~ok, :] = 0.0
+    A[:, ~ok] = 0.0
+    lam, V = np.linalg.eigh(A)
+    eps = np.finfo(float).eps
+    tol = max(float(lam.max(initial=0.0)), 0.0) * p * eps
+    keep = lam > tol
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    bread = (V * inv) @ V.T / np.outer(s, s)
+    null = V[:, ~keep]
+    undetermined = ~ok | (np.abs(null).max(axis=1, initial=0.0) > math.sqrt(eps))
+    return bread, undetermined
+
+
 def _hac(J, r, lag, extra=0):
-    """Newey-West covariance of the least-squares parameters."""
+    """Newey-West covariance of the least-squares parameters (Newey & West 1987); a
+    parameter the record does not determine (:func:`_bread`) has variance
+    :data:`UNDETERMINED_VARIANCE` and no covariance with the others."""
     n, p = J.shape
     JtJ = J.T @ J
-    bread = np.linalg.pinv(JtJ)
+    bread, undetermined = _bread(JtJ)
     g = J * r[:, None]
     S = g.T @ g
     for lg in range(1, min(lag, n - 1) + 1):
@@ -701,6 +744,10 @@ def _hac(J, r, lag, extra=0):
         S += w * (G + G.T)
     cov = bread @ S @ bread * n / max(n - p - extra, 1)
     cov += POSITION_FLOOR ** 2 * bread
+    if np.any(undetermined):
+        cov[undetermined, :] = 0.0
+        cov[:, undetermined] = 0.0
+        cov[undetermined, undetermined] = UNDETERMINED_VARIANCE
     return cov
 
 

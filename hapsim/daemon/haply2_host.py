@@ -210,8 +210,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     engine : hapsim.engine_nd.EngineND, optional
         A fresh engine (default: one of ``scene``).
     lockstep_board : bool, optional
-        The board advances one period per write (named lockstep): a sample's age is then
-        counted in the board's periods, not on the wall clock (:data:`HOLD_BOUND_S`).
+        The board advances one period per write (named lockstep): a sample's age and a
+        silence are then counted in the board's periods, not on the wall clock
+        (:data:`HOLD_BOUND_S`, :data:`SILENT_S`).
 
     Returns
     -------
@@ -406,9 +407,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         if unanswered > SILENT_COUNT:
             # writes unanswered for SILENT_S are a board that stopped answering (a board
             # in step answers within its pass and a USB frame, ~1 ms); fewer, or younger,
-            # are late replies (a count alone is no evidence)
-            unanswered = (SILENT_WRITES + 1
-                          if time.perf_counter() - t_wrote[got] >= SILENT_S else 0)
+            # are late replies (a count alone is no evidence); a lockstep board's time is
+            # its periods (one per write), not the wall clock's
+            age = ((k - got) * T if lockstep_board
+                   else time.perf_counter() - t_wrote[got])
+            unanswered = SILENT_WRITES + 1 if age >= SILENT_S else 0
         else:
             unanswered = 0
         if rule.due(unanswered):

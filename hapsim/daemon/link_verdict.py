@@ -6,7 +6,12 @@ A measurement compares the free response the host recorded with the THS predicti
 
 - **the workspace left**: a safety stop (``|x|`` beyond the scene's
   ``safety.position_limit``, a speed or an energy beyond theirs) ended the loop; the
-  record before it is a loop that ran away, not the THS;
+  record before it is a loop that ran away, not the THS. A stop on the host's own force
+  clamp (:data:`CLAMP_STOP`: the force at the limit in half the last samples) is not
+  one: the device stayed inside its bounds and every clamped force is a known input of
+  the measurement (replayed from the logged positions, or its rows left out,
+  :mod:`hapsim.daemon.contact_replay`), so its pair is measured as far as the record
+  went; the stop is still in the report, and the run exits 1 for it;
 - **re-synchronisations**: an unframed board (the Haply M3 and 2DIY: no framing, no
   watchdog) that lost its place is put back in step with zero torque and a set-up whose
   encoder offset is the host's estimate of where the joint is
@@ -37,8 +42,11 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["MAX_RESYNCS_PER_S", "RESYNC_BLIND_S", "BLIND_SHARE", "resync_bound",
-           "link_verdict"]
+__all__ = ["MAX_RESYNCS_PER_S", "RESYNC_BLIND_S", "BLIND_SHARE", "CLAMP_STOP",
+           "resync_bound", "link_verdict", "left_workspace"]
+
+#: How a stop on the host's force clamp begins (:func:`hapsim.daemon.loop.safety_reason`).
+CLAMP_STOP = "safety: force at the limit"
 
 #: Shortest time a re-synchronisation leaves the joint blind [s] (module notes).
 RESYNC_BLIND_S = 0.002
@@ -88,16 +96,16 @@ def link_verdict(measured: dict, loop: dict) -> bool:
     bool
         True when the link failed the run by re-synchronisations (the caller exits 1);
         ``measured`` then has ``within`` False, ``verdict`` "not measurable: ...",
-        ``link`` (``resyncs``, ``resync_bound``, ``reason``). A safety stop (the
-        workspace left) withdraws "within" too and returns False (its exit code is the
-        safety stop's own).
+        ``link`` (``resyncs``, ``resync_bound``, ``reason``). A safety stop that left
+        the workspace (:func:`left_workspace`) withdraws "within" too and returns False
+        (its exit code is the safety stop's own).
     """
     dl = loop.get("driver") or {}
     resyncs = int(dl.get("resyncs", 0) or 0)
     bound = resync_bound(int(loop.get("ticks") or 0), float(loop.get("rate_hz") or 1.0))
     reasons = []
     failed = False
-    if loop.get("safety_stop"):
+    if left_workspace(loop):
         reasons.append(f"the run ended on a safety stop ({loop.get('stop_reason')}): the "
                        "device left its workspace or its limits, the record is no free "
                        "response of the loop")
@@ -112,3 +120,22 @@ def link_verdict(measured: dict, loop: dict) -> bool:
         measured["within"] = False
         measured["verdict"] = "not measurable: " + "; ".join(reasons)
     return failed
+
+
+def left_workspace(loop: dict) -> bool:
+    """Whether a run's safety stop means its device left its workspace or its limits
+    (position, speed, the energy given to the hand), not the host's force clamp alone
+    (module notes).
+
+    Parameters
+    ----------
+    loop : dict
+        The report's ``loop`` section (``safety_stop``, ``stop_reason``).
+
+    Returns
+    -------
+    bool
+    """
+    if not loop.get("safety_stop"):
+        return False
+    return not str(loop.get("stop_reason") or "").startswith(CLAMP_STOP)

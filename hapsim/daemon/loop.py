@@ -84,6 +84,7 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.daemon.bad_frames import BadFrames, bad_count
 from hapsim.daemon.handshake import Handshake
+from hapsim.daemon.link_verdict import CLAMP_STOP
 from hapsim.daemon.loop_types import (BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS, LATCHED_FAULTS,
                                       SENSORS_TRIES, SENSORS_WAIT, EstimatedState, LoopConfig,
                                       LoopResult, LostDevice, MeasuredVelocity, StopFlag,
@@ -868,7 +869,7 @@ def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
         The stop reason for the report, the first breached bound first.
     """
     if wsum >= clamp_max:
-        return f"safety: force at the limit {limit:g} N in {wsum} of the last {wlen} samples"
+        return f"{CLAMP_STOP} {limit:g} N in {wsum} of the last {wlen} samples"
     if x > position_bound or x < -position_bound:
         return f"safety: position {x:.6g} m beyond +-{position_bound:g} m"
     if abs(v) > velocity_limit:

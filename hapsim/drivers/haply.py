@@ -271,6 +271,14 @@ class ReplyDecoder(AlignedDecoder):
         self._t_read = self._clock()
         return super().feed(data)
 
+    def clear(self) -> None:
+        """Drop the bytes held and the run of dropped bytes counted so far: a re-arming
+        drains the link, and the bytes skipped before it are no reply's that follows (left
+        counted, the first good reply after the set-up was taken as answering a damaged
+        reply before it: the set-up's reply read as the next write's, a bad set-up)."""
+        super().clear()
+        self._bad = 0
+
     def reset_prediction(self, jumps: int = 1) -> None:
         """Forget the last replies (after a re-synchronisation the angles start afresh):
         the next ``jumps`` replies are taken without the step check, each restarting the
