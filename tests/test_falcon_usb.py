@@ -302,11 +302,14 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
     assert out["emulated"] and out["firmware_bytes"] == len(IMAGE)
     # the emulated Falcon keeps its own time (its firmware's ticks): a reply a loaded
     # host read after its wait is missing, every one read is the true count, and a host
-    # the machine stalled is told so ("degraded": the firmware held the command meanwhile)
+    # the machine stalled, or slowed below the scene's rate, is told so ("degraded": the
+    # firmware held each command longer than a period; in the full suite beside another
+    # worker: 854 packets/s, 1.2 periods)
     t = out["truth"]
     assert t["compared"] == t["exact"] == 40 - out["missing"] and t["max_error_counts"] == 0
-    assert out["verdict"] == "ok" or (out["verdict"] == "degraded"
-                                      and "stalled" in out["reason"]), out["reason"]
+    assert out["verdict"] == "ok" or (
+        out["verdict"] == "degraded"
+        and ("stalled" in out["reason"] or "packets/s, below" in out["reason"])), out["reason"]
     assert out["felt_matrices"] is None
     for argv, key in (([scene, "--driver", "falcon"], "--firmware"),
                       ([scene, "--driver", "falcon", "--firmware", str(fw), "--port",

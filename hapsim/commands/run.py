@@ -51,8 +51,8 @@ _SHORT_DESCRIPTION = """\
 Run a scene in real time against a force-feedback device (without --port: the embedded
 mock behind a pty) and measure the stiffness k and damping b the hand feels, beside what
 the analysis predicted for the scene's virtual (K, B); a 2-D or 3-D scene as felt
-MATRICES. Common options below; every option, what the numbers mean, faults and
-drivers: 'hapsim run --help-all' and docs/commands.md."""
+MATRICES (--driver haply: a Haply 2DIY's bytes). Common options below; every option,
+the numbers, faults and drivers: 'hapsim run --help-all' and docs/commands.md."""
 
 _SHORT_EPILOG = """\
 examples:
