@@ -49,8 +49,10 @@ output:
   direction byte, written to --out's protocol_options (not probed when motor_direction is
   given); the board's id is the host's choice (it answers any): nothing to identify.
 limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), sticks
-  when the force cannot break it loose); the delay is a whole number of samples (a
-  fractional delay shows as a worse fit of both holds); the model is 1-DoF rigid: a
+  when the force cannot break it loose); the delay is a real number of samples d + f
+  (under the zero-order hold the force switches f T into the period: the split hold),
+  stated with its interval (delay_estimate; --out writes it when its interval excludes
+  the whole delay); the model is 1-DoF rigid: a
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
   data (or a safety stop / device fault), or the record cannot be identified (the reason

@@ -14,6 +14,11 @@ the two holds of docs/design.md, 'The timing convention':
     friction sticks (``v = 0``). This is the same first-order friction model as the mock
     device (:class:`hapsim.daemon.mock.MockPhysics`), written again here from its
     description.
+``zoh`` with a sub-sample delay ``frac`` (the split hold, :mod:`hapsim.analysis.subsample`)
+    Over ``[kT, (k+1)T)`` the force applied before, ``u[k-1]``, holds for ``frac T``, then
+    ``u[k]`` for ``(1 - frac) T``: each piece integrated exactly, Coulomb friction per
+    piece, as the mock's :meth:`hapsim.device_model.MockPhysics._advance_split` does
+    (``u[-1]`` is 0). ``frac = 0`` is the plain hold, bit for bit.
 ``ideal`` (hold 1)
     Florens, Voda & Urma eq. (4): ``x[n+1] = (1 + a) x[n] - a x[n-1] + T^2/m psi u[n]``,
     ``a = e^(-b0 T/m)``, ``psi = (1 - a)/(b0 T/m)``; no Coulomb friction.
@@ -55,8 +60,32 @@ def _coefficients(m, friction, T):
 
 
 @_jit
+def _zoh_piece(x, v, f, fc_pos, fc_neg, a, cxv, cxu, cvu):
+    """One exact ZOH piece with Coulomb friction (module notes): the new ``(x, v)``."""
+    fc = 0.0
+    if v > 0.0:
+        fc = -fc_pos
+    elif v < 0.0:
+        fc = fc_neg
+    elif f > fc_pos:
+        fc = -fc_pos
+    elif f < -fc_neg:
+        fc = fc_neg
+    else:
+        return x, v                     # stuck: the force cannot break it loose
+    ft = f + fc
+    vn = a * v + cvu * ft
+    xn = x + cxv * v + cxu * ft
+    if v != 0.0 and vn * v < 0.0:
+        lim = fc_pos if v > 0.0 else fc_neg
+        if abs(f) <= lim:
+            vn = 0.0
+    return xn, vn
+
+
+@_jit
 def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, period, hold,
-                    out):
+                    out, frac=0.0):
     """Positions of the device model driven by the applied forces ``u``, per stretch.
 
     Parameters
@@ -81,9 +110,14 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, per
         0: zero-order hold (exact), 1: the paper's idealised sampled image.
     out : ndarray of float64, shape (n,)
         Filled with ``x[k]`` [m] on the stretches' samples (untouched elsewhere).
+    frac : float in [0, 1)
+        Sub-sample part of the delay (zoh only): ``u[k-1]`` holds over the first
+        ``frac T`` of period ``k`` (module notes).
     """
     T = period
     a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
+    a1, cxv1, cxu1, cvu1, _ = _coefficients(mass, friction, frac * T)
+    a2, cxv2, cxu2, cvu2, _ = _coefficients(mass, friction, (1.0 - frac) * T)
     for j in range(starts.shape[0]):
         x = xs[j]
         v = vs[j]
@@ -91,7 +125,11 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, per
         for k in range(starts[j], ends[j]):
             out[k] = x
             f = u[k]
-            if hold == 0:
+            if hold == 0 and frac > 0.0:
+                x, v = _zoh_piece(x, v, u[k - 1] if k >= 1 else 0.0, fc_pos, fc_neg,
+                                  a1, cxv1, cxu1, cvu1)
+                x, v = _zoh_piece(x, v, f, fc_pos, fc_neg, a2, cxv2, cxu2, cvu2)
+            elif hold == 0:
                 fc = 0.0
                 if v > 0.0:
                     fc = -fc_pos
@@ -119,7 +157,7 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, per
 
 
 @_jit
-def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
+def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c, frac=0.0):
     """Responses of the linear device model restarted at the start of each stretch.
 
     Within a stretch the device moves one way, so Coulomb friction is a constant force and
@@ -140,9 +178,15 @@ def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
         0 exact ZOH, 1 the idealised image (Florens et al. eq. (4)).
     yu, g, c : ndarray of float64, shape (n,)
         Filled on the stretches' samples (left untouched elsewhere).
+    frac : float in [0, 1)
+        Sub-sample part of the delay (zoh only, module notes): the applied forces'
+        response ``yu`` takes ``u[k-1]`` over the first ``frac T`` of period ``k``; ``g``
+        and ``c`` (no input switching) are the plain hold's.
     """
     T = period
     a, cxv, cxu, cvu, cu = _coefficients(mass, friction, T)
+    a1, cxv1, cxu1, cvu1, _ = _coefficients(mass, friction, frac * T)
+    a2, cxv2, cxu2, cvu2, _ = _coefficients(mass, friction, (1.0 - frac) * T)
     for j in range(starts.shape[0]):
         x1 = 0.0
         v1 = 0.0
@@ -158,7 +202,13 @@ def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c):
             g[k] = x2
             c[k] = x3
             f = u[k]
-            if hold == 0:
+            if hold == 0 and frac > 0.0:
+                fp = u[k - 1] if k >= 1 else 0.0
+                x1, v1 = x1 + cxv1 * v1 + cxu1 * fp, a1 * v1 + cvu1 * fp
+                x1, v1 = x1 + cxv2 * v1 + cxu2 * f, a2 * v1 + cvu2 * f
+                x2, v2 = x2 + cxv * v2, a * v2
+                x3, v3 = x3 + cxv * v3 + cxu, a * v3 + cvu
+            elif hold == 0:
                 x1, v1 = x1 + cxv * v1 + cxu * f, a * v1 + cvu * f
                 x2, v2 = x2 + cxv * v2, a * v2
                 x3, v3 = x3 + cxv * v3 + cxu, a * v3 + cvu

@@ -1,0 +1,97 @@
+"""identify states a sub-sample delay with its interval (issue 29 item 3).
+
+A device whose force takes effect ``d = m + f`` periods after the position it answers
+(the FireFader's ADC 1.1 ms into a 4 ms period, a USB frame 0.3 ms into a 1 ms one)
+holds the previous force over the first ``f T`` of each period: the split hold of
+:mod:`hapsim.analysis.subsample`, which the mock's physics runs
+(:meth:`hapsim.device_model.MockPhysics._advance_split`). Fitted as a whole delay, a
+hidden ``d = 1.3`` gave b0 = 0.428 in [0.362, 0.494] for a true 0.5 (the interval missed
+it); the fit now searches the fraction (hapsim.analysis.device_fit._search_fraction) and
+reports ``delay_estimate`` with its interval; a whole delay keeps today's model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hapsim.commands.identify import identify
+from hapsim.kernels.device_sim import simulate_device
+from hapsim.scene import Device
+
+
+def _identify(dev, seed):
+    return identify(device=dev, transport="inprocess", duration=2.0, force_limit=4.0,
+                    max_delay=5, seed=seed, progress=False, handle_signals=False)
+
+
+def test_a_hidden_delay_of_1_3_periods_is_stated_within_its_interval():
+    """The issue's case: m 0.1 kg, b0 0.5 N s/m, d 1.3, 1 um noise."""
+    dev = Device(mass=0.1, friction=0.5, delay=1.3, hold="zoh", force_limit=10.0,
+                 noise=1e-6)
+    fit, _ = _identify(dev, 1)
+    assert fit.delay == 1
+    assert fit.delay_estimate.contains(1.3), fit.delay_estimate
+    assert fit.delay_estimate.hi - fit.delay_estimate.lo < 0.2
+    assert fit.mass.contains(0.1) and fit.friction.contains(0.5), (fit.mass, fit.friction)
+    assert fit.device_delay() == pytest.approx(1.3, abs=0.05)
+
+
+def test_intervals_cover_random_sub_sample_delays():
+    """Property over seeded random devices (m 0.05-1 kg, b0 0-3 N s/m, Coulomb 0-0.2 N,
+    d uniform in [0, 4) periods, noise 0-3 um): the delay, mass and friction intervals
+    (99.9 %) hold the truth. 10 devices: with a true coverage of 99.9 % a miss has
+    probability ~1 %, so one miss per quantity is allowed (two: ~4e-4)."""
+    rng = np.random.default_rng(29)
+    miss = {"d": 0, "m": 0, "b0": 0}
+    for i in range(10):
+        d = float(rng.uniform(0.0, 4.0))
+        dev = Device(mass=float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
+                     friction=float(rng.uniform(0.0, 3.0)),
+                     coulomb=float(rng.uniform(0.0, 0.2)), delay=d, hold="zoh",
+                     noise=float(rng.uniform(0.0, 3e-6)), force_limit=10.0)
+        fit, _ = _identify(dev, i)
+        assert fit.delay == int(np.floor(d))
+        miss["d"] += not fit.delay_estimate.contains(d)
+        miss["m"] += not fit.mass.contains(dev.mass)
+        miss["b0"] += not fit.friction.contains(dev.friction)
+    assert all(v <= 1 for v in miss.values()), miss
+
+
+@pytest.mark.parametrize("d", [0, 1, 3])
+def test_a_whole_delay_stays_whole(d):
+    """A whole delay: its interval holds it, the device written has it as an integer
+    (the numbers downstream are today's, bit for bit)."""
+    dev = Device(mass=0.2, friction=1.0, delay=d, hold="zoh", force_limit=10.0,
+                 noise=1e-6)
+    fit, _ = _identify(dev, 3)
+    assert fit.delay == d and fit.delay_estimate.contains(d)
+    got = fit.device_delay()
+    assert isinstance(got, int) and got == d
+
+
+@pytest.mark.parametrize("frac", [0.0, 0.25, 0.7])
+def test_the_split_hold_kernel_is_the_mocks(frac):
+    """simulate_device's split hold against an independent integration: the same
+    device stepped on a grid 100 times finer with the force switching at ``frac T``
+    (forces on the fine grid: a plain exact ZOH there), no Coulomb friction; equal to
+    the round-off of ~200 steps of an exact discretisation (1e-12 of the motion, a
+    margin of ~1e3 over the measured 1e-15)."""
+    rng = np.random.default_rng(7)
+    n, T, m, b = 200, 1e-3, 0.15, 0.8
+    u = rng.normal(0.0, 1.0, n)
+    out = np.zeros(n)
+    simulate_device(u, m, b, 0.0, 0.0, np.array([0]), np.array([n]), np.zeros(1),
+                    np.zeros(1), T, 0, out, frac)
+    K = 100
+    j = int(round(frac * K))
+    assert abs(j / K - frac) < 1e-12
+    uf = np.empty(n * K)
+    for k in range(n):
+        uf[k * K:k * K + j] = u[k - 1] if k >= 1 else 0.0
+        uf[k * K + j:(k + 1) * K] = u[k]
+    fine = np.zeros(n * K)
+    simulate_device(uf, m, b, 0.0, 0.0, np.array([0]), np.array([n * K]), np.zeros(1),
+                    np.zeros(1), T / K, 0, fine, 0.0)
+    scale = np.abs(out).max()
+    assert np.abs(out - fine[::K]).max() <= 1e-12 * scale
