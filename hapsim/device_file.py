@@ -60,7 +60,7 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         f"  delay: {dev.delay}                  # [samples] "
         + (f"{d0}..{d1} fit as well" if d1 > d0 else "unambiguous")
         + (f"; d + f = {fit.delay_estimate.value:.3f} {iv(fit.delay_estimate)}"
-           if fit.delay_estimate is not None else ""),
+           if getattr(fit, "delay_estimate", None) is not None else ""),
         f"  hold: {dev.hold}                    # "
         + ("the other hold fits worse" if fit.hold_certain else "the other hold fits as well"),
         f"  # force_limit: not identified (the excitation stayed within {_num(force_limit)} "

@@ -134,6 +134,18 @@ class _Actuated:
         """Force commands applied so far."""
         return len(self.applied)
 
+    def held_from_now(self) -> float:
+        """Lockstep: the force the device holds over the coming period [N], the head of
+        its delay queue (clamped; the one held goes on where a queued command set none)
+        -- what a firmware that reports "the force applied" says at the instant it read
+        the position it sends (the wall clock's reply takes it from its schedule)."""
+        due = self._fifo[0] if self._fifo else None
+        if due is None:
+            return self.held
+        if not math.isfinite(due):
+            return 0.0
+        return math.copysign(self.limit, due) if abs(due) > self.limit else due
+
     def settles_on(self) -> float:
         """The force the device holds once the commands in its delay queue are applied
         (the last one that sets a force), [N]: what it is left with when the host is gone."""
@@ -879,8 +891,11 @@ class HapkitSerialDevice(_Actuated):
                 self.ready_at = tick + self.REPLY_WIRE_S
                 continue
             self.apply(f)
+            # the sketch replies with the handle it read and the force it applies from
+            # that tick on (as on the wall clock): the queue's head, not the force of the
+            # period just ended
             out += self._hk.reply_packet(self.decoder.function, self.physics.sample(),
-                                         self.held)
+                                         self.held_from_now())
         return out
 
     def idle(self, silent_s: float) -> bytes:

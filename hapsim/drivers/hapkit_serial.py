@@ -30,7 +30,7 @@ import struct
 from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
-           "ReplyDecoder", "CommandDecoder"]
+           "ReplyDecoder", "ReplyLog", "CommandDecoder"]
 
 HOST_FORCE_FUNCTION = 255
 #: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
@@ -66,6 +66,39 @@ def reply_packet(function: int, x: float, force: float) -> bytes:
 
 def _plausible(x: float, lim: float) -> bool:
     return math.isfinite(x) and abs(x) <= lim
+
+
+class ReplyLog:
+    """The replies a host decoder took, in order: ``x`` [m] and the ``force`` [N] the
+    sketch applied from the tick it read ``x`` at; a callable mapping a reply to its
+    position (the decoder's output).
+
+    Arrays grown by doubling, preallocated: taking a reply stores two floats (no array
+    per sample).
+
+    Attributes
+    ----------
+    x, force : ndarray, shape (capacity,)
+        The first :attr:`n` entries are the replies'.
+    n : int
+    """
+
+    def __init__(self, capacity: int = 4096) -> None:
+        import numpy as np
+        self.x = np.zeros(int(capacity))
+        self.force = np.zeros(int(capacity))
+        self.n = 0
+
+    def __call__(self, reply) -> float:
+        n = self.n
+        if n == self.x.size:
+            import numpy as np
+            self.x = np.concatenate([self.x, np.zeros(n)])
+            self.force = np.concatenate([self.force, np.zeros(n)])
+        self.x[n] = reply[0]
+        self.force[n] = reply[1]
+        self.n = n + 1
+        return reply[0]
 
 
 class ReplyDecoder(AlignedDecoder):
@@ -169,5 +202,72 @@ class HapkitSerial(Driver):
         return (10 + 9) * 10 / self.baud
 
     def decoder(self):
-        """A fresh host decoder returning the handle position [m]."""
-        return MappedDecoder(ReplyDecoder(self.function), lambda reply: reply[0])
+        """A fresh host decoder returning the handle position [m]; every reply's
+        ``(x, force applied)`` is kept in :attr:`replies` (a :class:`ReplyLog`) for
+        :meth:`account`."""
+        self.replies = ReplyLog()
+        return MappedDecoder(ReplyDecoder(self.function), self.replies)
+
+    def account(self, columns: dict, force):
+        """The force the device applied per tick: the sketch's replies name it.
+
+        Each reply carries the force the sketch applied from the tick it read the handle
+        at (module notes). A command the sketch took wrongly (a byte lost: its parser
+        took the next command's header as the last byte of a float, a force of ~1e-28 N,
+        or a corrupted float byte) is then no unknown disturbance: the row whose reply
+        says it has that force, a known input the measurement takes out, as a late tick
+        on the framed link. The rows are matched to the replies in order by their
+        position (the binary32 the reply carried, exactly; a reply no row took, from an
+        arming or a record the host dropped, is passed over). A row with no reply
+        (``FLAG_ESTIMATED``) keeps the timing account's force, the sent one or the one
+        before, with its half-width (:meth:`Driver.account`).
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (``position``, ``flags``).
+        force : ndarray, shape (n,)
+            The force each row's command carried [N].
+
+        Returns
+        -------
+        hapsim.applied.AppliedAccount or None
+            None when the delay is not known or no reply was logged.
+        """
+        import numpy as np
+
+        from hapsim.applied import account_from_timing
+        from hapsim.daemon.telemetry import FLAG_ESTIMATED
+        d = getattr(self, "loop_delay", None)
+        log = getattr(self, "replies", None)
+        flags = columns.get("flags")
+        pos = columns.get("position")
+        if d is None or log is None or log.n == 0 or flags is None or pos is None:
+            return super().account(columns, force)
+        base = super().account(columns, force) or account_from_timing(
+            force, d, quantise=self.applied_force)
+        est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
+        xs, fs = log.x[:log.n], log.force[:log.n]
+        applied = base.applied.copy()
+        late = base.late.copy()
+        hw = base.half_width.copy()
+        known = base.known.copy()
+        j = 0
+        for r in np.flatnonzero(~est):
+            # the next reply at this row's position (a few replies at most are passed
+            # over: the arming's, a record the host did not take)
+            k = j
+            while k < xs.size and k < j + 8 and xs[k] != pos[r]:
+                k += 1
+            if k >= xs.size or xs[k] != pos[r]:
+                continue
+            j = k + 1
+            f = float(fs[k])
+            if f != applied[r] or hw[r] != 0.0:
+                late[r] = late[r] or f != applied[r]
+                applied[r] = f
+                hw[r] = 0.0
+            known[r] = True
+        from hapsim.applied import AppliedAccount
+        return AppliedAccount(applied, base.source, base.tick_delay, base.delay, late, hw,
+                              known, "replies")
