@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hapsim.daemon.telemetry import FLAG_ESTIMATED
+from hapsim.drivers.base import FLAG_ESTIMATED
 from hapsim.drivers.hapkit_serial import HapkitSerial, reply_packet
 
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
+from hapsim.drivers.base import FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
            "ReplyDecoder", "ReplyLog", "CommandDecoder"]
@@ -237,7 +237,6 @@ class HapkitSerial(Driver):
         import numpy as np
 
         from hapsim.applied import account_from_timing
-        from hapsim.daemon.telemetry import FLAG_ESTIMATED
         d = getattr(self, "loop_delay", None)
         log = getattr(self, "replies", None)
         flags = columns.get("flags")
