@@ -1,7 +1,7 @@
 """Before a run: will its record be comparable with the prediction?
 
-A scene with contacts is predicted with every contact engaged (docs/design.md, 'A whole
-scene'); after the run only the longest stretch of the free response with every contact
+A scene with contacts is predicted with every contact engaged
+(docs/design.md, 'A whole scene'); after the run only the longest stretch of the free response with every contact
 closed is identified (:func:`hapsim.analysis.measurement.identify`, ``closed``). Whether
 that stretch is long enough is decided here *before* the run, from the scene alone: the
 closed loop of the device model and the engine is stepped offline in lockstep
