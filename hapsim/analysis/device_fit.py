@@ -599,7 +599,9 @@ def _search(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=None, seq=Non
 
 
 #: Grid of the sub-sample delay's fraction searched first (then refined around the best).
-FRACTION_GRID = tuple(j / 10.0 for j in range(1, 10))
+FRACTION_GRID = (0.25, 0.5, 0.75)
+#: Half-width of the bounded search around the grid's best [periods]: one grid step.
+_FRACTION_STEP = 0.25
 
 
 def _search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
@@ -652,11 +654,11 @@ def _search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
         if not ok:
             continue
         fb = min(ok, key=lambda t: t[1]["cost"])[0]
-        lo, hi = max(fb - 0.1, 0.0), min(fb + 0.1, 0.999)
+        lo, hi = max(fb - _FRACTION_STEP, 0.0), min(fb + _FRACTION_STEP, 0.999)
         if hi - lo > 1e-3:
             minimize_scalar(lambda fr: (fit(fr) or {"cost": math.inf})["cost"],
                             bounds=(lo, hi), method="bounded",
-                            options={"xatol": 1e-3, "maxiter": 12})
+                            options={"xatol": 2e-3, "maxiter": 10})
     # the whole delays beside them on the same (refined) cost: the profile's ends
     near = set(bases) | {b + 1 for b in bases}
     for c in zoh:
