@@ -12,8 +12,9 @@ What counts as a tolerance (found with :mod:`ast`, not a regular expression):
   ``rtol``/``atol``/``rel_tol``/``abs_tol`` literals, or the defaults when none is given;
 - ``assert_array_almost_equal``/``assert_almost_equal``: ``decimal=``;
 - a comparison ``<``/``<=`` (or ``>``/``>=`` mirrored) inside an ``assert`` whose one side
-  takes an absolute value or a norm (``abs``, ``np.abs``, ``np.linalg.norm``, ``max(...)``
-  of those, ``np.max(np.abs(...))``) and whose other side holds a float literal below 1.
+  takes the absolute value or the norm of a difference (``abs(a - b)``, ``np.abs``,
+  ``np.linalg.norm``, ``np.max(np.abs(x - ref))``) and whose other side holds a float
+  literal below 1.
 
 A literal bound to a module-level name (``TOL = 1e-9``) used as the tolerance is reported
 at the assignment. A literal 0 (``rel=0``: no relative part) is no tolerance.
@@ -94,8 +95,12 @@ def _float_literals(node: ast.AST) -> list[ast.Constant]:
 
 
 def _abslike(node: ast.AST) -> bool:
-    """Whether ``node`` takes an absolute value or a norm somewhere."""
-    return any(isinstance(n, ast.Call) and _fname(n) in _ABSLIKE for n in ast.walk(node))
+    """Whether ``node`` takes the absolute value or the norm of a difference somewhere
+    (``abs(a - b)``, ``np.linalg.norm(x - ref)``; ``abs(x) < 0.01``, a size, is none)."""
+    return any(isinstance(n, ast.Call) and _fname(n) in _ABSLIKE
+               and any(isinstance(m, ast.BinOp) and isinstance(m.op, ast.Sub)
+                       for a in n.args for m in ast.walk(a))
+               for n in ast.walk(node))
 
 
 class _Audit:
