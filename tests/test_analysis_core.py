@@ -82,9 +82,9 @@ def test_zoh_state_space_matches_expm(m, b0, T):
     M[:2, 2] = b
     E = scipy.linalg.expm(M * T)
     Ad, Bd = zoh_state_space(m, b0, T)
-    # measured 2.7e-15 abs, 5.4e-14 rel (generic 2.7e-15, 5.4e-14), margin 56 on the combined tolerance
+    # measured 2.7e-15 abs, 5.4e-14 rel (generic 2.7e-15, 5.4e-14), margin 56
     np.testing.assert_allclose(Ad, E[:2, :2], rtol=1e-12, atol=1e-12 * max(T, 1e-300))
-    # measured 9e-17 abs, 2.8e-15 rel (generic 9e-17, 2.8e-15), margin 29 on the combined tolerance
+    # measured 9e-17 abs, 2.8e-15 rel (generic 9e-17, 2.8e-15), margin 29
     np.testing.assert_allclose(Bd, E[:2, 2], rtol=1e-12, atol=1e-14 * T * T / m)
 
 
@@ -99,7 +99,7 @@ def test_zoh_plant_matches_cont2discrete(b0):
     N, D = plant(loop)
     # measured 5.1e-11 relative (generic 5.1e-11), margin 19
     np.testing.assert_allclose(np.trim_zeros(num[0], "f"), N, rtol=1e-9)
-    # measured 2.2e-16 abs, 1.7e-16 rel (generic 2.2e-16, 1.7e-16), margin 3000 on the combined tolerance
+    # measured 2.2e-16 abs, 1.7e-16 rel (generic 2.2e-16, 1.7e-16), margin 3000
     np.testing.assert_allclose(den, D, rtol=1e-12, atol=1e-14)
 
 
@@ -156,9 +156,9 @@ def test_zoh_characteristic_is_z_N_and_z_pow_d_plus_1_D():
         P, Q, R = characteristic(loop)
         P_ref = np.polymul([1.0, 0.0], N)
         Q_ref = np.polymul([1.0, -1.0], N) / loop.period
-        # measured 2e-16 abs, 4e-11 rel (generic 2e-16, 4e-11), margin 24 on the combined tolerance
+        # measured 2e-16 abs, 4e-11 rel (generic 2e-16, 4e-11), margin 24
         np.testing.assert_allclose(P, P_ref, rtol=1e-9, atol=1e-14 * np.max(np.abs(P_ref)))
-        # measured 3.3e-13 abs, 4e-8 rel (generic 3.3e-13, 4e-8), margin 15 on the combined tolerance
+        # measured 3.3e-13 abs, 4e-8 rel (generic 3.3e-13, 4e-8), margin 15
         np.testing.assert_allclose(Q, Q_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(Q_ref)))
         zd1 = np.zeros(d + 2)
         zd1[0] = 1.0
@@ -176,7 +176,7 @@ def test_paper_eq1_poles(m, rate):
         ref = np.sort_complex(np.roots([m / T**2, K - 2 * m / T**2, m / T**2]))
         got = closed_loop_poles(loop, K, 0.0)
         got = np.sort_complex(got[np.abs(got) > 1e-6])
-        # measured 6.5e-16 abs, 6.5e-16 rel (generic 6.5e-16, 6.5e-16), margin 2e5 on the combined tolerance
+        # measured 6.5e-16 abs, 6.5e-16 rel (generic 6.5e-16, 6.5e-16), margin 2e5
         np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
 
 
@@ -423,7 +423,7 @@ def test_damping_limits_against_brentq_on_numpy_roots(loop):
         assert _rho_numpy(loop, K, out) > 1.0
         ref = brentq(lambda B: _rho_numpy(loop, K, B) - 1.0, mid, out, xtol=1e-15,
                      rtol=1e-14, maxiter=300)
-        # measured 1.5e-11 abs, 1.5e-14 rel (generic 1.5e-11, 1.5e-14), margin 68000 on the combined tolerance
+        # measured 1.5e-11 abs, 1.5e-14 rel (generic 1.5e-11, 1.5e-14), margin 68000
         assert edge == pytest.approx(ref, rel=1e-9, abs=1e-12 * loop.mass / loop.period)
 
 

@@ -126,7 +126,8 @@ class _Audit:
         """A justifying comment on lines ``first .. last`` or in the block of comment-only
         lines directly above ``first`` (the line before at least)."""
         top = first - 1
-        while top - 1 >= 1 and self.lines[top - 2].lstrip().startswith("#"):
+        while top - 1 >= 1 and self.lines[top - 1].lstrip().startswith("#") \
+                and self.lines[top - 2].lstrip().startswith("#"):
             top -= 1
         return any(JUSTIFIED.search(self.comments.get(n, "")) for n in range(top, last + 1))
 
