@@ -67,6 +67,7 @@ device: {{mass: 0.1, friction: 0.5, delay: {d}, {hand + ', ' if hand else ''}
     ev = nonzero(np.linalg.eigvals(A))
     ref = nonzero(closed_loop_poles(LoopModel.from_device(sc.device, 1000.0), 400.0, 1.5))
     assert ev.size == ref.size
+    # measured 1.4e-12 (generic 1.4e-12), margin 700
     assert np.abs(ev - ref).max() < 1e-9
 
 

@@ -309,6 +309,7 @@ def test_corrected_family_verdicts_equal_the_scalar_analysis_per_member(corr):
         assert res.stable[i] == (np.abs(p).max() <= 1.0 + STABILITY_TOL), i
         a = np.sort_complex(ev[i][np.abs(ev[i]) > 1e-7])
         b = np.sort_complex(p[np.abs(p) > 1e-7])
+        # measured 4.5e-12 (generic 9.8e-12), margin 1000
         assert a.size == b.size and np.abs(a - b).max() < 1e-8, i
     assert res.robust == (corr["kind"] != "inertia_compensation")
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tolerance import measured
 
 from hapsim.cli import main
 
@@ -36,7 +37,8 @@ def test_lockstep_measured_equals_predicted_small_excitation(name, capsys):
         assert dev <= out["linearisation_bound"][key]
     zp = np.sort_complex(np.array([complex(*z) for z in out["predicted"]["rendered_poles"]]))
     zm = np.sort_complex(np.array([complex(*z) for z in out["measured"]["rendered_poles"]]))
-    assert np.max(np.abs(zp - zm)) <= 1e-8
+    # measured 2.7e-9 (generic 2.7e-9; the 1e-8 literal held by 3.7), margin 10
+    assert np.max(np.abs(zp - zm)) <= measured(2.7e-9, 10)
     b = out["linearisation_bound"]
     # the bound at the records' excursion: the moving starts carry the handle past a
     assert 1e-8 < b["amplitude"] < 5e-8 and b["link_per_m"] > 0 and b["kinematic_per_m"] > 0
