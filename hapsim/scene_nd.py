@@ -649,6 +649,8 @@ def _check_products(r: _Reader, T: float, masses, links, planes, device, dev_lin
             sx = max(float(np.max(np.abs(X))), np.finfo(float).tiny)
             return sx * np.linalg.eigvalsh(0.5 * (X / sx) + 0.5 * (X.T / sx))
         light = float(np.min(eigs(device.mass)))
+        if not np.all(np.isfinite(device.friction)):
+            raise r.error("the device's friction is not finite", dev_line, "device.friction")
         heavy_b0 = float(np.max(np.abs(eigs(device.friction))))
         if not (math.isfinite(light) and light > 0):
             raise r.error("the device's Cartesian mass is not positive definite here",
@@ -860,6 +862,13 @@ def _read_device(r: _Reader, doc, n: int, max_delay: int) -> DeviceND:
         raise r.error(what + given, r.line(d, "joints"), f"{key}.joints") from None
     _mass_in_range(r, loop.mass, r.line(d, "joint_inertia"), f"{key}.joint_inertia",
                    " (the Cartesian mass J^-T M_q J^-1 at these joints, hand included)")
+    if not np.all(np.isfinite(loop.friction)):
+        # (a hand_damping of 1e308 with the joint friction mapped: inf; it passed the
+        # reader and failed later without file or line, issue 31's fuzz)
+        k_bad = "hand_damping" if bh > 0 and "hand_damping" in d else "joint_friction"
+        raise r.error("the device's Cartesian friction J^-T B_q J^-1 + hand_damping at these "
+                      "joints is not finite: the value is beyond the double range",
+                      r.line(d, k_bad), f"{key}.{k_bad}")
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
                     geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
                     hand_damping=bh)

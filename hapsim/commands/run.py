@@ -99,6 +99,12 @@ what the numbers mean:
   loop        rate, ticks, late (device held an older force), missed (STATE gaps),
               turnaround p50/p99/p99.9/max [us] from STATE read to FORCE written,
               low-latency serial mode on/off
+not measurable, said first: a scene with contacts is predicted with them engaged; before
+  the loop starts the closed loop is simulated offline in lockstep (device model and
+  engine, the run's samples) and when a contact opens so that no closed stretch of the
+  free response is as long as the fit needs, stderr says so with the contact and the
+  sample, the run goes on, the report repeats it (measured.stated_before_run) and the
+  exit code stays 0 (not a device fault; docs/commands.md, 'Exit codes').
 timing: STATE n carries x(nT); FORCE n is computed from x[n], x[n-1] and applied over
   [(n+d)T, (n+d+1)T) by the device's zero-order hold.
 safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM -> zero
@@ -376,7 +382,10 @@ def run(args) -> int:
     # the run itself is the API's (hapsim.api.run): the command announces, then prints
     report = api.run(scene, dataclasses.replace(
         opts, driver=protocol, loop=loop, handle_signals=True, embedded=embedded,
-        on_start=lambda port, n: _announce(port, n, said, note)))
+        on_start=lambda port, n: _announce(port, n, said, note),
+        on_precheck=lambda s: print(f"hapsim run: {scene.path}: {s}; the run goes on "
+                                    f"(exit code 0: not a device fault)",
+                                    file=sys.stderr, flush=True)))
     if advice is not None:
         report = report.replace(advice=advice.to_dict())  # keeps exit_code
     print(json.dumps(report.to_dict()) if args.json else report.text())

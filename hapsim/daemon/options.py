@@ -147,6 +147,11 @@ class RunOptions:
         Called as ``on_start(port, n_samples)`` once the signal handlers are installed,
         the device has said HELLO and the numba warm-up is done, just before the device is
         armed (e.g. to tell the user that Ctrl-C now stops cleanly).
+    on_precheck : callable, optional
+        Called as ``on_precheck(statement)`` before the run starts when the scene's record
+        is predicted not comparable (:func:`hapsim.daemon.precheck.predict_comparable`:
+        a contact that opens within the samples the fit needs); ``statement`` is the
+        sentence the report's ``measured.stated_before_run`` holds. The run goes on.
     faults : str, optional
         Fault SPEC for the mock (:mod:`hapsim.daemon.faults`); ``pty`` and ``sim`` only.
     fault_seed : int
@@ -304,6 +309,7 @@ class RunOptions:
     stop: StopFlag | None = None
     handle_signals: bool = True
     on_start: object = None
+    on_precheck: object = None
     telemetry_interval: float = 0.05
     driver_options: dict | None = None
     mock_options: dict | None = None

@@ -260,6 +260,9 @@ def format_report(rep: dict) -> str:
         lines.append(f"  verdict: {m['verdict']}")
     else:
         lines.append(f"  {'measured':<12} not identified: {m.get('error')}")
+    if m.get("stated_before_run"):
+        # what hapsim run said on stderr before the loop started (hapsim/daemon/precheck.py)
+        lines.append(f"  stated before the run: {m['stated_before_run']}")
     if m.get("note"):
         lines.append(f"  note: {m['note']}")
     lines += _osc_lines(rep.get("osc"), m)

@@ -654,6 +654,16 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
             opts.embedded = None            # not this run's device
             embedded.close()
         prep = prepare_run(scene, opts)
+        # before the loop starts: will the record be comparable (a contact that opens
+        # within the samples the fit needs)? Said first, then run (hapsim/daemon/precheck.py)
+        from hapsim.daemon.precheck import predict_comparable
+        pre = predict_comparable(prep)
+        stated = None
+        if pre is not None and not pre["comparable"]:
+            stated = ("not measurable, predicted before the run (lockstep simulation of the "
+                      "closed loop): " + pre["reason"])
+            if opts.on_precheck is not None:
+                opts.on_precheck(stated)
     except BaseException:
         if embedded is not None:
             embedded.close()
@@ -665,6 +675,10 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         # the run's own driver (its parameters: given, or the scene's protocol_options)
         drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
         measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
+        if pre is not None:
+            measured["predicted_comparable"] = pre["comparable"]
+            if stated is not None:
+                measured["stated_before_run"] = stated
         if drv is not None:
             timing_verdict(measured, run.res, conn.tr.stats, wall=not opts.lockstep)
         rep = build_report(prep, conn, run, opts, measured, tel_info)
