@@ -133,8 +133,11 @@ def test_fit_modes_converts_with_the_mass():
     modes = fit_modes(y, T, 3, m)
     pair = fit_rendered(y, T, 3, m)
     assert modes[0] is pair or modes[0] == pair
+    # measured 1.4e-16 relative (generic 1.6e-15), margin 63000
     assert pair.k == pytest.approx(m * abs(s) ** 2, rel=1e-10)
+    # measured 5.7e-14 relative (generic 3.7e-14), margin 2e5
     assert pair.b == pytest.approx(-2 * m * s.real, rel=1e-8)
+    # measured 0 relative (generic 8.9e-16), margin 1e5
     assert pair.f0_hz == pytest.approx(abs(s) / (2 * math.pi), rel=1e-10)
     assert [md.kind for md in modes] == ["pair", "real"]
 
@@ -182,7 +185,9 @@ def test_simulated_loop_matches_render(m, b0, rate, B, d, hold):
     n = int(min(max(6 * per, 200), 800))
     x = simulate_loop(m, b0, rate, d, hold, K, B, n + d + 3)[d + 3:]
     fit = fit_rendered(x, T, nz, m)
+    # measured 5.3e-14 relative (generic 5.3e-14), margin 2e7
     assert fit.k == pytest.approx(pred.k, rel=1e-6)
+    # measured 2e-12 relative (generic 1.4e-12), margin 5e5
     assert fit.b == pytest.approx(pred.b, rel=1e-6)
     # decay just below the limit, growth just above, at the rate render predicts
     for frac in (0.99, 1.01):
@@ -200,6 +205,7 @@ def test_simulated_loop_matches_render(m, b0, rate, B, d, hold):
         nz = int(np.sum(np.abs(zc) > 1e-9))
         n_fit = int(min(800, max(40, 10.0 / abs(math.log(rho)))))
         zf = pencil_poles(x[d + 3:d + 3 + n_fit], nz)
+        # measured 3.7e-15 relative (generic 3.3e-15), margin 3e8
         assert np.max(np.abs(zf)) == pytest.approx(rho, rel=1e-6)   # at the predicted rate
 
 
@@ -240,14 +246,18 @@ def test_check_scene_equals_render_for_a_port_wall(m, b0, rate, K, B, order, kin
     chk = check_scene(scene)
     ref = render(loop, K, B)
     assert chk.rendered is not None
+    # measured 2.5e-12 relative (generic 2.5e-12), margin 390
     assert chk.rendered.k == pytest.approx(ref.k, rel=1e-9)
+    # measured 1.3e-12 relative (generic 1.3e-12), margin 750
     assert chk.rendered.b == pytest.approx(ref.b, rel=1e-9)
+    # measured 1e-15 relative (generic 1e-15), margin 1000
     assert chk.spectral_radius == pytest.approx(ref.spectral_radius, rel=1e-12)
     assert chk.stable == ref.stable
     a = chk.eigenvalues[np.abs(chk.eigenvalues) > 1e-9]
     b = closed_loop_poles(loop, K, B)
     b = b[np.abs(b) > 1e-9]
     assert a.size == b.size
+    # measured 2e-14 (generic 2e-14), margin 49000
     assert np.max(np.abs(np.sort_complex(a) - np.sort_complex(b))) < 1e-9
     assert len(chk.state_names) == chk.eigenvalues.size
 
@@ -274,6 +284,7 @@ links:
     chk = check_scene(osc(1000.0))
     assert chk.stable and chk.marginal and chk.rendered is None
     w = math.acos(1 - 1000.0 * 1e-6 / (2 * 0.1)) / 1e-3
+    # measured 0 (generic 0): exact on both targets
     assert chk.modes[0].f0_hz == pytest.approx(w / (2 * math.pi), rel=1e-12)
     assert check_scene(osc(0.99 * 4 * 0.1 / 1e-6)).stable
     bad = check_scene(osc(1.01 * 4 * 0.1 / 1e-6))
@@ -292,7 +303,9 @@ def test_wall_scene_is_what_render_predicts():
     lk = scene.link("wall")
     ref = render(LoopModel.from_device(scene.device, scene.rate_hz), lk.stiffness, lk.damping)
     chk = check_scene(scene)
+    # measured 1.3e-15 relative (generic 1.3e-15), margin 7e5
     assert chk.rendered.k == pytest.approx(ref.k, rel=1e-9)
+    # measured 1.3e-13 relative (generic 1.3e-13), margin 7700
     assert chk.rendered.b == pytest.approx(ref.b, rel=1e-9)
 
 
@@ -348,7 +361,9 @@ device: {mass: 0.1, friction: 0.5, delay: 1, hold: zoh}
     found = pencil_poles(x, ev.size, offset=True)    # equilibrium 2/3 m: a constant
     assert match(found, ev) < 1e-7
     fit = fit_rendered(x, scene.period, ev.size, scene.device.mass, offset=True)
+    # measured 7.4e-13 relative (generic 5.6e-13), margin 1e6
     assert fit.k == pytest.approx(chk.rendered.k, rel=1e-6)
+    # measured 1.4e-11 relative (generic 1.5e-11), margin 68000
     assert fit.b == pytest.approx(chk.rendered.b, rel=1e-6)
 
 
@@ -416,7 +431,9 @@ def test_target_links_need_calibration():
     cal = calibrate(LoopModel.from_device(scene.device, 1000.0), 800, 3)
     assert cal.renderable
     chk = check_scene(scene, calibrated={"felt": (cal.K, cal.B)})
+    # measured 2e-15 relative (generic 2e-15), margin 5e6
     assert chk.rendered.k == pytest.approx(800, rel=1e-8)
+    # measured 1e-14 relative (generic 1e-14), margin 1e6
     assert chk.rendered.b == pytest.approx(3, rel=1e-8)
     with pytest.raises(ConfigError):
         check_scene(scene, calibrated={"nope": (1.0, 1.0)})
@@ -431,6 +448,7 @@ def test_cli_exit_codes_and_json(tmp_path, capsys):
     assert main(["check", "configs/wall.yaml", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     ref = render(LoopModel(0.1, 0.5, 1000.0, 1, "zoh"), 1000.0, 1.5)
+    # measured 1.3e-15 relative (generic 1.3e-15), margin 7e5
     assert doc["stable"] is True and doc["rendered"]["k"] == pytest.approx(ref.k, rel=1e-9)
 
     loop = LoopModel(0.1, 0.5, 1000.0, 1, "zoh")
@@ -460,6 +478,7 @@ device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh}}
     assert main(["check", str(good), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["calibrations"][0]["renderable"] is True
+    # measured 2e-15 relative (generic 2e-15), margin 5e6
     assert doc["rendered"]["k"] == pytest.approx(800, rel=1e-8)
     far = tmp_path / "far.yaml"
     far.write_text(TARGET % (2e6, 3))   # far beyond what this loop can render
@@ -483,14 +502,20 @@ def test_table1_ii_equals_i_and_the_rest_disagree():
     for k, r in zip(ks, rows):
         # independent closed forms (normalised units m = T = 1)
         K = 2 - 2 * math.cos(math.sqrt(k))
+        # measured 0 (generic 0): exact on both targets
         assert r["K"] == pytest.approx(K, rel=1e-14)
+        # measured 0 (generic 0): exact on both targets
         assert r["w_I"] == pytest.approx(math.sqrt(k), rel=1e-14)
+        # measured 0 (generic 0): exact on both targets
         assert r["w_III"] == pytest.approx(math.sqrt(2 * k), rel=1e-14)
+        # measured 5.6e-15 (generic 5.6e-15), margin 180
         assert abs(r["w_II"] / r["w_I"] - 1) < 1e-12                     # II equals I
+        # measured 2.5e-16 relative (generic 2.5e-16), margin 4600
         assert r["w_IV"] == pytest.approx(math.acos(1 - K), rel=1e-12)   # (z-1)^2 + 2Kz = 0
         # IV through the analysis core: the same loop, ideal, d = 0, b0 = 0
         zc = closed_loop_poles(LoopModel(1.0, 0.0, 1.0, 0, "ideal"), 2 * K, 0.0)
         zc = zc[np.abs(zc) > 1e-9]
+        # measured 2.5e-16 relative (generic 2.5e-16), margin 4600
         assert r["w_IV"] == pytest.approx(np.max(np.abs(np.angle(zc))), rel=1e-12)
         assert r["stable_II"] and r["stable_IV"] and r["stable_V"]
         # III, IV, V pairwise different
@@ -508,6 +533,7 @@ def test_table1_v_continuous_limit_and_unstable_iv():
     # 2K beyond 4 m/T^2 (k = 3: 2K = 4.64): IV is unstable while III is a plain spring
     r = table1_experiment([3.0])[0]
     assert not r["stable_IV"] and r["stable_V"] and r["radius_IV"] > 2
+    # measured 0 (generic 0): exact on both targets
     assert tuned_stiffness(3.0) == pytest.approx(2 - 2 * math.cos(math.sqrt(3)))
     with pytest.raises(ConfigError):
         table1_experiment([10.0])   # T sqrt(k/m) > pi: eq. (2) cannot tune
@@ -540,8 +566,10 @@ def test_render_and_check_scene_agree_on_the_lossless_centred_difference_loop(K)
     loop = LoopModel(mass=1.0, friction=0.0, rate_hz=1.0, delay=0, hold="ideal")
     r = render(loop, K, 0.0)
     chk = check_scene(port_scene(K, 0.0, 0, "ideal", m=1.0, b0=0.0, rate=1.0))
+    # measured 2.2e-16 (generic 2.2e-16), margin 4500
     assert abs(r.spectral_radius - 1.0) <= 1e-12
     assert (r.stable, r.marginal) == (chk.stable, chk.marginal) == (True, True)
+    # measured 2.2e-15 relative (generic 2.2e-15), margin 5e5
     assert r.k == pytest.approx(math.acos(1.0 - K / 2.0) ** 2, rel=1e-9)
     d = json.loads(json.dumps(r.to_dict()))
     assert d["stable"] is True and d["marginal"] is True
@@ -555,6 +583,7 @@ def test_just_above_the_centred_difference_limit_both_say_unstable(K):
     chk = check_scene(port_scene(K, 0.0, 0, "ideal", m=1.0, b0=0.0, rate=1.0))
     c = K - 2.0
     zmax = (c + math.sqrt(c * c - 4.0)) / 2.0   # |more negative root|
+    # measured 6.3e-14 relative (generic 6.3e-14), margin 15000
     assert r.spectral_radius == pytest.approx(zmax, rel=1e-9)
     assert not r.stable and not r.marginal and not chk.stable
 

@@ -319,6 +319,7 @@ device: {mass: 0.1}
     with pytest.raises(ConfigError, match=r"felt.yaml:4: links.felt: .*calibrate"):
         Engine(scene)
     eng = Engine(scene.with_link("felt", stiffness=900.0, damping=2.0))
+    # measured 0 (generic 0): exact on both targets
     assert eng.port_step(0.001) == pytest.approx(-0.9 - 2.0)
 
 

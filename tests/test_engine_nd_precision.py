@@ -208,4 +208,6 @@ def test_single_precision_grid_mesh_keeps_the_velocity_form_accuracy():
     eng.step(n)
     motion = np.max(np.abs(ref - X0))
     assert motion > 5e-4
+    # float32 round-off integrated 200 samples: measured 1.6e-5 * motion (generic the
+    # same), margin 62
     assert np.max(np.abs(eng.x - ref)) <= 1e-3 * motion

@@ -58,6 +58,7 @@ def test_within_one_turn_the_periodic_angle_is_the_same_pose(q1, q2):
     except KinematicsError:
         return
     p2 = pan.forward([q1 - 2 * math.pi, q2 - 2 * math.pi])
+    # measured 7.1e-17 abs, 3.1e-14 rel (generic 7.1e-17, 3.1e-14), margin 14000
     assert np.allclose(p, p2, rtol=0, atol=1e-12)
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from hapsim.cli import main
+from tolerance import measured
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = REPO / "configs" / "membrane.yaml"
@@ -59,8 +60,10 @@ def test_check_gives_the_closed_form_modes(capsys, tmp_path):
         got_f = np.array([m["frequency_hz"] for m in modes])
         got_z = np.array([m["damping_ratio"] for m in modes])
         assert got_f.size == f.size
+        # measured 3.7e-13 (generic 5.8e-13), margin 1700
         assert np.max(np.abs(got_f - f) / f) < 1e-9
-        assert np.max(np.abs(got_z - zeta) / zeta) < 1e-9
+        # measured 1.2e-10 relative (generic 7e-11; the 1e-9 literal held by 8.2), margin 10
+        assert np.max(np.abs(got_z - zeta) / zeta) < measured(1.2e-10, 10)
     fig = tmp_path / "modes.png"
     capsys.readouterr()
     assert main(["check", str(SCENE), "--modes", "3", "--plot", str(fig)]) == 0

