@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import time
 
 import numpy as np
@@ -297,9 +298,11 @@ def _burn(until: float) -> None:
 @pytest.fixture
 def two_cpu_hogs():
     """Two CPU-bound processes for the test's length (each ends by itself within 90 s)."""
+    from load import burners_for  # same directory (pytest prepend import mode)
     ctx = mp.get_context("spawn")
+    # two busy processes beside the test: the other xdist worker is one of them
     procs = [ctx.Process(target=_burn, args=(time.monotonic() + 90.0,), daemon=True)
-             for _ in range(2)]
+             for _ in range(burners_for(2))]
     for p in procs:
         p.start()
     time.sleep(0.2)                      # burning before the loop starts
@@ -329,6 +332,8 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
     from pathlib import Path
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / f"{config}.yaml"))
     assert all(p.is_alive() for p in two_cpu_hogs)         # they run beside it
+    assert len(two_cpu_hogs) + max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+                                   - 1, 0) >= 2
     kw = {"driver": driver} if driver else {}
     # the default scheduling (SCHED_FIFO 10 where the OS permits, as `hapsim run`): a
     # loop at normal priority beside two CPU-bound processes is no real-time loop
