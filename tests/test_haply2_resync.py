@@ -3,7 +3,11 @@ framing, so a lost or corrupted host byte shifts its parser; the loop finds it (
 reply decoder's desync, or writes left unanswered) and re-synchronises the board as the
 1-DoF driver does (zero torque first, then the set-up), and goes on. The board is the
 emulated firmware V1.5 in process behind a serial-like link whose faults are seeded (or
-scripted): what each tick reads does not depend on the machine's load."""
+scripted): what each tick reads does not depend on the machine's load. The board steps
+one period per write, and the loop is told so (``lockstep_board``, named): its silences
+and hold bounds count the board's periods, not the wall clock's (timed on the wall
+clock, a loaded host re-synchronised at another tick: once, a joint 0.14 rad from where
+the set-up put it, on a full suite beside a busy process)."""
 
 from __future__ import annotations
 
@@ -91,7 +95,7 @@ def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
     f = ByteFaults({"drop_rx": 1e-3, "corrupt_rx": 1e-3, "drop_tx": 1e-3,
                     "corrupt_tx": 1e-3, "seed": seed})
     link = FaultyLink(board, f.rx, f.tx)
-    rec = record_realtime(link, Haply2DIY(gen), sc, N)
+    rec = record_realtime(link, Haply2DIY(gen), sc, N, lockstep_board=True)
     read = _check(rec, link, N, board.cpr)
     assert min(f.counts.values()) > 0
     assert rec["resyncs"] > 0 and rec["decoder"]["skipped"] > 0
@@ -109,7 +113,7 @@ def test_a_lost_host_byte_desyncs_the_board_and_the_loop_resyncs_it():
     N = 120
     board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, rx=_at_nth_write(3 + 30, lambda b: b[:4] + b[5:]))
-    rec = record_realtime(link, Haply2DIY("gen3"), sc, N)
+    rec = record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
     read = _check(rec, link, N, board.cpr)
     assert rec["resyncs"] == 1 and rec["bad_setups"] == 0
     k = int(np.flatnonzero(rec["resynced"])[0])
@@ -125,7 +129,7 @@ def test_a_lost_device_byte_is_one_missing_sample_and_no_resync():
     N = 80
     board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, tx=_at_nth_write(3 + 40, lambda b: b[:3] + b[4:]))
-    rec = record_realtime(link, Haply2DIY("gen3"), sc, N)
+    rec = record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
     _check(rec, link, N, board.cpr)
     assert rec["resyncs"] == 0 and rec["estimated"].sum() == 1
     assert rec["decoder"]["skipped"] == 8 and rec["decoder"]["desync"] == 0
@@ -145,7 +149,7 @@ def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced(fault):
           "garbage": lambda b: bytes((1, 1, 0, 0, 0, 255)) + b}[fault]
     board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4, clock="lockstep")
     link = FaultyLink(board, rx=_at_nth_write(3 + 25, mk))
-    rec = record_realtime(link, Haply2DIY("gen2"), sc, N)
+    rec = record_realtime(link, Haply2DIY("gen2"), sc, N, lockstep_board=True)
     read = _check(rec, link, N, board.cpr)
     assert rec["resyncs"] == 1
     assert read[int(np.flatnonzero(rec["resynced"])[0]):].all()
