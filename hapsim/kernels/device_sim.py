@@ -130,26 +130,7 @@ def simulate_device(u, mass, friction, fc_pos, fc_neg, starts, ends, xs, vs, per
                                   a1, cxv1, cxu1, cvu1)
                 x, v = _zoh_piece(x, v, f, fc_pos, fc_neg, a2, cxv2, cxu2, cvu2)
             elif hold == 0:
-                fc = 0.0
-                if v > 0.0:
-                    fc = -fc_pos
-                elif v < 0.0:
-                    fc = fc_neg
-                elif f > fc_pos:
-                    fc = -fc_pos
-                elif f < -fc_neg:
-                    fc = fc_neg
-                else:
-                    continue                # stuck: the force cannot break it loose
-                ft = f + fc
-                vn = a * v + cvu * ft
-                xn = x + cxv * v + cxu * ft
-                if v != 0.0 and vn * v < 0.0:
-                    lim = fc_pos if v > 0.0 else fc_neg
-                    if abs(f) <= lim:
-                        vn = 0.0
-                x = xn
-                v = vn
+                x, v = _zoh_piece(x, v, f, fc_pos, fc_neg, a, cxv, cxu, cvu)
             else:
                 xn = (1.0 + a) * x - a * xp + cu * f
                 xp = x
