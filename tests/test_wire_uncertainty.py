@@ -24,9 +24,20 @@ def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
     assert m["within"] is True, m["verdict"]
     assert m["b_sd_wire"] > 0 and m["k_sd_wire"] > 0
     assert "wire" in m["interval_note"]
-    # the float32 error is there (not round-off of float64) and inside the interval
-    assert abs(m["rel_err"]["b"]) > 1e-10
+    # The stated interval is the wire's: the float32 term is the largest of the fit's
+    # standard errors (COVERAGE of them), so it is what covers the error. The size of the error
+    # itself is not asserted: it is the rounding of one record's float32 fields, and the
+    # record is the load's (a lockstep driver mock is asked again after 20 ms without an
+    # answer, so a loaded host measures another record: 1.9e-8 of b alone, 8.2e-11 once
+    # in a full CI suite, where a literal "> 1e-10" failed).
+    from hapsim.analysis.identify import COVERAGE
+    assert m["b_interval"] >= COVERAGE * m["b_sd_wire"]
+    assert m["k_interval"] >= COVERAGE * m["k_sd_wire"]
+    # the wire's worst case over the fit's residual-based error: measured 41x (b) and 40x
+    # (k) on this scene; a run whose interval forgot the wire states the residual's alone
+    assert m["b_sd_wire"] > m["b_sd"] and m["k_sd_wire"] > m["k_sd"]
     assert abs(m["b"] - rep["predicted"]["b"]) <= m["b_interval"]
+    assert abs(m["k"] - rep["predicted"]["k"]) <= m["k_interval"]
 
 
 def test_drivers_declare_their_wire_and_the_force_response_is_the_loops():
