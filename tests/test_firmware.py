@@ -529,6 +529,7 @@ def test_board_physics_open_loop_step_is_the_exact_motion_within_one_count(tmp_p
         t = max(n - 1, 0) * 1e-3                  # force on from tick 1
         exact = f / b0 * t - f / b0 * (m / b0) * (1.0 - math.exp(-b0 * t / m))
         v = f / b0 * (1.0 - math.exp(-b0 * t / m))
+        # derived (docstring): half a count, the 0.1-count millivolt rounding, 5 us of motion
         assert abs(x - exact) <= 0.61 * qx + v * 5e-6, (n, x, exact)
     assert xs[-1] / qx > 2 * 921                  # the shaft turned over several half turns
     stuck = _step_response(tmp_path, 1.0, 50, "--coulomb", "1.5")

@@ -29,6 +29,8 @@ from hapsim.analysis.ths_nd import (LoopModelND, closed_loop_poles_nd, direction
                                     state_matrix)
 from hapsim.errors import ConfigError
 
+pytestmark = pytest.mark.numerical
+
 EPS = np.finfo(float).eps
 C_BACKWARD = 64.0
 

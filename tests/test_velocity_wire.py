@@ -144,9 +144,9 @@ def test_lockstep_velocity_sensor_over_the_wire_measured_equals_predicted(body, 
                     duration=1.0)
     r = render(LoopModel.from_device(sc.device, sc.rate_hz), 300.0, 1.5)
     assert r.stable
-    # measured 3.3e-13 relative (generic G139), margin 3e6
+    # measured 3.3e-13 relative (generic 1.3e-13), margin 3e6
     assert rep["measured"]["k"] == pytest.approx(r.k, rel=1e-6)
-    # measured 4.5e-13 relative (generic G140), margin 2.2e6
+    # measured 4.5e-13 relative (generic 7.7e-14), margin 2.2e6
     assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
     vs = rep["loop"]["velocity_sensor"]
     assert vs["missing"] == 0 and vs["frames"] >= rep["loop"]["ticks"] > 0
