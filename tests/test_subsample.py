@@ -313,7 +313,7 @@ def test_calibrate_hits_the_target_at_fractional_delays():
         c = calibrate(lp, 2000.0, 3.0)
         assert c.renderable
         r = render(lp, c.K, c.B)
-        # measured 1.3e-15 relative at most (generic G314), margin 7.7e5
+        # measured 1.3e-15 relative at most (generic 1.3e-15), margin 7.7e5
         assert abs(r.k - 2000.0) <= 1e-9 * 2000.0 and abs(r.b - 3.0) <= 1e-9 * 3.0
 
 
