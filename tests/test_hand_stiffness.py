@@ -19,6 +19,7 @@ from hapsim.analysis.loop import LoopModel, closed_loop_poles
 from hapsim.analysis.network import closed_loop
 from hapsim.analysis.ths import render
 from hapsim.scene import parse_scene
+from tolerance import measured
 
 
 def scene_text(K=800.0, B=1.5, *, m=0.05, b0=0.3, d=1, hold="zoh", mh="0.2", bh="0.5",
@@ -75,7 +76,8 @@ def test_body_zoh_matches_cont2discrete(member):
         A, b = hand_matrices(mc, bc, member)
     Ad, Bc, *_ = scipy.signal.cont2discrete((A, b[:, None], np.eye(n), np.zeros((n, 1))), T,
                                             method="zoh")
-    np.testing.assert_allclose(Aw + np.eye(n), Ad, rtol=0, atol=1e-13)
+    # measured 1.4e-14 (generic G78; the 1e-13 literal held by 7), margin 10
+    np.testing.assert_allclose(Aw + np.eye(n), Ad, rtol=0, atol=measured(1.4e-14, 10))
     # measured 6.9e-18 abs, 4e-10 rel (generic 1e-17, 1.3e-9), margin 280
     np.testing.assert_allclose(Bd, Bc[:, 0], rtol=1e-11, atol=1e-13 * np.abs(Bc).max())
 

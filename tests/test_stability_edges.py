@@ -135,6 +135,8 @@ def _probe(hold, d, rate, K_in, B_in, K_out, B_out, rho_in, rho_out, *, n=None):
     assert inside.size == n and np.all(np.isfinite(inside))
     assert np.max(np.abs(inside)) < 20 * X0
     g_in = _log_growth(inside)
+    # not round-off: the window maxima's envelope carries the other modes' residue and the
+    # window's phase; measured 1.9 %, margin 2.6
     assert g_in < 0 and g_in == pytest.approx(math.log(rho_in), rel=0.05)
     if outside.size == n:
         # measured 0.0035 relative (generic 0.0035), margin 14

@@ -29,6 +29,8 @@ from hapsim.analysis.ths_nd import (LoopModelND, closed_loop_poles_nd, direction
                                     state_matrix)
 from hapsim.errors import ConfigError
 
+pytestmark = pytest.mark.numerical
+
 EPS = np.finfo(float).eps
 C_BACKWARD = 64.0
 
@@ -65,7 +67,8 @@ def test_one_dof_state_matrix_equals_the_1d_polynomial(seed):
     # the rank-one stiffness limit along the one axis = the 1-D exact limit
     k1 = stability_limit(lp, B)
     kn = direction_limit(lnd, [1.0], B)
-    # both are Brent roots of a crossing to ~1e-12 relative; the scans differ in method
+    # both are Brent roots of a crossing to ~1e-12 relative; the scans differ in method:
+    # measured 1.2e-14 relative (generic 1e-14), margin 83000
     assert abs(kn - k1) <= 1e-9 * k1, (kn, k1)
 
 

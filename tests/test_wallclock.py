@@ -88,6 +88,7 @@ def test_firefader_pause_integrates_the_held_force_over_the_real_time(seed):
     assert dev.enable == 129
     c1, c2 = rng.integers(-100, 100, 2)
     dev.feed(ff.encode_packet(int(c1), 0), now=t)
+    # measured 0 (generic 0): exact on both targets
     assert dev.ready_at == pytest.approx(t + dev.reply_s, abs=1e-15)
     x0, v0, t0 = dev.physics.x, dev.physics.v, t + dev.adc_s      # at the pot's read
     pause = rng.uniform(5e-3, 95e-3)
@@ -132,6 +133,7 @@ def test_firefader_silence_zeroes_the_force_at_the_instant_its_polls_run_out():
             assert dev.pwm == 0 and dev.held == 0.0          # the gate: 5 passes off
         else:
             x2, v2 = _held(x0, v0, m, b, f, t_next + dev.adc_s - t0)
+            # measured 0 (the generic run did not take this branch): the force as sent, exact
             assert dev.held == pytest.approx(f, rel=1e-15)
         assert abs(dev.physics.x - x2) <= _tol(abs(x2) + abs(x0), 60)
 
@@ -151,6 +153,7 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     f1 = float(np.float32(rng.uniform(-1, 1)))          # binary32 on the wire
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(f1), now=now))
     tick = (math.floor(now / 1e-3) + 1) * 1e-3
+    # measured 0 (generic 0): exact on both targets
     assert dev.ready_at == pytest.approx(tick + 9 * 10 / 57600, abs=1e-15)
     assert rep[-1][0] == 0.0 and rep[-1][1] == pytest.approx(f1, rel=2.0 ** -23)
     pause = rng.uniform(20e-3, 200e-3)
@@ -190,6 +193,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
     wall.feed(arm, now=0.0)
     kinds = [c[0] for c in CommandDecoder().commands(arm)]
     assert kinds[-2:] == ["setup", "write"]
+    # measured 5.6e-17 (generic 5.6e-17), margin 18000
     assert wall.ready_at == pytest.approx((len(kinds) - 2) * PASS_S + 2 * SETUP_S,
                                           abs=1e-12)
     t = wall.ready_at + 1e-3
@@ -240,6 +244,7 @@ def test_falcon_takes_a_packet_on_its_tick_and_holds_its_commands(k):
     now = t[0] + 0.8 * T
     dev.feed(host_packet((500, -300, 200), 0x2), now=now)
     tick = (math.floor(now / T) + 1) * T
+    # measured 0 (generic 0): exact on both targets
     assert dev.ready_at == pytest.approx(tick, abs=1e-12)
     ref = copy.deepcopy(dev.plant)
     tau = np.array([-c * dev.nm_per_count for c in (500, -300, 200)])

@@ -280,8 +280,11 @@ def test_onset_search_on_synthetic_records(root, power):
     def measure(K, B):
         b = 1.0 - (K / root) ** power
         return Trial(K, B, b, K, 0.0, None, b < 0)
-    Km, (lo, hi), trials, note = locate_onset(measure, 0.0, 1.2 * root, tol=1e-3)
-    assert abs(Km - root) <= 1e-3 * root and lo <= root <= hi and not note
+    tol = 1e-3
+    Km, (lo, hi), trials, note = locate_onset(measure, 0.0, 1.2 * root, tol=tol)
+    # derived: the search stops with hi - lo <= tol lo, and Km (the secant's zero) and the
+    # root both lie in that bracket
+    assert abs(Km - root) <= tol * root and lo <= root <= hi and not note
     assert trials[0].K < root and not trials[0].growing
     Km, iv, trials, note = locate_onset(
         lambda K, B: Trial(K, B, -1.0, K, 0.0, None, True, "safety: position"), 0.0, root)
