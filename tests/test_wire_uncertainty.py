@@ -7,6 +7,7 @@ import numpy as np
 from hapsim.analysis.error_response import force_error_response
 from hapsim.drivers import get_driver
 from hapsim.scene import load_scene
+from tolerance import rel_tol
 
 
 def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
@@ -54,5 +55,10 @@ def test_drivers_declare_their_wire_and_the_force_response_is_the_loops():
     a = b0 * T / m
     assert h[0] == 0.0
     # one period of a unit force on m x'' + b0 x' from rest: (m / b0^2)(a - 1 + e^-a)
-    assert abs(h[1] / (m / b0 ** 2 * (a - 1 + np.exp(-a))) - 1) < 1e-9
+    # the closed form cancels (a - 1 + e^-a ~ a^2 / 2): its condition number is
+    # (1 + a + e^-a) / (a - 1 + e^-a) (1.6e5 here), over exp, two sums and a product (4
+    # roundings); hapsim's exact hold (a matrix exponential) does not cancel. Bound 7.1e-10,
+    # measured 8.7e-13 on both the host and the generic target.
+    cond = (1 + a + np.exp(-a)) / (a - 1 + np.exp(-a))
+    assert abs(h[1] / (m / b0 ** 2 * (a - 1 + np.exp(-a))) - 1) <= rel_tol(4, cond)
     assert abs(h[-1]) < 1e-3 * np.max(np.abs(h))
