@@ -207,36 +207,51 @@ class ReplyDecoder(AlignedDecoder):
         Encoder counts per revolution (None: the whole-count check is off).
     max_step_deg : float
         Largest distance of a reply from the linear prediction of the last two taken
-        [deg] (2 deg: an acceleration of 35000 rad/s^2 at 1 kHz, or a missed reply at
-        30 rad/s) when it comes within ``period_s`` of the last; a reply farther off is
-        misaligned or corrupted. Later replies get the same acceleration over the real
-        time that passed (``max_step_deg * (dt / period_s)**2``, dt the time between the
-        reads): a board on its own clock moved on while the host was late or stalled,
-        and that is no evidence of a lost place.
+        [deg] when it comes within ``period_s`` of the last (2 deg: an acceleration of
+        35000 rad/s^2 at 1 kHz, or a missed reply at 30 rad/s); a reply farther off is
+        misaligned or corrupted. Later replies get the reach of :meth:`reach_deg` over
+        the time that passed: a board on its own clock moved on while the host was late
+        or stalled, and that is no evidence of a lost place.
     period_s : float
         The period the step bound is stated for [s] (1 ms).
     clock : callable
-        Monotonic time [s] of a read (``time.monotonic``).
+        Monotonic time [s] of a read (``time.monotonic``): the time between two reads is
+        the elapsed time of :meth:`reach_deg` unless the host states it
+        (:meth:`elapsed`).
     angles : int, optional
         Encoders in a reply (1: the angle is returned as a float; more: a tuple, in port
         order, and ``resolution`` may give one per encoder).
+    accel : float, optional
+        Largest angular acceleration of the joint(s) [rad/s^2]: the board's torque clamp
+        over the smallest joint inertia (:meth:`set_accel`). None: ``max_step_deg`` per
+        period squared (no physics known: 35000 rad/s^2 at 1 kHz).
+    arm_deg : float or tuple, optional
+        The angle(s) the arming's set-up sets the encoder(s) to [deg]: the replies after
+        an arming (:meth:`reset_prediction`) are checked against it, not taken blind.
 
     Attributes
     ----------
     stats : dict
         ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``desync``,
-        ``damaged`` (replies the dropped bytes held, short of a desync).
+        ``damaged`` (replies the dropped bytes held, short of a desync), ``unreachable``
+        (well-formed replies out of the reach of :meth:`reach_deg`: a frame another
+        set-up made, or a misaligned window that looked like a reply).
     """
 
     length = 5
 
     def __init__(self, device_id: int, max_angle_deg: float = 3600.0,
                  resolution=None, max_step_deg: float = 2.0, angles: int = 1,
-                 period_s: float = 1e-3, clock=time.monotonic) -> None:
+                 period_s: float = 1e-3, clock=time.monotonic, accel=None,
+                 arm_deg=None) -> None:
         super().__init__()
         self.period_s = float(period_s)
         self._clock = clock
         self._t_read = self._t_prev = None
+        self._tau = None
+        self._accel_deg = None
+        self.set_accel(accel)
+        self.arm_deg = arm_deg
         self.angles = int(angles)
         self.length = 1 + 4 * self.angles
         self._fmt = struct.Struct("<" + "f" * self.angles)
@@ -250,8 +265,12 @@ class ReplyDecoder(AlignedDecoder):
             self.res = (float(resolution),) * self.angles
         else:
             self.res = tuple(float(r) for r in resolution)
+        # one encoder count [deg] per angle (0: no whole-count check, no count term)
+        self._count = tuple(360.0 / r if r > 0 and math.isfinite(r) else 0.0
+                            for r in self.res) if self.res else (0.0,) * self.angles
         self.stats["desync"] = 0
         self.stats["damaged"] = 0
+        self.stats["unreachable"] = 0
         self._bad = 0
         self._free = 0
 
@@ -279,13 +298,96 @@ class ReplyDecoder(AlignedDecoder):
         super().clear()
         self._bad = 0
 
-    def reset_prediction(self, jumps: int = 1) -> None:
-        """Forget the last replies (after a re-synchronisation the angles start afresh):
-        the next ``jumps`` replies are taken without the step check, each restarting the
-        prediction (an arming is answered at the old angle, then at the set-up's offset).
+    def set_accel(self, accel) -> None:
+        """State the joint's largest angular acceleration [rad/s^2] (None: the default of
+        the class notes): the board's torque clamp over the smallest joint inertia (a hand
+        on the handle only adds inertia).
+
+        Raises
+        ------
+        ValueError
+            ``accel`` not finite and > 0.
         """
-        self._prev = self._prev2 = None
-        self._free = int(jumps)
+        if accel is None:
+            self._accel_deg = None
+            return
+        if not (math.isfinite(accel) and accel > 0):
+            raise ValueError(f"accel must be a finite acceleration > 0 [rad/s^2], got "
+                             f"{accel!r}")
+        self._accel_deg = math.degrees(float(accel))
+
+    def elapsed(self, tau) -> None:
+        """The host states the time [s] from the write the last reply taken answered to
+        now (an upper bound of the time between the two samples: the board samples when
+        a write arrives), for the replies of the next reads; None: the time between the
+        reads (the class notes). A host that knows its writes' times states it: a reply
+        read late was still sampled when its write arrived."""
+        self._tau = None if tau is None else float(tau)
+
+    def reach_deg(self, k: int, tau) -> float:
+        """How far [deg] a reply ``tau`` seconds after the last one taken may be from the
+        linear prediction of the last two (one period ahead), encoder ``k``: the motion
+        the largest acceleration allows, with the prediction's lag and the encoder's whole
+        counts.
+
+        With r = max(1, tau / T) (T = ``period_s``), v = |q1 - q2| the last step and
+        alpha the acceleration [deg/s^2] (``accel``): the joint is then within
+        ``(r - 1) v + alpha tau^2`` of the prediction (Taylor's theorem: 1/2 alpha tau^2,
+        a factor 2 of margin for the velocity's own error), never less than
+        ``max_step_deg``, plus ``2 r + 2`` counts (each reading is a whole count: the
+        prediction off by 3, its slope by 2 a period; the reply by 1). The same rule the
+        2DIY's host states its elapsed time to (:mod:`hapsim.daemon.haply2_host`).
+
+        Parameters
+        ----------
+        k : int
+            Encoder index in the reply.
+        tau : float or None
+            Time since the last reply taken [s] (None: one period).
+
+        Returns
+        -------
+        float
+        """
+        T = self.period_s
+        r = 1.0 if tau is None else max(1.0, tau / T)
+        tau = r * T
+        acc = self._accel_deg if self._accel_deg is not None else self.max_step / (T * T)
+        v = 0.0
+        if self._prev is not None and self._prev2 is not None:
+            v = abs(self._prev[k] - self._prev2[k])
+            v = v if v == v else 0.0
+        step = max(self.max_step, (r - 1.0) * v + acc * tau * tau)
+        return step + (2.0 * r + 2.0) * self._count[k]
+
+    def reset_prediction(self, jumps: int = 1, anchor=None) -> None:
+        """Forget the last replies (an arming: the angles start afresh at the set-up's
+        offset). With an anchor (``anchor``, else the decoder's ``arm_deg``) the
+        prediction restarts there, with no velocity: the next replies are checked against
+        it (the reach of :meth:`reach_deg` from the arming on), so a reply of a set-up the
+        stream corrupted (another offset: a frame no motion reaches) is not taken; an
+        answer from before the set-up, at the old angle, is dropped too. Without one, the
+        next ``jumps`` replies are taken without the step check, each restarting the
+        prediction (the 2DIY's arming checks its first reply against its offsets
+        itself).
+
+        Parameters
+        ----------
+        jumps : int
+            Replies taken unchecked when there is no anchor.
+        anchor : float or tuple, optional
+            The set-up's angle(s) [deg].
+        """
+        anchor = self.arm_deg if anchor is None else anchor
+        self._prev2 = None
+        if anchor is None:
+            self._prev = None
+            self._free = int(jumps)
+            return
+        a = (anchor,) if isinstance(anchor, (int, float)) else tuple(anchor)
+        self._prev = tuple(float(x) for x in a)
+        self._free = 0
+        self._t_prev = self._clock()
 
     def parse(self, buf):
         """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
@@ -319,16 +421,16 @@ class ReplyDecoder(AlignedDecoder):
             self._prev2, self._prev = None, a
             return a[0] if self.angles == 1 else a
         if self._prev is not None:
-            # a flipped exponent bit is still a whole count (x 2^k, half the time): no
+            # a flipped exponent bit is still a whole count (x 2^k, half the time), and a
+            # set-up the stream corrupted answers whole counts of another offset: no
             # joint moves that far from where its last two replies say it is going, in the
-            # time that passed
-            step = self.max_step
-            if self._t_read is not None and self._t_prev is not None:
-                r = (self._t_read - self._t_prev) / self.period_s
-                if r > 1.0:
-                    step *= r * r
+            # time that passed (reach_deg: the host's stated time, else the reads')
+            tau = self._tau
+            if tau is None and self._t_read is not None and self._t_prev is not None:
+                tau = self._t_read - self._t_prev
             k = 0
             while k < na:
+                step = self.reach_deg(k, tau)
                 p1 = self._prev[k]
                 guess = p1 if self._prev2 is None else 2.0 * p1 - self._prev2[k]
                 # off the linear prediction, a reply is still a joint's motion when it
@@ -338,6 +440,9 @@ class ReplyDecoder(AlignedDecoder):
                 if abs(a[k] - guess) > step and (
                         self._prev2 is None
                         or abs(a[k] - p1) > abs(p1 - self._prev2[k]) + step):
+                    # a well-formed reply no motion reaches: counted (the host takes it
+                    # for evidence that the board answers in another frame)
+                    self.stats["unreachable"] += 1
                     return None
                 k += 1
         self._t_prev = self._t_read
@@ -357,12 +462,14 @@ class ReplyDecoder(AlignedDecoder):
 
     def on_skip(self) -> None:
         """A byte dropped: after :data:`DESYNC_BYTES` in a row (and every 100 more while
-        it lasts) a ``desync`` is counted and the prediction reset (the re-synchronised
-        board's angles)."""
+        it lasts) a ``desync`` is counted. The prediction is kept: the re-synchronisation
+        sets the encoder to the host's estimate of where the joint is, so the replies after
+        it are still within reach of the last one taken (before, the next reply was taken
+        unchecked: a garbage one, whole counts of 7.4 rad, was believed and stopped the
+        run)."""
         self._bad += 1
         if self._bad % 100 == DESYNC_BYTES:
             self.stats["desync"] += 1
-            self.reset_prediction()
 
 
 class CommandDecoder:
@@ -574,6 +681,9 @@ class HaplyM3(Driver):
     #: haply_probe`): a wrong one makes the excitation run away.
     probes_direction = True
     answering_firmware = "Haply M3 firmware V1.5 layout (one reply per write)"
+    #: Its decoder takes the joint's inertia (:meth:`decoder`): the transport states it
+    #: and the time since the last record's command before each read.
+    checks_reach = True
 
     def __init__(self, device_id: int = 1, resolution: float = 4880.0,
                  direction: int = 0, offset_deg: float = 0.0,
@@ -655,6 +765,22 @@ class HaplyM3(Driver):
         """The torque the board receives [N m]: clamped, rounded to binary32."""
         return _F.unpack(self.encode_force(force)[2:])[0]
 
-    def decoder(self):
-        """A fresh host decoder returning the joint angle [rad] (whole encoder counts)."""
-        return MappedDecoder(ReplyDecoder(self.id, resolution=self.resolution), math.radians)
+    def decoder(self, inertia: float | None = None):
+        """A fresh host decoder returning the joint angle [rad] (whole encoder counts),
+        anchored at each arming to the set-up's offset (``offset_deg``).
+
+        Parameters
+        ----------
+        inertia : float, optional
+            The joint's smallest inertia [kg m^2]: its replies are then believed only
+            within the reach the board's torque clamp (0.123 N m) allows it
+            (:meth:`ReplyDecoder.reach_deg`); None: the decoder's default.
+
+        Returns
+        -------
+        MappedDecoder
+        """
+        accel = (MAX_TORQUE / float(inertia) if inertia is not None
+                 and math.isfinite(inertia) and inertia > 0 else None)
+        return MappedDecoder(ReplyDecoder(self.id, resolution=self.resolution, accel=accel,
+                                          arm_deg=self.offset_deg), math.radians)
