@@ -48,7 +48,7 @@ import time
 from hapsim.drivers.base import AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HaplyM3", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
-           "ReplyDecoder", "CommandDecoder", "LONGEST_COMMAND", "DESYNC_BYTES",
+           "ReplyDecoder", "CommandDecoder", "LONGEST_COMMAND", "LONGEST_WAIT", "DESYNC_BYTES",
            "resync_bytes", "ResyncRule"]
 
 #: The board's torque clamp [N m] (firmware ``MAX_TORQUE``).
@@ -58,6 +58,12 @@ _F = struct.Struct("<f")
 #: Longest command the board can be inside [bytes]: a set-up with 4 motors, 4 encoders,
 #: 255 analog pins and 255 PWM pins (1 + 1 + 1 + 4 + 1 + 4 + 1 + 255 + 1 + 255 + 4 * 8).
 LONGEST_COMMAND = 556
+#: Longest wait the firmware can be inside a command for [bytes]: a ``readBytes`` of 4
+#: encoders' parameters (8 bytes each, ``setup_device``, ``Haply_M3_Firmware_V1_5.h`` line
+#: 188; a write's torques are at most 4 x 4, line 218). Its single reads do not wait (an
+#: empty buffer reads 255: :class:`CommandDecoder`), so a re-synchronisation's zeros need
+#: only outlast this, not :data:`LONGEST_COMMAND`.
+LONGEST_WAIT = 32
 #: Bytes skipped since the last good reply that mean the board lost its place: more than
 #: two replies' worth of single faults on the way back (a lost byte skips at most 4 bytes,
 #: a corrupted one 5); a board that lost its set-up answers 1 byte per write, so this is
@@ -117,7 +123,7 @@ def reply_packet(device_id: int, angle_deg: float) -> bytes:
     return bytes([device_id & 0xFF]) + _F.pack(angle_deg)
 
 
-def resync_bytes(zero: bytes, setup: bytes) -> bytes:
+def resync_bytes(zero: bytes, setup: bytes, zeros: int = LONGEST_COMMAND) -> bytes:
     """Bytes that put a board back in step whatever its parser is inside, zero torque
     first (module notes; the 1-DoF joint's and the 2DIY's): the zero-torque write
     ``zero`` (taken if the board is in step), :data:`LONGEST_COMMAND` zero bytes (inside
@@ -131,12 +137,16 @@ def resync_bytes(zero: bytes, setup: bytes) -> bytes:
         The zero-torque write of the device's id.
     setup : bytes
         Its set-up.
+    zeros : int
+        Zero bytes: :data:`LONGEST_COMMAND` for a board model whose single reads wait
+        (the 2DIY's), :data:`LONGEST_WAIT` for the firmware's (whose single reads of an
+        empty buffer give 255: only a ``readBytes`` waits).
 
     Returns
     -------
     bytes
     """
-    return zero + bytes(LONGEST_COMMAND) + bytes((3, 3)) + setup + zero
+    return zero + bytes(int(zeros)) + bytes((3, 3)) + setup + zero
 
 
 class ResyncRule:
@@ -482,11 +492,23 @@ class CommandDecoder:
     firmware's ``mtr_parameters``/``enc_parameters`` store them), reads one pin byte per
     analog and PWM pin and 8 bytes (offset [deg], counts per revolution) per encoder;
     write ``[2][addr]`` reads one byte per PWM pin of ``addr`` and a float32 torque per
-    motor of ``addr``; any other byte is no command. A command is taken once all its bytes
-    are there: the firmware's ``readBytes`` (torques, encoder parameters) waits for them,
-    but its single ``read()`` calls (address, masks, directions, pin lists) give 255 for a
-    byte not yet there, which the mock does not model (over USB a command's bytes come
-    together).
+    motor of ``addr``; any other byte is no command. The firmware's ``readBytes``
+    (torques, encoder parameters: ``Haply_M3_Firmware_V1_5.h`` lines 188 and 218) waits
+    for its bytes; its single ``SerialUSB.read()`` calls (address, masks, directions, pin
+    lists, PWM bytes: lines 146, 175-182, 202, 206, 308, 323, 546-583) return -1, stored
+    as the byte 255, when the buffer is empty. With ``absent=255`` (:class:`hapsim.
+    driver_mock.HaplyDevice`, the M3 board) that is modelled: a single read past the
+    bytes arrived so far (those of the host's writes fed up to now: over USB a write's
+    bytes come together) reads 255 and the bytes that come later are the next command's,
+    so a set-up out of garbage ends at once instead of swallowing up to
+    :data:`LONGEST_COMMAND` bytes, and only a ``readBytes`` (at most
+    :data:`LONGEST_WAIT` bytes) waits. With ``absent=None`` a command waits for all its
+    bytes (the 2DIY board's model, stepped per whole write).
+
+    Parameters
+    ----------
+    absent : {None, 255}
+        What a single read of a byte not arrived gives (None: the command waits for it).
 
     Attributes
     ----------
@@ -504,9 +526,12 @@ class CommandDecoder:
     pwm_addr : list of int, length 14
     """
 
-    def __init__(self) -> None:
+    def __init__(self, absent=None) -> None:
+        if absent not in (None, 255):
+            raise ValueError(f"absent must be None or 255, got {absent!r}")
+        self.absent = absent
         self._buf = bytearray()
-        self.stats = {"writes": 0, "setups": 0, "resets": 0, "unknown": 0}
+        self.stats = {"writes": 0, "setups": 0, "resets": 0, "unknown": 0, "absent": 0}
         self._clear()
         self.encoder_offset = [0.0] * 4
         self.encoder_res = [0.0] * 4
@@ -582,11 +607,48 @@ class CommandDecoder:
         ``("reset", addr)`` out (the parser's state is the last command's)."""
         return list(self.commands(data))
 
+    def _pad(self, buf, n: int) -> bool:
+        """Whether the single reads up to byte ``n`` of the command at the start of
+        ``buf`` can be made: the bytes are there, or (``absent=255``) those not arrived
+        are read as 255, put in their place (the bytes that come later follow them)."""
+        if len(buf) >= n:
+            return True
+        if self.absent is None:
+            return False
+        self.stats["absent"] += n - len(buf)
+        buf += bytes([self.absent]) * (n - len(buf))
+        return True
+
+    def _single_len(self, b) -> int:
+        """How many bytes of the set-up at the start of ``b`` are single reads (address,
+        masks, directions, pin counts and pins: all but the encoder parameters), padding
+        with 255 where they have not arrived (``absent``); -1 when they are not all there
+        and the parser waits."""
+        i = 3                                      # [1][addr][motor mask]
+        if not self._pad(b, i):
+            return -1
+        i += bin(b[2] & 0x0F).count("1") + 1       # directions, the encoder mask
+        if not self._pad(b, i):
+            return -1
+        i += bin(b[i - 1] & 0x0F).count("1") + 1   # directions, the analog count
+        if not self._pad(b, i):
+            return -1
+        i += b[i - 1] + 1                          # pins, the PWM count
+        if not self._pad(b, i):
+            return -1
+        i += b[i - 1]                              # pins
+        if not self._pad(b, i):
+            return -1
+        return i
+
     def commands(self, data: bytes):
         """As :meth:`feed`, one command at a time: the parser's state (addresses, set-up)
         is each command's own when it is yielded."""
         buf = self._buf
         buf += data
+        if self.absent is not None:
+            yield from self._commands_absent(buf)
+            return
         while buf:
             c = buf[0]
             if c == CMD_RESET:
@@ -614,6 +676,44 @@ class CommandDecoder:
                 n = 2 + npwm + 4 * len(ports)
                 if len(buf) < n:
                     break
+                tq = {p: _F.unpack_from(buf, 2 + npwm + 4 * k)[0] for k, p in enumerate(ports)}
+                self.stats["writes"] += 1
+                del buf[:n]
+                yield ("write", addr, tq)
+            else:
+                self.stats["unknown"] += 1
+                del buf[:1]
+
+    def _commands_absent(self, buf):
+        """:meth:`commands` with single reads of absent bytes read as 255 (class
+        notes): a command waits only inside a ``readBytes``."""
+        while buf:
+            c = buf[0]
+            if c == CMD_RESET:
+                self._pad(buf, 2)
+                a = buf[1]
+                self.stats["resets"] += 1
+                self._clear()
+                del buf[:2]
+                yield ("reset", a)
+            elif c == CMD_SETUP:
+                i = self._single_len(buf)
+                n = i + 8 * bin(buf[3 + bin(buf[2] & 0x0F).count("1")] & 0x0F).count("1")
+                if len(buf) < n:
+                    break                          # readBytes waits for the parameters
+                a = self._setup(buf)
+                self.stats["setups"] += 1
+                del buf[:n]
+                yield ("setup", a)
+            elif c == CMD_WRITE:
+                self._pad(buf, 2)
+                addr = buf[1]
+                npwm = sum(a == addr for a in self.pwm_addr)
+                self._pad(buf, 2 + npwm)
+                ports = [p for p in range(4) if self.motor_addr[p] == addr]
+                n = 2 + npwm + 4 * len(ports)
+                if len(buf) < n:
+                    break                          # readBytes waits for the torques
                 tq = {p: _F.unpack_from(buf, 2 + npwm + 4 * k)[0] for k, p in enumerate(ports)}
                 self.stats["writes"] += 1
                 del buf[:n]
@@ -729,10 +829,13 @@ class HaplyM3(Driver):
 
     def resync(self, position: float = 0.0) -> bytes:
         """Put the board back in step, zero torque first (module notes): a zero-torque
-        write (taken if the board is in step), :data:`LONGEST_COMMAND` zero bytes (inside a
-        write they are zero torque, elsewhere resets, which hold the torque), two bytes 3
-        (no command: the address of a reset the zeros ended inside, or nothing), the
-        set-up, and a zero-torque write, whose reply is the next sample.
+        write (taken if the board is in step), :data:`LONGEST_WAIT` zero bytes (inside a
+        write's ``readBytes`` they are zero torque, inside a set-up's its encoder
+        parameters, elsewhere resets, which hold the torque), two bytes 3 (no command: the
+        address of a reset the zeros ended inside, or nothing), the set-up, and a
+        zero-torque write, whose reply is the next sample. 62 bytes, 19 passes of the
+        board's loop and its set-up's 2 ms: the zero torque is at most ~3 ms away
+        (before: 556 zeros, 278 passes of at least 50 us, 14 ms with the torque held).
 
         Parameters
         ----------
@@ -749,7 +852,7 @@ class HaplyM3(Driver):
                              motor_direction=self.motor_direction,
                              offset_deg=math.degrees(position) if math.isfinite(position)
                              else 0.0)
-        return resync_bytes(self.encode_force(0.0), setup)
+        return resync_bytes(self.encode_force(0.0), setup, LONGEST_WAIT)
 
     def arm(self) -> bytes:
         """The re-synchronisation (:meth:`resync`, at the arming pose ``offset_deg``): the
