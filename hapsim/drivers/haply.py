@@ -33,10 +33,14 @@ What the board does not do (read from the firmware):
   are read as other commands (a reset forgets the set-up: writes are then answered by
   the 1-byte ``[id]``; a set-up out of garbage sets up other ports and ids). Replies are
   checked for their length and format (:class:`ReplyDecoder`: the id, and an angle that
-  is a whole number of encoder counts within range); more bytes that make no reply than
+  is a whole number of encoder counts within range, within the reach the torque clamp
+  and the joint's inertia allow since the last reply taken: :meth:`ReplyDecoder.
+  reach_deg`; no reply is taken unchecked); more bytes that make no reply than
   two faulty replies explain mean the board lost its place (``desync``), and the host re-synchronises it
-  (:meth:`HaplyM3.resync`: zero bytes, which any command the board is inside takes as
-  zero torque or a harmless reset, then the set-up and a zero-torque write).
+  (:meth:`HaplyM3.resync`: :data:`LONGEST_WAIT` zero bytes, which any command the board
+  is inside takes as zero torque, encoder parameters or a harmless reset, then the set-up
+  and a zero-torque write). A single ``SerialUSB.read()`` of an empty buffer returns -1
+  (the byte 255) and does not wait; only ``readBytes`` does (:class:`CommandDecoder`).
 """
 
 from __future__ import annotations

@@ -50,6 +50,15 @@ two records extrapolate to now as the Haply encoder's new offset) and counts it
 (``resyncs``); the samples until the next good record are missing samples, and ``seq``
 skips one number there, so that a measurement does not run across the position's jump
 (the error of that extrapolation).
+
+A reading is believed only where the device can be: for a driver whose decoder checks it
+(``checks_reach``: the Haply M3), the transport states before each read the time since
+the command the last record answered was sent (the board sampled it no earlier), and the
+decoder takes a reply only within the motion the force limit over the device's
+``inertia`` allows in that time (:meth:`hapsim.drivers.haply.ReplyDecoder.reach_deg`);
+a well-formed reply out of reach (a frame a corrupted set-up made) is evidence that the
+board lost its place, and re-synchronises it like a desync. The first record after an
+arming is no velocity (nothing came before it): an estimate from one record holds it.
 """
 
 from __future__ import annotations
@@ -79,8 +88,8 @@ SILENT_S = 0.02
 #: lost host byte in 200 costs the Haply M3 about 16 a second at 1 kHz (a 6-byte write).
 MAX_RESYNCS_PER_S = 50
 #: The shortest time between two re-synchronisations [s]: one costs the board a set-up
-#: (2 ms on the Haply M3) and the link ~570 bytes; a second one sooner is no new evidence
-#: (zero torque is commanded meanwhile).
+#: (2 ms on the Haply M3) and ~1 ms of passes for its 62 bytes; a second one sooner is no
+#: new evidence (zero torque is commanded meanwhile).
 RESYNC_GAP_S = 0.005
 #: Longest time [s] the host lets a board without a watchdog hold a torque computed from
 #: a sample older than this: a missed tick past it commands zero torque.
