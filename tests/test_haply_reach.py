@@ -294,3 +294,31 @@ def test_the_resync_puts_any_board_back_in_step_at_zero_torque(seed):
     got = struct.unpack("<f", rep[-4:])[0]
     assert abs(got - math.degrees(x)) <= 2 * 360.0 / RES + 1e-4
     assert b.ready_at - t <= 22 * b.PASS_S + 2 * b.SETUP_S + 1e-12
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_board_that_lost_its_set_up_is_found_in_five_writes(seed):
+    """A board with no encoder at the id (a reset or a garbage set-up forgot it) answers
+    each write with the id alone: the decoder counts a desync once its buffer holds three
+    of them in a row with no reply (the fifth write, a reply's length), not after
+    :data:`~hapsim.drivers.haply.DESYNC_BYTES` of them (before: 11 writes, 11 ms at 1 kHz
+    with the board holding whatever torque it had). Replies with one byte lost on the way
+    back (the id and 3 bytes, or 4 bytes of the angle) are never taken for it."""
+    rng = np.random.default_rng(200 + seed)
+    dec = hp.ReplyDecoder(1, resolution=RES, accel=ALPHA)
+    dec.elapsed(1e-3)
+    a = 0.0
+    n_faults = 0
+    for k in range(400):
+        a += float(rng.uniform(-0.05, 0.05))
+        r = bytearray(hp.reply_packet(1, _count_deg(math.radians(a))))
+        if k % 3 == 0:                                # one byte lost, one reply in three
+            del r[int(rng.integers(0, 5))]
+            n_faults += 1
+        dec.feed(bytes(r))
+    assert dec.stats["desync"] == 0 and dec.stats["lone"] == 0 and n_faults > 100
+    for w in range(1, 12):
+        dec.feed(bytes([1]))
+        if dec.stats["desync"]:
+            break
+    assert w == 5 and dec.stats["lone"] == 1

@@ -249,7 +249,9 @@ class ReplyDecoder(AlignedDecoder):
         ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``desync``,
         ``damaged`` (replies the dropped bytes held, short of a desync), ``unreachable``
         (well-formed replies out of the reach of :meth:`reach_deg`: a frame another
-        set-up made, or a misaligned window that looked like a reply).
+        set-up made, or a misaligned window that looked like a reply), ``lone`` (desyncs
+        counted at once on three writes answered by the id alone: a board that lost its
+        set-up; before, after :data:`DESYNC_BYTES` of them).
     """
 
     length = 5
@@ -285,6 +287,8 @@ class ReplyDecoder(AlignedDecoder):
         self.stats["desync"] = 0
         self.stats["damaged"] = 0
         self.stats["unreachable"] = 0
+        self.stats["lone"] = 0
+        self._lone = False
         self._bad = 0
         self._free = 0
 
@@ -407,15 +411,22 @@ class ReplyDecoder(AlignedDecoder):
         """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
         reply at the start of ``buf``, or None."""
         # (index loops, floats only: the real-time loops decode without allocating)
+        self._lone = False
         if buf[0] != self.id:
             return None
         a = self._fmt.unpack_from(buf, 1)
         res = self.res
         na = self.angles
+        # three id bytes in a row that make no reply: writes answered by the id alone,
+        # as a board answers when it has no encoder at that address (a reset or a set-up
+        # out of garbage forgot its set-up: Haply_M3_Firmware_V1_5.h read_states); a byte
+        # lost or corrupted on the way back leaves the id and 3 or 4 bytes of an angle
+        lone = buf[1] == self.id and buf[2] == self.id
         k = 0
         while k < na:
             v = a[k]
             if not (math.isfinite(v) and abs(v) <= self.max):
+                self._lone = lone
                 return None
             if res is not None:
                 # the firmware's 360 * count / resolution, rounded once to binary32: a
@@ -426,6 +437,7 @@ class ReplyDecoder(AlignedDecoder):
                 n -= math.remainder(n, 1.0)
                 want = 360.0 * n / res[k]
                 if abs(v - want) > 1e-6 * abs(want):
+                    self._lone = lone
                     return None
             k += 1
         if self._free:
@@ -482,6 +494,14 @@ class ReplyDecoder(AlignedDecoder):
         unchecked: a garbage one, whole counts of 7.4 rad, was believed and stopped the
         run)."""
         self._bad += 1
+        if self._lone and self._bad < DESYNC_BYTES:
+            # the board answers the id alone (parse): it lost its set-up; a desync now,
+            # not after DESYNC_BYTES of them (the run counts as that long)
+            self._lone = False
+            self._bad = DESYNC_BYTES
+            self.stats["desync"] += 1
+            self.stats["lone"] += 1
+            return
         if self._bad % 100 == DESYNC_BYTES:
             self.stats["desync"] += 1
 
