@@ -699,7 +699,12 @@ class HaplyDevice(_Actuated):
     ``new Encoder(...)``, whose constructor waits ``delayMicroseconds(2000)`` for the
     pins' R-C filter (``Arduino_Support_Libraries/Encoder/Encoder.h``, ``Encoder(uint8_t,
     uint8_t)``) before the count is written with the offset; the commands after it wait,
-    the joint does not. ``clock="lockstep"``: each write is one period.
+    the joint does not. A pass begins at least :data:`PASS_S` after the one before
+    (``loop``: ``if(micros() - lastPublished >= 50)``, ``Haply_M3_Firmware_V1_5.ino`` line
+    61) and takes one command: the 278 resets of 556 zero bytes take 14 ms of passes, the
+    torque held meanwhile. A single ``read()`` of a byte not arrived gives 255
+    (:class:`CommandDecoder` with ``absent=255``). ``clock="lockstep"``: each write is one
+    period.
 
     Parameters
     ----------
@@ -724,6 +729,9 @@ class HaplyDevice(_Actuated):
 
     #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
     SETUP_S = 2e-3
+    #: The shortest time between two passes of the firmware's ``loop()`` [s] (one command
+    #: each): ``micros() - lastPublished >= 50``.
+    PASS_S = 50e-6
 
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
                  resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
@@ -735,7 +743,8 @@ class HaplyDevice(_Actuated):
         self.motor_sign = int(motor_sign)
         self._hp = hp
         super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
-        self.decoder = hp.CommandDecoder()
+        # the firmware's single reads of an empty buffer: 255 (CommandDecoder notes)
+        self.decoder = hp.CommandDecoder(absent=255)
         self.cpr = float(resolution or cpr)
         self._base = 0
         #: The board's time [s] its last answer is ready at (:func:`serve` writes it then).
@@ -781,7 +790,9 @@ class HaplyDevice(_Actuated):
         t = max(now, self._busy_until) if wall else now
         for cmd in dec.commands(data):
             if wall:
-                t = max(t, self._busy_until)      # the pass after a set-up's wait
+                # the pass after the last one (PASS_S) or after a set-up's wait
+                t = max(t, self._busy_until)
+                self._busy_until = t + self.PASS_S
             if cmd[0] == "setup":
                 if wall:
                     self.wall.run_to(t)

@@ -205,10 +205,12 @@ def test_haply_layouts_from_the_firmware():
     from hapsim.drivers import haply as hp
     drv = get_driver("haply", device_id=7, resolution=4096.0)
     s = drv.arm()
-    # zero torque first, zeros through any command the board is inside, then the set-up
+    # zero torque first, zeros through the longest readBytes the board can wait inside
+    # (4 encoders' parameters: its single reads do not wait), two no-commands, the set-up
     zero = bytes([2, 7]) + struct.pack("<f", 0.0)
-    assert s[:6] == zero and s[6:6 + hp.LONGEST_COMMAND] == bytes(hp.LONGEST_COMMAND)
-    s = s[6 + hp.LONGEST_COMMAND + 2:]
+    assert hp.LONGEST_WAIT == 4 * 8
+    assert s[:6] == zero and s[6:6 + hp.LONGEST_WAIT + 2] == bytes(hp.LONGEST_WAIT) + b"\x03\x03"
+    s = s[6 + hp.LONGEST_WAIT + 2:]
     assert s[:8] == bytes([1, 7, 0b0001, 0, 0b0001, 0, 0, 0])
     assert struct.unpack("<ff", s[8:16]) == (0.0, 4096.0)
     assert s[16:] == zero

@@ -253,17 +253,16 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     rule = ResyncRule(dec.stats, SILENT_WRITES)
     # the decoder's step check (an angle no motion could reach from the linear prediction
     # of the last two replies, one tick ahead) a time tau after the last reading's write
-    # (a host stall is time, not ticks: the clock went on from it): the prediction then
-    # lags by tau / T - 1 steps of the last velocity, and the joint may accelerate at
-    # most alpha = 0.123 N m over the smallest joint inertia (the board's clamp; a hand on
-    # the handle only adds inertia): the reply is within (tau / T - 1) |q1 - q2| +
-    # alpha tau^2 of it (Taylor's theorem, with a factor 2 of margin). Widened by that, never
-    # narrowed: a late reply, or the first after a host stall, is a late sample, not
-    # bytes of a board out of step
-    step0 = float(dec.max_step)
+    # (a host stall is time, not ticks: the clock went on from it): the joint may
+    # accelerate at most alpha = 0.123 N m over the smallest joint inertia (the board's
+    # clamp; a hand on the handle only adds inertia), the reach of
+    # ReplyDecoder.reach_deg, the same rule as the 1-DoF driver's: a late reply, or the
+    # first after a host stall, is a late sample, not bytes of a board out of step
     ji = getattr(dev, "joint_inertia", None)
     alpha = (MAX_TORQUE / float(np.min(np.linalg.eigvalsh(np.atleast_2d(ji))))
              if ji is not None and np.all(np.isfinite(ji)) else 0.0)
+    dec.set_accel(alpha if alpha > 0 else None)
+    dec.period_s = T                                # the last two replies: a tick apart
     eng = EngineND(scene) if engine is None else engine
     port = eng.port
     xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
@@ -395,13 +394,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             time.sleep(deadline - now - SPIN_S)
         while time.perf_counter() < deadline:
             pass
-        tau = time.perf_counter() - t_wrote[seen]   # since the last reading's write
-        if tau > T and alpha > 0 and seen >= 1:
-            v = max(abs(qr[seen, 0] - qr[seen - 1, 0]), abs(qr[seen, 1] - qr[seen - 1, 1]))
-            v = v if v == v else 0.0
-            dec.max_step = max(step0, math.degrees((tau / T - 1.0) * v + alpha * tau * tau))
-        else:
-            dec.max_step = step0
+        dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
         take(_read(ser))
         unanswered = k + 1 - got                    # (damaged: answered)
         if unanswered > SILENT_COUNT:

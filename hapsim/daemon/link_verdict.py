@@ -27,7 +27,9 @@ The bound is stated per second of the run, :data:`MAX_RESYNCS_PER_S`, from what 
 costs: a re-synchronisation leaves the joint blind (zero torque, no reading) from the last
 reply to the set-up's, at least :data:`RESYNC_BLIND_S`: the firmware's ``new
 Encoder(...)`` waits 2 ms (``delayMicroseconds(2000)`` in the Encoder library it ships);
-the ~570 bytes of resets and set-up take under 0.4 ms more at USB full speed. At the
+the resets before it take the board's passes of at least 50 us each (``loop``: ``micros()
+- lastPublished >= 50``): about 1 ms for the Haply M3's 62 bytes, 14 ms for the 2DIY's
+556 zeros. At the
 bound, at least :data:`BLIND_SHARE` of the run may be blind. It is the rate at which the
 1-DoF driver's transport gives the link up altogether (``MAX_RESYNCS_PER_S`` of
 :mod:`hapsim.drivers.transport`, 50 within any second); one host byte lost in 200 costs

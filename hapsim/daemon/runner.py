@@ -330,11 +330,15 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                                               options=hardware, faults=opts.driver_faults)
                 # a mock paced by the commands: a slow mock process is no lost answer; a
                 # board on its own clock answers as hardware does
+                # the device's mass (a rotary axis': its inertia) bounds what a reading
+                # may have moved since the last (a driver that checks it: the Haply M3)
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.0 if wall else 0.02)
+                                     reply_deadline=0.0 if wall else 0.02,
+                                     inertia=dev.mass)
                 embedded.release_slave()
             else:
-                tr = DriverTransport(drv, opts.port, delay=int(dev.delay))
+                tr = DriverTransport(drv, opts.port, delay=int(dev.delay),
+                                     inertia=dev.mass)
         elif transport == "inprocess":
             from hapsim.daemon.transport import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,

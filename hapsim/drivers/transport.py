@@ -50,6 +50,15 @@ two records extrapolate to now as the Haply encoder's new offset) and counts it
 (``resyncs``); the samples until the next good record are missing samples, and ``seq``
 skips one number there, so that a measurement does not run across the position's jump
 (the error of that extrapolation).
+
+A reading is believed only where the device can be: for a driver whose decoder checks it
+(``checks_reach``: the Haply M3), the transport states before each read the time since
+the command the last record answered was sent (the board sampled it no earlier), and the
+decoder takes a reply only within the motion the force limit over the device's
+``inertia`` allows in that time (:meth:`hapsim.drivers.haply.ReplyDecoder.reach_deg`);
+a well-formed reply out of reach (a frame a corrupted set-up made) is evidence that the
+board lost its place, and re-synchronises it like a desync. The first record after an
+arming is no velocity (nothing came before it): an estimate from one record holds it.
 """
 
 from __future__ import annotations
@@ -79,8 +88,8 @@ SILENT_S = 0.02
 #: lost host byte in 200 costs the Haply M3 about 16 a second at 1 kHz (a 6-byte write).
 MAX_RESYNCS_PER_S = 50
 #: The shortest time between two re-synchronisations [s]: one costs the board a set-up
-#: (2 ms on the Haply M3) and the link ~570 bytes; a second one sooner is no new evidence
-#: (zero torque is commanded meanwhile).
+#: (2 ms on the Haply M3) and ~1 ms of passes for its 62 bytes; a second one sooner is no
+#: new evidence (zero torque is commanded meanwhile).
 RESYNC_GAP_S = 0.005
 #: Longest time [s] the host lets a board without a watchdog hold a torque computed from
 #: a sample older than this: a missed tick past it commands zero torque.
@@ -144,6 +153,12 @@ class DriverTransport:
     delay_known : bool
         ``delay`` is the device's (a scene states it, a mock has it); False when it is a
         guess that identification must search (then the driver gives no account).
+    inertia : float, optional
+        The device's smallest inertia [kg m^2] (the scene's ``device.mass`` of a rotary
+        axis): a driver whose decoder checks a reading's reach (``checks_reach``: the
+        Haply M3) believes a record only within what its force limit over this inertia
+        allows in the time since the command the last record answered (stated to the
+        decoder before each read, module notes); None: the decoder's default.
 
     Attributes
     ----------
@@ -161,7 +176,8 @@ class DriverTransport:
     """
 
     def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
-                 reply_deadline: float = 0.0, delay_known: bool = True) -> None:
+                 reply_deadline: float = 0.0, delay_known: bool = True,
+                 inertia: float | None = None) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -174,7 +190,11 @@ class DriverTransport:
         # scene's stated delay, a mock's own); an identification that searches it: None
         driver.loop_delay = self._d if delay_known else None
         self._deadline_us = int(reply_deadline * 1e6)
-        self._dec = driver.decoder()
+        self._reach = bool(getattr(driver, "checks_reach", False))
+        self._dec = (driver.decoder(inertia=inertia) if self._reach else driver.decoder())
+        # the frame decoder whose step check is told the time since the last record's
+        # command (ReplyDecoder.elapsed)
+        self._frames = getattr(self._dec, "frames", self._dec) if self._reach else None
         self.decoder = _Dec(DriverStats(self._dec.stats))
         self._q: deque = deque()
         self._armed = False
@@ -190,10 +210,12 @@ class DriverTransport:
         self._s_last = -1
         self._s_prev = None
         self._arm_ns = 0
+        self._anchor_us = 0                 # host time of the last record's command [us]
         self._settle = 0
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
+        self._unreach = 0                   # the decoder's 'unreachable' seen
         self._t_resync = -math.inf            # monotonic time of the last re-synchronisation
         self._resync_times: deque = deque()   # those of the last second
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
@@ -247,6 +269,8 @@ class DriverTransport:
             # its angle to the set-up's offset): what came before predicts nothing, and
             # the arming is answered twice (a zero write before its set-up, one after)
             self._dec.reset_prediction(jumps=2)
+            # the decoder's anchor (the set-up's offset) is as old as this arming
+            self._anchor_us = self._now_us()
             self._armed = True
             self._force = 0.0
             self._answered = self._cmd          # records of earlier commands are stale
@@ -412,7 +436,12 @@ class DriverTransport:
         # where the device is now: the last two records extrapolated to this command (a
         # board that re-zeroes its position at the set-up goes on from there)
         x = self._extrapolate(self._cmd + 1)
-        self._command(self.driver.resync(self._x_last if x != x else x))
+        if self._s_last < 0:
+            # no record yet: the arming's offset is the only position known (the
+            # decoder's anchor), not the 0 the host starts from
+            self._arm_again()
+        else:
+            self._command(self.driver.resync(self._x_last if x != x else x))
         # a deliberate gap in seq: the position may jump by the error of that estimate, so
         # a measurement does not run across a re-synchronisation
         self._cmd += 1
@@ -420,6 +449,13 @@ class DriverTransport:
         if self._answered < self._cmd - 1:      # the commands before it: missing samples
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1
+
+    def _arm_again(self) -> None:
+        """The arming's bytes again, as one command (no record came yet): the decoder's
+        prediction restarts at the set-up's offset, as old as this command."""
+        self._dec.reset_prediction(jumps=2)
+        self._anchor_us = self._now_us()
+        self._command(self.driver.arm())
 
     def _take(self, xs: list, out: list) -> None:
         """Records decoded in one read -> STATEs: the last answers the newest command sent,
@@ -445,8 +481,14 @@ class DriverTransport:
             st["missing"] += s - self._answered - 1
             st["records"] += 1
             self._answered = s
-            self._x_prev, self._s_prev = self._x_last, self._s_last
+            if self._s_last >= 0:
+                # (before the first record there is none: the host's initial 0 at seq -1
+                # is no reading; taken as one, the first record's position per tick was
+                # extrapolated as a velocity: estimated samples and a re-synchronisation's
+                # offset 0.2 rad a tick off)
+                self._x_prev, self._s_prev = self._x_last, self._s_last
             self._x_last, self._s_last = x, s
+            self._anchor_us = self._sent_us[s % _RING]
             out.append(fp.State(s & 0xFFFFFFFF, self._sent_us[s % _RING],
                                 fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
                                 (s - self._d) & 0xFFFFFFFF, (x,)))
@@ -479,13 +521,23 @@ class DriverTransport:
                     data = b""
                 if data:
                     self._last.append(data)         # hex only when a message shows it
+                    if self._frames is not None:
+                        # the board sampled the last record when its command arrived
+                        # (not before it was sent): what the joint can have moved since
+                        # bounds the readings believed now
+                        self._frames.elapsed((self._now_us() - self._anchor_us) * 1e-6)
                     xs = dec.feed(data)
                     self._stray = not xs
                     if xs:
                         self._take(xs, out)
                     d = dec.stats.get("desync", 0)
-                    if d != self._desyncs:
-                        self._desyncs = d
+                    u = dec.stats.get("unreachable", 0)
+                    if d != self._desyncs or u != self._unreach:
+                        # a desync, or a well-formed reply no motion reaches from the last
+                        # record (a set-up the stream corrupted answers in another frame;
+                        # waiting would let the reach grow until it is believed): put the
+                        # board back in step now
+                        self._desyncs, self._unreach = d, u
                         if self._armed:
                             self._resync()
                 if (self._armed and (self._answered < 0 or self._settle > 0) and not out
@@ -495,8 +547,10 @@ class DriverTransport:
                     # host tick asks again then); ask again
                     self._arm_ns = time.monotonic_ns()
                     self.stats["rearms"] += 1
-                    self._command(self.driver.arm() if self._answered < 0
-                                  else self.driver.encode_force(0.0))
+                    if self._answered < 0:
+                        self._arm_again()
+                    else:
+                        self._command(self.driver.encode_force(0.0))
                 if out or timeout <= 0 or time.monotonic() >= end:
                     return out
         except Exception as exc:  # serial.SerialException, OSError
