@@ -122,6 +122,40 @@ def test_flipped_motor_turns_the_joint_the_other_way():
     assert turned[0] == pytest.approx(-turned[1], rel=1e-2)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_lockstep_drive_does_not_depend_on_the_hosts_speed(seed, monkeypatch):
+    """A board stepped one period per write has the writes' time: the reach a reply is
+    checked against grows with it, not with the wall time between two reads. The same
+    hostile stream driven by a host whose clock runs 50 ms a read (a loaded machine) is
+    read exactly as by a fast one (before, the reach grew with the wall clock, and a
+    loaded full suite took a reading 2.6 rad off the joints)."""
+    import itertools
+
+    from hapsim.drivers.haply2 import Reply2Decoder
+
+    def run(slow: bool) -> dict:
+        sc = _scene()
+        drv = Haply2DIY("gen2")
+        if slow:
+            ticks = itertools.count()
+            make = drv.decoder
+
+            def decoder():
+                d = make()
+                d._clock = lambda: 0.05 * next(ticks)    # 50 ms of wall time a read
+                return d
+            monkeypatch.setattr(drv, "decoder", decoder)
+        board = Haply2DIYBoard(sc, "gen2", amplitude=1e-4, clock="lockstep")
+        faults = ByteFaults({"drop_rx": 3e-3, "corrupt_rx": 3e-3, "drop_tx": 3e-3,
+                             "corrupt_tx": 3e-3, "seed": seed})
+        return drive_haply2(board.feed, drv, sc, 300, faults=faults)
+
+    assert isinstance(Haply2DIY("gen2").decoder(), Reply2Decoder)
+    fast, slow = run(False), run(True)
+    assert slow["decoder"] == fast["decoder"] and slow["resyncs"] == fast["resyncs"]
+    np.testing.assert_array_equal(slow["joints"], fast["joints"])   # bit for bit
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_hostile_streams_the_loop_goes_on_and_counts(seed):
     """Seeded byte loss and corruption both ways (0.3 % of the bytes each): every sample

@@ -386,15 +386,32 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
     in_row = 0
     zero = driver.write_bytes((0.0, 0.0))
     bad_setups = 0
+    # The board is stepped one period per write: its time, not the wall clock's, is what a
+    # reply's reach grows with (ReplyDecoder.reach_deg). Left to the decoder's default
+    # (the wall time between two reads), a loaded host widened the reach of a lockstep
+    # board's replies and took garbage 2.6 rad off (test_haply2's hostile streams, in a
+    # full suite at load 12).
+    T = 1.0 / float(scene.rate_hz)
+    since = 0                                   # writes since the one last answered
+
+    def send(data: bytes) -> list:
+        """One write to the board, through the faults; the replies the decoder takes."""
+        nonlocal since
+        since += 1
+        dec.elapsed(since * T)
+        got = dec.feed(tx(board_feed(rx(data))))
+        if got:
+            since = 0
+        return got
 
     def arm(at_deg):
         """Re-arm at the joints ``at_deg``; the first reply, or None when it is missing
         or does not read the offsets just sent (a set-up the stream corrupted)."""
         nonlocal bad_setups
         data = driver.arm_bytes(at_deg)
-        dec.feed(tx(board_feed(rx(data[:-len(zero)]))))  # a reply before the set-up: dropped
+        send(data[:-len(zero)])                         # a reply before the set-up: dropped
         dec.reset_prediction()                           # the hand moved the handle
-        got = dec.feed(tx(board_feed(rx(zero))))
+        got = send(zero)
         if not got:
             return None
         a = driver.joints_of(got[-1])
@@ -443,7 +460,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
             if last is None:
                 in_row = MISSING_RESYNC
             continue
-        got = dec.feed(tx(board_feed(rx(driver.write_bytes(tau)))))
+        got = send(driver.write_bytes(tau))
         last = got[-1] if got else None
     return {"position": pos, "joints": joints, "torque": torque, "missing": missing,
             "resyncs": rule.count, "bad_setups": bad_setups, "decoder": dict(dec.stats),

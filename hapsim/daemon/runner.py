@@ -334,7 +334,8 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 # may have moved since the last (a driver that checks it: the Haply M3)
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
                                      reply_deadline=0.0 if wall else 0.02,
-                                     inertia=dev.mass)
+                                     inertia=dev.mass,
+                                     board_period=None if wall else scene.period)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=int(dev.delay),

@@ -159,6 +159,12 @@ class DriverTransport:
         Haply M3) believes a record only within what its force limit over this inertia
         allows in the time since the command the last record answered (stated to the
         decoder before each read, module notes); None: the decoder's default.
+    board_period : float, optional
+        A board stepped one period per command (a lockstep mock) [s]: its time is the
+        commands', so the time a reading's reach grows with is the commands sent since
+        the last record's, times this period, whatever the host's wall clock did (a
+        loaded host widened a lockstep board's reach and let garbage through); None
+        (hardware, a board on its own clock): the wall clock.
 
     Attributes
     ----------
@@ -177,7 +183,7 @@ class DriverTransport:
 
     def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
                  reply_deadline: float = 0.0, delay_known: bool = True,
-                 inertia: float | None = None) -> None:
+                 inertia: float | None = None, board_period: float | None = None) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -211,6 +217,8 @@ class DriverTransport:
         self._s_prev = None
         self._arm_ns = 0
         self._anchor_us = 0                 # host time of the last record's command [us]
+        self._anchor_cmd = 0                # its seq (a lockstep board's time: commands)
+        self._board_T = None if board_period is None else float(board_period)
         self._settle = 0
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
@@ -271,6 +279,7 @@ class DriverTransport:
             self._dec.reset_prediction(jumps=2)
             # the decoder's anchor (the set-up's offset) is as old as this arming
             self._anchor_us = self._now_us()
+            self._anchor_cmd = self._cmd + 1
             self._armed = True
             self._force = 0.0
             self._answered = self._cmd          # records of earlier commands are stale
@@ -455,6 +464,7 @@ class DriverTransport:
         prediction restarts at the set-up's offset, as old as this command."""
         self._dec.reset_prediction(jumps=2)
         self._anchor_us = self._now_us()
+        self._anchor_cmd = self._cmd + 1
         self._command(self.driver.arm())
 
     def _take(self, xs: list, out: list) -> None:
@@ -489,6 +499,7 @@ class DriverTransport:
                 self._x_prev, self._s_prev = self._x_last, self._s_last
             self._x_last, self._s_last = x, s
             self._anchor_us = self._sent_us[s % _RING]
+            self._anchor_cmd = s
             out.append(fp.State(s & 0xFFFFFFFF, self._sent_us[s % _RING],
                                 fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
                                 (s - self._d) & 0xFFFFFFFF, (x,)))
@@ -525,7 +536,10 @@ class DriverTransport:
                         # the board sampled the last record when its command arrived
                         # (not before it was sent): what the joint can have moved since
                         # bounds the readings believed now
-                        self._frames.elapsed((self._now_us() - self._anchor_us) * 1e-6)
+                        self._frames.elapsed(
+                            (self._now_us() - self._anchor_us) * 1e-6
+                            if self._board_T is None
+                            else max(self._cmd - self._anchor_cmd, 1) * self._board_T)
                     xs = dec.feed(data)
                     self._stray = not xs
                     if xs:
