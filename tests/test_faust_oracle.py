@@ -183,5 +183,5 @@ def test_chain_fast_path_equals_reference(seed, with_contacts):
     got = np.array(rows)
     assert with_contacts == any(f != 0.0 for f in forces)
     want = reference_run(scene, n, drive)
-    # measured 1.6e-14 relative (generic G186), margin 62
+    # measured 1.6e-14 relative (generic 1.6e-14), margin 62
     assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want))

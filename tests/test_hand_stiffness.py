@@ -76,7 +76,7 @@ def test_body_zoh_matches_cont2discrete(member):
         A, b = hand_matrices(mc, bc, member)
     Ad, Bc, *_ = scipy.signal.cont2discrete((A, b[:, None], np.eye(n), np.zeros((n, 1))), T,
                                             method="zoh")
-    # measured 1.4e-14 (generic G78; the 1e-13 literal held by 7), margin 10
+    # measured 1.4e-14 (generic 1.4e-14; the 1e-13 literal held by 7), margin 10
     np.testing.assert_allclose(Aw + np.eye(n), Ad, rtol=0, atol=measured(1.4e-14, 10))
     # measured 6.9e-18 abs, 4e-10 rel (generic 1e-17, 1.3e-9), margin 280
     np.testing.assert_allclose(Bd, Bc[:, 0], rtol=1e-11, atol=1e-13 * np.abs(Bc).max())

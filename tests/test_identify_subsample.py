@@ -34,6 +34,8 @@ def test_a_hidden_delay_of_1_3_periods_is_stated_within_its_interval():
     assert fit.delay_estimate.contains(1.3), fit.delay_estimate
     assert fit.delay_estimate.hi - fit.delay_estimate.lo < 0.2
     assert fit.mass.contains(0.1) and fit.friction.contains(0.5), (fit.mass, fit.friction)
+    # statistical (1 um noise, seed 1), the interval above being the stated uncertainty:
+    # measured 0.011, margin 4.5
     assert fit.device_delay() == pytest.approx(1.3, abs=0.05)
 
 

@@ -46,6 +46,7 @@ def run_exact(port):
     assert run.returncode == 0, err
     rep = json.loads(out)
     for key in ("k", "b"):
+        # measured 1.3e-14 relative, margin 7.7e7
         assert rep["measured"][key] == pytest.approx(rep["predicted"][key], rel=1e-6)
     return rep
 

@@ -134,7 +134,7 @@ def assert_float32_roundoff(got, ref):
         scale = np.max(np.abs(ref[:, c]))
         assert scale > 0
         # binary32 output: 2^-24 = 6e-8 of the scale per sample at most (derived bound),
-        # the rest the double paths' round-off; measured 6e-8 of the scale (generic G136),
+        # the rest the double paths' round-off; measured 6e-8 of the scale (generic 6e-8),
         # that rounding alone: margin 6.7 over a bound no CPU exceeds
         np.testing.assert_allclose(got[:, c], ref[:, c], rtol=0, atol=4e-7 * scale)
 
@@ -400,7 +400,7 @@ def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
         K0 = {e.name: e.stiffness for e in (*sc.links, *sc.planes)}
         B0 = {e.name: e.damping for e in (*sc.links, *sc.planes)}
         r0 = independent_radius(sc, K0, B0)
-        # measured 3.9e-13 relative (generic G400), margin 2600
+        # measured 3.9e-13 relative (generic 1.7e-13), margin 2600
         assert math.isclose(predict_nd(sc)["spectral_radius"], r0, rel_tol=1e-9)
         if r0 < 1.0 - 1e-6:
             break
@@ -425,7 +425,7 @@ def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
         seen.add(ok)
         if ok:
             K0[lk], B0[lk] = K, B
-            # measured 6e-14 relative (generic G424), margin 17000
+            # measured 6e-14 relative (generic 2.7e-14), margin 17000
             assert math.isclose(ctl.felt["spectral_radius"], radii[0], rel_tol=1e-9)
         else:
             assert "unstable" in info
@@ -560,9 +560,9 @@ def test_single_precision_change_ramps_from_the_journal_sample():
     ref0 = reference(sc, got.shape[0])
     scale = np.max(np.abs(ref0))
     # the single-precision engine's round-off over 2048 steps: measured 1.2e-6 of the
-    # scale (generic G557), margin 16; the unramped change below lies outside it
+    # scale (generic 1.3e-6), margin 16; the unramped change below lies outside it
     assert np.max(np.abs(plain[:, 0] - ref0[:, 0])) < 2e-5 * scale
-    # measured 1.2e-6 of the scale (generic G558), margin 16
+    # measured 1.2e-6 of the scale (generic 1.3e-6), margin 16
     assert np.max(np.abs(got[:, 0] - ref[:, 0])) < 2e-5 * scale
     assert np.max(np.abs(got[:, 0] - ref0[:, 0])) > 1e-2 * scale
     # the same change applied at once instead of ramped is outside that tolerance
