@@ -59,7 +59,9 @@ def test_lockstep_over_pty_child_equals_render(K, B, d, hold):
     rep = run_scene(parse_scene(wall_text(K, B, d=d, hold=hold)), transport="pty",
                     lockstep=True, handle_signals=False)
     r = render(LoopModel(0.1, 0.5, 1000.0, d, hold), K, B)
+    # measured 7.6e-15 relative (generic 8.5e-15), margin 1.1e8 (worst of 3)
     assert rep["measured"]["k"] == pytest.approx(r.k, rel=1e-6)
+    # measured 1.3e-13 relative (generic 6.6e-14), margin 7.7e6 (worst of 3)
     assert rep["measured"]["b"] == pytest.approx(r.b, rel=1e-6)
     lp = rep["loop"]
     assert lp["transport"] == "embedded mock on a pty" and lp["port"].startswith("/dev/")
@@ -71,7 +73,9 @@ def test_lockstep_over_pty_child_equals_render(K, B, d, hold):
 
 def test_felt_wall_over_pty_is_felt_as_asked():
     rep = run_scene(load_scene(FELT), transport="pty", lockstep=True, handle_signals=False)
+    # measured 2.5e-15 relative (generic 3e-15), margin 3.3e8
     assert rep["measured"]["k"] == pytest.approx(1000.0, rel=1e-6)
+    # measured 4.1e-14 relative (generic 4.1e-14), margin 2.4e7
     assert rep["measured"]["b"] == pytest.approx(3.0, rel=1e-6)
 
 
@@ -86,6 +90,7 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
         assert run.returncode == 0, err
         rep = json.loads(out)
         assert set(rep) >= {"target", "virtual", "predicted", "measured", "loop", "telemetry"}
+        # measured 1.3e-15 relative (generic 2.9e-15), margin 3.4e8
         assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
         assert rep["loop"]["transport"] == "serial" and rep["loop"]["port"] == port
         assert rep["loop"]["pace"] == "lockstep"
@@ -288,7 +293,9 @@ def test_real_time_embedded_wall_measures_roughly_the_prediction(tmp_path):
         # real time the free response is the THS's own, to round-off (however long the
         # stretch: STATEs a loaded host skipped cut it, to 88 samples beside two CPU hogs)
         assert meas["samples_used"] > 0
+        # measured 7.3e-15 relative (generic 0), margin 1.3e8
         assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)
+        # measured 5.7e-14 relative (generic 2e-14), margin 1.7e7
         assert meas["b"] == pytest.approx(pred["b"], rel=1e-6)
     else:
         # late ticks (host preempted on a loaded machine) hold the previous force: the record
@@ -302,6 +309,7 @@ def test_host_clocked_lockstep_paces_the_mock_exactly():
                     duration=0.5, handle_signals=False)
     lp = rep["loop"]
     assert lp["mode"] == "host-clocked" and lp["ticks"] == 500
+    # measured 5.6e-16 relative (generic 7.8e-16), margin 1.2e9
     assert rep["measured"]["k"] == pytest.approx(rep["predicted"]["k"], rel=1e-6)
     assert lp["mock"]["saw_stop"] and lp["mock"]["last_applied"] == 0.0
 

@@ -275,7 +275,7 @@ def test_haply_closed_loop_through_its_mock_in_lockstep():
     rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
                     rt_priority=0, lockstep=True)
     meas, pred = rep["measured"], rep["predicted"]
-    # bound: the encoder's resolution (k 1 %, b 10 %: docs/devices.md); the fit is not the
+    # bound: the encoder's resolution (k 1 %, b 10 %: the docstring); the fit is not the
     # same from run to run here: measured 6.7e-5 relative (generic 9.9e-5), margin 100
     assert meas["k"] == pytest.approx(pred["k"], rel=0.01)
     # measured 0.003 relative at worst in three runs (generic 2.6e-4), margin 33
@@ -351,8 +351,8 @@ def test_hapkit_serial_config_rate_figure():
     max_rate = drv.baud / (10 * per_sample)
     said = re.search(r"(\d+) baud \(at most ~(\d+) Hz\)", text)
     assert int(said.group(1)) == drv.baud
-    # the comment rounds the rate to a round figure ('~300 Hz' for 57600 / 190 = 303.2 Hz):
-    # a bound of 5 % lets it round to the nearest 25 Hz up to 500 Hz (measured 1.05 %)
+    # the comment rounds the rate to a round figure ('~300 Hz' for 57600 / 190 = 303.2 Hz,
+    # measured 1.05 % off): 5 % (15 Hz here) admits a figure rounded to the nearest 25 Hz
     assert abs(int(said.group(2)) - max_rate) / max_rate < 0.05, (said.group(2), max_rate)
     limit = re.search(r"(\d+) bytes per sample take ([\d.]+) ms on the wire: at most ~(\d+) Hz",
                       hs.LIMITS)
