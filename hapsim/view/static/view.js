@@ -3,7 +3,7 @@
 "use strict";
 (function () {
   const S = { layout: null, t: [], x: [], f: [], et: [], e: [], marks: [], pos: null, portF: null,
-              hist: null, grid: null, felt: {}, measured: {}, links: {}, masses: {},
+              hist: null, grid: null, felt: {}, measured: {}, measurements: [], links: {}, masses: {},
               frames: 0, count: 0, replies: [], journal: [], report: null, box: null,
               periodUs: 1000, span: 4.0 };
   window.hapsimView = S;
@@ -99,6 +99,11 @@
     if (m.hist) { S.hist = m.hist; S.histOver = m.hist_over; drawHist(); }
     if (m.felt) S.felt = m.felt;
     if (m.measured) S.measured = m.measured;
+    for (const q of m.measurements || []) {   // the run's record so far, measured as it grows
+      S.measurements.push(q);
+      S.measured = q.k !== undefined && q.k !== null ? q :
+        { ...S.measured, why_not: q.error || q.reason || "not measured" };
+    }
     if (m.links) S.links = m.links;
     if (m.masses) S.masses = m.masses;
     if (m.grid) S.grid = m.grid;
@@ -309,8 +314,9 @@
     const add = (K, B) => { if (K !== null && B !== null) pts.push([K, B + bb]); };
     g.K.forEach((row, i) => row.forEach((K, j) => add(K, g.B[i][j])));
     (g.identity_K || []).forEach((row, i) => row.forEach((K, j) => add(K, g.identity_B[i][j])));
-    const f = S.felt;
+    const f = S.felt, tg = target(g);
     if (f.port_K !== undefined) add(f.port_K, f.port_B);
+    if (tg) add(tg.k, tg.b - bb);
     let k0 = 0, k1 = Math.max(...pts.map((p) => p[0])) * 1.1;
     let b0 = Math.min(0, ...pts.map((p) => p[1])), b1 = Math.max(...pts.map((p) => p[1])) * 1.1;
     const X = (K) => 50 + (K - k0) / (k1 - k0) * (W - 60), Y = (B) => H - 30 - (B - b0) / (b1 - b0) * (H - 40);
@@ -349,9 +355,33 @@
       ctx.fillText(label, px + 7, py - 7);
     };
     if (f.port_K !== undefined) dotAt(f.port_K, f.port_B + bb, "#e65100", "simulated (K, B)");
+    if (tg) {                  // the target: a ring on the identity grid
+      ctx.strokeStyle = "#2e7d32"; ctx.lineWidth = 2; ctx.beginPath();
+      ctx.arc(X(tg.k), Y(tg.b), 8, 0, 2 * Math.PI); ctx.stroke();
+      ctx.fillStyle = "#2e7d32"; ctx.fillText(tg.label, X(tg.k) + 10, Y(tg.b) + 14);
+    }
     dotAt(f.k, f.b, "#6a1b9a", "predicted felt (k, b)");
+    // the measurements so far, oldest faint: the stated uncertainty shrinking as the record grows
+    const ms = S.measurements.filter((q) => q.k !== undefined && q.k !== null);
+    ms.slice(0, -1).forEach((q) => {
+      ctx.globalAlpha = 0.35;
+      dotAt(q.k, q.b, "#c62828", "", q.k_unc, q.b_unc);
+      ctx.globalAlpha = 1;
+    });
     const mm = S.measured;
-    if (mm.k !== null && mm.k !== undefined) dotAt(mm.k, mm.b, "#c62828", "measured (k, b)", mm.k_unc, mm.b_unc);
+    if (mm.k !== null && mm.k !== undefined) dotAt(mm.k, mm.b, "#c62828",
+      mm.final ? "measured (k, b): the report's" : `measured (k, b), ${mm.rows || "?"} samples`,
+      mm.k_unc, mm.b_unc);
+  }
+  // the felt target: the scene's target links (their sum), else the scene's own (K, B + b0),
+  // which a perfect simulator would render (the identity grid)
+  function target(g) {
+    const T = (S.layout && S.layout.targets) || [];
+    if (T.length) return { k: T.reduce((a, t) => a + t.k, 0), b: T.reduce((a, t) => a + t.b, 0),
+                           label: "target (k, b)" };
+    const f = S.felt;
+    if (f.port_K === undefined || f.port_K === null) return null;
+    return { k: f.port_K, b: f.port_B + (g.b_bias || 0), label: "target: the scene's (K, B + b0)" };
   }
   function feltText() {
     const f = S.felt, m = S.measured;
@@ -362,7 +392,11 @@
       `(${f.stable ? "stable" : "UNSTABLE"})` +
       (margin !== null ? `; stiffness margin to the boundary ${fmt(100 * margin)} % (K max ${fmt(f.stiffness_limit)} N/m)` : "") +
       `. Measured: ` + (m.k !== null && m.k !== undefined ?
-        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} N/m, b ${fmt(m.b)} ± ${fmt(m.b_unc)} N s/m` : (m.why_not || "–")) +
-      ". Blue: iso-k, green: iso-b, dashed: identity (a perfect simulator), bold: stability boundary.";
+        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} N/m, b ${fmt(m.b)} ± ${fmt(m.b_unc)} N s/m` +
+        (m.rows ? ` on ${m.rows} samples` : "") + (m.final ? " (the report's)" :
+          S.measurements.length ? ` (${S.measurements.length} measurements as the record grew)` : "") +
+        (m.verdict ? `, ${m.verdict}` : "") : (m.why_not || "–")) +
+      ". Blue: iso-k, green: iso-b, dashed: identity (a perfect simulator), bold: stability boundary; " +
+      "green ring: the target; red: the measured pair with its stated uncertainty, earlier ones faint.";
   }
 })();
