@@ -60,6 +60,9 @@ def test_run_wall_view_change_refusal_stop(browser):
                                   f"const t = S.t[S.t.length-1]; return t > {t1} + 0.1 && t }})()")
         assert t2 > t1                                  # the traces advance
         vb.wait_for(browser, "window.hapsimView.grid !== null", 60)
+        # the felt pair measured on the record so far (before the report's own)
+        live = vb.wait_for(browser, "window.hapsimView.measurements.find("
+                                    "q => !q.final && q.k !== undefined)", 120)
         browser.save_screenshot(os.path.join(DOCS, "view_wall.png"))
         # an accepted change: the wall's K from 1000 to 1100 N/m
         _set(browser, "ctl-wall-K", 1100)
@@ -99,6 +102,14 @@ def test_run_wall_view_change_refusal_stop(browser):
     # journal (the report) says the same sample
     assert changes[0]["sample"] == rep_sample(browser) and start["sample"] >= changes[0]["sample"]
     assert report["osc"]["refused"] == 1
+    # the page's last measured pair is the report's; the one measured live on the first
+    # rows agrees with it within the two stated uncertainties
+    final = browser.execute_script("return window.hapsimView.measurements.find(q => q.final)")
+    m = report["measured"]
+    assert (final["k"], final["b"]) == (m["k"], m["b"])
+    assert live["rows"] <= final["rows"]
+    assert abs(live["k"] - m["k"]) <= live["k_unc"] + m["k_unc"]
+    assert abs(live["b"] - m["b"]) <= live["b_unc"] + m["b_unc"]
 
 
 def rep_sample(browser) -> int:
@@ -128,6 +139,9 @@ def _play_nd(browser, scene, jack_server, which):
         vb.wait_for(browser, "window.hapsimView && window.hapsimView.t.length > 20", 60)
         dim = browser.execute_script("return window.hapsimView.layout.dim")
         assert dim == (2 if which == "pantograph" else 3)
+        # the traces show the axis the scene moves along: the membrane heard along z
+        label = browser.find_element("css selector", "#traces .u-legend").text
+        assert ("position z" if which == "membrane" else "position y") in label
         n0 = browser.execute_script("return window.hapsimView.count")
         vb.wait_for(browser, f"window.hapsimView.count > {n0}")
         browser.save_screenshot(os.path.join(DOCS, f"view_{which}.png"))
@@ -138,6 +152,53 @@ def _play_nd(browser, scene, jack_server, which):
         r.kill()
     assert code == 0, err
     assert json.loads(out)["stop_reason"] == "view: stop button"
+
+
+def test_measure_record_is_the_reports_measurement(tmp_path):
+    """The live measurement (:func:`hapsim.view.sources.measure_record`) on a run's whole
+    record is the report's ``measured`` to the last bit (the same identification on the same
+    rows); on the first quarter it agrees with it within the two stated uncertainties (the
+    wall with sensor noise and a quantised position, so that they are not round-off:
+    measured 0.066 N/m and 0.0004 N s/m apart against 0.38 and 0.004 stated)."""
+    import numpy as np
+
+    import hapsim
+    from hapsim.api import load_scene
+    from hapsim.daemon.options import RunOptions
+    from hapsim.daemon.runner import prepare_run
+    from hapsim.view.sources import measure_record
+    with open(os.path.join(ROOT, "configs", "wall.yaml"), encoding="utf-8") as fh:
+        text = fh.read()
+    scene = tmp_path / "noisy_wall.yaml"
+    scene.write_text(text.replace("  force_limit: 10.0", "  noise: 2.0e-6\n"
+                                  "  position_resolution: 1.0e-6\n  force_limit: 10.0"))
+    tel = str(tmp_path / "t.npz")
+    rep = hapsim.run(str(scene), duration=1.0, transport="inprocess", lockstep=True,
+                     telemetry=tel).to_dict()
+    z = np.load(tel)
+    prep = prepare_run(load_scene(str(scene)), RunOptions(duration=1.0))
+    whole = measure_record(prep, {c: z[c] for c in z.files})
+    m = rep["measured"]
+    assert m["k_unc"] > 1e-5 * m["k"]     # the noise states it (an exact record: 1e-15)
+    assert (whole["k"], whole["b"], whole["rows"]) == (m["k"], m["b"], z["seq"].size)
+    part = measure_record(prep, {c: z[c][:250] for c in z.files})
+    assert part["rows"] == 250
+    assert abs(part["k"] - m["k"]) <= part["k_unc"] + m["k_unc"]
+    assert abs(part["b"] - m["b"]) <= part["b_unc"] + m["b_unc"]
+
+
+def test_trace_axis_of_nd_plays():
+    """An n-D play traces the axis its scene moves along: the membrane's listened z, the
+    pantograph's listened y (its handle pressed along y), not always x."""
+    from hapsim.api_nd import load_scene_nd
+    from hapsim.view.sources import ChunkSource
+    assert ChunkSource._trace_axis(load_scene_nd(os.path.join(ROOT, "configs",
+                                                              "membrane.yaml"))) == 2
+    tmp = os.path.join(ROOT, "configs", "pantograph_wall.yaml")
+    assert ChunkSource._trace_axis(load_scene_nd(tmp)) == 0        # no listen point: x
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        assert ChunkSource._trace_axis(load_scene_nd(vb.pantograph_with_listen(d))) == 1
 
 
 def test_view_without_websockets_says_how_to_install(monkeypatch, capsys):

@@ -366,6 +366,7 @@ class ViewServer:
         return {"type": "hello", "what": self.what, "layout": self.layout,
                 "period_us": 1e6 / self.layout["rate_hz"],
                 "controls": self.ctl is not None,
+                "axis": int(getattr(self.source, "axis", 0)),
                 "hist_bins": HIST_BINS}
 
     def _frame(self, st: dict) -> dict:

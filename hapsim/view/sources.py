@@ -275,6 +275,18 @@ class ChunkSource(_Base):
         self.queue: collections.deque = collections.deque(maxlen=maxlen)
         self._count = 0
         self.scene_index = {m.name: i for i, m in enumerate(scene.masses)}
+        self.axis = self._trace_axis(scene)
+
+    @staticmethod
+    def _trace_axis(scene) -> int:
+        """The axis the traces show: the excitation's main direction for a loop with a
+        port, else the listened axis (a membrane heard along z moves along z), else 0."""
+        exc = getattr(scene, "excitation", None)
+        d = getattr(exc, "direction", None)
+        if getattr(scene, "port", None) is not None and d is not None:
+            return int(np.argmax(np.abs(np.asarray(d, dtype=float))))
+        listen = getattr(scene, "audio", None) or ()      # n-D: a tuple of ListenND
+        return int(getattr(listen[0], "axis", 0)) if listen else 0
 
     def probe(self) -> np.ndarray:
         """Position [m], shape (dim,), of the scene's first listened mass (a free loop's
@@ -296,8 +308,8 @@ class ChunkSource(_Base):
 
     def rows(self, since: int, most: int) -> tuple[int, dict]:
         """The rows handed over since the last call (``since`` and ``most`` bound them as
-        in :meth:`RunSource.rows`); ``x``, ``f`` are the port's first axis, ``xs``, ``fs``
-        every axis, shape (rows, dim)."""
+        in :meth:`RunSource.rows`); ``x``, ``f`` are the traced :attr:`axis`, ``xs``,
+        ``fs`` every axis, shape (rows, dim)."""
         got = []
         while self.queue:
             got.append(self.queue.popleft())
@@ -308,5 +320,6 @@ class ChunkSource(_Base):
         s = np.array([g[0] for g in got])
         X = np.array([np.ravel(g[1]) for g in got], dtype=float)
         F = np.array([np.ravel(g[2]) for g in got], dtype=float)
-        return int(s[0]), {"t": s * self.period, "x": X[:, 0], "f": F[:, 0],
+        a = min(self.axis, X.shape[1] - 1)
+        return int(s[0]), {"t": s * self.period, "x": X[:, a], "f": F[:, a],
                            "xs": X, "fs": F}

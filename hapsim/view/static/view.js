@@ -40,14 +40,15 @@
     }
     ctx.restore();
   }
-  function makePlots() {
+  function makePlots(axis) {
     const w = Math.max(300, $("traces").clientWidth - 10);
+    const ax = S.layout.dim > 1 ? ` ${"xyz"[axis] || axis}` : "";
     plotXF = new uPlot({ width: w, height: 190, title: "",
       scales: { x: { time: false }, f: {} },
-      axes: [{ label: "t [s]" }, { label: "position [m]", size: 70 },
-             { scale: "f", side: 1, label: "force [N]", grid: { show: false }, size: 60 }],
-      series: [{ label: "t [s]" }, { label: "position [m]", stroke: "#1565c0" },
-               { label: "force [N]", stroke: "#c62828", scale: "f" }],
+      axes: [{ label: "t [s]" }, { label: `position${ax} [m]`, size: 70 },
+             { scale: "f", side: 1, label: `force${ax} [N]`, grid: { show: false }, size: 60 }],
+      series: [{ label: "t [s]" }, { label: `position${ax} [m]`, stroke: "#1565c0" },
+               { label: `force${ax} [N]`, stroke: "#c62828", scale: "f" }],
       hooks: { draw: [marksHook] } }, [[], [], []], $("traces"));
     plotE = new uPlot({ width: w, height: 120,
       scales: { x: { time: false } },
@@ -62,7 +63,7 @@
     $("what").textContent = m.what;
     $("scene-note").textContent = `(${m.layout.dim}-D, ${m.layout.masses.length} masses, ` +
       `${m.layout.links.length} links, ${m.layout.rate_hz} Hz)`;
-    if (!plotXF) makePlots();
+    if (!plotXF) makePlots(m.axis || 0);
     buildControls(m.controls);
   }
   function frame(m) {
@@ -115,7 +116,10 @@
     if (m.report) showReport(m.report);
     $("status").textContent = `sample ${m.count} (${(m.count / S.layout.rate_hz).toFixed(2)} s)` +
       (m.accepted !== undefined ? `, changes ${m.accepted} accepted, ${m.refused} refused` : "");
-    drawScene(); drawGrid(); feltText();
+    drawScene();
+    // the grid only when what it shows changed (the page's drawing is CPU beside the loop)
+    const key = JSON.stringify([!!S.grid, S.felt, S.measured, S.measurements.length]);
+    if (key !== S.gridKey) { S.gridKey = key; drawGrid(); feltText(); }
   }
   function reply(m) {
     S.replies.push(m);
