@@ -59,6 +59,10 @@ def test_run_wall_view_change_refusal_stop(browser):
         t2 = vb.wait_for(browser, f"(() => {{ const S = window.hapsimView; "
                                   f"const t = S.t[S.t.length-1]; return t > {t1} + 0.1 && t }})()")
         assert t2 > t1                                  # the traces advance
+        # offline: every file the page loaded came from the view's own address
+        got = browser.execute_script(
+            "return performance.getEntriesByType('resource').map(e => e.name)")
+        assert got and all(u.startswith(r.url) for u in got), got
         vb.wait_for(browser, "window.hapsimView.grid !== null", 60)
         # the felt pair measured on the record so far (before the report's own)
         live = vb.wait_for(browser, "window.hapsimView.measurements.find("
@@ -102,14 +106,13 @@ def test_run_wall_view_change_refusal_stop(browser):
     # journal (the report) says the same sample
     assert changes[0]["sample"] == rep_sample(browser) and start["sample"] >= changes[0]["sample"]
     assert report["osc"]["refused"] == 1
-    # the page's last measured pair is the report's; the one measured live on the first
-    # rows agrees with it within the two stated uncertainties
+    # the page's last measured pair is the report's (revised for the change, which came
+    # within its record); the one measured live on the rows before it was the predicted
+    # pair within its stated uncertainty (the report's verdict, on fewer rows)
     final = browser.execute_script("return window.hapsimView.measurements.find(q => q.final)")
     m = report["measured"]
     assert (final["k"], final["b"]) == (m["k"], m["b"])
-    assert live["rows"] <= final["rows"]
-    assert abs(live["k"] - m["k"]) <= live["k_unc"] + m["k_unc"]
-    assert abs(live["b"] - m["b"]) <= live["b_unc"] + m["b_unc"]
+    assert live["rows"] <= final["rows"] and live["within"] is True, live
 
 
 def rep_sample(browser) -> int:
@@ -118,7 +121,8 @@ def rep_sample(browser) -> int:
         "return window.hapsimView.journal.find(j => j.event === 'accepted').sample")
 
 
-@pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256)])
+@pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256),
+                                                ("pantograph", 1000, 32)])
 def test_play_nd_view(browser, tmp_path, which, rate, period):
     """An n-D play (its JACK server at the scene's rate) drawn and stopped from the page."""
     scene = (vb.pantograph_with_listen(str(tmp_path)) if which == "pantograph"

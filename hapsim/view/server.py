@@ -178,7 +178,7 @@ class ViewServer:
             # the report's own measurement of the whole record: the last point (before
             # the report, which ends the pages' frames)
             final = {q: m[q] for q in MEASURE_KEYS if q in m}
-            final["rows"] = min(int(self.source.count), self.record_rows)
+            final["rows"] = self.source.measured_rows
             final["final"] = True
             self.measurements.append(final)
         self.report = rep
@@ -269,10 +269,10 @@ class ViewServer:
                 return                  # the loop has ended (its analysis process too)
             if self._measuring is not None and not self._measuring.ready():
                 continue
-            n = min(int(self.source.count), self.record_rows)
+            if self.source.tel.wrapped and last >= self.source.tel.head:
+                return                  # the report measures the head, measured already
+            n = self.source.measured_rows
             if n < first or n < last + max(first, last // 4):
-                if last >= self.record_rows:
-                    return
                 continue
             args = self.source.record()
             if args is None:

@@ -178,17 +178,23 @@ class RunSource(_Base):
 
     @property
     def record_rows(self) -> int:
-        """Rows the report's measurement will take (0: none to measure live): the whole
-        run while it fits in memory, else the head."""
+        """Most rows the report's measurement takes (0: none to measure live): the whole
+        run while it fits in memory (the head and the ring), else the head alone."""
         if self.prep is None:
             return 0
-        return int(self.tel.head)
+        return int(self.tel.capacity)
+
+    @property
+    def measured_rows(self) -> int:
+        """Rows the report's measurement takes now: every row recorded until the ring has
+        gone round, then the head (:func:`hapsim.daemon.measure.identify_run`)."""
+        return int(self.tel.head if self.tel.wrapped else self.tel.n)
 
     def record(self) -> tuple | None:
-        """Arguments of :func:`measure_record` for the rows recorded so far (copies,
-        at most :attr:`record_rows`), or None when there is nothing to measure."""
-        n = min(int(self.tel.n), self.record_rows)
-        if n <= 0:
+        """Arguments of :func:`measure_record` for the rows the report would measure now
+        (copies), or None when there is nothing to measure."""
+        n = self.measured_rows
+        if n <= 0 or self.prep is None:
             return None
         cols = {c: np.array(v) for c, v in self.tel.columns((0, n)).items()}
         hello = self.hello_of() if self.hello_of is not None else None
