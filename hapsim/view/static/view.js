@@ -245,9 +245,12 @@
     for (const pl of L.planes || []) {       // a plane contact as its trace in the view
       const nrm = pl.normal, lit = pl.masses.some((i) => dot(S.pos[i], nrm) < pl.offset);
       ctx.strokeStyle = lit ? "#d81b60" : "#bbb"; ctx.lineWidth = lit ? 3 : 1;
-      const c = nrm.map((v) => v * pl.offset);
+      // its trace through the foot of the masses' centre on it (not the origin's: a
+      // pantograph's workspace is centimetres away from it)
+      const mid = S.pos[0].map((_, k) => S.pos.reduce((a, p) => a + p[k], 0) / S.pos.length);
+      const h = dot(mid, nrm) - pl.offset, c = mid.map((v, k) => v - h * nrm[k]);
       const t = dim === 2 ? [-nrm[1], nrm[0]] : [1, 0, 0];
-      const span = 2 * (bx[1] - bx[0]);
+      const span = 2 * Math.max(bx[1] - bx[0], bx[3] - bx[2]);   // across the whole view
       const pA = project(c.map((v, k) => v - span * (t[k] || 0)), dim);
       const pB = project(c.map((v, k) => v + span * (t[k] || 0)), dim);
       ctx.beginPath(); ctx.moveTo(X(pA[0]), Y(pA[1])); ctx.lineTo(X(pB[0]), Y(pB[1])); ctx.stroke();
