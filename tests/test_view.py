@@ -5,9 +5,9 @@ One run of each kind, each a few seconds of wall clock once started: ``hapsim ru
 1-D wall (the page loads, its traces advance, a slider change reaches the engine at the
 sample the run's journal says, a refused change is shown with its reason, the stop button
 ends the run with its report), and ``hapsim play`` of the membrane on a private JACK dummy
-server (the 3-D scene drawn, its traces advance, stop). Each writes its screenshot into
-docs/ (docs/view.md shows them). The pantograph's play (a 1000 Hz JACK server) did not
-reach its traces here: not tested yet.
+server (the 3-D scene drawn, its traces advance, stop), and the same of the pantograph
+(2-D, a 1000 Hz JACK server). Each writes its screenshot into docs/ (docs/view.md shows
+them).
 """
 
 from __future__ import annotations
@@ -59,7 +59,14 @@ def test_run_wall_view_change_refusal_stop(browser):
         t2 = vb.wait_for(browser, f"(() => {{ const S = window.hapsimView; "
                                   f"const t = S.t[S.t.length-1]; return t > {t1} + 0.1 && t }})()")
         assert t2 > t1                                  # the traces advance
+        # offline: every file the page loaded came from the view's own address
+        got = browser.execute_script(
+            "return performance.getEntriesByType('resource').map(e => e.name)")
+        assert got and all(u.startswith(r.url) for u in got), got
         vb.wait_for(browser, "window.hapsimView.grid !== null", 60)
+        # the felt pair measured on the record so far (before the report's own)
+        live = vb.wait_for(browser, "window.hapsimView.measurements.find("
+                                    "q => !q.final && q.k !== undefined)", 120)
         browser.save_screenshot(os.path.join(DOCS, "view_wall.png"))
         # an accepted change: the wall's K from 1000 to 1100 N/m
         _set(browser, "ctl-wall-K", 1100)
@@ -99,6 +106,13 @@ def test_run_wall_view_change_refusal_stop(browser):
     # journal (the report) says the same sample
     assert changes[0]["sample"] == rep_sample(browser) and start["sample"] >= changes[0]["sample"]
     assert report["osc"]["refused"] == 1
+    # the page's last measured pair is the report's (revised for the change, which came
+    # within its record); the one measured live on the rows before it was the predicted
+    # pair within its stated uncertainty (the report's verdict, on fewer rows)
+    final = browser.execute_script("return window.hapsimView.measurements.find(q => q.final)")
+    m = report["measured"]
+    assert (final["k"], final["b"]) == (m["k"], m["b"])
+    assert live["rows"] <= final["rows"] and live["within"] is True, live
 
 
 def rep_sample(browser) -> int:
@@ -107,7 +121,8 @@ def rep_sample(browser) -> int:
         "return window.hapsimView.journal.find(j => j.event === 'accepted').sample")
 
 
-@pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256)])
+@pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256),
+                                                ("pantograph", 1000, 64)])
 def test_play_nd_view(browser, tmp_path, which, rate, period):
     """An n-D play (its JACK server at the scene's rate) drawn and stopped from the page."""
     scene = (vb.pantograph_with_listen(str(tmp_path)) if which == "pantograph"
@@ -125,9 +140,15 @@ def _play_nd(browser, scene, jack_server, which):
                     "--duration", "60", "--json"])
     try:
         browser.get(r.url)
-        vb.wait_for(browser, "window.hapsimView && window.hapsimView.t.length > 20", 60)
+        # one trace row per producer chunk (256 samples): the pantograph's 1000 Hz gives
+        # about 4 a second, 16 in the page's 4 s window
+        points = 20 if which == "membrane" else 5
+        vb.wait_for(browser, f"window.hapsimView && window.hapsimView.t.length > {points}", 60)
         dim = browser.execute_script("return window.hapsimView.layout.dim")
         assert dim == (2 if which == "pantograph" else 3)
+        # the traces show the axis the scene moves along: the membrane heard along z
+        label = browser.find_element("css selector", "#traces .u-legend").text
+        assert ("position z" if which == "membrane" else "position y") in label
         n0 = browser.execute_script("return window.hapsimView.count")
         vb.wait_for(browser, f"window.hapsimView.count > {n0}")
         browser.save_screenshot(os.path.join(DOCS, f"view_{which}.png"))
@@ -138,6 +159,53 @@ def _play_nd(browser, scene, jack_server, which):
         r.kill()
     assert code == 0, err
     assert json.loads(out)["stop_reason"] == "view: stop button"
+
+
+def test_measure_record_is_the_reports_measurement(tmp_path):
+    """The live measurement (:func:`hapsim.view.sources.measure_record`) on a run's whole
+    record is the report's ``measured`` to the last bit (the same identification on the same
+    rows); on the first quarter it agrees with it within the two stated uncertainties (the
+    wall with sensor noise and a quantised position, so that they are not round-off:
+    measured 0.066 N/m and 0.0004 N s/m apart against 0.38 and 0.004 stated)."""
+    import numpy as np
+
+    import hapsim
+    from hapsim.api import load_scene
+    from hapsim.daemon.options import RunOptions
+    from hapsim.daemon.runner import prepare_run
+    from hapsim.view.sources import measure_record
+    with open(os.path.join(ROOT, "configs", "wall.yaml"), encoding="utf-8") as fh:
+        text = fh.read()
+    scene = tmp_path / "noisy_wall.yaml"
+    scene.write_text(text.replace("  force_limit: 10.0", "  noise: 2.0e-6\n"
+                                  "  position_resolution: 1.0e-6\n  force_limit: 10.0"))
+    tel = str(tmp_path / "t.npz")
+    rep = hapsim.run(str(scene), duration=1.0, transport="inprocess", lockstep=True,
+                     telemetry=tel).to_dict()
+    z = np.load(tel)
+    prep = prepare_run(load_scene(str(scene)), RunOptions(duration=1.0))
+    whole = measure_record(prep, {c: z[c] for c in z.files})
+    m = rep["measured"]
+    assert m["k_unc"] > 1e-5 * m["k"]     # the noise states it (an exact record: 1e-15)
+    assert (whole["k"], whole["b"], whole["rows"]) == (m["k"], m["b"], z["seq"].size)
+    part = measure_record(prep, {c: z[c][:250] for c in z.files})
+    assert part["rows"] == 250
+    assert abs(part["k"] - m["k"]) <= part["k_unc"] + m["k_unc"]
+    assert abs(part["b"] - m["b"]) <= part["b_unc"] + m["b_unc"]
+
+
+def test_trace_axis_of_nd_plays():
+    """An n-D play traces the axis its scene moves along: the membrane's listened z, the
+    pantograph's listened y (its handle pressed along y), not always x."""
+    from hapsim.api_nd import load_scene_nd
+    from hapsim.view.sources import ChunkSource
+    assert ChunkSource._trace_axis(load_scene_nd(os.path.join(ROOT, "configs",
+                                                              "membrane.yaml"))) == 2
+    tmp = os.path.join(ROOT, "configs", "pantograph_wall.yaml")
+    assert ChunkSource._trace_axis(load_scene_nd(tmp)) == 0        # no listen point: x
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        assert ChunkSource._trace_axis(load_scene_nd(vb.pantograph_with_listen(d))) == 1
 
 
 def test_view_without_websockets_says_how_to_install(monkeypatch, capsys):

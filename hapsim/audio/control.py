@@ -541,6 +541,12 @@ class Analyst:
             import multiprocessing
             self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=_background)
 
+    @property
+    def background(self) -> bool:
+        """Whether calls go to the child process (False: in the calling thread, or
+        after :meth:`close`)."""
+        return self._pool is not None
+
     def submit(self, fn, args: tuple, done=None):
         """Start ``fn(*args)``; ``done(result)`` when it ends (``done({"error": ...})`` if
         it raised). Returns a handle with ``ready()`` and ``wait(timeout)``."""

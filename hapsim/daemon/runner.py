@@ -534,7 +534,11 @@ def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: 
     arrays, the loop's engine and events, and the controller's journal; its stop button
     sets the run's stop flag (as SIGINT). :func:`run_scene` hands it the report."""
     from hapsim.view import RunSource, start_view
-    src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events)
+    # the felt pair measured live as the record grows (as the report measures it): the
+    # framed protocol's runs (a driver's wire errors are the driver's, in this process)
+    live = opts.driver in (None, "framed")
+    src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events,
+                    prep=prep if live else None, hello_of=lambda: loop.result.hello)
     return start_view(src, ctl, conn.stop, opts.view, "run")
 
 

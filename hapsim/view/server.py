@@ -81,7 +81,10 @@ def grid_for(scene) -> dict | None:
         return None
     loop = LoopModel(dev.mass, dev.friction, scene.rate_hz, int(dev.delay), dev.hold)
     b_hi = max(2.0 * b, 4.0 * math.sqrt(k * dev.mass) * 0.05, 1e-3)
-    g = grid(loop, np.linspace(0.2 * k, 1.6 * k, 7), np.linspace(0.0, b_hi, 7), samples=40)
+    # the page draws the 7 x 7 nodes, the identity grid and the boundary; the finely
+    # sampled iso curves (samples > 0) are not in to_dict: 560 more calibrations, 30 s of
+    # the analysis process on a loaded 2-core box against 1.7 s without them
+    g = grid(loop, np.linspace(0.2 * k, 1.6 * k, 7), np.linspace(0.0, b_hi, 7))
     return g.to_dict()
 
 
@@ -131,6 +134,11 @@ class ViewServer:
         self._started = threading.Event()
         self._error = None
         self._closing = None
+        #: The felt pair measured on the run's record so far, oldest first (``rows``,
+        #: ``k``, ``b``, ``k_unc``, ``b_unc`` ... of :func:`~hapsim.view.sources.
+        #: measure_record`); the last one the report's once it is in.
+        self.measurements: list[dict] = []
+        self._measuring = None
 
     # ---------------------------------------------------------------- control
     def start(self) -> "ViewServer":
@@ -163,7 +171,17 @@ class ViewServer:
             Most time the pages get to receive it [s].
         """
         from hapsim.outputs import json_safe
-        self.report = json_safe(report) if report is not None else {}
+        from hapsim.view.sources import MEASURE_KEYS
+        rep = json_safe(report) if report is not None else {}
+        m = rep.get("measured")
+        if self.record_rows and isinstance(m, dict):
+            # the report's own measurement of the whole record: the last point (before
+            # the report, which ends the pages' frames)
+            final = {q: m[q] for q in MEASURE_KEYS if q in m}
+            final["rows"] = self.source.measured_rows
+            final["final"] = True
+            self.measurements.append(final)
+        self.report = rep
         if self._loop is not None and self.clients:
             time.sleep(min(linger_s, 2.5 / self.fps))
         self.close()
@@ -225,9 +243,43 @@ class ViewServer:
         port = server.sockets[0].getsockname()[1]
         self.url = f"http://127.0.0.1:{port}/"
         self._started.set()
+        measuring = (asyncio.ensure_future(self._measure_growing())
+                     if self.record_rows and self.ctl is not None else None)
         await self._closing.wait()
+        if measuring is not None:
+            measuring.cancel()
         server.close()
         await server.wait_closed()
+
+    @property
+    def record_rows(self) -> int:
+        """Rows of the record the run's report measures (0: no live measurement)."""
+        return int(getattr(self.source, "record_rows", 0) or 0)
+
+    async def _measure_growing(self, every_s: float = 1.0, first: int = 250) -> None:
+        """Measure the felt pair on the record so far, again each time it has grown by a
+        quarter (at most once per ``every_s`` [s], one at a time, in the controller's
+        analysis process: nothing here waits for it), until the record the report
+        measures is whole."""
+        from hapsim.view.sources import measure_record
+        last = 0
+        while True:
+            await asyncio.sleep(every_s)
+            if not self.ctl.analyst.background or self.report is not None:
+                return                  # the loop has ended (its analysis process too)
+            if self._measuring is not None and not self._measuring.ready():
+                continue
+            if self.source.tel.wrapped and last >= self.source.tel.head:
+                return                  # the report measures the head, measured already
+            n = self.source.measured_rows
+            if n < first or n < last + max(first, last // 4):
+                continue
+            args = self.source.record()
+            if args is None:
+                continue
+            last = n
+            self._measuring = self.ctl.analyst.submit(measure_record, args,
+                                                      self.measurements.append)
 
     def _http(self, connection, request):
         from websockets.datastructures import Headers
@@ -314,6 +366,7 @@ class ViewServer:
         return {"type": "hello", "what": self.what, "layout": self.layout,
                 "period_us": 1e6 / self.layout["rate_hz"],
                 "controls": self.ctl is not None,
+                "axis": int(getattr(self.source, "axis", 0)),
                 "hist_bins": HIST_BINS}
 
     def _frame(self, st: dict) -> dict:
@@ -363,10 +416,17 @@ class ViewServer:
                                                    "stable", "spectral_radius",
                                                    "stiffness_limit", "port_K", "port_B")
                              if q in f}
-            m = ctl.measurement or {}
-            frame["measured"] = {"k": ctl.measured[0], "b": ctl.measured[1],
-                                 "k_unc": m.get("k_unc"), "b_unc": m.get("b_unc"),
-                                 "why_not": ctl.unmeasured}
+            if self.record_rows:
+                # the run's record so far, measured as the report will measure it
+                got = self.measurements[st.get("measured", 0):]
+                st["measured"] = len(self.measurements)
+                if got:
+                    frame["measurements"] = got
+            else:
+                m = ctl.measurement or {}
+                frame["measured"] = {"k": ctl.measured[0], "b": ctl.measured[1],
+                                     "k_unc": m.get("k_unc"), "b_unc": m.get("b_unc"),
+                                     "why_not": ctl.unmeasured}
             frame["links"] = {lk.name: [lk.stiffness, lk.damping] for lk in
                               (*ctl.scene.links, *(getattr(ctl.scene, "planes", ()) or ()))}
             frame["masses"] = {mm.name: mm.mass for mm in ctl.scene.masses

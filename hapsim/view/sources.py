@@ -13,7 +13,12 @@ import math
 
 import numpy as np
 
-__all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout"]
+__all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout", "measure_record",
+           "MEASURE_KEYS"]
+
+#: What the page gets of a measurement (:func:`measure_record`).
+MEASURE_KEYS = ("k", "b", "k_unc", "b_unc", "verdict", "within", "comparable", "reason",
+                "error")
 
 
 def scene_layout(scene) -> dict:
@@ -31,7 +36,8 @@ def scene_layout(scene) -> dict:
         [kg]), ``links`` (``name``, ``kind`` spring_damper/contact, ``i``, ``j`` mass
         indices, ``K`` [N/m], ``B`` [N s/m], ``threshold`` [m], ``length`` [m] (n-D rest
         length, 0 in 1-D)), ``planes`` (n-D plane contacts: ``name``, ``normal``,
-        ``offset`` [m], ``K``, ``B``, ``masses`` indices), ``rate_hz`` [Hz].
+        ``offset`` [m], ``K``, ``B``, ``masses`` indices), ``targets`` (the links given
+        as a felt target: ``name``, ``k`` [N/m], ``b`` [N s/m]), ``rate_hz`` [Hz].
     """
     dim = int(getattr(scene, "dimension", 1) or 1)
     names = [m.name for m in scene.masses]
@@ -42,12 +48,14 @@ def scene_layout(scene) -> dict:
               "K": _num(lk.stiffness), "B": _num(lk.damping),
               "threshold": _num(getattr(lk, "threshold", 0.0)),
               "length": _num(getattr(lk, "length", 0.0))} for lk in scene.links]
+    targets = [{"name": lk.name, "k": float(lk.target[0]), "b": float(lk.target[1])}
+               for lk in scene.links if getattr(lk, "target", None) is not None]
     planes = [{"name": p.name, "normal": [float(v) for v in p.normal],
                "offset": float(p.offset), "K": _num(p.stiffness), "B": _num(p.damping),
                "masses": [idx[n] for n in p.masses if n in idx]}
               for p in getattr(scene, "planes", ()) or ()]
     return {"dim": dim, "masses": masses, "links": links, "planes": planes,
-            "rate_hz": float(scene.rate_hz)}
+            "targets": targets, "rate_hz": float(scene.rate_hz)}
 
 
 def _num(v) -> float | None:
@@ -86,6 +94,57 @@ class _Base:
         return np.array(e.step_rows[1], dtype=float).T
 
 
+class _Record:
+    """A snapshot of a run's first rows, read as :func:`hapsim.daemon.measure.identify_run`
+    reads the run's :class:`~hapsim.daemon.telemetry.Telemetry` (nothing wrapped)."""
+
+    wrapped = False
+
+    def __init__(self, cols: dict) -> None:
+        self._cols = cols
+        self.n = self.head = int(cols["seq"].size)
+
+    def columns(self, rows=None) -> dict:
+        a, b = rows if rows is not None else (0, self.n)
+        return {c: v[a:b] for c, v in self._cols.items()}
+
+
+def measure_record(prep, cols: dict, hello=None) -> dict:
+    """The felt (k, b) of a run's record so far, measured as its report will measure it.
+
+    :func:`hapsim.daemon.measure.identify_run` (the matrix pencil of the free response,
+    Hua & Sarkar 1990, with the run's late ticks, clamps, contacts and sensor accounted)
+    on the rows recorded so far: the same function on the same rows as the report's
+    ``measured`` once the record is whole. Run in the controller's analysis process.
+
+    Parameters
+    ----------
+    prep : hapsim.daemon.run_types.PreparedRun
+        The run's calibrated scene, prediction and targets.
+    cols : dict of ndarray
+        The telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`) of rows
+        ``0 .. n - 1``, each shape (n,).
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO (its position scale is the sensor step when the scene gives none).
+
+    Returns
+    -------
+    dict
+        The keys of :data:`MEASURE_KEYS` that the measurement has (``k`` [N/m], ``b``
+        [N s/m], ``k_unc``, ``b_unc``: the stated half-widths; or ``error`` / ``reason``),
+        and ``rows``: ``n``.
+    """
+    from hapsim.daemon.measure import identify_run
+    rec = _Record(cols)
+    try:
+        m = identify_run(prep, rec, hello)
+    except Exception as exc:          # a record too short to carry a measurement yet
+        m = {"error": f"{type(exc).__name__}: {exc}"}
+    out = {q: m[q] for q in MEASURE_KEYS if q in m}
+    out["rows"] = rec.n
+    return out
+
+
 class RunSource(_Base):
     """``hapsim run``: the telemetry arrays (:class:`hapsim.daemon.telemetry.Telemetry`)
     and the loop's event list.
@@ -103,11 +162,43 @@ class RunSource(_Base):
     events : list of dict
         The loop's events (``LoopResult.events``: losses, recoveries, safety stops,
         live changes), appended by the loop.
+    prep : PreparedRun, optional
+        The run's preparation: with it, :meth:`record` hands the view the rows to measure
+        the felt pair on as the record grows (:func:`measure_record`).
+    hello_of : callable, optional
+        ``hello_of() -> Hello or None``: the device's HELLO once the loop has it.
     """
 
-    def __init__(self, scene, tel, engine_of, ctl=None, events=None) -> None:
+    def __init__(self, scene, tel, engine_of, ctl=None, events=None, prep=None,
+                 hello_of=None) -> None:
         super().__init__(scene, engine_of, ctl, events)
         self.tel = tel
+        self.prep = prep
+        self.hello_of = hello_of
+
+    @property
+    def record_rows(self) -> int:
+        """Most rows the report's measurement takes (0: none to measure live): the whole
+        run while it fits in memory (the head and the ring), else the head alone."""
+        if self.prep is None:
+            return 0
+        return int(self.tel.capacity)
+
+    @property
+    def measured_rows(self) -> int:
+        """Rows the report's measurement takes now: every row recorded until the ring has
+        gone round, then the head (:func:`hapsim.daemon.measure.identify_run`)."""
+        return int(self.tel.head if self.tel.wrapped else self.tel.n)
+
+    def record(self) -> tuple | None:
+        """Arguments of :func:`measure_record` for the rows the report would measure now
+        (copies), or None when there is nothing to measure."""
+        n = self.measured_rows
+        if n <= 0 or self.prep is None:
+            return None
+        cols = {c: np.array(v) for c, v in self.tel.columns((0, n)).items()}
+        hello = self.hello_of() if self.hello_of is not None else None
+        return (self.prep, cols, hello)
 
     @property
     def count(self) -> int:
@@ -190,6 +281,18 @@ class ChunkSource(_Base):
         self.queue: collections.deque = collections.deque(maxlen=maxlen)
         self._count = 0
         self.scene_index = {m.name: i for i, m in enumerate(scene.masses)}
+        self.axis = self._trace_axis(scene)
+
+    @staticmethod
+    def _trace_axis(scene) -> int:
+        """The axis the traces show: the excitation's main direction for a loop with a
+        port, else the listened axis (a membrane heard along z moves along z), else 0."""
+        exc = getattr(scene, "excitation", None)
+        d = getattr(exc, "direction", None)
+        if getattr(scene, "port", None) is not None and d is not None:
+            return int(np.argmax(np.abs(np.asarray(d, dtype=float))))
+        listen = getattr(scene, "audio", None) or ()      # n-D: a tuple of ListenND
+        return int(getattr(listen[0], "axis", 0)) if listen else 0
 
     def probe(self) -> np.ndarray:
         """Position [m], shape (dim,), of the scene's first listened mass (a free loop's
@@ -211,8 +314,8 @@ class ChunkSource(_Base):
 
     def rows(self, since: int, most: int) -> tuple[int, dict]:
         """The rows handed over since the last call (``since`` and ``most`` bound them as
-        in :meth:`RunSource.rows`); ``x``, ``f`` are the port's first axis, ``xs``, ``fs``
-        every axis, shape (rows, dim)."""
+        in :meth:`RunSource.rows`); ``x``, ``f`` are the traced :attr:`axis`, ``xs``,
+        ``fs`` every axis, shape (rows, dim)."""
         got = []
         while self.queue:
             got.append(self.queue.popleft())
@@ -223,5 +326,6 @@ class ChunkSource(_Base):
         s = np.array([g[0] for g in got])
         X = np.array([np.ravel(g[1]) for g in got], dtype=float)
         F = np.array([np.ravel(g[2]) for g in got], dtype=float)
-        return int(s[0]), {"t": s * self.period, "x": X[:, 0], "f": F[:, 0],
+        a = min(self.axis, X.shape[1] - 1)
+        return int(s[0]), {"t": s * self.period, "x": X[:, a], "f": F[:, a],
                            "xs": X, "fs": F}

@@ -3,7 +3,7 @@
 "use strict";
 (function () {
   const S = { layout: null, t: [], x: [], f: [], et: [], e: [], marks: [], pos: null, portF: null,
-              hist: null, grid: null, felt: {}, measured: {}, links: {}, masses: {},
+              hist: null, grid: null, felt: {}, measured: {}, measurements: [], links: {}, masses: {},
               frames: 0, count: 0, replies: [], journal: [], report: null, box: null,
               periodUs: 1000, span: 4.0 };
   window.hapsimView = S;
@@ -40,14 +40,15 @@
     }
     ctx.restore();
   }
-  function makePlots() {
+  function makePlots(axis) {
     const w = Math.max(300, $("traces").clientWidth - 10);
+    const ax = S.layout.dim > 1 ? ` ${"xyz"[axis] || axis}` : "";
     plotXF = new uPlot({ width: w, height: 190, title: "",
       scales: { x: { time: false }, f: {} },
-      axes: [{ label: "t [s]" }, { label: "position [m]", size: 70 },
-             { scale: "f", side: 1, label: "force [N]", grid: { show: false }, size: 60 }],
-      series: [{ label: "t [s]" }, { label: "position [m]", stroke: "#1565c0" },
-               { label: "force [N]", stroke: "#c62828", scale: "f" }],
+      axes: [{ label: "t [s]" }, { label: `position${ax} [m]`, size: 70 },
+             { scale: "f", side: 1, label: `force${ax} [N]`, grid: { show: false }, size: 60 }],
+      series: [{ label: "t [s]" }, { label: `position${ax} [m]`, stroke: "#1565c0" },
+               { label: `force${ax} [N]`, stroke: "#c62828", scale: "f" }],
       hooks: { draw: [marksHook] } }, [[], [], []], $("traces"));
     plotE = new uPlot({ width: w, height: 120,
       scales: { x: { time: false } },
@@ -62,7 +63,7 @@
     $("what").textContent = m.what;
     $("scene-note").textContent = `(${m.layout.dim}-D, ${m.layout.masses.length} masses, ` +
       `${m.layout.links.length} links, ${m.layout.rate_hz} Hz)`;
-    if (!plotXF) makePlots();
+    if (!plotXF) makePlots(m.axis || 0);
     buildControls(m.controls);
   }
   function frame(m) {
@@ -99,6 +100,11 @@
     if (m.hist) { S.hist = m.hist; S.histOver = m.hist_over; drawHist(); }
     if (m.felt) S.felt = m.felt;
     if (m.measured) S.measured = m.measured;
+    for (const q of m.measurements || []) {   // the run's record so far, measured as it grows
+      S.measurements.push(q);
+      S.measured = q.k !== undefined && q.k !== null ? q :
+        { ...S.measured, why_not: q.error || q.reason || "not measured" };
+    }
     if (m.links) S.links = m.links;
     if (m.masses) S.masses = m.masses;
     if (m.grid) S.grid = m.grid;
@@ -110,7 +116,10 @@
     if (m.report) showReport(m.report);
     $("status").textContent = `sample ${m.count} (${(m.count / S.layout.rate_hz).toFixed(2)} s)` +
       (m.accepted !== undefined ? `, changes ${m.accepted} accepted, ${m.refused} refused` : "");
-    drawScene(); drawGrid(); feltText();
+    drawScene();
+    // the grid only when what it shows changed (the page's drawing is CPU beside the loop)
+    const key = JSON.stringify([!!S.grid, S.felt, S.measured, S.measurements.length]);
+    if (key !== S.gridKey) { S.gridKey = key; drawGrid(); feltText(); }
   }
   function reply(m) {
     S.replies.push(m);
@@ -236,9 +245,12 @@
     for (const pl of L.planes || []) {       // a plane contact as its trace in the view
       const nrm = pl.normal, lit = pl.masses.some((i) => dot(S.pos[i], nrm) < pl.offset);
       ctx.strokeStyle = lit ? "#d81b60" : "#bbb"; ctx.lineWidth = lit ? 3 : 1;
-      const c = nrm.map((v) => v * pl.offset);
+      // its trace through the foot of the masses' centre on it (not the origin's: a
+      // pantograph's workspace is centimetres away from it)
+      const mid = S.pos[0].map((_, k) => S.pos.reduce((a, p) => a + p[k], 0) / S.pos.length);
+      const h = dot(mid, nrm) - pl.offset, c = mid.map((v, k) => v - h * nrm[k]);
       const t = dim === 2 ? [-nrm[1], nrm[0]] : [1, 0, 0];
-      const span = 2 * (bx[1] - bx[0]);
+      const span = 2 * Math.max(bx[1] - bx[0], bx[3] - bx[2]);   // across the whole view
       const pA = project(c.map((v, k) => v - span * (t[k] || 0)), dim);
       const pB = project(c.map((v, k) => v + span * (t[k] || 0)), dim);
       ctx.beginPath(); ctx.moveTo(X(pA[0]), Y(pA[1])); ctx.lineTo(X(pB[0]), Y(pB[1])); ctx.stroke();
@@ -309,8 +321,9 @@
     const add = (K, B) => { if (K !== null && B !== null) pts.push([K, B + bb]); };
     g.K.forEach((row, i) => row.forEach((K, j) => add(K, g.B[i][j])));
     (g.identity_K || []).forEach((row, i) => row.forEach((K, j) => add(K, g.identity_B[i][j])));
-    const f = S.felt;
+    const f = S.felt, tg = target(g);
     if (f.port_K !== undefined) add(f.port_K, f.port_B);
+    if (tg) add(tg.k, tg.b - bb);
     let k0 = 0, k1 = Math.max(...pts.map((p) => p[0])) * 1.1;
     let b0 = Math.min(0, ...pts.map((p) => p[1])), b1 = Math.max(...pts.map((p) => p[1])) * 1.1;
     const X = (K) => 50 + (K - k0) / (k1 - k0) * (W - 60), Y = (B) => H - 30 - (B - b0) / (b1 - b0) * (H - 40);
@@ -349,9 +362,33 @@
       ctx.fillText(label, px + 7, py - 7);
     };
     if (f.port_K !== undefined) dotAt(f.port_K, f.port_B + bb, "#e65100", "simulated (K, B)");
+    if (tg) {                  // the target: a ring on the identity grid
+      ctx.strokeStyle = "#2e7d32"; ctx.lineWidth = 2; ctx.beginPath();
+      ctx.arc(X(tg.k), Y(tg.b), 8, 0, 2 * Math.PI); ctx.stroke();
+      ctx.fillStyle = "#2e7d32"; ctx.fillText(tg.label, X(tg.k) + 10, Y(tg.b) + 14);
+    }
     dotAt(f.k, f.b, "#6a1b9a", "predicted felt (k, b)");
+    // the measurements so far, oldest faint: the stated uncertainty shrinking as the record grows
+    const ms = S.measurements.filter((q) => q.k !== undefined && q.k !== null);
+    ms.slice(0, -1).forEach((q) => {
+      ctx.globalAlpha = 0.35;
+      dotAt(q.k, q.b, "#c62828", "", q.k_unc, q.b_unc);
+      ctx.globalAlpha = 1;
+    });
     const mm = S.measured;
-    if (mm.k !== null && mm.k !== undefined) dotAt(mm.k, mm.b, "#c62828", "measured (k, b)", mm.k_unc, mm.b_unc);
+    if (mm.k !== null && mm.k !== undefined) dotAt(mm.k, mm.b, "#c62828",
+      mm.final ? "measured (k, b): the report's" : `measured (k, b), ${mm.rows || "?"} samples`,
+      mm.k_unc, mm.b_unc);
+  }
+  // the felt target: the scene's target links (their sum), else the scene's own (K, B + b0),
+  // which a perfect simulator would render (the identity grid)
+  function target(g) {
+    const T = (S.layout && S.layout.targets) || [];
+    if (T.length) return { k: T.reduce((a, t) => a + t.k, 0), b: T.reduce((a, t) => a + t.b, 0),
+                           label: "target (k, b)" };
+    const f = S.felt;
+    if (f.port_K === undefined || f.port_K === null) return null;
+    return { k: f.port_K, b: f.port_B + (g.b_bias || 0), label: "target: the scene's (K, B + b0)" };
   }
   function feltText() {
     const f = S.felt, m = S.measured;
@@ -362,7 +399,11 @@
       `(${f.stable ? "stable" : "UNSTABLE"})` +
       (margin !== null ? `; stiffness margin to the boundary ${fmt(100 * margin)} % (K max ${fmt(f.stiffness_limit)} N/m)` : "") +
       `. Measured: ` + (m.k !== null && m.k !== undefined ?
-        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} N/m, b ${fmt(m.b)} ± ${fmt(m.b_unc)} N s/m` : (m.why_not || "–")) +
-      ". Blue: iso-k, green: iso-b, dashed: identity (a perfect simulator), bold: stability boundary.";
+        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} N/m, b ${fmt(m.b)} ± ${fmt(m.b_unc)} N s/m` +
+        (m.rows ? ` on ${m.rows} samples` : "") + (m.final ? " (the report's)" :
+          S.measurements.length ? ` (${S.measurements.length} measurements as the record grew)` : "") +
+        (m.verdict ? `, ${m.verdict}` : "") : (m.why_not || "–")) +
+      ". Blue: iso-k, green: iso-b, dashed: identity (a perfect simulator), bold: stability boundary; " +
+      "green ring: the target; red: the measured pair with its stated uncertainty, earlier ones faint.";
   }
 })();
