@@ -21,6 +21,7 @@ import pytest
 
 from hapsim.drivers import get_driver
 from hapsim.drivers import haply as hp
+from tolerance import rel_tol
 
 J = 1e-3                         # joint inertia [kg m^2] (configs/haply.yaml)
 RES = 4880.0                     # counts per revolution
@@ -223,7 +224,9 @@ def test_a_reply_no_motion_reaches_resynchronises_at_once():
     assert resync.startswith(zero) and resync.endswith(zero)
     # the set-up's encoder offset: the last record's angle (one record: no velocity)
     i = resync.index(hp.setup_packet(1, offset_deg=math.degrees(math.radians(a0)))[:8])
-    assert struct.unpack_from("<f", resync, i + 8)[0] == pytest.approx(a0, abs=1e-4)
+    # binary32's rounding of the angle (2^-24) after radians -> degrees (two roundings)
+    assert struct.unpack_from("<f", resync, i + 8)[0] == pytest.approx(
+        a0, rel=2.0 ** -24 + rel_tol(2))
     tr.close()
 
 
@@ -292,7 +295,10 @@ def test_the_resync_puts_any_board_back_in_step_at_zero_torque(seed):
     assert b.settles_on() == 0.0
     assert rep[-5:][0] == 1
     got = struct.unpack("<f", rep[-4:])[0]
-    assert abs(got - math.degrees(x)) <= 2 * 360.0 / RES + 1e-4
+    # two whole counts (the board's count and the set-up's offset each round to one),
+    # plus binary32's rounding of the angle sent and of the angle read (2^-24 each)
+    assert abs(got - math.degrees(x)) <= (2 * 360.0 / RES + 2 * 2.0 ** -24 * abs(got)
+                                          + rel_tol(3) * abs(math.degrees(x)))
     assert b.ready_at - t <= 22 * b.PASS_S + 2 * b.SETUP_S + 1e-12
 
 
