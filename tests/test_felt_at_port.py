@@ -18,6 +18,7 @@ from hapsim.cli import main
 from hapsim.analysis.prediction import has_offset
 from hapsim.daemon.runner import run_scene
 from hapsim.scene import parse_scene
+from tolerance import measured
 
 
 def _string(n, port_at, K, B, Kh, Bh, m=0.01, exc="{x0: 0.002}", dev_mass=0.1):
@@ -163,4 +164,5 @@ def test_contact_closed_at_rest_run_matches_prediction(K1, K2, B1, B2, g, thr):
     p, m = rep["predicted"], rep["measured"]
     # measured 1.9e-14 relative (generic 2.1e-14), margin 47
     assert m["k"] == pytest.approx(p["k"], rel=1e-12)
-    assert m["b"] == pytest.approx(p["b"], rel=1e-12)
+    # measured 1.3e-13 relative (generic 1.9e-13; the 1e-12 literal held by 5.3), margin 10
+    assert m["b"] == pytest.approx(p["b"], rel=measured(1.9e-13, 10))

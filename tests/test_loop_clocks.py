@@ -126,7 +126,7 @@ def test_both_clocks_compute_the_same_samples(case):
         if c == "time":     # a recovery re-arms a STOPped device: its ticks restart at the
             continue        # CONFIG, which each clock sends at its own phase (below)
         assert np.array_equal(cd[c], ch[c]), c
-    # measured 4.4e-16 (generic G129), margin 2e6
+    # measured 4.4e-16 (generic 4.4e-16), margin 2e6
     np.testing.assert_allclose(stretch_time(cd), stretch_time(ch), rtol=0, atol=1e-9)  # 1 us
     for f in RESULT_FIELDS:
         assert getattr(rd, f) == getattr(rh, f), f

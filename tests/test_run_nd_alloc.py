@@ -152,7 +152,7 @@ def test_per_sample_helpers_make_no_array(traced):
         f()
         assert _transient(f) < one_array
     np.testing.assert_array_equal(kin.forward_at(q[0], q[1]), kin.forward(q))
-    # measured 0 (generic G155): exact on both targets
+    # measured 0 (generic 0): exact on both targets
     np.testing.assert_allclose(np.reshape(kin.jacobian_at(q[0], q[1]), (2, 2)),
                                kin.jacobian(q), rtol=1e-12, atol=0)
     drv.write_into(buf, 0.01, -0.2)

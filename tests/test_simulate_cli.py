@@ -73,7 +73,7 @@ def test_felt_target_is_calibrated_like_the_daemon_and_reported(tmp_path, capsys
     # independent check through the inverse map: these (K, B) render the felt target
     scene = load_scene("configs/felt_wall.yaml")
     felt = render(LoopModel.from_device(scene.device, scene.rate_hz), K, B)
-    # measured 0 (generic G74): exact on both targets
+    # measured 0 (generic 0): exact on both targets
     assert felt.k == pytest.approx(1000.0, rel=1e-9) and felt.b == pytest.approx(3.0, rel=1e-9)
     # ... and the virtual values differ from the felt ones (the THS is not transparent)
     assert abs(K - 1000.0) > 10.0 and abs(B - 3.0) > 0.1
