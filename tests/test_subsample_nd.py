@@ -21,6 +21,8 @@ import math
 
 import numpy as np
 import pytest
+
+from tolerance import measured
 import scipy.linalg as sl
 
 from hapsim.analysis import LoopModel, stability_limit
@@ -69,7 +71,8 @@ def test_one_dof_state_matrix_equals_the_1d_polynomial(seed):
     kn = direction_limit(lnd, [1.0], B)
     # both are Brent roots of a crossing to ~1e-12 relative; the scans differ in method:
     # measured 1.2e-14 relative (generic 1e-14), margin 83000
-    assert abs(kn - k1) <= 1e-9 * k1, (kn, k1)
+    # (margin 1e4: Brent's roots stop at ~1e-12 relative)
+    assert abs(kn - k1) <= measured(1.2e-14, 1e4) * k1, (kn, k1)
 
 
 @pytest.mark.parametrize("n", [2, 3])
@@ -188,7 +191,7 @@ def test_lockstep_nd_measures_the_prediction_at_a_fractional_delay():
     out = measure_felt_lockstep(_scene(2, 1000.0, 300.0, 1.0, M, B0, 1.3), 1e-4)
     # measured 8e-13 here, 4e-13 to 9e-13 at whole delays 1 and 2 (load ~1): the bound
     # tests/test_run_nd.py gives a linear loop's lockstep fit, 1e-9 (margin > 1000)
-    assert max(out["deviation"].values()) <= 1e-9, out["deviation"]
+    assert max(out["deviation"].values()) <= measured(9e-13, 1000), out["deviation"]
 
 
 def test_fractional_delay_read_and_refused_in_nd():
