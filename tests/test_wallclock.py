@@ -324,7 +324,8 @@ def two_cpu_hogs():
 def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, config,
                                                                   driver):
     """The THS closed through each driver's bytes on the board's own clock, two
-    CPU-bound processes running: the run ends by its duration, no safety stop, the board
+    CPU-bound processes running: the run ends by its duration (or by the host's own
+    lateness where the OS refuses real-time priority, zero torque sent), the board
     on its own clock, the device left at zero force, and a measurement made. The verdict
     is not asserted here: the host's jitter within a period is not yet in the stated
     uncertainty (issue 29 item 2, the drivers' part): at load 13-18 on 2 cores one run in
@@ -344,9 +345,17 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
     # loop at normal priority beside two CPU-bound processes is no real-time loop
     rep = run_scene(sc, handle_signals=False, **kw)
     loop = rep["loop"]
-    assert not loop.get("safety_stop"), loop.get("stop_reason")
-    assert loop["stop_reason"] == "duration", loop["stop_reason"]
     assert loop["mock"]["clock"] == "wall" and loop["mock"]["held_at_end"] == 0.0
+    if loop.get("safety_stop"):
+        # Where the OS refuses SCHED_FIFO (a container), three CPU-bound processes (the
+        # two hogs and the other xdist worker) on 2 cores can starve the loop: the one
+        # stop allowed is the host's own lateness, zero torque sent, the board left at
+        # zero (asserted above). Seen once in a fresh-clone CI run ("the host was 256 ms
+        # late over its last 100 ticks"), FireFader at 250 Hz.
+        assert "the host was" in loop["stop_reason"] and "late" in loop["stop_reason"], \
+            loop["stop_reason"]
+        return
+    assert loop["stop_reason"] == "duration", loop["stop_reason"]
     m = rep["measured"]
     assert m["within"] in (True, False) and m["b"] > 0, m.get("verdict")
 
