@@ -34,9 +34,9 @@ def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
     from hapsim.analysis.identify import COVERAGE
     assert m["b_interval"] >= COVERAGE * m["b_sd_wire"]
     assert m["k_interval"] >= COVERAGE * m["k_sd_wire"]
-    # the wire's worst case over the fit's residual-based error: measured 41x (b) and 40x
-    # (k) on this scene; a run whose interval forgot the wire states the residual's alone
-    assert m["b_sd_wire"] > m["b_sd"] and m["k_sd_wire"] > m["k_sd"]
+    # (the wire's term is not asserted above the residual's: 41x on an undisturbed record,
+    # but a loaded host's re-asked commands give another record whose residual term is
+    # 1.2e-4, seen in a fresh-clone CI run; the interval then is the residual's, and holds)
     assert abs(m["b"] - rep["predicted"]["b"]) <= m["b_interval"]
     assert abs(m["k"] - rep["predicted"]["k"]) <= m["k_interval"]
 
