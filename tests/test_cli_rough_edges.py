@@ -42,7 +42,7 @@ class ClosedPipe(io.TextIOBase):
 
 
 def journal(tmp_path) -> str:
-    from hapsim.daemon.telemetry import write_journal
+    from hapsim.host.telemetry import write_journal
     n = 500
     rng = np.random.default_rng(2)
     cols = {"time": np.arange(n) * 1e-3, "position": rng.normal(size=n) * 1e-3,
@@ -182,7 +182,7 @@ def test_ctrl_c_with_json_prints_the_interrupted_object(tmp_path, argv):
 def fake_run(monkeypatch):
     """``run_scene`` replaced by a recorder: it announces the start as the runner does,
     keeps its arguments, and ends the run with a DeviceError (nothing to report)."""
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.errors import DeviceError
     seen = {}
 
@@ -196,7 +196,7 @@ def fake_run(monkeypatch):
         raise DeviceError("recorded")
 
     monkeypatch.setattr(runner, "run_scene", run_scene)
-    import hapsim.daemon.startup as startup
+    import hapsim.pipeline.startup as startup
     monkeypatch.setattr(startup, "start_embedded_mock", lambda *a, **k: None)
     return seen
 

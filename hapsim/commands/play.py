@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``hapsim play``.
 
     SIGINT and SIGTERM are handled from the start until the report is made (as ``hapsim
-    run`` does, :mod:`hapsim.daemon.runner`): they end the loop at its next sample, and the
+    run`` does, :mod:`hapsim.pipeline.runner`): they end the loop at its next sample, and the
     report covers what was played (``stop_reason``: ``signal SIGINT``/``signal SIGTERM``).
 
     Parameters
@@ -153,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from hapsim.daemon.loop_types import StopFlag
+    from hapsim.host.loop_types import StopFlag
     stop = StopFlag()
     old = {}
     if threading.current_thread() is threading.main_thread():
@@ -168,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _play(args: argparse.Namespace, stop) -> int:
     """The play itself (:func:`run`, its signal handlers in place); ``stop`` is the
-    :class:`~hapsim.daemon.loop_types.StopFlag` they set. A 2-D or 3-D scene plays its
+    :class:`~hapsim.host.loop_types.StopFlag` they set. A 2-D or 3-D scene plays its
     sound (:func:`hapsim.commands.play_nd.play_nd`)."""
     from hapsim.scene_nd import scene_dimension
     if getattr(args, "view", None) is not None:     # before anything starts: how to install
@@ -258,7 +258,7 @@ def _play(args: argparse.Namespace, stop) -> int:
     late = 0
     quiet_from = 0            # first sample after the last change's ramp ended
     error = None
-    from hapsim.daemon.realtime import RealtimePriority
+    from hapsim.host.realtime import RealtimePriority
     prio = 10 if args.rt_priority is None else args.rt_priority
     if out is not None:
         # just below the sound callback's thread: at its priority or above, the haptic
@@ -277,7 +277,7 @@ def _play(args: argparse.Namespace, stop) -> int:
     try:
         for n in range(steps):
             if stop.set:
-                from hapsim.daemon.loop_types import signame
+                from hapsim.host.loop_types import signame
                 done, stop_reason = n, (f"signal {signame(stop.signal)}"
                                         if stop.signal is not None or stop.reason is None
                                         else stop.reason)

@@ -106,7 +106,7 @@ def play_nd(args, stop) -> int:
         ``hapsim play``'s options (``scene``, ``duration`` [s], ``sound``,
         ``jack_server``, ``rt_priority``, ``json``, ``osc``, ``ramp`` [s],
         ``pluck_every`` [s], ``journal``).
-    stop : hapsim.daemon.loop_types.StopFlag
+    stop : hapsim.host.loop_types.StopFlag
         Set by SIGINT/SIGTERM: ends the play at the next chunk.
 
     Returns
@@ -125,8 +125,8 @@ def play_nd(args, stop) -> int:
     from hapsim.audio.control_nd import ControllerND
     from hapsim.audio.live import open_output, wait_priority
     from hapsim.audio.live_nd import LiveND
-    from hapsim.daemon.loop_types import signame
-    from hapsim.daemon.realtime import RealtimePriority
+    from hapsim.host.loop_types import signame
+    from hapsim.host.realtime import RealtimePriority
     from hapsim.engine_nd import EngineND
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
