@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import zoh_matrices
 from hapsim.errors import ConfigError
 from hapsim.kernels.joint_nd import joint_step
 

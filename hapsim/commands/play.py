@@ -177,7 +177,9 @@ def _play(args: argparse.Namespace, stop) -> int:
     if scene_dimension(args.scene) > 1:
         from hapsim.commands.play_nd import play_nd
         return play_nd(args, stop)
-    from hapsim.audio.control import Controller, send_telemetry, serve_osc, write_journal
+    from hapsim.audio.control import Controller
+    from hapsim.audio.osc import send_telemetry, serve_osc
+    from hapsim.audio.journal import write_journal
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
     from hapsim.engine import Engine, warm_up

@@ -121,7 +121,7 @@ def play_nd(args, stop) -> int:
         An option not taken; a scene without an ``audio`` section; ``--pluck-every``
         without an excitation; ``--osc`` on a scene too large to check (exit 2).
     """
-    from hapsim.audio.control import send_telemetry, serve_osc
+    from hapsim.audio.osc import send_telemetry, serve_osc
     from hapsim.audio.control_nd import ControllerND
     from hapsim.audio.live import open_output, wait_priority
     from hapsim.audio.live_nd import LiveND
@@ -251,7 +251,7 @@ def play_nd(args, stop) -> int:
                        "masses": {m.name: m.mass for m in sc.masses if m.kind == "mass"},
                        "journal": ctl.journal})
         if getattr(args, "journal", None):
-            from hapsim.audio.control import write_journal
+            from hapsim.audio.journal import write_journal
             write_journal(args.journal, ctl.journal)
     if view is not None:
         view.finish(report)

@@ -169,7 +169,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     if ctl is not None:
         # the measurement is compared with the prediction of the scene it measured (the
         # changes accepted before its window), as hapsim play re-predicts
-        from hapsim.audio.control import revise_measurement
+        from hapsim.audio.journal import revise_measurement
         osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
                "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
                "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),

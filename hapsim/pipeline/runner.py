@@ -515,7 +515,9 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
     polled by the loop between samples, and its OSC server (address printed on stderr)."""
     import sys
 
-    from hapsim.audio.control import Controller, serve_osc
+    from hapsim.audio.control import Controller
+
+    from hapsim.audio.osc import serve_osc
 
     ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
     ctl.events = loop.result.events             # journaled with the telemetry (.hst)
