@@ -15,7 +15,7 @@ microseconds a tick, ``tools/bench_joint_nd.py``),
 a cartesian device the exact zero-order hold of its Cartesian mass and friction.
 Device duties are the 1-D mock's own code (:class:`hapsim.emulated.mock.MockDevice`, whose
 force hooks this device gives n axes, and whose serving loop
-:func:`hapsim.emulated.mock.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it
+:func:`hapsim.emulated.serve.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it
 arrived in time, else the last force held (``late``, STATUS_OVERRUN, ``force_seq`` naming the
 force held), the watchdog zeroing it, STOP, PING.
 
