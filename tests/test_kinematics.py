@@ -405,7 +405,8 @@ def test_cli_stiffness_limits_and_workspace_map(tmp_path, capsys):
     """--joint-inertia: the Cartesian mass J^-T M_q J^-1 + m_h I and K_max along its
     principal axes (= direction_limits of the same loop); --grid maps it over N^2
     configurations (one of them the given joints: the same K_max); --out charts it."""
-    from hapsim.analysis.ths_nd import LoopModelND, direction_limits
+    from hapsim.analysis.ths_nd import LoopModelND
+    from hapsim.analysis.direction_limits import direction_limits
     argv = ["kinematics", "pantograph", "--joints", "130", "50", "--joint-inertia", "2e-4",
             "--joint-friction", "1e-3", "--hand-mass", "0.05", "--B", "1", "--json"]
     assert main(argv) == 0

@@ -16,9 +16,8 @@ from scipy.optimize import linear_sum_assignment
 from hapsim.analysis.loop import (LoopModel, characteristic, closed_loop_poles,
                                   spectral_radius)
 from hapsim.analysis.ths import render, stability_limit
-from hapsim.analysis.ths_nd import (LoopModelND, closed_loop_poles_nd, direction_limit,
-                                    direction_limits, render_nd, state_matrix,
-                                    workspace_limits)
+from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits
+from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, render_nd, state_matrix
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph
 from tolerance import (BRENT_THETA, crossing_tol, eig_tol, expm_tol, measured, rel_tol,

@@ -44,8 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import (LoopModelND, RenderND, direction_limit, render_state,
-                                    split_hold_matrices, zoh_matrices)
+from hapsim.analysis.direction_limits import direction_limit
+from hapsim.analysis.ths_nd import (LoopModelND, RenderND, render_state, split_hold_matrices,
+                                    zoh_matrices)
 from hapsim.errors import ConfigError
 
 __all__ = ["link_blocks", "closed_loop_nd", "SceneCheckND", "check_scene_nd",
@@ -237,7 +238,7 @@ class SceneCheckND:
         The principal axes of the device's Cartesian mass (columns, lightest first).
     stiffness_limits : ndarray, shape (n,) or None
         ``K_max`` [N/m] along each of them
-        (:func:`hapsim.analysis.ths_nd.direction_limit`, with the port damping and the
+        (:func:`hapsim.analysis.direction_limits.direction_limit`, with the port damping and the
         rest of the port stiffness); None when a port link ends on a moving mass (the
         limit of a port-ground spring says nothing about the felt k then, as in 1-D).
     """

@@ -193,7 +193,9 @@ def _limits(args, dev, q, n) -> dict:
     """The ``limits`` (and ``workspace``) part of the output."""
     import numpy as np
 
-    from hapsim.analysis.ths_nd import LoopModelND, direction_limits
+    from hapsim.analysis.ths_nd import LoopModelND
+
+    from hapsim.analysis.direction_limits import direction_limits
     Iq = _per_joint(args.joint_inertia, n, "--joint-inertia")
     Bq = _per_joint(args.joint_friction, n, "--joint-friction")
     if args.out:
@@ -250,7 +252,7 @@ def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: 
     -------
     dict
         ``joints_deg``, ``positions`` [m], ``status``, ``mass_eigenvalues`` [kg],
-        ``K_max`` [N/m] (:func:`hapsim.analysis.ths_nd.workspace_limits`; None for a
+        ``K_max`` [N/m] (:func:`hapsim.analysis.direction_limits.workspace_limits`; None for a
         non-finite value).
 
     Raises
@@ -263,7 +265,7 @@ def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: 
 
     import numpy as np
 
-    from hapsim.analysis.ths_nd import workspace_limits
+    from hapsim.analysis.direction_limits import workspace_limits
     from hapsim.progress import Progress
     if not 2 <= grid <= 40:
         raise ConfigError(f"must be between 2 and 40, got {grid}", key="--grid")

@@ -14,11 +14,11 @@ __all__ = ["plot_workspace", "plot_scene_nd"]
 
 def plot_workspace(res, title: str | None = None):
     """``K_max`` along the lightest principal axis of the Cartesian mass, over the
-    configurations of a :class:`hapsim.analysis.ths_nd.WorkspaceLimits`.
+    configurations of a :class:`hapsim.analysis.direction_limits.WorkspaceLimits`.
 
     Parameters
     ----------
-    res : hapsim.analysis.ths_nd.WorkspaceLimits
+    res : hapsim.analysis.direction_limits.WorkspaceLimits
     title : str, optional
 
     Returns
