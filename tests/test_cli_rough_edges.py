@@ -218,8 +218,15 @@ def test_a_scene_names_its_protocol_and_run_says_it(config, protocol, fake_run, 
 
 
 def test_framed_is_said_and_passed_as_no_driver(fake_run, capsys):
+    """The run is handed hapsim's own protocol, which its options' check stores as no
+    driver, once (RunOptions.check; the pipeline then tests ``driver is None`` only)."""
+    from hapsim.pipeline.options import RunOptions
     assert main(["run", WALL]) == 1
-    assert fake_run["driver"] is None
+    assert fake_run["driver"] in (None, "framed")
+    opts = RunOptions(driver=fake_run["driver"], handle_signals=False, lockstep=True,
+                      transport="inprocess")
+    assert opts.protocol == "framed" and opts.check().driver is None
+    assert RunOptions(driver="firefader").protocol == "firefader"
     assert "closing the loop on /dev/fake in the framed protocol for" in capsys.readouterr().err
 
 

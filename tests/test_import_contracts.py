@@ -78,10 +78,11 @@ LAYERS = (
     ("emulated devices and sound", ("hapsim.emulated", "hapsim.audio")),
     # the host side of the wire: the loop, its compiled twin, its transport to a port
     ("host", ("hapsim.host",)),
-    # one run's pipeline, and the live view that the run (hapsim.pipeline.runner) starts
-    # beside its loop: the view reads the host's telemetry and the audio controller, and
-    # measures the record so far as the run's report will (hapsim.pipeline.measure)
-    ("pipeline", ("hapsim.pipeline", "hapsim.view")),
+    # the live view the run starts beside its loop: it reads the host's telemetry and the
+    # audio controller; the run hands it its own measurement (hapsim.pipeline.measure)
+    ("view", ("hapsim.view",)),
+    # one run's pipeline
+    ("pipeline", ("hapsim.pipeline",)),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
                      "hapsim")),
 )
@@ -191,8 +192,8 @@ def test_scanner_sees_circles_and_upward_imports():
     assert _upward(g) == ["hapsim.errors (floor foundation) imports hapsim.scene (floor "
                           "scene)", "hapsim.scene (floor scene) imports hapsim.analysis.loop "
                           "(floor models)"]
-    assert _floor("hapsim.pipeline.runner") == 5 and _floor("hapsim.host.loop") == 4
-    assert _floor("hapsim.emulated.mock") == 3 and _floor("hapsim.new_module") == 6
+    assert _floor("hapsim.pipeline.runner") == 6 and _floor("hapsim.host.loop") == 4
+    assert _floor("hapsim.emulated.mock") == 3 and _floor("hapsim.new_module") == 7
 
 
 def test_no_module_imports_another_in_a_circle():

@@ -173,7 +173,7 @@ def test_measure_record_is_the_reports_measurement(tmp_path):
     from hapsim.api import load_scene
     from hapsim.pipeline.options import RunOptions
     from hapsim.pipeline.runner import prepare_run
-    from hapsim.view.sources import measure_record
+    from hapsim.pipeline.measure import measure_record
     with open(os.path.join(ROOT, "configs", "wall.yaml"), encoding="utf-8") as fh:
         text = fh.read()
     scene = tmp_path / "noisy_wall.yaml"

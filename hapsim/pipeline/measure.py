@@ -21,7 +21,11 @@ from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 
-__all__ = ["identify_run", "contact_replay"]
+__all__ = ["identify_run", "contact_replay", "measure_record", "MEASURE_KEYS"]
+
+#: What the page gets of a measurement (:func:`measure_record`).
+MEASURE_KEYS = ("k", "b", "k_unc", "b_unc", "verdict", "within", "comparable", "reason",
+                "error")
 
 
 def contact_replay(scene: Scene, cols: dict):
@@ -215,3 +219,53 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
                                           for q in ("k", "b", "f0_hz", "damping_ratio")}
     return measured
+
+
+class _Record:
+    """A snapshot of a run's first rows, read as :func:`identify_run`
+    reads the run's :class:`~hapsim.host.telemetry.Telemetry` (nothing wrapped)."""
+
+    wrapped = False
+
+    def __init__(self, cols: dict) -> None:
+        self._cols = cols
+        self.n = self.head = int(cols["seq"].size)
+
+    def columns(self, rows=None) -> dict:
+        a, b = rows if rows is not None else (0, self.n)
+        return {c: v[a:b] for c, v in self._cols.items()}
+
+
+def measure_record(prep, cols: dict, hello=None) -> dict:
+    """The felt (k, b) of a run's record so far, measured as its report will measure it.
+
+    :func:`identify_run` (the matrix pencil of the free response,
+    Hua & Sarkar 1990, with the run's late ticks, clamps, contacts and sensor accounted)
+    on the rows recorded so far: the same function on the same rows as the report's
+    ``measured`` once the record is whole. Run in the controller's analysis process.
+
+    Parameters
+    ----------
+    prep : hapsim.pipeline.run_types.PreparedRun
+        The run's calibrated scene, prediction and targets.
+    cols : dict of ndarray
+        The telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`) of rows
+        ``0 .. n - 1``, each shape (n,).
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO (its position scale is the sensor step when the scene gives none).
+
+    Returns
+    -------
+    dict
+        The keys of :data:`MEASURE_KEYS` that the measurement has (``k`` [N/m], ``b``
+        [N s/m], ``k_unc``, ``b_unc``: the stated half-widths; or ``error`` / ``reason``),
+        and ``rows``: ``n``.
+    """
+    rec = _Record(cols)
+    try:
+        m = identify_run(prep, rec, hello)
+    except Exception as exc:          # a record too short to carry a measurement yet
+        m = {"error": f"{type(exc).__name__}: {exc}"}
+    out = {q: m[q] for q in MEASURE_KEYS if q in m}
+    out["rows"] = rec.n
+    return out

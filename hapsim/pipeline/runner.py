@@ -539,8 +539,10 @@ def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: 
     # the felt pair measured live as the record grows (as the report measures it): the
     # framed protocol's runs (a driver's wire errors are the driver's, in this process)
     live = opts.driver is None
+    from hapsim.pipeline.measure import MEASURE_KEYS, measure_record
     src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events,
-                    prep=prep if live else None, hello_of=lambda: loop.result.hello)
+                    prep=prep if live else None, hello_of=lambda: loop.result.hello,
+                    measure=measure_record, measure_keys=MEASURE_KEYS)
     return start_view(src, ctl, conn.stop, opts.view, "run")
 
 

@@ -135,8 +135,8 @@ class ViewServer:
         self._error = None
         self._closing = None
         #: The felt pair measured on the run's record so far, oldest first (``rows``,
-        #: ``k``, ``b``, ``k_unc``, ``b_unc`` ... of :func:`~hapsim.view.sources.
-        #: measure_record`); the last one the report's once it is in.
+        #: ``k``, ``b``, ``k_unc``, ``b_unc`` ... of :func:`~hapsim.pipeline.measure.
+        #: measure_record`, the run's own); the last one the report's once it is in.
         self.measurements: list[dict] = []
         self._measuring = None
 
@@ -171,13 +171,12 @@ class ViewServer:
             Most time the pages get to receive it [s].
         """
         from hapsim.outputs import json_safe
-        from hapsim.view.sources import MEASURE_KEYS
         rep = json_safe(report) if report is not None else {}
         m = rep.get("measured")
         if self.record_rows and isinstance(m, dict):
             # the report's own measurement of the whole record: the last point (before
             # the report, which ends the pages' frames)
-            final = {q: m[q] for q in MEASURE_KEYS if q in m}
+            final = {q: m[q] for q in self.source.measure_keys if q in m}
             final["rows"] = self.source.measured_rows
             final["final"] = True
             self.measurements.append(final)
@@ -261,7 +260,6 @@ class ViewServer:
         quarter (at most once per ``every_s`` [s], one at a time, in the controller's
         analysis process: nothing here waits for it), until the record the report
         measures is whole."""
-        from hapsim.view.sources import measure_record
         last = 0
         while True:
             await asyncio.sleep(every_s)
@@ -278,7 +276,7 @@ class ViewServer:
             if args is None:
                 continue
             last = n
-            self._measuring = self.ctl.analyst.submit(measure_record, args,
+            self._measuring = self.ctl.analyst.submit(self.source.measure, args,
                                                       self.measurements.append)
 
     def _http(self, connection, request):

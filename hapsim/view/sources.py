@@ -13,12 +13,7 @@ import math
 
 import numpy as np
 
-__all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout", "measure_record",
-           "MEASURE_KEYS"]
-
-#: What the page gets of a measurement (:func:`measure_record`).
-MEASURE_KEYS = ("k", "b", "k_unc", "b_unc", "verdict", "within", "comparable", "reason",
-                "error")
+__all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout"]
 
 
 def scene_layout(scene) -> dict:
@@ -94,57 +89,6 @@ class _Base:
         return np.array(e.step_rows[1], dtype=float).T
 
 
-class _Record:
-    """A snapshot of a run's first rows, read as :func:`hapsim.pipeline.measure.identify_run`
-    reads the run's :class:`~hapsim.host.telemetry.Telemetry` (nothing wrapped)."""
-
-    wrapped = False
-
-    def __init__(self, cols: dict) -> None:
-        self._cols = cols
-        self.n = self.head = int(cols["seq"].size)
-
-    def columns(self, rows=None) -> dict:
-        a, b = rows if rows is not None else (0, self.n)
-        return {c: v[a:b] for c, v in self._cols.items()}
-
-
-def measure_record(prep, cols: dict, hello=None) -> dict:
-    """The felt (k, b) of a run's record so far, measured as its report will measure it.
-
-    :func:`hapsim.pipeline.measure.identify_run` (the matrix pencil of the free response,
-    Hua & Sarkar 1990, with the run's late ticks, clamps, contacts and sensor accounted)
-    on the rows recorded so far: the same function on the same rows as the report's
-    ``measured`` once the record is whole. Run in the controller's analysis process.
-
-    Parameters
-    ----------
-    prep : hapsim.pipeline.run_types.PreparedRun
-        The run's calibrated scene, prediction and targets.
-    cols : dict of ndarray
-        The telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`) of rows
-        ``0 .. n - 1``, each shape (n,).
-    hello : firmware_protocol.Hello, optional
-        The device's HELLO (its position scale is the sensor step when the scene gives none).
-
-    Returns
-    -------
-    dict
-        The keys of :data:`MEASURE_KEYS` that the measurement has (``k`` [N/m], ``b``
-        [N s/m], ``k_unc``, ``b_unc``: the stated half-widths; or ``error`` / ``reason``),
-        and ``rows``: ``n``.
-    """
-    from hapsim.pipeline.measure import identify_run
-    rec = _Record(cols)
-    try:
-        m = identify_run(prep, rec, hello)
-    except Exception as exc:          # a record too short to carry a measurement yet
-        m = {"error": f"{type(exc).__name__}: {exc}"}
-    out = {q: m[q] for q in MEASURE_KEYS if q in m}
-    out["rows"] = rec.n
-    return out
-
-
 class RunSource(_Base):
     """``hapsim run``: the telemetry arrays (:class:`hapsim.host.telemetry.Telemetry`)
     and the loop's event list.
@@ -163,15 +107,24 @@ class RunSource(_Base):
         The loop's events (``LoopResult.events``: losses, recoveries, safety stops,
         live changes), appended by the loop.
     prep : PreparedRun, optional
-        The run's preparation: with it, :meth:`record` hands the view the rows to measure
-        the felt pair on as the record grows (:func:`measure_record`).
+        The run's preparation: with it and ``measure``, :meth:`record` hands the view the
+        rows to measure the felt pair on as the record grows.
     hello_of : callable, optional
         ``hello_of() -> Hello or None``: the device's HELLO once the loop has it.
+    measure : callable, optional
+        ``measure(prep, cols, hello) -> dict``: the run's own measurement of a record so
+        far (:func:`hapsim.pipeline.measure.measure_record`, given by the run: the view
+        imports nothing of the pipeline), run in the controller's analysis process.
+    measure_keys : tuple of str
+        The keys of a measurement the page shows
+        (:data:`hapsim.pipeline.measure.MEASURE_KEYS`).
     """
 
     def __init__(self, scene, tel, engine_of, ctl=None, events=None, prep=None,
-                 hello_of=None) -> None:
+                 hello_of=None, measure=None, measure_keys=()) -> None:
         super().__init__(scene, engine_of, ctl, events)
+        self.measure = measure
+        self.measure_keys = tuple(measure_keys)
         self.tel = tel
         self.prep = prep
         self.hello_of = hello_of
@@ -180,7 +133,7 @@ class RunSource(_Base):
     def record_rows(self) -> int:
         """Most rows the report's measurement takes (0: none to measure live): the whole
         run while it fits in memory (the head and the ring), else the head alone."""
-        if self.prep is None:
+        if self.prep is None or self.measure is None:
             return 0
         return int(self.tel.capacity)
 
@@ -191,10 +144,10 @@ class RunSource(_Base):
         return int(self.tel.head if self.tel.wrapped else self.tel.n)
 
     def record(self) -> tuple | None:
-        """Arguments of :func:`measure_record` for the rows the report would measure now
+        """Arguments of :attr:`measure` for the rows the report would measure now
         (copies), or None when there is nothing to measure."""
         n = self.measured_rows
-        if n <= 0 or self.prep is None:
+        if n <= 0 or self.prep is None or self.measure is None:
             return None
         cols = {c: np.array(v) for c, v in self.tel.columns((0, n)).items()}
         hello = self.hello_of() if self.hello_of is not None else None
