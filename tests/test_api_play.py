@@ -210,3 +210,15 @@ def test_play_view_from_python_serves_the_page_and_stops_it(capfd):
     assert counts[0] < r.samples < 60000
     assert report["stop_reason"] == "view: stop button"
     assert report["samples"] == r.samples
+
+
+def test_docs_play_example_runs_as_written(capsys):
+    """docs/api.md's play example prints the text block after it."""
+    with open(os.path.join(ROOT, "docs", "api.md"), encoding="utf-8") as fh:
+        text = fh.read()
+    m = re.search(r"<!-- test: python play -->\n```python\n(.*?)^```\n\nprints\n\n```text\n"
+                  r"(.*?)^```", text, re.S | re.M)
+    assert m, "docs/api.md lost its tested play example"
+    capsys.readouterr()
+    exec(compile(m.group(1), "docs/api.md", "exec"), {})
+    assert capsys.readouterr().out == m.group(2)
