@@ -194,8 +194,15 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
     lead_now = round(float(played.device.delay) - float(dev.delay))
     done = steps               # samples played (fewer after a signal or a device error)
     stop_reason = "duration"
+    # the journal's sample: the index of the sample being computed (its telemetry row), as
+    # hapsim run's journal says it; the controller's own count (ctl.sample, /hapsim/loop)
+    # is one more once the sample's poll has run, which named the row after the one a
+    # change first acted on
+    at = [0]
+    ctl.sample_of = lambda: at[0]
     try:
         for n in range(steps):
+            at[0] = n
             if stop.set:
                 from hapsim.daemon.loop_types import signame
                 done, stop_reason = n, (f"signal {signame(stop.signal)}"
