@@ -23,6 +23,7 @@ import pytest
 import hapsim
 from hapsim.cli import main
 from test_audio_live import LINEAR, dummy_jackd
+from tolerance import measured
 
 #: pytest-xdist: private jackd servers, serialised with the other live sound tests.
 pytestmark = pytest.mark.xdist_group("sound")
@@ -66,7 +67,7 @@ def test_1d_lockstep_play_is_the_commands_report_to_the_bit():
     """The wall played in lockstep without sound (its hand's impulse, one free response
     measured): the result's fields are the command's keys, and every value is the
     command's, from a path or from the loaded scene; the measured pair is the predicted
-    one (the closed form of the THS; 1e-9 relative: measured 3e-14, margin 3e4)."""
+    one (the THS's closed form), to the identification's round-off."""
     argv = [WALL, "--sound", "none", "--lockstep", "--duration", "0.5"]
     code, cli = _cli(argv)
     r = hapsim.play(WALL, sound="none", lockstep=True, duration=0.5)
@@ -75,8 +76,10 @@ def test_1d_lockstep_play_is_the_commands_report_to_the_bit():
     assert _as_json(r) == cli
     assert (r.samples, r.paced_by, r.stop_reason) == (500, "none", "duration")
     assert r.measured["why_not"] is None
-    assert r.k == pytest.approx(r.felt["k"], rel=1e-9)
-    assert r.b == pytest.approx(r.felt["b"], rel=1e-9)
+    # measured 0 (k) and 6.0e-14 (b) relative on this CPU, margin 1e4 for another BLAS
+    # kernel and numba target (the identification's SVD; test_audio_live saw a factor 7)
+    assert r.k == pytest.approx(r.felt["k"], rel=measured(6.0e-14, 1e4))
+    assert r.b == pytest.approx(r.felt["b"], rel=measured(6.0e-14, 1e4))
     loaded = hapsim.play(hapsim.load_scene(WALL), sound="none", lockstep=True,
                          duration=0.5)
     assert _as_json(loaded) == cli
