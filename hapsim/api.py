@@ -1298,6 +1298,9 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
     DeviceError
         No sound output could be opened (1-D: for ``sound="jack"`` or
         ``"sounddevice"``; ``"auto"`` then plays silently): nothing played.
+    KeyboardInterrupt
+        SIGINT without ``handle_signals``: the sound, the OSC server, the view and the
+        analysis process are closed first, and no report is made.
 
     Notes
     -----

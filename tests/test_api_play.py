@@ -225,3 +225,44 @@ def test_docs_play_example_runs_as_written(capsys):
     capsys.readouterr()
     exec(compile(m.group(1), "docs/api.md", "exec"), {})
     assert capsys.readouterr().out == m.group(2)
+
+
+@pytest.mark.parametrize("handle", [True, False])
+def test_ctrl_c_ends_the_play_with_its_report_or_raises_leaving_nothing_running(handle,
+                                                                                capfd):
+    """SIGINT during ``hapsim.play`` (its view open): with ``handle_signals`` the play ends
+    cleanly with its report (``stop_reason: signal SIGINT``), as the command does;
+    without, the caller's KeyboardInterrupt comes out of it; either way the analysis
+    process is gone and the view's port is closed."""
+    import multiprocessing
+    import signal
+    import socket
+    assert threading.current_thread() is threading.main_thread()
+    before = set(multiprocessing.active_children())
+    port = {}
+
+    def interrupt():
+        err, end = "", time.monotonic() + 120
+        while time.monotonic() < end:
+            err += capfd.readouterr().err
+            m = re.search(r"live view on http://127\.0\.0\.1:(\d+)/", err)
+            if m:
+                port["n"] = int(m.group(1))
+                time.sleep(1.0)                     # the loop is running by now
+                os.kill(os.getpid(), signal.SIGINT)
+                return
+            time.sleep(0.05)
+
+    t = threading.Thread(target=interrupt, daemon=True)
+    t.start()
+    if handle:
+        r = hapsim.play(WALL, sound="none", view=0, duration=60.0, handle_signals=True)
+        assert r.stop_reason == "signal SIGINT" and r.ok and 0 < r.samples < 60000
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            hapsim.play(WALL, sound="none", view=0, duration=60.0)
+    t.join(10)
+    assert "n" in port
+    assert set(multiprocessing.active_children()) <= before
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port["n"]), timeout=5).close()

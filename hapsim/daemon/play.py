@@ -245,6 +245,12 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         # unstable: report what was played
         error = str(exc)
         done, stop_reason = n, "error"
+    except BaseException:     # a KeyboardInterrupt in a caller that left SIGINT as it is
+        # (hapsim.api.play): nothing is left running (the view's server, the analysis)
+        if view is not None:
+            view.close()
+        ctl.close()
+        raise
     finally:
         if out is not None:
             out.finish()      # the last position is pushed: what follows is not starvation

@@ -234,6 +234,10 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
             stop_reason = (f"signal {signame(stop.signal)}" if stop.signal is not None
                            or stop.reason is None else stop.reason)
         live.finish()
+    except BaseException:     # a KeyboardInterrupt in a caller that left SIGINT as it is
+        if view is not None:  # (hapsim.api.play): the view's server closed too
+            view.close()
+        raise
     finally:
         if server is not None:
             server.shutdown()
