@@ -847,7 +847,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     force_limit, envelope, duration, rate_hz, max_delay, lockstep, seed
         As the options of the same names ([N], [m], [s], [Hz], [samples]).
     transport : {"inprocess", "pty", "serial"}, optional
-        As :func:`hapsim.daemon.identify_run.record`.
+        As :func:`hapsim.pipeline.identify_run.record`.
     progress, handle_signals : bool
         Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
     driver : str, optional
@@ -856,15 +856,15 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
         ``full_scale``); the mass and friction found are in the units they set.
     mock_options : dict, optional
-        The driver mock's hardware (:func:`hapsim.daemon.identify_run.record`).
+        The driver mock's hardware (:func:`hapsim.pipeline.identify_run.record`).
     travel : float, optional
         The FireFader's travel between its end stops [m]
-        (:func:`hapsim.daemon.identify_run.record`).
+        (:func:`hapsim.pipeline.identify_run.record`).
 
     Returns
     -------
     (DeviceFit, dict)
-        The fit and the record (:func:`hapsim.daemon.identify_run.record`).
+        The fit and the record (:func:`hapsim.pipeline.identify_run.record`).
 
     Raises
     ------
@@ -874,12 +874,12 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         As ``hapsim run``.
     """
     from hapsim.analysis.device_fit import fit_device
-    from hapsim.daemon.identify_run import record
+    from hapsim.pipeline.identify_run import record
     check_values("identify", max_delay=max_delay)
     import signal
     import threading
 
-    from hapsim.daemon.loop_types import StopFlag
+    from hapsim.host.loop_types import StopFlag
     stop, old = None, {}
     if handle_signals and threading.current_thread() is threading.main_thread():
         # the handlers stay until the fit is made, as hapsim run's stay until its report:
@@ -1061,14 +1061,14 @@ class RunReport(Report):
         return _draw(self, plot_felt, path_or_ax)
 
     def text(self) -> str:
-        """The human report ``hapsim run`` prints (:func:`hapsim.daemon.report.format_report`).
+        """The human report ``hapsim run`` prints (:func:`hapsim.pipeline.report.format_report`).
 
         Returns
         -------
         str
             Several aligned lines, no trailing newline.
         """
-        from hapsim.daemon.report import format_report
+        from hapsim.pipeline.report import format_report
         return format_report(self.to_dict())
 
 
@@ -1078,13 +1078,13 @@ _RUN_INTERNAL = ("plan", "embedded")
 
 def run_options() -> tuple:
     """The options :func:`run` takes: the fields of
-    :class:`hapsim.daemon.options.RunOptions` (what ``hapsim run``'s options become).
+    :class:`hapsim.pipeline.options.RunOptions` (what ``hapsim run``'s options become).
 
     Returns
     -------
     tuple of str
     """
-    from hapsim.daemon.options import RunOptions
+    from hapsim.pipeline.options import RunOptions
     return tuple(f.name for f in dataclasses.fields(RunOptions)
                  if f.name not in _RUN_INTERNAL)
 
@@ -1093,12 +1093,12 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
 
     ``hapsim run`` is this function with the options of its command line
-    (:meth:`hapsim.daemon.options.RunOptions.from_args`); it prints the result.
+    (:meth:`hapsim.pipeline.options.RunOptions.from_args`); it prints the result.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene or str
-    options : hapsim.daemon.options.RunOptions, optional
+    options : hapsim.pipeline.options.RunOptions, optional
         All the options at once (default: ``RunOptions(handle_signals=False)``: a library
         leaves SIGINT to its caller).
     **changes
@@ -1128,8 +1128,8 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     The measured (k, b) are identified from the free response by the matrix pencil
     method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
     """
-    from hapsim.daemon.options import RunOptions
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
 
     valid = run_options()
@@ -1233,14 +1233,14 @@ class PlayReport(Report):
         return self.exit_code == 0
 
     def text(self) -> str:
-        """The human report ``hapsim play`` prints (:func:`hapsim.daemon.play.play_text`).
+        """The human report ``hapsim play`` prints (:func:`hapsim.pipeline.play.play_text`).
 
         Returns
         -------
         str
             Two or three lines, no trailing newline.
         """
-        from hapsim.daemon.play import play_text
+        from hapsim.pipeline.play import play_text
         return play_text(self.to_dict())
 
 
@@ -1310,8 +1310,8 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
     """
     import types
 
-    from hapsim.daemon.play import play_scene, stop_on_signals
-    from hapsim.daemon.loop_types import StopFlag
+    from hapsim.pipeline.play import play_scene, stop_on_signals
+    from hapsim.host.loop_types import StopFlag
 
     unknown = sorted(set(options) - set(PLAY_OPTIONS))
     if unknown:

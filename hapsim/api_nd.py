@@ -361,7 +361,7 @@ class RunReportND(Report):
         record used and the device losses (the port failed).
     rows, counts, bad_frames, incomplete
         Over a port only: rows used per start (the record from rest first); what the
-        records met (:func:`hapsim.daemon.run_nd.measure_felt_port`: STATEs missed,
+        records met (:func:`hapsim.pipeline.run_nd.measure_felt_port`: STATEs missed,
         duplicates, reordered, records cut short, device resets, losses and recoveries,
         CONFIGs sent); bad frames the host's decoder dropped; why nothing was fitted
         (None when the matrices were measured).
@@ -416,9 +416,9 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     scene : hapsim.scene_nd.SceneND
     res : dict
         :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
-        :func:`hapsim.daemon.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result, with ``bound`` (and
         ``wire``, the readings' and torques' term of a quantised device such as the
-        emulated Hapkit pantograph, :func:`hapsim.daemon.pantograph_board.wire_term`).
+        emulated Hapkit pantograph, :func:`hapsim.emulated.pantograph_board.wire_term`).
     lockstep : bool
         Measured in-process.
     port_info : dict, optional
@@ -431,7 +431,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     from hapsim.lockstep_nd import felt_directions, felt_verdict
     fit, chk = res["measured"], res["predicted"]
     if port_info is not None:
-        from hapsim.daemon.run_nd import verdict_nd
+        from hapsim.pipeline.run_nd import verdict_nd
         v = verdict_nd(res)
     else:
         v = felt_verdict(res["deviation"], res["bound"], res.get("wire"),
@@ -569,14 +569,14 @@ class PlayReportND(Report):
 
     def text(self) -> str:
         """The human report ``hapsim play`` prints
-        (:func:`hapsim.daemon.play_nd.play_nd_text`).
+        (:func:`hapsim.pipeline.play_nd.play_nd_text`).
 
         Returns
         -------
         str
             Two or three lines, no trailing newline.
         """
-        from hapsim.daemon.play_nd import play_nd_text
+        from hapsim.pipeline.play_nd import play_nd_text
         return play_nd_text(self.to_dict())
 
 

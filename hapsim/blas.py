@@ -26,7 +26,7 @@ import ctypes
 import os
 import sys
 
-__all__ = ["limit_blas_threads", "size_pools", "POOL_ENV"]
+__all__ = ["limit_blas_threads", "size_pools", "preload_numba_blas", "POOL_ENV"]
 
 #: Environment variables that size a BLAS / OpenMP pool when the library loads.
 POOL_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -104,3 +104,56 @@ def size_pools(threads: int = 1) -> str:
         limit_blas_threads(threads)
         return "runtime"
     return "environment"
+
+
+def preload_numba_blas() -> bool:
+    """Load ``scipy.linalg.cython_blas`` without importing the ``scipy.linalg`` package.
+
+    numba imports ``scipy.linalg.cython_blas`` when it first sets up its compiler (its
+    ``np.dot`` / ``np.linalg`` support checks that the BLAS bindings exist; numba
+    0.5x-0.6x, ``numba.np.arraymath._check_blas``); importing it runs ``scipy.linalg``'s
+    ``__init__``, ~0.15-0.3 s of the warm-up. With the extension module already in
+    ``sys.modules`` under its full name that import finds it and nothing else is loaded;
+    numba's BLAS calls at run time look the module up there too. A later
+    ``import scipy.linalg`` works as usual and finds the same extension module.
+
+    Returns
+    -------
+    bool
+        True when the module is (now) in ``sys.modules``; False when scipy is not
+        installed or the module could not be loaded (numba then imports it its own way).
+
+    Notes
+    -----
+    Call it before the first numba compilation or cache load of the process. After it,
+    ``scipy.linalg.cython_blas`` as an *attribute* of ``scipy.linalg`` exists only once
+    something imports it as a submodule again (``import scipy.linalg.cython_blas``).
+    """
+    name = "scipy.linalg.cython_blas"
+    if name in sys.modules or "scipy.linalg" in sys.modules:
+        return name in sys.modules or _import_real(name)
+    try:
+        import importlib.machinery
+        import importlib.util
+
+        import scipy
+        folder = os.path.join(os.path.dirname(scipy.__file__), "linalg")
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+            path = os.path.join(folder, "cython_blas" + suffix)
+            if os.path.exists(path):
+                spec = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                sys.modules[name] = module
+                return True
+    except Exception:   # noqa: BLE001 - any failure: numba imports scipy.linalg itself
+        return False
+    return False
+
+
+def _import_real(name: str) -> bool:
+    try:
+        __import__(name)
+        return True
+    except ImportError:
+        return False

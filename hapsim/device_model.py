@@ -16,7 +16,7 @@ noise, the hand on the handle and the excitation (``x0``, ``v0``, a force ``impu
 recorded hand force ``profile``).
 
 Below the daemon, the drivers and the sound: the protocol mock
-(:mod:`hapsim.daemon.mock`), the vendor drivers' mocks (:mod:`hapsim.driver_mock`), the
+(:mod:`hapsim.emulated.mock`), the vendor drivers' mocks (:mod:`hapsim.emulated.driver_mock`), the
 offline renderer (:mod:`hapsim.audio.offline`) and ``hapsim play`` all advance this one
 model.
 """
@@ -515,7 +515,7 @@ class MockPhysics:
     def advance_interval(self, tau: float, u: float) -> None:
         """Advance ``tau`` seconds (any length within the current period) with the force
         ``u`` [N] held: a device on the wall clock, whose force changes when a packet
-        arrives, not at a period boundary (:class:`hapsim.driver_mock.WallClock`).
+        arrives, not at a period boundary (:class:`hapsim.emulated.driver_mock.WallClock`).
 
         Parameters
         ----------

@@ -24,7 +24,7 @@ _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
 
 class KernelPack(NamedTuple):
     """An engine's kernel and its arrays by name: what a compiled caller (the host loop's
-    port step, :func:`hapsim.daemon.fastloop.kernel_pack`) needs to advance the engine
+    port step, :func:`hapsim.host.fastloop.kernel_pack`) needs to advance the engine
     itself. The arrays are the engine's own (shared, not copied: the kernel updates them in
     place).
 
@@ -164,7 +164,7 @@ class Engine:
     """
 
     #: True for an engine whose port force follows a device correction
-    #: (:func:`hapsim.daemon.correction.corrected_engine`): its port law is not the
+    #: (:func:`hapsim.host.correction.corrected_engine`): its port law is not the
     #: kernel's alone.
     corrected: bool = False
 

@@ -66,7 +66,7 @@ class ConfigError(HapsimError, ValueError):
 class ProtocolError(HapsimError, ValueError):
     """The device speaks the protocol in a way this host cannot work with.
 
-    Raised by the host (:mod:`hapsim.daemon.loop`) when the device's HELLO carries another
+    Raised by the host (:mod:`hapsim.host.loop`) when the device's HELLO carries another
     ``PROTOCOL_VERSION`` than ``firmware_protocol.PROTOCOL_VERSION``, or another number of
     axes than the scene drives (PROTOCOL.md §1, host duties in §5): the host then sends
     no CONFIG or FORCE. The message says what was expected and what was received, with

@@ -332,7 +332,7 @@ class LocalJointDeviceND:
 
     def advance_torque(self, tau, dt: float) -> None:
         """Hold the joint torques ``tau`` [N m] (shape (n,)) over ``dt`` [s], any length: a
-        board on the wall clock (:class:`hapsim.daemon.haply2_board.Haply2DIYBoard`).
+        board on the wall clock (:class:`hapsim.emulated.haply2_board.Haply2DIYBoard`).
 
         The same Runge-Kutta steps as :meth:`step_torque`, none longer than this device's
         ``h`` (``ceil(dt / h)`` equal steps): a period cut into intervals is the period's

@@ -1,5 +1,5 @@
 """A child Python process that runs part of this hapsim (the embedded mocks of
-:mod:`hapsim.daemon.transport` and :mod:`hapsim.driver_mock`): its environment (the
+:mod:`hapsim.host.transport` and :mod:`hapsim.emulated.driver_mock`): its environment (the
 parent's, with ``PYTHONPATH`` led by the directory that holds this package, so that the
 child imports the same tree as its parent, installed or not) and the host's side of a
 child served on a pseudo-terminal (:class:`PtyChild`); and what a command leaves to undo
@@ -17,7 +17,7 @@ import threading
 from typing import Callable
 
 __all__ = ["package_root", "child_env", "PtyChild", "at_stop", "done", "run_stops",
-           "inside_import"]
+           "inside_import", "StopFlag"]
 
 #: What is still to undo, by token, in the order registered (:func:`at_stop`).
 _STOPS: dict[int, Callable[[], None]] = {}
@@ -255,3 +255,52 @@ class PtyChild:
         except OSError:
             pass
         done(getattr(self, "_stop_token", None))
+
+
+class StopFlag:
+    """A flag a signal handler sets to end the loop cleanly (zero force, STOP, flush).
+
+    Attributes
+    ----------
+    set : bool
+        True once a stop was requested (stored in :attr:`shared`).
+    signal : int or None
+        Number of the signal that set it, if any.
+    shared : ndarray of int64, shape (1,)
+        The flag itself (1: stop requested), read by the compiled loop
+        (:mod:`hapsim.host.fastloop`) while it runs without the GIL.
+    """
+
+    def __init__(self) -> None:
+        import numpy as np   # here: the command line sizes BLAS pools before numpy loads
+        self.shared = np.zeros(1, dtype=np.int64)
+        self.signal = None
+
+    @property
+    def set(self) -> bool:
+        """True once a stop was requested."""
+        return bool(self.shared[0])
+
+    @set.setter
+    def set(self, value: bool) -> None:
+        self.shared[0] = 1 if value else 0
+
+    #: What asked for the stop when no signal did (the live view's stop button), said
+    #: as the loop's stop reason; None otherwise.
+    reason: str | None = None
+
+    def request(self, signum: int | None = None, reason: str | None = None) -> None:
+        """Request a stop (safe to call from a signal handler: two attribute stores).
+
+        Parameters
+        ----------
+        signum : int, optional
+            Number of the signal that asked (``signal.SIGINT``, ``signal.SIGTERM``); the
+            loop reports ``"signal NAME"`` as the stop reason. None: another caller.
+        reason : str, optional
+            The stop reason another caller reports (e.g. ``"view: stop button"``).
+        """
+        if reason is not None:
+            self.reason = reason
+        self.set = True
+        self.signal = signum

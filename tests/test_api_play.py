@@ -1,6 +1,6 @@
 """``hapsim.play`` (issue 32): ``hapsim play`` from Python, for any dimension.
 
-The function is the command without its printing (:func:`hapsim.daemon.play.play_scene`
+The function is the command without its printing (:func:`hapsim.pipeline.play.play_scene`
 behind both), so what a script gets is what ``hapsim play --json`` prints for the same
 arguments: compared key by key on a 1-D wall (lockstep, no sound: the whole report, to the
 bit), a 1-D chain through a real JACK dummy server (everything but the sound server's own
@@ -69,7 +69,7 @@ def _in_root(monkeypatch):
     """In the repository; the last identification waited for as long as it takes (a
     loaded machine can take more than the play's 3 s, which would drop it from one of
     the two reports compared and not the other)."""
-    import hapsim.daemon.play as play
+    import hapsim.pipeline.play as play
     monkeypatch.chdir(ROOT)
     monkeypatch.setattr(play, "END_WAIT_S", 120.0)
 

@@ -20,7 +20,7 @@ from hapsim.analysis.network import closed_loop
 from hapsim.analysis.scene_check import check_scene, scene_state_matrix
 from hapsim.audio.offline import closed_loop_pluck, read_wav
 from hapsim.cli import main
-from hapsim.daemon.runner import run_scene
+from hapsim.pipeline.runner import run_scene
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.scene import load_scene, parse_scene

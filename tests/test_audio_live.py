@@ -334,7 +334,7 @@ def test_run_sound_plays_the_loop_frames_and_keeps_the_prediction(jack_server):
     """run_scene(..., sound="jack") in lockstep: the multi-rate model stays in the loop
     (measured (k, b) = predicted to 1e-6), its frames reach a JACK client of ours through
     the ring, and the report counts xruns and ring underruns."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import parse_scene
 
     rec = Recorder(jack_server, seconds=3.0)
@@ -374,7 +374,7 @@ def _play_loop(scene, live, steps, block, seed):
     import threading
     from collections import deque
 
-    from hapsim.daemon.mock import MockPhysics
+    from hapsim.emulated.mock import MockPhysics
 
     rng = np.random.default_rng(seed)
     gaps = rng.uniform(0.0, 2e-3, 4096)
@@ -449,7 +449,7 @@ def test_play_with_live_sound_measured_equals_predicted_with_the_lead(jack_serve
     measured from the free response equals it to 1e-6 (the prediction without the
     callback's lead differs: b 1.29 against 0.71 N s/m)."""
     from hapsim.cli import main
-    from hapsim.daemon.runner import predict, prepare_scene
+    from hapsim.pipeline.runner import predict, prepare_scene
     from hapsim.scene import parse_scene
 
     path = tmp_path / "linear.yaml"
@@ -501,8 +501,8 @@ def test_osc_felt_is_measured_as_run_measures_it(seed, tmp_path):
     quantised, noisy wall loops the same free response gives run's k, b and stated
     intervals. (The old full-order pencil answered differently on such records.)"""
     from hapsim.audio.control import Controller
-    from hapsim.daemon.runner import prepare_scene, run_scene
-    from hapsim.daemon.telemetry import load_telemetry
+    from hapsim.pipeline.runner import prepare_scene, run_scene
+    from hapsim.host.telemetry import load_telemetry
     from test_identify_quantised import _random_loop, _scene
 
     rng = np.random.default_rng(700 + seed)
@@ -651,7 +651,7 @@ def test_play_repredicts_when_the_server_block_changes(jack_server, tmp_path, ca
     and the felt (k, b) measured from a free response after it equals the new prediction
     to 1e-6 (not the one made at the start, for delay 7)."""
     from hapsim.cli import main
-    from hapsim.daemon.runner import predict, prepare_scene
+    from hapsim.pipeline.runner import predict, prepare_scene
     from hapsim.scene import parse_scene
 
     path = tmp_path / "linear.yaml"

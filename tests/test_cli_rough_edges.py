@@ -42,7 +42,7 @@ class ClosedPipe(io.TextIOBase):
 
 
 def journal(tmp_path) -> str:
-    from hapsim.daemon.telemetry import write_journal
+    from hapsim.host.telemetry import write_journal
     n = 500
     rng = np.random.default_rng(2)
     cols = {"time": np.arange(n) * 1e-3, "position": rng.normal(size=n) * 1e-3,
@@ -182,7 +182,7 @@ def test_ctrl_c_with_json_prints_the_interrupted_object(tmp_path, argv):
 def fake_run(monkeypatch):
     """``run_scene`` replaced by a recorder: it announces the start as the runner does,
     keeps its arguments, and ends the run with a DeviceError (nothing to report)."""
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.errors import DeviceError
     seen = {}
 
@@ -196,7 +196,7 @@ def fake_run(monkeypatch):
         raise DeviceError("recorded")
 
     monkeypatch.setattr(runner, "run_scene", run_scene)
-    import hapsim.daemon.startup as startup
+    import hapsim.pipeline.startup as startup
     monkeypatch.setattr(startup, "start_embedded_mock", lambda *a, **k: None)
     return seen
 
@@ -258,7 +258,7 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
 
 # ------------------------------------------------------------------ play's report
 def test_play_sound_line_is_readable():
-    from hapsim.daemon.play import sound_line
+    from hapsim.pipeline.play import sound_line
     line = sound_line({"backend": "JackOutput", "callback": "native", "xruns": 1,
                        "xrun_at_s": [0.25], "active_monotonic_s": 3.0, "block": 256,
                        "underrun_at_s": [], "pushed": 3000, "consumed": 3000,
@@ -293,7 +293,7 @@ def test_play_measures_a_scene_released_by_x0_alone(capsys, monkeypatch):
     The window is measured in a spawned analysis process that play waits END_WAIT_S
     (3 s) for after the run: on a loaded machine its start alone can take longer (the
     measurement is then dropped, and said so), so the test waits as long as it takes."""
-    import hapsim.daemon.play as play
+    import hapsim.pipeline.play as play
     monkeypatch.setattr(play, "END_WAIT_S", 120.0)
     assert main(["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.6",
                  "--pluck-every", "0.3", "--json"]) == 0

@@ -197,8 +197,8 @@ def _handshake(kind: str, rate: float, compact: str = "auto", force_scale: float
     """HELLO (``force_scale``: 0, a continuous actuator), its check and SENSORS with a
     :class:`_Device`; then one CONFIG, a compact STATE from the device and a FORCE from the
     host. (loop, device, messages received)."""
-    from hapsim.daemon.loop import HostLoop, LoopConfig
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.loop import HostLoop, LoopConfig
+    from hapsim.host.transport import SerialTransport
     master, slave = os.openpty()
     dev = _Device(master, kind, force_scale)
     dev.start()

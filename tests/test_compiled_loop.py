@@ -1,4 +1,4 @@
-"""The compiled host loop (hapsim.daemon.fastloop) against the Python loop (the reference).
+"""The compiled host loop (hapsim.host.fastloop) against the Python loop (the reference).
 
 A scripted device on a real pseudo-terminal answers HELLO_REQUEST and PING, and after each
 CONFIG streams the next segment of a recorded byte stream (STATEs with faults: corrupted,
@@ -25,11 +25,11 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.daemon.fastloop import CompiledHostLoop, encode_force
-from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
-from hapsim.daemon.runner import prepare_scene
-from hapsim.daemon.telemetry import Telemetry
-from hapsim.daemon.transport import SerialTransport
+from hapsim.host.fastloop import CompiledHostLoop, encode_force
+from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.pipeline.runner import prepare_scene
+from hapsim.host.telemetry import Telemetry
+from hapsim.host.transport import SerialTransport
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 from pty_device import PtyDevice

@@ -2,7 +2,7 @@
 
 numba keys its disk cache of a function on the modification time and size of the
 function's own file (numba docs, "Cache invalidation": changes in other files are not
-tracked). ``hapsim/daemon/fastloop.py`` compiles in the late-tick rule
+tracked). ``hapsim/host/fastloop.py`` compiles in the late-tick rule
 (``hapsim/kernels/ticks.py``), the I/O primitives, the engine kernels, the telemetry flags
 and the protocol's constants: it holds their SHA-256, and these tests keep it true.
 """
@@ -17,7 +17,11 @@ import numba
 import numba.core.ccallback
 import pytest
 
-from hapsim.daemon import fastloop, fastmock, startup
+from hapsim.host import fastloop
+
+from hapsim.emulated import fastmock
+
+from hapsim.pipeline import startup
 from hapsim.kernels import sources as sources_mod
 
 
@@ -48,9 +52,9 @@ def test_every_hapsim_module_a_compiled_module_imports_from_is_listed_or_python_
     """The class, not one file: every module fastloop.py (fastmock.py) imports names from
     is either in its sources (numba freezes its functions and constants into the compiled
     code) or only used from Python (listed here, with why)."""
-    python_only = {"hapsim.daemon.loop",      # HostLoop, LostDevice, safety_reason: Python
+    python_only = {"hapsim.host.loop",      # HostLoop, LostDevice, safety_reason: Python
                    "hapsim.errors",           # DeviceError: raised and caught in Python
-                   "hapsim.daemon.startup"}   # the digest itself, the stamps
+                   "hapsim.kernels.sources"}   # the digest itself, the stamps
     listed = {s[:-3].replace("/", ".") for s in sources}
     tree = ast.parse(open(module.__file__).read())
     mods = set()
@@ -127,8 +131,8 @@ def test_the_loop_functions_are_cached_only_under_a_matching_digest():
 # (hapsim.kernels.sources). Imports only used from Python, per module, with why:
 PYTHON_ONLY = {
     "hapsim.audio.jack_native": {"hapsim.audio.sources"},   # FrameRing, LiveSound: Python
-    "hapsim.daemon.fastloop": {"hapsim.daemon.loop", "hapsim.errors", "hapsim.daemon.startup"},
-    "hapsim.daemon.fastmock": {"hapsim.daemon.startup"},
+    "hapsim.host.fastloop": {"hapsim.host.loop", "hapsim.errors", "hapsim.kernels.sources"},
+    "hapsim.emulated.fastmock": {"hapsim.kernels.sources"},
 }
 PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -173,7 +177,7 @@ def test_the_scan_finds_the_known_cached_modules():
     found = set(_cached_numba_modules())
     assert {"hapsim.kernels.cordis", "hapsim.kernels.audio", "hapsim.kernels.nd",
             "hapsim.kernels.ticks", "hapsim.audio.jack_native",
-            "hapsim.daemon.fastloop", "hapsim.daemon.fastmock"} <= found, found
+            "hapsim.host.fastloop", "hapsim.emulated.fastmock"} <= found, found
 
 
 @pytest.mark.parametrize("module_name", _cached_numba_modules())

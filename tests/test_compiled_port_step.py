@@ -1,6 +1,6 @@
 """The compiled loop's port step (cacheable) and its silence rule, on the bare stretch.
 
-The compiled loop calls the engine's kernel through :func:`hapsim.daemon.fastloop._port_step`
+The compiled loop calls the engine's kernel through :func:`hapsim.host.fastloop._port_step`
 (a kernel named by a tag whose type selects it, so that numba loads the loop from its disk
 cache and compiles only that kernel into it); each of the kernels of ``hapsim.kernels``
 must step exactly as the engine's own call does.
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.daemon import fastloop
+from hapsim.host import fastloop
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from hapsim.cli import main
-from hapsim.daemon.runner import predict, prepare_scene, run_scene
-from hapsim.daemon.telemetry import load_telemetry
+from hapsim.pipeline.runner import predict, prepare_scene, run_scene
+from hapsim.host.telemetry import load_telemetry
 from hapsim.scene import load_scene, parse_scene
 
 CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs"
@@ -212,7 +212,7 @@ def _unloaded_string(tmp_path):
 
 def test_not_comparable_in_json_and_exit_code(capsys, tmp_path):
     """--json: measured.comparable false with the reason; exit 0 (no device fault); the
-    same reason said on stderr before the run (hapsim/daemon/precheck.py)."""
+    same reason said on stderr before the run (hapsim/pipeline/precheck.py)."""
     code = main(["run", str(_unloaded_string(tmp_path)), "--lockstep", "--json"])
     cap = capsys.readouterr()
     out = json.loads(cap.out)
@@ -278,8 +278,8 @@ def test_replay_contact_states_equal_an_independent_replay(audio):
     restarts) and skipped STATEs (FLAG_SKIPPED: unknown until the restart): the replay's
     per-row contact states equal the independent plain-Python replay's, sub-steps
     included, and its forces reproduce the engine's bit for bit (no mismatch)."""
-    from hapsim.daemon.contact_replay import replay_contacts
-    from hapsim.daemon.telemetry import FLAG_LOST, FLAG_SKIPPED
+    from hapsim.pipeline.contact_replay import replay_contacts
+    from hapsim.host.telemetry import FLAG_LOST, FLAG_SKIPPED
     from hapsim.engine import Engine
     rng = np.random.default_rng({None: 11, "hold": 12, "linear": 13}[audio])
     opened = 0

@@ -189,7 +189,7 @@ excitation: {{x0: 0.005}}
 @pytest.mark.parametrize("kind,params", CASES, ids=IDS)
 def test_lockstep_measured_equals_predicted_for_each_correction(kind, params):
     """The loop runs the correction (CorrectionLaw); measured (k, b) == render to 1e-6."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import parse_scene
     corr = "{" + ", ".join([f"kind: {kind}"] + [f"{a}: {v}" for a, v in params.items()]) + "}"
     rep = run_scene(parse_scene(_text(400.0, 1.5, corr)), transport="inprocess",
@@ -202,7 +202,7 @@ def test_lockstep_measured_equals_predicted_for_each_correction(kind, params):
 
 
 def test_velocity_sensor_needs_a_measured_velocity():
-    from hapsim.daemon.correction import corrected_engine
+    from hapsim.host.correction import corrected_engine
     from hapsim.scene import parse_scene
     sc = parse_scene(_text(400.0, 1.5, "{kind: velocity_sensor}"))
     with pytest.raises(ConfigError, match="needs the device's measured velocity"):
@@ -283,7 +283,7 @@ def test_lockstep_with_a_grip_and_each_correction(kind, params):
     """Hand behind a grip spring (0.2 kg, 2000 N/m) and each correction: the lockstep daemon
     measures what render predicts for that loop (handle + hand plant, corrected law), 1e-6.
     (Compensating 0.02 kg of a 0.05 kg handle behind a grip is already unstable: 0.005 kg.)"""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     if kind == "inertia_compensation":
         params = {"mass": 0.005}
     from hapsim.scene import parse_scene

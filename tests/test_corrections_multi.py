@@ -2,7 +2,7 @@
 
 Three independent checks of :func:`hapsim.analysis.corrections.corrected_frame` (the
 closed-loop state matrix of a whole network with a correction) and of the daemon's
-corrected engine (:mod:`hapsim.daemon.correction`):
+corrected engine (:mod:`hapsim.host.correction`):
 
 * on a one-link scene its poles are those of the loop polynomial
   :func:`hapsim.analysis.corrections.correction_polynomials` (rigid hand and grip);
@@ -114,7 +114,7 @@ def test_lockstep_measured_equals_predicted_on_random_scenes():
     springs and contacts at the port, three integrators): the lockstep daemon's
     measured felt (k, b) == check_scene's prediction, 1e-6 (an unstable draw is redrawn
     softer)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     rng = np.random.default_rng(1414)
     seen = set()
     for i in range(2 * len(CASES)):
@@ -276,7 +276,7 @@ def test_multi_link_stability_limit_against_a_time_domain_simulation(kind, param
 def test_compiled_loop_asked_for_a_corrected_scene_says_the_python_loop_ran():
     """--loop compiled with a device correction: the Python loop runs the law (measured ==
     predicted still) and the report says so and why; never silently."""
-    from hapsim.daemon.runner import format_report, run_scene
+    from hapsim.pipeline.runner import format_report, run_scene
     text = f"""
 rate_hz: 1000
 masses: [{{name: p, kind: port}}, {{name: g, kind: ground}}]
@@ -306,8 +306,8 @@ def test_lockstep_multirate_scene_with_each_correction(position):
     """A multi-rate (audio) scene: the corrected port signals enter the 4 audio sub-steps
     as the analysis composes them (multirate_blocks); measured == predicted, 1e-6. The
     coupling proxy is refused there (its port force is a mean over sub-steps)."""
-    from hapsim.daemon.correction import corrected_engine
-    from hapsim.daemon.runner import run_scene
+    from hapsim.host.correction import corrected_engine
+    from hapsim.pipeline.runner import run_scene
     from hapsim.errors import ConfigError
 
     def text(corr):

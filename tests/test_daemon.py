@@ -20,12 +20,12 @@ import scipy.signal
 import firmware_protocol as fp
 from hapsim.analysis.loop import LoopModel, plant, zoh_state_space
 from hapsim.analysis.ths import calibrate, render, stability_limit
-from hapsim.daemon.loop import HostLoop, LoopConfig, StopFlag
-from hapsim.daemon.mock import (MockDevice, MockPhysics, hand_force_samples,
+from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.emulated.mock import (MockDevice, MockPhysics, hand_force_samples,
                                 ideal_step_coefficients, zoh_step_coefficients)
-from hapsim.daemon.runner import identify, run_scene
-from hapsim.daemon.telemetry import Telemetry, load_telemetry
-from hapsim.daemon.transport import InProcessTransport
+from hapsim.pipeline.runner import identify, run_scene
+from hapsim.host.telemetry import Telemetry, load_telemetry
+from hapsim.host.transport import InProcessTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError, UnstableConfigError
 from hapsim.scene import Device, Excitation, Impulse, parse_scene
@@ -312,7 +312,7 @@ def test_calibrated_target_is_felt_as_asked(k, b, d, hold):
 def test_every_target_link_is_reported_with_its_verdict():
     """Two target links: JSON ``targets`` has both (``target`` keeps the first), the text
     report prints each with its renderability verdict."""
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     text = wall_text(0, 0, target=(300.0, 2.0)) .replace(
         "links:\n", "links:\n  - {name: firm, kind: spring_damper, between: [hand, wall], "
         "target: {k: 200.0, b: 1.5}}\n")
@@ -536,7 +536,7 @@ def test_noise_and_quantisation_only_perturb_the_measurement_slightly(extra):
 
 def test_device_falling_silent_raises_device_error_and_keeps_telemetry(tmp_path, monkeypatch):
     """A device that stops answering: DeviceError with the last frames; telemetry kept."""
-    import hapsim.daemon.runner as runner_mod
+    import hapsim.pipeline.runner as runner_mod
     from hapsim.errors import DeviceError
 
     class Silent(MockDevice):

@@ -20,8 +20,8 @@ import pytest
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
 from hapsim.cli import main
-from hapsim.daemon.runner import run_scene
-from hapsim.daemon.telemetry import load, load_telemetry
+from hapsim.pipeline.runner import run_scene
+from hapsim.host.telemetry import load, load_telemetry
 from hapsim.scene import load_scene, parse_scene
 
 from test_daemon import late_tolerant_wall, wall_text  # same directory (prepend mode)
@@ -210,7 +210,7 @@ def test_signal_mid_run_stops_device_and_flushes_telemetry(tmp_path, sig, durati
     # pty past the silence allowed, and a recovered device starts a new session (its seq
     # from 0, the row flagged FLAG_LOST: a seq that fell once, at such a row, failed the
     # whole-record check)
-    from hapsim.daemon.telemetry import FLAG_LOST
+    from hapsim.host.telemetry import FLAG_LOST
     starts = np.flatnonzero(data["flags"] & FLAG_LOST)
     sessions = np.split(data["seq"], starts[starts > 0])
     assert all(np.all(np.diff(s) >= 1) for s in sessions), (starts, rep["loop"]["lost"])
@@ -228,7 +228,7 @@ def test_signals_stay_handled_until_the_report_is_made(monkeypatch):
     the stop is under way, the report comes out as the loop ended. With the default
     handler back there the process died with exit -15, report and export lost (a loaded
     suite's run of the SIGTERM test above)."""
-    import hapsim.daemon.runner as runner
+    import hapsim.pipeline.runner as runner
     real = runner.identify_run
     seen = {}
 
@@ -254,7 +254,7 @@ def test_sigint_during_start_up_ends_cleanly_before_arming(transport, tmp_path, 
     the handlers are in place, the run ends before CONFIG with no FORCE but the final zero
     one, then STOP; report and (empty) telemetry are written, exit code 0."""
     import hapsim.engine as engine_mod
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     real = engine_mod.warm_up
 
     def warm_up_then_ctrl_c(scene):

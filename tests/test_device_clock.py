@@ -17,7 +17,7 @@ import sys
 
 import pytest
 
-from hapsim.daemon.report import FAST_CLOCK_RATIO, device_clock_warning
+from hapsim.pipeline.report import FAST_CLOCK_RATIO, device_clock_warning
 from tolerance import rel_tol
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -1,5 +1,5 @@
 """What a driver's host knows of the force applied and of the samples it never got, checked
-against the FireFader firmware's own loop (hapsim.driver_mock.FireFaderDevice) closed
+against the FireFader firmware's own loop (hapsim.emulated.driver_mock.FireFaderDevice) closed
 offline through hapsim's engine: deterministic, no pty, no real time (issue 20).
 
 The loop here is the host loop's arithmetic: row k is the record answering command k, the
@@ -15,10 +15,10 @@ import types
 import numpy as np
 import pytest
 
-from hapsim.daemon.options import RunOptions
-from hapsim.daemon.runner import identify_run, prepare_run
+from hapsim.pipeline.options import RunOptions
+from hapsim.pipeline.runner import identify_run, prepare_run
 from hapsim.drivers.firefader import FireFader, enable_passes
-from hapsim.driver_mock import FireFaderDevice, firefader_offline_loop
+from hapsim.emulated.driver_mock import FireFaderDevice, firefader_offline_loop
 from hapsim.scene import load_scene
 from tolerance import rel_tol
 
@@ -36,7 +36,7 @@ def prep():
 
 
 def _closed_loop(prep, n=900, **kw):
-    """The FireFader THS closed offline (hapsim.driver_mock.firefader_offline_loop)."""
+    """The FireFader THS closed offline (hapsim.emulated.driver_mock.firefader_offline_loop)."""
     return firefader_offline_loop(prep.scene, n, **kw)
 
 
@@ -135,7 +135,7 @@ def test_the_mock_answers_after_the_firmware_pass_the_rate_refusal_allows_for():
     import threading
     import time
 
-    from hapsim.driver_mock import serve
+    from hapsim.emulated.driver_mock import serve
     from hapsim.errors import ConfigError
     sc = load_scene("configs/firefader.yaml")
     drv = FireFader()

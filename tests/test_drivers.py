@@ -8,7 +8,7 @@ import pytest
 
 from hapsim.drivers import get_driver
 from hapsim.drivers import firefader as ff
-from hapsim.driver_mock import FireFaderDevice
+from hapsim.emulated.driver_mock import FireFaderDevice
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 from tolerance import rel_tol
@@ -147,9 +147,9 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     exactly the THS closed through the protocol's two quantisers (an independent
     re-simulation from the forces sent), and the measured (k, b) equal the prediction to
     the bound the quantisers allow (k 1 %, b 10 %: docs/devices.md)."""
-    from hapsim.daemon.mock import MockPhysics
-    from hapsim.daemon.runner import run_scene
-    from hapsim.daemon.telemetry import load
+    from hapsim.emulated.mock import MockPhysics
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.host.telemetry import load
     from hapsim.scene import load_scene
     scene = load_scene("configs/firefader.yaml")
     tel = str(tmp_path / "ff.npz")
@@ -159,7 +159,7 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     rep = run_scene(scene, driver="firefader", telemetry=tel, handle_signals=False)
     assert rep["loop"]["mode"] == "host-clocked"
     # the header names the protocol, not a lockstep nobody asked for (issue 21)
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     head = format_report(rep).splitlines()[0]
     assert head.endswith("(host-clocked, firefader protocol)") and "lockstep" not in head
     meas, pred = rep["measured"], rep["predicted"]
@@ -237,7 +237,7 @@ def test_haply_hostile_streams():
     import struct
 
     from hapsim.drivers import haply as hp
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     rng = np.random.default_rng(5)
     good = [hp.reply_packet(3, float(a)) for a in rng.uniform(-720, 720, 300)]
     data, intact = _hostile(rng, good)
@@ -270,7 +270,7 @@ def test_haply_closed_loop_through_its_mock_in_lockstep():
     mock, lockstep by name (the maths through the board's bytes, not its timing): the
     measured (k, b) equal the prediction to the encoder's resolution (k 1 %, b 10 %). On
     the wall clock: tests/test_haply_wallclock.py."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
                     rt_priority=0, lockstep=True)
@@ -310,7 +310,7 @@ def test_hapkit_serial_hostile_streams():
     import struct
 
     from hapsim.drivers import hapkit_serial as hk
-    from hapsim.driver_mock import HapkitSerialDevice
+    from hapsim.emulated.driver_mock import HapkitSerialDevice
     rng = np.random.default_rng(9)
     good = [hk.reply_packet(255, float(x), float(f))
             for x, f in zip(rng.uniform(-0.05, 0.05, 300), rng.uniform(-2, 2, 300))]
@@ -372,7 +372,7 @@ def test_hapkit_serial_closed_loop_through_its_mock():
     forces are binary32 on the wire, so measured (k, b) equal the prediction to ~1e-6
     (lockstep by name: the wire's arithmetic; the same loop on the board's own clock,
     tests/test_wallclock.py, is within its stated uncertainty)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
                     lockstep=True, handle_signals=False, rt_priority=0)
@@ -401,7 +401,7 @@ def test_lossy_link_costs_samples_not_the_device(driver, faults, duration):
     fits the run) (k, b) are measured on the host's ticks, missing ones included, within
     1 % / 10 % of the prediction (before: no measurement, or a safety stop); the report
     says how much of the stated uncertainty is the estimated samples' worst case."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     # lockstep, by name: what is under test is the decoders and the re-synchronisation
     # against lost and corrupted bytes, not the timing
@@ -432,7 +432,7 @@ def test_haply_desync_is_detected_and_resynchronised():
     than two faulty replies explain, and the re-synchronisation leaves the board set up, at zero torque, answering
     5-byte replies that go on from the last angle."""
     from hapsim.drivers import haply as hp
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     drv = get_driver("haply", device_id=1)
     dec = drv.decoder()
     assert hp.ReplyDecoder(1, resolution=4880.0).feed(bytes([1, 1, 1, 0x3F, 0xC5])) == []
@@ -477,7 +477,7 @@ def test_haply_board_holds_its_torque_through_reset_and_setup():
     """No watchdog (firmware V1.5): a silence, a reset and a set-up leave the motor's
     torque as the last write set it; only a write changes it."""
     from hapsim.drivers import haply as hp
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
                         1000.0, Excitation(), clock="lockstep")
     drv = get_driver("haply")
@@ -497,7 +497,7 @@ def test_firefader_firmware_enable_ramp_and_gating():
     once the touch filter passed 30; untouched or at an end of travel it stays 0 and the
     force is not applied; 0.1 s of silence disables it again, and the force is off until
     the enable passes the gate (5 passes)."""
-    from hapsim.driver_mock import FireFaderDevice
+    from hapsim.emulated.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=1.0)
     # lockstep by name: the filters' arithmetic pass by pass (the silence rule on the
     # wall clock: tests/test_wallclock.py)
@@ -561,7 +561,7 @@ def _pty_device(dev):
     import threading
     import tty
 
-    from hapsim.driver_mock import serve
+    from hapsim.emulated.driver_mock import serve
     master, slave = pty.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
@@ -596,7 +596,7 @@ def test_firefader_bootloader_and_firmware_detection():
     import os
     import time as _t
 
-    from hapsim.driver_mock import FireFaderDevice
+    from hapsim.emulated.driver_mock import FireFaderDevice
     dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=0.38)
     drv = get_driver("firefader")
     drv.arming_records = 0
@@ -631,7 +631,7 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     the positions, the force computed from each row (sent with the next command) and
     the driver's account of the force applied (the firmware's enable replayed: the
     fader reaches its ends, where the range gate cuts the force)."""
-    from hapsim.driver_mock import FireFaderDevice
+    from hapsim.emulated.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
                          Excitation(), full_scale=fs_true, clock="lockstep")   # in-process
@@ -752,7 +752,7 @@ def test_driver_account_marks_the_forces_a_missing_answer_leaves_open():
     that applies its force (d rows on) is ambiguous: the middle of it and the force before,
     with half the step as the bound;
     every other row applies the force sent d rows before; no estimated row: no account."""
-    from hapsim.daemon.telemetry import FLAG_ESTIMATED
+    from hapsim.host.telemetry import FLAG_ESTIMATED
     from hapsim.drivers import base
     assert base.FLAG_ESTIMATED == FLAG_ESTIMATED
     drv = get_driver("haply")
@@ -786,7 +786,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     import time as _t
 
     import firmware_protocol as fp
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     board = HaplyDevice(Device(mass=0.001, friction=0.001, delay=0, force_limit=0.12),
                         1000.0, Excitation(), clock="lockstep")
     path, slave, master, flag, th = _pty_device(board)

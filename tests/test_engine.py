@@ -421,7 +421,7 @@ def test_import_contract_scanner_catches_api_imports():
     """The scanner below would see a kernel importing the API layer, in any spelling."""
     for bad in ("from hapsim.scene import Scene", "import hapsim.engine",
                 "from .. import engine", "from ..commands import simulate",
-                "def f():\n    from hapsim.daemon import loop\n", "import hapsim"):
+                "def f():\n    from hapsim.host import loop\n", "import hapsim"):
         assert _api_imports(imported_modules(bad, "hapsim.kernels.cordis")), bad
     assert not _api_imports(imported_modules("from . import cordis\nimport numba",
                                              "hapsim.kernels.schemes"))
@@ -430,7 +430,7 @@ def test_import_contract_scanner_catches_api_imports():
 def test_kernels_import_nothing_from_the_api_layer():
     """docs/design.md, rule 3 (poliastro's core/ import contract): hapsim/kernels/* import only
     the standard library, numpy, numba, scipy and each other, never hapsim.engine,
-    hapsim.scene, hapsim.commands, hapsim.daemon, hapsim.analysis, ..."""
+    hapsim.scene, hapsim.commands, hapsim.host, hapsim.analysis, ..."""
     files = sorted(KERNEL_DIR.glob("*.py"))
     assert {f.name for f in files} >= {"__init__.py", "cordis.py", "schemes.py"}
     for f in files:

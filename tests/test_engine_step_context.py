@@ -152,7 +152,7 @@ def test_start_up_checks_the_cache_of_the_runner_the_engine_calls(name, scene):
     """``hapsim run`` announces a compilation unless numba's cache holds every function its
     warm-up compiles: the engine part names the runner this engine's step calls (found by
     name in step1d.py, without importing numba)."""
-    from hapsim.daemon import startup
+    from hapsim.pipeline import startup
     eng = Engine(scene)
     part = startup.run_compile_parts(scene, compiled_loop=False)[0]
     runner = eng._step_run

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon.falcon_device import FalconDevice, home, load_firmware
+from hapsim.emulated.falcon_device import FalconDevice, home, load_firmware
 from hapsim.drivers import falcon as fa
 from hapsim.errors import DeviceError
 from hapsim.scene_nd import load_scene_nd
@@ -194,8 +194,8 @@ def test_the_loop_closes_over_hostile_packets(seed):
     one of 7.5 counts); most to the count. Seed 6 flips a high nibble of a host packet:
     the device applies that command (16388 counts; the protocol has no checksum) and the
     legs really move; the readings follow them."""
-    from hapsim.daemon.falcon_device import drive_falcon
-    from hapsim.driver_mock import ByteFaults
+    from hapsim.emulated.falcon_device import drive_falcon
+    from hapsim.emulated.driver_mock import ByteFaults
     sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
     dev = FalconDevice(sc, clock="lockstep")      # by name: the host loop's arithmetic
     load_firmware(dev, IMAGE)

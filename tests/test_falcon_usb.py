@@ -14,10 +14,10 @@ import pytest
 
 pytest.importorskip("pyftdi")       # the [falcon] extra; in [test] too: CI has it
 
-from hapsim.daemon.falcon_device import FalconDevice  # noqa: E402
-from hapsim.daemon.falcon_run import emulated_falcon, run_falcon  # noqa: E402
-from hapsim.daemon.ftdi_usb import VirtualFT232R, VirtualUSB  # noqa: E402
-from hapsim.driver_mock import ByteFaults  # noqa: E402
+from hapsim.emulated.falcon_device import FalconDevice  # noqa: E402
+from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon  # noqa: E402
+from hapsim.emulated.ftdi_usb import VirtualFT232R, VirtualUSB  # noqa: E402
+from hapsim.emulated.driver_mock import ByteFaults  # noqa: E402
 from hapsim.drivers import falcon as fa  # noqa: E402
 from hapsim.drivers.falcon_usb import (UDEV_RULE, FalconUSB, ft232r_baud,  # noqa: E402
                                        load_firmware_link, parse_url)
@@ -179,7 +179,7 @@ def test_every_end_leaves_zero_torque(scene):
     """The firmware holds the last command: after a loop, and after one ended by an
     exception mid-loop (Ctrl-C, say), the emulated legs' applied commands are zero and
     the LED red; a loop that pushed (non-zero commands) shows the test can fail."""
-    from hapsim.daemon.falcon_run import ZERO_PACKETS
+    from hapsim.pipeline.falcon_run import ZERO_PACKETS
     link, dev, chip = emulated_falcon(scene, IMAGE, clock="lockstep")
     res = run_falcon(scene, link, IMAGE, 60, timeout=FAST)
     assert np.abs(res["commands"][-1]).max() > 0
@@ -276,7 +276,7 @@ def test_a_slow_loop_on_a_real_falcon_is_degraded():
     """The verdict's pace rule (falcon_verdict): a real Falcon's loop (paced) below 0.9
     times the scene's rate holds each command several periods: "degraded", said with the
     pace; the same figures from the emulator (one period per packet) stay "ok"."""
-    from hapsim.daemon.falcon_run import falcon_verdict
+    from hapsim.pipeline.falcon_run import falcon_verdict
     base = {"samples": 100, "missing": 0, "unhomed": 0, "rate_hz": 1000.0,
             "decoder": {"frames": 101, "skipped": 0, "implausible": 0},
             "packets_per_s": 250.0}
@@ -337,7 +337,7 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
 def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
     """The emulated Falcon leaves the bus mid-loop under 'hapsim run': exit 1, stderr says
     it went away and after how many packets; nothing on stdout (no verdict claimed)."""
-    import hapsim.daemon.falcon_run as fr
+    import hapsim.pipeline.falcon_run as fr
     from hapsim.cli import main
     real = fr.emulated_falcon
     monkeypatch.setattr(fr, "emulated_falcon",

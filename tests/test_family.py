@@ -114,7 +114,7 @@ def test_scene_matrix_poles_equal_the_loop_polynomial_with_a_hand():
                                          (1500.0, 0.5, 8000.0, 2.0, 0)])
 def test_lockstep_measured_equals_predicted_with_a_grip(K, B, kg, bg, d):
     """The mock models the same hand: measured (k, b) == render(k, b) to 1e-6."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     sc = parse_scene(scene_text(K, B, m=0.05, b0=0.3, d=d, mh="0.2", bh="0.5",
                                 kg=str(kg), bg=str(bg), x0=0.005))
     rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False,

@@ -16,7 +16,7 @@ from hapsim.analysis.modes import OBSERVABLE_TOL
 from hapsim.analysis.network import rest_position
 from hapsim.cli import main
 from hapsim.analysis.prediction import has_offset
-from hapsim.daemon.runner import run_scene
+from hapsim.pipeline.runner import run_scene
 from hapsim.scene import parse_scene
 from tolerance import measured
 

@@ -2,10 +2,10 @@
 uncertainty, and the uncertainty still detects a wrong stiffness (issue 20).
 
 The FireFader THS (``configs/firefader.yaml``) is closed offline through hapsim's engine and
-the ``.ino``'s own loop (:func:`hapsim.driver_mock.firefader_offline_loop`), the host silent
+the ``.ino``'s own loop (:func:`hapsim.emulated.driver_mock.firefader_offline_loop`), the host silent
 once for a random time (0-0.3 s: below, within and above the firmware's 0.1 s enable rule
 and the host's doubt band 0.08-0.14 s) after a random row, and measured as a run does
-(:func:`hapsim.daemon.measure.identify_run` with the driver, no HELLO: an offline record).
+(:func:`hapsim.pipeline.measure.identify_run` with the driver, no HELLO: an offline record).
 The fader's pot is coarse (0.39 mm a count, the driver's ``position_scale``): its
 quantiser's error, q^2 / 12 through the loop (Widrow & Kollar 2008, ch. 4), is the stated
 uncertainty's main share; without it (the step was taken from the scene or a HELLO only)
@@ -21,9 +21,9 @@ import types
 import numpy as np
 import pytest
 
-from hapsim.daemon.options import RunOptions
-from hapsim.daemon.runner import identify_run, prepare_run
-from hapsim.driver_mock import firefader_offline_loop
+from hapsim.pipeline.options import RunOptions
+from hapsim.pipeline.runner import identify_run, prepare_run
+from hapsim.emulated.driver_mock import firefader_offline_loop
 from hapsim.scene import load_scene
 
 pytestmark = pytest.mark.xdist_group("test_firefader_silence_coverage")

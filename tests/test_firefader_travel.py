@@ -1,6 +1,6 @@
 """The FireFader's position scale from a sweep between its end stops (issue 20): the
 sweep (hapsim.drivers.firefader_travel.find_travel) against the firmware's own loop
-(hapsim.driver_mock.FireFaderDevice with end stops), in-process, over random true scales;
+(hapsim.emulated.driver_mock.FireFaderDevice with end stops), in-process, over random true scales;
 its refusals; and the full scale from an added mass once the position scale is right."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hapsim.driver_mock import FireFaderDevice
+from hapsim.emulated.driver_mock import FireFaderDevice
 from hapsim.drivers import firefader as ff
 from hapsim.drivers.firefader_travel import find_travel
 from hapsim.errors import ConfigError, IdentificationError

@@ -36,7 +36,7 @@ WATCHDOG_US = 5000
 
 
 def _skip_reason():
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     return board.missing_tools()
 
 
@@ -51,7 +51,7 @@ def _require():
 @contextmanager
 def _board(tmp_path, elf=None, *extra):
     """The emulated board on a new pty: yields (process, port, report path)."""
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     board.build()
     report = tmp_path / f"board-{time.monotonic_ns()}.json"
     cmd = [str(board.BOARD), str(elf or board.FIRMWARE_ELF), "--report", str(report), *extra]
@@ -156,7 +156,7 @@ def test_firmware_builds_warning_free_and_reports_flash_and_ram(tmp_path_factory
     pytest-xdist worker) is starting."""
     _require()
     import shutil
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     scratch = tmp_path_factory.mktemp("fw")     # not tmp_path: its name holds "warning"
     work = scratch / "firmware" / "hapkit"
     shutil.copytree(board.FIRMWARE_DIR, work, ignore=shutil.ignore_patterns("*.elf", "*.hex"))
@@ -173,16 +173,16 @@ def test_firmware_builds_warning_free_and_reports_flash_and_ram(tmp_path_factory
 
 
 def test_a_second_build_waits_for_the_first_to_finish():
-    """:func:`hapsim.daemon.board.build` holds an exclusive ``flock`` on ``BUILD_LOCK``
+    """:func:`hapsim.emulated.hapkit_board.build` holds an exclusive ``flock`` on ``BUILD_LOCK``
     while make runs: another process's build (the other pytest-xdist worker's, a second
     ``hapsim mock --board``) waits however long the first takes, then finds everything up
     to date -- two builds never write one ELF together."""
     _require()
     import fcntl
     import pytest
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     board.build()
-    code = ("import sys; from hapsim.daemon import board; print('start', flush=True); "
+    code = ("import sys; from hapsim.emulated import hapkit_board as board; print('start', flush=True); "
             "r = board.build(); print('built', r['elf'], flush=True)")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     with open(board.BUILD_LOCK, "a") as held:
@@ -247,7 +247,7 @@ def test_golden_vectors_decode_and_encode_identically_on_the_avr(tmp_path):
     equals numpy's (IEEE round to nearest even) bit for bit over edge cases and 300 seeded
     random patterns."""
     _require()
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     vectors = json.loads((ROOT / "firmware_protocol/vectors/vectors.json").read_text())
     with _board(tmp_path, board.VECTORS_ELF) as (proc, port, _):
         host = _Host(port)
@@ -303,8 +303,8 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     _require()
     from hapsim.analysis import identify, quantisation
     from hapsim.analysis.loop import LoopModel
-    from hapsim.daemon import board
-    from hapsim.daemon.telemetry import load
+    from hapsim.emulated import hapkit_board as board
+    from hapsim.host.telemetry import load
     from hapsim.scene import load_scene
 
     scene = load_scene(str(ROOT / "configs/hapkit.yaml"))
@@ -328,7 +328,7 @@ def test_hapsim_run_closes_the_ths_over_the_firmware_uart(tmp_path):
     assert rep["loop"]["lost"] == 0 and rep["loop"]["recovered"] == 0, rep["loop"]
     assert rep["loop"]["device"]["force_limit"] == pytest_approx(board_force_max())
     t = load(str(tel))
-    from hapsim.daemon.telemetry import FLAG_LOST, FLAG_RAMP
+    from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
     assert not (t["flags"] & (FLAG_LOST | FLAG_RAMP)).any()   # one session, never restarted
     window = int(0.7 * RATE)
     x = t["position"][t["seq"] >= 4][:window]          # after the dead-beat transient
@@ -366,8 +366,8 @@ def test_4khz_over_the_compact_frames_measured_equals_predicted(tmp_path):
     _require()
     from hapsim.analysis import identify, quantisation
     from hapsim.analysis.loop import LoopModel
-    from hapsim.daemon import board
-    from hapsim.daemon.telemetry import load
+    from hapsim.emulated import hapkit_board as board
+    from hapsim.host.telemetry import load
     from hapsim.scene import load_scene
 
     rate = 4000.0
@@ -453,7 +453,7 @@ def test_identify_through_the_firmware_recovers_the_board_model(tmp_path):
     import dataclasses
 
     from hapsim.commands.identify import identify
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     from hapsim.scene import load_scene
 
     scene = load_scene(str(ROOT / "configs/hapkit.yaml"))

@@ -1,5 +1,5 @@
 """The emulated boards build wherever hapsim is installed, not only in a checkout (issue 30:
-``daemon/board.py`` built the firmware from a path only a checkout has)."""
+``emulated/hapkit_board.py`` built the firmware from a path only a checkout has)."""
 
 import fnmatch
 import os
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hapsim.daemon import board
+from hapsim.emulated import hapkit_board as board
 from hapsim.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]

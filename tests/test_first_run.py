@@ -118,7 +118,7 @@ def stalled_run(m: float, b0: float, rate: float, K: float, B: float, *, stall: 
                 n: int = 1000) -> tuple:
     """The wall's real-time run (delay 1, force clamped at ``limit`` [N]) whose host goes
     silent for ``stall`` samples from sample ``at``: the device holds its last force one
-    watchdog period (``watchdog`` samples, 50 ms at 1 kHz: hapsim.daemon.loop.LoopConfig),
+    watchdog period (``watchdog`` samples, 50 ms at 1 kHz: hapsim.host.loop.LoopConfig),
     then zero force, until the host answers again (the newest STATE). Independent of
     hapsim: exact ZOH steps of the mass [kg] with friction [N s/m] (scipy), the force
     ``-K x[n] - B (x[n] - x[n-1]) / T`` applied one period later.

@@ -136,7 +136,7 @@ def test_lockstep_measured_equals_predicted_with_a_hand_stiffness(kg, hold, d):
     """The mock models the arm's spring (rigid: one body on a spring; grip: on the hand
     mass): measured (k, b) == render(k, b) of the same LoopModel to 1e-6; the felt k
     includes the real spring (more than K alone would give)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     sc = parse_scene(scene_text(800.0, 1.5, d=d, hold=hold, kg=kg))
     rep = run_scene(sc, transport="inprocess", lockstep=True, handle_signals=False,
                     duration=1.0)

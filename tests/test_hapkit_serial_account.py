@@ -49,7 +49,7 @@ def test_a_lossy_link_measures_the_prediction(seed):
     lockstep: the account, not the timing, is what is tested), 1 byte in 200 lost each
     way: measured = predicted within the stated uncertainty, and the replies named forces
     the timing account did not (before: every seed "differs")."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
                     duration=1.5, lockstep=True, handle_signals=False, rt_priority=0,

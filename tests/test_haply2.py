@@ -16,9 +16,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hapsim.daemon.haply2_board import Haply2DIYBoard, drive_haply2, measure_felt_haply2
+from hapsim.emulated.haply2_board import Haply2DIYBoard, drive_haply2, measure_felt_haply2
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
-from hapsim.driver_mock import ByteFaults
+from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.scene_nd import load_scene_nd
 from tolerance import rel_tol
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon.haply2_board import BoardLink, Haply2DIYBoard
+from hapsim.emulated.haply2_board import BoardLink, Haply2DIYBoard
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
 from hapsim.drivers.haply2_probe import find_directions
 from hapsim.errors import IdentificationError
@@ -109,7 +109,7 @@ def test_a_reversed_motor_is_refused_before_the_real_time_loop_over_a_pty():
     is wired backwards: the wiring probe refuses it before any record (no torque loop
     ran: the board took the probe's writes only) and leaves it at zero torque; given the
     motor byte the refusal names, the same board passes the probe."""
-    from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
+    from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
     from hapsim.lockstep_nd import identification_plan
     sc = _scene()
     N = 40

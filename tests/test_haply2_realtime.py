@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon.haply2_board import Haply2DIYBoard
-from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
+from hapsim.emulated.haply2_board import Haply2DIYBoard
+from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
 from hapsim.lockstep_nd import identification_plan
 from hapsim.scene_nd import load_scene_nd
 
@@ -147,7 +147,7 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
     :func:`estimate_bounds` of the handle's position there (its reply read late: the
     reading, within its rounding ``eps``), on every record of the hand's cycle (the
     velocity starts among them)."""
-    from hapsim.daemon.haply2_host import estimate_bounds, record_realtime
+    from hapsim.pipeline.haply2_host import estimate_bounds, record_realtime
     from hapsim.drivers.haply2 import Haply2DIY
     from hapsim.kinematics import device
     sc = load_scene_nd(WALL)

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon.haply2_board import Haply2DIYBoard
-from hapsim.daemon.haply2_host import SILENT_WRITES, measure_felt_haply2_port, record_realtime
-from hapsim.driver_mock import ByteFaults
+from hapsim.emulated.haply2_board import Haply2DIYBoard
+from hapsim.pipeline.haply2_host import SILENT_WRITES, measure_felt_haply2_port, record_realtime
+from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene_nd import load_scene_nd
 

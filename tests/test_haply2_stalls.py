@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon import haply2_host as host
-from hapsim.daemon.haply2_board import Haply2DIYBoard
-from hapsim.driver_mock import ByteFaults
+from hapsim.pipeline import haply2_host as host
+from hapsim.emulated.haply2_board import Haply2DIYBoard
+from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene_nd import load_scene_nd
 

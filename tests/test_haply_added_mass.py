@@ -1,5 +1,5 @@
 """``hapsim identify --driver haply --added-mass`` end to end (issue 20): the emulated
-Haply board (firmware V1.5's bytes, :class:`hapsim.driver_mock.HaplyDevice`, behind a
+Haply board (firmware V1.5's bytes, :class:`hapsim.emulated.driver_mock.HaplyDevice`, behind a
 pty) with an encoder whose true counts per revolution the host does not know (a seeded
 random one, the host assuming 4880). Through a wrong resolution the joint's angle is read
 ``g = cpr / 4880`` times too large, so the identified inertia is ``m / g``

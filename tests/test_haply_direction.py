@@ -4,7 +4,7 @@ direction bytes, and a wiring that may reverse the motor against the encoder).""
 
 import pytest
 
-from hapsim.driver_mock import HaplyDevice
+from hapsim.emulated.driver_mock import HaplyDevice
 from hapsim.drivers import get_driver
 from hapsim.drivers.haply import MAX_TORQUE, HaplyM3, setup_packet, write_packet
 from hapsim.drivers.haply2 import GENERATIONS
@@ -118,7 +118,7 @@ def test_a_motor_direction_given_is_not_probed_and_a_wrong_one_runs_away():
     motor byte given as the encoder's (``--protocol-option motor_direction=0``: given, so
     not probed) is positive feedback and ends on a safety stop (the next test runs it
     with the probe: its whole length)."""
-    from hapsim.daemon.identify_run import record
+    from hapsim.pipeline.identify_run import record
     r = record(Device(mass=1e-3, friction=1e-3, delay=1), driver="haply", force_limit=0.1,
                envelope=0.2, duration=0.5, max_delay=4, progress=False,
                handle_signals=False, driver_options={"motor_direction": 0},

@@ -231,7 +231,7 @@ def test_a_reply_no_motion_reaches_resynchronises_at_once():
 
 
 def _board():
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     from hapsim.scene import Device, Excitation
     return HaplyDevice(Device(mass=J, friction=1e-3, delay=1), 1000.0, Excitation(x0=0.2))
 
@@ -365,7 +365,7 @@ def test_a_byte_lost_in_the_arming_lockstep():
     wall-clock board in process: 0.2 to 2.6 rad off, and for 3 of the 24 positions bytes
     the board never sent as a reply)."""
     import firmware_protocol as fp
-    from hapsim.driver_mock import HaplyDevice
+    from hapsim.emulated.driver_mock import HaplyDevice
     from hapsim.drivers.transport import DriverTransport
     from hapsim.scene import Device, Excitation
     drv = get_driver("haply", device_id=1, offset_deg=math.degrees(0.2))

@@ -1,6 +1,6 @@
 """The Haply M3 board keeps its own time (issue 29 items 1 and 2).
 
-The board's emulation (``hapsim.driver_mock.HaplyDevice``, ``clock="wall"`` by default) runs
+The board's emulation (``hapsim.emulated.driver_mock.HaplyDevice``, ``clock="wall"`` by default) runs
 its joint on the wall clock, holding the last torque while the host is silent or late; the
 host's driver must survive that: a late reply is a late sample, a host stall is a stall (no
 catch-up burst), and a re-synchronisation needs evidence that the board lost its place.
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from hapsim.device_model import MockPhysics
-from hapsim.driver_mock import HaplyDevice, WallClock
+from hapsim.emulated.driver_mock import HaplyDevice, WallClock
 from hapsim.drivers import get_driver
 from hapsim.drivers import haply as hp
 from hapsim.scene import Device, Excitation
@@ -153,7 +153,7 @@ def test_a_host_stall_is_a_stall_beside_two_busy_processes(monkeypatch):
     never beyond where the hand let it go (x0 = 0.2 rad: the loop is stable and passive
     at K = 0.5 N m/rad, K_max 1.33), zero torque left; or, on a machine too loaded to
     hold 1 kHz, the lateness safety stop before the joint goes far."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.drivers import transport
     from hapsim.scene import load_scene
     sent = {"n": 0}
@@ -200,7 +200,7 @@ def test_a_late_run_is_not_called_within():
     host paces the device, so lateness costs nothing there)."""
     from types import SimpleNamespace
 
-    from hapsim.daemon.runner import LATE_SHARE_MAX, RESYNCS_STATED, timing_verdict
+    from hapsim.pipeline.runner import LATE_SHARE_MAX, RESYNCS_STATED, timing_verdict
     base = {"k": 1.0, "b": 0.1, "within": True, "verdict": "measured = predicted"}
     m = dict(base)
     timing_verdict(m, SimpleNamespace(samples=1000, overruns=int(LATE_SHARE_MAX * 1000)),

@@ -43,7 +43,7 @@ def test_unmodelled_resonance_is_reported():
     """A compliant transmission (handle on a spring to a motor mass) is not a rigid mass:
     the verdict says the model does not explain the data."""
     from scipy.signal import cont2discrete, dlsim
-    from hapsim.daemon.identify_run import excitation_plan
+    from hapsim.pipeline.identify_run import excitation_plan
     T = 1e-3
     n = 3000
     r = excitation_plan(n, 1000.0, 2.0, 0.01).r
@@ -96,7 +96,7 @@ def test_round_trip_identify_yaml_run(tmp_path):
                       max_delay=2, progress=False, handle_signals=False)
     p = tmp_path / "device.yaml"
     p.write_text(device_yaml(fit, 4.0))
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.device_file import load_device
     import dataclasses
     from hapsim.scene import load_scene

@@ -11,7 +11,7 @@ of Coulomb friction never broke loose under the 0.4 N the level could reach at t
 The records of the property test come from the independent simulation of
 ``tests/test_identify_gaps.py`` (exact zero-order hold from the matrix exponential, the
 first-order Coulomb rule, a device applying the answer to tick ``t`` from ``t + d``), driven
-by :class:`hapsim.daemon.identify_run.ExcitationEngine` at the default options.
+by :class:`hapsim.pipeline.identify_run.ExcitationEngine` at the default options.
 """
 
 import math
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from hapsim.analysis.device_fit import _stretches
-from hapsim.daemon.identify_run import LEVEL_SHARE, PRBS_SHARE
+from hapsim.pipeline.identify_run import LEVEL_SHARE, PRBS_SHARE
 
 from intervals import assert_within  # same directory (pytest prepend import mode)
 from test_identify_gaps import simulate  # same directory (pytest prepend import mode)

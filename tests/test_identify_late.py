@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hapsim.applied import (STATUS_WATCHDOG_TRIPPED, account_from_force_seq, account_from_timing,
                             firmware_force)
 from hapsim.commands.identify import identify
-from hapsim.daemon import mock as mock_mod
+from hapsim.emulated import mock as mock_mod
 from hapsim.scene import Device
 from intervals import assert_within  # same directory (pytest prepend import mode)
 
@@ -218,7 +218,7 @@ def test_run_with_scripted_late_ticks_measures_the_prediction(seed, frac, d, r, 
     from hapsim.analysis.network import closed_loop
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.scene import load_scene
     scene = load_scene("configs/wall.yaml")
     dev = dataclasses.replace(scene.device, delay=d)
@@ -250,7 +250,7 @@ def test_identify_plot_after_a_record_with_a_hole(tmp_path):
     raised "x and y must have same first dimension (558,) and (4000,)")."""
     pytest.importorskip("matplotlib")
     from hapsim.commands.identify import _plot
-    from hapsim.daemon.identify_run import record
+    from hapsim.pipeline.identify_run import record
     from hapsim.analysis.device_fit import fit_device
     dev = Device(mass=0.1, friction=0.5, delay=2, force_limit=10.0, noise=1e-6)
     rec = record(dev, transport="inprocess", duration=0.8, force_limit=4.0, max_delay=4,
@@ -269,7 +269,7 @@ def test_telemetry_felt_energy_from_the_applied_force(tmp_path):
     the late count and the work of the force the device applied, tick by tick, equal the
     lockstep mock's own log of what it applied (its ``applied_log``)."""
     from hapsim.commands.telemetry import read, summarize
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.scene import load_scene
     mocks = []
 
@@ -324,7 +324,7 @@ def test_run_measures_every_stretch_against_the_closed_form():
     from hapsim.analysis.modes import mode_from_pole
     from hapsim.analysis.network import device_body
     from hapsim.analysis.prediction import predicted_poles
-    from hapsim.daemon.runner import prepare_scene
+    from hapsim.pipeline.runner import prepare_scene
     from hapsim.scene import load_scene
     scene = prepare_scene(load_scene("configs/wall.yaml"))[0]
     poles, felt = predicted_poles(scene)
@@ -371,7 +371,7 @@ def test_an_actuator_step_is_a_known_input():
     the prediction to 1e-6 (left in, the 0.05 N steps bias k by 7e-5 relative; the
     emulated Hapkit's real-time record measured k -0.336 +- 0.286 N/m from the
     prediction)."""
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.scene import load_scene
     step = 0.05
 
@@ -435,7 +435,7 @@ def test_run_with_several_long_bursts_and_a_clamped_force_measures_the_predictio
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.scene import parse_scene
 
     base = parse_scene(DEFAULT_DEVICE, "<d>")
@@ -496,7 +496,7 @@ def test_a_clamp_the_replay_cannot_give_is_left_out_not_taken_as_linear(seed, bu
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
-    from hapsim.daemon import contact_replay, runner
+    from hapsim.pipeline import contact_replay, runner
     from hapsim.scene import parse_scene
 
     base = parse_scene(DEFAULT_DEVICE, "<d>")
@@ -549,9 +549,9 @@ def test_a_loaded_real_time_record_with_skips_and_clamps_measures_the_prediction
 
     from scipy.linalg import expm
 
-    from hapsim.daemon.measure import identify_run
-    from hapsim.daemon.options import RunOptions
-    from hapsim.daemon.runner import prepare_run
+    from hapsim.pipeline.measure import identify_run
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
     from hapsim.scene import load_scene
 
     z = np.load(os.path.join(os.path.dirname(__file__), "data",
@@ -609,7 +609,7 @@ def test_a_record_the_linear_loop_does_not_fit_says_so_not_sensor_steps():
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
-    from hapsim.daemon import runner
+    from hapsim.pipeline import runner
     from hapsim.scene import parse_scene
 
     base = parse_scene(DEFAULT_DEVICE, "<d>")

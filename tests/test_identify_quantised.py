@@ -16,7 +16,7 @@ import pytest
 
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render, stability_limit
-from hapsim.daemon.runner import run_scene
+from hapsim.pipeline.runner import run_scene
 from hapsim.scene import parse_scene
 from test_daemon import wall_text  # same directory (pytest prepend import mode)
 
@@ -119,7 +119,7 @@ def test_hapkit_mock_with_a_17_6_um_encoder_is_measured_not_a_spurious_pair():
     report says so."""
     from pathlib import Path
 
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     text = (Path(__file__).resolve().parents[1] / "configs" / "hapkit.yaml").read_text()
     text = text.replace("device:\n", "device:\n  position_resolution: 17.6e-6\n", 1)
     rep = run_scene(parse_scene(text), transport="inprocess", lockstep=True,
@@ -139,7 +139,7 @@ def test_hapkit_mock_with_a_17_6_um_encoder_is_measured_not_a_spurious_pair():
 def test_a_record_that_cannot_support_a_measurement_gives_no_number(q, x0, B, why):
     """An oscillation of under 5 quanta, or a loop damped to less than 1.5 cycles above the
     floor: the report says why instead of printing a (k, b)."""
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     rep = run_scene(_scene(0.1, 0.5, 500.0, B, 1, 1000.0, q, 0.0, x0), transport="inprocess",
                     lockstep=True, handle_signals=False, duration=1.0)
     meas = rep["measured"]

@@ -11,7 +11,9 @@ from pathlib import Path
 
 from test_engine import imported_modules  # same directory (pytest prepend import mode)
 
-DAEMON_DIR = Path(__file__).resolve().parents[1] / "hapsim" / "daemon"
+PACKAGE_DIR = Path(__file__).resolve().parents[1] / "hapsim"
+#: The packages that run scenes and devices (both sides of the wire and the run's pipeline)
+RUN_DIRS = tuple(PACKAGE_DIR / name for name in ("host", "emulated", "pipeline"))
 
 
 def _bench_imports(names: set[str]) -> set[str]:
@@ -23,19 +25,20 @@ def test_scanner_catches_bench_imports():
     for bad in ("from hapsim.bench.methods import stability_margin", "import hapsim.bench",
                 "from ..bench import methods", "from ..bench.methods import oscillator_limits",
                 "def f():\n    from hapsim.bench import capacity\n"):
-        assert _bench_imports(imported_modules(bad, "hapsim.daemon.runner")), bad
+        assert _bench_imports(imported_modules(bad, "hapsim.pipeline.runner")), bad
     assert not _bench_imports(imported_modules(
         "from hapsim.analysis.integrators import stability_margin\nfrom . import loop",
-        "hapsim.daemon.runner"))
+        "hapsim.pipeline.runner"))
 
 
-def test_daemon_imports_nothing_from_bench():
-    """Every module under hapsim/daemon/ (function-level imports included) keeps off
-    hapsim.bench."""
-    files = sorted(DAEMON_DIR.glob("*.py"))
-    assert {f.name for f in files} >= {"__init__.py", "runner.py", "loop.py"}
+def test_run_packages_import_nothing_from_bench():
+    """Every module under hapsim/host/, hapsim/emulated/ and hapsim/pipeline/
+    (function-level imports included) keeps off hapsim.bench."""
+    files = sorted(f for d in RUN_DIRS for f in d.glob("*.py"))
+    assert {f.name for f in files} >= {"__init__.py", "runner.py", "loop.py", "mock.py"}
     for f in files:
-        module = "hapsim.daemon" + (".__init__" if f.stem == "__init__" else f".{f.stem}")
+        pkg = "hapsim." + f.parent.name
+        module = pkg + (".__init__" if f.stem == "__init__" else f".{f.stem}")
         bad = _bench_imports(imported_modules(f.read_text(), module))
         assert not bad, f"{f.name} imports hapsim.bench: {sorted(bad)}"
 
@@ -52,7 +55,6 @@ def test_old_bench_names_are_the_analysis_ones():
 # The house in floors, lowest first: a module imports only from its own floor or below
 # (function-level imports included), and no modules import each other in a circle. A
 # module of hapsim not named here stands on the top floor (nothing below may import it).
-PACKAGE_DIR = DAEMON_DIR.parent
 LAYERS = (
     # hapsim.applied: the account of the force a device applied per tick (plain arrays),
     # which the drivers' timing fills and the analysis and the daemon read
@@ -61,7 +63,7 @@ LAYERS = (
                     "hapsim.applied", "hapsim.option_values")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher, in
-    # hapsim.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
+    # hapsim.emulated.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
                "hapsim.device_file", "hapsim.drivers")),
     # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
@@ -69,10 +71,17 @@ LAYERS = (
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
                 "hapsim.plots.workspace", "hapsim.plots.zwidth")),
-    ("devices and sound", ("hapsim.driver_mock", "hapsim.audio")),
-    # hapsim.view: the live view reads the daemon's telemetry and the audio controller,
-    # and the run (hapsim.daemon.runner) starts it beside its loop
-    ("daemon", ("hapsim.daemon", "hapsim.view")),
+    # the device side of the wire: what pretends to be hardware (it never imports the
+    # host's side: both share only the wire's codecs, hapsim.kernels.compiled_io and
+    # firmware_protocol)
+    ("emulated devices and sound", ("hapsim.emulated", "hapsim.audio")),
+    # the host side of the wire: the loop, its compiled twin, its transports (an
+    # in-process or virtual-clock transport holds an emulated device)
+    ("host", ("hapsim.host",)),
+    # one run's pipeline, and the live view that the run (hapsim.pipeline.runner) starts
+    # beside its loop: the view reads the host's telemetry and the audio controller, and
+    # measures the record so far as the run's report will (hapsim.pipeline.measure)
+    ("pipeline", ("hapsim.pipeline", "hapsim.view")),
     ("application", ("hapsim.bench", "hapsim.commands", "hapsim.cli", "hapsim.__main__",
                      "hapsim")),
 )
@@ -101,7 +110,7 @@ def _floor(module: str) -> int:
 
 def _graph(sources: dict[str, str]) -> dict[str, set[str]]:
     """module -> the modules of ``sources`` it imports (a name resolved to the longest
-    module it names: ``from hapsim.daemon.mock import MockDevice`` is hapsim.daemon.mock)."""
+    module it names: ``from hapsim.emulated.mock import MockDevice`` is hapsim.emulated.mock)."""
     graph = {}
     for mod, text in sources.items():
         own = mod + ".__init__" if mod + ".__init__" in sources or _is_package(mod) else mod
@@ -182,20 +191,22 @@ def test_scanner_sees_circles_and_upward_imports():
     assert _upward(g) == ["hapsim.errors (floor foundation) imports hapsim.scene (floor "
                           "scene)", "hapsim.scene (floor scene) imports hapsim.analysis.loop "
                           "(floor models)"]
-    assert _floor("hapsim.daemon.runner") == 4 and _floor("hapsim.new_module") == 5
+    assert _floor("hapsim.pipeline.runner") == 5 and _floor("hapsim.host.loop") == 4
+    assert _floor("hapsim.emulated.mock") == 3 and _floor("hapsim.new_module") == 6
 
 
 def test_no_module_imports_another_in_a_circle():
     """No circles of imports among hapsim's modules (function-level imports included)."""
     graph = _house_graph()
-    assert {"hapsim.daemon.runner", "hapsim.analysis.prediction"} <= set(graph)
+    assert {"hapsim.pipeline.runner", "hapsim.analysis.prediction"} <= set(graph)
     assert _circles(graph) == []
 
 
 def test_nothing_imports_upward():
     """Each module imports only from its floor or below (:data:`LAYERS`): the analysis and
-    the device model never import the daemon, the drivers never the daemon, the scene
-    never the analysis."""
+    the device model never import the host, the drivers never the host, an emulated device
+    never the host (the two sides of the wire share only its codecs), the scene never the
+    analysis."""
     assert _upward(_house_graph()) == []
 
 
@@ -220,8 +231,8 @@ def _private_imports(text: str, module: str) -> list[str]:
 
 
 def test_scanner_sees_private_imports():
-    assert _private_imports("from hapsim.daemon.loop import HostLoop, _Lost\n",
-                            "hapsim.daemon.fastloop") == ["hapsim.daemon.loop._Lost"]
+    assert _private_imports("from hapsim.host.loop import HostLoop, _Lost\n",
+                            "hapsim.host.fastloop") == ["hapsim.host.loop._Lost"]
     assert _private_imports("def f():\n    from .cordis import _clear\n",
                             "hapsim.kernels.audio") == ["hapsim.kernels.cordis._clear"]
     assert _private_imports("from hapsim.plots import pyplot as _plt\nfrom x import __all__\n",
@@ -325,13 +336,13 @@ def test_scanner_sees_an_upward_folder():
         return 3 if mod.startswith("hapsim.drivers.mock") else _floor(mod)
     assert _upward(g) == []
     assert _folder_upward(g, floor) == ["hapsim.scene (floor scene) imports hapsim.drivers of folder "
-                                 "hapsim.drivers, which holds floor devices and sound"]
+                                 "hapsim.drivers, which holds floor emulated devices and sound"]
 
 
 def test_nothing_imports_into_a_folder_that_stands_above_it():
     """Read folder by folder, the house has no upward arrow either: the drivers' folder
     holds the codecs and the driver transport (scene floor); their byte-exact mocks stand
-    in hapsim.driver_mock (devices floor)."""
+    in hapsim.emulated.driver_mock (the emulated devices' floor)."""
     assert _folder_upward(_house_graph()) == []
 
 
@@ -340,7 +351,7 @@ def test_no_module_reads_an_engines_private_state():
     (``kernel_pack``, ``multirate_pack``, ``port_index``, ``positions``, ``corrected``),
     not its ``_x``/``_xp``/``_multi``/``_port``: a name bound to an engine, read with a
     leading underscore, appears nowhere outside the engine and its subclass in
-    hapsim.daemon.correction."""
+    hapsim.host.correction."""
     import re
     pattern = re.compile(r"\b(?:eng|engine|self\.eng|self\.engine)\._[a-z]\w*")
     assert pattern.search("before = eng._x[self.uniq].copy()")
@@ -425,11 +436,11 @@ PRIVATE_READS_ALLOWED = {
     # public hand-over (its sequence, status, last force time, applied force, command and
     # delay ring), and serve_fd/compiled_reason read MockPhysics.noisy/.state_space,
     # StreamDecoder.overflow and a public "bytes queued" of FaultyDevice.
-    **{("hapsim.daemon.fastmock", f"mock.{a}"): "MockDevice's state hand-over (mock.py is "
+    **{("hapsim.emulated.fastmock", f"mock.{a}"): "MockDevice's state hand-over (mock.py is "
        "being restructured this session)" for a in ("_applied", "_applied_seq",
                                                    "_last_force_us", "_rf", "_rs",
                                                    "_status_extra", "_u")},
-    **{("hapsim.daemon.mock", r): "switch to the public name once mock.py's restructuring "
+    **{("hapsim.emulated.mock", r): "switch to the public name once mock.py's restructuring "
        "lands (ph.noisy, ph.state_space, dev.decoder.overflow; FaultyDevice needs one)"
        for r in ("ph._rng", "ph._grip", "dev.decoder._overflow", "dev._out")},
 }

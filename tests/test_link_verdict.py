@@ -1,12 +1,12 @@
 """A run whose device left its workspace, or whose board was re-synchronised more than the
-stated bound, never says "within" (issue 29 item 2; hapsim.daemon.link_verdict)."""
+stated bound, never says "within" (issue 29 item 2; hapsim.host.link_verdict)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from hapsim.daemon import link_verdict as lv
+from hapsim.host import link_verdict as lv
 from tolerance import rel_tol
 
 
@@ -69,7 +69,7 @@ def test_a_run_over_the_bound_says_not_measurable_and_exits_1(monkeypatch):
     (the verdict's wiring, not timing), with host bytes lost so that the board is
     re-synchronised; with the bound lowered to one for the run, its report says "not
     measurable" with the count and the bound, and its exit code is 1."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     monkeypatch.setattr(lv, "MAX_RESYNCS_PER_S", 1e-9)
     rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", duration=0.6,
@@ -87,7 +87,7 @@ def test_a_run_over_the_bound_says_not_measurable_and_exits_1(monkeypatch):
 def test_the_clamp_stop_is_the_loops_own_reason():
     """The stop the rule keeps is the one the loop writes: safety_reason's clamp text
     begins with CLAMP_STOP, its position stop does not."""
-    from hapsim.daemon.loop import safety_reason
+    from hapsim.host.loop import safety_reason
     clamp = safety_reason(50, 50, 100, 10.0, 0.0, 0.1, 0.0, 1.0, 0.0, 1.0)
     away = safety_reason(0, 50, 100, 10.0, 0.2, 0.1, 0.0, 1.0, 0.0, 1.0)
     assert clamp.startswith(lv.CLAMP_STOP) and not away.startswith(lv.CLAMP_STOP)

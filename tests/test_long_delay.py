@@ -19,7 +19,7 @@ import pytest
 from hapsim.analysis import LoopModel, calibrate, check_scene, render, stability_limit
 from hapsim.analysis.loop import MAX_DELAY, zoh_state_space
 from hapsim.cli import main
-from hapsim.daemon.runner import predict, run_scene
+from hapsim.pipeline.runner import predict, run_scene
 from hapsim.scene import parse_scene
 from tolerance import measured
 

@@ -1,6 +1,6 @@
 """The device- and host-clocked loops compute the same samples from the same device.
 
-On the virtual-clock transport (:class:`~hapsim.daemon.transport.SimTransport`) a real-time
+On the virtual-clock transport (:class:`~hapsim.host.transport.SimTransport`) a real-time
 mock's STATE reaches the host-clocked loop a third of a period before its next tick, as it
 reaches the device-clocked loop at once: both answer every STATE, so the device moves the
 same way, and every per-sample result must be the same to the bit: the telemetry rows
@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.daemon.faults import parse_faults
-from hapsim.daemon.loop import HostLoop, LoopConfig
-from hapsim.daemon.mock import MockDevice
-from hapsim.daemon.telemetry import Telemetry
-from hapsim.daemon.transport import SimTransport
+from hapsim.emulated.faults import parse_faults
+from hapsim.host.loop import HostLoop, LoopConfig
+from hapsim.emulated.mock import MockDevice
+from hapsim.host.telemetry import Telemetry
+from hapsim.host.transport import SimTransport
 from hapsim.engine import Engine
 from hapsim.scene import parse_scene
 from tolerance import rel_tol
@@ -109,7 +109,7 @@ CASES = {
 
 def stretch_time(cols):
     """Device time of each row since the first row of its stretch (FLAG_LOST starts one)."""
-    from hapsim.daemon.telemetry import FLAG_LOST
+    from hapsim.host.telemetry import FLAG_LOST
     t = cols["time"]
     start = np.maximum.accumulate(np.where(cols["flags"] & FLAG_LOST, np.arange(t.size), 0))
     return t - t[start]

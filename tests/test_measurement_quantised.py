@@ -90,7 +90,7 @@ def _loop(rng):
 
 
 def _measure(m, b0, K, B, d, rate, q, s, x0, *, K_true=None, n=SAMPLES):
-    """The run's measurement of the simulated record (as hapsim.daemon.runner's): the
+    """The run's measurement of the simulated record (as hapsim.pipeline.runner's): the
     actuator's rounding taken out as a known input (late_accounted, from HELLO's step and
     STATE's force_seq), then identify with the sensor step."""
     import firmware_protocol as fp

@@ -364,7 +364,7 @@ def test_run_osc_changes_the_running_daemon():
     assert osc["links"]["wall"] == [400.0, 3.0]
     assert [e["event"] for e in osc["journal"] if e["event"].startswith("ramp")] == \
         ["ramp_start", "ramp_end"]
-    from hapsim.daemon.telemetry import load
+    from hapsim.host.telemetry import load
     try:
         info = {}
         load(hst, info=info)

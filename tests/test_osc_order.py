@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from hapsim.audio.control import Controller, serve_osc
-from hapsim.daemon.runner import prepare_scene
+from hapsim.pipeline.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 

@@ -11,7 +11,7 @@ import socket
 import pytest
 
 from hapsim.audio.control import ADDRESSES, USAGE, Controller, serve_osc
-from hapsim.daemon.runner import prepare_scene
+from hapsim.pipeline.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import parse_scene
 from tolerance import rel_tol
@@ -166,8 +166,8 @@ def test_run_with_a_live_change_compares_with_the_prediction_after_it(capsys):
     from pythonosc.osc_message import OscMessage
     from pythonosc.osc_message_builder import OscMessageBuilder
 
-    from hapsim.daemon.report import format_report
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.report import format_report
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
 
     path = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")

@@ -34,7 +34,7 @@ pytestmark = pytest.mark.xdist_group("pantograph_firmware")
 
 @pytest.fixture(scope="module")
 def built():
-    from hapsim.daemon import board, pantograph_board
+    from hapsim.emulated import hapkit_board as board, pantograph_board
     why = board.missing_tools()
     if why:
         pytest.skip(f"emulated Hapkit pantograph: {why}")
@@ -50,7 +50,7 @@ def scene():
 @contextmanager
 def _board(tmp_path, scene, amplitude=2e-4, **kw):
     """The emulated pantograph on a new pty: yields (process, port, report path)."""
-    from hapsim.daemon.pantograph_board import board_command
+    from hapsim.emulated.pantograph_board import board_command
     report = tmp_path / f"board-{time.monotonic_ns()}.json"
     cmd = board_command(scene, amplitude, report=str(report), **kw)
     log = open(report.with_suffix(".log"), "w+")
@@ -69,7 +69,7 @@ def _board(tmp_path, scene, amplitude=2e-4, **kw):
 def _plant(scene, torques, period):
     """``pantograph_board --plant-test``: the C plant from the home at rest, each row of
     ``torques`` (N, 2) [N m] held over one period; returns (N, 6): q1 q2 qd1 qd2 x y."""
-    from hapsim.daemon.pantograph_board import BOARD, board_command
+    from hapsim.emulated.pantograph_board import BOARD, board_command
     cmd = [str(BOARD), "--plant-test"] + board_command(scene, 1e-8)[3:]
     text = "".join(f"{float(t1)!r} {float(t2)!r} {float(period)!r}\n" for t1, t2 in torques)
     r = subprocess.run(cmd, input=text, capture_output=True, text=True, timeout=30)
@@ -154,7 +154,7 @@ def test_follower_samples_reach_the_leader_in_order(built, scene, tmp_path, fram
     codec take the FORCE past the tick's DRIVE slot in most ticks (lockstep: the host
     answers at once), so it is applied a tick later, and the STATE says so (seq -
     force_seq = 2): the plant driven by what the STATEs name is still the one read."""
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.transport import SerialTransport
     step = None
     states, q_read = [], []
     with _board(tmp_path, scene) as (proc, port, report):
@@ -208,8 +208,8 @@ def test_follower_nack_is_refused_cleanly(built, scene, tmp_path):
     transaction after CONFIG on) is refused cleanly: the leader sends FAULT SENSOR once,
     naming the transaction NACKed, sends no armed STATE after it, and both motors stop (the
     leader's at once, the follower's by its own watchdog: nobody can reach it)."""
-    from hapsim.daemon.pantograph_board import DEVICE_ID
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.emulated.pantograph_board import DEVICE_ID
+    from hapsim.host.transport import SerialTransport
     faults, armed_after = [], 0
     with _board(tmp_path, scene, nack_after=40) as (proc, port, report):
         tr = SerialTransport(port)
@@ -258,9 +258,9 @@ def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene,
     PWM step is ~0.035 N at the handle against ~0.04 N of force at this amplitude).
     Deterministic: the same deviation bit for bit run after run."""
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.daemon.pantograph_board import JointLevelTransport, wire_term
-    from hapsim.daemon.run_nd import measure_felt_port
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
+    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.host.transport import SerialTransport
     from hapsim.lockstep_nd import felt_verdict
     a = 2e-4
     with _board(tmp_path, scene, a) as (proc, port, report):
@@ -304,7 +304,7 @@ def test_mock_firmware_on_a_2d_scene_runs_in_real_time(built, tmp_path):
     mode): HELLO, the compact frames, armed STATEs answered; its report says "realtime"
     and how the emulated clock held to the wall clock. --spin-us with --lockstep is
     refused (exit 2)."""
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.transport import SerialTransport
     report = tmp_path / "mock.json"
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "mock", "--firmware", "--scene",
                              str(SCENE), "--report", str(report), "--rt-priority", "0"],
@@ -352,7 +352,7 @@ def test_hostile_bytes_to_the_leader_are_dropped_counted_and_never_acted_on(buil
     hold the wire longer than the tick's slack: the good FORCE behind them comes late and
     the torque held meanwhile is the same, its lag (seq - force_seq) above one."""
     import random
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.transport import SerialTransport
     rng = random.Random(5)
     faults, q_read, lags, rx_err = [], [], set(), 0
     with _board(tmp_path, scene) as (proc, port, report):
@@ -402,7 +402,7 @@ def test_joint_level_transport_turns_angles_and_torques_into_the_cartesian_devic
     STATE's joint angles come out as f(q), a FORCE F answering it goes out as J(q)^T F;
     before that HELLO (or for another device) nothing is changed; a FORCE for a STATE not
     seen is an error, not a guess."""
-    from hapsim.daemon.pantograph_board import DEVICE_ID, JointLevelTransport
+    from hapsim.emulated.pantograph_board import DEVICE_ID, JointLevelTransport
     from hapsim.errors import DeviceError
     from hapsim.kinematics import device
 
@@ -519,9 +519,9 @@ def test_the_firmware_loop_is_the_quantised_model_loop(built, scene, tmp_path):
     felt damping, which the readings' rounding alone may move by 39 times itself, differs
     by 12 % after one record's rounding went the other way). What the firmware renders is what the
     quantised model renders: the stated uncertainty is the quantisers', not the firmware's."""
-    from hapsim.daemon.pantograph_board import JointLevelTransport
-    from hapsim.daemon.run_nd import measure_felt_port
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.emulated.pantograph_board import JointLevelTransport
+    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.host.transport import SerialTransport
     a = 2e-4
     with _board(tmp_path, scene, a) as (proc, port, report):
         tr = JointLevelTransport(SerialTransport(port), scene)
@@ -558,9 +558,9 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     here the Hapkit's sensor and PWM, as in lockstep). The compact frames are used (the
     leader offers them, the host asks a device whose HELLO gives a force step)."""
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.daemon.pantograph_board import JointLevelTransport, wire_term
-    from hapsim.daemon.run_nd import measure_felt_port
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
+    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.host.transport import SerialTransport
     from hapsim.lockstep_nd import felt_verdict
     a = 2e-4
     with _board(tmp_path, scene, a, realtime=True) as (proc, port, report):
@@ -624,7 +624,7 @@ def test_late_ticks_in_real_time_are_the_torques_the_states_name(built, scene, t
     account (:func:`hapsim.applied.account_from_force_seq`) counts as late exactly the
     ticks whose named FORCE is not the one before."""
     from hapsim.applied import account_from_force_seq
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.transport import SerialTransport
     import random
     rng = random.Random(11)
     N = 240

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.xdist_group("pantograph_firmware")     # one build at a
 
 @pytest.fixture(scope="module")
 def built():
-    from hapsim.daemon import board, pantograph_board
+    from hapsim.emulated import hapkit_board as board, pantograph_board
     why = board.missing_tools()
     if why:
         pytest.skip(f"emulated Hapkit pantograph: {why}")
@@ -39,7 +39,7 @@ def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, ca
     the measurable limit, the run's verdict "within" with nothing left unstated; the text
     report prints the six statements."""
     from hapsim.cli import main
-    from hapsim.daemon.pantograph_board import board_command
+    from hapsim.emulated.pantograph_board import board_command
     from hapsim.lockstep_nd import MEASURABLE_WIRE
     from hapsim.scene_nd import load_scene_nd
     scene = load_scene_nd(str(SCENE))
@@ -81,7 +81,7 @@ def test_a_board_started_at_another_amplitude_is_not_measurable_not_a_traceback(
     wire term read the incomplete result's responses and the run ended in a KeyError
     traceback (exit 1); now: exit 0, "not measurable", the reason naming the amplitude."""
     from hapsim.cli import main
-    from hapsim.daemon.pantograph_board import board_command
+    from hapsim.emulated.pantograph_board import board_command
     from hapsim.scene_nd import load_scene_nd
     scene = load_scene_nd(str(SCENE))
     proc = subprocess.Popen(board_command(scene, 2e-4), stdout=subprocess.PIPE,

@@ -134,7 +134,7 @@ def _status_table() -> str:
 def test_force_applied_tells_force_seq_0_from_none_yet():
     """PROTOCOL.md §4/§10: after CONFIG the mock's STATE seq starts at 0, so the FORCE
     answering STATE 0 has seq 0 as well; FORCE_APPLIED tells the two force_seq = 0 apart."""
-    from hapsim.daemon.mock import MockDevice
+    from hapsim.emulated.mock import MockDevice
     from hapsim.scene import Device, Excitation
 
     applied = fp.STATUS_FORCE_APPLIED

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from hapsim.daemon.realtime import RealtimePriority
+from hapsim.host.realtime import RealtimePriority
 from hapsim.errors import ConfigError
 
 linux = pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="no sched_setscheduler")
@@ -49,7 +49,7 @@ def test_out_of_range_priority_is_a_config_error(bad):
 
 @linux
 def test_run_reports_scheduling_and_restores_it():
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     before = os.sched_getscheduler(0)
     rep = run_scene(load_scene("configs/wall.yaml"), transport="pty", duration=0.2,
@@ -64,7 +64,7 @@ def test_a_lockstep_run_is_not_real_time():
     """A lockstep mock waits for each FORCE: host and mock ping-pong as fast as they can, so
     under SCHED_FIFO they would own the cores at the priority of every real-time loop of the
     machine. Neither takes it; the report says why."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     rep = run_scene(load_scene("configs/wall.yaml"), transport="pty", lockstep=True,
                     duration=0.2, handle_signals=False, rt_priority=5)
@@ -87,9 +87,9 @@ def test_the_mock_starts_under_normal_scheduling_and_takes_fifo_itself(monkeypat
     runs its tick loop under SCHED_FIFO; the host loop runs under SCHED_FIFO."""
     if not _fifo_permitted():
         pytest.skip("SCHED_FIFO not permitted here: nothing to check")
-    from hapsim.daemon import loop as loop_mod
-    from hapsim.daemon import transport
-    from hapsim.daemon.runner import run_scene
+    from hapsim.host import loop as loop_mod
+    from hapsim.host import transport
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     seen = {}
     init = transport.EmbeddedMock.__init__

@@ -1,8 +1,8 @@
 """Reliability of the daemon under injected faults, in-process on a virtual clock.
 
-Every fault of :mod:`hapsim.daemon.faults` is injected by the mock (wire faults in its byte
+Every fault of :mod:`hapsim.emulated.faults` is injected by the mock (wire faults in its byte
 path, device faults in its state machine) and seen by the host through real frames and its
-own stream decoder (:class:`~hapsim.daemon.transport.SimTransport`): deterministic and fast.
+own stream decoder (:class:`~hapsim.host.transport.SimTransport`): deterministic and fast.
 Each test checks what the device applied (the mock's per-tick trace: zero force within one
 watchdog period when the host falls silent), that the host recovered where it can, and that
 the counters say what happened. Faults about the port itself are also run over a real pty in
@@ -21,12 +21,12 @@ import pytest
 
 import firmware_protocol as fp
 from hapsim.cli import main
-from hapsim.daemon.faults import FAULT_NAMES, parse_faults
-from hapsim.daemon.loop import HostLoop, LoopConfig
-from hapsim.daemon.mock import MockDevice
-from hapsim.daemon.runner import run_scene
-from hapsim.daemon.telemetry import ChunkWriter, Telemetry, convert, load
-from hapsim.daemon.transport import SimTransport
+from hapsim.emulated.faults import FAULT_NAMES, parse_faults
+from hapsim.host.loop import HostLoop, LoopConfig
+from hapsim.emulated.mock import MockDevice
+from hapsim.pipeline.runner import run_scene
+from hapsim.host.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.host.transport import SimTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import parse_scene
@@ -147,7 +147,7 @@ def test_corrupted_bytes_are_counted_and_never_acted_on():
 
 def test_bad_frames_are_recorded_with_their_bytes_and_the_frames_before():
     """docs/design.md, rule 11: a bad frame that causes no loss leaves a record, not only a count."""
-    from hapsim.daemon.loop import BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS
+    from hapsim.host.loop import BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS
     res, mock, tr, tel = sim("corrupt=0.02,garbage=0.005", seed=4)
     dec = res.decoder
     seen = sum(v for k, v in dec.items() if k != "frames_ok")
@@ -175,7 +175,7 @@ def test_bad_frame_before_a_loss_says_so():
 
 
 def test_bad_frames_in_the_report(tmp_path):
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     rep = run_scene(parse_scene(wall()), transport="sim", duration=1.0, faults="corrupt=0.01",
                     fault_seed=5, handle_signals=False)
     lp = rep["loop"]
@@ -423,7 +423,7 @@ def test_device_back_after_a_reset_as_another_device_is_a_protocol_error(kw, mat
     """After a reset the device says HELLO as another device: the run ends with a
     ProtocolError (no reconnect attempts spent), zero force and STOP were sent, and the
     telemetry logged so far is kept."""
-    import hapsim.daemon.runner as runner_mod
+    import hapsim.pipeline.runner as runner_mod
     scene = parse_scene(wall(), str(tmp_path / "w.yaml"))
 
     made = []
@@ -449,7 +449,7 @@ def test_device_back_after_a_reset_as_another_device_is_a_protocol_error(kw, mat
 
 
 def test_protocol_error_exits_1_from_the_cli(tmp_path, capsys, monkeypatch):
-    import hapsim.daemon.runner as runner_mod
+    import hapsim.pipeline.runner as runner_mod
     path = tmp_path / "w.yaml"
     path.write_text(wall())
 
@@ -981,7 +981,7 @@ def test_journal_header_is_self_describing(tmp_path):
     assert head["dtypes"] == ["<f8", "<f8", "<f8", "<i8", "<f8", "|i1", "|u1", "<i8", "<u2"]
     assert plen == 10 * (8 * 5 + 1 + 1 + 8 + 2)
     # every column the header names is documented, in file order, with its unit
-    import hapsim.daemon.telemetry as telemetry
+    import hapsim.host.telemetry as telemetry
     doc = telemetry.__doc__.split("Columns\n-------\n")[1]
     at = [doc.index(f"``{c}`` [") for c in head["columns"]]
     assert at == sorted(at)
@@ -993,7 +993,7 @@ def test_journal_header_is_self_describing(tmp_path):
 def test_long_run_goes_round_the_ring_and_the_journal_has_every_row(tmp_path):
     """10 s at 1 kHz: memory holds the 1 s identification window and a 4 s ring, the
     journal every row; the identification (on the window) is that of a 1 s run."""
-    from hapsim.daemon.runner import RING_SECONDS
+    from hapsim.pipeline.runner import RING_SECONDS
     path = str(tmp_path / "t.hst")
     rep = run_scene(parse_scene(wall()), transport="sim", duration=10.0, telemetry=path,
                     handle_signals=False)
@@ -1021,7 +1021,7 @@ def test_a_writer_that_falls_behind_loses_rows_counted_never_blocks_the_loop(tmp
     """The writer thread stalls (an interval longer than the run) behind a loop treated as
     real-time (no drain at each half lap, as over a pty): the loop runs on, goes round the
     ring over undrained rows; the writer counts them, writes the rest, the report says so."""
-    import hapsim.daemon.runner as runner_mod
+    import hapsim.pipeline.runner as runner_mod
     monkeypatch.setattr(runner_mod, "_sync_drain", lambda writer, tel: None)
     path = str(tmp_path / "t.hst")
     rep = run_scene(parse_scene(wall()), transport="sim", duration=6.0, telemetry=path,
@@ -1033,7 +1033,7 @@ def test_a_writer_that_falls_behind_loses_rows_counted_never_blocks_the_loop(tmp
     info = {}
     seq = load(path, info=info)["seq"]
     assert np.array_equal(seq, np.r_[0:1000, 2001:6000]) and info["gaps"] == [(1000, 2001)]
-    from hapsim.daemon.runner import format_report
+    from hapsim.pipeline.runner import format_report
     assert "1001 rows LOST" in format_report(rep)
 
 
@@ -1065,7 +1065,7 @@ def test_writer_drops_a_ring_row_overwritten_while_it_copies(tmp_path):
 
 
 def test_journal_keeps_the_fault_history_and_per_sample_flags(tmp_path):
-    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LATE, FLAG_LOST, FLAG_RAMP
+    from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_LATE, FLAG_LOST, FLAG_RAMP
     path = str(tmp_path / "t.hst")
     rep = run_scene(parse_scene(wall()), transport="sim", duration=2.0, telemetry=path,
                     faults="reset@700,stall@1400:200ms,drop=0.01", fault_seed=3,
@@ -1097,8 +1097,8 @@ def test_open_ended_run_ends_on_a_stop_request(tmp_path, monkeypatch):
     """duration 0: no sample count; here the stop is requested at device tick 7000 (as a
     SIGINT handler would); the run reports, the journal has every row."""
     import signal
-    import hapsim.daemon.runner as runner_mod
-    from hapsim.daemon.loop import StopFlag
+    import hapsim.pipeline.runner as runner_mod
+    from hapsim.host.loop import StopFlag
     flag = StopFlag()
 
     class Mock(MockDevice):
@@ -1180,7 +1180,7 @@ def test_recovery_resumes_at_the_handle_of_the_new_session(device, vanish_at):
     The scene must restart at the first STATE the new CONFIG produced: seq 0, the mock's
     x0, once per loss; whether the device sets FORCE_APPLIED or not, the link loses STOPs,
     or the device answers no PING."""
-    from hapsim.daemon.telemetry import FLAG_LOST
+    from hapsim.host.telemetry import FLAG_LOST
 
     scene = parse_scene(wall())
     mock = device(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from hapsim.cli import main
-from hapsim.daemon.telemetry import load
+from hapsim.host.telemetry import load
 
 from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)
 
@@ -153,7 +153,7 @@ def test_kill_9_loses_at_most_100_ms_of_telemetry(tmp_path, wall):
 def test_kill_9_keeps_the_fault_history(tmp_path, wall):
     """A reset and a stall, then kill -9: the journal holds the losses and recoveries (the
     events, and the flagged restart rows), not only the samples."""
-    from hapsim.daemon.telemetry import FLAG_LOST
+    from hapsim.host.telemetry import FLAG_LOST
     path = str(tmp_path / "t.hst")
     p = hapsim("run", wall, "--duration", "0", "--telemetry", path, "--faults",
                "reset@300,stall@800:200ms", env={"TMPDIR": str(tmp_path)})

@@ -21,11 +21,11 @@ import pytest
 
 import firmware_protocol as fp
 from hapsim.cli import main
-from hapsim.daemon.faults import FAULT_NAMES, RX_WIRE_FAULTS, parse_faults
-from hapsim.daemon.loop import HostLoop, LoopConfig
-from hapsim.daemon.mock import MockDevice
-from hapsim.daemon.telemetry import Telemetry
-from hapsim.daemon.transport import SimTransport
+from hapsim.emulated.faults import FAULT_NAMES, RX_WIRE_FAULTS, parse_faults
+from hapsim.host.loop import HostLoop, LoopConfig
+from hapsim.emulated.mock import MockDevice
+from hapsim.host.telemetry import Telemetry
+from hapsim.host.transport import SimTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation, parse_scene

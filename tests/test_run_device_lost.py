@@ -9,8 +9,8 @@ import re
 import pytest
 
 from hapsim.cli import main
-from hapsim.daemon.runner import run_scene
-from hapsim.daemon.telemetry import load
+from hapsim.pipeline.runner import run_scene
+from hapsim.host.telemetry import load
 from hapsim.errors import DeviceError
 from hapsim.scene import load_scene
 from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)

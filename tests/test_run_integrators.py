@@ -9,7 +9,7 @@ import pytest
 from hapsim.analysis import render, LoopModel
 from hapsim.bench.methods import stability_margin
 from hapsim.cli import main
-from hapsim.daemon.runner import run_scene
+from hapsim.pipeline.runner import run_scene
 from hapsim.errors import UnstableConfigError
 from hapsim.scene import parse_scene
 

@@ -216,7 +216,7 @@ def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
     open-ended run, which a list of set values compared with (None, False) took for
     unset), is refused with exit 2 naming it, before anything runs."""
     from hapsim.commands.run_nd import ND_TAKES
-    from hapsim.daemon.options import command_line_fields
+    from hapsim.pipeline.options import command_line_fields
     scene = str(CONFIGS / "pantograph_wall.yaml")
     cases = [(["--osc", "0"], "--osc"), (["--duration", "0"], "--duration")]
     for f in command_line_fields():

@@ -67,10 +67,10 @@ class ScriptedTransport:
 
 @pytest.mark.parametrize("name", ["pantograph_wall.yaml", "delta_sphere.yaml"])
 def test_run_nd_record_makes_no_array_per_sample(name, traced):
-    """:func:`hapsim.daemon.run_nd._record`'s tick (STATE in, engine, FORCE out, the
+    """:func:`hapsim.pipeline.run_nd._record`'s tick (STATE in, engine, FORCE out, the
     record's rows) over 2-D and 3-D scenes: every tick after the first few below one
     array's transient, whatever N."""
-    from hapsim.daemon import run_nd
+    from hapsim.pipeline import run_nd
     sc = load_scene_nd(CONFIGS / name)
     eng = EngineND(sc)
     x0 = eng.x[:, eng.port]
@@ -87,7 +87,7 @@ def test_run_nd_record_makes_no_array_per_sample(name, traced):
 
 
 def test_haply2_loop_makes_no_array_per_sample(traced):
-    """:func:`hapsim.daemon.haply2_host.record_realtime`'s tick (estimate, engine,
+    """:func:`hapsim.pipeline.haply2_host.record_realtime`'s tick (estimate, engine,
     ``J^T F``, clamp, the write's bytes) with the board silent after three replies (ticks 0..2 read):
     every estimated tick below one array's transient (the ticks that read a reply add
     the port's bytes and the decoder's frames: the driver's I/O, not measured here; the
@@ -95,8 +95,8 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_haply2_realtime import WALL, ScriptedLink
 
-    from hapsim.daemon.haply2_board import Haply2DIYBoard
-    from hapsim.daemon.haply2_host import record_realtime
+    from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.pipeline.haply2_host import record_realtime
     from hapsim.drivers.haply2 import Haply2DIY
 
     class MeteredLink(ScriptedLink):
@@ -115,7 +115,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
             self.c0 = tracemalloc.get_traced_memory()[0]
             return len(data)
 
-    from hapsim.daemon.haply2_host import SILENT_S
+    from hapsim.pipeline.haply2_host import SILENT_S
     sc = load_scene_nd(WALL)
     # the silence ends before the loop re-arms the board (SILENT_S of the lockstep
     # board's periods, named: on the wall clock a loaded host re-arms sooner in ticks)
@@ -221,7 +221,7 @@ def test_the_2diy_replies_are_decoded_without_allocating(traced):
     bytes against 144), and the same angles as ``feed`` gives."""
     import math
 
-    from hapsim.daemon.haply2_board import Haply2DIYBoard
+    from hapsim.emulated.haply2_board import Haply2DIYBoard
     from hapsim.drivers.haply2 import Haply2DIY
     sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
     drv = Haply2DIY("gen3", resolution=2.0 ** 14)

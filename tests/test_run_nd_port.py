@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.daemon.mock_nd import MockDeviceND
-from hapsim.daemon.run_nd import measure_felt_port
-from hapsim.daemon.transport import InProcessTransport, SimTransport
+from hapsim.emulated.mock_nd import MockDeviceND
+from hapsim.pipeline.run_nd import measure_felt_port
+from hapsim.host.transport import InProcessTransport, SimTransport
 from hapsim.lockstep_nd import JointDeviceND, LocalJointDeviceND
 from hapsim.scene_nd import load_scene_nd
 
@@ -112,7 +112,7 @@ def test_late_ticks_are_accounted_per_axis(monkeypatch, tmp_path):
     assert res["late"] > 15
     assert res["delay"] == [2] * 5
     assert max(res["deviation"].values()) < 1e-6, res["deviation"]
-    import hapsim.daemon.run_nd as rn
+    import hapsim.pipeline.run_nd as rn
     monkeypatch.setattr(rn, "disturbance_response_nd",
                         lambda scene, W, A=None: np.zeros_like(W))
     assert max(run()["deviation"].values()) > 1e-3

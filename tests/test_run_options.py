@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from hapsim.cli import build_parser
-from hapsim.daemon.options import command_line_fields
-from hapsim.daemon.runner import RunOptions, run_scene
+from hapsim.pipeline.options import command_line_fields
+from hapsim.pipeline.runner import RunOptions, run_scene
 from hapsim.errors import ConfigError
 from hapsim.scene import load_scene
 
@@ -117,7 +117,7 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
 
     from hapsim import api
     from hapsim.cli import main
-    from hapsim.daemon import runner, startup
+    from hapsim.pipeline import runner, startup
     from hapsim.errors import DeviceError
     got = {}
     canned = api.run(WALL, lockstep=True, transport="inprocess").to_dict()

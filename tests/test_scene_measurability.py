@@ -1,6 +1,6 @@
 """Every shipped scene with a port measures what it states, or says before running what it
 cannot measure and why (issue 31, item 4); the pre-run prediction of comparability
-(hapsim/daemon/precheck.py) agrees with what the run finds.
+(hapsim/pipeline/precheck.py) agrees with what the run finds.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.daemon.options import RunOptions
-from hapsim.daemon.precheck import predict_comparable
-from hapsim.daemon.runner import prepare_run, run_scene
+from hapsim.pipeline.options import RunOptions
+from hapsim.pipeline.precheck import predict_comparable
+from hapsim.pipeline.runner import prepare_run, run_scene
 from hapsim.scene import load_scene, parse_scene
 from hapsim.scene_nd import scene_dimension
 

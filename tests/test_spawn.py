@@ -1,6 +1,6 @@
 """hapsim.spawn.PtyChild: the host's side of an embedded mock's child process (its end and
-its report), shared by hapsim.daemon.transport.EmbeddedMock and
-hapsim.driver_mock.EmbeddedDriverMock."""
+its report), shared by hapsim.host.transport.EmbeddedMock and
+hapsim.emulated.driver_mock.EmbeddedDriverMock."""
 
 from __future__ import annotations
 

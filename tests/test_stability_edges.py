@@ -97,7 +97,7 @@ def _closed_loop(hold, d, K, B, rate, n, b0=0.5):
     ``F[n] = -K x[n] - B (x[n] - x[n-1]) / T``), not the engine: a refused calibration may
     ask for K < 0, which no valid scene holds, and the engine in the loop is covered by
     ``test_boundary_through_the_daemon_lockstep_path``."""
-    from hapsim.daemon.mock import MockPhysics
+    from hapsim.emulated.mock import MockPhysics
 
     dev = Device(mass=M, friction=b0, delay=d, hold=hold)
     plant = MockPhysics(dev, rate, Excitation(x0=X0))
@@ -246,8 +246,8 @@ def test_boundary_through_the_daemon_lockstep_path(tmp_path):
     """The real lockstep path (run_scene: codec, host loop, in-process MockDevice) at 0.99x
     and 1.01x K_max: refused beyond without allow_unstable; with it, decays inside and grows
     outside, and the identified (k, b) equal the prediction (b < 0 outside)."""
-    from hapsim.daemon.runner import run_scene
-    from hapsim.daemon.telemetry import load_telemetry
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.host.telemetry import load_telemetry
     from hapsim.errors import UnstableConfigError
 
     loop = LoopModel(M, 0.5, 1000.0, 1, "zoh")

@@ -19,10 +19,10 @@ import pytest
 from scipy.optimize import brentq
 
 from hapsim.analysis.ths import brent_root
-from hapsim.daemon.loop import HostLoop, LoopConfig
-from hapsim.daemon.mock import MockDevice
-from hapsim.daemon.telemetry import Telemetry
-from hapsim.daemon.transport import InProcessTransport
+from hapsim.host.loop import HostLoop, LoopConfig
+from hapsim.emulated.mock import MockDevice
+from hapsim.host.telemetry import Telemetry
+from hapsim.host.transport import InProcessTransport
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
@@ -48,7 +48,7 @@ def test_run_path_imports_neither_scipy_optimize_nor_other_commands():
 import json, sys
 from hapsim.cli import build_parser
 args = build_parser("run").parse_args(["run", {WALL!r}])
-from hapsim.daemon.runner import RunOptions, prepare_run
+from hapsim.pipeline.runner import RunOptions, prepare_run
 from hapsim.scene import load_scene
 prep = prepare_run(load_scene(args.scene), RunOptions().check())
 print(json.dumps({{"stiffness_limit": prep.pred["stiffness_limit"],
@@ -68,7 +68,7 @@ def test_warm_up_loads_numba_without_scipy_linalg_and_blas_still_works():
     got = _python(f"""
 import json, sys
 import numpy as np
-from hapsim.daemon.startup import preload_numba_blas
+from hapsim.pipeline.startup import preload_numba_blas
 from hapsim.engine import warm_up
 from hapsim.scene import load_scene
 ok = preload_numba_blas()
@@ -168,8 +168,8 @@ def test_before_arm_runs_after_hello_before_ping_and_config(stop_during_warm_up)
 def test_first_sample_reported_after_process_start():
     """``loop.first_sample_s`` is the first armed STATE on the process's clock: after the
     process started and no later than now."""
-    from hapsim.daemon.runner import run_scene
-    from hapsim.daemon.startup import process_start
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.pipeline.startup import process_start
     rep = run_scene(load_scene(WALL), lockstep=True, transport="inprocess", duration=0.05,
                     handle_signals=False)
     age = time.monotonic() - process_start()
@@ -181,8 +181,8 @@ def test_first_sample_reported_after_process_start():
 def test_cache_folder_is_the_one_numba_uses():
     """:func:`numba_cache_dir` finds, without numba, the folder numba's own locator caches
     a compiled function of hapsim in (the kernels and the compiled loop)."""
-    from hapsim.daemon import fastloop
-    from hapsim.daemon.startup import numba_cache_dir
+    from hapsim.host import fastloop
+    from hapsim.pipeline.startup import numba_cache_dir
     from hapsim.kernels import cordis
     for disp in (cordis.run_sd, fastloop._stretch):
         numba_dir = disp._cache._cache_path
@@ -193,7 +193,7 @@ def test_cache_folder_is_the_one_numba_uses():
 def test_cache_freshness_follows_the_index_and_the_source(tmp_path, monkeypatch):
     """A function is fresh once an index newer than its module exists; editing the module
     (a newer modification time) makes it stale again, as numba's own stamp does."""
-    from hapsim.daemon.startup import cache_is_fresh, numba_cache_dir
+    from hapsim.pipeline.startup import cache_is_fresh, numba_cache_dir
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     src = tmp_path / "pkg" / "kern.py"
     src.parent.mkdir()
@@ -218,7 +218,7 @@ def test_cold_cache_is_announced_before_numba_is_imported(tmp_path, monkeypatch)
     cache = tmp_path / "cache"
     code = f"""
 import json, sys, io
-from hapsim.daemon import startup
+from hapsim.pipeline import startup
 err = io.StringIO()
 from hapsim.scene import load_scene
 scene = load_scene({WALL!r})
@@ -242,7 +242,7 @@ print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
     assert second.startswith("hapsim run: compiling the compiled host loop with numba")
     assert str(cache) in first and str(cache) in second
     # the same parts with their indexes written after the sources: nothing to say
-    from hapsim.daemon import startup
+    from hapsim.pipeline import startup
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     for part in startup.run_compile_parts(load_scene(WALL), compiled_loop=True):
         for src, fn in startup.part_functions(part):
@@ -261,7 +261,7 @@ print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
 def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
     """``--loop auto`` takes the compiled loop only when its stamp for the scene's kernel is
     newer than the loop's and the kernel's modules; another kernel's stamp does not count."""
-    from hapsim.daemon import startup
+    from hapsim.pipeline import startup
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     wall, string = load_scene(WALL), load_scene(str(REPO / "configs" / "string.yaml"))
     assert startup.scene_kernel(wall)[1] == "run_sd"
@@ -283,7 +283,7 @@ def test_auto_loop_follows_the_stamp_of_the_scene_kernel(tmp_path, monkeypatch):
 def test_compiled_loop_possible_matches_what_the_runner_would_run():
     """The options that keep the Python loop (the runner's python_reason) are the ones
     for which the compiled loop is neither announced nor compiled."""
-    from hapsim.daemon.startup import compiled_loop_possible
+    from hapsim.pipeline.startup import compiled_loop_possible
     wall = load_scene(WALL)
     assert compiled_loop_possible(wall)
     assert not compiled_loop_possible(wall, framed=False)
@@ -300,7 +300,8 @@ def test_first_run_without_the_compiled_loop_uses_python_then_compiles_it(
     compiled loop after the report, for the scene's kernel; with it in the cache, nothing
     is compiled after the run."""
     from hapsim.cli import main
-    from hapsim.daemon import fastloop, startup
+    from hapsim.host import fastloop
+    from hapsim.pipeline import startup
     compiled = []
     monkeypatch.setattr(fastloop, "warm_up", lambda eng: compiled.append(eng) or 0.0)
     monkeypatch.setattr(startup, "loop_is_fresh", lambda scene: False)

@@ -398,7 +398,7 @@ def test_lockstep_run_measures_the_split_hold(d):
     """run --lockstep closes the loop on the mock device, whose physics applies each force
     f T into the period (hapsim.device_model.MockPhysics, integrated sub-interval by
     sub-interval, not from the analysis): measured = render's (k, b)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import parse_scene
     m, b0, rate = 0.05, 0.1, 250.0
     loop = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
@@ -468,13 +468,13 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
 def test_firefader_with_its_own_adc_timing_is_predicted_by_the_real_delay():
     """configs/firefader.yaml run through the FireFader's bytes on its driver mock, the
     board keeping its own pass timing (the .ino sets the PWM at the packet and reads the
-    fader 1.1 ms later: hapsim.driver_mock.FireFaderDevice(adc_s=1.1e-3), which ignores the
+    fader 1.1 ms later: hapsim.emulated.driver_mock.FireFaderDevice(adc_s=1.1e-3), which ignores the
     scene's delay): the scene's d = 1 - 1.1/4 = 0.725 predicts the measured (k, b) within
     the run's stated uncertainty, and the measured b lies outside that uncertainty of the
     whole delay's prediction (the issue's +11 to +16 %)."""
     import dataclasses
 
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     import pathlib
     sc = load_scene(str(pathlib.Path(__file__).resolve().parents[1] / "configs"
@@ -544,7 +544,7 @@ def test_lockstep_scenes_with_a_virtual_mass_are_predicted(seed):
     delays: the lockstep run (the numba engine and the mock device's split hold, sample by
     sample) measures what check's scene matrix predicts, within the run's own interval."""
     from hapsim.analysis import check_scene
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import parse_scene
     rng = np.random.default_rng(7000 + seed)
     for _ in range(50):

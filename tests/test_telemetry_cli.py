@@ -13,7 +13,7 @@ import pytest
 
 from hapsim.cli import main
 from hapsim.commands.telemetry import felt_energy
-from hapsim.daemon.telemetry import COLUMNS, FLAG_LOST, load, write_journal
+from hapsim.host.telemetry import COLUMNS, FLAG_LOST, load, write_journal
 
 #: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
 #: one worker.
@@ -28,12 +28,12 @@ def faulted(tmp_path_factory):
     """One run of the real-time mock with seeded faults, on the simulated transport: its
     journal and report.
 
-    The mock's virtual clock (:class:`hapsim.daemon.transport.SimTransport`) makes the run
+    The mock's virtual clock (:class:`hapsim.host.transport.SimTransport`) makes the run
     the same on a quiet machine and under load: on the embedded mock behind a pty, a
     loaded machine makes the host fall behind, the backlog policy skips STATEs, and the
     journal then lacks rows the run's own passivity observer saw (its energy differed by
     28 % on a loaded machine). The journal's writer is the same as with a pty."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     d = tmp_path_factory.mktemp("tel")
     hst = str(d / "run.hst")

@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.daemon.fastloop import CompiledHostLoop
-from hapsim.daemon.loop import HostLoop
+from hapsim.host.fastloop import CompiledHostLoop
+from hapsim.host.loop import HostLoop
 from hapsim.kernels.ticks import late_ticks, named_delay, tick_late
 from test_compiled_loop import chunked, run_loop  # same directory (pytest prepend mode)
 

@@ -23,7 +23,7 @@ import pytest
 import firmware_protocol as fp
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
-from hapsim.daemon.mock import MockDevice
+from hapsim.emulated.mock import MockDevice
 from hapsim.scene import Device, Excitation, parse_scene
 from tolerance import rel_tol
 from pty_device import PtyDevice
@@ -115,7 +115,7 @@ def test_mock_velocity_sensor_model_quantum_and_noise():
 
 
 def test_a_reset_device_forgets_the_request():
-    from hapsim.daemon.faults import FaultPlan, FaultyDevice
+    from hapsim.emulated.faults import FaultPlan, FaultyDevice
     dev = Device(mass=0.1, friction=0.5, delay=1, hold="zoh", force_limit=100.0)
     m = MockDevice(dev, Excitation(x0=0.004), lockstep=False)
     fd = FaultyDevice(m, FaultPlan())
@@ -139,7 +139,7 @@ def test_lockstep_velocity_sensor_over_the_wire_measured_equals_predicted(body, 
     """Lockstep, the correction fed by the VELOCITY frames only (no in-process shortcut:
     over the pty the mock is another process): measured (k, b) == render to 1e-6, one
     VELOCITY per STATE, none missing, no unknown frame."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     sc = parse_scene(scene_text(body))
     rep = run_scene(sc, transport=transport, lockstep=True, handle_signals=False,
                     duration=1.0)
@@ -158,7 +158,7 @@ def test_lockstep_velocity_sensor_over_the_wire_measured_equals_predicted(body, 
 def test_the_wire_velocity_is_what_the_correction_uses(monkeypatch):
     """A mock whose velocity sensor reads 0 makes the velocity_sensor wall a pure spring:
     the damping felt drops far below the prediction (the value on the wire is used)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     orig = MockDevice.frames
 
     def zero_velocity(self, state):
@@ -176,7 +176,7 @@ def test_the_wire_velocity_is_what_the_correction_uses(monkeypatch):
 def test_real_time_pty_run_reads_the_velocity_frames():
     """Real time over the pty (the mock ticks on its clock): every STATE answered had its
     VELOCITY (a pty loses nothing), and the loop ran to its end. No timing asserted."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     sc = parse_scene(scene_text(RIGID))
     rep = run_scene(sc, transport="pty", lockstep=False, handle_signals=False, duration=0.5,
                     rt_priority=0)
@@ -190,7 +190,7 @@ def test_a_reset_device_is_asked_again_when_the_loop_recovers():
     """A device reset mid-run (virtual clock, fault ``reset@400``) forgets the request; the
     loop's recovery asks again before CONFIG, so every STATE answered after it has its
     VELOCITY too (none missing) and the run goes to its end."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     sc = parse_scene(scene_text(RIGID))
     rep = run_scene(sc, transport="sim", lockstep=False, handle_signals=False, duration=1.0,
                     faults="reset@400")
@@ -204,7 +204,7 @@ def test_link_check_counts_the_velocity_frame():
     """LINK rule with VELOCITY enabled: a STATE (31 bytes) and a VELOCITY (17 bytes) go up
     each tick, so at 115200 baud 8N1 250 Hz (under the 297 Hz of STATE alone) is refused for
     a velocity_sensor loop, naming the 48 bytes and 192 Hz, and accepted for a plain one."""
-    from hapsim.daemon.loop import HostLoop, LoopConfig, MeasuredVelocity
+    from hapsim.host.loop import HostLoop, LoopConfig, MeasuredVelocity
     from hapsim.errors import ConfigError
 
     class _Tr:
@@ -286,7 +286,7 @@ def test_compiled_equals_python_on_a_recorded_stream_with_velocity(seed):
     the clean ones in its stretch and both loops send the same forces, log the same
     telemetry and report the same counters, bit for bit; the compiled count of samples is
     not inflated by the VELOCITY frames."""
-    from hapsim.daemon.fastloop import warm_up
+    from hapsim.host.fastloop import warm_up
     h = _compiled_helpers()
     warm_up(h.Engine(h.prepare_scene(h.load_scene(h.WALL))[0]))   # compiled before the run
     rng = np.random.default_rng(seed)

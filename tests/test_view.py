@@ -242,8 +242,8 @@ def test_measure_record_is_the_reports_measurement(tmp_path):
 
     import hapsim
     from hapsim.api import load_scene
-    from hapsim.daemon.options import RunOptions
-    from hapsim.daemon.runner import prepare_run
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
     from hapsim.view.sources import measure_record
     with open(os.path.join(ROOT, "configs", "wall.yaml"), encoding="utf-8") as fh:
         text = fh.read()

@@ -1,7 +1,7 @@
 """Emulated devices keep their own time (issue 29 item 1).
 
 A board does not wait for its host: its motor holds the last force while the wall clock
-runs. The driver mocks (:mod:`hapsim.driver_mock`) therefore integrate their physics over
+runs. The driver mocks (:mod:`hapsim.emulated.driver_mock`) therefore integrate their physics over
 the real time between the host's bytes (``clock="wall"``, their default), apply each
 firmware's own silence rule on that clock and answer as late as the board does; lockstep
 (one period per command) is a mode a test asks for by name.
@@ -26,7 +26,7 @@ import time
 import numpy as np
 import pytest
 
-from hapsim.driver_mock import FireFaderDevice, HapkitSerialDevice
+from hapsim.emulated.driver_mock import FireFaderDevice, HapkitSerialDevice
 from hapsim.drivers import firefader as ff
 from hapsim.drivers import hapkit_serial as hk
 from hapsim.scene import Device, Excitation
@@ -180,7 +180,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
     50 us pass per command before it, and the write after it is answered then."""
     import copy
 
-    from hapsim.daemon.haply2_board import PASS_S, SETUP_S, Haply2DIYBoard
+    from hapsim.emulated.haply2_board import PASS_S, SETUP_S, Haply2DIYBoard
     from hapsim.drivers.haply import CommandDecoder
     from hapsim.drivers.haply2 import Haply2DIY
     from hapsim.scene_nd import load_scene_nd
@@ -215,7 +215,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
 
 
 def _homed_falcon(clock):
-    from hapsim.daemon.falcon_device import FalconDevice, home, load_firmware
+    from hapsim.emulated.falcon_device import FalconDevice, home, load_firmware
     from hapsim.scene_nd import load_scene_nd
     from pathlib import Path
     sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "delta_sphere.yaml")
@@ -260,7 +260,7 @@ def test_falcon_through_pyftdi_is_paced_by_its_firmware_ticks():
     """The real pyftdi above the emulated FT232R, the Falcon on its own clock: the loop
     cannot run faster than the firmware's ticks (a lockstep device let it run as fast as
     the host could), and the readings are the encoders' true counts at their ticks."""
-    from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
+    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
     from hapsim.scene_nd import load_scene_nd
     from pathlib import Path
     sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "delta_sphere.yaml")
@@ -333,7 +333,7 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
     unloaded, tests/test_drivers.py asserts the FireFader's quantiser bound.
     (The framed mock is real time by default: tests/test_daemon_pty.py; the 2DIY and the
     Falcon on their own clocks: tests/test_haply2_realtime.py, the Falcon tests below.)"""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     from pathlib import Path
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / f"{config}.yaml"))
@@ -368,7 +368,7 @@ def test_a_host_pause_moves_the_fader_as_the_held_force_over_real_time():
     import socket
     import threading
 
-    from hapsim.driver_mock import serve
+    from hapsim.emulated.driver_mock import serve
     m, b = 0.05, 0.1
     dev = FireFaderDevice(Device(mass=m, friction=b, delay=0.725, force_limit=10.0),
                           250.0, Excitation())

@@ -92,7 +92,7 @@ def test_a_disturbance_never_decides_a_records_side(monkeypatch):
     decaying; a disturbed record without identification is repeated, not called growing,
     and undecided if every attempt is disturbed; an undisturbed one that ran into a limit
     after MIN_GROWTH_TICKS grew."""
-    import hapsim.daemon.runner as runner
+    import hapsim.pipeline.runner as runner
     from hapsim.analysis.zwidth import MIN_GROWTH_TICKS, RECORD_ATTEMPTS
     from hapsim.commands.zwidth import DEFAULT_DEVICE, run_measure
     from hapsim.scene import parse_scene
@@ -212,8 +212,8 @@ def test_run_states_the_late_forces_bound_that_zwidth_decides_on():
     from hapsim.analysis.ths import stability_limit
     from hapsim.analysis.zwidth import device_loop, record_side, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
-    from hapsim.daemon import mock as mock_mod
-    from hapsim.daemon import runner
+    from hapsim.emulated import mock as mock_mod
+    from hapsim.pipeline import runner
     from hapsim.scene import parse_scene
 
     late = frozenset(range(77, 84)) | frozenset(range(231, 234))
@@ -247,7 +247,7 @@ def test_emulated_firmware_measures_the_limit_within_10_percent(capsys):
     limit is within the 10 % target of the linear prediction and the device is said to follow
     it. Not to round-off: the firmware computes the force in its own fixed point, drives a
     PWM and reads a 17.6 um encoder (docs/zwidth.md)."""
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     why = board.missing_tools()
     if why:
         print(f"test_zwidth: skipped: {why}")

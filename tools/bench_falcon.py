@@ -30,7 +30,7 @@ IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 4000, dtype=np.uint8))
 
 
 def _rate(make_link, scene, packets):
-    from hapsim.daemon.falcon_run import run_falcon
+    from hapsim.pipeline.falcon_run import run_falcon
     link, dev = make_link()
     try:
         res = run_falcon(scene, link, IMAGE, packets, truth=dev.counts, timeout=0.005)
@@ -46,8 +46,8 @@ def main(argv=None) -> int:
     ap.add_argument("--packets", type=int, default=2000)
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench_falcon.json"))
     a = ap.parse_args(argv)
-    from hapsim.daemon.falcon_device import EmulatorLink, FalconDevice, load_firmware
-    from hapsim.daemon.falcon_run import emulated_falcon
+    from hapsim.emulated.falcon_device import EmulatorLink, FalconDevice, load_firmware
+    from hapsim.pipeline.falcon_run import emulated_falcon
     from hapsim.drivers import falcon as fa
     from hapsim.kinematics import device
     from hapsim.scene_nd import load_scene_nd

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import firmware_protocol as fp  # noqa: E402
-from hapsim.daemon import board  # noqa: E402
+from hapsim.emulated import hapkit_board as board  # noqa: E402
 from provenance import portable_path  # noqa: E402  (tools/, beside this file)
 
 

@@ -8,8 +8,8 @@ STATEs on a pty master, timestamps every answer; the device-side round trip and 
 ticks are its own measurements):
 
 * **floor**: a C echo on the slave (read -> write back the same bytes);
-* **python**: :class:`hapsim.daemon.loop.HostLoop` (the reference loop);
-* **compiled**: :class:`hapsim.daemon.fastloop.CompiledHostLoop`.
+* **python**: :class:`hapsim.host.loop.HostLoop` (the reference loop);
+* **compiled**: :class:`hapsim.host.fastloop.CompiledHostLoop`.
 
 Printed: host turnaround p50/p99 (read returned -> write returned) and device-side round
 trip p50/p99 at 1 kHz, with the ratios to the floor (targets: turnaround within 2x,
@@ -23,8 +23,8 @@ measured while others work.
 ``--sim``: the older per-sample cost on the in-process virtual clock (below).
 Benchmark of the host loop's per-sample cost, both clocks (a program, not a test).
 
-Runs :class:`hapsim.daemon.loop.HostLoop` on the in-process virtual-clock transport
-(:class:`~hapsim.daemon.transport.SimTransport` around the real-time mock, no faults) for
+Runs :class:`hapsim.host.loop.HostLoop` on the in-process virtual-clock transport
+(:class:`~hapsim.host.transport.SimTransport` around the real-time mock, no faults) for
 N samples of the wall scene of the reliability tests, device-clocked and host-clocked,
 and prints the wall time per sample [us], best of R runs. Measured in the same run, as
 baselines:
@@ -36,7 +36,7 @@ baselines:
 
 ``own`` is the loop minus both baselines: what the host loop itself adds per sample
 (checks, passivity observer, clamp, telemetry row, safety bounds); ``x rt`` is the loop
-over the round trip. With ``--ref REV`` the ``hapsim/daemon/loop.py`` of git revision REV
+over the round trip. With ``--ref REV`` the ``hapsim/host/loop.py`` of git revision REV
 is loaded as a second module and timed in the same run, interleaved with the current one,
 and the ratios current / REV are printed (the figure a refactor of the loop is judged by).
 
@@ -75,10 +75,10 @@ sys.path.insert(0, str(REPO))
 
 import firmware_protocol as fp  # noqa: E402
 from provenance import command_line  # noqa: E402  (tools/, beside this file)
-from hapsim.daemon import loop as loop_mod  # noqa: E402
-from hapsim.daemon.mock import MockDevice  # noqa: E402
-from hapsim.daemon.telemetry import Telemetry  # noqa: E402
-from hapsim.daemon.transport import SimTransport  # noqa: E402
+from hapsim.host import loop as loop_mod  # noqa: E402
+from hapsim.emulated.mock import MockDevice  # noqa: E402
+from hapsim.host.telemetry import Telemetry  # noqa: E402
+from hapsim.host.transport import SimTransport  # noqa: E402
 from hapsim.engine import Engine  # noqa: E402
 from hapsim.scene import load_scene  # noqa: E402
 
@@ -87,7 +87,7 @@ WALL = REPO / "configs" / "wall.yaml"
 
 
 def load_ref(rev: str):
-    """``hapsim/daemon/loop.py`` at git revision ``rev``, imported as its own module.
+    """``hapsim/host/loop.py`` at git revision ``rev``, imported as its own module.
 
     Parameters
     ----------
@@ -99,11 +99,11 @@ def load_ref(rev: str):
     module
         The old loop module (its ``HostLoop``, ``LoopConfig``).
     """
-    src = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:hapsim/daemon/loop.py"],
+    src = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:hapsim/host/loop.py"],
                          check=True, capture_output=True, text=True).stdout
     path = Path(tempfile.mkdtemp(prefix="bench_loop_")) / "loop_ref.py"
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location("hapsim.daemon._loop_ref", path)
+    spec = importlib.util.spec_from_file_location("hapsim.host._loop_ref", path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod          # dataclasses look their module up
     spec.loader.exec_module(mod)
@@ -197,9 +197,9 @@ def pty_run(kind: str, rate: float, seconds: float, exe: str, tmp: Path) -> dict
         ``p99``), and for the hapsim loops ``samples``, ``skipped``, ``host_late``,
         ``stop_reason``, ``safety_stop``, ``compiled_samples``.
     """
-    from hapsim.daemon.fastloop import CompiledHostLoop
-    from hapsim.daemon.realtime import RealtimePriority
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.fastloop import CompiledHostLoop
+    from hapsim.host.realtime import RealtimePriority
+    from hapsim.host.transport import SerialTransport
 
     n = max(int(rate * seconds), 50)
     master, slave = os.openpty()
@@ -285,7 +285,7 @@ def _x(a, b) -> str:
 
 def pty_main(args) -> int:
     """The floor / Python / compiled comparison (module notes)."""
-    from hapsim.daemon.fastloop import warm_up
+    from hapsim.host.fastloop import warm_up
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_loop_"))
     exe = build_device(tmp)

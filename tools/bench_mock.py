@@ -2,10 +2,10 @@
 """Benchmark of the mock device's tick rate: the Python mock against the compiled one (a
 program, not a test).
 
-The mock runs as in ``hapsim run`` (:class:`hapsim.daemon.transport.EmbeddedMock`: a
+The mock runs as in ``hapsim run`` (:class:`hapsim.host.transport.EmbeddedMock`: a
 child process on a pty master, ``SCHED_FIFO`` 10 where permitted), once with
 ``--tick python`` and once with ``--tick compiled``, at each rate. The host is trivial and
-compiled (numba, no GIL, the COBS / CRC / FORCE encoder of :mod:`hapsim.daemon.fastloop`):
+compiled (numba, no GIL, the COBS / CRC / FORCE encoder of :mod:`hapsim.host.fastloop`):
 it answers every STATE at once with ``FORCE(seq, 0)``, so what is measured is the mock.
 Printed per rate and mock: ticks served in the run's seconds against those asked, the
 mock's own late ticks (``overruns``: woken more than half a period after its deadline),
@@ -34,10 +34,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import firmware_protocol as fp  # noqa: E402
-from hapsim.daemon.fastloop import (_CRC, _POLLIN, _c_poll, _c_read, _c_write,  # noqa: E402
+from hapsim.host.fastloop import (_CRC, _POLLIN, _c_poll, _c_read, _c_write,  # noqa: E402
                                     _cobs_decode, _crc16, _force_frame, _jit)
-from hapsim.daemon.realtime import RealtimePriority  # noqa: E402
-from hapsim.daemon.transport import EmbeddedMock  # noqa: E402
+from hapsim.host.realtime import RealtimePriority  # noqa: E402
+from hapsim.host.transport import EmbeddedMock  # noqa: E402
 from hapsim.scene import Device, Excitation  # noqa: E402
 from provenance import command_line  # noqa: E402  (tools/, beside this file)
 
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
                          "as hapsim run; the compiled tick loads before HELLO)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     args = ap.parse_args(argv)
-    from hapsim.daemon.mock import warm_up_mock
+    from hapsim.emulated.mock import warm_up_mock
     warm_up_mock()                    # numba's cache filled before the children load it
     _answer_states(-1, 1, 0, np.zeros(8, dtype=np.uint8), np.zeros(64, dtype=np.uint8),
                    np.zeros(1), np.zeros(8, dtype=np.uint8), _CRC,

@@ -43,8 +43,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import firmware_protocol as fp  # noqa: E402
-from hapsim.daemon import pantograph_board as pb  # noqa: E402
-from hapsim.daemon.transport import SerialTransport  # noqa: E402
+from hapsim.emulated import pantograph_board as pb  # noqa: E402
+from hapsim.host.transport import SerialTransport  # noqa: E402
 from hapsim.scene_nd import load_scene_nd  # noqa: E402
 from provenance import command_line  # noqa: E402  (tools/, beside this file)
 

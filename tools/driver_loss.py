@@ -12,7 +12,7 @@ human-readable lines as well. The file holds the run conditions (command, faults
 load average, CPU count), one row per run and a summary per driver (runs within, ranges).
 
 For each driver and seed, runs ``configs/<driver>.yaml`` through its mock
-(:func:`hapsim.daemon.runner.run_scene` with ``driver_faults``: seeded byte loss in both
+(:func:`hapsim.pipeline.runner.run_scene` with ``driver_faults``: seeded byte loss in both
 directions by default, host -> device and device -> host) and prints the bytes the
 link lost, the host ticks the mock's clock counted against the firmware passes it ran, the missing samples (estimated ones), re-synchronisations, the stop reason and
 the relative errors of the measured k and b against the prediction with their stated
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
                    help="JSON to stdout (bare) or to PATH")
     a = p.parse_args(argv)
     load_before = _load()
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     rows = []
     for drv in a.drivers:

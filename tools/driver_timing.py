@@ -13,13 +13,13 @@ here, ended here by their pids):
 
 - ``haply`` (Haply M3, one axis), ``firefader`` (``configs/firefader.yaml``, 250 Hz),
   ``hapkit-serial`` (``configs/hapkit_serial.yaml``): the driver's scene through
-  :func:`hapsim.daemon.runner.run_scene` and its driver's byte-exact mock on a pty, the
+  :func:`hapsim.pipeline.runner.run_scene` and its driver's byte-exact mock on a pty, the
   mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
 - ``haply2`` (2DIY, ``configs/pantograph_wall.yaml``): the real-time host loop
-  (:func:`hapsim.daemon.haply2_host.measure_felt_haply2_port`) against the emulated board
+  (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
   in process behind a link that loses bytes (seeded; the board steps one period per
   write: ``clock`` says lockstep);
-- ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.daemon.falcon_run.run_falcon`
+- ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.pipeline.falcon_run.run_falcon`
   over pyftdi and the emulated FT232R, the loss on its UART.
 
 Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
@@ -55,7 +55,7 @@ def _load():
 
 def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
     """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes)."""
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
     from hapsim.scene import load_scene
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,9 +90,9 @@ def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
 
 def run_haply2(seed: int, loss: float) -> dict:
     """One 2DIY measurement against the in-process emulated board behind a lossy link."""
-    from hapsim.daemon.haply2_board import Haply2DIYBoard
-    from hapsim.daemon.haply2_host import measure_felt_haply2_port
-    from hapsim.driver_mock import ByteFaults
+    from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+    from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.lockstep_nd import identification_plan
     from hapsim.scene_nd import load_scene_nd
     from hapsim.errors import DeviceError
@@ -137,8 +137,8 @@ def run_haply2(seed: int, loss: float) -> dict:
 
 def run_falcon_once(seed: int, loss: float) -> dict:
     """One Falcon run over the emulated FT232R with seeded loss on its UART."""
-    from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
-    from hapsim.driver_mock import ByteFaults
+    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
+    from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
     sc = load_scene_nd("configs/delta_sphere.yaml")

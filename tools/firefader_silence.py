@@ -12,11 +12,11 @@ the human-readable lines as well.
 
 For each silence length and each row it is placed after, ``configs/firefader.yaml`` is
 closed offline through hapsim's engine and the firmware's own loop
-(:func:`hapsim.driver_mock.firefader_offline_loop`: no pty, no real time), the host silent
+(:func:`hapsim.emulated.driver_mock.firefader_offline_loop`: no pty, no real time), the host silent
 that long once. A silence above 0.1 s makes the firmware zero its enable (the mock's
 sharp threshold; the host's account takes 0.08-0.14 s as either), and the force is off
 for the 5 passes the enable needs to pass its gate of 20. Each record is measured twice
-(:func:`hapsim.daemon.runner.identify_run`): with the driver's account (the gate replayed
+(:func:`hapsim.pipeline.runner.identify_run`): with the driver's account (the gate replayed
 from the host's clock) and blind (the forces sent taken as applied). The rows: whether
 the account holds the mock's applied force on every row (within its half-width), the
 rows it took out, and (k, b) against the prediction with the stated half-widths.
@@ -43,9 +43,9 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     import numpy as np
 
-    from hapsim.daemon.options import RunOptions
-    from hapsim.daemon.runner import identify_run, prepare_run
-    from hapsim.driver_mock import firefader_offline_loop
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import identify_run, prepare_run
+    from hapsim.emulated.driver_mock import firefader_offline_loop
     from hapsim.scene import load_scene
     prep = prepare_run(load_scene("configs/firefader.yaml"),
                        RunOptions(driver="firefader", rt_priority=0, handle_signals=False))

@@ -7,7 +7,7 @@ Usage::
                                         [--delays 1,0.725] [--runs 1] [--json FILE]
 
 Each run closes the scene's THS through the FireFader's bytes on its driver mock
-(:class:`hapsim.driver_mock.FireFaderDevice` with ``adc_s``: the board sets the PWM when
+(:class:`hapsim.emulated.driver_mock.FireFaderDevice` with ``adc_s``: the board sets the PWM when
 a packet comes and reads the fader ``adc`` later, whatever the scene states), with the
 scene's ``device.delay`` set to each value of ``--delays`` for the prediction. Printed per
 delay: the predicted and measured (k, b), the run's stated uncertainty on b and its
@@ -37,7 +37,7 @@ def main(argv=None) -> int:
         0.
     """
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

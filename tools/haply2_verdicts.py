@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapsim.daemon.haply2_board import measure_felt_haply2
+from hapsim.emulated.haply2_board import measure_felt_haply2
 from hapsim.kinematics import device
 from hapsim.lockstep_nd import identification_plan
 from hapsim.scene_nd import load_scene_nd

@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hapsim.daemon.realtime import sleep_until_ns  # noqa: E402
+from hapsim.host.realtime import sleep_until_ns  # noqa: E402
 
 FRAME = 16      # 8-byte stamp + 7 bytes + 0x00 [bytes]
 

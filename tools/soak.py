@@ -190,8 +190,8 @@ def main(argv=None) -> int:
     if args.faults in ("none", ""):
         args.faults = None
 
-    from hapsim.daemon.runner import run_scene
-    from hapsim.daemon.telemetry import load
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.host.telemetry import load
     from hapsim.scene import load_scene
 
     tmp = tempfile.mkdtemp(prefix="hapsim-soak-")

@@ -79,7 +79,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         (:func:`hapsim.analysis.error_response.sensor_error_response`); default: observed only.
     closed : ndarray of bool, shape (n,), optional
         Per row: every contact engaged (the state the prediction assumes;
-        :func:`hapsim.daemon.contact_replay.replay_contacts`). Rows that are not are cut out
+        :func:`hapsim.pipeline.contact_replay.replay_contacts`). Rows that are not are cut out
         as late ticks are, and only a stretch of closed rows is identified: when the
         longest is shorter than the fit needs, the result has ``comparable`` False,
         ``closed_samples`` (the longest stretch) and ``needed`` and no measurement.
@@ -290,7 +290,7 @@ def contact_verdict(measured: dict, replay, seq: np.ndarray, start: int, T: floa
     measured : dict
         :func:`identify`'s result (with ``comparable``), completed in place.
     replay : object
-        The contact replay (:func:`hapsim.daemon.contact_replay.replay_contacts`):
+        The contact replay (:func:`hapsim.pipeline.contact_replay.replay_contacts`):
         ``closed``, ``known``, ``open_link`` per row and ``reason``.
     seq : ndarray of int, shape (n,)
         The rows' sequence numbers.
@@ -356,7 +356,7 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         Rows where the scene restarted (after a recovery).
     computed : ndarray, shape (n,), optional
         The force the loop's law computed at each row before the host clamped it at the
-        force limit [N] (:func:`hapsim.daemon.contact_replay.computed_forces`). The
+        force limit [N] (:func:`hapsim.pipeline.contact_replay.computed_forces`). The
         clamp is then a known input as a late tick is: ``w`` is the applied force minus
         the computed one (without it, a record that reached the limit is the clamped,
         nonlinear loop's, and is not identified).

@@ -72,7 +72,7 @@ def closed_loop_pluck(engine: Engine, steps: int, progress=None, seed: int = 0):
     """The scene's excitation played on the mock device closed on the engine (lockstep).
 
     The hand force of ``scene.excitation`` (impulse, profile) pushes the device
-    (:class:`hapsim.daemon.mock.MockPhysics`: exact ZOH plant, quantisation, noise); every
+    (:class:`hapsim.emulated.mock.MockPhysics`: exact ZOH plant, quantisation, noise); every
     device sample the engine takes the device position, runs its N audio sub-steps and
     returns the port force, which the device applies ``d`` samples later, clamped to
     ``force_limit`` (the THS the analysis models, docs/design.md, 'The THS').

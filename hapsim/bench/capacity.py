@@ -6,7 +6,7 @@ Two measurements in the same run, at each rate:
   pty master (one frame-sized message per period on its own clock) and this process echoes
   each message with bare ``os.read``/``os.write`` on the raw slave. This is the least any
   host loop can do through a pty on this machine (no codec, no physics, no telemetry).
-- **daemon**: :func:`hapsim.daemon.runner.run_scene` on ``configs/wall.yaml`` at that rate,
+- **daemon**: :func:`hapsim.pipeline.runner.run_scene` on ``configs/wall.yaml`` at that rate,
   real-time, with the mock device in another process on a pty (``transport="pty"``); its
   loop report gives missed/late samples and the turnaround (STATE read -> FORCE written).
 
@@ -172,7 +172,7 @@ def daemon_run(rate_hz: float, duration: float = 1.0, scene_path: str | None = N
         ``rate_hz``, ``samples``, ``missed`` (missed + late samples), ``missed_pct``,
         ``turnaround_us``, ``stop_reason``; or ``{"rate_hz", "error"}`` when the run failed.
     """
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
 
     if scene_path is None:
@@ -255,7 +255,7 @@ def loop_capacity(rates=RATES, duration: float = 1.0, *, daemon: bool = True) ->
     have = False
     if daemon:
         try:
-            import hapsim.daemon.runner  # noqa: F401
+            import hapsim.pipeline.runner  # noqa: F401
             have = True
         except Exception as exc:  # pragma: no cover - depends on the tree
             out["daemon_note"] = f"daemon not available: {type(exc).__name__}: {exc}"

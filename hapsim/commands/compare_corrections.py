@@ -215,7 +215,7 @@ def passivity_time_domain(loop, K: float, B: float, *, duration: float = 2.0,
         damped), ``v_max`` [m/s], ``f_max`` [N] and the equivalent felt ``k``, ``b`` of a
         linear fit (for the nonlinear run only an indication; None when not identified).
     """
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
     from hapsim.scene import parse_scene
 
     out = {}

@@ -48,7 +48,7 @@ def register(sub) -> None:
             "  $ hapsim mock --scene configs/wall.yaml\n"
             "  PORT /dev/pts/7\n"
             "  $ hapsim run configs/wall.yaml --port /dev/pts/7     # again and again\n"
-            "faults (--faults SPEC, seeded by --fault-seed N; see hapsim.daemon.faults):\n"
+            "faults (--faults SPEC, seeded by --fault-seed N; see hapsim.emulated.faults):\n"
             "  NAME=RATE[:DUR]   at random, probability per frame sent (drop, corrupt,\n"
             "                    garbage, dup, reorder, spike), per frame received from the\n"
             "                    host (the same prefixed rx.: rx.drop, rx.corrupt,\n"
@@ -217,9 +217,9 @@ def run(args) -> int:
                         ("--spin-us", getattr(args, "spin_us", None))):
         if given:
             raise ConfigError("is an option of the emulated board (--firmware)", key=flag)
-    from hapsim.daemon.faults import mock_fault_plan, reopener
-    from hapsim.daemon.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
-    from hapsim.daemon.realtime import RealtimePriority
+    from hapsim.emulated.faults import mock_fault_plan, reopener
+    from hapsim.emulated.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
+    from hapsim.host.realtime import RealtimePriority
 
     rt = RealtimePriority(args.rt_priority)       # ConfigError (exit 2) when out of range
     plan = mock_fault_plan(args.faults, args.fault_seed, args.link)
@@ -246,21 +246,21 @@ def run(args) -> int:
         # embedded in hapsim run: the host owns the terminal; end on EOF/EIO or SIGTERM
         import signal
 
-        from hapsim.daemon.loop import StopFlag
+        from hapsim.host.loop import StopFlag
         flag = StopFlag()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
-        from hapsim.daemon.mock import AUTO_COMPILED_HZ
+        from hapsim.emulated.mock import AUTO_COMPILED_HZ
         compiled = args.tick == "compiled" or (args.tick == "auto"
                                                and mock.native_rate_hz > AUTO_COMPILED_HZ)
         if compiled and not args.lockstep and plan is None:
             # numba's loading (hundreds of ms of CPU) before SCHED_FIFO, not under it: a
             # real-time start-up starves every other real-time loop of the machine
             try:
-                from hapsim.daemon.mock import warm_up_mock
-                from hapsim.daemon.startup import preload_numba_blas
+                from hapsim.emulated.mock import warm_up_mock
+                from hapsim.pipeline.startup import preload_numba_blas
                 preload_numba_blas()
                 warm_up_mock()
             except Exception:  # noqa: BLE001 - serve_fd says why and ticks in Python
@@ -334,7 +334,7 @@ def _run_firmware(args) -> int:
     """
     import sys
 
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene
 

@@ -1,5 +1,5 @@
 """``hapsim mock --scene SCENE`` on a 2-D or 3-D scene: its device behind the framed protocol
-on a new pseudo-terminal (:class:`hapsim.daemon.mock_nd.MockDeviceND`)."""
+on a new pseudo-terminal (:class:`hapsim.emulated.mock_nd.MockDeviceND`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hapsim.errors import ConfigError
 #: The ``hapsim mock`` options (their ``argparse`` destinations) a 2-D or 3-D scene's
 #: mock takes; any other one given (not None, not False) is refused by name (exit 2).
 #: It has no sensor noise (``--seed`` has nothing to seed); its faults are the 1-D
-#: mock's (``--faults``, ``--fault-seed``, ``--link``: :mod:`hapsim.daemon.faults`).
+#: mock's (``--faults``, ``--fault-seed``, ``--link``: :mod:`hapsim.emulated.faults`).
 TAKES = frozenset({"scene", "lockstep", "rate", "report", "rt_priority", "once",
                    "amplitude", "tick", "faults", "fault_seed", "link"})
 #: ``--tick`` values it takes: its real-time ticks are Python's ("auto" picks them).
@@ -86,11 +86,11 @@ def run_mock_nd(args, new_pty) -> int:
         An option the n-D mock does not take; a scene without a port and device; a bad
         amplitude, rate or fault SPEC; a ``vanish`` fault without ``--link`` (exit 2).
     """
-    from hapsim.daemon.faults import mock_fault_plan, reopener
-    from hapsim.daemon.loop import StopFlag
-    from hapsim.daemon.mock import serve_fd
-    from hapsim.daemon.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
-    from hapsim.daemon.realtime import RealtimePriority
+    from hapsim.emulated.faults import mock_fault_plan, reopener
+    from hapsim.host.loop import StopFlag
+    from hapsim.emulated.mock import serve_fd
+    from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
+    from hapsim.host.realtime import RealtimePriority
     from hapsim.scene_nd import load_scene_nd
     if getattr(args, "firmware", False):
         return run_pantograph_firmware(args)
@@ -189,7 +189,7 @@ def refuse_untaken_firmware(args) -> None:
 def run_pantograph_firmware(args) -> int:
     """``hapsim mock --firmware --scene SCENE [--lockstep]`` on a 2-D pantograph scene:
     build what is missing and become the emulated Hapkit pantograph
-    (:mod:`hapsim.daemon.pantograph_board`: our firmware on two ATmega328P on one TWI bus),
+    (:mod:`hapsim.emulated.pantograph_board`: our firmware on two ATmega328P on one TWI bus),
     which prints ``PORT /dev/pts/N``; in real time (the default: the emulated clock locked
     to the wall clock, SCHED_FIFO at ``--rt-priority``, default 10, where permitted) or in
     lockstep (the emulated clock waits for each FORCE).
@@ -199,7 +199,7 @@ def run_pantograph_firmware(args) -> int:
     args : argparse.Namespace
         ``scene``, ``lockstep``, ``amplitude`` [m] (default :data:`FIRMWARE_AMPLITUDE`),
         ``report``, ``link``, ``spin_us`` (real time; default
-        :data:`hapsim.daemon.pantograph_board.SPIN_US`), ``rt_priority``.
+        :data:`hapsim.emulated.pantograph_board.SPIN_US`), ``rt_priority``.
 
     Returns
     -------
@@ -213,7 +213,7 @@ def run_pantograph_firmware(args) -> int:
         An option it does not take (``--spin-us`` or ``--rt-priority`` with
         ``--lockstep``); not a pantograph scene; a bad amplitude (exit 2).
     """
-    from hapsim.daemon import pantograph_board as pb
+    from hapsim.emulated import pantograph_board as pb
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
     if args.lockstep and args.rt_priority == 0:

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``hapsim play``.
 
     SIGINT and SIGTERM are handled from the start until the report is made (as ``hapsim
-    run`` does, :mod:`hapsim.daemon.runner`): they end the loop at its next sample, and the
+    run`` does, :mod:`hapsim.pipeline.runner`): they end the loop at its next sample, and the
     report covers what was played (``stop_reason``: ``signal SIGINT``/``signal SIGTERM``).
 
     Parameters
@@ -143,8 +143,8 @@ def run(args: argparse.Namespace) -> int:
         stopped calling back (the report then covers what was played);
         2 on bad input (raised as ConfigError).
     """
-    from hapsim.daemon.loop_types import StopFlag
-    from hapsim.daemon.play import stop_on_signals
+    from hapsim.host.loop_types import StopFlag
+    from hapsim.pipeline.play import stop_on_signals
     stop = StopFlag()
     with stop_on_signals(stop):
         return _play(args, stop)
@@ -152,11 +152,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _play(args: argparse.Namespace, stop) -> int:
     """The play itself (:func:`run`, its signal handlers in place); ``stop`` is the
-    :class:`~hapsim.daemon.loop_types.StopFlag` they set:
-    :func:`hapsim.daemon.play.play_scene`, its report printed (``--json``: one object;
-    else :func:`hapsim.daemon.play.play_text`), a refusal before playing printed on
+    :class:`~hapsim.host.loop_types.StopFlag` they set:
+    :func:`hapsim.pipeline.play.play_scene`, its report printed (``--json``: one object;
+    else :func:`hapsim.pipeline.play.play_text`), a refusal before playing printed on
     stderr (exit 1)."""
-    from hapsim.daemon.play import play_scene, play_text
+    from hapsim.pipeline.play import play_scene, play_text
     from hapsim.errors import DeviceError, UnstableConfigError
     try:
         code, report = play_scene(args, stop)

@@ -129,7 +129,7 @@ reliability: bad frames are counted and dropped; silence for --lost-timeout (def
   chunked journal written every 50 ms from a ring buffer by a writer thread (a killed
   daemon loses < 100 ms, and the journal also holds the loss/recovery events and a
   per-sample flags column: late, lost, ramp, clamped; load it with
-  hapsim.daemon.telemetry.load); with .npz/.csv the journal is FILE.hst until the end.
+  hapsim.host.telemetry.load); with .npz/.csv the journal is FILE.hst until the end.
 open-ended runs: --duration 0 runs until SIGINT/SIGTERM; memory holds the
   identification window at the start and a 4 s ring, the journal holds every sample.
 faults (embedded mock): --faults SPEC --fault-seed N, SPEC items NAME=RATE[:DUR] (drop,
@@ -172,7 +172,7 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The sub-parsers action of ``hapsim``'s parser; ``run``'s ``func`` is :func:`run`.
     """
-    from hapsim.daemon.options import add_run_arguments
+    from hapsim.pipeline.options import add_run_arguments
     from hapsim.drivers import DRIVERS, get_driver
     limits = "\n".join("  " + line for name in DRIVERS if name != "framed"
                        for line in get_driver(name).limits.splitlines())
@@ -197,7 +197,7 @@ def register(sub) -> None:
             "--device", metavar="FILE.yaml",
             help="device section from a file (e.g. written by 'hapsim identify --out'); "
                  "replaces the scene's (said on stderr)")
-    # the run's options, each declared once in hapsim.daemon.options.RunOptions
+    # the run's options, each declared once in hapsim.pipeline.options.RunOptions
     add_run_arguments(p, after={"seed": auto, "driver": device})
     p.add_argument("--amplitude", type=declared("run_nd", "amplitude"), metavar="M",
                    help="2-D or 3-D scene: the free responses' amplitude [m] (default "
@@ -325,12 +325,12 @@ def run(args) -> int:
         raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
                           "2DIY's two wire generations)", key="--generation")
 
-    from hapsim.daemon.options import RunOptions
+    from hapsim.pipeline.options import RunOptions
     opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading
     scene = load_scene(args.scene)
     if getattr(args, "device", None):
         scene = _replace_device(scene, args.device)
-    from hapsim.daemon import startup
+    from hapsim.pipeline import startup
     # an empty numba cache: say what is compiled (once the scene is read: a bad scene gets
     # its one-line error alone) before the silence it costs
     startup.reset_announcements()
@@ -372,7 +372,7 @@ def run(args) -> int:
     embedded = None
     if opts.port is None and protocol == "framed":
         # the mock's child starts now, beside the imports and the warm-up that follow
-        from hapsim.daemon.startup import start_embedded_mock
+        from hapsim.pipeline.startup import start_embedded_mock
         embedded = start_embedded_mock(scene, rate_hz=opts.rate_hz, lockstep=opts.lockstep,
                                        seed=opts.seed, faults=opts.faults,
                                        fault_seed=opts.fault_seed,
@@ -412,7 +412,7 @@ def _compile_loop_for_next_runs(scene) -> None:
           file=sys.stderr, flush=True)
     try:
         from hapsim.analysis.targets import apply_targets
-        from hapsim.daemon.fastloop import warm_up
+        from hapsim.host.fastloop import warm_up
         from hapsim.engine import Engine
         warm_up(Engine(apply_targets(scene)[0]))
     except KeyboardInterrupt:

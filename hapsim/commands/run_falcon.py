@@ -1,7 +1,7 @@
 """``hapsim run SCENE --driver falcon --firmware FILE [--port URL]``: a 3-D delta scene's
 loop closed on a Novint Falcon over its USB link (pyftdi), or, without ``--port``, on the
 emulated Falcon behind an emulated FT232R under the same pyftdi code
-(:mod:`hapsim.daemon.falcon_run`)."""
+(:mod:`hapsim.pipeline.falcon_run`)."""
 
 from __future__ import annotations
 
@@ -66,12 +66,12 @@ def run_falcon_command(args) -> int:
         No or an unreadable ``--firmware``, a refused option, a bad ``--port``, a scene
         that is not 3-D with a delta device (exit 2).
     """
-    from hapsim.daemon.falcon_run import emulated_falcon, run_falcon
+    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     from hapsim.scene_nd import load_scene_nd
-    from hapsim.daemon.options import command_line_fields
+    from hapsim.pipeline.options import command_line_fields
     defaults = {f.name: f.metadata["cli"]["cli_default"] for f in command_line_fields()}
     for flag, attr, why in _REFUSED:
         v = getattr(args, attr, None)

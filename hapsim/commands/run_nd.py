@@ -1,7 +1,7 @@
 """``hapsim run`` on a 2-D or 3-D scene: the felt matrices measured and compared with the
 prediction, and the linearisation bound. ``--lockstep``: the loop closed in-process;
 ``--port PORT``: over the framed protocol with an n-axis device, in real time (late ticks
-accounted per axis, :mod:`hapsim.daemon.run_nd`); neither: the same over the embedded n-D
+accounted per axis, :mod:`hapsim.pipeline.run_nd`); neither: the same over the embedded n-D
 mock (``hapsim mock --scene SCENE --once``) in a child process behind a pty."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-#: The run options (:class:`hapsim.daemon.options.RunOptions` fields) an n-D run takes;
+#: The run options (:class:`hapsim.pipeline.options.RunOptions` fields) an n-D run takes;
 #: every other one set to anything but its default is refused by name, with exit 2
 #: (``--driver`` takes ``haply`` on a pantograph scene: the emulated 2DIY board).
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
@@ -26,8 +26,8 @@ _REFUSED = (("device", "--device"), ("auto", "--auto"))
 
 def _refuse_options(args) -> None:
     """Refuse every option the n-D run does not take (module constants), by its flag, and
-    check the ones it takes by their declarations (:func:`hapsim.daemon.options.option`)."""
-    from hapsim.daemon.options import command_line_fields
+    check the ones it takes by their declarations (:func:`hapsim.pipeline.options.option`)."""
+    from hapsim.pipeline.options import command_line_fields
     set_ = [opt for attr, opt in _REFUSED
             if getattr(args, attr, None) is not None and getattr(args, attr) is not False]
     for f in command_line_fields():
@@ -79,7 +79,7 @@ def run_nd(args) -> int:
     :func:`hapsim.lockstep_nd.measure_felt_lockstep`: 2n free responses of the loop
     (engine, exact ZOH device of the Cartesian mass at rest, delay line) from the handle
     displaced by ``a`` along each axis and moving along each, minus the response from
-    rest. Over a port: :func:`hapsim.daemon.run_nd.measure_felt_port`, the same records
+    rest. Over a port: :func:`hapsim.pipeline.run_nd.measure_felt_port`, the same records
     from the device's hand, each a CONFIG, with the late ticks' known disturbance
     subtracted. Then the felt matrices by vector linear prediction and the inverse
     quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
@@ -197,7 +197,7 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
-    from hapsim.daemon.run_nd import verdict_nd
+    from hapsim.pipeline.run_nd import verdict_nd
     v = verdict_nd(res)
     wire = res.get("wire")
     if wire is not None:
@@ -252,7 +252,7 @@ def print_statements(v: dict, o) -> None:
 
 
 def _measure_over_port(args, scene, a: float, n: int):
-    """:func:`hapsim.daemon.run_nd.measure_felt_port` over ``--port`` or an embedded mock.
+    """:func:`hapsim.pipeline.run_nd.measure_felt_port` over ``--port`` or an embedded mock.
 
     Returns
     -------
@@ -263,9 +263,9 @@ def _measure_over_port(args, scene, a: float, n: int):
     import gc
     import subprocess
 
-    from hapsim.daemon.realtime import RealtimePriority
-    from hapsim.daemon.run_nd import measure_felt_port
-    from hapsim.daemon.transport import SerialTransport
+    from hapsim.host.realtime import RealtimePriority
+    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.host.transport import SerialTransport
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     from hapsim.spawn import at_stop, child_env, done
@@ -273,7 +273,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     import shutil
     import tempfile
 
-    from hapsim.daemon.faults import parse_faults
+    from hapsim.emulated.faults import parse_faults
     child = None
     port = args.port
     faults = getattr(args, "faults", None)
@@ -318,7 +318,7 @@ def _measure_over_port(args, scene, a: float, n: int):
     if scene.dimension == 2 and scene.device.kind == "pantograph":
         # a joint-level pantograph (the Hapkit pantograph's firmware) says so in HELLO:
         # then its joint angles and torques are turned into the Cartesian device's
-        from hapsim.daemon.pantograph_board import JointLevelTransport
+        from hapsim.emulated.pantograph_board import JointLevelTransport
         tr = joint = JointLevelTransport(tr, scene)
     gc_was = gc.isenabled()
     rt = RealtimePriority(int(args.rt_priority or 0))
@@ -354,7 +354,7 @@ def _measure_over_port(args, scene, a: float, n: int):
             "fault_seed": None if plan is None else plan.seed,
             "faults_injected": injected}
     if joint is not None and joint.joint_level:
-        from hapsim.daemon.pantograph_board import wire_term
+        from hapsim.emulated.pantograph_board import wire_term
         h = joint.hello
         res["torque_max"] = joint.torque_max
         if not res.get("incomplete"):      # an incomplete record has no responses to weigh
@@ -379,9 +379,9 @@ HAPLY_CPR = 2.0 ** 22
 def _run_haply2(args) -> int:
     """``hapsim run SCENE --driver haply [--lockstep]``: the felt matrices through the
     2DIY's bytes and its emulated board, in lockstep
-    (:func:`hapsim.daemon.haply2_board.measure_felt_haply2`) or in real time, the board in
+    (:func:`hapsim.emulated.haply2_board.measure_felt_haply2`) or in real time, the board in
     a child process behind a pty and the host on its clock, missing replies estimated
-    samples (:func:`hapsim.daemon.haply2_host.measure_felt_haply2_port`).
+    samples (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`).
 
     Returns
     -------
@@ -397,7 +397,7 @@ def _run_haply2(args) -> int:
     """
     import gc
 
-    from hapsim.daemon.haply2_board import measure_felt_haply2
+    from hapsim.emulated.haply2_board import measure_felt_haply2
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     if args.port:
@@ -411,7 +411,7 @@ def _run_haply2(args) -> int:
                   unit="records") as bar:
         try:
             if realtime:
-                from hapsim.daemon.haply2_host import Embedded2DIY, measure_felt_haply2_port
+                from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
                 child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                      rate_hz=scene.rate_hz)
                 gc_was = gc.isenabled()

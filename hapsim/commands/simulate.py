@@ -176,8 +176,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _announce_compilation(scene) -> None:
     """With numba's cache empty, say on stderr that the engine's kernel is compiled (once)
-    before the silence it costs (:mod:`hapsim.daemon.startup`)."""
-    from hapsim.daemon import startup
+    before the silence it costs (:mod:`hapsim.pipeline.startup`)."""
+    from hapsim.pipeline import startup
     startup.reset_announcements()
     startup.announce_compilation(startup.run_compile_parts(scene, compiled_loop=False),
                                  scene=scene, command="hapsim simulate")

@@ -72,15 +72,15 @@ def read(path: str) -> tuple[dict, dict]:
     Parameters
     ----------
     path : str
-        ``.hst`` journal, ``.npz`` or ``.csv`` (:mod:`hapsim.daemon.telemetry`).
+        ``.hst`` journal, ``.npz`` or ``.csv`` (:mod:`hapsim.host.telemetry`).
 
     Returns
     -------
     cols : dict of str to ndarray
-        The columns of :data:`hapsim.daemon.telemetry.COLUMNS`, each shape (n,).
+        The columns of :data:`hapsim.host.telemetry.COLUMNS`, each shape (n,).
     info : dict
         ``format``; ``events`` (list of dict; empty for a ``.csv``); for a journal also
-        ``chunks``, ``torn_bytes``, ``torn_rows``, ``gaps`` (:func:`~hapsim.daemon.telemetry.load`).
+        ``chunks``, ``torn_bytes``, ``torn_rows``, ``gaps`` (:func:`~hapsim.host.telemetry.load`).
 
     Raises
     ------
@@ -89,7 +89,7 @@ def read(path: str) -> tuple[dict, dict]:
         not telemetry: a non-empty journal without one intact chunk, an ``.npz`` without
         the columns, a ``.csv`` without the header or with non-numbers.
     """
-    from hapsim.daemon.telemetry import COLUMNS, load
+    from hapsim.host.telemetry import COLUMNS, load
 
     ext = os.path.splitext(path)[1].lower()
     if ext not in _FORMATS:
@@ -144,7 +144,7 @@ def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
     force : ndarray, shape (n,)
         Forces sent [N]; the force answering sample ``k`` is held over period ``k + d``.
     flags : ndarray, shape (n,)
-        Telemetry flags; a sample with :data:`~hapsim.daemon.telemetry.FLAG_LOST` restarts
+        Telemetry flags; a sample with :data:`~hapsim.host.telemetry.FLAG_LOST` restarts
         the sum (the scene restarted there after a recovery).
     delay : int
         d [samples], >= 0.
@@ -154,9 +154,9 @@ def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
     ndarray, shape (n,)
         ``E[n] = sum_{k = r + d}^{n - 1} f(k - d) (x(k + 1) - x(k))`` [J], ``r`` the last
         restart at or before ``n`` (Hannaford & Ryu 2002, with the sign of
-        :mod:`hapsim.daemon.loop`: energy out of the scene into the hand).
+        :mod:`hapsim.host.loop`: energy out of the scene into the hand).
     """
-    from hapsim.daemon.telemetry import FLAG_LOST
+    from hapsim.host.telemetry import FLAG_LOST
 
     x = np.asarray(position, float)
     f = np.asarray(force, float)
@@ -214,7 +214,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         ``felt_energy_j`` (``max``, ``end``) from the force the device applied at each tick
         (exact with late ticks; the ``felt_energy_j`` above assumes each force on time).
     """
-    from hapsim.daemon.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
+    from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
     t, seq = cols["time"], cols["seq"].astype(np.int64)
     flags = cols["flags"]
@@ -347,7 +347,7 @@ def run(args: argparse.Namespace) -> int:
         Not a telemetry file (key ``FILE``), a negative ``--delay``, an ``--out`` with
         another extension or in a missing directory, an unwritable ``--plot`` (exit 2).
     """
-    from hapsim.daemon.telemetry import save_columns
+    from hapsim.host.telemetry import save_columns
     from hapsim.plots import check_output_path
 
     if args.out:

@@ -99,7 +99,7 @@ def register(sub) -> None:
 def _base(args):
     from hapsim.scene import load_scene, parse_scene
     if args.scene is None and args.firmware:      # the board models this device
-        from hapsim.daemon import board
+        from hapsim.emulated import hapkit_board as board
         args.scene = board.shipped_scene("hapkit.yaml")
     if args.scene is None:
         return parse_scene(DEFAULT_DEVICE, "<default device>")
@@ -114,7 +114,7 @@ def _start_firmware(base, realtime: bool = True):
     """Start the emulated board behind a pty (``hapsim mock --firmware``); (proc, port).
     ``realtime`` False: the board's clock advances as the host answers (lockstep)."""
     import subprocess
-    from hapsim.daemon import board
+    from hapsim.emulated import hapkit_board as board
     why = board.missing_tools()
     if why:
         raise ConfigError(f"the emulated board cannot be built here: {why}", key="--firmware")
@@ -316,7 +316,7 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
     duration : float
         Record length [s].
     **run_options
-        Passed to :func:`hapsim.daemon.runner.run_scene` (``port``, ``lockstep``,
+        Passed to :func:`hapsim.pipeline.runner.run_scene` (``port``, ``lockstep``,
         ``transport``, ...); ``allow_unstable`` is set (the safety limits stay armed).
 
     Returns
@@ -327,7 +327,7 @@ def run_measure(base, x0: float, *, duration: float, **run_options):
     from hapsim.analysis.network import device_body
     from hapsim.analysis.zwidth import (MIN_GROWTH_TICKS, RECORD_ATTEMPTS, Trial,
                                         record_side, release, wall_scene)
-    from hapsim.daemon.runner import run_scene
+    from hapsim.pipeline.runner import run_scene
 
     m = device_body(base.device)[0]
     T = base.period

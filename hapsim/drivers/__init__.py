@@ -1,6 +1,6 @@
 """Drivers: the bytes of devices that speak their own protocol, below the host loop.
 
-The host loop (:mod:`hapsim.daemon.loop`) sees positions in and forces out, as messages of
+The host loop (:mod:`hapsim.host.loop`) sees positions in and forces out, as messages of
 the framed protocol. A driver owns the bytes of another protocol and a
 :class:`~hapsim.drivers.transport.DriverTransport` turns them into those messages, so the
 loop itself is unchanged (and the framed protocol, the default, keeps its own transport

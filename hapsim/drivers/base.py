@@ -9,7 +9,7 @@ import numpy as np
 __all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED"]
 
 #: The telemetry ``flags`` bit of an estimated sample
-#: (:data:`hapsim.daemon.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
+#: (:data:`hapsim.host.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
 #: nothing of the daemon above them).
 FLAG_ESTIMATED = 32
 
@@ -170,7 +170,7 @@ class Driver:
     position_rel, force_rel : float
         Largest relative rounding of the position / force fields on the wire (``2^-24``
         for IEEE-754 binary32, 0 when exact): the run's stated uncertainty covers it
-        (:func:`hapsim.daemon.measure.identify_run`).
+        (:func:`hapsim.pipeline.measure.identify_run`).
     """
 
     name = ""
@@ -213,7 +213,7 @@ class Driver:
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
 
     def mock_hardware(self) -> dict:
-        """The keywords of this driver's mock (:mod:`hapsim.driver_mock`) that build the
+        """The keywords of this driver's mock (:mod:`hapsim.emulated.driver_mock`) that build the
         device this driver describes (by default none)."""
         return {}
 
@@ -295,7 +295,7 @@ class Driver:
         Parameters
         ----------
         columns : dict of str to ndarray
-            The run's telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`).
+            The run's telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`).
         force : ndarray, shape (n,)
             The force each row's command carried [N] (:meth:`applied_force` of the sent).
 

@@ -30,7 +30,7 @@ low, DTR low then high (resets the loader); up to 100 times send ``0A 43 0D`` an
 ``41`` and expect ``41``; then the firmware image in chunks of at most 62 bytes, each
 echoed byte for byte (the check); then normal mode: latency 1 ms, baud divisor 0x2, purge.
 The line settings are USB control transfers (no bytes on the data stream): the emulator
-(:mod:`hapsim.daemon.falcon_device`) takes them as calls.
+(:mod:`hapsim.emulated.falcon_device`) takes them as calls.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ exact baud divisors (0x4138 = 9600 baud, 0x15 = 142,857, 0x2 = 1.5 Mbaud); throu
 ``ftdi_sio`` they are termios calls whose USB transfers the kernel computes, and the only
 test bench here would be a pty, which has no modem lines and no baud rate: the loader's
 path could not be tested at all. With pyftdi the transfers are made in this process, so
-the tests put an emulated FT232R under pyusb (:mod:`hapsim.daemon.ftdi_usb`, a pyusb
+the tests put an emulated FT232R under pyusb (:mod:`hapsim.emulated.ftdi_usb`, a pyusb
 backend) and the real pyftdi code runs above it: every control transfer the Falcon would
 receive is decoded and checked by the emulated chip (the divisors against libnifalcon's
 constants, DTR's edge resetting the loader), and the bulk data carries the status bytes.
@@ -172,7 +172,7 @@ class FalconUSB:
     url : str, optional
         Which Falcon (:func:`parse_url`); None: the first.
     backend : object, optional
-        A pyusb backend (:class:`hapsim.daemon.ftdi_usb.VirtualUSB` in the tests); None:
+        A pyusb backend (:class:`hapsim.emulated.ftdi_usb.VirtualUSB` in the tests); None:
         libusb-1.0 (``usb.backend.libusb1``).
     read_timeout : float
         How long :meth:`exchange` waits for an answer [s].

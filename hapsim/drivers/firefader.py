@@ -38,7 +38,7 @@ eberdahl/Open-Source-Haptics-For-Artists, commit 6bbe9cd, 2013: ``loop``, lines 
 it hunts for a 127, takes the next two bytes as the forces *whatever they are*, and runs the
 pass once no byte is waiting (packets that waited are merged: the last one counts). One
 lost value byte therefore makes it take the next packet's 127 as a force and swallow that
-packet's forces (:class:`hapsim.driver_mock.FireFaderDevice` parses so;
+packet's forces (:class:`hapsim.emulated.driver_mock.FireFaderDevice` parses so;
 :meth:`FireFader.account` states the force such a pass may have applied). A pass reads the
 capacitive sense, the currents and the pots (about 1.25 ms: 175 + 175 + 150 + 150 + 300 +
 300 us, as its comments time them), and the record takes 7 bytes x 10 bits / 57600 baud =
@@ -249,7 +249,7 @@ def enable_passes(counts, silence, pots, *, threshold: float = SILENCE_S,
                   delay: int = 1, enable0: int = ENABLE_FULL, heat0: int = 0,
                   scaled: bool = False):
     """The ``.ino`` firmware's PWM per pass, from the host's commands: its enable filter
-    replayed (module notes; :class:`hapsim.driver_mock.FireFaderDevice` runs the same loop).
+    replayed (module notes; :class:`hapsim.emulated.driver_mock.FireFaderDevice` runs the same loop).
 
     Pass ``c`` (command ``c``) sets the motor to :func:`pass_pwm` of the packet's count and
     the enable, then updates the heat estimate and the enable (:func:`enable_step`; touch

@@ -354,7 +354,7 @@ class ReplyDecoder(AlignedDecoder):
         a factor 2 of margin for the velocity's own error), never less than
         ``max_step_deg``, plus ``2 r + 2`` counts (each reading is a whole count: the
         prediction off by 3, its slope by 2 a period; the reply by 1). The same rule the
-        2DIY's host states its elapsed time to (:mod:`hapsim.daemon.haply2_host`).
+        2DIY's host states its elapsed time to (:mod:`hapsim.pipeline.haply2_host`).
 
         Parameters
         ----------
@@ -846,7 +846,7 @@ class HaplyM3(Driver):
 
     def mock_hardware(self) -> dict:
         """The mock's encoder: this many counts per revolution; its wiring: the one these
-        direction bytes drive the right way (``motor_sign``, :class:`hapsim.driver_mock.
+        direction bytes drive the right way (``motor_sign``, :class:`hapsim.emulated.driver_mock.
         HaplyDevice`)."""
         return {"cpr": self.resolution,
                 "motor_sign": 1 if self.motor_direction == self.direction else -1}

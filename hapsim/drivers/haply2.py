@@ -81,8 +81,8 @@ GENERATIONS = {
 
 LIMITS = """\
 Haply 2DIY protocol limits (hapsim run --driver haply on a 2-D scene):
-  against the emulated board only (hapsim.daemon.haply2_board; in real time behind a
-    pty, hapsim.daemon.haply2_host): a real board has no hand to start each record
+  against the emulated board only (hapsim.emulated.haply2_board; in real time behind a
+    pty, hapsim.pipeline.haply2_host): a real board has no hand to start each record
   real time: no sequence numbers; a reply not read by its tick is an estimated sample
     (counted, bounded in the stated uncertainty); a board that lost its place is
     re-synchronised (zero torque first; counted) and its record is not measured

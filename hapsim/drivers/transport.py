@@ -1,7 +1,7 @@
 """The framed-protocol face of a driver: what the host loop talks to.
 
 :class:`DriverTransport` offers the loop the transport interface of
-:mod:`hapsim.daemon.transport` (``send``, ``receive``, ``close``, ``info``,
+:mod:`hapsim.host.transport` (``send``, ``receive``, ``close``, ``info``,
 ``last_frames``, ``decoder``) and speaks the driver's bytes on the port:
 
 - HELLO_REQUEST -> a HELLO made from the driver's facts (1 axis, its resolutions and

@@ -12,7 +12,7 @@ the two holds of docs/design.md, 'The timing convention':
     ``v < 0``; from rest the force must exceed the friction in its direction to move; a
     velocity that would change sign within the period while the force cannot overcome the
     friction sticks (``v = 0``). This is the same first-order friction model as the mock
-    device (:class:`hapsim.daemon.mock.MockPhysics`), written again here from its
+    device (:class:`hapsim.emulated.mock.MockPhysics`), written again here from its
     description.
 ``zoh`` with a sub-sample delay ``frac`` (the split hold, :mod:`hapsim.analysis.subsample`)
     Over ``[kT, (k+1)T)`` the force applied before, ``u[k-1]``, holds for ``frac T``, then
@@ -53,7 +53,7 @@ def _psi_phi1(y):
 @_jit
 def _coefficients(m, friction, T):
     """Exact ZOH step ``x' = x + cxv v + cxu u``, ``v' = a v + cvu u`` and the idealised
-    image's ``cu = T^2/m psi`` (see :func:`hapsim.daemon.mock.zoh_step_coefficients`)."""
+    image's ``cu = T^2/m psi`` (see :func:`hapsim.emulated.mock.zoh_step_coefficients`)."""
     y = friction * T / m
     psi, phi1 = _psi_phi1(y)
     return math.exp(-y), T * psi, T * T / m * phi1, T / m * psi, T * T / m * psi

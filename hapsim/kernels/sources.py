@@ -8,8 +8,8 @@ A module that compiles others in therefore holds, as a literal in its own file, 
 SHA-256 of those sources (:func:`sources_digest`), and caches only while it matches
 (:func:`cache_ok`); ``tests/test_compiled_loop_sources.py`` asks for the literal to be
 updated when it no longer matches, and that edit to the module's own file is what makes
-numba rebuild its cache. The host loop (:mod:`hapsim.daemon.fastloop`), the compiled mock
-(:mod:`hapsim.daemon.fastmock`), the multi-rate audio kernel (:mod:`hapsim.kernels.audio`),
+numba rebuild its cache. The host loop (:mod:`hapsim.host.fastloop`), the compiled mock
+(:mod:`hapsim.emulated.fastmock`), the multi-rate audio kernel (:mod:`hapsim.kernels.audio`),
 the late-tick rule (:mod:`hapsim.kernels.ticks`) and the JACK callback
 (:mod:`hapsim.audio.jack_native`) use it.
 
@@ -22,7 +22,26 @@ import hashlib
 import importlib.util
 import os
 
-__all__ = ["source_paths", "sources_digest", "cache_ok"]
+__all__ = ["source_paths", "sources_digest", "cache_ok", "LOOP_SOURCES", "MOCK_SOURCES",
+           "numba_cache_dir", "loop_stamp"]
+
+#: The modules, besides ``hapsim/host/fastloop.py``, whose code or constants numba
+#: compiles into the compiled host loop (the late-tick rule, the I/O primitives, the engine
+#: kernels, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
+#: a function on its own file's modification time and size only, so an edit to one of these
+#: alone would leave the cached loop on the old code: ``fastloop.py`` holds their SHA-256
+#: (:data:`hapsim.host.fastloop.COMPILED_SOURCES_SHA256`), compiles without the cache
+#: when it does not match, and ``tests/test_compiled_loop_sources.py`` asks for it to be
+#: updated (which touches ``fastloop.py``, so numba recompiles).
+LOOP_SOURCES = ("hapsim/kernels/compiled_io.py", "hapsim/host/telemetry.py",
+                "hapsim/kernels/ticks.py", "hapsim/kernels/cordis.py",
+                "hapsim/kernels/schemes.py", "firmware_protocol/codec.py")
+
+
+#: The modules whose code or constants numba compiles into the compiled mock
+#: (``hapsim/emulated/fastmock.py``: the I/O primitives, the protocol's constants), for the
+#: same reason as :data:`LOOP_SOURCES` (``fastmock.COMPILED_SOURCES_SHA256``).
+MOCK_SOURCES = ("hapsim/kernels/compiled_io.py", "firmware_protocol/codec.py")
 
 #: The ``hapsim`` package directory.
 _HAPSIM = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -95,3 +114,40 @@ def cache_ok(rels, digest: str) -> bool:
         load a cache built from older sources) otherwise.
     """
     return sources_digest(source_paths(rels)) == digest
+
+
+def numba_cache_dir(source: str) -> str:
+    """The folder numba caches the compiled functions of the module ``source`` in.
+
+    numba's own order (``numba.core.caching``, 0.5x-0.6x): ``NUMBA_CACHE_DIR`` when set
+    (a sub-folder named after the module's folder and the SHA-1 of its path), else the
+    module's ``__pycache__`` when it can be written, else the user's cache folder
+    (``$XDG_CACHE_HOME/numba`` or ``~/.cache/numba``, the same sub-folder).
+
+    Parameters
+    ----------
+    source : str
+        Path of the Python module.
+
+    Returns
+    -------
+    str
+        The folder (it may not exist yet).
+    """
+    import hashlib
+    folder = os.path.dirname(os.path.abspath(source))
+    sub = os.path.basename(folder) + "_" + hashlib.sha1(folder.encode()).hexdigest()
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return os.path.join(os.environ["NUMBA_CACHE_DIR"], sub)
+    tree = os.path.join(folder, "__pycache__")
+    if os.access(tree if os.path.isdir(tree) else folder, os.W_OK):
+        return tree
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "numba", sub)
+
+
+def loop_stamp(kernel_fn: str) -> str:
+    """The stamp file :func:`hapsim.host.fastloop.warm_up` leaves once the compiled host
+    loop for the kernel ``kernel_fn`` is in numba's cache (the loop is compiled per
+    kernel, which numba's index of the loop's functions does not show without numba)."""
+    return os.path.join(numba_cache_dir(source_paths(["hapsim/host/fastloop.py"])[0]), f"hapsim-loop.{kernel_fn}.stamp")

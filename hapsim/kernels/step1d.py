@@ -175,7 +175,7 @@ def step_periods(c):
 
 
 #: The runner of each kernel (called as ``runner(ctx)``), by the kernel function; kernel
-#: ``run_X`` has the runner ``step_X`` (:func:`hapsim.daemon.startup.part_is_fresh` finds
+#: ``run_X`` has the runner ``step_X`` (:func:`hapsim.pipeline.startup.part_is_fresh` finds
 #: a runner in numba's cache by that name, without importing numba).
 RUNNERS = {cordis.run_masses: step_masses, cordis.run_sd: step_sd,
            cordis.run_contact: step_contact, cordis.run_sd_contact: step_sd_contact,

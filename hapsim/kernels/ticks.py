@@ -1,8 +1,8 @@
 """The late-tick rule: which FORCE a device applied at a tick, and whether the tick is late.
 
 Written once, here, on plain integers, and read by every path that needs it: the Python
-host loop (:meth:`hapsim.daemon.loop.HostLoop._drive`, the plain functions), the compiled
-host loop (:mod:`hapsim.daemon.fastloop`: the same functions, ``register_jitable``, are
+host loop (:meth:`hapsim.host.loop.HostLoop._drive`, the plain functions), the compiled
+host loop (:mod:`hapsim.host.fastloop`: the same functions, ``register_jitable``, are
 compiled into it) and the account of a record (:func:`hapsim.applied.
 account_from_force_seq`, through :func:`late_ticks`). The rule is the protocol's
 (``firmware_protocol/PROTOCOL.md`` §4 and the mock notes):
@@ -31,7 +31,7 @@ first due tick after a CONFIG (tick ``d``, when FORCE 0 was not applied there), 
 account says late and the loop cannot.
 
 numba's on-disk cache keys a compiled function on its own source file only: the compiled
-host loop inlines these functions, so ``hapsim/daemon/fastloop.py`` holds the SHA-256 of
+host loop inlines these functions, so ``hapsim/host/fastloop.py`` holds the SHA-256 of
 this file and the others it compiles in (``COMPILED_SOURCES_SHA256``; it compiles without
 the cache while that is stale, and ``tests/test_compiled_loop_sources.py`` asks for the
 update, which edits fastloop.py so that numba rebuilds its cache).

@@ -20,7 +20,7 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
     Parameters
     ----------
     cols : dict of str to ndarray
-        Telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`), each shape (n,):
+        Telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`), each shape (n,):
         ``time`` [s], ``position`` [m], ``force`` [N], ``flags``.
     energy : ndarray, shape (n,)
         Felt energy per sample [J] (:func:`hapsim.commands.telemetry.felt_energy`).

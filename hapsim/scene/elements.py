@@ -241,7 +241,7 @@ class Safety:
         ``inf``: none.
     energy_limit : float
         Safety stop when the passivity observer says the scene has given the hand this
-        much energy [J] (Hannaford & Ryu 2002; see :mod:`hapsim.daemon.loop`).
+        much energy [J] (Hannaford & Ryu 2002; see :mod:`hapsim.host.loop`).
     passivity_controller : bool
         Add the adaptive damping ``alpha = E / (T v^2)`` while ``E``, the energy given
         to the hand beyond what the scene stored at its (re)start, is positive.

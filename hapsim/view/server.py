@@ -7,7 +7,7 @@ over plain HTTP and the WebSocket). Every ``1 / fps`` seconds it reads the loop'
 journal's new entries, the felt and measured (k, b). A page's requests (a live change, the
 stop) are answered from a worker thread: :meth:`hapsim.audio.control.Controller.request`
 checks a change by the same prediction as OSC (seconds on a large scene), and the stop
-sets the run's :class:`~hapsim.daemon.loop_types.StopFlag` as SIGINT does.
+sets the run's :class:`~hapsim.host.loop_types.StopFlag` as SIGINT does.
 """
 
 from __future__ import annotations
@@ -382,7 +382,7 @@ class ViewServer:
             frame["x"] = cols["x"][::stride].tolist()
             frame["f"] = cols["f"][::stride].tolist()
             if "flags" in cols:
-                from hapsim.daemon.telemetry import FLAG_ESTIMATED, FLAG_LATE
+                from hapsim.host.telemetry import FLAG_ESTIMATED, FLAG_LATE
                 fl = cols["flags"]
                 frame["late_t"] = cols["t"][(fl & FLAG_LATE) != 0][:50].tolist()
                 frame["est_t"] = cols["t"][(fl & FLAG_ESTIMATED) != 0][:50].tolist()

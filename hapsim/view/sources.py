@@ -95,8 +95,8 @@ class _Base:
 
 
 class _Record:
-    """A snapshot of a run's first rows, read as :func:`hapsim.daemon.measure.identify_run`
-    reads the run's :class:`~hapsim.daemon.telemetry.Telemetry` (nothing wrapped)."""
+    """A snapshot of a run's first rows, read as :func:`hapsim.pipeline.measure.identify_run`
+    reads the run's :class:`~hapsim.host.telemetry.Telemetry` (nothing wrapped)."""
 
     wrapped = False
 
@@ -112,17 +112,17 @@ class _Record:
 def measure_record(prep, cols: dict, hello=None) -> dict:
     """The felt (k, b) of a run's record so far, measured as its report will measure it.
 
-    :func:`hapsim.daemon.measure.identify_run` (the matrix pencil of the free response,
+    :func:`hapsim.pipeline.measure.identify_run` (the matrix pencil of the free response,
     Hua & Sarkar 1990, with the run's late ticks, clamps, contacts and sensor accounted)
     on the rows recorded so far: the same function on the same rows as the report's
     ``measured`` once the record is whole. Run in the controller's analysis process.
 
     Parameters
     ----------
-    prep : hapsim.daemon.run_types.PreparedRun
+    prep : hapsim.pipeline.run_types.PreparedRun
         The run's calibrated scene, prediction and targets.
     cols : dict of ndarray
-        The telemetry columns (:data:`hapsim.daemon.telemetry.COLUMNS`) of rows
+        The telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`) of rows
         ``0 .. n - 1``, each shape (n,).
     hello : firmware_protocol.Hello, optional
         The device's HELLO (its position scale is the sensor step when the scene gives none).
@@ -134,7 +134,7 @@ def measure_record(prep, cols: dict, hello=None) -> dict:
         [N s/m], ``k_unc``, ``b_unc``: the stated half-widths; or ``error`` / ``reason``),
         and ``rows``: ``n``.
     """
-    from hapsim.daemon.measure import identify_run
+    from hapsim.pipeline.measure import identify_run
     rec = _Record(cols)
     try:
         m = identify_run(prep, rec, hello)
@@ -146,7 +146,7 @@ def measure_record(prep, cols: dict, hello=None) -> dict:
 
 
 class RunSource(_Base):
-    """``hapsim run``: the telemetry arrays (:class:`hapsim.daemon.telemetry.Telemetry`)
+    """``hapsim run``: the telemetry arrays (:class:`hapsim.host.telemetry.Telemetry`)
     and the loop's event list.
 
     Parameters
@@ -187,7 +187,7 @@ class RunSource(_Base):
     @property
     def measured_rows(self) -> int:
         """Rows the report's measurement takes now: every row recorded until the ring has
-        gone round, then the head (:func:`hapsim.daemon.measure.identify_run`)."""
+        gone round, then the head (:func:`hapsim.pipeline.measure.identify_run`)."""
         return int(self.tel.head if self.tel.wrapped else self.tel.n)
 
     def record(self) -> tuple | None:
@@ -214,7 +214,7 @@ class RunSource(_Base):
             Index of the first row returned.
         cols : dict of ndarray
             ``t`` [s], ``x`` [m], ``f`` [N], ``turnaround_us`` [us], ``flags`` (bits of
-            :mod:`hapsim.daemon.telemetry`).
+            :mod:`hapsim.host.telemetry`).
         """
         tel = self.tel
         n = int(tel.n)

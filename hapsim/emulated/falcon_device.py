@@ -1,0 +1,477 @@
+"""The Novint Falcon emulated byte for byte: its loader's handshake, the firmware's packet
+loop, homing, LEDs, and the delta's joint-space dynamics as the plant.
+
+States (:class:`FalconDevice`), from the handshake libnifalcon performs
+(:mod:`hapsim.drivers.falcon`):
+
+``loader``
+    After power-up or a DTR low-to-high edge: answers ``0A 43 0D`` with ``0A 44 2C 0D``
+    while the line runs at 9600 baud; other bytes are ignored.
+``loader-fast``
+    DTR low and the loading baud (divisor 0x15) set: answers ``'A'`` with ``'A'``, then
+    takes the firmware image, echoing every byte.
+``running``
+    Normal mode (divisor 0x2) after an image was loaded (the expected image, when one is
+    given): the firmware's packet loop. Each 16-byte host packet (realigned on ``'<'`` and
+    ``'>'`` with valid nibbles; a bad one dropped and counted) sets the three motor
+    commands (held until the next: no watchdog is modelled, libnifalcon publishes none), the
+    LEDs and the homing mode, advances the plant one period with the commands ``d``
+    packets back, and is answered by one packet: the encoder counts, the homing status and
+    the grip's buttons.
+
+Encoders: before a leg is homed its count is relative to where it was at power-up (the
+quadrature counter starts at 0); homing mode held for ``homing_packets`` packets homes
+all three legs (they found their index), after which a count is absolute,
+``ticks_of(theta)`` with ``theta`` the leg's angle in libnifalcon's convention (35 deg at
+count 0), which is hapsim's delta joint angle (:class:`hapsim.kinematics.Delta`). The
+plant's leg torque is ``-command * newton_metres_per_count`` (libnifalcon's
+``command = -10000 tau``; the emulator takes its unit as N m, an assumption: the scale
+is not published in newton-metres).
+
+Its time (``clock="wall"``, the default): the Falcon's firmware runs its own loop at
+about 1 kHz, which sets the pace of libnifalcon's exchange (one packet written, its reply
+read, the next written: ``FalconComm`` and ``FalconFirmwareNovintSDK::runIOLoop`` wait
+for the reply); the firmware is Novint's binary, not published, so what the emulator
+takes from it is only that pace: a packet is taken at the firmware's next tick of the
+scene's period on the device's own clock (``time.monotonic`` in this process, or the
+time a caller gives), its commands set then (plus the scene's delay beyond one period)
+and held until the next (no watchdog is published), the encoders read at that tick and
+the reply ready then (:attr:`FalconDevice.ready_at`, which
+:class:`hapsim.emulated.ftdi_usb.VirtualFT232R` honours). Between ticks the delta's legs
+are integrated over the real time that passed
+(:meth:`hapsim.lockstep_nd.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
+(named, for deterministic tests): each packet is one period, the reply at once.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+
+import numpy as np
+
+from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
+                                   parse_host_packet, ticks_of)
+from hapsim.drivers.falcon_usb import ft232r_baud
+from hapsim.errors import ConfigError
+from hapsim.lockstep_nd import LocalJointDeviceND
+
+__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "EmulatorLink",
+           "LOADER_BAUD", "LOADING_BAUD", "NORMAL_BAUD"]
+
+#: The UART rates the emulated MCU listens at [baud]: its loader (9600), the loading rate
+#: (FT232R divisor 0x15: 3 MHz / 21) and the firmware's (divisor 0x2: 1.5 Mbaud); a rate
+#: within 3 % of one is that one (a UART's tolerance), another is not heard.
+LOADER_BAUD, LOADING_BAUD, NORMAL_BAUD = 9600.0, 3e6 / 21, 1.5e6
+
+
+def _near(baud, want: float) -> bool:
+    return baud is not None and abs(baud - want) <= 0.03 * want
+
+
+class FalconDevice:
+    """An emulated Falcon (module notes).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene whose device is a delta (the plant, at its operating point).
+    expected_image : bytes, optional
+        The firmware the device accepts (None: any non-empty image).
+    homing_packets : int
+        Packets in homing mode until the legs are homed.
+    power_up_joints_deg : sequence of 3 float, optional
+        Where the legs were at power-up [deg] (the unhomed counts' zero; default the
+        operating point).
+    newton_metres_per_count : float
+        Leg torque per motor-command count [N m].
+    clock : {"wall", "lockstep"}
+        The device's clock (module notes).
+
+    Raises
+    ------
+    ConfigError
+        Not a 3-D delta scene, a sub-sample delay, an unknown clock.
+
+    Attributes
+    ----------
+    state : str
+        ``"off"``, ``"loader"``, ``"loader-fast"``, ``"running"``.
+    leds : int
+        LED flags of the last packet.
+    homed : int
+        Homing status bits.
+    stats : dict
+        ``packets``, ``bad_bytes`` (dropped realigning), ``loaded`` (image bytes).
+    ready_at : float
+        Wall clock: the device's time [s] its last reply is ready at.
+    excursion : float
+        The largest leg displacement from the operating point [rad] (the truth).
+    """
+
+    def __init__(self, scene, *, expected_image: bytes | None = None,
+                 homing_packets: int = 20, power_up_joints_deg=None,
+                 newton_metres_per_count: float = TORQUE_PER_COUNT,
+                 clock: str = "wall") -> None:
+        if clock not in ("wall", "lockstep"):
+            raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        self.clock = clock
+        #: The device itself on the wall clock, None in lockstep.
+        self.wall = self if clock == "wall" else None
+        self.tick_s = float(scene.period)
+        self.ready_at = 0.0
+        self.excursion = 0.0
+        self._t0 = time.monotonic()
+        self._t = 0.0                         # the device's time the plant has reached [s]
+        self._k = -1                          # the last tick that took a packet
+        self._due: deque = deque()            # (time [s], commands) not yet in effect
+        dev = scene.device
+        if scene.dimension != 3 or dev is None or dev.kind != "delta":
+            raise ConfigError("the Falcon drives a 3-D scene with a delta device",
+                              file=scene.path, key="device.kind")
+        self.scene = scene
+        self.expected = None if expected_image is None else bytes(expected_image)
+        self.homing_packets = int(homing_packets)
+        self.nm_per_count = float(newton_metres_per_count)
+        self.plant = LocalJointDeviceND(scene, np.zeros(3), np.zeros(3))
+        pu = (np.degrees(dev.joints) if power_up_joints_deg is None
+              else np.asarray(power_up_joints_deg, float))
+        self._power_up = [ticks_of(v) for v in pu]
+        if float(dev.delay) % 1.0:
+            # its joint-space plant applies whole periods (no split hold there)
+            raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is not "
+                              "emulated by this board (its joint-space model applies whole "
+                              "periods): use a whole delay", file=scene.path,
+                              key="device.delay")
+        self.delay = int(dev.delay)
+        #: Wall clock: what brings the firmware's own delay of one period to the scene's
+        #: [s] (never negative).
+        self.extra_latency_s = max(0.0, self.delay - 1.0) * self.tick_s
+        self._fifo = deque([(0, 0, 0)] * self.delay)
+        self.commands = (0, 0, 0)
+        self.state = "off"
+        self.dtr = 0
+        self.baud = None
+        self.divisor = None
+        self.leds = 0
+        self.homed = 0
+        self._homing_count = 0
+        self._image = bytearray()
+        self._buf = bytearray()
+        self.stats = {"packets": 0, "bad_bytes": 0, "loaded": 0}
+
+    # ------------------------------------------------------------------ line settings
+    def line(self, **settings) -> None:
+        """USB control transfers: ``dtr``, ``rts``, ``baud``, ``baud_divisor``,
+        ``latency_ms``, ``purge``, ``bits``, ``flow`` (module notes for their effects)."""
+        if settings.get("purge"):
+            self._buf.clear()
+        if "baud" in settings:
+            self.baud, self.divisor = settings["baud"], None
+        if "baud_divisor" in settings:                 # the FT232R's divisor register
+            self.divisor = settings["baud_divisor"]
+            self.baud = ft232r_baud(self.divisor)
+        if "dtr" in settings:
+            new = int(settings["dtr"])
+            if self.dtr == 0 and new == 1:          # the MCU resets into its loader
+                self.state = "loader"
+                self._image.clear()
+                self.homed = 0
+                self._homing_count = 0
+                self.commands = (0, 0, 0)
+                self._due.clear()
+            self.dtr = new
+        if self.state == "loader" and self.dtr == 0 and _near(self.baud, LOADING_BAUD):
+            self.state = "loader-fast"
+            self._a_seen = False
+        if self.state == "loader-fast" and _near(self.baud, NORMAL_BAUD):
+            ok = len(self._image) > 0 and (self.expected is None
+                                           or bytes(self._image) == self.expected)
+            self.state = "running" if ok else "loader"
+            self._buf.clear()
+
+    # ------------------------------------------------------------------ bytes
+    def _counts(self) -> tuple:
+        q = np.degrees(self.plant.joints())
+        out = []
+        for i in range(3):
+            t = ticks_of(q[i])
+            out.append(t if self.homed >> i & 1 else t - self._power_up[i])
+        return tuple(out)
+
+    def now(self) -> float:
+        """The device's own clock [s]: ``time.monotonic`` since it was made."""
+        return time.monotonic() - self._t0
+
+    def run_to(self, t: float) -> None:
+        """Wall clock: the legs integrated to the device's time ``t`` [s], the commands in
+        effect held, each packet's taking effect at its time."""
+        while self._t < t:
+            nxt = t
+            if self._due and self._due[0][0] < nxt:
+                nxt = max(self._due[0][0], self._t)
+            tau = np.array([-c * self.nm_per_count for c in self.commands], float)
+            self.plant.advance_torque(tau, nxt - self._t)
+            self._t = nxt
+            while self._due and self._due[0][0] <= self._t:
+                self.commands = self._due.popleft()[1]
+        while self._due and self._due[0][0] <= self._t:
+            self.commands = self._due.popleft()[1]
+        self.excursion = max(self.excursion,
+                             float(np.abs(self.plant.joints() - self.plant.q0).max()))
+
+    def feed(self, data: bytes, now: float | None = None) -> bytes:
+        """Bytes from the host in, the device's bytes out (module notes).
+
+        Parameters
+        ----------
+        data : bytes
+        now : float, optional
+            The device's time the bytes came at [s] (wall clock; default :meth:`now`).
+
+        Returns
+        -------
+        bytes
+            The answer; on the wall clock the packets' replies are ready at
+            :attr:`ready_at`.
+        """
+        if self.wall is not None and now is None:
+            now = self.now()
+        if self.state == "loader":
+            if _near(self.baud, LOADER_BAUD) and CHECK_SEND in bytes(data):
+                return CHECK_REPLY
+            return b""
+        if self.state == "loader-fast":
+            out = bytearray()
+            for b in data:
+                if not self._a_seen:
+                    if b == 0x41:
+                        self._a_seen = True
+                        out.append(b)
+                    continue
+                self._image.append(b)
+                self.stats["loaded"] += 1
+                out.append(b)
+            return bytes(out)
+        if self.state != "running":
+            return b""
+        buf = self._buf
+        buf += data
+        out = bytearray()
+        while len(buf) >= 16:
+            pk = parse_host_packet(bytes(buf[:16]))
+            if pk is None:
+                del buf[:1]
+                self.stats["bad_bytes"] += 1
+                continue
+            del buf[:16]
+            out += self._packet(*pk, now=now)
+        return bytes(out)
+
+    def _packet(self, commands, leds, homing, now=None) -> bytes:
+        self.stats["packets"] += 1
+        self.leds = leds
+        if homing and self.homed != 0x7:
+            self._homing_count += 1
+            if self._homing_count >= self.homing_packets:
+                self.homed = 0x7
+        if self.wall is not None:
+            # the firmware's next tick on its own clock: the legs run to it, the packet's
+            # commands are set there, the encoders read there, the reply ready then
+            self._k = max(math.floor(now / self.tick_s) + 1, self._k + 1)
+            t = self._k * self.tick_s
+            self.run_to(t)
+            self._due.append((t + self.extra_latency_s, tuple(commands)))
+            self.run_to(t)
+            self.ready_at = t
+            return device_packet(self._counts(), self.homed, 0)
+        self._fifo.append(tuple(commands))
+        due = self._fifo.popleft()
+        self.commands = due
+        tau = np.array([-c * self.nm_per_count for c in due], float)
+        self.plant.step_torque(tau)
+        return device_packet(self._counts(), self.homed, 0)
+
+    def counts(self) -> tuple:
+        """The three encoder counts the device reports now (relative to the power-up
+        pose until homed): the truth a host's readings are compared with in the tests."""
+        return self._counts()
+
+    def joints_deg(self) -> np.ndarray:
+        """The legs' true angles [deg] (tests)."""
+        return np.degrees(self.plant.joints())
+
+
+class EmulatorLink:
+    """A :class:`FalconDevice` (or anything with ``line`` and ``feed``) as a link of
+    :func:`hapsim.drivers.falcon_usb.load_firmware_link`: ``exchange`` feeds the bytes and
+    returns the whole answer (no USB in between; :mod:`hapsim.emulated.ftdi_usb` puts the
+    real pyftdi path there).
+
+    Parameters
+    ----------
+    device : object
+        ``line(**settings)``, ``feed(bytes) -> bytes``.
+    """
+
+    def __init__(self, device) -> None:
+        self.device = device
+
+    def line(self, **settings) -> None:
+        """The settings passed on."""
+        self.device.line(**settings)
+
+    def exchange(self, send: bytes, n: int, done=None, timeout=None) -> bytes:
+        """The device's answer to ``send`` (all of it, whatever ``n``)."""
+        return self.device.feed(send)
+
+
+def load_firmware(device, image: bytes, check_tries: int = 100) -> dict:
+    """Run the host's firmware-load handshake against a device with ``line(**settings)``
+    and ``feed(bytes) -> bytes`` (:class:`FalconDevice`) directly, without USB
+    (:func:`hapsim.drivers.falcon_usb.load_firmware_link` over :class:`EmulatorLink`).
+
+    Parameters
+    ----------
+    device : object
+    image : bytes
+        The firmware image.
+    check_tries : int
+        Attempts of the first check.
+
+    Returns
+    -------
+    dict
+        ``checks`` (attempts of the first check), ``chunks`` (image chunks echoed),
+        ``bytes`` (image bytes echoed).
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        The first check never answered, ``'A'`` not echoed, or a chunk's echo short or
+        differing (naming the image byte).
+    """
+    from hapsim.drivers.falcon_usb import load_firmware_link
+    return load_firmware_link(EmulatorLink(device), image, check_tries)
+
+
+def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
+    """Send homing-mode packets (zero commands) until every leg reports homed.
+
+    Parameters
+    ----------
+    device_feed : callable
+        ``bytes -> bytes``.
+    leds : int
+        LED flags to show meanwhile.
+    limit : int
+        Most packets.
+    decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
+        The decoder to read the replies with (the loop's, so that it starts with the
+        legs' last counts and step); default a new one.
+
+    Returns
+    -------
+    int
+        Packets sent.
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        Not homed after ``limit`` packets.
+    """
+    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet
+    from hapsim.errors import DeviceError
+    dec = DevicePacketDecoder() if decoder is None else decoder
+    for k in range(1, limit + 1):
+        got = dec.feed(device_feed(host_packet((0, 0, 0), leds, homing=True)))
+        if got and got[-1][1] == 0x7:
+            return k
+    raise DeviceError(f"the Falcon's legs were not homed after {limit} packets")
+
+
+def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
+                 decoder=None) -> dict:
+    """Drive a homed Falcon over its packets in lockstep, one packet per sample.
+
+    Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
+    effector at the delta's forward kinematics (:class:`hapsim.kinematics.Delta`, exact;
+    ``forward_jacobian`` from the last position),
+    the n-D engine's force on the port, the leg torques ``J(q)^T F`` sent as commands
+    (:func:`hapsim.drivers.falcon.torque_command`, in libnifalcon's unit taken as N m). A
+    packet that does not come back (lost or corrupted on either way: both sides realign on
+    ``'<'``/``'>'``) leaves the sample missing (counted; the last position held for the
+    engine); a reply whose legs are not all homed, or that the kinematics refuses, is
+    no sample either.
+
+    Parameters
+    ----------
+    device_feed : callable
+        ``bytes -> bytes`` (a :class:`FalconDevice` after :func:`load_firmware` and
+        :func:`home`, possibly through faults).
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene with a delta device.
+    samples : int
+        Packets sent.
+    faults : object, optional
+        ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.emulated.driver_mock.ByteFaults`).
+    leds : int
+        LED flags shown while running (green).
+    decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
+        The homing's decoder (its last counts and step check the loop's first replies);
+        default a new one (the first reply then taken unchecked).
+
+    Returns
+    -------
+    dict
+        ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
+        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters).
+    """
+    from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
+                                       torque_command)
+    from hapsim.engine_nd import EngineND
+    from hapsim.kinematics import device
+    kin = device("delta", scene.device.geometry)
+    eng = EngineND(scene)
+    port = eng.port
+    dec = DevicePacketDecoder() if decoder is None else decoder
+    rx = (lambda b: b) if faults is None else faults.rx
+    tx = (lambda b: b) if faults is None else faults.tx
+    N = int(samples)
+    pos = np.full((N, 3), np.nan)
+    joints = np.full((N, 3), np.nan)
+    cmds = np.zeros((N, 3), np.int64)
+    missing = unhomed = 0
+    got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
+    x = J = None
+    started = False
+    for k in range(N):
+        ok = False
+        if got:
+            enc, homed, _ = got[-1]
+            if homed != 0x7:
+                unhomed += 1
+            else:
+                q = np.radians([theta_deg(e) for e in enc])
+                try:
+                    # from the last position: Newton's few steps, not a fresh search
+                    x, J = kin.forward_jacobian(q, x)
+                    ok = True
+                    joints[k], pos[k] = q, x
+                except ConfigError:
+                    pass
+        if not ok:
+            missing += 1
+        if x is not None:
+            if not started:
+                eng.x[:, port] = x
+                eng.xp[:, port] = x
+                started = True
+            eng.set_port_position(x)
+        eng.step()
+        c = (0, 0, 0) if J is None else tuple(torque_command(t) for t in J.T @ eng.port_force)
+        cmds[k] = c
+        got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+    return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
+            "unhomed": unhomed, "decoder": dict(dec.stats)}

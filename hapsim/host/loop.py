@@ -1,0 +1,894 @@
+"""The host loop: handshake, fixed-rate device- or host-clocked loop, safety.
+
+:class:`HostLoop` is built from rooms with one job each: the per-sample path and its two
+clocks are here; the handshake is :class:`~hapsim.host.handshake.Handshake`, a loss and
+its recovery :class:`~hapsim.host.recovery.Recovery`, the bad-frame records
+:class:`~hapsim.host.bad_frames.BadFrames`, and what goes in and out (``LoopConfig``,
+``LoopResult``, ``StopFlag``) :mod:`hapsim.host.loop_types` (re-exported here).
+
+Hot path (docs/design.md, rule 4): per sample it decodes the STATE, steps the engine (numba), clamps,
+encodes and writes the FORCE and writes one telemetry row *by index* into preallocated
+arrays (a head kept whole, then a ring that a writer thread drains to the journal: the data
+leaves through a ring buffer, and a run can be open-ended). No logging, no file I/O, no
+allocation beyond the protocol's message objects and byte strings (unavoidable in Python).
+Counters (late, missed, clamped, overruns) are kept as integers and reported at the end.
+
+Timing convention: STATE ``n`` (``x(nT)``) is answered by FORCE ``seq = n`` computed from
+``x[n]`` and ``x[n-1]``; the device applies it over ``[(n+d)T, (n+d+1)T)``.
+
+Safety (from the first version): host-side clamp at the force limit; a non-finite position
+or force sends zero force and stops; a stop flag (set by SIGINT/SIGTERM handlers) ends the
+loop; safety stops end it with zero force: force at the limit in at least ``clamp_max`` of the
+last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
+``velocity_limit``, or the energy the virtual environment gave the hand beyond
+``energy_limit``. Every end sends a zero FORCE then STOP.
+
+Reliability (both loops): bad frames are dropped by the decoder and never acted on, and
+each is recorded (docs/design.md, rule 11: sample, time, what the decoder found, its bytes and the
+frames before it; the last ``BAD_FRAME_RECORDS``): the loop compares the decoder's bad-frame
+count after each read (five integer reads) and only when it changed copies the references
+of the decoder's last frames, formatted at the end of the run;
+a STATE older than the last one (duplicated, reordered) is ignored (``stale``), one with the
+wrong number of axes too (``bad_axes``); silence for ``lost_timeout`` (default: the
+watchdog period, so the host sends zero force and STOP when the device's own watchdog
+zeroes it), a port error, an unarmed STATE after arming, or a HELLO after the first armed
+STATE (the device reset: it says HELLO when it restarts) make the device *lost* at once:
+zero FORCE and STOP are sent (best effort), then, when ``reconnect`` is on, the host re-opens
+the port if it failed, asks for HELLO and sends CONFIG again, with exponential backoff, at
+most ``reconnect_attempts`` times and ``reconnect_time`` seconds per loss; the scene restarts
+from its initial state with the port at the device's position at rest, the force ramped up
+over ``ramp_samples``. A recovery's CONFIG follows a STOP and the PONG of a PING sent
+after it (:meth:`HostLoop._quiesce`; without that PONG, the first armed STATE after the
+CONFIG must not report a FORCE applied, as the host sent none yet): the scene restarts at
+the handle of the new session, never at a STATE the device sent before it took the CONFIG. The loop's state (:attr:`HostLoop.state`: ``idle``, ``handshake``,
+``armed``, ``lost``, ``recovering``, ``stopped``) is kept and reported. Non-latched device
+FAULTs (WATCHDOG, RX_ERRORS, OVERRUN, AXES_MISMATCH) are counted; latched ones end the
+run. The host-clocked loop uses the same machinery (one driver,
+:meth:`HostLoop._run_stretches`, runs either loop's stretch and recovers its losses;
+:meth:`HostLoop._resume` restarts the scene) and the same per-sample work
+(:meth:`HostLoop._drive`, fed by either clock's source of STATEs): it answers the latest
+STATE at each host deadline, and silence longer than ``lost_timeout`` is a loss like in the
+device-clocked loop. Without ``reconnect`` a loss raises :class:`DeviceError`.
+
+Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
+IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
+``T sum f v`` with ``v`` the backward-difference velocity, where ``f_held(k)`` is the force
+the device held over ``[kT, (k+1)T)`` (the FORCE answering STATE ``k - d``). Sign convention:
+``E`` is the energy that flowed **out of the virtual environment into the hand** (work done
+by the actuator on the hand); Hannaford & Ryu's ``E_obs`` (energy *into* the one-port) is
+``-E``. A passive environment holding the energy ``E0`` when it starts can give at most
+``E0`` (their condition ``E_obs(n) + E0 >= 0``), so the observer's baseline is ``E0``, the
+scene's stored energy (:meth:`hapsim.engine.Engine.energy`) at each (re)start, with the port
+at rest at the device's position; ``E`` restarts from 0 at each (re)start (a recovery
+restarts the scene, whose stored energy is ``E0`` again). What the scene gave **beyond** it,
+the *excess* ``E - E0``, is what the energy safety stop (``excess > energy_limit``) and the
+optional passivity controller act on: the controller adds the damping
+``alpha = (E - E0) / (T v^2)`` (their ``alpha = -(E_obs + E0) / (T v^2)``) while the excess
+is positive, capped at ``max_damping``: ``f <- f - alpha v``. With d samples of delay the
+damping acts d samples late; the observer still measures the work really done (the force
+held, not the force sent). A sampled wall is not exactly passive (the hold and the delay
+lag its spring, Colgate & Schenkel 1997): when its damping B does not cover that lag the
+excess grows a little above 0 even though the loop is stable, and the controller acts.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import time
+from collections import deque
+from itertools import chain
+
+import numpy as np
+
+import firmware_protocol as fp
+from hapsim.host.bad_frames import BadFrames, bad_count
+from hapsim.host.handshake import Handshake
+from hapsim.host.link_verdict import CLAMP_STOP
+from hapsim.host.loop_types import (BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS, LATCHED_FAULTS,
+                                      SENSORS_TRIES, SENSORS_WAIT, EstimatedState, LoopConfig,
+                                      LoopResult, LostDevice, MeasuredVelocity, StopFlag,
+                                      percentiles_us, signame)
+from hapsim.host.loop_types import SEQ_HALF as _HALF
+from hapsim.host.loop_types import SEQ_MASK as _U32
+from hapsim.host.realtime import sleep_until_ns
+from hapsim.host.recovery import Recovery
+from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_ESTIMATED, FLAG_RAMP, FLAG_SKIPPED
+from hapsim.errors import DeviceError
+from hapsim.kernels.ticks import tick_late
+
+__all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
+           "LostDevice", "percentiles_us", "safety_reason", "LATCHED_FAULTS",
+           "BAD_FRAME_RECORDS", "BAD_FRAME_CONTEXT", "SENSORS_TRIES", "SENSORS_WAIT"]
+
+_Lost = LostDevice          # the name this module's loop code uses
+
+#: Missing samples in a row a driver's loop steps the scene through with an extrapolated
+#: position (beyond, ticks are skipped): :meth:`HostLoop._host_states`.
+ESTIMATED_MAX = 2
+
+
+class HostLoop(Handshake, Recovery, BadFrames):
+    """The fixed-rate host loop between an engine and a device transport.
+
+    Parameters
+    ----------
+    engine : hapsim.engine.Engine
+        The scene (warmed up: its kernel already compiled/loaded).
+    transport : object
+        A transport of :mod:`hapsim.host.transport`. When it has ``clock()`` and
+        ``sleep(s)`` (the virtual-clock :class:`~hapsim.host.transport.SimTransport`) the
+        loop's timeouts use them; ``reopen()`` is used to recover a failed port.
+    config : LoopConfig
+        Run parameters.
+    telemetry : Telemetry
+        Preallocated buffer: its head rows, then its ring (the loop writes row ``i`` in
+        slot ``i`` or ``head + (i - head) % ring``, then raises ``n``; a writer thread may
+        drain it); without a ring, at most ``head`` samples are run.
+    stop : StopFlag, optional
+        Polled every sample.
+    measured : MeasuredVelocity, optional
+        Ask the device for its velocity sensor (SENSORS_REQUEST before CONFIG, refused with
+        :class:`~hapsim.errors.ConfigError` when it offers none) and keep each STATE's
+        VELOCITY there, for an engine that reads it.
+
+    Attributes
+    ----------
+    state : str
+        ``"idle"`` (not started), ``"handshake"`` (asking HELLO, sending CONFIG),
+        ``"armed"`` (CONFIG sent: driving the device, or waiting for its first STATE),
+        ``"lost"`` (silence, port error or reset seen: zero force and STOP sent),
+        ``"recovering"`` (re-opening, HELLO, CONFIG with backoff), ``"stopped"`` (zero
+        force and STOP sent at the end).
+    """
+
+    def __init__(self, engine, transport, config: LoopConfig, telemetry,
+                 stop: StopFlag | None = None, measured: MeasuredVelocity | None = None):
+        self.engine = engine
+        self.measured = measured
+        #: Called between two samples, before the engine steps (live changes: the
+        #: mailbox of :class:`hapsim.audio.control.Controller`); None: nothing.
+        self.poll = None
+        #: Called once the device's HELLO is checked, before PING and CONFIG (``hapsim
+        #: run``: waits for the numba warm-up that ran while the device started); None:
+        #: nothing.
+        self.before_arm = None
+        #: :attr:`_clock` time of the first armed STATE (start-up figure); None before.
+        self.first_state_at = None
+        self.transport = transport
+        self.config = config
+        self.tel = telemetry
+        self.stop = stop or StopFlag()
+        self.result = LoopResult()
+        self._last_seq = -1
+        self._clock = getattr(transport, "clock", time.monotonic)
+        self._sleep = getattr(transport, "sleep", time.sleep)
+        self._fresh = True          # next armed STATE (re)starts the scene at rest
+        self._ramp = 0              # samples left in the force ramp after a recovery
+        self._restart_flag = 0      # FLAG_LOST for the first row after a recovery
+        self._skip_flag = 0         # FLAG_SKIPPED for the next row (older STATEs skipped)
+        # a driver's host tick that went out a period or more late: its row is marked
+        # late (the device held the force before over it, and read the position late),
+        # so that a measurement cuts there as at a late tick it cannot account
+        self._host_late = 0
+        self._expect = -1           # next STATE seq expected (device-clocked source)
+        self._last_rx = 0.0         # clock time of the last STATE used [s]
+        self._lost_since = None     # clock time of the current loss, None when healthy
+        self._attempts = 0
+        self._t0 = 0.0
+        self._energy = 0.0          # passivity observer E since the last (re)start [J]
+        self._e0 = 0.0              # its baseline: stored energy at that (re)start [J]
+        self._applied_seen = False  # the device sets STATUS_FORCE_APPLIED (PROTOCOL.md §4)
+        self._check_applied = False  # skip STATEs with FORCE_APPLIED until the scene resumes
+        self.force_limit = math.inf
+        self.state = "idle"
+        dec = getattr(transport, "decoder", None)
+        self._dstats = dec.stats if dec is not None else None
+        self._nbad = bad_count(self._dstats) if dec is not None else 0
+        self._nbad0 = self._nbad
+        self._bad_snaps: deque = deque(maxlen=BAD_FRAME_RECORDS)
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> LoopResult:
+        """Handshake, run the loop, then always send zero force and STOP.
+
+        Returns
+        -------
+        LoopResult
+
+        Raises
+        ------
+        DeviceError
+            Device silent or lost beyond recovery, port failure, or no HELLO (zero force +
+            STOP are still attempted).
+        ProtocolError
+            The device (at the handshake or when it came back after a loss) speaks another
+            protocol version or has another number of axes than 1 (zero force + STOP are
+            still attempted).
+        """
+        gc_was = gc.isenabled()
+        if getattr(self.transport, "info", {}).get("kind") not in ("in-process", "sim"):
+            # before CONFIG arms the device: a device on the wall clock ticks from then
+            # on (an in-process lockstep or virtual-clock mock waits for the host: no
+            # collection needed, ~0.07 s a run in a large process)
+            gc.collect()
+        gc.disable()             # from then on; no collector pauses in the hot loop (§4)
+        try:
+            hello = self.handshake()
+        except BaseException:
+            if gc_was:
+                gc.enable()
+            raise
+        try:
+            if hello is None:
+                pass
+            elif self.config.host_clocked:
+                self._run_stretches(self._host_clocked_stretch)
+            else:
+                self._run_stretches(self._device_clocked_stretch)
+        finally:
+            self.result.state = self.state
+            self._shutdown()
+            self.state = "stopped"
+            if gc_was:
+                gc.enable()
+        return self.finish()
+
+    def finish(self) -> LoopResult:
+        """Fill the result from what was recorded: samples, turnaround, decoder counters.
+
+        :meth:`run` ends with it; a caller that caught :meth:`run`'s DeviceError or
+        ProtocolError calls it to report the run up to the loss.
+
+        Returns
+        -------
+        LoopResult
+            :attr:`result`, completed.
+        """
+        res = self.result
+        if self.stop.set and res.stop_reason == "duration" and self.stop.signal is not None:
+            res.stop_reason = f"signal {signame(self.stop.signal)}"
+        elif self.stop.set and res.stop_reason == "duration" and getattr(self.stop, "reason",
+                                                                          None):
+            res.stop_reason = self.stop.reason
+        res.samples = self.tel.n
+        if self.measured is not None and res.velocity:
+            res.velocity = self.measured.as_dict()
+        ta = self.tel.columns()["turnaround_us"]       # the rows still in memory
+        res.turnaround_us = percentiles_us(ta)
+        res.turnaround_us["samples"] = int(ta.size)
+        dec = getattr(self.transport, "decoder", None)
+        if dec is not None:
+            res.decoder = dec.stats.as_dict()
+            self._check_bad()
+            res.bad_frames_seen = self._nbad - self._nbad0
+            res.bad_frames = self._bad_frame_records()
+        return res
+
+    def _note_other(self, msg) -> bool:
+        """A message other than STATE during the loop: count non-latched FAULTs and HELLOs.
+
+        A latched FAULT ends the run (returns True, stop flag set). A HELLO after the first
+        armed STATE since the last CONFIG means the device reset (it says HELLO when it
+        restarts): the device is lost at once (:class:`_Lost`) rather than after
+        ``lost_timeout`` of silence. Before that STATE a HELLO may answer one of the
+        handshake's HELLO requests and is only counted.
+
+        Raises
+        ------
+        _Lost
+            On a HELLO after arming.
+        """
+        res = self.result
+        tm = type(msg)
+        if tm is fp.Fault:
+            name = fp.FAULT_NAMES.get(msg.code, f"0x{msg.code:04X}")
+            if msg.code in LATCHED_FAULTS:
+                res.faults.append(name)
+                res.stop_reason = f"device: FAULT {name} (detail {msg.detail})"
+                self.stop.set = True
+                return True
+            res.device_faults[name] = res.device_faults.get(name, 0) + 1
+        elif tm is fp.Velocity:
+            if self.measured is not None:
+                self.measured.put(msg)
+        elif tm is fp.Hello:
+            res.hello_mid_run += 1
+            if not self._fresh:
+                raise _Lost("device reset: HELLO after arming")
+        return False
+
+    # ------------------------------------------------------------------ per sample (both)
+    def _non_finite_stop(self, seq: int) -> None:
+        """Safety stop on a non-finite position or force: zero force for ``seq``, then stop."""
+        self.transport.send(fp.Force(seq, (0.0,)))
+        self._last_seq = seq
+        self.result.stop_reason = "safety: non-finite position or force"
+        self.result.safety_stop = True
+        self.stop.set = True
+
+    def _drive(self, n_max: int, states) -> None:
+        """The hot loop of both clocks: answer each sample ``states`` yields, until it ends,
+        a stop, or a loss.
+
+        The per-sample work exists here only: late check, engine step (non-finite stop),
+        passivity observer and controller, force ramp after a recovery, clamp, FORCE,
+        clamp window, telemetry row (head + ring, drained at half laps), maxima, safety
+        bounds. The clocks differ only in which STATE is answered when, and that is the
+        source's business (:meth:`_device_states`, :meth:`_host_states`); the source is a
+        generator, so this loop keeps its state in local variables (no attribute access
+        per sample beyond what the two loops did before).
+
+        Parameters
+        ----------
+        n_max : int
+            Rows to reach (the sources stop there).
+        states : generator
+            Yields ``(msg, x, t_rx)`` per sample to answer: the STATE, its position [m]
+            and ``perf_counter_ns()`` when it was read; ``t_rx = -1`` for a STATE the
+            backlog policy skips (the engine steps with it, nothing is sent or logged). It (re)starts the scene
+            (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
+            at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
+        """
+        cfg = self.config
+        tel = self.tel
+        stop = self.stop
+        res = self.result
+        lim = self.force_limit
+        d = cfg.delay
+        T = 1.0 / cfg.rate_hz
+        rate = float(cfg.rate_hz)
+        pos_bound = cfg.position_bound
+        vlim = cfg.velocity_limit
+        elim = cfg.energy_limit
+        pc_on = bool(cfg.passivity_controller)
+        bmax = float(cfg.max_damping)
+        win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
+        wlen = win.size
+        wsum = 0
+        clamp_max = cfg.clamp_max
+        fh = [0.0] * (d + 2)                # forces sent, by local sample index
+        fhl = len(fh)
+        Force = fp.Force
+        applied_bit = fp.STATUS_FORCE_APPLIED
+        flags_applied = self._applied_seen
+        isfinite = math.isfinite
+        perf = time.perf_counter_ns
+        send = self.transport.send
+        ramp_n = max(int(cfg.ramp_samples), 1)
+        e_max = res.energy_max
+        x_max = res.energy_excess_max
+        v_max = res.v_max
+        f_max = res.f_max
+        first = None
+        try:
+            # the source (re)starts the scene (engine, observer baseline, restart flag)
+            # at its first usable STATE, before its first yield: device-clocked, that
+            # STATE is the one it yields; host-clocked, the latest STATE at its first
+            # deadline. Read what the restart set only now.
+            first = next(states, None)
+            if first is None:
+                return
+            eng = self.engine
+            restart = self._restart_flag
+            energy = self._energy
+            e0 = self._e0
+            t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr = (
+                tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
+                tel.flags, tel.force_seq, tel.status)
+            hl, rl = tel.head, tel.ring      # row i is in slot i, or hl + (i - hl) % rl
+            # a loop that is not real-time lets the journal writer catch up each half lap
+            drain = tel.drain if rl else None
+            lap_a, lap_b = (hl, hl + rl // 2) if drain is not None else (-1, -1)
+            # the scene restarts at rest at the first sample: dx = 0 there, for both clocks
+            # (device-clocked: at the STATE it resumed at; host-clocked: at the latest
+            # STATE at its first deadline, maybe newer than the one it resumed at)
+            x_prev = first[1]
+            poll = self.poll
+            k = 0                           # samples since this stretch (re)started
+            i = tel.n
+            for msg, x, t_rx in chain((first,), states):
+                if t_rx < 0:
+                    # a skipped STATE (backlog policy): not answered, but the scene takes
+                    # its position, so that the next velocity spans one period
+                    if isfinite(x):
+                        eng.port_step(x)
+                        x_prev = x
+                    continue
+                seq = msg.seq
+                lt = 0
+                st = msg.status
+                if st & applied_bit and not flags_applied:
+                    flags_applied = self._applied_seen = True
+                # the late-tick rule (hapsim.kernels.ticks), as the compiled loop and the
+                # record's account read it
+                if tick_late(seq, msg.force_seq, st, d, flags_applied):
+                    lt = 1
+                    res.late += 1
+                elif self._host_late:
+                    lt = 1
+                self._host_late = 0
+                if poll is not None:
+                    poll()
+                f = eng.port_step(x) if isfinite(x) else math.nan
+                if not isfinite(f):
+                    self._non_finite_stop(seq)
+                    break
+                # passivity observer: work of the force held over the last period
+                dx = x - x_prev
+                x_prev = x
+                v = dx * rate
+                if k > d:                   # held over the last period: FORCE k - 1 - d
+                    energy += fh[(k - 1 - d) % fhl] * dx
+                excess = energy - e0
+                if pc_on and excess > 0.0:
+                    tvv = T * v * v
+                    if tvv > 0.0:
+                        # alpha = (E - E0) / (T v^2), capped (compared without dividing:
+                        # no overflow for a tiny v)
+                        alpha = excess / tvv if excess < bmax * tvv else bmax
+                        f -= alpha * v
+                        res.passivity_samples += 1
+                rf = 0
+                if self._ramp > 0:
+                    f *= (ramp_n - self._ramp + 1) / ramp_n
+                    self._ramp -= 1
+                    rf = FLAG_RAMP
+                c = 0
+                if f > lim:
+                    f = lim
+                    c = 1
+                elif f < -lim:
+                    f = -lim
+                    c = 1
+                send(Force(seq, (f,)))
+                t_tx = perf()
+                self._last_seq = seq
+                fh[k % fhl] = f
+                k += 1
+                j = i % wlen
+                wsum += c - win[j]
+                win[j] = c
+                res.clamped += c
+                sl = i if i < hl else hl + (i - hl) % rl
+                t_arr[sl] = msg.time_us * 1e-6
+                x_arr[sl] = x
+                f_arr[sl] = f
+                s_arr[sl] = seq
+                ta_arr[sl] = (t_tx - t_rx) * 1e-3
+                late_arr[sl] = lt
+                fs_arr[sl] = msg.force_seq
+                st_arr[sl] = st
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
+                self._skip_flag = 0
+                restart = 0
+                i += 1
+                tel.n = i
+                if sl == lap_a or sl == lap_b:
+                    drain()
+                if energy > e_max:
+                    e_max = energy
+                if excess > x_max:
+                    x_max = excess
+                av = v if v >= 0.0 else -v
+                if av > v_max:
+                    v_max = av
+                af = f if f >= 0.0 else -f
+                if af > f_max:
+                    f_max = af
+                if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
+                        or excess > elim):
+                    res.stop_reason = safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
+                                                     v, vlim, excess, elim, e0)
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+        except DeviceError as exc:        # a read or write failed: the port is gone
+            raise _Lost(f"port failed: {str(exc).splitlines()[0]}", True) from None
+        finally:
+            if first is not None:
+                self._energy = energy
+                res.energy_max = e_max
+                res.energy_excess_max = x_max
+                res.v_max = v_max
+                res.f_max = f_max
+            # without a sample, E is what the source left: 0 when it (re)started the scene
+            res.energy = self._energy
+
+    # ------------------------------------------------------------------ device-clocked
+    def _device_clocked_stretch(self, n_max: int) -> None:
+        """The hot loop, from the next armed STATE until the end, a stop, or a loss: each
+        STATE is answered as it arrives (:meth:`_device_states`, :meth:`_drive`)."""
+        self._drive(n_max, self._device_states(n_max))
+
+    def _receive_hook(self):
+        """The ``receive(timeout)`` the device-clocked source reads messages with: the
+        transport's (a subclass may run samples before returning what is left,
+        :mod:`hapsim.host.fastloop`)."""
+        return self.transport.receive
+
+    def _device_states(self, n_max: int):
+        """The device-clocked source of :meth:`_drive`: every usable STATE, as it arrives.
+
+        Drops stale, implausible, wrong-axes and (before the first armed one) unarmed
+        STATEs, notes FAULTs and HELLOs, records bad frames, restarts the scene at the
+        first armed STATE after a CONFIG, and raises :class:`_Lost` on silence (no usable
+        STATE for :meth:`_silence`; ``state_timeout`` for the first after a CONFIG) or a
+        disarmed STATE after arming.
+
+        Yields
+        ------
+        (State, float, int)
+            The STATE, its position [m] (NaN for a non-finite first one), and
+            ``perf_counter_ns()`` when its frame was read.
+        """
+        cfg = self.config
+        tel = self.tel
+        stop = self.stop
+        res = self.result
+        rate = float(cfg.rate_hz)
+        State = fp.State
+        armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
+        isfinite = math.isfinite
+        perf = time.perf_counter_ns
+        clock = self._clock
+        receive = self._receive_hook()
+        self._expect = -1
+        silence = self._silence()
+        # a device (re)starting after CONFIG gets state_timeout for its first STATE
+        first_wait = max(silence, cfg.state_timeout)
+        poll = min(0.1, silence)
+        newest = cfg.backlog == "newest"
+        ahead_max = silence * rate + 2.0
+        self._last_rx = clock()
+        ds = self._dstats
+        nbad = self._nbad
+        mv = self.measured
+        while tel.n < n_max and not stop.set:
+            # wait no longer than the silence still allowed: the loss is declared when it
+            # runs out (to 1 us), not a poll later
+            allowed = first_wait if self._fresh else silence
+            left = self._last_rx + allowed - clock()
+            msgs = receive(poll if left > poll else (left if left > 1e-6 else 0.0))
+            t_rx = perf()
+            if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
+                                   + ds.unknown_type) != nbad:
+                nbad = self._snap_bad(ds.bad_crc + ds.bad_cobs + ds.overlong
+                                      + ds.malformed + ds.unknown_type)
+            if not msgs:
+                if clock() - self._last_rx >= allowed - 1e-6:
+                    raise _Lost(f"no STATE from the device for {allowed:g} s")
+                continue
+            used = False
+            for j, msg in enumerate(msgs):
+                tm = type(msg)
+                if tm is not State:
+                    if self._note_other(msg):
+                        break
+                    continue
+                if len(msg.position) != 1:
+                    res.bad_axes += 1
+                    continue
+                seq = msg.seq
+                if not msg.status & armed_bit:
+                    if self._fresh:
+                        res.unarmed += 1
+                        continue
+                    raise _Lost("the device reports itself disarmed (reset?)")
+                x = msg.position[0]
+                resumes = self._fresh
+                if self._fresh:
+                    if self._check_applied and msg.status & applied_bit:
+                        res.earlier_session += 1  # a FORCE applied since CONFIG: none sent
+                        continue
+                    if not isfinite(x):
+                        x = math.nan          # _drive stops on it (non-finite position)
+                    else:
+                        self._resume(x)
+                        self._expect = seq
+                if self._expect >= 0:
+                    gap = (seq - self._expect) & _U32
+                    if gap >= _HALF:
+                        res.stale += 1            # duplicated or reordered: older
+                        continue
+                    if gap and gap > (clock() - self._last_rx + silence) * rate + 2.0:
+                        res.implausible += 1      # further ahead than time allows
+                        continue
+                    res.missed += gap
+                # only a STATE used keeps the device alive: a host ignoring every STATE
+                # (stale, implausible) is as good as deaf, and loses it
+                self._last_rx = clock()
+                self._expect = (seq + 1) & _U32
+                used = True
+                if mv is not None:
+                    mv.take(seq)                  # its VELOCITY came just before it
+                if newest and not resumes and _newer_waiting(msgs, j, seq, ahead_max):
+                    res.skipped += 1              # backlog: a newer STATE is waiting
+                    self._skip_flag = FLAG_SKIPPED
+                    yield msg, x, -1              # not answered; the scene still steps
+                    continue
+                yield msg, x, t_rx            # _drive answers it (or stops: no resume)
+                if tel.n >= n_max:
+                    break
+            if (not used and not stop.set
+                    and clock() - self._last_rx >= (first_wait if self._fresh else silence) - 1e-6):
+                # frames came, but no STATE the loop could use for the silence allowed
+                raise _Lost(f"no usable STATE from the device for "
+                            f"{first_wait if self._fresh else silence:g} s")
+
+    # ------------------------------------------------------------------ host-clocked
+    def _host_clocked_stretch(self, n_max: int) -> None:
+        """Host-clocked loop from the next armed STATE until the end, a stop, or a loss:
+        at each host deadline the latest STATE is answered (:meth:`_host_states`,
+        :meth:`_drive`)."""
+        self._drive(n_max, self._host_states(n_max))
+
+    def _host_states(self, n_max: int):
+        """The host-clocked source of :meth:`_drive`: the latest STATE at each deadline.
+
+        Ticks without a new STATE are skipped (``missed``). Silence longer than
+        :meth:`_silence`, or a disarmed STATE after arming, raise :class:`_Lost`
+        (recovered by :meth:`_run_stretches`, as in the device-clocked loop). On a
+        virtual-clock transport (``clock()``/``sleep()``) the deadlines are on that clock;
+        deadlines missed by more than a period are counted (``overruns``).
+
+        Yields
+        ------
+        (State, float, int)
+            The STATE, its position [m], and ``perf_counter_ns()`` at the deadline.
+        """
+        cfg = self.config
+        tr = self.transport
+        tel = self.tel
+        stop = self.stop
+        res = self.result
+        rate = float(cfg.rate_hz)
+        silence = self._silence()
+        State = fp.State
+        armed_bit = fp.STATUS_ARMED
+        applied_bit = fp.STATUS_FORCE_APPLIED
+        perf = time.perf_counter_ns
+        clock = self._clock
+        sleep = self._sleep
+        virtual = hasattr(tr, "clock")
+        if virtual:
+            def mono_ns() -> int:
+                return int(round(clock() * 1e9))
+        else:
+            mono_ns = time.monotonic_ns
+        receive = tr.receive
+        # a request-reply device (a driver's) answers only what it is asked. A tick whose
+        # answer is overdue (the transport's deadline) is a missing sample, not a silence
+        # that grows into a loss: the scene steps with the position extrapolated from the
+        # two before and its FORCE goes out (asking the device again), so the scene's clock
+        # stays the device's (row flagged FLAG_ESTIMATED); more than ESTIMATED_MAX in a row,
+        # the tick is skipped and the last force asked again (hold)
+        # the driver declares it (Driver.request_reply): its transport then offers
+        # overdue(), hold() and estimate()
+        replies = getattr(getattr(tr, "driver", None), "request_reply", False)
+        hold = tr.hold if replies else None
+        overdue = tr.overdue if replies else None
+        estimate = tr.estimate if replies else None
+        est_state = EstimatedState()
+        run_est = 0
+        # a driver's transport on the wall clock is told of the host's stalls (no catch-up
+        # burst of commands after one); a lockstep or virtual-clock run has none
+        stalled = (getattr(tr, "host_stalled", None)
+                   if replies and not cfg.lockstep and not virtual else None)
+        late_ring = [0] * LATE_WINDOW           # 1 per late tick, the last LATE_WINDOW
+        late_i = late_n = late_old = 0
+        period_ns = int(round(1e9 / cfg.rate_hz))
+        latest = None
+        t_latest = 0.0              # clock time the latest STATE was taken [s]
+
+        ds = self._dstats
+        mv = self.measured
+
+        def take(msgs) -> None:
+            """Keep the newest armed 1-axis STATE; count the others; FAULT/HELLO noted;
+            a change of the decoder's bad-frame count is recorded."""
+            nonlocal latest, t_latest
+            if ds is not None and (ds.bad_crc + ds.bad_cobs + ds.overlong + ds.malformed
+                                   + ds.unknown_type) != self._nbad:
+                self._snap_bad(bad_count(ds))
+            for msg in msgs:
+                if type(msg) is not State:
+                    self._note_other(msg)
+                    continue
+                if len(msg.position) != 1:
+                    res.bad_axes += 1
+                    continue
+                if not msg.status & armed_bit:
+                    if latest is None:
+                        res.unarmed += 1
+                        continue
+                    raise _Lost("the device reports itself disarmed (reset?)")
+                if latest is None and self._check_applied and msg.status & applied_bit:
+                    res.earlier_session += 1      # a FORCE applied since CONFIG: none sent
+                    continue
+                if latest is not None:
+                    ahead = (msg.seq - latest.seq) & _U32
+                    if ahead >= _HALF:
+                        res.stale += 1            # duplicated or reordered: older
+                        continue
+                    if ahead > 1 and ahead > (clock() - t_latest + silence) * rate + 2.0:
+                        res.implausible += 1      # further ahead than time allows
+                        continue
+                latest = msg
+                t_latest = clock()
+                if mv is not None:
+                    mv.take(msg.seq)              # its VELOCITY came just before it
+
+        # wait for the first armed STATE (a device (re)starting gets state_timeout)
+        end = clock() + cfg.state_timeout
+        while latest is None and not stop.set:
+            take(receive(0.05))
+            if latest is None and clock() > end:
+                raise _Lost(f"no STATE from the device for {cfg.state_timeout:g} s")
+        if latest is None or stop.set:
+            return
+        self._resume(latest.position[0])
+        used_seq = -1
+        last_new = clock()
+        # a real-time device ticks on the same clock: tick a third of a period after its
+        # STATE arrives, so the STATE is in and the FORCE is back before its next tick
+        # (ticking in phase with the device would race it every period)
+        deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
+        while tel.n < n_max and not stop.set:
+            remaining = deadline - mono_ns()
+            if virtual:
+                while remaining > 0:
+                    sleep(max(remaining, 1000) * 1e-9)
+                    remaining = deadline - mono_ns()
+            elif remaining > 0:
+                # an absolute-deadline sleep, no spin: a SCHED_FIFO thread spinning to each
+                # deadline is throttled by the kernel (sched_rt_runtime_us) under load
+                sleep_until_ns(deadline)
+            take(receive(0.0))
+            if stop.set:
+                break
+            if stalled is not None:
+                behind = mono_ns() - deadline
+                late_ring[late_i] = behind if behind > period_ns else 0
+                late_n += late_ring[late_i] - late_old
+                late_i = (late_i + 1) % LATE_WINDOW
+                late_old = late_ring[late_i]
+                if late_n > LATE_STOP * LATE_WINDOW * period_ns:
+                    # a board without a watchdog holds each torque as long as the host is
+                    # late: a host that is late by half the time feeds the loop energy
+                    # through the varying delay; stop before the device runs away
+                    res.stop_reason = (f"safety: the host was {late_n / 1e6:.0f} ms late "
+                                       f"over its last {LATE_WINDOW} ticks: it cannot hold "
+                                       f"{rate:g} Hz here (a loaded machine without real-time "
+                                       f"priority?); zero torque sent")
+                    res.safety_stop = True
+                    stop.set = True
+                    break
+                if behind > period_ns:
+                    # the host is late (a descheduled process, a collection): the ticks it
+                    # missed are not sent now in a burst -- the device held its force over
+                    # them, a known input; a stall of STALL_TICKS or more is a gap in seq
+                    # (the transport), so a measurement does not run across it
+                    res.overruns += 1
+                    self._host_late = 1
+                    if behind >= STALL_TICKS * period_ns:
+                        stalled(int(behind // period_ns))
+                    deadline = mono_ns()
+            t_rx = perf()
+            if (latest.seq - used_seq) & _U32 >= _HALF or latest.seq == used_seq:
+                # no new sample since the last tick (or only one older than an estimated
+                # tick already stepped through): stepping the engine with a stale
+                # position would corrupt its velocity; skip this tick (counted), or, for a
+                # driver whose answer is overdue, step it with an estimate (notes above)
+                res.missed += 1
+                if clock() - last_new >= silence - 1e-6:
+                    raise _Lost(f"no STATE from the device for {silence:g} s")
+                if overdue is not None and run_est < ESTIMATED_MAX and overdue():
+                    # the position extrapolated from the last two records to this tick
+                    # (NaN before two came), the STATE fields filled in place
+                    x_e = estimate(est_state, (used_seq + 1) & _U32, cfg.delay)
+                    if x_e == x_e:
+                        run_est += 1
+                        res.estimated += 1
+                        used_seq = est_state.seq
+                        self._skip_flag |= FLAG_ESTIMATED
+                        yield est_state, x_e, t_rx
+                        deadline += period_ns
+                        continue
+                if hold is not None:
+                    hold()
+                deadline += period_ns
+                continue
+            last_new = clock()
+            used_seq = latest.seq
+            run_est = 0
+            yield latest, latest.position[0], t_rx   # _drive answers it (or stops)
+            deadline += period_ns
+            now = mono_ns()
+            if now - deadline > period_ns:
+                res.overruns += 1
+                if stalled is not None:
+                    # (answering took the host past the next deadline: a stall as above)
+                    self._host_late = 1
+                    if now - deadline >= STALL_TICKS * period_ns:
+                        stalled(int((now - deadline) // period_ns))
+                deadline = now
+
+
+#: Host deadlines missed at once that a driver's run marks as a gap in seq (a host stall:
+#: the device held its force over them): one. At 3 (before), a tick one or two periods late
+#: went into the measurement as on time: the Haply M3 said "differs" (k +0.36 %) after one
+#: such tick, unloaded; the row is also marked late (``_host_late``) where the transport
+#: cannot skip seq (a command still unanswered).
+STALL_TICKS = 1
+#: A driver's run on the wall clock stops (safety) when its host was late, summed over the
+#: ticks late by a period or more among the last LATE_WINDOW, by more than LATE_STOP of
+#: the window's time (a board without a watchdog held older torques that long).
+LATE_WINDOW = 100
+LATE_STOP = 0.5
+
+
+def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:
+    """Whether a STATE newer than ``seq`` waits after ``msgs[j]`` (the backlog policy).
+
+    Parameters
+    ----------
+    msgs : list
+        Messages of one read, in arrival order.
+    j : int
+        Index of the STATE ``seq`` in it.
+    seq : int
+        Its sequence number (u32).
+    ahead_max : float
+        Most samples a newer STATE may be ahead (``silence * rate + 2``: a STATE further
+        ahead is implausible and does not count).
+
+    Returns
+    -------
+    bool
+        True when a later armed 1-axis STATE is ahead by 1 .. ``ahead_max``.
+    """
+    State = fp.State
+    for m in msgs[j + 1:]:
+        if type(m) is State and len(m.position) == 1 and m.status & fp.STATUS_ARMED:
+            ahead = (m.seq - seq) & _U32
+            if 0 < ahead < _HALF and ahead <= ahead_max:
+                return True
+    return False
+
+
+def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
+                   position_bound: float, v: float, velocity_limit: float, excess: float,
+                   energy_limit: float, stored: float = 0.0) -> str:
+    """Why a safety stop is due (called only once a bound is breached, off the fast path).
+
+    Parameters
+    ----------
+    wsum, clamp_max, wlen : int
+        Samples at the force limit in the last ``wlen``, and how many stop the run.
+    limit : float
+        Force limit [N].
+    x, position_bound : float
+        Device position and its bound [m].
+    v, velocity_limit : float
+        Device velocity and its bound [m/s].
+    excess, energy_limit : float
+        Energy given to the hand by the scene beyond what it stored at its (re)start, and
+        its bound [J] (passivity observer, Hannaford & Ryu 2002).
+    stored : float
+        The scene's stored energy at that (re)start, the observer's baseline [J].
+
+    Returns
+    -------
+    str
+        The stop reason for the report, the first breached bound first.
+    """
+    if wsum >= clamp_max:
+        return f"{CLAMP_STOP} {limit:g} N in {wsum} of the last {wlen} samples"
+    if x > position_bound or x < -position_bound:
+        return f"safety: position {x:.6g} m beyond +-{position_bound:g} m"
+    if abs(v) > velocity_limit:
+        return f"safety: velocity {v:.6g} m/s beyond +-{velocity_limit:g} m/s"
+    return (f"safety: the scene gave the hand {excess:.6g} J more than the {stored:.6g} J "
+            f"it stored at its start, beyond the energy limit {energy_limit:g} J")

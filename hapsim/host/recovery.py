@@ -1,0 +1,203 @@
+"""A lost device and its recovery: silence, a port error or a reset (HELLO after arming)
+ends a stretch of the loop with :class:`~hapsim.host.loop_types.LostDevice`; zero force
+and STOP are sent, the port is re-opened, HELLO and CONFIG are asked again with backoff,
+and the next stretch restarts the scene at rest under a force ramp.
+
+:class:`Recovery` is the part of :class:`hapsim.host.loop.HostLoop` that does it (with
+its start and end: :meth:`Recovery._run_stretches`, :meth:`Recovery._shutdown`). It reads
+the loop's ``transport``, ``config``, ``stop``, ``tel``, ``engine`` and ``result``, and
+uses the handshake's HELLO and CONFIG (:class:`hapsim.host.handshake.Handshake`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import firmware_protocol as fp
+from hapsim.host.loop_types import OPEN_ENDED, SEQ_MASK, LostDevice, signame
+from hapsim.host.telemetry import FLAG_LOST
+from hapsim.errors import DeviceError
+
+__all__ = ["Recovery"]
+
+
+def _stored_energy(engine) -> float:
+    """Energy the scene stores now [J] (:meth:`hapsim.engine.Engine.energy`); 0.0 for an
+    engine without that method or a non-finite value (the observer's baseline, module notes)."""
+    fn = getattr(engine, "energy", None)
+    if fn is None:
+        return 0.0
+    e = float(fn())
+    return e if math.isfinite(e) else 0.0
+
+
+class Recovery:
+    """Loss, recovery, the run's stretches and its end (a base of
+    :class:`~hapsim.host.loop.HostLoop`)."""
+
+    def _shutdown(self) -> None:
+        tr = self.transport
+        try:
+            tr.send(fp.Force((self._last_seq + 1) & SEQ_MASK, (0.0,)))
+            tr.send(fp.Stop())
+        except DeviceError:
+            pass
+
+    def _state_timeout(self) -> None:
+        tr = self.transport
+        raise DeviceError(f"no STATE from the device for {self.config.state_timeout:g} s "
+                          f"(port {tr.info.get('port')}); last frames:\n"
+                          f"{tr.last_frames() or '(none received)'}")
+
+    # ------------------------------------------------------------------ recovery
+    def _event(self, event: str, **kw) -> None:
+        self.result.events.append({"event": event, "t": round(self._clock() - self._t0, 6),
+                                   "sample": self.tel.n, "state": self.state, **kw})
+
+    def _recover(self, lost: LostDevice) -> bool:
+        """Zero force and STOP, then re-open / HELLO / CONFIG with backoff.
+
+        Returns
+        -------
+        bool
+            True when CONFIG was sent again (the loop resumes at the next armed STATE);
+            False when the stop flag was set meanwhile.
+
+        Raises
+        ------
+        DeviceError
+            ``reconnect`` is off, or the attempts / time allowed for this loss are used up.
+        ProtocolError
+            The device that answered is not one hapsim can drive (version, axes).
+        """
+        cfg = self.config
+        tr = self.transport
+        res = self.result
+        clock = self._clock
+        reason = str(lost)
+        frames = tr.last_frames() or "(none received)"      # docs/design.md, rule 11
+        self._check_bad()
+        self.state = "lost"
+        if self._lost_since is None:
+            self._lost_since = clock()
+            self._attempts = 0
+            res.lost += 1
+            self._event("lost", reason=reason, last_frames=frames)
+        else:
+            self._event("lost again", reason=reason, last_frames=frames)
+        try:                                   # the device's own watchdog zeroes it anyway
+            tr.send(fp.Force((self._last_seq + 1) & SEQ_MASK, (0.0,)))
+            tr.send(fp.Stop())
+        except DeviceError:
+            lost.port_error = True
+        if not cfg.reconnect:
+            if "no STATE" in reason:
+                self._state_timeout()
+            raise DeviceError(f"{reason} (port {tr.info.get('port')}); last frames:\n"
+                              f"{tr.last_frames() or '(none received)'}")
+        port_error = lost.port_error
+        delay = cfg.backoff
+        last_err = reason
+        while not self.stop.set:
+            spent = clock() - self._lost_since
+            if self._attempts >= cfg.reconnect_attempts or spent > cfg.reconnect_time:
+                raise DeviceError(
+                    f"device lost ({reason}); {self._attempts} reconnect attempts in "
+                    f"{spent:.3g} s failed (last: {last_err}); port {tr.info.get('port')}; "
+                    f"last frames:\n{tr.last_frames() or '(none received)'}")
+            self._attempts += 1
+            res.reconnect_attempts += 1
+            self.state = "recovering"
+            self._event("attempt", n=self._attempts)
+            try:
+                if port_error and hasattr(tr, "reopen"):
+                    tr.reopen()
+                    port_error = False
+                hello = self._ask_hello(cfg.attempt_timeout)
+                if hello is not None:
+                    self._check_hello(hello)
+                    self._ask_sensors()        # a reset device forgot the request
+                    # the device may still tick armed STATEs of the lost session
+                    res.quiesced = self._quiesce()
+                    self._check_applied = not res.quiesced
+                    self._send_config()
+                    self.state = "armed"
+                    return True
+                last_err = f"no HELLO within {cfg.attempt_timeout:g} s"
+            except DeviceError as exc:        # ProtocolError (not a DeviceError) ends it
+                last_err = str(exc).split("\n")[0]
+                port_error = True
+            if self.stop.set:
+                break
+            self._sleep(delay)
+            delay = min(2 * delay, cfg.backoff_max)
+        return False
+
+    # ------------------------------------------------------------------ shared
+    def _run_stretches(self, stretch) -> None:
+        """Run ``stretch(n_max)`` until the end; after each loss, recover and run it again.
+
+        Both loops (device- and host-clocked) go through here: a stretch runs from the next
+        armed STATE after a CONFIG until the end, a stop, or a loss (:class:`LostDevice`); the loss
+        is handled by :meth:`_recover` (zero FORCE, STOP, re-open, HELLO, CONFIG, backoff),
+        and the next stretch restarts the scene through :meth:`_resume`.
+        """
+        res = self.result
+        stop = self.stop
+        n_max = self.config.n_samples if self.config.n_samples > 0 else OPEN_ENDED
+        if self.tel.max_rows is not None:
+            n_max = min(n_max, self.tel.max_rows)
+        self._energy = 0.0
+        while self.tel.n < n_max and not stop.set:
+            try:
+                stretch(n_max)
+            except LostDevice as lost:
+                if not self._recover(lost):
+                    break
+        if stop.set and res.stop_reason == "duration" and stop.signal is not None:
+            res.stop_reason = f"signal {signame(stop.signal)}"
+
+    def _silence(self) -> float:
+        """Silence after which the device is lost [s]: ``lost_timeout`` (default: the
+        watchdog) when reconnecting, else ``state_timeout``."""
+        cfg = self.config
+        if cfg.reconnect:
+            return cfg.lost_timeout if cfg.lost_timeout is not None else cfg.watchdog_us * 1e-6
+        return cfg.state_timeout
+
+    def _resume(self, x: float):
+        """First armed STATE after a (re)CONFIG: restart the scene at rest at ``x`` [m].
+
+        After a loss the engine is rebuilt from the scene (its initial state), the force
+        ramp is armed and the recovery is recorded. The passivity observer restarts: ``E``
+        from 0, its baseline ``E0`` the scene's stored energy now (module notes).
+
+        Parameters
+        ----------
+        x : float
+            Device position of the first armed STATE [m].
+
+        Returns
+        -------
+        Engine
+            The engine to step.
+        """
+        self._restart_flag = 0
+        if self.first_state_at is None:
+            self.first_state_at = self._clock()
+        if self._lost_since is not None:
+            self._restart_flag = FLAG_LOST          # telemetry: the scene restarts here
+            self.engine = type(self.engine)(self.engine.scene)
+            self._ramp = max(int(self.config.ramp_samples), 1)
+            self.result.recovered += 1
+            self._event("recovered", attempts=self._attempts,
+                        after_s=round(self._clock() - self._lost_since, 6), x=x)
+            self._lost_since = None
+        self.engine.set_port_position(x, at_rest=True)
+        # passivity observer: the scene (re)starts holding E0; E counts from 0 again
+        self._e0 = _stored_energy(self.engine)
+        self._energy = 0.0
+        self.result.energy_stored = self._e0
+        self._fresh = False
+        self._check_applied = False
+        return self.engine

@@ -1,0 +1,278 @@
+"""A Falcon run over its USB link: the firmware loaded, the legs homed, the scene's loop
+closed one packet per sample, and an account of the link that says what it saw.
+
+:func:`run_falcon` takes any link with ``line(**)`` and ``exchange(send, n, done,
+timeout)``: :class:`hapsim.drivers.falcon_usb.FalconUSB` on a real Falcon (libusb) or on
+the emulated one (:func:`emulated_falcon`: :class:`hapsim.emulated.falcon_device.FalconDevice`
+behind an emulated FT232R, :mod:`hapsim.emulated.ftdi_usb`, under the same pyftdi code).
+
+The loop is libnifalcon's: one packet written, its reply read, the next written (the
+Falcon's firmware answers each packet; its own loop sets the pace, ~1 kHz). It ends with
+:data:`ZERO_PACKETS` zero-command packets whatever ends it (the loop's end, an error,
+Ctrl-C): the firmware holds the last command. The
+packets carry no checksum and no sequence number: a lost or mangled reply is a missing
+sample (counted, the last reading held), a byte flipped inside a nibble is another count
+no host can tell from a real one. The verdict says only what the host can know:
+``"ok"`` (every reply came whole and plausible, every leg homed), ``"degraded"``
+(replies missing, bytes dropped realigning, implausible packets dropped: the numbers
+given). Against the emulator the report adds what no real run can: each reading
+compared with the count the emulated encoder had (``truth``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hapsim.errors import DeviceError
+
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "FIRMWARE_PROBES"]
+
+#: Packets sent after the load before concluding the firmware does not run.
+FIRMWARE_PROBES = 10
+#: Zero-command packets sent at the end of a loop (more than a device's delay of a few
+#: packets: the last of them is applied).
+ZERO_PACKETS = 5
+#: Periods between two of the loop's packets beyond which the host stalled: the
+#: firmware, on its own clock, held the last command over them (counted in ``stalls``;
+#: on a paced Falcon the verdict is "degraded" then: another loop than the scene's).
+HELD_PERIODS = 2.0
+
+
+def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
+                    dup_tx: float = 0.0, seed: int = 0, **device_options):
+    """An emulated Falcon behind an emulated FT232R, opened with pyftdi.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene with a delta device (the plant).
+    image : bytes
+        The firmware image the emulated loader accepts (the user's file).
+    faults : hapsim.emulated.driver_mock.ByteFaults, optional
+        Byte loss and bit flips on the UART, both ways.
+    unplug_after : int, optional
+        Bulk transfers after which the chip leaves the bus.
+    dup_tx : float
+        Probability that a device -> host byte comes twice.
+    seed : int
+        Seed of the duplication.
+    **device_options
+        :class:`hapsim.emulated.falcon_device.FalconDevice`'s keywords.
+
+    Returns
+    -------
+    (FalconUSB, FalconDevice, VirtualFT232R)
+        The link (pyftdi over the emulated chip), the device, the chip.
+    """
+    from hapsim.emulated.falcon_device import FalconDevice
+    from hapsim.emulated.ftdi_usb import VirtualFT232R, VirtualUSB
+    from hapsim.drivers.falcon_usb import FalconUSB
+    dev = FalconDevice(scene, expected_image=image, **device_options)
+    chip = VirtualFT232R(dev, faults=faults, unplug_after=unplug_after, dup_tx=dup_tx,
+                         seed=seed)
+    return FalconUSB(backend=VirtualUSB([chip])), dev, chip
+
+
+def falcon_verdict(res: dict) -> dict:
+    """The run's verdict from what the host saw (module notes).
+
+    Parameters
+    ----------
+    res : dict
+        :func:`run_falcon`'s result.
+
+    Returns
+    -------
+    dict
+        ``verdict`` (``"ok"`` or ``"degraded"``) and ``reason``.
+    """
+    d = res["decoder"]
+    bad = {"replies missing": res["missing"], "bytes dropped realigning": d["skipped"],
+           "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"]}
+    said = ", ".join(f"{k} {v}" for k, v in bad.items() if v)
+    if res.get("paced") and res.get("stalls"):
+        said = (said + "; " if said else "") + (
+            f"the host stalled {res['stalls']} times (a command held up to "
+            f"{res['held_max_s'] * 1e3:.1f} ms, more than {HELD_PERIODS:g} periods): the "
+            "Falcon held it on its own clock, another loop than the scene's")
+    slow = res.get("slow")
+    if slow:
+        said = (said + "; " if said else "") + (
+            f"the loop ran at {res['packets_per_s']:.0f} packets/s, below the scene's "
+            f"{res['rate_hz']:g} Hz: the Falcon held each command {slow:.1f} periods, so "
+            "it rendered another loop than the scene's")
+    caveat = ("the packets carry no checksum: a bit flipped inside a nibble is another "
+              "count, which no host can see")
+    if not said:
+        return {"verdict": "ok", "reason": f"every one of the {res['samples']} replies "
+                f"came whole and plausible, every leg homed ({caveat})"}
+    return {"verdict": "degraded", "reason": f"{said} (of {res['samples']} samples; a "
+            f"missing sample holds the last reading); {caveat}"}
+
+
+def _zero(link, timeout: float) -> int:
+    """Send :data:`ZERO_PACKETS` zero-command packets (red LED); the number that went."""
+    from hapsim.drivers.falcon import LED_RED, host_packet
+    sent = 0
+    for _ in range(ZERO_PACKETS):
+        try:
+            link.exchange(host_packet((0, 0, 0), LED_RED), 32, _reply_end, timeout)
+        except (DeviceError, OSError):
+            break
+        sent += 1
+    return sent
+
+
+def _reply_end(b: bytes) -> bool:
+    return len(b) >= 8 and b[-1] == 0x3E
+
+
+def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
+               timeout: float = 0.05, before_loop=None,
+               homing_limit: int = 20000, paced: bool = False,
+               load_attempts: int = 3) -> dict:
+    """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A 3-D scene with a delta device.
+    link : object
+        ``line``, ``exchange`` (:class:`hapsim.drivers.falcon_usb.FalconUSB`).
+    image : bytes
+        The firmware image.
+    samples : int
+        Packets of the loop.
+    truth : callable, optional
+        ``() -> (3,) counts`` the emulated encoders hold after each exchange
+        (:meth:`hapsim.emulated.falcon_device.FalconDevice.counts`); compared with the
+        readings.
+    progress : callable, optional
+        ``progress(k)`` after each stage (firmware, homing, loop).
+    timeout : float
+        Wait for each reply [s].
+    before_loop : callable, optional
+        Called once the legs are homed, before the loop (the tests switch faults on).
+    homing_limit : int
+        Most homing packets (~20 s at the firmware's ~1 kHz).
+    load_attempts : int
+        Firmware loads tried when the loader's echo differs or stops (each from the
+        loader's restart by DTR, as libnifalcon's ``loadFirmware(retries)``).
+    paced : bool
+        A real Falcon (its firmware on its own clock): a loop slower than 0.9 times the
+        scene's rate is ``slow`` (each command held that many periods: another loop
+        than the scene's) and the verdict says so; the emulator steps one period per
+        packet, whatever the pace.
+
+    Returns
+    -------
+    dict
+        ``firmware`` (:func:`hapsim.drivers.falcon_usb.load_firmware_link`, with
+        ``attempts``), ``homing``
+        (packets), ``samples``, ``missing``, ``unhomed``, ``decoder`` (``frames``,
+        ``skipped``, ``implausible``), ``packets_per_s`` (the loop's pace),
+        ``position`` (N, 3) [m] (NaN where missing), ``commands`` (N, 3), ``truth`` (with
+        ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
+        scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
+        None), ``zeroed`` (zero-command packets sent after the loop), ``stalls`` (gaps
+        of more than :data:`HELD_PERIODS` periods between two of the loop's packets: the
+        host stalled, the firmware held the last command), ``held_max_s`` (the longest
+        gap [s]), ``paced``, ``verdict``, ``reason``.
+
+    Raises
+    ------
+    DeviceError
+        The firmware load failed (what to check), the legs did not home, the link failed
+        or the Falcon went away (after how many packets).
+    """
+    from hapsim.emulated.falcon_device import drive_falcon, home
+    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
+    from hapsim.drivers.falcon_usb import load_firmware_link
+    from hapsim.errors import FirmwareEchoError
+    for attempt in range(1, load_attempts + 1):
+        try:
+            fw = load_firmware_link(link, image)
+            break
+        except FirmwareEchoError as exc:
+            # libnifalcon's loadFirmware(retries): DTR's edge restarts the loader
+            if attempt == load_attempts:
+                raise FirmwareEchoError(f"{exc} ({attempt} attempts, each from the "
+                                        "loader's restart)") from None
+    fw["attempts"] = attempt
+    if progress:
+        progress(1)
+    sent = [0]
+    truths = []
+    # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
+    # between two packets is a host stall (the firmware held the last command over it)
+    stamps = []
+
+    def feed(packet: bytes) -> bytes:
+        sent[0] += 1
+        stamps.append(time.perf_counter())
+        try:
+            # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
+            # would otherwise leave the next reply one byte behind, read one packet late)
+            ans = link.exchange(packet, 32, _reply_end, timeout)
+        except DeviceError as exc:
+            raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
+                              "load)") from None
+        if truth is not None:
+            truths.append(tuple(truth()))
+        return ans
+
+    # the firmware answers packets (libnifalcon's isFirmwareLoaded): else the image was
+    # not the Falcon's firmware, or the load did not take
+    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet
+    dec = DevicePacketDecoder()
+    if not any(dec.feed(feed(host_packet((0, 0, 0)))) for _ in range(FIRMWARE_PROBES)):
+        raise DeviceError(f"the Falcon answered none of {FIRMWARE_PROBES} packets after the "
+                          "firmware load: is the image the Novint firmware for the Falcon "
+                          "(libnifalcon's test firmware answers no packets)? Unplug and "
+                          "plug the Falcon and load again")
+    try:
+        homing = home(feed, LED_BLUE, limit=homing_limit, decoder=dec)
+    except DeviceError as exc:
+        raise DeviceError(f"{exc}: move the grip slowly in and out, all the way, while "
+                          "homing (each leg finds its encoder index)") from None
+    if progress:
+        progress(1)
+    truths.clear()
+    for k in dec.stats:                     # the loop's account from here
+        dec.stats[k] = 0
+    if before_loop is not None:
+        before_loop()
+    t0 = time.perf_counter()
+    stamps.clear()
+    try:
+        res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec)
+    finally:
+        # the firmware holds the last command (no watchdog is published): zero torque
+        # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
+        zeroed = _zero(link, timeout)
+    dt = time.perf_counter() - t0
+    if progress:
+        progress(1)
+    out = {"firmware": fw, "homing": homing, "samples": int(samples),
+           "missing": res["missing"], "unhomed": res["unhomed"], "decoder": res["decoder"],
+           "packets_per_s": (samples + 1) / dt if dt > 0 else None,
+           "position": res["position"], "commands": res["commands"], "truth": None,
+           "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed}
+    gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
+    out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
+    out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0
+    pps = out["packets_per_s"]
+    if paced and pps and pps < 0.9 * scene.rate_hz:
+        out["slow"] = scene.rate_hz / pps
+    out["paced"] = bool(paced)
+    if truth is not None:
+        # sample k reads the reply of exchange k (exchange 0 primes the loop)
+        read = ~np.isnan(res["joints"][:, 0])
+        err = [max(abs(ticks_of(np.degrees(res["joints"][k, i])) - truths[k][i])
+                   for i in range(3)) for k in np.flatnonzero(read)]
+        out["truth"] = {"compared": int(read.sum()), "exact": int(sum(e == 0 for e in err)),
+                        "max_error_counts": int(max(err)) if err else None}
+    out.update(falcon_verdict(out))
+    return out

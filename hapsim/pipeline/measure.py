@@ -1,0 +1,217 @@
+"""Step 5 of a run (:mod:`hapsim.pipeline.runner`): identify the free response the run logged
+after its excitation and compare it with the prediction (docs/design.md, 'The THS').
+
+:func:`identify_run` reads the telemetry, accounts for late ticks, clamped forces, a
+driver's missing replies and the sensor's step (:mod:`hapsim.analysis.measurement`), fits
+the felt pair (:func:`hapsim.analysis.measurement.identify`) and states the verdict
+against the prediction, with the notes on why the two may differ."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
+                                          relative_error, verdict, wire_errors)
+from hapsim.analysis.network import device_body
+from hapsim.analysis.prediction import has_offset, predicted_poles
+from hapsim.pipeline.run_types import PreparedRun
+from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
+from hapsim.errors import ConfigError
+from hapsim.scene import Scene
+
+__all__ = ["identify_run", "contact_replay"]
+
+
+def contact_replay(scene: Scene, cols: dict):
+    """Contact states of the run's rows, replayed from its telemetry.
+
+    Parameters
+    ----------
+    scene : Scene
+        The run's (calibrated) scene.
+    cols : dict of ndarray
+        Telemetry columns (:meth:`hapsim.host.telemetry.Telemetry.columns`), each of
+        shape ``(n,)``: ``position`` [m], ``force`` [N], ``seq``, ``flags``...
+
+    Returns
+    -------
+    ContactReplay or None
+        :func:`hapsim.pipeline.contact_replay.replay_contacts`'s result (which contacts are
+        closed at each row), or None for a scene without contacts or without a port.
+    """
+    from hapsim.pipeline.contact_replay import contact_links, replay_contacts
+    if not contact_links(scene) or scene.port is None:
+        return None
+    return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
+
+
+
+def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
+    """Step 5: identify the free response logged at the start and compare it.
+
+    The whole record while it fits in memory; the head once the ring has gone round.
+
+    Parameters
+    ----------
+    prep : PreparedRun
+        :func:`hapsim.pipeline.runner.prepare_run`'s result.
+    tel : Telemetry
+        The run's telemetry.
+    hello : firmware_protocol.Hello, optional
+        The device's HELLO: its ``position_scale`` is the sensor step when the scene's
+        ``device.position_resolution`` does not give one.
+    driver : hapsim.drivers.base.Driver, optional
+        The run's driver: its wire's number format is in the stated uncertainty
+        (:func:`hapsim.analysis.measurement.wire_errors`), and its ``position_scale``
+        [m/count] is the sensor step when neither the scene nor a HELLO gives one (the
+        quantiser's share, q^2 / 12 through the loop: Widrow & Kollar 2008, ch. 4).
+
+    Returns
+    -------
+    dict
+        :func:`identify`'s result with ``verdict``, ``within``, ``k_interval``,
+        ``b_interval`` (:func:`verdict`), ``note`` (why prediction and measurement may differ),
+        ``rel_err`` against the prediction and ``rel_err_target`` (one target only);
+        ``comparable`` (True with a measurement; False, with ``reason``,
+        ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
+        scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
+    """
+    scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
+    T = scene.period
+    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
+    measured = {"error": "not identified"}
+    late_info = {}
+    quantum = float(dev.position_resolution or 0.0)
+    if not quantum and hello is not None and math.isfinite(hello.position_scale):
+        quantum = max(float(hello.position_scale), 0.0)
+    if not quantum and driver is not None:
+        # a driver's positions are its wire's counts (FireFader: 0.39 mm): the step is the
+        # driver's own, whether or not a HELLO relayed it (an offline record has none);
+        # without it the sensor's share of the stated uncertainty was 0
+        ds = float(getattr(driver, "position_scale", 0.0) or 0.0)
+        quantum = ds if math.isfinite(ds) and ds > 0 else 0.0
+    if pred["order"]:
+        start = int(math.ceil(prep.exc_end / T - 1e-9)) + math.ceil(float(dev.delay)) + 3
+        if cols["seq"].size:
+            start += int(cols["seq"][0])
+        offset = has_offset(scene)
+        poles, felt = predicted_poles(scene)
+        response = None
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.error_response import sensor_error_response
+            try:
+                response = sensor_error_response(scene, int(cols["seq"].size))
+            except ConfigError:
+                response = None
+        replay = contact_replay(scene, cols)
+        from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
+        from hapsim.host.telemetry import FLAG_CLAMPED
+        computed = None
+        if np.any(cols["flags"] & FLAG_CLAMPED) and not scene.safety.passivity_controller:
+            # the host's clamp at the force limit: a known input (the law's force
+            # replayed from the logged positions), taken out with the late ticks'
+            from hapsim.pipeline.contact_replay import computed_forces
+            computed = computed_forces(scene, cols)
+        # rows the host clamped at the force limit whose law force the replay cannot give
+        # (skipped STATEs: their positions, which the law stepped through, are not logged;
+        # a live change; the passivity controller): the force the device held there is
+        # the clamped one, not the linear loop's, an input the account does not know. Left
+        # out, the record cut there: the stretch after them is a free response from its
+        # own initial state (the clamped forces still in flight are part of it; the fit
+        # drops each stretch's first delay + 2 rows), so the measurement stays exact
+        clamp_unknown = (cols["flags"] & FLAG_CLAMPED) != 0 if computed is None else None
+        position, late, late_info = late_accounted(
+            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
+            computed=computed)
+        wire = wire_errors(scene, cols, start, driver)
+        hw = late_info.pop("_force_half_width", None)
+        lfb = late_info.pop("_late_force_bound", None)
+        late_bounds = None if lfb is None else []
+        if lfb is not None and np.any(lfb > 0):
+            # the late ticks' accounted forces, wrong by at most the disturbance taken out:
+            # their worst case through the fit, apart (a side decided on b adds it)
+            from hapsim.analysis.error_response import force_error_response
+            late_bounds = [(lfb, force_error_response(scene, int(cols["seq"].size)))]
+        bounds = []
+        if hw is not None and np.any(hw > 0):
+            # the forces the account cannot name (a command whose answer never came: sent
+            # or the one before), bounded at their rows, through the loop's force
+            # response: their worst case is in the stated uncertainty
+            from hapsim.analysis.error_response import force_error_response
+            bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
+        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
+            # a driver's missing replies: the positions the loop stepped through them with
+            # are extrapolations, wrong by at most what the device can have done meanwhile
+            from hapsim.analysis.measurement import estimated_bounds
+            if response is None:
+                from hapsim.analysis.error_response import sensor_error_response
+                try:
+                    response = sensor_error_response(scene, int(cols["seq"].size))
+                except ConfigError:
+                    response = None
+            if response is not None:
+                bounds.append((estimated_bounds(
+                    cols, T, *device_body(dev), quantum, dev.noise,
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
+                    coulomb=dev.coulomb), response))
+        measured = identify(position, cols["seq"], T, pred["order"],
+                            device_body(dev)[0], start,
+                            offset=offset, late=late, skip=math.ceil(float(dev.delay)) + 2,
+                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
+                            sensor_response=response,
+                            closed=None if replay is None else replay.closed,
+                            exclude=((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
+                                     else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown),
+                            wire=wire, bounds=bounds or None, late_bounds=late_bounds)
+        if replay is not None:
+            contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.control.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
+    notes = []
+    if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
+        notes.append("the scene has contacts: the prediction takes them engaged, so only the "
+                     "longest stretch with every contact closed (replayed from the "
+                     "telemetry) is identified")
+    if any(m.kind == "mass" for m in scene.masses) and "k" in measured:
+        notes.append("virtual masses add modes: the identified pair is the one at the "
+                     "predicted felt pole, which the excitation may barely excite")
+    sensor = (dev.correction or {}).get("kind") == "velocity_sensor"
+    if (dev.coulomb > 0 or dev.noise > 0 or dev.position_resolution > 0
+            or sensor and (dev.velocity_noise > 0 or dev.velocity_resolution > 0)):
+        notes.append("the mock adds Coulomb friction, noise or quantisation: the measured "
+                     "loop is not the linear THS exactly")
+    if late_info:
+        measured.update(late_info)
+    n_est = int(np.count_nonzero(cols["flags"] & FLAG_ESTIMATED)) if "flags" in cols else 0
+    if n_est and "k" in measured:
+        # a driver's missing replies: the scene stepped through them with an extrapolated
+        # position, wrong by at most estimated_bounds; its worst case through the loop is
+        # in the stated uncertainty (k_bound_rows, b_bound_rows)
+        measured["estimated_samples"] = n_est
+        notes.append(f"{n_est} samples had no reply (a driver's lossy link) and were "
+                     f"stepped through with an extrapolated position: the stated "
+                     f"uncertainty covers the worst case of their error (k +-"
+                     f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
+                     f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
+    late_in = measured.get("late_in_segment", 0)
+    if late_in:
+        notes.append(f"no stretch of 100 samples without late ticks: the identified record "
+                     f"holds {late_in} late ticks (the device held an older force), so the "
+                     f"measured pair is a disturbed loop, not the THS alone; rerun on a "
+                     f"quieter machine, at a lower rate, or with --lockstep")
+    if notes:
+        measured["note"] = "; ".join(notes)
+    verdict(prep.pred, measured)
+    if "k" in measured:
+        measured.setdefault("comparable", True)
+        measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))
+                               for q in ("k", "b", "f0_hz", "damping_ratio")}
+        if len(targets) == 1:     # with several targets the felt pair is their sum
+            t0 = targets[0]
+            measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
+                                          for q in ("k", "b", "f0_hz", "damping_ratio")}
+    return measured
