@@ -1144,8 +1144,7 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     if driver is None and scene.device is not None:
         driver = scene.device.protocol
     try:
-        rep = run_scene(scene, dataclasses.replace(
-            opts, driver=None if driver == "framed" else driver))
+        rep = run_scene(scene, dataclasses.replace(opts, driver=driver))
     except (DeviceError, ProtocolError) as exc:
         rep = getattr(exc, "report", None)
         if rep is None:

@@ -339,7 +339,7 @@ class RunReportND(Report):
         Free responses, samples each, the fit's order.
     verdict : str
         ``"within"``, ``"differs"`` or ``"not measurable"``: the deviation against the
-        linearisation bound (:func:`hapsim.lockstep_nd.felt_verdict`; the framed
+        linearisation bound (:func:`hapsim.analysis.felt_matrices.felt_verdict`; the framed
         protocol carries binary64 positions and forces, so the wire adds no term).
     within : bool or None
         The deviation is inside the bound (None: not measurable).
@@ -352,7 +352,7 @@ class RunReportND(Report):
         matrix), ``name``, ``predicted`` and ``measured`` (along the direction [N/m] or
         [N s/m]; None for a matrix), ``deviation``, ``linearisation``, ``wire``,
         ``uncertainty`` [-], ``verdict``, ``within``, ``reason``
-        (:func:`hapsim.lockstep_nd.felt_verdict`). ``verdict`` is their conjunction.
+        (:func:`hapsim.analysis.felt_matrices.felt_verdict`). ``verdict`` is their conjunction.
     not_stated : list of str
         The names of the statements that were not measurable.
     port, late, watchdog, delay, lost
@@ -428,7 +428,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     -------
     RunReportND
     """
-    from hapsim.lockstep_nd import felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import felt_directions, felt_verdict
     fit, chk = res["measured"], res["predicted"]
     if port_info is not None:
         from hapsim.pipeline.run_nd import verdict_nd

@@ -21,7 +21,8 @@ import firmware_protocol as fp
 from hapsim.emulated.faults import FaultyDevice, parse_faults
 from hapsim.emulated.fastmock import CompiledMock
 from hapsim.host.loop import StopFlag
-from hapsim.emulated.mock import MockDevice, compiled_reason, serve_fd
+from hapsim.emulated.mock import MockDevice
+from hapsim.emulated.serve import compiled_reason, serve_fd
 from hapsim.scene import Device, Excitation, Hand, Impulse
 
 
@@ -237,7 +238,7 @@ def test_compiled_stretch_serves_a_pty_host():
 
 
 def test_python_tick_serves_when_the_compiled_one_cannot_load(monkeypatch):
-    import hapsim.emulated.mock as fm
+    import hapsim.emulated.serve as fm
 
     def broken():
         raise ImportError("no numba here")

@@ -260,7 +260,7 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     a vacuous interval), while the felt stiffness, whose wire term is small, is stated
     "within": the run's verdict is "partly within", the damping named as not measurable
     (never a bare "within" that a reader could take for a checked damping)."""
-    from hapsim.lockstep_nd import MEASURABLE_WIRE
+    from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     _, r = _wire_res("gen3", 22, 5e-5, "pantograph_circle.yaml")
     lin = r["bound"].to_dict()
     assert r["deviation"]["felt_stiffness"] > lin["felt_stiffness"]       # the old verdict
@@ -298,7 +298,7 @@ def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
     the wire's first-order worst case), and otherwise "not measurable"; the run's verdict
     is "within" when anything was stated, else "not measurable" with its cause."""
     from hapsim.kinematics import device
-    from hapsim.lockstep_nd import MEASURABLE_WIRE
+    from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     sc, _ = _plan(name)
     J = device("pantograph", sc.device.geometry).jacobian(sc.device.joints)
     a = min(quanta * np.linalg.norm(J, 2) * 2 * math.pi / 2.0 ** bits, 4e-4)

@@ -68,6 +68,7 @@ LAYERS = (
                "hapsim.device_file", "hapsim.drivers")),
     # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
     ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep_nd", "hapsim.scene_nd",
+                "hapsim.joint_device",
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
                 "hapsim.plots.workspace", "hapsim.plots.zwidth")),
@@ -431,17 +432,16 @@ PRIVATE_READS_ALLOWED = {
     "public list (check_numbers checks the declared ranges of a sub-command's options)",
     ("hapsim.__main__", "hapsim._quiet_interrupt_at_start"): "the package's own start-up, "
     "run by its own entry point before any import (not an API)",
-    # The compiled mock hands MockDevice's state over and back; mock.py is being merged
-    # with mock_nd.py by another engineer this session. What is left: MockDevice gets a
+    # The compiled mock hands MockDevice's state over and back. What is left: MockDevice gets a
     # public hand-over (its sequence, status, last force time, applied force, command and
     # delay ring), and serve_fd/compiled_reason read MockPhysics.noisy/.state_space,
     # StreamDecoder.overflow and a public "bytes queued" of FaultyDevice.
-    **{("hapsim.emulated.fastmock", f"mock.{a}"): "MockDevice's state hand-over (mock.py is "
-       "being restructured this session)" for a in ("_applied", "_applied_seq",
+    **{("hapsim.emulated.fastmock", f"mock.{a}"): "MockDevice's state hand-over (it needs a "
+       "public one)" for a in ("_applied", "_applied_seq",
                                                    "_last_force_us", "_rf", "_rs",
                                                    "_status_extra", "_u")},
-    **{("hapsim.emulated.mock", r): "switch to the public name once mock.py's restructuring "
-       "lands (ph.noisy, ph.state_space, dev.decoder.overflow; FaultyDevice needs one)"
+    **{("hapsim.emulated.serve", r): "switch to public names (ph.noisy, ph.state_space, "
+       "dev.decoder.overflow; FaultyDevice needs one)"
        for r in ("ph._rng", "ph._grip", "dev.decoder._overflow", "dev._out")},
 }
 

@@ -18,7 +18,9 @@ import socket
 import numpy as np
 import pytest
 
-from hapsim.audio.control import Controller, serve_osc
+from hapsim.audio.control import Controller
+
+from hapsim.audio.osc import serve_osc
 from hapsim.pipeline.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import load_scene

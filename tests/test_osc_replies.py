@@ -10,7 +10,9 @@ import socket
 
 import pytest
 
-from hapsim.audio.control import ADDRESSES, USAGE, Controller, serve_osc
+from hapsim.audio.control import ADDRESSES, USAGE, Controller
+
+from hapsim.audio.osc import serve_osc
 from hapsim.pipeline.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import parse_scene
@@ -122,7 +124,7 @@ def _accepted(sample, felt, ramp_s=0.01, address="/hapsim/link/kb", args=("wall"
 
 
 def test_a_change_before_the_window_is_what_the_measurement_is_compared_with():
-    from hapsim.audio.control import revise_measurement
+    from hapsim.audio.journal import revise_measurement
     m = _measured()
     journal = [{"event": "request", "sample": 3}, _accepted(5, (400.0, 1.0)),
                {"event": "refused", "sample": 7}, _accepted(20, (308.2, 1.585))]
@@ -140,7 +142,7 @@ def test_a_change_before_the_window_is_what_the_measurement_is_compared_with():
 @pytest.mark.parametrize("sample, ramp_s", [(95, 0.01), (300, 0.0), (599, 0.5)])
 def test_a_change_inside_the_window_makes_it_not_comparable(sample, ramp_s):
     """Inside [first_row, first_row + samples_used), its ramp included."""
-    from hapsim.audio.control import revise_measurement
+    from hapsim.audio.journal import revise_measurement
     m = _measured()
     revise_measurement(m, [_accepted(sample, (308.2, 1.585), ramp_s=ramp_s)], 1000.0)
     assert m["comparable"] is False and "within" not in m
@@ -150,7 +152,7 @@ def test_a_change_inside_the_window_makes_it_not_comparable(sample, ramp_s):
 
 
 def test_changes_after_the_window_leave_the_start_prediction():
-    from hapsim.audio.control import revise_measurement
+    from hapsim.audio.journal import revise_measurement
     m = _measured()
     before = dict(m)
     changes = revise_measurement(m, [_accepted(600, (308.2, 1.585))], 1000.0)

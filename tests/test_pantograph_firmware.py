@@ -115,10 +115,10 @@ def _named(states, forces):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_plant_matches_the_python_joint_space_model(built, scene, seed):
-    """The board's five-bar dynamics (C) against hapsim.lockstep_nd.JointDeviceND (Python,
+    """The board's five-bar dynamics (C) against hapsim.joint_device.JointDeviceND (Python,
     the model it transcribes) over random held torques: the same joints to 1e-9 rad over
     300 periods of motion of more than 0.01 rad."""
-    from hapsim.lockstep_nd import JointDeviceND
+    from hapsim.joint_device import JointDeviceND
     rng = np.random.default_rng(seed)
     T = scene.period
     # a random bias and random changes of the held torques each period
@@ -261,7 +261,7 @@ def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene,
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
     from hapsim.pipeline.run_nd import measure_felt_port
     from hapsim.host.transport import SerialTransport
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.analysis.felt_matrices import felt_verdict
     a = 2e-4
     with _board(tmp_path, scene, a) as (proc, port, report):
         tr = JointLevelTransport(SerialTransport(port), scene)
@@ -442,7 +442,7 @@ def test_joint_level_transport_turns_angles_and_torques_into_the_cartesian_devic
 
 class QuantisedPantograph:
     """The Hapkit pantograph as a model, behind the transport interface (lockstep): the
-    joint-space plant (:class:`hapsim.lockstep_nd.JointDeviceND`), the sensors as the board
+    joint-space plant (:class:`hapsim.joint_device.JointDeviceND`), the sensors as the board
     and simavr quantise them (sensor voltage in millivolts, ``floor(mV 1023 / 5000)``) and
     the firmware reads them (flip counting, ``home + n c`` in binary32), the torques as the
     firmware quantises them (binary32, nearest PWM step) and the board applies them, FORCE n
@@ -477,7 +477,7 @@ class QuantisedPantograph:
                                  max(self.k - 1, 0), tuple(float(v) for v in q)))
 
     def send(self, msg):
-        from hapsim.lockstep_nd import JointDeviceND
+        from hapsim.joint_device import JointDeviceND
         if isinstance(msg, fp.HelloRequest):
             self.configs = 0
             self.out.append(self.hello)
@@ -561,7 +561,7 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
     from hapsim.pipeline.run_nd import measure_felt_port
     from hapsim.host.transport import SerialTransport
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.analysis.felt_matrices import felt_verdict
     a = 2e-4
     with _board(tmp_path, scene, a, realtime=True) as (proc, port, report):
         tr = JointLevelTransport(SerialTransport(port), scene)
@@ -591,7 +591,7 @@ def _replay(scene, hello, torques):
     held over periods 0 .. N - 1, by the independent model of :class:`QuantisedPantograph`
     (joint-space plant, sensor and binary32 readings; the torques already whole PWM
     steps): readings at ticks 0 .. N, shape (N + 1, 2) [rad]."""
-    from hapsim.lockstep_nd import JointDeviceND
+    from hapsim.joint_device import JointDeviceND
     qp = QuantisedPantograph(scene, 1e-8, hello)
     dev = JointDeviceND(scene, np.asarray(scene.device.position, float), np.zeros(2),
                         substeps=2)

@@ -1,7 +1,7 @@
 """configs/pantograph_spring.yaml measured through the Hapkit pantograph's firmware (issue
 23, items 6 and 7): the two emulated boards on their TWI bus (lockstep, so independent of
 the machine's load), ``hapsim run --port --lockstep --amplitude 5e-3`` over the leader's
-UART, and the per-direction verdict (:func:`hapsim.lockstep_nd.felt_verdict`): a scene
+UART, and the per-direction verdict (:func:`hapsim.analysis.felt_matrices.felt_verdict`): a scene
 whose excitation is large against one sensor count and one PWM step, so that what the
 wall scene cannot state is stated here. Skipped, with the reason, only when avr-gcc,
 avr-libc or simavr's headers are not installed."""
@@ -40,7 +40,7 @@ def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, ca
     report prints the six statements."""
     from hapsim.cli import main
     from hapsim.emulated.pantograph_board import board_command
-    from hapsim.lockstep_nd import MEASURABLE_WIRE
+    from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     from hapsim.scene_nd import load_scene_nd
     scene = load_scene_nd(str(SCENE))
     a = 5e-3

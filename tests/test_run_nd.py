@@ -245,13 +245,13 @@ def test_text_report_ends_on_a_verdict(capsys):
 
 
 def test_verdict_against_the_bound_is_decided_by_it():
-    """:func:`hapsim.lockstep_nd.felt_verdict` on a binary64 wire (no wire term): within
+    """:func:`hapsim.analysis.felt_matrices.felt_verdict` on a binary64 wire (no wire term): within
     when both deviations are inside the linearisation bound plus the binary64 round-off
     allowance, differs when either is above it, not measurable when the amplitude opens a
     contact."""
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.lockstep_nd import felt_verdict
+    from hapsim.analysis.felt_matrices import felt_verdict
     from hapsim.scene_nd import load_scene_nd
     scene = load_scene_nd(str(CONFIGS / "pantograph_circle.yaml"))
     poles = check_scene_nd(scene).render.rendered_poles

@@ -140,7 +140,10 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
     out = capsys.readouterr().out
     assert len(calls) == 1 and json.loads(out) == json.loads(json.dumps(canned))
     o = got["options"]
-    assert (o.lockstep, o.duration, o.driver, o.handle_signals) == (True, 0.5, None, True)
+    # the scene's protocol as named ("framed"): RunOptions.check, inside run_scene, stores
+    # hapsim's own protocol as driver None, once
+    assert (o.lockstep, o.duration, o.protocol, o.handle_signals) == (True, 0.5, "framed", True)
+    assert o.check().driver is None
     assert o.loop in ("compiled", "python")       # 'auto' resolved by the command
     got["lose"] = True
     assert main(["run", WALL, "--lockstep"]) == 1

@@ -1,5 +1,5 @@
 """The n-D verdict per quantity and per principal direction (issue 23, items 4 and 5):
-:func:`hapsim.lockstep_nd.felt_verdict` against an independent quantised loop.
+:func:`hapsim.analysis.felt_matrices.felt_verdict` against an independent quantised loop.
 
 The loop is written here from the scene format's published laws (``hapsim.scene_nd``'s
 notes: a ``length: 0`` spring-damper ``F = K d + B (d - d_prev) / T``, a plane
@@ -138,7 +138,7 @@ def _measure(p, loop, a, scene, plan):
     """hapsim's analysis of the loop's ``2n + 1`` records: (fit, deviation, directions,
     diffs)."""
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.lockstep_nd import felt_deviation, felt_directions
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions
     chk, order, N = plan
     n = p["n"]
     e = np.eye(n)
@@ -155,7 +155,8 @@ def _case(seed, n, a, counts, steps, stiffer=1.0):
     ``steps``: the force step over the force at the excitation (``s = steps K0 a``).
     None when the loop is unstable or renders fewer than n pairs."""
     from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.lockstep_nd import felt_verdict, identification_plan, wire_terms_nd
+    from hapsim.analysis.felt_matrices import felt_verdict
+    from hapsim.lockstep_nd import identification_plan, wire_terms_nd
     from hapsim.scene_nd import parse_scene_nd
     rng = np.random.default_rng(seed)
     p = _random_scene(rng, n)
@@ -311,7 +312,7 @@ def test_cli_run_json_and_text_carry_the_statements(capsys):
 
 
 def test_each_statement_carries_its_own_uncertainty():
-    """:func:`hapsim.lockstep_nd.felt_verdict` on configs/pantograph_circle.yaml at
+    """:func:`hapsim.analysis.felt_matrices.felt_verdict` on configs/pantograph_circle.yaml at
     a = 1e-4 m with chosen measured matrices: the stiffness statements take ``eps_k``, the
     damping along ``e_i`` mode i's ``eps_k |s_i| / (2 |Re s_i|)`` (from the rendered
     poles, computed here) and the damping matrix the largest of them; a felt stiffness
@@ -322,7 +323,7 @@ def test_each_statement_carries_its_own_uncertainty():
 
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
-    from hapsim.lockstep_nd import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
     from hapsim.scene_nd import load_scene_nd
     scene = load_scene_nd(Path(__file__).resolve().parents[1] / "configs"
                           / "pantograph_circle.yaml")

@@ -2,9 +2,9 @@
 """Cost of one tick of the n-DoF mock's joint-space device (a program, not a test).
 
 For each shipped pantograph and delta scene: the time per period of
-:class:`hapsim.lockstep_nd.LocalJointDeviceND` (the real-time mock's device: quadratic
+:class:`hapsim.joint_device.LocalJointDeviceND` (the real-time mock's device: quadratic
 kinematics about the operating point, compiled Runge-Kutta) and of
-:class:`hapsim.lockstep_nd.JointDeviceND` (the exact kinematics: closed-form pantograph,
+:class:`hapsim.joint_device.JointDeviceND` (the exact kinematics: closed-form pantograph,
 Newton-solved delta), both driven by the same random forces in the same run, their ratio,
 and the largest distance between the two handles over the run [m] against the motion's
 size (the third-order Taylor term the quadratic model leaves out). The 1 kHz deadline is
@@ -28,7 +28,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from hapsim.lockstep_nd import JointDeviceND, LocalJointDeviceND  # noqa: E402
+from hapsim.joint_device import JointDeviceND, LocalJointDeviceND  # noqa: E402
 from hapsim.scene_nd import load_scene_nd  # noqa: E402
 
 

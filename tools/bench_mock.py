@@ -130,7 +130,7 @@ def main(argv=None) -> int:
                          "as hapsim run; the compiled tick loads before HELLO)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     args = ap.parse_args(argv)
-    from hapsim.emulated.mock import warm_up_mock
+    from hapsim.emulated.serve import warm_up_mock
     warm_up_mock()                    # numba's cache filled before the children load it
     _answer_states(-1, 1, 0, np.zeros(8, dtype=np.uint8), np.zeros(64, dtype=np.uint8),
                    np.zeros(1), np.zeros(8, dtype=np.uint8), _CRC,

@@ -2,7 +2,7 @@
 board's bytes (both pantograph scenes, both generations, encoders of 2^17..2^23 counts per
 revolution, excitations of 10 to 5000 reading steps, 150 or 300 samples) on a correct loop,
 counted by verdict and by statement (the felt matrices and the principal directions:
-:func:`hapsim.lockstep_nd.felt_verdict`), with the largest deviation over the stated
+:func:`hapsim.analysis.felt_matrices.felt_verdict`), with the largest deviation over the stated
 uncertainty of a stated quantity (a correct loop must never be "differs").
 
     python tools/haply2_verdicts.py [--cases 60] [--seed 7]

@@ -51,11 +51,11 @@ import time
 
 import numpy as np
 
-from hapsim.errors import ConfigError, HapsimError
+from hapsim.audio.analyst import Analyst
+from hapsim.audio.journal import identify_window
+from hapsim.errors import HapsimError
 
-__all__ = ["Controller", "Change", "Analyst", "ADDRESSES", "serve_osc", "identify_window",
-           "Refused", "name_arg", "numbers", "send_telemetry", "revise_measurement",
-           "write_journal"]
+__all__ = ["Controller", "Change", "ADDRESSES", "USAGE", "Refused", "name_arg", "numbers", "number"]
 
 #: The OSC addresses the server maps (module docstring).
 ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
@@ -140,7 +140,7 @@ class Controller:
         self.refused = 0
         self.accepted = 0
         self.measured = (math.nan, math.nan)
-        #: The last measurement's full result (:func:`identify_window`), or None.
+        #: The last measurement's full result (:func:`hapsim.audio.journal.identify_window`), or None.
         self.measurement: dict | None = None
         #: Why :attr:`measured` is NaN (None once a window has been measured): no free
         #: response handed in yet, the last window's refusal, or a change since.
@@ -196,7 +196,7 @@ class Controller:
                 pred = self._predict(self.scene)
                 self.felt = pred
             k, b = pred.get("k"), pred.get("b")
-            self._log("delay", "", [delay], reason=why, felt=[k, b],
+            self.log("delay", "", [delay], reason=why, felt=[k, b],
                       stable=bool(pred["stable"]),
                       spectral_radius=pred.get("spectral_radius"))
             if not pred["stable"]:
@@ -215,7 +215,29 @@ class Controller:
         self.analyst.close()
 
     # ------------------------------------------------------------ any thread
-    def _log(self, event: str, address: str, args, at: int | None = None, **extra) -> dict:
+    def log(self, event: str, address: str, args, at: int | None = None, **extra) -> dict:
+        """Journal one event (:attr:`journal`; also :attr:`events` when set).
+
+        Parameters
+        ----------
+        event : str
+            ``"request"``, ``"refused"``, ``"accepted"``, ``"ramp_start"``, ``"ramp_end"``,
+            ``"telemetry"``, ``"delay"``...
+        address : str
+            The OSC address (or the change's kind) it concerns.
+        args : sequence
+            Its arguments.
+        at : int, optional
+            The sample it happened at (default: the loop's sample now).
+        **extra
+            More fields of the record (``reason``, ``felt``, ``ramp_s``...).
+
+        Returns
+        -------
+        dict
+            The record: ``t`` [s] since the controller started, ``sample``, ``event``,
+            ``address``, ``args`` and the extra fields.
+        """
         sample = at if at is not None else (
             self.sample_of() if self.sample_of is not None else self.sample)
         rec = {"t": time.monotonic() - self._t0, "sample": sample, "event": event,
@@ -259,7 +281,7 @@ class Controller:
             ``(False, reason)`` when refused (nothing changes), ``(True, (ramp time [s],
             felt k [N/m], felt b [N s/m]))`` when accepted.
         """
-        self._log("request", address, args)
+        self.log("request", address, args)
         try:
             with self._lock:
                 change, pred = self._plan(address, args)
@@ -274,13 +296,13 @@ class Controller:
         except (Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
             reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             self.refused += 1
-            self._log("refused", address, args, reason=reason)
+            self.log("refused", address, args, reason=reason)
             return False, reason
         self.accepted += 1
         k, b = self.felt.get("k"), self.felt.get("b")
-        self._log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz,
+        self.log("accepted", address, args, felt=[k, b], ramp_s=change.steps / self.scene.rate_hz,
                   predicted={q: self.felt.get(q) for q in ("k", "b", "f0_hz", "damping_ratio")})
-        return True, (change.steps / self.scene.rate_hz, _num(k), _num(b))
+        return True, (change.steps / self.scene.rate_hz, number(k), number(b))
 
     def blend(self, a, b, w):
         """Scene ``a`` moved the fraction ``w`` [-] toward ``b`` (links' K, B and masses
@@ -320,13 +342,13 @@ class Controller:
         sample : int
             The device sample it happened at [-].
         """
-        self._log(event, change.kind, [change.name, *change.end], at=int(sample))
+        self.log(event, change.kind, [change.name, *change.end], at=int(sample))
 
     def felt_reply(self) -> tuple:
         """The values of ``/hapsim/felt``: k, b, f0, zeta predicted, k, b measured."""
         f = self.felt
-        return (_num(f.get("k")), _num(f.get("b")), _num(f.get("f0_hz")),
-                _num(f.get("damping_ratio")), float(self.measured[0]),
+        return (number(f.get("k")), number(f.get("b")), number(f.get("f0_hz")),
+                number(f.get("damping_ratio")), float(self.measured[0]),
                 float(self.measured[1]))
 
     def _plan_common(self, address: str, args):
@@ -410,7 +432,7 @@ class Controller:
     def measure(self, x, wait: float = 0.0) -> None:
         """Measure the felt (k, b) of a free response window in the background.
 
-        :func:`identify_window` on the scene as accepted now (in the analysis process);
+        :func:`hapsim.audio.journal.identify_window` on the scene as accepted now (in the analysis process);
         :attr:`measured` and :attr:`measurement` are set when it ends, unless a change was
         accepted meanwhile (the window then shows a loop that is no longer the one
         predicted). A window handed in while the previous one is still being measured is
@@ -482,7 +504,7 @@ class Controller:
                 self._ramps = [r for r in self._ramps if (r.kind, r.name) != (ch.kind, ch.name)
                                or not _replace_start(ch, r)]
                 self._ramps.append(ch)
-                self._log("ramp_start", ch.kind, [ch.name, *ch.end])
+                self.log("ramp_start", ch.kind, [ch.name, *ch.end])
         if not self._ramps:
             return
         keep = []
@@ -508,117 +530,13 @@ class Controller:
             if a < 1.0:
                 keep.append(r)
             else:
-                self._log("ramp_end", r.kind, [r.name, *r.end])
+                self.log("ramp_end", r.kind, [r.name, *r.end])
         self._ramps = keep
 
     @property
     def ramping(self) -> bool:
         """Whether a change is still being ramped (or waits in the mailbox)."""
         return bool(self._ramps or self._mail)
-
-
-class Analyst:
-    """Where a :class:`Controller` runs its heavy analysis: a child process, or here.
-
-    The child (a ``spawn`` :class:`multiprocessing.pool.Pool` of one worker, ``SCHED_OTHER``
-    at nice 10, its stdout sent to stderr so nothing lands in a ``--json`` report) is
-    started at once and kept; a call waits for its answer without holding the GIL, so the
-    haptic loop and the sound callback of this process keep running. :meth:`close`
-    terminates it, work under way included.
-
-    Parameters
-    ----------
-    background : bool
-        Use a child process (False: call in the calling thread).
-    timeout_s : float
-        Longest wait of :meth:`call` [s]; then :class:`hapsim.errors.HapsimError`.
-    """
-
-    def __init__(self, background: bool = True, timeout_s: float = 120.0) -> None:
-        self._pool = None
-        self.timeout_s = float(timeout_s)
-        if background:
-            import multiprocessing
-            self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=_background)
-
-    @property
-    def background(self) -> bool:
-        """Whether calls go to the child process (False: in the calling thread, or
-        after :meth:`close`)."""
-        return self._pool is not None
-
-    def submit(self, fn, args: tuple, done=None):
-        """Start ``fn(*args)``; ``done(result)`` when it ends (``done({"error": ...})`` if
-        it raised). Returns a handle with ``ready()`` and ``wait(timeout)``."""
-        def failed(exc):
-            if done is not None:
-                done({"error": f"{type(exc).__name__}: {exc}"})
-
-        if self._pool is not None:
-            return self._pool.apply_async(fn, args, callback=done, error_callback=failed)
-        h = _Done()
-        try:
-            res = fn(*args)
-        except Exception as exc:
-            failed(exc)
-            return h
-        if done is not None:
-            done(res)
-        return h
-
-    def call(self, fn, *args):
-        """``fn(*args)``, in the child when there is one (its exception re-raised).
-
-        Raises
-        ------
-        HapsimError
-            No answer within :attr:`timeout_s`.
-        """
-        if self._pool is None:
-            return fn(*args)
-        import multiprocessing
-        try:
-            return self._pool.apply_async(fn, args).get(self.timeout_s)
-        except multiprocessing.TimeoutError:
-            raise HapsimError(f"the analysis took longer than {self.timeout_s:g} s") from None
-
-    def close(self) -> None:
-        """Terminate the child (work under way is dropped)."""
-        if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
-            self._pool = None
-
-
-class _Done:
-    """The handle of work done in-process (already finished)."""
-
-    def ready(self) -> bool:
-        return True
-
-    def wait(self, timeout=None) -> None:
-        return None
-
-
-def _background() -> None:
-    """Analysis process initialiser: normal scheduling, low priority (it must never
-    compete with the haptic loop or the sound callback that started it)."""
-    import os
-    try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, OSError):
-        pass
-    try:
-        os.nice(10)
-    except (AttributeError, OSError):
-        pass
-    try:
-        os.dup2(2, 1)         # LAPACK and friends print on fd 1: keep it off the report
-    except OSError:
-        pass
-    from hapsim.blas import limit_blas_threads
-    limit_blas_threads(1)
-    import hapsim.analysis.identify  # noqa: F401  (loaded before the first window counts)
 
 
 class Refused(Exception):
@@ -716,266 +634,7 @@ def numbers(args, n: int, what: str, address: str = "") -> tuple:
     return vals
 
 
-def _num(v) -> float:
+def number(v) -> float:
     return float(v) if v is not None else math.nan
 
 
-def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
-    """Start the OSC server of a :class:`Controller` on a thread.
-
-    Parameters
-    ----------
-    ctl : Controller
-    port : int
-        UDP port (0: any free port; the server's ``server_address`` says which).
-    host : str
-        Address to listen on (localhost by default).
-    status : callable, optional
-        ``status() -> dict`` with ``xruns`` and ``underruns`` for ``/hapsim/loop``.
-
-    Returns
-    -------
-    server : pythonosc.osc_server.BlockingOSCUDPServer
-        Running (``server.shutdown()`` stops it). One thread serves the datagrams in the
-        order they arrive, so a sender's changes are checked, applied, journaled and
-        answered in the order it sent them (a thread per datagram, as
-        ``ThreadingOSCUDPServer`` does, let a quick ``/hapsim/gain`` overtake a
-        ``/hapsim/link/kb`` still being checked, and two changes of one link end in
-        either order).
-    telemetry : dict
-        ``{"client": SimpleUDPClient or None, "every": samples}``: where and how often the
-        sample loop sends ``/hapsim/tel`` (set by ``/hapsim/telemetry``).
-    """
-    from pythonosc import dispatcher as osc_dispatcher
-    from pythonosc import osc_server, udp_client
-    from pythonosc.osc_message_builder import OscMessageBuilder
-
-    tel = {"client": None, "every": 20}
-    sock_holder = {}
-
-    def reply(addr, address, *values):
-        b = OscMessageBuilder(address=address)
-        for v in values:
-            b.add_arg(v)
-        sock_holder["server"].socket.sendto(b.build().dgram, addr)
-
-    def on_change(client, address, *args):
-        ok, info = ctl.request(address, *args)
-        if ok:
-            reply(client, "/hapsim/ok", address, *info)
-        else:
-            reply(client, "/hapsim/refused", address, info)
-
-    def on_felt(client, address, *args):
-        reply(client, "/hapsim/felt", *ctl.felt_reply())
-
-    def on_loop(client, address, *args):
-        st = status() if status is not None else {}
-        reply(client, "/hapsim/loop", int(ctl.sample), _num(ctl.felt.get("spectral_radius")),
-              int(bool(ctl.felt.get("stable"))), int(ctl.accepted), int(ctl.refused),
-              int(st.get("xruns", 0)), int(st.get("underruns", 0)))
-
-    def on_telemetry(client, address, *args):
-        try:
-            host_, port_ = str(args[0]), int(args[1])
-            rate = float(args[2]) if len(args) > 2 else 50.0
-            tel["every"] = max(1, int(round(ctl.scene.rate_hz / rate)))
-            tel["client"] = udp_client.SimpleUDPClient(host_, port_)
-        except (IndexError, ValueError, TypeError) as exc:
-            reply(client, "/hapsim/refused", address, f"expected host port [rate_hz]: {exc}")
-            return
-        ctl._log("telemetry", address, args)
-        reply(client, "/hapsim/ok", address, 0.0, math.nan, math.nan)
-
-    d = osc_dispatcher.Dispatcher()
-    for a in ADDRESSES:
-        if a == "/hapsim/felt":
-            d.map(a, on_felt, needs_reply_address=True)
-        elif a == "/hapsim/loop":
-            d.map(a, on_loop, needs_reply_address=True)
-        elif a == "/hapsim/telemetry":
-            d.map(a, on_telemetry, needs_reply_address=True)
-        else:
-            d.map(a, on_change, needs_reply_address=True)
-    def on_unknown(client, address, *args):
-        # returns None: python-osc sends a handler's return value back as a message (a
-        # tuple here was its BuildError traceback on stderr)
-        ctl._log("refused", address, args, reason="unknown address")
-        reply(client, "/hapsim/refused", address,
-              f"unknown address; valid: {', '.join(ADDRESSES)}")
-
-    d.set_default_handler(on_unknown, needs_reply_address=True)
-    server = osc_server.BlockingOSCUDPServer((host, port), d)
-    sock_holder["server"] = server
-    threading.Thread(target=server.serve_forever, name="hapsim-osc", daemon=True).start()
-    return server, tel
-
-
-def revise_measurement(measured: dict, journal: list, rate_hz: float) -> list:
-    """Compare a run's measurement with the prediction of the scene it measured, after
-    live changes (``hapsim run --osc``), as ``hapsim play`` re-predicts.
-
-    The measured window is rows ``[first_row, first_row + samples_used)`` of the run; each
-    accepted change acts from its ``sample`` over its ramp. A change inside the window
-    makes the measurement a mix of two loops: not comparable. Changes that all ended
-    before it: the measurement is compared with the prediction after the last of them
-    (its felt k, b). Changes that all came after it: the start's prediction stands.
-
-    Parameters
-    ----------
-    measured : dict
-        The run's identification result (``k`` [N/m], ``b`` [N s/m], ``k_interval``,
-        ``b_interval``, ``first_row``, ``samples_used``, ``rel_err``, ``verdict``);
-        updated in place: ``compared_with`` says which prediction, ``rel_err`` (k and b),
-        ``within`` and ``verdict`` follow it, or ``comparable`` False with the reason.
-    journal : list of dict
-        The controller's journal (:attr:`Controller.journal`).
-    rate_hz : float
-        Device rate [Hz] (ramp times to samples).
-
-    Returns
-    -------
-    list of dict
-        The accepted changes: ``sample``, ``address``, ``args``, ``ramp_s`` [s], the
-        ``felt`` [k, b] predicted after each and that ``predicted`` pair (``k``, ``b``,
-        ``f0_hz``, ``damping_ratio``).
-    """
-    changes = [{"sample": int(e["sample"]), "address": e["address"], "args": e["args"],
-                "ramp_s": e.get("ramp_s", 0.0), "felt": e.get("felt"),
-                "predicted": e.get("predicted")}
-               for e in journal if e.get("event") == "accepted"]
-    if not changes or "k" not in measured or measured.get("first_row") is None:
-        return changes
-    a = int(measured["first_row"])
-    b = a + int(measured.get("samples_used", 0))
-
-    def end(c):
-        return c["sample"] + int(math.ceil(c["ramp_s"] * rate_hz)) + 1
-
-    inside = [c for c in changes if c["sample"] < b and end(c) > a]
-    before = [c for c in changes if end(c) <= a]
-    if inside:
-        c = inside[0]
-        measured["comparable"] = False
-        measured["compared_with"] = None
-        measured["verdict"] = (f"not comparable: the scene changed while it was measured "
-                               f"({c['address']} {' '.join(map(str, c['args']))} at sample "
-                               f"{c['sample']}, window {a}..{b})")
-        measured.pop("within", None)
-        return changes
-    if not before:
-        measured["compared_with"] = "the start's prediction (every change came after the "\
-                                    "measured window)"
-        return changes
-    c = before[-1]
-    kp, bp = (float(v) for v in c["felt"])
-    pred = {"k": kp, "b": bp, **{q: v for q, v in (c.get("predicted") or {}).items()
-                                 if q not in ("k", "b")}}
-    measured["compared_with"] = {**pred, "after": f"{c['address']} "
-                                 f"{' '.join(map(str, c['args']))} at sample {c['sample']}"}
-    measured["rel_err"] = {q: ((measured[q] - v) / v if v else math.nan)
-                           if v is not None and measured.get(q) is not None else math.nan
-                           for q, v in ((q, pred.get(q)) for q in
-                                        ("k", "b", "f0_hz", "damping_ratio"))}
-    if "k_interval" in measured:
-        ok = (abs(measured["k"] - kp) <= measured["k_interval"]
-              and abs(measured["b"] - bp) <= measured["b_interval"])
-        measured["within"] = bool(ok)
-        measured["verdict"] = ("measured = predicted after the changes within the stated "
-                               "uncertainty" if ok else "measured differs from the prediction "
-                               "after the changes by more than the stated uncertainty")
-    return changes
-
-
-def send_telemetry(tel: dict, t: float, x, f, ctl: Controller) -> None:
-    """Send one ``/hapsim/tel t x f k b`` message when a telemetry client is set
-    (called by the sample loop every ``tel["every"]`` samples; UDP, never blocks long).
-
-    Parameters
-    ----------
-    tel : dict
-        :func:`serve_osc`'s telemetry dict.
-    t : float
-        Time [s].
-    x, f : float or array_like
-        Device position [m] and port force [N]: a number (1-D) or n of each (a 2-D or
-        3-D scene: ``/hapsim/tel t x1 .. xn f1 .. fn k b``).
-    ctl : Controller
-        Its felt ``k``, ``b`` are sent.
-    """
-    c = tel.get("client")
-    if c is not None:
-        try:
-            c.send_message("/hapsim/tel", [float(t), *(float(v) for v in np.ravel(x)),
-                                           *(float(v) for v in np.ravel(f)),
-                                           _num(ctl.felt.get("k")), _num(ctl.felt.get("b"))])
-        except OSError:
-            pass
-
-
-def identify_window(x: np.ndarray, scene) -> dict:
-    """Felt (k, b) of a free response window, measured as ``hapsim run`` measures it.
-
-    :func:`hapsim.analysis.measurement.identify` with the run's arguments: the predicted non-zero
-    closed-loop poles seen at the port and the predicted felt pole
-    (:func:`hapsim.analysis.prediction.predicted_poles`), the equilibrium offset
-    (:func:`hapsim.analysis.prediction.has_offset`), the device's sensor step and noise, so the
-    answer is :func:`hapsim.analysis.identify.measure_felt` (exact matrix pencil for an
-    exact record, variable projection started from the prediction otherwise).
-
-    Parameters
-    ----------
-    x : ndarray, shape (n,)
-        Device positions [m], one per device sample, from the start of a free response.
-    scene : hapsim.scene.Scene
-        The calibrated scene of the loop that produced them (device delay included).
-
-    Returns
-    -------
-    dict
-        :func:`~hapsim.analysis.measurement.identify`'s result: ``k`` [N/m], ``b`` [N s/m],
-        ``k_unc``, ``b_unc`` ... or ``error`` (str) when the window cannot carry a
-        measurement.
-    """
-    from hapsim.analysis.network import device_body
-    from hapsim.analysis.measurement import identify
-    from hapsim.analysis.prediction import has_offset, predicted_poles
-
-    x = np.asarray(x, dtype=float)
-    dev = scene.device
-    try:
-        poles, felt = predicted_poles(scene)
-        order = int(poles.size)
-        if not order:
-            return {"error": "the loop has no oscillation to measure"}
-        response = None
-        quantum = float(dev.position_resolution or 0.0)
-        if quantum > 0 or dev.noise > 0:
-            from hapsim.analysis.error_response import sensor_error_response
-            response = sensor_error_response(scene, int(x.size))
-        return identify(x, np.arange(x.size), scene.period, order, device_body(dev)[0], 0,
-                        offset=has_offset(scene), skip=int(dev.delay) + 2,
-                        predicted=poles, felt=felt, quantum=quantum, noise=float(dev.noise),
-                        sensor_response=response)
-    except (ConfigError, ValueError, np.linalg.LinAlgError) as exc:
-        return {"error": str(exc)}
-
-
-def write_journal(path: str, journal: list) -> None:
-    """Write a change journal (:attr:`Controller.journal`) as JSON to ``path`` (through a
-    ``.partial`` file renamed at the end: a reader never sees half of it).
-
-    Parameters
-    ----------
-    path : str
-        ``--journal FILE.json``.
-    journal : list of dict
-    """
-    import json
-    import os
-
-    from hapsim.outputs import json_safe
-    tmp = path + ".partial"
-    with open(tmp, "w") as fh:
-        json.dump(json_safe(journal), fh, indent=1)
-    os.replace(tmp, path)

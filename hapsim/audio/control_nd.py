@@ -104,7 +104,7 @@ class ControllerND(Controller):
     ramp_s : float
         Ramp time of every change [s].
     background : bool
-        Run the checks in a child process (default; :class:`hapsim.audio.control.Analyst`).
+        Run the checks in a child process (default; :class:`hapsim.audio.analyst.Analyst`).
 
     Attributes
     ----------

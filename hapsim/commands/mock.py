@@ -218,7 +218,8 @@ def run(args) -> int:
         if given:
             raise ConfigError("is an option of the emulated board (--firmware)", key=flag)
     from hapsim.emulated.faults import mock_fault_plan, reopener
-    from hapsim.emulated.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice, serve_fd
+    from hapsim.emulated.mock import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockDevice
+    from hapsim.emulated.serve import serve_fd
     from hapsim.host.realtime import RealtimePriority
 
     rt = RealtimePriority(args.rt_priority)       # ConfigError (exit 2) when out of range
@@ -252,14 +253,14 @@ def run(args) -> int:
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
         # the host sends STOP when it loses the device and then reconnects: the embedded
         # mock ends when the host closes the port (EIO), not on STOP
-        from hapsim.emulated.mock import AUTO_COMPILED_HZ
+        from hapsim.emulated.serve import AUTO_COMPILED_HZ
         compiled = args.tick == "compiled" or (args.tick == "auto"
                                                and mock.native_rate_hz > AUTO_COMPILED_HZ)
         if compiled and not args.lockstep and plan is None:
             # numba's loading (hundreds of ms of CPU) before SCHED_FIFO, not under it: a
             # real-time start-up starves every other real-time loop of the machine
             try:
-                from hapsim.emulated.mock import warm_up_mock
+                from hapsim.emulated.serve import warm_up_mock
                 from hapsim.pipeline.startup import preload_numba_blas
                 preload_numba_blas()
                 warm_up_mock()

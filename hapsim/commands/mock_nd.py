@@ -88,7 +88,7 @@ def run_mock_nd(args, new_pty) -> int:
     """
     from hapsim.emulated.faults import mock_fault_plan, reopener
     from hapsim.host.loop import StopFlag
-    from hapsim.emulated.mock import serve_fd
+    from hapsim.emulated.serve import serve_fd
     from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.host.realtime import RealtimePriority
     from hapsim.scene_nd import load_scene_nd

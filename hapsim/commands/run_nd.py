@@ -214,7 +214,7 @@ def run_nd(args) -> int:
 
 
 def print_statements(v: dict, o) -> None:
-    """Print a verdict's statements (:func:`hapsim.lockstep_nd.felt_verdict`), one a line:
+    """Print a verdict's statements (:func:`hapsim.analysis.felt_matrices.felt_verdict`), one a line:
     the quantity (a felt matrix as a whole, or along a principal direction: predicted and
     measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
     linearisation bound plus the wire's term, relative), and what it says.

@@ -39,7 +39,7 @@ and held until the next (no watchdog is published), the encoders read at that ti
 the reply ready then (:attr:`FalconDevice.ready_at`, which
 :class:`hapsim.emulated.ftdi_usb.VirtualFT232R` honours). Between ticks the delta's legs
 are integrated over the real time that passed
-(:meth:`hapsim.lockstep_nd.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
+(:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
 (named, for deterministic tests): each packet is one period, the reply at once.
 """
 
@@ -55,7 +55,7 @@ from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, de
                                    parse_host_packet, ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
 from hapsim.errors import ConfigError
-from hapsim.lockstep_nd import LocalJointDeviceND
+from hapsim.joint_device import LocalJointDeviceND
 
 __all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "EmulatorLink",
            "LOADER_BAUD", "LOADING_BAUD", "NORMAL_BAUD"]

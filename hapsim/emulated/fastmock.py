@@ -1,6 +1,6 @@
 """The real-time mock's tick compiled with numba, so that the test rig keeps up above 2 kHz.
 
-:class:`CompiledMock` runs the armed, real-time part of :func:`hapsim.emulated.mock.serve_fd`
+:class:`CompiledMock` runs the armed, real-time part of :func:`hapsim.emulated.serve.serve_fd`
 in one numba ``nogil`` function, :func:`_stretch`, for as many ticks as it can: sleep until
 the tick's absolute deadline (``clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)``: no
 spinning, also under ``SCHED_FIFO``), take the host's bytes (``poll`` 0 ms + ``read``),
@@ -23,7 +23,7 @@ the Python mock's for the same host bytes at the same device times
 wakes on each host frame and stamps it (watchdog) on arrival, the compiled one reads what
 arrived when it wakes for the tick and stamps it with the tick's time.
 
-Not compiled (the Python mock serves; :func:`hapsim.emulated.mock.compiled_reason` says why): lockstep (paced by
+Not compiled (the Python mock serves; :func:`hapsim.emulated.serve.compiled_reason` says why): lockstep (paced by
 the FORCEs, not by a clock), a fault plan (the faults are Python), VELOCITY frames enabled
 by the host (a velocity-sensor correction), sensor noise (numpy's
 generator), a compliant hand grip (4-state plant), a subclass of the mock (tests), and the
@@ -320,7 +320,7 @@ class CompiledMock:
     Parameters
     ----------
     dev : FaultyDevice
-        The device as :func:`~hapsim.emulated.mock.serve_fd` wraps it (its ``mock``, its
+        The device as :func:`~hapsim.emulated.serve.serve_fd` wraps it (its ``mock``, its
         receiver ``decoder``).
     """
 
@@ -396,7 +396,7 @@ class CompiledMock:
         mock._last_force_us = int(iv[I_LAST_FORCE_US])
         mock._applied = mock.stats.last_applied = float(fv[F_APPLIED])
         mock._u = float(fv[F_U])
-        mock.velocity_out = None            # no VELOCITY while compiled (hapsim.emulated.mock.compiled_reason)
+        mock.velocity_out = None            # no VELOCITY while compiled (hapsim.emulated.serve.compiled_reason)
         mock._rf = self.rf.tolist()
         mock._rs = self.rs.tolist()
         st = mock.stats

@@ -3,7 +3,7 @@
 A :class:`FaultPlan` says which faults to inject, either at random (a probability per
 frame or per tick) or at scheduled device ticks; :class:`FaultyDevice` applies it around a
 :class:`~hapsim.emulated.mock.MockDevice`, I/O-free: bytes in, timed bytes out. The mock's
-serving loop (:func:`hapsim.emulated.mock.serve_fd`, a real pty) and the in-process
+serving loop (:func:`hapsim.emulated.serve.serve_fd`, a real pty) and the in-process
 virtual-clock transport (:class:`hapsim.host.transport.SimTransport`) both use it, so the
 host always sees real wire faults (torn, corrupted, repeated, reordered, delayed frames)
 through its own stream decoder.
@@ -386,7 +386,7 @@ def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
 
 def reopener(link: str | None, new_pty, announce: bool):
     """The ``reopen() -> fd`` a ``vanish`` fault calls when the port comes back
-    (:func:`hapsim.emulated.mock.serve_fd`): a new pty, ``link`` pointed at it.
+    (:func:`hapsim.emulated.serve.serve_fd`): a new pty, ``link`` pointed at it.
 
     Parameters
     ----------

@@ -6,7 +6,7 @@ The board (:class:`Haply2DIYBoard`) parses the host's bytes as firmware V1.5 doe
 keeps each motor port's torque until a write changes it (no watchdog), and answers every
 write with ``[id]`` + a float32 per analog pin and encoder port of that id. Each write is
 one period: the torques ``d`` writes back (the scene's ``device.delay``) are held over it
-while the plant advances (:class:`hapsim.lockstep_nd.LocalJointDeviceND`, the pantograph's
+while the plant advances (:class:`hapsim.joint_device.LocalJointDeviceND`, the pantograph's
 joint-space dynamics), then the encoders are read: ``360 * count / resolution`` with the
 count set to ``int(offset * resolution / 360)`` at the set-up and moving by the joint's
 rotation in whole counts of the hardware's ``cpr``, in the direction the set-up's byte says
@@ -31,7 +31,7 @@ whose constructor waits ``delayMicroseconds(2000)`` for the pins' R-C filter (th
 library Haply ships), then writes the count at the offset (``.h`` line 442): the 2DIY's
 two encoders cost :data:`SETUP_S` each, during which the commands wait and the joints
 do not. Between events the pantograph is integrated over the real time that passed
-(:meth:`hapsim.lockstep_nd.LocalJointDeviceND.advance_torque`). The loop's own delay is
+(:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). The loop's own delay is
 one period (the read and the torques at the same write, the torques computed from that
 read one write later); a scene stating more delays each write's torques by the rest.
 ``clock="lockstep"`` (named, for deterministic tests): each write is one period.
@@ -48,7 +48,8 @@ import numpy as np
 from hapsim.drivers.haply import CommandDecoder, ResyncRule
 from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
-from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
+from hapsim.joint_device import LocalJointDeviceND
+from hapsim.lockstep_nd import excitation_starts
 
 __all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2", "BoardLink", "in_hand_order",
            "PROBE_TORQUE", "PROBE_ENVELOPE", "SETUP_S", "PASS_S"]
@@ -485,7 +486,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     minus the one from rest fitted as in lockstep
     (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
 
-    The stated uncertainty (:func:`hapsim.lockstep_nd.felt_verdict`) is the linearisation
+    The stated uncertainty (:func:`hapsim.analysis.felt_matrices.felt_verdict`) is the linearisation
     bound at ``a`` plus the wire's term: each reading is the joint angle to within
     ``delta_j`` = half a count of the set-up's resolution plus one binary32 ulp of the
     largest angle read (the count rounded, then ``360 c / res`` in single precision: two
@@ -537,7 +538,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
         bound at ``a``); ``wire`` (``felt_stiffness``, ``felt_damping``: the wire's
         relative terms, inf when the records give no sensitivity; ``reading_bound_rad``
         per joint; ``torque_rel``); ``verdict``, ``within``, ``uncertainty``, ``reason``
-        (:func:`hapsim.lockstep_nd.felt_verdict`; "not measurable" also when the board's
+        (:func:`hapsim.analysis.felt_matrices.felt_verdict`; "not measurable" also when the board's
         torque clamp engaged, ``clamped`` samples); ``quantum`` (one step of a reading
         at the handle over ``a`` [-]: one count or one binary32 ulp, the larger, times
         ``|J|``), ``quantum_encoders`` (one count of each generation's encoders at the
@@ -556,8 +557,8 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
-    from hapsim.lockstep_nd import (error_responses, felt_deviation, felt_verdict,
-                                    identification_plan)
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_verdict
+    from hapsim.lockstep_nd import error_responses, identification_plan
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
     board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,
@@ -659,7 +660,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     from hapsim.analysis.linearisation_nd import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
-    from hapsim.lockstep_nd import felt_deviation, felt_directions, felt_verdict, wire_terms_nd
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.lockstep_nd import wire_terms_nd
     chk, order, N = plan
     n = 2
     rest = runs[0]["position"]

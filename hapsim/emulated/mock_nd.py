@@ -8,14 +8,14 @@ FORCE's Cartesian force [N] (a device that does its kinematics itself; a joint-l
 such as the Haply 2DIY is driven through its own driver).
 
 Its physics (:class:`PhysicsND`) is the device of :mod:`hapsim.lockstep_nd`: a pantograph or
-a delta integrates its joint-space dynamics (:class:`hapsim.lockstep_nd.LocalJointDeviceND`:
+a delta integrates its joint-space dynamics (:class:`hapsim.joint_device.LocalJointDeviceND`:
 the configuration-dependent inertia, joint friction, the torques ``J^T F`` held over the
 period, the kinematics to second order about the operating point, compiled: tens of
 microseconds a tick, ``tools/bench_joint_nd.py``),
 a cartesian device the exact zero-order hold of its Cartesian mass and friction.
 Device duties are the 1-D mock's own code (:class:`hapsim.emulated.mock.MockDevice`, whose
 force hooks this device gives n axes, and whose serving loop
-:func:`hapsim.emulated.mock.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it
+:func:`hapsim.emulated.serve.serve_fd` runs it): FORCE ``n`` applied at tick ``n + d`` when it
 arrived in time, else the last force held (``late``, STATUS_OVERRUN, ``force_seq`` naming the
 force held), the watchdog zeroing it, STOP, PING.
 
@@ -37,7 +37,8 @@ import firmware_protocol as fp
 from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
 from hapsim.emulated.mock import MOCK_DEVICE_ID, MockDevice
 from hapsim.errors import ConfigError
-from hapsim.lockstep_nd import LocalJointDeviceND, excitation_starts
+from hapsim.joint_device import LocalJointDeviceND
+from hapsim.lockstep_nd import excitation_starts
 
 __all__ = ["PhysicsND", "MockDeviceND", "DEFAULT_AMPLITUDE"]
 
@@ -57,7 +58,7 @@ class PhysicsND:
         Initial displacement from the rest position [m] and velocity [m/s].
     joint_space : bool
         A pantograph or delta integrates its joint-space dynamics
-        (:class:`hapsim.lockstep_nd.LocalJointDeviceND`); False, or a cartesian device: the
+        (:class:`hapsim.joint_device.LocalJointDeviceND`); False, or a cartesian device: the
         exact ZOH of the Cartesian mass at rest (:func:`hapsim.analysis.ths_nd.zoh_matrices`).
 
     Attributes

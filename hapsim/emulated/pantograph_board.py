@@ -7,7 +7,7 @@ on two simavr cores inside ``pantograph_board`` (``firmware_protocol/firmware/si
 joins their TWI peripherals (simavr 1.6 models the master only: the board answers for the
 slave), wires each board's motor and magnetoresistive sensor to one proximal joint of a
 five-bar linkage, integrates the linkage's joint-space dynamics
-(:class:`hapsim.lockstep_nd.JointDeviceND` transcribed to C) and bridges the leader's
+(:class:`hapsim.joint_device.JointDeviceND` transcribed to C) and bridges the leader's
 UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE) or in real
 time (the emulated clock locked to the wall clock; a FORCE that misses its tick's DRIVE
 slot is applied a tick later and named by the STATEs' ``force_seq``, the known input
@@ -23,7 +23,7 @@ AVR took about 20,000 cycles a tick, more than the 16,000 of a 1 kHz period
 (``docs/pantograph.md``). :class:`JointLevelTransport` turns it into the Cartesian n-axis
 device :func:`hapsim.pipeline.run_nd.measure_felt_port` talks to: handle position
 ``f(q)`` and torques ``J(q_n)^T F`` with the scene's geometry
-(:class:`hapsim.kinematics.Pantograph`), as :class:`hapsim.lockstep_nd.LocalJointDeviceND`
+(:class:`hapsim.kinematics.Pantograph`), as :class:`hapsim.joint_device.LocalJointDeviceND`
 applies them.
 """
 
@@ -47,7 +47,7 @@ FOLLOWER_ELF = FIRMWARE_DIR / "pantograph_follower.elf"
 #: HELLO device id of the pantograph leader ("HKG2" little-endian).
 DEVICE_ID = 0x32474B48
 #: Sub-step of the board's Runge-Kutta integration [s] (two per 1 kHz period, as
-#: :class:`hapsim.lockstep_nd.JointDeviceND`).
+#: :class:`hapsim.joint_device.JointDeviceND`).
 SUBSTEP = 5e-4
 #: Real time: the longest spin per tick [us] while the board waits for the host's FORCE
 #: (``pantograph_board --spin-us``), by default none, as the 1-DoF board: measured beside

@@ -1,5 +1,5 @@
 """One sample period of a kinematic device's joint-space dynamics, compiled (the real-time
-n-DoF mock's tick: :class:`hapsim.lockstep_nd.LocalJointDeviceND`).
+n-DoF mock's tick: :class:`hapsim.joint_device.LocalJointDeviceND`).
 
 Quadratic kinematics about the operating point ``q0``: ``f(q0 + s) = f0 + J0 s + H(s, s)/2``,
 ``J(s) = J0 + H s``; Lagrange's equations of the joint inertia ``Mq``, joint friction

@@ -169,7 +169,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             contact_verdict(measured, replay, cols["seq"], start, T)
         if measured.get("first_seq") is not None and cols["seq"].size:
             # the identified stretch's first row of the run (live changes are journaled
-            # by row: hapsim.audio.control.revise_measurement)
+            # by row: hapsim.audio.journal.revise_measurement)
             measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):

@@ -169,8 +169,9 @@ class RunOptions:
     telemetry_interval : float
         Time between two telemetry chunks [s].
     driver : str, optional
-        A device protocol of :mod:`hapsim.drivers` other than ``"framed"`` (the default):
-        the loop is then host-clocked through a
+        A device protocol of :mod:`hapsim.drivers`; None or ``"framed"`` (hapsim's own, the
+        default; :meth:`check` stores it as None) speaks the framed protocol. Otherwise
+        the loop is host-clocked through a
         :class:`~hapsim.drivers.transport.DriverTransport` on ``port``, or on that
         driver's mock (paced by the host) without a port.
     driver_options : dict, optional
@@ -368,6 +369,12 @@ class RunOptions:
         parse_faults(self.faults, self.fault_seed)
         return self
 
+    @property
+    def protocol(self) -> str:
+        """The device's protocol: :attr:`driver`'s name, or ``"framed"`` (hapsim's own,
+        spoken by the loop's own transport; :meth:`check` stores it as ``driver=None``)."""
+        return self.driver or "framed"
+
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
 
@@ -383,6 +390,8 @@ class RunOptions:
             option and the valid choices.
         """
         self.check_values()
+        if self.driver == "framed":
+            self.driver = None          # hapsim's own protocol: no driver object, once here
         if self.duration == 0 and self.stop is None and not self.handle_signals:
             raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "
                               "handle_signals or a stop flag", key="--duration")
@@ -400,7 +409,7 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
-        if self.driver not in (None, "framed"):
+        if self.driver is not None:
             from hapsim.drivers import get_driver
             # unknown name or bad parameters: ConfigError before any work
             get_driver(self.driver, **(self.driver_options or {}))

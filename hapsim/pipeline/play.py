@@ -97,7 +97,9 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
     elif getattr(scene, "dimension", 1) > 1:
         from hapsim.pipeline.play_nd import play_nd_report
         return play_nd_report(args, stop, scene)
-    from hapsim.audio.control import Controller, send_telemetry, serve_osc, write_journal
+    from hapsim.audio.control import Controller
+    from hapsim.audio.journal import write_journal
+    from hapsim.audio.osc import send_telemetry, serve_osc
     from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
     from hapsim.analysis.prediction import prepare_scene
     from hapsim.engine import Engine, warm_up

@@ -130,7 +130,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
         No sound output opens: refused before playing (``before_play`` True; exit 1).
     """
     from hapsim.errors import UnstableConfigError
-    from hapsim.audio.control import send_telemetry, serve_osc
+    from hapsim.audio.osc import send_telemetry, serve_osc
     from hapsim.audio.control_nd import ControllerND
     from hapsim.audio.live import open_output, wait_priority
     from hapsim.audio.live_nd import LiveND
@@ -268,7 +268,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
                        "masses": {m.name: m.mass for m in sc.masses if m.kind == "mass"},
                        "journal": ctl.journal})
         if getattr(args, "journal", None):
-            from hapsim.audio.control import write_journal
+            from hapsim.audio.journal import write_journal
             write_journal(args.journal, ctl.journal)
     if view is not None:
         view.finish(report)

@@ -97,7 +97,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         res.samples, scene.rate_hz, getattr(run.loop, "armed_at", None),
         getattr(run, "ended_at", None),
         real_time=(transport == "serial" and opts.port is not None and not opts.lockstep
-                   and not opts.host_clocked and opts.driver in (None, "framed")))
+                   and not opts.host_clocked and opts.driver is None))
     loop_info = {
         "mode": "host-clocked" if opts.host_clocked else "device-clocked",
         "loop": "compiled" if getattr(run.loop, "compiled", False) else "python",
@@ -110,7 +110,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "first_sample_s": _since_start(getattr(run.loop, "first_state_at", None), opts),
         "lockstep": bool(opts.lockstep),
         # the device's protocol (a driver's mock answers each command: paced by the host)
-        "protocol": opts.driver or "framed",
+        "protocol": opts.protocol,
         # what the host knows of the clock: its own (host-clocked), the embedded mock's
         # (real time), or a device on a port that sets the pace, real time or not (a
         # `hapsim mock --lockstep` behind --port is paced by the FORCEs: HELLO does not say)
@@ -169,7 +169,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     if ctl is not None:
         # the measurement is compared with the prediction of the scene it measured (the
         # changes accepted before its window), as hapsim play re-predicts
-        from hapsim.audio.control import revise_measurement
+        from hapsim.audio.journal import revise_measurement
         osc = {"accepted": ctl.accepted, "refused": ctl.refused, "felt": ctl.felt,
                "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
                "changes": revise_measurement(measured, ctl.journal, scene.rate_hz),

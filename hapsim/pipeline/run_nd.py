@@ -479,7 +479,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     dict
         ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`; matrices None when
         incomplete), ``predicted`` (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`),
-        ``deviation`` (:func:`hapsim.lockstep_nd.felt_deviation`, None when incomplete),
+        ``deviation`` (:func:`hapsim.analysis.felt_matrices.felt_deviation`, None when incomplete),
         ``responses`` (the records as fitted, each shape (rows, n) [m]: the handle from
         rest, minus the late ticks' known response; empty when incomplete),
         ``order``, ``records`` (``2n``), ``samples`` (``N``), ``rows`` (rows used, per
@@ -513,7 +513,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     from hapsim.analysis.scene_nd_check import closed_loop_nd
     from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
-    from hapsim.lockstep_nd import felt_deviation, identification_plan
+    from hapsim.analysis.felt_matrices import felt_deviation
+    from hapsim.lockstep_nd import identification_plan
     if frames not in ("auto", "full"):
         raise ConfigError(f"frames must be 'auto' or 'full', got {frames!r}", key="frames")
     chk, order, N = identification_plan(scene, samples)
@@ -689,7 +690,7 @@ def _reconnect(transport, counts: _Counts, exc, clock, sleep, until: float,
 
 
 def verdict_nd(res: dict) -> dict:
-    """The verdict of an n-D run's result (:func:`hapsim.lockstep_nd.felt_verdict`), or
+    """The verdict of an n-D run's result (:func:`hapsim.analysis.felt_matrices.felt_verdict`), or
     "not measurable" with the reason when the records were incomplete
     (:func:`measure_felt_port`'s ``incomplete``).
 
@@ -704,9 +705,9 @@ def verdict_nd(res: dict) -> dict:
     dict
         ``verdict``, ``within``, ``uncertainty``, ``reason``, ``statements``,
         ``not_stated`` (per quantity and principal direction: the felt matrices along
-        :func:`hapsim.lockstep_nd.felt_directions`).
+        :func:`hapsim.analysis.felt_matrices.felt_directions`).
     """
-    from hapsim.lockstep_nd import felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import felt_directions, felt_verdict
     if res.get("incomplete"):
         return {"verdict": "not measurable", "within": None, "uncertainty": None,
                 "reason": res["incomplete"], "statements": [],

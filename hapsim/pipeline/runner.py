@@ -91,7 +91,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
                           "lockstep (--lockstep); a real-time device needs d >= 1",
                           file=scene.path, key="device.delay")
-    if float(dev.delay) < 1 and not opts.lockstep and opts.driver in (None, "framed"):
+    if float(dev.delay) < 1 and not opts.lockstep and opts.driver is None:
         # the framed mock's delay line is whole periods: d < 1 would need the force of a
         # tick before that tick; a driver's board gives the fraction by its own timing
         raise ConfigError(f"device delay d = {float(dev.delay):g} < 1 period: hapsim's mock "
@@ -165,7 +165,7 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       host_clocked=opts.host_clocked,
                       compact={"auto": "auto", "full": "off", "compact": "on"}[opts.frames],
                       state_timeout=(0.5 if opts.transport == "inprocess" else 10.0)
-                      if lockstep else 3.0 if opts.driver not in (None, "framed") else 1.0,
+                      if lockstep else 3.0 if opts.driver is not None else 1.0,
                       # (a driver's board may reset when its port opens: the FireFader's
                       # Nano spends ~1 s in its bootloader before its first record)
                       # the embedded mock is a fresh Python process (imports take seconds
@@ -269,9 +269,9 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                               else 0)
         if paced and opts.rt_priority:
             rt.note = "normal (lockstep: paced by the device's answers, not by the clock)"
-        if opts.driver not in (None, "framed"):
+        if opts.driver is not None:
             rt.__enter__()  # the driver's embedded mock inherits the policy
-        if transport == "pty" and opts.driver in (None, "framed"):
+        if transport == "pty" and opts.driver is None:
             # first: the child's interpreter and imports run beside everything below; it
             # starts under normal scheduling and takes SCHED_FIFO itself once its imports
             # are done: a start-up (~0.5 s of CPU) under SCHED_FIFO starved every other
@@ -291,7 +291,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             from hapsim.host.correction import corrected_engine
             from hapsim.host.loop import MeasuredVelocity
             if sensor:
-                if opts.driver not in (None, "framed"):
+                if opts.driver is not None:
                     raise ConfigError(f"velocity_sensor: the {opts.driver} driver's wire "
                                       f"carries no velocity; use the framed protocol",
                                       key="--driver")
@@ -303,7 +303,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         else:                                          # long or open-ended: head + ring
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
-        if opts.driver not in (None, "framed"):
+        if opts.driver is not None:
             from hapsim.drivers import get_driver
             from hapsim.drivers.transport import DriverTransport
             # the device's parameters: given, else the scene's device.protocol_options
@@ -515,7 +515,9 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
     polled by the loop between samples, and its OSC server (address printed on stderr)."""
     import sys
 
-    from hapsim.audio.control import Controller, serve_osc
+    from hapsim.audio.control import Controller
+
+    from hapsim.audio.osc import serve_osc
 
     ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
     ctl.events = loop.result.events             # journaled with the telemetry (.hst)
@@ -536,7 +538,7 @@ def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: 
     from hapsim.view import RunSource, start_view
     # the felt pair measured live as the record grows (as the report measures it): the
     # framed protocol's runs (a driver's wire errors are the driver's, in this process)
-    live = opts.driver in (None, "framed")
+    live = opts.driver is None
     src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events,
                     prep=prep if live else None, hello_of=lambda: loop.result.hello)
     return start_view(src, ctl, conn.stop, opts.view, "run")
@@ -659,7 +661,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     try:
         opts.check()
         if embedded is not None and (opts.transport != "pty"
-                                     or opts.driver not in (None, "framed")):
+                                     or opts.driver is not None):
             opts.embedded = None            # not this run's device
             embedded.close()
         prep = prepare_run(scene, opts)
@@ -682,7 +684,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         run = run_loop(prep, conn, opts)
         tel_info = _telemetry_info(conn, run, opts)
         # the run's own driver (its parameters: given, or the scene's protocol_options)
-        drv = getattr(conn.tr, "driver", None) if opts.driver not in (None, "framed") else None
+        drv = getattr(conn.tr, "driver", None) if opts.driver is not None else None
         measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
         if pre is not None:
             measured["predicted_comparable"] = pre["comparable"]

@@ -1,63 +1,6 @@
-"""Device kinematics of the multi-DoF force-feedback devices: the pantograph and the delta.
-
-Pure numpy; no daemon, scene or engine import. Every device here has as many actuated
-joints as Cartesian degrees of freedom (n = 2 for the planar five-bar pantograph, n = 3 for
-the Novint Falcon's delta), so its Jacobian ``J = dx/dq`` is square and, away from the
-singularities, invertible:
-
-- forward kinematics ``x = f(q)`` [m] from the joint angles ``q`` [rad];
-- the Jacobian ``J(q) = df/dq`` [m/rad], by implicit differentiation of the closure
-  constraints ``g(x, q) = 0``: ``J = -(dg/dx)^-1 dg/dq`` (Tsai, *Robot Analysis*, 1999,
-  Sec. 4.3: the direct/inverse Jacobian pair of a parallel manipulator);
-- the joint torques ``tau = J^T F`` [N m] that render a Cartesian force ``F`` [N] (virtual
-  work);
-- the Cartesian mass ``M = J^-T M_q J^-1`` [kg] of a joint-space inertia ``M_q``
-  [kg m^2] (Khatib 1987, the operational-space inertia), used by
-  :mod:`hapsim.analysis.ths_nd`.
-
-Configurations the device cannot take (no assembly: the linkage does not close) and
-singular ones (the Jacobian or its inverse does not exist: a serial singularity, where an
-arm is stretched or folded, or a parallel one, where the handle gains a freedom) are
-refused with :class:`hapsim.errors.KinematicsError`, which names the configuration and
-the reason. Near a singularity the refusal uses the sine of the angle that vanishes there,
-against :data:`SINGULAR_SINE` (the Jacobian's condition number grows like its inverse).
-
-Geometries (sources):
-
-- **Pantograph** (five-bar; Haply 2DIY, ``HaplyHaptics`` ``src/Haply/Pantograph.cpp``):
-  proximal links ``l1``, ``l2`` driven at the base joints ``(0, 0)`` and ``(d, 0)``; elbows
-  ``A = (l1 cos q1, l1 sin q1)``, ``B = (d + l2 cos q2, l2 sin q2)``; distal links ``L1``,
-  ``L2``; the handle is the intersection of the circles of radius ``L1`` about ``A`` and
-  ``L2`` about ``B`` with the larger ``y``. Haply: ``l = 0.05``, ``L = 0.07``,
-  ``d = 0.02`` m (:data:`PANTOGRAPH_PRESETS`).
-- **Delta** (Novint Falcon, after Stamper, *A Three Degree of Freedom Parallel
-  Manipulator with Only Translational Degrees of Freedom*, PhD thesis, Univ. of Maryland
-  1997, as parametrised by libnifalcon's ``FalconGeometry.h`` and its Stamper inverse
-  kinematics): three legs at the angles ``phi_i`` about the ``z`` axis (90, -30, -150 deg
-  plus the 15 deg mounting offset), each leg frame ``(u, v, w)`` with ``u = (cos phi,
-  sin phi, 0)``, ``v = (-sin phi, cos phi, 0)``, ``w = z``, its base at ``(r, s)`` in
-  ``(u, v)``. Leg ``i``: thigh of length ``a`` at the actuated angle ``q_i`` in the
-  ``(u, w)`` plane, a parallelogram of side ``b`` at the angle ``theta3`` to ``v`` whose
-  ends are offset by ``e`` (knee) and ``d`` (effector), and the effector centre offset by
-  ``(c, f)`` in ``(u, v)``::
-
-      pu + c = a cos q + (d + e + b sin theta3) cos theta2
-      pv + f = b cos theta3
-      pw     = a sin q + (d + e + b sin theta3) sin theta2
-
-  Eliminating ``theta2`` and ``theta3`` (branch ``0 < theta3 < pi``,
-  ``0 <= theta2 <= pi``) gives one closure constraint per leg, a torus about the knee:
-  ``(rho - (d + e))^2 + (pv + f)^2 = b^2`` with
-  ``rho = |(pu + c - a cos q, pw - a sin q)|``. Falcon: ``a = 60``, ``b = 102.5``,
-  ``c = 14``, ``d = e = 11.25``, ``f = -25``, ``r = 37.233758``, ``s = -27.330909`` mm
-  (:data:`DELTA_PRESETS`).
-
-The delta's forward kinematics has no closed form (Stamper's is a degree-32 polynomial;
-libnifalcon uses a lookup table and Newton steps): here it is trilateration on the three
-spheres through each leg's knee, then Newton's method on the three torus constraints,
-accepted only when the residual is at round-off and the solution lies on the stated
-branch (the inverse kinematics of the result gives back the joints).
-"""
+"""The Novint Falcon's delta after Stamper (1997), as parametrised by libnifalcon's
+``FalconGeometry.h``: its geometry, presets and kinematics (:mod:`hapsim.kinematics`
+states the conventions and the forward kinematics' method)."""
 
 from __future__ import annotations
 
@@ -67,128 +10,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from hapsim.errors import ConfigError, KinematicsError
+from hapsim.kinematics.common import JOINT_TURN, SINGULAR_SINE, degrees_text, finite, geometry_of, joint_angles, joint_torques, positive
 
-__all__ = ["SINGULAR_SINE", "PantographGeometry", "DeltaGeometry", "PANTOGRAPH_PRESETS",
-           "DELTA_PRESETS", "Pantograph", "Delta", "cartesian_mass", "device"]
-
-#: Refusal threshold near a singularity: the sine of the angle that vanishes there (the
-#: angle between the two distal links of the pantograph, between a distal link and its
-#: proximal one, the volume of the delta's constraint normals) must be at least this.
-#: The Jacobian's condition number grows like its inverse: 1e-4 keeps it below ~1e4
-#: times the link-length ratio, where a hand force still maps to finite torques and the
-#: Cartesian mass is still meaningful.
-SINGULAR_SINE = 1e-4
-
-
-def _positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"must be a number [m], got {value!r}", key=name) from None
-    if not math.isfinite(v) or v <= 0:
-        raise ConfigError(f"must be a finite length > 0 [m], got {value!r}", key=name)
-    return v
-
-
-def _finite(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"must be a number, got {value!r}", key=name) from None
-    if not math.isfinite(v):
-        raise ConfigError(f"must be finite, got {value!r}", key=name)
-    return v
-
-
-#: The largest joint angle taken [rad]: one turn either way. A revolute joint's angle is
-#: periodic, so nothing is lost; beyond it a value is a mistake (degrees given as radians
-#: twice over, an overflow), and past ~1e16 rad its sine has no correct digit left.
-JOINT_TURN = 2.0 * math.pi
-
-
-def _joints(q, n: int, turn: bool = True) -> np.ndarray:
-    """``q`` as a float array of shape (n,), finite and (with ``turn``) within one turn
-    (:data:`JOINT_TURN`), else ConfigError (key ``joints``)."""
-    try:
-        a = np.asarray(q, dtype=float)
-    except (TypeError, ValueError):
-        raise ConfigError(f"must be {n} joint angles [rad], got {q!r}", key="joints") from None
-    if a.shape != (n,):
-        raise ConfigError(f"must be {n} joint angles [rad], got shape {a.shape}",
-                          key="joints")
-    if not np.all(np.isfinite(a)):
-        raise ConfigError(f"must be finite, got {a.tolist()}", key="joints")
-    if turn and np.any(np.abs(a) > JOINT_TURN):
-        raise ConfigError(f"must be within one turn, -360..360 deg (a revolute joint's "
-                          f"angle is periodic: give it modulo 360), got "
-                          f"{[round(math.degrees(v), 6) for v in a.tolist()]} deg",
-                          key="joints")
-    return a
-
-
-def _geometry(geometry, kind: str, presets: dict, cls: type):
-    """``geometry`` itself when a ``cls``, else the preset of that name (ConfigError, key
-    ``geometry``, naming the valid choices, otherwise)."""
-    if isinstance(geometry, str):
-        if geometry not in presets:
-            raise ConfigError(f"unknown {kind} {geometry!r}; valid choices: "
-                              f"{', '.join(presets)}", key="geometry")
-        geometry = presets[geometry]
-    if not isinstance(geometry, cls):
-        raise ConfigError(f"must be a {cls.__name__} or a preset name, got {geometry!r}",
-                          key="geometry")
-    return geometry
-
-
-def _deg(q) -> str:
-    return "(" + ", ".join(f"{math.degrees(v):.6g}" for v in q) + ") deg"
-
-
-# --------------------------------------------------------------------------- pantograph
-
-@dataclass(frozen=True)
-class PantographGeometry:
-    """Lengths of a planar five-bar pantograph [m].
-
-    Parameters
-    ----------
-    l1, l2 : float > 0
-        Proximal (driven) links of joint 1 (base at the origin) and joint 2 (base at
-        ``(d, 0)``) [m].
-    L1, L2 : float > 0
-        Distal links from the elbows ``A`` and ``B`` to the handle [m].
-    d : float >= 0
-        Distance between the two base joints along ``x`` [m].
-
-    Raises
-    ------
-    ConfigError
-        A length that is not finite and > 0 (``d``: >= 0); key: the field.
-    """
-
-    l1: float
-    l2: float
-    L1: float
-    L2: float
-    d: float
-
-    def __post_init__(self) -> None:
-        for f in ("l1", "l2", "L1", "L2"):
-            object.__setattr__(self, f, _positive(f, getattr(self, f)))
-        d = _finite("d", self.d)
-        if d < 0:
-            raise ConfigError(f"must be >= 0 [m], got {self.d!r}", key="d")
-        object.__setattr__(self, "d", d)
-
-    @classmethod
-    def symmetric(cls, l: float, L: float, d: float) -> "PantographGeometry":
-        """The symmetric pantograph (``l1 = l2 = l``, ``L1 = L2 = L``) of Haply's
-        ``--geometry l,L,d`` [m]."""
-        return cls(l1=l, l2=l, L1=L, L2=L, d=d)
-
-    def to_dict(self) -> dict:
-        """Fields as a JSON-ready dict [m]."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+__all__ = ["DeltaGeometry", "DELTA_PRESETS", "Delta"]
 
 
 @dataclass(frozen=True)
@@ -231,9 +55,9 @@ class DeltaGeometry:
 
     def __post_init__(self) -> None:
         for name in ("a", "b"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("c", "d", "e", "f", "r", "s"):
-            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+            object.__setattr__(self, name, finite(name, getattr(self, name)))
         for name in ("d", "e"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"must be >= 0 [m], got {getattr(self, name)!r}", key=name)
@@ -241,7 +65,7 @@ class DeltaGeometry:
         if len(phi) != 3:
             raise ConfigError(f"must be 3 leg angles [deg], got {self.phi_deg!r}",
                               key="phi_deg")
-        object.__setattr__(self, "phi_deg", tuple(_finite("phi_deg", p) for p in phi))
+        object.__setattr__(self, "phi_deg", tuple(finite("phi_deg", p) for p in phi))
 
     def to_dict(self) -> dict:
         """Fields as a JSON-ready dict (lengths [m], ``phi_deg`` [deg])."""
@@ -249,12 +73,6 @@ class DeltaGeometry:
         out["phi_deg"] = list(self.phi_deg)
         return out
 
-
-#: Named pantograph geometries. ``haply``: Haply 2DIY as in HaplyHaptics
-#: ``src/Haply/Pantograph.cpp`` (l = 0.05, L = 0.07, d = 0.02 m).
-PANTOGRAPH_PRESETS = {
-    "haply": PantographGeometry.symmetric(0.05, 0.07, 0.02),
-}
 
 #: Named delta geometries. ``falcon``: Novint Falcon after Stamper, constants of
 #: libnifalcon ``include/falcon/core/FalconGeometry.h`` (legs at 90, -30, -150 deg plus
@@ -265,203 +83,6 @@ DELTA_PRESETS = {
                             phi_deg=(105.0, -15.0, -135.0)),
 }
 
-
-class Pantograph:
-    """The planar five-bar pantograph: forward kinematics, Jacobian, ``tau = J^T F``.
-
-    Parameters
-    ----------
-    geometry : PantographGeometry or str, optional
-        Lengths [m], or a key of :data:`PANTOGRAPH_PRESETS` (default ``"haply"``).
-
-    Notes
-    -----
-    Closure constraints ``|P - A|^2 = L1^2``, ``|P - B|^2 = L2^2``; differentiating,
-    ``Phi dP = D dq`` with ``Phi = [(P - A)^T; (P - B)^T]`` and
-    ``D = diag((P - A).A', (P - B).B')`` (``A' = dA/dq1``, ``B' = dB/dq2``), so
-    ``J = Phi^-1 D``. ``Phi`` is singular when the distal links are aligned (parallel
-    singularity, the workspace boundary ``|AB| = L1 + L2`` or ``|L1 - L2|``), ``D`` when a
-    distal link is aligned with its proximal one (serial singularity).
-    """
-
-    dof = 2
-
-    def __init__(self, geometry: PantographGeometry | str = "haply") -> None:
-        self.geometry = _geometry(geometry, "pantograph", PANTOGRAPH_PRESETS,
-                                  PantographGeometry)
-
-    def _solve(self, q):
-        q = _joints(q, 2)
-        ax, ay, bx, by, px, py = self._points(q[0], q[1])
-        return q, np.array([ax, ay]), np.array([bx, by]), np.array([px, py])
-
-    def _points(self, q1: float, q2: float) -> tuple:
-        """Elbows ``A``, ``B`` and handle ``P`` at joints ``(q1, q2)`` [rad], as six floats
-        [m] (scalar arithmetic: no array is made, for the real-time loops)."""
-        g = self.geometry
-        c1, s1, c2, s2 = math.cos(q1), math.sin(q1), math.cos(q2), math.sin(q2)
-        ax, ay = g.l1 * c1, g.l1 * s1
-        bx, by = g.d + g.l2 * c2, g.l2 * s2
-        r = math.hypot(bx - ax, by - ay)
-        if not (abs(g.L1 - g.L2) < r < g.L1 + g.L2):
-            q = np.array([q1, q2])
-            raise KinematicsError(
-                f"no assembly at joints {_deg(q)}: the elbows are {r:.6g} m apart, the "
-                f"distal links {g.L1:g} and {g.L2:g} m close only between "
-                f"{abs(g.L1 - g.L2):g} and {g.L1 + g.L2:g} m (outside the workspace)",
-                joints=q, kind="workspace")
-        ex, ey = (bx - ax) / r, (by - ay) / r
-        along = (g.L1 * g.L1 - g.L2 * g.L2 + r * r) / (2.0 * r)
-        h = math.sqrt(max(g.L1 * g.L1 - along * along, 0.0))
-        if abs(ex) < SINGULAR_SINE:
-            q = np.array([q1, q2])
-            raise KinematicsError(
-                f"ambiguous assembly at joints {_deg(q)}: the elbows are vertically "
-                "aligned, so both closures of the linkage have the same y (the "
-                "larger-y branch is undefined)", joints=q, kind="workspace")
-        hs = h if ex > 0 else -h                    # along the normal n = (-e_y, e_x)
-        return ax, ay, bx, by, ax + along * ex - hs * ey, ay + along * ey + hs * ex
-
-    def forward(self, q) -> np.ndarray:
-        """Handle position.
-
-        Parameters
-        ----------
-        q : array_like, shape (2,)
-            Joint angles ``(q1, q2)`` [rad].
-
-        Returns
-        -------
-        ndarray, shape (2,)
-            ``(x, y)`` [m]: the larger-``y`` intersection of the circles of radius
-            ``L1`` about ``A`` and ``L2`` about ``B`` (class docstring).
-
-        Raises
-        ------
-        ConfigError
-            ``q`` not two finite numbers within one turn (key ``joints``).
-        KinematicsError
-            No assembly (``|AB|`` outside ``(|L1 - L2|, L1 + L2)``) or both closures at
-            the same ``y``.
-        """
-        return self._solve(q)[3]
-
-    def forward_at(self, q1: float, q2: float) -> tuple:
-        """:meth:`forward` on two floats, as a tuple: no array is made (the real-time
-        loops' per-sample use; ``q`` is not validated).
-
-        Parameters
-        ----------
-        q1, q2 : float
-            Joint angles [rad].
-
-        Returns
-        -------
-        tuple of float
-            ``(x, y)`` [m].
-
-        Raises
-        ------
-        KinematicsError
-            As :meth:`forward`.
-        """
-        _, _, _, _, px, py = self._points(q1, q2)
-        return px, py
-
-    def jacobian(self, q) -> np.ndarray:
-        """``J = dx/dq`` [m/rad] at ``q``.
-
-        Parameters
-        ----------
-        q : array_like, shape (2,)
-            Joint angles [rad].
-
-        Returns
-        -------
-        ndarray, shape (2, 2)
-            ``J[i, j] = d x_i / d q_j`` = ``Phi^-1 D`` (class docstring).
-
-        Raises
-        ------
-        KinematicsError
-            As :meth:`forward`, or a singular configuration: distal links aligned
-            (parallel, ``kind="parallel"``) or a distal link aligned with its proximal one
-            (serial, ``kind="serial"``), to within :data:`SINGULAR_SINE`.
-        """
-        q = _joints(q, 2)
-        j00, j01, j10, j11 = self.jacobian_at(q[0], q[1])
-        return np.array([[j00, j01], [j10, j11]])
-
-    def jacobian_at(self, q1: float, q2: float) -> tuple:
-        """:meth:`jacobian` on two floats, as ``(J00, J01, J10, J11)`` [m/rad]: no array
-        is made (the real-time loops' per-sample use; ``q`` is not validated). ``Phi``'s
-        2 x 2 inverse by its adjugate over ``det Phi`` (the cross product, bounded away
-        from 0 by the parallel-singularity test).
-
-        Parameters
-        ----------
-        q1, q2 : float
-            Joint angles [rad].
-
-        Returns
-        -------
-        tuple of float
-
-        Raises
-        ------
-        KinematicsError
-            As :meth:`jacobian`.
-        """
-        g = self.geometry
-        ax, ay, bx, by, px, py = self._points(q1, q2)
-        pax, pay, pbx, pby = px - ax, py - ay, px - bx, py - by
-        cross = pax * pby - pay * pbx
-        if abs(cross) < SINGULAR_SINE * g.L1 * g.L2:
-            q = np.array([q1, q2])
-            raise KinematicsError(
-                f"parallel singularity at joints {_deg(q)}: the distal links are aligned "
-                f"(sine of their angle {cross / (g.L1 * g.L2):.3g}); the handle is not "
-                "held there", joints=q, kind="parallel")
-        # d1 = PA . dA/dq1, d2 = PB . dB/dq2
-        d1 = g.l1 * (-pax * math.sin(q1) + pay * math.cos(q1))
-        d2 = g.l2 * (-pbx * math.sin(q2) + pby * math.cos(q2))
-        if abs(d1) < SINGULAR_SINE * g.l1 * g.L1 or abs(d2) < SINGULAR_SINE * g.l2 * g.L2:
-            q = np.array([q1, q2])
-            for i, (dd, l, L) in enumerate(((d1, g.l1, g.L1), (d2, g.l2, g.L2))):
-                if abs(dd) < SINGULAR_SINE * l * L:
-                    raise KinematicsError(
-                        f"serial singularity at joints {_deg(q)}: arm {i + 1} is "
-                        "stretched or folded (its distal link along its proximal one); "
-                        "the handle cannot move along that arm", joints=q, kind="serial")
-        # J = Phi^-1 diag(d1, d2), Phi = [[PA], [PB]]: Phi^-1 = [[pby, -pay], [-pbx, pax]] / cross
-        return (pby * d1 / cross, -pay * d2 / cross, -pbx * d1 / cross, pax * d2 / cross)
-
-    def torques(self, q, force) -> np.ndarray:
-        """Joint torques ``tau = J^T F`` [N m] rendering the handle force ``F`` [N].
-
-        Parameters
-        ----------
-        q : array_like, shape (2,)
-            Joint angles [rad].
-        force : array_like, shape (2,)
-            Cartesian force on the handle [N].
-
-        Returns
-        -------
-        ndarray, shape (2,)
-            Torques [N m] (virtual work: ``tau . dq = F . dx``).
-
-        Raises
-        ------
-        ConfigError
-            ``force`` not two finite numbers (key ``force``).
-        KinematicsError
-            As :meth:`jacobian`.
-        """
-        return _torques(self.jacobian(q), force, 2)
-
-
-# --------------------------------------------------------------------------- delta
 
 def _solve3(A, r):
     """``A^-1 r`` of a 3x3 system by Cramer's rule (floats), None when singular."""
@@ -495,7 +116,7 @@ class Delta:
     dof = 3
 
     def __init__(self, geometry: DeltaGeometry | str = "falcon") -> None:
-        self.geometry = geometry = _geometry(geometry, "delta", DELTA_PRESETS, DeltaGeometry)
+        self.geometry = geometry = geometry_of(geometry, "delta", DELTA_PRESETS, DeltaGeometry)
         phi = np.radians(geometry.phi_deg)
         #: rows: leg i's u and v axes in the base frame (x, y)
         self._u = np.stack([np.cos(phi), np.sin(phi)], axis=1)
@@ -567,7 +188,7 @@ class Delta:
         """
         g = self.geometry
         try:
-            p = _joints(p, 3, turn=False)
+            p = joint_angles(p, 3, turn=False)
         except ConfigError as exc:
             raise ConfigError(exc.reason.replace("joint angles [rad]", "coordinates [m]"),
                               key="position") from None
@@ -768,10 +389,10 @@ class Delta:
         return P, ok, Gp, Gq
 
     def _solve(self, q):
-        q = _joints(q, 3)
+        q = joint_angles(q, 3)
         P, ok, Gp, Gq = self._solve_many(q[None])
         if not ok[0]:
-            raise KinematicsError(f"no assembly at joints {_deg(q)}: the legs' closure "
+            raise KinematicsError(f"no assembly at joints {degrees_text(q)}: the legs' closure "
                                   "has no solution on the Falcon's branch (outside the "
                                   "workspace)", joints=q, kind="workspace")
         return q, P[0], Gp[0], Gq[0]
@@ -900,7 +521,7 @@ class Delta:
             As :meth:`jacobian`.
         """
         if guess is not None:
-            q = _joints(q, 3)
+            q = joint_angles(q, 3)
             got = self._track(q, guess)
             if got is not None:
                 return got[0], self._jacobian_at(q, got[1], got[2])
@@ -956,13 +577,13 @@ class Delta:
         status, J = self._classify(np.array([True]), Gp[None], Gq[None])
         if status[0] == "parallel":
             raise KinematicsError(
-                f"parallel singularity at joints {_deg(q)}: the legs' constraint normals "
+                f"parallel singularity at joints {degrees_text(q)}: the legs' constraint normals "
                 "are coplanar; the effector is not held there", joints=q, kind="parallel")
         if status[0] == "serial":
             norms = np.linalg.norm(Gp, axis=1)
             i = int(np.argmin(np.abs(Gq) / (norms * g.a)))
             raise KinematicsError(
-                f"serial singularity at joints {_deg(q)}: leg {i + 1} is stretched "
+                f"serial singularity at joints {degrees_text(q)}: leg {i + 1} is stretched "
                 "or folded in its plane; the effector cannot move along it",
                 joints=q, kind="serial")
         return J[0]
@@ -989,94 +610,4 @@ class Delta:
         KinematicsError
             As :meth:`jacobian`.
         """
-        return _torques(self.jacobian(q), force, 3)
-
-
-def _torques(J: np.ndarray, force, n: int) -> np.ndarray:
-    try:
-        F = np.asarray(force, dtype=float)
-    except (TypeError, ValueError):
-        raise ConfigError(f"must be {n} force components [N], got {force!r}",
-                          key="force") from None
-    if F.shape != (n,) or not np.all(np.isfinite(F)):
-        raise ConfigError(f"must be {n} finite force components [N], got {force!r}",
-                          key="force")
-    return J.T @ F
-
-
-def cartesian_mass(J, joint_inertia) -> np.ndarray:
-    """Cartesian (operational-space) mass ``M = J^-T M_q J^-1`` [kg].
-
-    Parameters
-    ----------
-    J : array_like, shape (n, n)
-        Jacobian ``dx/dq`` [m/rad], invertible.
-    joint_inertia : array_like, shape (n,) or (n, n)
-        Joint-space inertia ``M_q`` [kg m^2] (a vector: its diagonal), symmetric
-        positive definite.
-
-    Returns
-    -------
-    ndarray, shape (n, n)
-        ``M`` [kg], symmetric (symmetrised against round-off). The same map takes a
-        joint friction ``B_q`` [N m s/rad] to the Cartesian friction [N s/m].
-
-    Notes
-    -----
-    Kinetic energy ``1/2 dq^T M_q dq = 1/2 dx^T M dx`` with ``dx = J dq`` (Khatib 1987).
-
-    Raises
-    ------
-    ConfigError
-        Shapes that do not match, or ``M_q`` not symmetric positive semi-definite
-        (key ``joint_inertia``).
-    KinematicsError
-        ``J`` singular.
-    """
-    J = np.asarray(J, float)
-    n = J.shape[0]
-    Mq = np.asarray(joint_inertia, float)
-    if Mq.ndim == 1:
-        Mq = np.diag(Mq)
-    if J.shape != (n, n) or Mq.shape != (n, n) or not np.all(np.isfinite(Mq)):
-        raise ConfigError(f"needs a square Jacobian and a matching joint inertia; got "
-                          f"{J.shape} and {np.shape(joint_inertia)}", key="joint_inertia")
-    # eigenvalues of M_q scaled to entries <= 1: LAPACK's symmetric solver does not
-    # converge on entries near the double range (a joint inertia of 1e308, issue 31)
-    sq = max(float(np.max(np.abs(Mq))), np.finfo(float).tiny)
-    if not np.allclose(Mq, Mq.T, rtol=1e-12, atol=0) or \
-            np.min(np.linalg.eigvalsh(0.5 * (Mq / sq) + 0.5 * (Mq.T / sq))) < 0:
-        raise ConfigError("must be symmetric positive semi-definite", key="joint_inertia")
-    try:
-        Jinv = np.linalg.inv(J)
-    except np.linalg.LinAlgError:
-        raise KinematicsError("the Jacobian is singular: no Cartesian mass there",
-                              joints=None, kind="serial") from None
-    M = Jinv.T @ Mq @ Jinv
-    return 0.5 * (M + M.T)
-
-
-def device(kind: str, geometry=None):
-    """A kinematic device by name.
-
-    Parameters
-    ----------
-    kind : {"pantograph", "delta"}
-    geometry : PantographGeometry, DeltaGeometry or str, optional
-        Its geometry or preset name (default: ``"haply"``, ``"falcon"``).
-
-    Returns
-    -------
-    Pantograph or Delta
-
-    Raises
-    ------
-    ConfigError
-        Unknown ``kind`` or geometry (the valid choices named).
-    """
-    if kind == "pantograph":
-        return Pantograph("haply" if geometry is None else geometry)
-    if kind == "delta":
-        return Delta("falcon" if geometry is None else geometry)
-    raise ConfigError(f"unknown device kind {kind!r}; valid choices: pantograph, delta",
-                      key="kind")
+        return joint_torques(self.jacobian(q), force, 3)
