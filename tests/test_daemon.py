@@ -25,7 +25,7 @@ from hapsim.emulated.mock import (MockDevice, MockPhysics, hand_force_samples,
                                 ideal_step_coefficients, zoh_step_coefficients)
 from hapsim.pipeline.runner import identify, run_scene
 from hapsim.host.telemetry import Telemetry, load_telemetry
-from hapsim.host.transport import InProcessTransport
+from hapsim.emulated.links import InProcessTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError, UnstableConfigError
 from hapsim.scene import Device, Excitation, Impulse, parse_scene

@@ -76,8 +76,7 @@ LAYERS = (
     # host's side: both share only the wire's codecs, hapsim.kernels.compiled_io and
     # firmware_protocol)
     ("emulated devices and sound", ("hapsim.emulated", "hapsim.audio")),
-    # the host side of the wire: the loop, its compiled twin, its transports (an
-    # in-process or virtual-clock transport holds an emulated device)
+    # the host side of the wire: the loop, its compiled twin, its transport to a port
     ("host", ("hapsim.host",)),
     # one run's pipeline, and the live view that the run (hapsim.pipeline.runner) starts
     # beside its loop: the view reads the host's telemetry and the audio controller, and
@@ -201,6 +200,21 @@ def test_no_module_imports_another_in_a_circle():
     graph = _house_graph()
     assert {"hapsim.pipeline.runner", "hapsim.analysis.prediction"} <= set(graph)
     assert _circles(graph) == []
+
+
+def test_no_arrow_joins_the_two_sides_of_the_wire():
+    """The host side (hapsim.host) and the device side (hapsim.emulated) import nothing of
+    each other, in either direction: they share only the wire's codecs, and the run
+    (hapsim.pipeline) joins them (docs/design.md, 'The two sides of the wire')."""
+    graph = _house_graph()
+    sides = ("hapsim.host", "hapsim.emulated")
+
+    def side(m):
+        return next((s for s in sides if m == s or m.startswith(s + ".")), None)
+    assert {side(m) for m in graph} >= set(sides)
+    across = sorted(f"{a} -> {b}" for a in graph for b in graph[a]
+                    if side(a) and side(b) and side(a) != side(b))
+    assert across == []
 
 
 def test_nothing_imports_upward():

@@ -1,6 +1,6 @@
 """The device- and host-clocked loops compute the same samples from the same device.
 
-On the virtual-clock transport (:class:`~hapsim.host.transport.SimTransport`) a real-time
+On the virtual-clock transport (:class:`~hapsim.emulated.links.SimTransport`) a real-time
 mock's STATE reaches the host-clocked loop a third of a period before its next tick, as it
 reaches the device-clocked loop at once: both answer every STATE, so the device moves the
 same way, and every per-sample result must be the same to the bit: the telemetry rows
@@ -23,7 +23,7 @@ from hapsim.emulated.faults import parse_faults
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.emulated.mock import MockDevice
 from hapsim.host.telemetry import Telemetry
-from hapsim.host.transport import SimTransport
+from hapsim.emulated.links import SimTransport
 from hapsim.engine import Engine
 from hapsim.scene import parse_scene
 from tolerance import rel_tol

@@ -2,7 +2,7 @@
 
 Every fault of :mod:`hapsim.emulated.faults` is injected by the mock (wire faults in its byte
 path, device faults in its state machine) and seen by the host through real frames and its
-own stream decoder (:class:`~hapsim.host.transport.SimTransport`): deterministic and fast.
+own stream decoder (:class:`~hapsim.emulated.links.SimTransport`): deterministic and fast.
 Each test checks what the device applied (the mock's per-tick trace: zero force within one
 watchdog period when the host falls silent), that the host recovered where it can, and that
 the counters say what happened. Faults about the port itself are also run over a real pty in
@@ -26,7 +26,7 @@ from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.emulated.mock import MockDevice
 from hapsim.pipeline.runner import run_scene
 from hapsim.host.telemetry import ChunkWriter, Telemetry, convert, load
-from hapsim.host.transport import SimTransport
+from hapsim.emulated.links import SimTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import parse_scene

@@ -25,7 +25,7 @@ from hapsim.emulated.faults import FAULT_NAMES, RX_WIRE_FAULTS, parse_faults
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.emulated.mock import MockDevice
 from hapsim.host.telemetry import Telemetry
-from hapsim.host.transport import SimTransport
+from hapsim.emulated.links import SimTransport
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation, parse_scene

@@ -1,6 +1,6 @@
 """The n-D run over a port under the 1-D fault models (issue 23 item 5: real time as in
 1-D): every fault of :mod:`hapsim.emulated.faults` injected by the n-axis mock, seen by the
-host through real frames on a virtual clock (:class:`~hapsim.host.transport.SimTransport`:
+host through real frames on a virtual clock (:class:`~hapsim.emulated.links.SimTransport`:
 seeded, never timed). The records go on through every fault, every row kept is a measured
 one (a record stops at the first STATE lost), the device lost with its port is found
 again, and the verdict is honest: "within" with the felt matrices = predicted to 1e-6, or
@@ -18,7 +18,7 @@ from hapsim.analysis.linearisation_nd import linearisation_bound
 from hapsim.emulated.faults import FAULT_NAMES, parse_faults
 from hapsim.emulated.mock_nd import MockDeviceND, PhysicsND
 from hapsim.pipeline.run_nd import measure_felt_port, min_rows, start_of, verdict_nd
-from hapsim.host.transport import InProcessTransport, SimTransport
+from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.lockstep_nd import excitation_starts
 from hapsim.scene_nd import load_scene_nd
 

@@ -21,7 +21,7 @@ import pytest
 import firmware_protocol as fp
 from hapsim.emulated.mock_nd import MockDeviceND
 from hapsim.pipeline.run_nd import measure_felt_port
-from hapsim.host.transport import InProcessTransport, SimTransport
+from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.joint_device import JointDeviceND, LocalJointDeviceND
 from hapsim.scene_nd import load_scene_nd
 

@@ -1,5 +1,5 @@
 """hapsim.spawn.PtyChild: the host's side of an embedded mock's child process (its end and
-its report), shared by hapsim.host.transport.EmbeddedMock and
+its report), shared by hapsim.emulated.links.EmbeddedMock and
 hapsim.emulated.driver_mock.EmbeddedDriverMock."""
 
 from __future__ import annotations

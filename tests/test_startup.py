@@ -22,7 +22,7 @@ from hapsim.analysis.ths import brent_root
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.emulated.mock import MockDevice
 from hapsim.host.telemetry import Telemetry
-from hapsim.host.transport import InProcessTransport
+from hapsim.emulated.links import InProcessTransport
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 

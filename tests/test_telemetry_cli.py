@@ -28,7 +28,7 @@ def faulted(tmp_path_factory):
     """One run of the real-time mock with seeded faults, on the simulated transport: its
     journal and report.
 
-    The mock's virtual clock (:class:`hapsim.host.transport.SimTransport`) makes the run
+    The mock's virtual clock (:class:`hapsim.emulated.links.SimTransport`) makes the run
     the same on a quiet machine and under load: on the embedded mock behind a pty, a
     loaded machine makes the host fall behind, the backlog policy skips STATEs, and the
     journal then lacks rows the run's own passivity observer saw (its energy differed by

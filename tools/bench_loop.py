@@ -24,7 +24,7 @@ measured while others work.
 Benchmark of the host loop's per-sample cost, both clocks (a program, not a test).
 
 Runs :class:`hapsim.host.loop.HostLoop` on the in-process virtual-clock transport
-(:class:`~hapsim.host.transport.SimTransport` around the real-time mock, no faults) for
+(:class:`~hapsim.emulated.links.SimTransport` around the real-time mock, no faults) for
 N samples of the wall scene of the reliability tests, device-clocked and host-clocked,
 and prints the wall time per sample [us], best of R runs. Measured in the same run, as
 baselines:
@@ -78,7 +78,7 @@ from provenance import command_line  # noqa: E402  (tools/, beside this file)
 from hapsim.host import loop as loop_mod  # noqa: E402
 from hapsim.emulated.mock import MockDevice  # noqa: E402
 from hapsim.host.telemetry import Telemetry  # noqa: E402
-from hapsim.host.transport import SimTransport  # noqa: E402
+from hapsim.emulated.links import SimTransport  # noqa: E402
 from hapsim.engine import Engine  # noqa: E402
 from hapsim.scene import load_scene  # noqa: E402
 

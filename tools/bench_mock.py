@@ -2,7 +2,7 @@
 """Benchmark of the mock device's tick rate: the Python mock against the compiled one (a
 program, not a test).
 
-The mock runs as in ``hapsim run`` (:class:`hapsim.host.transport.EmbeddedMock`: a
+The mock runs as in ``hapsim run`` (:class:`hapsim.emulated.links.EmbeddedMock`: a
 child process on a pty master, ``SCHED_FIFO`` 10 where permitted), once with
 ``--tick python`` and once with ``--tick compiled``, at each rate. The host is trivial and
 compiled (numba, no GIL, the COBS / CRC / FORCE encoder of :mod:`hapsim.host.fastloop`):
@@ -37,7 +37,7 @@ import firmware_protocol as fp  # noqa: E402
 from hapsim.host.fastloop import (_CRC, _POLLIN, _c_poll, _c_read, _c_write,  # noqa: E402
                                     _cobs_decode, _crc16, _force_frame, _jit)
 from hapsim.host.realtime import RealtimePriority  # noqa: E402
-from hapsim.host.transport import EmbeddedMock  # noqa: E402
+from hapsim.emulated.links import EmbeddedMock  # noqa: E402
 from hapsim.scene import Device, Excitation  # noqa: E402
 from provenance import command_line  # noqa: E402  (tools/, beside this file)
 

@@ -4,7 +4,7 @@ A :class:`FaultPlan` says which faults to inject, either at random (a probabilit
 frame or per tick) or at scheduled device ticks; :class:`FaultyDevice` applies it around a
 :class:`~hapsim.emulated.mock.MockDevice`, I/O-free: bytes in, timed bytes out. The mock's
 serving loop (:func:`hapsim.emulated.serve.serve_fd`, a real pty) and the in-process
-virtual-clock transport (:class:`hapsim.host.transport.SimTransport`) both use it, so the
+virtual-clock transport (:class:`hapsim.emulated.links.SimTransport`) both use it, so the
 host always sees real wire faults (torn, corrupted, repeated, reordered, delayed frames)
 through its own stream decoder.
 

@@ -117,7 +117,7 @@ class HostLoop(Handshake, Recovery, BadFrames):
         The scene (warmed up: its kernel already compiled/loaded).
     transport : object
         A transport of :mod:`hapsim.host.transport`. When it has ``clock()`` and
-        ``sleep(s)`` (the virtual-clock :class:`~hapsim.host.transport.SimTransport`) the
+        ``sleep(s)`` (the virtual-clock :class:`~hapsim.emulated.links.SimTransport`) the
         loop's timeouts use them; ``reopen()`` is used to recover a failed port.
     config : LoopConfig
         Run parameters.

@@ -625,12 +625,13 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             else:
                 tr = DriverTransport(drv, port, delay=1, delay_known=False)
         elif transport == "inprocess":
-            from hapsim.host.transport import InProcessTransport
+            from hapsim.emulated.links import InProcessTransport
             mock = MockDevice(dev, Excitation(), native_rate_hz=rate_hz, lockstep=True,
                               seed=noise_seed)
             tr = InProcessTransport(mock)
         elif transport == "pty":
-            from hapsim.host.transport import EmbeddedMock, SerialTransport
+            from hapsim.emulated.links import EmbeddedMock
+            from hapsim.host.transport import SerialTransport
             embedded = EmbeddedMock(dev, Excitation(), rate_hz, lockstep=lock, seed=noise_seed)
             tr = SerialTransport(embedded.port, baud)
             embedded.release_slave()

@@ -127,7 +127,7 @@ class RunOptions:
         Default ``"serial"`` with ``port``, else ``"pty"`` (embedded mock in a child process
         on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
         ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
-        (:class:`~hapsim.host.transport.SimTransport`: fast, deterministic fault tests).
+        (:class:`~hapsim.emulated.links.SimTransport`: fast, deterministic fault tests).
     seed : int
         Mock sensor-noise seed.
     stop : StopFlag, optional

@@ -451,8 +451,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     ----------
     transport : transport of :mod:`hapsim.host.transport`
         :class:`~hapsim.host.transport.SerialTransport` (real time or a lockstep mock),
-        :class:`~hapsim.host.transport.InProcessTransport` or
-        :class:`~hapsim.host.transport.SimTransport` (virtual clock, faults).
+        :class:`~hapsim.emulated.links.InProcessTransport` or
+        :class:`~hapsim.emulated.links.SimTransport` (virtual clock, faults).
     scene : hapsim.scene_nd.SceneND
         A validated scene with a port and a device.
     samples : int, optional

@@ -276,7 +276,7 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             # starts under normal scheduling and takes SCHED_FIFO itself once its imports
             # are done: a start-up (~0.5 s of CPU) under SCHED_FIFO starved every other
             # real-time loop of the machine (a concurrent run: 40-235 ms stalls)
-            from hapsim.host.transport import EmbeddedMock
+            from hapsim.emulated.links import EmbeddedMock
             embedded = opts.embedded or EmbeddedMock(
                 dev, scene.excitation, scene.rate_hz, lockstep=lockstep, seed=opts.seed,
                 base_dir=prep.base_dir, faults=opts.faults or None,
@@ -341,12 +341,12 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 tr = DriverTransport(drv, opts.port, delay=int(dev.delay),
                                      inertia=dev.mass)
         elif transport == "inprocess":
-            from hapsim.host.transport import InProcessTransport
+            from hapsim.emulated.links import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = InProcessTransport(mock)
         elif transport == "sim":
-            from hapsim.host.transport import SimTransport
+            from hapsim.emulated.links import SimTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = SimTransport(mock, opts.plan)

@@ -342,7 +342,7 @@ def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool =
     rate_hz : float, optional
         ``--rate`` (the native rate the mock announces); default the scene's.
     lockstep, seed, faults, fault_seed
-        As :class:`hapsim.host.transport.EmbeddedMock`.
+        As :class:`hapsim.emulated.links.EmbeddedMock`.
     rt_priority : int
         ``SCHED_FIFO`` priority the child takes once its start-up is done (0: none; not
         for a lockstep mock, paced by the answers).
@@ -363,7 +363,7 @@ def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool =
     dev = scene.device
     if dev is None or scene.port is None or (dev.delay == 0 and not lockstep):
         return None
-    from hapsim.host.transport import EmbeddedMock
+    from hapsim.emulated.links import EmbeddedMock
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" \
         else None
     return EmbeddedMock(dev, scene.excitation, float(rate_hz or scene.rate_hz),
