@@ -107,10 +107,10 @@ __version__ = "0.1.0"
 #: The Python API (:mod:`hapsim.api`), imported on first use: ``import hapsim`` stays as
 #: light as the command line needs it.
 _API = ("load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-        "identify", "run", "CheckReport", "RenderReport", "CalibrateReport",
-        "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport",
+        "identify", "run", "play", "CheckReport", "RenderReport", "CalibrateReport",
+        "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "PlayReport",
         "load_scene_nd", "check_nd", "modes_nd", "run_nd", "CheckReportND", "ModesReportND",
-        "RunReportND")
+        "RunReportND", "PlayReportND")
 
 __all__ = ["HapsimError", "ConfigError", "ProtocolError", "DeviceError",
            "UnstableConfigError", "__version__", *_API]

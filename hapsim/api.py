@@ -21,6 +21,8 @@ function                      result                      command
 :func:`family`                :class:`FamilyReport`       ``hapsim family SCENE``
 :func:`identify`              :class:`IdentifyReport`     ``hapsim identify``
 :func:`run`                   :class:`RunReport`          ``hapsim run SCENE``
+:func:`play`                  :class:`PlayReport`,        ``hapsim play SCENE`` (any
+                              :class:`PlayReportND`       dimension)
 :func:`check_nd`              :class:`CheckReportND`      ``hapsim check SCENE`` (n-D)
 :func:`modes_nd`              :class:`ModesReportND`      ``hapsim check SCENE`` (n-D,
                                                           no port)
@@ -56,15 +58,15 @@ from hapsim.results import Report
 
 if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
     from hapsim.analysis.loop import LoopModel
-    from hapsim.api_nd import (CheckReportND, ModesReportND, RunReportND, check_nd,
-                               load_scene_nd, modes_nd, run_nd, run_report_nd)
+    from hapsim.api_nd import (CheckReportND, ModesReportND, PlayReportND, RunReportND,
+                               check_nd, load_scene_nd, modes_nd, run_nd, run_report_nd)
 
 __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability", "family",
-           "identify", "calibrate_scale", "run", "excite_and_fit", "known_digits",
+           "identify", "calibrate_scale", "run", "play", "excite_and_fit", "known_digits",
            "known_decimals", "run_options", "CheckReport", "RenderReport", "CalibrateReport",
-           "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "Report",
-           "load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd",
-           "CheckReportND", "ModesReportND", "RunReportND"]
+           "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "PlayReport",
+           "PLAY_OPTIONS", "Report", "load_scene_nd", "check_nd", "modes_nd", "run_nd",
+           "run_report_nd", "CheckReportND", "ModesReportND", "RunReportND", "PlayReportND"]
 
 
 #: Public names provided on first use (PEP 562), with the module that defines them:
@@ -78,7 +80,8 @@ _LAZY = {"LoopModel": "hapsim.analysis.loop",
          "run_report_nd": "hapsim.api_nd",
          "CheckReportND": "hapsim.api_nd",
          "ModesReportND": "hapsim.api_nd",
-         "RunReportND": "hapsim.api_nd"}
+         "RunReportND": "hapsim.api_nd",
+         "PlayReportND": "hapsim.api_nd"}
 
 
 def __getattr__(name: str):
@@ -1148,6 +1151,193 @@ def run(scene, options=None, **changes: Any) -> RunReport:
             raise
     code = rep.pop("exit_code")
     return RunReport.from_dict(json_safe(rep), exit_code=code)
+
+
+# ---------------------------------------------------------------------------- play
+@dataclasses.dataclass(frozen=True)
+class PlayReport(Report):
+    """What ``hapsim play SCENE --json`` says of a 1-D scene: the loop played live on the
+    embedded mock, the changes taken, the felt pair predicted and measured.
+
+    Attributes
+    ----------
+    scene : str
+    samples : int
+        Device samples played (fewer than the duration's after a stop).
+    rate_hz : float
+    stop_reason : str
+        ``"duration"``, ``"signal SIGINT"``, ``"view: stop button"``, ``"error"``, ...
+    late : int
+        Times the loop fell more than 20 ms behind the clock (then resynchronised).
+    paced_by : str
+        ``"sound"``, ``"clock"`` or ``"none"`` (lockstep).
+    delay : int
+        The loop's delay [device samples], the sound callback's lead included.
+    scheduling : str
+        The real-time priority taken (or why not).
+    accepted, refused : int
+        Live changes (OSC or the view) accepted and refused.
+    felt : dict
+        The prediction for the scene as it is now: ``k`` [N/m], ``b`` [N s/m],
+        ``f0``, ``zeta``, ``spectral_radius``, ``stable``.
+    measured : dict
+        ``k``, ``b`` identified from a free response no change disturbed (None when
+        none was: ``why_not``), with ``k_unc``, ``b_unc``, ``method``, ``samples_used``.
+    error : str or None
+        Why the play stopped early (the sound server stopped, its new block made the loop
+        unstable).
+    note : str or None
+    links : dict
+        Each link's (K, B) at the end.
+    sound : dict or None
+        The live sound's backend, block, lead, xruns, underruns, ...
+    journal : list of dict
+        The changes' requests, verdicts and ramps, with their samples.
+
+    Other attributes: ``exit_code``, what ``hapsim play`` exits with (0, or 1 with
+    ``error``).
+    """
+
+    scene: str
+    samples: int
+    rate_hz: float
+    stop_reason: str
+    late: int
+    paced_by: str
+    delay: int
+    scheduling: str
+    accepted: int
+    refused: int
+    felt: dict
+    measured: dict
+    error: str | None
+    note: str | None
+    links: dict
+    sound: dict | None
+    journal: list
+
+    @property
+    def k(self) -> float:
+        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
+        return _get(self.measured, "k")
+
+    @property
+    def b(self) -> float:
+        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
+        return _get(self.measured, "b")
+
+    @property
+    def ok(self) -> bool:
+        """Played to its end or was stopped (no error): what exit code 0 means."""
+        return self.exit_code == 0
+
+    def text(self) -> str:
+        """The human report ``hapsim play`` prints (:func:`hapsim.pipeline.play.play_text`).
+
+        Returns
+        -------
+        str
+            Two or three lines, no trailing newline.
+        """
+        from hapsim.pipeline.play import play_text
+        return play_text(self.to_dict())
+
+
+#: ``hapsim play``'s options by keyword (argparse destination) and their defaults: the
+#: keywords :func:`play` takes beside ``handle_signals``.
+PLAY_OPTIONS = {"duration": 10.0, "sound": "auto", "jack_server": None, "osc": None,
+                "view": None, "ramp": 0.05, "pluck_every": 0.0, "lockstep": False,
+                "journal": None, "telemetry": None, "rt_priority": None}
+_SOUNDS = ("auto", "jack", "sounddevice", "none")
+
+
+def play(scene, *, handle_signals: bool = False, **options: Any):
+    """Play a scene live, as an instrument (``hapsim play SCENE``), in any dimension.
+
+    A 1-D scene: its embedded mock device closed on it at the device's rate in real time
+    (``lockstep``: as fast as possible), the hand plucking with the scene's excitation,
+    the sound of its ``audio`` section out through JACK or PortAudio. A 2-D or 3-D scene
+    (with an ``audio`` section): its sound, its loop closed on the device's model in the
+    sound's producer, paced by the sound card. Live changes come from ``osc`` and the
+    ``view`` page, each checked before it is applied and ramped over ``ramp``.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
+        A loaded scene or its path (its ``dimension`` picks the play).
+    handle_signals : bool, optional
+        SIGINT and SIGTERM end the play cleanly with its report, as on the command line
+        (main thread only; default False: a library leaves SIGINT to its caller).
+    **options
+        ``hapsim play``'s options in Python spelling (:data:`PLAY_OPTIONS`, their
+        defaults the command's): ``duration`` [s] (default 10), ``sound`` (``"auto"``,
+        ``"jack"``, ``"sounddevice"``, ``"none"``), ``jack_server``, ``osc`` (an OSC
+        port on localhost, 0: any free one), ``view`` (serve the live view,
+        :mod:`hapsim.view`, on 127.0.0.1:PORT, 0: any free port; its address is printed
+        on stderr; needs the ``view`` extra), ``ramp`` [s], ``pluck_every`` [s],
+        ``lockstep`` (1-D), ``journal`` (a JSON file), ``telemetry`` (an npz file, 1-D),
+        ``rt_priority``.
+
+    Returns
+    -------
+    PlayReport or hapsim.api_nd.PlayReportND
+        The command's ``--json`` object, by the scene's dimension; ``exit_code`` what
+        the command exits with.
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene or option (an unknown one names the valid ones; a number out of
+        range gets the command's message, keyed by its flag; an option the n-D play does
+        not take: ``lockstep``, ``telemetry``, ``sound="none"``); ``view`` without the
+        websockets package.
+    UnstableConfigError
+        The scene's closed loop (with live sound, the sound callback's lead added to the
+        device's delay) is unstable: nothing played.
+    DeviceError
+        No sound output could be opened (1-D: for ``sound="jack"`` or
+        ``"sounddevice"``; ``"auto"`` then plays silently): nothing played.
+    KeyboardInterrupt
+        SIGINT without ``handle_signals``: the sound, the OSC server, the view and the
+        analysis process are closed first, and no report is made.
+
+    Notes
+    -----
+    The changes' check is the THS prediction (Florens, Voda & Urma) of the changed loop
+    (the MIMO spectral radius in 2-D and 3-D); the measured (k, b) of a 1-D play are
+    identified from free responses between plucks (matrix pencil, Hua & Sarkar 1990).
+    """
+    import types
+
+    from hapsim.pipeline.play import play_scene, stop_on_signals
+    from hapsim.host.loop_types import StopFlag
+
+    unknown = sorted(set(options) - set(PLAY_OPTIONS))
+    if unknown:
+        raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
+                          f"{', '.join(PLAY_OPTIONS)}, handle_signals", key=unknown[0])
+    opts = {**PLAY_OPTIONS, **options}
+    check_values("play", **{k: opts[k] for k in ("duration", "osc", "view", "ramp",
+                                                  "pluck_every", "rt_priority")})
+    if opts["sound"] not in _SOUNDS:
+        raise ConfigError(f"--sound: must be one of {', '.join(_SOUNDS)}, got "
+                          f"{opts['sound']!r}", key="--sound")
+    if isinstance(scene, (str, os.PathLike)):
+        path = os.fspath(scene)
+        scene = load_scene(path)
+    else:
+        path = scene.path
+    args = types.SimpleNamespace(scene=path, json=False, **opts)
+    stop = StopFlag()
+    if handle_signals:
+        with stop_on_signals(stop):
+            code, rep = play_scene(args, stop, scene)
+    else:
+        code, rep = play_scene(args, stop, scene)
+    if "dof" in rep:
+        from hapsim.api_nd import PlayReportND
+        return PlayReportND.from_dict(json_safe(rep), exit_code=code)
+    return PlayReport.from_dict(json_safe(rep), exit_code=code)
 
 
 def known_digits(value: float, error: float) -> float:

@@ -20,7 +20,7 @@ from hapsim.option_values import check_values
 from hapsim.results import Report
 
 __all__ = ["load_scene_nd", "check_nd", "modes_nd", "run_nd", "run_report_nd", "stable_prediction_nd",
-           "CheckReportND", "ModesReportND", "RunReportND"]
+           "CheckReportND", "ModesReportND", "RunReportND", "PlayReportND"]
 
 def load_scene_nd(path: str | os.PathLike):
     """Read and validate a 2-D or 3-D scene file (docs/dimensions.md).
@@ -504,6 +504,80 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
                           file=scene.path, key="masses")
     stable_prediction_nd(scene, allow_unstable)
     return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlayReportND(Report):
+    """What ``hapsim play SCENE --json`` says of a 2-D or 3-D scene (:func:`hapsim.api.play`
+    returns it for such a scene): its sound played live, its loop closed on the device's
+    model, the changes taken.
+
+    Attributes
+    ----------
+    scene : str
+    dof : int
+        The scene's dimension.
+    rate_hz : float
+    frames : int
+        Frames (samples) played.
+    seconds : float
+        ``frames / rate_hz`` [s].
+    wall_s : float
+        Wall-clock time of the play [s].
+    stop_reason : str
+        ``"duration"``, ``"signal SIGINT"``, ``"view: stop button"``, ...
+    scheduling : str
+    note : str or None
+        Why the loop was not checked before playing (a scene too large to analyse).
+    loop : str
+        ``"closed"`` (a port and a device) or ``"free"``.
+    delay : int or None
+        The device's delay [samples] of a closed loop.
+    plucks : dict or None
+        ``every_samples``, ``samples`` (the hand's profile) and ``direction``.
+    sound : dict
+        Backend, callback, block, channels, xruns, underruns, frames ahead, ...
+    accepted, refused, felt, links, masses, journal
+        With a checked loop only: live changes accepted and refused, the prediction now
+        (``spectral_radius``, ``stable``, the felt matrices), each link's and plane's
+        (K, B), each mass's mass [kg], the changes' journal.
+
+    Other attributes: ``exit_code`` (0).
+    """
+
+    _OPTIONAL = ("accepted", "refused", "felt", "links", "masses", "journal")
+
+    scene: str
+    dof: int
+    rate_hz: float
+    frames: int
+    seconds: float
+    wall_s: float
+    stop_reason: str
+    scheduling: str
+    note: str | None
+    loop: str
+    delay: int | None
+    plucks: dict | None
+    sound: dict
+    accepted: int | None = None
+    refused: int | None = None
+    felt: dict | None = None
+    links: dict | None = None
+    masses: dict | None = None
+    journal: list | None = None
+
+    def text(self) -> str:
+        """The human report ``hapsim play`` prints
+        (:func:`hapsim.pipeline.play_nd.play_nd_text`).
+
+        Returns
+        -------
+        str
+            Two or three lines, no trailing newline.
+        """
+        from hapsim.pipeline.play_nd import play_nd_text
+        return play_nd_text(self.to_dict())
 
 
 def stable_prediction_nd(scene, allow_unstable: bool = False,

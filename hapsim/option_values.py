@@ -246,6 +246,12 @@ API_OPTIONS = {
                  "added_mass": ("--added-mass", Number(float, low=0, open_low=True,
                                                        unit="kg"))},
     "run_nd": {"amplitude": ("--amplitude", Number(float, low=0, open_low=True, unit="m"))},
+    "play": {"duration": ("--duration", Number(float, low=0, open_low=True, unit="s")),
+             "osc": ("--osc", Number(int, low=0, high=65535)),
+             "view": ("--view", Number(int, low=0, high=65535)),
+             "ramp": ("--ramp", Number(float, low=0, unit="s")),
+             "pluck_every": ("--pluck-every", Number(float, low=0, unit="s")),
+             "rt_priority": ("--rt-priority", Number(int, low=0, high=99))},
 }
 
 

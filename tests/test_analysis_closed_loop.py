@@ -26,6 +26,7 @@ from hapsim.analysis.ths import render, stability_limit
 from hapsim.cli import main
 from hapsim.errors import ConfigError
 from hapsim.scene import load_scene, parse_scene
+from tolerance import measured
 
 
 # ============================================================================ helpers
@@ -375,9 +376,10 @@ def engaged(scene):
     return dataclasses.replace(scene, links=links)
 
 
-@pytest.mark.parametrize("K", [None, 300.0, 150.0])
+@pytest.mark.parametrize("K", [None, 300.0, 150.0, 2000.0])
 def test_string_scene_verdict_agrees_with_the_engine_in_the_loop(K):
-    """configs/string.yaml, contact engaged (shipped K, and below): the verdict is what
+    """configs/string.yaml, contact engaged (shipped K, below, and 2000 N/m: past the
+    limit of 1425 N/m its comment states, spectral radius 1.00047): the verdict is what
     the engine closed on the simulated device does, at the predicted rate."""
     scene = load_scene("configs/string.yaml")
     if K is not None:
@@ -390,10 +392,11 @@ def test_string_scene_verdict_agrees_with_the_engine_in_the_loop(K):
     meas = envelope_log_rate(x, 200, n // 2, n)
     assert (meas > 0) == (not chk.stable)
     if not chk.stable:   # the fastest-growing mode dominates: its rate is measurable
-        # not round-off: the envelope's log-slope over windows of 200 samples against the
-        # slowest pole's; not measured: none of the three K here is unstable (the branch
-        # is not taken), so 20 % is the test's own allowance, unchecked
-        assert meas == pytest.approx(math.log(chk.spectral_radius), rel=0.2)
+        # not round-off: the envelope's log-slope (peaks of 800-sample windows 20000
+        # samples apart) against the growing pole's, biased low by the modes still
+        # decaying in the early window: measured 1.85 % low at K = 2000 (generic 1.85 %;
+        # 7 % at 1600, 22 % at 1450 N/m, nearer the limit), margin 10
+        assert meas == pytest.approx(math.log(chk.spectral_radius), rel=measured(0.0185, 10))
 
 
 def test_string_scene_limit_is_below_the_port_limit():

@@ -42,6 +42,8 @@ DOORS = {
         else api.identify(**kw))),
     "run_nd": (["run", str(CONFIGS / "pantograph_wall.yaml"), "--lockstep"],
                lambda **kw: api.run_nd(str(CONFIGS / "pantograph_wall.yaml"), **kw)),
+    "play": (["play", WALL, "--sound", "none", "--lockstep"],
+             lambda **kw: api.play(WALL, sound="none", lockstep=True, **kw)),
 }
 
 

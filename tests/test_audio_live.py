@@ -291,9 +291,10 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
     m = min(seg.size, ref.shape[0] - r0)
     assert m > 0.3 * 48000
     # measured 0 (generic 0), both callbacks: the live frames are the offline ones, bit
-    # for bit, on both targets
+    # for bit, on both targets; the bound allowed is 16 binary32 roundings of the peak
+    # (16 eps32 = 1.9e-6: the frames are float32, mixed in float32 by the native callback)
     np.testing.assert_allclose(seg[:m], ref[r0:r0 + m, 0].astype(np.float32), rtol=0,
-                               atol=2e-6 * np.max(np.abs(ref)))
+                               atol=16 * np.finfo(np.float32).eps * np.max(np.abs(ref)))
     assert isinstance(out.xruns, int) and out.xruns >= 0
 
 

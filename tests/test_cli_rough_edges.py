@@ -265,7 +265,7 @@ def test_device_file_says_what_it_replaced_and_keeps_protocol_and_limit(tmp_path
 
 # ------------------------------------------------------------------ play's report
 def test_play_sound_line_is_readable():
-    from hapsim.commands.play import sound_line
+    from hapsim.pipeline.play import sound_line
     line = sound_line({"backend": "JackOutput", "callback": "native", "xruns": 1,
                        "xrun_at_s": [0.25], "active_monotonic_s": 3.0, "block": 256,
                        "underrun_at_s": [], "pushed": 3000, "consumed": 3000,
@@ -300,7 +300,7 @@ def test_play_measures_a_scene_released_by_x0_alone(capsys, monkeypatch):
     The window is measured in a spawned analysis process that play waits END_WAIT_S
     (3 s) for after the run: on a loaded machine its start alone can take longer (the
     measurement is then dropped, and said so), so the test waits as long as it takes."""
-    import hapsim.commands.play as play
+    import hapsim.pipeline.play as play
     monkeypatch.setattr(play, "END_WAIT_S", 120.0)
     assert main(["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.6",
                  "--pluck-every", "0.3", "--json"]) == 0

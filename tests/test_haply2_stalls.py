@@ -26,10 +26,10 @@ from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene_nd import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
-#: The workspace the joints must stay in [rad] around the rest joints: what a 30 ms host
-#: stall (the longest injected) at the board's torque clamp allows on this joint, 1/2
-#: (0.123 N m / 2e-4 kg m^2) (0.03 s)^2 = 0.28 rad, with a margin; the storm of the issue
-#: turned a joint 1 to 12.5 rad.
+#: The workspace the joints must stay in [rad] around the rest joints: the bound a 30 ms
+#: host stall (the longest injected) at the board's torque clamp puts on this joint, 1/2
+#: (0.123 N m / 2e-4 kg m^2) (0.03 s)^2 = 0.28 rad, times a margin of 1.8; the storm of
+#: the issue turned a joint 1 to 12.5 rad.
 WORKSPACE_RAD = 0.5
 
 

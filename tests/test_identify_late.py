@@ -352,7 +352,7 @@ def test_run_measures_every_stretch_against_the_closed_form():
     # measured 2.2e-15 relative (generic 3.5e-15), margin 3e5
     assert res["k"] == pytest.approx(truth.k, rel=1e-9)
     # without the exclusion k is off by a measured 1.1e-4 relative (generic the same),
-    # 110 times this rel
+    # margin 110 over this rel
     assert measure(yr, seq, **kw)["k"] != pytest.approx(truth.k, rel=1e-6)
     noise = 3e-6
     yn = y + noise * np.random.default_rng(6).standard_normal(y.size)

@@ -202,8 +202,10 @@ def test_python_osc_client_changes_are_checked_ramped_and_felt(tmp_path):
         # a pluck after the ramp: a free response, measured (not NaN)
         p = wait_for(c, "/hapsim/felt", lambda p: p[4] == p[4], "no free response measured")
         assert p[0] == pytest.approx(felt_k(700.0, 1.0), rel=F32)    # binary32: its eps
-        # measured = predicted: measured 0 (generic 0), the same binary32 on both targets
-        assert p[4] == pytest.approx(p[0], rel=1e-6)
+        # measured = predicted: measured 0 (generic 0), the same binary32 on both targets;
+        # the bound: one binary32 rounding each side (eps32 / 2 each) over the float64
+        # identification's own error (1e-13 relative, tests/test_audio_live.py)
+        assert p[4] == pytest.approx(p[0], rel=2 * F32)
         addr, p = c.ask("/hapsim/loop")
         assert addr == "/hapsim/loop" and p[2] == 1 and p[3] == 1 and p[4] == 3
         # 0.8 s of samples played since the stream was asked for (at the start): 80 /hapsim/tel

@@ -75,3 +75,23 @@ def test_check_passes_on_the_converted_files_and_fails_on_a_regression(tmp_path)
     bad = subprocess.run([sys.executable, str(tool), "--check"], capture_output=True,
                          text=True)
     assert bad.returncode == 1 and "test_a.py: 1 unjustified" in bad.stderr
+
+
+def test_the_word_measured_alone_is_no_justification(tmp_path):
+    """A comment must say what was measured and the margin over it (issue 31's
+    leftover): the word "measured" (or "margin", "marginal") without both figures is
+    flagged; the figures on two lines of one block, or a derivation, are accepted."""
+    p = tmp_path / "test_z.py"
+    p.write_text("import pytest\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # a free response, measured\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # measured 3e-14 (no margin said)\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # with a margin, as measured\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # b = 0: the marginal case\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # measured 3e-14, margin 3e4\n"
+                 "# measured 2e-15 relative (generic 4e-15),\n"
+                 "# margin of 250\n"
+                 "assert a == pytest.approx(b, rel=1e-12)\n"
+                 "assert a == pytest.approx(b, rel=1e-9)  # the bound: 8 roundings\n")
+    assert [no for no, _ in audit_mod.audit(p)] == [2, 3, 4, 5]
+    assert audit_mod.says_how("measured 0.023 %, margin 430")
+    assert not audit_mod.says_how("measured (not NaN)")

@@ -4,7 +4,8 @@ chromium-driver through selenium (tools/view_browser.py, shared with the docs' s
 One run of each kind, each a few seconds of wall clock once started: ``hapsim run`` of the
 1-D wall (the page loads, its traces advance, a slider change reaches the engine at the
 sample the run's journal says, a refused change is shown with its reason, the stop button
-ends the run with its report), and ``hapsim play`` of the membrane on a private JACK dummy
+ends the run with its report), ``hapsim play`` of the 1-D wall (the same, the change's
+sample checked against the play's telemetry), and ``hapsim play`` of the membrane on a private JACK dummy
 server (the 3-D scene drawn, its traces advance, stop), and the same of the pantograph
 (2-D, a 1000 Hz JACK server). Each writes its screenshot into docs/ (docs/view.md shows
 them).
@@ -113,6 +114,76 @@ def test_run_wall_view_change_refusal_stop(browser):
     m = report["measured"]
     assert (final["k"], final["b"]) == (m["k"], m["b"])
     assert live["rows"] <= final["rows"] and live["within"] is True, live
+
+
+def test_play_1d_view_change_refusal_stop(browser, tmp_path):
+    """``hapsim play`` of the 1-D wall (silent, paced by the clock) with its view: the page
+    loads, draws the 1-D scene and its traces advance; a change of the wall's K made on
+    the page (ramp 0: a step) reaches the engine at the sample the journal names, which
+    the play's own telemetry shows independently (its port force is the wall's law with
+    the old K on every row before that sample and with the new K on every row from it);
+    a refused change is shown with its reason; the stop button ends the play with its
+    report."""
+    import numpy as np
+
+    from tolerance import rel_tol
+    tel, journal = tmp_path / "t.npz", tmp_path / "journal.json"
+    r = vb.ViewRun(["play", "configs/wall.yaml", "--sound", "none", "--duration", "120",
+                    "--ramp", "0", "--telemetry", str(tel), "--journal", str(journal),
+                    "--json"])
+    try:
+        browser.get(r.url)
+        vb.wait_for(browser, "window.hapsimView && window.hapsimView.t.length > 20", 60)
+        assert browser.execute_script("return window.hapsimView.layout.dim") == 1
+        t1 = browser.execute_script("const S = window.hapsimView; return S.t[S.t.length-1]")
+        vb.wait_for(browser, f"(() => {{ const S = window.hapsimView; "
+                             f"return S.t[S.t.length-1] > {t1} + 0.1 }})()")
+        # an accepted change: the wall's K from 1000 to 1100 N/m
+        _set(browser, "ctl-wall-K", 1100)
+        rep = vb.wait_for(browser, "window.hapsimView.replies.find(m => m.op === 'request')",
+                          60)
+        assert rep["ok"], rep
+        start = vb.wait_for(browser, "window.hapsimView.journal.find("
+                                     "j => j.event === 'ramp_start')", 60)
+        # a refused change: K far beyond the stability boundary (K_max ~ 1313 N/m)
+        _set(browser, "ctl-wall-K", 1e6)
+        bad = vb.wait_for(browser, "window.hapsimView.replies.find(m => m.ok === false)", 60)
+        assert "unstable" in bad["reason"]
+        shown = browser.find_element("id", "reply")
+        assert shown.get_attribute("class") == "refused" and "unstable" in shown.text
+        browser.find_element("id", "stop").click()
+        vb.wait_for(browser, "window.hapsimView.report !== null", 60)
+        assert "view: stop button" in browser.find_element("id", "report").text
+        code, out, err = r.finish(60)
+    finally:
+        r.kill()
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["stop_reason"] == "view: stop button" and report["samples"] < 120000
+    assert (report["accepted"], report["refused"]) == (1, 1)
+    assert report["links"]["wall"] == [1100, 1.5]
+    # the page's journal, the report's and the journal file name the same sample
+    ramp = [j for j in report["journal"] if j["event"] == "ramp_start"]
+    assert [j["sample"] for j in ramp] == [start["sample"]]
+    with open(journal, encoding="utf-8") as fh:
+        assert [j["sample"] for j in json.load(fh) if j["event"] == "ramp_start"] == \
+            [start["sample"]]
+    # the engine: f[n] = -(K x[n] + B (x[n] - x[n-1]) / T) at the wall (ground at 0)
+    z = np.load(tel)
+    x, f = z["position"], z["force"]
+    assert x.size == report["samples"]
+    T, B = 1.0 / report["rate_hz"], 1.5
+    xp = np.r_[x[0], x[:-1]]
+    scale = 1100 * np.abs(x) + B * (np.abs(x) + np.abs(xp)) / T
+    tol = rel_tol(8) * scale    # the engine's and this sum's roundings: a few each side
+
+    def law(K):
+        return np.abs(f + K * x + B * (x - xp) / T)[1:] <= tol[1:]
+    n0 = start["sample"]
+    old, new = law(1000.0), law(1100.0)
+    assert 1 < n0 < x.size - 1
+    assert old[:n0 - 1].all() and not old[n0 - 1:].any(), (n0, np.flatnonzero(~old)[:5] + 1)
+    assert new[n0 - 1:].all(), np.flatnonzero(~new[n0 - 1:])[:5] + n0
 
 
 def rep_sample(browser) -> int:

@@ -16,7 +16,6 @@ is accepted and ramped over ``--ramp`` seconds, sample by sample.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 
@@ -97,30 +96,40 @@ def hand_of(scene, pluck_every: float):
     return hand_force_samples(exc, scene.period, base), exc.direction, every
 
 
-def play_nd(args, stop) -> int:
-    """Play an n-D scene live (module notes).
+def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
+    """Play an n-D scene live (module notes); ``hapsim play``'s report, not printed.
 
     Parameters
     ----------
-    args : argparse.Namespace
+    args : argparse.Namespace or types.SimpleNamespace
         ``hapsim play``'s options (``scene``, ``duration`` [s], ``sound``,
-        ``jack_server``, ``rt_priority``, ``json``, ``osc``, ``ramp`` [s],
+        ``jack_server``, ``rt_priority``, ``osc``, ``view``, ``ramp`` [s],
         ``pluck_every`` [s], ``journal``).
     stop : hapsim.host.loop_types.StopFlag
-        Set by SIGINT/SIGTERM: ends the play at the next chunk.
+        Set by SIGINT/SIGTERM or the view's stop button: ends the play at the next chunk.
+    scene : hapsim.scene_nd.SceneND, optional
+        The scene already loaded (default: read from ``args.scene``).
 
     Returns
     -------
-    int
-        0 after the play (also when a signal ended it); 1 when no sound output opens or
-        the scene's loop is unstable (refused before playing).
+    code : int
+        0 (after the play, also when stopped early).
+    report : dict
+        ``hapsim play --json``'s object (``dof``, ``frames``, ``stop_reason``, ``sound``,
+        with a checked loop ``felt``, ``journal``, ...).
 
     Raises
     ------
     ConfigError
         An option not taken; a scene without an ``audio`` section; ``--pluck-every``
         without an excitation; ``--osc`` on a scene too large to check (exit 2).
+    UnstableConfigError
+        The scene's loop (or, without a port, the scene alone) is unstable: refused
+        before playing (``before_play`` True; ``hapsim play`` exits 1).
+    DeviceError
+        No sound output opens: refused before playing (``before_play`` True; exit 1).
     """
+    from hapsim.errors import UnstableConfigError
     from hapsim.audio.osc import send_telemetry, serve_osc
     from hapsim.audio.control_nd import ControllerND
     from hapsim.audio.live import open_output, wait_priority
@@ -131,7 +140,8 @@ def play_nd(args, stop) -> int:
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
     refuse_untaken(args)
-    scene = load_scene_nd(args.scene)
+    if scene is None:
+        scene = load_scene_nd(args.scene)
     if not scene.audio:
         raise ConfigError("the scene has no audio section (listen: [{mass, axis, quantity, "
                           "gain}]): nothing to play; see configs/membrane.yaml",
@@ -151,11 +161,14 @@ def play_nd(args, stop) -> int:
                               key="--osc") from None
         note = f"the loop was not checked before playing: {exc}"
     if ctl is not None and not ctl.felt["stable"]:
-        print(f"hapsim play: the {'closed loop' if ctl.felt['loop'] == 'closed' else 'scene'}"
-              f" of {args.scene} is unstable (spectral radius "
-              f"{ctl.felt['spectral_radius']:.6g}); see hapsim check", file=sys.stderr)
         ctl.close()
-        return 1
+        exc = UnstableConfigError(
+            f"the {'closed loop' if ctl.felt['loop'] == 'closed' else 'scene'} of "
+            f"{args.scene} is unstable (spectral radius "
+            f"{ctl.felt['spectral_radius']:.6g}); see hapsim check",
+            spectral_radius=ctl.felt["spectral_radius"])
+        exc.before_play = True
+        raise exc
     live = LiveND(engine, hand=hand, direction=direction, every=every, control=ctl)
     if ctl is not None:
         ctl.live = live
@@ -166,10 +179,10 @@ def play_nd(args, stop) -> int:
     try:
         out = open_output(live.ring, args.sound, server=args.jack_server)
     except DeviceError as exc:
-        print(f"hapsim play: {exc}", file=sys.stderr)
         if ctl is not None:
             ctl.close()
-        return 1
+        exc.before_play = True
+        raise
     server = tel = None
     if getattr(args, "osc", None) is not None:
         server, tel = serve_osc(ctl, args.osc, status=lambda: {
@@ -221,6 +234,10 @@ def play_nd(args, stop) -> int:
             stop_reason = (f"signal {signame(stop.signal)}" if stop.signal is not None
                            or stop.reason is None else stop.reason)
         live.finish()
+    except BaseException:     # a KeyboardInterrupt in a caller that left SIGINT as it is
+        if view is not None:  # (hapsim.api.play): the view's server closed too
+            view.close()
+        raise
     finally:
         if server is not None:
             server.shutdown()
@@ -255,18 +272,31 @@ def play_nd(args, stop) -> int:
             write_journal(args.journal, ctl.journal)
     if view is not None:
         view.finish(report)
-    if args.json:
-        from hapsim.outputs import json_safe
-        print(json.dumps(json_safe(report)))
-        return 0
-    s = report["sound"]
-    print(f"played {scene.path} ({scene.dimension}-D, loop {report['loop']}) for "
-          f"{report['seconds']:g} s ({st['written']} frames at {scene.rate_hz:g} Hz)"
-          + ("" if stop_reason == "duration" else f"; stopped by {stop_reason}"))
-    if ctl is not None:
-        print(f"{ctl.accepted} changes accepted, {ctl.refused} refused; spectral radius now "
-              f"{ctl.felt['spectral_radius']:.6g}")
-    print(f"sound: {s['backend']} ({s['callback']} callback), block {s['block']} frames, "
-          f"{st['ahead']} frames ahead; xruns {s['xruns']}, underruns {st['underruns']} "
-          f"frames, skipped {st['skipped']}")
-    return 0
+    return 0, report
+
+
+def play_nd_text(report: dict) -> str:
+    """The text report ``hapsim play`` prints of a 2-D or 3-D play (without ``--json``).
+
+    Parameters
+    ----------
+    report : dict
+        :func:`play_nd_report`'s report.
+
+    Returns
+    -------
+    str
+        Two or three lines, no trailing newline.
+    """
+    s, st = report["sound"], report["sound"]
+    lines = [f"played {report['scene']} ({report['dof']}-D, loop {report['loop']}) for "
+             f"{report['seconds']:g} s ({report['frames']} frames at {report['rate_hz']:g} Hz)"
+             + ("" if report["stop_reason"] == "duration"
+                else f"; stopped by {report['stop_reason']}")]
+    if "felt" in report:
+        lines.append(f"{report['accepted']} changes accepted, {report['refused']} refused; "
+                     f"spectral radius now {report['felt']['spectral_radius']:.6g}")
+    lines.append(f"sound: {s['backend']} ({s['callback']} callback), block {s['block']} "
+                 f"frames, {st['ahead']} frames ahead; xruns {s['xruns']}, underruns "
+                 f"{st['underruns']} frames, skipped {st['skipped']}")
+    return "\n".join(lines)

@@ -1,0 +1,367 @@
+"""The work of ``hapsim play`` (:mod:`hapsim.pipeline.play`) without its printing, for the
+command line and :func:`hapsim.api.play`: a 1-D scene's loop played live on its embedded
+mock device (sound out through JACK or PortAudio, changes in over OSC and the live view),
+a 2-D or 3-D scene's sound by :mod:`hapsim.pipeline.play_nd`."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+
+import numpy as np
+
+
+#: Longest wait for the last identification after the run [s] (a large scene's fit of a
+#: record its contacts made nonlinear can take minutes; it is then dropped).
+END_WAIT_S = 3.0
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop):
+    """SIGINT and SIGTERM request ``stop`` (instead of raising) while in the block; the
+    previous handlers back after it. Nothing is installed outside the main thread (where
+    Python runs no signal handler).
+
+    Parameters
+    ----------
+    stop : hapsim.host.loop_types.StopFlag
+    """
+    import signal
+    import threading
+
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
+    try:
+        yield stop
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _refusal(exc):
+    """``exc`` marked as a refusal before anything played (``hapsim play`` exits 1 with its
+    message alone, as it always has; :func:`hapsim.api.play` raises it)."""
+    exc.before_play = True
+    return exc
+
+
+def play_scene(args, stop, scene=None) -> tuple[int, dict]:
+    """Play a scene live (``hapsim play``'s work, without its printing): the 1-D loop here,
+    a 2-D or 3-D scene's sound by :func:`hapsim.pipeline.play_nd.play_nd_report`.
+
+    Parameters
+    ----------
+    args : argparse.Namespace or types.SimpleNamespace
+        ``hapsim play``'s options by destination (:func:`hapsim.commands.play.register`):
+        ``scene`` (the path,
+        the report's ``scene`` of a 1-D play), ``duration`` [s], ``osc``, ``view``,
+        ``sound``, ``jack_server``, ``ramp`` [s], ``pluck_every`` [s], ``lockstep``,
+        ``journal``, ``telemetry``, ``rt_priority``.
+    stop : hapsim.host.loop_types.StopFlag
+        Ends the play at its next sample (a signal's handler, the view's stop button).
+    scene : hapsim.scene.Scene or hapsim.scene_nd.SceneND, optional
+        The scene already loaded (default: read from ``args.scene``).
+
+    Returns
+    -------
+    code : int
+        What ``hapsim play`` exits with: 0 after the play (also when stopped early), 1
+        when the sound server stopped calling back or its new block made the loop
+        unstable (the report then covers what was played, its ``error`` says why).
+    report : dict
+        ``hapsim play --json``'s object.
+
+    Raises
+    ------
+    UnstableConfigError
+        The scene's closed loop (with live sound, the callback's lead added to the
+        device's delay) is unstable: refused before playing (``before_play`` True).
+    DeviceError
+        No sound output could be opened for ``sound`` ``jack`` or ``sounddevice`` (an
+        n-D play: for any ``sound``): refused before playing (``before_play`` True).
+    ConfigError
+        Bad input (an option an n-D play does not take, a scene without a device, ...).
+    """
+    if getattr(args, "view", None) is not None:     # before anything starts: how to install
+        from hapsim.view.server import require_websockets
+        require_websockets()
+    if scene is None:
+        from hapsim.scene_nd import scene_dimension
+        if scene_dimension(args.scene) > 1:
+            from hapsim.pipeline.play_nd import play_nd_report
+            return play_nd_report(args, stop)
+    elif getattr(scene, "dimension", 1) > 1:
+        from hapsim.pipeline.play_nd import play_nd_report
+        return play_nd_report(args, stop, scene)
+    from hapsim.audio.control import Controller
+    from hapsim.audio.journal import write_journal
+    from hapsim.audio.osc import send_telemetry, serve_osc
+    from hapsim.device_model import InProcessLoop, MockPhysics, hand_force_samples
+    from hapsim.analysis.prediction import prepare_scene
+    from hapsim.engine import Engine, warm_up
+    from hapsim.errors import DeviceError, UnstableConfigError
+    from hapsim.scene import load_scene
+
+    scene, _ = prepare_scene(load_scene(args.scene) if scene is None else scene)
+    engine = Engine(scene)
+    live = out = None
+    if args.sound != "none" and scene.audio is not None:
+        from hapsim.audio.live import LiveSound, open_output
+        live = LiveSound(engine)
+    T = scene.period
+    steps = int(round(args.duration * scene.rate_hz))
+    dev = scene.device
+    base = os.path.dirname(os.path.abspath(scene.path))
+    h = hand_force_samples(scene.excitation, T, base)
+    P = int(round(args.pluck_every * scene.rate_hz)) if args.pluck_every > 0 else steps + 1
+    hand = np.zeros(steps + 1)
+    for s0 in range(0, steps, max(P, 1)):
+        n = min(h.size, steps - s0)
+        hand[s0:s0 + n] = h[:n]
+    phys = MockPhysics(dev, scene.rate_hz, scene.excitation, hand=hand, base_dir=base)
+    xs = np.zeros(steps)
+    fs = np.zeros(steps)
+    engine.set_port_position(phys.sample(), at_rest=True)
+    from hapsim.blas import limit_blas_threads
+    limit_blas_threads(1)        # a threaded BLAS spins for seconds on a small SVD (loaded box)
+    warm_up(scene)                                    # kernels loaded before the clock starts
+    if live is not None:    # the sound starts after the warm-up (silence until the loop does)
+        try:
+            out = open_output(live, args.sound, server=args.jack_server)
+        except DeviceError as exc:
+            if args.sound != "auto":
+                raise _refusal(exc) from None
+            print(f"hapsim play: no sound ({exc}); playing silently", file=sys.stderr)
+            live = None
+    # the loop played: the device's delay plus, with live sound, the callback's lead
+    # (period n's force, computed in the sound server's callback, reaches the device
+    # ``lead`` samples after its position left: a pure delay, hapsim.audio.live)
+    played = live.coupled_scene(scene) if live is not None else scene
+    ctl = Controller(played, engine, live, ramp_s=args.ramp)
+    if not ctl.felt["stable"]:
+        extra = (f" with the sound server's {out.blocksize}-frame block ({live.lead} device "
+                 f"samples of delay added to the device's {dev.delay}; a smaller block, "
+                 f"jackd -p, or --sound none may render it)" if live is not None else "")
+        if out is not None:
+            out.close()
+        ctl.close()
+        raise _refusal(UnstableConfigError(
+            f"the closed loop of {args.scene}{extra} is unstable (spectral radius "
+            f"{ctl.felt['spectral_radius']:.6g}); see hapsim check",
+            spectral_radius=ctl.felt["spectral_radius"]))
+    server = tel = None
+    status = (lambda: {"xruns": getattr(out, "xruns", 0),
+                       "underruns": live.stats()["underruns"] if live else 0})
+    if args.osc is not None:
+        server, tel = serve_osc(ctl, args.osc, status=status)
+        host, port = server.server_address[:2]
+        print(f"hapsim play: OSC on {host}:{port}", file=sys.stderr, flush=True)
+    view = None
+    if getattr(args, "view", None) is not None:
+        from hapsim.view import PlaySource, start_view
+        try:
+            view = start_view(PlaySource(scene, xs, fs, engine, ctl), ctl, stop, args.view,
+                              "play")
+        except BaseException:
+            if server is not None:
+                server.shutdown()
+                server.server_close()
+            if out is not None:
+                out.close()
+            ctl.close()
+            raise
+    loop = InProcessLoop(phys, live.port_step if live is not None else engine.port_step,
+                         dev.delay, dev.force_limit)
+    clocked = live is None and not args.lockstep     # live sound: the sound card's clock
+    late = 0
+    quiet_from = 0            # first sample after the last change's ramp ended
+    error = None
+    from hapsim.host.realtime import RealtimePriority
+    prio = 10 if args.rt_priority is None else args.rt_priority
+    if out is not None:
+        # just below the sound callback's thread: at its priority or above, the haptic
+        # thread (and the GIL it holds) delays the callback past its deadline; far below,
+        # other real-time work delays the positions the callback needs
+        from hapsim.audio.live import wait_priority
+        ap = wait_priority(out)
+        if ap:
+            prio = max(0, ap - 1 if args.rt_priority is None else min(prio, ap - 1))
+    rt = RealtimePriority(prio).__enter__()
+    t0 = time.perf_counter()
+    # the lead the prediction was made for (the block may have changed since)
+    lead_now = round(float(played.device.delay) - float(dev.delay))
+    done = steps               # samples played (fewer after a signal or a device error)
+    stop_reason = "duration"
+    # the journal's sample: the index of the sample being computed (its telemetry row), as
+    # hapsim run's journal says it; the controller's own count (ctl.sample, /hapsim/loop)
+    # is one more once the sample's poll has run, which named the row after the one a
+    # change first acted on
+    at = [0]
+    ctl.sample_of = lambda: at[0]
+    try:
+        for n in range(steps):
+            at[0] = n
+            if stop.set:
+                from hapsim.host.loop_types import signame
+                done, stop_reason = n, (f"signal {signame(stop.signal)}"
+                                        if stop.signal is not None or stop.reason is None
+                                        else stop.reason)
+                break
+            if live is not None and live.lead != lead_now:
+                # the sound server changed its block (JACK's buffer-size callback): the
+                # loop's delay is now device delay + the new lead; re-predict it, and do not
+                # measure a free response that straddles the change
+                lead_now = live.lead
+                quiet_from = n + 1 + int(dev.delay) + lead_now
+                ctl.rebase_delay(dev.delay + lead_now,
+                                 f"the sound server's block changed to {out.blocksize} "
+                                 f"frames at sample {n} (lead {lead_now})")
+            if ctl.unstable is not None:
+                raise DeviceError(ctl.unstable)
+            ctl.poll()
+            if ctl.ramping:
+                quiet_from = max(quiet_from, n + 1)
+            x, f = loop.step(ctl.force_scale)
+            xs[n], fs[n] = x, f
+            if tel is not None and n % tel["every"] == 0:
+                send_telemetry(tel, n * T, x, f, ctl)
+            # (a scene plucked by x0 alone is free from the start, once: its first window)
+            if P <= steps and (n + 1) % P == 0 and (h.size or n + 1 == P):
+                # end of a free response: measured (on a worker thread) when no change
+                # disturbed it
+                a = max(n + 1 - P + h.size, quiet_from)
+                if n + 1 - a >= 50:
+                    ctl.measure(xs[a:n + 1])
+            if clocked:
+                ahead = t0 + (n + 1) * T - time.perf_counter()
+                if ahead > 0:
+                    time.sleep(ahead)
+                elif ahead < -0.02:       # more than 20 ms behind: count, resynchronise
+                    late += 1
+                    t0 -= ahead
+    except DeviceError as exc:  # the sound server stopped, or its new block made the loop
+        # unstable: report what was played
+        error = str(exc)
+        done, stop_reason = n, "error"
+    except BaseException:     # a KeyboardInterrupt in a caller that left SIGINT as it is
+        # (hapsim.api.play): nothing is left running (the view's server, the analysis)
+        if view is not None:
+            view.close()
+        ctl.close()
+        raise
+    finally:
+        if out is not None:
+            out.finish()      # the last position is pushed: what follows is not starvation
+        rt.__exit__(None, None, None)
+        if server is not None:
+            server.shutdown()
+            server.server_close()
+        if out is not None:
+            out.close()
+    if done < steps:
+        steps = done
+        xs, fs = xs[:steps], fs[:steps]
+    if P > steps and max(h.size, quiet_from) < steps - 50:   # one free response: now
+        ctl.measure(xs[max(h.size, quiet_from):], wait=END_WAIT_S)
+    else:
+        ctl.finish(END_WAIT_S)
+    note = None if ctl.finish(0.0) else (
+        f"the last identification ran past {END_WAIT_S:g} s after the run: dropped")
+    ctl.close()
+    report = {"scene": args.scene, "samples": steps, "rate_hz": scene.rate_hz,
+              "stop_reason": stop_reason, "late": late,  # times > 20 ms behind the clock (then resynchronised)
+              "paced_by": "sound" if live is not None else ("clock" if clocked else "none"),
+              "delay": int(ctl.scene.device.delay),   # device samples, lead included
+              "scheduling": rt.note, "accepted": ctl.accepted, "refused": ctl.refused,
+              "felt": ctl.felt, "measured": {"k": ctl.measured[0], "b": ctl.measured[1],
+                                             "why_not": ctl.unmeasured,
+                                             **({} if ctl.measurement is None else {
+                                                 q: ctl.measurement.get(q) for q in
+                                                 ("k_unc", "b_unc", "method", "samples_used")})},
+              "error": error, "note": note,
+              "links": {lk.name: [lk.stiffness, lk.damping] for lk in ctl.scene.links},
+              "sound": None if live is None else {
+                  "backend": type(out).__name__, "callback": out.callback,
+                  "xruns": out.xruns, "xrun_at_s": list(out.xrun_at),
+                  "active_monotonic_s": out.t_active, "block": out.blocksize,
+                  "underrun_at_s": (out.underrun_at() if hasattr(out, "underrun_at")
+                                    else []),
+                  **live.stats()},
+              "journal": ctl.journal}
+    if args.journal:
+        write_journal(args.journal, ctl.journal)
+    if args.telemetry:
+        tmp = args.telemetry + ".partial"
+        with open(tmp, "wb") as fh:
+            np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
+        os.replace(tmp, args.telemetry)
+    if view is not None:
+        view.finish(report)
+    return (1 if error else 0), report
+
+
+def play_text(report: dict) -> str:
+    """The text report ``hapsim play`` prints (without ``--json``).
+
+    Parameters
+    ----------
+    report : dict
+        :func:`play_scene`'s report (a 2-D or 3-D play's has ``dof``).
+
+    Returns
+    -------
+    str
+        Two or three lines, no trailing newline.
+    """
+    if "dof" in report:
+        from hapsim.pipeline.play_nd import play_nd_text
+        return play_nd_text(report)
+    steps, late = report["samples"], report["late"]
+    stop_reason = report["stop_reason"]
+    felt, m = report["felt"], report["measured"]
+    lines = [f"played {report['scene']} for {steps / report['rate_hz']:g} s ({steps} "
+             f"samples, {late} late); {report['accepted']} changes accepted, "
+             f"{report['refused']} refused"
+             + ("" if stop_reason == "duration" else f"; stopped by {stop_reason}")]
+    measured = (f"measured k = {m['k']:.6g}, b = {m['b']:.6g}"
+                if m["why_not"] is None else f"measured: nothing ({m['why_not']})")
+    lines.append(f"felt now: k = {_g(felt.get('k'))} N/m, b = {_g(felt.get('b'))} N s/m "
+                 f"predicted; {measured}")
+    if report["sound"]:
+        lines.append(sound_line(report["sound"]))
+    return "\n".join(lines)
+
+
+def _g(v) -> str:
+    return f"{v:.6g}" if isinstance(v, (int, float)) else str(v)
+
+
+def sound_line(sound: dict) -> str:
+    """The ``sound:`` line of ``hapsim play``'s text report.
+
+    Parameters
+    ----------
+    sound : dict
+        The report's ``sound`` entry: ``backend``, ``callback``, ``block`` [frames],
+        ``xruns``, ``xrun_at_s``, ``underruns`` [frames], ``underrun_at_s``, ``lead``
+        [device samples], ``periods``, ``waits``, ...
+
+    Returns
+    -------
+    str
+        One line, e.g. ``sound: JackOutput (native callback), block 256 frames, lead 6
+        samples; xruns 0, underruns 0 frames; 3000 periods played, 0 waits``.
+    """
+    s = sound
+    line = (f"sound: {s.get('backend')} ({s.get('callback')} callback), block "
+            f"{s.get('block')} frames, lead {s.get('lead')} samples; xruns {s.get('xruns')}")
+    if s.get("xrun_at_s"):
+        line += f" (at {', '.join(f'{t:.3f}' for t in s['xrun_at_s'][:5])} s)"
+    line += f", underruns {s.get('underruns')} frames"
+    if s.get("underrun_at_s"):
+        line += f" (at {', '.join(f'{t:.3f}' for t in s['underrun_at_s'][:5])} s)"
+    return line + f"; {s.get('periods')} periods played, {s.get('waits')} waits"
