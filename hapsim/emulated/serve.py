@@ -302,7 +302,7 @@ def compiled_reason(mock, plan=None) -> str | None:
     mock : MockDevice
         The device (its current CONFIG: physics and mode).
     plan : FaultPlan, optional
-        The fault plan of :func:`~hapsim.emulated.mock.serve_fd`.
+        The fault plan of :func:`~hapsim.emulated.serve.serve_fd`.
 
     Returns
     -------

@@ -7,7 +7,7 @@
  *   pantograph_board LEADER.elf FOLLOWER.elf [options]    prints "PORT /dev/pts/N"
  *   pantograph_board --plant-test [options] < torques      the plant alone (tests)
  *
- * The plant (hapsim.lockstep_nd.JointDeviceND transcribed): joints q = (q1, q2) [rad],
+ * The plant (hapsim.joint_device.JointDeviceND transcribed): joints q = (q1, q2) [rad],
  *     (Mq + mh J^T J) q'' = tau - Bq q' - bh J^T J q' - mh J^T a_b,
  * J = dx/dq of the five-bar (the larger-y closure, hapsim.kinematics.Pantograph), a_b the
  * handle's acceleration bias d^2 f(q + s q')/ds^2 by the same central second difference
