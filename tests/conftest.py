@@ -225,3 +225,32 @@ def shipped_lockstep_run():
         rep, said = _SHIPPED_RUNS[key]
         return copy.deepcopy(rep), list(said)
     return run
+
+
+# --- xdist_group under pytest 9 -------------------------------------------------------------
+# pytest-xdist's --dist loadgroup tells the controller a test's group by appending
+# "@group" to its node id on the worker (``item._nodeid = ...``, xdist 3.8). pytest 9 keeps
+# the node id in ``item._id`` (a NodeId) and no longer reads ``_nodeid``, so the suffix was
+# lost and every xdist_group silently ignored: the "sound" tests' JACK servers ran on both
+# workers at once, and a group's shared set-up was made on each worker. The same suffix is
+# set here (NodeId.parse keeps the string as given), only where xdist's own did not take.
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """On a pytest-xdist worker with ``--dist loadgroup``: give each test that carries
+    ``xdist_group(name)`` the node id ``<id>@<name>`` the controller's LoadGroupScheduling
+    groups by (what pytest-xdist itself does where ``item._nodeid`` is the node id)."""
+    if not getattr(config.option, "loadgroup", False):
+        return
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        if not names:
+            continue
+        nodeid = item.nodeid
+        if nodeid.rfind("@") > nodeid.rfind("]"):
+            continue                                   # xdist's suffix took
+        if hasattr(item, "_id"):
+            from _pytest.nodeid import NodeId
+            item._id = NodeId.parse(f"{nodeid}@{'_'.join(names)}")
