@@ -195,3 +195,62 @@ def pytest_report_header(config):
         raise pytest.UsageError(f"OPENBLAS_CORETYPE={want} asked, but the BLAS kernels "
                                 f"loaded are {blas}")
     return f"kernels: BLAS {', '.join(blas) or 'none found'}; numba target {target}"
+
+
+# --- One lockstep run per shipped scene, shared (issue 31 item 2) ------------------------
+# tests/test_contact_verdict.py and tests/test_scene_measurability.py both run every shipped
+# 1-D scene with a port in lockstep, in process, and assert different things on the same
+# report: a lockstep run is deterministic (the same record, bit for bit), so it is made
+# once per worker (both tests carry xdist_group("shipped_lockstep"): one worker). The
+# string scenes' felt-pair fits cost ~60 CPU-s a run.
+_SHIPPED_RUNS: dict = {}
+
+
+@pytest.fixture(scope="session")
+def shipped_lockstep_run():
+    """``run(path) -> (report, said)``: ``hapsim.daemon.runner.run_scene`` of the scene
+    at ``path`` in lockstep, in process (no signal handlers), and the messages its
+    ``on_precheck`` received; made once per worker, a deep copy handed to each caller."""
+    import copy
+
+    def run(path):
+        key = str(path)
+        if key not in _SHIPPED_RUNS:
+            from hapsim.daemon.runner import run_scene
+            from hapsim.scene import load_scene
+            said: list = []
+            rep = run_scene(load_scene(key), transport="inprocess", lockstep=True,
+                            handle_signals=False, on_precheck=said.append)
+            _SHIPPED_RUNS[key] = (rep, said)
+        rep, said = _SHIPPED_RUNS[key]
+        return copy.deepcopy(rep), list(said)
+    return run
+
+
+# --- xdist_group under pytest 9 -------------------------------------------------------------
+# pytest-xdist's --dist loadgroup tells the controller a test's group by appending
+# "@group" to its node id on the worker (``item._nodeid = ...``, xdist 3.8). pytest 9 keeps
+# the node id in ``item._id`` (a NodeId) and no longer reads ``_nodeid``, so the suffix was
+# lost and every xdist_group silently ignored: the "sound" tests' JACK servers ran on both
+# workers at once, and a group's shared set-up was made on each worker. The same suffix is
+# set here (NodeId.parse keeps the string as given), only where xdist's own did not take.
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """On a pytest-xdist worker with ``--dist loadgroup``: give each test that carries
+    ``xdist_group(name)`` the node id ``<id>@<name>`` the controller's LoadGroupScheduling
+    groups by (what pytest-xdist itself does where ``item._nodeid`` is the node id)."""
+    if not getattr(config.option, "loadgroup", False):
+        return
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        if not names:
+            continue
+        nodeid = item.nodeid
+        if nodeid.rfind("@") > nodeid.rfind("]"):
+            continue                                   # xdist's suffix took
+        if hasattr(item, "_id"):
+            from _pytest.nodeid import NodeId
+            item._id = NodeId.parse(f"{nodeid}@{'_'.join(names)}")

@@ -177,10 +177,12 @@ def test_random_contact_scenes_never_differ(tmp_path):
     assert seen["equal"] >= 3 and seen["not comparable"] >= 3, seen
 
 
-def test_shipped_configs_in_lockstep_never_differ():
+@pytest.mark.xdist_group("shipped_lockstep")
+def test_shipped_configs_in_lockstep_never_differ(shipped_lockstep_run):
     """Every shipped scene with a port, in lockstep: no "differs" verdict; the string pluck
     (pre-loaded since issue 31: the contact stays closed) measures its felt pair, the
-    audible string's (its contact opens) is "not comparable"."""
+    audible string's (its contact opens) is "not comparable". (The runs are shared with
+    test_scene_measurability: conftest.shipped_lockstep_run.)"""
     verdicts = {}
     from hapsim.scene_nd import scene_dimension
     for path in sorted(CONFIGS.glob("*.yaml")):
@@ -189,7 +191,7 @@ def test_shipped_configs_in_lockstep_never_differ():
         scene = load_scene(str(path))
         if scene.port is None:
             continue
-        rep = run_scene(scene, transport="inprocess", lockstep=True, handle_signals=False)
+        rep, _ = shipped_lockstep_run(path)
         m = rep["measured"]
         verdicts[path.name] = m.get("verdict") or m.get("error")
         assert "differs" not in str(m.get("verdict")), (path.name, m)
@@ -322,7 +324,8 @@ def test_replay_contact_states_equal_an_independent_replay(audio):
     assert opened > 0
 
 
-def test_multi_rate_scene_keeps_the_python_loop(capsys):
+@pytest.mark.xdist_group("shipped_lockstep")
+def test_multi_rate_scene_keeps_the_python_loop(capsys, shipped_lockstep_run):
     """The compiled loop steps the single-rate kernel; a multi-rate (audio) scene asked to
     run compiled keeps the Python loop and says why, so the replay reproduces every logged
     force and the verdict is the in-process Python loop's (before the guard: the logged
@@ -333,8 +336,7 @@ def test_multi_rate_scene_keeps_the_python_loop(capsys):
     assert code == 0
     assert out["loop"]["loop"] == "python"
     assert out["loop"]["python_reason"].startswith("audio:")
-    ref = run_scene(load_scene(str(CONFIGS / "audio_string.yaml")), transport="inprocess",
-                    lockstep=True, handle_signals=False)["measured"]
+    ref = shipped_lockstep_run(CONFIGS / "audio_string.yaml")[0]["measured"]
     assert ref["first_open_sample"] is not None
     assert out["measured"]["first_open_sample"] == ref["first_open_sample"]
     assert out["measured"]["reason"] == ref["reason"]

@@ -30,15 +30,15 @@ def _with_port(dim: int) -> list:
     return out
 
 
+@pytest.mark.xdist_group("shipped_lockstep")
 @pytest.mark.parametrize("path", _with_port(1), ids=lambda p: p.name)
-def test_every_shipped_1d_scene_measures_or_says_so_before_running(path):
+def test_every_shipped_1d_scene_measures_or_says_so_before_running(path, shipped_lockstep_run):
     """In lockstep, in process: either a verdict with numbers (measured k, b, the stated
     interval, "within"), or the run said before the loop started (``on_precheck``) that it
     cannot measure, with the contact and the sample, and the report says the same. Never a
-    silent "not comparable" after the fact."""
-    said = []
-    rep = run_scene(load_scene(str(path)), transport="inprocess", lockstep=True,
-                    handle_signals=False, on_precheck=said.append)
+    silent "not comparable" after the fact. (The runs are shared with
+    test_contact_verdict: conftest.shipped_lockstep_run.)"""
+    rep, said = shipped_lockstep_run(path)
     m = rep["measured"]
     assert rep["exit_code"] == 0, path.name
     if "k" in m:

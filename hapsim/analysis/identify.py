@@ -287,32 +287,75 @@ def _spec(poles) -> list:
     return out
 
 
-def _basis(spec, theta, n, offset: bool):
-    """Model columns Phi (n, p) and their derivatives per nonlinear parameter."""
+def _basis(spec, theta, n, offset: bool, derivatives: bool = True, cache=None):
+    """Model columns Phi (n, p) and their derivatives per nonlinear parameter.
+
+    ``derivatives=False``: the derivatives are not formed (``dcols`` is None), as the
+    residual alone needs. ``cache``: a :class:`_ColumnCache` that keeps each mode's
+    columns by its parameters; a mode whose parameters it holds is not computed again
+    (the finite-difference Jacobian of :func:`_varpro` moves one parameter at a time:
+    every other mode's columns are those of the call before). The columns are the same
+    arrays either way, bit for bit: the cache only skips recomputing them.
+    """
     t = np.arange(n, dtype=float)
     cols, dcols, i = [], [], 0
     for kind, *_ in spec:
         if kind == "pair":
             a, w = theta[i], theta[i + 1]
-            e = np.exp(-a * t)
-            c, s = e * np.cos(w * t), e * np.sin(w * t)
+            key = (n, float(a).hex(), float(w).hex())      # the bits: -0.0 is not 0.0
+            got = cache.get(key) if cache is not None else None
+            if got is None:
+                e = np.exp(-a * t)
+                got = (e * np.cos(w * t), e * np.sin(w * t))
+                if cache is not None:
+                    cache.put(key, got)
+            c, s = got
             cols += [c, s]
-            # d/da and d/dw of c and s
-            dcols.append(((len(cols) - 2, -t * c), (len(cols) - 1, -t * s)))
-            dcols.append(((len(cols) - 2, -t * s), (len(cols) - 1, t * c)))
+            if derivatives:
+                # d/da and d/dw of c and s
+                dcols.append(((len(cols) - 2, -t * c), (len(cols) - 1, -t * s)))
+                dcols.append(((len(cols) - 2, -t * s), (len(cols) - 1, t * c)))
             i += 2
         else:
             p = theta[i]
-            col = np.power(p, t)
-            cols.append(col)
-            dp = np.zeros(n)
-            if p != 0:
-                dp[1:] = t[1:] * np.power(p, t[1:] - 1)
-            dcols.append(((len(cols) - 1, dp),))
+            key = (n, float(p).hex())
+            got = cache.get(key) if cache is not None else None
+            if got is None:
+                got = (np.power(p, t),)
+                if cache is not None:
+                    cache.put(key, got)
+            cols.append(got[0])
+            if derivatives:
+                dp = np.zeros(n)
+                if p != 0:
+                    dp[1:] = t[1:] * np.power(p, t[1:] - 1)
+                dcols.append(((len(cols) - 1, dp),))
             i += 1
     if offset:
         cols.append(np.ones(n))
-    return np.column_stack(cols), dcols
+    return np.column_stack(cols), (dcols if derivatives else None)
+
+
+class _ColumnCache:
+    """The most recently used modes' columns of :func:`_basis`, at most ``size`` of them
+    (a least-recently-used dictionary: the memory stays that of a few bases)."""
+
+    def __init__(self, size: int):
+        from collections import OrderedDict
+        self.size = max(int(size), 1)
+        self._d = OrderedDict()
+
+    def get(self, key):
+        got = self._d.get(key)
+        if got is not None:
+            self._d.move_to_end(key)
+        return got
+
+    def put(self, key, value):
+        self._d[key] = value
+        self._d.move_to_end(key)
+        while len(self._d) > self.size:
+            self._d.popitem(last=False)
 
 
 def _theta(spec) -> np.ndarray:
@@ -329,15 +372,16 @@ def _bounds(n: int, lens) -> list:
     return [(int(a), int(b)) for a, b in zip(e[:-1], e[1:])]
 
 
-def _solve(spec, theta, y, offset, lens=None):
+def _solve(spec, theta, y, offset, lens=None, derivatives=True, cache=None):
     """Fit the linear coefficients of each stretch (its own initial condition) for the
     poles ``theta``; ``(blocks, r)`` with ``blocks`` a list of ``(phi, dcols, c)`` per
-    stretch and ``r`` the residual of the whole record."""
+    stretch and ``r`` the residual of the whole record (``derivatives``, ``cache``: as
+    :func:`_basis`)."""
     blocks, res = [], []
     for a, b in _bounds(y.size, lens):
         yb = y[a:b]
         with np.errstate(over="ignore", invalid="ignore"):
-            phi, dcols = _basis(spec, theta, yb.size, offset)
+            phi, dcols = _basis(spec, theta, yb.size, offset, derivatives, cache)
         if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(yb))):
             # a trial pole growing past the float range: what lstsq raises on it, without
             # LAPACK first printing its complaint on stdout (into a --json report)
@@ -356,8 +400,12 @@ def _varpro(spec, y, offset, lens=None):
     scale = float(np.max(np.abs(y))) or 1.0
     ys = y / scale
 
+    # each mode's columns kept while the Jacobian's columns move one parameter at a
+    # time (the residuals are the same, bit for bit: test_varpro_column_cache)
+    cache = _ColumnCache(4 * len(spec) * len(_bounds(y.size, lens)) + 8)
+
     def res(th):
-        return _solve(spec, th, ys, offset, lens)[1]
+        return _solve(spec, th, ys, offset, lens, derivatives=False, cache=cache)[1]
 
     try:
         sol = least_squares(res, theta0, method="lm", x_scale="jac", xtol=1e-14,
