@@ -208,7 +208,7 @@ _SHIPPED_RUNS: dict = {}
 
 @pytest.fixture(scope="session")
 def shipped_lockstep_run():
-    """``run(path) -> (report, said)``: ``hapsim.daemon.runner.run_scene`` of the scene
+    """``run(path) -> (report, said)``: ``hapsim.pipeline.runner.run_scene`` of the scene
     at ``path`` in lockstep, in process (no signal handlers), and the messages its
     ``on_precheck`` received; made once per worker, a deep copy handed to each caller."""
     import copy
@@ -216,7 +216,7 @@ def shipped_lockstep_run():
     def run(path):
         key = str(path)
         if key not in _SHIPPED_RUNS:
-            from hapsim.daemon.runner import run_scene
+            from hapsim.pipeline.runner import run_scene
             from hapsim.scene import load_scene
             said: list = []
             rep = run_scene(load_scene(key), transport="inprocess", lockstep=True,
