@@ -107,6 +107,9 @@ RESYNC_GAP_S = 0.005
 #: Longest time [s] the host lets a board without a watchdog hold a torque computed from
 #: a sample older than this: a missed tick past it commands zero torque.
 HOLD_BOUND_S = 0.02
+#: A lockstep mock's account standing still this long [s] when the transport takes the
+#: port (an earlier user's bytes handled and landed: :meth:`DriverTransport._claim`).
+CLAIM_QUIET_S = 0.03
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
 _RING = 64
 
@@ -249,6 +252,8 @@ class DriverTransport:
         self._handled = handled
         self._n_written = 0                 # bytes written to the port, read from it
         self._n_read = 0
+        if handled is not None:
+            self._claim()
         self._settle = 0
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
@@ -270,6 +275,28 @@ class DriverTransport:
 
     def _now_us(self) -> int:
         return (time.monotonic_ns() - self._t0) // 1000
+
+    def _claim(self) -> None:
+        """A lockstep mock's account counts every byte since it started, an earlier
+        user's of the port too (identify's direction probe and travel sweep): wait until
+        it has stood still for :data:`CLAIM_QUIET_S` (at most 1 s), drop what is left on
+        the line (answers to that user), and count from there."""
+        ser = self._ser
+        last = None
+        t_still = time.monotonic()
+        end = t_still + 1.0
+        while True:
+            now = time.monotonic()
+            tot = self._handled()
+            left = ser.in_waiting
+            if left:
+                ser.read(left)
+            if tot != last or left:
+                last, t_still = tot, now
+            elif now - t_still >= CLAIM_QUIET_S or now > end:
+                break
+            time.sleep(1e-3)
+        self._n_written, self._n_read = last
 
     def _clock(self) -> float:
         """The device's time [s]: a lockstep mock's (given ``handled``) is the commands'
