@@ -16,8 +16,8 @@ import subprocess
 import threading
 from typing import Callable
 
-__all__ = ["package_root", "child_env", "PtyChild", "at_stop", "done", "run_stops",
-           "inside_import", "StopFlag"]
+__all__ = ["package_root", "child_env", "PtyChild", "HandledBytes", "at_stop", "done",
+           "run_stops", "inside_import", "StopFlag"]
 
 #: What is still to undo, by token, in the order registered (:func:`at_stop`).
 _STOPS: dict[int, Callable[[], None]] = {}
@@ -304,3 +304,89 @@ class StopFlag:
             self.reason = reason
         self.set = True
         self.signal = signum
+
+
+class HandledBytes:
+    """A lockstep mock's account of the bytes it has handled, shared with the host.
+
+    A mock stepped one period per command (named lockstep, a test device) has no time of
+    its own: a slow mock process and a lost packet cannot be told apart by how long the
+    host waited. This account tells them apart without time: the mock publishes, after
+    each read it has wholly handled (parsed, stepped, answered), the bytes it has read
+    from the host and the bytes it has written to it. When the first equals what the
+    host wrote and the second what the host read, the mock has nothing more to say: a
+    command still unanswered then got no answer (a packet lost or damaged by the link's
+    injected faults), and asking again steps the mock exactly as on a quiet host. There
+    is no such account on a real wire (the driver protocols have no sequence number):
+    hardware and a mock on its own clock never have one.
+
+    The account is a 24-byte file mapped by both processes: a sequence word (odd while
+    the mock writes), then the two totals, little-endian uint64 (a seqlock: the reader
+    retries a torn read).
+
+    Parameters
+    ----------
+    path : str
+        The file (created by :meth:`create`).
+    """
+
+    SIZE = 24
+
+    def __init__(self, path: str) -> None:
+        import mmap
+        self.path = path
+        with open(path, "r+b") as fh:
+            self._mm = mmap.mmap(fh.fileno(), self.SIZE)
+        self._seq = 0
+
+    @classmethod
+    def create(cls, prefix: str = "hapsim-handled-") -> "HandledBytes":
+        """A new account (zeros) in the temporary directory.
+
+        Parameters
+        ----------
+        prefix : str
+            The file's name prefix.
+
+        Returns
+        -------
+        HandledBytes
+        """
+        import tempfile
+        fd, path = tempfile.mkstemp(prefix=prefix)
+        os.write(fd, bytes(cls.SIZE))
+        os.close(fd)
+        return cls(path)
+
+    def publish(self, read: int, written: int) -> None:
+        """The mock's side: ``read`` bytes read from the host, ``written`` written to it,
+        every one handled (totals since the start)."""
+        import struct
+        mm = self._mm
+        self._seq += 1
+        struct.pack_into("<Q", mm, 0, self._seq)          # odd: being written
+        struct.pack_into("<QQ", mm, 8, int(read), int(written))
+        self._seq += 1
+        struct.pack_into("<Q", mm, 0, self._seq)
+
+    def totals(self) -> tuple[int, int]:
+        """The host's side: the last totals published, ``(read, written)`` [bytes]."""
+        import struct
+        mm = self._mm
+        while True:
+            s1 = struct.unpack_from("<Q", mm, 0)[0]
+            r, w = struct.unpack_from("<QQ", mm, 8)
+            if not s1 & 1 and struct.unpack_from("<Q", mm, 0)[0] == s1:
+                return r, w
+
+    def close(self, unlink: bool = False) -> None:
+        """Unmap (idempotent); ``unlink``: remove the file too (the host's side)."""
+        try:
+            self._mm.close()
+        except (BufferError, ValueError):      # pragma: no cover
+            pass
+        if unlink:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass

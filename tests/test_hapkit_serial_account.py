@@ -57,11 +57,5 @@ def test_a_lossy_link_measures_the_prediction(seed):
                                               "seed": seed})
     m = rep["measured"]
     assert rep["loop"]["estimated"] > 0
-    # never "differs"; no verdict at all only where a loaded host re-asked commands (the
-    # lockstep mock's 20 ms re-ask gives another record: seed 4 once in a fresh-clone CI
-    # run, KeyError 'within'); open in issue 29's note
-    if "within" not in m:
-        assert "differs" not in str(m.get("verdict", "")), m.get("verdict")
-        return
     assert m["within"] is True, (m["k"], rep["predicted"]["k"], m.get("k_unc"), m["b"],
                                  rep["predicted"]["b"], m.get("b_unc"))

@@ -398,3 +398,47 @@ def test_board_parser_keeps_motor_and_encoder_directions_apart(mmask, emask, dir
     gen3 = Haply2DIY("gen3").setup_bytes((130.0, 50.0))
     dec.feed(gen3)
     assert dec.motor_direction[:2] == [0, 0] and dec.encoder_direction[:2] == [1, 1]
+
+
+@pytest.mark.parametrize("later_s, absent", [(20e-6, False), (60e-6, True)])
+def test_the_wall_clock_board_reads_an_absent_byte_as_255_at_its_pass(later_s, absent):
+    """Firmware V1.5's single ``SerialUSB.read()`` of an empty buffer is 255; the board on
+    its own clock reads a byte as absent only at the pass that comes before it arrives.
+    A write taken at 0.1 s (the arming long done) puts the next pass ``PASS_S`` (50 us)
+    on; the next write's command byte comes alone 10 us after it: the board waits for its
+    pass. Its address arriving 20 us later (before the pass) is read: the whole write,
+    one 9-byte reply. Arriving 60 us later (after the pass, which read 255 for it), the
+    write went to address 255 (no port: its reply is the one byte 255), and the late
+    bytes are read as the commands they spell."""
+    from hapsim.emulated.haply2_board import PASS_S
+    sc = _scene()
+    drv = Haply2DIY("gen2")
+    board = Haply2DIYBoard(sc, "gen2", clock="wall")
+    zero = drv.write_bytes((0.0, 0.0))
+    q0 = [math.degrees(v) for v in sc.device.joints]
+    board.feed(drv.arm_bytes(q0), 0.0)
+    assert len(board.feed(zero, 0.1)) == 9 and PASS_S == 50e-6
+    t = 0.1 + 10e-6
+    assert board.feed(zero[:1], t) == b"" and board.parser.waiting == 1
+    got = board.feed(zero[1:], t + later_s)
+    assert board.parser.stats["absent"] == int(absent)
+    if absent:
+        assert got[:1] == b"\xff"
+    else:
+        assert len(got) == 9 and got[0] == zero[1]
+
+
+def test_a_silent_host_lets_the_wall_clock_board_read_its_absent_bytes():
+    """A command byte alone, then silence: the board's pass reads the absent address as
+    255 without waiting for bytes that never come (:meth:`Haply2DIYBoard.idle`), and its
+    reply goes out then."""
+    sc = _scene()
+    drv = Haply2DIY("gen2")
+    board = Haply2DIYBoard(sc, "gen2", clock="wall")
+    zero = drv.write_bytes((0.0, 0.0))
+    q0 = [math.degrees(v) for v in sc.device.joints]
+    board.feed(drv.arm_bytes(q0), 0.0)
+    board.feed(zero, 0.1)
+    assert board.feed(zero[:1], 0.1 + 10e-6) == b""
+    assert board.idle(20e-6) == b""            # 30 us: the pass (50 us) has not come
+    assert board.idle(0.02) == b"\xff" and board.parser.waiting == 0

@@ -83,7 +83,9 @@ def _check(rec, link, N, res):
     return read
 
 
-@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 1), ("gen3", 6)])
+# (seeds whose faults hit every kind; the board reading an absent byte as 255 answers
+# other bytes than when it waited for them, and seed 6 then corrupted none on the way back)
+@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 1), ("gen3", 7)])
 def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
     """0.1 % of the bytes lost and 0.1 % corrupted, each way: the loop runs every tick,
     the board is re-synchronised when it lost its place (counted), the samples without a

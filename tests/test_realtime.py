@@ -88,7 +88,7 @@ def test_the_mock_starts_under_normal_scheduling_and_takes_fifo_itself(monkeypat
     if not _fifo_permitted():
         pytest.skip("SCHED_FIFO not permitted here: nothing to check")
     from hapsim.host import loop as loop_mod
-    from hapsim.host import transport
+    from hapsim.emulated import links as transport
     from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     seen = {}

@@ -527,7 +527,10 @@ class CommandDecoder:
     so a set-up out of garbage ends at once instead of swallowing up to
     :data:`LONGEST_COMMAND` bytes, and only a ``readBytes`` (at most
     :data:`LONGEST_WAIT` bytes) waits. With ``absent=None`` a command waits for all its
-    bytes (the 2DIY board's model, stepped per whole write).
+    bytes. A board on its own clock reads a byte as absent only at a pass that comes
+    before the next bytes arrive: :attr:`ready` says whether that pass has come (the
+    2DIY board, :class:`hapsim.emulated.haply2_board.Haply2DIYBoard`); the parser waits
+    until then.
 
     Parameters
     ----------
@@ -548,12 +551,17 @@ class CommandDecoder:
         motors CW and its encoders CCW).
     analog_addr : list of int, length 12
     pwm_addr : list of int, length 14
+    ready : callable or None
+        ``ready() -> bool``: whether the pass that would read an absent byte has come
+        (no more bytes can arrive before it); None: at once (each feed is every byte
+        that has arrived by the next pass: a lockstep board, or one fed at its passes).
     """
 
     def __init__(self, absent=None) -> None:
         if absent not in (None, 255):
             raise ValueError(f"absent must be None or 255, got {absent!r}")
         self.absent = absent
+        self.ready = None
         self._buf = bytearray()
         self.stats = {"writes": 0, "setups": 0, "resets": 0, "unknown": 0, "absent": 0}
         self._clear()
@@ -572,25 +580,6 @@ class CommandDecoder:
     def id(self):
         """Address of motor port 1 (None when it is not set up)."""
         return self.motor_addr[0] or None
-
-    @staticmethod
-    def _setup_len(b) -> int | None:
-        """Length of the set-up command at the start of ``b``; None if not all there."""
-        if len(b) < 3:
-            return None
-        nm = bin(b[2] & 0x0F).count("1")
-        i = 3 + nm
-        if len(b) < i + 1:
-            return None
-        ne = bin(b[i] & 0x0F).count("1")
-        i += 1 + ne
-        if len(b) < i + 1:
-            return None
-        i += 1 + b[i]
-        if len(b) < i + 1:
-            return None
-        i += 1 + b[i]
-        return i + 8 * ne
 
     def _setup(self, b) -> int:
         self._clear()
@@ -631,13 +620,18 @@ class CommandDecoder:
         ``("reset", addr)`` out (the parser's state is the last command's)."""
         return list(self.commands(data))
 
+    @property
+    def waiting(self) -> int:
+        """Bytes held: a command not complete yet [bytes]."""
+        return len(self._buf)
+
     def _pad(self, buf, n: int) -> bool:
         """Whether the single reads up to byte ``n`` of the command at the start of
         ``buf`` can be made: the bytes are there, or (``absent=255``) those not arrived
         are read as 255, put in their place (the bytes that come later follow them)."""
         if len(buf) >= n:
             return True
-        if self.absent is None:
+        if self.absent is None or (self.ready is not None and not self.ready()):
             return False
         self.stats["absent"] += n - len(buf)
         buf += bytes([self.absent]) * (n - len(buf))
@@ -667,54 +661,19 @@ class CommandDecoder:
 
     def commands(self, data: bytes):
         """As :meth:`feed`, one command at a time: the parser's state (addresses, set-up)
-        is each command's own when it is yielded."""
+        is each command's own when it is yielded.
+
+        One parser for both rules (class notes): a single read of a byte not arrived
+        waits for it (``absent=None``) or reads :attr:`absent` in its place
+        (:meth:`_pad`); a ``readBytes`` (the set-up's encoder parameters, a write's
+        torques) waits for its bytes either way."""
         buf = self._buf
         buf += data
-        if self.absent is not None:
-            yield from self._commands_absent(buf)
-            return
         while buf:
             c = buf[0]
             if c == CMD_RESET:
-                if len(buf) < 2:
+                if not self._pad(buf, 2):          # [0][addr]
                     break
-                a = buf[1]
-                self.stats["resets"] += 1
-                self._clear()
-                del buf[:2]
-                yield ("reset", a)
-            elif c == CMD_SETUP:
-                n = self._setup_len(buf)
-                if n is None or len(buf) < n:
-                    break
-                a = self._setup(buf)
-                self.stats["setups"] += 1
-                del buf[:n]
-                yield ("setup", a)
-            elif c == CMD_WRITE:
-                if len(buf) < 2:
-                    break
-                addr = buf[1]
-                npwm = sum(a == addr for a in self.pwm_addr)
-                ports = [p for p in range(4) if self.motor_addr[p] == addr]
-                n = 2 + npwm + 4 * len(ports)
-                if len(buf) < n:
-                    break
-                tq = {p: _F.unpack_from(buf, 2 + npwm + 4 * k)[0] for k, p in enumerate(ports)}
-                self.stats["writes"] += 1
-                del buf[:n]
-                yield ("write", addr, tq)
-            else:
-                self.stats["unknown"] += 1
-                del buf[:1]
-
-    def _commands_absent(self, buf):
-        """:meth:`commands` with single reads of absent bytes read as 255 (class
-        notes): a command waits only inside a ``readBytes``."""
-        while buf:
-            c = buf[0]
-            if c == CMD_RESET:
-                self._pad(buf, 2)
                 a = buf[1]
                 self.stats["resets"] += 1
                 self._clear()
@@ -722,7 +681,10 @@ class CommandDecoder:
                 yield ("reset", a)
             elif c == CMD_SETUP:
                 i = self._single_len(buf)
-                n = i + 8 * bin(buf[3 + bin(buf[2] & 0x0F).count("1")] & 0x0F).count("1")
+                if i < 0:
+                    break
+                ne = bin(buf[3 + bin(buf[2] & 0x0F).count("1")] & 0x0F).count("1")
+                n = i + 8 * ne
                 if len(buf) < n:
                     break                          # readBytes waits for the parameters
                 a = self._setup(buf)
@@ -730,10 +692,12 @@ class CommandDecoder:
                 del buf[:n]
                 yield ("setup", a)
             elif c == CMD_WRITE:
-                self._pad(buf, 2)
+                if not self._pad(buf, 2):          # [2][addr]
+                    break
                 addr = buf[1]
                 npwm = sum(a == addr for a in self.pwm_addr)
-                self._pad(buf, 2 + npwm)
+                if not self._pad(buf, 2 + npwm):   # one single read per PWM pin
+                    break
                 ports = [p for p in range(4) if self.motor_addr[p] == addr]
                 n = 2 + npwm + 4 * len(ports)
                 if len(buf) < n:

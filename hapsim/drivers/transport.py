@@ -51,6 +51,19 @@ two records extrapolate to now as the Haply encoder's new offset) and counts it
 skips one number there, so that a measurement does not run across the position's jump
 (the error of that extrapolation).
 
+A lockstep mock (named, a test device stepped one period per command) has no time of its
+own: a slow mock process and a lost packet cannot be told apart by the time waited (a
+20 ms deadline re-asked commands a loaded host's mock answered late: the mock stepped
+twice, another record). Given its account of the bytes it handled (``handled``,
+:class:`hapsim.spawn.HandledBytes`), the transport reads only once the mock has handled
+every byte written to it, then all it wrote (the decisions on them do not depend on how
+its writes were cut up in time); an unanswered command is an estimated sample only when
+the mock is quiet and bytes came that made no record (a damaged answer: the mock stepped),
+and is asked again (:meth:`DriverTransport.hold`, no row) when the mock is quiet and
+nothing came (the packet may never have reached it: its time did not go on); the hold
+bound and the re-synchronisations' bounds count the commands' time. The same run gives
+the same record on a quiet host and a loaded one.
+
 A reading is believed only where the device can be: for a driver whose decoder checks it
 (``checks_reach``: the Haply M3), the transport states before each read the time since
 the command the last record answered was sent (the board sampled it no earlier), and the
@@ -94,6 +107,9 @@ RESYNC_GAP_S = 0.005
 #: Longest time [s] the host lets a board without a watchdog hold a torque computed from
 #: a sample older than this: a missed tick past it commands zero torque.
 HOLD_BOUND_S = 0.02
+#: A lockstep mock's account standing still this long [s] when the transport takes the
+#: port (an earlier user's bytes handled and landed: :meth:`DriverTransport._claim`).
+CLAIM_QUIET_S = 0.03
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
 _RING = 64
 
@@ -147,9 +163,10 @@ class DriverTransport:
         pyserial read timeout [s].
     reply_deadline : float
         How long a command may wait for its answer before a missed tick asks again [s]:
-        0 for hardware (the device's time goes on: each missed tick asks again); a mock
-        paced by the commands (one period per command) waits longer, so that a slow mock
-        process is not taken for a lost answer.
+        0 for hardware (the device's time goes on: each missed tick asks again). A mock
+        paced by the commands is given ``handled`` instead (a deadline there took a slow
+        mock process for a lost answer: the command was asked again and the mock stepped
+        twice, another record on a loaded host).
     delay_known : bool
         ``delay`` is the device's (a scene states it, a mock has it); False when it is a
         guess that identification must search (then the driver gives no account).
@@ -164,7 +181,17 @@ class DriverTransport:
         commands', so the time a reading's reach grows with is the commands sent since
         the last record's, times this period, whatever the host's wall clock did (a
         loaded host widened a lockstep board's reach and let garbage through); None
-        (hardware, a board on its own clock): the wall clock.
+        (hardware, a board on its own clock): the wall clock. With ``handled``, also the
+        time of the hold bound and of the re-synchronisations' bounds.
+    handled : callable, optional
+        A lockstep mock's account (:class:`hapsim.spawn.HandledBytes` ``totals``):
+        ``handled() -> (read, written)``, the bytes it has read from the host and written
+        to it, every one handled. A command is then asked again (a missed tick's
+        estimate or hold, a re-arming) only when the mock is *quiet* -- it has read every
+        byte written here and every byte it wrote has been read -- and the command is
+        still unanswered: its packet was lost or damaged (the link's injected faults),
+        never because the mock was slow. The same command sequence, hence the same
+        record, on a quiet host and a loaded one (module notes). Needs ``board_period``.
 
     Attributes
     ----------
@@ -183,7 +210,8 @@ class DriverTransport:
 
     def __init__(self, driver, port: str, delay: int = 1, read_timeout: float = 0.005,
                  reply_deadline: float = 0.0, delay_known: bool = True,
-                 inertia: float | None = None, board_period: float | None = None) -> None:
+                 inertia: float | None = None, board_period: float | None = None,
+                 handled=None) -> None:
         import serial
         try:
             self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
@@ -219,6 +247,13 @@ class DriverTransport:
         self._anchor_us = 0                 # host time of the last record's command [us]
         self._anchor_cmd = 0                # its seq (a lockstep board's time: commands)
         self._board_T = None if board_period is None else float(board_period)
+        if handled is not None and self._board_T is None:
+            raise ValueError("a lockstep mock's account (handled) needs its board_period")
+        self._handled = handled
+        self._n_written = 0                 # bytes written to the port, read from it
+        self._n_read = 0
+        if handled is not None:
+            self._claim()
         self._settle = 0
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
@@ -241,8 +276,45 @@ class DriverTransport:
     def _now_us(self) -> int:
         return (time.monotonic_ns() - self._t0) // 1000
 
+    def _claim(self) -> None:
+        """A lockstep mock's account counts every byte since it started, an earlier
+        user's of the port too (identify's direction probe and travel sweep): wait until
+        it has stood still for :data:`CLAIM_QUIET_S` (at most 1 s), drop what is left on
+        the line (answers to that user), and count from there."""
+        ser = self._ser
+        last = None
+        t_still = time.monotonic()
+        end = t_still + 1.0
+        while True:
+            now = time.monotonic()
+            tot = self._handled()
+            left = ser.in_waiting
+            if left:
+                ser.read(left)
+            if tot != last or left:
+                last, t_still = tot, now
+            elif now - t_still >= CLAIM_QUIET_S or now > end:
+                break
+            time.sleep(1e-3)
+        self._n_written, self._n_read = last
+
+    def _clock(self) -> float:
+        """The device's time [s]: a lockstep mock's (given ``handled``) is the commands'
+        (commands sent times its period), whatever the host's wall clock did; otherwise
+        the monotonic clock."""
+        if self._handled is not None:
+            return (self._cmd + 1) * self._board_T
+        return time.monotonic()
+
+    def _quiet(self) -> bool:
+        """A lockstep mock (``handled``) has answered everything it will: it has read
+        every byte written to it and its every byte has been read here."""
+        r, w = self._handled()
+        return r == self._n_written and w == self._n_read
+
     def _write(self, data: bytes) -> None:
         self._t_write = time.monotonic()
+        self._n_written += len(data)
         try:
             self._ser.write(data)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
@@ -252,6 +324,7 @@ class DriverTransport:
         """Send one command (one host tick): number it and stamp it."""
         self._cmd += 1
         self._sent_us[self._cmd % _RING] = self._now_us()
+        self._stray = False                 # bytes read from now on are its answer
         self.stats["commands"] += 1
         self._write(data)
 
@@ -303,6 +376,7 @@ class DriverTransport:
             while time.monotonic() < end:
                 data = self._ser.read(max(self._ser.in_waiting, 1))
                 if data:
+                    self._n_read += len(data)
                     n = len(dec.feed(data))
                     if time.monotonic() >= quiet:
                         self.stats["unprompted_before_arming"] += n
@@ -320,8 +394,13 @@ class DriverTransport:
     def _given_up(self) -> bool:
         """The newest command's answer will not come: at once on hardware (its time went
         on); for a mock paced by the commands, once bytes came that made no record (a
-        damaged answer) or after a long silence (a wholly lost one); a slow mock process
-        is neither."""
+        damaged answer: the mock stepped a period for it) and, with its account
+        (``handled``), it is quiet, whatever the time; without one, 20 ms after those
+        bytes, or after a long silence. A command that got no byte at all is no
+        estimated sample on a lockstep mock: it may never have reached the mock, whose
+        time then did not go on (:meth:`hold` asks again, no row)."""
+        if self._handled is not None:
+            return self._stray and self._quiet()
         if self._deadline_us <= 0:
             return True
         waited = self._now_us() - self._sent_us[self._cmd % _RING]
@@ -356,13 +435,18 @@ class DriverTransport:
         zero force. Called by the host loop on each missed tick."""
         # (asked again after the reply deadline, not the longer silence overdue waits
         # for: a packet lost on the way gets no answer at all, and the loop's silence
-        # allowed is shorter; a slow mock then merges two packets into one pass)
-        if self._armed and (self._answered == self._cmd or self._now_us()
-                            - self._sent_us[self._cmd % _RING] >= self._deadline_us):
+        # allowed is shorter; a lockstep mock with its account: once it is quiet)
+        if not self._armed:
+            return
+        if self._answered == self._cmd or (
+                self._quiet() if self._handled is not None
+                else self._now_us() - self._sent_us[self._cmd % _RING] >= self._deadline_us):
             if self._stalled():
                 self._resync()
                 return
-            if (self._s_last >= 0 and self._now_us()
+            if self._s_last >= 0 and (
+                    (self._cmd - self._s_last) * self._board_T > HOLD_BOUND_S
+                    if self._handled is not None else self._now_us()
                     - self._sent_us[self._s_last % _RING] > HOLD_BOUND_S * 1e6):
                 # no fresh sample for HOLD_BOUND_S: the force was computed from where the
                 # device was, not where it is; a board without a watchdog would hold it
@@ -402,7 +486,7 @@ class DriverTransport:
         if not (self.driver.unframed and self._armed
                 and self._cmd - self._answered > SILENT_COMMANDS):
             return False
-        if self._deadline_us > 0:
+        if self._handled is not None or self._deadline_us > 0:
             # a mock paced by the commands (a lockstep run): its time is the commands'
             return True
         oldest = self._sent_us[(self._answered + 1) % _RING]
@@ -423,7 +507,7 @@ class DriverTransport:
             loses the board's place faster than it can be restored: zero torque has been
             sent).
         """
-        now = time.monotonic()
+        now = self._clock()
         if now - self._t_resync < RESYNC_GAP_S:
             self._force = 0.0
             self._command(self.driver.encode_force(0.0))
@@ -507,6 +591,11 @@ class DriverTransport:
     def receive(self, timeout: float = 0.0) -> list:
         """Messages: queued HELLO/PONG, and one STATE per record taken (module notes).
 
+        With a lockstep mock's account (``handled``), bytes are read only once the mock
+        has handled every byte written to it, and then all it wrote: each decision taken
+        on them (a record's command, a desync's re-synchronisation) sees the whole
+        answer to everything sent, however the mock's writes were cut up in time.
+
         Parameters
         ----------
         timeout : float
@@ -520,42 +609,24 @@ class DriverTransport:
         self._q.clear()
         ser = self._ser
         end = time.monotonic() + timeout
-        dec = self._dec
+        lockstep = self._handled is not None
         try:
             while True:
-                waiting = ser.in_waiting
-                if waiting:
-                    data = ser.read(waiting)
-                elif timeout > 0 and not out:
-                    data = ser.read(1)
+                if lockstep:
+                    data = self._read_handled()
                 else:
-                    data = b""
+                    waiting = ser.in_waiting
+                    if waiting:
+                        data = ser.read(waiting)
+                    elif timeout > 0 and not out:
+                        data = ser.read(1)
+                    else:
+                        data = b""
                 if data:
-                    self._last.append(data)         # hex only when a message shows it
-                    if self._frames is not None:
-                        # the board sampled the last record when its command arrived
-                        # (not before it was sent): what the joint can have moved since
-                        # bounds the readings believed now
-                        self._frames.elapsed(
-                            (self._now_us() - self._anchor_us) * 1e-6
-                            if self._board_T is None
-                            else max(self._cmd - self._anchor_cmd, 1) * self._board_T)
-                    xs = dec.feed(data)
-                    self._stray = not xs
-                    if xs:
-                        self._take(xs, out)
-                    d = dec.stats.get("desync", 0)
-                    u = dec.stats.get("unreachable", 0)
-                    if d != self._desyncs or u != self._unreach:
-                        # a desync, or a well-formed reply no motion reaches from the last
-                        # record (a set-up the stream corrupted answers in another frame;
-                        # waiting would let the reach grow until it is believed): put the
-                        # board back in step now
-                        self._desyncs, self._unreach = d, u
-                        if self._armed:
-                            self._resync()
+                    self._feed(data, out)
                 if (self._armed and (self._answered < 0 or self._settle > 0) and not out
-                        and time.monotonic_ns() - self._arm_ns > REARM_INTERVAL * 1e9):
+                        and time.monotonic_ns() - self._arm_ns > REARM_INTERVAL * 1e9
+                        and (not lockstep or self._quiet())):
                     # no first record yet: a board still in its bootloader dropped the
                     # arming command, or a record was lost while the force comes up (no
                     # host tick asks again then); ask again
@@ -567,8 +638,52 @@ class DriverTransport:
                         self._command(self.driver.encode_force(0.0))
                 if out or timeout <= 0 or time.monotonic() >= end:
                     return out
+                if lockstep and not data:
+                    time.sleep(2e-4)
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
+
+    def _read_handled(self) -> bytes:
+        """A lockstep mock's whole answer: nothing while it has not handled every byte
+        written to it; then every byte it wrote that was not read yet (they are on their
+        way through the pty: waited for, up to a second)."""
+        r, w = self._handled()
+        if r != self._n_written or w <= self._n_read:
+            return b""
+        need = w - self._n_read
+        buf = bytearray()
+        end = time.monotonic() + 1.0
+        while len(buf) < need and time.monotonic() < end:
+            buf += self._ser.read(need - len(buf))
+        return bytes(buf)
+
+    def _feed(self, data: bytes, out: list) -> None:
+        """Bytes read: decoded, their records taken, a desync or an unreachable reading
+        answered with a re-synchronisation."""
+        dec = self._dec
+        self._n_read += len(data)
+        self._last.append(data)         # hex only when a message shows it
+        if self._frames is not None:
+            # the board sampled the last record when its command arrived (not before it
+            # was sent): what the joint can have moved since bounds the readings
+            # believed now
+            self._frames.elapsed(
+                (self._now_us() - self._anchor_us) * 1e-6
+                if self._board_T is None
+                else max(self._cmd - self._anchor_cmd, 1) * self._board_T)
+        xs = dec.feed(data)
+        self._stray = not xs
+        if xs:
+            self._take(xs, out)
+        d = dec.stats.get("desync", 0)
+        u = dec.stats.get("unreachable", 0)
+        if d != self._desyncs or u != self._unreach:
+            # a desync, or a well-formed reply no motion reaches from the last record (a
+            # set-up the stream corrupted answers in another frame; waiting would let
+            # the reach grow until it is believed): put the board back in step now
+            self._desyncs, self._unreach = d, u
+            if self._armed:
+                self._resync()
 
     def report(self) -> dict:
         """What the driver's link did: :attr:`stats` and the firmware seen (``firmware``:

@@ -967,7 +967,7 @@ class ByteFaults:
 
 
 def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
-          poll: float = 0.02) -> dict:
+          poll: float = 0.02, handled=None) -> dict:
     """Serve ``dev`` on a byte stream until EOF (host closed) or ``stop()`` is true.
 
     Parameters
@@ -982,9 +982,15 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     stop : callable, optional
         Polled; serving ends when it returns True.
     faults : dict, optional
-        :class:`ByteFaults` spec (seeded byte loss and corruption, both directions).
+        :class:`ByteFaults` spec (seeded byte loss and corruption, both directions); also
+        the test hook ``slow`` / ``slow_s``: each answer, with that probability (its own
+        seeded draw, so the bytes lost are the same), is written ``slow_s`` [s] late, as
+        a mock process on a loaded host is.
     poll : float
         Wait for bytes before ``idle`` is called [s].
+    handled : hapsim.spawn.HandledBytes, optional
+        A lockstep mock's account of the bytes it has handled, published after each read
+        is answered (the host tells a slow mock from a lost packet by it, not by time).
 
     Returns
     -------
@@ -999,6 +1005,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     """
     os.set_blocking(fd, False)
     fl = ByteFaults(faults)
+    slow_p = float((faults or {}).get("slow", 0.0))
+    slow_s = float((faults or {}).get("slow_s", 0.0))
+    if slow_p > 0:
+        import numpy as np
+        slow_rng = np.random.default_rng([int((faults or {}).get("seed", 0)), 1])
+    n_read = n_written = 0
     t0 = last = t_idle = time.monotonic()
     streams = getattr(dev, "firmware", "") == "pde"
     while not (stop and stop()):
@@ -1019,6 +1031,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 break
             if not data:
                 break
+            n_read += len(data)
             now = time.monotonic()
             last = now
             split = getattr(dev, "host_writes", None)
@@ -1043,11 +1056,26 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                     time.sleep(wait)
             out += got
         out = fl.tx(out)
-        if out:
+        if out and slow_p > 0 and slow_rng.random() < slow_p:
+            time.sleep(slow_s)                  # the test hook: a slow mock process
+        while out:
             try:
-                os.write(fd, out)
+                k = os.write(fd, out)
+            except BlockingIOError:             # the host reads later: wait for room
+                if stop and stop():
+                    out = None
+                    break
+                select.select([], [fd], [], poll)
+                continue
             except OSError:
+                out = None
                 break
+            n_written += k
+            out = out[k:]
+        if out is None:
+            break
+        if handled is not None:
+            handled.publish(n_read, n_written)
     n = dev.commands()
     extra = {}
     for k in ("merged", "passes", "firmware", "host_ticks"):
@@ -1172,6 +1200,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--options", default="{}")
     p.add_argument("--faults", default="{}")
+    p.add_argument("--handled")
     a = p.parse_args(argv)
     opt = json.loads(a.options)
     spec = json.loads(a.spec)
@@ -1191,8 +1220,10 @@ def main(argv=None) -> int:
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
+    from hapsim.spawn import HandledBytes
     rep = serve(a.fd, dev, stop=lambda: flag["stop"], faults=json.loads(a.faults),
-                poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate)
+                poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate,
+                handled=HandledBytes(a.handled) if a.handled else None)
     if a.report:
         with open(a.report + ".partial", "w") as fh:
             json.dump(rep, fh)
@@ -1218,13 +1249,19 @@ class EmbeddedDriverMock(PtyChild):
         ``metres_per_count``, ``firmware``, ``touch``, ``boot_s``; :class:`HaplyDevice`:
         ``cpr``, ``motor_sign``): the hardware, which the host's driver may describe wrongly.
     faults : dict, optional
-        :class:`ByteFaults` spec.
+        :class:`ByteFaults` spec (and :func:`serve`'s ``slow`` hook).
 
     Attributes
     ----------
     port : str
         The slave path to open.
+    handled : hapsim.spawn.HandledBytes or None
+        A lockstep mock's account of the bytes it has handled
+        (``options["clock"]`` ``"lockstep"``, the default): for
+        :class:`hapsim.drivers.transport.DriverTransport`; None on the wall clock.
     """
+
+    handled = None
 
     def __init__(self, driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
                  options: dict | None = None, faults: dict | None = None) -> None:
@@ -1240,10 +1277,22 @@ class EmbeddedDriverMock(PtyChild):
                 "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
+        extra = []
+        if (options or {}).get("clock", "lockstep") == "lockstep":
+            from hapsim.spawn import HandledBytes
+            self.handled = HandledBytes.create()
+            extra = ["--handled", self.handled.path]
         self.start([sys.executable, "-m", "hapsim.emulated.driver_mock", "--fd", str(master), "--spec",
                     json.dumps(spec), "--rate", repr(float(rate_hz)), "--report",
                     self.report_path, "--seed", str(seed), "--options",
-                    json.dumps(options or {}), "--faults", json.dumps(faults or {})], master)
+                    json.dumps(options or {}), "--faults", json.dumps(faults or {})]
+                   + extra, master)
+
+    def close(self) -> None:
+        """As :meth:`hapsim.spawn.PtyChild.close`, and the handled account removed."""
+        super().close()
+        if self.handled is not None:
+            self.handled.close(unlink=True)
 
 
 if __name__ == "__main__":

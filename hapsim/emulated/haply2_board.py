@@ -30,7 +30,13 @@ watchdog). A set-up (line 74) builds a ``new Encoder(...)`` for each active enco
 whose constructor waits ``delayMicroseconds(2000)`` for the pins' R-C filter (the Encoder
 library Haply ships), then writes the count at the offset (``.h`` line 442): the 2DIY's
 two encoders cost :data:`SETUP_S` each, during which the commands wait and the joints
-do not. Between events the pantograph is integrated over the real time that passed
+do not. A single ``SerialUSB.read()`` of an empty buffer returns -1, stored as the byte
+255 (the address, masks, directions, pin lists, PWM bytes; only ``readBytes``, the
+torques and the encoder parameters, waits: :class:`hapsim.drivers.haply.CommandDecoder`
+with ``absent=255``): on the wall clock a byte is absent at a pass that comes before it
+arrives (a command's first bytes held until its pass; a silent host's pass reads them
+in :meth:`Haply2DIYBoard.idle`); in lockstep each write's bytes have all arrived by its
+pass. Between events the pantograph is integrated over the real time that passed
 (:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). The loop's own delay is
 one period (the read and the torques at the same write, the torques computed from that
 read one write later); a scene stating more delays each write's torques by the rest.
@@ -137,7 +143,12 @@ class Haply2DIYBoard:
         self.gen = GENERATIONS[generation]
         self.cpr = float(cpr or self.gen.resolution)
         self.amplitude = float(amplitude)
-        self.parser = CommandDecoder()
+        # firmware V1.5's single reads of an empty buffer give 255 (CommandDecoder notes);
+        # on the wall clock only at a pass the next bytes come after (module notes)
+        self.parser = CommandDecoder(absent=255)
+        self._seen = -math.inf                # the board's time its bytes are known to [s]
+        if clock == "wall":
+            self.parser.ready = lambda: self._busy_until <= self._seen
         if float(dev.delay) % 1.0:
             # its joint-space plant applies whole periods (no split hold there)
             raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is not "
@@ -223,8 +234,20 @@ class Haply2DIYBoard:
         return self.parser
 
     def idle(self, silent_s: float) -> bytes:
-        """A silent host: the board has no watchdog, it holds its torques."""
-        return b""
+        """A silent host ``silent_s`` [s] since its last bytes: the board has no watchdog,
+        it holds its torques; a command its parser held for a pass still to come (wall
+        clock) reads its absent bytes at that pass (255): the replies it then makes."""
+        if self.wall is None or not self.parser.waiting:
+            return b""
+        return self._flush(self._last_now + silent_s)
+
+    def _flush(self, now: float) -> bytes:
+        """Wall clock: the passes before ``now`` [s] (no byte arrived before them since
+        the last feed) read what the parser held, absent bytes as 255."""
+        if not self.parser.waiting or self._busy_until >= now:
+            return b""
+        self._seen = math.nextafter(now, -math.inf)
+        return self._run(b"", self._busy_until)
 
     def commands(self) -> int:
         """Writes taken."""
@@ -281,6 +304,19 @@ class Haply2DIYBoard:
         bytes
             The replies; on the wall clock they are ready at :attr:`ready_at`.
         """
+        if self.wall is None:
+            return self._run(data, now)
+        if not math.isfinite(now):
+            self.run_to(now)                      # (raises: the time is needed)
+        early = self._flush(now)                  # passes before these bytes came
+        self._seen = self._last_now = now
+        return early + self._run(data, now)
+
+    _last_now = 0.0
+
+    def _run(self, data: bytes, now: float) -> bytes:
+        """The parser's commands out of ``data`` (after what it held), taken one a pass
+        from ``now`` [s] on (wall clock), and the replies to the writes."""
         out = bytearray()
         p = self.parser
         t = max(now, self._busy_until) if self.wall is not None else now
@@ -453,11 +489,13 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
         torque[k] = driver.clamp(tau)
         if rule.due(in_row):
             in_row = 0
-            # zero torque, the set-up at the last joints read, a zero write (its reply
-            # is the next sample): the angles go on from where they were
-            good = joints[~np.isnan(joints[:, 0])]
-            at = good[-1] if good.size else np.radians(q0deg)
-            last = arm([math.degrees(v) for v in at])
+            # zero torque, the set-up at the operating point's joints, a zero write (its
+            # reply is the next sample): the emulated board's hand holds the handle
+            # there at each set-up (as the real-time loop arms it, haply2_host). Armed
+            # at the last joints read instead, each re-arming left the readings off the
+            # joints by the motion since that reading: 28 re-armings of a hostile stream
+            # walked them 0.66 deg off, and the loop pushed the handle 1.4 deg away
+            last = arm(q0deg)
             if last is None:
                 in_row = MISSING_RESYNC
             continue
@@ -553,12 +591,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     IdentificationError
         A joint wired backwards against its direction bytes (the probe's refusal).
     """
-    from hapsim.analysis.identify_nd import felt_sensitivity_nd, fit_felt_nd, worst_case_nd
-    from hapsim.analysis.linearisation_nd import linearisation_bound
-    from hapsim.drivers.haply import MAX_TORQUE
-    from hapsim.kinematics import device
-    from hapsim.analysis.felt_matrices import felt_deviation, felt_verdict
-    from hapsim.lockstep_nd import error_responses, identification_plan
+    from hapsim.lockstep_nd import identification_plan
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
     board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,

@@ -618,9 +618,13 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                 drv, sweep = _sweep_travel(drv, port or embedded.port, travel, force_limit,
                                            rate_hz, port is None)
             if port is None:
-                # paced by the commands: a slow mock process is no lost answer
+                # paced by the commands: asked again only when its account says it is
+                # quiet (a slow mock process is no lost answer, whatever the time)
+                acct = embedded.handled
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.02)
+                                     reply_deadline=0.02,
+                                     board_period=None if acct is None else 1.0 / rate_hz,
+                                     handled=None if acct is None else acct.totals)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, port, delay=1, delay_known=False)

@@ -328,14 +328,18 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 embedded = EmbeddedDriverMock(opts.driver, dev, scene.excitation,
                                               scene.rate_hz, seed=opts.seed,
                                               options=hardware, faults=opts.driver_faults)
-                # a mock paced by the commands: a slow mock process is no lost answer; a
-                # board on its own clock answers as hardware does
-                # the device's mass (a rotary axis': its inertia) bounds what a reading
-                # may have moved since the last (a driver that checks it: the Haply M3)
+                # a mock paced by the commands is asked again only when its account
+                # says it is quiet (a slow mock process is no lost answer, whatever the
+                # time: the same record on a loaded host); a board on its own clock
+                # answers as hardware does. The device's mass (a rotary axis': its
+                # inertia) bounds what a reading may have moved since the last (a driver
+                # that checks it: the Haply M3)
+                acct = embedded.handled
                 tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.0 if wall else 0.02,
+                                     reply_deadline=0.0 if acct is None else 0.02,
                                      inertia=dev.mass,
-                                     board_period=None if wall else scene.period)
+                                     board_period=None if acct is None else scene.period,
+                                     handled=None if acct is None else acct.totals)
                 embedded.release_slave()
             else:
                 tr = DriverTransport(drv, opts.port, delay=int(dev.delay),
