@@ -137,6 +137,18 @@ PYTHON_ONLY = {
 PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+#: numba's compiling decorators (a ``cache=`` keyword elsewhere, an argument of an
+#: ordinary function, is no disk cache of compiled code)
+NUMBA_DECORATORS = {"njit", "jit", "cfunc", "vectorize", "guvectorize", "generated_jit"}
+
+
+def _numba_decorator(func) -> bool:
+    """Whether a call's callee is one of :data:`NUMBA_DECORATORS` (``numba.njit``,
+    ``njit``, ``nb.cfunc`` ...)."""
+    name = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", None)
+    return name in NUMBA_DECORATORS
+
+
 def _cached_numba_modules():
     """Dotted names of hapsim's modules with a numba decorator given ``cache=``."""
     out = []
@@ -149,7 +161,8 @@ def _cached_numba_modules():
             if "cache" not in text:         # no ``cache=`` keyword can be in it: no parse
                 continue                    # (this runs at collection, in every worker)
             tree = ast.parse(text)
-            if any(isinstance(n, ast.keyword) and n.arg == "cache" for n in ast.walk(tree)):
+            if any(isinstance(n, ast.Call) and _numba_decorator(n.func)
+                   and any(k.arg == "cache" for k in n.keywords) for n in ast.walk(tree)):
                 rel = os.path.relpath(path, PACKAGE)[:-3]
                 out.append(rel.replace(os.sep, "."))
     return sorted(out)
