@@ -365,10 +365,14 @@ class RunReportND(Report):
         duplicates, reordered, records cut short, device resets, losses and recoveries,
         CONFIGs sent); bad frames the host's decoder dropped; why nothing was fitted
         (None when the matrices were measured).
+    stop : str or None
+        Over a port only: what ended the measurement, ``"end"`` or, when a stop was
+        requested, ``"signal SIGINT"`` / ``"signal SIGTERM"`` (Ctrl-C, a service manager):
+        what was recorded by then is reported, as the 1-D run's ``loop.stop_reason``.
     """
 
     _OPTIONAL = ("port", "late", "watchdog", "delay", "lost", "rows", "counts",
-                 "bad_frames", "incomplete")
+                 "bad_frames", "incomplete", "stop")
 
     scene: str
     dof: int
@@ -395,6 +399,7 @@ class RunReportND(Report):
     counts: Any = None
     bad_frames: Any = None
     incomplete: Any = None
+    stop: Any = None
 
     @property
     def k(self) -> np.ndarray:
@@ -455,7 +460,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"], rows=res["rows"],
                  counts=res["counts"], bad_frames=res["bad_frames"],
-                 incomplete=res["incomplete"])
+                 incomplete=res["incomplete"], stop=res.get("stop", "end"))
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)

@@ -157,6 +157,9 @@ def run_nd(args) -> int:
               f"{c['resets']}, device lost {c['lost']} / recovered {c['recovered']}"
               + (f"; faults injected: {port_info['faults_injected']}"
                  if port_info.get("faults_injected") else ""), file=o)
+        if res.get("stop", "end") != "end":
+            print(f"  stopped: {res['stop']} (what was recorded by then is reported)",
+                  file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -261,14 +264,16 @@ def _measure_over_port(args, scene, a: float, n: int):
         mock's last line on stderr, or None; what the host's SCHED_FIFO request obtained).
     """
     import gc
+    import signal
     import subprocess
+    import threading
 
     from hapsim.host.realtime import RealtimePriority
     from hapsim.pipeline.run_nd import measure_felt_port
     from hapsim.host.transport import SerialTransport
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
-    from hapsim.spawn import at_stop, child_env, done
+    from hapsim.spawn import StopFlag, at_stop, child_env, done
     import os
     import shutil
     import tempfile
@@ -304,8 +309,10 @@ def _measure_over_port(args, scene, a: float, n: int):
             if plan.has_vanish:
                 # the pty closes and a new one comes: the host opens the link kept at it
                 cmd += ["--link", os.path.join(tmp, "port")]
+        # in a session of its own, as the 1-D run's mock (hapsim.spawn.PtyChild.start): a
+        # Ctrl-C at the terminal reaches only the host, which stops the device itself
         child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 env=child_env(), text=True)
+                                 env=child_env(), text=True, start_new_session=True)
         started.append(child)
         line = child.stdout.readline()
         if not line.startswith("PORT "):
@@ -322,13 +329,23 @@ def _measure_over_port(args, scene, a: float, n: int):
         tr = joint = JointLevelTransport(tr, scene)
     gc_was = gc.isenabled()
     rt = RealtimePriority(int(args.rt_priority or 0))
+    stop = StopFlag()
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        # Ctrl-C and SIGTERM end the record under way and report what was measured, as
+        # the 1-D run does (hapsim.pipeline.runner), instead of an exit 130 with nothing
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
     try:
         with Progress(2 * n + 1, "run (over the port)", unit="records") as bar:
             # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
             with rt:
                 gc.disable()
-                res = measure_felt_port(tr, scene, progress=bar.update, amplitude=a)
+                res = measure_felt_port(tr, scene, progress=bar.update, amplitude=a,
+                                        stop=stop)
     finally:
+        for s, h in old.items():
+            signal.signal(s, h)
         if gc_was:
             gc.enable()
         tr.close()

@@ -28,10 +28,11 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.host.loop_types import LATCHED_FAULTS, SENSORS_TRIES, SENSORS_WAIT
+from hapsim.host.loop_types import LATCHED_FAULTS, SENSORS_TRIES, SENSORS_WAIT, signame
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 
-__all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd"]
+__all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd",
+           "stop_reason"]
 
 #: CONFIG's force limit [N]: the scene's device has none (finite, as CONFIG requires).
 FORCE_LIMIT = 1e9
@@ -196,7 +197,7 @@ class _Counts:
 
 def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
             counts: _Counts | None = None, first_wait: float = 1.0,
-            silence: float = 0.25) -> RecordND:
+            silence: float = 0.25, stop=None) -> RecordND:
     """One CONFIG and its STATEs answered, then STOP: the record's rows up to the first
     STATE the host did not get (a gap in seq), the device falling silent or disarmed, a
     HELLO (the device reset) or another session starting (seq back, other content).
@@ -205,7 +206,9 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     one that says a FORCE was applied: none was sent) and steps once per STATE; a STATE
     the host did not get leaves its tick unknown, so the rows stop there
     (:attr:`RecordND.rows`): every row kept is a measured sample of the loop, never a
-    guessed one. A duplicated STATE (the same seq and content again) is ignored.
+    guessed one. A duplicated STATE (the same seq and content again) is ignored. A stop
+    requested (``stop.set``: Ctrl-C, SIGTERM) ends the record at the next read (within
+    0.05 s), and STOP is sent as at any end.
     """
     from hapsim.engine_nd import EngineND
     counts = counts if counts is not None else _Counts()
@@ -228,6 +231,8 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     end = False
     ahead = None                                # a STATE k + 1 that came before STATE k
     while not end:
+        if stop is not None and stop.set:
+            break                               # Ctrl-C, SIGTERM: the device is stopped below
         msgs = transport.receive(0.05)
         if clock() - last > (first_wait if k == 0 else silence):
             counts.silences += 1                # nothing usable came for that long
@@ -303,7 +308,7 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
             if end:
                 break
     rec.rows = k
-    if k < N:
+    if k < N and not (stop is not None and stop.set):
         counts.cut += 1
     transport.send(fp.Stop())
     return rec
@@ -430,7 +435,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                       watchdog_periods: int = 20, amplitude: float | None = None,
                       max_configs: int | None = None, reconnect_time: float = 10.0,
                       backoff: float = 0.05, backoff_max: float = 1.0,
-                      frames: str = "auto") -> dict:
+                      frames: str = "auto", stop=None) -> dict:
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
 
     Each CONFIG gives one record; the device's hand picks its start (the mock: the next
@@ -473,6 +478,11 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     frames : {"auto", "full"}
         ``"auto"``: the compact frames with a device that applies its forces in steps and
         offers them (:func:`handshake_nd`); ``"full"``: never.
+    stop : hapsim.spawn.StopFlag, optional
+        A stop requested (``stop.set``: a signal handler's) ends the record under way at
+        its next read and the measurement there: the starts with a whole record by then
+        are fitted if they are all there, else nothing is (``incomplete`` says the stop
+        and how far it got); ``stop`` in the result names it.
 
     Returns
     -------
@@ -499,7 +509,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         skipped one), ``lost``, ``recovered``, ``reconnect_attempts``),
         ``bad_frames`` (the host decoder's count, when it has one), ``incomplete``
         (None, or why nothing was fitted), ``hello`` (the device's first HELLO),
-        ``frames`` (``"compact"`` or ``"full"``: the last session's).
+        ``frames`` (``"compact"`` or ``"full"``: the last session's), ``stop``
+        (``"end"``, or ``"signal NAME"`` / the stop's reason when one was requested).
 
     Raises
     ------
@@ -538,7 +549,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     need_hello = True
     lost_since = None
     since_hello = 0                             # CONFIGs the device took since its HELLO
-    while counts.configs < budget and not all(r is not None and r.rows == N for r in best):
+    stopped = (lambda: False) if stop is None else (lambda: bool(stop.set))
+    while (counts.configs < budget and not all(r is not None and r.rows == N for r in best)
+           and not stopped()):
         try:
             if need_hello:
                 h = handshake_nd(transport, n, compact_rate=rate if compact else None)
@@ -551,7 +564,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                 since_hello = 0                 # a HELLO: the hand starts from rest again
             expected = since_hello % S
             h0 = counts.hellos
-            rec = _record(transport, scene, N, rate, wd, counts=counts, silence=silence)
+            rec = _record(transport, scene, N, rate, wd, counts=counts, silence=silence,
+                          stop=stop)
             since_hello = 0 if counts.hellos != h0 else since_hello + 1
         except DeviceError as exc:
             if "FAULT" in str(exc).split("\n")[0]:
@@ -588,7 +602,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     out = {"predicted": chk, "order": order, "records": 2 * n, "samples": N,
            "hello": hello, "counts": counts.as_dict(), "lost": counts.lost,
            "recovered": counts.recovered, "incomplete": None,
-           "frames": "compact" if getattr(transport, "compact", False) else "full"}
+           "frames": "compact" if getattr(transport, "compact", False) else "full",
+           "stop": "end" if not stopped() else stop_reason(stop)}
     dec = getattr(transport, "decoder", None)
     st = getattr(dec, "stats", None)
     out["bad_frames"] = (None if st is None else int(
@@ -601,7 +616,12 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                              "rendered_poles": [], "residual": float("nan"), "rank": 0},
                    deviation=None, rows=[0 if r is None else r.rows for r in best],
                    late=0, watchdog=0, delay=[], excursion=0.0,
-                   incomplete=(f"{len(short)} of the {S} starts got no record of "
+                   incomplete=(f"stopped ({out['stop']}) with "
+                               f"{sum(r is not None and r.rows == N for r in best)} of "
+                               f"the {S} starts wholly recorded: the felt matrices are "
+                               "not measured"
+                               if stopped() else
+                               f"{len(short)} of the {S} starts got no record of "
                                f"{need} rows or more in {counts.configs} CONFIGs (STATEs "
                                f"missed: {counts.missed}, records cut short: {counts.cut}, "
                                f"device losses: {counts.lost}): the felt matrices are not "
@@ -662,6 +682,26 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                excursion=excursion, watchdog=wdog, delay=delays,
                rows=[min(r.rows, L) for r in best], responses=recs)
     return out
+
+
+def stop_reason(stop) -> str:
+    """What ended a measurement a stop was requested of, as the 1-D loop says it
+    (:class:`hapsim.host.loop.HostLoop`'s ``stop_reason``).
+
+    Parameters
+    ----------
+    stop : hapsim.spawn.StopFlag
+        A flag that is set.
+
+    Returns
+    -------
+    str
+        ``"signal NAME"`` (a signal's), the stop's own ``reason`` (another caller's, e.g.
+        the live view's stop button), or ``"stop requested"``.
+    """
+    if getattr(stop, "signal", None) is not None:
+        return f"signal {signame(stop.signal)}"
+    return getattr(stop, "reason", None) or "stop requested"
 
 
 def _reconnect(transport, counts: _Counts, exc, clock, sleep, until: float,
