@@ -1002,6 +1002,14 @@ class RunReport(Report):
         beyond recovery); None when it ran to its end.
     advice : dict or None
         What ``auto`` chose (rate and integrator).
+    verdict : str
+        ``"within"``, ``"differs"`` or ``"not measurable"``: ``measured``'s verdict in the
+        word a 2-D/3-D run's report has at its top level (:class:`RunReportND`;
+        :func:`hapsim.pipeline.report.verdict_summary`).
+    within : bool or None
+        Measured = predicted within the stated uncertainty (None: not measurable).
+    reason : str
+        The verdict in words (``measured``'s sentence).
 
     Other attributes: ``exit_code``, what ``hapsim run`` exits with (0, or 1 after a
     safety stop or a device fault).
@@ -1021,6 +1029,9 @@ class RunReport(Report):
     sound: dict | None
     error: dict | None = None
     advice: dict | None = None
+    verdict: str | None = None
+    within: bool | None = None
+    reason: str | None = None
 
     @property
     def k(self) -> float:

@@ -196,6 +196,12 @@ def test_shipped_configs_in_lockstep_never_differ(shipped_lockstep_run):
         verdicts[path.name] = m.get("verdict") or m.get("error")
         assert "differs" not in str(m.get("verdict")), (path.name, m)
         assert rep["exit_code"] == 0, path.name
+        # the top-level verdict every dimension's run --json has (issue 30): the same
+        # verdict as the measurement's sentence, in the n-D report's words
+        assert rep["reason"] == verdicts[path.name], path.name
+        assert (rep["verdict"], rep["within"]) in (("within", True),
+                                                   ("not measurable", None)), path.name
+        assert (rep["verdict"] == "within") == (m.get("within") is True), path.name
     assert verdicts["string.yaml"] == "measured = predicted within the stated uncertainty"
     assert verdicts["audio_string.yaml"].startswith("not comparable: contact 'pluck'")
 

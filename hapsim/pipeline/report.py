@@ -16,7 +16,7 @@ from hapsim.errors import dash
 if TYPE_CHECKING:
     from hapsim.pipeline.options import RunOptions
 
-__all__ = ["build_report", "device_clock_warning", "format_report"]
+__all__ = ["build_report", "device_clock_warning", "format_report", "verdict_summary"]
 
 
 #: A device on a port whose ticks run this many times faster than the wall clock in a run
@@ -181,8 +181,37 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     return {"scene": scene.path, "target": targets[0] if targets else None,
             "targets": targets, "virtual": virtual, "predicted": prep.pred,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
-            "sound": run.sound,
+            "sound": run.sound, **verdict_summary(measured),
             "exit_code": 1 if (res.safety_stop or res.faults or unfit) else 0}
+
+
+def verdict_summary(measured: dict) -> dict:
+    """The run's verdict in the keys every dimension's ``run --json`` has at its top level
+    (a 2-D/3-D run's :class:`hapsim.api_nd.RunReportND`: ``verdict``, ``within``,
+    ``reason``), read from a 1-D measurement's own sentence.
+
+    Parameters
+    ----------
+    measured : dict
+        The 1-D measurement (:func:`hapsim.pipeline.identify_run.identify_run`, after
+        every rule that revises it): ``verdict`` (a sentence), ``within``, or ``error``.
+
+    Returns
+    -------
+    dict
+        ``verdict``: ``"within"`` (measured = predicted within the stated uncertainty),
+        ``"differs"`` (by more than it) or ``"not measurable"`` (not comparable, not
+        measurable, or nothing identified); ``within``: True, False, or None when not
+        measurable; ``reason``: the measurement's sentence (or its error).
+    """
+    reason = measured.get("verdict") or measured.get("error") or "nothing was measured"
+    if reason.startswith("measured = predicted"):
+        word, within = "within", True
+    elif reason.startswith("measured differs"):
+        word, within = "differs", False
+    else:
+        word, within = "not measurable", None
+    return {"verdict": word, "within": within, "reason": str(reason)}
 
 
 def format_report(rep: dict) -> str:
