@@ -141,15 +141,14 @@ def _draw(report, draw, path_or_ax):
     return draw(report, ax=path_or_ax)
 
 
-def _scene(scene, nd: str = "check_nd"):
+def _scene(scene, what: str, why: str):
     """A 1-D Scene from a Scene or a path; a 2-D or 3-D one is refused, naming the
-    function ``nd`` that takes it (a ConfigError)."""
+    function ``what`` and ``why`` (a ConfigError keyed ``dimension``)."""
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)
     if getattr(scene, "dimension", 1) != 1:
-        raise ConfigError(f"a {scene.dimension}-D scene: this function takes dimension 1; "
-                          f"hapsim.{nd} takes it", file=getattr(scene, "path", None),
-                          key="dimension")
+        raise ConfigError(f"a {scene.dimension}-D scene: hapsim.{what} takes dimension 1 "
+                          f"({why})", file=getattr(scene, "path", None), key="dimension")
     return scene
 
 
@@ -256,17 +255,22 @@ def _get(d, key) -> float:
     return math.nan if v is None else float(v)
 
 
-def check(scene) -> CheckReport:
+def check(scene):
     """Check a scene: stability of its closed loop and what is felt at its port.
+
+    A scene of any dimension: a 2-D or 3-D one with a port gives its felt matrices
+    (:func:`hapsim.api_nd.check_nd`, a :class:`CheckReportND`), one without a port its
+    modes (:func:`hapsim.api_nd.modes_nd`, a :class:`ModesReportND`), as ``hapsim check``
+    does.
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene or str
+    scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
         A loaded scene, or the path of one.
 
     Returns
     -------
-    CheckReport
+    CheckReport, CheckReportND or ModesReportND
 
     Raises
     ------
@@ -285,7 +289,11 @@ def check(scene) -> CheckReport:
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
 
-    scene = _scene(scene, "check_nd (modes_nd for a scene without a port)")
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)               # in the dimension it declares
+    if getattr(scene, "dimension", 1) != 1:
+        from hapsim.api_nd import check_nd, modes_nd
+        return check_nd(scene) if scene.port is not None else modes_nd(scene)
     scene, cals = apply_targets(scene)
     check_size(scene)
     chk = check_scene(scene)
@@ -669,7 +677,8 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     from hapsim.analysis.hand import hand_stiffness
 
     check_values("family", samples=samples, grid=grid, seed=seed, certify=certify)
-    scene = _scene(scene, "check_nd (there is no n-D family yet)")
+    scene = _scene(scene, "family", "there is no family of a 2-D or 3-D THS yet; "
+                   "hapsim.check gives its felt matrices")
     if correction is not None:
         scene = dataclasses.replace(scene, device=dataclasses.replace(
             scene.device, correction=correction))
@@ -1100,8 +1109,12 @@ def run_options() -> tuple:
                  if f.name not in _RUN_INTERNAL)
 
 
-def run(scene, options=None, **changes: Any) -> RunReport:
+def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    A scene of any dimension: a 2-D or 3-D one measures its felt matrices
+    (:func:`hapsim.api_nd.run_scene_nd`, a :class:`RunReportND`), a 1-D one its felt pair
+    (below).
 
     ``hapsim run`` is this function with the options of its command line
     (:meth:`hapsim.pipeline.options.RunOptions.from_args`); it prints the result.
@@ -1112,6 +1125,9 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     options : hapsim.pipeline.options.RunOptions, optional
         All the options at once (default: ``RunOptions(handle_signals=False)``: a library
         leaves SIGINT to its caller).
+    amplitude : float, optional
+        A 2-D or 3-D scene's excitation [m] (default 1e-8); a 1-D scene refuses it (its
+        hand's start is the scene's ``excitation``).
     **changes
         Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
         embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
@@ -1121,9 +1137,9 @@ def run(scene, options=None, **changes: Any) -> RunReport:
 
     Returns
     -------
-    RunReport
+    RunReport or RunReportND
         Also when the run ended on a safety stop or a device fault (``ok`` False; a device
-        lost beyond recovery: ``error``).
+        lost beyond recovery: ``error``). A 2-D/3-D scene's :class:`RunReportND`.
 
     Raises
     ------
@@ -1148,9 +1164,16 @@ def run(scene, options=None, **changes: Any) -> RunReport:
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(valid)}", key=unknown[0])
-    scene = _scene(scene, "run_nd")
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)               # in the dimension it declares
     opts = dataclasses.replace(options if options is not None
                                else RunOptions(handle_signals=False), **changes)
+    if getattr(scene, "dimension", 1) != 1:
+        from hapsim.api_nd import run_scene_nd
+        return run_scene_nd(scene, opts, amplitude)
+    if amplitude is not None:
+        raise ConfigError("a 1-D scene's hand starts where its excitation says (x0, v0): "
+                          "amplitude is for a 2-D or 3-D scene", key="amplitude")
     driver = opts.driver
     if driver is None and scene.device is not None:
         driver = scene.device.protocol

@@ -585,6 +585,52 @@ class PlayReportND(Report):
         return play_nd_text(self.to_dict())
 
 
+def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
+    """:func:`hapsim.api.run` of a 2-D or 3-D scene: its felt matrices measured in
+    lockstep in-process, or over a port (``options.port``, or an embedded n-D mock in real
+    time): :func:`hapsim.pipeline.felt_run.measure_scene_nd`.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str
+        A scene with a port and a device, or its path (the embedded mock loads this file).
+    options : hapsim.pipeline.options.RunOptions
+        ``port``, ``baud``, ``lockstep``, ``allow_unstable``, ``rt_priority``,
+        ``rate_hz``, ``faults``, ``fault_seed``, ``stop``, ``handle_signals``; any other
+        option set is refused by name.
+    amplitude : float, optional
+        The excitation ``a`` [m] (default
+        :data:`hapsim.pipeline.felt_run.DEFAULT_AMPLITUDE`, 1e-8).
+
+    Returns
+    -------
+    RunReportND
+        Also when a stop was requested (``stop`` names it; "not measurable" unless every
+        start was recorded).
+
+    Raises
+    ------
+    ConfigError
+        An option not taken (``driver`` included: the 2DIY's and the Falcon's runs are
+        ``hapsim run``'s), a bad value, a scene without a port.
+    UnstableConfigError
+        The check finds the loop unstable and ``allow_unstable`` is false.
+    DeviceError, ProtocolError
+        The device failed (no HELLO, a FAULT, lost beyond recovery).
+    """
+    from hapsim.pipeline.felt_run import measure_scene_nd, refuse_options, scene_for_run
+    opts = options.check_values()
+    if opts.driver is not None:
+        raise ConfigError(f"driver {opts.driver!r} on a 2-D or 3-D scene runs from the "
+                          f"command line only (hapsim run SCENE --driver {opts.driver})",
+                          key="driver")
+    refuse_options(opts, "field")
+    a, scene = scene_for_run(scene, amplitude, opts.rate_hz)
+    stable_prediction_nd(scene, opts.allow_unstable)
+    res, info = measure_scene_nd(scene, opts, a, by="field")
+    return run_report_nd(scene, res, bool(opts.lockstep and not opts.port), info)
+
+
 def stable_prediction_nd(scene, allow_unstable: bool = False,
                          override: str = "allow_unstable"):
     """The scene's check (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`), refused

@@ -1,7 +1,7 @@
 """``hapsim.load_scene`` reads a scene in the dimension its ``dimension`` key declares
 (issue 23): a 1-D scene exactly as before (the 1-D reader's Scene), a 2-D or 3-D one as
-the n-D reader's SceneND; the 1-D functions refuse an n-D scene, naming the function
-that takes it."""
+the n-D reader's SceneND; check and run take every dimension (issue 30), family refuses
+an n-D scene by name."""
 
 from __future__ import annotations
 
@@ -33,16 +33,40 @@ def test_load_scene_picks_the_dimension(path):
         assert s.dimension == scene_dimension(path) in (2, 3)
 
 
-def test_one_d_functions_refuse_an_n_d_scene_by_name():
-    """check and run on a 2-D scene (path or object): ConfigError naming check_nd / run_nd
-    and the key dimension."""
-    p = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
+def test_check_and_run_take_every_dimension():
+    """hapsim.check and hapsim.run take a 2-D or 3-D scene (path or object; issue 30: "the
+    same API function takes a 1-D, a 2-D, a 3-D scene"): their results are the n-D
+    functions' (check_nd with a port, modes_nd without one, run_nd in lockstep), to the
+    bit (the same computation); a 1-D scene gets the 1-D reports as before."""
+    root = Path(__file__).resolve().parent.parent / "configs"
+    p = root / "pantograph_wall.yaml"
     for scene in (p, hapsim.load_scene(p)):
-        with pytest.raises(ConfigError, match="check_nd") as e:
-            hapsim.check(scene)
-        assert e.value.key == "dimension"
-        with pytest.raises(ConfigError, match="run_nd"):
-            hapsim.run(scene)
+        assert hapsim.check(scene).to_dict() == hapsim.check_nd(scene).to_dict()
+    m = root / "membrane.yaml"
+    assert hapsim.check(m).to_dict() == hapsim.modes_nd(m).to_dict()
+    r = hapsim.run(p, lockstep=True)
+    assert type(r) is hapsim.RunReportND
+    assert r.to_dict() == hapsim.run_nd(p).to_dict()
+    assert type(hapsim.check(root / "wall.yaml")) is hapsim.CheckReport
+
+
+def test_what_an_n_d_run_does_not_take_is_refused_by_name():
+    """A 1-D run option on a 2-D scene, a driver from Python, an amplitude on a 1-D
+    scene, and family (no n-D family yet): ConfigError naming the option."""
+    root = Path(__file__).resolve().parent.parent / "configs"
+    p = root / "pantograph_wall.yaml"
+    with pytest.raises(ConfigError, match="duration") as e:
+        hapsim.run(p, duration=1.0)
+    assert e.value.key == "duration"
+    with pytest.raises(ConfigError, match="command line") as e:
+        hapsim.run(p, driver="haply")
+    assert e.value.key == "driver"
+    with pytest.raises(ConfigError) as e:
+        hapsim.run(root / "wall.yaml", amplitude=1e-3)
+    assert e.value.key == "amplitude"
+    with pytest.raises(ConfigError, match="family") as e:
+        hapsim.family(p)
+    assert e.value.key == "dimension"
 
 
 def test_a_bad_dimension_is_the_n_d_reader_s_error(tmp_path):

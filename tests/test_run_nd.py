@@ -215,7 +215,7 @@ def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
     value other than its default (0 included: --osc 0 is any free port, --duration 0 an
     open-ended run, which a list of set values compared with (None, False) took for
     unset), is refused with exit 2 naming it, before anything runs."""
-    from hapsim.commands.run_nd import ND_TAKES
+    from hapsim.pipeline.felt_run import ND_TAKES
     from hapsim.pipeline.options import command_line_fields
     scene = str(CONFIGS / "pantograph_wall.yaml")
     cases = [(["--osc", "0"], "--osc"), (["--duration", "0"], "--duration")]

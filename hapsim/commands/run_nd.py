@@ -14,42 +14,28 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-#: The run options (:class:`hapsim.pipeline.options.RunOptions` fields) an n-D run takes;
-#: every other one set to anything but its default is refused by name, with exit 2
-#: (``--driver`` takes ``haply`` on a pantograph scene: the emulated 2DIY board).
-ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
-            "rate_hz", "faults", "fault_seed")
-
 #: ``hapsim run``'s own options (not run options) an n-D scene does not take.
 _REFUSED = (("device", "--device"), ("auto", "--auto"))
 
 
-def _refuse_options(args) -> None:
-    """Refuse every option the n-D run does not take (module constants), by its flag, and
-    check the ones it takes by their declarations (:func:`hapsim.pipeline.options.option`)."""
-    from hapsim.pipeline.options import command_line_fields
-    set_ = [opt for attr, opt in _REFUSED
-            if getattr(args, attr, None) is not None and getattr(args, attr) is not False]
-    for f in command_line_fields():
-        meta = f.metadata["cli"]
-        if not hasattr(args, f.name):
-            continue
-        if f.name in ND_TAKES:
-            if meta["check"] is not None and getattr(args, f.name) is not None:
-                meta["check"](getattr(args, f.name), meta["flag"])
-            continue
-        v, d = getattr(args, f.name), meta["cli_default"]
-        # (0 == False == 0.0: a value is the default only of the same type)
-        if type(v) is not type(d) or v != d:
-            set_.append(meta["flag"])
-    if set_:
-        raise ConfigError(f"a 2-D or 3-D scene does not take {set_[0]} yet (1-D scenes "
-                          "only)", key=set_[0])
+def _refuse_options(args):
+    """Refuse ``hapsim run``'s own options an n-D run does not take, then every run option
+    it does not take (:func:`hapsim.pipeline.felt_run.refuse_options`), by its flag.
 
-#: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
-#: from their linearisation by ~1e-7 (c_link ~ 30 /m), large enough against the round-off
-#: of positions ~0.1 m (1e-17 m, 1e-9 relative).
-DEFAULT_AMPLITUDE = 1e-8
+    Returns
+    -------
+    hapsim.pipeline.options.RunOptions
+        The run options of the command line, checked one by one.
+    """
+    from hapsim.pipeline.felt_run import refuse_options
+    from hapsim.pipeline.options import RunOptions
+    for attr, flag in _REFUSED:
+        if getattr(args, attr, None) is not None and getattr(args, attr) is not False:
+            raise ConfigError(f"a 2-D or 3-D scene does not take {flag} yet (1-D scenes "
+                              "only)", key=flag)
+    opts = RunOptions.from_args(args)
+    refuse_options(opts)
+    return opts
 
 
 def run_nd(args) -> int:
@@ -86,9 +72,8 @@ def run_nd(args) -> int:
     :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; the linearisation bound of
     :mod:`hapsim.analysis.linearisation_nd` at ``a``.
     """
-    from hapsim.lockstep_nd import measure_felt_lockstep
     from hapsim.progress import Progress
-    _refuse_options(args)
+    opts = _refuse_options(args)
     driver = getattr(args, "driver", None)
     if getattr(args, "generation", None) is not None and driver != "haply":
         raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
@@ -106,31 +91,24 @@ def run_nd(args) -> int:
                           f"Falcon), not {driver!r}", key="--driver")
     if driver == "haply":
         return _run_haply2(args)
-    a, scene = _amplitude_and_scene(args, DEFAULT_AMPLITUDE)
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.pipeline.felt_run import measure_scene_nd, scene_for_run
+    a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
+                             getattr(args, "rate_hz", None))
     from hapsim.api_nd import stable_prediction_nd
-    pred = stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
+    stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
     n = scene.dimension
     in_process = args.lockstep and not args.port
-    where = "in-process"
-    port_info = None
-    if in_process:
-        with Progress(2 * n, "run (lockstep)", unit="records") as bar:
-            res = measure_felt_lockstep(scene, a, progress=bar.update)
-    else:
-        from hapsim.errors import DeviceError, ProtocolError
+    label = "run (lockstep)" if in_process else "run (over the port)"
+    from hapsim.errors import DeviceError, ProtocolError
+    with Progress(2 * n if in_process else 2 * n + 1, label, unit="records") as bar:
         try:
-            res, port_info = _measure_over_port(args, scene, a, n)
+            res, port_info = measure_scene_nd(scene, opts, a, progress=bar.update)
         except (DeviceError, ProtocolError) as exc:
             print(f"hapsim run: {exc}", file=sys.stderr)
             return 1
-        # the bound at the largest excursion the records reached: a late tick's held force
-        # moves the handle past the nominal amplitude, and the departure from the linear
-        # loop grows with the motion (hapsim.analysis.linearisation_nd)
-        res["bound"] = linearisation_bound(scene, max(a, res["excursion"]),
-                                           pred.render.rendered_poles)
-        where = (f"over {port_info['port']}" + (" (embedded mock, real time)"
-                                                 if port_info["embedded"] else ""))
+    where = "in-process" if in_process else (
+        f"over {port_info['port']}" + (" (embedded mock, real time)"
+                                       if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
     if args.json:
         from hapsim.api import run_report_nd
@@ -252,136 +230,6 @@ def print_statements(v: dict, o) -> None:
             print(f"    {head}: {s['verdict']} (deviation {e(s['deviation'])} "
                   + ("<=" if s["within"] else ">") + f" {e(s['uncertainty'])} = {terms})",
                   file=o)
-
-
-def _measure_over_port(args, scene, a: float, n: int):
-    """:func:`hapsim.pipeline.run_nd.measure_felt_port` over ``--port`` or an embedded mock.
-
-    Returns
-    -------
-    (dict, dict)
-        The measurement and ``{"port", "embedded", "mock", "scheduling"}`` (the embedded
-        mock's last line on stderr, or None; what the host's SCHED_FIFO request obtained).
-    """
-    import gc
-    import signal
-    import subprocess
-    import threading
-
-    from hapsim.host.realtime import RealtimePriority
-    from hapsim.pipeline.run_nd import measure_felt_port
-    from hapsim.host.transport import SerialTransport
-    from hapsim.errors import DeviceError
-    from hapsim.progress import Progress
-    from hapsim.spawn import StopFlag, at_stop, child_env, done
-    import os
-    import shutil
-    import tempfile
-
-    from hapsim.emulated.faults import parse_faults
-    child = None
-    port = args.port
-    faults = getattr(args, "faults", None)
-    plan = parse_faults(faults, int(getattr(args, "fault_seed", 0) or 0)) if faults else None
-    if plan is not None and port is not None:
-        raise ConfigError("--faults are injected by the embedded mock: not with --port "
-                          "(give them to 'hapsim mock --faults' serving that port)",
-                          key="--faults")
-    tmp = tempfile.mkdtemp(prefix="hapsim-nd-")
-    report = os.path.join(tmp, "mock.json")
-    started: list = []      # the child, once started: a stop at any moment ends it first
-
-    def undo() -> None:
-        for proc in started:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-        shutil.rmtree(tmp, ignore_errors=True)
-    stop_token = at_stop(undo)
-    if port is None:
-        cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", args.scene, "--once",
-               "--amplitude", repr(a), "--rt-priority", str(int(args.rt_priority or 0)),
-               "--rate", repr(float(scene.rate_hz)), "--report", report]
-        if args.lockstep:
-            cmd.append("--lockstep")
-        if plan is not None:
-            cmd += ["--faults", plan.spec, "--fault-seed", str(plan.seed)]
-            if plan.has_vanish:
-                # the pty closes and a new one comes: the host opens the link kept at it
-                cmd += ["--link", os.path.join(tmp, "port")]
-        # in a session of its own, as the 1-D run's mock (hapsim.spawn.PtyChild.start): a
-        # Ctrl-C at the terminal reaches only the host, which stops the device itself
-        child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 env=child_env(), text=True, start_new_session=True)
-        started.append(child)
-        line = child.stdout.readline()
-        if not line.startswith("PORT "):
-            child.kill()
-            raise DeviceError("the embedded n-D mock did not start: "
-                              + (child.stderr.read() or line).strip()[-500:])
-        port = line.split()[1]
-    tr = SerialTransport(port, getattr(args, "baud", 115200))
-    joint = None
-    if scene.dimension == 2 and scene.device.kind == "pantograph":
-        # a joint-level pantograph (the Hapkit pantograph's firmware) says so in HELLO:
-        # then its joint angles and torques are turned into the Cartesian device's
-        from hapsim.emulated.pantograph_board import JointLevelTransport
-        tr = joint = JointLevelTransport(tr, scene)
-    gc_was = gc.isenabled()
-    rt = RealtimePriority(int(args.rt_priority or 0))
-    stop = StopFlag()
-    old = {}
-    if threading.current_thread() is threading.main_thread():
-        # Ctrl-C and SIGTERM end the record under way and report what was measured, as
-        # the 1-D run does (hapsim.pipeline.runner), instead of an exit 130 with nothing
-        for s in (signal.SIGINT, signal.SIGTERM):
-            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
-    try:
-        with Progress(2 * n + 1, "run (over the port)", unit="records") as bar:
-            # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
-            with rt:
-                gc.disable()
-                res = measure_felt_port(tr, scene, progress=bar.update, amplitude=a,
-                                        stop=stop)
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        if gc_was:
-            gc.enable()
-        tr.close()
-        note = None
-        if child is not None:
-            try:
-                _, err = child.communicate(timeout=5)
-                note = (err or "").strip().splitlines()[-1:] or None
-            except subprocess.TimeoutExpired:
-                child.kill()
-                child.communicate()
-        injected = None
-        try:
-            with open(report) as fh:
-                injected = json.load(fh).get("faults_injected")
-        except (OSError, ValueError):
-            pass
-        shutil.rmtree(tmp, ignore_errors=True)
-        done(stop_token)
-    info = {"port": port, "embedded": child is not None,
-            "mock": note[0] if note else None, "scheduling": rt.note,
-            "faults": None if plan is None else plan.spec,
-            "fault_seed": None if plan is None else plan.seed,
-            "faults_injected": injected}
-    if joint is not None and joint.joint_level:
-        from hapsim.emulated.pantograph_board import wire_term
-        h = joint.hello
-        res["torque_max"] = joint.torque_max
-        if not res.get("incomplete"):      # an incomplete record has no responses to weigh
-            res["wire"] = wire_term(scene, res, h.position_scale, h.force_scale)
-        info["device"] = ("Hapkit pantograph, joint level (HELLO device id "
-                          f"{h.device_id:#x}: angles {h.position_scale:.6g} rad/count, "
-                          f"torques {h.force_scale:.6g} N m/step; "
-                          f"{res.get('frames', 'full')} frames)")
-        info["clamped"] = joint.clamped
-    return res, info
 
 
 #: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
@@ -529,26 +377,7 @@ def _run_haply2(args) -> int:
 
 def _amplitude_and_scene(args, default: float):
     """``--amplitude`` (``default`` when absent) checked, and the scene with its port, at
-    ``--rate`` when given (the loop's rate overridden, as for a 1-D scene: the prediction,
-    the engine, the device and its mock all at that rate).
-
-    Raises
-    ------
-    ConfigError
-        A non-positive amplitude or rate; a scene without a port (file, key).
-    """
-    from hapsim.scene_nd import load_scene_nd
-    a = default if getattr(args, "amplitude", None) is None else args.amplitude
-    if not (math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
-    scene = load_scene_nd(args.scene)
-    rate = getattr(args, "rate_hz", None)
-    if rate is not None:
-        if not (math.isfinite(rate) and rate > 0):
-            raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
-        import dataclasses
-        scene = dataclasses.replace(scene, rate_hz=float(rate))
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
-    return a, scene
+    ``--rate`` when given (:func:`hapsim.pipeline.felt_run.scene_for_run`)."""
+    from hapsim.pipeline.felt_run import scene_for_run
+    return scene_for_run(args.scene, getattr(args, "amplitude", None),
+                         getattr(args, "rate_hz", None), default)
