@@ -1,4 +1,4 @@
-"""The base of the API's typed results (:mod:`hapsim.api`, :mod:`hapsim.api_nd`): a frozen
+"""The base of the API's typed results (:mod:`hapsim.api`, :mod:`hapsim.api`): a frozen
 dataclass whose fields are a command's ``--json`` keys."""
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import dataclasses
 import pytest
 
 from hapsim.api import RunReport
-from hapsim.api_nd import RunReportND
+from hapsim.api import RunReportND
 from hapsim.pipeline.report import verdict_summary
 
 #: Every sentence the 1-D measurement can end on, with the verdict it is (the writers:

@@ -63,9 +63,9 @@ def test_every_shipped_1d_scene_measures_or_says_so_before_running(path, shipped
 
 @pytest.mark.parametrize("path", _with_port(2) + _with_port(3), ids=lambda p: p.name)
 def test_every_shipped_nd_scene_measures_in_lockstep(path):
-    """2-D and 3-D: the lockstep run (``hapsim.api_nd.run_nd``, what ``hapsim run SCENE
+    """2-D and 3-D: the lockstep run (``hapsim.api.run_nd``, what ``hapsim run SCENE
     --lockstep`` does) gives a verdict with numbers: every stated direction within."""
-    from hapsim.api_nd import run_nd
+    from hapsim.api import run_nd
     r = run_nd(str(path))
     assert r.stable
     assert r.deviation is not None and all(

@@ -83,7 +83,7 @@ def test_an_asymmetric_five_bar_is_its_kinematics(g):
     assert np.max(np.abs(sc.device.mass - M)) < 1e-6 * np.max(np.abs(M))
     chk = check_scene_nd(sc)
     assert chk.render.felt_stiffness is not None
-    from hapsim.api_nd import run_nd
+    from hapsim.api import run_nd
     r = run_nd(sc)              # the lockstep run through these lengths' kinematics
     assert r.verdict == "within", r.reason
     # measured 2.3e-7 abs, 2.2e-6 rel (generic 2.5e-7, 2.2e-6), margin 2000

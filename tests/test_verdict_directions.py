@@ -379,7 +379,7 @@ def test_an_exact_linear_loop_is_within_its_roundoff():
     bound of 0: its lockstep run (``hapsim.run_nd``) at 1e-8 m and at 1e-3 m departs from
     the prediction by binary64 round-off alone, inside the stated round-off allowance
     (it was "differs" for its last bits), every statement "within"."""
-    from hapsim.api_nd import run_nd
+    from hapsim.api import run_nd
     from hapsim.scene_nd import parse_scene_nd
     done = 0
     for seed in range(8):

@@ -268,7 +268,7 @@ def test_measure_record_is_the_reports_measurement(tmp_path):
 def test_trace_axis_of_nd_plays():
     """An n-D play traces the axis its scene moves along: the membrane's listened z, the
     pantograph's listened y (its handle pressed along y), not always x."""
-    from hapsim.api_nd import load_scene_nd
+    from hapsim.api import load_scene_nd
     from hapsim.view.sources import ChunkSource
     assert ChunkSource._trace_axis(load_scene_nd(os.path.join(ROOT, "configs",
                                                               "membrane.yaml"))) == 2

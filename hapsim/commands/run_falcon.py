@@ -85,7 +85,7 @@ def run_falcon_command(args) -> int:
         raise ConfigError("--driver falcon drives a 3-D scene whose device is a delta "
                           "(configs/delta_sphere.yaml, delta_mesh.yaml)", file=scene.path,
                           key="device.kind")
-    from hapsim.api_nd import stable_prediction_nd
+    from hapsim.api import stable_prediction_nd
     pred = stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
     packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
     emulated = args.port is None

@@ -94,7 +94,7 @@ def run_nd(args) -> int:
     from hapsim.pipeline.felt_run import measure_scene_nd, scene_for_run
     a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
                              getattr(args, "rate_hz", None))
-    from hapsim.api_nd import stable_prediction_nd
+    from hapsim.api import stable_prediction_nd
     stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
     n = scene.dimension
     in_process = args.lockstep and not args.port

@@ -187,7 +187,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
 
 def verdict_summary(measured: dict) -> dict:
     """The run's verdict in the keys every dimension's ``run --json`` has at its top level
-    (a 2-D/3-D run's :class:`hapsim.api_nd.RunReportND`: ``verdict``, ``within``,
+    (a 2-D/3-D run's :class:`hapsim.api.RunReportND`: ``verdict``, ``within``,
     ``reason``), read from a 1-D measurement's own sentence.
 
     Parameters

@@ -1,0 +1,418 @@
+"""``check``: a scene's closed loop and what is felt at its port, in any dimension
+(a 1-D scene's felt pair, a 2-D or 3-D scene's felt matrices, or its modes without a
+port)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+from hapsim.api.common import draw_report, figure, load_scene, matrix_or_nan, n_d_scene
+from hapsim.results import Report
+
+
+# ---------------------------------------------------------------------------- check
+@dataclasses.dataclass(frozen=True)
+class CheckReport(Report):
+    """What ``hapsim check SCENE --json`` says: stability and the (k, b) felt at the port.
+
+    Attributes
+    ----------
+    scene : str
+        The scene's path.
+    verdict : {"stable", "unstable"}
+    rate_hz : float
+        Device rate [Hz].
+    device : dict or None
+        ``mass`` [kg], ``friction`` [N s/m], ``delay`` [samples], ``hold``, ``correction``.
+    calibrations : list of dict
+        The (K, B) calibrated for each ``target`` link.
+    stable, marginal : bool
+        Spectral radius < 1 (marginal: within 1e-9 of 1, counted stable).
+    spectral_radius : float
+        Of the closed-loop state matrix.
+    has_port : bool
+    period : float
+        T [s].
+    reference_mass : float
+        m [kg] the felt k, b are expressed with.
+    integrator : str
+    rendered : dict or None
+        The felt mode: ``k`` [N/m], ``b`` [N s/m], ``f0_hz``, ``damping_ratio``, ``z_re``,
+        ``z_im``, ``kind``, ``participation``.
+    modes : list of dict
+        Every mode, least damped first (same keys).
+    eigenvalues : list of [float, float]
+        Closed-loop eigenvalues z (real, imaginary).
+    state_names : list of str
+    calibrated : dict
+        ``{link: [K, B]}``.
+    static_k : float or None
+        Stiffness a slow push feels at the port [N/m] (virtual masses at rest;
+        :func:`hapsim.analysis.network.static_stiffness`).
+
+    Other attributes (not in ``--json``): ``analysis`` (the
+    :class:`~hapsim.analysis.scene_check.SceneCheck`), ``calibrated_scene`` (the scene
+    with its targets calibrated), ``calibrations_made`` (their calibration results).
+    """
+
+    scene: str
+    verdict: str
+    rate_hz: float
+    device: dict | None
+    calibrations: list
+    stable: bool
+    marginal: bool
+    spectral_radius: float
+    has_port: bool
+    period: float
+    reference_mass: float
+    integrator: str
+    rendered: dict | None
+    modes: list
+    eigenvalues: list
+    state_names: list
+    calibrated: dict
+    static_k: float | None
+
+    @property
+    def k(self) -> float:
+        """Felt stiffness k [N/m] (NaN when nothing rings at the port)."""
+        return figure(self.rendered, "k")
+
+    @property
+    def b(self) -> float:
+        """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
+        return figure(self.rendered, "b")
+
+    def plot(self, path_or_ax=None):
+        """The closed-loop poles in the z-plane, the felt pair marked
+        (:func:`hapsim.plots.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plots import plot_poles
+        return draw_report(self, plot_poles, path_or_ax)
+
+
+def check(scene):
+    """Check a scene: stability of its closed loop and what is felt at its port.
+
+    A scene of any dimension: a 2-D or 3-D one with a port gives its felt matrices
+    (:func:`hapsim.api.check_nd`, a :class:`CheckReportND`), one without a port its
+    modes (:func:`hapsim.api.modes_nd`, a :class:`ModesReportND`), as ``hapsim check``
+    does.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
+        A loaded scene, or the path of one.
+
+    Returns
+    -------
+    CheckReport, CheckReportND or ModesReportND
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene, or one too large to analyse.
+    UnrenderableTargetError
+        A ``target`` link the device cannot render (a negative verdict).
+
+    Notes
+    -----
+    The eigenvalues of the closed-loop state matrix of the temporary hybrid system
+    (Florens, Voda & Urma; docs/design.md, 'The THS'); the felt (k, b) are those of the
+    least damped pole pair seen at the port, ``k = m |s|^2``, ``b = -2 m Re(s)``.
+    """
+    from hapsim.analysis.network import check_size, static_stiffness
+    from hapsim.analysis.scene_check import check_scene
+    from hapsim.analysis.targets import apply_targets
+
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)               # in the dimension it declares
+    if getattr(scene, "dimension", 1) != 1:
+        return check_nd(scene) if scene.port is not None else modes_nd(scene)
+    scene, cals = apply_targets(scene)
+    check_size(scene)
+    chk = check_scene(scene)
+    dev = scene.device
+    d = {"scene": scene.path, "verdict": "stable" if chk.stable else "unstable",
+         "rate_hz": scene.rate_hz,
+         "device": None if dev is None else {
+             "mass": dev.mass, "friction": dev.friction, "delay": dev.delay,
+             "hold": dev.hold, "correction": getattr(dev, "correction", None)},
+         "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
+         "static_k": static_stiffness(scene) if chk.has_port else None}
+    return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckReportND(Report):
+    """What ``hapsim check SCENE --json`` says of a 2-D or 3-D scene felt through its
+    device: the MIMO closed loop's stability and the felt matrices.
+
+    Attributes
+    ----------
+    dof : int
+        n, the scene's dimension.
+    stable : bool
+        Spectral radius within 1e-9 of 1 or below (the MIMO characteristic).
+    verdict : {"stable", "unstable"}
+    spectral_radius : float
+    felt_stiffness, felt_damping : list of list of float or None
+        The n x n felt matrices k [N/m], b [N s/m] (None with fewer than n rendered
+        pairs; ``note`` says why).
+    principal_directions : list of list of float or None
+        Unit vectors (columns), least damped first.
+    direction_stiffness, direction_damping, direction_mass : list of float or None
+        The felt pair and the modal mass [kg] along each.
+    port_stiffness, port_damping : list of list of float
+        The port's links linearised at rest [N/m], [N s/m].
+    states : int
+    rendered_poles : list of [float, float]
+        The n rendered discrete poles z (real, imaginary).
+    stiffness_limits : list of dict or None
+        ``direction``, ``K_max`` [N/m] along the device's principal mass axes (when every
+        port link ends on a ground).
+    note : str or None
+    scene : str
+    device : dict
+        ``kind``, ``mass`` [kg], ``friction`` [N s/m], ``position`` [m], ``delay``,
+        ``hold``.
+
+    Other attribute (not in ``--json``): ``analysis``, the
+    :class:`~hapsim.analysis.scene_nd_check.SceneCheckND`; ``scene_nd``, the scene.
+    """
+
+    dof: int
+    stable: bool
+    verdict: str
+    spectral_radius: float
+    felt_stiffness: list | None
+    felt_damping: list | None
+    principal_directions: list | None
+    direction_stiffness: list | None
+    direction_damping: list | None
+    direction_mass: list | None
+    port_stiffness: list
+    port_damping: list
+    states: int
+    rendered_poles: list
+    stiffness_limits: list | None
+    note: str | None
+    scene: str
+    device: dict
+
+    @property
+    def k(self) -> np.ndarray:
+        """Felt stiffness matrix k [N/m], shape (n, n) (NaN without one)."""
+        return matrix_or_nan(self.felt_stiffness, self.dof)
+
+    @property
+    def b(self) -> np.ndarray:
+        """Felt damping matrix b [N s/m], shape (n, n) (NaN without one)."""
+        return matrix_or_nan(self.felt_damping, self.dof)
+
+    def plot(self, path=None, title: str | None = None):
+        """The scene over its device's workspace with the felt stiffness ellipses
+        (:func:`hapsim.plots.workspace.plot_scene_nd`; for a pantograph or a delta also the
+        ellipses felt at other configurations, :func:`felt_over_workspace`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write (its extension picks the format); None: only return it.
+        title : str, optional
+            Default: the scene's file name, device, rate and delay.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing, or a path that cannot be written (key ``plot``).
+        """
+        from hapsim.analysis.scene_nd_check import felt_over_workspace
+        from hapsim.plots import save_figure
+        from hapsim.plots.workspace import plot_scene_nd
+        scene = self.scene_nd
+        felt = felt_over_workspace(scene) if scene.device.joints is not None else None
+        if title is None:
+            note = "\nfelt at the handle only (a port link ends on a moving mass)" \
+                if felt is not None and felt.note else ""
+            title = (f"{os.path.basename(scene.path)}: {scene.device.kind}, "
+                     f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note)
+        fig = plot_scene_nd(scene, self.analysis, felt, title=title)
+        if path is not None:
+            save_figure(fig, os.fspath(path))
+        return fig
+
+
+def check_nd(scene, progress=None) -> CheckReportND:
+    """Check a 2-D or 3-D scene felt through its device: the MIMO loop and the felt
+    matrices.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str
+        A loaded n-D scene with a port and a device, or the path of one.
+    progress : callable, optional
+        ``progress(done, total)`` after each direction's stiffness limit
+        (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`).
+
+    Returns
+    -------
+    CheckReportND
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene, one without a port (its modes: :func:`modes_nd`), or one too
+        large to analyse.
+
+    Notes
+    -----
+    The eigenvalues of the closed loop's state matrix (the device's exact ZOH, the delay
+    line, the virtual masses, the links linearised at rest); the felt matrices solve the
+    inverse quadratic eigenvalue problem on the n rendered pairs (Lancaster 2007;
+    :mod:`hapsim.analysis.scene_nd_check`, docs/dimensions.md).
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    scene = n_d_scene(scene)
+    if scene.port is None:
+        raise ConfigError("an n-D scene is felt through its device: it needs a mass of "
+                          "kind 'port' and a device section (a scene without one: "
+                          "hapsim.modes_nd)", file=scene.path, key="masses")
+    chk = check_scene_nd(scene, progress=progress)
+    dev = scene.device
+    d = {**chk.to_dict(), "scene": scene.path,
+         "device": {"kind": dev.kind, "mass": dev.mass.tolist(),
+                    "friction": dev.friction.tolist(), "position": dev.position.tolist(),
+                    "delay": dev.delay, "hold": dev.hold}}
+    return CheckReportND.from_dict(d, analysis=chk, scene_nd=scene)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModesReportND(Report):
+    """What ``hapsim check SCENE --json`` says of a 2-D or 3-D scene without a port: the
+    modes of its centred scheme linearised at rest (:mod:`hapsim.analysis.modes_nd`).
+
+    Attributes
+    ----------
+    scene : str
+    dof : int
+        n, the scene's dimension.
+    masses : int
+        Moving masses.
+    states : int
+        Size of the one-step map.
+    stable : bool
+        Spectral radius within 1e-9 of 1 or below.
+    verdict : {"stable", "unstable"}
+        The same, as every ``check --json`` says it (1-D, n-D, with or without a port).
+    spectral_radius : float
+    modes : list of dict
+        ``frequency_hz`` [Hz], ``damping_ratio`` [-], ``axis`` (0..n-1: the one its shape
+        moves most along), lowest frequency first.
+
+    Other attribute (not in ``--json``): ``analysis``, the
+    :class:`~hapsim.analysis.modes_nd.SceneModesND` (with the mode shapes).
+    """
+
+    scene: str
+    dof: int
+    masses: int
+    states: int
+    stable: bool
+    verdict: str
+    spectral_radius: float
+    modes: list
+
+    @property
+    def frequencies(self) -> np.ndarray:
+        """Every mode's eigenfrequency [Hz], lowest first."""
+        return np.array([m["frequency_hz"] for m in self.modes], float)
+
+    def plot(self, path=None, title: str | None = None, count: int = 6):
+        """The lowest modes along the last axis over the rest positions
+        (:func:`hapsim.plots.workspace.plot_modes_nd`).
+
+        Parameters
+        ----------
+        path : str or path-like, optional
+            A figure file to write; None: only return it.
+        title : str, optional
+        count : int, optional
+            Panels (distinct eigenfrequencies).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing, or a path that cannot be written (key ``plot``).
+        """
+        from hapsim.plots import save_figure
+        from hapsim.plots.workspace import plot_modes_nd
+        scene = self.scene_nd
+        if title is None:
+            title = f"{os.path.basename(scene.path)}: modes at {scene.rate_hz:g} Hz"
+        fig = plot_modes_nd(scene, self.analysis, title=title, count=count)
+        if path is not None:
+            save_figure(fig, os.fspath(path))
+        return fig
+
+
+def modes_nd(scene) -> ModesReportND:
+    """The modes of a 2-D or 3-D scene on its own (grounds and a port held still).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str
+
+    Returns
+    -------
+    ModesReportND
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene, no moving mass, or too many states.
+
+    Notes
+    -----
+    The eigenvalues ``z`` of the centred scheme's one-step map: frequency
+    ``arg(z) / (2 pi T)``, damping ratio ``-Re(s)/|s|`` with ``s = ln(z) / T``
+    (:mod:`hapsim.analysis.modes_nd`; a square membrane's closed form is in its tests).
+    """
+    from hapsim.analysis.modes_nd import scene_modes_nd
+    scene = n_d_scene(scene)
+    res = scene_modes_nd(scene)
+    d = {"scene": scene.path, "dof": scene.dimension, "masses": len(res.names),
+         "states": res.states, "stable": res.stable,
+         "verdict": "stable" if res.stable else "unstable",
+         "spectral_radius": res.spectral_radius,
+         "modes": [md.to_dict() for md in res.modes]}
+    return ModesReportND.from_dict(d, analysis=res, scene_nd=scene)

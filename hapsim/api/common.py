@@ -1,0 +1,236 @@
+"""What the API's functions share: reading a scene in the dimension it declares, a
+scene refused by dimension, a report's figure, a matrix or a figure of a ``--json`` object,
+the digits a value is known to."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["load_scene", "load_scene_nd", "known_digits", "known_decimals", "draw_report",
+           "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
+
+
+def load_scene(path: str | os.PathLike):
+    """Read and validate a scene file, in the dimension its ``dimension`` key declares.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A YAML scene (docs/scenes.md; ``dimension: 2`` or ``3``: docs/dimensions.md).
+
+    Returns
+    -------
+    hapsim.scene.Scene or hapsim.scene_nd.SceneND
+        A :class:`~hapsim.scene.Scene` for a 1-D scene (no ``dimension`` key, or 1: as
+        before), a :class:`~hapsim.scene_nd.SceneND` for a 2-D or 3-D one, whose
+        ``dimension`` says which (the functions taking it: :func:`check_nd`,
+        :func:`modes_nd`, :func:`run_nd`).
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid file: the message names the file, the line and the key,
+        with the valid keys or choices.
+    """
+    from hapsim.scene_nd import scene_dimension
+    p = os.fspath(path)
+    if scene_dimension(p) != 1:
+        from hapsim.scene_nd import load_scene_nd as _load_nd
+        return _load_nd(p)
+    from hapsim.scene import load_scene as _load
+    return _load(p)
+
+
+def draw_report(report, draw, path_or_ax):
+    """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file.
+
+    Parameters
+    ----------
+    report : hapsim.results.Report
+    draw : callable
+        A :mod:`hapsim.plots` function, ``draw(report, ax=None) -> Figure``.
+    path_or_ax : str, path-like, matplotlib.axes.Axes or None
+        A figure file (checked first, written by :func:`hapsim.plots.save_figure`), axes
+        to draw into, or None (new axes).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+
+    Raises
+    ------
+    ConfigError
+        matplotlib missing, or a path that cannot be written (key ``plot``).
+    """
+    from hapsim.plots import check_figure_path, save_figure
+    if isinstance(path_or_ax, (str, os.PathLike)):
+        path = os.fspath(path_or_ax)
+        check_figure_path(path, "plot")
+        fig = draw(report)
+        save_figure(fig, path)
+        return fig
+    return draw(report, ax=path_or_ax)
+
+
+def one_d_scene(scene, what: str, why: str):
+    """A 1-D scene from a scene or a path, for a function that takes dimension 1 only.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or str or path-like
+    what : str
+        The function's name (``"family"``).
+    why : str
+        Why it takes dimension 1 only, and what to use instead.
+
+    Returns
+    -------
+    hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        A 2-D or 3-D scene (key ``dimension``); an unreadable or invalid file.
+    """
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)
+    if getattr(scene, "dimension", 1) != 1:
+        raise ConfigError(f"a {scene.dimension}-D scene: hapsim.{what} takes dimension 1 "
+                          f"({why})", file=getattr(scene, "path", None), key="dimension")
+    return scene
+
+
+def figure(d, key) -> float:
+    """A figure of a ``--json`` object as a float.
+
+    Parameters
+    ----------
+    d : dict or None
+    key : str
+
+    Returns
+    -------
+    float
+        ``d[key]``, NaN when ``d`` is None or the key is missing or None.
+    """
+    v = None if d is None else d.get(key)
+    return math.nan if v is None else float(v)
+
+
+def load_scene_nd(path: str | os.PathLike):
+    """Read and validate a 2-D or 3-D scene file (docs/dimensions.md).
+
+    Parameters
+    ----------
+    path : str or path-like
+        A YAML scene with ``dimension: 2`` or ``3``.
+
+    Returns
+    -------
+    hapsim.scene_nd.SceneND
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid file (file, line and key named), or a 1-D scene (read
+        it with :func:`load_scene`).
+    """
+    from hapsim.scene_nd import load_scene_nd as _load
+    return _load(os.fspath(path))
+
+
+def n_d_scene(scene):
+    """A 2-D or 3-D scene from a scene or a path (:func:`load_scene_nd`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str or path-like
+
+    Returns
+    -------
+    hapsim.scene_nd.SceneND
+
+    Raises
+    ------
+    ConfigError
+        An unreadable or invalid file (file, line, key).
+    """
+    if isinstance(scene, (str, os.PathLike)):
+        return load_scene_nd(scene)
+    return scene
+
+
+def matrix_list(x):
+    """A matrix as nested lists of floats for ``--json``.
+
+    Parameters
+    ----------
+    x : array_like, shape (n, n), or None
+
+    Returns
+    -------
+    list of list of float, or None
+    """
+    return None if x is None else np.asarray(x, float).tolist()
+
+
+def matrix_or_nan(m, n: int) -> np.ndarray:
+    """A report's matrix as an array, NaN where there is none.
+
+    Parameters
+    ----------
+    m : array_like, shape (n, n), or None
+    n : int
+        The dimension.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+    """
+    return np.full((n, n), math.nan) if m is None else np.array(m, float)
+
+
+def known_digits(value: float, error: float) -> float:
+    """``value`` rounded to the digits that are known: to the decade at or above
+    ``2 error`` (so the last digit shown is off by at most half a unit).
+
+    Parameters
+    ----------
+    value : float
+    error : float >= 0
+        Its uncertainty (0 or non-finite: ``value`` unchanged).
+
+    Returns
+    -------
+    float
+    """
+    if not (error > 0 and math.isfinite(error)):
+        return value
+    return round(value, known_decimals(error))
+
+
+def known_decimals(error: float) -> int:
+    """Decimals of a value known to ``error`` (> 0): ``-ceil(log10(2 error))``, >= 0.
+
+    Parameters
+    ----------
+    error : float
+        Half-width of what the value is known to (> 0, finite), in the value's unit.
+
+    Returns
+    -------
+    int
+        Decimals ``d`` to print: the unit of the last one, ``10**-d``, is at least the
+        interval ``2 error``, so every digit printed is known (0 when ``error > 0.05``).
+
+    Raises
+    ------
+    ValueError
+        ``error <= 0`` (``math.log10``).
+    """
+    return max(0, -math.ceil(math.log10(2.0 * error)))

@@ -1,0 +1,287 @@
+"""``identify``: a device's mass, friction and delay from its own response."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from hapsim.errors import ConfigError, HapsimError, IdentificationError
+from hapsim.option_values import check_values
+from hapsim.outputs import json_safe
+from hapsim.results import Report
+
+
+# ---------------------------------------------------------------------------- devices
+@dataclasses.dataclass(frozen=True)
+class IdentifyReport(Report):
+    """What ``hapsim identify --json`` says: a device's mass, friction, delay and hold.
+
+    Attributes
+    ----------
+    device : dict
+        The fit (:meth:`hapsim.analysis.device_fit.DeviceFit.to_dict`): each quantity with
+        its confidence interval, ``explained``, the residual.
+    loop : dict
+        The excitation run (samples, stop reason, late, clamped, ...).
+    hand : bool
+        Whether a hand held the handle (then mass and friction are the THS's).
+    out, plot : str or None
+        The files the command wrote (None from the API).
+    note : str or None
+
+    Other attributes: ``fit`` (the :class:`~hapsim.analysis.device_fit.DeviceFit`) and
+    ``record`` (the excitation's columns and loop facts). Its chart (``plot`` is the
+    command's file field here): :func:`hapsim.plots.plot_identify` ``(report)``.
+    """
+
+    _OPTIONAL = ("note",)
+
+    device: dict
+    loop: dict
+    hand: bool
+    out: str | None
+    plot: str | None
+    note: str | None = None
+
+    def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
+        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``;
+        ``driver``: the :class:`hapsim.drivers.base.Driver` whose protocol it names)."""
+        from hapsim.device_file import device_yaml
+        return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
+
+
+def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115200,
+             device=None, force_limit: float = 2.0, envelope: float = 0.01,
+             duration: float = 4.0, rate_hz: float = 1000.0, max_delay: int = 20,
+             lockstep: bool = False, seed: int = 0, hand: bool = False,
+             transport: str | None = None, progress: bool = False,
+             handle_signals: bool = False,
+             driver_options: dict | None = None,
+             mock_options: dict | None = None,
+             travel: float | None = None) -> IdentifyReport:
+    """Excite a device (or its mock) and identify its mass, friction, delay and hold.
+
+    Parameters
+    ----------
+    port : str, optional
+        Serial port of the device; None: the embedded mock of ``device``.
+    driver : str
+        Its protocol (:data:`hapsim.drivers.DRIVERS`).
+    baud : int
+    device : hapsim.scene.Device, optional
+        What the mock models (default m = 0.1 kg, b0 = 0.5 N s/m, d = 1).
+    force_limit : float
+        Largest force sent [N].
+    envelope : float
+        Position envelope [m] around the start; beyond it the excitation stops.
+    duration : float
+        Excitation length [s].
+    rate_hz : float
+        Loop rate [Hz].
+    max_delay : int
+        Largest device delay tried [samples].
+    lockstep : bool
+        Lockstep embedded mock (deterministic).
+    seed : int
+    hand : bool
+        A hand holds the handle (the result is the THS's mass and damping).
+    transport : {"inprocess", "pty", "serial"}, optional
+        ``"inprocess"``: the lockstep mock called directly (no child process); default
+        ``"serial"`` with a port, else the embedded mock on a pseudo-terminal.
+    progress : bool
+        A progress bar on stderr when it is a terminal.
+    handle_signals : bool
+        Stop cleanly on SIGINT/SIGTERM (a library leaves them to its caller by default).
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
+        one ``driver_options`` describe); default the driver's own.
+    travel : float, optional
+        The FireFader's travel between its end stops [m] (its datasheet's): a sweep between
+        the stops finds its position scale first (``loop.travel_sweep``; the
+        record's ``protocol_options`` carry it).
+
+    Returns
+    -------
+    IdentifyReport
+
+    Raises
+    ------
+    ConfigError
+        Bad values (keyed by the flag of ``hapsim identify``:
+        :data:`hapsim.option_values.API_OPTIONS`), an unknown driver.
+    IdentificationError
+        A record too short or that the fit cannot explain.
+    DeviceError, ProtocolError
+        As :func:`run`.
+
+    Notes
+    -----
+    :func:`hapsim.analysis.device_fit.fit_device`: least squares of the sampled plant
+    (mass, friction, Coulomb friction, delay, hold) on the recorded positions and forces.
+    """
+    from hapsim.drivers import DRIVERS
+    if driver not in DRIVERS:
+        raise ConfigError(f"unknown driver {driver!r}; valid: {', '.join(DRIVERS)}",
+                          key="driver")
+    check_values("identify", baud=baud, force_limit=force_limit, envelope=envelope,
+                 duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed)
+    fit, rec = excite_and_fit(port=port, baud=baud, device=device, force_limit=force_limit,
+                         envelope=envelope, duration=duration, rate_hz=rate_hz,
+                         max_delay=max_delay, lockstep=lockstep, seed=seed,
+                         driver=None if driver == "framed" else driver, progress=progress,
+                         transport=transport, handle_signals=handle_signals,
+                         driver_options=driver_options, mock_options=mock_options,
+                         travel=travel)
+    d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
+         "plot": None}
+    if hand:
+        d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
+    return IdentifyReport.from_dict(json_safe(d), fit=fit, record=rec)
+
+
+def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
+             duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
+             transport=None, progress=True, handle_signals=True, driver=None,
+             driver_options=None, mock_options=None, travel=None):
+    """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
+
+    Parameters
+    ----------
+    port, baud : str, int
+        Device port (None: a mock of ``device``) and baud rate.
+    device : hapsim.scene.Device, optional
+        What the mock models.
+    force_limit, envelope, duration, rate_hz, max_delay, lockstep, seed
+        As the options of the same names ([N], [m], [s], [Hz], [samples]).
+    transport : {"inprocess", "pty", "serial"}, optional
+        As :func:`hapsim.pipeline.identify_run.record`.
+    progress, handle_signals : bool
+        Progress bar on a terminal; clean stop on SIGINT/SIGTERM.
+    driver : str, optional
+        Device protocol (:data:`hapsim.drivers.DRIVERS`); default hapsim's own.
+    driver_options : dict, optional
+        The driver's device parameters (``device.protocol_options``: e.g. the FireFader's
+        ``full_scale``); the mass and friction found are in the units they set.
+    mock_options : dict, optional
+        The driver mock's hardware (:func:`hapsim.pipeline.identify_run.record`).
+    travel : float, optional
+        The FireFader's travel between its end stops [m]
+        (:func:`hapsim.pipeline.identify_run.record`).
+
+    Returns
+    -------
+    (DeviceFit, dict)
+        The fit and the record (:func:`hapsim.pipeline.identify_run.record`).
+
+    Raises
+    ------
+    ConfigError
+        Bad values; a record too short to fit (a safety stop at once).
+    DeviceError, ProtocolError
+        As ``hapsim run``.
+    """
+    from hapsim.analysis.device_fit import fit_device
+    from hapsim.pipeline.identify_run import record
+    check_values("identify", max_delay=max_delay)
+    import signal
+    import threading
+
+    from hapsim.host.loop_types import StopFlag
+    stop, old = None, {}
+    if handle_signals and threading.current_thread() is threading.main_thread():
+        # the handlers stay until the fit is made, as hapsim run's stay until its report:
+        # a SIGINT/SIGTERM while the mock reports or the fit runs (seconds on a loaded
+        # machine) asks for a stop already under way; with the default handler back
+        # there it killed the process (-15), the record and the fit lost
+        stop = StopFlag()
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
+    try:
+        rec = record(device, port=port, baud=baud, rate_hz=rate_hz, duration=duration,
+                     force_limit=force_limit, envelope=envelope, max_delay=max_delay, seed=seed,
+                     noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
+                     handle_signals=False, stop=stop, driver=driver,
+                     driver_options=driver_options, mock_options=mock_options,
+                     travel=travel)
+        # the whole record: every stretch of consecutive STATEs is fitted, each from its
+        # own initial state (a lost STATE is a gap, the mass and frictions are shared)
+        seq = rec["seq"]
+        a, b = 0, int(seq.size)
+        rec["loop"]["fitted_rows"] = [a, b]
+        rec["loop"]["gaps"] = int(np.count_nonzero(np.diff(seq) != 1))
+        acc = rec.get("account")
+        if acc is not None:
+            rec["loop"]["account"] = acc.to_dict()
+        try:
+            fit = fit_device(rec["position"], rec["force"], rec["period"],
+                             late=rec["late"], max_delay=max_delay + 1, applied=acc, seq=seq)
+        except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
+            if isinstance(exc, HapsimError):
+                raise
+            # the fit failed numerically: the record does not carry what the model needs
+            raise IdentificationError(f"the record cannot be identified: the fit failed "
+                                      f"({type(exc).__name__}: {exc}); "
+                                      f"{_record_summary(rec, a, b)}") from None
+        return fit, rec
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: float,
+                    driver):
+    """A driver's scale parameter from two identifications, without and with a known
+    mass clamped to the handle (``hapsim identify --added-mass``).
+
+    Parameters
+    ----------
+    bare, loaded : IdentifyReport
+        :func:`identify` without and with ``added_mass`` on the handle, through ``driver``.
+    added_mass : float > 0
+        The clamped mass [kg] (an inertia [kg m^2] for a rotary axis).
+    driver : hapsim.drivers.base.Driver
+        The driver both records were taken through: its ``scale_option`` (the FireFader's
+        ``full_scale``, the Haply board's ``resolution``) is the value assumed.
+
+    Returns
+    -------
+    (ForceScale, DeviceFit, Driver)
+        The gain and the parameter found (:func:`hapsim.analysis.calibration.
+        full_scale_from_added_mass`: ``full_scale`` is the parameter whatever it is),
+        ``bare``'s fit in the device's own units
+        (:func:`~hapsim.analysis.calibration.rescale_fit`) and the driver with the
+        parameter found (its :meth:`~hapsim.drivers.base.Driver.options` are what the
+        device file's ``protocol_options`` then hold).
+
+    Raises
+    ------
+    ConfigError
+        A driver whose protocol carries SI units (nothing to calibrate), a bad mass, or
+        the added mass not resolved by the two fits.
+    """
+    from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
+    from hapsim.drivers import get_driver
+    check_values("identify", added_mass=added_mass)
+    opt = driver.scale_option
+    if opt is None:
+        raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "
+                          f"calibrate (valid with --added-mass: the drivers firefader and "
+                          f"haply)", key="--added-mass")
+    sc = full_scale_from_added_mass(bare.fit.mass, loaded.fit.mass, added_mass,
+                                    float(getattr(driver, opt)))
+    fit = rescale_fit(bare.fit, sc, driver.scale_kind)
+    opts = driver.options()
+    opts[opt] = sc.full_scale
+    return sc, fit, get_driver(driver.name, **opts)
+
+
+def _record_summary(rec, a: int, b: int) -> str:
+    """One phrase on a record: rows fitted, late ticks, the device's delay, its stop."""
+    loop = rec["loop"]
+    dd = loop.get("device_delay")
+    return (f"rows {a}..{b}, {int(np.count_nonzero(rec['late'][a:b]))} late, device delay "
+            f"{'not shown' if dd is None or dd < 0 else dd}, stop: {loop['stop_reason']}")

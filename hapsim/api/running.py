@@ -1,0 +1,497 @@
+"""``run``: the loop closed on a device or its mock and what is felt measured, in any
+dimension (a 1-D scene's felt pair, :mod:`hapsim.pipeline.runner`; a 2-D or 3-D scene's
+felt matrices, :mod:`hapsim.pipeline.felt_run`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+from hapsim.option_values import check_values
+from hapsim.outputs import json_safe
+from hapsim.api.common import draw_report, figure, load_scene, matrix_list, matrix_or_nan, n_d_scene
+from hapsim.results import Report
+
+
+# ---------------------------------------------------------------------------- run
+@dataclasses.dataclass(frozen=True)
+class RunReport(Report):
+    """What ``hapsim run SCENE --json`` says: the loop closed, what was felt, how it ran.
+
+    Attributes
+    ----------
+    scene : str
+    target : dict or None
+        The first target link's (k, b) and renderability (``targets``: all of them).
+    targets : list of dict
+    virtual : dict
+        The (K, B) simulated.
+    predicted : dict
+        ``k`` [N/m], ``b`` [N s/m], ``f0_hz``, ``damping_ratio``, ``stable``, ...
+    measured : dict
+        The same figures identified from the logged free response, with their
+        uncertainty and the verdict (``error`` when nothing could be measured).
+    loop : dict
+        Rate, ticks, late, missed, turnaround, stop reason, the device's protocol, ...
+    telemetry, osc, sound : dict or None
+    error : dict or None
+        ``type`` and ``message`` of the device error that ended the run (the device lost
+        beyond recovery); None when it ran to its end.
+    advice : dict or None
+        What ``auto`` chose (rate and integrator).
+    verdict : str
+        ``"within"``, ``"differs"`` or ``"not measurable"``: ``measured``'s verdict in the
+        word a 2-D/3-D run's report has at its top level (:class:`RunReportND`;
+        :func:`hapsim.pipeline.report.verdict_summary`).
+    within : bool or None
+        Measured = predicted within the stated uncertainty (None: not measurable).
+    reason : str
+        The verdict in words (``measured``'s sentence).
+
+    Other attributes: ``exit_code``, what ``hapsim run`` exits with (0, or 1 after a
+    safety stop or a device fault).
+    """
+
+    _OPTIONAL = ("error", "advice")
+
+    scene: str
+    target: dict | None
+    targets: list
+    virtual: dict
+    predicted: dict
+    measured: dict
+    loop: dict
+    telemetry: dict | None
+    osc: dict | None
+    sound: dict | None
+    error: dict | None = None
+    advice: dict | None = None
+    verdict: str | None = None
+    within: bool | None = None
+    reason: str | None = None
+
+    @property
+    def k(self) -> float:
+        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
+        return figure(self.measured, "k")
+
+    @property
+    def b(self) -> float:
+        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
+        return figure(self.measured, "b")
+
+    @property
+    def ok(self) -> bool:
+        """Ran to the end (or was stopped by a signal): what exit code 0 means."""
+        return self.exit_code == 0
+
+    def plot(self, path_or_ax=None):
+        """The felt (k, b) of the run: simulated, predicted, measured (with its stated
+        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plots.plot_felt`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plots import plot_felt
+        return draw_report(self, plot_felt, path_or_ax)
+
+    def text(self) -> str:
+        """The human report ``hapsim run`` prints (:func:`hapsim.pipeline.report.format_report`).
+
+        Returns
+        -------
+        str
+            Several aligned lines, no trailing newline.
+        """
+        from hapsim.pipeline.report import format_report
+        return format_report(self.to_dict())
+
+
+#: RunOptions fields that are the run's own bookkeeping, not options of :func:`run`.
+_RUN_INTERNAL = ("plan", "embedded")
+
+
+def run_options() -> tuple:
+    """The options :func:`run` takes: the fields of
+    :class:`hapsim.pipeline.options.RunOptions` (what ``hapsim run``'s options become).
+
+    Returns
+    -------
+    tuple of str
+    """
+    from hapsim.pipeline.options import RunOptions
+    return tuple(f.name for f in dataclasses.fields(RunOptions)
+                 if f.name not in _RUN_INTERNAL)
+
+
+def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
+    """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
+
+    A scene of any dimension: a 2-D or 3-D one measures its felt matrices
+    (:func:`hapsim.api.run_scene_nd`, a :class:`RunReportND`), a 1-D one its felt pair
+    (below).
+
+    ``hapsim run`` is this function with the options of its command line
+    (:meth:`hapsim.pipeline.options.RunOptions.from_args`); it prints the result.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or str
+    options : hapsim.pipeline.options.RunOptions, optional
+        All the options at once (default: ``RunOptions(handle_signals=False)``: a library
+        leaves SIGINT to its caller).
+    amplitude : float, optional
+        A 2-D or 3-D scene's excitation [m] (default 1e-8); a 1-D scene refuses it (its
+        hand's start is the scene's ``excitation``).
+    **changes
+        Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
+        embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
+        mock), ``driver`` (default: the scene's ``device.protocol``), ``telemetry`` (a
+        file), ``transport`` (``"inprocess"``: the lockstep mock called directly, no child
+        process), ``handle_signals``, ...
+
+    Returns
+    -------
+    RunReport or RunReportND
+        Also when the run ended on a safety stop or a device fault (``ok`` False; a device
+        lost beyond recovery: ``error``). A 2-D/3-D scene's :class:`RunReportND`.
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene or option (an unknown option names the valid ones).
+    UnstableConfigError
+        An unstable loop without ``allow_unstable``, an unrenderable target.
+    DeviceError, ProtocolError
+        The port failed or the device was lost beyond recovery before anything ran.
+
+    Notes
+    -----
+    The measured (k, b) are identified from the free response by the matrix pencil
+    method (Hua & Sarkar 1990) beside the THS prediction (Florens, Voda & Urma).
+    """
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.errors import DeviceError, ProtocolError
+
+    valid = run_options()
+    unknown = sorted(set(changes) - set(valid))
+    if unknown:
+        raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
+                          f"{', '.join(valid)}", key=unknown[0])
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load_scene(scene)               # in the dimension it declares
+    opts = dataclasses.replace(options if options is not None
+                               else RunOptions(handle_signals=False), **changes)
+    if getattr(scene, "dimension", 1) != 1:
+        return run_scene_nd(scene, opts, amplitude)
+    if amplitude is not None:
+        raise ConfigError("a 1-D scene's hand starts where its excitation says (x0, v0): "
+                          "amplitude is for a 2-D or 3-D scene", key="amplitude")
+    driver = opts.driver
+    if driver is None and scene.device is not None:
+        driver = scene.device.protocol
+    try:
+        rep = run_scene(scene, dataclasses.replace(opts, driver=driver))
+    except (DeviceError, ProtocolError) as exc:
+        rep = getattr(exc, "report", None)
+        if rep is None:
+            raise
+    code = rep.pop("exit_code")
+    return RunReport.from_dict(json_safe(rep), exit_code=code)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunReportND(Report):
+    """What ``hapsim run SCENE --json`` says of a 2-D or 3-D scene: the felt matrices
+    measured from free responses beside the prediction, and the linearisation bound.
+
+    Attributes
+    ----------
+    scene : str
+    dof : int
+    lockstep : bool
+        In-process lockstep (True) or over a port.
+    stable : bool
+        The check's verdict.
+    predicted, measured : dict
+        ``felt_stiffness`` [N/m], ``felt_damping`` [N s/m] (n x n lists or None),
+        ``rendered_poles`` ([re, im] of z); ``measured`` also ``residual`` and ``rank``
+        of the fit.
+    deviation : dict or None
+        ``felt_stiffness``, ``felt_damping``: the largest |measured - predicted| over the
+        largest predicted entry.
+    linearisation_bound : dict
+        :meth:`hapsim.analysis.linearisation_nd.LinearisationBound.to_dict`.
+    records, samples, order : int
+        Free responses, samples each, the fit's order.
+    verdict : str
+        ``"within"``, ``"differs"`` or ``"not measurable"``: the deviation against the
+        linearisation bound (:func:`hapsim.analysis.felt_matrices.felt_verdict`; the framed
+        protocol carries binary64 positions and forces, so the wire adds no term).
+    within : bool or None
+        The deviation is inside the bound (None: not measurable).
+    reason : str
+        The verdict in words, as ``hapsim run`` prints it.
+    statements : list of dict
+        What was stated, per quantity (the felt stiffness and damping matrices as a
+        whole) and per principal direction of the prediction (the felt stiffness and
+        damping along it): each ``quantity``, ``direction`` (unit vector, None for a
+        matrix), ``name``, ``predicted`` and ``measured`` (along the direction [N/m] or
+        [N s/m]; None for a matrix), ``deviation``, ``linearisation``, ``wire``,
+        ``uncertainty`` [-], ``verdict``, ``within``, ``reason``
+        (:func:`hapsim.analysis.felt_matrices.felt_verdict`). ``verdict`` is their conjunction.
+    not_stated : list of str
+        The names of the statements that were not measurable.
+    port, late, watchdog, delay, lost
+        Over a port only: the port (with the embedded mock's ``faults``, ``fault_seed``
+        and ``faults_injected``), the late ticks, watchdog trips, the device delay per
+        record used and the device losses (the port failed).
+    rows, counts, bad_frames, incomplete
+        Over a port only: rows used per start (the record from rest first); what the
+        records met (:func:`hapsim.pipeline.run_nd.measure_felt_port`: STATEs missed,
+        duplicates, reordered, records cut short, device resets, losses and recoveries,
+        CONFIGs sent); bad frames the host's decoder dropped; why nothing was fitted
+        (None when the matrices were measured).
+    stop : str or None
+        Over a port only: what ended the measurement, ``"end"`` or, when a stop was
+        requested, ``"signal SIGINT"`` / ``"signal SIGTERM"`` (Ctrl-C, a service manager):
+        what was recorded by then is reported, as the 1-D run's ``loop.stop_reason``.
+    """
+
+    _OPTIONAL = ("port", "late", "watchdog", "delay", "lost", "rows", "counts",
+                 "bad_frames", "incomplete", "stop")
+
+    scene: str
+    dof: int
+    lockstep: bool
+    stable: bool
+    predicted: dict
+    measured: dict
+    deviation: dict | None
+    linearisation_bound: dict
+    records: int
+    samples: int
+    order: int
+    verdict: str
+    within: bool | None
+    reason: str
+    statements: Any = None
+    not_stated: Any = None
+    port: dict | None = None
+    late: Any = None
+    watchdog: Any = None
+    delay: Any = None
+    lost: Any = None
+    rows: Any = None
+    counts: Any = None
+    bad_frames: Any = None
+    incomplete: Any = None
+    stop: Any = None
+
+    @property
+    def k(self) -> np.ndarray:
+        """Measured felt stiffness matrix [N/m], shape (n, n) (NaN without one)."""
+        return matrix_or_nan(self.measured.get("felt_stiffness"), self.dof)
+
+    @property
+    def b(self) -> np.ndarray:
+        """Measured felt damping matrix [N s/m], shape (n, n) (NaN without one)."""
+        return matrix_or_nan(self.measured.get("felt_damping"), self.dof)
+
+
+def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = None
+                  ) -> RunReportND:
+    """The report of an n-D measurement (what ``hapsim run --json`` prints).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+    res : dict
+        :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
+        :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        ``wire``, the readings' and torques' term of a quantised device such as the
+        emulated Hapkit pantograph, :func:`hapsim.emulated.pantograph_board.wire_term`).
+    lockstep : bool
+        Measured in-process.
+    port_info : dict, optional
+        Over a port: ``port``, ``embedded``, ``mock``.
+
+    Returns
+    -------
+    RunReportND
+    """
+    from hapsim.analysis.felt_matrices import felt_directions, felt_verdict
+    fit, chk = res["measured"], res["predicted"]
+    if port_info is not None:
+        from hapsim.pipeline.run_nd import verdict_nd
+        v = verdict_nd(res)
+    else:
+        v = felt_verdict(res["deviation"], res["bound"], res.get("wire"),
+                         directions=felt_directions(fit, chk))
+    d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
+         "stable": bool(chk.stable),
+         "predicted": {"felt_stiffness": matrix_list(chk.render.felt_stiffness),
+                       "felt_damping": matrix_list(chk.render.felt_damping),
+                       "rendered_poles": [[float(z.real), float(z.imag)]
+                                          for z in chk.render.rendered_poles]},
+         "measured": {"felt_stiffness": matrix_list(fit["felt_stiffness"]),
+                      "felt_damping": matrix_list(fit["felt_damping"]),
+                      "rendered_poles": [[float(z.real), float(z.imag)]
+                                         for z in fit["rendered_poles"]],
+                      "residual": fit["residual"], "rank": fit["rank"]},
+         "deviation": res["deviation"], "linearisation_bound": res["bound"].to_dict(),
+         "records": res["records"], "samples": res["samples"], "order": res["order"],
+         "verdict": v["verdict"], "within": v["within"], "reason": v["reason"],
+         "statements": v["statements"], "not_stated": v["not_stated"]}
+    if port_info is not None:
+        d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
+                 delay=res["delay"], lost=res["lost"], rows=res["rows"],
+                 counts=res["counts"], bad_frames=res["bad_frames"],
+                 incomplete=res["incomplete"], stop=res.get("stop", "end"))
+    if res.get("wire") is not None:
+        d.update(wire=res["wire"], uncertainty=v["uncertainty"])
+    return RunReportND.from_dict(d)
+
+
+def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
+           ) -> RunReportND:
+    """Measure a 2-D or 3-D scene's felt matrices in lockstep, in-process
+    (``hapsim run SCENE --lockstep``).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str
+        An n-D scene with a port and a device, or its path.
+    amplitude : float, optional
+        The excitation ``a`` [m] (> 0): the handle displaced by ``a`` along each axis,
+        then moving along each.
+    allow_unstable : bool, optional
+        Run an unstable loop anyway.
+
+    Returns
+    -------
+    RunReportND
+
+    Raises
+    ------
+    ConfigError
+        An invalid scene or amplitude, a scene without a port.
+    UnstableConfigError
+        The check finds the loop unstable and ``allow_unstable`` is False.
+
+    Notes
+    -----
+    2n free responses of the loop (engine, exact ZOH device of the Cartesian mass at rest,
+    delay line) minus the response from rest; the felt matrices by vector linear
+    prediction and the inverse quadratic eigenvalue problem
+    (:mod:`hapsim.analysis.identify_nd`), against :func:`check_nd`'s prediction; the
+    first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation_nd`).
+    """
+    from hapsim.lockstep_nd import measure_felt_lockstep
+    check_values("run_nd", amplitude=amplitude)
+    scene = n_d_scene(scene)
+    a = float(amplitude)
+    if scene.port is None:
+        raise ConfigError("a run needs a mass of kind 'port' and a device section",
+                          file=scene.path, key="masses")
+    stable_prediction_nd(scene, allow_unstable)
+    return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
+
+
+def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
+    """:func:`hapsim.api.run` of a 2-D or 3-D scene: its felt matrices measured in
+    lockstep in-process, or over a port (``options.port``, or an embedded n-D mock in real
+    time): :func:`hapsim.pipeline.felt_run.measure_scene_nd`.
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND or str
+        A scene with a port and a device, or its path (the embedded mock loads this file).
+    options : hapsim.pipeline.options.RunOptions
+        ``port``, ``baud``, ``lockstep``, ``allow_unstable``, ``rt_priority``,
+        ``rate_hz``, ``faults``, ``fault_seed``, ``stop``, ``handle_signals``; any other
+        option set is refused by name.
+    amplitude : float, optional
+        The excitation ``a`` [m] (default
+        :data:`hapsim.pipeline.felt_run.DEFAULT_AMPLITUDE`, 1e-8).
+
+    Returns
+    -------
+    RunReportND
+        Also when a stop was requested (``stop`` names it; "not measurable" unless every
+        start was recorded).
+
+    Raises
+    ------
+    ConfigError
+        An option not taken (``driver`` included: the 2DIY's and the Falcon's runs are
+        ``hapsim run``'s), a bad value, a scene without a port.
+    UnstableConfigError
+        The check finds the loop unstable and ``allow_unstable`` is false.
+    DeviceError, ProtocolError
+        The device failed (no HELLO, a FAULT, lost beyond recovery).
+    """
+    from hapsim.pipeline.felt_run import measure_scene_nd, refuse_options, scene_for_run
+    opts = options.check_values()
+    if opts.driver is not None:
+        raise ConfigError(f"driver {opts.driver!r} on a 2-D or 3-D scene runs from the "
+                          f"command line only (hapsim run SCENE --driver {opts.driver})",
+                          key="driver")
+    refuse_options(opts, "field")
+    a, scene = scene_for_run(scene, amplitude, opts.rate_hz)
+    stable_prediction_nd(scene, opts.allow_unstable)
+    res, info = measure_scene_nd(scene, opts, a, by="field")
+    return run_report_nd(scene, res, bool(opts.lockstep and not opts.port), info)
+
+
+def stable_prediction_nd(scene, allow_unstable: bool = False,
+                         override: str = "allow_unstable"):
+    """The scene's check (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`), refused
+    when its closed loop is unstable unless ``allow_unstable`` (every n-D run: the API's,
+    ``hapsim run``'s and the Falcon's).
+
+    Parameters
+    ----------
+    scene : hapsim.scene_nd.SceneND
+        A scene with a port and a device.
+    allow_unstable : bool, optional
+        Return the check of an unstable loop instead of refusing it.
+    override : str, optional
+        How the caller's user says ``allow_unstable`` (named in the refusal).
+
+    Returns
+    -------
+    hapsim.analysis.scene_nd_check.SceneCheckND
+
+    Raises
+    ------
+    UnstableConfigError
+        The closed loop's spectral radius is 1 or more and ``allow_unstable`` is false.
+    """
+    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.errors import UnstableConfigError
+    pred = check_scene_nd(scene)
+    if not pred.stable and not allow_unstable:
+        raise UnstableConfigError(
+            f"{scene.path}: the closed loop is unstable (spectral radius "
+            f"{pred.render.spectral_radius:.9f}); hapsim check for the felt matrices, "
+            f"{override} to run it anyway")
+    return pred
