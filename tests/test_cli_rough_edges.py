@@ -408,16 +408,22 @@ def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv,
     assert "Traceback" not in msg and where in msg and fragment in msg, msg
 
 
-@pytest.mark.parametrize("command", ["family", "advise"])
+@pytest.mark.parametrize("argv", [["family"], ["advise"], ["identify", "--lockstep",
+                                                             "--mock-scene"],
+                                  ["zwidth", "--lockstep", "--scene"]])
 @pytest.mark.parametrize("name, line", [("pantograph_wall.yaml", 8), ("delta_mesh.yaml", 7),
                                         ("delta_sphere.yaml", 5)])
-def test_nd_scene_to_a_1d_command_names_its_dimension(capsys, command, name, line):
-    """A 2-D or 3-D scene given to a command that takes 1-D scenes: exit 2 at the line of
-    ``dimension``, naming the commands that take it. The scenes with ``planes`` got
+def test_nd_scene_to_a_1d_command_names_its_dimension_and_reason(capsys, argv, name, line):
+    """A 2-D or 3-D scene given to a command that takes 1-D scenes (issue 30 item 2:
+    refused by name with the reason): exit 2 at the line of ``dimension``, the command
+    named with its own reason and what to use instead
+    (:data:`hapsim.commands.dimension.ONE_D_ONLY`). The scenes with ``planes`` got
     "unknown key 'planes'" (the keys were checked before the dimension)."""
-    assert main([command, str(ROOT / "configs" / name)]) == 2
+    from hapsim.commands.dimension import ONE_D_ONLY
+    assert main([*argv, str(ROOT / "configs" / name)]) == 2
     err = capsys.readouterr().err
-    assert f"{name}:{line}: dimension: a " in err and "`run` and `mock` take it" in err, err
+    assert f"{name}:{line}: dimension: a " in err, err
+    assert f"hapsim {argv[0]} takes dimension 1: {ONE_D_ONLY[argv[0]]}" in err, err
     assert "unknown key" not in err
 
 

@@ -68,9 +68,9 @@ def run(args) -> int:
         Bad scene file, tolerance or margin.
     """
     from hapsim.bench.advise import advise_scene
-    from hapsim.scene import load_scene
+    from hapsim.commands.dimension import load_one_d_scene
 
-    scene = load_scene(args.scene)
+    scene = load_one_d_scene(args.scene, "advise")
     adv = advise_scene(scene, args.tolerance, margin=args.margin)
     if args.json:
         d = adv.to_dict()

@@ -186,12 +186,12 @@ def run(args: argparse.Namespace) -> int:
         Bad scene or option (exit 2 via :mod:`hapsim.cli`).
     """
     from hapsim.api import family
-    from hapsim.scene import load_scene
+    from hapsim.commands.dimension import load_one_d_scene
 
     if args.plot:
         from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
-    scene = load_scene(args.scene)
+    scene = load_one_d_scene(args.scene, "family")
     if args.correction is not None:
         import dataclasses
         corr = parse_correction(args.correction)

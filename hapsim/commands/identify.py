@@ -203,8 +203,8 @@ def run(args) -> int:
         check_output_path(args.out, "--out")
     device = None
     if args.mock_scene:
-        from hapsim.scene import load_scene
-        device = load_scene(args.mock_scene).device
+        from hapsim.commands.dimension import load_one_d_scene
+        device = load_one_d_scene(args.mock_scene, "identify", "--mock-scene").device
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")

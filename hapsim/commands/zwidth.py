@@ -97,13 +97,14 @@ def register(sub) -> None:
 
 
 def _base(args):
-    from hapsim.scene import load_scene, parse_scene
+    from hapsim.scene import parse_scene
+    from hapsim.commands.dimension import load_one_d_scene
     if args.scene is None and args.firmware:      # the board models this device
         from hapsim.emulated import hapkit_board as board
         args.scene = board.shipped_scene("hapkit.yaml")
     if args.scene is None:
         return parse_scene(DEFAULT_DEVICE, "<default device>")
-    sc = load_scene(args.scene)
+    sc = load_one_d_scene(args.scene, "zwidth", "--scene")
     if sc.port is None or sc.device is None:
         raise ConfigError("zwidth needs a scene with a port and a device section",
                           file=sc.path, key="device")

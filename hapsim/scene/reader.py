@@ -219,9 +219,10 @@ def parse_scene(text: str, path: str = "<string>",
         except Invalid as bad:
             raise ctx.error(bad.message, ctx.line_of(doc, "dimension"), "dimension") from None
         if doc["dimension"] != 1:
-            raise ctx.error(f"a {doc['dimension']}-D scene: `hapsim check`, `simulate`, "
-                            "`run` and `mock` take it (hapsim.load_scene_nd); this command "
-                            "and hapsim.load_scene take dimension 1",
+            raise ctx.error(f"a {doc['dimension']}-D scene: the 1-D reader "
+                            "(hapsim.scene.load_scene) takes dimension 1; hapsim.load_scene "
+                            "reads every dimension, as `hapsim check`, `simulate`, `run`, "
+                            "`play` and `mock` do",
                             ctx.line_of(doc, "dimension"), "dimension")
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
     masses = _read_masses(ctx, doc)

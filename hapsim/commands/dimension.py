@@ -1,0 +1,70 @@
+"""What the commands that take a 1-D scene only say of a 2-D or 3-D one: each its reason
+and what to use instead (issue 30 item 2: every capability in every dimension, or refused
+by name with the reason).
+
+``check``, ``simulate``, ``run``, ``play``, ``mock --scene`` and ``stability --scene`` take
+a scene of any dimension (:func:`hapsim.load_scene` reads every dimension); the commands
+below read it with the 1-D reader, whose refusal (at the file's ``dimension`` line) is
+given their reason here.
+"""
+
+from __future__ import annotations
+
+import os
+
+from hapsim.errors import ConfigError
+
+__all__ = ["ONE_D_ONLY", "load_one_d_scene"]
+
+#: Why each command takes dimension 1 only, and what a 2-D or 3-D scene has instead.
+ONE_D_ONLY = {
+    "family": "a family of 2-D or 3-D THS (the hand as stiffness and damping matrices) is "
+              "not built yet; 'hapsim check SCENE' gives the felt matrices of its one hand",
+    "advise": "its advice (rate, integrator, correction) is chosen on the 1-D felt pair; "
+              "'hapsim check SCENE' gives a 2-D or 3-D loop's stiffness limits along its "
+              "principal axes, 'hapsim stability --scene SCENE --grid N' their map",
+    "identify": "identifying a 2-D or 3-D device's mass and friction matrices is not built "
+                "yet; 'hapsim run SCENE' measures its felt matrices",
+    "zwidth": "the Z-width of a 2-D or 3-D device (a region of stiffness and damping "
+              "matrices) is not built yet; 'hapsim stability --scene SCENE' gives its "
+              "stiffness limits per direction",
+}
+
+
+def load_one_d_scene(path: str | os.PathLike, command: str, flag: str | None = None):
+    """The 1-D scene at ``path`` for ``command``; a 2-D or 3-D scene refused with the
+    command's reason (:data:`ONE_D_ONLY`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The scene file.
+    command : str
+        A key of :data:`ONE_D_ONLY`.
+    flag : str, optional
+        The option that named the file (``--mock-scene``), said in the refusal.
+
+    Returns
+    -------
+    hapsim.scene.Scene
+
+    Raises
+    ------
+    ConfigError
+        A 2-D or 3-D scene (its file, the ``dimension`` line, key ``dimension``), or any
+        error of the 1-D reader (file, line, key).
+    """
+    from hapsim.scene import load_scene
+    try:
+        return load_scene(path)
+    except ConfigError as exc:
+        if exc.key != "dimension":
+            raise
+        from hapsim.scene_nd import scene_dimension
+        n = scene_dimension(path)
+        if n == 1:
+            raise                      # a bad dimension value: the reader's own message
+        given = f" ({flag})" if flag else ""
+        raise ConfigError(f"a {n}-D scene{given}: hapsim {command} takes dimension 1: "
+                          f"{ONE_D_ONLY[command]}", file=exc.file, line=exc.line,
+                          key="dimension") from None
