@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from hapsim.cli import build_parser, main
-from hapsim.commands.mock_nd import FIRMWARE_TAKES, TAKES, TICKS
+from hapsim.commands.mock import FIRMWARE_TAKES, TAKES, TICKS
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 SCENES = [CONFIGS / "pantograph_wall.yaml"]
@@ -76,9 +76,9 @@ def test_a_tick_not_taken_is_refused(tick, capsys, monkeypatch):
 
 
 def test_the_refusal_reads_the_namespace_not_a_list():
-    """:func:`hapsim.commands.mock_nd.refuse_untaken` refuses any destination outside
+    """:func:`hapsim.commands.mock.refuse_untaken` refuses any destination outside
     :data:`TAKES` that was given, and passes the taken ones and the ones not given."""
-    from hapsim.commands.mock_nd import refuse_untaken
+    from hapsim.commands.mock import refuse_untaken
     from hapsim.errors import ConfigError
     given = {d: 1 for d in TAKES} | {"tick": "python", "func": print, "command": "mock",
                                       "seed": None, "firmware": False}
@@ -92,7 +92,7 @@ def test_the_refusal_reads_the_namespace_not_a_list():
                          ids=lambda o: str(o))
 def test_an_option_the_emulated_pantograph_does_not_take_is_refused(flag, dest, value, capsys):
     """``--firmware`` on a 2-D scene selects the emulated Hapkit pantograph
-    (:func:`hapsim.commands.mock_nd.run_pantograph_firmware`): any other option given
+    (:func:`hapsim.commands.mock.run_pantograph_firmware`): any other option given
     exits 2, named, before anything is built or opened."""
     argv = ["mock", "--scene", str(SCENES[0]), "--firmware", "--lockstep", flag]
     argv += [] if value is None else [value]
@@ -105,7 +105,7 @@ def test_options_at_their_defaults_are_not_refused():
     """``hapsim mock --scene <2-D scene>`` with nothing else, and with ``--firmware
     --lockstep``, is not refused: an option at its parser default (a new option's 0.0,
     say) was not given (a ``--spin-us`` default of 0.0 once made every 2-D mock refuse)."""
-    from hapsim.commands.mock_nd import refuse_untaken, refuse_untaken_firmware
+    from hapsim.commands.mock import refuse_untaken, refuse_untaken_firmware
     parser = build_parser("mock")
     args = parser.parse_args(["mock", "--scene", str(SCENES[0])])
     refuse_untaken(args)

@@ -143,7 +143,7 @@ def test_cli_mock_and_run_over_a_pty(capsys):
     ap = argparse.ArgumentParser()
     mock_cmd.register(ap.add_subparsers())
     args = ap.parse_args(["mock", "--scene", scene, "--once"])
-    from hapsim.commands.mock_nd import run_mock_nd
+    from hapsim.commands.mock import run_mock_nd
     th = threading.Thread(target=run_mock_nd, args=(args, new_pty), daemon=True)
     th.start()
     assert made.wait(10)

@@ -112,7 +112,7 @@ class CheckReport(Report):
         return draw_report(self, plot_poles, path_or_ax)
 
 
-def check(scene):
+def check(scene, progress=None):
     """Check a scene: stability of its closed loop and what is felt at its port.
 
     A scene of any dimension: a 2-D or 3-D one with a port gives its felt matrices
@@ -124,6 +124,9 @@ def check(scene):
     ----------
     scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
         A loaded scene, or the path of one.
+    progress : callable, optional
+        A 2-D or 3-D scene with a port: ``progress(done, total)`` after each direction's
+        stiffness limit (:func:`check_nd`); unused otherwise.
 
     Returns
     -------
@@ -149,7 +152,7 @@ def check(scene):
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
     if getattr(scene, "dimension", 1) != 1:
-        return check_nd(scene) if scene.port is not None else modes_nd(scene)
+        return check_nd(scene, progress) if scene.port is not None else modes_nd(scene)
     scene, cals = apply_targets(scene)
     check_size(scene)
     chk = check_scene(scene)
