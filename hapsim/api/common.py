@@ -12,6 +12,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["load_scene", "load_scene_nd", "known_digits", "known_decimals", "draw_report",
+           "MeasuredPair",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
 
@@ -234,3 +235,25 @@ def known_decimals(error: float) -> int:
         ``error <= 0`` (``math.log10``).
     """
     return max(0, -math.ceil(math.log10(2.0 * error)))
+
+
+class MeasuredPair:
+    """What a 1-D report that measured the felt pair reads from its ``measured`` object
+    and its exit code (:class:`hapsim.api.RunReport`, :class:`hapsim.api.PlayReport`): a
+    mixin before :class:`hapsim.results.Report`, with no field of its own."""
+
+    @property
+    def k(self) -> float:
+        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
+        return figure(self.measured, "k")
+
+    @property
+    def b(self) -> float:
+        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
+        return figure(self.measured, "b")
+
+    @property
+    def ok(self) -> bool:
+        """Ran or played to its end, or was stopped by a signal, with no device error:
+        what exit code 0 means."""
+        return self.exit_code == 0

@@ -10,13 +10,13 @@ from typing import Any
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
-from hapsim.api.common import figure, load_scene
+from hapsim.api.common import MeasuredPair, load_scene
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- play
 @dataclasses.dataclass(frozen=True)
-class PlayReport(Report):
+class PlayReport(MeasuredPair, Report):
     """What ``hapsim play SCENE --json`` says of a 1-D scene: the loop played live on the
     embedded mock, the changes taken, the felt pair predicted and measured.
 
@@ -76,21 +76,6 @@ class PlayReport(Report):
     links: dict
     sound: dict | None
     journal: list
-
-    @property
-    def k(self) -> float:
-        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
-        return figure(self.measured, "k")
-
-    @property
-    def b(self) -> float:
-        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
-        return figure(self.measured, "b")
-
-    @property
-    def ok(self) -> bool:
-        """Played to its end or was stopped (no error): what exit code 0 means."""
-        return self.exit_code == 0
 
     def text(self) -> str:
         """The human report ``hapsim play`` prints (:func:`hapsim.pipeline.play.play_text`).

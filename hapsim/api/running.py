@@ -13,13 +13,14 @@ import numpy as np
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
-from hapsim.api.common import draw_report, figure, load_scene, matrix_list, matrix_or_nan, n_d_scene
+from hapsim.api.common import (MeasuredPair, draw_report, load_scene, matrix_list,
+                               matrix_or_nan, n_d_scene)
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- run
 @dataclasses.dataclass(frozen=True)
-class RunReport(Report):
+class RunReport(MeasuredPair, Report):
     """What ``hapsim run SCENE --json`` says: the loop closed, what was felt, how it ran.
 
     Attributes
@@ -73,21 +74,6 @@ class RunReport(Report):
     verdict: str | None = None
     within: bool | None = None
     reason: str | None = None
-
-    @property
-    def k(self) -> float:
-        """Measured felt stiffness k [N/m] (NaN when nothing was measured)."""
-        return figure(self.measured, "k")
-
-    @property
-    def b(self) -> float:
-        """Measured felt damping b [N s/m] (NaN when nothing was measured)."""
-        return figure(self.measured, "b")
-
-    @property
-    def ok(self) -> bool:
-        """Ran to the end (or was stopped by a signal): what exit code 0 means."""
-        return self.exit_code == 0
 
     def plot(self, path_or_ax=None):
         """The felt (k, b) of the run: simulated, predicted, measured (with its stated
