@@ -368,9 +368,9 @@ def test_plucks_repeat_the_hand_force_along_the_direction():
 
 def test_the_scenes_excitation_plucks_through_play(tmp_path):
     """The scene's excitation (an impulse along [3, -4]) read from the file, as ``hapsim
-    play`` hands it to the loop (:func:`hapsim.pipeline.play_nd.hand_of`), repeated every
+    play`` hands it to the loop (:func:`hapsim.pipeline.play.hand_of`), repeated every
     0.1 s by --pluck-every: the independent rendering with the impulse applied by hand."""
-    from hapsim.pipeline.play_nd import hand_of
+    from hapsim.pipeline.play import hand_of
     sc = load_scene_nd(SCENE)
     hand, e, every = hand_of(sc, 0.1)
     assert every == 800

@@ -248,12 +248,12 @@ class PlayReportND(Report):
 
     def text(self) -> str:
         """The human report ``hapsim play`` prints
-        (:func:`hapsim.pipeline.play_nd.play_nd_text`).
+        (:func:`hapsim.pipeline.play.play_nd_text`).
 
         Returns
         -------
         str
             Two or three lines, no trailing newline.
         """
-        from hapsim.pipeline.play_nd import play_nd_text
+        from hapsim.pipeline.play import play_nd_text
         return play_nd_text(self.to_dict())
