@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hapsim.audio.live_nd import LiveND
-from hapsim.audio.offline_nd import render_nd
+from hapsim.audio.offline import render_nd
 from hapsim.engine_nd import EngineND
 from hapsim.scene_nd import load_scene_nd
 

@@ -643,7 +643,7 @@ def test_single_precision_plays_its_offline_rendering_bit_for_bit():
     """A scene with ``engine: {precision: single}`` (the 44.1 kHz mesh's engine) plays
     live: the frames the producer pushes are the single-precision engine's offline
     rendering (``hapsim simulate``), bit for bit in float32 (before, play refused it)."""
-    from hapsim.audio.offline_nd import render_nd
+    from hapsim.audio.offline import render_nd
     sc = load_scene_nd(DATA.parent.parent / "configs" / "membrane.yaml")
     live = LiveND(EngineND(sc, precision="single"), chunk=256, ring=16384, ahead=4096)
     for _ in range(8):

@@ -318,7 +318,7 @@ def check_nd(scene, progress=None) -> CheckReportND:
 @dataclasses.dataclass(frozen=True)
 class ModesReportND(Report):
     """What ``hapsim check SCENE --json`` says of a 2-D or 3-D scene without a port: the
-    modes of its centred scheme linearised at rest (:mod:`hapsim.analysis.modes_nd`).
+    modes of its centred scheme linearised at rest (:mod:`hapsim.analysis.modes`).
 
     Attributes
     ----------
@@ -339,7 +339,7 @@ class ModesReportND(Report):
         moves most along), lowest frequency first.
 
     Other attribute (not in ``--json``): ``analysis``, the
-    :class:`~hapsim.analysis.modes_nd.SceneModesND` (with the mode shapes).
+    :class:`~hapsim.analysis.modes.SceneModesND` (with the mode shapes).
     """
 
     scene: str
@@ -408,9 +408,9 @@ def modes_nd(scene) -> ModesReportND:
     -----
     The eigenvalues ``z`` of the centred scheme's one-step map: frequency
     ``arg(z) / (2 pi T)``, damping ratio ``-Re(s)/|s|`` with ``s = ln(z) / T``
-    (:mod:`hapsim.analysis.modes_nd`; a square membrane's closed form is in its tests).
+    (:mod:`hapsim.analysis.modes`; a square membrane's closed form is in its tests).
     """
-    from hapsim.analysis.modes_nd import scene_modes_nd
+    from hapsim.analysis.modes import scene_modes_nd
     scene = n_d_scene(scene)
     res = scene_modes_nd(scene)
     d = {"scene": scene.path, "dof": scene.dimension, "masses": len(res.names),

@@ -10,7 +10,7 @@ are :class:`hapsim.audio.control.Controller`'s. What differs:
   device's exact ZOH, its delay, every virtual mass, every link linearised at rest; not
   axis by axis, Li, Tavakoli & Huang 2014), at the new values and at three points of the
   ramp toward them. A scene without a port (a struck membrane) is checked on its own
-  (:func:`hapsim.analysis.modes_nd.scene_modes_nd`).
+  (:func:`hapsim.analysis.modes.scene_modes_nd`).
 - **What a change names.** ``/hapsim/link/stiffness|damping|kb NAME ...`` takes a
   spring-damper, a contact (between spheres) or a plane (its K, B on every mass it acts
   on); ``/hapsim/mass NAME m`` a moving mass. ``/hapsim/link/target`` (a felt (k, b)
@@ -79,7 +79,7 @@ def predict_nd(scene) -> dict:
                 "f0_hz": f0, "damping_ratio": zeta,
                 "felt_stiffness": None if K is None else np.asarray(K).tolist(),
                 "felt_damping": None if B is None else np.asarray(B).tolist()}
-    from hapsim.analysis.modes_nd import scene_modes_nd
+    from hapsim.analysis.modes import scene_modes_nd
     m = scene_modes_nd(scene)
     low = m.modes[0] if m.modes else None
     return {"dof": n, "loop": "free", "stable": bool(m.stable),

@@ -3,7 +3,7 @@ server's callback, the scene felt through its device's model and changed while i
 
 An n-D scene's sound (``audio: listen:``, :class:`hapsim.scene_nd.ListenND`) is its own
 rate's samples (an n-D scene is not multi-rate), the same ones
-:func:`hapsim.audio.offline_nd.render_nd` writes to a WAV. Here a producer (the calling
+:func:`hapsim.audio.offline.render_nd` writes to a WAV. Here a producer (the calling
 thread) advances the n-D engine one chunk at a time into a preallocated buffer
 (:meth:`hapsim.engine_nd.EngineND.listen`, compiled, no allocation) and appends it to a
 :class:`hapsim.audio.sources.FrameRing`, whose frames the sound server's callback copies
@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from hapsim.audio.offline_nd import listen_plan
+from hapsim.audio.offline import listen_plan
 from hapsim.audio.sources import FrameRing
 from hapsim.errors import ConfigError
 from hapsim.kernels import play_nd as kernel

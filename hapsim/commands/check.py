@@ -230,7 +230,7 @@ def _run_nd(args) -> int:
         0 stable, 1 unstable (the MIMO characteristic's spectral radius). A scene without
         a port (nothing to feel: a sounding object) is checked on its own: the
         eigenfrequencies and damping ratios of its modes
-        (:func:`hapsim.analysis.modes_nd.scene_modes_nd`), 1 when the scheme diverges.
+        (:func:`hapsim.analysis.modes.scene_modes_nd`), 1 when the scheme diverges.
 
     Raises
     ------

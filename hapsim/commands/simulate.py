@@ -325,7 +325,7 @@ def _run_nd(args) -> int:
     args : argparse.Namespace
         ``scene``, ``steps``, ``out`` (``.npz``), ``record``, ``json``, ``audio`` (a
         ``.wav`` path: the scene's ``audio`` listening points instead of a trajectory,
-        :func:`hapsim.audio.offline_nd.render_nd`).
+        :func:`hapsim.audio.offline.render_nd`).
 
     Returns
     -------
@@ -405,7 +405,7 @@ def _run_nd(args) -> int:
 def _run_audio_nd(args) -> int:
     """``simulate --audio`` on an n-D scene: its listening points to a WAV file."""
     from hapsim.audio.offline import write_wav
-    from hapsim.audio.offline_nd import render_nd
+    from hapsim.audio.offline import render_nd
     from hapsim.engine_nd import EngineND
     from hapsim.outputs import check_writable
     from hapsim.progress import Progress

@@ -163,7 +163,7 @@ def plot_modes_nd(scene, res, title: str | None = None, count: int = 6):
     Parameters
     ----------
     scene : hapsim.scene_nd.SceneND
-    res : hapsim.analysis.modes_nd.SceneModesND
+    res : hapsim.analysis.modes.SceneModesND
         Its modes (lowest frequency first).
     title : str, optional
     count : int, optional
