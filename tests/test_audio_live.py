@@ -238,7 +238,8 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
     are the offline engine's frames for the same gesture, to float32 round-off: the live
     audio part is the same multi-rate model. Both callbacks: the native one (a numba
     cfunc, no GIL: the default) and JACK-Client's Python one (HAPSIM_JACK_PYTHON_CALLBACK).
-    xruns are counted (printed; the machine is shared, so their number is not asserted)."""
+    xruns are counted (printed; the machine is shared, so their number is not asserted);
+    where the server counted some, the frames may differ within one period per xrun."""
     from hapsim.audio.live import JackOutput, LiveSound
 
     if callback == "python":
@@ -293,9 +294,20 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
     # measured 0 (generic 0), both callbacks: the live frames are the offline ones, bit
     # for bit, on both targets; the bound allowed is 16 binary32 roundings of the peak
     # (16 eps32 = 1.9e-6: the frames are float32, mixed in float32 by the native callback)
-    np.testing.assert_allclose(seg[:m], ref[r0:r0 + m, 0].astype(np.float32), rtol=0,
-                               atol=16 * np.finfo(np.float32).eps * np.max(np.abs(ref)))
+    want = ref[r0:r0 + m, 0].astype(np.float32)
+    atol = 16 * np.finfo(np.float32).eps * np.max(np.abs(ref))
     assert isinstance(out.xruns, int) and out.xruns >= 0
+    bad = np.abs(seg[:m] - want) > atol
+    if out.xruns == 0 or not bad.any():
+        np.testing.assert_allclose(seg[:m], want, rtol=0, atol=atol)
+    else:
+        # an xrun of the server (a loaded machine: the dummy backend's cycle missed) can
+        # leave the recorder one period that is not the one the callback wrote (seen at
+        # load 9: 256 frames of one period, all the others exact): the frames may differ
+        # within one period per xrun counted, never more, and the rest is exact
+        block = out.client.blocksize
+        print(f"{int(bad.sum())} frames off in {out.xruns} xruns of {block}-frame periods")
+        assert bad.sum() <= out.xruns * block, (int(bad.sum()), out.xruns, block)
 
 
 def test_gain_ramps_without_a_step_and_pause_silences():
