@@ -22,7 +22,8 @@ from hapsim.analysis.identify import fit_modes, fit_rendered, pencil_poles
 from hapsim.analysis.loop import LoopModel, closed_loop_poles
 from hapsim.analysis.scene_check import check_scene, scene_state_matrix
 from hapsim.analysis.table1 import table1_experiment, table1_markdown, tuned_stiffness
-from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths import render
+from hapsim.analysis.stability import stability_limit
 from hapsim.cli import main
 from hapsim.errors import ConfigError
 from hapsim.scene import load_scene, parse_scene

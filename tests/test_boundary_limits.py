@@ -12,7 +12,7 @@ import pytest
 
 from hapsim.analysis.compare import default_corrections, tangency, tangency_limit
 from hapsim.analysis.loop import LoopModel, spectral_radius_known
-from hapsim.analysis.ths import stability_limit
+from hapsim.analysis.stability import stability_limit
 from hapsim.cli import main
 
 

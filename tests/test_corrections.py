@@ -18,7 +18,8 @@ from hapsim.analysis.corrections import (Correction, filtered_passivity_bound,
                                          passivity_bound)
 from hapsim.analysis.identify import fit_rendered
 from hapsim.analysis.loop import LoopModel, closed_loop_poles
-from hapsim.analysis.ths import calibrate, render, stability_limit
+from hapsim.analysis.ths import calibrate, render
+from hapsim.analysis.stability import stability_limit
 from hapsim.errors import ConfigError
 from tolerance import measured
 

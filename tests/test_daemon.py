@@ -19,7 +19,8 @@ import scipy.signal
 
 import firmware_protocol as fp
 from hapsim.analysis.loop import LoopModel, plant, zoh_state_space
-from hapsim.analysis.ths import calibrate, render, stability_limit
+from hapsim.analysis.ths import calibrate, render
+from hapsim.analysis.stability import stability_limit
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.emulated.mock import (MockDevice, MockPhysics, hand_force_samples,
                                 ideal_step_coefficients, zoh_step_coefficients)
@@ -67,7 +68,7 @@ def late_tolerant_wall(directory, late: int = 10) -> str:
     from pathlib import Path
 
     from hapsim.analysis.loop import LoopModel
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.scene import load_scene
 
     shipped = Path(__file__).resolve().parents[1] / "configs" / "wall.yaml"

@@ -18,7 +18,8 @@ from scipy.signal import cont2discrete
 
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.prediction import port_links
-from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths import render
+from hapsim.analysis.stability import stability_limit
 from hapsim.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]

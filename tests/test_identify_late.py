@@ -216,7 +216,7 @@ def test_run_with_scripted_late_ticks_measures_the_prediction(seed, frac, d, r, 
     import dataclasses
 
     from hapsim.analysis.network import closed_loop
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop
     from hapsim.pipeline import runner
     from hapsim.scene import load_scene
@@ -432,7 +432,7 @@ def test_run_with_several_long_bursts_and_a_clamped_force_measures_the_predictio
     limit over the release force ``K x0``: below 1 the first tick is clamped."""
     import dataclasses
 
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
     from hapsim.pipeline import runner
@@ -493,7 +493,7 @@ def test_a_clamp_the_replay_cannot_give_is_left_out_not_taken_as_linear(seed, bu
     19: 1 run in 18 at load 15-23, b error 0.024 against +-0.020 N s/m)."""
     import dataclasses
 
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
     from hapsim.pipeline import contact_replay, runner
@@ -606,7 +606,7 @@ def test_a_record_the_linear_loop_does_not_fit_says_so_not_sensor_steps():
     or noise, not that the oscillation is below "5 sensor steps" of a sensor that has
     none. (Before the clamps the replay cannot give were left out, the zwidth record of
     two late bursts driven into the force limit was such a record.)"""
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
     from hapsim.pipeline import runner

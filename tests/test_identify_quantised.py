@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from hapsim.analysis.loop import LoopModel
-from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths import render
+from hapsim.analysis.stability import stability_limit
 from hapsim.pipeline.runner import run_scene
 from hapsim.scene import parse_scene
 from test_daemon import wall_text  # same directory (pytest prepend import mode)

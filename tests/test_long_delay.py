@@ -226,7 +226,7 @@ def test_check_refuses_a_scene_too_large_before_building_it(tmp_path, capsys):
 def test_argument_principle_counts_the_unstable_poles():
     """The O(d) winding count used to classify the stability intervals equals the count of
     eigenvalues outside the unit circle (seeded random loops, d up to 300)."""
-    from hapsim.analysis.ths import _roots_outside
+    from hapsim.analysis.stability import _roots_outside
     from hapsim.analysis.loop import roots_w
     rng = np.random.default_rng(5)
     for i in range(60):

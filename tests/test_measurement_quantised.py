@@ -32,7 +32,8 @@ from hapsim.analysis.error_response import sensor_error_response
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.measurement import identify, late_accounted
 from hapsim.analysis.prediction import predict, predicted_poles
-from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths import render
+from hapsim.analysis.stability import stability_limit
 from hapsim.scene import parse_scene
 from test_daemon import wall_text  # same directory (pytest prepend import mode)
 

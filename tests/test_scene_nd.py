@@ -305,7 +305,7 @@ def test_stiffness_limits_along_the_mass_axes_are_the_1d_limits_when_decoupled()
     friction and virtual damping (the other axis's stiffness kept: decoupled); with a
     virtual mass on a port link there is no such limit (None)."""
     from hapsim.analysis.loop import LoopModel
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     text = """\
 dimension: 2
 rate_hz: 1000

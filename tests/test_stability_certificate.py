@@ -13,7 +13,7 @@ import pytest
 
 from hapsim.analysis.limit_certificate import certify_limit, schur_stable
 from hapsim.analysis.loop import LoopModel, characteristic
-from hapsim.analysis.ths import circle_scan_points, stability_limit
+from hapsim.analysis.stability import circle_scan_points, stability_limit
 from hapsim.cli import main
 
 

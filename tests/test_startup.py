@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from hapsim.analysis.ths import brent_root
+from hapsim.analysis.stability import brent_root
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.emulated.mock import MockDevice
 from hapsim.host.telemetry import Telemetry

@@ -15,7 +15,8 @@ from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis.loop import (LoopModel, characteristic, closed_loop_poles,
                                   spectral_radius)
-from hapsim.analysis.ths import render, stability_limit
+from hapsim.analysis.ths import render
+from hapsim.analysis.stability import stability_limit
 from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits
 from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, render_nd, state_matrix
 from hapsim.errors import ConfigError

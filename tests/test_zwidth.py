@@ -133,7 +133,7 @@ def _near_limit_record(seed, n_late_max=5):
     import numpy as np
     from hapsim.analysis.error_response import disturbance_response, force_error_response
     from hapsim.analysis.prediction import predicted_poles
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
     from hapsim.scene import parse_scene
@@ -209,7 +209,7 @@ def test_run_states_the_late_forces_bound_that_zwidth_decides_on():
     10 late ticks is then not decided (|b| = 0.006 against a bound of 0.075 N s/m)."""
     import pytest as _pytest
 
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import device_loop, record_side, wall_scene
     from hapsim.commands.zwidth import DEFAULT_DEVICE
     from hapsim.emulated import mock as mock_mod

@@ -7,9 +7,9 @@ Compute functions here return plain data; drawing lives in :mod:`hapsim.plots`.
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
 from hapsim.analysis.loop import (HOLDS, STABILITY_TOL, LoopModel, characteristic,
                                   closed_loop_poles, plant, spectral_radius, zoh_state_space)
-from hapsim.analysis.ths import (CalibrationResult, RenderResult, calibrate, damping_limits,
-                                 published_limits, render, stability_boundary,
-                                 stability_limit)
+from hapsim.analysis.stability import (damping_limits, published_limits, stability_boundary,
+                                       stability_limit)
+from hapsim.analysis.ths import CalibrationResult, RenderResult, calibrate, render
 from hapsim.analysis.grid import PAPER_PRESETS, GridResult, grid, paper_preset
 from hapsim.analysis.identify import fit_modes, fit_rendered, pencil_poles
 from hapsim.analysis.scene_check import SceneCheck, check_scene, scene_state_matrix

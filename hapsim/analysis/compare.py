@@ -30,7 +30,8 @@ import numpy as np
 from hapsim.analysis.corrections import Correction
 from hapsim.analysis.grid import grid
 from hapsim.analysis.loop import LoopModel
-from hapsim.analysis.ths import calibrate, render, stability_limit
+from hapsim.analysis.ths import calibrate, render
+from hapsim.analysis.stability import stability_limit
 from hapsim.errors import ConfigError
 
 __all__ = ["compare_corrections", "default_corrections", "tangency", "tangency_limit",

@@ -1,7 +1,7 @@
 """The n-D loop's stiffness limits (docs/stability.md): along one direction of the port
 (:func:`direction_limit`: the largest ``kappa`` such that the loop with ``K = K0 + kappa e
 e^T`` stays stable, found from the exact crossings of the unit circle, classified by the
-spectral radius between them, as :func:`hapsim.analysis.ths.stability_limit` does in 1-D),
+spectral radius between them, as :func:`hapsim.analysis.stability.stability_limit` does in 1-D),
 along several directions (:func:`direction_limits`), and over a device's workspace
 (:func:`workspace_limits`). The loop's model is :mod:`hapsim.analysis.ths_nd`."""
 
@@ -96,7 +96,7 @@ def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
     ``G = c^T (zI - A0)^-1 b`` real; ``Im G(e^{i theta}) = 0`` is scanned on
     ``theta in (0, pi]`` and refined by Brent's method, and stability between consecutive
     candidate ``kappa`` is constant, so each interval is classified by the spectral radius
-    at one interior point (the 1-D method of :func:`hapsim.analysis.ths.stability_limit`).
+    at one interior point (the 1-D method of :func:`hapsim.analysis.stability.stability_limit`).
     For ``n = 1`` and ``K0 = 0`` it is that 1-D limit.
 
     Raises

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.analysis.loop import LoopModel
-from hapsim.analysis.ths import calibrate_core, log_abs_w, stability_boundary
+from hapsim.analysis.ths import calibrate_core, log_abs_w
+from hapsim.analysis.stability import stability_boundary
 
 __all__ = ["GridResult", "grid", "PAPER_PRESETS", "paper_preset"]
 

@@ -1,6 +1,6 @@
 """The stiffness limit K_max(B) certified: a guaranteed bracket in exact arithmetic.
 
-:func:`hapsim.analysis.ths.stability_limit` finds where a pole of
+:func:`hapsim.analysis.stability.stability_limit` finds where a pole of
 ``kappa A(z) + C(z) = 0`` (the THS's characteristic, ``A = P~``, ``C = beta Q~ + z^e D``,
 :func:`hapsim.analysis.loop.char_parts`) reaches the unit circle by a dense scan of the
 circle: two crossings between neighbouring scan points would be missed. Here the same
@@ -360,7 +360,7 @@ def _crossing_below(L: _Loop, roots, kappa_hi) -> bool | None:
 
 
 def certify_limit(loop: LoopModel, B: float, K_max: float, scan_points: int) -> LimitCertificate:
-    """Prove ``K_max(B)`` (from :func:`hapsim.analysis.ths.stability_limit`) or say why not.
+    """Prove ``K_max(B)`` (from :func:`hapsim.analysis.stability.stability_limit`) or say why not.
 
     Parameters
     ----------

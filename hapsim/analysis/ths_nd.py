@@ -58,7 +58,7 @@ with ``K = K0 + kappa e e^T`` (``K0`` the rest of the virtual stiffness) is stab
 ``kappa' in (0, kappa)``. The added stiffness is a rank-one feedback, so a pole crosses the
 unit circle at ``z = e^{i theta}`` iff ``kappa = -1 / (c^T (z I - A0)^-1 b)`` is real
 (:func:`direction_limit`): exact crossings, classified by the spectral radius between
-them, as :func:`hapsim.analysis.ths.stability_limit` does in 1-D.
+them, as :func:`hapsim.analysis.stability.stability_limit` does in 1-D.
 """
 
 from __future__ import annotations

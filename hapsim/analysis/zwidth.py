@@ -14,7 +14,7 @@ the felt damping is zero (Florens et al. Sec. 6.2: the boundary is the b = 0 cur
 grid). The crossing is bracketed by raising ``K`` by a fixed ratio from below the
 predicted limit, then refined by regula falsi (Illinois) on the measured ``b(K)``.
 
-Predictions beside it: the linear boundary (:func:`hapsim.analysis.ths.stability_limit`),
+Predictions beside it: the linear boundary (:func:`hapsim.analysis.stability.stability_limit`),
 and, for a device with Coulomb friction ``fc``, the boundary that friction moves. Coulomb
 friction is not linear: on an oscillation of amplitude ``a`` at angular frequency ``w`` it
 dissipates per cycle what a viscous ``b_eq = 4 fc / (pi a w)`` would (its describing
@@ -173,7 +173,7 @@ class ZPoint:
     B : float
         Virtual damping [N s/m].
     K_max_predicted : float
-        Linear boundary [N/m] (:func:`hapsim.analysis.ths.stability_limit`).
+        Linear boundary [N/m] (:func:`hapsim.analysis.stability.stability_limit`).
     K_max_predicted_coulomb : float or None
         Boundary with the device's Coulomb friction at the record's amplitude
         (:func:`predicted_coulomb`; None without Coulomb friction).
@@ -259,7 +259,7 @@ def predicted_coulomb(device, rate_hz: float, B: float, amplitude: float) -> flo
         A non-positive amplitude with Coulomb friction.
     """
     from hapsim.analysis.loop import closed_loop_poles
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
 
     fc = float(getattr(device, "coulomb", 0.0) or 0.0)
     loop = device_loop(device, rate_hz)

@@ -238,15 +238,15 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
 
     Notes
     -----
-    :func:`hapsim.analysis.ths.stability_limit` (the exact boundary of the THS, a scan of
+    :func:`hapsim.analysis.stability.stability_limit` (the exact boundary of the THS, a scan of
     the unit circle), proven by :func:`hapsim.analysis.limit_certificate.certify_limit`
     where exact arithmetic can (the crossing condition as a polynomial in ``cos theta``,
     Sturm's theorem, the Schur-Cohn-Jury test), beside
-    :func:`hapsim.analysis.ths.published_limits`.
+    :func:`hapsim.analysis.stability.published_limits`.
     """
     from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop import spectral_radius_known
-    from hapsim.analysis.ths import circle_scan_points, published_limits, stability_limit
+    from hapsim.analysis.stability import circle_scan_points, published_limits, stability_limit
     check_values("stability", B=B)
     kmax = stability_limit(loop, B)
     cert = certify_limit(loop, B, kmax, circle_scan_points(loop))

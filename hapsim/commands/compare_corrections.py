@@ -149,7 +149,7 @@ def run(args) -> int:
                                    n=args.n, n_boundary=args.boundary_points, progress=lambda i, n, lab: bar.update(i, n))
     td = None
     if not args.no_time_domain:
-        from hapsim.analysis.ths import stability_limit
+        from hapsim.analysis.stability import stability_limit
         B = 0.5 * sum(data["b_range"]) - data["b0"]
         td = passivity_time_domain(loop, 1.5 * stability_limit(loop, B), B)
     if args.plot:

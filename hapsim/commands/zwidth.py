@@ -146,7 +146,7 @@ def run(args) -> int:
     ConfigError
         Bad option or scene (exit 2).
     """
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
                                         release)
     from hapsim.progress import Progress

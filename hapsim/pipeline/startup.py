@@ -5,7 +5,7 @@ the scene, the prediction, the device (the embedded mock's child process starts 
 and the numba warm-up (kernels loaded from numba's on-disk cache, in a thread while the
 device starts and says HELLO). Measured with ``python -X importtime`` (issue 13), two
 things cost more than the rest: ``scipy.optimize`` (the stability limit's root finder,
-now :func:`hapsim.analysis.ths.brent_root`) and ``scipy.linalg``, which numba imports the
+now :func:`hapsim.analysis.stability.brent_root`) and ``scipy.linalg``, which numba imports the
 first time it sets up its compiler, even to load a cached function, only to check that
 its BLAS bindings (``scipy.linalg.cython_blas``) exist. :func:`preload_numba_blas` loads
 that one extension module by itself, so that numba's check passes without the package.

@@ -30,7 +30,7 @@ def plot_zwidth(rep: dict, loop, device, rate_hz: float, x0: float):
         boundary with Coulomb friction by its describing function (dashed, when the device
         has some), the measured points with their intervals (error bars).
     """
-    from hapsim.analysis.ths import stability_limit
+    from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import predicted_coulomb, release
     from hapsim.plots import pyplot
 
