@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hapsim.analysis.identify import pencil_poles
+from hapsim.analysis.pencil import pencil_poles
 
 
 def test_slow_pair_among_dead_fast_modes_is_found_at_the_full_order():

@@ -20,7 +20,7 @@ import pytest
 from scipy.linalg import expm
 
 from hapsim.analysis import check_scene, scene_state_matrix
-from hapsim.analysis.identify import pencil_poles
+from hapsim.analysis.pencil import pencil_poles
 from hapsim.bench.methods import closed_loop_matrix, virtual_update_matrix
 from hapsim.cli import main
 from hapsim.errors import ConfigError

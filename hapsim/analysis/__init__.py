@@ -11,7 +11,7 @@ from hapsim.analysis.stability import (damping_limits, published_limits, stabili
                                        stability_limit)
 from hapsim.analysis.ths import CalibrationResult, RenderResult, calibrate, render
 from hapsim.analysis.grid import PAPER_PRESETS, GridResult, grid, paper_preset
-from hapsim.analysis.identify import fit_modes, fit_rendered, pencil_poles
+from hapsim.analysis.pencil import fit_modes, fit_rendered, pencil_poles
 from hapsim.analysis.scene_check import SceneCheck, check_scene, scene_state_matrix
 from hapsim.analysis.table1 import table1_experiment
 from hapsim.analysis.network import closed_loop

@@ -111,7 +111,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         :func:`~hapsim.analysis.identify.measure_felt`; or ``error`` (str) when nothing can
         be identified or the record cannot support a measurement.
     """
-    from hapsim.analysis.identify import fit_rendered
+    from hapsim.analysis.pencil import fit_rendered
 
     seq = np.asarray(seq, dtype=np.int64)
     pos = np.asarray(position, dtype=float)
@@ -178,7 +178,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                        error=f"the longest stretch with every contact closed is {b - a} "
                              f"samples, fewer than the {need} the fit needs")
             return out
-    from hapsim.analysis.identify import thin_pencil
+    from hapsim.analysis.pencil import thin_pencil
     pencil = thin_pencil(order, int(b - a) - (1 if offset else 0))
     out["pencil"] = pencil
     if predicted is not None and felt is not None and y.size:
