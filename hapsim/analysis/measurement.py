@@ -383,10 +383,18 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         if acc is None:
             return pos, late, {}
         if not np.any(acc.late) and not n_clamped:
-            # nothing to take out, but the forces it cannot order (a command whose
-            # answer never came: sent, or the one before) are in the stated uncertainty
+            # nothing taken out, but the forces it cannot order (a command whose answer
+            # never came: sent, or the one before) are in the stated uncertainty. The
+            # record is measured against the on-time force, so the bound at such a row
+            # is the account's distance from it plus its half-width (the middle of the
+            # two and half their step, 2x the half-width: the half-width alone, stated
+            # before, left the other case outside by as much again)
             hw = np.asarray(acc.half_width, float)
-            return pos, late, ({"_force_half_width": hw} if np.any(hw > 0) else {})
+            if np.any(hw > 0):
+                w = acc.disturbance(cols["force"], cols["seq"])
+                return pos, late, {"_force_half_width": hw + np.where(hw > 0, np.abs(w),
+                                                                      0.0)}
+            return pos, late, {}
     else:
         # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
         # the nearest step of every force (the firmware rounds so): a known input at every
