@@ -38,8 +38,9 @@ class AlignedDecoder:
     Attributes
     ----------
     stats : dict
-        ``frames`` (taken), ``skipped`` (bytes dropped realigning), ``unconfirmed``
-        (windows that parsed but the byte after them starts no frame: dropped).
+        ``frames`` (taken), ``skipped`` (bytes dropped realigning); with
+        :attr:`confirm_next`, ``unconfirmed`` (windows that parsed but the byte after them
+        starts no frame: dropped).
     """
 
     length = 1
@@ -49,7 +50,9 @@ class AlignedDecoder:
 
     def __init__(self) -> None:
         self._buf = bytearray()
-        self.stats = {"frames": 0, "skipped": 0, "unconfirmed": 0}
+        self.stats = {"frames": 0, "skipped": 0}
+        if self.confirm_next:
+            self.stats["unconfirmed"] = 0
         self._realigning = False        # bytes dropped since the last frame taken
 
     def parse(self, buf):
