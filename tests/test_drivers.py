@@ -497,8 +497,8 @@ def test_haply_board_holds_its_torque_through_reset_and_setup():
     board.feed(drv.arm() + drv.encode_force(0.08))
     # the torque crossed the wire as binary32: within F32 (its eps, module top)
     assert board.idle(5.0) == b"" and board.held == pytest.approx(0.08, rel=F32)
-    board.feed(bytes([hp.CMD_RESET, 1]))
-    board.feed(hp.setup_packet(1))
+    board.feed(bytes([hp.CMD_RESET, drv.id]))
+    board.feed(hp.setup_packet(drv.id))
     # the torque crossed the wire as binary32: within F32 (its eps, module top)
     assert board.held == pytest.approx(0.08, rel=F32)
     board.feed(drv.encode_force(0.0))
@@ -755,7 +755,9 @@ def test_protocol_options_in_the_scene_and_the_device_file(tmp_path):
     path.write_text(device_yaml(fit, 0.3, driver=drv))
     d = load_device(path)
     assert d.protocol == "haply"
-    assert d.protocol_options == {"device_id": 1, "resolution": 4096.0, "direction": 1,
+    from hapsim.drivers.haply import DEFAULT_ID
+    assert d.protocol_options == {"device_id": DEFAULT_ID, "resolution": 4096.0,
+                                  "direction": 1,
                                   "offset_deg": 0.0, "motor_direction": 1}
 
 
