@@ -364,7 +364,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     Returns
     -------
     (ndarray, ndarray or None, dict)
-        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        Positions [m] to measure, the late flags to cut at (None when accounted for; a
+        driver's run keeps its host-late rows, whose hold time no account names) and
         the report's ``late_accounted`` / ``device_delay`` / ``clamped_accounted`` (rows
         whose clamp was taken out) (empty when nothing was done).
     """
@@ -440,6 +441,13 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = np.asarray(acc.half_width, float)
     info["_late_force_bound"] = late_force_bound(acc, w)
+    if driver is not None and late is not None and np.any(late):
+        # a driver's account names which force each row applied, not for how long: a
+        # host tick that went out late (the row's late flag) held the force before it
+        # over more than a period, a disturbance no account takes out; the record is still
+        # cut there (before, an account dropped these cuts: the late rows were measured
+        # as on time)
+        return pos - xw, np.asarray(late, bool), info
     return pos - xw, None, info
 
 
