@@ -132,3 +132,32 @@ def test_a_lossy_link_still_sees_a_device_that_differs(seed, monkeypatch):
     assert m["within"] is False and m["verdict"].startswith("measured differs"), (
         m.get("verdict"), m.get("b"), m.get("b_unc"))
     assert m["b"] - rep["predicted"]["b"] > m["b_unc"]
+
+
+def test_a_host_late_row_stays_a_cut_when_the_account_takes_ticks_out():
+    """A reply that names a force the host did not send is a late tick the account takes
+    out; a row the host loop marked late (its tick went out a period late: the force before
+    it held longer, which no reply says) is still a cut of the record (before, the
+    account's path returned no late flags and such rows were measured as on time)."""
+    from hapsim.analysis.measurement import late_accounted
+    from hapsim.scene import load_scene
+    sc = load_scene("configs/hapkit_serial.yaml")
+    drv = HapkitSerial()
+    drv.loop_delay = int(sc.device.delay)
+    dec = drv.decoder()
+    n = 200
+    x = np.float32(0.01 * np.exp(-np.arange(n) / 80.0) * np.cos(np.arange(n) / 7.0))
+    sent = np.array([drv.applied_force(-50.0 * float(v)) for v in x])
+    replied = sent.copy()
+    replied[1:] = sent[:-1]                       # row r applies the force of row r - 1
+    replied[0] = 0.0
+    replied[120] = 1e-28                          # a damaged command: ~0 N applied
+    for v, f in zip(x, replied):
+        dec.feed(reply_packet(drv.function, float(v), float(f)))
+    cols = {"position": x.astype(float), "force": sent, "seq": np.arange(n),
+            "flags": np.zeros(n, np.uint8), "late": np.zeros(n, np.uint8),
+            "force_seq": np.arange(n) - 1, "status": np.zeros(n, np.uint16)}
+    cols["late"][60] = 1                          # the host's tick went out late
+    pos, late, info = late_accounted(sc, cols, None, drv)
+    assert info.get("late_accounted", 0) >= 1     # the damaged command taken out
+    assert late is not None and late[60] and np.count_nonzero(late) == 1
