@@ -40,22 +40,124 @@ def test_rows_are_matched_to_replies_by_position():
     assert acc.method == "replies"
     assert acc.applied[0] == f32[1] and acc.applied[1] == f32[2] and acc.applied[4] == f32[4]
     assert acc.applied[3] == f32[3] and acc.late[3] and acc.half_width[3] == 0.0
-    assert acc.half_width[2] > 0.0                  # no reply: sent or the one before
+    # no reply: the force sent (row 1's, 0.2 N) or what row 1's reply says the sketch
+    # held (0.2 N): the same force, no doubt left
+    assert acc.applied[2] == f32[2] and acc.half_width[2] == 0.0
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3, 4])
-def test_a_lossy_link_measures_the_prediction(seed):
-    """The run over the sketch's byte-exact mock, stepped one period per command (named
-    lockstep: the account, not the timing, is what is tested), 1 byte in 200 lost each
-    way: measured = predicted within the stated uncertainty, and the replies named forces
-    the timing account did not (before: every seed "differs")."""
+def test_a_row_without_reply_spans_what_the_sketch_held():
+    """Closed form: a row whose command may be lost applies the force sent or what the
+    sketch held at the row before -- that row's reply's force (a damaged command's
+    ~0 N, not the host's), or, itself unknown, its whole interval (two lost in a row)."""
+    drv = HapkitSerial()
+    drv.loop_delay = 1
+    dec = drv.decoder()
+    xs = [1.0e-3, 2.0e-3, 5.0e-3]
+    fs = [0.1, 1e-28, 0.5]                              # row 1: a damaged command
+    for x, f in zip(xs, fs):
+        dec.feed(reply_packet(drv.function, x, f))
+    pos = np.array([np.float32(v) for v in (1.0e-3, 2.0e-3, 3.0e-3, 4.0e-3, 5.0e-3)],
+                   float)
+    flags = np.array([0, 0, FLAG_ESTIMATED, FLAG_ESTIMATED, 0])
+    sent = np.array([0.1, 0.2, 0.3, 0.4, 0.5])
+    forces = np.array([drv.applied_force(v) for v in sent])
+    acc = drv.account({"position": pos, "flags": flags}, forces)
+    f32 = [float(np.float32(v)) for v in (0.1, 0.2, 0.3, 1e-28)]
+    lo = acc.applied - acc.half_width
+    hi = acc.applied + acc.half_width
+    # row 2: the force sent (row 1's, 0.2 N) or the ~0 N row 1's reply says was held
+    assert lo[2] <= f32[3] and hi[2] >= f32[1] and lo[2] <= f32[1] and hi[2] >= f32[3]
+    # row 3: row 2's force (0.3 N), or whatever row 2 held: its whole interval
+    assert lo[3] <= min(lo[2], f32[2]) and hi[3] >= max(hi[2], f32[2])
+    assert acc.half_width[4] == 0.0 and acc.applied[4] == float(np.float32(0.5))
+
+
+#: Lockstep runs with byte loss: seeds and patterns. Seed 19 both ways made a false
+#: reading before the reply decoder's check (tests/test_hapkit_serial_framing.py): k
+#: 6.9 % off, stated 5.2 %, "differs" for a matching device.
+#: Host bytes lost at 1 in 100 (seed 5) cut the record at every damaged command (a gap in
+#: seq): its stretches may be too short to measure, "not measurable" with the reason.
+LOSSY = [(1, 0.005, 0.005), (4, 0.005, 0.005), (19, 0.005, 0.005), (5, 0.01, 0.0),
+         (6, 0.0, 0.01)]
+
+
+def _lossy_run(seed, drop_rx, drop_tx, extra_friction=0.0, monkeypatch=None):
     from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
-    rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
-                    duration=1.5, lockstep=True, handle_signals=False, rt_priority=0,
-                    seed=seed, driver_faults={"drop_tx": 0.005, "drop_rx": 0.005,
-                                              "seed": seed})
+    if extra_friction:
+        import dataclasses
+
+        import hapsim.emulated.driver_mock as dm
+        init = dm.EmbeddedDriverMock.__init__
+
+        def hidden(self, driver, device, *a, **k):
+            # the device the mock is: the scene's with a damping the host does not know
+            init(self, driver, dataclasses.replace(
+                device, friction=device.friction + extra_friction), *a, **k)
+        monkeypatch.setattr(dm.EmbeddedDriverMock, "__init__", hidden)
+    return run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
+                     duration=1.5, lockstep=True, handle_signals=False, rt_priority=0,
+                     seed=seed, driver_faults={"drop_tx": drop_tx, "drop_rx": drop_rx,
+                                               "seed": seed})
+
+
+@pytest.mark.parametrize("seed,drop_rx,drop_tx", LOSSY,
+                         ids=[f"seed{s}-rx{r:g}-tx{t:g}" for s, r, t in LOSSY])
+def test_a_lossy_link_never_says_differs_for_a_matching_device(seed, drop_rx, drop_tx):
+    """The run over the sketch's byte-exact mock, stepped one period per command (named
+    lockstep: deterministic, the same bytes lost on any host), bytes lost host -> device,
+    device -> host or both: the device is the scene's, so the verdict is "within"
+    (measured = predicted within the stated uncertainty) or not measurable with its
+    reason, never "differs"; at 1 byte in 200 each way it is measured."""
+    rep = _lossy_run(seed, drop_rx, drop_tx)
     m = rep["measured"]
-    assert rep["loop"]["estimated"] > 0
-    assert m["within"] is True, (m["k"], rep["predicted"]["k"], m.get("k_unc"), m["b"],
-                                 rep["predicted"]["b"], m.get("b_unc"))
+    assert rep["loop"]["estimated"] > 0 or rep["loop"]["missed"] > 0
+    assert m.get("within") is not False, (m.get("verdict"), m.get("k"),
+                                          rep["predicted"]["k"], m.get("k_unc"), m.get("b"),
+                                          rep["predicted"]["b"], m.get("b_unc"))
+    if "k" not in m:
+        assert m.get("error") or str(m.get("verdict")).startswith("not measurable")
+    if drop_rx == drop_tx == 0.005:
+        assert m["within"] is True
+
+
+@pytest.mark.parametrize("seed", [1, 19])
+def test_a_lossy_link_still_sees_a_device_that_differs(seed, monkeypatch):
+    """The same lossy runs against a device with a hidden viscous friction of 0.3 N s/m
+    more than the scene states (the felt b, predicted 0.2 N s/m, becomes about 0.5): the
+    verdict is "differs" -- the stated uncertainty under loss is not so wide that nothing
+    can be seen through it."""
+    rep = _lossy_run(seed, 0.005, 0.005, extra_friction=0.3, monkeypatch=monkeypatch)
+    m = rep["measured"]
+    assert m["within"] is False and m["verdict"].startswith("measured differs"), (
+        m.get("verdict"), m.get("b"), m.get("b_unc"))
+    assert m["b"] - rep["predicted"]["b"] > m["b_unc"]
+
+
+def test_a_host_late_row_stays_a_cut_when_the_account_takes_ticks_out():
+    """A reply that names a force the host did not send is a late tick the account takes
+    out; a row the host loop marked late (its tick went out a period late: the force before
+    it held longer, which no reply says) is still a cut of the record (before, the
+    account's path returned no late flags and such rows were measured as on time)."""
+    from hapsim.analysis.measurement import late_accounted
+    from hapsim.scene import load_scene
+    sc = load_scene("configs/hapkit_serial.yaml")
+    drv = HapkitSerial()
+    drv.loop_delay = int(sc.device.delay)
+    dec = drv.decoder()
+    n = 200
+    x = np.float32(0.01 * np.exp(-np.arange(n) / 80.0) * np.cos(np.arange(n) / 7.0))
+    sent = np.array([drv.applied_force(-50.0 * float(v)) for v in x])
+    replied = sent.copy()
+    replied[1:] = sent[:-1]                       # row r applies the force of row r - 1
+    replied[0] = 0.0
+    replied[120] = 1e-28                          # a damaged command: ~0 N applied
+    for v, f in zip(x, replied):
+        dec.feed(reply_packet(drv.function, float(v), float(f)))
+    cols = {"position": x.astype(float), "force": sent, "seq": np.arange(n),
+            "flags": np.zeros(n, np.uint8), "late": np.zeros(n, np.uint8),
+            "force_seq": np.arange(n) - 1, "status": np.zeros(n, np.uint16)}
+    cols["late"][60] = 1                          # the host's tick went out late
+    pos, late, info = late_accounted(sc, cols, None, drv)
+    assert info.get("late_accounted", 0) >= 1     # the damaged command taken out
+    assert late is not None and late[60] and np.count_nonzero(late) == 1

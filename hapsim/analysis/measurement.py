@@ -364,7 +364,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     Returns
     -------
     (ndarray, ndarray or None, dict)
-        Positions [m] to measure, the late flags to cut at (None when accounted for) and
+        Positions [m] to measure, the late flags to cut at (None when accounted for; a
+        driver's run keeps its host-late rows, whose hold time no account names) and
         the report's ``late_accounted`` / ``device_delay`` / ``clamped_accounted`` (rows
         whose clamp was taken out) (empty when nothing was done).
     """
@@ -383,10 +384,18 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         if acc is None:
             return pos, late, {}
         if not np.any(acc.late) and not n_clamped:
-            # nothing to take out, but the forces it cannot order (a command whose
-            # answer never came: sent, or the one before) are in the stated uncertainty
+            # nothing taken out, but the forces it cannot order (a command whose answer
+            # never came: sent, or the one before) are in the stated uncertainty. The
+            # record is measured against the on-time force, so the bound at such a row
+            # is the account's distance from it plus its half-width (the middle of the
+            # two and half their step, 2x the half-width: the half-width alone, stated
+            # before, left the other case outside by as much again)
             hw = np.asarray(acc.half_width, float)
-            return pos, late, ({"_force_half_width": hw} if np.any(hw > 0) else {})
+            if np.any(hw > 0):
+                w = acc.disturbance(cols["force"], cols["seq"])
+                return pos, late, {"_force_half_width": hw + np.where(hw > 0, np.abs(w),
+                                                                      0.0)}
+            return pos, late, {}
     else:
         # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
         # the nearest step of every force (the firmware rounds so): a known input at every
@@ -432,6 +441,13 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = np.asarray(acc.half_width, float)
     info["_late_force_bound"] = late_force_bound(acc, w)
+    if driver is not None and late is not None and np.any(late):
+        # a driver's account names which force each row applied, not for how long: a
+        # host tick that went out late (the row's late flag) held the force before it
+        # over more than a period, a disturbance no account takes out; the record is still
+        # cut there (before, an account dropped these cuts: the late rows were measured
+        # as on time)
+        return pos - xw, np.asarray(late, bool), info
     return pos - xw, None, info
 
 

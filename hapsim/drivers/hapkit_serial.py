@@ -107,10 +107,24 @@ class ReplyDecoder(AlignedDecoder):
     Attributes
     ----------
     stats : dict
-        ``frames`` (replies), ``skipped`` (bytes dropped realigning).
+        ``frames`` (replies), ``skipped`` (bytes dropped realigning), ``unconfirmed``
+        (windows that parsed but were followed by no function byte: dropped).
+
+    Notes
+    -----
+    A reply is taken only where the byte after it, when one has come, is the function
+    byte a reply starts with, and one found by realigning waits for that byte
+    (:attr:`AlignedDecoder.confirm_next`): no start byte and no checksum let the tail of a
+    damaged reply and the head of the next make a plausible reply (about one lost byte in
+    200 did; taken as a reading, it made a measurement "differ").
     """
 
     length = 9
+    confirm_next = True
+
+    def starts_frame(self, byte: int) -> bool:
+        """A reply starts with its function byte."""
+        return byte == self.function
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION) -> None:
         super().__init__()
@@ -218,9 +232,14 @@ class HapkitSerial(Driver):
         says it has that force, a known input the measurement takes out, as a late tick
         on the framed link. The rows are matched to the replies in order by their
         position (the binary32 the reply carried, exactly; a reply no row took, from an
-        arming or a record the host dropped, is passed over). A row with no reply
-        (``FLAG_ESTIMATED``) keeps the timing account's force, the sent one or the one
-        before, with its half-width (:meth:`Driver.account`).
+        arming, a record the host dropped or one its decoder held until the next came, is
+        passed over). A row with no reply (``FLAG_ESTIMATED``) may have had its command
+        lost: the force from it on is the one sent, or what the sketch held at the row
+        before -- that row's account, the force its reply named (a damaged command's
+        ~0 N, not the force the host sent) or, itself unknown, its whole interval. The
+        account takes the middle of the two and states half their span (before, "the one
+        before" was the host's sent force, which a damaged command had not applied; two
+        lost commands in a row left the force two back outside).
 
         Parameters
         ----------
@@ -232,25 +251,29 @@ class HapkitSerial(Driver):
         Returns
         -------
         hapsim.applied.AppliedAccount or None
-            None when the delay is not known or no reply was logged.
+            None when the delay is not known, no reply was logged, or every command was
+            answered with the force sent (:meth:`Driver.account`'s answer then).
         """
         import numpy as np
 
-        from hapsim.applied import account_from_timing
+        from hapsim.applied import AppliedAccount, account_from_timing
         d = getattr(self, "loop_delay", None)
         log = getattr(self, "replies", None)
         flags = columns.get("flags")
         pos = columns.get("position")
         if d is None or log is None or log.n == 0 or flags is None or pos is None:
             return super().account(columns, force)
-        base = super().account(columns, force) or account_from_timing(
-            force, d, quantise=self.applied_force)
+        # the forces sent as the sketch receives them (binary32, clamped): a reply that
+        # names the same force is no late tick
+        base = account_from_timing(force, d, quantise=self.applied_force)
         est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
+        n = est.size
         xs, fs = log.x[:log.n], log.force[:log.n]
         applied = base.applied.copy()
         late = base.late.copy()
-        hw = base.half_width.copy()
+        hw = np.zeros(n)
         known = base.known.copy()
+        replied = np.zeros(n, bool)
         j = 0
         for r in np.flatnonzero(~est):
             # the next reply at this row's position (a few replies at most are passed
@@ -262,11 +285,24 @@ class HapkitSerial(Driver):
                 continue
             j = k + 1
             f = float(fs[k])
-            if f != applied[r] or hw[r] != 0.0:
-                late[r] = late[r] or f != applied[r]
-                applied[r] = f
-                hw[r] = 0.0
+            late[r] = late[r] or f != applied[r]
+            applied[r] = f
+            replied[r] = True
             known[r] = True
-        from hapsim.applied import AppliedAccount
+        # row r applies the force of the command answered (or not) at row r - d + 1
+        amb = np.zeros(n, bool)
+        k = np.flatnonzero(est) + d - 1
+        amb[k[(k >= 0) & (k < n)]] = True
+        amb &= ~replied
+        if not (amb.any() or late.any()):
+            return None
+        for r in np.flatnonzero(amb):
+            on = float(base.applied[r])
+            held_lo = held_hi = 0.0
+            if r > 0:
+                held_lo, held_hi = applied[r - 1] - hw[r - 1], applied[r - 1] + hw[r - 1]
+            lo, hi = min(on, held_lo), max(on, held_hi)
+            applied[r] = 0.5 * (lo + hi)
+            hw[r] = 0.5 * (hi - lo)
         return AppliedAccount(applied, base.source, base.tick_delay, base.delay, late, hw,
                               known, "replies")

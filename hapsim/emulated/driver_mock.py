@@ -298,7 +298,13 @@ class FireFaderDevice(_Actuated):
     Time, ``clock="lockstep"`` (named, for deterministic tests): the physics advances one
     period per host write (one host tick: the host's time, which goes on whether the
     firmware runs a pass or not); a write that ends in no pass (its start byte lost, a
-    packet waiting for a byte) holds the motor's PWM over its period.
+    packet waiting for a byte) holds the motor's PWM over its period. The silence rule
+    counts those periods too: host writes of which no byte arrived (the link lost them
+    all), :data:`hapsim.drivers.firefader.SILENCE_S` of them in a row, zero the enable
+    and the motor (:attr:`silent_ticks`); the wall clock is never the device's time
+    here (:func:`serve` does not call :meth:`idle` with the time a slow host took:
+    before, a lockstep mock whose host was descheduled 0.1 s took the wall clock's
+    silence for its own, and its record was another on a loaded host).
 
     A value byte lost makes the firmware take the next packet's 127 as fader B's
     force and swallow that packet's forces (the pass applies fader A's byte of the damaged
@@ -364,7 +370,10 @@ class FireFaderDevice(_Actuated):
         Wall clock: the board's time [s] its last record has left at (:func:`serve`
         writes it then).
     silences : list of float
-        Wall clock: the board's times [s] its silence rule zeroed the force at.
+        The board's times [s] its silence rule zeroed the force at (lockstep: host ticks
+        times the period, from the first write).
+    silent_ticks : int
+        Lockstep: host writes in a row of which no byte arrived.
 
     Raises
     ------
@@ -442,6 +451,7 @@ class FireFaderDevice(_Actuated):
         self.pwm = 0
         self.enables: list = []
         self.host_ticks = 0
+        self.silent_ticks = 0
         self._state = 0                       # 0 hunting a 127, 1 byte A next, 2 byte B
         self._fa = self._fb = 0
         self._ready = None                    # a packet read, its pass not run yet
@@ -607,6 +617,18 @@ class FireFaderDevice(_Actuated):
         done = None
         last = len(writes) - 1
         for i, w in enumerate(writes):
+            if w:
+                self.silent_ticks = 0
+            elif i > 0:
+                # a host tick of which no byte arrived: the firmware's idle polls ran
+                # over its period; SILENCE_S of them zero the enable and the motor
+                self.silent_ticks += 1
+                if (self.silent_ticks * self.physics.period >= self._ff.SILENCE_S - 1e-12
+                        and (self.enable or self.pwm)):
+                    self.enable = 0
+                    self.pwm = 0
+                    self.apply_now(0.0)
+                    self.silences.append((self.host_ticks - ticks + i) * self.physics.period)
             for b in w:
                 pk = self._parse(b)
                 if pk is None:
@@ -1020,7 +1042,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
             out = dev.idle(t_idle - last)
         if not r:
-            if not streams:
+            if not streams and getattr(dev, "clock", "wall") == "wall":
+                # (a lockstep device's time is the commands: a silence of the wall clock
+                # is a slow host, not the device's; it counts silent ticks itself)
                 out = dev.idle(time.monotonic() - last)
         else:
             try:
