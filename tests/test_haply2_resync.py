@@ -84,8 +84,10 @@ def _check(rec, link, N, res):
 
 
 # (seeds whose faults hit every kind; the board reading an absent byte as 255 answers
-# other bytes than when it waited for them, and seed 6 then corrupted none on the way back)
-@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 1), ("gen3", 7)])
+# other bytes than when it waited for them, and seed 6 then corrupted none on the way back;
+# the 2DIY's re-arming of 32 zeros, not 556, drew other faults: gen3 seeds 1 and 7 then
+# corrupted nothing on the way back or lost nothing from the host)
+@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 2), ("gen3", 4)])
 def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
     """0.1 % of the bytes lost and 0.1 % corrupted, each way: the loop runs every tick,
     the board is re-synchronised when it lost its place (counted), the samples without a
