@@ -17,10 +17,11 @@ here, ended here by their pids):
   mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
 - ``haply2`` (2DIY, ``configs/pantograph_wall.yaml``): the real-time host loop
   (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
-  in process behind a link that loses bytes (seeded; the board steps one period per
-  write: ``clock`` says lockstep);
+  in process behind a link that loses bytes (seeded; the board on its own clock, the
+  wall clock: each write fed at its time, its replies readable when the board made them);
 - ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.pipeline.falcon_run.run_falcon`
-  over pyftdi and the emulated FT232R, the loss on its UART.
+  over pyftdi and the emulated FT232R, the loss on its UART, the Falcon on its own clock
+  (its firmware's ticks) and the run paced as a real one's.
 
 Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
@@ -167,30 +168,44 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
             "held_at_end": board.settles_on(), "error": None}
 
 
-def run_falcon_once(seed: int, loss: float) -> dict:
-    """One Falcon run over the emulated FT232R with seeded loss on its UART."""
-    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
+def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
+    """One Falcon run over the emulated FT232R with seeded loss on its UART.
+
+    The emulated Falcon on its own clock (its firmware's ticks, the default; lockstep by
+    name), the run paced as a real Falcon's is (a host stall is the firmware holding the
+    last command: "degraded"), as ``hapsim run --driver falcon`` runs it.
+    ``excursion_true`` is the legs' largest departure from the operating point over the
+    loop [rad], ``workspace`` the bound it is held to
+    (:data:`hapsim.pipeline.falcon_run.WORKSPACE_RAD`)."""
+    from hapsim.pipeline.falcon_run import WORKSPACE_RAD, emulated_falcon, run_falcon
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
     sc = load_scene_nd("configs/delta_sphere.yaml")
     image = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
     faults = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
-    link, dev, chip = emulated_falcon(sc, image, faults=faults)
+    link, dev, chip = emulated_falcon(sc, image, faults=faults, clock=clock)
     chip.faults_on = False
+
+    def start():
+        chip.faults_on = True
+        dev.excursion = 0.0                    # the loop's, not the homing's
     try:
         res = run_falcon(sc, link, image, 1000, truth=dev.counts, timeout=0.002,
-                         before_loop=lambda: setattr(chip, "faults_on", True))
+                         before_loop=start, paced=clock == "wall")
     except DeviceError as exc:
-        return {"clock": "lockstep", "error": f"DeviceError: {exc}"}
+        return {"clock": clock, "error": f"DeviceError: {exc}",
+                "excursion_true": dev.excursion, "workspace": WORKSPACE_RAD}
     finally:
         link.close()
     pos = res["position"]
-    return {"clock": "lockstep", "safety_stop": False, "stop": "end", "resyncs": 0,
-            "stalls": res.get("stalls"), "excursion_true": None,
+    return {"clock": clock, "safety_stop": bool(res.get("left")), "stop": "end",
+            "resyncs": 0, "stalls": res.get("stalls"), "excursion_true": dev.excursion,
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
-            "workspace": None, "verdict": res["verdict"], "within": None,
-            "exit_code": 0, "missing": res["missing"],
+            "workspace": WORKSPACE_RAD, "beyond_workspace": dev.excursion > WORKSPACE_RAD,
+            "verdict": res["verdict"], "within": None,
+            "exit_code": 0, "missing": res["missing"], "reason": res["reason"],
+            "held_zero": res["held_zero"],
             "truth": res["truth"], "error": None}
 
 

@@ -392,7 +392,7 @@ def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
 
 
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
-                 decoder=None) -> dict:
+                 decoder=None, hold_bound_s: float | None = None) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
@@ -421,13 +421,20 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
         The homing's decoder (its last counts and step check the loop's first replies);
         default a new one (the first reply then taken unchecked).
+    hold_bound_s : float, optional
+        A Falcon on its own clock (no watchdog published) holds each command until the
+        next: once the newest reading is older than this [s] (``time.perf_counter``),
+        the commands sent are zero until a reply comes (counted in ``held_zero``). None
+        (lockstep): no such rule.
 
     Returns
     -------
     dict
         ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
-        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters).
+        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
+        ``held_zero`` (packets sent at zero for want of a fresh reading).
     """
+    import time
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
     from hapsim.engine_nd import EngineND
@@ -446,6 +453,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
     x = J = None
     started = False
+    held_zero = 0
+    t_read = time.perf_counter()
     for k in range(N):
         ok = False
         if got:
@@ -459,6 +468,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                     x, J = kin.forward_jacobian(q, x)
                     ok = True
                     joints[k], pos[k] = q, x
+                    t_read = time.perf_counter()
                 except ConfigError:
                     pass
         if not ok:
@@ -471,7 +481,12 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             eng.set_port_position(x)
         eng.step()
         c = (0, 0, 0) if J is None else tuple(torque_command(t) for t in J.T @ eng.port_force)
+        if hold_bound_s is not None and time.perf_counter() - t_read > hold_bound_s:
+            # no fresh reading for the bound: the force was computed from where the legs
+            # were, and the firmware would hold it (no watchdog published): zero
+            c = (0, 0, 0)
+            held_zero += 1
         cmds[k] = c
         got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
-            "unhomed": unhomed, "decoder": dict(dec.stats)}
+            "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero}
