@@ -434,7 +434,6 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
         ``held_zero`` (packets sent at zero for want of a fresh reading).
     """
-    import time
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
     from hapsim.engine_nd import EngineND
