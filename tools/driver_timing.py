@@ -106,6 +106,13 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
     from hapsim.scene_nd import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd("configs/pantograph_wall.yaml")
+    if clock == "wall":
+        # the board's compiled plant loaded before the clock (in process its first call
+        # would be the host's stall and the held torque's time: a first run's 2.2 rad)
+        from hapsim.drivers.haply2 import Haply2DIY
+        warm, drv = Haply2DIYBoard(sc, "gen3", clock="wall"), Haply2DIY("gen3")
+        warm.feed(drv.arm_bytes([float(np.degrees(v)) for v in sc.device.joints]), 0.0)
+        warm.feed(drv.write_bytes((0.0, 0.0)), 0.01)
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock=clock)
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     q0 = np.asarray(sc.device.joints, float)
