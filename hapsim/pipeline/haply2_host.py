@@ -618,9 +618,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # reply not read is a board out of step (re-armed below, zero torque first), as
         # in the loop; before, END_WAIT_S (1 s) of a garbage torque held
         end = time.monotonic() + END_WAIT_S
+
+        def take_late(data):
+            # the step check widens with the time since the last reading's write, as in
+            # the loop: a reply read late is a late sample
+            dec.elapsed(time.perf_counter() - t_wrote[seen])
+            take(data)
         while seen < N + 1 and time.monotonic() < end:
             n0 = replies
-            _awake_wait(lambda: replies != n0 or seen >= N + 1, SILENT_S, take)
+            _awake_wait(lambda: replies != n0 or seen >= N + 1, SILENT_S, take_late)
             if replies == n0:
                 break
     rearmed_at_end = seen < N + 1
