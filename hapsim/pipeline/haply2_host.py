@@ -2,10 +2,10 @@
 port (the emulated board in a child process on a pseudo-terminal, :class:`Embedded2DIY`,
 as the 1-DoF Haply mock runs; or a real board).
 
-The board answers each write with the angles after one period (firmware V1.5 has no
-clock of its own: each write is one period of its plant, as
-:class:`hapsim.emulated.haply2_board.Haply2DIYBoard` and the 1-DoF
-:class:`hapsim.emulated.driver_mock.HaplyDevice` model it). The host ticks every ``T``: at tick
+The board answers each write with the angles read when its pass took the write, whose
+torques it then holds until the next (firmware V1.5 on its own time, no watchdog:
+:class:`hapsim.emulated.haply2_board.Haply2DIYBoard`'s default; named, in lockstep, each
+write is one period of its plant). The host ticks every ``T``: at tick
 ``k`` the sample is the reply to write ``k`` (write 0 is the arming's zero write; replies
 come in order, one per write, and none is lost on a clean stream, so the ``i``-th reply
 answers write ``i``). A reply not read by tick ``k`` is a *missing reply*: the tick is an
