@@ -392,7 +392,8 @@ def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
 
 
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
-                 decoder=None, hold_bound_s: float | None = None) -> dict:
+                 decoder=None, hold_bound_s: float | None = None,
+                 late_stop: bool = False) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
@@ -426,14 +427,25 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         next: once the newest reading is older than this [s] (``time.perf_counter``),
         the commands sent are zero until a reply comes (counted in ``held_zero``). None
         (lockstep): no such rule.
+    late_stop : bool
+        A Falcon on its own clock: the host's lateness is watched as the 1-DoF loop
+        watches it (:data:`hapsim.host.loop.LATE_WINDOW`, :data:`hapsim.host.loop.LATE_STOP`):
+        each gap between two packets counts its excess over two periods (a packet that
+        comes just after the firmware's tick waits for the next: two periods on time),
+        and when the last ``LATE_WINDOW`` packets' sum passes ``LATE_STOP`` of
+        their periods the loop stops, zero commands sent (``stopped``: the packet and
+        the reason). The firmware held each command over every gap; a host that late
+        feeds the scene's loop energy through the varying delay.
 
     Returns
     -------
     dict
         ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
         ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
-        ``held_zero`` (packets sent at zero for want of a fresh reading).
+        ``held_zero`` (packets sent at zero for want of a fresh reading), ``stopped``
+        (None, or ``(packet, reason)`` where the late-stop rule ended the loop).
     """
+    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
     from hapsim.engine_nd import EngineND
@@ -453,7 +465,11 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     x = J = None
     started = False
     held_zero = 0
-    t_read = time.perf_counter()
+    t_read = t_prev = time.perf_counter()
+    T = scene.period
+    late_ring = [0.0] * LATE_WINDOW
+    late_sum = 0.0
+    stopped = None
     for k in range(N):
         ok = False
         if got:
@@ -485,7 +501,21 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             # were, and the firmware would hold it (no watchdog published): zero
             c = (0, 0, 0)
             held_zero += 1
+        if late_stop:
+            now = time.perf_counter()
+            gap = now - t_prev
+            t_prev = now
+            late = gap - 2.0 * T if gap > 2.0 * T else 0.0
+            late_sum += late - late_ring[k % LATE_WINDOW]
+            late_ring[k % LATE_WINDOW] = late
+            if late_sum > LATE_STOP * LATE_WINDOW * T:
+                stopped = (k, f"safety: the host was {late_sum * 1e3:.0f} ms late over its "
+                              f"last {LATE_WINDOW} packets: it cannot keep the Falcon's "
+                              f"{scene.rate_hz:g} Hz here (a loaded machine?); zero "
+                              "commands sent")
+                break
         cmds[k] = c
         got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
-            "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero}
+            "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero,
+            "stopped": stopped}

@@ -116,6 +116,9 @@ def falcon_verdict(res: dict) -> dict:
             f"the loop ran at {res['packets_per_s']:.0f} packets/s, below the scene's "
             f"{res['rate_hz']:g} Hz: the Falcon held each command {slow:.1f} periods, so "
             "it rendered another loop than the scene's")
+    if res.get("stopped"):
+        said = (said + "; " if said else "") + (
+            f"stopped at packet {res['stopped'][0]}: {res['stopped'][1]}")
     caveat = ("the packets carry no checksum: a bit flipped inside a nibble is another "
               "count, which no host can see")
     if not said:
@@ -271,7 +274,8 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     stamps.clear()
     try:
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
-                           hold_bound_s=HOLD_BOUND_S if paced else None)
+                           hold_bound_s=HOLD_BOUND_S if paced else None,
+                           late_stop=paced)
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
@@ -284,7 +288,7 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
-           "held_zero": res["held_zero"]}
+           "held_zero": res["held_zero"], "stopped": res["stopped"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
     out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
     out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0
