@@ -135,3 +135,21 @@ def test_own_clock_host_stalls_are_degraded_and_the_legs_held_simulated_time(mon
     assert res["missing"] == 0
     assert dev.excursion <= fr.WORKSPACE_RAD
     assert dev.commands == (0, 0, 0)
+
+
+def test_own_clock_host_too_late_stops_the_loop_simulated_time(monkeypatch):
+    """The host late by 12 periods before every fourth packet (simulated time; what two
+    CPU-bound processes did to it on a loaded 2-core machine, where the scene's contact,
+    rendered with such gaps and each command held over them by the firmware, ran the
+    emulated legs 1-143 rad): the late-stop of the 1-DoF loop (hapsim.host.loop) ends the
+    loop, zero commands sent, the verdict "degraded" with the stop, and the legs within
+    the workspace."""
+    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
+    res, dev, sc = _sim_run(monkeypatch, stall_at=set(range(4, 600, 4)), stall_s=12e-3)
+    assert res["stopped"] is not None and res["verdict"] == "degraded"
+    assert "safety: the host was" in res["reason"]
+    # each gap's excess over two periods is about 10 ms: the stop within the first window
+    assert res["stopped"][0] <= LATE_WINDOW
+    assert LATE_STOP * LATE_WINDOW / sc.rate_hz < 0.06
+    assert dev.commands == (0, 0, 0)
+    assert dev.excursion <= fr.WORKSPACE_RAD

@@ -465,6 +465,14 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     x = J = None
     started = False
     held_zero = 0
+    if late_stop:
+        # the compiled kinematics and engine loaded before the clock (a first call's
+        # compilation would be taken for the host's lateness)
+        try:
+            kin.forward_jacobian(np.asarray(scene.device.joints, float), None)
+        except ConfigError:
+            pass
+        EngineND(scene).step()
     t_read = t_prev = time.perf_counter()
     T = scene.period
     late_ring = [0.0] * LATE_WINDOW
@@ -505,7 +513,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             now = time.perf_counter()
             gap = now - t_prev
             t_prev = now
-            late = gap - 2.0 * T if gap > 2.0 * T else 0.0
+            late = gap - 2.0 * T if gap > 2.0 * T and k > 0 else 0.0
             late_sum += late - late_ring[k % LATE_WINDOW]
             late_ring[k % LATE_WINDOW] = late
             if late_sum > LATE_STOP * LATE_WINDOW * T:
