@@ -1,7 +1,9 @@
 """A host stall in the Falcon's loop (issue 29 item 2): the firmware, on its own clock,
 holds the last command over it; the run counts it and, on a paced (real) Falcon, says
-"degraded" with the stall, never "ok". The emulated Falcon here steps one period per
-packet (lockstep, named so in each test): what is tested is the host's account."""
+"degraded" with the stall, never "ok". The first test's emulated Falcon steps one period
+per packet (lockstep, named so): what is tested is the host's account; the others close
+the loop with the Falcon on its own clock (its firmware's ticks) in simulated time (the
+same run on any machine at any load; the real wall clock: tests/test_wallclock.py)."""
 
 from __future__ import annotations
 
@@ -55,3 +57,99 @@ def test_host_stalls_are_counted_and_a_paced_falcon_is_degraded_lockstep(seed):
     assert res["verdict"] == "degraded" and "host stalled" in res["reason"]
     res, _ = _run(at, stall, paced=False)
     assert res["stalls"] >= len(at) and res["verdict"] == "ok", res["reason"]
+
+
+class SimClock:
+    """Simulated time for the host and the Falcon alike: each reading moves it ``step``
+    on (the host's own work, a poll of pyftdi), a sleep by its length. The Falcon keeps
+    its own time (``clock="wall"``: a packet taken at its firmware's next tick, its
+    command held until the next, the legs integrated over the real interval); only the
+    time is simulated, so the run is the same on any machine at any load."""
+
+    def __init__(self, step=2e-5):
+        self.t, self.step = 0.0, step
+
+    def now(self):
+        self.t += self.step
+        return self.t
+
+    def sleep(self, d):
+        self.t += max(float(d), 0.0)
+
+
+def _sim_run(monkeypatch, stall_at=(), stall_s=0.0, samples=600):
+    import types
+    from hapsim.drivers import falcon_usb
+    from hapsim.emulated import falcon_device
+    clk = SimClock()
+    fake = types.SimpleNamespace(perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep)
+    for mod in (fr, falcon_usb, falcon_device):
+        monkeypatch.setattr(mod, "time", fake)
+    sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
+    link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="wall")
+    assert dev.clock == "wall"
+    calls = [0, False]
+    real = link.exchange
+
+    def exchange(*a, **k):
+        if calls[1]:
+            calls[0] += 1
+            if calls[0] in stall_at:
+                clk.sleep(stall_s)              # the host descheduled
+        return real(*a, **k)
+    link.exchange = exchange
+
+    def start():
+        calls[1] = True
+        dev.excursion = 0.0                     # the loop's, not the homing's
+    try:
+        res = fr.run_falcon(sc, link, IMAGE, samples, truth=dev.counts, timeout=0.002,
+                            paced=True, before_loop=start)
+    finally:
+        link.close()
+    return res, dev, sc
+
+
+def test_own_clock_punctual_host_is_ok_and_holds_the_legs_simulated_time(monkeypatch):
+    """The Falcon on its own clock (its firmware's ticks), the host punctual (simulated
+    time), paced as a real Falcon's run: every reply read, every reading the encoders'
+    true count, no stall, the verdict "ok", the legs within the workspace (the scene's
+    loop holds the handle where it rests) and left at zero command."""
+    res, dev, sc = _sim_run(monkeypatch)
+    assert res["missing"] == 0 and res["stalls"] == 0 and res["held_zero"] == 0
+    assert res["verdict"] == "ok", res["reason"]
+    t = res["truth"]
+    assert t["compared"] == res["samples"] and t["exact"] == t["compared"]
+    assert dev.excursion <= fr.WORKSPACE_RAD
+    assert dev.commands == (0, 0, 0)
+
+
+def test_own_clock_host_stalls_are_degraded_and_the_legs_held_simulated_time(monkeypatch):
+    """Host stalls of 8 periods before three of the loop's packets (simulated time), the
+    Falcon on its own clock holding the last command over each: each counted, the
+    verdict "degraded" naming them (never "ok"), every reply still read, and the legs
+    within the workspace (the scene's small resting force held 8 ms)."""
+    res, dev, sc = _sim_run(monkeypatch, stall_at={100, 250, 400}, stall_s=8e-3)
+    assert res["stalls"] >= 3 and res["verdict"] == "degraded"
+    assert "host stalled" in res["reason"]
+    assert res["missing"] == 0
+    assert dev.excursion <= fr.WORKSPACE_RAD
+    assert dev.commands == (0, 0, 0)
+
+
+def test_own_clock_host_too_late_stops_the_loop_simulated_time(monkeypatch):
+    """The host late by 12 periods before every fourth packet (simulated time; what two
+    CPU-bound processes did to it on a loaded 2-core machine, where the scene's contact,
+    rendered with such gaps and each command held over them by the firmware, ran the
+    emulated legs 1-143 rad): the late-stop of the 1-DoF loop (hapsim.host.loop) ends the
+    loop, zero commands sent, the verdict "degraded" with the stop, and the legs within
+    the workspace."""
+    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
+    res, dev, sc = _sim_run(monkeypatch, stall_at=set(range(4, 600, 4)), stall_s=12e-3)
+    assert res["stopped"] is not None and res["verdict"] == "degraded"
+    assert "safety: the host was" in res["reason"]
+    # each gap's excess over two periods is about 10 ms: the stop within the first window
+    assert res["stopped"][0] <= LATE_WINDOW
+    assert LATE_STOP * LATE_WINDOW / sc.rate_hz < 0.06
+    assert dev.commands == (0, 0, 0)
+    assert dev.excursion <= fr.WORKSPACE_RAD

@@ -84,9 +84,11 @@ def _check(rec, link, N, res):
 
 
 # (seeds whose faults hit every kind; the board reading an absent byte as 255 answers
-# other bytes than when it waited for them, and seed 6 then corrupted none on the way back)
-@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 1), ("gen3", 7)])
-def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
+# other bytes than when it waited for them, and seed 6 then corrupted none on the way back;
+# the 2DIY's re-arming of 32 zeros, not 556, drew other faults: gen3 seeds 1 and 7 then
+# corrupted nothing on the way back or lost nothing from the host)
+@pytest.mark.parametrize("gen,seed", [("gen2", 3), ("gen3", 2), ("gen3", 4)])
+def test_seeded_byte_loss_and_corruption_both_ways_lockstep(gen, seed):
     """0.1 % of the bytes lost and 0.1 % corrupted, each way: the loop runs every tick,
     the board is re-synchronised when it lost its place (counted), the samples without a
     reply are estimated (counted) and no stretch of them outlasts the silence that calls
@@ -107,7 +109,7 @@ def test_seeded_byte_loss_and_corruption_both_ways(gen, seed):
     assert 0 < runs.max() <= SILENT_WRITES + 1 and read.sum() > N / 2
 
 
-def test_a_lost_host_byte_desyncs_the_board_and_the_loop_resyncs_it():
+def test_a_lost_host_byte_desyncs_the_board_and_the_loop_resyncs_it_lockstep():
     """One byte of the 30th write lost: the board reads the next write's bytes as the
     rest of this one and goes on out of step (garbage, or silence); the loop finds it,
     re-synchronises the board once, and every later tick reads its reply."""
@@ -123,7 +125,7 @@ def test_a_lost_host_byte_desyncs_the_board_and_the_loop_resyncs_it():
     assert read[k:].all()
 
 
-def test_a_lost_device_byte_is_one_missing_sample_and_no_resync():
+def test_a_lost_device_byte_is_one_missing_sample_and_no_resync_lockstep():
     """One byte of a reply lost on the way back: the decoder drops the rest of it and
     realigns on the next reply (fewer bytes than a desync); that tick is an estimated
     sample, nothing is re-synchronised."""
@@ -138,7 +140,7 @@ def test_a_lost_device_byte_is_one_missing_sample_and_no_resync():
 
 
 @pytest.mark.parametrize("fault", ["command", "reset", "garbage"])
-def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced(fault):
+def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced_lockstep(fault):
     """The board's parser thrown off three ways: a write's command byte corrupted (2 ->
     3: no command, and the id read as a set-up's start), a reset injected (the board
     forgets its set-up and answers each write with one byte), a garbage set-up that
@@ -157,7 +159,7 @@ def test_a_board_out_of_step_answers_garbage_or_nothing_and_is_resynced(fault):
     assert read[int(np.flatnonzero(rec["resynced"])[0]):].all()
 
 
-def test_a_resynchronised_record_is_not_measured():
+def test_a_resynchronised_record_is_not_measured_lockstep():
     """The felt matrices are measured on the loop's free responses: a record during which
     the board was re-armed is none (the hand's record restarts), so the verdict is "not
     measurable", saying why, with the re-synchronisations counted per record, and no

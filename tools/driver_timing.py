@@ -17,10 +17,11 @@ here, ended here by their pids):
   mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
 - ``haply2`` (2DIY, ``configs/pantograph_wall.yaml``): the real-time host loop
   (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
-  in process behind a link that loses bytes (seeded; the board steps one period per
-  write: ``clock`` says lockstep);
+  in process behind a link that loses bytes (seeded; the board on its own clock, the
+  wall clock: each write fed at its time, its replies readable when the board made them);
 - ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.pipeline.falcon_run.run_falcon`
-  over pyftdi and the emulated FT232R, the loss on its UART.
+  over pyftdi and the emulated FT232R, the loss on its UART, the Falcon on its own clock
+  (its firmware's ticks) and the run paced as a real one's.
 
 Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
@@ -88,77 +89,132 @@ def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
             "exit_code": rep.get("exit_code"), "error": err or m.get("error")}
 
 
-def run_haply2(seed: int, loss: float) -> dict:
-    """One 2DIY measurement against the in-process emulated board behind a lossy link."""
+def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
+    """One 2DIY measurement against the in-process emulated board behind a lossy link.
+
+    On the wall clock (the board's default, firmware V1.5's own time: its joints move
+    under the torques held while the host is late or silent) each write is fed at its
+    time and its replies are readable from the board's ``ready_at`` on; in lockstep
+    (named) each write is one period and its reply there at once. ``excursion_true`` is
+    the joints' largest departure from the operating point [rad] (the board's truth);
+    ``workspace`` the bound it is held to
+    (:data:`hapsim.pipeline.haply2_host.WORKSPACE_RAD`)."""
     from hapsim.emulated.haply2_board import Haply2DIYBoard
-    from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+    from hapsim.pipeline.haply2_host import WORKSPACE_RAD, measure_felt_haply2_port
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.lockstep_nd import identification_plan
     from hapsim.scene_nd import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd("configs/pantograph_wall.yaml")
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
+    if clock == "wall":
+        # the board's compiled plant loaded before the clock (in process its first call
+        # would be the host's stall and the held torque's time: a first run's 2.2 rad)
+        from hapsim.drivers.haply2 import Haply2DIY
+        warm, drv = Haply2DIYBoard(sc, "gen3", clock="wall"), Haply2DIY("gen3")
+        warm.feed(drv.arm_bytes([float(np.degrees(v)) for v in sc.device.joints]), 0.0)
+        warm.feed(drv.write_bytes((0.0, 0.0)), 0.01)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock=clock)
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     q0 = np.asarray(sc.device.joints, float)
     exc_max = [0.0]
+    t0 = time.perf_counter()
 
     class Link:
         out = bytearray()
+        queue = []                      # wall clock: (ready at [s], reply bytes)
 
         def write(self, data):
-            self.out += f.tx(board.feed(f.rx(bytes(data))))
+            if clock == "wall":
+                rep = board.feed(f.rx(bytes(data)), time.perf_counter() - t0)
+                if rep:
+                    self.queue.append((board.ready_at, f.tx(rep)))
+            else:
+                self.out += f.tx(board.feed(f.rx(bytes(data))))
             exc_max[0] = max(exc_max[0], float(np.abs(board.plant.joints() - q0).max()))
             return len(data)
 
+        def _release(self):
+            now = time.perf_counter() - t0
+            while self.queue and self.queue[0][0] <= now:
+                self.out += self.queue.pop(0)[1]
+
         @property
         def in_waiting(self):
+            self._release()
             return len(self.out)
 
         def read(self, n):
+            self._release()
             b = bytes(self.out[:n])
             del self.out[:n]
             return b
     N = 200
+
+    def truth():
+        # the joints' largest departure while the host ran them: after each of its writes
+        # and, on the wall clock, every instant the board integrated to (its passes ahead
+        # of the host's time included); not the free coast at zero torque after the run,
+        # which no hand damps in the model (up to 0.3 rad measured while the fit ran)
+        return max(exc_max[0], board.excursion)
     try:
         r = measure_felt_haply2_port(Link(), sc, "gen3", amplitude=1e-4,
                                      resolution=2.0 ** 22, samples=N,
                                      plan=identification_plan(sc, N), probe_wiring=False,
-                                     lockstep_board=True)
+                                     lockstep_board=clock == "lockstep")
     except DeviceError as exc:
-        return {"clock": "lockstep", "error": f"DeviceError: {exc}",
-                "excursion_true": exc_max[0]}
-    return {"clock": "lockstep", "safety_stop": False, "stop": "end",
+        return {"clock": clock, "error": f"DeviceError: {exc}",
+                "excursion_true": truth(), "workspace": WORKSPACE_RAD}
+    return {"clock": clock, "safety_stop": False, "stop": "end",
             "resyncs": int(sum(r["resyncs"])), "stalls": int(sum(r.get("stalls", [0]))),
-            "excursion_true": exc_max[0], "excursion_host": None,
-            "workspace": None, "verdict": r["verdict"], "within": r["within"],
+            "excursion_true": truth(), "excursion_host": None,
+            "workspace": WORKSPACE_RAD, "beyond_workspace": truth() > WORKSPACE_RAD,
+            "verdict": r["verdict"], "within": r["within"],
             "exit_code": 0 if r["verdict"] != "differs" else 1,
+            "reason": r.get("reason"), "estimated": int(sum(r["estimated"])),
+            "held_zero": int(sum(r["held_zero"])), "left": r.get("left"),
             "held_at_end": board.settles_on(), "error": None}
 
 
-def run_falcon_once(seed: int, loss: float) -> dict:
-    """One Falcon run over the emulated FT232R with seeded loss on its UART."""
-    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
+def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
+    """One Falcon run over the emulated FT232R with seeded loss on its UART.
+
+    The emulated Falcon on its own clock (its firmware's ticks, the default; lockstep by
+    name), the run paced as a real Falcon's is (a host stall is the firmware holding the
+    last command: "degraded"), as ``hapsim run --driver falcon`` runs it.
+    ``excursion_true`` is the legs' largest departure from the operating point over the
+    loop [rad], ``workspace`` the bound it is held to
+    (:data:`hapsim.pipeline.falcon_run.WORKSPACE_RAD`)."""
+    from hapsim.pipeline.falcon_run import WORKSPACE_RAD, emulated_falcon, run_falcon
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.errors import DeviceError
     from hapsim.scene_nd import load_scene_nd
     sc = load_scene_nd("configs/delta_sphere.yaml")
     image = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
     faults = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
-    link, dev, chip = emulated_falcon(sc, image, faults=faults)
+    link, dev, chip = emulated_falcon(sc, image, faults=faults, clock=clock)
     chip.faults_on = False
+
+    def start():
+        chip.faults_on = True
+        dev.excursion = 0.0                    # the loop's, not the homing's
     try:
         res = run_falcon(sc, link, image, 1000, truth=dev.counts, timeout=0.002,
-                         before_loop=lambda: setattr(chip, "faults_on", True))
+                         before_loop=start, paced=clock == "wall")
     except DeviceError as exc:
-        return {"clock": "lockstep", "error": f"DeviceError: {exc}"}
+        return {"clock": clock, "error": f"DeviceError: {exc}",
+                "excursion_true": dev.excursion, "workspace": WORKSPACE_RAD}
     finally:
         link.close()
     pos = res["position"]
-    return {"clock": "lockstep", "safety_stop": False, "stop": "end", "resyncs": 0,
-            "stalls": res.get("stalls"), "excursion_true": None,
+    stopped = res.get("stopped")
+    return {"clock": clock, "safety_stop": bool(stopped),
+            "stop": stopped[1] if stopped else "end",
+            "resyncs": 0, "stalls": res.get("stalls"), "excursion_true": dev.excursion,
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
-            "workspace": None, "verdict": res["verdict"], "within": None,
-            "exit_code": 0, "missing": res["missing"],
+            "workspace": WORKSPACE_RAD, "beyond_workspace": dev.excursion > WORKSPACE_RAD,
+            "verdict": res["verdict"], "within": None,
+            "exit_code": 0, "missing": res["missing"], "reason": res["reason"],
+            "held_zero": res["held_zero"],
             "truth": res["truth"], "error": None}
 
 

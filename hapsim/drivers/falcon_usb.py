@@ -355,10 +355,14 @@ class FalconUSB:
         out = bytearray()
         try:
             while len(out) < n:
+                # the deadline is looked at before the read, so the last read comes after
+                # it: a host descheduled past the deadline reads what came meanwhile
+                # (a late reply is a late sample, not a missing one)
+                late = time.monotonic() >= end
                 out += self.ftdi.read_data(n - len(out))
                 if (done is not None and done(bytes(out))) or len(out) >= n:
                     break
-                if time.monotonic() >= end:
+                if late:
                     break
         except Exception as exc:
             raise explain_usb_error(exc, "reading from the Falcon") from None

@@ -48,8 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, MAX_TORQUE, ReplyDecoder,
-                                  resync_bytes)
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_WAIT, MAX_TORQUE,
+                                  ReplyDecoder, resync_bytes)
 from hapsim.errors import ConfigError
 
 __all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
@@ -236,12 +236,20 @@ class Haply2DIY:
 
     def arm_bytes(self, joints_deg) -> bytes:
         """Zero torque whatever the board's parser is doing, then the set-up and a
-        zero-torque write whose reply is the first sample: a zero write, ``LONGEST_COMMAND``
-        zero bytes (zero torque inside a write, resets elsewhere), two bytes 3 (no
-        command), the set-up, a zero write (:func:`hapsim.drivers.haply.resync_bytes`, as
-        the 1-DoF joint's :meth:`hapsim.drivers.haply.HaplyM3.resync`).
+        zero-torque write whose reply is the first sample: a zero write,
+        :data:`~hapsim.drivers.haply.LONGEST_WAIT` zero bytes (zero torque inside a write,
+        resets elsewhere), two bytes 3 (no command), the set-up, a zero write
+        (:func:`hapsim.drivers.haply.resync_bytes`, as the 1-DoF joint's
+        :meth:`hapsim.drivers.haply.HaplyM3.resync`). Firmware V1.5's single
+        ``SerialUSB.read()`` of an empty buffer gives 255 and only its ``readBytes`` wait
+        (at most 32 bytes: ``Haply_M3_Firmware_V1_5.h`` line 188), as the M3's, so 32 zeros
+        outlast any wait; 556 (:data:`~hapsim.drivers.haply.LONGEST_COMMAND`, before) were
+        278 resets, one a pass of at least 50 us (``.ino`` lines 59-64): 14 ms of board
+        time with a garbage torque held before the set-up, and 600 bytes of which 1 lost
+        in 200 loses at least one 95 % of the time (76 bytes now: 32 %).
         """
-        return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg))
+        return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg),
+                            zeros=LONGEST_WAIT)
 
     def decoder(self) -> Reply2Decoder:
         """A fresh reply decoder (whole counts at the set-up's resolution)."""

@@ -392,7 +392,8 @@ def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
 
 
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
-                 decoder=None) -> dict:
+                 decoder=None, hold_bound_s: float | None = None,
+                 late_stop: bool = False) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
@@ -421,13 +422,30 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     decoder : hapsim.drivers.falcon.DevicePacketDecoder, optional
         The homing's decoder (its last counts and step check the loop's first replies);
         default a new one (the first reply then taken unchecked).
+    hold_bound_s : float, optional
+        A Falcon on its own clock (no watchdog published) holds each command until the
+        next: once the newest reading is older than this [s] (``time.perf_counter``),
+        the commands sent are zero until a reply comes (counted in ``held_zero``). None
+        (lockstep): no such rule.
+    late_stop : bool
+        A Falcon on its own clock: the host's lateness is watched as the 1-DoF loop
+        watches it (:data:`hapsim.host.loop.LATE_WINDOW`, :data:`hapsim.host.loop.LATE_STOP`):
+        each gap between two packets counts its excess over two periods (a packet that
+        comes just after the firmware's tick waits for the next: two periods on time),
+        and when the last ``LATE_WINDOW`` packets' sum passes ``LATE_STOP`` of
+        their periods the loop stops, zero commands sent (``stopped``: the packet and
+        the reason). The firmware held each command over every gap; a host that late
+        feeds the scene's loop energy through the varying delay.
 
     Returns
     -------
     dict
         ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
-        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters).
+        ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
+        ``held_zero`` (packets sent at zero for want of a fresh reading), ``stopped``
+        (None, or ``(packet, reason)`` where the late-stop rule ended the loop).
     """
+    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
     from hapsim.engine_nd import EngineND
@@ -446,6 +464,20 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
     x = J = None
     started = False
+    held_zero = 0
+    if late_stop:
+        # the compiled kinematics and engine loaded before the clock (a first call's
+        # compilation would be taken for the host's lateness)
+        try:
+            kin.forward_jacobian(np.asarray(scene.device.joints, float), None)
+        except ConfigError:
+            pass
+        EngineND(scene).step()
+    t_read = t_prev = time.perf_counter()
+    T = scene.period
+    late_ring = [0.0] * LATE_WINDOW
+    late_sum = 0.0
+    stopped = None
     for k in range(N):
         ok = False
         if got:
@@ -459,6 +491,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                     x, J = kin.forward_jacobian(q, x)
                     ok = True
                     joints[k], pos[k] = q, x
+                    t_read = time.perf_counter()
                 except ConfigError:
                     pass
         if not ok:
@@ -471,7 +504,26 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             eng.set_port_position(x)
         eng.step()
         c = (0, 0, 0) if J is None else tuple(torque_command(t) for t in J.T @ eng.port_force)
+        if hold_bound_s is not None and time.perf_counter() - t_read > hold_bound_s:
+            # no fresh reading for the bound: the force was computed from where the legs
+            # were, and the firmware would hold it (no watchdog published): zero
+            c = (0, 0, 0)
+            held_zero += 1
+        if late_stop:
+            now = time.perf_counter()
+            gap = now - t_prev
+            t_prev = now
+            late = gap - 2.0 * T if gap > 2.0 * T and k > 0 else 0.0
+            late_sum += late - late_ring[k % LATE_WINDOW]
+            late_ring[k % LATE_WINDOW] = late
+            if late_sum > LATE_STOP * LATE_WINDOW * T:
+                stopped = (k, f"safety: the host was {late_sum * 1e3:.0f} ms late over its "
+                              f"last {LATE_WINDOW} packets: it cannot keep the Falcon's "
+                              f"{scene.rate_hz:g} Hz here (a loaded machine?); zero "
+                              "commands sent")
+                break
         cmds[k] = c
         got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
-            "unhomed": unhomed, "decoder": dict(dec.stats)}
+            "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero,
+            "stopped": stopped}

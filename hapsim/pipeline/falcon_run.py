@@ -27,7 +27,8 @@ import numpy as np
 
 from hapsim.errors import DeviceError
 
-__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "FIRMWARE_PROBES"]
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "FIRMWARE_PROBES",
+           "WORKSPACE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
 FIRMWARE_PROBES = 10
@@ -38,6 +39,17 @@ ZERO_PACKETS = 5
 #: firmware, on its own clock, held the last command over them (counted in ``stalls``;
 #: on a paced Falcon the verdict is "degraded" then: another loop than the scene's).
 HELD_PERIODS = 2.0
+#: Longest time [s] a paced Falcon (its firmware on its own clock, no watchdog published)
+#: is left with a command computed from a reading older than this: the loop then sends
+#: zero commands until a reply comes (``held_zero``); the 1-DoF drivers' bound
+#: (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+HOLD_BOUND_S = 0.02
+#: The legs' workspace in a run [rad]: the largest departure of any leg from the scene's
+#: operating point a run may reach (the emulated Falcon's truth, ``excursion``, is held
+#: to it by tools/driver_timing.py and the tests). The delta of configs/delta_sphere.yaml
+#: leaves its kinematics (no forward solution, or a singular Jacobian) 0.9 rad from rest
+#: (either leg, sampled): 0.5 rad is inside with a margin of 1.8.
+WORKSPACE_RAD = 0.5
 
 
 def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
@@ -90,7 +102,8 @@ def falcon_verdict(res: dict) -> dict:
     """
     d = res["decoder"]
     bad = {"replies missing": res["missing"], "bytes dropped realigning": d["skipped"],
-           "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"]}
+           "implausible packets dropped": d["implausible"], "samples unhomed": res["unhomed"],
+           "packets sent at zero for want of a fresh reading": res.get("held_zero", 0)}
     said = ", ".join(f"{k} {v}" for k, v in bad.items() if v)
     if res.get("paced") and res.get("stalls"):
         said = (said + "; " if said else "") + (
@@ -103,6 +116,9 @@ def falcon_verdict(res: dict) -> dict:
             f"the loop ran at {res['packets_per_s']:.0f} packets/s, below the scene's "
             f"{res['rate_hz']:g} Hz: the Falcon held each command {slow:.1f} periods, so "
             "it rendered another loop than the scene's")
+    if res.get("stopped"):
+        said = (said + "; " if said else "") + (
+            f"stopped at packet {res['stopped'][0]}: {res['stopped'][1]}")
     caveat = ("the packets carry no checksum: a bit flipped inside a nibble is another "
               "count, which no host can see")
     if not said:
@@ -209,13 +225,23 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     # between two packets is a host stall (the firmware held the last command over it)
     stamps = []
 
+    drain = getattr(link, "read", None)
+
     def feed(packet: bytes) -> bytes:
         sent[0] += 1
         stamps.append(time.perf_counter())
         try:
+            # what came after the last exchange stopped waiting (a reply later than
+            # ``timeout``) is read first, with this packet's answer after it: the decoder
+            # takes the newest reply. libnifalcon's runIOLoop reads every byte available
+            # and keeps the last whole packet (FalconFirmwareNovintSDK.cpp, formatOutput
+            # and runIOLoop). Before, a late reply was read as the next packet's answer,
+            # and every reply after it one packet late: a loop with a period more delay,
+            # which ran the emulated legs 45-110 rad beside two CPU-bound processes
+            late = drain(64, 0.0) if drain is not None and sent[0] > 1 else b""
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
-            ans = link.exchange(packet, 32, _reply_end, timeout)
+            ans = late + link.exchange(packet, 32, _reply_end, timeout)
         except DeviceError as exc:
             raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
                               "load)") from None
@@ -247,7 +273,9 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     t0 = time.perf_counter()
     stamps.clear()
     try:
-        res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec)
+        res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
+                           hold_bound_s=HOLD_BOUND_S if paced else None,
+                           late_stop=paced)
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
@@ -259,7 +287,8 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
            "missing": res["missing"], "unhomed": res["unhomed"], "decoder": res["decoder"],
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
            "position": res["position"], "commands": res["commands"], "truth": None,
-           "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed}
+           "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
+           "held_zero": res["held_zero"], "stopped": res["stopped"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
     out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
     out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0

@@ -2,10 +2,10 @@
 port (the emulated board in a child process on a pseudo-terminal, :class:`Embedded2DIY`,
 as the 1-DoF Haply mock runs; or a real board).
 
-The board answers each write with the angles after one period (firmware V1.5 has no
-clock of its own: each write is one period of its plant, as
-:class:`hapsim.emulated.haply2_board.Haply2DIYBoard` and the 1-DoF
-:class:`hapsim.emulated.driver_mock.HaplyDevice` model it). The host ticks every ``T``: at tick
+The board answers each write with the angles read when its pass took the write, whose
+torques it then holds until the next (firmware V1.5 on its own time, no watchdog:
+:class:`hapsim.emulated.haply2_board.Haply2DIYBoard`'s default; named, in lockstep, each
+write is one period of its plant). The host ticks every ``T``: at tick
 ``k`` the sample is the reply to write ``k`` (write 0 is the arming's zero write; replies
 come in order, one per write, and none is lost on a clean stream, so the ``i``-th reply
 answers write ``i``). A reply not read by tick ``k`` is a *missing reply*: the tick is an
@@ -47,7 +47,15 @@ taken for a board out of step. An estimated tick whose newest reading is older t
 :data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise). A
 record with a stall or a zeroed tick is not measured (no uniform loop of the THS).
 A record ends with a zero write; when its reply does not come in step the board is
-re-armed (zero torque whatever its parser is inside: no watchdog). A corrupted byte in
+re-armed (zero torque whatever its parser is inside: no watchdog); on a board on its own
+clock that reply is awaited only while replies keep coming (:data:`SILENT_S` of the host's
+awake time, :data:`AWAKE_GAP_S`), not :data:`END_WAIT_S` with whatever the board holds. A
+re-synchronisation of a board on its own clock waits for physical evidence that the board
+took it (a reply reading the set-up's offsets) at most :data:`REARM_REPLY_S` of the host's
+awake time, then sends it again, zero torque first (:data:`REARM_SENDS` at most): before,
+a re-arming the stream corrupted waited 0.25 s with the clamp's torque held (16.8 rad of
+true excursion, 1 byte in 200 lost). A reading farther than :data:`ENVELOPE_RAD` from the
+operating point ends the record's torque loop (zero torque from there; not measured). A corrupted byte in
 a write the board takes cannot be seen (no checksum: a wrong torque for one period).
 """
 
@@ -106,6 +114,42 @@ HOLD_BOUND_S = 0.02
 #: :data:`SILENT_WRITES` writes: 56 ms at 1 kHz, in which 0.123 N m turns a 2e-4 kg m^2
 #: joint 0.96 rad and leaves it at 34 rad/s).
 SILENT_S = HOLD_BOUND_S
+#: The joints' workspace in a measurement [rad]: the largest departure of either joint
+#: from the scene's operating point the host lets a record go on with (a reading beyond
+#: it: zero torque, the record ends, the run "not measurable"). The hand's records move
+#: the handle 1e-4 m (about 1e-3 rad); a 30 ms host stall at the board's clamp turns this
+#: 2e-4 kg m^2 joint 1/2 (0.123/2e-4) 0.03^2 = 0.28 rad; the five-bar of
+#: configs/pantograph_wall.yaml reaches its singular boundary 0.78 rad from rest (either
+#: joint): 0.5 rad is inside it with a margin of 1.5.
+WORKSPACE_RAD = 0.5
+#: The measurement's envelope [rad]: a reading of either joint farther than this from
+#: the scene's operating point ends the record's torque loop (zero torque written from
+#: that tick on, the record "left" and not measured). The hand moves the handle 1e-4 m
+#: (about 1e-3 rad): the records' largest joint motion measured, on the wall clock and
+#: unloaded, 0.0095 rad; three times that. Beside two CPU-bound processes a host on a
+#: third of its rate took a correct loop's record to 0.5 rad (no fault, the board on its
+#: own clock) before any bound, and with 0.1 rad the light joint (2e-4 kg m^2) coasted on
+#: to 0.69 and 0.86 rad after the zero torque.
+ENVELOPE_RAD = 0.03
+#: Longest wait [s] for a re-armed board's evidence that it took the re-arming (its
+#: answer to the closing zero write reading the set-up's offsets) before the re-arming is
+#: sent again, zero torque first: the hold bound (the board has no watchdog: a torque a
+#: garbage command set is held until a write in step replaces it) plus the set-up's own
+#: two encoders' 2 ms waits (:data:`hapsim.emulated.haply2_board.SETUP_S`). Before, a
+#: re-arming whose bytes the stream corrupted waited up to 0.25 s with the clamp's 0.123 N m
+#: held: 16.8 rad of true excursion with 1 byte in 200 lost.
+REARM_REPLY_S = HOLD_BOUND_S + 4e-3
+#: Quiet [s] after a re-arming's evidence before its sample's zero write: the set-up's
+#: two encoders' waits (a reply that read the offsets may have been the first zero
+#: write's, the closing one still to come after the set-up).
+REARM_QUIET_S = 5e-3
+#: Re-armings sent in a row for want of that evidence before the loop gives up (each
+#: 62 + LONGEST_COMMAND bytes, each at most REARM_REPLY_S of host time awake).
+REARM_SENDS = 20
+#: Longest gap [s] between two polls of the host that counts as the host awake: a wait is
+#: measured in the time the host was polling, so a host stall (the host descheduled, not
+#: reading) is never taken for a board's silence.
+AWAKE_GAP_S = 2e-3
 #: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
 #: frame hold a few).
 SILENT_COUNT = 4
@@ -194,7 +238,7 @@ def _write(ser, data: bytes) -> None:
 
 
 def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
-                    lockstep_board: bool = False) -> dict:
+                    lockstep_board: bool = False, running: bool = False) -> dict:
     """One record in real time: arm (the set-up, whose hand starts the record), then one
     write per tick of the host's clock (module notes).
 
@@ -213,6 +257,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         The board advances one period per write (named lockstep): a sample's age and a
         silence are then counted in the board's periods, not on the wall clock
         (:data:`HOLD_BOUND_S`, :data:`SILENT_S`).
+    running : bool, optional
+        The board already runs (a record after the first, or after the wiring probe):
+        the arming's answers are then awaited :data:`REPLY_WAIT_S`, not the
+        :data:`ARM_TIMEOUT` a board process that loads its plant is given (its torque is
+        the power-up's zero). A re-synchronisation on a board on its own clock waits for
+        the evidence that the board took it, at most :data:`REARM_REPLY_S` of the host's
+        awake time a sending (:data:`REARM_SENDS` sendings).
 
     Returns
     -------
@@ -320,44 +371,127 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         dropped; then the set-up's zero write, whose reply is tick ``k``'s sample. A
         first reply that does not read the offsets sent is a set-up the stream corrupted
         (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
-        nonlocal got, bad_setups
+        nonlocal got, bad_setups, rearm_sends
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
         # others for a board already running
-        wait = ARM_TIMEOUT if k == 0 and not replies else REPLY_WAIT_S
-        for _ in range(ARM_TRIES):
+        wait = ARM_TIMEOUT if k == 0 and not replies and not running else REPLY_WAIT_S
+        tries = 0
+        while tries < ARM_TRIES:
             # a re-synchronisation (k > 0): the whole bytes, the closing zero write too:
             # the board (no watchdog) takes zero torque right after its set-up, not after
             # the drain below (a torque a garbage command left was held through it); a
             # record's first arming leaves it for the sample's write (a lockstep board
             # would advance a period on it before the record)
+            bounded = k > 0 and not lockstep_board
             _write(ser, data if k > 0 else data[:-len(zero)])
-            end = time.monotonic() + wait
-            # the board answers the zero write when it is in step: wait for it (a board
-            # process just started loads its plant first); one out of step may not
-            quiet = math.inf if wait == ARM_TIMEOUT else time.monotonic() + REARM_WAIT_S
-            while time.monotonic() < min(end, quiet):
-                if _read(ser):
-                    quiet = time.monotonic() + QUIET_S
-                time.sleep(1e-3)
+            if bounded:
+                # a board on its own clock holds what its parser last took: until its
+                # answer to the closing zero write reads the offsets sent (the board in
+                # step, zero torque set after the set-up), the re-arming may have been
+                # corrupted and a garbage torque held. Awaited at most REARM_REPLY_S of
+                # the host's awake time, then sent again, zero torque first (bounded)
+                if not _await_setup(at_deg):
+                    rearm_sends += 1
+                    if rearm_sends >= REARM_SENDS:
+                        raise DeviceError(f"the 2DIY did not answer {REARM_SENDS} "
+                                          "re-armings in a row with the offsets sent")
+                    continue
+            else:
+                end = time.monotonic() + wait
+                # the board answers the zero write when it is in step: wait for it (a
+                # board process just started loads its plant first); one out of step
+                # may not
+                quiet = math.inf if wait == ARM_TIMEOUT else time.monotonic() + REARM_WAIT_S
+                while time.monotonic() < min(end, quiet):
+                    if _read(ser):
+                        quiet = time.monotonic() + QUIET_S
+                    time.sleep(1e-3)
             dec.clear()                         # a reply's part left: dropped too
             dec.reset_prediction()              # the set-up's offsets start afresh
             got = k
             _write(ser, zero)
             t_wrote[k] = time.perf_counter()
-            end = time.monotonic() + wait
-            while got == k and time.monotonic() < end:
-                take(_read(ser))
-                if got == k:
-                    time.sleep(2e-4)
+            if bounded:
+                _awake_wait(lambda: got != k, REARM_REPLY_S, take)
+            else:
+                end = time.monotonic() + wait
+                while got == k and time.monotonic() < end:
+                    take(_read(ser))
+                    if got == k:
+                        time.sleep(2e-4)
+            if (bounded and got == k + 2 and k + 1 < nr
+                    and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step):
+                # the re-arming's closing reply came after the quiet (a board process
+                # the host's machine held): the sample is the reply after it
+                qr[k] = qr[k + 1]
+                xr[k] = xr[k + 1]
+                qr[k + 1] = xr[k + 1] = np.nan
+                got, seen = k + 1, k
             if got == k + 1 and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step:
+                rearm_sends = 0
                 return
+            if bounded and got == k:
+                # no answer within the bound (not a set-up the stream corrupted): sent
+                # again, zero torque first; bounded by REARM_SENDS
+                rearm_sends += 1
+                if rearm_sends >= REARM_SENDS:
+                    raise DeviceError(f"the 2DIY did not answer {REARM_SENDS} "
+                                      "re-armings in a row")
+                continue
             bad_setups += 1
+            tries += 1
             wait = REPLY_WAIT_S
         if not replies:
             raise DeviceError(f"no reply from the 2DIY after {ARM_TRIES} set-ups")
         raise DeviceError(f"the 2DIY's first reply after {ARM_TRIES} set-ups did not read "
                           "the offsets sent: the stream corrupts its set-ups")
+
+    def _await_setup(at_deg) -> bool:
+        """A re-arming's evidence: a reply, among what the board sent after the bytes,
+        that reads the offsets ``at_deg`` [deg] (the closing zero write's, the board in
+        step after its set-up). Polled for :data:`REARM_REPLY_S` of awake time; the bytes
+        read are dropped (a decoder of their own: the loop's counters unchanged)."""
+        probe = driver.decoder()
+        ok = [False]
+
+        def look(data):
+            for rep in probe.feed(data):
+                q = driver.joints_of(rep)
+                if max(abs(math.degrees(q[j]) - at_deg[j]) for j in range(2)) \
+                        <= probe.max_step:
+                    ok[0] = True
+            probe.reset_prediction()            # each reply on its own (no prediction)
+        _awake_wait(lambda: ok[0], REARM_REPLY_S, look)
+        if ok[0]:
+            # what else the re-arming's bytes made (a reply after the one that read the
+            # offsets: that was the first zero write's, a joint at rest): dropped once
+            # the board has been quiet for a set-up's time of the host's awake time
+            came = [True]
+
+            def drop(data):
+                came[0] = bool(data)
+            while came[0]:
+                came[0] = False
+                _awake_wait(lambda: came[0], REARM_QUIET_S, drop)
+        return ok[0]
+
+    def _awake_wait(done, limit, sink):
+        """Poll the port into ``sink`` until ``done()`` or ``limit`` [s] of the host's
+        awake time (:data:`AWAKE_GAP_S`: a host stall is not the board's silence)."""
+        awake = 0.0
+        last = time.perf_counter()
+        while True:
+            sink(_read(ser))
+            if done():
+                return
+            now = time.perf_counter()
+            awake += min(now - last, AWAKE_GAP_S)
+            last = now
+            if awake >= limit:
+                return
+            time.sleep(2e-4)
+    rearm_sends = 0
     arm(q0deg, 0)
     pos = np.zeros((N, 2))
     joints = np.full((N, 2), np.nan)
@@ -369,6 +503,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     late = 0
     stall_s = 0.0
     held_zero = 0
+    left = -1                                       # the tick the joints left ENVELOPE_RAD
+    q0r0, q0r1 = float(dev.joints[0]), float(dev.joints[1])
     x = np.zeros(2)                                 # the sample the engine is given
     F = eng.port_f[:2]                              # the engine's port force (a view)
     wbuf = bytearray(zero)
@@ -422,6 +558,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             x[1] = xr[k, 1]
             joints[k, 0] = qr[k, 0]
             joints[k, 1] = qr[k, 1]
+            if left < 0 and (abs(qr[k, 0] - q0r0) > ENVELOPE_RAD
+                             or abs(qr[k, 1] - q0r1) > ENVELOPE_RAD):
+                left = k                            # zero torque from here (below)
         else:                                       # missing: an estimated sample
             i = seen
             r = k - i
@@ -443,8 +582,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         f0, f1 = F[0], F[1]
         tau1 = j00 * f0 + j10 * f1                  # tau = J^T F
         tau2 = j01 * f0 + j11 * f1
-        if est[k] and ((k - i) * T if lockstep_board
-                       else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
+        if left >= 0:
+            # the joints left the measurement's envelope: the loop is not the one
+            # measured (a host too slow for its scene, a torque held over stalls);
+            # zero torque for the rest of the record, the record not measured
+            tau1 = tau2 = 0.0
+        elif est[k] and ((k - i) * T if lockstep_board
+                         else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
             # no fresh sample for HOLD_BOUND_S: the torque was computed from where the
             # joints were, not where they are; the board (no watchdog) would hold it
             tau1 = tau2 = 0.0
@@ -462,11 +606,30 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     # it the board may be out of step, where a zero write is read as something else:
     # re-armed then (zero torque first, whatever its parser is inside)
     _write(ser, zero)
-    end = time.monotonic() + END_WAIT_S
-    while seen < N + 1 and time.monotonic() < end:
-        take(_read(ser))
-        if seen < N + 1:
-            time.sleep(2e-4)
+    t_wrote[N + 1] = time.perf_counter()
+    if lockstep_board:
+        end = time.monotonic() + END_WAIT_S
+        while seen < N + 1 and time.monotonic() < end:
+            take(_read(ser))
+            if seen < N + 1:
+                time.sleep(2e-4)
+    else:
+        # a board on its own clock holds what it last took: the replies are awaited while
+        # they come, and a silence of SILENT_S of the host's awake time with the closing
+        # reply not read is a board out of step (re-armed below, zero torque first), as
+        # in the loop; before, END_WAIT_S (1 s) of a garbage torque held
+        end = time.monotonic() + END_WAIT_S
+
+        def take_late(data):
+            # the step check widens with the time since the last reading's write, as in
+            # the loop: a reply read late is a late sample
+            dec.elapsed(time.perf_counter() - t_wrote[seen])
+            take(data)
+        while seen < N + 1 and time.monotonic() < end:
+            n0 = replies
+            _awake_wait(lambda: replies != n0 or seen >= N + 1, SILENT_S, take_late)
+            if replies == n0:
+                break
     rearmed_at_end = seen < N + 1
     if rearmed_at_end:
         arm(q0deg, N + 1)
@@ -474,7 +637,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
             "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
             "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
-            "held_zero": held_zero, "bad_setups": bad_setups,
+            "held_zero": held_zero, "bad_setups": bad_setups, "left": left,
             "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
 
 
@@ -571,7 +734,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                                     timeout=0.5,
                                     first_timeout=ARM_TIMEOUT)
         for j in range(5):
-            runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board))
+            runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board,
+                                        running=j > 0 or probe is not None))
             if progress is not None:
                 progress(j + 1, 5)
     finally:
@@ -614,6 +778,16 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                           f"for more than a period) and zeroed the torque of {sum(zeroed)} "
                           f"ticks without a fresh sample for {HOLD_BOUND_S * 1e3:g} ms: "
                           f"those records are no uniform loop of the prediction")
+    left = [int(r.get("left", -1)) for r in runs]
+    if any(v >= 0 for v in left):
+        # the joints left the measurement's envelope (zero torque from there): the loop
+        # was not the linear one predicted, whatever else the records say
+        out.update(verdict="not measurable", within=None, uncertainty=None,
+                   statements=[], not_stated=["felt stiffness", "felt damping"],
+                   reason=f"the joints left the measurement's envelope ({ENVELOPE_RAD:g} "
+                          f"rad from the operating point) in {sum(v >= 0 for v in left)} "
+                          "records: zero torque written from there (the host too late for "
+                          "the scene's loop, or a torque held over its stalls)")
     if not lockstep_board and out.get("verdict") == "differs":
         # A board on its own clock applied each torque for as long as the host's write
         # took to follow (not one period): the stated uncertainty (linearisation, the
@@ -633,7 +807,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                stalls=stalls, held_zero=zeroed,
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
-               resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs])
+               resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
+               left=left)
     return out
 
 
