@@ -6,12 +6,20 @@ import math
 
 import numpy as np
 
-__all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED"]
+__all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED", "LATE_WINDOW",
+           "LATE_STOP"]
 
 #: The telemetry ``flags`` bit of an estimated sample
 #: (:data:`hapsim.host.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
 #: nothing of the daemon above them).
 FLAG_ESTIMATED = 32
+#: A driver's run on the wall clock stops (safety) when its host was late, summed over the
+#: ticks late by a period or more among the last LATE_WINDOW, by more than LATE_STOP of
+#: the window's time (a board without a watchdog held older torques that long): the host
+#: loop's rule (:class:`hapsim.host.loop.HostLoop`) and the Falcon's
+#: (:func:`hapsim.emulated.falcon_device.drive_falcon`), here where both sides read it.
+LATE_WINDOW = 100
+LATE_STOP = 0.5
 
 
 class AlignedDecoder:

@@ -429,7 +429,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         (lockstep): no such rule.
     late_stop : bool
         A Falcon on its own clock: the host's lateness is watched as the 1-DoF loop
-        watches it (:data:`hapsim.host.loop.LATE_WINDOW`, :data:`hapsim.host.loop.LATE_STOP`):
+        watches it (:data:`hapsim.drivers.base.LATE_WINDOW`, :data:`hapsim.drivers.base.LATE_STOP`):
         each gap between two packets counts its excess over two periods (a packet that
         comes just after the firmware's tick waits for the next: two periods on time),
         and when the last ``LATE_WINDOW`` packets' sum passes ``LATE_STOP`` of
@@ -445,7 +445,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         ``held_zero`` (packets sent at zero for want of a fresh reading), ``stopped``
         (None, or ``(packet, reason)`` where the late-stop rule ended the loop).
     """
-    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
+    from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
     from hapsim.engine_nd import EngineND

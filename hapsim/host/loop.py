@@ -94,6 +94,7 @@ from hapsim.host.loop_types import SEQ_MASK as _U32
 from hapsim.host.realtime import sleep_until_ns
 from hapsim.host.recovery import Recovery
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_ESTIMATED, FLAG_RAMP, FLAG_SKIPPED
+from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
 from hapsim.errors import DeviceError
 from hapsim.kernels.ticks import tick_late
 
@@ -822,11 +823,6 @@ class HostLoop(Handshake, Recovery, BadFrames):
 #: such tick, unloaded; the row is also marked late (``_host_late``) where the transport
 #: cannot skip seq (a command still unanswered).
 STALL_TICKS = 1
-#: A driver's run on the wall clock stops (safety) when its host was late, summed over the
-#: ticks late by a period or more among the last LATE_WINDOW, by more than LATE_STOP of
-#: the window's time (a board without a watchdog held older torques that long).
-LATE_WINDOW = 100
-LATE_STOP = 0.5
 
 
 def _newer_waiting(msgs, j: int, seq: int, ahead_max: float) -> bool:
