@@ -175,7 +175,7 @@ class EngineND:
     def context(self) -> np.ndarray:
         """The int64 context of the engine's step (:func:`hapsim.kernels.nd.context`),
         for compiled code that steps it: set slot 0 to the samples and call
-        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play_nd` does).
+        :func:`hapsim.kernels.nd.run_context` (:mod:`hapsim.kernels.play` does).
 
         In single precision its arrays are float32: step it with
         :func:`hapsim.kernels.nd.run_context32` (:attr:`precision` says which), never
@@ -186,7 +186,7 @@ class EngineND:
     def step_rows(self) -> tuple:
         """The two state arrays the compiled step advances, as views (dim, N) in the
         engine's precision, for compiled callers that read them between samples
-        (:mod:`hapsim.kernels.play_nd`): the positions ``x[n]`` [m] and, in double
+        (:mod:`hapsim.kernels.play`): the positions ``x[n]`` [m] and, in double
         precision, ``x[n-1]`` [m]; in single precision (the scheme's velocity form) the
         last step ``x[n] - x[n-1]`` [m].
 

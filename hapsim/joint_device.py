@@ -2,7 +2,7 @@
 inertia and joint friction, the torques ``J^T F`` held over each period, integrated over
 the period (:class:`JointDeviceND`), or linearised about its working point
 (:class:`LocalJointDeviceND`). The plant of the lockstep n-D loop
-(:mod:`hapsim.lockstep_nd`) and of the emulated n-D devices (:mod:`hapsim.emulated`)."""
+(:mod:`hapsim.lockstep`) and of the emulated n-D devices (:mod:`hapsim.emulated`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.kernels.joint_nd import joint_step
+from hapsim.kernels.joint import joint_step
 
 __all__ = ["JointDeviceND", "LocalJointDeviceND"]
 
@@ -38,7 +38,7 @@ class JointDeviceND:
     per period; for small motion it is the Cartesian loop of
     :func:`hapsim.analysis.ths_nd.zoh_matrices` at rest (to the integrator's error,
     ``O((w T / substeps)^4)`` relative), and for larger motion it carries the kinematic
-    nonlinearity :mod:`hapsim.analysis.linearisation_nd` bounds.
+    nonlinearity :mod:`hapsim.analysis.linearisation` bounds.
 
     Parameters
     ----------
@@ -122,7 +122,7 @@ class LocalJointDeviceND:
     :class:`JointDeviceND` (Lagrange's equations, Khatib 1987) for this quadratic
     kinematics: the configuration-dependent inertia and the velocity-product terms are
     exact to first order in the motion ``s``, which is the order of the linearisation bound
-    (:mod:`hapsim.analysis.linearisation_nd`); the next term is ``O(|s|^2)`` relative.
+    (:mod:`hapsim.analysis.linearisation`); the next term is ``O(|s|^2)`` relative.
     Torques ``J(q_n)^T u`` held over the period; classical Runge-Kutta, ``substeps`` per
     period.
 
@@ -194,7 +194,7 @@ class LocalJointDeviceND:
 
     def step_torque(self, tau) -> None:
         """Hold the joint torques ``tau`` [N m] (shape (n,)) over one period and advance
-        (:func:`hapsim.kernels.joint_nd.joint_step`)."""
+        (:func:`hapsim.kernels.joint.joint_step`)."""
         self._u[:] = tau
         joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
                    self.bh, self.h, self.substeps, self._wv, self._wm)

@@ -238,7 +238,7 @@ _PLANS = {}
 def _plan(name, samples=150):
     """The prediction of a scene, computed once per test session (it does not depend on
     the amplitude)."""
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     if name not in _PLANS:
         _PLANS[name] = (_scene(name), identification_plan(_scene(name), samples))
     return _PLANS[name]

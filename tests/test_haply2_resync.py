@@ -164,7 +164,7 @@ def test_a_resynchronised_record_is_not_measured_lockstep():
     the board was re-armed is none (the hand's record restarts), so the verdict is "not
     measurable", saying why, with the re-synchronisations counted per record, and no
     statement of a felt quantity stands."""
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     sc = load_scene_nd(WALL)
     N = 60
     board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")

@@ -238,7 +238,7 @@ def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypa
     torque over more than a period, so the verdict is "not measurable" with the stalls
     counted (never a verdict from a record that is no uniform loop of the THS). The
     records are made by the lockstep board with a stall forced into each."""
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     sc = load_scene_nd(WALL)
     N = 40
     real = host.record_realtime
@@ -312,7 +312,7 @@ class SimLink:
 
 def _sim_measure(monkeypatch, loss=0.0, seed=0, N=200):
     import types
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     clk = SimClock()
     monkeypatch.setattr(host, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
@@ -370,7 +370,7 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     run the host kept in time says "within"; one whose host stalled, zeroed a tick or
     left the envelope says "not measurable" and names that (no wall-clock timing is
     asserted: which of the two depends on the machine)."""
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     try:
         sc = load_scene_nd(WALL)

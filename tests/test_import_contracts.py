@@ -67,7 +67,7 @@ LAYERS = (
     ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
                "hapsim.device_file", "hapsim.drivers")),
     # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
-    ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep_nd", "hapsim.scene_nd",
+    ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep", "hapsim.scene_nd",
                 "hapsim.joint_device",
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",

@@ -257,7 +257,7 @@ def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene,
     sensor and 8-bit PWM allow: "not measurable" (the wire's term is above 0.25: one
     PWM step is ~0.035 N at the handle against ~0.04 N of force at this amplitude).
     Deterministic: the same deviation bit for bit run after run."""
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
     from hapsim.pipeline.run_nd import measure_felt_port
     from hapsim.host.transport import SerialTransport
@@ -450,7 +450,7 @@ class QuantisedPantograph:
     statement of what they should do."""
 
     def __init__(self, scene, amplitude, hello):
-        from hapsim.lockstep_nd import excitation_starts
+        from hapsim.lockstep import excitation_starts
         self.scene, self.hello = scene, hello
         self.home = np.asarray(scene.device.joints, float)
         self.c = np.float32(hello.position_scale)
@@ -557,7 +557,7 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     matrices within the stated uncertainty, or "not measurable" for the stated reason:
     here the Hapkit's sensor and PWM, as in lockstep). The compact frames are used (the
     leader offers them, the host asks a device whose HELLO gives a force step)."""
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
     from hapsim.pipeline.run_nd import measure_felt_port
     from hapsim.host.transport import SerialTransport

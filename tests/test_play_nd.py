@@ -601,13 +601,13 @@ def test_a_chunk_allocates_nothing():
 
 
 def test_the_digest_names_the_sources_compiled_in():
-    """kernels/play_nd.py compiles in the engine's step and the ring's write: its digest
+    """kernels/play.py compiles in the engine's step and the ring's write: its digest
     of them must be current (the edit that updates it makes numba recompile)."""
-    from hapsim.kernels import play_nd
+    from hapsim.kernels import play
     from hapsim.kernels.sources import source_paths, sources_digest
     now = sources_digest(source_paths(play_nd.COMPILED_SOURCES))
     assert play_nd.COMPILED_SOURCES_SHA256 == now, (
-        f'update the digest in hapsim/kernels/play_nd.py: COMPILED_SOURCES_SHA256 = "{now}"')
+        f'update the digest in hapsim/kernels/play.py: COMPILED_SOURCES_SHA256 = "{now}"')
     assert play_nd.CACHE_OK
 
 

@@ -1,7 +1,7 @@
 """`hapsim run --lockstep` on 2-D and 3-D scenes (issue 23 item 5, in-process): the measured
 felt matrices equal the predicted ones to 1e-6 at a small excitation; at a large one they
 depart by the first-order term the linearisation bound states (hapsim.analysis.
-linearisation_nd), whose second-order coefficient of the Euclidean law is checked here
+linearisation), whose second-order coefficient of the Euclidean law is checked here
 against the law itself; the options the n-D run does not take are refused; the 1-D run
 keeps its path."""
 
@@ -50,7 +50,7 @@ def test_large_excitation_departs_by_the_stated_first_order_term():
     from its linearisation: the departure is first order in a (ten times the amplitude,
     8 to 12 times the departure) and within the stated bound; the wall (a plane and a
     length-0 spring: linear while engaged) stays at round-off (1e-9) at a = 1e-4 m."""
-    from hapsim.lockstep_nd import measure_felt_lockstep
+    from hapsim.lockstep import measure_felt_lockstep
     from hapsim.scene_nd import load_scene_nd
     circle = load_scene_nd(CONFIGS / "pantograph_circle.yaml")
     r1, r2 = (measure_felt_lockstep(circle, a) for a in (1e-5, 1e-4))
@@ -80,9 +80,9 @@ def test_euclidean_second_order_term_is_the_stated_one():
     (K/2)(L/l0^2)(2 u (e.u) + e - 3 e (e.u)^2) a^2 (u the unit displacement), and the
     largest norm of K H[u, u] over directions is (2/sqrt 3) K L / l0^2, so the
     second-order term over the linear term's scale K a is c_link a with
-    c_link = L / (sqrt(3) l0^2), the coefficient hapsim.analysis.linearisation_nd
+    c_link = L / (sqrt(3) l0^2), the coefficient hapsim.analysis.linearisation
     states."""
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.scene_nd import parse_scene_nd
     rng = np.random.default_rng(5)
 
@@ -132,7 +132,7 @@ def test_kinematic_coefficient_is_the_mass_change_over_the_step():
     finite Cartesian step of 1 um along random directions (joints moved by J^-1 dx)
     changes M by at most c_kin/1.5 * 1 um relatively (to 1 %), and nearly that along the
     worst of them."""
-    from hapsim.analysis.linearisation_nd import kinematic_coefficient
+    from hapsim.analysis.linearisation import kinematic_coefficient
     from hapsim.kinematics import cartesian_mass, device
     rng = np.random.default_rng(2)
     for kind, geo, q, Mq in (("pantograph", "haply", [140, 60], np.diag([2e-4, 2e-4])),
@@ -184,7 +184,7 @@ def test_joint_space_device_carries_the_kinematic_nonlinearity_within_the_bound(
     Euclidean link: c_link = 0) departs by the kinematics alone, far above the Cartesian
     lockstep's round-off (the nonlinearity is there), and within the stated bound
     c_kin a (stiffness) and c_kin a |s|/(2|Re s|) (damping)."""
-    from hapsim.lockstep_nd import measure_felt_lockstep
+    from hapsim.lockstep import measure_felt_lockstep
     from hapsim.scene_nd import load_scene_nd
     wall = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
     small = measure_felt_lockstep(wall, 1e-8, samples=200, joint_space=True)
@@ -249,7 +249,7 @@ def test_verdict_against_the_bound_is_decided_by_it():
     when both deviations are inside the linearisation bound plus the binary64 round-off
     allowance, differs when either is above it, not measurable when the amplitude opens a
     contact."""
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_verdict
     from hapsim.scene_nd import load_scene_nd

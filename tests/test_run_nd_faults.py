@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.analysis.linearisation_nd import linearisation_bound
+from hapsim.analysis.linearisation import linearisation_bound
 from hapsim.emulated.faults import FAULT_NAMES, parse_faults
 from hapsim.emulated.mock_nd import MockDeviceND, PhysicsND
 from hapsim.pipeline.run_nd import measure_felt_port, min_rows, start_of, verdict_nd
 from hapsim.emulated.links import InProcessTransport, SimTransport
-from hapsim.lockstep_nd import excitation_starts
+from hapsim.lockstep import excitation_starts
 from hapsim.scene_nd import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

@@ -346,7 +346,7 @@ def test_lockstep_loop_is_the_analysed_state_matrix():
     links (the analysis is the engine's exact linear image there; Euclidean links are
     linearised, tested against their Jacobian above)."""
     from hapsim.analysis.scene_nd_check import closed_loop_nd
-    from hapsim.lockstep_nd import LockstepND
+    from hapsim.lockstep import LockstepND
     text = """\
 dimension: 2
 rate_hz: 1000
@@ -416,7 +416,7 @@ def test_lockstep_measured_felt_matrices_equal_the_prediction(dim):
     few ulps times the problem's condition; a wrong prediction moves these by >= 1e-4)."""
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
-    from hapsim.lockstep_nd import LockstepND
+    from hapsim.lockstep import LockstepND
     scene = parse_scene_nd(_balanced_plane_scene(dim))
     # at rest: the ground is placed by a product of three numbers (the equilibrium up to
     # its round-off, ~1e-18 m measured), margin 1000

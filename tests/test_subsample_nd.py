@@ -183,9 +183,9 @@ def test_check_matrix_equals_the_reference(seed):
 
 def test_lockstep_nd_measures_the_prediction_at_a_fractional_delay():
     """The lockstep n-D loop, its device holding the previous force over the first f T
-    (hapsim.lockstep_nd, its own integration of the two pieces), measures the felt
+    (hapsim.lockstep, its own integration of the two pieces), measures the felt
     matrices the check predicts (a linear loop: to the fit's round-off)."""
-    from hapsim.lockstep_nd import measure_felt_lockstep
+    from hapsim.lockstep import measure_felt_lockstep
     rng = np.random.default_rng(11)
     M, B0 = _spd(rng, 2, 0.05, 0.3), _spd(rng, 2, 0.2, 2.0)
     out = measure_felt_lockstep(_scene(2, 1000.0, 300.0, 1.0, M, B0, 1.3), 1e-4)

@@ -154,9 +154,9 @@ def _case(seed, n, a, counts, steps, stiffer=1.0):
     verdict. ``counts``: the excitation in reading steps (``q = a / counts``);
     ``steps``: the force step over the force at the excitation (``s = steps K0 a``).
     None when the loop is unstable or renders fewer than n pairs."""
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.felt_matrices import felt_verdict
-    from hapsim.lockstep_nd import identification_plan, wire_terms_nd
+    from hapsim.lockstep import identification_plan, wire_terms_nd
     from hapsim.scene_nd import parse_scene_nd
     rng = np.random.default_rng(seed)
     p = _random_scene(rng, n)
@@ -321,7 +321,7 @@ def test_each_statement_carries_its_own_uncertainty():
     stiffness stated, "within", with the damping listed as not stated."""
     from pathlib import Path
 
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
     from hapsim.scene_nd import load_scene_nd

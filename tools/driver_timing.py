@@ -102,7 +102,7 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
     from hapsim.emulated.haply2_board import Haply2DIYBoard
     from hapsim.pipeline.haply2_host import WORKSPACE_RAD, measure_felt_haply2_port
     from hapsim.emulated.driver_mock import ByteFaults
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     from hapsim.scene_nd import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd("configs/pantograph_wall.yaml")

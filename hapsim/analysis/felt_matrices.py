@@ -79,7 +79,7 @@ def felt_directions(fit: dict, chk) -> dict | None:
     dict or None
         ``directions`` (n unit vectors, the columns ``e_i``), ``damping_factor``
         (``|s_i| / (2 |Re s_i|)`` of mode ``i`` [-]: the linearisation bound's factor
-        for the damping along ``e_i``, :mod:`hapsim.analysis.linearisation_nd`),
+        for the damping along ``e_i``, :mod:`hapsim.analysis.linearisation`),
         ``largest`` (each predicted matrix's largest entry), and for
         ``felt_stiffness`` and ``felt_damping`` a list of n dicts ``predicted``,
         ``measured`` (``e_i^T X e_i``, [N/m] or [N s/m]) and ``deviation``
@@ -172,11 +172,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
 
     **Each statement's uncertainty** (relative, first order) is the linearisation bound
     plus the wire's term plus the binary64 round-off allowance
-    (:attr:`hapsim.analysis.linearisation_nd.LinearisationBound.roundoff`, relative to
+    (:attr:`hapsim.analysis.linearisation.LinearisationBound.roundoff`, relative to
     the matrix's largest entry, so ``roundoff max|X_pred| / |e_i^T X_pred e_i|`` along a
     direction):
 
-    * linearisation (:mod:`hapsim.analysis.linearisation_nd`): a relative change
+    * linearisation (:mod:`hapsim.analysis.linearisation`): a relative change
       ``eps`` of the loop's stiffness and inertia terms (``eps_k = (c_kin + c_link) a``)
       scales each rendered ``s_i^2`` by at most ``1 +- eps``, so the felt stiffness
       along ``e_i``, ``k_i = m_i |s_i|^2``, moves by at most ``eps_k k_i`` (relative
@@ -210,7 +210,7 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     ----------
     deviation : dict or None
         :func:`felt_deviation`'s result.
-    bound : hapsim.analysis.linearisation_nd.LinearisationBound
+    bound : hapsim.analysis.linearisation.LinearisationBound
     wire : dict or None, optional
         ``felt_stiffness`` and ``felt_damping``: the wire's relative terms for the
         matrices, and optionally ``directions`` (:func:`wire_terms_nd`); None: the

@@ -225,7 +225,7 @@ class RunReportND(Report):
         ``felt_stiffness``, ``felt_damping``: the largest |measured - predicted| over the
         largest predicted entry.
     linearisation_bound : dict
-        :meth:`hapsim.analysis.linearisation_nd.LinearisationBound.to_dict`.
+        :meth:`hapsim.analysis.linearisation.LinearisationBound.to_dict`.
     records, samples, order : int
         Free responses, samples each, the fit's order.
     verdict : str
@@ -311,7 +311,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     ----------
     scene : hapsim.scene_nd.SceneND
     res : dict
-        :func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
+        :func:`hapsim.lockstep.measure_felt_lockstep`'s or
         :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result, with ``bound`` (and
         ``wire``, the readings' and torques' term of a quantised device such as the
         emulated Hapkit pantograph, :func:`hapsim.emulated.pantograph_board.wire_term`).
@@ -389,9 +389,9 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     delay line) minus the response from rest; the felt matrices by vector linear
     prediction and the inverse quadratic eigenvalue problem
     (:mod:`hapsim.analysis.identify_nd`), against :func:`check_nd`'s prediction; the
-    first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation_nd`).
+    first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation`).
     """
-    from hapsim.lockstep_nd import measure_felt_lockstep
+    from hapsim.lockstep import measure_felt_lockstep
     check_values("run_nd", amplitude=amplitude)
     scene = n_d_scene(scene)
     a = float(amplitude)

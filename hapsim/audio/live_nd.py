@@ -16,12 +16,12 @@ played are the offline rendering's, in order, to float32 rounding (the ring's ty
 the counted silences between.
 
 A scene with a port and a device is played closed on the device's model at the scene's
-rate (the loop :mod:`hapsim.lockstep_nd` runs and :mod:`hapsim.analysis.scene_nd_check`
+rate (the loop :mod:`hapsim.lockstep` runs and :mod:`hapsim.analysis.scene_nd_check`
 analyses: the exact zero-order hold of the Cartesian mass and friction, the delay line),
 the hand's force (the scene's ``excitation``, along its direction, again every ``every``
 samples) acting on the device's mass; live changes (:class:`hapsim.audio.control_nd.
 ControllerND`) are ramped sample by sample in the same compiled call
-(:func:`hapsim.kernels.play_nd.play_chunk`: one argument, nothing allocated per chunk).
+(:func:`hapsim.kernels.play.play_chunk`: one argument, nothing allocated per chunk).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 from hapsim.audio.offline import listen_plan
 from hapsim.audio.sources import FrameRing
 from hapsim.errors import ConfigError
-from hapsim.kernels import play_nd as kernel
+from hapsim.kernels import play as kernel
 
 __all__ = ["LiveND", "channel_names"]
 

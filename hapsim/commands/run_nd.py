@@ -62,7 +62,7 @@ def run_nd(args) -> int:
     Notes
     -----
     In-process (``--lockstep`` without ``--port``):
-    :func:`hapsim.lockstep_nd.measure_felt_lockstep`: 2n free responses of the loop
+    :func:`hapsim.lockstep.measure_felt_lockstep`: 2n free responses of the loop
     (engine, exact ZOH device of the Cartesian mass at rest, delay line) from the handle
     displaced by ``a`` along each axis and moving along each, minus the response from
     rest. Over a port: :func:`hapsim.pipeline.run_nd.measure_felt_port`, the same records
@@ -70,7 +70,7 @@ def run_nd(args) -> int:
     subtracted. Then the felt matrices by vector linear prediction and the inverse
     quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
     :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; the linearisation bound of
-    :mod:`hapsim.analysis.linearisation_nd` at ``a``.
+    :mod:`hapsim.analysis.linearisation` at ``a``.
     """
     from hapsim.progress import Progress
     opts = _refuse_options(args)
@@ -162,7 +162,7 @@ def run_nd(args) -> int:
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     bd = bound.to_dict()
     print(f"  linearisation bound at the records' largest excursion {bound.amplitude:.3g} m "
-          f"(first order in it; hapsim.analysis.linearisation_nd):", file=o)
+          f"(first order in it; hapsim.analysis.linearisation):", file=o)
     print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
           "and the velocity-product terms over a; "
           + ("not in the lockstep device, which holds the mass at rest)" if in_process

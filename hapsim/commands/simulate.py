@@ -334,7 +334,7 @@ def _run_nd(args) -> int:
         The ``.npz`` holds ``time`` [s] shape (N+1,), ``position`` [m] shape (N+1, R, n)
         and ``names`` shape (R,); row 0 is the initial state. The port (if any) is held at
         its rest position, the device's handle position (no device is simulated; the
-        closed loop is :class:`hapsim.lockstep_nd.LockstepND`).
+        closed loop is :class:`hapsim.lockstep.LockstepND`).
 
     Raises
     ------

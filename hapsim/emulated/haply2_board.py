@@ -15,7 +15,7 @@ the same for the motors' torque sign).
 
 The hand: at each set-up the board's plant is at the scene's operating point (where the
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
-:func:`hapsim.lockstep_nd.excitation_starts` (``k`` the set-ups so far), as the n-D mock
+:func:`hapsim.lockstep.excitation_starts` (``k`` the set-ups so far), as the n-D mock
 does at each CONFIG (:mod:`hapsim.emulated.mock_nd`).
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
@@ -55,7 +55,7 @@ from hapsim.drivers.haply import CommandDecoder, ResyncRule
 from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.joint_device import LocalJointDeviceND
-from hapsim.lockstep_nd import excitation_starts
+from hapsim.lockstep import excitation_starts
 
 __all__ = ["Haply2DIYBoard", "drive_haply2", "measure_felt_haply2", "BoardLink", "in_hand_order",
            "PROBE_TORQUE", "PROBE_ENVELOPE", "SETUP_S", "PASS_S"]
@@ -530,7 +530,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     largest angle read (the count rounded, then ``360 c / res`` in single precision: two
     roundings of half an ulp), and each torque the host computed reaches the board
     rounded to binary32 (``2^-24 |tau|``). Each error moves the records through the loop
-    (:func:`hapsim.lockstep_nd.error_responses`: observed and fed back through the links;
+    (:func:`hapsim.lockstep.error_responses`: observed and fed back through the links;
     the joint errors reach the handle through ``J(q0)``, the torque errors through
     ``J(q0)^-T``), and the fit to first order
     (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`); their worst case, whatever
@@ -550,13 +550,13 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     resolution : float, optional
         The set-up's counts per revolution (default ``cpr``).
     samples : int, optional
-        Writes per record (default :func:`hapsim.lockstep_nd.default_samples`).
+        Writes per record (default :func:`hapsim.lockstep.default_samples`).
     progress : callable, optional
     plant : hapsim.scene_nd.SceneND, optional
         The scene whose device the emulated board carries (default ``scene``): a device
         that is not the one the scene states (a test of the verdict).
     plan : tuple, optional
-        :func:`hapsim.lockstep_nd.identification_plan` of ``scene`` and ``samples``,
+        :func:`hapsim.lockstep.identification_plan` of ``scene`` and ``samples``,
         already computed (several measurements of one scene).
     probe_wiring : bool, optional
         Check each joint's wiring first (:func:`hapsim.drivers.haply2_probe.
@@ -572,7 +572,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     -------
     dict
         ``measured``, ``predicted``, ``deviation`` (as
-        :func:`hapsim.lockstep_nd.measure_felt_lockstep`); ``bound`` (the linearisation
+        :func:`hapsim.lockstep.measure_felt_lockstep`); ``bound`` (the linearisation
         bound at ``a``); ``wire`` (``felt_stiffness``, ``felt_damping``: the wire's
         relative terms, inf when the records give no sensitivity; ``reading_bound_rad``
         per joint; ``torque_rel``); ``verdict``, ``within``, ``uncertainty``, ``reason``
@@ -591,7 +591,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     IdentificationError
         A joint wired backwards against its direction bytes (the probe's refusal).
     """
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     chk, order, N = identification_plan(scene, samples) if plan is None else plan
     n = 2
     board = Haply2DIYBoard(plant if plant is not None else scene, generation, cpr=cpr,
@@ -678,7 +678,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         [m] (an estimated sample's, :func:`hapsim.pipeline.haply2_host.estimate_bounds`),
         which enters the wire's term through the loop as a reading error does.
     plan : tuple
-        :func:`hapsim.lockstep_nd.identification_plan`'s ``(check, order, N)``.
+        :func:`hapsim.lockstep.identification_plan`'s ``(check, order, N)``.
     resolution : float
         The set-up's counts per revolution.
     amplitude : float
@@ -690,11 +690,11 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         As :func:`measure_felt_haply2`.
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
-    from hapsim.lockstep_nd import wire_terms_nd
+    from hapsim.lockstep import wire_terms_nd
     chk, order, N = plan
     n = 2
     rest = runs[0]["position"]

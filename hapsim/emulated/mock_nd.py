@@ -7,7 +7,7 @@ vectors hold 2-, 3- and 8-axis frames), so nothing new goes on the wire: this de
 FORCE's Cartesian force [N] (a device that does its kinematics itself; a joint-level board
 such as the Haply 2DIY is driven through its own driver).
 
-Its physics (:class:`PhysicsND`) is the device of :mod:`hapsim.lockstep_nd`: a pantograph or
+Its physics (:class:`PhysicsND`) is the device of :mod:`hapsim.lockstep`: a pantograph or
 a delta integrates its joint-space dynamics (:class:`hapsim.joint_device.LocalJointDeviceND`:
 the configuration-dependent inertia, joint friction, the torques ``J^T F`` held over the
 period, the kinematics to second order about the operating point, compiled: tens of
@@ -21,7 +21,7 @@ force held), the watchdog zeroing it, STOP, PING.
 
 The hand: at the ``k``-th CONFIG since the device's last HELLO (on connect or answering
 HELLO_REQUEST) it lets the handle go from start ``k mod (2n + 1)`` of
-:func:`hapsim.lockstep_nd.excitation_starts` (rest; displaced by ``a`` along each axis;
+:func:`hapsim.lockstep.excitation_starts` (rest; displaced by ``a`` along each axis;
 moving at ``a / (10 T)`` along each), ``a`` the mock's amplitude. A host identifying the
 felt matrices (:mod:`hapsim.pipeline.run_nd`) asks HELLO and then runs ``2n + 1`` CONFIGs.
 """
@@ -38,7 +38,7 @@ from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrice
 from hapsim.emulated.mock import MOCK_DEVICE_ID, MockDevice
 from hapsim.errors import ConfigError
 from hapsim.joint_device import LocalJointDeviceND
-from hapsim.lockstep_nd import excitation_starts
+from hapsim.lockstep import excitation_starts
 
 __all__ = ["PhysicsND", "MockDeviceND", "DEFAULT_AMPLITUDE"]
 

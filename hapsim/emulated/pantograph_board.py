@@ -109,7 +109,7 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
         EEPROM), ``joint_inertia`` [kg m^2] and ``joint_friction`` [N m s/rad] (2 x 2),
         ``hand_mass`` [kg], ``hand_damping`` [N s/m].
     amplitude : float
-        The hand's ``a`` [m] (:func:`hapsim.lockstep_nd.excitation_starts`).
+        The hand's ``a`` [m] (:func:`hapsim.lockstep.excitation_starts`).
     report, link, profile : str, optional
         JSON report written on exit; symbolic link kept to the pty; the leader's cycles
         per flash word.
@@ -272,7 +272,7 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     precision), each torque reaches the joint to within half a PWM step
     ``s / 2`` (the firmware rounds ``|tau| / s`` to the nearest step) plus the binary32
     rounding of the torque (relative ``2^-24``). Each error moves the records through the
-    loop (:func:`hapsim.lockstep_nd.error_responses`: the joint errors reach the handle
+    loop (:func:`hapsim.lockstep.error_responses`: the joint errors reach the handle
     through ``J(q0)``, the torque errors through ``J(q0)^-T``) and the fit to first order
     (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`); their worst case, whatever
     their signs and correlation (:func:`hapsim.analysis.identify_nd.worst_case_nd`; the
@@ -296,10 +296,10 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     dict
         ``felt_stiffness``, ``felt_damping`` (relative; inf when the records give no
         sensitivity), ``directions`` (the terms along each principal direction:
-        :func:`hapsim.lockstep_nd.wire_terms_nd`), ``reading_bound_rad`` (per joint),
+        :func:`hapsim.lockstep.wire_terms_nd`), ``reading_bound_rad`` (per joint),
         ``torque_bound_nm``, ``quantum_m`` (one count at the handle, ``|J(q0)|_2 c`` [m]).
     """
-    from hapsim.lockstep_nd import wire_terms_nd
+    from hapsim.lockstep import wire_terms_nd
     kin = _pantograph(scene)
     q0 = np.asarray(scene.device.joints, float)
     J = kin.jacobian(q0)

@@ -3,7 +3,7 @@
 :mod:`hapsim.pipeline.runner` does with a 1-D one.
 
 ``lockstep`` without a ``port``: the loop closed in-process
-(:func:`hapsim.lockstep_nd.measure_felt_lockstep`). Otherwise over the framed protocol
+(:func:`hapsim.lockstep.measure_felt_lockstep`). Otherwise over the framed protocol
 with an n-axis device (:func:`hapsim.pipeline.run_nd.measure_felt_port`): the ``port``
 given, or an embedded n-D mock (``hapsim mock --scene SCENE --once``) in a child process
 of its own session behind a pty, real time unless ``lockstep``. Over a port a stop
@@ -138,7 +138,7 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     Returns
     -------
     (dict, dict or None)
-        The measurement (:func:`hapsim.lockstep_nd.measure_felt_lockstep`'s or
+        The measurement (:func:`hapsim.lockstep.measure_felt_lockstep`'s or
         :func:`hapsim.pipeline.run_nd.measure_felt_port`'s, with ``bound`` at the records'
         largest excursion) and, over a port, ``{"port", "embedded", "mock",
         "scheduling", "faults", "fault_seed", "faults_injected"}`` (and ``device``,
@@ -153,13 +153,13 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     """
     refuse_options(opts, by)
     if opts.lockstep and not opts.port:
-        from hapsim.lockstep_nd import measure_felt_lockstep
+        from hapsim.lockstep import measure_felt_lockstep
         return measure_felt_lockstep(scene, amplitude, progress=progress), None
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     res, info = _over_port(scene, opts, amplitude, progress)
     # the bound at the largest excursion the records reached: a late tick's held force
     # moves the handle past the nominal amplitude, and the departure from the linear
-    # loop grows with the motion (hapsim.analysis.linearisation_nd)
+    # loop grows with the motion (hapsim.analysis.linearisation)
     res["bound"] = linearisation_bound(scene, max(amplitude, res["excursion"]),
                                        res["predicted"].render.rendered_poles)
     return res, info

@@ -663,10 +663,10 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     resolution : float, optional
         The set-up's counts per revolution (default the generation's).
     samples : int, optional
-        Ticks per record (default :func:`hapsim.lockstep_nd.default_samples`).
+        Ticks per record (default :func:`hapsim.lockstep.default_samples`).
     progress : callable, optional
     plan : tuple, optional
-        :func:`hapsim.lockstep_nd.identification_plan`, already computed.
+        :func:`hapsim.lockstep.identification_plan`, already computed.
     probe_wiring : bool, optional
         Check each joint's wiring first (:func:`hapsim.drivers.haply2_probe.
         find_directions`): a joint its direction bytes turn backwards is refused before
@@ -704,7 +704,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     import serial
 
     from hapsim.kinematics import device
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     if scene.dimension != 2 or scene.device is None or scene.device.kind != "pantograph":
         raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
                           file=scene.path, key="device.kind")

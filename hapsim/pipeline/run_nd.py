@@ -403,14 +403,14 @@ def start_of(position, rest, amplitude: float, period: float):
     Returns
     -------
     int or None
-        Index into :func:`hapsim.lockstep_nd.excitation_starts` (0 rest, ``1..n``
+        Index into :func:`hapsim.lockstep.excitation_starts` (0 rest, ``1..n``
         displaced, ``n+1..2n`` moving), or None when no start is within a quarter of its
         distance to the others: the displacement at sample 0 within ``a / 4`` of ``x0``,
         the step to sample 1 within ``a / 40`` of ``v0 T`` (the device holds zero force
         over the first period when ``d >= 1``: the step is the free motion, ``v0 T``
         times ``1 - O(b T / m)``).
     """
-    from hapsim.lockstep_nd import excitation_starts
+    from hapsim.lockstep import excitation_starts
     p = np.asarray(position, float)
     rest = np.asarray(rest, float)
     n = rest.size
@@ -427,7 +427,7 @@ def min_rows(N: int, order: int, n: int) -> int:
     """Fewest rows a record cut short by a lost STATE may keep to be used: half the
     record, and at least ten times the regression's ``2 p n`` unknowns over the ``2n + 1``
     records (so the fit stays overdetermined tenfold, as
-    :func:`hapsim.lockstep_nd.default_samples`)."""
+    :func:`hapsim.lockstep.default_samples`)."""
     return max(N // 2, -(-20 * order * n // (2 * n + 1)), order + 2)
 
 
@@ -461,7 +461,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     scene : hapsim.scene_nd.SceneND
         A validated scene with a port and a device.
     samples : int, optional
-        STATEs per record (default :func:`hapsim.lockstep_nd.default_samples`).
+        STATEs per record (default :func:`hapsim.lockstep.default_samples`).
     progress : callable, optional
         ``progress(done, total)`` as starts get their whole record.
     watchdog_periods : int
@@ -525,7 +525,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
     from hapsim.analysis.felt_matrices import felt_deviation
-    from hapsim.lockstep_nd import identification_plan
+    from hapsim.lockstep import identification_plan
     if frames not in ("auto", "full"):
         raise ConfigError(f"frames must be 'auto' or 'full', got {frames!r}", key="frames")
     chk, order, N = identification_plan(scene, samples)

@@ -34,7 +34,7 @@
  * The hand: it holds the handle at the home (the calibration block written into the
  * leader's EEPROM: --geometry, --home) until the host's CONFIG; at the k-th CONFIG since the
  * host's last HELLO_REQUEST it puts the handle at start k mod 5 of
- * hapsim.lockstep_nd.excitation_starts (rest; a along x; a along y; moving at a / (10 T)
+ * hapsim.lockstep.excitation_starts (rest; a along x; a along y; moving at a / (10 T)
  * along x; along y; T the CONFIG's period) at rest and lets go at the session's first
  * tick (the first SYNC after the firmware took the CONFIG), with the start's velocity; at
  * STOP it holds the handle where it is.

@@ -173,7 +173,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
         difference of the felt stiffness and damping matrices, each over the predicted
         matrix's largest entry [-]; None without felt matrices), ``bound``
-        (:class:`hapsim.analysis.linearisation_nd.LinearisationBound` at the larger of
+        (:class:`hapsim.analysis.linearisation.LinearisationBound` at the larger of
         ``a`` and ``excursion``), ``excursion`` (the largest distance [m] of the handle
         from rest over the records: a start moving at ``a / (10 T)`` carries it past
         ``a``), ``order``, ``records``, ``samples``.
@@ -185,7 +185,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         ``amplitude`` not positive; ``samples`` too short for the order.
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
-    from hapsim.analysis.linearisation_nd import linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     chk, order, N = identification_plan(scene, samples)
     a = linearisation_bound(scene, amplitude, chk.render.rendered_poles).amplitude
     n = scene.dimension

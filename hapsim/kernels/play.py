@@ -1,7 +1,7 @@
 """An n-D scene played live: the loop closed on its device, the changes ramped and the
 listening points written to the sound ring, one compiled call with one argument per chunk.
 
-One sample ``n`` (the timing of :mod:`hapsim.lockstep_nd` and of the n-D check,
+One sample ``n`` (the timing of :mod:`hapsim.lockstep` and of the n-D check,
 :mod:`hapsim.analysis.scene_nd_check`, so the loop played is the one analysed):
 
 1. every ramp under way takes its next value (``v = c (s + a (e - s))`` or, for a mass,
