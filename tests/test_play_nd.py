@@ -605,10 +605,10 @@ def test_the_digest_names_the_sources_compiled_in():
     of them must be current (the edit that updates it makes numba recompile)."""
     from hapsim.kernels import play
     from hapsim.kernels.sources import source_paths, sources_digest
-    now = sources_digest(source_paths(play_nd.COMPILED_SOURCES))
-    assert play_nd.COMPILED_SOURCES_SHA256 == now, (
+    now = sources_digest(source_paths(play.COMPILED_SOURCES))
+    assert play.COMPILED_SOURCES_SHA256 == now, (
         f'update the digest in hapsim/kernels/play.py: COMPILED_SOURCES_SHA256 = "{now}"')
-    assert play_nd.CACHE_OK
+    assert play.CACHE_OK
 
 
 # ------------------------------------------------------------------------------ the CLI
