@@ -1,7 +1,7 @@
 """Sound in the scene: the multi-rate model, its analysis, the offline WAV.
 
 Precision carried here: the closed-loop state matrix of a multi-rate scene
-(:func:`hapsim.analysis.network.multirate_blocks`, N audio steps composed into one device
+(:func:`hapsim.analysis.virtual_network.multirate_blocks`, N audio steps composed into one device
 period) reproduces the engine's multi-rate kernel coupled to the mock device sample for
 sample (1e-9), so the felt (k, b) measured in lockstep equals the prediction (1e-6); the
 WAV of the shipped string has its spectral peaks at the closed-form partials of the

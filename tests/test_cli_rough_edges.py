@@ -368,7 +368,7 @@ def _chain_scene(springs, branches):
 def test_static_stiffness_is_series_and_parallel_springs():
     """Over random chains of springs from the port to grounds, in parallel: the static
     stiffness is the sum over chains of 1 / sum(1/K) (springs in series)."""
-    from hapsim.analysis.network import static_stiffness
+    from hapsim.analysis.virtual_network import static_stiffness
     from hapsim.scene import parse_scene
     rng = np.random.default_rng(7)
     for _ in range(40):

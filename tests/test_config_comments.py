@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from hapsim.analysis import check_scene, calibrate, LoopModel
-from hapsim.analysis.network import network
+from hapsim.analysis.virtual_network import network
 from hapsim.scene import load_scene, parse_scene
 from tolerance import rel_tol
 

@@ -13,7 +13,7 @@ import pytest
 
 from hapsim.analysis import check_scene
 from hapsim.analysis.modes import OBSERVABLE_TOL
-from hapsim.analysis.network import rest_position
+from hapsim.analysis.virtual_network import rest_position
 from hapsim.cli import main
 from hapsim.analysis.prediction import has_offset
 from hapsim.pipeline.runner import run_scene

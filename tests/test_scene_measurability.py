@@ -78,7 +78,7 @@ def test_string_preload_figures_of_its_comments():
     """configs/string.yaml's comment figures: the rest (hapsim.analysis.network.
     rest_position) and the pre-load of the three springs in series, and the smallest
     compression of the contact over the measured free response (the pre-run simulation)."""
-    from hapsim.analysis.network import rest_position
+    from hapsim.analysis.virtual_network import rest_position
     c = " ".join(line.split("#", 1)[1].strip()
                  for line in (CONFIGS / "string.yaml").read_text().splitlines() if "#" in line)
     for fig in ("2000/25 + 2000/26 = 156.9 N/m", "pre-load 0.136 N", "compressed 0.68 mm",

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from hapsim.analysis.network import network, virtual_blocks
+from hapsim.analysis.virtual_network import network, virtual_blocks
 from hapsim.bench.methods import oscillator_poles
 from hapsim.bench.cost import oscillator_scene, string_scene
 from hapsim.engine import Engine

@@ -411,7 +411,7 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
 
     The correction acts at the port: the virtual network's one-step map
     ``X[n+1] = Av X + bp q[n] + bpp qq[n]``, ``F[n] = cx X + cp q[n] + cpp qq[n]``
-    (:func:`hapsim.analysis.network.virtual_blocks`) takes as its port position ``q`` and
+    (:func:`hapsim.analysis.virtual_network.virtual_blocks`) takes as its port position ``q`` and
     as the previous one ``qq`` (so ``(q - qq)/T`` is the velocity estimate the dampers at
     the port see) the corrected signals of the handle samples ``x``:
 
@@ -442,8 +442,8 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
     port : str
         Port name (state names).
     Av, bp, bpp, cx, cp, cpp
-        Blocks of :func:`hapsim.analysis.network.virtual_blocks` (or
-        :func:`~hapsim.analysis.network.multirate_blocks`), shapes (2N, 2N), (2N,), (2N,),
+        Blocks of :func:`hapsim.analysis.virtual_network.virtual_blocks` (or
+        :func:`~hapsim.analysis.virtual_network.multirate_blocks`), shapes (2N, 2N), (2N,), (2N,),
         (2N,), float, float.
     vnames : list of str
         Names of the 2N virtual states.

@@ -123,8 +123,9 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     ConfigError
         A scene without a port or device, rigid and compliant members mixed.
     """
-    from hapsim.analysis.network import (check_integrator, closed_loop_frame, network,
-                                         virtual_blocks, virtual_state_names)
+    from hapsim.analysis.network import closed_loop_frame
+    from hapsim.analysis.virtual_network import (check_integrator, network, virtual_blocks,
+                                                 virtual_state_names)
 
     require_family_scene(scene)
     dev = scene.device

@@ -33,9 +33,11 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.network import INTEGRATORS, check_integrator, closed_loop
-from hapsim.analysis.network import network as _network
-from hapsim.analysis.network import virtual_blocks as _virtual_blocks
+from hapsim.analysis.network import INTEGRATORS, closed_loop
+
+from hapsim.analysis.virtual_network import check_integrator
+from hapsim.analysis.virtual_network import network as _network
+from hapsim.analysis.virtual_network import virtual_blocks as _virtual_blocks
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 

@@ -186,7 +186,7 @@ def has_offset(scene: Scene) -> bool:
     """Whether the port's free response settles away from 0 (identify with ``offset``).
 
     Decided from the scene's static equilibrium
-    (:func:`hapsim.analysis.network.rest_position`: grounds' ``x0``, contact thresholds,
+    (:func:`hapsim.analysis.virtual_network.rest_position`: grounds' ``x0``, contact thresholds,
     every link), not from a list of causes; Coulomb friction (the mock's) stops the port
     anywhere in its dead band: an offset. A scene whose rest is not unique (a free part)
     has a pole at ``z = 1`` among the predicted ones, which the identification order
@@ -201,7 +201,7 @@ def has_offset(scene: Scene) -> bool:
     -------
     bool
     """
-    from hapsim.analysis.network import rest_position
+    from hapsim.analysis.virtual_network import rest_position
     dev = scene.device
     if dev.coulomb > 0:
         return True

@@ -52,7 +52,7 @@ class CheckReport(Report):
         ``{link: [K, B]}``.
     static_k : float or None
         Stiffness a slow push feels at the port [N/m] (virtual masses at rest;
-        :func:`hapsim.analysis.network.static_stiffness`).
+        :func:`hapsim.analysis.virtual_network.static_stiffness`).
 
     Other attributes (not in ``--json``): ``analysis`` (the
     :class:`~hapsim.analysis.scene_check.SceneCheck`), ``calibrated_scene`` (the scene
@@ -145,7 +145,8 @@ def check(scene, progress=None):
     (Florens, Voda & Urma; docs/design.md, 'The THS'); the felt (k, b) are those of the
     least damped pole pair seen at the port, ``k = m |s|^2``, ``b = -2 m Re(s)``.
     """
-    from hapsim.analysis.network import check_size, static_stiffness
+    from hapsim.analysis.network import check_size
+    from hapsim.analysis.virtual_network import static_stiffness
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
 

@@ -12,7 +12,7 @@ scheme (the same helpers, in the same order, as ``run_sd_contact``); within devi
 
 where ``p[n-1]`` is the port position the state holds on entry; the force sent to the
 device is the mean of the N sub-step port forces (a boxcar decimator) or the last one.
-The linear model of the same map is :func:`hapsim.analysis.network.multirate_blocks`.
+The linear model of the same map is :func:`hapsim.analysis.virtual_network.multirate_blocks`.
 
 Listening points write one audio frame per sub-step: ``gain * x[i]`` (position),
 ``gain * (x[i] - xp[i]) / Ta`` (velocity, after the sub-step's move) or ``gain * f[i]``
