@@ -471,6 +471,11 @@ class _Stretched:
         self.dir_i = self.dirs[self.sid]
         self._longest = int(lens.max()) if lens.size else 1
         self._bad = np.ones(self.idx.size)
+        # what every _solve used to form again: the positions on the stretches and each
+        # stretch's sample count (np.add.reduceat of ones: whole numbers, exact)
+        self._xi = self.x[self.idx]
+        self._L = np.add.reduceat(np.ones(self.idx.size), self.offs) if self.idx.size else \
+            np.zeros(0)
 
     def _solve(self, lm, b0):
         i = self.idx
@@ -485,14 +490,13 @@ class _Stretched:
         m = math.exp(lm)
         self._basis(self.u, self.starts, self.ends, m, b0, self.T, self.hold,
                     self._yu, self._g, self._c, self.frac)
-        if not (np.all(np.isfinite(self._g[i])) and np.all(np.isfinite(self._yu[i]))
-                and np.all(np.isfinite(self._c[i]))):
+        g, yu, c = self._g[i], self._yu[i], self._c[i]
+        if not (np.isfinite(g).all() and np.isfinite(yu).all() and np.isfinite(c).all()):
             return self._bad, np.zeros(2), np.zeros(self.starts.size), np.zeros(
                 self.starts.size)
-        t = self.x[i] - self._yu[i]
-        g = self._g[i]
+        t = self._xi - yu
         off = self.offs
-        L = np.add.reduceat(np.ones_like(g), off)
+        L = self._L
         Sg = np.add.reduceat(g, off)
         Sgg = np.add.reduceat(g * g, off)
         det = L * Sgg - Sg * Sg
@@ -510,7 +514,6 @@ class _Stretched:
         phi = np.zeros(2)
         cols = []
         if self.coulomb:
-            c = self._c[i]
             cp = np.where(self.dir_i > 0, -c, 0.0)       # -fc+ while moving +
             cn = np.where(self.dir_i < 0, c, 0.0)        # +fc- while moving -
             P = np.column_stack([project(cp)[0], project(cn)[0]])
