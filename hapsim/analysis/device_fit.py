@@ -725,7 +725,7 @@ class _BlockDifference:
     for bit, as ``least_squares(..., jac_sparsity=S)`` computes (its column groups stepped
     together too, the structure exact), returned in the same canonical CSR layout, without
     the sparse indexing it repeats at every call (two thirds of a fit's time).
-    ``tests/test_identify_varpro_cache.py`` compares the two.
+    ``tests/test_device_fit_jacobian.py`` compares the two.
 
     Parameters
     ----------
