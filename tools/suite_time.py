@@ -98,6 +98,11 @@ def main(argv=None) -> int:
            "wall_over_budget": round(wall / BUDGET_S, 3),
            "cpu_own_s": round(sum(r["cpu"] for r in tests.values()), 1),
            "cpu_children_s": round(sum(r["children"] for r in tests.values()), 1),
+           # Python's bytecode cache off: every pytest worker compiles and rewrites the
+           # whole suite again (17.6 CPU-s to collect it, 6.3 with the cache) and every
+           # hapsim child its modules (~0.3 s): a measurement with it set is not a
+           # newcomer's (docs/testing.md, 'The time budget')
+           "bytecode_cache": not os.environ.get("PYTHONDONTWRITEBYTECODE"),
            "heaviest_tests": [{"test": n, "cpu_s": round(cpu(r), 2),
                                "children_s": round(r["children"], 2),
                                "wall_s": round(r["wall"], 2)} for n, r in heavy],
@@ -109,6 +114,9 @@ def main(argv=None) -> int:
           f"{BUDGET_S:.0f} s budget, beside {a.busy} busy process(es) on {res['cores']} "
           f"cores, load {res['load_before']} -> {res['load_after']}; CPU {res['cpu_own_s']} s "
           f"in the workers + {res['cpu_children_s']} s in their children; exit {rc}")
+    if not res["bytecode_cache"]:
+        print("suite: PYTHONDONTWRITEBYTECODE is set: no .pyc is written, every process "
+              "compiles its modules from source (a fresh clone's first run at every run)")
     for t in res["heaviest_tests"]:
         print(f"  {t['cpu_s']:7.2f} s CPU ({t['children_s']:6.2f} children) "
               f"{t['wall_s']:7.2f} s wall  {t['test']}")
