@@ -33,6 +33,12 @@ from provenance import REPO, command_line  # tools/, beside this file
 BUDGET_S = 360.0
 
 
+def _default_sigint() -> None:
+    """In the pytest child, before it starts: SIGINT's default action."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def main(argv=None) -> int:
     """Run the suite as described in the module docstring.
 
@@ -66,7 +72,11 @@ def main(argv=None) -> int:
         print(f"suite_time: {' '.join(cmd[1:])} beside {a.busy} busy process(es), "
               f"load {load0:.2f}", file=sys.stderr)
         t0 = time.perf_counter()
-        rc = subprocess.call(cmd, cwd=str(REPO), stdout=sys.stderr)   # progress on stderr
+        # progress on stderr; SIGINT as a shell's foreground command has it: started in
+        # the background of a non-interactive shell (``cmd &``) this process inherits it
+        # ignored, and the suite's Ctrl-C tests then fail (their SIGINT never arrives)
+        rc = subprocess.call(cmd, cwd=str(REPO), stdout=sys.stderr,
+                             preexec_fn=_default_sigint)
         wall = time.perf_counter() - t0
         load1 = os.getloadavg()[0]
     finally:
