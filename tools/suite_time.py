@@ -33,6 +33,12 @@ from provenance import REPO, command_line  # tools/, beside this file
 BUDGET_S = 360.0
 
 
+def _default_sigint() -> None:
+    """In the pytest child, before it starts: SIGINT's default action."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def main(argv=None) -> int:
     """Run the suite as described in the module docstring.
 
@@ -66,7 +72,11 @@ def main(argv=None) -> int:
         print(f"suite_time: {' '.join(cmd[1:])} beside {a.busy} busy process(es), "
               f"load {load0:.2f}", file=sys.stderr)
         t0 = time.perf_counter()
-        rc = subprocess.call(cmd, cwd=str(REPO), stdout=sys.stderr)   # progress on stderr
+        # progress on stderr; SIGINT as a shell's foreground command has it: started in
+        # the background of a non-interactive shell (``cmd &``) this process inherits it
+        # ignored, and the suite's Ctrl-C tests then fail (their SIGINT never arrives)
+        rc = subprocess.call(cmd, cwd=str(REPO), stdout=sys.stderr,
+                             preexec_fn=_default_sigint)
         wall = time.perf_counter() - t0
         load1 = os.getloadavg()[0]
     finally:
@@ -98,6 +108,11 @@ def main(argv=None) -> int:
            "wall_over_budget": round(wall / BUDGET_S, 3),
            "cpu_own_s": round(sum(r["cpu"] for r in tests.values()), 1),
            "cpu_children_s": round(sum(r["children"] for r in tests.values()), 1),
+           # Python's bytecode cache off: every pytest worker compiles and rewrites the
+           # whole suite again (17.6 CPU-s to collect it, 6.3 with the cache) and every
+           # hapsim child its modules (~0.3 s): a measurement with it set is not a
+           # newcomer's (docs/testing.md, 'The time budget')
+           "bytecode_cache": not os.environ.get("PYTHONDONTWRITEBYTECODE"),
            "heaviest_tests": [{"test": n, "cpu_s": round(cpu(r), 2),
                                "children_s": round(r["children"], 2),
                                "wall_s": round(r["wall"], 2)} for n, r in heavy],
@@ -109,6 +124,9 @@ def main(argv=None) -> int:
           f"{BUDGET_S:.0f} s budget, beside {a.busy} busy process(es) on {res['cores']} "
           f"cores, load {res['load_before']} -> {res['load_after']}; CPU {res['cpu_own_s']} s "
           f"in the workers + {res['cpu_children_s']} s in their children; exit {rc}")
+    if not res["bytecode_cache"]:
+        print("suite: PYTHONDONTWRITEBYTECODE is set: no .pyc is written, every process "
+              "compiles its modules from source (a fresh clone's first run at every run)")
     for t in res["heaviest_tests"]:
         print(f"  {t['cpu_s']:7.2f} s CPU ({t['children_s']:6.2f} children) "
               f"{t['wall_s']:7.2f} s wall  {t['test']}")

@@ -1,0 +1,67 @@
+"""The refinement's Jacobian (hapsim.analysis.device_fit._BlockDifference, issue 31 item 2:
+scipy's sparse finite difference spent two thirds of ``hapsim identify``'s fit indexing its
+sparsity pattern again at every call) is scipy's own, bit for bit: the same entries in the
+same CSR layout as ``approx_derivative(..., sparsity=S)``, and ``least_squares`` ends at the
+same point with either, on residuals with the refinement's structure (shared parameters in
+every row, two per stretch in its rows only)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from scipy.optimize._numdiff import approx_derivative
+from scipy.sparse import csr_array, lil_matrix
+
+from hapsim.analysis.device_fit import _BlockDifference
+
+
+def _problem(seed, k, ns, m):
+    """A residual of the refinement's structure: row r depends on the k shared parameters
+    and on its stretch's two (``k + sid[r]``, ``k + ns + sid[r]``) only."""
+    rng = np.random.default_rng(seed)
+    sid = np.sort(rng.integers(0, ns, m))
+    sid[:ns] = np.arange(ns)                  # every stretch has rows
+    sid.sort()
+    t = rng.uniform(0.0, 3.0, m)
+    data = rng.normal(size=m)
+
+    def f(p):
+        a = np.exp(-p[1] * t) * np.cos(p[0] * t)
+        extra = p[2] * np.tanh(t) if k > 2 else 0.0
+        return a + extra + p[k + sid] + p[k + ns + sid] * t - data
+
+    S = lil_matrix((m, k + 2 * ns), dtype=int)
+    S[:, :k] = 1
+    rows = np.arange(m)
+    S[rows, k + sid] = 1
+    S[rows, k + ns + sid] = 1
+    p0 = rng.normal(size=k + 2 * ns) * 2.0
+    p0[0] = 0.0                      # scipy's step at 0 (sign 1) and at negative values
+    p0[1] = abs(p0[1]) + 0.1
+    return f, S, sid, p0
+
+
+@pytest.mark.parametrize("seed,k,ns,m", [(1, 4, 7, 300), (2, 2, 1, 50), (3, 3, 20, 400)])
+def test_the_jacobian_is_scipys_sparse_difference_bit_for_bit(seed, k, ns, m):
+    f, S, sid, p0 = _problem(seed, k, ns, m)
+    ref = csr_array(approx_derivative(f, p0, method="2-point", sparsity=S))
+    got = _BlockDifference(f, k, sid, ns)(p0)
+    assert got.shape == ref.shape
+    assert np.array_equal(got.indptr, ref.indptr)
+    assert np.array_equal(got.indices, ref.indices)
+    assert np.array_equal(got.data, ref.data)
+
+
+@pytest.mark.parametrize("seed,k,ns,m", [(4, 4, 6, 240), (5, 2, 3, 90)])
+def test_least_squares_ends_at_the_same_point_bit_for_bit(seed, k, ns, m):
+    """The refinement's call (trf, x_scale='jac', its tolerances and evaluation budget)
+    with scipy's sparse difference and with the block difference."""
+    f, S, sid, p0 = _problem(seed, k, ns, m)
+    opts = dict(method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=60)
+    a = least_squares(f, p0, jac_sparsity=S, **opts)
+    jac = _BlockDifference(f, k, sid, ns)
+    b = least_squares(jac.fun, p0, jac=jac, **opts)
+    assert a.nfev == b.nfev and a.status == b.status
+    assert np.array_equal(a.x, b.x) and a.cost == b.cost
+    assert np.array_equal(a.jac.toarray(), b.jac.toarray())
