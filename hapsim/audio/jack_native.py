@@ -44,7 +44,7 @@ COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
                     "hapsim/kernels/pointers.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "57709fd5b40831c48f863b3b65fe65b3d9330afb7cf112f77fd4993070ec66fc"
+COMPILED_SOURCES_SHA256 = "6ce8bc4dc02708509de5a5e4a201d0d4929c1a17d2393f2156abd26bbfc8f197"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 

@@ -253,15 +253,28 @@ class Haply2DIYBoard:
         """Writes taken."""
         return self.writes
 
-    def settles_on(self) -> float:
-        """The largest torque the board holds once its queued writes apply [N m]."""
+    def settles_on(self, ports=None) -> float:
+        """The largest torque the board holds once its queued writes apply [N m].
+
+        Parameters
+        ----------
+        ports : iterable of int, optional
+            The motor ports to read (default all four; a 2DIY's joints are
+            :data:`hapsim.drivers.haply2.JOINT_PORTS`: a garbage set-up the stream made can
+            leave a torque on a port wired to nothing, which no 2DIY set-up clears).
+
+        Returns
+        -------
+        float
+        """
         held = dict(self.torque)
         for w in self._fifo:
             if w:
                 held.update(w)
         for _, w in self._due:
             held.update(w)
-        return max(abs(t) for t in held.values())
+        want = held.keys() if ports is None else ports
+        return max(abs(held[p]) for p in want)
 
     def run_to(self, t: float) -> None:
         """Wall clock: the pantograph integrated to the board's time ``t`` [s], the torques

@@ -42,7 +42,7 @@ __all__ = ["play_context", "play_chunk", "play_chunk32", "HEAD", "PLAY_ARRAYS", 
 COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "321a6ab873660fdc2df808fc872bb0254f7fef133b94cfc4010107b695a85593"
+COMPILED_SOURCES_SHA256 = "3ea51dc571ebb8e3973bc79e2d255b8d8263b6458ede722afd32be1e567848c9"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
