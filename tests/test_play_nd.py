@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import tracemalloc
 from pathlib import Path
 
@@ -597,7 +598,13 @@ def test_a_chunk_allocates_nothing():
             peaks = [transient(live.produce) for _ in range(40)]
         finally:
             tracemalloc.stop()
-        assert max(peaks[4:]) < one, (path.name, peaks, one)
+        # an array made per chunk shows in every chunk; tracemalloc traces every thread of
+        # the process, and a thread another test of this worker left running (a server, a
+        # status line) allocated 1,299 B during one chunk in CI (fresh clone, xdist): at
+        # most 2 of the 36 chunks may be over, and those are named with the threads
+        over = [p for p in peaks[4:] if p >= one]
+        assert len(over) <= 2, (path.name, peaks, one,
+                                [t.name for t in threading.enumerate()])
 
 
 def test_the_digest_names_the_sources_compiled_in():
