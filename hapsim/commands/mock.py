@@ -362,17 +362,7 @@ def _run_firmware(args) -> int:
                               report=args.report, link=args.link,
                               trace=getattr(args, "trace", None),
                               spin_us=getattr(args, "spin_us", None) or 0.0)
-    if not args.lockstep and getattr(args, "rt_priority", 0):
-        # real time: the board holds the emulated clock to the wall clock; SCHED_FIFO (kept
-        # across exec) keeps other programs from descheduling it, as for the Python mock
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.rt_priority)))
-        except (AttributeError, OSError) as exc:
-            print(f"hapsim mock: normal scheduling (SCHED_FIFO {args.rt_priority} refused: "
-                  f"{getattr(exc, 'strerror', None) or exc})", file=sys.stderr, flush=True)
-    sys.stdout.flush()
-    os.execv(cmd[0], cmd)
-    return 1  # not reached
+    return _exec_board(cmd, args)
 
 
 # ---------------------------------------------------- a 2-D or 3-D scene's device
@@ -596,9 +586,16 @@ def run_pantograph_firmware(args) -> int:
     except DeviceError as exc:
         print(f"hapsim mock: {exc}", file=sys.stderr)
         return 1
-    if not args.lockstep and args.rt_priority:
-        # the board holds the emulated clock to the wall clock: SCHED_FIFO (kept across
-        # exec) keeps other programs from descheduling it, as the 1-D board
+    return _exec_board(cmd, args)
+
+
+def _exec_board(cmd: list, args) -> int:
+    """Become the emulated board's simavr process (``os.execv``): in real time (not
+    ``--lockstep``) with ``--rt-priority`` > 0, SCHED_FIFO first (kept across exec: the
+    board holds the emulated clock to the wall clock, and other programs must not
+    deschedule it), or a note on stderr when it is refused. Returns only if exec does not
+    (1)."""
+    if not args.lockstep and getattr(args, "rt_priority", 0):
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(args.rt_priority)))
         except (AttributeError, OSError) as exc:
