@@ -54,7 +54,7 @@ def _load():
         return None
 
 
-def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
+def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: int = 10) -> dict:
     """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes)."""
     from hapsim.pipeline.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
@@ -64,7 +64,8 @@ def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
         try:
             rep = run_scene(load_scene(f"configs/{driver.replace('-', '_')}.yaml"),
                             driver=driver,
-                            duration=duration, handle_signals=False, rt_priority=0,
+                            duration=duration, handle_signals=False,
+                            rt_priority=rt_priority,
                             telemetry=tel, seed=seed,
                             driver_faults={"drop_tx": loss, "drop_rx": loss, "seed": seed})
             err = None
@@ -86,7 +87,8 @@ def run_1d(driver: str, seed: int, loss: float, duration: float) -> dict:
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
-            "exit_code": rep.get("exit_code"), "error": err or m.get("error")}
+            "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
+            "scheduling": lp.get("scheduling")}
 
 
 def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
@@ -225,8 +227,13 @@ def main(argv=None) -> int:
     p.add_argument("--loss", nargs="+", type=float, default=[0.0, 1 / 200])
     p.add_argument("--hogs", type=int, default=2, help="CPU-bound processes beside (2)")
     p.add_argument("--duration", type=float, default=1.5, help="1-D runs [s]")
+    p.add_argument("--rt-priority", type=int, default=10, metavar="N",
+                   help="SCHED_FIFO priority of the host loops (and the boards' processes) "
+                        "where the OS permits it: 10, as 'hapsim run' takes by default; 0 "
+                        "for normal scheduling")
     p.add_argument("--json", default=None, metavar="PATH")
     a = p.parse_args(argv)
+    from hapsim.host.realtime import RealtimePriority
     import signal
     # a SIGTERM ends the runs through the finally below (the CPU-bound processes too)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -239,13 +246,18 @@ def main(argv=None) -> int:
             for loss in a.loss:
                 for seed in a.seeds:
                     t = time.monotonic()
-                    if drv == "haply2":
-                        row = run_haply2(seed, loss)
-                    elif drv == "falcon":
-                        row = run_falcon_once(seed, loss)
+                    if drv in ("haply2", "falcon"):
+                        # the host loop (and the in-process board) at the command's
+                        # priority, as 'hapsim run --driver haply/falcon' runs it
+                        rt = RealtimePriority(a.rt_priority)
+                        with rt:
+                            row = (run_haply2(seed, loss) if drv == "haply2"
+                                   else run_falcon_once(seed, loss))
+                        sched = rt.note
                     else:
-                        row = run_1d(drv, seed, loss, a.duration)
-                    row.update(driver=drv, seed=seed, loss=loss,
+                        row = run_1d(drv, seed, loss, a.duration, a.rt_priority)
+                        sched = row.get("scheduling")
+                    row.update(driver=drv, seed=seed, loss=loss, scheduling=sched,
                                seconds=round(time.monotonic() - t, 1), load=_load())
                     rows.append(row)
                     print(json.dumps({k: row.get(k) for k in (
@@ -270,7 +282,7 @@ def main(argv=None) -> int:
 #: The keys every row has (None where a run does not give one): the docs' table reads them.
 ROW_KEYS = ("driver", "loss", "seed", "clock", "safety_stop", "stop", "resyncs", "stalls",
             "excursion_true", "excursion_host", "workspace", "verdict", "within",
-            "exit_code", "error", "seconds", "load")
+            "exit_code", "error", "seconds", "load", "scheduling")
 
 
 def normalize(rows):

@@ -99,8 +99,17 @@ def run_falcon_command(args) -> int:
         with Progress(3, "run (Falcon: firmware, homing, loop)", unit="stages") as bar:
             # the emulated Falcon keeps its own time (its firmware's ticks) unless
             # lockstep: then it is paced as a real one is
-            res = run_falcon(scene, link, image, packets, truth=truth, progress=bar.update,
-                             paced=not emulated or dev.clock == "wall")
+            from hapsim.host.realtime import RealtimePriority
+            paced = not emulated or dev.clock == "wall"
+            # a paced loop at SCHED_FIFO where permitted, as every real-time loop of
+            # hapsim's: the firmware does not wait for a descheduled host (in process,
+            # the emulated Falcon's clock with it)
+            rt = RealtimePriority(max(int(getattr(args, "rt_priority", 0) or 0), 0)
+                                  if paced else 0)
+            with rt:
+                res = run_falcon(scene, link, image, packets, truth=truth,
+                                 progress=bar.update, paced=paced)
+            res["scheduling"] = rt.note
     except DeviceError as exc:
         print(f"hapsim run: {exc}", file=sys.stderr)
         return 1
@@ -125,7 +134,8 @@ def run_falcon_command(args) -> int:
            "implausible": res["decoder"]["implausible"], "truth": res["truth"],
            "travel_m": travel,
            "max_command": int(np.abs(res["commands"]).max()) if packets else 0,
-           "felt_matrices": None, "verdict": res["verdict"], "reason": res["reason"]}
+           "felt_matrices": None, "scheduling": res["scheduling"],
+           "verdict": res["verdict"], "reason": res["reason"]}
     if args.json:
         print(json.dumps(out))
         return 0
@@ -138,9 +148,12 @@ def run_falcon_command(args) -> int:
           file=o)
     rate = out["packets_per_s"]
     print(f"  loop: {packets} packets, one per sample, at {rate:.0f} packets/s ("
-          + ("the emulator answers at once and steps one period per packet: the host's "
-             "own pace" if emulated else "the Falcon's replies and the host set the pace")
-          + f"; the scene's rate {res['rate_hz']:g} Hz)", file=o)
+          + ("the emulated firmware answers each packet at its next tick, on its own "
+             "clock" if emulated and res["paced"] else "the emulator answers at once and "
+             "steps one period per packet: the host's own pace" if emulated
+             else "the Falcon's replies and the host set the pace")
+          + f"; the scene's rate {res['rate_hz']:g} Hz; host loop scheduling: "
+          f"{res['scheduling']})", file=o)
     print(f"  replies missing {out['missing']}, bytes dropped realigning "
           f"{out['skipped_bytes']}, implausible packets dropped {out['implausible']}, "
           f"samples unhomed {out['unhomed']}", file=o)

@@ -277,18 +277,25 @@ def _run_haply2(args) -> int:
         try:
             if realtime:
                 from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
+                from hapsim.host.realtime import RealtimePriority
+                prio = max(int(getattr(args, "rt_priority", 0) or 0), 0)
+                # the board takes SCHED_FIFO itself once started (a real board's MCU is
+                # never descheduled), the host loop here: as the 1-D run's loop and mock
                 child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
-                                     rate_hz=scene.rate_hz)
+                                     rate_hz=scene.rate_hz, rt_priority=prio)
                 gc_was = gc.isenabled()
+                rt = RealtimePriority(prio)
                 try:
                     gc.disable()                 # no collection while the clock runs
                     # the emulated board advances one period per write unless it
                     # says it keeps the wall clock: a host stall costs its record
                     # nothing then
-                    res = measure_felt_haply2_port(
-                        child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
-                        progress=bar.update,
-                        lockstep_board=getattr(child, "clock", "lockstep") == "lockstep")
+                    with rt:
+                        res = measure_felt_haply2_port(
+                            child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
+                            progress=bar.update,
+                            lockstep_board=getattr(child, "clock", "lockstep") == "lockstep")
+                    res["scheduling"] = rt.note
                 finally:
                     if gc_was:
                         gc.enable()
@@ -314,7 +321,8 @@ def _run_haply2(args) -> int:
             "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
                 "replies": res["replies"], "writes": res["writes"],
-                "resyncs": res["resyncs"], "skipped": res["skipped"]} if realtime else {}),
+                "resyncs": res["resyncs"], "skipped": res["skipped"],
+                "scheduling": res.get("scheduling")} if realtime else {}),
             "direction_probe": res.get("direction_probe"),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                           "felt_damping": mat(chk.render.felt_damping)},
@@ -340,8 +348,8 @@ def _run_haply2(args) -> int:
     if realtime:
         print(f"  estimated samples (replies not read by their tick) per record: "
               f"{res['estimated']}; ticks the host began a period late: "
-              f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}",
-              file=o)
+              f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
+              f"host loop scheduling: {res.get('scheduling')}", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
           f"a = {a:g} m (minus the response from rest)", file=o)
     for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),

@@ -25,18 +25,25 @@ Time: a device on its own clock (``device.wall``, :class:`hapsim.emulated.falcon
 FalconDevice`'s default) says when its answer is ready (``device.ready_at`` on
 ``device.now()``'s clock: the Falcon's firmware answers a packet at its next tick); a bulk
 IN returns only the bytes ready by then, as the chip has them from the UART only then.
-Not modelled: the latency timer's timing (a bulk IN returns what the device has
-answered by then at once, the status bytes alone when nothing), the FIFOs' sizes, the
+A bulk IN with an answer on its way but not ready waits for it at most :data:`POLL_S`
+(a real chip NAKs meanwhile). Not modelled: the latency timer's timing (a bulk IN returns
+what the device has answered by then, the status bytes alone when nothing), the FIFOs' sizes, the
 baud rate's time on the wire (a byte takes no time), USB timeouts.
 """
 
 from __future__ import annotations
 
 import errno
+import time
 from array import array
 from types import SimpleNamespace
 
-__all__ = ["VirtualFT232R", "VirtualUSB", "SIO"]
+__all__ = ["VirtualFT232R", "VirtualUSB", "SIO", "POLL_S"]
+
+#: Longest wait of a bulk IN for an answer the device has on its way [s]: a read
+#: before the answer is ready waits this (or until it is ready), as a real chip NAKs the
+#: IN token meanwhile, instead of returning the status bytes alone at once.
+POLL_S = 2e-4
 
 #: FTDI vendor requests (libftdi ``ftdi.h``; libnifalcon ``FalconCommLibUSB.cpp``).
 SIO = {"reset": 0x00, "modem_ctrl": 0x01, "flow_ctrl": 0x02, "baud": 0x03, "data": 0x04,
@@ -251,6 +258,14 @@ class VirtualFT232R:
         self._count_transfer()
         if self._later:
             now = self.device.now()
+            if not self._to_host and self._later[0][0] > now:
+                # nothing for the host yet and an answer on its way: the chip NAKs the IN
+                # token until it has bytes (its latency timer aside), so a real bulk read
+                # blocks; here it waits a poll's time (0.2 ms, finer than full-speed USB's
+                # 1 ms frames) instead of returning at once, which made pyftdi's read
+                # loop spin a core (a loop at SCHED_FIFO spinning starves the machine)
+                time.sleep(min(self._later[0][0] - now, POLL_S))
+                now = self.device.now()
             while self._later and self._later[0][0] <= now:
                 self._to_host += self._later.pop(0)[1]
         s0, s1 = self._status()

@@ -866,6 +866,13 @@ class Embedded2DIY(PtyChild):
         The emulated board's clock (:class:`~hapsim.emulated.haply2_board.Haply2DIYBoard`):
         its own time (the default) or one period per write (named, for deterministic
         tests).
+    rt_priority : int, optional
+        ``SCHED_FIFO`` priority the board's process takes once its start-up is done (its
+        imports and its compiled plant loaded: a start-up under ``SCHED_FIFO`` starves
+        the machine), where the OS permits it (:class:`hapsim.host.realtime.
+        RealtimePriority`); 0 (the default): normal scheduling. A real board's
+        microcontroller is never descheduled: on a loaded host the emulated one is not
+        either.
 
     Attributes
     ----------
@@ -879,7 +886,7 @@ class Embedded2DIY(PtyChild):
     def __init__(self, scene_path: str, generation: str = "gen3", *, amplitude: float,
                  cpr: float | None = None, slow_every: int = 0, slow_s: float = 0.0,
                  rate_hz: float | None = None, wiring=((1, 1), (1, 1)),
-                 clock: str = "wall") -> None:
+                 clock: str = "wall", rt_priority: int = 0) -> None:
         if clock not in ("wall", "lockstep"):
             raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
         self.clock = clock
@@ -890,7 +897,7 @@ class Embedded2DIY(PtyChild):
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
                     repr(float(slow_s)), "--rate", repr(float(rate_hz or 0.0)),
                     "--wiring", ",".join(str(int(v)) for jw in wiring for v in jw),
-                    "--clock", clock], master)
+                    "--clock", clock, "--rt-priority", str(int(rt_priority))], master)
 
 
 class _SlowBoard(Haply2DIYBoard):
@@ -927,6 +934,7 @@ def main(argv=None) -> int:
     p.add_argument("--rate", type=float, default=0.0)
     p.add_argument("--wiring", default="1,1,1,1")
     p.add_argument("--clock", choices=("wall", "lockstep"), default="wall")
+    p.add_argument("--rt-priority", type=int, default=0)
     a = p.parse_args(argv)
     w = [int(v) for v in a.wiring.split(",")]
     scene = load_scene_nd(a.scene)
@@ -939,7 +947,19 @@ def main(argv=None) -> int:
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
-    rep = serve(a.fd, board, stop=lambda: flag["stop"])
+    from hapsim.host.realtime import RealtimePriority
+    if a.clock == "wall" and a.rt_priority:
+        # the compiled plant loaded before SCHED_FIFO (a throwaway board armed and written
+        # once): its first call, a load from numba's cache or a compilation, would starve
+        # the machine under it
+        warm, drv = Haply2DIYBoard(scene, a.generation, clock="wall"), Haply2DIY(a.generation)
+        warm.feed(drv.arm_bytes([math.degrees(v) for v in scene.device.joints]), 0.0)
+        warm.feed(drv.write_bytes((0.0, 0.0)), scene.period)
+    # SCHED_FIFO once the start-up is done (the board made, its plant compiled): a board's
+    # microcontroller is never descheduled; serve waits in select, it does not spin
+    with RealtimePriority(a.rt_priority if a.clock == "wall" else 0) as rt:
+        rep = serve(a.fd, board, stop=lambda: flag["stop"])
+    rep["scheduling"] = rt.note
     if a.report:
         with open(a.report + ".partial", "w") as fh:
             json.dump(rep, fh)
