@@ -423,3 +423,83 @@ def test_a_host_pause_moves_the_fader_as_the_held_force_over_real_time():
     assert abs(final[0] - x) <= _tol(abs(x) + abs(after[0]), 20)
     lock_x = _held(after[0], after[1], m, b, f, 4e-3)[0]
     assert abs(x - after[0]) > 5 * abs(lock_x - after[0])
+
+
+@pytest.mark.parametrize("seed", [1, 3, 8, 9])
+def test_haply_m3_losing_host_bytes_never_says_differs(two_cpu_hogs, seed):
+    """The Haply M3 joint's loop on its board's own clock, 1 host byte in 200 lost on its
+    way to the board (seeded), two CPU-bound processes running: a write that lost a byte
+    is parsed from the wrong bytes (firmware V1.5: no start byte, no checksum), an
+    arbitrary torque no reply names. The verdict is "within" or "not measurable" with its
+    reason, never "differs": the rows around each missing reply are left out of the
+    measurement (:meth:`hapsim.drivers.haply.HaplyM3.unknown_force_rows`). Before, with
+    those torques measured as the ones sent, 3 of these 4 seeds said "differs" (k 0.4-3.6 %
+    off against a stated 0.3-0.5 %, ``tools/driver_timing.py`` at SCHED_FIFO); the
+    replies' bytes lost instead were within in 4 of 4."""
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    from pathlib import Path
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / "haply.yaml"))
+    assert all(p.is_alive() for p in two_cpu_hogs)
+    rep = run_scene(sc, driver="haply", duration=1.5, handle_signals=False, seed=seed,
+                    driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": seed})
+    loop, m = rep["loop"], rep["measured"]
+    assert loop["mock"]["clock"] == "wall"
+    assert loop["driver"]["missing"] > 0                # bytes were lost
+    verdict = str(m.get("verdict"))
+    assert not verdict.startswith("measured differs"), (verdict, m.get("rel_err"),
+                                                        m.get("k_unc"), m.get("k"))
+    assert m.get("within") is True or verdict.startswith("not measurable") or \
+        m.get("error"), verdict
+
+
+def test_haply_m3_unknown_force_rows_are_each_missing_replys_window():
+    """Closed form: each run of estimated rows [r0, r1] leaves out rows r0 - 2 .. r1 + d + 2
+    (clipped to the record), overlapping windows merged; no estimated row, None."""
+    from hapsim.drivers.base import FLAG_ESTIMATED
+    from hapsim.drivers.haply import HaplyM3
+    drv = HaplyM3()
+    for d in (0, 1, 3):
+        drv.loop_delay = d
+        rng = np.random.default_rng(d)
+        for _ in range(50):
+            n = int(rng.integers(1, 60))
+            est = rng.random(n) < 0.08
+            flags = np.where(est, FLAG_ESTIMATED | 1, 1).astype(np.uint8)
+            got = drv.unknown_force_rows({"flags": flags})
+            if not est.any():
+                assert got is None
+                continue
+            want = np.zeros(n, bool)
+            for r in np.flatnonzero(est):         # a row at a time: windows merge
+                want[max(r - 2, 0):min(r + d + 3, n)] = True
+            assert np.array_equal(got, want), (d, est, got, want)
+    assert drv.unknown_force_rows({}) is None
+
+
+def test_haply_m3_losing_host_bytes_still_sees_a_device_that_differs(monkeypatch):
+    """The same lossy link (seed 1, 1 host byte in 200 lost) against a joint with a hidden
+    viscous friction of 0.001 N m s/rad more than the scene states (the felt b, predicted
+    0.00126 N m s/rad, about doubles): "differs", the measured b above the prediction by
+    more than its stated uncertainty -- the rows left out around the missing replies do
+    not blind the measurement."""
+    import dataclasses
+
+    import hapsim.emulated.driver_mock as dm
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    from pathlib import Path
+    init = dm.EmbeddedDriverMock.__init__
+
+    def hidden(self, driver, device, *a, **k):
+        init(self, driver, dataclasses.replace(device, friction=device.friction + 0.001),
+             *a, **k)
+    monkeypatch.setattr(dm.EmbeddedDriverMock, "__init__", hidden)
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / "haply.yaml"))
+    rep = run_scene(sc, driver="haply", duration=1.5, handle_signals=False, seed=1,
+                    driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": 1})
+    m = rep["measured"]
+    assert rep["loop"]["driver"]["missing"] > 0
+    assert str(m.get("verdict")).startswith("measured differs"), m.get("verdict")
+    assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
+                                                        m["b_unc"])

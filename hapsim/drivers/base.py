@@ -326,6 +326,30 @@ class Driver:
         quantisation and clamp): what identification must fit against."""
         return float(force)
 
+    def unknown_force_rows(self, columns: dict):
+        """Rows whose applied force no account can name, left out of the measurement, or
+        None (the default: every row's force is the one sent, the one before, or named by
+        the device).
+
+        A protocol without framing or checksum whose device does not name the force it
+        applied (the Haply M3) turns a host byte lost into a command parsed from the
+        wrong bytes: an arbitrary force, held until the parser is back in step. The
+        measurement cuts the record there (``exclude`` of
+        :func:`hapsim.analysis.identify.identify`: each stretch after a cut is a free
+        response from its own initial state), as it does at a clamped force it cannot
+        replay.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (``flags``, each shape (n,)).
+
+        Returns
+        -------
+        ndarray of bool, shape (n,), or None
+        """
+        return None
+
     def account(self, columns: dict, force):
         """The force the device applied per tick, from this driver's timing, or None.
 
