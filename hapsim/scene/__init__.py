@@ -81,10 +81,10 @@ numbers; a scalar where a vector is expected is refused:
       hold: zoh                   # the only one in n-D
     # a kinematic device instead: kind: pantograph (n = 2) or delta (n = 3), geometry: a
     # preset (haply, falcon) or, for a pantograph, its lengths as numbers
-    # {l1: 0.05, l2: 0.05, L1: 0.07, L2: 0.07, d: 0.02} [m], joints: the operating point [deg], joint_inertia [kg m^2]
-    # and joint_friction [N m s/rad] (vectors or matrices), hand_mass [kg] and
-    # hand_damping [N s/m] (isotropic, default 0); the handle rests at the forward
-    # kinematics of the joints.
+    # {l1: 0.05, l2: 0.05, L1: 0.07, L2: 0.07, d: 0.02} [m], joints: the operating
+    # point [deg], joint_inertia [kg m^2] and joint_friction [N m s/rad] (vectors or
+    # matrices), hand_mass [kg] and hand_damping [N s/m] (isotropic, default 0); the
+    # handle rests at the forward kinematics of the joints.
 
 Link laws in two and three dimensions
 -------------------------------------

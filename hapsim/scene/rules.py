@@ -318,8 +318,8 @@ def _check_products(s) -> None:
 
 def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> None:
     """The dimensionless products of a 2-D or 3-D scene's loop, the 1-D scene's rule
-    (:func:`check_scene`'s, here on the reader's values as it builds them): ``|K| T^2/m`` and ``|B| T/m`` of every
-    link and plane, ``m`` its lightest moving end (a virtual mass, or the device's
+    (:func:`check_scene`'s, here on the reader's values as it builds them): ``|K| T^2/m``
+    and ``|B| T/m`` of every link and plane, ``m`` its lightest moving end (a virtual mass, or the device's
     Cartesian mass along its lightest axis at the port), and the device's ``b0 T/m``
     (largest friction over the lightest mass axis): at most
     :data:`hapsim.scene_schema.MAX_PRODUCT`, whose reason is there (the state matrix's
@@ -364,8 +364,9 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
             if m.kind == "port":
                 inertia[m.name] = light
     # a Euclidean link at rest distance r with rest length (or threshold) L stiffens
-    # across its axis by K |1 - L/r| (its linearisation, hapsim.analysis.scene_nd_check.link_blocks): the
-    # product bounds that too (a length of 1e308 overflowed the state matrix)
+    # across its axis by K |1 - L/r| (its linearisation,
+    # hapsim.analysis.scene_nd_check.link_blocks): the product bounds that too (a length of
+    # 1e308 overflowed the state matrix)
     where = {m.name: m.x0 for m in masses}
     groups = []
     for i, lk in enumerate(links):
