@@ -129,7 +129,8 @@ def load_device(path: str):
         Unreadable file, invalid YAML, other top-level keys than ``device``, or an invalid
         device section (file, line and key named, as for scenes).
     """
-    from hapsim.scene.reader import LineContext, read_device
+    from hapsim.scene.lines import LineContext
+    from hapsim.scene.reader import read_device
     from hapsim.scene.rules import Invalid, check_device
     path = os.fspath(path)
     try:

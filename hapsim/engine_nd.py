@@ -1,10 +1,11 @@
-"""The n-D engine: a 2-D or 3-D scene (:mod:`hapsim.scene_nd`) on the kernels of
+"""The n-D engine: a 2-D or 3-D scene (:class:`hapsim.scene.SceneND`) on the kernels of
 :mod:`hapsim.kernels.nd`.
 
 This layer validates (the scene did) and lays the arrays out; the kernels never see a
 Python object (docs/design.md, rule 3). Links: ``spring_damper`` with ``length: 0`` runs as a
 ``linear`` link, with ``length > 0`` as a ``euclid`` link; ``contact`` links and
-``planes`` run as the kernels' contacts (the laws in :mod:`hapsim.scene_nd`).
+``planes`` run as the kernels' contacts (the laws in :mod:`hapsim.scene`, 'Link laws in two
+and three dimensions').
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ class EngineND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene.
     block : int, optional
         Masses per block of the kernels' schedule (:data:`hapsim.kernels.nd.BLOCK`; a

@@ -42,7 +42,7 @@ class JointDeviceND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A scene whose device is a pantograph or a delta.
     x0 : array_like, shape (n,)
         Initial handle position [m] (joints by Newton steps from the operating point).
@@ -128,7 +128,7 @@ class LocalJointDeviceND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A scene whose device is a pantograph or a delta.
     x0, v0 : array_like, shape (n,)
         Initial handle displacement from the rest position [m] and velocity [m/s] (the

@@ -37,7 +37,7 @@ class LockstepND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     x0, v0 : array_like, shape (n,), optional
         The device's initial displacement from its rest position [m] and velocity [m/s].
@@ -152,7 +152,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     amplitude : float, optional
         Excitation amplitude ``a`` [m]: record ``i`` starts the handle displaced by
@@ -247,7 +247,7 @@ def identification_plan(scene, samples: int | None = None) -> tuple:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     samples : int, optional
         Samples per record (default :func:`default_samples`).
@@ -287,7 +287,7 @@ def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     samples : int
         Length ``L`` of the responses.
@@ -340,7 +340,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         The scene the records were taken of.
     diffs : sequence of ndarray, each shape (N, n)
         The ``2n`` records minus the record from rest, as fitted [m].

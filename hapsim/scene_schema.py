@@ -302,7 +302,7 @@ _KEYS = [
         example="audio: {rate_hz: 8000, listen: [{mass: hand}]}"),
     Key("dimension", "integer", default=1, minimum=1, maximum=3,
         doc="Degrees of freedom of the scene: 1 is this format; 2 and 3 are the planar and "
-            "spatial format of `hapsim.scene_nd` (vector positions, Euclidean links, "
+            "spatial format of `hapsim.scene.load_scene_nd` (vector positions, Euclidean links, "
             "planes, kinematic devices: the pantograph and the delta), which `hapsim "
             "check`, `run`, `simulate`, `mock --scene` and `play` take; its keys and laws "
             "are in [Two and three dimensions](dimensions.md#scenes-in-2-and-3-dimensions), "

@@ -15,7 +15,7 @@ import hapsim
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 from hapsim.scene import load_scene as load_1d
-from hapsim.scene_nd import SceneND, load_scene_nd, scene_dimension
+from hapsim.scene import SceneND, load_scene_nd, scene_dimension
 
 CONFIGS = sorted((Path(__file__).resolve().parent.parent / "configs").glob("*.yaml"))
 

@@ -851,7 +851,7 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     from hapsim.audio.live_nd import LiveND
     from hapsim.audio.offline import render_nd
     from hapsim.engine_nd import EngineND
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
 
     sc = dataclasses.replace(load_scene_nd("configs/membrane.yaml"), rate_hz=48000.0)
     total = 24000                                     # 0.5 s

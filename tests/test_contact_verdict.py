@@ -184,7 +184,7 @@ def test_shipped_configs_in_lockstep_never_differ(shipped_lockstep_run):
     audible string's (its contact opens) is "not comparable". (The runs are shared with
     test_scene_measurability: conftest.shipped_lockstep_run.)"""
     verdicts = {}
-    from hapsim.scene_nd import scene_dimension
+    from hapsim.scene import scene_dimension
     for path in sorted(CONFIGS.glob("*.yaml")):
         if scene_dimension(path) > 1:     # 2-D and 3-D: tests/test_scenes_nd_shipped.py
             continue

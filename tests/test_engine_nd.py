@@ -13,7 +13,7 @@ from hapsim.engine import Engine
 from hapsim.engine_nd import EngineND
 from hapsim.kernels.nd import stripes
 from hapsim.scene import parse_scene
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 from tolerance import measured, rel_tol
 
 pytestmark = pytest.mark.numerical

@@ -13,7 +13,7 @@ import pytest
 
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))

@@ -14,7 +14,7 @@ import pytest
 from hapsim.emulated.falcon_device import FalconDevice, home, load_firmware
 from hapsim.drivers import falcon as fa
 from hapsim.errors import DeviceError
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 from tolerance import rel_tol
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("pyftdi")       # the [falcon] extra; in [test] too: CI has it
 
 from hapsim.pipeline import falcon_run as fr  # noqa: E402
-from hapsim.scene_nd import load_scene_nd  # noqa: E402
+from hapsim.scene import load_scene_nd  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))

@@ -22,7 +22,7 @@ from hapsim.drivers import falcon as fa  # noqa: E402
 from hapsim.drivers.falcon_usb import (UDEV_RULE, FalconUSB, ft232r_baud,  # noqa: E402
                                        load_firmware_link, parse_url)
 from hapsim.errors import ConfigError, DeviceError  # noqa: E402
-from hapsim.scene_nd import load_scene_nd  # noqa: E402
+from hapsim.scene import load_scene_nd  # noqa: E402
 from tolerance import rel_tol  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -24,7 +24,7 @@ import faust_gen  # noqa: E402
 from test_faust_oracle import displaced_string  # noqa: E402
 
 from hapsim.engine_nd import EngineND  # noqa: E402
-from hapsim.scene_nd import LinkND, MassND, SceneND, parse_scene_nd  # noqa: E402
+from hapsim.scene import LinkND, MassND, SceneND, parse_scene_nd  # noqa: E402
 
 #: pytest-xdist (the README command runs 2 workers): its module-scoped Faust build runs once, on
 #: one worker.
@@ -55,7 +55,7 @@ def as_nd(scene, u) -> SceneND:
 
 
 def as_text(scene, u) -> str:
-    """The same, as a 3-D scene file (read by :func:`hapsim.scene_nd.parse_scene_nd`)."""
+    """The same, as a 3-D scene file (read by :func:`hapsim.scene.parse_scene_nd`)."""
     lines = [f"dimension: {len(u)}", f"rate_hz: {scene.rate_hz!r}", "masses:"]
     for m in scene.masses:
         x0 = [float(m.x0 * c) for c in u]

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from hapsim.emulated.haply2_board import Haply2DIYBoard, drive_haply2, measure_felt_haply2
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
 from hapsim.emulated.driver_mock import ByteFaults
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 from tolerance import rel_tol
 
 #: Unit round-off of IEEE binary32, the wire's floats [-] (IEEE 754: round to nearest).

@@ -15,7 +15,7 @@ from hapsim.emulated.haply2_board import BoardLink, Haply2DIYBoard
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
 from hapsim.drivers.haply2_probe import find_directions
 from hapsim.errors import IdentificationError
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
 _SCENE = []

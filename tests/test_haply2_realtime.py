@@ -13,7 +13,7 @@ import pytest
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
 from hapsim.lockstep import identification_plan
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 WALL = CONFIGS / "pantograph_wall.yaml"

@@ -21,7 +21,7 @@ from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.pipeline.haply2_host import SILENT_WRITES, measure_felt_haply2_port, record_realtime
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
 

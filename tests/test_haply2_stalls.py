@@ -23,7 +23,7 @@ from hapsim.pipeline import haply2_host as host
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
 #: The workspace the joints must stay in [rad] around the rest joints: the bound a 30 ms

@@ -50,12 +50,12 @@ def test_huge_whole_number_at_every_scalar_is_one_line():
     range (400 digits, either sign) at *every* scalar of every shipped config is loaded or
     refused with a ConfigError whose message is one bounded line (it once raised
     OverflowError while formatting the range message). A 2-D or 3-D config is read by its
-    reader (hapsim.scene_nd). Every scalar of a distinct key and line shape: the hundreds
+    reader (hapsim.scene.load_scene_nd). Every scalar of a distinct key and line shape: the hundreds
     of identical mass and link lines of the membrane and the strings once each (the same
     key in the same line goes through the same check; 1,500 loads were 500)."""
     from hapsim.errors import ConfigError
     from hapsim.scene import parse_scene
-    from hapsim.scene_nd import parse_scene_nd
+    from hapsim.scene import parse_scene_nd
     n = 0
     for text in BASES:
         nd = re.search(r"^dimension: [23]\b", text, re.M) is not None

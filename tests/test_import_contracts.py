@@ -64,11 +64,11 @@ LAYERS = (
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher, in
     # hapsim.emulated.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
-    ("scene", ("hapsim.scene_schema", "hapsim.scene", "hapsim.scene_doc",
-               "hapsim.device_file", "hapsim.drivers")),
-    # (the n-D scene reader checks a device's geometry with the kinematics and ths_nd)
-    ("models", ("hapsim.engine", "hapsim.engine_nd", "hapsim.lockstep", "hapsim.scene_nd",
-                "hapsim.joint_device",
+    ("scene", ("hapsim.scene_schema", "hapsim.scene_doc", "hapsim.drivers")),
+    # the scene package stands with the models: its n-D reader takes a kinematic device's
+    # Cartesian mass at its joints from the kinematics and hapsim.analysis.ths_nd
+    ("models", ("hapsim.scene", "hapsim.device_file", "hapsim.engine", "hapsim.engine_nd",
+                "hapsim.lockstep", "hapsim.joint_device",
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
                 "hapsim.plots.workspace", "hapsim.plots.zwidth")),
@@ -184,14 +184,14 @@ def test_scanner_sees_circles_and_upward_imports():
     scene module importing the analysis (even inside a function) is an upward import."""
     g = _graph({"hapsim.audio.a": "from hapsim.audio.b import x\n",
                 "hapsim.audio.b": "def f():\n    from . import a\n",
-                "hapsim.scene": "def f():\n    import hapsim.analysis.loop as lp\n",
-                "hapsim.errors": "from hapsim import scene\n",
-                "hapsim.analysis.loop": "from hapsim.scene import Scene\n"})
+                "hapsim.scene_schema": "def f():\n    import hapsim.analysis.loop as lp\n",
+                "hapsim.errors": "from hapsim import scene_schema\n",
+                "hapsim.analysis.loop": "from hapsim.scene_schema import KEYS\n"})
     assert ["hapsim.audio.a", "hapsim.audio.b"] in _circles(g)
-    assert ["hapsim.analysis.loop", "hapsim.scene"] in _circles(g)
-    assert _upward(g) == ["hapsim.errors (floor foundation) imports hapsim.scene (floor "
-                          "scene)", "hapsim.scene (floor scene) imports hapsim.analysis.loop "
-                          "(floor models)"]
+    assert ["hapsim.analysis.loop", "hapsim.scene_schema"] in _circles(g)
+    assert _upward(g) == ["hapsim.errors (floor foundation) imports hapsim.scene_schema (floor "
+                          "scene)", "hapsim.scene_schema (floor scene) imports "
+                          "hapsim.analysis.loop (floor models)"]
     assert _floor("hapsim.pipeline.runner") == 6 and _floor("hapsim.host.loop") == 4
     assert _floor("hapsim.emulated.mock") == 3 and _floor("hapsim.new_module") == 7
 
@@ -268,17 +268,21 @@ def test_no_module_imports_another_modules_private_names():
 
 
 # ------------------------------------------------------------------- the scene package
-# hapsim.scene is four rooms in a row, each importing only the rooms before it: the
-# elements (values), the rules (checks on the values), the model (Scene, checked by the
-# rules when built), the reader (YAML with lines -> the model). Users import the package.
+# hapsim.scene is six rooms in a row, each importing only the rooms before it: the
+# elements (values, of every dimension), the rules (checks on the values), the model (Scene,
+# checked by the rules when built; SceneND), the lines (where the reader is in a file, and
+# the values it reads there), the devices (a 2-D or 3-D scene's device at its operating
+# point), the reader (YAML with lines -> the model). Users import the package.
 SCENE_ROOMS = ("hapsim.scene.elements", "hapsim.scene.rules", "hapsim.scene.model",
-               "hapsim.scene.reader")
+               "hapsim.scene.lines", "hapsim.scene.devices", "hapsim.scene.reader")
 #: Modules outside the package that take a room directly, and which: a device file is a
-#: scene's device section, read and checked by the same code; an n-D scene file is read
-#: with the same line-numbered context.
-SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.reader", "hapsim.scene.rules"},
-                    # the n-D reader reads files and lines as the 1-D one does
-                    "hapsim.scene_nd": {"hapsim.scene.reader"}}
+#: scene's device section, read and checked by the same code, in the same line-numbered
+#: context; the corrections take their table from the elements (through the package, the
+#: analysis and the n-D device reader, which takes hapsim.analysis.ths_nd, would import
+#: each other in a circle).
+SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.lines", "hapsim.scene.reader",
+                                           "hapsim.scene.rules"},
+                    "hapsim.analysis.corrections": {"hapsim.scene.elements"}}
 
 
 def test_the_scene_rooms_import_only_the_rooms_before_them():
@@ -287,6 +291,35 @@ def test_the_scene_rooms_import_only_the_rooms_before_them():
     for i, room in enumerate(SCENE_ROOMS):
         inside = {m for m in graph[room] if m == "hapsim.scene" or m.startswith("hapsim.scene.")}
         assert inside <= set(SCENE_ROOMS[:i]), f"{room} imports {sorted(inside)}"
+
+
+def test_only_the_device_room_reaches_the_models_and_only_inside_its_functions():
+    """The scene package stands on the models floor for one room: the device reader of a
+    2-D or 3-D scene (hapsim.scene.devices) takes a kinematic device's Cartesian mass at its
+    joints from hapsim.kinematics and hapsim.analysis.ths_nd, inside its functions. Every
+    other room imports from the scene floor or below, and importing the package loads
+    neither the kinematics nor the analysis (a subprocess, from a fresh interpreter)."""
+    import subprocess
+    import sys
+    graph = _house_graph()
+    scene_floor = _floor("hapsim.scene_schema")
+    above = {}
+    for room in SCENE_ROOMS:
+        found = {d for d in graph[room] if _floor(d) > scene_floor
+                 and not (d == "hapsim.scene" or d.startswith("hapsim.scene."))}
+        if found:
+            above[room] = found
+    assert above == {"hapsim.scene.devices": {"hapsim.kinematics", "hapsim.analysis.ths_nd"}}
+    tree = ast.parse((PACKAGE_DIR / "scene" / "devices.py").read_text())
+    top = "\n".join(ast.unparse(n) for n in tree.body
+                    if isinstance(n, (ast.Import, ast.ImportFrom)))
+    assert not {d for d in imported_modules(top, "hapsim.scene.devices")
+                if d.startswith(("hapsim.kinematics", "hapsim.analysis"))}
+    code = ("import sys, hapsim.scene; print(sorted(m for m in sys.modules "
+            "if m.startswith(('hapsim.kinematics', 'hapsim.analysis'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=PACKAGE_DIR.parent).stdout
+    assert out.strip() == "[]"
 
 
 def test_outside_the_scene_package_only_the_named_users_take_a_room():
@@ -348,8 +381,10 @@ def test_scanner_sees_an_upward_folder():
                 "hapsim.drivers": "", "hapsim.drivers.mock": "",
                 "hapsim.audio": "", "hapsim.audio.live": ""})
 
-    def floor(mod):                   # the layers as they were: the mocks on devices
-        return 3 if mod.startswith("hapsim.drivers.mock") else _floor(mod)
+    def floor(mod):                   # the layers as they were: the mocks on devices,
+        if mod.startswith("hapsim.drivers.mock"):     # the scene package on the scene floor
+            return 3
+        return 1 if mod == "hapsim.scene" else _floor(mod)
     assert _upward(g) == []
     assert _folder_upward(g, floor) == ["hapsim.scene (floor scene) imports hapsim.drivers of folder "
                                  "hapsim.drivers, which holds floor emulated devices and sound"]

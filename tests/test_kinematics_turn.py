@@ -82,7 +82,7 @@ def test_scene_reader_refuses_beyond_one_turn(tmp_path):
     """A scene's ``device.joints`` beyond one turn: refused naming the file, line and key."""
     from pathlib import Path
 
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     src = Path(__file__).resolve().parents[1] / "configs" / "pantograph_wall.yaml"
     text = src.read_text()
     import re

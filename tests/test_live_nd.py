@@ -15,7 +15,7 @@ import pytest
 from hapsim.audio.live_nd import LiveND
 from hapsim.audio.offline import render_nd
 from hapsim.engine_nd import EngineND
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

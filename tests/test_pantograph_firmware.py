@@ -43,7 +43,7 @@ def built():
 
 @pytest.fixture(scope="module")
 def scene():
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     return load_scene_nd(str(SCENE))
 
 

@@ -41,7 +41,7 @@ def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, ca
     from hapsim.cli import main
     from hapsim.emulated.pantograph_board import board_command
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     scene = load_scene_nd(str(SCENE))
     a = 5e-3
     proc = subprocess.Popen(board_command(scene, a), stdout=subprocess.PIPE,
@@ -82,7 +82,7 @@ def test_a_board_started_at_another_amplitude_is_not_measurable_not_a_traceback(
     traceback (exit 1); now: exit 0, "not measurable", the reason naming the amplitude."""
     from hapsim.cli import main
     from hapsim.emulated.pantograph_board import board_command
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     scene = load_scene_nd(str(SCENE))
     proc = subprocess.Popen(board_command(scene, 2e-4), stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True)

@@ -20,7 +20,7 @@ from scipy.signal import cont2discrete
 from hapsim.audio.control_nd import ControllerND
 from hapsim.audio.live_nd import LiveND
 from hapsim.engine_nd import EngineND
-from hapsim.scene_nd import load_scene_nd, parse_scene_nd
+from hapsim.scene import load_scene_nd, parse_scene_nd
 
 DATA = Path(__file__).resolve().parent / "data"
 SCENE = DATA / "play_nd_2d.yaml"

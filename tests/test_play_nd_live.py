@@ -81,7 +81,7 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
     assert len(start) == 1 and end == [start[0] + 80]
     got = rec.buf[:rec.n]
     assert np.any(got), "the recording is silent"
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     sc = load_scene_nd(SCENE)
 
     def chain(par, a):
@@ -132,7 +132,7 @@ def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
         rep = stop(proc)
         rec.close()
     assert rep["plucks"]["every_samples"] == 2000
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     sc = load_scene_nd(SCENE)
     h, e = hand_of_scene(sc)
     got = rec.buf[:rec.n]

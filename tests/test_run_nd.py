@@ -51,7 +51,7 @@ def test_large_excitation_departs_by_the_stated_first_order_term():
     8 to 12 times the departure) and within the stated bound; the wall (a plane and a
     length-0 spring: linear while engaged) stays at round-off (1e-9) at a = 1e-4 m."""
     from hapsim.lockstep import measure_felt_lockstep
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     circle = load_scene_nd(CONFIGS / "pantograph_circle.yaml")
     r1, r2 = (measure_felt_lockstep(circle, a) for a in (1e-5, 1e-4))
     for key, bkey in (("felt_stiffness", "stiffness"), ("felt_damping", "damping")):
@@ -83,7 +83,7 @@ def test_euclidean_second_order_term_is_the_stated_one():
     c_link = L / (sqrt(3) l0^2), the coefficient hapsim.analysis.linearisation
     states."""
     from hapsim.analysis.linearisation import linearisation_bound
-    from hapsim.scene_nd import parse_scene_nd
+    from hapsim.scene import parse_scene_nd
     rng = np.random.default_rng(5)
 
     def law(d, K, L):
@@ -185,7 +185,7 @@ def test_joint_space_device_carries_the_kinematic_nonlinearity_within_the_bound(
     lockstep's round-off (the nonlinearity is there), and within the stated bound
     c_kin a (stiffness) and c_kin a |s|/(2|Re s|) (damping)."""
     from hapsim.lockstep import measure_felt_lockstep
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     wall = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
     small = measure_felt_lockstep(wall, 1e-8, samples=200, joint_space=True)
     assert max(small["deviation"].values()) <= 1e-6, small["deviation"]
@@ -252,7 +252,7 @@ def test_verdict_against_the_bound_is_decided_by_it():
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_verdict
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     scene = load_scene_nd(str(CONFIGS / "pantograph_circle.yaml"))
     poles = check_scene_nd(scene).render.rendered_poles
     bound = linearisation_bound(scene, 1e-8, poles)

@@ -16,7 +16,7 @@ import pytest
 
 import firmware_protocol as fp
 from hapsim.engine_nd import EngineND
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

@@ -20,7 +20,7 @@ from hapsim.emulated.mock_nd import MockDeviceND, PhysicsND
 from hapsim.pipeline.run_nd import measure_felt_port, min_rows, start_of, verdict_nd
 from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.lockstep import excitation_starts
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: one of every fault, each at a device tick inside the first records (a scheduled wire

@@ -23,7 +23,7 @@ from hapsim.emulated.mock_nd import MockDeviceND
 from hapsim.pipeline.run_nd import measure_felt_port
 from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.joint_device import JointDeviceND, LocalJointDeviceND
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

@@ -15,7 +15,7 @@ from hapsim.pipeline.options import RunOptions
 from hapsim.pipeline.precheck import predict_comparable
 from hapsim.pipeline.runner import prepare_run, run_scene
 from hapsim.scene import load_scene, parse_scene
-from hapsim.scene_nd import scene_dimension
+from hapsim.scene import scene_dimension
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

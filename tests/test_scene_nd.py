@@ -1,4 +1,4 @@
-"""2-D and 3-D scenes (hapsim.scene_nd) and their closed-loop check
+"""2-D and 3-D scenes (hapsim.scene.SceneND) and their closed-loop check
 (hapsim.analysis.scene_nd_check): the n-D check of a scene whose links are linear is the
 1-D check per axis; a port held by grounds and planes is the THS matrix of
 hapsim.analysis.ths_nd; Euclidean links linearise to the finite-difference Jacobian of
@@ -20,7 +20,7 @@ from hapsim.cli import main
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph, cartesian_mass
 from hapsim.scene import parse_scene
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 from tolerance import BRENT_THETA, crossing_tol, eig_tol, measured, recurrence_tol, rel_tol, solve_tol
 
 pytestmark = pytest.mark.numerical
@@ -448,7 +448,7 @@ def test_an_nd_scene_file_is_read_as_the_1d_reader_reads_files(encoding, tmp_pat
     an unknown key is named at its line as the 1-D reader names it."""
     from pathlib import Path
 
-    from hapsim.scene_nd import load_scene_nd, scene_dimension
+    from hapsim.scene import load_scene_nd, scene_dimension
     src = Path(__file__).resolve().parents[1] / "configs" / "pantograph_circle.yaml"
     text = src.read_text(encoding="utf-8")
     f = tmp_path / "scene.yaml"

@@ -1,5 +1,5 @@
 """docs/dimensions.md's key table of the 2-D/3-D scene format names every key the n-D
-reader (hapsim.scene_nd) accepts, in the right section, and no key it refuses; the
+reader (hapsim.scene.parse_scene_nd) accepts, in the right section, and no key it refuses; the
 example scene above the table is read."""
 
 from __future__ import annotations
@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hapsim import scene_nd
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import devices, parse_scene_nd, reader
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "dimensions.md"
 
@@ -29,15 +28,15 @@ def _table():
 
 def test_every_key_the_reader_takes_is_in_the_table_and_only_those():
     rows = _table()
-    want = {"top level": set(scene_nd.TOP_KEYS),
-            "masses[]": set().union(*scene_nd.MASS_KEYS.values()),
-            "links[]": set().union(*scene_nd.LINK_KEYS.values()),
-            "planes[]": set(scene_nd.PLANE_KEYS),
-            "device": set().union(*scene_nd.DEVICE_KEYS.values()),
-            "audio.listen[]": set(scene_nd.LISTEN_KEYS),
-            "engine": set(scene_nd.ENGINE_KEYS),
-            "excitation": set(scene_nd.EXCITATION_KEYS),
-            "excitation.impulse": set(scene_nd.IMPULSE_KEYS)}
+    want = {"top level": set(reader.TOP_KEYS_ND),
+            "masses[]": set().union(*reader.MASS_KEYS_ND.values()),
+            "links[]": set().union(*reader.LINK_KEYS_ND.values()),
+            "planes[]": set(reader.PLANE_KEYS_ND),
+            "device": set().union(*devices.DEVICE_KEYS.values()),
+            "audio.listen[]": set(reader.LISTEN_KEYS_ND),
+            "engine": set(reader.ENGINE_KEYS_ND),
+            "excitation": set(reader.EXCITATION_KEYS_ND),
+            "excitation.impulse": set(reader.IMPULSE_KEYS_ND)}
     assert set(rows) == set(want)
     for where, keys in want.items():
         assert rows[where] == keys, (where, keys ^ rows[where])

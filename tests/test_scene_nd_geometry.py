@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from hapsim.errors import ConfigError
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 
 BASE = """\
 dimension: 2

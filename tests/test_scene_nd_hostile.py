@@ -11,7 +11,7 @@ import re
 
 from hapsim.analysis.scene_nd_check import check_scene_nd
 from hapsim.errors import ConfigError
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 
 HOSTILE = ["!!float abc", ".nan", ".inf", "-.inf", "1e400", "-1e400", "1e-400", "9" * 400,
            "-" + "9" * 400, "[]", "{}", "null", "true", "'x'", "[[[[1]]]]", "{a: 1}",

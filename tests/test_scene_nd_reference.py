@@ -6,7 +6,7 @@ a margin of 1000, issue 31).
 
 The reference does not linearise anything by hand and calls none of hapsim's analysis:
 it is one sample of the scene's *nonlinear* loop, written from the published laws of
-``hapsim.scene_nd``'s format (miPhysics' SpringDamper3D for Euclidean links, the length-0
+``hapsim.scene``'s 2-D/3-D format (miPhysics' SpringDamper3D for Euclidean links, the length-0
 law on every axis, contacts and planes engaged) and the device's exact zero-order hold
 (``scipy.linalg.expm`` of the augmented continuous system), with a *force* FIFO for the
 delay. Its state matrix at the rest configuration is the complex-step derivative of that
@@ -28,7 +28,7 @@ from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis.scene_nd_check import check_scene_nd
 from hapsim.cli import main
-from hapsim.scene_nd import parse_scene_nd
+from hapsim.scene import parse_scene_nd
 from tolerance import eig_tol, expm_tol, measured, rel_tol
 
 pytestmark = pytest.mark.numerical

@@ -18,7 +18,7 @@ import yaml
 from hapsim.analysis.ths_nd import LoopModelND, render_nd
 from hapsim.cli import main
 from hapsim.kinematics import device
-from hapsim.scene_nd import scene_dimension
+from hapsim.scene import scene_dimension
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -127,7 +127,7 @@ def test_simulate_runs_every_shipped_nd_scene(tmp_path, capsys):
     and the rest is an equilibrium to the file's rounding (0.1 nm): nothing moves more
     than 1 nm and the force on the port at rest is below 1 uN."""
     from hapsim.engine_nd import EngineND
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     for name in SHIPPED_ND:
         out = tmp_path / (name + ".npz")
         assert main(["simulate", str(CONFIGS / name), "--steps", "100", "--out",
@@ -148,7 +148,7 @@ def test_plot_draws_the_workspace_and_the_felt_ellipses(tmp_path, capsys):
     a 1-D scene's --plot is refused (exit 2)."""
     pytest.importorskip("matplotlib")
     from hapsim.analysis.scene_nd_check import check_scene_nd, felt_over_workspace
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     fig = tmp_path / "wall.png"
     assert main(["check", str(CONFIGS / "pantograph_wall.yaml"), "--plot", str(fig)]) == 0
     assert fig.stat().st_size > 10_000

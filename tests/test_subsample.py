@@ -426,7 +426,7 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     import hapsim.analysis.subsample as subsample
     import hapsim.analysis.ths_nd as ths_nd
     from hapsim.scene import load_scene
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
 
     def boom(*a, **k):
         raise AssertionError("the split hold was used for a whole delay")

@@ -150,7 +150,7 @@ device: {{mass: {M}, friction: {B0}, position: {zero}, delay: {d}}}
 
 
 def _scene(n, rate, K, B, M, B0, d):
-    from hapsim.scene_nd import parse_scene_nd
+    from hapsim.scene import parse_scene_nd
 
     def mat(a):
         return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]" for r in a) + "]"

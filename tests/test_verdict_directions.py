@@ -1,8 +1,8 @@
 """The n-D verdict per quantity and per principal direction (issue 23, items 4 and 5):
 :func:`hapsim.analysis.felt_matrices.felt_verdict` against an independent quantised loop.
 
-The loop is written here from the scene format's published laws (``hapsim.scene_nd``'s
-notes: a ``length: 0`` spring-damper ``F = K d + B (d - d_prev) / T``, a plane
+The loop is written here from the scene format's published laws (``hapsim.scene``'s
+2-D/3-D notes: a ``length: 0`` spring-damper ``F = K d + B (d - d_prev) / T``, a plane
 ``[K p + B (p - p_prev) / T] normal``), the device's exact zero-order hold (the matrix
 exponential of ``M x'' + B0 x' = u``, scipy's), a delay line of ``d`` samples, and a wire
 that rounds every reading to a grid of ``q`` [m] and every force to steps of ``s`` [N]
@@ -157,7 +157,7 @@ def _case(seed, n, a, counts, steps, stiffer=1.0):
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.felt_matrices import felt_verdict
     from hapsim.lockstep import identification_plan, wire_terms_nd
-    from hapsim.scene_nd import parse_scene_nd
+    from hapsim.scene import parse_scene_nd
     rng = np.random.default_rng(seed)
     p = _random_scene(rng, n)
     scene = parse_scene_nd(_yaml(p), "<random>")
@@ -324,7 +324,7 @@ def test_each_statement_carries_its_own_uncertainty():
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.scene_nd_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     scene = load_scene_nd(Path(__file__).resolve().parents[1] / "configs"
                           / "pantograph_circle.yaml")
     chk = check_scene_nd(scene)
@@ -380,7 +380,7 @@ def test_an_exact_linear_loop_is_within_its_roundoff():
     the prediction by binary64 round-off alone, inside the stated round-off allowance
     (it was "differs" for its last bits), every statement "within"."""
     from hapsim.api import run_nd
-    from hapsim.scene_nd import parse_scene_nd
+    from hapsim.scene import parse_scene_nd
     done = 0
     for seed in range(8):
         p = _random_scene(np.random.default_rng(seed), 2 + seed % 2)

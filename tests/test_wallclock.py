@@ -183,7 +183,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
     from hapsim.emulated.haply2_board import PASS_S, SETUP_S, Haply2DIYBoard
     from hapsim.drivers.haply import CommandDecoder
     from hapsim.drivers.haply2 import Haply2DIY
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     from pathlib import Path
     sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "pantograph_wall.yaml")
     assert sc.device.delay == 1                      # the board's own: no extra latency
@@ -216,7 +216,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
 
 def _homed_falcon(clock):
     from hapsim.emulated.falcon_device import FalconDevice, home, load_firmware
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     from pathlib import Path
     sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "delta_sphere.yaml")
     dev = FalconDevice(sc, clock=clock)
@@ -261,7 +261,7 @@ def test_falcon_through_pyftdi_is_paced_by_its_firmware_ticks():
     cannot run faster than the firmware's ticks (a lockstep device let it run as fast as
     the host could), and the readings are the encoders' true counts at their ticks."""
     from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     from pathlib import Path
     sc = load_scene_nd(Path(__file__).resolve().parents[1] / "configs" / "delta_sphere.yaml")
     image = bytes(range(256)) * 2

@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     from hapsim.pipeline.falcon_run import emulated_falcon
     from hapsim.drivers import falcon as fa
     from hapsim.kinematics import device
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     scene = load_scene_nd(ROOT / "configs" / "delta_sphere.yaml")
     load0 = os.getloadavg()[0]
 

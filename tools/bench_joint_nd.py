@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from hapsim.joint_device import JointDeviceND, LocalJointDeviceND  # noqa: E402
-from hapsim.scene_nd import load_scene_nd  # noqa: E402
+from hapsim.scene import load_scene_nd  # noqa: E402
 
 
 def _per_step(dev, forces) -> tuple:

@@ -364,7 +364,7 @@ def faust_projection(n: int, repeats: int) -> dict:
     import faust_gen
 
     from hapsim.engine_nd import EngineND
-    from hapsim.scene_nd import LinkND, MassND, SceneND
+    from hapsim.scene import LinkND, MassND, SceneND
     reason = faust_gen.tools_available()
     if reason is not None:
         return {"skipped": reason}

@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 import firmware_protocol as fp  # noqa: E402
 from hapsim.emulated import pantograph_board as pb  # noqa: E402
 from hapsim.host.transport import SerialTransport  # noqa: E402
-from hapsim.scene_nd import load_scene_nd  # noqa: E402
+from hapsim.scene import load_scene_nd  # noqa: E402
 from provenance import command_line  # noqa: E402  (tools/, beside this file)
 
 #: The host's joint-space spring [N m/rad].

@@ -27,7 +27,7 @@ def bench(path: str, chunks: int, chunk: int) -> dict:
     """Time ``chunks`` chunks of ``chunk`` frames of the scene at ``path`` [us]."""
     from hapsim.audio.live_nd import LiveND
     from hapsim.engine_nd import EngineND
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     sc = load_scene_nd(path)
     live = LiveND(EngineND(sc), chunk=chunk, ring=max(16384, 8 * chunk))
     live.produce(0)                                   # compiled (or loaded) first

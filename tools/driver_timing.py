@@ -105,7 +105,7 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
     from hapsim.pipeline.haply2_host import WORKSPACE_RAD, measure_felt_haply2_port
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.lockstep import identification_plan
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd("configs/pantograph_wall.yaml")
     if clock == "wall":
@@ -189,7 +189,7 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
     from hapsim.pipeline.falcon_run import WORKSPACE_RAD, emulated_falcon, run_falcon
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.errors import DeviceError
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     sc = load_scene_nd("configs/delta_sphere.yaml")
     image = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
     faults = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})

@@ -19,7 +19,7 @@ import numpy as np
 from hapsim.emulated.haply2_board import measure_felt_haply2
 from hapsim.kinematics import device
 from hapsim.lockstep import identification_plan
-from hapsim.scene_nd import load_scene_nd
+from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

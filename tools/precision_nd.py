@@ -54,7 +54,7 @@ sys.path.insert(0, str(REPO / "tools"))
 import make_nd_scenes as gen  # noqa: E402
 
 from hapsim.engine_nd import EngineND  # noqa: E402
-from hapsim.scene_nd import parse_scene_nd  # noqa: E402
+from hapsim.scene import parse_scene_nd  # noqa: E402
 
 RATE = 44100
 T = 1.0 / RATE

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.scene import CORRECTIONS
+from hapsim.scene.elements import CORRECTIONS
 
 __all__ = ["Correction", "CorrectionLaw", "CORRECTION_KINDS", "correction_polynomials",
            "passivity_bound", "filtered_passivity_bound"]

@@ -214,7 +214,7 @@ def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> Lineari
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     amplitude : float
         Excitation amplitude ``a`` [m] (> 0).

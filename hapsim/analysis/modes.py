@@ -337,7 +337,7 @@ def scene_modes_nd(scene) -> SceneModesND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene (a port, if any, is held at rest like a ground).
 
     Returns

@@ -2,7 +2,7 @@
 characteristic, the felt stiffness and damping matrices at the port.
 
 The n-D counterpart of :mod:`hapsim.analysis.network` / :func:`hapsim.analysis.check_scene`
-for :class:`hapsim.scene_nd.SceneND`, with the same timing and the same linearisation
+for :class:`hapsim.scene.SceneND`, with the same timing and the same linearisation
 (docs/design.md, 'A whole scene'):
 
 State at sample ``n`` (each block n-dimensional)::
@@ -62,7 +62,7 @@ def link_blocks(scene) -> list[tuple]:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
 
     Returns
     -------
@@ -109,7 +109,7 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
 
     Returns
@@ -285,7 +285,7 @@ def check_scene_nd(scene, progress=None) -> SceneCheckND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port.
     progress : callable, optional
         ``progress(done, total)`` after each direction's stiffness limit (the long part
@@ -371,7 +371,7 @@ def felt_over_workspace(scene, *, span_deg: float = 30.0, points: int = 24,
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a pantograph or delta device. When its port links all end
         on grounds they are the port-ground stiffness ``K`` and damping ``B`` matrices of
         :class:`SceneCheckND`, moved with the handle; when one ends on a moving mass the

@@ -31,7 +31,7 @@ function                      result                      command
 ============================  ==========================  ===========================
 
 A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene` too (a
-:class:`~hapsim.scene_nd.SceneND`, whose ``dimension`` says which) or
+:class:`~hapsim.scene.SceneND`, whose ``dimension`` says which) or
 :func:`load_scene_nd`; :func:`check`, :func:`run` and :func:`play` take a scene of any
 dimension (``check_nd``, ``modes_nd`` and ``run_nd`` are the same computations by their
 n-D names); :func:`family` and :func:`identify` are 1-D yet and say so.

@@ -122,7 +122,7 @@ def check(scene, progress=None):
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.Scene, hapsim.scene.SceneND or str
         A loaded scene, or the path of one.
     progress : callable, optional
         A 2-D or 3-D scene with a port: ``progress(done, total)`` after each direction's
@@ -278,7 +278,7 @@ def check_nd(scene, progress=None) -> CheckReportND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.SceneND or str
         A loaded n-D scene with a port and a device, or the path of one.
     progress : callable, optional
         ``progress(done, total)`` after each direction's stiffness limit
@@ -394,7 +394,7 @@ def modes_nd(scene) -> ModesReportND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.SceneND or str
 
     Returns
     -------

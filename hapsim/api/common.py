@@ -26,9 +26,9 @@ def load_scene(path: str | os.PathLike):
 
     Returns
     -------
-    hapsim.scene.Scene or hapsim.scene_nd.SceneND
+    hapsim.scene.Scene or hapsim.scene.SceneND
         A :class:`~hapsim.scene.Scene` for a 1-D scene (no ``dimension`` key, or 1: as
-        before), a :class:`~hapsim.scene_nd.SceneND` for a 2-D or 3-D one, whose
+        before), a :class:`~hapsim.scene.SceneND` for a 2-D or 3-D one, whose
         ``dimension`` says which (the functions taking it: :func:`check_nd`,
         :func:`modes_nd`, :func:`run_nd`).
 
@@ -38,10 +38,10 @@ def load_scene(path: str | os.PathLike):
         An unreadable or invalid file: the message names the file, the line and the key,
         with the valid keys or choices.
     """
-    from hapsim.scene_nd import scene_dimension
+    from hapsim.scene import scene_dimension
     p = os.fspath(path)
     if scene_dimension(p) != 1:
-        from hapsim.scene_nd import load_scene_nd as _load_nd
+        from hapsim.scene import load_scene_nd as _load_nd
         return _load_nd(p)
     from hapsim.scene import load_scene as _load
     return _load(p)
@@ -133,7 +133,7 @@ def load_scene_nd(path: str | os.PathLike):
 
     Returns
     -------
-    hapsim.scene_nd.SceneND
+    hapsim.scene.SceneND
 
     Raises
     ------
@@ -141,7 +141,7 @@ def load_scene_nd(path: str | os.PathLike):
         An unreadable or invalid file (file, line and key named), or a 1-D scene (read
         it with :func:`load_scene`).
     """
-    from hapsim.scene_nd import load_scene_nd as _load
+    from hapsim.scene import load_scene_nd as _load
     return _load(os.fspath(path))
 
 
@@ -150,11 +150,11 @@ def n_d_scene(scene):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str or path-like
+    scene : hapsim.scene.SceneND or str or path-like
 
     Returns
     -------
-    hapsim.scene_nd.SceneND
+    hapsim.scene.SceneND
 
     Raises
     ------

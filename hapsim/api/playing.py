@@ -109,7 +109,7 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene, hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.Scene, hapsim.scene.SceneND or str
         A loaded scene or its path (its ``dimension`` picks the play).
     handle_signals : bool, optional
         SIGINT and SIGTERM end the play cleanly with its report, as on the command line

@@ -309,7 +309,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     res : dict
         :func:`hapsim.lockstep.measure_felt_lockstep`'s or
         :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result, with ``bound`` (and
@@ -364,7 +364,7 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.SceneND or str
         An n-D scene with a port and a device, or its path.
     amplitude : float, optional
         The excitation ``a`` [m] (> 0): the handle displaced by ``a`` along each axis,
@@ -409,7 +409,7 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str
+    scene : hapsim.scene.SceneND or str
         A scene with a port and a device, or its path (the embedded mock loads this file).
     options : hapsim.pipeline.options.RunOptions
         ``port``, ``baud``, ``lockstep``, ``allow_unstable``, ``rt_priority``,
@@ -456,7 +456,7 @@ def stable_prediction_nd(scene, allow_unstable: bool = False,
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A scene with a port and a device.
     allow_unstable : bool, optional
         Return the check of an unstable loop instead of refusing it.

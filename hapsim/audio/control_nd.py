@@ -43,7 +43,7 @@ def predict_nd(scene) -> dict:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
 
     Returns
     -------
@@ -95,7 +95,7 @@ class ControllerND(Controller):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         The scene played.
     engine : hapsim.engine_nd.EngineND
         Its engine (changed by the producer's compiled ramps, never from here).

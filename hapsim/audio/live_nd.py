@@ -1,7 +1,7 @@
 """Live sound of a 2-D or 3-D scene: its listening points computed ahead of a sound
 server's callback, the scene felt through its device's model and changed while it plays.
 
-An n-D scene's sound (``audio: listen:``, :class:`hapsim.scene_nd.ListenND`) is its own
+An n-D scene's sound (``audio: listen:``, :class:`hapsim.scene.ListenND`) is its own
 rate's samples (an n-D scene is not multi-rate), the same ones
 :func:`hapsim.audio.offline.render_nd` writes to a WAV. Here a producer (the calling
 thread) advances the n-D engine one chunk at a time into a preallocated buffer
@@ -45,7 +45,7 @@ def channel_names(scene) -> tuple:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
 
     Returns
     -------

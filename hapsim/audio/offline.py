@@ -185,7 +185,7 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
     Parameters
     ----------
     engine : hapsim.engine_nd.EngineND
-        Engine of a scene with an ``audio`` section (:class:`hapsim.scene_nd.ListenND`).
+        Engine of a scene with an ``audio`` section (:class:`hapsim.scene.ListenND`).
     steps : int
         Samples (>= 0).
     progress : callable, optional

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     UnrenderableTargetError
         A target that is not renderable (a negative verdict: exit code 1).
     """
-    from hapsim.scene_nd import scene_dimension
+    from hapsim.scene import scene_dimension
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: its felt matrices
         return _run_nd(args)
     if getattr(args, "plot", None) is not None:
@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_nd(args) -> int:
-    """Check an n-D scene (``dimension: 2`` or ``3``; :mod:`hapsim.scene_nd`).
+    """Check an n-D scene (``dimension: 2`` or ``3``; :func:`hapsim.scene.load_scene_nd`).
 
     Parameters
     ----------

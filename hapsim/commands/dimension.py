@@ -60,7 +60,7 @@ def load_one_d_scene(path: str | os.PathLike, command: str, flag: str | None = N
     except ConfigError as exc:
         if exc.key != "dimension":
             raise
-        from hapsim.scene_nd import scene_dimension
+        from hapsim.scene import scene_dimension
         n = scene_dimension(path)
         if n == 1:
             raise                      # a bad dimension value: the reader's own message

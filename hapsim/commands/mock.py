@@ -203,7 +203,7 @@ def run(args) -> int:
     if args.rt_priority is None:
         args.rt_priority = 10 if args.firmware and not args.lockstep else 0
     if args.scene:
-        from hapsim.scene_nd import scene_dimension
+        from hapsim.scene import scene_dimension
         if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device (it
             # refuses by name what it does not take: --firmware, --fd, --seed, ...)
             return run_mock_nd(args, _new_pty)
@@ -447,7 +447,7 @@ def run_mock_nd(args, new_pty) -> int:
     from hapsim.emulated.serve import serve_fd
     from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.host.realtime import RealtimePriority
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     if getattr(args, "firmware", False):
         return run_pantograph_firmware(args)
     refuse_untaken(args)
@@ -571,7 +571,7 @@ def run_pantograph_firmware(args) -> int:
     """
     from hapsim.emulated import pantograph_board as pb
     from hapsim.errors import DeviceError
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     if args.lockstep and args.rt_priority == 0:
         args.rt_priority = None                 # hapsim mock's own lockstep default
     refuse_untaken_firmware(args)

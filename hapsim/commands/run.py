@@ -310,7 +310,7 @@ def run(args) -> int:
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
     from hapsim.scene import load_scene
-    from hapsim.scene_nd import scene_dimension
+    from hapsim.scene import scene_dimension
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: in lockstep, in-process
         from hapsim.commands.run_nd import run_nd
         return run_nd(args)

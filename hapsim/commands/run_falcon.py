@@ -70,7 +70,7 @@ def run_falcon_command(args) -> int:
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     from hapsim.pipeline.options import command_line_fields
     defaults = {f.name: f.metadata["cli"]["cli_default"] for f in command_line_fields()}
     for flag, attr, why in _REFUSED:

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         (file, line, key), or a target no (K, B) renders
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
-    from hapsim.scene_nd import scene_dimension
+    from hapsim.scene import scene_dimension
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
         return _run_nd(args)
     if args.audio is not None:
@@ -318,7 +318,7 @@ def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names:
 
 # ------------------------------------------------- a 2-D or 3-D scene
 def _run_nd(args) -> int:
-    """Simulate an n-D scene (``dimension: 2`` or ``3``; :mod:`hapsim.scene_nd`).
+    """Simulate an n-D scene (``dimension: 2`` or ``3``; :func:`hapsim.scene.load_scene_nd`).
 
     Parameters
     ----------
@@ -346,7 +346,7 @@ def _run_nd(args) -> int:
     from hapsim.engine_nd import EngineND
     from hapsim.outputs import check_fits, check_writable
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     if args.audio is not None:
         return _run_audio_nd(args)
     if args.out is None or os.path.splitext(args.out)[1].lower() != ".npz":
@@ -409,7 +409,7 @@ def _run_audio_nd(args) -> int:
     from hapsim.engine_nd import EngineND
     from hapsim.outputs import check_writable
     from hapsim.progress import Progress
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     if not args.audio.lower().endswith(".wav"):
         raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}",
                           key="--audio")

@@ -75,7 +75,7 @@ class FalconDevice:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 3-D scene whose device is a delta (the plant, at its operating point).
     expected_image : bytes, optional
         The firmware the device accepts (None: any non-empty image).
@@ -411,7 +411,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     device_feed : callable
         ``bytes -> bytes`` (a :class:`FalconDevice` after :func:`load_firmware` and
         :func:`home`, possibly through faults).
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 3-D scene with a delta device.
     samples : int
         Packets sent.

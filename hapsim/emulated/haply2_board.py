@@ -75,7 +75,7 @@ class Haply2DIYBoard:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 2-D scene whose device is a pantograph.
     generation : {"gen2", "gen3"}
         The hardware's wiring (direction bytes that count up) and encoders.
@@ -403,7 +403,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
     board_feed : callable
         ``board_feed(bytes) -> bytes``: the device (an emulated board, through faults).
     driver : hapsim.drivers.haply2.Haply2DIY
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     samples : int
         Writes after arming.
     faults : object, optional
@@ -554,7 +554,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     generation : {"gen2", "gen3"}
     amplitude : float
         The hand's ``a`` [m].
@@ -565,7 +565,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     samples : int, optional
         Writes per record (default :func:`hapsim.lockstep.default_samples`).
     progress : callable, optional
-    plant : hapsim.scene_nd.SceneND, optional
+    plant : hapsim.scene.SceneND, optional
         The scene whose device the emulated board carries (default ``scene``): a device
         that is not the one the scene states (a test of the verdict).
     plan : tuple, optional
@@ -683,7 +683,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     runs : list of dict
         The records, the one from rest first: ``position`` (N, 2) [m], ``joints``
         (N, 2) [rad] read, ``torque`` (N, 2) [N m] written, and optionally ``bounds``

@@ -52,7 +52,7 @@ class PhysicsND:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a device.
     x0, v0 : array_like, shape (n,)
         Initial displacement from the rest position [m] and velocity [m/s].
@@ -116,7 +116,7 @@ class MockDeviceND(MockDevice):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device (``device.delay`` is ``d``).
     amplitude : float
         The hand's amplitude ``a`` [m] (> 0).

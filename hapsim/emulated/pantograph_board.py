@@ -103,7 +103,7 @@ def board_command(scene, amplitude: float, *, report: str | None = None,
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         Its device: ``geometry`` (the five-bar's lengths [m]), ``joints`` (the operating
         point [rad]: the home the firmware takes its zero at, written into the leader's
         EEPROM), ``joint_inertia`` [kg m^2] and ``joint_friction`` [N m s/rad] (2 x 2),
@@ -190,7 +190,7 @@ class JointLevelTransport:
     Parameters
     ----------
     transport : transport of :mod:`hapsim.host.transport`
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 2-D scene whose device is a pantograph (its geometry).
 
     Attributes
@@ -281,7 +281,7 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     res : dict
         :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result (``responses``,
         ``samples``, ``predicted``, ``order``) and ``torque_max`` [N m] (the largest

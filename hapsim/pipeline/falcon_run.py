@@ -58,7 +58,7 @@ def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | Non
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 3-D scene with a delta device (the plant).
     image : bytes
         The firmware image the emulated loader accepts (the user's file).
@@ -153,7 +153,7 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 3-D scene with a delta device.
     link : object
         ``line``, ``exchange`` (:class:`hapsim.drivers.falcon_usb.FalconUSB`).

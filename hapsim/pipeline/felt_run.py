@@ -80,7 +80,7 @@ def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND or str or path-like
+    scene : hapsim.scene.SceneND or str or path-like
     amplitude : float or None
         The excitation's amplitude [m] (None: ``default``).
     rate_hz : float or None
@@ -90,7 +90,7 @@ def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,
 
     Returns
     -------
-    (float, hapsim.scene_nd.SceneND)
+    (float, hapsim.scene.SceneND)
 
     Raises
     ------
@@ -100,7 +100,7 @@ def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,
     """
     import os
 
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     a = default if amplitude is None else amplitude
     if not (isinstance(a, (int, float)) and math.isfinite(a) and a > 0):
         raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
@@ -122,7 +122,7 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         With a port (:func:`scene_for_run`); its file is what the embedded mock loads
         (at the scene's rate).
     opts : hapsim.pipeline.options.RunOptions

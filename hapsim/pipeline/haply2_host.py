@@ -181,7 +181,7 @@ def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
         :func:`record_realtime`'s record: ``position`` (N, 2) [m], ``torque`` (N, 2)
         [N m], ``estimated`` (N,) bool, ``lag`` (N,) int (``r``), optionally
         ``readings`` (N, 2) [m] (every reply's reading, NaN where none came).
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     J : ndarray, shape (2, 2)
         The Jacobian at rest [m/rad].
     delta : array_like, shape (2,)
@@ -247,7 +247,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     ser : serial.Serial
         The board's port (non-blocking reads).
     driver : hapsim.drivers.haply2.Haply2DIY
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 2-D pantograph scene (its rate is the clock's).
     samples : int
         Ticks ``N``.
@@ -655,7 +655,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     port : str or serial-like
         The board's serial port (or :class:`Embedded2DIY`'s pty), or an open object with
         ``in_waiting``, ``read``, ``write`` (left open).
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A 2-D pantograph scene.
     generation : {"gen2", "gen3"}
     amplitude : float
@@ -921,7 +921,7 @@ def main(argv=None) -> int:
     import signal
 
     from hapsim.emulated.driver_mock import serve
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     p = argparse.ArgumentParser(prog="hapsim.pipeline.haply2_host")
     p.add_argument("--fd", type=int, required=True)
     p.add_argument("--scene", required=True)

@@ -77,7 +77,7 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         ``journal``, ``telemetry``, ``rt_priority``.
     stop : hapsim.host.loop_types.StopFlag
         Ends the play at its next sample (a signal's handler, the view's stop button).
-    scene : hapsim.scene.Scene or hapsim.scene_nd.SceneND, optional
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND, optional
         The scene already loaded (default: read from ``args.scene``).
 
     Returns
@@ -104,7 +104,7 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         from hapsim.view.server import require_websockets
         require_websockets()
     if scene is None:
-        from hapsim.scene_nd import scene_dimension
+        from hapsim.scene import scene_dimension
         if scene_dimension(args.scene) > 1:
                         return play_nd_report(args, stop)
     elif getattr(scene, "dimension", 1) > 1:
@@ -417,7 +417,7 @@ def hand_of(scene, pluck_every: float):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     pluck_every : float
         ``--pluck-every`` [s] (0: once).
 
@@ -462,7 +462,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
         ``pluck_every`` [s], ``journal``).
     stop : hapsim.host.loop_types.StopFlag
         Set by SIGINT/SIGTERM or the view's stop button: ends the play at the next chunk.
-    scene : hapsim.scene_nd.SceneND, optional
+    scene : hapsim.scene.SceneND, optional
         The scene already loaded (default: read from ``args.scene``).
 
     Returns
@@ -493,7 +493,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
     from hapsim.host.realtime import RealtimePriority
     from hapsim.engine_nd import EngineND
     from hapsim.errors import DeviceError
-    from hapsim.scene_nd import load_scene_nd
+    from hapsim.scene import load_scene_nd
     refuse_untaken(args)
     if scene is None:
         scene = load_scene_nd(args.scene)

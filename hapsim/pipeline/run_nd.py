@@ -338,7 +338,7 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     W : array_like, shape (N, n)
         ``w[k]``: force applied over period ``k`` minus the on-time loop's ``F[k - d]`` [N].
@@ -458,7 +458,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         :class:`~hapsim.host.transport.SerialTransport` (real time or a lockstep mock),
         :class:`~hapsim.emulated.links.InProcessTransport` or
         :class:`~hapsim.emulated.links.SimTransport` (virtual clock, faults).
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
         A validated scene with a port and a device.
     samples : int, optional
         STATEs per record (default :func:`hapsim.lockstep.default_samples`).

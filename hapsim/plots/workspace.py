@@ -67,7 +67,7 @@ def plot_scene_nd(scene, chk, felt=None, title: str | None = None):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     chk : hapsim.analysis.scene_nd_check.SceneCheckND
         Its check (the felt matrices at the handle's rest position).
     felt : hapsim.analysis.scene_nd_check.WorkspaceFelt, optional
@@ -162,7 +162,7 @@ def plot_modes_nd(scene, res, title: str | None = None, count: int = 6):
 
     Parameters
     ----------
-    scene : hapsim.scene_nd.SceneND
+    scene : hapsim.scene.SceneND
     res : hapsim.analysis.modes.SceneModesND
         Its modes (lowest frequency first).
     title : str, optional

@@ -1,7 +1,12 @@
 """The elements of a scene: the masses, links, device, hand, excitation, safety and
 sound sections as frozen dataclasses (what :class:`~hapsim.scene.Scene` is made of), and
 the audio sub-step count. Values only: :mod:`hapsim.scene.rules` checks them, when a
-:class:`~hapsim.scene.Scene` holding them is built."""
+:class:`~hapsim.scene.Scene` holding them is built.
+
+A 2-D or 3-D scene (:class:`~hapsim.scene.SceneND`) is made of :class:`MassND`,
+:class:`LinkND`, :class:`PlaneND`, :class:`DeviceND`, :class:`ListenND` and
+:class:`ExcitationND`, with vectors and matrices where the 1-D ones hold numbers; the
+reader (:func:`hapsim.scene.parse_scene_nd`) checks them as it builds them."""
 
 from __future__ import annotations
 
@@ -9,8 +14,11 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
-           "Listen", "Audio", "audio_substeps"]
+           "Listen", "Audio", "audio_substeps", "MassND", "LinkND", "PlaneND", "DeviceND",
+           "ListenND", "ExcitationND"]
 
 #: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
 CORRECTIONS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
@@ -359,3 +367,116 @@ def audio_substeps(audio_rate: float, rate_hz: float) -> int:
     return int(n)
 
 
+@dataclass(frozen=True)
+class MassND:
+    """A point of an n-D scene: ``kind`` in mass/ground/port, ``mass`` [kg] (0 unless
+    ``mass``), rest position ``x0`` [m] and velocity ``v0`` [m/s] (shape (n,))."""
+
+    name: str
+    kind: str
+    mass: float
+    x0: np.ndarray
+    v0: np.ndarray
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class LinkND:
+    """A link of an n-D scene (its law: :mod:`hapsim.scene`, 'Link laws in two and three
+    dimensions'): stiffness ``K`` [N/m],
+    damping ``B`` [N s/m], rest ``length`` [m] (spring_damper) or ``threshold`` [m]
+    (contact)."""
+
+    name: str
+    kind: str
+    m1: str
+    m2: str
+    stiffness: float
+    damping: float
+    length: float
+    threshold: float
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class PlaneND:
+    """A plane contact: unit ``normal``, ``offset`` [m] (the plane ``normal . x =
+    offset``), ``stiffness`` [N/m], ``damping`` [N s/m], the ``masses`` it acts on."""
+
+    name: str
+    normal: np.ndarray
+    offset: float
+    stiffness: float
+    damping: float
+    masses: tuple
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class DeviceND:
+    """The device of an n-D scene, at its operating point.
+
+    Attributes
+    ----------
+    kind : {"cartesian", "pantograph", "delta"}
+    mass : ndarray, shape (n, n)
+        Cartesian mass of hand + handle [kg] (for a kinematic device, ``J^-T M_q J^-1``
+        plus the hand's).
+    friction : ndarray, shape (n, n)
+        Cartesian friction [N s/m].
+    position : ndarray, shape (n,)
+        The handle's rest position [m].
+    delay : int or float
+        [periods]: an int for a whole delay, a float ``m + f`` for the split hold
+        (:mod:`hapsim.analysis.subsample`).
+    hold : str
+        ``"zoh"``.
+    joints : ndarray or None
+        Operating point [rad] of a kinematic device.
+    geometry : str, hapsim.kinematics.PantographGeometry or None
+        Its preset's name, or a pantograph's lengths given as numbers.
+    joint_inertia, joint_friction : ndarray, shape (n, n), or None
+        A kinematic device's joint-space inertia [kg m^2] and friction [N m s/rad].
+    hand_mass, hand_damping : float
+        The hand's isotropic mass [kg] and damping [N s/m] (in ``mass``, ``friction``).
+    """
+
+    kind: str
+    mass: np.ndarray
+    friction: np.ndarray
+    position: np.ndarray
+    delay: int | float
+    hold: str
+    joints: np.ndarray | None = None
+    geometry: Any = None
+    joint_inertia: np.ndarray | None = None
+    joint_friction: np.ndarray | None = None
+    hand_mass: float = 0.0
+    hand_damping: float = 0.0
+
+
+@dataclass(frozen=True)
+class ListenND:
+    """A listening point of an n-D scene: the ``axis`` (0..n-1) component of a mass's
+    ``quantity`` (``"position"`` [m] or ``"velocity"`` [m/s], the backward difference
+    ``(x[n] - x[n-1]) / T``) times ``gain`` [-] is one channel of the sound."""
+
+    mass: str
+    axis: int
+    quantity: str
+    gain: float
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class ExcitationND:
+    """The hand's force on the device's mass in an n-D scene: the 1-D excitation's
+    ``impulse`` (:class:`Impulse`, [N], [s]) and/or ``profile`` (a
+    file of time [s], force [N]; an absolute path) acting along the unit ``direction``
+    (shape (n,)): force vector ``h(t) direction`` (``h`` as
+    :func:`hapsim.device_model.hand_force_samples` samples it)."""
+
+    direction: np.ndarray
+    impulse: object | None = None
+    profile: str | None = None
+    line: int | None = None

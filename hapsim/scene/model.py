@@ -1,5 +1,6 @@
 """The scene: :class:`Scene`, a validated mass-interaction network with its device,
-checked by :mod:`hapsim.scene.rules` whenever one is built."""
+checked by :mod:`hapsim.scene.rules` whenever one is built; :class:`SceneND`, a 2-D or 3-D
+one, checked by the reader that builds it (:func:`hapsim.scene.parse_scene_nd`)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import math
 from dataclasses import dataclass, field
 
 from hapsim.errors import ConfigError
-from hapsim.scene.elements import Audio, Device, Excitation, Link, Mass, Safety
+from hapsim.scene.elements import (Audio, Device, DeviceND, Excitation, ExcitationND, Link, Mass,
+                                   MassND, Safety)
 from hapsim.scene.rules import Invalid, check_scene, code_line, coerce
 
-__all__ = ["Scene"]
+__all__ = ["Scene", "SceneND"]
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,7 @@ class Scene:
 
     @property
     def dimension(self) -> int:
-        """Degrees of freedom of the scene: 1 (n-D scenes are :mod:`hapsim.scene_nd`'s)."""
+        """Degrees of freedom of the scene: 1 (a 2-D or 3-D one is a :class:`SceneND`)."""
         return 1
 
     @property
@@ -224,3 +226,32 @@ class Scene:
         return dataclasses.replace(self, rate_hz=coerce(rate_hz))
 
 
+@dataclass(frozen=True)
+class SceneND:
+    """A validated 2-D or 3-D scene (:func:`~hapsim.scene.load_scene_nd`, which checks it as it
+    reads it); ``audio`` is its listening
+    points (a tuple of :class:`ListenND`) or None, ``excitation`` the hand's force
+    (:class:`ExcitationND`) or None; ``precision`` the engine's floating type,
+    ``"double"`` (float64, default) or ``"single"`` (float32)."""
+
+    dimension: int
+    rate_hz: float
+    masses: tuple
+    links: tuple
+    planes: tuple
+    device: DeviceND | None
+    path: str = "<string>"
+    integrator: str = "centred"
+    audio: tuple | None = None
+    excitation: ExcitationND | None = None
+    precision: str = "double"
+
+    @property
+    def period(self) -> float:
+        """Sample period ``T`` [s]."""
+        return 1.0 / self.rate_hz
+
+    @property
+    def port(self) -> MassND | None:
+        """The port mass, or None."""
+        return next((m for m in self.masses if m.kind == "port"), None)

@@ -1,24 +1,38 @@
 """Reading scene files: YAML with line numbers (:mod:`hapsim._yaml_lines`) into the
 dataclasses, refusing what only a file can get wrong (syntax, structure, unknown and
 missing keys) with the file, the line and the key; the values are then checked by the
-rules every :class:`~hapsim.scene.Scene` meets, and a broken one is named at its line."""
+rules every :class:`~hapsim.scene.Scene` meets, and a broken one is named at its line.
+
+A 2-D or 3-D scene file (``dimension: 2`` or ``3``; :func:`scene_dimension` tells which a
+file is) is read by :func:`load_scene_nd` and :func:`parse_scene_nd` into a
+:class:`~hapsim.scene.SceneND`, every value checked as it is read (its device by
+:mod:`hapsim.scene.devices`, its loop's products by
+:func:`hapsim.scene.rules.check_products_nd`)."""
 
 from __future__ import annotations
 
 import math
 import os
-from typing import Any, Callable
+from typing import Callable
 
-from hapsim._yaml_lines import LDict, decode_text, load_yaml
+import numpy as np
+
+from hapsim._yaml_lines import LDict, load_yaml
 from hapsim.errors import ConfigError, show, type_name
-from hapsim.scene_schema import LINK_KINDS, MASS_KINDS, key_names, section_keys
+from hapsim.scene_schema import (LINK_KINDS, MASS_KINDS, MASS_RANGE, MAX_DELAY, RATE_RANGE,
+                                 key_names, section_keys)
 from hapsim.scene_schema import key as _key
-from hapsim.scene.elements import (Audio, Device, Excitation, Hand, Impulse, Link, Listen, Mass,
-                                   Safety)
-from hapsim.scene.model import Scene
-from hapsim.scene.rules import Invalid, bare_name, check_choice, check_key, coerce
+from hapsim.scene.devices import read_device_nd
+from hapsim.scene.elements import (Audio, Device, Excitation, ExcitationND, Hand, Impulse, Link,
+                                   LinkND, Listen, ListenND, Mass, MassND, PlaneND, Safety)
+from hapsim.scene.lines import LineContext, read_text
+from hapsim.scene.model import Scene, SceneND
+from hapsim.scene.rules import Invalid, check_key, check_products_nd, coerce
 
-__all__ = ["load_scene", "parse_scene", "read_text", "LineContext", "read_device"]
+__all__ = ["load_scene", "parse_scene", "read_device", "scene_dimension", "load_scene_nd",
+           "parse_scene_nd", "TOP_KEYS_ND", "MASS_KEYS_ND", "LINK_KEYS_ND", "PLANE_KEYS_ND",
+           "EXCITATION_KEYS_ND", "IMPULSE_KEYS_ND", "LISTEN_KEYS_ND", "ENGINE_KEYS_ND",
+           "PRECISIONS_ND"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -27,119 +41,21 @@ _LINK_KEYS = {kind: key_names("links[]", kind) for kind in LINK_KINDS}
 _TARGET_KEYS = key_names("links[].target")
 _HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping", "stiffness")
 
-
-
-class LineContext:
-    """Where the reader is in a file, for error messages: each refusal names the file, the
-    line (from the line-numbered mappings of :mod:`hapsim._yaml_lines`) and the key.
-
-    Parameters
-    ----------
-    path : str
-        The file read (``"<string>"`` for text).
-    """
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def error(self, message: str, line: int | None, key: str) -> ConfigError:
-        """A :class:`~hapsim.errors.ConfigError` naming this file, ``line`` and ``key``
-        (returned, for the caller to raise)."""
-        return ConfigError(message, file=self.path, line=line, key=key or None)
-
-    @staticmethod
-    def line_of(container: Any, key: Any) -> int | None:
-        """Line of ``container[key]`` (a mapping's key or a list's item), else of the
-        container itself; None for a container read without lines."""
-        lines = getattr(container, "lines", None)
-        if lines and key in lines:
-            return lines[key]
-        return getattr(container, "line", None)
-
-    def mapping(self, value: Any, key: str, line: int | None) -> LDict:
-        """``value`` when it is a mapping; else ConfigError (``key`` at ``line``)."""
-        if not isinstance(value, dict):
-            raise self.error(f"must be a mapping (key: value), got {type_name(value)}", line, key)
-        return value
-
-    def keys(self, d: LDict, allowed: tuple[str, ...], key: str,
-             required: tuple[str, ...] = ()) -> None:
-        """Refuse a key of ``d`` not in ``allowed`` (listing them) or a missing
-        ``required`` one, at its line, naming ``key.k``."""
-        for k in d:
-            if k not in allowed:
-                raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
-                                 self.line_of(d, k), _key_name(key, k))
-        for k in required:
-            if k not in d:
-                raise self.error(f"missing required key {show(k)}", getattr(d, "line", None),
-                                 f"{key}.{k}" if key else k)
-
-    def not_null(self, d: LDict, k: str, key: str) -> None:
-        """Refuse ``k: null`` for a key whose absence means "none" (say what was meant)."""
-        if k in d and d[k] is None:
-            raise self.error(f"must be given a value, got {type_name(None)} (leave the key "
-                             "out for none)", self.line_of(d, k), f"{key}.{k}")
-
-    def kind(self, d: LDict, key: str, choices: tuple[str, ...]) -> str:
-        """The ``kind`` of an entry, checked now: it decides which keys the entry may have."""
-        if "kind" not in d:
-            raise self.error("missing required key 'kind'", getattr(d, "line", None),
-                             f"{key}.kind")
-        try:
-            check_choice(d["kind"], choices, "kind")
-        except Invalid as bad:
-            raise self.error(bad.message, self.line_of(d, "kind"), f"{key}.kind") from None
-        return d["kind"]
-
-    @staticmethod
-    def doc_line(doc: LDict, where: tuple) -> int | None:
-        """Line of the value at path ``where`` in the document (or of its nearest parent)."""
-        node: Any = doc
-        line = getattr(doc, "line", None)
-        for step in where:
-            lines = getattr(node, "lines", None)
-            if not lines or step not in lines:
-                break
-            line = lines[step]
-            try:
-                node = node[step]
-            except (KeyError, IndexError, TypeError):
-                break
-        return line
-
-
-def _key_name(parent: str, k: Any) -> str:
-    """Dotted key ``parent.k`` for a message (an odd key is :func:`show`-n)."""
-    return f"{parent}.{bare_name(k)}" if parent else bare_name(k)
-
-
-def read_text(path: str | os.PathLike) -> str:
-    """The text of a scene file (any dimension), decoded as the YAML reader takes it.
-
-    Parameters
-    ----------
-    path : str or path-like
-        The file.
-
-    Returns
-    -------
-    str
-        Its text (:func:`hapsim._yaml_lines.decode_text`: UTF-8/16/32 with or without a
-        byte-order mark).
-
-    Raises
-    ------
-    ConfigError
-        The file cannot be read, or its bytes are no text (the file named).
-    """
-    path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return decode_text(data, path)
+#: The keys of a 2-D or 3-D scene file, by section (the 1-D format's are
+#: :data:`hapsim.scene_schema.KEYS`; docs/dimensions.md lists both).
+TOP_KEYS_ND = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
+            "excitation", "audio", "engine")
+EXCITATION_KEYS_ND = ("direction", "impulse", "profile")
+IMPULSE_KEYS_ND = ("force", "start", "duration")
+ENGINE_KEYS_ND = ("precision",)
+PRECISIONS_ND = ("double", "single")
+LISTEN_KEYS_ND = ("mass", "axis", "quantity", "gain")
+AXES_ND = ("x", "y", "z")
+MASS_KEYS_ND = {"mass": ("name", "kind", "mass", "x0", "v0"),
+             "ground": ("name", "kind", "x0"), "port": ("name", "kind")}
+LINK_KEYS_ND = {"spring_damper": ("name", "kind", "between", "stiffness", "damping", "length"),
+             "contact": ("name", "kind", "between", "stiffness", "damping", "threshold")}
+PLANE_KEYS_ND = ("name", "normal", "offset", "stiffness", "damping", "masses")
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -396,3 +312,299 @@ def _read_audio(ctx: LineContext, doc: LDict) -> Audio:
         it = ctx.mapping(item, key, ctx.line_of(seq, i))
         listen.append(Listen(**_read_values(ctx, it, "audio.listen[]", key)))
     return Audio(listen=tuple(listen), **values)
+
+
+def scene_dimension(path: str | os.PathLike) -> int:
+    """The ``dimension`` a scene file declares (1 when absent), read cheaply.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Scene file.
+
+    Returns
+    -------
+    int
+        The value of a top-level ``dimension`` key when it is 2 or 3, else 1 (the 1-D
+        reader then reads the file and reports any other problem, including a bad
+        ``dimension``).
+    """
+    try:
+        text = read_text(path)
+    except ConfigError:
+        return 1                       # the 1-D reader reports it
+    if "dimension" not in text:
+        return 1
+    try:
+        doc = load_yaml(text, os.fspath(path))
+    except ConfigError:
+        return 1                       # the 1-D reader reports it
+    d = doc.get("dimension") if isinstance(doc, dict) else None
+    return d if d in (2, 3) and not isinstance(d, bool) else 1
+
+
+def load_scene_nd(path: str | os.PathLike) -> SceneND:
+    """Read and validate a 2-D or 3-D scene file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        YAML scene file (format: :mod:`hapsim.scene`, 'Format in two and three
+        dimensions').
+
+    Returns
+    -------
+    SceneND
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read, is not valid YAML or breaks a rule; the message names the
+        file, the line and the key.
+    """
+    path = os.fspath(path)
+    return parse_scene_nd(read_text(path), path)
+
+
+def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
+    """Parse and validate n-D scene text (format: :mod:`hapsim.scene`).
+
+    Parameters
+    ----------
+    text : str
+        YAML text.
+    path : str
+        Name used in messages.
+
+    Returns
+    -------
+    SceneND
+
+    Raises
+    ------
+    ConfigError
+        Unknown keys (listing the valid ones), missing ones, wrong types or shapes
+        (vectors of ``dimension`` numbers), non-positive masses or rates, negative
+        stiffness, damping or length, a contact without a positive threshold, duplicate
+        names, links naming masses that do not exist or joining a mass to itself, more
+        than one port, a port without a device, a device of another dimension, a mass
+        matrix not positive definite, a kinematic device at a singular or unreachable
+        operating point.
+    """
+    r = LineContext(path)
+    doc = load_yaml(text, path)
+    if doc is None:
+        raise r.error("the scene is empty", 1, "dimension")
+    doc = r.mapping(doc, "", 1)
+    r.keys(doc, TOP_KEYS_ND, "", required=("dimension", "rate_hz", "masses"))
+    n = r.integer(doc, "dimension", "", default=1, minimum=1, maximum=3,
+                  unit="dimensions")
+    if n == 1:
+        raise r.error("a 1-D scene is the 1-D format (hapsim.scene, docs/scenes.md): "
+                      "this reader takes dimension 2 or 3", r.line_of(doc, "dimension"),
+                      "dimension")
+    rate = r.number(doc, "rate_hz", "", minimum=0.0, strict=True, unit="Hz")
+    if not RATE_RANGE[0] <= rate <= RATE_RANGE[1]:
+        raise r.error(f"must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} Hz, got "
+                      f"{rate:g}", r.line_of(doc, "rate_hz"), "rate_hz")
+    r.choice(doc, "integrator", "", ("centred",), default="centred")
+
+    # masses
+    seq = doc["masses"]
+    if not isinstance(seq, list) or not seq:
+        raise r.error("must be a non-empty list of masses", r.line_of(doc, "masses"), "masses")
+    masses, names = [], {}
+    for i, item in enumerate(seq):
+        key = f"masses[{i}]"
+        d = r.mapping(item, key, r.line_of(seq, i))
+        kind = r.choice(d, "kind", key, ("mass", "ground", "port"))
+        r.keys(d, MASS_KEYS_ND[kind], key, required=("name",) + (("mass",) if kind == "mass"
+                                                              else ()))
+        name = r.string(d, "name", key)
+        if name in names:
+            raise r.error(f"duplicate mass name {show(name)} (first on line "
+                          f"{names[name]})", r.line_of(d, "name"), f"{key}.name")
+        names[name] = r.line_of(d)
+        m = 0.0
+        if kind == "mass":
+            m = r.number(d, "mass", key, minimum=0.0, strict=True, unit="kg")
+            if not MASS_RANGE[0] <= m <= MASS_RANGE[1]:
+                raise r.error(f"must be between {MASS_RANGE[0]:g} and {MASS_RANGE[1]:g} kg,"
+                              f" got {m:g}", r.line_of(d, "mass"), f"{key}.mass")
+        masses.append(MassND(name, kind, m, r.vector(d, "x0", key, n),
+                             r.vector(d, "v0", key, n, unit="m/s"), line=r.line_of(d)))
+    ports = [m for m in masses if m.kind == "port"]
+    if len(ports) > 1:
+        raise r.error(f"at most one mass of kind 'port', got {len(ports)} (first on line "
+                      f"{ports[0].line})", ports[1].line, "masses")
+
+    # links
+    links, lnames = [], {}
+    lseq = doc.get("links") or []
+    if not isinstance(lseq, list):
+        raise r.error(f"must be a list of links, got {type_name(lseq)}",
+                      r.line_of(doc, "links"), "links")
+    for i, item in enumerate(lseq):
+        key = f"links[{i}]"
+        d = r.mapping(item, key, r.line_of(lseq, i))
+        kind = r.choice(d, "kind", key, tuple(LINK_KEYS_ND))
+        r.keys(d, LINK_KEYS_ND[kind], key, required=("between",) + (
+            ("threshold",) if kind == "contact" else ()))
+        name = r.string(d, "name", key, default=f"link{i}")
+        if name in lnames:
+            raise r.error(f"duplicate link name {show(name)} (first on line "
+                          f"{lnames[name]})", r.line_of(d, "name"), f"{key}.name")
+        lnames[name] = r.line_of(d)
+        between = d["between"]
+        if not (isinstance(between, list) and len(between) == 2
+                and all(isinstance(x, str) for x in between)):
+            raise r.error("must be a list of two mass names, e.g. [hand, wall]",
+                          r.line_of(d, "between"), f"{key}.between")
+        for x in between:
+            if x not in names:
+                raise r.error(f"no mass named {show(x)}; masses: {', '.join(names)}",
+                              r.line_of(d, "between"), f"{key}.between")
+        if between[0] == between[1]:
+            raise r.error("a link joins two different masses", r.line_of(d, "between"),
+                          f"{key}.between")
+        if "stiffness" not in d and "damping" not in d:
+            raise r.error("a link needs stiffness and/or damping", r.line_of(d),
+                          f"{key}.stiffness")
+        K = r.number(d, "stiffness", key, default=0.0, minimum=0.0, unit="N/m")
+        B = r.number(d, "damping", key, default=0.0, minimum=0.0, unit="N s/m")
+        length = r.number(d, "length", key, default=0.0, minimum=0.0, unit="m")
+        threshold = r.number(d, "threshold", key, default=0.0, minimum=0.0, strict=True,
+                             unit="m") if kind == "contact" else 0.0
+        links.append(LinkND(name, kind, between[0], between[1], K, B, length, threshold,
+                            line=r.line_of(d)))
+
+    # planes
+    planes, pnames = [], {}
+    pseq = doc.get("planes") or []
+    if not isinstance(pseq, list):
+        raise r.error(f"must be a list of planes, got {type_name(pseq)}",
+                      r.line_of(doc, "planes"), "planes")
+    moving = tuple(m.name for m in masses if m.kind != "ground")
+    for i, item in enumerate(pseq):
+        key = f"planes[{i}]"
+        d = r.mapping(item, key, r.line_of(pseq, i))
+        r.keys(d, PLANE_KEYS_ND, key, required=("normal",))
+        name = r.string(d, "name", key, default=f"plane{i}")
+        if name in pnames or name in lnames:
+            raise r.error(f"duplicate name {show(name)} (links and planes share names)",
+                          r.line_of(d, "name"), f"{key}.name")
+        pnames[name] = r.line_of(d)
+        normal = r.vector(d, "normal", key, n, unit="-")
+        if not np.linalg.norm(normal) > 0:
+            raise r.error("must be a non-zero vector (the plane's outward normal)",
+                          r.line_of(d, "normal"), f"{key}.normal")
+        if "stiffness" not in d and "damping" not in d:
+            raise r.error("a plane needs stiffness and/or damping", r.line_of(d),
+                          f"{key}.stiffness")
+        on = d.get("masses", list(moving))
+        if not isinstance(on, list) or not on or not all(isinstance(x, str) for x in on):
+            raise r.error("must be a non-empty list of mass names", r.line_of(d, "masses"),
+                          f"{key}.masses")
+        for x in on:
+            if x not in names or x not in moving:
+                raise r.error(f"must name moving masses or the port; valid: "
+                              f"{', '.join(moving)}; got {show(x)}", r.line_of(d, "masses"),
+                              f"{key}.masses")
+        planes.append(PlaneND(name, normal / np.linalg.norm(normal),
+                              r.number(d, "offset", key, default=0.0, unit="m"),
+                              r.number(d, "stiffness", key, default=0.0, minimum=0.0,
+                                       unit="N/m"),
+                              r.number(d, "damping", key, default=0.0, minimum=0.0,
+                                       unit="N s/m"),
+                              tuple(on), line=r.line_of(d)))
+
+    # device
+    device = None
+    if "device" in doc:
+        device = read_device_nd(r, doc, n, MAX_DELAY)
+    elif ports:
+        raise r.error("a scene with a port needs a device section", ports[0].line,
+                      "device")
+    if ports and device is not None:
+        masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
+                  if m.kind == "port" else m for m in masses]
+    check_products_nd(r, 1.0 / rate, masses, links, planes, device,
+                    r.line_of(doc, "device") if "device" in doc else None)
+    audio = _read_audio_nd(r, doc, n, names) if "audio" in doc else None
+    excitation = None
+    if "excitation" in doc:
+        if not ports:
+            raise r.error("an excitation is the hand's force on the device: the scene needs "
+                          "a port and a device", r.line_of(doc, "excitation"), "excitation")
+        excitation = _read_excitation_nd(r, doc, n, path)
+    precision = "double"
+    if "engine" in doc:
+        e = r.mapping(doc["engine"], "engine", r.line_of(doc, "engine"))
+        r.keys(e, ENGINE_KEYS_ND, "engine")
+        precision = r.choice(e, "precision", "engine", PRECISIONS_ND, default="double")
+        if precision == "single" and ports:
+            raise r.error("single precision is for scenes without a port: a felt scene "
+                          "runs the double-precision engine (exact to round-off)",
+                          r.line_of(e, "precision"), "engine.precision")
+    return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
+                   planes=tuple(planes), device=device, path=path, audio=audio,
+                   excitation=excitation, precision=precision)
+
+
+def _read_excitation_nd(r: LineContext, doc, n: int, path: str) -> ExcitationND:
+    """The ``excitation: {direction, impulse, profile}`` section (:mod:`hapsim.scene`)."""
+    key = "excitation"
+    d = r.mapping(doc[key], key, r.line_of(doc, key))
+    r.keys(d, EXCITATION_KEYS_ND, key, required=("direction",))
+    if "impulse" not in d and "profile" not in d:
+        raise r.error("needs an impulse ({force, start, duration}) or a profile (a file of "
+                      "time [s], force [N])", r.line_of(d), f"{key}.impulse")
+    e = r.vector(d, "direction", key, n, unit="-")
+    norm = float(np.linalg.norm(e))
+    if not norm > 0:
+        raise r.error("must be a non-zero vector (the direction of the hand's force)",
+                      r.line_of(d, "direction"), f"{key}.direction")
+    impulse = None
+    if "impulse" in d:
+        ik = f"{key}.impulse"
+        i = r.mapping(d["impulse"], ik, r.line_of(d, "impulse"))
+        r.keys(i, IMPULSE_KEYS_ND, ik, required=("force",))
+        impulse = Impulse(force=r.number(i, "force", ik, unit="N"),
+                          start=r.number(i, "start", ik, default=0.0, minimum=0.0, unit="s"),
+                          duration=r.number(i, "duration", ik, default=0.0, minimum=0.0,
+                                            unit="s"))
+    profile = r.string(d, "profile", key)
+    if profile is not None and not os.path.isabs(profile) and path != "<string>":
+        profile = os.path.join(os.path.dirname(os.path.abspath(path)), profile)
+    return ExcitationND(e / norm, impulse, profile, line=r.line_of(d))
+
+
+def _read_audio_nd(r: LineContext, doc, n: int, names) -> tuple:
+    """The ``audio: {listen: [...]}`` section: a tuple of :class:`ListenND`."""
+    d = r.mapping(doc["audio"], "audio", r.line_of(doc, "audio"))
+    r.keys(d, ("listen",), "audio", required=("listen",))
+    seq = d["listen"]
+    if not isinstance(seq, list) or not seq:
+        raise r.error("must be a non-empty list of listening points, e.g. "
+                      "[{mass: m1, axis: z, quantity: velocity, gain: 10}]",
+                      r.line_of(d, "listen"), "audio.listen")
+    out = []
+    axes = AXES_ND[:n]
+    for i, item in enumerate(seq):
+        key = f"audio.listen[{i}]"
+        e = r.mapping(item, key, r.line_of(seq, i))
+        r.keys(e, LISTEN_KEYS_ND, key, required=("mass",))
+        mass = r.string(e, "mass", key)
+        if mass not in names:
+            raise r.error(f"no mass named {show(mass)}; masses: {', '.join(names)}",
+                          r.line_of(e, "mass"), f"{key}.mass")
+        ax = e.get("axis", axes[-1])
+        if isinstance(ax, bool) or not (ax in axes or (isinstance(ax, int)
+                                                        and 0 <= ax < n)):
+            raise r.error(f"must be one of {', '.join(axes)} or 0..{n - 1}, got {show(ax)}",
+                          r.line_of(e, "axis"), f"{key}.axis")
+        ax = axes.index(ax) if isinstance(ax, str) else int(ax)
+        q = r.choice(e, "quantity", key, ("position", "velocity"), default="velocity")
+        g = r.number(e, "gain", key, default=1.0, unit="-")
+        out.append(ListenND(mass, ax, q, g, line=r.line_of(e)))
+    return tuple(out)

@@ -3,7 +3,8 @@ read from a file meets the same ones): :func:`check_scene` raises :class:`Invali
 the broken rule and the path of the offending value; :class:`~hapsim.scene.Scene` turns
 it into a :class:`~hapsim.errors.ConfigError` with the file and the line. The single-key
 rules (types, ranges, choices) are rows of :data:`hapsim.scene_schema.KEYS`; what spans
-several keys is code here."""
+several keys is code here. A 2-D or 3-D scene's values are checked by its reader as it
+builds them; the loop's products, the rule both share, are :func:`check_products_nd`'s."""
 
 from __future__ import annotations
 
@@ -12,14 +13,16 @@ import numbers
 import os
 from typing import Any
 
+import numpy as np
+
 from hapsim.errors import ConfigError, num, show, type_name
-from hapsim.scene_schema import Key, check_product, section_keys
+from hapsim.scene_schema import MAX_PRODUCT, Key, check_product, section_keys
 from hapsim.scene_schema import key as _key
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, Excitation, Hand, Impulse, Link,
                                    Listen, Mass, Safety, audio_substeps)
 
 __all__ = ["Invalid", "check_scene", "check_device", "check_key", "check_choice", "coerce",
-           "code_line", "bare_name"]
+           "code_line", "bare_name", "check_products_nd"]
 
 
 
@@ -311,6 +314,85 @@ def _check_products(s) -> None:
         if lk.target is not None and not lk.calibrated:
             refuse(lk.target[0], T * T / m, "N/m", "k T^2/m", ("links", i, "target", "k"))
             refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
+
+
+def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> None:
+    """The dimensionless products of a 2-D or 3-D scene's loop, the 1-D scene's rule
+    (:func:`check_scene`'s, here on the reader's values as it builds them): ``|K| T^2/m``
+    and ``|B| T/m`` of every link and plane, ``m`` its lightest moving end (a virtual mass, or the device's
+    Cartesian mass along its lightest axis at the port), and the device's ``b0 T/m``
+    (largest friction over the lightest mass axis): at most
+    :data:`hapsim.scene_schema.MAX_PRODUCT`, whose reason is there (the state matrix's
+    entries would span more than a double resolves; 1e308 overflowed it into inf or
+    made LAPACK's SVD fail, issue 31).
+
+    Parameters
+    ----------
+    r : hapsim.scene.lines.LineContext
+        The file read (the refusal names it, the line and the key).
+    T : float
+        Sample period [s].
+    masses, links, planes : sequence of MassND, LinkND, PlaneND
+        As read (their ``line``).
+    device : DeviceND or None
+        The device (its Cartesian mass [kg] and friction [N s/m], shape (n, n)).
+    dev_line : int or None
+        Line of the ``device`` section.
+
+    Raises
+    ------
+    ConfigError
+        The first product beyond the bound, with file, line and key.
+    """
+    inertia = {m.name: float(m.mass) for m in masses if m.kind == "mass"}
+    if device is not None:
+        def eigs(X):            # scaled to entries <= 1: eigvalsh fails near 1e308
+            sx = max(float(np.max(np.abs(X))), np.finfo(float).tiny)
+            return sx * np.linalg.eigvalsh(0.5 * (X / sx) + 0.5 * (X.T / sx))
+        light = float(np.min(eigs(device.mass)))
+        if not np.all(np.isfinite(device.friction)):
+            raise r.error("the device's friction is not finite", dev_line, "device.friction")
+        heavy_b0 = float(np.max(np.abs(eigs(device.friction))))
+        if not (math.isfinite(light) and light > 0):
+            raise r.error("the device's Cartesian mass is not positive definite here",
+                          dev_line, "device")
+        try:
+            check_product(heavy_b0, T / light, "friction", "N s/m", "b0 T/m")
+        except ConfigError as exc:
+            raise r.error(exc.reason, dev_line, "device.friction") from None
+        for m in masses:
+            if m.kind == "port":
+                inertia[m.name] = light
+    # a Euclidean link at rest distance r with rest length (or threshold) L stiffens
+    # across its axis by K |1 - L/r| (its linearisation,
+    # hapsim.analysis.scene_nd_check.link_blocks): the product bounds that too (a length of
+    # 1e308 overflowed the state matrix)
+    where = {m.name: m.x0 for m in masses}
+    groups = []
+    for i, lk in enumerate(links):
+        L = lk.length if lk.kind == "spring_damper" else lk.threshold
+        rr = float(np.linalg.norm(where[lk.m1] - where[lk.m2]))
+        gain = max(1.0, abs(1.0 - L / rr)) if L > 0 and rr > 0 else 1.0
+        groups.append((f"links[{i}]", lk.line, (lk.m1, lk.m2), lk.stiffness, lk.damping,
+                       gain, "length" if lk.kind == "spring_damper" else "threshold"))
+    groups += [(f"planes[{i}]", pl.line, pl.masses, pl.stiffness, pl.damping, 1.0, None)
+               for i, pl in enumerate(planes)]
+    for key, line, ends, K, B, gain, lkey in groups:
+        ms = [inertia[x] for x in ends if x in inertia]
+        if not ms:
+            continue
+        m = min(ms)
+        for val, scale, unit, what, field in ((K, T * T / m, "N/m", "K T^2/m", "stiffness"),
+                                              (B, T / m, "N s/m", "B T/m", "damping")):
+            try:
+                check_product(val, scale, field, unit, what)
+            except ConfigError as exc:
+                raise r.error(exc.reason, line, f"{key}.{field}") from None
+        if gain > 1.0 and not K * gain * T * T / m <= MAX_PRODUCT:
+            raise r.error(f"the link's stiffness across its axis at rest, K |1 - L/r| = "
+                          f"{K * gain:.3g} N/m, makes |K T^2/m| > {MAX_PRODUCT:g}: the rest "
+                          f"{lkey} is {gain:.3g} times too far from the rest distance",
+                          line, f"{key}.{lkey}")
 
 
 def _check_audio(s, names: dict[str, int]) -> None:

@@ -21,7 +21,7 @@ def scene_layout(scene) -> dict:
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene or hapsim.scene_nd.SceneND
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND
         The scene the loop runs (1-D, 2-D or 3-D).
 
     Returns
