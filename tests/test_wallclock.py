@@ -454,7 +454,7 @@ def test_haply_m3_losing_host_bytes_never_says_differs(two_cpu_hogs, seed):
 
 
 def test_haply_m3_unknown_force_rows_are_each_missing_replys_window():
-    """Closed form: each run of estimated rows [r0, r1] leaves out rows r0 - 2 .. r1 + d + 2
+    """Closed form: each run of estimated rows [r0, r1] leaves out rows r0 - 1 .. r1 + d
     (clipped to the record), overlapping windows merged; no estimated row, None."""
     from hapsim.drivers.base import FLAG_ESTIMATED
     from hapsim.drivers.haply import HaplyM3
@@ -472,7 +472,7 @@ def test_haply_m3_unknown_force_rows_are_each_missing_replys_window():
                 continue
             want = np.zeros(n, bool)
             for r in np.flatnonzero(est):         # a row at a time: windows merge
-                want[max(r - 2, 0):min(r + d + 3, n)] = True
+                want[max(r - 1, 0):min(r + d + 1, n)] = True
             assert np.array_equal(got, want), (d, est, got, want)
     assert drv.unknown_force_rows({}) is None
 
