@@ -18,7 +18,7 @@ import pytest
 from scipy.signal import cont2discrete
 
 from hapsim.audio.control_nd import ControllerND
-from hapsim.audio.live_nd import LiveND
+from hapsim.audio.live import LiveND
 from hapsim.engine_nd import EngineND
 from hapsim.scene import load_scene_nd, parse_scene_nd
 

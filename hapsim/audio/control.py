@@ -331,7 +331,7 @@ class Controller:
 
     def ramp_event(self, event: str, change: Change, sample: int) -> None:
         """Journal a ramp's start or end seen by a loop that ramps the changes itself
-        (:class:`hapsim.audio.live_nd.LiveND`) at ``sample``.
+        (:class:`hapsim.audio.live.LiveND`) at ``sample``.
 
         Parameters
         ----------

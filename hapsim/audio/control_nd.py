@@ -16,7 +16,7 @@ are :class:`hapsim.audio.control.Controller`'s. What differs:
   on); ``/hapsim/mass NAME m`` a moving mass. ``/hapsim/link/target`` (a felt (k, b)
   calibrated on a 1-D loop) is refused with the reason: an n-D port feels matrices.
 - **Where the ramp runs.** The accepted changes are taken between chunks by the producer
-  (:class:`hapsim.audio.live_nd.LiveND`) and ramped sample by sample in its compiled call;
+  (:class:`hapsim.audio.live.LiveND`) and ramped sample by sample in its compiled call;
   it journals their start and end (:meth:`Controller.ramp_event`).
 - **The felt values.** ``k``, ``b`` in ``/hapsim/ok`` and ``/hapsim/felt`` are the felt
   stiffness along its stiffest principal direction (the largest eigenvalue of the felt
@@ -90,7 +90,7 @@ def predict_nd(scene) -> dict:
 
 
 class ControllerND(Controller):
-    """Checks, ramps (through :class:`hapsim.audio.live_nd.LiveND`) and journals live
+    """Checks, ramps (through :class:`hapsim.audio.live.LiveND`) and journals live
     changes to a playing 2-D or 3-D scene (module notes).
 
     Parameters
@@ -99,7 +99,7 @@ class ControllerND(Controller):
         The scene played.
     engine : hapsim.engine_nd.EngineND
         Its engine (changed by the producer's compiled ramps, never from here).
-    live : hapsim.audio.live_nd.LiveND, optional
+    live : hapsim.audio.live.LiveND, optional
         The producer (set :attr:`live` once made: it takes :attr:`mailbox`).
     ramp_s : float
         Ramp time of every change [s].
@@ -139,7 +139,7 @@ class ControllerND(Controller):
         """Not done in n-D (:attr:`unmeasured` says so); present for the 1-D interface."""
 
     def poll(self, engine=None) -> None:
-        """Not used in n-D: :class:`hapsim.audio.live_nd.LiveND` takes the changes."""
+        """Not used in n-D: :class:`hapsim.audio.live.LiveND` takes the changes."""
         raise NotImplementedError("an n-D scene's changes are ramped by LiveND")
 
     def _plan(self, address: str, args):
