@@ -42,7 +42,7 @@ rate (the loop :mod:`hapsim.lockstep` runs and :mod:`hapsim.analysis.scene_nd_ch
 analyses: the exact zero-order hold of the Cartesian mass and friction, the delay line),
 the hand's force (the scene's ``excitation``, along its direction, again every ``every``
 samples) acting on the device's mass; live changes
-(:class:`hapsim.audio.control_nd.ControllerND`) are ramped sample by sample in the same
+(:class:`hapsim.audio.control.ControllerND`) are ramped sample by sample in the same
 compiled call
 (:func:`hapsim.kernels.play.play_chunk`: one argument, nothing allocated per chunk).
 """
@@ -438,7 +438,7 @@ class LiveND:
         Its direction (unit vector; required with ``hand``).
     every : int
         Repeat the hand's force every ``every`` samples (0: once).
-    control : hapsim.audio.control_nd.ControllerND, optional
+    control : hapsim.audio.control.ControllerND, optional
         Its accepted changes are taken between chunks and ramped sample by sample; their
         ramps' start and end are journaled there.
     max_ramps : int

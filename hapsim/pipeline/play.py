@@ -12,7 +12,7 @@ counted and reported. A scene with a port and a device is closed on the device's
 at the scene's rate (the loop ``hapsim check`` analyses); its ``excitation`` (a force on
 the device's mass along the scene's direction) plucks it, again every ``--pluck-every``
 seconds. ``--osc PORT`` serves the 1-D play's addresses
-(:mod:`hapsim.audio.control_nd`): every change is checked by the MIMO criterion before it
+(:class:`hapsim.audio.control.ControllerND`): every change is checked by the MIMO criterion before it
 is accepted and ramped over ``--ramp`` seconds, sample by sample.
 """
 
@@ -486,7 +486,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
     """
     from hapsim.errors import UnstableConfigError
     from hapsim.audio.osc import send_telemetry, serve_osc
-    from hapsim.audio.control_nd import ControllerND
+    from hapsim.audio.control import ControllerND
     from hapsim.audio.live import LiveND, open_output, wait_priority
     from hapsim.host.loop_types import signame
     from hapsim.host.realtime import RealtimePriority
