@@ -16,7 +16,7 @@ the same for the motors' torque sign).
 The hand: at each set-up the board's plant is at the scene's operating point (where the
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
 :func:`hapsim.lockstep.excitation_starts` (``k`` the set-ups so far), as the n-D mock
-does at each CONFIG (:mod:`hapsim.emulated.mock_nd`).
+does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`).
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
 (``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read

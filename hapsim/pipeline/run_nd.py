@@ -1,6 +1,6 @@
 """The felt matrices of a 2-D or 3-D scene measured over a port, in real time.
 
-The host side of :mod:`hapsim.emulated.mock_nd`'s device (or any framed-protocol device with
+The host side of :class:`hapsim.emulated.mock.MockDeviceND` (or any framed-protocol device with
 ``n_axes = n`` whose hand lets the handle go from the identification starts at each
 CONFIG): HELLO asked and checked (version, ``n_axes``), then ``2n + 1`` records, each a
 CONFIG, ``N`` STATEs answered by the n-D engine's FORCE, and a STOP. Every STATE is
@@ -468,7 +468,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         CONFIG's watchdog in periods.
     amplitude : float, optional
         The device hand's amplitude ``a`` [m] (default
-        :data:`hapsim.emulated.mock_nd.DEFAULT_AMPLITUDE`).
+        :data:`hapsim.emulated.mock.DEFAULT_AMPLITUDE`).
     max_configs : int, optional
         CONFIGs sent at most (default ``4 (2n + 1)``).
     reconnect_time : float
@@ -522,7 +522,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     """
     from hapsim.analysis.identify_nd import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
-    from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE
+    from hapsim.emulated.mock import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
     from hapsim.analysis.felt_matrices import felt_deviation
     from hapsim.lockstep import identification_plan
