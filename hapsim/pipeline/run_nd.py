@@ -16,7 +16,7 @@ closed loop, ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` (:func:`disturbance_res
 ``A`` of :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`, ``B_w`` the device's ZOH
 input, ``C`` the device position), subtracted from the record (superposition of a linear
 loop driven by a known input). The records minus the record from rest are then free
-responses, fitted as in lockstep (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
+responses, fitted as in lockstep (:func:`hapsim.analysis.pencil.fit_felt_nd`).
 """
 
 from __future__ import annotations
@@ -487,7 +487,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     Returns
     -------
     dict
-        ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`; matrices None when
+        ``measured`` (:func:`hapsim.analysis.pencil.fit_felt_nd`; matrices None when
         incomplete), ``predicted`` (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`),
         ``deviation`` (:func:`hapsim.analysis.felt_matrices.felt_deviation`, None when incomplete),
         ``responses`` (the records as fitted, each shape (rows, n) [m]: the handle from
@@ -520,7 +520,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     ConfigError
         ``samples`` too short for the loop's order; ``frames`` not one of its choices.
     """
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
     from hapsim.emulated.mock import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
