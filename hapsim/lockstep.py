@@ -167,7 +167,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     Returns
     -------
     dict
-        ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`'s dict of the
+        ``measured`` (:func:`hapsim.analysis.pencil.fit_felt_nd`'s dict of the
         records minus the record from rest, which removes the loop's response to a rest
         that is not exactly an equilibrium: exact for a linear loop), ``predicted``
         (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
@@ -184,7 +184,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         As :class:`LockstepND`, :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`;
         ``amplitude`` not positive; ``samples`` too short for the order.
     """
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.linearisation import linearisation_bound
     chk, order, N = identification_plan(scene, samples)
     a = linearisation_bound(scene, amplitude, chk.render.rendered_poles).amplitude
@@ -234,7 +234,7 @@ def excitation_starts(n: int, amplitude: float, period: float) -> list:
         ``2 n + 1`` pairs, each of shape (n,) [m], [m/s]: rest ``(0, 0)``; the handle
         displaced by ``a e_i``; the handle moving at ``a / (10 T) e_i`` (``e_i`` the axes).
         Every mode of the loop is excited by one of them unless it is unobservable from
-        the handle (:mod:`hapsim.analysis.identify_nd`).
+        the handle (:func:`hapsim.analysis.pencil.fit_felt_nd`).
     """
     z = np.zeros(n)
     e = np.eye(n)
@@ -326,10 +326,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
 
     Each error enters the records through the loop (:func:`error_responses`: a reading
     error is observed and fed back through the links, a force error moves the device),
-    and the fit to first order (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`);
+    and the fit to first order (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`);
     the rest record's errors enter every difference. For a felt entry ``o`` the worst
     case, whatever the errors' signs and correlation, is Hoelder's
-    ``sum |(s * H)[o]| bound`` (:func:`hapsim.analysis.identify_nd.worst_case_nd`). The
+    ``sum |(s * H)[o]| bound`` (:func:`hapsim.analysis.pencil.worst_case_nd`). The
     felt stiffness along a unit direction ``e`` is ``e^T k e`` (:func:`felt_directions`),
     a linear form in the entries: its first-order change is the same linear form of
     theirs, ``sum_ab e_a e_b dk_ab``, whose worst case is Hoelder's on the combined
@@ -371,7 +371,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
     ConfigError
         As :func:`error_responses`; an error ``kind`` not ``"reading"`` or ``"force"``.
     """
-    from hapsim.analysis.identify_nd import felt_sensitivity_nd, worst_case_nd
+    from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
     n = scene.dimension
     r = chk.render
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,

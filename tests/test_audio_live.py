@@ -848,7 +848,7 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     silences are still the offline ones in order. In both precisions (single: the
     engine's float32 velocity form, its own compiled chunk)."""
     from hapsim.audio.live import JackOutput
-    from hapsim.audio.live_nd import LiveND
+    from hapsim.audio.live import LiveND
     from hapsim.audio.offline import render_nd
     from hapsim.engine_nd import EngineND
     from hapsim.scene import load_scene_nd

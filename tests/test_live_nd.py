@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.audio.live_nd import LiveND
+from hapsim.audio.live import LiveND
 from hapsim.audio.offline import render_nd
 from hapsim.engine_nd import EngineND
 from hapsim.scene import load_scene_nd
@@ -40,7 +40,7 @@ def test_ring_frames_are_the_offline_rendering_and_the_lead_is_bounded(chunk, bl
     blocks of any size: what the reader gets, in order, is render_nd's float64 frames
     rounded to float32, bit for bit; the writer is never more than ``ahead`` frames
     beyond the reader; no silence between the first and the last frame."""
-    import hapsim.audio.live_nd as ln
+    import hapsim.audio.live as ln
     sc = load_scene_nd(CONFIGS / "membrane.yaml")
     total = 5000
     ref = render_nd(EngineND(sc), total)[:, 0].astype(np.float32)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hapsim.cli import main
-from hapsim.emulated.mock_nd import MockDeviceND
+from hapsim.emulated.mock import MockDeviceND
 from hapsim.pipeline.run_nd import measure_felt_port
 from hapsim.emulated.links import InProcessTransport
 from hapsim.scene import load_scene_nd

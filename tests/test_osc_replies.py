@@ -10,7 +10,8 @@ import socket
 
 import pytest
 
-from hapsim.audio.control import ADDRESSES, USAGE, Controller
+from hapsim.audio.control import Controller
+from hapsim.audio.messages import ADDRESSES, USAGE
 
 from hapsim.audio.osc import serve_osc
 from hapsim.pipeline.runner import prepare_scene

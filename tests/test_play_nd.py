@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scipy.signal import cont2discrete
 
-from hapsim.audio.control_nd import ControllerND
-from hapsim.audio.live_nd import LiveND
+from hapsim.audio.control import ControllerND
+from hapsim.audio.live import LiveND
 from hapsim.engine_nd import EngineND
 from hapsim.scene import load_scene_nd, parse_scene_nd
 
@@ -521,7 +521,7 @@ def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
     a change is accepted if and only if the coupled loop (independent eigenvalues) is
     stable at the new values and at 25, 50 and 75 % of the ramp; the accepted loop's
     spectral radius is the independent one; a refusal says why and changes nothing."""
-    from hapsim.audio.control_nd import predict_nd
+    from hapsim.audio.control import predict_nd
     rng = np.random.default_rng(1000 + seed)
     n = 2 + seed % 2
     for _ in range(30):           # the starting scene must be stable; every draw's verdict

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.emulated.mock_nd import MockDeviceND
+from hapsim.emulated.mock import MockDeviceND
 from hapsim.pipeline.run_nd import measure_felt_port
 from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.joint_device import JointDeviceND, LocalJointDeviceND

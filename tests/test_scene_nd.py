@@ -408,13 +408,13 @@ device: {{mass: {M.tolist()}, friction: {[0.4, 0.3, 0.5][:dim]}, delay: 2}}
 @pytest.mark.parametrize("dim", [2, 3])
 def test_lockstep_measured_felt_matrices_equal_the_prediction(dim):
     """Free responses of the lockstep loop (n records from n initial handle states),
-    fitted by vector linear prediction (hapsim.analysis.identify_nd): the measured felt
+    fitted by vector linear prediction (hapsim.analysis.pencil.fit_felt_nd): the measured felt
     stiffness and damping matrices equal check's prediction, and the measured poles the
     predicted ones. Measured tolerances (no closed bound covers the fit's least squares):
     the worst of dim 2 and 3 on x86-64 with OpenBLAS Haswell, Sandybridge and Prescott
     kernels and numba's generic target, times 1000 (round-off moves between CPUs by a
     few ulps times the problem's condition; a wrong prediction moves these by >= 1e-4)."""
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
     from hapsim.lockstep import LockstepND
     scene = parse_scene_nd(_balanced_plane_scene(dim))

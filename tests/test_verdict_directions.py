@@ -137,7 +137,7 @@ class QuantisedCartesianLoop:
 def _measure(p, loop, a, scene, plan):
     """hapsim's analysis of the loop's ``2n + 1`` records: (fit, deviation, directions,
     diffs)."""
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions
     chk, order, N = plan
     n = p["n"]

@@ -1,5 +1,5 @@
 """What one chunk of ``hapsim play`` on a 2-D/3-D scene costs: the compiled call of
-:meth:`hapsim.audio.live_nd.LiveND.produce` (the loop closed on the device, the ramps,
+:meth:`hapsim.audio.live.LiveND.produce` (the loop closed on the device, the ramps,
 the listening points, the ring), timed chunk by chunk without a sound server, beside the
 chunk's duration at the scene's rate (the real-time budget). Prints one JSON object.
 
@@ -25,7 +25,7 @@ DEFAULT = (os.path.join(ROOT, "configs", "membrane.yaml"),
 
 def bench(path: str, chunks: int, chunk: int) -> dict:
     """Time ``chunks`` chunks of ``chunk`` frames of the scene at ``path`` [us]."""
-    from hapsim.audio.live_nd import LiveND
+    from hapsim.audio.live import LiveND
     from hapsim.engine_nd import EngineND
     from hapsim.scene import load_scene_nd
     sc = load_scene_nd(path)

@@ -20,7 +20,7 @@ def felt_deviation(fit: dict, chk) -> dict | None:
     Parameters
     ----------
     fit : dict
-        :func:`hapsim.analysis.identify_nd.fit_felt_nd`'s result.
+        :func:`hapsim.analysis.pencil.fit_felt_nd`'s result.
     chk : hapsim.analysis.scene_nd_check.SceneCheckND
         The prediction.
 
@@ -70,7 +70,7 @@ def felt_directions(fit: dict, chk) -> dict | None:
     Parameters
     ----------
     fit : dict
-        :func:`hapsim.analysis.identify_nd.fit_felt_nd`'s result.
+        :func:`hapsim.analysis.pencil.fit_felt_nd`'s result.
     chk : hapsim.analysis.scene_nd_check.SceneCheckND
         The prediction.
 

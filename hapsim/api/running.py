@@ -388,7 +388,7 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     2n free responses of the loop (engine, exact ZOH device of the Cartesian mass at rest,
     delay line) minus the response from rest; the felt matrices by vector linear
     prediction and the inverse quadratic eigenvalue problem
-    (:mod:`hapsim.analysis.identify_nd`), against :func:`check_nd`'s prediction; the
+    (:func:`hapsim.analysis.pencil.fit_felt_nd`), against :func:`check_nd`'s prediction; the
     first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation`).
     """
     from hapsim.lockstep import measure_felt_lockstep

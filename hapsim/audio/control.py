@@ -14,31 +14,35 @@ sample while a ramp runs, one emptiness test otherwise); it is ramped linearly o
 ``ramp_s`` so the hand feels no step and the sound does not click. Every request, verdict,
 ramp start and ramp end is journaled with the sample index.
 
-OSC addresses (:data:`ADDRESSES`; replies go to the sender's address and port):
+The addresses, their arguments and replies, and how a refusal reads:
+:mod:`hapsim.audio.messages`.
 
-==============================  ==============================  =========================
-address                         arguments                       reply
-==============================  ==============================  =========================
-/hapsim/link/stiffness          link K[N/m]                     /hapsim/ok or /refused
-/hapsim/link/damping            link B[N s/m]                   /hapsim/ok or /refused
-/hapsim/link/kb                 link K B                        /hapsim/ok or /refused
-/hapsim/link/target             link k[N/m] b[N s/m] (felt)     /hapsim/ok or /refused
-/hapsim/mass                    mass m[kg]                      /hapsim/ok or /refused
-/hapsim/gain                    g (sound master gain)           /hapsim/ok or /refused
-/hapsim/pause, /hapsim/resume   (none)                          /hapsim/ok
-/hapsim/felt                    (none)                          /hapsim/felt k b f0 zeta
-                                                                k_meas b_meas
-/hapsim/loop                    (none)                          /hapsim/loop sample
-                                                                spectral_radius stable
-                                                                changes refused xruns
-                                                                underruns
-/hapsim/telemetry               host port [rate_hz]             /hapsim/ok; then
-                                                                /hapsim/tel t x f ...
-==============================  ==============================  =========================
+**A 2-D or 3-D scene** (:class:`ControllerND`, :func:`predict_nd`): the same checked,
+ramped, journaled changes with the n-D scene's analysis.
 
-``/hapsim/ok`` carries the request address, the ramp time [s] and the new felt k, b;
-``/hapsim/refused`` carries the request address and the reason. Measured values are NaN
-until a free response has been identified after the last change.
+The OSC addresses, the replies, the journal, the order of the answers and the ramp rule
+are :class:`Controller`'s. What differs:
+
+- **The check.** A change is accepted only if the changed scene's loop is stable by the
+  MIMO criterion of ``hapsim check`` on an n-D scene: the spectral radius of the whole
+  closed loop's one-step map (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`: the
+  device's exact ZOH, its delay, every virtual mass, every link linearised at rest; not
+  axis by axis, Li, Tavakoli & Huang 2014), at the new values and at three points of the
+  ramp toward them. A scene without a port (a struck membrane) is checked on its own
+  (:func:`hapsim.analysis.modes.scene_modes_nd`).
+- **What a change names.** ``/hapsim/link/stiffness|damping|kb NAME ...`` takes a
+  spring-damper, a contact (between spheres) or a plane (its K, B on every mass it acts
+  on); ``/hapsim/mass NAME m`` a moving mass. ``/hapsim/link/target`` (a felt (k, b)
+  calibrated on a 1-D loop) is refused with the reason: an n-D port feels matrices.
+- **Where the ramp runs.** The accepted changes are taken between chunks by the producer
+  (:class:`hapsim.audio.live.LiveND`) and ramped sample by sample in its compiled call;
+  it journals their start and end (:meth:`Controller.ramp_event`).
+- **The felt values.** ``k``, ``b`` in ``/hapsim/ok`` and ``/hapsim/felt`` are the felt
+  stiffness along its stiffest principal direction (the largest eigenvalue of the felt
+  stiffness matrix [N/m]) and the felt damping along that direction [N s/m];
+  ``/hapsim/felt`` appends ``n``, the felt stiffness matrix and the felt damping matrix
+  (row by row). A scene without a port has no felt values (NaN); its ``f0``, ``zeta`` are
+  its lowest mode's.
 """
 
 from __future__ import annotations
@@ -53,46 +57,11 @@ import numpy as np
 
 from hapsim.audio.analyst import Analyst
 from hapsim.audio.journal import identify_window
+from hapsim.audio.messages import (ADDRESSES, USAGE, Change, Refused, name_arg, number,
+                                   numbers)
 from hapsim.errors import HapsimError
 
-__all__ = ["Controller", "Change", "ADDRESSES", "USAGE", "Refused", "name_arg", "numbers", "number"]
-
-#: The OSC addresses the server maps (module docstring).
-ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
-             "/hapsim/link/target", "/hapsim/mass", "/hapsim/gain", "/hapsim/pause",
-             "/hapsim/resume", "/hapsim/felt", "/hapsim/loop", "/hapsim/telemetry")
-
-#: The arguments each address takes (said in a refusal for missing or wrong arguments).
-USAGE = {"/hapsim/link/stiffness": "LINK K [N/m]", "/hapsim/link/damping": "LINK B [N s/m]",
-         "/hapsim/link/kb": "LINK K [N/m] B [N s/m]",
-         "/hapsim/link/target": "LINK k [N/m] b [N s/m]", "/hapsim/mass": "MASS m [kg]",
-         "/hapsim/gain": "G", "/hapsim/pause": "", "/hapsim/resume": "",
-         "/hapsim/felt": "", "/hapsim/loop": "", "/hapsim/telemetry": "HOST PORT [RATE_HZ]"}
-
-
-@dataclasses.dataclass
-class Change:
-    """An accepted change on its way to the sample loop.
-
-    Attributes
-    ----------
-    kind : {"link", "mass", "gain", "pause", "resume"}
-    name : str
-        Link or mass name ("" otherwise).
-    start, end : tuple of float
-        Values at the start and end of the ramp: (K, B) [N/m, N s/m], (m,) [kg], (g,).
-    steps : int
-        Device samples the ramp lasts (>= 1).
-    done : int
-        Samples of the ramp applied so far.
-    """
-
-    kind: str
-    name: str
-    start: tuple
-    end: tuple
-    steps: int
-    done: int = 0
+__all__ = ["Controller", "ControllerND", "predict_nd"]
 
 
 class Controller:
@@ -331,7 +300,7 @@ class Controller:
 
     def ramp_event(self, event: str, change: Change, sample: int) -> None:
         """Journal a ramp's start or end seen by a loop that ramps the changes itself
-        (:class:`hapsim.audio.live_nd.LiveND`) at ``sample``.
+        (:class:`hapsim.audio.live.LiveND`) at ``sample``.
 
         Parameters
         ----------
@@ -539,10 +508,6 @@ class Controller:
         return bool(self._ramps or self._mail)
 
 
-class Refused(Exception):
-    """A change refused, with the reason sent back to its sender (``/hapsim/refused``)."""
-
-
 def _replace_start(new: Change, old: Change) -> bool:
     """Start ``new`` where the ramp ``old`` of the same thing is now; True (drop ``old``)."""
     a = min(1.0, old.done / old.steps)
@@ -569,72 +534,170 @@ def _blend(a, b, w):
     return dataclasses.replace(a, links=links, masses=masses, **extra)
 
 
-def _usage(address: str) -> str:
-    return f" (usage: {address} {USAGE[address]})" if address in USAGE else ""
-
-
-def name_arg(args, address: str = "") -> str:
-    """The name a change's first OSC argument gives.
+# ---------------------------------------------------------------- a 2-D or 3-D scene
+def predict_nd(scene) -> dict:
+    """The stability verdict and felt values of an n-D scene as played (module notes).
 
     Parameters
     ----------
-    args : sequence
-        The message's OSC arguments.
-    address : str
-        The OSC address, for the usage in the refusal (none when empty or unknown).
+    scene : hapsim.scene.SceneND
 
     Returns
     -------
-    str
-        ``args[0]``.
+    dict
+        ``stable``, ``spectral_radius`` [-], ``loop`` ("closed" through the device, or
+        "free" without a port), ``k`` [N/m], ``b`` [N s/m] (along the stiffest felt
+        direction; NaN without felt matrices), ``f0_hz`` [Hz], ``damping_ratio`` [-]
+        (the least damped rendered pole, or the lowest mode), ``felt_stiffness``,
+        ``felt_damping`` (n x n lists, or None), ``dof``.
 
     Raises
     ------
-    Refused
-        No first argument, or not a string (the address's usage said).
+    hapsim.errors.ConfigError
+        The scene cannot be analysed (too many states, a degenerate Euclidean link).
     """
-    if not args or not isinstance(args[0], str):
-        got = "nothing" if not args else f"{type(args[0]).__name__} {args[0]!r}"
-        raise Refused(f"the first argument must be a name (string), got {got}"
-                      + _usage(address))
-    return args[0]
+    n = scene.dimension
+    if scene.port is not None and scene.device is not None:
+        from hapsim.analysis.scene_nd_check import check_scene_nd
+        chk = check_scene_nd(scene)
+        r = chk.render
+        k = b = f0 = zeta = math.nan
+        K, B = r.felt_stiffness, r.felt_damping
+        if K is not None and B is not None:
+            w, V = np.linalg.eigh(0.5 * (K + K.T))
+            e = V[:, -1]
+            k, b = float(w[-1]), float(e @ B @ e)
+        if r.rendered_poles.size:
+            z = r.rendered_poles[np.argmax(np.abs(r.rendered_poles))]
+            s = np.log(z) * scene.rate_hz
+            f0, zeta = float(abs(s.imag) / (2 * math.pi)), float(-s.real / abs(s))
+        return {"dof": n, "loop": "closed", "stable": bool(chk.stable),
+                "spectral_radius": float(r.spectral_radius), "k": k, "b": b,
+                "f0_hz": f0, "damping_ratio": zeta,
+                "felt_stiffness": None if K is None else np.asarray(K).tolist(),
+                "felt_damping": None if B is None else np.asarray(B).tolist()}
+    from hapsim.analysis.modes import scene_modes_nd
+    m = scene_modes_nd(scene)
+    low = m.modes[0] if m.modes else None
+    return {"dof": n, "loop": "free", "stable": bool(m.stable),
+            "spectral_radius": float(m.spectral_radius), "k": math.nan, "b": math.nan,
+            "f0_hz": low.frequency_hz if low else math.nan,
+            "damping_ratio": low.damping_ratio if low else math.nan,
+            "felt_stiffness": None, "felt_damping": None}
 
 
-def numbers(args, n: int, what: str, address: str = "") -> tuple:
-    """The first ``n`` OSC arguments as finite floats.
+class ControllerND(Controller):
+    """Checks, ramps (through :class:`hapsim.audio.live.LiveND`) and journals live
+    changes to a playing 2-D or 3-D scene (module notes).
 
     Parameters
     ----------
-    args : sequence
-        The message's OSC arguments.
-    n : int
-        How many numbers the address takes (>= 1).
-    what : str
-        What they are, for the refusal (``"K, B"``).
-    address : str
-        The OSC address, for the usage in the refusal.
+    scene : hapsim.scene.SceneND
+        The scene played.
+    engine : hapsim.engine_nd.EngineND
+        Its engine (changed by the producer's compiled ramps, never from here).
+    live : hapsim.audio.live.LiveND, optional
+        The producer (set :attr:`live` once made: it takes :attr:`mailbox`).
+    ramp_s : float
+        Ramp time of every change [s].
+    background : bool
+        Run the checks in a child process (default; :class:`hapsim.audio.analyst.Analyst`).
 
-    Returns
-    -------
-    tuple of float
-        The first ``n`` arguments (units as the address documents them).
-
-    Raises
-    ------
-    Refused
-        Fewer than ``n``, not numbers (booleans refused) or not finite.
+    Attributes
+    ----------
+    scene, journal, accepted, refused, felt
+        As :class:`Controller`'s (``felt`` is :func:`predict_nd`'s).
     """
-    if len(args) < n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                for v in args[:n]):
-        missing = "missing" if len(args) < n else "not a number"
-        raise Refused(f"expected {n} number(s) ({what}): {missing}" + _usage(address))
-    vals = tuple(float(v) for v in args[:n])
-    if not all(math.isfinite(v) for v in vals):
-        raise Refused(f"{what} must be finite")
-    return vals
+
+    def __init__(self, scene, engine, live=None, ramp_s: float = 0.05,
+                 background: bool = True) -> None:
+        super().__init__(scene, engine, live, ramp_s=ramp_s, background=background)
+        if self.felt.get("loop") == "free":
+            self.what = "scene (it has no port: checked on its own)"
+        self.unmeasured = ("a 2-D or 3-D play does not identify the felt matrices "
+                           "(hapsim run --lockstep measures them)")
+
+    def _predict(self, scene) -> dict:
+        return self.analyst.call(predict_nd, scene)
+
+    def felt_reply(self) -> tuple:
+        """``/hapsim/felt``'s values: the 1-D ones (k, b along the stiffest felt direction,
+        f0, zeta, measured k, b: NaN), then n, the felt stiffness matrix [N/m] and the
+        felt damping matrix [N s/m] row by row (NaN without a port)."""
+        f = self.felt
+        n = int(f.get("dof", self.scene.dimension))
+
+        def flat(m):
+            return [math.nan] * (n * n) if m is None else [float(v) for v in np.ravel(m)]
+        return (*super().felt_reply(), n, *flat(f.get("felt_stiffness")),
+                *flat(f.get("felt_damping")))
+
+    def measure(self, x, wait: float = 0.0) -> None:
+        """Not done in n-D (:attr:`unmeasured` says so); present for the 1-D interface."""
+
+    def poll(self, engine=None) -> None:
+        """Not used in n-D: :class:`hapsim.audio.live.LiveND` takes the changes."""
+        raise NotImplementedError("an n-D scene's changes are ramped by LiveND")
+
+    def _plan(self, address: str, args):
+        common = self._plan_common(address, args)
+        if common is not None:
+            return common, None
+        steps = self._steps()
+        sc = self.scene
+        if address == "/hapsim/mass":
+            name, m = name_arg(args, address), numbers(args[1:], 1, "m", address)[0]
+            if not m > 0:
+                raise Refused(f"mass must be > 0, got {m:g}")
+            moving = [mm.name for mm in sc.masses if mm.kind == "mass"]
+            old = next((mm for mm in sc.masses if mm.name == name), None)
+            if old is None or old.kind != "mass":
+                what = "no mass" if old is None else f"{old.kind} (not a moving mass)"
+                raise Refused(f"{name!r}: {what}; moving masses: {_some(moving)}")
+            new = dataclasses.replace(sc, masses=tuple(
+                dataclasses.replace(mm, mass=float(m)) if mm.name == name else mm
+                for mm in sc.masses))
+            pred = self._check(new, sc)
+            self.scene = new
+            return Change("mass", name, (old.mass,), (float(m),), steps), pred
+        if address.startswith("/hapsim/link/"):
+            what = address.rsplit("/", 1)[1]
+            if what == "target":
+                raise Refused("a felt target {k, b} is calibrated on a 1-D loop; an n-D "
+                              "port feels matrices: set the link's K and B "
+                              "(/hapsim/link/kb LINK K B), /hapsim/felt gives the felt "
+                              "matrices")
+            if what not in ("stiffness", "damping", "kb"):
+                raise Refused(f"unknown address {address}; valid: /hapsim/link/stiffness, "
+                              "/hapsim/link/damping, /hapsim/link/kb")
+            name = name_arg(args, address)
+            old = next((e for e in (*sc.links, *sc.planes) if e.name == name), None)
+            if old is None:
+                names = [e.name for e in (*sc.links, *sc.planes)]
+                raise Refused(f"no link or plane {name!r}; links and planes: {_some(names)}")
+            if what == "stiffness":
+                K, B = numbers(args[1:], 1, "K", address)[0], old.damping
+            elif what == "damping":
+                K, B = old.stiffness, numbers(args[1:], 1, "B", address)[0]
+            else:
+                K, B = numbers(args[1:], 2, "K B", address)
+            if K < 0 or B < 0:
+                raise Refused(f"stiffness and damping must be >= 0, got K = {K:g} N/m, "
+                              f"B = {B:g} N s/m")
+            nl = dataclasses.replace(old, stiffness=float(K), damping=float(B))
+            new = dataclasses.replace(
+                sc, links=tuple(nl if e.name == name else e for e in sc.links),
+                planes=tuple(nl if e.name == name else e for e in sc.planes))
+            pred = self._check(new, sc)
+            self.scene = new
+            return Change("link", name, (old.stiffness, old.damping), (float(K), float(B)),
+                          steps), pred
+        raise Refused(f"unknown address {address}")
 
 
-def number(v) -> float:
-    return float(v) if v is not None else math.nan
-
-
+def _some(names, most: int = 12) -> str:
+    """Names for a refusal: the first ``most`` of them, and how many more."""
+    if not names:
+        return "none"
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return ", ".join(names[:most]) + more

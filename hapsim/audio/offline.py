@@ -216,7 +216,7 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
 
 def listen_plan(engine) -> tuple:
     """The arguments of :meth:`hapsim.engine_nd.EngineND.listen` for the scene's listening
-    points (offline and live alike: :mod:`hapsim.audio.live_nd`).
+    points (offline and live alike: :class:`hapsim.audio.live.LiveND`).
 
     Parameters
     ----------

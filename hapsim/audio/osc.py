@@ -1,7 +1,7 @@
 """The OSC front end of live control: :func:`serve_osc` maps the addresses of
-:data:`hapsim.audio.control.ADDRESSES` to a :class:`hapsim.audio.control.Controller` and
+:data:`hapsim.audio.messages.ADDRESSES` to a :class:`hapsim.audio.control.Controller` and
 answers each request; :func:`send_telemetry` streams the loop's samples to a subscriber.
-The addresses and replies are tabled in :mod:`hapsim.audio.control`."""
+The addresses and replies are tabled in :mod:`hapsim.audio.messages`."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import threading
 
 import numpy as np
 
-from hapsim.audio.control import ADDRESSES, Controller, number
+from hapsim.audio.control import Controller
+from hapsim.audio.messages import ADDRESSES, number
 
 __all__ = ["serve_osc", "send_telemetry"]
 

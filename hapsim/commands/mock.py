@@ -1,6 +1,6 @@
 """``hapsim mock``: a mock force-feedback device on a new pseudo-terminal, for a scene of any
 dimension (a 1-D scene's device, the Hapkit firmware on an emulated board, or a 2-D or
-3-D scene's device: :class:`hapsim.emulated.mock_nd.MockDeviceND`)."""
+3-D scene's device: :class:`hapsim.emulated.mock.MockDeviceND`)."""
 
 from __future__ import annotations
 
@@ -445,7 +445,7 @@ def run_mock_nd(args, new_pty) -> int:
     from hapsim.emulated.faults import mock_fault_plan, reopener
     from hapsim.host.loop import StopFlag
     from hapsim.emulated.serve import serve_fd
-    from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE, MockDeviceND
+    from hapsim.emulated.mock import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.host.realtime import RealtimePriority
     from hapsim.scene import load_scene_nd
     if getattr(args, "firmware", False):

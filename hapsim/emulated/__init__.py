@@ -9,7 +9,8 @@ Modules
     The mock device of the framed protocol (``MockDevice``) around the device model
     (:mod:`hapsim.device_model`: ``MockPhysics``); its serving loop (lockstep / real-time)
     on a file descriptor :mod:`hapsim.emulated.serve`; its compiled tick
-    :mod:`hapsim.emulated.fastmock`; its n-DoF twin :mod:`hapsim.emulated.mock_nd`.
+    :mod:`hapsim.emulated.fastmock`; and, in the same module, its n-DoF
+    twin ``MockDeviceND``.
 :mod:`hapsim.emulated.faults`
     Seeded fault injection for the mock (``FaultPlan``, ``parse_faults``, SPEC syntax):
     dropped, corrupted, duplicated, reordered, delayed frames, garbage, stall, reset, port

@@ -16,7 +16,7 @@ the same for the motors' torque sign).
 The hand: at each set-up the board's plant is at the scene's operating point (where the
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
 :func:`hapsim.lockstep.excitation_starts` (``k`` the set-ups so far), as the n-D mock
-does at each CONFIG (:mod:`hapsim.emulated.mock_nd`).
+does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`).
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
 (``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read
@@ -535,7 +535,7 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     ``2n + 1`` records (each an arm: the set-up, whose hand starts the record; then
     ``samples`` writes) driven by :func:`drive_haply2` on a clean stream, the records
     minus the one from rest fitted as in lockstep
-    (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
+    (:func:`hapsim.analysis.pencil.fit_felt_nd`).
 
     The stated uncertainty (:func:`hapsim.analysis.felt_matrices.felt_verdict`) is the linearisation
     bound at ``a`` plus the wire's term: each reading is the joint angle to within
@@ -546,8 +546,8 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     (:func:`hapsim.lockstep.error_responses`: observed and fed back through the links;
     the joint errors reach the handle through ``J(q0)``, the torque errors through
     ``J(q0)^-T``), and the fit to first order
-    (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`); their worst case, whatever
-    their signs and correlation (:func:`hapsim.analysis.identify_nd.worst_case_nd`; the
+    (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`); their worst case, whatever
+    their signs and correlation (:func:`hapsim.analysis.pencil.worst_case_nd`; the
     rest record's errors enter every difference), is the wire's term. A rounding of a
     smooth signal a few counts wide is not white noise, so no statistical interval is
     taken for it.
@@ -702,7 +702,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     dict
         As :func:`measure_felt_haply2`.
     """
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device

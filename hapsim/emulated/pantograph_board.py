@@ -274,8 +274,8 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     rounding of the torque (relative ``2^-24``). Each error moves the records through the
     loop (:func:`hapsim.lockstep.error_responses`: the joint errors reach the handle
     through ``J(q0)``, the torque errors through ``J(q0)^-T``) and the fit to first order
-    (:func:`hapsim.analysis.identify_nd.felt_sensitivity_nd`); their worst case, whatever
-    their signs and correlation (:func:`hapsim.analysis.identify_nd.worst_case_nd`; the
+    (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`); their worst case, whatever
+    their signs and correlation (:func:`hapsim.analysis.pencil.worst_case_nd`; the
     rest record's errors enter every difference), over the predicted matrix's largest
     entry, is the term.
 

@@ -5,14 +5,14 @@ a 2-D or 3-D scene's sound (below).
 
 A 2-D or 3-D scene with an ``audio`` section runs from its initial state (a struck
 membrane rings) and its listening points go out through JACK (or PortAudio) as they are computed
-(:class:`hapsim.audio.live_nd.LiveND`): without changes, the frames played are the ones
+(:class:`hapsim.audio.live.LiveND`): without changes, the frames played are the ones
 ``hapsim simulate SCENE --audio F.wav`` writes, paced by the sound card's clock; xruns
 (the server's count) and underruns (frames of silence because the producer was late) are
 counted and reported. A scene with a port and a device is closed on the device's model
 at the scene's rate (the loop ``hapsim check`` analyses); its ``excitation`` (a force on
 the device's mass along the scene's direction) plucks it, again every ``--pluck-every``
 seconds. ``--osc PORT`` serves the 1-D play's addresses
-(:mod:`hapsim.audio.control_nd`): every change is checked by the MIMO criterion before it
+(:class:`hapsim.audio.control.ControllerND`): every change is checked by the MIMO criterion before it
 is accepted and ramped over ``--ramp`` seconds, sample by sample.
 """
 
@@ -486,9 +486,8 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
     """
     from hapsim.errors import UnstableConfigError
     from hapsim.audio.osc import send_telemetry, serve_osc
-    from hapsim.audio.control_nd import ControllerND
-    from hapsim.audio.live import open_output, wait_priority
-    from hapsim.audio.live_nd import LiveND
+    from hapsim.audio.control import ControllerND
+    from hapsim.audio.live import LiveND, open_output, wait_priority
     from hapsim.host.loop_types import signame
     from hapsim.host.realtime import RealtimePriority
     from hapsim.engine_nd import EngineND

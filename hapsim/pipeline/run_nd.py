@@ -1,6 +1,6 @@
 """The felt matrices of a 2-D or 3-D scene measured over a port, in real time.
 
-The host side of :mod:`hapsim.emulated.mock_nd`'s device (or any framed-protocol device with
+The host side of :class:`hapsim.emulated.mock.MockDeviceND` (or any framed-protocol device with
 ``n_axes = n`` whose hand lets the handle go from the identification starts at each
 CONFIG): HELLO asked and checked (version, ``n_axes``), then ``2n + 1`` records, each a
 CONFIG, ``N`` STATEs answered by the n-D engine's FORCE, and a STOP. Every STATE is
@@ -16,7 +16,7 @@ closed loop, ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` (:func:`disturbance_res
 ``A`` of :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`, ``B_w`` the device's ZOH
 input, ``C`` the device position), subtracted from the record (superposition of a linear
 loop driven by a known input). The records minus the record from rest are then free
-responses, fitted as in lockstep (:func:`hapsim.analysis.identify_nd.fit_felt_nd`).
+responses, fitted as in lockstep (:func:`hapsim.analysis.pencil.fit_felt_nd`).
 """
 
 from __future__ import annotations
@@ -468,7 +468,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         CONFIG's watchdog in periods.
     amplitude : float, optional
         The device hand's amplitude ``a`` [m] (default
-        :data:`hapsim.emulated.mock_nd.DEFAULT_AMPLITUDE`).
+        :data:`hapsim.emulated.mock.DEFAULT_AMPLITUDE`).
     max_configs : int, optional
         CONFIGs sent at most (default ``4 (2n + 1)``).
     reconnect_time : float
@@ -487,7 +487,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     Returns
     -------
     dict
-        ``measured`` (:func:`hapsim.analysis.identify_nd.fit_felt_nd`; matrices None when
+        ``measured`` (:func:`hapsim.analysis.pencil.fit_felt_nd`; matrices None when
         incomplete), ``predicted`` (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`),
         ``deviation`` (:func:`hapsim.analysis.felt_matrices.felt_deviation`, None when incomplete),
         ``responses`` (the records as fitted, each shape (rows, n) [m]: the handle from
@@ -520,9 +520,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     ConfigError
         ``samples`` too short for the loop's order; ``frames`` not one of its choices.
     """
-    from hapsim.analysis.identify_nd import fit_felt_nd
+    from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.scene_nd_check import closed_loop_nd
-    from hapsim.emulated.mock_nd import DEFAULT_AMPLITUDE
+    from hapsim.emulated.mock import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
     from hapsim.analysis.felt_matrices import felt_deviation
     from hapsim.lockstep import identification_plan

@@ -346,7 +346,7 @@ class ViewServer:
             if self.ctl is None:
                 return {"type": "reply", "op": op, "address": address, "args": args,
                         "ok": False, "reason": "this run takes no live changes"}
-            from hapsim.audio.control import ADDRESSES
+            from hapsim.audio.messages import ADDRESSES
             if address not in ADDRESSES or address in ("/hapsim/felt", "/hapsim/loop",
                                                        "/hapsim/telemetry"):
                 return {"type": "reply", "op": op, "address": address, "args": args,
