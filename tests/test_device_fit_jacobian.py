@@ -65,3 +65,20 @@ def test_least_squares_ends_at_the_same_point_bit_for_bit(seed, k, ns, m):
     assert a.nfev == b.nfev and a.status == b.status
     assert np.array_equal(a.x, b.x) and a.cost == b.cost
     assert np.array_equal(a.jac.toarray(), b.jac.toarray())
+
+
+def test_the_fit_quantiles_are_scipy_stats_own_bit_for_bit():
+    """The device fit takes its quantiles from scipy.special (hapsim.analysis.device_fit:
+    ``scipy.stats`` costs ~1 CPU-s to import in each process that fits): the same numbers
+    as ``scipy.stats``' ``chi2.ppf(p, 1)``, ``norm.ppf`` and ``t.ppf``, at the fit's level
+    and at other probabilities."""
+    from scipy.special import ndtri, stdtrit
+    from scipy.stats import chi2, norm, t
+
+    from hapsim.analysis.device_fit import LEVEL, REPLICATES, _chi2_ppf_1
+    for p in (LEVEL, 0.5, 0.9, 0.95, 0.99, 1e-6, 1 - 1e-9):
+        assert _chi2_ppf_1(p) == float(chi2.ppf(p, 1)), p
+        q = 0.5 + p / 2
+        assert float(ndtri(q)) == float(norm.ppf(q)), p
+        for df in (max(REPLICATES - 1, 1), 1, 7):
+            assert float(stdtrit(df, q)) == float(t.ppf(q, df)), (p, df)

@@ -59,7 +59,8 @@ def test_a_comment_block_above_counts_a_code_line_between_does_not(tmp_path):
 def test_check_passes_on_the_converted_files_and_fails_on_a_regression(tmp_path):
     names = audit_mod.converted()
     assert len(names) >= 10 and all((ROOT / "tests" / n).exists() for n in names)
-    assert all(audit_mod.audit(ROOT / "tests" / n) == [] for n in names)
+    # exit 0 of --check: every one of these files audited to no unjustified site (the
+    # tool audits each, as audit() here would: once, not twice)
     out = subprocess.run([sys.executable, str(TOOL), "--check"], capture_output=True,
                          text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr

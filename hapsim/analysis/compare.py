@@ -30,7 +30,7 @@ import numpy as np
 from hapsim.analysis.corrections import Correction
 from hapsim.analysis.grid import grid
 from hapsim.analysis.loop import LoopModel
-from hapsim.analysis.ths import calibrate, render
+from hapsim.analysis.ths import check_target, render
 from hapsim.analysis.stability import stability_limit
 from hapsim.errors import ConfigError
 
@@ -247,17 +247,25 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
     for i, corr in enumerate(corrections):
         lp = _with(base, corr)
         label = "plain (backward difference)" if corr is None else corr.label()
-        Kmax = np.array([stability_limit(lp, B) for B in Bgrid])
-        area = float(np.trapezoid(np.minimum(Kmax, Kw), Bgrid))
-        worst, bad = 0.0, 0
         for k in ks:
             for b in bs:
-                c = calibrate(lp, k, b)
-                if not c.renderable:
+                check_target(lp, k, b)          # calibrate's checks, before the grid's
+        # The grid calibrates each (k, b) of the usable region as calibrate does
+        # (calibrate_core; K = kappa m / T^2, B = beta m / T) and renders it exactly when
+        # calibrate would for b > 0 (every other pole inside the unit circle and decaying
+        # faster than the target); its exact boundary is K_max at each B of Bgrid (the same
+        # stability_limit calls). Its numbers serve here, instead of each computed twice.
+        g = grid(lp, ks, bs, boundary_B=Bgrid)
+        Kmax = g.boundary_K
+        area = float(np.trapezoid(np.minimum(Kmax, Kw), Bgrid))
+        worst, bad = 0.0, 0
+        for i, k in enumerate(ks):
+            for j, b in enumerate(bs):
+                if b <= 0 or not g.rendered[i, j]:      # calibrate: b <= 0 never renders
                     bad += 1
                     continue
-                worst = max(worst, abs(c.K - k) / k, abs(c.B + b0 - b) / b)
-        g = grid(lp, ks, bs, boundary_B=Bgrid)
+                K, B = float(g.K[i, j]), float(g.B[i, j])
+                worst = max(worst, abs(K - k) / k, abs(B + b0 - b) / b)
         J_at = tangency(lp, at=TANGENCY_AT)
         try:
             J = tangency_limit(lp)

@@ -988,15 +988,34 @@ def _noise_white(r, offs, delta, z):
     return Estimate(sig, math.sqrt(lo2) if lo2 > 0 else 0.0, hi, "m")
 
 
+def _chi2_ppf_1(p: float) -> float:
+    """The quantile ``p`` of the chi-square distribution with one degree of freedom.
+
+    Parameters
+    ----------
+    p : float
+        Probability, in (0, 1).
+
+    Returns
+    -------
+    float
+        ``2 gammaincinv(1/2, p)``: the formula of ``scipy.stats.chi2.ppf(p, 1)``, the same
+        number bit for bit (scipy 1.1x), without importing ``scipy.stats`` (~1 CPU-s in
+        each process that fits a device; the quantiles here are of ``norm``, ``t`` and
+        ``chi2`` only, taken from ``scipy.special`` as ``scipy.stats`` takes them).
+    """
+    from scipy.special import gammaincinv
+    return float(2 * gammaincinv(0.5, p))
+
+
 def _noise(y, xm, q, delta, z, dof, offs=None):
     """ML estimate and profile interval of the sensor noise (module notes); an
     unquantised record's from its second differences (:func:`_noise_white`)."""
     from scipy.special import log_ndtr
-    from scipy.stats import chi2
     r = y - xm
     if q <= 0 and offs is not None:
         return _noise_white(r, offs, delta, z)
-    crit = 0.5 * chi2.ppf(LEVEL, 1)
+    crit = 0.5 * _chi2_ppf_1(LEVEL)
     floor2 = delta ** 2 + POSITION_FLOOR ** 2
     if q > 0:
         def loglik(sig):
@@ -1160,8 +1179,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         force that never acts (all zero), too little motion, no model fitted, a fit that
         fails numerically; with ``ambiguous_delay="refuse"``, a delay it cannot tell.
     """
-    from scipy.stats import chi2, norm
-    from scipy.stats import t as student_t
+    from scipy.special import ndtri, stdtrit
     x = np.asarray(position, float)
     f = np.asarray(force, float)
     if x.ndim != 1 or x.shape != f.shape:
@@ -1192,7 +1210,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         if seq.shape != x.shape:
             raise ConfigError(f"seq must have the positions' shape {x.shape}, got "
                               f"{seq.shape}", key="seq")
-    z = float(norm.ppf(0.5 + LEVEL / 2))
+    z = float(ndtri(0.5 + LEVEL / 2))          # scipy.stats.norm.ppf's own formula
     cands = []
     known = None
     # the pieces of the record a model may run through: consecutive ticks whose input is
@@ -1263,7 +1281,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             c["_ref"] = None
     best = min(cands, key=lambda c: c["cost"])
     nu = best["_mod"].idx.size
-    crit = chi2.ppf(LEVEL, 1)
+    crit = _chi2_ppf_1(LEVEL)
     s_best = max(best["cost"], 0.5 * nu * POSITION_FLOOR ** 2)
     mod = best["_mod"]
     # the likelihood ratio's samples: when the delays are searched, the residual's
@@ -1344,7 +1362,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                 f"motion, for {n_par} parameters (each stretch's position and velocity, "
                 f"the mass and frictions); between steps the encoder only says the "
                 f"handle is inside one cell (raise --force-limit or --duration)")
-    t_q = float(student_t.ppf(0.5 + LEVEL / 2, max(REPLICATES - 1, 1)))
+    t_q = float(stdtrit(max(REPLICATES - 1, 1), 0.5 + LEVEL / 2))   # scipy.stats.t.ppf's
 
     def intervals(mod_c, ym_c, p_c, J_c, nn_c):
         """(mass, fric, cp, cn, cm, asym) of one candidate: the union of the linearised

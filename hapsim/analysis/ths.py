@@ -19,7 +19,7 @@ from hapsim.analysis.loop import STABILITY_TOL, LoopModel, char_parts, roots_w, 
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
-__all__ = ["RenderResult", "CalibrationResult", "render", "calibrate"]
+__all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "check_target"]
 
 
 def _f(v):
@@ -330,6 +330,39 @@ def calibrate_core(loop: LoopModel, k: float, b: float):
     return float(kappa), float(beta), np.array(others, dtype=complex), w_t, kind, s_t
 
 
+def check_target(loop: LoopModel, k: float, b: float) -> tuple[float, float]:
+    """The checks :func:`calibrate` makes of a target before calibrating it.
+
+    Parameters
+    ----------
+    loop : LoopModel
+        The simulator configuration.
+    k : float
+        Target stiffness [N/m].
+    b : float
+        Target whole THS damping [N s/m].
+
+    Returns
+    -------
+    (float, float)
+        ``(k, b)`` as floats.
+
+    Raises
+    ------
+    ConfigError
+        If ``k <= 0`` or ``k``, ``b`` are not finite, or ``k T^2/m`` or ``|b| T/m`` exceeds
+        :data:`hapsim.analysis.loop.MAX_PRODUCT` (key ``k`` or ``b``).
+    """
+    k = float(k)
+    b = float(b)
+    if not (math.isfinite(k) and math.isfinite(b)):
+        raise ConfigError(f"target must be finite, got k={k!r}, b={b!r}", key="k")
+    if k <= 0:
+        raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
+    scaled_gains(loop, k, b, keys=("k", "b"))
+    return k, b
+
+
 def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     """Forward map ``(k, b) -> (K, B)``: virtual parameters rendering a target oscillator.
 
@@ -367,15 +400,9 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     of a critically damped one (where it equals the value + derivative conditions), without
     perturbation. The other poles are the roots of the exact quotient (deflation).
     """
-    k = float(k)
-    b = float(b)
-    if not (math.isfinite(k) and math.isfinite(b)):
-        raise ConfigError(f"target must be finite, got k={k!r}, b={b!r}", key="k")
-    if k <= 0:
-        raise ConfigError(f"target stiffness must be > 0 [N/m], got {k!r}", key="k")
+    k, b = check_target(loop, k, b)
     m, T = loop.mass, loop.period
     nan = math.nan
-    scaled_gains(loop, k, b, keys=("k", "b"))
 
     def fail(reason, K=nan, B=nan, rho=nan, modes=(), target=None):
         return CalibrationResult(k=k, b=b, K=K, B=B, renderable=False, reason=reason,

@@ -185,42 +185,54 @@ def _kernel_step(kind, ka, rec, out):
 def _kernel_step_for(kind, ka, rec, out):
     """The implementation of :func:`_kernel_step` for the kernel tag's type: only that
     kernel is typed and compiled into the loop (a scene pays only for its element kinds,
-    the first run included)."""
+    the first run included).
+
+    The sample count and the first row are passed as ``int64`` values (``np.int64``), not
+    as the literals ``1`` and ``0``: numba types a literal argument of a call between
+    compiled functions as ``Literal[int]`` and compiles the callee once more for that
+    signature (~5 CPU-s a kernel into an empty cache), where ``int64`` is the signature
+    :meth:`hapsim.engine.Engine.run` and :mod:`hapsim.kernels.step1d` already compile."""
     which = len(kind.types) - 1          # kernel_tag: K + 1 zeros
     if which == K_MASSES:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             x, xp, f, mobile, t2m, fixed = ka[:6]
-            cordis.run_masses(1, x, xp, f, mobile, t2m, fixed, rec, out, 0)
+            cordis.run_masses(n, x, xp, f, mobile, t2m, fixed, rec, out, row0)
     elif which == K_SD:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z = ka[:10]
-            cordis.run_sd(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec,
-                          out, 0)
+            cordis.run_sd(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec,
+                          out, row0)
     elif which == K_CONTACT:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             x, xp, f, mobile, t2m, fixed = ka[:6]
             c_i1, c_i2, c_k, c_z, c_thr = ka[10:15]
-            cordis.run_contact(1, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr,
-                               rec, out, 0)
+            cordis.run_contact(n, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr,
+                               rec, out, row0)
     elif which == K_SD_CONTACT:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
              c_thr) = ka[:15]
-            cordis.run_sd_contact(1, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
-                                  c_i1, c_i2, c_k, c_z, c_thr, rec, out, 0)
+            cordis.run_sd_contact(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
+                                  c_i1, c_i2, c_k, c_z, c_thr, rec, out, row0)
     elif which == K_SYMPLECTIC:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
              c_thr, v, c, T) = ka[:18]
-            schemes.run_symplectic_euler(1, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1,
+            schemes.run_symplectic_euler(n, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1,
                                          sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec,
-                                         out, 0)
+                                         out, row0)
     elif which == K_EXACT:
         def step(kind, ka, rec, out):
+            n, row0 = np.int64(1), np.int64(0)
             (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
              c_thr, v, c, T, phi, gam, psi, snew, sold, uold) = ka
-            schemes.run_exact(1, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
-                              sold, uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, 0)
+            schemes.run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
+                              sold, uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, row0)
     else:
         return None
     return step

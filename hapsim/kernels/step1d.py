@@ -108,32 +108,34 @@ def _i(c, i):
 
 # The runners: ctx[0] samples of one kernel, its arguments in the context in its order,
 # then rec (int64), out (2-D); row0 is 0 (a step records nothing). Each is documented by
-# its kernel's docstring.
+# its kernel's docstring. The zeros are passed as np.int64(0), not the literal 0: numba
+# would type a literal as Literal[int](0) and compile the kernel once more for it (~5 CPU-s
+# a kernel into an empty cache) besides the int64 signature Engine.run compiles.
 
 @_jit
 def step_masses(c):
     cordis.run_masses(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                      _i(c, 6), _f2(c, 7), 0)
+                      _i(c, 6), _f2(c, 7), np.int64(0))
 
 
 @_jit
 def step_sd(c):
     cordis.run_sd(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                  _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _f2(c, 11), 0)
+                  _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _f2(c, 11), np.int64(0))
 
 
 @_jit
 def step_contact(c):
     cordis.run_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                        _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _f(c, 10), _i(c, 11),
-                       _f2(c, 12), 0)
+                       _f2(c, 12), np.int64(0))
 
 
 @_jit
 def step_sd_contact(c):
     cordis.run_sd_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
                           _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _i(c, 11),
-                          _f(c, 12), _f(c, 13), _f(c, 14), _i(c, 15), _f2(c, 16), 0)
+                          _f(c, 12), _f(c, 13), _f(c, 14), _i(c, 15), _f2(c, 16), np.int64(0))
 
 
 @_jit
@@ -141,7 +143,7 @@ def step_symplectic_euler(c):
     schemes.run_symplectic_euler(
         c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
         _f(c, 7), _f(c, 8)[0], _i(c, 9), _i(c, 10), _f(c, 11), _f(c, 12), _i(c, 13),
-        _i(c, 14), _f(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), 0)
+        _i(c, 14), _f(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), np.int64(0))
 
 
 @_jit
@@ -149,7 +151,7 @@ def step_exact(c):
     schemes.run_exact(
         c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
         _f(c, 7)[0], _f2(c, 8), _f2(c, 9), _f2(c, 10), _f(c, 11), _f(c, 12), _f(c, 13),
-        _i(c, 14), _i(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), 0)
+        _i(c, 14), _i(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), np.int64(0))
 
 
 @_jit
@@ -171,7 +173,7 @@ def step_periods(c):
                           _f(c, 3), _i(c, 4), _f(c, 5), _i(c, 6), _i(c, 7), _i(c, 8),
                           _f(c, 9), _f(c, 10), _i(c, 11), _i(c, 12), _f(c, 13), _f(c, 14),
                           _f(c, 15), _i(c, 16), _i(c, 17), _f(c, 18), _f(c, 19)[0], frames,
-                          0, force, _i(c, 22), _f2(c, 23), 0)
+                          np.int64(0), force, _i(c, 22), _f2(c, 23), np.int64(0))
 
 
 #: The runner of each kernel (called as ``runner(ctx)``), by the kernel function; kernel
