@@ -1,7 +1,7 @@
 """The n-DoF loop closed in-process, in lockstep: the n-D engine coupled to the exact
 sampled device (the first piece of issue 23's n-DoF mock).
 
-One sample ``n`` (the timing of :mod:`hapsim.analysis.scene_nd_check`, so the analysis's
+One sample ``n`` (the timing of :mod:`hapsim.analysis.scene_check`, so the analysis's
 state matrix is exactly this loop's one-step map for a linear scene):
 
 1. the port is at the device sample ``x_dev[n]``;
@@ -170,7 +170,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         ``measured`` (:func:`hapsim.analysis.pencil.fit_felt_nd`'s dict of the
         records minus the record from rest, which removes the loop's response to a rest
         that is not exactly an equilibrium: exact for a linear loop), ``predicted``
-        (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`), ``deviation`` (the largest
+        (:class:`hapsim.analysis.scene_check.SceneCheckND`), ``deviation`` (the largest
         difference of the felt stiffness and damping matrices, each over the predicted
         matrix's largest entry [-]; None without felt matrices), ``bound``
         (:class:`hapsim.analysis.linearisation.LinearisationBound` at the larger of
@@ -181,7 +181,7 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
     Raises
     ------
     ConfigError
-        As :class:`LockstepND`, :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`;
+        As :class:`LockstepND`, :func:`hapsim.analysis.scene_check.closed_loop_nd`;
         ``amplitude`` not positive; ``samples`` too short for the order.
     """
     from hapsim.analysis.pencil import fit_felt_nd
@@ -255,16 +255,16 @@ def identification_plan(scene, samples: int | None = None) -> tuple:
     Returns
     -------
     (SceneCheckND, int, int)
-        :func:`hapsim.analysis.scene_nd_check.check_scene_nd`'s result, the order ``p``
+        :func:`hapsim.analysis.scene_check.check_scene_nd`'s result, the order ``p``
         (the loop's states over n) and the samples per record ``N``.
 
     Raises
     ------
     ConfigError
-        As :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; ``samples`` fewer than
+        As :func:`hapsim.analysis.scene_check.check_scene_nd`; ``samples`` fewer than
         the regression's ``2 p n`` unknowns.
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     chk = check_scene_nd(scene)
     n = scene.dimension
     order = chk.states // n
@@ -344,7 +344,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
         The scene the records were taken of.
     diffs : sequence of ndarray, each shape (N, n)
         The ``2n`` records minus the record from rest, as fitted [m].
-    chk : hapsim.analysis.scene_nd_check.SceneCheckND
+    chk : hapsim.analysis.scene_check.SceneCheckND
         The prediction.
     order : int
         The fit's order.

@@ -23,7 +23,7 @@ def test_run_lockstep_at_another_rate(capsys):
     """``run --lockstep --rate 2000``: the prediction is the loop's at 2 kHz (the felt
     damping of the sampled loop changes with the period), and the measurement equals it
     to 1e-6."""
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     scene = str(CONFIGS / "pantograph_wall.yaml")
     assert main(["run", scene, "--lockstep", "--rate", "2000", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -250,7 +250,7 @@ def test_verdict_against_the_bound_is_decided_by_it():
     allowance, differs when either is above it, not measurable when the amplitude opens a
     contact."""
     from hapsim.analysis.linearisation import linearisation_bound
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_verdict
     from hapsim.scene import load_scene_nd
     scene = load_scene_nd(str(CONFIGS / "pantograph_circle.yaml"))

@@ -1,5 +1,5 @@
 """2-D and 3-D scenes (hapsim.scene.SceneND) and their closed-loop check
-(hapsim.analysis.scene_nd_check): the n-D check of a scene whose links are linear is the
+(hapsim.analysis.scene_check): the n-D check of a scene whose links are linear is the
 1-D check per axis; a port held by grounds and planes is the THS matrix of
 hapsim.analysis.ths_nd; Euclidean links linearise to the finite-difference Jacobian of
 their law; every rule is refused with file, line and key; `check --json` reports the
@@ -14,7 +14,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis import check_scene
-from hapsim.analysis.scene_nd_check import check_scene_nd, link_blocks
+from hapsim.analysis.scene_check import check_scene_nd
+from hapsim.analysis.virtual_network import link_blocks
 from hapsim.analysis.ths_nd import LoopModelND, render_nd
 from hapsim.cli import main
 from hapsim.errors import ConfigError
@@ -52,7 +53,7 @@ def test_linear_links_are_the_1d_scene_per_axis(dim, delay):
     isotropic is n copies of the 1-D scene: its poles are the 1-D check's, each n times
     (1e-12), its felt stiffness is the 1-D felt k times I."""
     from hapsim.analysis.network import closed_loop
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     one = STRING_1D.replace("DELAY", str(delay))
     s1, sn = parse_scene(one), parse_scene_nd(f"dimension: {dim}\n" + one)
     c1, cn = check_scene(s1), check_scene_nd(sn)
@@ -100,7 +101,7 @@ device: {mass: [[0.12, 0.03], [0.03, 0.2]], friction: [0.4, 0.6], delay: 2}
     loop = LoopModelND(mass=scene.device.mass, friction=scene.device.friction,
                        rate_hz=2000.0, delay=2)
     ref = render_nd(loop, chk.port_stiffness, chk.port_damping)
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.analysis.ths_nd import state_matrix
     dz = (eig_tol(closed_loop_nd(scene)[0])
           + eig_tol(state_matrix(loop, chk.port_stiffness, chk.port_damping)))
@@ -345,7 +346,7 @@ def test_lockstep_loop_is_the_analysed_state_matrix():
     300 samples, for a 2-D scene with a virtual mass at equilibrium at rest and linear
     links (the analysis is the engine's exact linear image there; Euclidean links are
     linearised, tested against their Jacobian above)."""
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.lockstep import LockstepND
     text = """\
 dimension: 2
@@ -415,7 +416,7 @@ def test_lockstep_measured_felt_matrices_equal_the_prediction(dim):
     kernels and numba's generic target, times 1000 (round-off moves between CPUs by a
     few ulps times the problem's condition; a wrong prediction moves these by >= 1e-4)."""
     from hapsim.analysis.pencil import fit_felt_nd
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.lockstep import LockstepND
     scene = parse_scene_nd(_balanced_plane_scene(dim))
     # at rest: the ground is placed by a product of three numbers (the equilibrium up to

@@ -67,7 +67,7 @@ def test_an_asymmetric_five_bar_is_its_kinematics(g):
     the five-bar's forward kinematics (written here, 1e-12 m), the Cartesian mass is
     ``J^-T M_q J^-1 + m_h I`` with the Jacobian by central differences of that law (1e-6
     relative), and the check and the lockstep run take the device."""
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     sc = _scene("geometry:\n" + "\n".join(f"    {k}: {v!r}" for k, v in
                                             zip(("l1", "l2", "L1", "L2", "d"), g)))
     q = np.radians([130.0, 50.0])

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-from hapsim.analysis.scene_nd_check import check_scene_nd
+from hapsim.analysis.scene_check import check_scene_nd
 from hapsim.errors import ConfigError
 from hapsim.scene import parse_scene_nd
 

@@ -26,7 +26,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.optimize import linear_sum_assignment
 
-from hapsim.analysis.scene_nd_check import check_scene_nd
+from hapsim.analysis.scene_check import check_scene_nd
 from hapsim.cli import main
 from hapsim.scene import parse_scene_nd
 from tolerance import eig_tol, expm_tol, measured, rel_tol
@@ -38,7 +38,7 @@ def pole_tol(scene, desc, A_ref):
     """Bound on |reference poles - hapsim's|: both eigenproblems' round-off
     (tests/tolerance.py), the reference matrix carrying its exponential's error (the
     device's ZOH, expm_tol of its augmented matrix, relative to ||A_ref||)."""
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     M, B0, T, n = desc["M"], desc["B0"], desc["T"], desc["n"]
     Minv = np.linalg.inv(M)
     aug = np.zeros((3 * n, 3 * n))

@@ -147,7 +147,7 @@ def test_plot_draws_the_workspace_and_the_felt_ellipses(tmp_path, capsys):
     scene's own joints are the check's (a 3 x 3 grid's centre is the operating point);
     a 1-D scene's --plot is refused (exit 2)."""
     pytest.importorskip("matplotlib")
-    from hapsim.analysis.scene_nd_check import check_scene_nd, felt_over_workspace
+    from hapsim.analysis.scene_check import check_scene_nd, felt_over_workspace
     from hapsim.scene import load_scene_nd
     fig = tmp_path / "wall.png"
     assert main(["check", str(CONFIGS / "pantograph_wall.yaml"), "--plot", str(fig)]) == 0

@@ -422,7 +422,7 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     import pathlib
 
     import hapsim.analysis.network as network
-    import hapsim.analysis.scene_nd_check as scene_nd_check
+    import hapsim.analysis.scene_check as scene_check
     import hapsim.analysis.subsample as subsample
     import hapsim.analysis.ths_nd as ths_nd
     from hapsim.scene import load_scene
@@ -434,7 +434,7 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
                                     "held_plant")),
                        (network, ("split_plant_rows",)),
                        (ths_nd, ("split_hold_matrices",)),
-                       (scene_nd_check, ("split_hold_matrices",))):
+                       (scene_check, ("split_hold_matrices",))):
         for name in names:
             monkeypatch.setattr(mod, name, boom)
     import hapsim.analysis.loop as loop_mod

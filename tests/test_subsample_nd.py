@@ -165,7 +165,7 @@ def _spd(rng, n, lo, hi):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_check_matrix_equals_the_reference(seed):
-    from hapsim.analysis.scene_nd_check import check_scene_nd, closed_loop_nd
+    from hapsim.analysis.scene_check import check_scene_nd, closed_loop_nd
     rng = np.random.default_rng(6000 + seed)
     n = 2 + seed % 2
     M, B0 = _spd(rng, n, 0.05, 0.3), _spd(rng, n, 0.2, 2.0)

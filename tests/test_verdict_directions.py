@@ -322,7 +322,7 @@ def test_each_statement_carries_its_own_uncertainty():
     from pathlib import Path
 
     from hapsim.analysis.linearisation import linearisation_bound
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
     from hapsim.scene import load_scene_nd
     scene = load_scene_nd(Path(__file__).resolve().parents[1] / "configs"

@@ -21,7 +21,7 @@ def felt_deviation(fit: dict, chk) -> dict | None:
     ----------
     fit : dict
         :func:`hapsim.analysis.pencil.fit_felt_nd`'s result.
-    chk : hapsim.analysis.scene_nd_check.SceneCheckND
+    chk : hapsim.analysis.scene_check.SceneCheckND
         The prediction.
 
     Returns
@@ -71,7 +71,7 @@ def felt_directions(fit: dict, chk) -> dict | None:
     ----------
     fit : dict
         :func:`hapsim.analysis.pencil.fit_felt_nd`'s result.
-    chk : hapsim.analysis.scene_nd_check.SceneCheckND
+    chk : hapsim.analysis.scene_check.SceneCheckND
         The prediction.
 
     Returns

@@ -1,6 +1,6 @@
 """How far the linear n-D check holds: the linearisation bound at an excitation amplitude.
 
-:mod:`hapsim.analysis.scene_nd_check` linearises a 2-D or 3-D scene felt through its
+:mod:`hapsim.analysis.scene_check` linearises a 2-D or 3-D scene felt through its
 device at rest. A measurement excites the loop with a handle displacement of amplitude
 ``a`` [m]; the loop then departs from its linear image by second-order terms, from two
 sources:

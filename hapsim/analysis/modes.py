@@ -26,7 +26,7 @@ reported as ``kind="real"``. A pole at ``z = 0`` (a pure delay state, dead-beat)
 the centred scheme, linearised at rest, with the grounds and the port held still.
 
 With the moving masses' positions ``x`` (n per mass) and the links linearised at rest
-(:func:`hapsim.analysis.scene_nd_check.link_blocks`: exact for ``length: 0`` springs), the
+(:func:`hapsim.analysis.virtual_network.link_blocks`: exact for ``length: 0`` springs), the
 forces are ``F = -K x - (B / T)(x - x_prev)`` and the scheme
 ``x[n+1] = 2 x[n] - x[n-1] + T^2 M^-1 F[n]`` is the one-step map
 
@@ -348,10 +348,10 @@ def scene_modes_nd(scene) -> SceneModesND:
     ------
     ConfigError
         No moving mass, more than
-        :data:`hapsim.analysis.scene_nd_check.MAX_STATES_ND` states, or a degenerate
-        Euclidean link (:func:`hapsim.analysis.scene_nd_check.link_blocks`).
+        :data:`hapsim.analysis.virtual_network.MAX_STATES_ND` states, or a degenerate
+        Euclidean link (:func:`hapsim.analysis.virtual_network.link_blocks`).
     """
-    from hapsim.analysis.scene_nd_check import MAX_STATES_ND, link_blocks
+    from hapsim.analysis.virtual_network import MAX_STATES_ND, link_blocks
     from hapsim.errors import ConfigError
     n, T = scene.dimension, scene.period
     moving = [m for m in scene.masses if m.kind == "mass"]

@@ -246,7 +246,7 @@ def fit_felt_nd(records, mass, period: float, order: int) -> dict:
         Sample period ``T`` [s].
     order : int
         Prediction order ``p`` (the loop's state size over n: ``d + 3 + 2 N_virtual`` for
-        a scene of :mod:`hapsim.analysis.scene_nd_check`).
+        a scene of :mod:`hapsim.analysis.scene_check`).
 
     Returns
     -------

@@ -489,7 +489,7 @@ def rendered_pairs(loop: LoopModelND, K, B=0.0):
 
 def rendered_pairs_of(A, n: int, period: float):
     """:func:`rendered_pairs` of any closed-loop state matrix whose first ``n`` states
-    are the handle position (a whole scene: :mod:`hapsim.analysis.scene_nd_check`).
+    are the handle position (a whole scene: :mod:`hapsim.analysis.scene_check`).
 
     Parameters
     ----------

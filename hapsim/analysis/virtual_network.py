@@ -24,6 +24,8 @@ single-rate blocks, so the device side of the loop and the state names are uncha
 
 Linearisation: contacts are taken *engaged* (they act as spring_dampers), the stiffest
 case the scene can reach; links given as a felt ``target`` need their calibrated (K, B).
+In 2-D and 3-D (:func:`link_blocks`) each link and plane is a pair of (n, n) stiffness and
+damping blocks at the rest configuration, the Euclidean laws' Jacobians there.
 """
 
 from __future__ import annotations
@@ -38,7 +40,8 @@ from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "Network", "check_integrator", "link_values", "network",
            "virtual_blocks", "multirate_blocks", "virtual_state_names", "rest_position",
-           "static_stiffness"]
+           "static_stiffness", "link_blocks",
+           "MAX_STATES_ND"]
 
 
 def check_integrator(integrator: str, scene=None) -> None:
@@ -493,3 +496,56 @@ def rest_position(scene, calibrated=None) -> float | None:
         if not changed:
             return float(xs[idx[scene.port.name]])
     return float(xs[idx[scene.port.name]])
+
+
+#: Largest closed-loop state built (dense eigenvalues and eigenvectors: O(N^3)), the
+#: 1-D analysis's bound (hapsim.analysis.network.MAX_STATES).
+MAX_STATES_ND = 2000
+
+
+def link_blocks(scene) -> list[tuple]:
+    """Every link and plane of a scene as linear blocks at the rest configuration.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+
+    Returns
+    -------
+    list of (name, a, b, Kl, Bl)
+        Mass names ``a`` and ``b`` (``b`` None for a plane: to ground), stiffness block
+        ``Kl`` [N/m] and damping block ``Bl`` [N s/m], shape (n, n) (:mod:`hapsim.analysis.scene_check`'s docstring: the linearisation
+        at rest).
+
+    Raises
+    ------
+    ConfigError
+        A Euclidean link or contact whose masses coincide at rest (its direction is
+        undefined: give them distinct ``x0`` or use ``length: 0``), naming the link.
+    """
+    n = scene.dimension
+    pos = {m.name: m.x0 for m in scene.masses}
+    I = np.eye(n)
+    out = []
+    for lk in scene.links:
+        L = lk.threshold if lk.kind == "contact" else lk.length
+        if lk.kind == "spring_damper" and L == 0:
+            out.append((lk.name, lk.m1, lk.m2, lk.stiffness * I, lk.damping * I))
+            continue
+        d0 = pos[lk.m1] - pos[lk.m2]
+        l0 = float(np.linalg.norm(d0))
+        if not l0 > 0:
+            raise ConfigError(f"the masses {lk.m1!r} and {lk.m2!r} coincide at rest, so the "
+                              "direction of this Euclidean link is undefined there; give "
+                              "them distinct x0 (or length: 0 for a linear spring)",
+                              file=scene.path, line=lk.line, key=f"links.{lk.name}")
+        e = d0 / l0
+        P = np.outer(e, e)
+        out.append((lk.name, lk.m1, lk.m2,
+                    lk.stiffness * P + lk.stiffness * (1.0 - L / l0) * (I - P),
+                    lk.damping * P))
+    for pl in scene.planes:
+        P = np.outer(pl.normal, pl.normal)
+        for m in pl.masses:
+            out.append((pl.name, m, None, pl.stiffness * P, pl.damping * P))
+    return out

@@ -203,7 +203,7 @@ class CheckReportND(Report):
         ``hold``.
 
     Other attribute (not in ``--json``): ``analysis``, the
-    :class:`~hapsim.analysis.scene_nd_check.SceneCheckND`; ``scene_nd``, the scene.
+    :class:`~hapsim.analysis.scene_check.SceneCheckND`; ``scene_nd``, the scene.
     """
 
     dof: int
@@ -256,7 +256,7 @@ class CheckReportND(Report):
         ConfigError
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
-        from hapsim.analysis.scene_nd_check import felt_over_workspace
+        from hapsim.analysis.scene_check import felt_over_workspace
         from hapsim.plots import save_figure
         from hapsim.plots.workspace import plot_scene_nd
         scene = self.scene_nd
@@ -282,7 +282,7 @@ def check_nd(scene, progress=None) -> CheckReportND:
         A loaded n-D scene with a port and a device, or the path of one.
     progress : callable, optional
         ``progress(done, total)`` after each direction's stiffness limit
-        (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`).
+        (:func:`hapsim.analysis.scene_check.check_scene_nd`).
 
     Returns
     -------
@@ -299,9 +299,9 @@ def check_nd(scene, progress=None) -> CheckReportND:
     The eigenvalues of the closed loop's state matrix (the device's exact ZOH, the delay
     line, the virtual masses, the links linearised at rest); the felt matrices solve the
     inverse quadratic eigenvalue problem on the n rendered pairs (Lancaster 2007;
-    :mod:`hapsim.analysis.scene_nd_check`, docs/dimensions.md).
+    :mod:`hapsim.analysis.scene_check`, docs/dimensions.md).
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     scene = n_d_scene(scene)
     if scene.port is None:
         raise ConfigError("an n-D scene is felt through its device: it needs a mass of "

@@ -450,7 +450,7 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
 
 def stable_prediction_nd(scene, allow_unstable: bool = False,
                          override: str = "allow_unstable"):
-    """The scene's check (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`), refused
+    """The scene's check (:func:`hapsim.analysis.scene_check.check_scene_nd`), refused
     when its closed loop is unstable unless ``allow_unstable`` (every n-D run: the API's,
     ``hapsim run``'s and the Falcon's).
 
@@ -465,14 +465,14 @@ def stable_prediction_nd(scene, allow_unstable: bool = False,
 
     Returns
     -------
-    hapsim.analysis.scene_nd_check.SceneCheckND
+    hapsim.analysis.scene_check.SceneCheckND
 
     Raises
     ------
     UnstableConfigError
         The closed loop's spectral radius is 1 or more and ``allow_unstable`` is false.
     """
-    from hapsim.analysis.scene_nd_check import check_scene_nd
+    from hapsim.analysis.scene_check import check_scene_nd
     from hapsim.errors import UnstableConfigError
     pred = check_scene_nd(scene)
     if not pred.stable and not allow_unstable:

@@ -25,7 +25,7 @@ are :class:`Controller`'s. What differs:
 
 - **The check.** A change is accepted only if the changed scene's loop is stable by the
   MIMO criterion of ``hapsim check`` on an n-D scene: the spectral radius of the whole
-  closed loop's one-step map (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`: the
+  closed loop's one-step map (:func:`hapsim.analysis.scene_check.check_scene_nd`: the
   device's exact ZOH, its delay, every virtual mass, every link linearised at rest; not
   axis by axis, Li, Tavakoli & Huang 2014), at the new values and at three points of the
   ramp toward them. A scene without a port (a struck membrane) is checked on its own
@@ -558,7 +558,7 @@ def predict_nd(scene) -> dict:
     """
     n = scene.dimension
     if scene.port is not None and scene.device is not None:
-        from hapsim.analysis.scene_nd_check import check_scene_nd
+        from hapsim.analysis.scene_check import check_scene_nd
         chk = check_scene_nd(scene)
         r = chk.render
         k = b = f0 = zeta = math.nan

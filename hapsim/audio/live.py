@@ -38,7 +38,7 @@ played are the offline rendering's, in order, to float32 rounding (the ring's ty
 the counted silences between.
 
 A scene with a port and a device is played closed on the device's model at the scene's
-rate (the loop :mod:`hapsim.lockstep` runs and :mod:`hapsim.analysis.scene_nd_check`
+rate (the loop :mod:`hapsim.lockstep` runs and :mod:`hapsim.analysis.scene_check`
 analyses: the exact zero-order hold of the Cartesian mass and friction, the delay line),
 the hand's force (the scene's ``excitation``, along its direction, again every ``every``
 samples) acting on the device's mass; live changes

@@ -69,7 +69,7 @@ def run_nd(args) -> int:
     from the device's hand, each a CONFIG, with the late ticks' known disturbance
     subtracted. Then the felt matrices by vector linear prediction and the inverse
     quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
-    :func:`hapsim.analysis.scene_nd_check.check_scene_nd`; the linearisation bound of
+    :func:`hapsim.analysis.scene_check.check_scene_nd`; the linearisation bound of
     :mod:`hapsim.analysis.linearisation` at ``a``.
     """
     from hapsim.progress import Progress

@@ -160,7 +160,7 @@ _LOOP_FLAGS = (("--mass", "mass", None), ("--friction", "friction", 0.0),
 
 def _run_scene(args) -> int:
     """``hapsim stability --scene``: ``K_max`` per principal direction of a 2-D/3-D
-    scene's device (:func:`hapsim.analysis.scene_nd_check.check_scene_nd`, the MIMO loop's
+    scene's device (:func:`hapsim.analysis.scene_check.check_scene_nd`, the MIMO loop's
     spectral radius through :func:`hapsim.analysis.direction_limits.direction_limit`; issue 23
     item 4) and, with ``--grid``, its map over the workspace
     (:func:`hapsim.commands.kinematics.workspace_map`).

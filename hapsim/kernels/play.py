@@ -2,7 +2,7 @@
 listening points written to the sound ring, one compiled call with one argument per chunk.
 
 One sample ``n`` (the timing of :mod:`hapsim.lockstep` and of the n-D check,
-:mod:`hapsim.analysis.scene_nd_check`, so the loop played is the one analysed):
+:mod:`hapsim.analysis.scene_check`, so the loop played is the one analysed):
 
 1. every ramp under way takes its next value (``v = c (s + a (e - s))`` or, for a mass,
    ``v = c / (s + a (e - s))``, ``a = done / steps`` after ``done`` is counted: the first

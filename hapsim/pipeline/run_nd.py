@@ -13,7 +13,7 @@ force applied over every period (:func:`hapsim.applied.account_from_force_seq` o
 axis's column; the rows it names are the same on every axis), the known disturbance
 ``w[k] = applied[k] - F[k - d]`` (an n-vector), and its response through the predicted
 closed loop, ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` (:func:`disturbance_response_nd`:
-``A`` of :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`, ``B_w`` the device's ZOH
+``A`` of :func:`hapsim.analysis.scene_check.closed_loop_nd`, ``B_w`` the device's ZOH
 input, ``C`` the device position), subtracted from the record (superposition of a linear
 loop driven by a known input). The records minus the record from rest are then free
 responses, fitted as in lockstep (:func:`hapsim.analysis.pencil.fit_felt_nd`).
@@ -343,7 +343,7 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
     W : array_like, shape (N, n)
         ``w[k]``: force applied over period ``k`` minus the on-time loop's ``F[k - d]`` [N].
     A : ndarray, optional
-        :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`'s matrix (computed when None).
+        :func:`hapsim.analysis.scene_check.closed_loop_nd`'s matrix (computed when None).
 
     Returns
     -------
@@ -356,9 +356,9 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
     Raises
     ------
     ConfigError
-        As :func:`hapsim.analysis.scene_nd_check.closed_loop_nd`.
+        As :func:`hapsim.analysis.scene_check.closed_loop_nd`.
     """
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
     W = np.asarray(W, float)
     n = scene.dimension
@@ -488,7 +488,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     -------
     dict
         ``measured`` (:func:`hapsim.analysis.pencil.fit_felt_nd`; matrices None when
-        incomplete), ``predicted`` (:class:`hapsim.analysis.scene_nd_check.SceneCheckND`),
+        incomplete), ``predicted`` (:class:`hapsim.analysis.scene_check.SceneCheckND`),
         ``deviation`` (:func:`hapsim.analysis.felt_matrices.felt_deviation`, None when incomplete),
         ``responses`` (the records as fitted, each shape (rows, n) [m]: the handle from
         rest, minus the late ticks' known response; empty when incomplete),
@@ -521,7 +521,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``samples`` too short for the loop's order; ``frames`` not one of its choices.
     """
     from hapsim.analysis.pencil import fit_felt_nd
-    from hapsim.analysis.scene_nd_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.emulated.mock import DEFAULT_AMPLITUDE
     from hapsim.engine_nd import EngineND
     from hapsim.analysis.felt_matrices import felt_deviation

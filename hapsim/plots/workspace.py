@@ -68,9 +68,9 @@ def plot_scene_nd(scene, chk, felt=None, title: str | None = None):
     Parameters
     ----------
     scene : hapsim.scene.SceneND
-    chk : hapsim.analysis.scene_nd_check.SceneCheckND
+    chk : hapsim.analysis.scene_check.SceneCheckND
         Its check (the felt matrices at the handle's rest position).
-    felt : hapsim.analysis.scene_nd_check.WorkspaceFelt, optional
+    felt : hapsim.analysis.scene_check.WorkspaceFelt, optional
         The workspace and the felt matrices over it (a kinematic device).
     title : str, optional
 

@@ -102,7 +102,7 @@ mass of ``between``; ``F`` acts as ``-F`` on the first and ``+F`` on the second:
 - ``planes[]``: with the unit ``normal`` and the penetration ``p = offset - normal . x``,
   the force ``[K p + B (p - p_prev) / T] normal`` on each named mass while ``p > 0``.
 
-:mod:`hapsim.analysis.scene_nd_check` linearises the scene at its rest configuration
+:mod:`hapsim.analysis.scene_check` linearises the scene at its rest configuration
 (contacts and planes engaged, as the 1-D check does) and analyses the coupled loop.
 
 Rooms

@@ -365,7 +365,7 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
                 inertia[m.name] = light
     # a Euclidean link at rest distance r with rest length (or threshold) L stiffens
     # across its axis by K |1 - L/r| (its linearisation,
-    # hapsim.analysis.scene_nd_check.link_blocks): the product bounds that too (a length of
+    # hapsim.analysis.virtual_network.link_blocks): the product bounds that too (a length of
     # 1e308 overflowed the state matrix)
     where = {m.name: m.x0 for m in masses}
     groups = []
