@@ -100,7 +100,7 @@ def _alive_naming(text: str) -> list[str]:
 
 #: The longest the run is given to end after the signal [s]: the record under way ends at
 #: its next read (0.05 s), the mock child's report is awaited at most 5 s
-#: (commands/run_nd.py), plus a loaded machine's teardown: 15 s leaves a margin of 2.
+#: (commands/run.py), plus a loaded machine's teardown: 15 s leaves a margin of 2.
 END_S = 15.0
 #: The longest the command may take to start measuring (its bar drawn after 1 s of the
 #: measurement) [s]: start-up, the mock child's, the kernels' load; ~3 s unloaded, 60 s

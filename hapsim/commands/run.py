@@ -1,4 +1,13 @@
-"""``hapsim run``: close the THS of a scene on a device (or its mock) and measure it."""
+"""``hapsim run``: close the THS of a scene on a device (or its mock) and measure it.
+
+A 1-D scene through :func:`hapsim.pipeline.runner.run_scene`; a 2-D or 3-D scene
+(:func:`run_nd`): the felt matrices measured and compared with the prediction, and the
+linearisation bound. ``--lockstep``: the loop closed in-process; ``--port PORT``: over the
+framed protocol with an n-axis device, in real time (late ticks accounted per axis,
+:mod:`hapsim.pipeline.run_nd`); neither: the same over the embedded n-D mock (``hapsim mock
+--scene SCENE --once``) in a child process behind a pty. ``--driver haply`` and ``--driver
+falcon`` on 2-D/3-D scenes: :mod:`hapsim.commands.run_haply2`,
+:mod:`hapsim.commands.run_falcon`."""
 
 from __future__ import annotations
 
@@ -312,7 +321,6 @@ def run(args) -> int:
     from hapsim.scene import load_scene
     from hapsim.scene import scene_dimension
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: in lockstep, in-process
-        from hapsim.commands.run_nd import run_nd
         return run_nd(args)
     if getattr(args, "amplitude", None) is not None:
         raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
@@ -471,3 +479,185 @@ def _replace_device(scene, path: str):
 
 def _short(value) -> str:
     return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
+#: ``hapsim run``'s own options (not run options) an n-D scene does not take.
+_REFUSED_ND = (("device", "--device"), ("auto", "--auto"))
+
+
+def _refuse_options_nd(args):
+    """Refuse ``hapsim run``'s own options an n-D run does not take, then every run option
+    it does not take (:func:`hapsim.pipeline.felt_run.refuse_options`), by its flag.
+
+    Returns
+    -------
+    hapsim.pipeline.options.RunOptions
+        The run options of the command line, checked one by one.
+    """
+    from hapsim.pipeline.felt_run import refuse_options
+    from hapsim.pipeline.options import RunOptions
+    for attr, flag in _REFUSED_ND:
+        if getattr(args, attr, None) is not None and getattr(args, attr) is not False:
+            raise ConfigError(f"a 2-D or 3-D scene does not take {flag} yet (1-D scenes "
+                              "only)", key=flag)
+    opts = RunOptions.from_args(args)
+    refuse_options(opts)
+    return opts
+
+
+def run_nd(args) -> int:
+    """Measure an n-D scene's felt matrices (``dimension: 2`` or ``3``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``lockstep``, ``port``, ``amplitude`` [m] (None: 1e-8), ``json``, and
+        run's other options (refused when set).
+
+    Returns
+    -------
+    int
+        0 when the loop is stable (the measurement then reported, whatever it finds),
+        1 when the check finds it unstable and ``--allow-unstable`` is not given, or the
+        device fails (no HELLO, a FAULT, STATEs lost).
+
+    Raises
+    ------
+    ConfigError
+        An option the n-D run does not take; a bad amplitude or scene (file, line, key).
+
+    Notes
+    -----
+    In-process (``--lockstep`` without ``--port``):
+    :func:`hapsim.lockstep.measure_felt_lockstep`: 2n free responses of the loop
+    (engine, exact ZOH device of the Cartesian mass at rest, delay line) from the handle
+    displaced by ``a`` along each axis and moving along each, minus the response from
+    rest. Over a port: :func:`hapsim.pipeline.run_nd.measure_felt_port`, the same records
+    from the device's hand, each a CONFIG, with the late ticks' known disturbance
+    subtracted. Then the felt matrices by vector linear prediction and the inverse
+    quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
+    :func:`hapsim.analysis.scene_check.check_scene_nd`; the linearisation bound of
+    :mod:`hapsim.analysis.linearisation` at ``a``.
+    """
+    from hapsim.progress import Progress
+    opts = _refuse_options_nd(args)
+    driver = getattr(args, "driver", None)
+    if getattr(args, "generation", None) is not None and driver != "haply":
+        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
+                          "2DIY's two wire generations)", key="--generation")
+    if driver == "falcon":
+        from hapsim.commands.run_falcon import run_falcon_command
+        return run_falcon_command(args)
+    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
+        if getattr(args, attr, None) is not None:
+            raise ConfigError(f"{flag} goes with --driver falcon (a delta scene on the "
+                              "Novint Falcon)", key=flag)
+    if driver not in (None, "haply"):
+        raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
+                          f"the Haply 2DIY) or --driver falcon (a delta scene, the Novint "
+                          f"Falcon), not {driver!r}", key="--driver")
+    if driver == "haply":
+        from hapsim.commands.run_haply2 import run_haply2_command
+        return run_haply2_command(args)
+    from hapsim.pipeline.felt_run import measure_scene_nd, scene_for_run
+    a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
+                             getattr(args, "rate_hz", None))
+    from hapsim.api import stable_prediction_nd
+    stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
+    n = scene.dimension
+    in_process = args.lockstep and not args.port
+    label = "run (lockstep)" if in_process else "run (over the port)"
+    from hapsim.errors import DeviceError, ProtocolError
+    with Progress(2 * n if in_process else 2 * n + 1, label, unit="records") as bar:
+        try:
+            res, port_info = measure_scene_nd(scene, opts, a, progress=bar.update)
+        except (DeviceError, ProtocolError) as exc:
+            print(f"hapsim run: {exc}", file=sys.stderr)
+            return 1
+    where = "in-process" if in_process else (
+        f"over {port_info['port']}" + (" (embedded mock, real time)"
+                                       if port_info["embedded"] else ""))
+    fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
+    if args.json:
+        from hapsim.api import run_report_nd
+        out = run_report_nd(scene, res, in_process, port_info).to_dict()
+        print(json.dumps(out))
+        return 0
+    o = sys.stdout
+    if in_process:
+        print(f"{scene.path}: {n}-D scene in lockstep at {scene.rate_hz:g} Hz, in-process "
+              f"(engine, exact ZOH device of the Cartesian mass at rest, delay "
+              f"{scene.device.delay})", file=o)
+    else:
+        print(f"{scene.path}: {n}-D scene {where}, {n} axes on the framed protocol "
+              f"(device delay {res['delay'][0] if res['delay'] else 'unknown'} ticks from "
+              "seq - force_seq)", file=o)
+        c = res["counts"]
+        print(f"  late ticks: {res['late']} of {sum(res['rows'])} rows used "
+              f"(watchdog {res['watchdog']}), their known disturbance's response "
+              f"subtracted per axis; host scheduling: {port_info['scheduling']}", file=o)
+        print(f"  rows used per start (rest first): {res['rows']} of {res['samples']}; "
+              f"CONFIGs {c['configs']}, records cut short at a lost STATE {c['cut']} "
+              f"(STATEs missed {c['missed']}, duplicates {c['stale']}, reordered "
+              f"{c['reordered']}, bad frames {res['bad_frames']}), device resets "
+              f"{c['resets']}, device lost {c['lost']} / recovered {c['recovered']}"
+              + (f"; faults injected: {port_info['faults_injected']}"
+                 if port_info.get("faults_injected") else ""), file=o)
+        if res.get("stop", "end") != "end":
+            print(f"  stopped: {res['stop']} (what was recorded by then is reported)",
+                  file=o)
+    print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
+          f"amplitude a = {a:g} m (minus the response from rest)", file=o)
+    if not chk.stable:
+        grow = chk.render.spectral_radius ** res["samples"]
+        print(f"  the loop is UNSTABLE (--allow-unstable): its free responses grow by up to "
+              f"{grow:.3g} times over a record, so the amplitude and the bound below hold "
+              "at its start only", file=o)
+
+    def mat(name, m, unit):
+        if m is None:
+            print(f"  {name}: none (fewer than {n} rendered pairs)", file=o)
+            return
+        print(f"  {name} [{unit}]", file=o)
+        for row in m:
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    mat("predicted felt stiffness k", chk.render.felt_stiffness, "N/m")
+    mat("measured felt stiffness k", fit["felt_stiffness"], "N/m")
+    mat("predicted felt damping b", chk.render.felt_damping, "N s/m")
+    mat("measured felt damping b", fit["felt_damping"], "N s/m")
+    if dev is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
+    bd = bound.to_dict()
+    print(f"  linearisation bound at the records' largest excursion {bound.amplitude:.3g} m "
+          f"(first order in it; hapsim.analysis.linearisation):", file=o)
+    print(f"    device kinematics c_kin = {bound.kinematic:.4g} /m (the Cartesian mass "
+          "and the velocity-product terms over a; "
+          + ("not in the lockstep device, which holds the mass at rest)" if in_process
+             else "carried by a joint-space device, the mock's or a real one)"), file=o)
+    print(f"    Euclidean links c_link = {bound.link:.4g} /m"
+          + (f" (link {bound.link_name!r})" if bound.link_name else " (none: linear)"),
+          file=o)
+    if bd["felt_stiffness"] is None:
+        print(f"    the excursion reaches the depth of {bound.depth_name!r} "
+              f"({bound.depth:.3g} m): "
+              "the contact opens, no linear estimate holds", file=o)
+    else:
+        print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
+              f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
+              + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
+    from hapsim.pipeline.run_nd import verdict_nd
+    v = verdict_nd(res)
+    wire = res.get("wire")
+    if wire is not None:
+        dq = wire["reading_bound_rad"]
+        print(f"  device: {port_info.get('device')}", file=o)
+        print(f"  the wire's rounding (joint readings within {dq[0]:.2e} / {dq[1]:.2e} rad: "
+              f"half a count and a binary32 ulp; torques within {wire['torque_bound_nm']:.2e} "
+              "N m: half a PWM step), first-order worst case through the loop and the fit: "
+              f"k {wire['felt_stiffness']:.2e}, b {wire['felt_damping']:.2e}; one count at "
+              f"the handle {wire['quantum_m']:.2e} m", file=o)
+    from hapsim.pipeline.felt_run import print_statements
+    print_statements(v, o)
+    print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
+    return 0

@@ -11,7 +11,7 @@ requested (Ctrl-C or SIGTERM when ``handle_signals``, or ``RunOptions.stop``) en
 record under way and the measurement reports what it had.
 
 The 2DIY (``driver="haply"``) and the Falcon (``driver="falcon"``) take their own routes
-(``hapsim run``'s, :mod:`hapsim.commands.run_nd`).
+(``hapsim run``'s, :mod:`hapsim.commands.run`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import math
 from hapsim.errors import ConfigError
 
 __all__ = ["ND_TAKES", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
-           "measure_scene_nd"]
+           "measure_scene_nd", "print_statements"]
 
 #: The run options (:class:`hapsim.pipeline.options.RunOptions` fields) an n-D run takes;
 #: every other one set to anything but its default is refused by name (its flag)
@@ -291,3 +291,41 @@ def _over_port(scene, opts, a: float, progress):
                           f"{res.get('frames', 'full')} frames)")
         info["clamped"] = joint.clamped
     return res, info
+
+
+def print_statements(v: dict, o) -> None:
+    """Print a verdict's statements (:func:`hapsim.analysis.felt_matrices.felt_verdict`), one a line:
+    the quantity (a felt matrix as a whole, or along a principal direction: predicted and
+    measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
+    linearisation bound plus the wire's term, relative), and what it says.
+
+    Parameters
+    ----------
+    v : dict
+        The verdict, with ``statements``.
+    o : file
+        Where to print.
+    """
+    st = v.get("statements") or []
+    if not st:
+        return
+    print("  statements (relative: measured - predicted against the stated uncertainty = "
+          "linearisation bound + the wire's term + binary64 round-off):", file=o)
+    unit = {"felt_stiffness": "N/m", "felt_damping": "N s/m"}
+
+    def e(x):
+        return "-" if x is None else f"{x:.2e}"
+    for s in st:
+        head = s["name"]
+        if s["direction"] is not None:
+            head += (f": predicted {s['predicted']:.6g}, measured {s['measured']:.6g} "
+                     f"{unit[s['quantity']]}")
+        terms = (f"lin {e(s['linearisation'])}"
+                 + (f" + wire {e(s['wire'])}" if s["wire"] is not None else "")
+                 + (f" + round-off {e(s.get('roundoff'))}" if s.get("roundoff") else ""))
+        if s["verdict"] == "not measurable":
+            print(f"    {head}: not measurable ({s['reason']})", file=o)
+        else:
+            print(f"    {head}: {s['verdict']} (deviation {e(s['deviation'])} "
+                  + ("<=" if s["within"] else ">") + f" {e(s['uncertainty'])} = {terms})",
+                  file=o)

@@ -1,0 +1,168 @@
+"""``hapsim run SCENE --driver haply`` on a 2-D pantograph scene: the felt matrices through
+the Haply 2DIY's bytes and its emulated board, in lockstep or in real time (the board in a
+child process behind a pty, the host loop on its own clock)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+
+from hapsim.pipeline.felt_run import print_statements, scene_for_run
+from hapsim.errors import ConfigError
+
+__all__ = ["run_haply2_command", "HAPLY_AMPLITUDE", "HAPLY_CPR"]
+
+
+#: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
+#: ~1e-7 m at the handle, so 1e-4 m keeps them below 1e-3 of it.
+HAPLY_AMPLITUDE = 1e-4
+#: The emulated encoders' counts per revolution under ``--driver haply --lockstep``: a
+#: fine encoder, so that the run checks the wire and the loop (a real 2DIY's 10752 or 4880
+#: counts are tens of micrometres at the handle; the report states what they would be).
+HAPLY_CPR = 2.0 ** 22
+
+
+def run_haply2_command(args) -> int:
+    """``hapsim run SCENE --driver haply [--lockstep]``: the felt matrices through the
+    2DIY's bytes and its emulated board, in lockstep
+    (:func:`hapsim.emulated.haply2_board.measure_felt_haply2`) or in real time, the board in
+    a child process behind a pty and the host on its clock, missing replies estimated
+    samples (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`).
+
+    Returns
+    -------
+    int
+        0 (the measurement and its verdict reported, whatever it finds: "within",
+        "differs" or "not measurable"); 1 when the board lost a reply.
+
+    Raises
+    ------
+    ConfigError
+        With ``--port`` (a real board has no hand to start each record), a scene that is
+        not a 2-D pantograph, a bad amplitude.
+    """
+    import gc
+
+    from hapsim.emulated.haply2_board import measure_felt_haply2
+    from hapsim.errors import DeviceError
+    from hapsim.progress import Progress
+    if args.port:
+        raise ConfigError("--driver haply on a 2-D scene runs against the emulated board, "
+                          "whose hand starts each record (a real 2DIY has none): no --port",
+                          key="--port")
+    realtime = not args.lockstep
+    gen = getattr(args, "generation", None) or "gen3"
+    a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
+                             getattr(args, "rate_hz", None), HAPLY_AMPLITUDE)
+    with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
+                  unit="records") as bar:
+        try:
+            if realtime:
+                from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
+                from hapsim.host.realtime import RealtimePriority
+                prio = max(int(getattr(args, "rt_priority", 0) or 0), 0)
+                # the board takes SCHED_FIFO itself once started (a real board's MCU is
+                # never descheduled), the host loop here: as the 1-D run's loop and mock
+                child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
+                                     rate_hz=scene.rate_hz, rt_priority=prio)
+                gc_was = gc.isenabled()
+                rt = RealtimePriority(prio)
+                try:
+                    gc.disable()                 # no collection while the clock runs
+                    # the emulated board advances one period per write unless it
+                    # says it keeps the wall clock: a host stall costs its record
+                    # nothing then
+                    with rt:
+                        res = measure_felt_haply2_port(
+                            child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
+                            progress=bar.update,
+                            lockstep_board=getattr(child, "clock", "lockstep") == "lockstep")
+                    res["scheduling"] = rt.note
+                finally:
+                    if gc_was:
+                        gc.enable()
+                    child.close()
+            else:
+                res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
+                                          progress=bar.update)
+        except DeviceError as exc:
+            print(f"hapsim run: {exc}", file=sys.stderr)
+            return 1
+    chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
+    bound, wire = res["bound"], res["wire"]
+    real = res["quantum_encoders"]
+
+    def num(x):
+        return float(x) if math.isfinite(x) else None
+    if args.json:
+        def mat(x):
+            return None if x is None else np.asarray(x, float).tolist()
+        print(json.dumps({
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
+            "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
+            "emulated_cpr": HAPLY_CPR,
+            **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
+                "replies": res["replies"], "writes": res["writes"],
+                "resyncs": res["resyncs"], "skipped": res["skipped"],
+                "scheduling": res.get("scheduling")} if realtime else {}),
+            "direction_probe": res.get("direction_probe"),
+            "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
+                          "felt_damping": mat(chk.render.felt_damping)},
+            "measured": {"felt_stiffness": mat(fit["felt_stiffness"]),
+                         "felt_damping": mat(fit["felt_damping"]),
+                         "residual": fit["residual"], "rank": fit["rank"]},
+            "deviation": dev, "linearisation_bound": bound.to_dict(),
+            "wire": {"felt_stiffness": num(wire["felt_stiffness"]),
+                     "felt_damping": num(wire["felt_damping"]),
+                     "reading_bound_rad": wire["reading_bound_rad"],
+                     "torque_rel": wire["torque_rel"]},
+            "uncertainty": res["uncertainty"], "statements": res["statements"],
+            "not_stated": res["not_stated"], "verdict": res["verdict"],
+            "within": res["within"], "reason": res["reason"], "clamped": res["clamped"],
+            "quantum": res["quantum"], "quantum_real_encoders": real,
+            "records": res["records"], "samples": res["samples"]}))
+        return 0
+    o = sys.stdout
+    print(f"{scene.path}: the Haply 2DIY's bytes ({gen} set-up, firmware V1.5 board "
+          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
+          + ("in real time (the board in a child process behind a pty)" if realtime
+             else "in lockstep"), file=o)
+    if realtime:
+        print(f"  estimated samples (replies not read by their tick) per record: "
+              f"{res['estimated']}; ticks the host began a period late: "
+              f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
+              f"host loop scheduling: {res.get('scheduling')}", file=o)
+    print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
+          f"a = {a:g} m (minus the response from rest)", file=o)
+    for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
+                    ("measured felt stiffness k [N/m]", fit["felt_stiffness"]),
+                    ("predicted felt damping b [N s/m]", chk.render.felt_damping),
+                    ("measured felt damping b [N s/m]", fit["felt_damping"])):
+        print(f"  {name}", file=o)
+        for row in ([] if m is None else m):
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    bd = bound.to_dict()
+    if dev is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
+    if bd["felt_stiffness"] is not None:
+        print(f"  linearisation bound at a: k {bd['felt_stiffness']:.2e}, "
+              f"b {bd['felt_damping']:.2e}", file=o)
+    if math.isfinite(wire["felt_stiffness"]):
+        dq = wire["reading_bound_rad"]
+        print(f"  the wire's rounding (readings within {dq[0]:.2e} / {dq[1]:.2e} rad: half "
+              "a count and a binary32 ulp; torques 2^-24)"
+              + (" and the estimated samples' error bounds" if realtime
+                 and sum(res["estimated"]) else "")
+              + f", first-order worst case through the loop and the fit: k "
+              f"{wire['felt_stiffness']:.2e}, "
+              f"b {wire['felt_damping']:.2e}", file=o)
+    print_statements(res, o)
+    print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
+    print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
+          f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
+          f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
+    return 0
