@@ -69,7 +69,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "67e06dde8d64df3a63922ae37bc0a1b91691b7165a9a2d6cc1d416eee2508991"
+COMPILED_SOURCES_SHA256 = "dd8d54c211780984ad193acb72a4974695eb7e9fad700629bf5ab6a6333d7e65"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -18,8 +18,8 @@ import firmware_protocol as fp
 
 __all__ = ["c_read", "c_write", "c_poll", "c_clock_gettime", "CLOCK_MONOTONIC", "POLLIN",
            "POLLOUT", "POLLERR", "POLLHUP", "POLLNVAL", "crc_table", "CRC_TABLE", "jit",
-           "jit_inline", "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode", "F32_MAX",
-           "force_frame", "force_compact_frame", "expand_seq"]
+           "jit_inline", "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode",
+           "F32_MAX", "force_frame", "force_compact_frame", "expand_seq"]
 
 # ----------------------------------------------------------------------------- libc
 # libc by symbol (numba ExternalFunction: resolved at link time, so the compiled loop can be
