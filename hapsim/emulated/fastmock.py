@@ -51,7 +51,7 @@ COMPILED_SOURCES = MOCK_SOURCES
 #: (:data:`hapsim.kernels.sources.MOCK_SOURCES`): numba keys its disk cache on this file
 #: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
 #: so), which edits this file and makes numba recompile. Until then: no cache.
-COMPILED_SOURCES_SHA256 = "d4085bc63f13666ef501a9dca2fd79d26b0fde2c94dde9d1225a22d940c333b1"
+COMPILED_SOURCES_SHA256 = "fcd860afe0ea80860a38c789bfb2ce11e73c970a8bb6a3028d2570d385ccfa16"
 
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = sources_digest(source_paths(MOCK_SOURCES)) == COMPILED_SOURCES_SHA256
@@ -242,7 +242,7 @@ def _feed(iv, rf, rs, rb, now_us, pkt, f8, u8, table):
     Returns R_FED (all taken; a partial frame left at the front of ``rb``) or R_HANDOFF
     (``rb`` starts at the first frame that is not one, for the Python receiver)."""
     n_rb = iv[I_RB_LEN]
-    a = 0
+    a = np.int64(0)         # int64, not Literal[0]: no specialisation of the helpers
     code = R_FED
     while True:
         a, z = next_frame(rb, a, n_rb)

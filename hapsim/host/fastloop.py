@@ -69,7 +69,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "60fb76a0b77bad1430a395969f8e524727c27a5d7c4dc06f147b53ee66036e36"
+COMPILED_SOURCES_SHA256 = "dd8d54c211780984ad193acb72a4974695eb7e9fad700629bf5ab6a6333d7e65"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -479,7 +479,7 @@ def _stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_
             iv[I_RB_LEN] = n_rb
             return R_SYNC
         # frames complete in the buffer?
-        a = 0
+        a = np.int64(0)     # int64, not Literal[0]: no specialisation of the helpers
         handled = False
         while True:
             a, z = _next_frame(rb, a, n_rb)

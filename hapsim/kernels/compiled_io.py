@@ -18,8 +18,8 @@ import firmware_protocol as fp
 
 __all__ = ["c_read", "c_write", "c_poll", "c_clock_gettime", "CLOCK_MONOTONIC", "POLLIN",
            "POLLOUT", "POLLERR", "POLLHUP", "POLLNVAL", "crc_table", "CRC_TABLE", "jit",
-           "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode", "F32_MAX",
-           "force_frame", "force_compact_frame", "expand_seq"]
+           "jit_inline", "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode",
+           "F32_MAX", "force_frame", "force_compact_frame", "expand_seq"]
 
 # ----------------------------------------------------------------------------- libc
 # libc by symbol (numba ExternalFunction: resolved at link time, so the compiled loop can be
@@ -57,6 +57,13 @@ CRC_TABLE = crc_table()
 #: The decorator of every compiled function here and in the compiled loop and mock:
 #: nopython, no GIL, cached on disk.
 jit = numba.njit(nogil=True, cache=True)
+#: The same, inlined into its callers at numba's IR level: the small helpers the loop and
+#: the mock call with literal offsets and lengths (``le(pkt, 1, 4)``, ``crc16(pkt, 13,
+#: table)``). numba types a literal argument of a call between compiled functions as
+#: ``Literal[int]`` and compiled a helper once per literal combination (``le`` five times,
+#: ``crc16`` four, ``cobs_encode`` three: ~0.2-0.3 CPU-s each into an empty cache); an
+#: inlined helper is not compiled on its own at all. Same integer operations, same bytes.
+jit_inline = numba.njit(nogil=True, cache=True, inline="always")
 
 
 @jit
@@ -66,7 +73,7 @@ def now_ns(ts):
     return ts[0] * 1_000_000_000 + ts[1]
 
 
-@jit
+@jit_inline
 def crc16(buf, n, table):
     """CRC-16/CCITT-FALSE of ``buf[:n]`` with ``table`` (:data:`CRC_TABLE`); 0 over a
     packet whose last two bytes are its CRC (PROTOCOL.md §2)."""
@@ -76,7 +83,7 @@ def crc16(buf, n, table):
     return c
 
 
-@jit
+@jit_inline
 def le(buf, off, nbytes):
     """The little-endian unsigned integer in ``buf[off:off + nbytes]`` (PROTOCOL.md §3:
     every integer field is little-endian)."""
@@ -86,7 +93,7 @@ def le(buf, off, nbytes):
     return v
 
 
-@jit
+@jit_inline
 def next_frame(rb, a, n_rb):
     """The next frame in ``rb[a:n_rb]``: ``(a, z)`` with ``rb[a:z]`` the frame's COBS
     bytes and ``rb[z]`` its 0x00 delimiter, idle fill (empty frames) skipped; ``z = -1``
@@ -129,7 +136,7 @@ def cobs_decode(src, a, b, dst):
     return o
 
 
-@jit
+@jit_inline
 def cobs_encode(src, n, dst):
     """COBS-encode ``src[:n]`` (n < 254) into ``dst`` with the 0x00 delimiter; the length."""
     code_at = 0
