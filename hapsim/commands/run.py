@@ -535,7 +535,7 @@ def run_nd(args) -> int:
     rest. Over a port: :func:`hapsim.pipeline.run_nd.measure_felt_port`, the same records
     from the device's hand, each a CONFIG, with the late ticks' known disturbance
     subtracted. Then the felt matrices by vector linear prediction and the inverse
-    quadratic eigenvalue problem (:mod:`hapsim.analysis.identify_nd`), against
+    quadratic eigenvalue problem (:func:`hapsim.analysis.pencil.fit_felt_nd`), against
     :func:`hapsim.analysis.scene_check.check_scene_nd`; the linearisation bound of
     :mod:`hapsim.analysis.linearisation` at ``a``.
     """
