@@ -445,7 +445,7 @@ def test_haply_m3_losing_host_bytes_never_says_differs(two_cpu_hogs, seed):
                     driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": seed})
     loop, m = rep["loop"], rep["measured"]
     assert loop["mock"]["clock"] == "wall"
-    assert loop["driver"]["missing"] > 0                # bytes were lost
+    assert sum(loop["mock"]["faults"].values()) > 0    # host bytes were lost
     verdict = str(m.get("verdict"))
     assert not verdict.startswith("measured differs"), (verdict, m.get("rel_err"),
                                                         m.get("k_unc"), m.get("k"))
@@ -478,11 +478,14 @@ def test_haply_m3_unknown_force_rows_are_each_missing_replys_window():
 
 
 def test_haply_m3_losing_host_bytes_still_sees_a_device_that_differs(monkeypatch):
-    """The same lossy link (seed 1, 1 host byte in 200 lost) against a joint with a hidden
+    """The same lossy link (1 host byte in 200 lost, seeds 1-3) against a joint with a hidden
     viscous friction of 0.001 N m s/rad more than the scene states (the felt b, predicted
     0.00126 N m s/rad, about doubles): "differs", the measured b above the prediction by
     more than its stated uncertainty -- the rows left out around the missing replies do
-    not blind the measurement."""
+    not blind the measurement. The board stepped one period per write (lockstep, named:
+    deterministic; on the wall clock a loaded machine's re-synchronisations make some runs
+    "not measurable" instead, 12 of them once in the full suite), its missing replies left
+    out as on the wall clock."""
     import dataclasses
 
     import hapsim.emulated.driver_mock as dm
@@ -496,10 +499,12 @@ def test_haply_m3_losing_host_bytes_still_sees_a_device_that_differs(monkeypatch
              *a, **k)
     monkeypatch.setattr(dm.EmbeddedDriverMock, "__init__", hidden)
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / "haply.yaml"))
-    rep = run_scene(sc, driver="haply", duration=1.5, handle_signals=False, seed=1,
-                    driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": 1})
-    m = rep["measured"]
-    assert rep["loop"]["driver"]["missing"] > 0
-    assert str(m.get("verdict")).startswith("measured differs"), m.get("verdict")
-    assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
-                                                        m["b_unc"])
+    for seed in (1, 2, 3):
+        rep = run_scene(sc, driver="haply", duration=1.5, lockstep=True,
+                        handle_signals=False, rt_priority=0, seed=seed,
+                        driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": seed})
+        m = rep["measured"]
+        assert rep["loop"]["estimated"] > 0                # rows were left out
+        assert str(m.get("verdict")).startswith("measured differs"), (seed, m.get("verdict"))
+        assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (seed, m["b"],
+                                                            rep["predicted"]["b"], m["b_unc"])
