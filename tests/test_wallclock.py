@@ -359,8 +359,17 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
         # stop allowed is the host's own lateness, zero torque sent, the board left at
         # zero (asserted above). Seen once in a fresh-clone CI run ("the host was 256 ms
         # late over its last 100 ticks"), FireFader at 250 Hz.
-        assert "the host was" in loop["stop_reason"] and "late" in loop["stop_reason"], \
-            loop["stop_reason"]
+        # Beside one more busy process (the suite under tools/suite_time.py --busy 1), a
+        # FireFader run at 250 Hz stopped on the host's force clamp instead ("force at the
+        # limit 0.38 N in 50 of the last 100 samples"): a stop too, zero force sent, the
+        # fader inside its travel (asserted here, from the board's own record)
+        from hapsim.host.link_verdict import CLAMP_STOP
+        reason = loop["stop_reason"]
+        assert ("the host was" in reason and "late" in reason) or \
+            reason.startswith(CLAMP_STOP), reason
+        limit = loop["safety"]["position_limit"]          # the run's workspace [m]
+        assert loop["mock"]["true_excursion"] <= limit, (loop["mock"]["true_excursion"],
+                                                          limit)
         return
     assert loop["stop_reason"] == "duration", loop["stop_reason"]
     m = rep["measured"]
