@@ -153,3 +153,51 @@ def test_own_clock_host_too_late_stops_the_loop_simulated_time(monkeypatch):
     assert LATE_STOP * LATE_WINDOW / sc.rate_hz < 0.06
     assert dev.commands == (0, 0, 0)
     assert dev.excursion <= fr.WORKSPACE_RAD
+
+
+def test_own_clock_loop_does_no_search_nor_collection_between_packets_simulated_time(
+        monkeypatch):
+    """What made a stall in every wall-clock run beside two CPU-bound processes
+    (tools/driver_timing.py, issue 29): the loop's first reading solved the delta's
+    forward kinematics by the full search for a start (3.5 ms on a 1 kHz Falcon, the
+    first packet held three periods), its compiled engine was warmed after the first
+    packet went, and the collector could pause the process at any packet (40 ms for a
+    full collection with numba and scipy loaded). Now the search and the warming come
+    before the loop's first packet and the collector is off from the probes to the zero
+    packets: checked here at every exchange of the loop (simulated time), and the
+    collector's state restored after the run."""
+    import gc
+    from hapsim.kinematics import delta
+    searches = []
+    real_solve = delta.Delta._solve
+    in_loop = [False]
+    armed = [False]
+
+    def solve(self, q):
+        searches.append(in_loop[0])
+        return real_solve(self, q)
+    monkeypatch.setattr(delta.Delta, "_solve", solve)
+    collector = []
+    real_run = fr.run_falcon
+
+    def run_falcon(*a, before_loop=None, **k):
+        def start():
+            armed[0] = True
+            before_loop()
+        return real_run(*a, before_loop=start, **k)
+    monkeypatch.setattr(fr, "run_falcon", run_falcon)
+    import hapsim.drivers.falcon_usb as fu
+    real_exchange = fu.FalconUSB.exchange
+
+    def exchange(self, *a, **k):
+        in_loop[0] = armed[0]            # from the loop's first packet on
+        if armed[0]:
+            collector.append(gc.isenabled())
+        return real_exchange(self, *a, **k)
+    monkeypatch.setattr(fu.FalconUSB, "exchange", exchange)
+    was = gc.isenabled()
+    res, dev, sc = _sim_run(monkeypatch, samples=200)
+    assert res["verdict"] == "ok", res["reason"]
+    assert searches and not any(searches), "a full search for a start inside the loop"
+    assert len(collector) >= res["samples"] and not any(collector)
+    assert gc.isenabled() == was

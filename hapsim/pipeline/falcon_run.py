@@ -21,6 +21,7 @@ compared with the count the emulated encoder had (``truth``).
 
 from __future__ import annotations
 
+import gc
 import time
 
 import numpy as np
@@ -203,8 +204,6 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         The firmware load failed (what to check), the legs did not home, the link failed
         or the Falcon went away (after how many packets).
     """
-    from hapsim.emulated.falcon_device import drive_falcon, home
-    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
     from hapsim.drivers.falcon_usb import load_firmware_link
     from hapsim.errors import FirmwareEchoError
     for attempt in range(1, load_attempts + 1):
@@ -219,6 +218,27 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     fw["attempts"] = attempt
     if progress:
         progress(1)
+    # as every real-time loop of hapsim (hapsim.host.loop): no collector pause while the
+    # Falcon runs on its own clock (a full collection in a process with numba and scipy
+    # loaded took 40 ms, forty periods of a command held), collected here, before the
+    # first packet, while the firmware holds none
+    gc_was = gc.isenabled()
+    if paced:
+        gc.collect()
+    gc.disable()
+    try:
+        return _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
+                                 homing_limit, before_loop, progress)
+    finally:
+        if gc_was:
+            gc.enable()
+
+
+def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
+                      homing_limit, before_loop, progress):
+    """:func:`run_falcon` after the firmware load: the probes, the homing, the loop."""
+    from hapsim.emulated.falcon_device import drive_falcon, home
+    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
     sent = [0]
     truths = []
     # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
