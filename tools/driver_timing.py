@@ -211,7 +211,8 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
     stopped = res.get("stopped")
     return {"clock": clock, "safety_stop": bool(stopped),
             "stop": stopped[1] if stopped else "end",
-            "resyncs": 0, "stalls": res.get("stalls"), "excursion_true": dev.excursion,
+            "resyncs": 0, "stalls": res.get("stalls"), "waits": res.get("waits"),
+            "excursion_true": dev.excursion,
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
             "workspace": WORKSPACE_RAD, "beyond_workspace": dev.excursion > WORKSPACE_RAD,
             "verdict": res["verdict"], "within": None,

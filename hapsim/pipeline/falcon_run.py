@@ -111,6 +111,10 @@ def falcon_verdict(res: dict) -> dict:
             f"the host stalled {res['stalls']} times (a command held up to "
             f"{res['held_max_s'] * 1e3:.1f} ms, more than {HELD_PERIODS:g} periods): the "
             "Falcon held it on its own clock, another loop than the scene's")
+    if res.get("paced") and res.get("waits"):
+        said = (said + "; " if said else "") + (
+            f"{res['waits']} commands held more than {HELD_PERIODS:g} periods while the "
+            "host waited for a reply that did not come: another loop than the scene's")
     slow = res.get("slow")
     if slow:
         said = (said + "; " if said else "") + (
@@ -194,8 +198,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
         scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
         None), ``zeroed`` (zero-command packets sent after the loop), ``stalls`` (gaps
-        of more than :data:`HELD_PERIODS` periods between two of the loop's packets: the
-        host stalled, the firmware held the last command), ``held_max_s`` (the longest
+        of more than :data:`HELD_PERIODS` periods between two of the loop's packets after
+        a reply that came: the host stalled, the firmware held the last command),
+        ``waits`` (such gaps after a reply that did not come before ``timeout``: the host
+        waited for it), ``held_max_s`` (the longest
         gap [s]), ``paced``, ``verdict``, ``reason``.
 
     Raises
@@ -244,6 +250,9 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
     # between two packets is a host stall (the firmware held the last command over it)
     stamps = []
+    # whether each exchange's reply came before its timeout: a gap after one that did
+    # not is the host waiting for a lost reply, not the host stalled
+    answered = []
 
     drain = getattr(link, "read", None)
 
@@ -262,6 +271,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
             ans = late + link.exchange(packet, 32, _reply_end, timeout)
+            answered.append(_reply_end(ans))
         except DeviceError as exc:
             raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
                               "load)") from None
@@ -292,6 +302,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         before_loop()
     t0 = time.perf_counter()
     stamps.clear()
+    answered.clear()
     try:
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
                            hold_bound_s=HOLD_BOUND_S if paced else None,
@@ -310,7 +321,11 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
            "held_zero": res["held_zero"], "stopped": res["stopped"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
-    out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
+    # gap k follows exchange k: after a reply that never came (lost bytes) the host
+    # waited its timeout for it; after one that came, a long gap is the host's own
+    waited = ~np.asarray(answered[:gaps.size], bool)
+    out["stalls"] = int(np.sum((gaps > HELD_PERIODS) & ~waited))
+    out["waits"] = int(np.sum((gaps > HELD_PERIODS) & waited))
     out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0
     pps = out["packets_per_s"]
     if paced and pps and pps < 0.9 * scene.rate_hz:
