@@ -85,6 +85,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "safety_stop": bool(lp["safety_stop"]), "stop": lp["stop_reason"],
             "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
+            "frame_walk": mk.get("frame_walk"),
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
             "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
