@@ -147,7 +147,7 @@ def test_own_clock_host_too_late_stops_the_loop_simulated_time(monkeypatch):
     emulated legs 1-143 rad): the late-stop of the 1-DoF loop (hapsim.host.loop) ends the
     loop, zero commands sent, the verdict "degraded" with the stop, and the legs within
     the workspace."""
-    from hapsim.host.loop import LATE_STOP, LATE_WINDOW
+    from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     res, dev, sc = _sim_run(monkeypatch, stall_at=set(range(4, 600, 4)), stall_s=12e-3)
     assert res["stopped"] is not None and res["verdict"] == "degraded"
     assert "safety: the host was" in res["reason"]

@@ -452,7 +452,7 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x):
 @_jit
 def _newer_in(rb, a, n_rb, seq, ahead_max, scratch, table, compact):
     """Whether a complete frame in ``rb[a:n_rb]`` is an armed 1-axis STATE ahead of
-    ``seq`` by 1 .. ``ahead_max`` (:func:`hapsim.host.loop._newer_waiting`, on bytes).
+    ``seq`` by 1 .. ``ahead_max`` (:func:`hapsim.host.device_clock._newer_waiting`, on bytes).
 
     ``compact``: the STATE_COMPACTs are expanded in order as the Python decoder's
     :class:`firmware_protocol.CompactExpander` does (from ``seq``, each armed one of any
