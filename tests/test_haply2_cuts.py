@@ -32,6 +32,7 @@ def _oracle(rec, d, lockstep_board):
     """The cuts of :func:`usable_rows`, row by row from its docstring's list."""
     est = np.asarray(rec["estimated"], bool) | ~np.isfinite(rec["joints"]).all(axis=1)
     N = est.size
+    read = np.isfinite(rec["readings"]).all(axis=1)
     bad = np.zeros(N, bool)
 
     def cut(a, b):
@@ -41,7 +42,10 @@ def _oracle(rec, d, lockstep_board):
             r1 = r
             while r1 + 1 < N and est[r1 + 1]:
                 r1 += 1
-            cut(r - 1, r1 + d + 1)
+            late_only = all(read[j] and not rec["resynced"][j]
+                            for j in range(r, min(r1 + d + 2, N)))
+            if not late_only:
+                cut(r - 1, r1 + d + 1)
         if rec["stalled"][r] and not lockstep_board:
             cut(r - 1, r + d + 1)
         if rec["resynced"][r]:
@@ -57,10 +61,11 @@ def _oracle(rec, d, lockstep_board):
 
 
 def test_usable_rows_cut_each_disturbance_with_the_torques_in_flight():
-    """Closed form: random records of missing replies (some damaged: no reading), host
-    stalls, re-synchronisations, torques at the clamp and an unanswered closing write; the
-    rows left are those of the rule (an oracle marking row by row), and a lockstep board's
-    stalls cut nothing (it waited)."""
+    """Closed form: random records of missing replies (some damaged: no reading; some
+    late, the reply read after its tick; some never), host stalls, re-synchronisations,
+    torques at the clamp and an unanswered closing write; the rows left are those of the
+    rule (an oracle marking row by row), and a lockstep board's stalls cut nothing (it
+    waited)."""
     rng = np.random.default_rng(29)
     for trial in range(200):
         N = int(rng.integers(5, 80))
@@ -69,13 +74,17 @@ def test_usable_rows_cut_each_disturbance_with_the_torques_in_flight():
         joints[rng.random(N) < 0.03] = np.nan
         torque = rng.uniform(-0.05, 0.05, (N, 2))
         torque[rng.random(N) < 0.03, 1] = -MAX_TORQUE
-        rec = {"estimated": rng.random(N) < 0.1, "stalled": rng.random(N) < 0.05,
+        readings = np.zeros((N, 2))
+        readings[rng.random(N) < 0.05] = np.nan          # replies that never came
+        rec = {"estimated": rng.random(N) < 0.1, "readings": readings,
+               "stalled": rng.random(N) < 0.05,
                "resynced": rng.random(N) < 0.05, "joints": joints, "torque": torque,
                "rearmed_at_end": bool(rng.random() < 0.3)}
         for lock in (False, True):
             got = host.usable_rows(rec, d, lockstep_board=lock)
             assert np.array_equal(got, _oracle(rec, d, lock)), (trial, d, lock)
-    clean = {"estimated": np.zeros(9, bool), "stalled": np.zeros(9, bool),
+    clean = {"estimated": np.zeros(9, bool), "readings": np.zeros((9, 2)),
+             "stalled": np.zeros(9, bool),
              "resynced": np.zeros(9, bool), "joints": np.zeros((9, 2)),
              "torque": np.zeros((9, 2)), "rearmed_at_end": False}
     assert host.usable_rows(clean, 1).all()

@@ -243,7 +243,12 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False) -> np.nd
     * each run ``[r0, r1]`` of estimated rows (a reply not read by its tick, or a damaged
       one: the write may have been parsed from the wrong bytes, firmware V1.5 has no
       framing, and a torque zeroed for want of a fresh sample is one too): rows
-      ``r0 - 1 .. r1 + d + 1``;
+      ``r0 - 1 .. r1 + d + 1`` -- unless every reply of rows ``r0 .. r1 + d + 1`` came,
+      late (``readings`` finite) and no re-synchronisation is among them: the board
+      answered each of those writes in order, so it parsed them in step (a lost host
+      byte makes it complete a write with the next one's first byte and parse the rest
+      of that one out of step, whose reply never comes), and the rows are measured with
+      their estimates' bounds (:func:`estimate_bounds`);
     * a re-synchronisation at tick ``s`` (the board out of step since the run of missing
       or damaged replies before it, then zero torque and the set-up; the emulated board's
       hand restarts the handle there): from that run's first row - 1 to ``s + d + 1``;
@@ -258,8 +263,8 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False) -> np.nd
     Parameters
     ----------
     rec : dict
-        :func:`record_realtime`'s record (``estimated``, ``stalled``, ``resynced``,
-        ``joints``, ``torque``, ``rearmed_at_end``), N rows.
+        :func:`record_realtime`'s record (``estimated``, ``readings``, ``stalled``,
+        ``resynced``, ``joints``, ``torque``, ``rearmed_at_end``), N rows.
     delay : int >= 0
         The scene's delay ``d`` [ticks].
     lockstep_board : bool, optional
@@ -281,14 +286,20 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False) -> np.nd
         if a <= b:
             bad[a] += 1
             bad[b + 1] -= 1
+    read = np.isfinite(np.asarray(rec.get("readings", np.full((N, 2), np.nan)),
+                                  float)).all(axis=1)
+    resynced = np.asarray(rec.get("resynced", np.zeros(N, bool)), bool)
     edge = np.diff(np.concatenate(([0], est.astype(np.int8), [0])))
     r0s, r1s = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1) - 1
     for r0, r1 in zip(r0s, r1s):
+        span = slice(r0, min(r1 + d + 2, N))
+        if read[span].all() and not resynced[span].any():
+            continue                                # late replies, in step
         cut(r0 - 1, r1 + d + 1)
     if not lockstep_board:
         for s_ in np.flatnonzero(np.asarray(rec.get("stalled", np.zeros(N, bool)), bool)):
             cut(s_ - 1, s_ + d + 1)
-    for s_ in np.flatnonzero(np.asarray(rec.get("resynced", np.zeros(N, bool)), bool)):
+    for s_ in np.flatnonzero(resynced):
         a = s_
         while a > 0 and est[a - 1]:
             a -= 1
