@@ -258,7 +258,11 @@ def test_a_stalled_record_is_cut_at_the_stall_on_a_board_with_its_own_clock(monk
                                       resolution=2.0 ** 22, samples=N,
                                       plan=identification_plan(sc, N), probe_wiring=False)
     d = int(sc.device.delay)
-    assert sum(r["stalls"]) >= 5 and r["usable"] == [N - (d + 3)] * 5
+    # each stall cuts d + 3 rows (more stalls than the one flagged: the host's own, on a
+    # loaded machine; windows may overlap)
+    assert sum(r["stalls"]) >= 5
+    for u, k in zip(r["usable"], r["stalls"]):
+        assert N - (d + 3) * k <= u <= N - (d + 3), (r["usable"], r["stalls"])
     assert r["within"] is True, (r["verdict"], r["reason"], r["deviation"])
 
 
@@ -405,7 +409,7 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     elif late:
         assert r["verdict"] != "differs", r["verdict"]
         assert r["within"] is True or any(w in r["reason"] for w in (
-            "own time", "too few", "depth", "clamp", "too large")), r["reason"]
+            "own time", "too few", "depth", "clamp", "may move")), r["reason"]
     else:
         assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
             (r["reason"], r["deviation"])
