@@ -771,10 +771,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable))
     # a torque at the clamp in a row fitted (a record cut there has none in its
     # stretches: hapsim.pipeline.haply2_host.usable_rows)
-    clamped = int(sum(np.count_nonzero((np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
-                                       & np.asarray(r.get("usable", np.ones(len(r["torque"]), bool)),
-                                                  bool)[:, None])
-                      for r in runs))
+    clamped = int(sum(np.count_nonzero(
+        (np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
+        & np.asarray(r.get("usable", np.ones(len(r["torque"]), bool)), bool)[:, None])
+        for r in runs))
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk))
