@@ -23,6 +23,7 @@ from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.lockstep import LockstepND, excitation_starts, identification_plan
 from hapsim.pipeline import haply2_host as host
+from hapsim.pipeline import haply2_record as record
 from hapsim.scene import load_scene_nd
 from test_haply2_stalls import WALL, SimClock, SimLink
 from tolerance import measured
@@ -140,7 +141,7 @@ def _measure(monkeypatch, seed, *, loss=0.0, stalls=None, clock="wall", inertia=
     difference)."""
     from hapsim.errors import DeviceError  # noqa: F401  (what the loop may raise)
     clk = SimClock()
-    monkeypatch.setattr(host, "time", types.SimpleNamespace(
+    monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = load_scene_nd(WALL)
     plant = dataclasses.replace(sc, device=dataclasses.replace(

@@ -109,7 +109,8 @@ def test_a_reversed_motor_is_refused_before_the_real_time_loop_over_a_pty():
     is wired backwards: the wiring probe refuses it before any record (no torque loop
     ran: the board took the probe's writes only) and leaves it at zero torque; given the
     motor byte the refusal names, the same board passes the probe."""
-    from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
+    from hapsim.pipeline.haply2_embedded import Embedded2DIY
+    from hapsim.pipeline.haply2_host import measure_felt_haply2_port
     from hapsim.lockstep import identification_plan
     sc = _scene()
     N = 40

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from hapsim.emulated.haply2_board import Haply2DIYBoard
-from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
+from hapsim.pipeline.haply2_embedded import Embedded2DIY
+from hapsim.pipeline.haply2_host import measure_felt_haply2_port
 from hapsim.lockstep import identification_plan
 from hapsim.scene import load_scene_nd
 
@@ -147,7 +148,8 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
     :func:`estimate_bounds` of the handle's position there (its reply read late: the
     reading, within its rounding ``eps``), on every record of the hand's cycle (the
     velocity starts among them)."""
-    from hapsim.pipeline.haply2_host import estimate_bounds, record_realtime
+    from hapsim.pipeline.haply2_host import estimate_bounds
+    from hapsim.pipeline.haply2_record import record_realtime
     from hapsim.drivers.haply2 import Haply2DIY
     from hapsim.kinematics import device
     sc = load_scene_nd(WALL)

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from hapsim.emulated.haply2_board import Haply2DIYBoard
-from hapsim.pipeline.haply2_host import SILENT_WRITES, measure_felt_haply2_port, record_realtime
+from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+from hapsim.pipeline.haply2_record import SILENT_WRITES, record_realtime
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene import load_scene_nd

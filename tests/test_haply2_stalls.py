@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from hapsim.pipeline import haply2_host as host
+from hapsim.pipeline import haply2_record as record
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
@@ -119,7 +120,7 @@ def _wall_record(seed, loss, N=300):
     board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="wall")
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link = WallLink(board, stalls, f.rx, f.tx)
-    rec = host.record_realtime(link, Haply2DIY("gen3"), sc, N)
+    rec = record.record_realtime(link, Haply2DIY("gen3"), sc, N)
     # the board run to the end of the record (its joints under the zero torque left)
     board.run_to(link._now())
     return sc, rec, link, f, stalls
@@ -188,7 +189,7 @@ def _record(seed, loss, N=300):
     board = Haply2DIYBoard(sc, "gen3", amplitude=1e-4, clock="lockstep")
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link = StallingLink(board, stalls, f.rx, f.tx)
-    rec = host.record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
+    rec = record.record_realtime(link, Haply2DIY("gen3"), sc, N, lockstep_board=True)
     q0 = np.asarray(sc.device.joints, float)
     return sc, rec, link, f, q0, stalls
 
@@ -221,7 +222,7 @@ def test_host_stalls_and_byte_loss_lockstep_bounded_resyncs(seed):
     lost = f.counts["drop_rx"] + f.counts["drop_tx"]
     assert lost > 0
     assert rec["resyncs"] <= lost, (rec["resyncs"], f.counts)
-    per = host.ARM_TRIES * (host.REARM_WAIT_S + host.QUIET_S + host.REPLY_WAIT_S)
+    per = record.ARM_TRIES * (record.REARM_WAIT_S + record.QUIET_S + record.REPLY_WAIT_S)
     assert rec["resync_s"] <= per * max(rec["resyncs"], 1)
     assert np.abs(np.asarray(link.truth) - q0).max() <= WORKSPACE_RAD
     # zero torque on the joints' motor ports (1 and 2). A garbage set-up the stream made
@@ -323,7 +324,7 @@ def _sim_measure(monkeypatch, loss=0.0, seed=0, N=200):
     import types
     from hapsim.lockstep import identification_plan
     clk = SimClock()
-    monkeypatch.setattr(host, "time", types.SimpleNamespace(
+    monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = load_scene_nd(WALL)
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="wall")
@@ -347,7 +348,7 @@ def test_own_clock_punctual_host_measures_within_simulated_time(monkeypatch):
     assert r["verdict"] == "within" and r["within"] is True, (r["reason"], r["deviation"])
     for k in ("felt_stiffness", "felt_damping"):
         assert r["deviation"][k] <= r["uncertainty"][k]
-    assert board.excursion <= host.ENVELOPE_RAD
+    assert board.excursion <= record.ENVELOPE_RAD
     assert board.settles_on() == 0.0
 
 

@@ -91,7 +91,7 @@ def test_run_nd_record_makes_no_array_per_sample(name, traced):
 
 
 def test_haply2_loop_makes_no_array_per_sample(traced):
-    """:func:`hapsim.pipeline.haply2_host.record_realtime`'s tick (estimate, engine,
+    """:func:`hapsim.pipeline.haply2_record.record_realtime`'s tick (estimate, engine,
     ``J^T F``, clamp, the write's bytes) with the board silent after three replies (ticks 0..2 read):
     every estimated tick below one array's transient (the ticks that read a reply add
     the port's bytes and the decoder's frames: the driver's I/O, not measured here; the
@@ -100,7 +100,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
     from test_haply2_realtime import WALL, ScriptedLink
 
     from hapsim.emulated.haply2_board import Haply2DIYBoard
-    from hapsim.pipeline.haply2_host import record_realtime
+    from hapsim.pipeline.haply2_record import record_realtime
     from hapsim.drivers.haply2 import Haply2DIY
 
     class MeteredLink(ScriptedLink):
@@ -119,7 +119,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
             self.c0 = tracemalloc.get_traced_memory()[0]
             return len(data)
 
-    from hapsim.pipeline.haply2_host import SILENT_S
+    from hapsim.pipeline.haply2_record import SILENT_S
     sc = load_scene_nd(WALL)
     # the silence ends before the loop re-arms the board (SILENT_S of the lockstep
     # board's periods, named: on the wall clock a loaded host re-arms sooner in ticks)

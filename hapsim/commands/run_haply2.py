@@ -61,7 +61,8 @@ def run_haply2_command(args) -> int:
                   unit="records") as bar:
         try:
             if realtime:
-                from hapsim.pipeline.haply2_host import Embedded2DIY, measure_felt_haply2_port
+                from hapsim.pipeline.haply2_embedded import Embedded2DIY
+                from hapsim.pipeline.haply2_host import measure_felt_haply2_port
                 from hapsim.host.realtime import RealtimePriority
                 prio = max(int(getattr(args, "rt_priority", 0) or 0), 0)
                 # the board takes SCHED_FIFO itself once started (a real board's MCU is

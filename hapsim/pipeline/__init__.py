@@ -13,7 +13,9 @@ Modules
 :mod:`hapsim.pipeline.identify_run`
     ``hapsim identify``'s run: the device's mass, friction and delay from a record.
 :mod:`hapsim.pipeline.haply2_host`, :mod:`hapsim.pipeline.falcon_run`
-    The runs of the Haply 2DIY and the Novint Falcon.
+    The runs of the Haply 2DIY and the Novint Falcon (the 2DIY's real-time record loop
+    :mod:`hapsim.pipeline.haply2_record`, its emulated board's child process
+    :mod:`hapsim.pipeline.haply2_embedded`).
 :mod:`hapsim.pipeline.contact_replay`
     Which samples had every contact engaged, replayed from the telemetry.
 """

@@ -1,0 +1,609 @@
+"""The Haply 2DIY's real-time record loop: the host loop on its own clock against a board
+behind a port (the emulated board in a child process on a pseudo-terminal,
+:class:`hapsim.pipeline.haply2_embedded.Embedded2DIY`, as the 1-DoF Haply mock runs; or a
+real board), one record per :func:`record_realtime`. The records are measured by
+:mod:`hapsim.pipeline.haply2_host` (the estimates' bounds, the cuts, the verdict).
+
+The board answers each write with the angles read when its pass took the write, whose
+torques it then holds until the next (firmware V1.5 on its own time, no watchdog:
+:class:`hapsim.emulated.haply2_board.Haply2DIYBoard`'s default; named, in lockstep, each
+write is one period of its plant). The host ticks every ``T``: at tick
+``k`` the sample is the reply to write ``k`` (write 0 is the arming's zero write; replies
+come in order, one per write, and none is lost on a clean stream, so the ``i``-th reply
+answers write ``i``). A reply not read by tick ``k`` is a *missing reply*: the tick is an
+*estimated sample* (counted, as the 1-DoF driver loop counts its ``FLAG_ESTIMATED``
+rows), its position extrapolated from the last two readings,
+``x_e = x[i] + r (x[i] - x[i-1])`` with ``r = k - i``
+(:func:`hapsim.pipeline.haply2_host.estimate_bounds` bounds its error), the engine's
+force computed from it and its torques written; the reply counts when it comes, but
+never replaces the estimate the engine used (the record holds what the loop saw). The
+records' verdict is :func:`hapsim.emulated.haply2_board.felt_verdict_of_runs`: the
+estimated rows' bounds enter the wire's term through the loop as reading errors do.
+
+Before any record, each joint's wiring is checked (:mod:`hapsim.drivers.haply2_probe`,
+run by :func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port` over a
+:class:`PortLink`): a joint its direction bytes turn backwards is refused.
+
+The board has no framing (:mod:`hapsim.drivers.haply`): a host byte lost or corrupted
+shifts its parser, and it then answers garbage, one byte per write, or nothing. The loop
+re-synchronises it as the 1-DoF driver does (:class:`hapsim.drivers.haply.ResyncRule`:
+the decoder counted a desync, or writes went unanswered for :data:`SILENT_S`): the
+re-arming bytes (:func:`hapsim.drivers.haply.resync_bytes`: zero torque first, then the
+set-up), the link drained, and the set-up's zero write, whose reply is that tick's
+sample. The set-up's offsets are the operating point's joints, as at arming: the
+emulated board's hand holds the handle there at each set-up
+(:mod:`hapsim.emulated.haply2_board`), and on a board whose handle goes on moving they
+are wrong by the record's motion since the arming (its amplitude, 1e-4 m: about 1e-3
+rad) where the joints last read, extrapolated, would be wrong by the estimate's error.
+The clock starts again from the re-arming's reply (the time it took is counted,
+``resync_s``); a re-armed record is cut there (the hand restarts it: the stretch after is
+another free response, :func:`hapsim.pipeline.haply2_host.usable_rows`). A reply damaged
+on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
+answer: the replies after it answer the writes after (the decoder's ``damaged``; when
+one read holds several replies and a damaged one, all of them are taken as after it).
+A host stall (a tick begun more than a period late: a descheduled process) is a stall,
+never a burst of catch-up writes: the clock goes on from where the host woke, the stall
+is counted (``stalled``), and the board, which held the last torque meanwhile on its own
+clock, is not re-synchronised for it: a late reply is a late sample (the decoder's step
+check widens with the ticks since the last reply read, by the motion the board's torque
+clamp and the joint inertia allow), and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_COUNT` are
+taken for a board out of step. An estimated tick whose newest reading is older than
+:data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise).
+The loop is linear and time-invariant between disturbances, so a record is cut at each
+(a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
+clamp: :func:`hapsim.pipeline.haply2_host.usable_rows`) and its undisturbed stretches
+are fitted jointly, each a free response of the same loop (before, one stall or
+re-synchronisation made the whole run "not measurable": 5 of 10 no-fault runs beside two
+CPU-bound processes, 0 of 10 with 1 byte in 200 lost).
+A record ends with a zero write; when its reply does not come in step the board is
+re-armed (zero torque whatever its parser is inside: no watchdog); on a board on its own
+clock that reply is awaited only while replies keep coming (:data:`SILENT_S` of the host's
+awake time, :data:`AWAKE_GAP_S`), not :data:`END_WAIT_S` with whatever the board holds. A
+re-synchronisation of a board on its own clock waits for physical evidence that the board
+took it (a reply reading the set-up's offsets) at most :data:`REARM_REPLY_S` of the host's
+awake time, then sends it again, zero torque first (:data:`REARM_SENDS` at most): before,
+a re-arming the stream corrupted waited 0.25 s with the clamp's torque held (16.8 rad of
+true excursion, 1 byte in 200 lost). A reading farther than :data:`ENVELOPE_RAD` from the
+operating point ends the record's torque loop (zero torque from there; not measured). A corrupted byte in
+a write the board takes cannot be seen (no checksum: a wrong torque for one period).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
+from hapsim.drivers.haply2 import Haply2DIY
+from hapsim.errors import DeviceError
+
+__all__ = ["record_realtime", "PortLink"]
+
+#: Longest wait for the first reply after a set-up [s] (a board process just started
+#: loads its compiled plant first).
+ARM_TIMEOUT = 10.0
+#: Silence that ends the draining before a set-up [s].
+QUIET_S = 0.03
+#: How long before a tick's deadline the host stops sleeping and polls [s].
+SPIN_S = 3e-4
+#: Writes in a row without a reply after which the real-time loop re-synchronises the
+#: board (:class:`hapsim.drivers.haply.ResyncRule`): more than the longest command the
+#: board can be inside swallows (:data:`hapsim.drivers.haply.LONGEST_COMMAND` bytes, 10
+#: a write); after that a board out of step answers something, which the decoder's
+#: desync sees sooner. A slow board (a loaded host's child process) is not taken for
+#: one out of step before this.
+SILENT_WRITES = LONGEST_COMMAND // 10 + 1
+#: Set-ups tried in a row before the loop gives up on a stream that corrupts them.
+ARM_TRIES = 5
+#: Longest wait for a re-armed board's answer to the zero write before its set-up [s]
+#: (a board out of step may be inside a command that swallows it).
+REARM_WAIT_S = 0.05
+#: Longest wait for the first reply of a set-up after the first [s] (the board runs).
+REPLY_WAIT_S = 0.2
+#: Longest wait for the reply to a record's closing zero write [s] (without it, the
+#: board is re-armed: a loaded host must not take a slow reply for a lost one).
+END_WAIT_S = 1.0
+#: Longest time [s] the host lets the board (no watchdog) hold a torque computed from a
+#: sample older than this: an estimated tick past it writes zero torque (``held_zero``).
+#: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+HOLD_BOUND_S = 0.02
+#: The oldest unanswered write's wait [s] that shows the board stopped answering (with
+#: more than :data:`SILENT_COUNT` unanswered): a board answers a write within its pass and
+#: a USB frame, about 1 ms; a late reply or a host stall is not this. The hold bound: a
+#: board out of step may hold a torque a garbage command set, and it is re-synchronised
+#: (zero torque) no later than this after the write it stopped answering (before, after
+#: :data:`SILENT_WRITES` writes: 56 ms at 1 kHz, in which 0.123 N m turns a 2e-4 kg m^2
+#: joint 0.96 rad and leaves it at 34 rad/s).
+SILENT_S = HOLD_BOUND_S
+#: The measurement's envelope [rad]: a reading of either joint farther than this from
+#: the scene's operating point ends the record's torque loop (zero torque written from
+#: that tick on, the record "left" and not measured). The hand moves the handle 1e-4 m
+#: (about 1e-3 rad): the records' largest joint motion measured, on the wall clock and
+#: unloaded, 0.0095 rad; three times that. Beside two CPU-bound processes a host on a
+#: third of its rate took a correct loop's record to 0.5 rad (no fault, the board on its
+#: own clock) before any bound, and with 0.1 rad the light joint (2e-4 kg m^2) coasted on
+#: to 0.69 and 0.86 rad after the zero torque.
+ENVELOPE_RAD = 0.03
+#: Longest wait [s] for a re-armed board's evidence that it took the re-arming (its
+#: answer to the closing zero write reading the set-up's offsets) before the re-arming is
+#: sent again, zero torque first: the hold bound (the board has no watchdog: a torque a
+#: garbage command set is held until a write in step replaces it) plus the set-up's own
+#: two encoders' 2 ms waits (:data:`hapsim.emulated.haply2_board.SETUP_S`). Before, a
+#: re-arming whose bytes the stream corrupted waited up to 0.25 s with the clamp's 0.123 N m
+#: held: 16.8 rad of true excursion with 1 byte in 200 lost.
+REARM_REPLY_S = HOLD_BOUND_S + 4e-3
+#: Quiet [s] after a re-arming's evidence before its sample's zero write: the set-up's
+#: two encoders' waits (a reply that read the offsets may have been the first zero
+#: write's, the closing one still to come after the set-up).
+REARM_QUIET_S = 5e-3
+#: Re-armings sent in a row for want of that evidence before the loop gives up (each
+#: 62 + LONGEST_COMMAND bytes, each at most REARM_REPLY_S of host time awake).
+REARM_SENDS = 20
+#: Longest gap [s] between two polls of the host that counts as the host awake: a wait is
+#: measured in the time the host was polling, so a host stall (the host descheduled, not
+#: reading) is never taken for a board's silence.
+AWAKE_GAP_S = 2e-3
+#: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
+#: frame hold a few).
+SILENT_COUNT = 4
+
+
+def _read(ser) -> bytes:
+    try:
+        n = ser.in_waiting
+        return ser.read(n) if n else b""
+    except Exception as exc:  # serial.SerialException, OSError
+        raise DeviceError(f"read from the 2DIY's port failed: {exc}") from None
+
+
+def _write(ser, data: bytes) -> None:
+    try:
+        ser.write(data)
+    except Exception as exc:  # serial.SerialException, OSError, timeouts
+        raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
+
+
+def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
+                    lockstep_board: bool = False, running: bool = False) -> dict:
+    """One record in real time: arm (the set-up, whose hand starts the record), then one
+    write per tick of the host's clock (module notes).
+
+    Parameters
+    ----------
+    ser : serial.Serial
+        The board's port (non-blocking reads).
+    driver : hapsim.drivers.haply2.Haply2DIY
+    scene : hapsim.scene.SceneND
+        A 2-D pantograph scene (its rate is the clock's).
+    samples : int
+        Ticks ``N``.
+    engine : hapsim.engine_nd.EngineND, optional
+        A fresh engine (default: one of ``scene``).
+    lockstep_board : bool, optional
+        The board advances one period per write (named lockstep): a sample's age and a
+        silence are then counted in the board's periods, not on the wall clock
+        (:data:`HOLD_BOUND_S`, :data:`SILENT_S`).
+    running : bool, optional
+        The board already runs (a record after the first, or after the wiring probe):
+        the arming's answers are then awaited :data:`REPLY_WAIT_S`, not the
+        :data:`ARM_TIMEOUT` a board process that loads its plant is given (its torque is
+        the power-up's zero). A re-synchronisation on a board on its own clock waits for
+        the evidence that the board took it, at most :data:`REARM_REPLY_S` of the host's
+        awake time a sending (:data:`REARM_SENDS` sendings).
+
+    Returns
+    -------
+    dict
+        ``position`` (N, 2) [m] (the readings, or the estimates the engine used),
+        ``joints`` (N, 2) [rad] read (NaN where estimated), ``torque`` (N, 2) [N m]
+        written, ``estimated`` (N,) bool, ``lag`` (N,) int (ticks since the last reading
+        where estimated), ``late_ticks`` (ticks the host itself began more than a period
+        late), ``replies`` (replies to the record's writes, read by its end: all of them
+        on a clean stream), ``writes``, ``readings`` (N, 2) [m] (reply ``k``'s reading,
+        read in time or late; NaN where it never came), ``resyncs`` (re-synchronisations
+        of a board that lost its place), ``resynced`` (N,) bool (the ticks they were
+        made at), ``resync_s`` (the time they took [s], out of the clock),
+        ``stalled`` (N,) bool (ticks the host began more than a period late: the
+        clock went on from there, no catch-up writes), ``stall_s`` (their lateness [s]),
+        ``held_zero`` (estimated ticks written at zero torque: no fresh sample for
+        :data:`HOLD_BOUND_S`), ``bad_setups`` (armings whose first reply did not come or did not read the
+        offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
+        did not come: the board was re-armed to leave it at zero torque), ``decoder``
+        (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
+        ``damaged``).
+
+    Raises
+    ------
+    DeviceError
+        No first reply after the first set-up within :data:`ARM_TIMEOUT`;
+        :data:`ARM_TRIES` armings in a row whose first reply did not come or did not
+        read the offsets sent; the port failing.
+    """
+    from hapsim.engine_nd import EngineND
+    from hapsim.kinematics import device
+    dev = scene.device
+    kin = device(dev.kind, dev.geometry)
+    q0deg = [math.degrees(v) for v in dev.joints]
+    N = int(samples)
+    T = scene.period
+    dec = driver.decoder()
+    rule = ResyncRule(dec.stats, SILENT_WRITES)
+    # the decoder's step check (an angle no motion could reach from the linear prediction
+    # of the last two replies, one tick ahead) a time tau after the last reading's write
+    # (a host stall is time, not ticks: the clock went on from it): the joint may
+    # accelerate at most alpha = 0.123 N m over the smallest joint inertia (the board's
+    # clamp; a hand on the handle only adds inertia), the reach of
+    # ReplyDecoder.reach_deg, the same rule as the 1-DoF driver's: a late reply, or the
+    # first after a host stall, is a late sample, not bytes of a board out of step
+    ji = getattr(dev, "joint_inertia", None)
+    alpha = (MAX_TORQUE / float(np.min(np.linalg.eigvalsh(np.atleast_2d(ji))))
+             if ji is not None and np.all(np.isfinite(ji)) else 0.0)
+    dec.set_accel(alpha if alpha > 0 else None)
+    dec.period_s = T                                # the last two replies: a tick apart
+    eng = EngineND(scene) if engine is None else engine
+    port = eng.port
+    xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
+    qr = np.full((N + 2, 2), np.nan)
+    # got: the tick whose write the next reply answers (replies come in order, one per
+    # write; a re-arming re-anchors it); replies: replies taken in all
+    got = 0
+    replies = 0
+    seen = 0                                        # the last tick whose reply was read
+    bad_setups = 0
+    resync_s = 0.0
+
+    # the per-sample work below makes no array (the real-time rule): kinematics on
+    # floats (forward_at, jacobian_at), rows written element by element, the write
+    # packed into a reused buffer
+    fwd = kin.forward_at
+    jac = kin.jacobian_at
+    feed_into = dec.feed_into
+    joints_of = driver.joints_of
+    frames = [None] * 8                             # the decoder's frames, reused
+    nr = xr.shape[0]
+
+    def take(data):
+        nonlocal got, replies, seen
+        if not data:
+            return
+        st = dec.stats
+        d0 = st["damaged"]
+        m = feed_into(data, frames)
+        # a damaged reply (bytes lost or corrupted on the way back) was a write's
+        # answer: the replies after it answer the writes after that one
+        got += st["damaged"] - d0
+        j = 0
+        while j < m:                                # (no iterator: no allocation)
+            rep = frames[j]
+            if got < nr:
+                q1, q2 = joints_of(rep)
+                qr[got, 0] = q1
+                qr[got, 1] = q2
+                xr[got, 0], xr[got, 1] = fwd(q1, q2)
+                seen = got
+            got += 1
+            replies += 1
+            j += 1
+
+    zero = driver.write_bytes((0.0, 0.0))
+    # perf_counter() of the write whose reply is each tick's sample (the arming's zero
+    # write for tick 0)
+    t_wrote = np.full(N + 2, np.nan)
+
+    def arm(at_deg, k):
+        """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
+        re-synchronising bytes, whose answers (the zero write's, from before the set-up,
+        and whatever an earlier record or a desynchronised stream left) are drained and
+        dropped; then the set-up's zero write, whose reply is tick ``k``'s sample. A
+        first reply that does not read the offsets sent is a set-up the stream corrupted
+        (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
+        nonlocal got, bad_setups, rearm_sends
+        data = driver.arm_bytes(at_deg)
+        # the first set-up waits for a board process that loads its plant first; the
+        # others for a board already running
+        wait = ARM_TIMEOUT if k == 0 and not replies and not running else REPLY_WAIT_S
+        tries = 0
+        while tries < ARM_TRIES:
+            # a re-synchronisation (k > 0): the whole bytes, the closing zero write too:
+            # the board (no watchdog) takes zero torque right after its set-up, not after
+            # the drain below (a torque a garbage command left was held through it); a
+            # record's first arming leaves it for the sample's write (a lockstep board
+            # would advance a period on it before the record)
+            bounded = k > 0 and not lockstep_board
+            _write(ser, data if k > 0 else data[:-len(zero)])
+            if bounded:
+                # a board on its own clock holds what its parser last took: until its
+                # answer to the closing zero write reads the offsets sent (the board in
+                # step, zero torque set after the set-up), the re-arming may have been
+                # corrupted and a garbage torque held. Awaited at most REARM_REPLY_S of
+                # the host's awake time, then sent again, zero torque first (bounded)
+                if not _await_setup(at_deg):
+                    rearm_sends += 1
+                    if rearm_sends >= REARM_SENDS:
+                        raise DeviceError(f"the 2DIY did not answer {REARM_SENDS} "
+                                          "re-armings in a row with the offsets sent")
+                    continue
+            else:
+                end = time.monotonic() + wait
+                # the board answers the zero write when it is in step: wait for it (a
+                # board process just started loads its plant first); one out of step
+                # may not
+                quiet = math.inf if wait == ARM_TIMEOUT else time.monotonic() + REARM_WAIT_S
+                while time.monotonic() < min(end, quiet):
+                    if _read(ser):
+                        quiet = time.monotonic() + QUIET_S
+                    time.sleep(1e-3)
+            dec.clear()                         # a reply's part left: dropped too
+            dec.reset_prediction()              # the set-up's offsets start afresh
+            got = k
+            _write(ser, zero)
+            t_wrote[k] = time.perf_counter()
+            if bounded:
+                _awake_wait(lambda: got != k, REARM_REPLY_S, take)
+            else:
+                end = time.monotonic() + wait
+                while got == k and time.monotonic() < end:
+                    take(_read(ser))
+                    if got == k:
+                        time.sleep(2e-4)
+            if (bounded and got == k + 2 and k + 1 < nr
+                    and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step):
+                # the re-arming's closing reply came after the quiet (a board process
+                # the host's machine held): the sample is the reply after it
+                qr[k] = qr[k + 1]
+                xr[k] = xr[k + 1]
+                qr[k + 1] = xr[k + 1] = np.nan
+                got, seen = k + 1, k
+            if got == k + 1 and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step:
+                rearm_sends = 0
+                return
+            if bounded and got == k:
+                # no answer within the bound (not a set-up the stream corrupted): sent
+                # again, zero torque first; bounded by REARM_SENDS
+                rearm_sends += 1
+                if rearm_sends >= REARM_SENDS:
+                    raise DeviceError(f"the 2DIY did not answer {REARM_SENDS} "
+                                      "re-armings in a row")
+                continue
+            bad_setups += 1
+            tries += 1
+            wait = REPLY_WAIT_S
+        if not replies:
+            raise DeviceError(f"no reply from the 2DIY after {ARM_TRIES} set-ups")
+        raise DeviceError(f"the 2DIY's first reply after {ARM_TRIES} set-ups did not read "
+                          "the offsets sent: the stream corrupts its set-ups")
+
+    def _await_setup(at_deg) -> bool:
+        """A re-arming's evidence: a reply, among what the board sent after the bytes,
+        that reads the offsets ``at_deg`` [deg] (the closing zero write's, the board in
+        step after its set-up). Polled for :data:`REARM_REPLY_S` of awake time; the bytes
+        read are dropped (a decoder of their own: the loop's counters unchanged)."""
+        probe = driver.decoder()
+        ok = [False]
+
+        def look(data):
+            for rep in probe.feed(data):
+                q = driver.joints_of(rep)
+                if max(abs(math.degrees(q[j]) - at_deg[j]) for j in range(2)) \
+                        <= probe.max_step:
+                    ok[0] = True
+            probe.reset_prediction()            # each reply on its own (no prediction)
+        _awake_wait(lambda: ok[0], REARM_REPLY_S, look)
+        if ok[0]:
+            # what else the re-arming's bytes made (a reply after the one that read the
+            # offsets: that was the first zero write's, a joint at rest): dropped once
+            # the board has been quiet for a set-up's time of the host's awake time
+            came = [True]
+
+            def drop(data):
+                came[0] = bool(data)
+            while came[0]:
+                came[0] = False
+                _awake_wait(lambda: came[0], REARM_QUIET_S, drop)
+        return ok[0]
+
+    def _awake_wait(done, limit, sink):
+        """Poll the port into ``sink`` until ``done()`` or ``limit`` [s] of the host's
+        awake time (:data:`AWAKE_GAP_S`: a host stall is not the board's silence)."""
+        awake = 0.0
+        last = time.perf_counter()
+        while True:
+            sink(_read(ser))
+            if done():
+                return
+            now = time.perf_counter()
+            awake += min(now - last, AWAKE_GAP_S)
+            last = now
+            if awake >= limit:
+                return
+            time.sleep(2e-4)
+    rearm_sends = 0
+    arm(q0deg, 0)
+    pos = np.zeros((N, 2))
+    joints = np.full((N, 2), np.nan)
+    torque = np.zeros((N, 2))
+    est = np.zeros(N, bool)
+    lag = np.zeros(N, np.int64)
+    resynced = np.zeros(N, bool)
+    stalled = np.zeros(N, bool)
+    late = 0
+    stall_s = 0.0
+    held_zero = 0
+    left = -1                                       # the tick the joints left ENVELOPE_RAD
+    q0r0, q0r1 = float(dev.joints[0]), float(dev.joints[1])
+    x = np.zeros(2)                                 # the sample the engine is given
+    F = eng.port_f[:2]                              # the engine's port force (a view)
+    wbuf = bytearray(zero)
+    write_into = driver.write_into
+    clamp1 = driver.clamp1
+    t0 = time.perf_counter()
+    for k in range(N):
+        deadline = t0 + k * T
+        now = time.perf_counter()
+        if now > deadline + 0.5 * T:
+            # the host is behind (a descheduled process): no catch-up burst of writes,
+            # each a period's torque sent 0.1 ms apart; the clock goes on from now (any
+            # three writes span at least half a period). A whole period or more behind is
+            # a stall, counted: the board held the last torque over it, on its own clock,
+            # and the record is no uniform loop of the THS then (not measured)
+            if now > deadline + T:
+                late += 1
+                stalled[k] = True
+                stall_s += now - deadline
+            t0 += now - deadline
+            deadline = now
+        elif deadline - now > SPIN_S:
+            time.sleep(deadline - now - SPIN_S)
+        while time.perf_counter() < deadline:
+            pass
+        dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
+        take(_read(ser))
+        unanswered = k + 1 - got                    # (damaged: answered)
+        if unanswered > SILENT_COUNT:
+            # writes unanswered for SILENT_S are a board that stopped answering (a board
+            # in step answers within its pass and a USB frame, ~1 ms); fewer, or younger,
+            # are late replies (a count alone is no evidence); a lockstep board's time is
+            # its periods (one per write), not the wall clock's
+            age = ((k - got) * T if lockstep_board
+                   else time.perf_counter() - t_wrote[got])
+            unanswered = SILENT_WRITES + 1 if age >= SILENT_S else 0
+        else:
+            unanswered = 0
+        if rule.due(unanswered):
+            # the board lost its place (module notes): zero torque first, the set-up;
+            # its reply is this tick's sample, and the clock starts again from it (the
+            # time it took is counted)
+            t_r = time.perf_counter()
+            arm(q0deg, k)
+            resynced[k] = True
+            t0 += time.perf_counter() - t_r
+            resync_s += time.perf_counter() - t_r
+        if got > k:                                 # reply k read: a fresh sample
+            i = k
+            x[0] = xr[k, 0]
+            x[1] = xr[k, 1]
+            joints[k, 0] = qr[k, 0]
+            joints[k, 1] = qr[k, 1]
+            if left < 0 and (abs(qr[k, 0] - q0r0) > ENVELOPE_RAD
+                             or abs(qr[k, 1] - q0r1) > ENVELOPE_RAD):
+                left = k                            # zero torque from here (below)
+        else:                                       # missing: an estimated sample
+            i = seen
+            r = k - i
+            if i >= 1 and not resynced[i] and qr[i - 1, 0] == qr[i - 1, 0]:
+                # extrapolated from the last two (read, on one set-up)
+                x[0] = xr[i, 0] + r * (xr[i, 0] - xr[i - 1, 0])
+                x[1] = xr[i, 1] + r * (xr[i, 1] - xr[i - 1, 1])
+            else:                                   # held: one reading only
+                x[0] = xr[i, 0]
+                x[1] = xr[i, 1]
+            est[k] = True
+            lag[k] = r
+        if k == 0:
+            eng.x[:, port] = x
+            eng.xp[:, port] = x
+        eng.set_port_position(x)
+        eng.step()
+        j00, j01, j10, j11 = jac(qr[i, 0], qr[i, 1])
+        f0, f1 = F[0], F[1]
+        tau1 = j00 * f0 + j10 * f1                  # tau = J^T F
+        tau2 = j01 * f0 + j11 * f1
+        if left >= 0:
+            # the joints left the measurement's envelope: the loop is not the one
+            # measured (a host too slow for its scene, a torque held over stalls);
+            # zero torque for the rest of the record, the record not measured
+            tau1 = tau2 = 0.0
+        elif est[k] and ((k - i) * T if lockstep_board
+                         else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
+            # no fresh sample for HOLD_BOUND_S: the torque was computed from where the
+            # joints were, not where they are; the board (no watchdog) would hold it
+            tau1 = tau2 = 0.0
+            held_zero += 1
+        torque[k, 0] = clamp1(tau1)
+        torque[k, 1] = clamp1(tau2)
+        pos[k, 0] = x[0]
+        pos[k, 1] = x[1]
+        write_into(wbuf, tau1, tau2)
+        _write(ser, wbuf)
+        t_wrote[k + 1] = time.perf_counter()
+    # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
+    # read in step, says the board took it as a write (only a flipped top exponent bit
+    # of its zeros, 1 bit in 32, would be a torque it cannot show: no checksum); without
+    # it the board may be out of step, where a zero write is read as something else:
+    # re-armed then (zero torque first, whatever its parser is inside)
+    _write(ser, zero)
+    t_wrote[N + 1] = time.perf_counter()
+    if lockstep_board:
+        end = time.monotonic() + END_WAIT_S
+        while seen < N + 1 and time.monotonic() < end:
+            take(_read(ser))
+            if seen < N + 1:
+                time.sleep(2e-4)
+    else:
+        # a board on its own clock holds what it last took: the replies are awaited while
+        # they come, and a silence of SILENT_S of the host's awake time with the closing
+        # reply not read is a board out of step (re-armed below, zero torque first), as
+        # in the loop; before, END_WAIT_S (1 s) of a garbage torque held
+        end = time.monotonic() + END_WAIT_S
+
+        def take_late(data):
+            # the step check widens with the time since the last reading's write, as in
+            # the loop: a reply read late is a late sample
+            dec.elapsed(time.perf_counter() - t_wrote[seen])
+            take(data)
+        while seen < N + 1 and time.monotonic() < end:
+            n0 = replies
+            _awake_wait(lambda: replies != n0 or seen >= N + 1, SILENT_S, take_late)
+            if replies == n0:
+                break
+    rearmed_at_end = seen < N + 1
+    if rearmed_at_end:
+        arm(q0deg, N + 1)
+    return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
+            "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
+            "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
+            "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
+            "held_zero": held_zero, "bad_setups": bad_setups, "left": left,
+            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
+
+
+class PortLink:
+    """``write``/``read(timeout)`` (the wiring probe's link,
+    :func:`hapsim.drivers.haply2_probe.find_directions`) on an open serial-like port.
+
+    Parameters
+    ----------
+    ser : serial.Serial or serial-like
+        An open port with ``in_waiting``, ``read`` and ``write`` (non-blocking reads);
+        left open.
+    """
+
+    def __init__(self, ser) -> None:
+        self.ser = ser
+
+    def write(self, data: bytes) -> None:
+        """Write ``data`` (host -> board bytes) to the port.
+
+        Raises
+        ------
+        DeviceError
+            The port's write failed.
+        """
+        _write(self.ser, data)
+
+    def read(self, timeout: float) -> bytes:
+        """The bytes waiting, or the first to come within ``timeout`` [s] (polled).
+
+        Raises
+        ------
+        DeviceError
+            The port's read failed.
+        """
+        end = time.monotonic() + timeout
+        while True:
+            data = _read(self.ser)
+            if data or time.monotonic() >= end:
+                return data
+            time.sleep(1e-4)
