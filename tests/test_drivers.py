@@ -9,6 +9,7 @@ import pytest
 from hapsim.drivers import get_driver
 from hapsim.drivers import firefader as ff
 from hapsim.emulated.driver_mock import FireFaderDevice
+from hapsim.emulated.haply_firmware import CommandDecoder
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Excitation
 from tolerance import rel_tol
@@ -223,7 +224,7 @@ def test_haply_layouts_from_the_firmware():
     # binary32 degrees (90 and a2 are exact in it) to radians: within F32 (its eps, module top)
     assert got == [pytest.approx(math.pi / 2, rel=F32), pytest.approx(math.radians(a2), rel=F32)]
     # the device side parses what the host sends, lengths set by the set-up
-    cd = hp.CommandDecoder()
+    cd = CommandDecoder()
     cmds = cd.feed(s + drv.encode_force(-0.1) + bytes([0, 7]))
     assert [c[0] for c in cmds] == ["setup", "write", "write", "reset"]
     # the torque crossed the wire as binary32: within F32 (its eps, module top)

@@ -387,7 +387,7 @@ def test_board_parser_keeps_motor_and_encoder_directions_apart(mmask, emask, dir
     parser's k-th motor direction is the k-th motor byte and its k-th encoder direction
     the k-th encoder byte, as the firmware stores them (actuators[k], encoders[k]); one
     shared list (the 1-DoF parser's) gave a 2DIY gen3's motors its encoders' CCW."""
-    from hapsim.drivers.haply import CommandDecoder
+    from hapsim.emulated.haply_firmware import CommandDecoder
     nm, ne = bin(mmask).count("1"), bin(emask).count("1")
     md, ed = dirs[:nm], dirs[4:4 + ne]
     setup = (bytes([1, 9, mmask]) + bytes(md) + bytes([emask]) + bytes(ed) + bytes((0, 0))

@@ -228,7 +228,7 @@ def test_host_stalls_and_byte_loss_lockstep_bounded_resyncs(seed):
     # zero torque on the joints' motor ports (1 and 2). A garbage set-up the stream made
     # can give port 3 or 4 a motor address and a garbage write a torque there, which no
     # set-up of the 2DIY's (motors 1 and 2) clears (the firmware keeps a port's duty when
-    # a set-up moves its address: hapsim.drivers.haply.CommandDecoder); nothing is wired
+    # a set-up moves its address: hapsim.emulated.haply_firmware.CommandDecoder); nothing is wired
     # to those ports on a 2DIY (seed 4 with the 32-zero re-arming: -1.8e-32 on port 4)
     from hapsim.drivers.haply2 import JOINT_PORTS
     assert link.board.settles_on(JOINT_PORTS) == 0.0

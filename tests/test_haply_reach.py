@@ -21,6 +21,7 @@ import pytest
 
 from hapsim.drivers import get_driver
 from hapsim.drivers import haply as hp
+from hapsim.emulated.haply_firmware import CommandDecoder
 from tolerance import rel_tol
 
 J = 1e-3                         # joint inertia [kg m^2] (configs/haply.yaml)
@@ -246,7 +247,7 @@ def test_a_single_read_of_an_empty_buffer_is_255():
     the host's re-synchronisation needed 556 zeros; on the board those 278 resets take
     14 ms of 50 us passes with the torque held)."""
     drv = get_driver("haply", device_id=1, offset_deg=11.46)
-    cd = hp.CommandDecoder(absent=255)
+    cd = CommandDecoder(absent=255)
     w = drv.encode_force(0.1)                        # [2][1] cd cc cc 3d
     cmds = cd.feed(drv.arm()[:-6] + w[1:])           # set-up: addr 0xcd, motors 3 and 4,
     # (the arming on a fresh board: its zero write to an id with no motor is [2][1], its
@@ -263,7 +264,7 @@ def test_a_single_read_of_an_empty_buffer_is_255():
     assert cd.motor_addr == [0, 0, 0xCD, 0xCD] and cd.encoder_addr == [0xCD] * 4
     assert [c[0] for c in cd.feed(drv.encode_force(0.05))] == ["write"]
     with pytest.raises(ValueError, match="absent"):
-        hp.CommandDecoder(absent=0)
+        CommandDecoder(absent=0)
 
 
 @pytest.mark.parametrize("seed", range(25))

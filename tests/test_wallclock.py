@@ -181,7 +181,7 @@ def test_2diy_holds_its_torques_over_a_pause_and_pays_for_its_set_up(k):
     import copy
 
     from hapsim.emulated.haply2_board import PASS_S, SETUP_S, Haply2DIYBoard
-    from hapsim.drivers.haply import CommandDecoder
+    from hapsim.emulated.haply_firmware import CommandDecoder
     from hapsim.drivers.haply2 import Haply2DIY
     from hapsim.scene import load_scene_nd
     from pathlib import Path

@@ -759,6 +759,7 @@ class HaplyDevice(_Actuated):
                  resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
                  clock: str = "wall") -> None:
         from hapsim.drivers import haply as hp
+        from hapsim.emulated.haply_firmware import CommandDecoder
         from hapsim.errors import ConfigError
         if motor_sign not in (1, -1):
             raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
@@ -766,7 +767,7 @@ class HaplyDevice(_Actuated):
         self._hp = hp
         super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
         # the firmware's single reads of an empty buffer: 255 (CommandDecoder notes)
-        self.decoder = hp.CommandDecoder(absent=255)
+        self.decoder = CommandDecoder(absent=255)
         self.cpr = float(resolution or cpr)
         self._base = 0
         self._base0 = None

@@ -2,16 +2,16 @@
 and the host loop that drives it in lockstep (``hapsim run --driver haply`` on a 2-D scene).
 
 The board (:class:`Haply2DIYBoard`) parses the host's bytes as firmware V1.5 does
-(:class:`hapsim.drivers.haply.CommandDecoder`: no framing, a lost byte shifts the parser),
-keeps each motor port's torque until a write changes it (no watchdog), and answers every
-write with ``[id]`` + a float32 per analog pin and encoder port of that id. Each write is
-one period: the torques ``d`` writes back (the scene's ``device.delay``) are held over it
-while the plant advances (:class:`hapsim.joint_device.LocalJointDeviceND`, the pantograph's
-joint-space dynamics), then the encoders are read: ``360 * count / resolution`` with the
-count set to ``int(offset * resolution / 360)`` at the set-up and moving by the joint's
-rotation in whole counts of the hardware's ``cpr``, in the direction the set-up's byte says
-(the generation's wiring counts up with hapsim's joint angle; the other byte counts down;
-the same for the motors' torque sign).
+(:class:`hapsim.emulated.haply_firmware.CommandDecoder`: no framing, a lost byte shifts
+the parser), keeps each motor port's torque until a write changes it (no watchdog), and
+answers every write with ``[id]`` + a float32 per analog pin and encoder port of that id.
+Each write is one period: the torques ``d`` writes back (the scene's ``device.delay``) are
+held over it while the plant advances (:class:`hapsim.joint_device.LocalJointDeviceND`,
+the pantograph's joint-space dynamics), then the encoders are read: ``360 * count /
+resolution`` with the count set to ``int(offset * resolution / 360)`` at the set-up and
+moving by the joint's rotation in whole counts of the hardware's ``cpr``, in the direction
+the set-up's byte says (the generation's wiring counts up with hapsim's joint angle; the
+other byte counts down; the same for the motors' torque sign).
 
 The hand: at each set-up the board's plant is at the scene's operating point (where the
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
@@ -19,24 +19,24 @@ host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`
 does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`).
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
-(``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read
-line by line; its ``.h`` beside it). ``loop()`` takes at most one command per pass and a
-pass at most every 50 us (lines 59-64: ``micros() - lastPublished >= 50``); a write sets
-the motors' duties (``write_states``, line 77) and the same pass answers it with the
-encoders read then (``read_states``, line 89), so the angles a reply carries are sampled
-when its write is taken and its torques act from then on, held until the next write (no
-watchdog). A set-up (line 74) builds a ``new Encoder(...)`` for each active encoder port
-(``setup_encoders``, ``.h`` lines 332-360; ``initialize_encoder``, ``.h`` line 441),
-whose constructor waits ``delayMicroseconds(2000)`` for the pins' R-C filter (the Encoder
+(``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read line
+by line; its ``.h`` beside it). ``loop()`` takes at most one command per pass and a pass
+at most every 50 us (lines 59-64: ``micros() - lastPublished >= 50``); a write sets the
+motors' duties (``write_states``, line 77) and the same pass answers it with the encoders
+read then (``read_states``, line 89), so the angles a reply carries are sampled when its
+write is taken and its torques act from then on, held until the next write (no watchdog).
+A set-up (line 74) builds a ``new Encoder(...)`` for each active encoder port
+(``setup_encoders``, ``.h`` lines 332-360; ``initialize_encoder``, ``.h`` line 441), whose
+constructor waits ``delayMicroseconds(2000)`` for the pins' R-C filter (the Encoder
 library Haply ships), then writes the count at the offset (``.h`` line 442): the 2DIY's
-two encoders cost :data:`SETUP_S` each, during which the commands wait and the joints
-do not. A single ``SerialUSB.read()`` of an empty buffer returns -1, stored as the byte
-255 (the address, masks, directions, pin lists, PWM bytes; only ``readBytes``, the
-torques and the encoder parameters, waits: :class:`hapsim.drivers.haply.CommandDecoder`
-with ``absent=255``): on the wall clock a byte is absent at a pass that comes before it
-arrives (a command's first bytes held until its pass; a silent host's pass reads them
-in :meth:`Haply2DIYBoard.idle`); in lockstep each write's bytes have all arrived by its
-pass. Between events the pantograph is integrated over the real time that passed
+two encoders cost :data:`SETUP_S` each, during which the commands wait and the joints do
+not. A single ``SerialUSB.read()`` of an empty buffer returns -1, stored as the byte 255
+(the address, masks, directions, pin lists, PWM bytes; only ``readBytes``, the torques and
+the encoder parameters, waits: :class:`hapsim.emulated.haply_firmware.CommandDecoder` with
+``absent=255``): on the wall clock a byte is absent at a pass that comes before it arrives
+(a command's first bytes held until its pass; a silent host's pass reads them in
+:meth:`Haply2DIYBoard.idle`); in lockstep each write's bytes have all arrived by its pass.
+Between events the pantograph is integrated over the real time that passed
 (:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). The loop's own delay is
 one period (the read and the torques at the same write, the torques computed from that
 read one write later); a scene stating more delays each write's torques by the rest.
@@ -51,8 +51,9 @@ from collections import deque
 
 import numpy as np
 
-from hapsim.drivers.haply import CommandDecoder, ResyncRule
+from hapsim.drivers.haply import ResyncRule
 from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS, Haply2DIY
+from hapsim.emulated.haply_firmware import CommandDecoder
 from hapsim.errors import ConfigError, DeviceError
 from hapsim.joint_device import LocalJointDeviceND
 from hapsim.lockstep import excitation_starts
@@ -98,7 +99,7 @@ class Haply2DIYBoard:
 
     Attributes
     ----------
-    parser : hapsim.drivers.haply.CommandDecoder
+    parser : hapsim.emulated.haply_firmware.CommandDecoder
     setups : int
         Set-ups taken (the hand's cycle).
     writes : int
