@@ -16,7 +16,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hapsim.emulated.haply2_board import Haply2DIYBoard, drive_haply2, measure_felt_haply2
+from hapsim.emulated.haply2_board import Haply2DIYBoard
+from hapsim.emulated.haply2_lockstep import drive_haply2, measure_felt_haply2
 from hapsim.drivers.haply2 import GENERATIONS, Haply2DIY
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.scene import load_scene_nd

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapsim.emulated.haply2_board import measure_felt_haply2
+from hapsim.emulated.haply2_lockstep import measure_felt_haply2
 from hapsim.kinematics import device
 from hapsim.lockstep import identification_plan
 from hapsim.scene import load_scene_nd

@@ -28,7 +28,7 @@ HAPLY_CPR = 2.0 ** 22
 def run_haply2_command(args) -> int:
     """``hapsim run SCENE --driver haply [--lockstep]``: the felt matrices through the
     2DIY's bytes and its emulated board, in lockstep
-    (:func:`hapsim.emulated.haply2_board.measure_felt_haply2`) or in real time, the board in
+    (:func:`hapsim.emulated.haply2_lockstep.measure_felt_haply2`) or in real time, the board in
     a child process behind a pty and the host on its clock, missing replies estimated
     samples (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`).
 
@@ -46,7 +46,7 @@ def run_haply2_command(args) -> int:
     """
     import gc
 
-    from hapsim.emulated.haply2_board import measure_felt_haply2
+    from hapsim.emulated.haply2_lockstep import measure_felt_haply2
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     if args.port:

@@ -266,7 +266,7 @@ class JointLevelTransport:
 def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dict:
     """The wire's term of the stated uncertainty for the emulated Hapkit pantograph.
 
-    As :func:`hapsim.emulated.haply2_board.felt_verdict_of_runs` for the 2DIY, with this
+    As :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs` for the 2DIY, with this
     device's resolution: each joint angle is read to within ``delta = c / 2`` plus one
     binary32 ulp of the angle (the count rounded, then ``home + n c`` in single
     precision), each torque reaches the joint to within half a PWM step

@@ -8,7 +8,7 @@ notes of :mod:`hapsim.pipeline.haply2_record`); the emulated board behind a pty 
 :class:`hapsim.pipeline.haply2_embedded.Embedded2DIY`. Before any record, each joint's
 wiring is checked (:mod:`hapsim.drivers.haply2_probe`): a joint its direction bytes turn
 backwards is refused. An estimated sample's error is bounded (:func:`estimate_bounds`),
-and the records' verdict is :func:`hapsim.emulated.haply2_board.felt_verdict_of_runs`:
+and the records' verdict is :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`:
 the estimated rows' bounds enter the wire's term through the loop as reading errors do.
 The loop is linear and time-invariant between disturbances, so a record is cut at each
 (a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
@@ -26,7 +26,8 @@ import sys
 
 import numpy as np
 
-from hapsim.emulated.haply2_board import felt_verdict_of_runs, in_hand_order
+from hapsim.emulated.haply2_board import in_hand_order
+from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
 from hapsim.drivers.haply import MAX_TORQUE
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
@@ -240,7 +241,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     Returns
     -------
     dict
-        :func:`hapsim.emulated.haply2_board.felt_verdict_of_runs`'s, with ``estimated``
+        :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`'s, with ``estimated``
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
         (replies read per record, of ``writes``), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record, ``stalls`` (host stalls per record),

@@ -17,7 +17,7 @@ rows), its position extrapolated from the last two readings,
 (:func:`hapsim.pipeline.haply2_host.estimate_bounds` bounds its error), the engine's
 force computed from it and its torques written; the reply counts when it comes, but
 never replaces the estimate the engine used (the record holds what the loop saw). The
-records' verdict is :func:`hapsim.emulated.haply2_board.felt_verdict_of_runs`: the
+records' verdict is :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`: the
 estimated rows' bounds enter the wire's term through the loop as reading errors do.
 
 Before any record, each joint's wiring is checked (:mod:`hapsim.drivers.haply2_probe`,
