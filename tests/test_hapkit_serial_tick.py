@@ -170,3 +170,93 @@ def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
         drv.check_rate(240.0)
     with pytest.raises(ConfigError, match="cannot be held"):
         drv.check_rate(500.0)
+
+
+# ------------------------------------------------------------------ real time, loaded
+
+def _burn(until: float) -> None:
+    while time.monotonic() < until:
+        pass
+
+
+@pytest.fixture
+def two_cpu_hogs():
+    """Two CPU-bound processes for the test's length (each ends by itself within 90 s)."""
+    import multiprocessing as mp
+
+    from load import burners_for  # same directory (pytest prepend import mode)
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_burn, args=(time.monotonic() + 90.0,), daemon=True)
+             for _ in range(burners_for(2))]
+    for p in procs:
+        p.start()
+    time.sleep(0.2)
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.terminate()
+            p.join(5.0)
+
+
+def _run(seed: int, **kw) -> dict:
+    from pathlib import Path
+
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / "hapkit_serial.yaml"))
+    return run_scene(sc, driver="hapkit-serial", duration=1.5, handle_signals=False,
+                     seed=seed, driver_faults={"drop_tx": 0.0, "drop_rx": 0.0, "seed": seed},
+                     **kw)
+
+
+@pytest.mark.parametrize("seed", [2, 6])
+def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu_hogs, seed):
+    """The THS through the sketch's bytes on the board's own clock, two CPU-bound
+    processes running (SCHED_FIFO 10 where the OS permits, as ``hapsim run``): the
+    transport found the board's tick at the arming and its commands came mid-tick -- at
+    most 10 % within a tenth of a tick of the boundary (the board's own count; the rest a
+    loaded machine's late writes: measured 0.3-4 % here beside two hogs and a load of 4;
+    77 % in the unaligned run it was written for) -- and the verdict is not "differs"
+    (within, or not measurable with its reason after a safety stop on the host's own
+    lateness). Seed 6 is the table's run that said "differs" (docs/driver_timing.json)."""
+    assert all(p.is_alive() for p in two_cpu_hogs)
+    rep = _run(seed)
+    loop, m = rep["loop"], rep["measured"]
+    assert loop["mock"]["clock"] == "wall"
+    assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
+    arr = loop["mock"]["tick_arrivals"]
+    verdict = str(m.get("verdict"))
+    info = (verdict, m.get("rel_err"), m.get("k_unc"), m.get("b_unc"), arr,
+            {q: loop.get(q) for q in ("estimated", "overruns", "late", "missed",
+                                      "stop_reason")},
+            loop["driver"].get("tick_probe"), m.get("error"))
+    assert not verdict.startswith("measured differs"), info
+    if loop.get("safety_stop"):
+        # the one stop allowed: the host's own lateness (a loaded machine), zero torque
+        assert "the host was" in loop["stop_reason"], info
+        return
+    assert arr["near_boundary"] <= 0.1 * arr["commands"], info
+    assert m.get("within") is True or verdict.startswith("not measurable"), info
+
+
+def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
+    """The same loop, the writes timed mid-tick, against a paddle with a viscous friction
+    of 0.3 N s/m more than the scene states (the felt b, predicted 0.5 N s/m with the
+    spring's 0.2, becomes 0.8): "differs", the measured b above the prediction by more
+    than its stated uncertainty (stated: 1-8 % of b in the runs above)."""
+    import dataclasses
+
+    import hapsim.emulated.driver_mock as dm
+    init = dm.EmbeddedDriverMock.__init__
+
+    def hidden(self, driver, device, *a, **k):
+        init(self, driver, dataclasses.replace(device, friction=device.friction + 0.3),
+             *a, **k)
+    monkeypatch.setattr(dm.EmbeddedDriverMock, "__init__", hidden)
+    rep = _run(1)
+    loop, m = rep["loop"], rep["measured"]
+    assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
+    assert str(m.get("verdict")).startswith("measured differs"), m.get("verdict")
+    assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
+                                                         m["b_unc"])
