@@ -53,7 +53,7 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
   57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz
   the sketch takes each command on its own 1 kHz tick: the host's period must be a
     whole number of ticks (250, 200, 166.7, ... Hz), and the host times its writes in
-    the middle of a tick, measured at each arming (a board whose crystal drifts from
+    the middle of a tick, measured at the first arming (a board whose crystal drifts from
     the host's clock walks that phase by its drift times the run's length)"""
 
 

@@ -269,13 +269,14 @@ class DriverTransport:
             self._claim()
         self._settle = 0
         # a board that takes commands on its own tick (driver.tick_s): where a write must
-        # fall in it, measured at each arming on the wall clock (tick_phase)
+        # fall in it, measured at the first arming on the wall clock (tick_phase)
         self._tick_ns = int(round(float(getattr(driver, "tick_s", 0.0) or 0.0) * 1e9))
         self._write_at = None               # a monotonic_ns time of the boundary (or None)
         self._phase_z = None                # the writes' own phase, a running mean
         self._delay_ns = 0                  # the delay that puts them mid-tick
         self._over_ns = 0                   # how late its sleep wakes, a running mean
         self.tick_probe = None              # what the last probe found (report)
+        self._tick_probed = False           # probed at the first arming
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
@@ -383,7 +384,12 @@ class DriverTransport:
             self._answered = self._cmd          # records of earlier commands are stale
             self._arm_ns = time.monotonic_ns()
             self._settle = int(dr.arming_records)
-            if self._tick_ns and self._handled is None and self._board_T is None:
+            if (self._tick_ns and self._handled is None and self._board_T is None
+                    and not self._tick_probed):
+                # once, at the first arming (the device at rest): a re-arming mid-run
+                # keeps the board's grid (its tick does not move), and probing then held
+                # zero force while the handle coasted (0.4 s, 12 cm, at three tries)
+                self._tick_probed = True
                 for _ in range(PROBE_TRIES):
                     if self.tick_phase() is not None:
                         break
@@ -395,8 +401,11 @@ class DriverTransport:
 
     #: The band a write to a ticking board is kept in: from this fraction of a tick after
     #: the board's boundary (where a command arriving later is taken a tick later) to as
-    #: much before the next.
-    BAND = 0.3
+    #: much before the next. Leaving it re-centres the writes (a change of up to a tick
+    #: once: one sample interval a tick long or short), so it is wide: the running means
+    #: wander by a tenth of a tick on a loaded host, and a band of 0.3 re-centred often
+    #: enough to make two runs in 12 say "differs".
+    BAND = 0.15
 
     def _wait_for_band(self) -> None:
         """Delay a write to a ticking board by a constant (less than a tick) that puts the
@@ -408,14 +417,16 @@ class DriverTransport:
         are whole ticks apart) is followed by a running circular mean, and how late the
         delay's sleep wakes by a running mean; the delay is changed only when the phase
         the writes then fall at leaves the band (:data:`BAND`: after a host stall moved
-        the deadlines), to the one that puts them in the middle.
+        the deadlines), to the one that puts them in the middle. It is added to every
+        write, so the host's period is unchanged (a reply still has the rest of the
+        period: 4 ms less the delay, at most a tick, for its tick and 1.56 ms of wire).
         """
         import cmath
         tk = self._tick_ns
         t = time.monotonic_ns()
         ph = (t - self._write_at) % tk               # 0 at the board's boundary
         u = cmath.exp(2j * math.pi * ph / tk)
-        z = u if self._phase_z is None else 0.75 * self._phase_z + 0.25 * u
+        z = u if self._phase_z is None else 0.9 * self._phase_z + 0.1 * u
         self._phase_z = z
         mean = (cmath.phase(z) / (2 * math.pi) * tk) % tk
         # where the write will fall: the writes' own phase, the delay, and how late the
@@ -429,7 +440,7 @@ class DriverTransport:
             if wait > 0:
                 time.sleep(wait * 1e-9)
             over = min(max(time.monotonic_ns() - due, 0), tk // 2)
-            self._over_ns = int(0.75 * self._over_ns + 0.25 * over)
+            self._over_ns = int(0.9 * self._over_ns + 0.1 * over)
 
     def tick_phase(self) -> dict | None:
         """Measure where the host's writes fall in the board's tick, and write in its
