@@ -69,7 +69,11 @@ class AppliedAccount:
         Bound on ``|applied_true - applied|`` [N] (0 throughout from ``force_seq``).
     known : ndarray of bool, shape (n,)
         Rows whose applied force the account knows (to ``half_width``); an unknown row
-        holds a force sent before the record began.
+        holds a force sent before the record began, or one the device may have parsed
+        from the wrong bytes (:meth:`hapsim.drivers.base.Driver.unknown_force_rows`).
+        The device fit leaves unknown rows out; so does the closed-loop measurement of a
+        driver's run (:func:`hapsim.analysis.measurement.late_accounted` names them, and
+        the record is cut there).
     method : str
         ``"force_seq"``, ``"timing"`` or ``"lockstep"``.
     """

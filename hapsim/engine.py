@@ -24,7 +24,7 @@ _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
 
 class KernelPack(NamedTuple):
     """An engine's kernel and its arrays by name: what a compiled caller (the host loop's
-    port step, :func:`hapsim.host.fastloop.kernel_pack`) needs to advance the engine
+    port step, :func:`hapsim.host.fastloop_kernels.kernel_pack`) needs to advance the engine
     itself. The arrays are the engine's own (shared, not copied: the kernel updates them in
     place).
 

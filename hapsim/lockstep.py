@@ -319,7 +319,7 @@ def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
     return out[0], out[1]
 
 
-def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
+def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces.
@@ -356,6 +356,12 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
         joint torques, the identity for Cartesian ones); ``bounds`` the errors' bounds in
         those coordinates: shape (m,) for every sample of every record, or a list of
         ``2n + 1`` arrays of shape (N, m) or (m,), the record from rest first.
+    usable : sequence of array_like of bool, shape (N,), optional
+        Per difference, the rows of its undisturbed stretches, as fitted
+        (:func:`hapsim.analysis.pencil.fit_felt_nd`'s ``usable``). An error at any row,
+        cut out or not, enters the rows fitted through the loop's response (one that
+        ended before a stretch only changes its initial state, which a free response's
+        fit hardly sees).
 
     Returns
     -------
@@ -379,7 +385,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors) -> dict:
     if r.felt_stiffness is None or r.directions is None:
         return inf
     N = int(np.asarray(diffs[0]).shape[0])
-    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order)
+    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order, usable=usable)
     if sens is None:
         return inf
     sens = [s for s in sens] + [-sum(sens)]          # the rest record's, in each

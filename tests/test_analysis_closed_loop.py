@@ -19,7 +19,8 @@ import pytest
 from scipy.linalg import expm
 
 from hapsim.analysis.pencil import fit_modes, fit_rendered, pencil_poles
-from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.scene_check import check_scene, scene_state_matrix
 from hapsim.analysis.table1 import table1_experiment, table1_markdown, tuned_stiffness
 from hapsim.analysis.ths import render

@@ -40,7 +40,8 @@ def test_measure_felt_on_a_constant_record_is_an_answer(offset):
     """The class behind it: any constant record (x0 = 0, no excitation, a loop resting at
     an offset) gives ``error`` and ``at_rest``, never an exception."""
     from hapsim.analysis.identify import measure_felt
-    from hapsim.analysis.loop import LoopModel, closed_loop_poles
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.loop_poles import closed_loop_poles
     z = closed_loop_poles(LoopModel(mass=0.1, friction=0.5), 1000.0, 1.5)
     felt = z[np.argmax(np.where(z.imag > 0, np.abs(z), -1))]
     y = np.full(500, 0.003 if offset else 0.0)

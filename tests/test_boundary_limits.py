@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from hapsim.analysis.compare import default_corrections, tangency, tangency_limit
-from hapsim.analysis.loop import LoopModel, spectral_radius_known
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import spectral_radius_known
 from hapsim.analysis.stability import stability_limit
 from hapsim.cli import main
 

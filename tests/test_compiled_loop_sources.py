@@ -2,7 +2,8 @@
 
 numba keys its disk cache of a function on the modification time and size of the
 function's own file (numba docs, "Cache invalidation": changes in other files are not
-tracked). ``hapsim/host/fastloop.py`` compiles in the late-tick rule
+tracked). ``hapsim/host/fastloop_kernels.py`` (the compiled host loop's numba code,
+which :mod:`hapsim.host.fastloop` drives) compiles in the late-tick rule
 (``hapsim/kernels/ticks.py``), the I/O primitives, the engine kernels, the telemetry flags
 and the protocol's constants: it holds their SHA-256, and these tests keep it true.
 """
@@ -17,7 +18,7 @@ import numba
 import numba.core.ccallback
 import pytest
 
-from hapsim.host import fastloop
+from hapsim.host import fastloop_kernels
 
 from hapsim.emulated import fastmock
 
@@ -25,14 +26,14 @@ from hapsim.pipeline import startup
 from hapsim.kernels import sources as sources_mod
 
 
-def test_the_digest_in_fastloop_names_the_sources_compiled_in():
+def test_the_digest_in_fastloop_kernels_names_the_sources_compiled_in():
     """Fails after an edit to a module the loop compiles in, until the digest is updated
-    (which edits fastloop.py, so numba's cache of the loop is invalidated)."""
+    (which edits fastloop_kernels.py, so numba's cache of the loop is invalidated)."""
     now = startup.sources_digest()
-    assert fastloop.COMPILED_SOURCES_SHA256 == now, (
-        f"update the digest in fastloop.py (this touches fastloop.py so numba recompiles): "
-        f'COMPILED_SOURCES_SHA256 = "{now}"')
-    assert fastloop.CACHE_OK
+    assert fastloop_kernels.COMPILED_SOURCES_SHA256 == now, (
+        f"update the digest in fastloop_kernels.py (this touches fastloop_kernels.py so numba "
+        f'recompiles): COMPILED_SOURCES_SHA256 = "{now}"')
+    assert fastloop_kernels.CACHE_OK
 
 
 def test_the_digest_in_fastmock_names_the_sources_compiled_in():
@@ -45,16 +46,14 @@ def test_the_digest_in_fastmock_names_the_sources_compiled_in():
     assert fastmock.CACHE_OK
 
 
-@pytest.mark.parametrize("module, sources", [(fastloop, startup.LOOP_SOURCES),
+@pytest.mark.parametrize("module, sources", [(fastloop_kernels, startup.LOOP_SOURCES),
                                              (fastmock, startup.MOCK_SOURCES)])
 def test_every_hapsim_module_a_compiled_module_imports_from_is_listed_or_python_only(
         module, sources):
-    """The class, not one file: every module fastloop.py (fastmock.py) imports names from
+    """The class, not one file: every module fastloop_kernels.py (fastmock.py) imports names from
     is either in its sources (numba freezes its functions and constants into the compiled
     code) or only used from Python (listed here, with why)."""
-    python_only = {"hapsim.host.loop",      # HostLoop, LostDevice, safety_reason: Python
-                   "hapsim.errors",           # DeviceError: raised and caught in Python
-                   "hapsim.kernels.sources"}   # the digest itself, the stamps
+    python_only = {"hapsim.kernels.sources"}   # the digest itself, the stamps
     listed = {s[:-3].replace("/", ".") for s in sources}
     tree = ast.parse(open(module.__file__).read())
     mods = set()
@@ -93,7 +92,7 @@ def test_a_changed_source_makes_the_digest_and_the_freshness_change(tmp_path, mo
         f.write("\n# a changed rule\n")
     assert startup.sources_digest(copies) != before
 
-    # freshness: a stamp newer than fastloop.py and the kernel is still stale when
+    # freshness: a stamp newer than fastloop_kernels.py and the kernel is still stale when
     # ticks.py is newer than it
     monkeypatch.setattr(startup, "loop_sources", lambda: copies)
     kernel_src = tmp_path / "kernel.py"
@@ -101,7 +100,7 @@ def test_a_changed_source_makes_the_digest_and_the_freshness_change(tmp_path, mo
     monkeypatch.setattr(startup, "scene_kernel", lambda scene: (str(kernel_src), "run_sd"))
     stamp = tmp_path / "stamp"
     monkeypatch.setattr(startup, "loop_stamp", lambda fn: str(stamp))
-    monkeypatch.setattr(startup, "_FASTLOOP", str(kernel_src))
+    monkeypatch.setattr(startup, "_LOOP_KERNELS", str(kernel_src))
     for c in copies:
         os.utime(c, (1_000_000, 1_000_000))
     os.utime(kernel_src, (1_000_000, 1_000_000))
@@ -115,7 +114,7 @@ def test_a_changed_source_makes_the_digest_and_the_freshness_change(tmp_path, mo
 def test_the_loop_functions_are_cached_only_under_a_matching_digest():
     """The compiled loop's functions carry ``cache=CACHE_OK``: with a stale digest numba
     compiles them afresh rather than load a loop built from older sources."""
-    for mod in (fastloop, fastmock):
+    for mod in (fastloop_kernels, fastmock):
         fns = [v for v in vars(mod).values()
                if isinstance(v, numba.core.registry.CPUDispatcher)
                and v.py_func.__module__ == mod.__name__]
@@ -131,7 +130,7 @@ def test_the_loop_functions_are_cached_only_under_a_matching_digest():
 # (hapsim.kernels.sources). Imports only used from Python, per module, with why:
 PYTHON_ONLY = {
     "hapsim.audio.jack_native": {"hapsim.audio.sources"},   # FrameRing, LiveSound: Python
-    "hapsim.host.fastloop": {"hapsim.host.loop", "hapsim.errors", "hapsim.kernels.sources"},
+    "hapsim.host.fastloop_kernels": {"hapsim.kernels.sources"},
     "hapsim.emulated.fastmock": {"hapsim.kernels.sources"},
 }
 PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -190,7 +189,7 @@ def test_the_scan_finds_the_known_cached_modules():
     found = set(_cached_numba_modules())
     assert {"hapsim.kernels.cordis", "hapsim.kernels.audio", "hapsim.kernels.nd",
             "hapsim.kernels.ticks", "hapsim.audio.jack_native",
-            "hapsim.host.fastloop", "hapsim.emulated.fastmock"} <= found, found
+            "hapsim.host.fastloop_kernels", "hapsim.emulated.fastmock"} <= found, found
 
 
 @pytest.mark.parametrize("module_name", _cached_numba_modules())

@@ -1,6 +1,6 @@
 """The compiled loop's port step (cacheable) and its silence rule, on the bare stretch.
 
-The compiled loop calls the engine's kernel through :func:`hapsim.host.fastloop._port_step`
+The compiled loop calls the engine's kernel through :func:`hapsim.host.fastloop_kernels._port_step`
 (a kernel named by a tag whose type selects it, so that numba loads the loop from its disk
 cache and compiles only that kernel into it); each of the kernels of ``hapsim.kernels``
 must step exactly as the engine's own call does.
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.host import fastloop
+from hapsim.host import fastloop, fastloop_kernels
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
@@ -48,8 +48,8 @@ def test_port_step_equals_the_engine_kernel_for_every_kernel():
     seen = set()
     for name, sc in _scenes():
         a, b = Engine(sc), Engine(sc)
-        kind, pack = fastloop.kernel_pack(b)
-        assert kind == fastloop.kernel_tag(len(kind) - 1)
+        kind, pack = fastloop_kernels.kernel_pack(b)
+        assert kind == fastloop_kernels.kernel_tag(len(kind) - 1)
         seen.add(len(kind) - 1)
         kick = 1e-3 * rng.standard_normal(a._x.size)
         for eng in (a, b):
@@ -61,12 +61,13 @@ def test_port_step_equals_the_engine_kernel_for_every_kernel():
                 if eng._port >= 0:
                     eng._x[eng._port] = drive
             a.kernel_pack.kernel(1, *a.kernel_pack.args, fastloop._REC, fastloop._OUT, 0)
-            fastloop._port_step(kind, pack, fastloop._REC, fastloop._OUT)
+            fastloop_kernels._port_step(kind, pack, fastloop._REC, fastloop._OUT)
         assert np.array_equal(a._x, b._x), name
         assert np.array_equal(a._f, b._f), name
         assert not np.array_equal(a._x, x_init), name      # the scene moved
-    assert seen == {fastloop.K_MASSES, fastloop.K_SD, fastloop.K_CONTACT, fastloop.K_SD_CONTACT,
-                    fastloop.K_SYMPLECTIC, fastloop.K_EXACT}
+    fk = fastloop_kernels
+    assert seen == {fk.K_MASSES, fk.K_SD, fk.K_CONTACT, fk.K_SD_CONTACT, fk.K_SYMPLECTIC,
+                    fk.K_EXACT}
 
 
 def test_kernel_pack_names_the_arrays_the_kernel_takes():
@@ -98,21 +99,21 @@ def test_silence_run_out_still_takes_the_states_waiting_in_the_port(waiting):
     a, b = socket.socketpair()
     try:
         sc = fastloop._scratch(Engine(load_scene(WALL)), a.fileno())
-        sc["iv"][fastloop.I_NMAX] = 1
-        sc["pv"][fastloop.P_SILENCE] = sc["pv"][fastloop.P_POLL] = 0.05
-        sc["pv"][fastloop.P_CLAMP_MAX] = 1e9                     # no safety stop
-        sc["fv"][fastloop.F_LAST_RX] = time.monotonic() - 1.0     # 1 s ago: run out
+        sc["iv"][fastloop_kernels.I_NMAX] = 1
+        sc["pv"][fastloop_kernels.P_SILENCE] = sc["pv"][fastloop_kernels.P_POLL] = 0.05
+        sc["pv"][fastloop_kernels.P_CLAMP_MAX] = 1e9                     # no safety stop
+        sc["fv"][fastloop_kernels.F_LAST_RX] = time.monotonic() - 1.0     # 1 s ago: run out
         if waiting:
             b.sendall(fp.encode(fp.State(0, 0, fp.STATUS_ARMED, 0, (0.001,))))
             time.sleep(0.01)
         code = fastloop._run_stretch(sc)
         if waiting:
-            assert code == fastloop.R_DONE and sc["iv"][fastloop.I_N] == 1
+            assert code == fastloop_kernels.R_DONE and sc["iv"][fastloop_kernels.I_N] == 1
             b.settimeout(5.0)
             msgs = fp.StreamDecoder().feed(b.recv(64))
             assert [type(m).__name__ for m in msgs] == ["Force"] and msgs[0].seq == 0
         else:
-            assert code == fastloop.R_IDLE and sc["iv"][fastloop.I_N] == 0
+            assert code == fastloop_kernels.R_IDLE and sc["iv"][fastloop_kernels.I_N] == 0
     finally:
         a.close()
         b.close()

@@ -17,7 +17,8 @@ import scipy.signal
 from hapsim.analysis.corrections import (Correction, filtered_passivity_bound,
                                          passivity_bound)
 from hapsim.analysis.pencil import fit_rendered
-from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.ths import calibrate, render
 from hapsim.analysis.stability import stability_limit
 from hapsim.errors import ConfigError

@@ -24,7 +24,8 @@ import pytest
 import scipy.signal
 
 from hapsim.analysis.corrections import Correction
-from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.network import closed_loop
 from hapsim.analysis.scene_check import check_scene
 from hapsim.scene import parse_scene

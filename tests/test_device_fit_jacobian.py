@@ -1,4 +1,4 @@
-"""The refinement's Jacobian (hapsim.analysis.device_fit._BlockDifference, issue 31 item 2:
+"""The refinement's Jacobian (hapsim.analysis.device_fit_search._BlockDifference, issue 31 item 2:
 scipy's sparse finite difference spent two thirds of ``hapsim identify``'s fit indexing its
 sparsity pattern again at every call) is scipy's own, bit for bit: the same entries in the
 same CSR layout as ``approx_derivative(..., sparsity=S)``, and ``least_squares`` ends at the
@@ -13,7 +13,7 @@ from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
 from scipy.sparse import csr_array, lil_matrix
 
-from hapsim.analysis.device_fit import _BlockDifference
+from hapsim.analysis.device_fit_search import _BlockDifference
 
 
 def _problem(seed, k, ns, m):
@@ -75,9 +75,10 @@ def test_the_fit_quantiles_are_scipy_stats_own_bit_for_bit():
     from scipy.special import ndtri, stdtrit
     from scipy.stats import chi2, norm, t
 
-    from hapsim.analysis.device_fit import LEVEL, REPLICATES, _chi2_ppf_1
+    from hapsim.analysis.device_fit import LEVEL
+    from hapsim.analysis.device_fit_intervals import REPLICATES, chi2_ppf_1
     for p in (LEVEL, 0.5, 0.9, 0.95, 0.99, 1e-6, 1 - 1e-9):
-        assert _chi2_ppf_1(p) == float(chi2.ppf(p, 1)), p
+        assert chi2_ppf_1(p) == float(chi2.ppf(p, 1)), p
         q = 0.5 + p / 2
         assert float(ndtri(q)) == float(norm.ppf(q)), p
         for df in (max(REPLICATES - 1, 1), 1, 7):

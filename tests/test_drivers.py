@@ -638,6 +638,49 @@ def test_firefader_bootloader_and_firmware_detection():
             assert rep["firmware"].startswith("haptics_firmware.pde"), rep
 
 
+def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
+    """A loaded host reads the .ino's answers to its last packets (and to the STOP's zero
+    force) after the STOP, disarmed: they are answers read late, not records nobody asked
+    for. Counted as unprompted before (beside two CPU-bound processes the run's report
+    named the streaming .pde in 2 of 4 runs); the .pde is still heard at the arming
+    (test_firefader_bootloader_and_firmware_detection)."""
+    import os
+    import time as _t
+
+    import firmware_protocol as fp
+    from hapsim.emulated.driver_mock import FireFaderDevice
+    dev = Device(mass=0.05, friction=0.1, delay=0, force_limit=0.38)
+    drv = get_driver("firefader")
+    drv.arming_records = 0
+    mk = FireFaderDevice(dev, 250.0, Excitation(), firmware="ino", boot_s=0.0)
+    path, slave, master, flag, th = _pty_device(mk)
+    try:
+        tr, got = _arm_and_wait(drv, path)
+        read = tr.report()["decoder"]["frames"]
+        for _ in range(5):
+            tr.send(fp.Force(0, (0.01,)))        # answered, but not read before the STOP
+            _t.sleep(0.004)
+        tr.send(fp.Stop())
+        _t.sleep(0.05)                            # the answers are there, read disarmed
+        late = tr.receive(0.02)
+        before = tr.report()
+        tr.send(fp.Config(250.0, 50_000, 1.0))
+        again = []
+        end = _t.monotonic() + 2.0
+        while not again and _t.monotonic() < end:
+            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        rep = tr.report()
+        tr.close()
+    finally:
+        flag["stop"] = True
+        th.join(2.0)
+        os.close(slave)
+        os.close(master)
+    assert got and again and not [m for m in late if type(m) is fp.State]
+    assert before["decoder"]["frames"] >= read + 5      # the late answers were read
+    assert rep["unprompted_before_arming"] == 0
+    assert rep["firmware"].startswith("haptics_firmware.ino"), rep
+
 def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
     """A FireFader record taken in-process: the host believes 0.39 N full scale, the
     fader has ``fs_true``; a random force with a weak centring spring (counts). Returns

@@ -17,7 +17,8 @@ import scipy.signal
 
 from hapsim.analysis.family import family, family_matrices, family_members
 from hapsim.analysis.hand import hand_matrices, hand_zoh, members
-from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.network import closed_loop
 from hapsim.analysis.ths import render
 from hapsim.analysis.stability import stability_limit

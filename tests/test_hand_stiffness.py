@@ -15,7 +15,8 @@ import scipy.signal
 
 from hapsim.analysis.family import consistency, family, family_matrices
 from hapsim.analysis.hand import body_zoh, ideal_rows, members
-from hapsim.analysis.loop import LoopModel, closed_loop_poles
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.network import closed_loop
 from hapsim.analysis.ths import render
 from hapsim.scene import parse_scene

@@ -1,8 +1,8 @@
 """The 2DIY's real-time loop through host stalls (issue 29 item 2): a stall is a stall,
 never a burst of catch-up writes nor by itself a re-synchronisation; with 1 byte in 200
 lost each way the re-synchronisations are bounded by the faults, the joints never leave
-the workspace, and a record with a stall is not measured on a board that keeps its own
-time.
+the workspace, and a record with a stall is cut there on a board that keeps its own time
+(its stretches measured: test_haply2_cuts).
 
 The board is the emulated firmware V1.5 in process: on the wall clock (its own time: the
 joints move over a host stall under the torque held, replies ready when the board's pass
@@ -233,11 +233,15 @@ def test_host_stalls_and_byte_loss_lockstep_bounded_resyncs(seed):
     assert link.board.settles_on(JOINT_PORTS) == 0.0
 
 
-def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypatch):
+def test_a_stalled_record_is_cut_at_the_stall_on_a_board_with_its_own_clock(monkeypatch):
     """A host stall in a record: on a board that keeps its own time the board held a
-    torque over more than a period, so the verdict is "not measurable" with the stalls
-    counted (never a verdict from a record that is no uniform loop of the THS). The
-    records are made by the lockstep board with a stall forced into each."""
+    torque over more than a period, so the record is cut there (rows s - 1 .. s + d + 1:
+    the stall's held torque and the torques in flight after it,
+    :func:`hapsim.pipeline.haply2_host.usable_rows`) and its two stretches, each a free
+    response of the loop, are fitted jointly with the other records': "within", the
+    stalls counted (before, a stall made the run "not measurable"). The records are made
+    by the lockstep board with a stall flagged in each (the loop itself undisturbed: what
+    is tested is the cut)."""
     from hapsim.lockstep import identification_plan
     sc = load_scene_nd(WALL)
     N = 40
@@ -253,8 +257,13 @@ def test_a_stalled_record_is_not_measured_on_a_board_with_its_own_clock(monkeypa
     r = host.measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4,
                                       resolution=2.0 ** 22, samples=N,
                                       plan=identification_plan(sc, N), probe_wiring=False)
-    assert r["verdict"] == "not measurable" and r["within"] is None
-    assert "stalled" in r["reason"] and sum(r["stalls"]) >= 5
+    d = int(sc.device.delay)
+    # each stall cuts d + 3 rows (more stalls than the one flagged: the host's own, on a
+    # loaded machine; windows may overlap)
+    assert sum(r["stalls"]) >= 5
+    for u, k in zip(r["usable"], r["stalls"]):
+        assert N - (d + 3) * k <= u <= N - (d + 3), (r["usable"], r["stalls"])
+    assert r["within"] is True, (r["verdict"], r["reason"], r["deviation"])
 
 
 # ------------------------------------------- the whole measurement on the board's own clock
@@ -350,12 +359,15 @@ def test_own_clock_byte_loss_keeps_the_joints_in_the_workspace_simulated_time(
     REARM_REPLY_S and is sent again otherwise, so a garbage torque a shifted parser took is
     held no longer than the host's silence rule and one re-arming's bound: the joints'
     true excursion stays within the measurement's workspace (before these rules: up to
-    16.8 rad, a corrupted re-arming waited 0.25 s with the clamp's torque held). The run is
-    "not measurable" (re-armed records are no free responses), never "within"."""
+    16.8 rad, a corrupted re-arming waited 0.25 s with the clamp's torque held). The
+    records are cut at each re-synchronisation and the run is never "differs" (a correct
+    loop): "within" as far as the stretches state, or "not measurable" with its reason."""
     from tolerance import measured
     r, board, f = _sim_measure(monkeypatch, 1 / 200, seed)
     assert f.counts["drop_rx"] + f.counts["drop_tx"] > 0
-    assert r["verdict"] == "not measurable" and sum(r["resyncs"]) > 0
+    assert sum(r["resyncs"]) > 0 and r["verdict"] != "differs", (r["reason"],
+                                                                 r["deviation"])
+    assert r["within"] is True or r["reason"]
     # worst true excursion measured over seeds 1-10 of this run: 0.137 rad (seed 8); a
     # margin of 3 for another BLAS's round-off through the fit-free loop (the board's
     # plant and the host's arithmetic are deterministic here); both under WORKSPACE_RAD
@@ -367,9 +379,12 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     at its time), two CPU-bound processes beside it, no fault: not one
     re-synchronisation (a late reply is a late sample), the joints' true excursion within
     the workspace, the board left at zero torque, and a verdict that is never wrong: a
-    run the host kept in time says "within"; one whose host stalled, zeroed a tick or
-    left the envelope says "not measurable" and names that (no wall-clock timing is
-    asserted: which of the two depends on the machine)."""
+    run the host kept in time says "within"; one that left the envelope says "not
+    measurable" and names that; one whose host stalled or zeroed a tick is cut there and
+    measured on its stretches, never "differs" (on the board's own clock a departure
+    beyond the stated uncertainty is "not measurable", named: the host's write timing is
+    not in it) (no wall-clock timing is asserted: which of these depends on the
+    machine)."""
     from hapsim.lockstep import identification_plan
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     try:
@@ -389,9 +404,12 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     assert board.excursion <= host.WORKSPACE_RAD
     assert board.settles_on() == 0.0
     late = sum(r["stalls"]) + sum(r["held_zero"]) + sum(v >= 0 for v in r["left"])
-    if late:
-        assert r["verdict"] == "not measurable", r["verdict"]
-        assert "stalled" in r["reason"] or "envelope" in r["reason"], r["reason"]
+    if any(v >= 0 for v in r["left"]):
+        assert r["verdict"] == "not measurable" and "envelope" in r["reason"], r["reason"]
+    elif late:
+        assert r["verdict"] != "differs", r["verdict"]
+        assert r["within"] is True or any(w in r["reason"] for w in (
+            "own time", "too few", "depth", "clamp", "may move")), r["reason"]
     else:
         assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
             (r["reason"], r["deviation"])

@@ -156,7 +156,7 @@ def test_quantum_found_on_float32_rounded_grids():
     ``counts * scale``, whose far steps differ from the quantum by the rounding): the
     quantum's interval holds the true step every time; positions off any grid give 0
     with an interval up to the smallest step."""
-    from hapsim.analysis.device_fit import _quantum
+    from hapsim.analysis.device_fit_model import encoder_quantum
     rng = np.random.default_rng(12)
     for _ in range(200):
         q = float(np.exp(rng.uniform(math.log(1e-7), math.log(5e-5))))
@@ -167,10 +167,10 @@ def test_quantum_found_on_float32_rounded_grids():
         y = k * q
         if rng.integers(2):
             y = (k.astype(np.float32) * np.float32(q)).astype(float)
-        e = _quantum(y)
+        e = encoder_quantum(y)
         assert e.contains(q), (q, e)
         assert e.hi - e.lo <= 1e-5 * q
-    off = _quantum(rng.normal(0.0, 1e-3, 500))
+    off = encoder_quantum(rng.normal(0.0, 1e-3, 500))
     assert off.value == 0.0 and off.lo == 0.0 and 0 < off.hi < 1e-4
 
 

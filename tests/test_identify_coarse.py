@@ -5,7 +5,7 @@ many samples on a slow motion; on a record of few encoder steps the linearised
 (Newey-West) interval of the output-error fit missed the truth (the mass in 3 of 26
 seeds of a 1 kg device on a 300 um encoder, b0 2.61 outside [2.62, 2.66] on a 23 um one). The fit
 now adds the quantiser's effect measured on replicates of the record through the same
-encoder (``hapsim.analysis.device_fit._grid_replicates``), and refuses a record whose
+encoder (``hapsim.analysis.device_fit_intervals.grid_replicates``), and refuses a record whose
 mass it cannot determine.
 """
 
@@ -14,7 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit import LEVEL, MASS_SPAN
+from hapsim.analysis.device_fit import LEVEL
+from hapsim.analysis.device_fit_intervals import MASS_SPAN
 from hapsim.commands.identify import identify
 from hapsim.errors import IdentificationError
 from hapsim.scene import Device
@@ -132,7 +133,7 @@ def test_an_undetermined_parameter_has_no_narrow_interval():
     undetermined parameter (variance UNDETERMINED_VARIANCE, never the pseudo-inverse's
     zero); a well-conditioned normal matrix is inverted (to its condition number times
     the machine epsilon, with a factor 100 of margin)."""
-    from hapsim.analysis.device_fit import UNDETERMINED_VARIANCE, _bread, _hac
+    from hapsim.analysis.device_fit_intervals import UNDETERMINED_VARIANCE, _bread, hac_covariance
     rng = np.random.default_rng(3)
     J = rng.normal(size=(400, 3))
     B, und = _bread(J.T @ J)
@@ -144,6 +145,6 @@ def test_an_undetermined_parameter_has_no_narrow_interval():
         Jd = np.column_stack([J, col])
         _, und = _bread(Jd.T @ Jd)
         assert und[3] and (not und[1]) and (not und[2])
-        cov = _hac(Jd, rng.normal(size=400), 10)
+        cov = hac_covariance(Jd, rng.normal(size=400), 10)
         assert cov[3, 3] == UNDETERMINED_VARIANCE
         assert np.all(np.isfinite(cov))

@@ -22,7 +22,7 @@ import sys
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit import _stretches
+from hapsim.analysis.device_fit_search import moving_stretches
 from hapsim.pipeline.identify_run import LEVEL_SHARE, PRBS_SHARE
 
 from intervals import assert_within  # same directory (pytest prepend import mode)
@@ -40,7 +40,7 @@ def test_the_excitation_moves_every_device_clearly_inside_the_envelope(seed):
     the device never leaves the envelope (what the loop's safety stop checks), the force
     sent never reaches the limit (the other safety stop), and the record holds the 100
     samples of clear motion the fit needs (the fit's own rule,
-    :func:`hapsim.analysis.device_fit._stretches`)."""
+    :func:`hapsim.analysis.device_fit_search.moving_stretches`)."""
     rng = np.random.default_rng(1000 + seed)
     lm, b0, fc = rng.uniform(math.log(0.02), math.log(2.0)), rng.uniform(0, 5), rng.uniform(0, .5)
     d, noise = int(rng.integers(0, 21)), float(rng.choice([0.0, 20e-6, 50e-6]))
@@ -54,7 +54,7 @@ def test_the_excitation_moves_every_device_clearly_inside_the_envelope(seed):
     # (1 + PRBS_SHARE) LEVEL_SHARE of the limit; the centring force adds to it
     assert np.max(np.abs(force)) < FORCE_LIMIT
     assert (1 + PRBS_SHARE) * LEVEL_SHARE < 1
-    st_ = _stretches(pos, 0.0)
+    st_ = moving_stretches(pos, 0.0)
     assert int(np.sum(st_[1] - st_[0])) >= 100, (m, b0, fc, d)
 
 

@@ -6,7 +6,7 @@ holds the previous force over the first ``f T`` of each period: the split hold o
 :mod:`hapsim.analysis.subsample`, which the mock's physics runs
 (:meth:`hapsim.device_model.MockPhysics._advance_split`). Fitted as a whole delay, a
 hidden ``d = 1.3`` gave b0 = 0.428 in [0.362, 0.494] for a true 0.5 (the interval missed
-it); the fit now searches the fraction (hapsim.analysis.device_fit._search_fraction) and
+it); the fit now searches the fraction (hapsim.analysis.device_fit_search.search_fraction) and
 reports ``delay_estimate`` with its interval; a whole delay keeps today's model.
 """
 

@@ -227,7 +227,7 @@ def test_argument_principle_counts_the_unstable_poles():
     """The O(d) winding count used to classify the stability intervals equals the count of
     eigenvalues outside the unit circle (seeded random loops, d up to 300)."""
     from hapsim.analysis.stability import _roots_outside
-    from hapsim.analysis.loop import roots_w
+    from hapsim.analysis.loop_poles import roots_w
     rng = np.random.default_rng(5)
     for i in range(60):
         d = int(rng.integers(0, 301))

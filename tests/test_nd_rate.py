@@ -12,7 +12,7 @@ import numpy as np
 
 from hapsim.cli import main
 from hapsim.emulated.mock import MockDeviceND
-from hapsim.pipeline.run_nd import measure_felt_port
+from hapsim.pipeline.felt_port import measure_felt_port
 from hapsim.emulated.links import InProcessTransport
 from hapsim.scene import load_scene_nd
 

@@ -259,7 +259,7 @@ def test_lockstep_run_felt_matrices_against_the_stated_uncertainty(built, scene,
     Deterministic: the same deviation bit for bit run after run."""
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
-    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.pipeline.felt_port import measure_felt_port
     from hapsim.host.transport import SerialTransport
     from hapsim.analysis.felt_matrices import felt_verdict
     a = 2e-4
@@ -520,7 +520,7 @@ def test_the_firmware_loop_is_the_quantised_model_loop(built, scene, tmp_path):
     by 12 % after one record's rounding went the other way). What the firmware renders is what the
     quantised model renders: the stated uncertainty is the quantisers', not the firmware's."""
     from hapsim.emulated.pantograph_board import JointLevelTransport
-    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.pipeline.felt_port import measure_felt_port
     from hapsim.host.transport import SerialTransport
     a = 2e-4
     with _board(tmp_path, scene, a) as (proc, port, report):
@@ -559,7 +559,7 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     leader offers them, the host asks a device whose HELLO gives a force step)."""
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
-    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.pipeline.felt_port import measure_felt_port
     from hapsim.host.transport import SerialTransport
     from hapsim.analysis.felt_matrices import felt_verdict
     a = 2e-4

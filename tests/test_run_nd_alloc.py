@@ -67,10 +67,10 @@ class ScriptedTransport:
 
 @pytest.mark.parametrize("name", ["pantograph_wall.yaml", "delta_sphere.yaml"])
 def test_run_nd_record_makes_no_array_per_sample(name, traced):
-    """:func:`hapsim.pipeline.run_nd._record`'s tick (STATE in, engine, FORCE out, the
+    """:func:`hapsim.pipeline.felt_port._record`'s tick (STATE in, engine, FORCE out, the
     record's rows) over 2-D and 3-D scenes: every tick after the first few below one
     array's transient, whatever N."""
-    from hapsim.pipeline import run_nd
+    from hapsim.pipeline import felt_port
     sc = load_scene_nd(CONFIGS / name)
     eng = EngineND(sc)
     x0 = eng.x[:, eng.port].copy()
@@ -83,7 +83,7 @@ def test_run_nd_record_makes_no_array_per_sample(name, traced):
                        tuple(float(v) + 1e-6 * np.sin(0.1 * k) for v in x0))
               for k in range(N)]
     tr = ScriptedTransport(states)
-    rec = run_nd._record(tr, sc, N, sc.rate_hz, 0)
+    rec = felt_port._record(tr, sc, N, sc.rate_hz, 0)
     one_array = _transient(lambda: np.empty(sc.dimension))
     assert rec is not None and len(tr.peaks) == N
     np.testing.assert_array_equal(rec.position[-1], states[-1].position)

@@ -17,7 +17,7 @@ import pytest
 from hapsim.analysis.linearisation import linearisation_bound
 from hapsim.emulated.faults import FAULT_NAMES, parse_faults
 from hapsim.emulated.mock import MockDeviceND, PhysicsND
-from hapsim.pipeline.run_nd import measure_felt_port, min_rows, start_of, verdict_nd
+from hapsim.pipeline.felt_port import measure_felt_port, min_rows, start_of, verdict_nd
 from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.lockstep import excitation_starts
 from hapsim.scene import load_scene_nd

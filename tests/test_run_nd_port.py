@@ -20,7 +20,7 @@ import pytest
 
 import firmware_protocol as fp
 from hapsim.emulated.mock import MockDeviceND
-from hapsim.pipeline.run_nd import measure_felt_port
+from hapsim.pipeline.felt_port import measure_felt_port
 from hapsim.emulated.links import InProcessTransport, SimTransport
 from hapsim.joint_device import JointDeviceND, LocalJointDeviceND
 from hapsim.scene import load_scene_nd
@@ -112,7 +112,7 @@ def test_late_ticks_are_accounted_per_axis(monkeypatch, tmp_path):
     assert res["late"] > 15
     assert res["delay"] == [2] * 5
     assert max(res["deviation"].values()) < 1e-6, res["deviation"]
-    import hapsim.pipeline.run_nd as rn
+    import hapsim.pipeline.felt_port as rn
     monkeypatch.setattr(rn, "disturbance_response_nd",
                         lambda scene, W, A=None: np.zeros_like(W))
     assert max(run()["deviation"].values()) > 1e-3

@@ -23,7 +23,7 @@ import pytest
 import firmware_protocol as fp
 from hapsim.emulated.links import InProcessTransport
 from hapsim.emulated.mock import MockDeviceND
-from hapsim.pipeline.run_nd import measure_felt_port, verdict_nd
+from hapsim.pipeline.felt_port import measure_felt_port, verdict_nd
 from hapsim.scene import load_scene_nd
 from hapsim.spawn import StopFlag
 

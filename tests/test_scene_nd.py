@@ -328,7 +328,7 @@ device: {mass: [0.08, 0.2], friction: [0.3, 0.6], delay: 1}
                                         delay=1), B[j])
         # each method puts a pole on |z| = 1 to within its eigenvalue round-off and
         # Brent's angle tolerance: the two limits differ by that over d rho / d K, twice
-        from hapsim.analysis.loop import spectral_radius
+        from hapsim.analysis.loop_poles import spectral_radius
         from hapsim.analysis.ths_nd import state_matrix
         l1 = LoopModel(mass=m[j], friction=b0[j], rate_hz=1000.0, delay=1)
         ln = LoopModelND(mass=[[m[j]]], friction=[[b0[j]]], rate_hz=1000.0, delay=1)

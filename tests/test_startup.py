@@ -181,10 +181,10 @@ def test_first_sample_reported_after_process_start():
 def test_cache_folder_is_the_one_numba_uses():
     """:func:`numba_cache_dir` finds, without numba, the folder numba's own locator caches
     a compiled function of hapsim in (the kernels and the compiled loop)."""
-    from hapsim.host import fastloop
+    from hapsim.host import fastloop_kernels
     from hapsim.pipeline.startup import numba_cache_dir
     from hapsim.kernels import cordis
-    for disp in (cordis.run_sd, fastloop._stretch):
+    for disp in (cordis.run_sd, fastloop_kernels.answer_stretch):
         numba_dir = disp._cache._cache_path
         assert os.path.realpath(numba_cache_dir(disp.py_func.__code__.co_filename)) == \
             os.path.realpath(numba_dir)
@@ -236,7 +236,7 @@ print(json.dumps({{"said": said, "early": early, "text": err.getvalue(),
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert got["said"] and got["early"] and got["notice"] and not got["numba"]
     assert got["parts"] == [["the engine's kernels", "run_sd"],
-                            ["the compiled host loop", "_stretch"]]
+                            ["the compiled host loop", "answer_stretch"]]
     first, second = got["text"].splitlines()        # each part said once
     assert first.startswith("hapsim run: compiling the engine's kernels with numba (once")
     assert second.startswith("hapsim run: compiling the compiled host loop with numba")

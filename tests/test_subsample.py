@@ -30,7 +30,7 @@ from tolerance import measured
 import scipy.linalg as sl
 
 from hapsim.analysis import LoopModel, calibrate, render, stability_limit
-from hapsim.analysis.loop import closed_loop_poles
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.subsample import (held_plant, split_delay, split_hold, split_hold_body,
                                        split_numerator_w)
 from hapsim.errors import ConfigError

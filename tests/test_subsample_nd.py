@@ -26,7 +26,7 @@ from tolerance import measured
 import scipy.linalg as sl
 
 from hapsim.analysis import LoopModel, stability_limit
-from hapsim.analysis.loop import closed_loop_poles
+from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.direction_limits import direction_limit
 from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, state_matrix
 from hapsim.errors import ConfigError

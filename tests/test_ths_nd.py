@@ -13,8 +13,8 @@ import pytest
 from scipy.linalg import expm
 from scipy.optimize import linear_sum_assignment
 
-from hapsim.analysis.loop import (LoopModel, characteristic, closed_loop_poles,
-                                  spectral_radius)
+from hapsim.analysis.loop import LoopModel, characteristic
+from hapsim.analysis.loop_poles import closed_loop_poles, spectral_radius
 from hapsim.analysis.ths import render
 from hapsim.analysis.stability import stability_limit
 from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits

@@ -34,7 +34,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from hapsim.analysis.corrections import Correction  # noqa: E402
 from hapsim.analysis.family import family, family_members  # noqa: E402
-from hapsim.analysis.loop import STABILITY_TOL, LoopModel, spectral_radius  # noqa: E402
+from hapsim.analysis.loop import STABILITY_TOL, LoopModel  # noqa: E402
+from hapsim.analysis.loop_poles import spectral_radius  # noqa: E402
 from hapsim.analysis.network import closed_loop  # noqa: E402
 from hapsim.scene import load_scene  # noqa: E402
 

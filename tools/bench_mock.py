@@ -34,8 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import firmware_protocol as fp  # noqa: E402
-from hapsim.host.fastloop import (_CRC, _POLLIN, _c_poll, _c_read, _c_write,  # noqa: E402
-                                    _cobs_decode, _crc16, _force_frame, _jit)
+from hapsim.host.fastloop_kernels import (_POLLIN, _c_poll, _c_read,  # noqa: E402
+                                            _c_write, _cobs_decode, _crc16, _force_frame, _jit)
+from hapsim.kernels.compiled_io import CRC_TABLE as _CRC  # noqa: E402
 from hapsim.host.realtime import RealtimePriority  # noqa: E402
 from hapsim.emulated.links import EmbeddedMock  # noqa: E402
 from hapsim.scene import Device, Excitation  # noqa: E402

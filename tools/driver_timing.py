@@ -85,6 +85,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "safety_stop": bool(lp["safety_stop"]), "stop": lp["stop_reason"],
             "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
+            "frame_walk": mk.get("frame_walk"),
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
             "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
@@ -211,7 +212,8 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
     stopped = res.get("stopped")
     return {"clock": clock, "safety_stop": bool(stopped),
             "stop": stopped[1] if stopped else "end",
-            "resyncs": 0, "stalls": res.get("stalls"), "excursion_true": dev.excursion,
+            "resyncs": 0, "stalls": res.get("stalls"), "waits": res.get("waits"),
+            "excursion_true": dev.excursion,
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
             "workspace": WORKSPACE_RAD, "beyond_workspace": dev.excursion > WORKSPACE_RAD,
             "verdict": res["verdict"], "within": None,

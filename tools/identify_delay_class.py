@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     from hapsim.analysis import device_fit
     from hapsim.errors import IdentificationError
     if a.white:
-        device_fit._effective_samples = lambda r, offs, lag: float(np.size(r))
+        device_fit.effective_samples = lambda r, offs, lag: float(np.size(r))
     rows, count = [], {"exact": 0, "wrong": 0, "ambiguous": 0, "refused": 0}
     for i in range(a.n):
         rng = np.random.default_rng(a.seed + i)

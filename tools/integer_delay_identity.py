@@ -33,8 +33,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LOOPS = r'''
 import math, sys
 import numpy as np
-from hapsim.analysis import LoopModel, calibrate, render, stability_limit
-from hapsim.analysis.loop import closed_loop_poles
+from hapsim.analysis import LoopModel, calibrate, closed_loop_poles, render, stability_limit
 from hapsim.analysis.corrections import Correction
 rng = np.random.default_rng(int(sys.argv[2]))
 for i in range(int(sys.argv[1])):

@@ -5,8 +5,9 @@ Compute functions here return plain data; drawing lives in :mod:`hapsim.plots`.
 """
 
 from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
-from hapsim.analysis.loop import (HOLDS, STABILITY_TOL, LoopModel, characteristic,
-                                  closed_loop_poles, plant, spectral_radius, zoh_state_space)
+from hapsim.analysis.loop import (HOLDS, STABILITY_TOL, LoopModel, characteristic, plant,
+                                  zoh_state_space)
+from hapsim.analysis.loop_poles import closed_loop_poles, spectral_radius
 from hapsim.analysis.stability import (damping_limits, published_limits, stability_boundary,
                                        stability_limit)
 from hapsim.analysis.ths import CalibrationResult, RenderResult, calibrate, render

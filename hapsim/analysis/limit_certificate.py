@@ -47,7 +47,8 @@ import math
 from dataclasses import dataclass
 from fractions import Fraction
 
-from hapsim.analysis.loop import LoopModel, char_parts, scaled_gains
+from hapsim.analysis.loop import LoopModel, char_parts
+from hapsim.analysis.loop_poles import scaled_gains
 
 __all__ = ["LimitCertificate", "certify_limit", "MAX_DEGREE"]
 
@@ -379,7 +380,7 @@ def certify_limit(loop: LoopModel, B: float, K_max: float, scan_points: int) -> 
     Raises
     ------
     ConfigError
-        As :func:`hapsim.analysis.loop.scaled_gains`.
+        As :func:`hapsim.analysis.loop_poles.scaled_gains`.
 
     Notes
     -----

@@ -367,7 +367,10 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         Positions [m] to measure, the late flags to cut at (None when accounted for; a
         driver's run keeps its host-late rows, whose hold time no account names) and
         the report's ``late_accounted`` / ``device_delay`` / ``clamped_accounted`` (rows
-        whose clamp was taken out) (empty when nothing was done).
+        whose clamp was taken out) (empty when nothing was done); with a driver whose
+        account does not know some rows' force (``AppliedAccount.known`` False:
+        :meth:`~hapsim.drivers.base.Driver.unknown_force_rows`), ``_unknown_rows`` (bool,
+        shape (n,)), the rows the measurement must leave out.
     """
     from hapsim.applied import account_from_force_seq
 
@@ -383,6 +386,11 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         acc = hook(cols, cols["force"]) if hook is not None else None
         if acc is None:
             return pos, late, {}
+        # rows whose force the account cannot name at all (an unframed board's parser out
+        # of step: Driver.unknown_force_rows), which the measurement cuts out
+        kn = np.asarray(acc.known, bool)
+        unknown = {"_unknown_rows": ~kn} if kn.shape == np.shape(pos) and not kn.all() \
+            else {}
         if not np.any(acc.late) and not n_clamped:
             # nothing taken out, but the forces it cannot order (a command whose answer
             # never came: sent, or the one before) are in the stated uncertainty. The
@@ -394,8 +402,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
             if np.any(hw > 0):
                 w = acc.disturbance(cols["force"], cols["seq"])
                 return pos, late, {"_force_half_width": hw + np.where(hw > 0, np.abs(w),
-                                                                      0.0)}
-            return pos, late, {}
+                                                                      0.0), **unknown}
+            return pos, late, dict(unknown)
     else:
         # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
         # the nearest step of every force (the firmware rounds so): a known input at every
@@ -412,6 +420,8 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
                                      zero_delay=int(dev.delay) == 0, force_limit=lim,
                                      force_scale=step)
     info = {"device_delay": int(acc.delay), "account": acc.method}
+    if driver is not None:
+        info.update(unknown)
     if driver is None and step > 0:
         info["force_step"] = step
     if acc.delay != int(dev.delay):     # whole ticks: a fraction is the physics'

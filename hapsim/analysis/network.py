@@ -33,7 +33,7 @@ held over ``[nT, (n+1)T)`` is ``u[n] = F[n-d]``. The device then advances
 ``c = (b0T/m) / (1 - a)`` (``"ideal"``, Florens et al. eq. (4); ``a = c = 1`` without
 friction). For a port tied to a ground by a spring_damper this gives exactly
 ``z^(d+1) D(z) + N(z) (K z + (B/T)(z - 1)) = 0``, i.e. the poles of
-:func:`hapsim.analysis.loop.closed_loop_poles` (up to roots at ``z = 0``), whatever the
+:func:`hapsim.analysis.loop_poles.closed_loop_poles` (up to roots at ``z = 0``), whatever the
 integrator (no virtual mass is integrated).
 
 The virtual network's one-step maps for each integrator, single- and multi-rate, are

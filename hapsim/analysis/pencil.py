@@ -233,7 +233,32 @@ def fit_rendered(y, period: float, order: int, mass: float, *, offset: bool = Fa
 
 
 # ------------------------------------------------------------------- n coordinates
-def fit_felt_nd(records, mass, period: float, order: int) -> dict:
+def _equations(recs, p: int, usable):
+    """Per record, the rows ``k`` whose prediction equation is formed: ``k >= p`` and,
+    given ``usable``, rows ``k - p .. k`` all usable (one stretch of the loop's free
+    response: the equation ``y[k] = sum_j y[k-j] C_j`` holds only when no disturbance
+    acted from row ``k - p`` to row ``k``)."""
+    if usable is not None and len(usable) != len(recs):
+        raise ConfigError(f"usable must have one mask per record ({len(recs)}), got "
+                          f"{len(usable)}", key="usable")
+    out = []
+    for i, r in enumerate(recs):
+        N = r.shape[0]
+        if usable is None or usable[i] is None:
+            out.append(np.arange(p, N))
+            continue
+        u = np.asarray(usable[i], bool)
+        if u.shape != (N,):
+            raise ConfigError(f"usable[{i}] must have shape ({N},), got {u.shape}",
+                              key="usable")
+        # rows k whose window k - p .. k holds no unusable row
+        bad = np.concatenate(([0], np.cumsum(~u)))
+        k = np.arange(p, N)
+        out.append(k[bad[k + 1] - bad[k - p] == 0])
+    return out
+
+
+def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dict:
     """Measured poles and felt matrices from free responses at the handle.
 
     Parameters
@@ -247,6 +272,13 @@ def fit_felt_nd(records, mass, period: float, order: int) -> dict:
     order : int
         Prediction order ``p`` (the loop's state size over n: ``d + 3 + 2 N_virtual`` for
         a scene of :mod:`hapsim.analysis.scene_check`).
+    usable : sequence of (array_like of bool, shape (N_i,), or None), optional
+        Per record, the rows that belong to an undisturbed stretch of the loop (a record
+        cut where a disturbance acted: a host stall, a re-synchronisation). A record's
+        stretches are fitted jointly with every other's, each a free response of the
+        same loop from its own initial state: row ``k``'s equation is formed only when
+        rows ``k - p .. k`` are all usable, so a stretch shorter than ``p + 1`` rows
+        gives none. Default: every row.
 
     Returns
     -------
@@ -260,7 +292,7 @@ def fit_felt_nd(records, mass, period: float, order: int) -> dict:
     ------
     ConfigError
         Records of different widths, too short for the order (fewer equations than
-        unknowns), or not finite.
+        unknowns), or not finite; ``usable`` of the wrong length or shape.
     """
     recs = [np.asarray(r, float) for r in records]
     if not recs or any(r.ndim != 2 for r in recs) or len({r.shape[1] for r in recs}) != 1:
@@ -268,15 +300,17 @@ def fit_felt_nd(records, mass, period: float, order: int) -> dict:
     n = recs[0].shape[1]
     p = int(order)
     rows, rhs = [], []
-    for r in recs:
+    for r, ks in zip(recs, _equations(recs, p, usable)):
         if not np.all(np.isfinite(r)):
             raise ConfigError("records must be finite", key="records")
-        for k in range(p, r.shape[0]):
+        for k in ks:
             rows.append(r[k - p:k][::-1].ravel())
             rhs.append(r[k])
     if len(rows) < n * p:
         raise ConfigError(f"{len(rows)} equations for {n * p} unknowns per coordinate: "
-                          "longer or more records", key="records")
+                          "longer or more records"
+                          + ("" if usable is None else " (or longer undisturbed stretches)"),
+                          key="records")
     R, Y = np.array(rows), np.array(rhs)
     C, _, rank, _ = np.linalg.lstsq(R, Y, rcond=None)
     scale = float(np.max(np.abs(Y))) or 1.0
@@ -314,7 +348,7 @@ def _felt_of(C, n: int, p: int, mass, period: float):
 
 
 def felt_sensitivity_nd(records, mass, period: float, order: int, *,
-                        step: float = 1e-7) -> list | None:
+                        step: float = 1e-7, usable=None) -> list | None:
     """First-order sensitivity of the measured felt matrices to each sample of the records.
 
     The fit (:func:`fit_felt_nd`) is ``C = R^+ Y`` (``R`` the lagged samples, ``Y`` the
@@ -334,6 +368,9 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
         As :func:`fit_felt_nd`.
     step : float, optional
         Relative step of the central differences over ``C``.
+    usable : optional
+        As :func:`fit_felt_nd`: the equations fitted; a row no equation uses has
+        sensitivity 0.
 
     Returns
     -------
@@ -348,11 +385,12 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
         As :func:`fit_felt_nd`.
     """
     recs = [np.asarray(r, float) for r in records]
-    fit_felt_nd(recs, mass, period, order)                  # validates
+    fit_felt_nd(recs, mass, period, order, usable=usable)   # validates
     n = recs[0].shape[1]
     p = int(order)
-    R = np.array([r[k - p:k][::-1].ravel() for r in recs for k in range(p, r.shape[0])])
-    Y = np.array([r[k] for r in recs for k in range(p, r.shape[0])])
+    eqs = _equations(recs, p, usable)
+    R = np.array([r[k - p:k][::-1].ravel() for r, ks in zip(recs, eqs) for k in ks])
+    Y = np.array([r[k] for r, ks in zip(recs, eqs) for k in ks])
     P = np.linalg.pinv(R)                                   # (n p, rows)
     C = P @ Y
     if _felt_of(C, n, p, mass, period) is None:
@@ -372,11 +410,11 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     W = np.einsum("ar,oac->orc", P, G.reshape(2 * n * n, n * p, n))   # (O, rows, n)
     Cj = C.reshape(p, n, n)                                 # C_j = Cj[j-1]: y[k-j] @ C_j
     out, row = [], 0
-    for r in recs:
+    for r, ks in zip(recs, eqs):
         N = r.shape[0]
         Wr = np.zeros((W.shape[0], N + p, n))
-        Wr[:, p:N] = W[:, row:row + N - p]
-        row += N - p
+        Wr[:, ks] = W[:, row:row + ks.size]
+        row += ks.size
         s = Wr[:, :N].copy()
         for j in range(1, p + 1):
             s -= np.einsum("otc,ic->oti", Wr[:, j:N + j], Cj[j - 1])

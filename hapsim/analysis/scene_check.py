@@ -266,7 +266,7 @@ def check_scene(scene, *, calibrated=None, integrator=None) -> SceneCheck:
     Notes
     -----
     For a port tied to a ground by one spring_damper (K, B) the eigenvalues are those of
-    :func:`hapsim.analysis.loop.closed_loop_poles` ``(loop, K, B)`` up to roots at 0, and
+    :func:`hapsim.analysis.loop_poles.closed_loop_poles` ``(loop, K, B)`` up to roots at 0, and
     ``rendered`` equals the pair of :func:`hapsim.analysis.loop.render`.
     """
     integrator = integrator or getattr(scene, "integrator", None) or "centred"

@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.loop import LoopModel, char_eval, char_parts, roots_w, scaled_gains
+from hapsim.analysis.loop import LoopModel, char_eval, char_parts
+from hapsim.analysis.loop_poles import roots_w, scaled_gains
 from hapsim.errors import ConfigError
 
 __all__ = ["stability_limit", "damping_limits", "circle_scan_points", "stability_boundary",

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.loop import STABILITY_TOL, LoopModel, char_parts, roots_w, scaled_gains
+from hapsim.analysis.loop import STABILITY_TOL, LoopModel, char_parts
+from hapsim.analysis.loop_poles import roots_w, scaled_gains
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 

@@ -258,7 +258,7 @@ def predicted_coulomb(device, rate_hz: float, B: float, amplitude: float) -> flo
     ConfigError
         A non-positive amplitude with Coulomb friction.
     """
-    from hapsim.analysis.loop import closed_loop_poles
+    from hapsim.analysis.loop_poles import closed_loop_poles
     from hapsim.analysis.stability import stability_limit
 
     fc = float(getattr(device, "coulomb", 0.0) or 0.0)

@@ -245,7 +245,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
     :func:`hapsim.analysis.stability.published_limits`.
     """
     from hapsim.analysis.limit_certificate import certify_limit
-    from hapsim.analysis.loop import spectral_radius_known
+    from hapsim.analysis.loop_poles import spectral_radius_known
     from hapsim.analysis.stability import circle_scan_points, published_limits, stability_limit
     check_values("stability", B=B)
     kmax = stability_limit(loop, B)

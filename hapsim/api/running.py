@@ -252,7 +252,7 @@ class RunReportND(Report):
         record used and the device losses (the port failed).
     rows, counts, bad_frames, incomplete
         Over a port only: rows used per start (the record from rest first); what the
-        records met (:func:`hapsim.pipeline.run_nd.measure_felt_port`: STATEs missed,
+        records met (:func:`hapsim.pipeline.felt_port.measure_felt_port`: STATEs missed,
         duplicates, reordered, records cut short, device resets, losses and recoveries,
         CONFIGs sent); bad frames the host's decoder dropped; why nothing was fitted
         (None when the matrices were measured).
@@ -312,7 +312,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     scene : hapsim.scene.SceneND
     res : dict
         :func:`hapsim.lockstep.measure_felt_lockstep`'s or
-        :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result, with ``bound`` (and
+        :func:`hapsim.pipeline.felt_port.measure_felt_port`'s result, with ``bound`` (and
         ``wire``, the readings' and torques' term of a quantised device such as the
         emulated Hapkit pantograph, :func:`hapsim.emulated.pantograph_board.wire_term`).
     lockstep : bool
@@ -327,7 +327,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     from hapsim.analysis.felt_matrices import felt_directions, felt_verdict
     fit, chk = res["measured"], res["predicted"]
     if port_info is not None:
-        from hapsim.pipeline.run_nd import verdict_nd
+        from hapsim.pipeline.felt_port import verdict_nd
         v = verdict_nd(res)
     else:
         v = felt_verdict(res["deviation"], res["bound"], res.get("wire"),

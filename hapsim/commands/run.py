@@ -4,7 +4,7 @@ A 1-D scene through :func:`hapsim.pipeline.runner.run_scene`; a 2-D or 3-D scene
 (:func:`run_nd`): the felt matrices measured and compared with the prediction, and the
 linearisation bound. ``--lockstep``: the loop closed in-process; ``--port PORT``: over the
 framed protocol with an n-axis device, in real time (late ticks accounted per axis,
-:mod:`hapsim.pipeline.run_nd`); neither: the same over the embedded n-D mock (``hapsim mock
+:mod:`hapsim.pipeline.felt_port`); neither: the same over the embedded n-D mock (``hapsim mock
 --scene SCENE --once``) in a child process behind a pty. ``--driver haply`` and ``--driver
 falcon`` on 2-D/3-D scenes: :mod:`hapsim.commands.run_haply2`,
 :mod:`hapsim.commands.run_falcon`."""
@@ -532,7 +532,7 @@ def run_nd(args) -> int:
     :func:`hapsim.lockstep.measure_felt_lockstep`: 2n free responses of the loop
     (engine, exact ZOH device of the Cartesian mass at rest, delay line) from the handle
     displaced by ``a`` along each axis and moving along each, minus the response from
-    rest. Over a port: :func:`hapsim.pipeline.run_nd.measure_felt_port`, the same records
+    rest. Over a port: :func:`hapsim.pipeline.felt_port.measure_felt_port`, the same records
     from the device's hand, each a CONFIG, with the late ticks' known disturbance
     subtracted. Then the felt matrices by vector linear prediction and the inverse
     quadratic eigenvalue problem (:func:`hapsim.analysis.pencil.fit_felt_nd`), against
@@ -646,7 +646,7 @@ def run_nd(args) -> int:
         print(f"    felt stiffness within {bd['felt_stiffness']:.2e}, felt damping within "
               f"{bd['felt_damping']:.2e} (relative) while the excursion < {bound.depth:.3g} m"
               + (f" (depth of {bound.depth_name!r})" if bound.depth_name else ""), file=o)
-    from hapsim.pipeline.run_nd import verdict_nd
+    from hapsim.pipeline.felt_port import verdict_nd
     v = verdict_nd(res)
     wire = res.get("wire")
     if wire is not None:

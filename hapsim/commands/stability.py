@@ -79,7 +79,7 @@ def run(args) -> int:
     int
         0 if some ``K > 0`` is stable (``K_max > 0``), 1 if none is. The spectral radius at
         ``K_max`` is given to the digits double arithmetic knows
-        (:func:`hapsim.analysis.loop.spectral_radius_known`; JSON
+        (:func:`hapsim.analysis.loop_poles.spectral_radius_known`; JSON
         ``spectral_radius_error``): a double pole there (the undamped centred-difference
         loop, at ``z = -1``) is uncertain to ~1e-7.
 

@@ -333,11 +333,13 @@ class Driver:
 
         A protocol without framing or checksum whose device does not name the force it
         applied (the Haply M3) turns a host byte lost into a command parsed from the
-        wrong bytes: an arbitrary force, held until the parser is back in step. The
+        wrong bytes: an arbitrary force, held until the parser is back in step.
+        :meth:`account` marks these rows not known (``AppliedAccount.known`` False): the
         measurement cuts the record there (``exclude`` of
         :func:`hapsim.analysis.identify.identify`: each stretch after a cut is a free
         response from its own initial state), as it does at a clamped force it cannot
-        replay.
+        replay, and ``identify``'s fit leaves them out (each stretch fitted from its own
+        initial state).
 
         Parameters
         ----------
@@ -381,6 +383,13 @@ class Driver:
         one sent or the one before, so those rows are *ambiguous* and the account states
         the half-difference (:func:`~hapsim.applied.account_from_timing`, with
         the transport's delay d: ``loop_delay``). None when every answer came.
+
+        The rows :meth:`unknown_force_rows` names are the account's unknown rows
+        (``known`` False): a force none of the two may have been applied there, so
+        ``identify`` (:func:`hapsim.analysis.device_fit.fit_device` drops rows whose input
+        is not known) and ``run``'s measurement (it cuts the record there:
+        :func:`hapsim.analysis.measurement.late_accounted`) leave them out, from this one
+        source.
         """
         flags = columns.get("flags")
         d = getattr(self, "loop_delay", None)
@@ -396,8 +405,14 @@ class Driver:
         # at row r - d + 1
         k = np.flatnonzero(est) + d - 1
         amb[k[(k >= 0) & (k < n)]] = True
-        return account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
-                                   quantise=self.applied_force if self.force_scale > 0 else None)
+        acc = account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
+                                  quantise=self.applied_force if self.force_scale > 0 else None)
+        # the rows whose force no account can name (an unframed board's parser out of
+        # step): not known, so identify's fit and run's measurement both leave them out
+        unknown = self.unknown_force_rows(columns)
+        if unknown is not None:
+            acc.known = acc.known & ~np.asarray(unknown, bool)
+        return acc
 
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""

@@ -816,33 +816,57 @@ class HaplyM3(Driver):
         no "differs" (4 within, 4 not measurable for re-synchronisations, 2 too few
         cycles left to measure).
 
+        The windows are in host ticks (``seq``): a command whose reply never came is an
+        estimated row, or no row at all where the loop logged none for it (a gap in
+        ``seq``: a lockstep mock's command asked again, as ``hapsim identify`` records
+        it, or a re-synchronisation's skipped number). The same window is left out
+        around such a gap: before, ``identify`` over a lockstep M3 with host bytes lost
+        saw only gaps, and fitted the torques parsed from the wrong bytes after each
+        as the ones sent.
+
         Parameters
         ----------
         columns : dict of str to ndarray
-            The run's telemetry columns (``flags``: shape (n,)).
+            The run's telemetry columns (``flags``, and ``seq`` if given: each shape
+            (n,); without ``seq``, or with one not increasing, row ``r`` is tick ``r``).
 
         Returns
         -------
         ndarray of bool, shape (n,), or None
-            None when no row is estimated.
+            None when no tick's reply is missing.
         """
         from hapsim.drivers.base import FLAG_ESTIMATED
         flags = columns.get("flags")
         if flags is None:
             return None
         est = (np.asarray(flags).astype(np.int64) & FLAG_ESTIMATED) != 0
-        if not est.any():
-            return None
         n = est.size
+        # the windows are counted in host ticks (the commands, ``seq``): a command no
+        # record answered is an estimated row or, where the loop logged none for it (a
+        # lockstep mock asked again, a re-synchronisation's skipped number), a gap in seq
+        # -- the same missing reply
+        seq = columns.get("seq")
+        tick = None
+        if seq is not None and np.shape(seq) == (n,) and n:
+            s = np.asarray(seq, np.int64)
+            if np.all(np.diff(s) >= 1):
+                tick = s - s[0]
+        if tick is None:
+            tick = np.arange(n, dtype=np.int64)
+        span = int(tick[-1]) + 1 if n else 0
+        miss = np.ones(span, bool)
+        miss[tick] = est                      # a logged row: missing when estimated
+        if not miss.any():
+            return None
         d = max(int(getattr(self, "loop_delay", 1) or 0), 0)
-        # a difference array over the runs of estimated rows: +1 at r0 - 1, -1 after
-        # r1 + d
-        edge = np.diff(np.concatenate(([0], est.astype(np.int8), [0])))
+        # a difference array over the runs of missing ticks: +1 at t0 - 1, -1 after
+        # t1 + d
+        edge = np.diff(np.concatenate(([0], miss.astype(np.int8), [0])))
         r0, r1 = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1) - 1
-        mark = np.zeros(n + 1, np.int64)
-        np.add.at(mark, np.clip(r0 - 1, 0, n), 1)
-        np.add.at(mark, np.clip(r1 + d + 1, 0, n), -1)
-        return np.cumsum(mark[:n]) > 0
+        mark = np.zeros(span + 1, np.int64)
+        np.add.at(mark, np.clip(r0 - 1, 0, span), 1)
+        np.add.at(mark, np.clip(r1 + d + 1, 0, span), -1)
+        return (np.cumsum(mark[:span]) > 0)[tick]
 
     def __init__(self, device_id: int | None = None, resolution: float = 4880.0,
                  direction: int = 0, offset_deg: float = 0.0,

@@ -769,6 +769,12 @@ class HaplyDevice(_Actuated):
         self.decoder = hp.CommandDecoder(absent=255)
         self.cpr = float(resolution or cpr)
         self._base = 0
+        self._base0 = None
+        #: The largest error [rad] of the board's frame against the joint's true angle,
+        #: over the set-ups after the first: each re-synchronisation sets the count to
+        #: the host's estimate of the angle, and the frame walks by that estimate's error
+        #: (the truth only an emulator knows).
+        self.frame_walk = 0.0
         #: The board's time [s] its last answer is ready at (:func:`serve` writes it then).
         self.ready_at = 0.0
         self._busy_until = 0.0
@@ -826,6 +832,10 @@ class HaplyDevice(_Actuated):
                     off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
                     c = self._counts()
                     self._base = c - (-off if dec.encoder_direction[0] else off)
+                    if self._base0 is None:
+                        self._base0 = self._base
+                    self.frame_walk = max(self.frame_walk, abs(self._base - self._base0)
+                                          * 2.0 * math.pi / self.cpr)
                 continue
             if cmd[0] != "write":
                 continue
@@ -1116,7 +1126,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             handled.publish(n_read, n_written)
     n = dev.commands()
     extra = {}
-    for k in ("merged", "passes", "firmware", "host_ticks", "tick_arrivals"):
+    for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk", "tick_arrivals"):
         if hasattr(dev, k):
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):

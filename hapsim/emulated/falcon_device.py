@@ -54,7 +54,7 @@ import numpy as np
 from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
                                    parse_host_packet, ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, KinematicsError
 from hapsim.joint_device import LocalJointDeviceND
 
 __all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "EmulatorLink",
@@ -461,18 +461,27 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     joints = np.full((N, 3), np.nan)
     cmds = np.zeros((N, 3), np.int64)
     missing = unhomed = 0
+    guess = None
+    if late_stop:
+        # the compiled kinematics and engine loaded before the loop's first packet (a
+        # first call's compilation would be taken for the host's lateness, and the
+        # firmware would hold the first packet over it: measured 6-10 ms, a stall in
+        # every run of tools/driver_timing.py before). The operating point is the first
+        # reading's guess: the full solve's search for a start costs 3.5 ms, three
+        # periods, which the first packet waited
+        try:
+            guess, _ = kin.forward_jacobian(np.asarray(scene.device.joints, float), None)
+            kin.forward_jacobian(np.asarray(scene.device.joints, float), guess)
+        except (ConfigError, KinematicsError):
+            guess = None
+        warm = EngineND(scene)
+        warm.step()
+        warm.set_port_position(warm.x[:, warm.port].copy())
+        warm.step()
     got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
     x = J = None
     started = False
     held_zero = 0
-    if late_stop:
-        # the compiled kinematics and engine loaded before the clock (a first call's
-        # compilation would be taken for the host's lateness)
-        try:
-            kin.forward_jacobian(np.asarray(scene.device.joints, float), None)
-        except ConfigError:
-            pass
-        EngineND(scene).step()
     t_read = t_prev = time.perf_counter()
     T = scene.period
     late_ring = [0.0] * LATE_WINDOW
@@ -488,7 +497,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                 q = np.radians([theta_deg(e) for e in enc])
                 try:
                     # from the last position: Newton's few steps, not a fresh search
-                    x, J = kin.forward_jacobian(q, x)
+                    x, J = kin.forward_jacobian(q, guess if x is None else x)
                     ok = True
                     joints[k], pos[k] = q, x
                     t_read = time.perf_counter()

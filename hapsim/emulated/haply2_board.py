@@ -689,7 +689,12 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         (N, 2) [rad] read, ``torque`` (N, 2) [N m] written, and optionally ``bounds``
         (N, 2): the largest error of each row's position beyond the readings' rounding
         [m] (an estimated sample's, :func:`hapsim.pipeline.haply2_host.estimate_bounds`),
-        which enters the wire's term through the loop as a reading error does.
+        which enters the wire's term through the loop as a reading error does;
+        optionally ``usable`` (N,) bool: the rows of the record's undisturbed stretches
+        (:func:`hapsim.pipeline.haply2_host.usable_rows`: a record cut at a host stall or
+        a re-synchronisation). A difference is fitted on the rows usable in both its
+        record and the one from rest, every stretch jointly
+        (:func:`hapsim.analysis.pencil.fit_felt_nd`'s ``usable``).
     plan : tuple
         :func:`hapsim.lockstep.identification_plan`'s ``(check, order, N)``.
     resolution : float
@@ -700,7 +705,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     Returns
     -------
     dict
-        As :func:`measure_felt_haply2`.
+        As :func:`measure_felt_haply2`, and ``fitted_rows``: with ``usable`` given, per
+        difference, the rows whose equation was fitted (None without). When the
+        stretches give too few equations for the fit the verdict is "not measurable"
+        with the reason (the whole records' fit reported, nothing stated of it).
     """
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.linearisation import linearisation_bound
@@ -713,7 +721,27 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     rest = runs[0]["position"]
     diffs = [r["position"] - rest for r in runs[1:]]
     mass, T = scene.device.mass, scene.period
-    fit = fit_felt_nd(diffs, mass, T, order)
+    usable = None
+    if any("usable" in r for r in runs):
+        ok0 = np.asarray(runs[0].get("usable", np.ones(len(rest), bool)), bool)
+        usable = [ok0 & np.asarray(r.get("usable", np.ones(len(rest), bool)), bool)
+                  for r in runs[1:]]
+    short = None
+    if usable is not None and not all(np.all(u) for u in usable):
+        usable = _within_excursion(scene, diffs, usable, amplitude)
+    try:
+        fit = fit_felt_nd(diffs, mass, T, order, usable=usable)
+    except ConfigError as exc:
+        if usable is None:
+            raise
+        # the records' undisturbed stretches hold too few equations (each stretch gives
+        # its rows beyond the first ``order``): not measured; the whole records' fit is
+        # reported, no statement made of it
+        short = (f"the records cut at their disturbances (host stalls, "
+                 f"re-synchronisations, missing replies) leave too few undisturbed "
+                 f"stretches of more than {order} rows for the fit ({exc})")
+        usable = None
+        fit = fit_felt_nd(diffs, mass, T, order)
     dev = felt_deviation(fit, chk)
     bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
     q = np.asarray(scene.device.joints, float)
@@ -729,12 +757,31 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
               ("force", np.linalg.inv(J).T, [torque_rel * np.abs(r["torque"]) for r in runs])]
     if any("bounds" in r for r in runs):
         errors.append(("reading", np.eye(n), [r.get("bounds", np.zeros(2)) for r in runs]))
-    wire.update(wire_terms_nd(scene, diffs, chk, order, errors))
-    clamped = int(sum(np.count_nonzero(np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
-                      for r in runs))
+    if usable is not None:
+        # an error at a row no stretch holds (cut out) only changes the initial state of
+        # the stretches after it, a free response the fit does not see to first order
+        # (the prediction error of a free response of the loop is 0): those rows' errors
+        # are left out of the worst case (an estimated row's extrapolation, cut with its
+        # run, is one). The record from rest's errors enter every difference: kept where
+        # any difference uses its row
+        keep = [np.logical_or.reduce(usable)] + list(usable)
+        errors = [(kind, G, [np.where(keep[i][:, None], np.broadcast_to(
+            np.asarray(b[i] if isinstance(b, list) else b, float), (N, n)), 0.0)
+            for i in range(len(runs))]) for kind, G, b in errors]
+    wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable))
+    # a torque at the clamp in a row fitted (a record cut there has none in its
+    # stretches: hapsim.pipeline.haply2_host.usable_rows)
+    clamped = int(sum(np.count_nonzero(
+        (np.abs(r["torque"]) >= np.float32(MAX_TORQUE))
+        & np.asarray(r.get("usable", np.ones(len(r["torque"]), bool)), bool)[:, None])
+        for r in runs))
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk))
+    if short is not None:
+        v = {"verdict": "not measurable", "within": None, "uncertainty": None,
+             "statements": [], "not_stated": ["felt stiffness", "felt damping"],
+             "reason": short}
     if clamped:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
              "statements": [], "not_stated": ["felt stiffness", "felt damping"],
@@ -747,4 +794,62 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
             "quantum": Jn * step / amplitude,
             "quantum_encoders": {g: Jn * 2 * math.pi / GENERATIONS[g].resolution / amplitude
                                  for g in GENERATIONS},
-            "records": 2 * n, "samples": N}
+            "records": 2 * n, "samples": N,
+            "fitted_rows": ([0] * len(diffs) if short is not None else
+                            [int(np.count_nonzero(_window_ok(u, order))) for u in usable]
+                            if usable is not None else None)}
+
+
+def _within_excursion(scene, diffs, usable, amplitude: float) -> list:
+    """``usable`` with the rows after a record's first cut left out where the handle is
+    farther from rest than any undisturbed record goes (the largest excursion of the
+    loop predicted in lockstep from the hand's starts, :class:`hapsim.lockstep.LockstepND`).
+
+    A stretch after a host stall starts where the torque held over the stall left the
+    handle, not from one of the hand's starts: its rows beyond the undisturbed excursion
+    are at an amplitude the linearisation bound (stated at ``a``, as for a record without
+    a cut) does not cover. Measured on the emulated board (configs/pantograph_wall.yaml,
+    the board on its own clock): a 30 ms stall carried a record to 1.0 mm from rest,
+    2.9 times the undisturbed excursion and out of the wall (its depth 0.5 mm), and the
+    felt stiffness fitted there was 14 % off the prediction. The rows before the first
+    cut are the hand's start's, as in a record without one (kept whatever their
+    excursion).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    diffs : list of ndarray, each shape (N, n)
+        The records minus the record from rest [m].
+    usable : list of ndarray of bool, each shape (N,)
+    amplitude : float
+        The hand's ``a`` [m].
+
+    Returns
+    -------
+    list of ndarray of bool, each shape (N,)
+    """
+    from hapsim.lockstep import LockstepND, excitation_starts
+    N = diffs[0].shape[0]
+    rest = LockstepND(scene).step(N, record=True)
+    nominal = 0.0
+    for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)[1:]:
+        r = LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
+        nominal = max(nominal, float(np.max(np.linalg.norm(r - rest, axis=1))))
+    out = []
+    for d_, u in zip(diffs, usable):
+        u = np.asarray(u, bool).copy()
+        cut = np.flatnonzero(~u)
+        if cut.size:
+            after = np.arange(N) > cut[0]
+            u &= ~(after & (np.linalg.norm(d_, axis=1) > nominal))
+        out.append(u)
+    return out
+
+
+def _window_ok(usable, order: int) -> np.ndarray:
+    """Rows ``k >= order`` whose rows ``k - order .. k`` are all usable (the equations
+    :func:`hapsim.analysis.pencil.fit_felt_nd` forms), as a mask."""
+    u = np.asarray(usable, bool)
+    bad = np.concatenate(([0], np.cumsum(~u)))
+    k = np.arange(u.size)
+    return (k >= order) & (bad[k + 1] - bad[np.maximum(k - order, 0)] == 0)

@@ -60,7 +60,7 @@ The hand: at the ``k``-th CONFIG since the device's last HELLO (on connect or an
 HELLO_REQUEST) it lets the handle go from start ``k mod (2n + 1)`` of
 :func:`hapsim.lockstep.excitation_starts` (rest; displaced by ``a`` along each axis;
 moving at ``a / (10 T)`` along each), ``a`` the mock's amplitude. A host identifying the
-felt matrices (:mod:`hapsim.pipeline.run_nd`) asks HELLO and then runs ``2n + 1`` CONFIGs.
+felt matrices (:mod:`hapsim.pipeline.felt_port`) asks HELLO and then runs ``2n + 1`` CONFIGs.
 """
 
 from __future__ import annotations

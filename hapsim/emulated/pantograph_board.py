@@ -11,8 +11,8 @@ five-bar linkage, integrates the linkage's joint-space dynamics
 UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE) or in real
 time (the emulated clock locked to the wall clock; a FORCE that misses its tick's DRIVE
 slot is applied a tick later and named by the STATEs' ``force_seq``, the known input
-:func:`hapsim.pipeline.run_nd.measure_felt_port` takes it as). The leader offers the compact
-frames, which :func:`hapsim.pipeline.run_nd.handshake_nd` asks for: at 1 kHz they leave a
+:func:`hapsim.pipeline.felt_port.measure_felt_port` takes it as). The leader offers the compact
+frames, which :func:`hapsim.pipeline.felt_port.handshake_nd` asks for: at 1 kHz they leave a
 host 372 us to answer, the full frames none (``docs/pantograph.md``).
 
 The leader is a joint-level device (the Haply 2DIY's division of labour): STATE carries
@@ -21,7 +21,7 @@ the joint angles [rad], FORCE the joint torques [N m]; HELLO says so with device
 count, ``force_scale``: N m per PWM step). The forward kinematics in float32 on the 16 MHz
 AVR took about 20,000 cycles a tick, more than the 16,000 of a 1 kHz period
 (``docs/pantograph.md``). :class:`JointLevelTransport` turns it into the Cartesian n-axis
-device :func:`hapsim.pipeline.run_nd.measure_felt_port` talks to: handle position
+device :func:`hapsim.pipeline.felt_port.measure_felt_port` talks to: handle position
 ``f(q)`` and torques ``J(q_n)^T F`` with the scene's geometry
 (:class:`hapsim.kinematics.Pantograph`), as :class:`hapsim.joint_device.LocalJointDeviceND`
 applies them.
@@ -283,7 +283,7 @@ def wire_term(scene, res: dict, rad_per_count: float, torque_step: float) -> dic
     ----------
     scene : hapsim.scene.SceneND
     res : dict
-        :func:`hapsim.pipeline.run_nd.measure_felt_port`'s result (``responses``,
+        :func:`hapsim.pipeline.felt_port.measure_felt_port`'s result (``responses``,
         ``samples``, ``predicted``, ``order``) and ``torque_max`` [N m] (the largest
         torque sent: :attr:`JointLevelTransport.torque_max`).
     rad_per_count : float

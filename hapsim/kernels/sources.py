@@ -8,7 +8,7 @@ A module that compiles others in therefore holds, as a literal in its own file, 
 SHA-256 of those sources (:func:`sources_digest`), and caches only while it matches
 (:func:`cache_ok`); ``tests/test_compiled_loop_sources.py`` asks for the literal to be
 updated when it no longer matches, and that edit to the module's own file is what makes
-numba rebuild its cache. The host loop (:mod:`hapsim.host.fastloop`), the compiled mock
+numba rebuild its cache. The host loop (:mod:`hapsim.host.fastloop_kernels`), the compiled mock
 (:mod:`hapsim.emulated.fastmock`), the multi-rate audio kernel (:mod:`hapsim.kernels.audio`),
 the late-tick rule (:mod:`hapsim.kernels.ticks`) and the JACK callback
 (:mod:`hapsim.audio.jack_native`) use it.
@@ -25,14 +25,14 @@ import os
 __all__ = ["source_paths", "sources_digest", "cache_ok", "LOOP_SOURCES", "MOCK_SOURCES",
            "numba_cache_dir", "loop_stamp"]
 
-#: The modules, besides ``hapsim/host/fastloop.py``, whose code or constants numba
+#: The modules, besides ``hapsim/host/fastloop_kernels.py``, whose code or constants numba
 #: compiles into the compiled host loop (the late-tick rule, the I/O primitives, the engine
 #: kernels, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
 #: a function on its own file's modification time and size only, so an edit to one of these
-#: alone would leave the cached loop on the old code: ``fastloop.py`` holds their SHA-256
-#: (:data:`hapsim.host.fastloop.COMPILED_SOURCES_SHA256`), compiles without the cache
-#: when it does not match, and ``tests/test_compiled_loop_sources.py`` asks for it to be
-#: updated (which touches ``fastloop.py``, so numba recompiles).
+#: alone would leave the cached loop on the old code: ``fastloop_kernels.py`` holds their
+#: SHA-256 (:data:`hapsim.host.fastloop_kernels.COMPILED_SOURCES_SHA256`), compiles without
+#: the cache when it does not match, and ``tests/test_compiled_loop_sources.py`` asks for
+#: it to be updated (which touches ``fastloop_kernels.py``, so numba recompiles).
 LOOP_SOURCES = ("hapsim/kernels/compiled_io.py", "hapsim/host/telemetry.py",
                 "hapsim/kernels/ticks.py", "hapsim/kernels/cordis.py",
                 "hapsim/kernels/schemes.py", "firmware_protocol/codec.py")
@@ -150,4 +150,5 @@ def loop_stamp(kernel_fn: str) -> str:
     """The stamp file :func:`hapsim.host.fastloop.warm_up` leaves once the compiled host
     loop for the kernel ``kernel_fn`` is in numba's cache (the loop is compiled per
     kernel, which numba's index of the loop's functions does not show without numba)."""
-    return os.path.join(numba_cache_dir(source_paths(["hapsim/host/fastloop.py"])[0]), f"hapsim-loop.{kernel_fn}.stamp")
+    return os.path.join(numba_cache_dir(source_paths(["hapsim/host/fastloop_kernels.py"])[0]),
+                        f"hapsim-loop.{kernel_fn}.stamp")

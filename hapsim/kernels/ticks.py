@@ -31,10 +31,10 @@ first due tick after a CONFIG (tick ``d``, when FORCE 0 was not applied there), 
 account says late and the loop cannot.
 
 numba's on-disk cache keys a compiled function on its own source file only: the compiled
-host loop inlines these functions, so ``hapsim/host/fastloop.py`` holds the SHA-256 of
-this file and the others it compiles in (``COMPILED_SOURCES_SHA256``; it compiles without
-the cache while that is stale, and ``tests/test_compiled_loop_sources.py`` asks for the
-update, which edits fastloop.py so that numba rebuilds its cache).
+host loop inlines these functions, so ``hapsim/host/fastloop_kernels.py`` holds the SHA-256
+of this file and the others it compiles in (``COMPILED_SOURCES_SHA256``; it compiles
+without the cache while that is stale, and ``tests/test_compiled_loop_sources.py`` asks for
+the update, which edits fastloop_kernels.py so that numba rebuilds its cache).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ Modules
     results are the records of :mod:`hapsim.pipeline.run_types`, its identification step
     :mod:`hapsim.pipeline.measure`, its options :mod:`hapsim.pipeline.options`, its report
     :mod:`hapsim.pipeline.report`, its start-up :mod:`hapsim.pipeline.startup`.
-:mod:`hapsim.pipeline.run_nd`
+:mod:`hapsim.pipeline.felt_port`
     The run of a 2-D or 3-D scene.
 :mod:`hapsim.pipeline.identify_run`
     ``hapsim identify``'s run: the device's mass, friction and delay from a record.

@@ -21,14 +21,15 @@ compared with the count the emulated encoder had (``truth``).
 
 from __future__ import annotations
 
+import gc
 import time
 
 import numpy as np
 
 from hapsim.errors import DeviceError
 
-__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "FIRMWARE_PROBES",
-           "WORKSPACE_RAD"]
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "reply_timeout",
+           "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
 FIRMWARE_PROBES = 10
@@ -44,6 +45,37 @@ HELD_PERIODS = 2.0
 #: zero commands until a reply comes (``held_zero``); the 1-DoF drivers' bound
 #: (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
 HOLD_BOUND_S = 0.02
+#: The wait [s] for a reply beyond the firmware's tick: the FT232R's latency timer as the
+#: firmware load leaves it (1 ms, the last line settings of
+#: :meth:`hapsim.drivers.falcon.FalconFirmwareLoader.steps`) and one full-speed USB frame
+#: (1 ms). A reply later than that is a missing
+#: sample (read by the next exchange if it comes, libnifalcon's runIOLoop keeping the
+#: newest): the host does not wait on, the Falcon (no watchdog published) holding the last
+#: command meanwhile. Before, the command waited 50 ms for a lost reply, over twice
+#: :data:`HOLD_BOUND_S`.
+REPLY_SLACK_S = 0.002
+#: The wait [s] for each of the firmware's first answers after its load
+#: (:data:`FIRMWARE_PROBES` of them): the wait each reply had before, not the loop's.
+PROBE_TIMEOUT_S = 0.05
+
+
+def reply_timeout(rate_hz: float) -> float:
+    """The loop's wait for one reply [s]: one period of the firmware's clock (the packet
+    is taken at its next tick) and :data:`REPLY_SLACK_S`.
+
+    Parameters
+    ----------
+    rate_hz : float
+        The scene's rate [Hz] (> 0), the Falcon's packet rate.
+
+    Returns
+    -------
+    float
+        ``1 / rate_hz + REPLY_SLACK_S`` (3 ms at 1 kHz: below :data:`HOLD_BOUND_S`).
+    """
+    return 1.0 / float(rate_hz) + REPLY_SLACK_S
+
+
 #: The legs' workspace in a run [rad]: the largest departure of any leg from the scene's
 #: operating point a run may reach (the emulated Falcon's truth, ``excursion``, is held
 #: to it by tools/driver_timing.py and the tests). The delta of configs/delta_sphere.yaml
@@ -110,6 +142,10 @@ def falcon_verdict(res: dict) -> dict:
             f"the host stalled {res['stalls']} times (a command held up to "
             f"{res['held_max_s'] * 1e3:.1f} ms, more than {HELD_PERIODS:g} periods): the "
             "Falcon held it on its own clock, another loop than the scene's")
+    if res.get("paced") and res.get("waits"):
+        said = (said + "; " if said else "") + (
+            f"{res['waits']} commands held more than {HELD_PERIODS:g} periods while the "
+            "host waited for a reply that did not come: another loop than the scene's")
     slow = res.get("slow")
     if slow:
         said = (said + "; " if said else "") + (
@@ -146,7 +182,7 @@ def _reply_end(b: bytes) -> bool:
 
 
 def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
-               timeout: float = 0.05, before_loop=None,
+               timeout: float | None = None, before_loop=None,
                homing_limit: int = 20000, paced: bool = False,
                load_attempts: int = 3) -> dict:
     """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
@@ -167,8 +203,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         readings.
     progress : callable, optional
         ``progress(k)`` after each stage (firmware, homing, loop).
-    timeout : float
-        Wait for each reply [s].
+    timeout : float, optional
+        Wait for each reply [s]; default :func:`reply_timeout` of the scene's rate (the
+        Falcon holds the last command while the host waits: a lost reply must not keep
+        it longer than :data:`HOLD_BOUND_S`).
     before_loop : callable, optional
         Called once the legs are homed, before the loop (the tests switch faults on).
     homing_limit : int
@@ -193,8 +231,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         ``truth``: ``compared``, ``exact``, ``max_error_counts``), ``rate_hz`` (the
         scene's), ``slow`` (periods each command was held, when ``paced`` and slow; else
         None), ``zeroed`` (zero-command packets sent after the loop), ``stalls`` (gaps
-        of more than :data:`HELD_PERIODS` periods between two of the loop's packets: the
-        host stalled, the firmware held the last command), ``held_max_s`` (the longest
+        of more than :data:`HELD_PERIODS` periods between two of the loop's packets after
+        a reply that came: the host stalled, the firmware held the last command),
+        ``waits`` (such gaps after a reply that did not come before ``timeout``: the host
+        waited for it), ``held_max_s`` (the longest
         gap [s]), ``paced``, ``verdict``, ``reason``.
 
     Raises
@@ -203,8 +243,6 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         The firmware load failed (what to check), the legs did not home, the link failed
         or the Falcon went away (after how many packets).
     """
-    from hapsim.emulated.falcon_device import drive_falcon, home
-    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
     from hapsim.drivers.falcon_usb import load_firmware_link
     from hapsim.errors import FirmwareEchoError
     for attempt in range(1, load_attempts + 1):
@@ -219,13 +257,44 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     fw["attempts"] = attempt
     if progress:
         progress(1)
+    if timeout is None:
+        timeout = reply_timeout(scene.rate_hz)
+    # as every real-time loop of hapsim (hapsim.host.loop): no collector pause while the
+    # Falcon runs on its own clock (a full collection in a process with numba and scipy
+    # loaded took 40 ms, forty periods of a command held), collected here, before the
+    # first packet, while the firmware holds none
+    gc_was = gc.isenabled()
+    if paced:
+        gc.collect()
+    gc.disable()
+    try:
+        return _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
+                                 homing_limit, before_loop, progress)
+    finally:
+        if gc_was:
+            gc.enable()
+
+
+def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
+                      homing_limit, before_loop, progress):
+    """:func:`run_falcon` after the firmware load: the probes, the homing, the loop."""
+    from hapsim.emulated.falcon_device import drive_falcon, home
+    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
     sent = [0]
     truths = []
     # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
     # between two packets is a host stall (the firmware held the last command over it)
     stamps = []
+    # whether each exchange's reply came before its timeout: a gap after one that did
+    # not is the host waiting for a lost reply, not the host stalled
+    answered = []
 
     drain = getattr(link, "read", None)
+    # the firmware's first answers after its load are waited for as long as the load's
+    # own (PROBE_TIMEOUT_S: a firmware still starting is not one that does not run); from
+    # the homing on, a reply is waited for ``timeout`` (reply_timeout: the Falcon holds
+    # the last command meanwhile)
+    wait = [max(timeout, PROBE_TIMEOUT_S)]
 
     def feed(packet: bytes) -> bytes:
         sent[0] += 1
@@ -241,7 +310,8 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
             late = drain(64, 0.0) if drain is not None and sent[0] > 1 else b""
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
-            ans = late + link.exchange(packet, 32, _reply_end, timeout)
+            ans = late + link.exchange(packet, 32, _reply_end, wait[0])
+            answered.append(_reply_end(ans))
         except DeviceError as exc:
             raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
                               "load)") from None
@@ -258,6 +328,7 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
                           "firmware load: is the image the Novint firmware for the Falcon "
                           "(libnifalcon's test firmware answers no packets)? Unplug and "
                           "plug the Falcon and load again")
+    wait[0] = timeout
     try:
         homing = home(feed, LED_BLUE, limit=homing_limit, decoder=dec)
     except DeviceError as exc:
@@ -272,6 +343,7 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         before_loop()
     t0 = time.perf_counter()
     stamps.clear()
+    answered.clear()
     try:
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
                            hold_bound_s=HOLD_BOUND_S if paced else None,
@@ -290,7 +362,11 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
            "held_zero": res["held_zero"], "stopped": res["stopped"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
-    out["stalls"] = int(np.sum(gaps > HELD_PERIODS))
+    # gap k follows exchange k: after a reply that never came (lost bytes) the host
+    # waited its timeout for it; after one that came, a long gap is the host's own
+    waited = ~np.asarray(answered[:gaps.size], bool)
+    out["stalls"] = int(np.sum((gaps > HELD_PERIODS) & ~waited))
+    out["waits"] = int(np.sum((gaps > HELD_PERIODS) & waited))
     out["held_max_s"] = float(gaps.max() / scene.rate_hz) if gaps.size else 0.0
     pps = out["packets_per_s"]
     if paced and pps and pps < 0.9 * scene.rate_hz:

@@ -4,7 +4,7 @@
 
 ``lockstep`` without a ``port``: the loop closed in-process
 (:func:`hapsim.lockstep.measure_felt_lockstep`). Otherwise over the framed protocol
-with an n-axis device (:func:`hapsim.pipeline.run_nd.measure_felt_port`): the ``port``
+with an n-axis device (:func:`hapsim.pipeline.felt_port.measure_felt_port`): the ``port``
 given, or an embedded n-D mock (``hapsim mock --scene SCENE --once``) in a child process
 of its own session behind a pty, real time unless ``lockstep``. Over a port a stop
 requested (Ctrl-C or SIGTERM when ``handle_signals``, or ``RunOptions.stop``) ends the
@@ -139,7 +139,7 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     -------
     (dict, dict or None)
         The measurement (:func:`hapsim.lockstep.measure_felt_lockstep`'s or
-        :func:`hapsim.pipeline.run_nd.measure_felt_port`'s, with ``bound`` at the records'
+        :func:`hapsim.pipeline.felt_port.measure_felt_port`'s, with ``bound`` at the records'
         largest excursion) and, over a port, ``{"port", "embedded", "mock",
         "scheduling", "faults", "fault_seed", "faults_injected"}`` (and ``device``,
         ``clamped`` for a joint-level pantograph); None in-process.
@@ -166,7 +166,7 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
 
 
 def _over_port(scene, opts, a: float, progress):
-    """:func:`hapsim.pipeline.run_nd.measure_felt_port` over ``opts.port`` or an embedded
+    """:func:`hapsim.pipeline.felt_port.measure_felt_port` over ``opts.port`` or an embedded
     mock; the child and its temporary folder are gone whatever the way this ends."""
     import gc
     import json
@@ -182,7 +182,7 @@ def _over_port(scene, opts, a: float, progress):
     from hapsim.errors import DeviceError
     from hapsim.host.realtime import RealtimePriority
     from hapsim.host.transport import SerialTransport
-    from hapsim.pipeline.run_nd import measure_felt_port
+    from hapsim.pipeline.felt_port import measure_felt_port
     from hapsim.spawn import StopFlag, at_stop, child_env, done
     child = None
     port = opts.port

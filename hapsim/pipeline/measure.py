@@ -126,15 +126,15 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         # own initial state (the clamped forces still in flight are part of it; the fit
         # drops each stretch's first delay + 2 rows), so the measurement stays exact
         clamp_unknown = (cols["flags"] & FLAG_CLAMPED) != 0 if computed is None else None
-        # rows whose applied force the driver cannot name at all (an unframed board's
-        # parser out of step: hapsim.drivers.base.Driver.unknown_force_rows), cut as those
-        unknown = (driver.unknown_force_rows(cols)
-                   if driver is not None and hasattr(driver, "unknown_force_rows") else None)
-        if unknown is not None:
-            clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
         position, late, late_info = late_accounted(
             scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
             computed=computed)
+        # rows whose applied force the driver's account cannot name at all (an unframed
+        # board's parser out of step: hapsim.drivers.base.Driver.unknown_force_rows, the
+        # account's known False: what identify's fit leaves out too), cut as those
+        unknown = late_info.pop("_unknown_rows", None)
+        if unknown is not None:
+            clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
         wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", None)
         lfb = late_info.pop("_late_force_bound", None)

@@ -80,7 +80,8 @@ def cache_is_fresh(source: str, function: str) -> bool:
 
 
 _HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-_FASTLOOP = os.path.join(_HERE, "host", "fastloop.py")
+#: The compiled host loop's numba code (numba keys its cache on this file).
+_LOOP_KERNELS = os.path.join(_HERE, "host", "fastloop_kernels.py")
 
 
 def scene_kernel(scene) -> tuple[str, str]:
@@ -128,7 +129,7 @@ def loop_is_fresh(scene) -> bool:
     src, fn = scene_kernel(scene)
     try:
         at = os.stat(loop_stamp(fn)).st_mtime
-        return all(at >= os.stat(p).st_mtime for p in (_FASTLOOP, src, *loop_sources()))
+        return all(at >= os.stat(p).st_mtime for p in (_LOOP_KERNELS, src, *loop_sources()))
     except OSError:
         return False
 
@@ -203,7 +204,7 @@ def run_compile_parts(scene, *, compiled_loop: bool) -> list[tuple[str, str, str
     src, fn = scene_kernel(scene)
     parts = [("the engine's kernels", src, fn)]
     if compiled_loop:
-        parts.append(("the compiled host loop", _FASTLOOP, "_stretch"))
+        parts.append(("the compiled host loop", _LOOP_KERNELS, "answer_stretch"))
     return parts
 
 
@@ -236,7 +237,7 @@ def part_is_fresh(part, scene=None) -> bool:
     """Whether a part of :func:`run_compile_parts` is in numba's cache (every function of
     :func:`part_functions`; the compiled loop by its stamp, :func:`loop_is_fresh`)."""
     what, src, fn = part
-    if src == _FASTLOOP and scene is not None:
+    if src == _LOOP_KERNELS and scene is not None:
         return loop_is_fresh(scene)
     return all(cache_is_fresh(s, f) for s, f in part_functions(part))
 
