@@ -185,7 +185,9 @@ class HapkitSerial(Driver):
     name = "hapkit-serial"
     baud = 57600
     rtscts = False
-    native_rate_hz = 300.0
+    #: The highest rate the driver takes (:meth:`check_rate`): a whole number of the
+    #: sketch's ticks (4 ms) whose period holds a command and its answer at 57600 baud
+    native_rate_hz = 250.0
     device_id = 0x48415053           # "HAPS"
     position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
     force_rel = 2.0 ** -24
