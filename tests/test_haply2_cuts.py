@@ -139,7 +139,6 @@ def _measure(monkeypatch, seed, *, loss=0.0, stalls=None, clock="wall", inertia=
     write (on the wall clock the board holds the torque meanwhile), ``loss`` of the bytes
     lost each way, the board's joint inertia ``inertia`` times the scene's (a hidden
     difference)."""
-    from hapsim.errors import DeviceError  # noqa: F401  (what the loop may raise)
     clk = SimClock()
     monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))

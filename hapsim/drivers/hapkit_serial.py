@@ -50,7 +50,11 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
     floats; a corrupted float byte is a wrong force or position
   the stock sketch renders its own environments: the firmware must apply the second
     float as the handle force for function code 255 (see docs/devices.md)
-  57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz"""
+  57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz
+  the sketch takes each command on its own 1 kHz tick: the host's period must be a
+    whole number of ticks (250, 200, 166.7, ... Hz), and the host times its writes in
+    the middle of a tick, measured at the first arming (a board whose crystal drifts from
+    the host's clock walks that phase by its drift times the run's length)"""
 
 
 def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
@@ -181,13 +185,21 @@ class HapkitSerial(Driver):
     name = "hapkit-serial"
     baud = 57600
     rtscts = False
-    native_rate_hz = 300.0
+    #: The highest rate the driver takes (:meth:`check_rate`): a whole number of the
+    #: sketch's ticks (4 ms) whose period holds a command and its answer at 57600 baud
+    native_rate_hz = 250.0
     device_id = 0x48415053           # "HAPS"
     position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
     force_rel = 2.0 ** -24
     position_scale = 0.0             # float32 on the wire: the firmware's resolution
     force_scale = 0.0
     limits = LIMITS
+    #: The sketch's control tick [s]: a command is taken at the tick after it has come,
+    #: the handle read and the force applied there
+    #: (:class:`hapsim.emulated.driver_mock.HapkitSerialDevice`). The transport measures
+    #: where its writes fall in that tick at arming and writes in its middle
+    #: (:meth:`hapsim.drivers.transport.DriverTransport.tick_phase`).
+    tick_s = 1e-3
     answering_firmware = "WHC2017 Hapkit sketch layout (one reply per command)"
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0) -> None:
@@ -209,6 +221,43 @@ class HapkitSerial(Driver):
     def applied_force(self, force: float) -> float:
         """The force the command carries [N]: clamped, rounded to binary32."""
         return _FF.unpack(self.encode_force(force)[2:])[1]
+
+    def check_rate(self, rate_hz: float) -> None:
+        """Refuse a rate the sketch cannot hold (:meth:`Driver.check_rate`: a command and
+        its reply must fit in a period), or whose period is no whole number of its
+        :attr:`tick_s`: the board reads the handle and applies a force only on its ticks,
+        so such a period is sampled at intervals of whole ticks that alternate (at 300 Hz:
+        3, 3 and 4 ms), not the period the loop is modelled with, and the measurement
+        would compare another loop with the prediction.
+
+        Parameters
+        ----------
+        rate_hz : float
+            The scene's rate [Hz].
+
+        Raises
+        ------
+        ConfigError
+            The rate is above :meth:`max_rate_hz`, or its period is not a whole number of
+            ticks (the message names the nearest rates that are).
+        """
+        super().check_rate(rate_hz)
+        ticks = 1.0 / (float(rate_hz) * self.tick_s)
+        if abs(ticks - round(ticks)) > 1e-9 * ticks or round(ticks) < 1:
+            from hapsim.errors import ConfigError
+            lo, hi = math.floor(ticks), math.ceil(ticks)
+            near = [f"{1.0 / (t * self.tick_s):g} Hz" for t in (hi, lo)
+                    if t >= 1 and 1.0 / (t * self.tick_s) <= self.max_rate_hz()]
+            raise ConfigError(
+                f"{self.name}: {rate_hz:g} Hz is no whole number of the sketch's "
+                f"{self.tick_s * 1e3:g} ms ticks (the board samples and applies forces on "
+                f"them: its intervals would alternate, not the loop modelled); nearest: "
+                f"{', '.join(near) or 'none'}", key="rate_hz")
+
+    def probe_decoder(self):
+        """A fresh frame decoder for the transport's tick probe at arming: replies as
+        ``(x, force)``, not logged in :attr:`replies` (they answer no row)."""
+        return ReplyDecoder(self.function)
 
     def round_trip_s(self) -> float:
         """A 10-byte command and its 9-byte reply at 57600 baud, 10 bits a byte [s]

@@ -911,6 +911,7 @@ class HapkitSerialDevice(_Actuated):
                  clock: str = "wall", seed: int = 0) -> None:
         from hapsim.drivers import hapkit_serial as hk
         self._hk = hk
+        self._phases: list = []                       # where in its tick each came
         super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
         self.decoder = hk.CommandDecoder()
         self.ready_at = 0.0
@@ -925,6 +926,7 @@ class HapkitSerialDevice(_Actuated):
             if wall:
                 # the tick after the command came (several in one read: one tick each)
                 k = max(math.floor(now / self.TICK_S) + 1, self._tick + 1)
+                self._phases.append(now / self.TICK_S - math.floor(now / self.TICK_S))
                 self._tick = k
                 tick = k * self.TICK_S
                 self.wall.run_to(tick)
@@ -945,6 +947,18 @@ class HapkitSerialDevice(_Actuated):
     def idle(self, silent_s: float) -> bytes:
         """The sketch has no silence rule: it holds its force."""
         return b""
+
+    @property
+    def tick_arrivals(self) -> dict:
+        """Where in the sketch's tick the commands came (wall clock), for the host's
+        timing: ``commands``; ``near_boundary``, those within a tenth of a tick of the
+        tick's end or start (a command coming there is taken at one tick or the next by
+        a jitter of 0.1 ms: a sample interval a tick off the host's period);
+        ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick]."""
+        ph = sorted(self._phases)
+        near = sum(1 for p in ph if p < 0.1 or p > 0.9)
+        return {"commands": len(ph), "near_boundary": near,
+                "median_phase": ph[len(ph) // 2] if ph else None}
 
 
 class ByteFaults:
@@ -1113,7 +1127,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             handled.publish(n_read, n_written)
     n = dev.commands()
     extra = {}
-    for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk"):
+    for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk", "tick_arrivals"):
         if hasattr(dev, k):
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):

@@ -1,0 +1,265 @@
+"""The Hapkit sketch takes commands on its own 1 kHz tick: the host writes in its middle.
+
+The sketch reads the handle and applies a command's force at its first tick after the
+command has come (:class:`hapsim.emulated.driver_mock.HapkitSerialDevice`). A host whose
+writes come near a tick's boundary has them taken at one tick or the next by its jitter:
+sample intervals of 3 and 5 ms in a loop modelled at 4 ms. Where the host's writes fell
+was an accident of its latency at the arming (its first deadline is a third of a period
+after the arming's reply): beside two CPU-bound processes one run in 20 had 77 % of its
+commands within a tenth of a tick of the boundary. The transport now measures the
+boundary at the first arming (:meth:`hapsim.drivers.transport.DriverTransport.tick_phase`) and
+delays its writes into the tick's middle; the driver refuses a rate whose period is no
+whole number of ticks (the sampling would alternate by construction).
+
+In process, a board on a tick grid of its own (a phase and a link latency chosen by the
+test, both unknown to the host): the probe finds the boundary, and writes the host makes
+exactly at the boundary reach the board mid-tick. Over a pty, beside two CPU-bound
+processes: the closed loop on the board's own clock is within the stated uncertainty, and
+a hidden friction the scene does not state is still seen.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+import pytest
+
+from hapsim.drivers import hapkit_serial as hk
+from hapsim.drivers.transport import TICK_PROBES, DriverTransport
+from hapsim.errors import ConfigError
+
+TICK_NS = 1_000_000
+#: The reply's 9 bytes at 57600 baud [ns] (the sketch's reply leaves at its tick).
+WIRE_NS = 9 * 10 * 10**9 // 57600
+
+
+class TickingPort:
+    """A serial port whose far end is the sketch's tick: a command written at ``t`` comes
+    at ``t + transit_ns``, is taken at the first tick after that (ticks at ``phase_ns``
+    plus whole ``TICK_NS``, on the monotonic clock), and its reply is readable
+    ``WIRE_NS`` after that tick. ``arrivals`` keeps each command's arrival phase within
+    its tick [ns after the tick before it] and ``ticks`` the tick it was taken at."""
+
+    def __init__(self, phase_ns: int, transit_ns: int) -> None:
+        self.phase = int(phase_ns)
+        self.transit = int(transit_ns)
+        self.pending: deque = deque()
+        self.rx = bytearray()
+        self.arrivals: list = []
+        self.ticks: list = []
+        self.timeout = 0.005
+
+    def _move(self) -> None:
+        now = time.monotonic_ns()
+        while self.pending and self.pending[0][0] <= now:
+            self.rx += self.pending.popleft()[1]
+
+    @property
+    def in_waiting(self) -> int:
+        self._move()
+        return len(self.rx)
+
+    def write(self, data: bytes) -> int:
+        arr = time.monotonic_ns() + self.transit
+        k = (arr - self.phase) // TICK_NS + 1
+        self.arrivals.append((arr - self.phase) % TICK_NS)
+        self.ticks.append(k)
+        ready = self.phase + k * TICK_NS + WIRE_NS
+        self.pending.append((ready, hk.reply_packet(hk.HOST_FORCE_FUNCTION, 0.01, 0.0)))
+        return len(data)
+
+    def read(self, n: int = 1) -> bytes:
+        end = time.monotonic_ns() + int(self.timeout * 1e9)
+        while True:
+            self._move()
+            if self.rx:
+                out = bytes(self.rx[:n])
+                del self.rx[:n]
+                return out
+            now = time.monotonic_ns()
+            if now >= end:
+                return b""
+            nxt = self.pending[0][0] if self.pending else end
+            time.sleep(max(min(nxt, end) - now, 0) * 1e-9)
+
+    def set_low_latency_mode(self, on: bool) -> None:
+        raise NotImplementedError("a test port")
+
+    def close(self) -> None:
+        pass
+
+
+def _transport(monkeypatch, port: TickingPort) -> DriverTransport:
+    import serial
+    monkeypatch.setattr(serial, "serial_for_url", lambda *a, **k: port)
+    return DriverTransport(hk.HapkitSerial(), "ticking://test", delay=1)
+
+
+def _near(phases, frac: float = 0.1) -> float:
+    """Fraction of arrival phases [ns] within ``frac`` of a tick of its boundary."""
+    p = np.asarray(phases, float) / TICK_NS
+    return float(np.mean((p < frac) | (p > 1 - frac)))
+
+
+@pytest.mark.parametrize("phase_us, transit_us", [(0, 0), (300, 200), (700, 1300),
+                                                  (950, 40)])
+def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, phase_us,
+                                                                   transit_us):
+    """The probe at arming places the boundary (the write time whose command comes just
+    too late for a tick: the board's phase less the link's transit, neither known to the
+    host) to within a sixteenth of a tick: half the probes' spacing for the midpoint
+    between the two probes either side of it, as much again for the write's time stamp
+    (taken just before the write: microseconds, unless the test process is preempted
+    there, which the fit's clipped deviations absorb). Then 60 writes the host makes at
+    a 4 ms period at that boundary (the worst phase its latency can give it; the test
+    process's own lateness measured over 20 writes and taken off), jittered by +-50 us:
+    unaligned, their median arrival is within 0.15 tick of the boundary (asserted: the
+    test's board is a real tick and the writes are at its jump); aligned, the median
+    arrival is at least 0.15 tick from the boundary and at most a quarter come within a
+    tenth of a tick of the boundary (the band the delay keeps the writes in is 0.15 from
+    it; what comes nearer is the test process's sleep overshooting by more: measured 0
+    to 13 % of 60 beside a load of 4, so the bound has a margin of about 2)."""
+    port = TickingPort(phase_us * 1000, transit_us * 1000)
+    tr = _transport(monkeypatch, port)
+    found = tr.tick_phase()
+    assert found is not None, tr.tick_probe
+    assert found["probes"] >= TICK_PROBES - 4
+    truth = (port.phase - port.transit) % TICK_NS
+    err = (tr._write_at - truth + TICK_NS // 2) % TICK_NS - TICK_NS // 2
+    assert abs(err) <= TICK_NS // 16, (err, found)
+    rng = np.random.default_rng(phase_us)
+    cmd = tr.driver.encode_force(0.0)
+
+    def writes(aligned: bool, shift: int = 0, n: int = 60) -> list:
+        port.arrivals.clear()
+        at = tr._write_at + TICK_NS * (1 + (time.monotonic_ns() - tr._write_at) // TICK_NS)
+        saved = tr._write_at
+        if not aligned:
+            tr._write_at = None
+        for j in range(n):
+            due = at - shift + j * 4 * TICK_NS + int(rng.uniform(-50e3, 50e3))
+            wait = due - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait * 1e-9)
+            tr._command(cmd)
+        tr._write_at = saved
+        return list(port.arrivals)
+
+    # the test process's own lateness (its sleep's overshoot and the call): taken off the
+    # natural write times, so that they come at the boundary
+    late = (np.asarray(writes(False, n=20)) + TICK_NS // 2) % TICK_NS - TICK_NS // 2
+    shift = int(np.median(late))
+    raw = writes(False, shift)
+    signed = (np.asarray(raw) + TICK_NS // 2) % TICK_NS - TICK_NS // 2
+    assert abs(np.median(signed)) <= 0.15 * TICK_NS, sorted(raw)   # at the jump
+    got = writes(True, shift)
+    med = float(np.median(got)) / TICK_NS
+    assert abs(med - 0.5) <= 0.35, (med, sorted(got))
+    assert _near(got) <= 0.25, sorted(got)
+
+
+def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
+    """The sketch samples and applies forces on its 1 ms ticks: 300 Hz would sample at 3,
+    3 and 4 ms intervals (another loop than the one modelled), so it is refused with the
+    nearest rates that hold; periods of whole ticks within the link's limit pass."""
+    drv = hk.HapkitSerial()
+    for rate in (250.0, 200.0, 1000.0 / 6, 125.0, 1.0):
+        drv.check_rate(rate)
+    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 250 Hz"):
+        drv.check_rate(300.0)
+    with pytest.raises(ConfigError, match="no whole number"):
+        drv.check_rate(240.0)
+    with pytest.raises(ConfigError, match="cannot be held"):
+        drv.check_rate(500.0)
+
+
+# ------------------------------------------------------------------ real time, loaded
+
+def _burn(until: float) -> None:
+    while time.monotonic() < until:
+        pass
+
+
+@pytest.fixture
+def two_cpu_hogs():
+    """Two CPU-bound processes for the test's length (each ends by itself within 90 s)."""
+    import multiprocessing as mp
+
+    from load import burners_for  # same directory (pytest prepend import mode)
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_burn, args=(time.monotonic() + 90.0,), daemon=True)
+             for _ in range(burners_for(2))]
+    for p in procs:
+        p.start()
+    time.sleep(0.2)
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.terminate()
+            p.join(5.0)
+
+
+def _run(seed: int, **kw) -> dict:
+    from pathlib import Path
+
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "configs" / "hapkit_serial.yaml"))
+    return run_scene(sc, driver="hapkit-serial", duration=1.5, handle_signals=False,
+                     seed=seed, driver_faults={"drop_tx": 0.0, "drop_rx": 0.0, "seed": seed},
+                     **kw)
+
+
+@pytest.mark.parametrize("seed", [2, 6])
+def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu_hogs, seed):
+    """The THS through the sketch's bytes on the board's own clock, two CPU-bound
+    processes running (SCHED_FIFO 10 where the OS permits, as ``hapsim run``): the
+    transport found the board's tick at the arming and its commands came mid-tick -- at
+    most 10 % within a tenth of a tick of the boundary (the board's own count; the rest a
+    loaded machine's late writes: measured 0.3-4 % here beside two hogs and a load of 4;
+    77 % in the unaligned run it was written for) -- and the verdict is not "differs"
+    (within, or not measurable with its reason after a safety stop on the host's own
+    lateness). Seed 6 is the table's run that said "differs" (docs/driver_timing.json)."""
+    assert all(p.is_alive() for p in two_cpu_hogs)
+    rep = _run(seed)
+    loop, m = rep["loop"], rep["measured"]
+    assert loop["mock"]["clock"] == "wall"
+    assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
+    arr = loop["mock"]["tick_arrivals"]
+    verdict = str(m.get("verdict"))
+    info = (verdict, m.get("rel_err"), m.get("k_unc"), m.get("b_unc"), arr,
+            {q: loop.get(q) for q in ("estimated", "overruns", "late", "missed",
+                                      "stop_reason")},
+            loop["driver"].get("tick_probe"), m.get("error"))
+    assert not verdict.startswith("measured differs"), info
+    if loop.get("safety_stop"):
+        # the one stop allowed: the host's own lateness (a loaded machine), zero torque
+        assert "the host was" in loop["stop_reason"], info
+        return
+    assert arr["near_boundary"] <= 0.1 * arr["commands"], info
+    assert m.get("within") is True or verdict.startswith("not measurable"), info
+
+
+def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
+    """The same loop, the writes timed mid-tick, against a paddle with a viscous friction
+    of 0.3 N s/m more than the scene states (the felt b, predicted 0.5 N s/m with the
+    spring's 0.2, becomes 0.8): "differs", the measured b above the prediction by more
+    than its stated uncertainty (stated: 1-8 % of b in the runs above)."""
+    import dataclasses
+
+    import hapsim.emulated.driver_mock as dm
+    init = dm.EmbeddedDriverMock.__init__
+
+    def hidden(self, driver, device, *a, **k):
+        init(self, driver, dataclasses.replace(device, friction=device.friction + 0.3),
+             *a, **k)
+    monkeypatch.setattr(dm.EmbeddedDriverMock, "__init__", hidden)
+    rep = _run(1)
+    loop, m = rep["loop"], rep["measured"]
+    assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
+    assert str(m.get("verdict")).startswith("measured differs"), m.get("verdict")
+    assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
+                                                         m["b_unc"])
