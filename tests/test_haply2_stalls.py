@@ -248,7 +248,7 @@ def test_a_stalled_record_is_cut_at_the_stall_on_a_board_with_its_own_clock(monk
     import types
     from hapsim.lockstep import identification_plan
     clk = SimClock()
-    monkeypatch.setattr(host, "time", types.SimpleNamespace(
+    monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = load_scene_nd(WALL)
     N = 40
