@@ -27,7 +27,8 @@ import numpy as np
 import pytest
 
 from hapsim.drivers import hapkit_serial as hk
-from hapsim.drivers.transport import TICK_PROBES, DriverTransport
+from hapsim.drivers.tick_align import TICK_PROBES
+from hapsim.drivers.transport import DriverTransport
 from hapsim.errors import ConfigError
 
 TICK_NS = 1_000_000

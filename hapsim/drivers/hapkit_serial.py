@@ -198,7 +198,7 @@ class HapkitSerial(Driver):
     #: the handle read and the force applied there
     #: (:class:`hapsim.emulated.driver_mock.HapkitSerialDevice`). The transport measures
     #: where its writes fall in that tick at arming and writes in its middle
-    #: (:meth:`hapsim.drivers.transport.DriverTransport.tick_phase`).
+    #: (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`).
     tick_s = 1e-3
     answering_firmware = "WHC2017 Hapkit sketch layout (one reply per command)"
 
