@@ -1,0 +1,179 @@
+"""The Haply M3 board (firmware V1.5), byte for byte: its command parser
+(:class:`hapsim.emulated.haply_firmware.CommandDecoder`), its set-up's wait and encoder
+offset, its passes, driving the joint's physics (:class:`hapsim.emulated.actuated.Actuated`);
+served on a pty by :func:`hapsim.emulated.driver_mock.serve`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from hapsim.emulated.actuated import Actuated
+
+__all__ = ["HaplyDevice"]
+
+
+class HaplyDevice(Actuated):
+    """A Haply M3 board (firmware V1.5) whose motor 1 / encoder 1 joint is the mock
+    device's axis (rotary: mass = inertia [kg m^2], force = torque [N m], position = angle
+    [rad]).
+
+    The board as its firmware is: no watchdog (the motor holds its torque until a write
+    changes it, through resets and set-ups), the parser of :class:`CommandDecoder` (no
+    framing: misaligned bytes are other commands), a reply ``[addr]`` + a float32 per
+    analog pin and encoder of ``addr`` to every write (1 byte when nothing has that
+    address), the angle ``360 * count / resolution`` with the set-up's resolution and the
+    count set to the set-up's offset.
+
+    Its time (``clock="wall"``, the default): the firmware's ``loop()`` takes one command
+    per pass and answers a write in the same pass, after setting the motor's duty
+    (``Haply_M3_Firmware_V1_5.ino``, ``loop``: ``write_states`` then ``read_states``;
+    HaplyHaptics/Haply-Arduino-Firmware-Versions, commit edcf50f), so the angle a reply
+    carries is sampled when its write arrives and the torque acts from then on, held
+    until the next write (no watchdog: :class:`hapsim.emulated.actuated.Actuated`, ``natural_delay`` 1). A set-up
+    costs :data:`SETUP_S`: ``initialize_encoder`` (``Haply_M3_Firmware_V1_5.h``) builds a
+    ``new Encoder(...)``, whose constructor waits ``delayMicroseconds(2000)`` for the
+    pins' R-C filter (``Arduino_Support_Libraries/Encoder/Encoder.h``, ``Encoder(uint8_t,
+    uint8_t)``) before the count is written with the offset; the commands after it wait,
+    the joint does not. A pass begins at least :data:`PASS_S` after the one before
+    (``loop``: ``if(micros() - lastPublished >= 50)``, ``Haply_M3_Firmware_V1_5.ino`` line
+    61) and takes one command: the 278 resets of 556 zero bytes take 14 ms of passes, the
+    torque held meanwhile. A single ``read()`` of a byte not arrived gives 255
+    (:class:`CommandDecoder` with ``absent=255``). ``clock="lockstep"``: each write is one
+    period.
+
+    Parameters
+    ----------
+    device, rate_hz, excitation, seed
+        As :class:`hapsim.emulated.actuated.Actuated`.
+    cpr : float
+        The encoder's real counts per revolution (the set-up's resolution only scales
+        counts to degrees: a wrong one is a wrong angle).
+    motor_sign : {1, -1}
+        The wiring of motor 1 against encoder 1: the sign of the count's motion under a
+        positive torque when both direction bytes are 0 (firmware CW). Each direction
+        byte of 1 flips its side (the motor's direction pin, the encoder's pins), so
+        the host's bytes drive the joint the right way when ``(-1)^(motor byte + encoder
+        byte)`` equals it, and as positive feedback otherwise.
+
+    Attributes
+    ----------
+    decoder : CommandDecoder
+    torque : float
+        The torque motor 1 holds [N m].
+    """
+
+    #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
+    SETUP_S = 2e-3
+    #: The shortest time between two passes of the firmware's ``loop()`` [s] (one command
+    #: each): ``micros() - lastPublished >= 50``.
+    PASS_S = 50e-6
+
+    def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
+                 resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
+                 clock: str = "wall") -> None:
+        from hapsim.drivers import haply as hp
+        from hapsim.emulated.haply_firmware import CommandDecoder
+        from hapsim.errors import ConfigError
+        if motor_sign not in (1, -1):
+            raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
+        self.motor_sign = int(motor_sign)
+        self._hp = hp
+        super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
+        # the firmware's single reads of an empty buffer: 255 (CommandDecoder notes)
+        self.decoder = CommandDecoder(absent=255)
+        self.cpr = float(resolution or cpr)
+        self._base = 0
+        self._base0 = None
+        #: The largest error [rad] of the board's frame against the joint's true angle,
+        #: over the set-ups after the first: each re-synchronisation sets the count to
+        #: the host's estimate of the angle, and the frame walks by that estimate's error
+        #: (the truth only an emulator knows).
+        self.frame_walk = 0.0
+        #: The board's time [s] its last answer is ready at (:func:`serve` writes it then).
+        self.ready_at = 0.0
+        self._busy_until = 0.0
+
+    def _counts(self) -> int:
+        return round(self.physics.sample() / (2 * math.pi) * self.cpr)
+
+    def angle_deg(self, port: int = 0) -> float:
+        """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``, rounded to
+        binary32 on the wire)."""
+        dec = self.decoder
+        if port != 0:
+            return 0.0
+        res = dec.encoder_res[0]
+        c = self._counts() - self._base
+        if dec.encoder_direction[0]:
+            c = -c
+        if not (math.isfinite(res) and res):       # a garbage set-up's resolution
+            return math.copysign(math.inf, c) if c else math.nan
+        return 360.0 * c / res
+
+    def feed(self, data: bytes, now: float = math.inf) -> bytes:
+        """Bytes from the host in, the replies out (one per write).
+
+        Parameters
+        ----------
+        data : bytes
+            What the host wrote.
+        now : float
+            The board's time the bytes arrived at [s] (needed on the wall clock).
+
+        Returns
+        -------
+        bytes
+            The replies; on the wall clock they are ready at :attr:`ready_at`.
+        """
+        import struct
+        out = b""
+        dec = self.decoder
+        wall = self.wall is not None
+        t = max(now, self._busy_until) if wall else now
+        for cmd in dec.commands(data):
+            if wall:
+                # the pass after the last one (PASS_S) or after a set-up's wait
+                t = max(t, self._busy_until)
+                self._busy_until = t + self.PASS_S
+            if cmd[0] == "setup":
+                if wall:
+                    self.wall.run_to(t)
+                    self._busy_until = t + self.SETUP_S
+                    t = self._busy_until
+                    self.wall.run_to(t)           # the count is written after the wait
+                if dec.encoder_addr[0]:           # the count is set to the offset
+                    off = dec.encoder_offset[0] * dec.encoder_res[0] / 360.0
+                    off = int(off) if math.isfinite(off) and abs(off) < 2**31 else 0
+                    c = self._counts()
+                    self._base = c - (-off if dec.encoder_direction[0] else off)
+                    if self._base0 is None:
+                        self._base0 = self._base
+                    self.frame_walk = max(self.frame_walk, abs(self._base - self._base0)
+                                          * 2.0 * math.pi / self.cpr)
+                continue
+            if cmd[0] != "write":
+                continue
+            _, addr, tq = cmd
+            tau = tq.get(0)
+            if tau is not None:
+                if not math.isfinite(tau):
+                    tau = 0.0                     # (the firmware: a NaN duty is 0)
+                tau = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, tau))
+                if dec.motor_direction[0]:
+                    tau = -tau
+                tau *= self.motor_sign
+            if wall:
+                self.apply(tau, now=t)            # the joint has run to t; the torque acts
+            else:
+                self.apply(tau)
+            na, encs = dec.reply_layout(addr)
+            out += bytes([addr]) + struct.pack("<f", 0.0) * na
+            for p in encs:
+                a = self.angle_deg(p)
+                if abs(a) > 3.4028234663852886e38:    # binary32 overflows to inf
+                    a = math.copysign(math.inf, a)
+                out += struct.pack("<f", a)
+        if wall:
+            self.ready_at = t
+        return out
