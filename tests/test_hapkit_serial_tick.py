@@ -161,7 +161,9 @@ def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, 
     assert abs(np.median(signed)) <= 0.15 * TICK_NS, sorted(raw)   # at the jump
     got = writes(True, shift)
     med = float(np.median(got)) / TICK_NS
-    assert abs(med - 0.5) <= 0.35, (med, sorted(got))
+    # the bound is the band's, derived: the writes are re-centred only where they come
+    # within 0.15 of a tick of the boundary, so their median stays within 0.5 - 0.15
+    assert abs(med - 0.5) <= 0.5 - 0.15, (med, sorted(got))
     assert _near(got) <= 0.25, sorted(got)
 
 
