@@ -92,8 +92,42 @@ class TickingPort:
         pass
 
 
+class SimClock:
+    """Simulated time for the host, its transport and the test's board alike: each reading
+    moves it 2 us on (the host's own work between two readings), a sleep by its length.
+    The in-process board's ticks are then exact whatever the machine's load (in real time
+    a loaded CI run, both workers busy, preempted this process between a write's time
+    stamp and the write: a probe with 6 outliers, refused)."""
+
+    def __init__(self) -> None:
+        self.t = 10**12
+
+    def monotonic_ns(self) -> int:
+        self.t += 2_000
+        return self.t
+
+    def monotonic(self) -> float:
+        return self.monotonic_ns() * 1e-9
+
+    def perf_counter(self) -> float:
+        return self.monotonic()
+
+    def sleep(self, d) -> None:
+        self.t += max(int(float(d) * 1e9), 0)
+
+
 def _transport(monkeypatch, port: TickingPort) -> DriverTransport:
+    import sys
+    import types
+
     import serial
+
+    from hapsim.drivers import tick_align, transport
+    clk = SimClock()
+    fake = types.SimpleNamespace(monotonic_ns=clk.monotonic_ns, monotonic=clk.monotonic,
+                                 perf_counter=clk.perf_counter, sleep=clk.sleep)
+    for mod in (tick_align, transport, sys.modules[__name__]):
+        monkeypatch.setattr(mod, "time", fake)
     monkeypatch.setattr(serial, "serial_for_url", lambda *a, **k: port)
     return DriverTransport(hk.HapkitSerial(), "ticking://test", delay=1)
 
@@ -114,9 +148,11 @@ def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, 
     for the midpoint between the two probes either side of it, and the write's time stamp
     (taken just before the write: microseconds, unless the test process is preempted
     there; the fit's clipped deviations absorb most of that, not all: 64 us off in a
-    fresh-clone CI run, against the sixteenth, 62.5 us, this test held it to before). An
-    eighth is far inside what the alignment needs: the writes are put half a tick from
-    the boundary and re-centred only within 0.15 of a tick of it. Then 60 writes the host makes at
+    fresh-clone CI run in real time, against the sixteenth, 62.5 us, this test held it
+    to before; the host and the board now share a simulated clock, :class:`SimClock`, as
+    a real board's ticks are exact whatever the host's load). An eighth is far inside
+    what the alignment needs: the writes are put half a tick from the boundary and
+    re-centred only within 0.15 of a tick of it. Then 60 writes the host makes at
     a 4 ms period at that boundary (the worst phase its latency can give it; the test
     process's own lateness measured over 20 writes and taken off), jittered by +-50 us:
     unaligned, their median arrival is within 0.15 tick of the boundary (asserted: the
