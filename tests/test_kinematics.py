@@ -484,8 +484,12 @@ def test_single_jacobian_is_the_batch_classifiers_to_the_bit():
             _, _, Gp, Gq = dev._solve(q)
             kind, ref = dev._classify(np.array([True]), Gp[None], Gq[None])
             assert kind[0] == "ok" and np.array_equal(got, ref[0]), q
-            # measured 5.2e-15 relative (the batched and the single solve), margin 190
-            assert np.max(np.abs(got - j)) <= 1e-12 * np.max(np.abs(j)), q
+            # measured: the batched search and the single solve reach the constraints' root
+            # by different Newton paths, each stopping at round-off, and J inherits their
+            # difference through dg/dx's conditioning; worst 5.2e-15 relative over these
+            # 300 configurations (host target, OpenBLAS), margin 190 for another CPU's
+            # kernels (the same bound as the forward_jacobian test above, 1e-12)
+            assert np.max(np.abs(got - j)) <= measured(5.2e-15, 190) * np.max(np.abs(j)), q
         else:
             with pytest.raises(KinematicsError) as err:
                 dev.jacobian(q)
