@@ -129,7 +129,7 @@ def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
     ConfigError
         As :func:`hapsim.analysis.network.closed_loop`.
     """
-    from scipy.signal import fftconvolve
+    from hapsim.analysis.fftconv import fftconvolve
 
     w = np.asarray(w, float)
     n = w.size

@@ -245,7 +245,7 @@ def _covariance(spec, y, offset, response=None, lens=None):
     dof = max(y.size - p - n_lin, 1)
     col = inv
     if response is not None:
-        from scipy.signal import fftconvolve
+        from hapsim.analysis.fftconv import fftconvolve
         h = np.asarray(response, dtype=float)
         S = np.zeros((p, p))
         for Jt in jts:
@@ -510,7 +510,7 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
     linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
     Sec. 2.1), its nonlinear rows ``g' (Jt'Jt)^-1 Jt'`` with ``Jt`` projected off each
     stretch's linear columns; the filter starts again at every stretch of ``lens``."""
-    from scipy.signal import fftconvolve
+    from hapsim.analysis.fftconv import fftconvolve
     n = y.size
     _, jts, G, _, _ = _projected(spec, y, offset, lens)
     A = np.linalg.pinv(G)

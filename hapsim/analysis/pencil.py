@@ -446,7 +446,7 @@ def worst_case_nd(sensitivity, response, bounds) -> np.ndarray:
     ndarray, shape (2, n, n)
         The worst-case change of each felt stiffness [N/m] and damping [N s/m] entry.
     """
-    from scipy.signal import fftconvolve
+    from hapsim.analysis.fftconv import fftconvolve
     H = np.asarray(response, float)
     out = 0.0
     for s, e in zip(sensitivity, bounds):
