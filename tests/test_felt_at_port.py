@@ -166,3 +166,49 @@ def test_contact_closed_at_rest_run_matches_prediction(K1, K2, B1, B2, g, thr):
     assert m["k"] == pytest.approx(p["k"], rel=1e-12)
     # measured 1.3e-13 relative (generic 1.9e-13; the 1e-12 literal held by 5.3), margin 10
     assert m["b"] == pytest.approx(p["b"], rel=measured(1.9e-13, 10))
+
+
+def test_rest_position_dense_and_sparse_solves_agree_over_random_strings(monkeypatch):
+    """The balance is solved densely up to DENSE_REST_MAX free points and by a sparse LU
+    above: over random strings (1-40 beads, stiffnesses over three decades, a ground
+    displaced, the port anywhere) both give the same rest within twice the LU solve's
+    round-off bound (tolerance.solve_tol of the very balance matrix solved, times the
+    largest free position), and a part floating free is "not unique" (None) for both: a
+    dense LU of that singular Laplacian rounds its last pivot to ~1e-14, not zero, and
+    would have answered a rest; the graph decides instead."""
+    import hapsim.analysis.virtual_network as vn
+    from tolerance import solve_tol
+    solved = []
+    real = vn._solve_balance
+
+    def spy(rows, cols, vals, rhs, exact=False):
+        x = real(rows, cols, vals, rhs, exact)
+        M = np.zeros((rhs.size, rhs.size))
+        np.add.at(M, (np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp)),
+                  np.asarray(vals, dtype=float))
+        solved.append((M, x))
+        return x
+    monkeypatch.setattr(vn, "_solve_balance", spy)
+    rng = np.random.default_rng(2411)
+    for _ in range(30):
+        n = int(rng.integers(1, 41))
+        K = float(np.exp(rng.uniform(np.log(10.0), np.log(1e4))))
+        text = _string(n, int(rng.integers(1, n + 1)), K, 0.5,
+                       float(rng.uniform(50.0, 5e3)), 0.5)
+        text = text.replace("{name: right, kind: ground}", "{name: right, kind: ground, "
+                            f"x0: {float(rng.uniform(-0.01, 0.01))!r}}}")
+        sc = parse_scene(text)
+        solved.clear()
+        dense = rest_position(sc)
+        M, x = solved[-1]
+        monkeypatch.setattr(vn, "DENSE_REST_MAX", 0)
+        sparse = rest_position(sc)
+        monkeypatch.setattr(vn, "DENSE_REST_MAX", 200)
+        assert abs(dense - sparse) <= 2 * solve_tol(M) * np.max(np.abs(x)), (n, dense, sparse)
+    lone = _string(3, 1, 100.0, 0.5, 100.0, 0.5)
+    for cut in ("between: [left, s1]", "between: [s3, right]"):
+        lone = "\n".join(ln for ln in lone.splitlines() if cut not in ln) + "\n"
+    floating = parse_scene(lone)                        # s1-s3 and the port hang free
+    assert rest_position(floating) is None
+    monkeypatch.setattr(vn, "DENSE_REST_MAX", 0)
+    assert rest_position(floating) is None

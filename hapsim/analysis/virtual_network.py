@@ -437,12 +437,14 @@ def rest_position(scene, calibrated=None) -> float | None:
     -----
     Static balance ``LK_ff x_f + LK_fg x_g + h = 0`` over the free points ``f`` (moving
     masses and the port) with grounds ``g`` fixed, ``h`` the thresholds' constant forces;
-    a sparse solve (``O(n)`` for a string).
+    a dense LU solve up to :data:`DENSE_REST_MAX` free points, a sparse one above
+    (``O(n)`` for a string; ``scipy.sparse`` costs ~0.4 CPU-s to import in every process
+    that predicts, for no gain on a handful of masses). The rest is "not unique" where a
+    group of free points is joined to no ground by springs (with every stiffness positive
+    the balance matrix, a weighted graph Laplacian with its grounded rows, is then
+    singular and otherwise positive definite: Chung 1997, *Spectral Graph Theory*,
+    Ch. 1), decided from the links, not from a pivot's rounding.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import MatrixRankWarning, spsolve
-    import warnings
-
     if scene.port is None:
         return None
     links = link_values(scene, calibrated)
@@ -457,10 +459,12 @@ def rest_position(scene, calibrated=None) -> float | None:
     for _ in range(len(engaged) + 2):
         rows, cols, vals = [], [], []
         rhs = np.zeros(fi.size)
+        held = _Held(n, ~free)
         for lk, K, _ in links:
             if lk.kind == "contact" and not engaged[id(lk)]:
                 continue
             a, c = idx[lk.m1], idx[lk.m2]
+            held.join(a, c, K)
             off = lk.threshold if lk.kind == "contact" else 0.0
             # force on a: -K (x_a - x_c + off); on c: the opposite
             for i, j, sgn in ((a, a, 1.0), (a, c, -1.0), (c, c, 1.0), (c, a, -1.0)):
@@ -475,13 +479,11 @@ def rest_position(scene, calibrated=None) -> float | None:
                 rhs[pos[a]] -= K * off
             if free[c]:
                 rhs[pos[c]] += K * off
-        M = coo_matrix((vals, (rows, cols)), shape=(fi.size, fi.size)).tocsc()
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", MatrixRankWarning)
-            try:
-                xf = np.atleast_1d(spsolve(M, rhs)) if fi.size else np.zeros(0)
-            except (MatrixRankWarning, RuntimeError):
-                return None
+        if not held.all_held(fi):
+            return None
+        xf = _solve_balance(rows, cols, vals, rhs, exact=held.positive)
+        if xf is None:
+            return None
         if not np.all(np.isfinite(xf)):
             return None
         xs = x.copy()
@@ -496,6 +498,69 @@ def rest_position(scene, calibrated=None) -> float | None:
         if not changed:
             return float(xs[idx[scene.port.name]])
     return float(xs[idx[scene.port.name]])
+
+
+#: Most free points whose static balance :func:`rest_position` solves densely (LU with
+#: partial pivoting, ``O(n^3)``: 200 points cost ~1 ms); above, a sparse LU.
+DENSE_REST_MAX = 200
+
+
+class _Held:
+    """Which points springs join to a ground (union-find over the links' mass indices)."""
+
+    def __init__(self, n: int, ground) -> None:
+        self.parent = list(range(n))
+        self.grounded = [bool(g) for g in ground]
+        self.positive = True                       # every stiffness joined is > 0
+
+    def _root(self, i: int) -> int:
+        while self.parent[i] != i:
+            self.parent[i] = self.parent[self.parent[i]]
+            i = self.parent[i]
+        return i
+
+    def join(self, a: int, c: int, K: float) -> None:
+        if not K > 0:
+            self.positive = self.positive and K == 0
+            return
+        ra, rc = self._root(a), self._root(c)
+        if ra != rc:
+            self.parent[ra] = rc
+            self.grounded[rc] = self.grounded[rc] or self.grounded[ra]
+
+    def all_held(self, points) -> bool:
+        """Every one of ``points`` in a group with a ground (always True where a negative
+        stiffness makes the graph argument void: the solve decides then)."""
+        return not self.positive or all(self.grounded[self._root(int(i))] for i in points)
+
+
+def _solve_balance(rows, cols, vals, rhs, exact: bool = False) -> np.ndarray | None:
+    """Solve the balance ``M x = rhs``, ``M`` given as (row, column, value) triplets whose
+    repeats add (the COO convention); None where ``M`` is found singular. ``exact``: the
+    caller knows ``M`` non-singular (every group grounded, stiffnesses positive), so a
+    dense LU serves; otherwise the sparse LU, whose zero pivot says singular."""
+    n = rhs.size
+    if n == 0:
+        return np.zeros(0)
+    if exact and n <= DENSE_REST_MAX:
+        M = np.zeros((n, n))
+        np.add.at(M, (np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp)),
+                  np.asarray(vals, dtype=float))
+        try:
+            return np.linalg.solve(M, rhs)
+        except np.linalg.LinAlgError:
+            return None
+    import warnings
+
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import MatrixRankWarning, spsolve
+    M = coo_matrix((vals, (rows, cols)), shape=(n, n)).tocsc()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MatrixRankWarning)
+        try:
+            return np.atleast_1d(spsolve(M, rhs))
+        except (MatrixRankWarning, RuntimeError):
+            return None
 
 
 #: Largest closed-loop state built (dense eigenvalues and eigenvectors: O(N^3)), the
