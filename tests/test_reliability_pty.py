@@ -76,8 +76,11 @@ def test_port_vanishes_and_comes_back_over_a_pty(wall):
     # the scene restarted at the handle of the new session (the mock restarts its plant at
     # x0 = 5 mm at CONFIG), not at a STATE the device sent before it took the CONFIG (2 of
     # 12 runs did: 0.105 m, a position safety stop; test_reliability's
-    # test_recovery_resumes_at_the_handle_of_the_new_session makes that race certain)
-    assert [e["x"] for e in lp["events"] if e["event"] == "recovered"] == [0.005]
+    # test_recovery_resumes_at_the_handle_of_the_new_session makes that race certain).
+    # Every recovery: under load (a loaded suite, once) a run lost and recovered 7 times
+    # in the vanish's 300 ms, each new session at the mock's x0 again
+    xs = [e["x"] for e in lp["events"] if e["event"] == "recovered"]
+    assert xs and set(xs) == {0.005}, xs
     assert lp["quiesced"] and lp["earlier_session"] == 0
     mk = lp["mock"]
     assert [e["name"] for e in mk["fault_events"]] == ["vanish"]
