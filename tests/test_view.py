@@ -7,8 +7,10 @@ sample the run's journal says, a refused change is shown with its reason, the st
 ends the run with its report), ``hapsim play`` of the 1-D wall (the same, the change's
 sample checked against the play's telemetry), and ``hapsim play`` of the membrane on a private JACK dummy
 server (the 3-D scene drawn, its traces advance, stop), and the same of the pantograph
-(2-D, a 1000 Hz JACK server). Each writes its screenshot into docs/ (docs/view.md shows
-them).
+(2-D, a 1000 Hz JACK server). Each takes its screenshot: into a temporary folder, or into
+the folder ``HAPSIM_VIEW_SHOTS`` names (``HAPSIM_VIEW_SHOTS=docs python -m pytest -n 0
+tests/test_view.py`` makes docs/view.md's figures); a test run never writes into the
+checkout unless asked.
 """
 
 from __future__ import annotations
@@ -26,7 +28,14 @@ import view_browser as vb  # noqa: E402
 from test_audio_live import dummy_jackd  # noqa: E402  (a private JACK dummy server)
 
 pytestmark = pytest.mark.xdist_group("view_browser")
-DOCS = os.path.join(ROOT, "docs")
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory):
+    """Where the screenshots go: ``$HAPSIM_VIEW_SHOTS`` (relative to the repository) or a
+    temporary folder."""
+    asked = os.environ.get("HAPSIM_VIEW_SHOTS")
+    return os.path.join(ROOT, asked) if asked else str(tmp_path_factory.mktemp("shots"))
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +55,7 @@ def _set(driver, row_id: str, value: float) -> None:
         "n.value = arguments[1]; n.dispatchEvent(new Event('change'));", row_id, value)
 
 
-def test_run_wall_view_change_refusal_stop(browser):
+def test_run_wall_view_change_refusal_stop(browser, shots):
     # lockstep, paced by the host in real time: this test is about the page and the
     # controller, not the device's timing (a loaded 2-core box, the browser drawing beside
     # the loop, stalled a wall-clock mock into a safety stop: tools/view_bench.py measures
@@ -68,7 +77,7 @@ def test_run_wall_view_change_refusal_stop(browser):
         # the felt pair measured on the record so far (before the report's own)
         live = vb.wait_for(browser, "window.hapsimView.measurements.find("
                                     "q => !q.final && q.k !== undefined)", 120)
-        browser.save_screenshot(os.path.join(DOCS, "view_wall.png"))
+        browser.save_screenshot(os.path.join(shots, "view_wall.png"))
         # an accepted change: the wall's K from 1000 to 1100 N/m
         _set(browser, "ctl-wall-K", 1100)
         rep = vb.wait_for(browser, "window.hapsimView.replies.find(m => m.op === 'request')",
@@ -194,19 +203,19 @@ def rep_sample(browser) -> int:
 
 @pytest.mark.parametrize("which,rate,period", [("membrane", 44100, 256),
                                                 ("pantograph", 1000, 64)])
-def test_play_nd_view(browser, tmp_path, which, rate, period):
+def test_play_nd_view(browser, shots, tmp_path, which, rate, period):
     """An n-D play (its JACK server at the scene's rate) drawn and stopped from the page."""
     scene = (vb.pantograph_with_listen(str(tmp_path)) if which == "pantograph"
              else os.path.join("configs", "membrane.yaml"))
     jack = dummy_jackd(rate, period)
     server = next(jack)
     try:
-        _play_nd(browser, scene, server, which)
+        _play_nd(browser, scene, server, which, shots)
     finally:
         jack.close()
 
 
-def _play_nd(browser, scene, jack_server, which):
+def _play_nd(browser, scene, jack_server, which, shots):
     r = vb.ViewRun(["play", scene, "--sound", "jack", "--jack-server", jack_server,
                     "--duration", "60", "--json"])
     try:
@@ -222,7 +231,7 @@ def _play_nd(browser, scene, jack_server, which):
         assert ("position z" if which == "membrane" else "position y") in label
         n0 = browser.execute_script("return window.hapsimView.count")
         vb.wait_for(browser, f"window.hapsimView.count > {n0}")
-        browser.save_screenshot(os.path.join(DOCS, f"view_{which}.png"))
+        browser.save_screenshot(os.path.join(shots, f"view_{which}.png"))
         browser.find_element("id", "stop").click()
         vb.wait_for(browser, "window.hapsimView.report !== null", 60)
         code, out, err = r.finish(60)
