@@ -933,3 +933,53 @@ def test_aligned_decoder_hooks_see_every_skip_and_every_frame():
         assert d.seen == frames
         assert out == [f for f in frames if f[0] % 2 == 0]
         assert d.stats == {"frames": len(out), "skipped": skipped} and d.skips == skipped
+
+
+# ------------------------------------------------------------------ one transport interface
+
+def _transports():
+    """One instance of every transport class, opened on pyserial's ``loop://`` or a mock."""
+    from hapsim.drivers.transport import DriverTransport
+    from hapsim.emulated.links import InProcessTransport, SimTransport
+    from hapsim.emulated.mock import MockDevice
+    from hapsim.emulated.pantograph_board import JointLevelTransport
+    from hapsim.host.transport import SerialTransport
+    from hapsim.scene import load_scene, load_scene_nd
+    sc = load_scene("configs/wall.yaml")
+    return [SerialTransport("loop://"), DriverTransport(get_driver("firefader"), "loop://"),
+            InProcessTransport(MockDevice(sc.device, sc.excitation, lockstep=True)),
+            SimTransport(MockDevice(sc.device, sc.excitation, lockstep=False)),
+            JointLevelTransport(SerialTransport("loop://"),
+                                load_scene_nd("configs/pantograph_wall.yaml"))]
+
+
+def test_every_transport_class_has_the_loops_interface():
+    """Each transport class of the package (every class with a ``receive`` method, found in
+    the source: a new one fails here until it is listed) has :class:`Transport`'s members
+    with its parameters, and the optional ones the loop calls (``clock()``, ``sleep(s)``,
+    ``reopen()``) with their arity."""
+    import ast
+    import inspect
+    from pathlib import Path
+    from hapsim.host.transport import Transport
+    root = Path(__file__).resolve().parents[1] / "hapsim"
+    declared = {n.name for f in root.rglob("*.py") for n in ast.walk(ast.parse(f.read_text()))
+                if isinstance(n, ast.ClassDef) and n.name != "Transport"
+                and any(isinstance(m, ast.FunctionDef) and m.name == "receive" for m in n.body)}
+    made = _transports()
+    try:
+        assert {type(t).__name__ for t in made} == declared
+        for t in made:
+            assert isinstance(t, Transport), type(t).__name__
+            assert isinstance(t.info, dict) and {"kind", "port"} <= set(t.info)
+            for name in ("send", "receive", "close", "last_frames"):
+                want = inspect.signature(getattr(Transport, name)).parameters
+                got = inspect.signature(getattr(t, name)).parameters
+                assert [(p.name, p.default) for p in got.values()] == \
+                    [(p.name, p.default) for p in list(want.values())[1:]], (t, name)
+            for name, arity in (("clock", 0), ("sleep", 1), ("reopen", 0)):
+                if hasattr(t, name):
+                    assert len(inspect.signature(getattr(t, name)).parameters) == arity
+    finally:
+        for t in made:
+            t.close()

@@ -1,37 +1,57 @@
-"""Message transports between the host loop and a device.
+"""Message transports between the host loop and a device, behind one interface.
 
-Every transport offers the same small interface to :mod:`hapsim.host.loop`:
-
-``send(msg)``
-    Send one protocol message.
-``receive(timeout)``
-    Messages received so far, waiting up to ``timeout`` [s] for at least one.
-``close()``
-    Release the port.
-``info``
-    Dict of facts for the loop report (kind, port, baud, low-latency mode).
-``last_frames()``
-    Text of the last frames received (docs/design.md, rule 11), for error messages.
-
-:class:`SerialTransport` opens any port with pyserial: hardware, or the pty of an emulated
-device. The host side knows only a port: the transports that hold an emulated device
-in-process (no bytes, or a virtual clock) and the emulated mock started on a pty are the
-device side's (:mod:`hapsim.emulated.links`); a device family's own link is
-:class:`hapsim.drivers.transport.DriverTransport`.
-
-Optional members the loop uses when present: ``clock()`` and ``sleep(s)`` (virtual time),
-``reopen()`` (recover a failed port), ``decoder`` (counters).
-"""
+:class:`Transport` declares what :mod:`hapsim.host.loop`, its compiled twin and their
+handshake and recovery call on every transport; ``tests/test_drivers.py`` checks each
+transport class against it. :class:`SerialTransport` opens any port with pyserial:
+hardware, or the pty of an emulated device. The host side knows only a port: the
+transports that hold an emulated device in-process (no bytes, or a virtual clock) and the
+emulated mock started on a pty are the device side's (:mod:`hapsim.emulated.links`); a
+device family's own link is :class:`hapsim.drivers.transport.DriverTransport`."""
 
 from __future__ import annotations
 
 import os
 import time
+from typing import Protocol, runtime_checkable
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["SerialTransport"]
+__all__ = ["Transport", "SerialTransport"]
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """What the host loop calls on a transport (a structural type: no class inherits it).
+
+    Attributes
+    ----------
+    info : dict
+        Facts for the loop report: ``kind``, ``port``, ``baud``, ``low_latency``,
+        ``low_latency_note``.
+
+    Notes
+    -----
+    Members the loop uses when a transport has them: ``clock()`` and ``sleep(s)`` (virtual
+    time), ``reopen()`` (recover a failed port), ``decoder`` (counters), ``serial_port``
+    (the compiled loop's file descriptor), ``set_compact`` and ``compact`` (compact
+    frames), ``driver``, ``hold``, ``overdue``, ``estimate`` and ``host_stalled`` (a
+    driver's replies).
+    """
+
+    info: dict
+
+    def send(self, msg) -> None:
+        """Send one protocol message (DeviceError when the port is gone)."""
+
+    def receive(self, timeout: float = 0.0) -> list:
+        """The messages received so far, waiting up to ``timeout`` [s] for a first one."""
+
+    def close(self) -> None:
+        """Release the port (idempotent)."""
+
+    def last_frames(self) -> str:
+        """Text of the last frames received (docs/design.md, rule 11), for errors."""
 
 
 def _is_pty(port: str) -> bool:
