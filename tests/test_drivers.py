@@ -983,3 +983,41 @@ def test_every_transport_class_has_the_loops_interface():
     finally:
         for t in made:
             t.close()
+
+
+# ------------------------------------------------------------------ one registry
+
+def test_every_family_is_registered_once_with_what_runs_it():
+    """The registry names each family once per kind of scene; each loads its driver class
+    (1-D: the class :func:`get_driver` builds, of the same name) and the route that runs it;
+    :data:`DRIVERS` (the scene's ``device.protocol`` choices) are its 1-D names."""
+    from hapsim.drivers import DEFAULT, DRIVERS, FAMILIES
+    from hapsim.scene_schema import PROTOCOLS
+    keys = [(f.name, f.dimension) for f in FAMILIES]
+    assert len(set(keys)) == len(keys) and DEFAULT == "framed" == FAMILIES[0].name
+    assert DRIVERS is PROTOCOLS and DRIVERS == tuple(n for n, d in keys if d <= 1)
+    assert {(f.name, f.dimension) for f in FAMILIES if f.route != "loop"} == {
+        ("haply", 2), ("falcon", 3)}
+    for f in FAMILIES:
+        cls = f.load()
+        assert (cls is None) == (f.name == DEFAULT) and (f.runner() is None) == (f.route == "loop")
+        if f.dimension == 1:
+            assert cls.name == f.name and type(get_driver(f.name)) is cls and cls.limits
+
+
+def _fake_run(args):
+    return 7
+
+
+def test_run_dispatches_an_nd_family_by_the_registry(monkeypatch):
+    """``hapsim run`` runs an n-D family by its registered route (no name tested in the
+    command): a family added to the registry is run, another family's options refused."""
+    import hapsim.drivers as drivers
+    from hapsim.cli import main
+    fake = drivers.Family("fake", 2, "", "test_drivers:_fake_run", "own", "a fake device")
+    monkeypatch.setattr(drivers, "FAMILIES", drivers.FAMILIES + (fake,))
+    scene = "configs/pantograph_wall.yaml"
+    assert main(["run", scene, "--driver", "fake"]) == 7
+    assert main(["run", scene, "--driver", "fake", "--firmware", "x"]) == 2
+    assert main(["run", scene, "--driver", "falcon", "--generation", "gen2"]) == 2
+    assert main(["run", scene, "--driver", "nothing"]) == 2
