@@ -938,15 +938,15 @@ def test_aligned_decoder_hooks_see_every_skip_and_every_frame():
 # ------------------------------------------------------------------ one transport interface
 
 def _transports():
-    """One instance of every transport class, opened on pyserial's ``loop://`` or a mock."""
-    from hapsim.drivers.transport import DriverTransport
+    """One instance of every transport class, on pyserial's ``loop://`` (opened by
+    :func:`open_transport`: the framed protocol's, a driver's) or a mock."""
     from hapsim.emulated.links import InProcessTransport, SimTransport
     from hapsim.emulated.mock import MockDevice
     from hapsim.emulated.pantograph_board import JointLevelTransport
-    from hapsim.host.transport import SerialTransport
+    from hapsim.host.transport import SerialTransport, open_transport
     from hapsim.scene import load_scene, load_scene_nd
     sc = load_scene("configs/wall.yaml")
-    return [SerialTransport("loop://"), DriverTransport(get_driver("firefader"), "loop://"),
+    return [open_transport("loop://"), open_transport("loop://", "firefader"),
             InProcessTransport(MockDevice(sc.device, sc.excitation, lockstep=True)),
             SimTransport(MockDevice(sc.device, sc.excitation, lockstep=False)),
             JointLevelTransport(SerialTransport("loop://"),
@@ -968,7 +968,8 @@ def test_every_transport_class_has_the_loops_interface():
                 and any(isinstance(m, ast.FunctionDef) and m.name == "receive" for m in n.body)}
     made = _transports()
     try:
-        assert {type(t).__name__ for t in made} == declared
+        assert [type(t).__name__ for t in made[:2]] == ["SerialTransport", "DriverTransport"]
+        assert {type(t).__name__ for t in made} == declared and made[1].driver.name == "firefader"
         for t in made:
             assert isinstance(t, Transport), type(t).__name__
             assert isinstance(t.info, dict) and {"kind", "port"} <= set(t.info)

@@ -6,7 +6,9 @@ transport class against it. :class:`SerialTransport` opens any port with pyseria
 hardware, or the pty of an emulated device. The host side knows only a port: the
 transports that hold an emulated device in-process (no bytes, or a virtual clock) and the
 emulated mock started on a pty are the device side's (:mod:`hapsim.emulated.links`); a
-device family's own link is :class:`hapsim.drivers.transport.DriverTransport`."""
+device family's own link is :class:`hapsim.drivers.transport.DriverTransport`.
+:func:`open_transport` opens the one a port and a family call for (as pyserial's
+``serial_for_url``)."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from typing import Protocol, runtime_checkable
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["Transport", "SerialTransport"]
+__all__ = ["Transport", "SerialTransport", "open_transport"]
 
 
 @runtime_checkable
@@ -261,3 +263,43 @@ class SerialTransport:
         return self._dec.format_last_frames()
 
 
+
+
+def open_transport(port: str, driver=None, *, baud: int = 115200, **options) -> Transport:
+    """The transport a port and a device family call for, as pyserial's ``serial_for_url``
+    opens the port a URL calls for: the family's link is read from the drivers' registry
+    (:data:`hapsim.drivers.FAMILIES`).
+
+    Parameters
+    ----------
+    port : str
+        A device path (``/dev/ttyACM0``), a pty (an emulated device's), or any pyserial URL
+        (``loop://``).
+    driver : str or hapsim.drivers.base.Driver, optional
+        None or ``"framed"`` (the default protocol): :class:`SerialTransport`; a 1-D
+        family's name or its driver object:
+        :class:`~hapsim.drivers.transport.DriverTransport`.
+    baud : int
+        The framed protocol's baud rate (a driver has its own).
+    **options
+        :class:`~hapsim.drivers.transport.DriverTransport`'s keywords (``delay``,
+        ``reply_deadline``, ``inertia``, ...).
+
+    Returns
+    -------
+    Transport
+
+    Raises
+    ------
+    ConfigError
+        An unknown driver name (the valid ones listed).
+    DeviceError
+        The port cannot be opened.
+    """
+    from hapsim.drivers import DEFAULT, family, get_driver
+    name = driver if isinstance(driver, str) or driver is None else driver.name
+    if family(name or DEFAULT).transport == "framed":
+        return SerialTransport(port, baud)
+    from hapsim.drivers.transport import DriverTransport
+    return DriverTransport(get_driver(driver) if isinstance(driver, str) else driver, port,
+                           **options)
