@@ -64,25 +64,21 @@ class Family:
     options: tuple = ()
 
     def load(self):
-        """The driver class (its module imported now).
-
-        Returns
-        -------
-        type or None
-            None for the framed protocol.
-        """
-        if not self.driver:
-            return None
-        module, cls = self.driver.split(":")
-        return getattr(importlib.import_module(module), cls)
+        """The driver class, its module imported now (None: the framed protocol's)."""
+        return _resolve(self.driver)
 
     def runner(self):
-        """The function that runs this family's ``hapsim run`` (``route`` imported); None
-        for the host loop's route."""
-        if self.route == "loop":
-            return None
-        module, func = self.route.split(":")
-        return getattr(importlib.import_module(module), func)
+        """The function that runs this family's ``hapsim run``, its module imported now
+        (None: the host loop's route)."""
+        return None if self.route == "loop" else _resolve(self.route)
+
+
+def _resolve(spec: str):
+    """The object a ``"module:name"`` string names (None for ``""``)."""
+    if not spec:
+        return None
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
 
 
 #: The device families, the default (hapsim's own framed protocol) first.

@@ -96,30 +96,35 @@ class SerialTransport:
     """
 
     def __init__(self, port: str, baud: int = 115200, read_timeout: float = 0.01) -> None:
-        import serial  # pyserial; imported here so in-process tests do not need it
-
-        try:
-            self._ser = serial.serial_for_url(port, baudrate=baud, timeout=read_timeout,
-                                              write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.info = {"kind": "serial", "port": port, "baud": baud, "low_latency": False,
                      "low_latency_note": ""}
+        self._timeout = read_timeout
+        self._open()
+        self._dec = fp.StreamDecoder()
+        self._compact = False
+
+    def _open(self) -> None:
+        """Open :attr:`info`'s port, in low-latency mode where it has one (DeviceError when
+        it cannot be opened)."""
+        import serial  # pyserial; imported here so in-process tests do not need it
+
+        port = self.info["port"]
+        try:
+            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
+                                              timeout=self._timeout, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"cannot open port {port}: {exc}") from None
+        self._read, self._write = self._ser.read, self._ser.write
         if _is_pty(port):
             # ASYNC_LOW_LATENCY is a serial driver's flag (the FTDI latency timer): a pty
             # (the embedded mock) has none, and asking only yields ENOTTY (issue 31)
             self.info["low_latency_note"] = "a pty: not a serial driver"
-        else:
-            try:
-                self._ser.set_low_latency_mode(True)
-                self.info["low_latency"] = True
-            except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
-                self.info["low_latency_note"] = f"not available: {exc}".strip()
-        self._dec = fp.StreamDecoder()
-        self._timeout = read_timeout
-        self._read = self._ser.read
-        self._write = self._ser.write
-        self._compact = False
+            return
+        try:
+            self._ser.set_low_latency_mode(True)
+            self.info["low_latency"] = True
+        except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
+            self.info["low_latency_note"] = f"not available: {exc}".strip()
 
     @property
     def decoder(self) -> fp.StreamDecoder:
@@ -232,23 +237,10 @@ class SerialTransport:
         DeviceError
             When the port cannot be opened (yet).
         """
-        import serial
-
         self.close()
-        port = self.info["port"]
-        try:
-            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
-                                              timeout=self._timeout, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
-        try:
-            self._ser.set_low_latency_mode(True)
-        except (AttributeError, NotImplementedError, ValueError, OSError):
-            pass
+        self._open()
         self._dec.reset()
         self.set_compact(None)   # a device that vanished may have reset: ask again
-        self._read = self._ser.read
-        self._write = self._ser.write
         self.reopened = getattr(self, "reopened", 0) + 1
 
     def last_frames(self) -> str:
