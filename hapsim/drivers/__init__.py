@@ -48,7 +48,8 @@ class Family:
         taking ``hapsim run``'s arguments (a device whose run is its own).
     transport : str
         The link: ``"framed"`` (:class:`~hapsim.host.transport.SerialTransport`),
-        ``"driver"`` (:class:`~hapsim.drivers.transport.DriverTransport`), ``"own"``.
+        ``"driver"`` (:class:`~hapsim.drivers.transport.DriverTransport`), ``"own"`` (its
+        route's: the 2DIY's pyserial link, the Falcon's USB).
     device : str
         The device, as ``--help`` and docs/devices.md name it.
     options : tuple of str
@@ -92,7 +93,7 @@ FAMILIES = (
     Family("hapkit-serial", 1, "hapsim.drivers.hapkit_serial:HapkitSerial", "loop", "driver",
            "a Hapkit running the WHC2017 sketch"),
     Family("haply", 2, "hapsim.drivers.haply2:Haply2DIY",
-           "hapsim.commands.run_haply2:run_haply2_command", "driver",
+           "hapsim.commands.run_haply2:run_haply2_command", "own",
            "a pantograph scene, the Haply 2DIY", ("--generation",)),
     Family("falcon", 3, "hapsim.drivers.falcon_usb:FalconUSB",
            "hapsim.commands.run_falcon:run_falcon_command", "own",
