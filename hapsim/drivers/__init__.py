@@ -40,10 +40,12 @@ class Family:
     dimension : int
         The scenes it drives: 1, 2 or 3 (0: any, the framed protocol).
     driver : str
-        Its driver class as ``"module:Class"`` (imported by :meth:`load`); ``""`` for the
-        framed protocol (the loop's own transport, no driver object).
+        Its driver class as ``"module:Class"`` (imported by :meth:`load`; its ``limits``
+        say what the protocol cannot do); ``""`` for the framed protocol (the loop's own
+        transport, no driver object).
     route : str
-        What runs it: ``"loop"``, the host loop (or its compiled twin) through a transport
+        What runs it: ``"loop"``, the host loop (the framed protocol: or its compiled
+        twin) through a transport
         (:func:`hapsim.host.transport.open_transport`); else the ``"module:function"``
         taking ``hapsim run``'s arguments (a device whose run is its own).
     transport : str
