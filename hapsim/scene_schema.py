@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from hapsim.drivers import DRIVERS
 from hapsim.errors import ConfigError
 
 __all__ = ["Key", "Section", "KEYS", "SECTIONS", "CROSS_RULES", "REQUIRED", "key",
@@ -32,9 +33,9 @@ MASS_KINDS = ("mass", "ground", "port")
 LINK_KINDS = ("spring_damper", "contact")
 #: Output holds a device may use (docs/design.md, 'The timing convention').
 HOLDS = ("zoh", "ideal")
-#: Protocols a device may speak (first is the default: hapsim's own framed protocol; the
-#: others are the drivers of hapsim.drivers, which takes its names from here).
-PROTOCOLS = ("framed", "firefader", "haply", "hapkit-serial")
+#: Protocols a device may speak: :data:`hapsim.drivers.DRIVERS`, the 1-D families of the
+#: drivers' registry (first is the default: hapsim's own framed protocol).
+PROTOCOLS = DRIVERS
 #: Integrators of the virtual masses (first is the default; hapsim.kernels.schemes).
 INTEGRATORS = ("centred", "symplectic_euler", "exact")
 

@@ -933,3 +933,92 @@ def test_aligned_decoder_hooks_see_every_skip_and_every_frame():
         assert d.seen == frames
         assert out == [f for f in frames if f[0] % 2 == 0]
         assert d.stats == {"frames": len(out), "skipped": skipped} and d.skips == skipped
+
+
+# ------------------------------------------------------------------ one transport interface
+
+def _transports():
+    """One instance of every transport class, on pyserial's ``loop://`` (opened by
+    :func:`open_transport`: the framed protocol's, a driver's) or a mock."""
+    from hapsim.emulated.links import InProcessTransport, SimTransport
+    from hapsim.emulated.mock import MockDevice
+    from hapsim.emulated.pantograph_board import JointLevelTransport
+    from hapsim.host.transport import SerialTransport, open_transport
+    from hapsim.scene import load_scene, load_scene_nd
+    sc = load_scene("configs/wall.yaml")
+    return [open_transport("loop://"), open_transport("loop://", "firefader"),
+            InProcessTransport(MockDevice(sc.device, sc.excitation, lockstep=True)),
+            SimTransport(MockDevice(sc.device, sc.excitation, lockstep=False)),
+            JointLevelTransport(SerialTransport("loop://"),
+                                load_scene_nd("configs/pantograph_wall.yaml"))]
+
+
+def test_every_transport_class_has_the_loops_interface():
+    """Each transport class of the package (every class with a ``receive`` method, found in
+    the source: a new one fails here until it is listed) has :class:`Transport`'s members
+    with its parameters, and the optional ones the loop calls (``clock()``, ``sleep(s)``,
+    ``reopen()``) with their arity."""
+    import ast
+    import inspect
+    from pathlib import Path
+    from hapsim.host.transport import Transport
+    root = Path(__file__).resolve().parents[1] / "hapsim"
+    declared = {n.name for f in root.rglob("*.py") for n in ast.walk(ast.parse(f.read_text()))
+                if isinstance(n, ast.ClassDef) and n.name != "Transport"
+                and any(isinstance(m, ast.FunctionDef) and m.name == "receive" for m in n.body)}
+    made = _transports()
+    try:
+        assert [type(t).__name__ for t in made[:2]] == ["SerialTransport", "DriverTransport"]
+        assert {type(t).__name__ for t in made} == declared and made[1].driver.name == "firefader"
+        for t in made:
+            assert isinstance(t, Transport), type(t).__name__
+            assert isinstance(t.info, dict) and {"kind", "port"} <= set(t.info)
+            for name in ("send", "receive", "close", "last_frames"):
+                want = inspect.signature(getattr(Transport, name)).parameters
+                got = inspect.signature(getattr(t, name)).parameters
+                assert [(p.name, p.default) for p in got.values()] == \
+                    [(p.name, p.default) for p in list(want.values())[1:]], (t, name)
+            for name, arity in (("clock", 0), ("sleep", 1), ("reopen", 0)):
+                if hasattr(t, name):
+                    assert len(inspect.signature(getattr(t, name)).parameters) == arity
+    finally:
+        for t in made:
+            t.close()
+
+
+# ------------------------------------------------------------------ one registry
+
+def test_every_family_is_registered_once_with_what_runs_it():
+    """The registry names each family once per kind of scene; each loads its driver class
+    (1-D: the class :func:`get_driver` builds, of the same name) and the route that runs it;
+    :data:`DRIVERS` (the scene's ``device.protocol`` choices) are its 1-D names."""
+    from hapsim.drivers import DEFAULT, DRIVERS, FAMILIES
+    from hapsim.scene_schema import PROTOCOLS
+    keys = [(f.name, f.dimension) for f in FAMILIES]
+    assert len(set(keys)) == len(keys) and DEFAULT == "framed" == FAMILIES[0].name
+    assert DRIVERS is PROTOCOLS and DRIVERS == tuple(n for n, d in keys if d <= 1)
+    assert {(f.name, f.dimension) for f in FAMILIES if f.route != "loop"} == {
+        ("haply", 2), ("falcon", 3)}
+    for f in FAMILIES:
+        cls = f.load()
+        assert (cls is None) == (f.name == DEFAULT) and (f.runner() is None) == (f.route == "loop")
+        if f.dimension == 1:
+            assert cls.name == f.name and type(get_driver(f.name)) is cls and cls.limits
+
+
+def _fake_run(args):
+    return 7
+
+
+def test_run_dispatches_an_nd_family_by_the_registry(monkeypatch):
+    """``hapsim run`` runs an n-D family by its registered route (no name tested in the
+    command): a family added to the registry is run, another family's options refused."""
+    import hapsim.drivers as drivers
+    from hapsim.cli import main
+    fake = drivers.Family("fake", 2, "", "test_drivers:_fake_run", "own", "a fake device")
+    monkeypatch.setattr(drivers, "FAMILIES", drivers.FAMILIES + (fake,))
+    scene = "configs/pantograph_wall.yaml"
+    assert main(["run", scene, "--driver", "fake"]) == 7
+    assert main(["run", scene, "--driver", "fake", "--firmware", "x"]) == 2
+    assert main(["run", scene, "--driver", "falcon", "--generation", "gen2"]) == 2
+    assert main(["run", scene, "--driver", "nothing"]) == 2

@@ -16,6 +16,10 @@ line or inside a line of Markdown, with arguments quoted as in a shell:
     ending in ``%`` multiplies by 100 (``:.1f%``). ``None`` is shown as ``-``, booleans as
     ``yes``/``no``.
 
+``{{ families }}``
+    The device families of the drivers' registry (:data:`hapsim.drivers.FAMILIES`), one
+    row each: the page's list of devices cannot drift from what ``--driver`` accepts.
+
 A missing file, key or a malformed macro fails the build (``mkdocs build --strict`` in the
 tests), so a figure cannot silently drift from its file. Used by ``mkdocs.yml`` (``hooks:``)
 and by ``tests/test_docs_site.py``.
@@ -28,7 +32,7 @@ import re
 import shlex
 from pathlib import Path
 
-MACRO = re.compile(r"\{\{\s*(include|value|table)\s+(.*?)\s*\}\}")
+MACRO = re.compile(r"\{\{\s*(include|value|table|families)\s*(.*?)\s*\}\}")
 
 
 class MacroError(ValueError):
@@ -89,6 +93,8 @@ def expand(text: str, root: Path) -> str:
     def one(m: re.Match) -> str:
         kind, args = m.group(1), shlex.split(m.group(2))
         try:
+            if kind == "families":
+                return _families()
             path = root / args[0]
             if kind == "include":
                 return path.read_text().rstrip("\n")
@@ -106,6 +112,17 @@ def expand(text: str, root: Path) -> str:
                 ZeroDivisionError) as exc:
             raise MacroError(f"{m.group(0)}: {type(exc).__name__}: {exc}") from None
     return MACRO.sub(one, text)
+
+
+def _families() -> str:
+    """The drivers' registry as a Markdown table (``{{ families }}``)."""
+    from hapsim.drivers import FAMILIES
+    route = {"loop": "the host loop"}
+    link = {"framed": "`SerialTransport`", "driver": "`DriverTransport`", "own": "its route's"}
+    lines = ["| `--driver` | scenes | device | link | run by |", "|---|---|---|---|---|"]
+    lines += [f"| `{f.name}` | {f'{f.dimension}-D' if f.dimension else 'any'} | {f.device} | "
+              f"{link[f.transport]} | {route.get(f.route, f'`{f.route}`')} |" for f in FAMILIES]
+    return "\n".join(lines)
 
 
 def on_page_markdown(markdown, page, config, files):   # MkDocs hook (event name fixed)

@@ -8,7 +8,7 @@ import sys
 
 
 from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
-from hapsim.drivers import DRIVERS
+from hapsim.drivers import DEFAULT, DRIVERS, family
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
 
@@ -83,7 +83,7 @@ def register(sub) -> None:
                    help="serial port of the device (default: the embedded mock on a pty)")
     p.add_argument("--baud", type=declared("identify", "baud"),
                    default=115200, metavar="BAUD", help="baud rate")
-    p.add_argument("--driver", default="framed", metavar="NAME",
+    p.add_argument("--driver", default=DEFAULT, metavar="NAME",
                    help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
     p.add_argument("--protocol-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a driver's device parameter (device.protocol_options; repeat: "
@@ -192,9 +192,7 @@ def run(args) -> int:
     ConfigError
         Bad option values, an unknown driver, an invalid --mock-scene (exit 2).
     """
-    if args.driver not in DRIVERS:
-        raise ConfigError(f"unknown driver {args.driver!r}; valid: {', '.join(DRIVERS)}",
-                          key="--driver")
+    family(args.driver)                 # an unknown name: the valid ones listed
     if args.plot:
         from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -211,7 +209,7 @@ def run(args) -> int:
     dopts = None
     drv = None
     mopts = None
-    if args.driver != "framed":
+    if args.driver != DEFAULT:
         from hapsim.drivers import get_driver
         dopts = dict(device.protocol_options or {}) if (
             device is not None and device.protocol == args.driver) else {}

@@ -6,8 +6,9 @@ linearisation bound. ``--lockstep``: the loop closed in-process; ``--port PORT``
 framed protocol with an n-axis device, in real time (late ticks accounted per axis,
 :mod:`hapsim.pipeline.felt_port`); neither: the same over the embedded n-D mock (``hapsim mock
 --scene SCENE --once``) in a child process behind a pty. ``--driver haply`` and ``--driver
-falcon`` on 2-D/3-D scenes: :mod:`hapsim.commands.run_haply2`,
-:mod:`hapsim.commands.run_falcon`."""
+falcon`` on 2-D/3-D scenes: the route the drivers' registry names for them
+(:data:`hapsim.drivers.FAMILIES`: :mod:`hapsim.commands.run_haply2`,
+:mod:`hapsim.commands.run_falcon`)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import dataclasses
 import json
 import sys
 
+from hapsim.drivers import DEFAULT
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
 
@@ -182,9 +184,9 @@ def register(sub) -> None:
         The sub-parsers action of ``hapsim``'s parser; ``run``'s ``func`` is :func:`run`.
     """
     from hapsim.pipeline.options import add_run_arguments
-    from hapsim.drivers import DRIVERS, get_driver
-    limits = "\n".join("  " + line for name in DRIVERS if name != "framed"
-                       for line in get_driver(name).limits.splitlines())
+    from hapsim.drivers import FAMILIES
+    limits = "\n".join("  " + line for f in FAMILIES if f.dimension == 1
+                       for line in f.load().limits.splitlines())
     p = sub.add_parser("run", help="close the THS on a device or the mock and measure the "
                                    "felt stiffness and damping",
                        description=_DESCRIPTION, epilog=_EPILOG.replace("{drivers}", limits),
@@ -282,9 +284,9 @@ def protocol_of(scene, driver: str | None) -> tuple[str, str]:
         ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
         (--driver; the scene's device.protocol is firefader)"``.
     """
-    named = scene.device.protocol if scene.device is not None else "framed"
+    named = scene.device.protocol if scene.device is not None else DEFAULT
     if driver is None:
-        return named, (f"the {named} protocol" + ("" if named == "framed"
+        return named, (f"the {named} protocol" + ("" if named == DEFAULT
                                                    else " (the scene's device.protocol)"))
     if driver != named:
         return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
@@ -325,13 +327,7 @@ def run(args) -> int:
     if getattr(args, "amplitude", None) is not None:
         raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
                           "excitation section", key="--amplitude")
-    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
-        if getattr(args, attr, None) is not None:
-            raise ConfigError("goes with --driver falcon on a 3-D delta scene (the Novint "
-                              "Falcon)", key=flag)
-    if getattr(args, "generation", None) is not None:
-        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
-                          "2DIY's two wire generations)", key="--generation")
+    _refuse_family_options(args, None)
 
     from hapsim.pipeline.options import RunOptions
     opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading
@@ -364,7 +360,7 @@ def run(args) -> int:
     note = ""
     # an empty numba cache: say what is compiled before the silence it costs, and compile
     # only what this run needs (--loop auto: the compiled loop after the report)
-    possible = startup.compiled_loop_possible(scene, framed=protocol == "framed",
+    possible = startup.compiled_loop_possible(scene, framed=protocol == DEFAULT,
                                               osc=opts.osc if opts.view is None else opts.view,
                                               sound=opts.sound,
                                               host_clocked=opts.host_clocked)
@@ -378,7 +374,7 @@ def run(args) -> int:
         note = ("; the Python host loop this time (the compiled one is not in numba's cache "
                 "yet: it is compiled after the report, for the next runs)")
     embedded = None
-    if opts.port is None and protocol == "framed":
+    if opts.port is None and protocol == DEFAULT:
         # the mock's child starts now, beside the imports and the warm-up that follow
         from hapsim.pipeline.startup import start_embedded_mock
         embedded = start_embedded_mock(scene, rate_hz=opts.rate_hz, lockstep=opts.lockstep,
@@ -505,6 +501,22 @@ def _refuse_options_nd(args):
     return opts
 
 
+def _refuse_family_options(args, fam) -> None:
+    """Refuse the options of a registered family (``--firmware``: the Falcon's) given to a
+    run of another (``fam``; None: the host loop's).
+
+    Raises
+    ------
+    ConfigError
+        Such an option, by its flag, with the family it goes with.
+    """
+    from hapsim.drivers import FAMILIES
+    for f in FAMILIES:
+        for flag in f.options:
+            if f is not fam and getattr(args, flag[2:], None) is not None:
+                raise ConfigError(f"goes with --driver {f.name} ({f.device})", key=flag)
+
+
 def run_nd(args) -> int:
     """Measure an n-D scene's felt matrices (``dimension: 2`` or ``3``).
 
@@ -542,23 +554,12 @@ def run_nd(args) -> int:
     from hapsim.progress import Progress
     opts = _refuse_options_nd(args)
     driver = getattr(args, "driver", None)
-    if getattr(args, "generation", None) is not None and driver != "haply":
-        raise ConfigError("goes with --driver haply on a 2-D pantograph scene (the Haply "
-                          "2DIY's two wire generations)", key="--generation")
-    if driver == "falcon":
-        from hapsim.commands.run_falcon import run_falcon_command
-        return run_falcon_command(args)
-    for flag, attr in (("--firmware", "firmware"), ("--packets", "packets")):
-        if getattr(args, attr, None) is not None:
-            raise ConfigError(f"{flag} goes with --driver falcon (a delta scene on the "
-                              "Novint Falcon)", key=flag)
-    if driver not in (None, "haply"):
-        raise ConfigError(f"a 2-D or 3-D scene takes --driver haply (a pantograph scene, "
-                          f"the Haply 2DIY) or --driver falcon (a delta scene, the Novint "
-                          f"Falcon), not {driver!r}", key="--driver")
-    if driver == "haply":
-        from hapsim.commands.run_haply2 import run_haply2_command
-        return run_haply2_command(args)
+    if driver is not None:          # a device whose run is its own: the registry's route
+        from hapsim.drivers import family
+        fam = family(driver, dimension=2)
+        _refuse_family_options(args, fam)
+        return fam.runner()(args)
+    _refuse_family_options(args, None)
     from hapsim.pipeline.felt_run import measure_scene_nd, scene_for_run
     a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
                              getattr(args, "rate_hz", None))

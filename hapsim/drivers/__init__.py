@@ -1,4 +1,5 @@
-"""Drivers: the bytes of devices that speak their own protocol, below the host loop.
+"""Drivers: the bytes of devices that speak their own protocol, below the host loop, and
+the one registry of the device families.
 
 The host loop (:mod:`hapsim.host.loop`) sees positions in and forces out, as messages of
 the framed protocol. A driver owns the bytes of another protocol and a
@@ -11,18 +12,131 @@ Interface of a driver (:class:`~hapsim.drivers.base.Driver`): its serial setting
 ``force_scale`` [N/count], ``force_limit`` [N]), ``encode_force(f)`` -> bytes, a fresh
 ``decoder()`` whose ``feed(bytes)`` returns the positions [m] of the complete records, and
 ``limits``: what the protocol cannot do (shown by ``--help`` and docs/devices.md).
+
+:data:`FAMILIES` is the registry: every device family hapsim drives, once, with its name,
+dimension, driver class and the route that runs it; :data:`DRIVERS`, :func:`get_driver`,
+the scene's ``device.protocol`` choices, ``hapsim run``'s n-D dispatch and the device
+table of docs/devices.md are read from it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
+
 from hapsim.errors import ConfigError
-from hapsim.scene_schema import PROTOCOLS
 
-__all__ = ["DRIVERS", "get_driver"]
+__all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver"]
 
-#: Driver names ``--driver`` accepts (and a scene's ``device.protocol``); ``framed`` is
-#: hapsim's own protocol (the default).
-DRIVERS = PROTOCOLS
+
+@dataclasses.dataclass(frozen=True)
+class Family:
+    """One device family of the registry.
+
+    Attributes
+    ----------
+    name : str
+        Its ``--driver`` name (1-D: also a scene's ``device.protocol``).
+    dimension : int
+        The scenes it drives: 1, 2 or 3 (0: any, the framed protocol).
+    driver : str
+        Its driver class as ``"module:Class"`` (imported by :meth:`load`; its ``limits``
+        say what the protocol cannot do); ``""`` for the framed protocol (the loop's own
+        transport, no driver object).
+    route : str
+        What runs it: ``"loop"``, the host loop (the framed protocol: or its compiled
+        twin) through a transport
+        (:func:`hapsim.host.transport.open_transport`); else the ``"module:function"``
+        taking ``hapsim run``'s arguments (a device whose run is its own).
+    transport : str
+        The link: ``"framed"`` (:class:`~hapsim.host.transport.SerialTransport`),
+        ``"driver"`` (:class:`~hapsim.drivers.transport.DriverTransport`), ``"own"`` (its
+        route's: the 2DIY's pyserial link, the Falcon's USB).
+    device : str
+        The device, as ``--help`` and docs/devices.md name it.
+    options : tuple of str
+        ``hapsim run``'s flags that go with this family only.
+    """
+
+    name: str
+    dimension: int
+    driver: str
+    route: str
+    transport: str
+    device: str
+    options: tuple = ()
+
+    def load(self):
+        """The driver class, its module imported now (None: the framed protocol's)."""
+        return _resolve(self.driver)
+
+    def runner(self):
+        """The function that runs this family's ``hapsim run``, its module imported now
+        (None: the host loop's route)."""
+        return None if self.route == "loop" else _resolve(self.route)
+
+
+def _resolve(spec: str):
+    """The object a ``"module:name"`` string names (None for ``""``)."""
+    if not spec:
+        return None
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+#: The device families, the default (hapsim's own framed protocol) first.
+FAMILIES = (
+    Family("framed", 0, "", "loop", "framed",
+           "hapsim's own protocol (COBS frames, CRC, sequence numbers, watchdog)"),
+    Family("firefader", 1, "hapsim.drivers.firefader:FireFader", "loop", "driver",
+           "the FireFader (Berdahl), one axis"),
+    Family("haply", 1, "hapsim.drivers.haply:HaplyM3", "loop", "driver",
+           "a Haply M3 board, one joint"),
+    Family("hapkit-serial", 1, "hapsim.drivers.hapkit_serial:HapkitSerial", "loop", "driver",
+           "a Hapkit running the WHC2017 sketch"),
+    Family("haply", 2, "hapsim.drivers.haply2:Haply2DIY",
+           "hapsim.commands.run_haply2:run_haply2_command", "own",
+           "a pantograph scene, the Haply 2DIY", ("--generation",)),
+    Family("falcon", 3, "hapsim.drivers.falcon_usb:FalconUSB",
+           "hapsim.commands.run_falcon:run_falcon_command", "own",
+           "a delta scene, the Novint Falcon", ("--firmware", "--packets")),
+)
+
+#: The default protocol: hapsim's own, framed.
+DEFAULT = FAMILIES[0].name
+
+#: Driver names ``--driver`` accepts on a 1-D scene (and a scene's ``device.protocol``);
+#: ``framed`` is hapsim's own protocol (the default).
+DRIVERS = tuple(f.name for f in FAMILIES if f.dimension <= 1)
+
+
+def family(name: str, dimension: int = 1) -> Family:
+    """The registered family called ``name`` for a scene of ``dimension``.
+
+    Parameters
+    ----------
+    name : str
+    dimension : int
+        1, or 2 and 3 (an n-D scene: a family of either, as ``hapsim run`` dispatches).
+
+    Returns
+    -------
+    Family
+
+    Raises
+    ------
+    ConfigError
+        No such family for that dimension (the message lists the valid ones).
+    """
+    found = [f for f in FAMILIES if f.name == name and (f.dimension <= 1) == (dimension <= 1)]
+    if found:
+        return found[0]
+    if dimension <= 1:
+        raise ConfigError(f"unknown driver {name!r}; valid: {', '.join(DRIVERS)}",
+                          key="--driver")
+    raise ConfigError("a 2-D or 3-D scene takes " + " or ".join(
+        f"--driver {f.name} ({f.device})" for f in FAMILIES if f.dimension > 1)
+        + f", not {name!r}", key="--driver")
 
 
 def get_driver(name: str, **options):
@@ -45,15 +159,8 @@ def get_driver(name: str, **options):
         An unknown name (the message lists the valid ones), or ``"framed"`` (it has no
         driver object: the framed protocol is the loop's own transport).
     """
-    if name == "firefader":
-        from hapsim.drivers.firefader import FireFader
-        return FireFader(**options)
-    if name == "haply":
-        from hapsim.drivers.haply import HaplyM3
-        return HaplyM3(**options)
-    if name == "hapkit-serial":
-        from hapsim.drivers.hapkit_serial import HapkitSerial
-        return HapkitSerial(**options)
-    raise ConfigError(f"unknown driver {name!r}; valid: {', '.join(DRIVERS)}"
-                      + (" (framed is the default transport, not a driver object)"
-                         if name == "framed" else ""), key="--driver")
+    cls = family(name).load()
+    if cls is None:
+        raise ConfigError(f"unknown driver {name!r}; valid: {', '.join(DRIVERS)} (framed is "
+                          "the default transport, not a driver object)", key="--driver")
+    return cls(**options)

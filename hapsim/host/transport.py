@@ -1,37 +1,59 @@
-"""Message transports between the host loop and a device.
+"""Message transports between the host loop and a device, behind one interface.
 
-Every transport offers the same small interface to :mod:`hapsim.host.loop`:
-
-``send(msg)``
-    Send one protocol message.
-``receive(timeout)``
-    Messages received so far, waiting up to ``timeout`` [s] for at least one.
-``close()``
-    Release the port.
-``info``
-    Dict of facts for the loop report (kind, port, baud, low-latency mode).
-``last_frames()``
-    Text of the last frames received (docs/design.md, rule 11), for error messages.
-
-:class:`SerialTransport` opens any port with pyserial: hardware, or the pty of an emulated
-device. The host side knows only a port: the transports that hold an emulated device
-in-process (no bytes, or a virtual clock) and the emulated mock started on a pty are the
-device side's (:mod:`hapsim.emulated.links`); a device family's own link is
-:class:`hapsim.drivers.transport.DriverTransport`.
-
-Optional members the loop uses when present: ``clock()`` and ``sleep(s)`` (virtual time),
-``reopen()`` (recover a failed port), ``decoder`` (counters).
-"""
+:class:`Transport` declares what :mod:`hapsim.host.loop`, its compiled twin and their
+handshake and recovery call on every transport; ``tests/test_drivers.py`` checks each
+transport class against it. :class:`SerialTransport` opens any port with pyserial:
+hardware, or the pty of an emulated device. The host side knows only a port: the
+transports that hold an emulated device in-process (no bytes, or a virtual clock) and the
+emulated mock started on a pty are the device side's (:mod:`hapsim.emulated.links`); a
+device family's own link is :class:`hapsim.drivers.transport.DriverTransport`.
+:func:`open_transport` opens the one a port and a family call for (as pyserial's
+``serial_for_url``)."""
 
 from __future__ import annotations
 
 import os
 import time
+from typing import Protocol, runtime_checkable
 
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 
-__all__ = ["SerialTransport"]
+__all__ = ["Transport", "SerialTransport", "open_transport"]
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """What the host loop calls on a transport (a structural type: no class inherits it).
+
+    Attributes
+    ----------
+    info : dict
+        Facts for the loop report: ``kind``, ``port``, ``baud``, ``low_latency``,
+        ``low_latency_note``.
+
+    Notes
+    -----
+    Members the loop uses when a transport has them: ``clock()`` and ``sleep(s)`` (virtual
+    time), ``reopen()`` (recover a failed port), ``decoder`` (counters), ``serial_port``
+    (the compiled loop's file descriptor), ``set_compact`` and ``compact`` (compact
+    frames), ``driver``, ``hold``, ``overdue``, ``estimate`` and ``host_stalled`` (a
+    driver's replies).
+    """
+
+    info: dict
+
+    def send(self, msg) -> None:
+        """Send one protocol message (DeviceError when the port is gone)."""
+
+    def receive(self, timeout: float = 0.0) -> list:
+        """The messages received so far, waiting up to ``timeout`` [s] for a first one."""
+
+    def close(self) -> None:
+        """Release the port (idempotent)."""
+
+    def last_frames(self) -> str:
+        """Text of the last frames received (docs/design.md, rule 11), for errors."""
 
 
 def _is_pty(port: str) -> bool:
@@ -74,30 +96,35 @@ class SerialTransport:
     """
 
     def __init__(self, port: str, baud: int = 115200, read_timeout: float = 0.01) -> None:
-        import serial  # pyserial; imported here so in-process tests do not need it
-
-        try:
-            self._ser = serial.serial_for_url(port, baudrate=baud, timeout=read_timeout,
-                                              write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.info = {"kind": "serial", "port": port, "baud": baud, "low_latency": False,
                      "low_latency_note": ""}
+        self._timeout = read_timeout
+        self._open()
+        self._dec = fp.StreamDecoder()
+        self._compact = False
+
+    def _open(self) -> None:
+        """Open :attr:`info`'s port, in low-latency mode where it has one (DeviceError when
+        it cannot be opened)."""
+        import serial  # pyserial; imported here so in-process tests do not need it
+
+        port = self.info["port"]
+        try:
+            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
+                                              timeout=self._timeout, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"cannot open port {port}: {exc}") from None
+        self._read, self._write = self._ser.read, self._ser.write
         if _is_pty(port):
             # ASYNC_LOW_LATENCY is a serial driver's flag (the FTDI latency timer): a pty
             # (the embedded mock) has none, and asking only yields ENOTTY (issue 31)
             self.info["low_latency_note"] = "a pty: not a serial driver"
-        else:
-            try:
-                self._ser.set_low_latency_mode(True)
-                self.info["low_latency"] = True
-            except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
-                self.info["low_latency_note"] = f"not available: {exc}".strip()
-        self._dec = fp.StreamDecoder()
-        self._timeout = read_timeout
-        self._read = self._ser.read
-        self._write = self._ser.write
-        self._compact = False
+            return
+        try:
+            self._ser.set_low_latency_mode(True)
+            self.info["low_latency"] = True
+        except (AttributeError, NotImplementedError, ValueError, OSError) as exc:
+            self.info["low_latency_note"] = f"not available: {exc}".strip()
 
     @property
     def decoder(self) -> fp.StreamDecoder:
@@ -210,23 +237,10 @@ class SerialTransport:
         DeviceError
             When the port cannot be opened (yet).
         """
-        import serial
-
         self.close()
-        port = self.info["port"]
-        try:
-            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
-                                              timeout=self._timeout, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceError(f"cannot open port {port}: {exc}") from None
-        try:
-            self._ser.set_low_latency_mode(True)
-        except (AttributeError, NotImplementedError, ValueError, OSError):
-            pass
+        self._open()
         self._dec.reset()
         self.set_compact(None)   # a device that vanished may have reset: ask again
-        self._read = self._ser.read
-        self._write = self._ser.write
         self.reopened = getattr(self, "reopened", 0) + 1
 
     def last_frames(self) -> str:
@@ -241,3 +255,43 @@ class SerialTransport:
         return self._dec.format_last_frames()
 
 
+
+
+def open_transport(port: str, driver=None, *, baud: int = 115200, **options) -> Transport:
+    """The transport a port and a device family call for, as pyserial's ``serial_for_url``
+    opens the port a URL calls for: the family's link is read from the drivers' registry
+    (:data:`hapsim.drivers.FAMILIES`).
+
+    Parameters
+    ----------
+    port : str
+        A device path (``/dev/ttyACM0``), a pty (an emulated device's), or any pyserial URL
+        (``loop://``).
+    driver : str or hapsim.drivers.base.Driver, optional
+        None or ``"framed"`` (the default protocol): :class:`SerialTransport`; a 1-D
+        family's name or its driver object:
+        :class:`~hapsim.drivers.transport.DriverTransport`.
+    baud : int
+        The framed protocol's baud rate (a driver has its own).
+    **options
+        :class:`~hapsim.drivers.transport.DriverTransport`'s keywords (``delay``,
+        ``reply_deadline``, ``inertia``, ...).
+
+    Returns
+    -------
+    Transport
+
+    Raises
+    ------
+    ConfigError
+        An unknown driver name (the valid ones listed).
+    DeviceError
+        The port cannot be opened.
+    """
+    from hapsim.drivers import DEFAULT, family, get_driver
+    name = driver if isinstance(driver, str) or driver is None else driver.name
+    if family(name or DEFAULT).transport == "framed":
+        return SerialTransport(port, baud)
+    from hapsim.drivers.transport import DriverTransport
+    return DriverTransport(get_driver(driver) if isinstance(driver, str) else driver, port,
+                           **options)

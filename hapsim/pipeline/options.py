@@ -18,6 +18,7 @@ import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from hapsim.drivers import DEFAULT
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
 
@@ -373,7 +374,7 @@ class RunOptions:
     def protocol(self) -> str:
         """The device's protocol: :attr:`driver`'s name, or ``"framed"`` (hapsim's own,
         spoken by the loop's own transport; :meth:`check` stores it as ``driver=None``)."""
-        return self.driver or "framed"
+        return self.driver or DEFAULT
 
     def check(self) -> "RunOptions":
         """Validate and resolve the options in place.
@@ -390,7 +391,7 @@ class RunOptions:
             option and the valid choices.
         """
         self.check_values()
-        if self.driver == "framed":
+        if self.driver == DEFAULT:
             self.driver = None          # hapsim's own protocol: no driver object, once here
         if self.duration == 0 and self.stop is None and not self.handle_signals:
             raise ConfigError("an open-ended run (duration 0) needs a way to stop it: "

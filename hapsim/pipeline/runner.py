@@ -48,6 +48,7 @@ from hapsim.pipeline.report import build_report, format_report
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import compile_notice, compiled_loop_possible, preload_numba_blas
 from hapsim.host.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.host.transport import open_transport
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
 from hapsim.scene import Scene
@@ -305,7 +306,6 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         cfg = _loop_config(prep, opts)
         if opts.driver is not None:
             from hapsim.drivers import get_driver
-            from hapsim.drivers.transport import DriverTransport
             # the device's parameters: given, else the scene's device.protocol_options
             # when the scene's device speaks this protocol
             dopt = dict(opts.driver_options if opts.driver_options is not None
@@ -335,15 +335,14 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
                 # inertia) bounds what a reading may have moved since the last (a driver
                 # that checks it: the Haply M3)
                 acct = embedded.handled
-                tr = DriverTransport(drv, embedded.port, delay=int(dev.delay),
-                                     reply_deadline=0.0 if acct is None else 0.02,
-                                     inertia=dev.mass,
-                                     board_period=None if acct is None else scene.period,
-                                     handled=None if acct is None else acct.totals)
+                tr = open_transport(embedded.port, drv, delay=int(dev.delay),
+                                    reply_deadline=0.0 if acct is None else 0.02,
+                                    inertia=dev.mass,
+                                    board_period=None if acct is None else scene.period,
+                                    handled=None if acct is None else acct.totals)
                 embedded.release_slave()
             else:
-                tr = DriverTransport(drv, opts.port, delay=int(dev.delay),
-                                     inertia=dev.mass)
+                tr = open_transport(opts.port, drv, delay=int(dev.delay), inertia=dev.mass)
         elif transport == "inprocess":
             from hapsim.emulated.links import InProcessTransport
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=True,
@@ -354,13 +353,10 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             mock = MockDevice(dev, scene.excitation, native_rate_hz=scene.rate_hz, lockstep=False,
                               seed=opts.seed, base_dir=prep.base_dir)
             tr = SimTransport(mock, opts.plan)
-        elif transport == "pty":
-            from hapsim.host.transport import SerialTransport
-            tr = SerialTransport(embedded.port, opts.baud)
-            embedded.release_slave()
-        else:
-            from hapsim.host.transport import SerialTransport
-            tr = SerialTransport(opts.port, opts.baud)
+        else:                   # the embedded mock's pty, or a port: hapsim's own protocol
+            tr = open_transport(opts.port if embedded is None else embedded.port, baud=opts.baud)
+            if embedded is not None:
+                embedded.release_slave()
         if not rt.active:
             rt.__enter__()  # the loop's thread only, once the start-up work is done
     except BaseException:

@@ -520,14 +520,14 @@ def _check_protocol_options(o: Any, protocol: str) -> None:
     where = ("device", "protocol_options")
     if not isinstance(o, dict):
         raise Invalid(f"must be a mapping, got {type_name(o)} {show(o)}", where)
-    if protocol == "framed":
-        raise Invalid("the framed protocol takes no options (its device says its own "
-                       "units in HELLO); set device.protocol to a driver", where)
     import inspect
 
-    from hapsim.drivers import get_driver
+    from hapsim.drivers import family, get_driver
     from hapsim.errors import ConfigError
-    cls = type(get_driver(protocol))
+    cls = family(protocol).load()           # the registry's driver class
+    if cls is None:
+        raise Invalid("the framed protocol takes no options (its device says its own "
+                       "units in HELLO); set device.protocol to a driver", where)
     valid = tuple(n for n in inspect.signature(cls.__init__).parameters if n != "self")
     for name in o:
         if name not in valid:
