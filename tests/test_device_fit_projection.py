@@ -114,3 +114,31 @@ def test_outside_the_physical_range_the_residual_is_the_bad_one():
         r, phi, cx, cv = mod._solve(lm, b0)
         assert np.array_equal(r, np.ones(mod.idx.size)) and not phi.any()
         assert not cx.any() and not cv.any()
+
+
+@pytest.mark.parametrize("seed,hold,frac", [(6, 0, 0.0), (7, 1, 0.0), (8, 0, 0.6)])
+def test_the_forward_difference_is_scipys_bit_for_bit(seed, hold, frac):
+    """``_ForwardDifference`` (the variable projection's Jacobian without scipy's wrapping)
+    forms scipy's ``approx_derivative(..., method='2-point')`` numbers bit for bit, at
+    points of both signs and at 0 (scipy's step sign 1 there); and Levenberg-Marquardt with
+    it ends where ``jac='2-point'`` ends, bit for bit, from the same starts."""
+    from scipy.optimize import least_squares
+    from scipy.optimize._numdiff import approx_derivative
+
+    from hapsim.analysis.device_fit_search import _ForwardDifference
+    mod, (lm0, b00) = _record(seed, hold, frac)
+    for p in [(lm0, b00), (lm0 + 0.3, 0.0), (-0.2, -b00 * 1e-3), (0.0, b00 + 1.0)]:
+        p = np.array(p)
+        ref = approx_derivative(mod.residual, p, method="2-point")
+        jac = _ForwardDifference(mod.residual)
+        assert np.array_equal(jac(p), ref)                   # f(p) evaluated
+        jac.fun(p)
+        assert np.array_equal(jac(p), ref)                   # f(p) remembered
+    for p0 in [(lm0 + 0.5, 1.0), (lm0 - 0.7, 0.1)]:
+        kw = dict(method="lm", x_scale="jac", xtol=1e-11, ftol=1e-11, gtol=1e-11,
+                  max_nfev=200)
+        a = least_squares(mod.residual, np.array(p0), **kw)
+        jac = _ForwardDifference(mod.residual)
+        b = least_squares(jac.fun, np.array(p0), jac=jac, **kw)
+        assert np.array_equal(a.x, b.x) and a.cost == b.cost and np.array_equal(a.jac, b.jac)
+        assert abs(b.x[0] - lm0) < 0.05                      # it found the device

@@ -249,11 +249,58 @@ class _Stretched:
         return y0, params, Jr, 2 * self.starts.size
 
 
+class _ForwardDifference:
+    """The variable projection's Jacobian by forward differences, the same numbers, bit for
+    bit, as ``least_squares(..., jac='2-point')`` forms them
+    (``scipy.optimize.approx_derivative``, dense, no bounds), without its wrapping.
+
+    Column ``j`` is ``(f(x + h_j e_j) - f(x)) / ((x_j + h_j) - x_j)`` with scipy's step
+    ``h_j = sqrt(eps) sign(x_j) max(1, |x_j|)`` (sign 1 at 0); ``f(x)`` is the residual
+    :meth:`fun` last returned at the same point (as scipy passes its ``f0``), else
+    evaluated. With two parameters and a compiled residual
+    (:func:`hapsim.kernels.device_sim.stretch_projection`, ~60 us) scipy's wrapping was
+    most of a Jacobian's cost. ``tests/test_device_fit_projection.py`` compares the two.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(p) -> ndarray, shape (n_rows,)``, the residual; a new array each call.
+    """
+
+    def __init__(self, fun):
+        self._fun = fun
+        self._last = None
+
+    def fun(self, p):
+        """The residual at ``p``, remembered for the Jacobian at the same point."""
+        f = np.atleast_1d(self._fun(p))
+        self._last = (np.array(p, float), f.copy())
+        return f
+
+    def __call__(self, p):
+        """The Jacobian at ``p``: ndarray, shape ``(n_rows, p.size)``."""
+        x0 = np.asarray(p, float)
+        if self._last is not None and np.array_equal(self._last[0], x0):
+            f0 = self._last[1]
+        else:
+            f0 = np.atleast_1d(self._fun(x0.copy()))
+        # scipy's _compute_absolute_step for '2-point' (sign 1 at 0)
+        sign = (x0 >= 0).astype(float) * 2 - 1
+        h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x0))
+        J = np.empty((f0.size, x0.size))
+        for j in range(x0.size):
+            x1 = x0.copy()
+            x1[j] = x0[j] + h[j]
+            J[:, j] = (np.atleast_1d(self._fun(x1)) - f0) / ((x0[j] + h[j]) - x0[j])
+        return J
+
+
 def fit_stretched(x, u, T, hold, st, starts, frac=0.0):
     """The variable-projection fit of one (hold, delay) candidate on the stretches.
 
-    ``(ln m, b0)`` by Levenberg-Marquardt (``scipy.optimize.least_squares``, ``"lm"``)
-    from each start, the stretch states and Coulomb frictions eliminated by linear least
+    ``(ln m, b0)`` by Levenberg-Marquardt (``scipy.optimize.least_squares``, ``"lm"``, its
+    Jacobian scipy's forward difference as :class:`_ForwardDifference` forms it) from each
+    start, the stretch states and Coulomb frictions eliminated by linear least
     squares at every step (Golub & Pereyra 1973); the least cost of the starts is kept.
 
     Parameters
@@ -284,8 +331,9 @@ def fit_stretched(x, u, T, hold, st, starts, frac=0.0):
     mod = _Stretched(x, u, T, hold, st, frac)
     best = None
     for p0 in starts:
+        jac = _ForwardDifference(mod.residual)
         try:
-            r = least_squares(mod.residual, np.asarray(p0, float), method="lm",
+            r = least_squares(jac.fun, np.asarray(p0, float), method="lm", jac=jac,
                               x_scale="jac", xtol=1e-11, ftol=1e-11, gtol=1e-11, max_nfev=200)
         except (ValueError, FloatingPointError, OverflowError, np.linalg.LinAlgError):
             continue
