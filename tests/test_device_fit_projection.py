@@ -141,4 +141,7 @@ def test_the_forward_difference_is_scipys_bit_for_bit(seed, hold, frac):
         jac = _ForwardDifference(mod.residual)
         b = least_squares(jac.fun, np.array(p0), jac=jac, **kw)
         assert np.array_equal(a.x, b.x) and a.cost == b.cost and np.array_equal(a.jac, b.jac)
-        assert abs(b.x[0] - lm0) < 0.05                      # it found the device
+        # it found the device: ln m within measured(7.0e-4, 70) of the truth (7.0e-4
+        # the worst of these six fits, 1 um of noise; margin 70, 5 % of the mass: the
+        # check is that it converged to the device, not to another stationary point)
+        assert abs(b.x[0] - lm0) < measured(7.0e-4, 70)
