@@ -1,9 +1,11 @@
 """Output simulation of the device model ``m x'' + b0 x' = u - Coulomb`` for identification.
 
-Two kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
+Kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
 samples a 1-DoF device would report for a given sequence of *applied* forces, stretch by
-stretch, and :func:`stretch_basis`, the responses its linear part is a combination of; for
-the two holds of docs/design.md, 'The timing convention':
+stretch, :func:`stretch_basis`, the responses its linear part is a combination of, and
+:func:`stretch_projection`, the device fit's variable projection on that basis (the
+residual once the stretch states and Coulomb frictions are solved); for the two holds of
+docs/design.md, 'The timing convention':
 
 ``zoh`` (hold 0)
     The force is held over each period and the motion integrated exactly (closed form of
