@@ -115,3 +115,31 @@ def test_identify_over_a_real_time_port_ends_without_a_safety_stop(tmp_path):
     assert not out["loop"]["safety_stop"], out["loop"]["stop_reason"]
     assert r.returncode == 0, r.stderr[-2000:]
     assert_within(out["device"], {"mass": 0.237, "friction": 1.31})
+
+
+def test_the_centring_gains_radii_are_numpy_roots_bit_for_bit():
+    """The centring gains' stability check takes the spectral radii of all its (mass,
+    damping) loops from one stack of companion matrices (``_rho_masses``, issue 31 item 2:
+    ~200 ``numpy.roots`` calls were 53 ms of every identification, 5 now): each radius is
+    ``_rho_mass``'s (``numpy.roots`` of the same characteristic polynomial) bit for bit, a
+    damping of 0 (a root at 0, which ``numpy.roots`` strips) included; so the gains are
+    the same numbers."""
+    from hapsim.pipeline.identify_run import (MASS_RANGE, _rho_mass, _rho_masses,
+                                              centring_gains)
+    rng = np.random.default_rng(31)
+    for i in range(200):
+        d = int(rng.integers(0, 9))
+        T = float(10.0 ** rng.uniform(-4, -2))
+        kc = float(10.0 ** rng.uniform(-1, 4))
+        ms = 10.0 ** rng.uniform(-3, 1, 7)
+        bcs = 10.0 ** rng.uniform(-4, 2, 7)
+        if i % 10 == 0:
+            bcs[0] = 0.0
+        got = _rho_masses(ms, kc, bcs, d, T)
+        ref = [_rho_mass(float(m), kc, float(bc), d, T) for m, bc in zip(ms, bcs)]
+        assert got.tolist() == ref, (d, T, kc)
+    # the gains found with them: stable for every mass of the range and every delay
+    kc, bc = centring_gains(4.0, 0.01, 1000.0, 3)
+    grid = np.geomspace(MASS_RANGE[0], MASS_RANGE[1], 7)
+    assert kc > 0 and bc > 0
+    assert all(_rho_mass(float(m), kc, bc, d, 1e-3) < 1.0 for d in range(4) for m in grid)

@@ -146,12 +146,13 @@ class _Stretched:
     """
 
     def __init__(self, x, u, T, hold, st, frac=0.0):
-        from hapsim.kernels.device_sim import stretch_basis
+        from hapsim.kernels.device_sim import stretch_basis, stretch_projection
         self.x, self.u, self.T, self.hold = x, u, T, hold
         self.frac = float(frac)
         self.starts, self.ends, self.dirs = st
         self.coulomb = hold == 0
         self._basis = stretch_basis
+        self._project_kernel = stretch_projection
         n = x.size
         self._yu, self._g, self._c = np.zeros(n), np.zeros(n), np.zeros(n)
         self.idx = np.concatenate([np.arange(a, b) for a, b in zip(self.starts, self.ends)])
@@ -168,23 +169,34 @@ class _Stretched:
             np.zeros(0)
 
     def _solve(self, lm, b0):
-        i = self.idx
+        """The variable projection at ``(ln m, b0)``: ``(r, phi, cx, cv)``, the residual on
+        the stretches [m] (positions minus model), ``(fc+, fc-)`` [N] (zeros without
+        Coulomb friction) and the stretches' initial positions [m] and velocities [m/s]
+        (:func:`hapsim.kernels.device_sim.stretch_projection`, one compiled call: the same
+        least squares as the numpy projection of :meth:`_projector`, at a tenth of its
+        cost). Leaves the basis of ``(lm, b0)`` in ``_yu``, ``_g``, ``_c``.
+        """
+        ns = self.starts.size
         # outside the physical range the basis overflows (a negative b0 on a light mass
-        # grows as exp(|b0| t / m)) and the least squares below would get NaN (LAPACK's
-        # "DLASCL illegal value" on stdout): the optimiser gets a residual far worse than
-        # any physical model's instead (1 m per sample), so it steps back
+        # grows as exp(|b0| t / m)) and the least squares would get NaN: the optimiser
+        # gets a residual far worse than any physical model's instead (1 m per sample),
+        # so it steps back
         if not (_LM_RANGE[0] < lm < _LM_RANGE[1] and math.isfinite(b0)
                 and abs(b0) * self.T * self._longest < 50.0 * math.exp(lm)):
-            return self._bad, np.zeros(2), np.zeros(self.starts.size), np.zeros(
-                self.starts.size)
-        m = math.exp(lm)
-        self._basis(self.u, self.starts, self.ends, m, b0, self.T, self.hold,
-                    self._yu, self._g, self._c, self.frac)
-        g, yu, c = self._g[i], self._yu[i], self._c[i]
-        if not (np.isfinite(g).all() and np.isfinite(yu).all() and np.isfinite(c).all()):
-            return self._bad, np.zeros(2), np.zeros(self.starts.size), np.zeros(
-                self.starts.size)
-        t = self._xi - yu
+            return self._bad, np.zeros(2), np.zeros(ns), np.zeros(ns)
+        r, phi = np.empty(self.idx.size), np.empty(2)
+        cx, cv = np.empty(ns), np.empty(ns)
+        if not self._project_kernel(self.u, self.starts, self.ends, self.dirs, math.exp(lm),
+                                    float(b0), self.T, self.hold, self.frac, self.coulomb,
+                                    self._xi, self._yu, self._g, self._c, r, phi, cx, cv):
+            return self._bad, np.zeros(2), np.zeros(ns), np.zeros(ns)
+        return r, phi, cx, cv
+
+    def _projector(self):
+        """The projection on the complement of ``[1, g]`` stretch by stretch, ``g`` the
+        basis of the last :meth:`_solve`: ``project(z) -> (z - fit, cx, cv)``, z of shape
+        (rows,)."""
+        g = self._g[self.idx]
         off = self.offs
         L = self._L
         Sg = np.add.reduceat(g, off)
@@ -199,22 +211,7 @@ class _Stretched:
             cx = (Sgg * Sz - Sg * Sgz) / det
             cv = (L * Sgz - Sg * Sz) / det
             return z - cx[self.sid] - cv[self.sid] * g, cx, cv
-        self._project = project
-        pt, _, _ = project(t)
-        phi = np.zeros(2)
-        cols = []
-        if self.coulomb:
-            cp = np.where(self.dir_i > 0, -c, 0.0)       # -fc+ while moving +
-            cn = np.where(self.dir_i < 0, c, 0.0)        # +fc- while moving -
-            P = np.column_stack([project(cp)[0], project(cn)[0]])
-            used = [k for k in range(2) if np.any(P[:, k])]
-            if used:
-                sol = np.linalg.lstsq(P[:, used], pt, rcond=None)[0]
-                phi[used] = sol
-            cols = [cp, cn]
-        resid_t = t - (cols[0] * phi[0] + cols[1] * phi[1] if cols else 0.0)
-        r, cx, cv = project(resid_t)
-        return r, phi, cx, cv
+        return project
 
     def residual(self, p):
         return -self._solve(p[0], p[1])[0]
@@ -246,16 +243,64 @@ class _Stretched:
         # Frisch-Waugh-Lovell: the stretch states partialled out of the Jacobian leave the
         # marginal covariance of (ln m, b0, fc+, fc-) (the projector of the last _solve)
         self._solve(lm, b0)
-        Jr = np.column_stack([self._project(cc)[0] for cc in cols])
+        project = self._projector()
+        Jr = np.column_stack([project(cc)[0] for cc in cols])
         params = np.concatenate([[lm, b0], phi if self.coulomb else []])
         return y0, params, Jr, 2 * self.starts.size
+
+
+class _ForwardDifference:
+    """The variable projection's Jacobian by forward differences, the same numbers, bit for
+    bit, as ``least_squares(..., jac='2-point')`` forms them
+    (``scipy.optimize.approx_derivative``, dense, no bounds), without its wrapping.
+
+    Column ``j`` is ``(f(x + h_j e_j) - f(x)) / ((x_j + h_j) - x_j)`` with scipy's step
+    ``h_j = sqrt(eps) sign(x_j) max(1, |x_j|)`` (sign 1 at 0); ``f(x)`` is the residual
+    :meth:`fun` last returned at the same point (as scipy passes its ``f0``), else
+    evaluated. With two parameters and a compiled residual
+    (:func:`hapsim.kernels.device_sim.stretch_projection`, ~60 us) scipy's wrapping was
+    most of a Jacobian's cost. ``tests/test_device_fit_projection.py`` compares the two.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(p) -> ndarray, shape (n_rows,)``, the residual; a new array each call.
+    """
+
+    def __init__(self, fun):
+        self._fun = fun
+        self._last = None
+
+    def fun(self, p):
+        """The residual at ``p``, remembered for the Jacobian at the same point."""
+        f = np.atleast_1d(self._fun(p))
+        self._last = (np.array(p, float), f.copy())
+        return f
+
+    def __call__(self, p):
+        """The Jacobian at ``p``: ndarray, shape ``(n_rows, p.size)``."""
+        x0 = np.asarray(p, float)
+        if self._last is not None and np.array_equal(self._last[0], x0):
+            f0 = self._last[1]
+        else:
+            f0 = np.atleast_1d(self._fun(x0.copy()))
+        # scipy's _compute_absolute_step for '2-point' (sign 1 at 0)
+        sign = (x0 >= 0).astype(float) * 2 - 1
+        h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x0))
+        J = np.empty((f0.size, x0.size))
+        for j in range(x0.size):
+            x1 = x0.copy()
+            x1[j] = x0[j] + h[j]
+            J[:, j] = (np.atleast_1d(self._fun(x1)) - f0) / ((x0[j] + h[j]) - x0[j])
+        return J
 
 
 def fit_stretched(x, u, T, hold, st, starts, frac=0.0):
     """The variable-projection fit of one (hold, delay) candidate on the stretches.
 
-    ``(ln m, b0)`` by Levenberg-Marquardt (``scipy.optimize.least_squares``, ``"lm"``)
-    from each start, the stretch states and Coulomb frictions eliminated by linear least
+    ``(ln m, b0)`` by Levenberg-Marquardt (``scipy.optimize.least_squares``, ``"lm"``, its
+    Jacobian scipy's forward difference as :class:`_ForwardDifference` forms it) from each
+    start, the stretch states and Coulomb frictions eliminated by linear least
     squares at every step (Golub & Pereyra 1973); the least cost of the starts is kept.
 
     Parameters
@@ -286,8 +331,9 @@ def fit_stretched(x, u, T, hold, st, starts, frac=0.0):
     mod = _Stretched(x, u, T, hold, st, frac)
     best = None
     for p0 in starts:
+        jac = _ForwardDifference(mod.residual)
         try:
-            r = least_squares(mod.residual, np.asarray(p0, float), method="lm",
+            r = least_squares(jac.fun, np.asarray(p0, float), method="lm", jac=jac,
                               x_scale="jac", xtol=1e-11, ftol=1e-11, gtol=1e-11, max_nfev=200)
         except (ValueError, FloatingPointError, OverflowError, np.linalg.LinAlgError):
             continue

@@ -1,9 +1,11 @@
 """Output simulation of the device model ``m x'' + b0 x' = u - Coulomb`` for identification.
 
-Two kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
+Kernels on plain arrays and floats (SI units): :func:`simulate_device`, the position
 samples a 1-DoF device would report for a given sequence of *applied* forces, stretch by
-stretch, and :func:`stretch_basis`, the responses its linear part is a combination of; for
-the two holds of docs/design.md, 'The timing convention':
+stretch, :func:`stretch_basis`, the responses its linear part is a combination of, and
+:func:`stretch_projection`, the device fit's variable projection on that basis (the
+residual once the stretch states and Coulomb frictions are solved); for the two holds of
+docs/design.md, 'The timing convention':
 
 ``zoh`` (hold 0)
     The force is held over each period and the motion integrated exactly (closed form of
@@ -32,6 +34,8 @@ import numba as nb
 import numpy as np
 
 _jit = nb.njit(cache=True, nogil=True)
+#: The binary64 machine epsilon (numpy.finfo(float).eps).
+_EPS = 2.220446049250313e-16
 
 
 @_jit
@@ -203,3 +207,141 @@ def stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c, frac=
                 n3 = (1.0 + a) * x3 - a * p3 + cu
                 p3 = x3
                 x3 = n3
+
+
+@_jit
+def _stretch_fit(z, g, starts, ends, L, Sg, Sgg, det, out, cx, cv):
+    """``z`` minus its least-squares fit by ``[1, g]`` on each stretch (compact rows).
+
+    ``out`` [rows] gets the projection; ``cx``, ``cv`` [stretches] the fit's coefficients
+    (the normal equations of the two columns, Cramer's rule; ``det`` nonzero).
+    """
+    o = 0
+    for j in range(starts.shape[0]):
+        n = ends[j] - starts[j]
+        sz = 0.0
+        sgz = 0.0
+        for i in range(o, o + n):
+            sz += z[i]
+            sgz += g[i] * z[i]
+        a = (Sgg[j] * sz - Sg[j] * sgz) / det[j]
+        b = (L[j] * sgz - Sg[j] * sz) / det[j]
+        cx[j] = a
+        cv[j] = b
+        for i in range(o, o + n):
+            out[i] = z[i] - a - b * g[i]
+        o += n
+
+
+@_jit
+def stretch_projection(u, starts, ends, dirs, mass, friction, period, hold, frac, coulomb,
+                       xi, yu, g, c, r, phi, cx, cv):
+    """The variable projection of the stretch model at ``(m, b0)``: the residual left when
+    the stretch states (and, with ``coulomb``, the Coulomb frictions) are solved by linear
+    least squares (G. H. Golub & V. Pereyra, SIAM J. Numer. Anal. 10(2), 1973).
+
+    The positions on the stretches are ``yu + x_s + v_s g - fc+ c`` (moving +) or ``...
+    + fc- c`` (moving -) (:func:`stretch_basis`). The stretch states are eliminated
+    stretch by stretch (the projection on the orthogonal complement of ``[1, g]``); the
+    two Coulomb columns, nonzero on disjoint stretches, stay orthogonal once projected, so
+    their least squares is one quotient per column, a column whose norm is at most
+    ``eps * rows`` times the larger one's taken as zero (``numpy.linalg.lstsq``'s default
+    cut-off, ``rcond = eps max(M, N)``, on the singular values: these norms).
+
+    Parameters
+    ----------
+    u : ndarray of float64, shape (n,)
+        Applied force per period [N].
+    starts, ends, dirs : ndarray of int64, shape (s,)
+        The stretches (samples ``starts[j] <= k < ends[j]``) and their directions (+1, -1).
+    mass, friction, period : float
+        m [kg], b0 [N s/m], T [s].
+    hold : int
+        0 exact ZOH, 1 the idealised image.
+    frac : float in [0, 1)
+        Sub-sample part of the delay (:func:`stretch_basis`).
+    coulomb : bool
+        Fit the Coulomb frictions ``(fc+, fc-)`` too.
+    xi : ndarray of float64, shape (rows,)
+        The positions on the stretches [m], stretch after stretch (``rows`` = the
+        stretches' total length).
+    yu, g, c : ndarray of float64, shape (n,)
+        Work arrays, filled as :func:`stretch_basis` fills them.
+    r : ndarray of float64, shape (rows,)
+        Out: the residual, positions minus model [m].
+    phi : ndarray of float64, shape (2,)
+        Out: ``(fc+, fc-)`` [N] (zeros without ``coulomb``).
+    cx, cv : ndarray of float64, shape (s,)
+        Out: the stretches' initial positions [m] and velocities [m/s].
+
+    Returns
+    -------
+    bool
+        False when the basis is not finite on the stretches (``r`` etc. then undefined).
+    """
+    stretch_basis(u, starts, ends, mass, friction, period, hold, yu, g, c, frac)
+    ns = starts.shape[0]
+    rows = xi.shape[0]
+    gi = np.empty(rows)
+    t = np.empty(rows)
+    ci = np.empty(rows)
+    L = np.empty(ns)
+    Sg = np.empty(ns)
+    Sgg = np.empty(ns)
+    det = np.empty(ns)
+    o = 0
+    for j in range(ns):
+        sg = 0.0
+        sgg = 0.0
+        for k in range(starts[j], ends[j]):
+            if not (math.isfinite(g[k]) and math.isfinite(yu[k]) and math.isfinite(c[k])):
+                return False
+            gi[o] = g[k]
+            ci[o] = c[k]
+            t[o] = xi[o] - yu[k]
+            sg += g[k]
+            sgg += g[k] * g[k]
+            o += 1
+        n = float(ends[j] - starts[j])
+        L[j] = n
+        Sg[j] = sg
+        Sgg[j] = sgg
+        d = n * sgg - sg * sg
+        det[j] = d if abs(d) > 0.0 else 1.0
+    phi[0] = 0.0
+    phi[1] = 0.0
+    if coulomb:
+        pt = np.empty(rows)
+        _stretch_fit(t, gi, starts, ends, L, Sg, Sgg, det, pt, cx, cv)
+        # the Coulomb column of each stretch: -c moving + (fc+), +c moving - (fc-)
+        col = np.empty(rows)
+        o = 0
+        for j in range(ns):
+            s_ = -1.0 if dirs[j] > 0 else 1.0
+            for i in range(o, o + ends[j] - starts[j]):
+                col[i] = s_ * ci[i]
+            o += ends[j] - starts[j]
+        pc = np.empty(rows)
+        _stretch_fit(col, gi, starts, ends, L, Sg, Sgg, det, pc, cx, cv)
+        ss = np.zeros(2)
+        sd = np.zeros(2)
+        o = 0
+        for j in range(ns):
+            w = 0 if dirs[j] > 0 else 1
+            for i in range(o, o + ends[j] - starts[j]):
+                ss[w] += pc[i] * pc[i]
+                sd[w] += pc[i] * pt[i]
+            o += ends[j] - starts[j]
+        top = math.sqrt(max(ss[0], ss[1]))
+        cut = _EPS * rows * top
+        for w in range(2):
+            if ss[w] > 0.0 and math.sqrt(ss[w]) > cut:
+                phi[w] = sd[w] / ss[w]
+        o = 0
+        for j in range(ns):
+            p_ = phi[0] if dirs[j] > 0 else phi[1]
+            for i in range(o, o + ends[j] - starts[j]):
+                t[i] = t[i] - col[i] * p_
+            o += ends[j] - starts[j]
+    _stretch_fit(t, gi, starts, ends, L, Sg, Sgg, det, r, cx, cv)
+    return True

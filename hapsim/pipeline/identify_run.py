@@ -96,6 +96,52 @@ def _rho_mass(m: float, kc: float, bc: float, d: int, T: float) -> float:
     return float(np.max(np.abs(np.roots(a))))
 
 
+def _rho_masses(ms, kc: float, bcs, d: int, T: float) -> np.ndarray:
+    """:func:`_rho_mass` of every pair ``(ms[i], bcs[i])``, bit for bit, the companion
+    matrices' eigenvalues in one LAPACK call per matrix as :func:`numpy.roots` forms them
+    (one ``numpy.linalg.eigvals`` over the stack, not a Python call per pair).
+
+    Parameters
+    ----------
+    ms, bcs : sequence of float, length k
+        Masses [kg] and centring dampings [N s/m], paired.
+    kc : float
+        Centring stiffness [N/m].
+    d : int >= 0
+        Delay [samples].
+    T : float
+        Sample period [s].
+
+    Returns
+    -------
+    ndarray, shape (k,)
+        The spectral radii [-].
+    """
+    ms = np.asarray(ms, float)
+    bcs = np.asarray(bcs, float)
+    k = ms.size
+    N = d + 4
+    # _rho_mass's coefficients, element by element the same operations:
+    # polymul([1, 1], [p, q]) = [p, p + q, q] (products by 1 exact)
+    p = kc + bcs / T
+    q = -bcs / T
+    a = np.zeros((k, N))
+    a[:, :3] = (1.0, -2.0, 1.0)
+    a[:, -3:] += (T * T / (2.0 * ms))[:, None] * np.stack([p, p + q, q], axis=1)
+    # numpy.roots' companion matrix (a[:, 0] is 1: nothing to strip in front)
+    A = np.zeros((k, N - 1, N - 1))
+    A[:, np.arange(1, N - 1), np.arange(N - 2)] = 1.0
+    A[:, 0, :] = -a[:, 1:] / a[:, :1]
+    odd = (a[:, -1] == 0.0) | ~np.isfinite(a).all(axis=1)
+    rho = np.empty(k)
+    if not odd.all():
+        rho[~odd] = np.max(np.abs(np.linalg.eigvals(A[~odd])), axis=1)
+    for i in np.flatnonzero(odd):
+        # a root at 0 numpy.roots strips, or a coefficient not finite: its own way
+        rho[i] = _rho_mass(float(ms[i]), kc, float(bcs[i]), d, T)
+    return rho
+
+
 def centring_gains(force_limit: float, envelope: float, rate_hz: float, max_delay: int,
                    masses=MASS_RANGE) -> tuple[float, float]:
     """Centring stiffness and damping stable for every mass and delay (module notes).
@@ -134,15 +180,19 @@ def centring_gains(force_limit: float, envelope: float, rate_hz: float, max_dela
         hi = 0.5 * math.pi * masses[0] / ((d + 1) * T)
         if hi <= lo:
             continue
-        ok = [float(bc) for bc in np.geomspace(lo, hi, 24)
-              if max(_rho_mass(m, kc, bc, d, T) for m in grid) < 1.0 - 1e-9]
+        bcs = np.geomspace(lo, hi, 24)
+        # every (damping, mass) pair at once (_rho_masses: np.roots' radii bit for bit)
+        rho = _rho_masses(np.tile(grid, bcs.size), kc, np.repeat(bcs, grid.size), d,
+                          T).reshape(bcs.size, grid.size)
+        ok = [float(bc) for bc, r in zip(bcs, rho) if max(r.tolist()) < 1.0 - 1e-9]
         if not ok:
             continue
         # the middle (geometric) of the stable dampings: as far from either edge as the
         # grid allows, and no more damping than that (it would absorb the excitation)
         bc = math.sqrt(ok[0] * ok[-1])
         # the delay's worst case is not always the longest: check every one
-        if all(_rho_mass(m, kc, bc, dd, T) < 1.0 for dd in range(d + 1) for m in grid):
+        if all(r < 1.0 for dd in range(d + 1)
+               for r in _rho_masses(grid, kc, [bc] * grid.size, dd, T).tolist()):
             return float(kc), bc
     return float(kc), 0.0
 
