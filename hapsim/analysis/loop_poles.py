@@ -29,10 +29,23 @@ def _char_poly_z(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     O(1) whatever the delay, so its companion matrix (plant states + delay line) is well
     conditioned, unlike the expanded polynomial in ``w``.
     """
-    P, Q, D, e = char_parts(loop)
-    low = np.polyadd(kappa * w_to_z(P), beta * w_to_z(Q))
-    R = np.concatenate([w_to_z(D), np.zeros(e)])
+    zP, zQ, R = _z_parts(loop)
+    low = np.polyadd(kappa * zP, beta * zQ)
     return np.polyadd(R, low)
+
+
+def _z_parts(loop: LoopModel):
+    """``w_to_z(P~)``, ``w_to_z(Q~)`` and ``z^e D`` of :func:`char_parts`, read-only, kept
+    in the loop's ``__dict__`` as ``char_parts`` keeps its pieces (the same arrays every
+    call: a grid recomputed them per point, a third of its time)."""
+    got = loop.__dict__.get("_char_parts_z")
+    if got is None:
+        P, Q, D, e = char_parts(loop)
+        got = (w_to_z(P), w_to_z(Q), np.concatenate([w_to_z(D), np.zeros(e)]))
+        for a in got:
+            a.setflags(write=False)
+        loop.__dict__["_char_parts_z"] = got
+    return got
 
 
 def _polish_w(loop: LoopModel, kappa: float, beta: float, w: np.ndarray,
