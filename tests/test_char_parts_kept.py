@@ -91,3 +91,15 @@ def test_poles_of_a_fresh_loop_equal_those_of_a_used_one():
             twin = LoopModel(**{f: getattr(loop, f) for f in loop.__dataclass_fields__})
             assert twin == loop and "_char_parts" not in twin.__dict__
             assert _same(loop_poles.roots_w(twin, k, b), got), (loop, k, b)
+
+
+def test_horner_is_numpys_polyval_bit_for_bit():
+    """loop._horner (the stability sweeps' evaluations) against np.polyval on what they
+    pass: Python and numpy complex scalars, 0-d and 1-d arrays, real and complex."""
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 5):
+        p = rng.normal(size=n) * 10.0 ** rng.uniform(-8, 8, size=n)
+        v = rng.normal(size=30) + 1j * rng.normal(size=30)
+        for x in (complex(v[0]), v[1], np.asarray(v[2]), v, v.real, float(v.real[0]),
+                  -2.0 + 0j):
+            assert _same(lp._horner(p, x), np.polyval(p, x)), (p, x)

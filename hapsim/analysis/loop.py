@@ -684,9 +684,11 @@ def char_eval(loop: LoopModel, kappa: float, beta: float, w, *, derivative: bool
 
 
 def _horner(p, x):
-    """``np.polyval(p, x)`` for an ndarray ``p`` and complex ndarray ``x``: the same
-    operations in the same order (``y = 0``, then ``y = y x + c`` per coefficient), bit
-    for bit, without its argument checks (a stability sweep evaluates ~150,000 times)."""
+    """``np.polyval(p, x)`` for an ndarray ``p`` (not a ``poly1d``): the same operations in
+    the same order (``x = asanyarray(x)``, ``y = zeros_like(x)``, then ``y = y x + c`` per
+    coefficient), bit for bit, without its other argument handling (a stability sweep
+    evaluates ~150,000 times)."""
+    x = np.asanyarray(x)
     y = np.zeros_like(x)
     for pv in p:
         y = y * x + pv
