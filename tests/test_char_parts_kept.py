@@ -103,3 +103,24 @@ def test_horner_is_numpys_polyval_bit_for_bit():
         for x in (complex(v[0]), v[1], np.asarray(v[2]), v, v.real, float(v.real[0]),
                   -2.0 + 0j):
             assert _same(lp._horner(p, x), np.polyval(p, x)), (p, x)
+
+
+def test_roots_w_kept_by_the_loop_and_gains_bits():
+    """roots_w keeps its answers by the loop's repr and the gains' bits: a repeated call
+    is the computation's poles bit for bit, a caller writing into them changes no later
+    answer, and a loop or a gain one bit apart gets its own poles."""
+    import math
+    rng = np.random.default_rng(11)
+    for loop in _loops(rng)[:18]:
+        kappa, beta = float(rng.uniform(0.01, 0.3)), float(rng.uniform(0.0, 0.3))
+        first = loop_poles.roots_w(loop, kappa, beta)
+        first[:] = np.nan                                  # the caller's own copy
+        again = loop_poles.roots_w(loop, kappa, beta)
+        assert _same(again, loop_poles._roots_w(loop, kappa, beta)), loop
+        k2 = math.nextafter(kappa, 1.0)
+        assert _same(loop_poles.roots_w(loop, k2, beta), loop_poles._roots_w(loop, k2, beta))
+        fields = {f: getattr(loop, f) for f in loop.__dataclass_fields__}
+        fields["mass"] = math.nextafter(loop.mass, 0.0)
+        other = LoopModel(**fields)
+        assert _same(loop_poles.roots_w(other, kappa, beta),
+                     loop_poles._roots_w(other, kappa, beta))

@@ -129,6 +129,25 @@ def roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
         A delay beyond :data:`MAX_DELAY`.
     """
     check_delay(loop.delay_whole)
+    key = (repr(loop), float(kappa).hex(), float(beta).hex())
+    got = _ROOTS.get(key)
+    if got is None:
+        got = _roots_w(loop, kappa, beta)
+        if len(_ROOTS) >= 512:
+            _ROOTS.clear()
+        _ROOTS[key] = got
+    return got.copy()
+
+
+#: :func:`roots_w`'s answers by the loop's repr (every field, floats to the bit) and the
+#: gains' bits: render, check, the run's prediction and the stability limit's interval
+#: tests ask for the same poles of the same loop again (40 % of the calls in
+#: test_long_delay's random loops); the same inputs, the same poles.
+_ROOTS: dict = {}
+
+
+def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+    """:func:`roots_w` computed (its delay already checked)."""
     c = _char_poly_z(loop, kappa, beta)
     c = np.trim_zeros(c, "f")
     z = np.roots(c) if c.size > 1 else np.zeros(0, complex)
