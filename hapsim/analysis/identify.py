@@ -201,14 +201,17 @@ def _jacobian(spec, theta, y, offset, lens=None, cache=None):
     For one stretch, with ``Phi`` its model columns, ``c = Phi^+ y`` and ``r = Phi c - y``
     (the residual of the linear fit, ``-P_perp y``), the derivative in parameter ``k`` is
     (Golub & Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares
-    problems whose variables separate", SIAM J. Numer. Anal. 10(2), 1973, eq. (4.1))::
+    problems whose variables separate", SIAM J. Numer. Anal. 10(2), 1973: the derivative
+    of the projector, ``d(Phi Phi^+) = P_perp dPhi Phi^+ + (P_perp dPhi Phi^+)^T`` for
+    ``Phi`` of full column rank)::
 
         dr/dtheta_k = P_perp D_k c - (Phi^+)^T D_k^T r,     D_k = dPhi/dtheta_k
 
     ``P_perp = I - U U^T`` and ``(Phi^+)^T = U S^-1 V^T`` from the thin SVD of ``Phi``
     (rank cut as ``np.linalg.lstsq(..., rcond=None)``: singular values under
     ``eps * max(shape) * s_max`` are dropped). The rows of the stretches one after the
-    other, as the residual's. Its first term alone is Kaufman's approximation (BIT 15,
+    other, as the residual's. Its first term alone is Kaufman's approximation ("A variable
+    projection method for solving separable nonlinear least squares problems", BIT 15,
     1975); the second keeps the Gauss-Newton step right far from the solution, where the
     residual is large (a start at the spectrum's peak).
 
