@@ -76,3 +76,16 @@ def test_a_bad_dimension_is_the_n_d_reader_s_error(tmp_path):
     with pytest.raises(ConfigError) as e:
         hapsim.load_scene(f)
     assert e.value.key == "dimension" and "four.yaml" in str(e.value)
+
+
+def test_scene_dimension_follows_the_file_s_text_not_its_name(tmp_path):
+    """scene_dimension keeps its answers by the file's text (a command asked two or three
+    times and parsed the whole file each time): the same file rewritten is read again, and
+    a text it cannot parse stays the 1-D reader's to refuse."""
+    f = tmp_path / "s.yaml"
+    for text, want in [("dimension: 2\nrate_hz: 1000\n", 2), ("dimension: 3\nrate_hz: 1000\n", 3),
+                       ("dimension: 2\nrate_hz: [1000\n", 1), ("dimension: true\n", 1),
+                       ("dimension: 2\nrate_hz: 1000\n", 2), ("# dimension\nrate_hz: 1\n", 1)]:
+        f.write_text(text)
+        assert scene_dimension(f) == want, text
+        assert scene_dimension(str(f)) == want, text

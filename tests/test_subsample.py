@@ -440,6 +440,10 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     import hapsim.analysis.loop as loop_mod
     for name in ("split_hold_body", "split_numerator_w"):
         monkeypatch.setattr(loop_mod, name, boom)
+    # poles another test of this worker computed are kept (loop_poles.roots_w): start
+    # empty, so every pole here is computed under the patches
+    import hapsim.analysis.loop_poles as loop_poles
+    monkeypatch.setattr(loop_poles, "_ROOTS", {})
     from hapsim.cli import main
     configs = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
     seen = 0

@@ -104,7 +104,7 @@ def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
     ConfigError
         A zero or non-finite direction, bad ``K0`` or ``B``.
     """
-    from scipy.optimize import brentq
+    from hapsim.analysis.stability import brent_root
     n = loop.dof
     e = np.asarray(direction, float).reshape(-1)
     if e.shape != (n,) or not np.all(np.isfinite(e)) or not np.linalg.norm(e) > 0:
@@ -122,7 +122,9 @@ def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
     im = G.imag
     for i in range(len(theta) - 1):
         if np.isfinite(im[i]) and np.isfinite(im[i + 1]) and im[i] * im[i + 1] < 0:
-            t = brentq(img, theta[i], theta[i + 1], xtol=1e-15, rtol=1e-14)
+            # Brent's zero (the 1-D limit's own, hapsim.analysis.stability): no
+            # scipy.optimize import (~0.3 CPU-s) in a command that checks an n-D scene
+            t = brent_root(img, theta[i], theta[i + 1], xtol=1e-15, rtol=1e-14)
             g = _resolvent_scalar(A0, bvec, cvec, np.array([np.exp(1j * t)]))[0]
             cands.append(-1.0 / g.real)
         elif im[i] == 0 and np.isfinite(G[i].real) and G[i].real != 0:

@@ -580,6 +580,33 @@ def char_parts(loop: LoopModel):
     e : int
         The power of ``(1 + w)`` multiplying ``D`` (0 when ``loop.generic``).
     """
+    got = loop.__dict__.get("_char_parts")
+    if got is None:
+        got = _char_parts(loop)
+        loop.__dict__["_char_parts"] = got
+    return got
+
+
+def _char_parts(loop: LoopModel):
+    """:func:`char_parts` computed (its pieces are read-only copies: the loop keeps them,
+    in its ``__dict__``, outside the dataclass' fields, for every later call; the loop is
+    frozen, so they stay its own: a stability sweep asked for them once per evaluation,
+    a sixth of a grid's time)."""
+    P, Q, D, e = _char_parts_of(loop)
+    out = []
+    for a in (P, Q, D):
+        a = np.array(a, copy=True)
+        a.setflags(write=False)
+        out.append(a)
+    dP, dQ, dD = (np.polyder(a) for a in out)
+    for a in (dP, dQ, dD):
+        a.setflags(write=False)
+    loop.__dict__["_char_derivatives"] = (dP, dQ, dD)
+    return out[0], out[1], out[2], e
+
+
+def _char_parts_of(loop: LoopModel):
+    """The computation of :func:`char_parts` (same returns)."""
     if loop.delay_fraction > 0:
         # the split hold (hapsim.analysis.subsample): the plant N~f / (z D) behind the
         # whole delay m, i.e. one more pole (the force held from the previous period)
@@ -646,10 +673,23 @@ def char_eval(loop: LoopModel, kappa: float, beta: float, w, *, derivative: bool
     w = np.asarray(w, dtype=complex)
     z = 1.0 + w
     ze = z ** e
-    f = kappa * np.polyval(P, w) + beta * np.polyval(Q, w) + ze * np.polyval(D, w)
+    f = kappa * _horner(P, w) + beta * _horner(Q, w) + ze * _horner(D, w)
     if not derivative:
         return f
+    dP, dQ, dD = loop.__dict__["_char_derivatives"]      # np.polyder of each, kept
     zem1 = z ** (e - 1) if e > 0 else np.zeros_like(z)
-    df = (kappa * np.polyval(np.polyder(P), w) + beta * np.polyval(np.polyder(Q), w)
-          + e * zem1 * np.polyval(D, w) + ze * np.polyval(np.polyder(D), w))
+    df = (kappa * _horner(dP, w) + beta * _horner(dQ, w)
+          + e * zem1 * _horner(D, w) + ze * _horner(dD, w))
     return f, df
+
+
+def _horner(p, x):
+    """``np.polyval(p, x)`` for an ndarray ``p`` (not a ``poly1d``): the same operations in
+    the same order (``x = asanyarray(x)``, ``y = zeros_like(x)``, then ``y = y x + c`` per
+    coefficient), bit for bit, without its other argument handling (a stability sweep
+    evaluates ~150,000 times)."""
+    x = np.asanyarray(x)
+    y = np.zeros_like(x)
+    for pv in p:
+        y = y * x + pv
+    return y

@@ -29,10 +29,23 @@ def _char_poly_z(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     O(1) whatever the delay, so its companion matrix (plant states + delay line) is well
     conditioned, unlike the expanded polynomial in ``w``.
     """
-    P, Q, D, e = char_parts(loop)
-    low = np.polyadd(kappa * w_to_z(P), beta * w_to_z(Q))
-    R = np.concatenate([w_to_z(D), np.zeros(e)])
+    zP, zQ, R = _z_parts(loop)
+    low = np.polyadd(kappa * zP, beta * zQ)
     return np.polyadd(R, low)
+
+
+def _z_parts(loop: LoopModel):
+    """``w_to_z(P~)``, ``w_to_z(Q~)`` and ``z^e D`` of :func:`char_parts`, read-only, kept
+    in the loop's ``__dict__`` as ``char_parts`` keeps its pieces (the same arrays every
+    call: a grid recomputed them per point, a third of its time)."""
+    got = loop.__dict__.get("_char_parts_z")
+    if got is None:
+        P, Q, D, e = char_parts(loop)
+        got = (w_to_z(P), w_to_z(Q), np.concatenate([w_to_z(D), np.zeros(e)]))
+        for a in got:
+            a.setflags(write=False)
+        loop.__dict__["_char_parts_z"] = got
+    return got
 
 
 def _polish_w(loop: LoopModel, kappa: float, beta: float, w: np.ndarray,
@@ -116,6 +129,25 @@ def roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
         A delay beyond :data:`MAX_DELAY`.
     """
     check_delay(loop.delay_whole)
+    key = (repr(loop), float(kappa).hex(), float(beta).hex())
+    got = _ROOTS.get(key)
+    if got is None:
+        got = _roots_w(loop, kappa, beta)
+        if len(_ROOTS) >= 512:
+            _ROOTS.clear()
+        _ROOTS[key] = got
+    return got.copy()
+
+
+#: :func:`roots_w`'s answers by the loop's repr (every field, floats to the bit) and the
+#: gains' bits: render, check, the run's prediction and the stability limit's interval
+#: tests ask for the same poles of the same loop again (40 % of the calls in
+#: test_long_delay's random loops); the same inputs, the same poles.
+_ROOTS: dict = {}
+
+
+def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
+    """:func:`roots_w` computed (its delay already checked)."""
     c = _char_poly_z(loop, kappa, beta)
     c = np.trim_zeros(c, "f")
     z = np.roots(c) if c.size > 1 else np.zeros(0, complex)
