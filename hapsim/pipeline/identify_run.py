@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import math
 import signal
-import sys
 import threading
-import time
 
 import numpy as np
 
