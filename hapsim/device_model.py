@@ -245,6 +245,40 @@ def hand_force_samples(excitation: Excitation, period: float,
 
 
 
+def _coulomb_zoh(x, v, f, C, a, cxv, cxu, cvu):
+    """One exact ZOH piece of the mass under the held force ``f`` [N] and Coulomb friction
+    ``C`` [N] (0: none), from ``(x, v)`` [m, m/s], with the step's coefficients
+    (:func:`zoh_step_coefficients`).
+
+    Returns
+    -------
+    tuple of float
+        The new ``(x, v)``: unchanged when the mass is at rest and ``|f| <= C`` (stuck:
+        the force cannot break it loose).
+
+    Notes
+    -----
+    The friction is held as ``-C sign(v)`` (``-C sign(f)`` from rest); a velocity that
+    would change sign within the piece while ``|f| <= C`` sticks (v = 0): first order,
+    exact only while the sign of ``v`` does not change (as
+    :func:`hapsim.kernels.device_sim._zoh_piece`, its compiled twin).
+    """
+    fc = 0.0
+    if C > 0:
+        if v != 0.0:
+            fc = -C if v > 0 else C
+        elif abs(f) > C:
+            fc = -C if f > 0 else C
+        else:
+            return x, v
+    ft = f + fc
+    vn = a * v + cvu * ft
+    xn = x + cxv * v + cxu * ft
+    if C > 0 and v != 0.0 and vn * v < 0 and abs(f) <= C:
+        vn = 0.0
+    return xn, vn
+
+
 def _body(device: Device, member=None):
     """``(mass, friction, A_grip)`` of the mock's plant: handle + hand as one body, and the
     continuous matrix of a compliant grip (4x4) or of the one body with the hand's
@@ -486,23 +520,8 @@ class MockPhysics:
             self._s = s
             self.x, self.v = float(s[0]), float(s[1])
         elif self.hold == "zoh":
-            x, v = self.x, self.v
-            fc = 0.0
-            if self._coulomb > 0:
-                C = self._coulomb
-                if v != 0.0:
-                    fc = -C if v > 0 else C
-                elif abs(f) > C:
-                    fc = -C if f > 0 else C
-                else:                         # stuck and the force cannot break it loose
-                    self.n = n + 1
-                    return
-            ft = f + fc
-            vn = self._a * v + self._cvu * ft
-            xn = x + self._cxv * v + self._cxu * ft
-            if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
-                vn = 0.0
-            self.x, self.v = xn, vn
+            self.x, self.v = _coulomb_zoh(self.x, self.v, f, self._coulomb, self._a,
+                                          self._cxv, self._cxu, self._cvu)
         else:
             x, xp = self.x, self._xprev
             xn = (1.0 + self._a) * x - self._a * xp + self._cu * f
@@ -554,23 +573,8 @@ class MockPhysics:
             self._s = E[:p, :p] @ self._s + E[:p, p] * f
             self.x, self.v = float(self._s[0]), float(self._s[1])
             return
-        a, cxv, cxu, cvu = zoh_step_coefficients(self._mass, self._friction, tau)
-        x, v = self.x, self.v
-        fc = 0.0
-        if self._coulomb > 0:
-            C = self._coulomb
-            if v != 0.0:
-                fc = -C if v > 0 else C
-            elif abs(f) > C:
-                fc = -C if f > 0 else C
-            else:
-                return                        # stuck: the force cannot break it loose
-        ft = f + fc
-        vn = a * v + cvu * ft
-        xn = x + cxv * v + cxu * ft
-        if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
-            vn = 0.0
-        self.x, self.v = xn, vn
+        self.x, self.v = _coulomb_zoh(self.x, self.v, f, self._coulomb,
+                                      *zoh_step_coefficients(self._mass, self._friction, tau))
 
     def end_period(self) -> None:
         """A period boundary passed on the wall clock (:meth:`advance_interval`): the next
@@ -602,23 +606,7 @@ class MockPhysics:
                 self._s = Ad @ self._s + Bd * f
                 self.x, self.v = float(self._s[0]), float(self._s[1])
                 continue
-            a, cxv, cxu, cvu = co
-            x, v = self.x, self.v
-            fc = 0.0
-            if self._coulomb > 0:
-                C = self._coulomb
-                if v != 0.0:
-                    fc = -C if v > 0 else C
-                elif abs(f) > C:
-                    fc = -C if f > 0 else C
-                else:
-                    continue                  # stuck: the force cannot break it loose
-            ft = f + fc
-            vn = a * v + cvu * ft
-            xn = x + cxv * v + cxu * ft
-            if self._coulomb > 0 and v != 0.0 and vn * v < 0 and abs(f) <= self._coulomb:
-                vn = 0.0
-            self.x, self.v = xn, vn
+            self.x, self.v = _coulomb_zoh(self.x, self.v, f, self._coulomb, *co)
         self._held = u
         self.n = n + 1
 

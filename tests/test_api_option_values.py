@@ -116,3 +116,16 @@ def test_a_value_that_is_no_number_is_refused_with_the_range(value):
     range, not a TypeError from the comparison."""
     with pytest.raises(ConfigError, match=r"--grid: must be an integer >= 2"):
         api.family(WALL, grid=value)
+
+
+def test_an_unknown_driver_gets_the_same_reason_through_both_doors():
+    """``hapsim identify --driver`` and :func:`hapsim.api.identify`'s ``driver`` refuse an
+    unregistered name by the registry (:func:`hapsim.drivers.family`): the same reason,
+    listing every registered 1-D driver, keyed by the flag and by the keyword."""
+    from hapsim.drivers import DRIVERS
+    err = _cli(["identify", "--driver", "nope"])
+    with pytest.raises(ConfigError) as prog:
+        api.identify(driver="nope")
+    assert err["key"] == "--driver" and prog.value.key == "driver"
+    assert prog.value.reason == f"unknown driver 'nope'; valid: {', '.join(DRIVERS)}"
+    assert err["message"].endswith(f"--driver: {prog.value.reason}")

@@ -1006,6 +1006,27 @@ def test_every_family_is_registered_once_with_what_runs_it():
             assert cls.name == f.name and type(get_driver(f.name)) is cls and cls.limits
 
 
+
+def test_every_driver_family_has_its_board_on_the_device_side():
+    """Each 1-D driver family names its emulated board (``Family.mock``), which the driver
+    mock serves (``MOCKS``) and which keeps its own time unless a run asks for lockstep
+    (``WALL_CLOCK_MOCKS``); an unregistered name has no mock (refused with the valid ones)."""
+    import inspect
+
+    from hapsim.drivers import DEFAULT, FAMILIES
+    from hapsim.emulated.actuated import Actuated
+    from hapsim.emulated.driver_mock import MOCKS, WALL_CLOCK_MOCKS, EmbeddedDriverMock
+    one_d = [f for f in FAMILIES if f.dimension == 1]
+    assert [f.name for f in one_d] == list(MOCKS) == list(WALL_CLOCK_MOCKS)
+    for f in one_d:
+        cls = MOCKS[f.name]
+        assert cls is f.load_mock() and cls.__module__.startswith("hapsim.emulated.")
+        assert issubclass(cls, Actuated)
+        assert inspect.signature(cls).parameters["clock"].default == "wall"
+    assert all(f.load_mock() is None for f in FAMILIES if f.dimension != 1)
+    with pytest.raises(ConfigError, match="valid: " + ", ".join(MOCKS)):
+        EmbeddedDriverMock(DEFAULT, None, None, 1000.0)
+
 def _fake_run(args):
     return 7
 

@@ -43,7 +43,20 @@ import numpy as np
 
 from provenance import command_line  # tools/, beside this file
 
-DRIVERS = ("haply", "haply2", "firefader", "hapkit-serial", "falcon")
+
+
+def _names(n_d: bool) -> tuple:
+    """This tool's names of the registry's driven families (:data:`hapsim.drivers.FAMILIES`,
+    the framed protocol left out), the 1-D ones or the n-D ones: a family's name, an n-D
+    one's with its dimension when a 1-D family has the same name (``haply2``: the 2DIY)."""
+    from hapsim.drivers import FAMILIES
+    one_d = {f.name for f in FAMILIES if f.dimension == 1}
+    return tuple(f.name + (str(f.dimension) if f.name in one_d and n_d else "")
+                 for f in FAMILIES if f.dimension >= 1 and (f.dimension > 1) == n_d)
+
+
+#: The drivers measured: the 1-D ones through run_scene, then the n-D ones' own routes
+DRIVERS = _names(False) + _names(True)
 
 
 def _load():
@@ -248,12 +261,12 @@ def main(argv=None) -> int:
             for loss in a.loss:
                 for seed in a.seeds:
                     t = time.monotonic()
-                    if drv in ("haply2", "falcon"):
+                    if drv in _names(True):
                         # the host loop (and the in-process board) at the command's
                         # priority, as 'hapsim run --driver haply/falcon' runs it
                         rt = RealtimePriority(a.rt_priority)
                         with rt:
-                            row = (run_haply2(seed, loss) if drv == "haply2"
+                            row = (run_haply2(seed, loss) if drv == "haply2"  # else falcon
                                    else run_falcon_once(seed, loss))
                         sched = rt.note
                     else:

@@ -360,8 +360,8 @@ def _box_bound(ctx: _Boxes, Ac, b, *, unorm: float):
     -------
     ndarray, shape (n, max(r, 1))
     """
-    n, r = Ac.shape[0], len(ctx.ranged)
-    Sp, T, corners = ctx.Sp, ctx.T, ctx.corners
+    n = Ac.shape[0]
+    Sp, T = ctx.Sp, ctx.T
     npl = Sp.size
     vel = np.arange(npl) % 2 == 1
     w2 = np.abs(Ac[..., vel, :][..., :, ~vel]).max(axis=(-2, -1)).max(axis=1)

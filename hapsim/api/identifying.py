@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 
+from hapsim.drivers import DEFAULT
 from hapsim.errors import ConfigError, HapsimError, IdentificationError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
@@ -51,7 +52,7 @@ class IdentifyReport(Report):
         return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
 
 
-def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115200,
+def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 115200,
              device=None, force_limit: float = 2.0, envelope: float = 0.01,
              duration: float = 4.0, rate_hz: float = 1000.0, max_delay: int = 20,
              lockstep: bool = False, seed: int = 0, hand: bool = False,
@@ -123,16 +124,17 @@ def identify(port: str | None = None, *, driver: str = "framed", baud: int = 115
     :func:`hapsim.analysis.device_fit.fit_device`: least squares of the sampled plant
     (mass, friction, Coulomb friction, delay, hold) on the recorded positions and forces.
     """
-    from hapsim.drivers import DRIVERS
-    if driver not in DRIVERS:
-        raise ConfigError(f"unknown driver {driver!r}; valid: {', '.join(DRIVERS)}",
-                          key="driver")
+    from hapsim.drivers import family
+    try:
+        family(driver)                  # an unknown name: the valid ones listed
+    except ConfigError as exc:          # named by this function's keyword
+        raise ConfigError(exc.reason, key="driver") from None
     check_values("identify", baud=baud, force_limit=force_limit, envelope=envelope,
                  duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed)
     fit, rec = excite_and_fit(port=port, baud=baud, device=device, force_limit=force_limit,
                          envelope=envelope, duration=duration, rate_hz=rate_hz,
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
-                         driver=None if driver == "framed" else driver, progress=progress,
+                         driver=None if driver == DEFAULT else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
                          driver_options=driver_options, mock_options=mock_options,
                          travel=travel)

@@ -80,6 +80,41 @@ def add_loop_arguments(parser: argparse.ArgumentParser, *, defaults: dict | None
                         "idealised sampled mass" + _default(d["hold"], usual["hold"]))
 
 
+def loop_parser(sub, name: str, help: str, description: str, epilog: str,
+                **loop) -> argparse.ArgumentParser:
+    """The parser of a command on one loop, with the loop options.
+
+    Parameters
+    ----------
+    sub : argparse._SubParsersAction
+        The ``hapsim`` sub-parsers.
+    name, help : str
+        The command and its one line in ``hapsim --help``.
+    description : str
+        Its description, one paragraph (:func:`para`).
+    epilog : str
+        Shown after :data:`UNITS_HELP` (its examples), as written.
+    **loop
+        :func:`add_loop_arguments`'s keywords (``defaults``, ``require``).
+
+    Returns
+    -------
+    argparse.ArgumentParser
+    """
+    p = sub.add_parser(name, help=help, description=para(description),
+                       epilog=UNITS_HELP + epilog,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_loop_arguments(p, **loop)
+    return p
+
+
+def loop_line(loop: LoopModel) -> str:
+    """The loop a command reports on, as its first line: ``loop: m=... kg  b0=... N s/m
+    ... Hz  d=...  hold=...``."""
+    return (f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
+            f"d={loop.delay}  hold={loop.hold}")
+
+
 def loop_from_args(args) -> LoopModel:
     """Build the :class:`LoopModel` from parsed arguments.
 

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
-from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
-                                        print_modes)
+from hapsim.commands._loop_args import fmt, loop_from_args, loop_line, loop_parser, print_modes
 from hapsim.option_values import declared
 
 
@@ -19,17 +17,15 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The ``hapsim`` sub-parsers.
     """
-    p = sub.add_parser(
-        "calibrate", help="find the virtual K, B that render a target k, b",
-        description=para("Place two closed-loop poles on those of the target oscillator "
-                    "m s^2 + b s + k = 0 and solve for the virtual K and B. Then check every "
-                    "other pole: if one is unstable or less damped than the target, the "
-                    "target is not renderable with this configuration and the command says "
-                    "why (exit 1)."),
-        epilog=UNITS_HELP + "\nexample:\n  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 "
-               "--delay 1 --hold zoh --k 2000 --b 3\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_loop_arguments(p)
+    p = loop_parser(
+        sub, "calibrate", "find the virtual K, B that render a target k, b",
+        "Place two closed-loop poles on those of the target oscillator "
+        "m s^2 + b s + k = 0 and solve for the virtual K and B. Then check every "
+        "other pole: if one is unstable or less damped than the target, the "
+        "target is not renderable with this configuration and the command says "
+        "why (exit 1).",
+        "\nexample:\n  hapsim calibrate --mass 0.1 --friction 0.5 --rate 1000 "
+        "--delay 1 --hold zoh --k 2000 --b 3\n")
     p.add_argument("--k", type=declared("calibrate", "k"),
                    required=True, help="target felt stiffness k [N/m], > 0")
     p.add_argument("--b", type=declared("calibrate", "b"), required=True,
@@ -64,9 +60,7 @@ def run(args) -> int:
         print(json.dumps(rep.to_dict()))
     else:
         out = sys.stdout
-        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
-              f"d={loop.delay}  hold={loop.hold}   target k={args.k:g} N/m  b={args.b:g} N s/m",
-              file=out)
+        print(f"{loop_line(loop)}   target k={args.k:g} N/m  b={args.b:g} N s/m", file=out)
         print(f"  virtual K     {fmt(c.K):>14} N/m", file=out)
         print(f"  virtual B     {fmt(c.B):>14} N s/m", file=out)
         print(f"  renderable    {'yes' if c.renderable else 'NO':>14}", file=out)

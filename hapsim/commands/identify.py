@@ -227,13 +227,14 @@ def run(args) -> int:
                           "--mock-option" if args.mock_option else "--added-mass")
     if args.added_mass is not None:       # (its range: the declaration, checked before)
         if drv.scale_option is None:
+            from hapsim.drivers import FAMILIES
+            scaled = [f.name for f in FAMILIES
+                      if f.dimension == 1 and f.driver and f.load().scale_option]
             raise ConfigError(f"the {drv.name} protocol carries SI units: no scale to "
-                              f"calibrate; valid with --added-mass: --driver firefader, "
-                              f"haply", key="--added-mass")
-    if args.travel is not None and args.driver != "firefader":
-        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
-                          f"{args.driver} protocol has none to find (valid with --travel: "
-                          f"--driver firefader)", key="--travel")
+                              f"calibrate; valid with --added-mass: --driver "
+                              f"{', '.join(scaled)}", key="--added-mass")
+    # (a --travel of another driver than the FireFader: refused by the identification,
+    # hapsim.pipeline.identify_run.record, before anything runs)
     from hapsim.api import identify as identify_api
     kw = dict(baud=args.baud, force_limit=args.force_limit, envelope=args.envelope,
               duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 
-from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, loop_from_args
+from hapsim.commands._loop_args import loop_from_args, loop_line, loop_parser
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
 
@@ -19,21 +18,19 @@ def register(sub) -> None:
     ----------
     sub : argparse._SubParsersAction
     """
-    p = sub.add_parser(
-        "map", help="draw the felt (k, b) grid in the virtual (K, B) plane",
-        description=para("Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
-                    "curves in the (K, B + b0) plane, with the identity grid (dashed: what a "
-                    "perfect simulator would need) and the exact stability boundary (bold; "
-                    "it is the b = 0 curve). A bent or sheared grid is a distorted parameter "
-                    "scale. --paper 7|8|9 reproduces the paper's figures (normalised units, "
-                    "ideal hold; --hold zoh gives the exact zero-order hold instead)."),
-        epilog=UNITS_HELP + "\nthe damping axis is B + b0 (the paper's Fig. 9 convention).\n"
-               "\nexamples:\n  hapsim map --paper 8 --out fig8.png\n"
-               "  hapsim map --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh "
-               "--k-range 100 1500 --b-range 0.5 5 --out map.png --data map.json\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_loop_arguments(p, defaults={"friction": None, "delay": None, "hold": None},
-                       require=False)
+    p = loop_parser(
+        sub, "map", "draw the felt (k, b) grid in the virtual (K, B) plane",
+        "Sweep target (k, b), calibrate each to (K, B) and draw iso-k and iso-b "
+        "curves in the (K, B + b0) plane, with the identity grid (dashed: what a "
+        "perfect simulator would need) and the exact stability boundary (bold; "
+        "it is the b = 0 curve). A bent or sheared grid is a distorted parameter "
+        "scale. --paper 7|8|9 reproduces the paper's figures (normalised units, "
+        "ideal hold; --hold zoh gives the exact zero-order hold instead).",
+        "\nthe damping axis is B + b0 (the paper's Fig. 9 convention).\n"
+        "\nexamples:\n  hapsim map --paper 8 --out fig8.png\n"
+        "  hapsim map --mass 0.1 --friction 0.5 --rate 1000 --delay 1 --hold zoh "
+        "--k-range 100 1500 --b-range 0.5 5 --out map.png --data map.json\n",
+        defaults={"friction": None, "delay": None, "hold": None}, require=False)
     p.add_argument("--paper", type=Number(int, low=7, high=9), metavar="{7,8,9}",
                    help="preset of the paper's Fig. 7, 8 or 9 (m = T = 1, ideal hold; "
                         "d = 0/1/1, b0 = 0/0/0.5); loop options override it")
@@ -127,8 +124,7 @@ def run(args) -> int:
         print(json.dumps(data))
     else:
         n_ok = int(np.count_nonzero(g.rendered))
-        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
-              f"d={loop.delay}  hold={loop.hold}")
+        print(loop_line(loop))
         print(f"  {n_ok} of {g.rendered.size} grid targets renderable; "
               f"boundary K_max peaks at {np.nanmax(np.where(np.isfinite(g.boundary_K), g.boundary_K, np.nan)):.6g} N/m")
         if args.out:

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
 from hapsim.errors import fixed
 
-from hapsim.commands._loop_args import (UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args,
-                                        print_modes)
+from hapsim.commands._loop_args import fmt, loop_from_args, loop_line, loop_parser, print_modes
 from hapsim.option_values import declared
 
 
@@ -21,18 +19,16 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The ``hapsim`` sub-parsers.
     """
-    p = sub.add_parser(
-        "render", help="predict the stiffness k and damping b felt for a virtual K, B",
-        description=para("Close the THS loop (real mass + friction, hold, delay, virtual spring K "
-                    "and damper B) and report the oscillator the user feels: the least "
-                    "damped closed-loop pole pair as k, b, f0, damping ratio; the other "
-                    "poles are listed as parasitic modes. A spectral radius within 1e-9 of 1 is "
-                    "reported as marginal and counted as stable (as 'hapsim check' does). "
-                    "Exit 1 when the loop is unstable."),
-        epilog=UNITS_HELP + "\nexample:\n  hapsim render --mass 0.1 --friction 0.5 --rate 1000 "
-               "--delay 1 --hold zoh --K 2000 --B 2\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_loop_arguments(p)
+    p = loop_parser(
+        sub, "render", "predict the stiffness k and damping b felt for a virtual K, B",
+        "Close the THS loop (real mass + friction, hold, delay, virtual spring K "
+        "and damper B) and report the oscillator the user feels: the least "
+        "damped closed-loop pole pair as k, b, f0, damping ratio; the other "
+        "poles are listed as parasitic modes. A spectral radius within 1e-9 of 1 is "
+        "reported as marginal and counted as stable (as 'hapsim check' does). "
+        "Exit 1 when the loop is unstable.",
+        "\nexample:\n  hapsim render --mass 0.1 --friction 0.5 --rate 1000 "
+        "--delay 1 --hold zoh --K 2000 --B 2\n")
     p.add_argument("--K", type=declared("render", "K"), required=True, help="virtual stiffness K [N/m]")
     p.add_argument("--B", type=declared("render", "B"), default=0.0, help="virtual damping B [N s/m] "
                    "(default %(default)s)")
@@ -66,9 +62,7 @@ def run(args) -> int:
         print(json.dumps(rep.to_dict()))
     else:
         out = sys.stdout
-        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
-              f"d={loop.delay}  hold={loop.hold}   virtual K={args.K:g} N/m  B={args.B:g} N s/m",
-              file=out)
+        print(f"{loop_line(loop)}   virtual K={args.K:g} N/m  B={args.B:g} N s/m", file=out)
         print(f"  felt k        {fmt(r.k):>12} N/m", file=out)
         print(f"  felt b        {fmt(r.b):>12} N s/m  (real + virtual)", file=out)
         print(f"  f0            {fmt(r.f0_hz):>12} Hz", file=out)

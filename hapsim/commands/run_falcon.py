@@ -86,7 +86,7 @@ def run_falcon_command(args) -> int:
                           "(configs/delta_sphere.yaml, delta_mesh.yaml)", file=scene.path,
                           key="device.kind")
     from hapsim.api import stable_prediction_nd
-    pred = stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")
+    stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")   # refused if not
     packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
     emulated = args.port is None
     link = truth = None

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 
-from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, fmt, loop_from_args
+from hapsim.commands._loop_args import fmt, loop_from_args, loop_line, loop_parser
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
 
@@ -20,33 +19,31 @@ def register(sub) -> None:
     sub : argparse._SubParsersAction
         The ``hapsim`` sub-parsers.
     """
-    p = sub.add_parser(
-        "stability", help="exact stiffness limit K_max for a virtual damping B",
-        description=para("Compute the exact K_max(B) where the closed loop's spectral radius "
-                    "reaches 1, and, for reference, the published first-order limits: "
-                    "passivity (Colgate & Schenkel 1997, b0 > K T/2 + |B|), Diolaiti et al. "
-                    "2006 (K < (b0 + B)/(T/2 + d T)) and the centred-difference oscillator "
-                    "(4 m / T^2). K_max = 0 means no positive K is stable; null (JSON) or "
-                    "inf means no finite limit. The limit is certified where exact "
-                    "arithmetic proves it (no pole on |z| = 1 for any smaller K, stable "
-                    "below and unstable above a guaranteed bracket: JSON K_max_method "
-                    "'certified', K_max_interval), else labelled 'sampled (N)' (the scan of "
-                    "N points of the circle) with the reason."),
-        epilog=UNITS_HELP + "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
-               "--delay 1 --hold zoh --B 0\n"
-               "\n2-D and 3-D devices (one K_max per direction, and over the workspace):\n"
-               "  hapsim stability --scene configs/pantograph_wall.yaml   K_max along the "
-               "device's principal mass axes\n"
-               "  hapsim stability --scene configs/pantograph_wall.yaml --grid 9 --out "
-               "kmax.png   and its map over the workspace\n"
-               "  hapsim check configs/pantograph_wall.yaml     the same limits beside the "
-               "felt matrices\n"
-               "  hapsim kinematics pantograph --joints 130 50 --joint-inertia 2e-4 "
-               "--joint-friction 1e-3 \\\n"
-               "      --hand-mass 0.05 --B 0.5 --grid 9 --out kmax.png   its map over the "
-               "workspace, charted\n",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_loop_arguments(p, require=False)
+    p = loop_parser(
+        sub, "stability", "exact stiffness limit K_max for a virtual damping B",
+        "Compute the exact K_max(B) where the closed loop's spectral radius "
+        "reaches 1, and, for reference, the published first-order limits: "
+        "passivity (Colgate & Schenkel 1997, b0 > K T/2 + |B|), Diolaiti et al. "
+        "2006 (K < (b0 + B)/(T/2 + d T)) and the centred-difference oscillator "
+        "(4 m / T^2). K_max = 0 means no positive K is stable; null (JSON) or "
+        "inf means no finite limit. The limit is certified where exact "
+        "arithmetic proves it (no pole on |z| = 1 for any smaller K, stable "
+        "below and unstable above a guaranteed bracket: JSON K_max_method "
+        "'certified', K_max_interval), else labelled 'sampled (N)' (the scan of "
+        "N points of the circle) with the reason.",
+        "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
+        "--delay 1 --hold zoh --B 0\n"
+        "\n2-D and 3-D devices (one K_max per direction, and over the workspace):\n"
+        "  hapsim stability --scene configs/pantograph_wall.yaml   K_max along the "
+        "device's principal mass axes\n"
+        "  hapsim stability --scene configs/pantograph_wall.yaml --grid 9 --out "
+        "kmax.png   and its map over the workspace\n"
+        "  hapsim check configs/pantograph_wall.yaml     the same limits beside the "
+        "felt matrices\n"
+        "  hapsim kinematics pantograph --joints 130 50 --joint-inertia 2e-4 "
+        "--joint-friction 1e-3 \\\n"
+        "      --hand-mass 0.05 --B 0.5 --grid 9 --out kmax.png   its map over the "
+        "workspace, charted\n", require=False)
     p.add_argument("--B", type=declared("stability", "B"), default=0.0,
                    help="virtual damping B [N s/m] (default %(default)s)")
     g = p.add_argument_group(
@@ -110,8 +107,7 @@ def run(args) -> int:
         print(json.dumps(d))
     else:
         out = sys.stdout
-        print(f"loop: m={loop.mass:g} kg  b0={loop.friction:g} N s/m  {loop.rate_hz:g} Hz  "
-              f"d={loop.delay}  hold={loop.hold}   virtual B={args.B:g} N s/m", file=out)
+        print(f"{loop_line(loop)}   virtual B={args.B:g} N s/m", file=out)
         shown = "-" if rho is None else (
             f"{rho:.{known_decimals(err)}f} +- {err:.1g}" if err > 0
             else f"{rho:.15g}")

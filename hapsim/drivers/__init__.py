@@ -56,6 +56,12 @@ class Family:
         The device, as ``--help`` and docs/devices.md name it.
     options : tuple of str
         ``hapsim run``'s flags that go with this family only.
+    mock : str
+        Its emulated device on the device side, ``"module:Class"`` (a 1-D family's: the
+        byte-exact board :mod:`hapsim.emulated.driver_mock` serves on a pty); ``""``: none
+        there (the framed protocol's mock is :mod:`hapsim.emulated.mock`; the n-D devices'
+        run their own). Named as a string: the drivers stand below the device side and
+        never import it.
     """
 
     name: str
@@ -65,10 +71,15 @@ class Family:
     transport: str
     device: str
     options: tuple = ()
+    mock: str = ""
 
     def load(self):
         """The driver class, its module imported now (None: the framed protocol's)."""
         return _resolve(self.driver)
+
+    def load_mock(self):
+        """The emulated device's class, its module imported now (None: no driver mock)."""
+        return _resolve(self.mock)
 
     def runner(self):
         """The function that runs this family's ``hapsim run``, its module imported now
@@ -89,11 +100,13 @@ FAMILIES = (
     Family("framed", 0, "", "loop", "framed",
            "hapsim's own protocol (COBS frames, CRC, sequence numbers, watchdog)"),
     Family("firefader", 1, "hapsim.drivers.firefader:FireFader", "loop", "driver",
-           "the FireFader (Berdahl), one axis"),
+           "the FireFader (Berdahl), one axis",
+           mock="hapsim.emulated.firefader_board:FireFaderDevice"),
     Family("haply", 1, "hapsim.drivers.haply:HaplyM3", "loop", "driver",
-           "a Haply M3 board, one joint"),
+           "a Haply M3 board, one joint", mock="hapsim.emulated.haply_board:HaplyDevice"),
     Family("hapkit-serial", 1, "hapsim.drivers.hapkit_serial:HapkitSerial", "loop", "driver",
-           "a Hapkit running the WHC2017 sketch"),
+           "a Hapkit running the WHC2017 sketch",
+           mock="hapsim.emulated.hapkit_serial_board:HapkitSerialDevice"),
     Family("haply", 2, "hapsim.drivers.haply2:Haply2DIY",
            "hapsim.commands.run_haply2:run_haply2_command", "own",
            "a pantograph scene, the Haply 2DIY", ("--generation",)),

@@ -21,19 +21,25 @@ import signal
 import sys
 import time
 
-from hapsim.emulated.actuated import WallClock
+from hapsim.drivers import FAMILIES
+from hapsim.emulated.actuated import Actuated, WallClock
 from hapsim.emulated.firefader_board import FireFaderDevice
 from hapsim.emulated.hapkit_serial_board import HapkitSerialDevice
 from hapsim.emulated.haply_board import HaplyDevice
 from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
-           "WallClock", "WALL_CLOCK_MOCKS",
+           "WallClock", "MOCKS", "WALL_CLOCK_MOCKS",
            "EmbeddedDriverMock", "firefader_offline_loop", "main"]
 
-#: The drivers whose mock keeps its own time (``clock="wall"``) unless a run asks for
+#: The emulated device of each 1-D driver family, by its name (the registry's
+#: :attr:`hapsim.drivers.Family.mock`).
+MOCKS = {f.name: f.load_mock() for f in FAMILIES if f.dimension == 1 and f.mock}
+
+#: The drivers whose mock keeps its own time (``clock="wall"``, an
+#: :class:`~hapsim.emulated.actuated.Actuated` board's default) unless a run asks for
 #: lockstep by name (``--lockstep``).
-WALL_CLOCK_MOCKS = ("firefader", "hapkit-serial", "haply")
+WALL_CLOCK_MOCKS = tuple(name for name, cls in MOCKS.items() if issubclass(cls, Actuated))
 
 
 class ByteFaults:
@@ -358,8 +364,7 @@ def main(argv=None) -> int:
         from hapsim.scene import Impulse
         exc["impulse"] = Impulse(**exc["impulse"])
     excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
-    kind = spec.get("driver", "firefader")
-    cls = {"haply": HaplyDevice, "hapkit-serial": HapkitSerialDevice}.get(kind, FireFaderDevice)
+    cls = MOCKS[spec["driver"]]
     dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
     _above_the_hosts()
     flag = {"stop": False}
@@ -413,9 +418,8 @@ class EmbeddedDriverMock(PtyChild):
         import dataclasses
 
         from hapsim.errors import ConfigError
-        if driver not in ("firefader", "haply", "hapkit-serial"):
-            raise ConfigError(f"no mock for driver {driver!r}; valid: firefader, haply, "
-                              "hapkit-serial",
+        if driver not in MOCKS:
+            raise ConfigError(f"no mock for driver {driver!r}; valid: {', '.join(MOCKS)}",
                               key="--driver")
         master = self.open_pty("hapsim-drvmock-")
         spec = {"device": dataclasses.asdict(device), "excitation": dataclasses.asdict(excitation),

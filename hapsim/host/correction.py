@@ -25,8 +25,6 @@ device's VELOCITY frame of that STATE (PROTOCOL.md §4), kept by
 
 from __future__ import annotations
 
-import math
-
 from hapsim.errors import ConfigError
 
 __all__ = ["corrected_engine"]

@@ -310,7 +310,7 @@ class CompiledHostLoop(HostLoop):
             return True
         if code == R_IOERR:
             raise LostDevice("port failed: write failed", True)
-        fv, pv, iv = self._fast["fv"], self._fast["pv"], self._fast["iv"]
+        fv, iv = self._fast["fv"], self._fast["iv"]
         res.stop_reason = safety_reason(int(iv[I_WSUM]), self.config.clamp_max,
                                          self._fast["win"].size, self.force_limit,
                                          float(fv[F_X]), self.config.position_bound,

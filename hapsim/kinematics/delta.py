@@ -15,6 +15,25 @@ from hapsim.kinematics.common import JOINT_TURN, SINGULAR_SINE, degrees_text, fi
 __all__ = ["DeltaGeometry", "DELTA_PRESETS", "Delta"]
 
 
+def _joint_batch(Q) -> np.ndarray:
+    """``Q`` as an (N, 3) float array of thigh angles [rad] (of :meth:`Delta.forward_many`
+    and :meth:`Delta.jacobian_many`).
+
+    Raises
+    ------
+    ConfigError
+        ``Q`` not of shape (N, 3), not finite or beyond one turn (key ``joints``).
+    """
+    Q = np.asarray(Q, dtype=float)
+    if Q.ndim != 2 or Q.shape[1] != 3 or not np.all(np.isfinite(Q)):
+        raise ConfigError(f"must be finite joint angles of shape (N, 3) [rad], got "
+                          f"shape {Q.shape}", key="joints")
+    if np.any(np.abs(Q) > JOINT_TURN):
+        raise ConfigError("must be within one turn, -360..360 deg (a revolute joint's "
+                          "angle is periodic: give it modulo 360)", key="joints")
+    return Q
+
+
 @dataclass(frozen=True)
 class DeltaGeometry:
     """Stamper's delta geometry [m] and its leg angles [deg] (module docstring).
@@ -316,13 +335,7 @@ class Delta:
         ConfigError
             ``Q`` not of shape (N, 3), not finite or beyond one turn (key ``joints``).
         """
-        Q = np.asarray(Q, dtype=float)
-        if Q.ndim != 2 or Q.shape[1] != 3 or not np.all(np.isfinite(Q)):
-            raise ConfigError(f"must be finite joint angles of shape (N, 3) [rad], got "
-                              f"shape {Q.shape}", key="joints")
-        if np.any(np.abs(Q) > JOINT_TURN):
-            raise ConfigError("must be within one turn, -360..360 deg (a revolute joint's "
-                              "angle is periodic: give it modulo 360)", key="joints")
+        Q = _joint_batch(Q)
         P, ok = self._solve_many(Q)[:2]
         P = P.copy()
         P[~ok] = np.nan
@@ -441,13 +454,7 @@ class Delta:
         ConfigError
             ``Q`` not of shape (N, 3), not finite or beyond one turn (key ``joints``).
         """
-        Q = np.asarray(Q, dtype=float)
-        if Q.ndim != 2 or Q.shape[1] != 3 or not np.all(np.isfinite(Q)):
-            raise ConfigError(f"must be finite joint angles of shape (N, 3) [rad], got "
-                              f"shape {Q.shape}", key="joints")
-        if np.any(np.abs(Q) > JOINT_TURN):
-            raise ConfigError("must be within one turn, -360..360 deg (a revolute joint's "
-                              "angle is periodic: give it modulo 360)", key="joints")
+        Q = _joint_batch(Q)
         P, ok, Gp, Gq = self._solve_many(Q)
         status, J = self._classify(ok, Gp, Gq)
         return J, status

@@ -299,7 +299,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         dropped; then the set-up's zero write, whose reply is tick ``k``'s sample. A
         first reply that does not read the offsets sent is a set-up the stream corrupted
         (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
-        nonlocal got, bad_setups, rearm_sends
+        nonlocal got, seen, bad_setups, rearm_sends
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
         # others for a board already running

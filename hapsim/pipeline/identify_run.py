@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import math
 import signal
-import sys
 import threading
-import time
 
 import numpy as np
 
@@ -608,11 +606,16 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         probe's torque pulses, or moves the same way under both signs); the FireFader's
         sweep found no end stop it can take as one (``travel``).
     """
+    from hapsim.drivers import DEFAULT
     from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
     from hapsim.emulated.mock import DEFAULT_DEVICE, MockDevice
     from hapsim.host.telemetry import Telemetry
     from hapsim.scene import Excitation
 
+    if travel is not None and driver != "firefader":
+        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
+                          f"{driver or DEFAULT} protocol has none to find (valid with "
+                          f"--travel: --driver firefader)", key="--travel")
     if not (math.isfinite(duration) and duration > 0):
         raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
                           key="--duration")
@@ -631,11 +634,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
     embedded = None
     lock = lockstep or transport == "inprocess"
-    use_driver = driver not in (None, "framed")
-    if travel is not None and driver != "firefader":
-        raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
-                          f"{driver or 'framed'} protocol has none to find (valid with "
-                          f"--travel: --driver firefader)", key="--travel")
+    use_driver = driver not in (None, DEFAULT)
     if use_driver:
         from hapsim.drivers import get_driver
         drv = get_driver(driver, **(driver_options or {}))

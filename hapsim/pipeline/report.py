@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hapsim.analysis.prediction import port_links
+from hapsim.drivers import DEFAULT
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
 from hapsim.errors import dash
@@ -229,8 +230,8 @@ def format_report(rep: dict) -> str:
     """
     lp = rep["loop"]
     lines = []
-    protocol = lp.get("protocol", "framed")
-    clock = lp["mode"] + (f", {protocol} protocol" if protocol != "framed"   # host-paced
+    protocol = lp.get("protocol", DEFAULT)
+    clock = lp["mode"] + (f", {protocol} protocol" if protocol != DEFAULT    # host-paced
                           else ", lockstep" if lp["lockstep"]
                           else f", {lp.get('pace', 'real-time')}")
     lines.append(f"hapsim run {rep['scene']}: {lp['transport']} {lp['port'] or ''} ({clock})"

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from hapsim.drivers import DEFAULT
+
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
            "Listen", "Audio", "audio_substeps", "MassND", "LinkND", "PlaneND", "DeviceND",
            "ListenND", "ExcitationND"]
@@ -156,7 +158,7 @@ class Device:
     velocity_noise: float = 0.0
     hand: "Hand | None" = None
     correction: dict | None = None
-    protocol: str = "framed"
+    protocol: str = DEFAULT
     protocol_options: dict | None = None
 
 
