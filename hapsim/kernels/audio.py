@@ -26,6 +26,7 @@ offline gesture.
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 from hapsim.kernels.cordis import (advance, chain_fused, chain_start, clear_forces, contacts,
                                    move_marked, spring_dampers)
