@@ -153,6 +153,21 @@ def test_kill_9_loses_at_most_100_ms_of_telemetry(tmp_path, wall):
     p.stderr.close()
 
 
+def _both_faults_recovered(events) -> bool:
+    """The reset's loss (the device's HELLO), then the stall's ("no STATE"), each followed
+    by a recovery. A loaded machine may add a loss of its own (a 50 ms silence before the
+    reset, once, a suite on three workers beside other work): it is journaled too."""
+    want = ["HELLO", "no STATE"]
+    lost = False
+    for e in events:
+        if e["event"] == "lost" and want and want[0] in e["reason"]:
+            lost = True
+        elif e["event"] == "recovered" and lost:
+            want.pop(0)
+            lost = False
+    return not want
+
+
 def test_kill_9_keeps_the_fault_history(tmp_path, wall):
     """A reset and a stall, then kill -9: the journal holds the losses and recoveries (the
     events, and the flagged restart rows), not only the samples."""
@@ -167,7 +182,7 @@ def test_kill_9_keeps_the_fault_history(tmp_path, wall):
         if os.path.exists(path):
             info = {}
             rows = load(path, info=info)["seq"].size
-            if rows >= 1500 and sum(e["event"] == "recovered" for e in info["events"]) >= 2:
+            if rows >= 1500 and _both_faults_recovered(info["events"]):
                 break
     assert p.poll() is None, p.stderr.read()
     p.send_signal(signal.SIGKILL)
@@ -177,12 +192,13 @@ def test_kill_9_keeps_the_fault_history(tmp_path, wall):
     info = {}
     cols = load(path, info=info)
     events = info["events"]
-    assert [e["event"] for e in events if e["event"] in ("lost", "recovered")][:4] == [
-        "lost", "recovered", "lost", "recovered"]
-    assert "HELLO" in events[0]["reason"] and "no STATE" in [
-        e for e in events if e["event"] == "lost"][1]["reason"]
+    seq = [e["event"] for e in events if e["event"] in ("lost", "recovered")]
+    # each loss then its recovery (the last loss may be pending at the kill)
+    assert seq == ["lost", "recovered"] * (len(seq) // 2) + ["lost"] * (len(seq) % 2), seq
+    assert _both_faults_recovered(events), events
     restarts = np.flatnonzero(cols["flags"] & FLAG_LOST).tolist()
-    assert restarts[:2] == [e["sample"] for e in events if e["event"] == "recovered"][:2]
+    recovered = [e["sample"] for e in events if e["event"] == "recovered"]
+    assert restarts[:len(recovered)] == recovered
 
 
 @pytest.mark.parametrize("ext", [".npz", ".csv"])
