@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
-
 from hapsim.commands._loop_args import UNITS_HELP, para, add_loop_arguments, loop_from_args
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
@@ -72,6 +70,7 @@ def run(args) -> int:
         (all checked before any computation); a file that cannot be written. The CLI turns
         these into a one-line error naming the option and exit code 2.
     """
+    import numpy as np
     from hapsim.analysis.grid import grid, paper_preset
     title = None
     if args.paper is not None:
