@@ -373,3 +373,39 @@ def test_laplacians_and_exact_matrices_are_one_implementation():
     LK, LB = matrices.laplacians(3, [0, 1], [1, 2], [3.0, 5.0], [0.5, 0.25])
     assert LK.tolist() == [[3.0, -3.0, 0.0], [-3.0, 8.0, -5.0], [0.0, -5.0, 5.0]]
     assert LB.tolist() == [[0.5, -0.5, 0.0], [-0.5, 0.75, -0.25], [0.0, -0.25, 0.25]]
+
+
+def test_the_embedded_mock_at_1khz_serves_without_numba_or_the_host_loop():
+    """The mock child of ``hapsim run`` (``hapsim mock --fd``, :class:`hapsim.emulated.links.
+    EmbeddedMock`'s command) ticking in Python (1 kHz, below ``AUTO_COMPILED_HZ``) imports
+    neither numba, scipy, the host loop nor the analysis: it serves its pty until the host
+    side goes (here: the slave closed before any host came, EIO), exits 0 and writes its
+    report (no tick: never armed)."""
+    import dataclasses
+
+    from hapsim.device_model import DEFAULT_DEVICE, DEFAULT_EXCITATION
+    from hapsim.emulated.serve import AUTO_COMPILED_HZ
+    assert AUTO_COMPILED_HZ > 1000.0
+    dev = dataclasses.asdict(DEFAULT_DEVICE)
+    if not math.isfinite(dev["force_limit"]):
+        dev["force_limit"] = None           # as EmbeddedMock sends it
+    spec = json.dumps({"device": dev, "excitation": dataclasses.asdict(DEFAULT_EXCITATION),
+                       "base_dir": None})
+    got = _python(f"""
+import json, os, pty, sys, tempfile, threading, tty
+from hapsim.cli import main
+master, slave = pty.openpty()
+tty.setraw(slave)
+report = os.path.join(tempfile.mkdtemp(), "mock.json")
+threading.Timer(0.3, os.close, (slave,)).start()       # no host comes: EIO on the master
+code = main(["mock", "--fd", str(master), "--spec", {spec!r}, "--rate", "1000.0",
+             "--report", report])
+with open(report) as fh:
+    rep = json.load(fh)
+os.remove(report)
+os.rmdir(os.path.dirname(report))
+print(json.dumps({{"code": code, "ticks": rep["ticks"], "mods": sorted(sys.modules)}}))
+""")
+    assert got["code"] == 0 and got["ticks"] == 0
+    assert _loaded(got["mods"], ("numba", "scipy", "hapsim.host.loop", "hapsim.kernels.ticks",
+                                 "hapsim.analysis")) == []
