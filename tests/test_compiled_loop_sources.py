@@ -132,6 +132,8 @@ PYTHON_ONLY = {
     "hapsim.audio.jack_native": {"hapsim.audio.sources"},   # FrameRing, LiveSound: Python
     "hapsim.host.fastloop_kernels": {"hapsim.kernels.sources"},
     "hapsim.emulated.fastmock": {"hapsim.kernels.sources"},
+    # the network's matrices, set up in Python at construction (never in a kernel)
+    "hapsim.kernels.schemes": {"hapsim.kernels.matrices"},
 }
 PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -317,3 +317,95 @@ def test_first_run_without_the_compiled_loop_uses_python_then_compiles_it(
     out, err = capsys.readouterr()
     assert json.loads(out)["loop"]["compiled_samples"] > 0
     assert "for the next runs" not in err and "Python host loop" not in err
+
+
+# --- start-up of every process (issue 31 item 2): what a command's path imports ---------
+
+_HEAVY = ("numpy", "numba", "scipy", "hapsim.analysis", "hapsim.api", "hapsim.engine")
+
+
+def _loaded(mods: list[str], prefixes=_HEAVY) -> list[str]:
+    """The modules of ``mods`` that are one of ``prefixes`` or inside one."""
+    return sorted(m for m in mods if any(m == p or m.startswith(p + ".") for p in prefixes))
+
+
+def test_the_full_parser_imports_no_numeric_library():
+    """``hapsim --help`` and a mistyped command build every command's parser: that loads
+    neither numpy, numba, scipy, the analysis, the API nor the engine (each command imports
+    what it runs when it runs); the parser still lists every command."""
+    got = _python("""
+import json, sys
+from hapsim.cli import COMMANDS, build_parser
+parser = build_parser()
+sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+print(json.dumps({"mods": sorted(sys.modules), "commands": sorted(sub.choices),
+                  "wanted": sorted(c.replace("_", "-") for c in COMMANDS)}))
+""")
+    assert got["commands"] == got["wanted"] and len(got["commands"]) == 17
+    assert _loaded(got["mods"]) == []
+
+
+def test_check_of_a_1d_scene_does_not_load_numba():
+    """``hapsim check`` only analyses: its network's Laplacians come from
+    hapsim.kernels.matrices (numpy), so numba (a third of a CPU-second) is never imported;
+    the verdict is the wall's (stable, exit 0)."""
+    got = _python(f"""
+import contextlib, io, json, sys
+from hapsim.cli import main
+out = io.StringIO()
+with contextlib.redirect_stdout(out):
+    code = main(["check", {WALL!r}, "--json"])
+print(json.dumps({{"code": code, "stable": json.loads(out.getvalue())["stable"],
+                  "mods": sorted(sys.modules)}}))
+""")
+    assert got["code"] == 0 and got["stable"] is True
+    assert _loaded(got["mods"], ("numba",)) == []
+
+
+def test_laplacians_and_exact_matrices_are_one_implementation():
+    """hapsim.kernels.schemes re-exports the numpy-only functions it uses at construction
+    (one implementation, two names) and the Laplacians are the link law's: on a chain
+    ground-a-b with (K, B) = (3, 0.5) and (5, 0.25), row sums vanish and the entries are
+    the closed form."""
+    from hapsim.kernels import matrices, schemes
+    assert schemes.laplacians is matrices.laplacians
+    assert schemes.exact_matrices is matrices.exact_matrices
+    LK, LB = matrices.laplacians(3, [0, 1], [1, 2], [3.0, 5.0], [0.5, 0.25])
+    assert LK.tolist() == [[3.0, -3.0, 0.0], [-3.0, 8.0, -5.0], [0.0, -5.0, 5.0]]
+    assert LB.tolist() == [[0.5, -0.5, 0.0], [-0.5, 0.75, -0.25], [0.0, -0.25, 0.25]]
+
+
+def test_the_embedded_mock_at_1khz_serves_without_numba_or_the_host_loop():
+    """The mock child of ``hapsim run`` (``hapsim mock --fd``, :class:`hapsim.emulated.links.
+    EmbeddedMock`'s command) ticking in Python (1 kHz, below ``AUTO_COMPILED_HZ``) imports
+    neither numba, scipy, the host loop nor the analysis: it serves its pty until the host
+    side goes (here: the slave closed before any host came, EIO), exits 0 and writes its
+    report (no tick: never armed)."""
+    import dataclasses
+
+    from hapsim.device_model import DEFAULT_DEVICE, DEFAULT_EXCITATION
+    from hapsim.emulated.serve import AUTO_COMPILED_HZ
+    assert AUTO_COMPILED_HZ > 1000.0
+    dev = dataclasses.asdict(DEFAULT_DEVICE)
+    if not math.isfinite(dev["force_limit"]):
+        dev["force_limit"] = None           # as EmbeddedMock sends it
+    spec = json.dumps({"device": dev, "excitation": dataclasses.asdict(DEFAULT_EXCITATION),
+                       "base_dir": None})
+    got = _python(f"""
+import json, os, pty, sys, tempfile, threading, tty
+from hapsim.cli import main
+master, slave = pty.openpty()
+tty.setraw(slave)
+report = os.path.join(tempfile.mkdtemp(), "mock.json")
+threading.Timer(0.3, os.close, (slave,)).start()       # no host comes: EIO on the master
+code = main(["mock", "--fd", str(master), "--spec", {spec!r}, "--rate", "1000.0",
+             "--report", report])
+with open(report) as fh:
+    rep = json.load(fh)
+os.remove(report)
+os.rmdir(os.path.dirname(report))
+print(json.dumps({{"code": code, "ticks": rep["ticks"], "mods": sorted(sys.modules)}}))
+""")
+    assert got["code"] == 0 and got["ticks"] == 0
+    assert _loaded(got["mods"], ("numba", "scipy", "hapsim.host.loop", "hapsim.kernels.ticks",
+                                 "hapsim.analysis")) == []

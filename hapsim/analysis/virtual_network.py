@@ -168,7 +168,7 @@ def network(scene, calibrated=None, *, gain: float = 1.0) -> Network:
     ConfigError
         See :func:`link_values`.
     """
-    from hapsim.kernels.schemes import laplacians
+    from hapsim.kernels.matrices import laplacians
 
     links = link_values(scene, calibrated)
     idx = {m.name: i for i, m in enumerate(scene.masses)}
@@ -312,7 +312,7 @@ def virtual_blocks(net: Network, integrator: str, T: float):
         bpp = np.concatenate([T * hpp, hpp])
         cx = np.concatenate([-Kpm, -Bpm])
     else:
-        from hapsim.kernels.schemes import exact_matrices
+        from hapsim.kernels.matrices import exact_matrices
 
         fixed = [p] if p >= 0 else []
         phi, gam, psi = exact_matrices(net.LK.shape[0], mob, net.masses, fixed,

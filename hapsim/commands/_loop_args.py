@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from hapsim.analysis.loop import HOLDS, LoopModel
 from hapsim.errors import fixed
 from hapsim.option_values import declared
+# the holds a loop takes (hapsim.analysis.loop.HOLDS, the same tuple as the scene's
+# device.hold): from the schema, so that building the parser (hapsim --help) loads no
+# analysis; LoopModel is imported where a loop is built
+from hapsim.scene_schema import HOLDS
 
 #: Text appended to each command's help: what k/b and K/B are, and the units.
 UNITS_HELP = """\
@@ -133,6 +136,7 @@ def loop_from_args(args) -> LoopModel:
     ConfigError
         With the option name (``--mass`` ...) as key, on an invalid value.
     """
+    from hapsim.analysis.loop import LoopModel
     from hapsim.errors import ConfigError
     try:
         return LoopModel(mass=args.mass, friction=args.friction, rate_hz=args.rate,

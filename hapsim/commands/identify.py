@@ -7,7 +7,6 @@ import json
 import sys
 
 
-from hapsim.api import excite_and_fit as identify  # noqa: F401  (the API behind the command)
 from hapsim.drivers import DEFAULT, DRIVERS, family
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
@@ -65,6 +64,20 @@ examples:
   hapsim identify --mock-scene configs/wall.yaml --lockstep --json
   hapsim identify --port /dev/ttyACM0 --force-limit 1 --envelope 0.02 --out device.yaml"""
 
+
+def __getattr__(name: str):
+    """``identify``: the API behind the command (:func:`hapsim.api.excite_and_fit`), imported
+    on first use (PEP 562) so that building the parser (``hapsim --help``) loads no API.
+
+    Raises
+    ------
+    AttributeError
+        For any other name.
+    """
+    if name == "identify":
+        from hapsim.api import excite_and_fit
+        return excite_and_fit
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def register(sub) -> None:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from hapsim.commands._loop_args import loop_from_args, loop_line, loop_parser
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
@@ -69,6 +67,7 @@ def run(args) -> int:
         (all checked before any computation); a file that cannot be written. The CLI turns
         these into a one-line error naming the option and exit code 2.
     """
+    import numpy as np
     from hapsim.analysis.grid import grid, paper_preset
     title = None
     if args.paper is not None:

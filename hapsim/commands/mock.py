@@ -250,7 +250,7 @@ def run(args) -> int:
         # embedded in hapsim run: the host owns the terminal; end on EOF/EIO or SIGTERM
         import signal
 
-        from hapsim.host.loop import StopFlag
+        from hapsim.spawn import StopFlag
         flag = StopFlag()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, lambda signum, frame: flag.request(signum))
@@ -443,7 +443,7 @@ def run_mock_nd(args, new_pty) -> int:
         amplitude, rate or fault SPEC; a ``vanish`` fault without ``--link`` (exit 2).
     """
     from hapsim.emulated.faults import mock_fault_plan, reopener
-    from hapsim.host.loop import StopFlag
+    from hapsim.spawn import StopFlag
     from hapsim.emulated.serve import serve_fd
     from hapsim.emulated.mock import DEFAULT_AMPLITUDE, MockDeviceND
     from hapsim.host.realtime import RealtimePriority

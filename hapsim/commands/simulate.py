@@ -9,13 +9,9 @@ import os
 import sys
 import time
 
-import numpy as np
-
-from hapsim.engine import Engine, mass_indices
 from hapsim.errors import ConfigError
 from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
-from hapsim.scene import load_scene
 from hapsim.option_values import Number
 
 
@@ -99,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         (file, line, key), or a target no (K, B) renders
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
-    from hapsim.scene import scene_dimension
+    from hapsim.scene import load_scene, scene_dimension
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
         return _run_nd(args)
     if args.audio is not None:
@@ -123,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
     # the memory they need
     masses = tuple(m.name for m in scene.masses)
     names = list(args.record) if args.record else list(masses)
+    from hapsim.engine import Engine, mass_indices     # numba: after the input's checks
     mass_indices(masses, names, key="--record")
     if len(set(names)) != len(names):
         twice = sorted({n for n in names if names.count(n) > 1})
@@ -187,8 +184,11 @@ def _run_audio(args: argparse.Namespace) -> int:
     """``simulate --audio``: render a gesture through the multi-rate scene to a WAV file
     (and the device trajectory to ``--out`` when given). Exit 0, 1 when the sound
     diverged (an unstable scene), 2 on bad input."""
+    import numpy as np
     from hapsim.audio.offline import (closed_loop_pluck, load_gesture, open_loop_gesture,
                                       write_wav)
+    from hapsim.engine import Engine
+    from hapsim.scene import load_scene
 
     if not args.audio.lower().endswith(".wav"):
         raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}", key="--audio")
@@ -265,6 +265,7 @@ def _run_finite(engine: Engine, steps: int, names: list[str], progress,
         ``(step, mass, recorded)`` of the first non-finite position (any mass of the scene;
         for a mass not recorded the step is the end of the chunk it was found in), or None.
     """
+    import numpy as np
     t = np.empty(steps + 1)
     x = np.empty((steps + 1, len(names)))
     t[0:1], x[0:1] = engine.run(0, names)
@@ -305,6 +306,7 @@ def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names:
     names : list of str, length R
         Recorded mass names.
     """
+    import numpy as np
     tmp = f"{path}.partial"
     if path.lower().endswith(".npz"):
         with open(tmp, "wb") as fh:
@@ -343,6 +345,7 @@ def _run_nd(args) -> int:
         ``audio`` section with ``--audio``, negative ``--steps``, an unknown or repeated
         ``--record`` name, an invalid scene (file, line, key).
     """
+    import numpy as np
     from hapsim.engine_nd import EngineND
     from hapsim.outputs import check_fits, check_writable
     from hapsim.progress import Progress

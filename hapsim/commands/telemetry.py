@@ -8,8 +8,6 @@ import math
 import os
 import zipfile
 
-import numpy as np
-
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
 
@@ -89,6 +87,7 @@ def read(path: str) -> tuple[dict, dict]:
         not telemetry: a non-empty journal without one intact chunk, an ``.npz`` without
         the columns, a ``.csv`` without the header or with non-numbers.
     """
+    import numpy as np
     from hapsim.host.telemetry import COLUMNS, load
 
     ext = os.path.splitext(path)[1].lower()
@@ -156,6 +155,7 @@ def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
         restart at or before ``n`` (Hannaford & Ryu 2002, with the sign of
         :mod:`hapsim.host.loop`: energy out of the scene into the hand).
     """
+    import numpy as np
     from hapsim.host.telemetry import FLAG_LOST
 
     x = np.asarray(position, float)
@@ -177,6 +177,7 @@ def _finite(v) -> float | None:
 
 
 def _range(a: np.ndarray) -> dict:
+    import numpy as np
     a = a[np.isfinite(a)]
     return {"min": float(a.min()), "max": float(a.max())} if a.size else {"min": None,
                                                                           "max": None}
@@ -214,6 +215,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
         ``felt_energy_j`` (``max``, ``end``) from the force the device applied at each tick
         (exact with late ticks; the ``felt_energy_j`` above assumes each force on time).
     """
+    import numpy as np
     from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
     t, seq = cols["time"], cols["seq"].astype(np.int64)
@@ -385,6 +387,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _json_default(v):
+    import numpy as np
     if isinstance(v, (np.integer,)):
         return int(v)
     if isinstance(v, (np.floating,)):

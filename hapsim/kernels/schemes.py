@@ -50,7 +50,8 @@ exact (:func:`run_exact`)
     linear links only (contacts switch the network: refused by the scene/engine).
 
 No kernel allocates; everything is compiled once (``cache=True``). The matrix set-up
-(:func:`exact_matrices`) uses numpy/scipy at construction, never in the step. Nothing here
+(:func:`exact_matrices`, in :mod:`hapsim.kernels.matrices`, re-exported here) uses
+numpy/scipy at construction, never in the step. Nothing here
 imports from the API layer (docs/design.md, rule 3).
 """
 
@@ -58,6 +59,10 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+
+# the matrix set-up is numpy/scipy only: kept in its own module so that the analysis
+# (hapsim check) builds the network's Laplacians without loading numba
+from hapsim.kernels.matrices import exact_matrices, laplacians
 
 __all__ = ["INTEGRATORS", "run_symplectic_euler", "run_exact", "exact_matrices",
            "laplacians", "build"]
@@ -239,92 +244,6 @@ def run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew, sold, 
             xp[i] = x[i]
         for r in range(rec.size):
             out[row0 + s, r] = x[rec[r]]
-
-
-def laplacians(n_masses: int, i1, i2, k, b):
-    """Stiffness and damping Laplacians of a link network.
-
-    Parameters
-    ----------
-    n_masses : int
-        Number of points.
-    i1, i2 : array_like of int, shape (L,)
-        Ends of each link.
-    k : array_like, shape (L,)
-        Stiffness K [N/m].
-    b : array_like, shape (L,)
-        Damping B [N s/m].
-
-    Returns
-    -------
-    LK, LB : ndarray, shape (n_masses, n_masses)
-        ``F = -LK x - LB v`` is the force on every point [N] (link law, docs/design.md,
-        'The scheme').
-    """
-    LK = np.zeros((n_masses, n_masses))
-    LB = np.zeros((n_masses, n_masses))
-    for a, c, kk, bb in zip(np.asarray(i1), np.asarray(i2), np.asarray(k), np.asarray(b)):
-        for L, g in ((LK, kk), (LB, bb)):
-            L[a, a] += g
-            L[c, c] += g
-            L[a, c] -= g
-            L[c, a] -= g
-    return LK, LB
-
-
-def exact_matrices(n_masses: int, mobile, masses, fixed, i1, i2, k, b, T: float):
-    """``Phi``, ``Gam``, ``Psi`` of the exact scheme (module docstring).
-
-    Parameters
-    ----------
-    n_masses : int
-        Number of points.
-    mobile : array_like of int, shape (N,)
-        Moving masses.
-    masses : array_like, shape (N,)
-        Their inertia [kg], > 0.
-    fixed : array_like of int, shape (n_fixed,)
-        Grounds and port.
-    i1, i2, k, b : array_like, shape (L,)
-        Linear links: ends, K [N/m], B [N s/m].
-    T : float
-        Period [s].
-
-    Returns
-    -------
-    phi : ndarray, shape (2N, 2N)
-    gam, psi : ndarray, shape (2N, n_fixed)
-
-    Notes
-    -----
-    Continuous model ``M x'' = -LK_mm x - LB_mm x' - LK_mf u - LB_mf u'`` with ``u`` the
-    fixed positions. ``expm([[A, Bu], [0, 0]] T) = [[Phi, Gam], [0, I]]`` (Van Loan, "Computing
-    integrals involving the matrix exponential", IEEE TAC 23, 1978); ``Psi = Phi[:, N:]
-    (-M^-1 LB_mf)`` is the velocity jump ``-M^-1 LB_mf du`` at the start of the period
-    carried to its end.
-    """
-    from scipy.linalg import expm
-
-    mobile = np.asarray(mobile, dtype=np.int64)
-    fixed = np.asarray(fixed, dtype=np.int64)
-    N, nf = mobile.size, fixed.size
-    LK, LB = laplacians(n_masses, i1, i2, k, b)
-    Minv = 1.0 / np.asarray(masses, dtype=float)
-    A = np.zeros((2 * N, 2 * N))
-    A[:N, N:] = np.eye(N)
-    A[N:, :N] = -Minv[:, None] * LK[np.ix_(mobile, mobile)]
-    A[N:, N:] = -Minv[:, None] * LB[np.ix_(mobile, mobile)]
-    Bu = np.zeros((2 * N, nf))
-    Bu[N:, :] = -Minv[:, None] * LK[np.ix_(mobile, fixed)]
-    aug = np.zeros((2 * N + nf, 2 * N + nf))
-    aug[:2 * N, :2 * N] = A
-    aug[:2 * N, 2 * N:] = Bu
-    E = expm(aug * T)
-    phi = np.ascontiguousarray(E[:2 * N, :2 * N])
-    gam = np.ascontiguousarray(E[:2 * N, 2 * N:])
-    jump = -Minv[:, None] * LB[np.ix_(mobile, fixed)]
-    psi = np.ascontiguousarray(phi[:, N:] @ jump) if N else np.zeros((0, nf))
-    return phi, gam, psi
 
 
 _EMPTY_I = np.empty(0, dtype=np.int64)
