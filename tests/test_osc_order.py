@@ -25,9 +25,10 @@ from hapsim.pipeline.runner import prepare_scene
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
-#: pytest-xdist (the README command runs 2 workers): live OSC control of a running daemon:
-#: serialised with the other live-sound tests.
-pytestmark = pytest.mark.xdist_group("sound")
+#: pytest-xdist: live OSC control of a running daemon, no JACK server: its own group (the
+#: module's tests on one worker, in turn), not the "sound" group, whose JACK servers must
+#: not run two at a time; this module's waits overlap with them.
+pytestmark = pytest.mark.xdist_group("osc_live")
 
 SCENE = os.path.join(os.path.dirname(__file__), "data", "osc_wall.yaml")
 
