@@ -23,7 +23,7 @@ import pytest
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
 
-#: pytest-xdist (the README command runs 2 workers): a private jackd (dummy backend) per module:
+#: pytest-xdist (the README command runs several workers): a private jackd (dummy backend) per module:
 #: two at once on 2 cores drop frames.
 pytestmark = pytest.mark.xdist_group("sound")
 

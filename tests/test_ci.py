@@ -148,7 +148,7 @@ def test_a_run_that_collects_no_test_exits_5(tmp_path):
 
 
 def test_every_module_that_starts_a_jack_server_shares_the_sound_worker():
-    """The README command runs two pytest-xdist workers with ``--dist loadgroup``; two
+    """The README command runs several pytest-xdist workers with ``--dist loadgroup``; two
     private jackd servers (dummy backend) at once on a 2-core machine drop frames, so every
     module that starts one (``jackd`` on its command line, or the ``jack_server`` fixture)
     carries ``pytestmark``'s ``xdist_group("sound")`` and they all run on one worker."""

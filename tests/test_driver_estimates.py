@@ -22,7 +22,7 @@ from hapsim.emulated.driver_mock import FireFaderDevice, firefader_offline_loop
 from hapsim.scene import load_scene
 from tolerance import rel_tol
 
-#: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
+#: pytest-xdist (the README command runs several workers): its module-scoped fixture is built once, on
 #: one worker.
 pytestmark = pytest.mark.xdist_group("test_driver_estimates")
 

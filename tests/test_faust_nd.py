@@ -26,7 +26,7 @@ from test_faust_oracle import displaced_string  # noqa: E402
 from hapsim.engine_nd import EngineND  # noqa: E402
 from hapsim.scene import LinkND, MassND, SceneND, parse_scene_nd  # noqa: E402
 
-#: pytest-xdist (the README command runs 2 workers): its module-scoped Faust build runs once, on
+#: pytest-xdist (the README command runs several workers): its module-scoped Faust build runs once, on
 #: one worker.
 pytestmark = pytest.mark.xdist_group("test_faust_nd")
 

@@ -25,7 +25,7 @@ import faust_gen  # noqa: E402
 from hapsim.engine import Engine  # noqa: E402
 from hapsim.scene import Scene, load_scene  # noqa: E402
 
-#: pytest-xdist (the README command runs 2 workers): its session-scoped Faust builds run once,
+#: pytest-xdist (the README command runs several workers): its session-scoped Faust builds run once,
 #: on one worker.
 pytestmark = pytest.mark.xdist_group("test_faust_oracle")
 

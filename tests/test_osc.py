@@ -25,7 +25,7 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
 from test_audio_live import jack_server  # noqa: F401  (the private JACK server fixture)
 
-#: pytest-xdist (the README command runs 2 workers): a private jackd and Pd/OSC clients:
+#: pytest-xdist (the README command runs several workers): a private jackd and Pd/OSC clients:
 #: serialised with the other live-sound tests.
 pytestmark = pytest.mark.xdist_group("sound")
 

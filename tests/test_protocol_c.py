@@ -30,7 +30,7 @@ VECTORS = json.loads((PKG / "vectors" / "vectors.json").read_text())
 CFLAGS = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-O2"]
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
 
-#: pytest-xdist (the README command runs 2 workers): its module-scoped C driver is compiled
+#: pytest-xdist (the README command runs several workers): its module-scoped C driver is compiled
 #: once, on one worker.
 pytestmark = [pytest.mark.skipif(CC is None, reason="no C compiler (cc/gcc/clang) on PATH"),
               pytest.mark.xdist_group("test_protocol_c")]

@@ -24,7 +24,7 @@ from hapsim.host.telemetry import load
 
 from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)
 
-#: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
+#: pytest-xdist (the README command runs several workers): its module-scoped fixture is built once, on
 #: one worker.
 pytestmark = pytest.mark.xdist_group("test_reliability_pty")
 

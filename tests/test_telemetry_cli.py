@@ -15,7 +15,7 @@ from hapsim.cli import main
 from hapsim.commands.telemetry import felt_energy
 from hapsim.host.telemetry import COLUMNS, FLAG_LOST, load, write_journal
 
-#: pytest-xdist (the README command runs 2 workers): its module-scoped fixture is built once, on
+#: pytest-xdist (the README command runs several workers): its module-scoped fixture is built once, on
 #: one worker.
 pytestmark = pytest.mark.xdist_group("test_telemetry_cli")
 
