@@ -194,8 +194,69 @@ def pytest_configure(config):
     import numpy  # noqa: F401  (loads numpy's OpenBLAS: its pool is limited below)
     import scipy.linalg  # noqa: F401  (and scipy's)
     limit_blas_threads(1)
+    _one_compiler_per_kernel()
     if config.getoption("--cpu-time") is not None and not hasattr(config, "workerinput"):
         config.pluginmanager.register(_CpuTimeReport(config), "cpu-time-report")
+
+
+#: Longest a pytest process waits for another to finish compiling a kernel [s] before it
+#: compiles the kernel itself (a compilation of the largest kernel takes ~20 CPU-s).
+COMPILE_WAIT_S = 300.0
+
+
+def compile_lock_path(dispatcher) -> str | None:
+    """The lock file of a cached numba dispatcher's compilations (its kernel and its cache
+    folder), None for one without a disk cache."""
+    import hashlib
+    import tempfile
+    where = getattr(getattr(dispatcher, "_cache", None), "_cache_path", None)
+    if where is None:
+        return None
+    folder = os.path.join(tempfile.gettempdir(), f"hapsim-numba-locks-{os.getuid()}")
+    os.makedirs(folder, exist_ok=True)
+    fn = dispatcher.py_func
+    name = f"{where}:{fn.__module__}.{fn.__qualname__}"
+    return os.path.join(folder, hashlib.sha1(name.encode()).hexdigest() + ".lock")
+
+
+def _one_compiler_per_kernel() -> None:
+    """The suite's workers compile each numba kernel once between them, not once each.
+
+    On a fresh clone numba's disk cache is empty, and the workers (three on two cores)
+    meet the same kernels at about the same time: each compiled the live loop's stretch
+    (~20 CPU-s) for itself. Here a cached dispatcher's ``compile`` (numba's first use of a
+    signature in a process: a load from the disk cache, or a compilation that saves to it)
+    holds a file lock named after the kernel and its cache folder, so a second worker waits
+    for the first and then loads what it saved. Kernels call kernels but never back (a call
+    graph without cycles), so two processes cannot each hold a lock the other waits for;
+    after :data:`COMPILE_WAIT_S` a waiting worker compiles anyway. The ``hapsim`` processes
+    the tests start are not concerned (they load what the workers saved)."""
+    import fcntl
+
+    from numba.core.dispatcher import Dispatcher
+    if getattr(Dispatcher.compile, "_hapsim_locked", False):
+        return
+    unlocked = Dispatcher.compile
+
+    def compile(self, sig):
+        path = compile_lock_path(self)
+        if path is None:                           # not cached: nothing to share
+            return unlocked(self, sig)
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o600)
+        try:
+            end = time.monotonic() + COMPILE_WAIT_S
+            held = False
+            while not held and time.monotonic() < end:
+                try:
+                    fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    held = True
+                except OSError:
+                    time.sleep(0.05)
+            return unlocked(self, sig)
+        finally:
+            os.close(fd)                           # releases the lock, if held
+    compile._hapsim_locked = True
+    Dispatcher.compile = compile
 
 
 # --- Which kernels this run computes with (issue 31 item 1: CI's second numerical pass) ---
