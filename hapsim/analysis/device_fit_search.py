@@ -221,7 +221,6 @@ class _Stretched:
         lm, b0 = p
         r, phi, cx, cv = self._solve(lm, b0)
         i = self.idx
-        g = self._g[i].copy()
         c = self._c[i].copy()
 
         def model(lm_, b0_):
@@ -249,7 +248,35 @@ class _Stretched:
         return y0, params, Jr, 2 * self.starts.size
 
 
-class _ForwardDifference:
+class _Difference:
+    """What both forward differences share: the residual remembered at the point
+    :meth:`fun` last returned it (scipy passes its ``f0`` the same way), and scipy's step
+    ``h_j = sqrt(eps) sign(x_j) max(1, |x_j|)`` (sign 1 at 0;
+    ``scipy.optimize._numdiff._compute_absolute_step``, ``'2-point'``)."""
+
+    def __init__(self, fun):
+        self._fun = fun
+        self._last = None
+
+    def fun(self, p):
+        """The residual at ``p``, remembered for the Jacobian at the same point."""
+        f = np.atleast_1d(self._fun(p))
+        self._last = (np.array(p, float), f.copy())
+        return f
+
+    def _base(self, p):
+        """``(x0, f(x0), h)`` for a Jacobian at ``p``."""
+        x0 = np.asarray(p, float)
+        if self._last is not None and np.array_equal(self._last[0], x0):
+            f0 = self._last[1]
+        else:
+            f0 = np.atleast_1d(self._fun(x0.copy()))
+        sign = (x0 >= 0).astype(float) * 2 - 1
+        h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x0))
+        return x0, f0, h
+
+
+class _ForwardDifference(_Difference):
     """The variable projection's Jacobian by forward differences, the same numbers, bit for
     bit, as ``least_squares(..., jac='2-point')`` forms them
     (``scipy.optimize.approx_derivative``, dense, no bounds), without its wrapping.
@@ -267,26 +294,9 @@ class _ForwardDifference:
         ``fun(p) -> ndarray, shape (n_rows,)``, the residual; a new array each call.
     """
 
-    def __init__(self, fun):
-        self._fun = fun
-        self._last = None
-
-    def fun(self, p):
-        """The residual at ``p``, remembered for the Jacobian at the same point."""
-        f = np.atleast_1d(self._fun(p))
-        self._last = (np.array(p, float), f.copy())
-        return f
-
     def __call__(self, p):
         """The Jacobian at ``p``: ndarray, shape ``(n_rows, p.size)``."""
-        x0 = np.asarray(p, float)
-        if self._last is not None and np.array_equal(self._last[0], x0):
-            f0 = self._last[1]
-        else:
-            f0 = np.atleast_1d(self._fun(x0.copy()))
-        # scipy's _compute_absolute_step for '2-point' (sign 1 at 0)
-        sign = (x0 >= 0).astype(float) * 2 - 1
-        h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x0))
+        x0, f0, h = self._base(p)
         J = np.empty((f0.size, x0.size))
         for j in range(x0.size):
             x1 = x0.copy()
@@ -497,7 +507,7 @@ def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
     return new
 
 
-class _BlockDifference:
+class _BlockDifference(_Difference):
     """The refinement's Jacobian by forward differences, as scipy's sparse finite difference
     forms it, in ``k + 2`` evaluations.
 
@@ -527,7 +537,8 @@ class _BlockDifference:
     """
 
     def __init__(self, fun, k, sid, ns):
-        self._fun, self.k, self.sid, self.ns = fun, int(k), np.asarray(sid), int(ns)
+        super().__init__(fun)
+        self.k, self.sid, self.ns = int(k), np.asarray(sid), int(ns)
         m = self.sid.size
         n = self.k + 2 * self.ns
         self.shape = (m, n)
@@ -541,25 +552,11 @@ class _BlockDifference:
         self._groups = [np.arange(n) == j for j in range(self.k)]
         self._groups += [(np.arange(n) >= self.k) & (np.arange(n) < self.k + self.ns),
                          np.arange(n) >= self.k + self.ns]
-        self._last = None
-
-    def fun(self, p):
-        """The residual at ``p``, remembered for the Jacobian at the same point."""
-        f = np.atleast_1d(self._fun(p))
-        self._last = (np.array(p, float), f.copy())
-        return f
 
     def __call__(self, p):
         """The Jacobian at ``p``: a ``scipy.sparse.csr_array`` of shape ``(n_rows, n)``."""
         from scipy.sparse import csr_array
-        x0 = np.asarray(p, float)
-        if self._last is not None and np.array_equal(self._last[0], x0):
-            f0 = self._last[1]
-        else:
-            f0 = np.atleast_1d(self._fun(x0.copy()))
-        # scipy's _compute_absolute_step for '2-point' (sign 1 at 0)
-        sign = (x0 >= 0).astype(float) * 2 - 1
-        h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x0))
+        x0, f0, h = self._base(p)
         m = self.shape[0]
         data = np.empty((m, self.k + 2))
         for g, e in enumerate(self._groups):

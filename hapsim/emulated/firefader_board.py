@@ -234,6 +234,10 @@ class FireFaderDevice(Actuated):
     def _advance(self, force) -> None:
         """One period (:meth:`hapsim.emulated.actuated.Actuated.apply`), the end stops enforced."""
         self.apply(force)
+        self._at_the_stops()
+
+    def _at_the_stops(self) -> None:
+        """The end stops: a fader at or beyond one is held there, at rest."""
         if self.stops is not None:
             ph = self.physics
             lo, hi = self.stops
@@ -248,12 +252,7 @@ class FireFaderDevice(Actuated):
         T = self.physics.period
         while w.t < t:
             w.run_to(min(t, w.t + T))
-            if self.stops is not None:
-                ph = self.physics
-                lo, hi = self.stops
-                if ph.x <= lo or ph.x >= hi:
-                    ph.x = min(max(ph.x, lo), hi)
-                    ph.v = 0.0
+            self._at_the_stops()
         self.held = w.held
 
     def _silence(self, now: float) -> None:
