@@ -167,6 +167,7 @@ class _CpuTimeReport:
                            "tests": self.rows}, f, indent=0)
 
 
+@pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
     """How many workers ``-n auto`` (pyproject.toml's addopts) starts: one more than the
     machine's cores (``--maxprocesses`` caps it), one on a single core.
