@@ -1043,3 +1043,49 @@ def test_run_dispatches_an_nd_family_by_the_registry(monkeypatch):
     assert main(["run", scene, "--driver", "fake", "--firmware", "x"]) == 2
     assert main(["run", scene, "--driver", "falcon", "--generation", "gen2"]) == 2
     assert main(["run", scene, "--driver", "nothing"]) == 2
+
+
+# --- A device family's behaviour lives in its driver class, not in name tests ------------
+
+def _name_tests(text: str, names: set[str]) -> list[int]:
+    """Lines of ``text`` that compare something with a registered family's name (``==``,
+    ``!=``, ``in``, ``not in`` against a string literal); a comparison of a family's
+    ``.transport`` kind is not one (``"framed"`` is also a transport kind)."""
+    import ast
+    hits = []
+    for node in ast.walk(ast.parse(text)):
+        if not isinstance(node, ast.Compare):
+            continue
+        operands = [node.left, *node.comparators]
+        literals = set()
+        for op in operands:
+            elts = op.elts if isinstance(op, (ast.Tuple, ast.List, ast.Set)) else [op]
+            literals |= {e.value for e in elts if isinstance(e, ast.Constant)
+                         and isinstance(e.value, str)}
+        kind = any(isinstance(op, ast.Attribute) and op.attr == "transport"
+                   for op in operands)
+        if literals & names and not kind:
+            hits.append(node.lineno)
+    return hits
+
+
+def test_the_name_test_scanner_sees_one():
+    names = {"haply", "firefader"}
+    assert _name_tests('if opts.driver == "haply" and x:\n    pass\n', names) == [1]
+    assert _name_tests('y = d not in ("firefader", "z")\n', names) == [1]
+    assert _name_tests('if fam.transport == "haply":\n    pass\n', names) == []
+    assert _name_tests('x = {"haply": 1}\n', names) == []
+
+
+def test_no_module_outside_the_drivers_tests_a_family_by_name():
+    """Issue 30 item 4: what a family does differently is its driver class's (e.g.
+    ``Driver.embedded_options``, ``Driver.travel_sweep``) or its registry entry's, never
+    a ``driver == "haply"`` test in the pipeline: a new family then needs no edit there."""
+    from pathlib import Path
+    from hapsim.drivers import FAMILIES
+    names = {f.name for f in FAMILIES}
+    root = Path(__file__).resolve().parent.parent / "hapsim"
+    found = {str(p.relative_to(root)): hits for p in sorted(root.rglob("*.py"))
+             if "drivers" not in p.parts and "emulated" not in p.parts
+             for hits in [_name_tests(p.read_text(), names)] if hits}
+    assert not found, found

@@ -144,7 +144,9 @@ def test_wall_clock_beside_two_cpu_bound_processes_no_storm():
     """Beside two CPU-bound processes (the suite's own machine, loaded), the board on its
     own clock, host stalls, no byte lost: no storm of re-synchronisations (at most one per
     ten stalls counted), zero torque at the end."""
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    from load import burners_for  # same directory: the other xdist workers count as busy
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(burners_for(2))]
     try:
         sc, rec, link, f, stalls = _wall_record(13, 0.0, N=200)
     finally:
@@ -393,7 +395,9 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     not in it) (no wall-clock timing is asserted: which of these depends on the
     machine)."""
     from hapsim.lockstep import identification_plan
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    from load import burners_for  # same directory: the other xdist workers count as busy
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(burners_for(2))]
     try:
         sc = load_scene_nd(WALL)
         N = 120

@@ -236,6 +236,9 @@ class Driver:
     #: (``"force"`` or ``"position"``); None: the protocol carries SI units.
     scale_option: str | None = None
     scale_kind = "force"
+    #: The device's position scale can be found by a sweep between its end stops
+    #: (``hapsim identify --travel``; :mod:`hapsim.drivers.firefader_travel`).
+    travel_sweep = False
     #: The device answers each command with one record (request-reply): a command whose
     #: answer is overdue is a missing sample that the host loop steps through with an
     #: estimated position (:meth:`hapsim.drivers.transport.DriverTransport.overdue`,
@@ -253,6 +256,27 @@ class Driver:
         import inspect
         names = [n for n in inspect.signature(type(self).__init__).parameters if n != "self"]
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
+
+    @classmethod
+    def embedded_options(cls, options: dict, x0: float) -> dict:
+        """The driver's keywords when ``hapsim run`` embeds its board (no ``--port``):
+        ``options`` with what the board's set-up takes from the scene (by default
+        nothing: ``options`` unchanged).
+
+        Parameters
+        ----------
+        options : dict
+            The keywords given (``--driver-options``, else the scene's
+            ``device.protocol_options``).
+        x0 : float
+            The excitation's start position [m or rad]: where the embedded board is armed.
+
+        Returns
+        -------
+        dict
+            A new dict; ``options`` is not changed.
+        """
+        return dict(options)
 
     def mock_hardware(self) -> dict:
         """The keywords of this driver's mock (:mod:`hapsim.emulated.driver_mock`) that build the

@@ -399,6 +399,7 @@ class FireFader(Driver):
     """
 
     name = "firefader"
+    travel_sweep = True
     baud = 57600
     rtscts = True
     position_scale = METRES_PER_COUNT

@@ -694,6 +694,16 @@ class HaplyM3(Driver):
         no watchdog, so a zero write it misreads would leave the last torque on."""
         return self.resync(position)
 
+    @classmethod
+    def embedded_options(cls, options: dict, x0: float) -> dict:
+        """``options`` with ``offset_deg`` at the start angle ``x0`` [rad] unless given:
+        the board's set-up sets the encoder's count to the offset
+        (``initialize_encoder``), so the embedded board is armed with the joint at the
+        excitation's start (:meth:`hapsim.drivers.base.Driver.embedded_options`)."""
+        out = dict(options)
+        out.setdefault("offset_deg", math.degrees(x0))
+        return out
+
     def mock_hardware(self) -> dict:
         """The mock's encoder: this many counts per revolution; its wiring: the one these
         direction bytes drive the right way (``motor_sign``, :class:`hapsim.emulated.driver_mock.

@@ -606,13 +606,14 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         probe's torque pulses, or moves the same way under both signs); the FireFader's
         sweep found no end stop it can take as one (``travel``).
     """
-    from hapsim.drivers import DEFAULT
+    from hapsim.drivers import DEFAULT, family
     from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
     from hapsim.emulated.mock import DEFAULT_DEVICE, MockDevice
     from hapsim.host.telemetry import Telemetry
     from hapsim.scene import Excitation
 
-    if travel is not None and driver != "firefader":
+    if travel is not None and not getattr(family(driver or DEFAULT).load(), "travel_sweep",
+                                          False):
         raise ConfigError(f"a travel sweep finds the FireFader's position scale; the "
                           f"{driver or DEFAULT} protocol has none to find (valid with "
                           f"--travel: --driver firefader)", key="--travel")

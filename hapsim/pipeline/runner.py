@@ -305,16 +305,17 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
             tel = Telemetry(min(n_window, n_samples or n_window), n_ring)
         cfg = _loop_config(prep, opts)
         if opts.driver is not None:
-            from hapsim.drivers import get_driver
+            from hapsim.drivers import family, get_driver
             # the device's parameters: given, else the scene's device.protocol_options
             # when the scene's device speaks this protocol
             dopt = dict(opts.driver_options if opts.driver_options is not None
                         else dev.protocol_options or {} if dev.protocol == opts.driver
                         else {})
-            if opts.driver == "haply" and opts.port is None:
-                # the board's set-up sets the encoder's count to the offset: the embedded
-                # mock is armed with the joint at the excitation's x0
-                dopt.setdefault("offset_deg", math.degrees(scene.excitation.x0))
+            if opts.port is None:
+                # what the embedded board's set-up takes from the scene (the Haply's
+                # encoder offset: the joint armed at the excitation's x0)
+                dopt = family(opts.driver).load().embedded_options(dopt,
+                                                                   scene.excitation.x0)
             drv = get_driver(opts.driver, **dopt)
             drv.check_rate(scene.rate_hz)       # a rate the device cannot hold is refused
             if opts.port is None:
