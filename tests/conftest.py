@@ -169,19 +169,19 @@ class _CpuTimeReport:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
-    """How many workers ``-n auto`` (pyproject.toml's addopts) starts: one more than the
-    machine's cores (``--maxprocesses`` caps it), one on a single core.
+    """How many workers ``-n auto`` (pyproject.toml's addopts) starts: two a core
+    (``--maxprocesses`` caps it at 4), one on a single core.
 
     Much of the suite waits on real time (JACK and Pd, devices on the wall clock, browsers:
-    the "sound" group alone is ~200 s of one worker's wall clock for ~50 CPU-s), and a
+    the "sound" group alone is ~200-300 s of one worker's wall clock for ~50 CPU-s), and a
     group runs on one worker in turn; with as many workers as cores, such a worker left
     its core idle while the others queued. Measured beside one CPU-bound process on 2
     cores (``python tools/suite_time.py --busy 1 -- -n N --maxprocesses N``, warm
     caches, 2026-11-24): 2 workers 731 s, 3 workers 495 s, 4 workers 460 s, every test
-    passing in each; 3 (not 4) because a fresh clone's workers compile the same numba
-    kernels at once when they first meet them, once per worker (docs/testing.md)."""
+    passing in each. A fresh clone's workers no longer compile the same numba kernel each
+    (:func:`_one_compiler_per_kernel`), which had kept the count at 3 (docs/testing.md)."""
     n = os.cpu_count() or 1
-    return 1 if n < 2 else n + 1
+    return 1 if n < 2 else 2 * n
 
 
 def pytest_configure(config):
