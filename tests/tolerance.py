@@ -359,9 +359,17 @@ def power_bound(A, steps: int) -> float:
     A = np.asarray(A)
     P = np.eye(A.shape[0], dtype=A.dtype)
     worst = 1.0
-    for _ in range(int(steps)):
-        P = A @ P
-        worst = max(worst, float(np.linalg.norm(P, 2)))
+    # the powers in blocks, each block's 2-norms in one batched SVD: the same products and
+    # the same LAPACK singular values as one norm per power (numpy's norm(P, 2) is the
+    # largest of svd(P, compute_uv=False)), without ~0.1 ms of Python per power
+    left = int(steps)
+    while left > 0:
+        block = np.empty((min(left, 4096),) + A.shape, dtype=A.dtype)
+        for i in range(block.shape[0]):
+            P = A @ P
+            block[i] = P
+        worst = max(worst, float(np.linalg.svd(block, compute_uv=False)[:, 0].max()))
+        left -= block.shape[0]
     return worst
 
 
