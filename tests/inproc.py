@@ -15,11 +15,11 @@ emulation) is still a child process.
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import io
 import os
 import sys
+import tempfile
 
 
 def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
@@ -42,33 +42,64 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
         :func:`hapsim.cli.main`'s return value: the child's exit status (``entry`` exits
         with it).
     out, err : str
-        What the command wrote on ``sys.stdout`` and ``sys.stderr`` (hapsim writes only
-        through them: no file descriptor is written directly).
+        What was written on file descriptors 1 and 2 while it ran (through ``sys.stdout``
+        and ``sys.stderr``, by a library, or by a child it started), as a child's pipes
+        would hold it.
     """
     from hapsim.cli import main
     saved_env = dict(os.environ)
     saved_cwd = os.getcwd()
     saved_switch = sys.getswitchinterval()
     saved_gc = gc.isenabled()
-    out, err = io.StringIO(), io.StringIO()
+    saved_streams = sys.stdout, sys.stderr
+    saved_fds = []
+    files = [tempfile.TemporaryFile(), tempfile.TemporaryFile()]
     try:
+        for f in saved_streams:
+            try:
+                f.flush()
+            except (OSError, ValueError):
+                pass
+        # file descriptors 1 and 2 point at the two files, and sys.stdout / sys.stderr write
+        # straight through to them: what the command prints, what a library writes on the
+        # descriptors (LAPACK's messages), and what a child it starts writes there, in the
+        # order written, as in the pipes of a child process (neither is a terminal)
+        for fd, f in zip((1, 2), files):
+            saved_fds.append(os.dup(fd))
+            os.dup2(f.fileno(), fd)
+        sys.stdout, sys.stderr = (
+            io.TextIOWrapper(open(os.dup(fd), "wb", buffering=0), encoding="utf-8",
+                             errors="backslashreplace" if fd == 2 else "strict",
+                             write_through=True)
+            for fd in (1, 2))
         if env:
             os.environ.update(env)
+            if "TMPDIR" in env:
+                tempfile.tempdir = None      # read TMPDIR again, as a new process would
         if cwd is not None:
             os.chdir(cwd)
-        if env and "TMPDIR" in env:
-            import tempfile
-            tempfile.tempdir = None          # re-read TMPDIR, as a new process would
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            code = main([str(a) for a in argv])
+        code = main([str(a) for a in argv])
     finally:
+        for stream in (sys.stdout, sys.stderr):
+            if stream not in saved_streams:
+                try:
+                    stream.close()
+                except (OSError, ValueError):
+                    pass
+        sys.stdout, sys.stderr = saved_streams
+        for fd, saved in zip((1, 2), saved_fds):
+            os.dup2(saved, fd)
+            os.close(saved)
         os.chdir(saved_cwd)
         os.environ.clear()
         os.environ.update(saved_env)
-        if env and "TMPDIR" in env:
-            import tempfile
-            tempfile.tempdir = None
+        tempfile.tempdir = None
         sys.setswitchinterval(saved_switch)
         if saved_gc:
             gc.enable()
-    return code, out.getvalue(), err.getvalue()
+    out, err = [], []
+    for f, text in zip(files, (out, err)):
+        f.seek(0)
+        text.append(f.read().decode("utf-8", "backslashreplace"))
+        f.close()
+    return code, out[0], err[0]
