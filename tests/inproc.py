@@ -23,7 +23,8 @@ import tempfile
 
 
 def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
-                env: dict[str, str] | None = None) -> tuple[int, str, str]:
+                env: dict[str, str] | None = None,
+                timeout: float = 300.0) -> tuple[int, str, str]:
     """Run ``hapsim ARGV`` in this process as its child would: exit code, stdout, stderr.
 
     Parameters
@@ -35,6 +36,15 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
     env : dict of str to str, optional
         Variables set for the command only (e.g. ``TMPDIR``); the environment is restored
         after it either way.
+    timeout : float
+        Longest the command may take [s] (a hang's bound, as a subprocess's
+        ``communicate(timeout=...)``): then SIGINT is sent to this process (the command
+        stops as on Ctrl-C) and AssertionError is raised once it has returned.
+
+    Raises
+    ------
+    AssertionError
+        The command did not end within ``timeout`` seconds.
 
     Returns
     -------
@@ -46,11 +56,23 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
         and ``sys.stderr``, by a library, or by a child it started), as a child's pipes
         would hold it.
     """
+    import signal
+    import threading
+
     from hapsim.cli import main
+    timed_out = threading.Event()
+
+    def interrupt():
+        timed_out.set()
+        os.kill(os.getpid(), signal.SIGINT)
+
+    timer = threading.Timer(timeout, interrupt)
+    timer.daemon = True
     saved_env = dict(os.environ)
     saved_cwd = os.getcwd()
     saved_switch = sys.getswitchinterval()
     saved_gc = gc.isenabled()
+    saved_tempdir = tempfile.tempdir
     saved_streams = sys.stdout, sys.stderr
     saved_fds = []
     files = [tempfile.TemporaryFile(), tempfile.TemporaryFile()]
@@ -78,7 +100,11 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
                 tempfile.tempdir = None      # read TMPDIR again, as a new process would
         if cwd is not None:
             os.chdir(cwd)
-        code = main([str(a) for a in argv])
+        timer.start()
+        try:
+            code = main([str(a) for a in argv])
+        finally:
+            timer.cancel()
     finally:
         for stream in (sys.stdout, sys.stderr):
             if stream not in saved_streams:
@@ -93,7 +119,7 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
         os.chdir(saved_cwd)
         os.environ.clear()
         os.environ.update(saved_env)
-        tempfile.tempdir = None
+        tempfile.tempdir = saved_tempdir
         sys.setswitchinterval(saved_switch)
         if saved_gc:
             gc.enable()
@@ -102,4 +128,8 @@ def hapsim_main(argv: list[str], *, cwd: str | os.PathLike | None = None,
         f.seek(0)
         text.append(f.read().decode("utf-8", "backslashreplace"))
         f.close()
+    if timed_out.is_set():
+        raise AssertionError(f"hapsim {' '.join(map(str, argv))} did not end within "
+                             f"{timeout:g} s (interrupted): exit {code}; stderr: "
+                             f"{err[0][-2000:]}")
     return code, out[0], err[0]

@@ -3,9 +3,9 @@
 The two-terminal flow of the README and docs/getting-started.md (``hapsim mock`` in
 one, ``hapsim run --port`` in another): the mock in a subprocess, each run in a subprocess
 where it is killed or stopped by a signal, in this process otherwise
-(``inproc.hapsim_main``: the same command, without a second interpreter's imports). Lockstep makes every
-run exact, so each measured (k, b) must equal the prediction (1e-6) whatever the machine
-load; ``--once`` keeps the old one-run device.
+(``inproc.hapsim_main``: the same command, without a second interpreter's imports).
+Lockstep makes every run exact, so each measured (k, b) must equal the prediction (1e-6)
+whatever the machine load; ``--once`` keeps the old one-run device.
 """
 
 from __future__ import annotations
