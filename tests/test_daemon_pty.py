@@ -1,4 +1,7 @@
-"""The daemon over real pseudo-terminals: mock in a child process, CLI in subprocesses.
+"""The daemon over real pseudo-terminals: mock in a child process, the CLI in a subprocess
+where a signal is sent to it, in this process elsewhere (``inproc.hapsim_main``: the same
+``hapsim.cli.main``, its exit code, stdout and stderr, without a second interpreter's
+imports).
 
 Lockstep over a pty carries the same 1e-6 agreement as in-process; the real-time runs
 (shared, loaded 2-core machines) are checked loosely: they complete, report, and measure
@@ -24,6 +27,7 @@ from hapsim.pipeline.runner import run_scene
 from hapsim.host.telemetry import load, load_telemetry
 from hapsim.scene import load_scene, parse_scene
 
+from inproc import hapsim_main
 from test_daemon import late_tolerant_wall, wall_text  # same directory (prepend mode)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -85,9 +89,9 @@ def test_mock_and_run_port_in_two_processes_lockstep(tmp_path):
     report = str(tmp_path / "mock.json")
     mock, port = start_mock("--scene", WALL, "--lockstep", "--report", report, "--once")
     try:
-        run = hapsim("run", WALL, "--port", port, "--lockstep", "--json")
-        out, err = run.communicate(timeout=90)
-        assert run.returncode == 0, err
+        code, out, err = hapsim_main(["run", WALL, "--port", port, "--lockstep", "--json"],
+                                     cwd=ROOT)
+        assert code == 0, err
         rep = json.loads(out)
         assert set(rep) >= {"target", "virtual", "predicted", "measured", "loop", "telemetry"}
         # measured 1.3e-15 relative (generic 2.9e-15), margin 3.4e8
@@ -114,9 +118,9 @@ def test_mock_and_run_port_real_time_complete_and_report(tmp_path):
     # run's STOP, does not allow (see test_signal_mid_run_stops_device_and_flushes_telemetry)
     mock, port = start_mock("--scene", wall)
     try:
-        run = hapsim("run", wall, "--port", port, "--duration", "0.5")
-        out, err = run.communicate(timeout=90)
-        assert run.returncode == 0, (err, out)
+        code, out, err = hapsim_main(["run", wall, "--port", port, "--duration", "0.5"],
+                                     cwd=ROOT)
+        assert code == 0, (err, out)
         assert "measured" in out and "turnaround [us]" in out and "late" in out
         # a device on a port sets the pace: the host does not claim it was real time
         assert "(device-clocked, device-paced)" in out.splitlines()[0], out
@@ -278,9 +282,9 @@ def test_real_time_embedded_wall_measures_roughly_the_prediction(tmp_path):
     """Real time on a shared machine: loose (the lockstep tests carry the precision). The
     late-tolerant wall: on the shipped one (stable only at delay 1) a loaded machine's late
     FORCE ends the run on a safety stop, which is a run's right answer, not this test's."""
-    run = hapsim("run", late_tolerant_wall(tmp_path), "--duration", "1", "--json")
-    out, err = run.communicate(timeout=120)
-    assert run.returncode == 0, (err, out[-2000:])
+    code, out, err = hapsim_main(["run", late_tolerant_wall(tmp_path), "--duration", "1",
+                                  "--json"], cwd=ROOT)
+    assert code == 0, (err, out[-2000:])
     rep = json.loads(out)
     lp = rep["loop"]
     assert lp["ticks"] == 1000 and lp["lockstep"] is False
@@ -317,15 +321,15 @@ def test_host_clocked_lockstep_paces_the_mock_exactly():
 def test_host_clocked_real_time_run_completes_and_ends_with_zero_force():
     """Two free clocks on a shared machine: the run completes and reports; it may end in a
     safety stop (then exit 1), always with zero force and STOP at the device."""
-    run = hapsim("run", WALL, "--host-clocked", "--duration", "0.5", "--json")
-    out, err = run.communicate(timeout=120)
+    code, out, err = hapsim_main(["run", WALL, "--host-clocked", "--duration", "0.5",
+                                  "--json"], cwd=ROOT)
     rep = json.loads(out)
     lp = rep["loop"]
     assert lp["mode"] == "host-clocked"
-    if run.returncode == 0:
+    if code == 0:
         assert lp["ticks"] == 500 and lp["stop_reason"] == "duration"
     else:
-        assert run.returncode == 1 and lp["safety_stop"], err
+        assert code == 1 and lp["safety_stop"], err
     assert lp["mock"]["saw_stop"] and lp["mock"]["last_applied"] == 0.0
 
 

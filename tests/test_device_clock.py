@@ -18,6 +18,7 @@ import sys
 import pytest
 
 from hapsim.pipeline.report import FAST_CLOCK_RATIO, device_clock_warning
+from inproc import hapsim_main
 from tolerance import rel_tol
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -69,15 +70,16 @@ def test_run_port_to_a_lockstep_mock_without_lockstep_warns_with_the_fix(tmp_pat
                             stderr=subprocess.DEVNULL, text=True, env=_env())
     try:
         assert mock.stdout.readline().startswith("PORT ")
-        r = subprocess.run([sys.executable, "-m", "hapsim", "run", str(scene), "--port",
-                            link, "--duration", "2", "--json"], capture_output=True, text=True,
-                           env=_env(), timeout=300)
-        assert r.returncode == 0, r.stderr
-        lp = json.loads(r.stdout)["loop"]          # stdout: only the JSON
+        # the run in this process (inproc: its stdout and stderr are file descriptors 1
+        # and 2 while it runs, as a child's pipes)
+        code, out, err = hapsim_main(["run", str(scene), "--port", link, "--duration", "2",
+                                      "--json"])
+        assert code == 0, err
+        lp = json.loads(out)["loop"]               # stdout: only the JSON
         assert lp["device_clock_ratio"] > FAST_CLOCK_RATIO, lp["device_clock_ratio"]
         assert len(lp["warnings"]) == 1 and "--lockstep" in lp["warnings"][0]
-        assert "hapsim run: warning: the device ticked" in r.stderr
-        assert "run with --lockstep" in r.stderr
+        assert "hapsim run: warning: the device ticked" in err
+        assert "run with --lockstep" in err
     finally:
         if mock.poll() is None:
             mock.kill()

@@ -1,9 +1,11 @@
 """``hapsim mock`` outlives its hosts: run after run on one PORT, a killed run, a stalled run.
 
 The two-terminal flow of the README and docs/getting-started.md (``hapsim mock`` in
-one, ``hapsim run --port`` in another) is driven in subprocesses. Lockstep makes every
-run exact, so each measured (k, b) must equal the prediction (1e-6) whatever the machine
-load; ``--once`` keeps the old one-run device.
+one, ``hapsim run --port`` in another): the mock in a subprocess, each run in a subprocess
+where it is killed or stopped by a signal, in this process otherwise
+(``inproc.hapsim_main``: the same command, without a second interpreter's imports).
+Lockstep makes every run exact, so each measured (k, b) must equal the prediction (1e-6)
+whatever the machine load; ``--once`` keeps the old one-run device.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ import sys
 import time
 
 import pytest
+
+from inproc import hapsim_main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WALL = os.path.join(ROOT, "configs", "wall.yaml")
@@ -41,9 +45,9 @@ def hapsim(*args):
 
 def run_exact(port):
     """One lockstep ``run --port``: exit 0 and measured (k, b) == predicted."""
-    run = hapsim("run", WALL, "--port", port, "--lockstep", "--duration", "0.5", "--json")
-    out, err = run.communicate(timeout=120)
-    assert run.returncode == 0, err
+    code, out, err = hapsim_main(["run", WALL, "--port", port, "--lockstep", "--duration",
+                                  "0.5", "--json"], cwd=ROOT)
+    assert code == 0, err
     rep = json.loads(out)
     for key in ("k", "b"):
         # measured 1.3e-14 relative, margin 7.7e7
@@ -100,9 +104,9 @@ def test_mock_survives_a_stalled_host_and_sigterm():
         out, err = run.communicate(timeout=120)
         assert run.returncode in (0, 1), err       # a verdict and a report, never a hang
         assert "measured" in out and "loop: 1000 Hz" in out, (out, err)
-        again = hapsim("run", WALL, "--port", port, "--duration", "0.3")
-        out, err = again.communicate(timeout=120)
-        assert again.returncode in (0, 1) and "/300 ticks" in out, (out, err)
+        code, out, err = hapsim_main(["run", WALL, "--port", port, "--duration", "0.3"],
+                                     cwd=ROOT)
+        assert code in (0, 1) and "/300 ticks" in out, (out, err)
     finally:
         mock.send_signal(signal.SIGTERM)
         _, err = mock.communicate(timeout=20)

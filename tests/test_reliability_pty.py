@@ -1,7 +1,9 @@
 """Reliability over a real pseudo-terminal: the faults that are about the port, and kill -9.
 
-``hapsim run`` runs in a subprocess with the embedded mock (a child process on the master
-side of a pty) injecting faults with ``--faults``; the host opens the slave (through a
+``hapsim run`` runs with the embedded mock (a child process on the master side of a pty)
+injecting faults with ``--faults``: in this process where its report is what is tested
+(``inproc.hapsim_main``: the device stays a child, beside the host), in a subprocess where
+kill -9 is; the host opens the slave (through a
 symbolic link that the mock re-points when the port comes back after ``vanish``). Timing
 is real, so assertions are on counters and bounded timeouts only.
 """
@@ -22,6 +24,7 @@ import pytest
 from hapsim.cli import main
 from hapsim.host.telemetry import load
 
+from inproc import hapsim_main
 from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)
 
 #: pytest-xdist (the README command runs several workers): its module-scoped fixture is built once, on
@@ -50,9 +53,10 @@ def wall(tmp_path_factory):
 
 
 def run_json(wall, *args):
-    p = hapsim("run", wall, "--json", *args)
-    out, err = p.communicate(timeout=180)
-    assert p.returncode == 0, (err, _loop_summary(out))
+    """``hapsim run WALL --json ARGS`` (in this process: the host's side of the port is not
+    what these tests are about); its report."""
+    code, out, err = hapsim_main(["run", wall, "--json", *args])
+    assert code == 0, (err, _loop_summary(out))
     return json.loads(out)
 
 

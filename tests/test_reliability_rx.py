@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from collections import deque
 
@@ -320,14 +319,13 @@ def test_rx_faults_over_a_pty_are_applied_by_serve_fd(tmp_path):
     # the late ticks grew to a safety stop, exit 1, in the full suite): the late-tolerant
     # wall (test_daemon.late_tolerant_wall), as the other real-time runs of what a run does
     from test_daemon import late_tolerant_wall  # same directory (pytest prepend import mode)
-    r = subprocess.run(
-        [sys.executable, "-m", "hapsim", "run", late_tolerant_wall(tmp_path),
-         "--duration", "1", "--faults", "rx.drop=0.02,rx.corrupt=0.02,rx.dup=0.02",
-         "--fault-seed", "4", "--rt-priority", "0", "--json"],
-        capture_output=True, text=True, cwd=ROOT, timeout=60,
-        env=dict(os.environ, PYTHONPATH=ROOT))
-    assert r.returncode == 0, r.stderr
-    lp = json.loads(r.stdout)["loop"]
+    from inproc import hapsim_main   # the run in this process; its mock a child on a pty
+    code, out, err = hapsim_main(
+        ["run", late_tolerant_wall(tmp_path), "--duration", "1", "--faults",
+         "rx.drop=0.02,rx.corrupt=0.02,rx.dup=0.02", "--fault-seed", "4", "--rt-priority",
+         "0", "--json"], cwd=ROOT)
+    assert code == 0, err
+    lp = json.loads(out)["loop"]
     mk = lp["mock"]
     inj = lp["fault_plan"]["injected"]
     assert inj["rx.drop"] > 0 and inj["rx.corrupt"] > 0 and inj["rx.dup"] > 0

@@ -409,3 +409,30 @@ print(json.dumps({{"code": code, "ticks": rep["ticks"], "mods": sorted(sys.modul
     assert got["code"] == 0 and got["ticks"] == 0
     assert _loaded(got["mods"], ("numba", "scipy", "hapsim.host.loop", "hapsim.kernels.ticks",
                                  "hapsim.analysis")) == []
+
+
+def test_play_and_simulate_load_numba_without_the_scipy_linalg_package(tmp_path):
+    """``hapsim simulate`` and ``hapsim play`` load numba's kernels after
+    :func:`hapsim.blas.preload_numba_blas`, as ``hapsim run`` does: numba's BLAS check
+    finds scipy's bindings, and the scipy.linalg package (~0.2 CPU-s a process) is never
+    imported; both commands end with exit 0 and their outputs (a record of 200 steps,
+    a lockstep play's report of 50)."""
+    out = str(tmp_path / "s.npz")
+    got = _python(f"""
+import contextlib, io, json, sys
+from hapsim.cli import main
+text = io.StringIO()
+with contextlib.redirect_stdout(text):
+    sim = main(["simulate", {WALL!r}, "--steps", "200", "--out", {out!r}])
+    text.truncate(0)
+    text.seek(0)
+    play = main(["play", {WALL!r}, "--sound", "none", "--lockstep", "--duration", "0.05",
+                 "--json"])
+print(json.dumps({{"sim": sim, "play": play, "samples": json.loads(text.getvalue())["samples"],
+                  "mods": sorted(sys.modules)}}))
+""")
+    assert got["sim"] == 0 and got["play"] == 0 and got["samples"] == 50
+    assert np.load(out)["time"].size == 201           # the start and 200 steps
+    mods = got["mods"]
+    assert "numba" in mods and "scipy.linalg.cython_blas" in mods
+    assert _loaded(mods, ("scipy.linalg",)) == ["scipy.linalg.cython_blas"]
