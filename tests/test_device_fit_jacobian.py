@@ -83,3 +83,42 @@ def test_the_fit_quantiles_are_scipy_stats_own_bit_for_bit():
         assert float(ndtri(q)) == float(norm.ppf(q)), p
         for df in (max(REPLICATES - 1, 1), 1, 7):
             assert float(stdtrit(df, q)) == float(t.ppf(q, df)), (p, df)
+
+
+@pytest.mark.parametrize("hold,frac,q", [(0, 0.0, 0.0), (0, 0.37, 5e-6), (1, 0.0, 2e-6)])
+def test_the_compiled_refinement_jacobian_is_the_block_difference_bit_for_bit(hold, frac, q):
+    """refine's Jacobian in one compiled call (device_sim.refine_jacobian) against
+    :meth:`_BlockDifference.data` on the refinement's residual itself: a record of the
+    device model (Coulomb friction, reversals, a quantiser), at the start and at points
+    around it, under the plain and the split zero-order hold and the idealised image."""
+    from hapsim.analysis.device_fit_search import (
+        _refine_difference, _refine_residual, _Stretched, moving_stretches)
+    from hapsim.kernels.device_sim import simulate_device
+    rng = np.random.default_rng(15 + hold)
+    n, T = 1500, 1e-3
+    u = np.repeat(rng.uniform(-1.5, 1.5, n // 50), 50) + rng.normal(0.0, 0.1, n)
+    x = np.zeros(n)
+    simulate_device(u, 0.08, 0.7, 0.15, 0.12, np.array([0]), np.array([n]), np.zeros(1),
+                    np.zeros(1), T, hold, x, frac)
+    if q:
+        x = q * np.round(x / q)
+    st = moving_stretches(x, q)
+    mod = _Stretched(x, u, T, hold, st, frac)
+    k = 4 if mod.coulomb else 2
+    ns = mod.starts.size
+    assert ns >= 3
+    _, phi, cx, cv = mod._solve(np.log(0.08), 0.7)
+    p0 = np.concatenate([[np.log(0.08), 0.7], phi if mod.coulomb else [], cx, cv])
+    out = np.zeros(n)
+    xi = x[mod.idx]
+    resid = _refine_residual(mod, out, xi)
+    jac = _BlockDifference(resid, k, mod.sid, ns)
+    fast = _refine_difference(mod, jac, out, xi)
+    for j in range(6):
+        p = p0 * (1.0 + 0.01 * rng.normal(size=p0.size)) if j else p0
+        if j == 3:
+            p[0] = 0.0                              # scipy's step sign at 0
+        jac.fun(p)                                   # the remembered residual, as trf's
+        a = jac.data(p)
+        b = fast(p)
+        assert np.array_equal(a, b, equal_nan=True), np.max(np.abs(a - b))

@@ -604,9 +604,9 @@ class _BlockDifference(_Difference):
         self._groups += [(np.arange(n) >= self.k) & (np.arange(n) < self.k + self.ns),
                          np.arange(n) >= self.k + self.ns]
 
-    def __call__(self, p):
-        """The Jacobian at ``p``: a ``scipy.sparse.csr_array`` of shape ``(n_rows, n)``."""
-        from scipy.sparse import csr_array
+    def data(self, p):
+        """The Jacobian's entries at ``p``, row by row, shape ``(n_rows, k + 2)`` (column
+        ``g`` of row ``r`` is ``J[r, cols[r, g]]``)."""
         x0, f0, h = self._base(p)
         m = self.shape[0]
         data = np.empty((m, self.k + 2))
@@ -615,7 +615,54 @@ class _BlockDifference(_Difference):
             dx = x - x0
             df = np.atleast_1d(self._fun(x)) - f0
             data[:, g] = df / dx[self._cols[:, g]]
-        return csr_array((data.ravel(), self._indices, self._indptr), shape=self.shape)
+        return data
+
+    def __call__(self, p):
+        """The Jacobian at ``p``: a ``scipy.sparse.csr_array`` of shape ``(n_rows, n)``."""
+        from scipy.sparse import csr_array
+        return csr_array((self.data(p).ravel(), self._indices, self._indptr),
+                         shape=self.shape)
+
+
+def _refine_residual(mod, out, xi):
+    """The refinement's residual ``p -> model - positions`` on the stretches of ``mod``, ``p``
+    = ``(ln m, b0[, fc+, fc-], x_s..., v_s...)`` (``out``: the positions' scratch, shape
+    (n,); ``xi``: the recorded positions on the stretches)."""
+    from hapsim.kernels.device_sim import simulate_device
+    k = 4 if mod.coulomb else 2
+    ns = mod.starts.size
+    i = mod.idx
+
+    def resid(p):
+        fp_, fn = (p[2], p[3]) if mod.coulomb else (0.0, 0.0)
+        simulate_device(mod.u, math.exp(p[0]), p[1], fp_, fn, mod.starts, mod.ends,
+                        np.ascontiguousarray(p[k:k + ns]),
+                        np.ascontiguousarray(p[k + ns:k + 2 * ns]), mod.T, mod.hold, out,
+                        mod.frac)
+        return out[i] - xi
+    return resid
+
+
+def _refine_difference(mod, jac, out, xi):
+    """``jac.data`` (a :class:`_BlockDifference` of :func:`_refine_residual`), bit for bit,
+    in one compiled call (:func:`hapsim.kernels.device_sim.refine_jacobian`: the ``k + 2``
+    residuals and their differences without a numpy call each)."""
+    from hapsim.kernels.device_sim import refine_jacobian
+    k, ns = jac.k, jac.ns
+    groups = np.array(jac._groups, float)
+    colx, colv = k + mod.sid, k + ns + mod.sid
+    i = mod.idx
+
+    def data(p):
+        x0, f0, h = jac._base(p)
+        X = x0 + h * groups               # the steps as _BlockDifference.data takes them
+        dX = X - x0
+        masses = np.array([math.exp(v) for v in X[:, 0]])     # Python's exp, as resid's
+        d = np.empty((i.size, k + 2))
+        refine_jacobian(mod.u, masses, X, dX, mod.coulomb, mod.starts, mod.ends, mod.T,
+                        mod.hold, mod.frac, i, xi, f0, colx, colv, out, d)
+        return d
+    return data
 
 
 def refine(mod, p_lin):
@@ -643,24 +690,17 @@ def refine(mod, p_lin):
     """
     from scipy.optimize import least_squares
 
-    from hapsim.kernels.device_sim import simulate_device
     _, phi, cx, cv = mod._solve(p_lin[0], p_lin[1])
     k = 4 if mod.coulomb else 2
     ns = mod.starts.size
     i = mod.idx
     out = np.zeros_like(mod.x)
     xi = mod.x[i]
-
-    def resid(p):
-        fp_, fn = (p[2], p[3]) if mod.coulomb else (0.0, 0.0)
-        simulate_device(mod.u, math.exp(p[0]), p[1], fp_, fn, mod.starts, mod.ends,
-                        np.ascontiguousarray(p[k:k + ns]),
-                        np.ascontiguousarray(p[k + ns:k + 2 * ns]), mod.T, mod.hold, out,
-                        mod.frac)
-        return out[i] - xi
+    resid = _refine_residual(mod, out, xi)
     p0 = np.concatenate([[p_lin[0], p_lin[1]], phi if mod.coulomb else [], cx, cv])
     rows = np.arange(i.size)
     jac = _BlockDifference(resid, k, mod.sid, ns)
+    jac.data = _refine_difference(mod, jac, out, xi)     # the same entries, compiled
     try:
         r = least_squares(jac.fun, p0, method="trf", x_scale="jac", jac=jac,
                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=60)

@@ -345,3 +345,61 @@ def stretch_projection(u, starts, ends, dirs, mass, friction, period, hold, frac
             o += ends[j] - starts[j]
     _stretch_fit(t, gi, starts, ends, L, Sg, Sgg, det, r, cx, cv)
     return True
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def refine_jacobian(u, masses, X, dX, coulomb, starts, ends, period, hold, frac, idx, xi, f0,
+                    cx, cv, out, data):
+    """The device fit refinement's forward-difference Jacobian in one call: what
+    :meth:`hapsim.analysis.device_fit_search._BlockDifference.data` computes on the
+    refinement's residual ``simulate_device(...)[idx] - xi``, the same operations in the
+    same order (bit for bit; division by zero as numpy's, not an exception).
+
+    Parameters
+    ----------
+    u : ndarray, shape (n,)
+        Applied force [N].
+    masses : ndarray, shape (w,)
+        ``exp(X[g, 0])`` per group, as Python's ``math.exp`` gives it [kg].
+    X : ndarray, shape (w, k + 2 ns)
+        The stepped points, one per column group (``w = k + 2``: the ``k`` shared
+        parameters ``(ln m, b0[, fc+, fc-])`` alone, then every stretch's initial position
+        at once, then every initial velocity).
+    dX : ndarray, shape (w, k + 2 ns)
+        ``X - x0``: the steps as represented.
+    coulomb : bool
+        ``k == 4`` (the frictions are parameters 2 and 3) or ``k == 2``.
+    starts, ends : ndarray of int64, shape (ns,)
+    period, hold, frac
+        As :func:`simulate_device`.
+    idx : ndarray of int, shape (m,)
+        The stretches' rows of the record.
+    xi : ndarray, shape (m,)
+        The positions there [m].
+    f0 : ndarray, shape (m,)
+        The residual at ``x0`` [m].
+    cx, cv : ndarray of int, shape (m,)
+        Each row's initial-position and initial-velocity columns (``k + sid``,
+        ``k + ns + sid``).
+    out : ndarray, shape (n,)
+        Scratch for the positions.
+    data : ndarray, shape (m, w)
+        Written: ``(f(X[g]) - f0) / dX[g, column]`` in column ``g``.
+    """
+    w = X.shape[0]
+    k = w - 2
+    ns = starts.shape[0]
+    for g in range(w):
+        fp = X[g, 2] if coulomb else 0.0
+        fn = X[g, 3] if coulomb else 0.0
+        simulate_device(u, masses[g], X[g, 1], fp, fn, starts, ends,
+                        np.ascontiguousarray(X[g, k:k + ns]),
+                        np.ascontiguousarray(X[g, k + ns:k + 2 * ns]), period, hold, out, frac)
+        for r in range(idx.shape[0]):
+            if g < k:
+                col = g
+            elif g == k:
+                col = cx[r]
+            else:
+                col = cv[r]
+            data[r, g] = ((out[idx[r]] - xi[r]) - f0[r]) / dX[g, col]
