@@ -27,6 +27,7 @@ from hapsim.pipeline.identify_run import LEVEL_SHARE, PRBS_SHARE
 
 from intervals import assert_within  # same directory (pytest prepend import mode)
 from test_identify_gaps import simulate  # same directory (pytest prepend import mode)
+from inproc import hapsim_main  # same directory (pytest prepend import mode)
 
 #: identify's defaults (hapsim/commands/identify.py): force limit [N], envelope [m],
 #: duration [s] at 1 kHz.
@@ -105,15 +106,15 @@ def test_identify_over_a_real_time_port_ends_without_a_safety_stop(tmp_path):
     try:
         line = mock.stdout.readline()
         assert line.startswith("PORT"), line + mock.stderr.read()
-        r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port",
-                            line.split()[1], "--json"], capture_output=True, text=True,
-                           timeout=300, env=env)
+        # the host side in this process (tests/inproc.py): what is tested is its report
+        code, stdout, stderr = hapsim_main(["identify", "--port", line.split()[1], "--json"],
+                                           timeout=300)
     finally:
         mock.terminate()
         mock.wait(10)
-    out = json.loads(r.stdout)
+    out = json.loads(stdout)
     assert not out["loop"]["safety_stop"], out["loop"]["stop_reason"]
-    assert r.returncode == 0, r.stderr[-2000:]
+    assert code == 0, stderr[-2000:]
     assert_within(out["device"], {"mass": 0.237, "friction": 1.31})
 
 

@@ -19,6 +19,7 @@ from hapsim.commands.identify import identify
 from hapsim.emulated import mock as mock_mod
 from hapsim.scene import Device
 from intervals import assert_within  # same directory (pytest prepend import mode)
+from inproc import hapsim_main  # same directory (pytest prepend import mode)
 
 
 class _LateMock(mock_mod.MockDevice):
@@ -157,21 +158,22 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
         proc, port = _mock_on_pty(tmp_path, dev, lockstep=False,
                                   extra=("--faults", "rx.spike=0.01:12ms", "--fault-seed", "3"))
         try:
-            r = subprocess.run([sys.executable, "-m", "hapsim", "identify", "--port", port,
-                                "--json", "--force-limit", "4", "--duration", "1.5"],
-                               capture_output=True, text=True, timeout=120)
+            # the host side in this process (tests/inproc.py): its report is what is tested
+            code, stdout, stderr = hapsim_main(["identify", "--port", port, "--json",
+                                                "--force-limit", "4", "--duration", "1.5"],
+                                               timeout=120)
         finally:
             proc.terminate()
             proc.wait(10)
-        out = json.loads(r.stdout)           # only JSON on stdout
+        out = json.loads(stdout)             # only JSON on stdout
         lp = out.get("loop", {})
         # real time on a shared machine: a host stalled past the device's patience ends
         # the excitation on a fault or safety stop (exit 1, said so in the report: the
         # full suite beside other work did once); that run measured the host, not the
         # fit: run it again. Any other exit 1 (a fit that does not explain) fails.
-        if not (r.returncode == 1 and (lp.get("safety_stop") or lp.get("faults"))):
+        if not (code == 1 and (lp.get("safety_stop") or lp.get("faults"))):
             break
-    assert r.returncode == 0, (r.stderr, lp)
+    assert code == 0, (stderr, lp)
     fit = out["device"]
     assert fit["delay"] == dev["delay"] and fit["delay_range"] == [dev["delay"]] * 2
     acc = out["loop"]["account"]
@@ -181,7 +183,7 @@ def test_identify_over_port_takes_the_delay_the_device_shows(tmp_path, dev):
     # leave a truth outside one run in a thousand each, as once in the loaded suite)
     assert_within(fit, {"mass": dev["mass"], "friction": dev["friction"],
                         "coulomb": dev["coulomb"]})
-    assert "Traceback" not in r.stderr
+    assert "Traceback" not in stderr
 
 
 def test_identify_that_cannot_fit_says_why_exit_1(tmp_path, capsys):
