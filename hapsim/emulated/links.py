@@ -253,12 +253,12 @@ class SimTransport:
                 self._pending_in.clear()
                 dev.feed(data, self.now_us)
             if dev.ticking:
-                period = int(round(1e6 / self.mock.rate_hz))
                 if self._next_tick is None:
                     self._next_tick = self.now_us
                 if self._next_tick <= t_us:
                     self.now_us = max(self.now_us, self._next_tick)
-                    self._next_tick += period
+                    # the period at the rate the device ticks now (a CONFIG sets it)
+                    self._next_tick += int(round(1e6 / self.mock.rate_hz))
                     dev.tick(self.now_us)
                     continue
             else:
