@@ -408,6 +408,23 @@ class MockPhysics:
         self._vrng = (np.random.default_rng([seed, 1]) if self._vnoise > 0 else None)
 
     @property
+    def hand(self) -> np.ndarray:
+        """Hand force per period [N], shape ``(n_ticks,)`` (:func:`hand_force_samples`).
+
+        Set it as a whole (not element by element): the per-tick paths read a copy as
+        Python floats, kept with it. An element of the array is a numpy scalar, and a
+        numpy scalar added to the held force made the whole state (``x``, ``v``, the
+        encoder's sample, the STATE's position, the host's arithmetic on it) numpy scalars
+        from the first tick with a hand force on, ~10x slower per operation than floats
+        for the same IEEE-754 binary64 operations (the same bits)."""
+        return self._hand
+
+    @hand.setter
+    def hand(self, value) -> None:
+        self._hand = value
+        self._hand_f = [float(h) for h in value]
+
+    @property
     def excitation_end(self) -> float:
         """Time after which no hand force acts [s] (0.0 without impulse or profile)."""
         return self.hand.size * self.period
@@ -514,7 +531,8 @@ class MockPhysics:
             self._advance_split(u)
             return
         n = self.n
-        f = u + (self.hand[n] if n < self.hand.size else 0.0)
+        hand = self._hand_f
+        f = u + (hand[n] if n < len(hand) else 0.0)
         if self._grip is not None:
             s = self._Ad @ self._s + self._Bd * f
             self._s = s
@@ -565,7 +583,8 @@ class MockPhysics:
             raise ConfigError("a device on the wall clock needs hold: zoh (the ideal hold's "
                               "impulses act at sample instants only)", key="device.hold")
         n = self.n
-        f = u + (self.hand[n] if n < self.hand.size else 0.0)
+        hand = self._hand_f
+        f = u + (hand[n] if n < len(hand) else 0.0)
         if self._grip is not None:
             import scipy.linalg
             p = self._grip.shape[0]
@@ -598,7 +617,8 @@ class MockPhysics:
         each sub-interval integrated exactly (Coulomb friction as in :meth:`advance`, per
         sub-interval); the hand force of the tick acts over the whole period."""
         n = self.n
-        h = self.hand[n] if n < self.hand.size else 0.0
+        hand = self._hand_f
+        h = hand[n] if n < len(hand) else 0.0
         for (co, force) in zip(self._sub, (self._held, u)):
             f = force + h
             if self._grip is not None:

@@ -541,14 +541,16 @@ class FaultyDevice:
             The queued frames whose release time is ``<= now_us``, in order, joined; empty
             while the link is stalled or the port gone (they wait).
         """
-        if not self._out or self.link_down(now_us):
-            return b""
-        i = 0
         out = self._out
+        if not out or out[0][0] > now_us or self.link_down(now_us):
+            return b""
+        if len(out) == 1:               # the usual case: one frame (a tick's STATE) due
+            data = out[0][1]
+            out.clear()
+            return data
+        i = 1
         while i < len(out) and out[i][0] <= now_us:
             i += 1
-        if i == 0:
-            return b""
         data = b"".join(f for _, f in out[:i])
         del out[:i]
         return data

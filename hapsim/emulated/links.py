@@ -253,12 +253,12 @@ class SimTransport:
                 self._pending_in.clear()
                 dev.feed(data, self.now_us)
             if dev.ticking:
-                period = int(round(1e6 / self.mock.rate_hz))
                 if self._next_tick is None:
                     self._next_tick = self.now_us
                 if self._next_tick <= t_us:
                     self.now_us = max(self.now_us, self._next_tick)
-                    self._next_tick += period
+                    # the period at the rate the device ticks now (a CONFIG sets it)
+                    self._next_tick += int(round(1e6 / self.mock.rate_hz))
                     dev.tick(self.now_us)
                     continue
             else:
@@ -294,7 +294,8 @@ class SimTransport:
         DeviceError
             While the port is gone.
         """
-        self._check_port()
+        if self._dead or self.device.vanish_pending:
+            self._check_port()          # raises: the port is gone
         if self.sent is not None:
             self.sent.append(msg)
         data = fp.encode(msg)
@@ -329,7 +330,8 @@ class SimTransport:
         dev = self.device
         end = self.now_us + max(int(timeout * 1e6), 0)
         while True:
-            self._check_port()
+            if self._dead or dev.vanish_pending:
+                self._check_port()      # raises: the port is gone
             data = dev.pop_due(self.now_us)
             if data:
                 msgs = self._dec.feed(data)

@@ -85,6 +85,14 @@ __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_sampl
 #: HELLO.device_id of the mock ("MOCK" in ASCII).
 MOCK_DEVICE_ID = 0x4D4F434B
 
+# the protocol's status bits, read once per tick (module constants: no lookup in fp)
+_APPLIED = fp.STATUS_FORCE_APPLIED
+_OVERRUN = fp.STATUS_OVERRUN
+_WATCHDOG = fp.STATUS_WATCHDOG_TRIPPED
+_CLAMPED = fp.STATUS_FORCE_CLAMPED
+_ARMED_CONFIGURED = fp.STATUS_ARMED | fp.STATUS_CONFIGURED
+_SENSOR_VELOCITY = fp.SENSOR_VELOCITY
+
 
 # --------------------------------------------------------------------------- physics
 
@@ -518,28 +526,30 @@ class MockDevice:
         due = n - self.delay
         # FORCE_APPLIED (PROTOCOL.md §4): force_seq names a FORCE applied since CONFIG
         # (kept while a late tick holds it), so force_seq = 0 is not "none yet"
-        applied = self._status_extra & fp.STATUS_FORCE_APPLIED
-        self._status_extra = 0
+        # the tick's status bits, gathered here and stored once (_status_extra)
+        applied = self._status_extra & _APPLIED
+        extra = 0
         if due < 0:
             f, seq, applied = self._zero, 0, 0
         else:
             i = due % self._ring
             if self._rs[i] == due:
-                f, seq, applied = self._rf[i], due, fp.STATUS_FORCE_APPLIED
+                f, seq, applied = self._rf[i], due, _APPLIED
             else:
                 self.stats.late += 1
-                self._status_extra |= fp.STATUS_OVERRUN
+                extra = _OVERRUN
                 f, seq = self._applied, self._applied_seq
-        self._status_extra |= applied
+        extra |= applied
         if (not self.lockstep and self.watchdog_us > 0
                 and now_us - self._last_force_us > self.watchdog_us):
             f = self._zero
             self.stats.watchdog_trips += 1
-            self._status_extra |= fp.STATUS_WATCHDOG_TRIPPED
+            extra |= _WATCHDOG
         f, clamped = self._clamp(f, self.force_limit)
         if clamped:
             self.stats.clamped += 1
-            self._status_extra |= fp.STATUS_FORCE_CLAMPED
+            extra |= _CLAMPED
+        self._status_extra = extra
         self._applied = f
         self._applied_seq = seq
         self._u = f
@@ -557,10 +567,10 @@ class MockDevice:
             self._apply_due(n, now_us)
         self.stats.ticks += 1
         time_us = int(round(n * 1e6 / self.rate_hz)) if self.lockstep else now_us
-        status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED | self._status_extra
+        status = _ARMED_CONFIGURED | self._status_extra
         # the velocity sensor reads the same instant as the encoder: v(nT), exact
         self.velocity_out = (fp.Velocity(n & 0xFFFFFFFF, (ph.sample_velocity(),))
-                             if self.sensors & fp.SENSOR_VELOCITY else None)
+                             if self.sensors & _SENSOR_VELOCITY else None)
         return fp.State(n & 0xFFFFFFFF, time_us, status, self._applied_seq & 0xFFFFFFFF,
                         self._position(ph))
 

@@ -123,10 +123,11 @@ class DeviceClock:
                     if gap >= _HALF:
                         res.stale += 1            # duplicated or reordered: older
                         continue
-                    if gap and gap > (clock() - self._last_rx + silence) * rate + 2.0:
-                        res.implausible += 1      # further ahead than time allows
-                        continue
-                    res.missed += gap
+                    if gap:
+                        if gap > (clock() - self._last_rx + silence) * rate + 2.0:
+                            res.implausible += 1  # further ahead than time allows
+                            continue
+                        res.missed += gap
                 # only a STATE used keeps the device alive: a host ignoring every STATE
                 # (stale, implausible) is as good as deaf, and loses it
                 self._last_rx = clock()
@@ -134,7 +135,8 @@ class DeviceClock:
                 used = True
                 if mv is not None:
                     mv.take(seq)                  # its VELOCITY came just before it
-                if newest and not resumes and _newer_waiting(msgs, j, seq, ahead_max):
+                if (newest and not resumes and j + 1 < len(msgs)
+                        and _newer_waiting(msgs, j, seq, ahead_max)):
                     res.skipped += 1              # backlog: a newer STATE is waiting
                     self._skip_flag = FLAG_SKIPPED
                     yield msg, x, -1              # not answered; the scene still steps

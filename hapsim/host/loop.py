@@ -82,8 +82,6 @@ import time
 from collections import deque
 from itertools import chain
 
-import numpy as np
-
 import firmware_protocol as fp
 from hapsim.host.bad_frames import BadFrames, bad_count
 from hapsim.host.device_clock import DeviceClock
@@ -341,8 +339,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         elim = cfg.energy_limit
         pc_on = bool(cfg.passivity_controller)
         bmax = float(cfg.max_damping)
-        win = np.zeros(max(cfg.clamp_window, 1), dtype=np.int8)
-        wlen = win.size
+        # the clamp window as Python ints (0/1): a numpy int8 element costs ~0.2 us a read
+        # or write and makes the sum a numpy scalar; the same counts
+        win = [0] * max(cfg.clamp_window, 1)
+        wlen = len(win)
         wsum = 0
         clamp_max = cfg.clamp_max
         fh = [0.0] * (d + 2)                # forces sent, by local sample index
@@ -400,12 +400,14 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                     flags_applied = self._applied_seen = True
                 # the late-tick rule (hapsim.kernels.ticks), as the compiled loop and the
                 # record's account read it
+                host_late = self._host_late
+                if host_late:
+                    self._host_late = 0
                 if tick_late(seq, msg.force_seq, st, d, flags_applied):
                     lt = 1
                     res.late += 1
-                elif self._host_late:
+                elif host_late:
                     lt = 1
-                self._host_late = 0
                 if poll is not None:
                     poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
@@ -447,7 +449,8 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 j = i % wlen
                 wsum += c - win[j]
                 win[j] = c
-                res.clamped += c
+                if c:
+                    res.clamped += 1
                 sl = i if i < hl else hl + (i - hl) % rl
                 t_arr[sl] = msg.time_us * 1e-6
                 x_arr[sl] = x
@@ -457,8 +460,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 late_arr[sl] = lt
                 fs_arr[sl] = msg.force_seq
                 st_arr[sl] = st
-                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | self._skip_flag
-                self._skip_flag = 0
+                skip = self._skip_flag
+                if skip:
+                    self._skip_flag = 0
+                fl_arr[sl] = lt | rf | restart | (FLAG_CLAMPED if c else 0) | skip
                 restart = 0
                 i += 1
                 tel.n = i
