@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "187b277df835cf3646ea1e9084b38b7ab89a225cdfb4723c8463648af68680fe"
+COMPILED_SOURCES_SHA256 = "759c647c80696dfa254de95bf3d31275fef36ef4a75be2332d9055bc1d30bdc1"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
