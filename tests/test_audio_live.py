@@ -733,7 +733,7 @@ def test_native_callback_plays_silence_for_a_block_larger_than_its_buffers(jack_
             src.push(float(x))
     else:
         src = FrameRing(48000.0, ("a",), max_block=128)
-        src.push(np.ones((480, 1), dtype=np.float32))
+        src.push(np.ones((480, 1)))   # float64, as Engine.frames: the signature the loop compiles
     rec = Recorder(jack_server, seconds=1.0)
     out = JackOutput(src, server=jack_server)
     try:

@@ -33,6 +33,7 @@ import ctypes.util
 import numba as nb
 import numpy as np
 from numba import types
+from numba.extending import register_jitable
 
 from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels.pointers import voidptr
@@ -95,12 +96,15 @@ _get_buffer = types.ExternalFunction("jack_port_get_buffer",
                                      types.voidptr(types.voidptr, types.uint32))
 
 
-@nb.njit(inline="always", cache=CACHE_OK)
+# The context's accessors: overloads compiled once per signature and called (LLVM inlines
+# them), not inlined into numba's IR at each of the 24 call sites (which translated and
+# typed the accessor again at every site). A view, no arithmetic.
+@register_jitable
 def _f8(c, i):
     return nb.carray(voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.float64)
 
 
-@nb.njit(inline="always", cache=CACHE_OK)
+@register_jitable
 def _i8(c, i):
     return nb.carray(voidptr(c[_A + 2 * i]), (c[_A + 2 * i + 1],), np.int64)
 

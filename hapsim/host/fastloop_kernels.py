@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "187b277df835cf3646ea1e9084b38b7ab89a225cdfb4723c8463648af68680fe"
+COMPILED_SOURCES_SHA256 = "759c647c80696dfa254de95bf3d31275fef36ef4a75be2332d9055bc1d30bdc1"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -100,6 +100,11 @@ _KINDS = {cordis.run_masses: K_MASSES, cordis.run_sd: K_SD, cordis.run_contact: 
           schemes.run_exact: K_EXACT}
 #: The kernels' function names, by kind (the compiled-loop stamps are named after them).
 KERNEL_NAMES = {k: f.__name__ for f, k in _KINDS.items()}
+#: The leading slots of the pack each kernel reads: only those are passed, so that the
+#: loop's functions take (and numba types, lowers and unboxes at every call) 6 to 15
+#: arrays instead of 24 for a scene without an implicit scheme.
+_PACK_LEN = {K_MASSES: 6, K_SD: 10, K_CONTACT: 15, K_SD_CONTACT: 15, K_SYMPLECTIC: 18,
+             K_EXACT: 24}
 _EI = np.empty(0, dtype=np.int64)
 _EF = np.empty(0, dtype=np.float64)
 _EF2 = np.empty((0, 0), dtype=np.float64)
@@ -120,9 +125,11 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
         :func:`kernel_tag` of the kernel (``K_MASSES`` .. ``K_EXACT``): the compiled loop
         is compiled for that kernel alone.
     pack : tuple
-        ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
-        c_thr, v, c, T, phi, gam, psi, snew, sold, uold)``; the slots the kernel does not
-        take are empty arrays (``T`` 0.0).
+        The leading slots of ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
+        c_i1, c_i2, c_k, c_z, c_thr, v, c, T, phi, gam, psi, snew, sold, uold)`` that the
+        kernel reads (6 for ``K_MASSES``, 10 ``K_SD``, 15 ``K_CONTACT`` and
+        ``K_SD_CONTACT``, 18 ``K_SYMPLECTIC``, 24 ``K_EXACT``); the slots among them the
+        kernel does not take are empty arrays (``T`` 0.0).
 
     Raises
     ------
@@ -137,7 +144,8 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
     extras = tuple(sc.get(name, _EF) for name in ("v", "c")) + (float(sc.get("T", 0.0)),) \
         + tuple(sc.get(name, _EF2) for name in ("phi", "gam", "psi")) \
         + tuple(sc.get(name, _EF) for name in ("snew", "sold", "uold"))
-    return kernel_tag(kind), tuple(kp.state) + tuple(sd) + tuple(ct) + extras
+    pack = tuple(kp.state) + tuple(sd) + tuple(ct) + extras
+    return kernel_tag(kind), pack[:_PACK_LEN[kind]]
 
 
 def port_arrays(engine, at_least: int = -1) -> tuple:

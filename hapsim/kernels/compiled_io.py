@@ -13,12 +13,13 @@ import math
 import numba
 import numpy as np
 from numba import types
+from numba.extending import register_jitable
 
 import firmware_protocol as fp
 
 __all__ = ["c_read", "c_write", "c_poll", "c_clock_gettime", "CLOCK_MONOTONIC", "POLLIN",
            "POLLOUT", "POLLERR", "POLLHUP", "POLLNVAL", "crc_table", "CRC_TABLE", "jit",
-           "jit_inline", "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode",
+           "jit_helper", "now_ns", "crc16", "le", "next_frame", "cobs_decode", "cobs_encode",
            "F32_MAX", "force_frame", "force_compact_frame", "expand_seq"]
 
 # ----------------------------------------------------------------------------- libc
@@ -57,13 +58,14 @@ CRC_TABLE = crc_table()
 #: The decorator of every compiled function here and in the compiled loop and mock:
 #: nopython, no GIL, cached on disk.
 jit = numba.njit(nogil=True, cache=True)
-#: The same, inlined into its callers at numba's IR level: the small helpers the loop and
-#: the mock call with literal offsets and lengths (``le(pkt, 1, 4)``, ``crc16(pkt, 13,
-#: table)``). numba types a literal argument of a call between compiled functions as
-#: ``Literal[int]`` and compiled a helper once per literal combination (``le`` five times,
-#: ``crc16`` four, ``cobs_encode`` three: ~0.2-0.3 CPU-s each into an empty cache); an
-#: inlined helper is not compiled on its own at all. Same integer operations, same bytes.
-jit_inline = numba.njit(nogil=True, cache=True, inline="always")
+#: The small helpers the loop and the mock call with literal offsets and lengths
+#: (``le(pkt, 1, 4)``, ``crc16(pkt, 13, table)``): overloads (``register_jitable``), which
+#: numba types with their arguments' plain types (``int64``, not ``Literal[int]``), so each
+#: compiles once per signature and LLVM inlines the call. (As ``njit`` functions they
+#: compiled once per literal combination, ``le`` five times; inlined at numba's IR level
+#: instead, they were translated and typed again at each of their ~30 call sites.) Same
+#: integer operations, same bytes.
+jit_helper = register_jitable
 
 
 @jit
@@ -73,7 +75,7 @@ def now_ns(ts):
     return ts[0] * 1_000_000_000 + ts[1]
 
 
-@jit_inline
+@jit_helper
 def crc16(buf, n, table):
     """CRC-16/CCITT-FALSE of ``buf[:n]`` with ``table`` (:data:`CRC_TABLE`); 0 over a
     packet whose last two bytes are its CRC (PROTOCOL.md §2)."""
@@ -83,7 +85,7 @@ def crc16(buf, n, table):
     return c
 
 
-@jit_inline
+@jit_helper
 def le(buf, off, nbytes):
     """The little-endian unsigned integer in ``buf[off:off + nbytes]`` (PROTOCOL.md §3:
     every integer field is little-endian)."""
@@ -93,7 +95,7 @@ def le(buf, off, nbytes):
     return v
 
 
-@jit_inline
+@jit_helper
 def next_frame(rb, a, n_rb):
     """The next frame in ``rb[a:n_rb]``: ``(a, z)`` with ``rb[a:z]`` the frame's COBS
     bytes and ``rb[z]`` its 0x00 delimiter, idle fill (empty frames) skipped; ``z = -1``
@@ -136,7 +138,7 @@ def cobs_decode(src, a, b, dst):
     return o
 
 
-@jit_inline
+@jit_helper
 def cobs_encode(src, n, dst):
     """COBS-encode ``src[:n]`` (n < 254) into ``dst`` with the 0x00 delimiter; the length."""
     code_at = 0

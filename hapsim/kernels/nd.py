@@ -92,7 +92,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
-from numba.extending import overload
+from numba.extending import overload, register_jitable
 
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
@@ -112,6 +112,12 @@ _jit = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="numpy
                fastmath={"contract"})
 _inline = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="numpy",
                   fastmath={"contract"}, inline="always")
+#: The context's accessors (:func:`run_context`): compiled once per signature and called
+#: (LLVM inlines them), not inlined into numba's IR at each of the 66 call sites, which
+#: translated and typed the accessor again at every site (~3 CPU-s a runner into an empty
+#: cache). An overload (``register_jitable``) types the constant index as ``int64``, not
+#: ``Literal``, so each accessor compiles once. A view is built, no arithmetic: same code.
+_access = register_jitable(boundscheck=False)
 
 #: Rows of the state arrays (axes): a scene of lower dimension leaves the rest at zero.
 ROWS = 3
@@ -634,43 +640,43 @@ def context(dim, block, *arrays_and_port, dtype=np.float64) -> np.ndarray:
     return ctx
 
 
-@_inline
+@_access
 def _f1(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.float64)
 
 
-@_inline
+@_access
 def _f2(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
 
 
-@_inline
+@_access
 def _s1(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.float32)
 
 
-@_inline
+@_access
 def _s2(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float32)
 
 
-@_inline
+@_access
 def _i1(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.int64)
 
 
-@_inline
+@_access
 def _i2(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.int64)
 
 
-@_inline
+@_access
 def _b1(c, i):
     k = _CTX_HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.bool_)

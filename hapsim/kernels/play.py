@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba.extending import register_jitable
 
 from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import nd as nd_kernel
@@ -42,7 +43,7 @@ __all__ = ["play_context", "play_chunk", "play_chunk32", "HEAD", "PLAY_ARRAYS", 
 COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "3ea51dc571ebb8e3973bc79e2d255b8d8263b6458ede722afd32be1e567848c9"
+COMPILED_SOURCES_SHA256 = "d3083fbcb75fe17d210e57a43808c5a2d2284634b4650fc5e0a07e7e73463ca9"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -125,16 +126,21 @@ def play_context(dim: int, delay: int, port: int, every: int, arrays: dict,
 
 
 _inline = nb.njit(cache=CACHE_OK, nogil=True, inline="always")
+#: The context's accessors: compiled once per signature and called (LLVM inlines them),
+#: not inlined into numba's IR at each call site (which translated and typed the accessor
+#: again at every site); an overload (``register_jitable``) types the constant index as
+#: ``int64``, not ``Literal``, so each compiles once per dtype. A view, no arithmetic.
+_access = register_jitable
 
 
-@_inline
+@_access
 def _v1(c, i, dtype):
     """Array ``i`` of the context, 1-D, of ``dtype`` (no copy)."""
     k = HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), dtype)
 
 
-@_inline
+@_access
 def _v2(c, i, dtype):
     """Array ``i`` of the context, 2-D, of ``dtype`` (no copy)."""
     k = HEAD + 3 * i

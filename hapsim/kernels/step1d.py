@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba.extending import register_jitable
 
 from hapsim.kernels import audio, cordis, schemes
 from hapsim.kernels.pointers import address, voidptr
@@ -36,7 +37,11 @@ COMPILED_SOURCES_SHA256 = "fe6e341892785be0ceedc9d70253f1776c495b1e22a5e61f2a899
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
 _jit = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False)
-_inline = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, inline="always")
+#: The context's accessors: compiled once per signature and called (LLVM inlines them),
+#: not inlined into numba's IR at each of the runners' ~150 call sites (which re-translated
+#: and re-typed the helper at every site: ~1-2 CPU-s a runner into an empty cache). An
+#: overload (``register_jitable``) types its constant index as ``int64``, not ``Literal``.
+_access = register_jitable(boundscheck=False)
 
 #: Integer slots before the arrays: the count to advance and up to 7 kernel parameters.
 HEAD = 8
@@ -88,19 +93,19 @@ def context(arrays, head=()) -> tuple[np.ndarray, list]:
     return ctx, keep
 
 
-@_inline
+@_access
 def _f(c, i):
     k = HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.float64)
 
 
-@_inline
+@_access
 def _f2(c, i):
     k = HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1], c[k + 2]), np.float64)
 
 
-@_inline
+@_access
 def _i(c, i):
     k = HEAD + 3 * i
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.int64)
