@@ -454,7 +454,17 @@ def test_haply_m3_losing_host_bytes_never_says_differs(two_cpu_hogs, seed):
                     driver_faults={"drop_tx": 0.0, "drop_rx": 0.005, "seed": seed})
     loop, m = rep["loop"], rep["measured"]
     assert loop["mock"]["clock"] == "wall"
-    assert sum(loop["mock"]["faults"].values()) > 0    # host bytes were lost
+    if loop.get("safety_stop") and "the host was" in loop["stop_reason"]:
+        # a loaded machine can starve the loop before its first lost byte (seed 9 loses
+        # a byte of the 49th write; a fresh clone's suite beside a CPU-bound process once
+        # ended this run with no byte lost): the one stop allowed is the host's own
+        # lateness, zero torque sent, the joint within the run's workspace; nothing is
+        # measured, so nothing differs
+        assert loop["mock"]["held_at_end"] == 0.0, loop["mock"]
+        assert loop["mock"]["true_excursion"] <= loop["safety"]["position_limit"]
+        return
+    # host bytes were lost
+    assert sum(loop["mock"]["faults"].values()) > 0, (loop["stop_reason"], loop["mock"])
     verdict = str(m.get("verdict"))
     assert not verdict.startswith("measured differs"), (verdict, m.get("rel_err"),
                                                         m.get("k_unc"), m.get("k"))
