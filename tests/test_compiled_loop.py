@@ -203,8 +203,12 @@ def assert_same(a, b):
     (ra, ta, da, la), (rb, tb, db, lb) = a, b
     assert ra.frames == rb.frames
     assert lb.compiled and not getattr(la, "compiled", False)
-    # the compiled path answers a good part (a fault hands the rest of its read to Python)
-    assert lb.compiled_samples > rb.samples // 5
+    # the compiled path answers samples (a fault hands the rest of its read to Python, so
+    # its share follows how many frames each read brings, which the load decides: 112 of
+    # 746 in a loaded suite, under the fifth once asserted here: it failed so in two loaded
+    # full runs, 2026-11-23 and a fresh clone's at six workers on 2026-11-24); the rows'
+    # equality below is the claim
+    assert lb.compiled_samples > 0
     for f in RESULT_FIELDS:
         if f == "decoder":          # frames read past the last sample depend on timing
             ra.decoder.pop("frames_ok")
