@@ -68,3 +68,35 @@ def test_a_second_worker_waits_and_loads_what_the_first_compiled(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_a_worker_collects_after_the_first_one():
+    """tests/conftest.py's ``pytest_collection``: while one worker collects (holds the
+    exclusive lock), another waits, and collects once it is released. The lock is held
+    three times as long as the same child takes with the lock free, so a child that did
+    not wait would have ended."""
+    import fcntl
+    from conftest import collect_lock_path
+    root = Path(TESTS).parent
+    env = dict(os.environ, PYTEST_XDIST_WORKER="gw7")
+    cmd = [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:xdist",
+           "-p", "no:cacheprovider", "-o", "addopts=", "tests/test_inproc.py"]
+
+    def start():
+        return subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+    t0 = time.monotonic()
+    free = start()
+    out, _ = free.communicate(timeout=120)
+    alone = time.monotonic() - t0
+    assert free.returncode == 0 and "collected" in out, out
+    fd = os.open(collect_lock_path(root), os.O_CREAT | os.O_RDWR, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)          # the first worker, collecting
+        child = start()
+        time.sleep(max(3.0, 3.0 * alone))
+        assert child.poll() is None              # waiting for the first one's collection
+    finally:
+        os.close(fd)                             # the first one is done
+    out, _ = child.communicate(timeout=120)
+    assert child.returncode == 0 and "collected" in out, out
