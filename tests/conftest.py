@@ -169,19 +169,22 @@ class _CpuTimeReport:
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
-    """How many workers ``-n auto`` (pyproject.toml's addopts) starts: two a core
-    (``--maxprocesses`` caps it at 4), one on a single core.
+    """How many workers ``-n auto`` (pyproject.toml's addopts) starts: one more than the
+    machine's cores (``--maxprocesses`` caps it at 3), one on a single core.
 
     Much of the suite waits on real time (JACK and Pd, devices on the wall clock, browsers:
     the "sound" group alone is ~200-300 s of one worker's wall clock for ~50 CPU-s), and a
     group runs on one worker in turn; with as many workers as cores, such a worker left
     its core idle while the others queued. Measured beside one CPU-bound process on 2
     cores (``python tools/suite_time.py --busy 1 -- -n N --maxprocesses N``, warm
-    caches, 2026-11-24): 2 workers 731 s, 3 workers 495 s, 4 workers 460 s, every test
-    passing in each. A fresh clone's workers no longer compile the same numba kernel each
-    (:func:`_one_compiler_per_kernel`), which had kept the count at 3 (docs/testing.md)."""
+    caches, 2026-11-24): 2 workers 731 s, 3 workers 495 s, 4 workers 460 s. Four (and
+    six) were tried as the default on 2026-11-24: of five full runs at four or six
+    workers, three had a test fail on the load (a JACK underrun's time, a Haply
+    re-synchronisation, the M3 run's lateness stop, the compiled loop's share), against
+    none in the runs at three: the real-time tests' margin is worth the 7 %
+    (docs/testing.md)."""
     n = os.cpu_count() or 1
-    return 1 if n < 2 else 2 * n
+    return 1 if n < 2 else n + 1
 
 
 def pytest_configure(config):
