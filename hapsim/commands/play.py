@@ -146,10 +146,7 @@ def run(args: argparse.Namespace) -> int:
     from hapsim.blas import preload_numba_blas
     from hapsim.host.loop_types import StopFlag
     from hapsim.pipeline.play import stop_on_signals
-    # numba's first compile or cache load checks that scipy's BLAS bindings exist, which
-    # imports the whole scipy.linalg package (~0.18 CPU-s a process) unless the bindings
-    # are loaded first (as ``hapsim run`` does: hapsim.blas)
-    preload_numba_blas()
+    preload_numba_blas()                # before numba's first kernel (hapsim.blas)
     stop = StopFlag()
     with stop_on_signals(stop):
         return _play(args, stop)

@@ -97,10 +97,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from hapsim.blas import preload_numba_blas
     from hapsim.scene import load_scene, scene_dimension
-    # numba's first compile or cache load checks that scipy's BLAS bindings exist, which
-    # imports the whole scipy.linalg package (~0.2 CPU-s a process) unless the bindings
-    # are loaded first (as ``hapsim run`` does: hapsim.blas)
-    preload_numba_blas()
+    preload_numba_blas()                # before numba's first kernel (hapsim.blas)
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
         return _run_nd(args)
     if args.audio is not None:

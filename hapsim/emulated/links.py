@@ -294,8 +294,7 @@ class SimTransport:
         DeviceError
             While the port is gone.
         """
-        if self._dead or self.device.vanish_pending:
-            self._check_port()          # raises: the port is gone
+        self._check_port()
         if self.sent is not None:
             self.sent.append(msg)
         data = fp.encode(msg)
@@ -330,8 +329,7 @@ class SimTransport:
         dev = self.device
         end = self.now_us + max(int(timeout * 1e6), 0)
         while True:
-            if self._dead or dev.vanish_pending:
-                self._check_port()      # raises: the port is gone
+            self._check_port()
             data = dev.pop_due(self.now_us)
             if data:
                 msgs = self._dec.feed(data)
