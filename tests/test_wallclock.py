@@ -365,6 +365,16 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
         # fader inside its travel (asserted here, from the board's own record)
         from hapsim.host.link_verdict import CLAMP_STOP
         reason = loop["stop_reason"]
+        if reason.startswith("safety: position") and loop["overruns"] > 0:
+            # A board without a watchdog (the Hapkit sketch) holds its last force while
+            # the host is starved: once in a loaded suite the host woke to read the paddle
+            # at -0.232 m, beyond its 0.2 m workspace (issue 29). No host can act while it
+            # does not run; what it must do once it runs: stop, brake the handle to rest
+            # (hapsim.host.recovery: friction alone would carry it v m / b further), leave
+            # zero force (asserted above), and say no "within".
+            assert loop["brake"] and loop["brake"]["ended"] == "rest", loop["brake"]
+            assert (rep.get("measured") or {}).get("within") is not True
+            return
         assert ("the host was" in reason and "late" in reason) or \
             reason.startswith(CLAMP_STOP), reason
         limit = loop["safety"]["position_limit"]          # the run's workspace [m]

@@ -122,7 +122,9 @@ safety: host-side force clamp; NaN/inf -> zero force and stop; SIGINT/SIGTERM ->
   force, STOP, telemetry flushed, exit 0 (from the numba warm-up on: Ctrl-C during
   start-up ends before the device is armed); an unstable scene is refused unless
   --allow-unstable, which runs it under safety stops (force at the limit in half of the
-  last 100 samples, position beyond bounds, non-finite values) that end with zero force;
+  last 100 samples, position beyond bounds, non-finite values) that end with zero force
+  (a stop on the motion brakes the device to rest first, f = -B v with B = m / 4T, at
+  most 0.25 s: loop.brake; docs/reliability.md);
   the scene's 'safety:' section adds position_limit [m], velocity_limit [m/s],
   energy_limit [J] (passivity observer: energy the scene gave the hand beyond what it
   stored at its start; restarted at each recovery) and an optional passivity_controller

@@ -217,6 +217,12 @@ class LoopConfig:
         or more than the full frames' LINK rule allows; ``"on"`` always asks; ``"off"``
         never. Asked only while the watchdog is at most 250 periods (the compact lag is
         exact up to 254 ticks); a device that does not offer them keeps the full frames.
+    brake_damping : float
+        After a safety stop on the device's motion (clamp, position, velocity, energy, the
+        host's lateness), the damping ``B`` [N s/m] the host brakes the device with before
+        its zero force (:meth:`hapsim.host.recovery.Recovery._brake`); 0: no braking.
+    brake_rest : float
+        The speed [m/s] below which the braking ends (three estimates in a row).
     """
 
     rate_hz: float
@@ -245,6 +251,8 @@ class LoopConfig:
     ramp_samples: int = 50
     backlog: str = "newest"
     compact: str = "auto"
+    brake_damping: float = 0.0
+    brake_rest: float = 0.0
 
 
 class EstimatedState:
@@ -383,6 +391,11 @@ class LoopResult:
     frames : str
         ``"compact"`` when the device took the compact frames (PROTOCOL.md §4), else
         ``"full"``.
+    brake : dict
+        The braking after a safety stop (:meth:`hapsim.host.recovery.Recovery._brake`):
+        ``damping`` [N s/m], ``periods`` (forces sent), ``seconds``, ``v_start`` and
+        ``v_end`` [m/s] (the first and last speed estimated, None without two STATEs),
+        ``ended`` (``"rest"``, ``"time"`` or ``"port"``); empty when it did not brake.
     """
 
     samples: int = 0
@@ -423,6 +436,7 @@ class LoopResult:
     f_max: float = 0.0
     velocity: dict = field(default_factory=dict)
     frames: str = "full"
+    brake: dict = field(default_factory=dict)
 
 
 def percentiles_us(values: np.ndarray) -> dict:

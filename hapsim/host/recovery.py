@@ -3,6 +3,22 @@ ends a stretch of the loop with :class:`~hapsim.host.loop_types.LostDevice`; zer
 and STOP are sent, the port is re-opened, HELLO and CONFIG are asked again with backoff,
 and the next stretch restarts the scene at rest under a force ramp.
 
+The end of a run after a safety stop on the device's motion brakes it first
+(:meth:`Recovery._brake`): zero force alone leaves a moving handle to its own friction,
+which carries it ``v m / b`` further (a Hapkit paddle of 0.1 kg on 0.3 N s/m: 0.33 s
+times its speed; a board without a watchdog holds the last force through a host stall,
+and once in a loaded suite a paddle woke the host 0.23 m out, beyond its 0.2 m
+workspace, still moving). The host instead answers each STATE with the damping
+``f = -B v`` (clamped to the force limit) until the device is at rest, then sends zero.
+``B = g m / T`` with ``g = BRAKE_GAIN``: the velocity then obeys
+``v(k+1) = v(k) - g v(k - d)`` (a mass, a zero-order hold and ``d`` periods of delay,
+friction only helping), whose roots stay inside the unit circle for
+``g < 2 sin(pi / (2 (2 d + 1)))`` (the delayed first-order difference equation's bound,
+Levin & May 1976, *Theor. Popul. Biol.* 9, 178-187; Kuruklis 1994, *J. Math. Anal.
+Appl.* 188, 719-731): 0.25 holds to ``d = 5``, so a host late by a few periods still
+brakes. The speed then falls by about ``1 - g`` a period: the handle stops within about
+``v T (d + 1/g)`` where friction alone took ``v m / b`` (``tests/test_brake.py``).
+
 :class:`Recovery` is the part of :class:`hapsim.host.loop.HostLoop` that does it (with
 its start and end: :meth:`Recovery._run_stretches`, :meth:`Recovery._shutdown`). It reads
 the loop's ``transport``, ``config``, ``stop``, ``tel``, ``engine`` and ``result``, and
@@ -18,7 +34,35 @@ from hapsim.host.loop_types import OPEN_ENDED, SEQ_MASK, LostDevice, signame
 from hapsim.host.telemetry import FLAG_LOST
 from hapsim.errors import DeviceError
 
-__all__ = ["Recovery"]
+__all__ = ["Recovery", "BRAKE_GAIN", "BRAKE_MAX_S", "brake_damping"]
+
+#: The braking's gain ``g = B T / m`` (module notes): stable for a delay up to 5 periods.
+BRAKE_GAIN = 0.25
+#: The longest braking [s] before the zero force (a device still moving then is one a
+#: hand or a mis-stated mass keeps moving; zero force is then the safe end).
+BRAKE_MAX_S = 0.25
+
+
+def brake_damping(mass: float, rate_hz: float) -> float:
+    """The braking damping after a safety stop, ``B = g m / T`` [N s/m].
+
+    Parameters
+    ----------
+    mass : float
+        The device's mass at the port [kg] (or inertia [kg m^2] on a rotary axis).
+    rate_hz : float
+        The loop's rate ``1/T`` [Hz].
+
+    Returns
+    -------
+    float
+        ``BRAKE_GAIN * mass * rate_hz``; 0.0 (no braking) for a mass that is not finite
+        and positive. Source: the module notes (the delayed difference equation's bound).
+    """
+    m, r = float(mass), float(rate_hz)
+    if not (math.isfinite(m) and m > 0.0 and math.isfinite(r) and r > 0.0):
+        return 0.0
+    return BRAKE_GAIN * m * r
 
 
 def _stored_energy(engine) -> float:
@@ -38,10 +82,70 @@ class Recovery:
     def _shutdown(self) -> None:
         tr = self.transport
         try:
+            self._brake()
+        except DeviceError:
+            self.result.brake["ended"] = "port"
+        try:
             tr.send(fp.Force((self._last_seq + 1) & SEQ_MASK, (0.0,)))
             tr.send(fp.Stop())
         except DeviceError:
             pass
+
+    def _brake(self) -> None:
+        """After a safety stop on the device's motion, brake it: answer each STATE with
+        ``f = -B v`` (``B`` = ``config.brake_damping``, clamped to the force limit, ``v``
+        the backward difference of the last two STATEs on the device's clock) until three
+        speeds in a row are below ``config.brake_rest``, for at most
+        :data:`BRAKE_MAX_S` (module notes). Nothing after a non-finite reading, a lost
+        device or any other end. What it did is :attr:`LoopResult.brake`.
+
+        Raises
+        ------
+        DeviceError
+            The port failed (the caller still sends zero force and STOP).
+        """
+        cfg, res = self.config, self.result
+        B = float(cfg.brake_damping)
+        reason = res.stop_reason or ""
+        if (not res.safety_stop or not B > 0.0 or reason.startswith("safety: non-finite")
+                or self.state not in ("armed", "running")):
+            return
+        tr, clock, sleep = self.transport, self._clock, self._sleep
+        T = 1.0 / cfg.rate_hz
+        lim = cfg.force_limit
+        t0 = clock()
+        end = t0 + max(BRAKE_MAX_S, 3.0 * T)
+        seq = (self._last_seq + 1) & SEQ_MASK
+        prev = None                   # (position, device time [us]) of the last STATE
+        v = v_start = None
+        still = periods = 0
+        ended = "time"
+        while clock() < end:
+            f = 0.0 if v is None else min(max(-B * v, -lim), lim)
+            tr.send(fp.Force(seq, (f,)))
+            periods += 1
+            deadline = clock() + T
+            st = None
+            for msg in tr.receive(2.0 * T):
+                if type(msg) is fp.State and len(msg.position) == 1 \
+                        and math.isfinite(msg.position[0]):
+                    st = msg
+            if st is not None:
+                seq = st.seq
+                if prev is not None and st.time_us != prev[1]:
+                    v = (st.position[0] - prev[0]) / ((st.time_us - prev[1]) * 1e-6)
+                    if v_start is None:
+                        v_start = v
+                    still = still + 1 if abs(v) < cfg.brake_rest else 0
+                    if still >= 3:
+                        ended = "rest"
+                        break
+                prev = (st.position[0], st.time_us)
+            wait = deadline - clock()
+            if wait > 0.0:
+                sleep(wait)
+        res.brake = {"damping": B, "periods": periods, "seconds": clock() - t0,
+                     "v_start": v_start, "v_end": v, "ended": ended}
 
     def _state_timeout(self) -> None:
         tr = self.transport

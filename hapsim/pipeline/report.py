@@ -158,6 +158,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "passivity_samples": res.passivity_samples, "v_max": res.v_max, "f_max": res.f_max,
         "velocity_sensor": res.velocity or None,
         "frames": res.frames,
+        "brake": res.brake or None,
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
@@ -367,6 +368,13 @@ def format_report(rep: dict) -> str:
                  f"{dash(lp.get('energy_excess_max_j'), '.4g')} (limit "
                  f"{dash(sf['energy_limit'], 'g')}"
                  f"{', passivity controller on' if sf['passivity_controller'] else ''})")
+    bk = lp.get("brake")
+    if bk:
+        # the host braked the device after the safety stop (hapsim.host.recovery)
+        lines.append(f"braked after the stop: damping {bk['damping']:.3g} N s/m over "
+                     f"{bk['periods']} periods ({bk['seconds']:.3f} s), speed "
+                     f"{dash(bk['v_start'], '.3g')} -> {dash(bk['v_end'], '.3g')} m/s, "
+                     f"ended: {bk['ended']}")
     dl = lp.get("driver")
     if dl:
         # a driver's link (hapsim.drivers.transport): what came back of what was asked

@@ -40,6 +40,7 @@ from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.host.recovery import brake_damping
 from hapsim.pipeline.measure import identify_run
 from hapsim.emulated.mock import MockDevice
 from hapsim.pipeline.options import RunOptions
@@ -178,7 +179,15 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       max_damping=sf.max_damping, reconnect=bool(opts.reconnect),
                       lost_timeout=opts.lost_timeout,
                       reconnect_attempts=int(opts.reconnect_attempts),
-                      reconnect_time=float(opts.reconnect_time))
+                      reconnect_time=float(opts.reconnect_time),
+                      # after a safety stop the host brakes the device before its zero
+                      # force (hapsim.host.recovery, module notes), until the coast left
+                      # on friction alone, v m / b, is 1 % of the workspace (without
+                      # friction: 1 % of it a second)
+                      brake_damping=brake_damping(dev.mass, scene.rate_hz),
+                      brake_rest=0.01 * pos_bound * (dev.friction / dev.mass
+                                                     if dev.friction > 0.0 and dev.mass > 0.0
+                                                     else 1.0))
 
 
 class _CompileThread(threading.Thread):
