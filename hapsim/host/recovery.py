@@ -123,6 +123,7 @@ class Recovery:
         while clock() < end:
             f = 0.0 if v is None else min(max(-B * v, -lim), lim)
             tr.send(fp.Force(seq, (f,)))
+            self._last_seq = seq          # the zero FORCE follows the braking's last
             periods += 1
             deadline = clock() + T
             st = None
