@@ -137,10 +137,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         directions=felt_directions(fit, chk))
     if any(h is not None for h in holds):
         # the largest hold off a period among the rows whose errors were counted
-        kept = (np.logical_or.reduce(usable) if usable is not None
-                else np.ones(N, bool))
-        wire["hold_s"] = float(max(np.max(h["delta"][kept], initial=0.0)
-                                   for h in holds if h is not None))
+        kept = ([np.logical_or.reduce(usable)] + list(usable) if usable is not None
+                else [np.ones(N, bool)] * len(runs))
+        wire["hold_s"] = float(max(np.max(h["delta"][u], initial=0.0)
+                                   for h, u in zip(holds, kept) if h is not None))
         v["reason"] = (f"{v['reason']}; the wire's term counts the host's write timing "
                        f"(each torque held over its real interval, up to "
                        f"{wire['hold_s'] * 1e6:.0f} us off a period)")

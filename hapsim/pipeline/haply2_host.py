@@ -26,7 +26,7 @@ import sys
 
 import numpy as np
 
-from hapsim.emulated.haply2_board import in_hand_order
+from hapsim.emulated.haply2_board import PASS_S, in_hand_order
 from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
 from hapsim.drivers.haply import MAX_TORQUE
 from hapsim.drivers.haply2 import Haply2DIY
@@ -45,13 +45,14 @@ __all__ = ["estimate_bounds", "hold_bounds", "measure_felt_haply2_port", "usable
 #: joint): 0.5 rad is inside it with a margin of 1.5.
 WORKSPACE_RAD = 0.5
 
-#: How much a board's latency may vary between two writes, in periods, before a departure
-#: beyond the stated uncertainty is called "differs" on a board that keeps its own time
-#: (:func:`measure_felt_haply2_port`): the host sees its own write times, not when the
-#: board took each write (the write call, a USB frame, the firmware's next pass, a
-#: descheduled emulated board). Half a period: the lateness from which the host itself
-#: no longer keeps its clock (a tick half a period late restarts it).
-LINK_JITTER_PERIODS = 0.5
+#: How much the time a board takes a write may vary from one write to the next beyond
+#: what the host's own write times show [s], before a departure beyond the stated
+#: uncertainty is called "differs" on a board that keeps its own time
+#: (:func:`measure_felt_haply2_port`): one pass of firmware V1.5's loop (``.ino`` lines
+#: 59-64: a command waits for the next pass, at most 50 us). Not covered: a link whose
+#: latency varies more (a USB frame's scheduling, an emulated board's process
+#: descheduled); a departure within what this allowance explains stays "not measurable".
+LINK_JITTER_S = PASS_S
 #: A hold (the interval between two of the host's writes) more than this many periods
 #: off one period is cut from the records on a board that keeps its own time, as a stall
 #: is (:func:`usable_rows`); the smaller departures enter the stated uncertainty
@@ -470,10 +471,10 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         # it took the next. The stated uncertainty counts the host's own write times
         # (hold_bounds), not how the link's latency varied (unseen by the host): the
         # departure is called "differs" only if it is beyond the uncertainty with that
-        # latency varying by up to LINK_JITTER_PERIODS too; otherwise not measurable,
+        # latency varying by up to LINK_JITTER_S too; otherwise not measurable,
         # the departure kept (before any write-timing term: 4 of 10 correct runs
         # "differed" by 0.6-0.7 % in the felt stiffness)
-        jitter = LINK_JITTER_PERIODS * scene.period
+        jitter = LINK_JITTER_S
         link = None
         if any("holds" in r for r in runs):
             for r in runs:
