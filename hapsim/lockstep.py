@@ -383,10 +383,11 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
-    errors of the readings and of the forces.
+    errors of the readings and of the forces, and changes of the device's state.
 
     Each error enters the records through the loop (:func:`error_responses`: a reading
-    error is observed and fed back through the links, a force error moves the device),
+    error is observed and fed back through the links, a force error moves the device;
+    :func:`state_responses`: a state change is the device moved),
     and the fit to first order (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`);
     the rest record's errors enter every difference. For a felt entry ``o`` the worst
     case, whatever the errors' signs and correlation, is Hoelder's

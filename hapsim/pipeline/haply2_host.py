@@ -12,8 +12,11 @@ and the records' verdict is :func:`hapsim.emulated.haply2_verdict.felt_verdict_o
 the estimated rows' bounds enter the wire's term through the loop as reading errors do.
 The loop is linear and time-invariant between disturbances, so a record is cut at each
 (a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
-clamp: :func:`usable_rows`) and its undisturbed stretches are fitted jointly, each a free
-response of the same loop.
+clamp, a hold far off a period: :func:`usable_rows`) and its undisturbed stretches are
+fitted jointly, each a free response of the same loop. On a board that keeps its own
+time each torque acts from when the board takes its write to when it takes the next: the
+holds' departures from a period, from the host's write times, enter the stated
+uncertainty as changes of the device's state (:func:`hold_bounds`).
 
 ``python -m hapsim.pipeline.haply2_host`` still starts the emulated board's child
 (:func:`hapsim.pipeline.haply2_embedded.main`, its own entry since the split).
@@ -375,7 +378,11 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`) and ``usable`` (rows per
         record left after the cuts at those disturbances, :func:`usable_rows`; the
         stretches are fitted jointly, ``fitted_rows``): "not measurable" with the reason
-        when the stretches hold too few equations for the fit.
+        when the stretches hold too few equations for the fit. On a board on its own
+        clock the stated uncertainty counts the host's write timing (:func:`hold_bounds`,
+        ``wire["hold_s"]``); a "differs" there stands only when the departure is beyond
+        the uncertainty with :data:`LINK_JITTER_S` of unseen latency variation too
+        (``link_uncertainty``), else "not measurable" with the departure in the reason.
 
     Raises
     ------
