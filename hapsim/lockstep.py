@@ -29,7 +29,7 @@ from hapsim.analysis.felt_matrices import FELT_QUANTITIES, felt_deviation
 from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
-           "identification_plan", "error_responses", "wire_terms_nd"]
+           "identification_plan", "error_responses", "state_responses", "wire_terms_nd"]
 
 
 class LockstepND:
@@ -91,7 +91,7 @@ class LockstepND:
         self.joint = JointDeviceND(scene, p, self.state[n:]) if joint_space else None
 
     def step(self, samples: int = 1, record: bool = False, *, reading_error=None,
-             force_error=None):
+             force_error=None, state_error=None):
         """Advance the loop.
 
         Parameters
@@ -107,17 +107,32 @@ class LockstepND:
         force_error : ndarray, shape (samples, n), optional
             A force error [N] added to the force the device holds over sample ``i``
             (a wire's rounding of the force it is sent).
+        state_error : ndarray, shape (samples, 2 n), optional
+            A change of the device's state ``[x, v]`` [m, m/s] at sample ``i``, before it
+            is read: the device really is there (unlike a reading error), e.g. the motion
+            over a hold longer or shorter than a period
+            (:func:`hapsim.pipeline.haply2_host.hold_bounds`). Cartesian model only.
 
         Returns
         -------
         ndarray, shape (samples, n) or None
             The device's position deviation ``x_dev[n]`` [m] at each sample, before the
             step, plus ``reading_error`` (when ``record``).
+
+        Raises
+        ------
+        ConfigError
+            ``state_error`` with the joint-space model.
         """
         n = self.n
         out = np.empty((samples, n)) if record else None
         eng = self.engine
+        if state_error is not None and self.joint is not None:
+            raise ConfigError("a state error is modelled on the Cartesian device only",
+                              key="state_error")
         for i in range(int(samples)):
+            if state_error is not None:
+                self.state = self.state + state_error[i]
             x = self.state[:n]
             if reading_error is not None:
                 x = x + reading_error[i]
@@ -319,13 +334,60 @@ def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
     return out[0], out[1]
 
 
+def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
+    """The loop's responses to a change of the device's state at sample 0, per axis: of
+    its position and of its velocity (:meth:`LockstepND.step`'s ``state_error``).
+
+    As :func:`error_responses`: the lockstep loop from rest with the change, minus the
+    run without it, over the change's size (``size`` [m] for a position, ``size / T``
+    [m/s] for a velocity: a comparable motion over a period). Unlike a reading error the
+    device really moved: the record changes from sample 0 on by the loop's free response
+    to the new state. Exact for a linear loop; for a scene with Euclidean links or
+    contacts, the linearisation at rest to ``O(size)`` relative.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A validated scene with a port and a device.
+    samples : int
+        Length ``L`` of the responses.
+    size : float, optional
+        The position change's size [m] for the runs.
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        Shapes (L, n, n): the response to a position change [m/m] and to a velocity
+        change [m/(m/s)]; ``[t, :, j]`` the record's change at sample ``t`` for a unit
+        change along axis ``j`` at sample 0.
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`.
+    """
+    n = scene.dimension
+    L = int(samples)
+    rest = LockstepND(scene).step(L, record=True)
+    out = np.zeros((2, L, n, n))
+    for kind in range(2):
+        h = size if kind == 0 else size / scene.period
+        for j in range(n):
+            e = np.zeros((L, 2 * n))
+            e[0, kind * n + j] = h
+            out[kind, :, :, j] = (LockstepND(scene).step(L, record=True, state_error=e)
+                                  - rest) / h
+    return out[0], out[1]
+
+
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
-    errors of the readings and of the forces.
+    errors of the readings and of the forces, and changes of the device's state.
 
     Each error enters the records through the loop (:func:`error_responses`: a reading
-    error is observed and fed back through the links, a force error moves the device),
+    error is observed and fed back through the links, a force error moves the device;
+    :func:`state_responses`: a state change is the device moved),
     and the fit to first order (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`);
     the rest record's errors enter every difference. For a felt entry ``o`` the worst
     case, whatever the errors' signs and correlation, is Hoelder's
@@ -350,8 +412,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         The fit's order.
     errors : sequence of (str, array_like, bounds)
         Each ``(kind, G, bounds)``: ``kind`` ``"reading"`` (an error of the position
-        read, [m] at the handle per unit) or ``"force"`` (of the force held, [N] at the
-        handle per unit); ``G`` shape (n, m), the map from the error's ``m``
+        read, [m] at the handle per unit), ``"force"`` (of the force held, [N] at the
+        handle per unit), ``"position"`` or ``"velocity"`` (a change of the device's
+        state at the sample, [m] or [m/s] at the handle per unit: it moved, e.g. over a
+        hold longer or shorter than a period, :func:`state_responses`); ``G`` shape (n, m), the map from the error's ``m``
         coordinates to the handle's (e.g. ``J(q0)`` for joint angles, ``J(q0)^-T`` for
         joint torques, the identity for Cartesian ones); ``bounds`` the errors' bounds in
         those coordinates: shape (m,) for every sample of every record, or a list of
@@ -375,7 +439,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
     Raises
     ------
     ConfigError
-        As :func:`error_responses`; an error ``kind`` not ``"reading"`` or ``"force"``.
+        As :func:`error_responses`; an error ``kind`` not ``"reading"``, ``"force"``,
+        ``"position"`` or ``"velocity"``.
     """
     from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
     n = scene.dimension
@@ -396,13 +461,17 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         S = s.reshape(2 * n * n, s.shape[-2], n)
         D = np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, s.shape[-2], n)
         comb.append(np.concatenate([S, D])[:, None, None])
-    Hr, Hf = error_responses(scene, N)
+    kinds = ("reading", "force", "position", "velocity")
+    for kind, _, _ in errors:
+        if kind not in kinds:
+            raise ConfigError(f"an error's kind must be one of {', '.join(kinds)}, got "
+                              f"{kind!r}", key="errors")
+    resp = dict(zip(kinds[:2], error_responses(scene, N)))
+    if any(kind in kinds[2:] for kind, _, _ in errors):
+        resp.update(zip(kinds[2:], state_responses(scene, N)))
     wc = 0.0
     for kind, G, bounds in errors:
-        if kind not in ("reading", "force"):
-            raise ConfigError(f"an error's kind must be 'reading' or 'force', got {kind!r}",
-                              key="errors")
-        H = (Hr if kind == "reading" else Hf) @ np.asarray(G, float)
+        H = resp[kind] @ np.asarray(G, float)
         if isinstance(bounds, (list, tuple)):
             b = list(bounds[1:]) + [bounds[0]]       # the order of ``sens``
         else:

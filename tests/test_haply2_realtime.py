@@ -81,6 +81,7 @@ def test_scripted_missing_replies_are_estimated_and_bounded_lockstep():
                                  lockstep_board=True)
     assert sum(r["estimated"]) == link.late > 0
     assert r["replies"] == r["writes"] == [N + 2] * 5
+    assert "hold_s" not in r["wire"]                # a lockstep board's holds: periods
     assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
         (r["reason"], r["deviation"])
     assert (r["verdict"] == "partly within") == bool(r["not_stated"])

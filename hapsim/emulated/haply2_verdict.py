@@ -34,7 +34,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         which enters the wire's term through the loop as a reading error does;
         optionally ``usable`` (N,) bool: the rows of the record's undisturbed stretches
         (:func:`hapsim.pipeline.haply2_host.usable_rows`: a record cut at a host stall or
-        a re-synchronisation). A difference is fitted on the rows usable in both its
+        a re-synchronisation); optionally ``holds``: dict of ``delta`` (N,) [s],
+        ``position`` (N, 2) [m], ``velocity`` (N, 2) [m/s], the bounds of the state
+        changes the real hold lengths made (:func:`hapsim.pipeline.haply2_host.
+        hold_bounds`). A difference is fitted on the rows usable in both its
         record and the one from rest, every stretch jointly
         (:func:`hapsim.analysis.pencil.fit_felt_nd`'s ``usable``).
     plan : tuple
@@ -49,7 +52,11 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     dict
         As :func:`hapsim.emulated.haply2_lockstep.measure_felt_haply2`, and
         ``fitted_rows``: with ``usable`` given, per difference, the rows whose equation
-        was fitted (None without). When the stretches give too few equations for the fit
+        was fitted (None without). With ``holds`` in the records
+        (:func:`hapsim.pipeline.haply2_host.hold_bounds`: each hold's length off a
+        period moved the device), those state changes enter the wire's term too, and
+        ``wire["hold_s"]`` is the largest hold's departure from a period counted [s].
+        When the stretches give too few equations for the fit
         the verdict is "not measurable" with the reason (the whole records' fit reported,
         nothing stated of it).
     """
@@ -100,6 +107,13 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
               ("force", np.linalg.inv(J).T, [torque_rel * np.abs(r["torque"]) for r in runs])]
     if any("bounds" in r for r in runs):
         errors.append(("reading", np.eye(n), [r.get("bounds", np.zeros(2)) for r in runs]))
+    holds = [r.get("holds") for r in runs]
+    if any(h is not None for h in holds):
+        # the host's write timing: each hold's length off one period moved the device
+        # (hapsim.pipeline.haply2_host.hold_bounds), a change of its state at the sample
+        for kind in ("position", "velocity"):
+            errors.append((kind, np.eye(n), [np.zeros(2) if h is None else h[kind]
+                                             for h in holds]))
     if usable is not None:
         # an error at a row no stretch holds (cut out) only changes the initial state of
         # the stretches after it, a free response the fit does not see to first order
@@ -121,6 +135,15 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk))
+    if any(h is not None for h in holds):
+        # the largest hold off a period among the rows whose errors were counted
+        kept = ([np.logical_or.reduce(usable)] + list(usable) if usable is not None
+                else [np.ones(N, bool)] * len(runs))
+        wire["hold_s"] = float(max(np.max(h["delta"][u], initial=0.0)
+                                   for h, u in zip(holds, kept) if h is not None))
+        v["reason"] = (f"{v['reason']}; the wire's term counts the host's write timing "
+                       f"(each torque held over its real interval, up to "
+                       f"{wire['hold_s'] * 1e6:.0f} us off a period)")
     if short is not None:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
              "statements": [], "not_stated": ["felt stiffness", "felt damping"],

@@ -212,7 +212,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
         did not come: the board was re-armed to leave it at zero torque), ``decoder``
         (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
-        ``damaged``).
+        ``damaged``), ``write_s`` (N, 2) [s]: when the host's write whose reply is row
+        ``k``'s sample began and ended (``perf_counter``, from the first one's start;
+        the board took it in between, or a latency after: the holds' lengths,
+        :func:`hapsim.pipeline.haply2_host.hold_bounds`).
 
     Raises
     ------
@@ -291,6 +294,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     # perf_counter() of the write whose reply is each tick's sample (the arming's zero
     # write for tick 0)
     t_wrote = np.full(N + 2, np.nan)
+    t_began = np.full(N + 2, np.nan)                # perf_counter() as that write began
 
     def arm(at_deg, k):
         """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
@@ -338,6 +342,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             dec.clear()                         # a reply's part left: dropped too
             dec.reset_prediction()              # the set-up's offsets start afresh
             got = k
+            t_began[k] = time.perf_counter()
             _write(ser, zero)
             t_wrote[k] = time.perf_counter()
             if bounded:
@@ -439,6 +444,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     write_into = driver.write_into
     clamp1 = driver.clamp1
     t0 = time.perf_counter()
+    if not lockstep_board:
+        # the first hold a period too: the board holds the arming's zero write from when
+        # it took it, so tick 0's write goes out a period after that write began, not
+        # when its reply came (before: 0.4-0.6 ms after, every record's first hold short
+        # by ~0.6 ms, the velocity records' second sample off by ~6 % of the amplitude).
+        # A reply later than that: from now, as before
+        t0 = max(t0, t_began[0] + T)
     for k in range(N):
         deadline = t0 + k * T
         now = time.perf_counter()
@@ -526,6 +538,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         pos[k, 0] = x[0]
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
+        t_began[k + 1] = time.perf_counter()
         _write(ser, wbuf)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
@@ -566,7 +579,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
             "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
             "held_zero": held_zero, "bad_setups": bad_setups, "left": left,
-            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats)}
+            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats),
+            "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0]}
 
 
 class PortLink:
