@@ -6,7 +6,8 @@ A board without a watchdog (the Hapkit sketch behind the embedded pty mock of
 host wakes late, stops, brakes the handle to rest, then sends zero force. For each run
 this prints the stop, the speed the host found, how long the braking took, and the
 coast that friction alone would have given from that speed, ``|v| m / b`` (closed form),
-beside the handle's true largest excursion (the mock's own record).
+beside the handle's true largest excursion (the mock's own record); in metres, or in
+radians for a rotary axis (``configs/haply.yaml``: the M3's joint, its inertia as mass).
 
 Usage::
 
@@ -57,7 +58,10 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="FILE", help="write the runs as JSON")
     args = ap.parse_args(argv)
     from hapsim.scene import load_scene
-    dev = load_scene(str(ROOT / args.scene)).device
+    sc = load_scene(str(ROOT / args.scene))
+    dev = sc.device
+    # a rotary axis (the Haply M3's joint: device.mass an inertia) is in radians
+    u = "rad" if "haply" in str(getattr(dev, "protocol", "") or "") else "m"
     rows = []
     for i in range(args.runs):
         print(f"run {i + 1}/{args.runs} ...", file=sys.stderr, flush=True)
@@ -73,12 +77,12 @@ def main(argv=None) -> int:
                else abs(v0) * dev.mass / dev.friction,
                "verdict": (rep.get("measured") or {}).get("verdict")}
         rows.append(row)
-        print(f"{row['stop'][:70]:70s} v {v0 if v0 is None else round(v0, 3)} m/s, braked "
+        print(f"{row['stop'][:70]:70s} v {v0 if v0 is None else round(v0, 3)} {u}/s, braked "
               f"{row['brake_periods']} periods ({row['brake_s'] or 0:.3f} s, "
               f"{row['brake_ended']}); friction alone: "
-              f"{row['friction_coast_m'] if row['friction_coast_m'] is None else round(row['friction_coast_m'], 3)} m"
-              f" further; true excursion {row['true_excursion_m']:.3f} m "
-              f"(workspace {row['workspace_m']:g} m)")
+              f"{row['friction_coast_m'] if row['friction_coast_m'] is None else round(row['friction_coast_m'], 3)} {u}"
+              f" further; true excursion {row['true_excursion_m']:.3f} {u} "
+              f"(workspace {row['workspace_m']:g} {u})")
     if args.json:
         Path(args.json).write_text(json.dumps({"scene": args.scene, "stall_ms": args.stall_ms,
                                                "runs": rows}, indent=1))
