@@ -104,6 +104,7 @@ def test_the_handle_stops_within_the_brakes_bound_not_the_frictions_coast(case):
     bk = res.brake
     assert bk["damping"] == BRAKE_GAIN * m * rate     # the same two products
     assert bk["ended"] in ("rest", "time") and bk["seconds"] <= BRAKE_MAX_S + 3 * T
+    assert bk["late"] == 0             # the virtual clock: the host is never late
     # the last force is zero, then STOP (whatever the braking sent before)
     forces = [msg for msg in sent if type(msg) in (fp.Force, fp.Stop)]
     assert type(forces[-1]) is fp.Stop and forces[-2].force == (0.0,)

@@ -372,7 +372,10 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
             # does not run; what it must do once it runs: stop, brake the handle to rest
             # (hapsim.host.recovery: friction alone would carry it v m / b further), leave
             # zero force (asserted above), and say no "within".
-            assert loop["brake"] and loop["brake"]["ended"] == "rest", loop["brake"]
+            # (at rest, unless the host was late again while braking: then the braking
+            # may run out of its 0.25 s; zero force is still left, asserted above)
+            bk = loop["brake"]
+            assert bk and (bk["ended"] == "rest" or bk["late"] > 0), bk
             assert (rep.get("measured") or {}).get("within") is not True
             return
         assert ("the host was" in reason and "late" in reason) or \

@@ -395,7 +395,8 @@ class LoopResult:
         The braking after a safety stop (:meth:`hapsim.host.recovery.Recovery._brake`):
         ``damping`` [N s/m], ``periods`` (forces sent), ``seconds``, ``v_start`` and
         ``v_end`` [m/s] (the first and last speed estimated, None without two STATEs),
-        ``ended`` (``"rest"``, ``"time"`` or ``"port"``); empty when it did not brake.
+        ``ended`` (``"rest"``, ``"time"`` or ``"port"``), ``late`` (its periods that took
+        the host more than two: a loaded host's); empty when it did not brake.
     """
 
     samples: int = 0

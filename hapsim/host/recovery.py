@@ -118,8 +118,9 @@ class Recovery:
         seq = (self._last_seq + 1) & SEQ_MASK
         prev = None                   # (position, device time [us]) of the last STATE
         v = v_start = None
-        still = periods = 0
+        still = periods = late = 0
         ended = "time"
+        last = t0
         while clock() < end:
             f = 0.0 if v is None else min(max(-B * v, -lim), lim)
             tr.send(fp.Force(seq, (f,)))
@@ -145,8 +146,12 @@ class Recovery:
             wait = deadline - clock()
             if wait > 0.0:
                 sleep(wait)
+            now = clock()
+            if now - last > 2.0 * T:
+                late += 1                 # the host itself late: a period held longer
+            last = now
         res.brake = {"damping": B, "periods": periods, "seconds": clock() - t0,
-                     "v_start": v_start, "v_end": v, "ended": ended}
+                     "v_start": v_start, "v_end": v, "ended": ended, "late": late}
 
     def _state_timeout(self) -> None:
         tr = self.transport
