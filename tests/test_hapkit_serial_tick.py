@@ -203,6 +203,52 @@ def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, 
     assert _near(got) <= 0.25, sorted(got)
 
 
+@pytest.mark.parametrize("phase_us, transit_us", [(300, 200), (950, 40)])
+def test_writes_the_host_made_a_tick_late_are_marked_and_cut(monkeypatch, phase_us,
+                                                             transit_us):
+    """On the simulated board's tick (its truth: the tick that took each command), the
+    aligned writes of a 4 ms period, one in ten made late by 0.6-0.9 of a tick by the host
+    (its own lateness, which it sees): every write the board took at another number of
+    ticks after the one before than the period's is marked (``mistimed``), and so is the
+    write after it; no write taken at the period's tick both before and after is marked
+    unless it came within the band of a boundary. The measurement's mask
+    (:meth:`hapsim.drivers.base.Driver.mistimed_rows`) then holds rows ``k - 1`` and
+    ``k`` of each marked tick ``k``."""
+    port = TickingPort(phase_us * 1000, transit_us * 1000)
+    tr = _transport(monkeypatch, port)
+    assert tr.tick_phase() is not None, tr.tick_probe
+    tr._period_ticks = 4
+    rng = np.random.default_rng(phase_us)
+    cmd = tr.driver.encode_force(0.0)
+    port.ticks.clear()
+    at = time.monotonic_ns()
+    late_seqs = set()
+    for seq in range(200):
+        due = at + seq * 4 * TICK_NS
+        if seq % 10 == 5:
+            due += int(rng.uniform(0.6, 0.9) * TICK_NS)
+            late_seqs.add(seq)
+        wait = due - time.monotonic_ns()
+        if wait > 0:
+            time.sleep(wait * 1e-9)
+        tr._write_tick = None
+        tr._command(cmd)
+        tr._note_hold(seq)
+    ticks = np.asarray(port.ticks)
+    off = {i for i in range(1, len(ticks)) if ticks[i] - ticks[i - 1] != 4}
+    assert off, "the late writes moved no hold"
+    assert off <= tr.mistimed, (sorted(off - tr.mistimed), sorted(tr.mistimed))
+    # every late write is the start of an off hold (the board took it a tick later)
+    assert late_seqs <= off
+    # nothing else marked but writes near a boundary
+    assert len(tr.mistimed - off) <= 0.1 * 200, sorted(tr.mistimed - off)
+    seqs = np.arange(200)
+    mask = tr.driver.mistimed_rows({"seq": seqs})
+    want = np.isin(seqs, sorted(tr.mistimed))
+    want[:-1] |= want[1:]
+    assert np.array_equal(mask, want)
+
+
 def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     """The sketch samples and applies forces on its 1 ms ticks: 300 Hz would sample at 3,
     3 and 4 ms intervals (another loop than the one modelled), so it is refused with the

@@ -249,6 +249,45 @@ class Driver:
     unframed = False
     answering_firmware = "answers each command"
     streaming_firmware = "streams records unprompted"
+    #: The host ticks whose force a board on its own tick may have taken a tick early or
+    #: late (set by the run's :class:`hapsim.drivers.transport.DriverTransport`: its
+    #: ``mistimed``); None: none known (:meth:`mistimed_rows`).
+    mistimed_seqs: set | None = None
+
+    def mistimed_rows(self, columns: dict):
+        """Rows whose force was held a tick longer or shorter than the loop's period, left
+        out of the measurement, or None.
+
+        A board that takes commands on its own tick (the Hapkit sketch's 1 ms) takes a
+        write near its tick's boundary at one tick or the next, and a write a host made
+        late by more than half a tick at the next: the force before that write is then
+        held a tick longer (or shorter), and its own a tick shorter (or longer), which no
+        reply says. The transport marks such host ticks from its own write times against
+        the probed boundary (:meth:`hapsim.drivers.transport.DriverTransport._note_hold`);
+        rows ``k - 1`` and ``k`` of a marked tick ``k`` are left out here, the record cut
+        there as at a clamped force it cannot replay (``exclude`` of
+        :func:`hapsim.analysis.identify.identify`: each stretch after a cut a free
+        response from its own initial state, its first ``d + 2`` rows dropped: the holds
+        in flight).
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (``seq``, shape (n,)).
+
+        Returns
+        -------
+        ndarray of bool, shape (n,), or None
+        """
+        if not self.mistimed_seqs:
+            return None
+        import numpy as np
+        seq = np.asarray(columns["seq"], np.int64)
+        hit = np.isin(seq, np.fromiter(self.mistimed_seqs, np.int64,
+                                       len(self.mistimed_seqs)))
+        out = hit.copy()
+        out[:-1] |= hit[1:]                 # the row before: its force's hold ended there
+        return out
 
     def options(self) -> dict:
         """The device parameters this driver was built with (its constructor's keywords

@@ -87,6 +87,17 @@ class TickAligned:
                 time.sleep(wait * 1e-9)
             over = min(max(time.monotonic_ns() - due, 0), tk // 2)
             self._over_ns = int(0.9 * self._over_ns + 0.1 * over)
+        self._note_tick(time.monotonic_ns())
+
+    def _note_tick(self, t_ns: int) -> None:
+        """Where a write at ``t_ns`` falls on the board's tick grid: ``_write_tick`` =
+        ``(tick index, near)``, the index counted from the probed boundary and ``near``
+        whether it is within :data:`BAND` of a tick of a boundary (the probe places the
+        boundary to a sixteenth of a tick; the link's latency varies too), where the board
+        may take it at one tick or the other."""
+        tk = self._tick_ns
+        n, ph = divmod(t_ns - self._write_at, tk)
+        self._write_tick = (int(n), min(ph, tk - ph) < self.BAND * tk)
 
     def tick_phase(self) -> dict | None:
         """Measure where the host's writes fall in the board's tick, and write in its

@@ -111,6 +111,9 @@ HOLD_BOUND_S = 0.02
 CLAIM_QUIET_S = 0.03
 #: Commands remembered for attributing records (a ring; far more than a record can lag).
 _RING = 64
+#: Most host ticks kept as mistimed (:meth:`DriverTransport._note_hold`): the measurement
+#: reads the record's head; an open-ended run's later ones are not needed.
+MISTIMED_MAX = 1 << 16
 
 
 class DriverStats:
@@ -263,6 +266,14 @@ class DriverTransport(TickAligned):
         self._delay_ns = 0                  # the delay that puts them mid-tick
         self._over_ns = 0                   # how late its sleep wakes, a running mean
         self.tick_probe = None              # what the last probe found (report)
+        self._write_tick = None             # the last write's (tick index, near) on it
+        self._period_ticks = None           # the host's period in whole ticks, or None
+        self._prev_tick = None              # (seq, tick index, near) of the last FORCE
+        # the host ticks whose FORCE the board may have taken a tick early or late (its
+        # write near the tick's boundary, or a hold of another number of ticks than the
+        # period's): the driver's measurement cuts the record there (mistimed_rows)
+        self.mistimed: set = set()
+        driver.mistimed_seqs = self.mistimed
         self._tick_probed = False           # probed at the first arming
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]
@@ -351,7 +362,10 @@ class DriverTransport(TickAligned):
                 self._resync()
                 return
             self._force = f
+            self._write_tick = None
             self._command(dr.encode_force(f))
+            if self._write_tick is not None and self._period_ticks:
+                self._note_hold(msg.seq)
         elif t is fp.HelloRequest:
             self._q.append(fp.Hello(fp.PROTOCOL_VERSION, 1, dr.device_id, dr.position_scale,
                                     dr.force_scale, dr.force_limit, dr.native_rate_hz))
@@ -371,6 +385,13 @@ class DriverTransport(TickAligned):
             self._answered = self._cmd          # records of earlier commands are stale
             self._arm_ns = time.monotonic_ns()
             self._settle = int(dr.arming_records)
+            self._prev_tick = None
+            if self._tick_ns:
+                ticks = 1e9 / float(msg.rate_hz) / self._tick_ns
+                # a period of whole ticks: every hold is that many (else they alternate
+                # by nature, which the loop's model does not hold either)
+                self._period_ticks = (int(round(ticks)) if abs(ticks - round(ticks)) < 1e-6
+                                      else None)
             if (self._tick_ns and self._handled is None and self._board_T is None
                     and not self._tick_probed):
                 # once, at the first arming (the device at rest): a re-arming mid-run
@@ -385,6 +406,21 @@ class DriverTransport(TickAligned):
             self._armed = False
             self._force = 0.0
             self._write(dr.stop_bytes(self._x_last))
+
+    def _note_hold(self, seq: int) -> None:
+        """After the FORCE of host tick ``seq`` was written to a ticking board: mark it
+        mistimed (:attr:`mistimed`) when its write fell near the board's tick boundary, or
+        the one before it did, or the board ticks between the two writes were not the
+        period's (:meth:`hapsim.drivers.tick_align.TickAligned._note_tick`): the force
+        before it was then held a tick longer or shorter than the loop's period, an input
+        no reply names (docs/drivers.md, "Hapkit-serial: the sketch's tick")."""
+        n, near = self._write_tick
+        prev = self._prev_tick
+        if near or (prev is not None and prev[0] == seq - 1
+                    and (prev[2] or n - prev[1] != self._period_ticks)):
+            if len(self.mistimed) < MISTIMED_MAX:
+                self.mistimed.add(int(seq))
+        self._prev_tick = (int(seq), n, near)
 
     def _drain(self, quiet_s: float) -> None:
         """Read and drop until the port has been silent ``quiet_s`` [s] (at most 1 s)."""

@@ -60,6 +60,7 @@ class HapkitSerialDevice(Actuated):
         from hapsim.drivers import hapkit_serial as hk
         self._hk = hk
         self._phases: list = []                       # where in its tick each came
+        self._ticks: list = []                        # the tick that took each
         super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
         self.decoder = hk.CommandDecoder()
         self.ready_at = 0.0
@@ -75,6 +76,7 @@ class HapkitSerialDevice(Actuated):
                 # the tick after the command came (several in one read: one tick each)
                 k = max(math.floor(now / self.TICK_S) + 1, self._tick + 1)
                 self._phases.append(now / self.TICK_S - math.floor(now / self.TICK_S))
+                self._ticks.append(k)
                 self._tick = k
                 tick = k * self.TICK_S
                 self.wall.run_to(tick)
@@ -102,8 +104,20 @@ class HapkitSerialDevice(Actuated):
         timing: ``commands``; ``near_boundary``, those within a tenth of a tick of the
         tick's end or start (a command coming there is taken at one tick or the next by
         a jitter of 0.1 ms: a sample interval a tick off the host's period);
-        ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick]."""
+        ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick];
+        ``off_period``, the commands taken another number of ticks after the one before
+        than the period holds (a force held a tick longer or shorter; a gap of more than
+        two periods, the probes' and an arming's, not counted), with ``off_at`` the
+        first 1000 of them (their index among the commands)."""
         ph = sorted(self._phases)
         near = sum(1 for p in ph if p < 0.1 or p > 0.9)
+        per = self.physics.period / self.TICK_S
+        off = []
+        if abs(per - round(per)) < 1e-6:
+            per = int(round(per))
+            t = self._ticks
+            off = [i for i in range(1, len(t))
+                   if t[i] - t[i - 1] != per and t[i] - t[i - 1] <= 2 * per]
         return {"commands": len(ph), "near_boundary": near,
-                "median_phase": ph[len(ph) // 2] if ph else None}
+                "median_phase": ph[len(ph) // 2] if ph else None,
+                "off_period": len(off), "off_at": off[:1000]}

@@ -135,6 +135,13 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         unknown = late_info.pop("_unknown_rows", None)
         if unknown is not None:
             clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
+        # rows whose force a board on its own tick held a tick longer or shorter than the
+        # period (a write near the tick's boundary, or late by more than half a tick:
+        # hapsim.drivers.base.Driver.mistimed_rows), cut as those
+        rows_of = getattr(driver, "mistimed_rows", None)
+        mistimed = None if rows_of is None else rows_of(cols)
+        if mistimed is not None:
+            clamp_unknown = mistimed if clamp_unknown is None else clamp_unknown | mistimed
         wire = wire_errors(scene, cols, start, driver)
         hw = late_info.pop("_force_half_width", None)
         lfb = late_info.pop("_late_force_bound", None)
@@ -175,6 +182,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             exclude=((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
                                      else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown),
                             wire=wire, bounds=bounds or None, late_bounds=late_bounds)
+        if mistimed is not None:
+            measured["mistimed_rows"] = int(np.count_nonzero(mistimed))
         if replay is not None:
             contact_verdict(measured, replay, cols["seq"], start, T)
         if measured.get("first_seq") is not None and cols["seq"].size:
