@@ -228,7 +228,8 @@ def hold_bounds(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> dict:
     return out
 
 
-def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> dict:
+def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
+                     first_torque=None) -> dict:
     """The state changes the host's write timing made, estimated from the record with
     their signs, and the bounds of what that estimate leaves (issue 29: the known holds
     corrected, only the remainder in the stated uncertainty).
@@ -273,9 +274,9 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> d
 
     ``a_max`` is :func:`hold_bounds`'s bound of the acceleration over the record; each
     axis is bounded by the norm. A row without both readings (an estimated or damaged
-    sample), row 1 (the force held over the first hold is not in the record), a hold
-    with ``c`` not finite, or a hold not finite is not corrected: its ``w_hat`` is 0 and
-    its bound :func:`hold_bounds`'s. With writes exactly ``T`` apart and ``L = 0``
+    sample), row 1 without ``first_torque`` (the torque held over the first hold, written
+    with row 0's write, is not in the record), a hold with ``c`` not finite, or a hold
+    not finite is not corrected: its ``w_hat`` is 0 and its bound :func:`hold_bounds`'s. With writes exactly ``T`` apart and ``L = 0``
     everything is 0 (the record is left as it is).
 
     Parameters
@@ -290,6 +291,10 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> d
         The readings' rounding per joint [rad].
     latency_s : float, optional
         ``L`` [s] (0: the latency constant).
+    first_torque : array_like, shape (2,), optional
+        The torque row 0's write carried [N m], held over the first hold:
+        :func:`record_realtime`'s row 0 is the arming's zero write (0, 0), whose reply is
+        sample 0. Without it, row 1 is not corrected.
 
     Returns
     -------
@@ -318,6 +323,13 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> d
     tau = np.asarray(rec["torque"], float)
     Fall = np.linalg.solve(J.T, tau.T).T
     eFall = 2.0 ** -24 * np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(tau).T, axis=0)
+    # the force held over hold k is row k - 1's of these (row k - 2's torque; row -1:
+    # the torque of row 0's write)
+    Fall = np.vstack([np.zeros((1, 2)) if first_torque is None else
+                      np.linalg.solve(J.T, np.asarray(first_torque, float)), Fall])
+    eFall = np.concatenate([[0.0 if first_torque is None else 2.0 ** -24 * float(
+        np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(np.asarray(first_torque, float))))],
+        eFall])
     # a_max as hold_bounds's: the force's largest, the record's largest speed bound
     m_min = float(np.min(np.linalg.eigvalsh(M)))
     b_max = float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (B + B.T)))))
@@ -327,7 +339,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> d
     v_rec = float(np.nanmax(mean)) if np.isfinite(mean).any() else 0.0
     a_max = (float(np.max(np.linalg.norm(Fall, axis=1), initial=0.0)) + b_max * v_rec) / m_min
     pos, vel = out["position"].copy(), out["velocity"].copy()
-    for k in range(2, N):
+    for k in range(1 if first_torque is not None else 2, N):
         h = b[k] - b[k - 1]
         dh = h - T
         dx = x[k] - x[k - 1]
@@ -335,7 +347,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> d
         if not (np.isfinite(dx).all() and np.isfinite(h) and np.isfinite(out["delta"][k])
                 and h_lo > 0 and h_hi * nMiB < 2):
             continue
-        F, eF = Fall[k - 2], float(eFall[k - 2])
+        F, eF = Fall[k - 1], float(eFall[k - 1])
         c = 1.0 / (1.0 - h_hi * nMiB / 2)
         v_hat = np.linalg.solve(np.eye(2) + h / 2 * MiB, dx / h + h / 2 * (Mi @ F))
         a_hat = Mi @ (F - B @ v_hat)
@@ -618,8 +630,10 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             # remainder in the uncertainty (hold_corrections; the worst case of each
             # hold's sign let 6 of 10 correct runs leave the damping unstated), and the
             # same with the link's unseen latency for a "differs" (below)
-            hc = hold_corrections(r, scene, J, delta)
-            r["holds_link"] = hold_corrections(r, scene, J, delta, latency_s=LINK_JITTER_S)
+            # (row 0's write is the arming's zero write: the first hold's torque is 0)
+            hc = hold_corrections(r, scene, J, delta, first_torque=(0.0, 0.0))
+            r["holds_link"] = hold_corrections(r, scene, J, delta, latency_s=LINK_JITTER_S,
+                                               first_torque=(0.0, 0.0))
             w_hat = np.where(np.asarray(r["usable"], bool)[:, None], hc["state"], 0.0)
             r["position"] = np.asarray(r["position"], float) - hold_motion(scene, w_hat)
             r["holds"] = hc
