@@ -15,8 +15,10 @@ The loop is linear and time-invariant between disturbances, so a record is cut a
 clamp, a hold far off a period: :func:`usable_rows`) and its undisturbed stretches are
 fitted jointly, each a free response of the same loop. On a board that keeps its own
 time each torque acts from when the board takes its write to when it takes the next: the
-holds' departures from a period, from the host's write times, enter the stated
-uncertainty as changes of the device's state (:func:`hold_bounds`).
+holds' departures from a period, from the host's write times, are changes of the
+device's state (:func:`hold_bounds`): known with their signs, they are estimated and
+their motion through the loop removed from the records (:func:`hold_corrections`,
+:func:`hold_motion`), and what that estimate leaves enters the stated uncertainty.
 
 ``python -m hapsim.pipeline.haply2_host`` still starts the emulated board's child
 (:func:`hapsim.pipeline.haply2_embedded.main`, its own entry since the split).
@@ -191,6 +193,11 @@ def hold_bounds(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> dict:
         ``delta`` (N,) the bound of ``|delta_k|`` [s] (0 at row 0, the record's start),
         ``position`` (N, 2) [m] and ``velocity`` (N, 2) [m/s]: the bounds of ``w_k``
         per axis. All 0 where the writes were exactly ``T`` apart.
+
+    See Also
+    --------
+    hold_corrections : the same changes estimated with their signs (the measurement's
+        correction), this worst case kept where a change is not estimated.
     """
     T = scene.period
     w = np.asarray(rec["write_s"], float)
@@ -548,7 +555,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         record left after the cuts at those disturbances, :func:`usable_rows`; the
         stretches are fitted jointly, ``fitted_rows``): "not measurable" with the reason
         when the stretches hold too few equations for the fit. On a board on its own
-        clock the stated uncertainty counts the host's write timing (:func:`hold_bounds`,
+        clock the records are corrected for the host's write timing and the stated
+        uncertainty counts what the correction leaves (:func:`hold_corrections`,
         ``wire["hold_s"]``); a "differs" there stands only when the departure is beyond
         the uncertainty with :data:`LINK_JITTER_S` of unseen latency variation too
         (``link_uncertainty``), else "not measurable" with the departure in the reason.
