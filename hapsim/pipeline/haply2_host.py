@@ -289,8 +289,13 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     axis is bounded by the norm. A row without both readings (an estimated or damaged
     sample), row 1 without ``first_torque`` (the torque held over the first hold, written
     with row 0's write, is not in the record), a hold with ``c`` not finite, or a hold
-    not finite is not corrected: its ``w_hat`` is 0 and its bound :func:`hold_bounds`'s. With writes exactly ``T`` apart and ``L = 0``
-    everything is 0 (the record is left as it is).
+    not finite is not corrected: its ``w_hat`` is 0 and its bound :func:`hold_bounds`'s.
+    With writes exactly ``T`` apart and ``L = 0`` everything is 0 (the record is left as
+    it is). Not in the bound: the mass and the Jacobian changing with the configuration
+    over the record's excursion (first order in the amplitude, as the velocity-product
+    terms; the linearisation bound's part of the uncertainty), and a board other than
+    the scene's (a wrong loop: its correction is off by as much as its departure makes
+    the loop's response to ``w_hat`` differ, which the verdict then sees as departure).
 
     Parameters
     ----------
