@@ -294,8 +294,8 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     it is). Not in the bound: the mass and the Jacobian changing with the configuration
     over the record's excursion (first order in the amplitude, as the velocity-product
     terms; the linearisation bound's part of the uncertainty), and a board other than
-    the scene's (a wrong loop: its correction is off by as much as its departure makes
-    the loop's response to ``w_hat`` differ, which the verdict then sees as departure).
+    the scene's (a wrong loop: its correction is off by the departure times the holds'
+    effect, second order, as the wire's other terms computed on the predicted loop).
 
     Parameters
     ----------
