@@ -188,7 +188,13 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
             "exit_code": 0 if r["verdict"] != "differs" else 1,
             "reason": r.get("reason"), "estimated": int(sum(r["estimated"])),
             "held_zero": int(sum(r["held_zero"])), "left": r.get("left"),
-            "held_at_end": board.settles_on(), "error": None}
+            "held_at_end": board.settles_on(), "error": None,
+            # the figures beside the verdict (issue 29): each felt matrix's deviation, its
+            # stated uncertainty, the wire's term in it, the largest hold off a period
+            **{key: {q: (r.get(src) or {}).get(q) for q in ("felt_stiffness", "felt_damping")}
+               for key, src in (("deviation", "deviation"), ("uncertainty", "uncertainty"),
+                                ("wire_term", "wire"))},
+            "hold_s": (r.get("wire") or {}).get("hold_s")}
 
 
 def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:

@@ -37,7 +37,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         a re-synchronisation); optionally ``holds``: dict of ``delta`` (N,) [s],
         ``position`` (N, 2) [m], ``velocity`` (N, 2) [m/s], the bounds of the state
         changes the real hold lengths made (:func:`hapsim.pipeline.haply2_host.
-        hold_bounds`). A difference is fitted on the rows usable in both its
+        hold_bounds`), or, with ``corrected`` (N,) bool, of what the records' correction
+        for them left (:func:`hapsim.pipeline.haply2_host.hold_corrections`). A difference is fitted on the rows usable in both its
         record and the one from rest, every stretch jointly
         (:func:`hapsim.analysis.pencil.fit_felt_nd`'s ``usable``).
     plan : tuple
@@ -141,9 +142,12 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
                 else [np.ones(N, bool)] * len(runs))
         wire["hold_s"] = float(max(np.max(h["delta"][u], initial=0.0)
                                    for h, u in zip(holds, kept) if h is not None))
+        corrected = any(h is not None and np.any(h.get("corrected", False)) for h in holds)
         v["reason"] = (f"{v['reason']}; the wire's term counts the host's write timing "
                        f"(each torque held over its real interval, up to "
-                       f"{wire['hold_s'] * 1e6:.0f} us off a period)")
+                       f"{wire['hold_s'] * 1e6:.0f} us off a period"
+                       + ("; the holds' known departures corrected, what the correction "
+                          "leaves counted" if corrected else "") + ")")
     if short is not None:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
              "statements": [], "not_stated": ["felt stiffness", "felt damping"],
