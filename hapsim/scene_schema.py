@@ -515,6 +515,12 @@ _KEYS = [
     Key("safety.max_damping", "number", "N s/m", default=50.0, minimum=0.0,
         doc="Cap of the passivity controller's adaptive damping.",
         example="safety: {passivity_controller: true, max_damping: 20}"),
+    Key("safety.brake", "boolean", default=True,
+        doc="After a safety stop on the device's motion (force at the limit, position, "
+            "velocity, energy, the host's lateness), brake the device to rest with the "
+            "damping B = m / 4T (at most 0.25 s) before the zero force; false: zero force "
+            "at once (docs/reliability.md).",
+        example="safety: {brake: false}"),
 ]
 
 #: Every key of the scene format, in the order the reference and the error messages list them.
@@ -636,7 +642,8 @@ audio:
     Section("audio.listen[]", "audio.listen[]: the listening points",
             "Each entry is one output channel.", ""),
     Section("safety", "safety: the limits of hapsim run",
-            "Every limit ends the run with a zero force and STOP (exit 1).", _WALL + """\
+            "Every limit ends the run with a zero force and STOP (exit 1), a device still "
+            "moving braked to rest first (brake).", _WALL + """\
 device: {mass: 0.1, friction: 0.5}
 safety:
   position_limit: 0.1
@@ -644,6 +651,7 @@ safety:
   energy_limit: 1.0
   passivity_controller: false
   max_damping: 50
+  brake: true
 """),
 )
 assert {s.path for s in SECTIONS} == {k.section for k in _KEYS}, "a section without a heading"

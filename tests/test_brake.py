@@ -166,3 +166,31 @@ def test_the_braking_damping_of_a_device():
     for bad in (0.0, -1.0, math.nan, math.inf):
         assert brake_damping(bad, 250.0) == 0.0
         assert brake_damping(0.1, bad) == 0.0
+
+
+@pytest.mark.parametrize("brake", [True, False])
+def test_the_scenes_safety_brake_key_turns_it_on_and_off(brake):
+    """``safety: {brake: false}`` leaves a stop's zero force at once; the default brakes.
+    A run of an unstable scene on the virtual clock (the real-time mock), until its
+    force-limit stop: ``loop.brake`` and ``loop.safety.brake_damping`` say which."""
+    from hapsim.pipeline.runner import run_scene
+    sc = parse_scene(f"""
+rate_hz: 250
+masses:
+  - {{name: handle, kind: port}}
+  - {{name: wall, kind: ground, x0: 0.0}}
+links:
+  - {{name: spring, kind: spring_damper, between: [handle, wall], stiffness: 150.0, damping: 0.0}}
+device: {{mass: 0.1, friction: 0.3, delay: 1, hold: zoh, force_limit: 2.0}}
+excitation: {{x0: 0.01}}
+safety: {{brake: {str(brake).lower()}}}
+""")
+    rep = run_scene(sc, allow_unstable=True, transport="sim",
+                    handle_signals=False)
+    loop = rep["loop"]
+    assert loop["safety_stop"], loop["stop_reason"]
+    if brake:
+        assert loop["safety"]["brake_damping"] == BRAKE_GAIN * 0.1 * 250.0
+        assert loop["brake"] and loop["brake"]["periods"] > 0
+    else:
+        assert loop["safety"]["brake_damping"] == 0.0 and loop["brake"] is None

@@ -162,7 +162,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
-                   "max_damping": cfg.max_damping},
+                   "max_damping": cfg.max_damping, "brake_damping": cfg.brake_damping},
         "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
     }
     targets = prep.targets

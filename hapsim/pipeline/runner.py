@@ -184,7 +184,8 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       # force (hapsim.host.recovery, module notes), until the coast left
                       # on friction alone, v m / b, is 1 % of the workspace (without
                       # friction: 1 % of it a second)
-                      brake_damping=brake_damping(dev.mass, scene.rate_hz),
+                      brake_damping=(brake_damping(dev.mass, scene.rate_hz) if sf.brake
+                                     else 0.0),
                       brake_rest=0.01 * pos_bound * (dev.friction / dev.mass
                                                      if dev.friction > 0.0 and dev.mass > 0.0
                                                      else 1.0))

@@ -257,6 +257,9 @@ class Safety:
         to the hand beyond what the scene stored at its (re)start, is positive.
     max_damping : float
         Cap of the adaptive damping [N s/m].
+    brake : bool
+        Brake the device to rest after a safety stop on its motion, before the zero force
+        (:meth:`hapsim.host.recovery.Recovery._brake`); False: zero force at once.
     """
 
     position_limit: float | None = None
@@ -264,6 +267,7 @@ class Safety:
     energy_limit: float = 1.0
     passivity_controller: bool = False
     max_damping: float = 50.0
+    brake: bool = True
 
 
 @dataclass(frozen=True)
