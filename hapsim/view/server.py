@@ -139,6 +139,13 @@ class ViewServer:
         #: measure_record`, the run's own); the last one the report's once it is in.
         self.measurements: list[dict] = []
         self._measuring = None
+        #: The analysis process of those measurements, apart from the controller's: a
+        #: live change's stability checks (:meth:`hapsim.audio.control.Controller.request`,
+        #: four predictions in the controller's one analysis process) must never queue
+        #: behind a measurement of the growing record (on a loaded machine, in a process
+        #: at nice 10, a change once waited over 60 s for its reply). Started at the
+        #: first measurement, ended with the server.
+        self._measurer = None
 
     # ---------------------------------------------------------------- control
     def start(self) -> "ViewServer":
@@ -247,6 +254,8 @@ class ViewServer:
         await self._closing.wait()
         if measuring is not None:
             measuring.cancel()
+        if self._measurer is not None:
+            self._measurer.close()
         server.close()
         await server.wait_closed()
 
@@ -276,8 +285,33 @@ class ViewServer:
             if args is None:
                 continue
             last = n
-            self._measuring = self.ctl.analyst.submit(self.source.measure, args,
+            self._measuring = self.submit_measurement(self.source.measure, args,
                                                       self.measurements.append)
+
+    def submit_measurement(self, fn, args: tuple, done=None):
+        """Run ``fn(*args)`` in the view's own analysis process (started at the first
+        call; :attr:`_measurer`), never the controller's: a live change's checks do not
+        wait for it.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function (the child imports it).
+        args : tuple
+            Its arguments (pickled to the child).
+        done : callable, optional
+            ``done(result)`` when it ends (:meth:`hapsim.audio.analyst.Analyst.submit`).
+
+        Returns
+        -------
+        object
+            The handle, with ``ready()`` and ``wait(timeout)``.
+        """
+        if self._measurer is None:
+            from hapsim.audio.analyst import Analyst
+            self._measurer = Analyst(background=self.ctl is None
+                                     or self.ctl.analyst.background)
+        return self._measurer.submit(fn, args, done)
 
     def _http(self, connection, request):
         from websockets.datastructures import Headers
