@@ -34,7 +34,8 @@ SCENE_2D = os.path.join("tests", "data", "play_nd_2d.yaml")
 #: What the sound server decides, not the play: when it called back, how often it was
 #: late or starved, how far it read before the client closed (1-D: ``consumed``,
 #: ``periods``; n-D: ``read``), how often the loop waited for it.
-SERVER_TIMING = ("xruns", "xrun_at_s", "underruns", "underrun_at_s", "active_monotonic_s",
+SERVER_TIMING = ("xruns", "xrun_at_s", "underruns", "underrun_at_s", "loop_begin_s",
+                 "active_monotonic_s",
                  "read", "consumed", "periods", "skipped", "waits")
 
 

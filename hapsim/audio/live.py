@@ -183,6 +183,7 @@ class JackOutput:
         #: when the live sound can use it, else None (the Python callback).
         self.native = None
         self._calls_end = None
+        self._calls_start = None
         #: Why the Python callback is used (None when native).
         self.python_reason = None
         self._rt_priority = None
@@ -262,6 +263,20 @@ class JackOutput:
         self.xruns += 1
         if len(self.xrun_at) < 1000:
             self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
+
+    def begin(self) -> None:
+        """The producer starts (the loop's first position comes next): the callbacks
+        before it played the run's start, not its sound (:attr:`begin_s`)."""
+        self._calls_start = self.native.calls if self.native is not None else None
+
+    @property
+    def begin_s(self) -> float | None:
+        """When the producer began [s after activation, at the current block size, as
+        :meth:`underrun_at` counts]; None before :meth:`begin` or without the native
+        callback."""
+        if self._calls_start is None:
+            return None
+        return round(self._calls_start * self.blocksize / float(self.live.rate_hz), 6)
 
     def finish(self) -> None:
         """The producer is done (the loop's last position or frames): what the callback

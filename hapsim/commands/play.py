@@ -64,7 +64,8 @@ sound: computed in the sound server's callback, one block ahead of the hand: the
   nothing else in the process can make it late. xruns (JACK's count, with when: xrun_at_s,
   or PortAudio underflows); underruns: frames of silence, while the loop ran, because the
   next period's position had not arrived (the model waits; the loop stays the predicted
-  one), with when the blocks that had them started (underrun_at_s, native callback).
+  one), with when the blocks that had them started (underrun_at_s, native callback;
+  loop_begin_s: when the loop's first position came, the same clock).
 examples:
   jackd -d dummy -r 48000 -p 256 &   # or your audio interface: jackd -d alsa -r 48000
   hapsim play configs/audio_string.yaml --osc 9000 --duration 60

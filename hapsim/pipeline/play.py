@@ -214,6 +214,8 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
     # change first acted on
     at = [0]
     ctl.sample_of = lambda: at[0]
+    if hasattr(out, "begin"):
+        out.begin()       # the callbacks so far played the start (the loop's start-up)
     try:
         for n in range(steps):
             at[0] = n
@@ -302,6 +304,7 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
                   "active_monotonic_s": out.t_active, "block": out.blocksize,
                   "underrun_at_s": (out.underrun_at() if hasattr(out, "underrun_at")
                                     else []),
+                  "loop_begin_s": getattr(out, "begin_s", None),
                   **live.stats()},
               "journal": ctl.journal}
     if args.journal:
