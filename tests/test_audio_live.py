@@ -480,8 +480,9 @@ def test_play_with_live_sound_measured_equals_predicted_with_the_lead(jack_serve
     # silence after the last position, until the client closes, is the run's end)
     assert snd["underruns"] <= 256 * len(snd["underrun_at_s"])
     # ... in the sound's time until the loop's end: from the loop's first position (the
-    # callbacks before it played the start-up: a loaded fresh-clone CI run's loop began
-    # 0.33 s after the activation), the 1.5 s of positions pushed, the starved frames the
+    # callbacks before it played the start-up: 0.52 s after the activation, unloaded; a
+    # loaded CI run's underruns at 1.83 s, inside its loop, failed the bound counted from
+    # the activation), the 1.5 s of positions pushed, the starved frames the
     # callback played meanwhile (48 kHz), and a block and the lead's worth of frames;
     # before, 1.5 + 1.0 s, which a loaded run (the suite beside a busy process) exceeded
     # by starving more
