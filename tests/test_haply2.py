@@ -378,6 +378,8 @@ def test_cli_run_driver_haply_json(capsys):
             b[key] + w[key] + (mat[key]["roundoff"] or 0.0), rel=rel_tol(2))
     assert out["quantum"] < 1e-3 < out["quantum_real_encoders"]["gen2"] < \
         out["quantum_real_encoders"]["gen3"]
+    # a lockstep board holds each torque exactly a period: no write-timing term
+    assert w["hold_s"] is None and out["link_uncertainty"] is None
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)

@@ -119,7 +119,11 @@ def run_haply2_command(args) -> int:
             "wire": {"felt_stiffness": num(wire["felt_stiffness"]),
                      "felt_damping": num(wire["felt_damping"]),
                      "reading_bound_rad": wire["reading_bound_rad"],
-                     "torque_rel": wire["torque_rel"]},
+                     "torque_rel": wire["torque_rel"],
+                     # the host's write timing on a board on its own clock: the largest
+                     # hold's departure from a period, corrected (None: exact periods)
+                     "hold_s": wire.get("hold_s")},
+            "link_uncertainty": res.get("link_uncertainty"),
             "uncertainty": res["uncertainty"], "statements": res["statements"],
             "not_stated": res["not_stated"], "verdict": res["verdict"],
             "within": res["within"], "reason": res["reason"], "clamped": res["clamped"],
@@ -161,6 +165,11 @@ def run_haply2_command(args) -> int:
               + f", first-order worst case through the loop and the fit: k "
               f"{wire['felt_stiffness']:.2e}, "
               f"b {wire['felt_damping']:.2e}", file=o)
+    if wire.get("hold_s") is not None:
+        print(f"  the host's write timing (the board on its own clock): holds up to "
+              f"{wire['hold_s'] * 1e6:.0f} us off a period, corrected from the host's "
+              "write times; what the correction leaves is in the wire's term above",
+              file=o)
     print_statements(res, o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
     print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
