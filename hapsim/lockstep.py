@@ -322,16 +322,28 @@ def error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
         As :class:`LockstepND`.
     """
     n = scene.dimension
+    return _unit_responses(scene, samples, (("reading_error", n, 0, size),
+                                            ("force_error", n, 0, size)))
+
+
+def _unit_responses(scene, samples: int, kinds) -> tuple:
+    """The lockstep loop's change, per unit, from a change at sample 0 along each axis:
+    for each ``(keyword, width, offset, h)`` of ``kinds``, :meth:`LockstepND.step` with
+    ``keyword`` an (L, width) array holding ``h`` at ``[0, offset + j]``, minus the run
+    without it, over ``h`` (shape (L, n, n) each, ``[t, :, j]`` for axis ``j``)."""
+    n = scene.dimension
     L = int(samples)
     rest = LockstepND(scene).step(L, record=True)
-    out = np.zeros((2, L, n, n))
-    for kind in range(2):
+    out = []
+    for keyword, width, offset, h in kinds:
+        r = np.zeros((L, n, n))
         for j in range(n):
-            e = np.zeros((L, n))
-            e[0, j] = size
-            kw = {"reading_error" if kind == 0 else "force_error": e}
-            out[kind, :, :, j] = (LockstepND(scene).step(L, record=True, **kw) - rest) / size
-    return out[0], out[1]
+            e = np.zeros((L, width))
+            e[0, offset + j] = h
+            r[:, :, j] = (LockstepND(scene).step(L, record=True, **{keyword: e})
+                          - rest) / h
+        out.append(r)
+    return tuple(out)
 
 
 def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
@@ -367,17 +379,8 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
         As :class:`LockstepND`.
     """
     n = scene.dimension
-    L = int(samples)
-    rest = LockstepND(scene).step(L, record=True)
-    out = np.zeros((2, L, n, n))
-    for kind in range(2):
-        h = size if kind == 0 else size / scene.period
-        for j in range(n):
-            e = np.zeros((L, 2 * n))
-            e[0, kind * n + j] = h
-            out[kind, :, :, j] = (LockstepND(scene).step(L, record=True, state_error=e)
-                                  - rest) / h
-    return out[0], out[1]
+    return _unit_responses(scene, samples, (("state_error", 2 * n, 0, size),
+                                            ("state_error", 2 * n, n, size / scene.period)))
 
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:

@@ -916,14 +916,14 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
 
 def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     """The open of a JACK client on a server that runs is tried three times
-    (hapsim.audio.live.OPEN_RETRY_S): its handshake failing once under load (seen in a
+    (hapsim.audio.jack_client.OPEN_RETRY_S): its handshake failing once under load (seen in a
     loaded suite: "JackSocketClientChannel read fail", then "Cannot open hapsim client":
     JackFailure alone) answers the next try; a server that never opens it gives one
     DeviceError naming it and the tries; no server at all (JackServerFailed) is said at
     once, without a wait (the PortAudio fallback is not delayed)."""
     import jack
 
-    from hapsim.audio import live as lv
+    from hapsim.audio import jack_client as lv
     from hapsim.errors import DeviceError
     waits, calls = [], []
     monkeypatch.setattr(lv.time, "sleep", waits.append)
@@ -938,7 +938,7 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
                 raise jack.JackOpenError(name, jack.Status(Flaky.status))
 
     monkeypatch.setattr(jack, "Client", Flaky)
-    client = lv._open_client(jack, "hapsim", "srv")
+    client = lv.open_client(jack, "hapsim", "srv")
     assert isinstance(client, Flaky) and len(calls) == 3
     assert calls[0] == ("hapsim", True, "srv") and waits == list(lv.OPEN_RETRY_S)
     calls.clear()
@@ -946,11 +946,11 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     Flaky.fails = 10
     with pytest.raises(DeviceError, match=r"the JACK server 'srv' runs but did not open "
                                           r"hapsim's client .*3 attempts over 0.7 s"):
-        lv._open_client(jack, "hapsim", "srv")
+        lv.open_client(jack, "hapsim", "srv")
     assert len(calls) == 3 and waits == list(lv.OPEN_RETRY_S)
     calls.clear()
     waits.clear()
     Flaky.status = 0x11                # JackFailure | JackServerFailed: no server
     with pytest.raises(DeviceError, match=r"no JACK server 'srv' running \(Error"):
-        lv._open_client(jack, "hapsim", "srv")
+        lv.open_client(jack, "hapsim", "srv")
     assert len(calls) == 1 and waits == []

@@ -59,6 +59,7 @@ import numpy as np
 from hapsim.audio.offline import listen_plan
 from hapsim.audio.sources import (FrameRing, LivePack, LiveSound, RingPack,
                                   sounding_engine)
+from hapsim.audio.jack_client import open_client
 from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["LiveSound", "FrameRing", "LivePack", "RingPack", "sounding_engine", "JackOutput",
@@ -67,53 +68,6 @@ __all__ = ["LiveSound", "FrameRing", "LivePack", "RingPack", "sounding_engine", 
 
 #: Sound backends, in the order ``auto`` tries them.
 BACKENDS = ("jack", "sounddevice")
-
-
-#: Waits [s] before the second and third attempt to open a JACK client on a server that
-#: runs: on a loaded machine its open handshake can fail once (its socket read cut short:
-#: "JackSocketClientChannel read fail", "Cannot open hapsim client"; seen in a loaded
-#: test suite) and answer the next. No server at all (``server_failed``: the library
-#: could not connect) is said at once.
-OPEN_RETRY_S = (0.2, 0.5)
-
-
-def _open_client(jack, name: str, server: str | None):
-    """A JACK client on ``server`` (never starting one), tried again after each of
-    :data:`OPEN_RETRY_S` when the open fails on a server that runs (jackd2's
-    ``jack_client_open`` sets ``JackServerFailed`` when it cannot connect at all, only
-    ``JackFailure`` when the connected server's open request fails).
-
-    Parameters
-    ----------
-    jack : module
-        The ``jack`` module (JACK-Client).
-    name : str
-        The client's name.
-    server : str or None
-        The server's name (None: the default server).
-
-    Returns
-    -------
-    jack.Client
-
-    Raises
-    ------
-    DeviceError
-        No server of that name runs, or every attempt failed (the last status named).
-    """
-    tries = len(OPEN_RETRY_S) + 1
-    for i in range(tries):
-        try:
-            return jack.Client(name, no_start_server=True, servername=server)
-        except jack.JackOpenError as exc:
-            named = f"JACK server{' ' + repr(server) if server else ''}"
-            if exc.status.server_failed:
-                raise DeviceError(f"no {named} running ({exc})") from None
-            if i + 1 == tries:
-                raise DeviceError(f"the {named} runs but did not open hapsim's client "
-                                  f"({exc}; {tries} attempts over "
-                                  f"{sum(OPEN_RETRY_S):g} s)") from None
-            time.sleep(OPEN_RETRY_S[i])
 
 
 class JackOutput:
@@ -164,7 +118,7 @@ class JackOutput:
                  connect: bool = False) -> None:
         import jack
 
-        self.client = _open_client(jack, name, server)
+        self.client = open_client(jack, name, server)
         if self.client.samplerate != int(round(live.rate_hz)):
             rate = self.client.samplerate
             self.client.close()
