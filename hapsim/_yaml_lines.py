@@ -186,6 +186,12 @@ def load_yaml(text: str, path: str = "<string>",
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else None
+        if "nesting depth" in (exc.problem or ""):
+            # libyaml >= 0.2.5 (PyYAML 6.0.4's wheels) stops at 1000 levels in its scanner,
+            # which reads ahead of the events this builder counts (an unclosed '[[[...'):
+            # the same refusal as the builder's own, whichever meets the depth first
+            raise ConfigError(f"invalid YAML: nested deeper than {MAX_DEPTH} levels of lists "
+                              "and mappings (a scene needs 4)", file=path, line=line) from None
         raise ConfigError(f"invalid YAML: {_one_line(exc.problem or str(exc))}", file=path,
                           line=line) from None
     except yaml.YAMLError as exc:
