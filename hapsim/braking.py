@@ -36,8 +36,11 @@ import math
 
 import numpy as np
 
+from hapsim.errors import dash
+
 __all__ = ["BRAKE_GAIN", "BRAKE_MAX_S", "REST_READINGS", "brake_damping", "brake_rest",
-           "gain_bound", "brake_mode_polynomial", "brake_loop_matrix", "Brake"]
+           "gain_bound", "brake_mode_polynomial", "brake_loop_matrix", "Brake",
+           "brake_text"]
 
 #: The braking's gain ``g = B T / m`` (module notes): stable for a delay up to 5 periods.
 BRAKE_GAIN = 0.25
@@ -337,3 +340,31 @@ class Brake:
                 "periods": int(periods), "seconds": float(seconds),
                 "v_start": out(self.v_start), "v_end": out(self.v), "ended": ended,
                 "late": int(late)}
+
+
+def brake_text(report: dict, damping_unit: str = "N s/m", speed_unit: str = "m/s") -> str:
+    """One report line of a braking (:meth:`Brake.report`'s dict).
+
+    Parameters
+    ----------
+    report : dict
+        The braking's report.
+    damping_unit, speed_unit : str
+        The units of its damping and speeds (``"N m s/rad"``, ``"rad/s"`` for joints).
+
+    Returns
+    -------
+    str
+        ``"braked after the stop: damping B unit over P periods (S s), speed v0 -> v1
+        unit, ended: E"``; an n-D braking's damping is its matrix's diagonal and its
+        speeds the largest component's magnitude.
+    """
+    def speed(v):
+        return v if v is None or np.ndim(v) == 0 else float(np.max(np.abs(v)))
+    B = report["damping"]
+    damp = (f"{B:.3g}" if np.ndim(B) == 0 else
+            "diag(" + ", ".join(f"{float(x):.3g}" for x in np.diag(np.asarray(B))) + ")")
+    return (f"braked after the stop: damping {damp} {damping_unit} over "
+            f"{report['periods']} periods ({report['seconds']:.3f} s), speed "
+            f"{dash(speed(report['v_start']), '.3g')} -> {dash(speed(report['v_end']), '.3g')} "
+            f"{speed_unit}, ended: {report['ended']}")
