@@ -206,3 +206,26 @@ def test_the_falcon_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, pu
     assert far <= fr.WORKSPACE_RAD < far0
     assert v_end <= brake_rest(fr.WORKSPACE_RAD, sc.device.joint_inertia,
                                sc.device.joint_friction)
+
+
+def test_no_braking_after_a_lost_falcon(monkeypatch):
+    """The Falcon gone from the bus mid-loop (the emulated chip leaves after a number of
+    transfers): the run ends with the link's error, and no braking is tried (a lost
+    board is not a stop on the motion)."""
+    pytest.importorskip("pyftdi")
+    from hapsim.emulated import falcon_device
+    from hapsim.errors import DeviceError
+    from hapsim.pipeline import falcon_run as fr
+    from test_falcon_stalls import IMAGE
+    calls = []
+    monkeypatch.setattr(falcon_device, "brake_legs", lambda *a, **k: calls.append(a))
+    sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
+    link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="lockstep", unplug_after=400)
+    began = []
+    try:
+        with pytest.raises(DeviceError):
+            fr.run_falcon(sc, link, IMAGE, 2000, timeout=0.002,
+                          before_loop=lambda: began.append(True))
+    finally:
+        link.close()
+    assert began and calls == []                 # lost in the loop, not braked

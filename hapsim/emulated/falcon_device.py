@@ -41,6 +41,11 @@ the reply ready then (:attr:`FalconDevice.ready_at`, which
 are integrated over the real time that passed
 (:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
 (named, for deterministic tests): each packet is one period, the reply at once.
+
+The host's loop over it (:func:`drive_falcon`, the driver's, here beside the device it
+was first written against) stops on the legs' motion (a leg beyond :data:`ENVELOPE_RAD`,
+or a paced host too late) and then brakes the legs to rest (:func:`brake_legs`,
+:mod:`hapsim.braking`) before the caller's zero commands.
 """
 
 from __future__ import annotations

@@ -64,8 +64,11 @@ took it (a reply reading the set-up's offsets) at most :data:`REARM_REPLY_S` of 
 awake time, then sends it again, zero torque first (:data:`REARM_SENDS` at most): before,
 a re-arming the stream corrupted waited 0.25 s with the clamp's torque held (16.8 rad of
 true excursion, 1 byte in 200 lost). A reading farther than :data:`ENVELOPE_RAD` from the
-operating point ends the record's torque loop (zero torque from there; not measured). A corrupted byte in
-a write the board takes cannot be seen (no checksum: a wrong torque for one period).
+operating point ends the record's torque loop (not measured): a stop on the motion, after
+which the joints are braked to rest (:mod:`hapsim.braking`, ``tau = -B q'`` from the
+readings, at most :data:`hapsim.braking.BRAKE_MAX_S`, on past the record's last tick if
+need be) and then held at zero torque (the scene's ``safety: {brake: false}``: zero torque
+at once). A corrupted byte in a write the board takes cannot be seen (no checksum: a wrong torque for one period).
 """
 
 from __future__ import annotations
@@ -560,7 +563,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             if law is not None and braked is None:
                 # the joints' velocity from this reading and the last the law read (the
                 # times of the writes they answer: the board read them as it took them)
-                law.observe(qr[k], None if obs < 0 else (
+                # (a re-synchronisation between re-anchors the angles at the set-up's
+                # offsets: the difference restarts there, no velocity across it)
+                law.observe(qr[k], None if obs < 0 or resynced[obs + 1:k + 1].any() else (
                     (k - obs) * T if lockstep_board else t_wrote[k] - t_wrote[obs]))
                 obs = k
         else:                                       # missing: an estimated sample
