@@ -116,7 +116,7 @@ def test_the_2diy_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, push
     assert rec0["left"] == rec["left"] and rec0["brake"] is None
     assert board0.settles_on() == 0.0
     # measured: far / far0 = 0.046 and 0.051 for these two pushes (out of the envelope
-    # at 3.6 and 3.6 rad/s; friction alone then coasts 1.2 and 1.06 rad, the joint's
+    # at 3.6 and 3.2 rad/s, python tools/brake_nd.py; friction alone then coasts 1.2 and 1.06 rad, the joint's
     # M / B = 0.2 s times its speed and more with the hand's inertia); 5 times less is the
     # 1-D test's criterion (tests/test_brake.py)
     assert far * 5.0 <= far0, (far, far0)
