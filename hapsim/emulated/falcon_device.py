@@ -56,8 +56,9 @@ from collections import deque
 
 import numpy as np
 
-from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
-                                   parse_host_packet, ticks_of)
+from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, ENVELOPE_RAD, TORQUE_PER_COUNT,
+                                   WORKSPACE_RAD, device_packet, parse_host_packet,
+                                   ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
 from hapsim.errors import ConfigError, KinematicsError
 from hapsim.joint_device import LocalJointDeviceND
@@ -72,20 +73,6 @@ __all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "brake_legs"
 LOADER_BAUD, LOADING_BAUD, NORMAL_BAUD = 9600.0, 3e6 / 21, 1.5e6
 
 
-#: The legs' workspace in a run [rad]: the largest departure of any leg from the scene's
-#: operating point a run may reach (the emulated Falcon's truth, ``excursion``, is held
-#: to it by tools/driver_timing.py and the tests). The delta of configs/delta_sphere.yaml
-#: leaves its kinematics (no forward solution, or a singular Jacobian) 0.9 rad from rest
-#: (either leg, sampled): 0.5 rad is inside with a margin of 1.8. Named in
-#: :mod:`hapsim.pipeline.falcon_run` too.
-WORKSPACE_RAD = 0.5
-#: The legs' envelope in a run [rad]: a reading of a leg farther than this from the
-#: operating point stops the loop (a stop on the motion: the legs then braked,
-#: :func:`brake_legs`). The runs of tools/driver_timing.py moved the legs at most 0.001
-#: rad (10 seeds each way, docs/drivers.md); a fifth of :data:`WORKSPACE_RAD` leaves the
-#: braking 0.4 rad, its travel ``v T (d + 1 + 1/g)`` about 6 ms of the speed at 1 kHz:
-#: up to ~65 rad/s.
-ENVELOPE_RAD = WORKSPACE_RAD / 5
 
 
 def _near(baud, want: float) -> bool:

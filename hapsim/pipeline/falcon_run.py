@@ -26,6 +26,10 @@ import time
 
 import numpy as np
 
+# the legs' workspace and envelope in a run [rad] (hapsim.drivers.falcon's): a leg beyond
+# the envelope stops the loop, and the legs are braked to rest before the zero commands
+# (the scene's safety.brake)
+from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
 __all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "reply_timeout",
@@ -76,11 +80,6 @@ def reply_timeout(rate_hz: float) -> float:
     return 1.0 / float(rate_hz) + REPLY_SLACK_S
 
 
-#: The legs' workspace and envelope in a run [rad]
-#: (:data:`hapsim.emulated.falcon_device.WORKSPACE_RAD`, ``ENVELOPE_RAD``): a leg
-#: beyond the envelope stops the loop, and the legs are braked to rest before the zero
-#: commands (the scene's ``safety.brake``).
-from hapsim.emulated.falcon_device import ENVELOPE_RAD, WORKSPACE_RAD  # noqa: E402
 
 
 def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
