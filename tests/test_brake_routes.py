@@ -104,6 +104,7 @@ def test_the_2diy_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, push
     np.testing.assert_array_equal(bk["damping"],
                                   brake_damping(sc.device.joint_inertia, sc.rate_hz))
     assert bk["seconds"] <= BRAKE_MAX_S + 3 * T
+    assert bk["late"] == 0                        # simulated time: the host punctual
     # the torques the braking wrote are within the board's clamp (the rows up to N; the
     # clamp as the board takes it, rounded to binary32)
     assert np.max(np.abs(rec["torque"])) <= float(np.float32(record.MAX_TORQUE))
@@ -193,6 +194,7 @@ def test_the_falcon_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, pu
     np.testing.assert_array_equal(bk["damping"],
                                   brake_damping(sc.device.joint_inertia, sc.rate_hz))
     assert bk["seconds"] <= BRAKE_MAX_S + 3 * T
+    assert bk["late"] == 0                        # simulated time: the host punctual
     assert dev.commands == (0, 0, 0)             # the zero commands after it
     sc0, res0, dev0, far0, _ = _falcon(monkeypatch, False, push)
     assert res0["stopped"][0] == res["stopped"][0] and res0["brake"] is None

@@ -432,7 +432,8 @@ def brake_legs(send, scene, q_last, t_last: float, *,
     dict
         :meth:`hapsim.braking.Brake.report`'s: ``damping`` [N m s/rad], ``periods``
         (packets), ``seconds``, ``v_start``/``v_end`` (the legs' velocities [rad/s]),
-        ``ended`` (``"rest"`` or ``"time"``), ``late`` (0).
+        ``ended`` (``"rest"`` or ``"time"``), ``late`` (paced: gaps of more than two
+        periods between its packets, as the loop counts its stalls).
 
     Raises
     ------
@@ -450,8 +451,13 @@ def brake_legs(send, scene, q_last, t_last: float, *,
         law.observe(q_last, None)
     t0 = time.perf_counter()
     t_prev, k_prev = t_last, 0
-    periods, ended = 0, "time"
+    periods, ended, late = 0, "time", 0
+    t_sent = t0
     while (time.perf_counter() - t0 if paced else periods * T) < BRAKE_MAX_S:
+        now = time.perf_counter()
+        if paced and now - t_sent > 2.0 * T:
+            late += 1                           # a gap the firmware held a command over
+        t_sent = now
         tau = law.command()
         if paced and time.perf_counter() - t_prev > hold_bound_s:
             tau = np.zeros(3)                   # no fresh reading: not held on one
@@ -465,7 +471,8 @@ def brake_legs(send, scene, q_last, t_last: float, *,
             if law.at_rest:
                 ended = "rest"
                 break
-    return law.report(periods, time.perf_counter() - t0 if paced else periods * T, ended)
+    return law.report(periods, time.perf_counter() - t0 if paced else periods * T, ended,
+                      late)
 
 
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,

@@ -243,7 +243,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         left :data:`ENVELOPE_RAD`, -1 if none), ``brake`` (None, or after ``left`` with
         ``brake``: :meth:`hapsim.braking.Brake.report`'s dict: ``damping`` [N m s/rad],
         ``periods`` (ticks braked), ``seconds``, ``v_start``/``v_end`` (the joints'
-        velocities [rad/s]), ``ended`` (``"rest"`` or ``"time"``), ``late`` (0)). The
+        velocities [rad/s]), ``ended`` (``"rest"`` or ``"time"``), ``late`` (its ticks
+        the host began a period or more late)). The
         row arrays have the record's ``N`` rows; the braking's ticks after them are not
         rows.
 
@@ -630,7 +631,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         if braked is None:                          # the ticks' room ran out first
             braked, brake_end = "time", (K - brake_k, (
                 (K - brake_k) * T if lockstep_board else time.perf_counter() - brake_at))
-        brake_out = law.report(brake_end[0], brake_end[1], braked)
+        # late: the braking's ticks the host began a period or more late (stalls)
+        brake_out = law.report(brake_end[0], brake_end[1], braked,
+                               int(stalled[brake_k:K].sum()))
     _write(ser, zero)
     t_wrote[K + 1] = time.perf_counter()
     if lockstep_board:
