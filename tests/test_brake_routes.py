@@ -2,10 +2,10 @@
 2DIY's record loop (:func:`hapsim.pipeline.haply2_record.record_realtime`) and the
 Falcon's (:func:`hapsim.pipeline.falcon_run.run_falcon`), each against its emulated
 device on its own clock (``clock="wall"``) in simulated time: the same run on any
-machine at any load. The joints are shoved at speed in the middle of the loop (the plant's
-joint velocity set, as a blow on the handle would), they leave the envelope, and the
-host brakes them to rest before the zero torque; with ``safety: {brake: false}`` they
-coast on their friction alone, many times further.
+machine at any load. A hand pushes the joints in the middle of the loop (a torque on the
+plant within the board's limit, until they leave the envelope), they leave it at speed,
+and the host brakes them to rest before the zero torque; with ``safety: {brake: false}``
+they coast on their friction alone, many times further. No braking after a lost board.
 """
 
 from __future__ import annotations
@@ -43,9 +43,28 @@ def _coast(advance, joints, dt, seconds):
     return far, float(np.max(np.abs(qd)))
 
 
+def _braked_to_rest(sc, bk):
+    """A braking's report: at rest within its time, the law's damping from the scene's
+    joint inertia, no late period (simulated time: the host punctual)."""
+    assert bk is not None and bk["ended"] == "rest", bk
+    np.testing.assert_array_equal(bk["damping"],
+                                  brake_damping(sc.device.joint_inertia, sc.rate_hz))
+    assert bk["seconds"] <= BRAKE_MAX_S + 3 * sc.period
+    assert bk["late"] == 0
+
+
+def _less_travel(sc, far, far0, v_end, workspace):
+    """The braked travel from the push against friction's alone, and the joints at rest
+    after it: 5 times less (the 1-D test's criterion, tests/test_brake.py), within the
+    workspace where friction alone leaves it, below the braking's own rest speed."""
+    assert far * 5.0 <= far0, (far, far0)
+    assert far <= workspace < far0
+    assert v_end <= brake_rest(workspace, sc.device.joint_inertia, sc.device.joint_friction)
+
+
 # ------------------------------------------------------------------------------ the 2DIY
 
-class _ShoveLink(SimLink):
+class _PushLink(SimLink):
     """The 2DIY on its own clock (simulated) whose joints a hand pushes with ``push``
     [N m] from the ``at``-th torque write of the record until they leave the measurement's
     envelope (a blow on the handle, within the board's torque clamp: a motion the host's
@@ -55,7 +74,7 @@ class _ShoveLink(SimLink):
         super().__init__(board, clock)
         self.at, self.writes = at, 0
         self.ext = np.zeros(2)
-        self.q_shove = None
+        self.q_push = None
         own = board._joint_torques
         board._joint_torques = lambda: own() + self.ext
         self.push = np.asarray(push, float)
@@ -66,7 +85,7 @@ class _ShoveLink(SimLink):
             b = self.board
             if self.writes == self.at:
                 b.run_to(self.clock.t)
-                self.q_shove = b.plant.joints().copy()
+                self.q_push = b.plant.joints().copy()
                 self.ext = self.push.copy()
             elif self.ext.any():
                 b.run_to(self.clock.t)
@@ -81,7 +100,7 @@ def _haply2(monkeypatch, brake, push, N=150, at=40):
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = _scene("pantograph_wall.yaml", brake)
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="wall")
-    link = _ShoveLink(board, clk, at, push)
+    link = _PushLink(board, clk, at, push)
     rec = record.record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 22), sc, N)
     board.run_to(clk.t)
     plant = board.plant
@@ -90,41 +109,31 @@ def _haply2(monkeypatch, brake, push, N=150, at=40):
         board.run_to(board._t + dt)
         return plant.joints(), plant.sd
     # on at zero torque (the board's, as the host left it) for 2 s: where the joints go
-    far, v_end = _coast(advance, link.q_shove, 1e-3, 2.0)
+    far, v_end = _coast(advance, link.q_push, 1e-3, 2.0)
     return sc, rec, board, link, far, v_end
 
 
 @pytest.mark.parametrize("push", [(0.1, -0.06), (-0.04, -0.08)])
 def test_the_2diy_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, push):
     sc, rec, board, link, far, v_end = _haply2(monkeypatch, None, push)
-    T = sc.period
     assert rec["left"] >= 0                       # the stop on the motion
-    bk = rec["brake"]
-    assert bk is not None and bk["ended"] == "rest", bk
-    np.testing.assert_array_equal(bk["damping"],
-                                  brake_damping(sc.device.joint_inertia, sc.rate_hz))
-    assert bk["seconds"] <= BRAKE_MAX_S + 3 * T
-    assert bk["late"] == 0                        # simulated time: the host punctual
+    _braked_to_rest(sc, rec["brake"])
     # the torques the braking wrote are within the board's clamp (the rows up to N; the
     # clamp as the board takes it, rounded to binary32)
     assert np.max(np.abs(rec["torque"])) <= float(np.float32(record.MAX_TORQUE))
     assert board.settles_on() == 0.0              # zero torque at the end
     # the record's rows are the record's: N of them, whatever the braking ran on for
     assert rec["torque"].shape == (150, 2) and rec["writes"] >= 150 + 2
-    # at rest, and the braked travel from the shove a small part of friction's: the same
-    # shove with safety.brake false (below) coasts on the joint friction alone
+    # at rest, and the braked travel from the push a small part of friction's: the same
+    # push with safety.brake false (below) coasts on the joint friction alone
     _, rec0, board0, _, far0, _ = _haply2(monkeypatch, False, push)
     assert rec0["left"] == rec["left"] and rec0["brake"] is None
     assert board0.settles_on() == 0.0
-    # measured: far / far0 = 0.046 and 0.051 for these two pushes (out of the envelope
-    # at 3.6 and 3.2 rad/s, python tools/brake_nd.py; friction alone then coasts 1.2 and 1.06 rad, the joint's
-    # M / B = 0.2 s times its speed and more with the hand's inertia); 5 times less is the
-    # 1-D test's criterion (tests/test_brake.py)
-    assert far * 5.0 <= far0, (far, far0)
-    assert far <= record.WORKSPACE_RAD < far0
-    # at rest: below the braking's own rest speed
-    assert v_end <= brake_rest(record.WORKSPACE_RAD, sc.device.joint_inertia,
-                               sc.device.joint_friction)
+    # measured: far / far0 = 0.046 and 0.051 for these two pushes (out of the envelope at
+    # 3.6 and 3.2 rad/s, python tools/brake_nd.py; friction alone then coasts 1.2 and 1.06
+    # rad, the joint's M / B = 0.2 s times its speed and more with the hand's inertia); 5
+    # times less is the 1-D test's criterion
+    _less_travel(sc, far, far0, v_end, record.WORKSPACE_RAD)
 
 
 # ------------------------------------------------------------------------------ the Falcon
@@ -186,15 +195,9 @@ def _falcon(monkeypatch, brake, push, at=200, samples=500):
 def test_the_falcon_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, push):
     from hapsim.pipeline import falcon_run as fr
     sc, res, dev, far, v_end = _falcon(monkeypatch, None, push)
-    T = sc.period
     assert res["stopped"] is not None and "envelope" in res["stopped"][1], res["stopped"]
     assert res["verdict"] == "degraded" and "envelope" in res["reason"]
-    bk = res["brake"]
-    assert bk is not None and bk["ended"] == "rest", bk
-    np.testing.assert_array_equal(bk["damping"],
-                                  brake_damping(sc.device.joint_inertia, sc.rate_hz))
-    assert bk["seconds"] <= BRAKE_MAX_S + 3 * T
-    assert bk["late"] == 0                        # simulated time: the host punctual
+    _braked_to_rest(sc, res["brake"])
     assert dev.commands == (0, 0, 0)             # the zero commands after it
     sc0, res0, dev0, far0, _ = _falcon(monkeypatch, False, push)
     assert res0["stopped"][0] == res["stopped"][0] and res0["brake"] is None
@@ -203,11 +206,7 @@ def test_the_falcon_pushed_out_of_its_envelope_is_braked_to_rest(monkeypatch, pu
     # 3.8 rad/s, braked to rest in 42 and 34 packets 0.16 and 0.18 rad from where the
     # push began; friction alone coasts 2.3 and 1.9 rad, far beyond the workspace and
     # the delta's kinematics); 5 times less is the 1-D test's criterion
-    # (tests/test_brake.py)
-    assert far * 5.0 <= far0, (far, far0)
-    assert far <= fr.WORKSPACE_RAD < far0
-    assert v_end <= brake_rest(fr.WORKSPACE_RAD, sc.device.joint_inertia,
-                               sc.device.joint_friction)
+    _less_travel(sc, far, far0, v_end, fr.WORKSPACE_RAD)
 
 
 def test_no_braking_after_a_lost_falcon(monkeypatch):

@@ -68,7 +68,8 @@ operating point ends the record's torque loop (not measured): a stop on the moti
 which the joints are braked to rest (:mod:`hapsim.braking`, ``tau = -B q'`` from the
 readings, at most :data:`hapsim.braking.BRAKE_MAX_S`, on past the record's last tick if
 need be) and then held at zero torque (the scene's ``safety: {brake: false}``: zero torque
-at once). A corrupted byte in a write the board takes cannot be seen (no checksum: a wrong torque for one period).
+at once). A corrupted byte in a write the board takes cannot be seen (no checksum: a
+wrong torque for one period).
 """
 
 from __future__ import annotations
