@@ -57,10 +57,12 @@ def test_old_bench_names_are_the_analysis_ones():
 # module of hapsim not named here stands on the top floor (nothing below may import it).
 LAYERS = (
     # hapsim.applied: the account of the force a device applied per tick (plain arrays),
-    # which the drivers' timing fills and the analysis and the daemon read
+    # which the drivers' timing fills and the analysis and the daemon read;
+    # hapsim.braking: the braking law after a stop on the motion (plain arrays), which the
+    # 1-D host loop and the n-D drivers' loops (emulated and pipeline floors) share
     ("foundation", ("hapsim.errors", "hapsim.progress", "hapsim.blas", "hapsim.spawn",
                     "hapsim.kernels", "hapsim._yaml_lines", "hapsim.outputs",
-                    "hapsim.applied", "hapsim.option_values")),
+                    "hapsim.applied", "hapsim.option_values", "hapsim.braking")),
     # the drivers' codecs (the bytes of other devices, as firmware_protocol is hapsim's):
     # a scene checks its device.protocol_options with them; their mocks stand higher, in
     # hapsim.emulated.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)

@@ -35,6 +35,7 @@ def test_every_key_the_reader_takes_is_in_the_table_and_only_those():
             "device": set().union(*devices.DEVICE_KEYS.values()),
             "audio.listen[]": set(reader.LISTEN_KEYS_ND),
             "engine": set(reader.ENGINE_KEYS_ND),
+            "safety": set(reader.SAFETY_KEYS_ND),
             "excitation": set(reader.EXCITATION_KEYS_ND),
             "excitation.impulse": set(reader.IMPULSE_KEYS_ND)}
     assert set(rows) == set(want)

@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 
+from hapsim.braking import brake_text
 from hapsim.errors import ConfigError
 
 __all__ = ["run_falcon_command", "DEFAULT_PACKETS"]
@@ -135,6 +136,8 @@ def run_falcon_command(args) -> int:
            "travel_m": travel,
            "max_command": int(np.abs(res["commands"]).max()) if packets else 0,
            "felt_matrices": None, "scheduling": res["scheduling"],
+           # a stop on the motion and the braking after it (hapsim.braking; None: none)
+           "stopped": res["stopped"], "brake": res["brake"],
            "verdict": res["verdict"], "reason": res["reason"]}
     if args.json:
         print(json.dumps(out))
@@ -166,6 +169,8 @@ def run_falcon_command(args) -> int:
     if travel is not None:
         print(f"  handle travel {travel * 1e3:.3f} mm from its first reading; largest motor "
               f"command {out['max_command']} counts", file=o)
+    if res["brake"]:
+        print("  " + brake_text(res["brake"], "N m s/rad", "rad/s"), file=o)
     print("  not measured: the felt matrices (one encoder count is 27-47 um at the handle, "
           "the free responses' whole range: docs/devices.md)", file=o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)

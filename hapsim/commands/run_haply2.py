@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 
+from hapsim.braking import brake_text
 from hapsim.pipeline.felt_run import print_statements, scene_for_run
 from hapsim.errors import ConfigError
 
@@ -108,7 +109,10 @@ def run_haply2_command(args) -> int:
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
                 "replies": res["replies"], "writes": res["writes"],
                 "resyncs": res["resyncs"], "skipped": res["skipped"],
-                "scheduling": res.get("scheduling")} if realtime else {}),
+                "scheduling": res.get("scheduling"),
+                # per record: the tick the joints left the envelope (-1: none) and the
+                # braking after it (hapsim.braking; None: none)
+                "left": res["left"], "brake": res["brake"]} if realtime else {}),
             "direction_probe": res.get("direction_probe"),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                           "felt_damping": mat(chk.render.felt_damping)},
@@ -140,6 +144,11 @@ def run_haply2_command(args) -> int:
               f"{res['estimated']}; ticks the host began a period late: "
               f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
               f"host loop scheduling: {res.get('scheduling')}", file=o)
+    if realtime:
+        for j, bk in enumerate(res["brake"]):
+            if bk:
+                print(f"  record {j + 1}, the joints out of the envelope at tick "
+                      f"{res['left'][j]}: " + brake_text(bk, "N m s/rad", "rad/s"), file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
           f"a = {a:g} m (minus the response from rest)", file=o)
     for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),

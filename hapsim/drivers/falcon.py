@@ -42,6 +42,7 @@ from hapsim.drivers.base import AlignedDecoder
 __all__ = ["LED_GREEN", "LED_BLUE", "LED_RED", "HOMING_MODE", "HOMED", "host_packet",
            "device_packet", "parse_host_packet", "parse_device_packet", "DevicePacketDecoder",
            "theta_deg", "ticks_of", "DEG_PER_TICK", "THETA_OFFSET_DEG", "TORQUE_PER_COUNT",
+           "WORKSPACE_RAD", "ENVELOPE_RAD",
            "CHECK_SEND", "CHECK_REPLY", "LOADER_SEND", "FIRMWARE_CHUNK", "FalconFirmwareLoader",
            "torque_command", "JUMP_PACKETS"]
 
@@ -57,6 +58,20 @@ THETA_OFFSET_DEG = 35.0
 #: libnifalcon's torque per motor-command count (``command = -10000 tau``), in its
 #: kinematics' torque unit.
 TORQUE_PER_COUNT = 1e-4
+#: The legs' workspace in a run [rad]: the largest departure of any leg from the scene's
+#: operating point a run may reach (the emulated Falcon's truth, ``excursion``, is held
+#: to it by tools/driver_timing.py and the tests). The delta of configs/delta_sphere.yaml
+#: leaves its kinematics (no forward solution, or a singular Jacobian) 0.9 rad from rest
+#: (either leg, sampled): 0.5 rad is inside with a margin of 1.8. Named in
+#: :mod:`hapsim.pipeline.falcon_run` and :mod:`hapsim.emulated.falcon_device` too.
+WORKSPACE_RAD = 0.5
+#: The legs' envelope in a run [rad]: a reading of a leg farther than this from the
+#: operating point stops the loop (a stop on the motion: the legs then braked,
+#: :func:`hapsim.emulated.falcon_device.brake_legs`). The runs of tools/driver_timing.py
+#: moved the legs at most 0.001 rad (10 seeds each way, docs/drivers.md); a fifth of
+#: :data:`WORKSPACE_RAD` leaves the braking 0.4 rad, its travel ``v T (d + 1 + 1/g)``
+#: about 6 ms of the speed at 1 kHz: up to ~65 rad/s.
+ENVELOPE_RAD = WORKSPACE_RAD / 5
 #: The loader handshake's first message and its answer (module notes).
 CHECK_SEND = bytes((0x0A, 0x43, 0x0D))
 CHECK_REPLY = bytes((0x0A, 0x44, 0x2C, 0x0D))

@@ -41,6 +41,11 @@ the reply ready then (:attr:`FalconDevice.ready_at`, which
 are integrated over the real time that passed
 (:meth:`hapsim.joint_device.LocalJointDeviceND.advance_torque`). ``clock="lockstep"``
 (named, for deterministic tests): each packet is one period, the reply at once.
+
+The host's loop over it (:func:`drive_falcon`, the driver's, here beside the device it
+was first written against) stops on the legs' motion (a leg beyond :data:`ENVELOPE_RAD`,
+or a paced host too late) and then brakes the legs to rest (:func:`brake_legs`,
+:mod:`hapsim.braking`) before the caller's zero commands.
 """
 
 from __future__ import annotations
@@ -51,19 +56,23 @@ from collections import deque
 
 import numpy as np
 
-from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, TORQUE_PER_COUNT, device_packet,
-                                   parse_host_packet, ticks_of)
+from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, ENVELOPE_RAD, TORQUE_PER_COUNT,
+                                   WORKSPACE_RAD, device_packet, parse_host_packet,
+                                   ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
 from hapsim.errors import ConfigError, KinematicsError
 from hapsim.joint_device import LocalJointDeviceND
 
-__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "EmulatorLink",
-           "LOADER_BAUD", "LOADING_BAUD", "NORMAL_BAUD"]
+__all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "brake_legs",
+           "EmulatorLink", "LOADER_BAUD", "LOADING_BAUD", "NORMAL_BAUD", "WORKSPACE_RAD",
+           "ENVELOPE_RAD"]
 
 #: The UART rates the emulated MCU listens at [baud]: its loader (9600), the loading rate
 #: (FT232R divisor 0x15: 3 MHz / 21) and the firmware's (divisor 0x2: 1.5 Mbaud); a rate
 #: within 3 % of one is that one (a UART's tolerance), another is not heard.
 LOADER_BAUD, LOADING_BAUD, NORMAL_BAUD = 9600.0, 3e6 / 21, 1.5e6
+
+
 
 
 def _near(baud, want: float) -> bool:
@@ -391,9 +400,85 @@ def home(device_feed, leds: int = 0, limit: int = 10000, decoder=None) -> int:
     raise DeviceError(f"the Falcon's legs were not homed after {limit} packets")
 
 
+def brake_legs(send, scene, q_last, t_last: float, *,
+               hold_bound_s: float | None = None) -> dict:
+    """Brake the Falcon's legs to rest after a stop on the motion (:mod:`hapsim.braking`):
+    each packet's commands the torques ``tau = -B q'``, ``B = g M_q / T`` from the scene's
+    joint inertia, ``q'`` the backward difference of the legs' last two readings, clamped
+    to the commands' range (int16 counts, :func:`hapsim.drivers.falcon.torque_command`),
+    until three speeds in a row are below the rest speed
+    (:func:`hapsim.braking.brake_rest` over :data:`WORKSPACE_RAD`) or
+    :data:`hapsim.braking.BRAKE_MAX_S`; the caller then sends zero commands.
+
+    Parameters
+    ----------
+    send : callable
+        ``(3,) int commands -> decoded replies`` (a list of ``(counts, homed, buttons)``,
+        :class:`hapsim.drivers.falcon.DevicePacketDecoder`'s).
+    scene : hapsim.scene.SceneND
+        The 3-D delta scene (its rate, joint inertia and friction, operating point).
+    q_last : ndarray, shape (3,), or None
+        The legs' last reading [rad] (the first difference's start).
+    t_last : float
+        Its time (``time.perf_counter``) [s].
+    hold_bound_s : float, optional
+        A Falcon on its own clock (paced): the readings' times are the host's clock and
+        the braking's length its seconds; a torque from a reading older than this is
+        sent as zero (the firmware holds each command, no watchdog published). None
+        (the emulator in lockstep): one period a packet.
+
+    Returns
+    -------
+    dict
+        :meth:`hapsim.braking.Brake.report`'s: ``damping`` [N m s/rad], ``periods``
+        (packets), ``seconds``, ``v_start``/``v_end`` (the legs' velocities [rad/s]),
+        ``ended`` (``"rest"`` or ``"time"``), ``late`` (paced: gaps of more than two
+        periods between its packets, as the loop counts its stalls).
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        From ``send``: the link failed.
+    """
+    from hapsim.braking import BRAKE_MAX_S, Brake, brake_damping, brake_rest
+    from hapsim.drivers.falcon import theta_deg, torque_command
+    dev = scene.device
+    T = scene.period
+    paced = hold_bound_s is not None
+    law = Brake(brake_damping(dev.joint_inertia, scene.rate_hz), 32767 * TORQUE_PER_COUNT,
+                brake_rest(WORKSPACE_RAD, dev.joint_inertia, dev.joint_friction))
+    if q_last is not None:
+        law.observe(q_last, None)
+    t0 = time.perf_counter()
+    t_prev, k_prev = t_last, 0
+    periods, ended, late = 0, "time", 0
+    t_sent = t0
+    while (time.perf_counter() - t0 if paced else periods * T) < BRAKE_MAX_S:
+        now = time.perf_counter()
+        if paced and now - t_sent > 2.0 * T:
+            late += 1                           # a gap the firmware held a command over
+        t_sent = now
+        tau = law.command()
+        if paced and time.perf_counter() - t_prev > hold_bound_s:
+            tau = np.zeros(3)                   # no fresh reading: not held on one
+        got = send(tuple(torque_command(t) for t in tau))
+        periods += 1
+        if got and got[-1][1] == 0x7:
+            now = time.perf_counter()
+            law.observe(np.radians([theta_deg(e) for e in got[-1][0]]),
+                        now - t_prev if paced else (periods - k_prev) * T)
+            t_prev, k_prev = now, periods
+            if law.at_rest:
+                ended = "rest"
+                break
+    return law.report(periods, time.perf_counter() - t0 if paced else periods * T, ended,
+                      late)
+
+
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
                  decoder=None, hold_bound_s: float | None = None,
-                 late_stop: bool = False) -> dict:
+                 late_stop: bool = False, envelope_rad: float | None = None,
+                 brake: bool = False) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
@@ -436,6 +521,12 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         their periods the loop stops, zero commands sent (``stopped``: the packet and
         the reason). The firmware held each command over every gap; a host that late
         feeds the scene's loop energy through the varying delay.
+    envelope_rad : float, optional
+        A reading of a leg farther than this [rad] from the scene's operating point stops
+        the loop (``stopped``: a stop on the motion). None: no such stop.
+    brake : bool
+        After a stop (the late-stop rule's or the envelope's: both on the motion), brake
+        the legs to rest before the caller's zero commands (:func:`brake_legs`).
 
     Returns
     -------
@@ -443,7 +534,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         ``position`` (N, 3) [m] (NaN where missing), ``joints`` (N, 3) [rad],
         ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
         ``held_zero`` (packets sent at zero for want of a fresh reading), ``stopped``
-        (None, or ``(packet, reason)`` where the late-stop rule ended the loop).
+        (None, or ``(packet, reason)`` where the late-stop rule or the envelope ended the
+        loop), ``brake`` (None, or :func:`brake_legs`'s report after a stop).
     """
     from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
@@ -487,6 +579,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     late_ring = [0.0] * LATE_WINDOW
     late_sum = 0.0
     stopped = None
+    q_op = np.asarray(scene.device.joints, float)
     for k in range(N):
         ok = False
         if got:
@@ -503,6 +596,13 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                     t_read = time.perf_counter()
                 except ConfigError:
                     pass
+                if envelope_rad is not None and np.max(np.abs(q - q_op)) > envelope_rad:
+                    i = int(np.argmax(np.abs(q - q_op)))
+                    stopped = (k, f"safety: leg {i + 1} {np.degrees(q[i] - q_op[i]):+.1f} deg "
+                                  f"from the operating point, beyond the envelope of "
+                                  f"{np.degrees(envelope_rad):.1f} deg")
+                    t_read = time.perf_counter()    # (the braking's first reading)
+                    break
         if not ok:
             missing += 1
         if x is not None:
@@ -533,6 +633,15 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                 break
         cmds[k] = c
         got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+    braked = None
+    if stopped is not None and brake:
+        # the legs' last reading (the envelope's, or the last before a late stop) starts
+        # the braking's velocity
+        seen = np.flatnonzero(~np.isnan(joints[:stopped[0] + 1, 0]))
+        last = q if stopped[1].startswith("safety: leg") else (
+            joints[seen[-1]] if seen.size else None)     # t_read: its time
+        braked = brake_legs(lambda c: dec.feed(tx(device_feed(rx(host_packet(c, leds))))),
+                            scene, last, t_read, hold_bound_s=hold_bound_s)
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
             "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero,
-            "stopped": stopped}
+            "stopped": stopped, "brake": braked}

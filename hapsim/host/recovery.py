@@ -17,7 +17,9 @@ friction only helping), whose roots stay inside the unit circle for
 Levin & May 1976, *Theor. Popul. Biol.* 9, 178-187; Kuruklis 1994, *J. Math. Anal.
 Appl.* 188, 719-731): 0.25 holds to ``d = 5``, so a host late by a few periods still
 brakes. The speed then falls by about ``1 - g`` a period: the handle stops within about
-``v T (d + 1/g)`` where friction alone took ``v m / b`` (``tests/test_brake.py``).
+``v T (d + 1/g)`` where friction alone took ``v m / b`` (``tests/test_brake.py``). The
+law is :class:`hapsim.braking.Brake` with ``n = 1``, the one the 2-D and 3-D drivers brake
+their joints with (:mod:`hapsim.braking`).
 
 :class:`Recovery` is the part of :class:`hapsim.host.loop.HostLoop` that does it (with
 its start and end: :meth:`Recovery._run_stretches`, :meth:`Recovery._shutdown`). It reads
@@ -30,39 +32,14 @@ from __future__ import annotations
 import math
 
 import firmware_protocol as fp
+from hapsim.braking import BRAKE_GAIN, BRAKE_MAX_S, Brake, brake_damping
 from hapsim.host.loop_types import OPEN_ENDED, SEQ_MASK, LostDevice, signame
 from hapsim.host.telemetry import FLAG_LOST
 from hapsim.errors import DeviceError
 
+# BRAKE_GAIN, BRAKE_MAX_S and brake_damping live in hapsim.braking (the law of every
+# dimension, the n-D drivers' too); named here as before
 __all__ = ["Recovery", "BRAKE_GAIN", "BRAKE_MAX_S", "brake_damping"]
-
-#: The braking's gain ``g = B T / m`` (module notes): stable for a delay up to 5 periods.
-BRAKE_GAIN = 0.25
-#: The longest braking [s] before the zero force (a device still moving then is one a
-#: hand or a mis-stated mass keeps moving; zero force is then the safe end).
-BRAKE_MAX_S = 0.25
-
-
-def brake_damping(mass: float, rate_hz: float) -> float:
-    """The braking damping after a safety stop, ``B = g m / T`` [N s/m].
-
-    Parameters
-    ----------
-    mass : float
-        The device's mass at the port [kg] (or inertia [kg m^2] on a rotary axis).
-    rate_hz : float
-        The loop's rate ``1/T`` [Hz].
-
-    Returns
-    -------
-    float
-        ``BRAKE_GAIN * mass * rate_hz``; 0.0 (no braking) for a mass that is not finite
-        and positive. Source: the module notes (the delayed difference equation's bound).
-    """
-    m, r = float(mass), float(rate_hz)
-    if not (math.isfinite(m) and m > 0.0 and math.isfinite(r) and r > 0.0):
-        return 0.0
-    return BRAKE_GAIN * m * r
 
 
 def _stored_energy(engine) -> float:
@@ -112,17 +89,16 @@ class Recovery:
             return
         tr, clock, sleep = self.transport, self._clock, self._sleep
         T = 1.0 / cfg.rate_hz
-        lim = cfg.force_limit
+        law = Brake(B, cfg.force_limit, cfg.brake_rest)        # n = 1 of hapsim.braking
         t0 = clock()
         end = t0 + max(BRAKE_MAX_S, 3.0 * T)
         seq = (self._last_seq + 1) & SEQ_MASK
-        prev = None                   # (position, device time [us]) of the last STATE
-        v = v_start = None
-        still = periods = late = 0
+        prev_us = None                # device time [us] of the last STATE
+        periods = late = 0
         ended = "time"
         last = t0
         while clock() < end:
-            f = 0.0 if v is None else min(max(-B * v, -lim), lim)
+            f = float(law.command()[0])
             tr.send(fp.Force(seq, (f,)))
             self._last_seq = seq          # the zero FORCE follows the braking's last
             periods += 1
@@ -134,15 +110,13 @@ class Recovery:
                     st = msg
             if st is not None:
                 seq = st.seq
-                if prev is not None and st.time_us != prev[1]:
-                    v = (st.position[0] - prev[0]) / ((st.time_us - prev[1]) * 1e-6)
-                    if v_start is None:
-                        v_start = v
-                    still = still + 1 if abs(v) < cfg.brake_rest else 0
-                    if still >= 3:
-                        ended = "rest"
-                        break
-                prev = (st.position[0], st.time_us)
+                # the velocity on the device's clock: a repeated time restarts it
+                law.observe(st.position, None if prev_us is None or st.time_us == prev_us
+                            else (st.time_us - prev_us) * 1e-6)
+                prev_us = st.time_us
+                if law.at_rest:
+                    ended = "rest"
+                    break
             wait = deadline - clock()
             if wait > 0.0:
                 sleep(wait)
@@ -150,8 +124,7 @@ class Recovery:
             if now - last > 2.0 * T:
                 late += 1                 # the host itself late: a period held longer
             last = now
-        res.brake = {"damping": B, "periods": periods, "seconds": clock() - t0,
-                     "v_start": v_start, "v_end": v, "ended": ended, "late": late}
+        res.brake = law.report(periods, clock() - t0, ended, late)
 
     def _state_timeout(self) -> None:
         tr = self.transport

@@ -26,10 +26,14 @@ import time
 
 import numpy as np
 
+# the legs' workspace and envelope in a run [rad] (hapsim.drivers.falcon's): a leg beyond
+# the envelope stops the loop, and the legs are braked to rest before the zero commands
+# (the scene's safety.brake)
+from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
 __all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "reply_timeout",
-           "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD"]
+           "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD", "ENVELOPE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
 FIRMWARE_PROBES = 10
@@ -76,12 +80,6 @@ def reply_timeout(rate_hz: float) -> float:
     return 1.0 / float(rate_hz) + REPLY_SLACK_S
 
 
-#: The legs' workspace in a run [rad]: the largest departure of any leg from the scene's
-#: operating point a run may reach (the emulated Falcon's truth, ``excursion``, is held
-#: to it by tools/driver_timing.py and the tests). The delta of configs/delta_sphere.yaml
-#: leaves its kinematics (no forward solution, or a singular Jacobian) 0.9 rad from rest
-#: (either leg, sampled): 0.5 rad is inside with a margin of 1.8.
-WORKSPACE_RAD = 0.5
 
 
 def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | None = None,
@@ -235,7 +233,10 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         a reply that came: the host stalled, the firmware held the last command),
         ``waits`` (such gaps after a reply that did not come before ``timeout``: the host
         waited for it), ``held_max_s`` (the longest
-        gap [s]), ``paced``, ``verdict``, ``reason``.
+        gap [s]), ``paced``, ``stopped`` (None, or the packet and the reason of a stop on
+        the motion: a leg beyond :data:`ENVELOPE_RAD`, a paced host too late), ``brake``
+        (None, or the braking after that stop,
+        :func:`hapsim.emulated.falcon_device.brake_legs`), ``verdict``, ``reason``.
 
     Raises
     ------
@@ -345,9 +346,12 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     stamps.clear()
     answered.clear()
     try:
+        # a stop on the motion (the legs out of their envelope, a paced host too late)
+        # brakes the legs before the zero commands below, unless the scene says not to
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
                            hold_bound_s=HOLD_BOUND_S if paced else None,
-                           late_stop=paced)
+                           late_stop=paced, envelope_rad=ENVELOPE_RAD,
+                           brake=scene.safety.brake)
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
@@ -360,7 +364,8 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
            "packets_per_s": (samples + 1) / dt if dt > 0 else None,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
-           "held_zero": res["held_zero"], "stopped": res["stopped"]}
+           "held_zero": res["held_zero"], "stopped": res["stopped"],
+           "brake": res["brake"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
     # gap k follows exchange k: after a reply that never came (lost bytes) the host
     # waited its timeout for it; after one that came, a long gap is the host's own

@@ -36,19 +36,12 @@ from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
 from hapsim.drivers.haply import MAX_TORQUE
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError, DeviceError
-from hapsim.pipeline.haply2_record import ARM_TIMEOUT, ENVELOPE_RAD, PortLink, record_realtime
+from hapsim.pipeline.haply2_record import (ARM_TIMEOUT, ENVELOPE_RAD, WORKSPACE_RAD, PortLink,
+                                           record_realtime)
 
 __all__ = ["estimate_bounds", "hold_bounds", "hold_corrections", "hold_motion",
            "measure_felt_haply2_port", "usable_rows", "WORKSPACE_RAD"]
 
-#: The joints' workspace in a measurement [rad]: the largest departure of either joint
-#: from the scene's operating point the host lets a record go on with (a reading beyond
-#: it: zero torque, the record ends, the run "not measurable"). The hand's records move
-#: the handle 1e-4 m (about 1e-3 rad); a 30 ms host stall at the board's clamp turns this
-#: 2e-4 kg m^2 joint 1/2 (0.123/2e-4) 0.03^2 = 0.28 rad; the five-bar of
-#: configs/pantograph_wall.yaml reaches its singular boundary 0.78 rad from rest (either
-#: joint): 0.5 rad is inside it with a margin of 1.5.
-WORKSPACE_RAD = 0.5
 
 #: How much the time a board takes a write may vary from one write to the next beyond
 #: what the host's own write times show [s], before a departure beyond the stated
@@ -559,7 +552,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     dict
         :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`'s, with ``estimated``
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
-        (replies read per record, of ``writes``), ``resyncs`` and ``skipped`` (bytes
+        (replies read per record, of ``writes``), ``left`` and ``brake`` per record (the
+        tick the joints left the envelope, -1 if none; the braking after it,
+        :func:`record_realtime`'s, or None), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record, ``stalls`` (host stalls per record),
         ``held_zero`` (ticks written at zero torque for want of a fresh sample,
         :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`) and ``usable`` (rows per
@@ -664,14 +659,16 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     zeroed = [int(r["held_zero"]) for r in runs]
     left = [int(r.get("left", -1)) for r in runs]
     if any(v >= 0 for v in left):
-        # the joints left the measurement's envelope (zero torque from there): the loop
-        # was not the linear one predicted, whatever else the records say
+        # the joints left the measurement's envelope (braked, then zero torque from
+        # there): the loop was not the linear one predicted, whatever else the records say
         out.update(verdict="not measurable", within=None, uncertainty=None,
                    statements=[], not_stated=["felt stiffness", "felt damping"],
                    reason=f"the joints left the measurement's envelope ({ENVELOPE_RAD:g} "
                           f"rad from the operating point) in {sum(v >= 0 for v in left)} "
-                          "records: zero torque written from there (the host too late for "
-                          "the scene's loop, or a torque held over its stalls)")
+                          "records: " + ("braked to rest, then zero torque"
+                                         if scene.safety.brake else "zero torque written")
+                          + " from there (the host too late for the scene's loop, or a "
+                          "torque held over its stalls)")
     if not lockstep_board and out.get("verdict") == "differs":
         # A board on its own clock held each torque from when it took the write to when
         # it took the next. The stated uncertainty counts the host's own write times
@@ -718,7 +715,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
-               left=left)
+               left=left, brake=[r.get("brake") for r in runs])
     return out
 
 

@@ -64,8 +64,12 @@ took it (a reply reading the set-up's offsets) at most :data:`REARM_REPLY_S` of 
 awake time, then sends it again, zero torque first (:data:`REARM_SENDS` at most): before,
 a re-arming the stream corrupted waited 0.25 s with the clamp's torque held (16.8 rad of
 true excursion, 1 byte in 200 lost). A reading farther than :data:`ENVELOPE_RAD` from the
-operating point ends the record's torque loop (zero torque from there; not measured). A corrupted byte in
-a write the board takes cannot be seen (no checksum: a wrong torque for one period).
+operating point ends the record's torque loop (not measured): a stop on the motion, after
+which the joints are braked to rest (:mod:`hapsim.braking`, ``tau = -B q'`` from the
+readings, at most :data:`hapsim.braking.BRAKE_MAX_S`, on past the record's last tick if
+need be) and then held at zero torque (the scene's ``safety: {brake: false}``: zero torque
+at once). A corrupted byte in a write the board takes cannot be seen (no checksum: a
+wrong torque for one period).
 """
 
 from __future__ import annotations
@@ -75,11 +79,12 @@ import time
 
 import numpy as np
 
+from hapsim.braking import BRAKE_MAX_S, Brake, brake_damping, brake_rest
 from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import DeviceError
 
-__all__ = ["record_realtime", "PortLink"]
+__all__ = ["record_realtime", "PortLink", "ENVELOPE_RAD", "WORKSPACE_RAD"]
 
 #: Longest wait for the first reply after a set-up [s] (a board process just started
 #: loads its compiled plant first).
@@ -126,6 +131,16 @@ SILENT_S = HOLD_BOUND_S
 #: own clock) before any bound, and with 0.1 rad the light joint (2e-4 kg m^2) coasted on
 #: to 0.69 and 0.86 rad after the zero torque.
 ENVELOPE_RAD = 0.03
+#: The joints' workspace in a measurement [rad]: the largest departure of either joint
+#: from the scene's operating point a run may reach (the emulated board's truth,
+#: ``excursion``, is held to it by the tests). The hand's records move the handle 1e-4 m
+#: (about 1e-3 rad); a 30 ms host stall at the board's clamp turns this 2e-4 kg m^2 joint
+#: 1/2 (0.123/2e-4) 0.03^2 = 0.28 rad; the five-bar of configs/pantograph_wall.yaml
+#: reaches its singular boundary 0.78 rad from rest (either joint): 0.5 rad is inside it
+#: with a margin of 1.5. The braking after the joints left :data:`ENVELOPE_RAD` ends when
+#: the coast friction alone would still give is 1 % of it
+#: (:func:`hapsim.braking.brake_rest`).
+WORKSPACE_RAD = 0.5
 #: Longest wait [s] for a re-armed board's evidence that it took the re-arming (its
 #: answer to the closing zero write reading the set-up's offsets) before the re-arming is
 #: sent again, zero torque first: the hold bound (the board has no watchdog: a torque a
@@ -166,7 +181,8 @@ def _write(ser, data: bytes) -> None:
 
 
 def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
-                    lockstep_board: bool = False, running: bool = False) -> dict:
+                    lockstep_board: bool = False, running: bool = False,
+                    brake: bool | None = None) -> dict:
     """One record in real time: arm (the set-up, whose hand starts the record), then one
     write per tick of the host's clock (module notes).
 
@@ -192,6 +208,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         the power-up's zero). A re-synchronisation on a board on its own clock waits for
         the evidence that the board took it, at most :data:`REARM_REPLY_S` of the host's
         awake time a sending (:data:`REARM_SENDS` sendings).
+    brake : bool, optional
+        Default: the scene's ``safety.brake`` (:class:`hapsim.scene.SafetyND`, true
+        unless the scene says otherwise). After the joints left :data:`ENVELOPE_RAD` (a
+        stop on the motion), brake them to
+        rest (:mod:`hapsim.braking`: ``tau = -B q'``, ``B = g M_q / T`` from the scene's
+        joint inertia, clamped to the board's torque, at most
+        :data:`hapsim.braking.BRAKE_MAX_S`, on past the record's last tick if it needs
+        to) before the zero torque; False (the scene's ``safety: {brake: false}``): zero
+        torque at once.
 
     Returns
     -------
@@ -215,7 +240,14 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         ``damaged``), ``write_s`` (N, 2) [s]: when the host's write whose reply is row
         ``k``'s sample began and ended (``perf_counter``, from the first one's start;
         the board took it in between, or a latency after: the holds' lengths,
-        :func:`hapsim.pipeline.haply2_host.hold_bounds`).
+        :func:`hapsim.pipeline.haply2_host.hold_bounds`), ``left`` (the tick a reading
+        left :data:`ENVELOPE_RAD`, -1 if none), ``brake`` (None, or after ``left`` with
+        ``brake``: :meth:`hapsim.braking.Brake.report`'s dict: ``damping`` [N m s/rad],
+        ``periods`` (ticks braked), ``seconds``, ``v_start``/``v_end`` (the joints'
+        velocities [rad/s]), ``ended`` (``"rest"`` or ``"time"``), ``late`` (its ticks
+        the host began a period or more late)). The
+        row arrays have the record's ``N`` rows; the braking's ticks after them are not
+        rows.
 
     Raises
     ------
@@ -246,9 +278,21 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     dec.set_accel(alpha if alpha > 0 else None)
     dec.period_s = T                                # the last two replies: a tick apart
     eng = EngineND(scene) if engine is None else engine
+    # the braking's damping from the joint-space inertia (hapsim.braking.brake_damping
+    # says why not the Cartesian mass) and its rest speed; no inertia stated: no braking
+    Bq = brake_damping(ji, 1.0 / T) if ji is not None else None
+    if brake is None:
+        brake = getattr(getattr(scene, "safety", None), "brake", True)
+    brake = bool(brake) and Bq is not None and bool(np.any(Bq))
+    if brake:
+        Bfq = getattr(dev, "joint_friction", None)
+        rest = brake_rest(WORKSPACE_RAD, ji, 0.0 if Bfq is None else Bfq)
     port = eng.port
-    xr = np.full((N + 2, 2), np.nan)                # reading of tick i's reply
-    qr = np.full((N + 2, 2), np.nan)
+    # the ticks the loop may run: the record's, and after a stop on the motion the
+    # braking's, at most BRAKE_MAX_S more (its rows are not the record's: cut at N)
+    C = N + (int(math.ceil(BRAKE_MAX_S / T)) + 3 if brake else 0)
+    xr = np.full((C + 2, 2), np.nan)                # reading of tick i's reply
+    qr = np.full((C + 2, 2), np.nan)
     # got: the tick whose write the next reply answers (replies come in order, one per
     # write; a re-arming re-anchors it); replies: replies taken in all
     got = 0
@@ -293,8 +337,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     zero = driver.write_bytes((0.0, 0.0))
     # perf_counter() of the write whose reply is each tick's sample (the arming's zero
     # write for tick 0)
-    t_wrote = np.full(N + 2, np.nan)
-    t_began = np.full(N + 2, np.nan)                # perf_counter() as that write began
+    t_wrote = np.full(C + 2, np.nan)
+    t_began = np.full(C + 2, np.nan)                # perf_counter() as that write began
 
     def arm(at_deg, k):
         """Arm (or re-arm) the board at the joints ``at_deg`` [deg]: zero torque and the
@@ -426,13 +470,20 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             time.sleep(2e-4)
     rearm_sends = 0
     arm(q0deg, 0)
-    pos = np.zeros((N, 2))
-    joints = np.full((N, 2), np.nan)
-    torque = np.zeros((N, 2))
-    est = np.zeros(N, bool)
-    lag = np.zeros(N, np.int64)
-    resynced = np.zeros(N, bool)
-    stalled = np.zeros(N, bool)
+    pos = np.zeros((C, 2))
+    joints = np.full((C, 2), np.nan)
+    torque = np.zeros((C, 2))
+    est = np.zeros(C, bool)
+    lag = np.zeros(C, np.int64)
+    resynced = np.zeros(C, bool)
+    stalled = np.zeros(C, bool)
+    # the braking after the joints left the envelope (hapsim.braking, the joints'
+    # velocities from the readings, the joint-space inertia's B): None until then, and
+    # its end ("rest", "time") once done
+    law = None
+    braked = None
+    brake_at = brake_k = 0
+    obs = -1                                        # the last tick the law read
     late = 0
     stall_s = 0.0
     held_zero = 0
@@ -451,7 +502,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # by ~0.6 ms, the velocity records' second sample off by ~6 % of the amplitude).
         # A reply later than that: from now, as before
         t0 = max(t0, t_began[0] + T)
-    for k in range(N):
+    K = N                                           # ticks run (more while braking)
+    for k in range(C):
+        if k >= N and (law is None or braked is not None):
+            break                                   # the record's end (the braking's)
+        K = max(K, k + 1)
         deadline = t0 + k * T
         now = time.perf_counter()
         if now > deadline + 0.5 * T:
@@ -500,7 +555,21 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             joints[k, 1] = qr[k, 1]
             if left < 0 and (abs(qr[k, 0] - q0r0) > ENVELOPE_RAD
                              or abs(qr[k, 1] - q0r1) > ENVELOPE_RAD):
-                left = k                            # zero torque from here (below)
+                left = k                            # braked, then zero torque (below)
+                if brake:
+                    law = Brake(Bq, MAX_TORQUE, rest)
+                    brake_at, brake_k = time.perf_counter(), k
+                    if k >= 1 and qr[k - 1, 0] == qr[k - 1, 0] and not resynced[k]:
+                        obs = k - 1
+                        law.observe(qr[k - 1], None)
+            if law is not None and braked is None:
+                # the joints' velocity from this reading and the last the law read (the
+                # times of the writes they answer: the board read them as it took them)
+                # (a re-synchronisation between re-anchors the angles at the set-up's
+                # offsets: the difference restarts there, no velocity across it)
+                law.observe(qr[k], None if obs < 0 or resynced[obs + 1:k + 1].any() else (
+                    (k - obs) * T if lockstep_board else t_wrote[k] - t_wrote[obs]))
+                obs = k
         else:                                       # missing: an estimated sample
             i = seen
             r = k - i
@@ -524,9 +593,21 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         tau2 = j01 * f0 + j11 * f1
         if left >= 0:
             # the joints left the measurement's envelope: the loop is not the one
-            # measured (a host too slow for its scene, a torque held over stalls);
-            # zero torque for the rest of the record, the record not measured
+            # measured (a host too slow for its scene, a torque held over stalls), the
+            # record not measured. The board (no watchdog) is braked, tau = -B q' from
+            # the readings, until at rest or BRAKE_MAX_S (a sample older than
+            # HOLD_BOUND_S: zero), then zero torque (before: zero torque at once, and the
+            # light joint coasted on its friction alone)
             tau1 = tau2 = 0.0
+            if law is not None and braked is None:
+                gone = ((k - brake_k) * T if lockstep_board
+                        else time.perf_counter() - brake_at)
+                if law.at_rest or gone >= BRAKE_MAX_S:
+                    braked = "rest" if law.at_rest else "time"
+                    brake_end = (k - brake_k, gone)
+                elif not (est[k] and ((k - i) * T if lockstep_board
+                                      else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S):
+                    tau1, tau2 = law.command()
         elif est[k] and ((k - i) * T if lockstep_board
                          else time.perf_counter() - t_wrote[i]) > HOLD_BOUND_S:
             # no fresh sample for HOLD_BOUND_S: the torque was computed from where the
@@ -546,13 +627,21 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     # of its zeros, 1 bit in 32, would be a torque it cannot show: no checksum); without
     # it the board may be out of step, where a zero write is read as something else:
     # re-armed then (zero torque first, whatever its parser is inside)
+    brake_out = None
+    if law is not None:
+        if braked is None:                          # the ticks' room ran out first
+            braked, brake_end = "time", (K - brake_k, (
+                (K - brake_k) * T if lockstep_board else time.perf_counter() - brake_at))
+        # late: the braking's ticks the host began a period or more late (stalls)
+        brake_out = law.report(brake_end[0], brake_end[1], braked,
+                               int(stalled[brake_k:K].sum()))
     _write(ser, zero)
-    t_wrote[N + 1] = time.perf_counter()
+    t_wrote[K + 1] = time.perf_counter()
     if lockstep_board:
         end = time.monotonic() + END_WAIT_S
-        while seen < N + 1 and time.monotonic() < end:
+        while seen < K + 1 and time.monotonic() < end:
             take(_read(ser))
-            if seen < N + 1:
+            if seen < K + 1:
                 time.sleep(2e-4)
     else:
         # a board on its own clock holds what it last took: the replies are awaited while
@@ -566,19 +655,20 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # the loop: a reply read late is a late sample
             dec.elapsed(time.perf_counter() - t_wrote[seen])
             take(data)
-        while seen < N + 1 and time.monotonic() < end:
+        while seen < K + 1 and time.monotonic() < end:
             n0 = replies
-            _awake_wait(lambda: replies != n0 or seen >= N + 1, SILENT_S, take_late)
+            _awake_wait(lambda: replies != n0 or seen >= K + 1, SILENT_S, take_late)
             if replies == n0:
                 break
-    rearmed_at_end = seen < N + 1
+    rearmed_at_end = seen < K + 1
     if rearmed_at_end:
-        arm(q0deg, N + 1)
-    return {"position": pos, "joints": joints, "torque": torque, "estimated": est,
-            "lag": lag, "late_ticks": late, "replies": replies, "writes": N + 2,
-            "readings": xr[:N].copy(), "resyncs": rule.count, "resynced": resynced,
-            "resync_s": resync_s, "stalled": stalled, "stall_s": stall_s,
-            "held_zero": held_zero, "bad_setups": bad_setups, "left": left,
+        arm(q0deg, K + 1)
+    return {"position": pos[:N], "joints": joints[:N], "torque": torque[:N],
+            "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
+            "writes": K + 2, "readings": xr[:N].copy(), "resyncs": rule.count,
+            "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
+            "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
+            "left": left, "brake": brake_out,
             "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats),
             "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0]}
 

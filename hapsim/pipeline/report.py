@@ -12,6 +12,7 @@ from hapsim.analysis.prediction import port_links
 from hapsim.drivers import DEFAULT
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
+from hapsim.braking import brake_text
 from hapsim.errors import dash
 
 if TYPE_CHECKING:
@@ -371,10 +372,7 @@ def format_report(rep: dict) -> str:
     bk = lp.get("brake")
     if bk:
         # the host braked the device after the safety stop (hapsim.host.recovery)
-        lines.append(f"braked after the stop: damping {bk['damping']:.3g} N s/m over "
-                     f"{bk['periods']} periods ({bk['seconds']:.3f} s), speed "
-                     f"{dash(bk['v_start'], '.3g')} -> {dash(bk['v_end'], '.3g')} m/s, "
-                     f"ended: {bk['ended']}")
+        lines.append(brake_text(bk))
     dl = lp.get("driver")
     if dl:
         # a driver's link (hapsim.drivers.transport): what came back of what was asked

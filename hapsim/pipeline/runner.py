@@ -40,7 +40,7 @@ from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
-from hapsim.host.recovery import brake_damping
+from hapsim.braking import brake_damping, brake_rest
 from hapsim.pipeline.measure import identify_run
 from hapsim.emulated.mock import MockDevice
 from hapsim.pipeline.options import RunOptions
@@ -186,9 +186,7 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       # friction: 1 % of it a second)
                       brake_damping=(brake_damping(dev.mass, scene.rate_hz) if sf.brake
                                      else 0.0),
-                      brake_rest=0.01 * pos_bound * (dev.friction / dev.mass
-                                                     if dev.friction > 0.0 and dev.mass > 0.0
-                                                     else 1.0))
+                      brake_rest=brake_rest(pos_bound, dev.mass, dev.friction))
 
 
 class _CompileThread(threading.Thread):

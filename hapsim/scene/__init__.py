@@ -123,7 +123,7 @@ from __future__ import annotations
 from hapsim.scene.devices import DEVICE_KINDS
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, DeviceND, Excitation, ExcitationND,
                                    Hand, Impulse, Link, LinkND, Listen, ListenND, Mass, MassND,
-                                   PlaneND, Safety, audio_substeps)
+                                   PlaneND, Safety, SafetyND, audio_substeps)
 from hapsim.scene.model import Scene, SceneND
 from hapsim.scene.reader import (load_scene, load_scene_nd, parse_scene, parse_scene_nd,
                                  scene_dimension)
@@ -135,5 +135,6 @@ __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitati
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
            "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
            "PROTOCOLS", "audio_substeps",
-           "MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SceneND",
+           "MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SafetyND",
+           "SceneND",
            "scene_dimension", "load_scene_nd", "parse_scene_nd", "DEVICE_KINDS"]

@@ -20,7 +20,7 @@ from hapsim.drivers import DEFAULT
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
            "Listen", "Audio", "audio_substeps", "MassND", "LinkND", "PlaneND", "DeviceND",
-           "ListenND", "ExcitationND"]
+           "ListenND", "ExcitationND", "SafetyND"]
 
 #: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
 CORRECTIONS = {"velocity_sensor": (), "velocity_filter": ("cutoff_hz",),
@@ -486,3 +486,21 @@ class ExcitationND:
     impulse: object | None = None
     profile: str | None = None
     line: int | None = None
+
+
+@dataclass(frozen=True)
+class SafetyND:
+    """What a 2-D or 3-D run does after a stop on the device's motion (scene section
+    ``safety:``).
+
+    Attributes
+    ----------
+    brake : bool
+        Brake the joints to rest (:mod:`hapsim.braking`: ``tau = -B q'``, ``B = g M_q /
+        T``, at most :data:`hapsim.braking.BRAKE_MAX_S`) before the zero torque, after a
+        stop on the motion (the 2DIY's joints out of the measurement's envelope, the
+        Falcon's legs out of their envelope or the host too late for it); False: zero
+        torque at once.
+    """
+
+    brake: bool = True

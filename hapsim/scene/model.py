@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from hapsim.errors import ConfigError
 from hapsim.scene.elements import (Audio, Device, DeviceND, Excitation, ExcitationND, Link, Mass,
-                                   MassND, Safety)
+                                   MassND, Safety, SafetyND)
 from hapsim.scene.rules import Invalid, check_scene, code_line, coerce
 
 __all__ = ["Scene", "SceneND"]
@@ -231,7 +231,8 @@ class SceneND:
     """A validated 2-D or 3-D scene (:func:`~hapsim.scene.load_scene_nd`, which checks it as it
     reads it); ``audio`` is its listening
     points (a tuple of :class:`ListenND`) or None, ``excitation`` the hand's force
-    (:class:`ExcitationND`) or None; ``precision`` the engine's floating type,
+    (:class:`ExcitationND`) or None; ``safety`` what a run does after a stop on the
+    motion (:class:`SafetyND`); ``precision`` the engine's floating type,
     ``"double"`` (float64, default) or ``"single"`` (float32)."""
 
     dimension: int
@@ -245,6 +246,7 @@ class SceneND:
     audio: tuple | None = None
     excitation: ExcitationND | None = None
     precision: str = "double"
+    safety: SafetyND = field(default_factory=SafetyND)
 
     @property
     def period(self) -> float:

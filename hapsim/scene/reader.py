@@ -24,7 +24,8 @@ from hapsim.scene_schema import (LINK_KINDS, MASS_KINDS, MASS_RANGE, MAX_DELAY, 
 from hapsim.scene_schema import key as _key
 from hapsim.scene.devices import read_device_nd
 from hapsim.scene.elements import (Audio, Device, Excitation, ExcitationND, Hand, Impulse, Link,
-                                   LinkND, Listen, ListenND, Mass, MassND, PlaneND, Safety)
+                                   LinkND, Listen, ListenND, Mass, MassND, PlaneND, Safety,
+                                   SafetyND)
 from hapsim.scene.lines import LineContext, read_text
 from hapsim.scene.model import Scene, SceneND
 from hapsim.scene.rules import Invalid, check_key, check_products_nd, coerce
@@ -32,7 +33,7 @@ from hapsim.scene.rules import Invalid, check_key, check_products_nd, coerce
 __all__ = ["load_scene", "parse_scene", "read_device", "scene_dimension", "load_scene_nd",
            "parse_scene_nd", "TOP_KEYS_ND", "MASS_KEYS_ND", "LINK_KEYS_ND", "PLANE_KEYS_ND",
            "EXCITATION_KEYS_ND", "IMPULSE_KEYS_ND", "LISTEN_KEYS_ND", "ENGINE_KEYS_ND",
-           "PRECISIONS_ND"]
+           "PRECISIONS_ND", "SAFETY_KEYS_ND"]
 
 # Valid keys, defaults, types and ranges: one table, hapsim.scene_schema (docs/scenes.md is
 # written from it by hapsim.scene_doc). Add a key there, not here.
@@ -44,10 +45,11 @@ _HAND_KEYS = ("mass", "damping", "grip_stiffness", "grip_damping", "stiffness")
 #: The keys of a 2-D or 3-D scene file, by section (the 1-D format's are
 #: :data:`hapsim.scene_schema.KEYS`; docs/dimensions.md lists both).
 TOP_KEYS_ND = ("dimension", "rate_hz", "integrator", "masses", "links", "planes", "device",
-            "excitation", "audio", "engine")
+            "excitation", "audio", "engine", "safety")
 EXCITATION_KEYS_ND = ("direction", "impulse", "profile")
 IMPULSE_KEYS_ND = ("force", "start", "duration")
 ENGINE_KEYS_ND = ("precision",)
+SAFETY_KEYS_ND = ("brake",)
 PRECISIONS_ND = ("double", "single")
 LISTEN_KEYS_ND = ("mass", "axis", "quantity", "gain")
 AXES_ND = ("x", "y", "z")
@@ -559,9 +561,18 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
             raise r.error("single precision is for scenes without a port: a felt scene "
                           "runs the double-precision engine (exact to round-off)",
                           r.line_of(e, "precision"), "engine.precision")
+    safety = SafetyND()
+    if "safety" in doc:
+        sd = r.mapping(doc["safety"], "safety", r.line_of(doc, "safety"))
+        r.keys(sd, SAFETY_KEYS_ND, "safety")
+        brake = sd.get("brake", True)
+        if not isinstance(brake, bool):
+            raise r.error(f"must be true or false, got {brake!r}", r.line_of(sd, "brake"),
+                          "safety.brake")
+        safety = SafetyND(brake=brake)
     return SceneND(dimension=n, rate_hz=rate, masses=tuple(masses), links=tuple(links),
                    planes=tuple(planes), device=device, path=path, audio=audio,
-                   excitation=excitation, precision=precision)
+                   excitation=excitation, precision=precision, safety=safety)
 
 
 def _read_excitation_nd(r: LineContext, doc, n: int, path: str) -> ExcitationND:
