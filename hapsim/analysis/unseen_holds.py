@@ -226,7 +226,7 @@ def _correlate(r, k):
 def find_unseen_holds(position, force, fit: dict, period: float, sensor_response,
                       force_response, taus, *, floor: float = 0.0,
                       false_alarm: float = FALSE_ALARM, max_holds: int | None = None,
-                      relative: float = RELATIVE, lead: int = 4) -> dict:
+                      relative: float = RELATIVE, lead: int = 4, unread=None) -> dict:
     """The rows of a fitted record where a board's mistimed hold stands out of the
     residual (module notes).
 
@@ -276,6 +276,13 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         a stretch's first rows, where the fast modes are above the floor, so a hold
         there is no stretch's row).
 
+    unread : array_like of bool, shape (n,), optional
+        Rows whose position is no reading (a driver's missing reply stepped through with
+        an estimate: ``FLAG_ESTIMATED``), their error bounded in the stated uncertainty
+        already: their residual is left out (0) and no hold is sought within ``lead``
+        rows of one (the estimate's error there would pass for a hold: 20 "holds" cut
+        in one run that lost 1 byte in 200, its 51 estimated rows not apart).
+
     Returns
     -------
     dict
@@ -302,6 +309,10 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         # the stretches leave each a share along its own): else a signature the fit
         # would take almost whole matches that share at every stretch's first rows
         r = r - Q @ (Q.T @ r)
+        un = None
+        if unread is not None:
+            un = np.asarray(unread, bool)[rows]
+            r = np.where(un, 0.0, r)
         # the candidates: the stretch's rows and the ``lead`` rows before it (a hold there
         # reaches into the stretch by its inputs still in flight), the residual 0 there
         p = min(int(lead), int(rows[0]))
@@ -313,14 +324,21 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         Qx = np.vstack([np.zeros((p, Q.shape[1])), Q])
         QS = np.array([_correlate(Qx[:, c], S) for c in range(Q.shape[1])])
         QH = np.array([_correlate(Qx[:, c], H) for c in range(Q.shape[1])])
-        stretches.append([cand, np.concatenate([np.zeros(p), r]), norms, p,
-                          np.zeros(cand.size, bool), Qx, QS, QH])
+        taken = np.zeros(cand.size, bool)
+        if un is not None:
+            for k in np.flatnonzero(un) + p:
+                taken[max(k - int(lead), 0):k + int(lead) + 1] = True
+        stretches.append([cand, np.concatenate([np.zeros(p), r]), norms, p, taken, Qx,
+                          QS, QH])
     n_test = sum(st[0].size for st in stretches)
     out = {"rows": np.zeros(0, np.int64), "tau_s": np.zeros(0), "z": np.zeros(0),
            "sigma": 0.0, "threshold": math.inf, "tested": int(n_test)}
     if not n_test or not taus:
         return out
     allr = np.concatenate([st[1][st[3]:] for st in stretches])
+    if unread is not None:
+        allr = np.concatenate([st[1][st[3]:][~np.asarray(unread, bool)[st[0][st[3]:]]]
+                               for st in stretches])
     sigma = max(_MAD_SD * float(np.median(np.abs(allr - np.median(allr)))), float(floor))
     thr = float(norm.isf(false_alarm / (2.0 * n_test * len(taus))))
     out.update(sigma=sigma, threshold=thr)

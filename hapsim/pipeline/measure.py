@@ -303,11 +303,15 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver) -
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
     floor = math.hypot(sensor_sd(quantum, scene.device.noise),
                        pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
+    from hapsim.host.telemetry import FLAG_ESTIMATED
+    unread = ((np.asarray(cols["flags"]) & FLAG_ESTIMATED) != 0 if "flags" in cols
+              else None)
     rows, taus = [], []
     ex = np.asarray(exclude, bool).copy()
     for _ in range(MAX_PASSES):
         got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
-                                floor=floor, lead=math.ceil(float(scene.device.delay)) + 3)
+                                floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
+                                unread=unread)
         # a hold whose rows are cut already (one before a stretch, found again by its
         # tail) changes nothing: the search stops when no hold found cuts a new row
         new = [(j, t) for j, t in zip(got["rows"].tolist(), got["tau_s"].tolist())
