@@ -12,7 +12,7 @@ Here the THS is closed on a SIMULATED clock
 (:func:`hapsim.emulated.hapkit_serial_board.hapkit_serial_offline_loop`: the board on its
 own tick fed the simulated time of each command; deterministic, no pty, no wall clock),
 random paddles and loops, 1 to 10 holds of 0.6 to 2.5 ticks of read latency at random rows
-that the host does not mark. Before the change (the search off: a driver with no tick, as
+that the host does not mark. Before the change (the search off: ``own_tick`` False, as
 ``identify_run`` was) 4 of these 16 seeds said "differs" of the matching paddle (17, 21,
 22, 31: k 0.02-0.03 % or b 0.8-1.6 % off, outside intervals of 0.01-0.03 % and
 0.5-1.3 %); over seeds 0-149 of this generator 10 did. Seeds 16-31 are the window that
@@ -151,7 +151,7 @@ def test_with_no_hold_the_measurement_is_unchanged(seed, tmp_path):
     cols, drv, board = hapkit_serial_offline_loop(prep.scene, n)
     assert board.tick_arrivals["off_period"] == 0
     m = _measure(prep, cols, drv)
-    drv.tick_s = 0.0                                  # the search is for ticking boards
+    drv.own_tick = False                     # the search is for boards on their own tick
     plain = _measure(prep, cols, drv)
     assert m.pop("unseen_holds") == 0 and "unseen_holds" not in plain
     assert m.keys() == plain.keys()

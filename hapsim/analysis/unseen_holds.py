@@ -277,11 +277,11 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         there is no stretch's row).
 
     unread : array_like of bool, shape (n,), optional
-        Rows whose position is no reading (a driver's missing reply stepped through with
-        an estimate: ``FLAG_ESTIMATED``), their error bounded in the stated uncertainty
-        already: their residual is left out (0) and no hold is sought within ``lead``
-        rows of one (the estimate's error there would pass for a hold: 20 "holds" cut
-        in one run that lost 1 byte in 200, its 51 estimated rows not apart).
+        Rows whose error the stated uncertainty bounds already (a driver's missing reply
+        stepped through with an estimated position, ``FLAG_ESTIMATED``; a force its
+        account cannot name): their residual is left out (0) and no hold is sought
+        within ``lead`` rows of one (their error there would pass for a hold: 20 "holds"
+        cut in one run that lost 1 byte in 200, its 51 estimated rows not apart).
 
     Returns
     -------

@@ -159,7 +159,7 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         ``(columns, driver, board)``: telemetry columns (``time`` [s], ``position`` [m],
         ``force`` [N], ``seq``, ``flags``, ``late``, ``force_seq``, ``status``), shape
         (n,); the :class:`hapsim.drivers.hapkit_serial.HapkitSerial` whose replies they
-        are (its ``loop_delay`` set, no hold marked); the board.
+        are (its ``loop_delay`` and ``own_tick`` set, no hold marked); the board.
     """
     import numpy as np
 
@@ -169,6 +169,7 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     drv = HapkitSerial()
     drv.loop_delay = int(sc.device.delay)
     drv.mistimed_seqs = set()
+    drv.own_tick = True                        # the sketch keeps its tick (simulated)
     board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall")
     dec = drv.decoder()
     eng = Engine(sc)

@@ -185,11 +185,18 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                             closed=None if replay is None else replay.closed, exclude=ex,
                             wire=wire, bounds=bounds or None, late_bounds=late_bounds,
                             fit=fit)
-        if float(getattr(driver, "tick_s", 0.0) or 0.0) > 0:
-            # a board on its own tick: the holds it mistimed that the host did not see,
-            # found in the record and cut as the marked ones (hapsim.analysis.unseen_holds)
+        if getattr(driver, "own_tick", False) and float(getattr(driver, "tick_s", 0.0)) > 0:
+            # a board on its own tick and clock: the holds it mistimed that the host did
+            # not see, found in the record and cut as the marked ones
+            # (hapsim.analysis.unseen_holds); a lockstep mock has no tick to mistime
+            # rows with an error the stated uncertainty bounds already (an estimated
+            # position, a force the account cannot name or a late tick's): no hold there
+            unread = (cols["flags"] & FLAG_ESTIMATED) != 0
+            for b in (hw, lfb):
+                if b is not None:
+                    unread = unread | (np.asarray(b, float) > 0)
             measured = _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum,
-                                         driver)
+                                         driver, unread)
         else:
             measured = fitted(exclude)
         if mistimed is not None:
@@ -226,6 +233,11 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                      f"uncertainty covers the worst case of their error (k +-"
                      f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
                      f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
+    n_unseen = measured.get("unseen_holds", 0)
+    if n_unseen:
+        notes.append(f"{n_unseen} holds the board took off the period, which the host "
+                     f"did not see (its own read latency), were found in the record and "
+                     f"cut (unseen_hold_seqs)")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -246,7 +258,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     return measured
 
 
-def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver) -> dict:
+def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
+                      unread) -> dict:
     """:func:`identify_run`'s fit of a board on its own tick, with the holds it mistimed
     that no host saw cut out (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
 
@@ -272,13 +285,18 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver) -
         The sensor's step [m].
     driver : hapsim.drivers.base.Driver
         The run's driver (its ``position_rel``: the wire's rounding in the floor).
+    unread : ndarray of bool, shape (n,)
+        Rows whose error the stated uncertainty bounds already (an estimated position, a
+        force the account cannot name, a late tick's accounted force): no hold is sought
+        near them (:func:`~hapsim.analysis.unseen_holds.find_unseen_holds`' ``unread``).
 
     Returns
     -------
     dict
         The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
         some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
-        at most 100) and ``unseen_hold_tau_ms`` (their fitted mistiming [ms]).
+        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
+        positive, taken late).
     """
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.identify import sensor_sd
@@ -303,9 +321,6 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver) -
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
     floor = math.hypot(sensor_sd(quantum, scene.device.noise),
                        pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
-    from hapsim.host.telemetry import FLAG_ESTIMATED
-    unread = ((np.asarray(cols["flags"]) & FLAG_ESTIMATED) != 0 if "flags" in cols
-              else None)
     rows, taus = [], []
     ex = np.asarray(exclude, bool).copy()
     for _ in range(MAX_PASSES):
