@@ -102,7 +102,11 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
             "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
-            "scheduling": lp.get("scheduling")}
+            "scheduling": lp.get("scheduling"),
+            # a board on its own tick: the holds it took off the period (its own count)
+            # and those the measurement found in the record and cut
+            "board_off_period": (mk.get("tick_arrivals") or {}).get("off_period"),
+            "unseen_holds": m.get("unseen_holds")}
 
 
 def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
@@ -284,7 +288,8 @@ def main(argv=None) -> int:
                     print(json.dumps({k: row.get(k) for k in (
                         "driver", "loss", "seed", "clock", "safety_stop", "resyncs", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
-                        "error")}, default=str), file=sys.stderr, flush=True)
+                        "error", "board_off_period", "unseen_holds")}, default=str),
+                          file=sys.stderr, flush=True)
     finally:
         for h in hogs:
             h.kill()
@@ -303,7 +308,8 @@ def main(argv=None) -> int:
 #: The keys every row has (None where a run does not give one): the docs' table reads them.
 ROW_KEYS = ("driver", "loss", "seed", "clock", "safety_stop", "stop", "resyncs", "stalls",
             "excursion_true", "excursion_host", "workspace", "verdict", "within",
-            "exit_code", "error", "seconds", "load", "scheduling")
+            "exit_code", "error", "seconds", "load", "scheduling", "board_off_period",
+            "unseen_holds")
 
 
 def normalize(rows):

@@ -360,7 +360,7 @@ def _mode_of(spec_item, mass, period):
 def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool = False,
                  quantum: float = 0.0, noise: float = 0.0, order: int | None = None,
                  pencil: int | None = None, sensor_response=None, wire=None,
-                 lens=None, bounded=None, late_bounded=None) -> dict:
+                 lens=None, bounded=None, late_bounded=None, fit=None) -> dict:
     """Felt (k, b) of a logged free response with its standard error, robust to a
     quantised or noisy position sensor; of one stretch, or of several that share the
     loop's poles, each from its own initial condition (``lens``).
@@ -435,6 +435,9 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         same first-order sensitivity is returned apart, ``k_bound_late``,
         ``b_bound_late`` [N/m, N s/m], not added to ``k_unc``, ``b_unc`` (a caller that
         decides a side on it adds it: :func:`hapsim.analysis.zwidth.record_side`).
+    fit : dict, optional
+        Filled by the robust path with its fitted modes (``spec``: ``["pair", a, w]``,
+        ``z = exp(-a + i w)``, or ``["real", p]``) and the ``(begin, end)`` of ``y`` fitted.
 
     Returns
     -------
@@ -564,6 +567,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
             best = (sp, cost)
     spec = best[0]
     rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w)
+    if fit is not None:
+        fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
                               lens=lens_w),

@@ -30,7 +30,7 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
              skip: int = 3, predicted=None, felt: complex | None = None,
              quantum: float = 0.0, noise: float = 0.0, sensor_response=None,
              closed: np.ndarray | None = None, wire=None, bounds=None,
-             exclude: np.ndarray | None = None, late_bounds=None) -> dict:
+             exclude: np.ndarray | None = None, late_bounds=None, fit=None) -> dict:
     """Measure the rendered oscillator from logged positions.
 
     Parameters
@@ -100,6 +100,11 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         As ``bounds``, for the late ticks' accounted forces (:func:`late_accounted`'s
         bound [N], through the force response): their worst case is returned apart
         (``k_bound_late``, ``b_bound_late``; ``measure_felt``'s ``late_bounded``).
+    fit : dict, optional
+        Filled, when the fit is variable projection, with its modes (``spec``, as
+        :func:`~hapsim.analysis.identify.measure_felt`'s ``fit``), ``offset`` and ``rows``:
+        one int array per stretch fitted, the indices into ``position`` of its samples
+        (what :func:`hapsim.analysis.unseen_holds.fit_residual` needs).
 
     Returns
     -------
@@ -189,10 +194,16 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
             lb = [(np.concatenate([np.asarray(e, float)[p:q] for p, q in use]), r)
                   for e, r in elb]
             lb = [(e, r) for e, r in lb if np.any(e > 0)] or None
+            got = {} if fit is not None else None
             res = measure_felt(y, period, mass, predicted, felt, offset=offset,
                                quantum=quantum, noise=noise, order=int(order), pencil=pencil,
                                sensor_response=sensor_response, wire=wire, lens=lens,
-                               bounded=bounded, late_bounded=lb)
+                               bounded=bounded, late_bounded=lb, fit=got)
+            if got:
+                idx = np.flatnonzero(sel)[np.concatenate(
+                    [np.arange(p, q) for p, q in use])]
+                fit.update(spec=got["spec"], offset=bool(offset),
+                           rows=[idx[p:q] for p, q in got["kept"]])
             if late_bounds is not None and "b" in res and lb is None:
                 res["k_bound_late"] = res["b_bound_late"] = 0.0
         except ConfigError as exc:

@@ -253,6 +253,10 @@ class Driver:
     #: late (set by the run's :class:`hapsim.drivers.transport.DriverTransport`: its
     #: ``mistimed``); None: none known (:meth:`mistimed_rows`).
     mistimed_seqs: set | None = None
+    #: The run's board takes commands on its own tick, on its own clock (set by the run's
+    #: transport; a lockstep mock's is not): the measurement seeks the holds it mistimed
+    #: that no host saw (:func:`hapsim.pipeline.measure.identify_run`).
+    own_tick = False
 
     def mistimed_rows(self, columns: dict):
         """Rows whose force was held a tick longer or shorter than the loop's period, left

@@ -274,6 +274,8 @@ class DriverTransport(TickAligned):
         # period's): the driver's measurement cuts the record there (mistimed_rows)
         self.mistimed: set = set()
         driver.mistimed_seqs = self.mistimed
+        # the board keeps its own tick (no lockstep mock): its unseen holds are sought
+        driver.own_tick = bool(self._tick_ns) and handled is None and board_period is None
         self._tick_probed = False           # probed at the first arming
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]

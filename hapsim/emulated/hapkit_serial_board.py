@@ -10,7 +10,7 @@ import math
 
 from hapsim.emulated.actuated import Actuated
 
-__all__ = ["HapkitSerialDevice"]
+__all__ = ["HapkitSerialDevice", "hapkit_serial_offline_loop"]
 
 
 class HapkitSerialDevice(Actuated):
@@ -121,3 +121,74 @@ class HapkitSerialDevice(Actuated):
         return {"commands": len(ph), "near_boundary": near,
                 "median_phase": ph[len(ph) // 2] if ph else None,
                 "off_period": len(off), "off_at": off[:1000]}
+
+
+def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
+                               phase: float = 0.5):
+    """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
+    1 kHz tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
+    of each command), hapsim's engine as the host; deterministic, no pty, no real time.
+
+    The host loop's arithmetic: row ``k`` is the reply to command ``k`` (the handle read
+    at the tick that took it), the force computed from it goes out with command ``k + 1``.
+    The host writes command ``k`` at ``k T + phase`` ticks, in the middle of a tick as the
+    transport aligns them (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`); the
+    board reads command ``k`` ``read_late[k]`` ticks after it came (its own read latency:
+    a USB-serial bridge's frame, its process scheduled late), unseen by the host (nothing
+    is marked in the driver's ``mistimed_seqs``): a latency past the tick's end takes the
+    command at a later tick, the reply's position read that much late and the force before
+    held that much longer (:attr:`HapkitSerialDevice.tick_arrivals` counts them).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A calibrated scene whose device speaks ``hapkit-serial`` (its rate a whole number
+        of ticks, its delay, force limit and excitation).
+    n : int
+        Rows [samples].
+    read_late : dict of int to float, optional
+        ``{command: ticks}``: the board's read latency of those commands [ticks].
+    device : hapsim.scene.Device, optional
+        The board's true device when it is not the scene's (a hidden mass or friction).
+    phase : float
+        Where in its tick the host's writes come [fraction of a tick].
+
+    Returns
+    -------
+    tuple
+        ``(columns, driver, board)``: telemetry columns (``time`` [s], ``position`` [m],
+        ``force`` [N], ``seq``, ``flags``, ``late``, ``force_seq``, ``status``), shape
+        (n,); the :class:`hapsim.drivers.hapkit_serial.HapkitSerial` whose replies they
+        are (its ``loop_delay`` and ``own_tick`` set, no hold marked); the board.
+    """
+    import numpy as np
+
+    from hapsim.drivers.hapkit_serial import HapkitSerial
+    from hapsim.engine import Engine
+    sc = scene
+    drv = HapkitSerial()
+    drv.loop_delay = int(sc.device.delay)
+    drv.mistimed_seqs = set()
+    drv.own_tick = True                        # the sketch keeps its tick (simulated)
+    board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall")
+    dec = drv.decoder()
+    eng = Engine(sc)
+    T, tick = sc.period, board.TICK_S
+    late = dict(read_late or {})
+
+    def command(j: int, f: float) -> float:
+        now = j * T + (phase + float(late.get(j, 0.0))) * tick
+        return dec.feed(board.feed(drv.encode_force(f), now))[-1]
+
+    x = command(0, 0.0)
+    cols = {q: np.zeros(n) for q in ("time", "position", "force")}
+    lim = float(sc.device.force_limit)
+    for k in range(n):
+        cols["time"][k] = k * T
+        cols["position"][k] = x
+        f = min(max(eng.port_step(x), -lim), lim)
+        cols["force"][k] = drv.applied_force(f)
+        x = command(k + 1, f)
+    cols.update(seq=np.arange(n), flags=np.zeros(n, np.uint8), late=np.zeros(n, np.uint8),
+                force_seq=np.arange(n) - int(sc.device.delay), status=np.zeros(n, np.uint16))
+    return cols, drv, board

@@ -173,15 +173,32 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                     cols, T, *device_body(dev), quantum, dev.noise,
                     float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
                     coulomb=dev.coulomb), response))
-        measured = identify(position, cols["seq"], T, pred["order"],
-                            device_body(dev)[0], start,
-                            offset=offset, late=late, skip=math.ceil(float(dev.delay)) + 2,
-                            predicted=poles, felt=felt, quantum=quantum, noise=dev.noise,
+        exclude = ((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
+                   else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
+
+        def fitted(ex, fit=None):
+            return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
+                            start, offset=offset, late=late,
+                            skip=math.ceil(float(dev.delay)) + 2, predicted=poles,
+                            felt=felt, quantum=quantum, noise=dev.noise,
                             sensor_response=response,
-                            closed=None if replay is None else replay.closed,
-                            exclude=((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
-                                     else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown),
-                            wire=wire, bounds=bounds or None, late_bounds=late_bounds)
+                            closed=None if replay is None else replay.closed, exclude=ex,
+                            wire=wire, bounds=bounds or None, late_bounds=late_bounds,
+                            fit=fit)
+        if getattr(driver, "own_tick", False) and float(getattr(driver, "tick_s", 0.0)) > 0:
+            # a board on its own tick and clock: the holds it mistimed that the host did
+            # not see, found in the record and cut as the marked ones
+            # (hapsim.analysis.unseen_holds); a lockstep mock has no tick to mistime
+            # rows with an error the stated uncertainty bounds already (an estimated
+            # position, a force the account cannot name or a late tick's): no hold there
+            unread = (cols["flags"] & FLAG_ESTIMATED) != 0
+            for b in (hw, lfb):
+                if b is not None:
+                    unread = unread | (np.asarray(b, float) > 0)
+            measured = _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum,
+                                         driver, unread)
+        else:
+            measured = fitted(exclude)
         if mistimed is not None:
             measured["mistimed_rows"] = int(np.count_nonzero(mistimed))
         if replay is not None:
@@ -216,6 +233,11 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                      f"uncertainty covers the worst case of their error (k +-"
                      f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
                      f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
+    n_unseen = measured.get("unseen_holds", 0)
+    if n_unseen:
+        notes.append(f"{n_unseen} holds the board took off the period, which the host "
+                     f"did not see (its own read latency), were found in the record and "
+                     f"cut (unseen_hold_seqs)")
     late_in = measured.get("late_in_segment", 0)
     if late_in:
         notes.append(f"no stretch of 100 samples without late ticks: the identified record "
@@ -233,6 +255,96 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             t0 = targets[0]
             measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
                                           for q in ("k", "b", "f0_hz", "damping_ratio")}
+    return measured
+
+
+def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
+                      unread) -> dict:
+    """:func:`identify_run`'s fit of a board on its own tick, with the holds it mistimed
+    that no host saw cut out (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
+
+    Fit, find the rows whose hold signature stands out of the residual, cut them
+    (:func:`~hapsim.analysis.unseen_holds.hold_rows`, as the host-marked holds), fit
+    again, at most :data:`~hapsim.analysis.unseen_holds.MAX_PASSES` times more. With
+    none found the first fit is the measurement, unchanged.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    fitted : callable
+        ``fitted(exclude, fit) -> dict``: :func:`hapsim.analysis.measurement.identify` on
+        the run's record with these rows left out (``fit`` filled as it says).
+    exclude : ndarray of bool, shape (n,)
+        The rows already left out.
+    position : ndarray, shape (n,)
+        The record measured [m] (the late ticks' response taken out).
+    cols : dict of ndarray
+        The telemetry columns (``force`` [N], ``seq``), shape (n,).
+    quantum : float
+        The sensor's step [m].
+    driver : hapsim.drivers.base.Driver
+        The run's driver (its ``position_rel``: the wire's rounding in the floor).
+    unread : ndarray of bool, shape (n,)
+        Rows whose error the stated uncertainty bounds already (an estimated position, a
+        force the account cannot name, a late tick's accounted force): no hold is sought
+        near them (:func:`~hapsim.analysis.unseen_holds.find_unseen_holds`' ``unread``).
+
+    Returns
+    -------
+    dict
+        The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
+        some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
+        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
+        positive, taken late).
+    """
+    from hapsim.analysis.error_response import force_error_response, sensor_error_response
+    from hapsim.analysis.identify import sensor_sd
+    from hapsim.analysis.unseen_holds import MAX_PASSES, find_unseen_holds, hold_rows
+    n = int(cols["seq"].size)
+    # whole ticks, less than a period either way (a command taken a period late is
+    # answered after the next one has gone out: a late reply, which the host sees)
+    tick = float(driver.tick_s)
+    per = max(int(round(scene.period / tick)) - 1, 1)
+    tried = [s * k * tick for k in range(1, per + 1) for s in (1, -1)]
+    fit: dict = {}
+    measured = fitted(exclude, fit)
+    if not fit:                        # no variable projection: an exact record, or none
+        measured["unseen_holds"] = 0
+        return measured
+    try:
+        S, H = sensor_error_response(scene, n), force_error_response(scene, n)
+    except ConfigError:
+        measured["unseen_holds"] = 0
+        return measured
+    x = np.asarray(position, float)
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    floor = math.hypot(sensor_sd(quantum, scene.device.noise),
+                       pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
+    rows, taus = [], []
+    ex = np.asarray(exclude, bool).copy()
+    for _ in range(MAX_PASSES):
+        got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
+                                floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
+                                unread=unread)
+        # a hold whose rows are cut already (one before a stretch, found again by its
+        # tail) changes nothing: the search stops when no hold found cuts a new row
+        new = [(j, t) for j, t in zip(got["rows"].tolist(), got["tau_s"].tolist())
+               if np.any(hold_rows(n, [j]) & ~ex)]
+        if not new:
+            break
+        rows += [j for j, _ in new]
+        taus += [t for _, t in new]
+        ex |= hold_rows(n, [j for j, _ in new])
+        fit = {}
+        measured = fitted(ex, fit)
+        if not fit:
+            break
+    measured["unseen_holds"] = len(rows)
+    if rows:
+        seq = np.asarray(cols["seq"], np.int64)
+        measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
+        measured["unseen_hold_tau_ms"] = [round(t * 1e3, 3) for t in taus[:100]]
     return measured
 
 

@@ -1,0 +1,159 @@
+"""Holds a board on its own tick mistimed that no host saw (issue 29, the wrong-verdict
+class): found in the record and cut (:mod:`hapsim.analysis.unseen_holds`).
+
+The Hapkit sketch reads the handle and applies a command's force at its first tick after
+the command has come. A board that is itself late to read a command (a USB-serial
+bridge's 1 ms frames; the emulated sketch's process beside two CPU-bound ones) takes it a
+tick or two late: the reply's position read late, the force before held longer, which
+neither the reply nor the host sees. Beside two hogs the emulated sketch took 1 to 8 of
+them a run, and one run said "differs" of a matching paddle.
+
+Here the THS is closed on a SIMULATED clock
+(:func:`hapsim.emulated.hapkit_serial_board.hapkit_serial_offline_loop`: the board on its
+own tick fed the simulated time of each command; deterministic, no pty, no wall clock),
+random paddles and loops, 1 to 10 holds of 0.6 to 2.5 ticks of read latency at random rows
+that the host does not mark. Before the change (the search off: ``own_tick`` False, as
+``identify_run`` was) 4 of these 16 seeds said "differs" of the matching paddle (17, 21,
+22, 31: k 0.02-0.03 % or b 0.8-1.6 % off, outside intervals of 0.01-0.03 % and
+0.5-1.3 %); over seeds 0-149 of this generator 10 did. Seeds 16-31 are the window that
+holds four of them. A device that truly differs (30 % more mass, or 0.3 N s/m of hidden
+friction) must still "differ".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+
+from hapsim.emulated.hapkit_serial_board import hapkit_serial_offline_loop
+from hapsim.errors import UnstableConfigError
+from hapsim.pipeline.options import RunOptions
+from hapsim.pipeline.runner import identify_run, prepare_run
+from hapsim.scene import load_scene
+from tolerance import measured
+
+pytestmark = pytest.mark.xdist_group("test_unseen_holds")
+
+YAML = """rate_hz: {rate}
+masses:
+  - {{name: handle, kind: port}}
+  - {{name: wall, kind: ground, x0: 0.0}}
+links:
+  - {{name: spring, kind: spring_damper, between: [handle, wall], stiffness: {K},
+     damping: {B}}}
+device:
+  protocol: hapkit-serial
+  mass: {m}
+  friction: {b0}
+  delay: 1
+  hold: zoh
+  force_limit: 2.0
+excitation:
+  x0: {x0}
+"""
+#: The record's length [s]: 4 to 11 cycles of the paddles drawn below.
+DURATION = 1.2
+
+
+def _prep(path):
+    return prepare_run(load_scene(str(path)),
+                       RunOptions(driver="hapkit-serial", rt_priority=0,
+                                  handle_signals=False, duration=DURATION))
+
+
+def _random_case(seed: int, tmp_path):
+    """A random Hapkit paddle and spring (drawn again until its loop is stable) and its
+    unseen holds: ``{command: read latency [ticks]}``."""
+    rng = np.random.default_rng(seed)
+    path = tmp_path / f"paddle{seed}.yaml"
+    while True:
+        m = float(rng.uniform(0.05, 0.15))
+        K = float(rng.uniform(60.0, 150.0))
+        x0 = min(float(rng.uniform(0.005, 0.015)), 1.5 / K)      # within the 2 N limit
+        path.write_text(YAML.format(rate=float(rng.choice([250.0, 200.0])), K=K,
+                                    B=float(rng.uniform(0.0, 0.3)), m=m,
+                                    b0=float(rng.uniform(0.05, 0.4)), x0=x0))
+        try:
+            prep = _prep(path)
+            break
+        except UnstableConfigError:      # beyond the stability limit: another loop
+            continue
+    n = int(round(DURATION * prep.scene.rate_hz))
+    rows = rng.choice(np.arange(5, n - 5), size=int(rng.integers(1, 11)), replace=False)
+    return prep, n, {int(r): float(rng.uniform(0.6, 2.5)) for r in rows}
+
+
+def _measure(prep, cols, driver):
+    tel = types.SimpleNamespace(wrapped=False, n=cols["seq"].size, head=cols["seq"].size,
+                                columns=lambda *a: cols)
+    return identify_run(prep, tel, None, driver=driver)
+
+
+def test_the_signature_is_a_holds_disturbance():
+    """One hold of 1, 2 and 3 ticks on configs/hapkit_serial.yaml: the record less the
+    record without it is the hold's signature (:func:`hapsim.analysis.unseen_holds.
+    hold_signature`), computed from the record without it, to a few per cent of its norm
+    (the force's error taken as an impulse over the period, the rows around the hold
+    interpolated), and five times nearer to it than the signature of any other whole
+    number of ticks (so the search finds the hold's own)."""
+    from hapsim.analysis.error_response import force_error_response, sensor_error_response
+    from hapsim.analysis.unseen_holds import hold_signature
+    prep = _prep("configs/hapkit_serial.yaml")
+    n = 375
+    base, _, _ = hapkit_serial_offline_loop(prep.scene, n)
+    S = sensor_error_response(prep.scene, n)
+    H = force_error_response(prep.scene, n)
+    for ticks in (1, 2, 3):
+        cols, _, board = hapkit_serial_offline_loop(prep.scene, n, read_late={100: ticks})
+        assert board.tick_arrivals["off_at"] == [100, 101]     # its hold and the next
+        d = cols["position"] - base["position"]
+        assert not np.any(d[:100])
+        off = {k: np.linalg.norm(d[100:] - hold_signature(
+            base["position"], base["force"], 100, n - 100, prep.scene.period, S, H,
+            k * 1e-3)) / np.linalg.norm(d[100:]) for k in (-1, 1, 2, 3, 4)}
+        # measured 2.5 %, 1.7 % and 1.0 % (1, 2, 3 ticks); margin 1.5
+        assert off[ticks] <= measured(0.026, 1.5), off
+        assert all(off[ticks] < 0.2 * v for k, v in off.items() if k != ticks), off
+
+
+@pytest.mark.parametrize("seed", range(16, 32))
+def test_unseen_holds_never_make_a_matching_paddle_differ(seed, tmp_path):
+    """Random paddles and loops on the simulated board's tick, 1 to 10 holds the host does
+    not see: the matching paddle is never "differs" (within, or not measurable with its
+    reason); the same loop against a paddle with 30 % more mass (even seeds) or
+    0.3 N s/m of friction the scene does not state (odd ones), the same holds, still
+    "differs"."""
+    prep, n, late = _random_case(seed, tmp_path)
+    cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late)
+    assert board.tick_arrivals["off_period"] >= 1          # the class happened
+    m = _measure(prep, cols, drv)
+    info = (m.get("verdict"), m.get("error"), m.get("unseen_hold_seqs"), sorted(late),
+            {q: (m.get(q), prep.pred[q], m.get(f"{q}_unc")) for q in ("k", "b")})
+    assert not str(m.get("verdict")).startswith("measured differs"), info
+    assert m.get("within") is True or "k" not in m, info
+    dev = prep.scene.device
+    wrong = (dataclasses.replace(dev, mass=1.3 * dev.mass) if seed % 2 == 0
+             else dataclasses.replace(dev, friction=dev.friction + 0.3))
+    cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late, device=wrong)
+    m = _measure(prep, cols, drv)
+    assert str(m.get("verdict")).startswith("measured differs"), (
+        m.get("verdict"), m.get("error"), m.get("unseen_hold_seqs"))
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_with_no_hold_the_measurement_is_unchanged(seed, tmp_path):
+    """No hold: nothing is found, and the measurement is the one made without the search
+    (a driver with no tick), bit for bit."""
+    prep, n, _ = _random_case(seed, tmp_path)
+    cols, drv, board = hapkit_serial_offline_loop(prep.scene, n)
+    assert board.tick_arrivals["off_period"] == 0
+    m = _measure(prep, cols, drv)
+    drv.own_tick = False                     # the search is for boards on their own tick
+    plain = _measure(prep, cols, drv)
+    assert m.pop("unseen_holds") == 0 and "unseen_holds" not in plain
+    assert m.keys() == plain.keys()
+    for q in ("k", "b", "k_unc", "b_unc", "samples_used"):
+        assert m[q] == plain[q], q
