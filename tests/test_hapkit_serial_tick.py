@@ -329,7 +329,13 @@ def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu
         assert "the host was" in loop["stop_reason"], info
         return
     assert arr["near_boundary"] <= 0.1 * arr["commands"], info
-    assert m.get("within") is True or verdict.startswith("not measurable"), info
+    # within, or not measurable with its reason (the run's own reading of the measurement,
+    # an error included: the unseen holds cut can leave too few cycles on a loaded machine
+    # -- 30 holds off the period in one run beside the hogs and a helper's work)
+    from hapsim.pipeline.report import verdict_summary
+    summary = verdict_summary(m)
+    assert summary["verdict"] in ("within", "not measurable"), (summary, info)
+    assert summary["verdict"] == "within" or summary["reason"], (summary, info)
 
 
 def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):

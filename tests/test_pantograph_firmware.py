@@ -572,7 +572,11 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     rep = json.loads(report.read_text())
     assert rep["mode"] == "realtime"
     assert res["frames"] == "compact" and res["incomplete"] is None, res["incomplete"]
-    assert all(d >= 1 for d in res["delay"])            # never before it is due
+    # never before it is due; -1: a record in which no FORCE made its tick (a host starved
+    # past the watchdog throughout it, seen once in a fresh-clone suite beside helpers'
+    # work): the device held zero, every row past the delay a known input
+    # (hapsim.pipeline.felt_port.measure_felt_port's docstring)
+    assert all(d >= 1 or d == -1 for d in res["delay"]), res["delay"]
     res["torque_max"] = tr.torque_max
     wire = wire_term(scene, res, tr.hello.position_scale, tr.hello.force_scale)
     bound = linearisation_bound(scene, max(a, res["excursion"]),
