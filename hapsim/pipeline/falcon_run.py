@@ -32,7 +32,7 @@ import numpy as np
 from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
-__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "reply_timeout",
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "felt_statement", "reply_timeout",
            "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD", "ENVELOPE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
@@ -160,6 +160,39 @@ def falcon_verdict(res: dict) -> dict:
                 f"came whole and plausible, every leg homed ({caveat})"}
     return {"verdict": "degraded", "reason": f"{said} (of {res['samples']} samples; a "
             f"missing sample holds the last reading); {caveat}"}
+
+
+def felt_statement(scene) -> dict:
+    """What a Falcon run says of the felt matrices: whether they can be measured through
+    the Falcon's counts at all (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the
+    readings' and commands' rounding at the largest hand start the scene's linear range
+    allows, against the limit of a statement), never a verdict the stated uncertainty
+    does not cover.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 3-D delta scene.
+
+    Returns
+    -------
+    dict
+        ``verdict``: ``"not measurable"`` (the counts too coarse for this scene: the
+        reason gives the figures) or ``"not measured"`` (they would do, but the run
+        closes the loop from rest, with no hand starts to fit); ``reason``; and the
+        feasibility's figures (``amplitude_m``, ``count_at_handle_m``, ``worst``,
+        ``widrow_kollar``, ``limit``, ``needed_amplitude_m``, ``needed_count_rad``, when
+        computed).
+    """
+    from hapsim.emulated.falcon_felt import felt_feasibility
+    f = felt_feasibility(scene)
+    out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
+    if f["verdict"] == "measurable":
+        out["verdict"] = "not measured"
+        out["reason"] = ("the run closes the loop from rest and takes no hand starts to "
+                         "fit (tools/falcon_felt_figures.py measures them on the emulated "
+                         "Falcon); at its counts: " + f["reason"])
+    return out
 
 
 def _zero(link, timeout: float) -> int:
