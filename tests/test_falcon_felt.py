@@ -95,6 +95,30 @@ def test_finer_counts_state_within_and_differs(sphere, monkeypatch):
     assert st["verdict"] == "differs" and st["deviation"] > st["uncertainty"]
 
 
+def test_lost_replies_are_cut_and_never_make_the_matching_device_differ(sphere, monkeypatch):
+    """With the count 200 times finer and 1 byte in 200 lost each way (seeded), the
+    records lose replies (missing samples): they are cut with the rows their stale force
+    acted on, the stretches fitted jointly; the scene's own device is never "differs",
+    and whatever is stated of it is within its stated uncertainty."""
+    import hapsim.drivers.falcon as falcon
+    from hapsim.emulated.driver_mock import ByteFaults
+    from hapsim.emulated.falcon_felt import measure_felt_falcon
+    sc, plan, f = sphere
+    finer = 200.0
+    monkeypatch.setattr(falcon, "DEG_PER_TICK", falcon.DEG_PER_TICK / finer)
+    monkeypatch.setattr(falcon, "THETA_OFFSET_DEG", 20.0)
+    monkeypatch.setattr(falcon, "START_STEP", int(falcon.START_STEP * finer))
+    for seed in (0, 1):
+        r = measure_felt_falcon(sc, f["amplitude_m"], plan=plan, max_step=int(8 * finer),
+                                faults=ByteFaults({"drop_rx": 0.005, "drop_tx": 0.005,
+                                                   "seed": seed}))
+        assert r["missing"] > 0 and max(r["fitted_rows"]) < plan[2]
+        assert r["verdict"] != "differs", r["reason"]
+        for st in r["statements"]:
+            if st["verdict"] != "not measurable":
+                assert st["deviation"] <= st["uncertainty"], st
+
+
 def test_widrow_kollar_is_below_the_worst_case_and_the_start_keeps_to_the_contact(sphere):
     """Widrow & Kollar's standard deviation of a felt entry, ``sqrt(sum c^2 q^2 / 12)``,
     is at most the worst case ``sum |c| q / 2`` over sqrt(3) (``|c|_2 <= |c|_1``), entry

@@ -182,7 +182,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
 
 
 def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None,
-                        samples: int | None = None, max_step: int = 8) -> dict:
+                        samples: int | None = None, max_step: int = 8,
+                        faults=None) -> dict:
     """The felt matrices of a delta scene measured through the emulated Falcon's packets
     on its lockstep clock (named: deterministic), and their verdict (module notes).
 
@@ -209,6 +210,9 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
         The reply decoder's plausible step [counts]
         (:class:`hapsim.drivers.falcon.DevicePacketDecoder`; an encoder finer than the
         Falcon's scales it).
+    faults : hapsim.emulated.driver_mock.ByteFaults, optional
+        Byte faults on the records' packets, both ways (the homing clean): a reply lost
+        is a missing sample, cut (module notes).
 
     Returns
     -------
@@ -237,7 +241,7 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
         dev.let_go(x0, v0)
         # a fresh decoder: the hand's start is a jump from the homing's last counts (its
         # first reply taken unchecked, the steps after it checked)
-        r = drive_falcon(dev.feed, scene, N, leds=LED_GREEN, decoder=DevicePacketDecoder(max_step))
+        r = drive_falcon(dev.feed, scene, N, leds=LED_GREEN, decoder=DevicePacketDecoder(max_step), faults=faults)
         runs.append(r)
         q = np.asarray(r["joints"], float)
         excursion = max(excursion, float(np.nanmax(np.abs(q - scene.device.joints))))
