@@ -30,6 +30,23 @@ def sphere():
     return sc, plan, felt_feasibility(sc, plan)
 
 
+#: How much finer than the Falcon's the emulated encoder of :func:`finer_counts` is.
+FINER = 200
+
+
+@pytest.fixture
+def finer_counts(monkeypatch):
+    """The emulated Falcon's encoder (and the driver's reading of it) :data:`FINER` times
+    finer, its zero moved to 20 deg so that the counts of the sphere's legs (15-25 deg)
+    stay in the packets' int16; the decoder's first plausible step scaled with the count.
+    Returns the decoder's plausible step (``max_step``) in these counts."""
+    import hapsim.drivers.falcon as falcon
+    monkeypatch.setattr(falcon, "DEG_PER_TICK", falcon.DEG_PER_TICK / FINER)
+    monkeypatch.setattr(falcon, "THETA_OFFSET_DEG", 20.0)
+    monkeypatch.setattr(falcon, "START_STEP", falcon.START_STEP * FINER)
+    return 8 * FINER
+
+
 def _heavier(sc, factor):
     return replace(sc, device=replace(sc.device,
                                       joint_inertia=sc.device.joint_inertia * factor))
@@ -61,24 +78,18 @@ def test_the_falcons_counts_never_state_the_felt_matrices(sphere):
         assert not any(s["verdict"] == "within" for s in r["statements"])
 
 
-def test_finer_counts_state_within_and_differs(sphere, monkeypatch):
+def test_finer_counts_state_within_and_differs(sphere, finer_counts):
     """The same records, fit and statement with an encoder 200 times finer (its zero
     moved to 20 deg so that the counts stay in the packets' int16): the scene's own
     device is measured = predicted within the stated uncertainty for what is stated (the
     stiffness; the damping then still not measurable at this start, as the feasibility's
     figures, inverse in the count, say), and a device with 30 % more leg inertia differs.
     The blocker on the Falcon is its count, not the measurement."""
-    import hapsim.drivers.falcon as falcon
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     from hapsim.emulated.falcon_felt import measure_felt_falcon
     sc, plan, f = sphere
-    finer = 200.0
-    monkeypatch.setattr(falcon, "DEG_PER_TICK", falcon.DEG_PER_TICK / finer)
-    monkeypatch.setattr(falcon, "THETA_OFFSET_DEG", 20.0)
-    # the decoder's plausible steps are in counts: scaled with them
-    monkeypatch.setattr(falcon, "START_STEP", int(falcon.START_STEP * finer))
     a = f["amplitude_m"]
-    step = int(8 * finer)                     # the decoder's plausible step, in its counts
+    step = finer_counts
     same = measure_felt_falcon(sc, a, plan=plan, max_step=step)
     assert same["missing"] == 0 and same["clamped"] == 0
     assert same["verdict"] in ("within", "partly within"), same["reason"]
@@ -88,28 +99,23 @@ def test_finer_counts_state_within_and_differs(sphere, monkeypatch):
     # count) against the records' own: the same worst case, over other records (the
     # quantised ones, not the exact), within the first-order expansion's reach
     assert same["wire"]["felt_stiffness"] <= MEASURABLE_WIRE
-    assert f["worst_reading"]["felt_stiffness"] / finer <= MEASURABLE_WIRE
+    assert f["worst_reading"]["felt_stiffness"] / FINER <= MEASURABLE_WIRE
     heavy = measure_felt_falcon(sc, a, plant=_heavier(sc, 1.3), plan=plan, max_step=step)
     assert heavy["verdict"] == "differs", heavy["reason"]
     st = next(s for s in heavy["statements"] if s["name"] == "felt stiffness")
     assert st["verdict"] == "differs" and st["deviation"] > st["uncertainty"]
 
 
-def test_lost_replies_are_cut_and_never_make_the_matching_device_differ(sphere, monkeypatch):
+def test_lost_replies_are_cut_and_never_make_the_matching_device_differ(sphere, finer_counts):
     """With the count 200 times finer and 1 byte in 200 lost each way (seeded), the
     records lose replies (missing samples): they are cut with the rows their stale force
     acted on, the stretches fitted jointly; the scene's own device is never "differs",
     and whatever is stated of it is within its stated uncertainty."""
-    import hapsim.drivers.falcon as falcon
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.emulated.falcon_felt import measure_felt_falcon
     sc, plan, f = sphere
-    finer = 200.0
-    monkeypatch.setattr(falcon, "DEG_PER_TICK", falcon.DEG_PER_TICK / finer)
-    monkeypatch.setattr(falcon, "THETA_OFFSET_DEG", 20.0)
-    monkeypatch.setattr(falcon, "START_STEP", int(falcon.START_STEP * finer))
     for seed in (0, 1):
-        r = measure_felt_falcon(sc, f["amplitude_m"], plan=plan, max_step=int(8 * finer),
+        r = measure_felt_falcon(sc, f["amplitude_m"], plan=plan, max_step=finer_counts,
                                 faults=ByteFaults({"drop_rx": 0.005, "drop_tx": 0.005,
                                                    "seed": seed}))
         assert r["missing"] > 0 and max(r["fitted_rows"]) < plan[2]
