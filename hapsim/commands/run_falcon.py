@@ -24,8 +24,9 @@ _REFUSED = (("--baud", "baud", "the Falcon's rates are its loader's and firmware
              "already: the firmware answers each packet"),
             ("--faults", "faults", "the Falcon's hostile streams are injected by its "
              "emulated FT232R in the tests (tests/test_falcon_usb.py)"),
-            ("--amplitude", "amplitude", "the felt matrices are not measured through "
-             "the Falcon's counts (docs/devices.md)"))
+            ("--amplitude", "amplitude", "the run takes no hand starts: the felt "
+             "matrices' statement in its report says whether the Falcon's counts could "
+             "measure them (docs/devices.md)"))
 
 
 def _image(path) -> bytes:
