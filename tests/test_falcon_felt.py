@@ -165,3 +165,13 @@ def test_missing_rows_are_cut_with_the_rows_their_stale_force_acted_on():
                     r1 += 1
                 want[max(k - 1, 0):min(r1 + d + 1, N - 1) + 1] = False
         assert np.array_equal(falcon_usable_rows(q, d), want)
+
+
+def test_a_large_loops_feasibility_is_not_computed_in_a_run():
+    """configs/delta_mesh.yaml (162 states; its figures took 3.5 min of CPU): the run's
+    statement is "not measured" with the reason, never a verdict, and no figures."""
+    from hapsim.pipeline.falcon_run import FEASIBILITY_STATES, felt_statement
+    from hapsim.scene import load_scene_nd
+    f = felt_statement(load_scene_nd(CONFIGS / "delta_mesh.yaml"))
+    assert f["verdict"] == "not measured" and f["states"] > FEASIBILITY_STATES
+    assert "tools/falcon_felt_figures.py" in f["reason"] and "worst" not in f

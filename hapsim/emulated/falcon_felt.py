@@ -420,9 +420,9 @@ def felt_feasibility(scene, plan=None) -> dict:
               f"Widrow & Kollar's standard deviation {t['widrow_kollar']['felt_stiffness']:.2g}"
               f" and {t['widrow_kollar']['felt_damping']:.2g}), against the limit "
               f"{MEASURABLE_WIRE:g} of a statement: a count "
-              f"{q / need_q['felt_stiffness']:.0f} times finer (or a start of "
-              f"{need_a['felt_stiffness'] * 1e3:.1f} mm) would be needed for the stiffness, "
-              f"{q / need_q['felt_damping']:.0f} times finer for the damping")
+              f"{q / need_q['felt_stiffness']:.3g} times finer (or a start of "
+              f"{need_a['felt_stiffness'] * 1e3:.3g} mm) would be needed for the stiffness, "
+              f"{q / need_q['felt_damping']:.3g} times finer for the damping")
     return {"verdict": "measurable" if ok else "not measurable", "reason": reason,
             "amplitude_m": a_max, "limited_by": by,
             "count_at_handle_m": [float(col.min()), float(col.max())],

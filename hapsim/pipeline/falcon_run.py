@@ -61,6 +61,10 @@ REPLY_SLACK_S = 0.002
 #: The wait [s] for each of the firmware's first answers after its load
 #: (:data:`FIRMWARE_PROBES` of them): the wait each reply had before, not the loop's.
 PROBE_TIMEOUT_S = 0.05
+#: The most states of a scene's loop whose felt feasibility a run computes
+#: (:func:`felt_statement`): configs/delta_sphere.yaml's 12 take ~1 s of CPU;
+#: configs/delta_mesh.yaml's 162 took 3.5 min (its 3,240-sample records' sensitivities).
+FEASIBILITY_STATES = 24
 
 
 def reply_timeout(rate_hz: float) -> float:
@@ -179,13 +183,23 @@ def felt_statement(scene) -> dict:
     dict
         ``verdict``: ``"not measurable"`` (the counts too coarse for this scene: the
         reason gives the figures) or ``"not measured"`` (they would do, but the run
-        closes the loop from rest, with no hand starts to fit); ``reason``; and the
+        closes the loop from rest, with no hand starts to fit; or the loop has more
+        than :data:`FEASIBILITY_STATES` states, ``states``, and the figures are not
+        computed in a run); ``reason``; and the
         feasibility's figures (``amplitude_m``, ``count_at_handle_m``, ``worst``,
         ``widrow_kollar``, ``limit``, ``needed_amplitude_m``, ``needed_count_rad``, when
         computed).
     """
     from hapsim.emulated.falcon_felt import felt_feasibility
-    f = felt_feasibility(scene)
+    from hapsim.lockstep import identification_plan
+    plan = identification_plan(scene)
+    if plan[0].states > FEASIBILITY_STATES:
+        return {"verdict": "not measured", "states": int(plan[0].states),
+                "reason": f"the loop has {plan[0].states} states, more than the "
+                          f"{FEASIBILITY_STATES} whose feasibility a run computes (the "
+                          "records' first-order figures would take minutes): "
+                          "tools/falcon_felt_figures.py computes them"}
+    f = felt_feasibility(scene, plan)
     out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
     if f["verdict"] == "measurable":
         out["verdict"] = "not measured"
